@@ -1,0 +1,59 @@
+"""`python -m models.data summary|warm`: what the mocap data holds, and building the parse cache."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections import Counter, defaultdict
+
+from .archives import DATASETS
+from .index import Clip, build_index
+from .loader import warm_cache
+
+
+def format_summary(clips: list[Clip]) -> str:
+    out = []
+    by_dataset: dict[str, list[Clip]] = defaultdict(list)
+    for clip in clips:
+        by_dataset[clip.dataset].append(clip)
+    for name, members in by_dataset.items():
+        frames = sum(c.frames for c in members)
+        minutes = sum(c.seconds for c in members) / 60
+        fps = sorted({c.fps for c in members})
+        splits = Counter(c.split for c in members)
+        out.append(f"== {name}  ({DATASETS[name].skeleton} skeleton, {'/'.join(f'{f:g}' for f in fps)} fps, {DATASETS[name].licence})")
+        out.append(f"   files {len(members)}  frames {frames}  minutes {minutes:.1f}  "
+                   f"split train/val/test {splits['train']}/{splits['val']}/{splits['test']}")
+        styles = sorted({c.style for c in members})
+        contents = sorted({c.content for c in members})
+        table = Counter((c.style, c.content) for c in members)
+        width = max(len(s) for s in styles) + 1
+        out.append("   " + " " * width + " ".join(contents))
+        for style in styles:
+            cells = " ".join(f"{table[(style, c)] or '.':>{len(c)}}" for c in contents)
+            out.append(f"   {style:<{width}}{cells}")
+        out.append("")
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m models.data", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_sum = sub.add_parser("summary", help="files, frames, minutes and a styles x contents table (takes per cell)")
+    p_sum.add_argument("--dataset", action="append", choices=list(DATASETS), help="limit to these datasets")
+    p_warm = sub.add_parser("warm", help="unpack and parse every file into the cache; prints the time")
+    p_warm.add_argument("--dataset", action="append", choices=list(DATASETS))
+    args = parser.parse_args(argv)
+    t0 = time.perf_counter()
+    clips = build_index(args.dataset)
+    if args.command == "summary":
+        print(format_summary(clips))
+    else:
+        parsed = warm_cache(clips)
+        print(f"{len(clips)} files, {parsed} parsed, {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

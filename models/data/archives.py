@@ -1,0 +1,110 @@
+"""Locating and unpacking the mocap archives.
+
+`../shared/data` (or `STYLESTREAM_DATA_DIR`) holds `.tar.xz` archives and a `SHA256SUMS`
+file. An archive is checked against its sum, then unpacked once into the git-ignored cache
+folder; a marker remembers which archive bytes it came from, so a changed archive is unpacked
+again (and every parsed-array cache built from it goes stale with the new file times).
+A data folder that already holds the unpacked dataset folder is used in place.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import tarfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..settings import Settings, get_settings
+
+
+class DataError(RuntimeError):
+    """The mocap data is missing or does not match its checksum."""
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    name: str  # our id, e.g. "bandai-namco-2"
+    archive: str  # file name in the data folder
+    root: str  # top-level folder inside the archive
+    bvh_dir: str  # folder of the BVH files, relative to the unpacked root's parent
+    skeleton: str  # "bandai-namco" or "cmu"
+    licence: str
+
+
+DATASETS: dict[str, DatasetSpec] = {
+    spec.name: spec
+    for spec in (
+        DatasetSpec("bandai-namco-1", "bandai-namco-1.tar.xz", "Bandai-Namco-Research-Motiondataset-1",
+                    "Bandai-Namco-Research-Motiondataset-1/data", "bandai-namco", "CC BY-NC 4.0"),
+        DatasetSpec("bandai-namco-2", "bandai-namco-2.tar.xz", "Bandai-Namco-Research-Motiondataset-2",
+                    "Bandai-Namco-Research-Motiondataset-2/data", "bandai-namco", "CC BY-NC 4.0"),
+        DatasetSpec("xia", "xia.tar.xz", "xia", "xia", "cmu", "research use only; cite Xia et al. 2015"),
+        DatasetSpec("cmu", "cmu.tar.xz", "cmu", "cmu", "cmu", "free for research and commercial use; acknowledge mocap.cs.cmu.edu"),
+    )
+}
+
+
+def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _expected_sums(data_dir: Path) -> dict[str, str]:
+    sums = data_dir / "SHA256SUMS"
+    if not sums.exists():
+        return {}
+    out = {}
+    for line in sums.read_text().splitlines():
+        parts = line.split()
+        if len(parts) == 2:
+            out[parts[1].lstrip("*")] = parts[0]
+    return out
+
+
+def dataset_dir(name: str, settings: Settings | None = None) -> Path:
+    """Folder holding the dataset's BVH files, unpacking the archive on first use."""
+    settings = settings or get_settings()
+    spec = DATASETS[name]
+    data_dir, cache_dir = Path(settings.data_dir), Path(settings.cache_dir)
+    in_place = data_dir / spec.bvh_dir
+    archive = data_dir / spec.archive
+    if not archive.exists():
+        if in_place.is_dir():
+            return in_place
+        raise DataError(f"dataset {name!r}: neither {archive} nor {in_place} exists "
+                        f"(set STYLESTREAM_DATA_DIR to the folder with the mocap archives)")
+    unpack_root = cache_dir / "unpacked" / name
+    marker = unpack_root / ".source.json"
+    stat = archive.stat()
+    ident = {"archive": str(archive.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+    if marker.exists():
+        recorded = json.loads(marker.read_text())
+        if all(recorded.get(k) == v for k, v in ident.items()):
+            return unpack_root / spec.bvh_dir
+    digest = sha256_file(archive)
+    expected = _expected_sums(data_dir).get(spec.archive)
+    if expected is not None and digest != expected:
+        raise DataError(f"{archive}: SHA-256 {digest} does not match SHA256SUMS ({expected}); refusing to use it")
+    if unpack_root.exists():
+        shutil.rmtree(unpack_root)
+    tmp = unpack_root.with_name(unpack_root.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    with tarfile.open(archive, "r:xz") as tar:
+        tar.extractall(tmp, filter="data")
+    (tmp / ".source.json").write_text(json.dumps({**ident, "sha256": digest}))
+    tmp.rename(unpack_root)  # atomic: a crash mid-unpack never leaves a half folder that looks done
+    return unpack_root / spec.bvh_dir
+
+
+def dataset_root(name: str, settings: Settings | None = None) -> Path:
+    """The unpacked top-level folder (with cfg/, LICENSE, PROVENANCE.md)."""
+    bvh_dir = dataset_dir(name, settings)
+    spec = DATASETS[name]
+    depth = len(Path(spec.bvh_dir).parts) - len(Path(spec.root).parts)
+    return bvh_dir.parents[depth - 1] if depth > 0 else bvh_dir

@@ -1,0 +1,188 @@
+"""Skeletons, motions and forward kinematics (numpy and batched, differentiable torch).
+
+A `Motion` keeps local joint rotations as quaternions and local translations for every joint.
+Translations are per frame because BVH allows position channels on any joint: the Bandai Namco
+files animate `Hips` (a child of a static `joint_Root`), CMU files animate the root. Joints
+without position channels simply repeat their offset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from . import bvh as bvhio
+from .rotations import euler_to_quat, quat_apply, quat_mul, quat_canonical, quat_to_euler, quat_apply_t, quat_mul_t
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    names: tuple[str, ...]
+    parents: np.ndarray  # (J,) int, parent index or -1; parents precede children
+    offsets: np.ndarray  # (J, 3) rest translation of each joint in its parent's frame
+    end_sites: np.ndarray  # (J, 3) End Site offset, NaN where a joint has none
+
+    def __post_init__(self) -> None:
+        if any(p >= i for i, p in enumerate(self.parents)):
+            raise ValueError("joints must be ordered parents-first")
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.names)
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"no joint {name!r} in skeleton ({', '.join(self.names)})") from None
+
+    def children(self, j: int) -> list[int]:
+        return [i for i, p in enumerate(self.parents) if p == j]
+
+    def chain_length(self, start: str, end: str) -> float:
+        """Sum of bone lengths from `end` up to (excluding) `start`, e.g. hip to foot."""
+        j, k, total = self.index(end), self.index(start), 0.0
+        while j != k:
+            if j < 0:
+                raise ValueError(f"{start} is not an ancestor of {end}")
+            total += float(np.linalg.norm(self.offsets[j]))
+            j = int(self.parents[j])
+        return total
+
+    def rest_positions(self) -> np.ndarray:
+        """World joint positions with every rotation identity (the pose the offsets describe)."""
+        pos = np.zeros((self.num_joints, 3))
+        for j, p in enumerate(self.parents):
+            pos[j] = self.offsets[j] + (pos[p] if p >= 0 else 0.0)
+        return pos
+
+    def mirror_map(self) -> np.ndarray:
+        """Index of each joint's left/right counterpart (itself for centre joints)."""
+        pairs = [("_L", "_R"), ("Left", "Right"), ("LHip", "RHip"), ("LFingers", "RFingers"), ("LThumb", "RThumb")]
+        out = np.arange(self.num_joints)
+        for j, name in enumerate(self.names):
+            for a, b in pairs:
+                for src, dst in ((a, b), (b, a)):
+                    if src in name and name.replace(src, dst) in self.names:
+                        out[j] = self.names.index(name.replace(src, dst))
+        return out
+
+
+@dataclass
+class Motion:
+    skeleton: Skeleton
+    rotations: np.ndarray  # (F, J, 4) local quaternions, scalar-last
+    translations: np.ndarray  # (F, J, 3) local translations
+    fps: float
+    euler_orders: tuple[str, ...] = field(default=())  # per joint, for writing BVH back
+
+    @property
+    def num_frames(self) -> int:
+        return self.rotations.shape[0]
+
+    def global_transforms(self) -> tuple[np.ndarray, np.ndarray]:
+        """World (rotations (F,J,4), positions (F,J,3))."""
+        return fk(self.rotations, self.translations, self.skeleton.parents)
+
+    def global_positions(self) -> np.ndarray:
+        return self.global_transforms()[1]
+
+    def slice(self, start: int, stop: int) -> Motion:
+        return replace(self, rotations=self.rotations[start:stop], translations=self.translations[start:stop])
+
+
+def fk(rotations: np.ndarray, translations: np.ndarray, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Forward kinematics: local (..., J, 4)/(..., J, 3) -> world rotations and positions."""
+    g_rot = np.empty(np.broadcast_shapes(rotations.shape[:-1], translations.shape[:-1]) + (4,))
+    g_pos = np.empty(g_rot.shape[:-1] + (3,))
+    for j, p in enumerate(parents):
+        if p < 0:
+            g_rot[..., j, :], g_pos[..., j, :] = rotations[..., j, :], translations[..., j, :]
+        else:
+            g_rot[..., j, :] = quat_mul(g_rot[..., p, :], rotations[..., j, :])
+            g_pos[..., j, :] = g_pos[..., p, :] + quat_apply(g_rot[..., p, :], translations[..., j, :])
+    return g_rot, g_pos
+
+
+def fk_torch(rotations: torch.Tensor, translations: torch.Tensor, parents: np.ndarray | list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched differentiable FK on quaternions (..., J, 4) and translations (..., J, 3)."""
+    rots: list[torch.Tensor] = []
+    poss: list[torch.Tensor] = []
+    rotations = rotations / rotations.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    for j, p in enumerate(parents):
+        if p < 0:
+            rots.append(rotations[..., j, :])
+            poss.append(translations[..., j, :])
+        else:
+            rots.append(quat_mul_t(rots[p], rotations[..., j, :]))
+            poss.append(poss[p] + quat_apply_t(rots[p], translations[..., j, :]))
+    return torch.stack(rots, dim=-2), torch.stack(poss, dim=-2)
+
+
+# --------------------------------------------------------------------------- BVH <-> Motion
+
+
+def _rotation_order(channels: list[str]) -> str:
+    return "".join(c[0] for c in channels if c.endswith("rotation"))
+
+
+def from_bvh(bvh: bvhio.BvhFile) -> Motion:
+    joints = bvh.joints
+    num_frames, num_joints = bvh.num_frames, len(joints)
+    rotations = np.zeros((num_frames, num_joints, 4))
+    rotations[..., 3] = 1.0
+    translations = np.broadcast_to(np.stack([j.offset for j in joints]), (num_frames, num_joints, 3)).copy()
+    orders = []
+    for j, (joint, sl) in enumerate(zip(joints, bvh.channel_slices)):
+        values = bvh.motion[:, sl]
+        order = _rotation_order(joint.channels)
+        orders.append(order or "ZXY")
+        for axis, name in enumerate(bvhio.POSITION_CHANNELS):
+            if name in joint.channels:
+                translations[:, j, axis] = values[:, joint.channels.index(name)]
+        if order:
+            idx = [joint.channels.index(f"{a}rotation") for a in order]
+            rotations[:, j] = euler_to_quat(values[:, idx], order)
+    skeleton = Skeleton(
+        names=tuple(j.name for j in joints),
+        parents=np.array([j.parent for j in joints]),
+        offsets=np.stack([j.offset for j in joints]),
+        end_sites=np.stack([j.end_site if j.end_site is not None else np.full(3, np.nan) for j in joints]),
+    )
+    fps = float(round(bvh.fps)) if abs(bvh.fps - round(bvh.fps)) < 1e-2 else bvh.fps  # ".0083333" is 120 fps
+    return Motion(skeleton, quat_canonical(rotations), translations, fps, tuple(orders))
+
+
+def to_bvh(motion: Motion, template: bvhio.BvhFile | None = None) -> bvhio.BvhFile:
+    """Write a motion with the template's channel layout (default: 6 channels on the root and
+    on every joint with moving translation, 3 rotation channels elsewhere)."""
+    sk = motion.skeleton
+    if template is None:
+        moving = np.ptp(motion.translations, axis=0).max(axis=-1) > 1e-6 if motion.num_frames else np.zeros(sk.num_joints, bool)
+        joints = []
+        for j in range(sk.num_joints):
+            order = motion.euler_orders[j] if motion.euler_orders else "ZXY"
+            pos = list(bvhio.POSITION_CHANNELS) if (sk.parents[j] < 0 or moving[j]) else []
+            end = None if np.isnan(sk.end_sites[j]).any() else sk.end_sites[j]
+            joints.append(bvhio.BvhJoint(sk.names[j], int(sk.parents[j]), sk.offsets[j], pos + [f"{a}rotation" for a in order], end))
+    else:
+        if template.names != list(sk.names):
+            raise ValueError("template hierarchy does not match the motion's skeleton")
+        joints = template.joints
+    columns = []
+    for j, joint in enumerate(joints):
+        order = _rotation_order(joint.channels)
+        euler = quat_to_euler(motion.rotations[:, j], order) if order else None
+        for name in joint.channels:
+            if name.endswith("position"):
+                columns.append(motion.translations[:, j, "XYZ".index(name[0])])
+            else:
+                columns.append(euler[:, order.index(name[0])])
+    data = np.stack(columns, axis=1) if columns else np.zeros((motion.num_frames, 0))
+    return bvhio.BvhFile(joints, 1.0 / motion.fps, data)
+
+
+def load(path) -> Motion:
+    return from_bvh(bvhio.read(path))
