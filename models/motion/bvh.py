@@ -174,9 +174,12 @@ def _parse_motion(lines: list[str], i: int, joints: list[BvhJoint], source: str,
     if num_rows != num_frames:
         raise BvhError(source, i + min(num_rows, num_frames) + 1,
                        f"header says {num_frames} frames, file has {num_rows} rows")
-    with warnings.catch_warnings():  # fromstring warns (and stops) at a bad token; the size check catches it
-        warnings.simplefilter("ignore", DeprecationWarning)
-        values = np.fromstring(body_text, dtype=np.float64, sep=" ")
+    try:  # numpy < 2.3 warns and stops at a bad token (the size check catches it), later ones raise
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            values = np.fromstring(body_text, dtype=np.float64, sep=" ")
+    except ValueError:
+        values = np.empty(0)
     if values.size != num_frames * num_channels or not np.isfinite(values).all():
         _locate_bad_row(body_text.rstrip().splitlines(), i, num_channels, source)
     decimals = _printed_decimals(body_text[:4096])
