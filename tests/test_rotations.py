@@ -36,6 +36,8 @@ def test_torch_quaternion_functions_match_scipy():
     np.testing.assert_allclose(
         R.quat_to_matrix(R.quat_mul_t(qt, torch.tensor(other)).numpy()),
         (Rotation.from_quat(QUATS) * Rotation.from_quat(other)).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(
+        R.quat_to_matrix(R.quat_mul(QUATS, other)), (Rotation.from_quat(QUATS) * Rotation.from_quat(other)).as_matrix(), atol=1e-12)
     v = rng.normal(size=(500, 3))
     np.testing.assert_allclose(R.quat_apply_t(qt, torch.tensor(v)).numpy(), Rotation.from_quat(QUATS).apply(v), atol=1e-12)
     np.testing.assert_allclose(R.quat_apply(QUATS, v), Rotation.from_quat(QUATS).apply(v), atol=1e-12)

@@ -1,0 +1,64 @@
+"""`stylestream` command line: one entry point, a subcommand per job.
+
+    stylestream serve                      start the service (health, models) on 127.0.0.1:8000
+    stylestream data summary               what the mocap data holds (files, frames, styles x contents)
+    stylestream data warm                  unpack and parse all data into the cache, timed
+    stylestream render a.bvh [b.bvh] -o x.gif   render motions side by side (GIF, or PNG contact sheet)
+    stylestream retarget in.bvh -o out.bvh      CMU-skeleton BVH -> Bandai Namco skeleton (30 fps)
+
+Every subcommand has --help. Settings (data folder, cache folder, port...) come from
+STYLESTREAM_* environment variables or a .env file; see README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.app import create_app
+    from service.settings import ServiceSettings
+
+    settings = ServiceSettings(**{k: v for k, v in {"host": args.host, "port": args.port}.items() if v is not None})
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=args.log_level)
+    return 0
+
+
+def _data(args: argparse.Namespace) -> int:
+    from models.data.__main__ import main as data_main
+
+    return data_main([args.action] + sum((["--dataset", d] for d in args.dataset or []), []))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="stylestream", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("serve", help="start the HTTP/WebSocket service")
+    p.add_argument("--host", help="interface to bind (default 127.0.0.1, or STYLESTREAM_HOST)")
+    p.add_argument("--port", type=int, help="port (default 8000, or STYLESTREAM_PORT)")
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    p.set_defaults(func=_serve)
+
+    p = sub.add_parser("data", help="inspect the mocap data or build its parse cache")
+    p.add_argument("action", choices=["summary", "warm"], help="summary: tables; warm: unpack + parse everything, timed")
+    p.add_argument("--dataset", action="append", help="limit to a dataset (repeatable): bandai-namco-1, bandai-namco-2, xia, cmu")
+    p.set_defaults(func=_data)
+
+    from .motion_tools import add_motion_commands
+
+    add_motion_commands(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
