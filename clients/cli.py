@@ -23,7 +23,8 @@ def _serve(args: argparse.Namespace) -> int:
     from service.settings import ServiceSettings
 
     settings = ServiceSettings(**{k: v for k, v in {"host": args.host, "port": args.port}.items() if v is not None})
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=args.log_level)
+    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=args.log_level,
+                ws_max_size=4 * settings.max_message_bytes)  # larger ones get a typed error, not a bare close
     return 0
 
 

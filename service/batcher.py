@@ -1,0 +1,97 @@
+"""Cross-session batching: frames of many sessions run as one `step_batch` call.
+
+Each session has at most one frame in flight (its processor awaits the reply before taking the
+next), so a batch never holds two frames of one session. The batcher waits at most `wait_s`
+after the first frame for others to join, or until `max_batch` are gathered, then runs the step
+on a worker thread (keeping the event loop free) and scatters the results back.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from concurrent.futures import Executor
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.interface import FrameBatch, State, StreamingModel, split_state, stack_states
+
+from .metrics import Metrics
+
+
+@dataclass
+class StepRequest:
+    state: State
+    root: np.ndarray
+    rotations: np.ndarray
+    weights: np.ndarray
+    future: asyncio.Future
+
+
+def run_step(model: StreamingModel, requests: list[StepRequest]) -> list[tuple[np.ndarray, np.ndarray, State]]:
+    """One batched step over the requests' sessions; pure, runs on the worker thread."""
+    state = stack_states([r.state for r in requests])
+    frames = FrameBatch(np.stack([r.root for r in requests]), np.stack([r.rotations for r in requests]))
+    out, new_state = model.step_batch(state, frames, np.stack([r.weights for r in requests]))
+    states = split_state(new_state)
+    return [(out.root[i], out.rotations[i], states[i]) for i in range(len(requests))]
+
+
+class Batcher:
+    def __init__(self, model: StreamingModel, executor: Executor, metrics: Metrics,
+                 wait_s: float = 0.001, max_batch: int = 256, enabled: bool = True) -> None:
+        self.model, self.executor, self.metrics = model, executor, metrics
+        self.wait_s, self.max_batch = wait_s, (max_batch if enabled else 1)
+        self.queue: asyncio.Queue[StepRequest] = asyncio.Queue()
+        self._task: asyncio.Task | None = None
+
+    def start(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._run(), name=f"batcher-{self.model.name}")
+
+    async def stop(self) -> None:
+        if self._task:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+
+    async def step(self, state: State, root: np.ndarray, rotations: np.ndarray, weights: np.ndarray):
+        future = asyncio.get_running_loop().create_future()
+        await self.queue.put(StepRequest(state, root, rotations, weights, future))
+        return await future
+
+    async def _gather(self) -> list[StepRequest]:
+        batch = [await self.queue.get()]
+        deadline = time.monotonic() + self.wait_s
+        while len(batch) < self.max_batch:
+            try:
+                batch.append(self.queue.get_nowait())
+                continue
+            except asyncio.QueueEmpty:
+                pass
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            try:
+                batch.append(await asyncio.wait_for(self.queue.get(), remaining))
+            except TimeoutError:
+                break
+        return batch
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        name = self.model.name
+        while True:
+            batch = await self._gather()
+            t0 = time.perf_counter()
+            try:
+                results = await loop.run_in_executor(self.executor, run_step, self.model, batch)
+            except Exception as exc:  # a model failure fails this batch's frames, never the batcher
+                for req in batch:
+                    if not req.future.done():
+                        req.future.set_exception(exc)
+                continue
+            self.metrics.step_latency.labels(name).observe(time.perf_counter() - t0)
+            self.metrics.batch_size.labels(name).observe(len(batch))
+            for req, result in zip(batch, results):
+                if not req.future.done():
+                    req.future.set_result(result)

@@ -1,0 +1,27 @@
+"""Prometheus metrics (prometheus_client: the standard, well-kept exporter).
+
+A private registry per app, so several apps in one process (tests) never collide."""
+
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+LATENCY_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.004, 0.008, 0.0167, 0.033, 0.066, 0.1, 0.25, 1.0)
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.frame_latency = Histogram("stylestream_frame_latency_seconds",
+                                       "Server-side time from a frame's arrival to its reply being sent",
+                                       ["model"], buckets=LATENCY_BUCKETS, registry=self.registry)
+        self.step_latency = Histogram("stylestream_step_seconds", "Time of one batched model step",
+                                      ["model"], buckets=LATENCY_BUCKETS, registry=self.registry)
+        self.batch_size = Histogram("stylestream_batch_size", "Sessions per batched step", ["model"],
+                                    buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512), registry=self.registry)
+        self.active_sessions = Gauge("stylestream_active_sessions", "Open streaming sessions", ["model"],
+                                     registry=self.registry)
+        self.dropped_frames = Counter("stylestream_dropped_frames_total", "Frames dropped by backpressure",
+                                      ["model"], registry=self.registry)
+        self.errors = Counter("stylestream_errors_total", "Client errors by code", ["code"], registry=self.registry)
+        self.frames = Counter("stylestream_frames_total", "Frames stylised", ["model"], registry=self.registry)

@@ -1,0 +1,155 @@
+"""Wire protocol v1 of `WS /v1/stream` (documented with examples in docs/protocol.md).
+
+Text messages are JSON objects with a "type". Frames may instead travel as binary messages:
+a fixed little-endian layout, header then float32 payload:
+
+    offset 0  uint32  seq            client's sequence number (echoed back)
+    offset 4  uint16  kind           1 = frame
+    offset 6  uint16  dropped        server -> client: frames dropped since the last reply; 0 from clients
+    offset 8  float32 root[3]        root (Hips) translation
+    offset 20 float32 rot[J][4]      local joint rotations, quaternions x, y, z, w, in the session's joint order
+"""
+
+from __future__ import annotations
+
+import struct
+from typing import Annotated, Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator
+
+PROTOCOL_VERSION = 1
+BINARY_HEADER = struct.Struct("<IHH")
+KIND_FRAME = 1
+
+
+class ProtocolError(Exception):
+    """A client error, reported as a typed error message. `fatal` ones close the session."""
+
+    def __init__(self, code: str, message: str, seq: int | None = None, fatal: bool = False, close_code: int = 1008):
+        super().__init__(message)
+        self.code, self.message, self.seq, self.fatal, self.close_code = code, message, seq, fatal, close_code
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+StyleMix = dict[str, Annotated[float, Field(ge=0)]]
+
+
+class Start(_Message):
+    type: Literal["start"]
+    version: int = PROTOCOL_VERSION
+    model: str
+    style: str | None = None
+    mix: StyleMix | None = None  # {style: weight}; alternative to `style`
+    intensity: float = Field(default=1.0, ge=0.0, le=2.0)
+    skeleton: Literal["bandai-namco", "cmu"] | None = "bandai-namco"
+    bvh_header: str | None = Field(default=None, max_length=200_000, description="BVH HIERARCHY text, instead of `skeleton`")
+    fps: float = Field(default=30.0, gt=0, le=240)
+    encoding: Literal["json", "binary"] = "json"
+    resume_token: str | None = None
+
+    @field_validator("version")
+    @classmethod
+    def _supported(cls, v: int) -> int:
+        if v != PROTOCOL_VERSION:
+            raise ValueError(f"protocol version {v} not supported (server speaks {PROTOCOL_VERSION})")
+        return v
+
+
+class Frame(_Message):
+    type: Literal["frame"]
+    seq: int = Field(ge=0, lt=2**32)
+    root: list[float] = Field(min_length=3, max_length=3)
+    rotations: list[list[float]]
+
+
+class SetStyle(_Message):
+    type: Literal["style"]
+    style: str | None = None
+    mix: StyleMix | None = None
+    intensity: float = Field(default=1.0, ge=0.0, le=2.0)
+    transition_frames: int = Field(default=0, ge=0, le=10_000)
+
+
+class Reset(_Message):
+    type: Literal["reset"]
+
+
+class End(_Message):
+    type: Literal["end"]
+
+
+ClientMessage = Annotated[Union[Start, Frame, SetStyle, Reset, End], Field(discriminator="type")]
+client_message = TypeAdapter(ClientMessage)
+
+
+def mix_of(style: str | None, mix: StyleMix | None) -> StyleMix:
+    if (style is None) == (mix is None):
+        raise ProtocolError("bad_style", "give exactly one of 'style' or 'mix'")
+    return {style: 1.0} if style is not None else dict(mix)
+
+
+def parse_text(text: str) -> Start | Frame | SetStyle | Reset | End:
+    from pydantic import ValidationError
+
+    try:
+        return client_message.validate_json(text)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first.get("loc", ()))
+        code = "bad_json" if first["type"].startswith("json") else "bad_message"
+        raise ProtocolError(code, f"{where}: {first['msg']}" if where else first["msg"]) from None
+
+
+def frame_arrays(frame: Frame, num_joints: int) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a JSON frame's shape and values; returns (root (3,), rotations (J, 4))."""
+    if len(frame.rotations) != num_joints or any(len(q) != 4 for q in frame.rotations):
+        raise ProtocolError("bad_frame", f"rotations must be {num_joints} quaternions [x, y, z, w]", frame.seq)
+    root = np.asarray(frame.root, dtype=np.float64)
+    rot = np.asarray(frame.rotations, dtype=np.float64)
+    return check_values(root, rot, frame.seq)
+
+
+def check_values(root: np.ndarray, rot: np.ndarray, seq: int) -> tuple[np.ndarray, np.ndarray]:
+    if not (np.isfinite(root).all() and np.isfinite(rot).all()):
+        raise ProtocolError("bad_frame", "frame contains NaN or Inf", seq)
+    norms = np.linalg.norm(rot, axis=-1)
+    if (norms < 1e-6).any():
+        raise ProtocolError("bad_frame", "zero-length quaternion", seq)
+    if np.abs(root).max(initial=0.0) > 1e6:
+        raise ProtocolError("bad_frame", "root translation out of range", seq)
+    return root, rot / norms[:, None]
+
+
+def binary_frame_size(num_joints: int) -> int:
+    return BINARY_HEADER.size + 4 * (3 + 4 * num_joints)
+
+
+def decode_binary(data: bytes, num_joints: int) -> tuple[int, np.ndarray, np.ndarray]:
+    expected = binary_frame_size(num_joints)
+    if len(data) < BINARY_HEADER.size:
+        raise ProtocolError("bad_frame", f"binary message of {len(data)} bytes is shorter than the 8-byte header")
+    seq, kind, _ = BINARY_HEADER.unpack_from(data)
+    if kind != KIND_FRAME:
+        raise ProtocolError("bad_frame", f"unknown binary message kind {kind}", seq)
+    if len(data) != expected:
+        raise ProtocolError("bad_frame", f"binary frame must be {expected} bytes for {num_joints} joints, got {len(data)}", seq)
+    payload = np.frombuffer(data, dtype="<f4", offset=BINARY_HEADER.size).astype(np.float64)
+    root, rot = check_values(payload[:3], payload[3:].reshape(num_joints, 4), seq)
+    return seq, root, rot
+
+
+def encode_binary(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0) -> bytes:
+    header = BINARY_HEADER.pack(seq, KIND_FRAME, min(dropped, 0xFFFF))
+    return header + np.concatenate([root.ravel(), rot.ravel()]).astype("<f4").tobytes()
+
+
+def frame_message(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0) -> dict:
+    return {"type": "frame", "seq": seq, "root": root.tolist(), "rotations": rot.tolist(), "dropped": dropped}
+
+
+def error_message(code: str, message: str, seq: int | None = None) -> dict:
+    return {"type": "error", "code": code, "message": message, "seq": seq}

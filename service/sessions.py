@@ -1,0 +1,168 @@
+"""Streaming sessions: per-session state, style transitions, backpressure and snapshots.
+
+A session owns its model state (batch axis of 1), its style weight vector and a bounded queue of
+pending work. Frames beyond the queue bound push out the oldest *frame* (control messages are
+never dropped), and the next reply reports how many were dropped: the newest frames win and
+memory stays bounded. Snapshots hold everything needed to continue exactly where a session left
+off, on this replica or another.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import secrets
+import time
+import uuid
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel
+
+from models.interface import State, StreamingModel, style_vector
+
+from .protocol import ProtocolError, StyleMix
+
+
+@dataclass
+class FrameItem:
+    seq: int
+    root: np.ndarray
+    rotations: np.ndarray
+    received: float  # perf_counter at arrival
+
+
+@dataclass
+class ControlItem:
+    message: Any  # SetStyle | Reset | End
+
+
+class Snapshot(BaseModel):
+    """Serializable session state (JSON), for resume after a reconnect or on another replica."""
+
+    session_id: str
+    token: str
+    model: str
+    skeleton: str
+    bvh_header: str | None
+    fps: float
+    encoding: str
+    weights: list[float]
+    target: list[float]
+    transition_left: int
+    last_seq: int | None
+    state: str  # base64 .npz of the model state
+    saved_at: float
+
+
+def encode_state(state: State) -> str:
+    buf = io.BytesIO()
+    np.savez(buf, **state)
+    return base64.b64encode(buf.getvalue()).decode()
+
+
+def decode_state(data: str) -> State:
+    with np.load(io.BytesIO(base64.b64decode(data))) as z:
+        return {k: z[k] for k in z.files}
+
+
+@dataclass
+class Session:
+    model: StreamingModel
+    skeleton: str
+    fps: float
+    encoding: str
+    weights: np.ndarray
+    state: State
+    bvh_header: str | None = None
+    id: str = field(default_factory=lambda: uuid.uuid4().hex)
+    token: str = field(default_factory=lambda: secrets.token_urlsafe(24))
+    target: np.ndarray | None = None
+    transition_left: int = 0
+    last_seq: int | None = None
+    dropped_pending: int = 0
+    ended: bool = False
+    last_active: float = field(default_factory=time.monotonic)
+    queue_size: int = 8
+    pending: deque = field(default_factory=deque)
+
+    def __post_init__(self) -> None:
+        if self.target is None:
+            self.target = self.weights.copy()
+
+    # ---- styles ----------------------------------------------------------------
+    def set_style(self, mix: StyleMix, intensity: float, transition_frames: int) -> None:
+        try:
+            target = style_vector(self.model, mix, intensity)
+        except (KeyError, ValueError) as exc:
+            raise ProtocolError("unknown_style" if isinstance(exc, KeyError) else "bad_style", str(exc).strip('"')) from None
+        self.target = target
+        self.transition_left = transition_frames
+        if transition_frames == 0:
+            self.weights = target.copy()
+
+    def advance_style(self) -> np.ndarray:
+        """Style weights for the next frame: a linear ramp over the remaining transition frames."""
+        if self.transition_left > 0:
+            self.weights = self.weights + (self.target - self.weights) / self.transition_left
+            self.transition_left -= 1
+        return self.weights
+
+    def reset(self) -> None:
+        self.state = self.model.init_state(1)
+        self.last_seq = None
+
+    # ---- backpressure -----------------------------------------------------------
+    def enqueue(self, item: FrameItem | ControlItem) -> None:
+        if isinstance(item, FrameItem):
+            frames = sum(isinstance(i, FrameItem) for i in self.pending)
+            if frames >= self.queue_size:
+                oldest = next(i for i in self.pending if isinstance(i, FrameItem))
+                self.pending.remove(oldest)
+                self.dropped_pending += 1
+        self.pending.append(item)
+
+    def take_dropped(self) -> int:
+        n, self.dropped_pending = self.dropped_pending, 0
+        return n
+
+    # ---- snapshots --------------------------------------------------------------
+    def snapshot(self) -> Snapshot:
+        return Snapshot(session_id=self.id, token=self.token, model=self.model.name, skeleton=self.skeleton,
+                        bvh_header=self.bvh_header, fps=self.fps, encoding=self.encoding,
+                        weights=self.weights.tolist(), target=self.target.tolist(),
+                        transition_left=self.transition_left, last_seq=self.last_seq,
+                        state=encode_state(self.state), saved_at=time.time())
+
+    @classmethod
+    def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int) -> Session:
+        return cls(model=model, skeleton=snap.skeleton, fps=snap.fps, encoding=snap.encoding,
+                   weights=np.array(snap.weights), state=decode_state(snap.state), bvh_header=snap.bvh_header,
+                   id=snap.session_id, token=snap.token, target=np.array(snap.target),
+                   transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size)
+
+
+class SessionStore:
+    """In-memory snapshot store, keyed by resume token (Redis-backed one: see the scale-out issue)."""
+
+    def __init__(self, ttl_s: float = 600.0) -> None:
+        self._data: dict[str, tuple[float, str]] = {}
+        self.ttl_s = ttl_s
+
+    def put(self, snap: Snapshot) -> None:
+        self._data[snap.token] = (time.monotonic(), snap.model_dump_json())
+        self._expire()
+
+    def get(self, token: str) -> Snapshot | None:
+        entry = self._data.get(token)
+        return Snapshot.model_validate_json(entry[1]) if entry else None
+
+    def delete(self, token: str) -> None:
+        self._data.pop(token, None)
+
+    def _expire(self) -> None:
+        now = time.monotonic()
+        for token in [t for t, (at, _) in self._data.items() if now - at > self.ttl_s]:
+            del self._data[token]

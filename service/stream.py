@@ -1,0 +1,220 @@
+"""`WS /v1/stream`: one WebSocket connection = one session.
+
+Two tasks per connection: the receiver parses and validates messages and queues work on the
+session (bad frames get a typed error and are skipped; protocol violations close the socket),
+and the processor takes queued work in order, runs frames through the model's batcher and sends
+each result back with the frame's sequence number. One send lock keeps replies whole.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+
+from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
+
+from models.interface import style_vector
+
+from . import protocol as P
+from .sessions import ControlItem, FrameItem, Session
+from .skeletons import adapter_for
+
+log = logging.getLogger(__name__)
+
+CLOSE_NORMAL, CLOSE_POLICY, CLOSE_TOO_BIG, CLOSE_RESTART = 1000, 1008, 1009, 1012
+CLOSE_UNAUTHORIZED, CLOSE_IDLE = 4401, 4408
+
+
+class Connection:
+    def __init__(self, ws: WebSocket, runtime) -> None:
+        self.ws, self.rt = ws, runtime
+        self.settings, self.metrics = runtime.settings, runtime.metrics
+        self.session: Session | None = None
+        self.adapter = None
+        self.send_lock = asyncio.Lock()
+        self.wakeup = asyncio.Event()
+        self.closing = False
+
+    # ---- sending ------------------------------------------------------------------
+    async def send_json(self, payload: dict) -> None:
+        async with self.send_lock:
+            if self.ws.client_state == WebSocketState.CONNECTED:
+                await self.ws.send_text(json.dumps(payload))
+
+    async def send_bytes(self, data: bytes) -> None:
+        async with self.send_lock:
+            if self.ws.client_state == WebSocketState.CONNECTED:
+                await self.ws.send_bytes(data)
+
+    async def send_error(self, err: P.ProtocolError) -> None:
+        self.metrics.errors.labels(err.code).inc()
+        await self.send_json(P.error_message(err.code, err.message, err.seq))
+
+    async def close(self, code: int, reason: str = "") -> None:
+        self.closing = True
+        self.wakeup.set()
+        async with self.send_lock:
+            if self.ws.client_state == WebSocketState.CONNECTED:
+                await self.ws.close(code, reason[:120])
+
+    # ---- receiving ----------------------------------------------------------------
+    async def receive(self) -> str | bytes | None:
+        try:
+            message = await asyncio.wait_for(self.ws.receive(), timeout=self.settings.idle_timeout_s)
+        except TimeoutError:
+            await self.send_error(P.ProtocolError("idle_timeout", f"no message for {self.settings.idle_timeout_s:g} s"))
+            await self.close(CLOSE_IDLE, "idle timeout")
+            return None
+        if message["type"] == "websocket.disconnect":
+            return None
+        data = message.get("text") if message.get("text") is not None else message.get("bytes")
+        if data is not None and len(data) > self.settings.max_message_bytes:
+            raise P.ProtocolError("message_too_large",
+                                  f"message of {len(data)} bytes exceeds the limit of {self.settings.max_message_bytes}")
+        return data
+
+    async def run(self) -> None:
+        processor = None
+        try:
+            if not await self.open_session():
+                return
+            processor = asyncio.create_task(self.process())
+            while not self.closing:
+                try:
+                    data = await self.receive()
+                    if data is None:
+                        break
+                    if isinstance(data, bytes):
+                        self.on_binary(data)
+                    elif not self.on_text(data):
+                        break
+                except P.ProtocolError as err:
+                    await self.send_error(err)
+                    if err.fatal:
+                        await self.close(err.close_code, err.message)
+                        break
+        except WebSocketDisconnect:
+            pass
+        finally:
+            self.closing = True
+            self.wakeup.set()
+            if processor is not None:
+                await asyncio.gather(processor, return_exceptions=True)
+            if self.session is not None:
+                self.rt.session_closed(self.session)
+
+    async def open_session(self) -> bool:
+        try:
+            data = await self.receive()
+            if data is None:
+                return False
+            if isinstance(data, bytes):
+                raise P.ProtocolError("expected_start", "the first message must be a JSON 'start' message", fatal=True)
+            message = P.parse_text(data)
+            if not isinstance(message, P.Start):
+                raise P.ProtocolError("expected_start", f"the first message must be 'start', got '{message.type}'", fatal=True)
+            self.session = self.rt.open_session(message)
+            self.adapter = adapter_for(self.session.skeleton, self.session.bvh_header, self.session.model.skeleton)
+        except P.ProtocolError as err:
+            err.fatal = True
+            await self.send_error(err)
+            await self.close(err.close_code, err.message)
+            return False
+        s = self.session
+        await self.send_json({
+            "type": "started", "version": P.PROTOCOL_VERSION, "session_id": s.id, "resume_token": s.token,
+            "model": s.model.name, "styles": s.model.styles(), "joints": self.adapter.joint_names,
+            "last_seq": s.last_seq, "encoding": s.encoding,
+            "layout": {"root": 3, "rotations": [self.adapter.num_joints, 4], "quaternion": "xyzw",
+                       "binary_frame_bytes": P.binary_frame_size(self.adapter.num_joints)},
+        })
+        return True
+
+    def on_text(self, data: str) -> bool:
+        message = P.parse_text(data)
+        if isinstance(message, P.Start):
+            raise P.ProtocolError("already_started", "session already started", fatal=True)
+        if isinstance(message, P.Frame):
+            root, rot = P.frame_arrays(message, self.adapter.num_joints)
+            self.queue(FrameItem(message.seq, root, rot, time.perf_counter()))
+            return True
+        if isinstance(message, P.SetStyle):  # validate now, so the error comes back at once
+            self._check_style(message)
+        self.queue(ControlItem(message))
+        return not isinstance(message, P.End)
+
+    def _check_style(self, message: P.SetStyle) -> None:
+        try:
+            style_vector(self.session.model, P.mix_of(message.style, message.mix), message.intensity)
+        except KeyError as exc:
+            raise P.ProtocolError("unknown_style", str(exc).strip('"')) from None
+        except ValueError as exc:
+            raise P.ProtocolError("bad_style", str(exc)) from None
+
+    def on_binary(self, data: bytes) -> None:
+        seq, root, rot = P.decode_binary(data, self.adapter.num_joints)
+        self.queue(FrameItem(seq, root, rot, time.perf_counter()))
+
+    def queue(self, item) -> None:
+        before = self.session.dropped_pending
+        self.session.enqueue(item)
+        if self.session.dropped_pending > before:
+            self.metrics.dropped_frames.labels(self.session.model.name).inc(self.session.dropped_pending - before)
+        self.session.last_active = time.monotonic()
+        self.wakeup.set()
+
+    # ---- processing -----------------------------------------------------------------
+    async def process(self) -> None:
+        s = self.session
+        batcher = self.rt.batchers[s.model.name]
+        while True:
+            if not s.pending:
+                if self.closing:
+                    return
+                self.wakeup.clear()
+                await self.wakeup.wait()
+                continue
+            item = s.pending.popleft()
+            if isinstance(item, ControlItem):
+                if not await self.control(item.message):
+                    return
+                continue
+            root, rot = self.adapter.to_model(item.root, item.rotations)
+            try:
+                out_root, out_rot, new_state = await batcher.step(s.state, root, rot, s.advance_style().copy())
+            except Exception:  # noqa: BLE001 - a model failure costs this frame, not the session
+                log.exception("model step failed")
+                await self.send_error(P.ProtocolError("internal", "model step failed", item.seq))
+                continue
+            s.state, s.last_seq = new_state, item.seq
+            out_root, out_rot = self.adapter.from_model(out_root, out_rot, item.rotations)
+            dropped = s.take_dropped()
+            if s.encoding == "binary":
+                await self.send_bytes(P.encode_binary(item.seq, out_root, out_rot, dropped))
+            else:
+                await self.send_json(P.frame_message(item.seq, out_root, out_rot, dropped))
+            self.metrics.frame_latency.labels(s.model.name).observe(time.perf_counter() - item.received)
+            self.metrics.frames.labels(s.model.name).inc()
+            self.rt.after_frame(s)
+
+    async def control(self, message) -> bool:
+        s = self.session
+        if isinstance(message, P.SetStyle):
+            try:
+                s.set_style(P.mix_of(message.style, message.mix), message.intensity, message.transition_frames)
+            except P.ProtocolError as err:
+                await self.send_error(err)
+            else:
+                await self.send_json({"type": "style_set", "weights": dict(zip(s.model.styles(), s.target.tolist())),
+                                      "transition_frames": message.transition_frames})
+            return True
+        if isinstance(message, P.Reset):
+            s.reset()
+            await self.send_json({"type": "reset_done"})
+            return True
+        await self.send_json({"type": "ended", "session_id": s.id, "last_seq": s.last_seq})
+        self.rt.session_ended(s)
+        await self.close(CLOSE_NORMAL, "end")
+        return False
