@@ -2,7 +2,7 @@
 
 from .archives import DATASETS, DataError, DatasetSpec, dataset_dir
 from .index import SPLITS, Clip, build_index, select
-from .loader import load_bvh, load_motion, load_motions, warm_cache
+from .loader import load_motion, load_motions, warm_cache
 
 __all__ = ["DATASETS", "DataError", "DatasetSpec", "dataset_dir", "SPLITS", "Clip", "build_index", "select",
-           "load_bvh", "load_motion", "load_motions", "warm_cache"]
+           "load_motion", "load_motions", "warm_cache"]

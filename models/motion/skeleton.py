@@ -128,31 +128,40 @@ def _rotation_order(channels: list[str]) -> str:
     return "".join(c[0] for c in channels if c.endswith("rotation"))
 
 
-def from_bvh(bvh: bvhio.BvhFile) -> Motion:
+def skeleton_from_bvh(bvh: bvhio.BvhFile) -> tuple[Skeleton, tuple[str, ...]]:
+    """The hierarchy as a Skeleton, plus each joint's Euler order (for writing BVH back)."""
     joints = bvh.joints
-    num_frames, num_joints = bvh.num_frames, len(joints)
-    rotations = np.zeros((num_frames, num_joints, 4))
-    rotations[..., 3] = 1.0
-    translations = np.broadcast_to(np.stack([j.offset for j in joints]), (num_frames, num_joints, 3)).copy()
-    orders = []
-    for j, (joint, sl) in enumerate(zip(joints, bvh.channel_slices)):
-        values = bvh.motion[:, sl]
-        order = _rotation_order(joint.channels)
-        orders.append(order or "ZXY")
-        for axis, name in enumerate(bvhio.POSITION_CHANNELS):
-            if name in joint.channels:
-                translations[:, j, axis] = values[:, joint.channels.index(name)]
-        if order:
-            idx = [joint.channels.index(f"{a}rotation") for a in order]
-            rotations[:, j] = euler_to_quat(values[:, idx], order)
     skeleton = Skeleton(
         names=tuple(j.name for j in joints),
         parents=np.array([j.parent for j in joints]),
         offsets=np.stack([j.offset for j in joints]),
         end_sites=np.stack([j.end_site if j.end_site is not None else np.full(3, np.nan) for j in joints]),
     )
+    return skeleton, tuple(_rotation_order(j.channels) or "ZXY" for j in joints)
+
+
+def from_bvh(bvh: bvhio.BvhFile) -> Motion:
+    joints = bvh.joints
+    num_frames, num_joints = bvh.num_frames, len(joints)
+    skeleton, orders = skeleton_from_bvh(bvh)
+    rotations = np.zeros((num_frames, num_joints, 4))
+    rotations[..., 3] = 1.0
+    translations = np.broadcast_to(skeleton.offsets, (num_frames, num_joints, 3)).copy()
+    euler: dict[str, tuple[list[int], list[np.ndarray]]] = {}  # order -> joints, angle columns
+    for j, (joint, sl) in enumerate(zip(joints, bvh.channel_slices)):
+        values = bvh.motion[:, sl]
+        for axis, name in enumerate(bvhio.POSITION_CHANNELS):
+            if name in joint.channels:
+                translations[:, j, axis] = values[:, joint.channels.index(name)]
+        order = _rotation_order(joint.channels)
+        if order:
+            idx = [joint.channels.index(f"{a}rotation") for a in order]
+            euler.setdefault(order, ([], []))[0].append(j)
+            euler[order][1].append(values[:, idx])
+    for order, (idx, angles) in euler.items():  # one vectorised conversion per Euler order
+        rotations[:, idx] = euler_to_quat(np.stack(angles, axis=1), order)
     fps = float(round(bvh.fps)) if abs(bvh.fps - round(bvh.fps)) < 1e-2 else bvh.fps  # ".0083333" is 120 fps
-    return Motion(skeleton, quat_canonical(rotations), translations, fps, tuple(orders))
+    return Motion(skeleton, quat_canonical(rotations), translations, fps, orders)
 
 
 def to_bvh(motion: Motion, template: bvhio.BvhFile | None = None) -> bvhio.BvhFile:
