@@ -46,9 +46,9 @@ def test_contacts_scale_with_the_skeleton(cmu_walk):
 def test_mirror_is_exact_on_the_bandai_namco_skeleton(bn_walk):
     m = mirror(bn_walk)
     pos, mpos = bn_walk.global_positions(), m.global_positions()
-    np.testing.assert_allclose(mpos, WORLD_MIRROR * pos[:, bn_walk.skeleton.mirror_map()], atol=1e-8)
+    np.testing.assert_allclose(mpos, WORLD_MIRROR * pos[:, bn_walk.skeleton.mirror_map()], atol=1e-4)  # cm; float32 cache
     twice = mirror(m)
-    np.testing.assert_allclose(np.abs((twice.rotations * bn_walk.rotations).sum(-1)), 1.0, atol=1e-10)
+    np.testing.assert_allclose(np.abs((twice.rotations * bn_walk.rotations).sum(-1)), 1.0, atol=1e-6)
     # mirrored contacts swap feet
     c = foot_contacts(pos, bn_walk.skeleton, bn_walk.fps)
     mc = foot_contacts(mpos, bn_walk.skeleton, bn_walk.fps)

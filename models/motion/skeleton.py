@@ -94,7 +94,9 @@ class Motion:
 
 
 def fk(rotations: np.ndarray, translations: np.ndarray, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Forward kinematics: local (..., J, 4)/(..., J, 3) -> world rotations and positions."""
+    """Forward kinematics: local (..., J, 4)/(..., J, 3) -> world rotations and positions.
+    Quaternions are normalised first (cached clips store them as float32)."""
+    rotations = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
     g_rot = np.empty(np.broadcast_shapes(rotations.shape[:-1], translations.shape[:-1]) + (4,))
     g_pos = np.empty(g_rot.shape[:-1] + (3,))
     for j, p in enumerate(parents):
