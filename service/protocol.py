@@ -45,7 +45,7 @@ class Start(_Message):
     style: str | None = None
     mix: StyleMix | None = None  # {style: weight}; alternative to `style`
     intensity: float = Field(default=1.0, ge=0.0, le=2.0)
-    skeleton: Literal["bandai-namco", "cmu"] | None = "bandai-namco"
+    skeleton: Literal["bandai-namco", "cmu"] | None = "bandai-namco"  # "cmu": cgspeed-named CMU skeleton
     bvh_header: str | None = Field(default=None, max_length=200_000, description="BVH HIERARCHY text, instead of `skeleton`")
     fps: float = Field(default=30.0, gt=0, le=240)
     encoding: Literal["json", "binary"] = "json"

@@ -1,0 +1,175 @@
+"""Open-loop load test: N concurrent sessions, each sending real motion frames on a fixed clock.
+
+Open loop means a session never waits for a reply before sending its next frame, so a slow
+server shows up as latency (and drops), not as less load. Sessions are spread over several
+client processes so the harness is not the bottleneck; each process reports the CPU it used.
+Latency is measured per frame from send to the reply with the same sequence number.
+
+    stylestream loadtest --sessions 64 --fps 60 --seconds 10 --model lti
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import multiprocessing as mp
+import os
+import resource
+import struct
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class Result:
+    sessions: int
+    fps: float
+    seconds: float
+    sent: int
+    received: int
+    dropped: int
+    late: int  # replies later than one frame period
+    lost: int  # sent frames with neither a reply nor a drop count
+    p50_ms: float
+    p95_ms: float
+    p99_ms: float
+    max_ms: float
+    frames_per_s: float
+    client_cpu_s: float
+    client_processes: int
+
+    def line(self) -> str:
+        return (f"sessions {self.sessions:4d}  p50 {self.p50_ms:6.2f} ms  p95 {self.p95_ms:6.2f}  p99 {self.p99_ms:6.2f}  "
+                f"max {self.max_ms:7.2f}  dropped {self.dropped}  late {self.late}  lost {self.lost}  "
+                f"{self.frames_per_s:8.0f} frames/s  client cpu {self.client_cpu_s:.1f} s")
+
+
+def real_frames(n: int = 300) -> tuple[np.ndarray, np.ndarray]:
+    """Hips translation and local rotations of a neutral Bandai Namco walk (validation split)."""
+    from models.data import build_index, load_motion, select
+
+    clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
+    m = load_motion(clip)
+    idx = np.arange(n) % m.num_frames
+    return m.translations[idx, 1].astype(np.float32), m.rotations[idx].astype(np.float32)
+
+
+async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float, seconds: float,
+                   t0: float, stats: dict) -> None:
+    import websockets
+
+    period = 1.0 / fps
+    n = int(seconds * fps)
+    sent_at = np.full(n, np.nan)
+    got_at = np.full(n, np.nan)
+    dropped = 0
+    async with websockets.connect(url, max_size=2**22) as ws:
+        if start is not None:
+            await ws.send(json.dumps(start))
+            reply = json.loads(await ws.recv())
+            if reply.get("type") != "started":
+                raise RuntimeError(f"session refused: {reply}")
+
+        async def receiver() -> None:
+            nonlocal dropped
+            while True:
+                data = await ws.recv()
+                if isinstance(data, str):
+                    continue  # control acknowledgements
+                seq, _, d = struct.unpack_from("<IHH", data)
+                got_at[seq] = time.perf_counter()
+                dropped += d
+
+        recv_task = asyncio.create_task(receiver())
+        await asyncio.sleep(max(0.0, t0 - time.perf_counter()))
+        begin = time.perf_counter()
+        for i in range(n):
+            target = begin + i * period
+            delay = target - time.perf_counter()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            sent_at[i] = time.perf_counter()
+            await ws.send(frames[i % len(frames)].tobytes() if start is None else _pack(i, frames[i % len(frames)]))
+        await asyncio.sleep(0.5)  # let the last replies arrive
+        recv_task.cancel()
+    stats["latency"].append(got_at - sent_at)
+    stats["dropped"] += dropped
+
+
+def _pack(seq: int, payload: np.ndarray) -> bytes:
+    return struct.pack("<IHH", seq, 1, 0) + payload.tobytes()
+
+
+def _worker(url: str, start: dict | None, count: int, fps: float, seconds: float, t0: float, queue) -> None:
+    root, rot = real_frames()
+    payload = np.concatenate([root, rot.reshape(len(rot), -1)], axis=1).astype("<f4")
+    if start is None:  # echo server: send a full binary frame including the header
+        payload = np.stack([np.frombuffer(_pack(0, p), dtype=np.uint8) for p in payload])
+    stats = {"latency": [], "dropped": 0}
+
+    async def main() -> None:
+        await asyncio.gather(*(_session(url, start, payload, fps, seconds, t0, stats) for _ in range(count)))
+
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+    asyncio.run(main())
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    lat = np.concatenate(stats["latency"]) if stats["latency"] else np.zeros(0)
+    queue.put((lat, stats["dropped"], (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)))
+
+
+def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model: str = "lti",
+        style: str | None = None, processes: int | None = None, echo: bool = False) -> tuple[Result, np.ndarray]:
+    processes = processes or max(1, min(sessions, (os.cpu_count() or 2)))
+    start = None if echo else {"type": "start", "model": model, "style": style, "encoding": "binary", "fps": fps}
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    t0 = time.perf_counter() + 2.0 + 0.02 * sessions  # all sessions connected before the clock starts
+    counts = [sessions // processes + (1 if i < sessions % processes else 0) for i in range(processes)]
+    procs = [ctx.Process(target=_worker, args=(url, start, c, fps, seconds, t0, queue)) for c in counts if c]
+    for p in procs:
+        p.start()
+    parts = [queue.get() for _ in procs]
+    for p in procs:
+        p.join()
+    lat = np.concatenate([p[0] for p in parts]) * 1000.0
+    dropped = sum(p[1] for p in parts)
+    done = lat[np.isfinite(lat)]
+    sent = len(lat)
+    q = np.percentile(done, [50, 95, 99]) if len(done) else [np.nan] * 3
+    result = Result(sessions=sessions, fps=fps, seconds=seconds, sent=sent, received=len(done), dropped=dropped,
+                    late=int((done > 1000.0 / fps).sum()), lost=int(sent - len(done) - dropped),
+                    p50_ms=float(q[0]), p95_ms=float(q[1]), p99_ms=float(q[2]),
+                    max_ms=float(done.max()) if len(done) else float("nan"),
+                    frames_per_s=len(done) / seconds, client_cpu_s=sum(p[2] for p in parts), client_processes=len(procs))
+    return result, lat
+
+
+def write_report(results: list[Result], latencies: list[np.ndarray], out: Path) -> None:
+    """JSON of every run plus a plot: latency histogram and latency over time of the largest run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps([asdict(r) for r in results], indent=2))
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.5), dpi=90)
+    for r, lat in zip(results, latencies):
+        finite = lat[np.isfinite(lat)]
+        a.hist(finite, bins=np.logspace(-1, 3, 60), histtype="step", label=f"{r.sessions} sessions")
+    a.set_xscale("log")
+    a.axvline(1000 / results[0].fps, color="k", ls=":", lw=1)
+    a.set_xlabel("round trip (ms)")
+    a.set_ylabel("frames")
+    a.legend(fontsize=7)
+    lat = latencies[-1]
+    b.plot(np.arange(len(lat)) / len(lat) * results[-1].seconds, lat, ",", alpha=0.5)
+    b.set_xlabel("time in run (s, all sessions interleaved)")
+    b.set_ylabel("round trip (ms)")
+    b.set_yscale("log")
+    fig.tight_layout()
+    fig.savefig(out.with_suffix(".png"))
+    plt.close(fig)
