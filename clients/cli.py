@@ -5,6 +5,7 @@
     stylestream data warm                  unpack and parse all data into the cache, timed
     stylestream render a.bvh [b.bvh] -o x.gif   render motions side by side (GIF, or PNG contact sheet)
     stylestream retarget in.bvh -o out.bvh      CMU-skeleton BVH -> Bandai Namco skeleton (30 fps)
+    stylestream loadtest --sessions 1,64 --echo-floor   open-loop latency test against a server it starts
 
 Every subcommand has --help. Settings (data folder, cache folder, port...) come from
 STYLESTREAM_* environment variables or a .env file; see README.md.
@@ -50,9 +51,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dataset", action="append", help="limit to a dataset (repeatable): bandai-namco-1, bandai-namco-2, xia, cmu")
     p.set_defaults(func=_data)
 
+    from .loadtest import add_loadtest_command
     from .motion_tools import add_motion_commands
 
     add_motion_commands(sub)
+    add_loadtest_command(sub)
     return parser
 
 

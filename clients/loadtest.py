@@ -92,7 +92,7 @@ async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float,
             if delay > 0:
                 await asyncio.sleep(delay)
             sent_at[i] = time.perf_counter()
-            await ws.send(frames[i % len(frames)].tobytes() if start is None else _pack(i, frames[i % len(frames)]))
+            await ws.send(_pack(i, frames[i % len(frames)]))  # the echo server returns it as is
         await asyncio.sleep(0.5)  # let the last replies arrive
         recv_task.cancel()
     stats["latency"].append(got_at - sent_at)
@@ -106,8 +106,6 @@ def _pack(seq: int, payload: np.ndarray) -> bytes:
 def _worker(url: str, start: dict | None, count: int, fps: float, seconds: float, t0: float, queue) -> None:
     root, rot = real_frames()
     payload = np.concatenate([root, rot.reshape(len(rot), -1)], axis=1).astype("<f4")
-    if start is None:  # echo server: send a full binary frame including the header
-        payload = np.stack([np.frombuffer(_pack(0, p), dtype=np.uint8) for p in payload])
     stats = {"latency": [], "dropped": 0}
 
     async def main() -> None:
@@ -173,3 +171,96 @@ def write_report(results: list[Result], latencies: list[np.ndarray], out: Path) 
     fig.tight_layout()
     fig.savefig(out.with_suffix(".png"))
     plt.close(fig)
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def _spawn(module_args: list[str], port: int, env: dict[str, str] | None = None):
+    import subprocess
+    import sys
+
+    import httpx
+
+    proc = subprocess.Popen([sys.executable, "-m", *module_args, "--port", str(port)],
+                            env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1)
+            return proc
+        except httpx.TransportError:
+            time.sleep(0.2)
+    proc.kill()
+    raise RuntimeError(f"{module_args} did not start on port {port}")
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _cpu_seconds(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def add_loadtest_command(sub) -> None:
+    p = sub.add_parser("loadtest", help="open-loop load test: N sessions at a fixed frame rate, latency percentiles")
+    p.add_argument("--url", help="ws://host:port/v1/stream of a running server (default: start one here)")
+    p.add_argument("--sessions", default="64", help="session count, or a comma list to sweep (e.g. 1,16,64,256)")
+    p.add_argument("--fps", type=float, default=60.0)
+    p.add_argument("--seconds", type=float, default=10.0)
+    p.add_argument("--model", default="lti")
+    p.add_argument("--style", help="target style (default: the model's first)")
+    p.add_argument("--no-batching", action="store_true", help="started server runs with cross-session batching off")
+    p.add_argument("--echo-floor", action="store_true", help="also measure a plain WebSocket echo server (the floor)")
+    p.add_argument("--processes", type=int, help="client processes (default: one per core)")
+    p.add_argument("--out", type=Path, default=Path("out/loadtest"), help="writes OUT.json and OUT.png")
+    p.set_defaults(func=_loadtest)
+
+
+def _loadtest(args) -> int:
+    counts = [int(s) for s in str(args.sessions).split(",")]
+    style = args.style
+    results, lats, floor = [], [], None
+    if args.echo_floor:
+        port = _free_port()
+        echo = _spawn(["clients.echo_server"], port)
+        try:
+            floor, lat = run(f"ws://127.0.0.1:{port}/v1/stream", counts[-1], args.fps, args.seconds,
+                             processes=args.processes, echo=True)
+            print("echo floor   " + floor.line())
+        finally:
+            echo.terminate()
+    server = None
+    url = args.url
+    if url is None:
+        port = _free_port()
+        env = {"STYLESTREAM_BATCHING": "false"} if args.no_batching else {}
+        server = _spawn(["clients.cli", "serve", "--log-level", "warning"], port, env)
+        url = f"ws://127.0.0.1:{port}/v1/stream"
+    if style is None:
+        import httpx
+
+        models = httpx.get(url.replace("ws", "http", 1).replace("/v1/stream", "/v1/models")).json()
+        style = next(m["styles"][0] for m in models if m["name"] == args.model)
+    try:
+        for n in counts:
+            cpu0 = _cpu_seconds(server.pid) if server else None
+            result, lat = run(url, n, args.fps, args.seconds, args.model, style, args.processes)
+            server_cpu = (_cpu_seconds(server.pid) - cpu0) if server else float("nan")
+            results.append(result)
+            lats.append(lat)
+            ratio = f"  p99/floor {result.p99_ms / floor.p99_ms:.2f}" if floor else ""
+            print(result.line() + f"  server cpu {server_cpu:.1f} s" + ratio, flush=True)
+    finally:
+        if server:
+            server.terminate()
+            server.wait(timeout=20)
+    write_report(results, lats, args.out)
+    print(f"wrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')}")
+    return 0
