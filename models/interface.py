@@ -29,6 +29,7 @@ class FrameBatch:
 
     root: np.ndarray  # (B, 3) root (Hips) translation
     rotations: np.ndarray  # (B, J, 4) local joint rotations, scalar-last quaternions
+    contacts: np.ndarray | None = None  # (B, 2) left/right foot contact flags, on outputs where a model predicts them
 
     def __len__(self) -> int:
         return self.root.shape[0]

@@ -205,7 +205,7 @@ def test_bad_input_gets_a_typed_error_and_the_session_lives_on(server, models, c
     ('{"type": "start", "model": "lti", "style": "no-such-style"}', "unknown_style"),
     ('{"type": "start", "model": "lti", "style": "a", "mix": {"a": 1}}', "bad_style"),
     ('{"type": "start", "model": "lti", "style": "x", "resume_token": "forged"}', "unknown_resume_token"),
-    ('{"type": "start", "model": "lti", "style": "x", "bvh_header": "HIERARCHY\\nROOT Hips\\n{"}', "bad_skeleton"),
+    ('{"type": "start", "model": "lti", "style": "elderly", "bvh_header": "HIERARCHY\\nROOT Hips\\n{"}', "bad_skeleton"),
 ])
 def test_bad_session_openings_are_refused_with_a_typed_error(server, first, code):
     base, _ = server

@@ -1,0 +1,159 @@
+"""CLI: python -m models.lti {train, translate, bench, align-plot}.
+
+  python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
+  python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
+  python -m models.lti bench [--style elderly] [--frames 2000]
+  python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
+  python -m models.lti align-plot [-o out/lti_alignment.png]
+  python -m models.lti card --train-time "..."   (benchmark + models/weights/lti/MODEL_CARD.md)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def cmd_train(args) -> None:
+    from .train import CONFIG, train
+    cfg = dict(CONFIG)
+    if args.align:
+        cfg["align"] = args.align
+    if args.contents:
+        cfg["contents"] = args.contents
+    t0 = time.time()
+    from .model import WEIGHTS_DIR
+    report = train(args.styles, cfg, Path(args.out) if args.out else WEIGHTS_DIR)
+    print(f"trained {len(report)} styles in {time.time() - t0:.1f} s")
+
+
+def cmd_translate(args) -> None:
+    from models.motion import bvh as bvhio
+    from models.motion.skeleton import from_bvh, to_bvh
+    from .model import LTIStyleModel
+    model = LTIStyleModel()
+    src = bvhio.read(args.input)
+    motion = from_bvh(src)
+    tr = model.translators[args.style]
+    tr.keep_heading = not args.model_heading
+    out, contacts = tr.translate_motion(motion, timewarp=args.timewarp, blend=not args.no_blend, footlock=not args.no_footlock)
+    bvhio.write(to_bvh(out, src), args.output)
+    print(f"{args.input} -> {args.output}: {motion.num_frames} -> {out.num_frames} frames, style {args.style}, "
+          f"contacts L {contacts[:, 0].mean():.0%} R {contacts[:, 1].mean():.0%}")
+
+
+def cmd_bench(args) -> None:
+    from models.data import build_index, load_motion, select
+    from models.interface import FrameBatch
+    from .model import LTIStyleModel
+    clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
+    motion = load_motion(clip)
+    for footlock in (True, False):
+        model = LTIStyleModel(footlock=footlock)
+        style = args.style or ("elderly" if "elderly" in model.styles() else model.styles()[0])
+        print(f"LTI step_batch, style {style} (state dim {model.translators[style].n}), input {clip.name}, "
+              f"foot lock {'on (default)' if footlock else 'off'}")
+        for batch in (1, 256):
+            state = model.init_state(batch)
+            weights = np.zeros((batch, len(model.styles())))
+            weights[:, model.styles().index(style)] = 1.0
+            frames = args.frames if batch == 1 else max(args.frames // 8, 100)
+            times = np.empty(frames)
+            for t in range(frames):
+                k = t % motion.num_frames
+                fb = FrameBatch(np.repeat(motion.translations[k:k + 1, 1], batch, 0), np.repeat(motion.rotations[k:k + 1], batch, 0))
+                t0 = time.perf_counter()
+                _, state = model.step_batch(state, fb, weights)
+                times[t] = time.perf_counter() - t0
+            times = times[10:]
+            med, p99 = np.median(times), np.percentile(times, 99)
+            print(f"  batch {batch:4d}: median {med * 1e6:8.1f} us/step ({med * 1e6 / batch:7.2f} us/frame), "
+                  f"p99 {p99 * 1e6:8.1f} us/step, {batch / med:10.0f} frames/s")
+
+
+def cmd_render(args) -> None:
+    """Input vs translated output of a validation neutral walk: contact sheet PNG + GIF per style."""
+    from models.data import build_index, load_motion, select
+    from models.motion.render import render_contact_sheet, render_gif
+    from .model import LTIStyleModel
+    model = LTIStyleModel()
+    clip = select(build_index(["bandai-namco-2"]), style="normal", content=args.content, split="val")[0]
+    motion = load_motion(clip)
+    out_dir = Path(args.out)
+    for style in args.styles or model.styles():
+        tr = model.translators[style]
+        online, _ = tr.translate_motion(motion)
+        warped, _ = tr.translate_motion(motion, timewarp=True)
+        ms, titles = [motion, online, warped], [f"input {clip.name}", f"{style} (online)", f"{style} (time-warped)"]
+        png = render_contact_sheet(ms, out_dir / f"lti_{style}_{args.content}.png", frames=8, titles=titles)
+        print(f"wrote {png}")
+        if not args.no_gif:
+            gif = render_gif(ms, out_dir / f"lti_{style}_{args.content}.gif", titles=titles, seconds=args.seconds)
+            print(f"wrote {gif}")
+
+
+def cmd_card(args) -> None:
+    import contextlib
+    import io
+    from .card import write_model_card
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        cmd_bench(argparse.Namespace(style=None, frames=args.frames))
+    path = write_model_card(buf.getvalue().strip(), args.train_time, args.command)
+    print(buf.getvalue().strip())
+    print(f"wrote {path}")
+
+
+def cmd_align_plot(args) -> None:
+    from .plots import alignment_figure
+    path = alignment_figure(Path(args.output))
+    print(f"wrote {path}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m models.lti", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("train")
+    t.add_argument("--styles", nargs="*")
+    t.add_argument("--align", choices=["imw", "dtw"])
+    t.add_argument("--contents", nargs="*")
+    t.add_argument("--out")
+    t.set_defaults(func=cmd_train)
+    r = sub.add_parser("translate")
+    r.add_argument("input")
+    r.add_argument("--style", required=True)
+    r.add_argument("-o", "--output", required=True)
+    r.add_argument("--timewarp", action="store_true")
+    r.add_argument("--no-blend", action="store_true")
+    r.add_argument("--no-footlock", action="store_true", help="skip the IK foot lock")
+    r.add_argument("--model-heading", action="store_true", help="use the model's yaw change (may drift) instead of the input's")
+    r.set_defaults(func=cmd_translate)
+    b = sub.add_parser("bench")
+    b.add_argument("--style")
+    b.add_argument("--frames", type=int, default=2000)
+    b.set_defaults(func=cmd_bench)
+    v = sub.add_parser("render")
+    v.add_argument("--styles", nargs="*")
+    v.add_argument("--content", default="walk")
+    v.add_argument("--out", default="out")
+    v.add_argument("--seconds", type=float, default=6.0)
+    v.add_argument("--no-gif", action="store_true")
+    v.set_defaults(func=cmd_render)
+    c = sub.add_parser("card")
+    c.add_argument("--train-time", required=True)
+    c.add_argument("--command", default="python -m models.lti train")
+    c.add_argument("--frames", type=int, default=3000)
+    c.set_defaults(func=cmd_card)
+    a = sub.add_parser("align-plot")
+    a.add_argument("-o", "--output", default="out/lti_alignment.png")
+    a.set_defaults(func=cmd_align_plot)
+    args = p.parse_args(argv)
+    args.func(args)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,283 @@
+"""Hsu et al. 2005 motion representation, offline (whole clip) and streaming (one frame at a time).
+
+Per frame of the Bandai Namco skeleton (22 joints, `joint_Root` static at 0, `Hips` at 1):
+
+  [0:2]   root ground-plane displacement (x, z) since the previous frame, expressed in the
+          previous frame's facing frame (+Z forward, +X left)
+  [2]     yaw change since the previous frame (radians, wrapped to [-pi, pi))
+  [3]     root height (Hips y, cm)
+  [4:7]   the Hips rotation with its yaw removed ("tilt"), exponential map
+  [7:67]  local rotations of joints 2..21 (Spine ... Toes_R), exponential map
+
+Every rotation (the tilt and joints 2..21) is taken relative to a fixed per-joint reference
+rotation `ref` (22, 4) before the exponential map: q = ref_j * exp(r). Several BN joints sit near
+180 degrees from identity (UpperLeg ~175 deg, Shoulder ~110 deg), where the plain exponential map
+wraps around; relative to the data's mean rotation the angles stay far from pi. The reference is
+estimated from the training inputs (`mean_rotations`) and stored with the weights.
+
+The first frame of a clip has zero displacement and zero yaw change. The facing yaw is read off
+the Hips rotation: the hips' left direction is the Hips-local -Y axis (UpperLeg_L - UpperLeg_R
+points along -Y in the Hips frame of this skeleton) and forward = cross(left, up), so yaw 0 means
+facing +Z. Splitting q_hips = q_yaw(yaw) * q_tilt is exact, so the representation inverts exactly.
+
+Quaternion helpers here are small vectorised numpy functions (scalar-last, like the rest of the
+project) because scipy's Rotation has ~10 us of per-call overhead, too much for a per-frame step.
+The offline path (`motion_to_features`) and the streaming path (`FeatureEncoder`/`FeatureDecoder`)
+share these helpers, so they agree to floating-point round-off.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+ROOT_DIMS = 7
+NUM_JOINTS = 22
+HIPS = 1
+BODY_JOINTS = tuple(range(2, NUM_JOINTS))  # joints carried as expmaps
+FEATURE_DIM = ROOT_DIMS + 3 * len(BODY_JOINTS)  # 67
+HIPS_LEFT_LOCAL = np.array([0.0, -1.0, 0.0])
+
+
+# --------------------------------------------------------------------------- quaternions
+
+
+def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return np.stack([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ], axis=-1)
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.cross for (..., 3) without its per-call overhead (which dominates on small arrays)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def qapply(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    xyz, w = q[..., :3], q[..., 3:]
+    t = 2.0 * cross(xyz, v)
+    return v + w * t + cross(xyz, t)
+
+
+def quat_to_mat(q: np.ndarray) -> np.ndarray:
+    """(..., 4) unit quaternions -> (..., 3, 3) rotation matrices (acting on column vectors)."""
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
+    m = np.empty(q.shape[:-1] + (3, 3))
+    m[..., 0, 0] = 1 - 2 * (yy + zz); m[..., 0, 1] = 2 * (xy - wz); m[..., 0, 2] = 2 * (xz + wy)
+    m[..., 1, 0] = 2 * (xy + wz); m[..., 1, 1] = 1 - 2 * (xx + zz); m[..., 1, 2] = 2 * (yz - wx)
+    m[..., 2, 0] = 2 * (xz - wy); m[..., 2, 1] = 2 * (yz + wx); m[..., 2, 2] = 1 - 2 * (xx + yy)
+    return m
+
+
+def qyaw(yaw: np.ndarray) -> np.ndarray:
+    """Rotation by `yaw` radians about +Y."""
+    h = 0.5 * np.asarray(yaw, float)
+    z = np.zeros_like(h)
+    return np.stack([z, np.sin(h), z, np.cos(h)], axis=-1)
+
+
+def left_matrix(p: np.ndarray) -> np.ndarray:
+    """(..., 4) -> (..., 4, 4) L with qmul(p, q) == L @ q (precomputed for constant left factors)."""
+    x, y, z, w = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
+    rows = [[w, -z, y, x], [z, w, -x, y], [-y, x, w, z], [-x, -y, -z, w]]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def qinv(q: np.ndarray) -> np.ndarray:
+    return q * np.array([-1.0, -1.0, -1.0, 1.0])
+
+
+IDENTITY_REF = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (NUM_JOINTS, 1))
+
+
+def mean_rotations(rotations: np.ndarray) -> np.ndarray:
+    """(F, 22, 4) local rotations -> (22, 4) per-joint mean (principal eigenvector of sum q q^T),
+    with the Hips entry taken over the yaw-free tilt."""
+    q = rotations.copy()
+    q[:, HIPS] = split_hips(q[:, HIPS])[1]
+    ref = np.empty((NUM_JOINTS, 4))
+    for j in range(NUM_JOINTS):
+        w, v = np.linalg.eigh(q[:, j].T @ q[:, j])
+        ref[j] = v[:, -1] * (1.0 if v[3, -1] >= 0 else -1.0)
+    return ref
+
+
+def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
+    """(..., 4) -> (..., 3) exponential map, angle in [0, pi] (w >= 0 branch)."""
+    w = np.abs(q[..., 3:])
+    v = q[..., :3] * np.sign(q[..., 3:] + 1e-300)
+    s = np.sqrt(np.einsum("...i,...i->...", v, v))[..., None]
+    # angle / sin(angle / 2) -> 2 / w as s -> 0
+    scale = np.divide(2.0 * np.arctan2(s, w), s, out=2.0 / np.maximum(w, 1e-12), where=s > 1e-8)
+    return v * scale
+
+
+def rotvec_to_quat(r: np.ndarray) -> np.ndarray:
+    angle = np.sqrt(np.sum(r * r, axis=-1, keepdims=True))
+    small = angle < 1e-8
+    scale = np.where(small, 0.5 - angle**2 / 48.0, np.sin(0.5 * angle) / np.where(small, 1.0, angle))
+    return np.concatenate([r * scale, np.cos(0.5 * angle)], axis=-1)
+
+
+def wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def hips_yaw(q_hips: np.ndarray) -> np.ndarray:
+    # left = R(q) @ (0, -1, 0) = -(second matrix column); forward = cross(left, up) = (-left_z, 0, left_x)
+    x, y, z, w = q_hips[..., 0], q_hips[..., 1], q_hips[..., 2], q_hips[..., 3]
+    left_x = -2.0 * (x * y - w * z)
+    left_z = -2.0 * (y * z + w * x)
+    return np.arctan2(-left_z, left_x)  # yaw = atan2(fwd_x, fwd_z)
+
+
+def split_hips(q_hips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """q_hips = qyaw(yaw) * tilt; returns (yaw, tilt quaternion)."""
+    yaw = hips_yaw(q_hips)
+    c, s = np.cos(0.5 * yaw)[..., None], np.sin(0.5 * yaw)[..., None]
+    # qyaw(-yaw) * q, written out: (c*x - s*z, c*y - s*w, c*z + s*x, c*w + s*y)
+    return yaw, c * q_hips + s * q_hips[..., [2, 3, 0, 1]] * np.array([-1.0, -1.0, 1.0, 1.0])
+
+
+def rotate_y(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Rotate ground-plane vectors (..., 2) [x, z] by yaw about +Y."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    x, z = v[..., 0], v[..., 1]
+    return np.stack([c * x + s * z, -s * x + c * z], axis=-1)
+
+
+# --------------------------------------------------------------------------- offline
+
+
+def pose_features(root: np.ndarray, rotations: np.ndarray, ref: np.ndarray = IDENTITY_REF) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-frame pieces that need no history: (yaw (...), ground xz (..., 2), static features (..., 64))."""
+    yaw, tilt = split_hips(rotations[..., HIPS, :])
+    q = rotations[..., 1:, :].copy()
+    q[..., 0, :] = tilt
+    inv_ref = _left_inv(ref)
+    r = quat_to_rotvec((inv_ref @ q[..., None])[..., 0]).reshape(*rotations.shape[:-2], 3 * (NUM_JOINTS - 1))
+    static = np.concatenate([root[..., 1:2], r], axis=-1)
+    return yaw, root[..., [0, 2]], static
+
+
+def sequence_features(root: np.ndarray, rotations: np.ndarray, ref: np.ndarray = IDENTITY_REF) -> np.ndarray:
+    """(F, 3) Hips translations + (F, J, 4) local rotations -> (F, 67) features."""
+    yaw, ground, static = pose_features(root, rotations, ref)
+    delta = np.zeros((len(yaw), 3))
+    if len(yaw) > 1:
+        delta[1:, :2] = rotate_y(ground[1:] - ground[:-1], -yaw[:-1])
+        delta[1:, 2] = wrap(yaw[1:] - yaw[:-1])
+    return np.concatenate([delta, static], axis=-1)
+
+
+def motion_to_features(motion, ref: np.ndarray = IDENTITY_REF) -> np.ndarray:
+    return sequence_features(motion.translations[:, HIPS], motion.rotations, ref)
+
+
+def features_to_sequence(features: np.ndarray, start_ground: np.ndarray, start_yaw: float,
+                         ref: np.ndarray = IDENTITY_REF) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of `sequence_features`: (F, 67) -> root (F, 3), rotations (F, 22, 4).
+
+    The path is integrated from the given start: frame 0 sits at `start_ground`/`start_yaw`
+    and frame t adds the displacement of frame t in the facing of frame t-1."""
+    f = len(features)
+    dyaw = features[:, 2].copy()
+    dyaw[0] = 0.0
+    yaw = start_yaw + np.cumsum(dyaw)
+    step = np.zeros((f, 2))
+    if f > 1:
+        step[1:] = rotate_y(features[1:, :2], yaw[:-1])
+    ground = np.asarray(start_ground, float) + np.cumsum(step, axis=0)
+    root = np.stack([ground[:, 0], features[:, 3], ground[:, 1]], axis=-1)
+    return root, static_to_rotations(features[:, 4:], yaw, ref)
+
+
+def static_to_rotations(static_rot: np.ndarray, yaw: np.ndarray, ref: np.ndarray = IDENTITY_REF) -> np.ndarray:
+    """(..., 63) tilt + body expmaps and yaw -> (..., 22, 4) local rotations."""
+    lead = static_rot.shape[:-1]
+    out = np.empty(lead + (NUM_JOINTS, 4))
+    out[..., 0, :] = (0.0, 0.0, 0.0, 1.0)
+    out[..., 1:, :] = (_left(ref) @ rotvec_to_quat(static_rot.reshape(*lead, 21, 3))[..., None])[..., 0]
+    c, s = np.cos(0.5 * yaw)[..., None], np.sin(0.5 * yaw)[..., None]
+    t = out[..., HIPS, :]
+    # qyaw(yaw) * t, written out: (c*x + s*z, c*y + s*w, c*z - s*x, c*w - s*y)
+    out[..., HIPS, :] = c * t + s * t[..., [2, 3, 0, 1]] * np.array([1.0, 1.0, -1.0, -1.0])
+    return out
+
+
+_LEFT_CACHE: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def _cached(ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    key = id(ref)
+    hit = _LEFT_CACHE.get(key)
+    if hit is None or hit[0] is not ref:
+        hit = (ref, left_matrix(ref[1:]), left_matrix(qinv(ref[1:])))
+        _LEFT_CACHE[key] = hit
+    return hit[1], hit[2]
+
+
+def _left(ref: np.ndarray) -> np.ndarray:
+    return _cached(ref)[0]
+
+
+def _left_inv(ref: np.ndarray) -> np.ndarray:
+    return _cached(ref)[1]
+
+
+# --------------------------------------------------------------------------- streaming
+
+
+class FeatureEncoder:
+    """Streaming `sequence_features` for a batch of sessions: keeps the previous yaw and ground
+    position per session (constant memory, no look-ahead)."""
+
+    def __init__(self, batch: int, ref: np.ndarray = IDENTITY_REF):
+        self.ref = ref
+        self.prev_yaw = np.zeros(batch)
+        self.prev_ground = np.zeros((batch, 2))
+        self.started = np.zeros(batch, bool)
+
+    def __call__(self, root: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        yaw, ground, static = pose_features(root, rotations, self.ref)
+        fresh = ~self.started
+        if fresh.any():
+            self.prev_yaw = np.where(fresh, yaw, self.prev_yaw)
+            self.prev_ground = np.where(fresh[:, None], ground, self.prev_ground)
+            self.started[:] = True
+        delta = np.empty((len(yaw), 3))
+        delta[:, :2] = rotate_y(ground - self.prev_ground, -self.prev_yaw)
+        delta[:, 2] = wrap(yaw - self.prev_yaw)
+        self.prev_yaw, self.prev_ground = yaw, ground
+        return np.concatenate([delta, static], axis=-1)
+
+
+class FeatureDecoder:
+    """Streaming `features_to_sequence`: integrates the output path per session. The first frame
+    of a session starts at the input's ground position and yaw (passed in by the caller)."""
+
+    def __init__(self, batch: int, ref: np.ndarray = IDENTITY_REF):
+        self.ref = ref
+        self.yaw = np.zeros(batch)
+        self.ground = np.zeros((batch, 2))
+        self.started = np.zeros(batch, bool)
+
+    def __call__(self, features: np.ndarray, in_ground: np.ndarray, in_yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        fresh = ~self.started
+        step = rotate_y(features[:, :2], self.yaw)
+        yaw = self.yaw + features[:, 2]
+        ground = self.ground + step
+        if fresh.any():
+            yaw = np.where(fresh, in_yaw, yaw)
+            ground = np.where(fresh[:, None], in_ground, ground)
+            self.started[:] = True
+        self.yaw, self.ground = yaw, ground
+        root = np.stack([ground[:, 0], features[:, 3], ground[:, 1]], axis=-1)
+        return root, static_to_rotations(features[:, 4:], yaw, self.ref)

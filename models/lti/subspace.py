@@ -1,0 +1,189 @@
+"""Subspace identification of discrete LTI systems  x[t+1] = A x[t] + B u[t],  y[t] = C x[t] + D u[t].
+
+Why not a PyPI package. `nfoursid` (1.0.2) is a readable N4SID built on pandas DataFrames for a
+single experiment: it takes one contiguous input/output record (our training data are hundreds
+of separate clip pairs, each starting from rest), pulls pandas in, and its Kalman-filter focus
+adds nothing here. `sippy-unipi` (SIPPY) offers N4SID/MOESP/CVA, but is a large package built
+around single records as well, with its own dependency pins (control/slycot/casadi in various
+releases) and no multi-record API. Both would also leave the B/D estimate with a one-step
+prediction criterion, while a streaming model starting from x0 = 0 is best served by fitting
+B and D for simulation from x0 = 0. So this is a compact numpy/scipy implementation:
+
+1. PO-MOESP (Verhaegen 1994), an N4SID-family subspace method: block-Hankel matrices of
+   past inputs/outputs and future inputs/outputs, stacked over every record (columns from
+   different records never mix), an LQ factorisation (computed as the Cholesky factor of the
+   Hankel Gram matrix, which is a single BLAS product over all columns), and an SVD of the
+   part of the future outputs explained by the past, orthogonal to the future inputs. Its left
+   singular vectors span the extended observability matrix.
+2. The order n is read off the singular values (`choose_order`).
+3. C is the first block row of the observability matrix, A follows from its shift invariance
+   (least squares).
+4. A is made stable: eigenvalues with modulus >= `max_radius` are reflected into the unit
+   circle (lambda -> 1/conj(lambda), same frequency, decay instead of growth) and then capped at
+   `max_radius`; A is rebuilt from the modified eigen-decomposition (kept real).
+5. B and D are the linear least-squares fit of the simulated output from x0 = 0 to the data,
+   over all records (the output is linear in B and D once A and C are fixed); the normal
+   equations are accumulated record by record.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+
+
+@dataclass
+class StateSpace:
+    A: np.ndarray  # (n, n)
+    B: np.ndarray  # (n, m)
+    C: np.ndarray  # (p, n)
+    D: np.ndarray  # (p, m)
+    singular_values: np.ndarray | None = None
+    raw_radius: float = 0.0  # spectral radius of A as identified, before `stabilize`
+    n_stabilized: int = 0  # eigenvalues moved by `stabilize`
+
+    @property
+    def order(self) -> int:
+        return self.A.shape[0]
+
+    def simulate(self, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
+        return simulate(self.A, self.B, self.C, self.D, u, x0)
+
+    def markov(self, k: int) -> np.ndarray:
+        """Impulse response D, CB, CAB, ... up to k terms: (k, p, m)."""
+        out = [self.D]
+        x = self.B
+        for _ in range(k - 1):
+            out.append(self.C @ x)
+            x = self.A @ x
+        return np.stack(out)
+
+
+def simulate(A, B, C, D, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
+    n = A.shape[0]
+    x = np.zeros(n) if x0 is None else np.asarray(x0, float)
+    y = np.empty((len(u), C.shape[0]))
+    for t in range(len(u)):
+        y[t] = C @ x + D @ u[t]
+        x = A @ x + B @ u[t]
+    return y
+
+
+def spectral_radius(A: np.ndarray) -> float:
+    return float(np.max(np.abs(np.linalg.eigvals(A)))) if A.size else 0.0
+
+
+def stabilize(A: np.ndarray, max_radius: float = 0.995) -> tuple[np.ndarray, int]:
+    """Reflect eigenvalues outside the unit circle inside and cap the modulus at `max_radius`.
+    Returns (stable A, number of eigenvalues changed)."""
+    if A.size == 0:
+        return A, 0
+    lam, V = np.linalg.eig(A)
+    mod = np.abs(lam)
+    bad = mod >= max_radius
+    if not bad.any():
+        return A, 0
+    new = lam.copy()
+    new[bad] = lam[bad] / mod[bad] * np.minimum(1.0 / mod[bad], max_radius)
+    A2 = np.real(V @ np.diag(new) @ np.linalg.inv(V))
+    if spectral_radius(A2) >= 1.0:  # defective/ill-conditioned eigenvectors: fall back to scaling
+        A2 = A * (max_radius / spectral_radius(A))
+    return A2, int(bad.sum())
+
+
+def _hankel(x: np.ndarray, start: int, rows: int, cols: int) -> np.ndarray:
+    """Block Hankel: block row r holds x[start + r : start + r + cols].T -> (rows * dim, cols)."""
+    return np.concatenate([x[start + r: start + r + cols].T for r in range(rows)], axis=0)
+
+
+def choose_order(sv: np.ndarray, max_order: int, energy: float = 0.99, gap: float = 1e3) -> int:
+    """Order from the singular values: an obvious gap (ratio > `gap`) wins, otherwise the
+    smallest n keeping `energy` of the squared singular values; capped at `max_order`."""
+    sv = np.asarray(sv, float)
+    k = min(max_order, len(sv) - 1)
+    if k <= 0 or sv[0] <= 0:
+        return 0
+    ratios = sv[:k] / np.maximum(sv[1:k + 1], 1e-300)
+    big = np.flatnonzero(ratios > gap)
+    if big.size:
+        return int(big[0] + 1)
+    cum = np.cumsum(sv**2) / np.sum(sv**2)
+    return int(min(k, np.searchsorted(cum, energy) + 1))
+
+
+def subspace_id(records: list[tuple[np.ndarray, np.ndarray]], horizon: int = 10, order: int | None = None,
+                max_order: int = 20, energy: float = 0.99, max_radius: float = 0.995,
+                ridge: float = 1e-6) -> StateSpace:
+    """Identify (A, B, C, D) from records of (u (T, m), y (T, p)). `horizon` is the number of
+    block rows i of the past and of the future Hankel matrices."""
+    i = horizon
+    m = records[0][0].shape[1]
+    p = records[0][1].shape[1]
+    blocks = []
+    for u, y in records:
+        cols = len(u) - 2 * i + 1
+        if cols <= 0:
+            continue
+        blocks.append(np.concatenate([
+            _hankel(u, i, i, cols),   # U_f
+            _hankel(u, 0, i, cols),   # U_p
+            _hankel(y, 0, i, cols),   # Y_p
+            _hankel(y, i, i, cols),   # Y_f
+        ], axis=0))
+    if not blocks:
+        raise ValueError("records are too short for the chosen horizon")
+    rows = 2 * i * (m + p)
+    gram = np.zeros((rows, rows))
+    ncols = 0
+    for H in blocks:
+        gram += H @ H.T
+        ncols += H.shape[1]
+    gram /= ncols
+    jitter = 1e-10 * np.trace(gram) / rows
+    L = np.linalg.cholesky(gram + jitter * np.eye(rows))  # gram = L L^T, i.e. H = L Q
+    a, b = m * i, m * i + (m + p) * i
+    L32 = L[b:, a:b]
+    U, sv, _ = np.linalg.svd(L32, full_matrices=False)
+    n = choose_order(sv, max_order, energy) if order is None else order
+    if n == 0:
+        A = np.zeros((0, 0)); C = np.zeros((p, 0))
+    else:
+        gamma = U[:, :n] * np.sqrt(sv[:n])
+        C = gamma[:p]
+        A = np.linalg.lstsq(gamma[:-p], gamma[p:], rcond=None)[0]
+    raw = spectral_radius(A)
+    A, changed = stabilize(A, max_radius)
+    B, D = fit_bd(A, C, records, ridge)
+    return StateSpace(A, B, C, D, sv, raw, changed)
+
+
+def fit_bd(A: np.ndarray, C: np.ndarray, records, ridge: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares B, D for simulation from x0 = 0 with A, C fixed.
+
+    x_t = sum_j V_t^(j) b_j with V_{t+1}^(j) = A V_t^(j) + u_t[j] I, so y_t = sum_j C V_t^(j) b_j + D u_t;
+    unknowns ordered [vec(B^T) (j-major), vec(D) (row-major)]."""
+    n, p, m = A.shape[0], C.shape[0], records[0][0].shape[1]
+    nb, nd = n * m, p * m
+    G = np.zeros((nb + nd, nb + nd))
+    h = np.zeros(nb + nd)
+    eye = np.eye(n)
+    for u, y in records:
+        T = len(u)
+        phi = np.zeros((T, p, nb + nd))
+        if n:
+            V = np.zeros((m, n, n))
+            for t in range(T):
+                phi[t, :, :nb] = np.einsum("pn,jnr->pjr", C, V).reshape(p, nb)
+                V = A @ V + u[t][:, None, None] * eye
+        for k in range(p):
+            phi[:, k, nb + k * m: nb + (k + 1) * m] = u
+        phi = phi.reshape(T * p, nb + nd)
+        G += phi.T @ phi
+        h += phi.T @ y.reshape(T * p)
+    G[np.diag_indices_from(G)] += ridge * max(1.0, np.trace(G) / len(G))
+    theta = sla.solve(G, h, assume_a="pos")
+    B = theta[:nb].reshape(m, n).T
+    D = theta[nb:].reshape(p, m)
+    return B, D

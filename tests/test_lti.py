@@ -1,0 +1,224 @@
+"""LTI style translation (Hsu et al. 2005): identification, streaming, batching, IMW, erf blend."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.lti import representation as rep
+from models.lti.footplant import FootplantClassifier
+from models.interface import FrameBatch
+from models.lti.model import WEIGHTS_DIR, LTIStyleModel, StyleTranslator
+from models.lti.subspace import StateSpace, simulate, spectral_radius, stabilize, subspace_id
+from models.lti.warping import imw, time_warp_dp
+
+
+def _data():
+    """The real data (tests unpack it on first use)."""
+    from models.data import build_index, load_motion, select
+    return build_index(["bandai-namco-2"]), load_motion, select
+
+
+def _one_hot(model: LTIStyleModel, style: str, batch: int) -> np.ndarray:
+    w = np.zeros((batch, len(model.styles())))
+    w[:, model.styles().index(style)] = 1.0
+    return w
+
+
+def _model(style="elderly") -> LTIStyleModel:
+    """The committed weights must exist: a missing file fails the test."""
+    assert (WEIGHTS_DIR / f"{style}.npz").exists(), "committed LTI weights missing"
+    return LTIStyleModel()
+
+
+# --------------------------------------------------------------------------- identification
+
+
+def test_identification_recovers_known_system():
+    rng = np.random.default_rng(0)
+    n, m, p = 4, 2, 3
+    lam = rng.uniform(0.3, 0.9, n) * np.sign(rng.standard_normal(n))
+    Q = rng.standard_normal((n, n))
+    A = Q @ np.diag(lam) @ np.linalg.inv(Q)
+    B, C, D = rng.standard_normal((n, m)), rng.standard_normal((p, n)), rng.standard_normal((p, m))
+    records = []
+    for _ in range(4):
+        u = rng.standard_normal((300, m))
+        records.append((u, simulate(A, B, C, D, u)))
+    ss = subspace_id(records, horizon=8, ridge=1e-12)
+    assert ss.order == n  # read off the singular-value gap
+    np.testing.assert_allclose(np.sort(np.abs(np.linalg.eigvals(ss.A))), np.sort(np.abs(lam)), atol=1e-7)
+    true = StateSpace(A, B, C, D).markov(40)
+    assert np.abs(ss.markov(40) - true).max() < 1e-7 * np.abs(true).max()
+    u = rng.standard_normal((200, m))  # fresh input: same simulated output
+    np.testing.assert_allclose(ss.simulate(u), simulate(A, B, C, D, u), atol=1e-6)
+
+
+def test_stabilize_reflects_unstable_eigenvalues():
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((6, 6))
+    assert spectral_radius(A) > 1
+    A2, changed = stabilize(A, 0.995)
+    assert changed > 0 and spectral_radius(A2) <= 0.995 + 1e-9
+    assert np.isrealobj(A2)
+
+
+# --------------------------------------------------------------------------- representation
+
+
+def test_representation_roundtrip_and_streaming_encoder():
+    index, load_motion, select = _data()
+    m = load_motion(select(index, style="normal", content="walk-turn-left", split="val")[0])
+    ref = rep.mean_rotations(m.rotations)
+    f = rep.motion_to_features(m, ref)
+    # relative to the reference no joint comes near the expmap's wrap-around at pi
+    assert np.linalg.norm(f[:, 4:].reshape(len(f), 21, 3), axis=-1).max() < 2.5
+    yaw0, _ = rep.split_hips(m.rotations[0, rep.HIPS])
+    root, rots = rep.features_to_sequence(f, m.translations[0, rep.HIPS, [0, 2]], float(yaw0), ref)
+    np.testing.assert_allclose(root, m.translations[:, rep.HIPS], atol=1e-8)
+    np.testing.assert_allclose(np.abs(np.sum(rots * m.rotations, -1)), 1.0, atol=1e-10)
+    enc = rep.FeatureEncoder(1, ref)
+    g = np.concatenate([enc(m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]) for t in range(m.num_frames)])
+    np.testing.assert_allclose(g, f, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- streaming
+
+
+@pytest.mark.parametrize("footlock,keep_heading", [(False, False), (True, True)])
+def test_streaming_equals_offline(footlock, keep_heading):
+    _model()
+    model = LTIStyleModel(footlock=footlock, keep_heading=keep_heading)
+    index, load_motion, select = _data()
+    m = load_motion(select(index, style="normal", content="walk", split="val")[0])
+    tr = model.translators["elderly"]
+    offline, contacts = tr.translate_motion(m, timewarp=False, footlock=footlock)
+    state, w = model.init_state(1), _one_hot(model, "elderly", 1)
+    for t in range(m.num_frames):
+        out, state = model.step_batch(state, FrameBatch(m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]), w)
+        np.testing.assert_allclose(out.root[0], offline.translations[t, rep.HIPS], atol=1e-8)
+        np.testing.assert_allclose(out.rotations[0], offline.rotations[t], atol=1e-10)
+        assert (out.contacts[0] == contacts[t]).all()
+
+
+def test_batched_step_equals_per_session():
+    model = _model()
+    index, load_motion, select = _data()
+    clips = select(index, style="normal", content=("walk", "run", "wave-left-hand"), split="val")[:3]
+    motions = [load_motion(c) for c in clips]
+    frames = min(mo.num_frames for mo in motions)
+    batch_state = model.init_state(len(motions))
+    single = [model.init_state(1) for _ in motions]
+    wb, w1 = _one_hot(model, "elderly", len(motions)), _one_hot(model, "elderly", 1)
+    for t in range(frames):
+        fb = FrameBatch(np.stack([mo.translations[t, rep.HIPS] for mo in motions]), np.stack([mo.rotations[t] for mo in motions]))
+        out, batch_state = model.step_batch(batch_state, fb, wb)
+        for k, mo in enumerate(motions):
+            o, single[k] = model.step_batch(single[k], FrameBatch(mo.translations[t:t + 1, rep.HIPS], mo.rotations[t:t + 1]), w1)
+            np.testing.assert_allclose(out.root[k], o.root[0], atol=1e-9)
+            np.testing.assert_allclose(out.rotations[k], o.rotations[0], atol=1e-10)
+
+
+def test_trained_models_are_stable_and_listed():
+    model = _model()
+    assert "elderly" in model.styles()
+    for tr in model.translators.values():
+        assert spectral_radius(tr.A) < 1.0
+
+
+# --------------------------------------------------------------------------- IMW
+
+
+def test_imw_never_increases_objective():
+    index, load_motion, select = _data()
+    from models.lti.train import make_pairs, match_features
+    a, b = make_pairs(index, "exhausted", "val")[0]
+    fa, fb = rep.motion_to_features(load_motion(a)), rep.motion_to_features(load_motion(b))
+    mean, std = fa.mean(0), np.maximum(fa.std(0), 0.05)
+    res = imw(match_features(fa, mean, std), match_features(fb, mean, std), s=3, max_step=6, max_iter=6)
+    obj = np.array(res.objective)
+    assert len(obj) >= 3
+    assert np.all(np.diff(obj) <= 1e-9 * obj[0])
+    steps = np.diff(res.warp)
+    assert res.warp[0] == 0 and res.warp[-1] == b.frames - 1
+    assert steps.min() >= 1 / 3 - 1e-12 and steps.max() <= 2 + 1e-12
+
+
+def test_time_warp_dp_finds_known_shift():
+    rng = np.random.default_rng(2)
+    K, T = 61, 31  # the best path advances 2 per row
+    cost = rng.uniform(1, 2, (T, K))
+    cost[np.arange(T), 2 * np.arange(T)] = 0
+    path, total = time_warp_dp(cost, 3)
+    np.testing.assert_array_equal(path, 2 * np.arange(T))
+    assert total == 0
+
+
+# --------------------------------------------------------------------------- erf blend and footplant
+
+
+def _toy_translator() -> StyleTranslator:
+    n, d = 2, rep.FEATURE_DIM
+    z = np.zeros
+    return StyleTranslator("toy", 0.5 * np.eye(n), z((n, d)), z((d + 1, n)), z((d + 1, d)), z(d), np.ones(d), z(d + 1),
+                           np.ones(d + 1), -np.ones(d), np.ones(d), np.array([n]), k_p=1.0, k_c=2.0)
+
+
+def test_erf_blend_zero_inside_and_one_far_outside():
+    tr = _toy_translator()
+    u = np.zeros((5, rep.FEATURE_DIM))
+    u[1, 3] = 0.99  # inside [-1, 1]
+    u[2, 3] = 1.9  # outside, but within k_p
+    u[3, 10] = -4.0  # moderately outside
+    u[4, 5] = 60.0  # far outside
+    w = tr.blend_weight(u)
+    assert w[0] == 0 and w[1] == 0 and w[2] == 0
+    assert 0 < w[3] < 1
+    assert w[4] > 0.999999
+    # blended output: far outside the training range the input passes through
+    feats = np.full((1, rep.FEATURE_DIM), 60.0)
+    out, _ = tr.translate_features(feats)
+    np.testing.assert_allclose(out[0, :rep.FEATURE_DIM], feats[0], rtol=1e-6)
+
+
+def test_footplant_classifier_separates_classes():
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((400, 5))
+    labels = np.stack([x[:, 0] + 0.1 * rng.standard_normal(400) > 0, x[:, 1] > 0.5], axis=1)
+    fp = FootplantClassifier.fit(x, labels)
+    assert (fp.predict(x) == labels).mean() > 0.9
+
+
+def test_two_bone_ik_reaches_target():
+    index, load_motion, select = _data()
+    from models.lti.footplant import FootLock, two_bone_ik
+    m = load_motion(select(index, style="normal", content="walk", split="val")[0])
+    lock = FootLock(m.skeleton, 1)
+    up, low, foot = lock.chains[0]
+    rng = np.random.default_rng(4)
+    for t in (10, 50, 90):
+        root, rots = m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]
+        ankle = lock.foot_positions(root, rots)[:, 0]
+        target = ankle + rng.uniform(-4, 4, 3)
+        hip = root + rep.qapply(rots[:, rep.HIPS], m.skeleton.offsets[up][None])
+        new = rots.copy()
+        new[:, up], new[:, low], new[:, foot] = two_bone_ik(rots[:, rep.HIPS], rots[:, up], rots[:, low], rots[:, foot], hip,
+                                                           m.skeleton.offsets[low], m.skeleton.offsets[foot], target)
+        np.testing.assert_allclose(lock.foot_positions(root, new)[:, 0], target, atol=1e-3)  # cm
+        # the foot keeps its world orientation
+        g_old, _ = __import__("models.motion.skeleton", fromlist=["fk"]).fk(rots, m.translations[t:t + 1], m.skeleton.parents)
+        g_new, _ = __import__("models.motion.skeleton", fromlist=["fk"]).fk(new, m.translations[t:t + 1], m.skeleton.parents)
+        assert abs(abs(np.sum(g_old[0, foot] * g_new[0, foot])) - 1) < 1e-9
+
+
+def test_offline_timewarp_follows_predicted_rate():
+    model = _model()
+    index, load_motion, select = _data()
+    m = load_motion(select(index, style="normal", content="walk", split="val")[0])
+    tr = model.translators["elderly"]
+    out, _ = tr.translate_features(rep.motion_to_features(m, tr.ref))
+    expected = 1 + np.exp(out[1:, rep.FEATURE_DIM]).sum()
+    warped, contacts = tr.translate_motion(m, timewarp=True)
+    assert abs(warped.num_frames - expected) <= 1.0
+    assert len(contacts) == warped.num_frames
+    np.testing.assert_allclose(np.linalg.norm(warped.rotations, axis=-1), 1.0, atol=1e-9)
