@@ -16,7 +16,8 @@ import numpy as np
 
 from models.motion import bvh as bvhio
 from models.motion.retarget import source_variant
-from models.motion.retarget_stream import FrameRetargeter, cmu_skeleton
+from models.motion.assets import cmu_skeleton
+from models.motion.retarget_stream import FrameRetargeter
 from models.motion.skeleton import Skeleton, skeleton_from_bvh
 
 from .protocol import ProtocolError

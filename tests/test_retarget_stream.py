@@ -8,7 +8,8 @@ import pytest
 from models.data import build_index, load_motion, select
 from models.motion.retarget import (CMU_TO_BN, MATCHED_BONES, contact_height, default_rig, leg_length, retarget,
                                     source_variant)
-from models.motion.retarget_stream import FrameRetargeter, cmu_skeleton, mat_to_quat, quat_to_mat
+from models.motion.assets import cmu_skeleton
+from models.motion.retarget_stream import FrameRetargeter, mat_to_quat, quat_to_mat
 from models.motion.skeleton import Motion, fk
 
 # one walk per CMU naming variant: Xia (cgspeed names), CMU 131 (bvh11 names)

@@ -26,13 +26,14 @@ timewarp=True)`); online it is ignored, since honouring it would break synchrony
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from scipy import sparse
 from scipy.special import erf
+
+from models.motion.assets import bandai_namco_skeleton
 
 from . import representation as rep
 from .footplant import FootLock, FootplantClassifier
@@ -187,7 +188,7 @@ class LTIStyleModel:
             tr.keep_heading = keep_heading
         self.blend = blend
         self.footlock = footlock
-        self.skeleton = skeleton if skeleton is not None else _bn_skeleton()
+        self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
         self._styles = sorted(translators)
         sizes = [translators[s].n for s in self._styles]
         bounds = np.concatenate([[0], np.cumsum(sizes)])
@@ -273,10 +274,3 @@ class LTIStyleModel:
             out_rot = lock(out_root, out_rot, contacts)
             new_state.update(lock_anchor=lock.anchor, lock_since=lock.since, lock_was=lock.was)
         return FrameBatch(out_root, out_rot, contacts), new_state
-
-
-@functools.lru_cache(maxsize=1)
-def _bn_skeleton():
-    from models.data import build_index, load_motion, select
-    clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk")[0]
-    return load_motion(clip).skeleton

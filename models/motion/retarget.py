@@ -21,7 +21,7 @@ all rotations zero is meaningless (legs point up the spine). So the mapping is b
    toe height the BN data shows (~4.2 cm; see `contact_height`). The source is first resampled to
    the target fps (default 30).
 
-Everything is pure numpy/scipy; `default_rig()` reads one BN clip from the data sets.
+Everything is pure numpy/scipy; `default_rig()` comes from a committed one-frame BN asset.
 """
 
 from __future__ import annotations
@@ -112,13 +112,12 @@ def source_variant(skeleton: Skeleton) -> str:
 
 @lru_cache(maxsize=1)
 def default_rig() -> Rig:
-    """The BN rig from the data: the first normal walk of Bandai Namco data set 2, its first frame."""
-    from ..data import build_index, load_motion, select
+    """The BN rig from the committed asset (first frame of Bandai Namco data set 2's first normal
+    walk, and that clip's toe floor), so retargeting needs no data at serving time."""
+    from .assets import BANDAI_NAMCO_TOE_FLOOR, bandai_namco_pose
 
-    clips = select(build_index(["bandai-namco-2"]), style="normal", content="walk")
-    if not clips:
-        raise LookupError("no normal walk in bandai-namco-2")
-    return Rig.from_motion(load_motion(clips[0]))
+    pose = bandai_namco_pose()
+    return Rig(pose.skeleton, np.array(pose.rotations[0], dtype=float), BANDAI_NAMCO_TOE_FLOOR, tuple(pose.euler_orders))
 
 
 def leg_length(skeleton: Skeleton, variant: str | None = None) -> float:

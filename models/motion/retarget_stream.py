@@ -31,7 +31,6 @@ depth (one `matmul` per depth level), so a single frame takes a few hundred micr
 
 from __future__ import annotations
 
-from functools import lru_cache
 
 import numpy as np
 
@@ -322,14 +321,3 @@ class FrameRetargeter:
         src_root = root_bn.copy()
         src_root[:, 1] -= self.vertical_offset
         return src_root / self.scale, out
-
-
-@lru_cache(maxsize=1)
-def cmu_skeleton() -> Skeleton:
-    """The standard CMU skeleton (cgspeed naming) of CMU clip 01_01, for sessions on `skeleton: "cmu"`."""
-    from ..data import build_index, load_motion, select
-
-    clips = select(build_index(["cmu"]), name="01_01")
-    if not clips:
-        raise LookupError("no CMU clip 01_01 in the cmu data set")
-    return load_motion(clips[0]).skeleton
