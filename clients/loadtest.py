@@ -40,6 +40,9 @@ class Result:
     frames_per_s: float
     client_cpu_s: float
     client_processes: int
+    server_p50_ms: float = float("nan")  # arrival -> reply sent, from the server's /metrics histogram
+    server_p99_ms: float = float("nan")
+    server_cpu_s: float = float("nan")
 
     def line(self) -> str:
         return (f"sessions {self.sessions:4d}  p50 {self.p50_ms:6.2f} ms  p95 {self.p95_ms:6.2f}  p99 {self.p99_ms:6.2f}  "
@@ -203,6 +206,39 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def server_histogram(base_url: str, model: str) -> dict[float, float]:
+    """Cumulative frame-latency bucket counts {upper bound s: count} from the server's /metrics."""
+    import httpx
+
+    text = httpx.get(f"{base_url}/metrics", timeout=5).text
+    out = {}
+    for line in text.splitlines():
+        if line.startswith("stylestream_frame_latency_seconds_bucket") and f'model="{model}"' in line:
+            le = line.split('le="')[1].split('"')[0]
+            out[float("inf") if le == "+Inf" else float(le)] = float(line.rsplit(" ", 1)[1])
+    return out
+
+
+def histogram_quantiles(before: dict[float, float], after: dict[float, float], qs=(0.5, 0.99)) -> list[float]:
+    """Quantiles (ms) of the frames served between two scrapes, linear within a bucket."""
+    bounds = sorted(after)
+    counts = [after[b] - before.get(b, 0.0) for b in bounds]
+    total = counts[-1] if counts else 0.0
+    out = []
+    for q in qs:
+        if total <= 0:
+            out.append(float("nan"))
+            continue
+        target, prev_b, prev_c = q * total, 0.0, 0.0
+        for b, c in zip(bounds, counts):
+            if c >= target:
+                hi = b if np.isfinite(b) else prev_b * 2
+                out.append(1000 * (prev_b + (hi - prev_b) * (target - prev_c) / max(c - prev_c, 1e-9)))
+                break
+            prev_b, prev_c = b, c
+    return out
+
+
 def _cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -248,15 +284,20 @@ def _loadtest(args) -> int:
 
         models = httpx.get(url.replace("ws", "http", 1).replace("/v1/stream", "/v1/models")).json()
         style = next(m["styles"][0] for m in models if m["name"] == args.model)
+    base = url.replace("ws", "http", 1).replace("/v1/stream", "")
     try:
         for n in counts:
             cpu0 = _cpu_seconds(server.pid) if server else None
+            hist0 = server_histogram(base, args.model)
             result, lat = run(url, n, args.fps, args.seconds, args.model, style, args.processes)
             server_cpu = (_cpu_seconds(server.pid) - cpu0) if server else float("nan")
+            s50, s99 = histogram_quantiles(hist0, server_histogram(base, args.model))
+            result.server_p50_ms, result.server_p99_ms, result.server_cpu_s = s50, s99, server_cpu
             results.append(result)
             lats.append(lat)
             ratio = f"  p99/floor {result.p99_ms / floor.p99_ms:.2f}" if floor else ""
-            print(result.line() + f"  server cpu {server_cpu:.1f} s" + ratio, flush=True)
+            print(result.line() + f"  server-side p50 {s50:.2f} p99 {s99:.2f} ms  server cpu {server_cpu:.1f} s" + ratio,
+                  flush=True)
     finally:
         if server:
             server.terminate()
