@@ -65,9 +65,9 @@ def _stylise(args: argparse.Namespace) -> int:
         if any("Xposition" in j.channels for j in source.joints[1:]) else 0  # BN animates Hips under a static root
     out_root = np.zeros((motion.num_frames, 3))
     out_rot = np.zeros_like(motion.rotations)
-    period = 1.0 / args.fps if args.realtime else 0.0
+    period = 1.0 / (args.rate or motion.fps) if args.realtime else 0.0
     dropped = 0
-    with client.session(model=args.model, style=args.style, bvh_header=header, fps=args.fps,
+    with client.session(model=args.model, style=args.style, bvh_header=header, fps=motion.fps,
                         intensity=args.intensity) as session:
         t0 = time.perf_counter()
         for t in tqdm(range(motion.num_frames), desc=f"{args.model}/{args.style}", unit="frame"):
@@ -100,8 +100,8 @@ def add_motion_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", type=Path, required=True, help="stylised BVH (same hierarchy as the input)")
     p.add_argument("--url", default="http://127.0.0.1:8000", help="server (default http://127.0.0.1:8000)")
     p.add_argument("--token", help="API token, if the server requires one")
-    p.add_argument("--realtime", action="store_true", help="send on a fixed clock at --fps instead of as fast as possible")
-    p.add_argument("--fps", type=float, default=30.0, help="clock for --realtime (default 30)")
+    p.add_argument("--realtime", action="store_true", help="send on a fixed clock instead of as fast as possible")
+    p.add_argument("--rate", type=float, help="frames per second for --realtime (default: the file's frame rate)")
     p.add_argument("--render", type=Path, help="also render input vs output side by side (out.gif, or out.png)")
     p.set_defaults(func=_stylise)
 

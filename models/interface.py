@@ -46,6 +46,7 @@ class FrameBatch:
 class StreamingModel(Protocol):
     name: str  # "lti", "erd", "lpn"
     skeleton: Skeleton  # the skeleton frames are expressed on
+    fps: float  # the frame rate the model runs at (sessions at other rates are adapted by the service)
 
     def styles(self) -> list[str]:
         """Target styles; a style weight vector indexes this list."""

@@ -53,6 +53,8 @@ class Snapshot(BaseModel):
     target: list[float]
     transition_left: int
     last_seq: int | None
+    clock: float = -1.0
+    held: str | None = None  # base64 .npz of the held output (rate adaptation)
     state: str  # base64 .npz of the model state
     saved_at: float
 
@@ -84,6 +86,10 @@ class Session:
     last_seq: int | None = None
     dropped_pending: int = 0
     ended: bool = False
+    clock: float = -1.0  # model steps owed, fractional (rate adaptation); < 0 until the first frame
+    held_root: np.ndarray | None = None  # last model output and the input root it was made from
+    held_rotations: np.ndarray | None = None
+    held_input_root: np.ndarray | None = None
     last_active: float = field(default_factory=time.monotonic)
     queue_size: int = 8
     pending: deque = field(default_factory=deque)
@@ -113,6 +119,27 @@ class Session:
     def reset(self) -> None:
         self.state = self.model.init_state(1)
         self.last_seq = None
+        self.clock, self.held_root, self.held_rotations, self.held_input_root = -1.0, None, None, None
+
+    # ---- frame rate ----------------------------------------------------------------
+    def model_steps_due(self) -> int:
+        """Model steps to run for the next input frame, so the model sees its own frame rate: at
+        120 fps in and 30 fps model, every 4th frame steps (the first always does); at 15 fps in,
+        each frame steps twice. Causal sample-and-hold: no interpolation across future frames."""
+        ratio = self.model.fps / self.fps
+        if self.clock < 0:
+            self.clock = max(0.0, 1.0 - ratio)
+        self.clock += ratio
+        steps = int(self.clock + 1e-9)
+        self.clock -= steps
+        return steps
+
+    def hold(self, root: np.ndarray, rotations: np.ndarray, input_root: np.ndarray) -> None:
+        self.held_root, self.held_rotations, self.held_input_root = root, rotations, input_root
+
+    def held_output(self, input_root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The latest model output, its root moved on by the input's motion since that step."""
+        return self.held_root + (input_root - self.held_input_root), self.held_rotations
 
     # ---- backpressure -----------------------------------------------------------
     def enqueue(self, item: FrameItem | ControlItem) -> None:
@@ -133,15 +160,20 @@ class Session:
         return Snapshot(session_id=self.id, token=self.token, model=self.model.name, skeleton=self.skeleton,
                         bvh_header=self.bvh_header, fps=self.fps, encoding=self.encoding,
                         weights=self.weights.tolist(), target=self.target.tolist(),
-                        transition_left=self.transition_left, last_seq=self.last_seq,
+                        transition_left=self.transition_left, last_seq=self.last_seq, clock=self.clock,
+                        held=None if self.held_root is None else encode_state(
+                            {"root": self.held_root, "rotations": self.held_rotations, "input_root": self.held_input_root}),
                         state=encode_state(self.state), saved_at=time.time())
 
     @classmethod
     def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int) -> Session:
+        held = decode_state(snap.held) if snap.held else {}
         return cls(model=model, skeleton=snap.skeleton, fps=snap.fps, encoding=snap.encoding,
                    weights=np.array(snap.weights), state=decode_state(snap.state), bvh_header=snap.bvh_header,
                    id=snap.session_id, token=snap.token, target=np.array(snap.target),
-                   transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size)
+                   transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size,
+                   clock=snap.clock, held_root=held.get("root"), held_rotations=held.get("rotations"),
+                   held_input_root=held.get("input_root"))
 
 
 class SessionStore:

@@ -183,12 +183,15 @@ class Connection:
                 continue
             root, rot = self.adapter.to_model(item.root, item.rotations)
             try:
-                out_root, out_rot, new_state = await batcher.step(s.state, root, rot, s.advance_style().copy())
+                for _ in range(s.model_steps_due()):  # rate adaptation: the model runs at its own fps
+                    out_root, out_rot, s.state = await batcher.step(s.state, root, rot, s.advance_style().copy())
+                    s.hold(out_root, out_rot, root)
             except Exception:  # noqa: BLE001 - a model failure costs this frame, not the session
                 log.exception("model step failed")
                 await self.send_error(P.ProtocolError("internal", "model step failed", item.seq))
                 continue
-            s.state, s.last_seq = new_state, item.seq
+            out_root, out_rot = s.held_output(root)
+            s.last_seq = item.seq
             out_root, out_rot = self.adapter.from_model(out_root, out_rot, item.rotations)
             dropped = s.take_dropped()
             if s.encoding == "binary":

@@ -279,6 +279,24 @@ def test_resume_after_a_dropped_connection_continues_exactly(server, models, cli
     np.testing.assert_allclose(np.concatenate([first[0], second[0]]), want_root, atol=1e-9)
 
 
+def test_faster_clients_get_every_frame_while_the_model_keeps_its_rate(server, models, clip):
+    """A 120 fps stream: one reply per frame; the model steps on every 4th frame (its 30 fps) and
+    the frames between hold that output, moved along by the input root."""
+    base, _ = server
+    style = first_style(models)
+    root, rot = clip
+    fast_root = np.repeat(root, 4, axis=0)
+    fast_rot = np.repeat(rot, 4, axis=0)
+    with connect(ws_url(base)) as ws:
+        start(ws, style=style, fps=120)
+        got_root, got_rot = stream_json(ws, fast_root, fast_rot)
+    want_root, want_rot = offline(models["lti"], {style: 1.0}, root, rot)
+    assert len(got_root) == len(fast_root)
+    np.testing.assert_allclose(got_rot[::4], want_rot, atol=1e-9)
+    np.testing.assert_allclose(got_rot[1::4], want_rot, atol=1e-9)  # held
+    np.testing.assert_allclose(got_root[::4], want_root, atol=1e-9)
+
+
 def test_metrics_show_the_latency_histogram(server):
     base, _ = server
     text = httpx.get(f"{base}/metrics").text

@@ -173,6 +173,7 @@ class LTIStyleModel:
     """
 
     name = "lti"
+    fps = 30.0  # the Bandai Namco rate it was identified at
 
     def __init__(self, translators: dict[str, StyleTranslator] | None = None, weights_dir: Path | str = WEIGHTS_DIR,
                  blend: bool = True, footlock: bool = True, keep_heading: bool = True, skeleton=None):
