@@ -2,19 +2,22 @@
 
 from __future__ import annotations
 
+import asyncio
 import secrets
 from contextlib import asynccontextmanager
 
 import torch
-from fastapi import Depends, FastAPI, HTTPException, Request, Response, WebSocket
-from fastapi.responses import PlainTextResponse
+from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response, WebSocket
+from fastapi.responses import JSONResponse, PlainTextResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
 from models.registry import load_models
 
+from .jobs import JobInfo, JobManager
 from .runtime import Runtime
 from .settings import ServiceSettings, get_service_settings
+from .styles import ApiError, ErrorBody, StyleInfo, StyleStore, StyleUpload, UploadAccepted
 from .stream import CLOSE_UNAUTHORIZED, Connection
 
 
@@ -35,6 +38,19 @@ def _token_ok(settings: ServiceSettings, header: str | None, query: str | None) 
     return given is not None and any(secrets.compare_digest(given, t) for t in settings.api_tokens)
 
 
+async def _read_limited(request: Request, limit: int) -> bytes:
+    """The request body, refusing (413) anything over `limit` bytes without reading it all."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise ApiError(413, "too_large", f"upload of {declared} bytes exceeds the limit of {limit}")
+    body = bytearray()
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > limit:
+            raise ApiError(413, "too_large", f"upload exceeds the limit of {limit} bytes")
+    return bytes(body)
+
+
 def create_app(settings: ServiceSettings | None = None, models: dict | None = None) -> FastAPI:
     settings = settings or get_service_settings()
 
@@ -42,9 +58,14 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
     async def lifespan(app: FastAPI):
         torch.set_num_threads(settings.torch_threads)
         runtime = Runtime(settings, models if models is not None else load_models(settings.weights_dir))
+        styles = StyleStore(settings, runtime, JobManager())
+        styles.attach()  # extensible models + persisted uploaded styles, before the batchers start
+        styles.bind_loop(asyncio.get_running_loop())
+        runtime.styles = styles
         await runtime.start()
         app.state.runtime = runtime
         yield
+        await styles.stop()
         await runtime.stop()
         app.state.runtime = None
 
@@ -79,6 +100,80 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
     @app.get("/v1/models", response_model=list[ModelInfo], dependencies=[Depends(require_token)])
     async def list_models(rt: Runtime = Depends(runtime)) -> list[ModelInfo]:
         return [ModelInfo(name=n, styles=m.styles(), joints=list(m.skeleton.names)) for n, m in rt.models.items()]
+
+    # ---- styles and jobs ----------------------------------------------------------
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, exc: ApiError) -> JSONResponse:
+        return JSONResponse({"code": exc.code, "message": exc.message}, status_code=exc.status)
+
+    errors = {s: {"model": ErrorBody} for s in (401, 404, 409, 413, 422)}
+
+    @app.get("/v1/styles", response_model=list[StyleInfo], dependencies=[Depends(require_token)], responses=errors)
+    async def list_styles(model: str | None = None, rt: Runtime = Depends(runtime)) -> list[StyleInfo]:
+        return rt.styles.list(model)
+
+    @app.get("/v1/styles/{style_id}", response_model=StyleInfo, dependencies=[Depends(require_token)], responses=errors)
+    async def get_style(style_id: str, rt: Runtime = Depends(runtime)) -> StyleInfo:
+        return rt.styles.get(style_id)
+
+    @app.delete("/v1/styles/{style_id}", status_code=204, dependencies=[Depends(require_token)], responses=errors)
+    async def delete_style(style_id: str, rt: Runtime = Depends(runtime)) -> Response:
+        rt.styles.delete(style_id)
+        return Response(status_code=204)
+
+    upload_body = {"requestBody": {"required": True, "content": {
+        "application/json": {"schema": StyleUpload.model_json_schema()},
+        "multipart/form-data": {"schema": {"type": "object", "required": ["file", "name"], "properties": {
+            "file": {"type": "string", "format": "binary", "description": "BVH clip (Bandai Namco or CMU skeleton)"},
+            "name": {"type": "string"}, "model": {"type": "string", "default": "lti"},
+            "fine_tune": {"type": "boolean", "default": False}}}}}}}
+
+    @app.post("/v1/styles", response_model=UploadAccepted, status_code=202, dependencies=[Depends(require_token)],
+              responses=errors, openapi_extra=upload_body)
+    async def upload_style(request: Request, fine_tune: bool | None = Query(default=None),
+                           name: str | None = Query(default=None), model: str | None = Query(default=None),
+                           rt: Runtime = Depends(runtime)) -> UploadAccepted:
+        """Upload a clip as a new style: multipart BVH (`file`) or JSON frames. LTI styles need
+        `fine_tune=true`, which starts the identification job (`GET /v1/jobs/{id}`)."""
+        body = await _read_limited(request, settings.upload_max_bytes)
+        ctype = request.headers.get("content-type", "")
+        upload, bvh_text, fields = None, None, {}
+        if ctype.startswith("multipart/form-data"):
+            async def receive() -> dict:
+                return {"type": "http.request", "body": body, "more_body": False}
+            try:
+                form = await Request(request.scope, receive).form()
+            except Exception as exc:  # noqa: BLE001
+                raise ApiError(422, "bad_request", f"unreadable multipart body: {exc}") from None
+            file = form.get("file")
+            if file is None or isinstance(file, str):
+                raise ApiError(422, "bad_request", "multipart upload needs a 'file' part with the BVH clip")
+            try:
+                bvh_text = (await file.read()).decode("utf-8")
+            except UnicodeDecodeError:
+                raise ApiError(422, "bad_bvh", "the BVH file is not UTF-8 text") from None
+            fields = {k: v for k, v in form.items() if isinstance(v, str)}
+            fine = fields.get("fine_tune", "false").lower() in ("1", "true", "yes", "on")
+        elif ctype.startswith("application/json"):
+            try:
+                upload = StyleUpload.model_validate_json(body)
+            except ValueError as exc:
+                raise ApiError(422, "bad_request", f"invalid JSON upload: {str(exc)[:500]}") from None
+            fields = {"name": upload.name, "model": upload.model}
+            fine = upload.fine_tune
+        else:
+            raise ApiError(415, "unsupported_media_type", "send multipart/form-data (file=BVH) or application/json frames")
+        fine = fine if fine_tune is None else fine_tune
+        style_name = name or fields.get("name") or ""
+        model_name = model or fields.get("model") or "lti"
+        return rt.styles.upload(upload, bvh_text, style_name, model_name, fine)
+
+    @app.get("/v1/jobs/{job_id}", response_model=JobInfo, dependencies=[Depends(require_token)], responses=errors)
+    async def get_job(job_id: str, rt: Runtime = Depends(runtime)) -> JobInfo:
+        job = rt.styles.jobs.get(job_id)
+        if job is None:
+            raise ApiError(404, "unknown_job", f"no job {job_id!r}")
+        return job
 
     @app.websocket("/v1/stream")
     async def stream(ws: WebSocket) -> None:

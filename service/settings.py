@@ -4,10 +4,11 @@ Every field can be set as an environment variable STYLESTREAM_<FIELD> or in `.en
 from __future__ import annotations
 
 from functools import lru_cache
+from pathlib import Path
 
 from pydantic import Field
 
-from models.settings import Settings
+from models.settings import REPO_ROOT, Settings
 
 
 class ServiceSettings(Settings):
@@ -24,6 +25,10 @@ class ServiceSettings(Settings):
     snapshot_every: int = Field(default=30, ge=1, description="Frames between session snapshots (for resume).")
     resume_ttl_s: float = Field(default=600.0, gt=0, description="How long a closed session can be resumed.")
     api_tokens: list[str] = Field(default_factory=list, description="When set, every request needs one (Bearer or ?token=).")
+    styles_dir: Path = Field(default=REPO_ROOT / ".data" / "styles", description="Uploaded styles (clip, translator, metadata).")
+    upload_max_bytes: int = Field(default=16 * 1024 * 1024, ge=1024, description="Largest style upload body accepted (413 above).")
+    upload_min_frames: int = Field(default=60, ge=30, description="Shortest uploaded clip, in frames at 30 fps.")
+    upload_max_frames: int = Field(default=9000, ge=60, description="Longest uploaded clip, in frames at 30 fps.")
 
 
 @lru_cache

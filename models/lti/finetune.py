@@ -1,0 +1,255 @@
+"""Fine-tuning a new LTI style from one uploaded clip, and adding styles to a live model.
+
+`fine_tune(motion, name, model)` identifies a `StyleTranslator` for the style shown in one
+uploaded Bandai Namco clip (already retargeted if it came from a CMU skeleton):
+
+1. the neutral (`normal`) Bandai Namco dataset-2 training clips of the most similar content are
+   found by comparing clip descriptors (mean and spread of the matching features, and the root
+   speed), among clips whose length ratio the IMW warp can represent;
+2. each neutral clip is paired with the uploaded clip (both capped to `max_frames`) and aligned
+   with the training code's IMW (`train.align`), exactly as offline training does;
+3. `train.identify` fits the per-joint systems on those few pairs. The uploaded clip is split in
+   time when long enough: the last `holdout` share is aligned to a neutral clip but kept out of
+   identification, and `train.evaluate` on it gives held-out numbers for the job record.
+
+Adding a style to a running model (`ExtensibleLTIModel`): styles() lists the trained styles
+(sorted, as `LTIStyleModel` does) followed by added styles in the order they were added, and the
+state vector `x` holds each style's slice in that same order, so adding a style only appends.
+`step_batch` pads shorter (older) state vectors and weight vectors with zeros, which is exactly
+the state of a style that has never been active. `with_translator` / `without_style` return a
+NEW model object (copy-on-write): a session keeps the model object it was opened with, so live
+sessions never see their layout change under them; new sessions use the new object.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Callable
+
+import numpy as np
+
+from . import representation as rep
+from .footplant import contact_labels
+from .model import LTIStyleModel, StyleTranslator
+from .train import CONFIG, PairData, align, evaluate, identify, match_features
+from .warping import resample_pose
+
+FINETUNE = dict(
+    pairs=5,  # neutral clips paired with the upload
+    max_frames=300,  # cap per clip (10 s at 30 fps): alignment cost grows with T * U
+    holdout=0.25,  # share of the upload kept for the held-out evaluation (when long enough)
+    min_train_frames=90,
+)
+
+
+class FineTuneError(RuntimeError):
+    """The upload cannot be turned into a style (no data, nothing comparable, too short)."""
+
+
+# --------------------------------------------------------------------------- live model
+
+
+class ExtensibleLTIModel(LTIStyleModel):
+    """`LTIStyleModel` whose style set can grow (append-only state layout; see module doc)."""
+
+    def __init__(self, translators: dict[str, StyleTranslator], added: list[str] | None = None, **kwargs):
+        super().__init__(translators=translators, **kwargs)
+        self._options = kwargs
+        self.added = [s for s in (added or []) if s in translators]
+        self._rebuild()
+
+    @classmethod
+    def from_model(cls, model: LTIStyleModel) -> ExtensibleLTIModel:
+        if isinstance(model, ExtensibleLTIModel):
+            return model
+        return cls(dict(model.translators), blend=model.blend, footlock=model.footlock, skeleton=model.skeleton,
+                   keep_heading=next(iter(model.translators.values())).keep_heading)
+
+    def _rebuild(self) -> None:
+        """Recompute the style order, the state slices and the state size."""
+        trained = sorted(s for s in self.translators if s not in self.added)
+        self._styles = trained + list(self.added)
+        sizes = [self.translators[s].n for s in self._styles]
+        bounds = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self._slices = {s: slice(int(a), int(b)) for s, a, b in zip(self._styles, bounds[:-1], bounds[1:])}
+        self.state_dim = int(bounds[-1])
+
+    def trained_styles(self) -> list[str]:
+        return [s for s in self._styles if s not in self.added]
+
+    def with_translator(self, tr: StyleTranslator) -> ExtensibleLTIModel:
+        """A new model with `tr` appended (replacing nothing: the name must be new)."""
+        if tr.style in self.translators:
+            raise ValueError(f"style {tr.style!r} already exists")
+        tr.keep_heading = next(iter(self.translators.values())).keep_heading
+        return ExtensibleLTIModel({**self.translators, tr.style: tr}, self.added + [tr.style], **self._options)
+
+    def without_style(self, style: str) -> ExtensibleLTIModel:
+        if style not in self.added:
+            raise ValueError(f"style {style!r} is not an added style")
+        rest = {k: v for k, v in self.translators.items() if k != style}
+        return ExtensibleLTIModel(rest, [s for s in self.added if s != style], **self._options)
+
+    def pad_state(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        x = state["x"]
+        if x.shape[1] == self.state_dim:
+            return state
+        if x.shape[1] > self.state_dim:
+            raise ValueError(f"state of width {x.shape[1]} is wider than this model's {self.state_dim}")
+        return {**state, "x": np.pad(x, ((0, 0), (0, self.state_dim - x.shape[1])))}
+
+    def pad_weights(self, weights: np.ndarray) -> np.ndarray:
+        w = np.atleast_2d(np.asarray(weights, dtype=np.float64))
+        k = len(self._styles)
+        if w.shape[1] > k:
+            raise ValueError(f"{w.shape[1]} style weights for {k} styles")
+        return np.pad(w, ((0, 0), (0, k - w.shape[1]))) if w.shape[1] < k else w
+
+    def step_batch(self, state, frames, style_weights):
+        return super().step_batch(self.pad_state(state), frames, self.pad_weights(style_weights))
+
+
+def add_translator(model: LTIStyleModel, tr: StyleTranslator) -> ExtensibleLTIModel:
+    """`model` with the style of `tr` added (a new object; `model` itself is left as it is)."""
+    return ExtensibleLTIModel.from_model(model).with_translator(tr)
+
+
+LTIStyleModel.add_translator = add_translator  # model.add_translator(tr) -> the extended model
+
+
+# --------------------------------------------------------------------------- neutral data
+
+
+@dataclass
+class NeutralClip:
+    name: str
+    frames: int
+    feats: np.ndarray  # (F, 67) representation features (with the model's reference rotations)
+    descriptor: np.ndarray
+
+
+@dataclass
+class NeutralBank:
+    clips: list[NeutralClip]
+    match_mean: np.ndarray
+    match_std: np.ndarray
+    desc_std: np.ndarray
+    motions: dict = field(default_factory=dict)
+
+
+def data_available() -> bool:
+    """Whether the Bandai Namco dataset-2 archive or unpacked folder is reachable (cheap check)."""
+    from models.data.archives import DATASETS
+    from models.settings import get_settings
+    s = get_settings()
+    spec = DATASETS["bandai-namco-2"]
+    return (s.data_dir / spec.archive).exists() or (s.data_dir / spec.bvh_dir).is_dir()
+
+
+def _descriptor(feats: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    m = match_features(feats, mean, std)
+    speed = np.linalg.norm(feats[:, :2], axis=1)
+    return np.concatenate([m.mean(0), m.std(0), [speed.mean(), np.abs(feats[:, 2]).mean()]])
+
+
+@lru_cache(maxsize=2)
+def neutral_bank(ref_key: bytes) -> NeutralBank:
+    """Every neutral dataset-2 training clip, featurised once per process (a few seconds)."""
+    from models.data import build_index, load_motion, select
+    ref = np.frombuffer(ref_key).reshape(rep.NUM_JOINTS, 4)
+    clips = select(build_index(["bandai-namco-2"]), dataset="bandai-namco-2", style=CONFIG["input_style"], split="train")
+    if not clips:
+        raise FineTuneError("no neutral training clips found")
+    motions = {c.name: load_motion(c) for c in clips}
+    feats = {c.name: rep.motion_to_features(motions[c.name], ref) for c in clips}
+    allf = np.concatenate(list(feats.values()))
+    mean, std = allf.mean(0), np.maximum(allf.std(0), CONFIG["match_std_floor"])
+    out = [NeutralClip(c.name, c.frames, feats[c.name], _descriptor(feats[c.name], mean, std)) for c in clips]
+    desc_std = np.maximum(np.std([c.descriptor for c in out], axis=0), 1e-3)
+    return NeutralBank(out, mean, std, desc_std, motions)
+
+
+def nearest_neutral(bank: NeutralBank, feats: np.ndarray, k: int, frames: int) -> list[NeutralClip]:
+    """The k neutral clips whose content looks most like `feats`, among warpable lengths."""
+    s, ms = CONFIG["imw"]["s"], CONFIG["imw"]["max_step"]
+    lo, hi = 1.0 / s * 1.15, ms / s / 1.15
+    d = _descriptor(feats, bank.match_mean, bank.match_std)
+    cands = [c for c in bank.clips if lo <= frames / min(c.frames, FINETUNE["max_frames"]) <= hi]
+    cands.sort(key=lambda c: (float(np.sum(((c.descriptor - d) / bank.desc_std) ** 2)), c.name))
+    return cands[:k]
+
+
+# --------------------------------------------------------------------------- pairs
+
+
+def _motion_slice(motion, start: int, stop: int):
+    return motion.slice(start, stop)
+
+
+def pair_from_motions(mi, mo, match_mean, match_std, ref, cfg=CONFIG) -> PairData:
+    """`train.pair_data` on in-memory motions (no clip keys, no cache)."""
+    from models.motion.skeleton import fk
+    warp = align(mi, mo, match_mean, match_std, cfg["align"], ref, cfg)
+    root, rots = resample_pose(mo.translations[:, rep.HIPS], mo.rotations, warp)
+    fo = rep.sequence_features(root, rots, ref)
+    d = np.diff(warp)
+    rate = np.concatenate([d[:1], d]) if len(d) else np.ones(1)
+    y = np.concatenate([fo, np.log(np.maximum(rate, 1e-3))[:, None]], axis=1)
+    trans = np.broadcast_to(mo.translations[:1], (len(root),) + mo.translations.shape[1:]).copy()
+    trans[:, rep.HIPS] = root
+    _, pos = fk(rots, trans, mo.skeleton.parents)
+    return PairData(rep.motion_to_features(mi, ref), y, contact_labels(pos, mo.skeleton, mo.fps), warp)
+
+
+@dataclass
+class FineTuneResult:
+    translator: StyleTranslator
+    seconds: float
+    neutral_clips: list[str]
+    train_frames: int
+    heldout: dict | None
+
+
+def fine_tune(motion, name: str, ref: np.ndarray, progress: Callable[[float, str], None] | None = None,
+              opts: dict | None = None) -> FineTuneResult:
+    """Identify a translator for the style of `motion` (BN skeleton, 30 fps) named `name`."""
+    opts = {**FINETUNE, **(opts or {})}
+    report = progress or (lambda p, m: None)
+    t0 = time.time()
+    report(0.02, "loading neutral training clips")
+    bank = neutral_bank(np.ascontiguousarray(ref, dtype=np.float64).tobytes())
+    cap = opts["max_frames"]
+    n = motion.num_frames
+    n_hold = int(n * opts["holdout"]) if n * (1 - opts["holdout"]) >= opts["min_train_frames"] + 30 else 0
+    train_part = _motion_slice(motion, 0, min(n - n_hold, cap))
+    hold_part = _motion_slice(motion, n - n_hold, n) if n_hold else None
+    feats = rep.motion_to_features(train_part, ref)
+    neutrals = nearest_neutral(bank, feats, opts["pairs"] + (1 if hold_part is not None else 0), train_part.num_frames)
+    if not neutrals:
+        raise FineTuneError("no neutral clip of comparable length to pair the upload with")
+    report(0.1, f"pairing with {', '.join(c.name for c in neutrals[:opts['pairs']])}")
+    data = []
+    train_neutrals = neutrals[:opts["pairs"]]
+    steps = len(train_neutrals) + (1 if hold_part is not None else 0) + 1
+    for i, c in enumerate(train_neutrals):
+        mi = bank.motions[c.name]
+        mi = mi.slice(0, min(mi.num_frames, cap))
+        data.append(pair_from_motions(mi, train_part, bank.match_mean, bank.match_std, ref))
+        report(0.1 + 0.7 * (i + 1) / steps, f"aligned {c.name}")
+    tr, _ = identify(data, name, ref)
+    tr.meta = {"fine_tuned": True, "neutral_clips": [c.name for c in train_neutrals], "frames": int(train_part.num_frames)}
+    report(0.1 + 0.7 * (len(train_neutrals) + 1) / steps, "identified")
+    heldout = None
+    if hold_part is not None:
+        c = neutrals[-1] if len(neutrals) > len(train_neutrals) else neutrals[0]
+        mi = bank.motions[c.name]
+        ratio = hold_part.num_frames
+        mi = mi.slice(0, min(mi.num_frames, max(ratio, 2)))
+        try:
+            heldout = evaluate(tr, [pair_from_motions(mi, hold_part, bank.match_mean, bank.match_std, ref)])
+        except Exception as exc:  # noqa: BLE001 - the evaluation is informative only
+            heldout = {"error": str(exc)}
+    report(0.95, "done identifying")
+    return FineTuneResult(tr, time.time() - t0, [c.name for c in train_neutrals], int(sum(len(d.u) for d in data)), heldout)

@@ -1,0 +1,405 @@
+"""The style store behind `/v1/styles`: trained styles of every model plus uploaded ones.
+
+An uploaded clip (BVH with the Bandai Namco or a CMU skeleton, or JSON frames on the Bandai Namco
+skeleton) is validated, brought onto the model skeleton at 30 fps, persisted under
+`styles_dir/<model>/<name>/` (clip.npz, translator.npz, style.json) and, for the LTI model,
+turned into a style by a fine-tuning job (`models.lti.finetune`). When the job is done the new
+style is installed as a NEW model object with its own batcher: sessions already streaming keep
+the model (and state layout) they were opened with; new sessions see the style at once. A session
+resumed from a snapshot taken before styles were added gets its state padded (the LTI layout only
+appends); one whose layout no longer is a prefix of the model's (a style was deleted) is refused.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+import shutil
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, Field
+
+from models.interface import StreamingModel
+
+from . import protocol as P
+from .batcher import Batcher
+from .jobs import JobInfo, JobManager
+from .sessions import decode_state
+from .settings import ServiceSettings
+
+log = logging.getLogger(__name__)
+
+NAME_RE = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,38}[a-z0-9])?$")
+MODEL_FPS = 30.0
+
+
+class ApiError(Exception):
+    def __init__(self, status: int, code: str, message: str) -> None:
+        super().__init__(message)
+        self.status, self.code, self.message = status, code, message
+
+
+class ErrorBody(BaseModel):
+    code: str
+    message: str
+
+
+class StyleInfo(BaseModel):
+    id: str = Field(description="'<model>.<name>'")
+    name: str
+    model: str
+    kind: Literal["trained", "uploaded"]
+    status: Literal["ready", "training", "failed"]
+    created: float | None = Field(default=None, description="Unix time (trained: weights file time).")
+    job_id: str | None = None
+    message: str | None = None
+    frames: int | None = Field(default=None, description="Uploaded clip length at 30 fps.")
+    source: Literal["bvh", "json"] | None = None
+    skeleton: str | None = Field(default=None, description="Skeleton of the uploaded clip (bandai-namco, cmu).")
+    fine_tune: dict | None = Field(default=None, description="Fine-tuning summary: seconds, neutral clips, held-out metrics.")
+
+
+class UploadFrames(BaseModel):
+    root: list[list[float]] = Field(description="(F, 3) Hips translation, cm")
+    rotations: list[list[list[float]]] = Field(description="(F, 22, 4) local rotations, quaternions xyzw, BN joint order")
+
+
+class StyleUpload(BaseModel):
+    name: str
+    model: str = "lti"
+    frames: UploadFrames
+    fps: float = Field(default=30.0, gt=0, le=240)
+    fine_tune: bool = False
+
+
+class UploadAccepted(BaseModel):
+    style: StyleInfo
+    job: JobInfo | None = None
+
+
+def style_id(model: str, name: str) -> str:
+    return f"{model}.{name}"
+
+
+# --------------------------------------------------------------------------- clips
+
+
+def _bn_motion(skeleton, root: np.ndarray, rotations: np.ndarray, fps: float):
+    """A Motion on the model skeleton from a Hips track and local rotations (model order)."""
+    from models.motion.resample import resample
+    from models.motion.skeleton import Motion
+    from models.lti.representation import HIPS
+    n = len(root)
+    trans = np.broadcast_to(skeleton.offsets, (n, skeleton.num_joints, 3)).copy()
+    trans[:, HIPS] = root
+    motion = Motion(skeleton, rotations / np.linalg.norm(rotations, axis=-1, keepdims=True), trans, float(fps))
+    return motion if abs(fps - MODEL_FPS) < 1e-6 else resample(motion, MODEL_FPS)
+
+
+def _check_finite(*arrays: np.ndarray) -> None:
+    if not all(np.all(np.isfinite(a)) for a in arrays):
+        raise ApiError(422, "non_finite", "the clip contains NaN or infinite values")
+
+
+def motion_from_json(upload: StyleUpload, skeleton):
+    """JSON frames (BN joint order) -> BN Motion at 30 fps."""
+    try:
+        root = np.asarray(upload.frames.root, dtype=np.float64)
+        rot = np.asarray(upload.frames.rotations, dtype=np.float64)
+    except ValueError:
+        raise ApiError(422, "bad_frames", "frames must be rectangular arrays: root (F, 3), rotations (F, J, 4)") from None
+    j = skeleton.num_joints
+    if root.ndim != 2 or root.shape[1] != 3 or rot.ndim != 3 or rot.shape[1:] != (j, 4) or len(root) != len(rot):
+        raise ApiError(422, "bad_skeleton" if rot.ndim == 3 and rot.shape[1] != j else "bad_frames",
+                       f"expected root (F, 3) and rotations (F, {j}, 4) on the Bandai Namco skeleton "
+                       f"(joints {', '.join(skeleton.names)}); got root {root.shape}, rotations {rot.shape}")
+    _check_finite(root, rot)
+    if np.any(np.linalg.norm(rot, axis=-1) < 1e-6):
+        raise ApiError(422, "bad_frames", "a rotation quaternion has (near) zero length")
+    return _bn_motion(skeleton, root, rot, upload.fps), "bandai-namco"
+
+
+def motion_from_bvh(text: str, skeleton):
+    """BVH text (BN or CMU skeleton) -> BN Motion at 30 fps, and the source skeleton kind."""
+    from models.motion import bvh as bvhio
+    from models.motion.retarget import retarget, source_variant
+    from models.motion.skeleton import from_bvh
+    try:
+        motion = from_bvh(bvhio.parse(text, "upload.bvh"))
+    except (bvhio.BvhError, ValueError, KeyError, IndexError) as exc:
+        raise ApiError(422, "bad_bvh", f"not a readable BVH file: {exc}") from None
+    _check_finite(motion.rotations, motion.translations)
+    src = motion.skeleton
+    if all(n in src.names for n in skeleton.names):
+        idx = [src.index(n) for n in skeleton.names]
+        hips = src.index("Hips")
+        return _bn_motion(skeleton, motion.translations[:, hips], motion.rotations[:, idx], motion.fps), "bandai-namco"
+    try:
+        source_variant(src)
+    except ValueError:
+        raise ApiError(422, "unsupported_skeleton",
+                       "the clip's skeleton is neither the Bandai Namco skeleton nor a CMU skeleton "
+                       f"(its joints: {', '.join(src.names[:8])}{'...' if len(src.names) > 8 else ''})") from None
+    if src.names[0] != "Hips" or src.parents[0] != -1:
+        raise ApiError(422, "unsupported_skeleton", "a CMU skeleton must have Hips as its root")
+    bn = retarget(motion, fps=MODEL_FPS)
+    idx = [bn.skeleton.index(n) for n in skeleton.names]
+    return _bn_motion(skeleton, bn.translations[:, bn.skeleton.index("Hips")], bn.rotations[:, idx], MODEL_FPS), "cmu"
+
+
+# --------------------------------------------------------------------------- batchers per model version
+
+
+class VersionedBatcher(Batcher):
+    """A batcher for one version of a model whose style set can change. A step whose state or
+    weight width is not this version's goes to the live version it fits (a session opened just
+    before a swap), or, if it is a prefix layout, is padded (the LTI layout only appends)."""
+
+    def __init__(self, *args, peers: list, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.peers = peers  # every live batcher of this model name (shared list)
+
+    def fits(self, state, weights) -> bool:
+        return state["x"].shape[1] == self.model.state_dim and len(weights) == len(self.model.styles())
+
+    async def step(self, state, root, rotations, weights):
+        if not self.fits(state, weights):
+            for peer in self.peers:
+                if peer is not self and peer._task is not None and peer.fits(state, weights):
+                    return await Batcher.step(peer, state, root, rotations, weights)
+            if state["x"].shape[1] > self.model.state_dim or len(weights) > len(self.model.styles()):
+                raise ValueError("the session's style layout no longer matches the model; start a new session")
+            state = self.model.pad_state(state)
+            weights = np.pad(weights, (0, len(self.model.styles()) - len(weights)))
+        return await super().step(state, root, rotations, weights)
+
+
+def prefix_layouts(model) -> set[tuple[int, int]]:
+    """(number of styles, state width) of every prefix of an extensible model's style list."""
+    out, width = {(0, 0)}, 0
+    for k, s in enumerate(model.styles(), 1):
+        width += model.translators[s].n
+        out.add((k, width))
+    return out
+
+
+# --------------------------------------------------------------------------- the store
+
+
+class StyleStore:
+    def __init__(self, settings: ServiceSettings, runtime, jobs: JobManager) -> None:
+        self.settings, self.rt, self.jobs = settings, runtime, jobs
+        self.root = Path(settings.styles_dir)
+        self.uploaded: dict[str, StyleInfo] = {}  # id -> info
+        self.peers: dict[str, list[VersionedBatcher]] = {}
+        self.loop: asyncio.AbstractEventLoop | None = None
+
+    # ---- wiring ----------------------------------------------------------------
+    def attach(self) -> None:
+        """Before `runtime.start()`: extensible LTI model, versioned batcher, persisted styles."""
+        from models.lti.finetune import ExtensibleLTIModel
+        from models.lti.model import LTIStyleModel
+        rt = self.rt
+        rt.models = dict(rt.models)  # the runtime's own dict: callers' dicts stay as they were
+        if isinstance(rt.models.get("lti"), LTIStyleModel):
+            self._install("lti", ExtensibleLTIModel.from_model(rt.models["lti"]), started=False)
+        self._load()
+        original_open = rt.open_session
+
+        def open_session(start: P.Start):
+            if start.resume_token:
+                self._check_resumable(start.resume_token)
+            return original_open(start)
+
+        rt.open_session = open_session
+
+    def bind_loop(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+
+    async def stop(self) -> None:
+        self.jobs.shutdown()
+        live = set(map(id, self.rt.batchers.values()))
+        await asyncio.gather(*(b.stop() for peers in self.peers.values() for b in peers if id(b) not in live))
+
+    def _install(self, name: str, model: StreamingModel, started: bool = True) -> None:
+        """Make `model` the version new sessions get; older versions keep serving their sessions."""
+        rt = self.rt
+        old = rt.batchers[name]
+        peers = self.peers.setdefault(name, [])
+        batcher = VersionedBatcher(model, rt.executor, rt.metrics, wait_s=old.wait_s, max_batch=old.max_batch,
+                                   enabled=True, peers=peers)
+        rt.models[name] = model
+        rt.batchers[name] = batcher
+        peers.append(batcher)
+        if started:
+            batcher.start()
+            if old not in peers:
+                asyncio.get_running_loop().create_task(old.stop())
+        elif old in peers:
+            peers.remove(old)
+        self._retire_unused(name)
+
+    def _retire_unused(self, name: str) -> None:
+        peers = self.peers.get(name, [])
+        in_use = {id(s.model) for s in self.rt.sessions.values()}
+        for b in list(peers):
+            if b is not self.rt.batchers[name] and id(b.model) not in in_use and b._task is not None:
+                peers.remove(b)
+                asyncio.get_running_loop().create_task(b.stop())
+
+    def _check_resumable(self, token: str) -> None:
+        snap = self.rt.store.get(token)
+        model = self.rt.models.get(snap.model) if snap else None
+        if snap is None or not hasattr(model, "pad_state"):
+            return
+        width = decode_state(snap.state)["x"].shape[1]
+        if (len(snap.weights), width) not in prefix_layouts(model):
+            raise P.ProtocolError("style_set_changed", "the model's styles changed since this session was saved "
+                                  "(an uploaded style was deleted); start a new session")
+
+    # ---- persistence -----------------------------------------------------------
+    def _dir(self, model: str, name: str) -> Path:
+        return self.root / model / name
+
+    def _save_info(self, info: StyleInfo) -> None:
+        d = self._dir(info.model, info.name)
+        d.mkdir(parents=True, exist_ok=True)
+        tmp = d / "style.json.tmp"
+        tmp.write_text(info.model_dump_json(indent=1))
+        tmp.replace(d / "style.json")
+
+    def _load(self) -> None:
+        from models.lti.model import StyleTranslator
+        if not self.root.is_dir():
+            return
+        for meta in sorted(self.root.glob("*/*/style.json"), key=lambda p: p.stat().st_mtime):
+            try:
+                info = StyleInfo.model_validate_json(meta.read_text())
+            except ValueError:
+                log.warning("skipping unreadable %s", meta)
+                continue
+            model = self.rt.models.get(info.model)
+            if model is None:
+                continue
+            if info.status == "training":
+                info.status, info.message = "failed", "interrupted by a server restart; delete and upload again"
+                self._save_info(info)
+            if info.status == "ready":
+                path = meta.parent / "translator.npz"
+                try:
+                    tr = StyleTranslator.load(path)
+                    tr.style = info.name
+                    self._install(info.model, model.with_translator(tr), started=False)
+                except Exception as exc:  # noqa: BLE001
+                    log.warning("could not load style %s: %s", info.id, exc)
+                    info.status, info.message = "failed", f"could not load its translator: {exc}"
+            self.uploaded[info.id] = info
+
+    # ---- queries ---------------------------------------------------------------
+    def list(self, model: str | None = None) -> list[StyleInfo]:
+        out = []
+        for name, m in self.rt.models.items():
+            if model and name != model:
+                continue
+            added = set(getattr(m, "added", []))
+            for s in m.styles():
+                if s not in added and style_id(name, s) not in self.uploaded:
+                    out.append(self._trained_info(name, m, s))
+            out.extend(i for i in self.uploaded.values() if i.model == name)
+        return out
+
+    def _trained_info(self, model_name: str, model, style: str) -> StyleInfo:
+        created = None
+        tr = getattr(model, "translators", {}).get(style)
+        src = tr.meta.get("source") if tr is not None and isinstance(tr.meta, dict) else None
+        if src and Path(src).exists():
+            created = Path(src).stat().st_mtime
+        return StyleInfo(id=style_id(model_name, style), name=style, model=model_name, kind="trained",
+                         status="ready", created=created)
+
+    def get(self, sid: str) -> StyleInfo:
+        for info in self.list():
+            if info.id == sid:
+                return info
+        raise ApiError(404, "unknown_style", f"no style {sid!r} (ids look like 'lti.elderly'; see GET /v1/styles)")
+
+    # ---- changes ---------------------------------------------------------------
+    def delete(self, sid: str) -> None:
+        info = self.get(sid)
+        if info.kind == "trained":
+            raise ApiError(409, "trained_style", f"style {sid!r} is a trained style of model {info.model!r} and "
+                           "cannot be deleted; only uploaded styles can")
+        model = self.rt.models[info.model]
+        if info.name in getattr(model, "added", []):
+            self._install(info.model, model.without_style(info.name))
+        self.uploaded.pop(sid, None)
+        shutil.rmtree(self._dir(info.model, info.name), ignore_errors=True)
+
+    def upload(self, upload: StyleUpload | None, bvh_text: str | None, name: str, model_name: str,
+               fine_tune: bool) -> UploadAccepted:
+        if not NAME_RE.match(name or ""):
+            raise ApiError(422, "bad_name", f"style name {name!r} must be a slug: 1-40 characters of a-z, 0-9 and '-', "
+                           "starting and ending with a letter or digit")
+        model = self.rt.models.get(model_name)
+        if model is None:
+            raise ApiError(422, "unknown_model", f"unknown model {model_name!r}; available: {', '.join(self.rt.models)}")
+        sid = style_id(model_name, name)
+        if name in model.styles() or sid in self.uploaded:
+            raise ApiError(409, "style_exists", f"model {model_name!r} already has a style named {name!r}")
+        if not hasattr(model, "with_translator"):
+            raise ApiError(422, "uploads_unsupported", f"model {model_name!r} cannot take uploaded styles "
+                           "(its styles are trained branches); upload to 'lti' with fine_tune=true")
+        motion, skel = motion_from_bvh(bvh_text, model.skeleton) if bvh_text is not None else motion_from_json(upload, model.skeleton)
+        n, lo, hi = motion.num_frames, self.settings.upload_min_frames, self.settings.upload_max_frames
+        if not lo <= n <= hi:
+            raise ApiError(422, "bad_length", f"the clip has {n} frames at 30 fps; between {lo} and {hi} are needed")
+        if not fine_tune:
+            raise ApiError(422, "fine_tune_required", "an LTI style is a translator identified from the clip: upload "
+                           "with fine_tune=true to start the identification job (the clip alone is not a style)")
+        from models.lti.finetune import data_available
+        if not data_available():
+            raise ApiError(409, "training_data_unavailable", "fine-tuning needs the training data (Bandai Namco neutral "
+                           "clips), which this server does not have (STYLESTREAM_DATA_DIR)")
+        info = StyleInfo(id=sid, name=name, model=model_name, kind="uploaded", status="training", created=time.time(),
+                         frames=n, source="bvh" if bvh_text is not None else "json", skeleton=skel)
+        d = self._dir(model_name, name)
+        d.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(d / "clip.npz", root=motion.translations[:, 1], rotations=motion.rotations, fps=MODEL_FPS)
+        self.uploaded[sid] = info
+        ref = next(iter(model.translators.values())).ref
+        job = self.jobs.submit("fine_tune", lambda progress: self._fine_tune_job(info, motion, ref, progress),
+                               target=sid, on_failure=lambda msg: self._job_failed(sid, msg))
+        info.job_id = job.id
+        self._save_info(info)
+        return UploadAccepted(style=info.model_copy(), job=job)
+
+    # ---- the job (job thread) ----------------------------------------------------
+    def _fine_tune_job(self, info: StyleInfo, motion, ref, progress) -> dict:
+        from models.lti.finetune import fine_tune
+        res = fine_tune(motion, info.name, ref, progress)
+        d = self._dir(info.model, info.name)
+        if info.id in self.uploaded:
+            res.translator.save(d / "translator.npz")
+        summary = {"seconds": round(res.seconds, 2), "neutral_clips": res.neutral_clips, "train_frames": res.train_frames,
+                   "state_dim": int(res.translator.n), "heldout": res.heldout}
+        progress(0.97, "installing the style")
+        asyncio.run_coroutine_threadsafe(self._activate(info.id, res.translator, summary), self.loop).result(timeout=60)
+        return summary
+
+    async def _activate(self, sid: str, tr, summary: dict) -> None:
+        info = self.uploaded.get(sid)
+        if info is None:  # deleted while training
+            return
+        self._install(info.model, self.rt.models[info.model].with_translator(tr))
+        info.status, info.message, info.fine_tune = "ready", "fine-tuned", summary
+        self._save_info(info)
+
+    def _job_failed(self, sid: str, message: str) -> None:
+        info = self.uploaded.get(sid)
+        if info is not None:
+            info.status, info.message = "failed", message
+            self._save_info(info)
