@@ -1,0 +1,102 @@
+"""Style-ERD command line.
+
+    .venv/bin/python -m models.erd render [--styles elderly,exhausted] [--content walk]   # out/erd/*.png|gif
+    .venv/bin/python -m models.erd bench                                                # step time, batch 1 and 256
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from ..interface import FrameBatch
+from ..settings import REPO_ROOT, get_settings
+
+
+def _model():
+    from . import load
+    return load(get_settings().weights_dir / "erd")
+
+
+def render(args) -> None:
+    from ..data import build_index, load_motions, select
+    from ..motion.render import render_contact_sheet, render_gif
+    model = _model()
+    clips = select(build_index(["bandai-namco-2"]), split=args.split, style="normal", content=args.content)
+    clip = clips[args.clip]
+    motion = load_motions([clip])[0]
+    styles = args.styles.split(",")
+    out_dir = REPO_ROOT / "out" / "erd"
+    outs, titles = [motion], [f"input ({clip.name})"]
+    for style in styles:
+        w = np.zeros(len(model.styles()))
+        w[model.styles().index(style)] = args.intensity
+        labels = {} if args.unlabelled else {"content": args.content, "input_style": "normal"}
+        outs.append(model.stylise_stream(motion, w, **labels))
+        titles.append(f"{style} x{args.intensity:g}" + (" (no labels)" if args.unlabelled else ""))
+    if args.reference:  # real clips of the target styles, same content, for comparison
+        index = build_index(["bandai-namco-2"])
+        for style in styles:
+            ref = select(index, split="train", style=style, content=args.content)[0]
+            outs.append(load_motions([ref])[0])
+            titles.append(f"real {style} ({ref.name})")
+    tag = f"{args.content}_{'_'.join(styles)}" + ("_nolabels" if args.unlabelled else "") + \
+        (f"_x{args.intensity:g}" if args.intensity != 1.0 else "") + ("_ref" if args.reference else "") + \
+        ("" if args.view == "10,-60" else f"_view{args.view.replace(',', '_')}")
+    view = tuple(float(v) for v in args.view.split(","))
+    print(render_contact_sheet(outs, out_dir / f"erd_{tag}.png", frames=args.frames, titles=titles,
+                               view=view, panel_size=args.panel))
+    if args.gif:
+        print(render_gif(outs[:1 + len(styles)], out_dir / f"erd_{tag}.gif", titles=titles[:1 + len(styles)], seconds=args.seconds))
+
+
+def bench(args) -> None:
+    model = _model()
+    rng = np.random.default_rng(0)
+    out = {}
+    for B in (1, 256):
+        state = model.init_state(B)
+        q = rng.normal(size=(B, 22, 4)) * 0.05 + np.array([0, 0, 0, 1.0])
+        frames = FrameBatch(np.tile([[0.0, 90.0, 0.0]], (B, 1)), q / np.linalg.norm(q, axis=-1, keepdims=True))
+        w = np.zeros((B, len(model.styles())))
+        w[:, 1] = 1.0
+        for _ in range(10):
+            _, state = model.step_batch(state, frames, w)
+        times = []
+        for _ in range(args.steps):
+            t = time.perf_counter()
+            _, state = model.step_batch(state, frames, w)
+            times.append(time.perf_counter() - t)
+        times = np.array(times) * 1e3
+        out[B] = {"median_ms": float(np.median(times)), "p99_ms": float(np.percentile(times, 99)),
+                  "frames_per_s": float(B / np.median(times) * 1e3)}
+    print(json.dumps(out, indent=1))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(prog="python -m models.erd")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("render")
+    r.add_argument("--styles", default="elderly,exhausted")
+    r.add_argument("--content", default="walk")
+    r.add_argument("--split", default="val")
+    r.add_argument("--clip", type=int, default=0)
+    r.add_argument("--intensity", type=float, default=1.0)
+    r.add_argument("--frames", type=int, default=8)
+    r.add_argument("--seconds", type=float, default=6.0)
+    r.add_argument("--unlabelled", action="store_true")
+    r.add_argument("--reference", action="store_true", help="add a real training clip of each target style")
+    r.add_argument("--view", default="10,-60", help="elevation,azimuth")
+    r.add_argument("--panel", type=float, default=1.9)
+    r.add_argument("--no-gif", dest="gif", action="store_false")
+    b = sub.add_parser("bench")
+    b.add_argument("--steps", type=int, default=200)
+    args = ap.parse_args()
+    {"render": render, "bench": bench}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    main()

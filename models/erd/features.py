@@ -1,0 +1,164 @@
+"""Causal per-frame Style-ERD features, one code path for the offline cache and the live stream.
+
+Per frame of the Bandai Namco skeleton (22 joints, `joint_Root` static at 0, `Hips` at 1), with
+joints 1..21 ("body joints", 21 of them):
+
+  [0:84)     local rotations (quaternions, scalar-last) of joints 1..21; the Hips rotation has
+             the facing yaw removed; every quaternion is put in the hemisphere of a fixed per-joint
+             reference rotation (the training data's mean), which keeps the sign continuous in
+             time without looking at other frames (the BN upper legs sit near 180 degrees from
+             identity, where a plain w >= 0 rule flips)
+  [84:147)   joint positions in the facing frame (origin = Hips projected on the ground)
+  [147:210)  joint velocities (world, backward difference) expressed in the facing frame, cm/s
+  [210:213)  root (Hips) velocity in the facing frame, cm/s
+  [213]      yaw rate, rad/s
+  [214:216)  foot contacts (left, right) as 0/1
+
+Everything at frame t uses frames t and t-1 only (velocities are backward differences, zero on a
+stream's first frame), exactly like `models.motion.features.compute_features`, which the tests
+use as the reference. The facing yaw comes from the hip and shoulder lines of the current pose.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..motion.features import body_joint, facing_yaw, leg_length, wrap_angle
+from ..motion.skeleton import Skeleton
+
+NUM_JOINTS = 22
+HIPS = 1
+BODY = np.arange(1, NUM_JOINTS)  # joints carried by the features
+NB = len(BODY)  # 21
+ROT = slice(0, 4 * NB)
+POS = slice(4 * NB, 7 * NB)
+VEL = slice(7 * NB, 10 * NB)
+ROOTVEL = slice(10 * NB, 10 * NB + 3)
+YAWRATE = 10 * NB + 3
+CONTACT = slice(10 * NB + 4, 10 * NB + 6)
+FEATURE_DIM = 10 * NB + 6  # 216
+FPS = 30.0
+
+
+def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return np.stack([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ], axis=-1)
+
+
+def quat_to_mat(q: np.ndarray) -> np.ndarray:
+    """(..., 4) scalar-last (normalised here) -> (..., 3, 3)."""
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    out = np.empty(q.shape[:-1] + (3, 3))
+    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    out[..., 0, 1] = 2 * (x * y - w * z)
+    out[..., 0, 2] = 2 * (x * z + w * y)
+    out[..., 1, 0] = 2 * (x * y + w * z)
+    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    out[..., 1, 2] = 2 * (y * z - w * x)
+    out[..., 2, 0] = 2 * (x * z - w * y)
+    out[..., 2, 1] = 2 * (y * z + w * x)
+    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return out
+
+
+def yaw_quat(yaw: np.ndarray) -> np.ndarray:
+    """(..., 4) rotation about +Y by `yaw`."""
+    z = np.zeros_like(yaw)
+    return np.stack([z, np.sin(0.5 * yaw), z, np.cos(0.5 * yaw)], axis=-1)
+
+
+def rotate_y(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Rotate vectors (..., 3) about +Y by yaw (...,) (broadcast over extra vector axes via [..., None])."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([c * x + s * z, y, -s * x + c * z], axis=-1)
+
+
+def canonical(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Flip each quaternion (..., J, 4) into the hemisphere of ref (J, 4)."""
+    sign = np.where((q * ref).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+    return q * sign
+
+
+class FeatureMaker:
+    """Causal features for a batch of independent streams (or all frames of one clip at once)."""
+
+    def __init__(self, skeleton: Skeleton, ref: np.ndarray, fps: float = FPS):
+        self.sk = skeleton
+        self.ref = np.asarray(ref, dtype=np.float64)[BODY]
+        self.fps = fps
+        self.offsets = skeleton.offsets.astype(np.float64)
+        self.leg = leg_length(skeleton)
+        self.feet = [(body_joint(skeleton, f"ankle_{s}"), body_joint(skeleton, f"toe_{s}")) for s in ("l", "r")]
+
+    def positions(self, root: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        """World joint positions (N, 22, 3) from Hips translations (N, 3) and local rotations (N, 22, 4)."""
+        mats = quat_to_mat(rotations)  # (N, 22, 3, 3)
+        n = rotations.shape[0]
+        g_rot = np.empty_like(mats)
+        pos = np.empty((n, NUM_JOINTS, 3))
+        for j, p in enumerate(self.sk.parents):
+            if p < 0:
+                g_rot[:, j], pos[:, j] = mats[:, j], self.offsets[j]
+            else:
+                t = root if j == HIPS else self.offsets[j]
+                g_rot[:, j] = g_rot[:, p] @ mats[:, j]
+                pos[:, j] = pos[:, p] + (g_rot[:, p] @ np.broadcast_to(t, (n, 3))[..., None])[..., 0]
+        return pos
+
+    def features(self, rotations: np.ndarray, pos: np.ndarray, prev_pos: np.ndarray,
+                 prev_yaw: np.ndarray, has_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 216) features and (N,) yaw of N frames given each frame's previous positions/yaw
+        (ignored where has_prev is False)."""
+        n = rotations.shape[0]
+        yaw = facing_yaw(pos, self.sk)
+        hp = has_prev.astype(np.float64)[:, None, None]
+        ground = pos[:, HIPS] * np.array([1.0, 0.0, 1.0])
+        local = rotate_y(pos - ground[:, None], -yaw[:, None])
+        vel_world = (pos - prev_pos) * self.fps * hp
+        vel = rotate_y(vel_world, -yaw[:, None])
+        yaw_rate = wrap_angle(yaw - prev_yaw) * self.fps * has_prev
+        q = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
+        q = q[:, BODY].copy()
+        q[:, 0] = qmul(yaw_quat(-yaw), q[:, 0])
+        q = canonical(q, self.ref)
+        contacts = []
+        speed = np.linalg.norm(vel_world, axis=-1)
+        for ankle, toe in self.feet:
+            planted = np.zeros(n, dtype=bool)
+            for j, h in ((ankle, 0.12 * 1.8), (toe, 0.12)):
+                planted |= (pos[:, j, 1] < h * self.leg) & (speed[:, j] < 0.5 * self.leg)
+            contacts.append(planted)
+        out = np.concatenate([
+            q.reshape(n, -1), local[:, BODY].reshape(n, -1), vel[:, BODY].reshape(n, -1),
+            vel[:, HIPS], yaw_rate[:, None], np.stack(contacts, -1).astype(np.float64),
+        ], axis=-1)
+        return out, yaw
+
+    def sequence(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features (F, 216) and yaw (F,) of one clip, every frame causal (frame 0 has no past)."""
+        pos = self.positions(root, rotations)
+        yaw = facing_yaw(pos, self.sk)
+        prev_pos = np.concatenate([pos[:1], pos[:-1]])
+        prev_yaw = np.concatenate([yaw[:1], yaw[:-1]])
+        has_prev = np.arange(len(pos)) > 0
+        return self.features(rotations, pos, prev_pos, prev_yaw, has_prev)
+
+
+def mean_rotations(rotations: np.ndarray) -> np.ndarray:
+    """Per-joint average rotation (J, 4) of (N, J, 4) samples: the dominant eigenvector of sum q q^T
+    (sign-invariant), with w >= 0."""
+    out = np.zeros((rotations.shape[1], 4))
+    for j in range(rotations.shape[1]):
+        q = rotations[:, j]
+        vals, vecs = np.linalg.eigh(q.T @ q)
+        v = vecs[:, -1]
+        out[j] = v if v[3] >= 0 else -v
+    return out

@@ -1,0 +1,53 @@
+"""Whole-clip (offline) Style-ERD: run the torch generator over a clip from the learned initial
+states and turn its output back into a world-space `Motion`. The streaming model (runtime.py)
+does the same per frame; tests check they agree.
+
+Output root: the output Hips path integrates the predicted facing-frame root velocity (x, z),
+turned by the INPUT's facing yaw, starting from the input's first root position; the height is
+the predicted Hips height. So the path keeps the input's shape and direction while the speed may
+change with the style. The output Hips rotation is the input's facing yaw times the predicted
+yaw-free Hips rotation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from ..motion.skeleton import Motion
+from .features import FPS, BODY, FeatureMaker, qmul, rotate_y, yaw_quat
+from .model import Generator
+
+
+def to_world(rot: np.ndarray, root_vel: np.ndarray, height: np.ndarray, yaw: np.ndarray, root0: np.ndarray,
+             fps: float = FPS) -> tuple[np.ndarray, np.ndarray]:
+    """Model outputs of a clip (T,21,4), (T,3), (T,), input yaw (T,), input first root (3,) ->
+    Hips translations (T,3) and local rotations (T,22,4)."""
+    T = len(rot)
+    step = rotate_y(root_vel, yaw) / fps
+    step[0] = 0.0
+    root = root0[None] + np.cumsum(step, 0)
+    root[:, 1] = height
+    out = np.zeros((T, 22, 4))
+    out[:, 0, 3] = 1.0
+    out[:, BODY] = rot
+    out[:, 1] = qmul(yaw_quat(yaw), rot[:, 0])
+    return root, out
+
+
+@torch.no_grad()
+def stylise(gen: Generator, maker: FeatureMaker, motion: Motion, weights: np.ndarray,
+            style_in: int = -1, content: int = -1) -> Motion:
+    """The clip stylised with target weights (6,) or per frame (T, 6)."""
+    root_in = motion.translations[:, 1]
+    x, yaw = maker.sequence(root_in, motion.rotations)
+    w = torch.as_tensor(np.asarray(weights, dtype=np.float32))
+    w = w[None] if w.dim() == 1 else w[None]
+    out = gen(torch.as_tensor(x, dtype=torch.float32)[None], torch.tensor([style_in]), torch.tensor([content]), w)
+    root, rots = to_world(out["rot"][0].double().numpy(), out["root_vel"][0].double().numpy(),
+                          out["height"][0].double().numpy(), yaw, root_in[0])
+    trans = motion.translations.copy()
+    trans[:, 1] = root
+    return replace(motion, rotations=rots, translations=trans)

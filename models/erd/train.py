@@ -1,0 +1,340 @@
+"""Train Style-ERD on Bandai Namco dataset 2 (CPU-friendly, nanoGPT style: the config is the
+dataclass below; override any field on the command line as --field=value).
+
+    .venv/bin/python -m models.erd.train --minutes=50
+    .venv/bin/python -m models.erd.train --export=.data/erd/run/ckpt.pt   # write models/weights/erd
+
+Stages: (1) a content classifier with instance normalisation on real windows (for the
+perceptual loss), (2) the generator + FT-Att discriminator: reconstruction (quaternion angle,
+FK position, velocity) with target style = input style, LSGAN (real 1, fake -1, generator 0)
+with R1 on real samples, perceptual loss against the input's classifier features. Neutral
+clips get a random target style, styled clips the neutral target. Input labels are dropped at
+random so that unlabelled streams work.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from ..settings import REPO_ROOT
+
+
+@dataclass
+class TrainConfig:
+    seed: int = 1234
+    threads: int = 1
+    batch: int = 64
+    window: int = 24
+    minutes: float = 50.0  # wall-clock budget of the GAN stage
+    max_iters: int = 200_000
+    lr_g: float = 5e-4
+    lr_d: float = 5e-4
+    lr_decay_to: float = 0.2  # cosine to this fraction of lr over the time budget
+    w_rot: float = 1.0
+    w_pos: float = 0.5
+    w_vel: float = 0.5
+    w_adv: float = 1.0
+    w_per: float = 0.1
+    w_r1: float = 10.0
+    p_drop_style: float = 0.3
+    p_drop_content: float = 0.3
+    p_neutral: float = 0.5
+    clf_iters: int = 1500
+    eval_every: int = 500
+    render_every: int = 3000
+    ckpt_every: int = 500
+    latent: int = 32
+    enc_hidden: int = 128
+    dec_hidden: int = 128
+    neutral_layers: int = 2
+    style_layers: int = 2
+    run_dir: str = str(REPO_ROOT / ".data" / "erd" / "run")
+    out_dir: str = str(REPO_ROOT / "out" / "erd")
+    export: str = ""  # path of a checkpoint to export to models/weights/erd instead of training
+
+
+def parse_args(argv: list[str]) -> TrainConfig:
+    cfg = TrainConfig()
+    names = {f.name: f.type for f in fields(cfg)}
+    for arg in argv:
+        key, _, value = arg.lstrip("-").partition("=")
+        key = key.replace("-", "_")
+        if key not in names:
+            raise SystemExit(f"unknown option {key!r}; known: {', '.join(names)}")
+        typ = type(getattr(cfg, key))
+        setattr(cfg, key, typ(value))
+    return cfg
+
+
+# --------------------------------------------------------------------------- pieces
+
+
+def build(cfg: TrainConfig, stats: dict[str, np.ndarray]):
+    from .features import POS, VEL, ROOTVEL
+    from .model import ContentClassifier, ERDConfig, FTAttDiscriminator, Generator
+
+    mcfg = ERDConfig(latent=cfg.latent, enc_hidden=cfg.enc_hidden, dec_hidden=cfg.dec_hidden,
+                     neutral_layers=cfg.neutral_layers, style_layers=cfg.style_layers)
+    std = torch.as_tensor(stats["std"])
+    scale = {"pos": std[POS], "vel": torch.cat([std[VEL], std[ROOTVEL]])}
+    gen = Generator(mcfg, stats["mean"], stats["std"])
+    disc = FTAttDiscriminator(mcfg, 63 + 66, cfg.window - 1, scale)
+    clf = ContentClassifier(mcfg, 84 + 63 + 66, scale)
+    return mcfg, gen, disc, clf, scale
+
+
+class Losses:
+    def __init__(self, skeleton, scale):
+        from .model import fk_local
+        self.offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
+        self.parents = skeleton.parents
+        self.fk_local = fk_local
+        self.scale = scale
+
+    def real_view(self, x):
+        from .features import POS, ROOTVEL, ROT, NB
+        from .model import window_motion
+        B, T, _ = x.shape
+        return window_motion(x[..., POS].reshape(B, T, NB, 3), x[..., ROOTVEL], x[..., ROT].reshape(B, T, NB, 4))
+
+    def fake_view(self, out):
+        from .model import window_motion
+        pos = self.fk_local(out["rot"], out["height"], self.offsets, self.parents)
+        return window_motion(pos, out["root_vel"], out["rot"])
+
+    def recon(self, out, view, real, x):
+        from .features import ROT, NB
+        B, T, _ = x.shape
+        q_real = x[..., ROT].reshape(B, T, NB, 4)
+        dot = (out["rot"] * q_real).sum(-1)
+        rot = (4 * (1 - dot.pow(2))).mean()  # 4 sin^2(angle/2) ~ angle^2, smooth at 0
+        pos = ((view["pos"] - real["pos"]) / self.scale["pos"]).pow(2).mean()
+        vel = ((view["vel"] - real["vel"]) / self.scale["vel"]).pow(2).mean()
+        return rot, pos, vel
+
+
+def one_hot_targets(style: torch.Tensor) -> torch.Tensor:
+    """(B,) style index in the 7 styles -> (B, 6) branch weights (neutral = zeros)."""
+    return F.one_hot(style.clamp_min(1) - 1, 6).float() * (style > 0).float()[:, None]
+
+
+# --------------------------------------------------------------------------- stages
+
+
+def train_classifier(cfg, clf, losses, train_s, val_s, log):
+    opt = torch.optim.Adam(clf.parameters(), lr=1e-3)
+    bar = tqdm(range(cfg.clf_iters), desc="classifier", mininterval=5, file=sys.stderr)
+    for it in bar:
+        b = train_s.sample(cfg.batch)
+        logits, _ = clf(clf.prepare(losses.real_view(b["x"])))
+        loss = F.cross_entropy(logits, b["content"])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if it % 100 == 0:
+            bar.set_postfix(loss=f"{loss.item():.3f}")
+    clf.eval()
+    with torch.no_grad():
+        v = val_s.fixed(2)
+        logits, _ = clf(clf.prepare(losses.real_view(v["x"])))
+        acc = (logits.argmax(-1) == v["content"]).float().mean().item()
+    log(f"content classifier: val window accuracy {acc:.3f}")
+    for p in clf.parameters():
+        p.requires_grad_(False)
+    return acc
+
+
+@torch.no_grad()
+def validate(gen, disc, clf, losses, v) -> dict[str, float]:
+    gen.eval()
+    x, style, content = v["x"], v["style"], v["content"]
+    real = losses.real_view(x)
+    out_stats = {}
+    for tag, s_in, c_in in (("labels", style, content), ("nolabels", torch.full_like(style, -1), torch.full_like(content, -1))):
+        out = gen(x, s_in, c_in, one_hot_targets(style))
+        view = losses.fake_view(out)
+        rot, pos, vel = losses.recon(out, view, real, x)
+        dq = (out["rot"] * real_rot(x)).sum(-1).abs().clamp(max=1.0)
+        out_stats[f"{tag}/rot_deg"] = torch.rad2deg(2 * torch.acos(dq)).mean().item()
+        out_stats.update({f"{tag}/rot": rot.item(), f"{tag}/pos": pos.item(), f"{tag}/vel": vel.item()})
+        # transfer: neutral windows -> every style; styled -> neutral
+        neutral = style == 0
+        target = torch.where(neutral, 1 + torch.arange(len(style)) % 6, torch.zeros_like(style))
+        fake = gen(x, s_in, c_in, one_hot_targets(target))
+        fview = losses.fake_view(fake)
+        logits, _ = clf(clf.prepare(fview))
+        out_stats[f"{tag}/content_acc"] = (logits.argmax(-1) == content).float().mean().item()
+        out_stats[f"{tag}/d_fake"] = disc(disc.prepare(fview), target, content).mean().item()
+        dq = (fake["rot"] * real_rot(x)).sum(-1).abs().clamp(max=1.0)
+        out_stats[f"{tag}/transfer_deg"] = torch.rad2deg(2 * torch.acos(dq)).mean().item()
+    out_stats["d_real"] = disc(disc.prepare(real), style, content).mean().item()
+    gen.train()
+    return out_stats
+
+
+def real_rot(x):
+    from .features import ROT, NB
+    return x[..., ROT].reshape(x.shape[0], x.shape[1], NB, 4)
+
+
+def render(gen, maker, out_dir: Path, tag: str, clips_motions) -> None:
+    from ..motion.render import render_contact_sheet, render_gif
+    from .dataset import TARGET_STYLES
+    from .offline import stylise
+    gen.eval()
+    for name, motion in clips_motions:
+        outs, titles = [motion], ["input"]
+        for style in ("elderly", "exhausted"):
+            w = np.zeros(6)
+            w[TARGET_STYLES.index(style)] = 1.0
+            outs.append(stylise(gen, maker, motion, w, style_in=0, content=-1))
+            titles.append(style)
+        render_contact_sheet(outs, out_dir / f"{tag}_{name}.png", frames=8, titles=titles)
+        if tag == "final":
+            render_gif(outs, out_dir / f"{tag}_{name}.gif", titles=titles)
+    gen.train()
+
+
+def lr_at(cfg, frac: float) -> float:
+    return cfg.lr_decay_to + (1 - cfg.lr_decay_to) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))
+
+
+def main(argv: list[str]) -> None:
+    cfg = parse_args(argv)
+    if cfg.export:
+        from .runtime import export_weights
+        print(export_weights(Path(cfg.export)))
+        return
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    from ..data import build_index, load_motions, select
+    from .dataset import WindowSampler, load_split, load_stats
+    from .features import FeatureMaker
+
+    run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    logf = open(run_dir / "train.log", "a")
+
+    def log(msg: str) -> None:
+        line = f"[{time.strftime('%H:%M:%S')}] {msg}"
+        tqdm.write(line, file=sys.stderr)
+        logf.write(line + "\n")
+        logf.flush()
+
+    t_start = time.time()
+    stats = load_stats()
+    train_s = WindowSampler(load_split("train"), cfg.window, cfg.p_neutral, seed=cfg.seed)
+    val_s = WindowSampler(load_split("val"), cfg.window, cfg.p_neutral, seed=cfg.seed + 1)
+    vfixed = val_s.fixed(2)
+    index = build_index(["bandai-namco-2"])
+    render_clips = select(index, split="val", style="normal", content=("walk",))[:1] + \
+        select(index, split="val", style="normal", content=("wave-right-hand",))[:1]
+    render_motions = [(c.name, m) for c, m in zip(render_clips, load_motions(render_clips))]
+    skeleton = render_motions[0][1].skeleton
+    maker = FeatureMaker(skeleton, stats["ref"])
+    mcfg, gen, disc, clf, scale = build(cfg, stats)
+    losses = Losses(skeleton, scale)
+    n_g = sum(p.numel() for p in gen.parameters())
+    n_d = sum(p.numel() for p in disc.parameters())
+    log(f"config {json.dumps(asdict(cfg))}")
+    log(f"generator {n_g} params, discriminator {n_d}, classifier {sum(p.numel() for p in clf.parameters())}")
+
+    clf_acc = train_classifier(cfg, clf, losses, train_s, val_s, log)
+    torch.save(clf.state_dict(), run_dir / "classifier.pt")
+
+    opt_g = torch.optim.Adam(gen.parameters(), lr=cfg.lr_g, betas=(0.5, 0.999))
+    opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999))
+    t0 = time.time()
+    budget = cfg.minutes * 60
+    history = []
+    bar = tqdm(total=cfg.max_iters, desc="style-erd", mininterval=10, file=sys.stderr)
+    it = 0
+    while it < cfg.max_iters and time.time() - t0 < budget:
+        frac = (time.time() - t0) / budget
+        for opt, base in ((opt_g, cfg.lr_g), (opt_d, cfg.lr_d)):
+            for group in opt.param_groups:
+                group["lr"] = base * lr_at(cfg, frac)
+        b = train_s.sample(cfg.batch)
+        x, style, content = b["x"], b["style"], b["content"]
+        B = len(x)
+        target = torch.where(style == 0, torch.randint(1, 7, (B,)), torch.zeros_like(style))
+        s_in = torch.where(torch.rand(B) < cfg.p_drop_style, torch.full_like(style, -1), style)
+        c_in = torch.where(torch.rand(B) < cfg.p_drop_content, torch.full_like(content, -1), content)
+        real = losses.real_view(x)
+
+        # ---- generator (reconstruction and transfer in one batched pass)
+        outs = gen.forward_multi(x, s_in, c_in, [one_hot_targets(style), one_hot_targets(target)])
+        out = {k: torch.cat([outs[0][k], outs[1][k]]) for k in outs[0]}
+        view = losses.fake_view(out)
+        rec = {k: v[:B] for k, v in out.items()}
+        rec_view = {k: v[:B] for k, v in view.items()}
+        fake_view = {k: v[B:] for k, v in view.items()}
+        l_rot, l_pos, l_vel = losses.recon(rec, rec_view, real, x)
+        l_adv = disc(disc.prepare(fake_view), target, content).pow(2).mean()
+        _, f_fake = clf(clf.prepare(fake_view))
+        with torch.no_grad():
+            _, f_real = clf(clf.prepare(real))
+        l_per = sum(F.mse_loss(a, b_) for a, b_ in zip(f_fake, f_real))
+        loss_g = cfg.w_rot * l_rot + cfg.w_pos * l_pos + cfg.w_vel * l_vel + cfg.w_adv * l_adv + cfg.w_per * l_per
+        opt_g.zero_grad()
+        loss_g.backward()
+        opt_g.step()
+
+        # ---- discriminator (LSGAN, R1 on real)
+        real_in = disc.prepare(real).detach().requires_grad_(True)
+        d_real = disc(real_in, style, content)
+        grad, = torch.autograd.grad(d_real.sum(), real_in, create_graph=True)
+        r1 = grad.pow(2).sum((1, 2)).mean()
+        d_fake = disc(disc.prepare({k: v.detach() for k, v in fake_view.items()}), target, content)
+        loss_d = (d_real - 1).pow(2).mean() + (d_fake + 1).pow(2).mean() + cfg.w_r1 * r1
+        opt_d.zero_grad()
+        loss_d.backward()
+        opt_d.step()
+
+        it += 1
+        bar.update(1)
+        if it % 50 == 0:
+            bar.set_postfix(rot=f"{l_rot.item():.4f}", pos=f"{l_pos.item():.4f}", adv=f"{l_adv.item():.3f}",
+                            per=f"{l_per.item():.3f}", d=f"{loss_d.item():.3f}", r1=f"{r1.item():.3f}")
+        if it % cfg.eval_every == 0:
+            v = validate(gen, disc, clf, losses, vfixed)
+            v.update(iter=it, minutes=round((time.time() - t0) / 60, 2), train_rot=l_rot.item(), train_pos=l_pos.item(),
+                     train_adv=l_adv.item(), train_per=l_per.item(), train_d=loss_d.item())
+            history.append(v)
+            log("val " + " ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}" for k, val in v.items()))
+        if it % cfg.ckpt_every == 0:
+            save(run_dir / "ckpt.pt", gen, disc, mcfg, cfg, stats, it, time.time() - t0, history, clf_acc)
+        if it % cfg.render_every == 0:
+            render(gen, maker, out_dir, f"it{it:06d}", render_motions)
+    bar.close()
+    v = validate(gen, disc, clf, losses, vfixed)
+    v.update(iter=it, minutes=round((time.time() - t0) / 60, 2))
+    history.append(v)
+    log("final val " + " ".join(f"{k}={val:.4g}" for k, val in v.items()))
+    save(run_dir / "ckpt.pt", gen, disc, mcfg, cfg, stats, it, time.time() - t0, history, clf_acc)
+    render(gen, maker, out_dir, "final", render_motions)
+    log(f"done: {it} iterations, GAN stage {(time.time() - t0) / 60:.1f} min, total {(time.time() - t_start) / 60:.1f} min")
+
+
+def save(path, gen, disc, mcfg, cfg, stats, it, seconds, history, clf_acc) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save({"generator": gen.state_dict(), "discriminator": disc.state_dict(), "model_config": asdict(mcfg),
+                "train_config": asdict(cfg), "ref": stats["ref"], "iter": it, "seconds": seconds,
+                "history": history, "classifier_val_acc": clf_acc, "argv": sys.argv}, tmp)
+    tmp.replace(path)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

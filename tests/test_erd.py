@@ -1,0 +1,141 @@
+"""Style-ERD: causal features, streaming == whole-window forward, batching, causality, labels,
+and the committed weights."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from models.interface import FrameBatch, StreamingModel, split_state, stack_states  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+WEIGHTS = REPO / "models" / "weights" / "erd"
+
+pytestmark = pytest.mark.skipif(not (WEIGHTS / "erd.npz").exists(), reason="Style-ERD weights not committed")
+
+
+@pytest.fixture(scope="module")
+def model():
+    import models.erd
+    torch.set_num_threads(1)
+    return models.erd.load(WEIGHTS)
+
+
+@pytest.fixture(scope="module")
+def walks():
+    try:
+        from models.data import build_index, load_motions, select
+        clips = select(build_index(["bandai-namco-2"]), split="val", style="normal", content=("walk", "wave-right-hand"))
+    except Exception as exc:  # dataset not unpacked on this machine
+        pytest.skip(f"Bandai Namco dataset 2 unavailable: {exc}")
+    clips = [c for c in clips if c.content == "walk"][:2] + [c for c in clips if c.content != "walk"][:1]
+    return [m.slice(0, 48) for m in load_motions(clips)]
+
+
+def _onehot(model, style, scale=1.0):
+    w = np.zeros(len(model.styles()))
+    w[model.styles().index(style)] = scale
+    return w
+
+
+def test_weights_small_and_protocol(model):
+    size = sum(f.stat().st_size for f in WEIGHTS.iterdir())
+    assert size < 10 * 2**20
+    assert isinstance(model, StreamingModel)
+    assert model.name == "erd"
+    assert model.styles() == ["active", "elderly", "exhausted", "feminine", "masculine", "youthful"]
+    assert model.skeleton.num_joints == 22 and model.skeleton.names[1] == "Hips"
+    assert (WEIGHTS / "MODEL_CARD.md").exists()
+
+
+def test_features_match_foundation(model, walks):
+    from models.motion.features import compute_features
+    from models.erd.features import CONTACT, NB, POS, ROOTVEL, VEL, YAWRATE
+    motion = walks[0]
+    x, yaw = model.maker.sequence(motion.translations[:, 1], motion.rotations)
+    ref = compute_features(motion)
+    F = motion.num_frames
+    np.testing.assert_allclose(yaw, ref.yaw, atol=1e-6)
+    np.testing.assert_allclose(x[:, POS].reshape(F, NB, 3), ref.local_positions[:, 1:], atol=1e-3)
+    np.testing.assert_allclose(x[:, VEL].reshape(F, NB, 3), ref.joint_velocities[:, 1:], atol=1e-2)
+    np.testing.assert_allclose(x[:, ROOTVEL], ref.root_velocity, atol=1e-2)
+    np.testing.assert_allclose(x[:, YAWRATE], ref.yaw_rate, atol=1e-4)
+    assert np.array_equal(x[:, CONTACT] > 0.5, ref.contacts)
+    # quaternions: unit, sign-continuous over the clip
+    q = x[:, :4 * NB].reshape(F, NB, 4)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-6)
+    assert ((q[1:] * q[:-1]).sum(-1) > 0).all()
+
+
+def test_stream_equals_whole_window(model, walks):
+    from models.erd.dataset import CONTENTS
+    from models.erd.offline import stylise
+    motion = walks[0].slice(0, 40)
+    w = _onehot(model, "elderly")
+    streamed = model.stylise_stream(motion, w, content="walk", input_style="normal")
+    gen = model.torch_generator()
+    whole = stylise(gen, model.maker, motion, w, style_in=0, content=CONTENTS.index("walk"))
+    np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
+    np.testing.assert_allclose(streamed.translations, whole.translations, atol=2e-2)  # cm; float32 torch
+    streamed = model.stylise_stream(motion, w)  # unlabelled
+    whole = stylise(gen, model.maker, motion, w)
+    np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
+
+
+def test_batched_equals_per_session_and_no_mutation(model, walks):
+    B = len(walks)
+    weights = np.stack([_onehot(model, "elderly"), _onehot(model, "exhausted", 1.5),
+                        0.5 * _onehot(model, "active") + 0.5 * _onehot(model, "feminine")])
+    singles = [model.init_state(1, content="walk", input_style="normal"), model.init_state(1), model.init_state(1)]
+    batched = stack_states(singles)
+    for t in range(12):
+        frames = FrameBatch(np.stack([m.translations[t, 1] for m in walks]), np.stack([m.rotations[t] for m in walks]))
+        before = {k: v.copy() for k, v in batched.items()}
+        out_b, new_b = model.step_batch(batched, frames, weights)
+        for k in before:
+            assert np.array_equal(before[k], batched[k]), f"step_batch mutated state[{k!r}]"
+        for i in range(B):
+            out_i, singles[i] = model.step_batch(singles[i], frames.take(i), weights[i:i + 1])
+            np.testing.assert_allclose(out_b.rotations[i], out_i.rotations[0], atol=1e-6)
+            np.testing.assert_allclose(out_b.root[i], out_i.root[0], atol=1e-6)
+        for i, s in enumerate(split_state(new_b)):
+            for k in s:
+                np.testing.assert_allclose(s[k], singles[i][k], atol=1e-6)
+        batched = new_b
+
+
+def test_causal(model, walks):
+    """Changing frames > t never changes outputs <= t (whole-window torch forward, features included)."""
+    from dataclasses import replace
+    from models.erd.offline import stylise
+    motion = walks[0].slice(0, 30)
+    gen = model.torch_generator()
+    w = _onehot(model, "exhausted")
+    base = stylise(gen, model.maker, motion, w)
+    t = 17
+    rot = motion.rotations.copy()
+    rot[t + 1:, 2:] = rot[t + 1:, 2:][:, ::-1]  # scramble joints in the future
+    trans = motion.translations.copy()
+    trans[t + 1:, 1] += 25.0
+    changed = stylise(gen, model.maker, replace(motion, rotations=rot, translations=trans), w)
+    assert np.array_equal(base.rotations[:t + 1], changed.rotations[:t + 1])
+    assert np.array_equal(base.translations[:t + 1], changed.translations[:t + 1])
+    assert not np.allclose(base.rotations[t + 1:], changed.rotations[t + 1:])
+
+
+def test_missing_labels_and_real_walk_finite(model, walks):
+    motion = walks[0]
+    for kwargs in ({}, {"content": "walk"}, {"input_style": "normal"}, {"content": "walk", "input_style": "normal"}):
+        out = model.stylise_stream(motion.slice(0, 20), _onehot(model, "elderly"), **kwargs)
+        assert np.isfinite(out.rotations).all() and np.isfinite(out.translations).all()
+        np.testing.assert_allclose(np.linalg.norm(out.rotations, axis=-1), 1.0, atol=1e-6)
+    # zero weights = neutral branch only; output stays close to a neutral input
+    out = model.stylise_stream(motion, np.zeros(6), content="walk", input_style="normal")
+    pos_in, pos_out = motion.global_positions(), out.global_positions()
+    local_in = pos_in - pos_in[:, 1:2]
+    local_out = pos_out - pos_out[:, 1:2]
+    assert np.abs(local_out - local_in).mean() < 10.0  # cm
