@@ -160,3 +160,37 @@ def test_resample_upsampling_interpolates_between_frames(bn_walk):
     # a round trip back to 30 fps gives the original
     back = resample(out, 30)
     assert ang(back.rotations, m.rotations).max() < 1e-6
+
+
+# --------------------------------------------------------------------------- does it look like BN data?
+
+_LIMBS = ("UpperArm", "LowerArm", "Hand", "UpperLeg", "LowerLeg", "Foot", "Toes")
+
+
+def _lti_distances(motion):
+    """(LTI translator, normalised input u, per-DOF distance outside its training range in std)."""
+    from models.lti import load as load_lti
+    from models.lti import representation as rep
+
+    tr = load_lti().translators["elderly"]
+    u = (rep.motion_to_features(motion, tr.ref) - tr.in_mean) / tr.in_std
+    return tr, u, np.maximum(np.maximum(u - tr.in_hi, tr.in_lo - u), 0.0)
+
+
+@pytest.mark.parametrize("name", [n for _, n in WALKS])
+def test_limb_twists_are_in_the_bn_range(walks, rig, name):
+    """The twist about each limb bone (exp-map x, along the BN bone) stays near BN's training range;
+    with the CMU joints' own twists it was 29-45 standard deviations outside."""
+    _, _, dist = _lti_distances(walks[name][1])
+    twist = [7 + 3 * (rig.skeleton.index(n) - 2) for n in rig.skeleton.names if n.split("_")[0] in _LIMBS]
+    assert dist[:, twist].max() < 8.0
+
+
+def test_lti_sees_bn_data_as_in_range(bn_walk):
+    tr, u, _ = _lti_distances(bn_walk)
+    assert tr.blend_weight(u).mean() < 0.05
+
+
+def test_retargeted_xia_walk_is_mostly_in_the_lti_range(walks):
+    tr, u, _ = _lti_distances(walks["neutral_walk_01_000"][1])
+    assert tr.blend_weight(u).mean() < 0.7  # 1.0 (input passed through unchanged) with CMU twists

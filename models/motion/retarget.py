@@ -6,16 +6,19 @@ all rotations zero is meaningless (legs point up the spine). So the mapping is b
 
 1. Both CMU naming variants (cgspeed: LeftUpLeg/LeftLeg/...; bvh11: LeftHip/LeftKnee/...) are
    mapped joint-for-joint onto BN joints by body position (`CMU_TO_BN`).
-2. Reference ("alignment") rotations `Q_j`: the BN global rotations that put BN into the CMU rest
-   pose (every CMU rotation zero). For a joint with one child, `Q_j` is the smallest rotation that
-   swings the bone of a natural BN pose (a frame of BN data, turned to face the same way as the CMU
-   rest pose) onto the CMU rest bone direction; the natural pose fixes the twist about the bone.
-   Hips and Chest have several children: their global rotation is fixed by two vectors (the bone
-   up the spine and the left-right vector between the legs / shoulders).
-3. Per frame, BN global rotation = CMU global rotation of the joint that drives the same body
-   segment x `Q_j` (for Hips and Chest: the two-vector frame of the CMU joint positions of that
-   frame, so the spine bone and the hip / shoulder line follow CMU exactly), then back to
-   local rotations. Each mapped BN bone then points exactly where the CMU bone points.
+2. Hips and Chest have several children: their global rotation is a two-vector frame of the
+   source joint positions (the bone up the spine and the left-right vector between the legs /
+   shoulders), so the spine bone and the hip / shoulder line follow the source exactly.
+3. Every other joint with a matched bone (`TwistPlan`, parents first): start from the BN parent's
+   new global rotation times the joint's local rotation in the natural BN pose (`Rig.pose`), then
+   apply the smallest swing that carries the BN bone onto the source bone direction. The bone
+   points exactly where the source bone points, and the twist about it follows the BN parent and
+   the natural pose, never the CMU joint's own twist (which puts e.g. knees 30 standard deviations
+   outside BN's range for the LTI model). Limb roots (UpperLeg, UpperArm) instead take the twist
+   that lays BN's hinge axis (the natural knee / elbow bend axis) along the normal of the source
+   limb plane (hip-knee-ankle, shoulder-elbow-wrist), so knees and elbows bend about BN's hinge
+   axis; a near-straight limb blends to the natural twist (`HINGE_FALLBACK`). Leaves (Head, Hands,
+   Toes) keep the natural local rotation: they move no joint, and BN data holds them nearly fixed.
 4. Hips translation is scaled by the leg-length ratio (BN thigh + shin / CMU thigh + shin, which
    also converts CMU units to cm) and shifted vertically so that the toe on the ground sits at the
    toe height the BN data shows (~4.2 cm; see `contact_height`). The source is first resampled to
@@ -134,62 +137,6 @@ def _frame(primary: np.ndarray, lateral: np.ndarray) -> np.ndarray:
     return np.stack([e1, e2, np.cross(e1, e2)], axis=-1)
 
 
-def _swing(a: np.ndarray, b: np.ndarray) -> Rotation:
-    """Smallest rotation taking direction a to direction b."""
-    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
-    axis = np.cross(a, b)
-    s, c = np.linalg.norm(axis), float(np.dot(a, b))
-    if s < 1e-9:
-        if c > 0:
-            return Rotation.identity()
-        perp = np.cross(a, [1.0, 0, 0]) if abs(a[0]) < 0.9 else np.cross(a, [0, 1.0, 0])
-        return Rotation.from_rotvec(np.pi * perp / np.linalg.norm(perp))
-    return Rotation.from_rotvec(axis / s * np.arctan2(s, c))
-
-
-def _yaw_between(a: np.ndarray, b: np.ndarray) -> Rotation:
-    """Rotation about +Y taking the horizontal part of a onto that of b."""
-    ang = np.arctan2(a[0], a[2]) - np.arctan2(b[0], b[2])  # heading angle about Y: atan2(x, z)
-    return Rotation.from_rotvec([0.0, -ang, 0.0])
-
-
-def alignment(rig: Rig, source: Skeleton) -> dict[str, np.ndarray]:
-    """BN global rotations (quaternions) that put the BN skeleton into the source's rest pose."""
-    sk, smap = rig.skeleton, CMU_TO_BN[source_variant(source)]
-    src_rest = source.rest_positions()
-
-    def src_vec(a: str, b: str) -> np.ndarray:  # source rest vector between the joints mapped from BN a, b
-        return src_rest[source.index(smap[b])] - src_rest[source.index(smap[a])]
-
-    def off(name: str) -> np.ndarray:
-        return sk.offsets[sk.index(name)]
-
-    # The natural BN pose, turned about Y so its left-right axis matches the source rest pose's.
-    g_nat, _ = fk(rig.pose, sk.offsets, sk.parents)
-    nat = {n: Rotation.from_quat(g_nat[sk.index(n)]) for n in sk.names}
-    bn_left = nat["Hips"].apply(off("UpperLeg_L") - off("UpperLeg_R"))
-    yaw = _yaw_between(bn_left, src_vec("UpperLeg_R", "UpperLeg_L"))
-    nat = {n: yaw * r for n, r in nat.items()}
-
-    q: dict[str, Rotation] = {"joint_Root": Rotation.identity()}
-    for j, name in enumerate(sk.names):
-        if name == "joint_Root":
-            continue
-        if name in _LATERAL:
-            child = _PRIMARY_CHILD[name]
-            (tl, tr), (sl, sr) = _LATERAL[name], _SOURCE_LATERAL[name]
-            m_src = _frame(src_vec(name, child), src_vec(sr, sl))
-            m_tgt = _frame(off(child), off(tl) - off(tr))
-            q[name] = Rotation.from_matrix(m_src @ m_tgt.T)
-        elif name in _PRIMARY_CHILD:
-            child = _PRIMARY_CHILD[name]
-            q[name] = _swing(nat[name].apply(off(child)), src_vec(name, child)) * nat[name]
-        else:  # leaf: keep the natural pose's rotation relative to the parent
-            parent = sk.names[sk.parents[j]]
-            q[name] = q[parent] * nat[parent].inv() * nat[name]
-    return {n: r.as_quat() for n, r in q.items()}
-
-
 def _drivers(source: Skeleton, smap: dict[str, str]) -> dict[str, int]:
     """For each BN joint, the source joint whose global rotation moves the same body segment:
     the source parent of the mapped primary child (CMU puts zero-length joints in between, e.g.
@@ -199,6 +146,139 @@ def _drivers(source: Skeleton, smap: dict[str, str]) -> dict[str, int]:
         child = _PRIMARY_CHILD.get(name)
         out[name] = int(source.parents[source.index(smap[child])]) if child else source.index(src)
     return out
+
+
+# BN limb joint -> its hinge child: the limb joint's twist is set by the plane of the limb
+# (hip-knee-ankle, shoulder-elbow-wrist), so the hinge bends about the BN hinge axis.
+_HINGES = {"UpperLeg_L": "LowerLeg_L", "UpperLeg_R": "LowerLeg_R", "UpperArm_L": "LowerArm_L", "UpperArm_R": "LowerArm_R"}
+# How much a near-straight limb falls back to the natural twist: the hinge axis aims along
+# cross(upper bone, lower bone) + HINGE_FALLBACK * (axis under the natural twist). |cross| is the
+# sine of the bend, so the limb plane decides once the bend is well above ~6 degrees, and a straight
+# (or slightly hyperextended) limb keeps the natural twist instead of flipping.
+HINGE_FALLBACK = 0.03
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _swing_mats(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotations (..., 3, 3) taking unit vectors a to unit vectors b (Rodrigues without
+    trigonometry: I + [v]x + [v]x^2 / (1 + c), v = a x b, c = a . b). Exactly opposite vectors
+    (a bone pointing exactly away from its natural direction in its parent's frame; not met in
+    walks) get the half turn about an axis perpendicular to a."""
+    v, c = np.cross(a, b), np.sum(a * b, axis=-1)
+    flip = c < -1.0 + 1e-9
+    if np.any(flip):  # replace v by a unit axis perpendicular to a; the formula then gives the half turn
+        perp = np.cross(a, np.where(np.abs(a[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]))
+        v = np.where(flip[..., None], _unit(perp), v)
+        c = np.where(flip, -1.0 + 1e-12, c)
+    k = np.zeros(v.shape[:-1] + (3, 3))
+    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    scale = np.where(flip, 1.0, 1.0 / (1.0 + c))[..., None, None]
+    m = np.eye(3) + np.where(flip[..., None, None], 0.0, k) + (k @ k) * scale
+    return m
+
+
+def _lateral_frames(rig: Rig, source: Skeleton, s_pos: np.ndarray) -> np.ndarray:
+    """World rotations (F, 2, 3, 3) of the two-vector joints (Hips, Chest) from source world positions (F, Js, 3)."""
+    sk, smap = rig.skeleton, CMU_TO_BN[source_variant(source)]
+    out = np.zeros((s_pos.shape[0], len(_LATERAL), 3, 3))
+    for i, (name, (tl, tr)) in enumerate(_LATERAL.items()):
+        child = _PRIMARY_CHILD[name]
+        sl, sr = _SOURCE_LATERAL[name]
+        up = s_pos[:, source.index(smap[child])] - s_pos[:, source.index(smap[name])]
+        side = s_pos[:, source.index(smap[sl])] - s_pos[:, source.index(smap[sr])]
+        m_tgt = _frame(sk.offsets[sk.index(child)], sk.offsets[sk.index(tl)] - sk.offsets[sk.index(tr)])
+        out[:, i] = _frame(up, side) @ m_tgt.T
+    return out
+
+
+class TwistPlan:
+    """The per-frame BN global rotations of one (rig, source skeleton) pair, batched over frames.
+
+    Built once per source skeleton; `bn_globals` maps source world rotations to BN world rotations.
+    Joints are processed depth by depth (parents first); within a depth, joints of one kind share
+    each numpy call. Kinds:
+
+    * lateral (Hips, Chest): two-vector frames, computed by the caller and passed in;
+    * swing: BN parent's world rotation times the natural local rotation, then the smallest swing
+      that carries the bone onto the source bone direction (twist about the bone follows the parent);
+    * limb (UpperLeg, UpperArm): bone onto the source bone, twist such that the BN hinge axis (in
+      the limb joint's frame, from the natural pose's bend) is the normal of the source limb plane;
+    * leaf (Head, Hand, Toes): the natural local rotation under the new BN parent.
+
+    `slots` maps source joint indices to rows of the `gs` passed to `bn_globals` (the streaming
+    retargeter keeps only the joints it needs); `used` lists the source joints read.
+    """
+
+    def __init__(self, rig: Rig, source: Skeleton, slots: np.ndarray | None = None):
+        sk = rig.skeleton
+        smap = CMU_TO_BN[source_variant(source)]
+        drivers = _drivers(source, smap)
+        slot = (lambda k: int(k)) if slots is None else (lambda k: int(slots[k]))  # noqa: E731
+        self.used = np.array(sorted(set(drivers.values())))
+        self.num_joints = sk.num_joints
+        self.lateral = np.array([sk.index(n) for n in _LATERAL])
+        nat = Rotation.from_quat(rig.pose).as_matrix()  # (J, 3, 3) natural local rotations
+
+        def off(n: str) -> np.ndarray:
+            return sk.offsets[sk.index(n)]
+
+        def src_dir(n: str) -> tuple[int, np.ndarray]:  # source bone into mapped child of BN joint n
+            c = source.index(smap[_PRIMARY_CHILD[n]])
+            return slot(drivers[n]), _unit(source.offsets[c])
+
+        depth = np.zeros(sk.num_joints, int)
+        for j, p in enumerate(sk.parents):
+            depth[j] = depth[p] + 1 if p >= 0 else 0
+        self.groups: list[tuple] = []
+        for d in range(1, int(depth.max()) + 1):
+            level = [sk.names[j] for j in range(sk.num_joints) if depth[j] == d and sk.names[j] not in _LATERAL]
+            for kind in ("swing", "limb", "leaf"):
+                names = [n for n in level if kind == ("limb" if n in _HINGES else "swing" if n in _PRIMARY_CHILD else "leaf")]
+                if not names:
+                    continue
+                js = np.array([sk.index(n) for n in names])
+                par = sk.parents[js]
+                g = {"kind": kind, "j": js, "p": par, "nat": nat[js]}
+                if kind in ("swing", "limb"):
+                    g["b"] = np.stack([_unit(off(_PRIMARY_CHILD[n])) for n in names])
+                    g["drv"], g["s"] = (np.array(x) for x in zip(*(src_dir(n) for n in names)))
+                if kind == "limb":
+                    hinge = [_HINGES[n] for n in names]
+                    g["drv_c"], g["s_c"] = (np.array(x) for x in zip(*(src_dir(h) for h in hinge)))
+                    # the natural bend's axis in the limb joint's frame: cross(upper bone, lower bone)
+                    k = np.stack([_unit(np.cross(off(h), nat[sk.index(h)] @ off(_PRIMARY_CHILD[h]))) for h in hinge])
+                    g["k"] = k
+                    g["m_loc_t"] = np.swapaxes(_frame(g["b"], k), -1, -2)
+                self.groups.append(g)
+
+    def bn_globals(self, gs: np.ndarray, lateral: np.ndarray) -> np.ndarray:
+        """BN world rotation matrices (B, J, 3, 3) from source world rotation matrices gs
+        (B, rows, 3, 3) and the two-vector joints' world rotations `lateral` (B, 2, 3, 3)."""
+        b = gs.shape[0]
+        gb = np.empty((b, self.num_joints, 3, 3))
+        gb[:] = np.eye(3)  # joint_Root
+        gb[:, self.lateral] = lateral
+        for g in self.groups:
+            gp = gb[:, g["p"]]
+            if g["kind"] == "leaf":
+                gb[:, g["j"]] = gp @ g["nat"]
+                continue
+            base = gp @ g["nat"]  # natural local rotation under the BN parent
+            d = (gs[:, g["drv"]] @ g["s"][..., None])[..., 0]  # source bone direction (world)
+            rot = _swing_mats((base @ g["b"][..., None])[..., 0], d) @ base
+            if g["kind"] == "limb":
+                lower = (gs[:, g["drv_c"]] @ g["s_c"][..., None])[..., 0]
+                natural = (rot @ g["k"][..., None])[..., 0]
+                normal = np.cross(d, _unit(lower))
+                w = np.sum(normal * natural, axis=-1, keepdims=True)
+                axis = w * normal + HINGE_FALLBACK**2 * natural
+                rot = _frame(d, axis) @ g["m_loc_t"]
+            gb[:, g["j"]] = rot
+        return gb
 
 
 def retarget(motion: Motion, target: Rig | Motion | None = None, fps: float = 30.0) -> Motion:
@@ -213,34 +293,16 @@ def retarget(motion: Motion, target: Rig | Motion | None = None, fps: float = 30
     source, sk = src.skeleton, rig.skeleton
     variant = source_variant(source)
     smap = CMU_TO_BN[variant]
-    q = alignment(rig, source)
-    drivers = _drivers(source, smap)
 
     n = src.num_frames
     s_rot, s_pos = src.global_transforms()
-    s_R = [Rotation.from_quat(s_rot[:, j]) for j in range(source.num_joints)]
-
-    g = np.zeros((n, sk.num_joints, 4))
-    for j, name in enumerate(sk.names):
-        if name == "joint_Root":
-            g[:, j] = [0.0, 0.0, 0.0, 1.0]
-        elif name in _LATERAL:
-            child = _PRIMARY_CHILD[name]
-            sl, sr = _SOURCE_LATERAL[name]
-            up = s_pos[:, source.index(smap[child])] - s_pos[:, source.index(smap[name])]
-            side = s_pos[:, source.index(smap[sl])] - s_pos[:, source.index(smap[sr])]
-            tl, tr = _LATERAL[name]
-            m_tgt = _frame(sk.offsets[sk.index(child)], sk.offsets[sk.index(tl)] - sk.offsets[sk.index(tr)])
-            g[:, j] = Rotation.from_matrix(_frame(up, side) @ m_tgt.T).as_quat()
-        else:
-            g[:, j] = (s_R[drivers[name]] * Rotation.from_quat(q[name])).as_quat()
-
-    local = np.zeros_like(g)
-    for j, p in enumerate(sk.parents):
-        if p < 0:
-            local[:, j] = g[:, j]
-        else:
-            local[:, j] = (Rotation.from_quat(g[:, p]).inv() * Rotation.from_quat(g[:, j])).as_quat()
+    gs = Rotation.from_quat(s_rot.reshape(-1, 4)).as_matrix().reshape(n, source.num_joints, 3, 3)
+    lateral = _lateral_frames(rig, source, s_pos)
+    gm = TwistPlan(rig, source).bn_globals(gs, lateral)
+    lm = gm.copy()
+    par = np.asarray(sk.parents)
+    lm[:, par >= 0] = np.swapaxes(gm[:, par[par >= 0]], -1, -2) @ gm[:, par >= 0]
+    local = Rotation.from_matrix(lm.reshape(-1, 3, 3)).as_quat().reshape(n, sk.num_joints, 4) if n else np.zeros((0, sk.num_joints, 4))
     local = quat_canonical(local)
 
     scale = leg_length(sk) / leg_length(source, variant)

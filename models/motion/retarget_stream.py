@@ -5,7 +5,8 @@ percentile of the clip's toe heights, both of which look at the whole clip. A li
 frame at a time, so `FrameRetargeter` does the same per-frame mapping with everything else fixed
 up front:
 
-* alignment rotations `Q_j`, drivers and the leg-length scale are exactly those of `retarget`;
+* the per-joint mapping is `retarget.TwistPlan`, the very code `retarget` runs, and the leg-length
+  scale is the same;
 * the vertical offset is a constant from rest geometry (see `FrameRetargeter.vertical_offset`),
   so `to_model` equals `retarget(motion, fps=motion.fps)` frame by frame up to one constant
   shift of the Hips height.
@@ -16,8 +17,10 @@ rotation from the BN pose the client's own frame maps to (`to_model` of `source_
 the one given. Each source joint k gets G_new[k] = D_{j(k)} G_client[k], j(k) the BN joint of
 k's nearest mapped ancestor-or-self. So
 
-* a mapped CMU joint with a single-bone BN counterpart gets G_bn_new[j] Q_j^-1 (BN global times
-  inverse alignment: its bone points where the BN bone points);
+* a mapped CMU joint with a single-bone BN counterpart is turned by the change of its BN joint:
+  `to_model` lays the BN bone exactly along the client's bone, so after the turn the client's
+  bone points where the new BN bone points; the twist about it is the client's own, turned by BN's
+  change of twist (BN twists come from the BN parent / limb plane, not from the client);
 * the two-vector joints (Hips, chest) are turned by the BN delta, which puts their spine bone and
   hip / shoulder line where BN has them (using the client's own unmapped joints in between);
 * unmapped joints (LHipJoint, LowerBack, Neck / lowerneck, fingers, thumbs) keep the client's
@@ -34,7 +37,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .retarget import (_LATERAL, _PRIMARY_CHILD, _SOURCE_LATERAL, CMU_TO_BN, Rig, _drivers, _frame, alignment,
+from .retarget import (_LATERAL, _PRIMARY_CHILD, _SOURCE_LATERAL, CMU_TO_BN, Rig, TwistPlan, _drivers, _frame,
                        default_rig, leg_length, source_variant)
 from .skeleton import Skeleton, fk
 
@@ -195,14 +198,9 @@ class FrameRetargeter:
         self._bn_hips = sk.index("Hips")
         self._src_root = source.index(smap["Hips"])
 
-        # BN joints with one child: G = G_src[driver] Q. Two-vector joints: from source vectors.
-        q = alignment(rig, source)
+        # Two-vector joints (Hips, Chest): from source vectors, here. Every other joint: `TwistPlan`
+        # (bone onto the source bone, twist from the BN parent / the limb plane), on tree slots.
         drivers = _drivers(source, smap)
-        names = [n for n in sk.names if n != "joint_Root"]
-        self._single = np.array([sk.index(n) for n in names if n not in _LATERAL])
-        self._single_drv = np.array([drivers[n] for n in names if n not in _LATERAL])
-        self._single_q = quat_to_mat(np.stack([q[n] for n in names if n not in _LATERAL]))
-        self._lateral = np.array([sk.index(n) for n in _LATERAL])
         # vectors: (lateral 0 up, lateral 0 side, lateral 1 up, ...) as signed sums of G[parent k] offset[k]
         terms: list[list[tuple[int, float]]] = []
         m_tgt = []
@@ -234,9 +232,10 @@ class FrameRetargeter:
         self._anc_bn = anc
         self._mapped_nonroot = np.array([k for k in sorted(mapped) if source.parents[k] >= 0])
         self._mapped_parents = self._src_parents[self._mapped_nonroot]
-        needed = np.unique(np.concatenate([[self._src_root], self._single_drv, self._vec_par, self._mapped_nonroot, self._mapped_parents]))
+        needed = np.unique(np.concatenate([[self._src_root], list(drivers.values()), self._vec_par, self._mapped_nonroot, self._mapped_parents]))
         tree = self._src_tree = _Tree(source.parents, needed)  # source world rotations live in tree slots
-        self._single_drv_s, self._vec_par_s = tree.pos[self._single_drv], tree.pos[self._vec_par]
+        self._plan = TwistPlan(rig, source, slots=tree.pos)
+        self._vec_par_s = tree.pos[self._vec_par]
         self._anc_bn_s = anc[tree.order]
         self._mapped_s, self._mapped_parents_s = tree.pos[self._mapped_nonroot], tree.pos[self._mapped_parents]
         self._root_s = int(tree.pos[self._src_root])
@@ -250,13 +249,9 @@ class FrameRetargeter:
     def _bn_globals(self, gs: np.ndarray) -> np.ndarray:
         """BN world rotation matrices (B, 22, 3, 3) from source world rotation matrices."""
         b = gs.shape[0]
-        gb = np.empty((b, self.rig.skeleton.num_joints, 3, 3))
-        gb[:] = np.eye(3)  # joint_Root
-        gb[:, self._single] = gs[:, self._single_drv_s] @ self._single_q
         vec = (gs[:, self._vec_par_s] @ self._vec_off)[..., 0]  # (B, T, 3)
         vec = (self._vec_coef @ vec).reshape(b, -1, 2, 3)
-        gb[:, self._lateral] = _frame_fast(vec[:, :, 0], vec[:, :, 1]) @ self._m_tgt_t
-        return gb
+        return self._plan.bn_globals(gs, _frame_fast(vec[:, :, 0], vec[:, :, 1]) @ self._m_tgt_t)
 
     def _source_globals(self, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         local = quat_to_mat(rotations)
