@@ -9,6 +9,23 @@ several weights, intensity scales the vector (sum < 1 leans toward the unstyled 
 style transition is the service interpolating this vector over frames. Each method maps the
 vector onto its own mechanism (LTI: blend of per-style outputs; Style-ERD: weighted residual
 branches; LPN-FiLM: blended FiLM parameters).
+
+A model's style set may change while sessions run (the service adds an uploaded style, or deletes
+one, on the live model). So the service keeps each session's style as a `{style: weight}` dict
+(`style_weights`) and builds the vector over the *current* `styles()` at every step
+(`weight_vector`): a style deleted since simply drops out and its share passes the input through.
+A model whose style set can change implements one more, optional, method:
+
+    upgrade_state(state) -> state
+        Bring a state made under an older style set to the current one: styles added since get
+        their initial state, removed ones are dropped, everything else is kept as it is. Must be
+        cheap when nothing changed (return `state` itself). The service calls it on every
+        session's state before stacking a batch, so a live session, or one resumed from a
+        snapshot, carries on across style changes without interruption.
+
+(The LTI model also has `add_style(translator)` / `remove_style(name)`; the service calls them on
+the model-step worker thread, between steps.) Use `upgrade_state(model, state)` below to call it
+on any model.
 """
 
 from __future__ import annotations
@@ -71,8 +88,14 @@ def split_state(state: State) -> list[State]:
     return [{key: value[i:i + 1] for key, value in state.items()} for i in range(n)]
 
 
-def style_vector(model: StreamingModel, mix: dict[str, float], intensity: float = 1.0) -> np.ndarray:
-    """Weights over model.styles() from a {style: weight} mix (normalised to sum 1) times intensity."""
+def upgrade_state(model: StreamingModel, state: State) -> State:
+    """`model.upgrade_state(state)` where the model has one (a changeable style set), else `state`."""
+    upgrade = getattr(model, "upgrade_state", None)
+    return state if upgrade is None else upgrade(state)
+
+
+def style_weights(model: StreamingModel, mix: dict[str, float], intensity: float = 1.0) -> dict[str, float]:
+    """A validated {style: weight} mix over model.styles(), normalised to sum 1, times intensity."""
     names = model.styles()
     unknown = sorted(set(mix) - set(names))
     if unknown:
@@ -80,7 +103,15 @@ def style_vector(model: StreamingModel, mix: dict[str, float], intensity: float 
     total = sum(mix.values())
     if total <= 0 or any(w < 0 for w in mix.values()):
         raise ValueError("style weights must be non-negative and not all zero")
-    vec = np.zeros(len(names))
-    for style, weight in mix.items():
-        vec[names.index(style)] = weight / total
-    return vec * intensity
+    return {style: weight / total * intensity for style, weight in mix.items()}
+
+
+def weight_vector(names: list[str], weights: dict[str, float]) -> np.ndarray:
+    """{style: weight} as a vector over `names` (a model's current styles); a style that is not
+    among them (deleted since) is left out, so its share passes the input through."""
+    return np.array([weights.get(style, 0.0) for style in names], dtype=np.float64)
+
+
+def style_vector(model: StreamingModel, mix: dict[str, float], intensity: float = 1.0) -> np.ndarray:
+    """Weights over model.styles() from a {style: weight} mix (normalised to sum 1) times intensity."""
+    return weight_vector(model.styles(), style_weights(model, mix, intensity))

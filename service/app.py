@@ -59,7 +59,7 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
         torch.set_num_threads(settings.torch_threads)
         runtime = Runtime(settings, models if models is not None else load_models(settings.weights_dir))
         styles = StyleStore(settings, runtime, JobManager())
-        styles.attach()  # extensible models + persisted uploaded styles, before the batchers start
+        styles.load()  # persisted uploaded styles, before the batchers start
         styles.bind_loop(asyncio.get_running_loop())
         runtime.styles = styles
         await runtime.start()
@@ -118,7 +118,7 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
 
     @app.delete("/v1/styles/{style_id}", status_code=204, dependencies=[Depends(require_token)], responses=errors)
     async def delete_style(style_id: str, rt: Runtime = Depends(runtime)) -> Response:
-        rt.styles.delete(style_id)
+        await rt.styles.delete(style_id)
         return Response(status_code=204)
 
     upload_body = {"requestBody": {"required": True, "content": {

@@ -4,6 +4,11 @@ Each session has at most one frame in flight (its processor awaits the reply bef
 next), so a batch never holds two frames of one session. The batcher waits at most `wait_s`
 after the first frame for others to join, or until `max_batch` are gathered, then runs the step
 on a worker thread (keeping the event loop free) and scatters the results back.
+
+The model's style set may change between steps (style changes run on the same worker thread), so
+the step, on that thread, first brings every session's state to the current style set
+(`upgrade_state`) and builds the weight vectors over the current `styles()` from each session's
+`{style: weight}` dict.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.interface import FrameBatch, State, StreamingModel, split_state, stack_states
+from models.interface import FrameBatch, State, StreamingModel, split_state, stack_states, upgrade_state, weight_vector
 
 from .metrics import Metrics
 
@@ -25,15 +30,16 @@ class StepRequest:
     state: State
     root: np.ndarray
     rotations: np.ndarray
-    weights: np.ndarray
+    weights: dict[str, float]  # {style: weight}
     future: asyncio.Future
 
 
 def run_step(model: StreamingModel, requests: list[StepRequest]) -> list[tuple[np.ndarray, np.ndarray, State]]:
     """One batched step over the requests' sessions; pure, runs on the worker thread."""
-    state = stack_states([r.state for r in requests])
+    state = stack_states([upgrade_state(model, r.state) for r in requests])
     frames = FrameBatch(np.stack([r.root for r in requests]), np.stack([r.rotations for r in requests]))
-    out, new_state = model.step_batch(state, frames, np.stack([r.weights for r in requests]))
+    names = model.styles()
+    out, new_state = model.step_batch(state, frames, np.stack([weight_vector(names, r.weights) for r in requests]))
     states = split_state(new_state)
     return [(out.root[i], out.rotations[i], states[i]) for i in range(len(requests))]
 
@@ -54,7 +60,7 @@ class Batcher:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)
 
-    async def step(self, state: State, root: np.ndarray, rotations: np.ndarray, weights: np.ndarray):
+    async def step(self, state: State, root: np.ndarray, rotations: np.ndarray, weights: dict[str, float]):
         future = asyncio.get_running_loop().create_future()
         await self.queue.put(StepRequest(state, root, rotations, weights, future))
         return await future

@@ -1,12 +1,17 @@
 """Process-wide runtime: loaded models, one batcher per model, the worker thread, sessions and
-the snapshot store. The FastAPI app holds one of these; tests may run several side by side."""
+the snapshot store. The FastAPI app holds one of these; tests may run several side by side.
+
+A model whose style set can change (`add_style`) is taken as a shallow copy, so styles added to
+or removed from this runtime's model (on the worker thread, `on_model_thread`) stay its own.
+"""
 
 from __future__ import annotations
 
 import asyncio
+import copy
 from concurrent.futures import ThreadPoolExecutor
 
-from models.interface import StreamingModel, style_vector
+from models.interface import StreamingModel, style_weights
 
 from . import protocol as P
 from .batcher import Batcher
@@ -17,12 +22,13 @@ from .settings import ServiceSettings
 
 class Runtime:
     def __init__(self, settings: ServiceSettings, models: dict[str, StreamingModel]) -> None:
-        self.settings, self.models = settings, models
+        self.settings = settings
+        self.models = {name: copy.copy(m) if hasattr(m, "add_style") else m for name, m in models.items()}
         self.metrics = Metrics()
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="model-step")
         self.batchers = {name: Batcher(model, self.executor, self.metrics, wait_s=settings.batch_wait_ms / 1000,
                                        max_batch=settings.max_batch, enabled=settings.batching)
-                         for name, model in models.items()}
+                         for name, model in self.models.items()}
         self.sessions: dict[str, Session] = {}
         self.store = SessionStore(ttl_s=settings.resume_ttl_s)
 
@@ -33,6 +39,10 @@ class Runtime:
     async def stop(self) -> None:
         await asyncio.gather(*(b.stop() for b in self.batchers.values()))
         self.executor.shutdown(wait=False, cancel_futures=True)
+
+    async def on_model_thread(self, fn, *args):
+        """`fn(*args)` on the model-step worker thread, between batched steps (style changes)."""
+        return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
 
     # ---- sessions -------------------------------------------------------------
     def open_session(self, start: P.Start) -> Session:
@@ -51,7 +61,7 @@ class Runtime:
             if model is None:
                 raise P.ProtocolError("unknown_model", f"unknown model {start.model!r}; available: {', '.join(self.models) or 'none'}")
             try:
-                weights = style_vector(model, P.mix_of(start.style, start.mix), start.intensity)
+                weights = style_weights(model, P.mix_of(start.style, start.mix), start.intensity)
             except KeyError as exc:
                 raise P.ProtocolError("unknown_style", str(exc).strip('"')) from None
             except ValueError as exc:

@@ -1,9 +1,11 @@
 """Streaming sessions: per-session state, style transitions, backpressure and snapshots.
 
-A session owns its model state (batch axis of 1), its style weight vector and a bounded queue of
-pending work. Frames beyond the queue bound push out the oldest *frame* (control messages are
-never dropped), and the next reply reports how many were dropped: the newest frames win and
-memory stays bounded. Snapshots hold everything needed to continue exactly where a session left
+A session owns its model state (batch axis of 1), its style weights as a `{style: weight}` dict
+(current and transition target; the vector over the model's styles is built at each step, so
+the model's style set may change under a live session) and a bounded queue of pending work.
+Frames beyond the queue bound push out the oldest *frame* (control messages are never dropped),
+and the next reply reports how many were dropped: the newest frames win and memory stays
+bounded. Snapshots hold everything needed to continue exactly where a session left
 off, on this replica or another.
 """
 
@@ -21,7 +23,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel
 
-from models.interface import State, StreamingModel, style_vector
+from models.interface import State, StreamingModel, style_weights
 
 from .protocol import ProtocolError, StyleMix
 
@@ -49,8 +51,8 @@ class Snapshot(BaseModel):
     bvh_header: str | None
     fps: float
     encoding: str
-    weights: list[float]
-    target: list[float]
+    weights: dict[str, float]
+    target: dict[str, float]
     transition_left: int
     last_seq: int | None
     clock: float = -1.0
@@ -76,12 +78,12 @@ class Session:
     skeleton: str
     fps: float
     encoding: str
-    weights: np.ndarray
+    weights: dict[str, float]  # {style: weight}, intensity included
     state: State
     bvh_header: str | None = None
     id: str = field(default_factory=lambda: uuid.uuid4().hex)
     token: str = field(default_factory=lambda: secrets.token_urlsafe(24))
-    target: np.ndarray | None = None
+    target: dict[str, float] | None = None
     transition_left: int = 0
     last_seq: int | None = None
     dropped_pending: int = 0
@@ -96,25 +98,38 @@ class Session:
 
     def __post_init__(self) -> None:
         if self.target is None:
-            self.target = self.weights.copy()
+            self.target = dict(self.weights)
 
     # ---- styles ----------------------------------------------------------------
     def set_style(self, mix: StyleMix, intensity: float, transition_frames: int) -> None:
         try:
-            target = style_vector(self.model, mix, intensity)
+            target = style_weights(self.model, mix, intensity)
         except (KeyError, ValueError) as exc:
             raise ProtocolError("unknown_style" if isinstance(exc, KeyError) else "bad_style", str(exc).strip('"')) from None
         self.target = target
         self.transition_left = transition_frames
         if transition_frames == 0:
-            self.weights = target.copy()
+            self.weights = dict(target)
 
-    def advance_style(self) -> np.ndarray:
+    def advance_style(self) -> dict[str, float]:
         """Style weights for the next frame: a linear ramp over the remaining transition frames."""
         if self.transition_left > 0:
-            self.weights = self.weights + (self.target - self.weights) / self.transition_left
+            cur, tgt = self.weights, self.target
+            self.weights = {k: cur.get(k, 0.0) + (tgt.get(k, 0.0) - cur.get(k, 0.0)) / self.transition_left
+                            for k in {**cur, **tgt}}
             self.transition_left -= 1
-        return self.weights
+        return dict(self.weights)
+
+    def drop_deleted(self, styles: list[str]) -> list[str]:
+        """Forget styles the model no longer has (deleted uploads): their share of the mix passes
+        the input through from now on. Returns those that had weight, to tell the client."""
+        gone = [k for k in {**self.weights, **self.target} if k not in styles]
+        if not gone:
+            return []
+        had = sorted(k for k in gone if self.weights.get(k, 0.0) > 0 or self.target.get(k, 0.0) > 0)
+        self.weights = {k: v for k, v in self.weights.items() if k not in gone}
+        self.target = {k: v for k, v in self.target.items() if k not in gone}
+        return had
 
     def reset(self) -> None:
         self.state = self.model.init_state(1)
@@ -159,7 +174,7 @@ class Session:
     def snapshot(self) -> Snapshot:
         return Snapshot(session_id=self.id, token=self.token, model=self.model.name, skeleton=self.skeleton,
                         bvh_header=self.bvh_header, fps=self.fps, encoding=self.encoding,
-                        weights=self.weights.tolist(), target=self.target.tolist(),
+                        weights=dict(self.weights), target=dict(self.target),
                         transition_left=self.transition_left, last_seq=self.last_seq, clock=self.clock,
                         held=None if self.held_root is None else encode_state(
                             {"root": self.held_root, "rotations": self.held_rotations, "input_root": self.held_input_root}),
@@ -169,8 +184,8 @@ class Session:
     def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int) -> Session:
         held = decode_state(snap.held) if snap.held else {}
         return cls(model=model, skeleton=snap.skeleton, fps=snap.fps, encoding=snap.encoding,
-                   weights=np.array(snap.weights), state=decode_state(snap.state), bvh_header=snap.bvh_header,
-                   id=snap.session_id, token=snap.token, target=np.array(snap.target),
+                   weights=dict(snap.weights), state=decode_state(snap.state), bvh_header=snap.bvh_header,
+                   id=snap.session_id, token=snap.token, target=dict(snap.target),
                    transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size,
                    clock=snap.clock, held_root=held.get("root"), held_rotations=held.get("rotations"),
                    held_input_root=held.get("input_root"))

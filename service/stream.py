@@ -15,7 +15,7 @@ import time
 
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
-from models.interface import style_vector
+from models.interface import style_weights
 
 from . import protocol as P
 from .sessions import ControlItem, FrameItem, Session
@@ -147,7 +147,7 @@ class Connection:
 
     def _check_style(self, message: P.SetStyle) -> None:
         try:
-            style_vector(self.session.model, P.mix_of(message.style, message.mix), message.intensity)
+            style_weights(self.session.model, P.mix_of(message.style, message.mix), message.intensity)
         except KeyError as exc:
             raise P.ProtocolError("unknown_style", str(exc).strip('"')) from None
         except ValueError as exc:
@@ -182,9 +182,13 @@ class Connection:
                     return
                 continue
             root, rot = self.adapter.to_model(item.root, item.rotations)
+            gone = s.drop_deleted(s.model.styles())
+            if gone:
+                await self.send_error(P.ProtocolError("style_deleted", f"style(s) {', '.join(gone)} were deleted; their "
+                                                      "share of the mix now passes the input through", item.seq))
             try:
                 for _ in range(s.model_steps_due()):  # rate adaptation: the model runs at its own fps
-                    out_root, out_rot, s.state = await batcher.step(s.state, root, rot, s.advance_style().copy())
+                    out_root, out_rot, s.state = await batcher.step(s.state, root, rot, s.advance_style())
                     s.hold(out_root, out_rot, root)
             except Exception:  # noqa: BLE001 - a model failure costs this frame, not the session
                 log.exception("model step failed")
@@ -210,7 +214,7 @@ class Connection:
             except P.ProtocolError as err:
                 await self.send_error(err)
             else:
-                await self.send_json({"type": "style_set", "weights": dict(zip(s.model.styles(), s.target.tolist())),
+                await self.send_json({"type": "style_set", "weights": {k: s.target.get(k, 0.0) for k in s.model.styles()},
                                       "transition_frames": message.transition_frames})
             return True
         if isinstance(message, P.Reset):

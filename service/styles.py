@@ -3,11 +3,13 @@
 An uploaded clip (BVH with the Bandai Namco or a CMU skeleton, or JSON frames on the Bandai Namco
 skeleton) is validated, brought onto the model skeleton at 30 fps, persisted under
 `styles_dir/<model>/<name>/` (clip.npz, translator.npz, style.json) and, for the LTI model,
-turned into a style by a fine-tuning job (`models.lti.finetune`). When the job is done the new
-style is installed as a NEW model object with its own batcher: sessions already streaming keep
-the model (and state layout) they were opened with; new sessions see the style at once. A session
-resumed from a snapshot taken before styles were added gets its state padded (the LTI layout only
-appends); one whose layout no longer is a prefix of the model's (a style was deleted) is refused.
+turned into a style by a fine-tuning job (`models.lti.finetune`). When the job is done the style
+is added to the one live model (`add_style`), and a deleted style is removed from it
+(`remove_style`), both on the model-step worker thread so no step sees a half-changed model. New
+sessions see the change at once; running and resumed sessions carry on unchanged (their state is
+brought to the new style set by `upgrade_state` at their next step, `models/interface.py`), and
+one whose mix had weight on a deleted style is told so (`style_deleted`) while that share passes
+the input through.
 """
 
 from __future__ import annotations
@@ -23,12 +25,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, Field
 
-from models.interface import StreamingModel
-
-from . import protocol as P
-from .batcher import Batcher
 from .jobs import JobInfo, JobManager
-from .sessions import decode_state
 from .settings import ServiceSettings
 
 log = logging.getLogger(__name__)
@@ -151,42 +148,6 @@ def motion_from_bvh(text: str, skeleton):
     return _bn_motion(skeleton, bn.translations[:, bn.skeleton.index("Hips")], bn.rotations[:, idx], MODEL_FPS), "cmu"
 
 
-# --------------------------------------------------------------------------- batchers per model version
-
-
-class VersionedBatcher(Batcher):
-    """A batcher for one version of a model whose style set can change. A step whose state or
-    weight width is not this version's goes to the live version it fits (a session opened just
-    before a swap), or, if it is a prefix layout, is padded (the LTI layout only appends)."""
-
-    def __init__(self, *args, peers: list, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        self.peers = peers  # every live batcher of this model name (shared list)
-
-    def fits(self, state, weights) -> bool:
-        return state["x"].shape[1] == self.model.state_dim and len(weights) == len(self.model.styles())
-
-    async def step(self, state, root, rotations, weights):
-        if not self.fits(state, weights):
-            for peer in self.peers:
-                if peer is not self and peer._task is not None and peer.fits(state, weights):
-                    return await Batcher.step(peer, state, root, rotations, weights)
-            if state["x"].shape[1] > self.model.state_dim or len(weights) > len(self.model.styles()):
-                raise ValueError("the session's style layout no longer matches the model; start a new session")
-            state = self.model.pad_state(state)
-            weights = np.pad(weights, (0, len(self.model.styles()) - len(weights)))
-        return await super().step(state, root, rotations, weights)
-
-
-def prefix_layouts(model) -> set[tuple[int, int]]:
-    """(number of styles, state width) of every prefix of an extensible model's style list."""
-    out, width = {(0, 0)}, 0
-    for k, s in enumerate(model.styles(), 1):
-        width += model.translators[s].n
-        out.add((k, width))
-    return out
-
-
 # --------------------------------------------------------------------------- the store
 
 
@@ -194,72 +155,15 @@ class StyleStore:
     def __init__(self, settings: ServiceSettings, runtime, jobs: JobManager) -> None:
         self.settings, self.rt, self.jobs = settings, runtime, jobs
         self.root = Path(settings.styles_dir)
+        self.trained = {name: set(m.styles()) for name, m in runtime.models.items()}
         self.uploaded: dict[str, StyleInfo] = {}  # id -> info
-        self.peers: dict[str, list[VersionedBatcher]] = {}
         self.loop: asyncio.AbstractEventLoop | None = None
-
-    # ---- wiring ----------------------------------------------------------------
-    def attach(self) -> None:
-        """Before `runtime.start()`: extensible LTI model, versioned batcher, persisted styles."""
-        from models.lti.finetune import ExtensibleLTIModel
-        from models.lti.model import LTIStyleModel
-        rt = self.rt
-        rt.models = dict(rt.models)  # the runtime's own dict: callers' dicts stay as they were
-        if isinstance(rt.models.get("lti"), LTIStyleModel):
-            self._install("lti", ExtensibleLTIModel.from_model(rt.models["lti"]), started=False)
-        self._load()
-        original_open = rt.open_session
-
-        def open_session(start: P.Start):
-            if start.resume_token:
-                self._check_resumable(start.resume_token)
-            return original_open(start)
-
-        rt.open_session = open_session
 
     def bind_loop(self, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop
 
     async def stop(self) -> None:
         self.jobs.shutdown()
-        live = set(map(id, self.rt.batchers.values()))
-        await asyncio.gather(*(b.stop() for peers in self.peers.values() for b in peers if id(b) not in live))
-
-    def _install(self, name: str, model: StreamingModel, started: bool = True) -> None:
-        """Make `model` the version new sessions get; older versions keep serving their sessions."""
-        rt = self.rt
-        old = rt.batchers[name]
-        peers = self.peers.setdefault(name, [])
-        batcher = VersionedBatcher(model, rt.executor, rt.metrics, wait_s=old.wait_s, max_batch=old.max_batch,
-                                   enabled=True, peers=peers)
-        rt.models[name] = model
-        rt.batchers[name] = batcher
-        peers.append(batcher)
-        if started:
-            batcher.start()
-            if old not in peers:
-                asyncio.get_running_loop().create_task(old.stop())
-        elif old in peers:
-            peers.remove(old)
-        self._retire_unused(name)
-
-    def _retire_unused(self, name: str) -> None:
-        peers = self.peers.get(name, [])
-        in_use = {id(s.model) for s in self.rt.sessions.values()}
-        for b in list(peers):
-            if b is not self.rt.batchers[name] and id(b.model) not in in_use and b._task is not None:
-                peers.remove(b)
-                asyncio.get_running_loop().create_task(b.stop())
-
-    def _check_resumable(self, token: str) -> None:
-        snap = self.rt.store.get(token)
-        model = self.rt.models.get(snap.model) if snap else None
-        if snap is None or not hasattr(model, "pad_state"):
-            return
-        width = decode_state(snap.state)["x"].shape[1]
-        if (len(snap.weights), width) not in prefix_layouts(model):
-            raise P.ProtocolError("style_set_changed", "the model's styles changed since this session was saved "
-                                  "(an uploaded style was deleted); start a new session")
 
     # ---- persistence -----------------------------------------------------------
     def _dir(self, model: str, name: str) -> Path:
@@ -272,7 +176,8 @@ class StyleStore:
         tmp.write_text(info.model_dump_json(indent=1))
         tmp.replace(d / "style.json")
 
-    def _load(self) -> None:
+    def load(self) -> None:
+        """The persisted uploaded styles, added to the live models (before any session steps)."""
         from models.lti.model import StyleTranslator
         if not self.root.is_dir():
             return
@@ -289,11 +194,10 @@ class StyleStore:
                 info.status, info.message = "failed", "interrupted by a server restart; delete and upload again"
                 self._save_info(info)
             if info.status == "ready":
-                path = meta.parent / "translator.npz"
                 try:
-                    tr = StyleTranslator.load(path)
+                    tr = StyleTranslator.load(meta.parent / "translator.npz")
                     tr.style = info.name
-                    self._install(info.model, model.with_translator(tr), started=False)
+                    model.add_style(tr)
                 except Exception as exc:  # noqa: BLE001
                     log.warning("could not load style %s: %s", info.id, exc)
                     info.status, info.message = "failed", f"could not load its translator: {exc}"
@@ -305,10 +209,7 @@ class StyleStore:
         for name, m in self.rt.models.items():
             if model and name != model:
                 continue
-            added = set(getattr(m, "added", []))
-            for s in m.styles():
-                if s not in added and style_id(name, s) not in self.uploaded:
-                    out.append(self._trained_info(name, m, s))
+            out.extend(self._trained_info(name, m, s) for s in m.styles() if s in self.trained[name])
             out.extend(i for i in self.uploaded.values() if i.model == name)
         return out
 
@@ -328,16 +229,20 @@ class StyleStore:
         raise ApiError(404, "unknown_style", f"no style {sid!r} (ids look like 'lti.elderly'; see GET /v1/styles)")
 
     # ---- changes ---------------------------------------------------------------
-    def delete(self, sid: str) -> None:
+    async def delete(self, sid: str) -> None:
         info = self.get(sid)
         if info.kind == "trained":
             raise ApiError(409, "trained_style", f"style {sid!r} is a trained style of model {info.model!r} and "
                            "cannot be deleted; only uploaded styles can")
-        model = self.rt.models[info.model]
-        if info.name in getattr(model, "added", []):
-            self._install(info.model, model.without_style(info.name))
         self.uploaded.pop(sid, None)
         shutil.rmtree(self._dir(info.model, info.name), ignore_errors=True)
+        model = self.rt.models[info.model]
+
+        def remove() -> None:  # on the worker thread, after any install queued before it
+            if info.name in model.styles():
+                model.remove_style(info.name)
+
+        await self.rt.on_model_thread(remove)
 
     def upload(self, upload: StyleUpload | None, bvh_text: str | None, name: str, model_name: str,
                fine_tune: bool) -> UploadAccepted:
@@ -350,7 +255,7 @@ class StyleStore:
         sid = style_id(model_name, name)
         if name in model.styles() or sid in self.uploaded:
             raise ApiError(409, "style_exists", f"model {model_name!r} already has a style named {name!r}")
-        if not hasattr(model, "with_translator"):
+        if not hasattr(model, "add_style"):
             raise ApiError(422, "uploads_unsupported", f"model {model_name!r} cannot take uploaded styles "
                            "(its styles are trained branches); upload to 'lti' with fine_tune=true")
         motion, skel = motion_from_bvh(bvh_text, model.skeleton) if bvh_text is not None else motion_from_json(upload, model.skeleton)
@@ -394,7 +299,9 @@ class StyleStore:
         info = self.uploaded.get(sid)
         if info is None:  # deleted while training
             return
-        self._install(info.model, self.rt.models[info.model].with_translator(tr))
+        await self.rt.on_model_thread(self.rt.models[info.model].add_style, tr)
+        if self.uploaded.get(sid) is not info:  # deleted meanwhile: its removal was queued after the add
+            return
         info.status, info.message, info.fine_tune = "ready", "fine-tuned", summary
         self._save_info(info)
 

@@ -3,7 +3,9 @@ fine-tuning from an uploaded clip, using the new style in a live session, deleti
 
 from __future__ import annotations
 
+import copy
 import json
+import threading
 import time
 
 import httpx
@@ -13,7 +15,6 @@ from websockets.sync.client import connect
 
 from models.data import select
 from models.interface import FrameBatch, style_vector
-from models.lti.finetune import ExtensibleLTIModel
 from models.registry import load_models
 from models.settings import get_settings
 
@@ -123,26 +124,48 @@ def test_cmu_bvh_is_retargeted_and_accepted(server, index):
     assert r.status_code == 422 and r.json()["code"] == "fine_tune_required", r.text
 
 
-def test_adding_a_style_pads_older_states(models, styled_clip):
-    """A state from before a style was added continues exactly on the extended model."""
+def _copy_translator(tr, name: str):
     from models.lti.model import StyleTranslator
+    return StyleTranslator(name, tr.A, tr.B, tr.C, tr.D, tr.in_mean, tr.in_std, tr.out_mean, tr.out_std,
+                           tr.in_lo, tr.in_hi, tr.orders, tr.k_p, tr.k_c, tr.footplant, {}, tr.ref)
+
+
+def test_adding_a_style_upgrades_older_states(models, styled_clip):
+    """A state from before a style was added continues exactly on the extended model."""
     root, rot = styled_clip
-    base = ExtensibleLTIModel.from_model(models["lti"])
-    tr = models["lti"].translators["elderly"]
-    extra = StyleTranslator("zz-copy", tr.A, tr.B, tr.C, tr.D, tr.in_mean, tr.in_std, tr.out_mean, tr.out_std,
-                            tr.in_lo, tr.in_hi, tr.orders, tr.k_p, tr.k_c, tr.footplant, {}, tr.ref)
-    bigger = base.with_translator(extra)
-    assert bigger.styles() == base.styles() + ["zz-copy"] and base.styles() == models["lti"].styles()
-    w_old = style_vector(base, {"exhausted": 1.0})[None]
+    base = models["lti"]
+    before = base.styles()
+    bigger = copy.copy(base)  # a copy's style set changes independently
+    bigger.add_style(_copy_translator(base.translators["elderly"], "zz-copy"))
+    assert bigger.styles() == before + ["zz-copy"] and base.styles() == before
     state = base.init_state(1)
     for t in range(20):
-        _, state = base.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]), w_old)
+        _, state = base.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]), style_vector(base, {"exhausted": 1.0})[None])
     s_old, s_new = dict(state), dict(state)
     for t in range(20, 40):
-        a, s_old = base.step_batch(s_old, FrameBatch(root[t:t + 1], rot[t:t + 1]), w_old)
-        b, s_new = bigger.step_batch(s_new, FrameBatch(root[t:t + 1], rot[t:t + 1]), w_old)  # short state and weights
+        a, s_old = base.step_batch(s_old, FrameBatch(root[t:t + 1], rot[t:t + 1]), style_vector(base, {"exhausted": 1.0})[None])
+        b, s_new = bigger.step_batch(bigger.upgrade_state(s_new), FrameBatch(root[t:t + 1], rot[t:t + 1]),
+                                     style_vector(bigger, {"exhausted": 1.0})[None])  # state from before the add
         np.testing.assert_allclose(a.rotations, b.rotations, atol=1e-12)
-    assert s_new["x"].shape[1] == bigger.state_dim > base.state_dim
+    assert "x.zz-copy" not in state and s_new["x.zz-copy"].shape[1] == bigger.translators["zz-copy"].n
+    assert bigger.state_dim > base.state_dim
+    assert bigger.upgrade_state(s_new) is s_new  # nothing changed: the same state back
+
+
+def test_removing_a_style_keeps_other_states_and_drops_its_own(models, styled_clip):
+    root, rot = styled_clip
+    model = copy.copy(models["lti"])
+    model.add_style(_copy_translator(model.translators["elderly"], "zz-gone"))
+    state = model.init_state(1)
+    for t in range(10):
+        _, state = model.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]),
+                                    style_vector(model, {"exhausted": 0.5, "zz-gone": 0.5})[None])
+    model.remove_style("zz-gone")
+    assert "zz-gone" not in model.styles() and "zz-gone" not in models["lti"].styles()
+    up = model.upgrade_state(state)
+    assert "x.zz-gone" not in up and up["x.exhausted"] is state["x.exhausted"]
+    with pytest.raises(KeyError):
+        model.remove_style("zz-gone")
 
 
 def test_fine_tune_upload_job_session_delete(server, models, styled_clip, bn_walk):
@@ -202,6 +225,75 @@ def test_fine_tune_upload_job_session_delete(server, models, styled_clip, bn_wal
     with connect(ws_url(base)) as ws:
         ws.send(json.dumps({"type": "start", "model": "lti", "style": "my-elderly"}))
         assert json.loads(ws.recv(timeout=10))["code"] == "unknown_style"
+
+
+def _wait_job(base: str, job_id: str) -> dict:
+    t0 = time.monotonic()
+    while True:
+        job = httpx.get(f"{base}/v1/jobs/{job_id}").json()
+        if job["status"] in ("done", "failed"):
+            return job
+        assert time.monotonic() - t0 < 120
+        time.sleep(0.2)
+
+
+def test_sessions_stream_on_unchanged_across_an_upload_and_a_delete(server, models, styled_clip, bn_walk):
+    """Styles added (fine-tuned) and deleted mid-stream: a session on a trained style, one streaming
+    all along and one resumed from a snapshot taken in between, give exactly the output of the
+    original model; one whose mix had weight on the deleted style is told so and streams on."""
+    base = server[0]
+    root, rot = styled_clip
+    walk = bn_walk.slice(0, 60)
+    w_root, w_rot = walk.translations[:, 1].copy(), walk.rotations.copy()
+    background: list = []
+    stop = threading.Event()
+
+    def stream_all_along() -> None:  # steps keep running while the style set changes
+        with connect(ws_url(base)) as ws:
+            ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly"}))
+            assert json.loads(ws.recv(timeout=10))["type"] == "started"
+            t = 0
+            while not stop.is_set() or t < 60:
+                k = t % len(w_root)
+                background.append(stream(ws, w_root[k:k + 1], w_rot[k:k + 1], seq0=t)[0])
+                t += 1
+                time.sleep(0.003)
+
+    thread = threading.Thread(target=stream_all_along)
+    thread.start()
+    try:
+        with connect(ws_url(base)) as ws:
+            ws.send(json.dumps({"type": "start", "model": "lti", "style": "exhausted"}))
+            token = json.loads(ws.recv(timeout=10))["resume_token"]
+            first = stream(ws, w_root[:20], w_rot[:20])
+            r = httpx.post(f"{base}/v1/styles?fine_tune=true", json=payload("mid-a", root[:200], rot[:200]), timeout=30)
+            assert r.status_code == 202, r.text
+            assert _wait_job(base, r.json()["job"]["id"])["status"] == "done"
+            second = stream(ws, w_root[20:35], w_rot[20:35], seq0=20)  # the session's state now upgraded
+        with connect(ws_url(base)) as mixed:  # a session that uses the new style, when it gets deleted
+            mixed.send(json.dumps({"type": "start", "model": "lti", "mix": {"exhausted": 0.5, "mid-a": 0.5}}))
+            assert json.loads(mixed.recv(timeout=10))["type"] == "started"
+            stream(mixed, w_root[:5], w_rot[:5])
+            assert httpx.delete(f"{base}/v1/styles/lti.mid-a").status_code == 204
+            mixed.send(json.dumps({"type": "frame", "seq": 5, "root": w_root[5].tolist(), "rotations": w_rot[5].tolist()}))
+            error = json.loads(mixed.recv(timeout=10))
+            assert error["type"] == "error" and error["code"] == "style_deleted" and error["seq"] == 5, error
+            assert "mid-a" in error["message"]
+            assert json.loads(mixed.recv(timeout=10))["seq"] == 5
+            stream(mixed, w_root[6:10], w_rot[6:10], seq0=6)  # no more notices, frames flow
+        with connect(ws_url(base)) as ws:  # resumed from a snapshot made while mid-a existed
+            ws.send(json.dumps({"type": "start", "model": "lti", "style": "exhausted", "resume_token": token}))
+            assert json.loads(ws.recv(timeout=10))["last_seq"] == 34
+            third = stream(ws, w_root[35:], w_rot[35:], seq0=35)
+    finally:
+        stop.set()
+        thread.join()
+    want = offline(models["lti"], "exhausted", w_root, w_rot)
+    np.testing.assert_allclose(np.concatenate([first, second, third]), want, atol=1e-9)
+    n = len(background)
+    idx = np.arange(n) % len(w_root)
+    np.testing.assert_allclose(np.array(background), offline(models["lti"], "elderly", w_root[idx], w_rot[idx]), atol=1e-9)
+    assert "mid-a" not in next(m for m in httpx.get(f"{base}/v1/models").json() if m["name"] == "lti")["styles"]
 
 
 def test_uploaded_styles_reload_at_startup(models, styled_clip, tmp_path):

@@ -1,4 +1,4 @@
-"""Fine-tuning a new LTI style from one uploaded clip, and adding styles to a live model.
+"""Fine-tuning a new LTI style from one uploaded clip.
 
 `fine_tune(motion, name, model)` identifies a `StyleTranslator` for the style shown in one
 uploaded Bandai Namco clip (already retargeted if it came from a CMU skeleton):
@@ -12,13 +12,7 @@ uploaded Bandai Namco clip (already retargeted if it came from a CMU skeleton):
    time when long enough: the last `holdout` share is aligned to a neutral clip but kept out of
    identification, and `train.evaluate` on it gives held-out numbers for the job record.
 
-Adding a style to a running model (`ExtensibleLTIModel`): styles() lists the trained styles
-(sorted, as `LTIStyleModel` does) followed by added styles in the order they were added, and the
-state vector `x` holds each style's slice in that same order, so adding a style only appends.
-`step_batch` pads shorter (older) state vectors and weight vectors with zeros, which is exactly
-the state of a style that has never been active. `with_translator` / `without_style` return a
-NEW model object (copy-on-write): a session keeps the model object it was opened with, so live
-sessions never see their layout change under them; new sessions use the new object.
+The service adds the result to its live model with `LTIStyleModel.add_style`.
 """
 
 from __future__ import annotations
@@ -32,7 +26,7 @@ import numpy as np
 
 from . import representation as rep
 from .footplant import contact_labels
-from .model import LTIStyleModel, StyleTranslator
+from .model import StyleTranslator
 from .train import CONFIG, PairData, align, evaluate, identify, match_features
 from .warping import resample_pose
 
@@ -46,77 +40,6 @@ FINETUNE = dict(
 
 class FineTuneError(RuntimeError):
     """The upload cannot be turned into a style (no data, nothing comparable, too short)."""
-
-
-# --------------------------------------------------------------------------- live model
-
-
-class ExtensibleLTIModel(LTIStyleModel):
-    """`LTIStyleModel` whose style set can grow (append-only state layout; see module doc)."""
-
-    def __init__(self, translators: dict[str, StyleTranslator], added: list[str] | None = None, **kwargs):
-        super().__init__(translators=translators, **kwargs)
-        self._options = kwargs
-        self.added = [s for s in (added or []) if s in translators]
-        self._rebuild()
-
-    @classmethod
-    def from_model(cls, model: LTIStyleModel) -> ExtensibleLTIModel:
-        if isinstance(model, ExtensibleLTIModel):
-            return model
-        return cls(dict(model.translators), blend=model.blend, footlock=model.footlock, skeleton=model.skeleton,
-                   keep_heading=next(iter(model.translators.values())).keep_heading)
-
-    def _rebuild(self) -> None:
-        """Recompute the style order, the state slices and the state size."""
-        trained = sorted(s for s in self.translators if s not in self.added)
-        self._styles = trained + list(self.added)
-        sizes = [self.translators[s].n for s in self._styles]
-        bounds = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
-        self._slices = {s: slice(int(a), int(b)) for s, a, b in zip(self._styles, bounds[:-1], bounds[1:])}
-        self.state_dim = int(bounds[-1])
-
-    def trained_styles(self) -> list[str]:
-        return [s for s in self._styles if s not in self.added]
-
-    def with_translator(self, tr: StyleTranslator) -> ExtensibleLTIModel:
-        """A new model with `tr` appended (replacing nothing: the name must be new)."""
-        if tr.style in self.translators:
-            raise ValueError(f"style {tr.style!r} already exists")
-        tr.keep_heading = next(iter(self.translators.values())).keep_heading
-        return ExtensibleLTIModel({**self.translators, tr.style: tr}, self.added + [tr.style], **self._options)
-
-    def without_style(self, style: str) -> ExtensibleLTIModel:
-        if style not in self.added:
-            raise ValueError(f"style {style!r} is not an added style")
-        rest = {k: v for k, v in self.translators.items() if k != style}
-        return ExtensibleLTIModel(rest, [s for s in self.added if s != style], **self._options)
-
-    def pad_state(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        x = state["x"]
-        if x.shape[1] == self.state_dim:
-            return state
-        if x.shape[1] > self.state_dim:
-            raise ValueError(f"state of width {x.shape[1]} is wider than this model's {self.state_dim}")
-        return {**state, "x": np.pad(x, ((0, 0), (0, self.state_dim - x.shape[1])))}
-
-    def pad_weights(self, weights: np.ndarray) -> np.ndarray:
-        w = np.atleast_2d(np.asarray(weights, dtype=np.float64))
-        k = len(self._styles)
-        if w.shape[1] > k:
-            raise ValueError(f"{w.shape[1]} style weights for {k} styles")
-        return np.pad(w, ((0, 0), (0, k - w.shape[1]))) if w.shape[1] < k else w
-
-    def step_batch(self, state, frames, style_weights):
-        return super().step_batch(self.pad_state(state), frames, self.pad_weights(style_weights))
-
-
-def add_translator(model: LTIStyleModel, tr: StyleTranslator) -> ExtensibleLTIModel:
-    """`model` with the style of `tr` added (a new object; `model` itself is left as it is)."""
-    return ExtensibleLTIModel.from_model(model).with_translator(tr)
-
-
-LTIStyleModel.add_translator = add_translator  # model.add_translator(tr) -> the extended model
 
 
 # --------------------------------------------------------------------------- neutral data

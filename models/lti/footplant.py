@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models.motion.rotations import cross
+
 from . import representation as rep
 
 FEET = ("Foot_L", "Foot_R")
@@ -85,7 +87,7 @@ def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
 def _rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Shortest-arc quaternion taking direction u to direction v."""
     u, v = _nrm(u), _nrm(v)
-    q = np.concatenate([rep.cross(u, v), 1.0 + np.sum(u * v, -1, keepdims=True)], axis=-1)
+    q = np.concatenate([cross(u, v), 1.0 + np.sum(u * v, -1, keepdims=True)], axis=-1)
     return q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
 
 
@@ -106,7 +108,7 @@ def two_bone_ik(gh: np.ndarray, r_up: np.ndarray, r_low: np.ndarray, r_foot: np.
     ac_ab_0, ba_bc_0 = np.arccos(cos(c - a, b - a)), np.arccos(cos(a - b, c - b))
     ac_ab_1 = np.arccos(np.clip((lcb**2 - lab**2 - lat**2) / (-2 * lab * lat), -1, 1))
     ba_bc_1 = np.arccos(np.clip((lat**2 - lab**2 - lcb**2) / (-2 * lab * lcb), -1, 1))
-    axis = rep.cross(c - a, b - a)
+    axis = cross(c - a, b - a)
     # bend: rotate the thigh and the knee about the leg plane's normal (world), then swing
     w0 = _axis_angle(axis, ac_ab_1 - ac_ab_0)
     w1 = _axis_angle(axis, ba_bc_1 - ba_bc_0)

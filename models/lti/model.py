@@ -38,6 +38,7 @@ from models.motion.assets import bandai_namco_skeleton
 from . import representation as rep
 from .footplant import FootLock, FootplantClassifier
 
+SHARED_KEYS = ("started", "in_yaw", "in_ground", "out_yaw", "out_ground", "lock_anchor", "lock_since", "lock_was")
 SPARSE_BATCH = 16  # from this batch size on the sparse product is faster than the dense one
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 
@@ -164,12 +165,20 @@ class LTIStyleModel:
     """Hsu et al. 2005 LTI style translation behind the project's streaming interface
     (`models/interface.py`); the input style is Bandai Namco `normal`.
 
-    State per session (all arrays, session axis first): the LTI state of every style
-    (concatenated; a style whose weight is 0 is held at x = 0, its identified initial state), the
-    previous input root transform, the integrated output root transform and the foot-lock memory.
+    State per session (all arrays, session axis first): the LTI state of each style in its own
+    array `x.<style>` (a style whose weight is 0 is held at x = 0, its identified initial state),
+    the previous input root transform, the integrated output root transform and the foot-lock
+    memory.
     A style weight vector w mixes the styles: the root displacement features are blended
     linearly, joint rotations by normalised quaternion blending, and 1 - sum(w) of the input
     passes through (intensity < 1). With a one-hot w this is exactly the paper's translator.
+
+    The style set can change while sessions run: `add_style(translator)` appends a style to
+    `styles()`, `remove_style(name)` drops one, and `upgrade_state` brings a state made before
+    (a live session's, a snapshot's) to the current set: a new style's `x.<style>` starts at 0, a
+    removed style's is dropped, nothing else changes. Both replace (never mutate) `translators`
+    and the style list, so readers on other threads see a consistent set and `copy.copy(model)`
+    is a model whose style set changes independently of this one.
     """
 
     name = "lti"
@@ -184,24 +193,61 @@ class LTIStyleModel:
                 translators[t.style] = t
         if not translators:
             raise FileNotFoundError(f"no LTI weights (*.npz) in {weights_dir}")
-        self.translators = translators
+        self.translators = dict(translators)
         for tr in translators.values():
             tr.keep_heading = keep_heading
+        self.keep_heading = keep_heading
         self.blend = blend
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
-        self._styles = sorted(translators)
-        sizes = [translators[s].n for s in self._styles]
-        bounds = np.concatenate([[0], np.cumsum(sizes)])
-        self._slices = {s: slice(int(a), int(b)) for s, a, b in zip(self._styles, bounds[:-1], bounds[1:])}
-        self.state_dim = int(bounds[-1])
+        self._set_styles(sorted(translators))
 
     def styles(self) -> list[str]:
         return list(self._styles)
 
+    @property
+    def state_dim(self) -> int:
+        """Total LTI state size over all styles."""
+        return sum(self.translators[s].n for s in self._styles)
+
+    # ---------------------------------------------------------------- style set
+
+    def _set_styles(self, styles: list[str]) -> None:
+        self._styles = styles
+        self._state_keys = frozenset(SHARED_KEYS) | {f"x.{s}" for s in styles}
+
+    def add_style(self, tr: StyleTranslator) -> None:
+        """Append the style of `tr` (a new name) to `styles()`; running sessions are unaffected."""
+        if tr.style in self.translators:
+            raise ValueError(f"style {tr.style!r} already exists")
+        tr.keep_heading = self.keep_heading
+        self.translators = {**self.translators, tr.style: tr}
+        self._set_styles(self._styles + [tr.style])
+
+    def remove_style(self, style: str) -> None:
+        """Drop `style`; sessions that used it carry on with its share passing the input through."""
+        if style not in self.translators:
+            raise KeyError(f"no style {style!r}")
+        if len(self._styles) == 1:
+            raise ValueError("cannot remove the model's last style")
+        self._set_styles([s for s in self._styles if s != style])
+        self.translators = {k: v for k, v in self.translators.items() if k != style}
+
+    def upgrade_state(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """`state` on the current style set: added styles at x = 0, removed ones dropped (see
+        `models.interface`); `state` itself when it already is (one key-set comparison)."""
+        if state.keys() == self._state_keys and all(state[f"x.{s}"].shape[1] == self.translators[s].n for s in self._styles):
+            return state
+        batch = len(state["started"])
+        out = {k: state[k] for k in SHARED_KEYS}
+        for s in self._styles:
+            x, n = state.get(f"x.{s}"), self.translators[s].n
+            out[f"x.{s}"] = x if x is not None and x.shape[1] == n else np.zeros((batch, n))
+        return out
+
     def init_state(self, batch: int) -> dict[str, np.ndarray]:
         return {
-            "x": np.zeros((batch, self.state_dim)),
+            **{f"x.{s}": np.zeros((batch, self.translators[s].n)) for s in self._styles},
             "started": np.zeros(batch, bool),
             "in_yaw": np.zeros(batch), "in_ground": np.zeros((batch, 2)),
             "out_yaw": np.zeros(batch), "out_ground": np.zeros((batch, 2)),
@@ -224,7 +270,7 @@ class LTIStyleModel:
         delta[:, :2] = rep.rotate_y(ground - prev_ground, -prev_yaw)
         delta[:, 2] = rep.wrap(yaw - prev_yaw)
 
-        x = state["x"].copy()
+        new_state = {}
         rest = np.clip(1.0 - w.sum(axis=1), 0.0, None)  # share of the input passing through
         body_in = rotations.copy()
         body_in[:, rep.HIPS] = tilt
@@ -232,18 +278,18 @@ class LTIStyleModel:
         parts = [(rest, body_in)]
         votes = np.zeros((batch, 2))
         for s, style in enumerate(self._styles):
-            sl = self._slices[style]
+            x = new_state[f"x.{style}"] = state[f"x.{style}"].copy()
             rows = np.nonzero(w[:, s] > 0)[0]
-            x[np.nonzero(w[:, s] <= 0)[0], sl] = 0.0  # inactive styles rest at their initial state
+            x[np.nonzero(w[:, s] <= 0)[0]] = 0.0  # inactive styles rest at their initial state
             if len(rows) == 0:
                 continue
             tr = self.translators[style]
             _, _, static = rep.pose_features(root[rows], rotations[rows], tr.ref)
             feats = np.concatenate([delta[rows], static], axis=1)
             u = (feats - tr.in_mean) / tr.in_std
-            zin = np.concatenate([x[rows, sl], u], axis=1)
+            zin = np.concatenate([x[rows], u], axis=1)
             z = (tr.MS @ zin.T).T if len(rows) >= SPARSE_BATCH else zin @ tr.MT
-            x[rows, sl] = z[:, : tr.n]
+            x[rows] = z[:, : tr.n]
             out = tr._finish(feats, u, z[:, tr.n:], self.blend)
             ws = w[rows, s]
             root_feats[rows] += ws[:, None] * out[:, :4]
@@ -253,7 +299,7 @@ class LTIStyleModel:
             weights[rows] = ws
             parts.append((weights, np.where(weights[:, None, None] > 0, q, body_in)))
             if tr.footplant is not None:
-                votes[rows] += ws[:, None] * tr.footplant.predict(x[rows, sl])
+                votes[rows] += ws[:, None] * tr.footplant.predict(x[rows])
 
         # integrate the output path: the first frame starts where the input is
         out_yaw = np.where(fresh, yaw, state["out_yaw"] + root_feats[:, 2])
@@ -266,9 +312,9 @@ class LTIStyleModel:
         total = w.sum(axis=1)
         contacts = (votes > 0.5 * np.maximum(total, 1e-12)[:, None]) & (total[:, None] > 0)
 
-        new_state = {"x": x, "started": np.ones(batch, bool), "in_yaw": yaw, "in_ground": ground,
-                     "out_yaw": out_yaw, "out_ground": out_ground,
-                     "lock_anchor": state["lock_anchor"], "lock_since": state["lock_since"], "lock_was": state["lock_was"]}
+        new_state.update({"started": np.ones(batch, bool), "in_yaw": yaw, "in_ground": ground,
+                          "out_yaw": out_yaw, "out_ground": out_ground,
+                          "lock_anchor": state["lock_anchor"], "lock_since": state["lock_since"], "lock_was": state["lock_was"]})
         if self.footlock:
             lock = FootLock(self.skeleton, batch)
             lock.anchor, lock.since, lock.was = state["lock_anchor"].copy(), state["lock_since"].copy(), state["lock_was"].copy()

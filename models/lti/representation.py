@@ -30,6 +30,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.motion.rotations import quat_apply as qapply
+from models.motion.rotations import quat_mul as qmul
+from models.motion.rotations import quat_to_matrix as quat_to_mat
+
 ROOT_DIMS = 7
 NUM_JOINTS = 22
 HIPS = 1
@@ -39,41 +43,6 @@ HIPS_LEFT_LOCAL = np.array([0.0, -1.0, 0.0])
 
 
 # --------------------------------------------------------------------------- quaternions
-
-
-def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ], axis=-1)
-
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """np.cross for (..., 3) without its per-call overhead (which dominates on small arrays)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-def qapply(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    xyz, w = q[..., :3], q[..., 3:]
-    t = 2.0 * cross(xyz, v)
-    return v + w * t + cross(xyz, t)
-
-
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions -> (..., 3, 3) rotation matrices (acting on column vectors)."""
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
-    m = np.empty(q.shape[:-1] + (3, 3))
-    m[..., 0, 0] = 1 - 2 * (yy + zz); m[..., 0, 1] = 2 * (xy - wz); m[..., 0, 2] = 2 * (xz + wy)
-    m[..., 1, 0] = 2 * (xy + wz); m[..., 1, 1] = 1 - 2 * (xx + zz); m[..., 1, 2] = 2 * (yz - wx)
-    m[..., 2, 0] = 2 * (xz - wy); m[..., 2, 1] = 2 * (yz + wx); m[..., 2, 2] = 1 - 2 * (xx + yy)
-    return m
 
 
 def qyaw(yaw: np.ndarray) -> np.ndarray:
