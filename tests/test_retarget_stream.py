@@ -9,7 +9,9 @@ from models.data import build_index, load_motion, select
 from models.motion.retarget import (CMU_TO_BN, MATCHED_BONES, contact_height, default_rig, leg_length, retarget,
                                     source_variant)
 from models.motion.assets import cmu_skeleton
-from models.motion.retarget_stream import FrameRetargeter, mat_to_quat, quat_to_mat
+from models.motion.retarget_stream import FrameRetargeter
+from models.motion.rotations import matrix_to_quat as mat_to_quat
+from models.motion.rotations import quat_to_matrix as quat_to_mat
 from models.motion.skeleton import Motion, fk
 
 # one walk per CMU naming variant: Xia (cgspeed names), CMU 131 (bvh11 names)

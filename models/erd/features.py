@@ -23,6 +23,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.motion.rotations import quat_mul as qmul
+from models.motion.rotations import quat_to_matrix as quat_to_mat
+
 from ..motion.features import body_joint, facing_yaw, leg_length, wrap_angle
 from ..motion.skeleton import Skeleton
 
@@ -38,34 +41,6 @@ YAWRATE = 10 * NB + 3
 CONTACT = slice(10 * NB + 4, 10 * NB + 6)
 FEATURE_DIM = 10 * NB + 6  # 216
 FPS = 30.0
-
-
-def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack([
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    ], axis=-1)
-
-
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) scalar-last (normalised here) -> (..., 3, 3)."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty(q.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    out[..., 0, 1] = 2 * (x * y - w * z)
-    out[..., 0, 2] = 2 * (x * z + w * y)
-    out[..., 1, 0] = 2 * (x * y + w * z)
-    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    out[..., 1, 2] = 2 * (y * z - w * x)
-    out[..., 2, 0] = 2 * (x * z - w * y)
-    out[..., 2, 1] = 2 * (y * z + w * x)
-    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return out
 
 
 def yaw_quat(yaw: np.ndarray) -> np.ndarray:

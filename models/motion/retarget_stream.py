@@ -39,68 +39,12 @@ import numpy as np
 
 from .retarget import (_LATERAL, _PRIMARY_CHILD, _SOURCE_LATERAL, CMU_TO_BN, Rig, TwistPlan, _drivers, _frame,
                        default_rig, leg_length, source_variant)
+from .rotations import matrix_to_quat as mat_to_quat
+from .rotations import quat_to_matrix as quat_to_mat
 from .skeleton import Skeleton, fk
 
 
 # --------------------------------------------------------------------------- small numpy kernels
-
-
-def _quat_mat_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Linear maps behind the two conversions: R |q|^2 is a quadratic form in q (a 16 x 9 map
-    from the outer product q q^T), and Shepperd's four candidate quaternions (times a positive
-    factor) are affine in the matrix entries (a 9 x 16 map plus a constant)."""
-    to_mat = np.zeros((4, 4, 3, 3))  # [i, j, r, c]: coefficient of q_i q_j in R[r, c]
-    x, y, z, w = range(4)
-    for (r, c), terms in {
-        (0, 0): [(w, w, 1), (x, x, 1), (y, y, -1), (z, z, -1)], (1, 1): [(w, w, 1), (x, x, -1), (y, y, 1), (z, z, -1)],
-        (2, 2): [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, 1)],
-        (0, 1): [(x, y, 2), (w, z, -2)], (0, 2): [(x, z, 2), (w, y, 2)], (1, 0): [(x, y, 2), (w, z, 2)],
-        (1, 2): [(y, z, 2), (w, x, -2)], (2, 0): [(x, z, 2), (w, y, -2)], (2, 1): [(y, z, 2), (w, x, 2)],
-    }.items():
-        for i, j, v in terms:
-            to_mat[i, j, r, c] += v
-    # candidates k (built on w, x, y, z), component i (x, y, z, w): rows of the 3x3 entries
-    e = {(r, c): 3 * r + c for r in range(3) for c in range(3)}
-    lin, const = np.zeros((9, 4, 4)), np.zeros((4, 4))
-    spec = [  # per candidate: component -> [(entry, sign)], diagonal sign pattern for the largest term
-        {x: [((2, 1), 1), ((1, 2), -1)], y: [((0, 2), 1), ((2, 0), -1)], z: [((1, 0), 1), ((0, 1), -1)], w: [((0, 0), 1), ((1, 1), 1), ((2, 2), 1)]},
-        {x: [((0, 0), 1), ((1, 1), -1), ((2, 2), -1)], y: [((0, 1), 1), ((1, 0), 1)], z: [((0, 2), 1), ((2, 0), 1)], w: [((2, 1), 1), ((1, 2), -1)]},
-        {x: [((0, 1), 1), ((1, 0), 1)], y: [((1, 1), 1), ((0, 0), -1), ((2, 2), -1)], z: [((1, 2), 1), ((2, 1), 1)], w: [((0, 2), 1), ((2, 0), -1)]},
-        {x: [((0, 2), 1), ((2, 0), 1)], y: [((1, 2), 1), ((2, 1), 1)], z: [((2, 2), 1), ((0, 0), -1), ((1, 1), -1)], w: [((1, 0), 1), ((0, 1), -1)]},
-    ]
-    for k, comps in enumerate(spec):
-        const[k, (w, x, y, z)[k]] = 1.0
-        for i, entries in comps.items():
-            for rc, v in entries:
-                lin[e[rc], k, i] += v
-    return to_mat.reshape(16, 9), lin.reshape(9, 16), const.reshape(16)
-
-
-_TO_MAT, _CAND_LIN, _CAND_CONST = _quat_mat_table()
-_PICK = np.zeros((9, 4))  # [trace, m00, m11, m22] from the matrix entries
-_PICK[[0, 4, 8], 0] = 1.0
-_PICK[0, 1] = _PICK[4, 2] = _PICK[8, 3] = 1.0
-
-
-def quat_to_mat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) scalar-last quaternions (need not be unit) -> (..., 3, 3) rotation matrices."""
-    q = np.asarray(q, dtype=np.float64)
-    outer = (q[..., :, None] * q[..., None, :]).reshape(q.shape[:-1] + (16,))
-    m = (outer @ _TO_MAT) / np.sum(q * q, axis=-1, keepdims=True)
-    return m.reshape(q.shape[:-1] + (3, 3))
-
-
-def mat_to_quat(m: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (..., 4) scalar-last quaternions with w >= 0 (Shepperd's
-    method: the candidate built on the largest of trace / diagonal terms, stable everywhere)."""
-    m = np.asarray(m, dtype=np.float64)
-    lead = m.shape[:-2]
-    flat = m.reshape(-1, 9)
-    cands = (flat @ _CAND_LIN + _CAND_CONST).reshape(-1, 4, 4)
-    best = np.argmax(flat @ _PICK, axis=-1)
-    q = cands[np.arange(len(flat)), best]
-    q = q * (np.where(q[:, 3:] < 0, -1.0, 1.0) / np.sqrt(np.sum(q * q, axis=-1, keepdims=True)))
-    return q.reshape(lead + (4,))
 
 
 _EPS = np.zeros((3, 3, 3))  # Levi-Civita: cross(a, b)_i = eps[j, k, i] a_j b_k

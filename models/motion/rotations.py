@@ -34,13 +34,34 @@ def quat_to_euler(quat: np.ndarray, order: str) -> np.ndarray:
 
 
 def quat_to_matrix(quat: np.ndarray) -> np.ndarray:
-    flat, lead = _flat(quat, 1)
-    return Rotation.from_quat(flat).as_matrix().reshape(*lead, 3, 3)
+    """(..., 4) quaternions (normalised here) -> (..., 3, 3); plain numpy, cheap on small arrays."""
+    q = np.asarray(quat, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
+    m = np.empty(q.shape[:-1] + (3, 3))
+    m[..., 0, 0], m[..., 0, 1], m[..., 0, 2] = 1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)
+    m[..., 1, 0], m[..., 1, 1], m[..., 1, 2] = 2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)
+    m[..., 2, 0], m[..., 2, 1], m[..., 2, 2] = 2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)
+    return m
 
 
 def matrix_to_quat(mat: np.ndarray) -> np.ndarray:
-    flat, lead = _flat(mat, 2)
-    return Rotation.from_matrix(flat).as_quat().reshape(*lead, 4)
+    """(..., 3, 3) -> (..., 4) with w >= 0. Shepperd's method: build the candidate on the largest
+    of trace and diagonal terms, which is stable everywhere."""
+    m = np.asarray(mat, dtype=np.float64)
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    trace = m00 + m11 + m22
+    cands = np.stack([
+        np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1], 1 + trace], -1),
+        np.stack([1 + m00 - m11 - m22, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0], m[..., 2, 1] - m[..., 1, 2]], -1),
+        np.stack([m[..., 0, 1] + m[..., 1, 0], 1 + m11 - m00 - m22, m[..., 1, 2] + m[..., 2, 1], m[..., 0, 2] - m[..., 2, 0]], -1),
+        np.stack([m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 + m22 - m00 - m11, m[..., 1, 0] - m[..., 0, 1]], -1),
+    ], axis=-2)
+    best = np.stack([trace, m00, m11, m22], -1).argmax(-1)
+    q = np.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:] < 0, -q, q)
 
 
 def quat_to_expmap(quat: np.ndarray) -> np.ndarray:
@@ -72,12 +93,19 @@ def quat_inv(q: np.ndarray) -> np.ndarray:
     return np.concatenate([-q[..., :3], q[..., 3:]], axis=-1)
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.cross for (..., 3) without its per-call overhead (which dominates on small arrays)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def quat_apply(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Rotate vectors v (..., 3) by quaternions q (..., 4), broadcasting leading axes."""
+    """Rotate vectors v (..., 3) by unit quaternions q (..., 4), broadcasting leading axes."""
     q, v = np.asarray(q, float), np.asarray(v, float)
     xyz, w = q[..., :3], q[..., 3:]
-    t = 2.0 * np.cross(xyz, v)
-    return v + w * t + np.cross(xyz, t)
+    t = 2.0 * cross(xyz, v)
+    return v + w * t + cross(xyz, t)
 
 
 def quat_canonical(q: np.ndarray) -> np.ndarray:
