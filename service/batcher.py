@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
 
@@ -46,9 +47,12 @@ def run_step(model: StreamingModel, requests: list[StepRequest]) -> list[tuple[n
 
 class Batcher:
     def __init__(self, model: StreamingModel, executor: Executor, metrics: Metrics,
-                 wait_s: float = 0.001, max_batch: int = 256, enabled: bool = True) -> None:
+                 wait_s: float = 0.001, max_batch: int = 256, enabled: bool = True,
+                 open_sessions: Callable[[], int] | None = None) -> None:
         self.model, self.executor, self.metrics = model, executor, metrics
         self.wait_s, self.max_batch = wait_s, (max_batch if enabled else 1)
+        # a batch is full once every open session of this model is in it: waiting longer gains nothing
+        self.open_sessions = open_sessions or (lambda: self.max_batch)
         self.queue: asyncio.Queue[StepRequest] = asyncio.Queue()
         self._task: asyncio.Task | None = None
 
@@ -68,7 +72,8 @@ class Batcher:
     async def _gather(self) -> list[StepRequest]:
         batch = [await self.queue.get()]
         deadline = time.monotonic() + self.wait_s
-        while len(batch) < self.max_batch:
+        full = min(self.max_batch, max(1, self.open_sessions()))
+        while len(batch) < full:
             try:
                 batch.append(self.queue.get_nowait())
                 continue

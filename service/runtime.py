@@ -27,7 +27,8 @@ class Runtime:
         self.metrics = Metrics()
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="model-step")
         self.batchers = {name: Batcher(model, self.executor, self.metrics, wait_s=settings.batch_wait_ms / 1000,
-                                       max_batch=settings.max_batch, enabled=settings.batching)
+                                       max_batch=settings.max_batch, enabled=settings.batching,
+                                       open_sessions=lambda name=name: self.open_sessions(name))
                          for name, model in self.models.items()}
         self.sessions: dict[str, Session] = {}
         self.store = SessionStore(ttl_s=settings.resume_ttl_s)
@@ -45,6 +46,9 @@ class Runtime:
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
 
     # ---- sessions -------------------------------------------------------------
+    def open_sessions(self, model: str) -> int:
+        return sum(1 for s in self.sessions.values() if s.model.name == model)
+
     def open_session(self, start: P.Start) -> Session:
         if len(self.sessions) >= self.settings.max_sessions:
             raise P.ProtocolError("too_many_sessions", f"server holds its maximum of {self.settings.max_sessions} sessions",
