@@ -114,12 +114,14 @@ def frame_arrays(frame: Frame, num_joints: int) -> tuple[np.ndarray, np.ndarray]
 
 
 def check_values(root: np.ndarray, rot: np.ndarray, seq: int) -> tuple[np.ndarray, np.ndarray]:
+    """Finite values, non-zero quaternions (returned normalised), a root within 1e6 units.
+    A few whole-array operations: this runs on every frame."""
     if not (np.isfinite(root).all() and np.isfinite(rot).all()):
         raise ProtocolError("bad_frame", "frame contains NaN or Inf", seq)
-    norms = np.linalg.norm(rot, axis=-1)
-    if (norms < 1e-6).any():
+    norms = np.sqrt(np.einsum("ij,ij->i", rot, rot))
+    if norms.min() < 1e-6:
         raise ProtocolError("bad_frame", "zero-length quaternion", seq)
-    if np.abs(root).max(initial=0.0) > 1e6:
+    if np.abs(root).max() > 1e6:
         raise ProtocolError("bad_frame", "root translation out of range", seq)
     return root, rot / norms[:, None]
 

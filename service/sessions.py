@@ -13,15 +13,15 @@ from __future__ import annotations
 
 import base64
 import io
+import json
 import secrets
 import time
 import uuid
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel
 
 from models.interface import State, StreamingModel, style_weights
 
@@ -41,8 +41,11 @@ class ControlItem:
     message: Any  # SetStyle | Reset | End
 
 
-class Snapshot(BaseModel):
-    """Serializable session state (JSON), for resume after a reconnect or on another replica."""
+@dataclass
+class Snapshot:
+    """Everything needed to continue a session exactly where it left off. Held in memory as is
+    (model states are never modified in place, so no copy is needed); `to_json`/`from_json` give
+    the portable form for a shared store."""
 
     session_id: str
     token: str
@@ -55,10 +58,21 @@ class Snapshot(BaseModel):
     target: dict[str, float]
     transition_left: int
     last_seq: int | None
-    clock: float = -1.0
-    held: str | None = None  # base64 .npz of the held output (rate adaptation)
-    state: str  # base64 .npz of the model state
+    clock: float
+    held: dict[str, np.ndarray]  # the held output (rate adaptation); empty before the first frame
+    state: State
     saved_at: float
+
+    def to_json(self) -> str:
+        return json.dumps({**self.__dict__, "held": encode_state(self.held) if self.held else None,
+                           "state": encode_state(self.state)})
+
+    @classmethod
+    def from_json(cls, text: str) -> Snapshot:
+        data = json.loads(text)
+        data["held"] = decode_state(data["held"]) if data["held"] else {}
+        data["state"] = decode_state(data["state"])
+        return cls(**data)
 
 
 def encode_state(state: State) -> str:
@@ -176,15 +190,15 @@ class Session:
                         bvh_header=self.bvh_header, fps=self.fps, encoding=self.encoding,
                         weights=dict(self.weights), target=dict(self.target),
                         transition_left=self.transition_left, last_seq=self.last_seq, clock=self.clock,
-                        held=None if self.held_root is None else encode_state(
-                            {"root": self.held_root, "rotations": self.held_rotations, "input_root": self.held_input_root}),
-                        state=encode_state(self.state), saved_at=time.time())
+                        held={} if self.held_root is None else
+                        {"root": self.held_root, "rotations": self.held_rotations, "input_root": self.held_input_root},
+                        state=self.state, saved_at=time.time())
 
     @classmethod
     def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int) -> Session:
-        held = decode_state(snap.held) if snap.held else {}
+        held = snap.held
         return cls(model=model, skeleton=snap.skeleton, fps=snap.fps, encoding=snap.encoding,
-                   weights=dict(snap.weights), state=decode_state(snap.state), bvh_header=snap.bvh_header,
+                   weights=dict(snap.weights), state=dict(snap.state), bvh_header=snap.bvh_header,
                    id=snap.session_id, token=snap.token, target=dict(snap.target),
                    transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size,
                    clock=snap.clock, held_root=held.get("root"), held_rotations=held.get("rotations"),
@@ -192,24 +206,26 @@ class Session:
 
 
 class SessionStore:
-    """In-memory snapshot store, keyed by resume token (Redis-backed one: see the scale-out issue)."""
+    """In-memory snapshot store keyed by resume token, oldest first so expiry is cheap (a shared
+    Redis-backed store comes with the scale-out issue and would keep `Snapshot.to_json()`)."""
 
     def __init__(self, ttl_s: float = 600.0) -> None:
-        self._data: dict[str, tuple[float, str]] = {}
+        self._data: OrderedDict[str, tuple[float, Snapshot]] = OrderedDict()
         self.ttl_s = ttl_s
 
     def put(self, snap: Snapshot) -> None:
-        self._data[snap.token] = (time.monotonic(), snap.model_dump_json())
+        self._data[snap.token] = (time.monotonic(), snap)
+        self._data.move_to_end(snap.token)
         self._expire()
 
     def get(self, token: str) -> Snapshot | None:
         entry = self._data.get(token)
-        return Snapshot.model_validate_json(entry[1]) if entry else None
+        return entry[1] if entry else None
 
     def delete(self, token: str) -> None:
         self._data.pop(token, None)
 
     def _expire(self) -> None:
-        now = time.monotonic()
-        for token in [t for t, (at, _) in self._data.items() if now - at > self.ttl_s]:
-            del self._data[token]
+        limit = time.monotonic() - self.ttl_s
+        while self._data and next(iter(self._data.values()))[0] < limit:
+            self._data.popitem(last=False)

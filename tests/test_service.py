@@ -318,3 +318,23 @@ def test_tokens_guard_rest_and_websocket(models):
             assert start(ws, style=first_style(models))["type"] == "started"
     with live_server(models) as (base, _):
         assert httpx.get(f"{base}/v1/models").status_code == 200
+
+
+def test_snapshots_survive_a_round_trip_through_json(server, models, clip):
+    """The portable snapshot form (for a shared store) restores the exact session."""
+    from service.sessions import Session, Snapshot
+
+    model = models["lti"]
+    style = first_style(models)
+    session = Session(model=model, skeleton="bandai-namco", fps=30.0, encoding="json",
+                      weights={style: 1.0}, state=model.init_state(1))
+    root, rot = clip
+    state = session.state
+    w = style_vector(model, {style: 1.0})[None]
+    for t in range(10):
+        _, state = model.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]), w)
+    session.state, session.last_seq = state, 9
+    again = Session.restore(Snapshot.from_json(session.snapshot().to_json()), model, queue_size=8)
+    assert again.last_seq == 9 and again.weights == {style: 1.0}
+    for key, value in state.items():
+        np.testing.assert_array_equal(again.state[key], value)
