@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-all summary clean
+.PHONY: install serve test test-all summary eval clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -30,6 +30,9 @@ test-all: install
 
 summary: install
 	$(BIN)/python -m models.data summary
+
+eval: install
+	$(BIN)/python -m models.eval
 
 clean:
 	rm -rf $(VENV) .cache .pytest_cache

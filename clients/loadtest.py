@@ -166,11 +166,17 @@ def write_report(results: list[Result], latencies: list[np.ndarray], out: Path) 
     a.set_xlabel("round trip (ms)")
     a.set_ylabel("frames")
     a.legend(fontsize=7)
-    lat = latencies[-1]
-    b.plot(np.arange(len(lat)) / len(lat) * results[-1].seconds, lat, ",", alpha=0.5)
-    b.set_xlabel("time in run (s, all sessions interleaved)")
+    r = results[-1]
+    per_session = latencies[-1].reshape(-1, int(r.seconds * r.fps))  # (sessions, frames), send order
+    t = np.arange(per_session.shape[1]) / r.fps
+    with np.errstate(all="ignore"):
+        b.plot(t, np.nanmedian(per_session, axis=0), lw=0.8, label="median over sessions")
+        b.plot(t, np.nanmax(per_session, axis=0), lw=0.8, label="max over sessions")
+    b.axhline(1000 / r.fps, color="k", ls=":", lw=1)
+    b.set_xlabel(f"send time (s), {r.sessions} sessions")
     b.set_ylabel("round trip (ms)")
     b.set_yscale("log")
+    b.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(out.with_suffix(".png"))
     plt.close(fig)

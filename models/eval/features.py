@@ -1,0 +1,47 @@
+"""Per-frame judge features from a Motion: causal (frames <= t only), from the foundation's
+`compute_features`. Root-relative joint positions in the facing frame, joint velocities in the
+facing frame, root velocity and yaw rate. The world-origin `joint_Root` of the Bandai Namco rig is
+left out (its facing-frame position only says where the actor is in the room)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..motion.features import compute_features
+from ..motion.skeleton import Motion
+
+NUM_BODY_JOINTS = 21  # Bandai Namco: 22 joints minus joint_Root
+FEATURE_DIM = NUM_BODY_JOINTS * 6 + 4
+
+
+def _body(motion: Motion) -> slice:
+    return slice(1, None) if motion.skeleton.names[0] == "joint_Root" else slice(0, None)
+
+
+def clip_features(motion: Motion) -> np.ndarray:
+    """(F, FEATURE_DIM) float32."""
+    f = compute_features(motion)
+    body = _body(motion)
+    return np.concatenate([
+        f.local_positions[:, body].reshape(len(f.yaw), -1),
+        f.joint_velocities[:, body].reshape(len(f.yaw), -1),
+        f.root_velocity,
+        f.yaw_rate[:, None],
+    ], axis=1).astype(np.float32)
+
+
+def pad_to(x: np.ndarray, length: int) -> np.ndarray:
+    """Hold the last frame so the clip has at least `length` frames."""
+    if len(x) >= length:
+        return x
+    return np.concatenate([x, np.repeat(x[-1:], length - len(x), 0)])
+
+
+def windows(x: np.ndarray, length: int, stride: int) -> np.ndarray:
+    """(N, length, D) sliding windows over a clip (padded by holding the last frame when short);
+    the last window is aligned to the clip's end so every frame is covered."""
+    x = pad_to(x, length)
+    starts = list(range(0, len(x) - length + 1, stride))
+    if starts[-1] != len(x) - length:
+        starts.append(len(x) - length)
+    return np.stack([x[s:s + length] for s in starts])

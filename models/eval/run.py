@@ -1,0 +1,227 @@
+"""Run every method on the same held-out clips and score it; write the report.
+
+Every method is reached only through the streaming interface (`models/interface.py`), loaded from
+the committed weights by `models.registry.load_models`. Clips run as one batch of sessions per
+method (all clips x all target styles), padded by holding the last frame to a common length and
+truncated back to each clip's own length afterwards."""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..data import build_index, load_motions, select
+from ..interface import FrameBatch, StreamingModel
+from ..motion.skeleton import Motion
+from ..registry import load_models
+from ..settings import REPO_ROOT, get_settings
+from .features import clip_features
+from .judges import Judges, load_judges
+from .metrics import SKATE_SPEED, foot_skating, frechet_distance, path_deviation
+
+DATASET = "bandai-namco-2"
+INPUT_STYLE = "normal"
+QUICK_CONTENTS = ("walk", "run", "wave-both-hands", "raise-up-both-hands")
+QUICK_STYLES = ("elderly", "feminine")
+
+
+def pick_clips(per_content: int, contents: tuple[str, ...] | None = None):
+    clips = select(build_index([DATASET]), split="test", style=INPUT_STYLE)
+    out = []
+    for content in sorted({c.content for c in clips}):
+        if contents is None or content in contents:
+            out += sorted((c for c in clips if c.content == content), key=lambda c: c.name)[:per_content]
+    return out
+
+
+def stylise(model: StreamingModel, motions: list[Motion], targets: list[int], chunk: int = 256) -> list[Motion]:
+    """Output of `model` for motions[i] toward style index targets[i] (None = all weights zero)."""
+    T = max(m.num_frames for m in motions)
+    n_styles = len(model.styles())
+    out: list[Motion] = []
+    for lo in range(0, len(motions), chunk):
+        part, tgt = motions[lo:lo + chunk], targets[lo:lo + chunk]
+        B = len(part)
+        hold = lambda a: np.concatenate([a, np.repeat(a[-1:], T - len(a), 0)])  # noqa: E731
+        root = np.stack([hold(m.translations[:, 1]) for m in part]).astype(np.float64)
+        rot = np.stack([hold(m.rotations) for m in part]).astype(np.float64)
+        weights = np.zeros((B, n_styles))
+        for b, k in enumerate(tgt):
+            if k is not None:
+                weights[b, k] = 1.0
+        state = model.init_state(B)
+        roots, rots = np.empty_like(root), np.empty_like(rot)
+        for t in range(T):
+            frame, state = model.step_batch(state, FrameBatch(root[:, t], rot[:, t]), weights)
+            roots[:, t], rots[:, t] = frame.root, frame.rotations
+        for b, m in enumerate(part):
+            n = m.num_frames
+            trans = m.translations.copy()
+            trans[:, 1] = roots[b, :n]
+            out.append(replace(m, rotations=rots[b, :n], translations=trans))
+    return out
+
+
+def score(judges: Judges, outputs: list[Motion], inputs: list[Motion], style: str, contents: list[str],
+          real_latents: np.ndarray) -> dict:
+    feats = [clip_features(m) for m in outputs]
+    ps, pc = judges.predict_style(feats), judges.predict_content(feats)
+    skate = [foot_skating(m) for m in outputs]
+    frames = sum(s["contact_frames"] for s in skate)
+    return {
+        "clips": len(outputs),
+        "style_acc": float(np.mean([p == style for p in ps])),
+        "content_acc": float(np.mean([p == c for p, c in zip(pc, contents)])),
+        "fmd": frechet_distance(judges.latents(feats), real_latents),
+        "skate_ratio": float(sum(s["skate_ratio"] * s["contact_frames"] for s in skate) / max(frames, 1)),
+        "contact_speed": float(sum(s["contact_speed"] * s["contact_frames"] for s in skate) / max(frames, 1)),
+        "path_dev_cm": float(np.mean([path_deviation(i, o) for i, o in zip(inputs, outputs)])),
+        "predicted_styles": {s: ps.count(s) for s in sorted(set(ps))},
+    }
+
+
+def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_dir: Path | None = None,
+             grids: bool = True, methods: tuple[str, ...] | None = None) -> dict:
+    torch.set_num_threads(1)
+    t0 = time.time()
+    out_dir = Path(out_dir) if out_dir is not None else REPO_ROOT / "docs"
+    judges = load_judges()
+    models = load_models(get_settings().weights_dir)
+    if methods is not None:
+        models = {k: v for k, v in models.items() if k in methods}
+    styles = [s for s in judges.styles if s != INPUT_STYLE and all(s in m.styles() for m in models.values())]
+    if quick:
+        styles, per_content, frames = [s for s in styles if s in QUICK_STYLES], 1, min(frames, 60)
+    clips = pick_clips(per_content, QUICK_CONTENTS if quick else None)
+    inputs = [m.slice(0, frames) for m in load_motions(clips)]
+    contents = [c.content for c in clips]
+
+    # real references: test clips of each target style (whole clips), and val clips as the floor
+    index = build_index([DATASET])
+    cap = 8 if quick else None
+    real_lat, reference = {}, {}
+    for s in styles:
+        test_clips = select(index, split="test", style=s)[:cap]
+        test_feats = [clip_features(m) for m in load_motions(test_clips)]
+        real_lat[s] = judges.latents(test_feats)
+        val_motions = load_motions(select(index, split="val", style=s)[:cap])
+        val_feats = [clip_features(m) for m in val_motions]
+        val_skate = [foot_skating(m) for m in val_motions]
+        n = sum(k["contact_frames"] for k in val_skate)
+        reference[s] = {
+            "clips": len(val_feats),
+            "style_acc": float(np.mean([p == s for p in judges.predict_style(val_feats)])),
+            "fmd": frechet_distance(judges.latents(val_feats), real_lat[s]),
+            "skate_ratio": float(sum(k["skate_ratio"] * k["contact_frames"] for k in val_skate) / max(n, 1)),
+        }
+
+    results: dict = {"methods": {}, "timing_s": {}}
+    outputs_by_method: dict[str, dict[str, list[Motion]]] = {}
+    runners = {"identity": None, **models}
+    for name, model in runners.items():
+        t = time.time()
+        if model is None:
+            outs = {s: inputs for s in styles}
+        else:
+            order = [model.styles().index(s) for s in styles]
+            flat = stylise(model, [m for _ in styles for m in inputs], [k for k in order for _ in inputs])
+            outs = {s: flat[i * len(inputs):(i + 1) * len(inputs)] for i, s in enumerate(styles)}
+        t_run = time.time() - t
+        outputs_by_method[name] = outs
+        per_style = {s: score(judges, outs[s], inputs, s, contents, real_lat[s]) for s in styles}
+        keys = ("style_acc", "content_acc", "fmd", "skate_ratio", "contact_speed", "path_dev_cm")
+        overall = {k: float(np.mean([per_style[s][k] for s in styles])) for k in keys}
+        results["methods"][name] = {"overall": overall, "per_style": per_style}
+        results["timing_s"][name] = {"stylise": round(t_run, 2), "total": round(time.time() - t, 2)}
+
+    if grids:
+        walk = next((i for i, c in enumerate(contents) if c == "walk"), 0)
+        for s in (styles[:1] if quick else styles):
+            rows = [inputs[walk]] + [outputs_by_method[n][s][walk] for n in runners if n != "identity"]
+            titles = ["input (normal)"] + [f"{n} -> {s}" for n in runners if n != "identity"]
+            path = out_dir / "eval" / f"grid_{s}.png"
+            _grid(rows, path, titles)
+
+    results["meta"] = {
+        "dataset": DATASET, "split": "test", "input_style": INPUT_STYLE, "styles": styles,
+        "clips": [c.name for c in clips], "per_content": per_content, "frames_per_clip": frames, "quick": quick,
+        "judges": {k: judges.meta.get(k) for k in ("val", "test")},
+        "reference_real_val": reference, "skate_speed_leg_per_s": SKATE_SPEED,
+        "seconds": round(time.time() - t0, 1), "machine": f"{platform.machine()} CPU, torch threads=1",
+        "command": "python -m models.eval" + (" --quick" if quick else ""),
+    }
+    (out_dir / "eval").mkdir(parents=True, exist_ok=True)
+    (out_dir / "eval" / "results.json").write_text(json.dumps(results, indent=1) + "\n")
+    (out_dir / "evaluation.md").write_text(markdown(results))
+    return results
+
+
+def _grid(motions: list[Motion], path: Path, titles: list[str]) -> None:
+    from ..motion.render import render_contact_sheet
+    render_contact_sheet(motions, path, frames=6, titles=titles, dpi=70, panel_size=1.8)
+    try:  # quantise to a palette PNG: a few tens of KB
+        from PIL import Image
+        Image.open(path).convert("RGB").quantize(64).save(path, optimize=True)
+    except ImportError:
+        pass
+
+
+def markdown(r: dict) -> str:
+    meta = r["meta"]
+    judges = meta["judges"]
+    fmt = lambda x: f"{100 * x:.0f}%"  # noqa: E731
+    lines = [
+        "# Evaluation: every method on the same held-out clips", "",
+        f"Command: `{meta['command']}` (or `make eval`); ran in {meta['seconds']:.0f} s on {meta['machine']}. "
+        "Raw numbers: [`docs/eval/results.json`](eval/results.json).", "",
+        "## How measured", "",
+        f"Inputs are the test-split `{meta['input_style']}` clips of Bandai Namco dataset 2 ({len(meta['clips'])} clips, "
+        f"up to {meta['per_content']} per content over all contents, first {meta['frames_per_clip']} frames each). "
+        "Each method is driven only through the streaming interface (`step_batch`, all clips x target styles as one batch "
+        "of sessions, one-hot style weights, no input labels) and scored by judges trained on real training clips only "
+        "(`models/eval`, weights in `models/weights/eval/`): a style and a content classifier (1-D temporal convs over "
+        "32-frame windows of causal root-relative joint positions + velocities; a clip's label = mean log-probability over "
+        "its windows) and a denoising autoencoder over 24-frame windows. "
+        "**Style acc** = share of outputs recognised as the target style; **content acc** = share recognised as the input's "
+        "content (10 classes); **FMD** = Fréchet distance between the autoencoder latents of the outputs' windows and of "
+        "real test clips of the target style; **skate** = share of foot-contact frames (ankle/toe near the floor) whose "
+        f"horizontal foot speed exceeds {meta['skate_speed_leg_per_s']} leg lengths/s; **path dev** = mean horizontal "
+        "distance (cm) between input and output root paths with starts aligned. Identity (output = input) is the baseline; "
+        "`real val` rows are real validation clips of the target style (what a perfect method would score).", "",
+    ]
+    if judges.get("test"):
+        t, v = judges["test"], judges["val"]
+        lines += [f"Judge reference accuracy on real clips: style {fmt(t['style_acc'])} test / {fmt(v['style_acc'])} val "
+                  f"(7 classes), content {fmt(t['content_acc'])} test / {fmt(v['content_acc'])} val (10 classes).", ""]
+    lines += ["## Overall (mean over target styles)", "",
+              "| method | style acc ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ |", "|---|---|---|---|---|---|"]
+    for name, m in r["methods"].items():
+        o = m["overall"]
+        lines.append(f"| {name} | {fmt(o['style_acc'])} | {fmt(o['content_acc'])} | {o['fmd']:.1f} | "
+                     f"{fmt(o['skate_ratio'])} | {o['path_dev_cm']:.1f} |")
+    ref = meta["reference_real_val"]
+    styles = meta["styles"]
+    lines.append(f"| real val | {fmt(np.mean([ref[s]['style_acc'] for s in styles]))} | – | "
+                 f"{np.mean([ref[s]['fmd'] for s in styles]):.1f} | {fmt(np.mean([ref[s]['skate_ratio'] for s in styles]))} | – |")
+    lines += ["", "## Per target style", "",
+              "| style | method | style acc ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | recognised as |",
+              "|---|---|---|---|---|---|---|---|"]
+    for s in styles:
+        for name, m in r["methods"].items():
+            p = m["per_style"][s]
+            top = ", ".join(f"{k} {v}" for k, v in sorted(p["predicted_styles"].items(), key=lambda kv: -kv[1])[:3])
+            lines.append(f"| {s} | {name} | {fmt(p['style_acc'])} | {fmt(p['content_acc'])} | {p['fmd']:.1f} | "
+                         f"{fmt(p['skate_ratio'])} | {p['path_dev_cm']:.1f} | {top} |")
+        lines.append(f"| {s} | real val | {fmt(ref[s]['style_acc'])} | – | {ref[s]['fmd']:.1f} | {fmt(ref[s]['skate_ratio'])} | – | |")
+    lines += ["", "## Picture grids", "",
+              "A test-split neutral walk (top row) and each method's output toward the target style:", ""]
+    for s in styles:
+        lines.append(f"- {s}: ![{s}](eval/grid_{s}.png)")
+    lines += ["", f"Timing (s, stylise + score): " + ", ".join(f"{k} {v['total']}" for k, v in r["timing_s"].items()), ""]
+    return "\n".join(lines)
