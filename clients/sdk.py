@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import struct
+from contextlib import ExitStack
 from dataclasses import dataclass
 
 import httpx
@@ -101,7 +102,8 @@ class Session:
     def _open(self) -> None:
         from websockets.sync.client import connect
 
-        self.ws = connect(self.url, max_size=2**22)
+        self._connection = ExitStack()  # websockets wants its connection used as a context manager
+        self.ws = self._connection.enter_context(connect(self.url, max_size=2**22))
         self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
         started = _raise_if_error(json.loads(self.ws.recv(timeout=30)))
         self.info = started
@@ -126,6 +128,7 @@ class Session:
             except ConnectionClosed:
                 if attempt:
                     raise
+                self._connection.close()
                 self._open()
         raise AssertionError("unreachable")
 
@@ -146,7 +149,7 @@ class Session:
             self.ws.recv(timeout=5)
         except Exception:  # noqa: BLE001 - closing an already broken socket
             pass
-        self.ws.close()
+        self._connection.close()
 
     def __enter__(self) -> Session:
         return self

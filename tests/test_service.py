@@ -338,3 +338,16 @@ def test_snapshots_survive_a_round_trip_through_json(server, models, clip):
     assert again.last_seq == 9 and again.weights == {style: 1.0}
     for key, value in state.items():
         np.testing.assert_array_equal(again.state[key], value)
+
+
+def test_idle_sessions_are_closed_and_freed(models, clip):
+    with live_server(models, idle_timeout_s=0.5) as (base, app):
+        with connect(ws_url(base)) as ws:
+            start(ws, style=first_style(models))
+            stream_json(ws, clip[0][:3], clip[1][:3])
+            error = json.loads(ws.recv(timeout=10))  # then silence
+            assert error["code"] == "idle_timeout"
+            with pytest.raises(ConnectionClosed) as closed:
+                ws.recv(timeout=10)
+            assert closed.value.rcvd.code == 4408
+        assert app.state.runtime.sessions == {}
