@@ -20,6 +20,22 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def wait_ready(base: str, alive, timeout: float = 60.0) -> None:
+    """Poll /readyz until the server answers 200; fail early if it died."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        if not alive():
+            raise RuntimeError("server exited before it became ready")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"server not ready after {timeout:.0f} s")
+        time.sleep(0.05)
+
+
 @contextmanager
 def live_server(models: dict, **overrides):
     port = free_port()
@@ -30,16 +46,7 @@ def live_server(models: dict, **overrides):
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 20
-    while True:
-        try:
-            if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
-                break
-        except httpx.TransportError:
-            pass
-        if time.monotonic() > deadline:
-            raise RuntimeError("test server did not start")
-        time.sleep(0.05)
+    wait_ready(base, lambda: thread.is_alive())
     try:
         yield base, app
     finally:

@@ -1,36 +1,21 @@
 """`stylestream serve` starts a real server process that answers on loopback."""
 
 import os
-import socket
 import subprocess
 import sys
-import time
 
 import httpx
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from .live_server import free_port, wait_ready
 
 
 def test_serve_starts_and_answers_health_and_models():
-    port = _free_port()
+    port = free_port()
     proc = subprocess.Popen([sys.executable, "-m", "clients.cli", "serve", "--port", str(port), "--log-level", "warning"],
                             env={**os.environ}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
         base = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert proc.poll() is None, proc.stdout.read().decode()
-            assert time.monotonic() < deadline, "server did not become ready in 60 s"
-            time.sleep(0.2)
+        wait_ready(base, lambda: proc.poll() is None)
         assert httpx.get(f"{base}/healthz").json() == {"status": "ok"}
         models = httpx.get(f"{base}/v1/models").json()
         assert isinstance(models, list)

@@ -25,10 +25,8 @@ from typing import Callable
 import numpy as np
 
 from . import representation as rep
-from .footplant import contact_labels
 from .model import StyleTranslator
-from .train import CONFIG, PairData, align, evaluate, identify, match_features
-from .warping import resample_pose
+from .train import CONFIG, PairData, align, evaluate, identify, match_features, pair_from_warp
 
 FINETUNE = dict(
     pairs=5,  # neutral clips paired with the upload
@@ -107,23 +105,9 @@ def nearest_neutral(bank: NeutralBank, feats: np.ndarray, k: int, frames: int) -
 # --------------------------------------------------------------------------- pairs
 
 
-def _motion_slice(motion, start: int, stop: int):
-    return motion.slice(start, stop)
-
-
 def pair_from_motions(mi, mo, match_mean, match_std, ref, cfg=CONFIG) -> PairData:
     """`train.pair_data` on in-memory motions (no clip keys, no cache)."""
-    from models.motion.skeleton import fk
-    warp = align(mi, mo, match_mean, match_std, cfg["align"], ref, cfg)
-    root, rots = resample_pose(mo.translations[:, rep.HIPS], mo.rotations, warp)
-    fo = rep.sequence_features(root, rots, ref)
-    d = np.diff(warp)
-    rate = np.concatenate([d[:1], d]) if len(d) else np.ones(1)
-    y = np.concatenate([fo, np.log(np.maximum(rate, 1e-3))[:, None]], axis=1)
-    trans = np.broadcast_to(mo.translations[:1], (len(root),) + mo.translations.shape[1:]).copy()
-    trans[:, rep.HIPS] = root
-    _, pos = fk(rots, trans, mo.skeleton.parents)
-    return PairData(rep.motion_to_features(mi, ref), y, contact_labels(pos, mo.skeleton, mo.fps), warp)
+    return pair_from_warp(mi, mo, align(mi, mo, match_mean, match_std, cfg["align"], ref, cfg), ref)
 
 
 @dataclass
@@ -146,8 +130,8 @@ def fine_tune(motion, name: str, ref: np.ndarray, progress: Callable[[float, str
     cap = opts["max_frames"]
     n = motion.num_frames
     n_hold = int(n * opts["holdout"]) if n * (1 - opts["holdout"]) >= opts["min_train_frames"] + 30 else 0
-    train_part = _motion_slice(motion, 0, min(n - n_hold, cap))
-    hold_part = _motion_slice(motion, n - n_hold, n) if n_hold else None
+    train_part = motion.slice(0, min(n - n_hold, cap))
+    hold_part = motion.slice(n - n_hold, n) if n_hold else None
     feats = rep.motion_to_features(train_part, ref)
     neutrals = nearest_neutral(bank, feats, opts["pairs"] + (1 if hold_part is not None else 0), train_part.num_frames)
     if not neutrals:

@@ -127,17 +127,10 @@ def align(in_motion, out_motion, match_mean, match_std, method: str, ref, cfg=CO
     return imw(x, y, **cfg["imw"]).warp
 
 
-def pair_data(in_clip, out_clip, match_mean, match_std, ref, cfg=CONFIG) -> PairData:
-    from models.data import load_motion
+def pair_from_warp(mi, mo, warp: np.ndarray, ref) -> PairData:
+    """A training pair from an input motion, an output motion and the time warp aligning them:
+    output features resampled along the warp, plus the log differential warp and contact labels."""
     from models.motion.skeleton import fk
-    key = hashlib.sha1(json.dumps([in_clip.key, out_clip.key, cfg["align"], cfg["imw"], cfg["match_std_floor"], "ref-v1"]).encode()).hexdigest()[:16]
-    cache = _cache_dir() / f"{key}.npy"
-    mi, mo = load_motion(in_clip), load_motion(out_clip)
-    if cache.exists():
-        warp = np.load(cache)
-    else:
-        warp = align(mi, mo, match_mean, match_std, cfg["align"], ref, cfg)
-        np.save(cache, warp)
     root, rots = resample_pose(mo.translations[:, rep.HIPS], mo.rotations, warp)
     fo = rep.sequence_features(root, rots, ref)
     d = np.diff(warp)
@@ -147,6 +140,20 @@ def pair_data(in_clip, out_clip, match_mean, match_std, ref, cfg=CONFIG) -> Pair
     trans[:, rep.HIPS] = root
     _, pos = fk(rots, trans, mo.skeleton.parents)
     return PairData(rep.motion_to_features(mi, ref), y, contact_labels(pos, mo.skeleton, mo.fps), warp)
+
+
+def pair_data(in_clip, out_clip, match_mean, match_std, ref, cfg=CONFIG) -> PairData:
+    """`pair_from_warp` for two dataset clips, the IMW alignment cached on disk."""
+    from models.data import load_motion
+    key = hashlib.sha1(json.dumps([in_clip.key, out_clip.key, cfg["align"], cfg["imw"], cfg["match_std_floor"], "ref-v1"]).encode()).hexdigest()[:16]
+    cache = _cache_dir() / f"{key}.npy"
+    mi, mo = load_motion(in_clip), load_motion(out_clip)
+    if cache.exists():
+        warp = np.load(cache)
+    else:
+        warp = align(mi, mo, match_mean, match_std, cfg["align"], ref, cfg)
+        np.save(cache, warp)
+    return pair_from_warp(mi, mo, warp, ref)
 
 
 def matching_stats(index, ref, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
