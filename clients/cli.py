@@ -54,9 +54,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .loadtest import add_loadtest_command
     from .motion_tools import add_motion_commands
+    from .vmc import add_vmc_command
 
     add_motion_commands(sub)
     add_loadtest_command(sub)
+    add_vmc_command(sub)
     return parser
 
 
