@@ -1,0 +1,299 @@
+"""Local motion phases (Starke et al. 2020; Mason, Starke & Komura 2022, section "Local phases").
+
+One phase per bone (both hands and both feet) instead of one global gait phase: a stylised walk
+moves its limbs with their own rhythm (a swinging arm, a dragging foot), and a per-bone phase lets
+the gating network pick experts for that rhythm. Pipeline per bone, all offline (training data):
+
+1. a 1-D *source* signal:
+   - feet: the binary contact signal (height + speed thresholds, `models.motion.features.foot_contacts`);
+   - any bone, contact-free (hands): its position in the character (facing) frame, centred and
+     projected on its first principal component, the component's sign chosen so it points along
+     the forward axis (+Z) -- so "hand in front of the body" is always the positive half-wave;
+2. normalised in a centred one-second window (mean 0, std 1), so slow drifts and the overall range
+   of the bone's movement do not bias the fit;
+3. Butterworth low-pass, applied forward-backward (`scipy.signal.filtfilt`, zero phase): phases are
+   computed offline, and a causal `lfilter` would delay every phase by the filter's group delay;
+4. per frame, a*sin(f*t - s) + b is fitted on a centred sliding window by linear least squares for
+   every frequency of a grid (the sinusoid is linear in a, s, b once f is fixed), the best frequency
+   refined by a parabola through the residuals; all frames and frequencies at once with numpy.
+   The fit window is 1.5 s: with 1 s (less than one walk cycle) a square-ish contact wave is fit
+   equally well by many frequencies and f wanders within each step (std 0.10 Hz vs 0.02 Hz).
+   This replaces the authors' small genetic optimiser: it is deterministic, fast (~ms per clip)
+   and exact on a clean sinusoid;
+5. phase phi = (f*t - s) mod 2pi at the window's centre; the 2-D phase feature is
+   A * (sin phi, cos phi) with A = fitted amplitude * mean bone speed in the window (leg lengths / s):
+   the amplitude scaling makes the feature vanish when the bone does not move (standing still),
+   where the normalised source is noise and its phase meaningless.
+
+Conventions: frequencies are in Hz (cycles per second, f/2pi in the formula above), times in
+seconds, frame t at time t/fps. Shapes: F frames, B = 4 bones in the order of `BONES`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import uniform_filter1d
+from scipy.signal import butter, filtfilt, lfilter
+
+from ..motion.features import backward_diff, compute_features, leg_length
+from ..motion.skeleton import Motion
+
+BONES: tuple[str, ...] = ("Hand_L", "Hand_R", "Foot_L", "Foot_R")
+FOOT_SIDE = {"Foot_L": 0, "Foot_R": 1}  # column of `foot_contacts`
+
+NORMALISE_WINDOW_S = 1.0
+FIT_WINDOW_S = 1.5  # ~1.3 walk cycles: a 1 s window (< one cycle) lets f wander 0.4-1.3 Hz within a step
+CUTOFF_HZ = 3.0
+FREQ_RANGE_HZ = (0.4, 4.0)  # slowest elderly steps ~0.6 Hz per foot, dash ~2 Hz; upper bound = the paper's max frequency
+FREQ_STEP_HZ = 0.02
+
+
+# --------------------------------------------------------------------------- sources
+
+def contact_source(contacts: np.ndarray) -> np.ndarray:
+    """Contact-based source: the (F,) or (F, k) boolean contacts as 0/1 floats (1 = planted).
+
+    Contacts are the most reliable rhythm of a foot: a square wave whose period is the stride."""
+    return np.asarray(contacts, dtype=float)
+
+
+def principal_axis(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centre (3,), unit axis (3,)) of points (N, 3): their mean and first principal component,
+    signed so the axis points forward (+Z of the facing frame).
+
+    Pass the frames of one clip (per-clip centring) or of all clips of a style and gait
+    concatenated (the paper's per-style-and-gait centring, `style_axes`)."""
+    p = np.asarray(positions, dtype=float).reshape(-1, 3)
+    centre = p.mean(axis=0)
+    _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
+    axis = vt[0]
+    if axis[2] < 0:  # the sign of a principal component is arbitrary; fix it so + means "in front"
+        axis = -axis
+    return centre, axis
+
+
+def contact_free_source(positions: np.ndarray, centre: np.ndarray | None = None,
+                        axis: np.ndarray | None = None) -> np.ndarray:
+    """Contact-free source of one bone: its facing-frame positions (F, 3) centred and projected on
+    the first principal component. Without `centre`/`axis` they are computed from this clip."""
+    if centre is None or axis is None:
+        c, a = principal_axis(positions)
+        centre = c if centre is None else centre
+        axis = a if axis is None else axis
+    return (np.asarray(positions, dtype=float) - centre) @ axis
+
+
+# --------------------------------------------------------------------------- conditioning
+
+def sliding_normalise(x: np.ndarray, fps: float, window_s: float = NORMALISE_WINDOW_S,
+                      floor: float = 0.05) -> np.ndarray:
+    """Normalise along axis 0 to zero mean and unit std in a centred window of `window_s` seconds.
+
+    Removes slow drift (a hand creeping forward while turning) and makes the fit independent of the
+    bone's range of motion. The std is floored at `floor` x the signal's global std so a still
+    bone is not blown up into unit-variance noise (its amplitude is zeroed by the speed anyway)."""
+    x = np.asarray(x, dtype=float)
+    size = max(int(round(window_s * fps)) | 1, 3)
+    mean = uniform_filter1d(x, size, axis=0, mode="nearest")
+    var = uniform_filter1d(x * x, size, axis=0, mode="nearest") - mean ** 2
+    std = np.sqrt(np.maximum(var, 0.0))
+    std = np.maximum(std, floor * x.std(axis=0) + 1e-9)
+    return (x - mean) / std
+
+
+def lowpass(x: np.ndarray, fps: float, cutoff_hz: float = CUTOFF_HZ, order: int = 2,
+            causal: bool = False) -> np.ndarray:
+    """Butterworth low-pass along axis 0. Offline (default) it runs forward-backward (`filtfilt`,
+    zero phase, effective order 2*order): a one-way filter would shift every phase late by its group
+    delay. `causal=True` is the streaming variant (`lfilter`) for reference."""
+    b, a = butter(order, cutoff_hz, btype="low", fs=fps)
+    x = np.asarray(x, dtype=float)
+    if causal:
+        return lfilter(b, a, x, axis=0)
+    padlen = min(3 * max(len(a), len(b)), x.shape[0] - 1)
+    return filtfilt(b, a, x, axis=0, padlen=padlen)
+
+
+# --------------------------------------------------------------------------- sinusoid fit
+
+@dataclass(frozen=True)
+class SinusoidFit:
+    """Per-frame fit of a*sin(2pi*frequency*t - s) + offset on the window centred at each frame,
+    expressed at the centre: phase = (2pi*frequency*t - s) mod 2pi. Arrays (F,)."""
+
+    amplitude: np.ndarray  # a >= 0
+    frequency: np.ndarray  # Hz
+    phase: np.ndarray  # radians in [0, 2pi)
+    offset: np.ndarray  # b
+    residual: np.ndarray  # RMS fit error in the window
+
+    def value(self) -> np.ndarray:
+        """The fitted sinusoid evaluated at each frame's own time (its window's centre)."""
+        return self.amplitude * np.sin(self.phase) + self.offset
+
+
+def _window_stack(x: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """(F, W) samples of the centred windows and their validity mask (zero-padded at the ends:
+    edge windows are truncated rather than reflected, which would invent a non-sinusoidal signal)."""
+    F = x.shape[0]
+    padded = np.concatenate([np.zeros(half), x, np.zeros(half)])
+    idx = np.arange(F)[:, None] + np.arange(2 * half + 1)[None]
+    mask = np.zeros(F + 2 * half)
+    mask[half:half + F] = 1.0
+    return padded[idx], mask[idx]
+
+
+def _solve(basis: np.ndarray, y: np.ndarray, mask: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
+    """Masked least squares per window. basis (..., W, 3) broadcast with y, mask (F, 1|K.., W).
+    Returns coefficients (..., 3) and the residual sum of squares (...)."""
+    N = np.einsum("...w,...wi,...wj->...ij", mask, basis, basis) + ridge * np.eye(3)
+    r = np.einsum("...w,...wi,...w->...i", mask, basis, y)
+    coef = np.linalg.solve(N, r[..., None])[..., 0]
+    rss = np.einsum("...w,...w->...", mask, y * y) - np.einsum("...i,...i->...", coef, r)
+    return coef, np.maximum(rss, 0.0)
+
+
+def _basis(omega: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """(..., W, 3) columns sin(w tau), cos(w tau), 1 for angular frequencies omega (...)."""
+    wt = omega[..., None] * tau
+    return np.stack([np.sin(wt), np.cos(wt), np.ones_like(wt)], axis=-1)
+
+
+def fit_sinusoid(x: np.ndarray, fps: float, window_s: float = FIT_WINDOW_S,
+                 freq_range: tuple[float, float] = FREQ_RANGE_HZ, freq_step: float = FREQ_STEP_HZ,
+                 ridge: float = 1e-6) -> SinusoidFit:
+    """Fit a*sin(2pi f t - s) + b on the centred window of every frame of a 1-D signal (F,).
+
+    For a fixed f the model is linear in (a cos s, -a sin s, b), so each (frame, f) is a 3x3
+    least-squares solve; the best f on the grid is refined by a parabola through its neighbours'
+    residuals and re-solved. Window time is measured from the centre frame, so the phase at the
+    centre is the angle of the (sin, cos) coefficients directly."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim != 1:
+        raise ValueError(f"fit_sinusoid takes a 1-D signal, got shape {x.shape}")
+    half = max(int(round(window_s * fps / 2)), 2)
+    tau = np.arange(-half, half + 1) / fps  # (W,)
+    y, mask = _window_stack(x, half)  # (F, W)
+    freqs = np.arange(freq_range[0], freq_range[1] + 1e-9, freq_step)
+    basis = _basis(2 * np.pi * freqs, tau)  # (K, W, 3)
+    _, rss = _solve(basis[None], y[:, None], mask[:, None], ridge)  # (F, K)
+    k = np.clip(np.argmin(rss, axis=1), 1, len(freqs) - 2)
+    rows = np.arange(len(x))
+    r0, r1, r2 = rss[rows, k - 1], rss[rows, k], rss[rows, k + 1]
+    curv = r0 - 2 * r1 + r2
+    shift = np.where(curv > 1e-12, 0.5 * (r0 - r2) / np.where(curv > 1e-12, curv, 1.0), 0.0)
+    f = freqs[k] + np.clip(shift, -1.0, 1.0) * freq_step
+    coef, rss_f = _solve(_basis(2 * np.pi * f, tau), y, mask, ridge)  # (F, 3)
+    alpha, beta, b = coef[:, 0], coef[:, 1], coef[:, 2]
+    # alpha sin(w tau) + beta cos(w tau) = a sin(w tau + theta), a cos theta = alpha, a sin theta = beta
+    return SinusoidFit(amplitude=np.hypot(alpha, beta), frequency=f,
+                       phase=np.mod(np.arctan2(beta, alpha), 2 * np.pi), offset=b,
+                       residual=np.sqrt(rss_f / mask.sum(axis=1)))
+
+
+def phase_features(phase: np.ndarray, amplitude: np.ndarray) -> np.ndarray:
+    """2-D phase features A*(sin phi, cos phi), shape (..., 2): a point on a circle whose radius is
+    the amplitude, so a still bone sits at the origin and phase wrap-around is continuous."""
+    return np.asarray(amplitude)[..., None] * np.stack([np.sin(phase), np.cos(phase)], axis=-1)
+
+
+# --------------------------------------------------------------------------- per clip
+
+@dataclass(frozen=True)
+class LocalPhases:
+    """Local phases of one clip; bone axis in the order of `bones`."""
+
+    bones: tuple[str, ...]
+    fps: float
+    source: np.ndarray  # (F, B) raw source: contacts (feet), PCA projection in leg lengths (hands)
+    signal: np.ndarray  # (F, B) normalised and low-passed source, the signal that was fitted
+    fit_amplitude: np.ndarray  # (F, B) a of the fit (normalised units)
+    offset: np.ndarray  # (F, B) b of the fit
+    frequency: np.ndarray  # (F, B) Hz
+    phase: np.ndarray  # (F, B) radians in [0, 2pi)
+    speed: np.ndarray  # (F, B) window-mean bone speed in the facing frame, leg lengths / s
+    amplitude: np.ndarray  # (F, B) fit_amplitude * speed: the radius of the phase feature
+    features: np.ndarray  # (F, B, 2) amplitude * (sin phase, cos phase)
+    contacts: np.ndarray  # (F, 2) bool, left and right foot
+
+    def fitted(self) -> np.ndarray:
+        """(F, B) fitted sinusoid value at each frame, comparable with `signal`."""
+        return self.fit_amplitude * np.sin(self.phase) + self.offset
+
+
+Axes = dict[str, tuple[np.ndarray, np.ndarray]]
+
+
+def style_axes(motions: list[Motion], bones: tuple[str, ...] = BONES) -> Axes:
+    """Per-style-and-gait centring: centre and principal axis of each contact-free bone over all
+    frames of `motions` (clips of one style and gait), in the facing frame, in leg lengths."""
+    out: Axes = {}
+    feats = [(compute_features(m).local_positions, m.skeleton) for m in motions]
+    for bone in bones:
+        if bone in FOOT_SIDE:
+            continue
+        pts = np.concatenate([lp[:, sk.index(bone)] / leg_length(sk) for lp, sk in feats])
+        out[bone] = principal_axis(pts)
+    return out
+
+
+def local_phases(motion: Motion, axes: Axes | None = None, bones: tuple[str, ...] = BONES,
+                 contact_bones: tuple[str, ...] = ("Foot_L", "Foot_R"), *,
+                 normalise_window_s: float = NORMALISE_WINDOW_S, fit_window_s: float = FIT_WINDOW_S,
+                 cutoff_hz: float = CUTOFF_HZ, freq_range: tuple[float, float] = FREQ_RANGE_HZ) -> LocalPhases:
+    """Local phases of `bones` for one clip.
+
+    Bones in `contact_bones` use the contact source (Foot_L/Foot_R columns of the contacts), the
+    others the contact-free source. `axes` (from `style_axes`) gives per-style-and-gait centres and
+    axes; without it each clip is centred on itself (per-clip centring)."""
+    fps = motion.fps
+    feats = compute_features(motion)
+    sk = motion.skeleton
+    leg = leg_length(sk)
+    local = feats.local_positions / leg  # leg lengths: skeleton-independent amplitudes
+    sources = []
+    for bone in bones:
+        if bone in contact_bones:
+            sources.append(contact_source(feats.contacts[:, FOOT_SIDE[bone]]))
+        else:
+            centre, axis = (axes or {}).get(bone, (None, None))
+            sources.append(contact_free_source(local[:, sk.index(bone)], centre, axis))
+    source = np.stack(sources, axis=1)
+    signal = lowpass(sliding_normalise(source, fps, normalise_window_s), fps, cutoff_hz)
+    fits = [fit_sinusoid(signal[:, i], fps, fit_window_s, freq_range) for i in range(len(bones))]
+    idx = [sk.index(b) for b in bones]
+    speed = np.linalg.norm(backward_diff(local[:, idx], fps), axis=-1)  # (F, B), facing frame
+    size = max(int(round(fit_window_s * fps)) | 1, 3)
+    speed = uniform_filter1d(speed, size, axis=0, mode="nearest")
+    fit_amp = np.stack([f.amplitude for f in fits], axis=1)
+    phase = np.stack([f.phase for f in fits], axis=1)
+    amplitude = fit_amp * speed
+    return LocalPhases(
+        bones=tuple(bones), fps=fps, source=source, signal=signal, fit_amplitude=fit_amp,
+        offset=np.stack([f.offset for f in fits], axis=1),
+        frequency=np.stack([f.frequency for f in fits], axis=1), phase=phase, speed=speed,
+        amplitude=amplitude, features=phase_features(phase, amplitude), contacts=feats.contacts)
+
+
+# --------------------------------------------------------------------------- checks
+
+def touchdowns(contact: np.ndarray) -> np.ndarray:
+    """Frame indices where a (F,) contact signal switches from swing to planted."""
+    c = np.asarray(contact, dtype=bool)
+    return np.flatnonzero(~c[:-1] & c[1:]) + 1
+
+
+def step_frequency(contact: np.ndarray, fps: float) -> float:
+    """Cycle frequency (Hz) of one foot from its touchdown events: (n - 1) cycles between the first
+    and last touchdown. NaN with fewer than two touchdowns."""
+    t = touchdowns(contact)
+    if len(t) < 2:
+        return float("nan")
+    return (len(t) - 1) * fps / float(t[-1] - t[0])
+
+
+def circular_mean(angles: np.ndarray) -> float:
+    """Mean direction of angles (radians), in (-pi, pi]."""
+    return float(np.angle(np.exp(1j * np.asarray(angles)).mean()))
