@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-all summary eval clean
+.PHONY: install serve test test-all summary eval clean browser
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -22,7 +22,13 @@ install: $(VENV)/.installed
 serve: install
 	$(BIN)/stylestream serve --host $(HOST) --port $(PORT)
 
-test: install
+# Chromium for the browser-viewer tests (Debian package); without apt they are skipped, saying why
+browser:
+	@command -v chromium >/dev/null 2>&1 || { command -v apt-get >/dev/null 2>&1 && \
+		(apt-get update -qq && apt-get install -y -qq chromium >/dev/null) || \
+		echo "chromium not installed: the viewer's browser tests will be skipped"; }
+
+test: install browser
 	$(BIN)/python -m pytest -q -m "not slow"
 
 test-all: install

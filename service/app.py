@@ -19,6 +19,7 @@ from .runtime import Runtime
 from .settings import ServiceSettings, get_service_settings
 from .styles import ApiError, ErrorBody, StyleInfo, StyleStore, StyleUpload, UploadAccepted
 from .stream import CLOSE_UNAUTHORIZED, Connection
+from .viewer import router as viewer_router
 
 
 class ModelInfo(BaseModel):
@@ -184,4 +185,5 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
         rt = ws.app.state.runtime
         await Connection(ws, rt).run()
 
+    app.include_router(viewer_router)
     return app
