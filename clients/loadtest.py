@@ -17,6 +17,7 @@ import os
 import resource
 import struct
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -169,7 +170,8 @@ def write_report(results: list[Result], latencies: list[np.ndarray], out: Path) 
     r = results[-1]
     per_session = latencies[-1].reshape(-1, int(r.seconds * r.fps))  # (sessions, frames), send order
     t = np.arange(per_session.shape[1]) / r.fps
-    with np.errstate(all="ignore"):
+    with warnings.catch_warnings():  # frames with no reply in any session are all-NaN columns
+        warnings.simplefilter("ignore", RuntimeWarning)
         b.plot(t, np.nanmedian(per_session, axis=0), lw=0.8, label="median over sessions")
         b.plot(t, np.nanmax(per_session, axis=0), lw=0.8, label="max over sessions")
     b.axhline(1000 / r.fps, color="k", ls=":", lw=1)
@@ -261,6 +263,8 @@ def add_loadtest_command(sub) -> None:
     p.add_argument("--no-batching", action="store_true", help="started server runs with cross-session batching off")
     p.add_argument("--echo-floor", action="store_true", help="also measure a plain WebSocket echo server (the floor)")
     p.add_argument("--processes", type=int, help="client processes (default: one per core)")
+    p.add_argument("--find-max", action="store_true",
+                   help="search (doubling, then bisection) for the most sessions that hold p99 <= one frame period with no drops")
     p.add_argument("--out", type=Path, default=Path("out/loadtest"), help="writes OUT.json and OUT.png")
     p.set_defaults(func=_loadtest)
 
@@ -291,19 +295,41 @@ def _loadtest(args) -> int:
         models = httpx.get(url.replace("ws", "http", 1).replace("/v1/stream", "/v1/models")).json()
         style = next(m["styles"][0] for m in models if m["name"] == args.model)
     base = url.replace("ws", "http", 1).replace("/v1/stream", "")
+
+    def holds(r: Result) -> bool:
+        return r.p99_ms <= 1000.0 / r.fps and r.dropped == 0 and r.lost == 0
+
+    def measure(n: int) -> Result:
+        cpu0 = _cpu_seconds(server.pid) if server else None
+        hist0 = server_histogram(base, args.model)
+        result, lat = run(url, n, args.fps, args.seconds, args.model, style, args.processes)
+        server_cpu = (_cpu_seconds(server.pid) - cpu0) if server else float("nan")
+        s50, s99 = histogram_quantiles(hist0, server_histogram(base, args.model))
+        result.server_p50_ms, result.server_p99_ms, result.server_cpu_s = s50, s99, server_cpu
+        results.append(result)
+        lats.append(lat)
+        ratio = f"  p99/floor {result.p99_ms / floor.p99_ms:.2f}" if floor else ""
+        print(result.line() + f"  server-side p50 {s50:.2f} p99 {s99:.2f} ms  server cpu {server_cpu:.1f} s" + ratio,
+              flush=True)
+        return result
+
     try:
-        for n in counts:
-            cpu0 = _cpu_seconds(server.pid) if server else None
-            hist0 = server_histogram(base, args.model)
-            result, lat = run(url, n, args.fps, args.seconds, args.model, style, args.processes)
-            server_cpu = (_cpu_seconds(server.pid) - cpu0) if server else float("nan")
-            s50, s99 = histogram_quantiles(hist0, server_histogram(base, args.model))
-            result.server_p50_ms, result.server_p99_ms, result.server_cpu_s = s50, s99, server_cpu
-            results.append(result)
-            lats.append(lat)
-            ratio = f"  p99/floor {result.p99_ms / floor.p99_ms:.2f}" if floor else ""
-            print(result.line() + f"  server-side p50 {s50:.2f} p99 {s99:.2f} ms  server cpu {server_cpu:.1f} s" + ratio,
-                  flush=True)
+        if args.find_max:
+            best, n, failed = 0, counts[0], None
+            while failed is None and n <= 4096:  # double until a count fails
+                if holds(measure(n)):
+                    best, n = n, n * 2
+                else:
+                    failed = n
+            while failed is not None and failed - best > max(1, best // 8):  # then bisect to ~12%
+                mid = (best + failed) // 2
+                if holds(measure(mid)):
+                    best = mid
+                else:
+                    failed = mid
+            print(f"largest session count holding p99 <= {1000 / args.fps:.1f} ms with no drops: {best}")
+        for n in ([] if args.find_max else counts):
+            measure(n)
     finally:
         if server:
             server.terminate()
