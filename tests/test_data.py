@@ -4,7 +4,7 @@ from collections import Counter
 import pytest
 
 from models.data import DataError, build_index, dataset_dir, select
-from models.data.__main__ import format_summary, main
+from models.data.__main__ import main
 from models.settings import Settings, get_settings
 
 

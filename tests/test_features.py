@@ -1,5 +1,4 @@
 import numpy as np
-import pytest
 from dataclasses import replace
 
 from models.motion.features import WORLD_MIRROR, compute_features, foot_contacts, mirror

@@ -8,6 +8,7 @@ import pytest
 from models.lti import representation as rep
 from models.lti.footplant import FootplantClassifier
 from models.interface import FrameBatch
+from models.motion.rotations import quat_apply
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel, StyleTranslator
 from models.lti.subspace import StateSpace, simulate, spectral_radius, stabilize, subspace_id
 from models.lti.warping import imw, time_warp_dp
@@ -200,7 +201,7 @@ def test_two_bone_ik_reaches_target():
         root, rots = m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]
         ankle = lock.foot_positions(root, rots)[:, 0]
         target = ankle + rng.uniform(-4, 4, 3)
-        hip = root + rep.qapply(rots[:, rep.HIPS], m.skeleton.offsets[up][None])
+        hip = root + quat_apply(rots[:, rep.HIPS], m.skeleton.offsets[up][None])
         new = rots.copy()
         new[:, up], new[:, low], new[:, foot] = two_bone_ik(rots[:, rep.HIPS], rots[:, up], rots[:, low], rots[:, foot], hip,
                                                            m.skeleton.offsets[low], m.skeleton.offsets[foot], target)

@@ -23,8 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.motion.rotations import quat_mul as qmul
-from models.motion.rotations import quat_to_matrix as quat_to_mat
+from models.motion.rotations import quat_mul, quat_to_matrix
 
 from ..motion.features import body_joint, facing_yaw, leg_length, wrap_angle
 from ..motion.skeleton import Skeleton
@@ -75,7 +74,7 @@ class FeatureMaker:
 
     def positions(self, root: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """World joint positions (N, 22, 3) from Hips translations (N, 3) and local rotations (N, 22, 4)."""
-        mats = quat_to_mat(rotations)  # (N, 22, 3, 3)
+        mats = quat_to_matrix(rotations)  # (N, 22, 3, 3)
         n = rotations.shape[0]
         g_rot = np.empty_like(mats)
         pos = np.empty((n, NUM_JOINTS, 3))
@@ -102,7 +101,7 @@ class FeatureMaker:
         yaw_rate = wrap_angle(yaw - prev_yaw) * self.fps * has_prev
         q = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
         q = q[:, BODY].copy()
-        q[:, 0] = qmul(yaw_quat(-yaw), q[:, 0])
+        q[:, 0] = quat_mul(yaw_quat(-yaw), q[:, 0])
         q = canonical(q, self.ref)
         contacts = []
         speed = np.linalg.norm(vel_world, axis=-1)

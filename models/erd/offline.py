@@ -17,7 +17,9 @@ import numpy as np
 import torch
 
 from ..motion.skeleton import Motion
-from .features import FPS, BODY, FeatureMaker, qmul, rotate_y, yaw_quat
+from models.motion.rotations import quat_mul
+
+from .features import FPS, BODY, FeatureMaker, rotate_y, yaw_quat
 from .model import Generator
 
 
@@ -33,7 +35,7 @@ def to_world(rot: np.ndarray, root_vel: np.ndarray, height: np.ndarray, yaw: np.
     out = np.zeros((T, 22, 4))
     out[:, 0, 3] = 1.0
     out[:, BODY] = rot
-    out[:, 1] = qmul(yaw_quat(yaw), rot[:, 0])
+    out[:, 1] = quat_mul(yaw_quat(yaw), rot[:, 0])
     return root, out
 
 

@@ -29,7 +29,9 @@ import numpy as np
 from ..interface import FrameBatch, State
 from ..motion.skeleton import Skeleton
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
-from .features import BODY, FPS, NB, POS, ROOTVEL, ROT, FeatureMaker, qmul, rotate_y, yaw_quat
+from models.motion.rotations import quat_mul
+
+from .features import BODY, FPS, NB, POS, ROOTVEL, ROT, FeatureMaker, rotate_y, yaw_quat
 
 WEIGHTS_FILE = "erd.npz"
 
@@ -114,7 +116,7 @@ class ERDModel:
         out_root[:, 1] = height
         out_rot = rot_in.copy()
         out_rot[:, BODY] = rot
-        out_rot[:, 1] = qmul(yaw_quat(yaw), rot[:, 0])
+        out_rot[:, 1] = quat_mul(yaw_quat(yaw), rot[:, 0])
         new.update(prev_pos=pos, prev_yaw=yaw, out_root=out_root, frame=state["frame"] + 1,
                    style_in=state["style_in"].copy(), content=state["content"].copy())
         return FrameBatch(out_root, out_rot), new

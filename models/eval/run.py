@@ -223,5 +223,5 @@ def markdown(r: dict) -> str:
               "A test-split neutral walk (top row) and each method's output toward the target style:", ""]
     for s in styles:
         lines.append(f"- {s}: ![{s}](eval/grid_{s}.png)")
-    lines += ["", f"Timing (s, stylise + score): " + ", ".join(f"{k} {v['total']}" for k, v in r["timing_s"].items()), ""]
+    lines += ["", "Timing (s, stylise + score): " + ", ".join(f"{k} {v['total']}" for k, v in r["timing_s"].items()), ""]
     return "\n".join(lines)

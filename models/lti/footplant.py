@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.motion.rotations import cross
+from models.motion.rotations import cross, quat_apply, quat_mul, quat_to_matrix
 
 from . import representation as rep
 
@@ -97,11 +97,11 @@ def two_bone_ik(gh: np.ndarray, r_up: np.ndarray, r_low: np.ndarray, r_foot: np.
     local rotations of UpperLeg, LowerLeg, Foot; a: (B, 3) world hip-joint position; off_*: bone
     offsets. Returns new local (r_up, r_low, r_foot) putting the ankle at `target` (as close as the
     bone lengths allow) with the foot's world orientation unchanged."""
-    ga = rep.qmul(gh, r_up)
-    gb = rep.qmul(ga, r_low)
-    gf = rep.qmul(gb, r_foot)
-    b = a + rep.qapply(ga, np.broadcast_to(off_low, a.shape))
-    c = b + rep.qapply(gb, np.broadcast_to(off_foot, a.shape))
+    ga = quat_mul(gh, r_up)
+    gb = quat_mul(ga, r_low)
+    gf = quat_mul(gb, r_foot)
+    b = a + quat_apply(ga, np.broadcast_to(off_low, a.shape))
+    c = b + quat_apply(gb, np.broadcast_to(off_foot, a.shape))
     lab, lcb = np.linalg.norm(off_low, axis=-1), np.linalg.norm(off_foot, axis=-1)
     lat = np.clip(np.linalg.norm(target - a, axis=-1), 1e-3, lab + lcb - 1e-3)
     cos = lambda u, v: np.clip(np.sum(_nrm(u) * _nrm(v), -1), -1.0, 1.0)
@@ -112,15 +112,15 @@ def two_bone_ik(gh: np.ndarray, r_up: np.ndarray, r_low: np.ndarray, r_foot: np.
     # bend: rotate the thigh and the knee about the leg plane's normal (world), then swing
     w0 = _axis_angle(axis, ac_ab_1 - ac_ab_0)
     w1 = _axis_angle(axis, ba_bc_1 - ba_bc_0)
-    ga2 = rep.qmul(w0, ga)
-    gb2 = rep.qmul(w1, rep.qmul(ga2, r_low))
-    b2 = a + rep.qapply(ga2, np.broadcast_to(off_low, a.shape))
-    c2 = b2 + rep.qapply(gb2, np.broadcast_to(off_foot, a.shape))
+    ga2 = quat_mul(w0, ga)
+    gb2 = quat_mul(w1, quat_mul(ga2, r_low))
+    b2 = a + quat_apply(ga2, np.broadcast_to(off_low, a.shape))
+    c2 = b2 + quat_apply(gb2, np.broadcast_to(off_foot, a.shape))
     w2 = _rotation_between(c2 - a, target - a)
-    ga3 = rep.qmul(w2, ga2)
-    gb3 = rep.qmul(w2, gb2)
+    ga3 = quat_mul(w2, ga2)
+    gb3 = quat_mul(w2, gb2)
     inv = rep.qinv
-    return rep.qmul(inv(gh), ga3), rep.qmul(inv(ga3), gb3), rep.qmul(inv(gb3), gf)
+    return quat_mul(inv(gh), ga3), quat_mul(inv(ga3), gb3), quat_mul(inv(gb3), gf)
 
 
 class FootLock:
@@ -143,7 +143,7 @@ class FootLock:
     def foot_positions(self, root: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """(B, 3), (B, J, 4) -> (B, 2 feet, 3) ankle world positions (joint_Root is identity)."""
         idx = [rep.HIPS] + [j for chain in self.chains for j in chain[:-1]]
-        R = rep.quat_to_mat(rotations[:, idx])  # (B, 5, 3, 3): hips, upper/lower leg L, upper/lower leg R
+        R = quat_to_matrix(rotations[:, idx])  # (B, 5, 3, 3): hips, upper/lower leg L, upper/lower leg R
         out = []
         for c, chain in enumerate(self.chains):
             Rc, p = R[:, 0], root
@@ -174,7 +174,7 @@ class FootLock:
         chains = np.asarray(self.chains)[legs]  # (K, 3) joint indices up/low/foot
         up, low, foot = chains[:, 0], chains[:, 1], chains[:, 2]
         gh = rotations[rows, rep.HIPS]
-        hip = root[rows] + rep.qapply(gh, self.offsets[up])
+        hip = root[rows] + quat_apply(gh, self.offsets[up])
         r_up, r_low, r_foot = two_bone_ik(gh, rotations[rows, up], rotations[rows, low], rotations[rows, foot], hip,
                                           self.offsets[low], self.offsets[foot], target[rows, legs])
         out = rotations.copy()

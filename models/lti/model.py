@@ -34,6 +34,7 @@ from scipy import sparse
 from scipy.special import erf
 
 from models.motion.assets import bandai_namco_skeleton
+from models.motion.rotations import quat_mul
 
 from . import representation as rep
 from .footplant import FootLock, FootplantClassifier
@@ -307,7 +308,7 @@ class LTIStyleModel:
         body = _mix_rotations(parts)
         out_rot = body.copy()
         out_rot[:, 0] = (0.0, 0.0, 0.0, 1.0)
-        out_rot[:, rep.HIPS] = rep.qmul(rep.qyaw(out_yaw), body[:, rep.HIPS])
+        out_rot[:, rep.HIPS] = quat_mul(rep.qyaw(out_yaw), body[:, rep.HIPS])
         out_root = np.stack([out_ground[:, 0], root_feats[:, 3], out_ground[:, 1]], axis=-1)
         total = w.sum(axis=1)
         contacts = (votes > 0.5 * np.maximum(total, 1e-12)[:, None]) & (total[:, None] > 0)

@@ -30,9 +30,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.motion.rotations import quat_apply as qapply
-from models.motion.rotations import quat_mul as qmul
-from models.motion.rotations import quat_to_matrix as quat_to_mat
 
 ROOT_DIMS = 7
 NUM_JOINTS = 22
@@ -53,7 +50,7 @@ def qyaw(yaw: np.ndarray) -> np.ndarray:
 
 
 def left_matrix(p: np.ndarray) -> np.ndarray:
-    """(..., 4) -> (..., 4, 4) L with qmul(p, q) == L @ q (precomputed for constant left factors)."""
+    """(..., 4) -> (..., 4, 4) L with quat_mul(p, q) == L @ q (precomputed for constant left factors)."""
     x, y, z, w = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     rows = [[w, -z, y, x], [z, w, -x, y], [-y, x, w, z], [-x, -y, -z, w]]
     return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)

@@ -28,7 +28,6 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .representation import qmul
 
 
 @dataclass
@@ -181,4 +180,4 @@ def resample_pose(root: np.ndarray, rotations: np.ndarray, times: np.ndarray) ->
 
 
 __all__ = ["WarpResult", "imw", "dtw", "dtw_warp", "time_warp_dp", "space_warp", "objective", "upsample",
-           "resample_pose", "qmul"]
+           "resample_pose"]
