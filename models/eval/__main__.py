@@ -15,7 +15,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="tiny subset (4 clips, 2 styles, 60 frames)")
     ap.add_argument("--per-content", type=int, default=4, help="test clips per content (default 4)")
     ap.add_argument("--frames", type=int, default=150, help="frames per clip (default 150)")
-    ap.add_argument("--out", type=Path, default=None, help="output folder (default docs/)")
+    ap.add_argument("--out", type=Path, default=None, help="output folder (default docs/, or out/eval-quick with --quick)")
     ap.add_argument("--no-grids", action="store_true")
     a = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)

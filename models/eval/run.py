@@ -90,7 +90,8 @@ def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_d
              grids: bool = True, methods: tuple[str, ...] | None = None) -> dict:
     torch.set_num_threads(1)
     t0 = time.time()
-    out_dir = Path(out_dir) if out_dir is not None else REPO_ROOT / "docs"
+    # the committed results are only ever written by a full run; a quick run goes to out/
+    out_dir = Path(out_dir) if out_dir is not None else REPO_ROOT / ("out/eval-quick" if quick else "docs")
     judges = load_judges()
     models = load_models(get_settings().weights_dir)
     if methods is not None:
