@@ -19,8 +19,10 @@ with its resume token by itself and continues where the server's snapshot left o
 
 from __future__ import annotations
 
+import asyncio
 import json
 import struct
+import time
 from contextlib import ExitStack
 from dataclasses import dataclass
 
@@ -29,6 +31,8 @@ import numpy as np
 from pydantic import BaseModel
 
 HEADER = struct.Struct("<IHH")
+RESUME_ATTEMPTS = 5  # reconnects racing the server's notice of the dropped connection
+RESUME_BACKOFF_S = 0.05
 
 
 class ModelInfo(BaseModel):
@@ -102,10 +106,18 @@ class Session:
     def _open(self) -> None:
         from websockets.sync.client import connect
 
-        self._connection = ExitStack()  # websockets wants its connection used as a context manager
-        self.ws = self._connection.enter_context(connect(self.url, max_size=2**22))
-        self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
-        started = _raise_if_error(json.loads(self.ws.recv(timeout=30)))
+        for attempt in range(RESUME_ATTEMPTS):
+            self._connection = ExitStack()  # websockets wants its connection used as a context manager
+            self.ws = self._connection.enter_context(connect(self.url, max_size=2**22))
+            self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
+            try:
+                started = _raise_if_error(json.loads(self.ws.recv(timeout=30)))
+                break
+            except ServerError as err:  # the server may not have seen the old connection go yet
+                self._connection.close()
+                if err.code != "session_in_use" or attempt == RESUME_ATTEMPTS - 1:
+                    raise
+                time.sleep(RESUME_BACKOFF_S * (attempt + 1))
         self.info = started
         self.joints: list[str] = started["joints"]
         self.resume_token = started["resume_token"]
@@ -189,9 +201,17 @@ class AsyncSession:
     async def open(self) -> AsyncSession:
         import websockets
 
-        self.ws = await websockets.connect(self.url, max_size=2**22)
-        await self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
-        started = _raise_if_error(json.loads(await self.ws.recv()))
+        for attempt in range(RESUME_ATTEMPTS):
+            self.ws = await websockets.connect(self.url, max_size=2**22)
+            await self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
+            try:
+                started = _raise_if_error(json.loads(await self.ws.recv()))
+                break
+            except ServerError as err:  # the server may not have seen the old connection go yet
+                await self.ws.close()
+                if err.code != "session_in_use" or attempt == RESUME_ATTEMPTS - 1:
+                    raise
+                await asyncio.sleep(RESUME_BACKOFF_S * (attempt + 1))
         self.info, self.joints, self.resume_token = started, started["joints"], started["resume_token"]
         return self
 

@@ -49,3 +49,18 @@ def test_server_errors_become_typed_exceptions(base):
     with pytest.raises(ServerError) as err:
         Client(base).session(model="lti", style="no-such-style")
     assert err.value.code == "unknown_style"
+
+
+def test_session_resumes_by_itself_after_the_connection_drops(base, bn_walk):
+    """The socket dies mid-stream; the next stylise() reconnects with the resume token and the
+    outputs equal an uninterrupted run."""
+    root, rot = bn_walk.translations[:30, 1], bn_walk.rotations[:30]
+    with Client(base).session(model="lti", style="elderly") as session:
+        whole = [session.stylise(root[t], rot[t]).rotations for t in range(30)]
+    with Client(base).session(model="lti", style="elderly") as session:
+        first = [session.stylise(root[t], rot[t]).rotations for t in range(15)]
+        token = session.resume_token
+        session.ws.close()  # the connection drops
+        rest = [session.stylise(root[t], rot[t]).rotations for t in range(15, 30)]
+        assert session.resume_token == token and session.info["last_seq"] == 14
+    np.testing.assert_allclose(np.array(first + rest), np.array(whole), atol=1e-6)
