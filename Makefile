@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-all summary eval clean browser
+.PHONY: install serve test test-all summary eval perf clean browser
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -33,6 +33,9 @@ test: install browser
 
 test-all: install
 	$(BIN)/python -m pytest -q
+
+perf: install
+	$(BIN)/python -m clients.perf_report
 
 summary: install
 	$(BIN)/python -m models.data summary

@@ -11,6 +11,7 @@ Latency is measured per frame from send to the reply with the same sequence numb
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import multiprocessing as mp
 import os
@@ -247,6 +248,42 @@ def histogram_quantiles(before: dict[float, float], after: dict[float, float], q
     return out
 
 
+def holds(r: Result) -> bool:
+    """The capacity criterion: p99 within one frame period, nothing dropped or lost."""
+    return r.p99_ms <= 1000.0 / r.fps and r.dropped == 0 and r.lost == 0
+
+
+def find_max(measure, start: int = 8, limit: int = 4096) -> int:
+    """Largest session count n with holds(measure(n)): doubling from `start`, then bisection to
+    within ~12%."""
+    best, n, failed = 0, start, None
+    while failed is None and n <= limit:
+        if holds(measure(n)):
+            best, n = n, n * 2
+        else:
+            failed = n
+    while failed is not None and failed - best > max(1, best // 8):
+        mid = (best + failed) // 2
+        if holds(measure(mid)):
+            best = mid
+        else:
+            failed = mid
+    return best
+
+
+@contextlib.contextmanager
+def spawned_server(batching: bool = True):
+    """`stylestream serve` on a free loopback port; yields (ws url, process)."""
+    port = _free_port()
+    server = _spawn(["clients.cli", "serve", "--log-level", "warning"], port,
+                    {} if batching else {"STYLESTREAM_BATCHING": "false"})
+    try:
+        yield f"ws://127.0.0.1:{port}/v1/stream", server
+    finally:
+        server.terminate()
+        server.wait(timeout=20)
+
+
 def _cpu_seconds(pid: int) -> float:
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -269,71 +306,61 @@ def add_loadtest_command(sub) -> None:
     p.set_defaults(func=_loadtest)
 
 
-def _loadtest(args) -> int:
-    counts = [int(s) for s in str(args.sessions).split(",")]
-    style = args.style
-    results, lats, floor = [], [], None
-    if args.echo_floor:
-        port = _free_port()
-        echo = _spawn(["clients.echo_server"], port)
-        try:
-            floor, lat = run(f"ws://127.0.0.1:{port}/v1/stream", counts[-1], args.fps, args.seconds,
-                             processes=args.processes, echo=True)
-            print("echo floor   " + floor.line())
-        finally:
-            echo.terminate()
-    server = None
-    url = args.url
-    if url is None:
-        port = _free_port()
-        env = {"STYLESTREAM_BATCHING": "false"} if args.no_batching else {}
-        server = _spawn(["clients.cli", "serve", "--log-level", "warning"], port, env)
-        url = f"ws://127.0.0.1:{port}/v1/stream"
-    if style is None:
-        import httpx
-
-        models = httpx.get(url.replace("ws", "http", 1).replace("/v1/stream", "/v1/models")).json()
-        style = next(m["styles"][0] for m in models if m["name"] == args.model)
+def measure_fn(url: str, model: str, style: str, fps: float, seconds: float, processes: int | None,
+               server=None, floor: Result | None = None, results: list | None = None, lats: list | None = None):
+    """A function n -> Result that runs one open-loop load test against `url` and prints it."""
     base = url.replace("ws", "http", 1).replace("/v1/stream", "")
-
-    def holds(r: Result) -> bool:
-        return r.p99_ms <= 1000.0 / r.fps and r.dropped == 0 and r.lost == 0
 
     def measure(n: int) -> Result:
         cpu0 = _cpu_seconds(server.pid) if server else None
-        hist0 = server_histogram(base, args.model)
-        result, lat = run(url, n, args.fps, args.seconds, args.model, style, args.processes)
+        hist0 = server_histogram(base, model)
+        result, lat = run(url, n, fps, seconds, model, style, processes)
         server_cpu = (_cpu_seconds(server.pid) - cpu0) if server else float("nan")
-        s50, s99 = histogram_quantiles(hist0, server_histogram(base, args.model))
+        s50, s99 = histogram_quantiles(hist0, server_histogram(base, model))
         result.server_p50_ms, result.server_p99_ms, result.server_cpu_s = s50, s99, server_cpu
-        results.append(result)
-        lats.append(lat)
+        if results is not None:
+            results.append(result)
+            lats.append(lat)
         ratio = f"  p99/floor {result.p99_ms / floor.p99_ms:.2f}" if floor else ""
-        print(result.line() + f"  server-side p50 {s50:.2f} p99 {s99:.2f} ms  server cpu {server_cpu:.1f} s" + ratio,
-              flush=True)
+        print(f"{model} " + result.line() + f"  server-side p50 {s50:.2f} p99 {s99:.2f} ms  server cpu {server_cpu:.1f} s"
+              + ratio, flush=True)
         return result
 
+    return measure
+
+
+def echo_floor(sessions: int, fps: float, seconds: float, processes: int | None = None) -> Result:
+    port = _free_port()
+    echo = _spawn(["clients.echo_server"], port)
     try:
-        if args.find_max:
-            best, n, failed = 0, counts[0], None
-            while failed is None and n <= 4096:  # double until a count fails
-                if holds(measure(n)):
-                    best, n = n, n * 2
-                else:
-                    failed = n
-            while failed is not None and failed - best > max(1, best // 8):  # then bisect to ~12%
-                mid = (best + failed) // 2
-                if holds(measure(mid)):
-                    best = mid
-                else:
-                    failed = mid
-            print(f"largest session count holding p99 <= {1000 / args.fps:.1f} ms with no drops: {best}")
-        for n in ([] if args.find_max else counts):
-            measure(n)
+        floor, _ = run(f"ws://127.0.0.1:{port}/v1/stream", sessions, fps, seconds, processes=processes, echo=True)
     finally:
-        if server:
-            server.terminate()
-            server.wait(timeout=20)
+        echo.terminate()
+    print("echo floor   " + floor.line())
+    return floor
+
+
+def first_style(url: str, model: str) -> str:
+    import httpx
+
+    models = httpx.get(url.replace("ws", "http", 1).replace("/v1/stream", "/v1/models")).json()
+    return next(m["styles"][0] for m in models if m["name"] == model)
+
+
+def _loadtest(args) -> int:
+    counts = [int(s) for s in str(args.sessions).split(",")]
+    results, lats = [], []
+    floor = echo_floor(counts[-1], args.fps, args.seconds, args.processes) if args.echo_floor else None
+    with contextlib.ExitStack() as stack:
+        url, server = (args.url, None) if args.url else stack.enter_context(spawned_server(not args.no_batching))
+        measure = measure_fn(url, args.model, args.style or first_style(url, args.model), args.fps, args.seconds,
+                             args.processes, server, floor, results, lats)
+        if args.find_max:
+            best = find_max(measure, counts[0])
+            print(f"largest session count holding p99 <= {1000 / args.fps:.1f} ms with no drops: {best}")
+        else:
+            for n in counts:
+                measure(n)
     write_report(results, lats, args.out)
     print(f"wrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')}")
     return 0
