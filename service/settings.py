@@ -15,6 +15,7 @@ class ServiceSettings(Settings):
     host: str = Field(default="127.0.0.1", description="Interface to bind.")
     port: int = Field(default=8000, ge=1, le=65535)
     torch_threads: int = Field(default=1, ge=1, description="Intra-op threads; 1 leaves the other core to the event loop.")
+    blas_threads: int = Field(default=1, ge=1, description="numpy BLAS threads (threadpoolctl), for the same reason.")
     batching: bool = Field(default=True, description="Cross-session batching; off = one step per frame (for benchmarks).")
     batch_wait_ms: float = Field(default=1.0, ge=0, le=50, description="How long a batch waits for more sessions' frames.")
     max_batch: int = Field(default=256, ge=1)
