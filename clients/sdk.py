@@ -73,6 +73,12 @@ def _start_message(model: str, style: str | None, mix: dict[str, float] | None, 
     return json.dumps(msg)
 
 
+def _style_message(style: str | None, mix: dict[str, float] | None, intensity: float, transition_frames: int) -> str:
+    msg = {"type": "style", "intensity": intensity, "transition_frames": transition_frames}
+    msg.update({"mix": mix} if mix is not None else {"style": style})
+    return json.dumps(msg)
+
+
 def _pack(seq: int, root: np.ndarray, rotations: np.ndarray) -> bytes:
     return HEADER.pack(seq & 0xFFFFFFFF, 1, 0) + np.concatenate([np.ravel(root), np.ravel(rotations)]).astype("<f4").tobytes()
 
@@ -146,9 +152,7 @@ class Session:
 
     def set_style(self, style: str | None = None, mix: dict[str, float] | None = None, intensity: float = 1.0,
                   transition_frames: int = 0) -> dict:
-        msg = {"type": "style", "intensity": intensity, "transition_frames": transition_frames}
-        msg.update({"mix": mix} if mix is not None else {"style": style})
-        self.ws.send(json.dumps(msg))
+        self.ws.send(_style_message(style, mix, intensity, transition_frames))
         return _raise_if_error(json.loads(self.ws.recv(timeout=30)))
 
     def reset(self) -> None:
@@ -235,9 +239,7 @@ class AsyncSession:
 
     async def set_style(self, style: str | None = None, mix: dict[str, float] | None = None, intensity: float = 1.0,
                         transition_frames: int = 0) -> dict:
-        msg = {"type": "style", "intensity": intensity, "transition_frames": transition_frames}
-        msg.update({"mix": mix} if mix is not None else {"style": style})
-        await self.ws.send(json.dumps(msg))
+        await self.ws.send(_style_message(style, mix, intensity, transition_frames))
         return _raise_if_error(json.loads(await self.ws.recv()))
 
     async def close(self) -> None:

@@ -18,6 +18,8 @@ from typing import Annotated, Literal, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator
 
+from models.interface import style_weights
+
 PROTOCOL_VERSION = 1
 BINARY_HEADER = struct.Struct("<IHH")
 KIND_FRAME = 1
@@ -90,6 +92,17 @@ def mix_of(style: str | None, mix: StyleMix | None) -> StyleMix:
     if (style is None) == (mix is None):
         raise ProtocolError("bad_style", "give exactly one of 'style' or 'mix'")
     return {style: 1.0} if style is not None else dict(mix)
+
+
+def requested_weights(model, style: str | None, mix: StyleMix | None, intensity: float) -> dict[str, float]:
+    """The style a start or style message asks for, as weights over the model's styles; the one
+    place that turns a bad request into a typed error."""
+    try:
+        return style_weights(model, mix_of(style, mix), intensity)
+    except KeyError as exc:
+        raise ProtocolError("unknown_style", str(exc).strip('"')) from None
+    except ValueError as exc:
+        raise ProtocolError("bad_style", str(exc)) from None
 
 
 def parse_text(text: str) -> Start | Frame | SetStyle | Reset | End:

@@ -11,7 +11,7 @@ import asyncio
 import copy
 from concurrent.futures import ThreadPoolExecutor
 
-from models.interface import StreamingModel, style_weights
+from models.interface import StreamingModel
 
 from . import protocol as P
 from .batcher import Batcher
@@ -64,12 +64,7 @@ class Runtime:
             model = self.models.get(start.model)
             if model is None:
                 raise P.ProtocolError("unknown_model", f"unknown model {start.model!r}; available: {', '.join(self.models) or 'none'}")
-            try:
-                weights = style_weights(model, P.mix_of(start.style, start.mix), start.intensity)
-            except KeyError as exc:
-                raise P.ProtocolError("unknown_style", str(exc).strip('"')) from None
-            except ValueError as exc:
-                raise P.ProtocolError("bad_style", str(exc)) from None
+            weights = P.requested_weights(model, start.style, start.mix, start.intensity)
             session = Session(model=model, skeleton=start.skeleton or "custom", fps=start.fps, encoding=start.encoding,
                               weights=weights, state=model.init_state(1), bvh_header=start.bvh_header,
                               queue_size=self.settings.session_queue)

@@ -23,9 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from models.interface import State, StreamingModel, style_weights
+from models.interface import State, StreamingModel
 
-from .protocol import ProtocolError, StyleMix
 
 
 @dataclass
@@ -115,11 +114,8 @@ class Session:
             self.target = dict(self.weights)
 
     # ---- styles ----------------------------------------------------------------
-    def set_style(self, mix: StyleMix, intensity: float, transition_frames: int) -> None:
-        try:
-            target = style_weights(self.model, mix, intensity)
-        except (KeyError, ValueError) as exc:
-            raise ProtocolError("unknown_style" if isinstance(exc, KeyError) else "bad_style", str(exc).strip('"')) from None
+    def set_style(self, target: dict[str, float], transition_frames: int) -> None:
+        """Move to `target` weights (from `protocol.requested_weights`) over `transition_frames`."""
         self.target = target
         self.transition_left = transition_frames
         if transition_frames == 0:

@@ -15,7 +15,6 @@ import time
 
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
-from models.interface import style_weights
 
 from . import protocol as P
 from .sessions import ControlItem, FrameItem, Session
@@ -141,17 +140,9 @@ class Connection:
             self.queue(FrameItem(message.seq, root, rot, time.perf_counter()))
             return True
         if isinstance(message, P.SetStyle):  # validate now, so the error comes back at once
-            self._check_style(message)
+            P.requested_weights(self.session.model, message.style, message.mix, message.intensity)
         self.queue(ControlItem(message))
         return not isinstance(message, P.End)
-
-    def _check_style(self, message: P.SetStyle) -> None:
-        try:
-            style_weights(self.session.model, P.mix_of(message.style, message.mix), message.intensity)
-        except KeyError as exc:
-            raise P.ProtocolError("unknown_style", str(exc).strip('"')) from None
-        except ValueError as exc:
-            raise P.ProtocolError("bad_style", str(exc)) from None
 
     def on_binary(self, data: bytes) -> None:
         seq, root, rot = P.decode_binary(data, self.adapter.num_joints)
@@ -210,7 +201,8 @@ class Connection:
         s = self.session
         if isinstance(message, P.SetStyle):
             try:
-                s.set_style(P.mix_of(message.style, message.mix), message.intensity, message.transition_frames)
+                s.set_style(P.requested_weights(s.model, message.style, message.mix, message.intensity),
+                            message.transition_frames)
             except P.ProtocolError as err:
                 await self.send_error(err)
             else:
