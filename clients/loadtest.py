@@ -188,31 +188,46 @@ def write_report(results: list[Result], latencies: list[np.ndarray], out: Path) 
 # --------------------------------------------------------------------------- command line
 
 
-def _spawn(module_args: list[str], port: int, env: dict[str, str] | None = None):
-    import subprocess
-    import sys
-
-    import httpx
-
-    proc = subprocess.Popen([sys.executable, "-m", *module_args, "--port", str(port)],
-                            env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1)
-            return proc
-        except httpx.TransportError:
-            time.sleep(0.2)
-    proc.kill()
-    raise RuntimeError(f"{module_args} did not start on port {port}")
-
-
-def _free_port() -> int:
+def free_port() -> int:
+    """A free TCP port on loopback."""
     import socket
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def wait_ready(base: str, alive, timeout: float = 60.0, require_ok: bool = True) -> None:
+    """Poll `base`/readyz until it answers (200, or anything with require_ok=False, for servers
+    without that route); fail early if `alive()` turns false."""
+    import httpx
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            if httpx.get(f"{base}/readyz", timeout=1).status_code == 200 or not require_ok:
+                return
+        except httpx.TransportError:
+            pass
+        if not alive():
+            raise RuntimeError(f"server at {base} exited before it became ready")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"server at {base} not ready after {timeout:.0f} s")
+        time.sleep(0.05)
+
+
+def _spawn(module_args: list[str], port: int, env: dict[str, str] | None = None):
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", *module_args, "--port", str(port)],
+                            env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_ready(f"http://127.0.0.1:{port}", lambda: proc.poll() is None, require_ok=False)
+    except RuntimeError:
+        proc.kill()
+        raise
+    return proc
 
 
 def server_histogram(base_url: str, model: str) -> dict[float, float]:
@@ -274,7 +289,7 @@ def find_max(measure, start: int = 8, limit: int = 4096) -> int:
 @contextlib.contextmanager
 def spawned_server(batching: bool = True):
     """`stylestream serve` on a free loopback port; yields (ws url, process)."""
-    port = _free_port()
+    port = free_port()
     server = _spawn(["clients.cli", "serve", "--log-level", "warning"], port,
                     {} if batching else {"STYLESTREAM_BATCHING": "false"})
     try:
@@ -330,7 +345,7 @@ def measure_fn(url: str, model: str, style: str, fps: float, seconds: float, pro
 
 
 def echo_floor(sessions: int, fps: float, seconds: float, processes: int | None = None) -> Result:
-    port = _free_port()
+    port = free_port()
     echo = _spawn(["clients.echo_server"], port)
     try:
         floor, _ = run(f"ws://127.0.0.1:{port}/v1/stream", sessions, fps, seconds, processes=processes, echo=True)

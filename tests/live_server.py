@@ -2,38 +2,14 @@
 
 from __future__ import annotations
 
-import socket
 import threading
-import time
 from contextlib import contextmanager
 
-import httpx
 import uvicorn
 
+from clients.loadtest import free_port, wait_ready
 from service.app import create_app
 from service.settings import ServiceSettings
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_ready(base: str, alive, timeout: float = 60.0) -> None:
-    """Poll /readyz until the server answers 200; fail early if it died."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            if httpx.get(f"{base}/readyz", timeout=1).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        if not alive():
-            raise RuntimeError("server exited before it became ready")
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"server not ready after {timeout:.0f} s")
-        time.sleep(0.05)
 
 
 @contextmanager

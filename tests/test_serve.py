@@ -6,7 +6,7 @@ import sys
 
 import httpx
 
-from .live_server import free_port, wait_ready
+from clients.loadtest import free_port, wait_ready
 
 
 def test_serve_starts_and_answers_health_and_models():

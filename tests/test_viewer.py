@@ -21,7 +21,8 @@ from models.motion.assets import bandai_namco_skeleton
 from models.registry import load_models
 from models.settings import get_settings
 from service.viewer import DemoClip, rocking_pose
-from tests.live_server import free_port, live_server
+from clients.loadtest import free_port
+from tests.live_server import live_server
 
 CHROMIUM = Path("/usr/bin/chromium")
 OUT = Path(__file__).resolve().parents[1] / "out"  # git-ignored: screenshots to look at
