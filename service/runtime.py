@@ -8,6 +8,7 @@ or removed from this runtime's model (on the worker thread, `on_model_thread`) s
 from __future__ import annotations
 
 import asyncio
+from collections import Counter
 import copy
 from concurrent.futures import ThreadPoolExecutor
 
@@ -31,6 +32,7 @@ class Runtime:
                                        open_sessions=lambda name=name: self.open_sessions(name))
                          for name, model in self.models.items()}
         self.sessions: dict[str, Session] = {}
+        self._open_per_model: Counter[str] = Counter()
         self.store = SessionStore(ttl_s=settings.resume_ttl_s)
 
     async def start(self) -> None:
@@ -47,7 +49,8 @@ class Runtime:
 
     # ---- sessions -------------------------------------------------------------
     def open_sessions(self, model: str) -> int:
-        return sum(1 for s in self.sessions.values() if s.model.name == model)
+        """Open sessions of `model`; read by its batcher once per batch, so kept as a count."""
+        return self._open_per_model[model]
 
     def open_session(self, start: P.Start) -> Session:
         if len(self.sessions) >= self.settings.max_sessions:
@@ -69,6 +72,7 @@ class Runtime:
                               weights=weights, state=model.init_state(1), bvh_header=start.bvh_header,
                               queue_size=self.settings.session_queue)
         self.sessions[session.id] = session
+        self._open_per_model[session.model.name] += 1
         self.metrics.active_sessions.labels(session.model.name).inc()
         return session
 
@@ -79,6 +83,7 @@ class Runtime:
     def session_closed(self, session: Session) -> None:
         """Connection gone (or dropped): keep a snapshot so the client can resume."""
         if self.sessions.pop(session.id, None) is not None:
+            self._open_per_model[session.model.name] -= 1
             self.metrics.active_sessions.labels(session.model.name).dec()
             if not session.ended:
                 self.store.put(session.snapshot())
