@@ -47,16 +47,27 @@ class FrameBatch:
     root: np.ndarray  # (B, 3) root (Hips) translation
     rotations: np.ndarray  # (B, J, 4) local joint rotations, scalar-last quaternions
     contacts: np.ndarray | None = None  # (B, 2) left/right foot contact flags, on outputs where a model predicts them
+    # (B, 5) optional locomotion control, read by controller models (LPN-FiLM) and ignored by the others:
+    # forward and side velocity (m/s, side + = the character's left) in the frame of the desired facing,
+    # desired facing yaw (radians about +Y, 0 = facing +Z, as models.motion.features.facing_yaw),
+    # gait (0 walk, 1 run), flag (1 = control given; a row with 0 lets the model follow the input frames)
+    control: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.root.shape[0]
 
     def take(self, i: int) -> FrameBatch:
-        return FrameBatch(self.root[i:i + 1], self.rotations[i:i + 1])
+        control = None if self.control is None else self.control[i:i + 1]
+        return FrameBatch(self.root[i:i + 1], self.rotations[i:i + 1], control=control)
 
     @staticmethod
     def concat(frames: list[FrameBatch]) -> FrameBatch:
-        return FrameBatch(np.concatenate([f.root for f in frames]), np.concatenate([f.rotations for f in frames]))
+        """Frames of many sessions as one batch; rows without control get a zero (not given) control row."""
+        control = None
+        if any(f.control is not None for f in frames):
+            control = np.concatenate([f.control if f.control is not None else np.zeros((len(f), 5)) for f in frames])
+        return FrameBatch(np.concatenate([f.root for f in frames]), np.concatenate([f.rotations for f in frames]),
+                          control=control)
 
 
 @runtime_checkable

