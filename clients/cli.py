@@ -18,15 +18,11 @@ import sys
 
 
 def _serve(args: argparse.Namespace) -> int:
-    import uvicorn
-
-    from service.app import create_app
+    from service.server import serve
     from service.settings import ServiceSettings
 
     settings = ServiceSettings(**{k: v for k, v in {"host": args.host, "port": args.port}.items() if v is not None})
-    uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level=args.log_level,
-                ws_max_size=4 * settings.max_message_bytes,  # larger ones get a typed error, not a bare close
-                ws_per_message_deflate=False)  # compressing ~400-byte frames costs more CPU than it saves
+    serve(settings, log_level=args.log_level)  # SIGTERM drains the sessions (service/server.py)
     return 0
 
 

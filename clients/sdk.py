@@ -13,8 +13,12 @@
     async with AsyncClient("http://127.0.0.1:8000").session(model="lti", style="elderly") as s:
         out = await s.stylise(root, rotations)
 
-Frames travel as binary (docs/protocol.md); a session that loses its connection reconnects
-with its resume token by itself and continues where the server's snapshot left off.
+Frames travel as binary (docs/protocol.md). A session that loses its connection (a dropped
+network, a replica drained with 1012 or killed) reconnects with its resume token by itself, to
+whichever replica the address leads to, and replays what the server's last stored snapshot
+lacks: the frames and style changes sent since (kept in a bounded `ReplayBuffer`, trimmed by
+the server's snapshot acknowledgements). Replies it already has are discarded, so the outputs
+equal an uninterrupted run's.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import asyncio
 import json
 import struct
 import time
+from collections import deque
 from contextlib import ExitStack
 from dataclasses import dataclass
 
@@ -31,8 +36,10 @@ import numpy as np
 from pydantic import BaseModel
 
 HEADER = struct.Struct("<IHH")
-RESUME_ATTEMPTS = 5  # reconnects racing the server's notice of the dropped connection
-RESUME_BACKOFF_S = 0.05
+RESUME_ATTEMPTS = 8  # connection attempts per resume: the server may not have seen the old connection
+RESUME_BACKOFF_S = 0.05  # go yet, the load balancer may pick a draining replica, a replica may be restarting
+RETRY_CODES = {"session_in_use", "draining", "store_unavailable"}
+REPLAY_LIMIT = 1024  # messages kept for replay; a server acknowledges a snapshot every 30 frames by default
 
 
 class ModelInfo(BaseModel):
@@ -47,6 +54,54 @@ class ServerError(RuntimeError):
     def __init__(self, code: str, message: str, seq: int | None = None) -> None:
         super().__init__(f"{code}: {message}")
         self.code, self.message, self.seq = code, message, seq
+
+
+class ResumeError(RuntimeError):
+    """The session cannot continue exactly: the server's snapshot and the messages this client
+    still holds do not meet (the replay buffer overflowed while the server stored no snapshot,
+    or a reply was lost after the server had saved its frame)."""
+
+
+class ReplayBuffer:
+    """The messages sent since the last snapshot the server acknowledged, in order, so a resumed
+    session can be brought up to date. Frames are binary messages with their sequence number;
+    control messages (style, reset) are text. Replaying a control message the snapshot already
+    holds is harmless: without a frame in between it sets the same target and ramp again.
+
+    `base` is the sequence number of the frame just before the first entry (None: the session's
+    start); a snapshot at `base` or at any buffered frame can be continued."""
+
+    def __init__(self, limit: int = REPLAY_LIMIT) -> None:
+        self.entries: deque[tuple[int | None, bytes | str]] = deque()
+        self.limit = limit
+        self.base: int | None = None
+
+    def add(self, seq: int | None, message: bytes | str) -> None:
+        self.entries.append((seq, message))
+        if len(self.entries) > self.limit:
+            self._drop_through(next(s for s, _ in self.entries if s is not None))
+
+    def acknowledged(self, last_seq: int) -> None:
+        """The server stored a snapshot covering frames up to `last_seq`: forget them."""
+        if any(s == last_seq for s, _ in self.entries):
+            self._drop_through(last_seq)
+
+    def after(self, last_seq: int | None) -> list[tuple[int | None, bytes | str]]:
+        """What to send again to a session restored at `last_seq`."""
+        if last_seq == self.base:
+            return list(self.entries)
+        for i, (seq, _) in enumerate(self.entries):
+            if seq is not None and seq == last_seq:
+                return list(self.entries)[i + 1:]
+        raise ResumeError(f"the server resumed at frame {last_seq}, but this client only holds messages after frame "
+                          f"{self.base}: more than {self.limit} messages went unacknowledged")
+
+    def _drop_through(self, seq: int) -> None:
+        while self.entries:
+            s, _ = self.entries.popleft()
+            if s == seq:
+                self.base = seq
+                return
 
 
 @dataclass
@@ -70,6 +125,7 @@ def _start_message(model: str, style: str | None, mix: dict[str, float] | None, 
         msg["skeleton"] = skeleton
     if resume_token:
         msg["resume_token"] = resume_token
+    msg["snapshot_acks"] = True  # the replay buffer forgets what a stored snapshot covers
     return json.dumps(msg)
 
 
@@ -107,57 +163,85 @@ class Session:
         self.url, self.start_args = _ws_url(base_url, token), start
         self.resume_token: str | None = None
         self.seq = 0
+        self.reconnects = 0  # successful resumes after a lost connection
+        self.replay = ReplayBuffer()
         self._open()
 
     def _open(self) -> None:
+        from websockets.exceptions import ConnectionClosed, InvalidHandshake
         from websockets.sync.client import connect
 
         for attempt in range(RESUME_ATTEMPTS):
             self._connection = ExitStack()  # websockets wants its connection used as a context manager
-            self.ws = self._connection.enter_context(connect(self.url, max_size=2**22))
-            self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
             try:
+                self.ws = self._connection.enter_context(connect(self.url, max_size=2**22))
+                self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
                 started = _raise_if_error(json.loads(self.ws.recv(timeout=30)))
                 break
-            except ServerError as err:  # the server may not have seen the old connection go yet
+            except (ServerError, ConnectionClosed, InvalidHandshake, OSError) as err:
                 self._connection.close()
-                if err.code != "session_in_use" or attempt == RESUME_ATTEMPTS - 1:
+                retry = self.resume_token is not None and (not isinstance(err, ServerError) or err.code in RETRY_CODES)
+                if not retry or attempt == RESUME_ATTEMPTS - 1:
                     raise
                 time.sleep(RESUME_BACKOFF_S * (attempt + 1))
         self.info = started
         self.joints: list[str] = started["joints"]
         self.resume_token = started["resume_token"]
 
-    def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
-        """Send one frame and wait for its stylised twin. Reconnects and resumes once if the
-        connection drops (the frame is sent again)."""
+    def _resume(self) -> None:
+        """Reconnect, send again what the restored snapshot lacks, and read the replies to all of
+        it but the last message (the caller's own, whose reply the caller reads)."""
+        self._connection.close()
+        self._open()
+        self.reconnects += 1
+        missing = self.replay.after(self.info["last_seq"])
+        if not missing or missing[-1] is not self.replay.entries[-1]:
+            raise ResumeError("the server saved the last message but its reply was lost")
+        for _, message in missing:
+            self.ws.send(message)
+        for seq, _ in missing[:-1]:
+            self._reply(seq)
+
+    def _reply(self, seq: int | None) -> StyledFrame | dict:
+        """The reply to a frame (`seq`) or to a control message (None), acting on snapshot
+        acknowledgements on the way."""
+        while True:
+            data = self.ws.recv(timeout=30)
+            if isinstance(data, bytes):
+                frame = _unpack(data, len(self.joints))
+                if seq is not None and frame.seq == seq:
+                    return frame
+                continue  # a reply the client has already had
+            message = _raise_if_error(json.loads(data))
+            if message.get("type") == "snapshot":
+                self.replay.acknowledged(message["last_seq"])
+            elif seq is None:
+                return message
+
+    def _call(self, seq: int | None, message: bytes | str) -> StyledFrame | dict:
+        """Send one message and return its reply, resuming once if the connection goes."""
         from websockets.exceptions import ConnectionClosed
 
-        for attempt in (0, 1):
-            try:
-                self.ws.send(_pack(self.seq, root, rotations))
-                while True:
-                    data = self.ws.recv(timeout=30)
-                    if isinstance(data, bytes):
-                        frame = _unpack(data, len(self.joints))
-                        self.seq += 1
-                        return frame
-                    _raise_if_error(json.loads(data))
-            except ConnectionClosed:
-                if attempt:
-                    raise
-                self._connection.close()
-                self._open()
-        raise AssertionError("unreachable")
+        self.replay.add(seq, message)
+        try:
+            self.ws.send(message)
+            return self._reply(seq)
+        except ConnectionClosed:
+            self._resume()
+            return self._reply(seq)
+
+    def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
+        """Send one frame and wait for its stylised twin (resuming by itself, see the module)."""
+        frame = self._call(self.seq, _pack(self.seq, root, rotations))
+        self.seq += 1
+        return frame
 
     def set_style(self, style: str | None = None, mix: dict[str, float] | None = None, intensity: float = 1.0,
                   transition_frames: int = 0) -> dict:
-        self.ws.send(_style_message(style, mix, intensity, transition_frames))
-        return _raise_if_error(json.loads(self.ws.recv(timeout=30)))
+        return self._call(None, _style_message(style, mix, intensity, transition_frames))
 
     def reset(self) -> None:
-        self.ws.send(json.dumps({"type": "reset"}))
-        _raise_if_error(json.loads(self.ws.recv(timeout=30)))
+        self._call(None, json.dumps({"type": "reset"}))
 
     def close(self) -> None:
         try:
@@ -195,52 +279,88 @@ class Client:
 
 
 class AsyncSession:
-    """An asyncio streaming session."""
+    """An asyncio streaming session; resumes like `Session`."""
 
     def __init__(self, base_url: str, token: str | None = None, **start) -> None:
         self.url, self.start_args = _ws_url(base_url, token), start
         self.resume_token: str | None = None
         self.seq = 0
+        self.reconnects = 0
+        self.replay = ReplayBuffer()
 
     async def open(self) -> AsyncSession:
         import websockets
+        from websockets.exceptions import ConnectionClosed, InvalidHandshake
 
         for attempt in range(RESUME_ATTEMPTS):
-            self.ws = await websockets.connect(self.url, max_size=2**22)
-            await self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
             try:
+                self.ws = await websockets.connect(self.url, max_size=2**22)
+            except (InvalidHandshake, OSError):
+                if self.resume_token is None or attempt == RESUME_ATTEMPTS - 1:
+                    raise
+                await asyncio.sleep(RESUME_BACKOFF_S * (attempt + 1))
+                continue
+            try:
+                await self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
                 started = _raise_if_error(json.loads(await self.ws.recv()))
                 break
-            except ServerError as err:  # the server may not have seen the old connection go yet
+            except (ServerError, ConnectionClosed) as err:
                 await self.ws.close()
-                if err.code != "session_in_use" or attempt == RESUME_ATTEMPTS - 1:
+                retry = self.resume_token is not None and (not isinstance(err, ServerError) or err.code in RETRY_CODES)
+                if not retry or attempt == RESUME_ATTEMPTS - 1:
                     raise
                 await asyncio.sleep(RESUME_BACKOFF_S * (attempt + 1))
         self.info, self.joints, self.resume_token = started, started["joints"], started["resume_token"]
         return self
 
-    async def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
+    async def _resume(self) -> None:
+        await self.ws.close()
+        await self.open()
+        self.reconnects += 1
+        missing = self.replay.after(self.info["last_seq"])
+        if not missing or missing[-1] is not self.replay.entries[-1]:
+            raise ResumeError("the server saved the last message but its reply was lost")
+        for _, message in missing:
+            await self.ws.send(message)
+        for seq, _ in missing[:-1]:
+            await self._reply(seq)
+
+    async def _reply(self, seq: int | None) -> StyledFrame | dict:
+        while True:
+            data = await self.ws.recv()
+            if isinstance(data, bytes):
+                frame = _unpack(data, len(self.joints))
+                if seq is not None and frame.seq == seq:
+                    return frame
+                continue
+            message = _raise_if_error(json.loads(data))
+            if message.get("type") == "snapshot":
+                self.replay.acknowledged(message["last_seq"])
+            elif seq is None:
+                return message
+
+    async def _call(self, seq: int | None, message: bytes | str) -> StyledFrame | dict:
         from websockets.exceptions import ConnectionClosed
 
-        for attempt in (0, 1):
-            try:
-                await self.ws.send(_pack(self.seq, root, rotations))
-                while True:
-                    data = await self.ws.recv()
-                    if isinstance(data, bytes):
-                        self.seq += 1
-                        return _unpack(data, len(self.joints))
-                    _raise_if_error(json.loads(data))
-            except ConnectionClosed:
-                if attempt:
-                    raise
-                await self.open()
-        raise AssertionError("unreachable")
+        self.replay.add(seq, message)
+        try:
+            await self.ws.send(message)
+            return await self._reply(seq)
+        except ConnectionClosed:
+            await self._resume()
+            return await self._reply(seq)
+
+    async def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
+        frame = await self._call(self.seq, _pack(self.seq, root, rotations))
+        self.seq += 1
+        return frame
 
     async def set_style(self, style: str | None = None, mix: dict[str, float] | None = None, intensity: float = 1.0,
                         transition_frames: int = 0) -> dict:
-        await self.ws.send(_style_message(style, mix, intensity, transition_frames))
-        return _raise_if_error(json.loads(await self.ws.recv()))
+        return await self._call(None, _style_message(style, mix, intensity, transition_frames))
+
+    async def reset(self) -> None:
+        await self._call(None, json.dumps({"type": "reset"}))
 
     async def close(self) -> None:
         try:

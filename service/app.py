@@ -97,6 +97,9 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
         if request.app.state.runtime is None:
             response.status_code = 503
             return Health(status="loading")
+        if request.app.state.runtime.draining:  # SIGTERM: load balancers stop sending new sessions
+            response.status_code = 503
+            return Health(status="draining")
         return Health(status="ready")
 
     @app.get("/metrics", response_class=PlainTextResponse)

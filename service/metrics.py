@@ -25,3 +25,11 @@ class Metrics:
                                       ["model"], registry=self.registry)
         self.errors = Counter("stylestream_errors_total", "Client errors by code", ["code"], registry=self.registry)
         self.frames = Counter("stylestream_frames_total", "Frames stylised", ["model"], registry=self.registry)
+        self.snapshots = Counter("stylestream_snapshots_total", "Session snapshots written to the store",
+                                 registry=self.registry)
+        self.snapshot_failures = Counter("stylestream_snapshot_failures_total",
+                                         "Snapshot writes that failed (store unreachable); retried", registry=self.registry)
+        self.snapshot_seconds = Histogram("stylestream_snapshot_write_seconds", "One batched write of snapshots to the store",
+                                          buckets=LATENCY_BUCKETS, registry=self.registry)
+        self.resumes = Counter("stylestream_sessions_resumed_total", "Sessions resumed from a snapshot",
+                               registry=self.registry)

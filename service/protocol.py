@@ -52,6 +52,7 @@ class Start(_Message):
     fps: float = Field(default=30.0, gt=0, le=240)
     encoding: Literal["json", "binary"] = "json"
     resume_token: str | None = None
+    snapshot_acks: bool = False  # send {"type": "snapshot", "last_seq": n} once a snapshot is stored
 
     @field_validator("version")
     @classmethod

@@ -1,6 +1,10 @@
 """Process-wide runtime: loaded models, one batcher per model, the worker thread, sessions and
 the snapshot store. The FastAPI app holds one of these; tests may run several side by side.
 
+Sessions are snapshotted every `snapshot_every` frames and when their connection goes, through a
+background `SnapshotWriter`, so a client can resume here or on any replica sharing the store.
+`drain` (SIGTERM) refuses new sessions, snapshots every open one and closes it with 1012.
+
 A model whose style set can change (`add_style`) is taken as a shallow copy, so styles added to
 or removed from this runtime's model (on the worker thread, `on_model_thread`) stay its own.
 """
@@ -8,17 +12,27 @@ or removed from this runtime's model (on the worker thread, `on_model_thread`) s
 from __future__ import annotations
 
 import asyncio
-from collections import Counter
 import copy
+import time
+from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
+from typing import Protocol
 
 from models.interface import StreamingModel
 
 from . import protocol as P
 from .batcher import Batcher
 from .metrics import Metrics
-from .sessions import Session, SessionStore
+from .session_store import SavedCallback, SnapshotWriter, StoreUnavailable, create_store
+from .sessions import Session
 from .settings import ServiceSettings
+
+
+class Drainable(Protocol):
+    """A live connection as `drain` sees it (`stream.Connection`)."""
+
+    async def stop_processing(self) -> None: ...
+    async def close_for_restart(self) -> None: ...
 
 
 class Runtime:
@@ -33,15 +47,35 @@ class Runtime:
                          for name, model in self.models.items()}
         self.sessions: dict[str, Session] = {}
         self._open_per_model: Counter[str] = Counter()
-        self.store = SessionStore(ttl_s=settings.resume_ttl_s)
+        self.connections: dict[str, Drainable] = {}  # by session id
+        self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
+        self.draining = False
 
     async def start(self) -> None:
         for batcher in self.batchers.values():
             batcher.start()
+        self.snapshots.start()
 
     async def stop(self) -> None:
         await asyncio.gather(*(b.stop() for b in self.batchers.values()))
+        await self.snapshots.stop()
         self.executor.shutdown(wait=False, cancel_futures=True)
+
+    async def drain(self, timeout_s: float) -> None:
+        """Refuse new sessions, stop every session after its current frame, save its snapshot,
+        and only then close it with 1012, so its client finds the snapshot wherever it
+        reconnects. Bounded by `timeout_s`: a store that does not answer delays the closes by at
+        most that (the clients replay from their last acknowledged snapshot then)."""
+        deadline = time.monotonic() + timeout_s
+        self.draining = True
+        connections = list(self.connections.values())
+        stopping = asyncio.gather(*(c.stop_processing() for c in connections), return_exceptions=True)
+        try:
+            await asyncio.wait_for(stopping, timeout=0.5 * timeout_s)
+        except TimeoutError:
+            pass
+        await self.snapshots.flush(max(0.0, deadline - time.monotonic() - 0.1 * timeout_s))
+        await asyncio.gather(*(c.close_for_restart() for c in connections), return_exceptions=True)
 
     async def on_model_thread(self, fn, *args):
         """`fn(*args)` on the model-step worker thread, between batched steps (style changes)."""
@@ -52,17 +86,27 @@ class Runtime:
         """Open sessions of `model`; read by its batcher once per batch, so kept as a count."""
         return self._open_per_model[model]
 
-    def open_session(self, start: P.Start) -> Session:
+    async def open_session(self, start: P.Start) -> Session:
+        if self.draining:
+            raise P.ProtocolError("draining", "this replica is shutting down; connect again (another replica "
+                                  "takes the session)", close_code=1012)
         if len(self.sessions) >= self.settings.max_sessions:
             raise P.ProtocolError("too_many_sessions", f"server holds its maximum of {self.settings.max_sessions} sessions",
                                   close_code=1013)
         if start.resume_token:
-            snap = self.store.get(start.resume_token)
+            try:
+                snap = await self.snapshots.get(start.resume_token)
+            except StoreUnavailable:
+                raise P.ProtocolError("store_unavailable", "the session store cannot be reached; try again",
+                                      close_code=1013) from None
             if snap is None:
                 raise P.ProtocolError("unknown_resume_token", "resume token unknown or expired")
-            if snap.session_id in self.sessions:
+            if snap.session_id in self.sessions:  # checked after the await: no two resumes of one session
                 raise P.ProtocolError("session_in_use", "that session is still connected")
+            if snap.model not in self.models:
+                raise P.ProtocolError("unknown_model", f"this replica does not serve model {snap.model!r}")
             session = Session.restore(snap, self.models[snap.model], self.settings.session_queue)
+            self.metrics.resumes.inc()
         else:
             model = self.models.get(start.model)
             if model is None:
@@ -76,9 +120,10 @@ class Runtime:
         self.metrics.active_sessions.labels(session.model.name).inc()
         return session
 
-    def after_frame(self, session: Session) -> None:
-        if session.last_seq is not None and (session.last_seq + 1) % self.settings.snapshot_every == 0:
-            self.store.put(session.snapshot())
+    def after_frame(self, session: Session, on_saved: SavedCallback | None = None) -> None:
+        """Called after each stylised frame's reply; queues a snapshot every `snapshot_every`."""
+        if session.snapshot_due(self.settings.snapshot_every):
+            self.snapshots.put(session.snapshot(), on_saved)
 
     def session_closed(self, session: Session) -> None:
         """Connection gone (or dropped): keep a snapshot so the client can resume."""
@@ -86,9 +131,9 @@ class Runtime:
             self._open_per_model[session.model.name] -= 1
             self.metrics.active_sessions.labels(session.model.name).dec()
             if not session.ended:
-                self.store.put(session.snapshot())
+                self.snapshots.put(session.snapshot())
 
     def session_ended(self, session: Session) -> None:
         """The client said 'end': nothing to resume."""
         session.ended = True
-        self.store.delete(session.token)
+        self.snapshots.delete(session.token)

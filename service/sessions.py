@@ -6,25 +6,23 @@ the model's style set may change under a live session) and a bounded queue of pe
 Frames beyond the queue bound push out the oldest *frame* (control messages are never dropped),
 and the next reply reports how many were dropped: the newest frames win and memory stays
 bounded. Snapshots hold everything needed to continue exactly where a session left
-off, on this replica or another.
+off, on this replica or another (`service.session_store` keeps them).
 """
 
 from __future__ import annotations
 
 import base64
-import io
 import json
 import secrets
 import time
 import uuid
-from collections import OrderedDict, deque
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from models.interface import State, StreamingModel
-
 
 
 @dataclass
@@ -74,15 +72,20 @@ class Snapshot:
         return cls(**data)
 
 
-def encode_state(state: State) -> str:
-    buf = io.BytesIO()
-    np.savez(buf, **state)
-    return base64.b64encode(buf.getvalue()).decode()
+def encode_state(state: State) -> dict[str, dict]:
+    """Arrays as dtype, shape and base64 of their raw bytes: exact, and ~30x faster than
+    `np.savez` (a snapshot is encoded every `snapshot_every` frames of every session)."""
+    out = {}
+    for name, value in state.items():
+        array = np.ascontiguousarray(value)
+        out[name] = {"dtype": array.dtype.str, "shape": list(array.shape),
+                     "data": base64.b64encode(array.tobytes()).decode("ascii")}
+    return out
 
 
-def decode_state(data: str) -> State:
-    with np.load(io.BytesIO(base64.b64decode(data))) as z:
-        return {k: z[k] for k in z.files}
+def decode_state(data: dict[str, dict]) -> State:
+    return {name: np.frombuffer(base64.b64decode(entry["data"]), dtype=np.dtype(entry["dtype"]))
+            .reshape(entry["shape"]).copy() for name, entry in data.items()}
 
 
 @dataclass
@@ -106,6 +109,7 @@ class Session:
     held_rotations: np.ndarray | None = None
     held_input_root: np.ndarray | None = None
     last_active: float = field(default_factory=time.monotonic)
+    frames_since_snapshot: int = 0
     queue_size: int = 8
     pending: deque = field(default_factory=deque)
 
@@ -142,8 +146,9 @@ class Session:
         return had
 
     def reset(self) -> None:
+        """Recurrent state back to its start. `last_seq` stays: it marks how far the client's
+        stream has been consumed, which resume needs whatever the state holds."""
         self.state = self.model.init_state(1)
-        self.last_seq = None
         self.clock, self.held_root, self.held_rotations, self.held_input_root = -1.0, None, None, None
 
     # ---- frame rate ----------------------------------------------------------------
@@ -181,6 +186,15 @@ class Session:
         return n
 
     # ---- snapshots --------------------------------------------------------------
+    def snapshot_due(self, every: int) -> bool:
+        """Count a stylised frame; true every `every` frames (counted, not read off the client's
+        sequence numbers, which need not be consecutive)."""
+        self.frames_since_snapshot += 1
+        if self.frames_since_snapshot < every:
+            return False
+        self.frames_since_snapshot = 0
+        return True
+
     def snapshot(self) -> Snapshot:
         return Snapshot(session_id=self.id, token=self.token, model=self.model.name, skeleton=self.skeleton,
                         bvh_header=self.bvh_header, fps=self.fps, encoding=self.encoding,
@@ -199,29 +213,3 @@ class Session:
                    transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size,
                    clock=snap.clock, held_root=held.get("root"), held_rotations=held.get("rotations"),
                    held_input_root=held.get("input_root"))
-
-
-class SessionStore:
-    """In-memory snapshot store keyed by resume token, oldest first so expiry is cheap (a shared
-    Redis-backed store comes with the scale-out issue and would keep `Snapshot.to_json()`)."""
-
-    def __init__(self, ttl_s: float = 600.0) -> None:
-        self._data: OrderedDict[str, tuple[float, Snapshot]] = OrderedDict()
-        self.ttl_s = ttl_s
-
-    def put(self, snap: Snapshot) -> None:
-        self._data[snap.token] = (time.monotonic(), snap)
-        self._data.move_to_end(snap.token)
-        self._expire()
-
-    def get(self, token: str) -> Snapshot | None:
-        entry = self._data.get(token)
-        return entry[1] if entry else None
-
-    def delete(self, token: str) -> None:
-        self._data.pop(token, None)
-
-    def _expire(self) -> None:
-        limit = time.monotonic() - self.ttl_s
-        while self._data and next(iter(self._data.values()))[0] < limit:
-            self._data.popitem(last=False)

@@ -25,6 +25,10 @@ class ServiceSettings(Settings):
     max_message_bytes: int = Field(default=256 * 1024, ge=1024, description="Largest WebSocket message accepted.")
     snapshot_every: int = Field(default=30, ge=1, description="Frames between session snapshots (for resume).")
     resume_ttl_s: float = Field(default=600.0, gt=0, description="How long a closed session can be resumed.")
+    session_store: str = Field(default="memory", pattern=r"^(memory|(redis|rediss|unix)://.*)$",
+                               description="Where snapshots live: 'memory' (this replica) or redis://host:port/db (shared).")
+    drain_timeout_s: float = Field(default=15.0, gt=0, le=600,
+                                   description="On SIGTERM: snapshot and close every session, then exit within this.")
     api_tokens: list[str] = Field(default_factory=list, description="When set, every request needs one (Bearer or ?token=).")
     styles_dir: Path = Field(default=REPO_ROOT / ".data" / "styles", description="Uploaded styles (clip, translator, metadata).")
     upload_max_bytes: int = Field(default=16 * 1024 * 1024, ge=1024, description="Largest style upload body accepted (413 above).")

@@ -4,6 +4,11 @@ Two tasks per connection: the receiver parses and validates messages and queues 
 session (bad frames get a typed error and are skipped; protocol violations close the socket),
 and the processor takes queued work in order, runs frames through the model's batcher and sends
 each result back with the frame's sequence number. One send lock keeps replies whole.
+
+If the client goes away, frames still queued are left unprocessed: its resume replays them, so
+the saved state never runs ahead of the replies the client has. A drain (SIGTERM) stops the
+processor after its current frame, and the runtime closes the socket with 1012 once the
+session's snapshot is stored.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 
 from . import protocol as P
-from .sessions import ControlItem, FrameItem, Session
+from .sessions import ControlItem, FrameItem, Session, Snapshot
 from .skeletons import adapter_for
 
 log = logging.getLogger(__name__)
@@ -34,7 +39,11 @@ class Connection:
         self.adapter = None
         self.send_lock = asyncio.Lock()
         self.wakeup = asyncio.Event()
-        self.closing = False
+        self.closing = False  # no more input: process what is queued, then stop
+        self.stopping = False  # stop after the current item (client gone, or draining)
+        self.processor: asyncio.Task | None = None
+        self.acks = False  # the client asked for snapshot acknowledgements
+        self._ack_tasks: set[asyncio.Task] = set()
 
     # ---- sending ------------------------------------------------------------------
     async def send_json(self, payload: dict) -> None:
@@ -75,15 +84,16 @@ class Connection:
         return data
 
     async def run(self) -> None:
-        processor = None
         try:
             if not await self.open_session():
                 return
-            processor = asyncio.create_task(self.process())
+            self.rt.connections[self.session.id] = self
+            self.processor = asyncio.create_task(self.process())
             while not self.closing:
                 try:
                     data = await self.receive()
                     if data is None:
+                        self.stopping = True
                         break
                     if isinstance(data, bytes):
                         self.on_binary(data)
@@ -95,14 +105,37 @@ class Connection:
                         await self.close(err.close_code, err.message)
                         break
         except WebSocketDisconnect:
-            pass
+            self.stopping = True
         finally:
             self.closing = True
             self.wakeup.set()
-            if processor is not None:
-                await asyncio.gather(processor, return_exceptions=True)
+            if self.processor is not None:
+                await asyncio.gather(self.processor, return_exceptions=True)
             if self.session is not None:
                 self.rt.session_closed(self.session)
+                if self.rt.connections.get(self.session.id) is self:
+                    del self.rt.connections[self.session.id]
+
+    # ---- drain and snapshot acknowledgements ----------------------------------------
+    async def stop_processing(self) -> None:
+        """Drain, step 1: finish the current frame, process nothing more, queue the snapshot."""
+        self.stopping = True
+        self.wakeup.set()
+        if self.processor is not None:
+            await asyncio.gather(self.processor, return_exceptions=True)
+        self.rt.session_closed(self.session)
+
+    async def close_for_restart(self) -> None:
+        """Drain, step 2 (the snapshot is stored): 1012 with the resume token in the reason."""
+        await self.close(CLOSE_RESTART, f"service restart; resume_token={self.session.token}")
+
+    def snapshot_saved(self, snap: Snapshot) -> None:
+        """Tell the client frames up to `last_seq` are safe in the store (it may forget them)."""
+        if self.stopping or snap.last_seq is None:
+            return
+        task = asyncio.get_running_loop().create_task(self.send_json({"type": "snapshot", "last_seq": snap.last_seq}))
+        self._ack_tasks.add(task)
+        task.add_done_callback(self._ack_tasks.discard)
 
     async def open_session(self) -> bool:
         try:
@@ -114,7 +147,8 @@ class Connection:
             message = P.parse_text(data)
             if not isinstance(message, P.Start):
                 raise P.ProtocolError("expected_start", f"the first message must be 'start', got '{message.type}'", fatal=True)
-            self.session = self.rt.open_session(message)
+            self.session = await self.rt.open_session(message)
+            self.acks = message.snapshot_acks
             self.adapter = adapter_for(self.session.skeleton, self.session.bvh_header, self.session.model.skeleton)
         except P.ProtocolError as err:
             err.fatal = True
@@ -160,7 +194,7 @@ class Connection:
     async def process(self) -> None:
         s = self.session
         batcher = self.rt.batchers[s.model.name]
-        while True:
+        while not self.stopping:
             if not s.pending:
                 if self.closing:
                     return
@@ -195,7 +229,7 @@ class Connection:
                 await self.send_json(P.frame_message(item.seq, out_root, out_rot, dropped))
             self.metrics.frame_latency.labels(s.model.name).observe(time.perf_counter() - item.received)
             self.metrics.frames.labels(s.model.name).inc()
-            self.rt.after_frame(s)
+            self.rt.after_frame(s, self.snapshot_saved if self.acks else None)
 
     async def control(self, message) -> bool:
         s = self.session

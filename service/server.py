@@ -1,0 +1,72 @@
+"""Running the app under uvicorn with a graceful drain on SIGTERM (`stylestream serve`, the image).
+
+Plain uvicorn answers SIGTERM by closing its listeners and waiting for open connections to end,
+which for streaming sessions means until the client leaves or the orchestrator kills the
+process: sessions lose whatever came after their last periodic snapshot. `DrainingServer`
+drains first (`Runtime.drain`: readyz turns 503, new sessions are refused with 1012, every
+session is stopped, snapshotted to the store and closed with 1012 and its resume token) and only
+then lets uvicorn shut down, all within `drain_timeout_s`. A second signal skips the drain.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+from types import FrameType
+
+import uvicorn
+from fastapi import FastAPI
+
+from .app import create_app
+from .settings import ServiceSettings
+
+log = logging.getLogger(__name__)
+
+
+class DrainingServer(uvicorn.Server):
+    def __init__(self, config: uvicorn.Config, app: FastAPI, drain_timeout_s: float) -> None:
+        super().__init__(config)
+        self.app, self.drain_timeout_s = app, drain_timeout_s
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._drain_task: asyncio.Task | None = None
+
+    async def serve(self, sockets=None) -> None:
+        self._loop = asyncio.get_running_loop()
+        await super().serve(sockets)
+
+    def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        """Signal handler (main thread, between bytecodes of the loop): schedule the drain."""
+        runtime = getattr(self.app.state, "runtime", None)
+        if self._drain_task is not None or runtime is None or self._loop is None or sig not in (signal.SIGTERM, signal.SIGINT):
+            super().handle_exit(sig, frame)  # second signal, or nothing to drain: uvicorn's own way
+            return
+        self._loop.call_soon_threadsafe(self._start_drain, sig, runtime)
+
+    def _start_drain(self, sig: int, runtime) -> None:
+        if self._drain_task is not None:
+            return
+        log.info("draining %d session(s), at most %.1f s", len(runtime.connections), self.drain_timeout_s)
+        self._loop.call_later(self.drain_timeout_s, self._give_up)
+        self._drain_task = self._loop.create_task(self._drain(sig, runtime))
+
+    async def _drain(self, sig: int, runtime) -> None:
+        try:
+            await runtime.drain(0.7 * self.drain_timeout_s)
+        except Exception:  # noqa: BLE001 - shut down regardless
+            log.exception("drain failed")
+        super().handle_exit(sig, None)  # now uvicorn closes listeners and waits out what is left
+
+    def _give_up(self) -> None:
+        if not self.force_exit:
+            log.error("drain timeout of %.1f s reached: exiting", self.drain_timeout_s)
+            self.should_exit = self.force_exit = True
+
+
+def serve(settings: ServiceSettings, log_level: str = "info") -> None:
+    app = create_app(settings)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level,
+                            ws_max_size=4 * settings.max_message_bytes,  # larger ones get a typed error, not a bare close
+                            ws_per_message_deflate=False,  # compressing ~400-byte frames costs more CPU than it saves
+                            timeout_graceful_shutdown=max(1, round(0.15 * settings.drain_timeout_s)))
+    DrainingServer(config, app, settings.drain_timeout_s).run()
