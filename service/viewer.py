@@ -141,10 +141,12 @@ def build_router() -> APIRouter:
         return FileResponse(VIEWER_DIR / "index.html", media_type="text/html",
                             headers={"Cache-Control": "no-cache"})
 
-    @router.get("/viewer/static/{name}", include_in_schema=False)
+    @router.get("/viewer/static/{name:path}", include_in_schema=False)
     async def viewer_static(name: str) -> FileResponse:
+        """The viewer's files and its vendored libraries (vendor/three/): ES modules need a
+        JavaScript MIME type; nothing outside clients/viewer/ and no other file types are served."""
         path = (VIEWER_DIR / name).resolve()
-        if path.parent != VIEWER_DIR or path.suffix not in STATIC_TYPES or not path.is_file():
+        if not path.is_relative_to(VIEWER_DIR) or path.suffix not in STATIC_TYPES or not path.is_file():
             raise HTTPException(404, "not found")
         return FileResponse(path, media_type=STATIC_TYPES[path.suffix], headers={"Cache-Control": "no-cache"})
 

@@ -26,7 +26,8 @@ from tests.live_server import live_server
 
 CHROMIUM = Path("/usr/bin/chromium")
 OUT = Path(__file__).resolve().parents[1] / "out"  # git-ignored: screenshots to look at
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+# WebGL without a GPU: ANGLE on SwiftShader (software), which Chromium only uses when told to
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
                   "--window-size=1000,600"]
 # the skeleton colours of viewer.js (left limbs): input blue, stylised orange
