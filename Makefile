@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-all summary eval perf clean browser
+.PHONY: install serve test test-all summary eval perf clean browser viewer-vendor
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -21,6 +21,10 @@ install: $(VENV)/.installed
 
 serve: install
 	$(BIN)/stylestream serve --host $(HOST) --port $(PORT)
+
+# Re-fetch three.js for the browser viewer from the npm registry (checked against its sha512)
+viewer-vendor:
+	sh clients/viewer/vendor/fetch-three.sh
 
 # Chromium for the browser-viewer tests (Debian package); without apt they are skipped, saying why
 browser:
