@@ -6,6 +6,7 @@
     stylestream render a.bvh [b.bvh] -o x.gif   render motions side by side (GIF, or PNG contact sheet)
     stylestream retarget in.bvh -o out.bvh      CMU-skeleton BVH -> Bandai Namco skeleton (30 fps)
     stylestream loadtest --sessions 1,64 --echo-floor   open-loop latency test against a server it starts
+    stylestream soak --minutes 30 --sessions 16         long run sampling server memory (docs/soak.md)
 
 Every subcommand has --help. Settings (data folder, cache folder, port...) come from
 STYLESTREAM_* environment variables or a .env file; see README.md.
@@ -50,10 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .loadtest import add_loadtest_command
     from .motion_tools import add_motion_commands
+    from .soak import add_soak_command
     from .vmc import add_vmc_command
 
     add_motion_commands(sub)
     add_loadtest_command(sub)
+    add_soak_command(sub)
     add_vmc_command(sub)
     return parser
 

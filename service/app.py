@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import asyncio
-import secrets
+import contextlib
 from contextlib import asynccontextmanager
 
 import torch
@@ -16,9 +16,11 @@ from pydantic import BaseModel
 from models.registry import load_models
 
 from .jobs import JobInfo, JobManager
+from .limits import Limiter, Principal, unauthorized
 from .runtime import Runtime
 from .settings import ServiceSettings, get_service_settings
 from .styles import ApiError, ErrorBody, StyleInfo, StyleStore, StyleUpload, UploadAccepted
+from . import protocol as P
 from .stream import CLOSE_UNAUTHORIZED, Connection
 from .viewer import router as viewer_router
 
@@ -31,13 +33,6 @@ class ModelInfo(BaseModel):
 
 class Health(BaseModel):
     status: str
-
-
-def _token_ok(settings: ServiceSettings, header: str | None, query: str | None) -> bool:
-    if not settings.api_tokens:
-        return True
-    given = query or (header[7:] if header and header.lower().startswith("bearer ") else None)
-    return given is not None and any(secrets.compare_digest(given, t) for t in settings.api_tokens)
 
 
 async def _read_limited(request: Request, limit: int) -> bytes:
@@ -78,10 +73,17 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
     app = FastAPI(title="stylestream", version="0.1.0", lifespan=lifespan,
                   description="Online motion style transfer over WebSocket. Protocol: docs/protocol.md")
     app.state.runtime = None
+    limiter = app.state.limiter = Limiter(settings)
 
-    def require_token(request: Request) -> None:
-        if not _token_ok(settings, request.headers.get("authorization"), request.query_params.get("token")):
-            raise HTTPException(401, "missing or invalid API token", headers={"WWW-Authenticate": "Bearer"})
+    async def require_token(request: Request) -> Principal:
+        """The caller (401 without a valid token), counted against its request rate (429).
+        Async, so the limiter's counters are only ever touched on the event loop."""
+        who = limiter.identify(request.headers.get("authorization"), request.query_params.get("token"),
+                               request.client.host if request.client else None)
+        if who is None:
+            raise unauthorized()
+        limiter.check_request(who)
+        return who
 
     def runtime(request: Request) -> Runtime:
         if request.app.state.runtime is None:
@@ -106,16 +108,18 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
     async def metrics(rt: Runtime = Depends(runtime)) -> Response:
         return Response(generate_latest(rt.metrics.registry), media_type=CONTENT_TYPE_LATEST)
 
-    @app.get("/v1/models", response_model=list[ModelInfo], dependencies=[Depends(require_token)])
+    @app.get("/v1/models", response_model=list[ModelInfo], dependencies=[Depends(require_token)],
+             responses={s: {"model": ErrorBody} for s in (401, 429)})
     async def list_models(rt: Runtime = Depends(runtime)) -> list[ModelInfo]:
         return [ModelInfo(name=n, styles=m.styles(), joints=list(m.skeleton.names)) for n, m in rt.models.items()]
 
     # ---- styles and jobs ----------------------------------------------------------
     @app.exception_handler(ApiError)
     async def api_error(request: Request, exc: ApiError) -> JSONResponse:
-        return JSONResponse({"code": exc.code, "message": exc.message}, status_code=exc.status)
+        return JSONResponse({"code": exc.code, "message": exc.message}, status_code=exc.status,
+                            headers=getattr(exc, "headers", None))
 
-    errors = {s: {"model": ErrorBody} for s in (401, 404, 409, 413, 422)}
+    errors = {s: {"model": ErrorBody} for s in (401, 404, 409, 413, 422, 429)}
 
     @app.get("/v1/styles", response_model=list[StyleInfo], dependencies=[Depends(require_token)], responses=errors)
     async def list_styles(model: str | None = None, rt: Runtime = Depends(runtime)) -> list[StyleInfo]:
@@ -141,10 +145,10 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
               responses=errors, openapi_extra=upload_body)
     async def upload_style(request: Request, fine_tune: bool | None = Query(default=None),
                            name: str | None = Query(default=None), model: str | None = Query(default=None),
-                           rt: Runtime = Depends(runtime)) -> UploadAccepted:
+                           rt: Runtime = Depends(runtime), who: Principal = Depends(require_token)) -> UploadAccepted:
         """Upload a clip as a new style: multipart BVH (`file`) or JSON frames. LTI styles need
         `fine_tune=true`, which starts the identification job (`GET /v1/jobs/{id}`)."""
-        body = await _read_limited(request, settings.upload_max_bytes)
+        body = await _read_limited(request, who.limits.upload_max_bytes)
         ctype = request.headers.get("content-type", "")
         upload, bvh_text, fields = None, None, {}
         if ctype.startswith("multipart/form-data"):
@@ -187,11 +191,24 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
     @app.websocket("/v1/stream")
     async def stream(ws: WebSocket) -> None:
         await ws.accept()
-        if not _token_ok(settings, ws.headers.get("authorization"), ws.query_params.get("token")):
+        who = limiter.identify(ws.headers.get("authorization"), ws.query_params.get("token"),
+                               ws.client.host if ws.client else None)
+        if who is None:
             await ws.close(CLOSE_UNAUTHORIZED, "missing or invalid API token")
             return
-        rt = ws.app.state.runtime
-        await Connection(ws, rt).run()
+        connection = Connection(ws, ws.app.state.runtime)
+        try:
+            limiter.open_session(who)
+        except P.ProtocolError as err:  # the token's session cap: typed error, then 1013,
+            with contextlib.suppress(TimeoutError):  # answering the client's start, as other refusals do
+                await asyncio.wait_for(ws.receive(), timeout=min(5.0, settings.idle_timeout_s))
+            await connection.send_error(err)
+            await connection.close(err.close_code, err.message)
+            return
+        try:
+            await connection.run()
+        finally:
+            limiter.session_closed(who)
 
     app.include_router(viewer_router)
     return app

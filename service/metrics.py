@@ -4,7 +4,9 @@ A private registry per app, so several apps in one process (tests) never collide
 
 from __future__ import annotations
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+import sys
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, GCCollector, Histogram, ProcessCollector
 
 LATENCY_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.004, 0.008, 0.0167, 0.033, 0.066, 0.1, 0.25, 1.0)
 
@@ -33,3 +35,8 @@ class Metrics:
                                           buckets=LATENCY_BUCKETS, registry=self.registry)
         self.resumes = Counter("stylestream_sessions_resumed_total", "Sessions resumed from a snapshot",
                                registry=self.registry)
+        # memory, for Prometheus and the soak test: process RSS/CPU/fds and the Python heap
+        ProcessCollector(registry=self.registry)
+        GCCollector(registry=self.registry)
+        Gauge("stylestream_python_allocated_blocks", "Memory blocks held by Python's allocator (heap size proxy)",
+              registry=self.registry).set_function(sys.getallocatedblocks)

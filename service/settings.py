@@ -6,9 +6,19 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from models.settings import REPO_ROOT, Settings
+
+
+class TokenLimits(BaseModel):
+    """One API token's own limits (`token_limits`); a field left out takes the default."""
+
+    model_config = ConfigDict(extra="forbid")
+    max_sessions: int | None = Field(default=None, ge=1)
+    requests_per_s: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+    burst_s: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+    upload_max_bytes: int | None = Field(default=None, ge=1024)
 
 
 class ServiceSettings(Settings):
@@ -30,10 +40,25 @@ class ServiceSettings(Settings):
     drain_timeout_s: float = Field(default=15.0, gt=0, le=600,
                                    description="On SIGTERM: snapshot and close every session, then exit within this.")
     api_tokens: list[str] = Field(default_factory=list, description="When set, every request needs one (Bearer or ?token=).")
+    token_max_sessions: int = Field(default=1024, ge=1, description="Per token (per client address without tokens): "
+                                    "concurrent streaming sessions (1013 above); by default as many as the server holds.")
+    token_requests_per_s: float = Field(default=20.0, gt=0, allow_inf_nan=False,
+                                        description="Per token: REST requests per second, a token bucket (429 above).")
+    token_burst_s: float = Field(default=2.0, gt=0, allow_inf_nan=False, description="Per token: bursts of up to "
+                                "this many seconds' worth of requests pass at once (the bucket's size).")
+    token_limits: dict[str, TokenLimits] = Field(default_factory=dict, description="Per-token overrides, JSON: "
+                                                 '{"tok": {"max_sessions": 4, "requests_per_s": 5, "upload_max_bytes": 1000000}}.')
     styles_dir: Path = Field(default=REPO_ROOT / ".data" / "styles", description="Uploaded styles (clip, translator, metadata).")
     upload_max_bytes: int = Field(default=16 * 1024 * 1024, ge=1024, description="Largest style upload body accepted (413 above).")
     upload_min_frames: int = Field(default=60, ge=30, description="Shortest uploaded clip, in frames at 30 fps.")
     upload_max_frames: int = Field(default=9000, ge=60, description="Longest uploaded clip, in frames at 30 fps.")
+
+    @model_validator(mode="after")
+    def _limits_name_known_tokens(self) -> "ServiceSettings":
+        unknown = set(self.token_limits) - set(self.api_tokens)
+        if unknown:  # a typo here would silently give that client the defaults
+            raise ValueError(f"token_limits names {len(unknown)} token(s) that are not in api_tokens")
+        return self
 
 
 @lru_cache

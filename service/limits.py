@@ -1,0 +1,147 @@
+"""Who is calling and how much they may use: API tokens and per-token limits.
+
+Every caller is a *principal*: its API token when the server has tokens, otherwise (anonymous
+use) its client address. Each principal gets the default limits from the settings, or its own
+from `token_limits`:
+
+- concurrent streaming sessions (`max_sessions`): one more is refused with `too_many_sessions`
+  and close 1013 (try again later);
+- REST requests per second (`requests_per_s`, bursts of `burst_s` seconds' worth): a token bucket, so a client
+  that polls steadily is never refused while one that hammers is, with 429 `rate_limited` and a
+  Retry-After that says when the next request will pass;
+- the largest style upload (`upload_max_bytes`): 413 `too_large` above it.
+
+Everything here runs on the event loop, so the counters need no lock.
+"""
+
+from __future__ import annotations
+
+import math
+import secrets
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from . import protocol as P
+from .settings import ServiceSettings, TokenLimits
+from .styles import ApiError
+
+CLOSE_TRY_AGAIN_LATER = 1013
+MAX_IDLE_BUCKETS = 10_000  # above this, buckets that have refilled are forgotten (anonymous clients come and go)
+
+
+@dataclass(frozen=True)
+class Limits:
+    max_sessions: int
+    requests_per_s: float
+    burst: float  # the bucket's size: requests that may come at once
+    upload_max_bytes: int
+
+
+@dataclass(frozen=True)
+class Principal:
+    key: str  # "token:<token>" or "client:<address>"; never sent back to anyone
+    limits: Limits
+
+
+class HeaderApiError(ApiError):
+    """An ApiError whose response carries headers (Retry-After, WWW-Authenticate)."""
+
+    def __init__(self, status: int, code: str, message: str, headers: dict[str, str]) -> None:
+        super().__init__(status, code, message)
+        self.headers = headers
+
+
+def unauthorized() -> HeaderApiError:
+    return HeaderApiError(401, "unauthorized", "missing or invalid API token", {"WWW-Authenticate": "Bearer"})
+
+
+# ---- token bucket (pure) -------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Bucket:
+    tokens: float
+    at: float  # clock reading when `tokens` was counted
+
+
+def take(bucket: Bucket | None, now: float, rate: float, burst: float) -> tuple[Bucket, float]:
+    """Take one request from a bucket that refills at `rate` per second up to `burst` (a missing
+    bucket is full). Returns the bucket after, and 0 when the request may pass or else the
+    seconds until it would."""
+    tokens = burst if bucket is None else min(burst, bucket.tokens + (now - bucket.at) * rate)
+    if tokens >= 1.0:
+        return Bucket(tokens - 1.0, now), 0.0
+    return Bucket(tokens, now), (1.0 - tokens) / rate
+
+
+def given_token(authorization: str | None, query_token: str | None) -> str | None:
+    """The token a request carries: `?token=` or `Authorization: Bearer`."""
+    if query_token:
+        return query_token
+    if authorization and authorization.lower().startswith("bearer "):
+        return authorization[7:]
+    return None
+
+
+# ---- the limiter -------------------------------------------------------------------------------
+
+
+class Limiter:
+    """Per-principal request buckets and open-session counts for one app."""
+
+    def __init__(self, settings: ServiceSettings, clock: Callable[[], float] = time.monotonic) -> None:
+        self.settings, self.clock = settings, clock
+        self.buckets: dict[str, Bucket] = {}
+        self.sessions: Counter[str] = Counter()
+
+    def limits_for(self, token: str | None) -> Limits:
+        s = self.settings
+        o = s.token_limits.get(token, TokenLimits()) if token is not None else TokenLimits()
+        rate = o.requests_per_s or s.token_requests_per_s
+        return Limits(max_sessions=o.max_sessions or s.token_max_sessions, requests_per_s=rate,
+                      burst=max(1.0, rate * (o.burst_s or s.token_burst_s)),
+                      upload_max_bytes=o.upload_max_bytes or s.upload_max_bytes)
+
+    def identify(self, authorization: str | None, query_token: str | None, client: str | None) -> Principal | None:
+        """The caller, or None when the server has tokens and the request carries none of them."""
+        if not self.settings.api_tokens:
+            return Principal(f"client:{client or 'unknown'}", self.limits_for(None))
+        given = given_token(authorization, query_token)
+        if given is None:
+            return None
+        # compare with every token (no early exit), so timing says nothing about which matched
+        matches = [t for t in self.settings.api_tokens if secrets.compare_digest(given.encode(), t.encode())]
+        return Principal(f"token:{matches[0]}", self.limits_for(matches[0])) if matches else None
+
+    def check_request(self, who: Principal) -> None:
+        """Count one REST request; raises 429 `rate_limited` (with Retry-After) over the rate."""
+        now = self.clock()
+        bucket, wait = take(self.buckets.get(who.key), now, who.limits.requests_per_s, who.limits.burst)
+        self.buckets[who.key] = bucket
+        if len(self.buckets) > MAX_IDLE_BUCKETS:
+            self._forget_full_buckets(now)
+        if wait > 0:
+            raise HeaderApiError(429, "rate_limited",
+                                 f"more than {who.limits.requests_per_s:g} requests/s (bursts of {who.limits.burst:g}); "
+                                 f"retry in {wait:.2f} s", {"Retry-After": str(max(1, math.ceil(wait)))})
+
+    def open_session(self, who: Principal) -> None:
+        """Take one of the principal's streaming sessions; raises `too_many_sessions` (close
+        1013) when all are taken. Pair with `session_closed`."""
+        if self.sessions[who.key] >= who.limits.max_sessions:
+            raise P.ProtocolError("too_many_sessions", f"this token already holds its maximum of "
+                                  f"{who.limits.max_sessions} sessions", fatal=True, close_code=CLOSE_TRY_AGAIN_LATER)
+        self.sessions[who.key] += 1
+
+    def session_closed(self, who: Principal) -> None:
+        self.sessions[who.key] -= 1
+        if self.sessions[who.key] <= 0:
+            del self.sessions[who.key]
+
+    def _forget_full_buckets(self, now: float) -> None:
+        """Drop buckets that have refilled: forgetting a full bucket changes nothing."""
+        def full(key: str, b: Bucket) -> bool:
+            lim = self.limits_for(key[6:] if key.startswith("token:") else None)
+            return b.tokens + (now - b.at) * lim.requests_per_s >= lim.burst
+        self.buckets = {k: b for k, b in self.buckets.items() if not full(k, b)}

@@ -1,0 +1,156 @@
+"""Per-token limits on a real server: concurrent sessions (1013), REST request rate (429 with
+Retry-After), upload size (413); each token's limits are its own, and anonymous callers get the
+defaults keyed by their address."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import httpx
+import pytest
+from pydantic import ValidationError
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from models.registry import load_models
+from models.settings import get_settings
+from service.limits import Bucket, take
+from service.settings import ServiceSettings
+
+from .live_server import live_server
+
+RATED, CAPPED, OTHER = "tok-rated", "tok-capped", "tok-other"
+LIMITS = {RATED: {"requests_per_s": 1, "burst_s": 3}, CAPPED: {"max_sessions": 2, "upload_max_bytes": 2000}}
+
+
+@pytest.fixture(scope="module")
+def models():
+    return {"lti": load_models(get_settings().weights_dir)["lti"]}
+
+
+@pytest.fixture(scope="module")
+def server(models):
+    with live_server(models, api_tokens=[RATED, CAPPED, OTHER], token_limits=LIMITS) as (base, app):
+        yield base, app
+
+
+def auth(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def stream_url(base: str, token: str) -> str:
+    return base.replace("http", "ws") + f"/v1/stream?token={token}"
+
+
+def start(ws) -> dict:
+    ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly"}))
+    return json.loads(ws.recv(timeout=10))
+
+
+def assert_refused_with_1013(ws) -> None:
+    error = start(ws)
+    assert error["type"] == "error" and error["code"] == "too_many_sessions", error
+    with pytest.raises(ConnectionClosed) as closed:
+        ws.recv(timeout=10)
+    assert closed.value.rcvd.code == 1013
+
+
+# ---- the token bucket ------------------------------------------------------------------------
+
+
+def test_a_bucket_lets_a_burst_through_then_refills_at_the_rate():
+    bucket, passed = None, 0
+    for _ in range(5):
+        bucket, wait = take(bucket, now=10.0, rate=2.0, burst=3.0)
+        passed += wait == 0
+    assert passed == 3
+    assert take(bucket, now=10.0, rate=2.0, burst=3.0)[1] == pytest.approx(0.5)  # one request back in 1/rate s
+    assert take(bucket, now=10.5, rate=2.0, burst=3.0)[1] == 0
+    refilled, _ = take(Bucket(0.0, 0.0), now=100.0, rate=2.0, burst=3.0)
+    assert refilled.tokens == pytest.approx(2.0)  # capped at the burst, less the request just taken
+
+
+# ---- settings --------------------------------------------------------------------------------
+
+
+def test_per_token_limits_come_from_the_environment(monkeypatch):
+    monkeypatch.setenv("STYLESTREAM_API_TOKENS", json.dumps(["tok-a", "tok-b"]))
+    monkeypatch.setenv("STYLESTREAM_TOKEN_LIMITS", json.dumps({"tok-a": {"max_sessions": 4, "requests_per_s": 5}}))
+    from service.limits import Limiter
+
+    limiter = Limiter(ServiceSettings())
+    a, b = limiter.limits_for("tok-a"), limiter.limits_for("tok-b")
+    assert (a.max_sessions, a.requests_per_s) == (4, 5.0)
+    assert a.upload_max_bytes == b.upload_max_bytes == ServiceSettings().upload_max_bytes  # the default
+    assert b.max_sessions == ServiceSettings().token_max_sessions
+
+
+@pytest.mark.parametrize("bad", [
+    {"api_tokens": ["a"], "token_limits": {"typo": {"max_sessions": 1}}},  # a token the server does not have
+    {"api_tokens": ["a"], "token_limits": {"a": {"max_sessions": 0}}},
+    {"api_tokens": ["a"], "token_limits": {"a": {"sessions": 3}}},  # unknown field
+])
+def test_bad_limit_settings_are_refused_at_start(bad):
+    with pytest.raises(ValidationError):
+        ServiceSettings(**bad)
+
+
+# ---- on a live server ------------------------------------------------------------------------
+
+
+def test_rest_requests_over_the_rate_get_429_with_retry_after(server):
+    base, _ = server
+    codes = [httpx.get(f"{base}/v1/models", headers=auth(RATED)).status_code for _ in range(3)]
+    assert codes == [200, 200, 200]  # the burst: 1 request/s x 3 s
+    refused = httpx.get(f"{base}/v1/models", headers=auth(RATED))
+    assert refused.status_code == 429
+    assert refused.json()["code"] == "rate_limited" and "requests/s" in refused.json()["message"]
+    assert refused.headers["Retry-After"] == "1"
+    assert httpx.get(f"{base}/v1/models", headers=auth(OTHER)).status_code == 200  # another token is not limited
+    time.sleep(1.05)
+    assert httpx.get(f"{base}/v1/models", headers=auth(RATED)).status_code == 200  # refilled
+
+
+def test_a_missing_token_gets_401_in_the_error_shape(server):
+    base, _ = server
+    reply = httpx.get(f"{base}/v1/models", headers=auth("wrong"))
+    assert reply.status_code == 401 and reply.json()["code"] == "unauthorized"
+    assert reply.headers["WWW-Authenticate"] == "Bearer"
+
+
+def test_a_token_over_its_session_cap_gets_a_typed_error_and_1013(server):
+    base, app = server
+    with connect(stream_url(base, CAPPED)) as first, connect(stream_url(base, CAPPED)) as second:
+        assert start(first)["type"] == start(second)["type"] == "started"
+        with connect(stream_url(base, CAPPED)) as third:
+            assert_refused_with_1013(third)
+        with connect(stream_url(base, OTHER)) as other:  # the cap is per token
+            assert start(other)["type"] == "started"
+        first.close()  # a slot comes free once the server has seen the close
+        deadline = time.monotonic() + 10
+        while app.state.limiter.sessions.get(f"token:{CAPPED}", 0) > 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        with connect(stream_url(base, CAPPED)) as again:
+            assert start(again)["type"] == "started"
+
+
+def test_an_upload_over_the_tokens_size_limit_gets_413(server):
+    base, _ = server
+    body = json.dumps({"name": "big", "model": "lti", "frames": [[0.0] * 50] * 20})  # ~4 kB of nonsense
+    over = httpx.post(f"{base}/v1/styles", content=body, headers={**auth(CAPPED), "Content-Type": "application/json"})
+    assert over.status_code == 413 and over.json()["code"] == "too_large"
+    assert "2000" in over.json()["message"]
+    # the same body is within the default limit of another token: it is read and refused for its content
+    other = httpx.post(f"{base}/v1/styles", content=body, headers={**auth(OTHER), "Content-Type": "application/json"})
+    assert other.status_code == 422 and other.json()["code"] == "bad_request"
+
+
+def test_anonymous_callers_get_the_default_limits_by_address(models):
+    with live_server(models, token_requests_per_s=1, token_burst_s=2, token_max_sessions=1) as (base, _):
+        codes = [httpx.get(f"{base}/v1/models").status_code for _ in range(3)]
+        assert codes == [200, 200, 429]
+        with connect(stream_url(base, "ignored")) as ws:
+            assert start(ws)["type"] == "started"
+            with connect(stream_url(base, "ignored")) as refused:
+                assert_refused_with_1013(refused)
