@@ -189,18 +189,19 @@ class Session:
         self.resume_token = started["resume_token"]
 
     def _resume(self) -> None:
-        """Reconnect, send again what the restored snapshot lacks, and read the replies to all of
-        it but the last message (the caller's own, whose reply the caller reads)."""
+        """Reconnect and send again what the restored snapshot lacks, reading each reply (known
+        already, discarded) before the next, as a burst would overrun the server's frame queue.
+        The last message is the caller's own: its reply is left to the caller."""
         self._connection.close()
         self._open()
         self.reconnects += 1
         missing = self.replay.after(self.info["last_seq"])
         if not missing or missing[-1] is not self.replay.entries[-1]:
             raise ResumeError("the server saved the last message but its reply was lost")
-        for _, message in missing:
+        for seq, message in missing[:-1]:  # one at a time: a burst would overrun the session's queue
             self.ws.send(message)
-        for seq, _ in missing[:-1]:
             self._reply(seq)
+        self.ws.send(missing[-1][1])
 
     def _reply(self, seq: int | None) -> StyledFrame | dict:
         """The reply to a frame (`seq`) or to a control message (None), acting on snapshot
@@ -320,10 +321,10 @@ class AsyncSession:
         missing = self.replay.after(self.info["last_seq"])
         if not missing or missing[-1] is not self.replay.entries[-1]:
             raise ResumeError("the server saved the last message but its reply was lost")
-        for _, message in missing:
+        for seq, message in missing[:-1]:
             await self.ws.send(message)
-        for seq, _ in missing[:-1]:
             await self._reply(seq)
+        await self.ws.send(missing[-1][1])
 
     async def _reply(self, seq: int | None) -> StyledFrame | dict:
         while True:

@@ -1,0 +1,159 @@
+"""Real processes for the scale-out tests: redis-server, `stylestream serve` replicas and an nginx
+load balancer, each on a free loopback port with its files in a temporary folder.
+
+The server binaries come from Debian (`make servers` installs them); a test that needs a missing
+one is skipped, saying which.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import pytest
+
+from clients.loadtest import free_port, wait_ready
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def require(*binaries: str) -> None:
+    """Skip the calling test unless every binary is installed."""
+    missing = [b for b in binaries if shutil.which(b) is None and not Path("/usr/sbin", b).exists()]
+    if missing:
+        pytest.skip(f"{', '.join(missing)} not installed (`make servers` installs them)")
+
+
+def _binary(name: str) -> str:
+    return shutil.which(name) or str(Path("/usr/sbin", name))
+
+
+def _wait_port(port: int, alive, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if not alive():
+            raise RuntimeError(f"process for port {port} exited")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"nothing listens on port {port}")
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait(timeout=10)
+
+
+@contextmanager
+def redis_server(folder: Path):
+    """A throwaway redis-server (no persistence); yields its URL."""
+    port = free_port()
+    proc = subprocess.Popen([_binary("redis-server"), "--port", str(port), "--bind", "127.0.0.1", "--dir", str(folder),
+                             "--save", "", "--appendonly", "no", "--logfile", str(folder / "redis.log")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    try:
+        _wait_port(port, lambda: proc.poll() is None)
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        _stop(proc)
+
+
+class Replica:
+    """One `stylestream serve` process."""
+
+    def __init__(self, folder: Path, name: str, **env: str) -> None:
+        self.port, self.name = free_port(), name
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log = folder / f"{name}.log"
+        environment = {**os.environ, **{f"STYLESTREAM_{k.upper()}": str(v) for k, v in env.items()}}
+        self.proc = subprocess.Popen([sys.executable, "-m", "clients.cli", "serve", "--port", str(self.port),
+                                      "--log-level", "info"], cwd=REPO, env=environment,
+                                     stdout=self.log.open("w"), stderr=subprocess.STDOUT)
+
+    def wait_ready(self) -> None:
+        wait_ready(self.url, lambda: self.proc.poll() is None)
+
+    def metric(self, name: str) -> float:
+        """Sum of a metric's samples on /metrics (all label values)."""
+        text = httpx.get(f"{self.url}/metrics", timeout=5).text
+        return sum(float(v) for v in re.findall(rf"^{name}(?:{{[^}}]*}})? (\S+)$", text, re.M))
+
+    def signal(self, sig: signal.Signals) -> None:
+        self.proc.send_signal(sig)
+
+    def stop(self) -> None:
+        _stop(self.proc)
+
+
+@contextmanager
+def replicas(folder: Path, count: int, **env: str):
+    started = [Replica(folder, f"replica{i}", **env) for i in range(count)]
+    try:
+        for r in started:  # started together, so their model loading overlaps
+            r.wait_ready()
+        yield started
+    finally:
+        for r in started:
+            r.stop()
+
+
+NGINX_CONF = """
+worker_processes 1;
+pid {folder}/nginx.pid;
+error_log {folder}/nginx-error.log warn;
+events {{ worker_connections 256; }}
+http {{
+    access_log off;
+    client_body_temp_path {folder}/body;
+    proxy_temp_path {folder}/proxy;
+    fastcgi_temp_path {folder}/fastcgi;
+    uwsgi_temp_path {folder}/uwsgi;
+    scgi_temp_path {folder}/scgi;
+    map $http_upgrade $connection_upgrade {{ default upgrade; '' close; }}
+    upstream stylestream {{
+{servers}
+    }}
+    server {{
+        listen 127.0.0.1:{port};
+        location / {{
+            proxy_pass http://stylestream;
+            proxy_http_version 1.1;
+            proxy_set_header Upgrade $http_upgrade;
+            proxy_set_header Connection $connection_upgrade;
+            proxy_set_header Host $host;
+            proxy_connect_timeout 1s;
+            proxy_read_timeout 3600s;
+            proxy_send_timeout 3600s;
+            proxy_next_upstream error timeout;
+        }}
+    }}
+}}
+"""
+
+
+@contextmanager
+def nginx(folder: Path, upstream_ports: list[int]):
+    """nginx in the foreground as a WebSocket-aware round-robin load balancer; yields its URL."""
+    port = free_port()
+    servers = "\n".join(f"        server 127.0.0.1:{p} max_fails=1 fail_timeout=5s;" for p in upstream_ports)
+    conf = folder / "nginx.conf"
+    conf.write_text(NGINX_CONF.format(folder=folder, port=port, servers=servers))
+    proc = subprocess.Popen([_binary("nginx"), "-p", str(folder), "-c", str(conf), "-e", str(folder / "nginx-error.log"),
+                             "-g", "daemon off;"], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    try:
+        _wait_port(port, lambda: proc.poll() is None)
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        _stop(proc)
