@@ -1,15 +1,20 @@
-"""The browser viewer against a real server: the page and its files are served, the demo clip is
-valid, and headless Chromium (when /usr/bin/chromium exists) renders two streamed skeletons:
-once with the `--screenshot` command line, once over the DevTools protocol in real time, where
-the page's own counters say it streamed at the clip's frame rate with a sane round trip."""
+"""The browser viewer against a real server: the page, its modules and the vendored three.js are
+served, the demo clip is valid, and headless Chromium (when /usr/bin/chromium exists) draws two
+streamed 3-D skeletons with WebGL: once with the `--screenshot` command line, once over the
+DevTools protocol in real time, where the page's own counters say it streamed at the clip's frame
+rate, the style triangle's point sets a 3-way mix on the server, and held keys and a gamepad
+become the LPN controller's `control` messages."""
 
 from __future__ import annotations
 
 import base64
 import json
+import math
+import re
 import shutil
 import subprocess
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -17,21 +22,22 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from clients.loadtest import free_port
 from models.motion.assets import bandai_namco_skeleton
 from models.registry import load_models
 from models.settings import get_settings
-from service.viewer import DemoClip, rocking_pose
-from clients.loadtest import free_port
+from service.viewer import VIEWER_DIR, DemoClip, rocking_pose
 from tests.live_server import live_server
 
 CHROMIUM = Path("/usr/bin/chromium")
 OUT = Path(__file__).resolve().parents[1] / "out"  # git-ignored: screenshots to look at
 # WebGL without a GPU: ANGLE on SwiftShader (software), which Chromium only uses when told to
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-quic",
+                  "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync",
                   "--window-size=1000,600"]
-# the skeleton colours of viewer.js (left limbs): input blue, stylised orange
+# the skeleton colours of scene.js (left limbs): input blue, stylised orange
 INPUT_RGB, OUTPUT_RGB = (0x4E, 0xA1, 0xFF), (0xFF, 0x8A, 0x3D)
+THREE_DIR = VIEWER_DIR / "vendor" / "three"
 
 
 @pytest.fixture(scope="module")
@@ -70,15 +76,40 @@ def check_two_skeletons(png: Path) -> None:
     assert colour_pixels(img, INPUT_RGB)[canvas, w // 2:].sum() < 50
 
 
-def test_viewer_page_and_static_files(server):
+def test_viewer_page_modules_and_vendored_three_are_served(server):
     page = httpx.get(f"{server}/viewer")
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
     assert "/viewer/static/viewer.js" in page.text and '<canvas id="view">' in page.text
-    js = httpx.get(f"{server}/viewer/static/viewer.js")
-    assert js.status_code == 200 and "javascript" in js.headers["content-type"] and "/v1/stream" in js.text
+    imports = json.loads(re.search(r'<script type="importmap">(.*?)</script>', page.text, re.S).group(1))["imports"]
+    for module in ("viewer.js", "kinematics.js", "scene.js", "triangle.js", "controller.js",
+                   "vendor/three/three.module.min.js", "vendor/three/three.core.min.js",
+                   "vendor/three/addons/controls/OrbitControls.js"):
+        r = httpx.get(f"{server}/viewer/static/{module}")
+        assert r.status_code == 200 and r.headers["content-type"].startswith("text/javascript"), module  # ES modules
+    assert all(path.startswith("/viewer/static/vendor/") for path in imports.values())  # served here, no CDN
+    assert httpx.get(f"{server}{imports['three']}").status_code == 200
+    assert httpx.get(f"{server}{imports['three/addons/']}controls/OrbitControls.js").status_code == 200
+    assert "/v1/stream" in httpx.get(f"{server}/viewer/static/viewer.js").text
     assert httpx.get(f"{server}/viewer/static/viewer.css").headers["content-type"].startswith("text/css")
-    for bad in ("nope.js", "..%2Fviewer.py", "..%2F..%2Fservice%2Fapp.py", "demo_walk.bvh"):
-        assert httpx.get(f"{server}/viewer/static/{bad}").status_code == 404
+    for bad in ("nope.js", "..%2Fviewer.py", "..%2F..%2Fservice%2Fapp.py", "demo_walk.bvh", "vendor/three/VERSION",
+                "vendor/fetch-three.sh", "vendor/three/..%2F..%2F..%2F..%2Fservice%2Fviewer.py"):
+        assert httpx.get(f"{server}/viewer/static/{bad}").status_code == 404, bad
+
+
+def test_vendored_three_is_one_recorded_npm_release():
+    """The vendored files are the npm release VERSION names (its revision is in the code), small
+    enough to commit, with the MIT licence; nothing refers to a CDN."""
+    info = (THREE_DIR / "VERSION").read_text()
+    version = re.match(r"three@(0\.(\d+)\.\d+) from the npm registry", info)
+    assert version, info
+    assert re.search(r"integrity sha512-[A-Za-z0-9+/]{86}==", info)
+    assert f'="{version.group(2)}"' in (THREE_DIR / "three.core.min.js").read_text()  # REVISION
+    assert "MIT License" in (THREE_DIR / "LICENSE").read_text()
+    size = sum(f.stat().st_size for f in THREE_DIR.rglob("*") if f.is_file())
+    assert size < 1.5e6, f"vendored three.js is {size / 1e6:.2f} MB"
+    for f in VIEWER_DIR.glob("*.*"):
+        if f.suffix in (".js", ".html", ".css"):
+            assert not re.search(r"https?://(?!www\.w3\.org/2000/svg)", f.read_text()), f"{f.name} loads something from the web"
 
 
 def check_clip(clip: dict) -> None:
@@ -132,11 +163,48 @@ def test_viewer_screenshot_in_headless_chromium(server, tmp_path):
     check_two_skeletons(png)
 
 
-def test_viewer_streams_in_real_time(server, tmp_path):
-    """Chromium driven over the DevTools protocol with real time running: the page streams the
-    demo clip at 30 fps, every frame comes back, the readout shows the round trip, and a style
-    switch with a transition is acknowledged."""
-    need_chromium()
+class DevTools:
+    """A page of a headless Chromium, driven over the DevTools protocol."""
+
+    def __init__(self, cdp):
+        self.cdp = cdp
+        self.ids = iter(range(1, 10**6))
+
+    def call(self, method: str, **params) -> dict:
+        i = next(self.ids)
+        self.cdp.send(json.dumps({"id": i, "method": method, "params": params}))
+        while True:
+            m = json.loads(self.cdp.recv(timeout=30))
+            if m.get("id") == i:
+                assert "error" not in m, m
+                return m["result"]
+
+    def js(self, expr: str):
+        """The value of a JavaScript expression (awaited when it is a promise); page errors fail the test."""
+        r = self.call("Runtime.evaluate", expression=expr, returnByValue=True, awaitPromise=True)
+        assert "exceptionDetails" not in r, r["exceptionDetails"]
+        return r["result"].get("value")
+
+    def key(self, kind: str, code: str, key: str, vk: int) -> None:
+        self.call("Input.dispatchKeyEvent", type=kind, code=code, key=key, windowsVirtualKeyCode=vk)
+
+    def drag(self, start: tuple[float, float], end: tuple[float, float]) -> None:
+        self.call("Input.dispatchMouseEvent", type="mousePressed", x=start[0], y=start[1], button="left", clickCount=1)
+        for t in (0.33, 0.66, 1.0):
+            x, y = start[0] + t * (end[0] - start[0]), start[1] + t * (end[1] - start[1])
+            self.call("Input.dispatchMouseEvent", type="mouseMoved", x=x, y=y, button="left", buttons=1)
+        self.call("Input.dispatchMouseEvent", type="mouseReleased", x=end[0], y=end[1], button="left", clickCount=1)
+
+    def wait_for(self, expr: str, what: str, timeout: float = 20) -> None:
+        deadline = time.monotonic() + timeout
+        while not self.js(expr):
+            status = self.js("document.getElementById('status').textContent")
+            assert time.monotonic() < deadline, f"{what}: state {self.js('document.body.dataset.state')!r}, {status!r}"
+            time.sleep(0.1)
+
+
+@contextmanager
+def devtools_page(tmp_path: Path):
     from websockets.sync.client import connect
 
     port = free_port()
@@ -155,49 +223,113 @@ def test_viewer_streams_in_real_time(server, tmp_path):
                     raise RuntimeError("chromium's DevTools endpoint did not come up") from None
                 time.sleep(0.1)
         with connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10) as cdp:
-            ids = iter(range(1, 10**6))
-
-            def call(method: str, **params) -> dict:
-                i = next(ids)
-                cdp.send(json.dumps({"id": i, "method": method, "params": params}))
-                while True:
-                    m = json.loads(cdp.recv(timeout=30))
-                    if m.get("id") == i:
-                        assert "error" not in m, m
-                        return m["result"]
-
-            def js(expr: str):
-                return call("Runtime.evaluate", expression=expr, returnByValue=True)["result"].get("value")
-
-            call("Emulation.setDeviceMetricsOverride", width=1000, height=600, deviceScaleFactor=1, mobile=False)
-            call("Page.navigate", url=f"{server}/viewer?autoplay=1&model=lti&style=elderly")
-            deadline = time.monotonic() + 20
-            while js("document.body && document.body.dataset.state") != "streaming" or int(js("document.body.dataset.received") or 0) < 5:
-                status = js("document.getElementById('status').textContent")
-                assert time.monotonic() < deadline, f"viewer did not stream: state {js('document.body.dataset.state')!r}, {status!r}"
-                time.sleep(0.1)
-            t0, n0 = time.monotonic(), int(js("document.body.dataset.received"))
-            time.sleep(3.0)
-            js("document.getElementById('style').value = 'exhausted';"
-               "document.getElementById('style').dispatchEvent(new Event('change'))")
-            time.sleep(1.0)
-            rate = (int(js("document.body.dataset.received")) - n0) / (time.monotonic() - t0)
-            hud = js("document.getElementById('hud').innerText")
-            print(f"viewer in real time: {rate:.1f} frames/s received; HUD: {hud!r}")
-            assert rate > 10, f"expected a live stream (~30 frames/s), got {rate:.1f}"  # speed is benchmarked elsewhere
-            mean = float(js("document.getElementById('lat-mean').textContent"))
-            assert 0 < mean < 2000, f"mean round trip {mean} ms"
-            assert "dropped 0" in hud
-            assert "exhausted 1.00" in hud, hud  # the style_set reply's weights
-            shot = call("Page.captureScreenshot", format="png")["data"]
-        png = tmp_path / "viewer_live.png"
-        png.write_bytes(base64.b64decode(shot))
-        OUT.mkdir(exist_ok=True)
-        shutil.copy(png, OUT / "viewer_live.png")
-        check_two_skeletons(png)
+            tools = DevTools(cdp)
+            tools.call("Emulation.setDeviceMetricsOverride", width=1000, height=600, deviceScaleFactor=1, mobile=False)
+            yield tools
     finally:
         proc.terminate()
         try:
             proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+def test_viewer_streams_in_real_time(server, tmp_path):
+    """Real time running: the page streams the demo clip at its 30 fps, every frame comes back,
+    the readout shows the round trip, a style switch with a transition is acknowledged, and the
+    style triangle's point on an edge mixes that edge's two styles half and half."""
+    need_chromium()
+    with devtools_page(tmp_path) as page:
+        page.call("Page.navigate", url=f"{server}/viewer?autoplay=1&model=lti&style=elderly")
+        page.wait_for("document.body && document.body.dataset.state === 'streaming' && +document.body.dataset.received >= 5",
+                      "viewer did not stream")
+        t0, n0 = time.monotonic(), int(page.js("document.body.dataset.received"))
+        time.sleep(3.0)
+        page.js("document.getElementById('style').value = 'exhausted';"
+                "document.getElementById('style').dispatchEvent(new Event('change'))")
+        time.sleep(1.0)
+        rate = (int(page.js("document.body.dataset.received")) - n0) / (time.monotonic() - t0)
+        hud = page.js("document.getElementById('hud').innerText")
+        print(f"viewer in real time: {rate:.1f} frames/s received; HUD: {hud!r}")
+        assert 0.7 * 30 < rate < 1.1 * 30, f"expected the clip's 30 frames/s, got {rate:.1f}"
+        counted = int(page.js("document.getElementById('rate').textContent"))
+        assert 20 <= counted <= 33, f"the page counts {counted} frames in the last second"
+        mean = float(page.js("document.getElementById('lat-mean').textContent"))
+        assert 0 < mean < 2000, f"mean round trip {mean} ms"
+        assert "dropped 0" in hud
+        assert "exhausted 1.00" in hud, hud  # the style_set reply's weights
+        shot = page.call("Page.captureScreenshot", format="png")["data"]
+
+        # the triangle: corners elderly (top), active (bottom left), youthful (bottom right);
+        # dragging the point past the bottom edge's middle clamps it onto the edge
+        page.js("""(() => { const p = [...document.querySelectorAll('#triangle select')];
+                   ['elderly', 'active', 'youthful'].forEach((s, i) => { p[i].value = s; }); })()""")
+        box = page.js("(() => { const r = document.querySelector('#triangle svg').getBoundingClientRect();"
+                      " return [r.left, r.top, r.width / 160, r.height / 140]; })()")
+
+        def at(x: float, y: float) -> tuple[float, float]:  # viewBox -> page pixels
+            return box[0] + x * box[2], box[1] + y * box[3]
+
+        page.drag(at(80, 90), at(80, 139))
+        page.wait_for("/active 0\\.50, youthful 0\\.50|youthful 0\\.50, active 0\\.50/"
+                      ".test(document.getElementById('weights').textContent)", "no half-and-half style_set from the triangle")
+        weights = page.js("document.getElementById('weights').textContent")
+        assert "elderly" not in weights and page.js("document.getElementById('triangle').classList.contains('active')")
+        label = page.js("document.getElementById('sub-output').textContent")
+        assert "active 0.50 + youthful 0.50" in label, label
+        # a style picked from the menu takes over again
+        page.js("document.getElementById('style').value = 'elderly';"
+                "document.getElementById('style').dispatchEvent(new Event('change'))")
+        page.wait_for("/elderly 1\\.00/.test(document.getElementById('weights').textContent)", "picker did not take over")
+        assert not page.js("document.getElementById('triangle').classList.contains('active')")
+    png = tmp_path / "viewer_live.png"
+    png.write_bytes(base64.b64decode(shot))
+    OUT.mkdir(exist_ok=True)
+    shutil.copy(png, OUT / "viewer_live.png")
+    check_two_skeletons(png)
+
+
+def test_keys_and_gamepad_make_control_messages(server, tmp_path):
+    """LPN-FiLM's controller mode: real key presses (W, Shift, Q, then D) become the `control`
+    messages the page would send each tick; a gamepad in use wins over the keyboard. The mode
+    is offered only for the model that takes control messages."""
+    need_chromium()
+    with devtools_page(tmp_path) as page:
+        page.call("Page.navigate", url=f"{server}/viewer?model=lti")
+        page.wait_for("document.body && document.body.dataset.state === 'ready'", "viewer did not load")
+        models = [m["name"] for m in httpx.get(f"{server}/v1/models").json()]
+        drives = "[...document.getElementById('source').options].map(o => o.value)"
+        assert "control" not in page.js(drives)  # lti takes clips only
+        if "lpn" in models:
+            page.js("const m = document.getElementById('model'); m.value = 'lpn'; m.dispatchEvent(new Event('change'))")
+            assert "control" in page.js(drives)
+
+        W, SHIFT, Q, D = ("KeyW", "w", 87), ("ShiftLeft", "Shift", 16), ("KeyQ", "q", 81), ("KeyD", "d", 68)
+        page.js("viewer.controller.reset()")
+        for k in (W, SHIFT, Q):
+            page.key("keyDown", *k)
+        msg = page.js("viewer.controller.sample(0.5)")  # half a second of Q at 2 rad/s
+        assert msg == {"type": "control", "velocity": [3.5, 0], "facing": 1.0, "gait": "run"}, msg
+        for k in (Q, SHIFT):
+            page.key("keyUp", *k)
+        page.key("keyDown", *D)
+        msg = page.js("viewer.controller.sample(0.5)")  # forward and right at once: walk, diagonal as fast as straight
+        assert msg["gait"] == "walk" and msg["facing"] == 1.0
+        assert msg["velocity"] == pytest.approx([1.4 / math.sqrt(2), -0.9 / math.sqrt(2)], abs=1e-3)
+        for k in (W, D):
+            page.key("keyUp", *k)
+        assert page.js("viewer.controller.sample(0.1)")["velocity"] == [0, 0]
+
+        # a gamepad (standard mapping): left stick up-right, right stick left, right trigger
+        pad = "{id: 'test pad', axes: [0.6, -0.8, -1, 0], buttons: Array.from({length: 16}, (_, i) => ({pressed: i === 7, value: +(i === 7)}))}"
+        msg = page.js(f"""(async () => {{
+            const c = await import('/viewer/static/controller.js');
+            const ctl = new c.Controller(document.createElement('div'), () => [null, {pad}]);
+            return [ctl.sample(0.25), ctl.gamepad];
+        }})()""")
+        (msg, pad_id) = msg
+        assert pad_id == "test pad" and msg["gait"] == "run"
+        assert msg["velocity"] == pytest.approx([0.8 * 3.5, -0.6 * 1.8], abs=1e-3)  # full deflection: full speed
+        assert msg["facing"] == pytest.approx(0.5, abs=1e-3)  # right stick left turns left at 2 rad/s
+        idle = page.js("import('/viewer/static/controller.js').then(c => c.intentFromGamepad({axes: [0.1, -0.05, 0.1, 0], buttons: []}))")
+        assert idle is None  # inside the dead zone: the keyboard keeps control
