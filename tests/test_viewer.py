@@ -16,6 +16,7 @@ import subprocess
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Callable
 
 import httpx
 import numpy as np
@@ -169,6 +170,7 @@ class DevTools:
     def __init__(self, cdp):
         self.cdp = cdp
         self.ids = iter(range(1, 10**6))
+        self.handlers: dict[str, Callable[[dict], None]] = {}  # event method -> handler(params)
 
     def call(self, method: str, **params) -> dict:
         i = next(self.ids)
@@ -178,6 +180,22 @@ class DevTools:
             if m.get("id") == i:
                 assert "error" not in m, m
                 return m["result"]
+            if m.get("method") in self.handlers:
+                self.handlers[m["method"]](m["params"])
+
+    def send(self, method: str, **params) -> None:
+        """A command whose answer nobody waits for (from inside an event handler)."""
+        self.cdp.send(json.dumps({"id": next(self.ids), "method": method, "params": params}))
+
+    def fulfil_json(self, url_pattern: str, edit: Callable[[object], object]) -> None:
+        """Answers the page's requests matching `url_pattern` with `edit(the server's JSON)`."""
+        def paused(p: dict) -> None:
+            body = json.dumps(edit(httpx.get(p["request"]["url"]).json())).encode()
+            self.send("Fetch.fulfillRequest", requestId=p["requestId"], responseCode=200,
+                      responseHeaders=[{"name": "content-type", "value": "application/json"}],
+                      body=base64.b64encode(body).decode())
+        self.handlers["Fetch.requestPaused"] = paused
+        self.call("Fetch.enable", patterns=[{"urlPattern": url_pattern}])
 
     def js(self, expr: str):
         """The value of a JavaScript expression (awaited when it is a promise); page errors fail the test."""
@@ -198,8 +216,8 @@ class DevTools:
     def wait_for(self, expr: str, what: str, timeout: float = 20) -> None:
         deadline = time.monotonic() + timeout
         while not self.js(expr):
-            status = self.js("document.getElementById('status').textContent")
-            assert time.monotonic() < deadline, f"{what}: state {self.js('document.body.dataset.state')!r}, {status!r}"
+            status = self.js("document.getElementById('status')?.textContent")
+            assert time.monotonic() < deadline, f"{what}: state {self.js('document.body?.dataset.state')!r}, {status!r}"
             time.sleep(0.1)
 
 
@@ -290,19 +308,23 @@ def test_viewer_streams_in_real_time(server, tmp_path):
 
 
 def test_keys_and_gamepad_make_control_messages(server, tmp_path):
-    """LPN-FiLM's controller mode: real key presses (W, Shift, Q, then D) become the `control`
-    messages the page would send each tick; a gamepad in use wins over the keyboard. The mode
-    is offered only for the model that takes control messages."""
+    """LPN-FiLM's controller mode: offered only for the model that takes control messages; real
+    key presses (W, Shift, Q, then D) become the `control` messages the page sends each tick and
+    show in its controller HUD; a gamepad in use wins over the keyboard."""
     need_chromium()
     with devtools_page(tmp_path) as page:
+        # until the server has LPN-FiLM, the page is told it has (only the page's side is tested here)
+        page.fulfil_json("*/v1/models", lambda models: models if any(m["name"] == "lpn" for m in models)
+                         else [*models, {**models[0], "name": "lpn"}])
         page.call("Page.navigate", url=f"{server}/viewer?model=lti")
         page.wait_for("document.body && document.body.dataset.state === 'ready'", "viewer did not load")
-        models = [m["name"] for m in httpx.get(f"{server}/v1/models").json()]
         drives = "[...document.getElementById('source').options].map(o => o.value)"
         assert "control" not in page.js(drives)  # lti takes clips only
-        if "lpn" in models:
-            page.js("const m = document.getElementById('model'); m.value = 'lpn'; m.dispatchEvent(new Event('change'))")
-            assert "control" in page.js(drives)
+        page.js("(() => { const m = document.getElementById('model'); m.value = 'lpn'; m.dispatchEvent(new Event('change')); })()")
+        assert "control" in page.js(drives)
+        assert page.js("document.getElementById('control-hud').hidden")
+        page.js("(() => { const s = document.getElementById('source'); s.value = 'control'; s.dispatchEvent(new Event('change')); })()")
+        assert not page.js("document.getElementById('control-hud').hidden") and page.js("document.body.dataset.mode") == "control"
 
         W, SHIFT, Q, D = ("KeyW", "w", 87), ("ShiftLeft", "Shift", 16), ("KeyQ", "q", 81), ("KeyD", "d", 68)
         page.js("viewer.controller.reset()")
@@ -316,9 +338,16 @@ def test_keys_and_gamepad_make_control_messages(server, tmp_path):
         msg = page.js("viewer.controller.sample(0.5)")  # forward and right at once: walk, diagonal as fast as straight
         assert msg["gait"] == "walk" and msg["facing"] == 1.0
         assert msg["velocity"] == pytest.approx([1.4 / math.sqrt(2), -0.9 / math.sqrt(2)], abs=1e-3)
+        # the controller HUD follows the held keys before anything streams
+        page.wait_for("document.getElementById('control-readout').textContent.startsWith('forward 0.99 m/s · side -0.64 m/s')",
+                      "the controller HUD does not show the held keys")
         for k in (W, D):
             page.key("keyUp", *k)
         assert page.js("viewer.controller.sample(0.1)")["velocity"] == [0, 0]
+        # switching back to a clip model takes the controller drive away
+        page.js("(() => { const m = document.getElementById('model'); m.value = 'lti'; m.dispatchEvent(new Event('change')); })()")
+        assert "control" not in page.js(drives) and page.js("document.getElementById('source').value") == "demo"
+        assert page.js("document.getElementById('control-hud').hidden")
 
         # a gamepad (standard mapping): left stick up-right, right stick left, right trigger
         pad = "{id: 'test pad', axes: [0.6, -0.8, -1, 0], buttons: Array.from({length: 16}, (_, i) => ({pressed: i === 7, value: +(i === 7)}))}"

@@ -347,8 +347,15 @@ async function init() {
     if (n >= 1 && n <= 9 && ui.style.options[n - 1]) { ui.style.selectedIndex = n - 1; usePickers(); }
   });
   window.addEventListener("resize", requestRender);
-  // preview: the input clip plays locally while nothing streams
-  setInterval(() => { if (!state.session || !state.lastOut) { state.previewSeq++; requestRender(); } }, 1000 / 30);
+  // preview while nothing streams: the input clip plays locally, or the controller's wish is shown
+  setInterval(() => {
+    const streaming = state.session && state.session.ready && state.playing; // then the send ticks do this
+    if (controlMode() && !streaming) {
+      state.lastControl = controller.sample(1 / 30);
+      showControlReadout(state.lastControl);
+      requestRender();
+    } else if (!controlMode() && !state.lastOut) { state.previewSeq++; requestRender(); }
+  }, 1000 / 30);
   requestRender();
   if (params.get("autoplay") === "1") { play(true); holdUntilStreaming(); }
 }
