@@ -1,12 +1,27 @@
-"""LPN-FiLM (Mason, Starke & Komura 2022): real-time style modelling with local motion phases.
+"""LPN-FiLM (Mason, Starke & Komura 2022): real-time style modelling of locomotion with local motion
+phases and feature-wise (FiLM) style modulation, trained on Bandai Namco locomotion.
 
-First increment: local motion phases (`phases`), their Figure-4 style plot (`plots`,
-`python -m models.lpn phases-plot`)."""
+`load(weights_dir)` returns the streaming model (runtime.LPNModel) that the service's registry
+offers as method "lpn". Pieces: local phases (`phases`), per-frame features (`features`), data
+(`dataset`), network (`network`), training (`train`), weights on disk (`weights`), runtime,
+scripted control demo (`demo`); `python -m models.lpn --help`."""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 from .phases import (BONES, LocalPhases, SinusoidFit, circular_mean, contact_free_source, contact_source,
                      fit_sinusoid, local_phases, lowpass, phase_features, principal_axis, sliding_normalise,
                      step_frequency, style_axes, touchdowns)
 
-__all__ = ["BONES", "LocalPhases", "SinusoidFit", "circular_mean", "contact_free_source", "contact_source",
-           "fit_sinusoid", "local_phases", "lowpass", "phase_features", "principal_axis", "sliding_normalise",
-           "step_frequency", "style_axes", "touchdowns"]
+WEIGHTS_SUBDIR = "lpn"
+
+
+def load(weights_dir: Path):
+    from .runtime import load as _load
+    return _load(Path(weights_dir))
+
+
+__all__ = ["BONES", "LocalPhases", "SinusoidFit", "WEIGHTS_SUBDIR", "circular_mean", "contact_free_source",
+           "contact_source", "fit_sinusoid", "load", "local_phases", "lowpass", "phase_features", "principal_axis",
+           "sliding_normalise", "step_frequency", "style_axes", "touchdowns"]

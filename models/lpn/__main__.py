@@ -2,6 +2,10 @@
 
     .venv/bin/python -m models.lpn phases-plot [--out out/lpn_phases.png] [--styles 2:normal,2:elderly,1:chimpira]
     .venv/bin/python -m models.lpn phases-stats [--style normal]       # step vs fitted frequency, L/R offsets
+    .venv/bin/python -m models.lpn train [--minutes 60] [--field=value ...]   # train.TrainConfig, then export
+    .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
+    .venv/bin/python -m models.lpn bench                                   # per-frame step, batch 1 and 256
+    .venv/bin/python -m models.lpn heldout                                 # new styles from a clip, 3 held-out styles
 """
 
 from __future__ import annotations
@@ -48,6 +52,58 @@ def phases_stats(args) -> None:
         print(json.dumps(rows[-1]))
 
 
+def train(args) -> None:
+    from .train import main as train_main
+    train_main([f"--minutes={args.minutes}", *args.options])
+
+
+def _model():
+    from . import load
+    from ..settings import get_settings
+    return load(get_settings().weights_dir / "lpn")
+
+
+def demo(args) -> None:
+    from .demo import render_demo
+    out = Path(args.out)
+    out = out if out.is_absolute() else REPO_ROOT / out
+    png = render_demo(out, tag=args.tag, seconds=args.seconds, styles=tuple(args.styles.split(",")), gif=args.gif)
+    print(png)
+    print(png.with_suffix(".json").read_text())
+
+
+def bench(args) -> None:
+    """Median/p99 step time and frames/s at batch 1 and 256, control-driven, after a warm-up."""
+    import time
+    from ..interface import FrameBatch
+    model = _model()
+    first = model.rest_motion()
+    out = {}
+    for B in (1, 256):
+        state = model.init_state(B)
+        control = np.tile(np.array([[1.2, 0.0, 0.0, 0.0, 1.0]], np.float32), (B, 1))
+        frames = FrameBatch(np.repeat(first.translations[:1, 1], B, 0), np.repeat(first.rotations[:1], B, 0),
+                            control=control)
+        w = np.zeros((B, len(model.styles())), np.float32)
+        w[:, model.styles().index("elderly")] = 1.0
+        for _ in range(20):
+            _, state = model.step_batch(state, frames, w)
+        times = []
+        for _ in range(args.steps):
+            t = time.perf_counter()
+            _, state = model.step_batch(state, frames, w)
+            times.append(time.perf_counter() - t)
+        times = np.array(times) * 1e3
+        out[B] = {"median_ms": round(float(np.median(times)), 3), "p99_ms": round(float(np.percentile(times, 99)), 3),
+                  "frames_per_s": round(float(B / np.median(times) * 1e3))}
+    print(json.dumps(out, indent=1))
+
+
+def heldout(args) -> None:
+    from .heldout import evaluate
+    print(json.dumps(evaluate(_model(), REPO_ROOT / "out" / "lpn"), indent=1))
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m models.lpn")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -63,7 +119,25 @@ def main(argv: list[str] | None = None) -> None:
     s.add_argument("--content", default="walk")
     s.add_argument("--split", default="train")
     s.set_defaults(fn=phases_stats)
-    args = p.parse_args(argv)
+    s = sub.add_parser("demo", help="scripted control sequence in each style: renders + skating/freezing numbers")
+    s.add_argument("--seconds", type=float, default=60.0)
+    s.add_argument("--styles", default="normal,active,elderly,exhausted,feminine,masculine,youthful")
+    s.add_argument("--tag", default="demo")
+    s.add_argument("--out", default="out/lpn")
+    s.add_argument("--no-gif", dest="gif", action="store_false")
+    s.set_defaults(fn=demo)
+    s = sub.add_parser("bench", help="per-frame step time at batch 1 and 256")
+    s.add_argument("--steps", type=int, default=300)
+    s.set_defaults(fn=bench)
+    s = sub.add_parser("heldout", help="held-out styles from a clip: distances to the real style, renders")
+    s.set_defaults(fn=heldout)
+    s = sub.add_parser("train", help="train LPN-FiLM (options of train.TrainConfig as --field=value)")
+    s.add_argument("--minutes", type=float, default=60.0)
+    s.set_defaults(fn=train)
+    args, rest = p.parse_known_args(argv)
+    if rest and args.cmd != "train":
+        p.error(f"unrecognized arguments: {' '.join(rest)}")
+    args.options = rest
     args.fn(args)
 
 

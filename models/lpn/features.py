@@ -1,0 +1,145 @@
+"""LPN-FiLM per-frame features: the layout of the network's input, gating input and output, and the
+pure functions that compute them from world-space joint data. One code path for the offline
+dataset (`dataset.py`, whole clips at once) and the streaming runtime (`runtime.py`, one frame of
+B sessions at once), so the two cannot drift apart.
+
+Conventions (those of `models.motion.features`): Y up, units of the skeleton (cm for Bandai
+Namco), facing yaw in radians about +Y with 0 = facing +Z, facing direction (sin yaw, cos yaw) in
+the ground plane (x, z). The *character frame* at frame t has its origin at the Hips projected on
+the ground and its +Z axis along the facing direction. Horizontal vectors are stored as (x, z).
+
+Trajectory samples (the paper's 13 samples over [-1 s, +1 s] at 60 fps become every 5th frame
+over +-30 frames at 30 fps): offsets -30, -25, ..., +30 frames.
+
+Network input X (343):
+    [0:91)     trajectory, 13 samples x (position xz, direction xz, velocity xz, gait), char. frame t
+    [91:343)   pose of frame t, 21 body joints x (position, velocity, forward axis, up axis), char. frame t
+Gating input G (104): local phase features of the 4 bones (phases.BONES), 13 samples x 4 x 2.
+Network output Y (353), all about frame t+1:
+    [0:36)     future trajectory, samples +5..+30 x (position xz, direction xz, velocity xz), char. frame t+1
+    [36:288)   pose of frame t+1 in its own character frame (as in X)
+    [288:291)  root delta: Hips ground displacement (x, z) in char. frame t, yaw change (radians)
+    [291:347)  phase features at samples 0, +5, ..., +30 from t+1 (7 x 4 x 2)
+    [347:351)  phase frequencies of the 4 bones at t+1 (Hz): the phase update
+    [351:353)  foot contacts (left, right) at t+1
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..motion.features import facing_yaw, wrap_angle
+from ..motion.rotations import quat_to_matrix
+from ..motion.skeleton import Skeleton
+
+FPS = 30.0
+STEP = 5  # frames between trajectory samples
+PAST = 6  # samples before the current frame
+FUTURE = 6  # samples after it
+SAMPLES = PAST + 1 + FUTURE  # 13
+OFFSETS = np.arange(-PAST, FUTURE + 1) * STEP  # frame offsets of the samples
+NUM_JOINTS = 22
+BODY = np.arange(1, NUM_JOINTS)  # joint_Root (static at the origin) carries nothing
+NB = len(BODY)  # 21
+HIPS = 1
+NUM_BONES = 4  # phase bones: Hand_L, Hand_R, Foot_L, Foot_R
+
+TRAJ_CH = 7  # position xz, direction xz, velocity xz, gait
+POSE_CH = 12  # position, velocity, forward axis, up axis
+TRAJ_IN = slice(0, SAMPLES * TRAJ_CH)
+POSE_IN = slice(TRAJ_IN.stop, TRAJ_IN.stop + NB * POSE_CH)
+X_DIM = POSE_IN.stop  # 343
+G_DIM = SAMPLES * NUM_BONES * 2  # 104
+
+TRAJ_OUT_CH = 6
+TRAJ_OUT = slice(0, FUTURE * TRAJ_OUT_CH)
+POSE_OUT = slice(TRAJ_OUT.stop, TRAJ_OUT.stop + NB * POSE_CH)
+DELTA_OUT = slice(POSE_OUT.stop, POSE_OUT.stop + 3)
+PHASE_OUT = slice(DELTA_OUT.stop, DELTA_OUT.stop + (FUTURE + 1) * NUM_BONES * 2)
+FREQ_OUT = slice(PHASE_OUT.stop, PHASE_OUT.stop + NUM_BONES)
+CONTACT_OUT = slice(FREQ_OUT.stop, FREQ_OUT.stop + 2)
+Y_DIM = CONTACT_OUT.stop  # 353
+
+STYLE_DIM = NB * 6 + 3  # FiLM-generator clip features per frame: positions, velocities, root velocity xz, yaw rate
+
+
+def to_local_xz(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """World horizontal vectors (..., 2) as (x, z) into the character frame of facing `yaw` (...)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    x, z = v[..., 0], v[..., 1]
+    return np.stack([c * x - s * z, s * x + c * z], axis=-1)
+
+
+def to_world_xz(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Inverse of `to_local_xz`."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    x, z = v[..., 0], v[..., 1]
+    return np.stack([c * x + s * z, -s * x + c * z], axis=-1)
+
+
+def to_local(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """World 3-D vectors (..., 3) into the character frame (yaw broadcast over the leading axes)."""
+    xz = to_local_xz(v[..., [0, 2]], yaw)
+    return np.stack([xz[..., 0], v[..., 1], xz[..., 1]], axis=-1)
+
+
+def to_world(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    xz = to_world_xz(v[..., [0, 2]], yaw)
+    return np.stack([xz[..., 0], v[..., 1], xz[..., 1]], axis=-1)
+
+
+def direction(yaw: np.ndarray) -> np.ndarray:
+    """(..., 2) facing direction (x, z) of a yaw."""
+    return np.stack([np.sin(yaw), np.cos(yaw)], axis=-1)
+
+
+def pose_features(positions: np.ndarray, velocities: np.ndarray, global_rot: np.ndarray,
+                  root: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(..., NB, 12) pose features of the body joints in the character frame given world joint
+    positions/velocities (..., 22, 3), world rotations (..., 22, 4), the ground root (..., 3) and yaw (...).
+    The rotation is encoded by its forward (local +Z) and up (local +Y) axes: continuous, unlike quaternions."""
+    y = yaw[..., None]
+    mats = quat_to_matrix(global_rot[..., BODY, :])
+    return np.concatenate([to_local(positions[..., BODY, :] - root[..., None, :], y), to_local(velocities[..., BODY, :], y),
+                           to_local(mats[..., :, 2], y), to_local(mats[..., :, 1], y)], axis=-1)
+
+
+def rotations_from_axes(forward: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) whose +Z column is `forward` and +Y column is `up`
+    (orthonormalised: forward is kept, up made perpendicular)."""
+    z = forward / np.sqrt(np.maximum((forward * forward).sum(-1, keepdims=True), 1e-18))
+    y = up - (up * z).sum(-1, keepdims=True) * z
+    y = y / np.sqrt(np.maximum((y * y).sum(-1, keepdims=True), 1e-18))
+    x = y[..., [1, 2, 0]] * z[..., [2, 0, 1]] - y[..., [2, 0, 1]] * z[..., [1, 2, 0]]  # y x z
+    return np.stack([x, y, z], axis=-1)
+
+
+def clip_frames(global_rot: np.ndarray, positions: np.ndarray, skeleton: Skeleton, fps: float = FPS) -> dict[str, np.ndarray]:
+    """Per-frame world quantities of a clip: ground root (F, 3), yaw (F,), joint velocities (F, 22, 3)
+    and root velocity (F, 2), all by backward differences (zero at frame 0), as a stream sees them."""
+    yaw = facing_yaw(positions, skeleton)
+    root = positions[:, HIPS] * np.array([1.0, 0.0, 1.0])
+    vel = np.zeros_like(positions)
+    vel[1:] = (positions[1:] - positions[:-1]) * fps
+    return {"yaw": yaw, "root": root, "vel": vel, "root_vel": vel[:, HIPS][:, [0, 2]]}
+
+
+def style_features(pose: np.ndarray, root_vel: np.ndarray, yaw: np.ndarray, fps: float = FPS) -> np.ndarray:
+    """(F, STYLE_DIM) clip features for the FiLM generator: body joint positions and velocities in
+    the character frame, root velocity in it and the yaw rate -- what a style *looks* like, without
+    the absolute path."""
+    F = pose.shape[0]
+    yaw_rate = np.zeros(F)
+    yaw_rate[1:] = wrap_angle(np.diff(yaw)) * fps
+    return np.concatenate([pose[:, :, :6].reshape(F, -1), to_local_xz(root_vel, yaw), yaw_rate[:, None]], axis=1)
+
+
+def trajectory_input(pos: np.ndarray, dirs: np.ndarray, vel: np.ndarray, gait: np.ndarray,
+                     origin: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(..., 91) trajectory input from world samples pos/dirs/vel (..., 13, 2), gait (..., 13), relative
+    to the character frame at `origin` (..., 2) with `yaw` (...)."""
+    y = yaw[..., None]
+    p = to_local_xz(pos - origin[..., None, :], y)
+    d = to_local_xz(dirs, y)
+    v = to_local_xz(vel, y)
+    return np.concatenate([p, d, v, gait[..., None]], axis=-1).reshape(*pos.shape[:-2], SAMPLES * TRAJ_CH)

@@ -1,0 +1,425 @@
+"""Streaming LPN-FiLM: the project's `StreamingModel` interface as a character controller in
+numpy (float32): per frame, the network reads the character's trajectory (past from its own
+history, future blended from the control and its own last prediction), its pose and its local
+phases, and predicts the next pose, root motion, phases and contacts.
+
+Control (`FrameBatch.control`, (B, 5), optional; a row whose flag is 0 counts as not given):
+    [0] forward velocity, [1] side velocity (+ = to the character's left), m/s, both in the frame of
+        the desired facing (so "walk left" is side > 0 with the facing held);
+    [2] desired facing yaw, radians about +Y, 0 = facing world +Z, +pi/2 = facing +X (the convention
+        of `models.motion.features.facing_yaw`);
+    [3] gait, 0 = walk, 1 = run;
+    [4] flag, 1 = control given.
+Without control a session is driven by its input frames, causally: the input's Hips velocity
+(exponentially smoothed over CONTROL_SMOOTH_S), its facing yaw and a speed-based gait become the
+control, so the model is also "motion in, stylised locomotion out" like LTI and Style-ERD.
+
+Styles are FiLM vectors: one per style (the mean of the FiLM generator over the style's training
+clips), mixed barycentrically by the style weights; weights summing below 1 give the rest to
+`normal`. A style can be added from a clip (`add_style_from_clip`) or removed while sessions run:
+the state holds no per-style entries, so no state upgrade is needed.
+
+State per session (session axis first): `frame`; the root trajectory history of the last 30
+frames + the current one (`hist_pos`, `hist_dir`, `hist_vel` world xz, `hist_gait`, `hist_phase`);
+the network's last future prediction (`fut_pos`, `fut_dir`, `fut_vel`, `fut_phase`, world); the
+current pose in its character frame (`pose`), `yaw`; the input tracker for derived control
+(`in_pos`, `in_vel`); and the foot lock (`lock_anchor`, `lock_since`, `lock_was`).
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from ..interface import FrameBatch, State
+from ..motion.features import body_joint, wrap_angle
+from ..motion.rotations import matrix_to_quat, quat_apply, quat_mul, quat_to_matrix
+from ..motion.skeleton import Motion, Skeleton
+from . import features as lf
+from .weights import read_weights
+
+HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
+PAST_IDX = np.arange(0, HIST, lf.STEP)  # history rows of the 7 past-and-current samples
+CONTROL_SMOOTH_S = 0.25  # input velocity smoothing for derived control
+RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
+CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias
+PHASE_BLEND = 0.5  # next phase = blend of (current advanced by the predicted frequency) and the predicted phase
+LOCK_RELEASE = 4  # frames over which a released foot returns to its animated position
+LOCK_MAX_PULL = 6.0  # cm: the anchor is dragged along when the animated ankle moves farther away
+LEG_CHAINS = (("UpperLeg_L", "LowerLeg_L", "Foot_L"), ("UpperLeg_R", "LowerLeg_R", "Foot_R"))
+
+
+def _elu(x: np.ndarray) -> np.ndarray:
+    return np.where(x > 0, x, np.expm1(np.minimum(x, 0)))
+
+
+def _layer_norm(x: np.ndarray) -> np.ndarray:
+    m = x.mean(-1, keepdims=True)
+    v = ((x - m) ** 2).mean(-1, keepdims=True)
+    return (x - m) / np.sqrt(v + 1e-5)
+
+
+def _normalise(v: np.ndarray) -> np.ndarray:
+    return v / np.sqrt(np.maximum((v * v).sum(-1, keepdims=True), 1e-16))
+
+
+class LPNModel:
+    name = "lpn"
+    fps = lf.FPS
+
+    def __init__(self, arrays: dict[str, np.ndarray], skeleton: Skeleton, config: dict):
+        self.config = config
+        self.skeleton = skeleton
+        self.p = arrays
+        self.E = config["model"]["experts"]
+        self.H = config["model"]["hidden"]
+        a = arrays
+        self.gating = [(a[f"gating.{i}.weight"].T.copy(), a[f"gating.{i}.bias"]) for i in (0, 2, 4)]
+        self.layers = []
+        for name in ("l1", "l2", "l3"):
+            W = a[f"{name}.weight"]  # (E, in, out)
+            E, n_in, n_out = W.shape
+            self.layers.append((W.transpose(1, 0, 2).reshape(n_in, E * n_out).copy(), a[f"{name}.bias"], n_out))
+        self.x_mean, self.x_std = a["X_mean"], a["X_std"]
+        self.y_mean, self.y_std = a["Y_mean"], a["Y_std"]
+        self.g_scale = float(a["G_scale"])
+        self._lock = threading.Lock()
+        self._styles: list[str] = list(config["styles"])
+        self._films: np.ndarray = a["style_film"].reshape(len(self._styles), 4 * self.H)
+        self._generator = None
+        sk = skeleton
+        self.offsets = sk.offsets.astype(np.float32)
+        self.parents = sk.parents
+        self.chains = np.array([[sk.index(n) for n in chain] for chain in LEG_CHAINS])
+        self.facing_joints = [body_joint(sk, p) for p in ("hip_l", "hip_r", "shoulder_l", "shoulder_r")]
+
+    # ------------------------------------------------------------------ styles
+
+    def styles(self) -> list[str]:
+        return list(self._styles)
+
+    def film_of(self, name: str) -> np.ndarray:
+        """The (4, H) FiLM vector of a style."""
+        return self._films[self._styles.index(name)].reshape(4, self.H).copy()
+
+    def clip_film(self, motion: Motion) -> np.ndarray:
+        """FiLM vector (4, H) of a clip: the generator on windows of it (tiled if short), averaged."""
+        import torch
+
+        from .train import tile_clip
+        from .dataset import clip_style_features
+        feats = tile_clip(clip_style_features(motion), 120)
+        starts = range(0, len(feats) - 120 + 1, 60)
+        windows = torch.from_numpy(np.stack([feats[s:s + 120] for s in starts]).astype(np.float32))
+        with torch.no_grad():
+            return self.generator().style_film(windows).mean(0).numpy()
+
+    def add_style_from_clip(self, name: str, motion: Motion) -> None:
+        """Make a new style usable at once: the FiLM generator's embedding of `motion` (a clip of
+        the style, any length >= 1 s, on the Bandai Namco skeleton at 30 fps; longer is better).
+        Replaces a style of the same name."""
+        if motion.skeleton.names != self.skeleton.names:
+            raise ValueError("add_style_from_clip needs a clip on the model skeleton (Bandai Namco, 22 joints)")
+        if motion.num_frames < self.fps:
+            raise ValueError(f"style clip too short: {motion.num_frames} frames, need at least {int(self.fps)}")
+        film = self.clip_film(motion).reshape(1, -1)
+        with self._lock:
+            if name in self._styles:
+                films = self._films.copy()
+                films[self._styles.index(name)] = film[0]
+                self._films = films
+            else:
+                self._films = np.concatenate([self._films, film])
+                self._styles = self._styles + [name]
+
+    def remove_style(self, name: str) -> None:
+        if name == "normal":
+            raise ValueError("'normal' is the base style of LPN-FiLM and cannot be removed")
+        with self._lock:
+            if name not in self._styles:
+                raise KeyError(f"unknown style {name!r}")
+            k = self._styles.index(name)
+            self._films = np.delete(self._films, k, axis=0)
+            self._styles = self._styles[:k] + self._styles[k + 1:]
+
+    def generator(self):
+        """The torch network (for the FiLM generator; built on first use)."""
+        if self._generator is None:
+            import torch
+
+            from .network import LPN, LPNConfig
+            net = LPN(LPNConfig(**self.config["model"]))
+            state = {k: torch.as_tensor(v) for k, v in self.p.items() if k != "style_film"}
+            net.load_state_dict(state)
+            self._generator = net.eval()
+        return self._generator
+
+    def blend_films(self, weights: np.ndarray) -> np.ndarray:
+        """(B, S) style weights -> (B, 4, H) FiLM; the weights' shortfall from 1 goes to `normal`."""
+        with self._lock:
+            films, styles = self._films, self._styles
+        w = np.asarray(weights, np.float32)
+        if w.ndim != 2 or w.shape[1] != len(styles):
+            raise ValueError(f"style_weights must be (B, {len(styles)}), got {w.shape}")
+        film = w @ films + (1.0 - w.sum(1, keepdims=True)) * films[styles.index("normal")]
+        return film.reshape(-1, 4, self.H)
+
+    # ------------------------------------------------------------------ state
+
+    def init_state(self, batch: int) -> State:
+        B = batch
+        z = lambda *s: np.zeros((B, *s), np.float32)
+        return {"frame": np.zeros(B, np.int64), "hist_pos": z(HIST, 2), "hist_dir": z(HIST, 2), "hist_vel": z(HIST, 2),
+                "hist_gait": z(HIST), "hist_phase": z(HIST, lf.NUM_BONES, 2), "fut_pos": z(lf.FUTURE, 2),
+                "fut_dir": z(lf.FUTURE, 2), "fut_vel": z(lf.FUTURE, 2), "fut_phase": z(lf.FUTURE, lf.NUM_BONES, 2),
+                "pose": z(lf.NB, lf.POSE_CH), "yaw": z(), "in_pos": z(2), "in_vel": z(2),
+                "lock_anchor": z(2, 3), "lock_since": np.full((B, 2), 10**6, np.int64), "lock_was": np.zeros((B, 2), bool)}
+
+    def _start(self, state: State, rows: np.ndarray, root: np.ndarray, rotations: np.ndarray) -> None:
+        """Fresh sessions start standing in the input's first pose (as a clip's samples before its
+        first frame repeat it in training)."""
+        grot, gpos = self._fk(root[rows], rotations[rows])
+        yaw = self._facing(gpos)
+        ground = gpos[:, lf.HIPS] * np.array([1.0, 0.0, 1.0], np.float32)
+        pose = lf.pose_features(gpos, np.zeros_like(gpos), grot, ground, yaw)
+        xz, d = ground[:, [0, 2]], lf.direction(yaw)
+        state["pose"][rows] = pose
+        state["yaw"][rows] = yaw
+        state["hist_pos"][rows] = xz[:, None]
+        state["hist_dir"][rows] = d[:, None]
+        state["fut_pos"][rows] = xz[:, None]
+        state["fut_dir"][rows] = d[:, None]
+        for key in ("hist_vel", "hist_gait", "hist_phase", "fut_vel", "fut_phase", "in_vel", "lock_anchor"):
+            state[key][rows] = 0.0
+        state["in_pos"][rows] = xz
+        state["lock_since"][rows] = 10**6
+        state["lock_was"][rows] = False
+
+    # ------------------------------------------------------------------ step
+
+    def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
+        root = np.asarray(frames.root, np.float32)
+        rot_in = np.asarray(frames.rotations, np.float32)
+        B = root.shape[0]
+        film = self.blend_films(style_weights)
+        if film.shape[0] != B:
+            raise ValueError(f"style_weights has {film.shape[0]} rows for {B} frames")
+        s = {k: v.copy() for k, v in state.items()}
+        fresh = np.flatnonzero(s["frame"] == 0)
+        if len(fresh):
+            self._start(s, fresh, root, rot_in)
+        control = self._control(s, frames, root, rot_in, fresh)
+        x, g = self._inputs(s, control)
+        y = self._network(x, g, film)
+        out_root, out_rot, contacts = self._advance(s, y)
+        out_rot = self._foot_lock(s, out_root, out_rot, contacts)
+        s["frame"] = s["frame"] + 1
+        return FrameBatch(out_root, out_rot, contacts), s
+
+    def _control(self, s: State, frames: FrameBatch, root: np.ndarray, rot_in: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+        """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others derived
+        from the input frames."""
+        B = root.shape[0]
+        given = np.zeros(B, bool) if frames.control is None else np.asarray(frames.control)[:, 4] > 0.5
+        out = np.zeros((B, 4), np.float32)
+        if given.any():
+            c = np.asarray(frames.control, np.float32)[given]
+            out[given] = np.stack([c[:, 0] * 100.0, c[:, 1] * 100.0, c[:, 2], c[:, 3]], axis=1)
+        derive = np.flatnonzero(~given)
+        # the input tracker advances every frame so a session can switch between modes smoothly
+        xz = root[:, [0, 2]]
+        vel = np.where((s["frame"] > 0)[:, None], (xz - s["in_pos"]) * self.fps, 0.0)
+        a = 1.0 - np.exp(-1.0 / (self.fps * CONTROL_SMOOTH_S))
+        s["in_vel"] = (s["in_vel"] + a * (vel - s["in_vel"])).astype(np.float32)
+        s["in_pos"] = xz.astype(np.float32)
+        if len(derive):
+            _, gpos = self._fk(root[derive], rot_in[derive])
+            yaw = self._facing(gpos)
+            local = lf.to_local_xz(s["in_vel"][derive], yaw)
+            speed = np.linalg.norm(local, axis=-1)
+            out[derive] = np.stack([local[:, 1], local[:, 0], yaw, (speed > RUN_SPEED).astype(np.float32)], axis=1)
+        return out
+
+    def _inputs(self, s: State, control: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Blend the future trajectory toward the control, then build X and G."""
+        B = control.shape[0]
+        yaw, pos = s["yaw"], s["hist_pos"][:, -1]
+        want_yaw = control[:, 2]
+        want_vel = lf.to_world_xz(np.stack([control[:, 1], control[:, 0]], -1), want_yaw)
+        k = np.arange(1, lf.FUTURE + 1, dtype=np.float32)
+        tau = (k * lf.STEP / self.fps)[None, :, None]
+        beta = (1.0 - (1.0 - k / lf.FUTURE) ** CONTROL_BIAS)[None, :, None]
+        turn = wrap_angle(want_yaw - yaw)[:, None] * (k / lf.FUTURE)[None]
+        target_pos = pos[:, None] + want_vel[:, None] * tau
+        target_dir = lf.direction(yaw[:, None] + turn)
+        s["fut_pos"] = (s["fut_pos"] + beta * (target_pos - s["fut_pos"])).astype(np.float32)
+        s["fut_dir"] = _normalise(s["fut_dir"] + beta * (target_dir - s["fut_dir"])).astype(np.float32)
+        s["fut_vel"] = (s["fut_vel"] + beta * (want_vel[:, None] - s["fut_vel"])).astype(np.float32)
+        gait = np.concatenate([s["hist_gait"][:, PAST_IDX], np.repeat(control[:, 3:4], lf.FUTURE, 1)], 1)
+        traj = lf.trajectory_input(np.concatenate([s["hist_pos"][:, PAST_IDX], s["fut_pos"]], 1),
+                                   np.concatenate([s["hist_dir"][:, PAST_IDX], s["fut_dir"]], 1),
+                                   np.concatenate([s["hist_vel"][:, PAST_IDX], s["fut_vel"]], 1), gait, pos, yaw)
+        x = np.concatenate([traj, s["pose"].reshape(B, -1)], 1)
+        s["cur_gait"] = control[:, 3].copy()
+        g = np.concatenate([s["hist_phase"][:, PAST_IDX], s["fut_phase"]], 1).reshape(B, -1)
+        return x.astype(np.float32), g.astype(np.float32)
+
+    def _network(self, x: np.ndarray, g: np.ndarray, film: np.ndarray) -> np.ndarray:
+        """Denormalised output (B, Y_DIM); the same maths as `network.LPN.forward` in eval mode."""
+        h = g / self.g_scale
+        for i, (W, b) in enumerate(self.gating):
+            h = h @ W + b
+            if i < 2:
+                h = _elu(h)
+        alpha = np.exp(h - h.max(-1, keepdims=True))
+        alpha /= alpha.sum(-1, keepdims=True)
+        h = (x - self.x_mean) / self.x_std
+        for i, (W, b, n_out) in enumerate(self.layers):
+            h = np.matmul(alpha[:, None, :], (h @ W).reshape(-1, self.E, n_out))[:, 0] + alpha @ b
+            if i < 2:
+                h = _elu(_layer_norm(h) * (1.0 + film[:, 2 * i]) + film[:, 2 * i + 1])
+        return h * self.y_std + self.y_mean
+
+    def _advance(self, s: State, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Apply the prediction: move the root, shift the history, store pose/phases/future; returns
+        the output Hips translation, local rotations and contacts."""
+        B = y.shape[0]
+        yaw, pos = s["yaw"], s["hist_pos"][:, -1]
+        delta = y[:, lf.DELTA_OUT]
+        new_pos = pos + lf.to_world_xz(delta[:, :2], yaw)
+        new_yaw = wrap_angle(yaw + delta[:, 2]).astype(np.float32)
+        vel = (new_pos - pos) * self.fps
+        # phases: the current phase advanced by the predicted frequency, blended with the predicted one
+        ph = y[:, lf.PHASE_OUT].reshape(B, lf.FUTURE + 1, lf.NUM_BONES, 2)
+        cur = s["hist_phase"][:, -1]
+        angle = 2 * np.pi * y[:, lf.FREQ_OUT] / self.fps
+        c, sn = np.cos(angle), np.sin(angle)
+        # features are A (sin phi, cos phi): advancing phi by d rotates (s, c) -> (s cos d + c sin d, c cos d - s sin d)
+        advanced = np.stack([cur[..., 0] * c + cur[..., 1] * sn, cur[..., 1] * c - cur[..., 0] * sn], -1)
+        blend = _normalise((1 - PHASE_BLEND) * advanced + PHASE_BLEND * ph[:, 0])
+        next_phase = blend * np.linalg.norm(ph[:, 0], axis=-1, keepdims=True)
+
+        def push(key: str, value: np.ndarray) -> None:
+            s[key] = np.concatenate([s[key][:, 1:], value[:, None].astype(np.float32)], 1)
+
+        push("hist_pos", new_pos)
+        push("hist_dir", lf.direction(new_yaw))
+        push("hist_vel", vel)
+        push("hist_gait", s.pop("cur_gait"))
+        push("hist_phase", next_phase)
+        traj = y[:, lf.TRAJ_OUT].reshape(B, lf.FUTURE, lf.TRAJ_OUT_CH)
+        ny = new_yaw[:, None]
+        s["fut_pos"] = (new_pos[:, None] + lf.to_world_xz(traj[..., 0:2], ny)).astype(np.float32)
+        s["fut_dir"] = _normalise(lf.to_world_xz(traj[..., 2:4], ny)).astype(np.float32)
+        s["fut_vel"] = lf.to_world_xz(traj[..., 4:6], ny).astype(np.float32)
+        s["fut_phase"] = ph[:, 1:].astype(np.float32)
+        pose = y[:, lf.POSE_OUT].reshape(B, lf.NB, lf.POSE_CH)
+        s["pose"] = pose.astype(np.float32)
+        s["yaw"] = new_yaw
+        # output frame: world rotations from the forward/up axes, then local rotations
+        g_char = lf.rotations_from_axes(pose[..., 6:9], pose[..., 9:12])  # (B, NB, 3, 3) character frame
+        R_yaw = np.zeros((B, 3, 3), np.float32)
+        cy, sy = np.cos(new_yaw), np.sin(new_yaw)
+        R_yaw[:, 0, 0], R_yaw[:, 0, 2], R_yaw[:, 1, 1], R_yaw[:, 2, 0], R_yaw[:, 2, 2] = cy, sy, 1.0, -sy, cy
+        g_world = np.concatenate([np.broadcast_to(np.eye(3, dtype=np.float32), (B, 1, 3, 3)),
+                                  R_yaw[:, None] @ g_char], 1)  # (B, 22, 3, 3), joint_Root identity
+        parents = np.maximum(self.parents, 0)
+        local = np.swapaxes(g_world[:, parents], -1, -2) @ g_world
+        local[:, 0] = np.eye(3)
+        hips = pose[:, 0, :3]
+        out_root = np.stack([new_pos[:, 0], hips[:, 1], new_pos[:, 1]], -1) + \
+            lf.to_world(np.stack([hips[:, 0], 0 * hips[:, 1], hips[:, 2]], -1), new_yaw)
+        contacts = y[:, lf.CONTACT_OUT] > 0.5
+        return out_root.astype(np.float32), matrix_to_quat(local).astype(np.float32), contacts
+
+    # ------------------------------------------------------------------ kinematics
+
+    def _fk(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World rotations (B, 22, 4) and positions (B, 22, 3); joint_Root static at the origin."""
+        from ..motion.skeleton import fk
+        trans = np.broadcast_to(self.offsets, rotations.shape[:-1] + (3,)).copy()
+        trans[:, lf.HIPS] = root
+        g_rot, g_pos = fk(rotations, trans, self.parents)
+        return g_rot.astype(np.float32), g_pos.astype(np.float32)
+
+    def _facing(self, positions: np.ndarray) -> np.ndarray:
+        hl, hr, sl, sr = (positions[:, j] for j in self.facing_joints)
+        left = hl - hr + sl - sr
+        return np.arctan2(-left[:, 2], left[:, 0]).astype(np.float32)  # forward = left x up = (-lz, 0, lx)
+
+    def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray) -> np.ndarray:
+        """Two-bone leg IK pinning each planted ankle where it touched down (state-held anchors),
+        released over LOCK_RELEASE frames; the anchor is dragged along beyond LOCK_MAX_PULL cm."""
+        from ..lti.footplant import two_bone_ik
+        B = root.shape[0]
+        gh = rotations[:, lf.HIPS]
+        feet = np.zeros((B, 2, 3), np.float32)
+        for side, (up, low, foot) in enumerate(self.chains):
+            g_up = quat_mul(gh, rotations[:, up])
+            g_low = quat_mul(g_up, rotations[:, low])
+            feet[:, side] = root + quat_apply(gh, self.offsets[up]) + quat_apply(g_up, self.offsets[low]) + \
+                quat_apply(g_low, self.offsets[foot])
+        start = contacts & ~s["lock_was"]
+        anchor = np.where(start[..., None], feet, s["lock_anchor"])
+        gap = anchor - feet
+        dist = np.linalg.norm(gap, axis=-1, keepdims=True)
+        anchor = feet + gap * np.minimum(1.0, LOCK_MAX_PULL / np.maximum(dist, 1e-9))
+        since = np.where(contacts, 0, s["lock_since"] + 1)
+        s["lock_anchor"], s["lock_since"], s["lock_was"] = anchor.astype(np.float32), since, contacts.copy()
+        active = since <= LOCK_RELEASE
+        if not active.any():
+            return rotations
+        fade = np.clip(since / (LOCK_RELEASE + 1.0), 0.0, 1.0)[..., None]
+        target = anchor + (feet - anchor) * fade
+        rows, legs = np.nonzero(active)
+        up, low, foot = (self.chains[legs, i] for i in range(3))
+        g = gh[rows]
+        hip = root[rows] + quat_apply(g, self.offsets[up])
+        r_up, r_low, r_foot = two_bone_ik(g, rotations[rows, up], rotations[rows, low], rotations[rows, foot], hip,
+                                          self.offsets[low], self.offsets[foot], target[rows, legs])
+        out = rotations.copy()
+        out[rows, up], out[rows, low], out[rows, foot] = r_up, r_low, r_foot
+        return out
+
+    # ------------------------------------------------------------------ offline helpers
+
+    def run(self, motion: Motion | None, weights: np.ndarray, control: np.ndarray | None = None,
+            frames: int | None = None) -> tuple[Motion, np.ndarray]:
+        """Drive one session through step_batch (batch 1): by a motion's frames (derived control), by a
+        control sequence (T, 5) starting from `motion`'s first pose (or the model's rest pose), or both.
+        `weights` is (S,) or per frame (T, S). Returns the output Motion and contacts (T, 2)."""
+        from dataclasses import replace
+        T = frames or (len(control) if control is not None else motion.num_frames)
+        first = motion if motion is not None else self.rest_motion()
+        state = self.init_state(1)
+        w = np.asarray(weights, np.float32)
+        roots, rots, cons = [], [], []
+        for t in range(T):
+            src = min(t, first.num_frames - 1) if (motion is not None and control is None) else 0
+            c = None if control is None else np.asarray(control[t:t + 1], np.float32)
+            fb = FrameBatch(first.translations[src:src + 1, lf.HIPS], first.rotations[src:src + 1], control=c)
+            out, state = self.step_batch(state, fb, (w[t] if w.ndim == 2 else w)[None])
+            roots.append(out.root[0])
+            rots.append(out.rotations[0])
+            cons.append(out.contacts[0])
+        trans = np.broadcast_to(self.skeleton.offsets, (T, self.skeleton.num_joints, 3)).copy()
+        trans[:, lf.HIPS] = np.array(roots)
+        return replace(first.slice(0, 1), rotations=np.array(rots), translations=trans, fps=self.fps), np.array(cons)
+
+    def rest_motion(self) -> Motion:
+        """A one-frame standing pose to start control-driven sessions from (the mean training pose's
+        rest: T-pose rotations are far from locomotion, so the first clip frame of normal walking is used)."""
+        from ..data import build_index, load_motion, select
+        clip = select(build_index(["bandai-namco-2"]), split="val", style="normal", content="walk")[0]
+        return load_motion(clip).slice(0, 1)
+
+    def weight_vector(self, mix: dict[str, float]) -> np.ndarray:
+        names = self.styles()
+        return np.array([mix.get(n, 0.0) for n in names], np.float32)
+
+
+def load(weights_dir: Path) -> LPNModel:
+    arrays, skeleton, config = read_weights(weights_dir)
+    return LPNModel(arrays, skeleton, config)
