@@ -18,7 +18,9 @@ from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
-from models.interface import StreamingModel
+import numpy as np
+
+from models.interface import FrameBatch, StreamingModel, weight_vector
 
 from . import protocol as P
 from .batcher import Batcher
@@ -33,6 +35,16 @@ class Drainable(Protocol):
 
     async def stop_processing(self) -> None: ...
     async def close_for_restart(self) -> None: ...
+
+
+def warm_up(model: StreamingModel) -> None:
+    """One throwaway step on a rest pose: a model's first step pays lazy initialisation (LTI:
+    ~0.7 s), which would otherwise stall the first session here, a resumed one included."""
+    rotations = np.zeros((1, len(model.skeleton.names), 4))
+    rotations[..., 3] = 1.0
+    styles = model.styles()
+    model.step_batch(model.init_state(1), FrameBatch(np.zeros((1, 3)), rotations),
+                     np.stack([weight_vector(styles, {styles[0]: 1.0} if styles else {})]))
 
 
 class Runtime:
@@ -52,13 +64,16 @@ class Runtime:
         self.draining = False
 
     async def start(self) -> None:
+        for model in self.models.values():
+            await self.on_model_thread(warm_up, model)
         for batcher in self.batchers.values():
             batcher.start()
         self.snapshots.start()
 
     async def stop(self) -> None:
         await asyncio.gather(*(b.stop() for b in self.batchers.values()))
-        await self.snapshots.stop()
+        # what a drain could not save is retried this long (the drain's budget ends here too)
+        await self.snapshots.stop(timeout_s=min(2.0, 0.1 * self.settings.drain_timeout_s))
         self.executor.shutdown(wait=False, cancel_futures=True)
 
     async def drain(self, timeout_s: float) -> None:

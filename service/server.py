@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import signal
+import time
 from types import FrameType
 
 import uvicorn
@@ -21,7 +22,7 @@ from fastapi import FastAPI
 from .app import create_app
 from .settings import ServiceSettings
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("uvicorn.error")  # uvicorn's own lifecycle log, so drains show beside it
 
 
 class DrainingServer(uvicorn.Server):
@@ -51,10 +52,12 @@ class DrainingServer(uvicorn.Server):
         self._drain_task = self._loop.create_task(self._drain(sig, runtime))
 
     async def _drain(self, sig: int, runtime) -> None:
+        t0 = time.perf_counter()
         try:
             await runtime.drain(0.7 * self.drain_timeout_s)
         except Exception:  # noqa: BLE001 - shut down regardless
             log.exception("drain failed")
+        log.info("drained in %.3f s", time.perf_counter() - t0)
         super().handle_exit(sig, None)  # now uvicorn closes listeners and waits out what is left
 
     def _give_up(self) -> None:
