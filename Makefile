@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-all summary eval perf clean browser viewer-vendor
+.PHONY: install serve test test-all summary eval perf clean browser viewer-vendor servers
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -32,7 +32,15 @@ browser:
 		(apt-get update -qq && apt-get install -y -qq chromium >/dev/null) || \
 		echo "chromium not installed: the viewer's browser tests will be skipped"; }
 
-test: install browser
+# redis-server and nginx for the two-replica and drain tests (Debian packages, started by the
+# tests themselves on free ports); without apt those tests are skipped, saying why
+servers:
+	@{ command -v redis-server >/dev/null 2>&1 && { command -v nginx >/dev/null 2>&1 || test -x /usr/sbin/nginx; }; } || \
+		{ command -v apt-get >/dev/null 2>&1 && \
+		(apt-get update -qq && apt-get install -y -qq redis-server nginx >/dev/null) || \
+		echo "redis-server/nginx not installed: the replica and drain tests will be skipped"; }
+
+test: install browser servers
 	$(BIN)/python -m pytest -q -m "not slow"
 
 test-all: install
