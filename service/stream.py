@@ -46,14 +46,18 @@ class Connection:
         self._ack_tasks: set[asyncio.Task] = set()
 
     # ---- sending ------------------------------------------------------------------
+    def _sendable(self) -> bool:
+        """Neither side has closed (a snapshot acknowledgement may come after our close)."""
+        return self.ws.client_state == WebSocketState.CONNECTED and self.ws.application_state == WebSocketState.CONNECTED
+
     async def send_json(self, payload: dict) -> None:
         async with self.send_lock:
-            if self.ws.client_state == WebSocketState.CONNECTED:
+            if self._sendable():
                 await self.ws.send_text(json.dumps(payload))
 
     async def send_bytes(self, data: bytes) -> None:
         async with self.send_lock:
-            if self.ws.client_state == WebSocketState.CONNECTED:
+            if self._sendable():
                 await self.ws.send_bytes(data)
 
     async def send_error(self, err: P.ProtocolError) -> None:
@@ -64,7 +68,7 @@ class Connection:
         self.closing = True
         self.wakeup.set()
         async with self.send_lock:
-            if self.ws.client_state == WebSocketState.CONNECTED:
+            if self._sendable():
                 await self.ws.close(code, reason[:120])
 
     # ---- receiving ----------------------------------------------------------------
@@ -133,9 +137,15 @@ class Connection:
         """Tell the client frames up to `last_seq` are safe in the store (it may forget them)."""
         if self.stopping or snap.last_seq is None:
             return
-        task = asyncio.get_running_loop().create_task(self.send_json({"type": "snapshot", "last_seq": snap.last_seq}))
+        task = asyncio.get_running_loop().create_task(self._send_ack(snap.last_seq))
         self._ack_tasks.add(task)
         task.add_done_callback(self._ack_tasks.discard)
+
+    async def _send_ack(self, last_seq: int) -> None:
+        try:
+            await self.send_json({"type": "snapshot", "last_seq": last_seq})
+        except (WebSocketDisconnect, RuntimeError, OSError):  # the client left meanwhile: it has no use for it
+            pass
 
     async def open_session(self) -> bool:
         try:
