@@ -55,7 +55,7 @@ class DrainingServer(uvicorn.Server):
         t0 = time.perf_counter()
         try:
             await runtime.drain(0.7 * self.drain_timeout_s)
-        except Exception:  # noqa: BLE001 - shut down regardless
+        except Exception:
             log.exception("drain failed")
         log.info("drained in %.3f s", time.perf_counter() - t0)
         super().handle_exit(sig, None)  # now uvicorn closes listeners and waits out what is left

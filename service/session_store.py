@@ -223,7 +223,7 @@ class SnapshotWriter:
                 if entry.on_saved is not None:
                     try:
                         entry.on_saved(entry.snapshot)
-                    except Exception:  # noqa: BLE001 - a closed connection must not stop the writer
+                    except Exception:
                         log.exception("snapshot callback failed")
 
     def _requeue(self, batch: dict[str, _Pending]) -> None:

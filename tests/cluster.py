@@ -88,7 +88,7 @@ class Replica:
     def metric(self, name: str) -> float:
         """Sum of a metric's samples on /metrics (all label values)."""
         text = httpx.get(f"{self.url}/metrics", timeout=5).text
-        return sum(float(v) for v in re.findall(rf"^{name}(?:{{[^}}]*}})? (\S+)$", text, re.M))
+        return sum(float(v) for v in re.findall(rf"^{name}(?:{{[^}}]*}})? (\S+)$", text, re.MULTILINE))
 
     def signal(self, sig: signal.Signals) -> None:
         self.proc.send_signal(sig)

@@ -14,7 +14,14 @@ from clients.sdk import Client
 from models.registry import load_models
 from models.settings import get_settings
 from service.metrics import Metrics
-from service.session_store import MemoryStore, RedisStore, SessionStore, SnapshotWriter, StoreUnavailable, create_store
+from service.session_store import (
+    MemoryStore,
+    RedisStore,
+    SessionStore,
+    SnapshotWriter,
+    StoreUnavailable,
+    create_store,
+)
 from service.sessions import Snapshot
 
 from .cluster import redis_server, require
