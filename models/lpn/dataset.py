@@ -4,7 +4,9 @@
     .venv/bin/python -m models.lpn.dataset        # build (or reuse) the cache, ~2 min
 
 Data: dataset 1 (walk, run, dash, walk-back, walk-left, walk-right) and dataset 2 (walk,
-walk-turn-left, walk-turn-right, run). Style names: dataset 2 keeps its plain names (`normal`,
+walk-turn-left, walk-turn-right, run), or, with `DataConfig.hundred_style_dir`, the locomotion takes of a
+100STYLE folder (`hundred_style.py`; its `Neutral` style becomes `normal`, no style held out unless
+listed). Style names: dataset 2 keeps its plain names (`normal`,
 `active`, `elderly`, `exhausted`, `feminine`, `masculine`, `youthful`: the service and the eval
 suite compare methods on them); every dataset-1 style is prefixed `d1-` (`d1-active`,
 `d1-normal`, ...): the two datasets were captured with different actors, so a shared name is not
@@ -38,7 +40,7 @@ CACHE_VERSION = 1
 D1, D2 = "bandai-namco-1", "bandai-namco-2"
 D1_CONTENTS = ("walk", "run", "dash", "walk-back", "walk-left", "walk-right")
 D2_CONTENTS = ("walk", "walk-turn-left", "walk-turn-right", "run")
-RUNNING = ("run", "dash")
+RUNNING = ("run", "dash", "run-back", "run-side")
 D2_STYLES = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful")
 HELD_OUT = ("d1-giant", "d1-chimpira", "d1-proud")
 
@@ -49,6 +51,7 @@ class DataConfig:
     d2_contents: tuple[str, ...] = D2_CONTENTS
     held_out: tuple[str, ...] = HELD_OUT
     mirror_train: bool = True
+    hundred_style_dir: str = ""  # train on a 100STYLE folder instead of Bandai Namco
     offsets: tuple[int, ...] = tuple(int(o) for o in lf.OFFSETS)
     version: int = CACHE_VERSION
 
@@ -65,12 +68,21 @@ def gait_of(content: str) -> float:
 
 
 def locomotion_clips(cfg: DataConfig = DataConfig()) -> list[Clip]:
+    if cfg.hundred_style_dir:
+        from .hundred_style import clips
+        return clips(Path(cfg.hundred_style_dir))
     index = build_index([D1, D2])
     return select(index, dataset=D1, content=cfg.d1_contents) + select(index, dataset=D2, content=cfg.d2_contents)
 
 
 def all_styles(cfg: DataConfig = DataConfig()) -> list[str]:
-    """Trained styles: the dataset-2 styles first (normal at 0), then dataset 1's minus the held-out ones."""
+    """Trained styles: the dataset-2 styles first (normal at 0), then dataset 1's minus the held-out ones
+    (100STYLE: normal, then the others)."""
+    if cfg.hundred_style_dir:
+        names = {c.style for c in locomotion_clips(cfg)} - set(cfg.held_out)
+        if "normal" not in names:
+            raise ValueError(f"{cfg.hundred_style_dir}: no Neutral style, the base style of LPN-FiLM")
+        return ["normal"] + sorted(names - {"normal"})
     d1 = sorted({style_name(c) for c in locomotion_clips(cfg) if c.dataset == D1} - set(cfg.held_out))
     return list(D2_STYLES) + d1
 
@@ -177,6 +189,13 @@ def _build_split(clips: list[Clip], motions: list[Motion], styles: list[str], mi
     return arrays
 
 
+def _load(clips: list[Clip]) -> list[Motion]:
+    if clips and clips[0].dataset != D1 and clips[0].dataset != D2:
+        from .hundred_style import load_clip
+        return [load_clip(c) for c in clips]
+    return load_motions(clips)
+
+
 def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
     out = cache_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
@@ -190,7 +209,10 @@ def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
     meta = {"config": asdict(cfg), "styles": styles, "held_out": list(cfg.held_out)}
     for split, cl in parts.items():
         log(f"{split}: {len(cl)} clips")
-        arrays = _build_split(cl, load_motions(cl), everything, cfg.mirror_train and split == "train", log)
+        if not cl:
+            meta[split] = {"clips": 0, "samples": 0}
+            continue
+        arrays = _build_split(cl, _load(cl), everything, cfg.mirror_train and split == "train", log)
         np.savez(out / f"{split}.npz", **arrays)
         meta[split] = {"clips": len(arrays["names"]), "samples": int(len(arrays["X"]))}
     with np.load(out / "train.npz") as z:

@@ -50,6 +50,7 @@ class TrainConfig:
     ckpt_every: int = 200
     run_dir: str = str(REPO_ROOT / ".data" / "lpn" / "run")
     out_dir: str = str(REPO_ROOT / "out" / "lpn")
+    hundred_style_dir: str = ""  # train on a 100STYLE folder (hundred_style.py) instead of Bandai Namco
     export: str = ""  # path of a checkpoint to export to models/weights/lpn instead of training
     no_export: bool = False
 
@@ -154,6 +155,9 @@ def validate(net, val, films: dict[int, torch.Tensor], heldout, held_clips: Styl
         for g, sl in groups.items():
             stats[g].append(err[:, sl].mean().item())
     out = {k: float(np.mean(v)) for k, v in stats.items()}
+    if heldout is None:
+        net.train()
+        return out
     own, neutral = [], []
     for k in held_clips.by_style:
         idx = np.flatnonzero(heldout.style == k)
@@ -188,9 +192,10 @@ def main(argv: list[str]) -> None:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     rng = np.random.default_rng(cfg.seed)
-    from ..data import build_index, load_motion, select
+    from ..motion.assets import bandai_namco_pose
     from .dataset import load_meta, load_split, load_stats
     from .network import LPN, LPNConfig, bone_length_loss
+    from .weights import data_config
 
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -203,19 +208,22 @@ def main(argv: list[str]) -> None:
         logf.write(line + "\n")
         logf.flush()
 
-    meta = load_meta()
-    styles, train, val, heldout = meta["styles"], load_split("train"), load_split("val"), load_split("heldout")
-    stats = load_stats()
-    skeleton = load_motion(select(build_index(["bandai-namco-2"]), split="val")[0]).skeleton
+    data = data_config(asdict(cfg))
+    meta = load_meta(data)
+    styles, train, val = meta["styles"], load_split("train", data), load_split("val", data)
+    heldout = load_split("heldout", data) if meta["heldout"]["clips"] else None
+    stats = load_stats(data)
+    skeleton = bandai_namco_pose().skeleton
     parents, lengths_np = body_bones(skeleton)
     lengths = torch.as_tensor(lengths_np, dtype=torch.float32)
     mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout)
     net = LPN(mcfg, stats)
     log(f"config {json.dumps(asdict(cfg))}")
-    log(f"data: train {len(train.X)} samples / {len(train.names)} clips, val {len(val.X)}, heldout {len(heldout.X)}; "
+    log(f"data: train {len(train.X)} samples / {len(train.names)} clips, val {len(val.X)}, "
+        f"heldout {0 if heldout is None else len(heldout.X)}; "
         f"{len(styles)} styles; parameters {sum(p.numel() for p in net.parameters())}")
     train_clips = StyleClips(train, 120, rng)
-    held_clips = StyleClips(heldout, 120, rng)
+    held_clips = None if heldout is None else StyleClips(heldout, 120, rng)
     by_style = {k: np.flatnonzero(train.style == k) for k in range(len(styles))}
     X, G, Y = (torch.from_numpy(a) for a in (train.X, train.G, train.Y))
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)

@@ -20,12 +20,12 @@ EXPORT_WINDOWS = 32  # windows per style averaged into its FiLM vector (evenly s
 LICENCE = "CC BY-NC 4.0 (inherited from the Bandai Namco Research Motion datasets 1 and 2)"
 
 
-def export_weights(ckpt_path: Path, out_dir: Path | None = None) -> Path:
+def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = EXPORT_WINDOWS) -> Path:
     """Write the weights folder from a training checkpoint, with the per-style mean FiLM vectors
     computed by the checkpoint's generator over all training clips of each style."""
     import torch
 
-    from ..data import build_index, load_motion, select
+    from ..motion.assets import bandai_namco_pose
     from ..settings import REPO_ROOT
     from .dataset import load_meta, load_split
     from .network import LPN, LPNConfig
@@ -37,22 +37,30 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None) -> Path:
     net = LPN(LPNConfig(**ck["model_config"]))
     net.load_state_dict(ck["model"])
     styles = ck["styles"]
-    clips = StyleClips(load_split("train"), 120, np.random.default_rng(0))
-    films = style_films(net, clips, list(range(len(styles))), limit=EXPORT_WINDOWS)
-    skeleton = load_motion(select(build_index(["bandai-namco-2"]), split="val")[0]).skeleton
+    data = data_config(ck["train_config"])
+    clips = StyleClips(load_split("train", data), 120, np.random.default_rng(0))
+    films = style_films(net, clips, list(range(len(styles))), limit=windows)
+    skeleton = bandai_namco_pose().skeleton
     arrays = {k: v.numpy().astype(np.float32 if k in NORMALISATION else np.float16) for k, v in ck["model"].items()}
     np.savez_compressed(out_dir / WEIGHTS_FILE, **arrays,
                         style_film=np.stack([films[k].numpy() for k in range(len(styles))]).astype(np.float32),
                         skeleton_names=np.array(skeleton.names), skeleton_parents=skeleton.parents,
                         skeleton_offsets=skeleton.offsets, skeleton_end_sites=skeleton.end_sites)
     hist = ck.get("history", [])
-    meta = load_meta()
+    meta = load_meta(data)
     config = {"model": ck["model_config"], "styles": styles, "held_out": meta["held_out"], "iterations": ck["iter"],
               "train_seconds": round(ck["seconds"], 1), "train_config": ck["train_config"],
               "data": {k: meta[k] for k in ("train", "val", "heldout")},
               "final_validation": hist[-1] if hist else None, "licence": LICENCE}
     (out_dir / CONFIG_FILE).write_text(json.dumps(config, indent=1))
     return out_dir
+
+
+def data_config(train_config: dict):
+    """The dataset configuration a run trained on (Bandai Namco, or a 100STYLE folder with nothing held out)."""
+    from .dataset import DataConfig
+    folder = train_config.get("hundred_style_dir", "")
+    return DataConfig(hundred_style_dir=folder, held_out=()) if folder else DataConfig()
 
 
 def read_weights(weights_dir: Path) -> tuple[dict[str, np.ndarray], Skeleton, dict]:
