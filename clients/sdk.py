@@ -145,6 +145,17 @@ def _unpack(data: bytes, joints: int) -> StyledFrame:
     return StyledFrame(seq, values[:3], values[3:].reshape(joints, 4), dropped)
 
 
+def _saved_reply(started: dict, seq: int | None) -> StyledFrame | None:
+    """The reply to frame `seq` as the server saved it with the snapshot (`started.last_frame`):
+    the server had processed the frame when the connection went, but its reply never arrived.
+    Rounded to float32 like a binary reply."""
+    last = started.get("last_frame")
+    if seq is None or last is None or last["seq"] != seq:
+        return None
+    return StyledFrame(seq, np.asarray(last["root"], np.float32).astype(np.float64),
+                       np.asarray(last["rotations"], np.float32).astype(np.float64), 0)
+
+
 def _raise_if_error(message: dict) -> dict:
     if message.get("type") == "error":
         raise ServerError(message.get("code", "error"), message.get("message", ""), message.get("seq"))
@@ -188,20 +199,25 @@ class Session:
         self.joints: list[str] = started["joints"]
         self.resume_token = started["resume_token"]
 
-    def _resume(self) -> None:
+    def _resume(self, pending: int | None) -> StyledFrame | None:
         """Reconnect and send again what the restored snapshot lacks, reading each reply (known
         already, discarded) before the next, as a burst would overrun the server's frame queue.
-        The last message is the caller's own: its reply is left to the caller."""
+        The last message is the caller's own (`pending`: its frame's seq): its reply is left to
+        the caller, unless the snapshot already holds that frame, whose saved reply is returned."""
         self._connection.close()
         self._open()
         self.reconnects += 1
         missing = self.replay.after(self.info["last_seq"])
         if not missing or missing[-1] is not self.replay.entries[-1]:
-            raise ResumeError("the server saved the last message but its reply was lost")
+            saved = _saved_reply(self.info, pending)
+            if saved is None:
+                raise ResumeError("the server saved the last message but its reply was lost")
+            return saved
         for seq, message in missing[:-1]:  # one at a time: a burst would overrun the session's queue
             self.ws.send(message)
             self._reply(seq)
         self.ws.send(missing[-1][1])
+        return None
 
     def _reply(self, seq: int | None) -> StyledFrame | dict:
         """The reply to a frame (`seq`) or to a control message (None), acting on snapshot
@@ -228,8 +244,8 @@ class Session:
             self.ws.send(message)
             return self._reply(seq)
         except ConnectionClosed:
-            self._resume()
-            return self._reply(seq)
+            saved = self._resume(seq)
+            return saved if saved is not None else self._reply(seq)
 
     def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
         """Send one frame and wait for its stylised twin (resuming by itself, see the module)."""
@@ -314,17 +330,21 @@ class AsyncSession:
         self.info, self.joints, self.resume_token = started, started["joints"], started["resume_token"]
         return self
 
-    async def _resume(self) -> None:
+    async def _resume(self, pending: int | None) -> StyledFrame | None:
         await self.ws.close()
         await self.open()
         self.reconnects += 1
         missing = self.replay.after(self.info["last_seq"])
         if not missing or missing[-1] is not self.replay.entries[-1]:
-            raise ResumeError("the server saved the last message but its reply was lost")
+            saved = _saved_reply(self.info, pending)
+            if saved is None:
+                raise ResumeError("the server saved the last message but its reply was lost")
+            return saved
         for seq, message in missing[:-1]:
             await self.ws.send(message)
             await self._reply(seq)
         await self.ws.send(missing[-1][1])
+        return None
 
     async def _reply(self, seq: int | None) -> StyledFrame | dict:
         while True:
@@ -348,8 +368,8 @@ class AsyncSession:
             await self.ws.send(message)
             return await self._reply(seq)
         except ConnectionClosed:
-            await self._resume()
-            return await self._reply(seq)
+            saved = await self._resume(seq)
+            return saved if saved is not None else await self._reply(seq)
 
     async def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
         frame = await self._call(self.seq, _pack(self.seq, root, rotations))

@@ -59,16 +59,19 @@ class Snapshot:
     held: dict[str, np.ndarray]  # the held output (rate adaptation); empty before the first frame
     state: State
     saved_at: float
+    # the reply to frame `last_seq` (root, rotations in the client's skeleton), for a client whose
+    # copy was lost with the connection; empty before the first frame
+    last_output: dict[str, np.ndarray] = field(default_factory=dict)
 
     def to_json(self) -> str:
-        return json.dumps({**self.__dict__, "held": encode_state(self.held) if self.held else None,
-                           "state": encode_state(self.state)})
+        return json.dumps({**self.__dict__, "held": encode_state(self.held), "state": encode_state(self.state),
+                           "last_output": encode_state(self.last_output)})
 
     @classmethod
     def from_json(cls, text: str) -> Snapshot:
         data = json.loads(text)
-        data["held"] = decode_state(data["held"]) if data["held"] else {}
-        data["state"] = decode_state(data["state"])
+        for name in ("held", "state", "last_output"):
+            data[name] = decode_state(data.get(name) or {})
         return cls(**data)
 
 
@@ -108,6 +111,7 @@ class Session:
     held_root: np.ndarray | None = None  # last model output and the input root it was made from
     held_rotations: np.ndarray | None = None
     held_input_root: np.ndarray | None = None
+    last_output: dict[str, np.ndarray] = field(default_factory=dict)  # the reply to `last_seq`
     last_active: float = field(default_factory=time.monotonic)
     frames_since_snapshot: int = 0
     queue_size: int = 8
@@ -202,7 +206,7 @@ class Session:
                         transition_left=self.transition_left, last_seq=self.last_seq, clock=self.clock,
                         held={} if self.held_root is None else
                         {"root": self.held_root, "rotations": self.held_rotations, "input_root": self.held_input_root},
-                        state=self.state, saved_at=time.time())
+                        state=self.state, saved_at=time.time(), last_output=dict(self.last_output))
 
     @classmethod
     def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int) -> Session:
@@ -212,4 +216,4 @@ class Session:
                    id=snap.session_id, token=snap.token, target=dict(snap.target),
                    transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size,
                    clock=snap.clock, held_root=held.get("root"), held_rotations=held.get("rotations"),
-                   held_input_root=held.get("input_root"))
+                   held_input_root=held.get("input_root"), last_output=dict(snap.last_output))

@@ -166,13 +166,16 @@ class Connection:
             await self.close(err.close_code, err.message)
             return False
         s = self.session
-        await self.send_json({
+        started = {
             "type": "started", "version": P.PROTOCOL_VERSION, "session_id": s.id, "resume_token": s.token,
             "model": s.model.name, "styles": s.model.styles(), "joints": self.adapter.joint_names,
             "last_seq": s.last_seq, "encoding": s.encoding,
             "layout": {"root": 3, "rotations": [self.adapter.num_joints, 4], "quaternion": "xyzw",
                        "binary_frame_bytes": P.binary_frame_size(self.adapter.num_joints)},
-        })
+        }
+        if message.resume_token and s.last_output:  # the reply to last_seq, in case the client lost it
+            started["last_frame"] = P.frame_message(s.last_seq, s.last_output["root"], s.last_output["rotations"])
+        await self.send_json(started)
         return True
 
     def on_text(self, data: str) -> bool:
@@ -232,6 +235,7 @@ class Connection:
             out_root, out_rot = s.held_output(root)
             s.last_seq = item.seq
             out_root, out_rot = self.adapter.from_model(out_root, out_rot, item.rotations)
+            s.last_output = {"root": out_root, "rotations": out_rot}
             dropped = s.take_dropped()
             if s.encoding == "binary":
                 await self.send_bytes(P.encode_binary(item.seq, out_root, out_rot, dropped))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from clients.loadtest import free_port
-from clients.sdk import Client
+from clients.sdk import Client, _pack
 from models.registry import load_models
 from models.settings import get_settings
 from service.metrics import Metrics
@@ -186,3 +186,23 @@ def test_sessions_keep_streaming_and_resume_on_their_replica_while_redis_is_down
                     if line.startswith("stylestream_snapshot_failures_total")]
     assert float(failures[0].split()[-1]) > 0
     np.testing.assert_allclose(np.array(first + rest), np.array(whole), atol=1e-6)
+
+
+def test_a_reply_lost_with_the_connection_comes_back_with_the_resumed_session(bn_walk):
+    """The server stylised frame 10 and saved it in the snapshot, but its reply never reached
+    the client: resuming hands the saved reply over, and the stream continues unchanged."""
+    root, rot = bn_walk.translations[:20, 1], bn_walk.rotations[:20]
+    models = load_models(get_settings().weights_dir)
+    with live_server(models) as (base, _):
+        with Client(base).session(model="lti", style="elderly") as session:
+            whole = [session.stylise(root[t], rot[t]) for t in range(20)]
+        with Client(base).session(model="lti", style="elderly") as session:
+            got = [session.stylise(root[t], rot[t]) for t in range(10)]
+            session.ws.send(_pack(10, root[10], rot[10]))
+            assert isinstance(session.ws.recv(timeout=10), bytes)  # processed; the reply is "lost"
+            session.ws.close()
+            got += [session.stylise(root[t], rot[t]) for t in range(10, 20)]
+            assert session.reconnects == 1 and session.info["last_seq"] == 10
+    assert [f.seq for f in got] == list(range(20))
+    np.testing.assert_array_equal(np.array([f.rotations for f in got]), np.array([f.rotations for f in whole]))
+    np.testing.assert_array_equal(np.array([f.root for f in got]), np.array([f.root for f in whole]))
