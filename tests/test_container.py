@@ -35,7 +35,10 @@ FRAMES = 60
 
 
 def _run(*args: str, timeout: float = 60, check: bool = True) -> subprocess.CompletedProcess:
-    return subprocess.run(args, capture_output=True, text=True, timeout=timeout, check=check)
+    done = subprocess.run(args, capture_output=True, text=True, timeout=timeout)
+    if check and done.returncode != 0:
+        raise AssertionError(f"{' '.join(args)} exited {done.returncode}:\n{done.stdout}{done.stderr}")
+    return done
 
 
 @pytest.fixture(scope="module")
@@ -77,10 +80,15 @@ class Container:
 
 @pytest.fixture(scope="module")
 def container(image):
-    """The image as ops run it: detached, the port published on loopback, config by environment."""
+    """The image as ops run it: detached, the port published on loopback, config by environment,
+    the root filesystem read-only with a writable volume on its home, as docker/k8s/deployment.yaml
+    runs it (a fresh volume takes the image's folders and their owner, as in compose)."""
     name, port = f"stylestream-test-{os.getpid()}", free_port()
+    home = f"{name}-home"
     _run("podman", "rm", "-f", "--ignore", name)
+    _run("podman", "volume", "rm", "-f", home)
     _run("podman", "run", "-d", "--name", name, "-p", f"127.0.0.1:{port}:8000",
+         "--read-only", "-v", f"{home}:/var/lib/stylestream",
          "-e", f"STYLESTREAM_DRAIN_TIMEOUT_S={DRAIN_TIMEOUT_S}", image)
     box = Container(name, f"http://127.0.0.1:{port}")
     try:
@@ -91,6 +99,7 @@ def container(image):
         raise
     finally:
         _run("podman", "rm", "-f", "--ignore", name, check=False)
+        _run("podman", "volume", "rm", "-f", home, check=False)
 
 
 def test_image_runs_as_non_root_and_its_healthcheck_passes(container):
@@ -102,6 +111,10 @@ def test_image_runs_as_non_root_and_its_healthcheck_passes(container):
     # PID 1 is tini, the server its child, so SIGTERM reaches a process that handles it
     assert _run("podman", "exec", container.name, "cat", "/proc/1/comm").stdout.strip() == "tini"
     assert _run("podman", "healthcheck", "run", container.name, check=False).returncode == 0
+    # the readiness form compose uses, and a failing one: the probe can say no
+    assert _run("podman", "exec", container.name, "python", "/opt/stylestream/healthcheck.py", "/readyz").returncode == 0
+    missing = _run("podman", "exec", container.name, "python", "/opt/stylestream/healthcheck.py", "/nope", check=False)
+    assert missing.returncode == 1 and "404" in missing.stderr
 
 
 def test_a_clip_streams_through_the_container_as_through_the_server_in_process(container, bn_walk):
