@@ -56,7 +56,10 @@ class DataConfig:
     version: int = CACHE_VERSION
 
     def key(self) -> str:
-        return hashlib.sha1(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:10]
+        fields = asdict(self)
+        if not fields["hundred_style_dir"]:  # Bandai Namco caches keep the key they had before the option existed
+            del fields["hundred_style_dir"]
+        return hashlib.sha1(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:10]
 
 
 def style_name(clip: Clip) -> str:
