@@ -120,6 +120,85 @@ def test_batched_step_equals_per_session():
             np.testing.assert_allclose(out.rotations[k], o.rotations[0], atol=1e-10)
 
 
+def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
+    """Float64 numpy reference of a constant style mix (foot lock off), built from each style's
+    offline translation: the input's share 1 - sum(w) plus each style's share of the root
+    features (displacement, yaw change, height), body rotations blended by sign-aligned
+    normalised quaternion averaging, the path integrated from the input's first frame."""
+    from models.motion.rotations import quat_mul
+    root, rots, F = motion.translations[:, rep.HIPS], motion.rotations, motion.num_frames
+    yaw, tilt = rep.split_hips(rots[:, rep.HIPS])
+    rest = max(1.0 - w.sum(), 0.0)
+    root_feats = rest * np.concatenate([rep.sequence_features(root, rots)[:, :3], root[:, 1:2]], axis=1)
+    body_in = rots.copy()
+    body_in[:, rep.HIPS] = tilt
+    parts, votes = [(rest, body_in)], np.zeros((F, 2))
+    for s, style in enumerate(model.styles()):
+        if w[s] > 0:
+            tr = model.translators[style]
+            out, xs = tr.translate_features(rep.motion_to_features(motion, tr.ref))
+            root_feats += w[s] * out[:, :4]
+            parts.append((w[s], rep.static_to_rotations(out[:, 4:rep.FEATURE_DIM], np.zeros(F), tr.ref)))
+            votes += w[s] * tr.footplant.predict(xs)
+    base = max(parts, key=lambda p: p[0])[1]
+    acc = sum(wp * np.where(np.sum(q * base, -1, keepdims=True) < 0, -q, q) for wp, q in parts)
+    body = acc / np.linalg.norm(acc, axis=-1, keepdims=True)
+    out_yaw, ground = np.empty(F), np.empty((F, 2))
+    out_yaw[0], ground[0] = yaw[0], root[0, [0, 2]]
+    for t in range(1, F):
+        out_yaw[t] = out_yaw[t - 1] + root_feats[t, 2]
+        ground[t] = ground[t - 1] + rep.rotate_y(root_feats[t, :2], out_yaw[t - 1])
+    body[:, 0] = (0.0, 0.0, 0.0, 1.0)
+    body[:, rep.HIPS] = quat_mul(rep.qyaw(out_yaw), body[:, rep.HIPS])
+    return np.stack([ground[:, 0], root_feats[:, 3], ground[:, 1]], axis=1), body, votes > 0.5 * w.sum()
+
+
+@pytest.mark.parametrize("mix", [{"elderly": 0.5, "exhausted": 0.3}, {"active": 0.9, "youthful": 0.6}])
+def test_style_mix_equals_blend_of_offline_translations(mix):
+    """The compiled step against the numpy reference for mixes with intensity < 1 and > 1."""
+    _model()
+    model = LTIStyleModel(footlock=False)
+    index, load_motion, select = _data()
+    m = load_motion(select(index, style="normal", content="walk", split="val")[0])
+    w = np.array([mix.get(s, 0.0) for s in model.styles()])
+    want_root, want_rot, want_contacts = _offline_mix(model, m, w)
+    state = model.init_state(1)
+    for t in range(m.num_frames):
+        out, state = model.step_batch(state, FrameBatch(m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]), w[None])
+        np.testing.assert_allclose(out.root[0], want_root[t], atol=1e-8)
+        np.testing.assert_allclose(out.rotations[0], want_rot[t], atol=1e-10)
+        assert (out.contacts[0] == want_contacts[t]).all()
+
+
+def test_zero_style_weights_pass_the_input_through():
+    model = _model()
+    index, load_motion, select = _data()
+    m = load_motion(select(index, style="normal", content="walk-turn-left", split="val")[0])
+    state, w = model.init_state(1), np.zeros((1, len(model.styles())))
+    for t in range(m.num_frames):
+        out, state = model.step_batch(state, FrameBatch(m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]), w)
+        np.testing.assert_allclose(out.root[0], m.translations[t, rep.HIPS], atol=1e-8)
+        np.testing.assert_allclose(np.abs(np.sum(out.rotations[0] * m.rotations[t], -1)), 1.0, atol=1e-12)
+        assert not out.contacts.any()
+
+
+def test_step_leaves_its_input_state_unchanged():
+    model = _model()
+    index, load_motion, select = _data()
+    m = load_motion(select(index, style="normal", content="walk", split="val")[0])
+    state, w = model.init_state(2), _one_hot(model, "elderly", 2)
+    w[1] = 0.0
+    for t in range(40):
+        fb = FrameBatch(np.repeat(m.translations[t:t + 1, rep.HIPS], 2, 0), np.repeat(m.rotations[t:t + 1], 2, 0))
+        before = {k: v.copy() for k, v in state.items()}
+        _, new = model.step_batch(state, fb, w)
+        for k in before:
+            assert np.array_equal(before[k], state[k]), f"step_batch changed state[{k!r}]"
+        assert new.keys() == state.keys()
+        state = new
+    assert not state["x.elderly"][1].any()  # an inactive style rests at x = 0
+
+
 def test_trained_models_are_stable_and_listed():
     model = _model()
     assert "elderly" in model.styles()

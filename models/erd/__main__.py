@@ -1,7 +1,7 @@
 """Style-ERD command line.
 
     .venv/bin/python -m models.erd render [--styles elderly,exhausted] [--content walk]   # out/erd/*.png|gif
-    .venv/bin/python -m models.erd bench                                                # step time, batch 1 and 256
+    .venv/bin/python -m models.erd bench [--threads 1 2] [--json]                       # step time, batch 1 and 256
 """
 
 from __future__ import annotations
@@ -54,26 +54,58 @@ def render(args) -> None:
 
 
 def bench(args) -> None:
-    model = _model()
-    rng = np.random.default_rng(0)
-    out = {}
-    for B in (1, 256):
-        state = model.init_state(B)
-        q = rng.normal(size=(B, 22, 4)) * 0.05 + np.array([0, 0, 0, 1.0])
-        frames = FrameBatch(np.tile([[0.0, 90.0, 0.0]], (B, 1)), q / np.linalg.norm(q, axis=-1, keepdims=True))
-        w = np.zeros((B, len(model.styles())))
-        w[:, 1] = 1.0
-        for _ in range(10):
-            _, state = model.step_batch(state, frames, w)
-        times = []
-        for _ in range(args.steps):
-            t = time.perf_counter()
-            _, state = model.step_batch(state, frames, w)
-            times.append(time.perf_counter() - t)
-        times = np.array(times) * 1e3
-        out[B] = {"median_ms": float(np.median(times)), "p99_ms": float(np.percentile(times, 99)),
-                  "frames_per_s": float(B / np.median(times) * 1e3)}
-    print(json.dumps(out, indent=1))
+    """Per-frame cost of `step_batch` at batch 1 and 256 with the threads capped (1 = as the
+    service runs), for the network in float32 (served) and float64 (the reference). Floor: the
+    network's matrix products alone in numpy (see models/stepbench.py)."""
+    from .runtime import load
+    from ..stepbench import capped_threads, time_steps
+    results = []
+    for threads in args.threads:
+        for dtype in (np.float32, np.float64):
+            model = load(get_settings().weights_dir / "erd", dtype=dtype)
+            print(f"Style-ERD step_batch, network {np.dtype(dtype).name}, style elderly, {threads} BLAS/torch thread(s)")
+            for B in (1, 256):
+                rng = np.random.default_rng(0)
+                q = rng.normal(size=(B, 22, 4)) * 0.05 + np.array([0, 0, 0, 1.0])
+                frames = FrameBatch(np.tile([[0.0, 90.0, 0.0]], (B, 1)), q / np.linalg.norm(q, axis=-1, keepdims=True))
+                w = np.zeros((B, len(model.styles())))
+                w[:, model.styles().index("elderly")] = 1.0
+                state = [model.init_state(B)]
+
+                def step(i: int) -> None:
+                    state[0] = model.step_batch(state[0], frames, w)[1]
+
+                with capped_threads(threads):
+                    timing = time_steps(B, step, _matmul_floor(model, B), args.steps if B == 1 else max(args.steps // 4, 50))
+                print(timing.line())
+                results.append({"threads": threads, "dtype": np.dtype(dtype).name, **timing.as_dict()})
+    if args.json:
+        print(json.dumps(results, indent=1))
+
+
+def _matmul_floor(model, B: int):
+    """The network's matrix products for B sessions and nothing else: encoder, every LSTM
+    branch's input and hidden products, decoder, in the model's dtype."""
+    dt, H, K = model.dtype, model.H, len(model.branches)
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal((B, model.enc_in.shape[0])).astype(dt)
+    hs = rng.standard_normal((K, B, H)).astype(dt)
+    d_in = rng.standard_normal((B, model.dec[0][0].shape[0])).astype(dt)
+
+    def floor() -> None:
+        h = x @ model.enc_in
+        for W, _ in model.enc:
+            h = h @ W
+        h @ model.lstm_in0
+        for layer in range(model.Ln):
+            if layer:
+                np.matmul(hs, model.lstm_in[layer])
+            np.matmul(hs, model.lstm_hh[layer])
+        h = d_in
+        for W, _ in model.dec:
+            h = h @ W
+
+    return floor
 
 
 def main() -> None:
@@ -93,7 +125,9 @@ def main() -> None:
     r.add_argument("--panel", type=float, default=1.9)
     r.add_argument("--no-gif", dest="gif", action="store_false")
     b = sub.add_parser("bench")
-    b.add_argument("--steps", type=int, default=200)
+    b.add_argument("--steps", type=int, default=400)
+    b.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="BLAS/torch thread caps to run with (service: 1)")
+    b.add_argument("--json", action="store_true", help="also print the numbers as JSON")
     args = ap.parse_args()
     {"render": render, "bench": bench}[args.cmd](args)
 

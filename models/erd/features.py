@@ -23,10 +23,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.motion.rotations import quat_mul, quat_to_matrix
-
-from ..motion.features import body_joint, facing_yaw, leg_length, wrap_angle
+from ..motion.features import body_joint, facing_yaw, leg_length
 from ..motion.skeleton import Skeleton
+from . import kernels
 
 NUM_JOINTS = 22
 HIPS = 1
@@ -55,66 +54,33 @@ def rotate_y(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     return np.stack([c * x + s * z, y, -s * x + c * z], axis=-1)
 
 
-def canonical(q: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Flip each quaternion (..., J, 4) into the hemisphere of ref (J, 4)."""
-    sign = np.where((q * ref).sum(-1, keepdims=True) < 0, -1.0, 1.0)
-    return q * sign
-
-
 class FeatureMaker:
-    """Causal features for a batch of independent streams (or all frames of one clip at once)."""
+    """Causal features for a batch of independent streams (or all frames of one clip at once).
+    The per-joint loops run compiled (`kernels.py`): the same code for the live stream, the
+    training cache and the offline clip."""
 
     def __init__(self, skeleton: Skeleton, ref: np.ndarray, fps: float = FPS):
         self.sk = skeleton
-        self.ref = np.asarray(ref, dtype=np.float64)[BODY]
-        self.fps = fps
-        self.offsets = skeleton.offsets.astype(np.float64)
+        self.ref = np.ascontiguousarray(np.asarray(ref, dtype=np.float64)[BODY])
+        self.fps = float(fps)
+        self.parents = np.asarray(skeleton.parents, dtype=np.int64)
+        self.offsets = np.ascontiguousarray(skeleton.offsets, dtype=np.float64)
         self.leg = leg_length(skeleton)
-        self.feet = [(body_joint(skeleton, f"ankle_{s}"), body_joint(skeleton, f"toe_{s}")) for s in ("l", "r")]
+        self.facing = np.array([body_joint(skeleton, p) for p in ("hip_l", "hip_r", "shoulder_l", "shoulder_r")], np.int64)
+        self.feet = np.array([(body_joint(skeleton, f"ankle_{s}"), body_joint(skeleton, f"toe_{s}")) for s in ("l", "r")],
+                             np.int64)
 
     def positions(self, root: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """World joint positions (N, 22, 3) from Hips translations (N, 3) and local rotations (N, 22, 4)."""
-        mats = quat_to_matrix(rotations)  # (N, 22, 3, 3)
-        n = rotations.shape[0]
-        g_rot = np.empty_like(mats)
-        pos = np.empty((n, NUM_JOINTS, 3))
-        for j, p in enumerate(self.sk.parents):
-            if p < 0:
-                g_rot[:, j], pos[:, j] = mats[:, j], self.offsets[j]
-            else:
-                t = root if j == HIPS else self.offsets[j]
-                g_rot[:, j] = g_rot[:, p] @ mats[:, j]
-                pos[:, j] = pos[:, p] + (g_rot[:, p] @ np.broadcast_to(t, (n, 3))[..., None])[..., 0]
-        return pos
+        return kernels.forward_kinematics(_f64(root), _f64(rotations), self.parents, self.offsets)
 
     def features(self, rotations: np.ndarray, pos: np.ndarray, prev_pos: np.ndarray,
                  prev_yaw: np.ndarray, has_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 216) features and (N,) yaw of N frames given each frame's previous positions/yaw
         (ignored where has_prev is False)."""
-        n = rotations.shape[0]
-        yaw = facing_yaw(pos, self.sk)
-        hp = has_prev.astype(np.float64)[:, None, None]
-        ground = pos[:, HIPS] * np.array([1.0, 0.0, 1.0])
-        local = rotate_y(pos - ground[:, None], -yaw[:, None])
-        vel_world = (pos - prev_pos) * self.fps * hp
-        vel = rotate_y(vel_world, -yaw[:, None])
-        yaw_rate = wrap_angle(yaw - prev_yaw) * self.fps * has_prev
-        q = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
-        q = q[:, BODY].copy()
-        q[:, 0] = quat_mul(yaw_quat(-yaw), q[:, 0])
-        q = canonical(q, self.ref)
-        contacts = []
-        speed = np.linalg.norm(vel_world, axis=-1)
-        for ankle, toe in self.feet:
-            planted = np.zeros(n, dtype=bool)
-            for j, h in ((ankle, 0.12 * 1.8), (toe, 0.12)):
-                planted |= (pos[:, j, 1] < h * self.leg) & (speed[:, j] < 0.5 * self.leg)
-            contacts.append(planted)
-        out = np.concatenate([
-            q.reshape(n, -1), local[:, BODY].reshape(n, -1), vel[:, BODY].reshape(n, -1),
-            vel[:, HIPS], yaw_rate[:, None], np.stack(contacts, -1).astype(np.float64),
-        ], axis=-1)
-        return out, yaw
+        return kernels.features(_f64(rotations), _f64(pos), _f64(prev_pos), _f64(prev_yaw),
+                                np.ascontiguousarray(has_prev, dtype=np.bool_), self.ref, self.facing, self.feet,
+                                self.leg, self.fps)
 
     def sequence(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Features (F, 216) and yaw (F,) of one clip, every frame causal (frame 0 has no past)."""
@@ -124,6 +90,10 @@ class FeatureMaker:
         prev_yaw = np.concatenate([yaw[:1], yaw[:-1]])
         has_prev = np.arange(len(pos)) > 0
         return self.features(rotations, pos, prev_pos, prev_yaw, has_prev)
+
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 def mean_rotations(rotations: np.ndarray) -> np.ndarray:

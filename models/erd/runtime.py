@@ -1,4 +1,6 @@
-"""Streaming Style-ERD: the project's `StreamingModel` interface in plain numpy (float64).
+"""Streaming Style-ERD: the project's `StreamingModel` interface. Per frame: features and
+output pose by compiled kernels (`kernels.py`, float64), the network in numpy (BLAS products,
+float32 by default; see `ERDModel`).
 
 Weights live in `models/weights/erd/erd.npz` (generator parameters, normalisation, per-joint
 reference rotations, the Bandai Namco skeleton) + `config.json`; `export_weights` writes them
@@ -25,50 +27,96 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from ..interface import FrameBatch, State
 from ..motion.skeleton import Skeleton
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
-from models.motion.rotations import quat_mul
-
-from .features import BODY, FPS, NB, POS, ROOTVEL, ROT, FeatureMaker, rotate_y, yaw_quat
+from . import kernels
+from .features import FPS, FeatureMaker
 
 WEIGHTS_FILE = "erd.npz"
 
 
-def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return 0.5 * (1.0 + np.tanh(0.5 * x))
+def _sigmoid_(a: np.ndarray) -> np.ndarray:
+    """Logistic sigmoid of a float array, in place, by torch's vectorised (SLEEF) kernel: numpy's
+    float32 tanh/exp are not vectorised on AVX2 machines and took a third of a batched step."""
+    t = torch.from_numpy(a)
+    torch.sigmoid(t, out=t)
+    return a
+
+
+def _tanh_(a: np.ndarray) -> np.ndarray:
+    """tanh in place, torch's kernel (see _sigmoid_)."""
+    t = torch.from_numpy(a)
+    torch.tanh(t, out=t)
+    return a
 
 
 class ERDModel:
+    """Style-ERD behind the streaming interface. `dtype` is the network's arithmetic: float32 by
+    default (the weights were trained in float32; float32 matrix products and gate
+    nonlinearities run ~2x and ~4x faster than float64, which is what lets 256 batched sessions
+    fit in a frame); the features and the output pose are always float64. float64 is the
+    reference the tests compare with (outputs differ by ~1e-4 degree per joint)."""
+
     name = "erd"
     fps = FPS  # the model runs at 30 fps (Bandai Namco)
 
     def __init__(self, params: dict[str, np.ndarray], config: dict, skeleton: Skeleton,
-                 mean: np.ndarray, std: np.ndarray, ref: np.ndarray, meta: dict | None = None):
+                 mean: np.ndarray, std: np.ndarray, ref: np.ndarray, meta: dict | None = None,
+                 dtype: type = np.float32):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
         self.meta = meta or {}
         self.skeleton = skeleton
+        self.dtype = np.dtype(dtype)
         self.mean, self.std = np.asarray(mean, np.float64), np.asarray(std, np.float64)
         self.ref = np.asarray(ref, np.float64)
         self.maker = FeatureMaker(skeleton, self.ref)
         self.H = config["latent"]
         self.Ln, self.Ls = config["neutral_layers"], config["style_layers"]
-        p = self.p
-        self.enc = [(p[f"encoder.{i}.weight"].T.copy(), p[f"encoder.{i}.bias"]) for i in (0, 2, 4)]
-        self.dec = [(p[f"decoder.{i}.weight"].T.copy(), p[f"decoder.{i}.bias"]) for i in (0, 2, 4)]
-        self.neutral = [(p[f"neutral.weight_ih_l{l}"].T.copy(), p[f"neutral.weight_hh_l{l}"].T.copy(),
-                         p[f"neutral.bias_ih_l{l}"] + p[f"neutral.bias_hh_l{l}"]) for l in range(self.Ln)]
-        K = len(TARGET_STYLES)
-        # style branches stacked: (K, in, 4H), (K, H, 4H), (K, 4H)
-        self.branch = [(np.stack([p[f"branches.{k}.weight_ih_l{l}"].T for k in range(K)]),
-                        np.stack([p[f"branches.{k}.weight_hh_l{l}"].T for k in range(K)]),
-                        np.stack([p[f"branches.{k}.bias_ih_l{l}"] + p[f"branches.{k}.bias_hh_l{l}"] for k in range(K)]))
-                       for l in range(self.Ls)]
-        # the first layer's input is shared: one (in, K*4H) product
-        w0 = self.branch[0][0]
-        self.branch0_in = np.concatenate(list(w0), axis=1)
+        if self.Ln != self.Ls:
+            raise ValueError(f"the runtime stacks the neutral and style LSTM branches: it needs equal layer counts, "
+                             f"got {self.Ln} neutral and {self.Ls} style layers")
+        self.branches = ("neutral",) + tuple(TARGET_STYLES)  # branch 0 is the neutral one, weight 1
+        self._h_keys = tuple(f"h_{b}" for b in self.branches)
+        self._c_keys = tuple(f"c_{b}" for b in self.branches)
+        self._prepare_weights()
+        self._compile_step()
+
+    def _compile_step(self) -> None:
+        """One step of one session on the rest pose: numba compiles the kernels (or loads them
+        from its cache) here, when the model loads, instead of on a live session's first frame."""
+        rest = np.zeros((1, 22, 4))
+        rest[..., 3] = 1.0
+        self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), np.zeros((1, len(TARGET_STYLES))))
+
+    def _prepare_weights(self) -> None:
+        """Everything constant, once, in the network's dtype and in the layout the step multiplies:
+        the input normalisation stays a float64 subtraction (features reach ~1e3, the weights
+        ~1e-2), the label one-hots become row lookups (index -1 = unknown = a zero row), and the
+        seven LSTM branches (neutral + six styles) are stacked so each layer is one batched
+        product. The cell-input gate's rows are doubled so one sigmoid over all four gates serves
+        it too: tanh(x) = 2 sigmoid(2x) - 1 (doubling is exact)."""
+        p, dt, H = self.p, self.dtype, self.H
+        n_in = len(self.mean)
+        w0, b0 = p["encoder.0.weight"].T, p["encoder.0.bias"]
+        zero = np.zeros((1, w0.shape[1]))
+        self.enc_in = w0[:n_in].astype(dt)
+        self.enc_style = np.concatenate([w0[n_in:n_in + len(STYLES)], zero]).astype(dt)
+        self.enc_content = (np.concatenate([w0[n_in + len(STYLES):], zero]) + b0).astype(dt)
+        self.enc = [(p[f"encoder.{i}.weight"].T.astype(dt), p[f"encoder.{i}.bias"].astype(dt)) for i in (2, 4)]
+        self.dec = [(p[f"decoder.{i}.weight"].T.astype(dt), p[f"decoder.{i}.bias"].astype(dt)) for i in (0, 2, 4)]
+        scale = np.ones(4 * H)
+        scale[2 * H:3 * H] = 2.0  # gates i, f, g, o (PyTorch order): g is the tanh one
+        names = ["neutral"] + [f"branches.{k}" for k in range(len(TARGET_STYLES))]
+        w_ih = [np.stack([p[f"{n}.weight_ih_l{l}"].T * scale for n in names]) for l in range(self.Ln)]  # (7, in, 4H)
+        self.lstm_hh = [np.stack([p[f"{n}.weight_hh_l{l}"].T * scale for n in names]).astype(dt) for l in range(self.Ln)]
+        self.lstm_b = [np.stack([(p[f"{n}.bias_ih_l{l}"] + p[f"{n}.bias_hh_l{l}"]) * scale for n in names])[:, None].astype(dt)
+                       for l in range(self.Ln)]  # (7, 1, 4H)
+        self.lstm_in0 = np.concatenate(list(w_ih[0]), axis=1).astype(dt)  # layer 0 shares its input: (H, 7 * 4H)
+        self.lstm_in = [None] + [w.astype(dt) for w in w_ih[1:]]
 
     # ------------------------------------------------------------------ interface
 
@@ -83,21 +131,19 @@ class ERDModel:
         ci = CONTENTS.index(content) if content is not None else -1
         si = STYLES.index(input_style) if input_style is not None else -1
         row = ci if ci >= 0 else len(CONTENTS)
-        state: State = {
-            "h_neutral": np.repeat(self.p["neutral_h0"][row][None], batch, 0),
-            "c_neutral": np.repeat(self.p["neutral_c0"][row][None], batch, 0),
-        }
-        for k, style in enumerate(TARGET_STYLES):
-            state[f"h_{style}"] = np.repeat(self.p["style_h0"][k][None], batch, 0)
-            state[f"c_{style}"] = np.repeat(self.p["style_c0"][k][None], batch, 0)
+        h0 = [self.p["neutral_h0"][row]] + list(self.p["style_h0"])
+        c0 = [self.p["neutral_c0"][row]] + list(self.p["style_c0"])
+        state: State = {}
+        for key, init in zip(self._h_keys + self._c_keys, h0 + c0):
+            state[key] = np.repeat(init[None].astype(self.dtype), batch, 0)
         state.update(prev_pos=np.zeros((batch, 22, 3)), prev_yaw=np.zeros(batch), out_root=np.zeros((batch, 3)),
                      frame=np.zeros(batch, dtype=np.int64), style_in=np.full(batch, si, dtype=np.int64),
                      content=np.full(batch, ci, dtype=np.int64))
         return state
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
-        root = np.asarray(frames.root, np.float64)
-        rot_in = np.asarray(frames.rotations, np.float64)
+        root = np.ascontiguousarray(frames.root, np.float64)
+        rot_in = np.ascontiguousarray(frames.rotations, np.float64)
         w = np.asarray(style_weights, np.float64)
         B = root.shape[0]
         if w.shape != (B, len(TARGET_STYLES)):
@@ -105,72 +151,52 @@ class ERDModel:
         has_prev = state["frame"] > 0
         pos = self.maker.positions(root, rot_in)
         x, yaw = self.maker.features(rot_in, pos, state["prev_pos"], state["prev_yaw"], has_prev)
-        new: State = {}
-        y, new = self._network(x, state, w, new)
-        rot = x[:, ROT].reshape(B, NB, 4) + y[:, :4 * NB].reshape(B, NB, 4)
-        rot = rot / np.maximum(np.linalg.norm(rot, axis=-1, keepdims=True), 1e-6)
-        root_vel = x[:, ROOTVEL] + y[:, 4 * NB:4 * NB + 3]
-        height = x[:, POS][:, 1] + y[:, -1]
-        step = rotate_y(root_vel, yaw) / FPS
-        out_root = np.where(has_prev[:, None], state["out_root"] + step, root)
-        out_root[:, 1] = height
-        out_rot = rot_in.copy()
-        out_rot[:, BODY] = rot
-        out_rot[:, 1] = quat_mul(yaw_quat(yaw), rot[:, 0])
+        y, new = self._network(x, state, w)
+        out_root, out_rot = kernels.output_pose(x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64),
+                                                root, rot_in, float(FPS))
         new.update(prev_pos=pos, prev_yaw=yaw, out_root=out_root, frame=state["frame"] + 1,
                    style_in=state["style_in"].copy(), content=state["content"].copy())
         return FrameBatch(out_root, out_rot), new
 
     # ------------------------------------------------------------------ network
 
-    def _network(self, x: np.ndarray, state: State, w: np.ndarray, new: State) -> tuple[np.ndarray, State]:
-        B = x.shape[0]
-        s1 = np.zeros((B, len(STYLES)))
-        c1 = np.zeros((B, len(CONTENTS)))
-        si, ci = state["style_in"], state["content"]
-        s1[np.arange(B)[si >= 0], si[si >= 0]] = 1.0
-        c1[np.arange(B)[ci >= 0], ci[ci >= 0]] = 1.0
-        h = np.concatenate([(x - self.mean) / self.std, s1, c1], -1)
-        for i, (W, b) in enumerate(self.enc):
+    def _network(self, x: np.ndarray, state: State, w: np.ndarray) -> tuple[np.ndarray, State]:
+        """Encoder -> 7 stacked LSTM branches -> latent = neutral + sum_s w_s branch_s -> decoder.
+        Returns the decoder output (B, 88) and the new LSTM states."""
+        dt, H, B = self.dtype, self.H, x.shape[0]
+        h = ((x - self.mean) / self.std).astype(dt) @ self.enc_in
+        h += self.enc_style[state["style_in"]] + self.enc_content[state["content"]]
+        for W, b in self.enc:
+            np.maximum(h, 0.0, out=h)
             h = h @ W + b
-            if i < 2:
-                h = np.maximum(h, 0.0)
         z = h
-        H = self.H
-        # neutral branch
-        hn, cn = state["h_neutral"].copy(), state["c_neutral"].copy()
-        inp = z
-        for l, (Wi, Wh, b) in enumerate(self.neutral):
-            g = inp @ Wi + hn[:, l] @ Wh + b
-            c = _sigmoid(g[:, H:2 * H]) * cn[:, l] + _sigmoid(g[:, :H]) * np.tanh(g[:, 2 * H:3 * H])
-            hn[:, l] = _sigmoid(g[:, 3 * H:]) * np.tanh(c)
-            cn[:, l] = c
-            inp = hn[:, l]
-        new["h_neutral"], new["c_neutral"] = hn, cn
-        latent = inp
-        # residual style branches, all K at once
-        K = len(TARGET_STYLES)
-        hs = np.stack([state[f"h_{s}"] for s in TARGET_STYLES], 1)  # (B, K, Ls, H)
-        cs = np.stack([state[f"c_{s}"] for s in TARGET_STYLES], 1)
+        hs = np.stack([state[k] for k in self._h_keys]).astype(dt, copy=False)  # (7, B, layers, H)
+        cs = np.stack([state[k] for k in self._c_keys]).astype(dt, copy=False)
+        new_h, new_c = np.empty_like(hs), np.empty_like(cs)
         inp = None
-        for l, (Wi, Wh, b) in enumerate(self.branch):
+        for l in range(self.Ln):
             if l == 0:
-                gi = (z @ self.branch0_in).reshape(B, K, 4 * H)
+                g = (z @ self.lstm_in0).reshape(B, len(self.branches), 4 * H).transpose(1, 0, 2)
             else:
-                gi = np.matmul(inp.transpose(1, 0, 2), Wi).transpose(1, 0, 2)
-            g = gi + np.matmul(hs[:, :, l].transpose(1, 0, 2), Wh).transpose(1, 0, 2) + b
-            c = _sigmoid(g[..., H:2 * H]) * cs[:, :, l] + _sigmoid(g[..., :H]) * np.tanh(g[..., 2 * H:3 * H])
-            hs[:, :, l] = _sigmoid(g[..., 3 * H:]) * np.tanh(c)
-            cs[:, :, l] = c
-            inp = hs[:, :, l]
-        for k, s in enumerate(TARGET_STYLES):
-            new[f"h_{s}"], new[f"c_{s}"] = hs[:, k].copy(), cs[:, k].copy()
-        latent = latent + (w[:, :, None] * inp).sum(1)
-        h = np.concatenate([latent, w], -1)
+                g = np.matmul(inp, self.lstm_in[l])
+            g = g + np.matmul(hs[:, :, l], self.lstm_hh[l])
+            g += self.lstm_b[l]
+            s = _sigmoid_(g)  # i, f, o gates; g gate = 2 s - 1
+            c = s[..., H:2 * H] * cs[:, :, l] + s[..., :H] * (2.0 * s[..., 2 * H:3 * H] - 1.0)
+            new_c[:, :, l] = c
+            new_h[:, :, l] = inp = s[..., 3 * H:] * _tanh_(c)
+        weights = np.empty((B, len(self.branches)), dt)
+        weights[:, 0] = 1.0
+        weights[:, 1:] = w
+        latent = np.einsum("bk,kbh->bh", weights, inp)
+        h = np.concatenate([latent, weights[:, 1:]], -1)
         for i, (W, b) in enumerate(self.dec):
             h = h @ W + b
             if i < 2:
-                h = np.maximum(h, 0.0)
+                np.maximum(h, 0.0, out=h)
+        new: State = {}
+        for k, (hk, ck) in enumerate(zip(self._h_keys, self._c_keys)):
+            new[hk], new[ck] = new_h[k], new_c[k]
         return h, new
 
     # ------------------------------------------------------------------ offline helpers
@@ -203,7 +229,8 @@ class ERDModel:
         return replace(motion, rotations=np.array(rots), translations=trans)
 
 
-def load(weights_dir: Path) -> ERDModel:
+def load(weights_dir: Path, dtype: type = np.float32) -> ERDModel:
+    """The committed model; `dtype` = the network's arithmetic (np.float64: the reference)."""
     weights_dir = Path(weights_dir)
     config = json.loads((weights_dir / "config.json").read_text())
     with np.load(weights_dir / WEIGHTS_FILE) as z:
@@ -211,7 +238,7 @@ def load(weights_dir: Path) -> ERDModel:
     skeleton = Skeleton(tuple(str(n) for n in arrays.pop("skeleton_names")), arrays.pop("skeleton_parents").astype(int),
                         arrays.pop("skeleton_offsets"), arrays.pop("skeleton_end_sites"))
     mean, std, ref = arrays.pop("norm_mean"), arrays.pop("norm_std"), arrays.pop("ref")
-    return ERDModel(arrays, config["model"], skeleton, mean, std, ref, meta=config)
+    return ERDModel(arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype)
 
 
 def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skeleton | None = None) -> Path:

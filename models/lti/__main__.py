@@ -2,7 +2,7 @@
 
   python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
   python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
-  python -m models.lti bench [--style elderly] [--frames 2000]
+  python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2]
   python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
   python -m models.lti align-plot [-o out/lti_alignment.png]
   python -m models.lti card --train-time "..."   (benchmark + models/weights/lti/MODEL_CARD.md)
@@ -47,32 +47,37 @@ def cmd_translate(args) -> None:
 
 
 def cmd_bench(args) -> None:
+    """Per-frame cost of `step_batch` at batch 1 and 256, foot lock on and off, with the threads
+    capped (1 = as the service runs). Floor: the dense [[A, B], [C, D]] @ [x; u] product of the
+    same batch in numpy, the paper's one matrix product per frame (see models/stepbench.py)."""
     from models.data import build_index, load_motion, select
     from models.interface import FrameBatch
+    from models.stepbench import capped_threads, time_steps
     from .model import LTIStyleModel
     clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
     motion = load_motion(clip)
-    for footlock in (True, False):
-        model = LTIStyleModel(footlock=footlock)
-        style = args.style or ("elderly" if "elderly" in model.styles() else model.styles()[0])
-        print(f"LTI step_batch, style {style} (state dim {model.translators[style].n}), input {clip.name}, "
-              f"foot lock {'on (default)' if footlock else 'off'}")
-        for batch in (1, 256):
-            state = model.init_state(batch)
-            weights = np.zeros((batch, len(model.styles())))
-            weights[:, model.styles().index(style)] = 1.0
-            frames = args.frames if batch == 1 else max(args.frames // 8, 100)
-            times = np.empty(frames)
-            for t in range(frames):
-                k = t % motion.num_frames
-                fb = FrameBatch(np.repeat(motion.translations[k:k + 1, 1], batch, 0), np.repeat(motion.rotations[k:k + 1], batch, 0))
-                t0 = time.perf_counter()
-                _, state = model.step_batch(state, fb, weights)
-                times[t] = time.perf_counter() - t0
-            times = times[10:]
-            med, p99 = np.median(times), np.percentile(times, 99)
-            print(f"  batch {batch:4d}: median {med * 1e6:8.1f} us/step ({med * 1e6 / batch:7.2f} us/frame), "
-                  f"p99 {p99 * 1e6:8.1f} us/step, {batch / med:10.0f} frames/s")
+    for threads in args.threads:
+        for footlock in (True, False):
+            model = LTIStyleModel(footlock=footlock)
+            style = args.style or ("elderly" if "elderly" in model.styles() else model.styles()[0])
+            tr = model.translators[style]
+            print(f"LTI step_batch, style {style} (state dim {tr.n}), input {clip.name}, "
+                  f"foot lock {'on (default)' if footlock else 'off'}, {threads} BLAS/torch thread(s)")
+            M_T = np.ascontiguousarray(tr.M.T)
+            for batch in (1, 256):
+                frames = [FrameBatch(np.repeat(motion.translations[k:k + 1, 1], batch, 0), np.repeat(motion.rotations[k:k + 1], batch, 0))
+                          for k in range(motion.num_frames)]
+                weights = np.zeros((batch, len(model.styles())))
+                weights[:, model.styles().index(style)] = 1.0
+                state = [model.init_state(batch)]
+                zin = np.random.default_rng(0).standard_normal((batch, M_T.shape[0]))
+
+                def step(i: int) -> None:
+                    state[0] = model.step_batch(state[0], frames[i % len(frames)], weights)[1]
+
+                with capped_threads(threads):
+                    timing = time_steps(batch, step, lambda: zin @ M_T, args.frames if batch == 1 else max(args.frames // 8, 100))
+                print(timing.line())
 
 
 def cmd_render(args) -> None:
@@ -102,7 +107,7 @@ def cmd_card(args) -> None:
     from .card import write_model_card
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        cmd_bench(argparse.Namespace(style=None, frames=args.frames))
+        cmd_bench(argparse.Namespace(style=None, frames=args.frames, threads=[1]))
     path = write_model_card(buf.getvalue().strip(), args.train_time, args.command)
     print(buf.getvalue().strip())
     print(f"wrote {path}")
@@ -135,6 +140,7 @@ def main(argv: list[str] | None = None) -> None:
     b = sub.add_parser("bench")
     b.add_argument("--style")
     b.add_argument("--frames", type=int, default=2000)
+    b.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="BLAS/torch thread caps to run with (service: 1)")
     b.set_defaults(func=cmd_bench)
     v = sub.add_parser("render")
     v.add_argument("--styles", nargs="*")

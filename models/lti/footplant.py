@@ -13,9 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.motion.rotations import cross, quat_apply, quat_mul, quat_to_matrix
-
-from . import representation as rep
+from . import kernels
 
 FEET = ("Foot_L", "Foot_R")
 LEG_CHAINS = (("UpperLeg_L", "LowerLeg_L", "Foot_L"), ("UpperLeg_R", "LowerLeg_R", "Foot_R"))
@@ -75,52 +73,15 @@ class FootplantClassifier:
         return cls(z["fp_w"], z["fp_mean"], z["fp_var"], z["fp_prior"])
 
 
-def _nrm(v: np.ndarray) -> np.ndarray:
-    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-9)
-
-
-def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    h = 0.5 * angle[..., None]
-    return np.concatenate([_nrm(axis) * np.sin(h), np.cos(h)], axis=-1)
-
-
-def _rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Shortest-arc quaternion taking direction u to direction v."""
-    u, v = _nrm(u), _nrm(v)
-    q = np.concatenate([cross(u, v), 1.0 + np.sum(u * v, -1, keepdims=True)], axis=-1)
-    return q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
-
-
 def two_bone_ik(gh: np.ndarray, r_up: np.ndarray, r_low: np.ndarray, r_foot: np.ndarray,
                 a: np.ndarray, off_low: np.ndarray, off_foot: np.ndarray, target: np.ndarray):
-    """Analytic two-bone IK for a leg. gh: (B, 4) world rotation of the parent (Hips); r_*: (B, 4)
-    local rotations of UpperLeg, LowerLeg, Foot; a: (B, 3) world hip-joint position; off_*: bone
-    offsets. Returns new local (r_up, r_low, r_foot) putting the ankle at `target` (as close as the
-    bone lengths allow) with the foot's world orientation unchanged."""
-    ga = quat_mul(gh, r_up)
-    gb = quat_mul(ga, r_low)
-    gf = quat_mul(gb, r_foot)
-    b = a + quat_apply(ga, np.broadcast_to(off_low, a.shape))
-    c = b + quat_apply(gb, np.broadcast_to(off_foot, a.shape))
-    lab, lcb = np.linalg.norm(off_low, axis=-1), np.linalg.norm(off_foot, axis=-1)
-    lat = np.clip(np.linalg.norm(target - a, axis=-1), 1e-3, lab + lcb - 1e-3)
-    cos = lambda u, v: np.clip(np.sum(_nrm(u) * _nrm(v), -1), -1.0, 1.0)
-    ac_ab_0, ba_bc_0 = np.arccos(cos(c - a, b - a)), np.arccos(cos(a - b, c - b))
-    ac_ab_1 = np.arccos(np.clip((lcb**2 - lab**2 - lat**2) / (-2 * lab * lat), -1, 1))
-    ba_bc_1 = np.arccos(np.clip((lat**2 - lab**2 - lcb**2) / (-2 * lab * lcb), -1, 1))
-    axis = cross(c - a, b - a)
-    # bend: rotate the thigh and the knee about the leg plane's normal (world), then swing
-    w0 = _axis_angle(axis, ac_ab_1 - ac_ab_0)
-    w1 = _axis_angle(axis, ba_bc_1 - ba_bc_0)
-    ga2 = quat_mul(w0, ga)
-    gb2 = quat_mul(w1, quat_mul(ga2, r_low))
-    b2 = a + quat_apply(ga2, np.broadcast_to(off_low, a.shape))
-    c2 = b2 + quat_apply(gb2, np.broadcast_to(off_foot, a.shape))
-    w2 = _rotation_between(c2 - a, target - a)
-    ga3 = quat_mul(w2, ga2)
-    gb3 = quat_mul(w2, gb2)
-    inv = rep.qinv
-    return quat_mul(inv(gh), ga3), quat_mul(inv(ga3), gb3), quat_mul(inv(gb3), gf)
+    """Analytic two-bone IK for a batch of legs (`kernels.two_bone_ik`). gh: (B, 4) world rotation
+    of the parent (Hips); r_*: (B, 4) local rotations of UpperLeg, LowerLeg, Foot; a: (B, 3) world
+    hip-joint position; off_*: bone offsets. Returns new local (r_up, r_low, r_foot) putting the
+    ankle at `target` (as close as the bone lengths allow) with the foot's world orientation unchanged."""
+    f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
+    return kernels.two_bone_ik_batch(f64(gh), f64(r_up), f64(r_low), f64(r_foot), f64(a), f64(off_low),
+                                     f64(off_foot), f64(target))
 
 
 class FootLock:
@@ -129,54 +90,31 @@ class FootLock:
     release the target follows the animated ankle again over `release_frames` frames. The root
     (and so the path) is not changed. The anchor never lags the animated ankle by more than
     `max_pull` cm (it is dragged along): the translated root tends to outpace the translated
-    strides, and an unbounded lock would straighten the knees, erasing e.g. the elderly bent knee. Needs only the leg chains' forward kinematics."""
+    strides, and an unbounded lock would straighten the knees, erasing e.g. the elderly bent knee.
+    Needs only the leg chains' forward kinematics. The work is done per session by
+    `kernels.foot_lock_session`, which the streaming step also calls."""
 
     def __init__(self, skeleton, batch: int, release_frames: int = 4, max_pull: float = 5.0):
-        self.chains = [[skeleton.index(n) for n in chain] for chain in LEG_CHAINS]
-        self.offsets = skeleton.offsets
+        self.chains = np.array([[skeleton.index(n) for n in chain] for chain in LEG_CHAINS], dtype=np.int64)
+        self.offsets = np.ascontiguousarray(skeleton.offsets, dtype=np.float64)
         self.release = release_frames
         self.max_pull = max_pull  # cm: the anchor is dragged along when the animated ankle gets farther
         self.anchor = np.zeros((batch, 2, 3))
-        self.since = np.full((batch, 2), 10**6)  # frames since the last planted frame
+        self.since = np.full((batch, 2), 10**6, dtype=np.int64)  # frames since the last planted frame
         self.was = np.zeros((batch, 2), bool)
+
+    def params(self) -> tuple[np.ndarray, np.ndarray, int, float]:
+        """(chains, offsets, release_frames, max_pull) as the kernels take them."""
+        return self.chains, self.offsets, self.release, self.max_pull
 
     def foot_positions(self, root: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """(B, 3), (B, J, 4) -> (B, 2 feet, 3) ankle world positions (joint_Root is identity)."""
-        idx = [rep.HIPS] + [j for chain in self.chains for j in chain[:-1]]
-        R = quat_to_matrix(rotations[:, idx])  # (B, 5, 3, 3): hips, upper/lower leg L, upper/lower leg R
-        out = []
-        for c, chain in enumerate(self.chains):
-            Rc, p = R[:, 0], root
-            for k, j in enumerate(chain):
-                p = p + Rc @ self.offsets[j]
-                if k < len(chain) - 1:
-                    Rc = Rc @ R[:, 1 + 2 * c + k]
-            out.append(p)
-        return np.stack(out, axis=1)
+        return kernels.ankle_positions(np.ascontiguousarray(root, dtype=np.float64),
+                                       np.ascontiguousarray(rotations, dtype=np.float64), self.chains, self.offsets)
 
     def __call__(self, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray) -> np.ndarray:
         """Returns the rotations with the IK applied (a new array); updates the lock state."""
-        feet = self.foot_positions(root, rotations)
-        start = contacts & ~self.was
-        self.anchor = np.where(start[..., None], feet, self.anchor)
-        gap = self.anchor - feet
-        dist = np.linalg.norm(gap, axis=-1, keepdims=True)
-        self.anchor = feet + gap * np.minimum(1.0, self.max_pull / np.maximum(dist, 1e-9))
-        self.since = np.where(contacts, 0, self.since + 1)
-        self.was = contacts.copy()
-        fade = np.clip(self.since / (self.release + 1.0), 0.0, 1.0)[..., None]  # 0 planted .. 1 free
-        target = self.anchor + (feet - self.anchor) * fade
-        active = self.since <= self.release
-        if not active.any():
-            return rotations
-        # both legs of every active session in one vectorised IK call
-        rows, legs = np.nonzero(active)
-        chains = np.asarray(self.chains)[legs]  # (K, 3) joint indices up/low/foot
-        up, low, foot = chains[:, 0], chains[:, 1], chains[:, 2]
-        gh = rotations[rows, rep.HIPS]
-        hip = root[rows] + quat_apply(gh, self.offsets[up])
-        r_up, r_low, r_foot = two_bone_ik(gh, rotations[rows, up], rotations[rows, low], rotations[rows, foot], hip,
-                                          self.offsets[low], self.offsets[foot], target[rows, legs])
-        out = rotations.copy()
-        out[rows, up], out[rows, low], out[rows, foot] = r_up, r_low, r_foot
+        out = np.array(rotations, dtype=np.float64, order="C")
+        kernels.foot_lock(np.ascontiguousarray(root, dtype=np.float64), out, np.ascontiguousarray(contacts, dtype=bool),
+                          self.anchor, self.since, self.was, *self.params())
         return out

@@ -5,7 +5,7 @@ systems combined), the per-DOF normalisation, the training range of the input (f
 blend) and the footplant classifier. Every frame, per session:
 
     u = (features(frame) - in_mean) / in_std          (features: representation.py)
-    [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (one matrix product for the whole batch)
+    [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint: a sparse product)
     out = y * out_std + out_mean
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
     pose = inverse representation(out); contacts from the state; optional foot lock
@@ -20,6 +20,11 @@ instead: the translated legs take shorter strides than the translated root displ
 and the path shrank, 811 -> 459 cm on the elderly validation walk.) The contact flags are always
 returned in `FrameBatch.contacts`.
 
+The streaming step (`LTIStyleModel.step_batch`) is one compiled pass over the sessions
+(`kernels.py`, numba): ~1 us of arithmetic per frame would otherwise drown in ~1,000 small numpy
+calls. The offline path (`StyleTranslator.translate_motion`) stays numpy over whole clips; the
+tests check that the two agree frame for frame.
+
 The log-time-warp output (last output DOF) is only used offline (`translate_motion(...,
 timewarp=True)`); online it is ignored, since honouring it would break synchrony.
 """
@@ -28,19 +33,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
-from scipy import sparse
 from scipy.special import erf
 
 from models.motion.assets import bandai_namco_skeleton
-from models.motion.rotations import quat_mul
 
+from . import kernels
 from . import representation as rep
 from .footplant import FootLock, FootplantClassifier
 
 SHARED_KEYS = ("started", "in_yaw", "in_ground", "out_yaw", "out_ground", "lock_anchor", "lock_since", "lock_was")
-SPARSE_BATCH = 16  # from this batch size on the sparse product is faster than the dense one
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 
 
@@ -68,8 +72,6 @@ class StyleTranslator:
     def __post_init__(self) -> None:
         n = self.A.shape[0]
         self.M = np.block([[self.A, self.B], [self.C, self.D]])
-        self.MT = np.ascontiguousarray(self.M.T)
-        self.MS = sparse.csr_matrix(self.M)  # block-diagonal structure: ~95% zeros, used for large batches
         self.n = n
 
     @property
@@ -150,16 +152,11 @@ class StyleTranslator:
                        float(z["k"][0]), float(z["k"][1]), fp, {"source": str(path)}, z["ref"])
 
 
-def _mix_rotations(parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """Weighted quaternion blend of parts [(w (B,), q (B, J, 4))]: signs aligned to each row's
-    heaviest part, then normalised; a row with one part of weight 1 gets that part unchanged."""
-    weights = np.stack([w for w, _ in parts])  # (K, B)
-    quats = np.stack([q for _, q in parts])  # (K, B, J, 4)
-    rows = np.arange(weights.shape[1])
-    base = quats[weights.argmax(axis=0), rows]
-    sign = np.where((quats * base).sum(-1, keepdims=True) < 0, -1.0, 1.0)
-    acc = (weights[..., None, None] * sign * quats).sum(axis=0)
-    return acc / np.linalg.norm(acc, axis=-1, keepdims=True)
+class _StyleSet(NamedTuple):
+    styles: list[str]
+    x_keys: tuple[str, ...]  # state keys of the styles' LTI states, in style order
+    state_keys: frozenset[str]
+    packed: kernels.PackedStyles
 
 
 class LTIStyleModel:
@@ -201,7 +198,17 @@ class LTIStyleModel:
         self.blend = blend
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
+        self._lock_params = FootLock(self.skeleton, 0).params()
         self._set_styles(sorted(translators))
+        self._compile_step()
+
+    def _compile_step(self) -> None:
+        """One step of one session on the rest pose: numba compiles the kernels (or loads them
+        from its cache) here, when the model loads, instead of on a live session's first frame."""
+        from models.interface import FrameBatch
+        rest = np.zeros((1, rep.NUM_JOINTS, 4))
+        rest[..., 3] = 1.0
+        self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), np.zeros((1, len(self._styles))))
 
     def styles(self) -> list[str]:
         return list(self._styles)
@@ -214,8 +221,15 @@ class LTIStyleModel:
     # ---------------------------------------------------------------- style set
 
     def _set_styles(self, styles: list[str]) -> None:
-        self._styles = styles
-        self._state_keys = frozenset(SHARED_KEYS) | {f"x.{s}" for s in styles}
+        """Everything the step needs per style set, computed here once (the state keys, the
+        kernel's packed constants) and replaced whole, so a reader sees one consistent set."""
+        x_keys = tuple(f"x.{s}" for s in styles)
+        self._set = _StyleSet(styles, x_keys, frozenset(SHARED_KEYS) | set(x_keys),
+                              kernels.pack_styles([self.translators[s] for s in styles]))
+
+    @property
+    def _styles(self) -> list[str]:
+        return self._set.styles
 
     def add_style(self, tr: StyleTranslator) -> None:
         """Append the style of `tr` (a new name) to `styles()`; running sessions are unaffected."""
@@ -237,7 +251,7 @@ class LTIStyleModel:
     def upgrade_state(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """`state` on the current style set: added styles at x = 0, removed ones dropped (see
         `models.interface`); `state` itself when it already is (one key-set comparison)."""
-        if state.keys() == self._state_keys and all(state[f"x.{s}"].shape[1] == self.translators[s].n for s in self._styles):
+        if state.keys() == self._set.state_keys and all(state[f"x.{s}"].shape[1] == self.translators[s].n for s in self._styles):
             return state
         batch = len(state["started"])
         out = {k: state[k] for k in SHARED_KEYS}
@@ -257,68 +271,24 @@ class LTIStyleModel:
         }
 
     def step_batch(self, state: dict[str, np.ndarray], frames, style_weights: np.ndarray):
+        """One frame for every session: one compiled pass (`kernels.lti_step`) over the sessions,
+        the styles' LTI state vectors laid side by side as the kernel expects."""
         from models.interface import FrameBatch
 
-        root, rotations = frames.root, frames.rotations
-        w = np.asarray(style_weights, dtype=np.float64)
-        batch = len(root)
-        fresh = ~state["started"]
-        yaw, tilt = rep.split_hips(rotations[:, rep.HIPS])
-        ground = root[:, [0, 2]]
-        prev_yaw = np.where(fresh, yaw, state["in_yaw"])
-        prev_ground = np.where(fresh[:, None], ground, state["in_ground"])
-        delta = np.empty((batch, 3))
-        delta[:, :2] = rep.rotate_y(ground - prev_ground, -prev_yaw)
-        delta[:, 2] = rep.wrap(yaw - prev_yaw)
-
-        new_state = {}
-        rest = np.clip(1.0 - w.sum(axis=1), 0.0, None)  # share of the input passing through
-        body_in = rotations.copy()
-        body_in[:, rep.HIPS] = tilt
-        root_feats = rest[:, None] * np.concatenate([delta, root[:, 1:2]], axis=1)
-        parts = [(rest, body_in)]
-        votes = np.zeros((batch, 2))
-        for s, style in enumerate(self._styles):
-            x = new_state[f"x.{style}"] = state[f"x.{style}"].copy()
-            rows = np.nonzero(w[:, s] > 0)[0]
-            x[np.nonzero(w[:, s] <= 0)[0]] = 0.0  # inactive styles rest at their initial state
-            if len(rows) == 0:
-                continue
-            tr = self.translators[style]
-            _, _, static = rep.pose_features(root[rows], rotations[rows], tr.ref)
-            feats = np.concatenate([delta[rows], static], axis=1)
-            u = (feats - tr.in_mean) / tr.in_std
-            zin = np.concatenate([x[rows], u], axis=1)
-            z = (tr.MS @ zin.T).T if len(rows) >= SPARSE_BATCH else zin @ tr.MT
-            x[rows] = z[:, : tr.n]
-            out = tr._finish(feats, u, z[:, tr.n:], self.blend)
-            ws = w[rows, s]
-            root_feats[rows] += ws[:, None] * out[:, :4]
-            q = np.zeros_like(body_in)
-            q[rows] = rep.static_to_rotations(out[:, 4: rep.FEATURE_DIM], np.zeros(len(rows)), tr.ref)
-            weights = np.zeros(batch)
-            weights[rows] = ws
-            parts.append((weights, np.where(weights[:, None, None] > 0, q, body_in)))
-            if tr.footplant is not None:
-                votes[rows] += ws[:, None] * tr.footplant.predict(x[rows])
-
-        # integrate the output path: the first frame starts where the input is
-        out_yaw = np.where(fresh, yaw, state["out_yaw"] + root_feats[:, 2])
-        out_ground = np.where(fresh[:, None], ground, state["out_ground"] + rep.rotate_y(root_feats[:, :2], state["out_yaw"]))
-        body = _mix_rotations(parts)
-        out_rot = body.copy()
-        out_rot[:, 0] = (0.0, 0.0, 0.0, 1.0)
-        out_rot[:, rep.HIPS] = quat_mul(rep.qyaw(out_yaw), body[:, rep.HIPS])
-        out_root = np.stack([out_ground[:, 0], root_feats[:, 3], out_ground[:, 1]], axis=-1)
-        total = w.sum(axis=1)
-        contacts = (votes > 0.5 * np.maximum(total, 1e-12)[:, None]) & (total[:, None] > 0)
-
-        new_state.update({"started": np.ones(batch, bool), "in_yaw": yaw, "in_ground": ground,
-                          "out_yaw": out_yaw, "out_ground": out_ground,
-                          "lock_anchor": state["lock_anchor"], "lock_since": state["lock_since"], "lock_was": state["lock_was"]})
-        if self.footlock:
-            lock = FootLock(self.skeleton, batch)
-            lock.anchor, lock.since, lock.was = state["lock_anchor"].copy(), state["lock_since"].copy(), state["lock_was"].copy()
-            out_rot = lock(out_root, out_rot, contacts)
-            new_state.update(lock_anchor=lock.anchor, lock_since=lock.since, lock_was=lock.was)
+        root = np.ascontiguousarray(frames.root, dtype=np.float64)
+        rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
+        w = np.ascontiguousarray(style_weights, dtype=np.float64)
+        styles, x_keys, _, packed = self._set
+        if w.shape != (len(root), len(styles)):
+            raise ValueError(f"style_weights must be ({len(root)}, {len(styles)}), got {w.shape}")
+        x = np.concatenate([state[key] for key in x_keys], axis=1)
+        (out_root, out_rot, contacts, in_yaw, in_ground, out_yaw, out_ground, lock_anchor, lock_since, lock_was,
+         new_x) = kernels.lti_step(
+            root, rotations, w, state["started"], state["in_yaw"], state["in_ground"], state["out_yaw"],
+            state["out_ground"], state["lock_anchor"], state["lock_since"], state["lock_was"], x,
+            self.blend, self.keep_heading, self.footlock, *self._lock_params, *packed)
+        off = packed.x_off
+        new_state = {key: new_x[:, off[s]:off[s + 1]] for s, key in enumerate(x_keys)}
+        new_state.update(started=np.ones(len(root), bool), in_yaw=in_yaw, in_ground=in_ground, out_yaw=out_yaw,
+                         out_ground=out_ground, lock_anchor=lock_anchor, lock_since=lock_since, lock_was=lock_was)
         return FrameBatch(out_root, out_rot, contacts), new_state

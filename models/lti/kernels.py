@@ -1,0 +1,495 @@
+"""Compiled kernels (numba) for the LTI streaming step: one pass per session over plain arrays.
+
+Why compiled: the vectorised numpy step spent ~1.3 ms per frame at batch 1 in ~950 small numpy
+calls of about a microsecond each (the foot-lock IK alone was 58% of it), while the arithmetic
+of a frame is a few thousand multiply-adds. Here every session is one loop iteration on scalars
+and 4-tuples (quaternions, scalar-last like the rest of the project), so a frame costs a few
+microseconds, at batch 1 as well as batched, and the maths reads like the formulas in
+`representation.py` (offline, numpy) and the paper.
+
+The LTI product uses each style's [[A, B], [C, D]] in CSR form: the per-joint systems are
+combined block-diagonally, so ~95% of the matrix is zeros.
+
+Everything is float64; the results equal the numpy formulas to round-off.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit
+
+HIPS = 1
+NUM_JOINTS = 22
+FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
+OUTPUT_DIM = 68  # + log time warp (offline only)
+
+# --------------------------------------------------------------------------- quaternions on 4-tuples
+
+
+@njit(cache=True, error_model="numpy")
+def qmul(a, b):
+    """Hamilton product a * b (apply b, then a)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz)
+
+
+@njit(cache=True, error_model="numpy")
+def qinv(q):
+    return (-q[0], -q[1], -q[2], q[3])
+
+
+@njit(cache=True, error_model="numpy")
+def cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@njit(cache=True, error_model="numpy")
+def dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True, error_model="numpy")
+def add3(a, b):
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+@njit(cache=True, error_model="numpy")
+def sub3(a, b):
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+@njit(cache=True, error_model="numpy")
+def qrot(q, v):
+    """Rotate vector v by unit quaternion q."""
+    xyz = (q[0], q[1], q[2])
+    t = cross(xyz, v)
+    t = (2.0 * t[0], 2.0 * t[1], 2.0 * t[2])
+    u = cross(xyz, t)
+    w = q[3]
+    return (v[0] + w * t[0] + u[0], v[1] + w * t[1] + u[1], v[2] + w * t[2] + u[2])
+
+
+@njit(cache=True, error_model="numpy")
+def quat_at(a, i, j):
+    """Quaternion a[i, j] of a (..., ..., 4) array as a 4-tuple."""
+    return (a[i, j, 0], a[i, j, 1], a[i, j, 2], a[i, j, 3])
+
+
+@njit(cache=True, error_model="numpy")
+def row4(a, j):
+    return (a[j, 0], a[j, 1], a[j, 2], a[j, 3])
+
+
+@njit(cache=True, error_model="numpy")
+def row3(a, j):
+    return (a[j, 0], a[j, 1], a[j, 2])
+
+
+@njit(cache=True, error_model="numpy")
+def quat_to_rotvec(q):
+    """Exponential map, angle in [0, pi] (the w >= 0 branch); see representation.quat_to_rotvec."""
+    w = abs(q[3])
+    sign = 1.0 if q[3] + 1e-300 >= 0.0 else -1.0
+    v = (q[0] * sign, q[1] * sign, q[2] * sign)
+    s = math.sqrt(dot3(v, v))
+    scale = 2.0 * math.atan2(s, w) / s if s > 1e-8 else 2.0 / max(w, 1e-12)
+    return (v[0] * scale, v[1] * scale, v[2] * scale)
+
+
+@njit(cache=True, error_model="numpy")
+def rotvec_to_quat(r):
+    angle = math.sqrt(dot3(r, r))
+    scale = 0.5 - angle * angle / 48.0 if angle < 1e-8 else math.sin(0.5 * angle) / angle
+    return (r[0] * scale, r[1] * scale, r[2] * scale, math.cos(0.5 * angle))
+
+
+@njit(cache=True, error_model="numpy")
+def split_hips(q):
+    """q_hips = qyaw(yaw) * tilt -> (yaw, tilt); see representation.split_hips."""
+    x, y, z, w = q
+    yaw = math.atan2(2.0 * (y * z + w * x), -2.0 * (x * y - w * z))
+    c, s = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+    return yaw, (c * x - s * z, c * y - s * w, c * z + s * x, c * w + s * y)
+
+
+@njit(cache=True, error_model="numpy")
+def qyaw(yaw):
+    return (0.0, math.sin(0.5 * yaw), 0.0, math.cos(0.5 * yaw))
+
+
+@njit(cache=True, error_model="numpy")
+def rotate_y(x, z, yaw):
+    """Ground-plane vector (x, z) turned by yaw about +Y."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return c * x + s * z, -s * x + c * z
+
+
+@njit(cache=True, error_model="numpy")
+def wrap(a):
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+# --------------------------------------------------------------------------- foot lock (two-bone leg IK)
+
+
+@njit(cache=True, error_model="numpy")
+def _nrm(v):
+    n = max(math.sqrt(dot3(v, v)), 1e-9)
+    return (v[0] / n, v[1] / n, v[2] / n)
+
+
+@njit(cache=True, error_model="numpy")
+def _cos(u, v):
+    return min(max(dot3(_nrm(u), _nrm(v)), -1.0), 1.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _axis_angle(axis, angle):
+    a = _nrm(axis)
+    s = math.sin(0.5 * angle)
+    return (a[0] * s, a[1] * s, a[2] * s, math.cos(0.5 * angle))
+
+
+@njit(cache=True, error_model="numpy")
+def _rotation_between(u, v):
+    """Shortest-arc quaternion taking direction u to direction v."""
+    u, v = _nrm(u), _nrm(v)
+    c = cross(u, v)
+    q = (c[0], c[1], c[2], 1.0 + dot3(u, v))
+    n = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-12)
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+@njit(cache=True, error_model="numpy")
+def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
+    """Analytic two-bone IK for one leg. gh: world rotation of the parent (Hips); r_*: local
+    rotations of UpperLeg, LowerLeg, Foot; a: world hip-joint position; off_*: bone offsets.
+    Returns new local (r_up, r_low, r_foot) putting the ankle at `target` (as close as the bone
+    lengths allow) with the foot's world orientation unchanged: bend thigh and knee about the leg
+    plane's normal to get the hip-ankle distance right, then swing the leg onto the target."""
+    ga = qmul(gh, r_up)
+    gb = qmul(ga, r_low)
+    gf = qmul(gb, r_foot)
+    b = add3(a, qrot(ga, off_low))
+    c = add3(b, qrot(gb, off_foot))
+    lab, lcb = math.sqrt(dot3(off_low, off_low)), math.sqrt(dot3(off_foot, off_foot))
+    at = sub3(target, a)
+    lat = min(max(math.sqrt(dot3(at, at)), 1e-3), lab + lcb - 1e-3)
+    ac_ab_0 = math.acos(_cos(sub3(c, a), sub3(b, a)))
+    ba_bc_0 = math.acos(_cos(sub3(a, b), sub3(c, b)))
+    ac_ab_1 = math.acos(min(max((lcb * lcb - lab * lab - lat * lat) / (-2.0 * lab * lat), -1.0), 1.0))
+    ba_bc_1 = math.acos(min(max((lat * lat - lab * lab - lcb * lcb) / (-2.0 * lab * lcb), -1.0), 1.0))
+    axis = cross(sub3(c, a), sub3(b, a))
+    ga2 = qmul(_axis_angle(axis, ac_ab_1 - ac_ab_0), ga)
+    gb2 = qmul(_axis_angle(axis, ba_bc_1 - ba_bc_0), qmul(ga2, r_low))
+    b2 = add3(a, qrot(ga2, off_low))
+    c2 = add3(b2, qrot(gb2, off_foot))
+    w2 = _rotation_between(sub3(c2, a), at)
+    ga3 = qmul(w2, ga2)
+    gb3 = qmul(w2, gb2)
+    return qmul(qinv(gh), ga3), qmul(qinv(ga3), gb3), qmul(qinv(gb3), gf)
+
+
+@njit(cache=True, error_model="numpy")
+def ankle_position(root, rot, chain, offsets):
+    """World ankle position of leg `chain` (UpperLeg, LowerLeg, Foot joint indices) of one pose:
+    root (3,), local rotations rot (22, 4) (`joint_Root` is identity)."""
+    g = row4(rot, HIPS)
+    p = (root[0], root[1], root[2])
+    for k in range(3):
+        j = chain[k]
+        p = add3(p, qrot(g, row3(offsets, j)))
+        if k < 2:
+            g = qmul(g, row4(rot, j))
+    return p
+
+
+@njit(cache=True, error_model="numpy")
+def foot_lock_session(root, rot, contacts, anchor, since, was, chains, offsets, release, max_pull):
+    """Foot lock of one session, in place on its pose `rot` (22, 4) and lock memory (anchor (2, 3),
+    since (2,), was (2,)); see footplant.FootLock for what it does and why."""
+    for leg in range(2):
+        chain = chains[leg]
+        foot = ankle_position(root, rot, chain, offsets)
+        if contacts[leg] and not was[leg]:
+            anchor[leg, 0], anchor[leg, 1], anchor[leg, 2] = foot
+        gap = (anchor[leg, 0] - foot[0], anchor[leg, 1] - foot[1], anchor[leg, 2] - foot[2])
+        pull = min(1.0, max_pull / max(math.sqrt(dot3(gap, gap)), 1e-9))
+        for i in range(3):
+            anchor[leg, i] = foot[i] + gap[i] * pull
+        since[leg] = 0 if contacts[leg] else since[leg] + 1
+        was[leg] = contacts[leg]
+        if since[leg] > release:
+            continue
+        fade = min(max(since[leg] / (release + 1.0), 0.0), 1.0)  # 0 planted .. 1 free
+        target = (anchor[leg, 0] + (foot[0] - anchor[leg, 0]) * fade, anchor[leg, 1] + (foot[1] - anchor[leg, 1]) * fade,
+                  anchor[leg, 2] + (foot[2] - anchor[leg, 2]) * fade)
+        up, low, ft = chain[0], chain[1], chain[2]
+        gh = row4(rot, HIPS)
+        hip = add3((root[0], root[1], root[2]), qrot(gh, row3(offsets, up)))
+        r_up, r_low, r_foot = two_bone_ik(gh, row4(rot, up),
+                                          row4(rot, low),
+                                          row4(rot, ft), hip,
+                                          row3(offsets, low),
+                                          row3(offsets, ft), target)
+        for i in range(4):
+            rot[up, i], rot[low, i], rot[ft, i] = r_up[i], r_low[i], r_foot[i]
+
+
+@njit(cache=True, error_model="numpy")
+def foot_lock(root, rot, contacts, anchor, since, was, chains, offsets, release, max_pull):
+    """`foot_lock_session` over a batch: root (B, 3), rot (B, 22, 4) and the lock memory in place."""
+    for b in range(root.shape[0]):
+        foot_lock_session(root[b], rot[b], contacts[b], anchor[b], since[b], was[b], chains, offsets, release, max_pull)
+
+
+@njit(cache=True, error_model="numpy")
+def ankle_positions(root, rot, chains, offsets):
+    """(B, 3), (B, 22, 4) -> (B, 2 legs, 3) world ankle positions."""
+    out = np.empty((root.shape[0], 2, 3))
+    for b in range(root.shape[0]):
+        for leg in range(2):
+            out[b, leg, 0], out[b, leg, 1], out[b, leg, 2] = ankle_position(root[b], rot[b], chains[leg], offsets)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def two_bone_ik_batch(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
+    """`two_bone_ik` over a batch of legs: (B, 4) rotations, (B, 3) hip positions and targets, (3,) offsets."""
+    n = gh.shape[0]
+    up, low, foot = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4))
+    lo, fo = (off_low[0], off_low[1], off_low[2]), (off_foot[0], off_foot[1], off_foot[2])
+    for i in range(n):
+        qu, ql, qf = two_bone_ik(row4(gh, i), row4(r_up, i), row4(r_low, i), row4(r_foot, i), row3(a, i), lo, fo,
+                                 row3(target, i))
+        for c in range(4):
+            up[i, c], low[i, c], foot[i, c] = qu[c], ql[c], qf[c]
+    return up, low, foot
+
+
+# --------------------------------------------------------------------------- styles, packed
+
+
+class PackedStyles(NamedTuple):
+    """Every style translator's constants concatenated over the model's current styles, in order,
+    so the step kernel takes a fixed set of arrays whatever the style set is. Style s owns state
+    entries x[x_off[s]:x_off[s+1]] and rows row_off[s]:row_off[s+1] of the stacked CSR matrices
+    M_s = [[A, B], [C, D]] (columns local to the style: its state, then the 67 inputs)."""
+
+    x_off: np.ndarray  # (S + 1,) int64
+    row_off: np.ndarray  # (S + 1,) int64
+    indptr: np.ndarray  # (rows + 1,) int64, into indices/data
+    indices: np.ndarray  # (nnz,) int32 (half the memory traffic of int64)
+    data: np.ndarray  # (nnz,)
+    in_mean: np.ndarray  # (S, 67)
+    in_std: np.ndarray  # (S, 67)
+    in_lo: np.ndarray  # (S, 67) training range of the normalised input (erf blend)
+    in_hi: np.ndarray  # (S, 67)
+    out_mean: np.ndarray  # (S, 68)
+    out_std: np.ndarray  # (S, 68)
+    k: np.ndarray  # (S, 2) erf blend k_p, k_c
+    ref: np.ndarray  # (S, 22, 4) per-joint reference rotations
+    fp_w: np.ndarray  # (N, 2) footplant projection per foot, rows aligned with the state
+    fp_mean: np.ndarray  # (S, 2, 2) per foot, per class (free, planted)
+    fp_var: np.ndarray  # (S, 2, 2)
+    fp_prior: np.ndarray  # (S, 2, 2) log prior
+    has_fp: np.ndarray  # (S,) bool
+
+
+def pack_styles(translators: list) -> PackedStyles:
+    """PackedStyles of `StyleTranslator`s (in style order); done once per style-set change."""
+    from scipy import sparse
+
+    x_off, row_off, indptr, indices, data = [0], [0], [], [], []
+    fp_w, fp_mean, fp_var, fp_prior, has_fp = [], [], [], [], []
+    nnz = 0
+    for tr in translators:
+        M = sparse.csr_matrix(tr.M)
+        indptr.append(M.indptr[:-1] + nnz)
+        indices.append(M.indices)
+        data.append(M.data)
+        nnz += M.nnz
+        x_off.append(x_off[-1] + tr.n)
+        row_off.append(row_off[-1] + M.shape[0])
+        fp = tr.footplant
+        has_fp.append(fp is not None)
+        fp_w.append(fp.w if fp is not None else np.zeros((tr.n, 2)))
+        fp_mean.append(fp.mean if fp is not None else np.zeros((2, 2)))
+        fp_var.append(fp.var if fp is not None else np.ones((2, 2)))
+        fp_prior.append(fp.log_prior if fp is not None else np.zeros((2, 2)))
+    indptr.append(np.array([nnz]))
+    f64 = lambda parts: np.ascontiguousarray(np.stack(parts), dtype=np.float64)  # noqa: E731
+    return PackedStyles(
+        np.array(x_off, np.int64), np.array(row_off, np.int64), np.concatenate(indptr).astype(np.int64),
+        np.concatenate(indices).astype(np.int32), np.concatenate(data).astype(np.float64),
+        f64([tr.in_mean for tr in translators]), f64([tr.in_std for tr in translators]),
+        f64([tr.in_lo for tr in translators]), f64([tr.in_hi for tr in translators]),
+        f64([tr.out_mean for tr in translators]), f64([tr.out_std for tr in translators]),
+        f64([(tr.k_p, tr.k_c) for tr in translators]), f64([tr.ref for tr in translators]),
+        np.ascontiguousarray(np.concatenate(fp_w), dtype=np.float64), f64(fp_mean), f64(fp_var), f64(fp_prior),
+        np.array(has_fp, np.bool_))
+
+
+# --------------------------------------------------------------------------- the step
+
+
+@njit(cache=True, error_model="numpy")
+def _planted(x, fp_w, row0, mean, var, log_prior, foot):
+    """Footplant class of one foot: the more likely Gaussian class (free, planted) of the state
+    projected on the foot's discriminant (FootplantClassifier.predict)."""
+    proj = 0.0
+    for i in range(x.shape[0]):
+        proj += x[i] * fp_w[row0 + i, foot]
+    ll_free = -0.5 * (proj - mean[foot, 0]) ** 2 / var[foot, 0] - 0.5 * math.log(var[foot, 0]) + log_prior[foot, 0]
+    ll_planted = -0.5 * (proj - mean[foot, 1]) ** 2 / var[foot, 1] - 0.5 * math.log(var[foot, 1]) + log_prior[foot, 1]
+    return ll_planted > ll_free
+
+
+@njit(cache=True, error_model="numpy")
+def _translate_style(s, w, root_y, rotations, yaw_tilt, delta, x_in, x_out, P, blend, keep_heading, root_feats, quats,
+                     feats, zin, out):
+    """One style of one session: features -> normalise -> LTI step -> output features, adds
+    w * (root displacement, yaw change, height) to root_feats, writes the style's body rotations
+    (22, 4) into quats and returns its footplant contacts (left, right). feats, zin, out: scratch."""
+    (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
+     fp_w, fp_mean, fp_var, fp_prior, has_fp) = P
+    n = x_off[s + 1] - x_off[s]
+    # features (representation.pose_features / sequence_features), normalised
+    feats[0], feats[1], feats[2], feats[3] = delta[0], delta[1], delta[2], root_y
+    for j in range(1, NUM_JOINTS):
+        q = yaw_tilt if j == HIPS else row4(rotations, j)
+        r = quat_to_rotvec(qmul(qinv(quat_at(ref, s, j)), q))
+        feats[3 * j + 1], feats[3 * j + 2], feats[3 * j + 3] = r
+    for i in range(n):  # (an element loop: numba compiles a slice copy ~20x slower)
+        zin[i] = x_in[i]
+    blend_w = 0.0
+    for d in range(FEATURE_DIM):
+        u = (feats[d] - in_mean[s, d]) / in_std[s, d]
+        zin[n + d] = u
+        if blend:  # erf generalisation weight: max over DOFs of erf(max(0, dist - k_p) / k_c)
+            beyond = max(u - in_hi[s, d], in_lo[s, d] - u) - k[s, 0]
+            if beyond > 0.0:  # erf(0) = 0 inside the training range: most DOFs, most frames
+                blend_w = max(blend_w, math.erf(beyond / k[s, 1]))
+    # [x'; y] = M [x; u], sparse
+    base = row_off[s]
+    for r in range(n + OUTPUT_DIM - 1):  # the log time warp (last output) is not used online
+        acc = 0.0
+        for p in range(indptr[base + r], indptr[base + r + 1]):
+            acc += data[p] * zin[indices[p]]
+        if r < n:
+            x_out[r] = acc
+        else:
+            d = r - n
+            y = acc * out_std[s, d] + out_mean[s, d]
+            out[d] = (1.0 - blend_w) * y + blend_w * feats[d]
+    if keep_heading:
+        out[2] = feats[2]
+    for d in range(4):
+        root_feats[d] += w * out[d]
+    # body rotations (representation.static_to_rotations with yaw 0)
+    quats[0, 0], quats[0, 1], quats[0, 2], quats[0, 3] = 0.0, 0.0, 0.0, 1.0
+    for j in range(1, NUM_JOINTS):
+        q = qmul(quat_at(ref, s, j), rotvec_to_quat((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
+        quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q
+    if not has_fp[s]:
+        return False, False
+    return _planted(x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 0), \
+        _planted(x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 1)
+
+
+@njit(cache=True, error_model="numpy")
+def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_ground, lock_anchor, lock_since,
+             lock_was, x, blend, keep_heading, footlock, chains, offsets, release, max_pull,
+             x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
+             fp_w, fp_mean, fp_var, fp_prior, has_fp):
+    """One streaming frame for B sessions (see model.LTIStyleModel for the state and the style
+    mixing); the trailing arguments are the `PackedStyles` fields, passed one by one because
+    numba checks the types of top-level arrays much faster than those inside a tuple. Inputs are
+    read only; returns (out_root, out_rot, contacts, new state arrays)."""
+    P = (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
+         fp_w, fp_mean, fp_var, fp_prior, has_fp)
+    B, S = weights.shape
+    out_root = np.empty((B, 3))
+    out_rot = np.empty((B, NUM_JOINTS, 4))
+    contacts = np.zeros((B, 2), np.bool_)
+    n_yaw, n_ground = np.empty(B), np.empty((B, 2))
+    n_out_yaw, n_out_ground = np.empty(B), np.empty((B, 2))
+    n_anchor, n_since, n_was = lock_anchor.copy(), lock_since.copy(), lock_was.copy()
+    n_x = np.zeros_like(x)  # inactive styles rest at their initial state x = 0
+    quats = np.empty((S, NUM_JOINTS, 4))
+    delta, root_feats = np.empty(3), np.empty(4)
+    feats, zin, out = np.empty(FEATURE_DIM), np.empty(x.shape[1] + FEATURE_DIM), np.empty(OUTPUT_DIM)
+    for b in range(B):
+        yaw, tilt = split_hips(quat_at(rotations, b, HIPS))
+        gx, gz = root[b, 0], root[b, 2]
+        fresh = not started[b]
+        p_yaw = yaw if fresh else in_yaw[b]
+        dx, dz = rotate_y(gx - (gx if fresh else in_ground[b, 0]), gz - (gz if fresh else in_ground[b, 1]), -p_yaw)
+        delta[0], delta[1], delta[2] = dx, dz, wrap(yaw - p_yaw)
+        total = 0.0
+        for s in range(S):
+            total += weights[b, s]
+        rest = max(1.0 - total, 0.0)  # share of the input passing through
+        for d in range(3):
+            root_feats[d] = rest * delta[d]
+        root_feats[3] = rest * root[b, 1]
+        vote_l = vote_r = 0.0
+        base, base_w = -1, rest  # the heaviest part (first on ties): the sign reference of the blend
+        for s in range(S):
+            w = weights[b, s]
+            if w > base_w:
+                base, base_w = s, w
+            if w <= 0.0:
+                continue
+            x_in = x[b, x_off[s]:x_off[s + 1]]
+            x_out = n_x[b, x_off[s]:x_off[s + 1]]
+            planted = _translate_style(s, w, root[b, 1], rotations[b], tilt, delta, x_in, x_out, P, blend,
+                                       keep_heading, root_feats, quats[s], feats, zin, out)
+            vote_l += w * planted[0]
+            vote_r += w * planted[1]
+        # blend the body: input (with the yaw-free hips) and each style, signs aligned to the base part
+        out_rot[b, 0, 0], out_rot[b, 0, 1], out_rot[b, 0, 2], out_rot[b, 0, 3] = 0.0, 0.0, 0.0, 1.0
+        for j in range(1, NUM_JOINTS):
+            q_in = tilt if j == HIPS else quat_at(rotations, b, j)
+            q_base = q_in if base < 0 else quat_at(quats, base, j)
+            acc = (0.0, 0.0, 0.0, 0.0)
+            if rest > 0.0:
+                acc = _add_signed(acc, rest, q_in, q_base)
+            for s in range(S):
+                if weights[b, s] > 0.0:
+                    acc = _add_signed(acc, weights[b, s], quat_at(quats, s, j), q_base)
+            norm = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
+            q = (acc[0] / norm, acc[1] / norm, acc[2] / norm, acc[3] / norm)
+            if j == HIPS:
+                q = qmul(qyaw(yaw if fresh else out_yaw[b] + root_feats[2]), q)
+            out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = q
+        # integrate the output path: the first frame starts where the input is
+        if fresh:
+            n_out_yaw[b], n_out_ground[b, 0], n_out_ground[b, 1] = yaw, gx, gz
+        else:
+            sx, sz = rotate_y(root_feats[0], root_feats[1], out_yaw[b])
+            n_out_yaw[b] = out_yaw[b] + root_feats[2]
+            n_out_ground[b, 0], n_out_ground[b, 1] = out_ground[b, 0] + sx, out_ground[b, 1] + sz
+        out_root[b, 0], out_root[b, 1], out_root[b, 2] = n_out_ground[b, 0], root_feats[3], n_out_ground[b, 1]
+        n_yaw[b], n_ground[b, 0], n_ground[b, 1] = yaw, gx, gz
+        if total > 0.0:
+            limit = 0.5 * max(total, 1e-12)
+            contacts[b, 0], contacts[b, 1] = vote_l > limit, vote_r > limit
+        if footlock:
+            foot_lock_session(out_root[b], out_rot[b], contacts[b], n_anchor[b], n_since[b], n_was[b],
+                              chains, offsets, release, max_pull)
+    return out_root, out_rot, contacts, n_yaw, n_ground, n_out_yaw, n_out_ground, n_anchor, n_since, n_was, n_x
+
+
+@njit(cache=True, error_model="numpy")
+def _add_signed(acc, w, q, ref):
+    """acc + w * q, with q's sign flipped when it points away from ref (q and -q are one rotation)."""
+    sign = -w if q[0] * ref[0] + q[1] * ref[1] + q[2] * ref[2] + q[3] * ref[3] < 0.0 else w
+    return (acc[0] + sign * q[0], acc[1] + sign * q[1], acc[2] + sign * q[2], acc[3] + sign * q[3])

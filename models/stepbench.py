@@ -1,0 +1,79 @@
+"""Per-frame step cost of a streaming model, shared by `python -m models.lti bench` and
+`python -m models.erd bench`.
+
+The machines this runs on are shared (other jobs, a training run), and absolute timings drift by
+2x or more from one minute to the next. So every step is timed interleaved with a fixed
+reference workload in plain numpy (the "floor", chosen by each model: the product any
+implementation of it has to do) and the report gives both medians and their ratio; the ratio is
+what compares across runs and machines. Threads are capped like the service caps them (BLAS via
+threadpoolctl, torch intra-op), one thread by default.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@contextmanager
+def capped_threads(n: int) -> Iterator[None]:
+    """numpy BLAS and torch intra-op threads limited to n (the service runs with 1)."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        with threadpool_limits(n, user_api="blas"):
+            yield
+    finally:
+        torch.set_num_threads(before)
+
+
+@dataclass
+class StepTiming:
+    batch: int
+    step: np.ndarray  # seconds per step_batch call
+    floor: np.ndarray  # seconds per floor call, interleaved with the steps
+
+    @property
+    def median(self) -> float:
+        return float(np.median(self.step))
+
+    @property
+    def ratio(self) -> float:
+        return self.median / float(np.median(self.floor))
+
+    def as_dict(self) -> dict[str, float]:
+        return {"batch": self.batch, "median_us_per_step": self.median * 1e6,
+                "us_per_frame": self.median * 1e6 / self.batch, "p99_us_per_step": float(np.percentile(self.step, 99)) * 1e6,
+                "frames_per_s": self.batch / self.median, "floor_median_us": float(np.median(self.floor)) * 1e6,
+                "step_over_floor": self.ratio}
+
+    def line(self) -> str:
+        d = self.as_dict()
+        return (f"  batch {self.batch:4d}: median {d['median_us_per_step']:8.1f} us/step ({d['us_per_frame']:7.2f} us/frame), "
+                f"p99 {d['p99_us_per_step']:8.1f} us/step, {d['frames_per_s']:8.0f} frames/s | "
+                f"floor {d['floor_median_us']:7.1f} us, step/floor {d['step_over_floor']:5.2f}")
+
+
+def time_steps(batch: int, step: Callable[[int], None], floor: Callable[[], None], repeats: int,
+               warmup: int = 10) -> StepTiming:
+    """Time `step(i)` (advances the model one frame; i counts calls) and `floor()` alternately."""
+    for i in range(warmup):
+        step(i)
+        floor()
+    steps, floors = np.empty(repeats), np.empty(repeats)
+    clock = time.perf_counter
+    for i in range(repeats):
+        t0 = clock()
+        step(warmup + i)
+        t1 = clock()
+        floor()
+        t2 = clock()
+        steps[i], floors[i] = t1 - t0, t2 - t1
+    return StepTiming(batch, steps, floors)
