@@ -114,5 +114,6 @@ export class Controller {
     return controlMessage(intent, this.facing);
   }
 
-  reset(facing = 0) { this.facing = facing; this.mouseTurn = 0; this.held.clear(); }
+  /** Facing back to `facing`; keys still held stay held (they are released with keyup). */
+  reset(facing = 0) { this.facing = facing; this.mouseTurn = 0; }
 }

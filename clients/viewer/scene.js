@@ -181,11 +181,25 @@ class Stage {
   }
 }
 
+/**
+ * Whether WebGL runs on the CPU (SwiftShader, llvmpipe: no GPU, or headless test browsers). There
+ * multisampling costs about a quarter of the frame time, so edges stay aliased.
+ */
+export function softwareWebGL() {
+  const gl = document.createElement("canvas").getContext("webgl2");
+  if (!gl) return false;
+  const info = gl.getExtension("WEBGL_debug_renderer_info");
+  const name = String(gl.getParameter(info ? info.UNMASKED_RENDERER_WEBGL : gl.RENDERER));
+  const lose = gl.getExtension("WEBGL_lose_context");
+  if (lose) lose.loseContext();
+  return /swiftshader|llvmpipe|softpipe|software/i.test(name);
+}
+
 export class SideBySideView {
   /** canvas: the page's canvas; onChange: called when the camera moved and a redraw is due. */
   constructor(canvas, onChange) {
     this.canvas = canvas;
-    this.renderer = new THREE.WebGLRenderer({ canvas, antialias: true });
+    this.renderer = new THREE.WebGLRenderer({ canvas, antialias: !softwareWebGL() });
     this.renderer.setPixelRatio(Math.min(2, window.devicePixelRatio || 1));
     this.scene = new THREE.Scene();
     const sky = new THREE.HemisphereLight(0xffffff, 0x3a4250, 2.2);

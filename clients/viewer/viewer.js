@@ -13,6 +13,7 @@ const TOKEN = params.get("token");
 const CONTROL_MODEL = "lpn"; // the model driven by control messages instead of clip frames
 const MAX_IN_FLIGHT = 6; // below the server's per-session queue (8), so a stalled link never makes it drop frames
 const TRIANGLE_SEND_MS = 100; // at most this often while the triangle's point is dragged
+const HUD_EVERY_MS = 200; // the readout's refresh: readable, and cheap to repaint
 
 const $ = (id) => document.getElementById(id);
 const ui = {
@@ -28,7 +29,7 @@ const state = {
   models: [], clip: null, demo: null, session: null, playing: false, seq: 0, previewSeq: 0,
   inputs: new Map(), sentAt: new Map(), controlSentAt: [], lastOut: null, lastControl: null,
   lat: [], sent: 0, received: 0, dropped: 0, recvTimes: [], held: 0, timer: null, nextSendAt: 0,
-  transition: null, blendSource: "picker", // "picker": style / mix-with controls; "triangle": the style triangle
+  transition: null, hudAt: 0, blendSource: "picker", // "picker": style / mix-with controls; "triangle": the style triangle
 };
 
 const view = new SideBySideView(ui.canvas, () => requestRender());
@@ -63,11 +64,13 @@ function render() {
     view.show("input", fk(clip, input.root, input.rotations));
     view.showControl(null);
   }
-  ui.subInput.textContent = controlMode() ? "controller" : clip.name;
-  ui.subOutput.textContent = shown ? (state.session ? state.session.label : "") :
-    (state.session ? "waiting for frames…" : "press play to stream");
+  setText(ui.subInput, controlMode() ? "controller" : clip.name);
+  setText(ui.subOutput, shown ? (state.session ? state.session.label : "") :
+    (state.session ? "waiting for frames…" : "press play to stream"));
   view.render();
 }
+/** Text changes repaint the page, which costs as much as a 3-D frame on software WebGL: only on change. */
+function setText(el, text) { if (el.textContent !== text) el.textContent = text; }
 let renderQueued = false;
 function requestRender() {
   if (renderQueued) return;
@@ -158,7 +161,7 @@ function openSession() {
   };
   ws.onclose = (ev) => {
     if (state.session !== session) return;
-    state.session = null; stopTimer();
+    state.session = null; stopTimer(); updateHud();
     setBodyState(ev.code === 1000 ? "ended" : "closed");
     if (ev.code !== 1000) setStatus(`connection closed (${ev.code}${ev.reason ? ": " + ev.reason : ""})`, true);
     if (state.playing) { state.playing = false; ui.play.textContent = "▶ play"; ui.play.classList.remove("on"); }
@@ -232,8 +235,8 @@ function sendControl(s, dt) {
 
 function showControlReadout(msg) {
   const [f, side] = msg.velocity;
-  ui.controlReadout.textContent = `forward ${f.toFixed(2)} m/s · side ${side.toFixed(2)} m/s · facing ` +
-    `${(msg.facing * 180 / Math.PI).toFixed(0)}° · ${msg.gait}` + (controller.gamepad ? ` · ${controller.gamepad}` : " · keyboard");
+  setText(ui.controlReadout, `forward ${f.toFixed(2)} m/s · side ${side.toFixed(2)} m/s · facing ` +
+    `${(msg.facing * 180 / Math.PI).toFixed(0)}° · ${msg.gait}` + (controller.gamepad ? ` · ${controller.gamepad}` : " · keyboard"));
 }
 
 function onFrame(m) {
@@ -245,7 +248,7 @@ function onFrame(m) {
   state.recvTimes.push(now); while (state.recvTimes.length && state.recvTimes[0] < now - 1000) state.recvTimes.shift();
   state.lastOut = { seq: m.seq, root: m.root, rotations: m.rotations, contacts: m.contacts };
   document.body.dataset.received = String(state.received);
-  updateHud();
+  if (now - state.hudAt >= HUD_EVERY_MS) { state.hudAt = now; updateHud(); }
   requestRender();
 }
 
@@ -253,18 +256,18 @@ function updateHud() {
   const lat = state.lat;
   if (lat.length) {
     const sorted = lat.slice().sort((a, b) => a - b);
-    ui.latLast.textContent = lat[lat.length - 1].toFixed(1);
-    ui.latMean.textContent = (lat.reduce((a, b) => a + b, 0) / lat.length).toFixed(1);
-    ui.latP95.textContent = sorted[Math.min(sorted.length - 1, Math.floor(0.95 * sorted.length))].toFixed(1);
-    ui.latMax.textContent = sorted[sorted.length - 1].toFixed(1);
+    setText(ui.latLast, lat[lat.length - 1].toFixed(1));
+    setText(ui.latMean, (lat.reduce((a, b) => a + b, 0) / lat.length).toFixed(1));
+    setText(ui.latP95, sorted[Math.min(sorted.length - 1, Math.floor(0.95 * sorted.length))].toFixed(1));
+    setText(ui.latMax, sorted[sorted.length - 1].toFixed(1));
   }
-  ui.counts.textContent = `sent ${state.sent} · received ${state.received} · dropped ${state.dropped}` +
-    (state.held ? ` · held back ${state.held}` : "");
-  ui.rate.textContent = String(state.recvTimes.length);
+  setText(ui.counts, `sent ${state.sent} · received ${state.received} · dropped ${state.dropped}` +
+    (state.held ? ` · held back ${state.held}` : ""));
+  setText(ui.rate, String(state.recvTimes.length));
   const t = state.transition;
   if (t && t.frames > 0) {
     const done = Math.min(t.frames, Math.max(0, (state.lastOut ? state.lastOut.seq : 0) - t.from + 1));
-    ui.weights.textContent = weightsText + (done < t.frames ? ` · transition ${done}/${t.frames} frames` : "");
+    setText(ui.weights, weightsText + (done < t.frames ? ` · transition ${done}/${t.frames} frames` : ""));
   }
 }
 
@@ -272,7 +275,7 @@ function play(on) {
   state.playing = on;
   ui.play.textContent = on ? "❚❚ pause" : "▶ play";
   ui.play.classList.toggle("on", on);
-  if (!on) { stopTimer(); if (state.session) setBodyState("paused"); return; }
+  if (!on) { stopTimer(); updateHud(); if (state.session) setBodyState("paused"); return; }
   if (!state.session || state.session.model !== ui.model.value || state.session.control !== controlMode()) openSession();
   else if (state.session.ready) { setBodyState("streaming"); schedule(); }
 }
