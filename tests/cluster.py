@@ -24,6 +24,7 @@ import pytest
 from clients.loadtest import free_port, wait_ready
 
 REPO = Path(__file__).resolve().parents[1]
+READY_TIMEOUT_S = 240.0
 
 
 def require(*binaries: str) -> None:
@@ -83,7 +84,8 @@ class Replica:
                                      stdout=self.log.open("w"), stderr=subprocess.STDOUT)
 
     def wait_ready(self) -> None:
-        wait_ready(self.url, lambda: self.proc.poll() is None)
+        # generous: loading and warming the models (numba compiles) on a busy 2-core box
+        wait_ready(self.url, lambda: self.proc.poll() is None, timeout=READY_TIMEOUT_S)
 
     def metric(self, name: str) -> float:
         """Sum of a metric's samples on /metrics (all label values)."""
