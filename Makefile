@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-all summary eval perf clean browser viewer-vendor servers
+.PHONY: install serve test test-all summary eval perf clean browser viewer-vendor servers image
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -39,6 +39,12 @@ servers:
 		{ command -v apt-get >/dev/null 2>&1 && \
 		(apt-get update -qq && apt-get install -y -qq redis-server nginx >/dev/null) || \
 		echo "redis-server/nginx not installed: the replica and drain tests will be skipped"; }
+
+# The service image, stylestream:latest (docs/deploy.md): as root, container-base.sh first installs
+# podman and the registry-free python:3.11-slim base (idempotent); build-image.sh stages the torch CPU wheel
+image:
+	@[ "$$(id -u)" != 0 ] || bash ../shared/tools/container-base.sh
+	bash docker/build-image.sh
 
 test: install browser servers
 	$(BIN)/python -m pytest -q -m "not slow"
