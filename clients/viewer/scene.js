@@ -18,11 +18,12 @@ const BACKGROUND = 0x14171c;
 const CONTACT_COLOUR = 0x7ee787;
 const UP = new THREE.Vector3(0, 1, 0);
 // default orbit, in units of a 170 cm character: yaw from +Z, pitch above the horizon, distance
-const ORBIT = { yaw: 0.95, pitch: 0.16, distance: 420 };
+const ORBIT = { yaw: 0.95, pitch: 0.16, distance: 380 };
 
 const unitCylinder = new THREE.CylinderGeometry(1, 1, 1, 12, 1);
 const unitSphere = new THREE.SphereGeometry(1, 16, 12);
 const unitRing = new THREE.RingGeometry(0.55, 1, 32).rotateX(-Math.PI / 2);
+const unitDisc = new THREE.CircleGeometry(1, 32).rotateX(-Math.PI / 2);
 
 /**
  * A square floor grid of `cells` x `cells` cells of size `step`, centred on the origin, whose lines
@@ -95,7 +96,7 @@ class Figure {
   dispose() { Object.values(this.materials).forEach((m) => m.dispose()); }
 }
 
-/** One side: its layer, its camera, its floor grid, its figure, foot-contact rings, control arrows. */
+/** One side: its layer, camera, floor grid, figure with a blob shadow, foot-contact rings, control arrows. */
 class Stage {
   constructor(scene, layer, colours) {
     this.scene = scene;
@@ -109,6 +110,9 @@ class Stage {
     this.contacts = [0, 1].map(() => this.own(new THREE.Mesh(unitRing,
       new THREE.MeshBasicMaterial({ color: CONTACT_COLOUR, transparent: true, opacity: 0.9, depthWrite: false }))));
     this.contacts.forEach((ring) => { ring.visible = false; });
+    this.shadow = this.own(new THREE.Mesh(unitDisc,
+      new THREE.MeshBasicMaterial({ color: 0x000000, transparent: true, opacity: 0.35, depthWrite: false })));
+    this.shadow.visible = false;
     this.velocityArrow = this.own(new THREE.ArrowHelper(new THREE.Vector3(0, 0, 1), new THREE.Vector3(), 1, colours[1]));
     this.facingArrow = this.own(new THREE.ArrowHelper(new THREE.Vector3(0, 0, 1), new THREE.Vector3(), 1, 0xe6e9ee));
     this.velocityArrow.visible = this.facingArrow.visible = false;
@@ -131,6 +135,7 @@ class Stage {
     this.gridStep = 50 * scale;
     this.grid = this.own(floorGrid(24, this.gridStep));
     this.contacts.forEach((ring) => ring.scale.setScalar(7 * scale));
+    this.shadow.scale.setScalar(28 * scale);
     this.follow(clip.root[0]);
   }
 
@@ -144,10 +149,12 @@ class Stage {
 
   /** One frame: world joint positions (or null to hide) and optional [left, right] foot contacts. */
   show(positions, contacts) {
-    this.figure.group.visible = !!positions;
+    this.figure.group.visible = this.shadow.visible = !!positions;
     if (!positions) { this.contacts.forEach((ring) => { ring.visible = false; }); return; }
     this.figure.pose(positions);
-    this.follow(positions[this.clip.rootJoint]);
+    const root = positions[this.clip.rootJoint];
+    this.follow(root);
+    this.shadow.position.set(root[0], this.clip.floor + 0.2 * this.scale, root[2]); // grounds the figure
     this.clip.feet.forEach((joint, i) => {
       const ring = this.contacts[i], on = Array.isArray(contacts) && joint >= 0 && +contacts[i] > 0.5;
       ring.visible = on;
