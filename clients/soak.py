@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
 import platform
 import time
 from dataclasses import asdict, dataclass
@@ -51,11 +52,13 @@ class Summary:
     end_rss_mb: float
     peak_rss_mb: float
     rss_slope_mb_per_h: float  # after warm-up
+    rss_slope_last_third_mb_per_h: float  # has it levelled off?
     heap_slope_blocks_per_h: float  # after warm-up
     frames: int
     client_dropped: int
     client_p50_ms: float
     client_p99_ms: float
+    load_average: tuple[float, float]  # the machine's 15-minute load average at start and end (shared machines)
 
 
 # ---- pure helpers ----------------------------------------------------------------------------
@@ -90,7 +93,7 @@ def slope_per_hour(t_s: np.ndarray, values: np.ndarray, warmup_s: float) -> floa
 
 
 def summarise(samples: list[Sample], latencies_ms: np.ndarray, dropped: int, warmup_s: float, *,
-              minutes: float, sessions: int, fps: float, model: str) -> Summary:
+              minutes: float, sessions: int, fps: float, model: str, load_average: tuple[float, float]) -> Summary:
     t = np.array([s.t_s for s in samples])
     rss = np.array([s.rss_mb for s in samples])
     heap = np.array([s.heap_blocks for s in samples])
@@ -99,9 +102,10 @@ def summarise(samples: list[Sample], latencies_ms: np.ndarray, dropped: int, war
     return Summary(minutes=minutes, sessions=sessions, fps=fps, model=model, samples=len(samples),
                    warmup_min=warmup_s / 60, start_rss_mb=float(rss[0]), end_rss_mb=float(rss[-1]),
                    peak_rss_mb=float(rss.max()), rss_slope_mb_per_h=slope_per_hour(t, rss, warmup_s),
+                   rss_slope_last_third_mb_per_h=slope_per_hour(t, rss, t[-1] * 2 / 3),
                    heap_slope_blocks_per_h=slope_per_hour(t, heap, warmup_s),
                    frames=int(samples[-1].frames - samples[0].frames), client_dropped=dropped,
-                   client_p50_ms=float(q50), client_p99_ms=float(q99))
+                   client_p50_ms=float(q50), client_p99_ms=float(q99), load_average=load_average)
 
 
 # ---- running -----------------------------------------------------------------------------------
@@ -154,6 +158,12 @@ async def soak(url: str, pid: int | None, minutes: float, sessions: int, fps: fl
 # ---- report ------------------------------------------------------------------------------------
 
 
+def _zoom(values: list[float], span: float) -> tuple[float, float]:
+    """An axis range `span` wide (wider if the data need it) with the data in its lower part."""
+    lo, hi = min(values), max(values)
+    return lo - 0.1 * max(span, hi - lo), lo + max(span, 1.2 * (hi - lo))
+
+
 def write_outputs(samples: list[Sample], summary: Summary, out: Path) -> None:
     """OUT.json (summary and every sample) and OUT.png (RSS, Python heap and sessions over time)."""
     import matplotlib
@@ -169,11 +179,11 @@ def write_outputs(samples: list[Sample], summary: Summary, out: Path) -> None:
     a.plot(t, [s.rss_mb for s in samples], lw=1.2, color="C0", label="server RSS (MB)")
     a.axvline(summary.warmup_min, color="k", ls=":", lw=1)
     a.set_ylabel("RSS (MB)", color="C0")
-    a.set_ylim(0, max(s.rss_mb for s in samples) * 1.15)
+    a.set_ylim(*_zoom([s.rss_mb for s in samples], span=40.0))  # a fixed 40 MB window: small drifts show
     h = a.twinx()
     h.plot(t, [s.heap_blocks / 1e3 for s in samples], lw=1, color="C1", label="Python heap (k blocks)")
     h.set_ylabel("Python heap (k blocks)", color="C1")
-    h.set_ylim(0, max(s.heap_blocks for s in samples) / 1e3 * 1.15)
+    h.set_ylim(*_zoom([s.heap_blocks / 1e3 for s in samples], span=100.0))
     a.set_title(f"{summary.sessions} {summary.model} sessions at {summary.fps:g} fps: RSS slope after warm-up "
                 f"{summary.rss_slope_mb_per_h:+.1f} MB/h", fontsize=9)
     b.plot(t, [s.sessions for s in samples], lw=1, color="C2")
@@ -201,11 +211,13 @@ def markdown(summary: Summary, figure: str, command: str, session_seconds: float
         "|---|---|",
         f"| RSS at start / end / peak | {s.start_rss_mb:.1f} / {s.end_rss_mb:.1f} / {s.peak_rss_mb:.1f} MB |",
         f"| RSS slope after {s.warmup_min:.1f} min warm-up (least squares) | {s.rss_slope_mb_per_h:+.2f} MB/h |",
+        f"| RSS slope over the last third | {s.rss_slope_last_third_mb_per_h:+.2f} MB/h |",
         f"| Python heap slope after warm-up | {s.heap_slope_blocks_per_h:+.0f} blocks/h |",
         f"| frames stylised | {s.frames} |",
         f"| client round trip p50 / p99 | {s.client_p50_ms:.2f} / {s.client_p99_ms:.2f} ms |",
         f"| frames dropped (backpressure) | {s.client_dropped} |",
         f"| samples | {s.samples} |",
+        f"| machine load average (15 min) at start / end, {os.cpu_count()} cores | {s.load_average[0]:.1f} / {s.load_average[1]:.1f} |",
         "",
     ])
 
@@ -237,11 +249,12 @@ def _soak(args) -> int:
             url, server = stack.enter_context(spawned_server())
             pid = server.pid
         style = args.style or first_style(url, args.model)
+        load_start = os.getloadavg()[2]
         samples, latency, dropped = asyncio.run(soak(url, pid, args.minutes, args.sessions, args.fps, args.model, style,
                                                      args.session_seconds, args.interval))
     warmup_min = args.warmup if args.warmup is not None else min(5.0, args.minutes / 6)
     summary = summarise(samples, latency, dropped, warmup_min * 60, minutes=args.minutes, sessions=args.sessions,
-                        fps=args.fps, model=args.model)
+                        fps=args.fps, model=args.model, load_average=(load_start, os.getloadavg()[2]))
     write_outputs(samples, summary, args.out)
     print(json.dumps(asdict(summary), indent=1))
     print(f"wrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')}")

@@ -34,10 +34,11 @@ class ProtocolError(Exception):
 
 
 class _Message(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # strict: "5" is not a number nor true a weight, so a client's type slip is an error, not a guess
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
-StyleMix = dict[str, Annotated[float, Field(ge=0)]]
+StyleMix = dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]]  # an infinite weight made every weight NaN
 
 
 class Start(_Message):
@@ -135,6 +136,8 @@ def check_values(root: np.ndarray, rot: np.ndarray, seq: int) -> tuple[np.ndarra
     norms = np.sqrt(np.einsum("ij,ij->i", rot, rot))
     if norms.min() < 1e-6:
         raise ProtocolError("bad_frame", "zero-length quaternion", seq)
+    if norms.max() == np.inf:  # components near 1e155 and up: the norm overflows and would normalise to zero
+        raise ProtocolError("bad_frame", "quaternion components out of range", seq)
     if np.abs(root).max() > 1e6:
         raise ProtocolError("bad_frame", "root translation out of range", seq)
     return root, rot / norms[:, None]
@@ -165,6 +168,13 @@ def encode_binary(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0)
 
 def frame_message(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0) -> dict:
     return {"type": "frame", "seq": seq, "root": root.tolist(), "rotations": rot.tolist(), "dropped": dropped}
+
+
+def close_reason(text: str) -> str:
+    """`text` cut to the 123 UTF-8 bytes a WebSocket close reason may hold. Error messages quote
+    client input (field names), so they may hold any character: cutting by characters, or a lone
+    surrogate that UTF-8 cannot encode, made the close itself fail and the connection drop."""
+    return text.encode("utf-8", "replace")[:123].decode("utf-8", "ignore")
 
 
 def error_message(code: str, message: str, seq: int | None = None) -> dict:

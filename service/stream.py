@@ -69,7 +69,7 @@ class Connection:
         self.wakeup.set()
         async with self.send_lock:
             if self._sendable():
-                await self.ws.close(code, reason[:120])
+                await self.ws.close(code, P.close_reason(reason))
 
     # ---- receiving ----------------------------------------------------------------
     async def receive(self) -> str | bytes | None:
