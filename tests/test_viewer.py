@@ -365,3 +365,56 @@ def test_keys_and_gamepad_make_control_messages(server, tmp_path):
         assert msg["facing"] == pytest.approx(0.5, abs=1e-3)  # right stick left turns left at 2 rad/s
         idle = page.js("import('/viewer/static/controller.js').then(c => c.intentFromGamepad({axes: [0.1, -0.05, 0.1, 0], buttons: []}))")
         assert idle is None  # inside the dead zone: the keyboard keeps control
+
+
+def test_viewer_maths_match_the_python_motion_core(server, tmp_path):
+    """The page's own modules, run in the browser: its BVH reader and forward kinematics put every
+    joint where the Python motion core does (BVH assets in two Euler orders, every frame of the
+    demo clip), the triangle's barycentric maths round-trips and clamps onto the triangle, and
+    the scene marks exactly the feet a frame's `contacts` say are planted."""
+    need_chromium()
+    from models.motion.skeleton import fk, load
+
+    assets = Path(__file__).resolve().parents[1] / "models" / "motion" / "assets"
+    clip = httpx.get(f"{server}/v1/demo/clip").json()
+    with devtools_page(tmp_path) as page:
+        page.call("Page.navigate", url=f"{server}/viewer")
+        page.wait_for("document.body && document.body.dataset.state === 'ready'", "viewer did not load")
+        kin = "const k = await import('/viewer/static/kinematics.js');"
+        for name in ("bandai_namco.bvh", "cmu.bvh"):
+            text = (assets / name).read_text()
+            js_pos = page.js(f"""(async () => {{ {kin} const c = k.parseBVH({json.dumps(text)});
+                return c.root.map((r, i) => k.fk(c, r, c.rotations[i])); }})()""")
+            py_pos = load(assets / name).global_positions()
+            assert np.allclose(js_pos, py_pos, atol=1e-3), f"{name}: max {np.abs(np.array(js_pos) - py_pos).max()}"
+        js_pos = np.array(page.js(f"""(async () => {{ {kin} const c = k.clipFromDemo(await (await fetch('/v1/demo/clip')).json());
+            return c.root.map((r, i) => k.fk(c, r, c.rotations[i])); }})()"""))
+        sk = bandai_namco_skeleton()
+        translations = np.repeat(np.array(clip["offsets"])[None], len(clip["frames"]["root"]), axis=0)
+        translations[:, clip["root_joint"]] = clip["frames"]["root"]
+        _, py_pos = fk(np.array(clip["frames"]["rotations"]), translations, sk.parents)
+        assert js_pos.shape == py_pos.shape and np.allclose(js_pos, py_pos, atol=1e-3)
+
+        tri = page.js("""(async () => {
+            const t = await import('/viewer/static/triangle.js'), T = [[80, 8], [8, 132], [152, 132]];
+            const inside = [[80, 90], [60, 120], [100, 60]].map((p) => {
+              const w = t.barycentric(p, T); return [w, t.pointAt(w, T), p]; });
+            return {inside, below: t.clampedBarycentric([80, 200], T), beyond: t.clampedBarycentric([200, 140], T),
+                    mix: t.mixFrom(['elderly', 'elderly', 'active'], [0.2, 0.3, 0.5]),
+                    tiny: t.mixFrom(['elderly', 'active', 'youthful'], [0.998, 0.002, 0])}; })()""")
+        for w, back, p in tri["inside"]:
+            assert min(w) > 0 and sum(w) == pytest.approx(1) and back == pytest.approx(p)
+        assert tri["below"] == pytest.approx([0, 0.5, 0.5])  # straight below the bottom edge's middle
+        assert tri["beyond"] == pytest.approx([0, 0, 1])  # past the bottom right corner
+        assert tri["mix"] == {"elderly": 0.5, "active": 0.5} and tri["tiny"] == {"elderly": 0.998}
+
+        rings = page.js("""(() => { const c = viewer.state.clip, s = viewer.view.stages.output;
+            return import('/viewer/static/kinematics.js').then((k) => {
+              const p = k.fk(c, c.root[0], c.rotations[0]);
+              s.show(p, [1, 0]);
+              const [l, r] = s.contacts;
+              return {visible: [l.visible, r.visible], at: [l.position.x, l.position.z],
+                      foot: [p[c.feet[0]][0], p[c.feet[0]][2]], feet: c.feet.map((j) => c.joints[j])};
+            }); })()""")
+        assert rings["visible"] == [True, False] and rings["at"] == pytest.approx(rings["foot"])
+        assert rings["feet"] == ["Foot_L", "Foot_R"]
