@@ -71,6 +71,19 @@ def test_a_bucket_lets_a_burst_through_then_refills_at_the_rate():
     assert refilled.tokens == pytest.approx(2.0)  # capped at the burst, less the request just taken
 
 
+def test_buckets_of_callers_gone_quiet_are_forgotten():
+    """Anonymous callers are keyed by address; the limiter must not grow with every address it saw."""
+    from service import limits
+
+    now = [0.0]
+    limiter = limits.Limiter(ServiceSettings(token_requests_per_s=1, token_burst_s=2), clock=lambda: now[0])
+    for i in range(limits.MAX_IDLE_BUCKETS):
+        limiter.check_request(limiter.identify(None, None, f"10.0.{i // 256}.{i % 256}"))
+    now[0] = 10.0  # every bucket has refilled
+    limiter.check_request(limiter.identify(None, None, "10.9.9.9"))
+    assert len(limiter.buckets) == 1
+
+
 # ---- settings --------------------------------------------------------------------------------
 
 
