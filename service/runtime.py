@@ -101,10 +101,13 @@ class Runtime:
         """Open sessions of `model`; read by its batcher once per batch, so kept as a count."""
         return self._open_per_model[model]
 
-    async def open_session(self, start: P.Start) -> Session:
+    def _refuse_if_draining(self) -> None:
         if self.draining:
             raise P.ProtocolError("draining", "this replica is shutting down; connect again (another replica "
                                   "takes the session)", close_code=1012)
+
+    async def open_session(self, start: P.Start) -> Session:
+        self._refuse_if_draining()
         if len(self.sessions) >= self.settings.max_sessions:
             raise P.ProtocolError("too_many_sessions", f"server holds its maximum of {self.settings.max_sessions} sessions",
                                   close_code=1013)
@@ -116,7 +119,8 @@ class Runtime:
                                       close_code=1013) from None
             if snap is None:
                 raise P.ProtocolError("unknown_resume_token", "resume token unknown or expired")
-            if snap.session_id in self.sessions:  # checked after the await: no two resumes of one session
+            self._refuse_if_draining()  # checked again after the await: a drain may have begun meanwhile
+            if snap.session_id in self.sessions:  # and no two resumes of one session
                 raise P.ProtocolError("session_in_use", "that session is still connected")
             if snap.model not in self.models:
                 raise P.ProtocolError("unknown_model", f"this replica does not serve model {snap.model!r}")
