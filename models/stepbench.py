@@ -5,8 +5,9 @@ The machines this runs on are shared (other jobs, a training run), and absolute 
 2x or more from one minute to the next. So every step is timed interleaved with a fixed
 reference workload in plain numpy (the "floor", chosen by each model: the product any
 implementation of it has to do) and the report gives both medians and their ratio; the ratio is
-what compares across runs and machines. Threads are capped like the service caps them (BLAS via
-threadpoolctl, torch intra-op), one thread by default.
+what compares across runs and machines. The process CPU time of each step is reported too: it
+leaves out the time the process waited for a core, which on a busy machine is most of the wall
+time. Threads are capped like the service caps them (BLAS via threadpoolctl, torch intra-op).
 """
 
 from __future__ import annotations
@@ -37,8 +38,9 @@ def capped_threads(n: int) -> Iterator[None]:
 @dataclass
 class StepTiming:
     batch: int
-    step: np.ndarray  # seconds per step_batch call
-    floor: np.ndarray  # seconds per floor call, interleaved with the steps
+    step: np.ndarray  # wall seconds per step_batch call
+    cpu: np.ndarray  # process CPU seconds per step_batch call (all threads)
+    floor: np.ndarray  # wall seconds per floor call, interleaved with the steps
 
     @property
     def median(self) -> float:
@@ -51,13 +53,15 @@ class StepTiming:
     def as_dict(self) -> dict[str, float]:
         return {"batch": self.batch, "median_us_per_step": self.median * 1e6,
                 "us_per_frame": self.median * 1e6 / self.batch, "p99_us_per_step": float(np.percentile(self.step, 99)) * 1e6,
-                "frames_per_s": self.batch / self.median, "floor_median_us": float(np.median(self.floor)) * 1e6,
+                "frames_per_s": self.batch / self.median, "cpu_median_us_per_step": float(np.median(self.cpu)) * 1e6,
+                "frames_per_cpu_s": self.batch / float(np.median(self.cpu)), "floor_median_us": float(np.median(self.floor)) * 1e6,
                 "step_over_floor": self.ratio}
 
     def line(self) -> str:
         d = self.as_dict()
         return (f"  batch {self.batch:4d}: median {d['median_us_per_step']:8.1f} us/step ({d['us_per_frame']:7.2f} us/frame), "
                 f"p99 {d['p99_us_per_step']:8.1f} us/step, {d['frames_per_s']:8.0f} frames/s | "
+                f"CPU {d['cpu_median_us_per_step']:8.1f} us/step ({d['frames_per_cpu_s']:7.0f} frames/CPU-s) | "
                 f"floor {d['floor_median_us']:7.1f} us, step/floor {d['step_over_floor']:5.2f}")
 
 
@@ -67,13 +71,13 @@ def time_steps(batch: int, step: Callable[[int], None], floor: Callable[[], None
     for i in range(warmup):
         step(i)
         floor()
-    steps, floors = np.empty(repeats), np.empty(repeats)
-    clock = time.perf_counter
+    steps, cpus, floors = np.empty(repeats), np.empty(repeats), np.empty(repeats)
+    clock, cpu_clock = time.perf_counter, time.process_time
     for i in range(repeats):
-        t0 = clock()
+        c0, t0 = cpu_clock(), clock()
         step(warmup + i)
-        t1 = clock()
+        t1, c1 = clock(), cpu_clock()
         floor()
         t2 = clock()
-        steps[i], floors[i] = t1 - t0, t2 - t1
-    return StepTiming(batch, steps, floors)
+        steps[i], cpus[i], floors[i] = t1 - t0, c1 - c0, t2 - t1
+    return StepTiming(batch, steps, cpus, floors)

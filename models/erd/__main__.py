@@ -89,18 +89,15 @@ def _matmul_floor(model, B: int):
     dt, H, K = model.dtype, model.H, len(model.branches)
     rng = np.random.default_rng(1)
     x = rng.standard_normal((B, model.enc_in.shape[0])).astype(dt)
-    hs = rng.standard_normal((K, B, H)).astype(dt)
+    hs = rng.standard_normal((K, B, 2 * H)).astype(dt)
     d_in = rng.standard_normal((B, model.dec[0][0].shape[0])).astype(dt)
 
     def floor() -> None:
         h = x @ model.enc_in
         for W, _ in model.enc:
             h = h @ W
-        h @ model.lstm_in0
-        for layer in range(model.Ln):
-            if layer:
-                np.matmul(hs, model.lstm_in[layer])
-            np.matmul(hs, model.lstm_hh[layer])
+        for W in model.lstm_w:
+            np.matmul(hs, W)
         h = d_in
         for W, _ in model.dec:
             h = h @ W

@@ -96,8 +96,8 @@ class ERDModel:
         """Everything constant, once, in the network's dtype and in the layout the step multiplies:
         the input normalisation stays a float64 subtraction (features reach ~1e3, the weights
         ~1e-2), the label one-hots become row lookups (index -1 = unknown = a zero row), and the
-        seven LSTM branches (neutral + six styles) are stacked so each layer is one batched
-        product. The cell-input gate's rows are doubled so one sigmoid over all four gates serves
+        seven LSTM branches (neutral + six styles) are stacked, input and hidden weights together,
+        so each layer is one batched product. The cell-input gate's rows are doubled so one sigmoid over all four gates serves
         it too: tanh(x) = 2 sigmoid(2x) - 1 (doubling is exact)."""
         p, dt, H = self.p, self.dtype, self.H
         n_in = len(self.mean)
@@ -111,12 +111,11 @@ class ERDModel:
         scale = np.ones(4 * H)
         scale[2 * H:3 * H] = 2.0  # gates i, f, g, o (PyTorch order): g is the tanh one
         names = ["neutral"] + [f"branches.{k}" for k in range(len(TARGET_STYLES))]
-        w_ih = [np.stack([p[f"{n}.weight_ih_l{l}"].T * scale for n in names]) for l in range(self.Ln)]  # (7, in, 4H)
-        self.lstm_hh = [np.stack([p[f"{n}.weight_hh_l{l}"].T * scale for n in names]).astype(dt) for l in range(self.Ln)]
+        # per layer, per branch: [input; hidden] @ [W_ih^T; W_hh^T] as one (2H, 4H) matrix: (7, 2H, 4H)
+        self.lstm_w = [np.stack([np.concatenate([p[f"{n}.weight_ih_l{l}"].T, p[f"{n}.weight_hh_l{l}"].T]) * scale
+                                 for n in names]).astype(dt) for l in range(self.Ln)]
         self.lstm_b = [np.stack([(p[f"{n}.bias_ih_l{l}"] + p[f"{n}.bias_hh_l{l}"]) * scale for n in names])[:, None].astype(dt)
                        for l in range(self.Ln)]  # (7, 1, 4H)
-        self.lstm_in0 = np.concatenate(list(w_ih[0]), axis=1).astype(dt)  # layer 0 shares its input: (H, 7 * 4H)
-        self.lstm_in = [None] + [w.astype(dt) for w in w_ih[1:]]
 
     # ------------------------------------------------------------------ interface
 
@@ -173,13 +172,9 @@ class ERDModel:
         hs = np.stack([state[k] for k in self._h_keys]).astype(dt, copy=False)  # (7, B, layers, H)
         cs = np.stack([state[k] for k in self._c_keys]).astype(dt, copy=False)
         new_h, new_c = np.empty_like(hs), np.empty_like(cs)
-        inp = None
+        inp = np.broadcast_to(z, (len(self.branches), B, H))  # every branch reads the encoding
         for l in range(self.Ln):
-            if l == 0:
-                g = (z @ self.lstm_in0).reshape(B, len(self.branches), 4 * H).transpose(1, 0, 2)
-            else:
-                g = np.matmul(inp, self.lstm_in[l])
-            g = g + np.matmul(hs[:, :, l], self.lstm_hh[l])
+            g = np.matmul(np.concatenate([inp, hs[:, :, l]], axis=-1), self.lstm_w[l])  # (7, B, 4H)
             g += self.lstm_b[l]
             s = _sigmoid_(g)  # i, f, o gates; g gate = 2 s - 1
             c = s[..., H:2 * H] * cs[:, :, l] + s[..., :H] * (2.0 * s[..., 2 * H:3 * H] - 1.0)

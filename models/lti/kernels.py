@@ -406,27 +406,29 @@ def _translate_style(s, w, root_y, rotations, yaw_tilt, delta, x_in, x_out, P, b
 
 @njit(cache=True, error_model="numpy")
 def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_ground, lock_anchor, lock_since,
-             lock_was, x, blend, keep_heading, footlock, chains, offsets, release, max_pull,
+             lock_was, x, out_root, out_rot, contacts, n_yaw, n_ground, n_out_yaw, n_out_ground, n_anchor, n_since,
+             n_was, n_x, blend, keep_heading, footlock, chains, offsets, release, max_pull,
              x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
              fp_w, fp_mean, fp_var, fp_prior, has_fp):
     """One streaming frame for B sessions (see model.LTIStyleModel for the state and the style
-    mixing); the trailing arguments are the `PackedStyles` fields, passed one by one because
-    numba checks the types of top-level arrays much faster than those inside a tuple. Inputs are
-    read only; returns (out_root, out_rot, contacts, new state arrays)."""
+    mixing). Reads the frame, the weights and the state (started ... x); fills the outputs
+    (out_root ... n_x, allocated by the caller: returning arrays from numba costs ~1 us each).
+    The trailing arguments are the `PackedStyles` fields, passed one by one because numba checks
+    the types of top-level arrays much faster than those inside a tuple."""
     P = (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
          fp_w, fp_mean, fp_var, fp_prior, has_fp)
     B, S = weights.shape
-    out_root = np.empty((B, 3))
-    out_rot = np.empty((B, NUM_JOINTS, 4))
-    contacts = np.zeros((B, 2), np.bool_)
-    n_yaw, n_ground = np.empty(B), np.empty((B, 2))
-    n_out_yaw, n_out_ground = np.empty(B), np.empty((B, 2))
-    n_anchor, n_since, n_was = lock_anchor.copy(), lock_since.copy(), lock_was.copy()
-    n_x = np.zeros_like(x)  # inactive styles rest at their initial state x = 0
     quats = np.empty((S, NUM_JOINTS, 4))
     delta, root_feats = np.empty(3), np.empty(4)
     feats, zin, out = np.empty(FEATURE_DIM), np.empty(x.shape[1] + FEATURE_DIM), np.empty(OUTPUT_DIM)
     for b in range(B):
+        for i in range(n_x.shape[1]):
+            n_x[b, i] = 0.0  # inactive styles rest at their initial state x = 0
+        for leg in range(2):
+            contacts[b, leg] = False
+            n_since[b, leg], n_was[b, leg] = lock_since[b, leg], lock_was[b, leg]
+            for i in range(3):
+                n_anchor[b, leg, i] = lock_anchor[b, leg, i]
         yaw, tilt = split_hips(quat_at(rotations, b, HIPS))
         gx, gz = root[b, 0], root[b, 2]
         fresh = not started[b]
@@ -485,7 +487,6 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
         if footlock:
             foot_lock_session(out_root[b], out_rot[b], contacts[b], n_anchor[b], n_since[b], n_was[b],
                               chains, offsets, release, max_pull)
-    return out_root, out_rot, contacts, n_yaw, n_ground, n_out_yaw, n_out_ground, n_anchor, n_since, n_was, n_x
 
 
 @njit(cache=True, error_model="numpy")

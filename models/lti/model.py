@@ -38,6 +38,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import erf
 
+from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
 
 from . import kernels
@@ -154,7 +155,7 @@ class StyleTranslator:
 
 class _StyleSet(NamedTuple):
     styles: list[str]
-    x_keys: tuple[str, ...]  # state keys of the styles' LTI states, in style order
+    x_slices: dict[str, slice]  # state key of each style's LTI state -> its columns in the kernel's x, in style order
     state_keys: frozenset[str]
     packed: kernels.PackedStyles
 
@@ -205,7 +206,6 @@ class LTIStyleModel:
     def _compile_step(self) -> None:
         """One step of one session on the rest pose: numba compiles the kernels (or loads them
         from its cache) here, when the model loads, instead of on a live session's first frame."""
-        from models.interface import FrameBatch
         rest = np.zeros((1, rep.NUM_JOINTS, 4))
         rest[..., 3] = 1.0
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), np.zeros((1, len(self._styles))))
@@ -223,9 +223,9 @@ class LTIStyleModel:
     def _set_styles(self, styles: list[str]) -> None:
         """Everything the step needs per style set, computed here once (the state keys, the
         kernel's packed constants) and replaced whole, so a reader sees one consistent set."""
-        x_keys = tuple(f"x.{s}" for s in styles)
-        self._set = _StyleSet(styles, x_keys, frozenset(SHARED_KEYS) | set(x_keys),
-                              kernels.pack_styles([self.translators[s] for s in styles]))
+        packed = kernels.pack_styles([self.translators[s] for s in styles])
+        x_slices = {f"x.{s}": slice(int(a), int(b)) for s, a, b in zip(styles, packed.x_off[:-1], packed.x_off[1:])}
+        self._set = _StyleSet(styles, x_slices, frozenset(SHARED_KEYS) | set(x_slices), packed)
 
     @property
     def _styles(self) -> list[str]:
@@ -270,25 +270,28 @@ class LTIStyleModel:
             "lock_was": np.zeros((batch, 2), bool),
         }
 
-    def step_batch(self, state: dict[str, np.ndarray], frames, style_weights: np.ndarray):
+    def step_batch(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray):
         """One frame for every session: one compiled pass (`kernels.lti_step`) over the sessions,
         the styles' LTI state vectors laid side by side as the kernel expects."""
-        from models.interface import FrameBatch
-
         root = np.ascontiguousarray(frames.root, dtype=np.float64)
         rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
         w = np.ascontiguousarray(style_weights, dtype=np.float64)
-        styles, x_keys, _, packed = self._set
-        if w.shape != (len(root), len(styles)):
-            raise ValueError(f"style_weights must be ({len(root)}, {len(styles)}), got {w.shape}")
-        x = np.concatenate([state[key] for key in x_keys], axis=1)
-        (out_root, out_rot, contacts, in_yaw, in_ground, out_yaw, out_ground, lock_anchor, lock_since, lock_was,
-         new_x) = kernels.lti_step(
+        styles, x_slices, _, packed = self._set
+        B = len(root)
+        if w.shape != (B, len(styles)):
+            raise ValueError(f"style_weights must be ({B}, {len(styles)}), got {w.shape}")
+        x = np.concatenate([state[key] for key in x_slices], axis=1)
+        out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
+        new = {"started": np.ones(B, bool), "in_yaw": np.empty(B), "in_ground": np.empty((B, 2)), "out_yaw": np.empty(B),
+               "out_ground": np.empty((B, 2)), "lock_anchor": np.empty((B, 2, 3)),
+               "lock_since": np.empty((B, 2), np.int64), "lock_was": np.empty((B, 2), bool)}
+        new_x = np.empty_like(x)
+        kernels.lti_step(
             root, rotations, w, state["started"], state["in_yaw"], state["in_ground"], state["out_yaw"],
             state["out_ground"], state["lock_anchor"], state["lock_since"], state["lock_was"], x,
+            out.root, out.rotations, out.contacts, new["in_yaw"], new["in_ground"], new["out_yaw"], new["out_ground"],
+            new["lock_anchor"], new["lock_since"], new["lock_was"], new_x,
             self.blend, self.keep_heading, self.footlock, *self._lock_params, *packed)
-        off = packed.x_off
-        new_state = {key: new_x[:, off[s]:off[s + 1]] for s, key in enumerate(x_keys)}
-        new_state.update(started=np.ones(len(root), bool), in_yaw=in_yaw, in_ground=in_ground, out_yaw=out_yaw,
-                         out_ground=out_ground, lock_anchor=lock_anchor, lock_since=lock_since, lock_was=lock_was)
-        return FrameBatch(out_root, out_rot, contacts), new_state
+        for key, cols in x_slices.items():
+            new[key] = new_x[:, cols]
+        return out, new
