@@ -17,14 +17,18 @@ from .cluster import nginx, redis_server, replicas, require
 
 FRAMES = 150  # 5 s at 30 fps
 KILL_AFTER = 47  # replies received before the kill: snapshots at frames 29 (acknowledged) and 59 (not yet)
+STYLE_AT = 35  # a style change after the last snapshot before the kill: the resume must replay it too
 
 
 def stream(base: str, root, rot, on_reply=None, fps: float = 30.0):
-    """Stream a clip through one SDK session at `fps`; outputs, reply times and reconnects."""
+    """Stream a clip through one SDK session at `fps`, changing style on the way; outputs, reply
+    times and reconnects."""
     outputs, times = [], []
     with Client(base).session(model="lti", style="elderly") as session:
         next_at = time.perf_counter()
         for t in range(len(root)):
+            if t == STYLE_AT:
+                session.set_style("exhausted", transition_frames=20)
             frame = session.stylise(root[t], rot[t])
             times.append(time.perf_counter())
             outputs.append(np.concatenate([frame.root, frame.rotations.ravel()]))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from clients.loadtest import free_port
-from clients.sdk import Client, _pack
+from clients.sdk import AsyncClient, Client, _pack
 from models.registry import load_models
 from models.settings import get_settings
 from service.metrics import Metrics
@@ -206,3 +206,26 @@ def test_a_reply_lost_with_the_connection_comes_back_with_the_resumed_session(bn
     assert [f.seq for f in got] == list(range(20))
     np.testing.assert_array_equal(np.array([f.rotations for f in got]), np.array([f.rotations for f in whole]))
     np.testing.assert_array_equal(np.array([f.root for f in got]), np.array([f.root for f in whole]))
+
+
+def test_the_async_sdk_resumes_exactly_too(bn_walk):
+    """AsyncSession: the socket drops mid-stream, during a style transition; the resumed outputs
+    equal an uninterrupted run's."""
+    root, rot = bn_walk.translations[:24, 1], bn_walk.rotations[:24]
+    models = load_models(get_settings().weights_dir)
+
+    async def run(base: str, drop: bool):
+        async with AsyncClient(base).session(model="lti", style="elderly") as session:
+            out = [await session.stylise(root[t], rot[t]) for t in range(8)]
+            await session.set_style("exhausted", transition_frames=6)
+            out += [await session.stylise(root[t], rot[t]) for t in range(8, 12)]
+            if drop:
+                await session.ws.close()
+            out += [await session.stylise(root[t], rot[t]) for t in range(12, 24)]
+            return np.array([f.rotations for f in out]), session.reconnects
+
+    with live_server(models, snapshot_every=5) as (base, _):
+        want, _ = asyncio.run(run(base, drop=False))
+        got, reconnects = asyncio.run(run(base, drop=True))
+    assert reconnects == 1
+    np.testing.assert_array_equal(got, want)
