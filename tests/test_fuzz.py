@@ -392,9 +392,10 @@ def clip(bn_walk):
     return m.translations[:, 1].copy(), m.rotations.copy()
 
 
-def well_behaved_pass(url: str, root: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """One session: start, the clip frame by frame (a style change a third of the way in), end.
-    Returns every reply's numbers, as sent (JSON floats round-trip exactly)."""
+def well_behaved_pass(url: str, root: np.ndarray, rot: np.ndarray, fps: float | None = None) -> np.ndarray:
+    """One session: start, the clip frame by frame (a style change a third of the way in), end;
+    at most `fps` frames a second, like a live source. Returns every reply's numbers, as sent
+    (JSON floats round-trip exactly)."""
     out = []
     with connect(url) as ws:
         ws.send(json.dumps(START))
@@ -403,6 +404,8 @@ def well_behaved_pass(url: str, root: np.ndarray, rot: np.ndarray) -> np.ndarray
             if t == len(root) // 3:
                 ws.send(json.dumps({"type": "style", "mix": {"exhausted": 0.7, "youthful": 0.3}, "transition_frames": 10}))
                 assert json.loads(ws.recv(timeout=30))["type"] == "style_set"
+            if fps:
+                time.sleep(1 / fps)
             ws.send(json.dumps({"type": "frame", "seq": t, "root": root[t].tolist(), "rotations": rot[t].tolist()}))
             reply = json.loads(ws.recv(timeout=30))
             assert reply["type"] == "frame" and reply["seq"] == t and reply["dropped"] == 0, reply
@@ -462,7 +465,7 @@ def test_ten_thousand_malformed_messages_get_typed_errors_and_leave_a_good_sessi
     def good_client() -> None:
         try:
             while not stop.is_set():
-                passes.append(well_behaved_pass(url, *clip))
+                passes.append(well_behaved_pass(url, *clip, fps=30))
         except Exception as exc:  # noqa: BLE001 - reported by the main thread
             failures.append(exc)
 
