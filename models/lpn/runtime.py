@@ -38,6 +38,7 @@ from ..motion.features import body_joint, wrap_angle
 from ..motion.rotations import matrix_to_quat, quat_apply, quat_mul, quat_to_matrix
 from ..motion.skeleton import Motion, Skeleton
 from . import features as lf
+from .ik import two_bone_ik
 from .weights import read_weights
 
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
@@ -352,7 +353,6 @@ class LPNModel:
     def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray) -> np.ndarray:
         """Two-bone leg IK pinning each planted ankle where it touched down (state-held anchors),
         released over LOCK_RELEASE frames; the anchor is dragged along beyond LOCK_MAX_PULL cm."""
-        from ..lti.footplant import two_bone_ik
         B = root.shape[0]
         gh = rotations[:, lf.HIPS]
         feet = np.zeros((B, 2, 3), np.float32)
