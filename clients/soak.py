@@ -196,14 +196,15 @@ def write_outputs(samples: list[Sample], summary: Summary, out: Path) -> None:
 
 def markdown(summary: Summary, figure: str, command: str, session_seconds: float) -> str:
     s = summary
+    method = (f"Measured {date.today().isoformat()} on {platform.machine()} ({platform.python_implementation()} "
+              f"{platform.python_version()}) with `{command}`: {s.sessions} open-loop sessions of `{s.model}` at "
+              f"{s.fps:g} fps for {s.minutes:g} minutes, each session closed (without `end`, so its resume snapshot "
+              f"is kept) and reopened every {session_seconds:g} s, staggered. The server process's RSS is read from "
+              "`/proc/<pid>/status` every sample; the Python heap is `stylestream_python_allocated_blocks` from `/metrics`.")
     return "\n".join([
         "# Soak: memory over a long run",
         "",
-        f"Measured {date.today().isoformat()} on {platform.machine()} ({platform.python_implementation()} "
-        f"{platform.python_version()}) with `{command}`: {s.sessions} open-loop sessions of `{s.model}` at "
-        f"{s.fps:g} fps for {s.minutes:g} minutes, each session closed (without `end`, so its resume snapshot is kept) "
-        f"and reopened every {session_seconds:g} s, staggered. The server process's RSS is read from `/proc/<pid>/status` "
-        f"every sample; the Python heap is `stylestream_python_allocated_blocks` from `/metrics`.",
+        method,
         "",
         f"![server RSS and Python heap over the soak]({figure})",
         "",

@@ -15,12 +15,12 @@ from pydantic import BaseModel
 
 from models.registry import load_models
 
+from . import protocol as P
 from .jobs import JobInfo, JobManager
 from .limits import Limiter, Principal, unauthorized
 from .runtime import Runtime
 from .settings import ServiceSettings, get_service_settings
 from .styles import ApiError, ErrorBody, StyleInfo, StyleStore, StyleUpload, UploadAccepted
-from . import protocol as P
 from .stream import CLOSE_UNAUTHORIZED, Connection
 from .viewer import router as viewer_router
 

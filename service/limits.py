@@ -6,9 +6,9 @@ from `token_limits`:
 
 - concurrent streaming sessions (`max_sessions`): one more is refused with `too_many_sessions`
   and close 1013 (try again later);
-- REST requests per second (`requests_per_s`, bursts of `burst_s` seconds' worth): a token bucket, so a client
-  that polls steadily is never refused while one that hammers is, with 429 `rate_limited` and a
-  Retry-After that says when the next request will pass;
+- REST requests per second (`requests_per_s`, bursts of `burst_s` seconds' worth): a token
+  bucket, so a client that polls steadily is never refused while one that hammers is, with 429
+  `rate_limited` and a Retry-After that says when the next request will pass;
 - the largest style upload (`upload_max_bytes`): 413 `too_large` above it.
 
 Everything here runs on the event loop, so the counters need no lock.
@@ -22,6 +22,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+
 from . import protocol as P
 from .settings import ServiceSettings, TokenLimits
 from .styles import ApiError
@@ -130,7 +131,8 @@ class Limiter:
         """Take one of the principal's streaming sessions; raises `too_many_sessions` (close
         1013) when all are taken. Pair with `session_closed`."""
         if self.sessions[who.key] >= who.limits.max_sessions:
-            raise P.ProtocolError("too_many_sessions", f"this token already holds its maximum of "
+            holder = "this token" if who.key.startswith("token:") else "this client address"
+            raise P.ProtocolError("too_many_sessions", f"{holder} already holds its maximum of "
                                   f"{who.limits.max_sessions} sessions", fatal=True, close_code=CLOSE_TRY_AGAIN_LATER)
         self.sessions[who.key] += 1
 

@@ -409,7 +409,7 @@ def well_behaved_pass(url: str, root: np.ndarray, rot: np.ndarray, fps: float | 
             ws.send(json.dumps({"type": "frame", "seq": t, "root": root[t].tolist(), "rotations": rot[t].tolist()}))
             reply = json.loads(ws.recv(timeout=30))
             assert reply["type"] == "frame" and reply["seq"] == t and reply["dropped"] == 0, reply
-            out.append(reply["root"] + sum(reply["rotations"], []))
+            out.append([*reply["root"], *(x for q in reply["rotations"] for x in q)])
         ws.send(json.dumps({"type": "end"}))
         assert json.loads(ws.recv(timeout=30))["type"] == "ended"
     return np.array(out)
