@@ -175,4 +175,4 @@ def test_float32_network_matches_float64_reference(model, reference):
         worst_deg = max(worst_deg, np.degrees(2 * np.arccos(np.clip(dots, 0, 1))).max())
         worst_cm = max(worst_cm, np.abs(outs[model].root - outs[reference].root).max())
     assert worst_deg < 0.01 and worst_cm < 0.01, (worst_deg, worst_cm)
-    assert states[model]["h_elderly"].dtype == np.float32 and states[reference]["h_elderly"].dtype == np.float64
+    assert states[model]["h"].dtype == np.float32 and states[reference]["h"].dtype == np.float64

@@ -7,8 +7,9 @@ reference rotations, the Bandai Namco skeleton) + `config.json`; `export_weights
 from a training checkpoint.
 
 State per session (every entry has the session axis first):
-    h_neutral, c_neutral       (B, neutral_layers, H)   the neutral LSTM branch
-    h_<style>, c_<style>       (B, style_layers, H)     one residual branch per target style
+    h, c                       (B, 7, layers, H)        LSTM states of the 7 branches: the neutral
+                                                        one, then one residual branch per target
+                                                        style (in `styles()` order); network dtype
     prev_pos (B, 22, 3), prev_yaw (B,)                  previous input frame (causal velocities)
     out_root (B, 3)                                     last output Hips translation
     frame (B,)                                          frames seen
@@ -80,8 +81,6 @@ class ERDModel:
             raise ValueError(f"the runtime stacks the neutral and style LSTM branches: it needs equal layer counts, "
                              f"got {self.Ln} neutral and {self.Ls} style layers")
         self.branches = ("neutral",) + tuple(TARGET_STYLES)  # branch 0 is the neutral one, weight 1
-        self._h_keys = tuple(f"h_{b}" for b in self.branches)
-        self._c_keys = tuple(f"c_{b}" for b in self.branches)
         self._prepare_weights()
         self._compile_step()
 
@@ -104,8 +103,9 @@ class ERDModel:
         w0, b0 = p["encoder.0.weight"].T, p["encoder.0.bias"]
         zero = np.zeros((1, w0.shape[1]))
         self.enc_in = w0[:n_in].astype(dt)
-        self.enc_style = np.concatenate([w0[n_in:n_in + len(STYLES)], zero]).astype(dt)
-        self.enc_content = (np.concatenate([w0[n_in + len(STYLES):], zero]) + b0).astype(dt)
+        style_rows = np.concatenate([w0[n_in:n_in + len(STYLES)], zero])  # (8, hidden)
+        content_rows = np.concatenate([w0[n_in + len(STYLES):], zero]) + b0  # (11, hidden), with the bias
+        self.enc_labels = (style_rows[:, None] + content_rows[None]).astype(dt)  # [style, content] -> row
         self.enc = [(p[f"encoder.{i}.weight"].T.astype(dt), p[f"encoder.{i}.bias"].astype(dt)) for i in (2, 4)]
         self.dec = [(p[f"decoder.{i}.weight"].T.astype(dt), p[f"decoder.{i}.bias"].astype(dt)) for i in (0, 2, 4)]
         scale = np.ones(4 * H)
@@ -130,11 +130,9 @@ class ERDModel:
         ci = CONTENTS.index(content) if content is not None else -1
         si = STYLES.index(input_style) if input_style is not None else -1
         row = ci if ci >= 0 else len(CONTENTS)
-        h0 = [self.p["neutral_h0"][row]] + list(self.p["style_h0"])
-        c0 = [self.p["neutral_c0"][row]] + list(self.p["style_c0"])
-        state: State = {}
-        for key, init in zip(self._h_keys + self._c_keys, h0 + c0):
-            state[key] = np.repeat(init[None].astype(self.dtype), batch, 0)
+        h0 = np.concatenate([self.p["neutral_h0"][row][None], self.p["style_h0"]]).astype(self.dtype)  # (7, layers, H)
+        c0 = np.concatenate([self.p["neutral_c0"][row][None], self.p["style_c0"]]).astype(self.dtype)
+        state: State = dict(h=np.repeat(h0[None], batch, 0), c=np.repeat(c0[None], batch, 0))
         state.update(prev_pos=np.zeros((batch, 22, 3)), prev_yaw=np.zeros(batch), out_root=np.zeros((batch, 3)),
                      frame=np.zeros(batch, dtype=np.int64), style_in=np.full(batch, si, dtype=np.int64),
                      content=np.full(batch, ci, dtype=np.int64))
@@ -164,22 +162,23 @@ class ERDModel:
         Returns the decoder output (B, 88) and the new LSTM states."""
         dt, H, B = self.dtype, self.H, x.shape[0]
         h = ((x - self.mean) / self.std).astype(dt) @ self.enc_in
-        h += self.enc_style[state["style_in"]] + self.enc_content[state["content"]]
+        h += self.enc_labels[state["style_in"], state["content"]]
         for W, b in self.enc:
             np.maximum(h, 0.0, out=h)
             h = h @ W + b
         z = h
-        hs = np.stack([state[k] for k in self._h_keys]).astype(dt, copy=False)  # (7, B, layers, H)
-        cs = np.stack([state[k] for k in self._c_keys]).astype(dt, copy=False)
+        hs, cs = state["h"].astype(dt, copy=False), state["c"].astype(dt, copy=False)  # (B, 7, layers, H)
         new_h, new_c = np.empty_like(hs), np.empty_like(cs)
         inp = np.broadcast_to(z, (len(self.branches), B, H))  # every branch reads the encoding
         for l in range(self.Ln):
-            g = np.matmul(np.concatenate([inp, hs[:, :, l]], axis=-1), self.lstm_w[l])  # (7, B, 4H)
+            # (7, B, 2H) @ (7, 2H, 4H): the branch axis first, as np.matmul batches over it
+            g = np.matmul(np.concatenate([inp, hs[:, :, l].transpose(1, 0, 2)], axis=-1), self.lstm_w[l])
             g += self.lstm_b[l]
             s = _sigmoid_(g)  # i, f, o gates; g gate = 2 s - 1
-            c = s[..., H:2 * H] * cs[:, :, l] + s[..., :H] * (2.0 * s[..., 2 * H:3 * H] - 1.0)
-            new_c[:, :, l] = c
-            new_h[:, :, l] = inp = s[..., 3 * H:] * _tanh_(c)
+            c = s[..., H:2 * H] * cs[:, :, l].transpose(1, 0, 2) + s[..., :H] * (2.0 * s[..., 2 * H:3 * H] - 1.0)
+            new_c[:, :, l] = c.transpose(1, 0, 2)
+            inp = s[..., 3 * H:] * _tanh_(c)
+            new_h[:, :, l] = inp.transpose(1, 0, 2)
         weights = np.empty((B, len(self.branches)), dt)
         weights[:, 0] = 1.0
         weights[:, 1:] = w
@@ -189,10 +188,7 @@ class ERDModel:
             h = h @ W + b
             if i < 2:
                 np.maximum(h, 0.0, out=h)
-        new: State = {}
-        for k, (hk, ck) in enumerate(zip(self._h_keys, self._c_keys)):
-            new[hk], new[ck] = new_h[k], new_c[k]
-        return h, new
+        return h, {"h": new_h, "c": new_c}
 
     # ------------------------------------------------------------------ offline helpers
 

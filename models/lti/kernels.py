@@ -296,7 +296,7 @@ class PackedStyles(NamedTuple):
     out_std: np.ndarray  # (S, 68)
     k: np.ndarray  # (S, 2) erf blend k_p, k_c
     ref: np.ndarray  # (S, 22, 4) per-joint reference rotations
-    fp_w: np.ndarray  # (N, 2) footplant projection per foot, rows aligned with the state
+    fp_w: np.ndarray  # (2, N) footplant projection per foot, columns aligned with the state
     fp_mean: np.ndarray  # (S, 2, 2) per foot, per class (free, planted)
     fp_var: np.ndarray  # (S, 2, 2)
     fp_prior: np.ndarray  # (S, 2, 2) log prior
@@ -333,7 +333,7 @@ def pack_styles(translators: list) -> PackedStyles:
         f64([tr.in_lo for tr in translators]), f64([tr.in_hi for tr in translators]),
         f64([tr.out_mean for tr in translators]), f64([tr.out_std for tr in translators]),
         f64([(tr.k_p, tr.k_c) for tr in translators]), f64([tr.ref for tr in translators]),
-        np.ascontiguousarray(np.concatenate(fp_w), dtype=np.float64), f64(fp_mean), f64(fp_var), f64(fp_prior),
+        np.ascontiguousarray(np.concatenate(fp_w).T, dtype=np.float64), f64(fp_mean), f64(fp_var), f64(fp_prior),
         np.array(has_fp, np.bool_))
 
 
@@ -346,7 +346,7 @@ def _planted(x, fp_w, row0, mean, var, log_prior, foot):
     projected on the foot's discriminant (FootplantClassifier.predict)."""
     proj = 0.0
     for i in range(x.shape[0]):
-        proj += x[i] * fp_w[row0 + i, foot]
+        proj += x[i] * fp_w[foot, row0 + i]
     ll_free = -0.5 * (proj - mean[foot, 0]) ** 2 / var[foot, 0] - 0.5 * math.log(var[foot, 0]) + log_prior[foot, 0]
     ll_planted = -0.5 * (proj - mean[foot, 1]) ** 2 / var[foot, 1] - 0.5 * math.log(var[foot, 1]) + log_prior[foot, 1]
     return ll_planted > ll_free
