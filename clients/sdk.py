@@ -46,6 +46,7 @@ class ModelInfo(BaseModel):
     name: str
     styles: list[str]
     joints: list[str]
+    controllable: bool = False  # sessions may send `control` ticks (Session.control) instead of frames
 
 
 class ServerError(RuntimeError):
@@ -133,6 +134,11 @@ def _style_message(style: str | None, mix: dict[str, float] | None, intensity: f
     msg = {"type": "style", "intensity": intensity, "transition_frames": transition_frames}
     msg.update({"mix": mix} if mix is not None else {"style": style})
     return json.dumps(msg)
+
+
+def _control_message(seq: int, velocity: tuple[float, float], facing: float, gait: str) -> str:
+    return json.dumps({"type": "control", "seq": seq, "velocity": [float(velocity[0]), float(velocity[1])],
+                       "facing": float(facing), "gait": gait})
 
 
 def _pack(seq: int, root: np.ndarray, rotations: np.ndarray) -> bytes:
@@ -250,6 +256,13 @@ class Session:
     def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
         """Send one frame and wait for its stylised twin (resuming by itself, see the module)."""
         frame = self._call(self.seq, _pack(self.seq, root, rotations))
+        self.seq += 1
+        return frame
+
+    def control(self, velocity: tuple[float, float], facing: float, gait: str = "walk") -> StyledFrame:
+        """Drive a controller model (LPN-FiLM) one tick: velocity [forward, side] m/s (side > 0 to
+        the left), facing yaw in radians (0 = world +Z); returns the synthesised frame."""
+        frame = self._call(self.seq, _control_message(self.seq, velocity, facing, gait))
         self.seq += 1
         return frame
 
@@ -373,6 +386,11 @@ class AsyncSession:
 
     async def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
         frame = await self._call(self.seq, _pack(self.seq, root, rotations))
+        self.seq += 1
+        return frame
+
+    async def control(self, velocity: tuple[float, float], facing: float, gait: str = "walk") -> StyledFrame:
+        frame = await self._call(self.seq, _control_message(self.seq, velocity, facing, gait))
         self.seq += 1
         return frame
 

@@ -29,6 +29,7 @@ class ModelInfo(BaseModel):
     name: str
     styles: list[str]
     joints: list[str]
+    controllable: bool = False  # a character controller: sessions may send `control` ticks instead of frames
 
 
 class Health(BaseModel):
@@ -111,7 +112,8 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
     @app.get("/v1/models", response_model=list[ModelInfo], dependencies=[Depends(require_token)],
              responses={s: {"model": ErrorBody} for s in (401, 429)})
     async def list_models(rt: Runtime = Depends(runtime)) -> list[ModelInfo]:
-        return [ModelInfo(name=n, styles=m.styles(), joints=list(m.skeleton.names)) for n, m in rt.models.items()]
+        return [ModelInfo(name=n, styles=m.styles(), joints=list(m.skeleton.names),
+                          controllable=getattr(m, "controllable", False)) for n, m in rt.models.items()]
 
     # ---- styles and jobs ----------------------------------------------------------
     @app.exception_handler(ApiError)

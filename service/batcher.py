@@ -33,12 +33,16 @@ class StepRequest:
     rotations: np.ndarray
     weights: dict[str, float]  # {style: weight}
     future: asyncio.Future
+    control: np.ndarray | None = None  # (5,) a controller tick, see `FrameBatch.control`
 
 
 def run_step(model: StreamingModel, requests: list[StepRequest]) -> list[tuple[np.ndarray, np.ndarray, State]]:
     """One batched step over the requests' sessions; pure, runs on the worker thread."""
     state = stack_states([upgrade_state(model, r.state) for r in requests])
-    frames = FrameBatch(np.stack([r.root for r in requests]), np.stack([r.rotations for r in requests]))
+    control = None
+    if any(r.control is not None for r in requests):  # rows without control: flag 0, follow the input frames
+        control = np.stack([r.control if r.control is not None else np.zeros(5) for r in requests])
+    frames = FrameBatch(np.stack([r.root for r in requests]), np.stack([r.rotations for r in requests]), control=control)
     names = model.styles()
     out, new_state = model.step_batch(state, frames, np.stack([weight_vector(names, r.weights) for r in requests]))
     states = split_state(new_state)
@@ -64,9 +68,10 @@ class Batcher:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)
 
-    async def step(self, state: State, root: np.ndarray, rotations: np.ndarray, weights: dict[str, float]):
+    async def step(self, state: State, root: np.ndarray, rotations: np.ndarray, weights: dict[str, float],
+                   control: np.ndarray | None = None):
         future = asyncio.get_running_loop().create_future()
-        await self.queue.put(StepRequest(state, root, rotations, weights, future))
+        await self.queue.put(StepRequest(state, root, rotations, weights, future, control))
         return await future
 
     async def _gather(self) -> list[StepRequest]:

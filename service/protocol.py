@@ -38,6 +38,7 @@ class _Message(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
 
 
+MAX_CONTROL_SPEED = 12.0  # m/s: faster than any sprint, so a wild stick value is an error, not a teleport
 StyleMix = dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]]  # an infinite weight made every weight NaN
 
 
@@ -78,6 +79,21 @@ class SetStyle(_Message):
     transition_frames: int = Field(default=0, ge=0, le=10_000)
 
 
+class Control(_Message):
+    """One tick of a controller session (LPN-FiLM): the desired motion instead of a mocap frame;
+    the reply is the synthesised frame, like a frame's reply. Conventions as in the character
+    frame of `models.motion.features`: velocity = [forward, side] in m/s, side > 0 to the
+    character's left, both in the frame of the desired facing; facing = yaw in radians about +Y,
+    0 = facing world +Z."""
+
+    type: Literal["control"]
+    seq: int = Field(ge=0, lt=2**32)
+    velocity: list[Annotated[float, Field(ge=-MAX_CONTROL_SPEED, le=MAX_CONTROL_SPEED, allow_inf_nan=False)]] = Field(
+        min_length=2, max_length=2)
+    facing: float = Field(ge=-1e4, le=1e4, allow_inf_nan=False)
+    gait: Literal["walk", "run"] = "walk"
+
+
 class Reset(_Message):
     type: Literal["reset"]
 
@@ -86,7 +102,7 @@ class End(_Message):
     type: Literal["end"]
 
 
-ClientMessage = Annotated[Union[Start, Frame, SetStyle, Reset, End], Field(discriminator="type")]
+ClientMessage = Annotated[Union[Start, Frame, Control, SetStyle, Reset, End], Field(discriminator="type")]
 client_message = TypeAdapter(ClientMessage)
 
 
@@ -107,7 +123,7 @@ def requested_weights(model, style: str | None, mix: StyleMix | None, intensity:
         raise ProtocolError("bad_style", str(exc)) from None
 
 
-def parse_text(text: str) -> Start | Frame | SetStyle | Reset | End:
+def parse_text(text: str) -> Start | Frame | Control | SetStyle | Reset | End:
     from pydantic import ValidationError
 
     try:
@@ -117,6 +133,12 @@ def parse_text(text: str) -> Start | Frame | SetStyle | Reset | End:
         where = ".".join(str(p) for p in first.get("loc", ()))
         code = "bad_json" if first["type"].startswith("json") else "bad_message"
         raise ProtocolError(code, f"{where}: {first['msg']}" if where else first["msg"]) from None
+
+
+def control_array(message: Control) -> np.ndarray:
+    """The (5,) row of `models.interface.FrameBatch.control`: forward, side (m/s), facing, gait, flag."""
+    forward, side = message.velocity
+    return np.array([forward, side, message.facing, 1.0 if message.gait == "run" else 0.0, 1.0])
 
 
 def frame_arrays(frame: Frame, num_joints: int) -> tuple[np.ndarray, np.ndarray]:

@@ -31,6 +31,7 @@ class FrameItem:
     root: np.ndarray
     rotations: np.ndarray
     received: float  # perf_counter at arrival
+    control: np.ndarray | None = None  # (5,) a controller session's tick (protocol `control`), else None
 
 
 @dataclass

@@ -18,6 +18,7 @@ import json
 import logging
 import time
 
+import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 
@@ -186,10 +187,23 @@ class Connection:
             root, rot = P.frame_arrays(message, self.adapter.num_joints)
             self.queue(FrameItem(message.seq, root, rot, time.perf_counter()))
             return True
+        if isinstance(message, P.Control):
+            self.queue(self.control_item(message))
+            return True
         if isinstance(message, P.SetStyle):  # validate now, so the error comes back at once
             P.requested_weights(self.session.model, message.style, message.mix, message.intensity)
         self.queue(ControlItem(message))
         return not isinstance(message, P.End)
+
+    def control_item(self, message: P.Control) -> FrameItem:
+        """A controller tick as a frame whose input pose is the rest pose (a controller model
+        reads the control, not the pose); refused at once on a model that takes no control."""
+        if not getattr(self.session.model, "controllable", False):
+            raise P.ProtocolError("control_unsupported", f"model {self.session.model.name!r} is not a character "
+                                  "controller; send frames (controllable models: see GET /v1/models)", message.seq)
+        rest = np.zeros((self.adapter.num_joints, 4))
+        rest[:, 3] = 1.0
+        return FrameItem(message.seq, np.zeros(3), rest, time.perf_counter(), P.control_array(message))
 
     def on_binary(self, data: bytes) -> None:
         seq, root, rot = P.decode_binary(data, self.adapter.num_joints)
@@ -226,7 +240,8 @@ class Connection:
                                                       "share of the mix now passes the input through", item.seq))
             try:
                 for _ in range(s.model_steps_due()):  # rate adaptation: the model runs at its own fps
-                    out_root, out_rot, s.state = await batcher.step(s.state, root, rot, s.advance_style())
+                    out_root, out_rot, s.state = await batcher.step(s.state, root, rot, s.advance_style(),
+                                                                    item.control)
                     s.hold(out_root, out_rot, root)
             except Exception:  # noqa: BLE001 - a model failure costs this frame, not the session
                 log.exception("model step failed")
