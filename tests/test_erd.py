@@ -176,3 +176,16 @@ def test_float32_network_matches_float64_reference(model, reference):
         worst_cm = max(worst_cm, np.abs(outs[model].root - outs[reference].root).max())
     assert worst_deg < 0.01 and worst_cm < 0.01, (worst_deg, worst_cm)
     assert states[model]["h"].dtype == np.float32 and states[reference]["h"].dtype == np.float64
+
+
+def test_bad_shapes_are_clear_errors(model):
+    """The compiled kernels have no bounds checks: shapes are checked before they run."""
+    rest = np.zeros((1, 22, 4))
+    rest[..., 3] = 1.0
+    state, w = model.init_state(1), _onehot(model, "elderly")[None]
+    with pytest.raises(ValueError, match="rotations"):
+        model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest[:, :21]), w)
+    with pytest.raises(ValueError, match="prev_pos"):
+        model.step_batch({**state, "prev_pos": np.zeros((1, 21, 3))}, FrameBatch(np.zeros((1, 3)), rest), w)
+    with pytest.raises(ValueError, match="style_weights"):
+        model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest), w[:, :4])

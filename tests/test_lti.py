@@ -199,6 +199,28 @@ def test_step_leaves_its_input_state_unchanged():
     assert not state["x.elderly"][1].any()  # an inactive style rests at x = 0
 
 
+def test_bad_shapes_and_stale_states_are_clear_errors():
+    """The compiled step has no bounds checks: shapes are checked before it runs."""
+    model = _model()
+    rest = np.zeros((1, 22, 4))
+    rest[..., 3] = 1.0
+    state, w = model.init_state(1), _one_hot(model, "elderly", 1)
+    with pytest.raises(ValueError, match="rotations"):
+        model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest[:, :21]), w)
+    with pytest.raises(ValueError, match="style_weights"):
+        model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest), w[:, :3])
+    with pytest.raises(ValueError, match="lock_anchor"):
+        model.step_batch({**state, "lock_anchor": np.zeros((2, 2, 3))}, FrameBatch(np.zeros((1, 3)), rest), w)
+    import copy
+    smaller = copy.copy(model)
+    smaller.remove_style("youthful")
+    bigger_state = {**state, "x.youthful": np.zeros((1, 3))}  # a wrong size for a style this model has
+    with pytest.raises(ValueError, match="upgrade_state"):
+        model.step_batch(bigger_state, FrameBatch(np.zeros((1, 3)), rest), w)
+    out, _ = smaller.step_batch(smaller.upgrade_state(state), FrameBatch(np.zeros((1, 3)), rest), w[:, :5])
+    assert np.isfinite(out.rotations).all()
+
+
 def test_trained_models_are_stable_and_listed():
     model = _model()
     assert "elderly" in model.styles()

@@ -143,8 +143,17 @@ class ERDModel:
         rot_in = np.ascontiguousarray(frames.rotations, np.float64)
         w = np.asarray(style_weights, np.float64)
         B = root.shape[0]
+        J = self.skeleton.num_joints
+        # the kernels trust every shape (no bounds checks): anything else is a clear error here
+        if root.shape != (B, 3) or rot_in.shape != (B, J, 4):
+            raise ValueError(f"frames must be root (B, 3) and rotations (B, {J}, 4), got {root.shape} and {rot_in.shape}")
         if w.shape != (B, len(TARGET_STYLES)):
             raise ValueError(f"style_weights must be ({B}, {len(TARGET_STYLES)}), got {w.shape}")
+        lstm = (B, len(self.branches), self.Ln, self.H)
+        for key, shape in (("h", lstm), ("c", lstm), ("prev_pos", (B, J, 3)), ("prev_yaw", (B,)), ("out_root", (B, 3)),
+                           ("frame", (B,)), ("style_in", (B,)), ("content", (B,))):
+            if state[key].shape != shape:
+                raise ValueError(f"state[{key!r}] must be {shape}, got {state[key].shape}")
         has_prev = state["frame"] > 0
         pos = self.maker.positions(root, rot_in)
         x, yaw = self.maker.features(rot_in, pos, state["prev_pos"], state["prev_yaw"], has_prev)

@@ -45,7 +45,10 @@ from . import kernels
 from . import representation as rep
 from .footplant import FootLock, FootplantClassifier
 
-SHARED_KEYS = ("started", "in_yaw", "in_ground", "out_yaw", "out_ground", "lock_anchor", "lock_since", "lock_was")
+# state entries besides the styles' x.<style>: per-session shape after the session axis
+SHARED_SHAPES = {"started": (), "in_yaw": (), "in_ground": (2,), "out_yaw": (), "out_ground": (2,), "lock_anchor": (2, 3),
+                 "lock_since": (2,), "lock_was": (2,)}
+SHARED_KEYS = tuple(SHARED_SHAPES)
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 
 
@@ -278,9 +281,18 @@ class LTIStyleModel:
         w = np.ascontiguousarray(style_weights, dtype=np.float64)
         styles, x_slices, _, packed = self._set
         B = len(root)
+        # the kernel trusts every shape (no bounds checks): anything else is a clear error here
+        if root.shape != (B, 3) or rotations.shape != (B, rep.NUM_JOINTS, 4):
+            raise ValueError(f"frames must be root (B, 3) and rotations (B, {rep.NUM_JOINTS}, 4), "
+                             f"got {root.shape} and {rotations.shape}")
         if w.shape != (B, len(styles)):
             raise ValueError(f"style_weights must be ({B}, {len(styles)}), got {w.shape}")
+        for key, shape in SHARED_SHAPES.items():
+            if state[key].shape != (B, *shape):
+                raise ValueError(f"state[{key!r}] must be {(B, *shape)}, got {state[key].shape}")
         x = np.concatenate([state[key] for key in x_slices], axis=1)
+        if x.shape[1] != packed.x_off[-1]:
+            raise ValueError("state is from another style set: bring it to this one with upgrade_state(state)")
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
         new = {"started": np.ones(B, bool), "in_yaw": np.empty(B), "in_ground": np.empty((B, 2)), "out_yaw": np.empty(B),
                "out_ground": np.empty((B, 2)), "lock_anchor": np.empty((B, 2, 3)),
