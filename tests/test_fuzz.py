@@ -371,11 +371,13 @@ def opening_case(draw, in_use_token: str) -> Case:
 def server(tmp_path_factory):
     """`stylestream serve` in its own process, so 'never crashes' means the process lives."""
     port = free_port()
-    log = tmp_path_factory.mktemp("fuzz") / "server.log"
+    scratch = tmp_path_factory.mktemp("fuzz")
+    log = scratch / "server.log"
     with log.open("w") as out:
         proc = subprocess.Popen([sys.executable, "-m", "clients.cli", "serve", "--port", str(port), "--log-level", "warning"],
                                 env={**os.environ, "STYLESTREAM_MAX_MESSAGE_BYTES": str(MAX_MESSAGE),
-                                     "STYLESTREAM_SNAPSHOT_EVERY": str(SNAPSHOT_EVERY), "STYLESTREAM_IDLE_TIMEOUT_S": "600"},
+                                     "STYLESTREAM_SNAPSHOT_EVERY": str(SNAPSHOT_EVERY), "STYLESTREAM_IDLE_TIMEOUT_S": "600",
+                                     "STYLESTREAM_STYLES_DIR": str(scratch / "styles")},  # the trained styles only
                                 stdout=out, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:
@@ -451,6 +453,8 @@ def alive(base: str, proc) -> bool:
 def test_ten_thousand_malformed_messages_get_typed_errors_and_leave_a_good_session_exact(server, clip):
     base, proc, log = server
     url = base.replace("http", "ws") + "/v1/stream"
+    models = {m["name"]: m for m in httpx.get(f"{base}/v1/models", timeout=10).json()}
+    assert models["lti"]["styles"] == STYLES and len(models["lti"]["joints"]) == J  # what the cases assume
     stack = contextlib.ExitStack()
     holder = stack.enter_context(connect(url))  # a live session with a snapshot: its token is 'in use'
     holder.send(json.dumps(START))
