@@ -13,7 +13,7 @@ time. Threads are capped like the service caps them (BLAS via threadpoolctl, tor
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -63,6 +63,17 @@ class StepTiming:
                 f"p99 {d['p99_us_per_step']:8.1f} us/step, {d['frames_per_s']:8.0f} frames/s | "
                 f"CPU {d['cpu_median_us_per_step']:8.1f} us/step ({d['frames_per_cpu_s']:7.0f} frames/CPU-s) | "
                 f"floor {d['floor_median_us']:7.1f} us, step/floor {d['step_over_floor']:5.2f}")
+
+
+def stepper(model, frames: Sequence, weights: np.ndarray, batch: int) -> Callable[[int], None]:
+    """step(i) advances `batch` fresh sessions of `model` by frames[i % len(frames)]."""
+    state = model.init_state(batch)
+
+    def step(i: int) -> None:
+        nonlocal state
+        state = model.step_batch(state, frames[i % len(frames)], weights)[1]
+
+    return step
 
 
 def time_steps(batch: int, step: Callable[[int], None], floor: Callable[[], None], repeats: int,

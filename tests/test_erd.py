@@ -10,7 +10,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.interface import FrameBatch, StreamingModel, split_state, stack_states  # noqa: E402
+from models.interface import FrameBatch, StreamingModel, split_state, stack_states
 
 REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "models" / "weights" / "erd"
@@ -61,8 +61,8 @@ def test_weights_small_and_protocol(model):
 
 
 def test_features_match_foundation(model, walks):
-    from models.motion.features import compute_features
     from models.erd.features import CONTACT, NB, POS, ROOTVEL, VEL, YAWRATE
+    from models.motion.features import compute_features
     motion = walks[0]
     x, yaw = model.maker.sequence(motion.translations[:, 1], motion.rotations)
     ref = compute_features(motion)
@@ -123,6 +123,7 @@ def test_batched_equals_per_session_and_no_mutation(which, atol, rtol, request, 
 def test_causal(model, walks):
     """Changing frames > t never changes outputs <= t (whole-window torch forward, features included)."""
     from dataclasses import replace
+
     from models.erd.offline import stylise
     motion = walks[0].slice(0, 30)
     gen = model.torch_generator()

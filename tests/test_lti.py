@@ -5,13 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.interface import FrameBatch
 from models.lti import representation as rep
 from models.lti.footplant import FootplantClassifier
-from models.interface import FrameBatch
-from models.motion.rotations import quat_apply
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel, StyleTranslator
-from models.lti.subspace import StateSpace, simulate, spectral_radius, stabilize, subspace_id
+from models.lti.subspace import (
+    StateSpace,
+    simulate,
+    spectral_radius,
+    stabilize,
+    subspace_id,
+)
 from models.lti.warping import imw, time_warp_dp
+from models.motion.rotations import quat_apply
 
 
 def _data():
@@ -192,8 +198,8 @@ def test_step_leaves_its_input_state_unchanged():
         fb = FrameBatch(np.repeat(m.translations[t:t + 1, rep.HIPS], 2, 0), np.repeat(m.rotations[t:t + 1], 2, 0))
         before = {k: v.copy() for k, v in state.items()}
         _, new = model.step_batch(state, fb, w)
-        for k in before:
-            assert np.array_equal(before[k], state[k]), f"step_batch changed state[{k!r}]"
+        for k, v in before.items():
+            assert np.array_equal(v, state[k]), f"step_batch changed state[{k!r}]"
         assert new.keys() == state.keys()
         state = new
     assert not state["x.elderly"][1].any()  # an inactive style rests at x = 0

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import numpy as np
 
@@ -57,8 +56,8 @@ def bench(args) -> None:
     """Per-frame cost of `step_batch` at batch 1 and 256 with the threads capped (1 = as the
     service runs), for the network in float32 (served) and float64 (the reference). Floor: the
     network's matrix products alone in numpy (see models/stepbench.py)."""
+    from ..stepbench import capped_threads, stepper, time_steps
     from .runtime import load
-    from ..stepbench import capped_threads, time_steps
     results = []
     for threads in args.threads:
         for dtype in (np.float32, np.float64):
@@ -70,13 +69,9 @@ def bench(args) -> None:
                 frames = FrameBatch(np.tile([[0.0, 90.0, 0.0]], (B, 1)), q / np.linalg.norm(q, axis=-1, keepdims=True))
                 w = np.zeros((B, len(model.styles())))
                 w[:, model.styles().index("elderly")] = 1.0
-                state = [model.init_state(B)]
-
-                def step(i: int) -> None:
-                    state[0] = model.step_batch(state[0], frames, w)[1]
-
                 with capped_threads(threads):
-                    timing = time_steps(B, step, _matmul_floor(model, B), args.steps if B == 1 else max(args.steps // 4, 50))
+                    timing = time_steps(B, stepper(model, [frames], w, B), _matmul_floor(model, B),
+                                        args.steps if B == 1 else max(args.steps // 4, 50))
                 print(timing.line())
                 results.append({"threads": threads, "dtype": np.dtype(dtype).name, **timing.as_dict()})
     if args.json:

@@ -32,8 +32,8 @@ import torch
 
 from ..interface import FrameBatch, State
 from ..motion.skeleton import Skeleton
-from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from . import kernels
+from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import FPS, FeatureMaker
 
 WEIGHTS_FILE = "erd.npz"
@@ -127,7 +127,7 @@ class ERDModel:
         row = ci if ci >= 0 else len(CONTENTS)
         h0 = np.concatenate([self.p["neutral_h0"][row][None], self.p["style_h0"]]).astype(self.dtype)  # (7, layers, H)
         c0 = np.concatenate([self.p["neutral_c0"][row][None], self.p["style_c0"]]).astype(self.dtype)
-        state: State = dict(h=np.repeat(h0[None], batch, 0), c=np.repeat(c0[None], batch, 0))
+        state: State = {"h": np.repeat(h0[None], batch, 0), "c": np.repeat(c0[None], batch, 0)}
         state.update(prev_pos=np.zeros((batch, 22, 3)), prev_yaw=np.zeros(batch), out_root=np.zeros((batch, 3)),
                      frame=np.zeros(batch, dtype=np.int64), style_in=np.full(batch, si, dtype=np.int64),
                      content=np.full(batch, ci, dtype=np.int64))

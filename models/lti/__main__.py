@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,7 @@ def cmd_train(args) -> None:
 def cmd_translate(args) -> None:
     from models.motion import bvh as bvhio
     from models.motion.skeleton import from_bvh, to_bvh
+
     from .model import LTIStyleModel
     model = LTIStyleModel()
     src = bvhio.read(args.input)
@@ -52,7 +54,8 @@ def cmd_bench(args) -> None:
     same batch in numpy, the paper's one matrix product per frame (see models/stepbench.py)."""
     from models.data import build_index, load_motion, select
     from models.interface import FrameBatch
-    from models.stepbench import capped_threads, time_steps
+    from models.stepbench import capped_threads, stepper, time_steps
+
     from .model import LTIStyleModel
     clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
     motion = load_motion(clip)
@@ -69,14 +72,10 @@ def cmd_bench(args) -> None:
                           for k in range(motion.num_frames)]
                 weights = np.zeros((batch, len(model.styles())))
                 weights[:, model.styles().index(style)] = 1.0
-                state = [model.init_state(batch)]
                 zin = np.random.default_rng(0).standard_normal((batch, M_T.shape[0]))
-
-                def step(i: int) -> None:
-                    state[0] = model.step_batch(state[0], frames[i % len(frames)], weights)[1]
-
                 with capped_threads(threads):
-                    timing = time_steps(batch, step, lambda: zin @ M_T, args.frames if batch == 1 else max(args.frames // 8, 100))
+                    timing = time_steps(batch, stepper(model, frames, weights, batch), partial(np.matmul, zin, M_T),
+                                        args.frames if batch == 1 else max(args.frames // 8, 100))
                 print(timing.line())
 
 
@@ -84,6 +83,7 @@ def cmd_render(args) -> None:
     """Input vs translated output of a validation neutral walk: contact sheet PNG + GIF per style."""
     from models.data import build_index, load_motion, select
     from models.motion.render import render_contact_sheet, render_gif
+
     from .model import LTIStyleModel
     model = LTIStyleModel()
     clip = select(build_index(["bandai-namco-2"]), style="normal", content=args.content, split="val")[0]
@@ -104,6 +104,7 @@ def cmd_render(args) -> None:
 def cmd_card(args) -> None:
     import contextlib
     import io
+
     from .card import write_model_card
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):

@@ -79,7 +79,7 @@ def two_bone_ik(gh: np.ndarray, r_up: np.ndarray, r_low: np.ndarray, r_foot: np.
     of the parent (Hips); r_*: (B, 4) local rotations of UpperLeg, LowerLeg, Foot; a: (B, 3) world
     hip-joint position; off_*: bone offsets. Returns new local (r_up, r_low, r_foot) putting the
     ankle at `target` (as close as the bone lengths allow) with the foot's world orientation unchanged."""
-    f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
+    f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)
     return kernels.two_bone_ik_batch(f64(gh), f64(r_up), f64(r_low), f64(r_foot), f64(a), f64(off_low),
                                      f64(off_foot), f64(target))
 

@@ -325,7 +325,7 @@ def pack_styles(translators: list) -> PackedStyles:
         fp_var.append(fp.var if fp is not None else np.ones((2, 2)))
         fp_prior.append(fp.log_prior if fp is not None else np.zeros((2, 2)))
     indptr.append(np.array([nnz]))
-    f64 = lambda parts: np.ascontiguousarray(np.stack(parts), dtype=np.float64)  # noqa: E731
+    f64 = lambda parts: np.ascontiguousarray(np.stack(parts), dtype=np.float64)
     return PackedStyles(
         np.array(x_off, np.int64), np.array(row_off, np.int64), np.concatenate(indptr).astype(np.int64),
         np.concatenate(indices).astype(np.int32), np.concatenate(data).astype(np.float64),
