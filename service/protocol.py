@@ -20,6 +20,9 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator
 
 from models.interface import style_weights
 
+from . import frame_check as FC
+from .frame_check import check_frame
+
 PROTOCOL_VERSION = 1
 BINARY_HEADER = struct.Struct("<IHH")
 KIND_FRAME = 1
@@ -151,18 +154,18 @@ def frame_arrays(frame: Frame, num_joints: int) -> tuple[np.ndarray, np.ndarray]
 
 
 def check_values(root: np.ndarray, rot: np.ndarray, seq: int) -> tuple[np.ndarray, np.ndarray]:
-    """Finite values, non-zero quaternions (returned normalised), a root within 1e6 units.
-    A few whole-array operations: this runs on every frame."""
-    if not (np.isfinite(root).all() and np.isfinite(rot).all()):
-        raise ProtocolError("bad_frame", "frame contains NaN or Inf", seq)
-    norms = np.sqrt(np.einsum("ij,ij->i", rot, rot))
-    if norms.min() < 1e-6:
-        raise ProtocolError("bad_frame", "zero-length quaternion", seq)
-    if norms.max() == np.inf:  # components near 1e155 and up: the norm overflows and would normalise to zero
-        raise ProtocolError("bad_frame", "quaternion components out of range", seq)
-    if np.abs(root).max() > 1e6:
-        raise ProtocolError("bad_frame", "root translation out of range", seq)
-    return root, rot / norms[:, None]
+    """Finite values, non-zero quaternions (returned normalised, as float64), a root within 1e6
+    units. One compiled pass (`frame_check`): this runs on every frame."""
+    root_out, rot_out = np.empty(3), np.empty((len(rot), 4))
+    status = check_frame(root, rot, root_out, rot_out)
+    if status != FC.OK:
+        raise ProtocolError("bad_frame", _FRAME_CHECK_ERRORS[status], seq)
+    return root_out, rot_out
+
+
+_FRAME_CHECK_ERRORS = {FC.NOT_FINITE: "frame contains NaN or Inf", FC.ZERO_QUATERNION: "zero-length quaternion",
+                       FC.QUATERNION_RANGE: "quaternion components out of range",
+                       FC.ROOT_RANGE: "root translation out of range"}
 
 
 def binary_frame_size(num_joints: int) -> int:
@@ -178,7 +181,7 @@ def decode_binary(data: bytes, num_joints: int) -> tuple[int, np.ndarray, np.nda
         raise ProtocolError("bad_frame", f"unknown binary message kind {kind}", seq)
     if len(data) != expected:
         raise ProtocolError("bad_frame", f"binary frame must be {expected} bytes for {num_joints} joints, got {len(data)}", seq)
-    payload = np.frombuffer(data, dtype="<f4", offset=BINARY_HEADER.size).astype(np.float64)
+    payload = np.frombuffer(data, dtype="<f4", offset=BINARY_HEADER.size)  # a view; the check copies to float64
     root, rot = check_values(payload[:3], payload[3:].reshape(num_joints, 4), seq)
     return seq, root, rot
 

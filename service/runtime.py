@@ -15,15 +15,15 @@ import asyncio
 import copy
 import time
 from collections import Counter
-from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
 import numpy as np
 
 from models.interface import FrameBatch, StreamingModel, weight_vector
 
+from . import frame_check
 from . import protocol as P
-from .batcher import Batcher
+from .batcher import Batcher, ModelThread
 from .metrics import Metrics
 from .session_store import SavedCallback, SnapshotWriter, StoreUnavailable, create_store
 from .sessions import Session
@@ -52,10 +52,11 @@ class Runtime:
         self.settings = settings
         self.models = {name: copy.copy(m) if hasattr(m, "add_style") else m for name, m in models.items()}
         self.metrics = Metrics()
-        self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="model-step")
-        self.batchers = {name: Batcher(model, self.executor, self.metrics, wait_s=settings.batch_wait_ms / 1000,
+        self.model_thread = ModelThread()
+        self.batchers = {name: Batcher(model, self.model_thread, self.metrics, wait_s=settings.batch_wait_ms / 1000,
                                        max_batch=settings.max_batch, enabled=settings.batching,
-                                       open_sessions=lambda name=name: self.open_sessions(name))
+                                       open_sessions=lambda name=name: self.open_sessions(name),
+                                       inline_max_s=settings.step_inline_max_ms / 1000)
                          for name, model in self.models.items()}
         self.sessions: dict[str, Session] = {}
         self._open_per_model: Counter[str] = Counter()
@@ -64,6 +65,7 @@ class Runtime:
         self.draining = False
 
     async def start(self) -> None:
+        frame_check.warm()
         for model in self.models.values():
             await self.on_model_thread(warm_up, model)
         for batcher in self.batchers.values():
@@ -74,7 +76,7 @@ class Runtime:
         await asyncio.gather(*(b.stop() for b in self.batchers.values()))
         # what a drain could not save is retried this long (the drain's budget ends here too)
         await self.snapshots.stop(timeout_s=min(2.0, 0.1 * self.settings.drain_timeout_s))
-        self.executor.shutdown(wait=False, cancel_futures=True)
+        self.model_thread.shutdown()
 
     async def drain(self, timeout_s: float) -> None:
         """Refuse new sessions, stop every session after its current frame, save its snapshot,
@@ -94,7 +96,7 @@ class Runtime:
 
     async def on_model_thread(self, fn, *args):
         """`fn(*args)` on the model-step worker thread, between batched steps (style changes)."""
-        return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+        return await self.model_thread.run(fn, *args)
 
     # ---- sessions -------------------------------------------------------------
     def open_sessions(self, model: str) -> int:

@@ -75,7 +75,8 @@ class Connection:
     # ---- receiving ----------------------------------------------------------------
     async def receive(self) -> str | bytes | None:
         try:
-            message = await asyncio.wait_for(self.ws.receive(), timeout=self.settings.idle_timeout_s)
+            async with asyncio.timeout(self.settings.idle_timeout_s):  # a timer, not wait_for's task per message
+                message = await self.ws.receive()
         except TimeoutError:
             await self.send_error(P.ProtocolError("idle_timeout", f"no message for {self.settings.idle_timeout_s:g} s"))
             await self.close(CLOSE_IDLE, "idle timeout")
@@ -213,7 +214,7 @@ class Connection:
         before = self.session.dropped_pending
         self.session.enqueue(item)
         if self.session.dropped_pending > before:
-            self.metrics.dropped_frames.labels(self.session.model.name).inc(self.session.dropped_pending - before)
+            self.metrics.model(self.session.model.name).dropped_frames.inc(self.session.dropped_pending - before)
         self.session.last_active = time.monotonic()
         self.wakeup.set()
 
@@ -221,6 +222,7 @@ class Connection:
     async def process(self) -> None:
         s = self.session
         batcher = self.rt.batchers[s.model.name]
+        metrics = self.metrics.model(s.model.name)
         while not self.stopping:
             if not s.pending:
                 if self.closing:
@@ -256,8 +258,8 @@ class Connection:
                 await self.send_bytes(P.encode_binary(item.seq, out_root, out_rot, dropped))
             else:
                 await self.send_json(P.frame_message(item.seq, out_root, out_rot, dropped))
-            self.metrics.frame_latency.labels(s.model.name).observe(time.perf_counter() - item.received)
-            self.metrics.frames.labels(s.model.name).inc()
+            metrics.frame_latency.observe(time.perf_counter() - item.received)
+            metrics.frames.inc()
             self.rt.after_frame(s, self.snapshot_saved if self.acks else None)
 
     async def control(self, message) -> bool:
