@@ -41,12 +41,28 @@ def control_script(seconds: float = 60.0, fps: float = 30.0) -> tuple[np.ndarray
     return np.concatenate(rows).astype(np.float32), segments
 
 
-def drive(model, style: str, seconds: float = 60.0):
-    """(output Motion, contacts, segments) of the scripted control in one style."""
+def drive(model, styles, seconds: float = 60.0):
+    """([output Motion per style], contacts (S, T, 2), segments) of the scripted control, every style
+    one session of the same batch (one step_batch call per frame)."""
+    from dataclasses import replace
+
+    from ..interface import FrameBatch
     control, segments = control_script(seconds, model.fps)
-    w = model.weight_vector({style: 1.0})
-    motion, contacts = model.run(None, w, control=control)
-    return motion, contacts, segments
+    first = model.rest_motion()
+    S, T = len(styles), len(control)
+    w = np.stack([model.weight_vector({s: 1.0}) for s in styles])
+    state = model.init_state(S)
+    root0, rot0 = np.repeat(first.translations[:1, 1], S, 0), np.repeat(first.rotations[:1], S, 0)
+    roots, rots, cons = np.zeros((S, T, 3)), np.zeros((S, T, 22, 4)), np.zeros((S, T, 2), bool)
+    for t in range(T):
+        out, state = model.step_batch(state, FrameBatch(root0, rot0, control=np.repeat(control[t:t + 1], S, 0)), w)
+        roots[:, t], rots[:, t], cons[:, t] = out.root, out.rotations, out.contacts
+    motions = []
+    for i in range(S):
+        trans = np.broadcast_to(model.skeleton.offsets, (T, 22, 3)).copy()
+        trans[:, 1] = roots[i]
+        motions.append(replace(first, rotations=rots[i], translations=trans, fps=model.fps))
+    return motions, cons, segments
 
 
 def demo_metrics(motion, segments) -> dict:
@@ -70,23 +86,20 @@ def demo_metrics(motion, segments) -> dict:
 
 
 def render_demo(out_dir: Path, tag: str = "demo", seconds: float = 60.0, styles=TARGETS, gif: bool = True,
-                model=None) -> Path:
-    """Contact sheet PNG (+ GIF) of the scripted control in each style; returns the PNG path."""
+                model=None, gif_fps: float = 5.0) -> Path:
+    """Contact sheet PNG (+ GIF) of the scripted control in each style, metrics as JSON; returns the PNG path."""
     import json
 
     from ..motion.render import render_contact_sheet, render_gif
     from . import load
     model = model or load(get_settings().weights_dir / "lpn")
-    motions, report = [], {}
-    for style in styles:
-        motion, _, segments = drive(model, style, seconds)
-        motions.append(motion)
-        report[style] = demo_metrics(motion, segments)
+    motions, _, segments = drive(model, styles, seconds)
+    report = {style: demo_metrics(motion, segments) for style, motion in zip(styles, motions)}
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     frames = [int((a + b) / 2) for _, a, b in segments]
     png = render_contact_sheet(motions, out_dir / f"lpn_{tag}.png", frames=frames, titles=list(styles))
     if gif:
-        render_gif(motions, out_dir / f"lpn_{tag}.gif", seconds=seconds, fps=10.0, titles=list(styles), panel_size=2.2)
+        render_gif(motions, out_dir / f"lpn_{tag}.gif", seconds=seconds, fps=gif_fps, titles=list(styles), panel_size=2.2)
     (out_dir / f"lpn_{tag}.json").write_text(json.dumps({"segments": segments, "metrics": report}, indent=1, default=str))
     return png

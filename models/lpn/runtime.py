@@ -38,7 +38,7 @@ from ..motion.features import body_joint, wrap_angle
 from ..motion.rotations import matrix_to_quat, quat_apply, quat_mul, quat_to_matrix
 from ..motion.skeleton import Motion, Skeleton
 from . import features as lf
-from .ik import two_bone_ik
+from ..lti.footplant import two_bone_ik
 from .weights import read_weights
 
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
@@ -68,6 +68,7 @@ def _normalise(v: np.ndarray) -> np.ndarray:
 
 class LPNModel:
     name = "lpn"
+    controllable = True  # reads FrameBatch.control (the service's `control` message)
     fps = lf.FPS
 
     def __init__(self, arrays: dict[str, np.ndarray], skeleton: Skeleton, config: dict):
@@ -214,8 +215,8 @@ class LPNModel:
         control = self._control(s, frames, root, rot_in, fresh)
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
-        out_root, out_rot, contacts = self._advance(s, y)
-        out_rot = self._foot_lock(s, out_root, out_rot, contacts)
+        out_root, out_rot, contacts, g_world = self._advance(s, y)
+        out_rot = self._foot_lock(s, out_root, out_rot, contacts, g_world)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
 
@@ -283,9 +284,9 @@ class LPNModel:
                 h = _elu(_layer_norm(h) * (1.0 + film[:, 2 * i]) + film[:, 2 * i + 1])
         return h * self.y_std + self.y_mean
 
-    def _advance(self, s: State, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _advance(self, s: State, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Apply the prediction: move the root, shift the history, store pose/phases/future; returns
-        the output Hips translation, local rotations and contacts."""
+        the output Hips translation, local rotations, contacts and world rotation matrices."""
         B = y.shape[0]
         yaw, pos = s["yaw"], s["hist_pos"][:, -1]
         delta = y[:, lf.DELTA_OUT]
@@ -333,7 +334,7 @@ class LPNModel:
         out_root = np.stack([new_pos[:, 0], hips[:, 1], new_pos[:, 1]], -1) + \
             lf.to_world(np.stack([hips[:, 0], 0 * hips[:, 1], hips[:, 2]], -1), new_yaw)
         contacts = y[:, lf.CONTACT_OUT] > 0.5
-        return out_root.astype(np.float32), matrix_to_quat(local).astype(np.float32), contacts
+        return out_root.astype(np.float32), matrix_to_quat(local).astype(np.float32), contacts, g_world
 
     # ------------------------------------------------------------------ kinematics
 
@@ -350,17 +351,17 @@ class LPNModel:
         left = hl - hr + sl - sr
         return np.arctan2(-left[:, 2], left[:, 0]).astype(np.float32)  # forward = left x up = (-lz, 0, lx)
 
-    def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray) -> np.ndarray:
-        """Two-bone leg IK pinning each planted ankle where it touched down (state-held anchors),
-        released over LOCK_RELEASE frames; the anchor is dragged along beyond LOCK_MAX_PULL cm."""
-        B = root.shape[0]
+    def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray,
+                   g_world: np.ndarray) -> np.ndarray:
+        """Two-bone leg IK (the LTI foot lock's kernel) pinning each planted ankle where it touched
+        down (state-held anchors), released over LOCK_RELEASE frames; the anchor is dragged along
+        beyond LOCK_MAX_PULL cm."""
         gh = rotations[:, lf.HIPS]
-        feet = np.zeros((B, 2, 3), np.float32)
-        for side, (up, low, foot) in enumerate(self.chains):
-            g_up = quat_mul(gh, rotations[:, up])
-            g_low = quat_mul(g_up, rotations[:, low])
-            feet[:, side] = root + quat_apply(gh, self.offsets[up]) + quat_apply(g_up, self.offsets[low]) + \
-                quat_apply(g_low, self.offsets[foot])
+        ch = self.chains  # (2 sides, 3) upper leg, lower leg, foot
+        # ankle = root + R_hips off_up + R_up off_low + R_low off_foot, both sides at once
+        feet = root[:, None] + np.einsum("bsij,sj->bsi", g_world[:, [lf.HIPS, lf.HIPS]], self.offsets[ch[:, 0]]) + \
+            np.einsum("bsij,sj->bsi", g_world[:, ch[:, 0]], self.offsets[ch[:, 1]]) + \
+            np.einsum("bsij,sj->bsi", g_world[:, ch[:, 1]], self.offsets[ch[:, 2]])
         start = contacts & ~s["lock_was"]
         anchor = np.where(start[..., None], feet, s["lock_anchor"])
         gap = anchor - feet
@@ -373,14 +374,16 @@ class LPNModel:
             return rotations
         fade = np.clip(since / (LOCK_RELEASE + 1.0), 0.0, 1.0)[..., None]
         target = anchor + (feet - anchor) * fade
-        rows, legs = np.nonzero(active)
-        up, low, foot = (self.chains[legs, i] for i in range(3))
-        g = gh[rows]
-        hip = root[rows] + quat_apply(g, self.offsets[up])
-        r_up, r_low, r_foot = two_bone_ik(g, rotations[rows, up], rotations[rows, low], rotations[rows, foot], hip,
-                                          self.offsets[low], self.offsets[foot], target[rows, legs])
         out = rotations.copy()
-        out[rows, up], out[rows, low], out[rows, foot] = r_up, r_low, r_foot
+        for side, (up, low, foot) in enumerate(ch):
+            rows = np.flatnonzero(active[:, side])
+            if not len(rows):
+                continue
+            g = gh[rows]
+            hip = root[rows] + quat_apply(g, self.offsets[up])
+            out[rows, up], out[rows, low], out[rows, foot] = two_bone_ik(
+                g, rotations[rows, up], rotations[rows, low], rotations[rows, foot], hip,
+                self.offsets[low], self.offsets[foot], target[rows, side])
         return out
 
     # ------------------------------------------------------------------ offline helpers
