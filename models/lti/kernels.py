@@ -2,13 +2,14 @@
 
 Why compiled: the vectorised numpy step spent ~1.3 ms per frame at batch 1 in ~950 small numpy
 calls of about a microsecond each (the foot-lock IK alone was 58% of it), while the arithmetic
-of a frame is a few thousand multiply-adds. Here every session is one loop iteration on scalars
-and 4-tuples (quaternions, scalar-last like the rest of the project), so a frame costs a few
-microseconds, at batch 1 as well as batched, and the maths reads like the formulas in
+of a frame is a few thousand multiply-adds. Here the geometry of each session is a loop on
+scalars and 4-tuples (quaternions, scalar-last like the rest of the project), so a frame costs a
+few microseconds, at batch 1 as well as batched, and the maths reads like the formulas in
 `representation.py` (offline, numpy) and the paper.
 
-The LTI product uses each style's [[A, B], [C, D]] in CSR form: the per-joint systems are
-combined block-diagonally, so ~95% of the matrix is zeros.
+The LTI product uses each style's [[A, B], [C, D]] in CSR form (the per-joint systems are
+combined block-diagonally, so ~95% of the matrix is zeros), applied to all the sessions using
+the style at once: each matrix entry is loaded once per frame, not once per session.
 
 Everything is float64; the results equal the numpy formulas to round-off.
 """
@@ -353,44 +354,46 @@ def _planted(x, fp_w, row0, mean, var, log_prior, foot):
 
 
 @njit(cache=True, error_model="numpy")
-def _translate_style(s, w, root_y, rotations, yaw_tilt, delta, x_in, x_out, P, blend, keep_heading, root_feats, quats,
-                     feats, zin, out):
-    """One style of one session: features -> normalise -> LTI step -> output features, adds
-    w * (root displacement, yaw change, height) to root_feats, writes the style's body rotations
-    (22, 4) into quats and returns its footplant contacts (left, right). feats, zin, out: scratch."""
+def _style_inputs(s, root_y, rotations, yaw_tilt, delta, x_in, P, blend, zin, feats, col):
+    """One session's input to style s's LTI system, into column `col` of zin (the style's state,
+    then the normalised features; representation.pose_features / sequence_features) and of
+    feats (the raw features). Returns the erf generalisation blend weight."""
     (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
      fp_w, fp_mean, fp_var, fp_prior, has_fp) = P
-    n = x_off[s + 1] - x_off[s]
-    # features (representation.pose_features / sequence_features), normalised
-    feats[0], feats[1], feats[2], feats[3] = delta[0], delta[1], delta[2], root_y
+    n = x_in.shape[0]
+    feats[0, col], feats[1, col], feats[2, col], feats[3, col] = delta[0], delta[1], delta[2], root_y
     for j in range(1, NUM_JOINTS):
         q = yaw_tilt if j == HIPS else row4(rotations, j)
         r = quat_to_rotvec(qmul(qinv(quat_at(ref, s, j)), q))
-        feats[3 * j + 1], feats[3 * j + 2], feats[3 * j + 3] = r
-    for i in range(n):  # (an element loop: numba compiles a slice copy ~20x slower)
-        zin[i] = x_in[i]
+        feats[3 * j + 1, col], feats[3 * j + 2, col], feats[3 * j + 3, col] = r
+    for i in range(n):
+        zin[i, col] = x_in[i]
     blend_w = 0.0
     for d in range(FEATURE_DIM):
-        u = (feats[d] - in_mean[s, d]) / in_std[s, d]
-        zin[n + d] = u
-        if blend:  # erf generalisation weight: max over DOFs of erf(max(0, dist - k_p) / k_c)
+        u = (feats[d, col] - in_mean[s, d]) / in_std[s, d]
+        zin[n + d, col] = u
+        if blend:  # max over DOFs of erf(max(0, dist - k_p) / k_c)
             beyond = max(u - in_hi[s, d], in_lo[s, d] - u) - k[s, 0]
             if beyond > 0.0:  # erf(0) = 0 inside the training range: most DOFs, most frames
                 blend_w = max(blend_w, math.erf(beyond / k[s, 1]))
-    # [x'; y] = M [x; u], sparse
-    base = row_off[s]
-    for r in range(n + OUTPUT_DIM - 1):  # the log time warp (last output) is not used online
-        acc = 0.0
-        for p in range(indptr[base + r], indptr[base + r + 1]):
-            acc += data[p] * zin[indices[p]]
-        if r < n:
-            x_out[r] = acc
-        else:
-            d = r - n
-            y = acc * out_std[s, d] + out_mean[s, d]
-            out[d] = (1.0 - blend_w) * y + blend_w * feats[d]
+    return blend_w
+
+
+@njit(cache=True, error_model="numpy")
+def _style_outputs(s, w, z, feats, col, blend_w, x_out, P, keep_heading, root_feats, quats, out):
+    """Style s's result for one session from column `col` of z = M [x; u]: the new state into
+    x_out, w * (root displacement, yaw change, height) added to root_feats, the body rotations
+    (22, 4) into quats. Returns the footplant contacts (left, right). out: scratch (67,)."""
+    (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
+     fp_w, fp_mean, fp_var, fp_prior, has_fp) = P
+    n = x_out.shape[0]
+    for i in range(n):
+        x_out[i] = z[i, col]
+    for d in range(FEATURE_DIM):  # the log time warp (last output) is not used online
+        y = z[n + d, col] * out_std[s, d] + out_mean[s, d]
+        out[d] = (1.0 - blend_w) * y + blend_w * feats[d, col]
     if keep_heading:
-        out[2] = feats[2]
+        out[2] = feats[2, col]
     for d in range(4):
         root_feats[d] += w * out[d]
     # body rotations (representation.static_to_rotations with yaw 0)
@@ -405,6 +408,27 @@ def _translate_style(s, w, root_y, rotations, yaw_tilt, delta, x_in, x_out, P, b
 
 
 @njit(cache=True, error_model="numpy")
+def _sparse_product(indptr, indices, data, zin, z, m):
+    """z[:, :m] = M @ zin[:, :m] for the CSR matrix M (indptr, indices, data). Several sessions:
+    each matrix entry is loaded once and applied to all of them (an inner loop over sessions that
+    the compiler vectorises); one session: a plain dot product per row (the vectorised loop's
+    set-up would cost more than the work). Either way each sum adds the same terms in the same order."""
+    for r in range(indptr.shape[0] - 1):
+        if m == 1:
+            acc = 0.0
+            for p in range(indptr[r], indptr[r + 1]):
+                acc += data[p] * zin[indices[p], 0]
+            z[r, 0] = acc
+            continue
+        for c in range(m):
+            z[r, c] = 0.0
+        for p in range(indptr[r], indptr[r + 1]):
+            coef, col = data[p], indices[p]
+            for c in range(m):
+                z[r, c] += coef * zin[col, c]
+
+
+@njit(cache=True, error_model="numpy")
 def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_ground, lock_anchor, lock_since,
              lock_was, x, out_root, out_rot, contacts, n_yaw, n_ground, n_out_yaw, n_out_ground, n_anchor, n_since,
              n_was, n_x, blend, keep_heading, footlock, chains, offsets, release, max_pull,
@@ -414,13 +438,28 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
     mixing). Reads the frame, the weights and the state (started ... x); fills the outputs
     (out_root ... n_x, allocated by the caller: returning arrays from numba costs ~1 us each).
     The trailing arguments are the `PackedStyles` fields, passed one by one because numba checks
-    the types of top-level arrays much faster than those inside a tuple."""
+    the types of top-level arrays much faster than those inside a tuple.
+
+    Three passes: per session, the input's root transform and its share of the output; per
+    style, the LTI step of all sessions using it as one sparse product (each matrix entry is
+    loaded once and applied to every session, a loop the compiler vectorises); per session, the
+    blend of the styles, the output path and the foot lock."""
     P = (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
          fp_w, fp_mean, fp_var, fp_prior, has_fp)
     B, S = weights.shape
-    quats = np.empty((S, NUM_JOINTS, 4))
-    delta, root_feats = np.empty(3), np.empty(4)
-    feats, zin, out = np.empty(FEATURE_DIM), np.empty(x.shape[1] + FEATURE_DIM), np.empty(OUTPUT_DIM)
+    # per-session scratch, one allocation (it counts at batch 1): input yaw, yaw-free hips, root
+    # displacement and yaw change, the input's share, the weight total, root features, contact votes
+    scratch = np.empty((B, 16))
+    yaws, tilts, deltas, rests, totals = scratch[:, 0], scratch[:, 1:5], scratch[:, 5:8], scratch[:, 8], scratch[:, 9]
+    root_feats, votes = scratch[:, 10:14], scratch[:, 14:16]
+    quats = np.empty((B, S, NUM_JOINTS, 4))
+    out = np.empty(FEATURE_DIM)
+    n_max = 0
+    for s in range(S):
+        n_max = max(n_max, x_off[s + 1] - x_off[s])
+    rows, blend_w = np.empty(B, np.int64), np.empty(B)  # per style: its sessions, their erf weights
+    zin, z = np.empty((n_max + FEATURE_DIM, B)), np.empty((n_max + FEATURE_DIM, B))  # [x; u] and M [x; u]
+    feats = np.empty((FEATURE_DIM, B))
     for b in range(B):
         for i in range(n_x.shape[1]):
             n_x[b, i] = 0.0  # inactive styles rest at their initial state x = 0
@@ -430,60 +469,78 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
             for i in range(3):
                 n_anchor[b, leg, i] = lock_anchor[b, leg, i]
         yaw, tilt = split_hips(quat_at(rotations, b, HIPS))
+        yaws[b], votes[b, 0], votes[b, 1] = yaw, 0.0, 0.0
+        tilts[b, 0], tilts[b, 1], tilts[b, 2], tilts[b, 3] = tilt
         gx, gz = root[b, 0], root[b, 2]
-        fresh = not started[b]
-        p_yaw = yaw if fresh else in_yaw[b]
-        dx, dz = rotate_y(gx - (gx if fresh else in_ground[b, 0]), gz - (gz if fresh else in_ground[b, 1]), -p_yaw)
-        delta[0], delta[1], delta[2] = dx, dz, wrap(yaw - p_yaw)
+        p_yaw = in_yaw[b] if started[b] else yaw
+        dx, dz = rotate_y(gx - (in_ground[b, 0] if started[b] else gx), gz - (in_ground[b, 1] if started[b] else gz), -p_yaw)
+        deltas[b, 0], deltas[b, 1], deltas[b, 2] = dx, dz, wrap(yaw - p_yaw)
         total = 0.0
         for s in range(S):
             total += weights[b, s]
-        rest = max(1.0 - total, 0.0)  # share of the input passing through
+        totals[b] = total
+        rests[b] = max(1.0 - total, 0.0)  # share of the input passing through
         for d in range(3):
-            root_feats[d] = rest * delta[d]
-        root_feats[3] = rest * root[b, 1]
-        vote_l = vote_r = 0.0
+            root_feats[b, d] = rests[b] * deltas[b, d]
+        root_feats[b, 3] = rests[b] * root[b, 1]
+    for s in range(S):
+        m = 0
+        for b in range(B):
+            if weights[b, s] > 0.0:
+                rows[m] = b
+                m += 1
+        if m == 0:
+            continue
+        n = x_off[s + 1] - x_off[s]
+        for c in range(m):
+            b = rows[c]
+            blend_w[c] = _style_inputs(s, root[b, 1], rotations[b], row4(tilts, b), deltas[b], x[b, x_off[s]:x_off[s + 1]],
+                                       P, blend, zin, feats, c)
+        # [x'; y] = M [x; u] for the m sessions; rows: the state, then the outputs (not the log time warp)
+        _sparse_product(indptr[row_off[s]:row_off[s] + n + FEATURE_DIM + 1], indices, data, zin, z, m)
+        for c in range(m):
+            b = rows[c]
+            w = weights[b, s]
+            planted = _style_outputs(s, w, z, feats, c, blend_w[c], n_x[b, x_off[s]:x_off[s + 1]], P, keep_heading,
+                                     root_feats[b], quats[b, s], out)
+            votes[b, 0] += w * planted[0]
+            votes[b, 1] += w * planted[1]
+    for b in range(B):
+        fresh = not started[b]
+        yaw, rest, rf = yaws[b], rests[b], root_feats[b]
         base, base_w = -1, rest  # the heaviest part (first on ties): the sign reference of the blend
         for s in range(S):
-            w = weights[b, s]
-            if w > base_w:
-                base, base_w = s, w
-            if w <= 0.0:
-                continue
-            x_in = x[b, x_off[s]:x_off[s + 1]]
-            x_out = n_x[b, x_off[s]:x_off[s + 1]]
-            planted = _translate_style(s, w, root[b, 1], rotations[b], tilt, delta, x_in, x_out, P, blend,
-                                       keep_heading, root_feats, quats[s], feats, zin, out)
-            vote_l += w * planted[0]
-            vote_r += w * planted[1]
+            if weights[b, s] > base_w:
+                base, base_w = s, weights[b, s]
         # blend the body: input (with the yaw-free hips) and each style, signs aligned to the base part
         out_rot[b, 0, 0], out_rot[b, 0, 1], out_rot[b, 0, 2], out_rot[b, 0, 3] = 0.0, 0.0, 0.0, 1.0
         for j in range(1, NUM_JOINTS):
-            q_in = tilt if j == HIPS else quat_at(rotations, b, j)
-            q_base = q_in if base < 0 else quat_at(quats, base, j)
+            q_in = row4(tilts, b) if j == HIPS else quat_at(rotations, b, j)
+            q_base = q_in if base < 0 else quat_at(quats[b], base, j)
             acc = (0.0, 0.0, 0.0, 0.0)
             if rest > 0.0:
                 acc = _add_signed(acc, rest, q_in, q_base)
             for s in range(S):
                 if weights[b, s] > 0.0:
-                    acc = _add_signed(acc, weights[b, s], quat_at(quats, s, j), q_base)
+                    acc = _add_signed(acc, weights[b, s], quat_at(quats[b], s, j), q_base)
             norm = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
             q = (acc[0] / norm, acc[1] / norm, acc[2] / norm, acc[3] / norm)
             if j == HIPS:
-                q = qmul(qyaw(yaw if fresh else out_yaw[b] + root_feats[2]), q)
+                q = qmul(qyaw(yaw if fresh else out_yaw[b] + rf[2]), q)
             out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = q
         # integrate the output path: the first frame starts where the input is
+        gx, gz = root[b, 0], root[b, 2]
         if fresh:
             n_out_yaw[b], n_out_ground[b, 0], n_out_ground[b, 1] = yaw, gx, gz
         else:
-            sx, sz = rotate_y(root_feats[0], root_feats[1], out_yaw[b])
-            n_out_yaw[b] = out_yaw[b] + root_feats[2]
+            sx, sz = rotate_y(rf[0], rf[1], out_yaw[b])
+            n_out_yaw[b] = out_yaw[b] + rf[2]
             n_out_ground[b, 0], n_out_ground[b, 1] = out_ground[b, 0] + sx, out_ground[b, 1] + sz
-        out_root[b, 0], out_root[b, 1], out_root[b, 2] = n_out_ground[b, 0], root_feats[3], n_out_ground[b, 1]
+        out_root[b, 0], out_root[b, 1], out_root[b, 2] = n_out_ground[b, 0], rf[3], n_out_ground[b, 1]
         n_yaw[b], n_ground[b, 0], n_ground[b, 1] = yaw, gx, gz
-        if total > 0.0:
-            limit = 0.5 * max(total, 1e-12)
-            contacts[b, 0], contacts[b, 1] = vote_l > limit, vote_r > limit
+        if totals[b] > 0.0:
+            limit = 0.5 * max(totals[b], 1e-12)
+            contacts[b, 0], contacts[b, 1] = votes[b, 0] > limit, votes[b, 1] > limit
         if footlock:
             foot_lock_session(out_root[b], out_rot[b], contacts[b], n_anchor[b], n_since[b], n_was[b],
                               chains, offsets, release, max_pull)
