@@ -67,9 +67,20 @@ class DrainingServer(uvicorn.Server):
 
 
 def serve(settings: ServiceSettings, log_level: str = "info") -> None:
+    """One server, or `settings.workers` of them on one port (`service.workers`)."""
+    if settings.workers > 1:
+        from .workers import serve_workers
+
+        serve_workers(settings, log_level)
+    else:
+        serve_once(settings, log_level)
+
+
+def serve_once(settings: ServiceSettings, log_level: str = "info", sockets: list | None = None) -> None:
+    """This process as one server: on `sockets` if given (a worker's SO_REUSEPORT socket)."""
     app = create_app(settings)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level,
                             ws_max_size=4 * settings.max_message_bytes,  # larger ones get a typed error, not a bare close
                             ws_per_message_deflate=False,  # compressing ~400-byte frames costs more CPU than it saves
                             timeout_graceful_shutdown=max(1, round(0.15 * settings.drain_timeout_s)))
-    DrainingServer(config, app, settings.drain_timeout_s).run()
+    DrainingServer(config, app, settings.drain_timeout_s).run(sockets=sockets)

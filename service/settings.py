@@ -58,6 +58,13 @@ class ServiceSettings(Settings):
     upload_max_frames: int = Field(default=9000, ge=60, description="Longest uploaded clip, in frames at 30 fps.")
 
     @model_validator(mode="after")
+    def _workers_share_sessions(self) -> "ServiceSettings":
+        if self.workers > 1 and self.session_store == "memory":  # a resume would land on a worker without its snapshot
+            raise ValueError(f"workers={self.workers} needs a shared session_store (redis://host:port/db): with the "
+                             "in-memory store a client resuming on another worker than its first finds no session")
+        return self
+
+    @model_validator(mode="after")
     def _limits_name_known_tokens(self) -> "ServiceSettings":
         unknown = set(self.token_limits) - set(self.api_tokens)
         if unknown:  # a typo here would silently give that client the defaults
