@@ -341,6 +341,18 @@ def pack_styles(translators: list) -> PackedStyles:
 # --------------------------------------------------------------------------- the step
 
 
+def new_workspace(batch: int, packed: PackedStyles) -> tuple[np.ndarray, ...]:
+    """Scratch arrays of `lti_step` for up to `batch` sessions: per session (yaw, yaw-free hips,
+    root displacement and yaw change, the input's share, the weight total, root features, contact
+    votes), each style's body rotations, and per style its sessions, their erf weights, [x; u],
+    M [x; u], the raw features, one output row. Kept between steps: at batch 256 they are ~2 MB,
+    and fresh allocations that size cost more in page faults than the step's arithmetic."""
+    styles = len(packed.x_off) - 1
+    rows = int(np.diff(packed.x_off).max()) + FEATURE_DIM
+    return (np.empty((batch, 16)), np.empty((batch, styles, NUM_JOINTS, 4)), np.empty(batch, np.int64), np.empty(batch),
+            np.empty((rows, batch)), np.empty((rows, batch)), np.empty((FEATURE_DIM, batch)), np.empty(FEATURE_DIM))
+
+
 @njit(cache=True, error_model="numpy")
 def _planted(x, fp_w, row0, mean, var, log_prior, foot):
     """Footplant class of one foot: the more likely Gaussian class (free, planted) of the state
@@ -431,14 +443,15 @@ def _sparse_product(indptr, indices, data, zin, z, m):
 @njit(cache=True, error_model="numpy")
 def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_ground, lock_anchor, lock_since,
              lock_was, x, out_root, out_rot, contacts, n_yaw, n_ground, n_out_yaw, n_out_ground, n_anchor, n_since,
-             n_was, n_x, blend, keep_heading, footlock, chains, offsets, release, max_pull,
+             n_was, n_x, work, blend, keep_heading, footlock, chains, offsets, release, max_pull,
              x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
              fp_w, fp_mean, fp_var, fp_prior, has_fp):
     """One streaming frame for B sessions (see model.LTIStyleModel for the state and the style
     mixing). Reads the frame, the weights and the state (started ... x); fills the outputs
-    (out_root ... n_x, allocated by the caller: returning arrays from numba costs ~1 us each).
-    The trailing arguments are the `PackedStyles` fields, passed one by one because numba checks
-    the types of top-level arrays much faster than those inside a tuple.
+    (out_root ... n_x, allocated by the caller: returning arrays from numba costs ~1 us each);
+    `work` is scratch (`new_workspace`) for at least B sessions, kept by the caller between
+    calls. The trailing arguments are the `PackedStyles` fields, passed one by one because numba
+    checks the types of top-level arrays much faster than those inside a tuple.
 
     Three passes: per session, the input's root transform and its share of the output; per
     style, the LTI step of all sessions using it as one sparse product (each matrix entry is
@@ -447,19 +460,9 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
     P = (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
          fp_w, fp_mean, fp_var, fp_prior, has_fp)
     B, S = weights.shape
-    # per-session scratch, one allocation (it counts at batch 1): input yaw, yaw-free hips, root
-    # displacement and yaw change, the input's share, the weight total, root features, contact votes
-    scratch = np.empty((B, 16))
-    yaws, tilts, deltas, rests, totals = scratch[:, 0], scratch[:, 1:5], scratch[:, 5:8], scratch[:, 8], scratch[:, 9]
-    root_feats, votes = scratch[:, 10:14], scratch[:, 14:16]
-    quats = np.empty((B, S, NUM_JOINTS, 4))
-    out = np.empty(FEATURE_DIM)
-    n_max = 0
-    for s in range(S):
-        n_max = max(n_max, x_off[s + 1] - x_off[s])
-    rows, blend_w = np.empty(B, np.int64), np.empty(B)  # per style: its sessions, their erf weights
-    zin, z = np.empty((n_max + FEATURE_DIM, B)), np.empty((n_max + FEATURE_DIM, B))  # [x; u] and M [x; u]
-    feats = np.empty((FEATURE_DIM, B))
+    per_session, quats, rows, blend_w, zin, z, feats, out = work
+    yaws, tilts, deltas, rests = per_session[:, 0], per_session[:, 1:5], per_session[:, 5:8], per_session[:, 8]
+    totals, root_feats, votes = per_session[:, 9], per_session[:, 10:14], per_session[:, 14:16]
     for b in range(B):
         for i in range(n_x.shape[1]):
             n_x[b, i] = 0.0  # inactive styles rest at their initial state x = 0
