@@ -25,6 +25,7 @@ speed follows the style); the height is predicted.
 from __future__ import annotations
 
 import json
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +77,7 @@ class ERDModel:
             raise ValueError(f"the runtime stacks the neutral and style LSTM branches: it needs equal layer counts, "
                              f"got {self.Ln} neutral and {self.Ls} style layers")
         self.branches = ("neutral",) + tuple(TARGET_STYLES)  # branch 0 is the neutral one, weight 1
+        self._scratch = threading.local()  # per thread: LSTM buffers reused between steps (`_workspace`)
         self._prepare_weights()
         self._compile_step()
 
@@ -161,6 +163,16 @@ class ERDModel:
 
     # ------------------------------------------------------------------ network
 
+    def _workspace(self, batch: int) -> tuple[np.ndarray, np.ndarray]:
+        """This thread's LSTM input (7, batch, 2H) and gate (7, batch, 4H) buffers, reused between
+        steps while the batch fits: at batch 256 they are ~1.4 MB a layer, and fresh allocations
+        that size cost hundreds of page faults per step."""
+        held = getattr(self._scratch, "held", None)
+        if held is None or held[0].shape[1] < batch:
+            K, H = len(self.branches), self.H
+            held = self._scratch.held = (np.empty((K, batch, 2 * H), self.dtype), np.empty((K, batch, 4 * H), self.dtype))
+        return held[0][:, :batch], held[1][:, :batch]
+
     def _network(self, x: np.ndarray, state: State, w: np.ndarray) -> tuple[np.ndarray, State]:
         """Encoder -> 7 stacked LSTM branches -> latent = neutral + sum_s w_s branch_s -> decoder.
         Returns the decoder output (B, 88) and the new LSTM states."""
@@ -173,10 +185,12 @@ class ERDModel:
         z = h
         hs, cs = state["h"].astype(dt, copy=False), state["c"].astype(dt, copy=False)  # (B, 7, layers, H)
         new_h, new_c = np.empty_like(hs), np.empty_like(cs)
-        inp = np.broadcast_to(z, (len(self.branches), B, H))  # every branch reads the encoding
+        inp = z  # every branch reads the encoding
+        xin, g = self._workspace(B)
         for l in range(self.Ln):
-            # (7, B, 2H) @ (7, 2H, 4H): the branch axis first, as np.matmul batches over it
-            g = np.matmul(np.concatenate([inp, hs[:, :, l].transpose(1, 0, 2)], axis=-1), self.lstm_w[l])
+            # [input, hidden] (7, B, 2H) @ (7, 2H, 4H): the branch axis first, as np.matmul batches over it
+            xin[..., :H], xin[..., H:] = inp, hs[:, :, l].transpose(1, 0, 2)
+            np.matmul(xin, self.lstm_w[l], out=g)
             g += self.lstm_b[l]
             s = _sigmoid_(g)  # i, f, o gates; g gate = 2 s - 1
             c = s[..., H:2 * H] * cs[:, :, l].transpose(1, 0, 2) + s[..., :H] * (2.0 * s[..., 2 * H:3 * H] - 1.0)
