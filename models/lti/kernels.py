@@ -443,15 +443,16 @@ def _sparse_product(indptr, indices, data, zin, z, m):
 @njit(cache=True, error_model="numpy")
 def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_ground, lock_anchor, lock_since,
              lock_was, x, out_root, out_rot, contacts, n_yaw, n_ground, n_out_yaw, n_out_ground, n_anchor, n_since,
-             n_was, n_x, work, blend, keep_heading, footlock, chains, offsets, release, max_pull,
+             n_was, n_x, per_session, quats, rows, blend_w, zin, z, feats, out,
+             blend, keep_heading, footlock, chains, offsets, release, max_pull,
              x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
              fp_w, fp_mean, fp_var, fp_prior, has_fp):
     """One streaming frame for B sessions (see model.LTIStyleModel for the state and the style
     mixing). Reads the frame, the weights and the state (started ... x); fills the outputs
     (out_root ... n_x, allocated by the caller: returning arrays from numba costs ~1 us each);
-    `work` is scratch (`new_workspace`) for at least B sessions, kept by the caller between
-    calls. The trailing arguments are the `PackedStyles` fields, passed one by one because numba
-    checks the types of top-level arrays much faster than those inside a tuple.
+    per_session ... out are scratch (`new_workspace`) for at least B sessions, kept by the caller
+    between calls. Arrays are passed one by one (the scratch, the `PackedStyles` fields) because
+    numba checks the types of top-level arrays much faster than those inside a tuple.
 
     Three passes: per session, the input's root transform and its share of the output; per
     style, the LTI step of all sessions using it as one sparse product (each matrix entry is
@@ -460,7 +461,6 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
     P = (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
          fp_w, fp_mean, fp_var, fp_prior, has_fp)
     B, S = weights.shape
-    per_session, quats, rows, blend_w, zin, z, feats, out = work
     yaws, tilts, deltas, rests = per_session[:, 0], per_session[:, 1:5], per_session[:, 5:8], per_session[:, 8]
     totals, root_feats, votes = per_session[:, 9], per_session[:, 10:14], per_session[:, 14:16]
     for b in range(B):

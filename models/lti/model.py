@@ -302,10 +302,11 @@ class LTIStyleModel:
         for key, shape in SHARED_SHAPES.items():
             if state[key].shape != (B, *shape):
                 raise ValueError(f"state[{key!r}] must be {(B, *shape)}, got {state[key].shape}")
-        if sum(state[key].shape[1] for key in x_slices) != packed.x_off[-1]:
-            raise ValueError("state is from another style set: bring it to this one with upgrade_state(state)")
         x, work = self._workspace(B, packed)
-        np.concatenate([state[key] for key in x_slices], axis=1, out=x)
+        try:
+            np.concatenate([state[key] for key in x_slices], axis=1, out=x)
+        except ValueError:
+            raise ValueError("state is from another style set: bring it to this one with upgrade_state(state)") from None
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
         new = {"started": np.ones(B, bool), "in_yaw": np.empty(B), "in_ground": np.empty((B, 2)), "out_yaw": np.empty(B),
                "out_ground": np.empty((B, 2)), "lock_anchor": np.empty((B, 2, 3)),
@@ -315,7 +316,7 @@ class LTIStyleModel:
             root, rotations, w, state["started"], state["in_yaw"], state["in_ground"], state["out_yaw"],
             state["out_ground"], state["lock_anchor"], state["lock_since"], state["lock_was"], x,
             out.root, out.rotations, out.contacts, new["in_yaw"], new["in_ground"], new["out_yaw"], new["out_ground"],
-            new["lock_anchor"], new["lock_since"], new["lock_was"], new_x, work,
+            new["lock_anchor"], new["lock_since"], new["lock_was"], new_x, *work,
             self.blend, self.keep_heading, self.footlock, *self._lock_params, *packed)
         for key, cols in x_slices.items():
             new[key] = new_x[:, cols]
