@@ -287,11 +287,12 @@ def find_max(measure, start: int = 8, limit: int = 4096) -> int:
 
 
 @contextlib.contextmanager
-def spawned_server(batching: bool = True):
-    """`stylestream serve` on a free loopback port; yields (ws url, process)."""
+def spawned_server(batching: bool = True, env: dict[str, str] | None = None):
+    """`stylestream serve` on a free loopback port (settings as STYLESTREAM_* in `env`); yields
+    (ws url, process)."""
     port = free_port()
     server = _spawn(["clients.cli", "serve", "--log-level", "warning"], port,
-                    {} if batching else {"STYLESTREAM_BATCHING": "false"})
+                    {**(env or {}), **({} if batching else {"STYLESTREAM_BATCHING": "false"})})
     try:
         yield f"ws://127.0.0.1:{port}/v1/stream", server
     finally:
@@ -299,9 +300,25 @@ def spawned_server(batching: bool = True):
         server.wait(timeout=20)
 
 
+def process_tree(pid: int) -> list[int]:
+    """`pid` and its descendants (a `--workers` supervisor and its workers)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        with contextlib.suppress(OSError):
+            todo += [int(c) for c in Path(f"/proc/{p}/task/{p}/children").read_text().split()]
+    return out
+
+
 def _cpu_seconds(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """CPU seconds (user + system) of `pid` and its descendants alive now."""
+    total = 0.0
+    for p in process_tree(pid):
+        with contextlib.suppress(OSError):
+            fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
 def add_loadtest_command(sub) -> None:
@@ -322,16 +339,18 @@ def add_loadtest_command(sub) -> None:
 
 
 def measure_fn(url: str, model: str, style: str, fps: float, seconds: float, processes: int | None,
-               server=None, floor: Result | None = None, results: list | None = None, lats: list | None = None):
-    """A function n -> Result that runs one open-loop load test against `url` and prints it."""
+               server=None, floor: Result | None = None, results: list | None = None, lats: list | None = None,
+               server_metrics: bool = True):
+    """A function n -> Result that runs one open-loop load test against `url` and prints it.
+    `server_metrics=False` for several workers: each answers /metrics for itself alone."""
     base = url.replace("ws", "http", 1).replace("/v1/stream", "")
 
     def measure(n: int) -> Result:
         cpu0 = _cpu_seconds(server.pid) if server else None
-        hist0 = server_histogram(base, model)
+        hist0 = server_histogram(base, model) if server_metrics else {}
         result, lat = run(url, n, fps, seconds, model, style, processes)
         server_cpu = (_cpu_seconds(server.pid) - cpu0) if server else float("nan")
-        s50, s99 = histogram_quantiles(hist0, server_histogram(base, model))
+        s50, s99 = histogram_quantiles(hist0, server_histogram(base, model)) if server_metrics else (np.nan, np.nan)
         result.server_p50_ms, result.server_p99_ms, result.server_cpu_s = s50, s99, server_cpu
         if results is not None:
             results.append(result)
@@ -353,6 +372,26 @@ def echo_floor(sessions: int, fps: float, seconds: float, processes: int | None 
         echo.terminate()
     print("echo floor   " + floor.line())
     return floor
+
+
+def echo_capacity(fps: float, seconds: float, processes: int | None = None) -> tuple[int, list[Result]]:
+    """The transport's own ceiling in this harness: the most sessions a plain echo server on the
+    same stack holds at `fps` (p99 within a frame period, nothing lost); no model server can
+    beat it. Returns it and every run of the search."""
+    port = free_port()
+    echo = _spawn(["clients.echo_server"], port)
+    runs: list[Result] = []
+
+    def measure(n: int) -> Result:
+        result, _ = run(f"ws://127.0.0.1:{port}/v1/stream", n, fps, seconds, processes=processes, echo=True)
+        print("echo         " + result.line(), flush=True)
+        runs.append(result)
+        return result
+
+    try:
+        return find_max(measure, 8), runs
+    finally:
+        echo.terminate()
 
 
 def first_style(url: str, model: str) -> str:

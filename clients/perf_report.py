@@ -2,14 +2,23 @@
 
 For every committed model: the step cost through the streaming interface (batch 1 and 256), the
 session capacity at 60 fps (largest count holding p99 <= 16.7 ms with no drops) with and
-without cross-session batching, a session sweep, and the echo floor measured in the same run.
-Everything printed is also written, so the document is only ever what this command measured.
+without cross-session batching, a session sweep, and, in the same run, the echo floor and the
+echo server's own capacity (the transport's ceiling), capacity with 1 and 2 worker processes
+(sharing a throwaway redis-server, as `--workers` requires) and a py-spy profile of the loaded
+server. Everything printed is also written, so the document is only ever what this command
+measured.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import platform
+import shutil
+import subprocess
+import tempfile
+import threading
 import time
 from datetime import date
 from pathlib import Path
@@ -20,9 +29,11 @@ from models.interface import FrameBatch, style_vector
 from models.registry import load_models
 from models.settings import REPO_ROOT, get_settings
 
-from .loadtest import Result, echo_floor, find_max, measure_fn, real_frames, spawned_server
+from . import server_profile
+from .loadtest import Result, echo_capacity, echo_floor, find_max, free_port, measure_fn, real_frames, spawned_server
 
 SWEEP = (1, 16, 64)
+PROFILE_SESSIONS = 64  # LTI, batching on: the issue's 64-session target
 
 
 def step_cost(model, batch: int, steps: int) -> tuple[float, float]:
@@ -48,6 +59,73 @@ def _row(r: Result, floor: Result | None = None) -> str:
             f"{r.server_p50_ms:.2f} / {r.server_p99_ms:.2f} | {r.frames_per_s:.0f} | {r.server_cpu_s:.1f} | {ratio} |")
 
 
+def profiled(measure, pid: int, sessions: int, seconds: float) -> dict[str, float] | str:
+    """Run `measure(sessions)` while py-spy samples the server once the clock has started;
+    the profile's shares by part, or why there is none."""
+    out: dict[str, dict[str, float] | str] = {}
+
+    def sample() -> None:
+        time.sleep(2.5 + 0.02 * sessions)  # the load test connects every session before its clock starts
+        try:
+            out["shares"] = server_profile.summarise(server_profile.record([pid], seconds - 1))
+        except (RuntimeError, OSError, subprocess.SubprocessError) as exc:
+            out["shares"] = f"no profile: {exc}"
+
+    thread = threading.Thread(target=sample)
+    thread.start()
+    measure(sessions)
+    thread.join()
+    return out["shares"]
+
+
+def profile_section(shares: dict[str, float] | str) -> list[str]:
+    if isinstance(shares, str):
+        return [shares]
+    lines = [f"A py-spy sample of the server at {PROFILE_SESSIONS} LTI sessions (batching on), its busy time by part "
+             "(`clients/server_profile.py`: each sample counts for the innermost frame that names a part):", "",
+             "| part | share |", "|---|---|"]
+    lines += [f"| {name} | {share:.0%} |" for name, share in shares.items()]
+    return lines + ["", "The server is one Python process per worker: its event loop saturates one core. What "
+                    "remains per frame is mostly the transport (the echo server's capacity above is the ceiling of "
+                    "this stack in this harness) and asyncio plumbing per message; the model step is batched."]
+
+
+def workers_section(models: dict, fps: float, seconds: float) -> list[str]:
+    """Capacity with 1 and 2 server processes, both on a throwaway Redis session store (which
+    `--workers` > 1 requires; the 1-worker run uses it too, so only the worker count differs)."""
+    redis = shutil.which("redis-server")
+    if redis is None:
+        return ["Not measured: redis-server is not installed (`make servers` installs it)."]
+    style = models["lti"].styles()[0]
+    caps = {}
+    with tempfile.TemporaryDirectory() as tmp, _redis(redis, tmp) as store:
+        for workers in (1, 2):
+            env = {"STYLESTREAM_WORKERS": str(workers), "STYLESTREAM_SESSION_STORE": store}
+            with spawned_server(True, env) as (url, server):
+                measure = measure_fn(url, "lti", style, fps, seconds, None, server, None, None, None,
+                                     server_metrics=workers == 1)
+                caps[workers] = find_max(measure, 8)
+    return ["`stylestream serve --workers N`: N processes on one port (SO_REUSEPORT), each with its own batcher; "
+            "the kernel spreads connections over them. Both runs use a Redis session store (snapshots every 30 "
+            "frames go to it).", "",
+            "| workers | capacity at 60 fps | vs 1 worker |", "|---|---|---|",
+            f"| 1 | {caps[1]} | 1.0× |", f"| 2 | {caps[2]} | {caps[2] / max(caps[1], 1):.1f}× |", "",
+            f"Cores: {os.cpu_count()}, shared by the server processes and the load test's client processes."]
+
+
+@contextlib.contextmanager
+def _redis(binary: str, folder: str):
+    port = free_port()
+    proc = subprocess.Popen([binary, "--port", str(port), "--bind", "127.0.0.1", "--dir", folder, "--save", "",
+                             "--appendonly", "no"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        time.sleep(0.5)
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m clients.perf_report", description=__doc__)
     parser.add_argument("--seconds", type=float, default=4.0, help="length of each load run")
@@ -55,7 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     fps = 60.0
     t_start = time.perf_counter()
-    models = load_models(get_settings().weights_dir)
+    # models that stylise frames (a character controller such as LPN-FiLM takes control ticks instead)
+    models = {n: m for n, m in load_models(get_settings().weights_dir).items() if not getattr(m, "controllable", False)}
     floor = echo_floor(SWEEP[-1], fps, args.seconds)
     lines = [
         "# Performance", "",
@@ -64,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
         f"fixed {fps:g} Hz clock from 2 client processes and never waits for replies; round trip = send to reply; "
         "server-side = frame arrival to reply sent (the server's `/metrics` histogram); capacity = the most "
         f"sessions holding p99 ≤ {1000 / fps:.1f} ms with no drops (doubling, then bisection). The echo floor is a "
-        "plain WebSocket echo server on the same stack (uvicorn + Starlette, same route), measured in the same run. "
+        "plain WebSocket echo server on the same stack (uvicorn + Starlette, same route), measured in the same run, "
+        "as is its capacity (below). "
         "Sessions announce 60 fps; models run at their own 30 fps (every other frame is a held output).", "",
         f"Echo floor, {floor.sessions} sessions: p50 {floor.p50_ms:.2f} ms, p99 {floor.p99_ms:.2f} ms, "
         f"{floor.late} late, client CPU {floor.client_cpu_s:.1f} s.", "",
@@ -77,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {name} | {m1 * 1e3:.2f} / {p1 * 1e3:.2f} | {m256 / 256 * 1e6:.1f} | {256 / m256:,.0f} |")
         print(f"{name} step: batch 1 {m1 * 1e3:.2f} ms, batch 256 {m256 / 256 * 1e6:.1f} us/frame", flush=True)
     capacity: dict[str, dict[bool, int]] = {}
+    shares: dict[str, float] | str = "not measured"
     for name in models:
         capacity[name] = {}
         for batching in (True, False):
@@ -93,21 +174,22 @@ def main(argv: list[str] | None = None) -> int:
                               "| sessions | p50 ms | p99 ms | dropped | late | server-side p50 / p99 ms | frames/s "
                               "| server CPU s | p99 / echo floor |", "|---|---|---|---|---|---|---|---|---|"]
                     lines += [_row(r, floor) for r in sweep]
+                    if name == "lti":
+                        shares = profiled(measure, server.pid, PROFILE_SESSIONS, args.seconds)
+    echo_cap, _ = echo_capacity(fps, args.seconds)
     lines += ["", "## Capacity at 60 fps (p99 ≤ 16.7 ms, no drops)", "",
-              "| model | batching on | batching off | batching gain |", "|---|---|---|---|"]
+              f"The echo server (same stack, no model, no validation) holds **{echo_cap}** sessions in this harness: "
+              "the transport's ceiling here, which no model server on this stack can pass.", "",
+              "| model | batching on | batching off | batching gain | batching on / echo capacity |", "|---|---|---|---|---|"]
     for name, cap in capacity.items():
         gain = f"{cap[True] / cap[False]:.1f}×" if cap[False] else "∞"
-        lines.append(f"| {name} | {cap[True]} | {cap[False]} | {gain} |")
+        lines.append(f"| {name} | {cap[True]} | {cap[False]} | {gain} | {cap[True] / max(echo_cap, 1):.2f} |")
     lines += ["", "Targets (issue 7): 64 sessions at p99 ≤ 2× the echo floor; ≥ 256 Style-ERD and ≥ 512 LTI sessions; "
-              "batching ≥ 3× the unbatched capacity.", "",
-              "## Where the time goes", "",
-              "The server is one Python process: its event loop saturates one core. A py-spy profile at 48 LTI "
-              "sessions (`py-spy record -p PID`) put ~20% in uvicorn's WebSocket send path, ~11% in decoding and "
-              "validating frames, ~9% in the batched model step and the rest in asyncio/Starlette plumbing. "
-              "Per-message deflate is off (it cost more than it saved on 372-byte frames) and snapshots are kept as "
-              "references rather than serialised. Next: several worker processes with a shared session store, and "
-              "a leaner frame path.", "",
-              f"Run time of this report: {time.perf_counter() - t_start:.0f} s."]
+              "batching ≥ 3× the unbatched capacity."]
+    lines += ["", "## Worker processes (lti, batching on)", ""] + workers_section(models, fps, args.seconds)
+    lines += ["", "## Where the time goes", ""] + profile_section(shares) + ["",
+              f"Run time of this report: {time.perf_counter() - t_start:.0f} s; load average at the end "
+              f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} (the machine is shared)."]
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
     return 0

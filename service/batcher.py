@@ -87,14 +87,16 @@ class ModelThread:
 class Batcher:
     def __init__(self, model: StreamingModel, thread: ModelThread, metrics: Metrics,
                  wait_s: float = 0.001, max_batch: int = 256, enabled: bool = True,
-                 open_sessions: Callable[[], int] | None = None, inline_max_s: float = 0.002) -> None:
+                 open_sessions: Callable[[], int] | None = None, inline_max_s: float = 0.005) -> None:
         self.model, self.thread = model, thread
         self.metrics = metrics.model(model.name)
         self.wait_s, self.max_batch = wait_s, (max_batch if enabled else 1)
         # a batch is full once every open session of this model is in it: waiting longer gains nothing
         self.open_sessions = open_sessions or (lambda: self.max_batch)
         self.inline_max_s = inline_max_s
-        self.row_s = 0.0  # running estimate of step seconds per session (measured, smoothed)
+        # measured step seconds by batch size class (bit length of the size), smoothed: a step has
+        # a large fixed part (LTI: ~1.2 ms at 1 session, ~5 ms at 256), so no per-session rate fits
+        self.step_s: dict[int, float] = {}
         self._pending: list[StepRequest] = []
         self._want = 1  # requests pending that wake the gathering batcher
         self._arrived = asyncio.Event()
@@ -137,7 +139,7 @@ class Batcher:
         return batch
 
     def _inline(self, size: int) -> bool:
-        return self.thread.idle and size * self.row_s <= self.inline_max_s
+        return self.thread.idle and self.step_s.get(size.bit_length(), 0.0) <= self.inline_max_s
 
     async def _run(self) -> None:
         while True:
@@ -155,7 +157,8 @@ class Batcher:
                         req.future.set_exception(exc)
                 continue
             seconds = time.perf_counter() - t0
-            self.row_s += 0.2 * (seconds / len(batch) - self.row_s)
+            size_class = len(batch).bit_length()
+            self.step_s[size_class] = self.step_s.get(size_class, seconds) * 0.8 + 0.2 * seconds
             self.metrics.step_latency.observe(seconds)
             self.metrics.batch_size.observe(len(batch))
             for req, result in zip(batch, results):

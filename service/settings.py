@@ -28,7 +28,7 @@ class ServiceSettings(Settings):
     blas_threads: int = Field(default=1, ge=1, description="numpy BLAS threads (threadpoolctl), for the same reason.")
     batching: bool = Field(default=True, description="Cross-session batching; off = one step per frame (for benchmarks).")
     batch_wait_ms: float = Field(default=1.0, ge=0, le=50, description="How long a batch waits for more sessions' frames.")
-    step_inline_max_ms: float = Field(default=2.0, ge=0, description="Model steps predicted shorter than this run on "
+    step_inline_max_ms: float = Field(default=5.0, ge=0, description="Model steps predicted shorter than this run on "
                                       "the event loop (no thread hop); longer ones on the model thread. 0: always the thread.")
     workers: int = Field(default=1, ge=1, le=64, description="Server processes sharing the port (SO_REUSEPORT), each "
                          "with its own batcher; resume across them needs a shared session_store (redis://).")
