@@ -53,7 +53,7 @@ test-all: install
 	$(BIN)/python -m pytest -q
 
 perf: install
-	$(BIN)/python -m clients.perf_report
+	$(BIN)/python -m clients.perf_report $(PERF_ARGS)
 
 summary: install
 	$(BIN)/python -m models.data summary

@@ -216,12 +216,13 @@ def wait_ready(base: str, alive, timeout: float = 60.0, require_ok: bool = True)
         time.sleep(0.05)
 
 
-def _spawn(module_args: list[str], port: int, env: dict[str, str] | None = None):
+def _spawn(module_args: list[str], port: int, env: dict[str, str] | None = None, cwd: Path | None = None):
     import subprocess
     import sys
 
     proc = subprocess.Popen([sys.executable, "-m", *module_args, "--port", str(port)],
-                            env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            cwd=cwd)
     try:
         wait_ready(f"http://127.0.0.1:{port}", lambda: proc.poll() is None, require_ok=False)
     except RuntimeError:
@@ -287,12 +288,14 @@ def find_max(measure, start: int = 8, limit: int = 4096) -> int:
 
 
 @contextlib.contextmanager
-def spawned_server(batching: bool = True, env: dict[str, str] | None = None):
-    """`stylestream serve` on a free loopback port (settings as STYLESTREAM_* in `env`); yields
-    (ws url, process)."""
+def spawned_server(batching: bool = True, env: dict[str, str] | None = None, checkout: Path | None = None):
+    """`stylestream serve` on a free loopback port (settings as STYLESTREAM_* in `env`; the code
+    of another `checkout` of the repository if given); yields (ws url, process)."""
     port = free_port()
-    server = _spawn(["clients.cli", "serve", "--log-level", "warning"], port,
-                    {**(env or {}), **({} if batching else {"STYLESTREAM_BATCHING": "false"})})
+    env = {**(env or {}), **({} if batching else {"STYLESTREAM_BATCHING": "false"})}
+    if checkout is not None:
+        env["PYTHONPATH"] = str(checkout)
+    server = _spawn(["clients.cli", "serve", "--log-level", "warning"], port, env, cwd=checkout)
     try:
         yield f"ws://127.0.0.1:{port}/v1/stream", server
     finally:
@@ -367,7 +370,9 @@ def echo_floor(sessions: int, fps: float, seconds: float, processes: int | None 
     port = free_port()
     echo = _spawn(["clients.echo_server"], port)
     try:
+        cpu0 = _cpu_seconds(echo.pid)
         floor, _ = run(f"ws://127.0.0.1:{port}/v1/stream", sessions, fps, seconds, processes=processes, echo=True)
+        floor.server_cpu_s = _cpu_seconds(echo.pid) - cpu0
     finally:
         echo.terminate()
     print("echo floor   " + floor.line())

@@ -56,7 +56,14 @@ def step_cost(model, batch: int, steps: int) -> tuple[float, float]:
 def _row(r: Result, floor: Result | None = None) -> str:
     ratio = f"{r.p99_ms / floor.p99_ms:.1f}" if floor else "–"
     return (f"| {r.sessions} | {r.p50_ms:.2f} | {r.p99_ms:.2f} | {r.dropped} | {r.late} | "
-            f"{r.server_p50_ms:.2f} / {r.server_p99_ms:.2f} | {r.frames_per_s:.0f} | {r.server_cpu_s:.1f} | {ratio} |")
+            f"{r.server_p50_ms:.2f} / {r.server_p99_ms:.2f} | {r.frames_per_s:.0f} | {r.server_cpu_s:.1f} | "
+            f"{cpu_per_frame_us(r):.0f} | {ratio} |")
+
+
+def cpu_per_frame_us(r: Result) -> float:
+    """Server CPU per reply, the server's own cost: unlike latency it hardly depends on what else
+    the shared machine runs."""
+    return 1e6 * r.server_cpu_s / max(r.received, 1)
 
 
 def profiled(measure, pid: int, sessions: int, seconds: float) -> dict[str, float] | str:
@@ -113,6 +120,36 @@ def workers_section(models: dict, fps: float, seconds: float) -> list[str]:
             f"Cores: {os.cpu_count()}, shared by the server processes and the load test's client processes."]
 
 
+def baseline_section(rev: str, models: dict, fps: float, seconds: float, sessions: int = 48) -> list[str]:
+    """The same load (`sessions` LTI, batching on) on the server of `rev` and on this tree's,
+    alternating twice, so a busy spell of the shared machine hits both alike."""
+    style = models["lti"].styles()[0]
+    label = subprocess.run(["git", "log", "-1", "--format=%h %s", rev], cwd=REPO_ROOT, capture_output=True,
+                           text=True, check=True).stdout.strip()[:90]
+    runs: dict[str, list[Result]] = {"before": [], "after": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = Path(tmp) / "baseline"
+        subprocess.run(["git", "worktree", "add", "--detach", str(tree), rev], cwd=REPO_ROOT, check=True,
+                       capture_output=True)
+        try:
+            for _ in range(2):
+                for which, checkout in (("before", tree), ("after", None)):
+                    with spawned_server(True, checkout=checkout) as (url, server):
+                        measure = measure_fn(url, "lti", style, fps, seconds, None, server, None, runs[which], [])
+                        measure(sessions)
+        finally:
+            subprocess.run(["git", "worktree", "remove", "--force", str(tree)], cwd=REPO_ROOT, capture_output=True)
+    cpu = {k: float(np.mean([cpu_per_frame_us(r) for r in v])) for k, v in runs.items()}
+    p50 = {k: float(np.mean([r.p50_ms for r in v])) for k, v in runs.items()}
+    p99 = {k: float(np.mean([r.p99_ms for r in v])) for k, v in runs.items()}
+    return [f"{sessions} LTI sessions at {fps:g} fps, batching on, two runs each, alternating; before = `{label}`.", "",
+            "| server | CPU µs / frame | p50 ms | p99 ms |", "|---|---|---|---|",
+            f"| before | {cpu['before']:.0f} | {p50['before']:.2f} | {p99['before']:.2f} |",
+            f"| after | {cpu['after']:.0f} | {p50['after']:.2f} | {p99['after']:.2f} |",
+            f"| after / before | {cpu['after'] / cpu['before']:.2f} | {p50['after'] / p50['before']:.2f} | "
+            f"{p99['after'] / p99['before']:.2f} |"]
+
+
 @contextlib.contextmanager
 def _redis(binary: str, folder: str):
     port = free_port()
@@ -130,6 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m clients.perf_report", description=__doc__)
     parser.add_argument("--seconds", type=float, default=4.0, help="length of each load run")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "docs" / "performance.md")
+    parser.add_argument("--baseline", metavar="REV", help="also measure the server of this git revision (a temporary "
+                        "worktree) against this one, alternating, at the same load: before/after server CPU per frame")
     args = parser.parse_args(argv)
     fps = 60.0
     t_start = time.perf_counter()
@@ -147,7 +186,8 @@ def main(argv: list[str] | None = None) -> int:
         "as is its capacity (below). "
         "Sessions announce 60 fps; models run at their own 30 fps (every other frame is a held output).", "",
         f"Echo floor, {floor.sessions} sessions: p50 {floor.p50_ms:.2f} ms, p99 {floor.p99_ms:.2f} ms, "
-        f"{floor.late} late, client CPU {floor.client_cpu_s:.1f} s.", "",
+        f"{floor.late} late, client CPU {floor.client_cpu_s:.1f} s, echo server CPU {cpu_per_frame_us(floor):.0f} µs "
+        "per frame.", "",
         "## Model step cost (through the streaming interface, first style)", "",
         "| model | batch 1 median / p99 (ms) | batch 256 per frame (µs) | batched frames/s |", "|---|---|---|---|",
     ]
@@ -172,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
                         measure(n)
                     lines += ["", f"## {name}: session sweep, batching on", "",
                               "| sessions | p50 ms | p99 ms | dropped | late | server-side p50 / p99 ms | frames/s "
-                              "| server CPU s | p99 / echo floor |", "|---|---|---|---|---|---|---|---|---|"]
+                              "| server CPU s | server CPU µs / frame | p99 / echo floor |",
+                              "|---|---|---|---|---|---|---|---|---|---|"]
                     lines += [_row(r, floor) for r in sweep]
                     if name == "lti":
                         shares = profiled(measure, server.pid, PROFILE_SESSIONS, args.seconds)
@@ -187,6 +228,9 @@ def main(argv: list[str] | None = None) -> int:
     lines += ["", "Targets (issue 7): 64 sessions at p99 ≤ 2× the echo floor; ≥ 256 Style-ERD and ≥ 512 LTI sessions; "
               "batching ≥ 3× the unbatched capacity."]
     lines += ["", "## Worker processes (lti, batching on)", ""] + workers_section(models, fps, args.seconds)
+    if args.baseline:
+        lines += ["", f"## Before / after: this tree against `{args.baseline}`", ""] + baseline_section(
+            args.baseline, models, fps, args.seconds)
     lines += ["", "## Where the time goes", ""] + profile_section(shares) + ["",
               f"Run time of this report: {time.perf_counter() - t_start:.0f} s; load average at the end "
               f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} (the machine is shared)."]

@@ -31,7 +31,9 @@ def check_frame(root_in, rot_in, root_out, rot_out) -> int:
                 return NOT_FINITE
     status = OK
     for j in range(rot_in.shape[0]):
-        x, y, z, w = float(rot_in[j, 0]), float(rot_in[j, 1]), float(rot_in[j, 2]), float(rot_in[j, 3])
+        # float64 arithmetic whatever the input (numba's float() keeps a float32 a float32)
+        x, y = np.float64(rot_in[j, 0]), np.float64(rot_in[j, 1])
+        z, w = np.float64(rot_in[j, 2]), np.float64(rot_in[j, 3])
         norm = np.sqrt(x * x + y * y + z * z + w * w)
         if norm < 1e-6:
             return ZERO_QUATERNION
