@@ -48,7 +48,11 @@ RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
 CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias
 PHASE_BLEND = 0.5  # next phase = blend of (current advanced by the predicted frequency) and the predicted phase
 LOCK_RELEASE = 4  # frames over which a released foot returns to its animated position
-LOCK_MAX_PULL = 6.0  # cm: the anchor is dragged along when the animated ankle moves farther away
+LOCK_MAX_PULL = 20.0  # cm: the anchor is dragged along beyond this (scripted demo skate ratio: 6 cm 0.53, 20 cm 0.46, no lock 0.67)
+CONTACT_THRESHOLD = 0.35  # predicted contact (regressed 0/1) above which a foot counts as planted (0.5: skate 0.46 -> 0.44)
+STOP_SPEED = 30.0  # cm/s: below this wanted speed the phases are damped (standing)
+STOP_PHASE_DAMP = 0.6  # per-frame phase factor when the wanted speed is 0
+STOP_ROOT_HOLD = 0.9  # share of the predicted root translation held back when the wanted speed is 0
 LEG_CHAINS = (("UpperLeg_L", "LowerLeg_L", "Foot_L"), ("UpperLeg_R", "LowerLeg_R", "Foot_R"))
 
 
@@ -215,7 +219,7 @@ class LPNModel:
         control = self._control(s, frames, root, rot_in, fresh)
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
-        out_root, out_rot, contacts, g_world = self._advance(s, y)
+        out_root, out_rot, contacts, g_world = self._advance(s, y, control)
         out_rot = self._foot_lock(s, out_root, out_rot, contacts, g_world)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
@@ -264,7 +268,6 @@ class LPNModel:
                                    np.concatenate([s["hist_dir"][:, PAST_IDX], s["fut_dir"]], 1),
                                    np.concatenate([s["hist_vel"][:, PAST_IDX], s["fut_vel"]], 1), gait, pos, yaw)
         x = np.concatenate([traj, s["pose"].reshape(B, -1)], 1)
-        s["cur_gait"] = control[:, 3].copy()
         g = np.concatenate([s["hist_phase"][:, PAST_IDX], s["fut_phase"]], 1).reshape(B, -1)
         return x.astype(np.float32), g.astype(np.float32)
 
@@ -284,13 +287,20 @@ class LPNModel:
                 h = _elu(_layer_norm(h) * (1.0 + film[:, 2 * i]) + film[:, 2 * i + 1])
         return h * self.y_std + self.y_mean
 
-    def _advance(self, s: State, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Apply the prediction: move the root, shift the history, store pose/phases/future; returns
-        the output Hips translation, local rotations, contacts and world rotation matrices."""
+        the output Hips translation, local rotations, contacts and world rotation matrices.
+
+        Stopping: the training clips hardly ever stand still after moving, so on its own the network
+        keeps stepping when asked to stop. While the wanted speed is below STOP_SPEED the phases
+        (current and future) are damped toward zero each frame, the amplitude the network learned
+        for standing at the start of a take, so its experts for standing take over, and most of the
+        predicted root translation is held back (alone, each leaves a 30-60 cm/s shuffle)."""
         B = y.shape[0]
         yaw, pos = s["yaw"], s["hist_pos"][:, -1]
         delta = y[:, lf.DELTA_OUT]
-        new_pos = pos + lf.to_world_xz(delta[:, :2], yaw)
+        still = np.clip(1.0 - np.hypot(control[:, 0], control[:, 1]) / STOP_SPEED, 0.0, 1.0)
+        new_pos = pos + lf.to_world_xz(delta[:, :2] * (1.0 - STOP_ROOT_HOLD * still)[:, None], yaw)
         new_yaw = wrap_angle(yaw + delta[:, 2]).astype(np.float32)
         vel = (new_pos - pos) * self.fps
         # phases: the current phase advanced by the predicted frequency, blended with the predicted one
@@ -302,6 +312,8 @@ class LPNModel:
         advanced = np.stack([cur[..., 0] * c + cur[..., 1] * sn, cur[..., 1] * c - cur[..., 0] * sn], -1)
         blend = _normalise((1 - PHASE_BLEND) * advanced + PHASE_BLEND * ph[:, 0])
         next_phase = blend * np.linalg.norm(ph[:, 0], axis=-1, keepdims=True)
+        damp = (1.0 - still * (1.0 - STOP_PHASE_DAMP))[:, None, None]
+        next_phase = next_phase * damp
 
         def push(key: str, value: np.ndarray) -> None:
             s[key] = np.concatenate([s[key][:, 1:], value[:, None].astype(np.float32)], 1)
@@ -309,14 +321,14 @@ class LPNModel:
         push("hist_pos", new_pos)
         push("hist_dir", lf.direction(new_yaw))
         push("hist_vel", vel)
-        push("hist_gait", s.pop("cur_gait"))
+        push("hist_gait", control[:, 3])
         push("hist_phase", next_phase)
         traj = y[:, lf.TRAJ_OUT].reshape(B, lf.FUTURE, lf.TRAJ_OUT_CH)
         ny = new_yaw[:, None]
         s["fut_pos"] = (new_pos[:, None] + lf.to_world_xz(traj[..., 0:2], ny)).astype(np.float32)
         s["fut_dir"] = _normalise(lf.to_world_xz(traj[..., 2:4], ny)).astype(np.float32)
         s["fut_vel"] = lf.to_world_xz(traj[..., 4:6], ny).astype(np.float32)
-        s["fut_phase"] = ph[:, 1:].astype(np.float32)
+        s["fut_phase"] = (ph[:, 1:] * damp[:, None]).astype(np.float32)
         pose = y[:, lf.POSE_OUT].reshape(B, lf.NB, lf.POSE_CH)
         s["pose"] = pose.astype(np.float32)
         s["yaw"] = new_yaw
@@ -333,7 +345,7 @@ class LPNModel:
         hips = pose[:, 0, :3]
         out_root = np.stack([new_pos[:, 0], hips[:, 1], new_pos[:, 1]], -1) + \
             lf.to_world(np.stack([hips[:, 0], 0 * hips[:, 1], hips[:, 2]], -1), new_yaw)
-        contacts = y[:, lf.CONTACT_OUT] > 0.5
+        contacts = y[:, lf.CONTACT_OUT] > CONTACT_THRESHOLD
         return out_root.astype(np.float32), matrix_to_quat(local).astype(np.float32), contacts, g_world
 
     # ------------------------------------------------------------------ kinematics
