@@ -146,3 +146,22 @@ def test_add_style_from_clip_gives_a_usable_style_and_remove_drops_it(model, cli
         model.add_style_from_clip("tiny", clips["giant"].slice(0, 10))
     with pytest.raises(ValueError):
         model.remove_style("normal")
+
+
+def test_control_sessions_start_standing_whatever_pose_the_input_carries(model):
+    """A controller client sends no pose (the service passes the identity rest pose): the session
+    starts from the model's standing pose facing the control's yaw, and walks that way."""
+    identity = np.zeros((1, 22, 4))
+    identity[..., 3] = 1.0
+    w = model.weight_vector({"normal": 1.0})[None]
+    roots = {}
+    for facing in (0.0, np.pi / 2):
+        state = model.init_state(1)
+        for t in range(60):
+            control = np.array([[1.2, 0.0, facing, 0.0, 1.0]])
+            out, state = model.step_batch(state, FrameBatch(np.zeros((1, 3)), identity, control=control), w)
+            if t == 0:
+                assert 70.0 < out.root[0, 1] < 110.0  # Hips at standing height, not the rest pose's
+        roots[facing] = out.root[0]
+    assert roots[0.0][2] > 40.0 and abs(roots[0.0][0]) < 0.5 * roots[0.0][2]
+    assert roots[np.pi / 2][0] > 40.0 and abs(roots[np.pi / 2][2]) < 0.5 * roots[np.pi / 2][0]

@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from ..interface import FrameBatch, State
 from ..motion.features import body_joint, wrap_angle
-from ..motion.rotations import quat_apply
+from ..motion.rotations import quat_apply, quat_mul
 from ..motion.skeleton import Motion, Skeleton
 from . import features as lf
 from ..lti.footplant import two_bone_ik
@@ -69,6 +69,13 @@ def _layer_norm(x: np.ndarray) -> np.ndarray:
 
 def _normalise(v: np.ndarray) -> np.ndarray:
     return v / np.sqrt(np.maximum((v * v).sum(-1, keepdims=True), 1e-16))
+
+
+def yaw_quat(yaw: np.ndarray) -> np.ndarray:
+    """(..., 4) rotation about +Y by `yaw` (scalar-last)."""
+    h = 0.5 * np.asarray(yaw, np.float64)
+    z = np.zeros_like(h)
+    return np.stack([z, np.sin(h), z, np.cos(h)], axis=-1)
 
 
 class LPNModel:
@@ -184,10 +191,24 @@ class LPNModel:
                 "pose": z(lf.NB, lf.POSE_CH), "yaw": z(), "in_pos": z(2), "in_vel": z(2),
                 "lock_anchor": z(2, 3), "lock_since": np.full((B, 2), 10**6, np.int64), "lock_was": np.zeros((B, 2), bool)}
 
-    def _start(self, state: State, rows: np.ndarray, root: np.ndarray, rotations: np.ndarray) -> None:
+    def _start(self, state: State, rows: np.ndarray, root: np.ndarray, rotations: np.ndarray,
+               control: np.ndarray | None) -> None:
         """Fresh sessions start standing in the input's first pose (as a clip's samples before its
-        first frame repeat it in training)."""
-        grot, gpos = self._fk(root[rows], rotations[rows])
+        first frame repeat it in training). A session whose first frame carries control starts from
+        the model's standing pose instead (a controller client sends no real pose: the service sends
+        the identity rest pose, which on this skeleton is not a human posture), at the input's
+        ground position, facing the control's yaw."""
+        root, rotations = root[rows].copy(), rotations[rows].copy()
+        if control is not None:
+            given = np.flatnonzero(np.asarray(control)[rows, 4] > 0.5)
+            if len(given):
+                pose = self.rest_motion()
+                _, rest_pos = self._fk(pose.translations[:1, lf.HIPS], pose.rotations[:1])
+                turn = np.asarray(control, np.float32)[rows[given], 2] - self._facing(rest_pos)[0]
+                rotations[given] = pose.rotations[0]
+                rotations[given, lf.HIPS] = quat_mul(yaw_quat(turn), np.broadcast_to(pose.rotations[0, lf.HIPS], (len(given), 4)))
+                root[given, 1] = pose.translations[0, lf.HIPS, 1]
+        grot, gpos = self._fk(root, rotations)
         yaw = self._facing(gpos)
         ground = gpos[:, lf.HIPS] * np.array([1.0, 0.0, 1.0], np.float32)
         pose = lf.pose_features(gpos, np.zeros_like(gpos), grot, ground, yaw)
@@ -216,7 +237,7 @@ class LPNModel:
         s = {k: v.copy() for k, v in state.items()}
         fresh = np.flatnonzero(s["frame"] == 0)
         if len(fresh):
-            self._start(s, fresh, root, rot_in)
+            self._start(s, fresh, root, rot_in, frames.control)
         control = self._control(s, frames, root, rot_in, fresh)
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
@@ -426,11 +447,9 @@ class LPNModel:
         return replace(first.slice(0, 1), rotations=np.array(rots), translations=trans, fps=self.fps), np.array(cons)
 
     def rest_motion(self) -> Motion:
-        """A one-frame standing pose to start control-driven sessions from (the mean training pose's
-        rest: T-pose rotations are far from locomotion, so the first clip frame of normal walking is used)."""
-        from ..data import build_index, load_motion, select
-        clip = select(build_index(["bandai-namco-2"]), split="val", style="normal", content="walk")[0]
-        return load_motion(clip).slice(0, 1)
+        """The one-frame natural standing pose (committed asset) control-driven sessions start from."""
+        from ..motion.assets import bandai_namco_pose
+        return bandai_namco_pose()
 
     def weight_vector(self, mix: dict[str, float]) -> np.ndarray:
         names = self.styles()
