@@ -145,11 +145,12 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
 
     @app.post("/v1/styles", response_model=UploadAccepted, status_code=202, dependencies=[Depends(require_token)],
               responses=errors, openapi_extra=upload_body)
-    async def upload_style(request: Request, fine_tune: bool | None = Query(default=None),
+    async def upload_style(request: Request, response: Response, fine_tune: bool | None = Query(default=None),
                            name: str | None = Query(default=None), model: str | None = Query(default=None),
                            rt: Runtime = Depends(runtime), who: Principal = Depends(require_token)) -> UploadAccepted:
         """Upload a clip as a new style: multipart BVH (`file`) or JSON frames. LTI styles need
-        `fine_tune=true`, which starts the identification job (`GET /v1/jobs/{id}`)."""
+        `fine_tune=true`, which starts the identification job (`GET /v1/jobs/{id}`), answered 202;
+        an LPN-FiLM style is the clip's FiLM embedding, ready at once, answered 201."""
         body = await _read_limited(request, who.limits.upload_max_bytes)
         ctype = request.headers.get("content-type", "")
         upload, bvh_text, fields = None, None, {}
@@ -181,7 +182,10 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
         fine = fine if fine_tune is None else fine_tune
         style_name = name or fields.get("name") or ""
         model_name = model or fields.get("model") or "lti"
-        return rt.styles.upload(upload, bvh_text, style_name, model_name, fine)
+        accepted = await rt.styles.upload(upload, bvh_text, style_name, model_name, fine)
+        if accepted.job is None:  # a clip embedding (LPN-FiLM): the style exists already
+            response.status_code = 201
+        return accepted
 
     @app.get("/v1/jobs/{job_id}", response_model=JobInfo, dependencies=[Depends(require_token)], responses=errors)
     async def get_job(job_id: str, rt: Runtime = Depends(runtime)) -> JobInfo:

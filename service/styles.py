@@ -2,8 +2,9 @@
 
 An uploaded clip (BVH with the Bandai Namco or a CMU skeleton, or JSON frames on the Bandai Namco
 skeleton) is validated, brought onto the model skeleton at 30 fps, persisted under
-`styles_dir/<model>/<name>/` (clip.npz, translator.npz, style.json) and, for the LTI model,
-turned into a style by a fine-tuning job (`models.lti.finetune`). When the job is done the style
+`styles_dir/<model>/<name>/` (clip.npz, translator.npz, style.json) and turned into a style: for
+LPN-FiLM at once (the FiLM generator's embedding of the clip, `add_style_from_clip`), for the LTI
+model by a fine-tuning job (`models.lti.finetune`). When the job is done the style
 is added to the one live model (`add_style`), and a deleted style is removed from it
 (`remove_style`), both on the model-step worker thread so no step sees a half-changed model. New
 sessions see the change at once; running and resumed sessions carry on unchanged (their state is
@@ -195,6 +196,12 @@ class StyleStore:
                 self._save_info(info)
             if info.status == "ready":
                 try:
+                    if hasattr(model, "add_style_from_clip"):
+                        clip = np.load(meta.parent / "clip.npz")
+                        model.add_style_from_clip(info.name, _bn_motion(model.skeleton, clip["root"], clip["rotations"],
+                                                                        float(clip["fps"])))
+                        self.uploaded[info.id] = info
+                        continue
                     tr = StyleTranslator.load(meta.parent / "translator.npz")
                     tr.style = info.name
                     model.add_style(tr)
@@ -244,8 +251,8 @@ class StyleStore:
 
         await self.rt.on_model_thread(remove)
 
-    def upload(self, upload: StyleUpload | None, bvh_text: str | None, name: str, model_name: str,
-               fine_tune: bool) -> UploadAccepted:
+    async def upload(self, upload: StyleUpload | None, bvh_text: str | None, name: str, model_name: str,
+                     fine_tune: bool) -> UploadAccepted:
         if not NAME_RE.match(name or ""):
             raise ApiError(422, "bad_name", f"style name {name!r} must be a slug: 1-40 characters of a-z, 0-9 and '-', "
                            "starting and ending with a letter or digit")
@@ -255,13 +262,17 @@ class StyleStore:
         sid = style_id(model_name, name)
         if name in model.styles() or sid in self.uploaded:
             raise ApiError(409, "style_exists", f"model {model_name!r} already has a style named {name!r}")
-        if not hasattr(model, "add_style"):
+        embeds = hasattr(model, "add_style_from_clip")  # LPN-FiLM: a clip's FiLM embedding is the style
+        if not (embeds or hasattr(model, "add_style")):
             raise ApiError(422, "uploads_unsupported", f"model {model_name!r} cannot take uploaded styles "
                            "(its styles are trained branches); upload to 'lti' with fine_tune=true")
         motion, skel = motion_from_bvh(bvh_text, model.skeleton) if bvh_text is not None else motion_from_json(upload, model.skeleton)
         n, lo, hi = motion.num_frames, self.settings.upload_min_frames, self.settings.upload_max_frames
         if not lo <= n <= hi:
             raise ApiError(422, "bad_length", f"the clip has {n} frames at 30 fps; between {lo} and {hi} are needed")
+        if embeds:
+            return await self._embed(model_name, name, motion, n, "bvh" if bvh_text is not None else "json", skel,
+                                     fine_tune)
         if not fine_tune:
             raise ApiError(422, "fine_tune_required", "an LTI style is a translator identified from the clip: upload "
                            "with fine_tune=true to start the identification job (the clip alone is not a style)")
@@ -281,6 +292,28 @@ class StyleStore:
         info.job_id = job.id
         self._save_info(info)
         return UploadAccepted(style=info.model_copy(), job=job)
+
+    async def _embed(self, model_name: str, name: str, motion, frames: int, source: str, skel: str,
+                     fine_tune: bool) -> UploadAccepted:
+        """A clip-embedding model (LPN-FiLM): the FiLM generator turns the clip into a style that
+        sessions can use as soon as this returns; no training data or job is involved."""
+        if fine_tune:
+            raise ApiError(422, "fine_tune_unsupported", f"model {model_name!r} takes a style straight from the clip "
+                           "(its FiLM embedding); upload without fine_tune")
+        model = self.rt.models[model_name]
+        try:
+            await self.rt.on_model_thread(model.add_style_from_clip, name, motion)
+        except ValueError as exc:
+            raise ApiError(422, "bad_clip", str(exc)) from None
+        sid = style_id(model_name, name)
+        info = StyleInfo(id=sid, name=name, model=model_name, kind="uploaded", status="ready", created=time.time(),
+                         frames=frames, source=source, skeleton=skel, message="FiLM parameters from the clip")
+        d = self._dir(model_name, name)
+        d.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(d / "clip.npz", root=motion.translations[:, 1], rotations=motion.rotations, fps=MODEL_FPS)
+        self.uploaded[sid] = info
+        self._save_info(info)
+        return UploadAccepted(style=info.model_copy())
 
     # ---- the job (job thread) ----------------------------------------------------
     def _fine_tune_job(self, info: StyleInfo, motion, ref, progress) -> dict:
