@@ -200,6 +200,11 @@ def markdown(r: dict) -> str:
         t, v = judges["test"], judges["val"]
         lines += [f"Judge reference accuracy on real clips: style {fmt(t['style_acc'])} test / {fmt(v['style_acc'])} val "
                   f"(7 classes), content {fmt(t['content_acc'])} test / {fmt(v['content_acc'])} val (10 classes).", ""]
+    if "lpn" in r["methods"]:
+        lines += ["LPN-FiLM is a locomotion controller (trained on walks, runs and turns only): driven by the input's root "
+                  "motion it re-synthesises *locomotion*, so on the waving and hand-raising half of these inputs it walks "
+                  "or stands instead, which the content judge rightly counts as lost content. Its own numbers on a "
+                  "scripted 60 s control sequence are in its model card (`models/weights/lpn/MODEL_CARD.md`).", ""]
     lines += ["## Overall (mean over target styles)", "",
               "| method | style acc ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ |", "|---|---|---|---|---|---|"]
     for name, m in r["methods"].items():
