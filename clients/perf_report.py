@@ -194,9 +194,11 @@ def main(argv: list[str] | None = None) -> int:
         "| model | batch 1 median / p99 (ms) | batch 256 per frame (µs) | batched frames/s |", "|---|---|---|---|",
     ]
     for name, model in models.items():
-        with threadpool_limits(ServiceSettings().blas_threads, user_api="blas"):  # as the server runs them: BLAS
-            m1, p1 = step_cost(model, 1, 300)  # threads of their own made ERD's batch of 256 ~10x slower on the
-            m256, _ = step_cost(model, 256, 40)  # loaded 2-core machine
+        # with the server's BLAS thread limit: threads of their own made ERD's batch of 256 ~10x slower
+        # on the loaded 2-core machine
+        with threadpool_limits(ServiceSettings().blas_threads, user_api="blas"):
+            m1, p1 = step_cost(model, 1, 300)
+            m256, _ = step_cost(model, 256, 40)
         lines.append(f"| {name} | {m1 * 1e3:.2f} / {p1 * 1e3:.2f} | {m256 / 256 * 1e6:.1f} | {256 / m256:,.0f} |")
         print(f"{name} step: batch 1 {m1 * 1e3:.2f} ms, batch 256 {m256 / 256 * 1e6:.1f} us/frame", flush=True)
     capacity: dict[str, dict[bool, int]] = {}
