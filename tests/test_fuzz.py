@@ -56,7 +56,7 @@ settings.register_profile("fuzz", derandomize=True, deadline=None, database=None
                           suppress_health_check=(HealthCheck.too_slow, HealthCheck.data_too_large,
                                                  HealthCheck.large_base_example, HealthCheck.filter_too_much))
 FUZZ = settings.get_profile("fuzz")
-IN_SESSION_BATCHES, BATCH = 160, (40, 80)  # ~9 600 messages on one open session
+IN_SESSION_BATCHES, BATCH = 200, (40, 80)  # up to ~12 000 messages on one open session (hypothesis may stop short of max_examples)
 OPENINGS = 1200  # messages that open (or are sent right after opening) a fresh connection
 
 
