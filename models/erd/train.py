@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from ..runlog import start_run
 from ..settings import REPO_ROOT
 
 
@@ -223,15 +224,7 @@ def main(argv: list[str]) -> None:
     from .features import FeatureMaker
 
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    logf = open(run_dir / "train.log", "a")
-
-    def log(msg: str) -> None:
-        line = f"[{time.strftime('%H:%M:%S')}] {msg}"
-        tqdm.write(line, file=sys.stderr)
-        logf.write(line + "\n")
-        logf.flush()
+    log = start_run(run_dir, out_dir)
 
     t_start = time.time()
     stats = load_stats()

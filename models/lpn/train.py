@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..runlog import start_run
 from ..settings import REPO_ROOT
 from . import features as lf
 
@@ -198,15 +199,7 @@ def main(argv: list[str]) -> None:
     from .weights import data_config
 
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    logf = open(run_dir / "train.log", "a")
-
-    def log(msg: str) -> None:
-        line = f"[{time.strftime('%H:%M:%S')}] {msg}"
-        tqdm.write(line, file=sys.stderr)
-        logf.write(line + "\n")
-        logf.flush()
+    log = start_run(run_dir, out_dir)
 
     data = data_config(asdict(cfg))
     meta = load_meta(data)
