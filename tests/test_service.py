@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import struct
 import threading
+import time
 
 import httpx
 import numpy as np
@@ -241,9 +242,26 @@ def test_a_bad_client_does_not_disturb_a_good_one(server, models, clip):
     np.testing.assert_allclose(good[0][1], want_rot, atol=1e-9)
 
 
+class SlowModel:
+    """A model that takes 20 ms a step, so a client sending 60 frames at once is sure to outrun it
+    (the real compiled steps are fast enough that whether the queue overflows is up to the scheduler)."""
+
+    def __init__(self, model, step_s: float = 0.02) -> None:
+        self._model, self._step_s = model, step_s
+
+    def __getattr__(self, name):
+        if name.startswith("_"):  # copies and pickles probe before __init__ ran
+            raise AttributeError(name)
+        return getattr(self._model, name)
+
+    def step_batch(self, *args, **kwargs):
+        time.sleep(self._step_s)
+        return self._model.step_batch(*args, **kwargs)
+
+
 def test_backpressure_drops_oldest_frames_and_says_so(models, clip):
     root, rot = clip
-    with live_server(models, session_queue=4, batch_wait_ms=5) as (base, _):
+    with live_server({"lti": SlowModel(models["lti"])}, session_queue=4, batch_wait_ms=5) as (base, _):
         with connect(ws_url(base)) as ws:
             start(ws, style=first_style(models))
             sent = 60
