@@ -62,6 +62,8 @@ class TrainConfig:
     run_dir: str = str(REPO_ROOT / ".data" / "erd" / "run")
     out_dir: str = str(REPO_ROOT / "out" / "erd")
     export: str = ""  # path of a checkpoint to export to models/weights/erd instead of training
+    init_from: str = ""  # continue from this checkpoint (generator, discriminator and its run's classifier)
+    target_weights: str = ""  # e.g. "exhausted=3": neutral windows pick that target style 3x as often
 
 
 def parse_args(argv: list[str]) -> TrainConfig:
@@ -122,6 +124,19 @@ class Losses:
         pos = ((view["pos"] - real["pos"]) / self.scale["pos"]).pow(2).mean()
         vel = ((view["vel"] - real["vel"]) / self.scale["vel"]).pow(2).mean()
         return rot, pos, vel
+
+
+def target_probs(spec: str) -> torch.Tensor:
+    """Sampling probabilities of the 6 target styles for neutral windows; uniform unless `spec`
+    ("style=factor,...") boosts styles that come out weak."""
+    from .dataset import TARGET_STYLES
+    w = torch.ones(len(TARGET_STYLES))
+    for item in filter(None, spec.split(",")):
+        name, _, factor = item.partition("=")
+        if name not in TARGET_STYLES:
+            raise SystemExit(f"unknown target style {name!r}; known: {', '.join(TARGET_STYLES)}")
+        w[TARGET_STYLES.index(name)] = float(factor)
+    return w / w.sum()
 
 
 def one_hot_targets(style: torch.Tensor) -> torch.Tensor:
@@ -244,8 +259,18 @@ def main(argv: list[str]) -> None:
     log(f"config {json.dumps(asdict(cfg))}")
     log(f"generator {n_g} params, discriminator {n_d}, classifier {sum(p.numel() for p in clf.parameters())}")
 
-    clf_acc = train_classifier(cfg, clf, losses, train_s, val_s, log)
+    if cfg.init_from:  # fine-tune: same networks, the classifier its run trained
+        ckpt = torch.load(cfg.init_from, weights_only=False)
+        gen.load_state_dict(ckpt["generator"])
+        disc.load_state_dict(ckpt["discriminator"])
+        clf.load_state_dict(torch.load(Path(cfg.init_from).with_name("classifier.pt")))
+        clf.eval().requires_grad_(False)
+        clf_acc = ckpt["classifier_val_acc"]
+        log(f"initialised from {cfg.init_from} (iteration {ckpt['iter']})")
+    else:
+        clf_acc = train_classifier(cfg, clf, losses, train_s, val_s, log)
     torch.save(clf.state_dict(), run_dir / "classifier.pt")
+    p_target = target_probs(cfg.target_weights)
 
     opt_g = torch.optim.Adam(gen.parameters(), lr=cfg.lr_g, betas=(0.5, 0.999))
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999))
@@ -262,7 +287,7 @@ def main(argv: list[str]) -> None:
         b = train_s.sample(cfg.batch)
         x, style, content = b["x"], b["style"], b["content"]
         B = len(x)
-        target = torch.where(style == 0, torch.randint(1, 7, (B,)), torch.zeros_like(style))
+        target = torch.where(style == 0, 1 + torch.multinomial(p_target, B, replacement=True), torch.zeros_like(style))
         s_in = torch.where(torch.rand(B) < cfg.p_drop_style, torch.full_like(style, -1), style)
         c_in = torch.where(torch.rand(B) < cfg.p_drop_content, torch.full_like(content, -1), content)
         real = losses.real_view(x)
