@@ -148,6 +148,23 @@ class LPNModel:
                 self._films = np.concatenate([self._films, film])
                 self._styles = self._styles + [name]
 
+    def set_style_film(self, name: str, film: np.ndarray) -> None:
+        """Make `name` the style with FiLM vector `film` (4, H): a fine-tuned vector
+        (`finetune.py`) replacing a style's clip embedding, or a persisted one restored without
+        re-embedding. Adds the style if it does not exist. Running sessions see it from their next step."""
+        film = np.asarray(film, np.float32)
+        if film.shape != (4, self.H) or not np.all(np.isfinite(film)):
+            raise ValueError(f"a FiLM vector must be finite with shape (4, {self.H}), got {film.shape}")
+        row = film.reshape(1, -1)
+        with self._lock:
+            if name in self._styles:
+                films = self._films.copy()
+                films[self._styles.index(name)] = row[0]
+                self._films = films
+            else:
+                self._films = np.concatenate([self._films, row])
+                self._styles = self._styles + [name]
+
     def remove_style(self, name: str) -> None:
         if name == "normal":
             raise ValueError("'normal' is the base style of LPN-FiLM and cannot be removed")

@@ -171,6 +171,17 @@ def validate(net, val, films: dict[int, torch.Tensor], heldout, held_clips: Styl
     return out
 
 
+def training_loss(net, pred: torch.Tensor, target: torch.Tensor, parents: np.ndarray, lengths: torch.Tensor,
+                  w_bone: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The training objective (loss, mse, bone): MSE on the normalised output plus `w_bone` times the
+    bone-length loss on the denormalised pose. One function, so FiLM fine-tuning (`finetune.py`)
+    optimises exactly what training did."""
+    from .network import bone_length_loss
+    mse = (pred - target).pow(2).mean()
+    bone = bone_length_loss(net.denormalise_y(pred), parents, lengths)
+    return mse + w_bone * bone, mse, bone
+
+
 def lr_at(cfg: TrainConfig, frac: float) -> float:
     return cfg.lr * (cfg.lr_decay_to + (1 - cfg.lr_decay_to) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
 
@@ -195,7 +206,7 @@ def main(argv: list[str]) -> None:
     rng = np.random.default_rng(cfg.seed)
     from ..motion.assets import bandai_namco_pose
     from .dataset import load_meta, load_split, load_stats
-    from .network import LPN, LPNConfig, bone_length_loss
+    from .network import LPN, LPNConfig
     from .weights import data_config
 
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
@@ -237,9 +248,7 @@ def main(argv: list[str]) -> None:
         film = net.style_film(windows).mean(0, keepdim=True)
         pred = net(net.normalise_x(X[idx]), net.normalise_g(G[idx]), film)
         target = net.normalise_y(Y[idx])
-        mse = (pred - target).pow(2).mean()
-        bone = bone_length_loss(net.denormalise_y(pred), parents, lengths)
-        loss = mse + cfg.w_bone * bone
+        loss, mse, bone = training_loss(net, pred, target, parents, lengths, cfg.w_bone)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
