@@ -63,6 +63,11 @@ def test_metric_sanity(judges, test_clips):
     assert frechet_distance(a, a + 2.0) == pytest.approx(16.0, rel=1e-3)
     s = foot_skating(m)
     assert 0.0 <= s["skate_ratio"] <= 1.0 and s["contact_frames"] > 0
+    slid = m.translations.copy()
+    slid[:, 1, 0] += np.arange(m.num_frames) * 40.0 / m.fps  # the whole body glides sideways at 40 cm/s
+    glide = foot_skating(replace(m, translations=slid))
+    assert glide["contact_frames"] == s["contact_frames"]  # same heights, same contacts
+    assert glide["skate_ratio"] > 0.9 > 0.5 > s["skate_ratio"]
     lat = judges.latents([clip_features(x) for x in motions])
     assert lat.shape[1] == judges.dae.enc[-1].out_features and np.isfinite(lat).all()
 
