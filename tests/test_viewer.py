@@ -2,8 +2,9 @@
 served, the demo clip is valid, and headless Chromium (when /usr/bin/chromium exists) draws two
 streamed 3-D skeletons with WebGL: once with the `--screenshot` command line, once over the
 DevTools protocol in real time, where the page's own counters say it streamed at the clip's frame
-rate, the style triangle's point sets a 3-way mix on the server, and held keys and a gamepad
-become the LPN controller's `control` messages."""
+rate, the style triangle's point sets a 3-way mix on the server, held keys and a gamepad
+become the LPN controller's `control` messages, and held keys walk, turn and stop the committed
+LPN-FiLM character through the server."""
 
 from __future__ import annotations
 
@@ -16,7 +17,6 @@ import subprocess
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
 
 import httpx
 import numpy as np
@@ -187,16 +187,6 @@ class DevTools:
         """A command whose answer nobody waits for (from inside an event handler)."""
         self.cdp.send(json.dumps({"id": next(self.ids), "method": method, "params": params}))
 
-    def fulfil_json(self, url_pattern: str, edit: Callable[[object], object]) -> None:
-        """Answers the page's requests matching `url_pattern` with `edit(the server's JSON)`."""
-        def paused(p: dict) -> None:
-            body = json.dumps(edit(httpx.get(p["request"]["url"]).json())).encode()
-            self.send("Fetch.fulfillRequest", requestId=p["requestId"], responseCode=200,
-                      responseHeaders=[{"name": "content-type", "value": "application/json"}],
-                      body=base64.b64encode(body).decode())
-        self.handlers["Fetch.requestPaused"] = paused
-        self.call("Fetch.enable", patterns=[{"urlPattern": url_pattern}])
-
     def js(self, expr: str):
         """The value of a JavaScript expression (awaited when it is a promise); page errors fail the test."""
         r = self.call("Runtime.evaluate", expression=expr, returnByValue=True, awaitPromise=True)
@@ -313,9 +303,6 @@ def test_keys_and_gamepad_make_control_messages(server, tmp_path):
     show in its controller HUD; a gamepad in use wins over the keyboard."""
     need_chromium()
     with devtools_page(tmp_path) as page:
-        # until the server has LPN-FiLM, the page is told it has (only the page's side is tested here)
-        page.fulfil_json("*/v1/models", lambda models: models if any(m["name"] == "lpn" for m in models)
-                         else [*models, {**models[0], "name": "lpn"}])
         page.call("Page.navigate", url=f"{server}/viewer?model=lti")
         page.wait_for("document.body && document.body.dataset.state === 'ready'", "viewer did not load")
         drives = "[...document.getElementById('source').options].map(o => o.value)"
@@ -365,6 +352,49 @@ def test_keys_and_gamepad_make_control_messages(server, tmp_path):
         assert msg["facing"] == pytest.approx(0.5, abs=1e-3)  # right stick left turns left at 2 rad/s
         idle = page.js("import('/viewer/static/controller.js').then(c => c.intentFromGamepad({axes: [0.1, -0.05, 0.1, 0], buttons: []}))")
         assert idle is None  # inside the dead zone: the keyboard keeps control
+
+
+def test_keys_drive_the_lpn_character_through_the_server(server, tmp_path):
+    """End to end with the committed LPN-FiLM: in the controller drive, holding W walks the
+    stylised character forward (+Z, the starting facing) at about the keyboard's walk speed, Q
+    held as well turns it left, and releasing everything stops it; every control tick is
+    answered. Screenshot in out/viewer_lpn.png."""
+    need_chromium()
+    W, Q = ("KeyW", "w", 87), ("KeyQ", "q", 81)
+    root = "viewer.state.lastOut && viewer.state.lastOut.root"
+    with devtools_page(tmp_path) as page:
+        page.call("Page.navigate", url=f"{server}/viewer?model=lpn&style=elderly")
+        page.wait_for("document.body && document.body.dataset.state === 'ready'", "viewer did not load")
+        page.js("(() => { const s = document.getElementById('source'); s.value = 'control'; s.dispatchEvent(new Event('change')); })()")
+        page.js("viewer.controller.reset(); document.getElementById('play').click()")
+        page.wait_for("document.body.dataset.state === 'streaming' && +document.body.dataset.received >= 30",
+                      "the controller session did not stream")
+        start = page.js(root)
+        page.key("keyDown", *W)
+        time.sleep(3.0)
+        walked = page.js(root)
+        page.key("keyDown", *Q)
+        time.sleep(1.5)
+        for k in (Q, W):
+            page.key("keyUp", *k)
+        turned = page.js(root)
+        time.sleep(2.0)
+        stopped = page.js(root)
+        time.sleep(1.0)
+        still = page.js(root)
+        hud = page.js("document.getElementById('hud').innerText")
+        shot = page.call("Page.captureScreenshot", format="png")["data"]
+    print(f"lpn in the browser: start {start}, after W {walked}, after W+Q {turned}, stopped {stopped} / {still}; HUD {hud!r}")
+    dz, dx = walked[2] - start[2], walked[0] - start[0]
+    assert 150 < dz < 600 and abs(dx) < 0.3 * dz, f"3 s of W should walk ~3 m along +Z, walked dx {dx:.0f} cm, dz {dz:.0f} cm"
+    # Q turns left: facing +Z, the character's left is +X
+    assert turned[0] - walked[0] > 20, f"W+Q should curve toward +X, moved {turned[0] - walked[0]:.0f} cm in x"
+    assert np.hypot(still[0] - stopped[0], still[2] - stopped[2]) < 25, "released keys should bring it to a stop"
+    assert "dropped 0" in hud, hud
+    png = tmp_path / "viewer_lpn.png"
+    png.write_bytes(base64.b64decode(shot))
+    OUT.mkdir(exist_ok=True)
+    shutil.copy(png, OUT / "viewer_lpn.png")
 
 
 def test_viewer_maths_match_the_python_motion_core(server, tmp_path):

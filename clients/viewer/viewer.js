@@ -27,7 +27,7 @@ const ui = {
 
 const state = {
   models: [], clip: null, demo: null, session: null, playing: false, seq: 0, previewSeq: 0,
-  inputs: new Map(), sentAt: new Map(), controlSentAt: [], lastOut: null, lastControl: null,
+  inputs: new Map(), sentAt: new Map(), lastOut: null, lastControl: null,
   lat: [], sent: 0, received: 0, dropped: 0, recvTimes: [], held: 0, timer: null, nextSendAt: 0,
   transition: null, hudAt: 0, blendSource: "picker", // "picker": style / mix-with controls; "triangle": the style triangle
 };
@@ -135,7 +135,7 @@ function openSession() {
   const ws = new WebSocket(wsURL());
   const session = { ws, ready: false, label: styleLabel(), model: ui.model.value, control: controlMode() };
   state.session = session;
-  state.seq = 0; state.inputs.clear(); state.sentAt.clear(); state.controlSentAt = []; state.lastOut = null;
+  state.seq = 0; state.inputs.clear(); state.sentAt.clear(); state.lastOut = null;
   state.lat = []; state.sent = state.received = state.dropped = state.held = 0; state.recvTimes = [];
   state.transition = null;
   setBodyState("connecting"); setStatus("connecting…");
@@ -227,8 +227,10 @@ function sendControl(s, dt) {
   state.lastControl = msg;
   showControlReadout(msg);
   if (stalled(s)) return;
-  state.controlSentAt.push(performance.now()); // replies come one per control message, in order
-  s.ws.send(JSON.stringify(msg));
+  const seq = state.seq++; // the reply to a control tick carries its seq, like a frame's
+  state.sentAt.set(seq, performance.now());
+  s.ws.send(JSON.stringify({ ...msg, seq }));
+  for (const k of state.sentAt.keys()) { if (k >= seq - 240) break; state.sentAt.delete(k); } // dropped ticks
   state.sent++;
   requestRender();
 }
@@ -241,10 +243,10 @@ function showControlReadout(msg) {
 
 function onFrame(m) {
   const now = performance.now();
-  const t0 = state.session && state.session.control ? state.controlSentAt.shift() : state.sentAt.get(m.seq);
+  const t0 = state.sentAt.get(m.seq);
+  state.sentAt.delete(m.seq);
   if (t0 !== undefined) { state.lat.push(now - t0); if (state.lat.length > 120) state.lat.shift(); }
   state.received++; state.dropped += m.dropped || 0;
-  if (m.dropped && state.session && state.session.control) state.controlSentAt.splice(0, m.dropped);
   state.recvTimes.push(now); while (state.recvTimes.length && state.recvTimes[0] < now - 1000) state.recvTimes.shift();
   state.lastOut = { seq: m.seq, root: m.root, rotations: m.rotations, contacts: m.contacts };
   document.body.dataset.received = String(state.received);
