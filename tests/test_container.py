@@ -92,7 +92,9 @@ def container(image):
          "-e", f"STYLESTREAM_DRAIN_TIMEOUT_S={DRAIN_TIMEOUT_S}", image)
     box = Container(name, f"http://127.0.0.1:{port}")
     try:
+        t0 = time.monotonic()
         wait_ready(box.url, lambda: box.state()["Running"], timeout=120)
+        print(f"container ready {time.monotonic() - t0:.1f} s after podman run")
         yield box
     except Exception:
         print(box.logs())
@@ -115,6 +117,18 @@ def test_image_runs_as_non_root_and_its_healthcheck_passes(container):
     assert _run("podman", "exec", container.name, "python", "/opt/stylestream/healthcheck.py", "/readyz").returncode == 0
     missing = _run("podman", "exec", container.name, "python", "/opt/stylestream/healthcheck.py", "/nope", check=False)
     assert missing.returncode == 1 and "404" in missing.stderr
+
+
+def test_numba_kernels_come_compiled_with_the_image(container):
+    """The image carries numba's cache from its build and the entrypoint seeds the writable cache
+    on the home volume with it, so a fresh container loads the kernels instead of compiling them."""
+    def cache_files(folder: str) -> set[str]:
+        listing = _run("podman", "exec", container.name, "find", folder, "-name", "*.nbi", "-printf", "%P\\n")
+        return set(listing.stdout.split())
+
+    baked = cache_files("/opt/stylestream/numba-cache")
+    assert any("lti" in f for f in baked) and any("erd" in f for f in baked), sorted(baked)
+    assert baked <= cache_files("/var/lib/stylestream/cache/numba")
 
 
 def test_a_clip_streams_through_the_container_as_through_the_server_in_process(container, bn_walk):
