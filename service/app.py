@@ -150,7 +150,9 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
                            rt: Runtime = Depends(runtime), who: Principal = Depends(require_token)) -> UploadAccepted:
         """Upload a clip as a new style: multipart BVH (`file`) or JSON frames. LTI styles need
         `fine_tune=true`, which starts the identification job (`GET /v1/jobs/{id}`), answered 202;
-        an LPN-FiLM style is the clip's FiLM embedding, ready at once, answered 201."""
+        an LPN-FiLM style is the clip's FiLM embedding, ready at once, answered 201, with
+        `fine_tune=true` also a job that fine-tunes the FiLM generator on the clip and then
+        swaps in the tuned FiLM vector."""
         body = await _read_limited(request, who.limits.upload_max_bytes)
         ctype = request.headers.get("content-type", "")
         upload, bvh_text, fields = None, None, {}
@@ -183,7 +185,7 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
         style_name = name or fields.get("name") or ""
         model_name = model or fields.get("model") or "lti"
         accepted = await rt.styles.upload(upload, bvh_text, style_name, model_name, fine)
-        if accepted.job is None:  # a clip embedding (LPN-FiLM): the style exists already
+        if accepted.style.status == "ready":  # a clip embedding (LPN-FiLM): the style exists already, job or not
             response.status_code = 201
         return accepted
 

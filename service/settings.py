@@ -56,6 +56,8 @@ class ServiceSettings(Settings):
     upload_max_bytes: int = Field(default=16 * 1024 * 1024, ge=1024, description="Largest style upload body accepted (413 above).")
     upload_min_frames: int = Field(default=60, ge=30, description="Shortest uploaded clip, in frames at 30 fps.")
     upload_max_frames: int = Field(default=9000, ge=60, description="Longest uploaded clip, in frames at 30 fps.")
+    lpn_fine_tune_steps: int = Field(default=300, ge=1, le=5000, description="Adam steps of an LPN-FiLM style's "
+                                     "fine-tune job (FiLM generator on the uploaded clip, network frozen; ~20-30 s at 300).")
 
     @model_validator(mode="after")
     def _workers_share_sessions(self) -> "ServiceSettings":

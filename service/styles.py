@@ -2,11 +2,14 @@
 
 An uploaded clip (BVH with the Bandai Namco or a CMU skeleton, or JSON frames on the Bandai Namco
 skeleton) is validated, brought onto the model skeleton at 30 fps, persisted under
-`styles_dir/<model>/<name>/` (clip.npz, translator.npz, style.json) and turned into a style: for
-LPN-FiLM at once (the FiLM generator's embedding of the clip, `add_style_from_clip`), for the LTI
-model by a fine-tuning job (`models.lti.finetune`). When the job is done the style
+`styles_dir/<model>/<name>/` (clip.npz, translator.npz or film.npz, style.json) and turned into a
+style: for LPN-FiLM at once (the FiLM generator's embedding of the clip, `add_style_from_clip`),
+and with `fine_tune` also a job that fine-tunes a copy of the generator on the clip
+(`models.lpn.finetune`) and, if that lowers the loss on the clip's held-back frames, swaps the
+style's FiLM vector for the tuned one (`set_style_film`; persisted, so a restart keeps it); for the
+LTI model by a fine-tuning job (`models.lti.finetune`). When an LTI job is done the style
 is added to the one live model (`add_style`), and a deleted style is removed from it
-(`remove_style`), both on the model-step worker thread so no step sees a half-changed model. New
+(`remove_style`), all on the model-step worker thread so no step sees a half-changed model. New
 sessions see the change at once; running and resumed sessions carry on unchanged (their state is
 brought to the new style set by `upgrade_state` at their next step, `models/interface.py`), and
 one whose mix had weight on a deleted style is told so (`style_deleted`) while that share passes
@@ -35,6 +38,10 @@ NAME_RE = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,38}[a-z0-9])?$")
 MODEL_FPS = 30.0
 
 
+class StyleDeleted(Exception):
+    """The style a job works for was deleted: the job stops at its next progress report."""
+
+
 class ApiError(Exception):
     def __init__(self, status: int, code: str, message: str) -> None:
         super().__init__(message)
@@ -58,7 +65,8 @@ class StyleInfo(BaseModel):
     frames: int | None = Field(default=None, description="Uploaded clip length at 30 fps.")
     source: Literal["bvh", "json"] | None = None
     skeleton: str | None = Field(default=None, description="Skeleton of the uploaded clip (bandai-namco, cmu).")
-    fine_tune: dict | None = Field(default=None, description="Fine-tuning summary: seconds, neutral clips, held-out metrics.")
+    fine_tune: dict | None = Field(default=None, description="Fine-tuning summary: seconds, and for LTI neutral clips and "
+                                   "held-out metrics, for LPN-FiLM the loss on the clip's held-back frames before and after.")
 
 
 class UploadFrames(BaseModel):
@@ -197,9 +205,7 @@ class StyleStore:
             if info.status == "ready":
                 try:
                     if hasattr(model, "add_style_from_clip"):
-                        clip = np.load(meta.parent / "clip.npz")
-                        model.add_style_from_clip(info.name, _bn_motion(model.skeleton, clip["root"], clip["rotations"],
-                                                                        float(clip["fps"])))
+                        self._load_embedded(model, info, meta.parent)
                         self.uploaded[info.id] = info
                         continue
                     tr = StyleTranslator.load(meta.parent / "translator.npz")
@@ -209,6 +215,19 @@ class StyleStore:
                     log.warning("could not load style %s: %s", info.id, exc)
                     info.status, info.message = "failed", f"could not load its translator: {exc}"
             self.uploaded[info.id] = info
+
+    def _load_embedded(self, model, info: StyleInfo, d: Path) -> None:
+        """An LPN-FiLM style back from disk: its fine-tuned FiLM vector if a job stored one, else
+        the clip embedded again (a fine-tune cut off by the restart is said so in its message)."""
+        if (d / "film.npz").exists():
+            with np.load(d / "film.npz") as z:
+                model.set_style_film(info.name, z["film"])
+            return
+        clip = np.load(d / "clip.npz")
+        model.add_style_from_clip(info.name, _bn_motion(model.skeleton, clip["root"], clip["rotations"], float(clip["fps"])))
+        if info.job_id is not None and info.fine_tune is None:
+            info.message = "FiLM parameters from the clip; fine-tuning was interrupted by a server restart"
+            self._save_info(info)
 
     # ---- queries ---------------------------------------------------------------
     def list(self, model: str | None = None) -> list[StyleInfo]:
@@ -296,10 +315,12 @@ class StyleStore:
     async def _embed(self, model_name: str, name: str, motion, frames: int, source: str, skel: str,
                      fine_tune: bool) -> UploadAccepted:
         """A clip-embedding model (LPN-FiLM): the FiLM generator turns the clip into a style that
-        sessions can use as soon as this returns; no training data or job is involved."""
-        if fine_tune:
-            raise ApiError(422, "fine_tune_unsupported", f"model {model_name!r} takes a style straight from the clip "
-                           "(its FiLM embedding); upload without fine_tune")
+        sessions can use as soon as this returns; no training data is involved. With `fine_tune`
+        a job also fine-tunes the generator on the clip and then swaps in the tuned FiLM vector."""
+        from models.lpn.finetune import min_frames
+        if fine_tune and frames < min_frames():
+            raise ApiError(422, "bad_length", f"the clip has {frames} frames at 30 fps; fine-tuning needs at least "
+                           f"{min_frames()} (a fifth of it is held back to check the result); upload it without fine_tune")
         model = self.rt.models[model_name]
         try:
             await self.rt.on_model_thread(model.add_style_from_clip, name, motion)
@@ -312,8 +333,62 @@ class StyleStore:
         d.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(d / "clip.npz", root=motion.translations[:, 1], rotations=motion.rotations, fps=MODEL_FPS)
         self.uploaded[sid] = info
+        if not fine_tune:
+            self._save_info(info)
+            return UploadAccepted(style=info.model_copy())
+        job = self.jobs.submit("fine_tune", lambda progress: self._film_job(info, motion, progress), target=sid,
+                               on_failure=lambda msg: self.loop.call_soon_threadsafe(self._film_job_failed, info, msg))
+        info.job_id, info.message = job.id, "FiLM parameters from the clip; fine-tuning the FiLM generator"
         self._save_info(info)
-        return UploadAccepted(style=info.model_copy())
+        return UploadAccepted(style=info.model_copy(), job=job)
+
+    # ---- the LPN-FiLM job (job thread) ---------------------------------------------
+    def _film_job(self, info: StyleInfo, motion, progress) -> dict:
+        from models.lpn.finetune import FineTuneConfig, fine_tune
+
+        def report(fraction: float, loss: float) -> None:
+            if self.uploaded.get(info.id) is not info:  # deleted (maybe uploaded again): stop spending the CPU
+                raise StyleDeleted(f"style {info.id!r} was deleted while its FiLM generator was being fine-tuned")
+            progress(0.02 + 0.93 * fraction, f"fine-tuning the FiLM generator: loss {loss:.4f}")
+
+        progress(0.0, "building the clip's training samples")
+        model = self.rt.models[info.model]
+        res = fine_tune(model.generator(), motion, FineTuneConfig(steps=self.settings.lpn_fine_tune_steps), report)
+        summary = res.summary()
+        progress(0.97, "installing the fine-tuned FiLM vector" if res.improved else "keeping the clip's embedding")
+        fut = asyncio.run_coroutine_threadsafe(self._install_film(info, res.film if res.improved else None, summary),
+                                               self.loop)
+        summary["installed"] = fut.result(timeout=60)
+        return summary
+
+    async def _install_film(self, info: StyleInfo, film: np.ndarray | None, summary: dict) -> bool:
+        """Swap the style's FiLM vector for the fine-tuned one (None: fine-tuning did not lower the
+        held-back loss, the clip embedding stays) and persist it; nothing if the style was deleted."""
+        if self.uploaded.get(info.id) is not info:
+            return False
+        model = self.rt.models[info.model]
+        if film is not None:
+            def swap() -> None:  # on the worker thread; a removal queued before it wins
+                if info.name in model.styles():
+                    model.set_style_film(info.name, film)
+
+            await self.rt.on_model_thread(swap)
+            if self.uploaded.get(info.id) is not info:  # deleted meanwhile: its removal runs after the swap
+                return False
+            d = self._dir(info.model, info.name)
+            np.savez(d / "film.tmp.npz", film=film)
+            (d / "film.tmp.npz").replace(d / "film.npz")
+        info.fine_tune = {**summary, "installed": film is not None}
+        info.message = ("fine-tuned FiLM generator" if film is not None else
+                        "FiLM parameters from the clip (fine-tuning did not lower the loss on the clip's held-back frames)")
+        self._save_info(info)
+        return film is not None
+
+    def _film_job_failed(self, info: StyleInfo, message: str) -> None:
+        """On the event loop: the style keeps its clip embedding and says why it is not fine-tuned."""
+        if self.uploaded.get(info.id) is info:
+            info.message = f"FiLM parameters from the clip; fine-tuning failed: {message}"
+            self._save_info(info)
 
     # ---- the job (job thread) ----------------------------------------------------
     def _fine_tune_job(self, info: StyleInfo, motion, ref, progress) -> dict:

@@ -1,8 +1,12 @@
 """A new LPN-FiLM style from an uploaded clip over REST: usable at once (the FiLM generator's
 embedding of the clip, no job), used by a live controller session, back after a restart,
-deletable; fine-tuning is refused with a typed error."""
+deletable; with fine_tune=true also a background job that fine-tunes the FiLM generator on the
+clip and swaps in the tuned FiLM vector while sessions on the style stream on."""
 
 from __future__ import annotations
+
+import threading
+import time
 
 import httpx
 import numpy as np
@@ -17,6 +21,7 @@ from .live_server import live_server
 
 MODEL = load_models(get_settings().weights_dir)["lpn"]
 WALK = [((1.3, 0.0), 0.0, "walk")] * 45
+STEPS = 40  # fine-tune steps in these tests (the service default is 300)
 
 
 @pytest.fixture(scope="module")
@@ -34,9 +39,6 @@ def drive(base: str, style: str) -> np.ndarray:
 def test_an_uploaded_clip_is_a_live_lpn_style_at_once_and_after_a_restart(giant_clip, tmp_path):
     body = {"name": "my-giant", "model": "lpn", "frames": giant_clip, "fps": 30}
     with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, _):
-        refused = httpx.post(f"{base}/v1/styles", json={**body, "fine_tune": True})
-        assert refused.status_code == 422 and refused.json()["code"] == "fine_tune_unsupported"
-
         reply = httpx.post(f"{base}/v1/styles", json=body, timeout=60)
         assert reply.status_code == 201, reply.text  # created, not accepted for a job
         style = reply.json()["style"]
@@ -55,3 +57,108 @@ def test_an_uploaded_clip_is_a_live_lpn_style_at_once_and_after_a_restart(giant_
         np.testing.assert_allclose(drive(base, "my-giant"), giant, atol=1e-5)
         assert httpx.delete(f"{base}/v1/styles/lpn.my-giant").status_code == 204
         assert "my-giant" not in httpx.get(f"{base}/v1/models").json()[0]["styles"]
+
+
+class Streamer(threading.Thread):
+    """A controller session on `style` walking until stopped, every reply kept (with when it came)."""
+
+    def __init__(self, base: str, style: str) -> None:
+        super().__init__(daemon=True)
+        self.base, self.style = base, style
+        self.replies: list[tuple[float, np.ndarray]] = []
+        self.error: BaseException | None = None
+        self.stop = threading.Event()
+
+    def run(self) -> None:
+        try:
+            with Client(self.base).session(model="lpn", style=self.style) as session:
+                while not self.stop.is_set():
+                    self.replies.append((time.monotonic(), session.control((1.3, 0.0), 0.0, "walk").rotations))
+                    time.sleep(0.01)
+        except BaseException as exc:  # noqa: BLE001 - reported by the test
+            self.error = exc
+
+
+def poll_job(base: str, job_id: str, timeout: float = 120) -> list[dict]:
+    t0, seen = time.monotonic(), []
+    while True:
+        seen.append(httpx.get(f"{base}/v1/jobs/{job_id}").json())
+        if seen[-1]["status"] in ("done", "failed"):
+            return seen
+        assert time.monotonic() - t0 < timeout, seen[-1]
+        time.sleep(0.05)
+
+
+def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_streams_on(giant_clip, tmp_path):
+    body = {"name": "tuned-giant", "model": "lpn", "frames": giant_clip, "fps": 30, "fine_tune": True}
+    with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=STEPS) as (base, _):
+        reply = httpx.post(f"{base}/v1/styles", json=body, timeout=60)
+        assert reply.status_code == 201, reply.text  # the style exists at once; the job improves it later
+        style, job = reply.json()["style"], reply.json()["job"]
+        assert style["status"] == "ready" and style["job_id"] == job["id"] and job["kind"] == "fine_tune"
+        instant = MODEL.film_of("tuned-giant")
+
+        streamer = Streamer(base, "tuned-giant")
+        streamer.start()
+        seen = poll_job(base, job["id"])
+        finished = time.monotonic()
+        time.sleep(0.3)  # frames after the swap
+        streamer.stop.set()
+        streamer.join(timeout=10)
+
+        done = seen[-1]
+        assert done["status"] == "done", done
+        progress = [j["progress"] for j in seen]
+        assert progress == sorted(progress) and done["progress"] == 1.0
+        assert any(j["status"] == "running" and 0 < j["progress"] < 1 and "loss" in j["message"] for j in seen)
+        result = done["result"]
+        assert result["installed"] and result["steps"] == STEPS
+        assert result["heldout_loss_after"] < result["heldout_loss_before"]
+
+        tuned = MODEL.film_of("tuned-giant")
+        assert np.abs(tuned - instant).max() > 1e-3
+        with np.load(tmp_path / "lpn" / "tuned-giant" / "film.npz") as z:
+            np.testing.assert_array_equal(z["film"], tuned)
+        info = httpx.get(f"{base}/v1/styles/lpn.tuned-giant").json()
+        assert info["status"] == "ready" and info["fine_tune"] == result
+
+        assert streamer.error is None, streamer.error
+        during = [r for t, r in streamer.replies if t < finished]
+        after = [r for t, r in streamer.replies if t > finished]
+        assert len(during) > 20 and after and np.isfinite(np.array(during + after)).all()
+
+    MODEL.remove_style("tuned-giant")
+    with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, _):  # restarted: the tuned vector, not re-embedded
+        np.testing.assert_array_equal(MODEL.film_of("tuned-giant"), tuned)
+        assert httpx.get(f"{base}/v1/styles/lpn.tuned-giant").json()["fine_tune"] == result
+        assert httpx.delete(f"{base}/v1/styles/lpn.tuned-giant").status_code == 204
+
+
+def test_deleting_a_style_while_its_fine_tune_job_runs_stops_the_job_and_nothing_else(giant_clip, tmp_path):
+    body = {"name": "doomed", "model": "lpn", "frames": giant_clip, "fps": 30, "fine_tune": True}
+    with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=5000) as (base, _):
+        short = {**body, "frames": {k: v[:90] for k, v in giant_clip.items()}}
+        refused = httpx.post(f"{base}/v1/styles", json=short)  # long enough for a style, not to hold frames back
+        assert refused.status_code == 422 and refused.json()["code"] == "bad_length", refused.text
+        assert httpx.get(f"{base}/v1/styles/lpn.doomed").status_code == 404
+
+        job = httpx.post(f"{base}/v1/styles", json=body, timeout=60).json()["job"]
+        t0 = time.monotonic()
+        while "loss" not in httpx.get(f"{base}/v1/jobs/{job['id']}").json()["message"]:  # until it is stepping
+            assert time.monotonic() - t0 < 60
+            time.sleep(0.05)
+        streamer = Streamer(base, "normal")
+        streamer.start()
+        assert httpx.delete(f"{base}/v1/styles/lpn.doomed").status_code == 204
+
+        failed = poll_job(base, job["id"], timeout=30)[-1]
+        assert failed["status"] == "failed" and "deleted" in failed["message"], failed
+        assert httpx.get(f"{base}/v1/styles/lpn.doomed").status_code == 404
+        assert "doomed" not in MODEL.styles() and not (tmp_path / "lpn" / "doomed").exists()
+        again = httpx.post(f"{base}/v1/styles", json={**body, "fine_tune": False}, timeout=60)
+        assert again.status_code == 201 and again.json()["job"] is None  # the name is free again
+        time.sleep(0.2)
+        streamer.stop.set()
+        streamer.join(timeout=10)
+        assert streamer.error is None and len(streamer.replies) > 5
+        assert httpx.delete(f"{base}/v1/styles/lpn.doomed").status_code == 204

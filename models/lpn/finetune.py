@@ -46,7 +46,8 @@ class FineTuneConfig:
     lr: float = 1e-4
     batch: int = 64  # fit samples per step
     windows: int = 2  # random 120-frame generator windows per step, FiLM averaged
-    window_stride: int = 10  # windows of the fit part averaged into the final FiLM vector
+    window_stride: int = 10  # windows of the fit part averaged into the final FiLM vector ...
+    max_windows: int = 64  # ... at most this many, evenly spread (long clips)
     fit_share: float = 0.8
     w_bone: float = 1.0  # train.TrainConfig.w_bone
     seed: int = 0
@@ -102,10 +103,14 @@ def clip_training_samples(motion: Motion) -> ClipSamples:
     return clip_samples(motion, clip_gait(motion), style_axes([motion, mirror(motion)]))
 
 
-def generator_windows(feats: np.ndarray, stride: int) -> np.ndarray:
-    """Every CLIP_FRAMES window of the clip's generator features at `stride` (tiled if shorter)."""
+def generator_windows(feats: np.ndarray, stride: int, limit: int) -> np.ndarray:
+    """CLIP_FRAMES windows of the clip's generator features (tiled if shorter) every `stride` frames,
+    at most `limit` of them, evenly spread."""
     f = tile_clip(feats, CLIP_FRAMES)
-    return np.stack([f[s:s + CLIP_FRAMES] for s in range(0, len(f) - CLIP_FRAMES + 1, stride)])
+    starts = np.arange(0, len(f) - CLIP_FRAMES + 1, stride)
+    if len(starts) > limit:
+        starts = starts[np.linspace(0, len(starts) - 1, limit).round().astype(int)]
+    return np.stack([f[s:s + CLIP_FRAMES] for s in starts])
 
 
 def fine_tune(net: LPN, motion: Motion, cfg: FineTuneConfig = FineTuneConfig(),
@@ -133,7 +138,8 @@ def fine_tune(net: LPN, motion: Motion, cfg: FineTuneConfig = FineTuneConfig(),
     G = model.normalise_g(torch.from_numpy(samples.G))
     Y = model.normalise_y(torch.from_numpy(samples.Y))
     feats = torch.from_numpy(samples.style_feats[:fit_frames])
-    all_windows = torch.from_numpy(generator_windows(samples.style_feats[:fit_frames], cfg.window_stride))
+    all_windows = torch.from_numpy(generator_windows(samples.style_feats[:fit_frames], cfg.window_stride,
+                                                     cfg.max_windows))
 
     def film_of(windows: torch.Tensor) -> torch.Tensor:
         return model.style_film(windows).mean(0, keepdim=True)
@@ -159,7 +165,7 @@ def fine_tune(net: LPN, motion: Motion, cfg: FineTuneConfig = FineTuneConfig(),
         loss.backward()
         opt.step()
         if progress is not None:
-            progress((step + 1) / cfg.steps, float(loss))
+            progress((step + 1) / cfg.steps, loss.item())
     after, film_after = heldout_loss()
     return FineTuneResult(film_after.numpy().copy(), film_before.numpy().copy(), before, after, n_fit, n_held,
                           cfg.steps, time.perf_counter() - t0)
