@@ -165,3 +165,62 @@ def test_control_sessions_start_standing_whatever_pose_the_input_carries(model):
         roots[facing] = out.root[0]
     assert roots[0.0][2] > 40.0 and abs(roots[0.0][0]) < 0.5 * roots[0.0][2]
     assert roots[np.pi / 2][0] > 40.0 and abs(roots[np.pi / 2][2]) < 0.5 * roots[np.pi / 2][0]
+
+
+@pytest.fixture(scope="module")
+def reference():
+    """The numpy step the compiled kernels replaced, on the same weights."""
+    from models.lpn.reference import load as load_reference
+    return load_reference(get_settings().weights_dir / "lpn")
+
+
+def test_compiled_step_gives_the_numpy_steps_outputs(model, reference, clips):
+    """Four sessions in one batch for 100 frames, each in its own style: two driven by control (walk
+    ahead, turn to +X, stop; a side-stepping run), two by input frames (a walk; a run, then its last
+    frame held). The compiled step gives the numpy step's outputs and state every frame, to float32
+    round-off (velocities, differences of positions x 30 fps, carry the most)."""
+    T, walk, run = 100, clips["walk"], clips["run"]
+    ahead = np.tile([1.2, 0.0, 0.0, 0.0, 1.0], (T, 1))
+    ahead[40:70, [0, 2]] = [1.5, np.pi / 2]
+    ahead[70:, [0, 2]] = [0.0, np.pi / 2]
+    side = np.tile([0.4, 0.9, -0.5, 1.0, 1.0], (T, 1))
+    weights = np.stack([model.weight_vector(mix) for mix in
+                        ({"elderly": 1.0}, {"active": 1.0}, {"feminine": 0.5, "exhausted": 0.3}, {"normal": 1.0})])
+    states = {m: m.init_state(4) for m in (model, reference)}
+    worst = {"root_cm": 0.0, "quaternion": 0.0, "state": 0.0}
+    roots, contacts = [], []
+    for t in range(T):
+        frames = FrameBatch.concat([_frames(walk, 0, ahead[t:t + 1]), _frames(walk, 0, side[t:t + 1]), _frames(walk, t),
+                                    _frames(run, min(t, run.num_frames - 1))])  # then stands on its last frame
+        outs = {}
+        for m in (model, reference):
+            outs[m], states[m] = m.step_batch(states[m], frames, weights)
+        ours, theirs = outs[model], outs[reference]
+        np.testing.assert_array_equal(ours.contacts, theirs.contacts)
+        roots.append(ours.root)
+        contacts.append(ours.contacts)
+        worst["root_cm"] = max(worst["root_cm"], np.abs(ours.root - theirs.root).max())
+        sign = np.sign(np.sum(ours.rotations * theirs.rotations, -1, keepdims=True))  # q and -q: the same rotation
+        worst["quaternion"] = max(worst["quaternion"], np.abs(ours.rotations - sign * theirs.rotations).max())
+        for key, value in states[model].items():
+            expected = states[reference][key]
+            assert value.dtype == expected.dtype and value.shape == expected.shape, key
+            error = np.abs(value.astype(np.float64) - expected).max() / (1.0 + np.abs(expected).max())  # of its scale
+            worst["state"] = max(worst["state"], error)
+    travelled = np.linalg.norm(roots[-1][:, [0, 2]] - roots[0][:, [0, 2]], axis=-1)
+    assert (travelled > 50.0).all(), travelled  # every session walked or ran: the comparison covers real motion
+    assert (np.diff(np.array(contacts), axis=0) != 0).any(axis=0).all()  # and steps (the foot lock engaged)
+    # the network's float32 products alone are ~5e-5 (relative) off float64; the rest is float64 here
+    assert worst["root_cm"] < 1e-3 and worst["quaternion"] < 5e-4 and worst["state"] < 1e-4, worst
+
+
+def test_step_refuses_a_state_that_does_not_fit_the_frames(model, clips):
+    """The compiled kernels have no bounds checks: a state of the wrong shape or dtype is a clear
+    error before they run, never a read past an array."""
+    w = model.weight_vector({"normal": 1.0})[None]
+    _, state = model.step_batch(model.init_state(1), _frames(clips["walk"], 0), w)
+    for key, bad in (("hist_phase", state["hist_phase"][:, :10]), ("pose", state["pose"].astype(np.float64))):
+        with pytest.raises(ValueError, match=key):
+            model.step_batch({**state, key: bad}, _frames(clips["walk"], 1), w)
+    with pytest.raises(ValueError, match="rotations"):
+        model.step_batch(state, FrameBatch(np.zeros((1, 3)), np.ones((1, 21, 4))), w)

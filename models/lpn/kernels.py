@@ -1,0 +1,452 @@
+"""Compiled kernels (numba) for the LPN-FiLM streaming step: the per-session geometry around the
+network (control, trajectory blending, input assembly, phase update, output pose) and the
+network's small per-row maths (gating MLP, expert blend, layer norm, FiLM, ELU). The network's
+three big matrix products stay in numpy (BLAS).
+
+Why compiled: the vectorised numpy step made ~300 small numpy calls per frame (1-5 us each at
+batch 1) plus scipy's `Rotation.from_matrix`, which orthogonalises every float32 matrix by an SVD
+(they are never orthogonal to its 1e-12 tolerance); at batch 1 that was ~2 ms against ~0.2 ms of
+matrix products, at batch 256 ~60 ms against ~14 ms. Here each session is a loop over scalars,
+so the geometry costs a few microseconds per session.
+
+The formulas are those of `features.py` and of the numpy step kept as the reference
+(`reference.py`), which the tests compare with; arithmetic is float64 inside a kernel, the state
+and the outputs stay float32 as before. Conventions: quaternions scalar-last, Y up, yaw about +Y
+with 0 = facing +Z, horizontal vectors as (x, z).
+
+This module is self-contained on purpose: numba's on-disk cache (`cache=True`) is invalidated by
+changes to a kernel's own source file only, so the feature layout is spelled out here (and
+checked against `features.py` at import) rather than read from globals of another module.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from . import features as lf
+
+HIPS = 1
+STEP = 5  # frames between trajectory samples
+PAST = 6  # past samples; the current frame is sample PAST
+FUTURE = 6
+SAMPLES = 13
+TRAJ_CH = 7  # position xz, direction xz, velocity xz, gait
+TRAJ_OUT_CH = 6
+NUM_BONES = 4  # phase bones
+POSE_DIM = 21 * 12  # body joints x (position, velocity, forward axis, up axis)
+# output layout (features.py): future trajectory, pose, root delta, phases, frequencies, contacts
+Y_TRAJ, Y_POSE, Y_DELTA, Y_PHASE, Y_FREQ, Y_CONTACT = 0, 36, 288, 291, 347, 351
+
+_LAYOUT = (lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES, lf.TRAJ_CH, lf.TRAJ_OUT_CH, lf.NUM_BONES, lf.NB * lf.POSE_CH,
+           lf.TRAJ_OUT.start, lf.POSE_OUT.start, lf.DELTA_OUT.start, lf.PHASE_OUT.start, lf.FREQ_OUT.start,
+           lf.CONTACT_OUT.start, lf.HIPS)
+if _LAYOUT != (STEP, PAST, FUTURE, SAMPLES, TRAJ_CH, TRAJ_OUT_CH, NUM_BONES, POSE_DIM,
+               Y_TRAJ, Y_POSE, Y_DELTA, Y_PHASE, Y_FREQ, Y_CONTACT, HIPS):
+    raise ImportError("models/lpn/features.py changed its layout: update the constants of models/lpn/kernels.py")
+
+# --------------------------------------------------------------------------- small maths on scalars and tuples
+
+
+@njit(cache=True, error_model="numpy")
+def qmul(a, b):
+    """Hamilton product a * b (apply b, then a)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz)
+
+
+@njit(cache=True, error_model="numpy")
+def qrot(q, v):
+    """Vector v rotated by the unit quaternion q."""
+    x, y, z, w = q
+    tx, ty, tz = 2.0 * (y * v[2] - z * v[1]), 2.0 * (z * v[0] - x * v[2]), 2.0 * (x * v[1] - y * v[0])
+    return (v[0] + w * tx + y * tz - z * ty, v[1] + w * ty + z * tx - x * tz, v[2] + w * tz + x * ty - y * tx)
+
+
+@njit(cache=True, error_model="numpy")
+def wrap(a):
+    """Angle in [-pi, pi)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True, error_model="numpy")
+def elu(v):
+    return v if v > 0.0 else math.expm1(v)
+
+
+@njit(cache=True, error_model="numpy")
+def to_local(x, z, c, s):
+    """World horizontal (x, z) into the character frame of a yaw with cosine c and sine s."""
+    return c * x - s * z, s * x + c * z
+
+
+@njit(cache=True, error_model="numpy")
+def to_world(x, z, c, s):
+    """Inverse of `to_local`."""
+    return c * x + s * z, -s * x + c * z
+
+
+@njit(cache=True, error_model="numpy")
+def matrix_quat(m):
+    """Unit quaternion of a 3x3 rotation matrix (Markley 2008, as scipy's `Rotation.from_matrix`:
+    built on the largest of the diagonal terms and the trace, so that component is positive)."""
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    best, k = m[0, 0], 0
+    if m[1, 1] > best:
+        best, k = m[1, 1], 1
+    if m[2, 2] > best:
+        best, k = m[2, 2], 2
+    if tr > best:
+        k = 3
+    if k == 0:
+        q = (1.0 - tr + 2.0 * m[0, 0], m[1, 0] + m[0, 1], m[2, 0] + m[0, 2], m[2, 1] - m[1, 2])
+    elif k == 1:
+        q = (m[1, 0] + m[0, 1], 1.0 - tr + 2.0 * m[1, 1], m[2, 1] + m[1, 2], m[0, 2] - m[2, 0])
+    elif k == 2:
+        q = (m[2, 0] + m[0, 2], m[2, 1] + m[1, 2], 1.0 - tr + 2.0 * m[2, 2], m[1, 0] - m[0, 1])
+    else:
+        q = (m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], 1.0 + tr)
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+# --------------------------------------------------------------------------- kinematics
+
+
+@njit(cache=True, error_model="numpy")
+def world_pose(root, rotations, parents, offsets, grot, gpos):
+    """Forward kinematics of one frame into grot (J, 4) and gpos (J, 3): Hips translation root (3,),
+    local rotations (J, 4) (normalised here, as `models.motion.skeleton.fk`); parents come first."""
+    for j in range(rotations.shape[0]):
+        n = math.sqrt(rotations[j, 0] ** 2 + rotations[j, 1] ** 2 + rotations[j, 2] ** 2 + rotations[j, 3] ** 2)
+        q = (rotations[j, 0] / n, rotations[j, 1] / n, rotations[j, 2] / n, rotations[j, 3] / n)
+        t = (root[0], root[1], root[2]) if j == HIPS else (offsets[j, 0], offsets[j, 1], offsets[j, 2])
+        p = parents[j]
+        if p < 0:
+            grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = q
+            gpos[j, 0], gpos[j, 1], gpos[j, 2] = t
+            continue
+        gp = (grot[p, 0], grot[p, 1], grot[p, 2], grot[p, 3])
+        d = qrot(gp, t)
+        gpos[j, 0], gpos[j, 1], gpos[j, 2] = gpos[p, 0] + d[0], gpos[p, 1] + d[1], gpos[p, 2] + d[2]
+        grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = qmul(gp, q)
+
+
+@njit(cache=True, error_model="numpy")
+def forward_kinematics(root, rotations, parents, offsets):
+    """World rotations (N, J, 4) and positions (N, J, 3) of N frames."""
+    n, J = rotations.shape[0], rotations.shape[1]
+    grot, gpos = np.empty((n, J, 4)), np.empty((n, J, 3))
+    for f in range(n):
+        world_pose(root[f], rotations[f], parents, offsets, grot[f], gpos[f])
+    return grot, gpos
+
+
+@njit(cache=True, error_model="numpy")
+def facing_yaw(gpos, facing):
+    """Facing yaw of world joint positions (J, 3): forward = left x up, left = the hip and the
+    shoulder lines (facing = joint indices of the left and right hip and shoulder)."""
+    hl, hr, sl, sr = facing[0], facing[1], facing[2], facing[3]
+    left_x = gpos[hl, 0] - gpos[hr, 0] + gpos[sl, 0] - gpos[sr, 0]
+    left_z = gpos[hl, 2] - gpos[hr, 2] + gpos[sl, 2] - gpos[sr, 2]
+    return math.atan2(-left_z, left_x)
+
+
+# --------------------------------------------------------------------------- step: before the network
+
+
+@njit(cache=True, error_model="numpy")
+def control_rows(control, given, root, rotations, frame, in_pos, in_vel, parents, offsets, facing, fps, smooth,
+                 run_speed):
+    """(B, 4) control (forward, side in cm/s, yaw, gait) of B sessions: the given rows (m/s in
+    `control`) as they are; the others derived from the input frames -- the input Hips velocity
+    (exponentially smoothed by the factor `smooth` per frame) in the input's facing frame, its
+    facing yaw, run above `run_speed`. Advances the input tracker in_pos, in_vel (B, 2) in place
+    for every session, so a session can switch between the two modes smoothly."""
+    B, J = rotations.shape[0], rotations.shape[1]
+    out = np.empty((B, 4), np.float32)
+    grot, gpos = np.empty((J, 4)), np.empty((J, 3))
+    for b in range(B):
+        x, z = root[b, 0], root[b, 2]
+        vx, vz = 0.0, 0.0
+        if frame[b] > 0:
+            vx, vz = (x - in_pos[b, 0]) * fps, (z - in_pos[b, 1]) * fps
+        in_vel[b, 0] += smooth * (vx - in_vel[b, 0])
+        in_vel[b, 1] += smooth * (vz - in_vel[b, 1])
+        in_pos[b, 0], in_pos[b, 1] = x, z
+        if given[b]:
+            out[b, 0], out[b, 1], out[b, 2], out[b, 3] = control[b, 0] * 100.0, control[b, 1] * 100.0, control[b, 2], control[b, 3]
+            continue
+        world_pose(root[b], rotations[b], parents, offsets, grot, gpos)
+        yaw = facing_yaw(gpos, facing)
+        lx, lz = to_local(in_vel[b, 0], in_vel[b, 1], math.cos(yaw), math.sin(yaw))
+        out[b, 0], out[b, 1], out[b, 2] = lz, lx, yaw
+        out[b, 3] = 1.0 if math.sqrt(lx * lx + lz * lz) > run_speed else 0.0
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def network_inputs(control, yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel,
+                   fut_phase, pose, fps, bias, x, g):
+    """The network's input x (B, 343) and gating input g (B, 104) of B sessions (layout in
+    features.py). First the future trajectory (fut_pos, fut_dir, fut_vel, world, updated in place)
+    is blended toward the control (forward, side, yaw, gait): sample k of 6 by
+    1 - (1 - k/6)^bias, toward the current position moved by the wanted velocity for its time
+    and the facing turned k/6 of the way to the wanted yaw. Past samples are every STEP-th row of
+    the history (the last row is the current frame); all samples go into the current character
+    frame."""
+    B, H = hist_pos.shape[0], hist_pos.shape[1]
+    for b in range(B):
+        yw = float(yaw[b])
+        px, pz = hist_pos[b, H - 1, 0], hist_pos[b, H - 1, 1]
+        want = control[b, 2]
+        wx, wz = to_world(control[b, 1], control[b, 0], math.cos(want), math.sin(want))  # (side, forward) -> world
+        turn = wrap(want - yw)
+        for k in range(FUTURE):
+            f = (k + 1) / FUTURE
+            tau = (k + 1) * STEP / fps
+            beta = 1.0 - (1.0 - f) ** bias
+            fut_pos[b, k, 0] += beta * (px + wx * tau - fut_pos[b, k, 0])
+            fut_pos[b, k, 1] += beta * (pz + wz * tau - fut_pos[b, k, 1])
+            a = yw + turn * f
+            dx = fut_dir[b, k, 0] + beta * (math.sin(a) - fut_dir[b, k, 0])
+            dz = fut_dir[b, k, 1] + beta * (math.cos(a) - fut_dir[b, k, 1])
+            n = math.sqrt(max(dx * dx + dz * dz, 1e-16))
+            fut_dir[b, k, 0], fut_dir[b, k, 1] = dx / n, dz / n
+            fut_vel[b, k, 0] += beta * (wx - fut_vel[b, k, 0])
+            fut_vel[b, k, 1] += beta * (wz - fut_vel[b, k, 1])
+        c, s = math.cos(yw), math.sin(yw)
+        for i in range(SAMPLES):
+            o = i * TRAJ_CH
+            if i <= PAST:
+                r = i * STEP
+                p, d, v, gait = hist_pos[b, r], hist_dir[b, r], hist_vel[b, r], hist_gait[b, r]
+            else:
+                k = i - PAST - 1
+                p, d, v, gait = fut_pos[b, k], fut_dir[b, k], fut_vel[b, k], control[b, 3]
+            x[b, o], x[b, o + 1] = to_local(p[0] - px, p[1] - pz, c, s)
+            x[b, o + 2], x[b, o + 3] = to_local(d[0], d[1], c, s)
+            x[b, o + 4], x[b, o + 5] = to_local(v[0], v[1], c, s)
+            x[b, o + 6] = gait
+        o = SAMPLES * TRAJ_CH
+        for j in range(pose.shape[1]):
+            for ch in range(pose.shape[2]):
+                x[b, o] = pose[b, j, ch]
+                o += 1
+        o = 0
+        for i in range(SAMPLES):
+            ph = hist_phase[b, i * STEP] if i <= PAST else fut_phase[b, i - PAST - 1]
+            for bone in range(NUM_BONES):
+                g[b, o], g[b, o + 1] = ph[bone, 0], ph[bone, 1]
+                o += 2
+
+
+# --------------------------------------------------------------------------- the network's per-row maths
+
+
+@njit(cache=True, error_model="numpy")
+def gating(g, scale, w0, b0, w1, b1, w2, b2):
+    """Expert blend (B, E): softmax of the gating MLP (two ELU layers) on the phase features
+    g / scale. Weights as (in, out), so each row of a product is a sum of contiguous rows."""
+    B = g.shape[0]
+    n0, n1, E = w0.shape[1], w1.shape[1], w2.shape[1]
+    alpha = np.empty((B, E), np.float32)
+    h0, h1, h2 = np.empty(n0), np.empty(n1), np.empty(E)
+    for b in range(B):
+        for j in range(n0):
+            h0[j] = b0[j]
+        for i in range(w0.shape[0]):
+            gi = g[b, i] / scale
+            for j in range(n0):
+                h0[j] += gi * w0[i, j]
+        for j in range(n1):
+            h1[j] = b1[j]
+        for i in range(n0):
+            hi = elu(h0[i])
+            for j in range(n1):
+                h1[j] += hi * w1[i, j]
+        top = -math.inf
+        for j in range(E):
+            h2[j] = b2[j]
+        for i in range(n1):
+            hi = elu(h1[i])
+            for j in range(E):
+                h2[j] += hi * w2[i, j]
+        for j in range(E):
+            top = max(top, h2[j])
+        total = 0.0
+        for e in range(E):
+            h2[e] = math.exp(h2[e] - top)
+            total += h2[e]
+        for e in range(E):
+            alpha[b, e] = h2[e] / total
+    return alpha
+
+
+@njit(cache=True, error_model="numpy")
+def blend_experts(hw, alpha, bias, b, out):
+    """out (n,) = sum_e alpha[b, e] (hw[b, e*n:(e+1)*n] + bias[e]): session b's output of an expert
+    layer from all experts' outputs hw (B, E*n) side by side."""
+    E, n = bias.shape[0], bias.shape[1]
+    for o in range(n):
+        out[o] = 0.0
+    for e in range(E):
+        a = float(alpha[b, e])
+        for o in range(n):
+            out[o] += a * (hw[b, e * n + o] + bias[e, o])
+
+
+@njit(cache=True, error_model="numpy")
+def hidden_layer(hw, alpha, bias, film, layer, out):
+    """A hidden layer's output (B, n) from its experts' outputs hw (B, E*n): blended by alpha,
+    layer norm (no affine, eps 1e-5), FiLM with (gamma, beta) = film[:, 2 layer], film[:, 2 layer + 1]
+    as h (1 + gamma) + beta, then ELU."""
+    B, n = hw.shape[0], bias.shape[1]
+    h = np.empty(n)
+    for b in range(B):
+        blend_experts(hw, alpha, bias, b, h)
+        mean = 0.0
+        for o in range(n):
+            mean += h[o]
+        mean /= n
+        var = 0.0
+        for o in range(n):
+            var += (h[o] - mean) ** 2
+        inv = 1.0 / math.sqrt(var / n + 1e-5)
+        for o in range(n):
+            out[b, o] = elu((h[o] - mean) * inv * (1.0 + film[b, 2 * layer, o]) + film[b, 2 * layer + 1, o])
+
+
+@njit(cache=True, error_model="numpy")
+def output_layer(hw, alpha, bias, y_mean, y_std):
+    """The denormalised network output (B, n) from the last layer's experts' outputs hw (B, E*n)."""
+    B, n = hw.shape[0], bias.shape[1]
+    y = np.empty((B, n), np.float32)
+    h = np.empty(n)
+    for b in range(B):
+        blend_experts(hw, alpha, bias, b, h)
+        for o in range(n):
+            y[b, o] = h[o] * y_std[o] + y_mean[o]
+    return y
+
+
+# --------------------------------------------------------------------------- step: after the network
+
+
+@njit(cache=True, error_model="numpy")
+def advance(y, control, yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel,
+            fut_phase, pose, parents, fps, stop_speed, root_hold, phase_damp, phase_blend, contact_threshold):
+    """Apply the network output y (B, 353) to B sessions and build their output frame.
+
+    State, in place: the root moves by the predicted displacement (in the current character
+    frame) and turns by the predicted yaw change; the history rows shift by one and take the new
+    position, direction, velocity, gait and phases; the future trajectory, the pose and the yaw
+    become the predicted ones. Phases: the current phase advanced by the predicted frequency,
+    blended with the predicted phase (share phase_blend) at the predicted amplitude. Stopping:
+    below stop_speed of wanted speed the share `still` in [0, 1] damps the phases (factor
+    1 - still (1 - phase_damp)) and holds back root_hold x still of the root displacement.
+
+    Returns the Hips translation (B, 3), local rotations (B, J, 4) from the predicted
+    forward/up axes of each joint, foot contacts (B, 2) and world rotation matrices (B, J, 3, 3)
+    (joint 0, the static joint_Root, is the identity)."""
+    B, H, J = y.shape[0], hist_pos.shape[1], parents.shape[0]
+    out_root = np.empty((B, 3), np.float32)
+    out_rot = np.empty((B, J, 4), np.float32)
+    contacts = np.empty((B, 2), np.bool_)
+    g_world = np.empty((B, J, 3, 3), np.float32)
+    R = np.empty((J, 3, 3))
+    local = np.empty((3, 3))
+    for b in range(B):
+        # root motion
+        yw = float(yaw[b])
+        c, s = math.cos(yw), math.sin(yw)
+        px, pz = hist_pos[b, H - 1, 0], hist_pos[b, H - 1, 1]
+        still = min(max(1.0 - math.hypot(control[b, 0], control[b, 1]) / stop_speed, 0.0), 1.0)
+        keep = 1.0 - root_hold * still
+        dx, dz = to_world(y[b, Y_DELTA] * keep, y[b, Y_DELTA + 1] * keep, c, s)
+        nx, nz = np.float32(px + dx), np.float32(pz + dz)
+        new_yaw = np.float32(wrap(yw + y[b, Y_DELTA + 2]))
+        nc, ns = math.cos(new_yaw), math.sin(new_yaw)
+        damp = 1.0 - still * (1.0 - phase_damp)
+        # history: shift by one row, the new frame last
+        for r in range(H - 1):
+            for i in range(2):
+                hist_pos[b, r, i], hist_dir[b, r, i], hist_vel[b, r, i] = hist_pos[b, r + 1, i], hist_dir[b, r + 1, i], hist_vel[b, r + 1, i]
+            hist_gait[b, r] = hist_gait[b, r + 1]
+            for bone in range(NUM_BONES):
+                hist_phase[b, r, bone, 0], hist_phase[b, r, bone, 1] = hist_phase[b, r + 1, bone, 0], hist_phase[b, r + 1, bone, 1]
+        # phases: advanced by the predicted frequency, blended with the predicted, at its amplitude
+        for bone in range(NUM_BONES):
+            cur_s, cur_c = hist_phase[b, H - 2, bone, 0], hist_phase[b, H - 2, bone, 1]
+            pred_s, pred_c = y[b, Y_PHASE + 2 * bone], y[b, Y_PHASE + 2 * bone + 1]
+            d = 2.0 * math.pi * y[b, Y_FREQ + bone] / fps
+            # features are A (sin phi, cos phi): phi + d turns (s, c) into (s cos d + c sin d, c cos d - s sin d)
+            adv_s = cur_s * math.cos(d) + cur_c * math.sin(d)
+            adv_c = cur_c * math.cos(d) - cur_s * math.sin(d)
+            bs = (1.0 - phase_blend) * adv_s + phase_blend * pred_s
+            bc = (1.0 - phase_blend) * adv_c + phase_blend * pred_c
+            scale = math.sqrt(pred_s * pred_s + pred_c * pred_c) / math.sqrt(max(bs * bs + bc * bc, 1e-16)) * damp
+            hist_phase[b, H - 1, bone, 0], hist_phase[b, H - 1, bone, 1] = bs * scale, bc * scale
+        hist_pos[b, H - 1, 0], hist_pos[b, H - 1, 1] = nx, nz
+        hist_dir[b, H - 1, 0], hist_dir[b, H - 1, 1] = ns, nc
+        hist_vel[b, H - 1, 0], hist_vel[b, H - 1, 1] = (nx - px) * fps, (nz - pz) * fps
+        hist_gait[b, H - 1] = control[b, 3]
+        # the predicted future, from the new character frame into the world
+        for k in range(FUTURE):
+            o = Y_TRAJ + k * TRAJ_OUT_CH
+            fx, fz = to_world(y[b, o], y[b, o + 1], nc, ns)
+            fut_pos[b, k, 0], fut_pos[b, k, 1] = nx + fx, nz + fz
+            fx, fz = to_world(y[b, o + 2], y[b, o + 3], nc, ns)
+            n = math.sqrt(max(fx * fx + fz * fz, 1e-16))
+            fut_dir[b, k, 0], fut_dir[b, k, 1] = fx / n, fz / n
+            fut_vel[b, k, 0], fut_vel[b, k, 1] = to_world(y[b, o + 4], y[b, o + 5], nc, ns)
+            for bone in range(NUM_BONES):
+                for i in range(2):
+                    fut_phase[b, k, bone, i] = y[b, Y_PHASE + 2 * NUM_BONES * (k + 1) + 2 * bone + i] * damp
+        for j in range(pose.shape[1]):
+            for ch in range(pose.shape[2]):
+                pose[b, j, ch] = y[b, Y_POSE + j * pose.shape[2] + ch]
+        yaw[b] = new_yaw
+        # world rotations: each body joint's frame from its forward (+Z) and up (+Y) axes, turned by the yaw
+        for r in range(3):
+            for col in range(3):
+                R[0, r, col] = 1.0 if r == col else 0.0
+        for j in range(1, J):
+            o = Y_POSE + (j - 1) * pose.shape[2]
+            fx, fy, fz = y[b, o + 6], y[b, o + 7], y[b, o + 8]
+            n = math.sqrt(max(fx * fx + fy * fy + fz * fz, 1e-18))
+            zx, zy, zz = fx / n, fy / n, fz / n
+            ux, uy, uz = y[b, o + 9], y[b, o + 10], y[b, o + 11]
+            along = ux * zx + uy * zy + uz * zz
+            ux, uy, uz = ux - along * zx, uy - along * zy, uz - along * zz
+            n = math.sqrt(max(ux * ux + uy * uy + uz * uz, 1e-18))
+            ux, uy, uz = ux / n, uy / n, uz / n
+            xx, xy, xz = uy * zz - uz * zy, uz * zx - ux * zz, ux * zy - uy * zx  # up x forward
+            # columns (x, y, z) in the character frame, then turned about +Y by the new yaw
+            R[j, 0, 0], R[j, 1, 0], R[j, 2, 0] = nc * xx + ns * xz, xy, -ns * xx + nc * xz
+            R[j, 0, 1], R[j, 1, 1], R[j, 2, 1] = nc * ux + ns * uz, uy, -ns * ux + nc * uz
+            R[j, 0, 2], R[j, 1, 2], R[j, 2, 2] = nc * zx + ns * zz, zy, -ns * zx + nc * zz
+        for j in range(J):
+            for r in range(3):
+                for col in range(3):
+                    g_world[b, j, r, col] = R[j, r, col]
+        # local rotations: parent^T child, as quaternions; joint 0 stays the identity
+        out_rot[b, 0, 0], out_rot[b, 0, 1], out_rot[b, 0, 2], out_rot[b, 0, 3] = 0.0, 0.0, 0.0, 1.0
+        for j in range(1, J):
+            p = max(parents[j], 0)
+            for r in range(3):
+                for col in range(3):
+                    local[r, col] = R[p, 0, r] * R[j, 0, col] + R[p, 1, r] * R[j, 1, col] + R[p, 2, r] * R[j, 2, col]
+            out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = matrix_quat(local)
+        # Hips: the predicted offset from the ground root (character frame), into the world
+        hx, hz = to_world(y[b, Y_POSE], y[b, Y_POSE + 2], nc, ns)
+        out_root[b, 0], out_root[b, 1], out_root[b, 2] = nx + hx, y[b, Y_POSE + 1], nz + hz
+        contacts[b, 0] = y[b, Y_CONTACT] > contact_threshold
+        contacts[b, 1] = y[b, Y_CONTACT + 1] > contact_threshold
+    return out_root, out_rot, contacts, g_world

@@ -1,0 +1,175 @@
+"""The vectorised numpy LPN-FiLM step that the compiled kernels (`kernels.py`) replaced, kept as
+the reference they are held to: `tests/test_lpn.py` compares the two step by step, and
+`python -m models.lpn bench` times them side by side. Same weights, same state, same outputs up
+to float32 round-off; only `_control`, `_inputs`, `_network`, `_advance` and `_fk` differ.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..interface import FrameBatch, State
+from ..motion.features import wrap_angle
+from . import features as lf
+from .runtime import CONTACT_THRESHOLD, CONTROL_BIAS, CONTROL_SMOOTH_S, PAST_IDX, PHASE_BLEND, RUN_SPEED, \
+    STOP_PHASE_DAMP, STOP_ROOT_HOLD, STOP_SPEED, LPNModel
+from .weights import read_weights
+
+
+def _elu(x: np.ndarray) -> np.ndarray:
+    return np.where(x > 0, x, np.expm1(np.minimum(x, 0)))
+
+
+def _layer_norm(x: np.ndarray) -> np.ndarray:
+    m = x.mean(-1, keepdims=True)
+    v = ((x - m) ** 2).mean(-1, keepdims=True)
+    return (x - m) / np.sqrt(v + 1e-5)
+
+
+def _normalise(v: np.ndarray) -> np.ndarray:
+    return v / np.sqrt(np.maximum((v * v).sum(-1, keepdims=True), 1e-16))
+
+
+class NumpyLPNModel(LPNModel):
+    """LPNModel with the numpy step (one vectorised numpy expression per formula, over the batch)."""
+
+    def _control(self, s: State, frames: FrameBatch, root: np.ndarray, rot_in: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+        """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others derived
+        from the input frames."""
+        B = root.shape[0]
+        given = np.zeros(B, bool) if frames.control is None else np.asarray(frames.control)[:, 4] > 0.5
+        out = np.zeros((B, 4), np.float32)
+        if given.any():
+            c = np.asarray(frames.control, np.float32)[given]
+            out[given] = np.stack([c[:, 0] * 100.0, c[:, 1] * 100.0, c[:, 2], c[:, 3]], axis=1)
+        derive = np.flatnonzero(~given)
+        # the input tracker advances every frame so a session can switch between modes smoothly
+        xz = root[:, [0, 2]]
+        vel = np.where((s["frame"] > 0)[:, None], (xz - s["in_pos"]) * self.fps, 0.0)
+        a = 1.0 - np.exp(-1.0 / (self.fps * CONTROL_SMOOTH_S))
+        s["in_vel"] = (s["in_vel"] + a * (vel - s["in_vel"])).astype(np.float32)
+        s["in_pos"] = xz.astype(np.float32)
+        if len(derive):
+            _, gpos = self._fk(root[derive], rot_in[derive])
+            yaw = self._facing(gpos)
+            local = lf.to_local_xz(s["in_vel"][derive], yaw)
+            speed = np.linalg.norm(local, axis=-1)
+            out[derive] = np.stack([local[:, 1], local[:, 0], yaw, (speed > RUN_SPEED).astype(np.float32)], axis=1)
+        return out
+
+    def _inputs(self, s: State, control: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Blend the future trajectory toward the control, then build X and G."""
+        B = control.shape[0]
+        yaw, pos = s["yaw"], s["hist_pos"][:, -1]
+        want_yaw = control[:, 2]
+        want_vel = lf.to_world_xz(np.stack([control[:, 1], control[:, 0]], -1), want_yaw)
+        k = np.arange(1, lf.FUTURE + 1, dtype=np.float32)
+        tau = (k * lf.STEP / self.fps)[None, :, None]
+        beta = (1.0 - (1.0 - k / lf.FUTURE) ** CONTROL_BIAS)[None, :, None]
+        turn = wrap_angle(want_yaw - yaw)[:, None] * (k / lf.FUTURE)[None]
+        target_pos = pos[:, None] + want_vel[:, None] * tau
+        target_dir = lf.direction(yaw[:, None] + turn)
+        s["fut_pos"] = (s["fut_pos"] + beta * (target_pos - s["fut_pos"])).astype(np.float32)
+        s["fut_dir"] = _normalise(s["fut_dir"] + beta * (target_dir - s["fut_dir"])).astype(np.float32)
+        s["fut_vel"] = (s["fut_vel"] + beta * (want_vel[:, None] - s["fut_vel"])).astype(np.float32)
+        gait = np.concatenate([s["hist_gait"][:, PAST_IDX], np.repeat(control[:, 3:4], lf.FUTURE, 1)], 1)
+        traj = lf.trajectory_input(np.concatenate([s["hist_pos"][:, PAST_IDX], s["fut_pos"]], 1),
+                                   np.concatenate([s["hist_dir"][:, PAST_IDX], s["fut_dir"]], 1),
+                                   np.concatenate([s["hist_vel"][:, PAST_IDX], s["fut_vel"]], 1), gait, pos, yaw)
+        x = np.concatenate([traj, s["pose"].reshape(B, -1)], 1)
+        g = np.concatenate([s["hist_phase"][:, PAST_IDX], s["fut_phase"]], 1).reshape(B, -1)
+        return x.astype(np.float32), g.astype(np.float32)
+
+    def _network(self, x: np.ndarray, g: np.ndarray, film: np.ndarray) -> np.ndarray:
+        """Denormalised output (B, Y_DIM); the same maths as `network.LPN.forward` in eval mode."""
+        h = g / self.g_scale
+        for i, (W, b) in enumerate(self.gating):
+            h = h @ W + b
+            if i < 2:
+                h = _elu(h)
+        alpha = np.exp(h - h.max(-1, keepdims=True))
+        alpha /= alpha.sum(-1, keepdims=True)
+        h = (x - self.x_mean) / self.x_std
+        for i, (W, b, n_out) in enumerate(self.layers):
+            h = np.matmul(alpha[:, None, :], (h @ W).reshape(-1, self.E, n_out))[:, 0] + alpha @ b
+            if i < 2:
+                h = _elu(_layer_norm(h) * (1.0 + film[:, 2 * i]) + film[:, 2 * i + 1])
+        return h * self.y_std + self.y_mean
+
+    def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Apply the prediction: move the root, shift the history, store pose/phases/future; returns
+        the output Hips translation, local rotations, contacts and world rotation matrices.
+
+        Stopping: the training clips hardly ever stand still after moving, so on its own the network
+        keeps stepping when asked to stop. While the wanted speed is below STOP_SPEED the phases
+        (current and future) are damped toward zero each frame, the amplitude the network learned
+        for standing at the start of a take, so its experts for standing take over, and most of the
+        predicted root translation is held back (alone, each leaves a 30-60 cm/s shuffle)."""
+        B = y.shape[0]
+        yaw, pos = s["yaw"], s["hist_pos"][:, -1]
+        delta = y[:, lf.DELTA_OUT]
+        still = np.clip(1.0 - np.hypot(control[:, 0], control[:, 1]) / STOP_SPEED, 0.0, 1.0)
+        new_pos = pos + lf.to_world_xz(delta[:, :2] * (1.0 - STOP_ROOT_HOLD * still)[:, None], yaw)
+        new_yaw = wrap_angle(yaw + delta[:, 2]).astype(np.float32)
+        vel = (new_pos - pos) * self.fps
+        # phases: the current phase advanced by the predicted frequency, blended with the predicted one
+        ph = y[:, lf.PHASE_OUT].reshape(B, lf.FUTURE + 1, lf.NUM_BONES, 2)
+        cur = s["hist_phase"][:, -1]
+        angle = 2 * np.pi * y[:, lf.FREQ_OUT] / self.fps
+        c, sn = np.cos(angle), np.sin(angle)
+        # features are A (sin phi, cos phi): advancing phi by d rotates (s, c) -> (s cos d + c sin d, c cos d - s sin d)
+        advanced = np.stack([cur[..., 0] * c + cur[..., 1] * sn, cur[..., 1] * c - cur[..., 0] * sn], -1)
+        blend = _normalise((1 - PHASE_BLEND) * advanced + PHASE_BLEND * ph[:, 0])
+        next_phase = blend * np.linalg.norm(ph[:, 0], axis=-1, keepdims=True)
+        damp = (1.0 - still * (1.0 - STOP_PHASE_DAMP))[:, None, None]
+        next_phase = next_phase * damp
+
+        def push(key: str, value: np.ndarray) -> None:
+            s[key] = np.concatenate([s[key][:, 1:], value[:, None].astype(np.float32)], 1)
+
+        push("hist_pos", new_pos)
+        push("hist_dir", lf.direction(new_yaw))
+        push("hist_vel", vel)
+        push("hist_gait", control[:, 3])
+        push("hist_phase", next_phase)
+        traj = y[:, lf.TRAJ_OUT].reshape(B, lf.FUTURE, lf.TRAJ_OUT_CH)
+        ny = new_yaw[:, None]
+        s["fut_pos"] = (new_pos[:, None] + lf.to_world_xz(traj[..., 0:2], ny)).astype(np.float32)
+        s["fut_dir"] = _normalise(lf.to_world_xz(traj[..., 2:4], ny)).astype(np.float32)
+        s["fut_vel"] = lf.to_world_xz(traj[..., 4:6], ny).astype(np.float32)
+        s["fut_phase"] = (ph[:, 1:] * damp[:, None]).astype(np.float32)
+        pose = y[:, lf.POSE_OUT].reshape(B, lf.NB, lf.POSE_CH)
+        s["pose"] = pose.astype(np.float32)
+        s["yaw"] = new_yaw
+        # output frame: world rotations from the forward/up axes, then local rotations
+        g_char = lf.rotations_from_axes(pose[..., 6:9], pose[..., 9:12])  # (B, NB, 3, 3) character frame
+        R_yaw = np.zeros((B, 3, 3), np.float32)
+        cy, sy = np.cos(new_yaw), np.sin(new_yaw)
+        R_yaw[:, 0, 0], R_yaw[:, 0, 2], R_yaw[:, 1, 1], R_yaw[:, 2, 0], R_yaw[:, 2, 2] = cy, sy, 1.0, -sy, cy
+        g_world = np.concatenate([np.broadcast_to(np.eye(3, dtype=np.float32), (B, 1, 3, 3)),
+                                  R_yaw[:, None] @ g_char], 1)  # (B, 22, 3, 3), joint_Root identity
+        parents = np.maximum(self.parents, 0)
+        local = np.swapaxes(g_world[:, parents], -1, -2) @ g_world
+        local[:, 0] = np.eye(3)
+        hips = pose[:, 0, :3]
+        out_root = np.stack([new_pos[:, 0], hips[:, 1], new_pos[:, 1]], -1) + \
+            lf.to_world(np.stack([hips[:, 0], 0 * hips[:, 1], hips[:, 2]], -1), new_yaw)
+        contacts = y[:, lf.CONTACT_OUT] > CONTACT_THRESHOLD
+        quats = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_quat().reshape(B, -1, 4)  # C code: 10x numpy's
+        return out_root.astype(np.float32), quats.astype(np.float32), contacts, g_world
+
+    def _fk(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World rotations (B, 22, 4) and positions (B, 22, 3); joint_Root static at the origin."""
+        from ..motion.skeleton import fk
+        trans = np.broadcast_to(self.offsets, rotations.shape[:-1] + (3,)).copy()
+        trans[:, lf.HIPS] = root
+        g_rot, g_pos = fk(rotations, trans, self.parents)
+        return g_rot.astype(np.float32), g_pos.astype(np.float32)
+
+
+def load(weights_dir: Path) -> NumpyLPNModel:
+    arrays, skeleton, config = read_weights(weights_dir)
+    return NumpyLPNModel(arrays, skeleton, config)
