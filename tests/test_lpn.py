@@ -168,10 +168,10 @@ def test_control_sessions_start_standing_whatever_pose_the_input_carries(model):
 
 
 @pytest.fixture(scope="module")
-def reference():
+def reference(model):
     """The numpy step the compiled kernels replaced, on the same weights."""
-    from models.lpn.reference import load as load_reference
-    return load_reference(get_settings().weights_dir / "lpn")
+    from models.lpn.reference import numpy_twin
+    return numpy_twin(model)
 
 
 def test_compiled_step_gives_the_numpy_steps_outputs(model, reference, clips):

@@ -4,7 +4,7 @@
     .venv/bin/python -m models.lpn phases-stats [--style normal]       # step vs fitted frequency, L/R offsets
     .venv/bin/python -m models.lpn train [--minutes 60] [--field=value ...]   # train.TrainConfig, then export
     .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
-    .venv/bin/python -m models.lpn bench                                   # per-frame step, batch 1 and 256
+    .venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs numpy
     .venv/bin/python -m models.lpn heldout                                 # new styles from a clip, 3 held-out styles
 """
 
@@ -73,30 +73,72 @@ def demo(args) -> None:
 
 
 def bench(args) -> None:
-    """Median/p99 step time and frames/s at batch 1 and 256, control-driven, after a warm-up."""
+    """Step time at batch 1 and 256, control-driven, after a warm-up: the compiled step, the numpy
+    reference it replaced (`reference.py`, on the same weight arrays) and the floor (the network's
+    three expert products alone), called in turn so the shared machine's drifting load hits all
+    alike. BLAS and torch threads are capped as the service caps them (1). Also the first step's
+    wall time (numba loads its cache, or compiles) and the load average."""
+    import os
     import time
     from ..interface import FrameBatch
+    from ..stepbench import capped_threads, stepper
+    from .reference import numpy_twin
+    load_before = os.getloadavg()
     model = _model()
     first = model.rest_motion()
-    out = {}
+    t = time.perf_counter()
+    model.step_batch(model.init_state(1), FrameBatch(first.translations[:1, 1], first.rotations[:1]),
+                     np.zeros((1, len(model.styles())), np.float32))
+    out: dict = {"first_step_s": round(time.perf_counter() - t, 3), "blas_threads": args.threads}
+    models = {"compiled": model, "numpy": numpy_twin(model)}
     for B in (1, 256):
-        state = model.init_state(B)
         control = np.tile(np.array([[1.2, 0.0, 0.0, 0.0, 1.0]], np.float32), (B, 1))
         frames = FrameBatch(np.repeat(first.translations[:1, 1], B, 0), np.repeat(first.rotations[:1], B, 0),
                             control=control)
         w = np.zeros((B, len(model.styles())), np.float32)
         w[:, model.styles().index("elderly")] = 1.0
-        for _ in range(20):
-            _, state = model.step_batch(state, frames, w)
-        times = []
-        for _ in range(args.steps):
-            t = time.perf_counter()
-            _, state = model.step_batch(state, frames, w)
-            times.append(time.perf_counter() - t)
-        times = np.array(times) * 1e3
-        out[B] = {"median_ms": round(float(np.median(times)), 3), "p99_ms": round(float(np.percentile(times, 99)), 3),
-                  "frames_per_s": round(float(B / np.median(times) * 1e3))}
+        steps = {name: stepper(m, [frames], w, B) for name, m in models.items()}
+        steps["floor"] = _products(model, B)
+        with capped_threads(args.threads):
+            times, cpu = _alternate(steps, args.steps if B == 1 else max(args.steps // 4, 20))
+        out[B] = {name: {"median_ms": round(float(np.median(ts)) * 1e3, 3),
+                         "p99_ms": round(float(np.percentile(ts, 99)) * 1e3, 3),
+                         "frames_per_s": round(B / float(np.median(ts))),
+                         "cpu_median_ms": round(float(np.median(cpu[name])) * 1e3, 3)} for name, ts in times.items()}
+        median = {name: float(np.median(ts)) for name, ts in times.items()}
+        out[B]["numpy_over_compiled"] = round(median["numpy"] / median["compiled"], 2)
+        out[B]["compiled_over_floor"] = round(median["compiled"] / median["floor"], 2)
+    out["load_average_1min"] = {"start": round(load_before[0], 2), "end": round(os.getloadavg()[0], 2)}
     print(json.dumps(out, indent=1))
+
+
+def _products(model, B: int):
+    """step(i) doing only the network's three expert products for B sessions (BLAS, float32)."""
+    rng = np.random.default_rng(0)
+    inputs = [rng.standard_normal((B, W.shape[0])).astype(np.float32) for W, _, _ in model.layers]
+
+    def step(i: int) -> None:
+        for h, (W, _, _) in zip(inputs, model.layers):
+            h @ W
+
+    return step
+
+
+def _alternate(steps: dict, repeats: int, warmup: int = 20) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Wall and process CPU seconds of each of `steps` (name -> step(i), as `stepbench.stepper`) per
+    call, the steps called in turn, `repeats` times each after `warmup` untimed rounds. CPU time
+    leaves out the time the process waited for a core, most of the wall time on a busy machine."""
+    import time
+    for i in range(warmup):
+        for step in steps.values():
+            step(i)
+    wall, cpu = {name: np.empty(repeats) for name in steps}, {name: np.empty(repeats) for name in steps}
+    for i in range(repeats):
+        for name, step in steps.items():
+            c, t = time.process_time(), time.perf_counter()
+            step(warmup + i)
+            wall[name][i], cpu[name][i] = time.perf_counter() - t, time.process_time() - c
+    return wall, cpu
 
 
 def heldout(args) -> None:
@@ -126,8 +168,9 @@ def main(argv: list[str] | None = None) -> None:
     s.add_argument("--out", default="out/lpn")
     s.add_argument("--no-gif", dest="gif", action="store_false")
     s.set_defaults(fn=demo)
-    s = sub.add_parser("bench", help="per-frame step time at batch 1 and 256")
-    s.add_argument("--steps", type=int, default=300)
+    s = sub.add_parser("bench", help="per-frame step time at batch 1 and 256, compiled vs numpy reference")
+    s.add_argument("--steps", type=int, default=300, help="timed steps at batch 1 (a quarter at batch 256)")
+    s.add_argument("--threads", type=int, default=1, help="BLAS/torch threads (the service runs with 1)")
     s.set_defaults(fn=bench)
     s = sub.add_parser("heldout", help="held-out styles from a clip: distances to the real style, renders")
     s.set_defaults(fn=heldout)

@@ -6,6 +6,7 @@ to float32 round-off; only `_control`, `_inputs`, `_network`, `_advance` and `_f
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -168,6 +169,14 @@ class NumpyLPNModel(LPNModel):
         trans[:, lf.HIPS] = root
         g_rot, g_pos = fk(rotations, trans, self.parents)
         return g_rot.astype(np.float32), g_pos.astype(np.float32)
+
+
+def numpy_twin(model: LPNModel) -> NumpyLPNModel:
+    """The numpy step on `model`'s own arrays (weights, styles): no second copy of the 8 MB of
+    weights, so a benchmark alternating the two steps does not evict one's weights for the other's."""
+    twin = copy.copy(model)
+    twin.__class__ = NumpyLPNModel
+    return twin
 
 
 def load(weights_dir: Path) -> NumpyLPNModel:

@@ -287,7 +287,8 @@ class LPNModel:
             raise ValueError(f"control must be ({B}, 5), got {np.shape(control)}")
         for key, (shape, dtype) in self._state_layout.items():
             value = s.get(key)
-            if not isinstance(value, np.ndarray) or value.shape != (B, *shape) or value.dtype != dtype:
+            if not (isinstance(value, np.ndarray) and value.shape[:1] == (B,) and value.shape[1:] == shape
+                    and (value.dtype is dtype or value.dtype == dtype)):
                 got = f"{value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value).__name__
                 raise ValueError(f"state[{key!r}] must be {dtype} {(B, *shape)}, got {got}")
 
