@@ -46,10 +46,12 @@ def test_fine_tuning_lowers_the_loss_on_the_clips_held_back_frames_and_leaves_th
         assert torch.equal(v, original[k]), k
 
 
-def test_fine_tuning_is_deterministic_for_a_seed(chimpira):
+def test_fine_tuning_is_deterministic_for_a_seed_and_leaves_the_callers_random_state(chimpira):
+    caller = torch.random.get_rng_state()
     runs = [fine_tune(MODEL.generator(), chimpira, FineTuneConfig(steps=3, seed=s)) for s in (7, 7, 8)]
     np.testing.assert_array_equal(runs[0].film, runs[1].film)
     assert not np.array_equal(runs[0].film, runs[2].film)
+    assert torch.equal(torch.random.get_rng_state(), caller)
 
 
 def test_a_clip_too_short_to_hold_frames_back_is_refused(chimpira):

@@ -5,7 +5,7 @@
     .venv/bin/python -m models.lpn train [--minutes 60] [--field=value ...]   # train.TrainConfig, then export
     .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
     .venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs numpy
-    .venv/bin/python -m models.lpn heldout                                 # new styles from a clip, 3 held-out styles
+    .venv/bin/python -m models.lpn heldout [--steps 300 --seed 0]          # new styles from a clip, 3 held-out styles
 """
 
 from __future__ import annotations
@@ -142,8 +142,13 @@ def _alternate(steps: dict, repeats: int, warmup: int = 20) -> tuple[dict[str, n
 
 
 def heldout(args) -> None:
+    import torch
+    from .finetune import FineTuneConfig
     from .heldout import evaluate
-    print(json.dumps(evaluate(_model(), REPO_ROOT / "out" / "lpn"), indent=1))
+    torch.set_num_threads(1)  # as the service's fine-tune job runs
+    given = {k: v for k, v in (("steps", args.steps), ("seed", args.seed)) if v is not None}
+    cfg = FineTuneConfig(**given, dropout=args.dropout)
+    print(json.dumps(evaluate(_model(), REPO_ROOT / "out" / "lpn", fine_tune_config=cfg), indent=1))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -172,7 +177,11 @@ def main(argv: list[str] | None = None) -> None:
     s.add_argument("--steps", type=int, default=300, help="timed steps at batch 1 (a quarter at batch 256)")
     s.add_argument("--threads", type=int, default=1, help="BLAS/torch threads (the service runs with 1)")
     s.set_defaults(fn=bench)
-    s = sub.add_parser("heldout", help="held-out styles from a clip: distances to the real style, renders")
+    s = sub.add_parser("heldout", help="held-out styles from a clip, instant and fine-tuned: distances to the real "
+                       "style, renders")
+    s.add_argument("--steps", type=int, help="fine-tune steps (default: FineTuneConfig's)")
+    s.add_argument("--seed", type=int, help="fine-tune seed (default: FineTuneConfig's)")
+    s.add_argument("--no-dropout", dest="dropout", action="store_false", help="fine-tune with the network's dropout off")
     s.set_defaults(fn=heldout)
     s = sub.add_parser("train", help="train LPN-FiLM (options of train.TrainConfig as --field=value)")
     s.add_argument("--minutes", type=float, default=60.0)
