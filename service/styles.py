@@ -38,8 +38,9 @@ NAME_RE = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,38}[a-z0-9])?$")
 MODEL_FPS = 30.0
 
 
-class StyleDeleted(Exception):
-    """The style a job works for was deleted: the job stops at its next progress report."""
+class JobStopped(Exception):
+    """A job's work is no longer wanted (its style was deleted, the server is stopping): it stops at
+    its next progress report instead of running on."""
 
 
 class ApiError(Exception):
@@ -167,11 +168,13 @@ class StyleStore:
         self.trained = {name: set(m.styles()) for name, m in runtime.models.items()}
         self.uploaded: dict[str, StyleInfo] = {}  # id -> info
         self.loop: asyncio.AbstractEventLoop | None = None
+        self.stopping = False
 
     def bind_loop(self, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop
 
     async def stop(self) -> None:
+        self.stopping = True  # a running LPN-FiLM fine-tune stops at its next step
         self.jobs.shutdown()
 
     # ---- persistence -----------------------------------------------------------
@@ -337,7 +340,7 @@ class StyleStore:
             self._save_info(info)
             return UploadAccepted(style=info.model_copy())
         job = self.jobs.submit("fine_tune", lambda progress: self._film_job(info, motion, progress), target=sid,
-                               on_failure=lambda msg: self.loop.call_soon_threadsafe(self._film_job_failed, info, msg))
+                               on_failure=lambda msg: self._film_job_failed(info, msg))
         info.job_id, info.message = job.id, "FiLM parameters from the clip; fine-tuning the FiLM generator"
         self._save_info(info)
         return UploadAccepted(style=info.model_copy(), job=job)
@@ -348,7 +351,9 @@ class StyleStore:
 
         def report(fraction: float, loss: float) -> None:
             if self.uploaded.get(info.id) is not info:  # deleted (maybe uploaded again): stop spending the CPU
-                raise StyleDeleted(f"style {info.id!r} was deleted while its FiLM generator was being fine-tuned")
+                raise JobStopped(f"style {info.id!r} was deleted while its FiLM generator was being fine-tuned")
+            if self.stopping:
+                raise JobStopped("the server is stopping")
             progress(0.02 + 0.93 * fraction, f"fine-tuning the FiLM generator: loss {loss:.4f}")
 
         progress(0.0, "building the clip's training samples")
@@ -385,10 +390,17 @@ class StyleStore:
         return film is not None
 
     def _film_job_failed(self, info: StyleInfo, message: str) -> None:
-        """On the event loop: the style keeps its clip embedding and says why it is not fine-tuned."""
-        if self.uploaded.get(info.id) is info:
-            info.message = f"FiLM parameters from the clip; fine-tuning failed: {message}"
-            self._save_info(info)
+        """Job thread: the style keeps its clip embedding and says (on the event loop, where deletes
+        run) why it is not fine-tuned. A stopping server leaves that to the restart (`load`)."""
+        if self.stopping:
+            return
+
+        def note() -> None:
+            if self.uploaded.get(info.id) is info:
+                info.message = f"FiLM parameters from the clip; fine-tuning failed: {message}"
+                self._save_info(info)
+
+        self.loop.call_soon_threadsafe(note)
 
     # ---- the job (job thread) ----------------------------------------------------
     def _fine_tune_job(self, info: StyleInfo, motion, ref, progress) -> dict:

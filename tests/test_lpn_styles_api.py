@@ -134,19 +134,23 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
         assert httpx.delete(f"{base}/v1/styles/lpn.tuned-giant").status_code == 204
 
 
-def test_deleting_a_style_while_its_fine_tune_job_runs_stops_the_job_and_nothing_else(giant_clip, tmp_path):
+def wait_stepping(base: str, job_id: str) -> None:
+    t0 = time.monotonic()
+    while "loss" not in httpx.get(f"{base}/v1/jobs/{job_id}").json()["message"]:
+        assert time.monotonic() - t0 < 60
+        time.sleep(0.05)
+
+
+def test_deleting_a_style_or_stopping_the_server_while_a_fine_tune_job_runs_stops_the_job(giant_clip, tmp_path):
     body = {"name": "doomed", "model": "lpn", "frames": giant_clip, "fps": 30, "fine_tune": True}
-    with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=5000) as (base, _):
+    with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=5000) as (base, app):
         short = {**body, "frames": {k: v[:90] for k, v in giant_clip.items()}}
         refused = httpx.post(f"{base}/v1/styles", json=short)  # long enough for a style, not to hold frames back
         assert refused.status_code == 422 and refused.json()["code"] == "bad_length", refused.text
         assert httpx.get(f"{base}/v1/styles/lpn.doomed").status_code == 404
 
         job = httpx.post(f"{base}/v1/styles", json=body, timeout=60).json()["job"]
-        t0 = time.monotonic()
-        while "loss" not in httpx.get(f"{base}/v1/jobs/{job['id']}").json()["message"]:  # until it is stepping
-            assert time.monotonic() - t0 < 60
-            time.sleep(0.05)
+        wait_stepping(base, job["id"])
         streamer = Streamer(base, "normal")
         streamer.start()
         assert httpx.delete(f"{base}/v1/styles/lpn.doomed").status_code == 204
@@ -162,3 +166,10 @@ def test_deleting_a_style_while_its_fine_tune_job_runs_stops_the_job_and_nothing
         streamer.join(timeout=10)
         assert streamer.error is None and len(streamer.replies) > 5
         assert httpx.delete(f"{base}/v1/styles/lpn.doomed").status_code == 204
+
+        jobs = app.state.runtime.styles.jobs
+        running = httpx.post(f"{base}/v1/styles", json={**body, "name": "cut-short"}, timeout=60).json()["job"]
+        wait_stepping(base, running["id"])
+    jobs.futures[running["id"]].result(timeout=10)  # the stopped server's job ended within a step
+    assert jobs.get(running["id"]).message == "JobStopped: the server is stopping"
+    MODEL.remove_style("cut-short")
