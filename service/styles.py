@@ -402,7 +402,7 @@ class StyleStore:
 
         self.loop.call_soon_threadsafe(note)
 
-    # ---- the job (job thread) ----------------------------------------------------
+    # ---- the LTI job (job thread) ------------------------------------------------
     def _fine_tune_job(self, info: StyleInfo, motion, ref, progress) -> dict:
         from models.lti.finetune import fine_tune
         res = fine_tune(motion, info.name, ref, progress)
