@@ -90,6 +90,7 @@ def render_demo(out_dir: Path, tag: str = "demo", seconds: float = 60.0, styles=
     """Contact sheet PNG (+ GIF) of the scripted control in each style, metrics as JSON; returns the PNG path."""
     import json
 
+    from ..eval.footprints import render_footprints
     from ..motion.render import render_contact_sheet, render_gif
     from . import load
     model = model or load(get_settings().weights_dir / "lpn")
@@ -99,6 +100,7 @@ def render_demo(out_dir: Path, tag: str = "demo", seconds: float = 60.0, styles=
     out_dir.mkdir(parents=True, exist_ok=True)
     frames = [int((a + b) / 2) for _, a, b in segments]
     png = render_contact_sheet(motions, out_dir / f"lpn_{tag}.png", frames=frames, titles=list(styles))
+    render_footprints(motions, out_dir / f"lpn_{tag}_footprints.png", titles=list(styles))
     if gif:
         render_gif(motions, out_dir / f"lpn_{tag}.gif", seconds=seconds, fps=gif_fps, titles=list(styles), panel_size=2.2)
     (out_dir / f"lpn_{tag}.json").write_text(json.dumps({"segments": segments, "metrics": report}, indent=1, default=str))
