@@ -40,11 +40,10 @@ import numpy as np
 
 from ..interface import FrameBatch, State
 from ..motion.features import body_joint
-from ..motion.rotations import quat_apply, quat_mul
+from ..motion.rotations import quat_mul
 from ..motion.skeleton import Motion, Skeleton
 from . import features as lf
 from . import kernels
-from ..lti.footplant import two_bone_ik
 from .weights import read_weights
 
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
@@ -346,38 +345,13 @@ class LPNModel:
 
     def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray,
                    g_world: np.ndarray) -> np.ndarray:
-        """Two-bone leg IK (the LTI foot lock's kernel) pinning each planted ankle where it touched
-        down (state-held anchors), released over LOCK_RELEASE frames; the anchor is dragged along
-        beyond LOCK_MAX_PULL cm."""
-        gh = rotations[:, lf.HIPS]
-        ch = self.chains  # (2 sides, 3) upper leg, lower leg, foot
-        # ankle = root + R_hips off_up + R_up off_low + R_low off_foot, both sides at once
-        feet = root[:, None] + np.einsum("bsij,sj->bsi", g_world[:, [lf.HIPS, lf.HIPS]], self.offsets[ch[:, 0]]) + \
-            np.einsum("bsij,sj->bsi", g_world[:, ch[:, 0]], self.offsets[ch[:, 1]]) + \
-            np.einsum("bsij,sj->bsi", g_world[:, ch[:, 1]], self.offsets[ch[:, 2]])
-        start = contacts & ~s["lock_was"]
-        anchor = np.where(start[..., None], feet, s["lock_anchor"])
-        gap = anchor - feet
-        dist = np.linalg.norm(gap, axis=-1, keepdims=True)
-        anchor = feet + gap * np.minimum(1.0, LOCK_MAX_PULL / np.maximum(dist, 1e-9))
-        since = np.where(contacts, 0, s["lock_since"] + 1)
-        s["lock_anchor"], s["lock_since"], s["lock_was"] = anchor.astype(np.float32), since, contacts.copy()
-        active = since <= LOCK_RELEASE
-        if not active.any():
-            return rotations
-        fade = np.clip(since / (LOCK_RELEASE + 1.0), 0.0, 1.0)[..., None]
-        target = anchor + (feet - anchor) * fade
-        out = rotations.copy()
-        for side, (up, low, foot) in enumerate(ch):
-            rows = np.flatnonzero(active[:, side])
-            if not len(rows):
-                continue
-            g = gh[rows]
-            hip = root[rows] + quat_apply(g, self.offsets[up])
-            out[rows, up], out[rows, low], out[rows, foot] = two_bone_ik(
-                g, rotations[rows, up], rotations[rows, low], rotations[rows, foot], hip,
-                self.offsets[low], self.offsets[foot], target[rows, side])
-        return out
+        """Two-bone leg IK (the LTI foot lock's) pinning each planted ankle where it touched down
+        (state-held anchors), released over LOCK_RELEASE frames; the anchor is dragged along beyond
+        LOCK_MAX_PULL cm (`kernels.foot_lock`: in place on the lock state and on `rotations`, the
+        step's own fresh array, which it returns)."""
+        kernels.foot_lock(root, rotations, contacts, g_world, s["lock_anchor"], s["lock_since"], s["lock_was"],
+                          self.chains, self.offsets, LOCK_RELEASE, LOCK_MAX_PULL)
+        return rotations
 
     # ------------------------------------------------------------------ offline helpers
 
