@@ -1,5 +1,7 @@
 """Streaming LPN-FiLM: the project's `StreamingModel` interface as a character controller in
-numpy (float32): per frame, the network reads the character's trajectory (past from its own
+float32, the per-session maths (control, trajectory blend, gating, FiLM, phase and root update,
+output pose, foot lock) in numba kernels (`kernels.py`) and the expert products in BLAS;
+`reference.py` keeps the plain numpy step the kernels are tested against. Per frame, the network reads the character's trajectory (past from its own
 history, future blended from the control and its own last prediction), its pose and its local
 phases, and predicts the next pose, root motion, phases and contacts.
 
