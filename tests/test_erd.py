@@ -190,3 +190,22 @@ def test_bad_shapes_are_clear_errors(model):
         model.step_batch({**state, "prev_pos": np.zeros((1, 21, 3))}, FrameBatch(np.zeros((1, 3)), rest), w)
     with pytest.raises(ValueError, match="style_weights"):
         model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest), w[:, :4])
+
+
+def test_foot_lock_keeps_planted_feet_from_sliding(model, walks):
+    """The network alone slides its planted feet (it knows nothing of the floor); the streaming
+    output holds them while the input's foot is down, and reports those contacts."""
+    from models.erd.features import CONTACT
+    from models.erd.offline import stylise
+    from models.eval.metrics import foot_skating
+    motion = walks[0].slice(0, 150)
+    w = _onehot(model, "active")
+    gen = model.torch_generator()
+    free = foot_skating(stylise(gen, model.maker, motion, w, foot_lock=False))["skate_ratio"]
+    locked = foot_skating(stylise(gen, model.maker, motion, w))["skate_ratio"]
+    assert locked < 0.5 * free, (free, locked)
+    state = model.init_state(1)
+    x, _ = model.maker.sequence(motion.translations[:, 1], motion.rotations)
+    for t in range(20):
+        out, state = model.step_batch(state, FrameBatch(motion.translations[t:t + 1, 1], motion.rotations[t:t + 1]), w[None])
+        assert np.array_equal(out.contacts[0], x[t, CONTACT] > 0.5)

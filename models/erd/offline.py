@@ -6,7 +6,8 @@ Output root: the output Hips path integrates the predicted facing-frame root vel
 turned by the INPUT's facing yaw, starting from the input's first root position; the height is
 the predicted Hips height. So the path keeps the input's shape and direction while the speed may
 change with the style. The output Hips rotation is the input's facing yaw times the predicted
-yaw-free Hips rotation.
+yaw-free Hips rotation. Then the streaming model's foot lock, frame by frame (`foot_lock=False`
+gives the network's output alone).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ import torch
 from ..motion.skeleton import Motion
 from models.motion.rotations import quat_mul
 
-from .features import FPS, BODY, FeatureMaker, rotate_y, yaw_quat
+from ..lti.footplant import FootLock
+from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y, yaw_quat
 from .model import Generator
 
 
@@ -41,7 +43,7 @@ def to_world(rot: np.ndarray, root_vel: np.ndarray, height: np.ndarray, yaw: np.
 
 @torch.no_grad()
 def stylise(gen: Generator, maker: FeatureMaker, motion: Motion, weights: np.ndarray,
-            style_in: int = -1, content: int = -1) -> Motion:
+            style_in: int = -1, content: int = -1, foot_lock: bool = True) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6)."""
     root_in = motion.translations[:, 1]
     x, yaw = maker.sequence(root_in, motion.rotations)
@@ -50,6 +52,11 @@ def stylise(gen: Generator, maker: FeatureMaker, motion: Motion, weights: np.nda
     out = gen(torch.as_tensor(x, dtype=torch.float32)[None], torch.tensor([style_in]), torch.tensor([content]), w)
     root, rots = to_world(out["rot"][0].double().numpy(), out["root_vel"][0].double().numpy(),
                           out["height"][0].double().numpy(), yaw, root_in[0])
+    if foot_lock:
+        from .runtime import LOCK_MAX_PULL, LOCK_RELEASE
+        lock = FootLock(motion.skeleton, 1, release_frames=LOCK_RELEASE, max_pull=LOCK_MAX_PULL)
+        planted = x[:, CONTACT] > 0.5
+        rots = np.concatenate([lock(root[t:t + 1], rots[t:t + 1], planted[t:t + 1]) for t in range(len(rots))])
     trans = motion.translations.copy()
     trans[:, 1] = root
     return replace(motion, rotations=rots, translations=trans)
