@@ -191,7 +191,8 @@ def markdown(r: dict) -> str:
         "its windows) and a denoising autoencoder over 24-frame windows. "
         "**Style acc** = share of outputs recognised as the target style; **content acc** = share recognised as the input's "
         "content (10 classes); **FMD** = Fréchet distance between the autoencoder latents of the outputs' windows and of "
-        "real test clips of the target style; **skate** = share of foot-contact frames (ankle/toe near the floor) whose "
+        "real test clips of the target style; **skate** = share of flat-foot frames (ankle and toe both within 0.02 leg "
+        "lengths of their floor level) whose "
         f"horizontal foot speed exceeds {meta['skate_speed_leg_per_s']} leg lengths/s; **path dev** = mean horizontal "
         "distance (cm) between input and output root paths with starts aligned. Identity (output = input) is the baseline; "
         "`real val` rows are real validation clips of the target style (what a perfect method would score).", "",
