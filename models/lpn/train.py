@@ -53,6 +53,7 @@ class TrainConfig:
     out_dir: str = str(REPO_ROOT / "out" / "lpn")
     hundred_style_dir: str = ""  # train on a 100STYLE folder (hundred_style.py) instead of Bandai Namco
     export: str = ""  # path of a checkpoint to export to models/weights/lpn instead of training
+    init_from: str = ""  # continue from this checkpoint's network (same data and sizes); a fresh optimiser
     no_export: bool = False
 
 
@@ -222,6 +223,11 @@ def main(argv: list[str]) -> None:
     lengths = torch.as_tensor(lengths_np, dtype=torch.float32)
     mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout)
     net = LPN(mcfg, stats)
+    if cfg.init_from:
+        ckpt = torch.load(cfg.init_from, map_location="cpu", weights_only=False)
+        if ckpt["styles"] != styles:
+            raise SystemExit(f"{cfg.init_from} was trained on other styles: {ckpt['styles']}")
+        net.load_state_dict(ckpt["model"])
     log(f"config {json.dumps(asdict(cfg))}")
     log(f"data: train {len(train.X)} samples / {len(train.names)} clips, val {len(val.X)}, "
         f"heldout {0 if heldout is None else len(heldout.X)}; "
