@@ -209,3 +209,20 @@ def test_foot_lock_keeps_planted_feet_from_sliding(model, walks):
     for t in range(20):
         out, state = model.step_batch(state, FrameBatch(motion.translations[t:t + 1, 1], motion.rotations[t:t + 1]), w[None])
         assert np.array_equal(out.contacts[0], x[t, CONTACT] > 0.5)
+
+
+def test_a_state_saved_before_the_foot_lock_still_steps(model, walks):
+    """Snapshots written by an older replica have no foot-lock memory: `upgrade_state` (which the
+    service's batcher applies to every state) gives them a fresh one."""
+    motion = walks[0]
+    w = _onehot(model, "elderly")[None]
+    state = model.init_state(1)
+    for t in range(5):
+        _, state = model.step_batch(state, FrameBatch(motion.translations[t:t + 1, 1], motion.rotations[t:t + 1]), w)
+    old = {k: v for k, v in state.items() if not k.startswith("lock_")}
+    fresh = {**state, **{k: v for k, v in model.init_state(1).items() if k.startswith("lock_")}}
+    assert model.upgrade_state(state) is state
+    frame = FrameBatch(motion.translations[5:6, 1], motion.rotations[5:6])
+    upgraded, _ = model.step_batch(model.upgrade_state(old), frame, w)
+    expected, _ = model.step_batch(fresh, frame, w)
+    np.testing.assert_array_equal(upgraded.rotations, expected.rotations)
