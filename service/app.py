@@ -65,8 +65,11 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
         styles.bind_loop(asyncio.get_running_loop())
         runtime.styles = styles
         await runtime.start()
+        refresher = asyncio.get_running_loop().create_task(styles.refresh_loop()) if styles.shared else None
         app.state.runtime = runtime
         yield
+        if refresher is not None:
+            refresher.cancel()
         await styles.stop()
         await runtime.stop()
         app.state.runtime = None

@@ -63,6 +63,7 @@ class Runtime:
         self.connections: dict[str, Drainable] = {}  # by session id
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
         self.draining = False
+        self.styles = None  # the app's StyleStore (service/styles.py), set once it is built
 
     async def start(self) -> None:
         frame_check.warm()
@@ -126,12 +127,16 @@ class Runtime:
                 raise P.ProtocolError("session_in_use", "that session is still connected")
             if snap.model not in self.models:
                 raise P.ProtocolError("unknown_model", f"this replica does not serve model {snap.model!r}")
+            if self.styles is not None:
+                await self.styles.ensure_known(snap.model, [*snap.weights, *snap.target])
             session = Session.restore(snap, self.models[snap.model], self.settings.session_queue)
             self.metrics.resumes.inc()
         else:
             model = self.models.get(start.model)
             if model is None:
                 raise P.ProtocolError("unknown_model", f"unknown model {start.model!r}; available: {', '.join(self.models) or 'none'}")
+            if self.styles is not None:
+                await self.styles.ensure_known(start.model, P.mix_of(start.style, start.mix))
             weights = P.requested_weights(model, start.style, start.mix, start.intensity)
             session = Session(model=model, skeleton=start.skeleton or "custom", fps=start.fps, encoding=start.encoding,
                               weights=weights, state=model.init_state(1), bvh_header=start.bvh_header,

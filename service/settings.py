@@ -53,6 +53,9 @@ class ServiceSettings(Settings):
     token_limits: dict[str, TokenLimits] = Field(default_factory=dict, description="Per-token overrides, JSON: "
                                                  '{"tok": {"max_sessions": 4, "requests_per_s": 5, "upload_max_bytes": 1000000}}.')
     styles_dir: Path = Field(default=REPO_ROOT / ".data" / "styles", description="Uploaded styles (clip, translator, metadata).")
+    styles_refresh_s: float = Field(default=0.0, ge=0, le=3600, allow_inf_nan=False, description="Replicas sharing "
+                                    "one styles_dir: rescan it this often (seconds) for styles the others added, "
+                                    "fine-tuned or deleted; 0 = the folder is this server's own.")
     upload_max_bytes: int = Field(default=16 * 1024 * 1024, ge=1024, description="Largest style upload body accepted (413 above).")
     upload_min_frames: int = Field(default=60, ge=30, description="Shortest uploaded clip, in frames at 30 fps.")
     upload_max_frames: int = Field(default=9000, ge=60, description="Longest uploaded clip, in frames at 30 fps.")

@@ -14,6 +14,13 @@ sessions see the change at once; running and resumed sessions carry on unchanged
 brought to the new style set by `upgrade_state` at their next step, `models/interface.py`), and
 one whose mix had weight on a deleted style is told so (`style_deleted`) while that share passes
 the input through.
+
+Replicas may share one styles folder (a volume mounted by all of them) with `styles_refresh_s` > 0:
+each then rescans the folder that often (and at once when a session names a style it does not
+know) and takes in the styles the others added, fine-tuned or deleted, so an upload through the
+load balancer is usable on every replica and a session resumed on another replica keeps its
+uploaded style. A style is written by the replica that received it (its job runs there); the
+others only read its folder.
 """
 
 from __future__ import annotations
@@ -36,6 +43,9 @@ log = logging.getLogger(__name__)
 
 NAME_RE = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,38}[a-z0-9])?$")
 MODEL_FPS = 30.0
+# shared folder: a style still "training" whose style.json changed this recently may be another
+# replica's running job, so a starting replica does not mark it interrupted (jobs take < 1 min)
+TRAINING_FRESH_S = 600.0
 
 
 class JobStopped(Exception):
@@ -167,6 +177,9 @@ class StyleStore:
         self.root = Path(settings.styles_dir)
         self.trained = {name: set(m.styles()) for name, m in runtime.models.items()}
         self.uploaded: dict[str, StyleInfo] = {}  # id -> info
+        self.seen: dict[str, float] = {}  # id -> mtime of the style.json last read or written here
+        self.shared = settings.styles_refresh_s > 0
+        self._refreshing = asyncio.Lock()
         self.loop: asyncio.AbstractEventLoop | None = None
         self.stopping = False
 
@@ -187,39 +200,112 @@ class StyleStore:
         tmp = d / "style.json.tmp"
         tmp.write_text(info.model_dump_json(indent=1))
         tmp.replace(d / "style.json")
+        self.seen[info.id] = (d / "style.json").stat().st_mtime  # our own write: no refresh reads it back
 
     def load(self) -> None:
         """The persisted uploaded styles, added to the live models (before any session steps)."""
-        from models.lti.model import StyleTranslator
         if not self.root.is_dir():
             return
         for meta in sorted(self.root.glob("*/*/style.json"), key=lambda p: p.stat().st_mtime):
-            try:
-                info = StyleInfo.model_validate_json(meta.read_text())
-            except ValueError:
-                log.warning("skipping unreadable %s", meta)
-                continue
-            model = self.rt.models.get(info.model)
+            info = self._read_info(meta)
+            model = None if info is None else self.rt.models.get(info.model)
             if model is None:
                 continue
-            if info.status == "training":
+            fresh = time.time() - meta.stat().st_mtime < TRAINING_FRESH_S
+            if info.status == "training" and not (self.shared and fresh):
                 info.status, info.message = "failed", "interrupted by a server restart; delete and upload again"
                 self._save_info(info)
             if info.status == "ready":
                 try:
-                    if hasattr(model, "add_style_from_clip"):
-                        self._load_embedded(model, info, meta.parent)
-                        self.uploaded[info.id] = info
-                        continue
-                    tr = StyleTranslator.load(meta.parent / "translator.npz")
-                    tr.style = info.name
-                    model.add_style(tr)
+                    self._install(model, info, meta.parent, startup=True)
                 except Exception as exc:  # noqa: BLE001
                     log.warning("could not load style %s: %s", info.id, exc)
                     info.status, info.message = "failed", f"could not load its translator: {exc}"
             self.uploaded[info.id] = info
+            self.seen.setdefault(info.id, meta.stat().st_mtime)
 
-    def _load_embedded(self, model, info: StyleInfo, d: Path) -> None:
+    @staticmethod
+    def _read_info(meta: Path) -> StyleInfo | None:
+        try:
+            return StyleInfo.model_validate_json(meta.read_text())
+        except (OSError, ValueError):
+            log.warning("skipping unreadable %s", meta)
+            return None
+
+    def _install(self, model, info: StyleInfo, d: Path, startup: bool = False) -> None:
+        """A ready style from its folder into `model` (at startup, or by a refresh on the model thread)."""
+        if hasattr(model, "add_style_from_clip"):
+            self._load_embedded(model, info, d, note_interrupted=startup)
+            return
+        from models.lti.model import StyleTranslator
+        tr = StyleTranslator.load(d / "translator.npz")
+        tr.style = info.name
+        model.add_style(tr)
+
+    # ---- a styles folder shared with other replicas ---------------------------------
+    async def refresh(self) -> None:
+        """Take in what other replicas sharing the folder added, changed (an LTI job finished, an
+        LPN-FiLM style fine-tuned) or deleted since the last look; nothing unless shared."""
+        if not self.shared or self.stopping:
+            return
+        async with self._refreshing:
+            on_disk: dict[str, tuple[Path, float]] = {}
+            for meta in self.root.glob("*/*/style.json"):
+                try:
+                    on_disk[style_id(meta.parent.parent.name, meta.parent.name)] = (meta, meta.stat().st_mtime)
+                except OSError:  # deleted between the listing and the stat
+                    continue
+            for sid, info in list(self.uploaded.items()):
+                if sid not in on_disk and not (self._dir(info.model, info.name) / "style.json").exists():
+                    await self._forget(info)
+            for sid, (meta, mtime) in on_disk.items():
+                if self.seen.get(sid) == mtime:
+                    continue
+                info = self._read_info(meta)
+                model = None if info is None else self.rt.models.get(info.model)
+                if model is None or info.id != sid:
+                    continue
+                known = self.uploaded.get(sid)
+                newly_ready = info.status == "ready" and (known is None or known.status != "ready")
+                refit = hasattr(model, "set_style_film") and (meta.parent / "film.npz").exists()
+                if newly_ready or (info.status == "ready" and refit):
+                    try:
+                        await self.rt.on_model_thread(self._install, model, info, meta.parent)
+                    except Exception as exc:  # noqa: BLE001  (half-written by its replica: the next look retries)
+                        log.warning("could not take in style %s: %s", sid, exc)
+                        continue
+                self.uploaded[sid], self.seen[sid] = info, mtime
+
+    async def _forget(self, info: StyleInfo) -> None:
+        """Another replica deleted the style: drop it here too (its files are already gone)."""
+        if self.uploaded.get(info.id) is not info:
+            return
+        self.uploaded.pop(info.id, None)
+        self.seen.pop(info.id, None)
+        model = self.rt.models[info.model]
+
+        def remove() -> None:
+            if info.name in model.styles():
+                model.remove_style(info.name)
+
+        await self.rt.on_model_thread(remove)
+
+    async def refresh_loop(self) -> None:
+        """Rescan the shared folder every `styles_refresh_s` until the server stops."""
+        while not self.stopping:
+            await asyncio.sleep(self.settings.styles_refresh_s)
+            try:
+                await self.refresh()
+            except Exception:  # noqa: BLE001  (a bad folder must not end the loop)
+                log.exception("styles refresh failed")
+
+    async def ensure_known(self, model_name: str, names) -> None:
+        """A session names styles this replica does not have: another may have just added them."""
+        model = self.rt.models.get(model_name)
+        if model is not None and not set(names) <= set(model.styles()):
+            await self.refresh()
+
+    def _load_embedded(self, model, info: StyleInfo, d: Path, note_interrupted: bool = True) -> None:
         """An LPN-FiLM style back from disk: its fine-tuned FiLM vector if a job stored one, else
         the clip embedded again (a fine-tune cut off by the restart is said so in its message)."""
         if (d / "film.npz").exists():
@@ -228,7 +314,8 @@ class StyleStore:
             return
         clip = np.load(d / "clip.npz")
         model.add_style_from_clip(info.name, _bn_motion(model.skeleton, clip["root"], clip["rotations"], float(clip["fps"])))
-        if info.job_id is not None and info.fine_tune is None:
+        if note_interrupted and info.job_id is not None and info.fine_tune is None and \
+                not (self.shared and time.time() - (d / "style.json").stat().st_mtime < TRAINING_FRESH_S):
             info.message = "FiLM parameters from the clip; fine-tuning was interrupted by a server restart"
             self._save_info(info)
 

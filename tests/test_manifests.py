@@ -197,6 +197,8 @@ def test_compose_runs_two_replicas_of_one_image_behind_nginx_with_redis_and_prom
         assert replica["stop_signal"] == "SIGTERM"
         assert replica["healthcheck"]["test"][-1] in service_routes()
         assert "ports" not in replica  # reached only through nginx (which it trusts for X-Forwarded-For)
+        # one styles volume for both, rescanned: an upload through nginx is usable on either replica
+        assert replica["volumes"] == ["styles:/var/lib/stylestream/styles"] and settings.styles_refresh_s > 0
     assert {name: services["nginx"]["depends_on"][name]["condition"] for name in REPLICAS} == \
         dict.fromkeys(REPLICAS, "service_healthy")
     mounts = {m.split(":")[1] for s in ("nginx", "prometheus") for m in services[s]["volumes"]}

@@ -1,0 +1,74 @@
+"""Two replicas sharing one styles folder (`styles_refresh_s` > 0), as in docker/compose.yaml: a
+style uploaded through one is usable on the other at once with the same output, its fine-tuned
+FiLM vector reaches the other, and a delete through either removes it from both. Each replica has its own LPN-FiLM instance, as separate processes do."""
+
+from __future__ import annotations
+
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from clients.sdk import Client
+from models.data import load_motion, select
+from models.lpn import load as load_lpn
+from models.settings import get_settings
+
+from .live_server import live_server
+
+WALK = [((1.3, 0.0), 0.0, "walk")] * 30
+STEPS = 20  # fine-tune steps (the service default is 300)
+
+
+@pytest.fixture(scope="module")
+def chimpira_clip(index):
+    m = load_motion(select(index, dataset="bandai-namco-1", style="chimpira", content="walk")[0]).slice(0, 200)
+    return {"root": m.translations[:, 1].tolist(), "rotations": m.rotations.tolist()}
+
+
+def drive(base: str, style: str) -> np.ndarray:
+    with Client(base).session(model="lpn", style=style) as session:
+        return np.array([session.control(v, facing, gait).rotations for v, facing, gait in WALK])
+
+
+def styles_of(base: str) -> list[str]:
+    return httpx.get(f"{base}/v1/models").json()[0]["styles"]
+
+
+def wait_until(check, what: str, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not check():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.05)
+
+
+def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip, tmp_path):
+    weights = get_settings().weights_dir / "lpn"
+    shared = dict(styles_dir=tmp_path, styles_refresh_s=0.2, lpn_fine_tune_steps=STEPS)
+    with live_server({"lpn": load_lpn(weights)}, **shared) as (a, _), \
+            live_server({"lpn": load_lpn(weights)}, **shared) as (b, _):
+        body = {"name": "street", "model": "lpn", "frames": chimpira_clip, "fps": 30}
+        assert httpx.post(f"{a}/v1/styles", json=body, timeout=60).status_code == 201
+        # no waiting for the periodic rescan: a session naming an unknown style makes b look at once
+        on_a, on_b = drive(a, "street"), drive(b, "street")
+        np.testing.assert_allclose(on_b, on_a, atol=1e-5)  # the same FiLM embedding on both
+        assert httpx.get(f"{b}/v1/styles/lpn.street").json()["status"] == "ready"
+
+        # fine-tuned on a (its job), the tuned vector reaches b by the rescan
+        body = {"name": "tuned", "model": "lpn", "frames": chimpira_clip, "fps": 30, "fine_tune": True}
+        reply = httpx.post(f"{a}/v1/styles", json=body, timeout=60)
+        assert reply.status_code == 201, reply.text
+        job = reply.json()["job"]["id"]
+        wait_until(lambda: httpx.get(f"{a}/v1/jobs/{job}").json()["status"] in ("done", "failed"), "job did not end", 120)
+        assert httpx.get(f"{a}/v1/jobs/{job}").json()["status"] == "done"
+        tuned_a = httpx.get(f"{a}/v1/styles/lpn.tuned").json()
+        assert tuned_a["fine_tune"]["installed"], tuned_a
+        wait_until(lambda: httpx.get(f"{b}/v1/styles/lpn.tuned").json().get("fine_tune"), "b kept the untuned style")
+        np.testing.assert_allclose(drive(b, "tuned"), drive(a, "tuned"), atol=1e-5)
+
+        # deleted through b: gone from both, and a new session on it is refused on a
+        assert httpx.delete(f"{b}/v1/styles/lpn.street").status_code == 204
+        wait_until(lambda: "street" not in styles_of(a), "a still lists the deleted style")
+        assert "street" not in styles_of(b) and "tuned" in styles_of(a) and "tuned" in styles_of(b)
+        assert httpx.get(f"{a}/v1/styles/lpn.street").status_code == 404
