@@ -118,6 +118,9 @@ error_log {folder}/nginx-error.log warn;
 events {{ worker_connections 256; }}
 http {{
     access_log off;
+    # style uploads: kept in memory (the worker user may not write under the test's folder)
+    client_max_body_size 17m;
+    client_body_buffer_size 17m;
     client_body_temp_path {folder}/body;
     proxy_temp_path {folder}/proxy;
     fastcgi_temp_path {folder}/fastcgi;

@@ -1,6 +1,7 @@
-"""Two replicas sharing a Redis session store behind nginx: a client keeps streaming through a
-SIGKILL of the replica holding its session, with one reconnect and the outputs of an
-uninterrupted run. Also the SDK's replay buffer on its own."""
+"""Two replicas sharing a Redis session store and a styles folder behind nginx: a client keeps
+streaming through a SIGKILL of the replica holding its session, with one reconnect and the outputs
+of an uninterrupted run, also on a style uploaded through the load balancer. Also the SDK's replay
+buffer on its own."""
 
 from __future__ import annotations
 
@@ -8,10 +9,13 @@ import signal
 import threading
 import time
 
+import httpx
 import numpy as np
 import pytest
 
 from clients.sdk import Client, ReplayBuffer, ResumeError
+
+from models.data import load_motion, select
 
 from .cluster import nginx, redis_server, replicas, require
 
@@ -40,13 +44,31 @@ def stream(base: str, root, rot, on_reply=None, fps: float = 30.0):
     return np.array(outputs), np.array(times), np.array(reconnects)
 
 
-@pytest.fixture(scope="module")
-def cluster(tmp_path_factory):
+@pytest.fixture()
+def cluster(tmp_path):
+    """A fresh cluster per test: each kills a replica."""
     require("redis-server", "nginx")
-    folder = tmp_path_factory.mktemp("cluster")
-    with redis_server(folder) as store, replicas(folder, 2, session_store=store) as (a, b), \
-            nginx(folder, [a.port, b.port]) as lb:
+    with redis_server(tmp_path) as store, \
+            replicas(tmp_path, 2, session_store=store, styles_dir=tmp_path / "styles", styles_refresh_s=1) as (a, b), \
+            nginx(tmp_path, [a.port, b.port]) as lb:
         yield lb, a, b
+
+
+class HolderKiller:
+    """SIGKILLs the replica holding the (one) session 15 ms after the reply to frame `after - 1`,
+    mid-way between two frames, so one may be in flight."""
+
+    def __init__(self, servers, after: int) -> None:
+        self.servers, self.after, self.replica, self.at = servers, after, None, None
+
+    def __call__(self, t: int) -> None:
+        if t + 1 == self.after:
+            self.replica = next(s for s in self.servers if s.metric("stylestream_active_sessions") == 1)
+            threading.Timer(0.015, self._kill).start()
+
+    def _kill(self) -> None:
+        self.replica.signal(signal.SIGKILL)
+        self.at = time.perf_counter()
 
 
 def test_a_session_survives_a_replica_kill_with_one_reconnect_and_unchanged_output(cluster, bn_walk):
@@ -54,26 +76,48 @@ def test_a_session_survives_a_replica_kill_with_one_reconnect_and_unchanged_outp
     root, rot = bn_walk.translations[:FRAMES, 1], bn_walk.rotations[:FRAMES]
     want, _, _ = stream(lb, root, rot)
 
-    killed: dict = {}
-
-    def kill_the_holder(t: int) -> None:
-        if t + 1 == KILL_AFTER:
-            holder = next(s for s in servers if s.metric("stylestream_active_sessions") == 1)
-            killer = threading.Timer(0.015, lambda: (holder.signal(signal.SIGKILL), killed.update(at=time.perf_counter())))
-            killed.update(replica=holder)
-            killer.start()  # mid-way between two frames: one may be in flight
-
-    got, times, reconnects = stream(lb, root, rot, on_reply=kill_the_holder)
-    holder = killed["replica"]
-    holder.proc.wait(timeout=10)
-    survivor = next(s for s in servers if s is not holder)
-    resumed_after = times[reconnects > 0][0] - killed["at"]
+    killer = HolderKiller(servers, KILL_AFTER)
+    got, times, reconnects = stream(lb, root, rot, on_reply=killer)
+    killer.replica.proc.wait(timeout=10)
+    survivor = next(s for s in servers if s is not killer.replica)
+    resumed_after = times[reconnects > 0][0] - killer.at
     print(f"\nresume time (SIGKILL -> first resumed frame): {resumed_after * 1000:.0f} ms")
 
     assert reconnects[-1] == 1
     assert survivor.metric("stylestream_sessions_resumed_total") == 1
     np.testing.assert_allclose(got, want, atol=1e-4)  # float32 on the wire, same computation
     assert resumed_after < 2.0
+
+
+def test_a_session_on_an_uploaded_style_survives_a_replica_kill(cluster, index):
+    """The style was uploaded through nginx to one replica; the session on it, driven as an LPN-FiLM
+    controller, resumes on the other after a SIGKILL and goes on as if nothing happened."""
+    lb, *servers = cluster
+    m = load_motion(select(index, dataset="bandai-namco-1", style="chimpira", content="walk")[0]).slice(0, 150)
+    body = {"name": "street", "model": "lpn", "fps": 30,
+            "frames": {"root": m.translations[:, 1].tolist(), "rotations": m.rotations.tolist()}}
+    assert httpx.post(f"{lb}/v1/styles", json=body, timeout=60).status_code == 201
+    ticks = [((1.3, 0.0), 0.02 * t, "walk") for t in range(90)]
+
+    def drive(on_reply=None):
+        outputs, reconnects = [], []
+        with Client(lb).session(model="lpn", style="street") as session:
+            next_at = time.perf_counter()
+            for t, (velocity, facing, gait) in enumerate(ticks):
+                frame = session.control(velocity, facing, gait)
+                outputs.append(np.concatenate([frame.root, frame.rotations.ravel()]))
+                reconnects.append(session.reconnects)
+                if on_reply:
+                    on_reply(t)
+                next_at += 1 / 30
+                time.sleep(max(0.0, next_at - time.perf_counter()))
+        return np.array(outputs), reconnects
+
+    want, _ = drive()
+    killer = HolderKiller(servers, KILL_AFTER)
+    got, reconnects = drive(on_reply=killer)
+    assert killer.replica is not None and reconnects[-1] == 1
+    np.testing.assert_allclose(got, want, atol=1e-4)
 
 
 # ---- the SDK's replay buffer --------------------------------------------------------------
