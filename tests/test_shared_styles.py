@@ -1,6 +1,7 @@
-"""Two replicas sharing one styles folder (`styles_refresh_s` > 0), as in docker/compose.yaml: a
-style uploaded through one is usable on the other at once with the same output, its fine-tuned
-FiLM vector reaches the other, and a delete through either removes it from both. Each replica has its own LPN-FiLM instance, as separate processes do."""
+"""Two replicas sharing one styles folder (`styles_refresh_s` > 0), as in docker/compose.yaml: an
+LPN-FiLM style uploaded through one is usable on the other at once with the same output, its
+fine-tuned FiLM vector and a finished LTI job reach the other, and a delete through either removes
+it from both. Each replica has its own LPN-FiLM instance, as separate processes do."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import pytest
 from clients.sdk import Client
 from models.data import load_motion, select
 from models.lpn import load as load_lpn
+from models.lti import load as load_lti
 from models.settings import get_settings
 
 from .live_server import live_server
@@ -32,8 +34,13 @@ def drive(base: str, style: str) -> np.ndarray:
         return np.array([session.control(v, facing, gait).rotations for v, facing, gait in WALK])
 
 
-def styles_of(base: str) -> list[str]:
-    return httpx.get(f"{base}/v1/models").json()[0]["styles"]
+def styles_of(base: str, model: str = "lpn") -> list[str]:
+    return next(m for m in httpx.get(f"{base}/v1/models").json() if m["name"] == model)["styles"]
+
+
+def lti_outputs(base: str, style: str, root, rot) -> np.ndarray:
+    with Client(base).session(model="lti", style=style) as session:
+        return np.array([session.stylise(root[t], rot[t]).rotations for t in range(len(root))])
 
 
 def wait_until(check, what: str, timeout: float = 10.0) -> None:
@@ -43,11 +50,12 @@ def wait_until(check, what: str, timeout: float = 10.0) -> None:
         time.sleep(0.05)
 
 
-def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip, tmp_path):
-    weights = get_settings().weights_dir / "lpn"
+def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip, index, bn_walk, tmp_path):
+    weights = get_settings().weights_dir
+    lti = load_lti(weights / "lti")  # each server takes its own copy of a model that adds styles
     shared = dict(styles_dir=tmp_path, styles_refresh_s=0.2, lpn_fine_tune_steps=STEPS)
-    with live_server({"lpn": load_lpn(weights)}, **shared) as (a, _), \
-            live_server({"lpn": load_lpn(weights)}, **shared) as (b, _):
+    with live_server({"lpn": load_lpn(weights / "lpn"), "lti": lti}, **shared) as (a, _), \
+            live_server({"lpn": load_lpn(weights / "lpn"), "lti": lti}, **shared) as (b, _):
         body = {"name": "street", "model": "lpn", "frames": chimpira_clip, "fps": 30}
         assert httpx.post(f"{a}/v1/styles", json=body, timeout=60).status_code == 201
         # no waiting for the periodic rescan: a session naming an unknown style makes b look at once
@@ -66,6 +74,19 @@ def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip,
         assert tuned_a["fine_tune"]["installed"], tuned_a
         wait_until(lambda: httpx.get(f"{b}/v1/styles/lpn.tuned").json().get("fine_tune"), "b kept the untuned style")
         np.testing.assert_allclose(drive(b, "tuned"), drive(a, "tuned"), atol=1e-5)
+
+        # an LTI style identified by a job on b is taken in by a once the job is done
+        m = load_motion(select(index, dataset="bandai-namco-2", style="elderly", content="walk", split="test")[0]).slice(0, 300)
+        body = {"name": "slow", "model": "lti", "fps": 30,
+                "frames": {"root": m.translations[:, 1].tolist(), "rotations": m.rotations.tolist()}}
+        reply = httpx.post(f"{b}/v1/styles?fine_tune=true", json=body, timeout=60)
+        assert reply.status_code == 202, reply.text
+        job = reply.json()["job"]["id"]
+        wait_until(lambda: httpx.get(f"{b}/v1/jobs/{job}").json()["status"] in ("done", "failed"), "LTI job did not end", 120)
+        wait_until(lambda: "slow" in styles_of(a, "lti"), "a did not take in the LTI style")
+        walk = bn_walk.slice(0, 40)
+        np.testing.assert_allclose(lti_outputs(a, "slow", walk.translations[:, 1], walk.rotations),
+                                   lti_outputs(b, "slow", walk.translations[:, 1], walk.rotations), atol=1e-6)
 
         # deleted through b: gone from both, and a new session on it is refused on a
         assert httpx.delete(f"{b}/v1/styles/lpn.street").status_code == 204
