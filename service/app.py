@@ -115,6 +115,7 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
     @app.get("/v1/models", response_model=list[ModelInfo], dependencies=[Depends(require_token)],
              responses={s: {"model": ErrorBody} for s in (401, 429)})
     async def list_models(rt: Runtime = Depends(runtime)) -> list[ModelInfo]:
+        await rt.styles.refresh()  # a styles folder shared with other replicas: what it holds now
         return [ModelInfo(name=n, styles=m.styles(), joints=list(m.skeleton.names),
                           controllable=getattr(m, "controllable", False)) for n, m in rt.models.items()]
 
@@ -128,14 +129,17 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
 
     @app.get("/v1/styles", response_model=list[StyleInfo], dependencies=[Depends(require_token)], responses=errors)
     async def list_styles(model: str | None = None, rt: Runtime = Depends(runtime)) -> list[StyleInfo]:
+        await rt.styles.refresh()
         return rt.styles.list(model)
 
     @app.get("/v1/styles/{style_id}", response_model=StyleInfo, dependencies=[Depends(require_token)], responses=errors)
     async def get_style(style_id: str, rt: Runtime = Depends(runtime)) -> StyleInfo:
+        await rt.styles.refresh()
         return rt.styles.get(style_id)
 
     @app.delete("/v1/styles/{style_id}", status_code=204, dependencies=[Depends(require_token)], responses=errors)
     async def delete_style(style_id: str, rt: Runtime = Depends(runtime)) -> Response:
+        await rt.styles.refresh()  # the style may have come from another replica since the last look
         await rt.styles.delete(style_id)
         return Response(status_code=204)
 

@@ -103,7 +103,7 @@ class Connection:
                         break
                     if isinstance(data, bytes):
                         self.on_binary(data)
-                    elif not self.on_text(data):
+                    elif not await self.on_text_or_refresh(data):
                         break
                 except P.ProtocolError as err:
                     await self.send_error(err)
@@ -179,6 +179,18 @@ class Connection:
             started["last_frame"] = P.frame_message(s.last_seq, s.last_output["root"], s.last_output["rotations"])
         await self.send_json(started)
         return True
+
+    async def on_text_or_refresh(self, data: str) -> bool:
+        """`on_text`; a `style` message naming a style this replica lacks first makes a replica that
+        shares its styles folder look for it there (another replica may have just taken the upload)."""
+        try:
+            return self.on_text(data)
+        except P.ProtocolError as err:
+            styles = self.rt.styles
+            if err.code != "unknown_style" or styles is None or not styles.shared:
+                raise
+            await styles.refresh()
+            return self.on_text(data)
 
     def on_text(self, data: str) -> bool:
         message = P.parse_text(data)

@@ -16,8 +16,9 @@ one whose mix had weight on a deleted style is told so (`style_deleted`) while t
 the input through.
 
 Replicas may share one styles folder (a volume mounted by all of them) with `styles_refresh_s` > 0:
-each then rescans the folder that often (and at once when a session names a style it does not
-know) and takes in the styles the others added, fine-tuned or deleted, so an upload through the
+each then rescans the folder that often, and at once when a session names a style it does not
+know and on every styles or models request, and takes in the styles the others added, fine-tuned
+or deleted, so an upload through the
 load balancer is usable on every replica and a session resumed on another replica keeps its
 uploaded style. A style is written by the replica that received it (its job runs there); the
 others only read its folder.

@@ -1,7 +1,9 @@
 """Two replicas sharing one styles folder (`styles_refresh_s` > 0), as in docker/compose.yaml: an
 LPN-FiLM style uploaded through one is usable on the other at once with the same output, its
 fine-tuned FiLM vector and a finished LTI job reach the other, and a delete through either removes
-it from both. Each replica has its own LPN-FiLM instance, as separate processes do."""
+it from both. The periodic rescan is set long here: each of these comes from a replica looking at
+the folder when a session or a request names what it lacks. Each replica has its own LPN-FiLM
+instance, as separate processes do."""
 
 from __future__ import annotations
 
@@ -53,11 +55,15 @@ def wait_until(check, what: str, timeout: float = 10.0) -> None:
 def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip, index, bn_walk, tmp_path):
     weights = get_settings().weights_dir
     lti = load_lti(weights / "lti")  # each server takes its own copy of a model that adds styles
-    shared = dict(styles_dir=tmp_path, styles_refresh_s=0.2, lpn_fine_tune_steps=STEPS)
+    shared = dict(styles_dir=tmp_path, styles_refresh_s=30, lpn_fine_tune_steps=STEPS)  # rescans come from misses
     with live_server({"lpn": load_lpn(weights / "lpn"), "lti": lti}, **shared) as (a, _), \
             live_server({"lpn": load_lpn(weights / "lpn"), "lti": lti}, **shared) as (b, _):
         body = {"name": "street", "model": "lpn", "frames": chimpira_clip, "fps": 30}
-        assert httpx.post(f"{a}/v1/styles", json=body, timeout=60).status_code == 201
+        with Client(b).session(model="lpn", style="normal") as waiting:  # open on b before the upload
+            waiting.control((1.0, 0.0), 0.0)
+            assert httpx.post(f"{a}/v1/styles", json=body, timeout=60).status_code == 201
+            # b has not rescanned yet, but a switch to the new style makes it look at once
+            assert waiting.set_style("street")["type"] == "style_set"
         # no waiting for the periodic rescan: a session naming an unknown style makes b look at once
         on_a, on_b = drive(a, "street"), drive(b, "street")
         np.testing.assert_allclose(on_b, on_a, atol=1e-5)  # the same FiLM embedding on both
