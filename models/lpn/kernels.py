@@ -1,5 +1,5 @@
 """Compiled kernels (numba) for the LPN-FiLM streaming step: the per-session geometry around the
-network (control, trajectory blending, input assembly, phase update, output pose, foot lock) and
+network (control, trajectory blending, input assembly, phase update, output pose) and
 the network's small per-row maths (gating MLP, expert blend, layer norm, FiLM, ELU). The network's
 three big matrix products stay in numpy (BLAS).
 
@@ -9,8 +9,9 @@ which orthogonalises every float32 matrix by an SVD (none is orthogonal to its 1
 Measured on the shared 2-core machine (load ~3, one BLAS thread): at batch 1 ~2.8 ms a step
 against ~0.3 ms of matrix products; at batch 256 ~56 ms, of which the output pose alone was
 ~29 ms. Here each session is a loop over scalars: a few microseconds per session for everything
-but the three expert products, which stay BLAS. The foot lock came last: compiling the rest left
-it (numpy around the LTI's compiled IK) at ~0.4 ms of a ~0.9 ms batch-1 step; here it is ~2 us.
+but the three expert products, which stay BLAS. The foot lock (numpy around the LTI's compiled
+IK, ~0.4 ms of a ~0.9 ms batch-1 step once the rest was compiled) is now the LTI model's whole
+compiled foot lock.
 
 The formulas are those of `features.py` and of the numpy step kept as the reference
 (`reference.py`), which the tests compare with; arithmetic is float64 inside a kernel, the state
@@ -19,10 +20,9 @@ with 0 = facing +Z, horizontal vectors as (x, z).
 
 This module is self-contained on purpose: numba's on-disk cache (`cache=True`) is invalidated by
 changes to a kernel's own source file only, so the feature layout is spelled out here (and
-checked against `features.py` at import) rather than read from globals of another module, and
-the two-bone leg IK of `models/lti/kernels.py` is restated here rather than called (a change
-there would not recompile the kernels here); the reference step calls that one, so the test
-comparing the two steps holds the two IKs together.
+checked against `features.py` at import) rather than read from globals of another module. The
+foot lock is not here: the runtime calls the LTI model's compiled one (`models.lti.kernels.
+foot_lock`) from Python, which keeps its own cache honest.
 """
 
 from __future__ import annotations
@@ -359,13 +359,12 @@ def advance(y, control, yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase
     1 - still (1 - phase_damp)) and holds back root_hold x still of the root displacement.
 
     Returns the Hips translation (B, 3), local rotations (B, J, 4) from the predicted
-    forward/up axes of each joint, foot contacts (B, 2) and world rotation matrices (B, J, 3, 3)
-    (joint 0, the static joint_Root, is the identity)."""
+    forward/up axes of each joint (joint 0, the static joint_Root, is the identity) and foot
+    contacts (B, 2)."""
     B, H, J = y.shape[0], hist_pos.shape[1], parents.shape[0]
     out_root = np.empty((B, 3), np.float32)
     out_rot = np.empty((B, J, 4), np.float32)
     contacts = np.empty((B, 2), np.bool_)
-    g_world = np.empty((B, J, 3, 3), np.float32)
     R = np.empty((J, 3, 3))
     local = np.empty((3, 3))
     for b in range(B):
@@ -438,10 +437,6 @@ def advance(y, control, yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase
             R[j, 0, 0], R[j, 1, 0], R[j, 2, 0] = nc * xx + ns * xz, xy, -ns * xx + nc * xz
             R[j, 0, 1], R[j, 1, 1], R[j, 2, 1] = nc * ux + ns * uz, uy, -ns * ux + nc * uz
             R[j, 0, 2], R[j, 1, 2], R[j, 2, 2] = nc * zx + ns * zz, zy, -ns * zx + nc * zz
-        for j in range(J):
-            for r in range(3):
-                for col in range(3):
-                    g_world[b, j, r, col] = R[j, r, col]
         # local rotations: parent^T child, as quaternions; joint 0 stays the identity
         out_rot[b, 0, 0], out_rot[b, 0, 1], out_rot[b, 0, 2], out_rot[b, 0, 3] = 0.0, 0.0, 0.0, 1.0
         for j in range(1, J):
@@ -455,156 +450,4 @@ def advance(y, control, yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase
         out_root[b, 0], out_root[b, 1], out_root[b, 2] = nx + hx, y[b, Y_POSE + 1], nz + hz
         contacts[b, 0] = y[b, Y_CONTACT] > contact_threshold
         contacts[b, 1] = y[b, Y_CONTACT + 1] > contact_threshold
-    return out_root, out_rot, contacts, g_world
-
-
-# --------------------------------------------------------------------------- foot lock (two-bone leg IK)
-
-
-@njit(cache=True, error_model="numpy")
-def cross(a, b):
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-@njit(cache=True, error_model="numpy")
-def dot(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-@njit(cache=True, error_model="numpy")
-def add(a, b):
-    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
-
-
-@njit(cache=True, error_model="numpy")
-def sub(a, b):
-    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
-
-
-@njit(cache=True, error_model="numpy")
-def unit(v):
-    """v / |v|, the length floored at 1e-9."""
-    n = max(math.sqrt(dot(v, v)), 1e-9)
-    return (v[0] / n, v[1] / n, v[2] / n)
-
-
-@njit(cache=True, error_model="numpy")
-def angle_between(u, v):
-    return math.acos(min(max(dot(unit(u), unit(v)), -1.0), 1.0))
-
-
-@njit(cache=True, error_model="numpy")
-def axis_angle(axis, angle):
-    a = unit(axis)
-    s = math.sin(0.5 * angle)
-    return (a[0] * s, a[1] * s, a[2] * s, math.cos(0.5 * angle))
-
-
-@njit(cache=True, error_model="numpy")
-def rotation_between(u, v):
-    """Shortest-arc unit quaternion taking direction u to direction v."""
-    u, v = unit(u), unit(v)
-    c = cross(u, v)
-    q = (c[0], c[1], c[2], 1.0 + dot(u, v))
-    n = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-12)
-    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-
-
-@njit(cache=True, error_model="numpy")
-def qconj(q):
-    """Inverse of a unit quaternion."""
-    return (-q[0], -q[1], -q[2], q[3])
-
-
-@njit(cache=True, error_model="numpy")
-def quat64(a, j):
-    """Row j of a (J, 4) array as a float64 4-tuple (numba's float() keeps a float32 a float32)."""
-    return (np.float64(a[j, 0]), np.float64(a[j, 1]), np.float64(a[j, 2]), np.float64(a[j, 3]))
-
-
-@njit(cache=True, error_model="numpy")
-def vec64(a, j):
-    """Row j of a (J, 3) array as a float64 3-tuple."""
-    return (np.float64(a[j, 0]), np.float64(a[j, 1]), np.float64(a[j, 2]))
-
-
-@njit(cache=True, error_model="numpy")
-def turned(m, offsets, j):
-    """The 3x3 matrix m times row j of offsets (J, 3), in float64."""
-    x, y, z = np.float64(offsets[j, 0]), np.float64(offsets[j, 1]), np.float64(offsets[j, 2])
-    return (m[0, 0] * x + m[0, 1] * y + m[0, 2] * z, m[1, 0] * x + m[1, 1] * y + m[1, 2] * z,
-            m[2, 0] * x + m[2, 1] * y + m[2, 2] * z)
-
-
-@njit(cache=True, error_model="numpy")
-def two_bone_ik(gh, r_up, r_low, r_foot, hip, off_low, off_foot, target):
-    """Analytic two-bone IK for one leg (the formulas of `models.lti.kernels.two_bone_ik`, which the
-    numpy reference calls). gh: world rotation of the parent (Hips); r_*: local rotations of upper
-    leg, lower leg, foot; hip: world hip-joint position; off_*: bone offsets. Returns new local
-    (r_up, r_low, r_foot) putting the ankle at `target` (as close as the bone lengths allow) with
-    the foot's world orientation unchanged: bend thigh and knee about the leg plane's normal to get
-    the hip-ankle distance right, then swing the leg onto the target."""
-    ga = qmul(gh, r_up)
-    gb = qmul(ga, r_low)
-    gf = qmul(gb, r_foot)
-    knee = add(hip, qrot(ga, off_low))
-    ankle = add(knee, qrot(gb, off_foot))
-    thigh, shin = math.sqrt(dot(off_low, off_low)), math.sqrt(dot(off_foot, off_foot))
-    want = sub(target, hip)
-    reach = min(max(math.sqrt(dot(want, want)), 1e-3), thigh + shin - 1e-3)
-    # angles at the hip (hip->ankle vs hip->knee) and at the knee, now and for the wanted reach
-    hip_now = angle_between(sub(ankle, hip), sub(knee, hip))
-    knee_now = angle_between(sub(hip, knee), sub(ankle, knee))
-    hip_new = math.acos(min(max((shin * shin - thigh * thigh - reach * reach) / (-2.0 * thigh * reach), -1.0), 1.0))
-    knee_new = math.acos(min(max((reach * reach - thigh * thigh - shin * shin) / (-2.0 * thigh * shin), -1.0), 1.0))
-    axis = cross(sub(ankle, hip), sub(knee, hip))
-    ga2 = qmul(axis_angle(axis, hip_new - hip_now), ga)
-    gb2 = qmul(axis_angle(axis, knee_new - knee_now), qmul(ga2, r_low))
-    knee2 = add(hip, qrot(ga2, off_low))
-    ankle2 = add(knee2, qrot(gb2, off_foot))
-    swing = rotation_between(sub(ankle2, hip), want)
-    ga3 = qmul(swing, ga2)
-    gb3 = qmul(swing, gb2)
-    return qmul(qconj(gh), ga3), qmul(qconj(ga3), gb3), qmul(qconj(gb3), gf)
-
-
-@njit(cache=True, error_model="numpy")
-def foot_lock(root, rotations, contacts, g_world, anchor, since, was, chains, offsets, release, max_pull):
-    """Foot lock of B sessions, in place on the output local rotations (B, J, 4) and the lock state
-    (anchor (B, 2, 3), since (B, 2), was (B, 2)). Per leg (chains (2, 3): upper leg, lower leg,
-    foot): the animated ankle from the world rotation matrices g_world (B, J, 3, 3) and the Hips
-    translation root (B, 3); a foot that becomes planted (contacts (B, 2)) anchors there; the
-    anchor is dragged along to stay within max_pull of the ankle; `since` counts frames since the
-    last planted one. While since <= release the leg is bent by two-bone IK toward the anchor,
-    moved (since / (release + 1)) of the way back to the animated ankle. Why: the network's feet
-    slide a little while planted; why the drag: see `models.lti.footplant.FootLock`. Compiled as
-    the numpy version (the reference's `_foot_lock`) was ~0.4 ms of a ~0.9 ms batch-1 step."""
-    for b in range(root.shape[0]):
-        r0 = (np.float64(root[b, 0]), np.float64(root[b, 1]), np.float64(root[b, 2]))
-        gh = quat64(rotations[b], HIPS)
-        for leg in range(2):
-            up, low, foot = chains[leg, 0], chains[leg, 1], chains[leg, 2]
-            # animated ankle = root + R_hips off_up + R_up off_low + R_low off_foot
-            knee = add(add(r0, turned(g_world[b, HIPS], offsets, up)), turned(g_world[b, up], offsets, low))
-            ankle = add(knee, turned(g_world[b, low], offsets, foot))
-            if contacts[b, leg] and not was[b, leg]:
-                for i in range(3):
-                    anchor[b, leg, i] = ankle[i]
-            gap = sub(anchor[b, leg], ankle)
-            pull = min(1.0, max_pull / max(math.sqrt(dot(gap, gap)), 1e-9))
-            held = (ankle[0] + gap[0] * pull, ankle[1] + gap[1] * pull, ankle[2] + gap[2] * pull)
-            for i in range(3):
-                anchor[b, leg, i] = held[i]
-            since[b, leg] = 0 if contacts[b, leg] else since[b, leg] + 1
-            was[b, leg] = contacts[b, leg]
-            if since[b, leg] > release:
-                continue
-            fade = min(max(since[b, leg] / (release + 1.0), 0.0), 1.0)  # 0 planted .. 1 free
-            target = (held[0] + (ankle[0] - held[0]) * fade, held[1] + (ankle[1] - held[1]) * fade,
-                      held[2] + (ankle[2] - held[2]) * fade)
-            hip = add(r0, qrot(gh, vec64(offsets, up)))
-            r_up, r_low, r_foot = two_bone_ik(gh, quat64(rotations[b], up), quat64(rotations[b], low),
-                                              quat64(rotations[b], foot), hip, vec64(offsets, low),
-                                              vec64(offsets, foot), target)
-            for i in range(4):
-                rotations[b, up, i], rotations[b, low, i], rotations[b, foot, i] = r_up[i], r_low[i], r_foot[i]
+    return out_root, out_rot, contacts

@@ -103,7 +103,7 @@ class NumpyLPNModel(LPNModel):
                 h = _elu(_layer_norm(h) * (1.0 + film[:, 2 * i]) + film[:, 2 * i + 1])
         return h * self.y_std + self.y_mean
 
-    def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply the prediction: move the root, shift the history, store pose/phases/future; returns
         the output Hips translation, local rotations, contacts and world rotation matrices.
 
@@ -163,19 +163,18 @@ class NumpyLPNModel(LPNModel):
             lf.to_world(np.stack([hips[:, 0], 0 * hips[:, 1], hips[:, 2]], -1), new_yaw)
         contacts = y[:, lf.CONTACT_OUT] > CONTACT_THRESHOLD
         quats = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_quat().reshape(B, -1, 4)  # C code: 10x numpy's
-        return out_root.astype(np.float32), quats.astype(np.float32), contacts, g_world
+        return out_root.astype(np.float32), quats.astype(np.float32), contacts
 
-    def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray,
-                   g_world: np.ndarray) -> np.ndarray:
+    def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray) -> np.ndarray:
         """Two-bone leg IK (the LTI foot lock's kernel, over the legs that need it) pinning each
         planted ankle where it touched down (state-held anchors), released over LOCK_RELEASE frames;
         the anchor is dragged along beyond LOCK_MAX_PULL cm."""
         gh = rotations[:, lf.HIPS]
         ch = self.chains  # (2 sides, 3) upper leg, lower leg, foot
         # ankle = root + R_hips off_up + R_up off_low + R_low off_foot, both sides at once
-        feet = root[:, None] + np.einsum("bsij,sj->bsi", g_world[:, [lf.HIPS, lf.HIPS]], self.offsets[ch[:, 0]]) + \
-            np.einsum("bsij,sj->bsi", g_world[:, ch[:, 0]], self.offsets[ch[:, 1]]) + \
-            np.einsum("bsij,sj->bsi", g_world[:, ch[:, 1]], self.offsets[ch[:, 2]])
+        g_rot, _ = self._fk(root, rotations)
+        feet = root[:, None] + quat_apply(g_rot[:, [lf.HIPS, lf.HIPS]], self.offsets[ch[:, 0]]) + \
+            quat_apply(g_rot[:, ch[:, 0]], self.offsets[ch[:, 1]]) + quat_apply(g_rot[:, ch[:, 1]], self.offsets[ch[:, 2]])
         start = contacts & ~s["lock_was"]
         anchor = np.where(start[..., None], feet, s["lock_anchor"])
         gap = anchor - feet

@@ -45,6 +45,7 @@ from ..motion.features import body_joint
 from ..motion.rotations import quat_mul
 from ..motion.skeleton import Motion, Skeleton
 from . import features as lf
+from ..lti.kernels import foot_lock  # called from here, not compiled into this package's kernels: numba's cache tracks one file
 from . import kernels
 from .weights import read_weights
 
@@ -98,7 +99,8 @@ class LPNModel:
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
         self.parents = sk.parents
-        self.chains = np.array([[sk.index(n) for n in chain] for chain in LEG_CHAINS])
+        self.chains = np.array([[sk.index(n) for n in chain] for chain in LEG_CHAINS], np.int64)
+        self.offsets64 = np.ascontiguousarray(sk.offsets, np.float64)  # the foot lock's, compiled in float64
         self.facing_joints = [body_joint(sk, p) for p in ("hip_l", "hip_r", "shoulder_l", "shoulder_r")]
 
     # ------------------------------------------------------------------ styles
@@ -250,8 +252,8 @@ class LPNModel:
         control = self._control(s, frames, root, rot_in, fresh)
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
-        out_root, out_rot, contacts, g_world = self._advance(s, y, control)
-        out_rot = self._foot_lock(s, out_root, out_rot, contacts, g_world)
+        out_root, out_rot, contacts = self._advance(s, y, control)
+        out_rot = self._foot_lock(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
 
@@ -317,10 +319,9 @@ class LPNModel:
         kernels.hidden_layer(h1 @ W2, alpha, bias2, film, 1, h2)
         return kernels.output_layer(h2 @ W3, alpha, bias3, self.y_mean, self.y_std)
 
-    def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply the prediction: move the root, shift the history, store pose/phases/future; returns
-        the output Hips translation, local rotations, contacts and world rotation matrices
-        (`kernels.advance`).
+        the output Hips translation, local rotations and contacts (`kernels.advance`).
 
         Stopping: the training clips hardly ever stand still after moving, so on its own the network
         keeps stepping when asked to stop. While the wanted speed is below STOP_SPEED the phases
@@ -345,14 +346,17 @@ class LPNModel:
         left = hl - hr + sl - sr
         return np.arctan2(-left[:, 2], left[:, 0]).astype(np.float32)  # forward = left x up = (-lz, 0, lx)
 
-    def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray,
-                   g_world: np.ndarray) -> np.ndarray:
-        """Two-bone leg IK (the LTI foot lock's) pinning each planted ankle where it touched down
-        (state-held anchors), released over LOCK_RELEASE frames; the anchor is dragged along beyond
-        LOCK_MAX_PULL cm (`kernels.foot_lock`: in place on the lock state and on `rotations`, the
-        step's own fresh array, which it returns)."""
-        kernels.foot_lock(root, rotations, contacts, g_world, s["lock_anchor"], s["lock_since"], s["lock_was"],
-                          self.chains, self.offsets, LOCK_RELEASE, LOCK_MAX_PULL)
+    def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray) -> np.ndarray:
+        """Two-bone leg IK pinning each planted ankle where it touched down (state-held anchors),
+        released over LOCK_RELEASE frames, the anchor dragged along beyond LOCK_MAX_PULL cm: the
+        LTI model's compiled foot lock (`lti.kernels.foot_lock`), in float64 as it is compiled,
+        in place on the step's own fresh `rotations` (returned) and on the lock state."""
+        rot64 = rotations.astype(np.float64)
+        anchor = s["lock_anchor"].astype(np.float64)
+        foot_lock(root.astype(np.float64), rot64, contacts, anchor, s["lock_since"], s["lock_was"],
+                  self.chains, self.offsets64, LOCK_RELEASE, LOCK_MAX_PULL)
+        s["lock_anchor"][:] = anchor
+        rotations[:] = rot64
         return rotations
 
     # ------------------------------------------------------------------ offline helpers
