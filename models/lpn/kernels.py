@@ -257,6 +257,17 @@ def network_inputs(control, yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_p
 
 
 @njit(cache=True, error_model="numpy")
+def elu_dense(h, w, b, out):
+    """out = b + ELU(h) @ w for one row (w as (in, out)): a hidden layer of the gating MLP."""
+    for j in range(out.shape[0]):
+        out[j] = b[j]
+    for i in range(h.shape[0]):
+        hi = elu(h[i])
+        for j in range(out.shape[0]):
+            out[j] += hi * w[i, j]
+
+
+@njit(cache=True, error_model="numpy")
 def gating(g, scale, w0, b0, w1, b1, w2, b2):
     """Expert blend (B, E): softmax of the gating MLP (two ELU layers) on the phase features
     g / scale. Weights as (in, out), so each row of a product is a sum of contiguous rows."""
@@ -271,19 +282,9 @@ def gating(g, scale, w0, b0, w1, b1, w2, b2):
             gi = g[b, i] / scale
             for j in range(n0):
                 h0[j] += gi * w0[i, j]
-        for j in range(n1):
-            h1[j] = b1[j]
-        for i in range(n0):
-            hi = elu(h0[i])
-            for j in range(n1):
-                h1[j] += hi * w1[i, j]
+        elu_dense(h0, w1, b1, h1)
+        elu_dense(h1, w2, b2, h2)
         top = -math.inf
-        for j in range(E):
-            h2[j] = b2[j]
-        for i in range(n1):
-            hi = elu(h1[i])
-            for j in range(E):
-                h2[j] += hi * w2[i, j]
         for j in range(E):
             top = max(top, h2[j])
         total = 0.0

@@ -132,15 +132,7 @@ class LPNModel:
             raise ValueError("add_style_from_clip needs a clip on the model skeleton (Bandai Namco, 22 joints)")
         if motion.num_frames < self.fps:
             raise ValueError(f"style clip too short: {motion.num_frames} frames, need at least {int(self.fps)}")
-        film = self.clip_film(motion).reshape(1, -1)
-        with self._lock:
-            if name in self._styles:
-                films = self._films.copy()
-                films[self._styles.index(name)] = film[0]
-                self._films = films
-            else:
-                self._films = np.concatenate([self._films, film])
-                self._styles = self._styles + [name]
+        self.set_style_film(name, self.clip_film(motion).reshape(4, self.H))
 
     def set_style_film(self, name: str, film: np.ndarray) -> None:
         """Make `name` the style with FiLM vector `film` (4, H): a fine-tuned vector
