@@ -278,14 +278,15 @@ class StyleStore:
                 self.uploaded[sid], self.seen[sid] = info, mtime
 
     async def _forget(self, info: StyleInfo) -> None:
-        """Another replica deleted the style: drop it here too (its files are already gone)."""
+        """Drop an uploaded style whose files are gone (deleted here, or by another replica sharing
+        the folder); a job still running on it sees that and stops."""
         if self.uploaded.get(info.id) is not info:
             return
         self.uploaded.pop(info.id, None)
         self.seen.pop(info.id, None)
         model = self.rt.models[info.model]
 
-        def remove() -> None:
+        def remove() -> None:  # on the worker thread, after any install queued before it
             if info.name in model.styles():
                 model.remove_style(info.name)
 
@@ -351,15 +352,8 @@ class StyleStore:
         if info.kind == "trained":
             raise ApiError(409, "trained_style", f"style {sid!r} is a trained style of model {info.model!r} and "
                            "cannot be deleted; only uploaded styles can")
-        self.uploaded.pop(sid, None)
         shutil.rmtree(self._dir(info.model, info.name), ignore_errors=True)
-        model = self.rt.models[info.model]
-
-        def remove() -> None:  # on the worker thread, after any install queued before it
-            if info.name in model.styles():
-                model.remove_style(info.name)
-
-        await self.rt.on_model_thread(remove)
+        await self._forget(info)
 
     async def upload(self, upload: StyleUpload | None, bvh_text: str | None, name: str, model_name: str,
                      fine_tune: bool) -> UploadAccepted:
