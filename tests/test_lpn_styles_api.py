@@ -17,6 +17,7 @@ from models.data import load_motion, select
 from models.registry import load_models
 from models.settings import get_settings
 
+from .clips import drive_lpn, frames_json
 from .live_server import live_server
 
 MODEL = load_models(get_settings().weights_dir)["lpn"]
@@ -27,13 +28,11 @@ STEPS = 40  # fine-tune steps in these tests (the service default is 300)
 @pytest.fixture(scope="module")
 def giant_clip(index):
     """A walk of a style LPN-FiLM never saw in training (held out for this experiment)."""
-    m = load_motion(select(index, dataset="bandai-namco-1", style="giant", content="walk")[0]).slice(0, 240)
-    return {"root": m.translations[:, 1].tolist(), "rotations": m.rotations.tolist()}
+    return frames_json(load_motion(select(index, dataset="bandai-namco-1", style="giant", content="walk")[0]).slice(0, 240))
 
 
 def drive(base: str, style: str) -> np.ndarray:
-    with Client(base).session(model="lpn", style=style) as session:
-        return np.array([session.control(v, facing, gait).rotations for v, facing, gait in WALK])
+    return drive_lpn(base, style, WALK)
 
 
 def test_an_uploaded_clip_is_a_live_lpn_style_at_once_and_after_a_restart(giant_clip, tmp_path):

@@ -17,6 +17,7 @@ from clients.sdk import Client, ReplayBuffer, ResumeError
 
 from models.data import load_motion, select
 
+from .clips import frames_json
 from .cluster import nginx, redis_server, replicas, require
 
 FRAMES = 150  # 5 s at 30 fps
@@ -94,8 +95,7 @@ def test_a_session_on_an_uploaded_style_survives_a_replica_kill(cluster, index):
     controller, resumes on the other after a SIGKILL and goes on as if nothing happened."""
     lb, *servers = cluster
     m = load_motion(select(index, dataset="bandai-namco-1", style="chimpira", content="walk")[0]).slice(0, 150)
-    body = {"name": "street", "model": "lpn", "fps": 30,
-            "frames": {"root": m.translations[:, 1].tolist(), "rotations": m.rotations.tolist()}}
+    body = {"name": "street", "model": "lpn", "fps": 30, "frames": frames_json(m)}
     assert httpx.post(f"{lb}/v1/styles", json=body, timeout=60).status_code == 201
     ticks = [((1.3, 0.0), 0.02 * t, "walk") for t in range(90)]
 

@@ -19,6 +19,7 @@ from models.lpn import load as load_lpn
 from models.lti import load as load_lti
 from models.settings import get_settings
 
+from .clips import drive_lpn, frames_json
 from .live_server import live_server
 
 WALK = [((1.3, 0.0), 0.0, "walk")] * 30
@@ -27,13 +28,11 @@ STEPS = 20  # fine-tune steps (the service default is 300)
 
 @pytest.fixture(scope="module")
 def chimpira_clip(index):
-    m = load_motion(select(index, dataset="bandai-namco-1", style="chimpira", content="walk")[0]).slice(0, 200)
-    return {"root": m.translations[:, 1].tolist(), "rotations": m.rotations.tolist()}
+    return frames_json(load_motion(select(index, dataset="bandai-namco-1", style="chimpira", content="walk")[0]).slice(0, 200))
 
 
 def drive(base: str, style: str) -> np.ndarray:
-    with Client(base).session(model="lpn", style=style) as session:
-        return np.array([session.control(v, facing, gait).rotations for v, facing, gait in WALK])
+    return drive_lpn(base, style, WALK)
 
 
 def styles_of(base: str, model: str = "lpn") -> list[str]:
@@ -83,8 +82,7 @@ def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip,
 
         # an LTI style identified by a job on b is taken in by a once the job is done
         m = load_motion(select(index, dataset="bandai-namco-2", style="elderly", content="walk", split="test")[0]).slice(0, 300)
-        body = {"name": "slow", "model": "lti", "fps": 30,
-                "frames": {"root": m.translations[:, 1].tolist(), "rotations": m.rotations.tolist()}}
+        body = {"name": "slow", "model": "lti", "fps": 30, "frames": frames_json(m)}
         reply = httpx.post(f"{b}/v1/styles?fine_tune=true", json=body, timeout=60)
         assert reply.status_code == 202, reply.text
         job = reply.json()["job"]["id"]

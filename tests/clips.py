@@ -1,0 +1,21 @@
+"""What the style-upload tests share: a clip as the `frames` of a JSON style upload, and an
+LPN-FiLM controller session driven through a list of control ticks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from clients.sdk import Client
+from models.motion.skeleton import Motion
+
+
+def frames_json(motion: Motion) -> dict:
+    """The `frames` field of `POST /v1/styles`: Hips translations and local rotations per frame."""
+    return {"root": motion.translations[:, 1].tolist(), "rotations": motion.rotations.tolist()}
+
+
+def drive_lpn(base: str, style: str, ticks) -> np.ndarray:
+    """Rotations (T, 22, 4) of a fresh LPN-FiLM session on `style`, one control tick per
+    (velocity, facing, gait) in `ticks`."""
+    with Client(base).session(model="lpn", style=style) as session:
+        return np.array([session.control(v, facing, gait).rotations for v, facing, gait in ticks])
