@@ -5,6 +5,11 @@ server shows up as latency (and drops), not as less load. Sessions are spread ov
 client processes so the harness is not the bottleneck; each process reports the CPU it used.
 Latency is measured per frame from send to the reply with the same sequence number.
 
+Phases: by default the sessions' clocks are spread evenly over one frame period, as independent
+clients' are (a game engine's 60 Hz tick is not synchronised with anyone else's); `--phase
+aligned` makes every session send at the same instant, the worst case, where the last frame of
+each burst waits for all the others.
+
     stylestream loadtest --sessions 64 --fps 60 --seconds 10 --model lti
 """
 
@@ -18,11 +23,15 @@ import os
 import resource
 import struct
 import time
+import traceback
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from queue import Empty
 
 import numpy as np
+
+PHASES = ("spread", "aligned")
 
 
 @dataclass
@@ -45,6 +54,7 @@ class Result:
     server_p50_ms: float = float("nan")  # arrival -> reply sent, from the server's /metrics histogram
     server_p99_ms: float = float("nan")
     server_cpu_s: float = float("nan")
+    phase: str = "spread"  # the sessions' clocks: spread over a period, or aligned
 
     def line(self) -> str:
         return (f"sessions {self.sessions:4d}  p50 {self.p50_ms:6.2f} ms  p95 {self.p95_ms:6.2f}  p99 {self.p99_ms:6.2f}  "
@@ -64,6 +74,7 @@ def real_frames(n: int = 300) -> tuple[np.ndarray, np.ndarray]:
 
 async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float, seconds: float,
                    t0: float, stats: dict) -> None:
+    """One session: connect, start, then send frame i at `t0 + i / fps` whatever the replies do."""
     import websockets
 
     period = 1.0 / fps
@@ -90,7 +101,7 @@ async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float,
 
         recv_task = asyncio.create_task(receiver())
         await asyncio.sleep(max(0.0, t0 - time.perf_counter()))
-        begin = time.perf_counter()
+        begin = t0
         for i in range(n):
             target = begin + i * period
             delay = target - time.perf_counter()
@@ -108,33 +119,71 @@ def _pack(seq: int, payload: np.ndarray) -> bytes:
     return struct.pack("<IHH", seq, 1, 0) + payload.tobytes()
 
 
-def _worker(url: str, start: dict | None, count: int, fps: float, seconds: float, t0: float, queue) -> None:
-    root, rot = real_frames()
-    payload = np.concatenate([root, rot.reshape(len(rot), -1)], axis=1).astype("<f4")
-    stats = {"latency": [], "dropped": 0}
+def _worker(url: str, start: dict | None, starts: list[float], fps: float, seconds: float, queue) -> None:
+    """A client process: one session per clock start in `starts`. Puts (latencies, dropped, CPU s),
+    or the traceback if it failed, so the parent never waits on a process that died."""
+    try:
+        root, rot = real_frames()
+        payload = np.concatenate([root, rot.reshape(len(rot), -1)], axis=1).astype("<f4")
+        stats = {"latency": [], "dropped": 0}
 
-    async def main() -> None:
-        await asyncio.gather(*(_session(url, start, payload, fps, seconds, t0, stats) for _ in range(count)))
+        async def main() -> None:
+            await asyncio.gather(*(_session(url, start, payload, fps, seconds, t0, stats) for t0 in starts))
 
-    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
-    asyncio.run(main())
-    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
-    lat = np.concatenate(stats["latency"]) if stats["latency"] else np.zeros(0)
-    queue.put((lat, stats["dropped"], (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)))
+        cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+        asyncio.run(main())
+        cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+        lat = np.concatenate(stats["latency"]) if stats["latency"] else np.zeros(0)
+        queue.put((lat, stats["dropped"], (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)))
+    except BaseException:  # noqa: BLE001 - reported to the parent, which raises it
+        queue.put(traceback.format_exc())
+
+
+def clock_starts(sessions: int, fps: float, t0: float, phase: str = "spread") -> list[float]:
+    """When each session sends its first frame: evenly spread over one period, or all at `t0`."""
+    if phase not in PHASES:
+        raise ValueError(f"phase must be one of {PHASES}, got {phase!r}")
+    spread = phase == "spread"
+    return [t0 + (k / sessions / fps if spread else 0.0) for k in range(sessions)]
+
+
+def _collect(procs: list, queue, timeout: float) -> list:
+    """One result per client process; raises with the child's traceback if one failed, or if one
+    died without a word (killed) or the deadline passes."""
+    parts, deadline = [], time.monotonic() + timeout
+    while len(parts) < len(procs):
+        try:
+            part = queue.get(timeout=1.0)
+        except Empty:
+            if time.monotonic() > deadline or any(p.exitcode not in (None, 0) for p in procs):
+                codes = [p.exitcode for p in procs]
+                for p in procs:
+                    p.kill()
+                raise RuntimeError(f"load-test client processes failed (exit codes {codes})") from None
+            continue
+        if isinstance(part, str):
+            for p in procs:
+                p.kill()
+            raise RuntimeError(f"a load-test client process failed:\n{part}")
+        parts.append(part)
+    return parts
 
 
 def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model: str = "lti",
-        style: str | None = None, processes: int | None = None, echo: bool = False) -> tuple[Result, np.ndarray]:
+        style: str | None = None, processes: int | None = None, echo: bool = False,
+        phase: str = "spread") -> tuple[Result, np.ndarray]:
     processes = processes or max(1, min(sessions, (os.cpu_count() or 2)))
     start = None if echo else {"type": "start", "model": model, "style": style, "encoding": "binary", "fps": fps}
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    t0 = time.perf_counter() + 2.0 + 0.02 * sessions  # all sessions connected before the clock starts
-    counts = [sessions // processes + (1 if i < sessions % processes else 0) for i in range(processes)]
-    procs = [ctx.Process(target=_worker, args=(url, start, c, fps, seconds, t0, queue)) for c in counts if c]
+    lead = 2.0 + 0.02 * sessions  # all sessions connected before the clock starts
+    starts = clock_starts(sessions, fps, time.perf_counter() + lead, phase)
+    # session k goes to process k % processes, so each process has sessions of every phase
+    procs = [ctx.Process(target=_worker, args=(url, start, starts[i::processes], fps, seconds, queue))
+             for i in range(min(processes, sessions))]
     for p in procs:
         p.start()
-    parts = [queue.get() for _ in procs]
+    parts = _collect(procs, queue, timeout=lead + seconds + 60.0)
     for p in procs:
         p.join()
     lat = np.concatenate([p[0] for p in parts]) * 1000.0
@@ -146,7 +195,8 @@ def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model
                     late=int((done > 1000.0 / fps).sum()), lost=int(sent - len(done) - dropped),
                     p50_ms=float(q[0]), p95_ms=float(q[1]), p99_ms=float(q[2]),
                     max_ms=float(done.max()) if len(done) else float("nan"),
-                    frames_per_s=len(done) / seconds, client_cpu_s=sum(p[2] for p in parts), client_processes=len(procs))
+                    frames_per_s=len(done) / seconds, client_cpu_s=sum(p[2] for p in parts), client_processes=len(procs),
+                    phase=phase)
     return result, lat
 
 
@@ -335,6 +385,9 @@ def add_loadtest_command(sub) -> None:
     p.add_argument("--no-batching", action="store_true", help="started server runs with cross-session batching off")
     p.add_argument("--echo-floor", action="store_true", help="also measure a plain WebSocket echo server (the floor)")
     p.add_argument("--processes", type=int, help="client processes (default: one per core)")
+    p.add_argument("--phase", choices=PHASES, default="spread",
+                   help="session clocks spread evenly over a frame period (independent clients), or aligned (all "
+                        "send at once: the worst case)")
     p.add_argument("--find-max", action="store_true",
                    help="search (doubling, then bisection) for the most sessions that hold p99 <= one frame period with no drops")
     p.add_argument("--out", type=Path, default=Path("out/loadtest"), help="writes OUT.json and OUT.png")
@@ -343,7 +396,7 @@ def add_loadtest_command(sub) -> None:
 
 def measure_fn(url: str, model: str, style: str, fps: float, seconds: float, processes: int | None,
                server=None, floor: Result | None = None, results: list | None = None, lats: list | None = None,
-               server_metrics: bool = True):
+               server_metrics: bool = True, phase: str = "spread"):
     """A function n -> Result that runs one open-loop load test against `url` and prints it.
     `server_metrics=False` for several workers: each answers /metrics for itself alone."""
     base = url.replace("ws", "http", 1).replace("/v1/stream", "")
@@ -351,7 +404,7 @@ def measure_fn(url: str, model: str, style: str, fps: float, seconds: float, pro
     def measure(n: int) -> Result:
         cpu0 = _cpu_seconds(server.pid) if server else None
         hist0 = server_histogram(base, model) if server_metrics else {}
-        result, lat = run(url, n, fps, seconds, model, style, processes)
+        result, lat = run(url, n, fps, seconds, model, style, processes, phase=phase)
         server_cpu = (_cpu_seconds(server.pid) - cpu0) if server else float("nan")
         s50, s99 = histogram_quantiles(hist0, server_histogram(base, model)) if server_metrics else (np.nan, np.nan)
         result.server_p50_ms, result.server_p99_ms, result.server_cpu_s = s50, s99, server_cpu
@@ -366,12 +419,14 @@ def measure_fn(url: str, model: str, style: str, fps: float, seconds: float, pro
     return measure
 
 
-def echo_floor(sessions: int, fps: float, seconds: float, processes: int | None = None) -> Result:
+def echo_floor(sessions: int, fps: float, seconds: float, processes: int | None = None,
+               phase: str = "spread") -> Result:
     port = free_port()
     echo = _spawn(["clients.echo_server"], port)
     try:
         cpu0 = _cpu_seconds(echo.pid)
-        floor, _ = run(f"ws://127.0.0.1:{port}/v1/stream", sessions, fps, seconds, processes=processes, echo=True)
+        floor, _ = run(f"ws://127.0.0.1:{port}/v1/stream", sessions, fps, seconds, processes=processes, echo=True,
+                       phase=phase)
         floor.server_cpu_s = _cpu_seconds(echo.pid) - cpu0
     finally:
         echo.terminate()
@@ -379,7 +434,8 @@ def echo_floor(sessions: int, fps: float, seconds: float, processes: int | None 
     return floor
 
 
-def echo_capacity(fps: float, seconds: float, processes: int | None = None) -> tuple[int, list[Result]]:
+def echo_capacity(fps: float, seconds: float, processes: int | None = None,
+                  phase: str = "spread") -> tuple[int, list[Result]]:
     """The transport's own ceiling in this harness: the most sessions a plain echo server on the
     same stack holds at `fps` (p99 within a frame period, nothing lost); no model server can
     beat it. Returns it and every run of the search."""
@@ -388,7 +444,8 @@ def echo_capacity(fps: float, seconds: float, processes: int | None = None) -> t
     runs: list[Result] = []
 
     def measure(n: int) -> Result:
-        result, _ = run(f"ws://127.0.0.1:{port}/v1/stream", n, fps, seconds, processes=processes, echo=True)
+        result, _ = run(f"ws://127.0.0.1:{port}/v1/stream", n, fps, seconds, processes=processes, echo=True,
+                        phase=phase)
         print("echo         " + result.line(), flush=True)
         runs.append(result)
         return result
@@ -409,11 +466,11 @@ def first_style(url: str, model: str) -> str:
 def _loadtest(args) -> int:
     counts = [int(s) for s in str(args.sessions).split(",")]
     results, lats = [], []
-    floor = echo_floor(counts[-1], args.fps, args.seconds, args.processes) if args.echo_floor else None
+    floor = echo_floor(counts[-1], args.fps, args.seconds, args.processes, args.phase) if args.echo_floor else None
     with contextlib.ExitStack() as stack:
         url, server = (args.url, None) if args.url else stack.enter_context(spawned_server(not args.no_batching))
         measure = measure_fn(url, args.model, args.style or first_style(url, args.model), args.fps, args.seconds,
-                             args.processes, server, floor, results, lats)
+                             args.processes, server, floor, results, lats, phase=args.phase)
         if args.find_max:
             best = find_max(measure, counts[0])
             print(f"largest session count holding p99 <= {1000 / args.fps:.1f} ms with no drops: {best}")

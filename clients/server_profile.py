@@ -4,8 +4,8 @@ py-spy (PyPI, the sampling profiler for Python) reads the process from outside, 
 runs unchanged. Each sampled stack counts for the part of its innermost frame that names one
 (walking from the leaf up: a reply's socket write counts as the send, not as the stream code that
 called it); the rest is the event loop itself (uvloop's socket reads, callbacks) and ASGI
-plumbing. Only threads doing work are sampled, so the
-shares are of busy time.
+plumbing. Only threads doing work count (worker threads waiting for work are left out), so
+the shares are of busy time.
 """
 
 from __future__ import annotations
@@ -32,6 +32,9 @@ PARTS: tuple[tuple[str, tuple[str, ...]], ...] = (
                                                            "service/skeletons.py", "service/runtime.py")),
 )
 OTHER = "event loop, asyncio, ASGI/Starlette plumbing"
+# leaf frames of worker threads waiting for work (the model-step thread, anyio's pool): py-spy's
+# idle detection misses some of these lock waits, and they are not busy time
+IDLE_LEAVES = ("Condition.wait (threading.py", "_worker (concurrent/futures/thread.py", "Queue.get (queue.py")
 
 
 def py_spy() -> str | None:
@@ -65,7 +68,9 @@ def summarise(stacks: Counter[str]) -> dict[str, float]:
     """Share of samples per part (PARTS order, then OTHER), summing to 1."""
     parts: Counter[str] = Counter()
     for stack, count in stacks.items():
-        parts[_part(stack.split(";"))] += count
+        frames = stack.split(";")
+        if not any(frames[-1].startswith(leaf) for leaf in IDLE_LEAVES):
+            parts[_part(frames)] += count
     total = sum(parts.values()) or 1
     return {name: parts[name] / total for name, _ in PARTS + ((OTHER, ()),)}
 

@@ -37,7 +37,7 @@ def test_dropped_frames_fail_a_run_whatever_the_latency():
     assert find_max(lambda n: _result(n, 1.0, dropped=1 if n > 20 else 0), 8) in range(18, 21)
 
 
-def test_profile_samples_count_for_their_innermost_named_part():
+def test_profile_samples_count_for_their_innermost_named_part_and_idle_threads_not_at_all():
     stacks = Counter({
         "run (uvicorn/server.py:1);process (service/stream.py:258);send_bytes (service/stream.py:62);"
         "WebSocketsSansIOProtocol.send (uvicorn/protocols/websockets/websockets_sansio_impl.py:506)": 6,
@@ -45,6 +45,9 @@ def test_profile_samples_count_for_their_innermost_named_part():
         "step_batch (models/lti/model.py:289)": 3,
         "run (uvicorn/server.py:1);on_binary (service/stream.py:210);decode_binary (service/protocol.py:185)": 2,
         "Runner.run (asyncio/runners.py:118)": 9,
+        "Thread.run (threading.py:982);_worker (concurrent/futures/thread.py:81)": 7,  # idle: left out
+        "WorkerThread.run (anyio/_backends/_asyncio.py:1113);Queue.get (queue.py:171);"
+        "Condition.wait (threading.py:327)": 5,
     })
     shares = summarise(stacks)
     assert shares["WebSocket send (uvicorn, socket write)"] == pytest.approx(0.3)
