@@ -22,9 +22,11 @@ import multiprocessing as mp
 import os
 import resource
 import struct
+import threading
 import time
 import traceback
 import warnings
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from queue import Empty
@@ -55,10 +57,12 @@ class Result:
     server_p99_ms: float = float("nan")
     server_cpu_s: float = float("nan")
     phase: str = "spread"  # the sessions' clocks: spread over a period, or aligned
+    client_behind: int = 0  # frames a client process sent over a period after their slot (harness overloaded)
 
     def line(self) -> str:
         return (f"sessions {self.sessions:4d}  p50 {self.p50_ms:6.2f} ms  p95 {self.p95_ms:6.2f}  p99 {self.p99_ms:6.2f}  "
                 f"max {self.max_ms:7.2f}  dropped {self.dropped}  late {self.late}  lost {self.lost}  "
+                f"client behind {self.client_behind}  "
                 f"{self.frames_per_s:8.0f} frames/s  client cpu {self.client_cpu_s:.1f} s")
 
 
@@ -72,16 +76,17 @@ def real_frames(n: int = 300) -> tuple[np.ndarray, np.ndarray]:
     return m.translations[idx, 1].astype(np.float32), m.rotations[idx].astype(np.float32)
 
 
-async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float, seconds: float,
-                   t0: float, stats: dict) -> None:
-    """One session: connect, start, then send frame i at `t0 + i / fps` whatever the replies do."""
+async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float, seconds: float, offset: float,
+                   clock: asyncio.Future, connected: Callable[[], None], stats: dict) -> None:
+    """One session: connect and start, report `connected()`, wait for the common clock, then send
+    frame i at `clock + offset + i / fps` whatever the replies do."""
     import websockets
 
     period = 1.0 / fps
     n = int(seconds * fps)
     sent_at = np.full(n, np.nan)
     got_at = np.full(n, np.nan)
-    dropped = 0
+    dropped = behind = 0
     async with websockets.connect(url, max_size=2**22) as ws:
         if start is not None:
             await ws.send(json.dumps(start))
@@ -100,73 +105,93 @@ async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float,
                 dropped += d
 
         recv_task = asyncio.create_task(receiver())
-        await asyncio.sleep(max(0.0, t0 - time.perf_counter()))
-        begin = t0
+        connected()
+        begin = await clock + offset
+        await asyncio.sleep(max(0.0, begin - time.perf_counter()))
         for i in range(n):
             target = begin + i * period
             delay = target - time.perf_counter()
             if delay > 0:
                 await asyncio.sleep(delay)
+            elif delay < -period:
+                behind += 1  # this process could not keep its own clock: the harness, not the server
             sent_at[i] = time.perf_counter()
             await ws.send(_pack(i, frames[i % len(frames)]))  # the echo server returns it as is
         await asyncio.sleep(0.5)  # let the last replies arrive
         recv_task.cancel()
     stats["latency"].append(got_at - sent_at)
     stats["dropped"] += dropped
+    stats["behind"] += behind
 
 
 def _pack(seq: int, payload: np.ndarray) -> bytes:
     return struct.pack("<IHH", seq, 1, 0) + payload.tobytes()
 
 
-def _worker(url: str, start: dict | None, starts: list[float], fps: float, seconds: float, queue) -> None:
-    """A client process: one session per clock start in `starts`. Puts (latencies, dropped, CPU s),
-    or the traceback if it failed, so the parent never waits on a process that died."""
+def _worker(url: str, start: dict | None, offsets: list[float], fps: float, seconds: float, results, go) -> None:
+    """A client process with one session per clock offset in `offsets`. Once all its sessions are
+    connected it puts "ready" on `results` and waits for the common clock start on `go`; at the
+    end it puts (latencies, dropped, frames sent behind, CPU s), or the traceback if it failed,
+    so the parent never waits on a process that died."""
     try:
         root, rot = real_frames()
         payload = np.concatenate([root, rot.reshape(len(rot), -1)], axis=1).astype("<f4")
-        stats = {"latency": [], "dropped": 0}
+        stats = {"latency": [], "dropped": 0, "behind": 0}
 
         async def main() -> None:
-            await asyncio.gather(*(_session(url, start, payload, fps, seconds, t0, stats) for t0 in starts))
+            loop = asyncio.get_running_loop()
+            clock = loop.create_future()
+            waiting = len(offsets)
+
+            def connected() -> None:
+                nonlocal waiting
+                waiting -= 1
+                if waiting == 0:
+                    results.put("ready")
+                    # a daemon thread, not the loop's executor: if a session fails, nothing waits for it
+                    threading.Thread(target=lambda: loop.call_soon_threadsafe(clock.set_result, go.get()),
+                                     daemon=True).start()
+
+            await asyncio.gather(*(_session(url, start, payload, fps, seconds, offset, clock, connected, stats)
+                                   for offset in offsets))
 
         cpu0 = resource.getrusage(resource.RUSAGE_SELF)
         asyncio.run(main())
         cpu1 = resource.getrusage(resource.RUSAGE_SELF)
         lat = np.concatenate(stats["latency"]) if stats["latency"] else np.zeros(0)
-        queue.put((lat, stats["dropped"], (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)))
+        results.put((lat, stats["dropped"], stats["behind"],
+                     (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)))
     except BaseException:  # noqa: BLE001 - reported to the parent, which raises it
-        queue.put(traceback.format_exc())
+        results.put(traceback.format_exc())
 
 
-def clock_starts(sessions: int, fps: float, t0: float, phase: str = "spread") -> list[float]:
-    """When each session sends its first frame: evenly spread over one period, or all at `t0`."""
+def clock_offsets(sessions: int, fps: float, phase: str = "spread") -> list[float]:
+    """When each session sends its first frame, after the common start: evenly spread over one
+    period, or all at once."""
     if phase not in PHASES:
         raise ValueError(f"phase must be one of {PHASES}, got {phase!r}")
     spread = phase == "spread"
-    return [t0 + (k / sessions / fps if spread else 0.0) for k in range(sessions)]
+    return [k / sessions / fps if spread else 0.0 for k in range(sessions)]
 
 
-def _collect(procs: list, queue, timeout: float) -> list:
-    """One result per client process; raises with the child's traceback if one failed, or if one
-    died without a word (killed) or the deadline passes."""
-    parts, deadline = [], time.monotonic() + timeout
-    while len(parts) < len(procs):
+def _next(procs: list, results, deadline: float):
+    """The next message from the client processes; raises with a child's traceback if one failed,
+    or if one died without a word (killed), or at the deadline."""
+    while True:
         try:
-            part = queue.get(timeout=1.0)
+            message = results.get(timeout=1.0)
         except Empty:
             if time.monotonic() > deadline or any(p.exitcode not in (None, 0) for p in procs):
                 codes = [p.exitcode for p in procs]
                 for p in procs:
                     p.kill()
-                raise RuntimeError(f"load-test client processes failed (exit codes {codes})") from None
+                raise RuntimeError(f"load-test client processes failed or hung (exit codes {codes})") from None
             continue
-        if isinstance(part, str):
+        if isinstance(message, str) and message != "ready":
             for p in procs:
                 p.kill()
-            raise RuntimeError(f"a load-test client process failed:\n{part}")
-        parts.append(part)
-    return parts
+            raise RuntimeError(f"a load-test client process failed:\n{message}")
+        return message
 
 
 def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model: str = "lti",
@@ -175,15 +200,22 @@ def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model
     processes = processes or max(1, min(sessions, (os.cpu_count() or 2)))
     start = None if echo else {"type": "start", "model": model, "style": style, "encoding": "binary", "fps": fps}
     ctx = mp.get_context("spawn")
-    queue = ctx.Queue()
-    lead = 2.0 + 0.02 * sessions  # all sessions connected before the clock starts
-    starts = clock_starts(sessions, fps, time.perf_counter() + lead, phase)
+    results = ctx.Queue()
+    offsets = clock_offsets(sessions, fps, phase)
     # session k goes to process k % processes, so each process has sessions of every phase
-    procs = [ctx.Process(target=_worker, args=(url, start, starts[i::processes], fps, seconds, queue))
-             for i in range(min(processes, sessions))]
-    for p in procs:
+    procs = [(ctx.Process(target=_worker, args=(url, start, offsets[i::processes], fps, seconds, results, go)), go)
+             for i in range(min(processes, sessions)) for go in [ctx.Queue()]]
+    for p, _ in procs:
         p.start()
-    parts = _collect(procs, queue, timeout=lead + seconds + 60.0)
+    procs, gos = [p for p, _ in procs], [go for _, go in procs]
+    deadline = time.monotonic() + 60.0 + 0.05 * sessions
+    for _ in procs:  # every session of every process connected and started
+        _next(procs, results, deadline)
+    t0 = time.perf_counter() + 0.2  # one clock for all (CLOCK_MONOTONIC is shared by processes)
+    for go in gos:
+        go.put(t0)
+    deadline = time.monotonic() + seconds + 60.0
+    parts = [_next(procs, results, deadline) for _ in procs]
     for p in procs:
         p.join()
     lat = np.concatenate([p[0] for p in parts]) * 1000.0
@@ -195,8 +227,8 @@ def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model
                     late=int((done > 1000.0 / fps).sum()), lost=int(sent - len(done) - dropped),
                     p50_ms=float(q[0]), p95_ms=float(q[1]), p99_ms=float(q[2]),
                     max_ms=float(done.max()) if len(done) else float("nan"),
-                    frames_per_s=len(done) / seconds, client_cpu_s=sum(p[2] for p in parts), client_processes=len(procs),
-                    phase=phase)
+                    frames_per_s=len(done) / seconds, client_cpu_s=sum(p[3] for p in parts), client_processes=len(procs),
+                    phase=phase, client_behind=sum(p[2] for p in parts))
     return result, lat
 
 
@@ -396,17 +428,16 @@ def add_loadtest_command(sub) -> None:
 
 def measure_fn(url: str, model: str, style: str, fps: float, seconds: float, processes: int | None,
                server=None, floor: Result | None = None, results: list | None = None, lats: list | None = None,
-               server_metrics: bool = True, phase: str = "spread"):
-    """A function n -> Result that runs one open-loop load test against `url` and prints it.
-    `server_metrics=False` for several workers: each answers /metrics for itself alone."""
+               phase: str = "spread"):
+    """A function n -> Result that runs one open-loop load test against `url` and prints it."""
     base = url.replace("ws", "http", 1).replace("/v1/stream", "")
 
     def measure(n: int) -> Result:
         cpu0 = _cpu_seconds(server.pid) if server else None
-        hist0 = server_histogram(base, model) if server_metrics else {}
+        hist0 = server_histogram(base, model)
         result, lat = run(url, n, fps, seconds, model, style, processes, phase=phase)
         server_cpu = (_cpu_seconds(server.pid) - cpu0) if server else float("nan")
-        s50, s99 = histogram_quantiles(hist0, server_histogram(base, model)) if server_metrics else (np.nan, np.nan)
+        s50, s99 = histogram_quantiles(hist0, server_histogram(base, model))
         result.server_p50_ms, result.server_p99_ms, result.server_cpu_s = s50, s99, server_cpu
         if results is not None:
             results.append(result)

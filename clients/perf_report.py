@@ -111,8 +111,7 @@ def workers_section(models: dict, fps: float, seconds: float) -> list[str]:
         for workers in (1, 2):
             env = {"STYLESTREAM_WORKERS": str(workers), "STYLESTREAM_SESSION_STORE": store}
             with spawned_server(True, env) as (url, server):
-                measure = measure_fn(url, "lti", style, fps, seconds, None, server, None, None, None,
-                                     server_metrics=workers == 1)
+                measure = measure_fn(url, "lti", style, fps, seconds, None, server, None, None, None)
                 caps[workers] = find_max(measure, 8)
     return ["`stylestream serve --workers N`: N processes on one port (SO_REUSEPORT), each with its own batcher; "
             "the kernel spreads connections over them. Both runs use a Redis session store (snapshots every 30 "

@@ -10,7 +10,6 @@ import torch
 from threadpoolctl import threadpool_limits
 from fastapi import Depends, FastAPI, HTTPException, Query, Request, Response, WebSocket
 from fastapi.responses import JSONResponse, PlainTextResponse
-from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel
 
 from models.registry import load_models
@@ -110,7 +109,8 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
 
     @app.get("/metrics", response_class=PlainTextResponse)
     async def metrics(rt: Runtime = Depends(runtime)) -> Response:
-        return Response(generate_latest(rt.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+        body, media_type = rt.metrics.render()
+        return Response(body, media_type=media_type)
 
     @app.get("/v1/models", response_model=list[ModelInfo], dependencies=[Depends(require_token)],
              responses={s: {"model": ErrorBody} for s in (401, 429)})

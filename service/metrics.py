@@ -1,13 +1,27 @@
 """Prometheus metrics (prometheus_client: the standard, well-kept exporter).
 
-A private registry per app, so several apps in one process (tests) never collide."""
+A private registry per app, so several apps in one process (tests) never collide.
+
+With several worker processes on one port (`serve --workers N`) a scrape reaches one worker at
+random, so each must answer for all: the supervisor sets `PROMETHEUS_MULTIPROC_DIR`, where
+prometheus_client's multiprocess mode keeps every worker's counters, histograms and gauges, and
+`render` sums them over the workers (live ones for the session gauge). Process metrics (RSS,
+CPU, GC, Python heap) cannot be summed meaningfully and describe the worker that answered.
+"""
 
 from __future__ import annotations
 
+import os
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, GCCollector, Histogram, ProcessCollector
+from prometheus_client import (CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, GCCollector, Histogram,
+                               ProcessCollector, generate_latest)
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.multiprocess import MultiProcessCollector
+
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 
 LATENCY_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.004, 0.008, 0.0167, 0.033, 0.066, 0.1, 0.25, 1.0)
 
@@ -36,7 +50,7 @@ class Metrics:
         self.batch_size = Histogram("stylestream_batch_size", "Sessions per batched step", ["model"],
                                     buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512), registry=self.registry)
         self.active_sessions = Gauge("stylestream_active_sessions", "Open streaming sessions", ["model"],
-                                     registry=self.registry)
+                                     registry=self.registry, multiprocess_mode="livesum")
         self.dropped_frames = Counter("stylestream_dropped_frames_total", "Frames dropped by backpressure",
                                       ["model"], registry=self.registry)
         self.errors = Counter("stylestream_errors_total", "Client errors by code", ["code"], registry=self.registry)
@@ -49,11 +63,23 @@ class Metrics:
                                           buckets=LATENCY_BUCKETS, registry=self.registry)
         self.resumes = Counter("stylestream_sessions_resumed_total", "Sessions resumed from a snapshot",
                                registry=self.registry)
-        # memory, for Prometheus and the soak test: process RSS/CPU/fds and the Python heap
-        ProcessCollector(registry=self.registry)
-        GCCollector(registry=self.registry)
-        Gauge("stylestream_python_allocated_blocks", "Memory blocks held by Python's allocator (heap size proxy)",
-              registry=self.registry).set_function(sys.getallocatedblocks)
+        # memory, for Prometheus and the soak test: process RSS/CPU/fds and the Python heap, this process's own
+        self.process_registry = CollectorRegistry()
+        ProcessCollector(registry=self.process_registry)
+        GCCollector(registry=self.process_registry)
+        self.process_registry.register(PythonHeapCollector())
+
+    def render(self) -> tuple[bytes, str]:
+        """The `/metrics` body and content type: this process's metrics, or, under a worker
+        supervisor, the sum over every worker's (see the module docstring)."""
+        folder = os.environ.get(MULTIPROC_ENV)
+        if folder:
+            summed = CollectorRegistry()
+            MultiProcessCollector(summed, path=folder)
+            body = generate_latest(summed)
+        else:
+            body = generate_latest(self.registry)
+        return body + generate_latest(self.process_registry), CONTENT_TYPE_LATEST
 
     def model(self, name: str) -> ModelMetrics:
         """The per-model children for `name`, created on first use."""
@@ -63,3 +89,13 @@ class Metrics:
                 self.frame_latency.labels(name), self.frames.labels(name), self.dropped_frames.labels(name),
                 self.step_latency.labels(name), self.batch_size.labels(name))
         return children
+
+
+class PythonHeapCollector:
+    """`stylestream_python_allocated_blocks`: memory blocks held by Python's allocator, the heap
+    size proxy the soak test watches. A collector, not a Gauge, so multiprocess mode keeps no
+    file of it: it is read at scrape time in the process that answers."""
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        yield GaugeMetricFamily("stylestream_python_allocated_blocks",
+                                "Memory blocks held by Python's allocator (heap size proxy)", value=sys.getallocatedblocks())

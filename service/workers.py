@@ -9,20 +9,25 @@ only with a shared session store, and the settings refuse `workers > 1` with the
 
 The supervisor does nothing on the frame path: it starts the workers (spawned, so none inherits
 another's threads), forwards SIGTERM/SIGINT so each drains its own sessions, and replaces a
-worker that dies on its own.
+worker that dies on its own. It also gives the workers one folder for prometheus_client's
+multiprocess mode, so `/metrics` on any worker sums all of them (`service.metrics`).
 """
 
 from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
+import shutil
 import signal
 import socket
 import sys
+import tempfile
 import time
 from multiprocessing.connection import wait
 from types import FrameType
 
+from .metrics import MULTIPROC_ENV
 from .settings import ServiceSettings
 
 log = logging.getLogger("uvicorn.error")
@@ -49,6 +54,19 @@ def _worker(settings: ServiceSettings, log_level: str) -> None:
 def serve_workers(settings: ServiceSettings, log_level: str = "info") -> None:
     """Run `settings.workers` servers on one port until SIGTERM/SIGINT, then wait for their drains."""
     logging.basicConfig(level=log_level.upper(), format="%(levelname)s:     %(message)s")
+    own_folder = not os.environ.get(MULTIPROC_ENV)  # an operator's own folder is theirs to keep
+    if own_folder:
+        os.environ[MULTIPROC_ENV] = tempfile.mkdtemp(prefix="stylestream-metrics-")  # spawned workers inherit it
+    try:
+        _supervise(settings, log_level)
+    finally:
+        if own_folder:
+            shutil.rmtree(os.environ.pop(MULTIPROC_ENV), ignore_errors=True)
+
+
+def _supervise(settings: ServiceSettings, log_level: str) -> None:
+    from prometheus_client import multiprocess
+
     ctx = mp.get_context("spawn")
     stopping = False
     started: dict[int, float] = {}
@@ -76,6 +94,7 @@ def serve_workers(settings: ServiceSettings, log_level: str = "info") -> None:
         wait([p.sentinel for p in workers])
         for proc in [p for p in workers if not p.is_alive()]:
             workers.remove(proc)
+            multiprocess.mark_process_dead(proc.pid)  # its live gauges (open sessions) stop counting
             if stopping:
                 continue
             if time.monotonic() - started[proc.pid] < STARTUP_S:  # it never came up (port taken, bad model): no loop

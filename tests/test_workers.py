@@ -1,8 +1,9 @@
 """`stylestream serve --workers N`: N server processes on one port (SO_REUSEPORT).
 
 Connections are spread over the workers, a session resumes on whichever worker its new
-connection lands on (through the shared Redis store), SIGTERM drains every worker and the
-supervisor exits cleanly; with the in-memory store more than one worker is refused."""
+connection lands on (through the shared Redis store), `/metrics` on any worker counts every
+worker's frames, SIGTERM drains every worker and the supervisor exits cleanly; with the
+in-memory store more than one worker is refused."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
+import httpx
 from websockets.sync.client import connect
 
 from service import protocol as P
@@ -50,6 +51,12 @@ def _stream(url: str, root, rot, resume_token: str | None = None) -> str:
         return started["resume_token"]
 
 
+def _metric(base: str, line_start: str) -> float:
+    """One sample's value from a fresh scrape (a new connection: any worker may answer)."""
+    text = httpx.get(f"{base}/metrics", headers={"Connection": "close"}, timeout=10).text
+    return sum(float(line.rsplit(" ", 1)[1]) for line in text.splitlines() if line.startswith(line_start))
+
+
 def test_more_than_one_worker_needs_a_shared_store():
     done = subprocess.run([sys.executable, "-m", "clients.cli", "serve", "--workers", "2"], cwd=REPO,
                           capture_output=True, text=True, timeout=60,
@@ -74,6 +81,10 @@ def test_two_workers_share_the_port_and_resume_each_others_sessions(tmp_path, bn
             time.sleep(0.5)  # the snapshots of the closed sessions reach the store
             for token in tokens:  # about half land on the other worker than the session's first
                 _stream(url, root, rot, resume_token=token)
+            time.sleep(0.5)  # the last sessions' closes are counted
+            for _ in range(8):  # scrapes land on both workers; each answers for all of them
+                assert _metric(server.url, 'stylestream_frames_total{model="lti"}') == 2 * SESSIONS * 10
+                assert _metric(server.url, "stylestream_active_sessions{") == 0
             server.signal(signal.SIGTERM)
             assert server.proc.wait(timeout=60) == 0
             assert all(not Path(f"/proc/{p}").exists() for p in workers)
