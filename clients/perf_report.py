@@ -94,9 +94,10 @@ def profile_section(shares: dict[str, float] | str) -> list[str]:
              "busy time by part (`clients/server_profile.py`: each sample counts for the innermost frame that names a part):", "",
              "| part | share |", "|---|---|"]
     lines += [f"| {name} | {share:.0%} |" for name, share in shares.items()]
-    return lines + ["", "The server is one Python process per worker: its event loop saturates one core. What "
-                    "remains per frame is mostly the transport (the echo server's capacity above is the ceiling of "
-                    "this stack in this harness) and asyncio plumbing per message; the model step is batched."]
+    return lines + ["", "The server is one Python process per worker: its event loop saturates one core, and the "
+                    "echo server's capacity above is the ceiling of this stack in this harness. Per frame, the "
+                    "server pays what the echo server pays (receive, send, event loop) plus its own parts above; "
+                    "the model step is batched."]
 
 
 def workers_section(models: dict, fps: float, seconds: float) -> list[str]:
@@ -261,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
             args.baseline, models, fps, args.seconds)
     lti_64 = at_64.get("lti", [])
     per_frame = (f"At 64 LTI sessions (spread clocks) the server spends {cpu_per_frame_us(lti_64[0]):.0f} µs of CPU per "
-                 f"frame; the echo server spends {cpu_per_frame_us(floor):.0f} µs on the same load. " if lti_64 else "")
+                 f"frame; the echo server spends {cpu_per_frame_us(floor):.0f} µs on the same load." if lti_64 else "")
     lines += ["", "## Where the time goes", "", per_frame] + profile_section(shares) + ["",
               f"Run time of this report: {time.perf_counter() - t_start:.0f} s; load average at the end "
               f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} (the machine is shared)."]

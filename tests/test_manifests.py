@@ -169,6 +169,64 @@ def test_session_store_and_ingress_settings_fit_the_server(monkeypatch):
     assert nginx_size(notes[prefix + "proxy-body-size"]) >= settings.upload_max_bytes
 
 
+# ---- the shared-styles overlay (docker/k8s/shared-styles) -------------------------------------
+
+
+def strategic_merge(base, patch):
+    """What kustomize's strategic-merge patch does with these patches: maps merge key by key;
+    lists of named items (containers, volumes, volumeMounts) merge item by name; anything else
+    the patch replaces."""
+    if isinstance(base, dict) and isinstance(patch, dict):
+        return {**base, **{k: strategic_merge(base[k], v) if k in base else v for k, v in patch.items()}}
+    if isinstance(base, list) and isinstance(patch, list) and all(isinstance(i, dict) and "name" in i
+                                                                    for i in base + patch):
+        merged = {item["name"]: item for item in base}
+        for item in patch:
+            merged[item["name"]] = strategic_merge(merged[item["name"]], item) if item["name"] in merged else item
+        return list(merged.values())
+    return patch
+
+
+def overlay_manifests() -> list[dict]:
+    """The overlay rendered as `kubectl apply -k docker/k8s/shared-styles` would: the base, its own
+    resources, its patches applied to the base objects they name."""
+    folder = K8S / "shared-styles"
+    kustomization = yaml.safe_load((folder / "kustomization.yaml").read_text())
+    assert kustomization["resources"][0] == ".."
+    docs = manifests() + [d for name in kustomization["resources"][1:]
+                          for d in yaml.safe_load_all((folder / name).read_text()) if d]
+    for entry in kustomization["patches"]:
+        patch = yaml.safe_load((folder / entry["path"]).read_text())
+        [i] = [i for i, d in enumerate(docs) if (d["kind"], d["metadata"]["name"]) ==
+               (patch["kind"], patch["metadata"]["name"])]
+        docs[i] = strategic_merge(docs[i], patch)
+    return docs
+
+
+@pytest.mark.parametrize("version", K8S_VERSIONS)
+def test_shared_styles_overlay_is_valid_against_the_kubernetes_schema(version):
+    for doc in overlay_manifests():
+        kubernetes_validate.validate(doc, version, strict=True)
+
+
+def test_shared_styles_overlay_mounts_one_rwx_claim_over_every_pods_styles_folder(monkeypatch):
+    docs = overlay_manifests()
+    [claim] = [d for d in docs if d["kind"] == "PersistentVolumeClaim"]
+    assert "ReadWriteMany" in claim["spec"]["accessModes"]  # every replica writes uploads to it
+    [deployment] = [d for d in docs if d["kind"] == "Deployment" and d["metadata"]["name"] == "stylestream"]
+    pod = deployment["spec"]["template"]["spec"]
+    [container] = pod["containers"]
+    volumes = {v["name"]: v for v in pod["volumes"]}
+    mounts = {m["mountPath"]: m["name"] for m in container["volumeMounts"]}
+    styles_dir = re.search(r"STYLESTREAM_STYLES_DIR=(\S+)", (DOCKER / "Dockerfile").read_text())[1]
+    assert volumes[mounts[styles_dir]]["persistentVolumeClaim"]["claimName"] == claim["metadata"]["name"]
+    assert "emptyDir" in volumes[mounts["/var/lib/stylestream"]]  # the base's home and probes are kept
+    assert container["readinessProbe"]["httpGet"]["path"] == "/readyz"
+    [config] = [d for d in docs if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "stylestream"]
+    settings = settings_from_env(config["data"], monkeypatch)
+    assert settings.styles_refresh_s > 0 and settings.session_store.startswith("redis://")
+
+
 def nginx_size(value: str) -> int:
     match = re.fullmatch(r"(\d+)([kKmMgG]?)", value)
     assert match, value
