@@ -76,10 +76,11 @@ def real_frames(n: int = 300) -> tuple[np.ndarray, np.ndarray]:
     return m.translations[idx, 1].astype(np.float32), m.rotations[idx].astype(np.float32)
 
 
-async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float, seconds: float, offset: float,
-                   clock: asyncio.Future, connected: Callable[[], None], stats: dict) -> None:
-    """One session: connect and start, report `connected()`, wait for the common clock, then send
-    frame i at `clock + offset + i / fps` whatever the replies do."""
+async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float, seconds: float, stats: dict,
+                   offset: float = 0.0, clock: asyncio.Future | None = None,
+                   connected: Callable[[], None] = lambda: None) -> None:
+    """One session: connect and start, report `connected()`, wait for the common `clock` (or start
+    at once without one), then send frame i at `clock + offset + i / fps` whatever the replies do."""
     import websockets
 
     period = 1.0 / fps
@@ -106,7 +107,7 @@ async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float,
 
         recv_task = asyncio.create_task(receiver())
         connected()
-        begin = await clock + offset
+        begin = (time.perf_counter() if clock is None else await clock) + offset
         await asyncio.sleep(max(0.0, begin - time.perf_counter()))
         for i in range(n):
             target = begin + i * period
@@ -152,7 +153,7 @@ def _worker(url: str, start: dict | None, offsets: list[float], fps: float, seco
                     threading.Thread(target=lambda: loop.call_soon_threadsafe(clock.set_result, go.get()),
                                      daemon=True).start()
 
-            await asyncio.gather(*(_session(url, start, payload, fps, seconds, offset, clock, connected, stats)
+            await asyncio.gather(*(_session(url, start, payload, fps, seconds, stats, offset, clock, connected)
                                    for offset in offsets))
 
         cpu0 = resource.getrusage(resource.RUSAGE_SELF)

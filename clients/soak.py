@@ -131,14 +131,14 @@ async def soak(url: str, pid: int | None, minutes: float, sessions: int, fps: fl
     payload = np.concatenate([root, rot.reshape(len(rot), -1)], axis=1).astype("<f4")
     start = {"type": "start", "model": model, "style": style, "encoding": "binary", "fps": fps}
     base = url.replace("ws", "http", 1).replace("/v1/stream", "")
-    stats = {"latency": [], "dropped": 0}
+    stats = {"latency": [], "dropped": 0, "behind": 0}
     t0 = time.perf_counter()
     end = t0 + minutes * 60
 
     async def stream_slot(i: int) -> None:
         length = session_seconds * (i + 1) / sessions  # staggered first session, then full length
         while (left := end - time.perf_counter()) > 1.0:
-            await _session(url, start, payload, fps, min(length, left - 0.5), time.perf_counter(), stats)
+            await _session(url, start, payload, fps, min(length, left - 0.5), stats)
             length = session_seconds
 
     samples = [await _sample(base, pid, t0)]
