@@ -71,8 +71,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run a subcommand. What a user can cause and fix (a malformed or missing file, a server that
+    refuses or cannot be reached) ends in one line naming the problem and exit status 2, not a
+    traceback."""
+    import httpx
+    from websockets.exceptions import WebSocketException
+
+    from models.motion.bvh import BvhError
+
+    from .sdk import ResumeError, ServerError
+
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except (BvhError, ServerError, ResumeError, OSError, httpx.HTTPError, WebSocketException) as exc:
+        print(f"stylestream {args.command}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":
