@@ -198,7 +198,7 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
 
     @app.get("/v1/jobs/{job_id}", response_model=JobInfo, dependencies=[Depends(require_token)], responses=errors)
     async def get_job(job_id: str, rt: Runtime = Depends(runtime)) -> JobInfo:
-        job = rt.styles.jobs.get(job_id)
+        job = await rt.styles.job(job_id)  # this replica's, or one stored with its style in the folder
         if job is None:
             raise ApiError(404, "unknown_job", f"no job {job_id!r}")
         return job

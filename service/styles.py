@@ -2,7 +2,8 @@
 
 An uploaded clip (BVH with the Bandai Namco or a CMU skeleton, or JSON frames on the Bandai Namco
 skeleton) is validated, brought onto the model skeleton at 30 fps, persisted under
-`styles_dir/<model>/<name>/` (clip.npz, translator.npz or film.npz, style.json) and turned into a
+`styles_dir/<model>/<name>/` (clip.npz, translator.npz or film.npz, style.json, and job.json, the
+record of its fine-tuning job) and turned into a
 style: for LPN-FiLM at once (the FiLM generator's embedding of the clip, `add_style_from_clip`),
 and with `fine_tune` also a job that fine-tunes a copy of the generator on the clip
 (`models.lpn.finetune`) and, if that lowers the loss on the clip's held-back frames, swaps the
@@ -21,7 +22,7 @@ know and on every styles or models request, and takes in the styles the others a
 or deleted, so an upload through the
 load balancer is usable on every replica and a session resumed on another replica keeps its
 uploaded style. A style is written by the replica that received it (its job runs there); the
-others only read its folder.
+others only read its folder, and answer `GET /v1/jobs/{id}` for its job from the job.json there.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import asyncio
 import logging
 import re
 import shutil
+import threading
 import time
 from pathlib import Path
 from typing import Literal
@@ -202,6 +204,40 @@ class StyleStore:
         tmp.write_text(info.model_dump_json(indent=1))
         tmp.replace(d / "style.json")
         self.seen[info.id] = (d / "style.json").stat().st_mtime  # our own write: no refresh reads it back
+
+    def _save_job(self, info: StyleInfo, job: JobInfo) -> None:
+        """The job's record next to its style (job thread), for replicas sharing the folder and for
+        this one after a restart; not if the style was deleted meanwhile (its folder is gone)."""
+        d = self._dir(info.model, info.name)
+        if self.uploaded.get(info.id) is not info or not d.is_dir():
+            return
+        tmp = d / f"job.{threading.get_ident()}.tmp"
+        try:
+            tmp.write_text(job.model_dump_json(indent=1))
+            tmp.replace(d / "job.json")
+        except FileNotFoundError:  # the style was deleted between the check and the write
+            pass
+
+    async def job(self, job_id: str) -> JobInfo | None:
+        """A job's record: this replica's own, or else the one stored with the style it produces (a
+        job another replica sharing the folder runs or ran, or one from before a restart). A record
+        still queued or running that has not changed for TRAINING_FRESH_S lost its replica."""
+        job = self.jobs.get(job_id)
+        if job is not None:
+            return job
+        await self.refresh()
+        for info in list(self.uploaded.values()):
+            path = self._dir(info.model, info.name) / "job.json"
+            if info.job_id != job_id or not path.exists():
+                continue
+            try:
+                job, age = JobInfo.model_validate_json(path.read_text()), time.time() - path.stat().st_mtime
+            except (OSError, ValueError):
+                return None
+            if job.status in ("queued", "running") and age > TRAINING_FRESH_S:
+                job.status, job.message = "failed", f"interrupted: the replica running it stopped ({job.message})"
+            return job
+        return None
 
     def load(self) -> None:
         """The persisted uploaded styles, added to the live models (before any session steps)."""
@@ -392,7 +428,8 @@ class StyleStore:
         self.uploaded[sid] = info
         ref = next(iter(model.translators.values())).ref
         job = self.jobs.submit("fine_tune", lambda progress: self._fine_tune_job(info, motion, ref, progress),
-                               target=sid, on_failure=lambda msg: self._job_failed(sid, msg))
+                               target=sid, on_failure=lambda msg: self._job_failed(sid, msg),
+                               record=lambda job: self._save_job(info, job))
         info.job_id = job.id
         self._save_info(info)
         return UploadAccepted(style=info.model_copy(), job=job)
@@ -422,7 +459,8 @@ class StyleStore:
             self._save_info(info)
             return UploadAccepted(style=info.model_copy())
         job = self.jobs.submit("fine_tune", lambda progress: self._film_job(info, motion, progress), target=sid,
-                               on_failure=lambda msg: self._film_job_failed(info, msg))
+                               on_failure=lambda msg: self._film_job_failed(info, msg),
+                               record=lambda job: self._save_job(info, job))
         info.job_id, info.message = job.id, "FiLM parameters from the clip; fine-tuning the FiLM generator"
         self._save_info(info)
         return UploadAccepted(style=info.model_copy(), job=job)

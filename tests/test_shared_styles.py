@@ -2,8 +2,8 @@
 LPN-FiLM style uploaded through one is usable on the other at once with the same output, its
 fine-tuned FiLM vector and a finished LTI job reach the other, and a delete through either removes
 it from both. The periodic rescan is set long here: each of these comes from a replica looking at
-the folder when a session or a request names what it lacks. Each replica has its own LPN-FiLM
-instance, as separate processes do."""
+the folder when a session or a request names what it lacks; a job's progress can be followed on
+either. Each replica has its own LPN-FiLM instance, as separate processes do."""
 
 from __future__ import annotations
 
@@ -86,7 +86,14 @@ def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip,
         reply = httpx.post(f"{b}/v1/styles?fine_tune=true", json=body, timeout=60)
         assert reply.status_code == 202, reply.text
         job = reply.json()["job"]["id"]
-        wait_until(lambda: httpx.get(f"{b}/v1/jobs/{job}").json()["status"] in ("done", "failed"), "LTI job did not end", 120)
+        # a, which does not run the job, answers for it from the record b keeps with the style
+        seen_on_a = []
+        wait_until(lambda: seen_on_a.append(httpx.get(f"{a}/v1/jobs/{job}").json()) or
+                   seen_on_a[-1]["status"] in ("done", "failed"), "LTI job did not end", 120)
+        assert seen_on_a[-1] == httpx.get(f"{b}/v1/jobs/{job}").json()  # the finished record, as b has it
+        assert seen_on_a[-1]["status"] == "done" and seen_on_a[-1]["result"]["state_dim"] > 0
+        assert {r["id"] for r in seen_on_a} == {job} and {r["status"] for r in seen_on_a} >= {"running", "done"}
+        assert httpx.get(f"{a}/v1/jobs/0123abc").status_code == 404
         wait_until(lambda: "slow" in styles_of(a, "lti"), "a did not take in the LTI style")
         walk = bn_walk.slice(0, 40)
         np.testing.assert_allclose(lti_outputs(a, "slow", walk.translations[:, 1], walk.rotations),

@@ -296,7 +296,7 @@ def test_sessions_stream_on_unchanged_across_an_upload_and_a_delete(server, mode
     assert "mid-a" not in next(m for m in httpx.get(f"{base}/v1/models").json() if m["name"] == "lti")["styles"]
 
 
-def test_uploaded_styles_reload_at_startup(models, styled_clip, tmp_path):
+def test_uploaded_styles_and_their_job_records_reload_at_startup(models, styled_clip, tmp_path):
     root, rot = styled_clip
     with live_server(models, styles_dir=tmp_path) as (base, _):
         job = httpx.post(f"{base}/v1/styles?fine_tune=true", json=payload("kept", root[:200], rot[:200]), timeout=30).json()["job"]
@@ -304,9 +304,11 @@ def test_uploaded_styles_reload_at_startup(models, styled_clip, tmp_path):
             if httpx.get(f"{base}/v1/jobs/{job['id']}").json()["status"] in ("done", "failed"):
                 break
             time.sleep(0.2)
+        finished = httpx.get(f"{base}/v1/jobs/{job['id']}").json()
     with live_server(models, styles_dir=tmp_path) as (base, _):
         info = httpx.get(f"{base}/v1/styles/lti.kept").json()
         assert info["status"] == "ready" and info["kind"] == "uploaded"
+        assert httpx.get(f"{base}/v1/jobs/{job['id']}").json() == finished  # its record survives the restart
         with connect(ws_url(base)) as ws:
             ws.send(json.dumps({"type": "start", "model": "lti", "style": "kept"}))
             assert json.loads(ws.recv(timeout=10))["type"] == "started"
