@@ -70,10 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run a subcommand. What a user can cause and fix (a malformed or missing file, a server that
-    refuses or cannot be reached) ends in one line naming the problem and exit status 2, not a
-    traceback."""
+def user_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions a user can cause and fix: a malformed or missing file, a port in use, a server
+    that refuses or cannot be reached (imported only once something was raised)."""
     import httpx
     from websockets.exceptions import WebSocketException
 
@@ -81,10 +80,16 @@ def main(argv: list[str] | None = None) -> int:
 
     from .sdk import ResumeError, ServerError
 
+    return BvhError, OSError, httpx.HTTPError, WebSocketException, ServerError, ResumeError
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run a subcommand; a user error (`user_errors`) ends in one line naming the problem and exit
+    status 2, not a traceback."""
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (BvhError, ServerError, ResumeError, OSError, httpx.HTTPError, WebSocketException) as exc:
+    except user_errors() as exc:  # evaluated only when something was raised
         print(f"stylestream {args.command}: error: {exc}", file=sys.stderr)
         return 2
 
