@@ -198,17 +198,20 @@ def _next(procs: list, results, deadline: float):
 def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model: str = "lti",
         style: str | None = None, processes: int | None = None, echo: bool = False,
         phase: str = "spread") -> tuple[Result, np.ndarray]:
+    """One open-loop run: `sessions` sessions over `processes` client processes (default: one per
+    core), all connected before one common clock starts. Returns the summary and every frame's
+    round trip in ms (NaN: no reply), session by session in send order."""
     processes = processes or max(1, min(sessions, (os.cpu_count() or 2)))
     start = None if echo else {"type": "start", "model": model, "style": style, "encoding": "binary", "fps": fps}
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
     offsets = clock_offsets(sessions, fps, phase)
+    gos = [ctx.Queue() for _ in range(min(processes, sessions))]  # one clock-start message per process
     # session k goes to process k % processes, so each process has sessions of every phase
-    procs = [(ctx.Process(target=_worker, args=(url, start, offsets[i::processes], fps, seconds, results, go)), go)
-             for i in range(min(processes, sessions)) for go in [ctx.Queue()]]
-    for p, _ in procs:
+    procs = [ctx.Process(target=_worker, args=(url, start, offsets[i::processes], fps, seconds, results, go))
+             for i, go in enumerate(gos)]
+    for p in procs:
         p.start()
-    procs, gos = [p for p, _ in procs], [go for _, go in procs]
     deadline = time.monotonic() + 60.0 + 0.05 * sessions
     for _ in procs:  # every session of every process connected and started
         _next(procs, results, deadline)
