@@ -469,8 +469,7 @@ def echo_floor(sessions: int, fps: float, seconds: float, processes: int | None 
     return floor
 
 
-def echo_capacity(fps: float, seconds: float, processes: int | None = None,
-                  phase: str = "spread") -> tuple[int, list[Result]]:
+def echo_capacity(fps: float, seconds: float, processes: int | None = None) -> tuple[int, list[Result]]:
     """The transport's own ceiling in this harness: the most sessions a plain echo server on the
     same stack holds at `fps` (p99 within a frame period, nothing lost); no model server can
     beat it. Returns it and every run of the search."""
@@ -479,8 +478,7 @@ def echo_capacity(fps: float, seconds: float, processes: int | None = None,
     runs: list[Result] = []
 
     def measure(n: int) -> Result:
-        result, _ = run(f"ws://127.0.0.1:{port}/v1/stream", n, fps, seconds, processes=processes, echo=True,
-                        phase=phase)
+        result, _ = run(f"ws://127.0.0.1:{port}/v1/stream", n, fps, seconds, processes=processes, echo=True)
         print("echo         " + result.line(), flush=True)
         runs.append(result)
         return result

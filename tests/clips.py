@@ -1,5 +1,5 @@
-"""What the style-upload tests share: a clip as the `frames` of a JSON style upload, and an
-LPN-FiLM controller session driven through a list of control ticks."""
+"""What several service tests share: a clip as the `frames` of a JSON style upload, an LPN-FiLM
+controller session driven through a list of control ticks, and the angle between rotations."""
 
 from __future__ import annotations
 
@@ -19,3 +19,10 @@ def drive_lpn(base: str, style: str, ticks) -> np.ndarray:
     (velocity, facing, gait) in `ticks`."""
     with Client(base).session(model="lpn", style=style) as session:
         return np.array([session.control(v, facing, gait).rotations for v, facing, gait in ticks])
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation angle between quaternions (normalised first), degrees; q and -q are one rotation."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.degrees(2 * np.arccos(np.abs(np.sum(a * b, axis=-1)).clip(max=1.0)))

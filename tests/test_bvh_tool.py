@@ -16,6 +16,7 @@ from models.motion.skeleton import from_bvh
 from models.registry import load_models
 from models.settings import get_settings
 
+from .clips import angle_deg
 from .live_server import live_server
 
 FRAMES = 90
@@ -40,11 +41,6 @@ def walk_bvh(index, tmp_path_factory):
     return path
 
 
-def _angles(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
-    """Rotation angle between quaternions, radians (q and -q are the same rotation)."""
-    return 2 * np.arccos(np.clip(np.abs(np.sum(q1 * q2, axis=-1)), 0, 1))
-
-
 def test_the_written_file_is_the_servers_output_on_the_inputs_hierarchy(server, walk_bvh, tmp_path):
     out, sheet = tmp_path / "walk_elderly.bvh", tmp_path / "walk_elderly.png"
     assert main(["stylise", str(walk_bvh), "--url", server, "--model", "lti", "--style", "elderly",
@@ -58,9 +54,9 @@ def test_the_written_file_is_the_servers_output_on_the_inputs_hierarchy(server, 
     with Client(server).session(model="lti", style="elderly", bvh_header=header, fps=inp.fps) as session:
         replies = [session.stylise(inp.translations[t, 1], inp.rotations[t]) for t in range(FRAMES)]
     expected = np.stack([r.rotations for r in replies])
-    assert _angles(got.rotations, expected).max() < 1e-3  # as sent, up to the file's printed decimals
+    assert angle_deg(got.rotations, expected).max() < np.degrees(1e-3)  # as sent, up to the file's printed decimals
     assert np.abs(got.translations[:, 1] - np.stack([r.root for r in replies])).max() < 1e-3
-    assert np.degrees(_angles(got.rotations, inp.rotations)).mean() > 1.0  # and stylised, not copied
+    assert angle_deg(got.rotations, inp.rotations).mean() > 1.0  # and stylised, not copied
     assert sheet.stat().st_size > 10_000
 
 

@@ -14,6 +14,8 @@ from models.motion.rotations import matrix_to_quat as mat_to_quat
 from models.motion.rotations import quat_to_matrix as quat_to_mat
 from models.motion.skeleton import Motion, fk
 
+from .clips import angle_deg
+
 # one walk per CMU naming variant: Xia (cgspeed names), CMU 131 (bvh11 names)
 WALKS = {"cgspeed": ("xia", "neutral_walk_01_000"), "bvh11": ("cmu", "131_01")}
 FRAMES = 150
@@ -35,12 +37,6 @@ def walks(rig) -> dict[str, tuple[Motion, FrameRetargeter]]:
     return out
 
 
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    return np.degrees(2 * np.arccos(np.abs(np.sum(a * b, axis=-1)).clip(max=1.0)))
-
-
 def _bn_positions(rig, hips: np.ndarray, rotations: np.ndarray) -> np.ndarray:
     sk = rig.skeleton
     trans = np.broadcast_to(sk.offsets, rotations.shape[:-1] + (3,)).copy()
@@ -54,7 +50,7 @@ def test_matrix_conversions_round_trip():
     q = np.concatenate([q, np.eye(4), [[0.5**0.5, 0.5**0.5, 0, 0], [0, 0.5**0.5, 0, -(0.5**0.5)]]])
     back = mat_to_quat(quat_to_mat(q))
     assert np.all(back[:, 3] >= 0)
-    assert _angle_deg(back, q).max() < 1e-5
+    assert angle_deg(back, q).max() < 1e-5
 
 
 @pytest.mark.parametrize("variant", list(WALKS))
@@ -63,7 +59,7 @@ def test_per_frame_equals_clip_level(walks, rig, variant):
     ref = retarget(motion, rig, fps=motion.fps)
     hips, rot = fr.to_model(motion.translations[:, 0], motion.rotations)
     assert rot.shape == ref.rotations.shape and hips.shape == (motion.num_frames, 3)
-    assert _angle_deg(rot, ref.rotations).max() < 1e-3  # same rotations (up to quaternion sign)
+    assert angle_deg(rot, ref.rotations).max() < 1e-3  # same rotations (up to quaternion sign)
     ref_hips = ref.translations[:, rig.skeleton.index("Hips")]
     np.testing.assert_allclose(hips[:, [0, 2]], ref_hips[:, [0, 2]], atol=1e-9)  # same scaled root
     dy = hips[:, 1] - ref_hips[:, 1]
@@ -100,7 +96,7 @@ def test_round_trip_reproduces_the_source(walks, variant):
     err = np.linalg.norm(pos - motion.global_positions(), axis=-1)
     assert err[:, mapped].max() < 1e-6 * leg_length(motion.skeleton, variant)  # brief asked < 2 %
     assert err.max() < 1e-6 * leg_length(motion.skeleton, variant)  # unmapped joints too
-    assert _angle_deg(back_rot, rot).max() < 1e-4
+    assert angle_deg(back_rot, rot).max() < 1e-4
     unmapped = [j for j in range(motion.skeleton.num_joints) if j not in mapped]
     np.testing.assert_array_equal(back_rot[:, unmapped], rot[:, unmapped])  # kept as the client sent them
 
