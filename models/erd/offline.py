@@ -6,7 +6,8 @@ Output root: the output Hips path integrates the predicted facing-frame root vel
 turned by the INPUT's facing yaw, starting from the input's first root position; the height is
 the predicted Hips height. So the path keeps the input's shape and direction while the speed may
 change with the style. The output Hips rotation is the input's facing yaw times the predicted
-yaw-free Hips rotation. Then the streaming model's foot lock, frame by frame (`foot_lock=False`
+yaw-free Hips rotation. As in the streaming model, the bones keep the input's twists and the
+leaves its rotations (`models.motion.twist.transfer_twist`). Then the streaming model's foot lock, frame by frame (`foot_lock=False`
 gives the network's output alone).
 """
 
@@ -18,6 +19,7 @@ import numpy as np
 import torch
 
 from ..motion.skeleton import Motion
+from ..motion.twist import transfer_twist
 from models.motion.rotations import quat_mul
 
 from ..lti.footplant import FootLock
@@ -52,6 +54,7 @@ def stylise(gen: Generator, maker: FeatureMaker, motion: Motion, weights: np.nda
     out = gen(torch.as_tensor(x, dtype=torch.float32)[None], torch.tensor([style_in]), torch.tensor([content]), w)
     root, rots = to_world(out["rot"][0].double().numpy(), out["root_vel"][0].double().numpy(),
                           out["height"][0].double().numpy(), yaw, root_in[0])
+    rots = transfer_twist(motion.skeleton, motion.rotations, rots)
     if foot_lock:
         from .runtime import LOCK_MAX_PULL, LOCK_RELEASE
         lock = FootLock(motion.skeleton, 1, release_frames=LOCK_RELEASE, max_pull=LOCK_MAX_PULL)

@@ -22,6 +22,11 @@ Output root: the predicted facing-frame root velocity is integrated from the inp
 position, turned by the input's facing yaw (the path keeps the input's shape and direction; the
 speed follows the style); the height is predicted.
 
+Twists and leaves: the decoder's rotations are trusted only where they move joints. Its positions
+are kept exactly, but each bone's twist about itself and the head, hands and toes take the
+input's rotations (`models.motion.twist.transfer_twist`): trained on positions, the network had
+left those free and wrung wrists by 60-140 degrees and turned necks by 90 (issue #14).
+
 Foot lock: the network knows nothing of the floor, so its planted feet slid (20 % of flat-foot
 frames over the eval suite's inputs, 40 % toward `active`, against 3 % for the inputs). The
 output keeps the input's timing, so the input's own contacts (feature columns `CONTACT`: ankle
@@ -41,6 +46,7 @@ import torch
 
 from ..interface import FrameBatch, State
 from ..motion.skeleton import Skeleton
+from ..motion.twist import transfer_twist
 from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from ..lti.footplant import LEG_CHAINS
@@ -186,6 +192,7 @@ class ERDModel:
         y, new = self._network(x, state, w)
         out_root, out_rot = kernels.output_pose(x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64),
                                                 root, rot_in, float(FPS))
+        out_rot = transfer_twist(self.skeleton, rot_in, out_rot)
         contacts = x[:, CONTACT] > 0.5
         lock = {k: np.array(state[k], dtype=dtype) for k, dtype in
                 (("lock_anchor", np.float64), ("lock_since", np.int64), ("lock_was", bool))}

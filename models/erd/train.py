@@ -47,6 +47,11 @@ class TrainConfig:
     w_adv: float = 1.0
     w_per: float = 0.1
     w_r1: float = 10.0
+    # rotations: the streaming model outputs the decoder's pose with the input's twists and leaf
+    # rotations (models.motion.twist); on transferred windows `w_prior` penalises a joint of that
+    # pose leaving the target style's real range (angle to the style's mean beyond its p95)
+    w_prior: float = 0.0
+    d_warmup: int = 0  # iterations that train only the discriminator first (a new one, with --init_weights)
     p_drop_style: float = 0.3
     p_drop_content: float = 0.3
     p_neutral: float = 0.5
@@ -63,6 +68,7 @@ class TrainConfig:
     out_dir: str = str(REPO_ROOT / "out" / "erd")
     export: str = ""  # path of a checkpoint to export to models/weights/erd instead of training
     init_from: str = ""  # continue from this checkpoint (generator, discriminator and its run's classifier)
+    init_weights: str = ""  # start the generator from exported weights (e.g. models/weights/erd); new discriminator
     target_weights: str = ""  # e.g. "exhausted=3": neutral windows pick that target style 3x as often
 
 
@@ -124,6 +130,42 @@ class Losses:
         pos = ((view["pos"] - real["pos"]) / self.scale["pos"]).pow(2).mean()
         vel = ((view["vel"] - real["vel"]) / self.scale["vel"]).pow(2).mean()
         return rot, pos, vel
+
+
+def style_rotation_prior(split) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per style (7) and body joint (21): the mean of the real training rotations (feature
+    quaternions: Hips without its yaw, hemisphere-aligned) and the p95 angle to it (radians)."""
+    from ..motion.rotations import quat_angle, quat_mean
+    from .features import NB, ROT
+    frame_style = np.repeat(split.style, split.lengths)
+    means, p95s = [], []
+    for s in range(int(split.style.max()) + 1):
+        q = split.feats[frame_style == s][:, ROT].reshape(-1, NB, 4).astype(np.float64)
+        q = q[:: max(1, len(q) // 60_000)]
+        q /= np.linalg.norm(q, axis=-1, keepdims=True)
+        mean = quat_mean(q, axis=0)
+        means.append(mean)
+        p95s.append(np.percentile(quat_angle(q, mean), 95, axis=0))
+    return torch.as_tensor(np.stack(means), dtype=torch.float32), torch.as_tensor(np.stack(p95s), dtype=torch.float32)
+
+
+def streamed_rotations(skeleton, rot: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """(B, T, 21, 4) the rotations the streaming model outputs for decoder rotations `rot`: its
+    bone directions with the input's twists and leaf rotations (`ERDModel` does the same)."""
+    from ..motion.twist import transfer_twist_t
+    root = torch.zeros(rot.shape[:2] + (1, 4), dtype=rot.dtype)
+    root[..., 3] = 1.0
+    full = lambda q: torch.cat([root, q], dim=-2)  # noqa: E731  (joint_Root, static)
+    return transfer_twist_t(skeleton, full(real_rot(x)), full(rot))[..., 1:, :]
+
+
+def prior_loss(rot: torch.Tensor, target: torch.Tensor, prior: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """Mean squared angle (radians) by which rotations (B, T, 21, 4) lie beyond the target
+    style's (B,) real p95 angle from its mean rotation, per joint."""
+    mean, p95 = prior[0][target][:, None], prior[1][target][:, None]  # (B, 1, 21, 4), (B, 1, 21)
+    cos = (rot * mean).sum(-1).abs() / rot.norm(dim=-1).clamp_min(1e-8)
+    angle = 2 * torch.acos(cos.clamp(max=1 - 1e-6))
+    return torch.relu(angle - p95).pow(2).mean()
 
 
 def target_probs(spec: str) -> torch.Tensor:
@@ -259,6 +301,10 @@ def main(argv: list[str]) -> None:
     log(f"config {json.dumps(asdict(cfg))}")
     log(f"generator {n_g} params, discriminator {n_d}, classifier {sum(p.numel() for p in clf.parameters())}")
 
+    if cfg.init_weights:  # fine-tune the committed generator; discriminator and classifier anew
+        from .runtime import load as load_exported
+        gen.load_state_dict(load_exported(Path(cfg.init_weights)).torch_generator().state_dict())
+        log(f"generator initialised from {cfg.init_weights}")
     if cfg.init_from:  # fine-tune: same networks, the classifier its run trained
         ckpt = torch.load(cfg.init_from, weights_only=False)
         gen.load_state_dict(ckpt["generator"])
@@ -271,6 +317,7 @@ def main(argv: list[str]) -> None:
         clf_acc = train_classifier(cfg, clf, losses, train_s, val_s, log)
     torch.save(clf.state_dict(), run_dir / "classifier.pt")
     p_target = target_probs(cfg.target_weights)
+    prior = style_rotation_prior(train_s.s)
 
     opt_g = torch.optim.Adam(gen.parameters(), lr=cfg.lr_g, betas=(0.5, 0.999))
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999))
@@ -305,10 +352,14 @@ def main(argv: list[str]) -> None:
         with torch.no_grad():
             _, f_real = clf(clf.prepare(real))
         l_per = sum(F.mse_loss(a, b_) for a, b_ in zip(f_fake, f_real))
-        loss_g = cfg.w_rot * l_rot + cfg.w_pos * l_pos + cfg.w_vel * l_vel + cfg.w_adv * l_adv + cfg.w_per * l_per
-        opt_g.zero_grad()
-        loss_g.backward()
-        opt_g.step()
+        l_prior = prior_loss(streamed_rotations(skeleton, out["rot"][B:], x), target, prior) if cfg.w_prior else \
+            torch.zeros(())
+        loss_g = (cfg.w_rot * l_rot + cfg.w_pos * l_pos + cfg.w_vel * l_vel + cfg.w_adv * l_adv + cfg.w_per * l_per
+                  + cfg.w_prior * l_prior)
+        if it >= cfg.d_warmup:
+            opt_g.zero_grad()
+            loss_g.backward()
+            opt_g.step()
 
         # ---- discriminator (LSGAN, R1 on real)
         real_in = disc.prepare(real).detach().requires_grad_(True)
@@ -325,11 +376,13 @@ def main(argv: list[str]) -> None:
         bar.update(1)
         if it % 50 == 0:
             bar.set_postfix(rot=f"{l_rot.item():.4f}", pos=f"{l_pos.item():.4f}", adv=f"{l_adv.item():.3f}",
+                            prior=f"{l_prior.item():.4f}",
                             per=f"{l_per.item():.3f}", d=f"{loss_d.item():.3f}", r1=f"{r1.item():.3f}")
         if it % cfg.eval_every == 0:
             v = validate(gen, disc, clf, losses, vfixed)
             v.update(iter=it, minutes=round((time.time() - t0) / 60, 2), train_rot=l_rot.item(), train_pos=l_pos.item(),
-                     train_adv=l_adv.item(), train_per=l_per.item(), train_d=loss_d.item())
+                     train_adv=l_adv.item(), train_per=l_per.item(), train_d=loss_d.item(),
+                     train_prior=l_prior.item())
             history.append(v)
             log("val " + " ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}" for k, val in v.items()))
         if it % cfg.ckpt_every == 0:

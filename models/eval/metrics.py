@@ -73,3 +73,37 @@ def path_deviation(source: Motion, output: Motion) -> float:
     a = source.global_positions()[:n, hips][:, [0, 2]]
     b = output.global_positions()[:n, hips][:, [0, 2]]
     return float(np.linalg.norm((a - a[0]) - (b - b[0]), axis=-1).mean())
+
+
+PLANT_HEIGHT = 0.03  # leg lengths (2.5 cm on Bandai Namco) above a joint's floor level: that joint is planted
+
+
+def planted_slide(motion: Motion, positions: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Horizontal speeds (units/s) of each toe and each ankle over the frames in which that joint
+    is planted: within PLANT_HEIGHT leg lengths of its own floor level (FLOOR_PERCENTILE height
+    over the clip). {"toe": (N,), "ankle": (M,)}, both feet pooled.
+
+    Unlike `foot_skating` this needs no flat foot: a toe that slides while the heel is up (the
+    push-off a skinned foot shows most) counts too."""
+    sk = motion.skeleton
+    pos = motion.global_positions() if positions is None else positions
+    limit = PLANT_HEIGHT * leg_length(sk)
+    out: dict[str, list[np.ndarray]] = {"toe": [], "ankle": []}
+    for part in out:
+        for side in "lr":
+            p = pos[:, body_joint(sk, f"{part}_{side}")]
+            planted = p[1:, 1] < np.percentile(p[:, 1], FLOOR_PERCENTILE) + limit
+            speed = np.linalg.norm(np.diff(p[:, [0, 2]], axis=0), axis=-1) * motion.fps
+            out[part].append(speed[planted])
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def slide_summary(motions: list[Motion]) -> dict[str, float]:
+    """Median and p95 planted toe and ankle speed (units/s, cm/s on Bandai Namco) over clips."""
+    pooled = [planted_slide(m) for m in motions]
+    out = {}
+    for part in ("toe", "ankle"):
+        v = np.concatenate([p[part] for p in pooled])
+        out[f"{part}_median"] = float(np.median(v)) if len(v) else 0.0
+        out[f"{part}_p95"] = float(np.percentile(v, 95)) if len(v) else 0.0
+    return out

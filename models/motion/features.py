@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .rotations import matrix_to_quat, quat_to_matrix
+from .rotations import matrix_to_quat, quat_to_matrix, wrap_angle
 from .skeleton import Motion, Skeleton
 
 UP = np.array([0.0, 1.0, 0.0])
@@ -68,10 +68,6 @@ def yaw_matrix(yaw: np.ndarray) -> np.ndarray:
     out = np.zeros(np.shape(yaw) + (3, 3))
     out[..., 0, 0], out[..., 0, 2], out[..., 1, 1], out[..., 2, 0], out[..., 2, 2] = c, s, 1.0, -s, c
     return out
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 def backward_diff(x: np.ndarray, fps: float) -> np.ndarray:

@@ -227,3 +227,50 @@ sixd_to_matrix_t = _sixd_to_matrix
 
 def matrix_to_6d_t(m: torch.Tensor) -> torch.Tensor:
     return torch.cat([m[..., :, 0], m[..., :, 1]], dim=-1)
+
+
+# --------------------------------------------------------------------------- swing-twist, angles, means
+
+
+def quat_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle (radians, 0..pi) of the rotation between unit quaternions a and b, broadcasting;
+    sign-blind (q and -q are one rotation)."""
+    dot = np.abs(np.sum(np.asarray(a, float) * np.asarray(b, float), axis=-1))
+    return 2.0 * np.arccos(np.clip(dot, 0.0, 1.0))
+
+
+def twist_angle(q: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Signed angle (radians, -pi..pi) of the twist of q about the unit `axis` in the
+    swing-twist split q = swing * twist: the part of a rotation that turns a bone about itself,
+    which moves no joint and so no position-based metric sees."""
+    q = np.asarray(q, float)
+    along = np.sum(q[..., :3] * np.asarray(axis, float), axis=-1)
+    return wrap_angle(2.0 * np.arctan2(along, q[..., 3]))
+
+
+def swing_twist(q: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(swing, twist) with q = swing * twist, twist about the unit `axis`, swing about an axis
+    perpendicular to it. A zero-twist-part rotation by 180 degrees gets the identity twist."""
+    q = np.asarray(q, float)
+    axis = np.asarray(axis, float)
+    along = np.sum(q[..., :3] * axis, axis=-1, keepdims=True)
+    twist = np.concatenate([along * axis, q[..., 3:]], axis=-1)
+    norm = np.linalg.norm(twist, axis=-1, keepdims=True)
+    identity = np.array([0.0, 0.0, 0.0, 1.0])
+    twist = np.where(norm > 1e-9, twist / np.maximum(norm, 1e-12), identity)
+    return quat_mul(q, quat_inv(twist)), twist
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angles (radians) wrapped into [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def quat_mean(q: np.ndarray, axis: int = 0) -> np.ndarray:
+    """Sign-blind mean rotation along `axis` (Markley et al. 2007: the principal eigenvector of
+    sum q q^T), with w >= 0."""
+    q = np.moveaxis(np.asarray(q, float), axis, -2)  # (..., N, 4)
+    m = np.einsum("...ni,...nj->...ij", q, q)
+    _, vecs = np.linalg.eigh(m)
+    mean = vecs[..., :, -1]
+    return np.where(mean[..., 3:] < 0, -mean, mean)

@@ -1,0 +1,132 @@
+"""Keep a pose's positions, take its twists from another pose: the rotations a skinned character
+shows, without the freedom a position-trained model never learned.
+
+A model trained on joint positions decides where every bone *points*, but not how a bone is
+turned about itself, nor how a leaf joint (head, hands, toes: no child to move) is turned: those
+rotations move no joint, so no position loss constrains them and the network leaves them wherever
+its weights happen to put them (Style-ERD wrung wrists by 60-140 degrees and turned necks by 90).
+
+`transfer_twist(skeleton, source, pose)` re-expresses `pose` with the *fewest* rotation changes
+from `source` (the input frame) that reproduce `pose`'s joint positions exactly:
+
+- a joint with one child bone gets the smallest swing that lays its bone along `pose`'s bone,
+  starting from `source`'s local rotation under the new parent, so its twist is `source`'s;
+- a joint with several child bones (hips, chest) is fixed by them already: `pose`'s rotation;
+- a leaf keeps `source`'s local rotation.
+
+By induction from the root every joint lands where `pose` puts it. Pure numpy, batched over any
+leading axes, one pass over the joints (parents first); `transfer_twist_t` is its torch twin.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import torch
+
+from .rotations import cross, quat_apply, quat_apply_t, quat_inv, quat_mul, quat_mul_t
+from .skeleton import Skeleton
+
+_MIN_BONE = 1e-6
+
+
+def _plan(skeleton: Skeleton) -> tuple[tuple[int, int, str, np.ndarray | None], ...]:
+    """Cached per skeleton (Skeleton holds arrays, so it is keyed by its contents)."""
+    return _plan_cached(skeleton.names, tuple(map(int, skeleton.parents)), skeleton.offsets.tobytes())
+
+
+@lru_cache(maxsize=16)
+def _plan_cached(names: tuple[str, ...], parents: tuple[int, ...], offsets: bytes) -> tuple:
+    """Per joint (j, parent, kind, bone axis in j's frame): kind "root", "frame" (several child
+    bones, or the body root), "bone" (one child bone) or "leaf"."""
+    off = np.frombuffer(offsets).reshape(len(names), 3)
+    plan = []
+    body_root = next(j for j, n in enumerate(names) if n != "joint_Root")
+    for j, p in enumerate(parents):
+        bones = [c for c, q in enumerate(parents) if q == j and np.linalg.norm(off[c]) > _MIN_BONE]
+        if p < 0:
+            plan.append((j, int(p), "root", None))
+        elif j == body_root or len(bones) > 1:
+            plan.append((j, int(p), "frame", None))
+        elif bones:
+            axis = off[bones[0]]
+            plan.append((j, int(p), "bone", axis / np.linalg.norm(axis)))
+        else:
+            plan.append((j, int(p), "leaf", None))
+    return tuple(plan)
+
+
+def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(..., 4) smallest rotation carrying unit vectors u onto v; about any axis perpendicular to
+    u when they are opposite."""
+    d = np.sum(u * v, axis=-1, keepdims=True)
+    axis = cross(u, v)
+    q = np.concatenate([axis, 1.0 + d], axis=-1)
+    opposite = q[..., 3] < 1e-9
+    if np.any(opposite):
+        ortho = cross(u[opposite], np.array([1.0, 0.0, 0.0]))
+        weak = np.linalg.norm(ortho, axis=-1) < 1e-6
+        ortho[weak] = cross(u[opposite][weak], np.array([0.0, 1.0, 0.0]))
+        q[opposite] = np.concatenate([ortho, np.zeros(ortho.shape[:-1] + (1,))], axis=-1)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
+    rotations (see the module docstring). `source` and `pose` are (..., J, 4) local rotations on
+    `skeleton`."""
+    source = source / np.linalg.norm(source, axis=-1, keepdims=True)
+    pose = pose / np.linalg.norm(pose, axis=-1, keepdims=True)
+    out = np.empty_like(pose)
+    g_pose = np.empty_like(pose)  # world rotations of `pose`
+    g_new = np.empty_like(pose)  # world rotations of the result
+    for j, p, kind, axis in _plan(skeleton):
+        if kind == "root":
+            g_pose[..., j, :] = g_new[..., j, :] = out[..., j, :] = pose[..., j, :]
+            continue
+        g_pose[..., j, :] = quat_mul(g_pose[..., p, :], pose[..., j, :])
+        if kind == "frame":
+            g_new[..., j, :] = g_pose[..., j, :]
+        else:
+            g = quat_mul(g_new[..., p, :], source[..., j, :])
+            if kind == "bone":
+                g = quat_mul(rotation_between(quat_apply(g, axis), quat_apply(g_pose[..., j, :], axis)), g)
+            g_new[..., j, :] = g
+        out[..., j, :] = quat_mul(quat_inv(g_new[..., p, :]), g_new[..., j, :])
+    return out
+
+
+def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """`transfer_twist` in torch, differentiable in `pose` (for training losses that must see the
+    rotations the streaming model will output)."""
+    source = source / source.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    pose = pose / pose.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    g_pose: list[torch.Tensor] = []
+    g_new: list[torch.Tensor] = []
+    out: list[torch.Tensor] = []
+    for j, p, kind, axis in _plan(skeleton):
+        if kind == "root":
+            g_pose.append(pose[..., j, :])
+            g_new.append(pose[..., j, :])
+            out.append(pose[..., j, :])
+            continue
+        g_pose.append(quat_mul_t(g_pose[p], pose[..., j, :]))
+        if kind == "frame":
+            g = g_pose[j]
+        else:
+            g = quat_mul_t(g_new[p], source[..., j, :])
+            if kind == "bone":
+                a = torch.as_tensor(axis, dtype=pose.dtype).expand(g.shape[:-1] + (3,))
+                g = quat_mul_t(_rotation_between_t(quat_apply_t(g, a), quat_apply_t(g_pose[j], a)), g)
+        g_new.append(g)
+        inv = torch.cat([-g_new[p][..., :3], g_new[p][..., 3:]], dim=-1)
+        out.append(quat_mul_t(inv, g))
+    return torch.stack(out, dim=-2)
+
+
+def _rotation_between_t(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Smallest rotation carrying unit u onto v (torch); opposite vectors do not occur between a
+    bone and its own stylised direction, and get a finite (if arbitrary) answer."""
+    q = torch.cat([torch.linalg.cross(u, v), 1.0 + (u * v).sum(-1, keepdim=True)], dim=-1)
+    return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-8)

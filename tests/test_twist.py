@@ -1,0 +1,65 @@
+"""Swing-twist helpers and `transfer_twist`: a pose keeps its joint positions exactly while its
+twists and leaf rotations come from another pose."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from models.eval.plausibility import bone_axes
+from models.motion.rotations import expmap_to_quat, quat_angle, quat_mul, swing_twist, twist_angle
+from models.motion.twist import transfer_twist, transfer_twist_t
+
+
+def _twisted(motion, degrees: float, joints: list[str]):
+    """The motion with each listed joint turned about its own bone by `degrees`."""
+    sk = motion.skeleton
+    axes = bone_axes(sk)
+    rot = motion.rotations.copy()
+    for name in joints:
+        j = sk.index(name)
+        rot[:, j] = quat_mul(rot[:, j], expmap_to_quat(np.radians(degrees) * axes[j]))
+    return replace(motion, rotations=rot)
+
+
+def test_swing_twist_splits_a_rotation_into_parts_about_and_across_the_axis():
+    rng = np.random.default_rng(0)
+    q = expmap_to_quat(rng.normal(size=(200, 3)))
+    axis = np.array([0.0, 0.6, 0.8])
+    swing, twist = swing_twist(q, axis)
+    assert np.allclose(np.abs(np.sum(quat_mul(swing, twist) * q, -1)), 1.0)
+    assert np.allclose(np.cross(twist[:, :3], axis), 0.0, atol=1e-9)  # twist turns about the axis
+    assert np.allclose(swing[:, :3] @ axis, 0.0, atol=1e-9)  # swing turns across it
+    turn = expmap_to_quat(0.7 * axis)
+    assert np.allclose(twist_angle(turn, axis), 0.7)
+
+
+def test_transfer_twist_keeps_positions_and_takes_the_sources_twists(bn_walk):
+    walk = bn_walk.slice(0, 40)
+    wrung = _twisted(walk, 120.0, ["Neck", "Head", "Hand_L", "LowerArm_R", "Foot_L", "Toes_R", "Spine"])
+    fixed = replace(wrung, rotations=transfer_twist(walk.skeleton, walk.rotations, wrung.rotations))
+    assert np.abs(fixed.global_positions() - wrung.global_positions()).max() < 1e-4  # cm
+    # every twisted joint is back where the source has it
+    for name in ("Neck", "Head", "Hand_L", "LowerArm_R", "Foot_L", "Toes_R", "Spine"):
+        j = walk.skeleton.index(name)
+        assert np.degrees(quat_angle(fixed.rotations[:, j], walk.rotations[:, j])).max() < 0.1, name
+    # the spine's twist turns the shoulders: the chest, fixed by its children, takes it over
+    chest = walk.skeleton.index("Chest")
+    world_fixed, world_wrung = fixed.global_transforms()[0], wrung.global_transforms()[0]
+    assert np.degrees(quat_angle(world_fixed[:, chest], world_wrung[:, chest])).max() < 0.1
+
+
+def test_transfer_twist_is_the_identity_on_the_source_itself(bn_walk):
+    walk = bn_walk.slice(0, 20)
+    same = transfer_twist(walk.skeleton, walk.rotations, walk.rotations)
+    assert np.degrees(quat_angle(same, walk.rotations)).max() < 0.1  # float32 clips: arccos near 1
+
+
+def test_torch_twin_matches_numpy(bn_walk):
+    walk = bn_walk.slice(0, 10)
+    wrung = _twisted(walk, 70.0, ["Head", "Hand_R", "LowerLeg_L"])
+    want = transfer_twist(walk.skeleton, walk.rotations, wrung.rotations)
+    got = transfer_twist_t(walk.skeleton, torch.as_tensor(walk.rotations), torch.as_tensor(wrung.rotations)).numpy()
+    assert np.degrees(quat_angle(got, want)).max() < 1e-4
