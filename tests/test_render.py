@@ -1,12 +1,21 @@
-"""The matplotlib renderer writes real, non-blank images for BN and CMU skeletons."""
+"""The matplotlib renderer writes real, non-blank images for BN and CMU skeletons, and its oriented
+solids (head, hands, feet) follow the joints' world rotations, calibrated per skeleton."""
 
 from __future__ import annotations
+
+import time
+from dataclasses import replace
 
 import numpy as np
 from PIL import Image
 
+from models.motion.assets import bandai_namco_pose, cmu_pose
+from models.motion.features import facing_yaw
+from models.motion.orientation import FACES, face_normals, find_parts, reference_rig, rig, solid_corners, world_axes
 from models.motion.render import joint_sides, render_contact_sheet, render_gif
 from models.motion.resample import resample
+from models.motion.rotations import expmap_to_quat, quat_mul
+from models.motion.skeleton import Motion
 
 
 def _not_blank(img: Image.Image) -> None:
@@ -43,3 +52,116 @@ def test_gif_is_animated(tmp_path, bn_walk, cmu_walk):
         assert img.format == "GIF" and img.n_frames >= 5  # 1 s at 6 fps (Pillow may merge equal frames)
         img.seek(3)
         _not_blank(img)
+
+
+# --------------------------------------------------------------------------- oriented solids
+
+
+def _turn(motion: Motion, joint: str, degrees: float) -> Motion:
+    """A copy with `joint` turned about its own bone (the offset from its parent): moves no joint."""
+    sk = motion.skeleton
+    j = sk.index(joint)
+    q = expmap_to_quat(sk.offsets[j] / np.linalg.norm(sk.offsets[j]) * np.radians(degrees))
+    rotations = motion.rotations.copy()
+    rotations[:, j] = quat_mul(q, rotations[:, j])
+    return replace(motion, rotations=rotations)
+
+
+def _body_forward(motion: Motion) -> np.ndarray:
+    yaw = facing_yaw(motion.global_positions(), motion.skeleton)
+    return np.stack([np.sin(yaw), np.zeros_like(yaw), np.cos(yaw)], axis=-1)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("...i,...i->...", a, b)
+
+
+def test_parts_are_found_by_name(bn_walk, cmu_walk):
+    assert {p: bn_walk.skeleton.names[j] for p, j in find_parts(bn_walk.skeleton).items()} == {
+        "head": "Head", "hand_l": "Hand_L", "hand_r": "Hand_R", "foot_l": "Foot_L", "foot_r": "Foot_R",
+        "toe_l": "Toes_L", "toe_r": "Toes_R"}
+    parts = {p: cmu_walk.skeleton.names[j] for p, j in find_parts(cmu_walk.skeleton).items()}
+    assert parts["head"] == "Head" and parts["hand_l"] == "LeftHand" and parts["hand_r"] == "RightHand"
+    assert parts["foot_l"] == "LeftFoot" and parts["toe_r"] == "RightToeBase"
+    # calibrated on the committed reference poses: Xia's CMU variant (other finger names) borrows the CMU one
+    assert reference_rig(bn_walk.skeleton) == "bandai_namco" and reference_rig(cmu_walk.skeleton) == "cmu"
+    assert reference_rig(cmu_walk.skeleton) != reference_rig(bn_walk.skeleton)
+
+
+def test_reference_pose_axes_face_the_body_facing():
+    """On the BN asset pose the head looks where the body faces, the thumbs point forward and the
+    feet point forward, level; on the CMU asset (a T-pose) the palms face down."""
+    for pose in (bandai_namco_pose(), cmu_pose()):
+        axes = {p: a[0] for p, a in world_axes(pose).items()}
+        forward = _body_forward(pose)[0]
+        assert _dot(axes["head"][:, 0], forward) > 0.999 and axes["head"][1, 1] > 0.999
+        for tag, side in (("l", 1), ("r", -1)):
+            assert _dot(axes[f"hand_{tag}"][:, 1], forward) > 0.5  # thumb forward
+            assert _dot(axes[f"foot_{tag}"][:, 0], forward) > 0.8 and axes[f"foot_{tag}"][1, 1] > 0.999
+    cmu = world_axes(cmu_pose())
+    assert cmu["hand_l"][0, 1, 2] < -0.95 and cmu["hand_r"][0, 1, 2] > 0.95  # z: left palm normal, right back
+
+
+def test_walk_axes_follow_the_body(bn_walk, cmu_walk):
+    """Calibrated on the skeleton's reference pose, a real walk's head looks ahead and its toes
+    point ahead, frame after frame (the BN zero pose, lying along X, would give nonsense)."""
+    for motion in (bn_walk, cmu_walk):
+        axes, forward = world_axes(motion), _body_forward(motion)
+        assert np.mean(_dot(axes["head"][:, :, 0], forward)) > 0.9
+        for tag in "lr":
+            assert np.mean(_dot(axes[f"foot_{tag}"][:, :, 0], forward)) > 0.8
+            assert np.mean(_dot(axes[f"hand_{tag}"][:, :, 1], forward)) > 0.4
+
+
+def test_head_turned_about_its_bone_flips_the_nose(bn_walk):
+    walk = bn_walk.slice(0, 60)
+    turned = _turn(walk, "Head", 180.0)
+    assert np.allclose(turned.global_positions(), walk.global_positions())  # invisible to a stick figure
+    before, after = world_axes(walk)["head"][:, :, 0], world_axes(turned)["head"][:, :, 0]
+    assert np.all(_dot(before, after) < -0.8)
+    assert np.all(_dot(after, _body_forward(walk)) < -0.5)  # looking backwards from frame 0: calibrated per skeleton
+    assert np.all(_dot(world_axes(_turn(walk, "Head", 120.0))["head"][:, :, 0], before) < -0.2)
+
+
+def test_wrist_twist_flips_the_thumb(bn_walk, cmu_walk):
+    for motion, hand in ((bn_walk.slice(0, 60), "Hand_L"), (cmu_walk.slice(0, 240), "RightHand")):
+        twisted = _turn(motion, hand, 180.0)
+        wrist = motion.skeleton.index(hand)
+        arm = [j for j in range(motion.skeleton.num_joints) if j <= wrist]  # up to the wrist (Xia has finger joints)
+        assert np.allclose(twisted.global_positions()[:, arm], motion.global_positions()[:, arm], atol=1e-6)
+        part = "hand_l" if hand == "Hand_L" else "hand_r"
+        before, after = world_axes(motion)[part], world_axes(twisted)[part]
+        assert np.all(_dot(before[:, :, 1], after[:, :, 1]) < -0.9)  # the thumb swaps sides
+        assert np.all(_dot(before[:, :, 0], after[:, :, 0]) > 0.9)  # the hand still points along the forearm
+
+
+def test_unknown_skeleton_is_calibrated_on_its_first_frame(bn_walk):
+    sk = bn_walk.skeleton
+    renamed = replace(bn_walk, skeleton=replace(sk, names=("Root",) + sk.names[1:])).slice(30, 60)
+    assert reference_rig(renamed.skeleton) is None
+    head = world_axes(renamed)["head"]
+    assert _dot(head[0, :, 0], _body_forward(renamed)[0]) > 0.999
+
+
+def test_solids_sit_on_the_body():
+    """BN asset pose: the soles reach the floor, the head tops the body at a person's height, the
+    nose sticks out in front and every face normal points out of its block."""
+    pose = bandai_namco_pose()
+    solids = rig(pose)
+    rot, pos = pose.global_transforms()
+    corners = solid_corners(rot[0], pos[0], solids)
+    part = {s.part: i for i, s in enumerate(solids)}
+    forward = _body_forward(pose)[0]
+    assert abs(corners[[part["foot_l"], part["foot_r"]], :, 1].min()) < 4.0  # cm
+    assert 150 < corners[part["head"], :, 1].max() < 175
+    assert (corners[part["nose"]] @ forward).max() > (corners[part["head"]] @ forward).max() + 5.0
+    centre_out = corners[:, FACES].mean(axis=2) - corners.mean(axis=1, keepdims=True)
+    assert np.all(_dot(face_normals(corners), centre_out) > 0)
+    assert all(np.allclose(s.axes.T @ s.axes, np.eye(3)) and np.linalg.det(s.axes) > 0.999 for s in solids)
+
+
+def test_render_is_fast(tmp_path, bn_walk):
+    """Three characters, 2 s of GIF at 15 fps, with the solids."""
+    t = time.perf_counter()
+    render_gif([bn_walk, _turn(bn_walk, "Head", 120.0), bn_walk], tmp_path / "three.gif", seconds=2.0, dpi=40)
+    assert time.perf_counter() - t < 5.0

@@ -1,14 +1,16 @@
-"""Stick-figure renders of motions with matplotlib (Agg): PNG contact sheets and animated GIFs.
+"""Renders of motions with matplotlib (Agg): PNG contact sheets and animated GIFs.
 
-Figures are drawn from FK world positions, world Y up shown as the vertical axis, with a ground
-grid at height 0 and a camera that follows the root. Left limbs are red, right limbs blue, the
-spine black. Works for any skeleton (Bandai Namco in cm, CMU in its own units): sizes are taken
-from the motion itself.
+Limbs are flat ribbons between FK world positions; the head, hands and feet are shaded solids posed by
+the joints' world rotations (`orientation.py`), so a head turned backwards or a wrist twisted
+about the forearm, which move no joint, show: the head has a black nose wedge where the face
+looks, each hand a black thumb stub and a darker palm, each foot a light top face. World Y up is
+the vertical axis, with a ground grid at height 0 and a camera that follows the root. Left limbs
+are red, right limbs blue, the spine black. Works for any skeleton (Bandai Namco in cm, CMU in its
+own units): sizes are taken from the motion itself.
 """
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Sequence
 
@@ -18,17 +20,17 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.animation import PillowWriter  # noqa: E402
+from matplotlib.colors import to_rgb  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
+from .orientation import FACES, Solid, face_normals, joint_sides, rig, solid_corners  # noqa: E402
 from .skeleton import Motion, Skeleton  # noqa: E402
 
+__all__ = ["joint_sides", "render_contact_sheet", "render_gif"]
+
 LEFT, RIGHT, CENTRE = "tab:red", "tab:blue", "0.15"
-_LEFT = re.compile(r"(_L$|^Left|^L(?=[A-Z])|^lhand$)")
-_RIGHT = re.compile(r"(_R$|^Right|^R(?=[A-Z])|^rhand$)")
-
-
-def joint_sides(skeleton: Skeleton) -> np.ndarray:
-    """+1 for left joints, -1 for right joints, 0 for the centre line (from joint names)."""
-    return np.array([1 if _LEFT.search(n) else -1 if _RIGHT.search(n) else 0 for n in skeleton.names])
+HEAD, MARK = "0.8", "0.05"  # the head block, and the nose / thumb stubs on it and the hands
+LEGEND = "left red, right blue; black nose = where the face looks, black stub = thumb, dark face = palm"
 
 
 def _root_index(skeleton: Skeleton) -> int:
@@ -57,27 +59,72 @@ def _as_list(motions: Motion | Sequence[Motion]) -> list[Motion]:
     return [motions] if isinstance(motions, Motion) else list(motions)
 
 
+def face_tints(solids: Sequence[Solid]) -> np.ndarray:
+    """(S, 6, 3) unlit RGB of each solid's faces (`FACES` order x-, x+, y-, y+, z-, z+): side
+    colours, a light face front on the head, a dark palm (z+ on the left hand, z- on the right),
+    feet with a light top and a dark sole, so a part rolled about its own axis shows."""
+    base = {1: to_rgb(LEFT), -1: to_rgb(RIGHT), 0: to_rgb(HEAD)}
+    out = np.empty((len(solids), 6, 3))
+    for i, s in enumerate(solids):
+        c = np.array(to_rgb(MARK) if s.mark else base[s.side])
+        out[i] = c
+        if s.mark:
+            continue
+        kind = s.part.split("_")[0]
+        if kind == "head":
+            out[i, 1] = (0.96, 0.87, 0.74)  # the face
+        elif kind == "hand":
+            out[i, 5 if s.side > 0 else 4] = 0.45 * c
+        elif kind in ("foot", "toe"):
+            out[i, 3], out[i, 2] = 0.45 * c + 0.55, 0.4 * c
+    return out
+
+
+def eye_direction(view: tuple[float, float]) -> np.ndarray:
+    """World (Y up) unit vector from the scene toward the camera of a matplotlib `view` (elev, azim)."""
+    elev, azim = np.radians(view)
+    return np.array([np.cos(elev) * np.cos(azim), np.sin(elev), -np.cos(elev) * np.sin(azim)])  # mpl (x, y, z) -> world
+
+
+def bone_ribbons(a: np.ndarray, b: np.ndarray, eye: np.ndarray, width: float) -> np.ndarray:
+    """(B, 4, 3) flat quads from joints `a` to `b` (B, 3), `width` wide and turned to face `eye`:
+    limbs drawn as polygons sort by depth together with the solids, so a far hand does not cover
+    a near leg (separate line artists would all be drawn above or below the solids)."""
+    side = np.cross(b - a, eye)
+    side *= 0.5 * width / np.maximum(np.linalg.norm(side, axis=-1, keepdims=True), 1e-12)
+    return np.stack([a - side, a + side, b + side, b - side], axis=1)
+
+
 class _Panel:
     """One 3D axes showing one skeleton; `show(frame)` poses the figure and moves camera and grid."""
 
-    def __init__(self, ax, motion: Motion, positions: np.ndarray, view: tuple[float, float], title: str = ""):
+    def __init__(self, ax, motion: Motion, transforms: tuple[np.ndarray, np.ndarray], view: tuple[float, float],
+                 title: str = ""):
         self.ax, self.root = ax, _root_index(motion.skeleton)
         self.body = _body(motion.skeleton)
-        self.positions = positions
-        rel = positions[:, self.body] - positions[:, self.root : self.root + 1]
+        self.rotations, self.positions = transforms
+        rel = self.positions[:, self.body] - self.positions[:, self.root : self.root + 1]
         self.radius = 1.15 * float(np.percentile(np.linalg.norm(rel, axis=-1).max(axis=1), 90)) or 1.0
         self.spacing = self.radius / 2.0
-        # one line artist per colour (bones separated by NaN) and one for the grid: few artists draw fast
         bones = _bones(motion.skeleton)
-        self.groups = []
-        for colour in (CENTRE, LEFT, RIGHT):
-            pairs = [(p, c) for p, c, col in bones if col == colour]
-            if pairs:
-                order = np.array([[p, c, -1] for p, c in pairs]).ravel()
-                self.groups.append((order, ax.plot([], [], [], color=colour, lw=2.0, solid_capstyle="round")[0]))
-        self.joints = ax.plot([], [], [], "o", color="0.3", ms=1.8)[0]
-        self.grid = ax.plot([], [], [], color="0.75", lw=0.6)[0]
-        self.shadow = ax.plot([], [], [], color="0.55", lw=1.0, alpha=0.6)[0]
+        self.bones = np.array([[p, c] for p, c, _ in bones], int).reshape(-1, 2)
+        self.solids = rig(motion)
+        self.eye = eye_direction(view)
+        light = self.eye + np.array([0.0, 0.8, 0.0])  # above and behind the camera
+        self.light = light / np.linalg.norm(light)
+        self.width = 0.025 * self.radius  # with its edges, about a 2-point line on the default panels
+        # limbs (flat ribbons) and solids in one collection, painted far to near
+        bone_rgb = np.array([to_rgb(c) for _, _, c in bones]).reshape(-1, 3)
+        self.tints = np.concatenate([bone_rgb, face_tints(self.solids).reshape(-1, 3)])
+        self.lit = np.concatenate([np.zeros(len(bones), bool), np.ones(6 * len(self.solids), bool)])
+        edges = np.concatenate([np.c_[bone_rgb, np.ones(len(bones))], np.tile((0.1, 0.1, 0.1, 0.6), (6 * len(self.solids), 1))])
+        ax.computed_zorder = False  # ground under the figure, whatever matplotlib thinks of their depths
+        self.grid = ax.plot([], [], [], color="0.75", lw=0.6, zorder=1)[0]
+        self.shadow = ax.plot([], [], [], color="0.55", lw=1.0, alpha=0.6, zorder=1.1)[0]
+        quads, colours = self._polygons(0)
+        # one line width for all: matplotlib depth-sorts face and edge colours, not widths
+        self.figure = Poly3DCollection(quads, facecolors=colours, edgecolors=edges, linewidths=0.5, zorder=2)
+        ax.add_collection3d(self.figure)
         ax.set_box_aspect((1, 1, 1), zoom=1.45)
         ax.view_init(elev=view[0], azim=view[1])
         ax.set_axis_off()
@@ -89,13 +136,24 @@ class _Panel:
         """World (X, Y up, Z) -> matplotlib (x, y, z up), keeping the frame right-handed."""
         return p[..., 0], -p[..., 2], p[..., 1]
 
+    def _polygons(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """Limb ribbons then solid faces at `frame`, as matplotlib quads (N, 4, 3), and their RGB
+        (solid faces lit from above the camera)."""
+        pos = self.positions[frame]
+        ribbons = bone_ribbons(pos[self.bones[:, 0]], pos[self.bones[:, 1]], self.eye, self.width)
+        corners = solid_corners(self.rotations[frame], pos, self.solids) if self.solids else np.zeros((0, 8, 3))
+        lit = 0.55 + 0.45 * np.clip(face_normals(corners) @ self.light, 0.0, 1.0)  # (S, 6)
+        quads = np.concatenate([ribbons, corners[:, FACES].reshape(-1, 4, 3)])
+        shade = np.ones(len(quads))
+        shade[self.lit] = lit.ravel()
+        return np.stack(self._xyz(quads), axis=-1), np.clip(self.tints * shade[:, None], 0.0, 1.0)
+
     def show(self, frame: int) -> list:
         pos = self.positions[frame]
         cx, cz, r = pos[self.root, 0], pos[self.root, 2], self.radius
-        padded = np.concatenate([pos, np.full((1, 3), np.nan)])  # index -1 -> NaN breaks the line
-        for order, line in self.groups:
-            line.set_data_3d(*self._xyz(padded[order]))
-        self.joints.set_data_3d(*self._xyz(pos[self.body]))
+        quads, colours = self._polygons(frame)
+        self.figure.set_verts(quads)
+        self.figure.set_facecolor(colours)
         # ground grid: world-fixed lines at multiples of `spacing` inside the view box
         segs = []
         for axis, centre, other in ((0, cx, cz), (2, cz, cx)):
@@ -115,7 +173,7 @@ class _Panel:
         self.ax.set_xlim(cx - r, cx + r)
         self.ax.set_ylim(-cz - r, -cz + r)
         self.ax.set_zlim(0.0, 2 * r)
-        return [line for _, line in self.groups] + [self.joints, self.shadow, self.grid]
+        return [self.figure, self.shadow, self.grid]
 
 
 def render_contact_sheet(
@@ -141,7 +199,7 @@ def render_contact_sheet(
         n_cols, n_rows = n_frames, len(motions)
     fig = plt.figure(figsize=(panel_size * n_cols, panel_size * n_rows + 0.3), dpi=dpi)
     for m, motion in enumerate(motions):
-        positions = motion.global_positions()
+        transforms = motion.global_transforms()
         if isinstance(frames, int):
             idx = np.linspace(0, motion.num_frames - 1, frames).round().astype(int)
         else:
@@ -150,8 +208,8 @@ def render_contact_sheet(
             slot = m * n_cols + k if len(motions) > 1 else k
             ax = fig.add_subplot(n_rows, n_cols, slot + 1, projection="3d")
             label = f"{titles[m]}  " if k == 0 and titles[m] else ""
-            _Panel(ax, motion, positions, view, f"{label}f{f} ({f / motion.fps:.1f}s)").show(int(f))
-    fig.suptitle("left red, right blue", fontsize=7, y=0.995)
+            _Panel(ax, motion, transforms, view, f"{label}f{f} ({f / motion.fps:.1f}s)").show(int(f))
+    fig.suptitle(LEGEND, fontsize=7, y=0.995)
     fig.subplots_adjust(left=0, right=1, bottom=0, top=1 - 0.3 / (panel_size * n_rows + 0.3), wspace=0, hspace=0.08)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -181,9 +239,10 @@ def render_gif(
     panels, indices = [], []
     for k, motion in enumerate(motions):
         ax = fig.add_subplot(1, len(motions), k + 1, projection="3d")
-        panels.append(_Panel(ax, motion, motion.global_positions(), view, titles[k]))
+        panels.append(_Panel(ax, motion, motion.global_transforms(), view, titles[k]))
         indices.append(np.clip(np.round(times * motion.fps).astype(int), 0, motion.num_frames - 1))
-    fig.subplots_adjust(left=0, right=1, bottom=0, top=0.92, wspace=0)
+    fig.text(0.5, 0.005, LEGEND, ha="center", va="bottom", fontsize=5.5, color="0.3")
+    fig.subplots_adjust(left=0, right=1, bottom=0.03, top=0.92, wspace=0)
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

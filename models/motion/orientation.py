@@ -1,0 +1,307 @@
+"""Which way the head, hands and feet face: oriented solids for renders, from joint rotations.
+
+A stick figure shows joint positions only, so a head turned backwards, a wrist twisted about the
+forearm or a foot rolled about its own axis (none of which moves a joint) is invisible. The renders
+(`render.py` with matplotlib, the browser viewer with three.js) therefore draw the head with a nose,
+each hand as a flat palm with a thumb stub and each foot as a heel-to-toe wedge plus a toe block,
+posed by the joints' *world rotations*: at frame t a part's world axes are R_world(t) @ A, where A,
+the part's axes in its joint's local frame, is fixed per skeleton.
+
+A is calibrated once per skeleton from a reference pose in which the character stands facing the
+way `features.facing_yaw` says: the committed one-frame assets for the Bandai Namco and CMU rigs
+(their zero poses mean nothing: the BN body lies along world X), borrowed by any skeleton with the
+same joint chains and bone directions (Xia's CMU variant); for any other skeleton, the motion's own
+first frame, so there a rotation already present at frame 0 does not show. Never per motion on a
+known rig: a model that turns the head from frame 0 would look right.
+
+Part frames (columns of A, all right-handed, z = x × y):
+  head       x face forward (the nose), y up
+  hand       x along the hand (wrist to fingers), y toward the thumb; z is the left palm's normal
+             and the right hand's back (in the reference pose the thumbs point forward)
+  foot, toe  x forward (ankle to toe, level in the reference pose), y up (the top face)
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from .assets import bandai_namco_pose, cmu_pose
+from .features import UP, body_joint, facing_yaw, leg_length
+from .rotations import matrix_to_quat, quat_to_matrix
+from .skeleton import Motion, Skeleton
+
+_LEFT = re.compile(r"(_L$|^Left|^L(?=[A-Z])|^lhand$)")
+_RIGHT = re.compile(r"(_R$|^Right|^R(?=[A-Z])|^rhand$)")
+_HEAD = re.compile(r"head", re.I)
+_HAND = re.compile(r"hand|wrist", re.I)
+_DIGIT = re.compile(r"finger|thumb|index|middle|ring|pinky|little", re.I)
+_FOOT = re.compile(r"foot|ankle", re.I)
+_TOE = re.compile(r"toe", re.I)
+
+# Quads of a hexahedron whose corner k sits at (x, y, z) = (bit 2, bit 1, bit 0) of k, i.e. corner
+# ix * 4 + iy * 2 + iz; each quad runs counter-clockwise seen from outside: x-, x+, y-, y+, z-, z+.
+FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]])
+
+
+def joint_sides(skeleton: Skeleton) -> np.ndarray:
+    """+1 for left joints, -1 for right joints, 0 for the centre line (from joint names)."""
+    return np.array([1 if _LEFT.search(n) else -1 if _RIGHT.search(n) else 0 for n in skeleton.names])
+
+
+def _first(names: tuple[str, ...], ok) -> int | None:
+    return next((j for j, n in enumerate(names) if ok(j, n)), None)
+
+
+def find_parts(skeleton: Skeleton) -> dict[str, int]:
+    """Joint of each part the skeleton has (`head`, `hand_l`, `foot_l`, `toe_l`, ...; missing parts
+    are left out), by name: the feature table of `features.body_joint` for ankles and toes, else
+    the first joint in hierarchy order named like the part (`Head`, `Hand_L`, `LeftHand`, `lhand`,
+    `*Wrist*`; fingers and thumbs never count as hands)."""
+    names, sides = skeleton.names, joint_sides(skeleton)
+    out: dict[str, int] = {}
+    head = _first(names, lambda j, n: n.lower() == "head")
+    head = head if head is not None else _first(names, lambda j, n: sides[j] == 0 and bool(_HEAD.search(n)))
+    if head is not None:
+        out["head"] = head
+    for tag, side in (("l", 1), ("r", -1)):
+        hand = _first(names, lambda j, n: sides[j] == side and bool(_HAND.search(n)) and not _DIGIT.search(n))
+        for part, feature, pattern in (("foot", "ankle", _FOOT), ("toe", "toe", _TOE)):
+            try:
+                joint: int | None = body_joint(skeleton, f"{feature}_{tag}")
+            except KeyError:
+                joint = _first(names, lambda j, n: sides[j] == side and bool(pattern.search(n)))
+            if joint is not None:
+                out[f"{part}_{tag}"] = joint
+        if hand is not None:
+            out[f"hand_{tag}"] = hand
+    return out
+
+
+def _frame(x: np.ndarray, y_hint: np.ndarray, fallback: np.ndarray = UP) -> np.ndarray:
+    """(3, 3) right-handed axes: x along `x`, y along `y_hint` made perpendicular to x (or along
+    `fallback` when the hint is nearly parallel to x), z = x × y."""
+    x = x / np.linalg.norm(x)
+    for hint in (y_hint, fallback):
+        y = hint - (hint @ x) * x
+        if np.linalg.norm(y) > 0.1 * np.linalg.norm(hint):
+            y = y / np.linalg.norm(y)
+            return np.stack([x, y, np.cross(x, y)], axis=-1)
+    raise ValueError("hint and fallback are both parallel to the axis")
+
+
+def _level(v: np.ndarray, default: np.ndarray) -> np.ndarray:
+    """`v` projected onto the ground plane, or `default` where it is (nearly) vertical."""
+    flat = v * np.array([1.0, 0.0, 1.0])
+    return flat if np.linalg.norm(flat) > 1e-3 * max(np.linalg.norm(v), 1e-12) else default
+
+
+def part_axes(reference: Motion, frame: int = 0) -> dict[str, tuple[str, np.ndarray]]:
+    """Calibration: part -> (joint name, (3, 3) part axes in the joint's local frame), from one pose
+    of `reference` whose body faces `facing_yaw` (+Z for a skeleton without hips and shoulders that
+    `features.body_joint` knows). The head looks where the body faces; the thumbs point forward
+    (square to the hand's axis, the forearm's continuation); the feet point to their toes."""
+    sk = reference.skeleton
+    g_rot, g_pos = reference.slice(frame, frame + 1).global_transforms()
+    rot, pos = g_rot[0], g_pos[0]
+    try:
+        yaw = float(facing_yaw(pos, sk))
+    except KeyError:
+        yaw = 0.0
+    forward = np.array([np.sin(yaw), 0.0, np.cos(yaw)])
+    parts = find_parts(sk)
+    world: dict[str, np.ndarray] = {}
+    if "head" in parts:
+        world["head"] = _frame(forward, UP)
+    for tag in "lr":
+        if f"hand_{tag}" in parts:
+            hand = parts[f"hand_{tag}"]
+            elbow = int(sk.parents[hand])
+            while elbow >= 0 and np.linalg.norm(pos[hand] - pos[elbow]) < 1e-6:  # skip zero-length bones
+                elbow = int(sk.parents[elbow])
+            along = pos[hand] - pos[elbow] if elbow >= 0 else -UP
+            world[f"hand_{tag}"] = _frame(along, forward)
+        if f"foot_{tag}" in parts:
+            toe = parts.get(f"toe_{tag}")
+            ahead = _level(pos[toe] - pos[parts[f"foot_{tag}"]], forward) if toe is not None else forward
+            world[f"foot_{tag}"] = _frame(ahead, UP)
+            if toe is not None:
+                world[f"toe_{tag}"] = world[f"foot_{tag}"]
+    return {p: (sk.names[parts[p]], quat_to_matrix(rot[parts[p]]).T @ axes) for p, axes in world.items()}
+
+
+@dataclass(frozen=True)
+class Solid:
+    """One drawn block: a hexahedron fixed in a part's frame, which is fixed in a joint's frame."""
+
+    part: str  # head, nose, hand_l, thumb_l, foot_l, toe_l, ...
+    joint: int
+    axes: np.ndarray  # (3, 3) the part frame's axes in the joint's local frame (columns)
+    corners: np.ndarray  # (8, 3) in the part frame, skeleton units; corner ix * 4 + iy * 2 + iz
+    side: int  # +1 left, -1 right, 0 centre
+    mark: bool  # the nose and the thumb stubs: drawn in a contrasting colour
+
+
+def _block(x: tuple[float, float], y_back: tuple[float, float], y_front: tuple[float, float],
+           z: tuple[float, float]) -> np.ndarray:
+    """(8, 3) corners of a box from x[0] to x[1] whose y extent goes from `y_back` (at x[0]) to
+    `y_front` (at x[1]): a box when they are equal, a wedge otherwise."""
+    return np.array([[x[ix], (y_back, y_front)[ix][iy], z[iz]] for ix in (0, 1) for iy in (0, 1) for iz in (0, 1)])
+
+
+def _size(skeleton: Skeleton) -> float:
+    """Leg length (hip to ankle at rest), or half the rest pose's extent for skeletons without legs."""
+    try:
+        return leg_length(skeleton)
+    except KeyError:
+        rest = skeleton.rest_positions()
+        return 0.5 * float(np.ptp(rest, axis=0).max()) or 1.0
+
+
+def _end_length(skeleton: Skeleton, joint: int) -> float:
+    end = skeleton.end_sites[joint]
+    return 0.0 if np.isnan(end).any() else float(np.linalg.norm(end))
+
+
+def build_solids(skeleton: Skeleton, axes: dict[str, tuple[str, np.ndarray]]) -> tuple[Solid, ...]:
+    """The blocks for a skeleton, from calibrated part axes (by joint name; parts whose joint the
+    skeleton lacks are left out), sized by its leg length L: a head 0.25 L tall with a nose
+    wedge, hands 0.2 L long with a thumb stub, feet from 0.07 L behind the ankle to the toe joint
+    plus a toe block. Where the rig says more (an End Site above the head or past the toes, the
+    toe joint's offset), its own numbers are used."""
+    L = _size(skeleton)
+    names = skeleton.names
+    out: list[Solid] = []
+
+    def add(part: str, joint: int, a: np.ndarray, corners: np.ndarray, side: int, mark: bool = False) -> None:
+        out.append(Solid(part, joint, a, corners, side, mark))
+
+    if "head" in axes and axes["head"][0] in names:
+        j, a = names.index(axes["head"][0]), axes["head"][1]
+        end = _end_length(skeleton, j)
+        top = end + 0.01 * L if end > 0.05 * L else 0.22 * L
+        h, bottom = 0.25 * L, top - 0.25 * L
+        add("head", j, a, _block((-0.1 * L, 0.1 * L), (bottom, top), (bottom, top), (-0.08 * L, 0.08 * L)), 0)
+        add("nose", j, a, _block((0.1 * L, 0.2 * L), (bottom + 0.28 * h, bottom + 0.52 * h),
+                                 (bottom + 0.3 * h, bottom + 0.38 * h), (-0.025 * L, 0.025 * L)), 0, mark=True)
+    for tag, side in (("l", 1), ("r", -1)):
+        if f"hand_{tag}" in axes and axes[f"hand_{tag}"][0] in names:
+            j, a = names.index(axes[f"hand_{tag}"][0]), axes[f"hand_{tag}"][1]
+            add(f"hand_{tag}", j, a, _block((0.0, 0.2 * L), (-0.05 * L, 0.05 * L), (-0.05 * L, 0.05 * L),
+                                            (-0.018 * L, 0.018 * L)), side)
+            add(f"thumb_{tag}", j, a, _block((0.02 * L, 0.1 * L), (0.03 * L, 0.07 * L), (0.07 * L, 0.12 * L),
+                                             (-0.016 * L, 0.016 * L)), side, mark=True)
+        if f"foot_{tag}" in axes and axes[f"foot_{tag}"][0] in names:
+            j, a = names.index(axes[f"foot_{tag}"][0]), axes[f"foot_{tag}"][1]
+            toe = names.index(axes[f"toe_{tag}"][0]) if f"toe_{tag}" in axes and axes[f"toe_{tag}"][0] in names else None
+            # the toe joint in the foot's part frame (pose-independent: it is the bone's offset)
+            d = a.T @ skeleton.offsets[toe] if toe is not None else np.array([0.12 * L, -0.09 * L, 0.0])
+            sole = d[1] - 0.05 * L
+            add(f"foot_{tag}", j, a, _block((-0.07 * L, d[0]), (sole, 0.02 * L), (sole, d[1] + 0.035 * L),
+                                            (-0.05 * L, 0.05 * L)), side)
+            if toe is not None:
+                end = _end_length(skeleton, toe)
+                length = end if end > 0.03 * L else 0.08 * L
+                add(f"toe_{tag}", toe, axes[f"toe_{tag}"][1], _block((0.0, length), (-0.05 * L, 0.035 * L),
+                                                                     (-0.05 * L, 0.0), (-0.045 * L, 0.045 * L)), side)
+    return tuple(out)
+
+
+def _chains(skeleton: Skeleton, joints) -> list[int]:
+    """The joints and all their ancestors."""
+    out: set[int] = set()
+    for j in joints:
+        while j >= 0 and j not in out:
+            out.add(int(j))
+            j = int(skeleton.parents[j])
+    return sorted(out)
+
+
+def same_rig(reference: Skeleton, skeleton: Skeleton) -> bool:
+    """Whether `skeleton` can borrow `reference`'s calibration: every joint a solid hangs on and
+    all its ancestors exist under the same names, with the same parents and bones pointing the
+    same way in the parent's frame (the same rest-frame convention; lengths may differ)."""
+    scale = float(np.abs(reference.offsets).max()) or 1.0
+    scale_b = float(np.abs(skeleton.offsets).max()) or 1.0
+    for j in _chains(reference, find_parts(reference).values()):
+        name, parent = reference.names[j], reference.parents[j]
+        if name not in skeleton.names:
+            return False
+        k = skeleton.names.index(name)
+        p = skeleton.parents[k]
+        if (parent < 0) != (p < 0) or (parent >= 0 and reference.names[parent] != skeleton.names[p]):
+            return False
+        if parent < 0:
+            continue  # the root's offset is its position
+        a, b = reference.offsets[j] / scale, skeleton.offsets[k] / scale_b
+        na, nb = np.linalg.norm(a), np.linalg.norm(b)
+        if max(na, nb) > 0.02 and not (min(na, nb) > 0 and a @ b / (na * nb) > 0.9):
+            return False
+    return True
+
+
+@lru_cache(maxsize=None)
+def _asset_axes(which: str) -> dict[str, tuple[str, np.ndarray]]:
+    return part_axes(bandai_namco_pose() if which == "bandai_namco" else cmu_pose())
+
+
+def reference_rig(skeleton: Skeleton) -> str | None:
+    """Which committed reference pose (`bandai_namco`, `cmu`) calibrates this skeleton, if any."""
+    for which, pose in (("bandai_namco", bandai_namco_pose()), ("cmu", cmu_pose())):
+        if same_rig(pose.skeleton, skeleton):
+            return which
+    return None
+
+
+_RIGS: dict[tuple, tuple[Solid, ...]] = {}
+
+
+def rig(motion: Motion) -> tuple[Solid, ...]:
+    """The solids for a motion's skeleton, calibrated on its rig's committed reference pose and
+    cached per skeleton; for an unknown skeleton, calibrated on this motion's first frame (and not
+    cached, since that calibration belongs to the motion)."""
+    sk = motion.skeleton
+    key = (sk.names, sk.parents.tobytes(), np.round(sk.offsets, 6).tobytes(), np.nan_to_num(sk.end_sites).tobytes())
+    if key not in _RIGS:
+        which = reference_rig(sk)
+        if which is None:
+            return build_solids(sk, part_axes(motion))
+        _RIGS[key] = build_solids(sk, _asset_axes(which))
+    return _RIGS[key]
+
+
+def part_frames(global_rotations: np.ndarray, joint: int, axes: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) world axes (columns x, y, z) of a part from world joint rotations (..., J, 4)."""
+    return quat_to_matrix(global_rotations[..., joint, :]) @ axes
+
+
+def world_axes(motion: Motion) -> dict[str, np.ndarray]:
+    """Per part (`head`, `hand_l`, `foot_r`, ...), its world axes over the motion (F, 3, 3):
+    column 0 is where the face looks / the fingers point / the toes point, column 1 up / the thumb."""
+    g_rot, _ = motion.global_transforms()
+    return {s.part: part_frames(g_rot, s.joint, s.axes) for s in rig(motion) if not s.mark}
+
+
+def solid_corners(global_rotations: np.ndarray, global_positions: np.ndarray, solids: tuple[Solid, ...]) -> np.ndarray:
+    """(..., S, 8, 3) world corners of every solid from world rotations (..., J, 4) and positions (..., J, 3)."""
+    joints = np.array([s.joint for s in solids], int)
+    frames = quat_to_matrix(global_rotations[..., joints, :]) @ np.stack([s.axes for s in solids])  # (..., S, 3, 3)
+    local = np.stack([s.corners for s in solids])  # (S, 8, 3)
+    return global_positions[..., joints, None, :] + np.einsum("...sab,skb->...ska", frames, local)
+
+
+def face_normals(corners: np.ndarray) -> np.ndarray:
+    """(..., 6, 3) outward unit normals of each solid's quads (`FACES`) from corners (..., 8, 3)."""
+    quads = corners[..., FACES, :]  # (..., 6, 4, 3)
+    n = np.cross(quads[..., 2, :] - quads[..., 0, :], quads[..., 3, :] - quads[..., 1, :])
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+
+
+def solids_json(solids: tuple[Solid, ...]) -> list[dict]:
+    """The solids for the browser viewer: joint, part frame as a quaternion (xyzw) in the joint's
+    frame, corners in the part frame (corner k = (bit 2, bit 1, bit 0) as in `FACES`)."""
+    return [{"part": s.part, "joint": s.joint, "rotation": np.round(matrix_to_quat(s.axes), 6).tolist(),
+             "corners": np.round(s.corners, 4).tolist(), "side": s.side, "mark": s.mark} for s in solids]
