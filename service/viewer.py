@@ -1,6 +1,10 @@
 """The browser viewer (`GET /viewer`, its static files under `/viewer/static/`) and the demo clip
 it streams (`GET /v1/demo/clip`).
 
+The clip also carries the oriented solids (head with nose, hands with thumb, feet) of the Bandai
+Namco and CMU rigs, calibrated by `models.motion.orientation` on the committed reference poses, so
+the page draws head, hand and foot rotations exactly as the matplotlib renders do.
+
 The demo clip is a 4-second neutral Bandai Namco walk committed as JSON next to the viewer
 (`clients/viewer/demo_walk.json`, ~100 KB, CC BY-NC 4.0 like the dataset), so serving it needs
 no mocap data. If that file is missing, the clip is cut from the mocap data when `models.data`
@@ -22,7 +26,8 @@ from fastapi import APIRouter, HTTPException
 from fastapi.responses import FileResponse, JSONResponse, Response
 from pydantic import BaseModel
 
-from models.motion.assets import bandai_namco_pose
+from models.motion.assets import bandai_namco_pose, cmu_pose
+from models.motion.orientation import rig, solids_json
 from models.motion.rotations import euler_to_quat, quat_mul
 
 log = logging.getLogger(__name__)
@@ -39,6 +44,21 @@ class DemoFrames(BaseModel):
     rotations: list[list[list[float]]]  # (F, J, 4) local quaternions xyzw
 
 
+class ViewerSolid(BaseModel):
+    part: str  # head, nose, hand_l, thumb_l, foot_l, toe_l, ...
+    joint: int  # index into the rig's `joints`
+    rotation: list[float]  # xyzw: the part's frame in the joint's local frame
+    corners: list[list[float]]  # (8, 3) in the part's frame; corner k at (bit 2, bit 1, bit 0) of k
+    side: int  # 1 left, -1 right, 0 centre
+    mark: bool  # nose and thumb stubs
+
+
+class ViewerRig(BaseModel):
+    name: str
+    joints: list[str]
+    solids: list[ViewerSolid]
+
+
 class DemoClip(BaseModel):
     name: str
     source: str
@@ -49,6 +69,7 @@ class DemoClip(BaseModel):
     root_joint: int  # the joint whose translation `frames.root` is (Hips)
     fps: float
     frames: DemoFrames
+    rigs: list[ViewerRig] = []  # oriented solids per known skeleton (`demo_clip` adds them)
 
 
 def _skeleton_fields() -> dict:
@@ -119,11 +140,21 @@ def rocking_pose(seconds: float = 4.0, fps: float = 30.0) -> dict:
             **_skeleton_fields(), "fps": fps, "frames": _frames(root, rotations)}
 
 
+def viewer_rigs() -> list[dict]:
+    """The head / hand / foot solids of the Bandai Namco and CMU rigs, for the page to pose by joint rotations."""
+    return [{"name": name, "joints": list(pose.skeleton.names), "solids": solids_json(rig(pose))}
+            for name, pose in (("bandai_namco", bandai_namco_pose()), ("cmu", cmu_pose()))]
+
+
 @lru_cache(maxsize=1)
 def demo_clip() -> dict:
+    return {**_demo_motion(), "rigs": viewer_rigs()}
+
+
+def _demo_motion() -> dict:
     if DEMO_FILE.exists():
         try:
-            return DemoClip.model_validate_json(DEMO_FILE.read_bytes()).model_dump()
+            return DemoClip.model_validate_json(DEMO_FILE.read_bytes()).model_dump(exclude={"rigs"})
         except ValueError as exc:
             log.warning("%s is not a valid demo clip (%s); falling back", DEMO_FILE, str(exc)[:200])
     try:
@@ -163,7 +194,8 @@ def build_router() -> APIRouter:
     async def get_demo_clip() -> JSONResponse:
         """A short clip for the viewer and for trying the protocol: the Bandai Namco skeleton
         (joints, parents, offsets in cm, Y up) and frames (`root`: Hips translation; `rotations`:
-        local quaternions xyzw, in `joints` order) at `fps`."""
+        local quaternions xyzw, in `joints` order) at `fps`, and `rigs`: per known skeleton, the
+        head / hand / foot solids to pose by the joints' world rotations."""
         return JSONResponse(demo_clip())
 
     return router

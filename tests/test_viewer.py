@@ -403,7 +403,9 @@ def test_viewer_maths_match_the_python_motion_core(server, tmp_path):
     demo clip), the triangle's barycentric maths round-trips and clamps onto the triangle, and
     the scene marks exactly the feet a frame's `contacts` say are planted."""
     need_chromium()
-    from models.motion.skeleton import fk, load
+    from models.motion.orientation import rig, solid_corners
+    from models.motion.rotations import quat_to_matrix
+    from models.motion.skeleton import Motion, fk, load
 
     assets = Path(__file__).resolve().parents[1] / "models" / "motion" / "assets"
     clip = httpx.get(f"{server}/v1/demo/clip").json()
@@ -448,3 +450,17 @@ def test_viewer_maths_match_the_python_motion_core(server, tmp_path):
             }); })()""")
         assert rings["visible"] == [True, False] and rings["at"] == pytest.approx(rings["foot"])
         assert rings["feet"] == ["Foot_L", "Foot_R"]
+
+        # the head / hand / foot solids: the page turns each one as the Python renderer does
+        placed = page.js(f"""(async () => {{ {kin} const c = k.clipFromDemo(await (await fetch('/v1/demo/clip')).json());
+            return {{parts: c.solids.map((s) => s.part), corners: c.solids.map((s) => s.corners),
+                     frames: [0, 17, 60].map((i) => {{ const t = k.fkTransforms(c, c.root[i], c.rotations[i]);
+                       return c.solids.map((s) => k.placeSolid(s, t.rotations, t.positions)); }})}}; }})()""")
+        solids = rig(Motion(sk, np.array(clip["frames"]["rotations"]), translations, clip["fps"]))
+        assert placed["parts"] == [s.part for s in solids] and {"head", "nose", "thumb_l", "foot_r"} <= set(placed["parts"])
+        g_rot, g_pos = fk(np.array(clip["frames"]["rotations"]), translations, sk.parents)
+        for i, frame in zip((0, 17, 60), placed["frames"]):
+            q = np.array([p["quaternion"] for p in frame])
+            js = np.array([p["position"] for p in frame])[:, None] + np.einsum(
+                "sab,skb->ska", quat_to_matrix(q), np.array(placed["corners"]))
+            assert np.allclose(js, solid_corners(g_rot[i], g_pos[i], solids), atol=0.05)  # cm

@@ -27,10 +27,11 @@ export function qaxis(axis, deg) {
 }
 
 /**
- * World joint positions of one frame. The skeleton's root joint (`rootJoint`, Hips for Bandai
- * Namco) takes the streamed `root` translation; every other joint sits at its rest offset.
+ * World joint rotations and positions of one frame, {rotations, positions}. The skeleton's root
+ * joint (`rootJoint`, Hips for Bandai Namco) takes the streamed `root` translation; every other
+ * joint sits at its rest offset.
  */
-export function fk(skel, root, rotations) {
+export function fkTransforms(skel, root, rotations) {
   const n = skel.parents.length, gr = new Array(n), gp = new Array(n);
   for (let j = 0; j < n; j++) {
     const p = skel.parents[j], r = qnorm(rotations[j]);
@@ -40,8 +41,40 @@ export function fk(skel, root, rotations) {
     const o = qrot(gr[p], t);
     gp[j] = [gp[p][0] + o[0], gp[p][1] + o[1], gp[p][2] + o[2]];
   }
-  return gp;
+  return { rotations: gr, positions: gp };
 }
+
+/** World joint positions of one frame (see `fkTransforms`). */
+export function fk(skel, root, rotations) {
+  return fkTransforms(skel, root, rotations).positions;
+}
+
+/**
+ * The oriented solids (head with nose, hands with thumb, feet) for a clip's joints: those of the
+ * first rig from the server (`GET /v1/demo/clip` `rigs`, calibrated on the rig's reference pose by
+ * models/motion/orientation.py) whose solids' joints the clip has, by name, with the joint indices
+ * turned into the clip's; [] when none fits (the figure then keeps a ball for a head).
+ */
+export function solidsFor(rigs, joints) {
+  for (const rig of rigs || []) {
+    const index = rig.solids.map((s) => joints.indexOf(rig.joints[s.joint]));
+    if (rig.solids.length && index.every((j) => j >= 0)) {
+      return rig.solids.map((s, i) => ({ ...s, joint: index[i] }));
+    }
+  }
+  return [];
+}
+
+/**
+ * Where a solid is in one frame: its joint's world position, and the joint's world rotation
+ * times the part frame's fixed rotation, so the solid turns with the joint even when no joint moves.
+ */
+export function placeSolid(solid, worldRotations, worldPositions) {
+  return { position: worldPositions[solid.joint], quaternion: qmul(worldRotations[solid.joint], solid.rotation) };
+}
+
+/** The 6 quads of a solid's 8 corners (corner k at bits 2, 1, 0 = x, y, z), counter-clockwise seen from outside. */
+export const SOLID_FACES = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]];
 
 /** Which side a joint is on, from its name: 1 left, -1 right, 0 centre (BN `_L`, CMU `Left…`, `l…`). */
 export function sideOf(name) {
@@ -75,15 +108,17 @@ export function footJoints(joints) {
 }
 
 /**
- * Completes a clip {joints, parents, offsets, rootJoint, fps, root[F][3], rotations[F][J][4]}
- * with what drawing and looping need: per-joint side, height and floor of the first pose, and
- * the horizontal shift that lets each pass of the loop continue where the last one ended.
+ * Completes a clip {joints, parents, offsets, rootJoint, fps, root[F][3], rotations[F][J][4], rigs}
+ * with what drawing and looping need: per-joint side, the oriented solids (`solidsFor`), height
+ * and floor of the first pose, and the horizontal shift that lets each pass of the loop continue
+ * where the last one ended.
  */
 export function finishClip(clip) {
   clip.side = clip.joints.map(sideOf);
   clip.bones = bones(clip);
   clip.head = headJoint(clip.joints);
   clip.feet = footJoints(clip.joints);
+  clip.solids = solidsFor(clip.rigs, clip.joints);
   const n = clip.root.length;
   const a = clip.root[0], b = clip.root[n - 1], c = clip.root[Math.max(0, n - 2)];
   clip.loopShift = [b[0] - a[0] + (b[0] - c[0]), 0, b[2] - a[2] + (b[2] - c[2])];
@@ -99,20 +134,21 @@ export function clipFrame(clip, seq) {
   return { root: [r[0] + k * s[0], r[1], r[2] + k * s[2]], rotations: clip.rotations[i] };
 }
 
-/** A clip from the service's demo clip JSON (`GET /v1/demo/clip`). */
+/** A clip from the service's demo clip JSON (`GET /v1/demo/clip`), with its rigs' solids. */
 export function clipFromDemo(d) {
   return finishClip({ name: d.name, joints: d.joints, parents: d.parents, offsets: d.offsets,
                       rootJoint: d.root_joint, fps: d.fps, root: d.frames.root,
-                      rotations: d.frames.rotations, header: null });
+                      rotations: d.frames.rotations, header: null, rigs: d.rigs || [] });
 }
 
 /**
  * Reads a BVH file: hierarchy, then Euler channels as intrinsic rotations in channel order,
  * as quaternions. The streamed root is the first non-root joint with position channels (Bandai
  * Namco animates Hips under a static joint_Root), else the root. Keeps the header text, which
- * the session's `start` message sends so the server can map the joints.
+ * the session's `start` message sends so the server can map the joints. `rigs`: the server's
+ * solids per skeleton (`solidsFor`).
  */
-export function parseBVH(text) {
+export function parseBVH(text, rigs = []) {
   const [head, motion] = text.split(/\bMOTION\b/);
   if (!motion) throw new Error("no MOTION section");
   const tok = head.split(/\s+/).filter(Boolean);
@@ -159,5 +195,5 @@ export function parseBVH(text) {
   }
   const fps = dt > 0 ? Math.round(100 / dt) / 100 : 30;
   return finishClip({ name: "uploaded BVH", joints, parents, offsets, rootJoint, fps, root, rotations,
-                      header: head.trimEnd() + "\n" });
+                      header: head.trimEnd() + "\n", rigs });
 }

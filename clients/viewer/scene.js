@@ -8,12 +8,16 @@
 
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { SOLID_FACES, placeSolid } from "./kinematics.js";
 
 /** Skeleton colours by side (1 left, -1 right, 0 centre); the tests look for the left-limb hues. */
 export const PALETTE = {
   input: { 1: 0x4ea1ff, [-1]: 0xa9d1ff, 0: 0xd8e6f7 },
   output: { 1: 0xff8a3d, [-1]: 0xffc592, 0: 0xf7e4d6 },
 };
+/** The nose and thumb stubs on head and hands, on both figures: bright against the dark floor. */
+export const MARK_COLOUR = 0xffd400;
+const FACE_COLOUR = 0xffc9a0; // the head's front
 const BACKGROUND = 0x14171c;
 const CONTACT_COLOUR = 0x7ee787;
 const UP = new THREE.Vector3(0, 1, 0);
@@ -53,7 +57,38 @@ function floorGrid(cells, step) {
   return new THREE.LineSegments(geometry, new THREE.LineBasicMaterial({ vertexColors: true }));
 }
 
-/** Bones as cylinders, joints as balls, a bigger ball for the head, one material per body side. */
+/**
+ * The faces of one oriented solid (corners in its part frame, `SOLID_FACES` order x-, x+, y-, y+,
+ * z-, z+) as a flat-shaded geometry with a colour per face: the side colour, or the mark colour for
+ * nose and thumb; the head's front warm, a hand's palm dark (z+ on the left hand, z- on the right),
+ * a foot's top light and its sole dark, so a part rolled about its own axis shows.
+ */
+function solidGeometry(solid, colours) {
+  const base = new THREE.Color(solid.mark ? MARK_COLOUR : colours[solid.side]);
+  const tints = SOLID_FACES.map(() => base.clone());
+  const kind = solid.part.split("_")[0];
+  if (!solid.mark && kind === "head") tints[1].lerp(new THREE.Color(FACE_COLOUR), 0.6);
+  if (!solid.mark && kind === "hand") tints[solid.side > 0 ? 5 : 4].multiplyScalar(0.35);
+  if (kind === "foot" || kind === "toe") { tints[3].lerp(new THREE.Color(0xffffff), 0.5); tints[2].multiplyScalar(0.35); }
+  const positions = [], colour = [];
+  SOLID_FACES.forEach(([a, b, c, d], f) => {
+    for (const k of [a, b, c, a, c, d]) {
+      positions.push(...solid.corners[k]);
+      colour.push(tints[f].r, tints[f].g, tints[f].b);
+    }
+  });
+  const geometry = new THREE.BufferGeometry();
+  geometry.setAttribute("position", new THREE.Float32BufferAttribute(positions, 3));
+  geometry.setAttribute("color", new THREE.Float32BufferAttribute(colour, 3));
+  geometry.computeVertexNormals(); // not indexed: one normal per face
+  return geometry;
+}
+
+/**
+ * Bones as cylinders, joints as balls, one material per body side; the head (with a nose), hands
+ * (palm and thumb) and feet as oriented solids turned by the joints' world rotations, or a ball
+ * for a head when the server has no solids for the skeleton.
+ */
 class Figure {
   constructor(clip, colours, scale) {
     this.clip = clip;
@@ -63,12 +98,15 @@ class Figure {
     this.radius = 2.2 * scale;
     this.bones = clip.bones.map(([p, c]) => this.add(unitCylinder, this.materials[clip.side[c]]));
     const drawn = new Set(clip.bones.flat());
+    const headSolid = clip.solids.some((s) => s.part === "head");
     this.joints = clip.joints.map((_, j) => {
       if (!drawn.has(j)) return null;
       const ball = this.add(unitSphere, this.materials[clip.side[j]]);
-      ball.scale.setScalar(j === clip.head ? 9 * scale : 1.45 * this.radius);
+      ball.scale.setScalar(j === clip.head && !headSolid ? 9 * scale : 1.45 * this.radius);
       return ball;
     });
+    this.solidMaterial = new THREE.MeshLambertMaterial({ vertexColors: true });
+    this.solids = clip.solids.map((solid) => this.add(solidGeometry(solid, colours), this.solidMaterial));
   }
 
   add(geometry, material) {
@@ -77,8 +115,8 @@ class Figure {
     return mesh;
   }
 
-  /** Places every mesh for one frame of world joint positions. */
-  pose(positions) {
+  /** Places every mesh for one frame of world joint positions and rotations (no rotations: no solids). */
+  pose(positions, rotations) {
     const a = new THREE.Vector3(), b = new THREE.Vector3(), d = new THREE.Vector3();
     this.clip.bones.forEach(([p, c], i) => {
       const mesh = this.bones[i];
@@ -91,9 +129,21 @@ class Figure {
       mesh.scale.set(this.radius, length, this.radius);
     });
     this.joints.forEach((ball, j) => { if (ball) ball.position.fromArray(positions[j]); });
+    this.clip.solids.forEach((solid, i) => {
+      const mesh = this.solids[i];
+      mesh.visible = !!rotations;
+      if (!rotations) return;
+      const { position, quaternion } = placeSolid(solid, rotations, positions);
+      mesh.position.fromArray(position);
+      mesh.quaternion.fromArray(quaternion);
+    });
   }
 
-  dispose() { Object.values(this.materials).forEach((m) => m.dispose()); }
+  dispose() {
+    Object.values(this.materials).forEach((m) => m.dispose());
+    this.solidMaterial.dispose();
+    this.solids.forEach((mesh) => mesh.geometry.dispose());
+  }
 }
 
 /** One side: its layer, camera, floor grid, figure with a blob shadow, foot-contact rings, control arrows. */
@@ -147,11 +197,14 @@ class Stage {
     this.grid.position.set(Math.round(root[0] / step) * step, this.clip.floor, Math.round(root[2] / step) * step);
   }
 
-  /** One frame: world joint positions (or null to hide) and optional [left, right] foot contacts. */
-  show(positions, contacts) {
+  /**
+   * One frame: world joint positions (or null to hide), optional [left, right] foot contacts and
+   * world joint rotations (for the head, hand and foot solids).
+   */
+  show(positions, contacts, rotations) {
     this.figure.group.visible = this.shadow.visible = !!positions;
     if (!positions) { this.contacts.forEach((ring) => { ring.visible = false; }); return; }
-    this.figure.pose(positions);
+    this.figure.pose(positions, rotations);
     const root = positions[this.clip.rootJoint];
     this.follow(root);
     this.shadow.position.set(root[0], this.clip.floor + 0.2 * this.scale, root[2]); // grounds the figure
@@ -236,7 +289,7 @@ export class SideBySideView {
     this.controls.update();
   }
 
-  show(kind, positions, contacts) { this.stages[kind].show(positions, contacts); }
+  show(kind, positions, contacts, rotations) { this.stages[kind].show(positions, contacts, rotations); }
 
   showControl(control) { this.stages.input.showControl(control); }
 

@@ -3,7 +3,7 @@
 // and draws the input and the stylised skeleton side by side in 3-D. Plain ES modules, no build:
 // kinematics.js (maths), scene.js (three.js), triangle.js (3-way style mix), controller.js.
 
-import { clipFrame, clipFromDemo, fk, parseBVH } from "./kinematics.js";
+import { clipFrame, clipFromDemo, fkTransforms, parseBVH } from "./kinematics.js";
 import { SideBySideView } from "./scene.js";
 import { StyleTriangle } from "./triangle.js";
 import { Controller } from "./controller.js";
@@ -53,7 +53,11 @@ function render() {
   if (viewClip !== clip) { view.setClip(clip); viewClip = clip; }
   const shown = state.lastOut;
   let outPos = null;
-  if (shown) { outPos = fk(clip, shown.root, shown.rotations); view.show("output", outPos, shown.contacts); }
+  if (shown) {
+    const out = fkTransforms(clip, shown.root, shown.rotations);
+    outPos = out.positions;
+    view.show("output", outPos, shown.contacts, out.rotations);
+  }
   else view.show("output", null);
   if (controlMode()) {
     view.show("input", null);
@@ -61,7 +65,8 @@ function render() {
     view.showControl(state.lastControl || { velocity: [0, 0], facing: controller.facing });
   } else {
     const input = (shown && state.inputs.get(shown.seq)) || clipFrame(clip, state.previewSeq);
-    view.show("input", fk(clip, input.root, input.rotations));
+    const pose = fkTransforms(clip, input.root, input.rotations);
+    view.show("input", pose.positions, null, pose.rotations);
     view.showControl(null);
   }
   setText(ui.subInput, controlMode() ? "controller" : clip.name);
@@ -342,7 +347,7 @@ async function init() {
   ui.file.onchange = async () => {
     const f = ui.file.files[0];
     if (!f) { ui.source.value = "demo"; return; }
-    try { state.clip = parseBVH(await f.text()); state.clip.name = f.name; restartClip(); }
+    try { state.clip = parseBVH(await f.text(), state.demo.rigs); state.clip.name = f.name; restartClip(); }
     catch (e) { setStatus(`${f.name}: ${e.message}`, true); ui.source.value = "demo"; }
   };
   window.addEventListener("keydown", (e) => {
