@@ -121,8 +121,14 @@ def test_retarget_accepts_a_bn_motion_as_target(index, bn_walk, walks):
 
 
 def test_unknown_source_skeleton_is_refused(bn_walk):
-    with pytest.raises(ValueError):
-        retarget(bn_walk, bn_walk)
+    """A BN motion is itself a humanoid source now (issue #15), so the refused skeleton is one
+    whose legs no name matches."""
+    from dataclasses import replace
+
+    sk = bn_walk.skeleton
+    names = tuple(n.replace("Leg", "Stalk") for n in sk.names)
+    with pytest.raises(ValueError, match="upperleg_l"):
+        retarget(replace(bn_walk, skeleton=replace(sk, names=names)), bn_walk)
 
 
 # --------------------------------------------------------------------------- resample

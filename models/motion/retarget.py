@@ -1,26 +1,29 @@
-"""Retargeting CMU-skeleton motions (CMU and Xia files) onto the Bandai Namco (BN) skeleton.
+"""Retargeting humanoid motions (any rig `humanoid` matches: CMU and Xia files, Mixamo, Unreal,
+Unity/VRM, SMPL, BVH exports, ...) onto the Bandai Namco (BN) skeleton.
 
 The BN skeleton has no T-pose: its bone offsets lie along each joint's local X and the pose with
 all rotations zero is meaningless (legs point up the spine). So the mapping is built from bone
-*directions*:
+*directions*, never from either skeleton's rest pose:
 
-1. Both CMU naming variants (cgspeed: LeftUpLeg/LeftLeg/...; bvh11: LeftHip/LeftKnee/...) are
-   mapped joint-for-joint onto BN joints by body position (`CMU_TO_BN`).
+1. `humanoid.match_roles` names the client joint of each body role (hips, spine, chest, neck,
+   head, clavicles, arms, hands, legs, feet, toes); both CMU namings are presets of it
+   (`CMU_TO_BN`). `humanoid.bn_segments` gives, per BN bone, the client segment (between two
+   role joints, through any joints in between) whose direction it takes.
 2. Hips and Chest have several children: their global rotation is a two-vector frame of the
-   source joint positions (the bone up the spine and the left-right vector between the legs /
-   shoulders), so the spine bone and the hip / shoulder line follow the source exactly.
-3. Every other joint with a matched bone (`TwistPlan`, parents first): start from the BN parent's
+   client joint positions (the bone up the spine and the left-right vector between the legs /
+   upper arms), so the spine bone and the hip / shoulder line follow the client exactly.
+3. Every other joint with a segment (`TwistPlan`, parents first): start from the BN parent's
    new global rotation times the joint's local rotation in the natural BN pose (`Rig.pose`), then
-   apply the smallest swing that carries the BN bone onto the source bone direction. The bone
-   points exactly where the source bone points, and the twist about it follows the BN parent and
-   the natural pose, never the CMU joint's own twist (which puts e.g. knees 30 standard deviations
-   outside BN's range for the LTI model). Limb roots (UpperLeg, UpperArm) instead take the twist
-   that lays BN's hinge axis (the natural knee / elbow bend axis) along the normal of the source
-   limb plane (hip-knee-ankle, shoulder-elbow-wrist), so knees and elbows bend about BN's hinge
-   axis; a near-straight limb blends to the natural twist (`HINGE_FALLBACK`). Leaves (Head, Hands,
-   Toes) keep the natural local rotation: they move no joint, and BN data holds them nearly fixed.
-4. Hips translation is scaled by the leg-length ratio (BN thigh + shin / CMU thigh + shin, which
-   also converts CMU units to cm) and shifted vertically so that the toe on the ground sits at the
+   apply the smallest swing that carries the BN bone onto the segment direction. The bone
+   points exactly where the client's segment points, and the twist about it follows the BN parent
+   and the natural pose, never the client joint's own twist (which puts e.g. CMU knees 30 standard
+   deviations outside BN's range for the LTI model). Limb roots (UpperLeg, UpperArm) instead take
+   the twist that lays BN's hinge axis (the natural knee / elbow bend axis) along the normal of the
+   client's limb plane, so knees and elbows bend about BN's hinge axis; a near-straight limb
+   blends to the natural twist (`HINGE_FALLBACK`). Leaves (Head, Hands, Toes) keep the natural
+   local rotation: they move no joint, and BN data holds them nearly fixed.
+4. Hips translation is scaled by the leg-length ratio (BN thigh + shin / client thigh + shin,
+   which also converts units) and shifted vertically so that the toe on the ground sits at the
    toe height the BN data shows (~4.2 cm; see `contact_height`). The source is first resampled to
    the target fps (default 30).
 
@@ -39,22 +42,7 @@ from .resample import resample
 from .rotations import quat_canonical
 from .skeleton import Motion, Skeleton, fk
 
-# BN joint -> CMU joint at the same body position, for the two CMU naming variants.
-_CGSPEED = {
-    "Hips": "Hips", "Spine": "Spine", "Chest": "Spine1", "Neck": "Neck1", "Head": "Head",
-    "Shoulder_L": "LeftShoulder", "UpperArm_L": "LeftArm", "LowerArm_L": "LeftForeArm", "Hand_L": "LeftHand",
-    "Shoulder_R": "RightShoulder", "UpperArm_R": "RightArm", "LowerArm_R": "RightForeArm", "Hand_R": "RightHand",
-    "UpperLeg_L": "LeftUpLeg", "LowerLeg_L": "LeftLeg", "Foot_L": "LeftFoot", "Toes_L": "LeftToeBase",
-    "UpperLeg_R": "RightUpLeg", "LowerLeg_R": "RightLeg", "Foot_R": "RightFoot", "Toes_R": "RightToeBase",
-}
-_BVH11 = {
-    "Hips": "Hips", "Spine": "Chest", "Chest": "Chest2", "Neck": "Neck", "Head": "Head",
-    "Shoulder_L": "LeftCollar", "UpperArm_L": "LeftShoulder", "LowerArm_L": "LeftElbow", "Hand_L": "LeftWrist",
-    "Shoulder_R": "RightCollar", "UpperArm_R": "RightShoulder", "LowerArm_R": "RightElbow", "Hand_R": "RightWrist",
-    "UpperLeg_L": "LeftHip", "LowerLeg_L": "LeftKnee", "Foot_L": "LeftAnkle", "Toes_L": "LeftToe",
-    "UpperLeg_R": "RightHip", "LowerLeg_R": "RightKnee", "Foot_R": "RightAnkle", "Toes_R": "RightToe",
-}
-CMU_TO_BN = {"cgspeed": _CGSPEED, "bvh11": _BVH11}
+from .humanoid import CMU_TO_BN, HumanoidRig  # noqa: E402  (the CMU namings are one preset of the humanoid mapping)
 
 BN_JOINTS = ("joint_Root", "Hips", "Spine", "Chest", "Neck", "Head",
              "Shoulder_L", "UpperArm_L", "LowerArm_L", "Hand_L", "Shoulder_R", "UpperArm_R", "LowerArm_R", "Hand_R",
@@ -69,10 +57,9 @@ _PRIMARY_CHILD = {
     "UpperLeg_R": "LowerLeg_R", "LowerLeg_R": "Foot_R", "Foot_R": "Toes_R",
 }
 # Joints with several children: (left child, right child) fixing the twist of the up vector.
-# Source side uses the mapped joints of `_SOURCE_LATERAL` (CMU collars sit on the spine, so the
-# chest's left-right vector is taken between the shoulder joints).
+# The client side takes the vector between its upper legs / upper arms (CMU collars sit on the
+# spine, so the chest's left-right vector is taken between the shoulder joints).
 _LATERAL = {"Hips": ("UpperLeg_L", "UpperLeg_R"), "Chest": ("Shoulder_L", "Shoulder_R")}
-_SOURCE_LATERAL = {"Hips": ("UpperLeg_L", "UpperLeg_R"), "Chest": ("UpperArm_L", "UpperArm_R")}
 
 # Bones (BN parent, BN child) that span the same body segment in both skeletons: their directions
 # are matched exactly and are what `bone_directions` compares.
@@ -137,17 +124,6 @@ def _frame(primary: np.ndarray, lateral: np.ndarray) -> np.ndarray:
     return np.stack([e1, e2, np.cross(e1, e2)], axis=-1)
 
 
-def _drivers(source: Skeleton, smap: dict[str, str]) -> dict[str, int]:
-    """For each BN joint, the source joint whose global rotation moves the same body segment:
-    the source parent of the mapped primary child (CMU puts zero-length joints in between, e.g.
-    LowerBack, LHipJoint), or the mapped joint itself for leaves."""
-    out = {}
-    for name, src in smap.items():
-        child = _PRIMARY_CHILD.get(name)
-        out[name] = int(source.parents[source.index(smap[child])]) if child else source.index(src)
-    return out
-
-
 # BN limb joint -> its hinge child: the limb joint's twist is set by the plane of the limb
 # (hip-knee-ankle, shoulder-elbow-wrist), so the hinge bends about the BN hinge axis.
 _HINGES = {"UpperLeg_L": "LowerLeg_L", "UpperLeg_R": "LowerLeg_R", "UpperArm_L": "LowerArm_L", "UpperArm_R": "LowerArm_R"}
@@ -181,44 +157,28 @@ def _swing_mats(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return m
 
 
-def _lateral_frames(rig: Rig, source: Skeleton, s_pos: np.ndarray) -> np.ndarray:
-    """World rotations (F, 2, 3, 3) of the two-vector joints (Hips, Chest) from source world positions (F, Js, 3)."""
-    sk, smap = rig.skeleton, CMU_TO_BN[source_variant(source)]
-    out = np.zeros((s_pos.shape[0], len(_LATERAL), 3, 3))
-    for i, (name, (tl, tr)) in enumerate(_LATERAL.items()):
-        child = _PRIMARY_CHILD[name]
-        sl, sr = _SOURCE_LATERAL[name]
-        up = s_pos[:, source.index(smap[child])] - s_pos[:, source.index(smap[name])]
-        side = s_pos[:, source.index(smap[sl])] - s_pos[:, source.index(smap[sr])]
-        m_tgt = _frame(sk.offsets[sk.index(child)], sk.offsets[sk.index(tl)] - sk.offsets[sk.index(tr)])
-        out[:, i] = _frame(up, side) @ m_tgt.T
-    return out
-
-
 class TwistPlan:
-    """The per-frame BN global rotations of one (rig, source skeleton) pair, batched over frames.
+    """BN global rotations from client bone directions, batched over frames.
 
-    Built once per source skeleton; `bn_globals` maps source world rotations to BN world rotations.
-    Joints are processed depth by depth (parents first); within a depth, joints of one kind share
-    each numpy call. Kinds:
+    `segments` lists the BN joints (other than the two-vector joints Hips and Chest) whose bone
+    direction the caller gives, in the order of the columns of `dirs`; BN joints not listed are
+    leaves. Joints are processed depth by depth (parents first); within a depth, joints of one
+    kind share each numpy call. Kinds:
 
     * lateral (Hips, Chest): two-vector frames, computed by the caller and passed in;
     * swing: BN parent's world rotation times the natural local rotation, then the smallest swing
-      that carries the bone onto the source bone direction (twist about the bone follows the parent);
-    * limb (UpperLeg, UpperArm): bone onto the source bone, twist such that the BN hinge axis (in
-      the limb joint's frame, from the natural pose's bend) is the normal of the source limb plane;
-    * leaf (Head, Hand, Toes): the natural local rotation under the new BN parent.
-
-    `slots` maps source joint indices to rows of the `gs` passed to `bn_globals` (the streaming
-    retargeter keeps only the joints it needs); `used` lists the source joints read.
+      that carries the bone onto the given direction (twist about the bone follows the parent);
+    * limb (UpperLeg, UpperArm): bone onto the given direction, twist such that the BN hinge axis
+      (in the limb joint's frame, from the natural pose's bend) is the normal of the client's limb
+      plane (upper and lower bone directions);
+    * leaf (Head, Hand, Toes, and Foot when the client has no toes): the natural local rotation
+      under the new BN parent.
     """
 
-    def __init__(self, rig: Rig, source: Skeleton, slots: np.ndarray | None = None):
+    def __init__(self, rig: Rig, segments: tuple[str, ...]):
         sk = rig.skeleton
-        smap = CMU_TO_BN[source_variant(source)]
-        drivers = _drivers(source, smap)
-        slot = (lambda k: int(k)) if slots is None else (lambda k: int(slots[k]))  # noqa: E731
-        self.used = np.array(sorted(set(drivers.values())))
+        col = {n: i for i, n in enumerate(segments)}
+        self.segments = tuple(segments)
         self.num_joints = sk.num_joints
         self.lateral = np.array([sk.index(n) for n in _LATERAL])
         nat = Rotation.from_quat(rig.pose).as_matrix()  # (J, 3, 3) natural local rotations
@@ -226,39 +186,39 @@ class TwistPlan:
         def off(n: str) -> np.ndarray:
             return sk.offsets[sk.index(n)]
 
-        def src_dir(n: str) -> tuple[int, np.ndarray]:  # source bone into mapped child of BN joint n
-            c = source.index(smap[_PRIMARY_CHILD[n]])
-            return slot(drivers[n]), _unit(source.offsets[c])
+        def kind_of(n: str) -> str:
+            if n not in col:
+                return "leaf"
+            return "limb" if n in _HINGES and _HINGES[n] in col else "swing"
 
         depth = np.zeros(sk.num_joints, int)
         for j, p in enumerate(sk.parents):
             depth[j] = depth[p] + 1 if p >= 0 else 0
-        self.groups: list[tuple] = []
+        self.groups: list[dict] = []
         for d in range(1, int(depth.max()) + 1):
             level = [sk.names[j] for j in range(sk.num_joints) if depth[j] == d and sk.names[j] not in _LATERAL]
             for kind in ("swing", "limb", "leaf"):
-                names = [n for n in level if kind == ("limb" if n in _HINGES else "swing" if n in _PRIMARY_CHILD else "leaf")]
+                names = [n for n in level if kind_of(n) == kind]
                 if not names:
                     continue
                 js = np.array([sk.index(n) for n in names])
-                par = sk.parents[js]
-                g = {"kind": kind, "j": js, "p": par, "nat": nat[js]}
+                g = {"kind": kind, "j": js, "p": sk.parents[js], "nat": nat[js]}
                 if kind in ("swing", "limb"):
                     g["b"] = np.stack([_unit(off(_PRIMARY_CHILD[n])) for n in names])
-                    g["drv"], g["s"] = (np.array(x) for x in zip(*(src_dir(n) for n in names)))
+                    g["dir"] = np.array([col[n] for n in names])
                 if kind == "limb":
                     hinge = [_HINGES[n] for n in names]
-                    g["drv_c"], g["s_c"] = (np.array(x) for x in zip(*(src_dir(h) for h in hinge)))
+                    g["dir_c"] = np.array([col[h] for h in hinge])
                     # the natural bend's axis in the limb joint's frame: cross(upper bone, lower bone)
                     k = np.stack([_unit(np.cross(off(h), nat[sk.index(h)] @ off(_PRIMARY_CHILD[h]))) for h in hinge])
                     g["k"] = k
                     g["m_loc_t"] = np.swapaxes(_frame(g["b"], k), -1, -2)
                 self.groups.append(g)
 
-    def bn_globals(self, gs: np.ndarray, lateral: np.ndarray) -> np.ndarray:
-        """BN world rotation matrices (B, J, 3, 3) from source world rotation matrices gs
-        (B, rows, 3, 3) and the two-vector joints' world rotations `lateral` (B, 2, 3, 3)."""
-        b = gs.shape[0]
+    def bn_globals(self, dirs: np.ndarray, lateral: np.ndarray) -> np.ndarray:
+        """BN world rotation matrices (B, J, 3, 3) from unit bone directions `dirs` (B, K, 3),
+        columns as `segments`, and the two-vector joints' world rotations `lateral` (B, 2, 3, 3)."""
+        b = dirs.shape[0]
         gb = np.empty((b, self.num_joints, 3, 3))
         gb[:] = np.eye(3)  # joint_Root
         gb[:, self.lateral] = lateral
@@ -268,12 +228,12 @@ class TwistPlan:
                 gb[:, g["j"]] = gp @ g["nat"]
                 continue
             base = gp @ g["nat"]  # natural local rotation under the BN parent
-            d = (gs[:, g["drv"]] @ g["s"][..., None])[..., 0]  # source bone direction (world)
+            d = dirs[:, g["dir"]]
             rot = _swing_mats((base @ g["b"][..., None])[..., 0], d) @ base
             if g["kind"] == "limb":
-                lower = (gs[:, g["drv_c"]] @ g["s_c"][..., None])[..., 0]
+                lower = dirs[:, g["dir_c"]]
                 natural = (rot @ g["k"][..., None])[..., 0]
-                normal = np.cross(d, _unit(lower))
+                normal = np.cross(d, lower)
                 w = np.sum(normal * natural, axis=-1, keepdims=True)
                 axis = w * normal + HINGE_FALLBACK**2 * natural
                 rot = _frame(d, axis) @ g["m_loc_t"]
@@ -281,39 +241,34 @@ class TwistPlan:
         return gb
 
 
-def retarget(motion: Motion, target: Rig | Motion | None = None, fps: float = 30.0) -> Motion:
-    """A CMU-skeleton motion (either naming variant) as a BN-skeleton motion at `fps`.
+def retarget(motion: Motion, target: Rig | Motion | None = None, fps: float = 30.0,
+             source: HumanoidRig | None = None) -> Motion:
+    """A humanoid motion (any rig `humanoid` matches; CMU and Xia files included) as a BN-skeleton
+    motion at `fps`: the per-frame mapping of `retarget_stream.FrameRetargeter` over the clip,
+    with the Hips height set so that the clip's toe contact height (`contact_height`, which looks
+    at the whole clip) is the target's.
 
     `target` is a `Rig`, a BN `Motion` (its first frame and toe heights make the rig) or None for
-    `default_rig()`. The result has the target's joints in the target's order; every translation is
-    the target offset except Hips, which carries the scaled root motion.
+    `default_rig()`; `source` the matched client rig (default: matched from the motion's names).
+    The result has the target's joints in the target's order; every translation is the target
+    offset except Hips, which carries the scaled root motion.
     """
+    from .retarget_stream import FrameRetargeter
+
     rig = default_rig() if target is None else target if isinstance(target, Rig) else Rig.from_motion(target)
     src = resample(motion, fps)
-    source, sk = src.skeleton, rig.skeleton
-    variant = source_variant(source)
-    smap = CMU_TO_BN[variant]
-
-    n = src.num_frames
-    s_rot, s_pos = src.global_transforms()
-    gs = Rotation.from_quat(s_rot.reshape(-1, 4)).as_matrix().reshape(n, source.num_joints, 3, 3)
-    lateral = _lateral_frames(rig, source, s_pos)
-    gm = TwistPlan(rig, source).bn_globals(gs, lateral)
-    lm = gm.copy()
-    par = np.asarray(sk.parents)
-    lm[:, par >= 0] = np.swapaxes(gm[:, par[par >= 0]], -1, -2) @ gm[:, par >= 0]
-    local = Rotation.from_matrix(lm.reshape(-1, 3, 3)).as_quat().reshape(n, sk.num_joints, 4) if n else np.zeros((0, sk.num_joints, 4))
-    local = quat_canonical(local)
-
-    scale = leg_length(sk) / leg_length(source, variant)
+    fr = FrameRetargeter(source if source is not None else motion.skeleton, rig)
+    sk, n = rig.skeleton, src.num_frames
     trans = np.broadcast_to(sk.offsets, (n, sk.num_joints, 3)).copy()
+    if not n:
+        return Motion(sk, np.zeros((0, sk.num_joints, 4)), trans, float(fps), rig.euler_orders or tuple("ZXY" for _ in sk.names))
+    hips_t, local = fr.to_model(src.translations[:, fr.humanoid.translated], src.rotations)
     hips = sk.index("Hips")
-    trans[:, hips] = s_pos[:, source.index(smap["Hips"])] * scale
-    if n:
-        _, pos = fk(local, trans, sk.parents)
-        toes = [sk.index("Toes_L"), sk.index("Toes_R")]
-        trans[:, hips, 1] += rig.floor - contact_height(pos[:, toes, 1])
-    return Motion(sk, local, trans, float(fps), rig.euler_orders or tuple("ZXY" for _ in sk.names))
+    trans[:, hips] = hips_t
+    _, pos = fk(local, trans, sk.parents)
+    toes = [sk.index("Toes_L"), sk.index("Toes_R")]
+    trans[:, hips, 1] += rig.floor - contact_height(pos[:, toes, 1])
+    return Motion(sk, quat_canonical(local), trans, float(fps), rig.euler_orders or tuple("ZXY" for _ in sk.names))
 
 
 def bone_directions(motion: Motion, bones: list[tuple[str, str]], names: dict[str, str] | None = None) -> np.ndarray:

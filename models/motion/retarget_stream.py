@@ -1,35 +1,39 @@
-"""Causal, per-frame retargeting between a client's CMU skeleton and the Bandai Namco (BN) model skeleton.
+"""Causal, per-frame retargeting between a client's humanoid rig and the Bandai Namco (BN) model skeleton.
 
 `retarget.retarget` works on whole clips: it resamples and shifts the root vertically by a
 percentile of the clip's toe heights, both of which look at the whole clip. A live stream has one
-frame at a time, so `FrameRetargeter` does the same per-frame mapping with everything else fixed
-up front:
+frame at a time, so `FrameRetargeter` does the per-frame mapping with everything else fixed up
+front, for any rig `humanoid` matches (the CMU skeletons are two of its presets):
 
-* the per-joint mapping is `retarget.TwistPlan`, the very code `retarget` runs, and the leg-length
-  scale is the same;
-* the vertical offset is a constant from rest geometry (see `FrameRetargeter.vertical_offset`),
-  so `to_model` equals `retarget(motion, fps=motion.fps)` frame by frame up to one constant
-  shift of the Hips height.
+* BN bones are laid along the client's *segments* between the joints of matching roles
+  (`humanoid.bn_segments`), read from each frame's own world rotations and the rig's bone
+  offsets, never from its rest pose; `retarget.TwistPlan` turns them into BN rotations (twists
+  from the BN parent, the limb plane and BN's natural pose);
+* the client's world is brought to BN's (Y up, right-handed) by `HumanoidRig.axes`, a rotation or
+  a reflection: directions are multiplied by it, rotations conjugated;
+* the Hips translation is the client's hips position scaled by the leg-length ratio, plus one
+  constant height (`vertical_offset`) that puts the client's toes at its floor where BN's toes are
+  at BN's: both skeletons are posed in BN's natural standing pose (the client through
+  `to_source`, so its rest pose does not matter) and their hips-above-toes heights compared.
 
-`to_source` is the inverse, a (stylised) BN frame back onto the client's skeleton. Every BN joint
-j (but `joint_Root`) gives a "delta" D_j = G_bn_new[j] G_bn_client[j]^-1, the change of its global
+`to_source` is the inverse, a (stylised) BN frame back onto the client's rig. Every BN joint j
+(but `joint_Root`) gives a "delta" D_j = G_bn_new[j] G_bn_client[j]^-1, the change of its global
 rotation from the BN pose the client's own frame maps to (`to_model` of `source_rotations`) to
-the one given. Each source joint k gets G_new[k] = D_{j(k)} G_client[k], j(k) the BN joint of
-k's nearest mapped ancestor-or-self. So
+the one given. Each client joint k gets G_new[k] = D_{j(k)} G_client[k], j(k) the BN joint of
+k's nearest mapped ancestor-or-self (none: no change). So
 
-* a mapped CMU joint with a single-bone BN counterpart is turned by the change of its BN joint:
-  `to_model` lays the BN bone exactly along the client's bone, so after the turn the client's
-  bone points where the new BN bone points; the twist about it is the client's own, turned by BN's
-  change of twist (BN twists come from the BN parent / limb plane, not from the client);
-* the two-vector joints (Hips, chest) are turned by the BN delta, which puts their spine bone and
-  hip / shoulder line where BN has them (using the client's own unmapped joints in between);
-* unmapped joints (LHipJoint, LowerBack, Neck / lowerneck, fingers, thumbs) keep the client's
-  local rotations;
+* a mapped joint is turned by the change of its BN joint: `to_model` lays the BN bone exactly
+  along the client's segment, so after the turn the segment points where the new BN bone points;
+  the twist about it is the client's own, turned by BN's change of twist;
+* unmapped joints (twist bones, fingers, extra spine or neck joints, props) keep the client's
+  local rotations, so they ride along with their chain's change: a segment with joints inside it
+  turns as one rigid piece;
+* joints above the hips (a static root, Unreal's `root`) keep theirs and take no change;
 
 and `to_source(*to_model(root, rot), rot) == (root, rot)` up to float rounding.
 
-Internally everything runs on rotation matrices batched over frames and over joints of one tree
-depth (one `matmul` per depth level), so a single frame takes a few hundred microseconds.
+Internally everything runs on rotation matrices batched over frames (or sessions) and over joints
+of one tree depth (one `matmul` per depth level).
 """
 
 from __future__ import annotations
@@ -37,8 +41,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .retarget import (_LATERAL, _PRIMARY_CHILD, _SOURCE_LATERAL, CMU_TO_BN, Rig, TwistPlan, _drivers, _frame,
-                       default_rig, leg_length, source_variant)
+from .humanoid import BN_ROLES, HumanoidRig, bn_joints_of, bn_segments, humanoid_rig
+from .retarget import _LATERAL, _PRIMARY_CHILD, BN_JOINTS, Rig, TwistPlan, _frame, default_rig, leg_length
 from .rotations import matrix_to_quat as mat_to_quat
 from .rotations import quat_to_matrix as quat_to_mat
 from .skeleton import Skeleton, fk
@@ -115,148 +119,193 @@ def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
 
 
 class FrameRetargeter:
-    """Per-frame CMU <-> BN retargeting for one client skeleton (either CMU naming variant).
+    """Per-frame client rig <-> BN retargeting for one client rig.
 
     Stateless after construction: the output for a frame depends on that frame only, and every
     method is vectorised over a leading batch axis B (frames or sessions).
 
-    `source_floor`: the height (source units) at which the client's toe joints touch the ground;
-    default `rig.floor / scale`, i.e. the same toe-joint height in leg lengths as the BN data
-    (~0.75 CMU units; the CMU files show 0.7-1.1, the Xia files about -0.2, as Xia's floor sits
-    lower). `vertical_offset` overrides the derived Hips height shift altogether.
+    `source`: a matched `HumanoidRig`, or a skeleton to match by its names. `source_floor`: the
+    height along the client's up axis (client units) at which its toe joints touch the ground;
+    default `rig.floor / scale`, i.e. a floor at 0 and the same toe-joint height in leg lengths as
+    the BN data. `vertical_offset` overrides the derived Hips height shift altogether.
     """
 
-    def __init__(self, source: Skeleton, rig: Rig | None = None, source_floor: float | None = None,
+    def __init__(self, source: Skeleton | HumanoidRig, rig: Rig | None = None, source_floor: float | None = None,
                  vertical_offset: float | None = None):
         rig = default_rig() if rig is None else rig
-        self.source, self.rig = source, rig
-        sk = rig.skeleton
-        self.variant = source_variant(source)
-        smap = CMU_TO_BN[self.variant]
-        if source.parents[source.index(smap["Hips"])] >= 0 or sk.parents[sk.index("Hips")] < 0:
-            raise ValueError("expected Hips to be the source root and to have a parent (joint_Root) in BN")
+        hr = source if isinstance(source, HumanoidRig) else humanoid_rig(source)
+        src, sk, roles = hr.skeleton, rig.skeleton, hr.roles
+        self.humanoid, self.source, self.rig = hr, src, rig
+        if sk.parents[sk.index("Hips")] < 0:
+            raise ValueError("expected Hips to have a parent (joint_Root) in BN")
+        self._axes = hr.axes  # client world -> BN world
         self._bn_tree = _Tree(sk.parents)
         self._bn_unorder = self._bn_tree.pos  # slot -> joint order
-        self._src_parents = np.asarray(source.parents)
+        self._src_parents = np.asarray(src.parents)
         self._bn_parents = np.asarray(sk.parents)
         self._bn_hips = sk.index("Hips")
-        self._src_root = source.index(smap["Hips"])
+        self._hips = roles["hips"]
 
-        # Two-vector joints (Hips, Chest): from source vectors, here. Every other joint: `TwistPlan`
-        # (bone onto the source bone, twist from the BN parent / the limb plane), on tree slots.
-        drivers = _drivers(source, smap)
-        # vectors: (lateral 0 up, lateral 0 side, lateral 1 up, ...) as signed sums of G[parent k] offset[k]
-        terms: list[list[tuple[int, float]]] = []
+        # Vectors read from each frame: the BN bones' segments, then (up, side) per two-vector joint,
+        # each a signed sum of G[parent k] offset[k] (`_path_terms`).
+        segs = bn_segments(roles)
+        plain = tuple(n for n in BN_JOINTS if n in segs and n not in _LATERAL)
+        pairs = [segs[n] for n in plain]
         m_tgt = []
         for name, (tl, tr) in _LATERAL.items():
-            child = _PRIMARY_CHILD[name]
-            sl, sr = _SOURCE_LATERAL[name]
-            src = lambda n: source.index(smap[n])  # noqa: E731
-            terms.append(_path_terms(source, src(name), src(child)))
-            terms.append(_path_terms(source, src(sr), src(sl)))
+            pairs += [segs[name], (BN_ROLES[tr].replace("clavicle", "upperarm"), BN_ROLES[tl].replace("clavicle", "upperarm"))]
             off = lambda n: sk.offsets[sk.index(n)]  # noqa: E731
-            m_tgt.append(_frame(off(child), off(tl) - off(tr)))
+            m_tgt.append(_frame(off(_PRIMARY_CHILD[name]), off(tl) - off(tr)))
+        terms = [_path_terms(src, roles[a], roles[b]) for a, b in pairs]
         flat = sorted({k for t in terms for k, _ in t})
-        self._vec_par = self._src_parents[flat]
-        self._vec_off = source.offsets[flat][:, :, None]  # (T, 3, 1)
+        self._num_plain = len(plain)
+        self._vec_off = src.offsets[flat][:, :, None]  # (T, 3, 1)
         self._vec_coef = np.zeros((len(terms), len(flat)))
         for v, t in enumerate(terms):
-            for k, s in t:
-                self._vec_coef[v, flat.index(k)] += s
+            for k, sign in t:
+                self._vec_coef[v, flat.index(k)] += sign
         self._m_tgt_t = np.swapaxes(np.stack(m_tgt), -1, -2)  # (L, 3, 3), transposed
+        self._plan = TwistPlan(rig, plain)
 
-        # to_source: each source joint takes the delta of the BN joint of its nearest mapped ancestor
-        mapped = {source.index(s): sk.index(b) for b, s in smap.items()}
-        anc = np.zeros(source.num_joints, int)
-        for k in range(source.num_joints):
+        # Hips position = c + Gp @ t, t the translated joint's translation (the frame's root)
+        chain = [self._hips]
+        while self._src_parents[chain[-1]] >= 0:
+            chain.append(int(self._src_parents[chain[-1]]))
+        self._translated = hr.translated
+        self._chain_fixed = [k for k in chain if k != hr.translated]  # joints contributing their offset
+
+        # to_source: each client joint takes the delta of the BN joint of its nearest mapped ancestor
+        mapped = {roles[r]: sk.index(b) for r, b in bn_joints_of(roles).items()}
+        none = sk.num_joints  # an identity delta for joints with no mapped ancestor (above the hips)
+        anc = np.full(src.num_joints, none)
+        for k in range(src.num_joints):
             j = k
-            while j not in mapped:
-                j = int(source.parents[j])
-            anc[k] = mapped[j]
-        self._anc_bn = anc
-        self._mapped_nonroot = np.array([k for k in sorted(mapped) if source.parents[k] >= 0])
-        self._mapped_parents = self._src_parents[self._mapped_nonroot]
-        needed = np.unique(np.concatenate([[self._src_root], list(drivers.values()), self._vec_par, self._mapped_nonroot, self._mapped_parents]))
-        tree = self._src_tree = _Tree(source.parents, needed)  # source world rotations live in tree slots
-        self._plan = TwistPlan(rig, source, slots=tree.pos)
-        self._vec_par_s = tree.pos[self._vec_par]
+            while j >= 0 and j not in mapped:
+                j = int(src.parents[j])
+            if j >= 0:
+                anc[k] = mapped[j]
+        self._mapped = np.array(sorted(mapped), dtype=int)
+        self._mapped_nonroot = np.array([k for k in self._mapped if src.parents[k] >= 0], dtype=int)
+        self._mapped_root = np.array([k for k in self._mapped if src.parents[k] < 0], dtype=int)
+        vec_par = self._src_parents[flat]
+        chain_par = [int(self._src_parents[k]) for k in chain if self._src_parents[k] >= 0]
+        needed = np.unique(np.concatenate([vec_par, self._mapped, self._src_parents[self._mapped_nonroot],
+                                           chain_par, [self._hips]]).astype(int))
+        tree = self._src_tree = _Tree(src.parents, needed)  # client world rotations live in tree slots
+        self._vec_par_s = tree.pos[vec_par]
         self._anc_bn_s = anc[tree.order]
-        self._mapped_s, self._mapped_parents_s = tree.pos[self._mapped_nonroot], tree.pos[self._mapped_parents]
-        self._root_s = int(tree.pos[self._src_root])
+        self._mapped_s = tree.pos[self._mapped_nonroot]
+        self._mapped_parents_s = tree.pos[self._src_parents[self._mapped_nonroot]]
+        self._mapped_root_s = tree.pos[self._mapped_root]
+        self._fixed_par_s = np.array([tree.pos[self._src_parents[k]] if self._src_parents[k] >= 0 else -1
+                                      for k in self._chain_fixed], dtype=int)
+        self._fixed_off = src.offsets[self._chain_fixed]
+        p = int(self._src_parents[hr.translated])
+        self._translated_par_s = int(tree.pos[p]) if p >= 0 else -1
 
-        self.scale = leg_length(sk) / leg_length(source, self.variant)
+        self.scale = leg_length(sk) / hr.leg_length
         self.source_floor = rig.floor / self.scale if source_floor is None else float(source_floor)
-        self.vertical_offset = self._rest_offset() if vertical_offset is None else float(vertical_offset)
+        self.vertical_offset = self._standing_offset() if vertical_offset is None else float(vertical_offset)
+
+    @property
+    def variant(self) -> str | None:
+        """The matched preset table ('cmu', 'cmu-bvh11', 'mixamo', ...), None for alias matches."""
+        return self.humanoid.preset
 
     # ----------------------------------------------------------------------- internals
 
     def _bn_globals(self, gs: np.ndarray) -> np.ndarray:
-        """BN world rotation matrices (B, 22, 3, 3) from source world rotation matrices."""
+        """BN world rotation matrices (B, 22, 3, 3) from client world rotation matrices (tree slots)."""
         b = gs.shape[0]
         vec = (gs[:, self._vec_par_s] @ self._vec_off)[..., 0]  # (B, T, 3)
-        vec = (self._vec_coef @ vec).reshape(b, -1, 2, 3)
-        return self._plan.bn_globals(gs, _frame_fast(vec[:, :, 0], vec[:, :, 1]) @ self._m_tgt_t)
+        vec = (self._vec_coef @ vec) @ self._axes.T  # (B, V, 3), in BN's world
+        k = self._num_plain
+        dirs = vec[:, :k] / np.sqrt(np.sum(vec[:, :k] ** 2, axis=-1, keepdims=True))
+        lat = vec[:, k:].reshape(b, -1, 2, 3)
+        return self._plan.bn_globals(dirs, _frame_fast(lat[:, :, 0], lat[:, :, 1]) @ self._m_tgt_t)
 
-    def _source_globals(self, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        local = quat_to_mat(rotations)
-        return local, self._src_tree.fk(local)
+    def _source_globals(self, rotations: np.ndarray) -> np.ndarray:
+        return self._src_tree.fk(quat_to_mat(rotations))
 
-    def _local_bn(self, rotations: np.ndarray) -> np.ndarray:
-        """BN local rotations (B, 22, 4) for source local rotations (B, Js, 4)."""
-        _, gs = self._source_globals(rotations)
+    def _hips_terms(self, gs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(c (B, 3), Gp (B, 3, 3)): the client hips' world position is c + Gp @ root."""
+        b = gs.shape[0]
+        g = np.concatenate([gs, np.broadcast_to(np.eye(3), (b, 1, 3, 3))], axis=1)  # slot -1: identity
+        c = np.sum((g[:, self._fixed_par_s] @ self._fixed_off[..., None])[..., 0], axis=1)
+        return c, g[:, self._translated_par_s]
+
+    def _local_bn(self, gs: np.ndarray) -> np.ndarray:
         gb = self._bn_globals(gs)
         local = gb.copy()
         local[:, 1:] = np.swapaxes(gb[:, self._bn_parents[1:]], -1, -2) @ gb[:, 1:]
         return mat_to_quat(local)
 
-    def _rest_offset(self) -> float:
-        """Hips height shift (BN hips y = scale * source hips y + offset), from rest geometry only:
-        with the source in its rest pose (every rotation zero) and its toes at `source_floor`,
-        the BN skeleton in the same pose has its toes at `rig.floor`."""
-        sk, src = self.rig.skeleton, self.source
-        smap = CMU_TO_BN[self.variant]
-        t_src = float(src.rest_positions()[[src.index(smap[f"Toes_{s}"]) for s in "LR"], 1].mean())  # toes below hips
+    def _standing_offset(self) -> float:
+        """Hips height shift (BN hips y = scale * client hips height + offset): both skeletons in
+        BN's natural pose (the client put there by `to_source`, whatever its rest pose), BN with its
+        toes at `rig.floor`, the client with its toes (or, without toes, its ankles as high as BN's
+        in that pose) at `source_floor`."""
+        sk, src, roles = self.rig.skeleton, self.source, self.humanoid.roles
         rest = np.zeros((1, src.num_joints, 4))
         rest[..., 3] = 1.0
-        trans = np.broadcast_to(sk.offsets, (1, sk.num_joints, 3)).copy()
-        trans[:, self._bn_hips] = 0.0
-        _, pos = fk(self._local_bn(rest), trans, sk.parents)
-        t_bn = float(pos[0, [sk.index("Toes_L"), sk.index("Toes_R")], 1].mean())
-        # source hips at source_floor - t_src  ->  BN hips at rig.floor - t_bn
-        return self.rig.floor - t_bn - self.scale * (self.source_floor - t_src)
+        self.vertical_offset = 0.0
+        _, rot = self.to_source(np.zeros((1, 3)), self.rig.pose[None], rest)
+        trans = np.broadcast_to(src.offsets, (1, src.num_joints, 3)).copy()
+        c_pos = fk(rot, trans, src.parents)[1][0] @ self._axes.T
+        hips_bn, local = self.to_model(trans[:, self._translated], rot)
+        bn_trans = np.broadcast_to(sk.offsets, (1, sk.num_joints, 3)).copy()
+        bn_trans[:, self._bn_hips] = hips_bn
+        b_pos = fk(local, bn_trans, sk.parents)[1][0]
+        part = "toes" if all(f"toes_{s}" in roles for s in "lr") else "foot"
+        ref_c = [roles[f"{part}_{s}"] for s in "lr"]
+        ref_b = [sk.index(f"{'Toes' if part == 'toes' else 'Foot'}_{s}") for s in "LR"]
+        toes_b = [sk.index(f"Toes_{s}") for s in "LR"]
+        t_c = c_pos[ref_c, 1].mean() - c_pos[self._hips, 1]  # reference joints below the hips
+        t_bn_toe = b_pos[toes_b, 1].mean() - b_pos[self._bn_hips, 1]
+        t_bn_ref = b_pos[ref_b, 1].mean() - b_pos[self._bn_hips, 1]
+        h = self.source_floor + (t_bn_ref - t_bn_toe) / self.scale - t_c  # client hips height, standing
+        return float(self.rig.floor - t_bn_toe - self.scale * h)
 
     # ----------------------------------------------------------------------- API
 
     def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Source frame(s) -> BN frame(s).
+        """Client frame(s) -> BN frame(s).
 
-        root (B, 3): the source root (Hips) translation; rotations (B, Js, 4): source local
-        quaternions (xyzw). Returns (Hips translation (B, 3), BN local rotations (B, 22, 4),
-        w >= 0). Every other BN translation is the BN skeleton's offset."""
+        root (B, 3): the translation of the client's translated joint (`HumanoidRig.translated`:
+        the hips, or the root above them); rotations (B, Js, 4): client local quaternions (xyzw).
+        Returns (Hips translation (B, 3), BN local rotations (B, 22, 4), w >= 0). Every other BN
+        translation is the BN skeleton's offset."""
         root = np.asarray(root, dtype=np.float64).reshape(-1, 3)
-        local = self._local_bn(np.asarray(rotations, dtype=np.float64).reshape(root.shape[0], -1, 4))
-        hips = root * self.scale
+        gs = self._source_globals(np.asarray(rotations, dtype=np.float64).reshape(root.shape[0], -1, 4))
+        c, gp = self._hips_terms(gs)
+        hips = ((c + (gp @ root[..., None])[..., 0]) @ self._axes.T) * self.scale
         hips[:, 1] += self.vertical_offset
-        return hips, local
+        return hips, self._local_bn(gs)
 
     def to_source(self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """BN frame(s) -> source frame(s) on the client's skeleton.
+        """BN frame(s) -> client frame(s) on the client's rig.
 
         root_bn (B, 3): BN Hips translation; rotations_bn (B, 22, 4): BN local quaternions;
         source_rotations (B, Js, 4): the client's own local rotations for the same frame(s)
-        (unmapped joints keep these; the two-vector joints use them for their in-between joints).
-        Returns (source root translation (B, 3), source local rotations (B, Js, 4))."""
+        (unmapped joints keep these; they also fix the twist the BN change is applied to).
+        Returns (client root translation (B, 3), client local rotations (B, Js, 4))."""
         root_bn = np.asarray(root_bn, dtype=np.float64).reshape(-1, 3)
         b = root_bn.shape[0]
         source_rotations = np.asarray(source_rotations, dtype=np.float64).reshape(b, -1, 4)
         gbn = self._bn_tree.fk(quat_to_mat(np.asarray(rotations_bn, dtype=np.float64).reshape(b, -1, 4)))
-        _, gsc = self._source_globals(source_rotations)
+        gsc = self._source_globals(source_rotations)
         gbc = self._bn_globals(gsc)
-        delta = gbn[:, self._bn_unorder] @ np.swapaxes(gbc, -1, -2)  # (B, 22, 3, 3), BN joint order
-        g_new = delta[:, self._anc_bn_s] @ gsc  # every source joint turns with its mapped ancestor's BN joint
+        delta = gbn[:, self._bn_unorder] @ np.swapaxes(gbc, -1, -2)  # (B, 22, 3, 3), BN joint order, BN world
+        delta = self._axes.T @ delta @ self._axes  # the same change in the client's world
+        delta = np.concatenate([delta, np.broadcast_to(np.eye(3), (b, 1, 3, 3))], axis=1)
+        g_new = delta[:, self._anc_bn_s] @ gsc  # every client joint turns with its mapped ancestor's BN joint
         out = source_rotations.copy()  # unmapped joints keep the client's local rotations
-        out[:, self._mapped_nonroot] = mat_to_quat(np.swapaxes(g_new[:, self._mapped_parents_s], -1, -2) @ g_new[:, self._mapped_s])
-        out[:, self._src_root] = mat_to_quat(g_new[:, self._root_s])
-        src_root = root_bn.copy()
-        src_root[:, 1] -= self.vertical_offset
-        return src_root / self.scale, out
+        if len(self._mapped_nonroot):
+            out[:, self._mapped_nonroot] = mat_to_quat(np.swapaxes(g_new[:, self._mapped_parents_s], -1, -2) @ g_new[:, self._mapped_s])
+        if len(self._mapped_root):
+            out[:, self._mapped_root] = mat_to_quat(g_new[:, self._mapped_root_s])
+        hips = root_bn.copy()
+        hips[:, 1] -= self.vertical_offset
+        hips = (hips / self.scale) @ self._axes  # client world (axes are orthogonal: inverse = transpose)
+        c, gp = self._hips_terms(gsc)  # the chain above the hips is unchanged
+        return (np.swapaxes(gp, -1, -2) @ (hips - c)[..., None])[..., 0], out
