@@ -24,6 +24,7 @@ Part frames (columns of A, all right-handed, z = x × y):
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -52,7 +53,8 @@ def joint_sides(skeleton: Skeleton) -> np.ndarray:
     return np.array([1 if _LEFT.search(n) else -1 if _RIGHT.search(n) else 0 for n in skeleton.names])
 
 
-def _first(names: tuple[str, ...], ok) -> int | None:
+def _first(names: tuple[str, ...], ok: Callable[[int, str], bool]) -> int | None:
+    """The first joint (hierarchy order, so the one nearest the root) for which ok(index, name)."""
     return next((j for j, n in enumerate(names) if ok(j, n)), None)
 
 
@@ -69,6 +71,8 @@ def find_parts(skeleton: Skeleton) -> dict[str, int]:
         out["head"] = head
     for tag, side in (("l", 1), ("r", -1)):
         hand = _first(names, lambda j, n: sides[j] == side and bool(_HAND.search(n)) and not _DIGIT.search(n))
+        if hand is not None:
+            out[f"hand_{tag}"] = hand
         for part, feature, pattern in (("foot", "ankle", _FOOT), ("toe", "toe", _TOE)):
             try:
                 joint: int | None = body_joint(skeleton, f"{feature}_{tag}")
@@ -76,8 +80,6 @@ def find_parts(skeleton: Skeleton) -> dict[str, int]:
                 joint = _first(names, lambda j, n: sides[j] == side and bool(pattern.search(n)))
             if joint is not None:
                 out[f"{part}_{tag}"] = joint
-        if hand is not None:
-            out[f"hand_{tag}"] = hand
     return out
 
 
