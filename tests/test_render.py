@@ -16,6 +16,7 @@ from models.motion.render import joint_sides, render_contact_sheet, render_gif
 from models.motion.resample import resample
 from models.motion.rotations import expmap_to_quat, quat_mul
 from models.motion.skeleton import Motion
+from tests.rigs import SPECS, make_rig
 
 
 def _not_blank(img: Image.Image) -> None:
@@ -165,3 +166,26 @@ def test_render_is_fast(tmp_path, bn_walk):
     t = time.perf_counter()
     render_gif([bn_walk, _turn(bn_walk, "Head", 120.0), bn_walk], tmp_path / "three.gif", seconds=2.0, dpi=40)
     assert time.perf_counter() - t < 5.0
+
+
+def test_other_humanoid_rigs_get_solids_from_their_first_frame(tmp_path, bn_walk):
+    """Mixamo / SMPL / VRM rigs made from the BN walk (other names, T-pose rests, metres): parts
+    and sides come from `humanoid` roles, the calibration from the clip's first frame, and the
+    head and feet then point where the BN walk's do."""
+    walk = bn_walk.slice(0, 60)
+    bn = world_axes(walk)
+    for name in ("mixamo", "smpl", "vrm"):
+        made = make_rig(walk, SPECS[name])
+        assert reference_rig(made.skeleton) is None
+        parts = find_parts(made.skeleton)
+        assert set(parts) == {"head", "hand_l", "hand_r", "foot_l", "foot_r", "toe_l", "toe_r"}
+        sides = joint_sides(made.skeleton)  # 8 limb joints a side (the made fingers are lopsided)
+        assert (sides == 1).sum() >= 8 and (sides == -1).sum() >= 8 and sides[parts["head"]] == 0
+        assert all(sides[j] == (1 if p.endswith("_l") else -1) for p, j in parts.items() if p != "head")
+        axes = world_axes(made)
+        assert np.mean(_dot(axes["head"][:, :, 0], bn["head"][:, :, 0])) > 0.9, name
+        for part in ("foot_l", "foot_r"):
+            assert np.mean(_dot(axes[part][:, :, 0], bn[part][:, :, 0])) > 0.8, (name, part)
+    path = render_contact_sheet(make_rig(walk, SPECS["mixamo"]), tmp_path / "mixamo.png", frames=2, panel_size=1.5, dpi=50)
+    with Image.open(path) as img:
+        _not_blank(img)  # red and blue limbs: sides from the `mixamorig:Left…` names

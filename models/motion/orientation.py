@@ -10,9 +10,10 @@ the part's axes in its joint's local frame, is fixed per skeleton.
 A is calibrated once per skeleton from a reference pose in which the character stands facing the
 way `features.facing_yaw` says: the committed one-frame assets for the Bandai Namco and CMU rigs
 (their zero poses mean nothing: the BN body lies along world X), borrowed by any skeleton with the
-same joint chains and bone directions (Xia's CMU variant); for any other skeleton, the motion's own
-first frame, so there a rotation already present at frame 0 does not show. Never per motion on a
-known rig: a model that turns the head from frame 0 would look right.
+same joint chains and bone directions (Xia's CMU variant); for any other skeleton (Mixamo, UE,
+SMPL, ... whose parts `humanoid.match_roles` names), the motion's own first frame, so there a
+rotation already present at frame 0 does not show. Never per motion on a known rig: a model that
+turns the head from frame 0 would look right.
 
 Part frames (columns of A, all right-handed, z = x × y):
   head       x face forward (the nose), y up
@@ -32,6 +33,7 @@ import numpy as np
 
 from .assets import bandai_namco_pose, cmu_pose
 from .features import UP, body_joint, facing_yaw, leg_length
+from .humanoid import match_roles, split_name
 from .rotations import matrix_to_quat, quat_to_matrix
 from .skeleton import Motion, Skeleton
 
@@ -49,8 +51,15 @@ FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2,
 
 
 def joint_sides(skeleton: Skeleton) -> np.ndarray:
-    """+1 for left joints, -1 for right joints, 0 for the centre line (from joint names)."""
-    return np.array([1 if _LEFT.search(n) else -1 if _RIGHT.search(n) else 0 for n in skeleton.names])
+    """+1 for left joints, -1 for right joints, 0 for the centre line, from joint names: the side
+    marker `humanoid.split_name` finds (`Left…`, `_L`, `_l`, `.L`, `left_`, `mixamorig:Left…`), else
+    the older CMU spellings (`LHipJoint`, `lhand`)."""
+    def side(name: str) -> int:
+        marker = split_name(name)[0]
+        if marker:
+            return 1 if marker == "l" else -1
+        return 1 if _LEFT.search(name) else -1 if _RIGHT.search(name) else 0
+    return np.array([side(n) for n in skeleton.names], int)
 
 
 def _first(names: tuple[str, ...], ok: Callable[[int, str], bool]) -> int | None:
@@ -58,11 +67,23 @@ def _first(names: tuple[str, ...], ok: Callable[[int, str], bool]) -> int | None
     return next((j for j, n in enumerate(names) if ok(j, n)), None)
 
 
+# humanoid role -> part drawn as a solid
+_ROLE_PARTS = {"head": "head", "hand_l": "hand_l", "hand_r": "hand_r", "foot_l": "foot_l", "foot_r": "foot_r",
+               "toes_l": "toe_l", "toes_r": "toe_r"}
+
+
 def find_parts(skeleton: Skeleton) -> dict[str, int]:
     """Joint of each part the skeleton has (`head`, `hand_l`, `foot_l`, `toe_l`, ...; missing parts
-    are left out), by name: the feature table of `features.body_joint` for ankles and toes, else
-    the first joint in hierarchy order named like the part (`Head`, `Hand_L`, `LeftHand`, `lhand`,
+    are left out), by name: the body roles of `humanoid.match_roles` (BN, both CMU namings, Mixamo,
+    UE, Unity/VRM, SMPL, ...), and for parts it leaves out, `features.body_joint` for ankles and
+    toes, else the first joint in hierarchy order named like the part (`Head`, `Hand_L`, `lhand`,
     `*Wrist*`; fingers and thumbs never count as hands)."""
+    _, roles = match_roles(skeleton)
+    found = {part: roles[role] for role, part in _ROLE_PARTS.items() if role in roles}
+    return found | {p: j for p, j in _parts_by_pattern(skeleton).items() if p not in found}
+
+
+def _parts_by_pattern(skeleton: Skeleton) -> dict[str, int]:
     names, sides = skeleton.names, joint_sides(skeleton)
     out: dict[str, int] = {}
     head = _first(names, lambda j, n: n.lower() == "head")
@@ -101,19 +122,32 @@ def _level(v: np.ndarray, default: np.ndarray) -> np.ndarray:
     return flat if np.linalg.norm(flat) > 1e-3 * max(np.linalg.norm(v), 1e-12) else default
 
 
+def body_forward(positions: np.ndarray, skeleton: Skeleton) -> np.ndarray:
+    """(3,) level unit vector the body in one pose (J, 3) faces: `features.facing_yaw`, else the
+    same rule (left hip and shoulder minus right, crossed with up) on `humanoid.match_roles`'s upper
+    legs and arms, else +Z."""
+    try:
+        yaw = float(facing_yaw(positions, skeleton))
+    except KeyError:
+        _, roles = match_roles(skeleton)
+        if not all(r in roles for r in ("upperleg_l", "upperleg_r", "upperarm_l", "upperarm_r")):
+            return np.array([0.0, 0.0, 1.0])
+        left = (positions[roles["upperleg_l"]] - positions[roles["upperleg_r"]]
+                + positions[roles["upperarm_l"]] - positions[roles["upperarm_r"]])
+        forward = np.cross(left, UP)
+        yaw = float(np.arctan2(forward[0], forward[2]))
+    return np.array([np.sin(yaw), 0.0, np.cos(yaw)])
+
+
 def part_axes(reference: Motion, frame: int = 0) -> dict[str, tuple[str, np.ndarray]]:
     """Calibration: part -> (joint name, (3, 3) part axes in the joint's local frame), from one pose
-    of `reference` whose body faces `facing_yaw` (+Z for a skeleton without hips and shoulders that
-    `features.body_joint` knows). The head looks where the body faces; the thumbs point forward
-    (square to the hand's axis, the forearm's continuation); the feet point to their toes."""
+    of `reference` whose body faces `body_forward`. The head looks where the body faces; the
+    thumbs point forward (square to the hand's axis, the forearm's continuation); the feet point to
+    their toes."""
     sk = reference.skeleton
     g_rot, g_pos = reference.slice(frame, frame + 1).global_transforms()
     rot, pos = g_rot[0], g_pos[0]
-    try:
-        yaw = float(facing_yaw(pos, sk))
-    except KeyError:
-        yaw = 0.0
-    forward = np.array([np.sin(yaw), 0.0, np.cos(yaw)])
+    forward = body_forward(pos, sk)
     parts = find_parts(sk)
     world: dict[str, np.ndarray] = {}
     if "head" in parts:
