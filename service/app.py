@@ -21,6 +21,7 @@ from .runtime import Runtime
 from .settings import ServiceSettings, get_service_settings
 from .styles import ApiError, ErrorBody, StyleInfo, StyleStore, StyleUpload, UploadAccepted
 from .stream import CLOSE_UNAUTHORIZED, Connection
+from .routes_skeletons import router as skeletons_router
 from .viewer import router as viewer_router
 
 
@@ -226,4 +227,5 @@ def create_app(settings: ServiceSettings | None = None, models: dict | None = No
             limiter.session_closed(who)
 
     app.include_router(viewer_router)
+    app.include_router(skeletons_router, dependencies=[Depends(require_token)])
     return app

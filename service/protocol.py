@@ -19,6 +19,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator
 
 from models.interface import style_weights
+from models.motion.humanoid import PRESET_NAMES, ROLES
 
 from . import frame_check as FC
 from .frame_check import check_frame
@@ -52,12 +53,25 @@ class Start(_Message):
     style: str | None = None
     mix: StyleMix | None = None  # {style: weight}; alternative to `style`
     intensity: float = Field(default=1.0, ge=0.0, le=2.0)
-    skeleton: Literal["bandai-namco", "cmu"] | None = "bandai-namco"  # "cmu": cgspeed-named CMU skeleton
+    skeleton: Literal[PRESET_NAMES] | None = "bandai-namco"  # a preset rig (models.motion.humanoid_presets)
+    joints: list[Annotated[str, Field(max_length=200)]] | None = Field(
+        default=None, max_length=1024, description="with `skeleton`: the preset's joints the frames carry, in their order")
     bvh_header: str | None = Field(default=None, max_length=200_000, description="BVH HIERARCHY text, instead of `skeleton`")
+    joint_map: dict[str, Literal[ROLES] | None] | None = Field(
+        default=None, max_length=1024, description="{client joint: body role or null}: completes or overrides the name matching")
+    units: Literal["m", "dm", "cm", "mm", "in"] | None = None  # default: read from the leg length
+    up: Literal["y", "z"] | None = None  # default: read from a standing rest pose, else y
+    handedness: Literal["right", "left"] = "right"
     fps: float = Field(default=30.0, gt=0, le=240)
     encoding: Literal["json", "binary"] = "json"
     resume_token: str | None = None
     snapshot_acks: bool = False  # send {"type": "snapshot", "last_seq": n} once a snapshot is stored
+
+    def rig_options(self) -> dict:
+        """The rig choices beyond `skeleton` and `bvh_header` (kept with the session for resumes)."""
+        return {k: v for k, v in (("joints", self.joints), ("joint_map", self.joint_map), ("units", self.units),
+                                  ("up", self.up), ("handedness", self.handedness)) if v is not None and
+                (k != "handedness" or v != "right")}
 
     @field_validator("version")
     @classmethod

@@ -139,7 +139,7 @@ class Runtime:
                 await self.styles.ensure_known(start.model, P.mix_of(start.style, start.mix))
             weights = P.requested_weights(model, start.style, start.mix, start.intensity)
             session = Session(model=model, skeleton=start.skeleton or "custom", fps=start.fps, encoding=start.encoding,
-                              weights=weights, state=model.init_state(1), bvh_header=start.bvh_header,
+                              weights=weights, state=model.init_state(1), bvh_header=start.bvh_header, rig=start.rig_options(),
                               queue_size=self.settings.session_queue)
         self.sessions[session.id] = session
         self._open_per_model[session.model.name] += 1

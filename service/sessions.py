@@ -63,6 +63,7 @@ class Snapshot:
     # the reply to frame `last_seq` (root, rotations in the client's skeleton), for a client whose
     # copy was lost with the connection; empty before the first frame
     last_output: dict[str, np.ndarray] = field(default_factory=dict)
+    rig: dict = field(default_factory=dict)  # the start message's rig options (joints, joint_map, units, up, handedness)
 
     def to_json(self) -> str:
         return json.dumps({**self.__dict__, "held": encode_state(self.held), "state": encode_state(self.state),
@@ -101,6 +102,7 @@ class Session:
     weights: dict[str, float]  # {style: weight}, intensity included
     state: State
     bvh_header: str | None = None
+    rig: dict = field(default_factory=dict)  # joints, joint_map, units, up, handedness as started
     id: str = field(default_factory=lambda: uuid.uuid4().hex)
     token: str = field(default_factory=lambda: secrets.token_urlsafe(24))
     target: dict[str, float] | None = None
@@ -207,7 +209,7 @@ class Session:
                         transition_left=self.transition_left, last_seq=self.last_seq, clock=self.clock,
                         held={} if self.held_root is None else
                         {"root": self.held_root, "rotations": self.held_rotations, "input_root": self.held_input_root},
-                        state=self.state, saved_at=time.time(), last_output=dict(self.last_output))
+                        state=self.state, saved_at=time.time(), last_output=dict(self.last_output), rig=dict(self.rig))
 
     @classmethod
     def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int) -> Session:
@@ -217,4 +219,4 @@ class Session:
                    id=snap.session_id, token=snap.token, target=dict(snap.target),
                    transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size,
                    clock=snap.clock, held_root=held.get("root"), held_rotations=held.get("rotations"),
-                   held_input_root=held.get("input_root"), last_output=dict(snap.last_output))
+                   held_input_root=held.get("input_root"), last_output=dict(snap.last_output), rig=dict(snap.rig))

@@ -1,22 +1,28 @@
 """Input skeletons: map a client's frames onto the model skeleton and the results back.
 
-A session names its skeleton or sends a BVH header inline:
+A session names a preset rig (`skeleton`, optionally with the `joints` its frames carry, in
+their order) or sends a BVH header inline (`bvh_header`), plus optional `joint_map`, `units`,
+`up` and `handedness`:
 - the Bandai Namco skeleton (the models' own) passes through, reordered if its joints come in
-  another order;
-- a CMU skeleton (either naming variant, named "cmu" or sent as a header) is retargeted frame by
-  frame on the way in and back onto the client's skeleton on the way out
+  another order (extra joints pass through unchanged);
+- any other humanoid (`models.motion.humanoid`: Mixamo, Unreal, Unity/VRM, SMPL, CMU, BVH
+  exports, or anything whose names or `joint_map` give the body roles) is retargeted frame by
+  frame on the way in and back onto the client's own rig on the way out
   (`models.motion.retarget_stream`), causally and with no per-session state.
+A rig that cannot be mapped is refused with a typed error naming what is missing; nothing of it
+is applied.
 """
 
 from __future__ import annotations
 
+import json
+from functools import lru_cache
 from typing import Protocol
 
 import numpy as np
 
 from models.motion import bvh as bvhio
-from models.motion.retarget import source_variant
-from models.motion.assets import cmu_skeleton
+from models.motion.humanoid import HumanoidRig, RigError, preset_rig, rig_from_bvh
 from models.motion.retarget_stream import FrameRetargeter
 from models.motion.skeleton import Skeleton, skeleton_from_bvh
 
@@ -30,6 +36,7 @@ class SkeletonAdapter(Protocol):
     def num_joints(self) -> int: ...
     def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
     def from_model(self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+    def report(self) -> dict: ...
 
 
 class Reorder:
@@ -39,6 +46,7 @@ class Reorder:
         self.joint_names = list(joint_names)
         self.to_model_index = np.array([joint_names.index(n) for n in model_skeleton.names])
         self.identity = self.joint_names == list(model_skeleton.names)
+        self.model_names = list(model_skeleton.names)
 
     @property
     def num_joints(self) -> int:
@@ -54,51 +62,97 @@ class Reorder:
         out[self.to_model_index] = rotations
         return root, out
 
+    def report(self) -> dict:
+        model = set(self.model_names)
+        return {"preset": "bandai-namco", "retargeted": False, "mapping": {n: n for n in self.model_names},
+                "unmapped": [n for n in self.joint_names if n not in model], "root_joint": "Hips"}
+
 
 class Retarget:
-    """A CMU-skeleton client: per-frame retargeting onto the model skeleton and back."""
+    """Any other humanoid: per-frame retargeting onto the model skeleton and back. The client's
+    joint order may differ from the rig's internal parents-first order (`order`)."""
 
-    def __init__(self, source: Skeleton) -> None:
-        self.joint_names = list(source.names)
-        self.retargeter = FrameRetargeter(source)
+    def __init__(self, rig: HumanoidRig, joint_names: list[str] | None = None) -> None:
+        self.rig = rig
+        self.retargeter = FrameRetargeter(rig)
+        internal = list(rig.skeleton.names)
+        self.joint_names = list(joint_names) if joint_names is not None else internal
+        self.order = None if self.joint_names == internal else np.array([self.joint_names.index(n) for n in internal])
 
     @property
     def num_joints(self) -> int:
         return len(self.joint_names)
 
     def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        hips, rot = self.retargeter.to_model(root[None], rotations[None])
-        return hips[0], rot[0]
+        rot = rotations if self.order is None else rotations[self.order]
+        hips, out = self.retargeter.to_model(root[None], rot[None])
+        return hips[0], out[0]
 
     def from_model(self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        out_root, out_rot = self.retargeter.to_source(root[None], rotations[None], input_rotations[None])
-        return out_root[0], out_rot[0]
+        inp = input_rotations if self.order is None else input_rotations[self.order]
+        out_root, out_rot = self.retargeter.to_source(root[None], rotations[None], inp[None])
+        if self.order is None:
+            return out_root[0], out_rot[0]
+        back = np.empty_like(out_rot[0])
+        back[self.order] = out_rot[0]
+        return out_root[0], back
+
+    def report(self) -> dict:
+        return {**self.rig.report(), "retargeted": True}
 
 
-def _for_skeleton(source: Skeleton, model_skeleton: Skeleton) -> SkeletonAdapter:
-    if all(n in source.names for n in model_skeleton.names):
-        return Reorder(list(source.names), model_skeleton)
-    try:
-        source_variant(source)
-    except ValueError:
-        raise ProtocolError("unsupported_skeleton",
-                            "skeleton is neither the Bandai Namco skeleton nor a CMU skeleton "
-                            f"(joints: {', '.join(source.names[:6])}...)", fatal=True) from None
-    if source.parents[0] != -1 or source.names[0] != "Hips":
-        raise ProtocolError("unsupported_skeleton", "a CMU skeleton must have Hips as its root", fatal=True)
-    return Retarget(source)
+# rig problems -> the protocol's two skeleton codes; the message starts with the precise kind
+_CODES = {"missing_roles": "unsupported_skeleton", "bad_topology": "unsupported_skeleton",
+          "unsupported_skeleton": "unsupported_skeleton"}
 
 
-def adapter_for(skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton) -> SkeletonAdapter:
+def rig_error(err: RigError) -> ProtocolError:
+    """A `RigError` as the typed, fatal protocol error: `unsupported_skeleton` for a rig that is
+    not a usable humanoid, `bad_skeleton` for a malformed header, joint list or option; the
+    message names every missing role or broken link."""
+    return ProtocolError(_CODES.get(err.code, "bad_skeleton"), f"{err.code}: {err.message}", fatal=True)
+
+
+@lru_cache(maxsize=256)
+def _retarget(skeleton: str | None, bvh_header: str | None, options: str) -> Retarget:
+    """The adapter for a start message's rig fields (`options` as sorted JSON). Cached: many
+    sessions bring the same rig, and the adapter is stateless."""
+    opts = json.loads(options)
+    joints = opts.pop("joints", None)
+    if bvh_header is not None:
+        if joints is not None:
+            raise RigError("bad_skeleton", "give 'joints' with a preset 'skeleton', not with 'bvh_header' (its order is the header's)")
+        return Retarget(rig_from_bvh(bvh_header, **opts))
+    return Retarget(preset_rig(skeleton, joints=joints, **opts), joints)
+
+
+def _is_model_skeleton(names: list[str], model_skeleton: Skeleton, options: dict) -> bool:
+    return all(n in names for n in model_skeleton.names) and not options.get("joint_map")
+
+
+def adapter_for(skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None = None,
+                **options) -> SkeletonAdapter:
+    """The adapter for a start message's rig; raises `ProtocolError` (fatal, typed) for a rig
+    that cannot be mapped, before anything is set up."""
     if bvh_header is not None:
         text = bvh_header.split("MOTION")[0] + "MOTION\nFrames: 0\nFrame Time: 0.0333333\n"
         try:
-            parsed = bvhio.parse(text, "bvh_header")
+            names = list(skeleton_from_bvh(bvhio.parse(text, "bvh_header"))[0].names)
         except bvhio.BvhError as exc:
             raise ProtocolError("bad_skeleton", str(exc), fatal=True) from None
-        return _for_skeleton(skeleton_from_bvh(parsed)[0], model_skeleton)
-    if skeleton == "bandai-namco":
-        return Reorder(list(model_skeleton.names), model_skeleton)
-    if skeleton == "cmu":
-        return Retarget(cmu_skeleton())
-    raise ProtocolError("unsupported_skeleton", f"skeleton {skeleton!r} is not supported", fatal=True)
+        if _is_model_skeleton(names, model_skeleton, options):
+            return Reorder(names, model_skeleton)
+    elif skeleton == "bandai-namco" and not options.get("joint_map"):
+        names = list(joints) if joints is not None else list(model_skeleton.names)
+        missing = [n for n in model_skeleton.names if n not in names]
+        if missing or len(set(names)) != len(names):
+            raise ProtocolError("bad_skeleton", f"joints must list every Bandai Namco joint once (missing: "
+                                f"{', '.join(missing) or 'none'})", fatal=True)
+        return Reorder(names, model_skeleton)
+    elif skeleton in (None, "custom"):
+        raise ProtocolError("unsupported_skeleton", "give a preset 'skeleton' or a 'bvh_header'", fatal=True)
+    try:
+        return _retarget(skeleton if bvh_header is None else None, bvh_header,
+                         json.dumps({**options, **({"joints": joints} if joints is not None else {})}, sort_keys=True))
+    except RigError as err:
+        raise rig_error(err) from None

@@ -159,9 +159,15 @@ class Connection:
             message = P.parse_text(data)
             if not isinstance(message, P.Start):
                 raise P.ProtocolError("expected_start", f"the first message must be 'start', got '{message.type}'", fatal=True)
+            model = self.rt.models.get(message.model)
+            if message.resume_token is None and model is not None:  # a bad rig opens no session at all
+                self.adapter = adapter_for(message.skeleton or "custom", message.bvh_header, model.skeleton,
+                                           **message.rig_options())
             self.session = await self.rt.open_session(message)
             self.acks = message.snapshot_acks
-            self.adapter = adapter_for(self.session.skeleton, self.session.bvh_header, self.session.model.skeleton)
+            if self.adapter is None:  # a resume: the rig the session started with
+                self.adapter = adapter_for(self.session.skeleton, self.session.bvh_header, self.session.model.skeleton,
+                                           **self.session.rig)
         except P.ProtocolError as err:
             err.fatal = True
             await self.send_error(err)
@@ -174,6 +180,7 @@ class Connection:
             "last_seq": s.last_seq, "encoding": s.encoding,
             "layout": {"root": 3, "rotations": [self.adapter.num_joints, 4], "quaternion": "xyzw",
                        "binary_frame_bytes": P.binary_frame_size(self.adapter.num_joints)},
+            "rig": self.adapter.report(),  # the mapping used and the joints left unmapped
         }
         if message.resume_token and s.last_output:  # the reply to last_seq, in case the client lost it
             started["last_frame"] = P.frame_message(s.last_seq, s.last_output["root"], s.last_output["rotations"])

@@ -78,7 +78,7 @@ class StyleInfo(BaseModel):
     message: str | None = None
     frames: int | None = Field(default=None, description="Uploaded clip length at 30 fps.")
     source: Literal["bvh", "json"] | None = None
-    skeleton: str | None = Field(default=None, description="Skeleton of the uploaded clip (bandai-namco, cmu).")
+    skeleton: str | None = Field(default=None, description="Rig of the uploaded clip (bandai-namco, a preset such as cmu or mixamo, or humanoid).")
     fine_tune: dict | None = Field(default=None, description="Fine-tuning summary: seconds, and for LTI neutral clips and "
                                    "held-out metrics, for LPN-FiLM the loss on the clip's held-back frames before and after.")
 
@@ -144,9 +144,11 @@ def motion_from_json(upload: StyleUpload, skeleton):
 
 
 def motion_from_bvh(text: str, skeleton):
-    """BVH text (BN or CMU skeleton) -> BN Motion at 30 fps, and the source skeleton kind."""
+    """BVH text (BN skeleton or any humanoid rig `models.motion.humanoid` maps) -> BN Motion at
+    30 fps, and the source rig (bandai-namco, or the matched preset, or 'humanoid')."""
     from models.motion import bvh as bvhio
-    from models.motion.retarget import retarget, source_variant
+    from models.motion.humanoid import RigError, rig_from_bvh
+    from models.motion.retarget import retarget
     from models.motion.skeleton import from_bvh
     try:
         motion = from_bvh(bvhio.parse(text, "upload.bvh"))
@@ -159,16 +161,13 @@ def motion_from_bvh(text: str, skeleton):
         hips = src.index("Hips")
         return _bn_motion(skeleton, motion.translations[:, hips], motion.rotations[:, idx], motion.fps), "bandai-namco"
     try:
-        source_variant(src)
-    except ValueError:
-        raise ApiError(422, "unsupported_skeleton",
-                       "the clip's skeleton is neither the Bandai Namco skeleton nor a CMU skeleton "
-                       f"(its joints: {', '.join(src.names[:8])}{'...' if len(src.names) > 8 else ''})") from None
-    if src.names[0] != "Hips" or src.parents[0] != -1:
-        raise ApiError(422, "unsupported_skeleton", "a CMU skeleton must have Hips as its root")
-    bn = retarget(motion, fps=MODEL_FPS)
+        rig = rig_from_bvh(text, "upload.bvh")
+    except RigError as err:
+        raise ApiError(422, "unsupported_skeleton", f"the clip's skeleton is not a humanoid rig I can map: {err.message}") from None
+    bn = retarget(motion, fps=MODEL_FPS, source=rig)
     idx = [bn.skeleton.index(n) for n in skeleton.names]
-    return _bn_motion(skeleton, bn.translations[:, bn.skeleton.index("Hips")], bn.rotations[:, idx], MODEL_FPS), "cmu"
+    kind = {"cmu-bvh11": "cmu"}.get(rig.preset, rig.preset) or "humanoid"
+    return _bn_motion(skeleton, bn.translations[:, bn.skeleton.index("Hips")], bn.rotations[:, idx], MODEL_FPS), kind
 
 
 # --------------------------------------------------------------------------- the store

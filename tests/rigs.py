@@ -224,18 +224,16 @@ def matrix_from_rotvec(v: np.ndarray) -> np.ndarray:
 
 
 def _parents_first(parents: list[int]) -> list[int]:
-    order, seen = [], set()
-
-    def visit(j: int) -> None:
-        if j in seen:
-            return
-        if parents[j] >= 0:
-            visit(parents[j])
-        seen.add(j)
+    """Depth-first order (children in index order), the order a BVH file lists joints in."""
+    children: dict[int, list[int]] = {}
+    for j, p in enumerate(parents):
+        children.setdefault(p, []).append(j)
+    order: list[int] = []
+    stack = list(reversed(children.get(-1, [])))
+    while stack:
+        j = stack.pop()
         order.append(j)
-
-    for j in range(len(parents)):
-        visit(j)
+        stack.extend(reversed(children.get(j, [])))
     return order
 
 

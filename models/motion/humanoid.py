@@ -33,7 +33,8 @@ import numpy as np
 
 from . import bvh as bvhio
 from .humanoid_presets import PRESETS, preset_skeleton
-from .skeleton import Skeleton, skeleton_from_bvh
+from .rotations import matrix_to_quat, quat_to_matrix
+from .skeleton import Motion, Skeleton, skeleton_from_bvh
 
 SIDED_PARTS = ("clavicle", "upperarm", "lowerarm", "hand", "upperleg", "lowerleg", "foot", "toes")
 ARM, LEG = SIDED_PARTS[:4], SIDED_PARTS[4:]
@@ -516,6 +517,18 @@ def preset_rig(preset: str, joints: list[str] | None = None, **options) -> Human
     if preset == "bandai-namco":  # BN frames carry the Hips translation (joint_Root is static)
         rig = HumanoidRig(**{**rig.__dict__, "translated": rig.roles["hips"]})
     return rig
+
+
+def in_model_world(motion: Motion, rig: HumanoidRig) -> Motion:
+    """The motion with its world turned into the model's (Y up, right-handed) and its units into
+    cm, for drawing next to model-skeleton motions: offsets and translations A t, every rotation
+    A R A^T (proper even when A reflects)."""
+    a = rig.axes
+    cm = UNITS_CM.get(rig.units or "", 1.0)
+    local = a @ quat_to_matrix(motion.rotations) @ a.T
+    sk = motion.skeleton
+    skeleton = Skeleton(sk.names, sk.parents, sk.offsets @ a.T * cm, sk.end_sites @ a.T * cm)
+    return Motion(skeleton, matrix_to_quat(local), motion.translations @ a.T * cm, motion.fps, motion.euler_orders)
 
 
 # --------------------------------------------------------------------------- bench
