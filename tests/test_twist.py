@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from models.eval.plausibility import bone_axes
-from models.motion.rotations import expmap_to_quat, quat_angle, quat_mul, swing_twist, twist_angle
+from models.motion.rotations import expmap_to_quat, quat_angle, quat_inv, quat_mul, swing_twist, twist_angle
 from models.motion.twist import transfer_twist, transfer_twist_t
 
 
@@ -63,3 +63,33 @@ def test_torch_twin_matches_numpy(bn_walk):
     want = transfer_twist(walk.skeleton, walk.rotations, wrung.rotations)
     got = transfer_twist_t(walk.skeleton, torch.as_tensor(walk.rotations), torch.as_tensor(wrung.rotations)).numpy()
     assert np.degrees(quat_angle(got, want)).max() < 1e-4
+
+
+def test_kept_joints_keep_the_poses_own_rotation(bn_walk):
+    walk = bn_walk.slice(0, 20)
+    wrung = _twisted(walk, 90.0, ["Hand_L", "UpperLeg_R", "Spine"])
+    out = transfer_twist(walk.skeleton, walk.rotations, wrung.rotations, keep=("Hand_L", "UpperLeg_R"))
+    for name, want in (("Hand_L", wrung), ("UpperLeg_R", wrung), ("Spine", walk)):
+        j = walk.skeleton.index(name)
+        assert np.degrees(quat_angle(out[:, j], want.rotations[:, j])).max() < 0.1, name
+    assert np.abs(replace(walk, rotations=out).global_positions() - wrung.global_positions()).max() < 1e-4
+
+
+def test_lpn_keeps_the_spine_untwisted(index):
+    """LPN-FiLM toward `exhausted` turned the spine ~176 degrees about itself (and the chest back):
+    invisible in joint positions, a wrung body on a skinned character."""
+    from models.data import load_motion, select
+    from models.lpn import load as load_lpn
+    from models.interface import FrameBatch
+    from models.settings import get_settings
+
+    model = load_lpn(get_settings().weights_dir / "lpn")
+    walk = load_motion(select(index, dataset="bandai-namco-2", style="normal", content="walk", split="val")[0])
+    weights = np.zeros((1, len(model.styles())))
+    weights[0, model.styles().index("exhausted")] = 1.0
+    state, spine = model.init_state(1), walk.skeleton.index("Spine")
+    axis = bone_axes(walk.skeleton)[spine]
+    for t in range(60):
+        out, state = model.step_batch(state, FrameBatch(walk.translations[t:t + 1, 1], walk.rotations[t:t + 1]), weights)
+        twist = np.degrees(twist_angle(quat_mul(quat_inv(walk.rotations[t, spine]), out.rotations[0, spine]), axis))
+        assert abs(twist) < 45.0, (t, twist)

@@ -44,6 +44,7 @@ from ..interface import FrameBatch, State
 from ..motion.features import body_joint
 from ..motion.rotations import quat_mul
 from ..motion.skeleton import Motion, Skeleton
+from ..motion.twist import transfer_twist
 from . import features as lf
 from ..lti.kernels import foot_lock  # called from here, not compiled into this package's kernels: numba's cache tracks one file
 from . import kernels
@@ -62,6 +63,9 @@ STOP_SPEED = 30.0  # cm/s: below this wanted speed the phases are damped (standi
 STOP_PHASE_DAMP = 0.6  # per-frame phase factor when the wanted speed is 0
 STOP_ROOT_HOLD = 0.9  # share of the predicted root translation held back when the wanted speed is 0
 LEG_CHAINS = (("UpperLeg_L", "LowerLeg_L", "Foot_L"), ("UpperLeg_R", "LowerLeg_R", "Foot_R"))
+# The network's own local rotations kept as they are by `_untwist`: leaves (plausible as trained) and
+# limb roots (their twist sets the plane the knee / elbow bends in)
+OWN_ROTATIONS = ("Head", "Hand_L", "Hand_R", "Toes_L", "Toes_R", "UpperLeg_L", "UpperLeg_R", "UpperArm_L", "UpperArm_R")
 
 
 def yaw_quat(yaw: np.ndarray) -> np.ndarray:
@@ -245,9 +249,23 @@ class LPNModel:
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
         out_root, out_rot, contacts = self._advance(s, y, control)
+        out_rot = self._untwist(out_rot)
         out_rot = self._foot_lock(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
+
+    def _untwist(self, rotations: np.ndarray) -> np.ndarray:
+        """The pose with its joint positions, bones twisted as in the natural pose (the committed
+        one-frame asset): the network sometimes turns a bone about itself by ~180 degrees and its
+        child back (exhausted: Spine -176, Chest -177 degrees), which moves no joint but wrings a
+        skinned body. Leaves and limb roots keep the network's rotations (`OWN_ROTATIONS`)."""
+        source = np.broadcast_to(self._natural_pose, rotations.shape)
+        return transfer_twist(self.skeleton, source, rotations, OWN_ROTATIONS).astype(rotations.dtype)
+
+    @cached_property
+    def _natural_pose(self) -> np.ndarray:
+        from ..motion.assets import bandai_namco_pose
+        return bandai_namco_pose().rotations[0].astype(np.float64)
 
     def _control(self, s: State, frames: FrameBatch, root: np.ndarray, rot_in: np.ndarray, fresh: np.ndarray) -> np.ndarray:
         """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others derived

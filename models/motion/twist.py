@@ -72,10 +72,12 @@ def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
-def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray) -> np.ndarray:
+def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray,
+                   keep: tuple[str, ...] = ()) -> np.ndarray:
     """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
     rotations (see the module docstring). `source` and `pose` are (..., J, 4) local rotations on
-    `skeleton`."""
+    `skeleton`; joints named in `keep` take `pose`'s local rotation as it is (their bone still
+    lands where `pose` puts it)."""
     source = source / np.linalg.norm(source, axis=-1, keepdims=True)
     pose = pose / np.linalg.norm(pose, axis=-1, keepdims=True)
     out = np.empty_like(pose)
@@ -89,7 +91,7 @@ def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray) -> 
         if kind == "frame":
             g_new[..., j, :] = g_pose[..., j, :]
         else:
-            g = quat_mul(g_new[..., p, :], source[..., j, :])
+            g = quat_mul(g_new[..., p, :], (pose if skeleton.names[j] in keep else source)[..., j, :])
             if kind == "bone":
                 g = quat_mul(rotation_between(quat_apply(g, axis), quat_apply(g_pose[..., j, :], axis)), g)
             g_new[..., j, :] = g
