@@ -4,7 +4,7 @@
     stylestream data summary               what the mocap data holds (files, frames, styles x contents)
     stylestream data warm                  unpack and parse all data into the cache, timed
     stylestream render a.bvh [b.bvh] -o x.gif   render motions side by side (GIF, or PNG contact sheet)
-    stylestream retarget in.bvh -o out.bvh      CMU-skeleton BVH -> Bandai Namco skeleton (30 fps)
+    stylestream retarget in.bvh -o out.bvh      any humanoid BVH -> Bandai Namco skeleton (30 fps)
     stylestream loadtest --sessions 1,64 --echo-floor   open-loop latency test against a server it starts
     stylestream soak --minutes 30 --sessions 16         long run sampling server memory (docs/soak.md)
 
@@ -77,10 +77,11 @@ def user_errors() -> tuple[type[BaseException], ...]:
     from websockets.exceptions import WebSocketException
 
     from models.motion.bvh import BvhError
+    from models.motion.humanoid import RigError
 
     from .sdk import ResumeError, ServerError
 
-    return BvhError, OSError, httpx.HTTPError, WebSocketException, ServerError, ResumeError
+    return BvhError, RigError, OSError, httpx.HTTPError, WebSocketException, ServerError, ResumeError
 
 
 def main(argv: list[str] | None = None) -> int:

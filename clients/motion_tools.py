@@ -7,17 +7,26 @@ from pathlib import Path
 
 
 def _load_any(path: str, to_model_skeleton: bool):
-    from models.motion.retarget import retarget, source_variant
-    from models.motion.skeleton import load
+    """A BVH file as a motion: with `to_model_skeleton`, any humanoid rig retargeted onto the model
+    skeleton (the model's own skeleton as it is); otherwise as it is, turned Y up in cm for
+    drawing. A rig that is not a humanoid raises `RigError` (one line from the CLI)."""
+    from models.motion import bvh
+    from models.motion.assets import bandai_namco_skeleton
+    from models.motion.humanoid import RigError, in_model_world, rig_from_bvh
+    from models.motion.retarget import retarget
+    from models.motion.skeleton import from_bvh
 
-    motion = load(path)
-    if to_model_skeleton:
-        try:
-            source_variant(motion.skeleton)
-        except ValueError:
-            return motion  # already a Bandai Namco skeleton
-        return retarget(motion)
-    return motion
+    text = Path(path).read_text()
+    motion = from_bvh(bvh.parse(text, str(path)))
+    if all(n in motion.skeleton.names for n in bandai_namco_skeleton().names):
+        return motion  # already the model skeleton
+    try:
+        rig = rig_from_bvh(text, str(path))
+    except RigError:
+        if to_model_skeleton:
+            raise
+        return motion  # not a humanoid: drawn as it is
+    return retarget(motion, fps=motion.fps, source=rig) if to_model_skeleton else in_model_world(motion, rig)
 
 
 def _render(args: argparse.Namespace) -> int:
@@ -35,10 +44,12 @@ def _render(args: argparse.Namespace) -> int:
 
 def _retarget(args: argparse.Namespace) -> int:
     from models.motion import bvh
+    from models.motion.humanoid import rig_from_bvh
     from models.motion.retarget import retarget
-    from models.motion.skeleton import load, to_bvh
+    from models.motion.skeleton import from_bvh, to_bvh
 
-    out = retarget(load(args.input), fps=args.fps)
+    text = Path(args.input).read_text()
+    out = retarget(from_bvh(bvh.parse(text, str(args.input))), fps=args.fps, source=rig_from_bvh(text, str(args.input)))
     bvh.write(to_bvh(out), args.output)
     print(f"{args.output}: {out.num_frames} frames at {out.fps:g} fps on the Bandai Namco skeleton")
     return 0
@@ -61,14 +72,15 @@ def _stylise(args: argparse.Namespace) -> int:
     motion = from_bvh(source)
     header = args.input.read_text().split("MOTION")[0]
     client = Client(args.url, token=args.token)
-    root_joint = next(j for j, joint in enumerate(source.joints) if "Xposition" in joint.channels and joint.parent >= 0) \
-        if any("Xposition" in j.channels for j in source.joints[1:]) else 0  # BN animates Hips under a static root
     out_root = np.zeros((motion.num_frames, 3))
     out_rot = np.zeros_like(motion.rotations)
     period = 1.0 / (args.rate or motion.fps) if args.realtime else 0.0
     dropped = 0
     with client.session(model=args.model, style=args.style, bvh_header=header, fps=motion.fps,
                         intensity=args.intensity) as session:
+        # the joint whose translation frames carry: the server says (`rig.root_joint`; BN animates
+        # Hips under a static root, other rigs their hips or their root)
+        root_joint = session.joints.index(session.info.get("rig", {}).get("root_joint", session.joints[0]))
         t0 = time.perf_counter()
         for t in tqdm(range(motion.num_frames), desc=f"{args.model}/{args.style}", unit="frame"):
             if period:
@@ -83,17 +95,22 @@ def _stylise(args: argparse.Namespace) -> int:
     print(f"{args.output}: {motion.num_frames} frames, style {args.style}, dropped {dropped}")
     if args.render:
         titles = ["input", f"{args.model} {args.style}"]
+        shown = [motion, styled]
+        if session.info.get("rig", {}).get("retargeted"):  # drawn Y up, in cm
+            from models.motion.humanoid import in_model_world, rig_from_bvh
+            rig = rig_from_bvh(header)
+            shown = [in_model_world(m, rig) for m in shown]
         if args.render.suffix.lower() == ".png":
-            render_contact_sheet([motion, styled], args.render, frames=8, titles=titles)
+            render_contact_sheet(shown, args.render, frames=8, titles=titles)
         else:
-            render_gif([motion, styled], args.render, titles=titles)
+            render_gif(shown, args.render, titles=titles)
         print(args.render)
     return 0
 
 
 def add_motion_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("stylise", help="stream a BVH file through a running server and write the stylised BVH")
-    p.add_argument("input", type=Path, help="BVH on the Bandai Namco or a CMU skeleton")
+    p.add_argument("input", type=Path, help="BVH on any humanoid rig (Bandai Namco, CMU, Mixamo, Unreal, Unity/VRM, SMPL, ...)")
     p.add_argument("--model", default="lti")
     p.add_argument("--style", required=True)
     p.add_argument("--intensity", type=float, default=1.0)
@@ -106,17 +123,17 @@ def add_motion_commands(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_stylise)
 
     p = sub.add_parser("render", help="render BVH files side by side to a GIF (or a PNG contact sheet)")
-    p.add_argument("inputs", nargs="+", help="BVH files (Bandai Namco or CMU skeleton)")
+    p.add_argument("inputs", nargs="+", help="BVH files (any rig; humanoids are drawn Y up in cm)")
     p.add_argument("-o", "--output", type=Path, required=True, help="out.gif, or out.png for a contact sheet")
     p.add_argument("--title", action="append", help="panel title per input (default: file names)")
-    p.add_argument("--retarget", action="store_true", help="show CMU-skeleton inputs retargeted onto the model skeleton")
+    p.add_argument("--retarget", action="store_true", help="show humanoid inputs retargeted onto the model skeleton")
     p.add_argument("--fps", type=float, default=15.0, help="GIF frame rate (default 15)")
     p.add_argument("--seconds", type=float, default=6.0, help="GIF length cap (default 6)")
     p.add_argument("--frames", type=int, default=8, help="poses per motion in a contact sheet (default 8)")
     p.set_defaults(func=_render)
 
-    p = sub.add_parser("retarget", help="CMU-skeleton BVH (CMU/Xia files) -> Bandai Namco-skeleton BVH")
-    p.add_argument("input", help="a CMU-skeleton BVH file")
+    p = sub.add_parser("retarget", help="any humanoid BVH (CMU, Mixamo, Unreal, ...) -> Bandai Namco-skeleton BVH")
+    p.add_argument("input", help="a humanoid BVH file")
     p.add_argument("-o", "--output", type=Path, required=True)
     p.add_argument("--fps", type=float, default=30.0, help="output frame rate (default 30, the models' rate)")
     p.set_defaults(func=_retarget)
