@@ -32,8 +32,11 @@ k's nearest mapped ancestor-or-self (none: no change). So
 
 and `to_source(*to_model(root, rot), rot) == (root, rot)` up to float rounding.
 
-Internally everything runs on rotation matrices batched over frames (or sessions) and over joints
-of one tree depth (one `matmul` per depth level).
+`to_model` and `to_source` run compiled kernels (`retarget_kernels`, numba), one frame at a time on
+scalars: a few microseconds a character at batch 1 as well as batched. `to_model_reference` and
+`to_source_reference` are the same mapping in numpy, on rotation matrices batched over frames (or
+sessions) and over joints of one tree depth (one `matmul` per depth level); the kernels are tested
+equal to them to float round-off.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import retarget_kernels as kernels
 from .humanoid import BN_ROLES, HumanoidRig, bn_joints_of, bn_segments, humanoid_rig
 from .retarget import _LATERAL, _PRIMARY_CHILD, BN_JOINTS, Rig, TwistPlan, _frame, default_rig, leg_length
 from .rotations import matrix_to_quat as mat_to_quat
@@ -203,6 +207,7 @@ class FrameRetargeter:
         p = int(self._src_parents[hr.translated])
         self._translated_par_s = int(tree.pos[p]) if p >= 0 else -1
 
+        self._kernel_plan()
         self.scale = leg_length(sk) / hr.leg_length
         self.source_floor = rig.floor / self.scale if source_floor is None else float(source_floor)
         self.vertical_offset = self._standing_offset() if vertical_offset is None else float(vertical_offset)
@@ -274,6 +279,83 @@ class FrameRetargeter:
         root (B, 3): the translation of the client's translated joint (`HumanoidRig.translated`:
         the hips, or the root above them); rotations (B, Js, 4): client local quaternions (xyzw).
         Returns (Hips translation (B, 3), BN local rotations (B, 22, 4), w >= 0). Every other BN
+        translation is the BN skeleton's offset.
+
+        Compiled (`retarget_kernels.to_model`), a few microseconds a frame at any batch size;
+        `to_model_reference` is the same mapping in numpy."""
+        root = np.ascontiguousarray(root, dtype=np.float64).reshape(-1, 3)
+        b = root.shape[0]
+        rotations = self._client_rotations(rotations, b)
+        hips, out = np.empty((b, 3)), np.empty((b, self._bn_parents.shape[0], 4))
+        kernels.to_model(root, rotations, *self._k_plan, self.scale, self.vertical_offset, hips, out)
+        return hips, out
+
+    def to_source(self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """BN frame(s) -> client frame(s) on the client's rig.
+
+        root_bn (B, 3): BN Hips translation; rotations_bn (B, 22, 4): BN local quaternions;
+        source_rotations (B, Js, 4): the client's own local rotations for the same frame(s)
+        (unmapped joints keep these; they also fix the twist the BN change is applied to).
+        Returns (client root translation (B, 3), client local rotations (B, Js, 4)).
+
+        Compiled (`retarget_kernels.to_source`); `to_source_reference` is the same in numpy."""
+        root_bn = np.ascontiguousarray(root_bn, dtype=np.float64).reshape(-1, 3)
+        b = root_bn.shape[0]
+        nb = self._bn_parents.shape[0]
+        rotations_bn = np.ascontiguousarray(rotations_bn, dtype=np.float64).reshape(b, nb, 4)
+        source_rotations = self._client_rotations(source_rotations, b)
+        root, out = np.empty((b, 3)), np.empty_like(source_rotations)
+        kernels.to_source(root_bn, rotations_bn, source_rotations, *self._k_plan, self.scale, self.vertical_offset, root, out)
+        return root, out
+
+    # ----------------------------------------------------------------------- compiled kernels
+
+    def _client_rotations(self, rotations: np.ndarray, b: int) -> np.ndarray:
+        j = self.source.num_joints
+        rotations = np.ascontiguousarray(rotations, dtype=np.float64)
+        if rotations.size != b * j * 4:
+            raise ValueError(f"expected {b} frame(s) of {j} client joints, got rotations of shape {rotations.shape}")
+        return rotations.reshape(b, j, 4)
+
+    def _kernel_plan(self) -> None:
+        """The rig as the plain arrays `retarget_kernels` takes, packed (`kernels.pack`)."""
+        tree, plan = self._src_tree, self._plan
+        par_s = np.full(len(tree.order), -1)
+        for a, b, par in tree.levels:
+            par_s[a:b] = par
+        steps, nat, bone, hinge, m_loc_t = [], [], [], [], []
+        kinds = {"leaf": kernels.KIND_LEAF, "swing": kernels.KIND_SWING, "limb": kernels.KIND_LIMB}
+        for g in plan.groups:  # TwistPlan's groups, one joint a step
+            for i, (j, p) in enumerate(zip(g["j"], g["p"])):
+                limb = g["kind"] == "limb"
+                steps.append((kinds[g["kind"]], j, p, g["dir"][i] if "dir" in g else -1, g["dir_c"][i] if limb else -1))
+                nat.append(g["nat"][i])
+                bone.append(g["b"][i] if "b" in g else np.zeros(3))
+                hinge.append(g["k"][i] if limb else np.zeros(3))
+                m_loc_t.append(g["m_loc_t"][i] if limb else np.eye(3))
+        nz = np.argwhere(self._vec_coef != 0)  # (v, t) entries, row by row
+        bn_count = self._bn_parents.shape[0]
+        ints = {"src_order": tree.order, "src_par_s": par_s, "fixed_par_s": self._fixed_par_s,
+                "translated_par_s": self._translated_par_s, "vec_par_s": self._vec_par_s, "vec_nz": nz,
+                "num_plain": self._num_plain, "lateral_j": plan.lateral, "step_i": steps, "bn_parents": self._bn_parents,
+                "bn_order": self._bn_tree.order, "delta_j": np.unique(self._anc_bn_s[self._anc_bn_s < bn_count]),
+                "anc_bn_s": self._anc_bn_s, "mapped_j": np.concatenate([self._mapped_nonroot, self._mapped_root]),
+                "mapped_s": np.concatenate([self._mapped_s, self._mapped_root_s]),
+                "mapped_par_s": np.concatenate([self._mapped_parents_s, np.full(len(self._mapped_root), -1)])}
+        floats = {"fixed_off": self._fixed_off, "vec_off": self._vec_off, "vec_w": self._vec_coef[nz[:, 0], nz[:, 1]],
+                  "axes": self._axes, "m_tgt_t": self._m_tgt_t, "step_nat": nat, "step_b": bone, "step_k": hinge,
+                  "step_m_loc_t": m_loc_t}
+        self._k_plan = (*kernels.pack(ints, kernels.INT_PARTS, np.int64), *kernels.pack(floats, kernels.FLOAT_PARTS, np.float64))
+
+    # ----------------------------------------------------------------------- numpy reference
+
+    def to_model_reference(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`to_model` in numpy (batched over frames and tree depths): the reference the compiled
+        kernel is tested against.
+
+        root (B, 3): the translation of the client's translated joint (`HumanoidRig.translated`:
+        the hips, or the root above them); rotations (B, Js, 4): client local quaternions (xyzw).
+        Returns (Hips translation (B, 3), BN local rotations (B, 22, 4), w >= 0). Every other BN
         translation is the BN skeleton's offset."""
         root = np.asarray(root, dtype=np.float64).reshape(-1, 3)
         gs = self._source_globals(np.asarray(rotations, dtype=np.float64).reshape(root.shape[0], -1, 4))
@@ -282,8 +364,8 @@ class FrameRetargeter:
         hips[:, 1] += self.vertical_offset
         return hips, self._local_bn(gs)
 
-    def to_source(self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """BN frame(s) -> client frame(s) on the client's rig.
+    def to_source_reference(self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`to_source` in numpy: the reference the compiled kernel is tested against.
 
         root_bn (B, 3): BN Hips translation; rotations_bn (B, 22, 4): BN local quaternions;
         source_rotations (B, Js, 4): the client's own local rotations for the same frame(s)

@@ -1,0 +1,384 @@
+"""Compiled kernels (numba) for `retarget_stream.FrameRetargeter`: one frame at a time on scalars.
+
+The numpy path of `FrameRetargeter` (kept as the reference: `to_model_reference`,
+`to_source_reference`) batches 3x3 matrix products over frames and over the joints of one tree
+depth; at batch 1 that is a few hundred numpy calls of a few microseconds each (~2 ms a frame
+both ways), batched it is bound by numpy's small-matrix `matmul` (~70 us a character). Here a
+frame is a loop over the joints on 3x3 scratch arrays, a few microseconds a character at batch 1
+as well as batched. The maths is the numpy path's, step for step (see `retarget_stream` for what
+each step means); results equal it to float round-off.
+
+Everything the kernels need of a rig is precomputed by `FrameRetargeter._kernel_plan` into plain
+arrays, packed into one int and one float buffer (`pack`). This file is self-contained on purpose: numba's on-disk cache
+(`cache=True`) does not notice changes in helpers imported from other files.
+
+Conventions: quaternions (x, y, z, w); rotation matrices act on column vectors; slots are the
+client's needed joints in depth order (`retarget_stream._Tree`), slot -1 meaning "identity".
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+KIND_LEAF, KIND_SWING, KIND_LIMB = 0, 1, 2
+HINGE_FALLBACK_SQ = 0.03**2  # retarget.HINGE_FALLBACK squared (checked by the tests against the numpy path)
+
+# --------------------------------------------------------------------------- 3x3 helpers
+# Inlined: called on views of bigger arrays, a call each costs the view's reference counting
+# (~3x the arithmetic); inlined, numba drops it.
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _mm(a, b, out):
+    """out = a @ b (3x3); out may not alias a or b."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _mtm(a, b, out):
+    """out = a.T @ b (3x3)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[0, i] * b[0, j] + a[1, i] * b[1, j] + a[2, i] * b[2, j]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _mmt(a, b, out):
+    """out = a @ b.T (3x3)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[j, 0] + a[i, 1] * b[j, 1] + a[i, 2] * b[j, 2]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _mv(a, v, out):
+    """out = a @ v."""
+    for i in range(3):
+        out[i] = a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _eye(out):
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = 1.0 if i == j else 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _quat_to_mat(q, out):
+    """(4,) quaternion (normalised here) -> 3x3 (rotations.quat_to_matrix)."""
+    x, y, z, w = q[0], q[1], q[2], q[3]
+    s = 2.0 / (x * x + y * y + z * z + w * w)  # 2 / |q|^2: the products of the unit quaternion, doubled
+    xx, yy, zz, xy, xz, yz, wx, wy, wz = s * x * x, s * y * y, s * z * z, s * x * y, s * x * z, s * y * z, s * w * x, s * w * y, s * w * z
+    out[0, 0], out[0, 1], out[0, 2] = 1 - (yy + zz), xy - wz, xz + wy
+    out[1, 0], out[1, 1], out[1, 2] = xy + wz, 1 - (xx + zz), yz - wx
+    out[2, 0], out[2, 1], out[2, 2] = xz - wy, yz + wx, 1 - (xx + yy)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _mat_to_quat(m, out):
+    """3x3 -> (4,) quaternion with w >= 0 (rotations.matrix_to_quat: Shepperd's method, the
+    candidate built on the largest of trace and diagonal, first one on ties)."""
+    m00, m11, m22 = m[0, 0], m[1, 1], m[2, 2]
+    trace = m00 + m11 + m22
+    best, big = 0, trace
+    if m00 > big:
+        best, big = 1, m00
+    if m11 > big:
+        best, big = 2, m11
+    if m22 > big:
+        best = 3
+    if best == 0:
+        x, y, z, w = m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], 1 + trace
+    elif best == 1:
+        x, y, z, w = 1 + m00 - m11 - m22, m[0, 1] + m[1, 0], m[0, 2] + m[2, 0], m[2, 1] - m[1, 2]
+    elif best == 2:
+        x, y, z, w = m[0, 1] + m[1, 0], 1 + m11 - m00 - m22, m[1, 2] + m[2, 1], m[0, 2] - m[2, 0]
+    else:
+        x, y, z, w = m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 + m22 - m00 - m11, m[1, 0] - m[0, 1]
+    n = np.sqrt(x * x + y * y + z * z + w * w)
+    if w < 0:
+        n = -n
+    out[0], out[1], out[2], out[3] = x / n, y / n, z / n, w / n
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _frame(p0, p1, p2, l0, l1, l2, out):
+    """retarget._frame: columns (primary, lateral made orthogonal, their cross), all unit."""
+    n = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    a0, a1, a2 = p0 / n, p1 / n, p2 / n
+    d = l0 * a0 + l1 * a1 + l2 * a2
+    b0, b1, b2 = l0 - d * a0, l1 - d * a1, l2 - d * a2
+    n = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+    b0, b1, b2 = b0 / n, b1 / n, b2 / n
+    out[0, 0], out[1, 0], out[2, 0] = a0, a1, a2
+    out[0, 1], out[1, 1], out[2, 1] = b0, b1, b2
+    out[0, 2], out[1, 2], out[2, 2] = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _swing(a, b, out):
+    """retarget._swing_mats: the smallest rotation taking unit a to unit b (I + [v]x + [v]x^2 / (1 + c),
+    v = a x b, c = a . b); exactly opposite vectors get the half turn about an axis perpendicular to a."""
+    v0, v1, v2 = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+    c = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    lin = 1.0
+    if c < -1.0 + 1e-9:
+        if abs(a[0]) < 0.9:  # cross(a, x)
+            v0, v1, v2 = 0.0, a[2], -a[1]
+        else:  # cross(a, y)
+            v0, v1, v2 = -a[2], 0.0, a[0]
+        n = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        v0, v1, v2 = v0 / n, v1 / n, v2 / n
+        lin, s = 0.0, 1.0
+    else:
+        s = 1.0 / (1.0 + c)
+    # [v]x and [v]x^2 = v v^T - |v|^2 I
+    vv = v0 * v0 + v1 * v1 + v2 * v2
+    out[0, 0] = 1.0 + s * (v0 * v0 - vv)
+    out[1, 1] = 1.0 + s * (v1 * v1 - vv)
+    out[2, 2] = 1.0 + s * (v2 * v2 - vv)
+    out[0, 1] = -lin * v2 + s * v0 * v1
+    out[1, 0] = lin * v2 + s * v0 * v1
+    out[0, 2] = lin * v1 + s * v0 * v2
+    out[2, 0] = -lin * v1 + s * v0 * v2
+    out[1, 2] = -lin * v0 + s * v1 * v2
+    out[2, 1] = lin * v0 + s * v1 * v2
+
+
+# --------------------------------------------------------------------------- per-frame steps
+# Scratch arrays come from the callers (allocated once per call, not per frame): w33 (3, 3, 3), w3 (3, 3).
+
+
+@njit(cache=True, error_model="numpy")
+def _source_fk(rot, order, par_s, gs, m):
+    """Client world rotations in slots: gs[s] = gs[par_s[s]] @ R(rot[order[s]]) (par_s -1: a root)."""
+    for s in range(order.shape[0]):
+        if par_s[s] < 0:
+            _quat_to_mat(rot[order[s]], gs[s])
+        else:
+            _quat_to_mat(rot[order[s]], m)
+            _mm(gs[par_s[s]], m, gs[s])
+
+
+@njit(cache=True, error_model="numpy")
+def _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t):
+    """The client hips' world position is c + gp @ root (`FrameRetargeter._hips_terms`)."""
+    c[:] = 0.0
+    for i in range(fixed_par_s.shape[0]):
+        if fixed_par_s[i] < 0:
+            for r in range(3):
+                c[r] += fixed_off[i, r]
+        else:
+            _mv(gs[fixed_par_s[i]], fixed_off[i], t)
+            for r in range(3):
+                c[r] += t[r]
+    if translated_par_s < 0:
+        _eye(gp)
+    else:
+        gp[:, :] = gs[translated_par_s]
+
+
+@njit(cache=True, error_model="numpy")
+def _bn_globals(gs, vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
+                step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, gb, terms, raw, vec, w33, w3):
+    """BN world rotations gb (22, 3, 3) from the client's slot rotations gs
+    (`FrameRetargeter._bn_globals` then `retarget.TwistPlan.bn_globals`). The segment vectors are
+    sums of vec_w[e] * gs[vec_par_s[t]] @ vec_off[t] over the entries e = (v, t) of vec_nz (the
+    nonzero entries of `FrameRetargeter._vec_coef`); scratch: terms (T, 3), raw and vec (V, 3)."""
+    for t in range(vec_off.shape[0]):
+        _mv(gs[vec_par_s[t]], vec_off[t], terms[t])
+    raw[:, :] = 0.0
+    for e in range(vec_nz.shape[0]):
+        v, t, w = vec_nz[e, 0], vec_nz[e, 1], vec_w[e]
+        for r in range(3):
+            raw[v, r] += w * terms[t, r]
+    for v in range(raw.shape[0]):
+        _mv(axes, raw[v], vec[v])  # in BN's world
+    for v in range(num_plain):  # bone directions
+        n = np.sqrt(vec[v, 0] * vec[v, 0] + vec[v, 1] * vec[v, 1] + vec[v, 2] * vec[v, 2])
+        for r in range(3):
+            vec[v, r] /= n
+
+    m, base, sw = w33[0], w33[1], w33[2]
+    bone, nat = w3[0], w3[1]
+    for j in range(bn_parents.shape[0]):
+        if bn_parents[j] < 0:
+            _eye(gb[j])  # joint_Root
+    for i in range(lateral_j.shape[0]):  # two-vector joints (Hips, Chest)
+        a, b = num_plain + 2 * i, num_plain + 2 * i + 1
+        _frame(vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2], m)
+        _mm(m, m_tgt_t[i], gb[lateral_j[i]])
+    for s in range(step_i.shape[0]):  # every other joint, parents first
+        kind, j, p, col, col_c = step_i[s, 0], step_i[s, 1], step_i[s, 2], step_i[s, 3], step_i[s, 4]
+        if kind == KIND_LEAF:
+            _mm(gb[p], step_nat[s], gb[j])
+            continue
+        _mm(gb[p], step_nat[s], base)  # natural local rotation under the BN parent
+        _mv(base, step_b[s], bone)
+        d = vec[col]
+        _swing(bone, d, sw)
+        _mm(sw, base, gb[j])
+        if kind == KIND_LIMB:
+            lo = vec[col_c]
+            _mv(gb[j], step_k[s], nat)
+            n0, n1, n2 = d[1] * lo[2] - d[2] * lo[1], d[2] * lo[0] - d[0] * lo[2], d[0] * lo[1] - d[1] * lo[0]
+            w = n0 * nat[0] + n1 * nat[1] + n2 * nat[2]
+            _frame(d[0], d[1], d[2], w * n0 + HINGE_FALLBACK_SQ * nat[0], w * n1 + HINGE_FALLBACK_SQ * nat[1],
+                   w * n2 + HINGE_FALLBACK_SQ * nat[2], m)
+            _mm(m, step_m_loc_t[s], gb[j])
+
+
+
+
+# The rig's arrays travel packed in two buffers, ints and floats, each with its offsets (a part i is
+# buf[at[i]:at[i + 1]], reshaped): numba checks every argument's type on each call (~0.1 us an
+# array), which for the two dozen arrays a rig needs would be most of a batch-1 call.
+INT_PARTS = ("src_order", "src_par_s", "fixed_par_s", "translated_par_s", "vec_par_s", "vec_nz", "num_plain",
+             "lateral_j", "step_i", "bn_parents", "bn_order", "delta_j", "anc_bn_s", "mapped_j", "mapped_s",
+             "mapped_par_s")
+FLOAT_PARTS = ("fixed_off", "vec_off", "vec_w", "axes", "m_tgt_t", "step_nat", "step_b", "step_k", "step_m_loc_t")
+
+
+def pack(parts: dict, names: tuple[str, ...], dtype) -> tuple[np.ndarray, np.ndarray]:
+    """(buffer, offsets) holding `parts[name]` (arrays or scalars) flattened in the order of `names`."""
+    flat = [np.asarray(parts[n], dtype=dtype).ravel() for n in names]
+    at = np.zeros(len(flat) + 1, dtype=np.int64)
+    at[1:] = np.cumsum([len(f) for f in flat])
+    return np.ascontiguousarray(np.concatenate(flat), dtype=dtype), at
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _part(buf, at, i):
+    return buf[at[i]:at[i + 1]]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _part3(buf, at, i):
+    return buf[at[i]:at[i + 1]].reshape(-1, 3)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _part33(buf, at, i):
+    return buf[at[i]:at[i + 1]].reshape(-1, 3, 3)
+
+
+# --------------------------------------------------------------------------- the two directions
+
+
+@njit(cache=True, error_model="numpy")
+def _to_model(root, rot, src_order, src_par_s, fixed_par_s, fixed_off, translated_par_s, scale, vertical_offset,
+             vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
+             step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, hips_out, rot_out):
+    """Client frames (root (B, 3), local quaternions (B, Js, 4)) -> BN Hips translations
+    hips_out (B, 3) and BN local quaternions rot_out (B, 22, 4) (`FrameRetargeter.to_model`); `to_model` unpacks the rig's arrays for it."""
+    nb, nv = bn_parents.shape[0], num_plain + 2 * lateral_j.shape[0]
+    gs = np.empty((src_order.shape[0], 3, 3))
+    gb = np.empty((nb, 3, 3))
+    terms, raw, vec = np.empty((vec_off.shape[0], 3)), np.empty((nv, 3)), np.empty((nv, 3))
+    w33, w3 = np.empty((3, 3, 3)), np.empty((3, 3))
+    m, gp = np.empty((3, 3)), np.empty((3, 3))
+    c, t, h = np.empty(3), np.empty(3), np.empty(3)
+    for f in range(root.shape[0]):
+        _source_fk(rot[f], src_order, src_par_s, gs, m)
+        _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t)
+        _mv(gp, root[f], t)
+        for r in range(3):
+            t[r] += c[r]
+        _mv(axes, t, h)
+        for r in range(3):
+            hips_out[f, r] = h[r] * scale
+        hips_out[f, 1] += vertical_offset
+        _bn_globals(gs, vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
+                    step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, gb, terms, raw, vec, w33, w3)
+        for j in range(nb):
+            if bn_parents[j] < 0:
+                _mat_to_quat(gb[j], rot_out[f, j])
+            else:
+                _mtm(gb[bn_parents[j]], gb[j], m)
+                _mat_to_quat(m, rot_out[f, j])
+
+
+@njit(cache=True, error_model="numpy")
+def _to_source(root_bn, rot_bn, src_rot, src_order, src_par_s, fixed_par_s, fixed_off, translated_par_s, scale,
+              vertical_offset, vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
+              step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, bn_order, delta_j, anc_bn_s,
+              mapped_j, mapped_s, mapped_par_s, root_out, rot_out):
+    """BN frames (Hips translations (B, 3), local quaternions (B, 22, 4)) and the client's own
+    rotations (B, Js, 4) -> client root translations root_out (B, 3) and local quaternions
+    rot_out (B, Js, 4) (`FrameRetargeter.to_source`). `delta_j`: the BN joints whose change some
+    client joint takes; `anc_bn_s`: that BN joint per slot (22: none, no change); `mapped_par_s`
+    -1: a mapped root joint. `to_source` unpacks the rig's arrays for it."""
+    nb, ns, nv = bn_parents.shape[0], src_order.shape[0], num_plain + 2 * lateral_j.shape[0]
+    gs = np.empty((ns, 3, 3))
+    gbc = np.empty((nb, 3, 3))
+    gbn = np.empty((nb, 3, 3))
+    delta = np.empty((nb + 1, 3, 3))  # delta[nb]: identity, for joints with no mapped ancestor
+    g_new = np.empty((ns, 3, 3))
+    terms, raw, vec = np.empty((vec_off.shape[0], 3)), np.empty((nv, 3)), np.empty((nv, 3))
+    w33, w3 = np.empty((3, 3, 3)), np.empty((3, 3))
+    m, m2, gp = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    c, h, t = np.empty(3), np.empty(3), np.empty(3)
+    _eye(delta[nb])
+    for f in range(root_bn.shape[0]):
+        for s in range(bn_order.shape[0]):  # BN world rotations of the given frame, parents first
+            j = bn_order[s]
+            p = bn_parents[j]
+            if p < 0:
+                _quat_to_mat(rot_bn[f, j], gbn[j])
+            else:
+                _quat_to_mat(rot_bn[f, j], m)
+                _mm(gbn[p], m, gbn[j])
+        _source_fk(src_rot[f], src_order, src_par_s, gs, m)
+        _bn_globals(gs, vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
+                    step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, gbc, terms, raw, vec, w33, w3)
+        for i in range(delta_j.shape[0]):  # the change of each BN joint used, in the client's world
+            j = delta_j[i]
+            _mmt(gbn[j], gbc[j], m)
+            _mtm(axes, m, m2)
+            _mm(m2, axes, delta[j])
+        for s in range(ns):
+            _mm(delta[anc_bn_s[s]], gs[s], g_new[s])
+        rot_out[f] = src_rot[f]  # unmapped joints keep the client's local rotations
+        for i in range(mapped_j.shape[0]):
+            if mapped_par_s[i] < 0:
+                _mat_to_quat(g_new[mapped_s[i]], rot_out[f, mapped_j[i]])
+            else:
+                _mtm(g_new[mapped_par_s[i]], g_new[mapped_s[i]], m)
+                _mat_to_quat(m, rot_out[f, mapped_j[i]])
+        t[0], t[1], t[2] = root_bn[f, 0] / scale, (root_bn[f, 1] - vertical_offset) / scale, root_bn[f, 2] / scale
+        for r in range(3):  # axes.T @ t: the client's world
+            h[r] = axes[0, r] * t[0] + axes[1, r] * t[1] + axes[2, r] * t[2]
+        _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t)  # the chain above the hips is unchanged
+        for r in range(3):
+            h[r] -= c[r]
+        for r in range(3):
+            root_out[f, r] = gp[0, r] * h[0] + gp[1, r] * h[1] + gp[2, r] * h[2]
+
+
+@njit(cache=True, error_model="numpy")
+def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, hips_out, rot_out):
+    """`_to_model` with the rig's arrays packed (`pack`, `INT_PARTS`, `FLOAT_PARTS`)."""
+    _to_model(root, rot, _part(ints, int_at, 0), _part(ints, int_at, 1), _part(ints, int_at, 2),
+              _part3(floats, float_at, 0), ints[int_at[3]], scale, vertical_offset,
+              _part(ints, int_at, 4), _part3(floats, float_at, 1), _part(ints, int_at, 5).reshape(-1, 2),
+              _part(floats, float_at, 2), _part33(floats, float_at, 3)[0], ints[int_at[6]], _part33(floats, float_at, 4),
+              _part(ints, int_at, 7), _part(ints, int_at, 8).reshape(-1, 5), _part33(floats, float_at, 5),
+              _part3(floats, float_at, 6), _part3(floats, float_at, 7), _part33(floats, float_at, 8),
+              _part(ints, int_at, 9), hips_out, rot_out)
+
+
+@njit(cache=True, error_model="numpy")
+def to_source(root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, vertical_offset, root_out, rot_out):
+    """`_to_source` with the rig's arrays packed (`pack`, `INT_PARTS`, `FLOAT_PARTS`)."""
+    _to_source(root_bn, rot_bn, src_rot, _part(ints, int_at, 0), _part(ints, int_at, 1), _part(ints, int_at, 2),
+               _part3(floats, float_at, 0), ints[int_at[3]], scale, vertical_offset,
+               _part(ints, int_at, 4), _part3(floats, float_at, 1), _part(ints, int_at, 5).reshape(-1, 2),
+               _part(floats, float_at, 2), _part33(floats, float_at, 3)[0], ints[int_at[6]], _part33(floats, float_at, 4),
+               _part(ints, int_at, 7), _part(ints, int_at, 8).reshape(-1, 5), _part33(floats, float_at, 5),
+               _part3(floats, float_at, 6), _part3(floats, float_at, 7), _part33(floats, float_at, 8),
+               _part(ints, int_at, 9), _part(ints, int_at, 10), _part(ints, int_at, 11), _part(ints, int_at, 12),
+               _part(ints, int_at, 13), _part(ints, int_at, 14), _part(ints, int_at, 15), root_out, rot_out)
