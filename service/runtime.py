@@ -21,7 +21,7 @@ import numpy as np
 
 from models.interface import FrameBatch, StreamingModel, weight_vector
 
-from . import frame_check
+from . import frame_check, skeletons
 from . import protocol as P
 from .batcher import Batcher, ModelThread
 from .metrics import Metrics
@@ -67,6 +67,7 @@ class Runtime:
 
     async def start(self) -> None:
         frame_check.warm()
+        await self.on_model_thread(skeletons.warm)
         for model in self.models.values():
             await self.on_model_thread(warm_up, model)
         for batcher in self.batchers.values():

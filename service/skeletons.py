@@ -156,3 +156,10 @@ def adapter_for(skeleton: str | None, bvh_header: str | None, model_skeleton: Sk
                          json.dumps({**options, **({"joints": joints} if joints is not None else {})}, sort_keys=True))
     except RigError as err:
         raise rig_error(err) from None
+
+
+def warm() -> None:
+    """Load (or, on a fresh machine, compile: ~15 s) the per-frame retargeting kernels before the
+    first custom-rig session rather than on its first frame: building one retargeter runs both
+    directions while it measures its standing offset."""
+    FrameRetargeter(preset_rig("cmu"))
