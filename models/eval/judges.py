@@ -119,6 +119,49 @@ class Judges:
         return path
 
 
+ROTATION_JUDGE_FILE = "rotation_judge.pt"
+
+
+@dataclass
+class RotationJudge:
+    """The second style judge: the same classifier over `features.rotation_features` (local
+    rotations, no positions), trained on the same real TRAIN clips, so a method that gets the
+    positions of a style right with implausible rotations is not recognised by it."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    styles: list[str]
+    clf: Classifier
+    meta: dict = field(default_factory=dict)
+
+    @torch.no_grad()
+    def style_logprobs(self, feats: list[np.ndarray]) -> np.ndarray:
+        wins = [windows(f, CLF_WINDOW, CLF_STRIDE) for f in feats]
+        x = torch.as_tensor((np.concatenate(wins) - self.mean) / self.std, dtype=torch.float32)
+        logp = torch.log_softmax(self.clf(x), -1).numpy()
+        bounds = np.cumsum([0] + [len(w) for w in wins])
+        return np.stack([logp[a:b].mean(0) for a, b in zip(bounds[:-1], bounds[1:])])
+
+    def predict_style(self, feats: list[np.ndarray]) -> list[str]:
+        return [self.styles[i] for i in self.style_logprobs(feats).argmax(-1)]
+
+    def save(self, folder: Path) -> Path:
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / ROTATION_JUDGE_FILE
+        torch.save({"mean": self.mean, "std": self.std, "styles": self.styles,
+                    "clf": {k: v.half() for k, v in self.clf.state_dict().items()}, "meta": self.meta}, path)
+        return path
+
+
+def load_rotation_judge(folder: Path | None = None) -> RotationJudge:
+    folder = Path(folder) if folder is not None else weights_dir()
+    z = torch.load(folder / ROTATION_JUDGE_FILE, weights_only=False)
+    clf = Classifier(len(z["styles"]), in_dim=len(z["mean"]))
+    clf.load_state_dict({k: v.float() for k, v in z["clf"].items()})
+    return RotationJudge(np.asarray(z["mean"], np.float32), np.asarray(z["std"], np.float32), list(z["styles"]),
+                         clf.eval(), z.get("meta", {}))
+
+
 def load_judges(folder: Path | None = None) -> Judges:
     folder = Path(folder) if folder is not None else weights_dir()
     z = torch.load(folder / WEIGHTS_FILE, weights_only=False)

@@ -21,18 +21,28 @@ from ..interface import FrameBatch, StreamingModel
 from ..motion.skeleton import Motion
 from ..registry import load_models
 from ..settings import REPO_ROOT, get_settings
-from .features import clip_features
-from .judges import Judges, load_judges
-from .metrics import SKATE_SPEED, foot_skating, frechet_distance, path_deviation
+from .features import clip_features, rotation_features
+from .judges import Judges, RotationJudge, load_judges, load_rotation_judge
+from .metrics import SKATE_SPEED, foot_skating, frechet_distance, path_deviation, slide_summary
+from .plausibility import RotationReference
 
 DATASET = "bandai-namco-2"
 INPUT_STYLE = "normal"
 QUICK_CONTENTS = ("walk", "run", "wave-both-hands", "raise-up-both-hands")
 QUICK_STYLES = ("elderly", "feminine")
+LOCOMOTION = ("walk", "walk-turn-left", "walk-turn-right", "run")  # what LPN-FiLM, a locomotion controller, is for
+
+# Gates (issue #14), per method x target style, on the test table:
+GATE_WITHIN = 0.95  # every joint: share of joint-frames within the real style's p99 rotation distance
+GATE_SLIDE = 2.0  # planted-toe median slide at most this times the real clips'
+GATE_STYLE = 0.90  # style accuracy, both judges
+GATE_CONTENT = 0.90  # content accuracy (LPN-FiLM: on locomotion inputs)
+FMD_BEFORE = {"lti": 214.6, "erd": 308.7}  # overall FMD of the committed models before the rotation work
 
 
-def pick_clips(per_content: int, contents: tuple[str, ...] | None = None):
-    clips = select(build_index([DATASET]), split="test", style=INPUT_STYLE)
+def pick_clips(per_content: int, contents: tuple[str, ...] | None = None, style: str = INPUT_STYLE,
+               split: str = "test"):
+    clips = select(build_index([DATASET]), split=split, style=style)
     out = []
     for content in sorted({c.content for c in clips}):
         if contents is None or content in contents:
@@ -68,15 +78,23 @@ def stylise(model: StreamingModel, motions: list[Motion], targets: list[int], ch
     return out
 
 
-def score(judges: Judges, outputs: list[Motion], inputs: list[Motion], style: str, contents: list[str],
-          real_latents: np.ndarray) -> dict:
+def score(judges: Judges, rot_judge: RotationJudge, rot_ref: RotationReference, outputs: list[Motion],
+          inputs: list[Motion], style: str, contents: list[str], real_latents: np.ndarray) -> dict:
     feats = [clip_features(m) for m in outputs]
     ps, pc = judges.predict_style(feats), judges.predict_content(feats)
+    ps_rot = rot_judge.predict_style([rotation_features(m) for m in outputs])
     skate = [foot_skating(m) for m in outputs]
     frames = sum(s["contact_frames"] for s in skate)
+    plaus = rot_ref.plausibility(style, outputs)
     return {
         "clips": len(outputs),
         "style_acc": float(np.mean([p == style for p in ps])),
+        "style_acc_rot": float(np.mean([p == style for p in ps_rot])),
+        "rot_within_min": plaus["min_within"], "rot_worst_joint": plaus["worst_joint"],
+        "rot_within_mean": plaus["mean_within"], "twist_outside_max": plaus["max_twist_outside"],
+        "twist_worst_joint": plaus["worst_twist_joint"],
+        "rot_per_joint": {k: round(v["within"], 4) for k, v in plaus["per_joint"].items()},
+        **{f"slide_{k}": v for k, v in slide_summary(outputs).items()},
         "content_acc": float(np.mean([p == c for p, c in zip(pc, contents)])),
         "fmd": frechet_distance(judges.latents(feats), real_latents),
         "skate_ratio": float(sum(s["skate_ratio"] * s["contact_frames"] for s in skate) / max(frames, 1)),
@@ -106,7 +124,10 @@ def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_d
     # real references: test clips of each target style (whole clips), and val clips as the floor
     index = build_index([DATASET])
     cap = 8 if quick else None
-    real_lat, reference = {}, {}
+    # the rotation reference: TRAIN clips of every judged style (never the scored test clips)
+    rot_judge = load_rotation_judge()
+    rot_ref = RotationReference({s: load_motions(select(index, split="train", style=s)) for s in styles + [INPUT_STYLE]})
+    real_lat, reference, reference_loco = {}, {}, {}
     for s in styles:
         test_clips = select(index, split="test", style=s)[:cap]
         test_feats = [clip_features(m) for m in load_motions(test_clips)]
@@ -115,12 +136,23 @@ def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_d
         val_feats = [clip_features(m) for m in val_motions]
         val_skate = [foot_skating(m) for m in val_motions]
         n = sum(k["contact_frames"] for k in val_skate)
+        # slide and plausibility on the same mix of contents and clip length as the inputs
+        like_inputs = [m.slice(0, frames) for m in load_motions(pick_clips(per_content, QUICK_CONTENTS if quick else None,
+                                                                            style=s, split="val"))]
+        plaus = rot_ref.plausibility(s, like_inputs)
         reference[s] = {
             "clips": len(val_feats),
             "style_acc": float(np.mean([p == s for p in judges.predict_style(val_feats)])),
+            "style_acc_rot": float(np.mean([p == s for p in rot_judge.predict_style([rotation_features(m)
+                                                                                       for m in val_motions])])),
             "fmd": frechet_distance(judges.latents(val_feats), real_lat[s]),
             "skate_ratio": float(sum(k["skate_ratio"] * k["contact_frames"] for k in val_skate) / max(n, 1)),
+            "rot_within_min": plaus["min_within"], "rot_worst_joint": plaus["worst_joint"],
+            "twist_outside_max": plaus["max_twist_outside"],
+            **{f"slide_{k}": v for k, v in slide_summary(like_inputs).items()},
         }
+        loco = [m.slice(0, frames) for m in load_motions(pick_clips(per_content, LOCOMOTION, style=s, split="val"))]
+        reference_loco[s] = {f"slide_{k}": v for k, v in slide_summary(loco).items()}
 
     results: dict = {"methods": {}, "timing_s": {}}
     outputs_by_method: dict[str, dict[str, list[Motion]]] = {}
@@ -135,10 +167,17 @@ def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_d
             outs = {s: flat[i * len(inputs):(i + 1) * len(inputs)] for i, s in enumerate(styles)}
         t_run = time.time() - t
         outputs_by_method[name] = outs
-        per_style = {s: score(judges, outs[s], inputs, s, contents, real_lat[s]) for s in styles}
-        keys = ("style_acc", "content_acc", "fmd", "skate_ratio", "contact_speed", "path_dev_cm")
+        per_style = {s: score(judges, rot_judge, rot_ref, outs[s], inputs, s, contents, real_lat[s]) for s in styles}
+        loco = [i for i, c in enumerate(contents) if c in LOCOMOTION]
+        per_style_loco = {s: score(judges, rot_judge, rot_ref, [outs[s][i] for i in loco], [inputs[i] for i in loco], s,
+                                   [contents[i] for i in loco], real_lat[s]) for s in styles}
+        keys = ("style_acc", "style_acc_rot", "content_acc", "fmd", "skate_ratio", "contact_speed", "path_dev_cm",
+                "rot_within_min", "twist_outside_max", "slide_toe_median", "slide_toe_p95", "slide_ankle_median",
+                "slide_ankle_p95")
         overall = {k: float(np.mean([per_style[s][k] for s in styles])) for k in keys}
-        results["methods"][name] = {"overall": overall, "per_style": per_style}
+        overall_loco = {k: float(np.mean([per_style_loco[s][k] for s in styles])) for k in keys}
+        results["methods"][name] = {"overall": overall, "per_style": per_style, "overall_locomotion": overall_loco,
+                                    "per_style_locomotion": per_style_loco}
         results["timing_s"][name] = {"stylise": round(t_run, 2), "total": round(time.time() - t, 2)}
 
     if grids:
@@ -153,14 +192,78 @@ def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_d
         "dataset": DATASET, "split": "test", "input_style": INPUT_STYLE, "styles": styles,
         "clips": [c.name for c in clips], "per_content": per_content, "frames_per_clip": frames, "quick": quick,
         "judges": {k: judges.meta.get(k) for k in ("val", "test")},
-        "reference_real_val": reference, "skate_speed_leg_per_s": SKATE_SPEED,
+        "reference_real_val": reference, "reference_real_val_locomotion": reference_loco,
+        "skate_speed_leg_per_s": SKATE_SPEED,
         "seconds": round(time.time() - t0, 1), "machine": f"{platform.machine()} CPU, torch threads=1",
         "command": "python -m models.eval" + (" --quick" if quick else ""),
     }
+    results["gates"] = gates(results)
     (out_dir / "eval").mkdir(parents=True, exist_ok=True)
     (out_dir / "eval" / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     (out_dir / "evaluation.md").write_text(markdown(results))
     return results
+
+
+def gates(r: dict) -> dict:
+    """Pass/fail of every gate per method x target style (LPN-FiLM judged on its locomotion
+    inputs, what a locomotion controller is for); each entry keeps the value it was judged on."""
+    meta = r["meta"]
+    out: dict = {}
+    for name, m in r["methods"].items():
+        if name == "identity":
+            continue
+        loco = name == "lpn"
+        table, real = (m["per_style_locomotion"], meta["reference_real_val_locomotion"]) if loco else \
+            (m["per_style"], meta["reference_real_val"])
+        out[name] = {}
+        for s, p in table.items():
+            slide_limit = GATE_SLIDE * real[s]["slide_toe_median"]
+            checks = {
+                "rotation": (p["rot_within_min"], p["rot_within_min"] >= GATE_WITHIN),
+                "slide": (p["slide_toe_median"], p["slide_toe_median"] <= slide_limit),
+                "style": (p["style_acc"], p["style_acc"] >= GATE_STYLE),
+                "style_rot": (p["style_acc_rot"], p["style_acc_rot"] >= GATE_STYLE),
+                "content": (p["content_acc"], p["content_acc"] >= GATE_CONTENT),
+            }
+            out[name][s] = {k: {"value": v, "pass": bool(ok)} for k, (v, ok) in checks.items()}
+            out[name][s]["slide"]["limit"] = slide_limit
+            out[name][s]["all"] = all(ok for _, ok in checks.values())
+        if name in FMD_BEFORE:
+            fmd = m["overall"]["fmd"]
+            out[name]["fmd"] = {"value": fmd, "limit": FMD_BEFORE[name], "pass": fmd <= FMD_BEFORE[name]}
+    return out
+
+
+def _slide(row: dict, part: str) -> str:
+    return f"{row[f'slide_{part}_median']:.1f} / {row[f'slide_{part}_p95']:.0f}"
+
+
+def _gates_markdown(r: dict) -> list[str]:
+    """The gates table: one row per method x style, a mark per gate, the failing values named."""
+    g = r["gates"]
+    lines = ["## Gates", "",
+             f"Per method and target style: every joint ≥ {GATE_WITHIN:.0%} rotation-plausible; planted-toe median slide "
+             f"≤ {GATE_SLIDE:g}× the real clips'; style accuracy ≥ {GATE_STYLE:.0%} on both judges; content accuracy ≥ "
+             f"{GATE_CONTENT:.0%}. LPN-FiLM (a locomotion controller) is judged on the locomotion inputs. FMD overall no "
+             f"worse than before this work (" + ", ".join(f"{k} {v}" for k, v in FMD_BEFORE.items()) + ").", "",
+             "| method | style | rotation | slide | style | style (rot) | content | pass |", "|---|---|---|---|---|---|---|---|"]
+    mark = lambda c, text: f"{'✅' if c['pass'] else '❌'} {text}"  # noqa: E731
+    passed = total = 0
+    for name, per in g.items():
+        for s, c in per.items():
+            if s == "fmd":
+                continue
+            total += 1
+            passed += c["all"]
+            pct = {k: f"{100 * c[k]['value']:.0f}%" for k in ("rotation", "style", "style_rot", "content")}
+            slide = f"{c['slide']['value']:.1f} (≤ {c['slide']['limit']:.1f})"
+            lines.append(f"| {name} | {s} | {mark(c['rotation'], pct['rotation'])} | {mark(c['slide'], slide)} | "
+                         f"{mark(c['style'], pct['style'])} | {mark(c['style_rot'], pct['style_rot'])} | "
+                         f"{mark(c['content'], pct['content'])} | {'**pass**' if c['all'] else 'fail'} |")
+    fmd = ", ".join(f"{k} {v['fmd']['value']:.1f} {'✅' if v['fmd']['pass'] else '❌'} (≤ {v['fmd']['limit']})"
+                    for k, v in g.items() if "fmd" in v)
+    lines += ["", f"**{passed} of {total}** method × style rows pass every gate. FMD: {fmd}.", ""]
+    return lines
 
 
 def _grid(motions: list[Motion], path: Path, titles: list[str]) -> None:
@@ -206,26 +309,59 @@ def markdown(r: dict) -> str:
                   "motion it re-synthesises *locomotion*, so on the waving and hand-raising half of these inputs it walks "
                   "or stands instead, which the content judge rightly counts as lost content. Its own numbers on a "
                   "scripted 60 s control sequence are in its model card (`models/weights/lpn/MODEL_CARD.md`).", ""]
+    lines += [
+        "**Rotations** (what a skinned character shows; positions miss a leaf joint's rotation and a twist about a bone): "
+        "every body joint's local rotation (the Hips without its heading) against real TRAIN clips of the target style "
+        "(`models/eval/plausibility.py`). **rot ok** = the worst joint's share of frames no farther from the style's mean "
+        "rotation of that joint than the real p99 (and which joint); **twist out** = the worst joint's share of frames "
+        "whose twist about the bone, relative to that mean, leaves the real p0.5..p99.5 interval. **style acc (rot)** = a "
+        "second style judge over local rotations and their changes only (`RotationJudge`, trained on the same TRAIN clips). "
+        "**toe / ankle slide** = median and p95 horizontal speed (cm/s) of a toe / ankle while it is within 2.5 cm "
+        "(0.03 leg lengths) of its floor level. `real val` rows: real validation clips of the target style, same contents "
+        "and clip length as the inputs.", "",
+        "What selected what: no checkpoint or setting of any method was chosen with these judges or the test clips. "
+        "The judges, the rotation judge and the rotation reference use TRAIN clips only; the methods' own model cards say "
+        "which validation numbers chose their checkpoints.", "",
+    ]
+    lines += _gates_markdown(r)
     lines += ["## Overall (mean over target styles)", "",
-              "| method | style acc ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ |", "|---|---|---|---|---|---|"]
+              "| method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | rot ok ↑ | "
+              "twist out ↓ | toe slide cm/s ↓ | ankle slide cm/s ↓ |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, m in r["methods"].items():
         o = m["overall"]
-        lines.append(f"| {name} | {fmt(o['style_acc'])} | {fmt(o['content_acc'])} | {o['fmd']:.1f} | "
-                     f"{fmt(o['skate_ratio'])} | {o['path_dev_cm']:.1f} |")
+        lines.append(f"| {name} | {fmt(o['style_acc'])} | {fmt(o['style_acc_rot'])} | {fmt(o['content_acc'])} | "
+                     f"{o['fmd']:.1f} | {fmt(o['skate_ratio'])} | {o['path_dev_cm']:.1f} | {fmt(o['rot_within_min'])} | "
+                     f"{fmt(o['twist_outside_max'])} | {_slide(o, 'toe')} | {_slide(o, 'ankle')} |")
     ref = meta["reference_real_val"]
     styles = meta["styles"]
-    lines.append(f"| real val | {fmt(np.mean([ref[s]['style_acc'] for s in styles]))} | – | "
-                 f"{np.mean([ref[s]['fmd'] for s in styles]):.1f} | {fmt(np.mean([ref[s]['skate_ratio'] for s in styles]))} | – |")
+    mean = lambda k: float(np.mean([ref[s][k] for s in styles]))  # noqa: E731
+    lines.append(f"| real val | {fmt(mean('style_acc'))} | {fmt(mean('style_acc_rot'))} | – | {mean('fmd'):.1f} | "
+                 f"{fmt(mean('skate_ratio'))} | – | {fmt(mean('rot_within_min'))} | {fmt(mean('twist_outside_max'))} | "
+                 f"{mean('slide_toe_median'):.1f} / {mean('slide_toe_p95'):.0f} | "
+                 f"{mean('slide_ankle_median'):.1f} / {mean('slide_ankle_p95'):.0f} |")
+    lines += ["", "### Locomotion inputs only (walks, turns, runs)", "",
+              "| method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | rot ok ↑ | toe slide cm/s ↓ |",
+              "|---|---|---|---|---|---|---|"]
+    for name, m in r["methods"].items():
+        o = m["overall_locomotion"]
+        lines.append(f"| {name} | {fmt(o['style_acc'])} | {fmt(o['style_acc_rot'])} | {fmt(o['content_acc'])} | "
+                     f"{o['fmd']:.1f} | {fmt(o['rot_within_min'])} | {_slide(o, 'toe')} |")
     lines += ["", "## Per target style", "",
-              "| style | method | style acc ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | recognised as |",
-              "|---|---|---|---|---|---|---|---|"]
+              "| style | method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | "
+              "rot ok (worst joint) ↑ | twist out ↓ | toe slide cm/s ↓ | recognised as |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for s in styles:
         for name, m in r["methods"].items():
             p = m["per_style"][s]
             top = ", ".join(f"{k} {v}" for k, v in sorted(p["predicted_styles"].items(), key=lambda kv: -kv[1])[:3])
-            lines.append(f"| {s} | {name} | {fmt(p['style_acc'])} | {fmt(p['content_acc'])} | {p['fmd']:.1f} | "
-                         f"{fmt(p['skate_ratio'])} | {p['path_dev_cm']:.1f} | {top} |")
-        lines.append(f"| {s} | real val | {fmt(ref[s]['style_acc'])} | – | {ref[s]['fmd']:.1f} | {fmt(ref[s]['skate_ratio'])} | – | |")
+            lines.append(f"| {s} | {name} | {fmt(p['style_acc'])} | {fmt(p['style_acc_rot'])} | {fmt(p['content_acc'])} | "
+                         f"{p['fmd']:.1f} | {fmt(p['skate_ratio'])} | {p['path_dev_cm']:.1f} | "
+                         f"{fmt(p['rot_within_min'])} ({p['rot_worst_joint']}) | {fmt(p['twist_outside_max'])} | "
+                         f"{_slide(p, 'toe')} | {top} |")
+        q = ref[s]
+        lines.append(f"| {s} | real val | {fmt(q['style_acc'])} | {fmt(q['style_acc_rot'])} | – | {q['fmd']:.1f} | "
+                     f"{fmt(q['skate_ratio'])} | – | {fmt(q['rot_within_min'])} ({q['rot_worst_joint']}) | "
+                     f"{fmt(q['twist_outside_max'])} | {_slide(q, 'toe')} | |")
     lines += ["", "## Picture grids", "",
               "A test-split neutral walk (top row) and each method's output toward the target style:", ""]
     for s in styles:
