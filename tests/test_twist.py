@@ -93,3 +93,17 @@ def test_lpn_keeps_the_spine_untwisted(index):
         out, state = model.step_batch(state, FrameBatch(walk.translations[t:t + 1, 1], walk.rotations[t:t + 1]), weights)
         twist = np.degrees(twist_angle(quat_mul(quat_inv(walk.rotations[t, spine]), out.rotations[0, spine]), axis))
         assert abs(twist) < 45.0, (t, twist)
+
+
+def test_compiled_equals_numpy_reference(bn_walk):
+    from models.motion.twist import transfer_twist_numpy
+    walk = bn_walk.slice(0, 30)
+    wrung = _twisted(walk, 100.0, ["Head", "Hand_R", "LowerLeg_L", "Spine", "Foot_R"])
+    for keep in ((), ("Hand_R", "UpperLeg_L")):
+        want = transfer_twist_numpy(walk.skeleton, walk.rotations, wrung.rotations, keep)
+        got = transfer_twist(walk.skeleton, walk.rotations, wrung.rotations, keep)
+        assert np.degrees(quat_angle(got, want)).max() < 1e-4  # arccos near 1: ~1e-5 deg of round-off
+    # broadcasting one source pose over a batch, as LPN-FiLM does
+    got = transfer_twist(walk.skeleton, walk.rotations[0], wrung.rotations)
+    want = transfer_twist_numpy(walk.skeleton, np.broadcast_to(walk.rotations[0], wrung.rotations.shape), wrung.rotations)
+    assert got.shape == wrung.rotations.shape and np.degrees(quat_angle(got, want)).max() < 1e-4

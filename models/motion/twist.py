@@ -15,7 +15,8 @@ from `source` (the input frame) that reproduce `pose`'s joint positions exactly:
 - a leaf keeps `source`'s local rotation.
 
 By induction from the root every joint lands where `pose` puts it. Pure numpy, batched over any
-leading axes, one pass over the joints (parents first); `transfer_twist_t` is its torch twin.
+leading axes, one pass over the joints (parents first): `transfer_twist_numpy` is the reference,
+`transfer_twist` the compiled step the streaming models call, `transfer_twist_t` the torch twin.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import torch
 
 from .rotations import cross, quat_apply, quat_apply_t, quat_inv, quat_mul, quat_mul_t
 from .skeleton import Skeleton
+from .twist_kernels import BONE, FRAME, LEAF, ROOT, transfer_twist_batch
 
 _MIN_BONE = 1e-6
 
@@ -74,6 +76,31 @@ def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray,
                    keep: tuple[str, ...] = ()) -> np.ndarray:
+    """`transfer_twist_numpy` compiled (`twist_kernels.py`): the same result, ~1 us per frame
+    instead of ~1.4 ms, for the per-frame streaming steps."""
+    kinds, parents, axes = _plan_arrays(skeleton)
+    keep_mask = np.array([n in keep for n in skeleton.names])
+    J = skeleton.num_joints
+    shape = np.broadcast_shapes(np.shape(source), np.shape(pose))
+    src = np.ascontiguousarray(np.broadcast_to(source, shape), dtype=np.float64).reshape(-1, J, 4)
+    pos = np.ascontiguousarray(np.broadcast_to(pose, shape), dtype=np.float64).reshape(-1, J, 4)
+    out = np.empty_like(pos)
+    transfer_twist_batch(kinds, parents, axes, keep_mask, src, pos, out)
+    return out.reshape(shape)
+
+
+def _plan_arrays(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The plan as the kernel takes it: kinds (J,), parents (J,), bone axes (J, 3)."""
+    plan = _plan(skeleton)
+    code = {"root": ROOT, "frame": FRAME, "bone": BONE, "leaf": LEAF}
+    kinds = np.array([code[k] for _, _, k, _ in plan], dtype=np.int64)
+    parents = np.array([p for _, p, _, _ in plan], dtype=np.int64)
+    axes = np.array([a if a is not None else (1.0, 0.0, 0.0) for _, _, _, a in plan], dtype=np.float64)
+    return kinds, parents, axes
+
+
+def transfer_twist_numpy(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray,
+                         keep: tuple[str, ...] = ()) -> np.ndarray:
     """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
     rotations (see the module docstring). `source` and `pose` are (..., J, 4) local rotations on
     `skeleton`; joints named in `keep` take `pose`'s local rotation as it is (their bone still
