@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from clients.sdk import Client
+from models.motion.rotations import quat_angle
 from models.motion.skeleton import Motion
 
 
@@ -25,4 +26,4 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Rotation angle between quaternions (normalised first), degrees; q and -q are one rotation."""
     a = a / np.linalg.norm(a, axis=-1, keepdims=True)
     b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    return np.degrees(2 * np.arccos(np.abs(np.sum(a * b, axis=-1)).clip(max=1.0)))
+    return np.degrees(quat_angle(a, b))

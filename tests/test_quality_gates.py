@@ -38,7 +38,7 @@ def _clips(index, style: str, contents: tuple[str, ...], per_content: int, split
 @pytest.fixture(scope="module")
 def reference(index) -> RotationReference:
     return RotationReference({s: load_motions(select(index, dataset=DATASET, split="train", style=s))
-                              for s in STYLES + ("normal",)})
+                              for s in STYLES})
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -65,6 +66,19 @@ class DenoisingAE(nn.Module):
         return self.dec(self.encode(x)).transpose(1, 2)
 
 
+@torch.no_grad()
+def clip_logprobs(clf: Classifier, norm: Callable[[np.ndarray], torch.Tensor], feats: list[np.ndarray]) -> np.ndarray:
+    """Per clip: mean log-probability over its sliding 1 s windows -> (N, classes)."""
+    wins = [windows(f, CLF_WINDOW, CLF_STRIDE) for f in feats]
+    counts = [len(w) for w in wins]
+    logp = torch.log_softmax(clf(norm(np.concatenate(wins))), -1).numpy()
+    out, k = [], 0
+    for c in counts:
+        out.append(logp[k:k + c].mean(0))
+        k += c
+    return np.stack(out)
+
+
 @dataclass
 class Judges:
     mean: np.ndarray
@@ -79,23 +93,11 @@ class Judges:
     def norm(self, x: np.ndarray) -> torch.Tensor:
         return torch.as_tensor((x - self.mean) / self.std, dtype=torch.float32)
 
-    @torch.no_grad()
-    def _clip_logprobs(self, clf: Classifier, feats: list[np.ndarray]) -> np.ndarray:
-        """Per clip: mean log-probability over its sliding 1 s windows -> (N, classes)."""
-        wins = [windows(f, CLF_WINDOW, CLF_STRIDE) for f in feats]
-        counts = [len(w) for w in wins]
-        logp = torch.log_softmax(clf(self.norm(np.concatenate(wins))), -1).numpy()
-        out, k = [], 0
-        for c in counts:
-            out.append(logp[k:k + c].mean(0))
-            k += c
-        return np.stack(out)
-
     def style_logprobs(self, feats: list[np.ndarray]) -> np.ndarray:
-        return self._clip_logprobs(self.style_clf, feats)
+        return clip_logprobs(self.style_clf, self.norm, feats)
 
     def content_logprobs(self, feats: list[np.ndarray]) -> np.ndarray:
-        return self._clip_logprobs(self.content_clf, feats)
+        return clip_logprobs(self.content_clf, self.norm, feats)
 
     def predict_style(self, feats: list[np.ndarray]) -> list[str]:
         return [self.styles[i] for i in self.style_logprobs(feats).argmax(-1)]
@@ -134,13 +136,11 @@ class RotationJudge:
     clf: Classifier
     meta: dict = field(default_factory=dict)
 
-    @torch.no_grad()
+    def norm(self, x: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor((x - self.mean) / self.std, dtype=torch.float32)
+
     def style_logprobs(self, feats: list[np.ndarray]) -> np.ndarray:
-        wins = [windows(f, CLF_WINDOW, CLF_STRIDE) for f in feats]
-        x = torch.as_tensor((np.concatenate(wins) - self.mean) / self.std, dtype=torch.float32)
-        logp = torch.log_softmax(self.clf(x), -1).numpy()
-        bounds = np.cumsum([0] + [len(w) for w in wins])
-        return np.stack([logp[a:b].mean(0) for a, b in zip(bounds[:-1], bounds[1:])])
+        return clip_logprobs(self.clf, self.norm, feats)
 
     def predict_style(self, feats: list[np.ndarray]) -> list[str]:
         return [self.styles[i] for i in self.style_logprobs(feats).argmax(-1)]

@@ -70,7 +70,7 @@ def comparable_rotations(motion: Motion) -> np.ndarray:
 
 class RotationReference:
     """Per style and body joint, from the real TRAIN-split clips of the style (all contents):
-    the mean local rotation, the p95/p99 angle of real frames to it, and the p0.5/p99.5 twist
+    the mean local rotation, the p99 angle of real frames to it, and the p0.5/p99.5 twist
     about the bone of real frames relative to it."""
 
     def __init__(self, train: dict[str, list[Motion]]):
@@ -80,15 +80,14 @@ class RotationReference:
         self.axes = bone_axes(sk)[self.joint_index]
         self.styles = list(train)
         self.mean: dict[str, np.ndarray] = {}  # style -> (J, 4)
-        self.p95: dict[str, np.ndarray] = {}  # style -> (J,) radians
-        self.p99: dict[str, np.ndarray] = {}
+        self.p99: dict[str, np.ndarray] = {}  # style -> (J,) radians
         self.twist_range: dict[str, np.ndarray] = {}  # style -> (2, J) radians
         for style, motions in train.items():
             q = self.rotations(motions)
             q = q[np.linspace(0, len(q) - 1, min(len(q), MAX_FRAMES_PER_STYLE)).astype(int)]
             self.mean[style] = quat_mean(q, axis=0)
             dist, twist = self.deviation(style, q)
-            self.p95[style], self.p99[style] = np.percentile(dist, [95, 99], axis=0)
+            self.p99[style] = np.percentile(dist, 99, axis=0)
             self.twist_range[style] = np.percentile(twist, [0.5, 99.5], axis=0)
 
     def rotations(self, motions: list[Motion]) -> np.ndarray:

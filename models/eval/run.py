@@ -124,9 +124,9 @@ def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_d
     # real references: test clips of each target style (whole clips), and val clips as the floor
     index = build_index([DATASET])
     cap = 8 if quick else None
-    # the rotation reference: TRAIN clips of every judged style (never the scored test clips)
+    # the rotation reference: TRAIN clips of every target style (never the scored test clips)
     rot_judge = load_rotation_judge()
-    rot_ref = RotationReference({s: load_motions(select(index, split="train", style=s)) for s in styles + [INPUT_STYLE]})
+    rot_ref = RotationReference({s: load_motions(select(index, split="train", style=s)) for s in styles})
     real_lat, reference, reference_loco = {}, {}, {}
     for s in styles:
         test_clips = select(index, split="test", style=s)[:cap]

@@ -49,7 +49,7 @@ class Sampler:
 
 
 def train_classifier(judges, feats, labels, n_classes: int, iters: int, seed: int, desc: str) -> Classifier:
-    """`judges` supplies the input normalisation (`mean`, `std`): Judges or RotationJudge."""
+    """`judges` supplies the input normalisation (`norm`): Judges or RotationJudge."""
     torch.manual_seed(seed)
     clf = Classifier(n_classes, in_dim=feats[0].shape[1])
     opt = torch.optim.AdamW(clf.parameters(), lr=2e-3, weight_decay=1e-2)
@@ -58,7 +58,7 @@ def train_classifier(judges, feats, labels, n_classes: int, iters: int, seed: in
     clf.train()
     for _ in tqdm(range(iters), desc=desc, mininterval=5):
         x, y = sampler.sample(128)
-        x = torch.as_tensor((x - judges.mean) / judges.std, dtype=torch.float32)
+        x = judges.norm(x)
         x = x + 0.05 * torch.randn_like(x)
         loss = F.cross_entropy(clf(x), torch.as_tensor(y), label_smoothing=0.05)
         opt.zero_grad()

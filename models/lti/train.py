@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..motion.rotations import quat_angle
 from . import representation as rep
 from .footplant import FootplantClassifier, contact_labels
 from .model import WEIGHTS_DIR, StyleTranslator
@@ -210,8 +211,7 @@ def _angle_error_deg(fa: np.ndarray, fb: np.ndarray) -> float:
     """Mean geodesic angle between the body-joint rotations of two feature arrays."""
     qa = rep.rotvec_to_quat(fa[:, 7:67].reshape(-1, 20, 3))
     qb = rep.rotvec_to_quat(fb[:, 7:67].reshape(-1, 20, 3))
-    dot = np.clip(np.abs(np.sum(qa * qb, -1)), 0, 1)
-    return float(np.degrees(2 * np.arccos(dot)).mean())
+    return float(np.degrees(quat_angle(qa, qb)).mean())
 
 
 def evaluate(tr: StyleTranslator, data: list[PairData]) -> dict[str, float]:

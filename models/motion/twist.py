@@ -78,8 +78,7 @@ def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray,
                    keep: tuple[str, ...] = ()) -> np.ndarray:
     """`transfer_twist_numpy` compiled (`twist_kernels.py`): the same result, ~1 us per frame
     instead of ~1.4 ms, for the per-frame streaming steps."""
-    kinds, parents, axes = _plan_arrays(skeleton)
-    keep_mask = np.array([n in keep for n in skeleton.names])
+    kinds, parents, axes, keep_mask = _kernel_plan(skeleton, keep)
     J = skeleton.num_joints
     shape = np.broadcast_shapes(np.shape(source), np.shape(pose))
     src = np.ascontiguousarray(np.broadcast_to(source, shape), dtype=np.float64).reshape(-1, J, 4)
@@ -89,14 +88,21 @@ def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray,
     return out.reshape(shape)
 
 
-def _plan_arrays(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The plan as the kernel takes it: kinds (J,), parents (J,), bone axes (J, 3)."""
-    plan = _plan(skeleton)
+def _kernel_plan(skeleton: Skeleton, keep: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+    """The plan as the kernel takes it, built once per skeleton and `keep` (the streaming steps
+    call this every frame): kinds (J,), parents (J,), bone axes (J, 3), keep mask (J,)."""
+    return _kernel_plan_cached(skeleton.names, tuple(map(int, skeleton.parents)), skeleton.offsets.tobytes(), keep)
+
+
+@lru_cache(maxsize=16)
+def _kernel_plan_cached(names: tuple[str, ...], parents: tuple[int, ...], offsets: bytes,
+                        keep: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+    plan = _plan_cached(names, parents, offsets)
     code = {"root": ROOT, "frame": FRAME, "bone": BONE, "leaf": LEAF}
     kinds = np.array([code[k] for _, _, k, _ in plan], dtype=np.int64)
-    parents = np.array([p for _, p, _, _ in plan], dtype=np.int64)
+    parent_index = np.array(parents, dtype=np.int64)
     axes = np.array([a if a is not None else (1.0, 0.0, 0.0) for _, _, _, a in plan], dtype=np.float64)
-    return kinds, parents, axes
+    return kinds, parent_index, axes, np.array([n in keep for n in names])
 
 
 def transfer_twist_numpy(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray,
