@@ -9,6 +9,7 @@ A data folder that already holds the unpacked dataset folder is used in place.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import shutil
@@ -79,15 +80,30 @@ def dataset_dir(name: str, settings: Settings | None = None) -> Path:
         raise DataError(f"dataset {name!r}: neither {archive} nor {in_place} exists "
                         f"(set STYLESTREAM_DATA_DIR to the folder with the mocap archives)")
     unpack_root = cache_dir / "unpacked" / name
+    ident = {"archive": str(archive.resolve()), "size": archive.stat().st_size, "mtime_ns": archive.stat().st_mtime_ns}
+    if _unpacked_from(unpack_root, ident):
+        return unpack_root / spec.bvh_dir
+    unpack_root.parent.mkdir(parents=True, exist_ok=True)
+    # one process unpacks, the others (test workers, server workers on a fresh machine) wait for it
+    with open(unpack_root.with_name(unpack_root.name + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not _unpacked_from(unpack_root, ident):
+            _unpack(archive, unpack_root, ident, _expected_sums(data_dir).get(spec.archive))
+    return unpack_root / spec.bvh_dir
+
+
+def _unpacked_from(unpack_root: Path, ident: dict) -> bool:
+    """Whether `unpack_root` holds a finished unpack of the archive `ident` describes."""
     marker = unpack_root / ".source.json"
-    stat = archive.stat()
-    ident = {"archive": str(archive.resolve()), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
-    if marker.exists():
-        recorded = json.loads(marker.read_text())
-        if all(recorded.get(k) == v for k, v in ident.items()):
-            return unpack_root / spec.bvh_dir
+    if not marker.exists():
+        return False
+    recorded = json.loads(marker.read_text())
+    return all(recorded.get(k) == v for k, v in ident.items())
+
+
+def _unpack(archive: Path, unpack_root: Path, ident: dict, expected: str | None) -> None:
+    """Check the archive's sum and unpack it into `unpack_root`, atomically."""
     digest = sha256_file(archive)
-    expected = _expected_sums(data_dir).get(spec.archive)
     if expected is not None and digest != expected:
         raise DataError(f"{archive}: SHA-256 {digest} does not match SHA256SUMS ({expected}); refusing to use it")
     if unpack_root.exists():
@@ -99,7 +115,6 @@ def dataset_dir(name: str, settings: Settings | None = None) -> Path:
         tar.extractall(tmp, filter="data")
     (tmp / ".source.json").write_text(json.dumps({**ident, "sha256": digest}))
     tmp.rename(unpack_root)  # atomic: a crash mid-unpack never leaves a half folder that looks done
-    return unpack_root / spec.bvh_dir
 
 
 def dataset_root(name: str, settings: Settings | None = None) -> Path:
