@@ -14,7 +14,7 @@ A model's style set may change while sessions run (the service adds an uploaded 
 one, on the live model). So the service keeps each session's style as a `{style: weight}` dict
 (`style_weights`) and builds the vector over the *current* `styles()` at every step
 (`weight_vector`): a style deleted since simply drops out and its share passes the input through.
-A model whose style set can change implements one more, optional, method:
+A model whose state depends on its style set implements one more, optional, method:
 
     upgrade_state(state) -> state
         Bring a state made under an older style set to the current one: styles added since get
@@ -23,19 +23,32 @@ A model whose style set can change implements one more, optional, method:
         session's state before stacking a batch, so a live session, or one resumed from a
         snapshot, carries on across style changes without interruption.
 
-(The LTI model also has `add_style(translator)` / `remove_style(name)`; the service calls them on
-the model-step worker thread, between steps.) Use `upgrade_state(model, state)` below to call it
-on any model.
+Use `upgrade_state(model, state)` below to call it on any model.
+
+Styles made from uploaded clips are optional abilities, declared by inheriting the abstract
+classes at the end of this module (the service checks `isinstance`, never probes for methods):
+
+    UploadedStyles  a style from a clip by a fine-tuning job; add, remove, save, load and copy
+                    (a model with a style set of its own). LTI: a StyleTranslator identified from
+                    the clip; LPN-FiLM: a FiLM vector from its fine-tuned generator.
+    ClipStyles      also a style from a clip at once (LPN-FiLM: the FiLM generator's embedding of
+                    the clip), which a fine-tuning job may then replace.
+
+Style-ERD has neither: its styles are trained branches. The service calls every style change on
+the model-step worker thread, between steps.
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from pathlib import Path
+from typing import Any, Generic, Protocol, Self, TypeVar, runtime_checkable
 
 import numpy as np
 
-from .motion.skeleton import Skeleton
+from .motion.skeleton import Motion, Skeleton
 
 State = dict[str, np.ndarray]  # every entry has the session axis first
 
@@ -75,6 +88,7 @@ class StreamingModel(Protocol):
     name: str  # "lti", "erd", "lpn"
     skeleton: Skeleton  # the skeleton frames are expressed on
     fps: float  # the frame rate the model runs at (sessions at other rates are adapted by the service)
+    controllable: bool  # a character controller: reads FrameBatch.control (the service's `control` message)
 
     def styles(self) -> list[str]:
         """Target styles; a style weight vector indexes this list."""
@@ -126,3 +140,98 @@ def weight_vector(names: list[str], weights: dict[str, float]) -> np.ndarray:
 def style_vector(model: StreamingModel, mix: dict[str, float], intensity: float = 1.0) -> np.ndarray:
     """Weights over model.styles() from a {style: weight} mix (normalised to sum 1) times intensity."""
     return weight_vector(model.styles(), style_weights(model, mix, intensity))
+
+
+# --------------------------------------------------------------------------- optional abilities
+
+S = TypeVar("S")  # a method's own style parameters, opaque to the service (LTI: a StyleTranslator, LPN-FiLM: a FiLM vector)
+Progress = Callable[[float, str], None]  # (fraction done, what is happening); it raises to stop the work
+
+
+class StyleRejected(Exception):
+    """A clip, or a request about one, that a model cannot make a style from. `code` names the
+    reason in the service's error reply; `unavailable` means the server lacks what it would need
+    (training data), not that the client sent something wrong."""
+
+    def __init__(self, code: str, message: str, unavailable: bool = False) -> None:
+        super().__init__(message)
+        self.code, self.message, self.unavailable = code, message, unavailable
+
+
+@dataclass
+class FineTuned(Generic[S]):
+    """What a fine-tuning job produced: the style's parameters, or None where tuning did not
+    improve on the style the clip already gives (`ClipStyles`, which then keeps that one)."""
+
+    style: S | None
+    summary: dict[str, Any]  # figures for the job's record (seconds, held-out metrics, ...)
+    message: str  # what the style's record says from now on
+
+
+class UploadedStyles(ABC, Generic[S]):
+    """A style set that changes while sessions run: styles made from uploaded clips are added,
+    deleted ones removed, and each is saved in a folder of its own so that a restart, or another
+    replica sharing the folder, loads it again. The service calls `install_style` and
+    `remove_style` on the model-step worker thread only."""
+
+    @abstractmethod
+    def with_own_styles(self) -> Self:
+        """This model (its weights shared, not copied) with a style set of its own: styles added
+        to or removed from either leave the other's as it is."""
+
+    @abstractmethod
+    def check_upload(self, frames: int, fine_tune: bool) -> None:
+        """Raise `StyleRejected` if a clip of `frames` frames (model fps) cannot become a style
+        here, with or without a fine-tuning job; called before any work is spent on it."""
+
+    @abstractmethod
+    def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[S]:
+        """A style named `name` from `clip` (model skeleton, model fps): the slow way, on a job
+        thread; the model is not changed. `steps` bounds an iterative fine-tune (LPN-FiLM's
+        Adam steps); a closed-form one (LTI's identification) has none and ignores it."""
+
+    @abstractmethod
+    def install_style(self, name: str, style: S) -> None:
+        """Add style `name` with these parameters. A `ClipStyles` model replaces a style of that
+        name (a fine-tuned vector replacing the clip's); others refuse a name they have."""
+
+    @abstractmethod
+    def remove_style(self, name: str) -> None:
+        """Drop style `name`; sessions that used it carry on with its share passing the input through."""
+
+    @abstractmethod
+    def save_style(self, style: S, folder: Path) -> None:
+        """Write the style's parameters into `folder` (which exists)."""
+
+    @abstractmethod
+    def has_saved_style(self, folder: Path) -> bool:
+        """Whether `folder` holds parameters `save_style` wrote."""
+
+    @abstractmethod
+    def load_style(self, name: str, folder: Path) -> S:
+        """The parameters `save_style` wrote into `folder`, for style `name`."""
+
+    def style_file(self, name: str) -> Path | None:
+        """The file a trained style was loaded from (the style's creation time is its time), where
+        the method keeps one per style; None otherwise."""
+        return None
+
+
+class ClipStyles(UploadedStyles[S]):
+    """Also makes a style from a clip at once, usable as soon as it is added; a fine-tuning job
+    may later replace it (`install_style` replaces). Until then nothing but the clip is saved,
+    so loading such a style again means making it from the clip again."""
+
+    clip_style_note: str  # what a style made from its clip is, for the style's record
+    tuning_note: str  # what its fine-tuning job does, for the style's record
+
+    @abstractmethod
+    def add_style_from_clip(self, name: str, clip: Motion) -> None:
+        """Add (or replace) style `name` made from `clip` (model skeleton, model fps); raises
+        ValueError for a clip it cannot use."""
+
+
+def own_style_set(model: StreamingModel) -> StreamingModel:
+    """`model` with a style set of its own where its style set can change (`UploadedStyles`), so
+    styles one server adds or removes stay its own; any other model as it is."""
+    return model.with_own_styles() if isinstance(model, UploadedStyles) else model

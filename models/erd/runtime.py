@@ -78,6 +78,7 @@ class ERDModel:
 
     name = "erd"
     fps = FPS  # the model runs at 30 fps (Bandai Namco)
+    controllable = False  # reads frames, not control
 
     def __init__(self, params: dict[str, np.ndarray], config: dict, skeleton: Skeleton,
                  mean: np.ndarray, std: np.ndarray, ref: np.ndarray, meta: dict | None = None,

@@ -48,6 +48,7 @@ from ..motion.twist import transfer_twist
 from . import features as lf
 from ..lti.kernels import foot_lock  # called from here, not compiled into this package's kernels: numba's cache tracks one file
 from . import kernels
+from .styles import LPNStyles
 from .weights import read_weights
 
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
@@ -75,7 +76,7 @@ def yaw_quat(yaw: np.ndarray) -> np.ndarray:
     return np.stack([z, np.sin(h), z, np.cos(h)], axis=-1)
 
 
-class LPNModel:
+class LPNModel(LPNStyles):
     name = "lpn"
     controllable = True  # reads FrameBatch.control (the service's `control` message)
     fps = lf.FPS

@@ -45,6 +45,7 @@ from models.motion.assets import bandai_namco_skeleton
 from . import kernels
 from . import representation as rep
 from .footplant import FootLock, FootplantClassifier
+from .styles import LTIStyles
 
 # state entries besides the styles' x.<style>: per-session shape after the session axis
 SHARED_SHAPES = {"started": (), "in_yaw": (), "in_ground": (2,), "out_yaw": (), "out_ground": (2,), "lock_anchor": (2, 3),
@@ -164,7 +165,7 @@ class _StyleSet(NamedTuple):
     packed: kernels.PackedStyles
 
 
-class LTIStyleModel:
+class LTIStyleModel(LTIStyles):
     """Hsu et al. 2005 LTI style translation behind the project's streaming interface
     (`models/interface.py`); the input style is Bandai Namco `normal`.
 
@@ -186,6 +187,7 @@ class LTIStyleModel:
 
     name = "lti"
     fps = 30.0  # the Bandai Namco rate it was identified at
+    controllable = False  # reads frames, not control
 
     def __init__(self, translators: dict[str, StyleTranslator] | None = None, weights_dir: Path | str = WEIGHTS_DIR,
                  blend: bool = True, footlock: bool = True, keep_heading: bool = True, skeleton=None):

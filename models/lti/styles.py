@@ -1,0 +1,77 @@
+"""The LTI model's uploaded styles (`models.interface.UploadedStyles`), mixed into `LTIStyleModel`.
+
+An LTI style is a `StyleTranslator`, so a clip becomes a style only by identifying one: a
+fine-tuning job (`finetune.py`) that pairs the clip with neutral training clips, which this
+server must have. The translator is saved as `translator.npz` in the style's folder. A copy of
+the model (`copy.copy`) has a style set of its own because `add_style` / `remove_style` replace
+the translator dict and the packed style set instead of changing them in place.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import TYPE_CHECKING, Self
+
+from models.interface import FineTuned, Progress, StyleRejected, UploadedStyles
+from models.motion.skeleton import Motion
+
+if TYPE_CHECKING:
+    from .model import StyleTranslator
+
+TRANSLATOR_FILE = "translator.npz"
+
+
+class LTIStyles(UploadedStyles["StyleTranslator"]):
+    """What `LTIStyleModel` adds to take uploaded styles; it relies on the model's `translators`,
+    `add_style` and `remove_style`."""
+
+    translators: dict[str, StyleTranslator]
+    if TYPE_CHECKING:
+        def add_style(self, tr: StyleTranslator) -> None: ...
+
+    def with_own_styles(self) -> Self:
+        return copy.copy(self)
+
+    def check_upload(self, frames: int, fine_tune: bool) -> None:
+        from .finetune import data_available  # the training code, loaded when a style is uploaded
+
+        if not fine_tune:
+            raise StyleRejected("fine_tune_required", "an LTI style is a translator identified from the clip: upload "
+                                "with fine_tune=true to start the identification job (the clip alone is not a style)")
+        if not data_available():
+            raise StyleRejected("training_data_unavailable", "fine-tuning needs the training data (Bandai Namco neutral "
+                                "clips), which this server does not have (STYLESTREAM_DATA_DIR)", unavailable=True)
+
+    def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[StyleTranslator]:
+        """Identify a translator for `clip` (`steps` does not apply: identification is closed-form)."""
+        from .finetune import fine_tune
+
+        ref = next(iter(self.translators.values())).ref  # the reference rotations every translator shares
+        res = fine_tune(clip, name, ref, progress)
+        summary = {"seconds": round(res.seconds, 2), "neutral_clips": res.neutral_clips, "train_frames": res.train_frames,
+                   "state_dim": int(res.translator.n), "heldout": res.heldout}
+        progress(0.97, "installing the style")
+        return FineTuned(res.translator, summary, "fine-tuned")
+
+    def install_style(self, name: str, style: StyleTranslator) -> None:
+        style.style = name
+        self.add_style(style)
+
+    def save_style(self, style: StyleTranslator, folder: Path) -> None:
+        style.save(folder / TRANSLATOR_FILE)
+
+    def has_saved_style(self, folder: Path) -> bool:
+        return (folder / TRANSLATOR_FILE).exists()
+
+    def load_style(self, name: str, folder: Path) -> StyleTranslator:
+        from .model import StyleTranslator  # model.py mixes this class in, so it cannot be imported at the top
+
+        tr = StyleTranslator.load(folder / TRANSLATOR_FILE)
+        tr.style = name
+        return tr
+
+    def style_file(self, name: str) -> Path | None:
+        tr = self.translators.get(name)
+        source = tr.meta.get("source") if tr is not None and isinstance(tr.meta, dict) else None
+        return Path(source) if source else None
