@@ -1,434 +1,379 @@
-"""Python SDK for the stylestream service: REST calls and streaming sessions, sync and async.
+"""Python SDK for the stylestream service: REST calls and streaming sessions, sync and asyncio.
 
     from clients.sdk import Client
 
-    client = Client("http://127.0.0.1:8000")
-    print(client.models())
-    with client.session(model="lti", style="elderly") as s:
-        for root, rotations in frames:               # root (3,), rotations (J, 4) xyzw
-            out = s.stylise(root, rotations)          # one frame in, one frame out
-        s.set_style("exhausted", transition_frames=30)
+    with Client("http://127.0.0.1:8000", timeout=10) as client:
+        print(client.models(), client.styles(model="lti"))
+        with client.session(model="lti", style="elderly") as s:
+            for root, rotations in frames:               # root (3,), rotations (J, 4) xyzw
+                out = s.stylise(root, rotations)          # one frame in, one frame out
+            s.set_style("exhausted", transition_frames=30)
 
-    # asyncio
-    async with AsyncClient("http://127.0.0.1:8000").session(model="lti", style="elderly") as s:
-        out = await s.stylise(root, rotations)
+    # a game loop: send frame t without waiting for t-1's reply, take replies as they come
+    with client.session(model="lti", style="elderly", max_in_flight=4) as s:
+        for root, rotations in frames:
+            s.send(root, rotations)
+            for out in s.poll():                          # replies that have arrived, in order
+                draw(out)
 
-Frames travel as binary (docs/protocol.md). A session that loses its connection (a dropped
-network, a replica drained with 1012 or killed) reconnects with its resume token by itself, to
-whichever replica the address leads to, and replays what the server's last stored snapshot
-lacks: the frames and style changes sent since (kept in a bounded `ReplayBuffer`, trimmed by
-the server's snapshot acknowledgements). Replies it already has are discarded, so the outputs
-equal an uninterrupted run's.
+    # asyncio: the same calls, awaited
+    async with AsyncClient("http://127.0.0.1:8000") as client:
+        async with client.session(model="lti", style="elderly") as s:
+            out = await s.stylise(root, rotations)
+
+Installs with numpy, httpx and websockets only: nothing here imports the server (`models`,
+`service`) or its dependencies. Frames travel as binary (docs/protocol.md).
+
+A session that loses its connection (a dropped network, a replica drained with 1012, killed or
+restarted) reconnects by itself, backing off until `reconnect_timeout`, to whichever replica the
+address leads to. It resumes with its token and replays what the server's last stored snapshot
+lacks (the frames and style changes sent since, kept in a bounded `ReplayBuffer` trimmed by the
+server's snapshot acknowledgements), so the outputs equal an uninterrupted run's; when the server
+no longer knows the token it opens a fresh session with the same settings. Either way it says so:
+`on_reconnect(Reconnect)`, `session.last_reconnect`, `session.reconnects` / `session.new_sessions`.
+
+The protocol is written once (`sdk_session`, `sdk_rest`); `Session`/`Client` and
+`AsyncSession`/`AsyncClient` are thin faces that run it with sync or asyncio I/O (`sdk_io`).
 """
 
 from __future__ import annotations
 
-import asyncio
-import json
-import struct
-import time
-from collections import deque
-from contextlib import ExitStack
-from dataclasses import dataclass
+import weakref
+from collections.abc import Callable
+from types import EllipsisType
+from typing import Any
 
 import httpx
 import numpy as np
-from pydantic import BaseModel
 
-HEADER = struct.Struct("<IHH")
-RESUME_ATTEMPTS = 8  # connection attempts per resume: the server may not have seen the old connection
-RESUME_BACKOFF_S = 0.05  # go yet, the load balancer may pick a draining replica, a replica may be restarting
-RETRY_CODES = {"session_in_use", "draining", "store_unavailable"}
-REPLAY_LIMIT = 1024  # messages kept for replay; a server acknowledges a snapshot every 30 frames by default
+from . import sdk_rest as rest
+from .sdk_io import AsyncIO, SyncIO, run_async, run_sync
+from .sdk_session import SessionCore
+from .sdk_types import (ConnectFailed, ConnectionLost, FrameDropped, JobFailed, JobInfo, JobTimeout, ModelInfo,
+                        NothingInFlight, Reconnect, ReplyTimeout, ResumeError, ServerError, StyledFrame, StyleInfo,
+                        StylestreamError, Upload)
+from .sdk_wire import HEADER, ReplayBuffer, StartSettings, ws_url
+from .sdk_wire import pack as _pack
 
+__all__ = ["AsyncClient", "AsyncSession", "Client", "ConnectFailed", "ConnectionLost", "FrameDropped", "HEADER",
+           "JobFailed", "JobInfo", "JobTimeout", "ModelInfo", "NothingInFlight", "Reconnect", "ReplayBuffer",
+           "ReplyTimeout", "ResumeError", "ServerError", "Session", "StyleInfo", "StyledFrame", "StylestreamError",
+           "Upload", "_pack"]
 
-class ModelInfo(BaseModel):
-    name: str
-    styles: list[str]
-    joints: list[str]
-    controllable: bool = False  # sessions may send `control` ticks (Session.control) instead of frames
-
-
-class ServerError(RuntimeError):
-    """A typed error message from the server."""
-
-    def __init__(self, code: str, message: str, seq: int | None = None) -> None:
-        super().__init__(f"{code}: {message}")
-        self.code, self.message, self.seq = code, message, seq
+TIMEOUT_S = 30.0  # each REST request, opening a session, each reply
+RECONNECT_TIMEOUT_S = 60.0  # how long a session keeps trying to come back after losing its connection
+MAX_IN_FLIGHT = 8  # pipelined frames in flight: the server's default session queue, so none is dropped
+Default = float | None | EllipsisType  # `...`: the client's setting
 
 
-class ResumeError(RuntimeError):
-    """The session cannot continue exactly: the server's snapshot and the messages this client
-    still holds do not meet (the replay buffer overflowed while the server stored no snapshot,
-    or a reply was lost after the server had saved its frame)."""
+class _SessionState:
+    """What a session shows, sync or asyncio alike."""
+
+    core: SessionCore
+
+    @property
+    def info(self) -> dict[str, Any]:
+        """The server's latest `started` message (docs/protocol.md#opening-a-session)."""
+        return self.core.info
+
+    @property
+    def joints(self) -> list[str]:
+        return self.core.joints
+
+    @property
+    def session_id(self) -> str | None:
+        return self.core.info.get("session_id")
+
+    @property
+    def resume_token(self) -> str | None:
+        return self.core.resume_token
+
+    @property
+    def seq(self) -> int:
+        """The sequence number the next frame gets."""
+        return self.core.seq
+
+    @property
+    def reconnects(self) -> int:
+        """Resumes after a lost connection."""
+        return self.core.reconnects
+
+    @property
+    def new_sessions(self) -> int:
+        """Fresh sessions opened because the server no longer knew the resume token."""
+        return self.core.new_sessions
+
+    @property
+    def last_reconnect(self) -> Reconnect | None:
+        return self.core.last_reconnect
+
+    @property
+    def notices(self) -> list[ServerError]:
+        """Errors from the server that answer nothing this session sent."""
+        return self.core.notices
+
+    @property
+    def replay(self) -> ReplayBuffer:
+        return self.core.replay
+
+    @property
+    def in_flight(self) -> int:
+        """Pipelined frames whose replies have not been taken (`receive`, `poll`)."""
+        return self.core.in_flight()
 
 
-class ReplayBuffer:
-    """The messages sent since the last snapshot the server acknowledged, in order, so a resumed
-    session can be brought up to date. Frames are binary messages with their sequence number;
-    control messages (style, reset) are text. Replaying a control message the snapshot already
-    holds is harmless: without a frame in between it sets the same target and ramp again.
-
-    `base` is the sequence number of the frame just before the first entry (None: the session's
-    start); a snapshot at `base` or at any buffered frame can be continued."""
-
-    def __init__(self, limit: int = REPLAY_LIMIT) -> None:
-        self.entries: deque[tuple[int | None, bytes | str]] = deque()
-        self.limit = limit
-        self.base: int | None = None
-
-    def add(self, seq: int | None, message: bytes | str) -> None:
-        self.entries.append((seq, message))
-        if len(self.entries) > self.limit:
-            self._drop_through(next(s for s, _ in self.entries if s is not None))
-
-    def acknowledged(self, last_seq: int) -> None:
-        """The server stored a snapshot covering frames up to `last_seq`: forget them."""
-        if any(s == last_seq for s, _ in self.entries):
-            self._drop_through(last_seq)
-
-    def after(self, last_seq: int | None) -> list[tuple[int | None, bytes | str]]:
-        """What to send again to a session restored at `last_seq`."""
-        if last_seq == self.base:
-            return list(self.entries)
-        for i, (seq, _) in enumerate(self.entries):
-            if seq is not None and seq == last_seq:
-                return list(self.entries)[i + 1:]
-        raise ResumeError(f"the server resumed at frame {last_seq}, but this client only holds messages after frame "
-                          f"{self.base}: more than {self.limit} messages went unacknowledged")
-
-    def _drop_through(self, seq: int) -> None:
-        while self.entries:
-            s, _ = self.entries.popleft()
-            if s == seq:
-                self.base = seq
-                return
+def _core(base_url: str, token: str | None, timeout: float | None, reconnect_timeout: float | None,
+          max_in_flight: int, on_reconnect: Callable[[Reconnect], None] | None, **start: Any) -> SessionCore:
+    return SessionCore(ws_url(base_url, token), StartSettings(**start), timeout=timeout,
+                       reconnect_timeout=reconnect_timeout, max_in_flight=max_in_flight, on_reconnect=on_reconnect)
 
 
-@dataclass
-class StyledFrame:
-    seq: int
-    root: np.ndarray  # (3,)
-    rotations: np.ndarray  # (J, 4)
-    dropped: int  # frames the server dropped before this one (backpressure)
+class Session(_SessionState):
+    """A synchronous streaming session (websockets' sync client); opened on creation."""
 
+    def __init__(self, base_url: str, token: str | None = None, *, timeout: float | None = TIMEOUT_S,
+                 reconnect_timeout: float | None = RECONNECT_TIMEOUT_S, max_in_flight: int = MAX_IN_FLIGHT,
+                 on_reconnect: Callable[[Reconnect], None] | None = None, **start: Any) -> None:
+        self.core = _core(base_url, token, timeout, reconnect_timeout, max_in_flight, on_reconnect, **start)
+        self._io = SyncIO()
+        run_sync(self.core.open(), self._io)
 
-def _start_message(model: str, style: str | None, mix: dict[str, float] | None, skeleton: str | None,
-                   bvh_header: str | None, fps: float, intensity: float, resume_token: str | None) -> str:
-    msg = {"type": "start", "model": model, "fps": fps, "encoding": "binary", "intensity": intensity}
-    if mix is not None:
-        msg["mix"] = mix
-    else:
-        msg["style"] = style
-    if bvh_header is not None:
-        msg["bvh_header"] = bvh_header
-    elif skeleton is not None:
-        msg["skeleton"] = skeleton
-    if resume_token:
-        msg["resume_token"] = resume_token
-    msg["snapshot_acks"] = True  # the replay buffer forgets what a stored snapshot covers
-    return json.dumps(msg)
-
-
-def _style_message(style: str | None, mix: dict[str, float] | None, intensity: float, transition_frames: int) -> str:
-    msg = {"type": "style", "intensity": intensity, "transition_frames": transition_frames}
-    msg.update({"mix": mix} if mix is not None else {"style": style})
-    return json.dumps(msg)
-
-
-def _control_message(seq: int, velocity: tuple[float, float], facing: float, gait: str) -> str:
-    return json.dumps({"type": "control", "seq": seq, "velocity": [float(velocity[0]), float(velocity[1])],
-                       "facing": float(facing), "gait": gait})
-
-
-def _pack(seq: int, root: np.ndarray, rotations: np.ndarray) -> bytes:
-    return HEADER.pack(seq & 0xFFFFFFFF, 1, 0) + np.concatenate([np.ravel(root), np.ravel(rotations)]).astype("<f4").tobytes()
-
-
-def _unpack(data: bytes, joints: int) -> StyledFrame:
-    seq, _, dropped = HEADER.unpack_from(data)
-    values = np.frombuffer(data, "<f4", offset=HEADER.size).astype(np.float64)
-    return StyledFrame(seq, values[:3], values[3:].reshape(joints, 4), dropped)
-
-
-def _saved_reply(started: dict, seq: int | None) -> StyledFrame | None:
-    """The reply to frame `seq` as the server saved it with the snapshot (`started.last_frame`):
-    the server had processed the frame when the connection went, but its reply never arrived.
-    Rounded to float32 like a binary reply."""
-    last = started.get("last_frame")
-    if seq is None or last is None or last["seq"] != seq:
-        return None
-    return StyledFrame(seq, np.asarray(last["root"], np.float32).astype(np.float64),
-                       np.asarray(last["rotations"], np.float32).astype(np.float64), 0)
-
-
-def _raise_if_error(message: dict) -> dict:
-    if message.get("type") == "error":
-        raise ServerError(message.get("code", "error"), message.get("message", ""), message.get("seq"))
-    return message
-
-
-def _ws_url(base_url: str, token: str | None) -> str:
-    url = base_url.rstrip("/").replace("http://", "ws://").replace("https://", "wss://") + "/v1/stream"
-    return url + (f"?token={token}" if token else "")
-
-
-class Session:
-    """A synchronous streaming session (websockets' sync client)."""
-
-    def __init__(self, base_url: str, token: str | None = None, **start) -> None:
-        self.url, self.start_args = _ws_url(base_url, token), start
-        self.resume_token: str | None = None
-        self.seq = 0
-        self.reconnects = 0  # successful resumes after a lost connection
-        self.replay = ReplayBuffer()
-        self._open()
-
-    def _open(self) -> None:
-        from websockets.exceptions import ConnectionClosed, InvalidHandshake
-        from websockets.sync.client import connect
-
-        for attempt in range(RESUME_ATTEMPTS):
-            self._connection = ExitStack()  # websockets wants its connection used as a context manager
-            try:
-                self.ws = self._connection.enter_context(connect(self.url, max_size=2**22))
-                self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
-                started = _raise_if_error(json.loads(self.ws.recv(timeout=30)))
-                break
-            except (ServerError, ConnectionClosed, InvalidHandshake, OSError) as err:
-                self._connection.close()
-                retry = self.resume_token is not None and (not isinstance(err, ServerError) or err.code in RETRY_CODES)
-                if not retry or attempt == RESUME_ATTEMPTS - 1:
-                    raise
-                time.sleep(RESUME_BACKOFF_S * (attempt + 1))
-        self.info = started
-        self.joints: list[str] = started["joints"]
-        self.resume_token = started["resume_token"]
-
-    def _resume(self, pending: int | None) -> StyledFrame | None:
-        """Reconnect and send again what the restored snapshot lacks, reading each reply (known
-        already, discarded) before the next, as a burst would overrun the server's frame queue.
-        The last message is the caller's own (`pending`: its frame's seq): its reply is left to
-        the caller, unless the snapshot already holds that frame, whose saved reply is returned."""
-        self._connection.close()
-        self._open()
-        self.reconnects += 1
-        missing = self.replay.after(self.info["last_seq"])
-        if not missing or missing[-1] is not self.replay.entries[-1]:
-            saved = _saved_reply(self.info, pending)
-            if saved is None:
-                raise ResumeError("the server saved the last message but its reply was lost")
-            return saved
-        for seq, message in missing[:-1]:  # one at a time: a burst would overrun the session's queue
-            self.ws.send(message)
-            self._reply(seq)
-        self.ws.send(missing[-1][1])
-        return None
-
-    def _reply(self, seq: int | None) -> StyledFrame | dict:
-        """The reply to a frame (`seq`) or to a control message (None), acting on snapshot
-        acknowledgements on the way."""
-        while True:
-            data = self.ws.recv(timeout=30)
-            if isinstance(data, bytes):
-                frame = _unpack(data, len(self.joints))
-                if seq is not None and frame.seq == seq:
-                    return frame
-                continue  # a reply the client has already had
-            message = _raise_if_error(json.loads(data))
-            if message.get("type") == "snapshot":
-                self.replay.acknowledged(message["last_seq"])
-            elif seq is None:
-                return message
-
-    def _call(self, seq: int | None, message: bytes | str) -> StyledFrame | dict:
-        """Send one message and return its reply, resuming once if the connection goes."""
-        from websockets.exceptions import ConnectionClosed
-
-        self.replay.add(seq, message)
-        try:
-            self.ws.send(message)
-            return self._reply(seq)
-        except ConnectionClosed:
-            saved = self._resume(seq)
-            return saved if saved is not None else self._reply(seq)
+    @property
+    def ws(self) -> Any:
+        """The current WebSocket connection (websockets' sync `ClientConnection`)."""
+        return self._io.ws
 
     def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
-        """Send one frame and wait for its stylised twin (resuming by itself, see the module)."""
-        frame = self._call(self.seq, _pack(self.seq, root, rotations))
-        self.seq += 1
-        return frame
+        """Send one frame and wait for its stylised twin."""
+        return run_sync(self.core.stylise(root, rotations), self._io)
 
     def control(self, velocity: tuple[float, float], facing: float, gait: str = "walk") -> StyledFrame:
         """Drive a controller model (LPN-FiLM) one tick: velocity [forward, side] m/s (side > 0 to
         the left), facing yaw in radians (0 = world +Z); returns the synthesised frame."""
-        frame = self._call(self.seq, _control_message(self.seq, velocity, facing, gait))
-        self.seq += 1
-        return frame
+        return run_sync(self.core.control(velocity, facing, gait), self._io)
 
     def set_style(self, style: str | None = None, mix: dict[str, float] | None = None, intensity: float = 1.0,
-                  transition_frames: int = 0) -> dict:
-        return self._call(None, _style_message(style, mix, intensity, transition_frames))
+                  transition_frames: int = 0) -> dict[str, Any]:
+        return run_sync(self.core.set_style(style, mix, intensity, transition_frames), self._io)
 
     def reset(self) -> None:
-        self._call(None, json.dumps({"type": "reset"}))
+        run_sync(self.core.reset(), self._io)
+
+    def send(self, root: np.ndarray, rotations: np.ndarray) -> int:
+        """Pipelined: send a frame without waiting for its reply (only, with `max_in_flight`
+        frames unanswered, for the oldest); returns its seq. Take replies with `receive`/`poll`."""
+        return run_sync(self.core.send(root, rotations), self._io)
+
+    def send_control(self, velocity: tuple[float, float], facing: float, gait: str = "walk") -> int:
+        """`control`, pipelined like `send`."""
+        return run_sync(self.core.send_control(velocity, facing, gait), self._io)
+
+    def receive(self, timeout: Default = ...) -> StyledFrame:
+        """The next pipelined reply, in send order, waiting up to `timeout` (default: the session's)."""
+        return run_sync(self.core.receive(self.core.timeout if timeout is ... else timeout), self._io)
+
+    def poll(self) -> list[StyledFrame]:
+        """The pipelined replies that have arrived, in order, without waiting."""
+        return run_sync(self.core.poll(), self._io)
 
     def close(self) -> None:
-        try:
-            self.ws.send(json.dumps({"type": "end"}))
-            self.ws.recv(timeout=5)
-        except Exception:  # noqa: BLE001 - closing an already broken socket
-            pass
-        self._connection.close()
+        run_sync(self.core.close(), self._io)
 
     def __enter__(self) -> Session:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
-class Client:
-    """Synchronous REST client plus sessions."""
+class AsyncSession(_SessionState):
+    """An asyncio streaming session; `await session.open()` or `async with`."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", token: str | None = None, timeout: float = 30.0) -> None:
-        self.base_url, self.token = base_url.rstrip("/"), token
-        headers = {"Authorization": f"Bearer {token}"} if token else {}
-        self.http = httpx.Client(base_url=self.base_url, headers=headers, timeout=timeout)
+    def __init__(self, base_url: str, token: str | None = None, *, timeout: float | None = TIMEOUT_S,
+                 reconnect_timeout: float | None = RECONNECT_TIMEOUT_S, max_in_flight: int = MAX_IN_FLIGHT,
+                 on_reconnect: Callable[[Reconnect], None] | None = None, **start: Any) -> None:
+        self.core = _core(base_url, token, timeout, reconnect_timeout, max_in_flight, on_reconnect, **start)
+        self._io = AsyncIO()
 
-    def models(self) -> list[ModelInfo]:
-        response = self.http.get("/v1/models")
-        response.raise_for_status()
-        return [ModelInfo(**m) for m in response.json()]
-
-    def session(self, model: str, style: str | None = None, mix: dict[str, float] | None = None,
-                skeleton: str | None = "bandai-namco", bvh_header: str | None = None, fps: float = 30.0,
-                intensity: float = 1.0) -> Session:
-        return Session(self.base_url, self.token, model=model, style=style, mix=mix, skeleton=skeleton,
-                       bvh_header=bvh_header, fps=fps, intensity=intensity)
-
-
-class AsyncSession:
-    """An asyncio streaming session; resumes like `Session`."""
-
-    def __init__(self, base_url: str, token: str | None = None, **start) -> None:
-        self.url, self.start_args = _ws_url(base_url, token), start
-        self.resume_token: str | None = None
-        self.seq = 0
-        self.reconnects = 0
-        self.replay = ReplayBuffer()
+    @property
+    def ws(self) -> Any:
+        """The current WebSocket connection (websockets' asyncio `ClientConnection`)."""
+        return self._io.ws
 
     async def open(self) -> AsyncSession:
-        import websockets
-        from websockets.exceptions import ConnectionClosed, InvalidHandshake
-
-        for attempt in range(RESUME_ATTEMPTS):
-            try:
-                self.ws = await websockets.connect(self.url, max_size=2**22)
-            except (InvalidHandshake, OSError):
-                if self.resume_token is None or attempt == RESUME_ATTEMPTS - 1:
-                    raise
-                await asyncio.sleep(RESUME_BACKOFF_S * (attempt + 1))
-                continue
-            try:
-                await self.ws.send(_start_message(**{**self.start_args, "resume_token": self.resume_token}))
-                started = _raise_if_error(json.loads(await self.ws.recv()))
-                break
-            except (ServerError, ConnectionClosed) as err:
-                await self.ws.close()
-                retry = self.resume_token is not None and (not isinstance(err, ServerError) or err.code in RETRY_CODES)
-                if not retry or attempt == RESUME_ATTEMPTS - 1:
-                    raise
-                await asyncio.sleep(RESUME_BACKOFF_S * (attempt + 1))
-        self.info, self.joints, self.resume_token = started, started["joints"], started["resume_token"]
+        await run_async(self.core.open(), self._io)
         return self
 
-    async def _resume(self, pending: int | None) -> StyledFrame | None:
-        await self.ws.close()
-        await self.open()
-        self.reconnects += 1
-        missing = self.replay.after(self.info["last_seq"])
-        if not missing or missing[-1] is not self.replay.entries[-1]:
-            saved = _saved_reply(self.info, pending)
-            if saved is None:
-                raise ResumeError("the server saved the last message but its reply was lost")
-            return saved
-        for seq, message in missing[:-1]:
-            await self.ws.send(message)
-            await self._reply(seq)
-        await self.ws.send(missing[-1][1])
-        return None
-
-    async def _reply(self, seq: int | None) -> StyledFrame | dict:
-        while True:
-            data = await self.ws.recv()
-            if isinstance(data, bytes):
-                frame = _unpack(data, len(self.joints))
-                if seq is not None and frame.seq == seq:
-                    return frame
-                continue
-            message = _raise_if_error(json.loads(data))
-            if message.get("type") == "snapshot":
-                self.replay.acknowledged(message["last_seq"])
-            elif seq is None:
-                return message
-
-    async def _call(self, seq: int | None, message: bytes | str) -> StyledFrame | dict:
-        from websockets.exceptions import ConnectionClosed
-
-        self.replay.add(seq, message)
-        try:
-            await self.ws.send(message)
-            return await self._reply(seq)
-        except ConnectionClosed:
-            saved = await self._resume(seq)
-            return saved if saved is not None else await self._reply(seq)
-
     async def stylise(self, root: np.ndarray, rotations: np.ndarray) -> StyledFrame:
-        frame = await self._call(self.seq, _pack(self.seq, root, rotations))
-        self.seq += 1
-        return frame
+        return await run_async(self.core.stylise(root, rotations), self._io)
 
     async def control(self, velocity: tuple[float, float], facing: float, gait: str = "walk") -> StyledFrame:
-        frame = await self._call(self.seq, _control_message(self.seq, velocity, facing, gait))
-        self.seq += 1
-        return frame
+        return await run_async(self.core.control(velocity, facing, gait), self._io)
 
     async def set_style(self, style: str | None = None, mix: dict[str, float] | None = None, intensity: float = 1.0,
-                        transition_frames: int = 0) -> dict:
-        return await self._call(None, _style_message(style, mix, intensity, transition_frames))
+                        transition_frames: int = 0) -> dict[str, Any]:
+        return await run_async(self.core.set_style(style, mix, intensity, transition_frames), self._io)
 
     async def reset(self) -> None:
-        await self._call(None, json.dumps({"type": "reset"}))
+        await run_async(self.core.reset(), self._io)
+
+    async def send(self, root: np.ndarray, rotations: np.ndarray) -> int:
+        return await run_async(self.core.send(root, rotations), self._io)
+
+    async def send_control(self, velocity: tuple[float, float], facing: float, gait: str = "walk") -> int:
+        return await run_async(self.core.send_control(velocity, facing, gait), self._io)
+
+    async def receive(self, timeout: Default = ...) -> StyledFrame:
+        return await run_async(self.core.receive(self.core.timeout if timeout is ... else timeout), self._io)
+
+    async def poll(self) -> list[StyledFrame]:
+        return await run_async(self.core.poll(), self._io)
 
     async def close(self) -> None:
-        try:
-            await self.ws.send(json.dumps({"type": "end"}))
-            await self.ws.recv()
-        except Exception:  # noqa: BLE001
-            pass
-        await self.ws.close()
+        await run_async(self.core.close(), self._io)
 
     async def __aenter__(self) -> AsyncSession:
         return await self.open()
 
-    async def __aexit__(self, *exc) -> None:
+    async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
 
-class AsyncClient:
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", token: str | None = None, timeout: float = 30.0) -> None:
+class _ClientBase:
+    def __init__(self, base_url: str, token: str | None, timeout: float | None,
+                 reconnect_timeout: float | None) -> None:
         self.base_url, self.token = base_url.rstrip("/"), token
-        headers = {"Authorization": f"Bearer {token}"} if token else {}
-        self.http = httpx.AsyncClient(base_url=self.base_url, headers=headers, timeout=timeout)
+        self.timeout, self.reconnect_timeout = timeout, reconnect_timeout
+        self.headers = {"Authorization": f"Bearer {token}"} if token else {}
 
-    async def models(self) -> list[ModelInfo]:
-        response = await self.http.get("/v1/models")
-        response.raise_for_status()
-        return [ModelInfo(**m) for m in response.json()]
+    def _session_args(self, model: str, style: str | None, mix: dict[str, float] | None, skeleton: str | None,
+                      bvh_header: str | None, fps: float, intensity: float, timeout: Default,
+                      reconnect_timeout: Default, max_in_flight: int,
+                      on_reconnect: Callable[[Reconnect], None] | None) -> dict[str, Any]:
+        return {"base_url": self.base_url, "token": self.token, "model": model, "style": style, "mix": mix,
+                "skeleton": skeleton, "bvh_header": bvh_header, "fps": fps, "intensity": intensity,
+                "timeout": self.timeout if timeout is ... else timeout,
+                "reconnect_timeout": self.reconnect_timeout if reconnect_timeout is ... else reconnect_timeout,
+                "max_in_flight": max_in_flight, "on_reconnect": on_reconnect}
+
+
+class Client(_ClientBase):
+    """Synchronous REST client plus sessions. `timeout` (seconds, None: no limit) bounds each REST
+    request, opening a session and each reply; `reconnect_timeout` how long a session keeps trying
+    to come back. `close()` (or `with`) closes the HTTP client and the sessions still open."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", token: str | None = None,
+                 timeout: float | None = TIMEOUT_S, reconnect_timeout: float | None = RECONNECT_TIMEOUT_S) -> None:
+        super().__init__(base_url, token, timeout, reconnect_timeout)
+        self.http = httpx.Client(base_url=self.base_url, headers=self.headers, timeout=timeout)
+        self._io = SyncIO(self.http)
+        self._sessions: weakref.WeakSet[Session] = weakref.WeakSet()
+
+    def models(self) -> list[ModelInfo]:
+        return run_sync(rest.models(), self._io)
+
+    def styles(self, model: str | None = None) -> list[StyleInfo]:
+        """Every style (trained and uploaded), or one model's."""
+        return run_sync(rest.styles(model), self._io)
+
+    def style(self, style_id: str) -> StyleInfo:
+        return run_sync(rest.style(style_id), self._io)
+
+    def upload_style(self, name: str, *, model: str = "lti", bvh: rest.Bvh | None = None,
+                     frames: tuple[np.ndarray, np.ndarray] | None = None, fps: float = 30.0,
+                     fine_tune: bool = False) -> Upload:
+        """A clip as a new style: `bvh` (text, bytes, or a path) or `frames` (root (F, 3), rotations
+        (F, 22, 4) xyzw on the model skeleton, at `fps`). LTI needs `fine_tune=True` and answers with
+        a job (`wait_job`); LPN-FiLM's style is usable at once (`Upload.created`)."""
+        return run_sync(rest.upload_style(name, model, bvh, frames, fps, fine_tune), self._io)
+
+    def delete_style(self, style_id: str) -> None:
+        run_sync(rest.delete_style(style_id), self._io)
+
+    def job(self, job_id: str) -> JobInfo:
+        return run_sync(rest.job(job_id), self._io)
+
+    def wait_job(self, job_id: str, progress: Callable[[JobInfo], None] | None = None, timeout: float | None = None,
+                 poll_interval: float = 0.25) -> JobInfo:
+        """Wait for a job to finish: returns it done, raises `JobFailed` or `JobTimeout`;
+        `progress(job)` is called on every change."""
+        return run_sync(rest.wait_job(job_id, progress, timeout, poll_interval), self._io)
 
     def session(self, model: str, style: str | None = None, mix: dict[str, float] | None = None,
                 skeleton: str | None = "bandai-namco", bvh_header: str | None = None, fps: float = 30.0,
-                intensity: float = 1.0) -> AsyncSession:
-        return AsyncSession(self.base_url, self.token, model=model, style=style, mix=mix, skeleton=skeleton,
-                            bvh_header=bvh_header, fps=fps, intensity=intensity)
+                intensity: float = 1.0, *, timeout: Default = ..., reconnect_timeout: Default = ...,
+                max_in_flight: int = MAX_IN_FLIGHT, on_reconnect: Callable[[Reconnect], None] | None = None) -> Session:
+        """Open a streaming session (timeouts default to the client's)."""
+        session = Session(**self._session_args(model, style, mix, skeleton, bvh_header, fps, intensity, timeout,
+                                               reconnect_timeout, max_in_flight, on_reconnect))
+        self._sessions.add(session)
+        return session
+
+    def close(self) -> None:
+        for session in list(self._sessions):
+            session.close()
+        self.http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class AsyncClient(_ClientBase):
+    """`Client` for asyncio."""
+
+    def __init__(self, base_url: str = "http://127.0.0.1:8000", token: str | None = None,
+                 timeout: float | None = TIMEOUT_S, reconnect_timeout: float | None = RECONNECT_TIMEOUT_S) -> None:
+        super().__init__(base_url, token, timeout, reconnect_timeout)
+        self.http = httpx.AsyncClient(base_url=self.base_url, headers=self.headers, timeout=timeout)
+        self._io = AsyncIO(self.http)
+        self._sessions: weakref.WeakSet[AsyncSession] = weakref.WeakSet()
+
+    async def models(self) -> list[ModelInfo]:
+        return await run_async(rest.models(), self._io)
+
+    async def styles(self, model: str | None = None) -> list[StyleInfo]:
+        return await run_async(rest.styles(model), self._io)
+
+    async def style(self, style_id: str) -> StyleInfo:
+        return await run_async(rest.style(style_id), self._io)
+
+    async def upload_style(self, name: str, *, model: str = "lti", bvh: rest.Bvh | None = None,
+                           frames: tuple[np.ndarray, np.ndarray] | None = None, fps: float = 30.0,
+                           fine_tune: bool = False) -> Upload:
+        return await run_async(rest.upload_style(name, model, bvh, frames, fps, fine_tune), self._io)
+
+    async def delete_style(self, style_id: str) -> None:
+        await run_async(rest.delete_style(style_id), self._io)
+
+    async def job(self, job_id: str) -> JobInfo:
+        return await run_async(rest.job(job_id), self._io)
+
+    async def wait_job(self, job_id: str, progress: Callable[[JobInfo], None] | None = None,
+                       timeout: float | None = None, poll_interval: float = 0.25) -> JobInfo:
+        return await run_async(rest.wait_job(job_id, progress, timeout, poll_interval), self._io)
+
+    def session(self, model: str, style: str | None = None, mix: dict[str, float] | None = None,
+                skeleton: str | None = "bandai-namco", bvh_header: str | None = None, fps: float = 30.0,
+                intensity: float = 1.0, *, timeout: Default = ..., reconnect_timeout: Default = ...,
+                max_in_flight: int = MAX_IN_FLIGHT,
+                on_reconnect: Callable[[Reconnect], None] | None = None) -> AsyncSession:
+        """A session to open with `async with` or `await session.open()`."""
+        session = AsyncSession(**self._session_args(model, style, mix, skeleton, bvh_header, fps, intensity, timeout,
+                                                    reconnect_timeout, max_in_flight, on_reconnect))
+        self._sessions.add(session)
+        return session
+
+    async def close(self) -> None:
+        for session in list(self._sessions):
+            if session.core.connected:
+                await session.close()
+        await self.http.aclose()
+
+    async def __aenter__(self) -> AsyncClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()
