@@ -321,13 +321,10 @@ def server_histogram(base_url: str, model: str) -> dict[float, float]:
     """Cumulative frame-latency bucket counts {upper bound s: count} from the server's /metrics."""
     import httpx
 
-    text = httpx.get(f"{base_url}/metrics", timeout=5).text
-    out = {}
-    for line in text.splitlines():
-        if line.startswith("stylestream_frame_latency_seconds_bucket") and f'model="{model}"' in line:
-            le = line.split('le="')[1].split('"')[0]
-            out[float("inf") if le == "+Inf" else float(le)] = float(line.rsplit(" ", 1)[1])
-    return out
+    from .metrics_text import histogram_buckets
+
+    return histogram_buckets(httpx.get(f"{base_url}/metrics", timeout=5).text, "stylestream_frame_latency_seconds",
+                             model=model)
 
 
 def histogram_quantiles(before: dict[float, float], after: dict[float, float], qs=(0.5, 0.99)) -> list[float]:

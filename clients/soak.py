@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .loadtest import _session, first_style, real_frames, spawned_server
+from .metrics_text import metric_values
 
 MB = 1024 * 1024
 
@@ -62,18 +63,6 @@ class Summary:
 
 
 # ---- pure helpers ----------------------------------------------------------------------------
-
-
-def metric_values(text: str) -> dict[str, float]:
-    """Prometheus text exposition -> {name: value}, labelled series of one name summed."""
-    out: dict[str, float] = {}
-    for line in text.splitlines():
-        if not line or line.startswith("#"):
-            continue
-        name_labels, _, value = line.rpartition(" ")
-        name = name_labels.split("{", 1)[0]
-        out[name] = out.get(name, 0.0) + float(value)
-    return out
 
 
 def proc_rss_mb(pid: int) -> float:

@@ -8,7 +8,6 @@ one is skipped, saying which.
 from __future__ import annotations
 
 import os
-import re
 import shutil
 import signal
 import socket
@@ -22,6 +21,7 @@ import httpx
 import pytest
 
 from clients.loadtest import free_port, wait_ready
+from clients.metrics_text import metric_values
 
 REPO = Path(__file__).resolve().parents[1]
 READY_TIMEOUT_S = 240.0
@@ -51,9 +51,26 @@ def _wait_port(port: int, alive, timeout_s: float = 10.0) -> None:
     raise TimeoutError(f"nothing listens on port {port}")
 
 
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.kill()
+def _start(args: list[str], **kwargs) -> subprocess.Popen:
+    """A server process that leads its own process group, so `_stop` can end it together with
+    whatever it forks (nginx workers, `--workers` children)."""
+    return subprocess.Popen(args, start_new_session=True, **kwargs)
+
+
+def _stop(proc: subprocess.Popen, graceful: bool = True, grace_s: float = 10.0) -> None:
+    """SIGTERM the group leader so it stops its children itself (nginx's master stops its workers,
+    which a SIGKILL of the master alone leaves running, listening on their port), then SIGKILL
+    whatever of its process group is left; `graceful=False` goes straight to the SIGKILL."""
+    if graceful and proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            pass
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:  # the group is gone already
+        pass
     proc.wait(timeout=10)
 
 
@@ -61,9 +78,9 @@ def _stop(proc: subprocess.Popen) -> None:
 def redis_server(folder: Path):
     """A throwaway redis-server (no persistence); yields its URL."""
     port = free_port()
-    proc = subprocess.Popen([_binary("redis-server"), "--port", str(port), "--bind", "127.0.0.1", "--dir", str(folder),
-                             "--save", "", "--appendonly", "no", "--logfile", str(folder / "redis.log")],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    proc = _start([_binary("redis-server"), "--port", str(port), "--bind", "127.0.0.1", "--dir", str(folder),
+                   "--save", "", "--appendonly", "no", "--logfile", str(folder / "redis.log")],
+                   stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     try:
         _wait_port(port, lambda: proc.poll() is None)
         yield f"redis://127.0.0.1:{port}/0"
@@ -79,9 +96,9 @@ class Replica:
         self.url = f"http://127.0.0.1:{self.port}"
         self.log = folder / f"{name}.log"
         environment = {**os.environ, **{f"STYLESTREAM_{k.upper()}": str(v) for k, v in env.items()}}
-        self.proc = subprocess.Popen([sys.executable, "-m", "clients.cli", "serve", "--port", str(self.port),
-                                      "--log-level", "info"], cwd=REPO, env=environment,
-                                     stdout=self.log.open("w"), stderr=subprocess.STDOUT)
+        self.proc = _start([sys.executable, "-m", "clients.cli", "serve", "--port", str(self.port),
+                            "--log-level", "info"], cwd=REPO, env=environment,
+                           stdout=self.log.open("w"), stderr=subprocess.STDOUT)
 
     def wait_ready(self) -> None:
         # generous: loading and warming the models (numba compiles) on a busy 2-core box
@@ -89,14 +106,13 @@ class Replica:
 
     def metric(self, name: str) -> float:
         """Sum of a metric's samples on /metrics (all label values)."""
-        text = httpx.get(f"{self.url}/metrics", timeout=5).text
-        return sum(float(v) for v in re.findall(rf"^{name}(?:{{[^}}]*}})? (\S+)$", text, re.MULTILINE))
+        return metric_values(httpx.get(f"{self.url}/metrics", timeout=5).text).get(name, 0.0)
 
     def signal(self, sig: signal.Signals) -> None:
         self.proc.send_signal(sig)
 
     def stop(self) -> None:
-        _stop(self.proc)
+        _stop(self.proc, graceful=False)  # a drain would only slow the teardown; its workers go with it
 
 
 @contextmanager
@@ -155,8 +171,8 @@ def nginx(folder: Path, upstream_ports: list[int]):
     servers = "\n".join(f"        server 127.0.0.1:{p} max_fails=1 fail_timeout=5s;" for p in upstream_ports)
     conf = folder / "nginx.conf"
     conf.write_text(NGINX_CONF.format(folder=folder, port=port, servers=servers))
-    proc = subprocess.Popen([_binary("nginx"), "-p", str(folder), "-c", str(conf), "-e", str(folder / "nginx-error.log"),
-                             "-g", "daemon off;"], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    proc = _start([_binary("nginx"), "-p", str(folder), "-c", str(conf), "-e", str(folder / "nginx-error.log"),
+                   "-g", "daemon off;"], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     try:
         _wait_port(port, lambda: proc.poll() is None)
         yield f"http://127.0.0.1:{port}"

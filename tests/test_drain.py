@@ -26,6 +26,7 @@ from service.settings import ServiceSettings
 
 from .cluster import READY_TIMEOUT_S, nginx, redis_server, replicas, require
 from .test_replicas import FRAMES, KILL_AFTER, stream
+from .waiting import wait_until
 
 
 @contextmanager
@@ -72,7 +73,7 @@ def test_sigterm_refuses_new_sessions_closes_open_ones_with_1012_and_exits_in_ti
             send_frame(ws, t, root[t], rot[t])
         sigterm_at = time.monotonic()
         server.handle_exit(signal.SIGTERM, None)
-        time.sleep(0.3)
+        wait_until(lambda: httpx.get(f"{base}/readyz").status_code == 503, "readyz to turn 503 on SIGTERM")
         ready = httpx.get(f"{base}/readyz")
         assert (ready.status_code, ready.json()["status"]) == (503, "draining")
         with connect(base.replace("http", "ws") + "/v1/stream") as late:
@@ -107,13 +108,15 @@ def test_a_drained_session_continues_on_the_other_replica_unchanged(tmp_path, bn
                 holder = next(s for s in servers if s.metric("stylestream_active_sessions") == 1)
                 drained.update(replica=holder, at=time.monotonic())
                 holder.signal(signal.SIGTERM)
-                threading.Thread(target=lambda: (holder.proc.wait(), drained.update(exited=time.monotonic())),
-                                 daemon=True).start()
+                watcher = threading.Thread(target=lambda: (holder.proc.wait(), drained.update(exited=time.monotonic())),
+                                           daemon=True)
+                drained["watcher"] = watcher
+                watcher.start()
 
         got, _, reconnects = stream(lb, root, rot, on_reply=sigterm_the_holder)
         holder = drained["replica"]
         holder.proc.wait(timeout=drain_timeout + 5)
-        time.sleep(0.1)  # the watcher notes the time
+        drained["watcher"].join(timeout=10)  # it notes the time
         took = drained["exited"] - drained["at"]
         survivor = next(s for s in servers if s is not holder)
         print(f"\ndrained replica exited {took:.2f} s after SIGTERM (code {holder.proc.returncode})")

@@ -19,6 +19,7 @@ from models.settings import get_settings
 
 from .clips import drive_lpn, frames_json
 from .live_server import live_server
+from .waiting import wait_until
 
 MODEL = load_models(get_settings().weights_dir)["lpn"]
 WALK = [((1.3, 0.0), 0.0, "walk")] * 45
@@ -101,7 +102,7 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
         streamer.start()
         seen = poll_job(base, job["id"])
         finished = time.monotonic()
-        time.sleep(0.3)  # frames after the swap
+        wait_until(lambda: (streamer.replies and streamer.replies[-1][0] > finished) or streamer.error, "frames after the swap", 30)
         streamer.stop.set()
         streamer.join(timeout=10)
 
@@ -160,7 +161,7 @@ def test_deleting_a_style_or_stopping_the_server_while_a_fine_tune_job_runs_stop
         assert "doomed" not in MODEL.styles() and not (tmp_path / "lpn" / "doomed").exists()
         again = httpx.post(f"{base}/v1/styles", json={**body, "fine_tune": False}, timeout=60)
         assert again.status_code == 201 and again.json()["job"] is None  # the name is free again
-        time.sleep(0.2)
+        wait_until(lambda: len(streamer.replies) > 5 or streamer.error, "the streamer's frames", 30)
         streamer.stop.set()
         streamer.join(timeout=10)
         assert streamer.error is None and len(streamer.replies) > 5

@@ -7,7 +7,6 @@ either. Each replica has its own LPN-FiLM instance, as separate processes do."""
 
 from __future__ import annotations
 
-import time
 
 import httpx
 import numpy as np
@@ -21,6 +20,7 @@ from models.settings import get_settings
 
 from .clips import drive_lpn, frames_json
 from .live_server import live_server
+from .waiting import wait_until
 
 WALK = [((1.3, 0.0), 0.0, "walk")] * 30
 STEPS = 20  # fine-tune steps (the service default is 300)
@@ -42,13 +42,6 @@ def styles_of(base: str, model: str = "lpn") -> list[str]:
 def lti_outputs(base: str, style: str, root, rot) -> np.ndarray:
     with Client(base).session(model="lti", style=style) as session:
         return np.array([session.stylise(root[t], rot[t]).rotations for t in range(len(root))])
-
-
-def wait_until(check, what: str, timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not check():
-        assert time.monotonic() < deadline, what
-        time.sleep(0.05)
 
 
 def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip, index, bn_walk, tmp_path):

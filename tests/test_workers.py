@@ -12,7 +12,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -22,6 +21,7 @@ from clients.soak import metric_values
 from service import protocol as P
 
 from .cluster import REPO, Replica, redis_server, require
+from .waiting import wait_until
 
 SESSIONS = 16  # all on one of two workers by chance: 2 / 2**16
 
@@ -78,10 +78,12 @@ def test_two_workers_share_the_port_and_resume_each_others_sessions(tmp_path, bn
             url = server.url.replace("http", "ws", 1) + "/v1/stream"
             tokens = [_stream(url, root, rot) for _ in range(SESSIONS)]
             assert all(_cpu_s(p) - cpu0[p] > 0.02 for p in workers), "a worker served no session"
-            time.sleep(0.5)  # the snapshots of the closed sessions reach the store
+            wait_until(lambda: _scrape(server.url)["stylestream_snapshots_total"] >= SESSIONS,
+                       "the snapshots of the closed sessions to reach the store")
             for token in tokens:  # about half land on the other worker than the session's first
                 _stream(url, root, rot, resume_token=token)
-            time.sleep(0.5)  # the last sessions' closes are counted
+            wait_until(lambda: _scrape(server.url)["stylestream_active_sessions"] == 0,
+                       "the last sessions' closes to be counted")
             for _ in range(8):  # scrapes land on both workers; each answers for all of them
                 metrics = _scrape(server.url)  # only LTI sessions ran
                 assert metrics["stylestream_frames_total"] == 2 * SESSIONS * 10
