@@ -1,472 +1,624 @@
-"""VMC bridge: Virtual Motion Capture (OSC over UDP) in, stylised VMC out.
+"""VMC bridge: Virtual Motion Capture (OSC over UDP) in, the avatar restyled, VMC out.
 
-    stylestream vmc --listen 39539 --send-host 127.0.0.1 --send-port 39540 --model lti --style elderly
+    stylestream vmc --listen 39539 --send-host 127.0.0.1 --send-port 39540 --model lti --style elderly \\
+        [--bones upper] [--bone-timeout 1.0]
 
-receives VMC protocol messages (`/VMC/Ext/Root/Pos` and `/VMC/Ext/Bone/Pos`, each
-`name, px, py, pz, qx, qy, qz, qw`, with Unity `HumanBodyBones` names), maps the humanoid bones onto
-the Bandai Namco (BN) skeleton every model uses, streams each frame through a session of the
-service (`clients.sdk`) and sends the stylised pose on as VMC: one OSC bundle per frame holding
-`/VMC/Ext/Root/Pos`, one `/VMC/Ext/Bone/Pos` per mapped bone, `/VMC/Ext/OK 1` and `/VMC/Ext/T time`.
+A VMC sender (VSeeFace, VirtualMotionCapture, Warudo, a tracker app) sends per frame the avatar
+root (`/VMC/Ext/Root/Pos`) and each Unity humanoid bone (`/VMC/Ext/Bone/Pos name px py pz qx qy
+qz qw`: local position and rotation, Unity axes: left-handed, Y up, metres), plus blend shapes,
+eyes, fingers, trackers, `/VMC/Ext/OK`, `/VMC/Ext/T`. The bridge
 
-Framing of the input: a frame is complete when an OSC bundle ends (the usual VMC sender puts a
-whole frame in one bundle) or, for senders that send loose messages, when `/VMC/Ext/T` arrives.
-Bone values persist between frames: a bone a sender does not send keeps its last value (identity
-rotation and the rest offset until first seen), as in VMC receivers. Other VMC addresses
-(blend shapes, trackers, `/VMC/Ext/OK`...) are ignored.
+* **keeps the avatar's proportions**: the body bones the sender sends (Hips, Spine, Chest,
+  UpperChest, Neck, Head, shoulders, arms, hands, legs, feet, toes) with their local positions
+  *are* the rig: the bridge writes them as a BVH header (`AvatarRig`) and opens a session on it
+  (`bvh_header`), so the one humanoid mapping (`models.motion.humanoid`, `retarget_stream` on the
+  server) retargets the avatar onto the model skeleton and the stylised frame back onto the
+  avatar's own bones; the bridge maps no bone itself. Unity's left-handed frame is brought to a
+  right-handed one by mirroring X (positions `x -> -x`, quaternions `(x, y, z, w) -> (x, -y, -z,
+  w)`; its own inverse), a sign flip on two arrays. The avatar root is composed into the Hips (the
+  rig's translated joint) on the way in and taken out on the way back. The rig changes (a new
+  session) only when the body bones or their offsets do (another avatar).
+* **converts a frame in a few array operations** (`model_input`, `unity_output`), and decodes
+  and encodes OSC on raw bytes (`vmc_osc`): ~0.1 ms a frame of ~55 bones in the bridge.
+* **passes everything else through**: messages that are not pose messages (blend shapes, eye
+  and camera messages, trackers, `/VMC/Ext/OK`, `/VMC/Ext/T`, anything unknown) go out byte for
+  byte in the frame's bundle (a bundle without pose messages, or a loose message, at once); bones
+  outside the body (fingers, eyes, jaw) and bones outside the **bone mask** (`--bones`: Unity
+  names and groups `body`, `upper`, `lower`, `spine`, `head`, `arms`, `legs`; `-Name` removes)
+  keep the sender's values.
+* **resets a sender's missing bones**: a bone not sent for `--bone-timeout` seconds goes back to
+  its rest (identity rotation, its first position), as if the sender had let go of it; until then
+  it holds its last value, as VMC receivers do.
+* **never freezes**: the session lives on a worker thread (`StyleLink`); a frame the server has
+  not answered within `--wait-ms` goes out unstyled, and while the session is down (server
+  restarted, token unknown, network gone) frames pass through unstyled and a fresh session is
+  opened with backoff, then styling resumes.
 
-Assumptions (the mapping's contract)
-------------------------------------
-* **VMC side** (Unity): left-handed, Y up, metres. Bone transforms are *local* (relative to the
-  Unity humanoid parent; `Hips` relative to the avatar root of `/VMC/Ext/Root/Pos`), and the
-  avatar is *normalised*: in its T-pose every local rotation is identity and every bone frame is
-  aligned with the world (what VRM avatars and VMC senders use). The T-pose faces +Z (Unity), arms
-  along +-X, legs down, spine up.
-* **Handedness**: Unity -> right-handed by mirroring the X axis: position `(x, y, z) -> (-x, y, z)`,
-  quaternion `(x, y, z, w) -> (x, -y, -z, w)` (`unity_to_right_handed`; its inverse
-  `right_handed_to_unity` is the same reflection). Units: metres * 100 = cm (`CM_PER_METRE`).
-  After the mirror the avatar faces +Z with its left at +X, which is BN's world frame (Y up, cm).
-* **BN side**: the 22-joint BN skeleton of `models.motion.assets.bandai_namco_pose()`, local
-  quaternions scalar-last xyzw, `root` = the `Hips` translation (cm). BN has no T-pose (its bones
-  lie along each joint's local +-X), so a per-joint *rest alignment* `A_j` (`build_vmc_rig`) is the
-  BN global rotation that puts BN into the VMC T-pose: computed with
-  `scipy.spatial.transform.Rotation.align_vectors`, the bone (the offset to the child that
-  `models.motion.retarget` matches on; a leaf's own +-X) aligned exactly with its T-pose
-  direction, the twist about it as close as possible to BN's natural standing pose (for `Hips`
-  and `Chest`: the hip / shoulder line along +X). Feet and toes keep the natural pose's pitch
-  (made left-right symmetric), since a T-pose stands flat-footed.
-* **The mapping**: with `W_b` the VMC global rotation of bone b (product of Unity local rotations
-  from the root, mirrored), `BN_global_j = W_b(j) * A_j`, BN locals follow from BN parents. The
-  inverse is exact: `W = BN_global * A^-1`, VMC local = `W_parent^-1 * W`. A Unity `UpperChest`,
-  if sent, is folded into BN `Chest` (BN has none); fingers, eyes, jaw are not mapped. BN's static
-  `joint_Root` is the VMC root (`/VMC/Ext/Root/Pos`); `Hips` carries the translation. Bone
-  positions sent out are the BN rest offsets in T-pose axes (metres); received ones are ignored
-  except `Hips` and the root (the BN skeleton's proportions are fixed; no retargeting of avatar
-  size is done).
+Framing: a frame completes when a bundle holding pose messages ends, or, for senders that send
+loose messages, on `/VMC/Ext/T`. Output: one bundle per frame (root, every bone the sender has
+sent, the passed-through messages in their order; `/VMC/Ext/OK 1` and `/VMC/Ext/T` added when
+the sender sent none).
 
-Everything above is pure (numpy / scipy) and round-trips exactly: BN frame -> VMC frame ->
-messages -> parsed -> BN frame. OSC itself carries float32, so over the wire values hold to
-~1e-7 relative. The I/O (`VmcBridge`) is a thin python-osc loop: one receiving thread that, per
-completed frame, converts, calls the session (blocking, one frame in, one frame out; frames that
-arrive meanwhile wait in the UDP buffer) and sends the result.
+Assumption: bone positions are local to the Unity humanoid parent (the nearest sent ancestor),
+and the avatar's bones at identity rotation stand upright (a normalised humanoid, as VRM and VMC
+senders send it); the mapping itself does not need a T-pose, only the reading of the rig's up
+axis from that rest does.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import socket
+import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections import deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from models.motion.rotations import quat_apply, quat_inv, quat_mul
-from models.motion.skeleton import Motion, Skeleton, fk
+from . import vmc_osc as osc
 
 log = logging.getLogger(__name__)
 
-CM_PER_METRE = 100.0
 ROOT_ADDRESS = "/VMC/Ext/Root/Pos"
 BONE_ADDRESS = "/VMC/Ext/Bone/Pos"
 OK_ADDRESS = "/VMC/Ext/OK"
 TIME_ADDRESS = "/VMC/Ext/T"
+_ROOT, _BONE, _TIME, _OK = (a.encode() for a in (ROOT_ADDRESS, BONE_ADDRESS, TIME_ADDRESS, OK_ADDRESS))
 
-# BN joint -> Unity HumanBodyBones name (joint_Root is the VMC root, not a bone).
-BN_TO_UNITY: dict[str, str] = {
-    "Hips": "Hips", "Spine": "Spine", "Chest": "Chest", "Neck": "Neck", "Head": "Head",
-    **{f"{bn}_{s}": f"{side}{unity}" for s, side in (("L", "Left"), ("R", "Right")) for bn, unity in (
-        ("Shoulder", "Shoulder"), ("UpperArm", "UpperArm"), ("LowerArm", "LowerArm"), ("Hand", "Hand"),
-        ("UpperLeg", "UpperLeg"), ("LowerLeg", "LowerLeg"), ("Foot", "Foot"), ("Toes", "Toes"))},
-}
-UNITY_TO_BN: dict[str, str] = {u: b for b, u in BN_TO_UNITY.items()}
-
-# Unity humanoid parent of each bone this bridge reads (None: child of the VMC root). Neck and the
-# shoulders hang off UpperChest, which is identity when a sender has none.
-UNITY_PARENTS: dict[str, str | None] = {
+# Unity body bones (HumanBodyBones) and their humanoid parents, depth first.
+BODY_PARENTS: dict[str, str | None] = {
     "Hips": None, "Spine": "Hips", "Chest": "Spine", "UpperChest": "Chest", "Neck": "UpperChest", "Head": "Neck",
-    **{f"{side}{b}": f"{side}{p}" if p != "UpperChest" else p for side in ("Left", "Right") for b, p in (
+    **{f"{s}{b}": p if p == "UpperChest" else f"{s}{p}" for s in ("Left", "Right") for b, p in (
         ("Shoulder", "UpperChest"), ("UpperArm", "Shoulder"), ("LowerArm", "UpperArm"), ("Hand", "LowerArm"))},
-    **{f"{side}{b}": f"{side}{p}" if p != "Hips" else p for side in ("Left", "Right") for b, p in (
+    **{f"{s}{b}": p if p == "Hips" else f"{s}{p}" for s in ("Left", "Right") for b, p in (
         ("UpperLeg", "Hips"), ("LowerLeg", "UpperLeg"), ("Foot", "LowerLeg"), ("Toes", "Foot"))},
 }
-# The Unity bone whose global rotation drives a BN joint (Chest takes UpperChest's, which equals
-# Chest's when the sender has no UpperChest).
-_DRIVER = {**{b: u for b, u in BN_TO_UNITY.items()}, "Chest": "UpperChest"}
-
-# T-pose directions in BN world axes (right-handed, Y up, facing +Z, left at +X). Feet and toes
-# are filled in from the natural pose by `build_vmc_rig`.
-_UP, _DOWN, _LEFT, _RIGHT = (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (-1.0, 0.0, 0.0)
-TPOSE_DIRECTIONS: dict[str, tuple[float, float, float]] = {
-    "Hips": _UP, "Spine": _UP, "Chest": _UP, "Neck": _UP, "Head": _UP,
-    **{f"{b}_L": _LEFT for b in ("Shoulder", "UpperArm", "LowerArm", "Hand")},
-    **{f"{b}_R": _RIGHT for b in ("Shoulder", "UpperArm", "LowerArm", "Hand")},
-    **{f"{b}_{s}": _DOWN for b in ("UpperLeg", "LowerLeg") for s in "LR"},
+BODY_BONES = tuple(BODY_PARENTS)
+_SIDES = ("Left", "Right")
+BONE_GROUPS: dict[str, tuple[str, ...]] = {
+    "body": BODY_BONES,
+    "spine": ("Spine", "Chest", "UpperChest"),
+    "head": ("Neck", "Head"),
+    "arms": tuple(f"{s}{b}" for s in _SIDES for b in ("Shoulder", "UpperArm", "LowerArm", "Hand")),
+    "legs": tuple(f"{s}{b}" for s in _SIDES for b in ("UpperLeg", "LowerLeg", "Foot", "Toes")),
 }
-# BN joint -> the child whose offset is its bone (as in models.motion.retarget); others are leaves.
-_BONE_CHILD = {
-    "Hips": "Spine", "Spine": "Chest", "Chest": "Neck", "Neck": "Head",
-    **{f"{a}_{s}": f"{b}_{s}" for s in "LR" for a, b in (
-        ("Shoulder", "UpperArm"), ("UpperArm", "LowerArm"), ("LowerArm", "Hand"),
-        ("UpperLeg", "LowerLeg"), ("LowerLeg", "Foot"), ("Foot", "Toes"))},
-}
-# Joints with several children: (left child, right child) whose line lies along +X in the T-pose.
-_LATERAL = {"Hips": ("UpperLeg_L", "UpperLeg_R"), "Chest": ("Shoulder_L", "Shoulder_R")}
+BONE_GROUPS["upper"] = BONE_GROUPS["spine"] + BONE_GROUPS["head"] + BONE_GROUPS["arms"]
+BONE_GROUPS["lower"] = ("Hips",) + BONE_GROUPS["legs"]
+
+MIRROR_P = np.array([-1.0, 1.0, 1.0])  # Unity (left-handed) <-> right-handed: x -> -x
+MIRROR_Q = np.array([1.0, -1.0, -1.0, 1.0])  # the same reflection on quaternions (x, y, z, w)
+IDENTITY = np.array([0.0, 0.0, 0.0, 1.0])
 
 
-# --------------------------------------------------------------------------- handedness
-
-def unity_to_right_handed(position: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unity (left-handed, Y up) -> right-handed Y-up axes by mirroring X.
-
-    position (..., 3) `(x, y, z) -> (-x, y, z)`; rotation (..., 4) xyzw `(x, y, z, w) -> (x, -y, -z, w)`
-    (the reflection M maps a rotation R to M R M). Units are unchanged. Inverse:
-    `right_handed_to_unity`."""
-    p = np.array(position, dtype=np.float64)
-    q = np.array(rotation, dtype=np.float64)
-    p[..., 0] *= -1.0
-    q[..., 1:3] *= -1.0
-    return p, q
-
-
-def right_handed_to_unity(position: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of `unity_to_right_handed` (a reflection is its own inverse)."""
-    return unity_to_right_handed(position, rotation)
-
-
-# --------------------------------------------------------------------------- the rig
-
-@dataclass(frozen=True)
-class VmcRig:
-    """What maps BN frames to and from VMC: the BN skeleton, per joint the BN global rotation in
-    the VMC T-pose (`alignment`, (J, 4) xyzw, identity for joint_Root) and the local position of
-    each joint in T-pose axes (`tpose_offsets`, (J, 3), right-handed cm), which is what VMC's bone
-    positions carry."""
-
-    skeleton: Skeleton
-    alignment: np.ndarray
-    tpose_offsets: np.ndarray
-
-    @property
-    def bones(self) -> list[str]:
-        """Unity names of the mapped bones, in BN joint order."""
-        return [BN_TO_UNITY[n] for n in self.skeleton.names if n in BN_TO_UNITY]
-
-
-def _yaw_to_face_z(skeleton: Skeleton, g_rot: np.ndarray, g_pos: np.ndarray) -> np.ndarray:
-    """Quaternion about +Y turning a pose so that it faces +Z (left = hip line, forward = left x up)."""
-    left = g_pos[skeleton.index("UpperLeg_L")] - g_pos[skeleton.index("UpperLeg_R")]
-    forward = np.cross(left, [0.0, 1.0, 0.0])
-    angle = np.arctan2(forward[0], forward[2])
-    return Rotation.from_rotvec([0.0, -angle, 0.0]).as_quat()
-
-
-def _bone_vector(skeleton: Skeleton, name: str) -> np.ndarray:
-    """The joint's bone in its own frame: the offset of its matched child, or for a leaf (Head,
-    Hand, Toes) its own +-X (BN's right side points along -X)."""
-    if name in _BONE_CHILD:
-        v = skeleton.offsets[skeleton.index(_BONE_CHILD[name])]
-    else:
-        v = np.array([np.sign(skeleton.offsets[skeleton.index(name)][0]) or 1.0, 0.0, 0.0])
-    return np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
-
-
-def tpose_alignment(pose: Motion, frame: int = 0) -> np.ndarray:
-    """BN global rotations (J, 4) that put the BN skeleton into the VMC T-pose, in BN world axes.
-
-    Per joint, `Rotation.align_vectors` maps the joint's bone exactly onto its T-pose direction
-    (`TPOSE_DIRECTIONS`; feet and toes: the natural pose's direction made left-right symmetric)
-    and keeps the twist about it as close as it can to the natural pose `pose[frame]` turned to
-    face +Z; for Hips and Chest the hip / shoulder line goes along +X instead. joint_Root: identity.
-    """
-    sk = pose.skeleton
-    g_rot, g_pos = fk(pose.rotations[frame], pose.translations[frame], sk.parents)
-    yaw = _yaw_to_face_z(sk, g_rot, g_pos)
-    natural = quat_mul(yaw, g_rot)  # (J, 4) natural globals facing +Z
-    directions = {k: np.array(v) for k, v in TPOSE_DIRECTIONS.items()}
-    for bone in ("Foot", "Toes"):
-        left = quat_apply(natural[sk.index(f"{bone}_L")], _bone_vector(sk, f"{bone}_L"))
-        right = quat_apply(natural[sk.index(f"{bone}_R")], _bone_vector(sk, f"{bone}_R"))
-        d = 0.5 * (left + right * [-1.0, 1.0, 1.0])
-        d[0] = 0.0
-        directions[f"{bone}_L"] = directions[f"{bone}_R"] = d / np.linalg.norm(d)
-    out = np.tile([0.0, 0.0, 0.0, 1.0], (sk.num_joints, 1))
-    for j, name in enumerate(sk.names):
-        if name not in BN_TO_UNITY:
+def parse_bones(spec: str) -> frozenset[str]:
+    """The bone mask of `--bones`: comma-separated Unity body bone names and groups
+    (`BONE_GROUPS`), a leading `-` removing; e.g. `upper`, `body,-Head`, `arms,Spine`."""
+    keep: set[str] = set()
+    unknown = []
+    for raw in (p.strip() for p in spec.split(",")):
+        if not raw:
             continue
-        bone = _bone_vector(sk, name)
-        if name in _LATERAL:
-            a, b = _LATERAL[name]
-            lateral = sk.offsets[sk.index(a)] - sk.offsets[sk.index(b)]
-            targets, sources = [directions[name], [1.0, 0.0, 0.0]], [bone, lateral]
+        drop, name = raw.startswith("-"), raw.lstrip("-")
+        bones = (name,) if name in BODY_PARENTS else BONE_GROUPS.get(name.lower())  # "Head" the bone, "head" the group
+        if bones is None:
+            unknown.append(raw)
+        elif drop:
+            keep.difference_update(bones)
         else:
-            axes = np.eye(3)[1:]  # keep local Y and Z near where the natural pose has them
-            targets, sources = [directions[name], *quat_apply(natural[j], axes)], [bone, *axes]
-        rot, _ = Rotation.align_vectors(targets, sources, weights=[np.inf] + [1.0] * (len(sources) - 1))
-        out[j] = rot.as_quat()
-    return out
+            keep.update(bones)
+    if unknown:
+        raise ValueError(f"--bones: unknown {', '.join(unknown)} (groups: {', '.join(BONE_GROUPS)}; "
+                         f"bones: {', '.join(BODY_BONES)})")
+    return frozenset(keep)
 
 
-def build_vmc_rig(pose: Motion | None = None) -> VmcRig:
-    """The rig for a BN skeleton (default: the committed BN pose asset, `default_vmc_rig`)."""
-    if pose is None:
-        from models.motion.assets import bandai_namco_pose
-
-        pose = bandai_namco_pose()
-    sk = pose.skeleton
-    missing = [n for n in ("joint_Root", *BN_TO_UNITY) if n not in sk.names]
-    if missing:
-        raise ValueError(f"not a Bandai Namco skeleton (missing {', '.join(missing)})")
-    alignment = tpose_alignment(pose)
-    offsets = np.array(sk.offsets, dtype=np.float64)
-    for j, p in enumerate(sk.parents):
-        if p >= 0:
-            offsets[j] = quat_apply(alignment[p], offsets[j])
-    return VmcRig(sk, alignment, offsets)
+# --------------------------------------------------------------------------- quaternions (x, y, z, w)
 
 
-@lru_cache(maxsize=1)
-def default_vmc_rig() -> VmcRig:
-    return build_vmc_rig()
+def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz], axis=-1)
 
 
-# --------------------------------------------------------------------------- BN <-> VMC frames
+def _qapply(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    u, w = q[..., :3], q[..., 3:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
+
+
+def _qinv(q: np.ndarray) -> np.ndarray:
+    return q * np.array([-1.0, -1.0, -1.0, 1.0])
+
+
+def _unit(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions; a zero one (a broken sender) becomes the identity."""
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(n > 1e-9, q / np.maximum(n, 1e-9), IDENTITY)
+
+
+# --------------------------------------------------------------------------- what the sender has sent
+
+
+class VmcState:
+    """What a VMC receiver holds: the avatar root and, per bone name, its last local position and
+    rotation (Unity axes, as sent), when it was last sent and its rest position (the first one
+    sent). Bones are slots in growing arrays, so a frame updates and reads them in one go."""
+
+    def __init__(self, bone_timeout_s: float = 1.0) -> None:
+        self.bone_timeout_s = bone_timeout_s
+        self.names: list[str] = []
+        self.slot: dict[str, int] = {}
+        self.pos = np.zeros((0, 3))
+        self.rot = np.zeros((0, 4))
+        self.rest = np.zeros((0, 3))
+        self.seen = np.zeros(0)
+        self.root_pos, self.root_rot = np.zeros(3), IDENTITY.copy()
+        self.root_message: bytes | None = None  # re-sent as it came
+        self.version = 0  # bumped when a bone name appears
+
+    def _slots(self, names: list[str]) -> list[int]:
+        out = []
+        for name in names:
+            s = self.slot.get(name)
+            if s is None:
+                s = self.slot[name] = len(self.names)
+                self.names.append(name)
+                self.version += 1
+            out.append(s)
+        if len(self.names) > len(self.pos):
+            n = len(self.names)
+            grow = lambda a, fill: np.concatenate([a, np.tile(fill, (n - len(a), 1)) if a.ndim > 1 else np.full(n - len(a), fill)])  # noqa: E731
+            self.pos, self.rot, self.rest = grow(self.pos, np.zeros(3)), grow(self.rot, IDENTITY), grow(self.rest, np.nan * np.zeros(3))
+            self.seen = grow(self.seen, -np.inf)
+        return out
+
+    def update(self, names: list[str], values: list[tuple[float, ...]], now: float) -> None:
+        """Bones `names` took `values` (px, py, pz, qx, qy, qz, qw) at time `now`."""
+        if not names:
+            return
+        idx = np.array(self._slots(names))
+        v = np.array(values, dtype=np.float64)
+        self.pos[idx], self.rot[idx], self.seen[idx] = v[:, :3], v[:, 3:7], now
+        fresh = idx[np.isnan(self.rest[idx, 0])]
+        self.rest[fresh] = self.pos[fresh]
+
+    def expire(self, now: float) -> np.ndarray:
+        """Reset bones not sent for `bone_timeout_s` to their rest; returns the reset slots."""
+        stale = np.flatnonzero(now - self.seen > self.bone_timeout_s)
+        if len(stale):
+            self.rot[stale], self.pos[stale] = IDENTITY, self.rest[stale]
+            self.seen[stale] = np.inf  # reset once; a new value brings the bone back
+        return stale
+
+    def body(self) -> dict[str, np.ndarray]:
+        """{body bone: local position} of the body bones sent so far."""
+        return {b: self.pos[self.slot[b]] for b in BODY_BONES if b in self.slot}
+
 
 @dataclass
-class VmcFrame:
-    """One VMC frame in Unity conventions (left-handed, metres, xyzw): the avatar root and, per
-    Unity bone name, its local (position (3,), rotation (4,))."""
+class Received:
+    """What one datagram gave: `forward`, datagrams to send on as they are; `frames`, per
+    completed frame the raw messages to pass through in it (the state is already updated)."""
 
-    root_position: np.ndarray
-    root_rotation: np.ndarray
-    bones: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-
-
-def bn_to_vmc(root: np.ndarray, rotations: np.ndarray, rig: VmcRig | None = None) -> VmcFrame:
-    """A BN frame (Hips translation (3,) cm, local rotations (J, 4) xyzw) -> VMC frame.
-
-    `W = BN_global * A^-1` per joint; a bone's VMC rotation is `W_parent^-1 * W`, joint_Root's
-    global rotation is the VMC root's. Positions: the root at joint_Root's offset, Hips at
-    `root`, other bones at their T-pose offsets; all mirrored to Unity and in metres."""
-    rig = rig or default_vmc_rig()
-    sk = rig.skeleton
-    rotations = np.asarray(rotations, dtype=np.float64)
-    rotations = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
-    translations = np.array(rig.tpose_offsets)
-    translations[sk.index("Hips")] = root
-    g_rot, _ = fk(rotations, translations, sk.parents)
-    world = quat_mul(g_rot, quat_inv(rig.alignment))
-    r0 = sk.index("joint_Root")
-    root_pos, root_rot = right_handed_to_unity(sk.offsets[r0] / CM_PER_METRE, world[r0])
-    frame = VmcFrame(root_pos, root_rot)
-    for j, name in enumerate(sk.names):
-        if name not in BN_TO_UNITY:
-            continue
-        local = quat_mul(quat_inv(world[sk.parents[j]]), world[j])
-        frame.bones[BN_TO_UNITY[name]] = right_handed_to_unity(translations[j] / CM_PER_METRE, local)
-    return frame
-
-
-def vmc_to_bn(frame: VmcFrame, rig: VmcRig | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A VMC frame -> BN frame (Hips translation (3,) cm, local rotations (J, 4) xyzw).
-
-    Unity globals `W` from the humanoid hierarchy (missing bones: identity), `BN_global = W * A`,
-    BN locals from BN parents. The Hips translation is the VMC Hips position expressed under BN's
-    joint_Root (which takes the VMC root's rotation). Inverse of `bn_to_vmc`."""
-    rig = rig or default_vmc_rig()
-    sk = rig.skeleton
-    root_pos, root_rot = unity_to_right_handed(frame.root_position, frame.root_rotation)
-    root_pos = root_pos * CM_PER_METRE
-    world: dict[str | None, np.ndarray] = {None: root_rot / np.linalg.norm(root_rot)}
-    for bone, parent in UNITY_PARENTS.items():  # parents first
-        if bone in frame.bones:
-            _, q = unity_to_right_handed(np.zeros(3), frame.bones[bone][1])
-            q = q / np.linalg.norm(q)
-        else:
-            q = np.array([0.0, 0.0, 0.0, 1.0])
-        world[bone] = quat_mul(world[parent], q)
-    g_rot = np.empty((sk.num_joints, 4))
-    for j, name in enumerate(sk.names):
-        w = world[_DRIVER[name]] if name in _DRIVER else world[None]
-        g_rot[j] = quat_mul(w, rig.alignment[j])
-    local = np.array(g_rot)
-    for j, p in enumerate(sk.parents):
-        if p >= 0:
-            local[j] = quat_mul(quat_inv(g_rot[p]), g_rot[j])
-    hips, r0 = sk.index("Hips"), sk.index("joint_Root")
-    if "Hips" in frame.bones:
-        hips_pos = unity_to_right_handed(frame.bones["Hips"][0], np.array([0.0, 0.0, 0.0, 1.0]))[0] * CM_PER_METRE
-    else:
-        hips_pos = rig.tpose_offsets[hips]
-    root = hips_pos + quat_apply(quat_inv(local[r0]), root_pos - sk.offsets[r0])
-    return root, local
-
-
-# --------------------------------------------------------------------------- messages
-
-Message = tuple[str, list]
-
-
-def vmc_messages(frame: VmcFrame, t: float | None = None) -> list[Message]:
-    """A VMC frame -> the (address, arguments) messages of one VMC frame: Root/Pos, a Bone/Pos per
-    bone, `/VMC/Ext/OK 1` and, if given, `/VMC/Ext/T t`."""
-    def args(name: str, p: np.ndarray, q: np.ndarray) -> list:
-        return [name, *(float(v) for v in p), *(float(v) for v in q)]
-
-    out: list[Message] = [(ROOT_ADDRESS, args("root", frame.root_position, frame.root_rotation))]
-    out += [(BONE_ADDRESS, args(name, p, q)) for name, (p, q) in frame.bones.items()]
-    out.append((OK_ADDRESS, [1]))
-    if t is not None:
-        out.append((TIME_ADDRESS, [float(t)]))
-    return out
-
-
-def apply_message(frame: VmcFrame, address: str, args: Sequence) -> bool:
-    """Update `frame` in place from one VMC message; True if it was a root or bone message."""
-    if address not in (ROOT_ADDRESS, BONE_ADDRESS) or len(args) < 8:
-        return False
-    p, q = np.array(args[1:4], dtype=np.float64), np.array(args[4:8], dtype=np.float64)
-    if address == ROOT_ADDRESS:
-        frame.root_position, frame.root_rotation = p, q
-    else:
-        frame.bones[str(args[0])] = (p, q)
-    return True
-
-
-def parse_vmc_messages(messages: Sequence[Message], previous: VmcFrame | None = None) -> VmcFrame:
-    """Messages -> VMC frame, starting from `previous` (values a sender leaves out persist)."""
-    frame = _copy_frame(previous) if previous is not None else _rest_frame()
-    for address, args in messages:
-        apply_message(frame, address, args)
-    return frame
-
-
-def _rest_frame() -> VmcFrame:
-    return VmcFrame(np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
-
-
-def _copy_frame(frame: VmcFrame) -> VmcFrame:
-    return VmcFrame(np.array(frame.root_position), np.array(frame.root_rotation), dict(frame.bones))
-
-
-# --------------------------------------------------------------------------- OSC I/O
-
-def build_bundle(messages: Sequence[Message]):
-    """One OSC bundle (sent immediately) holding the messages."""
-    from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
-    from pythonosc.osc_message_builder import OscMessageBuilder
-
-    builder = OscBundleBuilder(IMMEDIATELY)
-    for address, args in messages:
-        msg = OscMessageBuilder(address=address)
-        for a in args:
-            msg.add_arg(a)
-        builder.add_content(msg.build())
-    return builder.build()
+    forward: list[bytes] = field(default_factory=list)
+    frames: list[list[bytes]] = field(default_factory=list)
 
 
 class VmcReceiver:
-    """Assembles VMC frames from OSC packets and calls `on_frame(frame, messages)` per frame.
+    """Frames out of datagrams: pose messages update `state`; a bundle holding pose messages
+    completes a frame; loose messages complete one on `/VMC/Ext/T` (or when a bone comes again,
+    for senders that send no T); every other message is passed through."""
 
-    `dispatcher` is a python-osc Dispatcher for any python-osc server: a frame completes when a
-    bundle ends, or on `/VMC/Ext/T` outside a bundle."""
+    def __init__(self, state: VmcState) -> None:
+        self.state = state
+        self._pending: list[bytes] = []  # loose non-pose messages of the loose frame in progress
+        self._loose: set[str] = set()  # bones of the loose frame in progress
+        self.bad = 0  # datagrams that were not OSC
 
-    def __init__(self, on_frame: Callable[[VmcFrame, list[Message]], None]) -> None:
-        from pythonosc import dispatcher as osc_dispatcher
-        from pythonosc import osc_bundle, osc_packet
+    def feed(self, data: bytes, now: float) -> Received:
+        out = Received()
+        try:
+            names, values, passed, root = [], [], [], None
+            for m in osc.elements(data):
+                addr = osc.address(m)
+                pose = osc.decode_pose(m) if addr == _BONE or addr == _ROOT else None
+                if pose is None:
+                    passed.append(m)
+                elif addr == _BONE:
+                    names.append(pose[0])
+                    values.append(pose[1])
+                else:
+                    root = (pose[1], m)
+        except osc.OscError as exc:
+            self.bad += 1
+            log.debug("dropped a datagram that is not OSC: %s", exc)
+            return out
+        is_pose = bool(names) or root is not None
+        if data.startswith(osc.BUNDLE_TAG):
+            self._apply(names, values, root, now)
+            if is_pose:
+                out.frames.append(passed)
+            elif passed:
+                out.forward.append(data)
+            return out
+        if is_pose:  # a loose pose message: a bone sent again starts the next frame
+            keys = names + (["<root>"] if root is not None else [])
+            if any(k in self._loose for k in keys):
+                out.frames.append(self._pending)
+                self._pending, self._loose = [], set()
+            self._loose.update(keys)
+            self._apply(names, values, root, now)
+        elif self._loose and osc.address(passed[0]) == _TIME:
+            out.frames.append(self._pending + passed)
+            self._pending, self._loose = [], set()
+        elif self._loose:
+            self._pending += passed
+        else:
+            out.forward.append(data)
+        return out
 
-        self.on_frame = on_frame
-        self.frame = _rest_frame()
-        self._pending: list[Message] = []
-        self._in_bundle = False
-        receiver = self
+    def _apply(self, names: list[str], values: list, root: tuple | None, now: float) -> None:
+        if root is not None:
+            v, message = root
+            self.state.root_pos, self.state.root_rot = np.array(v[:3]), _unit(np.array(v[3:7]))
+            self.state.root_message = message
+        self.state.update(names, values, now)
 
-        class _Dispatcher(osc_dispatcher.Dispatcher):
-            def call_handlers_for_packet(self, data: bytes, client_address) -> list:  # noqa: D401
+
+# --------------------------------------------------------------------------- the avatar's rig
+
+
+@dataclass(frozen=True)
+class AvatarRig:
+    """The sender's avatar as the server gets it: its body bones in the header's (depth-first)
+    order, their local positions (Unity axes, metres, as sent), the BVH header (right-handed,
+    mirrored) that carries them, and the mapping `models.motion.humanoid` reads from it."""
+
+    bones: tuple[str, ...]
+    offsets: np.ndarray
+    header: str
+    report: dict
+
+
+def _depth_first(present: Iterable[str]) -> list[str]:
+    present = set(present)
+
+    def parent(b: str) -> str | None:
+        p = BODY_PARENTS[b]
+        while p is not None and p not in present:
+            p = BODY_PARENTS[p]
+        return p
+
+    children: dict[str | None, list[str]] = {}
+    for b in BODY_BONES:
+        if b in present:
+            children.setdefault(parent(b), []).append(b)
+    order: list[str] = []
+    stack = list(reversed(children.get(None, [])))
+    while stack:
+        b = stack.pop()
+        order.append(b)
+        stack.extend(reversed(children.get(b, [])))
+    return order
+
+
+def avatar_rig(body: dict[str, np.ndarray]) -> AvatarRig:
+    """The rig of the body bones sent ({Unity bone: local position}); raises
+    `models.motion.humanoid.RigError` (naming every missing role) when they are not a humanoid
+    the mapping can use, or when their rest does not stand up along Y."""
+    from models.motion import bvh as bvhio
+    from models.motion.humanoid import RigError, rig_from_bvh
+    from models.motion.skeleton import Motion, Skeleton, to_bvh
+
+    if "Hips" not in body:
+        raise RigError("missing_roles", "the sender has sent no Hips", ("hips",))
+    order = _depth_first(body)
+    if order[0] != "Hips":
+        raise RigError("bad_topology", f"bones above the Hips: {order[0]}")
+    index = {b: k for k, b in enumerate(order)}
+    parents = []
+    for b in order:
+        p = BODY_PARENTS[b]
+        while p is not None and p not in index:
+            p = BODY_PARENTS[p]
+        parents.append(-1 if p is None else index[p])
+    offsets = np.array([body[b] for b in order], dtype=np.float64)
+    sk = Skeleton(tuple(order), np.array(parents), offsets * MIRROR_P, np.full((len(order), 3), np.nan))
+    one = Motion(sk, np.tile(IDENTITY, (1, len(order), 1)), (offsets * MIRROR_P)[None], 60.0)
+    header = bvhio.dumps(to_bvh(one), precision=9).split("MOTION")[0]
+    rig = rig_from_bvh(header, "VMC avatar")
+    if rig.up != "y":
+        raise RigError("bad_rig", "the avatar's bones at identity rotation do not stand up along Y (the bridge "
+                       "expects a normalised humanoid, as VMC senders send)")
+    return AvatarRig(tuple(order), offsets, header, rig.report())
+
+
+# --------------------------------------------------------------------------- frame conversion
+
+
+def model_input(rig_slots: np.ndarray, state: VmcState) -> tuple[np.ndarray, np.ndarray]:
+    """The avatar's frame as the session takes it: (Hips world position (3,), local rotations
+    (J, 4) in the rig's order, the Hips' composed with the avatar root), mirrored to
+    right-handed. `rig_slots`: the state slot of each rig joint, Hips first."""
+    rot = _unit(state.rot[rig_slots]) * MIRROR_Q
+    rq, rp = state.root_rot * MIRROR_Q, state.root_pos * MIRROR_P
+    rot[0] = _qmul(rq, rot[0])
+    return rp + _qapply(rq, state.pos[rig_slots[0]] * MIRROR_P), rot
+
+
+def unity_output(state: VmcState, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of `model_input` for a stylised frame: (Hips local position (3,), local
+    rotations (J, 4)) in Unity axes, the avatar root taken out of the Hips again."""
+    rq_inv = _qinv(state.root_rot * MIRROR_Q)
+    rot = np.array(rotations, dtype=np.float64)
+    rot[0] = _qmul(rq_inv, rot[0])
+    hips = _qapply(rq_inv, np.asarray(root, dtype=np.float64) - state.root_pos * MIRROR_P)
+    return hips * MIRROR_P, rot * MIRROR_Q
+
+
+# --------------------------------------------------------------------------- the session
+
+
+class SessionLike:
+    """What `StyleLink` needs of a session (`clients.sdk.Session`)."""
+
+    def stylise(self, root: np.ndarray, rotations: np.ndarray): ...  # -> .root (3,), .rotations (J, 4)
+    def close(self) -> None: ...
+
+
+OpenSession = Callable[[str], SessionLike]  # BVH header -> an open session on that rig
+
+
+class StyleLink:
+    """The bridge's session, owned by a worker thread so that the receive loop never waits on the
+    network longer than `wait_s`.
+
+    `stylise(header, root, rotations)` returns the stylised frame, or None when there is none to
+    give in time: the session for `header` is still opening, the worker is busy (a late frame,
+    a reconnect), or the call failed. A failed call (server restarted, resume token unknown,
+    connection gone) drops the session and the worker opens a fresh one on the same rig, retrying
+    with backoff (`retry_s`: first, most) until it succeeds; a new header (another avatar) opens
+    a session on it. Meanwhile the bridge passes frames through."""
+
+    def __init__(self, open_session: OpenSession, wait_s: float = 0.1, retry_s: tuple[float, float] = (0.05, 1.0)) -> None:
+        self.open_session, self.wait_s, self.retry_s = open_session, wait_s, retry_s
+        self.sessions_opened = 0
+        self.failures = 0
+        self._cond = threading.Condition()
+        self._session: SessionLike | None = None
+        self._header: str | None = None  # the rig the open session serves
+        self._want: str | None = None  # the rig a session is wanted for
+        self._job: tuple | None = None
+        self._result: tuple[int, tuple | None] = (-1, None)
+        self._ticket = 0
+        self._busy = False
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="vmc-style-link", daemon=True)
+        self._thread.start()
+
+    @property
+    def ready(self) -> bool:
+        return self._session is not None and self._header == self._want and not self._busy
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait until a session serves the rig last asked for (tools and tests; the bridge never waits)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._want is not None and self.ready, timeout=timeout)
+
+    def stylise(self, header: str, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        with self._cond:
+            if header != self._want:
+                self._want = header
+                self._cond.notify_all()
+            if self._busy or self._session is None or self._header != header:
+                return None
+            self._ticket += 1
+            ticket = self._ticket
+            self._job, self._busy = (ticket, root, rotations), True
+            self._cond.notify_all()
+            if not self._cond.wait_for(lambda: self._result[0] == ticket, timeout=self.wait_s):
+                return None
+            return self._result[1]
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        self._thread.join(timeout=5)
+        self._drop()
+
+    def _drop(self) -> None:
+        session, self._session, self._header = self._session, None, None
+        if session is not None:
+            try:
+                session.close()
+            except Exception:  # noqa: BLE001 - a broken session may fail to close; it is gone either way
+                pass
+
+    def _run(self) -> None:
+        delay = self.retry_s[0]
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._closed or self._job is not None or self._want != self._header)
+                if self._closed:
+                    return
+                job, want = self._job, self._want
+                if job is not None and want != self._header:  # the rig changed under a frame: no answer
+                    self._job, self._result, self._busy, job = None, (job[0], None), False, None
+                    self._cond.notify_all()
+            if want != self._header:  # (re)open: the first rig, another avatar, or after a failure
+                self._drop()
                 try:
-                    packet = osc_packet.OscPacket(data)
-                except osc_packet.ParseError:
-                    return []
-                receiver._in_bundle = osc_bundle.OscBundle.dgram_is_bundle(data)
-                for timed in packet.messages:
-                    for handler in self.handlers_for_address(timed.message.address):
-                        handler.invoke(client_address, timed.message)
-                if receiver._in_bundle:
-                    receiver._in_bundle = False
-                    receiver._complete()
-                return []
-
-        self.dispatcher = _Dispatcher()
-        self.dispatcher.map(ROOT_ADDRESS, self._pose)
-        self.dispatcher.map(BONE_ADDRESS, self._pose)
-        self.dispatcher.map(TIME_ADDRESS, self._time)
-
-    def _pose(self, address: str, *args) -> None:
-        if apply_message(self.frame, address, args):
-            self._pending.append((address, list(args)))
-
-    def _time(self, address: str, *args) -> None:
-        self._pending.append((address, list(args)))
-        if not self._in_bundle:
-            self._complete()
-
-    def _complete(self) -> None:
-        if not any(a in (ROOT_ADDRESS, BONE_ADDRESS) for a, _ in self._pending):
-            self._pending = []
-            return
-        messages, self._pending = self._pending, []
-        self.on_frame(_copy_frame(self.frame), messages)
+                    session = self.open_session(want)
+                except Exception as exc:  # noqa: BLE001 - server down or refusing: retry later
+                    log.warning("VMC bridge: no session yet (%s); frames pass through, retrying in %.2f s", exc, delay)
+                    with self._cond:
+                        self._cond.wait_for(lambda: self._closed, timeout=delay)
+                    delay = min(2 * delay, self.retry_s[1])
+                    continue
+                with self._cond:
+                    self._session, self._header, delay = session, want, self.retry_s[0]
+                    self.sessions_opened += 1
+                    self._cond.notify_all()
+                log.info("VMC bridge: session %d open", self.sessions_opened)
+                continue
+            if job is None:
+                continue
+            ticket, root, rotations = job
+            try:
+                styled = self._session.stylise(root, rotations)
+                result = (np.asarray(styled.root, dtype=np.float64), np.asarray(styled.rotations, dtype=np.float64))
+            except Exception as exc:  # noqa: BLE001 - server restarted, token unknown, network gone
+                self.failures += 1
+                log.warning("VMC bridge: session lost (%s); frames pass through until a fresh one opens", exc)
+                result = None
+                self._drop()
+            with self._cond:
+                self._job, self._result, self._busy = None, (ticket, result), False
+                self._cond.notify_all()
 
 
-Stylise = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+# --------------------------------------------------------------------------- the bridge
+
+
+@dataclass
+class BridgeStats:
+    frames: int = 0  # frames sent on
+    styled: int = 0  # of which stylised
+    forwarded: int = 0  # datagrams passed on without a frame
+    own_s: deque = field(default_factory=lambda: deque(maxlen=100_000))  # bridge time per frame, session wait excluded
+    wait_s: deque = field(default_factory=lambda: deque(maxlen=100_000))  # time waiting for the session
+
+    def summary(self, bad: int = 0, link: StyleLink | None = None) -> dict:
+        own, wait = np.array(self.own_s) * 1e6, np.array(self.wait_s) * 1e6
+        q = lambda a, p: round(float(np.percentile(a, p)), 1) if len(a) else None  # noqa: E731
+        return {"frames": self.frames, "styled": self.styled, "forwarded": self.forwarded, "bad_datagrams": bad,
+                "sessions_opened": link.sessions_opened if link else 0, "session_failures": link.failures if link else 0,
+                "bridge_us_median": q(own, 50), "bridge_us_p99": q(own, 99), "session_us_median": q(wait, 50)}
 
 
 class VmcBridge:
-    """Receives VMC on (listen_host, listen_port), stylises each frame with `stylise(root,
-    rotations) -> (root, rotations)` (BN frames) and sends the result as one VMC bundle per frame
-    to (send_host, send_port). Port 0 picks a free port (`address`). Run `serve_forever()` (in a
-    thread if you like) and stop it with `shutdown()`."""
+    """Receives VMC on `listen`, restyles the body bones in `bones` through `link` and sends the
+    frame on to `send`. `handle(data, now)` is the whole per-datagram logic (datagrams out);
+    `serve_forever()` runs it on a UDP socket (port 0: a free one, see `address`); `link=None`
+    passes everything through."""
 
-    def __init__(self, stylise: Stylise, send_host: str = "127.0.0.1", send_port: int = 39540,
-                 listen_host: str = "127.0.0.1", listen_port: int = 39539, rig: VmcRig | None = None) -> None:
-        from pythonosc import osc_server, udp_client
-
-        self.stylise, self.rig = stylise, rig or default_vmc_rig()
-        self.receiver = VmcReceiver(self._on_frame)
-        self.server = osc_server.BlockingOSCUDPServer((listen_host, listen_port), self.receiver.dispatcher)
-        self.client = udp_client.SimpleUDPClient(send_host, send_port)
-        self.frames = 0
-        self.errors = 0
-        self._previous: np.ndarray | None = None
-        self._t0 = time.monotonic()
+    def __init__(self, link: StyleLink | None, send: tuple[str, int] = ("127.0.0.1", 39540),
+                 listen: tuple[str, int] = ("127.0.0.1", 39539), bones: Iterable[str] = BODY_BONES,
+                 bone_timeout_s: float = 1.0, clock: Callable[[], float] = time.monotonic) -> None:
+        self.link, self.send, self.clock = link, send, clock
+        self.mask = frozenset(bones)
+        self.state = VmcState(bone_timeout_s)
+        self.receiver = VmcReceiver(self.state)
+        self.stats = BridgeStats()
+        self._bones = osc.PoseEncoder(BONE_ADDRESS)
+        self._rig: AvatarRig | None = None
+        self._rig_key: int | None = None
+        self._rig_error: str | None = None
+        self._rig_slots = np.zeros(0, int)
+        self._restyled = np.zeros(0, bool)
+        self._t0 = clock()
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(listen)
+        self.sock.settimeout(0.1)  # serve_forever looks at its stop flag this often
+        self._stop = threading.Event()
 
     @property
     def address(self) -> tuple[str, int]:
-        return self.server.server_address[:2]
+        return self.sock.getsockname()[:2]
 
-    def _on_frame(self, frame: VmcFrame, messages: list[Message]) -> None:
-        root, rotations = vmc_to_bn(frame, self.rig)
-        if self._previous is not None:  # keep quaternion hemispheres continuous for the model
-            rotations = np.where(np.sum(rotations * self._previous, axis=-1, keepdims=True) < 0, -rotations, rotations)
-        self._previous = rotations
+    @property
+    def rig(self) -> AvatarRig | None:
+        return self._rig
+
+    def handle(self, data: bytes, now: float) -> list[bytes]:
+        got = self.receiver.feed(data, now)
+        out = list(got.forward)
+        self.stats.forwarded += len(got.forward)
+        for passed in got.frames:
+            out += self._frame(passed, now)
+        return out
+
+    def _current_rig(self) -> AvatarRig | None:
+        """The avatar's rig: kept while the sender's body bones and their offsets stay the same,
+        rebuilt when a bone appears or the offsets change (another avatar)."""
+        from models.motion.humanoid import RigError
+
+        state, rig = self.state, self._rig
+        if self._rig_key == state.version:
+            if rig is None:
+                return None  # tried with these bones already; the error was logged
+            if np.abs(state.pos[self._rig_slots[1:]] - rig.offsets[1:]).max(initial=0.0) <= 1e-4:
+                return rig
+        self._rig_key = state.version
         try:
-            out_root, out_rot = self.stylise(root, rotations)
-        except Exception as exc:  # noqa: BLE001 - one bad frame must not stop the bridge
-            self.errors += 1
-            log.warning("frame not stylised: %s", exc)
-            return
-        out = bn_to_vmc(np.asarray(out_root), np.asarray(out_rot), self.rig)
-        self.client.send(build_bundle(vmc_messages(out, time.monotonic() - self._t0)))
-        self.frames += 1
+            rig = avatar_rig(state.body())
+        except RigError as err:
+            if err.message != self._rig_error:
+                log.warning("VMC bridge: passing frames through, the avatar cannot be restyled yet: %s", err.message)
+            self._rig, self._rig_error = None, err.message
+            return None
+        self._rig, self._rig_error = rig, None
+        self._rig_slots = np.array([state.slot[b] for b in rig.bones])
+        self._restyled = np.array([b in self.mask for b in rig.bones])
+        log.info("VMC bridge: avatar rig of %d body bones, leg %.3f m", len(rig.bones), rig.report["leg_length"])
+        return rig
+
+    def _frame(self, passed: list[bytes], now: float) -> list[bytes]:
+        t0 = time.perf_counter()
+        state = self.state
+        state.expire(now)
+        rot, pos = state.rot, state.pos
+        rig = self._current_rig() if self.link is not None and self.mask else None
+        wait = 0.0
+        if rig is not None:
+            root, rotations = model_input(self._rig_slots, state)
+            t1 = time.perf_counter()
+            styled = self.link.stylise(rig.header, root, rotations)
+            wait = time.perf_counter() - t1
+            if styled is not None:
+                hips, local = unity_output(state, *styled)
+                rot, pos = rot.copy(), pos.copy()
+                slots = self._rig_slots[self._restyled]
+                rot[slots] = local[self._restyled]
+                if self._restyled[0]:
+                    pos[self._rig_slots[0]] = hips
+                self.stats.styled += 1
+        n = len(state.names)
+        elements = [osc.element(state.root_message)] if state.root_message is not None else []
+        elements += self._bones.elements(state.names, np.concatenate([pos[:n], rot[:n]], axis=1))
+        addresses = {osc.address(m) for m in passed}
+        elements += [osc.element(m) for m in passed]
+        if _OK not in addresses:
+            elements.append(osc.element(osc.encode_message(OK_ADDRESS, [1])))
+        if _TIME not in addresses:
+            elements.append(osc.element(osc.encode_message(TIME_ADDRESS, [float(now - self._t0)])))
+        datagrams = osc.bundles(elements)
+        self.stats.frames += 1
+        self.stats.own_s.append(time.perf_counter() - t0 - wait)
+        self.stats.wait_s.append(wait)
+        return datagrams
 
     def serve_forever(self) -> None:
-        self.server.serve_forever(poll_interval=0.05)
-
-    def shutdown(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
+        while not self._stop.is_set():
+            try:
+                data = self.sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                if self._stop.is_set():
+                    return
+                raise
+            for datagram in self.handle(data, self.clock()):
+                self.sock.sendto(datagram, self.send)
 
     def start(self) -> threading.Thread:
         """Serve in a daemon thread."""
@@ -474,47 +626,106 @@ class VmcBridge:
         thread.start()
         return thread
 
+    def shutdown(self) -> None:
+        self._stop.set()
+        if self.link is not None:
+            self.link.close()
 
-def session_stylise(session) -> Stylise:
-    """Adapt a `clients.sdk.Session` to the bridge's `stylise(root, rotations)`."""
-    def stylise(root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        styled = session.stylise(root, rotations)
-        return styled.root, styled.rotations
+    def close(self) -> None:
+        self.shutdown()
+        self.sock.close()
 
-    return stylise
+
+def session_opener(url: str, model: str, style: str, fps: float = 60.0, intensity: float = 1.0,
+                   token: str | None = None, timeout: float = 5.0, reconnect_timeout: float = 60.0) -> OpenSession:
+    """Sessions of `clients.sdk` on an avatar rig (its BVH header). The SDK session reconnects by
+    itself for `reconnect_timeout` s (resuming, or opening a fresh session when the server forgot
+    its token); a reply later than `timeout` s, or a reconnect that gives up, ends it and the
+    `StyleLink` opens a fresh one."""
+    from .sdk import Client
+
+    client = Client(url, token, timeout=timeout, reconnect_timeout=reconnect_timeout)
+
+    def open_session(header: str) -> SessionLike:
+        return client.session(model=model, style=style, skeleton=None, bvh_header=header, fps=fps, intensity=intensity)
+
+    return open_session
+
+
+@lru_cache(maxsize=8)
+def first_style(url: str, model: str) -> str:
+    from .sdk import Client
+
+    return next(m.styles[0] for m in Client(url).models() if m.name == model)
 
 
 # --------------------------------------------------------------------------- CLI
 
-def add_vmc_command(sub) -> None:
-    p = sub.add_parser("vmc", help="VMC (OSC/UDP) bridge: receive VMC, stylise, send VMC on")
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--listen", type=int, default=39539, help="UDP port to receive VMC on (default 39539)")
     p.add_argument("--listen-host", default="127.0.0.1", help="interface to receive on (0.0.0.0 for all)")
-    p.add_argument("--send-host", default="127.0.0.1", help="where to send the stylised VMC")
+    p.add_argument("--send-host", default="127.0.0.1", help="where to send the restyled VMC")
     p.add_argument("--send-port", type=int, default=39540, help="port to send to (default 39540)")
     p.add_argument("--url", default="http://127.0.0.1:8000", help="the stylestream server")
+    p.add_argument("--token", help="API token, if the server wants one")
     p.add_argument("--model", default="lti")
     p.add_argument("--style", help="target style (default: the model's first)")
     p.add_argument("--intensity", type=float, default=1.0)
-    p.add_argument("--fps", type=float, default=60.0, help="the sender's frame rate (informational)")
-    p.set_defaults(func=_vmc)
+    p.add_argument("--fps", type=float, default=60.0, help="the sender's frame rate")
+    p.add_argument("--bones", default="body", help="bones to restyle: Unity names and groups (body, upper, lower, "
+                   "spine, head, arms, legs), '-Name' removes; the rest pass through (default: body)")
+    p.add_argument("--bone-timeout", type=float, default=1.0, help="seconds after which a bone the sender stopped "
+                   "sending goes back to rest (default 1)")
+    p.add_argument("--wait-ms", type=float, default=100.0, help="a frame the server has not answered within this "
+                   "passes through unstyled (default 100)")
+    p.add_argument("--stats", action="store_true", help="print the bridge's counters and timings as JSON on exit")
 
 
-def _vmc(args: argparse.Namespace) -> int:
-    from .sdk import Client
+def add_vmc_command(sub) -> None:
+    p = sub.add_parser("vmc", help="VMC (OSC/UDP) bridge: receive VMC, restyle the avatar, send VMC on")
+    add_arguments(p)
+    p.set_defaults(func=run_bridge)
+
+
+def run_bridge(args: argparse.Namespace) -> int:
+    import signal
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    client = Client(args.url)
-    style = args.style or next(m.styles[0] for m in client.models() if m.name == args.model)
-    with client.session(model=args.model, style=style, fps=args.fps, intensity=args.intensity) as session:
-        bridge = VmcBridge(session_stylise(session), args.send_host, args.send_port, args.listen_host, args.listen)
-        host, port = bridge.address
-        print(f"VMC bridge: {host}:{port} -> {args.model}/{style} -> {args.send_host}:{args.send_port} (Ctrl-C stops)")
-        try:
-            bridge.serve_forever()
-        except KeyboardInterrupt:
-            pass
-        finally:
-            bridge.server.server_close()
-        print(f"{bridge.frames} frames stylised, {bridge.errors} errors")
+    try:
+        bones = parse_bones(args.bones)
+    except ValueError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    style = args.style or first_style(args.url, args.model)
+    link = StyleLink(session_opener(args.url, args.model, style, args.fps, args.intensity, args.token), args.wait_ms / 1000)
+    bridge = VmcBridge(link, (args.send_host, args.send_port), (args.listen_host, args.listen), bones, args.bone_timeout)
+    host, port = bridge.address
+    print(f"VMC bridge: {host}:{port} -> {args.model}/{style} ({len(bones)} bones restyled) -> "
+          f"{args.send_host}:{args.send_port} (Ctrl-C stops)", flush=True)
+    signal.signal(signal.SIGTERM, lambda *_: bridge._stop.set())
+    try:
+        bridge.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        bridge.close()
+    summary = bridge.stats.summary(bridge.receiver.bad, link)
+    print(json.dumps(summary) if args.stats else f"{summary['frames']} frames, {summary['styled']} restyled, "
+          f"{summary['sessions_opened']} session(s)", flush=True)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["bench"]:
+        from .vmc_bench import main as bench
+
+        return bench(argv[1:])
+    p = argparse.ArgumentParser(prog="python -m clients.vmc", description="VMC bridge (or: python -m clients.vmc bench)")
+    add_arguments(p)
+    return run_bridge(p.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

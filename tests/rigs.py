@@ -119,6 +119,41 @@ SPECS = {s.name: s for s in (
             rest="first", up="z", metres=True),
 )}
 
+# Rigs outside the presets' naming, for the tests that need a rig the matching has never seen
+# (an Xsens MVN-style capture export: four spine joints L5/L3/T12/T8, Z up, metres, A-pose) or a
+# VMC sender's avatar (Unity HumanBodyBones with Chest and UpperChest, eyes and fingers, Y up,
+# metres, the normalised T-pose VMC senders send).
+EXTRA_SPECS = {s.name: s for s in (
+    RigSpec("xsens", _sided({"joint_Root": None, "Hips": "Pelvis", "Spine": "L5", "Chest": "T8", "Neck": "Neck",
+                             "Head": "Head",
+                             **_limbs("{Side}Shoulder", "{Side}UpperArm", "{Side}ForeArm", "{Side}Hand", "{Side}UpperLeg",
+                                      "{Side}LowerLeg", "{Side}Foot", "{Side}Toe")}),
+            inserts=(("L3", "Spine", "Chest", 0.33), ("T12", "L3", "Chest", 0.5)),
+            fingers=(("LeftFingerIndex1", "LeftHand"), ("RightFingerIndex1", "RightHand")),
+            rest="apose", up="z", metres=True),
+    RigSpec("vmc", _sided({"joint_Root": None, "Hips": "Hips", "Spine": "Spine", "Chest": "UpperChest", "Neck": "Neck",
+                           "Head": "Head", "ChestLow": "Chest",
+                           **_limbs("{Side}Shoulder", "{Side}UpperArm", "{Side}LowerArm", "{Side}Hand", "{Side}UpperLeg",
+                                    "{Side}LowerLeg", "{Side}Foot", "{Side}Toes")}),
+            inserts=(("ChestLow", "Spine", "Chest", 0.5), ("LeftEye", "Head", "", 0.5), ("RightEye", "Head", "", 0.5)),
+            fingers=(("LeftIndexProximal", "LeftHand"), ("LeftIndexIntermediate", "LeftIndexProximal"),
+                     ("RightThumbProximal", "RightHand")),
+            rest="tpose", metres=True),
+)}
+
+
+def mirrored(motion: Motion, reflection: np.ndarray) -> Motion:
+    """The same motion written in a mirrored world frame (`reflection`, an orthogonal matrix of
+    determinant -1): offsets and translations reflected, every rotation conjugated (M R M^T,
+    still a proper rotation). A left-handed client sends this for the motion a right-handed one
+    sends as `motion`; joint names (Left/Right) stay, the body is the same."""
+    m = np.asarray(reflection, dtype=float)
+    local = m @ quat_to_matrix(motion.rotations) @ m.T
+    sk = motion.skeleton
+    skeleton = Skeleton(sk.names, sk.parents, sk.offsets @ m.T, sk.end_sites @ m.T)
+    return Motion(skeleton, matrix_to_quat(local), motion.translations @ m.T, motion.fps, motion.euler_orders)
+
+
 # T-pose bone directions (Y up, facing +Z, left = +X) of each BN joint's main bone
 _TPOSE = {"Hips": (0, 1, 0), "Spine": (0, 1, 0), "Chest": (0, 1, 0), "Neck": (0, 1, 0),
           "Shoulder_L": (1, 0, 0), "UpperArm_L": (1, 0, 0), "LowerArm_L": (1, 0, 0),
