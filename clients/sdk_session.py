@@ -23,6 +23,7 @@ current style, and the unanswered messages are sent to it. Either way the caller
 from __future__ import annotations
 
 import json
+import logging
 import random
 import time
 from collections import deque
@@ -37,6 +38,8 @@ from .sdk_types import (ConnectFailed, ConnectionLost, FrameDropped, NothingInFl
                         ResumeError, ServerError, StylestreamError, StyledFrame)
 from .sdk_wire import (END, RESET, Message, ReplayBuffer, StartSettings, ack_for, control_message, json_frame, pack,
                        saved_reply, server_error, start_message, style_message, unpack)
+
+log = logging.getLogger("clients.sdk")
 
 RETRY_CODES = {"session_in_use", "draining", "store_unavailable"}  # a resume may succeed on the next attempt
 BACKOFF_FIRST_S, BACKOFF_MAX_S = 0.05, 2.0  # reconnect delays double from the first to the cap (with jitter)
@@ -330,6 +333,8 @@ class SessionCore:
                           started["session_id"], started.get("last_seq") if resumed else None, replayed, lost,
                           str(gone))
         self.last_reconnect = event
+        log.info("session %s %s after %d attempt(s), %.2f s: %d message(s) replayed, %d reply(ies) lost",
+                 event.session_id, event.kind.replace("_", " "), attempts, event.seconds, replayed, len(lost))
         self._settle()
         if self.on_reconnect is not None:
             self.on_reconnect(event)
@@ -360,7 +365,9 @@ class SessionCore:
                 raise ConnectionLost(f"lost the connection to {self.url} ({gone}) and could not get back within "
                                      f"{self.reconnect_timeout:g} s ({attempts} attempts): {last}") from last
             pause = delay * random.uniform(0.5, 1.0)  # jitter: clients of a restarted server do not return in step
-            yield Sleep(pause if left is None else min(pause, left))
+            pause = pause if left is None else min(pause, left)
+            log.info("reconnect attempt %d to %s failed (%s); next in %.2f s", attempts, self.url, last, pause)
+            yield Sleep(pause)
             delay = min(delay * 2, BACKOFF_MAX_S)
 
     def _plan_resume(self, started: dict[str, Any]) -> tuple[int, tuple[int, ...]]:

@@ -13,8 +13,10 @@ from service.settings import ServiceSettings
 
 
 @contextmanager
-def live_server(models: dict, **overrides):
-    port = free_port()
+def live_server(models: dict, port: int | None = None, **overrides):
+    """Serve `models` on `port` (default: a free one; a fixed one lets a test restart the server
+    where its clients expect it)."""
+    port = port or free_port()
     settings = ServiceSettings(port=port, **overrides)
     app = create_app(settings, models=models)
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
