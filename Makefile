@@ -1,4 +1,5 @@
 # Two commands do all set-up on a fresh machine: `make serve` and `make test`.
+# Python 3.11, 3.12 or 3.13 (`make test PY=python3.12`).
 PY ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
@@ -14,7 +15,7 @@ $(BIN)/python:
 # torch first, pinned to the local CPU wheel, so nothing later pulls a CUDA build
 $(VENV)/.installed: pyproject.toml | $(BIN)/python
 	$(BIN)/pip install -q torch==2.13.0
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q -e '.[server,test]'
 	touch $@
 
 install: $(VENV)/.installed
