@@ -69,7 +69,9 @@ ROOT_ADDRESS = "/VMC/Ext/Root/Pos"
 BONE_ADDRESS = "/VMC/Ext/Bone/Pos"
 OK_ADDRESS = "/VMC/Ext/OK"
 TIME_ADDRESS = "/VMC/Ext/T"
-_ROOT, _BONE, _TIME, _OK = (a.encode() for a in (ROOT_ADDRESS, BONE_ADDRESS, TIME_ADDRESS, OK_ADDRESS))
+_BONE_HEAD = osc.pose_head(BONE_ADDRESS)  # a bone message in the usual shape starts with these bytes
+_BONE_AT, _ROOT_AT = osc.osc_string(BONE_ADDRESS), osc.osc_string(ROOT_ADDRESS)  # any pose message does with these
+_OK_AT, _TIME_AT = osc.osc_string(OK_ADDRESS), osc.osc_string(TIME_ADDRESS)
 
 # Unity body bones (HumanBodyBones) and their humanoid parents, depth first.
 BODY_PARENTS: dict[str, str | None] = {
@@ -128,10 +130,15 @@ def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
                      aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz], axis=-1)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    a0, a1, a2, b0, b1, b2 = a[..., 0], a[..., 1], a[..., 2], b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)  # np.cross costs ~10x
+
+
 def _qapply(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     u, w = q[..., :3], q[..., 3:]
-    t = 2.0 * np.cross(u, v)
-    return v + w * t + np.cross(u, t)
+    t = 2.0 * _cross(u, v)
+    return v + w * t + _cross(u, t)
 
 
 def _qinv(q: np.ndarray) -> np.ndarray:
@@ -156,6 +163,7 @@ class VmcState:
         self.bone_timeout_s = bone_timeout_s
         self.names: list[str] = []
         self.slot: dict[str, int] = {}
+        self._key_slot: dict[bytes, int] = {}  # the same by the name's bytes on the wire
         self.pos = np.zeros((0, 3))
         self.rot = np.zeros((0, 4))
         self.rest = np.zeros((0, 3))
@@ -164,15 +172,18 @@ class VmcState:
         self.root_message: bytes | None = None  # re-sent as it came
         self.version = 0  # bumped when a bone name appears
 
-    def _slots(self, names: list[str]) -> list[int]:
-        out = []
-        for name in names:
-            s = self.slot.get(name)
-            if s is None:
-                s = self.slot[name] = len(self.names)
-                self.names.append(name)
-                self.version += 1
-            out.append(s)
+    def _slots(self, names: list[bytes]) -> list[int]:
+        get = self._key_slot.get
+        out = [get(n, -1) for n in names]
+        for k, s in enumerate(out):
+            if s < 0:
+                name = names[k]
+                s = self._key_slot.get(name, -1)
+                if s < 0:
+                    s = self._key_slot[name] = self.slot[name.decode("utf-8", "replace")] = len(self.names)
+                    self.names.append(name.decode("utf-8", "replace"))
+                    self.version += 1
+                out[k] = s
         if len(self.names) > len(self.pos):
             n = len(self.names)
             grow = lambda a, fill: np.concatenate([a, np.tile(fill, (n - len(a), 1)) if a.ndim > 1 else np.full(n - len(a), fill)])  # noqa: E731
@@ -180,12 +191,12 @@ class VmcState:
             self.seen = grow(self.seen, -np.inf)
         return out
 
-    def update(self, names: list[str], values: list[tuple[float, ...]], now: float) -> None:
-        """Bones `names` took `values` (px, py, pz, qx, qy, qz, qw) at time `now`."""
-        if not names:
+    def update(self, names: list[str] | list[bytes], values: np.ndarray, now: float) -> None:
+        """Bones `names` took `values` (N, 7: px, py, pz, qx, qy, qz, qw) at time `now`."""
+        if not len(names):
             return
-        idx = np.array(self._slots(names))
-        v = np.array(values, dtype=np.float64)
+        idx = np.array(self._slots([n.encode() if isinstance(n, str) else n for n in names]))
+        v = np.asarray(values, dtype=np.float64).reshape(len(idx), 7)
         self.pos[idx], self.rot[idx], self.seen[idx] = v[:, :3], v[:, 3:7], now
         fresh = idx[np.isnan(self.rest[idx, 0])]
         self.rest[fresh] = self.pos[fresh]
@@ -220,27 +231,34 @@ class VmcReceiver:
     def __init__(self, state: VmcState) -> None:
         self.state = state
         self._pending: list[bytes] = []  # loose non-pose messages of the loose frame in progress
-        self._loose: set[str] = set()  # bones of the loose frame in progress
+        self._loose: set[bytes] = set()  # bones of the loose frame in progress
         self.bad = 0  # datagrams that were not OSC
 
     def feed(self, data: bytes, now: float) -> Received:
         out = Received()
         try:
-            names, values, passed, root = [], [], [], None
+            names, raw, passed, root = [], [], [], None
             for m in osc.elements(data):
-                addr = osc.address(m)
-                pose = osc.decode_pose(m) if addr == _BONE or addr == _ROOT else None
-                if pose is None:
-                    passed.append(m)
-                elif addr == _BONE:
-                    names.append(pose[0])
-                    values.append(pose[1])
+                if m.startswith(_BONE_HEAD):  # the usual bone message: split, decoded below all at once
+                    name, values = osc.split_pose(m, 32)
+                    names.append(name)
+                    raw.append(values)
+                elif m.startswith(_BONE_AT) or m.startswith(_ROOT_AT):
+                    pose = osc.decode_pose(m)  # the root, or other argument types
+                    if pose is None:
+                        passed.append(m)
+                    elif m.startswith(_BONE_AT):
+                        names.append(pose[0].encode())
+                        raw.append(osc.pack_pose(pose[1]))
+                    else:
+                        root = (pose[1], m)
                 else:
-                    root = (pose[1], m)
+                    passed.append(m)
         except osc.OscError as exc:
             self.bad += 1
             log.debug("dropped a datagram that is not OSC: %s", exc)
             return out
+        values = np.frombuffer(b"".join(raw), ">f4").reshape(-1, 7)
         is_pose = bool(names) or root is not None
         if data.startswith(osc.BUNDLE_TAG):
             self._apply(names, values, root, now)
@@ -250,13 +268,13 @@ class VmcReceiver:
                 out.forward.append(data)
             return out
         if is_pose:  # a loose pose message: a bone sent again starts the next frame
-            keys = names + (["<root>"] if root is not None else [])
+            keys = names + ([b"<root>"] if root is not None else [])
             if any(k in self._loose for k in keys):
                 out.frames.append(self._pending)
                 self._pending, self._loose = [], set()
             self._loose.update(keys)
             self._apply(names, values, root, now)
-        elif self._loose and osc.address(passed[0]) == _TIME:
+        elif self._loose and passed[0].startswith(_TIME_AT):
             out.frames.append(self._pending + passed)
             self._pending, self._loose = [], set()
         elif self._loose:
@@ -265,7 +283,7 @@ class VmcReceiver:
             out.forward.append(data)
         return out
 
-    def _apply(self, names: list[str], values: list, root: tuple | None, now: float) -> None:
+    def _apply(self, names: list[bytes], values: np.ndarray, root: tuple | None, now: float) -> None:
         if root is not None:
             v, message = root
             self.state.root_pos, self.state.root_rot = np.array(v[:3]), _unit(np.array(v[3:7]))
@@ -520,6 +538,7 @@ class VmcBridge:
         self.receiver = VmcReceiver(self.state)
         self.stats = BridgeStats()
         self._bones = osc.PoseEncoder(BONE_ADDRESS)
+        self._prefixes: list[bytes] = []  # each state slot's bone message prefix
         self._rig: AvatarRig | None = None
         self._rig_key: int | None = None
         self._rig_error: str | None = None
@@ -593,13 +612,14 @@ class VmcBridge:
                     pos[self._rig_slots[0]] = hips
                 self.stats.styled += 1
         n = len(state.names)
+        while len(self._prefixes) < n:
+            self._prefixes.append(self._bones.prefix(state.names[len(self._prefixes)]))
         elements = [osc.element(state.root_message)] if state.root_message is not None else []
-        elements += self._bones.elements(state.names, np.concatenate([pos[:n], rot[:n]], axis=1))
-        addresses = {osc.address(m) for m in passed}
+        elements += self._bones.join(self._prefixes, np.concatenate([pos[:n], rot[:n]], axis=1))
         elements += [osc.element(m) for m in passed]
-        if _OK not in addresses:
+        if not any(m.startswith(_OK_AT) for m in passed):
             elements.append(osc.element(osc.encode_message(OK_ADDRESS, [1])))
-        if _TIME not in addresses:
+        if not any(m.startswith(_TIME_AT) for m in passed):
             elements.append(osc.element(osc.encode_message(TIME_ADDRESS, [float(now - self._t0)])))
         datagrams = osc.bundles(elements)
         self.stats.frames += 1

@@ -50,17 +50,40 @@ def _read_string(data: bytes, start: int) -> tuple[bytes, int]:
 def elements(data: bytes) -> Iterator[bytes]:
     """The messages of a packet, nested bundles flattened, each as its raw bytes."""
     if not data.startswith(BUNDLE_TAG):
+        if data[:1] != b"/" or len(data) % 4 or b"\x00" not in data:
+            raise OscError("neither an OSC message nor a bundle")
         yield data
         return
     i, n = 16, len(data)
     while i < n:
         if i + 4 > n:
             raise OscError("truncated bundle element size")
-        (size,) = _SIZE.unpack_from(data, i)
+        size = int.from_bytes(data[i:i + 4], "big", signed=True)
         if size < 0 or i + 4 + size > n or size % 4:
             raise OscError("bad bundle element size")
-        yield from elements(data[i + 4:i + 4 + size])
+        part = data[i + 4:i + 4 + size]
+        if part.startswith(BUNDLE_TAG):
+            yield from elements(part)
+        elif part[:1] == b"/":
+            yield part
+        else:
+            raise OscError("a bundle element that is not an OSC message")
         i += 4 + size
+
+
+def pose_head(address_: str) -> bytes:
+    """The first 32 bytes of a VMC pose message to `address_` in its usual shape (`,sfffffff`)."""
+    return osc_string(address_) + osc_string(",sfffffff")
+
+
+def split_pose(message: bytes, head_size: int) -> tuple[bytes, bytes]:
+    """(name, the 28 bytes of its seven big-endian floats) of a pose message known to start with a
+    `pose_head` of `head_size` bytes: no decoding, the caller converts many at once."""
+    end = message.find(b"\x00", head_size)
+    k = (end + 4) & ~3
+    if end < 0 or k + 28 > len(message):
+        raise OscError("truncated pose message")
+    return message[head_size:end], message[k:k + 28]
 
 
 def address(message: bytes) -> bytes:
@@ -145,6 +168,11 @@ def encode_message(address_: str, args: Sequence) -> bytes:
     return osc_string(address_) + osc_string("".join(tags)) + b"".join(body)
 
 
+def pack_pose(values: Sequence[float]) -> bytes:
+    """Seven numbers as the 28 bytes `split_pose` gives."""
+    return _POSE.pack(*values[:7])
+
+
 class PoseEncoder:
     """Encodes pose messages of one address for many names from an (N, 7) array: each name's
     element prefix (size, address, `,sfffffff`, name) is built once, the numbers are one
@@ -164,8 +192,13 @@ class PoseEncoder:
 
     def elements(self, names: Sequence[str], values: np.ndarray) -> list[bytes]:
         """Bundle elements (size-prefixed messages), one per name, values (N, 7)."""
+        return self.join([self.prefix(n) for n in names], values)
+
+    @staticmethod
+    def join(prefixes: Sequence[bytes], values: np.ndarray) -> list[bytes]:
+        """Bundle elements from prefixes already looked up (`prefix`) and values (N, 7)."""
         raw = np.ascontiguousarray(values, dtype=">f4").tobytes()
-        return [self.prefix(n) + raw[28 * k:28 * k + 28] for k, n in enumerate(names)]
+        return [p + raw[28 * k:28 * k + 28] for k, p in enumerate(prefixes)]
 
 
 def element(message: bytes) -> bytes:

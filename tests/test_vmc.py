@@ -225,7 +225,7 @@ def test_bone_mask_names_and_groups():
 def test_the_rig_is_the_avatars_own(avatar):
     source = Sender(avatar)
     state = VmcState()
-    state.update(source.names, np.concatenate([source.pos[0], source.rot[0]], axis=1).tolist(), 0.0)
+    state.update(source.names, np.concatenate([source.pos[0], source.rot[0]], axis=1), 0.0)
     rig = avatar_rig(state.body())
     assert set(rig.bones) == set(BODY_BONES) and rig.bones[0] == "Hips"  # eyes and fingers are not the body
     assert rig.report["preset"] == "unity" and rig.report["up"] == "y" and rig.report["units"] == "m"
