@@ -168,11 +168,11 @@ class FineTuned(Generic[S]):
     message: str  # what the style's record says from now on
 
 
-class UploadedStyles(ABC, Generic[S]):
-    """A style set that changes while sessions run: styles made from uploaded clips are added,
-    deleted ones removed, and each is saved in a folder of its own so that a restart, or another
-    replica sharing the folder, loads it again. The service calls `install_style` and
-    `remove_style` on the model-step worker thread only."""
+class UploadedStyles(StreamingModel, ABC, Generic[S]):
+    """A streaming model whose style set changes while sessions run: styles made from uploaded
+    clips are added, deleted ones removed, and each is saved in a folder of its own so that a
+    restart, or another replica sharing the folder, loads it again. The service calls
+    `install_style` and `remove_style` on the model-step worker thread only."""
 
     @abstractmethod
     def with_own_styles(self) -> Self:

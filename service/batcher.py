@@ -24,12 +24,15 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any, TypeVar
 
 import numpy as np
 
 from models.interface import FrameBatch, State, StreamingModel, split_state, stack_states, upgrade_state, weight_vector
 
 from .metrics import Metrics
+
+T = TypeVar("T")
 
 
 @dataclass
@@ -69,7 +72,7 @@ class ModelThread:
     def idle(self) -> bool:
         return self._busy == 0
 
-    async def run(self, fn, *args):
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
         """`fn(*args)` on the thread; the event loop is free meanwhile."""
         loop = asyncio.get_running_loop()
         self._busy += 1

@@ -24,8 +24,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from . import protocol as P
+from .api import ApiError
 from .settings import ServiceSettings, TokenLimits
-from .styles import ApiError
 
 CLOSE_TRY_AGAIN_LATER = 1013
 MAX_IDLE_BUCKETS = 10_000  # above this, buckets that have refilled are forgotten (anonymous clients come and go)
@@ -45,16 +45,8 @@ class Principal:
     limits: Limits
 
 
-class HeaderApiError(ApiError):
-    """An ApiError whose response carries headers (Retry-After, WWW-Authenticate)."""
-
-    def __init__(self, status: int, code: str, message: str, headers: dict[str, str]) -> None:
-        super().__init__(status, code, message)
-        self.headers = headers
-
-
-def unauthorized() -> HeaderApiError:
-    return HeaderApiError(401, "unauthorized", "missing or invalid API token", {"WWW-Authenticate": "Bearer"})
+def unauthorized() -> ApiError:
+    return ApiError(401, "unauthorized", "missing or invalid API token", {"WWW-Authenticate": "Bearer"})
 
 
 # ---- token bucket (pure) -------------------------------------------------------------------
@@ -123,7 +115,7 @@ class Limiter:
         if len(self.buckets) > MAX_IDLE_BUCKETS:
             self._forget_full_buckets(now)
         if wait > 0:
-            raise HeaderApiError(429, "rate_limited",
+            raise ApiError(429, "rate_limited",
                                  f"more than {who.limits.requests_per_s:g} requests/s (bursts of {who.limits.burst:g}); "
                                  f"retry in {wait:.2f} s", {"Retry-After": str(max(1, math.ceil(wait)))})
 

@@ -53,11 +53,12 @@ class Start(_Message):
     style: str | None = None
     mix: StyleMix | None = None  # {style: weight}; alternative to `style`
     intensity: float = Field(default=1.0, ge=0.0, le=2.0)
-    skeleton: Literal[PRESET_NAMES] | None = "bandai-namco"  # a preset rig (models.motion.humanoid_presets)
+    # a preset rig (models.motion.humanoid_presets); Literal of a tuple: pydantic reads it, mypy cannot
+    skeleton: Literal[PRESET_NAMES] | None = "bandai-namco"  # type: ignore[valid-type]
     joints: list[Annotated[str, Field(max_length=200)]] | None = Field(
         default=None, max_length=1024, description="with `skeleton`: the preset's joints the frames carry, in their order")
     bvh_header: str | None = Field(default=None, max_length=200_000, description="BVH HIERARCHY text, instead of `skeleton`")
-    joint_map: dict[str, Literal[ROLES] | None] | None = Field(
+    joint_map: dict[str, Literal[ROLES] | None] | None = Field(  # type: ignore[valid-type]
         default=None, max_length=1024, description="{client joint: body role or null}: completes or overrides the name matching")
     units: Literal["m", "dm", "cm", "mm", "in"] | None = None  # default: read from the leg length
     up: Literal["y", "z"] | None = None  # default: read from a standing rest pose, else y
@@ -124,9 +125,11 @@ client_message = TypeAdapter(ClientMessage)
 
 
 def mix_of(style: str | None, mix: StyleMix | None) -> StyleMix:
-    if (style is None) == (mix is None):
-        raise ProtocolError("bad_style", "give exactly one of 'style' or 'mix'")
-    return {style: 1.0} if style is not None else dict(mix)
+    if style is not None and mix is None:
+        return {style: 1.0}
+    if mix is not None and style is None:
+        return dict(mix)
+    raise ProtocolError("bad_style", "give exactly one of 'style' or 'mix'")
 
 
 def requested_weights(model, style: str | None, mix: StyleMix | None, intensity: float) -> dict[str, float]:

@@ -55,11 +55,11 @@ class RigProblem(BaseModel):
 
 def _rig(body: SkeletonCheck) -> HumanoidRig:
     options = {"joint_map": body.joint_map, "units": body.units, "up": body.up, "handedness": body.handedness}
-    if (body.skeleton is None) == (body.bvh_header is None):
-        raise RigError("bad_request", "give exactly one of 'skeleton' (a preset) or 'bvh_header'")
-    if body.bvh_header is not None:
-        return rig_from_bvh(body.bvh_header, **options)
-    return preset_rig(body.skeleton, joints=body.joints, **options)
+    if body.bvh_header is not None and body.skeleton is None:
+        return rig_from_bvh(body.bvh_header, "bvh_header", **options)
+    if body.skeleton is not None and body.bvh_header is None:
+        return preset_rig(body.skeleton, joints=body.joints, **options)
+    raise RigError("bad_request", "give exactly one of 'skeleton' (a preset) or 'bvh_header'")
 
 
 def _preview(body: SkeletonCheck, rig: HumanoidRig) -> bytes:

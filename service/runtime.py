@@ -5,17 +5,19 @@ Sessions are snapshotted every `snapshot_every` frames and when their connection
 background `SnapshotWriter`, so a client can resume here or on any replica sharing the store.
 `drain` (SIGTERM) refuses new sessions, snapshots every open one and closes it with 1012.
 
-A model whose style set can change (`add_style`) is taken as a shallow copy, so styles added to
-or removed from this runtime's model (on the worker thread, `on_model_thread`) stay its own.
+The runtime is given the models, the worker thread and the style store, built before it (the
+app's lifespan): a model whose style set can change is this server's own copy
+(`models.interface.own_style_set`), so the styles its store adds or removes (on the worker
+thread) stay its own even when several servers share one process.
 """
 
 from __future__ import annotations
 
 import asyncio
-import copy
 import time
 from collections import Counter
-from typing import Protocol
+from collections.abc import Callable
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
@@ -28,6 +30,9 @@ from .metrics import Metrics
 from .session_store import SavedCallback, SnapshotWriter, StoreUnavailable, create_store
 from .sessions import Session
 from .settings import ServiceSettings
+from .styles import StyleStore
+
+T = TypeVar("T")
 
 
 class Drainable(Protocol):
@@ -48,22 +53,19 @@ def warm_up(model: StreamingModel) -> None:
 
 
 class Runtime:
-    def __init__(self, settings: ServiceSettings, models: dict[str, StreamingModel]) -> None:
-        self.settings = settings
-        self.models = {name: copy.copy(m) if hasattr(m, "add_style") else m for name, m in models.items()}
+    def __init__(self, settings: ServiceSettings, models: dict[str, StreamingModel], model_thread: ModelThread,
+                 styles: StyleStore) -> None:
+        self.settings, self.models, self.model_thread, self.styles = settings, models, model_thread, styles
         self.metrics = Metrics()
-        self.model_thread = ModelThread()
         self.batchers = {name: Batcher(model, self.model_thread, self.metrics, wait_s=settings.batch_wait_ms / 1000,
                                        max_batch=settings.max_batch, enabled=settings.batching,
-                                       open_sessions=lambda name=name: self.open_sessions(name),
-                                       inline_max_s=settings.step_inline_max_ms / 1000)
+                                       open_sessions=self._counter(name), inline_max_s=settings.step_inline_max_ms / 1000)
                          for name, model in self.models.items()}
         self.sessions: dict[str, Session] = {}
         self._open_per_model: Counter[str] = Counter()
         self.connections: dict[str, Drainable] = {}  # by session id
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
         self.draining = False
-        self.styles = None  # the app's StyleStore (service/styles.py), set once it is built
 
     async def start(self) -> None:
         frame_check.warm()
@@ -96,7 +98,7 @@ class Runtime:
         await self.snapshots.flush(max(0.0, deadline - time.monotonic() - 0.1 * timeout_s))
         await asyncio.gather(*(c.close_for_restart() for c in connections), return_exceptions=True)
 
-    async def on_model_thread(self, fn, *args):
+    async def on_model_thread(self, fn: Callable[..., T], *args: Any) -> T:
         """`fn(*args)` on the model-step worker thread, between batched steps (style changes)."""
         return await self.model_thread.run(fn, *args)
 
@@ -104,6 +106,9 @@ class Runtime:
     def open_sessions(self, model: str) -> int:
         """Open sessions of `model`; read by its batcher once per batch, so kept as a count."""
         return self._open_per_model[model]
+
+    def _counter(self, model: str) -> Callable[[], int]:
+        return lambda: self.open_sessions(model)
 
     def _refuse_if_draining(self) -> None:
         if self.draining:
@@ -128,19 +133,17 @@ class Runtime:
                 raise P.ProtocolError("session_in_use", "that session is still connected")
             if snap.model not in self.models:
                 raise P.ProtocolError("unknown_model", f"this replica does not serve model {snap.model!r}")
-            if self.styles is not None:
-                await self.styles.ensure_known(snap.model, [*snap.weights, *snap.target])
+            await self.styles.ensure_known(snap.model, [*snap.weights, *snap.target])
             session = Session.restore(snap, self.models[snap.model], self.settings.session_queue)
             self.metrics.resumes.inc()
         else:
             model = self.models.get(start.model)
             if model is None:
                 raise P.ProtocolError("unknown_model", f"unknown model {start.model!r}; available: {', '.join(self.models) or 'none'}")
-            if self.styles is not None:
-                await self.styles.ensure_known(start.model, P.mix_of(start.style, start.mix))
+            await self.styles.ensure_known(start.model, P.mix_of(start.style, start.mix))
             weights = P.requested_weights(model, start.style, start.mix, start.intensity)
             session = Session(model=model, skeleton=start.skeleton or "custom", fps=start.fps, encoding=start.encoding,
-                              weights=weights, state=model.init_state(1), bvh_header=start.bvh_header, rig=start.rig_options(),
+                              weights=weights, target=dict(weights), state=model.init_state(1), bvh_header=start.bvh_header, rig=start.rig_options(),
                               queue_size=self.settings.session_queue)
         self.sessions[session.id] = session
         self._open_per_model[session.model.name] += 1

@@ -20,6 +20,7 @@ import uvicorn
 from fastapi import FastAPI
 
 from .app import create_app
+from .runtime import Runtime
 from .settings import ServiceSettings
 
 log = logging.getLogger("uvicorn.error")  # uvicorn's own lifecycle log, so drains show beside it
@@ -38,20 +39,20 @@ class DrainingServer(uvicorn.Server):
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
         """Signal handler (main thread, between bytecodes of the loop): schedule the drain."""
-        runtime = getattr(self.app.state, "runtime", None)
+        runtime: Runtime | None = self.app.state.runtime  # None until the app has started
         if self._drain_task is not None or runtime is None or self._loop is None or sig not in (signal.SIGTERM, signal.SIGINT):
             super().handle_exit(sig, frame)  # second signal, or nothing to drain: uvicorn's own way
             return
-        self._loop.call_soon_threadsafe(self._start_drain, sig, runtime)
+        self._loop.call_soon_threadsafe(self._start_drain, self._loop, sig, runtime)
 
-    def _start_drain(self, sig: int, runtime) -> None:
+    def _start_drain(self, loop: asyncio.AbstractEventLoop, sig: int, runtime: Runtime) -> None:
         if self._drain_task is not None:
             return
         log.info("draining %d session(s), at most %.1f s", len(runtime.connections), self.drain_timeout_s)
-        self._loop.call_later(self.drain_timeout_s, self._give_up)
-        self._drain_task = self._loop.create_task(self._drain(sig, runtime))
+        loop.call_later(self.drain_timeout_s, self._give_up)
+        self._drain_task = loop.create_task(self._drain(sig, runtime))
 
-    async def _drain(self, sig: int, runtime) -> None:
+    async def _drain(self, sig: int, runtime: Runtime) -> None:
         t0 = time.perf_counter()
         try:
             await runtime.drain(0.7 * self.drain_timeout_s)

@@ -220,7 +220,7 @@ class SnapshotWriter:
             self.metrics.snapshot_seconds.observe(time.perf_counter() - t0)
             self.metrics.snapshots.inc(len(puts))
             for entry in batch.values():
-                if entry.on_saved is not None:
+                if entry.on_saved is not None and entry.snapshot is not None:
                     try:
                         entry.on_saved(entry.snapshot)
                     except Exception:

@@ -18,11 +18,13 @@ import time
 import uuid
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import NamedTuple
 
 import numpy as np
 
 from models.interface import State, StreamingModel
+
+from .protocol import End, Reset, SetStyle
 
 
 @dataclass
@@ -36,7 +38,15 @@ class FrameItem:
 
 @dataclass
 class ControlItem:
-    message: Any  # SetStyle | Reset | End
+    message: SetStyle | Reset | End
+
+
+class Held(NamedTuple):
+    """The latest model output and the input root it was made from (rate adaptation)."""
+
+    root: np.ndarray
+    rotations: np.ndarray
+    input_root: np.ndarray
 
 
 @dataclass
@@ -70,7 +80,7 @@ class Snapshot:
                            "last_output": encode_state(self.last_output)})
 
     @classmethod
-    def from_json(cls, text: str) -> Snapshot:
+    def from_json(cls, text: str | bytes) -> Snapshot:
         data = json.loads(text)
         for name in ("held", "state", "last_output"):
             data[name] = decode_state(data.get(name) or {})
@@ -105,24 +115,17 @@ class Session:
     rig: dict = field(default_factory=dict)  # joints, joint_map, units, up, handedness as started
     id: str = field(default_factory=lambda: uuid.uuid4().hex)
     token: str = field(default_factory=lambda: secrets.token_urlsafe(24))
-    target: dict[str, float] | None = None
+    target: dict[str, float] = field(default_factory=dict)  # where a style transition goes (at its end: the weights)
     transition_left: int = 0
     last_seq: int | None = None
     dropped_pending: int = 0
     ended: bool = False
     clock: float = -1.0  # model steps owed, fractional (rate adaptation); < 0 until the first frame
-    held_root: np.ndarray | None = None  # last model output and the input root it was made from
-    held_rotations: np.ndarray | None = None
-    held_input_root: np.ndarray | None = None
+    held: Held | None = None  # None until the first model step
     last_output: dict[str, np.ndarray] = field(default_factory=dict)  # the reply to `last_seq`
-    last_active: float = field(default_factory=time.monotonic)
     frames_since_snapshot: int = 0
     queue_size: int = 8
-    pending: deque = field(default_factory=deque)
-
-    def __post_init__(self) -> None:
-        if self.target is None:
-            self.target = dict(self.weights)
+    pending: deque[FrameItem | ControlItem] = field(default_factory=deque)
 
     # ---- styles ----------------------------------------------------------------
     def set_style(self, target: dict[str, float], transition_frames: int) -> None:
@@ -156,7 +159,7 @@ class Session:
         """Recurrent state back to its start. `last_seq` stays: it marks how far the client's
         stream has been consumed, which resume needs whatever the state holds."""
         self.state = self.model.init_state(1)
-        self.clock, self.held_root, self.held_rotations, self.held_input_root = -1.0, None, None, None
+        self.clock, self.held = -1.0, None
 
     # ---- frame rate ----------------------------------------------------------------
     def model_steps_due(self) -> int:
@@ -172,11 +175,14 @@ class Session:
         return steps
 
     def hold(self, root: np.ndarray, rotations: np.ndarray, input_root: np.ndarray) -> None:
-        self.held_root, self.held_rotations, self.held_input_root = root, rotations, input_root
+        self.held = Held(root, rotations, input_root)
 
     def held_output(self, input_root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The latest model output, its root moved on by the input's motion since that step."""
-        return self.held_root + (input_root - self.held_input_root), self.held_rotations
+        """The latest model output, its root moved on by the input's motion since that step (the
+        first frame always steps, so there is one)."""
+        if self.held is None:
+            raise RuntimeError("no model output held yet")
+        return self.held.root + (input_root - self.held.input_root), self.held.rotations
 
     # ---- backpressure -----------------------------------------------------------
     def enqueue(self, item: FrameItem | ControlItem) -> None:
@@ -207,16 +213,14 @@ class Session:
                         bvh_header=self.bvh_header, fps=self.fps, encoding=self.encoding,
                         weights=dict(self.weights), target=dict(self.target),
                         transition_left=self.transition_left, last_seq=self.last_seq, clock=self.clock,
-                        held={} if self.held_root is None else
-                        {"root": self.held_root, "rotations": self.held_rotations, "input_root": self.held_input_root},
+                        held={} if self.held is None else self.held._asdict(),
                         state=self.state, saved_at=time.time(), last_output=dict(self.last_output), rig=dict(self.rig))
 
     @classmethod
     def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int) -> Session:
-        held = snap.held
         return cls(model=model, skeleton=snap.skeleton, fps=snap.fps, encoding=snap.encoding,
                    weights=dict(snap.weights), state=dict(snap.state), bvh_header=snap.bvh_header,
                    id=snap.session_id, token=snap.token, target=dict(snap.target),
                    transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size,
-                   clock=snap.clock, held_root=held.get("root"), held_rotations=held.get("rotations"),
-                   held_input_root=held.get("input_root"), last_output=dict(snap.last_output), rig=dict(snap.rig))
+                   clock=snap.clock, held=Held(**snap.held) if snap.held else None,
+                   last_output=dict(snap.last_output), rig=dict(snap.rig))

@@ -123,6 +123,8 @@ def _retarget(skeleton: str | None, bvh_header: str | None, options: str) -> Ret
         if joints is not None:
             raise RigError("bad_skeleton", "give 'joints' with a preset 'skeleton', not with 'bvh_header' (its order is the header's)")
         return Retarget(rig_from_bvh(bvh_header, **opts))
+    if skeleton is None:  # `adapter_for` refuses that before it gets here
+        raise RigError("bad_skeleton", "give a preset 'skeleton' or a 'bvh_header'")
     return Retarget(preset_rig(skeleton, joints=joints, **opts), joints)
 
 

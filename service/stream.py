@@ -21,23 +21,23 @@ import time
 import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
-
 from . import protocol as P
+from .runtime import Runtime
 from .sessions import ControlItem, FrameItem, Session, Snapshot
-from .skeletons import adapter_for
+from .skeletons import SkeletonAdapter, adapter_for
 
 log = logging.getLogger(__name__)
 
-CLOSE_NORMAL, CLOSE_POLICY, CLOSE_TOO_BIG, CLOSE_RESTART = 1000, 1008, 1009, 1012
+CLOSE_NORMAL, CLOSE_RESTART = 1000, 1012
 CLOSE_UNAUTHORIZED, CLOSE_IDLE = 4401, 4408
 
 
 class Connection:
-    def __init__(self, ws: WebSocket, runtime) -> None:
+    def __init__(self, ws: WebSocket, runtime: Runtime) -> None:
         self.ws, self.rt = ws, runtime
         self.settings, self.metrics = runtime.settings, runtime.metrics
-        self.session: Session | None = None
-        self.adapter = None
+        self._session: Session | None = None
+        self._adapter: SkeletonAdapter | None = None
         self.send_lock = asyncio.Lock()
         self.wakeup = asyncio.Event()
         self.closing = False  # no more input: process what is queued, then stop
@@ -45,6 +45,20 @@ class Connection:
         self.processor: asyncio.Task | None = None
         self.acks = False  # the client asked for snapshot acknowledgements
         self._ack_tasks: set[asyncio.Task] = set()
+
+    @property
+    def session(self) -> Session:
+        """The session `open_session` opened; everything after the start message works on it."""
+        if self._session is None:
+            raise RuntimeError("no session opened on this connection")
+        return self._session
+
+    @property
+    def adapter(self) -> SkeletonAdapter:
+        """The client's rig <-> the model skeleton, set up with the session."""
+        if self._adapter is None:
+            raise RuntimeError("no session opened on this connection")
+        return self._adapter
 
     # ---- sending ------------------------------------------------------------------
     def _sendable(self) -> bool:
@@ -117,10 +131,10 @@ class Connection:
             self.wakeup.set()
             if self.processor is not None:
                 await asyncio.gather(self.processor, return_exceptions=True)
-            if self.session is not None:
-                self.rt.session_closed(self.session)
-                if self.rt.connections.get(self.session.id) is self:
-                    del self.rt.connections[self.session.id]
+            if self._session is not None:
+                self.rt.session_closed(self._session)
+                if self.rt.connections.get(self._session.id) is self:
+                    del self.rt.connections[self._session.id]
 
     # ---- drain and snapshot acknowledgements ----------------------------------------
     async def stop_processing(self) -> None:
@@ -161,28 +175,27 @@ class Connection:
                 raise P.ProtocolError("expected_start", f"the first message must be 'start', got '{message.type}'", fatal=True)
             model = self.rt.models.get(message.model)
             if message.resume_token is None and model is not None:  # a bad rig opens no session at all
-                self.adapter = adapter_for(message.skeleton or "custom", message.bvh_header, model.skeleton,
-                                           **message.rig_options())
-            self.session = await self.rt.open_session(message)
+                self._adapter = adapter_for(message.skeleton or "custom", message.bvh_header, model.skeleton,
+                                            **message.rig_options())
+            self._session = s = await self.rt.open_session(message)
             self.acks = message.snapshot_acks
-            if self.adapter is None:  # a resume: the rig the session started with
-                self.adapter = adapter_for(self.session.skeleton, self.session.bvh_header, self.session.model.skeleton,
-                                           **self.session.rig)
+            if self._adapter is None:  # a resume: the rig the session started with
+                self._adapter = adapter_for(s.skeleton, s.bvh_header, s.model.skeleton, **s.rig)
         except P.ProtocolError as err:
             err.fatal = True
             await self.send_error(err)
             await self.close(err.close_code, err.message)
             return False
-        s = self.session
+        s, adapter = self.session, self.adapter
         started = {
             "type": "started", "version": P.PROTOCOL_VERSION, "session_id": s.id, "resume_token": s.token,
-            "model": s.model.name, "styles": s.model.styles(), "joints": self.adapter.joint_names,
+            "model": s.model.name, "styles": s.model.styles(), "joints": adapter.joint_names,
             "last_seq": s.last_seq, "encoding": s.encoding,
-            "layout": {"root": 3, "rotations": [self.adapter.num_joints, 4], "quaternion": "xyzw",
-                       "binary_frame_bytes": P.binary_frame_size(self.adapter.num_joints)},
-            "rig": self.adapter.report(),  # the mapping used and the joints left unmapped
+            "layout": {"root": 3, "rotations": [adapter.num_joints, 4], "quaternion": "xyzw",
+                       "binary_frame_bytes": P.binary_frame_size(adapter.num_joints)},
+            "rig": adapter.report(),  # the mapping used and the joints left unmapped
         }
-        if message.resume_token and s.last_output:  # the reply to last_seq, in case the client lost it
+        if message.resume_token and s.last_output and s.last_seq is not None:  # the reply to last_seq, in case the client lost it
             started["last_frame"] = P.frame_message(s.last_seq, s.last_output["root"], s.last_output["rotations"])
         await self.send_json(started)
         return True
@@ -218,7 +231,7 @@ class Connection:
     def control_item(self, message: P.Control) -> FrameItem:
         """A controller tick as a frame whose input pose is the rest pose (a controller model
         reads the control, not the pose); refused at once on a model that takes no control."""
-        if not getattr(self.session.model, "controllable", False):
+        if not self.session.model.controllable:
             raise P.ProtocolError("control_unsupported", f"model {self.session.model.name!r} is not a character "
                                   "controller; send frames (controllable models: see GET /v1/models)", message.seq)
         rest = np.zeros((self.adapter.num_joints, 4))
@@ -229,17 +242,17 @@ class Connection:
         seq, root, rot = P.decode_binary(data, self.adapter.num_joints)
         self.queue(FrameItem(seq, root, rot, time.perf_counter()))
 
-    def queue(self, item) -> None:
-        before = self.session.dropped_pending
-        self.session.enqueue(item)
-        if self.session.dropped_pending > before:
-            self.metrics.model(self.session.model.name).dropped_frames.inc(self.session.dropped_pending - before)
-        self.session.last_active = time.monotonic()
+    def queue(self, item: FrameItem | ControlItem) -> None:
+        s = self.session
+        before = s.dropped_pending
+        s.enqueue(item)
+        if s.dropped_pending > before:
+            self.metrics.model(s.model.name).dropped_frames.inc(s.dropped_pending - before)
         self.wakeup.set()
 
     # ---- processing -----------------------------------------------------------------
     async def process(self) -> None:
-        s = self.session
+        s, adapter = self.session, self.adapter
         batcher = self.rt.batchers[s.model.name]
         metrics = self.metrics.model(s.model.name)
         while not self.stopping:
@@ -254,7 +267,7 @@ class Connection:
                 if not await self.control(item.message):
                     return
                 continue
-            root, rot = self.adapter.to_model(item.root, item.rotations)
+            root, rot = adapter.to_model(item.root, item.rotations)
             gone = s.drop_deleted(s.model.styles())
             if gone:
                 await self.send_error(P.ProtocolError("style_deleted", f"style(s) {', '.join(gone)} were deleted; their "
@@ -270,7 +283,7 @@ class Connection:
                 continue
             out_root, out_rot = s.held_output(root)
             s.last_seq = item.seq
-            out_root, out_rot = self.adapter.from_model(out_root, out_rot, item.rotations)
+            out_root, out_rot = adapter.from_model(out_root, out_rot, item.rotations)
             s.last_output = {"root": out_root, "rotations": out_rot}
             dropped = s.take_dropped()
             if s.encoding == "binary":
@@ -281,7 +294,7 @@ class Connection:
             metrics.frames.inc()
             self.rt.after_frame(s, self.snapshot_saved if self.acks else None)
 
-    async def control(self, message) -> bool:
+    async def control(self, message: P.SetStyle | P.Reset | P.End) -> bool:
         s = self.session
         if isinstance(message, P.SetStyle):
             try:

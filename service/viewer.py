@@ -94,7 +94,7 @@ def walk_from_data(seconds: float = 4.0) -> dict:
     hips = motion.skeleton.index("Hips")
     rot = motion.rotations / np.linalg.norm(motion.rotations, axis=-1, keepdims=True)
     n = int(round(seconds * motion.fps))
-    best = None
+    best: tuple[float, int, int] | None = None
     for start in range(10, max(11, motion.num_frames - n - 20)):
         for length in range(n - 15, n + 16):
             if start + length >= motion.num_frames:
@@ -104,6 +104,8 @@ def walk_from_data(seconds: float = 4.0) -> dict:
             cost = float(d.sum())
             if best is None or cost < best[0]:
                 best = (cost, start, length)
+    if best is None:
+        raise ValueError(f"{clip.name}: too short for a {seconds:g} s loop")
     _, start, length = best
     root = motion.translations[start:start + length, hips].copy()
     return {"name": "walk (neutral)", "source": f"{clip.dataset}/{clip.name}, frames {start}-{start + length - 1}",

@@ -69,12 +69,12 @@ def _supervise(settings: ServiceSettings, log_level: str) -> None:
 
     ctx = mp.get_context("spawn")
     stopping = False
-    started: dict[int, float] = {}
+    started: dict[mp.process.BaseProcess, float] = {}
 
     def start() -> mp.process.BaseProcess:
         proc = ctx.Process(target=_worker, args=(settings, log_level), name="stylestream-worker")
         proc.start()
-        started[proc.pid] = time.monotonic()
+        started[proc] = time.monotonic()
         return proc
 
     def stop(sig: int, frame: FrameType | None) -> None:
@@ -97,7 +97,7 @@ def _supervise(settings: ServiceSettings, log_level: str) -> None:
             multiprocess.mark_process_dead(proc.pid)  # its live gauges (open sessions) stop counting
             if stopping:
                 continue
-            if time.monotonic() - started[proc.pid] < STARTUP_S:  # it never came up (port taken, bad model): no loop
+            if time.monotonic() - started.pop(proc) < STARTUP_S:  # it never came up (port taken, bad model): no loop
                 log.error("worker %d exited with %s while starting: stopping", proc.pid, proc.exitcode)
                 stop(signal.SIGTERM, None)
                 exit_code = 1

@@ -1,7 +1,8 @@
 """A new LPN-FiLM style from an uploaded clip over REST: usable at once (the FiLM generator's
 embedding of the clip, no job), used by a live controller session, back after a restart,
 deletable; with fine_tune=true also a background job that fine-tunes the FiLM generator on the
-clip and swaps in the tuned FiLM vector while sessions on the style stream on."""
+clip and swaps in the tuned FiLM vector while sessions on the style stream on. Each server
+changes its own copy of the model's style set (`app.state.runtime.models`), never MODEL's."""
 
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ def test_an_uploaded_clip_is_a_live_lpn_style_at_once_and_after_a_restart(giant_
         dots = np.abs((giant * normal).sum(-1)).clip(0, 1)
         assert np.degrees(2 * np.arccos(dots)).mean() > 1.0
 
-    MODEL.remove_style("my-giant")  # what a fresh process would have: only the trained styles
+    assert "my-giant" not in MODEL.styles()  # the server's style set was its own: a restart starts from the trained ones
     with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, _):  # a restarted server
         assert httpx.get(f"{base}/v1/styles/lpn.my-giant").json()["status"] == "ready"
         np.testing.assert_allclose(drive(base, "my-giant"), giant, atol=1e-5)
@@ -91,12 +92,13 @@ def poll_job(base: str, job_id: str, timeout: float = 120) -> list[dict]:
 
 def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_streams_on(giant_clip, tmp_path):
     body = {"name": "tuned-giant", "model": "lpn", "frames": giant_clip, "fps": 30, "fine_tune": True}
-    with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=STEPS) as (base, _):
+    with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=STEPS) as (base, app):
+        served = app.state.runtime.models["lpn"]
         reply = httpx.post(f"{base}/v1/styles", json=body, timeout=60)
         assert reply.status_code == 201, reply.text  # the style exists at once; the job improves it later
         style, job = reply.json()["style"], reply.json()["job"]
         assert style["status"] == "ready" and style["job_id"] == job["id"] and job["kind"] == "fine_tune"
-        instant = MODEL.film_of("tuned-giant")
+        instant = served.film_of("tuned-giant")
 
         streamer = Streamer(base, "tuned-giant")
         streamer.start()
@@ -115,7 +117,7 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
         assert result["installed"] and result["steps"] == STEPS
         assert result["heldout_loss_after"] < result["heldout_loss_before"]
 
-        tuned = MODEL.film_of("tuned-giant")
+        tuned = served.film_of("tuned-giant")
         assert np.abs(tuned - instant).max() > 1e-3
         with np.load(tmp_path / "lpn" / "tuned-giant" / "film.npz") as z:
             np.testing.assert_array_equal(z["film"], tuned)
@@ -127,9 +129,8 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
         after = [r for t, r in streamer.replies if t > finished]
         assert len(during) > 20 and after and np.isfinite(np.array(during + after)).all()
 
-    MODEL.remove_style("tuned-giant")
-    with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, _):  # restarted: the tuned vector, not re-embedded
-        np.testing.assert_array_equal(MODEL.film_of("tuned-giant"), tuned)
+    with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, app):  # restarted: the tuned vector, not re-embedded
+        np.testing.assert_array_equal(app.state.runtime.models["lpn"].film_of("tuned-giant"), tuned)
         assert httpx.get(f"{base}/v1/styles/lpn.tuned-giant").json()["fine_tune"] == result
         assert httpx.delete(f"{base}/v1/styles/lpn.tuned-giant").status_code == 204
 
@@ -144,6 +145,7 @@ def wait_stepping(base: str, job_id: str) -> None:
 def test_deleting_a_style_or_stopping_the_server_while_a_fine_tune_job_runs_stops_the_job(giant_clip, tmp_path):
     body = {"name": "doomed", "model": "lpn", "frames": giant_clip, "fps": 30, "fine_tune": True}
     with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=5000) as (base, app):
+        served = app.state.runtime.models["lpn"]
         short = {**body, "frames": {k: v[:90] for k, v in giant_clip.items()}}
         refused = httpx.post(f"{base}/v1/styles", json=short)  # long enough for a style, not to hold frames back
         assert refused.status_code == 422 and refused.json()["code"] == "bad_length", refused.text
@@ -158,7 +160,7 @@ def test_deleting_a_style_or_stopping_the_server_while_a_fine_tune_job_runs_stop
         failed = poll_job(base, job["id"], timeout=30)[-1]
         assert failed["status"] == "failed" and "deleted" in failed["message"], failed
         assert httpx.get(f"{base}/v1/styles/lpn.doomed").status_code == 404
-        assert "doomed" not in MODEL.styles() and not (tmp_path / "lpn" / "doomed").exists()
+        assert "doomed" not in served.styles() and not (tmp_path / "lpn" / "doomed").exists()
         again = httpx.post(f"{base}/v1/styles", json={**body, "fine_tune": False}, timeout=60)
         assert again.status_code == 201 and again.json()["job"] is None  # the name is free again
         wait_until(lambda: len(streamer.replies) > 5 or streamer.error, "the streamer's frames", 30)
@@ -172,4 +174,3 @@ def test_deleting_a_style_or_stopping_the_server_while_a_fine_tune_job_runs_stop
         wait_stepping(base, running["id"])
     jobs.futures[running["id"]].result(timeout=10)  # the stopped server's job ended within a step
     assert jobs.get(running["id"]).message == "JobStopped: the server is stopping"
-    MODEL.remove_style("cut-short")

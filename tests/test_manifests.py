@@ -14,6 +14,7 @@ from pathlib import Path
 import kubernetes_validate
 import pytest
 import yaml
+from fastapi.routing import iter_route_contexts
 
 from service.app import create_app
 from service.settings import ServiceSettings
@@ -43,8 +44,9 @@ def selects(selector: dict[str, str], labels: dict[str, str]) -> bool:
 
 
 def service_routes() -> set[str]:
-    """Paths the app really serves (routes are registered without starting it)."""
-    return {path for route in create_app(ServiceSettings(), models={}).routes if (path := getattr(route, "path", None))}
+    """Paths the app really serves (routes are registered without starting it), those of its
+    included routers too (FastAPI keeps an included router whole in `app.routes`)."""
+    return {path for route in iter_route_contexts(create_app(ServiceSettings(), models={}).routes) if (path := route.path)}
 
 
 def settings_from_env(env: dict[str, str], monkeypatch) -> ServiceSettings:

@@ -16,7 +16,7 @@ goes into the style residual. Positions come from forward kinematics of the outp
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -178,7 +178,3 @@ class ContentClassifier(nn.Module):
             h = block(h)
             feats.append(h)
         return self.head(h).mean(-1), feats
-
-
-def config_dict(cfg: ERDConfig) -> dict:
-    return asdict(cfg)

@@ -22,8 +22,8 @@ facing +Z. Splitting q_hips = q_yaw(yaw) * q_tilt is exact, so the representatio
 
 Quaternion helpers here are small vectorised numpy functions (scalar-last, like the rest of the
 project) because scipy's Rotation has ~10 us of per-call overhead, too much for a per-frame step.
-The offline path (`motion_to_features`) and the streaming path (`FeatureEncoder`/`FeatureDecoder`)
-share these helpers, so they agree to floating-point round-off.
+The offline path (`motion_to_features`) and the streaming path (`FeatureEncoder`) share these
+helpers, so they agree to floating-point round-off.
 """
 
 from __future__ import annotations
@@ -223,27 +223,3 @@ class FeatureEncoder:
         delta[:, 2] = wrap(yaw - self.prev_yaw)
         self.prev_yaw, self.prev_ground = yaw, ground
         return np.concatenate([delta, static], axis=-1)
-
-
-class FeatureDecoder:
-    """Streaming `features_to_sequence`: integrates the output path per session. The first frame
-    of a session starts at the input's ground position and yaw (passed in by the caller)."""
-
-    def __init__(self, batch: int, ref: np.ndarray = IDENTITY_REF):
-        self.ref = ref
-        self.yaw = np.zeros(batch)
-        self.ground = np.zeros((batch, 2))
-        self.started = np.zeros(batch, bool)
-
-    def __call__(self, features: np.ndarray, in_ground: np.ndarray, in_yaw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        fresh = ~self.started
-        step = rotate_y(features[:, :2], self.yaw)
-        yaw = self.yaw + features[:, 2]
-        ground = self.ground + step
-        if fresh.any():
-            yaw = np.where(fresh, in_yaw, yaw)
-            ground = np.where(fresh[:, None], in_ground, ground)
-            self.started[:] = True
-        self.yaw, self.ground = yaw, ground
-        root = np.stack([ground[:, 0], features[:, 3], ground[:, 1]], axis=-1)
-        return root, static_to_rotations(features[:, 4:], yaw, self.ref)

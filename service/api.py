@@ -1,0 +1,76 @@
+"""The REST API's bodies (pydantic schemas, so the OpenAPI document describes them) and its error.
+
+Every refusal is an `ApiError`: the app answers it with its status and `{"code", "message"}`
+(`ErrorBody`), plus headers where it carries any (Retry-After, WWW-Authenticate). It lives here,
+apart from what raises it (the style store, the clip decoding, the limiter), so none of them
+imports another for it.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+from .jobs import JobInfo
+
+
+class ApiError(Exception):
+    def __init__(self, status: int, code: str, message: str, headers: dict[str, str] | None = None) -> None:
+        super().__init__(message)
+        self.status, self.code, self.message, self.headers = status, code, message, headers
+
+
+class ErrorBody(BaseModel):
+    code: str
+    message: str
+
+
+def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """The `responses` of a route that may answer these statuses with an `ErrorBody`."""
+    return {status: {"model": ErrorBody} for status in statuses}
+
+
+class Health(BaseModel):
+    status: str
+
+
+class ModelInfo(BaseModel):
+    name: str
+    styles: list[str]
+    joints: list[str]
+    controllable: bool = False  # a character controller: sessions may send `control` ticks instead of frames
+
+
+class StyleInfo(BaseModel):
+    id: str = Field(description="'<model>.<name>'")
+    name: str
+    model: str
+    kind: Literal["trained", "uploaded"]
+    status: Literal["ready", "training", "failed"]
+    created: float | None = Field(default=None, description="Unix time (trained: weights file time).")
+    job_id: str | None = None
+    message: str | None = None
+    frames: int | None = Field(default=None, description="Uploaded clip length at 30 fps.")
+    source: Literal["bvh", "json"] | None = None
+    skeleton: str | None = Field(default=None, description="Rig of the uploaded clip (bandai-namco, a preset such as cmu or mixamo, or humanoid).")
+    fine_tune: dict | None = Field(default=None, description="Fine-tuning summary: seconds, and for LTI neutral clips and "
+                                   "held-out metrics, for LPN-FiLM the loss on the clip's held-back frames before and after.")
+
+
+class UploadFrames(BaseModel):
+    root: list[list[float]] = Field(description="(F, 3) Hips translation, cm")
+    rotations: list[list[list[float]]] = Field(description="(F, 22, 4) local rotations, quaternions xyzw, BN joint order")
+
+
+class StyleUpload(BaseModel):
+    name: str
+    model: str = "lti"
+    frames: UploadFrames
+    fps: float = Field(default=30.0, gt=0, le=240)
+    fine_tune: bool = False
+
+
+class UploadAccepted(BaseModel):
+    style: StyleInfo
+    job: JobInfo | None = None

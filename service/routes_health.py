@@ -1,0 +1,36 @@
+"""`/healthz` (the process answers), `/readyz` (it takes sessions: 503 while loading or draining)
+and `/metrics` (Prometheus text); no token, for probes and scrapers."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Request, Response
+from fastapi.responses import PlainTextResponse
+
+from .api import Health
+from .deps import get_runtime
+from .runtime import Runtime
+
+router = APIRouter()
+
+
+@router.get("/healthz", response_model=Health)
+async def healthz() -> Health:
+    return Health(status="ok")
+
+
+@router.get("/readyz", response_model=Health)
+async def readyz(request: Request, response: Response) -> Health:
+    runtime: Runtime | None = request.app.state.runtime
+    if runtime is None:
+        response.status_code = 503
+        return Health(status="loading")
+    if runtime.draining:  # SIGTERM: load balancers stop sending new sessions
+        response.status_code = 503
+        return Health(status="draining")
+    return Health(status="ready")
+
+
+@router.get("/metrics", response_class=PlainTextResponse)
+async def metrics(rt: Runtime = Depends(get_runtime)) -> Response:
+    body, media_type = rt.metrics.render()
+    return Response(body, media_type=media_type)

@@ -1,0 +1,19 @@
+"""`GET /v1/models`: the models this server streams, their current styles and joints."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends
+
+from .api import ModelInfo, error_responses
+from .deps import get_runtime, require_token
+from .runtime import Runtime
+
+router = APIRouter()
+
+
+@router.get("/v1/models", response_model=list[ModelInfo], dependencies=[Depends(require_token)],
+            responses=error_responses(401, 429))
+async def list_models(rt: Runtime = Depends(get_runtime)) -> list[ModelInfo]:
+    await rt.styles.refresh()  # a styles folder shared with other replicas: what it holds now
+    return [ModelInfo(name=n, styles=m.styles(), joints=list(m.skeleton.names), controllable=m.controllable)
+            for n, m in rt.models.items()]

@@ -1,0 +1,41 @@
+"""`WS /v1/stream`: authenticate, take one of the caller's sessions, and run the connection
+(`stream.Connection`; the protocol is docs/protocol.md)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+
+from fastapi import APIRouter, WebSocket
+
+from . import protocol as P
+from .deps import get_limiter
+from .runtime import Runtime
+from .stream import CLOSE_UNAUTHORIZED, Connection
+
+router = APIRouter()
+
+
+@router.websocket("/v1/stream")
+async def stream(ws: WebSocket) -> None:
+    await ws.accept()
+    limiter = get_limiter(ws)
+    who = limiter.identify(ws.headers.get("authorization"), ws.query_params.get("token"),
+                           ws.client.host if ws.client else None)
+    if who is None:
+        await ws.close(CLOSE_UNAUTHORIZED, "missing or invalid API token")
+        return
+    runtime: Runtime = ws.app.state.runtime  # set before the server takes connections (the app's lifespan)
+    connection = Connection(ws, runtime)
+    try:
+        limiter.open_session(who)
+    except P.ProtocolError as err:  # the token's session cap: typed error, then 1013,
+        with contextlib.suppress(TimeoutError):  # answering the client's start, as other refusals do
+            await asyncio.wait_for(ws.receive(), timeout=min(5.0, runtime.settings.idle_timeout_s))
+        await connection.send_error(err)
+        await connection.close(err.close_code, err.message)
+        return
+    try:
+        await connection.run()
+    finally:
+        limiter.session_closed(who)

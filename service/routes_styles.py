@@ -1,0 +1,120 @@
+"""`/v1/styles` and `/v1/jobs`: list, get, delete and upload styles, and follow fine-tuning jobs.
+
+The routes read the request (an upload is multipart BVH or JSON frames, size-capped per token)
+and hand the rest to the style store (`styles.py`); refusals are `ApiError`s."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Literal
+
+from fastapi import APIRouter, Depends, Query, Request, Response
+
+from models.motion.skeleton import Motion, Skeleton
+
+from .api import ApiError, StyleInfo, StyleUpload, UploadAccepted, error_responses
+from .clips import motion_from_bvh, motion_from_json
+from .deps import get_runtime, require_token
+from .jobs import JobInfo
+from .limits import Principal
+from .runtime import Runtime
+
+router = APIRouter()
+ERRORS = error_responses(401, 404, 409, 413, 422, 429)
+UPLOAD_BODY: dict[str, Any] = {"requestBody": {"required": True, "content": {
+    "application/json": {"schema": StyleUpload.model_json_schema()},
+    "multipart/form-data": {"schema": {"type": "object", "required": ["file", "name"], "properties": {
+        "file": {"type": "string", "format": "binary", "description": "BVH clip (Bandai Namco or CMU skeleton)"},
+        "name": {"type": "string"}, "model": {"type": "string", "default": "lti"},
+        "fine_tune": {"type": "boolean", "default": False}}}}}}}
+
+
+async def _read_limited(request: Request, limit: int) -> bytes:
+    """The request body, refusing (413) anything over `limit` bytes without reading it all."""
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > limit:
+        raise ApiError(413, "too_large", f"upload of {declared} bytes exceeds the limit of {limit}")
+    body = bytearray()
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > limit:
+            raise ApiError(413, "too_large", f"upload exceeds the limit of {limit} bytes")
+    return bytes(body)
+
+
+@router.get("/v1/styles", response_model=list[StyleInfo], dependencies=[Depends(require_token)], responses=ERRORS)
+async def list_styles(model: str | None = None, rt: Runtime = Depends(get_runtime)) -> list[StyleInfo]:
+    await rt.styles.refresh()
+    return rt.styles.list(model)
+
+
+@router.get("/v1/styles/{style_id}", response_model=StyleInfo, dependencies=[Depends(require_token)], responses=ERRORS)
+async def get_style(style_id: str, rt: Runtime = Depends(get_runtime)) -> StyleInfo:
+    await rt.styles.refresh()
+    return rt.styles.get(style_id)
+
+
+@router.delete("/v1/styles/{style_id}", status_code=204, dependencies=[Depends(require_token)], responses=ERRORS)
+async def delete_style(style_id: str, rt: Runtime = Depends(get_runtime)) -> Response:
+    await rt.styles.refresh()  # the style may have come from another replica since the last look
+    await rt.styles.delete(style_id)
+    return Response(status_code=204)
+
+
+@router.post("/v1/styles", response_model=UploadAccepted, status_code=202, dependencies=[Depends(require_token)],
+             responses=ERRORS, openapi_extra=UPLOAD_BODY)
+async def upload_style(request: Request, response: Response, fine_tune: bool | None = Query(default=None),
+                       name: str | None = Query(default=None), model: str | None = Query(default=None),
+                       rt: Runtime = Depends(get_runtime), who: Principal = Depends(require_token)) -> UploadAccepted:
+    """Upload a clip as a new style: multipart BVH (`file`) or JSON frames. LTI styles need
+    `fine_tune=true`, which starts the identification job (`GET /v1/jobs/{id}`), answered 202;
+    an LPN-FiLM style is the clip's FiLM embedding, ready at once, answered 201, with
+    `fine_tune=true` also a job that fine-tunes the FiLM generator on the clip and then
+    swaps in the tuned FiLM vector."""
+    body = await _read_limited(request, who.limits.upload_max_bytes)
+    ctype = request.headers.get("content-type", "")
+    fields: dict[str, str]
+    read_clip: Callable[[Skeleton], tuple[Motion, str]]
+    source: Literal["bvh", "json"]
+    if ctype.startswith("multipart/form-data"):
+        async def receive() -> dict:
+            return {"type": "http.request", "body": body, "more_body": False}
+        try:
+            form = await Request(request.scope, receive).form()
+        except Exception as exc:  # noqa: BLE001
+            raise ApiError(422, "bad_request", f"unreadable multipart body: {exc}") from None
+        file = form.get("file")
+        if file is None or isinstance(file, str):
+            raise ApiError(422, "bad_request", "multipart upload needs a 'file' part with the BVH clip")
+        try:
+            bvh_text = (await file.read()).decode("utf-8")
+        except UnicodeDecodeError:
+            raise ApiError(422, "bad_bvh", "the BVH file is not UTF-8 text") from None
+        fields = {k: v for k, v in form.items() if isinstance(v, str)}
+        fine = fields.get("fine_tune", "false").lower() in ("1", "true", "yes", "on")
+        read_clip, source = (lambda skeleton: motion_from_bvh(bvh_text, skeleton)), "bvh"
+    elif ctype.startswith("application/json"):
+        try:
+            upload = StyleUpload.model_validate_json(body)
+        except ValueError as exc:
+            raise ApiError(422, "bad_request", f"invalid JSON upload: {str(exc)[:500]}") from None
+        fields = {"name": upload.name, "model": upload.model}
+        fine = upload.fine_tune
+        read_clip, source = (lambda skeleton: motion_from_json(upload, skeleton)), "json"
+    else:
+        raise ApiError(415, "unsupported_media_type", "send multipart/form-data (file=BVH) or application/json frames")
+    fine = fine if fine_tune is None else fine_tune
+    style_name = name or fields.get("name") or ""
+    model_name = model or fields.get("model") or "lti"
+    accepted = await rt.styles.upload(style_name, model_name, read_clip, source, fine)
+    if accepted.style.status == "ready":  # made from the clip at once (LPN-FiLM): the style exists already, job or not
+        response.status_code = 201
+    return accepted
+
+
+@router.get("/v1/jobs/{job_id}", response_model=JobInfo, dependencies=[Depends(require_token)], responses=ERRORS)
+async def get_job(job_id: str, rt: Runtime = Depends(get_runtime)) -> JobInfo:
+    job = await rt.styles.job(job_id)  # this replica's, or one stored with its style in the folder
+    if job is None:
+        raise ApiError(404, "unknown_job", f"no job {job_id!r}")
+    return job
