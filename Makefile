@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-all summary eval perf clean browser viewer-vendor servers image
+.PHONY: install serve test test-all typecheck summary eval perf clean browser viewer-vendor servers image
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -47,7 +47,11 @@ image:
 	@[ "$$(id -u)" != 0 ] || bash ../shared/tools/container-base.sh
 	bash docker/build-image.sh
 
-test: install browser servers
+# mypy over the service and the model interface ([tool.mypy] in pyproject.toml)
+typecheck: install
+	$(BIN)/python -m mypy
+
+test: install browser servers typecheck
 	$(BIN)/python -m pytest -q -m "not slow"
 
 test-all: install
