@@ -86,12 +86,20 @@ def user_errors() -> tuple[type[BaseException], ...]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run a subcommand; a user error (`user_errors`) ends in one line naming the problem and exit
-    status 2, not a traceback."""
-    args = build_parser().parse_args(argv)
+    status 2, not a traceback. So does a plain `pip install stylestream` (the SDK alone), whose
+    commands lack the server's packages: the line says which extra to install."""
     try:
-        return args.func(args)
-    except user_errors() as exc:  # evaluated only when something was raised
-        print(f"stylestream {args.command}: error: {exc}", file=sys.stderr)
+        args = build_parser().parse_args(argv)
+        try:
+            return args.func(args)
+        except user_errors() as exc:  # evaluated only when something was raised
+            print(f"stylestream {args.command}: error: {exc}", file=sys.stderr)
+            return 2
+    except ModuleNotFoundError as exc:
+        if not exc.name or exc.name.split(".")[0] in ("clients", "models", "service"):
+            raise  # a broken install of this project itself, not a missing extra
+        print(f"stylestream: {exc.name} is not installed; the commands need the server's packages: "
+              "pip install 'stylestream[server]'", file=sys.stderr)
         return 2
 
 

@@ -82,6 +82,9 @@ def test_pip_install_brings_the_sdk_alone_and_it_streams(tmp_path):
     installed = {p["name"].lower().replace("_", "-") for p in json.loads(listed)}
     assert {"numpy", "httpx", "websockets", "stylestream"} <= installed
     assert not installed & {"torch", "numba", "fastapi", "pydantic", "matplotlib", "scipy", "uvicorn", "redis"}
+    cli = subprocess.run([str(tmp_path / "venv" / "bin" / "stylestream"), "--help"], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=60)  # the commands say which extra they need
+    assert cli.returncode == 2 and "pip install 'stylestream[server]'" in cli.stderr, cli.stderr[-2000:]
 
     from models.registry import load_models
     from models.settings import get_settings
