@@ -1,6 +1,8 @@
 """Any humanoid rig through the live service: rigs made from a Bandai Namco walk (tests/rigs.py)
-stream through a session and come back on their own hierarchy, matching what the same walk gives
-on the model's own skeleton; bad rigs are refused with typed errors; POST /v1/skeletons."""
+stream through a session of every model (LTI, Style-ERD, and LPN-FiLM following the input's root
+motion) and come back on their own hierarchy, upright, feet on their own floor, matching what the
+same walk gives on the model's own skeleton; a rig written in a left-handed frame comes back as
+its right-handed twin does; bad rigs are refused with typed errors; POST /v1/skeletons."""
 
 from __future__ import annotations
 
@@ -20,16 +22,19 @@ from models.settings import get_settings
 
 from .clips import angle_deg
 from .live_server import live_server
-from .rigs import SPECS, bn_positions, make_rig
+from .rigs import SPECS, bn_positions, make_rig, mirrored
 
 FRAMES = 45
 STYLE = "elderly"
 RIGS = ["mixamo", "ue5", "smplx", "unity", "bvh", "blender"]
+MODELS = ("lti", "erd", "lpn")
+LEG = 80.0  # BN thigh + shin, cm
 
 
 @pytest.fixture(scope="module")
 def server():
-    with live_server({"lti": load_models(get_settings().weights_dir)["lti"]}, idle_timeout_s=30) as (base, _):
+    models = load_models(get_settings().weights_dir)
+    with live_server({m: models[m] for m in MODELS}, idle_timeout_s=30) as (base, _):
         yield base
 
 
@@ -49,9 +54,9 @@ def _made(walk: Motion, name: str) -> tuple[str, Motion]:
     return _as_file(make_rig(walk, SPECS[name]))
 
 
-def _stream(base: str, start: dict, root: np.ndarray, rot: np.ndarray) -> tuple[dict, np.ndarray, np.ndarray]:
+def _stream(base: str, start: dict, root: np.ndarray, rot: np.ndarray, model: str = "lti") -> tuple[dict, np.ndarray, np.ndarray]:
     with connect(base.replace("http", "ws") + "/v1/stream") as ws:
-        ws.send(json.dumps({"type": "start", "model": "lti", "style": STYLE, **start}))
+        ws.send(json.dumps({"type": "start", "model": model, "style": STYLE, **start}))
         started = json.loads(ws.recv(timeout=20))
         assert started["type"] == "started", started
         roots, rots = [], []
@@ -65,20 +70,29 @@ def _stream(base: str, start: dict, root: np.ndarray, rot: np.ndarray) -> tuple[
 
 
 @pytest.fixture(scope="module")
-def bn_output(server, walk) -> np.ndarray:
-    """World positions of the stylised walk on the model skeleton."""
-    _, root, rot = _stream(server, {"skeleton": "bandai-namco"}, walk.translations[:, 1], walk.rotations)
-    trans = walk.translations.copy()
-    trans[:, 1] = root
-    return fk(rot, trans, walk.skeleton.parents)[1]
+def bn_outputs(server, walk) -> dict[str, np.ndarray]:
+    """Per model, world positions of the stylised walk on the model skeleton (streamed on first use)."""
+    class Outputs(dict):
+        def __missing__(self, model: str) -> np.ndarray:
+            _, root, rot = _stream(server, {"skeleton": "bandai-namco"}, walk.translations[:, 1], walk.rotations, model)
+            trans = walk.translations.copy()
+            trans[:, 1] = root
+            self[model] = fk(rot, trans, walk.skeleton.parents)[1]
+            return self[model]
+
+    return Outputs()
 
 
-@pytest.mark.parametrize("name", RIGS)
-def test_made_rig_comes_back_as_the_model_rig_does(server, walk, bn_output, name):
+@pytest.mark.parametrize("model, name", [(m, n) for m in MODELS for n in RIGS])
+def test_made_rig_comes_back_as_the_model_rig_does(server, walk, bn_outputs, model, name):
+    """Root-relative positions of the mapped joints and the hips height within 3 % of the leg of
+    what the same walk gives on the model rig (LPN-FiLM, a controller, follows the input's root
+    motion: the same root motion in gives the same walk out); upright and feet on the floor in
+    the rig's own world (its up axis, its units)."""
     spec = SPECS[name]
     header, motion = _made(walk, name)
     t = motion.skeleton.index(spec.rename["Hips"])  # the hips move: the header gives them position channels
-    started, root, rot = _stream(server, {"bvh_header": header}, motion.translations[:, t], motion.rotations)
+    started, root, rot = _stream(server, {"bvh_header": header}, motion.translations[:, t], motion.rotations, model)
     assert started["rig"]["root_joint"] == spec.rename["Hips"]
     assert started["joints"] == list(motion.skeleton.names) and started["rig"]["retargeted"]
     assert started["rig"]["up"] == spec.up and started["rig"]["units"] == ("m" if spec.metres else "cm")
@@ -86,19 +100,47 @@ def test_made_rig_comes_back_as_the_model_rig_does(server, walk, bn_output, name
     trans = motion.translations.copy()
     trans[:, t] = root
     styled = Motion(motion.skeleton, rot, trans, motion.fps)
-    got = bn_positions(styled, spec)
+    got, bn_output = bn_positions(styled, spec), bn_outputs[model]
     sk = walk.skeleton
     hips_c, hips_b = motion.skeleton.index(spec.rename["Hips"]), sk.index("Hips")
     pairs = [(motion.skeleton.index(spec.rename[b]), sk.index(b)) for b in BN_ROLES if b != "Hips"]
     err = np.linalg.norm((got[:, [a for a, _ in pairs]] - got[:, [hips_c]])
                          - (bn_output[:, [b for _, b in pairs]] - bn_output[:, [hips_b]]), axis=-1)
-    leg = 80.0  # BN thigh + shin, cm
-    assert np.median(err) / leg < 0.03, (name, np.median(err))
+    assert np.median(err) / LEG < 0.03, (name, np.median(err))
     # feet on the client's floor as the model puts them on its own: the hips height agrees too
-    assert np.median(np.abs(got[:, hips_c, 1] - bn_output[:, hips_b, 1])) / leg < 0.03
+    assert np.median(np.abs(got[:, hips_c, 1] - bn_output[:, hips_b, 1])) / LEG < 0.03
     # and the style is there: the output differs from the input well beyond the errors above
     moved = np.linalg.norm(got - bn_positions(motion, spec), axis=-1)[:, [a for a, _ in pairs]]
     assert np.median(moved) > 2 * np.median(err)
+    # in the rig's own world: head above the hips every frame, the lower toe at the floor (0)
+    own = styled.global_positions() / spec.unit
+    up = "xyz".index(spec.up)
+    head, toes = motion.skeleton.index(spec.rename["Head"]), [motion.skeleton.index(spec.rename[f"Toes_{s}"]) for s in "LR"]
+    assert (own[:, head, up] - own[:, hips_c, up]).min() > 0.5 * LEG
+    lowest = own[:, toes, up].min(axis=1)
+    bn_lowest = bn_output[:, [sk.index("Toes_L"), sk.index("Toes_R")], 1].min(axis=1)
+    assert abs(np.median(lowest) - np.median(bn_lowest)) < 0.03 * LEG and lowest.min() > -0.03 * LEG, (lowest.min(),)
+
+
+@pytest.mark.parametrize("name", ["mixamo", "ue5"])
+def test_left_handed_rig_comes_back_as_its_right_handed_twin(server, walk, name):
+    """A made rig written in a left-handed frame (Y up: Z flipped, as Unity; Z up: Y flipped, as
+    Unreal), streamed with `handedness: "left"`, comes back as the right-handed rig does, mirrored."""
+    spec = SPECS[name]
+    reflection = np.diag([1.0, 1.0, -1.0]) if spec.up == "y" else np.diag([1.0, -1.0, 1.0])
+    made = make_rig(walk, spec)
+    hips = made.skeleton.index(spec.rename["Hips"])
+    out = {}
+    for hand, motion in (("right", made), ("left", mirrored(made, reflection))):
+        header, m = _as_file(motion)
+        started, root, rot = _stream(server, {"bvh_header": header, "handedness": hand}, m.translations[:, hips], m.rotations)
+        assert started["rig"]["handedness"] == hand and started["rig"]["up"] == spec.up
+        out[hand] = (root, rot)
+    root_l, rot_l = out["left"]  # written right-handed again:
+    rot_back = mirrored(Motion(made.skeleton, rot_l, made.translations, made.fps), reflection).rotations
+    np.testing.assert_allclose(root_l @ reflection.T, out["right"][0], atol=1e-3 * spec.unit)  # float32 on the wire
+    assert angle_deg(rot_back, out["right"][1]).max() < 0.05
+    assert angle_deg(out["left"][1], out["right"][1]).max() > 1.0  # the left-handed numbers do differ
 
 
 @pytest.mark.parametrize("name", ["ue5", "smplx"])
