@@ -128,8 +128,14 @@ def _retarget(skeleton: str | None, bvh_header: str | None, options: str) -> Ret
     return Retarget(preset_rig(skeleton, joints=joints, **opts), joints)
 
 
+def _as_model_world(options: dict) -> bool:
+    """No option moves the rig off the model's own world (a left-handed, Z-up or metre BN rig is retargeted)."""
+    return not options.get("joint_map") and options.get("handedness", "right") == "right" and \
+        options.get("up") in (None, "y") and options.get("units") in (None, "cm")
+
+
 def _is_model_skeleton(names: list[str], model_skeleton: Skeleton, options: dict) -> bool:
-    return all(n in names for n in model_skeleton.names) and not options.get("joint_map")
+    return all(n in names for n in model_skeleton.names) and _as_model_world(options)
 
 
 def adapter_for(skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None = None,
@@ -144,7 +150,7 @@ def adapter_for(skeleton: str | None, bvh_header: str | None, model_skeleton: Sk
             raise ProtocolError("bad_skeleton", str(exc), fatal=True) from None
         if _is_model_skeleton(names, model_skeleton, options):
             return Reorder(names, model_skeleton)
-    elif skeleton == "bandai-namco" and not options.get("joint_map"):
+    elif skeleton == "bandai-namco" and _as_model_world(options):
         names = list(joints) if joints is not None else list(model_skeleton.names)
         missing = [n for n in model_skeleton.names if n not in names]
         if missing or len(set(names)) != len(names):

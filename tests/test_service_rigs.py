@@ -143,6 +143,22 @@ def test_left_handed_rig_comes_back_as_its_right_handed_twin(server, walk, name)
     assert angle_deg(out["left"][1], out["right"][1]).max() > 1.0  # the left-handed numbers do differ
 
 
+def test_left_handed_model_rig_is_retargeted_not_passed_through(server, walk, bn_outputs):
+    """The model's own joint names in a left-handed frame: mapped through its world like any rig
+    (before, a Bandai Namco-named header skipped the mapping and `handedness` was ignored)."""
+    reflection = np.diag([1.0, 1.0, -1.0])
+    header, m = _as_file(mirrored(walk, reflection))
+    hips = m.skeleton.index("Hips")
+    started, root, rot = _stream(server, {"bvh_header": header, "handedness": "left"}, m.translations[:, hips], m.rotations)
+    assert started["rig"]["retargeted"] and started["rig"]["handedness"] == "left"
+    trans = m.translations.copy()
+    trans[:, hips] = root
+    got = Motion(m.skeleton, rot, trans, m.fps).global_positions() @ reflection.T  # back to right-handed
+    want = bn_outputs["lti"]
+    err = np.linalg.norm(got[:, 1:] - want[:, [walk.skeleton.index(n) for n in m.skeleton.names[1:]]], axis=-1)
+    assert np.median(err) / LEG < 0.03, np.median(err)
+
+
 @pytest.mark.parametrize("name", ["ue5", "smplx"])
 def test_intensity_zero_gives_the_input_back(server, walk, name):
     spec = SPECS[name]
