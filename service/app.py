@@ -36,12 +36,6 @@ from .styles import StyleStore
 from .viewer import router as viewer_router
 
 
-async def api_error(request: Request, exc: Exception) -> JSONResponse:
-    """An `ApiError` as its status and `{"code", "message"}`, with its headers."""
-    assert isinstance(exc, ApiError)  # registered for ApiError only
-    return JSONResponse({"code": exc.code, "message": exc.message}, status_code=exc.status, headers=exc.headers)
-
-
 def create_app(settings: ServiceSettings | None = None, models: dict[str, StreamingModel] | None = None) -> FastAPI:
     settings = settings or get_service_settings()
 
@@ -73,7 +67,12 @@ def create_app(settings: ServiceSettings | None = None, models: dict[str, Stream
                   description="Online motion style transfer over WebSocket. Protocol: docs/protocol.md")
     app.state.runtime = None
     app.state.limiter = Limiter(settings)
-    app.add_exception_handler(ApiError, api_error)
+
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, exc: ApiError) -> JSONResponse:
+        """An `ApiError` as its status and `{"code", "message"}`, with its headers."""
+        return JSONResponse({"code": exc.code, "message": exc.message}, status_code=exc.status, headers=exc.headers)
+
     for router in (health_router, models_router, styles_router, stream_router, viewer_router):
         app.include_router(router)
     app.include_router(skeletons_router, dependencies=[Depends(require_token)])

@@ -355,6 +355,7 @@ class StyleStore:
                 raise JobStopped("the server is stopping")
             progress(fraction, message)
 
+        # the steps setting is named for LPN-FiLM, the one method whose fine-tune iterates; LTI's ignores it
         tuned = model.fine_tune_style(info.name, motion, report, self.settings.lpn_fine_tune_steps)
         installed = asyncio.run_coroutine_threadsafe(self._install_tuned(info, model, tuned), self.loop).result(timeout=60)
         if isinstance(model, ClipStyles):  # the job refined a style that exists: say whether it changed
