@@ -283,3 +283,65 @@ def _world(local: np.ndarray, parents: list[int]) -> np.ndarray:
 def bn_positions(motion: Motion, spec: RigSpec) -> np.ndarray:
     """World positions of a made-rig motion back in BN's world (cm, Y up)."""
     return (motion.global_positions() / spec.unit) @ spec.up_matrix
+
+
+# --------------------------------------------------------------------------- made rigs on the wire
+
+
+def as_bvh_file(motion: Motion) -> tuple[str, Motion]:
+    """(BVH header, the motion read back from the whole file): what a client sends (a BVH lists
+    joints depth first, Euler angles at 9 decimals)."""
+    from models.motion import bvh
+    from models.motion.skeleton import from_bvh, to_bvh
+
+    motion.euler_orders = tuple("ZXY" for _ in motion.skeleton.names)
+    text = bvh.dumps(to_bvh(motion), precision=9)
+    return text.split("MOTION")[0], from_bvh(bvh.parse(text))
+
+
+def stream(base: str, start: dict, root: np.ndarray, rot: np.ndarray, model: str = "lti",
+           style: str = "elderly") -> tuple[dict, np.ndarray, np.ndarray]:
+    """(started, roots (F, 3), rotations (F, J, 4)) of frames streamed one at a time through a
+    session of the server at `base` (JSON frames: float32 on the wire is the binary encoding's)."""
+    import json
+
+    from websockets.sync.client import connect
+
+    with connect(base.replace("http", "ws") + "/v1/stream") as ws:
+        ws.send(json.dumps({"type": "start", "model": model, "style": style, **start}))
+        started = json.loads(ws.recv(timeout=20))
+        assert started["type"] == "started", started
+        roots, rots = [], []
+        for t in range(len(root)):
+            ws.send(json.dumps({"type": "frame", "seq": t, "root": root[t].tolist(), "rotations": rot[t].tolist()}))
+            reply = json.loads(ws.recv(timeout=20))
+            assert reply["type"] == "frame", reply
+            roots.append(reply["root"])
+            rots.append(reply["rotations"])
+    return started, np.array(roots), np.array(rots)
+
+
+def stream_made_rig(base: str, motion: Motion, spec: RigSpec, model: str, style: str = "elderly",
+                    **start) -> tuple[dict, Motion]:
+    """A made-rig motion through a session as a BVH client sends it (its header; the hips'
+    translation per frame); (started, the stylised motion on the same rig)."""
+    header, m = as_bvh_file(motion)
+    hips = m.skeleton.index(spec.rename["Hips"])
+    started, root, rot = stream(base, {"bvh_header": header, **start}, m.translations[:, hips], m.rotations, model, style)
+    trans = m.translations.copy()
+    trans[:, hips] = root
+    return started, Motion(m.skeleton, rot, trans, m.fps)
+
+
+def mapped_error(styled: Motion, spec: RigSpec, bn_output: np.ndarray, bn: Skeleton) -> np.ndarray:
+    """(F, roles) distance (cm) between the made rig's mapped joints and the same joints of the
+    model-rig output `bn_output` (F, 22, 3), both relative to their hips: the round-trip error."""
+    from models.motion.humanoid import BN_ROLES
+
+    got = bn_positions(styled, spec)
+    sk = styled.skeleton
+    hips_c, hips_b = sk.index(spec.rename["Hips"]), bn.index("Hips")
+    pairs = [(sk.index(spec.rename[b]), bn.index(b)) for b in BN_ROLES if b != "Hips"]
+    return np.linalg.norm((got[:, [a for a, _ in pairs]] - got[:, [hips_c]])
+                          - (bn_output[:, [b for _, b in pairs]] - bn_output[:, [hips_b]]), axis=-1)
+

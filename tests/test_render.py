@@ -12,11 +12,11 @@ from PIL import Image
 from models.motion.assets import bandai_namco_pose, cmu_pose
 from models.motion.features import facing_yaw
 from models.motion.orientation import FACES, face_normals, find_parts, reference_rig, rig, solid_corners, world_axes
-from models.motion.render import joint_sides, render_contact_sheet, render_gif
+from models.motion.render import joint_sides, render_contact_sheet, render_gif, up_axis, upright
 from models.motion.resample import resample
 from models.motion.rotations import expmap_to_quat, quat_mul
 from models.motion.skeleton import Motion
-from tests.rigs import SPECS, make_rig
+from tests.rigs import EXTRA_SPECS, SPECS, bn_positions, make_rig
 
 
 def _not_blank(img: Image.Image) -> None:
@@ -189,3 +189,24 @@ def test_other_humanoid_rigs_get_solids_from_their_first_frame(tmp_path, bn_walk
     path = render_contact_sheet(make_rig(walk, SPECS["mixamo"]), tmp_path / "mixamo.png", frames=2, panel_size=1.5, dpi=50)
     with Image.open(path) as img:
         _not_blank(img)  # red and blue limbs: sides from the `mixamorig:Left…` names
+
+
+def test_z_up_rigs_are_drawn_standing(tmp_path, bn_walk):
+    """Rigs made Z up (Unreal, Blender, an Xsens-style capture export; cm or m, A-pose, T-pose or
+    first-frame rest) are drawn in their own up axis: `upright` puts every joint where the Y-up BN
+    walk has it (cm), and the head and feet then face where the BN walk's do."""
+    walk = bn_walk.slice(0, 60)
+    bn = world_axes(walk)
+    assert up_axis(walk) == "y" and upright(walk) is walk
+    for spec in (SPECS["ue5"], SPECS["blender"], EXTRA_SPECS["xsens"]):
+        made = make_rig(walk, spec)
+        assert up_axis(made) == "z", spec.name
+        standing = upright(made)
+        np.testing.assert_allclose(standing.global_positions(), bn_positions(made, spec), atol=1e-6)
+        axes = world_axes(standing)
+        assert np.mean(_dot(axes["head"][:, :, 0], bn["head"][:, :, 0])) > 0.9, spec.name
+        for part in ("foot_l", "foot_r"):
+            assert np.mean(_dot(axes[part][:, :, 0], bn[part][:, :, 0])) > 0.8, (spec.name, part)
+    path = render_contact_sheet(make_rig(walk, EXTRA_SPECS["xsens"]), tmp_path / "xsens.png", frames=2, panel_size=1.5, dpi=50)
+    with Image.open(path) as img:
+        _not_blank(img)

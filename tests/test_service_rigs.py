@@ -16,13 +16,13 @@ from websockets.sync.client import connect
 
 from models.motion import bvh
 from models.motion.humanoid import BN_ROLES
-from models.motion.skeleton import Motion, fk, from_bvh, to_bvh
+from models.motion.skeleton import Motion, fk, to_bvh
 from models.registry import load_models
 from models.settings import get_settings
 
 from .clips import angle_deg
 from .live_server import live_server
-from .rigs import SPECS, bn_positions, make_rig, mirrored
+from .rigs import SPECS, as_bvh_file, bn_positions, make_rig, mapped_error, mirrored, stream, stream_made_rig
 
 FRAMES = 45
 STYLE = "elderly"
@@ -43,30 +43,8 @@ def walk(bn_walk) -> Motion:
     return bn_walk.slice(0, FRAMES)
 
 
-def _as_file(motion: Motion) -> tuple[str, Motion]:
-    """(BVH header, the motion read back from the whole file): a BVH lists joints depth first."""
-    motion.euler_orders = tuple("ZXY" for _ in motion.skeleton.names)
-    text = bvh.dumps(to_bvh(motion), precision=9)
-    return text.split("MOTION")[0], from_bvh(bvh.parse(text))
-
-
 def _made(walk: Motion, name: str) -> tuple[str, Motion]:
-    return _as_file(make_rig(walk, SPECS[name]))
-
-
-def _stream(base: str, start: dict, root: np.ndarray, rot: np.ndarray, model: str = "lti") -> tuple[dict, np.ndarray, np.ndarray]:
-    with connect(base.replace("http", "ws") + "/v1/stream") as ws:
-        ws.send(json.dumps({"type": "start", "model": model, "style": STYLE, **start}))
-        started = json.loads(ws.recv(timeout=20))
-        assert started["type"] == "started", started
-        roots, rots = [], []
-        for t in range(len(root)):
-            ws.send(json.dumps({"type": "frame", "seq": t, "root": root[t].tolist(), "rotations": rot[t].tolist()}))
-            reply = json.loads(ws.recv(timeout=20))
-            assert reply["type"] == "frame", reply
-            roots.append(reply["root"])
-            rots.append(reply["rotations"])
-    return started, np.array(roots), np.array(rots)
+    return as_bvh_file(make_rig(walk, SPECS[name]))
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +52,7 @@ def bn_outputs(server, walk) -> dict[str, np.ndarray]:
     """Per model, world positions of the stylised walk on the model skeleton (streamed on first use)."""
     class Outputs(dict):
         def __missing__(self, model: str) -> np.ndarray:
-            _, root, rot = _stream(server, {"skeleton": "bandai-namco"}, walk.translations[:, 1], walk.rotations, model)
+            _, root, rot = stream(server, {"skeleton": "bandai-namco"}, walk.translations[:, 1], walk.rotations, model, STYLE)
             trans = walk.translations.copy()
             trans[:, 1] = root
             self[model] = fk(rot, trans, walk.skeleton.parents)[1]
@@ -90,27 +68,22 @@ def test_made_rig_comes_back_as_the_model_rig_does(server, walk, bn_outputs, mod
     motion: the same root motion in gives the same walk out); upright and feet on the floor in
     the rig's own world (its up axis, its units)."""
     spec = SPECS[name]
-    header, motion = _made(walk, name)
-    t = motion.skeleton.index(spec.rename["Hips"])  # the hips move: the header gives them position channels
-    started, root, rot = _stream(server, {"bvh_header": header}, motion.translations[:, t], motion.rotations, model)
-    assert started["rig"]["root_joint"] == spec.rename["Hips"]
+    motion = make_rig(walk, spec)
+    started, styled = stream_made_rig(server, motion, spec, model, STYLE)
+    assert started["rig"]["root_joint"] == spec.rename["Hips"]  # the hips move: the header gives them position channels
     assert started["joints"] == list(motion.skeleton.names) and started["rig"]["retargeted"]
     assert started["rig"]["up"] == spec.up and started["rig"]["units"] == ("m" if spec.metres else "cm")
     assert set(started["rig"]["unmapped"]) >= {n for n, _ in spec.fingers}
-    trans = motion.translations.copy()
-    trans[:, t] = root
-    styled = Motion(motion.skeleton, rot, trans, motion.fps)
-    got, bn_output = bn_positions(styled, spec), bn_outputs[model]
-    sk = walk.skeleton
-    hips_c, hips_b = motion.skeleton.index(spec.rename["Hips"]), sk.index("Hips")
-    pairs = [(motion.skeleton.index(spec.rename[b]), sk.index(b)) for b in BN_ROLES if b != "Hips"]
-    err = np.linalg.norm((got[:, [a for a, _ in pairs]] - got[:, [hips_c]])
-                         - (bn_output[:, [b for _, b in pairs]] - bn_output[:, [hips_b]]), axis=-1)
+    bn_output, sk = bn_outputs[model], walk.skeleton
+    err = mapped_error(styled, spec, bn_output, sk)
     assert np.median(err) / LEG < 0.03, (name, np.median(err))
     # feet on the client's floor as the model puts them on its own: the hips height agrees too
+    got = bn_positions(styled, spec)
+    hips_c, hips_b = motion.skeleton.index(spec.rename["Hips"]), sk.index("Hips")
     assert np.median(np.abs(got[:, hips_c, 1] - bn_output[:, hips_b, 1])) / LEG < 0.03
     # and the style is there: the output differs from the input well beyond the errors above
-    moved = np.linalg.norm(got - bn_positions(motion, spec), axis=-1)[:, [a for a, _ in pairs]]
+    mapped = [motion.skeleton.index(spec.rename[b]) for b in BN_ROLES if b != "Hips"]
+    moved = np.linalg.norm(got - bn_positions(motion, spec), axis=-1)[:, mapped]
     assert np.median(moved) > 2 * np.median(err)
     # in the rig's own world: head above the hips every frame, the lower toe at the floor (0)
     own = styled.global_positions() / spec.unit
@@ -129,13 +102,11 @@ def test_left_handed_rig_comes_back_as_its_right_handed_twin(server, walk, name)
     spec = SPECS[name]
     reflection = np.diag([1.0, 1.0, -1.0]) if spec.up == "y" else np.diag([1.0, -1.0, 1.0])
     made = make_rig(walk, spec)
-    hips = made.skeleton.index(spec.rename["Hips"])
     out = {}
     for hand, motion in (("right", made), ("left", mirrored(made, reflection))):
-        header, m = _as_file(motion)
-        started, root, rot = _stream(server, {"bvh_header": header, "handedness": hand}, m.translations[:, hips], m.rotations)
+        started, styled = stream_made_rig(server, motion, spec, "lti", STYLE, handedness=hand)
         assert started["rig"]["handedness"] == hand and started["rig"]["up"] == spec.up
-        out[hand] = (root, rot)
+        out[hand] = (styled.translations[:, motion.skeleton.index(spec.rename["Hips"])], styled.rotations)
     root_l, rot_l = out["left"]  # written right-handed again:
     rot_back = mirrored(Motion(made.skeleton, rot_l, made.translations, made.fps), reflection).rotations
     np.testing.assert_allclose(root_l @ reflection.T, out["right"][0], atol=1e-3 * spec.unit)  # float32 on the wire
@@ -147,9 +118,9 @@ def test_left_handed_model_rig_is_retargeted_not_passed_through(server, walk, bn
     """The model's own joint names in a left-handed frame: mapped through its world like any rig
     (before, a Bandai Namco-named header skipped the mapping and `handedness` was ignored)."""
     reflection = np.diag([1.0, 1.0, -1.0])
-    header, m = _as_file(mirrored(walk, reflection))
+    header, m = as_bvh_file(mirrored(walk, reflection))
     hips = m.skeleton.index("Hips")
-    started, root, rot = _stream(server, {"bvh_header": header, "handedness": "left"}, m.translations[:, hips], m.rotations)
+    started, root, rot = stream(server, {"bvh_header": header, "handedness": "left"}, m.translations[:, hips], m.rotations)
     assert started["rig"]["retargeted"] and started["rig"]["handedness"] == "left"
     trans = m.translations.copy()
     trans[:, hips] = root
@@ -164,7 +135,7 @@ def test_intensity_zero_gives_the_input_back(server, walk, name):
     spec = SPECS[name]
     header, motion = _made(walk, name)
     hips = motion.skeleton.index(spec.rename["Hips"])
-    started, root, rot = _stream(server, {"bvh_header": header, "intensity": 0.0}, motion.translations[:, hips],
+    started, root, rot = stream(server, {"bvh_header": header, "intensity": 0.0}, motion.translations[:, hips],
                                  motion.rotations)
     assert started["rig"]["root_joint"] == spec.rename["Hips"]
     np.testing.assert_allclose(root, motion.translations[:, hips], atol=1e-3 * (0.01 if spec.metres else 1.0))
@@ -177,7 +148,7 @@ def test_preset_with_its_joints_in_any_order(server, walk):
     names = [n for n in PRESETS["mixamo"].skeleton().names if "Index" not in n and "Thumb" not in n and "Pinky" not in n
              and "Ring" not in n and "Middle" not in n][::-1]
     rest = np.tile([0.0, 0.0, 0.0, 1.0], (3, len(names), 1))
-    started, root, rot = _stream(server, {"skeleton": "mixamo", "joints": names}, np.array([[0.0, 95.0, 0.0]] * 3), rest)
+    started, root, rot = stream(server, {"skeleton": "mixamo", "joints": names}, np.array([[0.0, 95.0, 0.0]] * 3), rest)
     assert started["joints"] == names and started["rig"]["preset"] == "mixamo"
     assert started["rig"]["mapping"]["hand_l"] == "LeftHand" and rot.shape == (3, len(names), 4)
 

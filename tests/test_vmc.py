@@ -5,7 +5,6 @@ normalised T-pose), written in Unity's left-handed axes as VMC senders do."""
 
 from __future__ import annotations
 
-import json
 import socket
 import threading
 from contextlib import contextmanager
@@ -16,18 +15,17 @@ import pytest
 from pythonosc import osc_packet
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder
-from websockets.sync.client import connect
 
 from clients import vmc_osc as osc
 from clients.vmc import (BODY_BONES, BONE_GROUPS, StyleLink, VmcBridge, VmcState, avatar_rig, model_input,
                          parse_bones, session_opener, unity_output)
 from models.motion import bvh
 from models.motion.humanoid import RigError
-from models.motion.skeleton import Motion, from_bvh, to_bvh
+from models.motion.skeleton import Motion, from_bvh
 from models.settings import get_settings
 
 from .clips import angle_deg
-from .rigs import EXTRA_SPECS, make_rig
+from .rigs import EXTRA_SPECS, as_bvh_file, make_rig, stream
 
 FRAMES = 30
 UNITY = np.diag([-1.0, 1.0, 1.0])  # right-handed <-> Unity: mirror X
@@ -155,23 +153,12 @@ def _stream_styled(bridge, sender, sink, source: Sender, frames: int = FRAMES, *
     return out
 
 
-def _direct(url: str, motion: Motion) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def _direct(url: str, motion: Motion) -> dict:
     """The same avatar streamed straight to the service as a right-handed BVH rig (no bridge)."""
-    motion.euler_orders = tuple("ZXY" for _ in motion.skeleton.names)
-    text = bvh.dumps(to_bvh(motion), precision=9)
-    header, m = text.split("MOTION")[0], from_bvh(bvh.parse(text))
+    header, m = as_bvh_file(motion)
     hips = m.skeleton.index("Hips")
-    roots, rots = [], []
-    with connect(url.replace("http", "ws") + "/v1/stream") as ws:
-        ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly", "bvh_header": header, "fps": 30.0}))
-        assert json.loads(ws.recv(timeout=20))["type"] == "started"
-        for t in range(m.num_frames):
-            ws.send(json.dumps({"type": "frame", "seq": t, "root": m.translations[t, hips].tolist(),
-                                "rotations": m.rotations[t].tolist()}))
-            reply = json.loads(ws.recv(timeout=20))
-            roots.append(reply["root"])
-            rots.append(reply["rotations"])
-    return {"names": list(m.skeleton.names), "root": np.array(roots), "rotations": np.array(rots)}
+    _, root, rot = stream(url, {"bvh_header": header, "fps": 30.0}, m.translations[:, hips], m.rotations)
+    return {"names": list(m.skeleton.names), "root": root, "rotations": rot}
 
 
 # --------------------------------------------------------------------------- codec

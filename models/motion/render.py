@@ -6,7 +6,8 @@ about the forearm, which move no joint, show: the head has a black nose wedge wh
 looks, each hand a black thumb stub and a darker palm, each foot a light top face. World Y up is
 the vertical axis, with a ground grid at height 0 and a camera that follows the root. Left limbs
 are red, right limbs blue, the spine black. Works for any skeleton (Bandai Namco in cm, CMU in its
-own units): sizes are taken from the motion itself.
+own units): sizes are taken from the motion itself. A humanoid whose up axis is Z (Blender, Unreal,
+many capture exports) is drawn standing in its own up axis (`upright`), not lying on its back.
 """
 
 from __future__ import annotations
@@ -23,10 +24,11 @@ from matplotlib.animation import PillowWriter  # noqa: E402
 from matplotlib.colors import to_rgb  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
+from .humanoid import RigError, humanoid_rig, in_model_world  # noqa: E402
 from .orientation import FACES, Solid, face_normals, joint_sides, rig, solid_corners  # noqa: E402
 from .skeleton import Motion, Skeleton  # noqa: E402
 
-__all__ = ["joint_sides", "render_contact_sheet", "render_gif"]
+__all__ = ["joint_sides", "render_contact_sheet", "render_gif", "up_axis", "upright"]
 
 LEFT, RIGHT, CENTRE = "tab:red", "tab:blue", "0.15"
 HEAD, MARK = "0.8", "0.05"  # the head block, and the nose / thumb stubs on it and the hands
@@ -57,6 +59,35 @@ def _bones(skeleton: Skeleton) -> list[tuple[int, int, str]]:
 
 def _as_list(motions: Motion | Sequence[Motion]) -> list[Motion]:
     return [motions] if isinstance(motions, Motion) else list(motions)
+
+
+def up_axis(motion: Motion) -> str:
+    """'y' or 'z': a humanoid's up axis as its rest pose says (`humanoid.detect_up`), else as its
+    frames say (the head above the feet, at the median over frames); 'y' for anything else."""
+    try:
+        hr = humanoid_rig(motion.skeleton)
+    except RigError:
+        return "y"
+    if hr.up_detected:
+        return hr.up
+    pos = motion.global_positions()
+    roles = hr.roles
+    v = np.median(pos[:, roles["head"]] - 0.5 * (pos[:, roles["foot_l"]] + pos[:, roles["foot_r"]]), axis=0)
+    return "z" if v[2] > max(abs(v[1]), abs(v[0])) else "y"
+
+
+def upright(motion: Motion, up: str | None = None) -> Motion:
+    """The motion in a Y-up world, the way the renderer draws: a Z-up humanoid (`up`, or
+    `up_axis`) turned so that its up is Y (and read in cm, `humanoid.in_model_world`); anything
+    else as it is."""
+    up = up or up_axis(motion)
+    if up == "y":
+        return motion
+    try:
+        hr = humanoid_rig(motion.skeleton, up=up)
+    except RigError:
+        return motion
+    return in_model_world(motion, hr)
 
 
 def face_tints(solids: Sequence[Solid]) -> np.ndarray:
@@ -185,11 +216,13 @@ def render_contact_sheet(
     panel_size: float = 1.9,
     dpi: int = 80,
     columns: int = 6,
+    up: str | None = None,
 ) -> Path:
     """PNG of poses: `frames` is a count spread evenly over each motion, or explicit frame indices
     (clipped to each motion's length). One motion: its poses in a grid `columns` wide. Several
-    motions: one row per motion, one column per frame."""
-    motions = _as_list(motions)
+    motions: one row per motion, one column per frame. `up`: the motions' up axis ('y', 'z'; default:
+    read per motion, `up_axis`)."""
+    motions = [upright(m, up) for m in _as_list(motions)]
     titles = list(titles) if titles is not None else [""] * len(motions)
     n_frames = frames if isinstance(frames, int) else len(frames)
     if len(motions) == 1:
@@ -227,10 +260,11 @@ def render_gif(
     view: tuple[float, float] = (10.0, -60.0),
     panel_size: float = 2.6,
     dpi: int = 60,
+    up: str | None = None,
 ) -> Path:
     """Animated GIF of the motions side by side, played at `fps` (<= source rate), at most
-    `seconds` long; shorter motions hold their last frame."""
-    motions = _as_list(motions)
+    `seconds` long; shorter motions hold their last frame. `up` as in `render_contact_sheet`."""
+    motions = [upright(m, up) for m in _as_list(motions)]
     titles = list(titles) if titles is not None else [""] * len(motions)
     fps = min(fps, min(m.fps for m in motions))
     duration = min(seconds, max((m.num_frames - 1) / m.fps for m in motions))
