@@ -20,6 +20,7 @@ import uvicorn
 from fastapi import FastAPI
 
 from .app import create_app
+from .logs import configure_logging
 from .runtime import Runtime
 from .settings import ServiceSettings
 
@@ -84,4 +85,5 @@ def serve_once(settings: ServiceSettings, log_level: str = "info", sockets: list
                             ws_max_size=4 * settings.max_message_bytes,  # larger ones get a typed error, not a bare close
                             ws_per_message_deflate=False,  # compressing ~400-byte frames costs more CPU than it saves
                             timeout_graceful_shutdown=max(1, round(0.15 * settings.drain_timeout_s)))
+    configure_logging()  # session lines with their ids, probes at debug (uvicorn.Config has just set logging up)
     DrainingServer(config, app, settings.drain_timeout_s).run(sockets=sockets)

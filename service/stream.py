@@ -22,6 +22,7 @@ import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from . import protocol as P
+from .logs import session_log
 from .runtime import Runtime
 from .sessions import ControlItem, FrameItem, Session, Snapshot
 from .skeletons import SkeletonAdapter, adapter_for
@@ -45,6 +46,7 @@ class Connection:
         self.processor: asyncio.Task | None = None
         self.acks = False  # the client asked for snapshot acknowledgements
         self._ack_tasks: set[asyncio.Task] = set()
+        self.log: logging.Logger | logging.LoggerAdapter = log  # once a session is open: its id and model on every line
 
     @property
     def session(self) -> Session:
@@ -132,6 +134,8 @@ class Connection:
             if self.processor is not None:
                 await asyncio.gather(self.processor, return_exceptions=True)
             if self._session is not None:
+                self.log.info("%s after frame %s", "ended" if self._session.ended else "disconnected (resumable)",
+                              self._session.last_seq)
                 self.rt.session_closed(self._session)
                 if self.rt.connections.get(self._session.id) is self:
                     del self.rt.connections[self._session.id]
@@ -198,6 +202,10 @@ class Connection:
         if message.resume_token and s.last_output and s.last_seq is not None:  # the reply to last_seq, in case the client lost it
             started["last_frame"] = P.frame_message(s.last_seq, s.last_output["root"], s.last_output["rotations"])
         await self.send_json(started)
+        self.log = session_log(log, s.id, s.model.name)
+        client = f"{self.ws.client.host}:{self.ws.client.port}" if self.ws.client else "?"
+        self.log.info("%s (client %s, rig %s)", f"resumed after frame {s.last_seq}" if message.resume_token else "started",
+                      client, adapter.report().get("preset", "custom"))
         return True
 
     async def on_text_or_refresh(self, data: str) -> bool:
@@ -278,7 +286,7 @@ class Connection:
                                                                     item.control)
                     s.hold(out_root, out_rot, root)
             except Exception:  # noqa: BLE001 - a model failure costs this frame, not the session
-                log.exception("model step failed")
+                self.log.exception("model step failed")
                 await self.send_error(P.ProtocolError("internal", "model step failed", item.seq))
                 continue
             out_root, out_rot = s.held_output(root)

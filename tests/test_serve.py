@@ -5,14 +5,20 @@ import subprocess
 import sys
 
 import httpx
+import numpy as np
 
 from clients.loadtest import free_port, wait_ready
+from clients.sdk import Client
 
 
-def test_serve_starts_and_answers_health_and_models():
+def test_serve_starts_and_answers_health_and_models(tmp_path):
+    """Also its log at info: each session line names the session and model; the probes, the
+    readiness polling and the scrapes are not there (debug)."""
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "clients.cli", "serve", "--port", str(port), "--log-level", "warning"],
-                            env={**os.environ}, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    log = tmp_path / "serve.log"
+    with log.open("w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "clients.cli", "serve", "--port", str(port), "--log-level", "info"],
+                                env={**os.environ}, stdout=out, stderr=subprocess.STDOUT)
     try:
         base = f"http://127.0.0.1:{port}"
         wait_ready(base, lambda: proc.poll() is None)
@@ -22,9 +28,19 @@ def test_serve_starts_and_answers_health_and_models():
         for entry in models:
             assert entry["styles"], entry
         assert httpx.get(f"{base}/docs").status_code == 200
+        assert httpx.get(f"{base}/metrics").status_code == 200
+        with Client(base).session(model="lti", style="elderly") as session:
+            session.stylise(np.zeros(3), np.tile([0.0, 0.0, 0.0, 1.0], (22, 1)))
+            sid = session.session_id
     finally:
         proc.terminate()
         proc.wait(timeout=20)
+    lines = log.read_text().splitlines()
+    session_lines = [line for line in lines if sid in line]
+    assert len(session_lines) == 2, lines[-20:]  # started, ended
+    assert all(f"session={sid} model=lti" in line for line in session_lines)
+    assert not [line for line in lines if any(p in line for p in ("/healthz", "/readyz", "/metrics", "connection open"))]
+    assert any("GET /v1/models" in line for line in lines)  # the rest of the access log stays
 
 
 def test_cli_help_is_readable():
