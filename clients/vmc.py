@@ -559,11 +559,19 @@ class VmcBridge:
         return self._rig
 
     def handle(self, data: bytes, now: float) -> list[bytes]:
+        """Datagrams to send for one received: passed on as they came, or one restyled frame's."""
+        t0 = time.perf_counter()
         got = self.receiver.feed(data, now)
         out = list(got.forward)
         self.stats.forwarded += len(got.forward)
+        wait = 0.0
         for passed in got.frames:
-            out += self._frame(passed, now)
+            datagrams, w = self._frame(passed, now)
+            out += datagrams
+            wait += w
+        if got.frames:  # the bridge's own time per frame: decode, convert, encode (the session wait apart)
+            own = (time.perf_counter() - t0 - wait) / len(got.frames)
+            self.stats.own_s.extend([own] * len(got.frames))
         return out
 
     def _current_rig(self) -> AvatarRig | None:
@@ -591,8 +599,8 @@ class VmcBridge:
         log.info("VMC bridge: avatar rig of %d body bones, leg %.3f m", len(rig.bones), rig.report["leg_length"])
         return rig
 
-    def _frame(self, passed: list[bytes], now: float) -> list[bytes]:
-        t0 = time.perf_counter()
+    def _frame(self, passed: list[bytes], now: float) -> tuple[list[bytes], float]:
+        """The frame's datagrams, and the time spent waiting on the session."""
         state = self.state
         state.expire(now)
         rot, pos = state.rot, state.pos
@@ -621,11 +629,9 @@ class VmcBridge:
             elements.append(osc.element(osc.encode_message(OK_ADDRESS, [1])))
         if not any(m.startswith(_TIME_AT) for m in passed):
             elements.append(osc.element(osc.encode_message(TIME_ADDRESS, [float(now - self._t0)])))
-        datagrams = osc.bundles(elements)
         self.stats.frames += 1
-        self.stats.own_s.append(time.perf_counter() - t0 - wait)
         self.stats.wait_s.append(wait)
-        return datagrams
+        return osc.bundles(elements), wait
 
     def serve_forever(self) -> None:
         while not self._stop.is_set():
