@@ -18,6 +18,9 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple, TypeVar
 
 import httpx
+import websockets
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+from websockets.sync.client import connect as connect_sync
 
 from .sdk_types import ConnectFailed, ServerError
 from .sdk_wire import MAX_MESSAGE, Message
@@ -126,8 +129,6 @@ class SyncIO:
         self._connection = ExitStack()  # websockets wants its sync connection used as a context manager
 
     def perform(self, op: Op) -> Any:
-        from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
-
         if isinstance(op, Recv):
             try:
                 return self.ws.recv(timeout=op.timeout)
@@ -141,12 +142,10 @@ class SyncIO:
             except (ConnectionClosed, OSError) as exc:
                 raise _disconnected(exc) from None
         if isinstance(op, Connect):
-            from websockets.sync.client import connect
-
             self._connection = ExitStack()
             try:
                 self.ws = self._connection.enter_context(
-                    connect(op.url, open_timeout=op.timeout, max_size=MAX_MESSAGE, compression=None))
+                    connect_sync(op.url, open_timeout=op.timeout, max_size=MAX_MESSAGE, compression=None))
             except (OSError, InvalidHandshake, InvalidURI) as exc:
                 raise ConnectFailed(f"cannot open a session at {op.url}: {exc}") from exc
             return None
@@ -189,8 +188,6 @@ class AsyncIO:
         self.ws: Any = None  # websockets.asyncio.client.ClientConnection while connected
 
     async def perform(self, op: Op) -> Any:
-        from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
-
         if isinstance(op, Recv):
             try:
                 async with asyncio.timeout(op.timeout):  # recv() is cancellation-safe: nothing is lost
@@ -205,8 +202,6 @@ class AsyncIO:
             except (ConnectionClosed, OSError) as exc:
                 raise _disconnected(exc) from None
         if isinstance(op, Connect):
-            import websockets
-
             try:
                 self.ws = await websockets.connect(op.url, open_timeout=op.timeout, max_size=MAX_MESSAGE,
                                                    compression=None)

@@ -1,6 +1,7 @@
 """The SDK stands alone: `clients.sdk` imports nothing of the server (fast check, in a subprocess
 that refuses the server's packages), and `pip install stylestream` into a fresh plain venv brings
-numpy, httpx and websockets only, and streams against a live server (slow: builds and installs)."""
+numpy, httpx and websockets only, and streams against a live server, on Python 3.11, 3.12 and 3.13
+(slow: builds and installs; a version not on the machine is skipped)."""
 
 from __future__ import annotations
 
@@ -69,10 +70,25 @@ def _project_copy(into: Path) -> Path:
     return into
 
 
+def interpreter(version: str) -> str | None:
+    """A working `python<version>`: this one, one on PATH, or one pyenv installed."""
+    if f"{sys.version_info.major}.{sys.version_info.minor}" == version:
+        return sys.executable
+    found = [shutil.which(f"python{version}"), *map(str, Path.home().glob(f".pyenv/versions/{version}.*/bin/python{version}"))]
+    for candidate in filter(None, found):
+        if subprocess.run([candidate, "--version"], capture_output=True).returncode == 0:
+            return candidate
+    return None
+
+
 @pytest.mark.slow
-def test_pip_install_brings_the_sdk_alone_and_it_streams(tmp_path):
+@pytest.mark.parametrize("version", ["3.11", "3.12", "3.13"])
+def test_pip_install_brings_the_sdk_alone_and_it_streams(tmp_path, version):
+    python_x = interpreter(version)
+    if python_x is None:
+        pytest.skip(f"no Python {version} on this machine")
     project = _project_copy(tmp_path / "stylestream")
-    subprocess.run([sys.executable, "-m", "venv", str(tmp_path / "venv")], check=True, timeout=120)  # no system site
+    subprocess.run([python_x, "-m", "venv", str(tmp_path / "venv")], check=True, timeout=120)  # no system site
     python = tmp_path / "venv" / "bin" / "python"
     install = subprocess.run([str(python), "-m", "pip", "install", "-q", str(project)], capture_output=True, text=True,
                              timeout=600)
@@ -97,4 +113,4 @@ def test_pip_install_brings_the_sdk_alone_and_it_streams(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     out = json.loads(run.stdout)
     assert "lti.elderly" in out["styles"] and out["first"] == 0 and out["seqs"] == list(range(1, 9))
-    assert out["sdk"].startswith(str(tmp_path / "venv"))
+    assert out["sdk"].startswith(str(tmp_path / "venv")) and f"python{version}" in out["sdk"]
