@@ -17,7 +17,6 @@ from models.lti.subspace import (
     subspace_id,
 )
 from models.lti.warping import imw, time_warp_dp
-from models.motion.rotations import quat_apply
 
 
 def _data():
@@ -215,8 +214,8 @@ def test_bad_shapes_and_stale_states_are_clear_errors():
         model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest[:, :21]), w)
     with pytest.raises(ValueError, match="style_weights"):
         model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest), w[:, :3])
-    with pytest.raises(ValueError, match="lock_anchor"):
-        model.step_batch({**state, "lock_anchor": np.zeros((2, 2, 3))}, FrameBatch(np.zeros((1, 3)), rest), w)
+    with pytest.raises(ValueError, match="feet_offset"):
+        model.step_batch({**state, "feet_offset": np.zeros((2, 2, 3))}, FrameBatch(np.zeros((1, 3)), rest), w)
     import copy
     smaller = copy.copy(model)
     smaller.remove_style("youthful")
@@ -295,28 +294,6 @@ def test_footplant_classifier_separates_classes():
     labels = np.stack([x[:, 0] + 0.1 * rng.standard_normal(400) > 0, x[:, 1] > 0.5], axis=1)
     fp = FootplantClassifier.fit(x, labels)
     assert (fp.predict(x) == labels).mean() > 0.9
-
-
-def test_two_bone_ik_reaches_target():
-    index, load_motion, select = _data()
-    from models.lti.footplant import FootLock, two_bone_ik
-    m = load_motion(select(index, style="normal", content="walk", split="val")[0])
-    lock = FootLock(m.skeleton, 1)
-    up, low, foot = lock.chains[0]
-    rng = np.random.default_rng(4)
-    for t in (10, 50, 90):
-        root, rots = m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]
-        ankle = lock.foot_positions(root, rots)[:, 0]
-        target = ankle + rng.uniform(-4, 4, 3)
-        hip = root + quat_apply(rots[:, rep.HIPS], m.skeleton.offsets[up][None])
-        new = rots.copy()
-        new[:, up], new[:, low], new[:, foot] = two_bone_ik(rots[:, rep.HIPS], rots[:, up], rots[:, low], rots[:, foot], hip,
-                                                           m.skeleton.offsets[low], m.skeleton.offsets[foot], target)
-        np.testing.assert_allclose(lock.foot_positions(root, new)[:, 0], target, atol=1e-3)  # cm
-        # the foot keeps its world orientation
-        g_old, _ = __import__("models.motion.skeleton", fromlist=["fk"]).fk(rots, m.translations[t:t + 1], m.skeleton.parents)
-        g_new, _ = __import__("models.motion.skeleton", fromlist=["fk"]).fk(new, m.translations[t:t + 1], m.skeleton.parents)
-        assert abs(abs(np.sum(g_old[0, foot] * g_new[0, foot])) - 1) < 1e-9
 
 
 def test_offline_timewarp_follows_predicted_rate():

@@ -7,8 +7,9 @@ turned by the INPUT's facing yaw, starting from the input's first root position;
 the predicted Hips height. So the path keeps the input's shape and direction while the speed may
 change with the style. The output Hips rotation is the input's facing yaw times the predicted
 yaw-free Hips rotation. As in the streaming model, the bones keep the input's twists and the
-leaves its rotations (`models.motion.twist.transfer_twist`). Then the streaming model's foot lock, frame by frame (`foot_lock=False`
-gives the network's output alone).
+leaves its rotations (`models.motion.twist.transfer_twist`). Then the feet are planted frame by
+frame as in the streaming model (`models.motion.feet`; `foot_lock=False` gives the network's
+output alone).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from ..motion.skeleton import Motion
 from ..motion.twist import transfer_twist
 from models.motion.rotations import quat_mul
 
-from ..lti.footplant import FootLock
+from ..motion.feet import model_rig_planter
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y, yaw_quat
 from .model import Generator
 
@@ -56,10 +57,7 @@ def stylise(gen: Generator, maker: FeatureMaker, motion: Motion, weights: np.nda
                           out["height"][0].double().numpy(), yaw, root_in[0])
     rots = transfer_twist(motion.skeleton, motion.rotations, rots)
     if foot_lock:
-        from .runtime import LOCK_MAX_PULL, LOCK_RELEASE
-        lock = FootLock(motion.skeleton, 1, release_frames=LOCK_RELEASE, max_pull=LOCK_MAX_PULL)
-        planted = x[:, CONTACT] > 0.5
-        rots = np.concatenate([lock(root[t:t + 1], rots[t:t + 1], planted[t:t + 1]) for t in range(len(rots))])
+        root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()
     trans[:, 1] = root
     return replace(motion, rotations=rots, translations=trans)

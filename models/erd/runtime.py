@@ -14,7 +14,7 @@ State per session (every entry has the session axis first):
     out_root (B, 3)                                     last output Hips translation
     frame (B,)                                          frames seen
     style_in (B,), content (B,)                         input labels, -1 = unknown (the default)
-    lock_anchor (B, 2, 3), lock_since (B, 2), lock_was (B, 2)   the foot lock's memory per leg
+    feet_*                                              the foot planter's (`models.motion.feet`)
 Every residual branch advances every frame (whatever its weight), so switching or mixing styles
 never meets a stale state; the output uses latent = neutral + sum_s w_s * branch_s.
 
@@ -27,12 +27,14 @@ are kept exactly, but each bone's twist about itself and the head, hands and toe
 input's rotations (`models.motion.twist.transfer_twist`): trained on positions, the network had
 left those free and wrung wrists by 60-140 degrees and turned necks by 90 (issue #14).
 
-Foot lock: the network knows nothing of the floor, so its planted feet slid (20 % of flat-foot
+Planted feet: the network knows nothing of the floor, so its planted feet slid (20 % of flat-foot
 frames over the eval suite's inputs, 40 % toward `active`, against 3 % for the inputs). The
-output keeps the input's timing, so the input's own contacts (feature columns `CONTACT`: ankle
-or toe low and slow, causal) say when a foot is down; while it is, two-bone leg IK holds the
-output ankle where it touched down (the LTI model's foot lock, `lti.kernels.foot_lock`), dragged
-along when it would lag more than LOCK_MAX_PULL cm. The output's `contacts` are those contacts.
+shared planter (`models.motion.feet.FootPlanter`, as for every method) holds a toe or ankle on
+the ground where it touched down by two-bone leg IK; the root keeps its path. The output keeps
+the input's timing, so the input's own contacts (feature columns `CONTACT`: ankle or toe low and
+slow, causal) are its hints: a foot the input has down plants however fast the network slides it.
+An ankle-only lock let toes pivot and drag (planted toes 2-7x real). The output's `contacts` are
+the planted legs.
 """
 
 from __future__ import annotations
@@ -49,14 +51,10 @@ from ..motion.skeleton import Skeleton
 from ..motion.twist import transfer_twist
 from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
-from ..lti.footplant import LEG_CHAINS
-from ..lti.kernels import foot_lock  # called from here, not compiled into ERD's kernels: numba's cache tracks one file
+from ..motion.feet import STATE_SHAPES as FEET_STATE, model_rig_planter
 from .features import CONTACT, FPS, FeatureMaker
 
 WEIGHTS_FILE = "erd.npz"
-LOCK_MAX_PULL = 5.0  # cm (LTI's value). Eval inputs: skate 40/15/26 % -> 9/6/7 % (active/exhausted/youthful),
-# style accuracy 1.00 -> 0.94/0.97/1.00; 10 cm: skate 3 %, active 0.85
-LOCK_RELEASE = 4  # frames over which a lifted foot returns to its animated position
 
 
 def _sigmoid_(a: np.ndarray) -> np.ndarray:
@@ -91,8 +89,7 @@ class ERDModel:
         self.mean, self.std = np.asarray(mean, np.float64), np.asarray(std, np.float64)
         self.ref = np.asarray(ref, np.float64)
         self.maker = FeatureMaker(skeleton, self.ref)
-        self.chains = np.array([[skeleton.index(n) for n in chain] for chain in LEG_CHAINS], dtype=np.int64)
-        self.offsets = np.ascontiguousarray(skeleton.offsets, dtype=np.float64)
+        self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
         self.Ln, self.Ls = config["neutral_layers"], config["style_layers"]
         if self.Ln != self.Ls:
@@ -155,20 +152,16 @@ class ERDModel:
         state.update(prev_pos=np.zeros((batch, 22, 3)), prev_yaw=np.zeros(batch), out_root=np.zeros((batch, 3)),
                      frame=np.zeros(batch, dtype=np.int64), style_in=np.full(batch, si, dtype=np.int64),
                      content=np.full(batch, ci, dtype=np.int64))
-        state.update(self._fresh_lock(batch))
+        state.update(self.planter.init_state(batch))
         return state
 
-    @staticmethod
-    def _fresh_lock(batch: int) -> State:
-        return {"lock_anchor": np.zeros((batch, 2, 3)), "lock_since": np.full((batch, 2), 10**6, dtype=np.int64),
-                "lock_was": np.zeros((batch, 2), dtype=bool)}
-
     def upgrade_state(self, state: State) -> State:
-        """A state saved before the foot lock existed (a snapshot from an older replica) gets a
-        fresh one; anything else is returned as it is."""
-        if "lock_anchor" in state:
+        """A state saved before the foot planter (a snapshot from an older replica, with or
+        without the old `lock_*` keys) gets a fresh planter state; anything else is returned as it is."""
+        if all(k in state for k in FEET_STATE):
             return state
-        return {**state, **self._fresh_lock(len(state["frame"]))}
+        old = {k: v for k, v in state.items() if not k.startswith("lock_")}
+        return self.planter.upgrade_state(old, len(state["frame"]))
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
         root = np.ascontiguousarray(frames.root, np.float64)
@@ -183,8 +176,7 @@ class ERDModel:
             raise ValueError(f"style_weights must be ({B}, {len(TARGET_STYLES)}), got {w.shape}")
         lstm = (B, len(self.branches), self.Ln, self.H)
         for key, shape in (("h", lstm), ("c", lstm), ("prev_pos", (B, J, 3)), ("prev_yaw", (B,)), ("out_root", (B, 3)),
-                           ("frame", (B,)), ("style_in", (B,)), ("content", (B,)), ("lock_anchor", (B, 2, 3)),
-                           ("lock_since", (B, 2)), ("lock_was", (B, 2))):
+                           ("frame", (B,)), ("style_in", (B,)), ("content", (B,))):
             if state[key].shape != shape:
                 raise ValueError(f"state[{key!r}] must be {shape}, got {state[key].shape}")
         has_prev = state["frame"] > 0
@@ -194,14 +186,11 @@ class ERDModel:
         out_root, out_rot = kernels.output_pose(x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64),
                                                 root, rot_in, float(FPS))
         out_rot = transfer_twist(self.skeleton, rot_in, out_rot)
-        contacts = x[:, CONTACT] > 0.5
-        lock = {k: np.array(state[k], dtype=dtype) for k, dtype in
-                (("lock_anchor", np.float64), ("lock_since", np.int64), ("lock_was", bool))}
-        foot_lock(out_root, out_rot, contacts, lock["lock_anchor"], lock["lock_since"], lock["lock_was"],
-                  self.chains, self.offsets, LOCK_RELEASE, LOCK_MAX_PULL)
+        planted_root, planted_rot, contacts, feet = self.planter({k: state[k] for k in FEET_STATE}, out_root, out_rot,
+                                                                 hints=x[:, CONTACT] > 0.5)
         new.update(prev_pos=pos, prev_yaw=yaw, out_root=out_root, frame=state["frame"] + 1,
-                   style_in=state["style_in"].copy(), content=state["content"].copy(), **lock)
-        return FrameBatch(out_root, out_rot, contacts), new
+                   style_in=state["style_in"].copy(), content=state["content"].copy(), **feet)
+        return FrameBatch(planted_root, planted_rot, contacts), new
 
     # ------------------------------------------------------------------ network
 

@@ -1,8 +1,8 @@
 """The vectorised numpy LPN-FiLM step that the compiled kernels (`kernels.py`) replaced, kept as
 the reference they are held to: `tests/test_lpn.py` compares the two step by step, and
 `python -m models.lpn bench` times them side by side. Same weights, same state, same outputs up
-to float32 round-off; only `_control`, `_inputs`, `_network`, `_advance`, `_foot_lock` and `_fk`
-differ.
+to float32 round-off; only `_control`, `_inputs`, `_network`, `_advance` and `_fk` differ (both
+plant the feet with the shared compiled planter, `models.motion.feet`).
 """
 
 from __future__ import annotations
@@ -14,11 +14,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..interface import FrameBatch, State
-from ..lti.footplant import two_bone_ik
 from ..motion.features import wrap_angle
-from ..motion.rotations import quat_apply
 from . import features as lf
-from .runtime import CONTACT_THRESHOLD, CONTROL_BIAS, CONTROL_SMOOTH_S, LOCK_MAX_PULL, LOCK_RELEASE, PAST_IDX, \
+from .runtime import CONTACT_THRESHOLD, CONTROL_BIAS, CONTROL_SMOOTH_S, PAST_IDX, \
     PHASE_BLEND, RUN_SPEED, STOP_PHASE_DAMP, STOP_ROOT_HOLD, STOP_SPEED, LPNModel
 from .weights import read_weights
 
@@ -164,40 +162,6 @@ class NumpyLPNModel(LPNModel):
         contacts = y[:, lf.CONTACT_OUT] > CONTACT_THRESHOLD
         quats = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_quat().reshape(B, -1, 4)  # C code: 10x numpy's
         return out_root.astype(np.float32), quats.astype(np.float32), contacts
-
-    def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray) -> np.ndarray:
-        """Two-bone leg IK (the LTI foot lock's kernel, over the legs that need it) pinning each
-        planted ankle where it touched down (state-held anchors), released over LOCK_RELEASE frames;
-        the anchor is dragged along beyond LOCK_MAX_PULL cm."""
-        gh = rotations[:, lf.HIPS]
-        ch = self.chains  # (2 sides, 3) upper leg, lower leg, foot
-        # ankle = root + R_hips off_up + R_up off_low + R_low off_foot, both sides at once
-        g_rot, _ = self._fk(root, rotations)
-        feet = root[:, None] + quat_apply(g_rot[:, [lf.HIPS, lf.HIPS]], self.offsets[ch[:, 0]]) + \
-            quat_apply(g_rot[:, ch[:, 0]], self.offsets[ch[:, 1]]) + quat_apply(g_rot[:, ch[:, 1]], self.offsets[ch[:, 2]])
-        start = contacts & ~s["lock_was"]
-        anchor = np.where(start[..., None], feet, s["lock_anchor"])
-        gap = anchor - feet
-        dist = np.linalg.norm(gap, axis=-1, keepdims=True)
-        anchor = feet + gap * np.minimum(1.0, LOCK_MAX_PULL / np.maximum(dist, 1e-9))
-        since = np.where(contacts, 0, s["lock_since"] + 1)
-        s["lock_anchor"], s["lock_since"], s["lock_was"] = anchor.astype(np.float32), since, contacts.copy()
-        active = since <= LOCK_RELEASE
-        if not active.any():
-            return rotations
-        fade = np.clip(since / (LOCK_RELEASE + 1.0), 0.0, 1.0)[..., None]
-        target = anchor + (feet - anchor) * fade
-        out = rotations.copy()
-        for side, (up, low, foot) in enumerate(ch):
-            rows = np.flatnonzero(active[:, side])
-            if not len(rows):
-                continue
-            g = gh[rows]
-            hip = root[rows] + quat_apply(g, self.offsets[up])
-            out[rows, up], out[rows, low], out[rows, foot] = two_bone_ik(
-                g, rotations[rows, up], rotations[rows, low], rotations[rows, foot], hip,
-                self.offsets[low], self.offsets[foot], target[rows, side])
-        return out
 
     def _fk(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World rotations (B, 22, 4) and positions (B, 22, 3); joint_Root static at the origin."""

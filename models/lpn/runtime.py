@@ -1,6 +1,6 @@
 """Streaming LPN-FiLM: the project's `StreamingModel` interface as a character controller in
 float32, the per-session maths (control, trajectory blend, gating, FiLM, phase and root update,
-output pose, foot lock) in numba kernels (`kernels.py`) and the expert products in BLAS;
+output pose) in numba kernels (`kernels.py`) and the expert products in BLAS;
 `reference.py` keeps the plain numpy step the kernels are tested against. Per frame, the network reads the character's trajectory (past from its own
 history, future blended from the control and its own last prediction), its pose and its local
 phases, and predicts the next pose, root motion, phases and contacts.
@@ -25,7 +25,7 @@ State per session (session axis first): `frame`; the root trajectory history of 
 frames + the current one (`hist_pos`, `hist_dir`, `hist_vel` world xz, `hist_gait`, `hist_phase`);
 the network's last future prediction (`fut_pos`, `fut_dir`, `fut_vel`, `fut_phase`, world); the
 current pose in its character frame (`pose`), `yaw`; the input tracker for derived control
-(`in_pos`, `in_vel`); and the foot lock (`lock_anchor`, `lock_since`, `lock_was`).
+(`in_pos`, `in_vel`); and the foot planter's (`feet_*`, `models.motion.feet`).
 
 The step's geometry and the network's per-row maths are compiled (`kernels.py`, numba; the three
 big matrix products stay BLAS); `reference.NumpyLPNModel` is the numpy step they replaced and are
@@ -46,7 +46,8 @@ from ..motion.rotations import quat_mul
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import transfer_twist
 from . import features as lf
-from ..lti.kernels import foot_lock  # called from here, not compiled into this package's kernels: numba's cache tracks one file
+from ..motion.assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR
+from ..motion.feet import STATE_SHAPES as FEET_STATE, FootPlanter
 from . import kernels
 from .styles import LPNStyles
 from .weights import read_weights
@@ -57,13 +58,10 @@ CONTROL_SMOOTH_S = 0.25  # input velocity smoothing for derived control
 RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
 CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias
 PHASE_BLEND = 0.5  # next phase = blend of (current advanced by the predicted frequency) and the predicted phase
-LOCK_RELEASE = 4  # frames over which a released foot returns to its animated position
-LOCK_MAX_PULL = 20.0  # cm: the anchor is dragged along beyond this (scripted demo skate ratio: 6 cm 0.53, 20 cm 0.46, no lock 0.67)
 CONTACT_THRESHOLD = 0.35  # predicted contact (regressed 0/1) above which a foot counts as planted (0.5: skate 0.46 -> 0.44)
 STOP_SPEED = 30.0  # cm/s: below this wanted speed the phases are damped (standing)
 STOP_PHASE_DAMP = 0.6  # per-frame phase factor when the wanted speed is 0
 STOP_ROOT_HOLD = 0.9  # share of the predicted root translation held back when the wanted speed is 0
-LEG_CHAINS = (("UpperLeg_L", "LowerLeg_L", "Foot_L"), ("UpperLeg_R", "LowerLeg_R", "Foot_R"))
 # The network's own local rotations kept as they are by `_untwist`: leaves (plausible as trained) and
 # limb roots (their twist sets the plane the knee / elbow bends in)
 OWN_ROTATIONS = ("Head", "Hand_L", "Hand_R", "Toes_L", "Toes_R", "UpperLeg_L", "UpperLeg_R", "UpperArm_L", "UpperArm_R")
@@ -104,8 +102,7 @@ class LPNModel(LPNStyles):
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
         self.parents = sk.parents
-        self.chains = np.array([[sk.index(n) for n in chain] for chain in LEG_CHAINS], np.int64)
-        self.offsets64 = np.ascontiguousarray(sk.offsets, np.float64)  # the foot lock's, compiled in float64
+        self.planter = FootPlanter.for_skeleton(sk, (BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR), lf.FPS)
         self.facing_joints = [body_joint(sk, p) for p in ("hip_l", "hip_r", "shoulder_l", "shoulder_r")]
 
     # ------------------------------------------------------------------ styles
@@ -197,7 +194,7 @@ class LPNModel(LPNStyles):
                 "hist_gait": z(HIST), "hist_phase": z(HIST, lf.NUM_BONES, 2), "fut_pos": z(lf.FUTURE, 2),
                 "fut_dir": z(lf.FUTURE, 2), "fut_vel": z(lf.FUTURE, 2), "fut_phase": z(lf.FUTURE, lf.NUM_BONES, 2),
                 "pose": z(lf.NB, lf.POSE_CH), "yaw": z(), "in_pos": z(2), "in_vel": z(2),
-                "lock_anchor": z(2, 3), "lock_since": np.full((B, 2), 10**6, np.int64), "lock_was": np.zeros((B, 2), bool)}
+                **self.planter.init_state(B)}
 
     def _start(self, state: State, rows: np.ndarray, root: np.ndarray, rotations: np.ndarray,
                control: np.ndarray | None) -> None:
@@ -227,11 +224,11 @@ class LPNModel(LPNStyles):
         state["hist_dir"][rows] = d[:, None]
         state["fut_pos"][rows] = xz[:, None]
         state["fut_dir"][rows] = d[:, None]
-        for key in ("hist_vel", "hist_gait", "hist_phase", "fut_vel", "fut_phase", "in_vel", "lock_anchor"):
+        for key in ("hist_vel", "hist_gait", "hist_phase", "fut_vel", "fut_phase", "in_vel"):
             state[key][rows] = 0.0
         state["in_pos"][rows] = xz
-        state["lock_since"][rows] = 10**6
-        state["lock_was"][rows] = False
+        for key, value in self.planter.init_state(len(rows)).items():
+            state[key][rows] = value
 
     # ------------------------------------------------------------------ step
 
@@ -251,7 +248,7 @@ class LPNModel(LPNStyles):
         y = self._network(x, g, film)
         out_root, out_rot, contacts = self._advance(s, y, control)
         out_rot = self._untwist(out_rot)
-        out_rot = self._foot_lock(s, out_root, out_rot, contacts)
+        out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
 
@@ -357,18 +354,16 @@ class LPNModel(LPNStyles):
         left = hl - hr + sl - sr
         return np.arctan2(-left[:, 2], left[:, 0]).astype(np.float32)  # forward = left x up = (-lz, 0, lx)
 
-    def _foot_lock(self, s: State, root: np.ndarray, rotations: np.ndarray, contacts: np.ndarray) -> np.ndarray:
-        """Two-bone leg IK pinning each planted ankle where it touched down (state-held anchors),
-        released over LOCK_RELEASE frames, the anchor dragged along beyond LOCK_MAX_PULL cm: the
-        LTI model's compiled foot lock (`lti.kernels.foot_lock`), in float64 as it is compiled,
-        in place on the step's own fresh `rotations` (returned) and on the lock state."""
-        rot64 = rotations.astype(np.float64)
-        anchor = s["lock_anchor"].astype(np.float64)
-        foot_lock(root.astype(np.float64), rot64, contacts, anchor, s["lock_since"], s["lock_was"],
-                  self.chains, self.offsets64, LOCK_RELEASE, LOCK_MAX_PULL)
-        s["lock_anchor"][:] = anchor
-        rotations[:] = rot64
-        return rotations
+    def _plant(self, s: State, root: np.ndarray, rotations: np.ndarray, predicted: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The frame with its feet planted by the shared planter (`models.motion.feet`), whose
+        state it updates in `s`; the controller's own root path is kept, the network's predicted
+        contacts are the hints. The planted legs (a toe or ankle held on the ground) are the
+        output's contacts."""
+        planted_root, planted_rot, contacts, feet = self.planter({k: s[k] for k in FEET_STATE}, root, rotations,
+                                                                 hints=predicted)
+        s.update(feet)
+        return planted_root.astype(np.float32), planted_rot.astype(np.float32), contacts
 
     # ------------------------------------------------------------------ offline helpers
 

@@ -1,7 +1,7 @@
 """Compiled kernels (numba) for the LTI streaming step: one pass per session over plain arrays.
 
 Why compiled: the vectorised numpy step spent ~1.3 ms per frame at batch 1 in ~950 small numpy
-calls of about a microsecond each (the foot-lock IK alone was 58% of it), while the arithmetic
+calls of about a microsecond each, while the arithmetic
 of a frame is a few thousand multiply-adds. Here the geometry of each session is a loop on
 scalars and 4-tuples (quaternions, scalar-last like the rest of the project), so a frame costs a
 few microseconds, at batch 1 as well as batched, and the maths reads like the formulas in
@@ -25,7 +25,6 @@ from numba import njit
 HIPS = 1
 NUM_JOINTS = 22
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
-OUTPUT_DIM = 68  # + log time warp (offline only)
 
 # --------------------------------------------------------------------------- quaternions on 4-tuples
 
@@ -54,16 +53,6 @@ def cross(a, b):
 @njit(cache=True, error_model="numpy")
 def dot3(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-@njit(cache=True, error_model="numpy")
-def add3(a, b):
-    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
-
-
-@njit(cache=True, error_model="numpy")
-def sub3(a, b):
-    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
 @njit(cache=True, error_model="numpy")
@@ -135,144 +124,6 @@ def rotate_y(x, z, yaw):
 @njit(cache=True, error_model="numpy")
 def wrap(a):
     return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-# --------------------------------------------------------------------------- foot lock (two-bone leg IK)
-
-
-@njit(cache=True, error_model="numpy")
-def _nrm(v):
-    n = max(math.sqrt(dot3(v, v)), 1e-9)
-    return (v[0] / n, v[1] / n, v[2] / n)
-
-
-@njit(cache=True, error_model="numpy")
-def _cos(u, v):
-    return min(max(dot3(_nrm(u), _nrm(v)), -1.0), 1.0)
-
-
-@njit(cache=True, error_model="numpy")
-def _axis_angle(axis, angle):
-    a = _nrm(axis)
-    s = math.sin(0.5 * angle)
-    return (a[0] * s, a[1] * s, a[2] * s, math.cos(0.5 * angle))
-
-
-@njit(cache=True, error_model="numpy")
-def _rotation_between(u, v):
-    """Shortest-arc quaternion taking direction u to direction v."""
-    u, v = _nrm(u), _nrm(v)
-    c = cross(u, v)
-    q = (c[0], c[1], c[2], 1.0 + dot3(u, v))
-    n = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-12)
-    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-
-
-@njit(cache=True, error_model="numpy")
-def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
-    """Analytic two-bone IK for one leg. gh: world rotation of the parent (Hips); r_*: local
-    rotations of UpperLeg, LowerLeg, Foot; a: world hip-joint position; off_*: bone offsets.
-    Returns new local (r_up, r_low, r_foot) putting the ankle at `target` (as close as the bone
-    lengths allow) with the foot's world orientation unchanged: bend thigh and knee about the leg
-    plane's normal to get the hip-ankle distance right, then swing the leg onto the target."""
-    ga = qmul(gh, r_up)
-    gb = qmul(ga, r_low)
-    gf = qmul(gb, r_foot)
-    b = add3(a, qrot(ga, off_low))
-    c = add3(b, qrot(gb, off_foot))
-    lab, lcb = math.sqrt(dot3(off_low, off_low)), math.sqrt(dot3(off_foot, off_foot))
-    at = sub3(target, a)
-    lat = min(max(math.sqrt(dot3(at, at)), 1e-3), lab + lcb - 1e-3)
-    ac_ab_0 = math.acos(_cos(sub3(c, a), sub3(b, a)))
-    ba_bc_0 = math.acos(_cos(sub3(a, b), sub3(c, b)))
-    ac_ab_1 = math.acos(min(max((lcb * lcb - lab * lab - lat * lat) / (-2.0 * lab * lat), -1.0), 1.0))
-    ba_bc_1 = math.acos(min(max((lat * lat - lab * lab - lcb * lcb) / (-2.0 * lab * lcb), -1.0), 1.0))
-    axis = cross(sub3(c, a), sub3(b, a))
-    ga2 = qmul(_axis_angle(axis, ac_ab_1 - ac_ab_0), ga)
-    gb2 = qmul(_axis_angle(axis, ba_bc_1 - ba_bc_0), qmul(ga2, r_low))
-    b2 = add3(a, qrot(ga2, off_low))
-    c2 = add3(b2, qrot(gb2, off_foot))
-    w2 = _rotation_between(sub3(c2, a), at)
-    ga3 = qmul(w2, ga2)
-    gb3 = qmul(w2, gb2)
-    return qmul(qinv(gh), ga3), qmul(qinv(ga3), gb3), qmul(qinv(gb3), gf)
-
-
-@njit(cache=True, error_model="numpy")
-def ankle_position(root, rot, chain, offsets):
-    """World ankle position of leg `chain` (UpperLeg, LowerLeg, Foot joint indices) of one pose:
-    root (3,), local rotations rot (22, 4) (`joint_Root` is identity)."""
-    g = row4(rot, HIPS)
-    p = (root[0], root[1], root[2])
-    for k in range(3):
-        j = chain[k]
-        p = add3(p, qrot(g, row3(offsets, j)))
-        if k < 2:
-            g = qmul(g, row4(rot, j))
-    return p
-
-
-@njit(cache=True, error_model="numpy")
-def foot_lock_session(root, rot, contacts, anchor, since, was, chains, offsets, release, max_pull):
-    """Foot lock of one session, in place on its pose `rot` (22, 4) and lock memory (anchor (2, 3),
-    since (2,), was (2,)); see footplant.FootLock for what it does and why."""
-    for leg in range(2):
-        chain = chains[leg]
-        foot = ankle_position(root, rot, chain, offsets)
-        if contacts[leg] and not was[leg]:
-            anchor[leg, 0], anchor[leg, 1], anchor[leg, 2] = foot
-        gap = (anchor[leg, 0] - foot[0], anchor[leg, 1] - foot[1], anchor[leg, 2] - foot[2])
-        pull = min(1.0, max_pull / max(math.sqrt(dot3(gap, gap)), 1e-9))
-        for i in range(3):
-            anchor[leg, i] = foot[i] + gap[i] * pull
-        since[leg] = 0 if contacts[leg] else since[leg] + 1
-        was[leg] = contacts[leg]
-        if since[leg] > release:
-            continue
-        fade = min(max(since[leg] / (release + 1.0), 0.0), 1.0)  # 0 planted .. 1 free
-        target = (anchor[leg, 0] + (foot[0] - anchor[leg, 0]) * fade, anchor[leg, 1] + (foot[1] - anchor[leg, 1]) * fade,
-                  anchor[leg, 2] + (foot[2] - anchor[leg, 2]) * fade)
-        up, low, ft = chain[0], chain[1], chain[2]
-        gh = row4(rot, HIPS)
-        hip = add3((root[0], root[1], root[2]), qrot(gh, row3(offsets, up)))
-        r_up, r_low, r_foot = two_bone_ik(gh, row4(rot, up),
-                                          row4(rot, low),
-                                          row4(rot, ft), hip,
-                                          row3(offsets, low),
-                                          row3(offsets, ft), target)
-        for i in range(4):
-            rot[up, i], rot[low, i], rot[ft, i] = r_up[i], r_low[i], r_foot[i]
-
-
-@njit(cache=True, error_model="numpy")
-def foot_lock(root, rot, contacts, anchor, since, was, chains, offsets, release, max_pull):
-    """`foot_lock_session` over a batch: root (B, 3), rot (B, 22, 4) and the lock memory in place."""
-    for b in range(root.shape[0]):
-        foot_lock_session(root[b], rot[b], contacts[b], anchor[b], since[b], was[b], chains, offsets, release, max_pull)
-
-
-@njit(cache=True, error_model="numpy")
-def ankle_positions(root, rot, chains, offsets):
-    """(B, 3), (B, 22, 4) -> (B, 2 legs, 3) world ankle positions."""
-    out = np.empty((root.shape[0], 2, 3))
-    for b in range(root.shape[0]):
-        for leg in range(2):
-            out[b, leg, 0], out[b, leg, 1], out[b, leg, 2] = ankle_position(root[b], rot[b], chains[leg], offsets)
-    return out
-
-
-@njit(cache=True, error_model="numpy")
-def two_bone_ik_batch(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
-    """`two_bone_ik` over a batch of legs: (B, 4) rotations, (B, 3) hip positions and targets, (3,) offsets."""
-    n = gh.shape[0]
-    up, low, foot = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4))
-    lo, fo = (off_low[0], off_low[1], off_low[2]), (off_foot[0], off_foot[1], off_foot[2])
-    for i in range(n):
-        qu, ql, qf = two_bone_ik(row4(gh, i), row4(r_up, i), row4(r_low, i), row4(r_foot, i), row3(a, i), lo, fo,
-                                 row3(target, i))
-        for c in range(4):
-            up[i, c], low[i, c], foot[i, c] = qu[c], ql[c], qf[c]
-    return up, low, foot
 
 
 # --------------------------------------------------------------------------- styles, packed
@@ -441,10 +292,10 @@ def _sparse_product(indptr, indices, data, zin, z, m):
 
 
 @njit(cache=True, error_model="numpy")
-def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_ground, lock_anchor, lock_since,
-             lock_was, x, out_root, out_rot, contacts, n_yaw, n_ground, n_out_yaw, n_out_ground, n_anchor, n_since,
-             n_was, n_x, per_session, quats, rows, blend_w, zin, z, feats, out,
-             blend, keep_heading, footlock, chains, offsets, release, max_pull,
+def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_ground,
+             x, out_root, out_rot, contacts, n_yaw, n_ground, n_out_yaw, n_out_ground,
+             n_x, per_session, quats, rows, blend_w, zin, z, feats, out,
+             blend, keep_heading,
              x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
              fp_w, fp_mean, fp_var, fp_prior, has_fp):
     """One streaming frame for B sessions (see model.LTIStyleModel for the state and the style
@@ -457,7 +308,7 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
     Three passes: per session, the input's root transform and its share of the output; per
     style, the LTI step of all sessions using it as one sparse product (each matrix entry is
     loaded once and applied to every session, a loop the compiler vectorises); per session, the
-    blend of the styles, the output path and the foot lock."""
+    blend of the styles and the output path. The feet are planted after it (`models.motion.feet`)."""
     P = (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
          fp_w, fp_mean, fp_var, fp_prior, has_fp)
     B, S = weights.shape
@@ -468,9 +319,6 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
             n_x[b, i] = 0.0  # inactive styles rest at their initial state x = 0
         for leg in range(2):
             contacts[b, leg] = False
-            n_since[b, leg], n_was[b, leg] = lock_since[b, leg], lock_was[b, leg]
-            for i in range(3):
-                n_anchor[b, leg, i] = lock_anchor[b, leg, i]
         yaw, tilt = split_hips(quat_at(rotations, b, HIPS))
         yaws[b], votes[b, 0], votes[b, 1] = yaw, 0.0, 0.0
         tilts[b, 0], tilts[b, 1], tilts[b, 2], tilts[b, 3] = tilt
@@ -544,9 +392,6 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
         if totals[b] > 0.0:
             limit = 0.5 * max(totals[b], 1e-12)
             contacts[b, 0], contacts[b, 1] = votes[b, 0] > limit, votes[b, 1] > limit
-        if footlock:
-            foot_lock_session(out_root[b], out_rot[b], contacts[b], n_anchor[b], n_since[b], n_was[b],
-                              chains, offsets, release, max_pull)
 
 
 @njit(cache=True, error_model="numpy")

@@ -14,11 +14,15 @@ Heading: the model's own yaw change drifts slowly for some styles (exhausted: ~0
 on a straight validation walk, a full circle in ~4 minutes of streaming), so by default the output
 takes the input's yaw change (`keep_heading=True`); speed, posture and timing stay translated.
 
-The foot lock (on by default) bends the legs by two-bone IK so planted ankles stay where they
-touched down; it leaves the root and so the path alone. (A first version shifted the root
-instead: the translated legs take shorter strides than the translated root displacement implies,
-and the path shrank, 811 -> 459 cm on the elderly validation walk.) The contact flags are always
-returned in `FrameBatch.contacts`.
+The feet are planted (on by default, `footlock`) by `models.motion.feet.FootPlanter`, shared by
+every method: a toe or ankle on the ground is held there by two-bone leg IK, and the root keeps the
+translated path (`follow=0`). The translated legs take shorter strides than the translated root
+displacement implies; holding the planted foot and letting it catch up in the swing lengthens the
+stride instead of shrinking the path (moving the root with the feet shrank it to 0.76 of the
+translated path on elderly validation walks, and the translated speed is already below the real
+style's). The footplant classifier's contacts are the planter's hints (a foot it says is down plants however
+fast the translation moves it); `FrameBatch.contacts` are the planted legs, or the classifier's
+contacts when the feet are not planted.
 
 The streaming step (`LTIStyleModel.step_batch`) is one compiled pass over the sessions
 (`kernels.py`, numba): ~1 us of arithmetic per frame would otherwise drown in ~1,000 small numpy
@@ -41,16 +45,16 @@ from scipy.special import erf
 
 from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
+from models.motion.feet import STATE_SHAPES as FEET_STATE, model_rig_planter
 
 from . import kernels
 from . import representation as rep
-from .footplant import FootLock, FootplantClassifier
+from .footplant import FootplantClassifier
 from .styles import LTIStyles
 
 # state entries besides the styles' x.<style>: per-session shape after the session axis
-SHARED_SHAPES = {"started": (), "in_yaw": (), "in_ground": (2,), "out_yaw": (), "out_ground": (2,), "lock_anchor": (2, 3),
-                 "lock_since": (2,), "lock_was": (2,)}
-SHARED_KEYS = tuple(SHARED_SHAPES)
+SHARED_SHAPES = {"started": (), "in_yaw": (), "in_ground": (2,), "out_yaw": (), "out_ground": (2,)}
+SHARED_KEYS = tuple(SHARED_SHAPES) + tuple(FEET_STATE)  # and the foot planter's
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 
 
@@ -124,10 +128,8 @@ class StyleTranslator:
         yaw0, _ = rep.split_hips(motion.rotations[0, rep.HIPS])
         root, rots = rep.features_to_sequence(out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), self.ref)
         contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
-        if footlock and self.footplant is not None:
-            lock = FootLock(motion.skeleton, 1)
-            for t in range(len(root)):
-                rots[t:t + 1] = lock(root[t:t + 1], rots[t:t + 1], contacts[t:t + 1])
+        if footlock:
+            root, rots, contacts = model_rig_planter(motion.fps).clip(root, rots, hints=contacts)
         if timewarp:
             from .warping import resample_pose
             rate = np.exp(out[:, rep.FEATURE_DIM])  # output frames per input frame
@@ -205,7 +207,7 @@ class LTIStyleModel(LTIStyles):
         self.blend = blend
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
-        self._lock_params = FootLock(self.skeleton, 0).params()
+        self.planter = model_rig_planter(self.fps)
         self._scratch = threading.local()  # per thread: step scratch reused between steps (`_workspace`)
         self._set_styles(sorted(translators))
         self._compile_step()
@@ -261,7 +263,8 @@ class LTIStyleModel(LTIStyles):
         if state.keys() == self._set.state_keys and all(state[f"x.{s}"].shape[1] == self.translators[s].n for s in self._styles):
             return state
         batch = len(state["started"])
-        out = {k: state[k] for k in SHARED_KEYS}
+        # a snapshot from before the foot planter (its `lock_*` keys dropped) plants from its next frame
+        out = {**self.planter.init_state(batch), **{k: state[k] for k in SHARED_KEYS if k in state}}
         for s in self._styles:
             x, n = state.get(f"x.{s}"), self.translators[s].n
             out[f"x.{s}"] = x if x is not None and x.shape[1] == n else np.zeros((batch, n))
@@ -273,8 +276,7 @@ class LTIStyleModel(LTIStyles):
             "started": np.zeros(batch, bool),
             "in_yaw": np.zeros(batch), "in_ground": np.zeros((batch, 2)),
             "out_yaw": np.zeros(batch), "out_ground": np.zeros((batch, 2)),
-            "lock_anchor": np.zeros((batch, 2, 3)), "lock_since": np.full((batch, 2), 10**6),
-            "lock_was": np.zeros((batch, 2), bool),
+            **self.planter.init_state(batch),
         }
 
     def _workspace(self, batch: int, packed: kernels.PackedStyles) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
@@ -311,15 +313,17 @@ class LTIStyleModel(LTIStyles):
             raise ValueError("state is from another style set: bring it to this one with upgrade_state(state)") from None
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
         new = {"started": np.ones(B, bool), "in_yaw": np.empty(B), "in_ground": np.empty((B, 2)), "out_yaw": np.empty(B),
-               "out_ground": np.empty((B, 2)), "lock_anchor": np.empty((B, 2, 3)),
-               "lock_since": np.empty((B, 2), np.int64), "lock_was": np.empty((B, 2), bool)}
+               "out_ground": np.empty((B, 2))}
         new_x = np.empty_like(x)
         kernels.lti_step(
             root, rotations, w, state["started"], state["in_yaw"], state["in_ground"], state["out_yaw"],
-            state["out_ground"], state["lock_anchor"], state["lock_since"], state["lock_was"], x,
-            out.root, out.rotations, out.contacts, new["in_yaw"], new["in_ground"], new["out_yaw"], new["out_ground"],
-            new["lock_anchor"], new["lock_since"], new["lock_was"], new_x, *work,
-            self.blend, self.keep_heading, self.footlock, *self._lock_params, *packed)
+            state["out_ground"], x, out.root, out.rotations, out.contacts, new["in_yaw"], new["in_ground"],
+            new["out_yaw"], new["out_ground"], new_x, *work, self.blend, self.keep_heading, *packed)
         for key, cols in x_slices.items():
             new[key] = new_x[:, cols]
-        return out, new
+        feet = {k: state[k] for k in FEET_STATE}
+        if self.footlock:
+            planted_root, planted_rot, contacts, feet = self.planter(feet, out.root, out.rotations, w.sum(1) > 0,
+                                                                     hints=out.contacts)
+            out = FrameBatch(planted_root, planted_rot, contacts)
+        return out, {**new, **feet}

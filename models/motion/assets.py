@@ -13,6 +13,7 @@ ASSETS = Path(__file__).resolve().parent / "assets"
 # Toe height when a Bandai Namco foot is on the ground: 5th percentile of the lowest toe per frame
 # of dataset-2_walk_normal_001 (`retarget.contact_height`); tests/test_assets.py re-measures it.
 BANDAI_NAMCO_TOE_FLOOR = 4.248
+BANDAI_NAMCO_ANKLE_FLOOR = 11.739  # the same for the ankles (`feet.FootPlanter` holds either on the ground)
 
 
 @lru_cache(maxsize=1)

@@ -1,0 +1,248 @@
+"""Compiled kernels (numba) for `feet.FootPlanter` and the two-bone leg IK it uses.
+
+Self-contained on purpose: numba's on-disk cache of a function does not notice changes in the
+functions it calls from other files (numba #1833), so the quaternion helpers are repeated here
+rather than imported from another kernel module. Quaternions are 4-tuples (x, y, z, w), the
+project's scalar-last order; everything is float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# --------------------------------------------------------------------------- small vector maths
+
+
+@njit(cache=True, error_model="numpy")
+def qmul(a, b):
+    """Hamilton product a * b (apply b, then a)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz)
+
+
+@njit(cache=True, error_model="numpy")
+def qinv(q):
+    return (-q[0], -q[1], -q[2], q[3])
+
+
+@njit(cache=True, error_model="numpy")
+def cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@njit(cache=True, error_model="numpy")
+def dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True, error_model="numpy")
+def add3(a, b):
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+@njit(cache=True, error_model="numpy")
+def sub3(a, b):
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+@njit(cache=True, error_model="numpy")
+def qrot(q, v):
+    """Rotate vector v by unit quaternion q."""
+    xyz = (q[0], q[1], q[2])
+    t = cross(xyz, v)
+    t = (2.0 * t[0], 2.0 * t[1], 2.0 * t[2])
+    u = cross(xyz, t)
+    w = q[3]
+    return (v[0] + w * t[0] + u[0], v[1] + w * t[1] + u[1], v[2] + w * t[2] + u[2])
+
+
+@njit(cache=True, error_model="numpy")
+def row4(a, j):
+    return (a[j, 0], a[j, 1], a[j, 2], a[j, 3])
+
+
+@njit(cache=True, error_model="numpy")
+def row3(a, j):
+    return (a[j, 0], a[j, 1], a[j, 2])
+
+
+@njit(cache=True, error_model="numpy")
+def _nrm(v):
+    n = max(math.sqrt(dot3(v, v)), 1e-9)
+    return (v[0] / n, v[1] / n, v[2] / n)
+
+
+@njit(cache=True, error_model="numpy")
+def _cos(u, v):
+    return min(max(dot3(_nrm(u), _nrm(v)), -1.0), 1.0)
+
+
+@njit(cache=True, error_model="numpy")
+def _axis_angle(axis, angle):
+    a = _nrm(axis)
+    s = math.sin(0.5 * angle)
+    return (a[0] * s, a[1] * s, a[2] * s, math.cos(0.5 * angle))
+
+
+@njit(cache=True, error_model="numpy")
+def _rotation_between(u, v):
+    """Shortest-arc quaternion taking direction u to direction v."""
+    u, v = _nrm(u), _nrm(v)
+    c = cross(u, v)
+    q = (c[0], c[1], c[2], 1.0 + dot3(u, v))
+    n = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-12)
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+# --------------------------------------------------------------------------- two-bone leg IK
+
+
+@njit(cache=True, error_model="numpy")
+def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
+    """Analytic two-bone IK for one leg. gh: world rotation of the parent (Hips); r_*: local
+    rotations of UpperLeg, LowerLeg, Foot; a: world hip-joint position; off_*: bone offsets.
+    Returns new local (r_up, r_low, r_foot) putting the ankle at `target` (as close as the bone
+    lengths allow) with the foot's world orientation unchanged: bend thigh and knee about the leg
+    plane's normal to get the hip-ankle distance right, then swing the leg onto the target."""
+    ga = qmul(gh, r_up)
+    gb = qmul(ga, r_low)
+    gf = qmul(gb, r_foot)
+    b = add3(a, qrot(ga, off_low))
+    c = add3(b, qrot(gb, off_foot))
+    lab, lcb = math.sqrt(dot3(off_low, off_low)), math.sqrt(dot3(off_foot, off_foot))
+    at = sub3(target, a)
+    lat = min(max(math.sqrt(dot3(at, at)), 1e-3), lab + lcb - 1e-3)
+    ac_ab_0 = math.acos(_cos(sub3(c, a), sub3(b, a)))
+    ba_bc_0 = math.acos(_cos(sub3(a, b), sub3(c, b)))
+    ac_ab_1 = math.acos(min(max((lcb * lcb - lab * lab - lat * lat) / (-2.0 * lab * lat), -1.0), 1.0))
+    ba_bc_1 = math.acos(min(max((lat * lat - lab * lab - lcb * lcb) / (-2.0 * lab * lcb), -1.0), 1.0))
+    axis = cross(sub3(c, a), sub3(b, a))
+    ga2 = qmul(_axis_angle(axis, ac_ab_1 - ac_ab_0), ga)
+    gb2 = qmul(_axis_angle(axis, ba_bc_1 - ba_bc_0), qmul(ga2, r_low))
+    b2 = add3(a, qrot(ga2, off_low))
+    c2 = add3(b2, qrot(gb2, off_foot))
+    w2 = _rotation_between(sub3(c2, a), at)
+    ga3 = qmul(w2, ga2)
+    gb3 = qmul(w2, gb2)
+    return qmul(qinv(gh), ga3), qmul(qinv(ga3), gb3), qmul(qinv(gb3), gf)
+
+
+@njit(cache=True, error_model="numpy")
+def two_bone_ik_batch(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
+    """`two_bone_ik` over a batch of legs: (B, 4) rotations, (B, 3) hip positions and targets, (3,) offsets."""
+    n = gh.shape[0]
+    up, low, foot = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4))
+    lo, fo = (off_low[0], off_low[1], off_low[2]), (off_foot[0], off_foot[1], off_foot[2])
+    for i in range(n):
+        qu, ql, qf = two_bone_ik(row4(gh, i), row4(r_up, i), row4(r_low, i), row4(r_foot, i), row3(a, i), lo, fo,
+                                 row3(target, i))
+        for c in range(4):
+            up[i, c], low[i, c], foot[i, c] = qu[c], ql[c], qf[c]
+    return up, low, foot
+
+
+# --------------------------------------------------------------------------- the planter
+
+
+@njit(cache=True, error_model="numpy")
+def leg_points(rot, hips, chain, offsets, out):
+    """Ankle and toe of leg `chain` (UpperLeg, LowerLeg, Foot, Toe joint indices) relative to the
+    root, which sits at the Hips joint: rot (J, 4) local rotations; out (2, 3) <- ankle, toe."""
+    g = row4(rot, hips)
+    p = qrot(g, row3(offsets, chain[0]))
+    for k in range(1, 4):
+        g = qmul(g, row4(rot, chain[k - 1]))
+        p = add3(p, qrot(g, row3(offsets, chain[k])))
+        if k >= 2:
+            out[k - 2, 0], out[k - 2, 1], out[k - 2, 2] = p
+
+
+@njit(cache=True, error_model="numpy")
+def plant_feet(root, rot, active, hints, started, prev_root, prev_model_root, prev_rel, prev_contact, prev_point, prev_offset,
+               prev_floor, out_root, out_rot, contacts, rel, point, offset, floor,
+               hips, chains, offsets, floors, margin, floor_rise, onset_speed, max_offset, decay, follow, fps):
+    """One frame of `feet.FootPlanter` for B sessions (see there for what and why). Reads the
+    model's frame (root (B, 3), rot (B, J, 4)), which sessions to plant (active (B,)), the model's
+    own idea of which feet are down (hints (B, 2), may plant a fast foot) and the
+    planter's state (started ... prev_floor); writes the planted frame (out_root, out_rot: a copy
+    of rot the caller made) and the new state (contacts, rel, point, offset, floor; out_root is the
+    next prev_root, root the next prev_model_root). An inactive session gets its frame back as it is,
+    nothing planted, while its state keeps up (so planting resumes without a jump)."""
+    for b in range(root.shape[0]):
+        for leg in range(2):
+            leg_points(rot[b], hips, chains[leg], offsets, rel[b, leg])
+        # the root: where the held points of the legs that were planted say it is
+        ox, oz = root[b, 0], root[b, 2]
+        if started[b]:
+            dx, dz = root[b, 0] - prev_model_root[b, 0], root[b, 2] - prev_model_root[b, 2]
+            fx, fz, n, held = 0.0, 0.0, 0, 0.0
+            for leg in range(2):
+                if prev_contact[b, leg]:
+                    k = prev_point[b, leg]
+                    fx -= rel[b, leg, k, 0] - prev_rel[b, leg, k, 0]
+                    fz -= rel[b, leg, k, 2] - prev_rel[b, leg, k, 2]
+                    n += 1
+                    held = max(held, math.sqrt(prev_offset[b, leg, 0] ** 2 + prev_offset[b, leg, 2] ** 2))
+            if n > 0:
+                # the leash: a hold past a quarter of max_offset makes the root give way, all of it at
+                # max_offset, so a leg is not stretched past it (the growth per frame shrinks as it nears)
+                f = max(follow, min(max((held / max_offset - 0.25) / 0.75, 0.0), 1.0))
+                dx = f * fx / n + (1.0 - f) * dx
+                dz = f * fz / n + (1.0 - f) * dz
+            ox, oz = prev_root[b, 0] + dx, prev_root[b, 2] + dz
+        if not active[b]:
+            ox, oz = root[b, 0], root[b, 2]
+        out_root[b, 0], out_root[b, 1], out_root[b, 2] = ox, root[b, 1], oz
+        # per leg: which point is on the ground, and how far the leg must move to keep it there
+        for leg in range(2):
+            low_ankle, low_toe = False, False
+            for k in range(2):  # ankle, toe: its floor follows it down at once and up slowly
+                h = root[b, 1] + rel[b, leg, k, 1]
+                f = prev_floor[b, leg, k] + floor_rise / fps if started[b] else floors[k]
+                floor[b, leg, k] = min(h, f)
+                if k == 0:
+                    low_ankle = h < floor[b, leg, k] + margin
+                else:
+                    low_toe = h < floor[b, leg, k] + margin
+            k = 1 if low_toe else 0
+            point[b, leg] = k
+            # horizontal motion of that point since the last frame, this frame's root against the last
+            mx = ox + rel[b, leg, k, 0] - (prev_root[b, 0] + prev_rel[b, leg, k, 0])
+            mz = oz + rel[b, leg, k, 2] - (prev_root[b, 2] + prev_rel[b, leg, k, 2])
+            ex, ez = prev_offset[b, leg, 0], prev_offset[b, leg, 2]
+            planted = False
+            if started[b] and (low_toe or low_ankle):
+                if prev_contact[b, leg]:
+                    planted = True
+                    ex, ez = ex - mx, ez - mz  # hold: undo the point's motion
+                elif hints[b, leg] or math.sqrt(mx * mx + mz * mz) * fps < onset_speed or \
+                        mx * (ox - prev_root[b, 0]) + mz * (oz - prev_root[b, 2]) < (ox - prev_root[b, 0]) ** 2 + (oz - prev_root[b, 2]) ** 2:
+                    # touch-down (slow, or slower than the root along its path, i.e. pushing back):
+                    # hold from here on, carrying any offset still fading
+                    planted = True
+            if planted and math.sqrt(ex * ex + ez * ez) > max_offset:
+                planted = False  # the animation has walked away from the hold: let the foot go
+            if not active[b]:
+                planted, ex, ez = False, 0.0, 0.0
+            if not planted:
+                ex, ez = ex * decay, ez * decay
+            contacts[b, leg] = planted
+            offset[b, leg, 0], offset[b, leg, 1], offset[b, leg, 2] = ex, 0.0, ez
+            if ex * ex + ez * ez < 1e-12:
+                continue
+            chain = chains[leg]
+            up, low, ft = chain[0], chain[1], chain[2]
+            gh = row4(out_rot[b], hips)
+            hip = add3((ox, root[b, 1], oz), qrot(gh, row3(offsets, up)))
+            ankle = (ox + rel[b, leg, 0, 0] + ex, root[b, 1] + rel[b, leg, 0, 1], oz + rel[b, leg, 0, 2] + ez)
+            r_up, r_low, r_foot = two_bone_ik(gh, row4(out_rot[b], up), row4(out_rot[b], low), row4(out_rot[b], ft),
+                                              hip, row3(offsets, low), row3(offsets, ft), ankle)
+            for i in range(4):
+                out_rot[b, up, i], out_rot[b, low, i], out_rot[b, ft, i] = r_up[i], r_low[i], r_foot[i]

@@ -1,0 +1,127 @@
+"""The shared foot planter (`models.motion.feet`): planted toes and ankles stay put, the path stays
+the model's, sessions are independent, and the leg IK it uses reaches its target."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.eval.metrics import planted_slide
+from models.motion.feet import STATE_SHAPES, model_rig_planter, two_bone_ik
+from models.motion.rotations import quat_apply
+from models.motion.skeleton import fk
+
+HIPS = 1
+
+
+def _plant(planter, roots: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step a batch of clips (B, F, 3), (B, F, J, 4) through `planter` frame by frame."""
+    state = planter.init_state(len(roots))
+    out_root, out_rot, contacts = np.empty_like(roots), np.empty_like(rotations), np.empty(roots.shape[:2] + (2,), bool)
+    for t in range(roots.shape[1]):
+        out_root[:, t], out_rot[:, t], contacts[:, t], state = planter(state, roots[:, t], rotations[:, t])
+    return out_root, out_rot, contacts
+
+
+def _skating(walk, speedup: float):
+    """The walk with its root travelling `speedup` times as far as its legs carry it: feet skate."""
+    root = walk.translations[:, HIPS].copy()
+    root[:, [0, 2]] = root[0, [0, 2]] + speedup * (root[:, [0, 2]] - root[0, [0, 2]])
+    return root
+
+
+def _with(walk, root, rotations):
+    translations = walk.translations.copy()
+    translations[:, HIPS] = root
+    return type(walk)(walk.skeleton, rotations, translations, walk.fps, walk.euler_orders)
+
+
+def test_planted_toes_stay_put_when_the_root_outruns_the_strides(bn_walk):
+    skating_root = _skating(bn_walk, 1.3)
+    before = np.median(planted_slide(_with(bn_walk, skating_root, bn_walk.rotations))["toe"])
+    root, rot, contacts = _plant(model_rig_planter(bn_walk.fps), skating_root[None], bn_walk.rotations[None])
+    after = planted_slide(_with(bn_walk, root[0], rot[0]))
+    real = np.median(planted_slide(bn_walk)["toe"])
+    assert before > 10.0  # cm/s: the skating input
+    assert np.median(after["toe"]) <= max(2 * real, 0.5)
+    # the legs lengthen the strides (follow=0) until a held foot is stretched too far; then the root
+    # gives way: the path lies between the legs' own and the model's
+    path = lambda r: np.linalg.norm(np.diff(r[:, [0, 2]], axis=0), axis=-1).sum()  # noqa: E731
+    assert path(bn_walk.translations[:, HIPS]) < path(root[0]) < path(skating_root)
+    assert 0.3 < contacts.mean() < 0.9  # a walk: each foot down about 60 % of the time
+
+
+def test_following_the_feet_moves_the_root_by_the_strides_instead(bn_walk):
+    skating_root = _skating(bn_walk, 1.3)
+    root, rot, _ = _plant(model_rig_planter(bn_walk.fps, follow=1.0), skating_root[None], bn_walk.rotations[None])
+    path = lambda r: np.linalg.norm(np.diff(r[:, [0, 2]], axis=0), axis=-1).sum()  # noqa: E731
+    assert path(root[0]) < 0.9 * path(skating_root)
+    assert abs(path(root[0]) - path(bn_walk.translations[:, HIPS])) < 0.15 * path(bn_walk.translations[:, HIPS])
+    assert np.median(planted_slide(_with(bn_walk, root[0], rot[0]))["toe"]) < 1.0
+
+
+def test_a_real_walk_is_left_almost_as_it_is(bn_walk):
+    real_root = bn_walk.translations[:, HIPS]
+    root, rot, _ = _plant(model_rig_planter(bn_walk.fps), real_root[None], bn_walk.rotations[None])
+    _, moved = fk(rot[0], _with(bn_walk, real_root, rot[0]).translations, bn_walk.skeleton.parents)
+    _, real = fk(bn_walk.rotations, bn_walk.translations, bn_walk.skeleton.parents)
+    assert np.median(np.linalg.norm(moved - real, axis=-1)) < 0.2  # cm: the pose
+    assert np.percentile(np.linalg.norm(moved - real, axis=-1), 99) < 5.0
+    assert np.linalg.norm(root[0] - real_root, axis=-1).max() < 3.0  # cm over ~10 s: the path
+
+
+def test_feet_in_the_air_are_left_alone(bn_walk):
+    high = bn_walk.translations[:, HIPS] + [0.0, 60.0, 0.0]  # a jump's flight, held
+    root, rot, contacts = _plant(model_rig_planter(bn_walk.fps), high[None], bn_walk.rotations[None])
+    assert not contacts.any()
+    np.testing.assert_array_equal(rot[0], bn_walk.rotations)
+    np.testing.assert_allclose(root[0], high)
+
+
+def test_sessions_are_planted_independently(bn_walk):
+    planter = model_rig_planter(bn_walk.fps)
+    roots = np.stack([_skating(bn_walk, 1.3), bn_walk.translations[:, HIPS], _skating(bn_walk, 0.7)])
+    rots = np.repeat(bn_walk.rotations[None], 3, axis=0)
+    together = _plant(planter, roots, rots)
+    for b in range(3):
+        alone = _plant(planter, roots[b:b + 1], rots[b:b + 1])
+        for a, t in zip(alone, together):
+            np.testing.assert_array_equal(a[0], t[b])
+
+
+def test_a_state_from_before_the_planter_is_brought_up_to_date(bn_walk):
+    planter = model_rig_planter(bn_walk.fps)
+    old = {"started": np.ones(2, bool), "lock_anchor": np.zeros((2, 2, 3))}
+    new = planter.upgrade_state(old, 2)
+    assert set(STATE_SHAPES) <= set(new) and new["started"] is old["started"]
+    with pytest.raises(ValueError, match="feet_rel"):
+        planter({**planter.init_state(1), "feet_rel": np.zeros((1, 2, 3))}, np.zeros((1, 3)), bn_walk.rotations[:1])
+
+
+def test_two_bone_ik_reaches_its_target_and_keeps_the_foot_turned_as_it_was(bn_walk):
+    sk, m = bn_walk.skeleton, bn_walk
+    up, low, foot = (sk.index(n) for n in ("UpperLeg_L", "LowerLeg_L", "Foot_L"))
+    rng = np.random.default_rng(4)
+    for t in (10, 50, 90):
+        rots = m.rotations[t:t + 1]
+        g_old, p_old = fk(rots, m.translations[t:t + 1], sk.parents)
+        target = p_old[:, foot] + rng.uniform(-4, 4, 3)
+        hip = m.translations[t:t + 1, HIPS] + quat_apply(rots[:, HIPS], sk.offsets[up][None])
+        new = rots.copy()
+        new[:, up], new[:, low], new[:, foot] = two_bone_ik(rots[:, HIPS], rots[:, up], rots[:, low], rots[:, foot], hip,
+                                                           sk.offsets[low], sk.offsets[foot], target)
+        g_new, p_new = fk(new, m.translations[t:t + 1], sk.parents)
+        np.testing.assert_allclose(p_new[:, foot], target, atol=1e-3)  # cm
+        assert abs(abs(np.sum(g_old[0, foot] * g_new[0, foot])) - 1) < 1e-9
+
+
+def test_an_inactive_session_gets_its_frame_back_as_it_is(bn_walk):
+    """A style at intensity 0 returns the input: nothing is planted for it."""
+    planter = model_rig_planter(bn_walk.fps)
+    state = planter.init_state(1)
+    skating_root = _skating(bn_walk, 1.3)
+    for t in range(bn_walk.num_frames):
+        root, rot, contacts, state = planter(state, skating_root[t:t + 1], bn_walk.rotations[t:t + 1], np.zeros(1, bool))
+        np.testing.assert_array_equal(root[0], skating_root[t])
+        np.testing.assert_array_equal(rot[0], bn_walk.rotations[t])
+        assert not contacts.any()
