@@ -225,10 +225,6 @@ def _sixd_to_matrix(d6: torch.Tensor) -> torch.Tensor:
 sixd_to_matrix_t = _sixd_to_matrix
 
 
-def matrix_to_6d_t(m: torch.Tensor) -> torch.Tensor:
-    return torch.cat([m[..., :, 0], m[..., :, 1]], dim=-1)
-
-
 # --------------------------------------------------------------------------- swing-twist, angles, means
 
 
