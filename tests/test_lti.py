@@ -17,6 +17,7 @@ from models.lti.subspace import (
     subspace_id,
 )
 from models.lti.warping import imw, time_warp_dp
+from models.motion.rotations import yaw_quat
 
 
 def _data():
@@ -154,7 +155,7 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
         out_yaw[t] = out_yaw[t - 1] + root_feats[t, 2]
         ground[t] = ground[t - 1] + rep.rotate_y(root_feats[t, :2], out_yaw[t - 1])
     body[:, 0] = (0.0, 0.0, 0.0, 1.0)
-    body[:, rep.HIPS] = quat_mul(rep.qyaw(out_yaw), body[:, rep.HIPS])
+    body[:, rep.HIPS] = quat_mul(yaw_quat(out_yaw), body[:, rep.HIPS])
     return np.stack([ground[:, 0], root_feats[:, 3], ground[:, 1]], axis=1), body, votes > 0.5 * w.sum()
 
 

@@ -41,12 +41,6 @@ FEATURE_DIM = 10 * NB + 6  # 216
 FPS = 30.0
 
 
-def yaw_quat(yaw: np.ndarray) -> np.ndarray:
-    """(..., 4) rotation about +Y by `yaw`."""
-    z = np.zeros_like(yaw)
-    return np.stack([z, np.sin(0.5 * yaw), z, np.cos(0.5 * yaw)], axis=-1)
-
-
 def rotate_y(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     """Rotate vectors (..., 3) about +Y by yaw (...,) (broadcast over extra vector axes via [..., None])."""
     c, s = np.cos(yaw), np.sin(yaw)

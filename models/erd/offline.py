@@ -21,10 +21,10 @@ import torch
 
 from ..motion.skeleton import Motion
 from ..motion.twist import transfer_twist
-from models.motion.rotations import quat_mul
+from models.motion.rotations import quat_mul, yaw_quat
 
 from ..motion.feet import model_rig_planter
-from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y, yaw_quat
+from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .model import Generator
 
 

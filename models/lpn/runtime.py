@@ -42,7 +42,7 @@ import numpy as np
 
 from ..interface import FrameBatch, State
 from ..motion.features import body_joint
-from ..motion.rotations import quat_mul
+from ..motion.rotations import quat_mul, yaw_quat
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import transfer_twist
 from . import features as lf
@@ -65,13 +65,6 @@ STOP_ROOT_HOLD = 0.9  # share of the predicted root translation held back when t
 # The network's own local rotations kept as they are by `_untwist`: leaves (plausible as trained) and
 # limb roots (their twist sets the plane the knee / elbow bends in)
 OWN_ROTATIONS = ("Head", "Hand_L", "Hand_R", "Toes_L", "Toes_R", "UpperLeg_L", "UpperLeg_R", "UpperArm_L", "UpperArm_R")
-
-
-def yaw_quat(yaw: np.ndarray) -> np.ndarray:
-    """(..., 4) rotation about +Y by `yaw` (scalar-last)."""
-    h = 0.5 * np.asarray(yaw, np.float64)
-    z = np.zeros_like(h)
-    return np.stack([z, np.sin(h), z, np.cos(h)], axis=-1)
 
 
 class LPNModel(LPNStyles):
@@ -211,7 +204,7 @@ class LPNModel(LPNStyles):
                 _, rest_pos = self._fk(pose.translations[:1, lf.HIPS], pose.rotations[:1])
                 turn = np.asarray(control, np.float32)[rows[given], 2] - self._facing(rest_pos)[0]
                 rotations[given] = pose.rotations[0]
-                rotations[given, lf.HIPS] = quat_mul(yaw_quat(turn), np.broadcast_to(pose.rotations[0, lf.HIPS], (len(given), 4)))
+                rotations[given, lf.HIPS] = quat_mul(yaw_quat(turn.astype(np.float64)), np.broadcast_to(pose.rotations[0, lf.HIPS], (len(given), 4)))
                 root[given, 1] = pose.translations[0, lf.HIPS, 1]
         grot, gpos = self._fk(root, rotations)
         yaw = self._facing(gpos)

@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.motion.rotations import wrap_angle
+
 
 ROOT_DIMS = 7
 NUM_JOINTS = 22
@@ -40,13 +42,6 @@ HIPS_LEFT_LOCAL = np.array([0.0, -1.0, 0.0])
 
 
 # --------------------------------------------------------------------------- quaternions
-
-
-def qyaw(yaw: np.ndarray) -> np.ndarray:
-    """Rotation by `yaw` radians about +Y."""
-    h = 0.5 * np.asarray(yaw, float)
-    z = np.zeros_like(h)
-    return np.stack([z, np.sin(h), z, np.cos(h)], axis=-1)
 
 
 def left_matrix(p: np.ndarray) -> np.ndarray:
@@ -92,10 +87,6 @@ def rotvec_to_quat(r: np.ndarray) -> np.ndarray:
     return np.concatenate([r * scale, np.cos(0.5 * angle)], axis=-1)
 
 
-def wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
 def hips_yaw(q_hips: np.ndarray) -> np.ndarray:
     # left = R(q) @ (0, -1, 0) = -(second matrix column); forward = cross(left, up) = (-left_z, 0, left_x)
     x, y, z, w = q_hips[..., 0], q_hips[..., 1], q_hips[..., 2], q_hips[..., 3]
@@ -105,10 +96,10 @@ def hips_yaw(q_hips: np.ndarray) -> np.ndarray:
 
 
 def split_hips(q_hips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """q_hips = qyaw(yaw) * tilt; returns (yaw, tilt quaternion)."""
+    """q_hips = yaw_quat(yaw) * tilt; returns (yaw, tilt quaternion)."""
     yaw = hips_yaw(q_hips)
     c, s = np.cos(0.5 * yaw)[..., None], np.sin(0.5 * yaw)[..., None]
-    # qyaw(-yaw) * q, written out: (c*x - s*z, c*y - s*w, c*z + s*x, c*w + s*y)
+    # yaw_quat(-yaw) * q, written out: (c*x - s*z, c*y - s*w, c*z + s*x, c*w + s*y)
     return yaw, c * q_hips + s * q_hips[..., [2, 3, 0, 1]] * np.array([-1.0, -1.0, 1.0, 1.0])
 
 
@@ -139,7 +130,7 @@ def sequence_features(root: np.ndarray, rotations: np.ndarray, ref: np.ndarray =
     delta = np.zeros((len(yaw), 3))
     if len(yaw) > 1:
         delta[1:, :2] = rotate_y(ground[1:] - ground[:-1], -yaw[:-1])
-        delta[1:, 2] = wrap(yaw[1:] - yaw[:-1])
+        delta[1:, 2] = wrap_angle(yaw[1:] - yaw[:-1])
     return np.concatenate([delta, static], axis=-1)
 
 
@@ -173,7 +164,7 @@ def static_to_rotations(static_rot: np.ndarray, yaw: np.ndarray, ref: np.ndarray
     out[..., 1:, :] = (_left(ref) @ rotvec_to_quat(static_rot.reshape(*lead, 21, 3))[..., None])[..., 0]
     c, s = np.cos(0.5 * yaw)[..., None], np.sin(0.5 * yaw)[..., None]
     t = out[..., HIPS, :]
-    # qyaw(yaw) * t, written out: (c*x + s*z, c*y + s*w, c*z - s*x, c*w - s*y)
+    # yaw_quat(yaw) * t, written out: (c*x + s*z, c*y + s*w, c*z - s*x, c*w - s*y)
     out[..., HIPS, :] = c * t + s * t[..., [2, 3, 0, 1]] * np.array([1.0, 1.0, -1.0, -1.0])
     return out
 
@@ -220,6 +211,6 @@ class FeatureEncoder:
             self.started[:] = True
         delta = np.empty((len(yaw), 3))
         delta[:, :2] = rotate_y(ground - self.prev_ground, -self.prev_yaw)
-        delta[:, 2] = wrap(yaw - self.prev_yaw)
+        delta[:, 2] = wrap_angle(yaw - self.prev_yaw)
         self.prev_yaw, self.prev_ground = yaw, ground
         return np.concatenate([delta, static], axis=-1)

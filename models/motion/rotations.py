@@ -257,6 +257,14 @@ def swing_twist(q: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return quat_mul(q, quat_inv(twist)), twist
 
 
+def yaw_quat(yaw: np.ndarray) -> np.ndarray:
+    """(..., 4) rotation by `yaw` radians about +Y (up on every rig the models stream), in the
+    input's float precision."""
+    h = 0.5 * np.asarray(yaw)
+    z = np.zeros_like(h)
+    return np.stack([z, np.sin(h), z, np.cos(h)], axis=-1)
+
+
 def wrap_angle(a: np.ndarray) -> np.ndarray:
     """Angles (radians) wrapped into [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
