@@ -41,7 +41,7 @@ from .sdk_wire import (END, RESET, Message, ReplayBuffer, StartSettings, ack_for
 
 log = logging.getLogger("clients.sdk")
 
-RETRY_CODES = {"session_in_use", "draining", "store_unavailable"}  # a resume may succeed on the next attempt
+RETRY_CODES = {"session_in_use", "draining", "store_unavailable", "too_many_sessions"}  # a later attempt may succeed
 BACKOFF_FIRST_S, BACKOFF_MAX_S = 0.05, 2.0  # reconnect delays double from the first to the cap (with jitter)
 CLOSE_UNAUTHORIZED = 4401
 CALL, QUEUE, DISCARD = "call", "queue", "discard"  # who takes an entry's reply
@@ -194,8 +194,9 @@ class SessionCore:
         return sum(1 for e in self.pending if e.mode == QUEUE and e.outcome is None)
 
     def _pump(self, done: Callable[[], bool], deadline: float | None, drain: bool = False) -> Steps[None]:
-        """Send what the window allows and read replies until `done()` (or, with `drain`, until
-        nothing more has arrived), reconnecting when the connection goes."""
+        """Send what the window allows and read replies until `done()`, reconnecting when the
+        connection goes. With `drain` (poll), only until nothing more has arrived, and a lost
+        connection is left to the next call that waits, so a game loop's poll never blocks."""
         while not done():
             entry = self._next_to_send()
             if entry is not None:
@@ -203,6 +204,9 @@ class SessionCore:
                 try:
                     yield Send(entry.message)
                 except Disconnected as gone:
+                    entry.sent = False
+                    if drain:
+                        return
                     yield from self._recover(gone)
                 continue
             try:
@@ -213,6 +217,8 @@ class SessionCore:
                 raise ReplyTimeout(f"no reply within {self.timeout:g} s" if self.timeout is not None
                                    else "no reply") from None
             except Disconnected as gone:
+                if drain:
+                    return
                 yield from self._recover(gone)
                 continue
             self._on_message(data)

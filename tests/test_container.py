@@ -163,7 +163,7 @@ def test_podman_stop_drains_the_open_session_and_exits_cleanly(container, bn_wal
     with pytest.raises(ConnectionClosed) as closed:
         while True:
             session.ws.recv(timeout=5)  # a snapshot acknowledgement may come first
-    session._connection.close()
+    session.close()  # the socket is closed already: no `end` to wait for, no reconnect
 
     assert closed.value.rcvd is not None and closed.value.rcvd.code == 1012
     assert stopped_in < DRAIN_TIMEOUT_S, f"stop took {stopped_in:.1f} s"
