@@ -173,3 +173,22 @@ def test_a_control_message_the_restored_snapshot_holds_is_answered_from_it():
     assert ack == {"type": "style_set", "restored": True}
     assert frame.seq == 1 and c.last_reconnect.lost == (0,)
     assert c.pending == deque() and len(server.starts) == 2
+
+
+def test_poll_never_waits_on_a_lost_connection_the_next_receive_reconnects():
+    """A game loop's poll returns at once when the connection has gone; the next call that waits
+    (here receive) resumes the session and replays the unanswered frame."""
+    def answer(server, message):
+        if isinstance(message, dict):
+            return [started()]
+        if len(server.starts) == 1:
+            server.cut = True  # the first connection dies with frame 0 unanswered
+            return []
+        return [reply(message)]
+
+    server = FakeServer(answer)
+    c = core(server)
+    run_sync(c.send(ROOT, ROT), server)
+    assert run_sync(c.poll(), server) == [] and len(server.starts) == 1  # no reconnect inside poll
+    assert run_sync(c.receive(1.0), server).seq == 0
+    assert len(server.starts) == 2 and c.last_reconnect.kind == "resumed" and c.last_reconnect.replayed == 1
