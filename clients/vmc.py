@@ -58,6 +58,7 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -173,23 +174,19 @@ class VmcState:
         self.version = 0  # bumped when a bone name appears
 
     def _slots(self, names: list[bytes]) -> list[int]:
+        """The slot of each name (bytes as on the wire); a new name gets a new slot."""
         get = self._key_slot.get
-        out = [get(n, -1) for n in names]
-        for k, s in enumerate(out):
-            if s < 0:
-                name = names[k]
-                s = self._key_slot.get(name, -1)
-                if s < 0:
-                    s = self._key_slot[name] = self.slot[name.decode("utf-8", "replace")] = len(self.names)
-                    self.names.append(name.decode("utf-8", "replace"))
-                    self.version += 1
-                out[k] = s
-        if len(self.names) > len(self.pos):
-            n = len(self.names)
-            grow = lambda a, fill: np.concatenate([a, np.tile(fill, (n - len(a), 1)) if a.ndim > 1 else np.full(n - len(a), fill)])  # noqa: E731
-            self.pos, self.rot, self.rest = grow(self.pos, np.zeros(3)), grow(self.rot, IDENTITY), grow(self.rest, np.nan * np.zeros(3))
-            self.seen = grow(self.seen, -np.inf)
-        return out
+        return [s if s is not None else self._add(n) for n, s in zip(names, [get(n) for n in names])]
+
+    def _add(self, key: bytes) -> int:
+        name = key.decode("utf-8", "replace")
+        s = self._key_slot[key] = self.slot.setdefault(name, len(self.names))
+        if s == len(self.names):
+            self.names.append(name)
+            self.version += 1
+            self.pos, self.rot = np.vstack([self.pos, np.zeros(3)]), np.vstack([self.rot, IDENTITY])
+            self.rest, self.seen = np.vstack([self.rest, np.full(3, np.nan)]), np.append(self.seen, -np.inf)
+        return s
 
     def update(self, names: list[str] | list[bytes], values: np.ndarray, now: float) -> None:
         """Bones `names` took `values` (N, 7: px, py, pz, qx, qy, qz, qw) at time `now`."""
@@ -237,12 +234,15 @@ class VmcReceiver:
     def feed(self, data: bytes, now: float) -> Received:
         out = Received()
         try:
-            names, raw, passed, root = [], [], [], None
+            names: list[bytes] = []
+            raw: list[bytes] = []
+            passed: list[bytes] = []
+            root: tuple | None = None
             for m in osc.elements(data):
                 if m.startswith(_BONE_HEAD):  # the usual bone message: split, decoded below all at once
-                    name, values = osc.split_pose(m, 32)
+                    name, floats = osc.split_pose(m, 32)
                     names.append(name)
-                    raw.append(values)
+                    raw.append(floats)
                 elif m.startswith(_BONE_AT) or m.startswith(_ROOT_AT):
                     pose = osc.decode_pose(m)  # the root, or other argument types
                     if pose is None:
@@ -338,9 +338,7 @@ def avatar_rig(body: dict[str, np.ndarray]) -> AvatarRig:
 
     if "Hips" not in body:
         raise RigError("missing_roles", "the sender has sent no Hips", ("hips",))
-    order = _depth_first(body)
-    if order[0] != "Hips":
-        raise RigError("bad_topology", f"bones above the Hips: {order[0]}")
+    order = _depth_first(body)  # Hips first: every other body bone hangs below it
     index = {b: k for k, b in enumerate(order)}
     parents = []
     for b in order:
@@ -385,10 +383,10 @@ def unity_output(state: VmcState, root: np.ndarray, rotations: np.ndarray) -> tu
 # --------------------------------------------------------------------------- the session
 
 
-class SessionLike:
+class SessionLike(Protocol):
     """What `StyleLink` needs of a session (`clients.sdk.Session`)."""
 
-    def stylise(self, root: np.ndarray, rotations: np.ndarray): ...  # -> .root (3,), .rotations (J, 4)
+    def stylise(self, root: np.ndarray, rotations: np.ndarray) -> Any: ...  # -> .root (3,), .rotations (J, 4)
     def close(self) -> None: ...
 
 
@@ -473,9 +471,10 @@ class StyleLink:
                     self._job, self._result, self._busy, job = None, (job[0], None), False, None
                     self._cond.notify_all()
             if want != self._header:  # (re)open: the first rig, another avatar, or after a failure
+                assert want is not None  # the worker wakes for a rig only once one is wanted
                 self._drop()
                 try:
-                    session = self.open_session(want)
+                    opened = self.open_session(want)
                 except Exception as exc:  # noqa: BLE001 - server down or refusing: retry later
                     log.warning("VMC bridge: no session yet (%s); frames pass through, retrying in %.2f s", exc, delay)
                     with self._cond:
@@ -483,16 +482,17 @@ class StyleLink:
                     delay = min(2 * delay, self.retry_s[1])
                     continue
                 with self._cond:
-                    self._session, self._header, delay = session, want, self.retry_s[0]
+                    self._session, self._header, delay = opened, want, self.retry_s[0]
                     self.sessions_opened += 1
                     self._cond.notify_all()
                 log.info("VMC bridge: session %d open", self.sessions_opened)
                 continue
-            if job is None:
+            current = self._session
+            if job is None or current is None:
                 continue
             ticket, root, rotations = job
             try:
-                styled = self._session.stylise(root, rotations)
+                styled = current.stylise(root, rotations)
                 result = (np.asarray(styled.root, dtype=np.float64), np.asarray(styled.rotations, dtype=np.float64))
             except Exception as exc:  # noqa: BLE001 - server restarted, token unknown, network gone
                 self.failures += 1
@@ -604,12 +604,13 @@ class VmcBridge:
         state = self.state
         state.expire(now)
         rot, pos = state.rot, state.pos
-        rig = self._current_rig() if self.link is not None and self.mask else None
+        link = self.link
+        rig = self._current_rig() if link is not None and self.mask else None
         wait = 0.0
-        if rig is not None:
+        if rig is not None and link is not None:
             root, rotations = model_input(self._rig_slots, state)
             t1 = time.perf_counter()
-            styled = self.link.stylise(rig.header, root, rotations)
+            styled = link.stylise(rig.header, root, rotations)
             wait = time.perf_counter() - t1
             if styled is not None:
                 hips, local = unity_output(state, *styled)

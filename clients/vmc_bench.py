@@ -152,7 +152,7 @@ def main(argv: list[str]) -> int:
                                    str(sink.getsockname()[1]), "--url", url, "--model", args.model, "--style", args.style,
                                    "--fps", str(min(args.fps, 240.0)), "--stats"], stdout=subprocess.PIPE,
                                   stderr=subprocess.DEVNULL, text=True)
-        stack.callback(lambda: bridge.poll() is None and bridge.kill())
+        stack.callback(_stop, bridge)
         assert bridge.stdout is not None
         print(bridge.stdout.readline().strip())
         # warm up: until the bridge's session restyles (opening it, the first steps)
@@ -192,6 +192,12 @@ def main(argv: list[str]) -> int:
           f"{summary['bridge_us_median']} us, p99 {summary['bridge_us_p99']} us; waiting on its session: median "
           f"{summary['session_us_median']} us")
     return 0
+
+
+def _stop(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        process.kill()
+        process.wait()
 
 
 def _free_udp_port() -> int:

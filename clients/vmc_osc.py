@@ -209,7 +209,9 @@ def element(message: bytes) -> bytes:
 def bundles(elements_: Sequence[bytes], limit: int = MAX_DATAGRAM) -> list[bytes]:
     """Bundles (time tag: immediately) holding the size-prefixed `elements_` in order, as few as
     fit in `limit` bytes each (one, for any usual VMC frame)."""
-    out, part, size = [], [], 16
+    out: list[bytes] = []
+    part: list[bytes] = []
+    size = 16
     for e in elements_:
         if part and size + len(e) > limit:
             out.append(BUNDLE_TAG + IMMEDIATELY + b"".join(part))

@@ -7,7 +7,8 @@ and docs/renders):
 `errors`: every made rig (tests/rigs.py: the nine preset-named rigs and the Xsens-style capture
 export) streams a Bandai Namco validation walk through LTI, Style-ERD and LPN-FiLM (elderly); the
 error is the distance between the rig's mapped joints and the same walk's output on the model rig,
-both relative to the hips, median over joints and frames, in % of the leg (80 cm).
+both relative to the hips, median over joints and frames, in % of the leg (80 cm); and how far
+apart the two outputs' root paths end on the ground.
 
 `render`: the Xsens-style rig (names no preset has, four spine joints, Z up, metres, A-pose rest)
 through each model in two styles, drawn on its own hierarchy with the oriented renderer.
@@ -23,7 +24,7 @@ import numpy as np
 
 from models.motion.skeleton import fk
 
-from .rigs import EXTRA_SPECS, SPECS, make_rig, mapped_error, stream, stream_made_rig
+from .rigs import EXTRA_SPECS, SPECS, bn_positions, make_rig, mapped_error, stream, stream_made_rig
 
 MODELS = ("lti", "erd", "lpn")
 LEG_CM = 80.0
@@ -57,7 +58,8 @@ def errors(frames: int) -> None:
             trans[:, 1] = root
             bn[model] = fk(rot, trans, walk.skeleton.parents)[1]
         print(f"round trip: made rig -> model -> made rig vs the model rig's output, {frames} frames of a BN walk, elderly;")
-        print("median (p95) over mapped joints and frames, % of leg length\n")
+        print("median (p95) over mapped joints and frames, % of leg length; then how far apart (cm) the two root paths")
+        print("end on the ground\n")
         print("| rig | naming | rest | units | up | " + " | ".join(MODELS) + " |")
         print("|---|---|---|---|---|" + "---|" * len(MODELS))
         for name, spec in specs.items():
@@ -65,7 +67,9 @@ def errors(frames: int) -> None:
             for model in MODELS:
                 _, styled = stream_made_rig(base, make_rig(walk, spec), spec, model)
                 err = mapped_error(styled, spec, bn[model], walk.skeleton) / LEG_CM * 100
-                cells.append(f"{np.median(err):.2f} ({np.percentile(err, 95):.1f})")
+                hips = bn_positions(styled, spec)[-1, styled.skeleton.index(spec.rename["Hips"])]
+                apart = np.linalg.norm((hips - bn[model][-1, walk.skeleton.index("Hips")])[[0, 2]])
+                cells.append(f"{np.median(err):.2f} ({np.percentile(err, 95):.1f}); {apart:.0f}")
             print(f"| {name} | {spec.rename['Hips']}, {spec.rename['UpperArm_L']} | {spec.rest} | "
                   f"{'m' if spec.metres else 'cm'} | {spec.up} | " + " | ".join(cells) + " |")
 

@@ -39,8 +39,8 @@ class RigSpec:
         return 0.01 if self.metres else 1.0
 
 
-def _sided(table: dict[str, str]) -> dict[str, str]:
-    out = {}
+def _sided(table: dict[str, str | None]) -> dict[str, str | None]:
+    out: dict[str, str | None] = {}
     for bn, name in table.items():
         if name is not None and "{" in name:
             out[bn.replace("_X", "_L")] = name.format(Side="Left", side="left", S="L", s="l")
@@ -53,7 +53,7 @@ def _sided(table: dict[str, str]) -> dict[str, str]:
 _BN_ARMS_LEGS = ("Shoulder_X", "UpperArm_X", "LowerArm_X", "Hand_X", "UpperLeg_X", "LowerLeg_X", "Foot_X", "Toes_X")
 
 
-def _limbs(*names: str) -> dict[str, str]:
+def _limbs(*names: str) -> dict[str, str | None]:
     return dict(zip(_BN_ARMS_LEGS, names))
 
 
