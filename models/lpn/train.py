@@ -18,7 +18,7 @@ import json
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from ..runlog import start_run
 from ..settings import REPO_ROOT
+from ..train_config import parse_overrides
 from . import features as lf
 
 
@@ -58,16 +59,7 @@ class TrainConfig:
 
 
 def parse_args(argv: list[str]) -> TrainConfig:
-    cfg = TrainConfig()
-    names = {f.name for f in fields(cfg)}
-    for arg in argv:
-        key, _, value = arg.lstrip("-").partition("=")
-        key = key.replace("-", "_")
-        if key not in names:
-            raise SystemExit(f"unknown option {key!r}; known: {', '.join(sorted(names))}")
-        typ = type(getattr(cfg, key))
-        setattr(cfg, key, (value.lower() in ("1", "true", "yes", "")) if typ is bool else typ(value))
-    return cfg
+    return parse_overrides(TrainConfig(), argv)
 
 
 # --------------------------------------------------------------------------- sampling

@@ -1,0 +1,35 @@
+"""Command-line overrides for the trainers' config dataclasses, nanoGPT style: every field of the
+config at the top of a train script can be set as `--name=value` (dashes or underscores), typed by
+its default. One parser for every trainer, so they accept the same syntax (Style-ERD's copy had
+drifted: `--flag=false` set a bool to True)."""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from typing import TypeVar
+
+T = TypeVar("T")
+
+TRUE, FALSE = ("1", "true", "yes", "on", ""), ("0", "false", "no", "off")
+
+
+def parse_overrides(config: T, argv: list[str]) -> T:
+    """`config` (a dataclass instance, changed in place and returned) with `--name=value` applied.
+    A bare `--flag` sets a bool field. Unknown names and bad values end the program with one line."""
+    known = {f.name for f in fields(config)}  # type: ignore[arg-type]
+    for arg in argv:
+        key, _, value = arg.lstrip("-").partition("=")
+        key = key.replace("-", "_")
+        if key not in known:
+            raise SystemExit(f"unknown option {key!r}; known: {', '.join(sorted(known))}")
+        kind = type(getattr(config, key))
+        if kind is bool:
+            if value.lower() not in TRUE + FALSE:
+                raise SystemExit(f"option {key!r} takes true or false, not {value!r}")
+            setattr(config, key, value.lower() in TRUE)
+            continue
+        try:
+            setattr(config, key, kind(value))
+        except ValueError:
+            raise SystemExit(f"option {key!r} takes a {kind.__name__}, not {value!r}") from None
+    return config
