@@ -6,7 +6,6 @@ normalised T-pose), written in Unity's left-handed axes as VMC senders do."""
 from __future__ import annotations
 
 import socket
-import threading
 from contextlib import contextmanager
 from functools import lru_cache
 
@@ -112,6 +111,15 @@ def server():
     from .live_server import live_server
 
     with live_server({"lti": _lti()}) as (base, _):
+        yield base
+
+
+@contextmanager
+def _server_on(port: int, models: dict):
+    """A live server on a fixed port (so that a test can restart it where the bridge expects it)."""
+    from .live_server import live_server
+
+    with live_server(models, port) as (base, _):
         yield base
 
 
@@ -372,25 +380,3 @@ def test_a_fresh_session_after_a_server_restart(avatar, reconnect_timeout):
     finally:
         if first is not None:
             first.__exit__(None, None, None)
-
-
-@contextmanager
-def _server_on(port: int, models: dict):
-    import uvicorn
-
-    from clients.loadtest import wait_ready
-    from service.app import create_app
-    from service.settings import ServiceSettings
-
-    settings = ServiceSettings(port=port)
-    server = uvicorn.Server(uvicorn.Config(create_app(settings, models=models), host="127.0.0.1", port=port,
-                                           log_level="warning", ws_per_message_deflate=False))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    url = f"http://127.0.0.1:{port}"
-    wait_ready(url, thread.is_alive)
-    try:
-        yield url
-    finally:
-        server.should_exit = True
-        thread.join(timeout=20)
