@@ -18,22 +18,6 @@ import argparse
 import sys
 
 
-def _serve(args: argparse.Namespace) -> int:
-    from pydantic import ValidationError
-
-    from service.server import serve
-    from service.settings import ServiceSettings
-
-    given = {"host": args.host, "port": args.port, "workers": args.workers}
-    try:
-        settings = ServiceSettings(**{k: v for k, v in given.items() if v is not None})
-    except ValidationError as exc:  # e.g. workers > 1 with the in-memory session store: say why, no traceback
-        print(f"stylestream serve: {exc.errors()[0]['msg']}", file=sys.stderr)
-        return 2
-    serve(settings, log_level=args.log_level)  # SIGTERM drains the sessions (service/server.py)
-    return 0
-
-
 def _data(args: argparse.Namespace) -> int:
     from models.data.__main__ import main as data_main
 
@@ -45,13 +29,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("serve", help="start the HTTP/WebSocket service")
-    p.add_argument("--host", help="interface to bind (default 127.0.0.1, or STYLESTREAM_HOST)")
-    p.add_argument("--port", type=int, help="port (default 8000, or STYLESTREAM_PORT)")
-    p.add_argument("--workers", type=int, help="server processes on the port (default 1, or STYLESTREAM_WORKERS); "
-                   "more than 1 needs STYLESTREAM_SESSION_STORE=redis://...")
-    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
-    p.set_defaults(func=_serve)
+    from service.cli import add_serve_command
+
+    add_serve_command(sub)  # the server's own entry point, where the server lives
 
     p = sub.add_parser("data", help="inspect the mocap data or build its parse cache")
     p.add_argument("action", choices=["summary", "warm"], help="summary: tables; warm: unpack + parse everything, timed")
