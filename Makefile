@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-all typecheck summary eval perf clean browser viewer-vendor servers image
+.PHONY: install serve test test-all lint typecheck summary eval perf clean browser viewer-vendor servers image
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -48,10 +48,14 @@ image:
 	bash docker/build-image.sh
 
 # mypy over the service and the model interface ([tool.mypy] in pyproject.toml)
+lint: install
+	$(BIN)/python -m ruff check .
+	$(BIN)/python -m ruff format --check .
+
 typecheck: install
 	$(BIN)/python -m mypy
 
-test: install browser servers typecheck
+test: install browser servers lint typecheck
 	$(BIN)/python -m pytest -q -m "not slow"
 
 test-all: install

@@ -25,8 +25,9 @@ def _data(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="stylestream", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="stylestream", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     from service.cli import add_serve_command
@@ -34,8 +35,12 @@ def build_parser() -> argparse.ArgumentParser:
     add_serve_command(sub)  # the server's own entry point, where the server lives
 
     p = sub.add_parser("data", help="inspect the mocap data or build its parse cache")
-    p.add_argument("action", choices=["summary", "warm"], help="summary: tables; warm: unpack + parse everything, timed")
-    p.add_argument("--dataset", action="append", help="limit to a dataset (repeatable): bandai-namco-1, bandai-namco-2, xia, cmu")
+    p.add_argument(
+        "action", choices=["summary", "warm"], help="summary: tables; warm: unpack + parse everything, timed"
+    )
+    p.add_argument(
+        "--dataset", action="append", help="limit to a dataset (repeatable): bandai-namco-1, bandai-namco-2, xia, cmu"
+    )
     p.set_defaults(func=_data)
 
     from .loadtest import add_loadtest_command
@@ -78,8 +83,11 @@ def main(argv: list[str] | None = None) -> int:
     except ModuleNotFoundError as exc:
         if not exc.name or exc.name.split(".")[0] in ("clients", "models", "service"):
             raise  # a broken install of this project itself, not a missing extra
-        print(f"stylestream: {exc.name} is not installed; the commands need the server's packages: "
-              "pip install 'stylestream[server]'", file=sys.stderr)
+        print(
+            f"stylestream: {exc.name} is not installed; the commands need the server's packages: "
+            "pip install 'stylestream[server]'",
+            file=sys.stderr,
+        )
         return 2
 
 

@@ -60,10 +60,12 @@ class Result:
     client_behind: int = 0  # frames a client process sent over a period after their slot (harness overloaded)
 
     def line(self) -> str:
-        return (f"sessions {self.sessions:4d}  p50 {self.p50_ms:6.2f} ms  p95 {self.p95_ms:6.2f}  p99 {self.p99_ms:6.2f}  "
-                f"max {self.max_ms:7.2f}  dropped {self.dropped}  late {self.late}  lost {self.lost}  "
-                f"client behind {self.client_behind}  "
-                f"{self.frames_per_s:8.0f} frames/s  client cpu {self.client_cpu_s:.1f} s")
+        return (
+            f"sessions {self.sessions:4d}  p50 {self.p50_ms:6.2f} ms  p95 {self.p95_ms:6.2f}  p99 {self.p99_ms:6.2f}  "
+            f"max {self.max_ms:7.2f}  dropped {self.dropped}  late {self.late}  lost {self.lost}  "
+            f"client behind {self.client_behind}  "
+            f"{self.frames_per_s:8.0f} frames/s  client cpu {self.client_cpu_s:.1f} s"
+        )
 
 
 def real_frames(n: int = 300) -> tuple[np.ndarray, np.ndarray]:
@@ -76,9 +78,17 @@ def real_frames(n: int = 300) -> tuple[np.ndarray, np.ndarray]:
     return m.translations[idx, 1].astype(np.float32), m.rotations[idx].astype(np.float32)
 
 
-async def _session(url: str, start: dict | None, frames: np.ndarray, fps: float, seconds: float, stats: dict,
-                   offset: float = 0.0, clock: asyncio.Future | None = None,
-                   connected: Callable[[], None] = lambda: None) -> None:
+async def _session(
+    url: str,
+    start: dict | None,
+    frames: np.ndarray,
+    fps: float,
+    seconds: float,
+    stats: dict,
+    offset: float = 0.0,
+    clock: asyncio.Future | None = None,
+    connected: Callable[[], None] = lambda: None,
+) -> None:
     """One session: connect and start, report `connected()`, wait for the common `clock` (or start
     at once without one), then send frame i at `clock + offset + i / fps` whatever the replies do."""
     import websockets
@@ -150,18 +160,21 @@ def _worker(url: str, start: dict | None, offsets: list[float], fps: float, seco
                 if waiting == 0:
                     results.put("ready")
                     # a daemon thread, not the loop's executor: if a session fails, nothing waits for it
-                    threading.Thread(target=lambda: loop.call_soon_threadsafe(clock.set_result, go.get()),
-                                     daemon=True).start()
+                    threading.Thread(
+                        target=lambda: loop.call_soon_threadsafe(clock.set_result, go.get()), daemon=True
+                    ).start()
 
-            await asyncio.gather(*(_session(url, start, payload, fps, seconds, stats, offset, clock, connected)
-                                   for offset in offsets))
+            await asyncio.gather(
+                *(_session(url, start, payload, fps, seconds, stats, offset, clock, connected) for offset in offsets)
+            )
 
         cpu0 = resource.getrusage(resource.RUSAGE_SELF)
         asyncio.run(main())
         cpu1 = resource.getrusage(resource.RUSAGE_SELF)
         lat = np.concatenate(stats["latency"]) if stats["latency"] else np.zeros(0)
-        results.put((lat, stats["dropped"], stats["behind"],
-                     (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)))
+        results.put(
+            (lat, stats["dropped"], stats["behind"], (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime))
+        )
     except BaseException:  # noqa: BLE001 - reported to the parent, which raises it
         results.put(traceback.format_exc())
 
@@ -195,9 +208,17 @@ def _next(procs: list, results, deadline: float):
         return message
 
 
-def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model: str = "lti",
-        style: str | None = None, processes: int | None = None, echo: bool = False,
-        phase: str = "spread") -> tuple[Result, np.ndarray]:
+def run(
+    url: str,
+    sessions: int,
+    fps: float = 60.0,
+    seconds: float = 10.0,
+    model: str = "lti",
+    style: str | None = None,
+    processes: int | None = None,
+    echo: bool = False,
+    phase: str = "spread",
+) -> tuple[Result, np.ndarray]:
     """One open-loop run: `sessions` sessions over `processes` client processes (default: one per
     core), all connected before one common clock starts. Returns the summary and every frame's
     round trip in ms (NaN: no reply), session by session in send order."""
@@ -208,8 +229,10 @@ def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model
     offsets = clock_offsets(sessions, fps, phase)
     gos = [ctx.Queue() for _ in range(min(processes, sessions))]  # one clock-start message per process
     # session k goes to process k % processes, so each process has sessions of every phase
-    procs = [ctx.Process(target=_worker, args=(url, start, offsets[i::processes], fps, seconds, results, go))
-             for i, go in enumerate(gos)]
+    procs = [
+        ctx.Process(target=_worker, args=(url, start, offsets[i::processes], fps, seconds, results, go))
+        for i, go in enumerate(gos)
+    ]
     for p in procs:
         p.start()
     deadline = time.monotonic() + 60.0 + 0.05 * sessions
@@ -227,12 +250,25 @@ def run(url: str, sessions: int, fps: float = 60.0, seconds: float = 10.0, model
     done = lat[np.isfinite(lat)]
     sent = len(lat)
     q = np.percentile(done, [50, 95, 99]) if len(done) else [np.nan] * 3
-    result = Result(sessions=sessions, fps=fps, seconds=seconds, sent=sent, received=len(done), dropped=dropped,
-                    late=int((done > 1000.0 / fps).sum()), lost=int(sent - len(done) - dropped),
-                    p50_ms=float(q[0]), p95_ms=float(q[1]), p99_ms=float(q[2]),
-                    max_ms=float(done.max()) if len(done) else float("nan"),
-                    frames_per_s=len(done) / seconds, client_cpu_s=sum(p[3] for p in parts), client_processes=len(procs),
-                    phase=phase, client_behind=sum(p[2] for p in parts))
+    result = Result(
+        sessions=sessions,
+        fps=fps,
+        seconds=seconds,
+        sent=sent,
+        received=len(done),
+        dropped=dropped,
+        late=int((done > 1000.0 / fps).sum()),
+        lost=int(sent - len(done) - dropped),
+        p50_ms=float(q[0]),
+        p95_ms=float(q[1]),
+        p99_ms=float(q[2]),
+        max_ms=float(done.max()) if len(done) else float("nan"),
+        frames_per_s=len(done) / seconds,
+        client_cpu_s=sum(p[3] for p in parts),
+        client_processes=len(procs),
+        phase=phase,
+        client_behind=sum(p[2] for p in parts),
+    )
     return result, lat
 
 
@@ -306,9 +342,13 @@ def _spawn(module_args: list[str], port: int, env: dict[str, str] | None = None,
     import subprocess
     import sys
 
-    proc = subprocess.Popen([sys.executable, "-m", *module_args, "--port", str(port)],
-                            env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            cwd=cwd)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", *module_args, "--port", str(port)],
+        env={**os.environ, **(env or {})},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        cwd=cwd,
+    )
     try:
         wait_ready(f"http://127.0.0.1:{port}", lambda: proc.poll() is None, require_ok=False)
     except RuntimeError:
@@ -323,8 +363,9 @@ def server_histogram(base_url: str, model: str) -> dict[float, float]:
 
     from .metrics_text import histogram_buckets
 
-    return histogram_buckets(httpx.get(f"{base_url}/metrics", timeout=5).text, "stylestream_frame_latency_seconds",
-                             model=model)
+    return histogram_buckets(
+        httpx.get(f"{base_url}/metrics", timeout=5).text, "stylestream_frame_latency_seconds", model=model
+    )
 
 
 def histogram_quantiles(before: dict[float, float], after: dict[float, float], qs=(0.5, 0.99)) -> list[float]:
@@ -418,18 +459,35 @@ def add_loadtest_command(sub) -> None:
     p.add_argument("--no-batching", action="store_true", help="started server runs with cross-session batching off")
     p.add_argument("--echo-floor", action="store_true", help="also measure a plain WebSocket echo server (the floor)")
     p.add_argument("--processes", type=int, help="client processes (default: one per core)")
-    p.add_argument("--phase", choices=PHASES, default="spread",
-                   help="session clocks spread evenly over a frame period (independent clients), or aligned (all "
-                        "send at once: the worst case)")
-    p.add_argument("--find-max", action="store_true",
-                   help="search (doubling, then bisection) for the most sessions that hold p99 <= one frame period with no drops")
+    p.add_argument(
+        "--phase",
+        choices=PHASES,
+        default="spread",
+        help="session clocks spread evenly over a frame period (independent clients), or aligned (all "
+        "send at once: the worst case)",
+    )
+    p.add_argument(
+        "--find-max",
+        action="store_true",
+        help="search (doubling, then bisection) for the most sessions that hold p99 <= one frame period with no drops",
+    )
     p.add_argument("--out", type=Path, default=Path("out/loadtest"), help="writes OUT.json and OUT.png")
     p.set_defaults(func=_loadtest)
 
 
-def measure_fn(url: str, model: str, style: str, fps: float, seconds: float, processes: int | None,
-               server=None, floor: Result | None = None, results: list | None = None, lats: list | None = None,
-               phase: str = "spread"):
+def measure_fn(
+    url: str,
+    model: str,
+    style: str,
+    fps: float,
+    seconds: float,
+    processes: int | None,
+    server=None,
+    floor: Result | None = None,
+    results: list | None = None,
+    lats: list | None = None,
+    phase: str = "spread",
+):
     """A function n -> Result that runs one open-loop load test against `url` and prints it."""
     base = url.replace("ws", "http", 1).replace("/v1/stream", "")
 
@@ -444,21 +502,28 @@ def measure_fn(url: str, model: str, style: str, fps: float, seconds: float, pro
             results.append(result)
             lats.append(lat)
         ratio = f"  p99/floor {result.p99_ms / floor.p99_ms:.2f}" if floor else ""
-        print(f"{model} " + result.line() + f"  server-side p50 {s50:.2f} p99 {s99:.2f} ms  server cpu {server_cpu:.1f} s"
-              + ratio, flush=True)
+        print(
+            f"{model} "
+            + result.line()
+            + f"  server-side p50 {s50:.2f} p99 {s99:.2f} ms  server cpu {server_cpu:.1f} s"
+            + ratio,
+            flush=True,
+        )
         return result
 
     return measure
 
 
-def echo_floor(sessions: int, fps: float, seconds: float, processes: int | None = None,
-               phase: str = "spread") -> Result:
+def echo_floor(
+    sessions: int, fps: float, seconds: float, processes: int | None = None, phase: str = "spread"
+) -> Result:
     port = free_port()
     echo = _spawn(["clients.echo_server"], port)
     try:
         cpu0 = _cpu_seconds(echo.pid)
-        floor, _ = run(f"ws://127.0.0.1:{port}/v1/stream", sessions, fps, seconds, processes=processes, echo=True,
-                       phase=phase)
+        floor, _ = run(
+            f"ws://127.0.0.1:{port}/v1/stream", sessions, fps, seconds, processes=processes, echo=True, phase=phase
+        )
         floor.server_cpu_s = _cpu_seconds(echo.pid) - cpu0
     finally:
         echo.terminate()
@@ -499,8 +564,19 @@ def _loadtest(args) -> int:
     floor = echo_floor(counts[-1], args.fps, args.seconds, args.processes, args.phase) if args.echo_floor else None
     with contextlib.ExitStack() as stack:
         url, server = (args.url, None) if args.url else stack.enter_context(spawned_server(not args.no_batching))
-        measure = measure_fn(url, args.model, args.style or first_style(url, args.model), args.fps, args.seconds,
-                             args.processes, server, floor, results, lats, phase=args.phase)
+        measure = measure_fn(
+            url,
+            args.model,
+            args.style or first_style(url, args.model),
+            args.fps,
+            args.seconds,
+            args.processes,
+            server,
+            floor,
+            results,
+            lats,
+            phase=args.phase,
+        )
         if args.find_max:
             best = find_max(measure, counts[0])
             print(f"largest session count holding p99 <= {1000 / args.fps:.1f} ms with no drops: {best}")

@@ -76,8 +76,9 @@ def _stylise(args: argparse.Namespace) -> int:
     out_rot = np.zeros_like(motion.rotations)
     period = 1.0 / (args.rate or motion.fps) if args.realtime else 0.0
     dropped = 0
-    with client.session(model=args.model, style=args.style, bvh_header=header, fps=motion.fps,
-                        intensity=args.intensity) as session:
+    with client.session(
+        model=args.model, style=args.style, bvh_header=header, fps=motion.fps, intensity=args.intensity
+    ) as session:
         # the joint whose translation frames carry: the server says (`rig.root_joint`; BN animates
         # Hips under a static root, other rigs their hips or their root)
         root_joint = session.joints.index(session.info.get("rig", {}).get("root_joint", session.joints[0]))
@@ -98,6 +99,7 @@ def _stylise(args: argparse.Namespace) -> int:
         shown = [motion, styled]
         if session.info.get("rig", {}).get("retargeted"):  # drawn Y up, in cm
             from models.motion.humanoid import in_model_world, rig_from_bvh
+
             rig = rig_from_bvh(header)
             shown = [in_model_world(m, rig) for m in shown]
         if args.render.suffix.lower() == ".png":
@@ -110,7 +112,9 @@ def _stylise(args: argparse.Namespace) -> int:
 
 def add_motion_commands(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("stylise", help="stream a BVH file through a running server and write the stylised BVH")
-    p.add_argument("input", type=Path, help="BVH on any humanoid rig (Bandai Namco, CMU, Mixamo, Unreal, Unity/VRM, SMPL, ...)")
+    p.add_argument(
+        "input", type=Path, help="BVH on any humanoid rig (Bandai Namco, CMU, Mixamo, Unreal, Unity/VRM, SMPL, ...)"
+    )
     p.add_argument("--model", default="lti")
     p.add_argument("--style", required=True)
     p.add_argument("--intensity", type=float, default=1.0)

@@ -46,8 +46,10 @@ def step_cost(model, batch: int, steps: int) -> tuple[float, float]:
     times = []
     for t in range(steps + 10):
         k = t % len(root)
-        frames = FrameBatch(np.repeat(root[k:k + 1].astype(np.float64), batch, 0),
-                            np.repeat(rot[k:k + 1].astype(np.float64), batch, 0))
+        frames = FrameBatch(
+            np.repeat(root[k : k + 1].astype(np.float64), batch, 0),
+            np.repeat(rot[k : k + 1].astype(np.float64), batch, 0),
+        )
         t0 = time.perf_counter()
         _, state = model.step_batch(state, frames, weights)
         times.append(time.perf_counter() - t0)
@@ -57,9 +59,11 @@ def step_cost(model, batch: int, steps: int) -> tuple[float, float]:
 
 def _row(r: Result, floor: Result | None = None) -> str:
     ratio = f"{r.p99_ms / floor.p99_ms:.1f}" if floor else "–"
-    return (f"| {r.sessions} | {r.phase} | {r.p50_ms:.2f} | {r.p99_ms:.2f} | {r.dropped} | {r.late} | "
-            f"{r.server_p50_ms:.2f} / {r.server_p99_ms:.2f} | {r.frames_per_s:.0f} | {r.server_cpu_s:.1f} | "
-            f"{cpu_per_frame_us(r):.0f} | {ratio} |")
+    return (
+        f"| {r.sessions} | {r.phase} | {r.p50_ms:.2f} | {r.p99_ms:.2f} | {r.dropped} | {r.late} | "
+        f"{r.server_p50_ms:.2f} / {r.server_p99_ms:.2f} | {r.frames_per_s:.0f} | {r.server_cpu_s:.1f} | "
+        f"{cpu_per_frame_us(r):.0f} | {ratio} |"
+    )
 
 
 def cpu_per_frame_us(r: Result) -> float:
@@ -90,14 +94,21 @@ def profiled(measure, pid: int, sessions: int, seconds: float) -> dict[str, floa
 def profile_section(shares: dict[str, float] | str) -> list[str]:
     if isinstance(shares, str):
         return [shares]
-    lines = [f"A py-spy sample of the server at {PROFILE_SESSIONS} LTI sessions (batching on, spread clocks), its "
-             "busy time by part (`clients/server_profile.py`: each sample counts for the innermost frame that names a part):", "",
-             "| part | share |", "|---|---|"]
+    lines = [
+        f"A py-spy sample of the server at {PROFILE_SESSIONS} LTI sessions (batching on, spread clocks), its "
+        "busy time by part (`clients/server_profile.py`: each sample counts for the innermost frame that names a part):",
+        "",
+        "| part | share |",
+        "|---|---|",
+    ]
     lines += [f"| {name} | {share:.0%} |" for name, share in shares.items()]
-    return lines + ["", "The server is one Python process per worker: its event loop saturates one core, and the "
-                    "echo server's capacity above is the ceiling of this stack in this harness. Per frame, the "
-                    "server pays what the echo server pays (receive, send, event loop) plus its own parts above; "
-                    "the model step is batched."]
+    return lines + [
+        "",
+        "The server is one Python process per worker: its event loop saturates one core, and the "
+        "echo server's capacity above is the ceiling of this stack in this harness. Per frame, the "
+        "server pays what the echo server pays (receive, send, event loop) plus its own parts above; "
+        "the model step is batched.",
+    ]
 
 
 def workers_section(models: dict, fps: float, seconds: float) -> list[str]:
@@ -114,25 +125,33 @@ def workers_section(models: dict, fps: float, seconds: float) -> list[str]:
             with spawned_server(True, env) as (url, server):
                 measure = measure_fn(url, "lti", style, fps, seconds, None, server, None, None, None)
                 caps[workers] = find_max(measure, 8)
-    return ["`stylestream serve --workers N`: N processes on one port (SO_REUSEPORT), each with its own batcher; "
-            "the kernel spreads connections over them. Both runs use a Redis session store (snapshots every 30 "
-            "frames go to it).", "",
-            "| workers | capacity at 60 fps | vs 1 worker |", "|---|---|---|",
-            f"| 1 | {caps[1]} | 1.0× |", f"| 2 | {caps[2]} | {caps[2] / max(caps[1], 1):.1f}× |", "",
-            f"Cores: {os.cpu_count()}, shared by the server processes and the load test's client processes."]
+    return [
+        "`stylestream serve --workers N`: N processes on one port (SO_REUSEPORT), each with its own batcher; "
+        "the kernel spreads connections over them. Both runs use a Redis session store (snapshots every 30 "
+        "frames go to it).",
+        "",
+        "| workers | capacity at 60 fps | vs 1 worker |",
+        "|---|---|---|",
+        f"| 1 | {caps[1]} | 1.0× |",
+        f"| 2 | {caps[2]} | {caps[2] / max(caps[1], 1):.1f}× |",
+        "",
+        f"Cores: {os.cpu_count()}, shared by the server processes and the load test's client processes.",
+    ]
 
 
 def baseline_section(rev: str, models: dict, fps: float, seconds: float, sessions: int = 48) -> list[str]:
     """The same load (`sessions` LTI, batching on) on the server of `rev` and on this tree's,
     alternating twice, so a busy spell of the shared machine hits both alike."""
     style = models["lti"].styles()[0]
-    label = subprocess.run(["git", "log", "-1", "--format=%h %s", rev], cwd=REPO_ROOT, capture_output=True,
-                           text=True, check=True).stdout.strip()[:90]
+    label = subprocess.run(
+        ["git", "log", "-1", "--format=%h %s", rev], cwd=REPO_ROOT, capture_output=True, text=True, check=True
+    ).stdout.strip()[:90]
     runs: dict[str, list[Result]] = {"before": [], "after": []}
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp) / "baseline"
-        subprocess.run(["git", "worktree", "add", "--detach", str(tree), rev], cwd=REPO_ROOT, check=True,
-                       capture_output=True)
+        subprocess.run(
+            ["git", "worktree", "add", "--detach", str(tree), rev], cwd=REPO_ROOT, check=True, capture_output=True
+        )
         try:
             for _ in range(2):
                 for which, checkout in (("before", tree), ("after", None)):
@@ -144,19 +163,26 @@ def baseline_section(rev: str, models: dict, fps: float, seconds: float, session
     cpu = {k: float(np.mean([cpu_per_frame_us(r) for r in v])) for k, v in runs.items()}
     p50 = {k: float(np.mean([r.p50_ms for r in v])) for k, v in runs.items()}
     p99 = {k: float(np.mean([r.p99_ms for r in v])) for k, v in runs.items()}
-    return [f"{sessions} LTI sessions at {fps:g} fps, batching on, two runs each, alternating; before = `{label}`.", "",
-            "| server | CPU µs / frame | p50 ms | p99 ms |", "|---|---|---|---|",
-            f"| before | {cpu['before']:.0f} | {p50['before']:.2f} | {p99['before']:.2f} |",
-            f"| after | {cpu['after']:.0f} | {p50['after']:.2f} | {p99['after']:.2f} |",
-            f"| after / before | {cpu['after'] / cpu['before']:.2f} | {p50['after'] / p50['before']:.2f} | "
-            f"{p99['after'] / p99['before']:.2f} |"]
+    return [
+        f"{sessions} LTI sessions at {fps:g} fps, batching on, two runs each, alternating; before = `{label}`.",
+        "",
+        "| server | CPU µs / frame | p50 ms | p99 ms |",
+        "|---|---|---|---|",
+        f"| before | {cpu['before']:.0f} | {p50['before']:.2f} | {p99['before']:.2f} |",
+        f"| after | {cpu['after']:.0f} | {p50['after']:.2f} | {p99['after']:.2f} |",
+        f"| after / before | {cpu['after'] / cpu['before']:.2f} | {p50['after'] / p50['before']:.2f} | "
+        f"{p99['after'] / p99['before']:.2f} |",
+    ]
 
 
 @contextlib.contextmanager
 def _redis(binary: str, folder: str):
     port = free_port()
-    proc = subprocess.Popen([binary, "--port", str(port), "--bind", "127.0.0.1", "--dir", folder, "--save", "",
-                             "--appendonly", "no"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [binary, "--port", str(port), "--bind", "127.0.0.1", "--dir", folder, "--save", "", "--appendonly", "no"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         time.sleep(0.5)
         yield f"redis://127.0.0.1:{port}/0"
@@ -169,8 +195,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m clients.perf_report", description=__doc__)
     parser.add_argument("--seconds", type=float, default=4.0, help="length of each load run")
     parser.add_argument("--out", type=Path, default=REPO_ROOT / "docs" / "performance.md")
-    parser.add_argument("--baseline", metavar="REV", help="also measure the server of this git revision (a temporary "
-                        "worktree) against this one, alternating, at the same load: before/after server CPU per frame")
+    parser.add_argument(
+        "--baseline",
+        metavar="REV",
+        help="also measure the server of this git revision (a temporary "
+        "worktree) against this one, alternating, at the same load: before/after server CPU per frame",
+    )
     args = parser.parse_args(argv)
     fps = 60.0
     t_start = time.perf_counter()
@@ -180,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     floor = echo_floor(SWEEP[-1], fps, args.seconds)
     aligned_floor = echo_floor(SWEEP[-1], fps, args.seconds, phase="aligned")
     lines = [
-        "# Performance", "",
+        "# Performance",
+        "",
         f"Regenerated by `make perf` (`python -m clients.perf_report`) on {date.today()}, {platform.machine()}, "
         "2 cores, no GPU. Load: open loop, every session sends a real Bandai Namco walk frame (binary) on a "
         f"fixed {fps:g} Hz clock from 2 client processes and never waits for replies. The sessions' clocks are "
@@ -191,13 +222,20 @@ def main(argv: list[str] | None = None) -> int:
         f"sessions holding p99 ≤ {1000 / fps:.1f} ms with no drops (doubling, then bisection). The echo floor is a "
         "plain WebSocket echo server on the same stack (uvicorn + Starlette, same route), measured in the same run, "
         "as is its capacity (below). "
-        "Sessions announce 60 fps; models run at their own 30 fps (every other frame is a held output).", "",
-        "Echo floor, " + ", ".join(
+        "Sessions announce 60 fps; models run at their own 30 fps (every other frame is a held output).",
+        "",
+        "Echo floor, "
+        + ", ".join(
             f"{f.sessions} sessions {f.phase}: p50 {f.p50_ms:.2f} ms, p99 {f.p99_ms:.2f} ms, {f.late} late, client "
             f"CPU {f.client_cpu_s:.1f} s, echo server CPU {cpu_per_frame_us(f):.0f} µs per frame"
-            for f in (floor, aligned_floor)) + ".", "",
-        "## Model step cost (through the streaming interface, first style)", "",
-        "| model | batch 1 median / p99 (ms) | batch 256 per frame (µs) | batched frames/s |", "|---|---|---|---|",
+            for f in (floor, aligned_floor)
+        )
+        + ".",
+        "",
+        "## Model step cost (through the streaming interface, first style)",
+        "",
+        "| model | batch 1 median / p99 (ms) | batch 256 per frame (µs) | batched frames/s |",
+        "|---|---|---|---|",
     ]
     for name, model in models.items():
         # with the server's BLAS thread limit: threads of their own made ERD's batch of 256 ~10x slower
@@ -222,21 +260,32 @@ def main(argv: list[str] | None = None) -> int:
                     sweep.clear()
                     for n in SWEEP:
                         measure(n)
-                    measure_fn(url, name, style, fps, args.seconds, None, server, aligned_floor, sweep, [],
-                               phase="aligned")(SWEEP[-1])
-                    lines += ["", f"## {name}: session sweep, batching on", "",
-                              "| sessions | clocks | p50 ms | p99 ms | dropped | late | server-side p50 / p99 ms | "
-                              "frames/s | server CPU s | server CPU µs / frame | p99 / echo floor |",
-                              "|---|---|---|---|---|---|---|---|---|---|---|"]
+                    measure_fn(
+                        url, name, style, fps, args.seconds, None, server, aligned_floor, sweep, [], phase="aligned"
+                    )(SWEEP[-1])
+                    lines += [
+                        "",
+                        f"## {name}: session sweep, batching on",
+                        "",
+                        "| sessions | clocks | p50 ms | p99 ms | dropped | late | server-side p50 / p99 ms | "
+                        "frames/s | server CPU s | server CPU µs / frame | p99 / echo floor |",
+                        "|---|---|---|---|---|---|---|---|---|---|---|",
+                    ]
                     lines += [_row(r, floor if r.phase == "spread" else aligned_floor) for r in sweep]
                     at_64[name] = [r for r in sweep if r.sessions == SWEEP[-1]]
                     if name == "lti":
                         shares = profiled(measure, server.pid, PROFILE_SESSIONS, args.seconds)
     echo_cap, _ = echo_capacity(fps, args.seconds)
-    lines += ["", "## Capacity at 60 fps (p99 ≤ 16.7 ms, no drops)", "",
-              f"The echo server (same stack, no model, no validation) holds **{echo_cap}** sessions in this harness: "
-              "the transport's ceiling here, which no model server on this stack can pass.", "",
-              "| model | batching on | batching off | batching gain | batching on / echo capacity |", "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Capacity at 60 fps (p99 ≤ 16.7 ms, no drops)",
+        "",
+        f"The echo server (same stack, no model, no validation) holds **{echo_cap}** sessions in this harness: "
+        "the transport's ceiling here, which no model server on this stack can pass.",
+        "",
+        "| model | batching on | batching off | batching gain | batching on / echo capacity |",
+        "|---|---|---|---|---|",
+    ]
     for name, cap in capacity.items():
         gain = f"{cap[True] / cap[False]:.1f}×" if cap[False] else "∞"
         lines.append(f"| {name} | {cap[True]} | {cap[False]} | {gain} | {cap[True] / max(echo_cap, 1):.2f} |")
@@ -244,28 +293,46 @@ def main(argv: list[str] | None = None) -> int:
     for name, runs in at_64.items():
         for r in runs:
             ratio = r.p99_ms / (floor if r.phase == "spread" else aligned_floor).p99_ms
-            lines.append(f"| {name}: 64 sessions at p99 ≤ 2× the echo floor ({r.phase} clocks) | p99 {r.p99_ms:.1f} ms "
-                         f"= {ratio:.1f}× | {'yes' if ratio <= 2 and r.dropped == 0 else 'no'} |")
+            lines.append(
+                f"| {name}: 64 sessions at p99 ≤ 2× the echo floor ({r.phase} clocks) | p99 {r.p99_ms:.1f} ms "
+                f"= {ratio:.1f}× | {'yes' if ratio <= 2 and r.dropped == 0 else 'no'} |"
+            )
     for name, need in (("erd", 256), ("lti", 512)):
         if name in capacity:
-            lines.append(f"| {name}: ≥ {need} sessions | {capacity[name][True]} | "
-                         f"{'yes' if capacity[name][True] >= need else 'no'} |")
+            lines.append(
+                f"| {name}: ≥ {need} sessions | {capacity[name][True]} | "
+                f"{'yes' if capacity[name][True] >= need else 'no'} |"
+            )
     for name, cap in capacity.items():
         gain = cap[True] / cap[False] if cap[False] else float("inf")
         lines.append(f"| {name}: batching ≥ 3× unbatched | {gain:.1f}× | {'yes' if gain >= 3 else 'no'} |")
-    lines += ["", f"For scale: the echo server alone holds {echo_cap} sessions in this harness (its client processes "
-              "share the same cores), so a session target above that is out of reach for any server on this stack "
-              "here, whatever the model costs."]
+    lines += [
+        "",
+        f"For scale: the echo server alone holds {echo_cap} sessions in this harness (its client processes "
+        "share the same cores), so a session target above that is out of reach for any server on this stack "
+        "here, whatever the model costs.",
+    ]
     lines += ["", "## Worker processes (lti, batching on)", ""] + workers_section(models, fps, args.seconds)
     if args.baseline:
         lines += ["", f"## Before / after: this tree against `{args.baseline}`", ""] + baseline_section(
-            args.baseline, models, fps, args.seconds)
+            args.baseline, models, fps, args.seconds
+        )
     lti_64 = at_64.get("lti", [])
-    per_frame = (f"At 64 LTI sessions (spread clocks) the server spends {cpu_per_frame_us(lti_64[0]):.0f} µs of CPU per "
-                 f"frame; the echo server spends {cpu_per_frame_us(floor):.0f} µs on the same load." if lti_64 else "")
-    lines += ["", "## Where the time goes", "", per_frame] + profile_section(shares) + ["",
-              f"Run time of this report: {time.perf_counter() - t_start:.0f} s; load average at the end "
-              f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} (the machine is shared)."]
+    per_frame = (
+        f"At 64 LTI sessions (spread clocks) the server spends {cpu_per_frame_us(lti_64[0]):.0f} µs of CPU per "
+        f"frame; the echo server spends {cpu_per_frame_us(floor):.0f} µs on the same load."
+        if lti_64
+        else ""
+    )
+    lines += (
+        ["", "## Where the time goes", "", per_frame]
+        + profile_section(shares)
+        + [
+            "",
+            f"Run time of this report: {time.perf_counter() - t_start:.0f} s; load average at the end "
+            f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} (the machine is shared).",
+        ]
+    )
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
     return 0

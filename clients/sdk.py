@@ -49,16 +49,52 @@ import numpy as np
 from . import sdk_rest as rest
 from .sdk_io import AsyncIO, SyncIO, run_async, run_sync
 from .sdk_session import SessionCore
-from .sdk_types import (ConnectFailed, ConnectionLost, FrameDropped, JobFailed, JobInfo, JobTimeout, ModelInfo,
-                        NothingInFlight, Reconnect, ReplyTimeout, ResumeError, ServerError, StyledFrame, StyleInfo,
-                        StylestreamError, Upload)
+from .sdk_types import (
+    ConnectFailed,
+    ConnectionLost,
+    FrameDropped,
+    JobFailed,
+    JobInfo,
+    JobTimeout,
+    ModelInfo,
+    NothingInFlight,
+    Reconnect,
+    ReplyTimeout,
+    ResumeError,
+    ServerError,
+    StyledFrame,
+    StyleInfo,
+    StylestreamError,
+    Upload,
+)
 from .sdk_wire import HEADER, ReplayBuffer, StartSettings, ws_url
 from .sdk_wire import pack as _pack
 
-__all__ = ["AsyncClient", "AsyncSession", "Client", "ConnectFailed", "ConnectionLost", "FrameDropped", "HEADER",
-           "JobFailed", "JobInfo", "JobTimeout", "ModelInfo", "NothingInFlight", "Reconnect", "ReplayBuffer",
-           "ReplyTimeout", "ResumeError", "ServerError", "Session", "StyleInfo", "StyledFrame", "StylestreamError",
-           "Upload", "_pack"]
+__all__ = [
+    "AsyncClient",
+    "AsyncSession",
+    "Client",
+    "ConnectFailed",
+    "ConnectionLost",
+    "FrameDropped",
+    "HEADER",
+    "JobFailed",
+    "JobInfo",
+    "JobTimeout",
+    "ModelInfo",
+    "NothingInFlight",
+    "Reconnect",
+    "ReplayBuffer",
+    "ReplyTimeout",
+    "ResumeError",
+    "ServerError",
+    "Session",
+    "StyleInfo",
+    "StyledFrame",
+    "StylestreamError",
+    "Upload",
+    "_pack",
+]
 
 TIMEOUT_S = 30.0  # each REST request, opening a session, each reply
 RECONNECT_TIMEOUT_S = 60.0  # how long a session keeps trying to come back after losing its connection
@@ -122,18 +158,39 @@ class _SessionState:
         return self.core.in_flight()
 
 
-def _core(base_url: str, token: str | None, timeout: float | None, reconnect_timeout: float | None,
-          max_in_flight: int, on_reconnect: Callable[[Reconnect], None] | None, **start: Any) -> SessionCore:
-    return SessionCore(ws_url(base_url, token), StartSettings(**start), timeout=timeout,
-                       reconnect_timeout=reconnect_timeout, max_in_flight=max_in_flight, on_reconnect=on_reconnect)
+def _core(
+    base_url: str,
+    token: str | None,
+    timeout: float | None,
+    reconnect_timeout: float | None,
+    max_in_flight: int,
+    on_reconnect: Callable[[Reconnect], None] | None,
+    **start: Any,
+) -> SessionCore:
+    return SessionCore(
+        ws_url(base_url, token),
+        StartSettings(**start),
+        timeout=timeout,
+        reconnect_timeout=reconnect_timeout,
+        max_in_flight=max_in_flight,
+        on_reconnect=on_reconnect,
+    )
 
 
 class Session(_SessionState):
     """A synchronous streaming session (websockets' sync client); opened on creation."""
 
-    def __init__(self, base_url: str, token: str | None = None, *, timeout: float | None = TIMEOUT_S,
-                 reconnect_timeout: float | None = RECONNECT_TIMEOUT_S, max_in_flight: int = MAX_IN_FLIGHT,
-                 on_reconnect: Callable[[Reconnect], None] | None = None, **start: Any) -> None:
+    def __init__(
+        self,
+        base_url: str,
+        token: str | None = None,
+        *,
+        timeout: float | None = TIMEOUT_S,
+        reconnect_timeout: float | None = RECONNECT_TIMEOUT_S,
+        max_in_flight: int = MAX_IN_FLIGHT,
+        on_reconnect: Callable[[Reconnect], None] | None = None,
+        **start: Any,
+    ) -> None:
         self.core = _core(base_url, token, timeout, reconnect_timeout, max_in_flight, on_reconnect, **start)
         self._io = SyncIO()
         run_sync(self.core.open(), self._io)
@@ -152,8 +209,13 @@ class Session(_SessionState):
         the left), facing yaw in radians (0 = world +Z); returns the synthesised frame."""
         return run_sync(self.core.control(velocity, facing, gait), self._io)
 
-    def set_style(self, style: str | None = None, mix: dict[str, float] | None = None, intensity: float = 1.0,
-                  transition_frames: int = 0) -> dict[str, Any]:
+    def set_style(
+        self,
+        style: str | None = None,
+        mix: dict[str, float] | None = None,
+        intensity: float = 1.0,
+        transition_frames: int = 0,
+    ) -> dict[str, Any]:
         return run_sync(self.core.set_style(style, mix, intensity, transition_frames), self._io)
 
     def reset(self) -> None:
@@ -189,9 +251,17 @@ class Session(_SessionState):
 class AsyncSession(_SessionState):
     """An asyncio streaming session; `await session.open()` or `async with`."""
 
-    def __init__(self, base_url: str, token: str | None = None, *, timeout: float | None = TIMEOUT_S,
-                 reconnect_timeout: float | None = RECONNECT_TIMEOUT_S, max_in_flight: int = MAX_IN_FLIGHT,
-                 on_reconnect: Callable[[Reconnect], None] | None = None, **start: Any) -> None:
+    def __init__(
+        self,
+        base_url: str,
+        token: str | None = None,
+        *,
+        timeout: float | None = TIMEOUT_S,
+        reconnect_timeout: float | None = RECONNECT_TIMEOUT_S,
+        max_in_flight: int = MAX_IN_FLIGHT,
+        on_reconnect: Callable[[Reconnect], None] | None = None,
+        **start: Any,
+    ) -> None:
         self.core = _core(base_url, token, timeout, reconnect_timeout, max_in_flight, on_reconnect, **start)
         self._io = AsyncIO()
 
@@ -210,8 +280,13 @@ class AsyncSession(_SessionState):
     async def control(self, velocity: tuple[float, float], facing: float, gait: str = "walk") -> StyledFrame:
         return await run_async(self.core.control(velocity, facing, gait), self._io)
 
-    async def set_style(self, style: str | None = None, mix: dict[str, float] | None = None, intensity: float = 1.0,
-                        transition_frames: int = 0) -> dict[str, Any]:
+    async def set_style(
+        self,
+        style: str | None = None,
+        mix: dict[str, float] | None = None,
+        intensity: float = 1.0,
+        transition_frames: int = 0,
+    ) -> dict[str, Any]:
         return await run_async(self.core.set_style(style, mix, intensity, transition_frames), self._io)
 
     async def reset(self) -> None:
@@ -240,21 +315,42 @@ class AsyncSession(_SessionState):
 
 
 class _ClientBase:
-    def __init__(self, base_url: str, token: str | None, timeout: float | None,
-                 reconnect_timeout: float | None) -> None:
+    def __init__(
+        self, base_url: str, token: str | None, timeout: float | None, reconnect_timeout: float | None
+    ) -> None:
         self.base_url, self.token = base_url.rstrip("/"), token
         self.timeout, self.reconnect_timeout = timeout, reconnect_timeout
         self.headers = {"Authorization": f"Bearer {token}"} if token else {}
 
-    def _session_args(self, model: str, style: str | None, mix: dict[str, float] | None, skeleton: str | None,
-                      bvh_header: str | None, fps: float, intensity: float, timeout: Default,
-                      reconnect_timeout: Default, max_in_flight: int,
-                      on_reconnect: Callable[[Reconnect], None] | None) -> dict[str, Any]:
-        return {"base_url": self.base_url, "token": self.token, "model": model, "style": style, "mix": mix,
-                "skeleton": skeleton, "bvh_header": bvh_header, "fps": fps, "intensity": intensity,
-                "timeout": self.timeout if timeout is ... else timeout,
-                "reconnect_timeout": self.reconnect_timeout if reconnect_timeout is ... else reconnect_timeout,
-                "max_in_flight": max_in_flight, "on_reconnect": on_reconnect}
+    def _session_args(
+        self,
+        model: str,
+        style: str | None,
+        mix: dict[str, float] | None,
+        skeleton: str | None,
+        bvh_header: str | None,
+        fps: float,
+        intensity: float,
+        timeout: Default,
+        reconnect_timeout: Default,
+        max_in_flight: int,
+        on_reconnect: Callable[[Reconnect], None] | None,
+    ) -> dict[str, Any]:
+        return {
+            "base_url": self.base_url,
+            "token": self.token,
+            "model": model,
+            "style": style,
+            "mix": mix,
+            "skeleton": skeleton,
+            "bvh_header": bvh_header,
+            "fps": fps,
+            "intensity": intensity,
+            "timeout": self.timeout if timeout is ... else timeout,
+            "reconnect_timeout": self.reconnect_timeout if reconnect_timeout is ... else reconnect_timeout,
+            "max_in_flight": max_in_flight,
+            "on_reconnect": on_reconnect,
+        }
 
 
 class Client(_ClientBase):
@@ -262,8 +358,13 @@ class Client(_ClientBase):
     request, opening a session and each reply; `reconnect_timeout` how long a session keeps trying
     to come back. `close()` (or `with`) closes the HTTP client and the sessions still open."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", token: str | None = None,
-                 timeout: float | None = TIMEOUT_S, reconnect_timeout: float | None = RECONNECT_TIMEOUT_S) -> None:
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        token: str | None = None,
+        timeout: float | None = TIMEOUT_S,
+        reconnect_timeout: float | None = RECONNECT_TIMEOUT_S,
+    ) -> None:
         super().__init__(base_url, token, timeout, reconnect_timeout)
         self.http = httpx.Client(base_url=self.base_url, headers=self.headers, timeout=timeout)
         self._io = SyncIO(self.http)
@@ -279,9 +380,16 @@ class Client(_ClientBase):
     def style(self, style_id: str) -> StyleInfo:
         return run_sync(rest.style(style_id), self._io)
 
-    def upload_style(self, name: str, *, model: str = "lti", bvh: rest.Bvh | None = None,
-                     frames: tuple[np.ndarray, np.ndarray] | None = None, fps: float = 30.0,
-                     fine_tune: bool = False) -> Upload:
+    def upload_style(
+        self,
+        name: str,
+        *,
+        model: str = "lti",
+        bvh: rest.Bvh | None = None,
+        frames: tuple[np.ndarray, np.ndarray] | None = None,
+        fps: float = 30.0,
+        fine_tune: bool = False,
+    ) -> Upload:
         """A clip as a new style: `bvh` (text, bytes, or a path) or `frames` (root (F, 3), rotations
         (F, 22, 4) xyzw on the model skeleton, at `fps`). LTI needs `fine_tune=True` and answers with
         a job (`wait_job`); LPN-FiLM's style is usable at once (`Upload.created`)."""
@@ -293,19 +401,48 @@ class Client(_ClientBase):
     def job(self, job_id: str) -> JobInfo:
         return run_sync(rest.job(job_id), self._io)
 
-    def wait_job(self, job_id: str, progress: Callable[[JobInfo], None] | None = None, timeout: float | None = None,
-                 poll_interval: float = 0.25) -> JobInfo:
+    def wait_job(
+        self,
+        job_id: str,
+        progress: Callable[[JobInfo], None] | None = None,
+        timeout: float | None = None,
+        poll_interval: float = 0.25,
+    ) -> JobInfo:
         """Wait for a job to finish: returns it done, raises `JobFailed` or `JobTimeout`;
         `progress(job)` is called on every change."""
         return run_sync(rest.wait_job(job_id, progress, timeout, poll_interval), self._io)
 
-    def session(self, model: str, style: str | None = None, mix: dict[str, float] | None = None,
-                skeleton: str | None = "bandai-namco", bvh_header: str | None = None, fps: float = 30.0,
-                intensity: float = 1.0, *, timeout: Default = ..., reconnect_timeout: Default = ...,
-                max_in_flight: int = MAX_IN_FLIGHT, on_reconnect: Callable[[Reconnect], None] | None = None) -> Session:
+    def session(
+        self,
+        model: str,
+        style: str | None = None,
+        mix: dict[str, float] | None = None,
+        skeleton: str | None = "bandai-namco",
+        bvh_header: str | None = None,
+        fps: float = 30.0,
+        intensity: float = 1.0,
+        *,
+        timeout: Default = ...,
+        reconnect_timeout: Default = ...,
+        max_in_flight: int = MAX_IN_FLIGHT,
+        on_reconnect: Callable[[Reconnect], None] | None = None,
+    ) -> Session:
         """Open a streaming session (timeouts default to the client's)."""
-        session = Session(**self._session_args(model, style, mix, skeleton, bvh_header, fps, intensity, timeout,
-                                               reconnect_timeout, max_in_flight, on_reconnect))
+        session = Session(
+            **self._session_args(
+                model,
+                style,
+                mix,
+                skeleton,
+                bvh_header,
+                fps,
+                intensity,
+                timeout,
+                reconnect_timeout,
+                max_in_flight,
+                on_reconnect,
+            )
+        )
         self._sessions.add(session)
         return session
 
@@ -324,8 +461,13 @@ class Client(_ClientBase):
 class AsyncClient(_ClientBase):
     """`Client` for asyncio."""
 
-    def __init__(self, base_url: str = "http://127.0.0.1:8000", token: str | None = None,
-                 timeout: float | None = TIMEOUT_S, reconnect_timeout: float | None = RECONNECT_TIMEOUT_S) -> None:
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8000",
+        token: str | None = None,
+        timeout: float | None = TIMEOUT_S,
+        reconnect_timeout: float | None = RECONNECT_TIMEOUT_S,
+    ) -> None:
         super().__init__(base_url, token, timeout, reconnect_timeout)
         self.http = httpx.AsyncClient(base_url=self.base_url, headers=self.headers, timeout=timeout)
         self._io = AsyncIO(self.http)
@@ -340,9 +482,16 @@ class AsyncClient(_ClientBase):
     async def style(self, style_id: str) -> StyleInfo:
         return await run_async(rest.style(style_id), self._io)
 
-    async def upload_style(self, name: str, *, model: str = "lti", bvh: rest.Bvh | None = None,
-                           frames: tuple[np.ndarray, np.ndarray] | None = None, fps: float = 30.0,
-                           fine_tune: bool = False) -> Upload:
+    async def upload_style(
+        self,
+        name: str,
+        *,
+        model: str = "lti",
+        bvh: rest.Bvh | None = None,
+        frames: tuple[np.ndarray, np.ndarray] | None = None,
+        fps: float = 30.0,
+        fine_tune: bool = False,
+    ) -> Upload:
         return await run_async(rest.upload_style(name, model, bvh, frames, fps, fine_tune), self._io)
 
     async def delete_style(self, style_id: str) -> None:
@@ -351,18 +500,46 @@ class AsyncClient(_ClientBase):
     async def job(self, job_id: str) -> JobInfo:
         return await run_async(rest.job(job_id), self._io)
 
-    async def wait_job(self, job_id: str, progress: Callable[[JobInfo], None] | None = None,
-                       timeout: float | None = None, poll_interval: float = 0.25) -> JobInfo:
+    async def wait_job(
+        self,
+        job_id: str,
+        progress: Callable[[JobInfo], None] | None = None,
+        timeout: float | None = None,
+        poll_interval: float = 0.25,
+    ) -> JobInfo:
         return await run_async(rest.wait_job(job_id, progress, timeout, poll_interval), self._io)
 
-    def session(self, model: str, style: str | None = None, mix: dict[str, float] | None = None,
-                skeleton: str | None = "bandai-namco", bvh_header: str | None = None, fps: float = 30.0,
-                intensity: float = 1.0, *, timeout: Default = ..., reconnect_timeout: Default = ...,
-                max_in_flight: int = MAX_IN_FLIGHT,
-                on_reconnect: Callable[[Reconnect], None] | None = None) -> AsyncSession:
+    def session(
+        self,
+        model: str,
+        style: str | None = None,
+        mix: dict[str, float] | None = None,
+        skeleton: str | None = "bandai-namco",
+        bvh_header: str | None = None,
+        fps: float = 30.0,
+        intensity: float = 1.0,
+        *,
+        timeout: Default = ...,
+        reconnect_timeout: Default = ...,
+        max_in_flight: int = MAX_IN_FLIGHT,
+        on_reconnect: Callable[[Reconnect], None] | None = None,
+    ) -> AsyncSession:
         """A session to open with `async with` or `await session.open()`."""
-        session = AsyncSession(**self._session_args(model, style, mix, skeleton, bvh_header, fps, intensity, timeout,
-                                                    reconnect_timeout, max_in_flight, on_reconnect))
+        session = AsyncSession(
+            **self._session_args(
+                model,
+                style,
+                mix,
+                skeleton,
+                bvh_header,
+                fps,
+                intensity,
+                timeout,
+                reconnect_timeout,
+                max_in_flight,
+                on_reconnect,
+            )
+        )
         self._sessions.add(session)
         return session
 

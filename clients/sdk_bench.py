@@ -89,10 +89,13 @@ def delay_proxy(target_port: int, delay_s: float) -> Iterator[int]:
     async def connection(client_r: asyncio.StreamReader, client_w: asyncio.StreamWriter) -> None:
         server_r, server_w = await asyncio.open_connection("127.0.0.1", target_port)
         try:
-            await asyncio.gather(_delayed_pipe(client_r, server_w, delay_s), _delayed_pipe(server_r, client_w, delay_s),
-                                 return_exceptions=True)
+            await asyncio.gather(
+                _delayed_pipe(client_r, server_w, delay_s),
+                _delayed_pipe(server_r, client_w, delay_s),
+                return_exceptions=True,
+            )
         except asyncio.CancelledError:  # the proxy is closing: end quietly (asyncio's server callback reads
-            pass                        # a cancelled connection task's exception and would print it)
+            pass  # a cancelled connection task's exception and would print it)
 
     async def serve() -> None:
         server = await asyncio.start_server(connection, "127.0.0.1", 0)
@@ -117,16 +120,21 @@ def delay_proxy(target_port: int, delay_s: float) -> Iterator[int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m clients.sdk_bench", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m clients.sdk_bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--url", help="a running server (default: start one here)")
     parser.add_argument("--model", default="lti")
     parser.add_argument("--style", help="default: the model's first")
     parser.add_argument("--frames", type=int, default=600)
     parser.add_argument("--depths", default="1,2,4,8", help="frames in flight to compare (1 = stylise)")
     parser.add_argument("--repeats", type=int, default=3, help="runs per depth; the median is printed")
-    parser.add_argument("--latency-ms", type=float, default=0.0, help="one-way delay of a proxy between client and "
-                        "server (default 0: straight to the server)")
+    parser.add_argument(
+        "--latency-ms",
+        type=float,
+        default=0.0,
+        help="one-way delay of a proxy between client and server (default 0: straight to the server)",
+    )
     args = parser.parse_args(argv)
 
     from .loadtest import first_style, real_frames, spawned_server
@@ -143,8 +151,10 @@ def main(argv: list[str] | None = None) -> int:
             url = f"http://127.0.0.1:{stack.enter_context(delay_proxy(port, args.latency_ms / 1000))}"
         style = args.style or first_style(url.replace("http://", "ws://", 1) + "/v1/stream", args.model)
         depths = [int(d) for d in args.depths.split(",")]
-        print(f"{args.model}/{style}, {args.frames} frames per run, {args.latency_ms:g} ms each way, median of {args.repeats} runs (depths taken in turn, "
-              f"so a busy machine slows each alike), {url}")
+        print(
+            f"{args.model}/{style}, {args.frames} frames per run, {args.latency_ms:g} ms each way, median of {args.repeats} runs (depths taken in turn, "
+            f"so a busy machine slows each alike), {url}"
+        )
         runs: dict[int, list[tuple[float, float]]] = {d: [] for d in depths}
         for _ in range(args.repeats):
             for depth in depths:

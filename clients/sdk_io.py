@@ -108,8 +108,12 @@ def _http_reply(response: httpx.Response) -> HttpReply:
     except (ValueError, KeyError, TypeError):
         code, message = f"http_{response.status_code}", response.text[:200]
     retry = response.headers.get("retry-after")
-    raise ServerError(code, message, status=response.status_code,
-                      retry_after=float(retry) if retry and retry.replace(".", "", 1).isdigit() else None)
+    raise ServerError(
+        code,
+        message,
+        status=response.status_code,
+        retry_after=float(retry) if retry and retry.replace(".", "", 1).isdigit() else None,
+    )
 
 
 def _request_args(op: Request) -> dict[str, Any]:
@@ -145,7 +149,8 @@ class SyncIO:
             self._connection = ExitStack()
             try:
                 self.ws = self._connection.enter_context(
-                    connect_sync(op.url, open_timeout=op.timeout, max_size=MAX_MESSAGE, compression=None))
+                    connect_sync(op.url, open_timeout=op.timeout, max_size=MAX_MESSAGE, compression=None)
+                )
             except (OSError, InvalidHandshake, InvalidURI) as exc:
                 raise ConnectFailed(f"cannot open a session at {op.url}: {exc}") from exc
             return None
@@ -203,8 +208,9 @@ class AsyncIO:
                 raise _disconnected(exc) from None
         if isinstance(op, Connect):
             try:
-                self.ws = await websockets.connect(op.url, open_timeout=op.timeout, max_size=MAX_MESSAGE,
-                                                   compression=None)
+                self.ws = await websockets.connect(
+                    op.url, open_timeout=op.timeout, max_size=MAX_MESSAGE, compression=None
+                )
             except (OSError, InvalidHandshake, InvalidURI) as exc:
                 raise ConnectFailed(f"cannot open a session at {op.url}: {exc}") from exc
             return None

@@ -34,22 +34,38 @@ def delete_style(style_id: str) -> Steps[None]:
     yield Request("DELETE", f"/v1/styles/{style_id}")
 
 
-def upload_style(name: str, model: str, bvh: Bvh | None, frames: tuple[np.ndarray, np.ndarray] | None,
-                 fps: float, fine_tune: bool) -> Steps[Upload]:
+def upload_style(
+    name: str, model: str, bvh: Bvh | None, frames: tuple[np.ndarray, np.ndarray] | None, fps: float, fine_tune: bool
+) -> Steps[Upload]:
     """A BVH clip (multipart; `bvh` is the text, its bytes, or a path) or frames (JSON: Hips
     translation (F, 3) and local rotations (F, 22, 4) xyzw in the model's joint order)."""
     if (bvh is None) == (frames is None):
         raise ValueError("upload_style needs exactly one of bvh= or frames=")
     if bvh is not None:
         filename, content = _bvh_file(bvh)
-        request = Request("POST", "/v1/styles", data={"name": name, "model": model, "fine_tune": str(fine_tune).lower()},
-                          files={"file": (filename, content, "application/octet-stream")})
+        request = Request(
+            "POST",
+            "/v1/styles",
+            data={"name": name, "model": model, "fine_tune": str(fine_tune).lower()},
+            files={"file": (filename, content, "application/octet-stream")},
+        )
     else:
         assert frames is not None
         root, rotations = frames
-        request = Request("POST", "/v1/styles", json={
-            "name": name, "model": model, "fps": fps, "fine_tune": fine_tune,
-            "frames": {"root": np.asarray(root, float).tolist(), "rotations": np.asarray(rotations, float).tolist()}})
+        request = Request(
+            "POST",
+            "/v1/styles",
+            json={
+                "name": name,
+                "model": model,
+                "fps": fps,
+                "fine_tune": fine_tune,
+                "frames": {
+                    "root": np.asarray(root, float).tolist(),
+                    "rotations": np.asarray(rotations, float).tolist(),
+                },
+            },
+        )
     reply: HttpReply = yield request
     return Upload.from_json(reply.body, reply.status)
 
@@ -59,8 +75,9 @@ def job(job_id: str) -> Steps[JobInfo]:
     return from_json(JobInfo, reply.body)
 
 
-def wait_job(job_id: str, progress: Callable[[JobInfo], None] | None, timeout: float | None,
-             poll_interval: float) -> Steps[JobInfo]:
+def wait_job(
+    job_id: str, progress: Callable[[JobInfo], None] | None, timeout: float | None, poll_interval: float
+) -> Steps[JobInfo]:
     """Poll a job until it is done (returned) or failed (`JobFailed`); `progress` sees every change
     of status, progress or message. A 429 waits the server's `Retry-After` and polls again."""
     deadline = None if timeout is None else time.monotonic() + timeout

@@ -34,10 +34,34 @@ from typing import Any
 import numpy as np
 
 from .sdk_io import Close, Connect, Disconnected, Recv, RecvTimeout, Send, Sleep, Steps
-from .sdk_types import (ConnectFailed, ConnectionLost, FrameDropped, NothingInFlight, Reconnect, ReplyTimeout,
-                        ResumeError, ServerError, StylestreamError, StyledFrame)
-from .sdk_wire import (END, RESET, Message, ReplayBuffer, StartSettings, ack_for, control_message, json_frame, pack,
-                       saved_reply, server_error, start_message, style_message, unpack)
+from .sdk_types import (
+    ConnectFailed,
+    ConnectionLost,
+    FrameDropped,
+    NothingInFlight,
+    Reconnect,
+    ReplyTimeout,
+    ResumeError,
+    ServerError,
+    StyledFrame,
+    StylestreamError,
+)
+from .sdk_wire import (
+    END,
+    RESET,
+    Message,
+    ReplayBuffer,
+    StartSettings,
+    ack_for,
+    control_message,
+    json_frame,
+    pack,
+    saved_reply,
+    server_error,
+    start_message,
+    style_message,
+    unpack,
+)
 
 log = logging.getLogger("clients.sdk")
 
@@ -69,8 +93,16 @@ class SessionCore:
     """The state and protocol of one streaming session; its methods are generators driven by
     `sdk_io.run_sync` / `run_async`."""
 
-    def __init__(self, url: str, settings: StartSettings, *, timeout: float | None, reconnect_timeout: float | None,
-                 max_in_flight: int, on_reconnect: Callable[[Reconnect], None] | None) -> None:
+    def __init__(
+        self,
+        url: str,
+        settings: StartSettings,
+        *,
+        timeout: float | None,
+        reconnect_timeout: float | None,
+        max_in_flight: int,
+        on_reconnect: Callable[[Reconnect], None] | None,
+    ) -> None:
         if max_in_flight < 1:
             raise ValueError("max_in_flight must be at least 1")
         self.url, self.settings = url, settings
@@ -103,8 +135,9 @@ class SessionCore:
         seq = self._next_seq()
         return (yield from self._call(Entry(seq, control_message(seq, velocity, facing, gait), CALL)))
 
-    def set_style(self, style: str | None, mix: dict[str, float] | None, intensity: float,
-                  transition_frames: int) -> Steps[dict[str, Any]]:
+    def set_style(
+        self, style: str | None, mix: dict[str, float] | None, intensity: float, transition_frames: int
+    ) -> Steps[dict[str, Any]]:
         message = style_message(style, mix, intensity, transition_frames)
         return (yield from self._call(Entry(None, message, CALL, "style_set", (style, mix, intensity))))
 
@@ -214,8 +247,9 @@ class SessionCore:
             except RecvTimeout:
                 if drain:
                     return
-                raise ReplyTimeout(f"no reply within {self.timeout:g} s" if self.timeout is not None
-                                   else "no reply") from None
+                raise ReplyTimeout(
+                    f"no reply within {self.timeout:g} s" if self.timeout is not None else "no reply"
+                ) from None
             except Disconnected as gone:
                 if drain:
                     return
@@ -335,12 +369,26 @@ class SessionCore:
         else:
             replayed, lost = self._plan_fresh(), ()
             self.new_sessions += 1
-        event = Reconnect("resumed" if resumed else "new_session", attempts, time.monotonic() - began,
-                          started["session_id"], started.get("last_seq") if resumed else None, replayed, lost,
-                          str(gone))
+        event = Reconnect(
+            "resumed" if resumed else "new_session",
+            attempts,
+            time.monotonic() - began,
+            started["session_id"],
+            started.get("last_seq") if resumed else None,
+            replayed,
+            lost,
+            str(gone),
+        )
         self.last_reconnect = event
-        log.info("session %s %s after %d attempt(s), %.2f s: %d message(s) replayed, %d reply(ies) lost",
-                 event.session_id, event.kind.replace("_", " "), attempts, event.seconds, replayed, len(lost))
+        log.info(
+            "session %s %s after %d attempt(s), %.2f s: %d message(s) replayed, %d reply(ies) lost",
+            event.session_id,
+            event.kind.replace("_", " "),
+            attempts,
+            event.seconds,
+            replayed,
+            len(lost),
+        )
         self._settle()
         if self.on_reconnect is not None:
             self.on_reconnect(event)
@@ -368,8 +416,10 @@ class SessionCore:
                 last = err
             left = _remaining(deadline)
             if left is not None and left <= 0:
-                raise ConnectionLost(f"lost the connection to {self.url} ({gone}) and could not get back within "
-                                     f"{self.reconnect_timeout:g} s ({attempts} attempts): {last}") from last
+                raise ConnectionLost(
+                    f"lost the connection to {self.url} ({gone}) and could not get back within "
+                    f"{self.reconnect_timeout:g} s ({attempts} attempts): {last}"
+                ) from last
             pause = delay * random.uniform(0.5, 1.0)  # jitter: clients of a restarted server do not return in step
             pause = pause if left is None else min(pause, left)
             log.info("reconnect attempt %d to %s failed (%s); next in %.2f s", attempts, self.url, last, pause)

@@ -30,8 +30,14 @@ class ServerError(StylestreamError):
     """A typed error from the server: a stream `error` message (docs/protocol.md#errors), or a REST
     error body `{"code", "message"}` with its HTTP `status` (None on the stream)."""
 
-    def __init__(self, code: str, message: str, seq: int | None = None, status: int | None = None,
-                 retry_after: float | None = None) -> None:
+    def __init__(
+        self,
+        code: str,
+        message: str,
+        seq: int | None = None,
+        status: int | None = None,
+        retry_after: float | None = None,
+    ) -> None:
         super().__init__(f"{code}: {message}")
         self.code, self.message, self.seq = code, message, seq
         self.status, self.retry_after = status, retry_after

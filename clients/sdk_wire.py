@@ -39,8 +39,13 @@ class StartSettings:
 
 
 def start_message(settings: StartSettings, resume_token: str | None) -> str:
-    msg: dict[str, Any] = {"type": "start", "model": settings.model, "fps": settings.fps, "encoding": "binary",
-                           "intensity": settings.intensity}
+    msg: dict[str, Any] = {
+        "type": "start",
+        "model": settings.model,
+        "fps": settings.fps,
+        "encoding": "binary",
+        "intensity": settings.intensity,
+    }
     if settings.mix is not None:
         msg["mix"] = settings.mix
     else:
@@ -62,8 +67,15 @@ def style_message(style: str | None, mix: dict[str, float] | None, intensity: fl
 
 
 def control_message(seq: int, velocity: tuple[float, float], facing: float, gait: str) -> str:
-    return json.dumps({"type": "control", "seq": seq, "velocity": [float(velocity[0]), float(velocity[1])],
-                       "facing": float(facing), "gait": gait})
+    return json.dumps(
+        {
+            "type": "control",
+            "seq": seq,
+            "velocity": [float(velocity[0]), float(velocity[1])],
+            "facing": float(facing),
+            "gait": gait,
+        }
+    )
 
 
 RESET = json.dumps({"type": "reset"})
@@ -79,7 +91,10 @@ def ack_for(seq: int | None, message: Message) -> str | None:
 
 
 def pack(seq: int, root: np.ndarray, rotations: np.ndarray) -> bytes:
-    return HEADER.pack(seq & 0xFFFFFFFF, 1, 0) + np.concatenate([np.ravel(root), np.ravel(rotations)]).astype("<f4").tobytes()
+    return (
+        HEADER.pack(seq & 0xFFFFFFFF, 1, 0)
+        + np.concatenate([np.ravel(root), np.ravel(rotations)]).astype("<f4").tobytes()
+    )
 
 
 def unpack(data: bytes, joints: int) -> StyledFrame:
@@ -90,8 +105,12 @@ def unpack(data: bytes, joints: int) -> StyledFrame:
 
 def json_frame(message: dict[str, Any]) -> StyledFrame:
     """A JSON frame reply (or `started.last_frame`), rounded to float32 like a binary one."""
-    return StyledFrame(message["seq"], np.asarray(message["root"], np.float32).astype(np.float64),
-                       np.asarray(message["rotations"], np.float32).astype(np.float64), message.get("dropped", 0))
+    return StyledFrame(
+        message["seq"],
+        np.asarray(message["root"], np.float32).astype(np.float64),
+        np.asarray(message["rotations"], np.float32).astype(np.float64),
+        message.get("dropped", 0),
+    )
 
 
 def saved_reply(started: dict[str, Any], seq: int | None) -> StyledFrame | None:
@@ -142,9 +161,11 @@ class ReplayBuffer:
             return list(self.entries)
         for i, (seq, _) in enumerate(self.entries):
             if seq is not None and seq == last_seq:
-                return list(self.entries)[i + 1:]
-        raise ResumeError(f"the server resumed at frame {last_seq}, but this client only holds messages after frame "
-                          f"{self.base}: more than {self.limit} messages went unacknowledged")
+                return list(self.entries)[i + 1 :]
+        raise ResumeError(
+            f"the server resumed at frame {last_seq}, but this client only holds messages after frame "
+            f"{self.base}: more than {self.limit} messages went unacknowledged"
+        )
 
     def _drop_through(self, seq: int) -> None:
         while self.entries:

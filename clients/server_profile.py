@@ -23,13 +23,20 @@ PARTS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("frame decode + validation", ("decode_binary (service/protocol.py", "frame_arrays (service/protocol.py")),
     ("reply encode", ("encode_binary (service/protocol.py", "frame_message (service/protocol.py")),
     ("WebSocket send (uvicorn, socket write)", ("send (uvicorn/protocols/websockets",)),
-    ("WebSocket receive (uvicorn, Starlette)", ("receive (uvicorn/protocols/websockets",
-                                                "data_received (uvicorn/protocols/websockets",
-                                                "receive (starlette/websockets.py")),
+    (
+        "WebSocket receive (uvicorn, Starlette)",
+        (
+            "receive (uvicorn/protocols/websockets",
+            "data_received (uvicorn/protocols/websockets",
+            "receive (starlette/websockets.py",
+        ),
+    ),
     ("metrics", ("prometheus_client/",)),
     ("batcher gather/scatter", ("service/batcher.py",)),
-    ("session bookkeeping (stream, sessions, skeletons)", ("service/stream.py", "service/sessions.py",
-                                                           "service/skeletons.py", "service/runtime.py")),
+    (
+        "session bookkeeping (stream, sessions, skeletons)",
+        ("service/stream.py", "service/sessions.py", "service/skeletons.py", "service/runtime.py"),
+    ),
 )
 OTHER = "event loop, asyncio, ASGI/Starlette plumbing"
 # leaf frames of worker threads waiting for work (the model-step thread, anyio's pool): py-spy's
@@ -50,9 +57,32 @@ def record(pids: list[int], seconds: float, rate: int = 200) -> Counter[str]:
         raise RuntimeError("py-spy not installed")
     stacks: Counter[str] = Counter()
     with tempfile.TemporaryDirectory() as tmp:
-        procs = [(subprocess.Popen([exe, "record", "-p", str(pid), "-d", str(max(1, round(seconds))), "-r", str(rate),
-                                    "-f", "raw", "--nonblocking", "-o", f"{tmp}/{pid}.txt"],
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True), pid) for pid in pids]
+        procs = [
+            (
+                subprocess.Popen(
+                    [
+                        exe,
+                        "record",
+                        "-p",
+                        str(pid),
+                        "-d",
+                        str(max(1, round(seconds))),
+                        "-r",
+                        str(rate),
+                        "-f",
+                        "raw",
+                        "--nonblocking",
+                        "-o",
+                        f"{tmp}/{pid}.txt",
+                    ],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.PIPE,
+                    text=True,
+                ),
+                pid,
+            )
+            for pid in pids
+        ]
         for proc, pid in procs:
             _, err = proc.communicate(timeout=seconds + 60)
             out = Path(f"{tmp}/{pid}.txt")

@@ -81,20 +81,42 @@ def slope_per_hour(t_s: np.ndarray, values: np.ndarray, warmup_s: float) -> floa
     return float(np.polyfit(t_s[keep] / 3600.0, values[keep], 1)[0])
 
 
-def summarise(samples: list[Sample], latencies_ms: np.ndarray, dropped: int, warmup_s: float, *,
-              minutes: float, sessions: int, fps: float, model: str, load_average: tuple[float, float]) -> Summary:
+def summarise(
+    samples: list[Sample],
+    latencies_ms: np.ndarray,
+    dropped: int,
+    warmup_s: float,
+    *,
+    minutes: float,
+    sessions: int,
+    fps: float,
+    model: str,
+    load_average: tuple[float, float],
+) -> Summary:
     t = np.array([s.t_s for s in samples])
     rss = np.array([s.rss_mb for s in samples])
     heap = np.array([s.heap_blocks for s in samples])
     done = latencies_ms[np.isfinite(latencies_ms)]
     q50, q99 = np.percentile(done, [50, 99]) if len(done) else (float("nan"),) * 2
-    return Summary(minutes=minutes, sessions=sessions, fps=fps, model=model, samples=len(samples),
-                   warmup_min=warmup_s / 60, start_rss_mb=float(rss[0]), end_rss_mb=float(rss[-1]),
-                   peak_rss_mb=float(rss.max()), rss_slope_mb_per_h=slope_per_hour(t, rss, warmup_s),
-                   rss_slope_last_third_mb_per_h=slope_per_hour(t, rss, t[-1] * 2 / 3),
-                   heap_slope_blocks_per_h=slope_per_hour(t, heap, warmup_s),
-                   frames=int(samples[-1].frames - samples[0].frames), client_dropped=dropped,
-                   client_p50_ms=float(q50), client_p99_ms=float(q99), load_average=load_average)
+    return Summary(
+        minutes=minutes,
+        sessions=sessions,
+        fps=fps,
+        model=model,
+        samples=len(samples),
+        warmup_min=warmup_s / 60,
+        start_rss_mb=float(rss[0]),
+        end_rss_mb=float(rss[-1]),
+        peak_rss_mb=float(rss.max()),
+        rss_slope_mb_per_h=slope_per_hour(t, rss, warmup_s),
+        rss_slope_last_third_mb_per_h=slope_per_hour(t, rss, t[-1] * 2 / 3),
+        heap_slope_blocks_per_h=slope_per_hour(t, heap, warmup_s),
+        frames=int(samples[-1].frames - samples[0].frames),
+        client_dropped=dropped,
+        client_p50_ms=float(q50),
+        client_p99_ms=float(q99),
+        load_average=load_average,
+    )
 
 
 # ---- running -----------------------------------------------------------------------------------
@@ -106,13 +128,27 @@ async def _sample(base: str, pid: int | None, t0: float) -> Sample:
     async with httpx.AsyncClient(timeout=10) as client:
         m = metric_values((await client.get(f"{base}/metrics")).text)
     rss = proc_rss_mb(pid) if pid is not None else m["process_resident_memory_bytes"] / MB
-    return Sample(t_s=time.perf_counter() - t0, rss_mb=rss, heap_blocks=m.get("stylestream_python_allocated_blocks", np.nan),
-                  gc_objects_collected=m.get("python_gc_objects_collected_total", np.nan),
-                  sessions=m.get("stylestream_active_sessions", 0.0), frames=m.get("stylestream_frames_total", 0.0))
+    return Sample(
+        t_s=time.perf_counter() - t0,
+        rss_mb=rss,
+        heap_blocks=m.get("stylestream_python_allocated_blocks", np.nan),
+        gc_objects_collected=m.get("python_gc_objects_collected_total", np.nan),
+        sessions=m.get("stylestream_active_sessions", 0.0),
+        frames=m.get("stylestream_frames_total", 0.0),
+    )
 
 
-async def soak(url: str, pid: int | None, minutes: float, sessions: int, fps: float, model: str, style: str,
-               session_seconds: float, interval_s: float) -> tuple[list[Sample], np.ndarray, int]:
+async def soak(
+    url: str,
+    pid: int | None,
+    minutes: float,
+    sessions: int,
+    fps: float,
+    model: str,
+    style: str,
+    session_seconds: float,
+    interval_s: float,
+) -> tuple[list[Sample], np.ndarray, int]:
     """Stream `sessions` open-loop sessions (loadtest's session, reopened every `session_seconds`,
     staggered) for `minutes`, sampling the server every `interval_s`. Returns (samples, client
     round trips in ms, frames the server reported dropped)."""
@@ -137,8 +173,11 @@ async def soak(url: str, pid: int | None, minutes: float, sessions: int, fps: fl
             await asyncio.wait_for(asyncio.shield(streams), timeout=interval_s)
         samples.append(await _sample(base, pid, t0))
         s = samples[-1]
-        print(f"{s.t_s / 60:6.1f} min  rss {s.rss_mb:7.1f} MB  heap {s.heap_blocks:9.0f} blocks  "
-              f"sessions {s.sessions:3.0f}  frames {s.frames:9.0f}", flush=True)
+        print(
+            f"{s.t_s / 60:6.1f} min  rss {s.rss_mb:7.1f} MB  heap {s.heap_blocks:9.0f} blocks  "
+            f"sessions {s.sessions:3.0f}  frames {s.frames:9.0f}",
+            flush=True,
+        )
     await streams  # re-raise a session's failure
     latency = np.concatenate(stats["latency"]) * 1000 if stats["latency"] else np.zeros(0)
     return samples, latency, stats["dropped"]
@@ -161,8 +200,9 @@ def write_outputs(samples: list[Sample], summary: Summary, out: Path) -> None:
     import matplotlib.pyplot as plt
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps({"summary": asdict(summary), "samples": [asdict(s) for s in samples]},
-                                                   indent=1))
+    out.with_suffix(".json").write_text(
+        json.dumps({"summary": asdict(summary), "samples": [asdict(s) for s in samples]}, indent=1)
+    )
     t = np.array([s.t_s for s in samples]) / 60
     fig, (a, b) = plt.subplots(2, 1, figsize=(8, 5), dpi=90, sharex=True, height_ratios=[3, 1])
     a.plot(t, [s.rss_mb for s in samples], lw=1.2, color="C0", label="server RSS (MB)")
@@ -173,8 +213,11 @@ def write_outputs(samples: list[Sample], summary: Summary, out: Path) -> None:
     h.plot(t, [s.heap_blocks / 1e3 for s in samples], lw=1, color="C1", label="Python heap (k blocks)")
     h.set_ylabel("Python heap (k blocks)", color="C1")
     h.set_ylim(*_zoom([s.heap_blocks / 1e3 for s in samples], span=100.0))
-    a.set_title(f"{summary.sessions} {summary.model} sessions at {summary.fps:g} fps: RSS slope after warm-up "
-                f"{summary.rss_slope_mb_per_h:+.1f} MB/h", fontsize=9)
+    a.set_title(
+        f"{summary.sessions} {summary.model} sessions at {summary.fps:g} fps: RSS slope after warm-up "
+        f"{summary.rss_slope_mb_per_h:+.1f} MB/h",
+        fontsize=9,
+    )
     b.plot(t, [s.sessions for s in samples], lw=1, color="C2")
     b.set_ylabel("open sessions")
     b.set_xlabel("minutes")
@@ -185,38 +228,46 @@ def write_outputs(samples: list[Sample], summary: Summary, out: Path) -> None:
 
 def markdown(summary: Summary, figure: str, command: str, session_seconds: float) -> str:
     s = summary
-    method = (f"Measured {date.today().isoformat()} on {platform.machine()} ({platform.python_implementation()} "
-              f"{platform.python_version()}) with `{command}`: {s.sessions} open-loop sessions of `{s.model}` at "
-              f"{s.fps:g} fps for {s.minutes:g} minutes, each session closed (without `end`, so its resume snapshot "
-              f"is kept) and reopened every {session_seconds:g} s, staggered. The server process's RSS is read from "
-              "`/proc/<pid>/status` every sample; the Python heap is `stylestream_python_allocated_blocks` from `/metrics`.")
-    return "\n".join([
-        "# Soak: memory over a long run",
-        "",
-        method,
-        "",
-        f"![server RSS and Python heap over the soak]({figure})",
-        "",
-        "| | |",
-        "|---|---|",
-        f"| RSS at start / end / peak | {s.start_rss_mb:.1f} / {s.end_rss_mb:.1f} / {s.peak_rss_mb:.1f} MB |",
-        f"| RSS slope after {s.warmup_min:.1f} min warm-up (least squares) | {s.rss_slope_mb_per_h:+.2f} MB/h |",
-        f"| RSS slope over the last third | {s.rss_slope_last_third_mb_per_h:+.2f} MB/h |",
-        f"| Python heap slope after warm-up | {s.heap_slope_blocks_per_h:+.0f} blocks/h |",
-        f"| frames stylised | {s.frames} |",
-        f"| client round trip p50 / p99 | {s.client_p50_ms:.2f} / {s.client_p99_ms:.2f} ms |",
-        f"| frames dropped (backpressure) | {s.client_dropped} |",
-        f"| samples | {s.samples} |",
-        f"| machine load average (15 min) at start / end, {os.cpu_count()} cores | {s.load_average[0]:.1f} / {s.load_average[1]:.1f} |",
-        "",
-    ])
+    method = (
+        f"Measured {date.today().isoformat()} on {platform.machine()} ({platform.python_implementation()} "
+        f"{platform.python_version()}) with `{command}`: {s.sessions} open-loop sessions of `{s.model}` at "
+        f"{s.fps:g} fps for {s.minutes:g} minutes, each session closed (without `end`, so its resume snapshot "
+        f"is kept) and reopened every {session_seconds:g} s, staggered. The server process's RSS is read from "
+        "`/proc/<pid>/status` every sample; the Python heap is `stylestream_python_allocated_blocks` from `/metrics`."
+    )
+    return "\n".join(
+        [
+            "# Soak: memory over a long run",
+            "",
+            method,
+            "",
+            f"![server RSS and Python heap over the soak]({figure})",
+            "",
+            "| | |",
+            "|---|---|",
+            f"| RSS at start / end / peak | {s.start_rss_mb:.1f} / {s.end_rss_mb:.1f} / {s.peak_rss_mb:.1f} MB |",
+            f"| RSS slope after {s.warmup_min:.1f} min warm-up (least squares) | {s.rss_slope_mb_per_h:+.2f} MB/h |",
+            f"| RSS slope over the last third | {s.rss_slope_last_third_mb_per_h:+.2f} MB/h |",
+            f"| Python heap slope after warm-up | {s.heap_slope_blocks_per_h:+.0f} blocks/h |",
+            f"| frames stylised | {s.frames} |",
+            f"| client round trip p50 / p99 | {s.client_p50_ms:.2f} / {s.client_p99_ms:.2f} ms |",
+            f"| frames dropped (backpressure) | {s.client_dropped} |",
+            f"| samples | {s.samples} |",
+            f"| machine load average (15 min) at start / end, {os.cpu_count()} cores | {s.load_average[0]:.1f} / {s.load_average[1]:.1f} |",
+            "",
+        ]
+    )
 
 
 def add_soak_command(sub) -> None:
     p = sub.add_parser("soak", help="long run of N streaming sessions, sampling server memory (RSS, Python heap)")
     p.add_argument("--url", help="ws://host:port/v1/stream of a running server (default: start one here)")
-    p.add_argument("--pid", type=int, help="with --url: the server's pid on this machine, for RSS from /proc "
-                                           "(default: process_resident_memory_bytes from /metrics)")
+    p.add_argument(
+        "--pid",
+        type=int,
+        help="with --url: the server's pid on this machine, for RSS from /proc "
+        "(default: process_resident_memory_bytes from /metrics)",
+    )
     p.add_argument("--minutes", type=float, default=30.0)
     p.add_argument("--sessions", type=int, default=16)
     p.add_argument("--fps", type=float, default=30.0)
@@ -224,7 +275,9 @@ def add_soak_command(sub) -> None:
     p.add_argument("--style", help="target style (default: the model's first)")
     p.add_argument("--session-seconds", type=float, default=60.0, help="each session is reopened after this long")
     p.add_argument("--interval", type=float, default=10.0, help="seconds between memory samples")
-    p.add_argument("--warmup", type=float, help="minutes left out of the slope (default: a sixth of the run, at most 5)")
+    p.add_argument(
+        "--warmup", type=float, help="minutes left out of the slope (default: a sixth of the run, at most 5)"
+    )
     p.add_argument("--out", type=Path, default=Path("out/soak"), help="writes OUT.json and OUT.png")
     p.add_argument("--doc", type=Path, help="also write this markdown page (e.g. docs/soak.md) with the figure")
     p.set_defaults(func=_soak)
@@ -240,18 +293,33 @@ def _soak(args) -> int:
             pid = server.pid
         style = args.style or first_style(url, args.model)
         load_start = os.getloadavg()[2]
-        samples, latency, dropped = asyncio.run(soak(url, pid, args.minutes, args.sessions, args.fps, args.model, style,
-                                                     args.session_seconds, args.interval))
+        samples, latency, dropped = asyncio.run(
+            soak(
+                url, pid, args.minutes, args.sessions, args.fps, args.model, style, args.session_seconds, args.interval
+            )
+        )
     warmup_min = args.warmup if args.warmup is not None else min(5.0, args.minutes / 6)
-    summary = summarise(samples, latency, dropped, warmup_min * 60, minutes=args.minutes, sessions=args.sessions,
-                        fps=args.fps, model=args.model, load_average=(load_start, os.getloadavg()[2]))
+    summary = summarise(
+        samples,
+        latency,
+        dropped,
+        warmup_min * 60,
+        minutes=args.minutes,
+        sessions=args.sessions,
+        fps=args.fps,
+        model=args.model,
+        load_average=(load_start, os.getloadavg()[2]),
+    )
     write_outputs(samples, summary, args.out)
     print(json.dumps(asdict(summary), indent=1))
     print(f"wrote {args.out.with_suffix('.json')} and {args.out.with_suffix('.png')}")
     if args.doc:
         png = args.out.with_suffix(".png")
-        figure = Path(*png.resolve().parts[len(args.doc.resolve().parent.parts):]) \
-            if png.resolve().is_relative_to(args.doc.resolve().parent) else png.resolve()
+        figure = (
+            Path(*png.resolve().parts[len(args.doc.resolve().parent.parts) :])
+            if png.resolve().is_relative_to(args.doc.resolve().parent)
+            else png.resolve()
+        )
         command = "stylestream " + " ".join(sys.argv[1:])
         args.doc.write_text(markdown(summary, figure.as_posix(), command, args.session_seconds))
         print(f"wrote {args.doc}")

@@ -76,11 +76,27 @@ _OK_AT, _TIME_AT = osc.osc_string(OK_ADDRESS), osc.osc_string(TIME_ADDRESS)
 
 # Unity body bones (HumanBodyBones) and their humanoid parents, depth first.
 BODY_PARENTS: dict[str, str | None] = {
-    "Hips": None, "Spine": "Hips", "Chest": "Spine", "UpperChest": "Chest", "Neck": "UpperChest", "Head": "Neck",
-    **{f"{s}{b}": p if p == "UpperChest" else f"{s}{p}" for s in ("Left", "Right") for b, p in (
-        ("Shoulder", "UpperChest"), ("UpperArm", "Shoulder"), ("LowerArm", "UpperArm"), ("Hand", "LowerArm"))},
-    **{f"{s}{b}": p if p == "Hips" else f"{s}{p}" for s in ("Left", "Right") for b, p in (
-        ("UpperLeg", "Hips"), ("LowerLeg", "UpperLeg"), ("Foot", "LowerLeg"), ("Toes", "Foot"))},
+    "Hips": None,
+    "Spine": "Hips",
+    "Chest": "Spine",
+    "UpperChest": "Chest",
+    "Neck": "UpperChest",
+    "Head": "Neck",
+    **{
+        f"{s}{b}": p if p == "UpperChest" else f"{s}{p}"
+        for s in ("Left", "Right")
+        for b, p in (
+            ("Shoulder", "UpperChest"),
+            ("UpperArm", "Shoulder"),
+            ("LowerArm", "UpperArm"),
+            ("Hand", "LowerArm"),
+        )
+    },
+    **{
+        f"{s}{b}": p if p == "Hips" else f"{s}{p}"
+        for s in ("Left", "Right")
+        for b, p in (("UpperLeg", "Hips"), ("LowerLeg", "UpperLeg"), ("Foot", "LowerLeg"), ("Toes", "Foot"))
+    },
 }
 BODY_BONES = tuple(BODY_PARENTS)
 _SIDES = ("Left", "Right")
@@ -116,8 +132,9 @@ def parse_bones(spec: str) -> frozenset[str]:
         else:
             keep.update(bones)
     if unknown:
-        raise ValueError(f"--bones: unknown {', '.join(unknown)} (groups: {', '.join(BONE_GROUPS)}; "
-                         f"bones: {', '.join(BODY_BONES)})")
+        raise ValueError(
+            f"--bones: unknown {', '.join(unknown)} (groups: {', '.join(BONE_GROUPS)}; bones: {', '.join(BODY_BONES)})"
+        )
     return frozenset(keep)
 
 
@@ -127,8 +144,15 @@ def parse_bones(spec: str) -> frozenset[str]:
 def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
     bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz], axis=-1)
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        axis=-1,
+    )
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -352,8 +376,11 @@ def avatar_rig(body: dict[str, np.ndarray]) -> AvatarRig:
     header = bvhio.dumps(to_bvh(one), precision=9).split("MOTION")[0]
     rig = rig_from_bvh(header, "VMC avatar")
     if rig.up != "y":
-        raise RigError("bad_rig", "the avatar's bones at identity rotation do not stand up along Y (the bridge "
-                       "expects a normalised humanoid, as VMC senders send)")
+        raise RigError(
+            "bad_rig",
+            "the avatar's bones at identity rotation do not stand up along Y (the bridge "
+            "expects a normalised humanoid, as VMC senders send)",
+        )
     return AvatarRig(tuple(order), offsets, header, rig.report())
 
 
@@ -404,7 +431,9 @@ class StyleLink:
     with backoff (`retry_s`: first, most) until it succeeds; a new header (another avatar) opens
     a session on it. Meanwhile the bridge passes frames through."""
 
-    def __init__(self, open_session: OpenSession, wait_s: float = 0.1, retry_s: tuple[float, float] = (0.05, 1.0)) -> None:
+    def __init__(
+        self, open_session: OpenSession, wait_s: float = 0.1, retry_s: tuple[float, float] = (0.05, 1.0)
+    ) -> None:
         self.open_session, self.wait_s, self.retry_s = open_session, wait_s, retry_s
         self.sessions_opened = 0
         self.failures = 0
@@ -518,9 +547,17 @@ class BridgeStats:
     def summary(self, bad: int = 0, link: StyleLink | None = None) -> dict:
         own, wait = np.array(self.own_s) * 1e6, np.array(self.wait_s) * 1e6
         q = lambda a, p: round(float(np.percentile(a, p)), 1) if len(a) else None  # noqa: E731
-        return {"frames": self.frames, "styled": self.styled, "forwarded": self.forwarded, "bad_datagrams": bad,
-                "sessions_opened": link.sessions_opened if link else 0, "session_failures": link.failures if link else 0,
-                "bridge_us_median": q(own, 50), "bridge_us_p99": q(own, 99), "session_us_median": q(wait, 50)}
+        return {
+            "frames": self.frames,
+            "styled": self.styled,
+            "forwarded": self.forwarded,
+            "bad_datagrams": bad,
+            "sessions_opened": link.sessions_opened if link else 0,
+            "session_failures": link.failures if link else 0,
+            "bridge_us_median": q(own, 50),
+            "bridge_us_p99": q(own, 99),
+            "session_us_median": q(wait, 50),
+        }
 
 
 class VmcBridge:
@@ -529,9 +566,15 @@ class VmcBridge:
     `serve_forever()` runs it on a UDP socket (port 0: a free one, see `address`); `link=None`
     passes everything through."""
 
-    def __init__(self, link: StyleLink | None, send: tuple[str, int] = ("127.0.0.1", 39540),
-                 listen: tuple[str, int] = ("127.0.0.1", 39539), bones: Iterable[str] = BODY_BONES,
-                 bone_timeout_s: float = 1.0, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        link: StyleLink | None,
+        send: tuple[str, int] = ("127.0.0.1", 39540),
+        listen: tuple[str, int] = ("127.0.0.1", 39539),
+        bones: Iterable[str] = BODY_BONES,
+        bone_timeout_s: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.link, self.send, self.clock = link, send, clock
         self.mask = frozenset(bones)
         self.state = VmcState(bone_timeout_s)
@@ -663,8 +706,16 @@ class VmcBridge:
         self.sock.close()
 
 
-def session_opener(url: str, model: str, style: str, fps: float = 60.0, intensity: float = 1.0,
-                   token: str | None = None, timeout: float = 5.0, reconnect_timeout: float = 60.0) -> OpenSession:
+def session_opener(
+    url: str,
+    model: str,
+    style: str,
+    fps: float = 60.0,
+    intensity: float = 1.0,
+    token: str | None = None,
+    timeout: float = 5.0,
+    reconnect_timeout: float = 60.0,
+) -> OpenSession:
     """Sessions of `clients.sdk` on an avatar rig (its BVH header). The SDK session reconnects by
     itself for `reconnect_timeout` s (resuming, or opening a fresh session when the server forgot
     its token); a reply later than `timeout` s, or a reconnect that gives up, ends it and the
@@ -700,12 +751,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--style", help="target style (default: the model's first)")
     p.add_argument("--intensity", type=float, default=1.0)
     p.add_argument("--fps", type=float, default=60.0, help="the sender's frame rate")
-    p.add_argument("--bones", default="body", help="bones to restyle: Unity names and groups (body, upper, lower, "
-                   "spine, head, arms, legs), '-Name' removes; the rest pass through (default: body)")
-    p.add_argument("--bone-timeout", type=float, default=1.0, help="seconds after which a bone the sender stopped "
-                   "sending goes back to rest (default 1)")
-    p.add_argument("--wait-ms", type=float, default=100.0, help="a frame the server has not answered within this "
-                   "passes through unstyled (default 100)")
+    p.add_argument(
+        "--bones",
+        default="body",
+        help="bones to restyle: Unity names and groups (body, upper, lower, "
+        "spine, head, arms, legs), '-Name' removes; the rest pass through (default: body)",
+    )
+    p.add_argument(
+        "--bone-timeout",
+        type=float,
+        default=1.0,
+        help="seconds after which a bone the sender stopped sending goes back to rest (default 1)",
+    )
+    p.add_argument(
+        "--wait-ms",
+        type=float,
+        default=100.0,
+        help="a frame the server has not answered within this passes through unstyled (default 100)",
+    )
     p.add_argument("--stats", action="store_true", help="print the bridge's counters and timings as JSON on exit")
 
 
@@ -725,11 +788,18 @@ def run_bridge(args: argparse.Namespace) -> int:
         print(exc, file=sys.stderr)
         return 2
     style = args.style or first_style(args.url, args.model)
-    link = StyleLink(session_opener(args.url, args.model, style, args.fps, args.intensity, args.token), args.wait_ms / 1000)
-    bridge = VmcBridge(link, (args.send_host, args.send_port), (args.listen_host, args.listen), bones, args.bone_timeout)
+    link = StyleLink(
+        session_opener(args.url, args.model, style, args.fps, args.intensity, args.token), args.wait_ms / 1000
+    )
+    bridge = VmcBridge(
+        link, (args.send_host, args.send_port), (args.listen_host, args.listen), bones, args.bone_timeout
+    )
     host, port = bridge.address
-    print(f"VMC bridge: {host}:{port} -> {args.model}/{style} ({len(bones)} bones restyled) -> "
-          f"{args.send_host}:{args.send_port} (Ctrl-C stops)", flush=True)
+    print(
+        f"VMC bridge: {host}:{port} -> {args.model}/{style} ({len(bones)} bones restyled) -> "
+        f"{args.send_host}:{args.send_port} (Ctrl-C stops)",
+        flush=True,
+    )
     signal.signal(signal.SIGTERM, lambda *_: bridge._stop.set())
     try:
         bridge.serve_forever()
@@ -738,8 +808,12 @@ def run_bridge(args: argparse.Namespace) -> int:
     finally:
         bridge.close()
     summary = bridge.stats.summary(bridge.receiver.bad, link)
-    print(json.dumps(summary) if args.stats else f"{summary['frames']} frames, {summary['styled']} restyled, "
-          f"{summary['sessions_opened']} session(s)", flush=True)
+    print(
+        json.dumps(summary)
+        if args.stats
+        else f"{summary['frames']} frames, {summary['styled']} restyled, {summary['sessions_opened']} session(s)",
+        flush=True,
+    )
     return 0
 
 
@@ -749,7 +823,9 @@ def main(argv: list[str] | None = None) -> int:
         from .vmc_bench import main as bench
 
         return bench(argv[1:])
-    p = argparse.ArgumentParser(prog="python -m clients.vmc", description="VMC bridge (or: python -m clients.vmc bench)")
+    p = argparse.ArgumentParser(
+        prog="python -m clients.vmc", description="VMC bridge (or: python -m clients.vmc bench)"
+    )
     add_arguments(p)
     return run_bridge(p.parse_args(argv))
 

@@ -28,8 +28,9 @@ import numpy as np
 from . import vmc_osc as osc
 from .vmc import BONE_ADDRESS, ROOT_ADDRESS, VmcState, avatar_rig, model_input
 
-BLEND = [("/VMC/Ext/Blend/Val", [name, 0.0]) for name in ("A", "I", "U", "E", "O", "Blink_L", "Blink_R", "Joy")] + \
-        [("/VMC/Ext/Blend/Apply", [])]
+BLEND = [("/VMC/Ext/Blend/Val", [name, 0.0]) for name in ("A", "I", "U", "E", "O", "Blink_L", "Blink_R", "Joy")] + [
+    ("/VMC/Ext/Blend/Apply", [])
+]
 EXTRA_BONES = {"LeftEye": (0.03, 0.07, 0.08), "RightEye": (-0.03, 0.07, 0.08), "Jaw": (0.0, 0.0, 0.05)}
 
 
@@ -47,8 +48,13 @@ def sender_frames(n: int) -> tuple[list[str], np.ndarray, np.ndarray]:
     rest = np.tile([0.0, 0.0, 0.0, 1.0], (n, sk.num_joints, 1))
     hips, local = FrameRetargeter(rig).to_source(root.astype(np.float64), rot.astype(np.float64), rest)
     names = list(sk.names) + list(EXTRA_BONES)
-    pos = np.concatenate([np.broadcast_to(sk.offsets, (n, sk.num_joints, 3)).copy(),
-                          np.broadcast_to(np.array(list(EXTRA_BONES.values())) * 100, (n, len(EXTRA_BONES), 3))], axis=1)
+    pos = np.concatenate(
+        [
+            np.broadcast_to(sk.offsets, (n, sk.num_joints, 3)).copy(),
+            np.broadcast_to(np.array(list(EXTRA_BONES.values())) * 100, (n, len(EXTRA_BONES), 3)),
+        ],
+        axis=1,
+    )
     pos[:, sk.index("Hips")] = hips
     rot = np.concatenate([local, np.tile([0.0, 0.0, 0.0, 1.0], (n, len(EXTRA_BONES), 1))], axis=1)
     return names, pos / 100.0 * [-1.0, 1.0, 1.0], rot * [1.0, -1.0, -1.0, 1.0]  # cm -> m, mirrored to Unity
@@ -148,10 +154,29 @@ def main(argv: list[str]) -> int:
         sink.bind(("127.0.0.1", 0))
         sink.settimeout(10)
         listen = _free_udp_port()
-        bridge = subprocess.Popen([sys.executable, "-m", "clients.vmc", "--listen", str(listen), "--send-port",
-                                   str(sink.getsockname()[1]), "--url", url, "--model", args.model, "--style", args.style,
-                                   "--fps", str(min(args.fps, 240.0)), "--stats"], stdout=subprocess.PIPE,
-                                  stderr=subprocess.DEVNULL, text=True)
+        bridge = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "clients.vmc",
+                "--listen",
+                str(listen),
+                "--send-port",
+                str(sink.getsockname()[1]),
+                "--url",
+                url,
+                "--model",
+                args.model,
+                "--style",
+                args.style,
+                "--fps",
+                str(min(args.fps, 240.0)),
+                "--stats",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
         stack.callback(_stop, bridge)
         assert bridge.stdout is not None
         print(bridge.stdout.readline().strip())
@@ -169,8 +194,11 @@ def main(argv: list[str]) -> int:
                 raise RuntimeError("the bridge never restyled a frame")
         warm.close()
         client = stack.enter_context(Client(url))
-        session = stack.enter_context(client.session(model=args.model, style=args.style, skeleton=None,
-                                                     bvh_header=rig.header, fps=min(args.fps, 240.0)))
+        session = stack.enter_context(
+            client.session(
+                model=args.model, style=args.style, skeleton=None, bvh_header=rig.header, fps=min(args.fps, 240.0)
+            )
+        )
         measure_direct(session, inputs[:60], args.fps)  # warm up
         half = args.frames // 2
         direct, through = [], []
@@ -183,14 +211,20 @@ def main(argv: list[str]) -> int:
         summary = json.loads(out.strip().splitlines()[-1])
     unstyled = summary["frames"] - warm_frames - (summary["styled"] - 1)  # measured frames the bridge passed through
     added = (np.median(through) - np.median(direct)) * 1e3
-    print(f"VMC frames of {len(names)} bones + {len(BLEND)} blend shape messages, {args.frames} per path at {args.fps:g} fps, "
-          f"{args.model}/{args.style}")
+    print(
+        f"VMC frames of {len(names)} bones + {len(BLEND)} blend shape messages, {args.frames} per path at {args.fps:g} fps, "
+        f"{args.model}/{args.style}"
+    )
     print(f"direct SDK session round trip  (ms): {_stats(direct)}")
-    print(f"sender -> bridge -> server -> bridge -> receiver (ms): {_stats(through)}  ({unstyled} passed through unstyled)")
+    print(
+        f"sender -> bridge -> server -> bridge -> receiver (ms): {_stats(through)}  ({unstyled} passed through unstyled)"
+    )
     print(f"added by the bridge at the median: {added:.3f} ms")
-    print(f"bridge's own time per frame (decode, convert, encode; the session wait apart): median "
-          f"{summary['bridge_us_median']} us, p99 {summary['bridge_us_p99']} us; waiting on its session: median "
-          f"{summary['session_us_median']} us")
+    print(
+        f"bridge's own time per frame (decode, convert, encode; the session wait apart): median "
+        f"{summary['bridge_us_median']} us, p99 {summary['bridge_us_p99']} us; waiting on its session: median "
+        f"{summary['session_us_median']} us"
+    )
     return 0
 
 

@@ -26,7 +26,22 @@ MAX_DATAGRAM = 65000  # bundles larger than this are split (a UDP datagram holds
 _POSE = struct.Struct(">7f")
 _SIZE = struct.Struct(">i")
 # bytes each argument type takes (strings and blobs are variable)
-_FIXED = {"i": 4, "f": 4, "c": 4, "r": 4, "m": 4, "h": 8, "d": 8, "t": 8, "T": 0, "F": 0, "N": 0, "I": 0, "[": 0, "]": 0}
+_FIXED = {
+    "i": 4,
+    "f": 4,
+    "c": 4,
+    "r": 4,
+    "m": 4,
+    "h": 8,
+    "d": 8,
+    "t": 8,
+    "T": 0,
+    "F": 0,
+    "N": 0,
+    "I": 0,
+    "[": 0,
+    "]": 0,
+}
 
 
 class OscError(ValueError):
@@ -58,10 +73,10 @@ def elements(data: bytes) -> Iterator[bytes]:
     while i < n:
         if i + 4 > n:
             raise OscError("truncated bundle element size")
-        size = int.from_bytes(data[i:i + 4], "big", signed=True)
+        size = int.from_bytes(data[i : i + 4], "big", signed=True)
         if size < 0 or i + 4 + size > n or size % 4:
             raise OscError("bad bundle element size")
-        part = data[i + 4:i + 4 + size]
+        part = data[i + 4 : i + 4 + size]
         if part.startswith(BUNDLE_TAG):
             yield from elements(part)
         elif part[:1] == b"/":
@@ -83,7 +98,7 @@ def split_pose(message: bytes, head_size: int) -> tuple[bytes, bytes]:
     k = (end + 4) & ~3
     if end < 0 or k + 28 > len(message):
         raise OscError("truncated pose message")
-    return message[head_size:end], message[k:k + 28]
+    return message[head_size:end], message[k : k + 28]
 
 
 def address(message: bytes) -> bytes:
@@ -121,7 +136,7 @@ def decode_args(message: bytes) -> list:
             out.append(text.decode("utf-8", "replace"))
         elif tag == "b":
             (size,) = _SIZE.unpack_from(message, i)
-            out.append(message[i + 4:i + 4 + size])
+            out.append(message[i + 4 : i + 4 + size])
             i += 4 + ((size + 3) & ~3)
         elif tag in _FIXED:
             width = _FIXED[tag]
@@ -138,7 +153,7 @@ def decode_args(message: bytes) -> list:
             elif tag in "TF":
                 out.append(tag == "T")
             elif tag != "[" and tag != "]":
-                out.append(message[i:i + width] if width else None)
+                out.append(message[i : i + width] if width else None)
             i += width
         else:
             raise OscError(f"unknown OSC type tag {tag!r}")
@@ -198,7 +213,7 @@ class PoseEncoder:
     def join(prefixes: Sequence[bytes], values: np.ndarray) -> list[bytes]:
         """Bundle elements from prefixes already looked up (`prefix`) and values (N, 7)."""
         raw = np.ascontiguousarray(values, dtype=">f4").tobytes()
-        return [p + raw[28 * k:28 * k + 28] for k, p in enumerate(prefixes)]
+        return [p + raw[28 * k : 28 * k + 28] for k, p in enumerate(prefixes)]
 
 
 def element(message: bytes) -> bytes:

@@ -70,8 +70,8 @@ class FrameBatch:
         return self.root.shape[0]
 
     def take(self, i: int) -> FrameBatch:
-        control = None if self.control is None else self.control[i:i + 1]
-        return FrameBatch(self.root[i:i + 1], self.rotations[i:i + 1], control=control)
+        control = None if self.control is None else self.control[i : i + 1]
+        return FrameBatch(self.root[i : i + 1], self.rotations[i : i + 1], control=control)
 
     @staticmethod
     def concat(frames: list[FrameBatch]) -> FrameBatch:
@@ -79,8 +79,9 @@ class FrameBatch:
         control = None
         if any(f.control is not None for f in frames):
             control = np.concatenate([f.control if f.control is not None else np.zeros((len(f), 5)) for f in frames])
-        return FrameBatch(np.concatenate([f.root for f in frames]), np.concatenate([f.rotations for f in frames]),
-                          control=control)
+        return FrameBatch(
+            np.concatenate([f.root for f in frames]), np.concatenate([f.rotations for f in frames]), control=control
+        )
 
 
 @runtime_checkable
@@ -110,7 +111,7 @@ def stack_states(states: list[State]) -> State:
 
 def split_state(state: State) -> list[State]:
     n = len(next(iter(state.values())))
-    return [{key: value[i:i + 1] for key, value in state.items()} for i in range(n)]
+    return [{key: value[i : i + 1] for key, value in state.items()} for i in range(n)]
 
 
 def upgrade_state(model: StreamingModel, state: State) -> State:
@@ -144,7 +145,9 @@ def style_vector(model: StreamingModel, mix: dict[str, float], intensity: float 
 
 # --------------------------------------------------------------------------- optional abilities
 
-S = TypeVar("S")  # a method's own style parameters, opaque to the service (LTI: a StyleTranslator, LPN-FiLM: a FiLM vector)
+S = TypeVar(
+    "S"
+)  # a method's own style parameters, opaque to the service (LTI: a StyleTranslator, LPN-FiLM: a FiLM vector)
 Progress = Callable[[float, str], None]  # (fraction done, what is happening); it raises to stop the work
 
 

@@ -51,18 +51,26 @@ class StepTiming:
         return self.median / float(np.median(self.floor))
 
     def as_dict(self) -> dict[str, float]:
-        return {"batch": self.batch, "median_us_per_step": self.median * 1e6,
-                "us_per_frame": self.median * 1e6 / self.batch, "p99_us_per_step": float(np.percentile(self.step, 99)) * 1e6,
-                "frames_per_s": self.batch / self.median, "cpu_median_us_per_step": float(np.median(self.cpu)) * 1e6,
-                "frames_per_cpu_s": self.batch / float(np.median(self.cpu)), "floor_median_us": float(np.median(self.floor)) * 1e6,
-                "step_over_floor": self.ratio}
+        return {
+            "batch": self.batch,
+            "median_us_per_step": self.median * 1e6,
+            "us_per_frame": self.median * 1e6 / self.batch,
+            "p99_us_per_step": float(np.percentile(self.step, 99)) * 1e6,
+            "frames_per_s": self.batch / self.median,
+            "cpu_median_us_per_step": float(np.median(self.cpu)) * 1e6,
+            "frames_per_cpu_s": self.batch / float(np.median(self.cpu)),
+            "floor_median_us": float(np.median(self.floor)) * 1e6,
+            "step_over_floor": self.ratio,
+        }
 
     def line(self) -> str:
         d = self.as_dict()
-        return (f"  batch {self.batch:4d}: median {d['median_us_per_step']:8.1f} us/step ({d['us_per_frame']:7.2f} us/frame), "
-                f"p99 {d['p99_us_per_step']:8.1f} us/step, {d['frames_per_s']:8.0f} frames/s | "
-                f"CPU {d['cpu_median_us_per_step']:8.1f} us/step ({d['frames_per_cpu_s']:7.0f} frames/CPU-s) | "
-                f"floor {d['floor_median_us']:7.1f} us, step/floor {d['step_over_floor']:5.2f}")
+        return (
+            f"  batch {self.batch:4d}: median {d['median_us_per_step']:8.1f} us/step ({d['us_per_frame']:7.2f} us/frame), "
+            f"p99 {d['p99_us_per_step']:8.1f} us/step, {d['frames_per_s']:8.0f} frames/s | "
+            f"CPU {d['cpu_median_us_per_step']:8.1f} us/step ({d['frames_per_cpu_s']:7.0f} frames/CPU-s) | "
+            f"floor {d['floor_median_us']:7.1f} us, step/floor {d['step_over_floor']:5.2f}"
+        )
 
 
 def stepper(model, frames: Sequence, weights: np.ndarray, batch: int) -> Callable[[int], None]:
@@ -76,8 +84,9 @@ def stepper(model, frames: Sequence, weights: np.ndarray, batch: int) -> Callabl
     return step
 
 
-def time_steps(batch: int, step: Callable[[int], None], floor: Callable[[], None], repeats: int,
-               warmup: int = 10) -> StepTiming:
+def time_steps(
+    batch: int, step: Callable[[int], None], floor: Callable[[], None], repeats: int, warmup: int = 10
+) -> StepTiming:
     """Time `step(i)` (advances the model one frame; i counts calls) and `floor()` alternately."""
     for i in range(warmup):
         step(i)

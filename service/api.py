@@ -53,14 +53,22 @@ class StyleInfo(BaseModel):
     message: str | None = None
     frames: int | None = Field(default=None, description="Uploaded clip length at 30 fps.")
     source: Literal["bvh", "json"] | None = None
-    skeleton: str | None = Field(default=None, description="Rig of the uploaded clip (bandai-namco, a preset such as cmu or mixamo, or humanoid).")
-    fine_tune: dict | None = Field(default=None, description="Fine-tuning summary: seconds, and for LTI neutral clips and "
-                                   "held-out metrics, for LPN-FiLM the loss on the clip's held-back frames before and after.")
+    skeleton: str | None = Field(
+        default=None,
+        description="Rig of the uploaded clip (bandai-namco, a preset such as cmu or mixamo, or humanoid).",
+    )
+    fine_tune: dict | None = Field(
+        default=None,
+        description="Fine-tuning summary: seconds, and for LTI neutral clips and "
+        "held-out metrics, for LPN-FiLM the loss on the clip's held-back frames before and after.",
+    )
 
 
 class UploadFrames(BaseModel):
     root: list[list[float]] = Field(description="(F, 3) Hips translation, cm")
-    rotations: list[list[list[float]]] = Field(description="(F, 22, 4) local rotations, quaternions xyzw, BN joint order")
+    rotations: list[list[list[float]]] = Field(
+        description="(F, 22, 4) local rotations, quaternions xyzw, BN joint order"
+    )
 
 
 class StyleUpload(BaseModel):

@@ -63,8 +63,12 @@ def create_app(settings: ServiceSettings | None = None, models: dict[str, Stream
         await runtime.stop()
         app.state.runtime = None
 
-    app = FastAPI(title="stylestream", version="0.1.0", lifespan=lifespan,
-                  description="Online motion style transfer over WebSocket. Protocol: docs/protocol.md")
+    app = FastAPI(
+        title="stylestream",
+        version="0.1.0",
+        lifespan=lifespan,
+        description="Online motion style transfer over WebSocket. Protocol: docs/protocol.md",
+    )
     app.state.runtime = None
     app.state.limiter = Limiter(settings)
 

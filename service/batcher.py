@@ -51,7 +51,9 @@ def run_step(model: StreamingModel, requests: list[StepRequest]) -> list[tuple[n
     control = None
     if any(r.control is not None for r in requests):  # rows without control: flag 0, follow the input frames
         control = np.stack([r.control if r.control is not None else np.zeros(5) for r in requests])
-    frames = FrameBatch(np.stack([r.root for r in requests]), np.stack([r.rotations for r in requests]), control=control)
+    frames = FrameBatch(
+        np.stack([r.root for r in requests]), np.stack([r.rotations for r in requests]), control=control
+    )
     names = model.styles()
     out, new_state = model.step_batch(state, frames, np.stack([weight_vector(names, r.weights) for r in requests]))
     states = split_state(new_state)
@@ -88,9 +90,17 @@ class ModelThread:
 
 
 class Batcher:
-    def __init__(self, model: StreamingModel, thread: ModelThread, metrics: Metrics,
-                 wait_s: float = 0.001, max_batch: int = 256, enabled: bool = True,
-                 open_sessions: Callable[[], int] | None = None, inline_max_s: float = 0.005) -> None:
+    def __init__(
+        self,
+        model: StreamingModel,
+        thread: ModelThread,
+        metrics: Metrics,
+        wait_s: float = 0.001,
+        max_batch: int = 256,
+        enabled: bool = True,
+        open_sessions: Callable[[], int] | None = None,
+        inline_max_s: float = 0.005,
+    ) -> None:
         self.model, self.thread = model, thread
         self.metrics = metrics.model(model.name)
         self.wait_s, self.max_batch = wait_s, (max_batch if enabled else 1)
@@ -113,8 +123,14 @@ class Batcher:
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)
 
-    async def step(self, state: State, root: np.ndarray, rotations: np.ndarray, weights: dict[str, float],
-                   control: np.ndarray | None = None):
+    async def step(
+        self,
+        state: State,
+        root: np.ndarray,
+        rotations: np.ndarray,
+        weights: dict[str, float],
+        control: np.ndarray | None = None,
+    ):
         future = asyncio.get_running_loop().create_future()
         self._pending.append(StepRequest(state, root, rotations, weights, future, control))
         if len(self._pending) >= self._want:
@@ -138,7 +154,7 @@ class Batcher:
             except TimeoutError:
                 pass
         self._want = 1
-        batch, self._pending = self._pending[:self.max_batch], self._pending[self.max_batch:]
+        batch, self._pending = self._pending[: self.max_batch], self._pending[self.max_batch :]
         return batch
 
     def _inline(self, size: int) -> bool:
@@ -152,8 +168,9 @@ class Batcher:
                 if self._inline(len(batch)):
                     results = run_step(self.model, batch)
                 else:
-                    results = await asyncio.get_running_loop().run_in_executor(self.thread.executor, run_step,
-                                                                               self.model, batch)
+                    results = await asyncio.get_running_loop().run_in_executor(
+                        self.thread.executor, run_step, self.model, batch
+                    )
             except Exception as exc:  # a model failure fails this batch's frames, never the batcher
                 for req in batch:
                     if not req.future.done():

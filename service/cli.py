@@ -11,8 +11,12 @@ def add_serve_command(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("serve", help="start the HTTP/WebSocket service")
     p.add_argument("--host", help="interface to bind (default 127.0.0.1, or STYLESTREAM_HOST)")
     p.add_argument("--port", type=int, help="port (default 8000, or STYLESTREAM_PORT)")
-    p.add_argument("--workers", type=int, help="server processes on the port (default 1, or STYLESTREAM_WORKERS); "
-                   "more than 1 needs STYLESTREAM_SESSION_STORE=redis://...")
+    p.add_argument(
+        "--workers",
+        type=int,
+        help="server processes on the port (default 1, or STYLESTREAM_WORKERS); "
+        "more than 1 needs STYLESTREAM_SESSION_STORE=redis://...",
+    )
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     p.set_defaults(func=serve_command)
 

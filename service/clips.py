@@ -45,12 +45,17 @@ def motion_from_json(upload: StyleUpload, skeleton: Skeleton) -> tuple[Motion, s
         root = np.asarray(upload.frames.root, dtype=np.float64)
         rot = np.asarray(upload.frames.rotations, dtype=np.float64)
     except ValueError:
-        raise ApiError(422, "bad_frames", "frames must be rectangular arrays: root (F, 3), rotations (F, J, 4)") from None
+        raise ApiError(
+            422, "bad_frames", "frames must be rectangular arrays: root (F, 3), rotations (F, J, 4)"
+        ) from None
     j = skeleton.num_joints
     if root.ndim != 2 or root.shape[1] != 3 or rot.ndim != 3 or rot.shape[1:] != (j, 4) or len(root) != len(rot):
-        raise ApiError(422, "bad_skeleton" if rot.ndim == 3 and rot.shape[1] != j else "bad_frames",
-                       f"expected root (F, 3) and rotations (F, {j}, 4) on the Bandai Namco skeleton "
-                       f"(joints {', '.join(skeleton.names)}); got root {root.shape}, rotations {rot.shape}")
+        raise ApiError(
+            422,
+            "bad_skeleton" if rot.ndim == 3 and rot.shape[1] != j else "bad_frames",
+            f"expected root (F, 3) and rotations (F, {j}, 4) on the Bandai Namco skeleton "
+            f"(joints {', '.join(skeleton.names)}); got root {root.shape}, rotations {rot.shape}",
+        )
     _check_finite(root, rot)
     if np.any(np.linalg.norm(rot, axis=-1) < 1e-6):
         raise ApiError(422, "bad_frames", "a rotation quaternion has (near) zero length")
@@ -69,12 +74,18 @@ def motion_from_bvh(text: str, skeleton: Skeleton) -> tuple[Motion, str]:
     if all(n in src.names for n in skeleton.names):
         idx = [src.index(n) for n in skeleton.names]
         hips = src.index("Hips")
-        return clip_on_skeleton(skeleton, motion.translations[:, hips], motion.rotations[:, idx], motion.fps), "bandai-namco"
+        return clip_on_skeleton(
+            skeleton, motion.translations[:, hips], motion.rotations[:, idx], motion.fps
+        ), "bandai-namco"
     try:
         rig = rig_from_bvh(text, "upload.bvh")
     except RigError as err:
-        raise ApiError(422, "unsupported_skeleton", f"the clip's skeleton is not a humanoid rig I can map: {err.message}") from None
+        raise ApiError(
+            422, "unsupported_skeleton", f"the clip's skeleton is not a humanoid rig I can map: {err.message}"
+        ) from None
     bn = retarget(motion, fps=MODEL_FPS, source=rig)
     idx = [bn.skeleton.index(n) for n in skeleton.names]
     kind = {"cmu-bvh11": "cmu"}.get(rig.preset or "", rig.preset) or "humanoid"
-    return clip_on_skeleton(skeleton, bn.translations[:, bn.skeleton.index("Hips")], bn.rotations[:, idx], MODEL_FPS), kind
+    return clip_on_skeleton(
+        skeleton, bn.translations[:, bn.skeleton.index("Hips")], bn.rotations[:, idx], MODEL_FPS
+    ), kind

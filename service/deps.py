@@ -25,8 +25,11 @@ async def require_token(request: Request) -> Principal:
     """The caller (401 without a valid token), counted against its request rate (429).
     Async, so the limiter's counters are only ever touched on the event loop."""
     limiter = get_limiter(request)
-    who = limiter.identify(request.headers.get("authorization"), request.query_params.get("token"),
-                           request.client.host if request.client else None)
+    who = limiter.identify(
+        request.headers.get("authorization"),
+        request.query_params.get("token"),
+        request.client.host if request.client else None,
+    )
     if who is None:
         raise unauthorized()
     limiter.check_request(who)

@@ -15,8 +15,9 @@ import logging
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
@@ -72,9 +73,14 @@ class JobManager:
         except Exception:  # noqa: BLE001 - a record that cannot be written must not fail the job
             log.exception("could not record job %s", job.id)
 
-    def submit(self, kind: str, fn: Callable[[Callable[[float, str], None]], dict | None], target: str | None = None,
-               on_failure: Callable[[str], None] | None = None,
-               record: Callable[[JobInfo], None] | None = None) -> JobInfo:
+    def submit(
+        self,
+        kind: str,
+        fn: Callable[[Callable[[float, str], None]], dict | None],
+        target: str | None = None,
+        on_failure: Callable[[str], None] | None = None,
+        record: Callable[[JobInfo], None] | None = None,
+    ) -> JobInfo:
         job = JobInfo(id=uuid.uuid4().hex, kind=kind, target=target, created=time.time(), message="queued")
         with self._lock:
             self.jobs[job.id] = job

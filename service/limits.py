@@ -92,9 +92,12 @@ class Limiter:
         s = self.settings
         o = s.token_limits.get(token, TokenLimits()) if token is not None else TokenLimits()
         rate = o.requests_per_s or s.token_requests_per_s
-        return Limits(max_sessions=o.max_sessions or s.token_max_sessions, requests_per_s=rate,
-                      burst=max(1.0, rate * (o.burst_s or s.token_burst_s)),
-                      upload_max_bytes=o.upload_max_bytes or s.upload_max_bytes)
+        return Limits(
+            max_sessions=o.max_sessions or s.token_max_sessions,
+            requests_per_s=rate,
+            burst=max(1.0, rate * (o.burst_s or s.token_burst_s)),
+            upload_max_bytes=o.upload_max_bytes or s.upload_max_bytes,
+        )
 
     def identify(self, authorization: str | None, query_token: str | None, client: str | None) -> Principal | None:
         """The caller, or None when the server has tokens and the request carries none of them."""
@@ -115,17 +118,25 @@ class Limiter:
         if len(self.buckets) > MAX_IDLE_BUCKETS:
             self._forget_full_buckets(now)
         if wait > 0:
-            raise ApiError(429, "rate_limited",
-                                 f"more than {who.limits.requests_per_s:g} requests/s (bursts of {who.limits.burst:g}); "
-                                 f"retry in {wait:.2f} s", {"Retry-After": str(max(1, math.ceil(wait)))})
+            raise ApiError(
+                429,
+                "rate_limited",
+                f"more than {who.limits.requests_per_s:g} requests/s (bursts of {who.limits.burst:g}); "
+                f"retry in {wait:.2f} s",
+                {"Retry-After": str(max(1, math.ceil(wait)))},
+            )
 
     def open_session(self, who: Principal) -> None:
         """Take one of the principal's streaming sessions; raises `too_many_sessions` (close
         1013) when all are taken. Pair with `session_closed`."""
         if self.sessions[who.key] >= who.limits.max_sessions:
             holder = "this token" if who.key.startswith("token:") else "this client address"
-            raise P.ProtocolError("too_many_sessions", f"{holder} already holds its maximum of "
-                                  f"{who.limits.max_sessions} sessions", fatal=True, close_code=CLOSE_TRY_AGAIN_LATER)
+            raise P.ProtocolError(
+                "too_many_sessions",
+                f"{holder} already holds its maximum of {who.limits.max_sessions} sessions",
+                fatal=True,
+                close_code=CLOSE_TRY_AGAIN_LATER,
+            )
         self.sessions[who.key] += 1
 
     def session_closed(self, who: Principal) -> None:
@@ -135,7 +146,9 @@ class Limiter:
 
     def _forget_full_buckets(self, now: float) -> None:
         """Drop buckets that have refilled: forgetting a full bucket changes nothing."""
+
         def full(key: str, b: Bucket) -> bool:
             lim = self.limits_for(key[6:] if key.startswith("token:") else None)
             return b.tokens + (now - b.at) * lim.requests_per_s >= lim.burst
+
         self.buckets = {k: b for k, b in self.buckets.items() if not full(k, b)}

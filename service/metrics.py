@@ -16,8 +16,16 @@ import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from prometheus_client import (CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, GCCollector, Histogram,
-                               ProcessCollector, generate_latest)
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    GCCollector,
+    Histogram,
+    ProcessCollector,
+    generate_latest,
+)
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.multiprocess import MultiProcessCollector
 
@@ -42,27 +50,56 @@ class Metrics:
     def __init__(self) -> None:
         self._per_model: dict[str, ModelMetrics] = {}
         self.registry = CollectorRegistry()
-        self.frame_latency = Histogram("stylestream_frame_latency_seconds",
-                                       "Server-side time from a frame's arrival to its reply being sent",
-                                       ["model"], buckets=LATENCY_BUCKETS, registry=self.registry)
-        self.step_latency = Histogram("stylestream_step_seconds", "Time of one batched model step",
-                                      ["model"], buckets=LATENCY_BUCKETS, registry=self.registry)
-        self.batch_size = Histogram("stylestream_batch_size", "Sessions per batched step", ["model"],
-                                    buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512), registry=self.registry)
-        self.active_sessions = Gauge("stylestream_active_sessions", "Open streaming sessions", ["model"],
-                                     registry=self.registry, multiprocess_mode="livesum")
-        self.dropped_frames = Counter("stylestream_dropped_frames_total", "Frames dropped by backpressure",
-                                      ["model"], registry=self.registry)
+        self.frame_latency = Histogram(
+            "stylestream_frame_latency_seconds",
+            "Server-side time from a frame's arrival to its reply being sent",
+            ["model"],
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.step_latency = Histogram(
+            "stylestream_step_seconds",
+            "Time of one batched model step",
+            ["model"],
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.batch_size = Histogram(
+            "stylestream_batch_size",
+            "Sessions per batched step",
+            ["model"],
+            buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512),
+            registry=self.registry,
+        )
+        self.active_sessions = Gauge(
+            "stylestream_active_sessions",
+            "Open streaming sessions",
+            ["model"],
+            registry=self.registry,
+            multiprocess_mode="livesum",
+        )
+        self.dropped_frames = Counter(
+            "stylestream_dropped_frames_total", "Frames dropped by backpressure", ["model"], registry=self.registry
+        )
         self.errors = Counter("stylestream_errors_total", "Client errors by code", ["code"], registry=self.registry)
         self.frames = Counter("stylestream_frames_total", "Frames stylised", ["model"], registry=self.registry)
-        self.snapshots = Counter("stylestream_snapshots_total", "Session snapshots written to the store",
-                                 registry=self.registry)
-        self.snapshot_failures = Counter("stylestream_snapshot_failures_total",
-                                         "Snapshot writes that failed (store unreachable); retried", registry=self.registry)
-        self.snapshot_seconds = Histogram("stylestream_snapshot_write_seconds", "One batched write of snapshots to the store",
-                                          buckets=LATENCY_BUCKETS, registry=self.registry)
-        self.resumes = Counter("stylestream_sessions_resumed_total", "Sessions resumed from a snapshot",
-                               registry=self.registry)
+        self.snapshots = Counter(
+            "stylestream_snapshots_total", "Session snapshots written to the store", registry=self.registry
+        )
+        self.snapshot_failures = Counter(
+            "stylestream_snapshot_failures_total",
+            "Snapshot writes that failed (store unreachable); retried",
+            registry=self.registry,
+        )
+        self.snapshot_seconds = Histogram(
+            "stylestream_snapshot_write_seconds",
+            "One batched write of snapshots to the store",
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.resumes = Counter(
+            "stylestream_sessions_resumed_total", "Sessions resumed from a snapshot", registry=self.registry
+        )
         # memory, for Prometheus and the soak test: process RSS/CPU/fds and the Python heap, this process's own
         self.process_registry = CollectorRegistry()
         ProcessCollector(registry=self.process_registry)
@@ -86,8 +123,12 @@ class Metrics:
         children = self._per_model.get(name)
         if children is None:
             children = self._per_model[name] = ModelMetrics(
-                self.frame_latency.labels(name), self.frames.labels(name), self.dropped_frames.labels(name),
-                self.step_latency.labels(name), self.batch_size.labels(name))
+                self.frame_latency.labels(name),
+                self.frames.labels(name),
+                self.dropped_frames.labels(name),
+                self.step_latency.labels(name),
+                self.batch_size.labels(name),
+            )
         return children
 
 
@@ -97,5 +138,8 @@ class PythonHeapCollector:
     file of it: it is read at scrape time in the process that answers."""
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
-        yield GaugeMetricFamily("stylestream_python_allocated_blocks",
-                                "Memory blocks held by Python's allocator (heap size proxy)", value=sys.getallocatedblocks())
+        yield GaugeMetricFamily(
+            "stylestream_python_allocated_blocks",
+            "Memory blocks held by Python's allocator (heap size proxy)",
+            value=sys.getallocatedblocks(),
+        )

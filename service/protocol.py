@@ -13,7 +13,7 @@ a fixed little-endian layout, header then float32 payload:
 from __future__ import annotations
 
 import struct
-from typing import Annotated, Literal, Union
+from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, field_validator
@@ -56,10 +56,18 @@ class Start(_Message):
     # a preset rig (models.motion.humanoid_presets); Literal of a tuple: pydantic reads it, mypy cannot
     skeleton: Literal[PRESET_NAMES] | None = "bandai-namco"  # type: ignore[valid-type]
     joints: list[Annotated[str, Field(max_length=200)]] | None = Field(
-        default=None, max_length=1024, description="with `skeleton`: the preset's joints the frames carry, in their order")
-    bvh_header: str | None = Field(default=None, max_length=200_000, description="BVH HIERARCHY text, instead of `skeleton`")
+        default=None,
+        max_length=1024,
+        description="with `skeleton`: the preset's joints the frames carry, in their order",
+    )
+    bvh_header: str | None = Field(
+        default=None, max_length=200_000, description="BVH HIERARCHY text, instead of `skeleton`"
+    )
     joint_map: dict[str, Literal[ROLES] | None] | None = Field(  # type: ignore[valid-type]
-        default=None, max_length=1024, description="{client joint: body role or null}: completes or overrides the name matching")
+        default=None,
+        max_length=1024,
+        description="{client joint: body role or null}: completes or overrides the name matching",
+    )
     units: Literal["m", "dm", "cm", "mm", "in"] | None = None  # default: read from the leg length
     up: Literal["y", "z"] | None = None  # default: read from a standing rest pose, else y
     handedness: Literal["right", "left"] = "right"
@@ -70,9 +78,17 @@ class Start(_Message):
 
     def rig_options(self) -> dict:
         """The rig choices beyond `skeleton` and `bvh_header` (kept with the session for resumes)."""
-        return {k: v for k, v in (("joints", self.joints), ("joint_map", self.joint_map), ("units", self.units),
-                                  ("up", self.up), ("handedness", self.handedness)) if v is not None and
-                (k != "handedness" or v != "right")}
+        return {
+            k: v
+            for k, v in (
+                ("joints", self.joints),
+                ("joint_map", self.joint_map),
+                ("units", self.units),
+                ("up", self.up),
+                ("handedness", self.handedness),
+            )
+            if v is not None and (k != "handedness" or v != "right")
+        }
 
     @field_validator("version")
     @classmethod
@@ -107,7 +123,8 @@ class Control(_Message):
     type: Literal["control"]
     seq: int = Field(ge=0, lt=2**32)
     velocity: list[Annotated[float, Field(ge=-MAX_CONTROL_SPEED, le=MAX_CONTROL_SPEED, allow_inf_nan=False)]] = Field(
-        min_length=2, max_length=2)
+        min_length=2, max_length=2
+    )
     facing: float = Field(ge=-1e4, le=1e4, allow_inf_nan=False)
     gait: Literal["walk", "run"] = "walk"
 
@@ -120,7 +137,7 @@ class End(_Message):
     type: Literal["end"]
 
 
-ClientMessage = Annotated[Union[Start, Frame, Control, SetStyle, Reset, End], Field(discriminator="type")]
+ClientMessage = Annotated[Start | Frame | Control | SetStyle | Reset | End, Field(discriminator="type")]
 client_message = TypeAdapter(ClientMessage)
 
 
@@ -180,9 +197,12 @@ def check_values(root: np.ndarray, rot: np.ndarray, seq: int) -> tuple[np.ndarra
     return root_out, rot_out
 
 
-_FRAME_CHECK_ERRORS = {FC.NOT_FINITE: "frame contains NaN or Inf", FC.ZERO_QUATERNION: "zero-length quaternion",
-                       FC.QUATERNION_RANGE: "quaternion components out of range",
-                       FC.ROOT_RANGE: "root translation out of range"}
+_FRAME_CHECK_ERRORS = {
+    FC.NOT_FINITE: "frame contains NaN or Inf",
+    FC.ZERO_QUATERNION: "zero-length quaternion",
+    FC.QUATERNION_RANGE: "quaternion components out of range",
+    FC.ROOT_RANGE: "root translation out of range",
+}
 
 
 def binary_frame_size(num_joints: int) -> int:
@@ -197,7 +217,9 @@ def decode_binary(data: bytes, num_joints: int) -> tuple[int, np.ndarray, np.nda
     if kind != KIND_FRAME:
         raise ProtocolError("bad_frame", f"unknown binary message kind {kind}", seq)
     if len(data) != expected:
-        raise ProtocolError("bad_frame", f"binary frame must be {expected} bytes for {num_joints} joints, got {len(data)}", seq)
+        raise ProtocolError(
+            "bad_frame", f"binary frame must be {expected} bytes for {num_joints} joints, got {len(data)}", seq
+        )
     payload = np.frombuffer(data, dtype="<f4", offset=BINARY_HEADER.size)  # a view; the check copies to float64
     root, rot = check_values(payload[:3], payload[3:].reshape(num_joints, 4), seq)
     return seq, root, rot

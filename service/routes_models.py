@@ -11,9 +11,15 @@ from .runtime import Runtime
 router = APIRouter()
 
 
-@router.get("/v1/models", response_model=list[ModelInfo], dependencies=[Depends(require_token)],
-            responses=error_responses(401, 429))
+@router.get(
+    "/v1/models",
+    response_model=list[ModelInfo],
+    dependencies=[Depends(require_token)],
+    responses=error_responses(401, 429),
+)
 async def list_models(rt: Runtime = Depends(get_runtime)) -> list[ModelInfo]:
     await rt.styles.refresh()  # a styles folder shared with other replicas: what it holds now
-    return [ModelInfo(name=n, styles=m.styles(), joints=list(m.skeleton.names), controllable=m.controllable)
-            for n, m in rt.models.items()]
+    return [
+        ModelInfo(name=n, styles=m.styles(), joints=list(m.skeleton.names), controllable=m.controllable)
+        for n, m in rt.models.items()
+    ]

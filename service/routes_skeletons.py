@@ -27,7 +27,9 @@ class SkeletonCheck(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     skeleton: str | None = Field(default=None, description=f"a preset: {', '.join(PRESET_NAMES)}")
-    joints: list[str] | None = Field(default=None, max_length=1024, description="with `skeleton`: the joints frames carry")
+    joints: list[str] | None = Field(
+        default=None, max_length=1024, description="with `skeleton`: the joints frames carry"
+    )
     bvh_header: str | None = Field(default=None, max_length=2_000_000, description="BVH hierarchy, or a whole BVH file")
     joint_map: dict[str, str | None] | None = None
     units: str | None = None
@@ -98,13 +100,21 @@ def _preview(body: SkeletonCheck, rig: HumanoidRig) -> bytes:
         model = Motion(bn.skeleton, local, bn_trans, 30.0)
     frames = 4 if clip.num_frames > 1 else 1
     with tempfile.TemporaryDirectory() as tmp:
-        path = render_contact_sheet([in_model_world(clip, rig), model], Path(tmp) / "preview.png", frames=frames,
-                                    titles=[rig.preset or "client rig", "model skeleton"], panel_size=2.2)
+        path = render_contact_sheet(
+            [in_model_world(clip, rig), model],
+            Path(tmp) / "preview.png",
+            frames=frames,
+            titles=[rig.preset or "client rig", "model skeleton"],
+            panel_size=2.2,
+        )
         return path.read_bytes()
 
 
-@router.post("/v1/skeletons", response_model=SkeletonReport,
-             responses={422: {"model": RigProblem}, 200: {"content": {"image/png": {}}}})
+@router.post(
+    "/v1/skeletons",
+    response_model=SkeletonReport,
+    responses={422: {"model": RigProblem}, 200: {"content": {"image/png": {}}}},
+)
 async def check_skeleton(body: SkeletonCheck, preview: bool = Query(default=False)) -> Response:
     """The mapping a session with these rig fields would use, or why it cannot be mapped; a PNG
     preview of the mapped rig with `preview=true`."""
@@ -115,4 +125,3 @@ async def check_skeleton(body: SkeletonCheck, preview: bool = Query(default=Fals
     if preview:
         return Response(await run_in_threadpool(_preview, body, rig), media_type="image/png")
     return JSONResponse(rig.report())
-

@@ -20,8 +20,9 @@ router = APIRouter()
 async def stream(ws: WebSocket) -> None:
     await ws.accept()
     limiter = get_limiter(ws)
-    who = limiter.identify(ws.headers.get("authorization"), ws.query_params.get("token"),
-                           ws.client.host if ws.client else None)
+    who = limiter.identify(
+        ws.headers.get("authorization"), ws.query_params.get("token"), ws.client.host if ws.client else None
+    )
     if who is None:
         await ws.close(CLOSE_UNAUTHORIZED, "missing or invalid API token")
         return

@@ -21,12 +21,30 @@ from .runtime import Runtime
 
 router = APIRouter()
 ERRORS = error_responses(401, 404, 409, 413, 422, 429)
-UPLOAD_BODY: dict[str, Any] = {"requestBody": {"required": True, "content": {
-    "application/json": {"schema": StyleUpload.model_json_schema()},
-    "multipart/form-data": {"schema": {"type": "object", "required": ["file", "name"], "properties": {
-        "file": {"type": "string", "format": "binary", "description": "BVH clip (Bandai Namco or CMU skeleton)"},
-        "name": {"type": "string"}, "model": {"type": "string", "default": "lti"},
-        "fine_tune": {"type": "boolean", "default": False}}}}}}}
+UPLOAD_BODY: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/json": {"schema": StyleUpload.model_json_schema()},
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["file", "name"],
+                    "properties": {
+                        "file": {
+                            "type": "string",
+                            "format": "binary",
+                            "description": "BVH clip (Bandai Namco or CMU skeleton)",
+                        },
+                        "name": {"type": "string"},
+                        "model": {"type": "string", "default": "lti"},
+                        "fine_tune": {"type": "boolean", "default": False},
+                    },
+                }
+            },
+        },
+    }
+}
 
 
 async def _read_limited(request: Request, limit: int) -> bytes:
@@ -61,11 +79,23 @@ async def delete_style(style_id: str, rt: Runtime = Depends(get_runtime)) -> Res
     return Response(status_code=204)
 
 
-@router.post("/v1/styles", response_model=UploadAccepted, status_code=202, dependencies=[Depends(require_token)],
-             responses=ERRORS, openapi_extra=UPLOAD_BODY)
-async def upload_style(request: Request, response: Response, fine_tune: bool | None = Query(default=None),
-                       name: str | None = Query(default=None), model: str | None = Query(default=None),
-                       rt: Runtime = Depends(get_runtime), who: Principal = Depends(require_token)) -> UploadAccepted:
+@router.post(
+    "/v1/styles",
+    response_model=UploadAccepted,
+    status_code=202,
+    dependencies=[Depends(require_token)],
+    responses=ERRORS,
+    openapi_extra=UPLOAD_BODY,
+)
+async def upload_style(
+    request: Request,
+    response: Response,
+    fine_tune: bool | None = Query(default=None),
+    name: str | None = Query(default=None),
+    model: str | None = Query(default=None),
+    rt: Runtime = Depends(get_runtime),
+    who: Principal = Depends(require_token),
+) -> UploadAccepted:
     """Upload a clip as a new style: multipart BVH (`file`) or JSON frames. LTI styles need
     `fine_tune=true`, which starts the identification job (`GET /v1/jobs/{id}`), answered 202;
     an LPN-FiLM style is the clip's FiLM embedding, ready at once, answered 201, with
@@ -77,8 +107,10 @@ async def upload_style(request: Request, response: Response, fine_tune: bool | N
     read_clip: Callable[[Skeleton], tuple[Motion, str]]
     source: Literal["bvh", "json"]
     if ctype.startswith("multipart/form-data"):
+
         async def receive() -> dict:
             return {"type": "http.request", "body": body, "more_body": False}
+
         try:
             form = await Request(request.scope, receive).form()
         except Exception as exc:  # noqa: BLE001

@@ -48,19 +48,36 @@ def warm_up(model: StreamingModel) -> None:
     rotations = np.zeros((1, len(model.skeleton.names), 4))
     rotations[..., 3] = 1.0
     styles = model.styles()
-    model.step_batch(model.init_state(1), FrameBatch(np.zeros((1, 3)), rotations),
-                     np.stack([weight_vector(styles, {styles[0]: 1.0} if styles else {})]))
+    model.step_batch(
+        model.init_state(1),
+        FrameBatch(np.zeros((1, 3)), rotations),
+        np.stack([weight_vector(styles, {styles[0]: 1.0} if styles else {})]),
+    )
 
 
 class Runtime:
-    def __init__(self, settings: ServiceSettings, models: dict[str, StreamingModel], model_thread: ModelThread,
-                 styles: StyleStore) -> None:
+    def __init__(
+        self,
+        settings: ServiceSettings,
+        models: dict[str, StreamingModel],
+        model_thread: ModelThread,
+        styles: StyleStore,
+    ) -> None:
         self.settings, self.models, self.model_thread, self.styles = settings, models, model_thread, styles
         self.metrics = Metrics()
-        self.batchers = {name: Batcher(model, self.model_thread, self.metrics, wait_s=settings.batch_wait_ms / 1000,
-                                       max_batch=settings.max_batch, enabled=settings.batching,
-                                       open_sessions=self._counter(name), inline_max_s=settings.step_inline_max_ms / 1000)
-                         for name, model in self.models.items()}
+        self.batchers = {
+            name: Batcher(
+                model,
+                self.model_thread,
+                self.metrics,
+                wait_s=settings.batch_wait_ms / 1000,
+                max_batch=settings.max_batch,
+                enabled=settings.batching,
+                open_sessions=self._counter(name),
+                inline_max_s=settings.step_inline_max_ms / 1000,
+            )
+            for name, model in self.models.items()
+        }
         self.sessions: dict[str, Session] = {}
         self._open_per_model: Counter[str] = Counter()
         self.connections: dict[str, Drainable] = {}  # by session id
@@ -112,20 +129,27 @@ class Runtime:
 
     def _refuse_if_draining(self) -> None:
         if self.draining:
-            raise P.ProtocolError("draining", "this replica is shutting down; connect again (another replica "
-                                  "takes the session)", close_code=1012)
+            raise P.ProtocolError(
+                "draining",
+                "this replica is shutting down; connect again (another replica takes the session)",
+                close_code=1012,
+            )
 
     async def open_session(self, start: P.Start) -> Session:
         self._refuse_if_draining()
         if len(self.sessions) >= self.settings.max_sessions:
-            raise P.ProtocolError("too_many_sessions", f"server holds its maximum of {self.settings.max_sessions} sessions",
-                                  close_code=1013)
+            raise P.ProtocolError(
+                "too_many_sessions",
+                f"server holds its maximum of {self.settings.max_sessions} sessions",
+                close_code=1013,
+            )
         if start.resume_token:
             try:
                 snap = await self.snapshots.get(start.resume_token)
             except StoreUnavailable:
-                raise P.ProtocolError("store_unavailable", "the session store cannot be reached; try again",
-                                      close_code=1013) from None
+                raise P.ProtocolError(
+                    "store_unavailable", "the session store cannot be reached; try again", close_code=1013
+                ) from None
             if snap is None:
                 raise P.ProtocolError("unknown_resume_token", "resume token unknown or expired")
             self._refuse_if_draining()  # checked again after the await: a drain may have begun meanwhile
@@ -139,12 +163,23 @@ class Runtime:
         else:
             model = self.models.get(start.model)
             if model is None:
-                raise P.ProtocolError("unknown_model", f"unknown model {start.model!r}; available: {', '.join(self.models) or 'none'}")
+                raise P.ProtocolError(
+                    "unknown_model", f"unknown model {start.model!r}; available: {', '.join(self.models) or 'none'}"
+                )
             await self.styles.ensure_known(start.model, P.mix_of(start.style, start.mix))
             weights = P.requested_weights(model, start.style, start.mix, start.intensity)
-            session = Session(model=model, skeleton=start.skeleton or "custom", fps=start.fps, encoding=start.encoding,
-                              weights=weights, target=dict(weights), state=model.init_state(1), bvh_header=start.bvh_header, rig=start.rig_options(),
-                              queue_size=self.settings.session_queue)
+            session = Session(
+                model=model,
+                skeleton=start.skeleton or "custom",
+                fps=start.fps,
+                encoding=start.encoding,
+                weights=weights,
+                target=dict(weights),
+                state=model.init_state(1),
+                bvh_header=start.bvh_header,
+                rig=start.rig_options(),
+                queue_size=self.settings.session_queue,
+            )
         self.sessions[session.id] = session
         self._open_per_model[session.model.name] += 1
         self.metrics.active_sessions.labels(session.model.name).inc()

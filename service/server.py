@@ -41,7 +41,12 @@ class DrainingServer(uvicorn.Server):
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
         """Signal handler (main thread, between bytecodes of the loop): schedule the drain."""
         runtime: Runtime | None = self.app.state.runtime  # None until the app has started
-        if self._drain_task is not None or runtime is None or self._loop is None or sig not in (signal.SIGTERM, signal.SIGINT):
+        if (
+            self._drain_task is not None
+            or runtime is None
+            or self._loop is None
+            or sig not in (signal.SIGTERM, signal.SIGINT)
+        ):
             super().handle_exit(sig, frame)  # second signal, or nothing to drain: uvicorn's own way
             return
         self._loop.call_soon_threadsafe(self._start_drain, self._loop, sig, runtime)
@@ -81,9 +86,14 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> None:
 def serve_once(settings: ServiceSettings, log_level: str = "info", sockets: list | None = None) -> None:
     """This process as one server: on `sockets` if given (a worker's SO_REUSEPORT socket)."""
     app = create_app(settings)
-    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=log_level,
-                            ws_max_size=4 * settings.max_message_bytes,  # larger ones get a typed error, not a bare close
-                            ws_per_message_deflate=False,  # compressing ~400-byte frames costs more CPU than it saves
-                            timeout_graceful_shutdown=max(1, round(0.15 * settings.drain_timeout_s)))
+    config = uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_level=log_level,
+        ws_max_size=4 * settings.max_message_bytes,  # larger ones get a typed error, not a bare close
+        ws_per_message_deflate=False,  # compressing ~400-byte frames costs more CPU than it saves
+        timeout_graceful_shutdown=max(1, round(0.15 * settings.drain_timeout_s)),
+    )
     configure_logging()  # session lines with their ids, probes at debug (uvicorn.Config has just set logging up)
     DrainingServer(config, app, settings.drain_timeout_s).run(sockets=sockets)

@@ -47,7 +47,7 @@ class SessionStore(ABC):
     async def write(self, puts: dict[str, Snapshot], deletes: list[str]) -> None:
         """Store `puts` and remove `deletes` in one go; StoreUnavailable on failure."""
 
-    async def close(self) -> None:
+    async def close(self) -> None:  # noqa: B027 - optional: a store without connections has nothing to release
         """Release connections."""
 
 
@@ -91,8 +91,9 @@ class RedisStore(SessionStore):
 
         super().__init__(ttl_s)
         self.url = url
-        self.redis = Redis.from_url(url, socket_timeout=timeout_s, socket_connect_timeout=timeout_s,
-                                    retry=Retry(NoBackoff(), 1))
+        self.redis = Redis.from_url(
+            url, socket_timeout=timeout_s, socket_connect_timeout=timeout_s, retry=Retry(NoBackoff(), 1)
+        )
 
     async def get(self, token: str) -> Snapshot | None:
         from redis.exceptions import RedisError

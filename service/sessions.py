@@ -73,11 +73,19 @@ class Snapshot:
     # the reply to frame `last_seq` (root, rotations in the client's skeleton), for a client whose
     # copy was lost with the connection; empty before the first frame
     last_output: dict[str, np.ndarray] = field(default_factory=dict)
-    rig: dict = field(default_factory=dict)  # the start message's rig options (joints, joint_map, units, up, handedness)
+    rig: dict = field(
+        default_factory=dict
+    )  # the start message's rig options (joints, joint_map, units, up, handedness)
 
     def to_json(self) -> str:
-        return json.dumps({**self.__dict__, "held": encode_state(self.held), "state": encode_state(self.state),
-                           "last_output": encode_state(self.last_output)})
+        return json.dumps(
+            {
+                **self.__dict__,
+                "held": encode_state(self.held),
+                "state": encode_state(self.state),
+                "last_output": encode_state(self.last_output),
+            }
+        )
 
     @classmethod
     def from_json(cls, text: str | bytes) -> Snapshot:
@@ -93,14 +101,21 @@ def encode_state(state: State) -> dict[str, dict]:
     out = {}
     for name, value in state.items():
         array = np.ascontiguousarray(value)
-        out[name] = {"dtype": array.dtype.str, "shape": list(array.shape),
-                     "data": base64.b64encode(array.tobytes()).decode("ascii")}
+        out[name] = {
+            "dtype": array.dtype.str,
+            "shape": list(array.shape),
+            "data": base64.b64encode(array.tobytes()).decode("ascii"),
+        }
     return out
 
 
 def decode_state(data: dict[str, dict]) -> State:
-    return {name: np.frombuffer(base64.b64decode(entry["data"]), dtype=np.dtype(entry["dtype"]))
-            .reshape(entry["shape"]).copy() for name, entry in data.items()}
+    return {
+        name: np.frombuffer(base64.b64decode(entry["data"]), dtype=np.dtype(entry["dtype"]))
+        .reshape(entry["shape"])
+        .copy()
+        for name, entry in data.items()
+    }
 
 
 @dataclass
@@ -139,8 +154,9 @@ class Session:
         """Style weights for the next frame: a linear ramp over the remaining transition frames."""
         if self.transition_left > 0:
             cur, tgt = self.weights, self.target
-            self.weights = {k: cur.get(k, 0.0) + (tgt.get(k, 0.0) - cur.get(k, 0.0)) / self.transition_left
-                            for k in {**cur, **tgt}}
+            self.weights = {
+                k: cur.get(k, 0.0) + (tgt.get(k, 0.0) - cur.get(k, 0.0)) / self.transition_left for k in {**cur, **tgt}
+            }
             self.transition_left -= 1
         return dict(self.weights)
 
@@ -209,18 +225,44 @@ class Session:
         return True
 
     def snapshot(self) -> Snapshot:
-        return Snapshot(session_id=self.id, token=self.token, model=self.model.name, skeleton=self.skeleton,
-                        bvh_header=self.bvh_header, fps=self.fps, encoding=self.encoding,
-                        weights=dict(self.weights), target=dict(self.target),
-                        transition_left=self.transition_left, last_seq=self.last_seq, clock=self.clock,
-                        held={} if self.held is None else self.held._asdict(),
-                        state=self.state, saved_at=time.time(), last_output=dict(self.last_output), rig=dict(self.rig))
+        return Snapshot(
+            session_id=self.id,
+            token=self.token,
+            model=self.model.name,
+            skeleton=self.skeleton,
+            bvh_header=self.bvh_header,
+            fps=self.fps,
+            encoding=self.encoding,
+            weights=dict(self.weights),
+            target=dict(self.target),
+            transition_left=self.transition_left,
+            last_seq=self.last_seq,
+            clock=self.clock,
+            held={} if self.held is None else self.held._asdict(),
+            state=self.state,
+            saved_at=time.time(),
+            last_output=dict(self.last_output),
+            rig=dict(self.rig),
+        )
 
     @classmethod
     def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int) -> Session:
-        return cls(model=model, skeleton=snap.skeleton, fps=snap.fps, encoding=snap.encoding,
-                   weights=dict(snap.weights), state=dict(snap.state), bvh_header=snap.bvh_header,
-                   id=snap.session_id, token=snap.token, target=dict(snap.target),
-                   transition_left=snap.transition_left, last_seq=snap.last_seq, queue_size=queue_size,
-                   clock=snap.clock, held=Held(**snap.held) if snap.held else None,
-                   last_output=dict(snap.last_output), rig=dict(snap.rig))
+        return cls(
+            model=model,
+            skeleton=snap.skeleton,
+            fps=snap.fps,
+            encoding=snap.encoding,
+            weights=dict(snap.weights),
+            state=dict(snap.state),
+            bvh_header=snap.bvh_header,
+            id=snap.session_id,
+            token=snap.token,
+            target=dict(snap.target),
+            transition_left=snap.transition_left,
+            last_seq=snap.last_seq,
+            queue_size=queue_size,
+            clock=snap.clock,
+            held=Held(**snap.held) if snap.held else None,
+            last_output=dict(snap.last_output),
+            rig=dict(snap.rig),
+        )

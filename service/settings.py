@@ -24,14 +24,29 @@ class TokenLimits(BaseModel):
 class ServiceSettings(Settings):
     host: str = Field(default="127.0.0.1", description="Interface to bind.")
     port: int = Field(default=8000, ge=1, le=65535)
-    torch_threads: int = Field(default=1, ge=1, description="Intra-op threads; 1 leaves the other core to the event loop.")
+    torch_threads: int = Field(
+        default=1, ge=1, description="Intra-op threads; 1 leaves the other core to the event loop."
+    )
     blas_threads: int = Field(default=1, ge=1, description="numpy BLAS threads (threadpoolctl), for the same reason.")
-    batching: bool = Field(default=True, description="Cross-session batching; off = one step per frame (for benchmarks).")
-    batch_wait_ms: float = Field(default=1.0, ge=0, le=50, description="How long a batch waits for more sessions' frames.")
-    step_inline_max_ms: float = Field(default=5.0, ge=0, description="Model steps predicted shorter than this run on "
-                                      "the event loop (no thread hop); longer ones on the model thread. 0: always the thread.")
-    workers: int = Field(default=1, ge=1, le=64, description="Server processes sharing the port (SO_REUSEPORT), each "
-                         "with its own batcher; resume across them needs a shared session_store (redis://).")
+    batching: bool = Field(
+        default=True, description="Cross-session batching; off = one step per frame (for benchmarks)."
+    )
+    batch_wait_ms: float = Field(
+        default=1.0, ge=0, le=50, description="How long a batch waits for more sessions' frames."
+    )
+    step_inline_max_ms: float = Field(
+        default=5.0,
+        ge=0,
+        description="Model steps predicted shorter than this run on "
+        "the event loop (no thread hop); longer ones on the model thread. 0: always the thread.",
+    )
+    workers: int = Field(
+        default=1,
+        ge=1,
+        le=64,
+        description="Server processes sharing the port (SO_REUSEPORT), each "
+        "with its own batcher; resume across them needs a shared session_store (redis://).",
+    )
     max_batch: int = Field(default=256, ge=1)
     max_sessions: int = Field(default=1024, ge=1)
     session_queue: int = Field(default=8, ge=1, description="Frames queued per session before the oldest are dropped.")
@@ -39,38 +54,76 @@ class ServiceSettings(Settings):
     max_message_bytes: int = Field(default=256 * 1024, ge=1024, description="Largest WebSocket message accepted.")
     snapshot_every: int = Field(default=30, ge=1, description="Frames between session snapshots (for resume).")
     resume_ttl_s: float = Field(default=600.0, gt=0, description="How long a closed session can be resumed.")
-    session_store: str = Field(default="memory", pattern=r"^(memory|(redis|rediss|unix)://.*)$",
-                               description="Where snapshots live: 'memory' (this replica) or redis://host:port/db (shared).")
-    drain_timeout_s: float = Field(default=15.0, gt=0, le=600,
-                                   description="On SIGTERM: snapshot and close every session, then exit within this.")
-    api_tokens: list[str] = Field(default_factory=list, description="When set, every request needs one (Bearer or ?token=).")
-    token_max_sessions: int = Field(default=1024, ge=1, description="Per token (per client address without tokens): "
-                                    "concurrent streaming sessions (1013 above); by default as many as the server holds.")
-    token_requests_per_s: float = Field(default=20.0, gt=0, allow_inf_nan=False,
-                                        description="Per token: REST requests per second, a token bucket (429 above).")
-    token_burst_s: float = Field(default=2.0, gt=0, allow_inf_nan=False, description="Per token: bursts of up to "
-                                "this many seconds' worth of requests pass at once (the bucket's size).")
-    token_limits: dict[str, TokenLimits] = Field(default_factory=dict, description="Per-token overrides, JSON: "
-                                                 '{"tok": {"max_sessions": 4, "requests_per_s": 5, "upload_max_bytes": 1000000}}.')
-    styles_dir: Path = Field(default=REPO_ROOT / ".data" / "styles", description="Uploaded styles (clip, translator, metadata).")
-    styles_refresh_s: float = Field(default=0.0, ge=0, le=3600, allow_inf_nan=False, description="Replicas sharing "
-                                    "one styles_dir: rescan it this often (seconds) for styles the others added, "
-                                    "fine-tuned or deleted; 0 = the folder is this server's own.")
-    upload_max_bytes: int = Field(default=16 * 1024 * 1024, ge=1024, description="Largest style upload body accepted (413 above).")
+    session_store: str = Field(
+        default="memory",
+        pattern=r"^(memory|(redis|rediss|unix)://.*)$",
+        description="Where snapshots live: 'memory' (this replica) or redis://host:port/db (shared).",
+    )
+    drain_timeout_s: float = Field(
+        default=15.0, gt=0, le=600, description="On SIGTERM: snapshot and close every session, then exit within this."
+    )
+    api_tokens: list[str] = Field(
+        default_factory=list, description="When set, every request needs one (Bearer or ?token=)."
+    )
+    token_max_sessions: int = Field(
+        default=1024,
+        ge=1,
+        description="Per token (per client address without tokens): "
+        "concurrent streaming sessions (1013 above); by default as many as the server holds.",
+    )
+    token_requests_per_s: float = Field(
+        default=20.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Per token: REST requests per second, a token bucket (429 above).",
+    )
+    token_burst_s: float = Field(
+        default=2.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Per token: bursts of up to this many seconds' worth of requests pass at once (the bucket's size).",
+    )
+    token_limits: dict[str, TokenLimits] = Field(
+        default_factory=dict,
+        description="Per-token overrides, JSON: "
+        '{"tok": {"max_sessions": 4, "requests_per_s": 5, "upload_max_bytes": 1000000}}.',
+    )
+    styles_dir: Path = Field(
+        default=REPO_ROOT / ".data" / "styles", description="Uploaded styles (clip, translator, metadata)."
+    )
+    styles_refresh_s: float = Field(
+        default=0.0,
+        ge=0,
+        le=3600,
+        allow_inf_nan=False,
+        description="Replicas sharing "
+        "one styles_dir: rescan it this often (seconds) for styles the others added, "
+        "fine-tuned or deleted; 0 = the folder is this server's own.",
+    )
+    upload_max_bytes: int = Field(
+        default=16 * 1024 * 1024, ge=1024, description="Largest style upload body accepted (413 above)."
+    )
     upload_min_frames: int = Field(default=60, ge=30, description="Shortest uploaded clip, in frames at 30 fps.")
     upload_max_frames: int = Field(default=9000, ge=60, description="Longest uploaded clip, in frames at 30 fps.")
-    lpn_fine_tune_steps: int = Field(default=300, ge=1, le=5000, description="Adam steps of an LPN-FiLM style's "
-                                     "fine-tune job (FiLM generator on the uploaded clip, network frozen; ~20-30 s at 300).")
+    lpn_fine_tune_steps: int = Field(
+        default=300,
+        ge=1,
+        le=5000,
+        description="Adam steps of an LPN-FiLM style's "
+        "fine-tune job (FiLM generator on the uploaded clip, network frozen; ~20-30 s at 300).",
+    )
 
     @model_validator(mode="after")
-    def _workers_share_sessions(self) -> "ServiceSettings":
+    def _workers_share_sessions(self) -> ServiceSettings:
         if self.workers > 1 and self.session_store == "memory":  # a resume would land on a worker without its snapshot
-            raise ValueError(f"workers={self.workers} needs a shared session_store (redis://host:port/db): with the "
-                             "in-memory store a client resuming on another worker than its first finds no session")
+            raise ValueError(
+                f"workers={self.workers} needs a shared session_store (redis://host:port/db): with the "
+                "in-memory store a client resuming on another worker than its first finds no session"
+            )
         return self
 
     @model_validator(mode="after")
-    def _limits_name_known_tokens(self) -> "ServiceSettings":
+    def _limits_name_known_tokens(self) -> ServiceSettings:
         unknown = set(self.token_limits) - set(self.api_tokens)
         if unknown:  # a typo here would silently give that client the defaults
             raise ValueError(f"token_limits names {len(unknown)} token(s) that are not in api_tokens")

@@ -35,7 +35,9 @@ class SkeletonAdapter(Protocol):
     @property
     def num_joints(self) -> int: ...
     def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
-    def from_model(self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+    def from_model(
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]: ...
     def report(self) -> dict: ...
 
 
@@ -55,7 +57,9 @@ class Reorder:
     def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return root, rotations if self.identity else rotations[self.to_model_index]
 
-    def from_model(self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def from_model(
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         if self.identity:
             return root, rotations
         out = input_rotations.copy()  # joints the model does not have pass through unchanged
@@ -64,8 +68,13 @@ class Reorder:
 
     def report(self) -> dict:
         model = set(self.model_names)
-        return {"preset": "bandai-namco", "retargeted": False, "mapping": {n: n for n in self.model_names},
-                "unmapped": [n for n in self.joint_names if n not in model], "root_joint": "Hips"}
+        return {
+            "preset": "bandai-namco",
+            "retargeted": False,
+            "mapping": {n: n for n in self.model_names},
+            "unmapped": [n for n in self.joint_names if n not in model],
+            "root_joint": "Hips",
+        }
 
 
 class Retarget:
@@ -88,7 +97,9 @@ class Retarget:
         hips, out = self.retargeter.to_model(root[None], rot[None])
         return hips[0], out[0]
 
-    def from_model(self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def from_model(
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         inp = input_rotations if self.order is None else input_rotations[self.order]
         out_root, out_rot = self.retargeter.to_source(root[None], rotations[None], inp[None])
         if self.order is None:
@@ -102,8 +113,11 @@ class Retarget:
 
 
 # rig problems -> the protocol's two skeleton codes; the message starts with the precise kind
-_CODES = {"missing_roles": "unsupported_skeleton", "bad_topology": "unsupported_skeleton",
-          "unsupported_skeleton": "unsupported_skeleton"}
+_CODES = {
+    "missing_roles": "unsupported_skeleton",
+    "bad_topology": "unsupported_skeleton",
+    "unsupported_skeleton": "unsupported_skeleton",
+}
 
 
 def rig_error(err: RigError) -> ProtocolError:
@@ -121,7 +135,10 @@ def _retarget(skeleton: str | None, bvh_header: str | None, options: str) -> Ret
     joints = opts.pop("joints", None)
     if bvh_header is not None:
         if joints is not None:
-            raise RigError("bad_skeleton", "give 'joints' with a preset 'skeleton', not with 'bvh_header' (its order is the header's)")
+            raise RigError(
+                "bad_skeleton",
+                "give 'joints' with a preset 'skeleton', not with 'bvh_header' (its order is the header's)",
+            )
         return Retarget(rig_from_bvh(bvh_header, **opts))
     if skeleton is None:  # `adapter_for` refuses that before it gets here
         raise RigError("bad_skeleton", "give a preset 'skeleton' or a 'bvh_header'")
@@ -130,16 +147,21 @@ def _retarget(skeleton: str | None, bvh_header: str | None, options: str) -> Ret
 
 def _as_model_world(options: dict) -> bool:
     """No option moves the rig off the model's own world (a left-handed, Z-up or metre BN rig is retargeted)."""
-    return not options.get("joint_map") and options.get("handedness", "right") == "right" and \
-        options.get("up") in (None, "y") and options.get("units") in (None, "cm")
+    return (
+        not options.get("joint_map")
+        and options.get("handedness", "right") == "right"
+        and options.get("up") in (None, "y")
+        and options.get("units") in (None, "cm")
+    )
 
 
 def _is_model_skeleton(names: list[str], model_skeleton: Skeleton, options: dict) -> bool:
     return all(n in names for n in model_skeleton.names) and _as_model_world(options)
 
 
-def adapter_for(skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None = None,
-                **options) -> SkeletonAdapter:
+def adapter_for(
+    skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None = None, **options
+) -> SkeletonAdapter:
     """The adapter for a start message's rig; raises `ProtocolError` (fatal, typed) for a rig
     that cannot be mapped, before anything is set up."""
     if bvh_header is not None:
@@ -154,14 +176,20 @@ def adapter_for(skeleton: str | None, bvh_header: str | None, model_skeleton: Sk
         names = list(joints) if joints is not None else list(model_skeleton.names)
         missing = [n for n in model_skeleton.names if n not in names]
         if missing or len(set(names)) != len(names):
-            raise ProtocolError("bad_skeleton", f"joints must list every Bandai Namco joint once (missing: "
-                                f"{', '.join(missing) or 'none'})", fatal=True)
+            raise ProtocolError(
+                "bad_skeleton",
+                f"joints must list every Bandai Namco joint once (missing: {', '.join(missing) or 'none'})",
+                fatal=True,
+            )
         return Reorder(names, model_skeleton)
     elif skeleton in (None, "custom"):
         raise ProtocolError("unsupported_skeleton", "give a preset 'skeleton' or a 'bvh_header'", fatal=True)
     try:
-        return _retarget(skeleton if bvh_header is None else None, bvh_header,
-                         json.dumps({**options, **({"joints": joints} if joints is not None else {})}, sort_keys=True))
+        return _retarget(
+            skeleton if bvh_header is None else None,
+            bvh_header,
+            json.dumps({**options, **({"joints": joints} if joints is not None else {})}, sort_keys=True),
+        )
     except RigError as err:
         raise rig_error(err) from None
 

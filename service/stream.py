@@ -65,7 +65,9 @@ class Connection:
     # ---- sending ------------------------------------------------------------------
     def _sendable(self) -> bool:
         """Neither side has closed (a snapshot acknowledgement may come after our close)."""
-        return self.ws.client_state == WebSocketState.CONNECTED and self.ws.application_state == WebSocketState.CONNECTED
+        return (
+            self.ws.client_state == WebSocketState.CONNECTED and self.ws.application_state == WebSocketState.CONNECTED
+        )
 
     async def send_json(self, payload: dict) -> None:
         async with self.send_lock:
@@ -101,8 +103,10 @@ class Connection:
             return None
         data = message.get("text") if message.get("text") is not None else message.get("bytes")
         if data is not None and len(data) > self.settings.max_message_bytes:
-            raise P.ProtocolError("message_too_large",
-                                  f"message of {len(data)} bytes exceeds the limit of {self.settings.max_message_bytes}")
+            raise P.ProtocolError(
+                "message_too_large",
+                f"message of {len(data)} bytes exceeds the limit of {self.settings.max_message_bytes}",
+            )
         return data
 
     async def run(self) -> None:
@@ -134,8 +138,11 @@ class Connection:
             if self.processor is not None:
                 await asyncio.gather(self.processor, return_exceptions=True)
             if self._session is not None:
-                self.log.info("%s after frame %s", "ended" if self._session.ended else "disconnected (resumable)",
-                              self._session.last_seq)
+                self.log.info(
+                    "%s after frame %s",
+                    "ended" if self._session.ended else "disconnected (resumable)",
+                    self._session.last_seq,
+                )
                 self.rt.session_closed(self._session)
                 if self.rt.connections.get(self._session.id) is self:
                     del self.rt.connections[self._session.id]
@@ -176,11 +183,14 @@ class Connection:
                 raise P.ProtocolError("expected_start", "the first message must be a JSON 'start' message", fatal=True)
             message = P.parse_text(data)
             if not isinstance(message, P.Start):
-                raise P.ProtocolError("expected_start", f"the first message must be 'start', got '{message.type}'", fatal=True)
+                raise P.ProtocolError(
+                    "expected_start", f"the first message must be 'start', got '{message.type}'", fatal=True
+                )
             model = self.rt.models.get(message.model)
             if message.resume_token is None and model is not None:  # a bad rig opens no session at all
-                self._adapter = adapter_for(message.skeleton or "custom", message.bvh_header, model.skeleton,
-                                            **message.rig_options())
+                self._adapter = adapter_for(
+                    message.skeleton or "custom", message.bvh_header, model.skeleton, **message.rig_options()
+                )
             self._session = s = await self.rt.open_session(message)
             self.acks = message.snapshot_acks
             if self._adapter is None:  # a resume: the rig the session started with
@@ -192,20 +202,36 @@ class Connection:
             return False
         s, adapter = self.session, self.adapter
         started = {
-            "type": "started", "version": P.PROTOCOL_VERSION, "session_id": s.id, "resume_token": s.token,
-            "model": s.model.name, "styles": s.model.styles(), "joints": adapter.joint_names,
-            "last_seq": s.last_seq, "encoding": s.encoding,
-            "layout": {"root": 3, "rotations": [adapter.num_joints, 4], "quaternion": "xyzw",
-                       "binary_frame_bytes": P.binary_frame_size(adapter.num_joints)},
+            "type": "started",
+            "version": P.PROTOCOL_VERSION,
+            "session_id": s.id,
+            "resume_token": s.token,
+            "model": s.model.name,
+            "styles": s.model.styles(),
+            "joints": adapter.joint_names,
+            "last_seq": s.last_seq,
+            "encoding": s.encoding,
+            "layout": {
+                "root": 3,
+                "rotations": [adapter.num_joints, 4],
+                "quaternion": "xyzw",
+                "binary_frame_bytes": P.binary_frame_size(adapter.num_joints),
+            },
             "rig": adapter.report(),  # the mapping used and the joints left unmapped
         }
-        if message.resume_token and s.last_output and s.last_seq is not None:  # the reply to last_seq, in case the client lost it
+        if (
+            message.resume_token and s.last_output and s.last_seq is not None
+        ):  # the reply to last_seq, in case the client lost it
             started["last_frame"] = P.frame_message(s.last_seq, s.last_output["root"], s.last_output["rotations"])
         await self.send_json(started)
         self.log = session_log(log, s.id, s.model.name)
         client = f"{self.ws.client.host}:{self.ws.client.port}" if self.ws.client else "?"
-        self.log.info("%s (client %s, rig %s)", f"resumed after frame {s.last_seq}" if message.resume_token else "started",
-                      client, adapter.report().get("preset", "custom"))
+        self.log.info(
+            "%s (client %s, rig %s)",
+            f"resumed after frame {s.last_seq}" if message.resume_token else "started",
+            client,
+            adapter.report().get("preset", "custom"),
+        )
         return True
 
     async def on_text_or_refresh(self, data: str) -> bool:
@@ -240,8 +266,12 @@ class Connection:
         """A controller tick as a frame whose input pose is the rest pose (a controller model
         reads the control, not the pose); refused at once on a model that takes no control."""
         if not self.session.model.controllable:
-            raise P.ProtocolError("control_unsupported", f"model {self.session.model.name!r} is not a character "
-                                  "controller; send frames (controllable models: see GET /v1/models)", message.seq)
+            raise P.ProtocolError(
+                "control_unsupported",
+                f"model {self.session.model.name!r} is not a character "
+                "controller; send frames (controllable models: see GET /v1/models)",
+                message.seq,
+            )
         rest = np.zeros((self.adapter.num_joints, 4))
         rest[:, 3] = 1.0
         return FrameItem(message.seq, np.zeros(3), rest, time.perf_counter(), P.control_array(message))
@@ -278,12 +308,16 @@ class Connection:
             root, rot = adapter.to_model(item.root, item.rotations)
             gone = s.drop_deleted(s.model.styles())
             if gone:
-                await self.send_error(P.ProtocolError("style_deleted", f"style(s) {', '.join(gone)} were deleted; their "
-                                                      "share of the mix now passes the input through", item.seq))
+                await self.send_error(
+                    P.ProtocolError(
+                        "style_deleted",
+                        f"style(s) {', '.join(gone)} were deleted; their share of the mix now passes the input through",
+                        item.seq,
+                    )
+                )
             try:
                 for _ in range(s.model_steps_due()):  # rate adaptation: the model runs at its own fps
-                    out_root, out_rot, s.state = await batcher.step(s.state, root, rot, s.advance_style(),
-                                                                    item.control)
+                    out_root, out_rot, s.state = await batcher.step(s.state, root, rot, s.advance_style(), item.control)
                     s.hold(out_root, out_rot, root)
             except Exception:  # noqa: BLE001 - a model failure costs this frame, not the session
                 self.log.exception("model step failed")
@@ -306,13 +340,20 @@ class Connection:
         s = self.session
         if isinstance(message, P.SetStyle):
             try:
-                s.set_style(P.requested_weights(s.model, message.style, message.mix, message.intensity),
-                            message.transition_frames)
+                s.set_style(
+                    P.requested_weights(s.model, message.style, message.mix, message.intensity),
+                    message.transition_frames,
+                )
             except P.ProtocolError as err:
                 await self.send_error(err)
             else:
-                await self.send_json({"type": "style_set", "weights": {k: s.target.get(k, 0.0) for k in s.model.styles()},
-                                      "transition_frames": message.transition_frames})
+                await self.send_json(
+                    {
+                        "type": "style_set",
+                        "weights": {k: s.target.get(k, 0.0) for k in s.model.styles()},
+                        "transition_frames": message.transition_frames,
+                    }
+                )
             return True
         if isinstance(message, P.Reset):
             s.reset()

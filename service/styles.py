@@ -69,8 +69,9 @@ def style_id(model: str, name: str) -> str:
 
 
 class StyleStore:
-    def __init__(self, settings: ServiceSettings, models: dict[str, StreamingModel], model_thread: ModelThread,
-                 jobs: JobManager) -> None:
+    def __init__(
+        self, settings: ServiceSettings, models: dict[str, StreamingModel], model_thread: ModelThread, jobs: JobManager
+    ) -> None:
         """`models` are the server's own (`own_style_set`): the store adds and removes styles on
         them, on `model_thread`, the thread their steps run on."""
         self.settings, self.models, self.model_thread, self.jobs = settings, models, model_thread, jobs
@@ -189,8 +190,12 @@ class StyleStore:
         again (a fine-tune cut off by a restart is said so in its message)."""
         if isinstance(model, ClipStyles) and not model.has_saved_style(d):
             model.add_style_from_clip(info.name, self._saved_clip(model, d))
-            if startup and info.job_id is not None and info.fine_tune is None and \
-                    not (self.shared and time.time() - (d / "style.json").stat().st_mtime < TRAINING_FRESH_S):
+            if (
+                startup
+                and info.job_id is not None
+                and info.fine_tune is None
+                and not (self.shared and time.time() - (d / "style.json").stat().st_mtime < TRAINING_FRESH_S)
+            ):
                 info.message = f"{model.clip_style_note}; fine-tuning was interrupted by a server restart"
                 self._save_info(info)
             return
@@ -276,8 +281,14 @@ class StyleStore:
     def _trained_info(model_name: str, model: StreamingModel, style: str) -> StyleInfo:
         source = model.style_file(style) if isinstance(model, UploadedStyles) else None
         created = source.stat().st_mtime if source is not None and source.exists() else None
-        return StyleInfo(id=style_id(model_name, style), name=style, model=model_name, kind="trained",
-                         status="ready", created=created)
+        return StyleInfo(
+            id=style_id(model_name, style),
+            name=style,
+            model=model_name,
+            kind="trained",
+            status="ready",
+            created=created,
+        )
 
     def get(self, sid: str) -> StyleInfo:
         for info in self.list():
@@ -289,28 +300,46 @@ class StyleStore:
     async def delete(self, sid: str) -> None:
         info = self.get(sid)
         if info.kind == "trained":
-            raise ApiError(409, "trained_style", f"style {sid!r} is a trained style of model {info.model!r} and "
-                           "cannot be deleted; only uploaded styles can")
+            raise ApiError(
+                409,
+                "trained_style",
+                f"style {sid!r} is a trained style of model {info.model!r} and "
+                "cannot be deleted; only uploaded styles can",
+            )
         shutil.rmtree(self._dir(info.model, info.name), ignore_errors=True)
         await self._forget(info)
 
     def _upload_target(self, name: str, model_name: str) -> UploadedStyles[Any]:
         """The model an upload of style `name` goes to, or the ApiError why there is none."""
         if not NAME_RE.match(name or ""):
-            raise ApiError(422, "bad_name", f"style name {name!r} must be a slug: 1-40 characters of a-z, 0-9 and '-', "
-                           "starting and ending with a letter or digit")
+            raise ApiError(
+                422,
+                "bad_name",
+                f"style name {name!r} must be a slug: 1-40 characters of a-z, 0-9 and '-', "
+                "starting and ending with a letter or digit",
+            )
         model = self.models.get(model_name)
         if model is None:
             raise ApiError(422, "unknown_model", f"unknown model {model_name!r}; available: {', '.join(self.models)}")
         if name in model.styles() or style_id(model_name, name) in self.uploaded:
             raise ApiError(409, "style_exists", f"model {model_name!r} already has a style named {name!r}")
         if not isinstance(model, UploadedStyles):
-            raise ApiError(422, "uploads_unsupported", f"model {model_name!r} cannot take uploaded styles "
-                           "(its styles are trained branches); upload to 'lti' with fine_tune=true")
+            raise ApiError(
+                422,
+                "uploads_unsupported",
+                f"model {model_name!r} cannot take uploaded styles "
+                "(its styles are trained branches); upload to 'lti' with fine_tune=true",
+            )
         return model
 
-    async def upload(self, name: str, model_name: str, read_clip: Callable[[Skeleton], tuple[Motion, str]],
-                     source: Literal["bvh", "json"], fine_tune: bool) -> UploadAccepted:
+    async def upload(
+        self,
+        name: str,
+        model_name: str,
+        read_clip: Callable[[Skeleton], tuple[Motion, str]],
+        source: Literal["bvh", "json"],
+        fine_tune: bool,
+    ) -> UploadAccepted:
         """A new style from an uploaded clip, which `read_clip` brings onto the model's skeleton at
         30 fps (`clips.py`) and names its rig, once the name and the model are known to be good."""
         model = self._upload_target(name, model_name)
@@ -323,8 +352,17 @@ class StyleStore:
         except StyleRejected as err:
             raise ApiError(409 if err.unavailable else 422, err.code, err.message) from None
         sid = style_id(model_name, name)
-        info = StyleInfo(id=sid, name=name, model=model_name, kind="uploaded", status="training", created=time.time(),
-                         frames=n, source=source, skeleton=rig)
+        info = StyleInfo(
+            id=sid,
+            name=name,
+            model=model_name,
+            kind="uploaded",
+            status="training",
+            created=time.time(),
+            frames=n,
+            source=source,
+            skeleton=rig,
+        )
         if isinstance(model, ClipStyles):  # the style exists as soon as this returns; a job may improve it
             try:
                 await self.model_thread.run(model.add_style_from_clip, name, motion)
@@ -336,9 +374,13 @@ class StyleStore:
         if not fine_tune:
             self._save_info(info)
             return UploadAccepted(style=info.model_copy())
-        job = self.jobs.submit("fine_tune", lambda progress: self._fine_tune_job(info, model, motion, progress),
-                               target=sid, on_failure=lambda message: self._job_failed(info, model, message),
-                               record=lambda job: self._save_job(info, job))
+        job = self.jobs.submit(
+            "fine_tune",
+            lambda progress: self._fine_tune_job(info, model, motion, progress),
+            target=sid,
+            on_failure=lambda message: self._job_failed(info, model, message),
+            record=lambda job: self._save_job(info, job),
+        )
         info.job_id = job.id
         if isinstance(model, ClipStyles):
             info.message = f"{model.clip_style_note}; {model.tuning_note}"
@@ -346,8 +388,9 @@ class StyleStore:
         return UploadAccepted(style=info.model_copy(), job=job)
 
     # ---- fine-tuning jobs (job thread) ------------------------------------------------
-    def _fine_tune_job(self, info: StyleInfo, model: UploadedStyles[Any], motion: Motion,
-                       progress: Progress) -> dict[str, Any]:
+    def _fine_tune_job(
+        self, info: StyleInfo, model: UploadedStyles[Any], motion: Motion, progress: Progress
+    ) -> dict[str, Any]:
         def report(fraction: float, message: str) -> None:
             if self.uploaded.get(info.id) is not info:  # deleted (maybe uploaded again): stop spending the CPU
                 raise JobStopped(f"style {info.id!r} was deleted while it was being fine-tuned")
@@ -357,7 +400,9 @@ class StyleStore:
 
         # the steps setting is named for LPN-FiLM, the one method whose fine-tune iterates; LTI's ignores it
         tuned = model.fine_tune_style(info.name, motion, report, self.settings.lpn_fine_tune_steps)
-        installed = asyncio.run_coroutine_threadsafe(self._install_tuned(info, model, tuned), self.loop).result(timeout=60)
+        installed = asyncio.run_coroutine_threadsafe(self._install_tuned(info, model, tuned), self.loop).result(
+            timeout=60
+        )
         if isinstance(model, ClipStyles):  # the job refined a style that exists: say whether it changed
             return {**tuned.summary, "installed": installed}
         return tuned.summary
@@ -368,6 +413,7 @@ class StyleStore:
         if self.uploaded.get(info.id) is not info:
             return False
         if tuned.style is not None:
+
             def install() -> None:  # on the worker thread; a removal queued before it wins
                 if self.uploaded.get(info.id) is info:
                     model.install_style(info.name, tuned.style)

@@ -35,8 +35,14 @@ log = logging.getLogger(__name__)
 VIEWER_DIR = Path(__file__).resolve().parent.parent / "clients" / "viewer"
 DEMO_FILE = VIEWER_DIR / "demo_walk.json"
 DEMO_SOURCE = "bandai-namco-2/dataset-2_walk_normal_021 (validation split)"
-STATIC_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html", ".json": "application/json",
-                ".svg": "image/svg+xml", ".png": "image/png"}
+STATIC_TYPES = {
+    ".js": "text/javascript",
+    ".css": "text/css",
+    ".html": "text/html",
+    ".json": "application/json",
+    ".svg": "image/svg+xml",
+    ".png": "image/png",
+}
 
 
 class DemoFrames(BaseModel):
@@ -74,8 +80,12 @@ class DemoClip(BaseModel):
 
 def _skeleton_fields() -> dict:
     sk = bandai_namco_pose().skeleton
-    return {"joints": list(sk.names), "parents": [int(p) for p in sk.parents],
-            "offsets": np.round(sk.offsets, 4).tolist(), "root_joint": sk.index("Hips")}
+    return {
+        "joints": list(sk.names),
+        "parents": [int(p) for p in sk.parents],
+        "offsets": np.round(sk.offsets, 4).tolist(),
+        "root_joint": sk.index("Hips"),
+    }
 
 
 def _frames(root: np.ndarray, rotations: np.ndarray) -> dict:
@@ -107,11 +117,15 @@ def walk_from_data(seconds: float = 4.0) -> dict:
     if best is None:
         raise ValueError(f"{clip.name}: too short for a {seconds:g} s loop")
     _, start, length = best
-    root = motion.translations[start:start + length, hips].copy()
-    return {"name": "walk (neutral)", "source": f"{clip.dataset}/{clip.name}, frames {start}-{start + length - 1}",
-            "licence": "CC BY-NC 4.0, Bandai Namco Research Motion Dataset (Bandai Namco Studios Inc.)",
-            **_skeleton_fields(), "fps": float(motion.fps),
-            "frames": _frames(root, motion.rotations[start:start + length])}
+    root = motion.translations[start : start + length, hips].copy()
+    return {
+        "name": "walk (neutral)",
+        "source": f"{clip.dataset}/{clip.name}, frames {start}-{start + length - 1}",
+        "licence": "CC BY-NC 4.0, Bandai Namco Research Motion Dataset (Bandai Namco Studios Inc.)",
+        **_skeleton_fields(),
+        "fps": float(motion.fps),
+        "frames": _frames(root, motion.rotations[start : start + length]),
+    }
 
 
 def rocking_pose(seconds: float = 4.0, fps: float = 30.0) -> dict:
@@ -137,15 +151,22 @@ def rocking_pose(seconds: float = 4.0, fps: float = 30.0) -> dict:
     for side, sign in (("L", 1.0), ("R", -1.0)):
         turn(f"UpperArm_{side}", "Y", 12.0 * sign * np.sin(phase))
         turn(f"LowerArm_{side}", "Y", 8.0 * sign * (1 + np.sin(phase)) / 2)
-    return {"name": "standing sway (generated: no mocap data)", "source": "models/motion/assets/bandai_namco.bvh, rocked",
-            "licence": "CC BY-NC 4.0, Bandai Namco Research Motion Dataset (Bandai Namco Studios Inc.)",
-            **_skeleton_fields(), "fps": fps, "frames": _frames(root, rotations)}
+    return {
+        "name": "standing sway (generated: no mocap data)",
+        "source": "models/motion/assets/bandai_namco.bvh, rocked",
+        "licence": "CC BY-NC 4.0, Bandai Namco Research Motion Dataset (Bandai Namco Studios Inc.)",
+        **_skeleton_fields(),
+        "fps": fps,
+        "frames": _frames(root, rotations),
+    }
 
 
 def viewer_rigs() -> list[dict]:
     """The head / hand / foot solids of the Bandai Namco and CMU rigs, for the page to pose by joint rotations."""
-    return [{"name": name, "joints": list(pose.skeleton.names), "solids": solids_json(rig(pose))}
-            for name, pose in (("bandai_namco", bandai_namco_pose()), ("cmu", cmu_pose()))]
+    return [
+        {"name": name, "joints": list(pose.skeleton.names), "solids": solids_json(rig(pose))}
+        for name, pose in (("bandai_namco", bandai_namco_pose()), ("cmu", cmu_pose()))
+    ]
 
 
 @lru_cache(maxsize=1)
@@ -171,8 +192,7 @@ def build_router() -> APIRouter:
 
     @router.get("/viewer", include_in_schema=False)
     async def viewer_page() -> FileResponse:
-        return FileResponse(VIEWER_DIR / "index.html", media_type="text/html",
-                            headers={"Cache-Control": "no-cache"})
+        return FileResponse(VIEWER_DIR / "index.html", media_type="text/html", headers={"Cache-Control": "no-cache"})
 
     @router.get("/viewer/static/{name:path}", include_in_schema=False)
     async def viewer_static(name: str) -> FileResponse:
@@ -209,5 +229,7 @@ router = build_router()
 if __name__ == "__main__":
     clip = walk_from_data()
     DEMO_FILE.write_text(json.dumps(clip, separators=(",", ":")) + "\n")
-    print(f"{DEMO_FILE}: {len(clip['frames']['root'])} frames at {clip['fps']:g} fps from {clip['source']}, "
-          f"{DEMO_FILE.stat().st_size / 1024:.0f} KB")
+    print(
+        f"{DEMO_FILE}: {len(clip['frames']['root'])} frames at {clip['fps']:g} fps from {clip['source']}, "
+        f"{DEMO_FILE.stat().st_size / 1024:.0f} KB"
+    )

@@ -86,8 +86,13 @@ def _supervise(settings: ServiceSettings, log_level: str) -> None:
 
     exit_code = 0
     workers = [start() for _ in range(settings.workers)]
-    log.info("supervising %d workers on %s:%d (pids %s)", len(workers), settings.host, settings.port,
-             ", ".join(str(p.pid) for p in workers))
+    log.info(
+        "supervising %d workers on %s:%d (pids %s)",
+        len(workers),
+        settings.host,
+        settings.port,
+        ", ".join(str(p.pid) for p in workers),
+    )
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     while workers:

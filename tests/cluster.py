@@ -78,9 +78,25 @@ def _stop(proc: subprocess.Popen, graceful: bool = True, grace_s: float = 10.0) 
 def redis_server(folder: Path):
     """A throwaway redis-server (no persistence); yields its URL."""
     port = free_port()
-    proc = _start([_binary("redis-server"), "--port", str(port), "--bind", "127.0.0.1", "--dir", str(folder),
-                   "--save", "", "--appendonly", "no", "--logfile", str(folder / "redis.log")],
-                   stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    proc = _start(
+        [
+            _binary("redis-server"),
+            "--port",
+            str(port),
+            "--bind",
+            "127.0.0.1",
+            "--dir",
+            str(folder),
+            "--save",
+            "",
+            "--appendonly",
+            "no",
+            "--logfile",
+            str(folder / "redis.log"),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.STDOUT,
+    )
     try:
         _wait_port(port, lambda: proc.poll() is None)
         yield f"redis://127.0.0.1:{port}/0"
@@ -96,9 +112,13 @@ class Replica:
         self.url = f"http://127.0.0.1:{self.port}"
         self.log = folder / f"{name}.log"
         environment = {**os.environ, **{f"STYLESTREAM_{k.upper()}": str(v) for k, v in env.items()}}
-        self.proc = _start([sys.executable, "-m", "clients.cli", "serve", "--port", str(self.port),
-                            "--log-level", "info"], cwd=REPO, env=environment,
-                           stdout=self.log.open("w"), stderr=subprocess.STDOUT)
+        self.proc = _start(
+            [sys.executable, "-m", "clients.cli", "serve", "--port", str(self.port), "--log-level", "info"],
+            cwd=REPO,
+            env=environment,
+            stdout=self.log.open("w"),
+            stderr=subprocess.STDOUT,
+        )
 
     def wait_ready(self) -> None:
         # generous: loading and warming the models (numba compiles) on a busy 2-core box
@@ -171,8 +191,21 @@ def nginx(folder: Path, upstream_ports: list[int]):
     servers = "\n".join(f"        server 127.0.0.1:{p} max_fails=1 fail_timeout=5s;" for p in upstream_ports)
     conf = folder / "nginx.conf"
     conf.write_text(NGINX_CONF.format(folder=folder, port=port, servers=servers))
-    proc = _start([_binary("nginx"), "-p", str(folder), "-c", str(conf), "-e", str(folder / "nginx-error.log"),
-                   "-g", "daemon off;"], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    proc = _start(
+        [
+            _binary("nginx"),
+            "-p",
+            str(folder),
+            "-c",
+            str(conf),
+            "-e",
+            str(folder / "nginx-error.log"),
+            "-g",
+            "daemon off;",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.STDOUT,
+    )
     try:
         _wait_port(port, lambda: proc.poll() is None)
         yield f"http://127.0.0.1:{port}"

@@ -33,7 +33,9 @@ LEG_CM = 80.0
 def _walk(frames: int):
     from models.data import build_index, load_motion, select
 
-    clip = select(build_index(["bandai-namco-2"]), dataset="bandai-namco-2", style="normal", content="walk", split="val")[0]
+    clip = select(
+        build_index(["bandai-namco-2"]), dataset="bandai-namco-2", style="normal", content="walk", split="val"
+    )[0]
     return load_motion(clip).slice(0, frames)
 
 
@@ -57,7 +59,9 @@ def errors(frames: int) -> None:
             trans = walk.translations.copy()
             trans[:, 1] = root
             bn[model] = fk(rot, trans, walk.skeleton.parents)[1]
-        print(f"round trip: made rig -> model -> made rig vs the model rig's output, {frames} frames of a BN walk, elderly;")
+        print(
+            f"round trip: made rig -> model -> made rig vs the model rig's output, {frames} frames of a BN walk, elderly;"
+        )
         print("median (p95) over mapped joints and frames, % of leg length; then how far apart (cm) the two root paths")
         print("end on the ground\n")
         print("| rig | naming | rest | units | up | " + " | ".join(MODELS) + " |")
@@ -70,8 +74,10 @@ def errors(frames: int) -> None:
                 hips = bn_positions(styled, spec)[-1, styled.skeleton.index(spec.rename["Hips"])]
                 apart = np.linalg.norm((hips - bn[model][-1, walk.skeleton.index("Hips")])[[0, 2]])
                 cells.append(f"{np.median(err):.2f} ({np.percentile(err, 95):.1f}); {apart:.0f}")
-            print(f"| {name} | {spec.rename['Hips']}, {spec.rename['UpperArm_L']} | {spec.rest} | "
-                  f"{'m' if spec.metres else 'cm'} | {spec.up} | " + " | ".join(cells) + " |")
+            print(
+                f"| {name} | {spec.rename['Hips']}, {spec.rename['UpperArm_L']} | {spec.rest} | "
+                f"{'m' if spec.metres else 'cm'} | {spec.up} | " + " | ".join(cells) + " |"
+            )
 
 
 def render(out: Path, frames: int, styles: tuple[str, str] = ("elderly", "active")) -> None:
@@ -88,8 +94,9 @@ def render(out: Path, frames: int, styles: tuple[str, str] = ("elderly", "active
                 assert started["rig"]["up"] == "z" and started["rig"]["units"] == "m", started["rig"]
                 rows.append(styled)
                 titles.append(f"{model} -> {style}")
-            path = render_contact_sheet(rows, out / f"rig_xsens_{model}.png", frames=5, titles=titles, panel_size=2.3,
-                                        dpi=80)
+            path = render_contact_sheet(
+                rows, out / f"rig_xsens_{model}.png", frames=5, titles=titles, panel_size=2.3, dpi=80
+            )
             print(path, f"{path.stat().st_size / 1024:.0f} KB")
 
 

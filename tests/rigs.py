@@ -57,89 +57,336 @@ def _limbs(*names: str) -> dict[str, str | None]:
     return dict(zip(_BN_ARMS_LEGS, names))
 
 
-SPECS = {s.name: s for s in (
-    RigSpec("mixamo", _sided({"joint_Root": None, "Hips": "mixamorig:Hips", "Spine": "mixamorig:Spine",
-                              "Chest": "mixamorig:Spine2", "Neck": "mixamorig:Neck", "Head": "mixamorig:Head",
-                              **_limbs("mixamorig:{Side}Shoulder", "mixamorig:{Side}Arm", "mixamorig:{Side}ForeArm",
-                                       "mixamorig:{Side}Hand", "mixamorig:{Side}UpLeg", "mixamorig:{Side}Leg",
-                                       "mixamorig:{Side}Foot", "mixamorig:{Side}ToeBase")}),
+SPECS = {
+    s.name: s
+    for s in (
+        RigSpec(
+            "mixamo",
+            _sided(
+                {
+                    "joint_Root": None,
+                    "Hips": "mixamorig:Hips",
+                    "Spine": "mixamorig:Spine",
+                    "Chest": "mixamorig:Spine2",
+                    "Neck": "mixamorig:Neck",
+                    "Head": "mixamorig:Head",
+                    **_limbs(
+                        "mixamorig:{Side}Shoulder",
+                        "mixamorig:{Side}Arm",
+                        "mixamorig:{Side}ForeArm",
+                        "mixamorig:{Side}Hand",
+                        "mixamorig:{Side}UpLeg",
+                        "mixamorig:{Side}Leg",
+                        "mixamorig:{Side}Foot",
+                        "mixamorig:{Side}ToeBase",
+                    ),
+                }
+            ),
             inserts=(("mixamorig:Spine1", "Spine", "Chest", 0.5),),
-            fingers=(("mixamorig:LeftHandIndex1", "mixamorig:LeftHand"), ("mixamorig:LeftHandIndex2", "mixamorig:LeftHandIndex1"),
-                     ("mixamorig:RightHandIndex1", "mixamorig:RightHand")),
-            rest="tpose"),
-    RigSpec("ue5", _sided({"joint_Root": "root", "Hips": "pelvis", "Spine": "spine_01", "Chest": "spine_05",
-                           "Neck": "neck_01", "Head": "head",
-                           **_limbs("clavicle_{s}", "upperarm_{s}", "lowerarm_{s}", "hand_{s}", "thigh_{s}", "calf_{s}",
-                                    "foot_{s}", "ball_{s}")}),
-            inserts=(("spine_02", "Spine", "Chest", 0.25), ("spine_03", "spine_02", "Chest", 0.33),
-                     ("spine_04", "spine_03", "Chest", 0.5), ("neck_02", "Neck", "Head", 0.5),
-                     ("upperarm_twist_01_l", "UpperArm_L", "", 0.5), ("upperarm_twist_01_r", "UpperArm_R", "", 0.5),
-                     ("lowerarm_twist_01_l", "LowerArm_L", "Hand_L", 0.6), ("thigh_twist_01_r", "UpperLeg_R", "LowerLeg_R", 0.4)),
+            fingers=(
+                ("mixamorig:LeftHandIndex1", "mixamorig:LeftHand"),
+                ("mixamorig:LeftHandIndex2", "mixamorig:LeftHandIndex1"),
+                ("mixamorig:RightHandIndex1", "mixamorig:RightHand"),
+            ),
+            rest="tpose",
+        ),
+        RigSpec(
+            "ue5",
+            _sided(
+                {
+                    "joint_Root": "root",
+                    "Hips": "pelvis",
+                    "Spine": "spine_01",
+                    "Chest": "spine_05",
+                    "Neck": "neck_01",
+                    "Head": "head",
+                    **_limbs(
+                        "clavicle_{s}",
+                        "upperarm_{s}",
+                        "lowerarm_{s}",
+                        "hand_{s}",
+                        "thigh_{s}",
+                        "calf_{s}",
+                        "foot_{s}",
+                        "ball_{s}",
+                    ),
+                }
+            ),
+            inserts=(
+                ("spine_02", "Spine", "Chest", 0.25),
+                ("spine_03", "spine_02", "Chest", 0.33),
+                ("spine_04", "spine_03", "Chest", 0.5),
+                ("neck_02", "Neck", "Head", 0.5),
+                ("upperarm_twist_01_l", "UpperArm_L", "", 0.5),
+                ("upperarm_twist_01_r", "UpperArm_R", "", 0.5),
+                ("lowerarm_twist_01_l", "LowerArm_L", "Hand_L", 0.6),
+                ("thigh_twist_01_r", "UpperLeg_R", "LowerLeg_R", 0.4),
+            ),
             fingers=(("index_01_l", "hand_l"), ("index_02_l", "index_01_l"), ("thumb_01_r", "hand_r")),
-            rest="apose", up="z"),
-    RigSpec("smplx", _sided({"joint_Root": None, "Hips": "pelvis", "Spine": "spine1", "Chest": "spine3", "Neck": "neck",
-                             "Head": "head",
-                             **_limbs("{side}_collar", "{side}_shoulder", "{side}_elbow", "{side}_wrist", "{side}_hip",
-                                      "{side}_knee", "{side}_ankle", "{side}_foot")}),
+            rest="apose",
+            up="z",
+        ),
+        RigSpec(
+            "smplx",
+            _sided(
+                {
+                    "joint_Root": None,
+                    "Hips": "pelvis",
+                    "Spine": "spine1",
+                    "Chest": "spine3",
+                    "Neck": "neck",
+                    "Head": "head",
+                    **_limbs(
+                        "{side}_collar",
+                        "{side}_shoulder",
+                        "{side}_elbow",
+                        "{side}_wrist",
+                        "{side}_hip",
+                        "{side}_knee",
+                        "{side}_ankle",
+                        "{side}_foot",
+                    ),
+                }
+            ),
             inserts=(("spine2", "Spine", "Chest", 0.5), ("jaw", "Head", "", 0.3)),
             fingers=(("left_index1", "left_wrist"), ("left_index2", "left_index1"), ("right_thumb1", "right_wrist")),
-            rest="first", metres=True),
-    RigSpec("unity", _sided({"joint_Root": None, "Hips": "Hips", "Spine": "Spine", "Chest": "Chest", "Neck": "Neck",
-                             "Head": "Head",
-                             **_limbs("{Side}Shoulder", "{Side}UpperArm", "{Side}LowerArm", "{Side}Hand", "{Side}UpperLeg",
-                                      "{Side}LowerLeg", "{Side}Foot", "{Side}Toes")}),
-            rest="tpose", up="z", metres=True),
-    RigSpec("bvh", _sided({"joint_Root": None, "Hips": "Hips", "Spine": "Spine", "Chest": "Spine1", "Neck": "Neck",
-                           "Head": "Head",
-                           **_limbs("{Side}Shoulder", "{Side}Arm", "{Side}ForeArm", "{Side}Hand", "{Side}UpLeg", "{Side}Leg",
-                                    "{Side}Foot", "{Side}ToeBase")}),
-            inserts=(("LeftForeArmRoll", "LowerArm_L", "Hand_L", 0.5), ("RightForeArmRoll", "LowerArm_R", "Hand_R", 0.5)),
-            rest="zero", metres=True),
-    RigSpec("ue4", _sided({"joint_Root": "root", "Hips": "pelvis", "Spine": "spine_01", "Chest": "spine_03",
-                           "Neck": "neck_01", "Head": "head",
-                           **_limbs("clavicle_{s}", "upperarm_{s}", "lowerarm_{s}", "hand_{s}", "thigh_{s}", "calf_{s}",
-                                    "foot_{s}", "ball_{s}")}),
+            rest="first",
+            metres=True,
+        ),
+        RigSpec(
+            "unity",
+            _sided(
+                {
+                    "joint_Root": None,
+                    "Hips": "Hips",
+                    "Spine": "Spine",
+                    "Chest": "Chest",
+                    "Neck": "Neck",
+                    "Head": "Head",
+                    **_limbs(
+                        "{Side}Shoulder",
+                        "{Side}UpperArm",
+                        "{Side}LowerArm",
+                        "{Side}Hand",
+                        "{Side}UpperLeg",
+                        "{Side}LowerLeg",
+                        "{Side}Foot",
+                        "{Side}Toes",
+                    ),
+                }
+            ),
+            rest="tpose",
+            up="z",
+            metres=True,
+        ),
+        RigSpec(
+            "bvh",
+            _sided(
+                {
+                    "joint_Root": None,
+                    "Hips": "Hips",
+                    "Spine": "Spine",
+                    "Chest": "Spine1",
+                    "Neck": "Neck",
+                    "Head": "Head",
+                    **_limbs(
+                        "{Side}Shoulder",
+                        "{Side}Arm",
+                        "{Side}ForeArm",
+                        "{Side}Hand",
+                        "{Side}UpLeg",
+                        "{Side}Leg",
+                        "{Side}Foot",
+                        "{Side}ToeBase",
+                    ),
+                }
+            ),
+            inserts=(
+                ("LeftForeArmRoll", "LowerArm_L", "Hand_L", 0.5),
+                ("RightForeArmRoll", "LowerArm_R", "Hand_R", 0.5),
+            ),
+            rest="zero",
+            metres=True,
+        ),
+        RigSpec(
+            "ue4",
+            _sided(
+                {
+                    "joint_Root": "root",
+                    "Hips": "pelvis",
+                    "Spine": "spine_01",
+                    "Chest": "spine_03",
+                    "Neck": "neck_01",
+                    "Head": "head",
+                    **_limbs(
+                        "clavicle_{s}",
+                        "upperarm_{s}",
+                        "lowerarm_{s}",
+                        "hand_{s}",
+                        "thigh_{s}",
+                        "calf_{s}",
+                        "foot_{s}",
+                        "ball_{s}",
+                    ),
+                }
+            ),
             inserts=(("spine_02", "Spine", "Chest", 0.5), ("calf_twist_01_l", "LowerLeg_L", "", 0.5)),
-            rest="apose"),
-    RigSpec("vrm", _sided({"joint_Root": None, "Hips": "hips", "Spine": "spine", "Chest": "upperChest", "Neck": "neck",
-                           "Head": "head",
-                           **_limbs("{side}Shoulder", "{side}UpperArm", "{side}LowerArm", "{side}Hand", "{side}UpperLeg",
-                                    "{side}LowerLeg", "{side}Foot", "{side}Toes")}),
-            inserts=(("chest", "Spine", "Chest", 0.5),), fingers=(("leftThumbProximal", "leftHand"),), rest="tpose"),
-    RigSpec("smpl", _sided({"joint_Root": None, "Hips": "pelvis", "Spine": "spine1", "Chest": "spine3", "Neck": "neck",
-                            "Head": "head",
-                            **_limbs("{side}_collar", "{side}_shoulder", "{side}_elbow", "{side}_wrist", "{side}_hip",
-                                     "{side}_knee", "{side}_ankle", "{side}_foot")}),
-            inserts=(("spine2", "Spine", "Chest", 0.5), ("left_hand", "Hand_L", "", 0.5), ("right_hand", "Hand_R", "", 0.5)),
-            rest="tpose", metres=True),
-    RigSpec("blender", _sided({"joint_Root": None, "Hips": "hips", "Spine": "spine", "Chest": "chest", "Neck": "neck",
-                               "Head": "head",
-                               **_limbs("shoulder.{S}", "upper_arm.{S}", "forearm.{S}", "hand.{S}", "thigh.{S}", "shin.{S}",
-                                        "foot.{S}", "toe.{S}")}),
-            rest="first", up="z", metres=True),
-)}
+            rest="apose",
+        ),
+        RigSpec(
+            "vrm",
+            _sided(
+                {
+                    "joint_Root": None,
+                    "Hips": "hips",
+                    "Spine": "spine",
+                    "Chest": "upperChest",
+                    "Neck": "neck",
+                    "Head": "head",
+                    **_limbs(
+                        "{side}Shoulder",
+                        "{side}UpperArm",
+                        "{side}LowerArm",
+                        "{side}Hand",
+                        "{side}UpperLeg",
+                        "{side}LowerLeg",
+                        "{side}Foot",
+                        "{side}Toes",
+                    ),
+                }
+            ),
+            inserts=(("chest", "Spine", "Chest", 0.5),),
+            fingers=(("leftThumbProximal", "leftHand"),),
+            rest="tpose",
+        ),
+        RigSpec(
+            "smpl",
+            _sided(
+                {
+                    "joint_Root": None,
+                    "Hips": "pelvis",
+                    "Spine": "spine1",
+                    "Chest": "spine3",
+                    "Neck": "neck",
+                    "Head": "head",
+                    **_limbs(
+                        "{side}_collar",
+                        "{side}_shoulder",
+                        "{side}_elbow",
+                        "{side}_wrist",
+                        "{side}_hip",
+                        "{side}_knee",
+                        "{side}_ankle",
+                        "{side}_foot",
+                    ),
+                }
+            ),
+            inserts=(
+                ("spine2", "Spine", "Chest", 0.5),
+                ("left_hand", "Hand_L", "", 0.5),
+                ("right_hand", "Hand_R", "", 0.5),
+            ),
+            rest="tpose",
+            metres=True,
+        ),
+        RigSpec(
+            "blender",
+            _sided(
+                {
+                    "joint_Root": None,
+                    "Hips": "hips",
+                    "Spine": "spine",
+                    "Chest": "chest",
+                    "Neck": "neck",
+                    "Head": "head",
+                    **_limbs(
+                        "shoulder.{S}",
+                        "upper_arm.{S}",
+                        "forearm.{S}",
+                        "hand.{S}",
+                        "thigh.{S}",
+                        "shin.{S}",
+                        "foot.{S}",
+                        "toe.{S}",
+                    ),
+                }
+            ),
+            rest="first",
+            up="z",
+            metres=True,
+        ),
+    )
+}
 
 # Rigs outside the presets' naming, for the tests that need a rig the matching has never seen
 # (an Xsens MVN-style capture export: four spine joints L5/L3/T12/T8, Z up, metres, A-pose) or a
 # VMC sender's avatar (Unity HumanBodyBones with Chest and UpperChest, eyes and fingers, Y up,
 # metres, the normalised T-pose VMC senders send).
-EXTRA_SPECS = {s.name: s for s in (
-    RigSpec("xsens", _sided({"joint_Root": None, "Hips": "Pelvis", "Spine": "L5", "Chest": "T8", "Neck": "Neck",
-                             "Head": "Head",
-                             **_limbs("{Side}Shoulder", "{Side}UpperArm", "{Side}ForeArm", "{Side}Hand", "{Side}UpperLeg",
-                                      "{Side}LowerLeg", "{Side}Foot", "{Side}Toe")}),
+EXTRA_SPECS = {
+    s.name: s
+    for s in (
+        RigSpec(
+            "xsens",
+            _sided(
+                {
+                    "joint_Root": None,
+                    "Hips": "Pelvis",
+                    "Spine": "L5",
+                    "Chest": "T8",
+                    "Neck": "Neck",
+                    "Head": "Head",
+                    **_limbs(
+                        "{Side}Shoulder",
+                        "{Side}UpperArm",
+                        "{Side}ForeArm",
+                        "{Side}Hand",
+                        "{Side}UpperLeg",
+                        "{Side}LowerLeg",
+                        "{Side}Foot",
+                        "{Side}Toe",
+                    ),
+                }
+            ),
             inserts=(("L3", "Spine", "Chest", 0.33), ("T12", "L3", "Chest", 0.5)),
             fingers=(("LeftFingerIndex1", "LeftHand"), ("RightFingerIndex1", "RightHand")),
-            rest="apose", up="z", metres=True),
-    RigSpec("vmc", _sided({"joint_Root": None, "Hips": "Hips", "Spine": "Spine", "Chest": "UpperChest", "Neck": "Neck",
-                           "Head": "Head", "ChestLow": "Chest",
-                           **_limbs("{Side}Shoulder", "{Side}UpperArm", "{Side}LowerArm", "{Side}Hand", "{Side}UpperLeg",
-                                    "{Side}LowerLeg", "{Side}Foot", "{Side}Toes")}),
+            rest="apose",
+            up="z",
+            metres=True,
+        ),
+        RigSpec(
+            "vmc",
+            _sided(
+                {
+                    "joint_Root": None,
+                    "Hips": "Hips",
+                    "Spine": "Spine",
+                    "Chest": "UpperChest",
+                    "Neck": "Neck",
+                    "Head": "Head",
+                    "ChestLow": "Chest",
+                    **_limbs(
+                        "{Side}Shoulder",
+                        "{Side}UpperArm",
+                        "{Side}LowerArm",
+                        "{Side}Hand",
+                        "{Side}UpperLeg",
+                        "{Side}LowerLeg",
+                        "{Side}Foot",
+                        "{Side}Toes",
+                    ),
+                }
+            ),
             inserts=(("ChestLow", "Spine", "Chest", 0.5), ("LeftEye", "Head", "", 0.5), ("RightEye", "Head", "", 0.5)),
-            fingers=(("LeftIndexProximal", "LeftHand"), ("LeftIndexIntermediate", "LeftIndexProximal"),
-                     ("RightThumbProximal", "RightHand")),
-            rest="tpose", metres=True),
-)}
+            fingers=(
+                ("LeftIndexProximal", "LeftHand"),
+                ("LeftIndexIntermediate", "LeftIndexProximal"),
+                ("RightThumbProximal", "RightHand"),
+            ),
+            rest="tpose",
+            metres=True,
+        ),
+    )
+}
 
 
 def mirrored(motion: Motion, reflection: np.ndarray) -> Motion:
@@ -155,15 +402,42 @@ def mirrored(motion: Motion, reflection: np.ndarray) -> Motion:
 
 
 # T-pose bone directions (Y up, facing +Z, left = +X) of each BN joint's main bone
-_TPOSE = {"Hips": (0, 1, 0), "Spine": (0, 1, 0), "Chest": (0, 1, 0), "Neck": (0, 1, 0),
-          "Shoulder_L": (1, 0, 0), "UpperArm_L": (1, 0, 0), "LowerArm_L": (1, 0, 0),
-          "Shoulder_R": (-1, 0, 0), "UpperArm_R": (-1, 0, 0), "LowerArm_R": (-1, 0, 0),
-          "UpperLeg_L": (0, -1, 0), "LowerLeg_L": (0, -1, 0), "Foot_L": (0, -0.5, 1),
-          "UpperLeg_R": (0, -1, 0), "LowerLeg_R": (0, -1, 0), "Foot_R": (0, -0.5, 1)}
-_MAIN_CHILD = {"Hips": "Spine", "Spine": "Chest", "Chest": "Neck", "Neck": "Head", "Shoulder_L": "UpperArm_L",
-               "UpperArm_L": "LowerArm_L", "LowerArm_L": "Hand_L", "Shoulder_R": "UpperArm_R", "UpperArm_R": "LowerArm_R",
-               "LowerArm_R": "Hand_R", "UpperLeg_L": "LowerLeg_L", "LowerLeg_L": "Foot_L", "Foot_L": "Toes_L",
-               "UpperLeg_R": "LowerLeg_R", "LowerLeg_R": "Foot_R", "Foot_R": "Toes_R"}
+_TPOSE = {
+    "Hips": (0, 1, 0),
+    "Spine": (0, 1, 0),
+    "Chest": (0, 1, 0),
+    "Neck": (0, 1, 0),
+    "Shoulder_L": (1, 0, 0),
+    "UpperArm_L": (1, 0, 0),
+    "LowerArm_L": (1, 0, 0),
+    "Shoulder_R": (-1, 0, 0),
+    "UpperArm_R": (-1, 0, 0),
+    "LowerArm_R": (-1, 0, 0),
+    "UpperLeg_L": (0, -1, 0),
+    "LowerLeg_L": (0, -1, 0),
+    "Foot_L": (0, -0.5, 1),
+    "UpperLeg_R": (0, -1, 0),
+    "LowerLeg_R": (0, -1, 0),
+    "Foot_R": (0, -0.5, 1),
+}
+_MAIN_CHILD = {
+    "Hips": "Spine",
+    "Spine": "Chest",
+    "Chest": "Neck",
+    "Neck": "Head",
+    "Shoulder_L": "UpperArm_L",
+    "UpperArm_L": "LowerArm_L",
+    "LowerArm_L": "Hand_L",
+    "Shoulder_R": "UpperArm_R",
+    "UpperArm_R": "LowerArm_R",
+    "LowerArm_R": "Hand_R",
+    "UpperLeg_L": "LowerLeg_L",
+    "LowerLeg_L": "Foot_L",
+    "Foot_L": "Toes_L",
+    "UpperLeg_R": "LowerLeg_R",
+    "LowerLeg_R": "Foot_R",
+    "Foot_R": "Toes_R",
+}
 
 
 def _swing(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -201,7 +475,11 @@ def make_rig(bn: Motion, spec: RigSpec) -> Motion:
             c = names.index(_MAIN_CHILD.get(parent, parent))
             add(new, p, frac * trans[c][0] if c != p else np.array([0.0, 5.0, 0.0]))
     for new, parent in spec.fingers:
-        p = names.index(parent) if parent in names else names.index(next(b for b, n in spec.rename.items() if n == parent))
+        p = (
+            names.index(parent)
+            if parent in names
+            else names.index(next(b for b, n in spec.rename.items() if n == parent))
+        )
         up = trans[p][0] if np.linalg.norm(trans[p][0]) > 1e-9 else np.array([3.0, 0, 0])
         tilt = matrix_from_rotvec(rng.normal(size=3) * 0.3)
         add(new, p, 0.15 * up, tilt)  # fingers: a constant curl, which must pass through
@@ -299,8 +577,9 @@ def as_bvh_file(motion: Motion) -> tuple[str, Motion]:
     return text.split("MOTION")[0], from_bvh(bvh.parse(text))
 
 
-def stream(base: str, start: dict, root: np.ndarray, rot: np.ndarray, model: str = "lti",
-           style: str = "elderly") -> tuple[dict, np.ndarray, np.ndarray]:
+def stream(
+    base: str, start: dict, root: np.ndarray, rot: np.ndarray, model: str = "lti", style: str = "elderly"
+) -> tuple[dict, np.ndarray, np.ndarray]:
     """(started, roots (F, 3), rotations (F, J, 4)) of frames streamed one at a time through a
     session of the server at `base` (JSON frames: float32 on the wire is the binary encoding's)."""
     import json
@@ -321,13 +600,16 @@ def stream(base: str, start: dict, root: np.ndarray, rot: np.ndarray, model: str
     return started, np.array(roots), np.array(rots)
 
 
-def stream_made_rig(base: str, motion: Motion, spec: RigSpec, model: str, style: str = "elderly",
-                    **start) -> tuple[dict, Motion]:
+def stream_made_rig(
+    base: str, motion: Motion, spec: RigSpec, model: str, style: str = "elderly", **start
+) -> tuple[dict, Motion]:
     """A made-rig motion through a session as a BVH client sends it (its header; the hips'
     translation per frame); (started, the stylised motion on the same rig)."""
     header, m = as_bvh_file(motion)
     hips = m.skeleton.index(spec.rename["Hips"])
-    started, root, rot = stream(base, {"bvh_header": header, **start}, m.translations[:, hips], m.rotations, model, style)
+    started, root, rot = stream(
+        base, {"bvh_header": header, **start}, m.translations[:, hips], m.rotations, model, style
+    )
     trans = m.translations.copy()
     trans[:, hips] = root
     return started, Motion(m.skeleton, rot, trans, m.fps)
@@ -342,6 +624,8 @@ def mapped_error(styled: Motion, spec: RigSpec, bn_output: np.ndarray, bn: Skele
     sk = styled.skeleton
     hips_c, hips_b = sk.index(spec.rename["Hips"]), bn.index("Hips")
     pairs = [(sk.index(spec.rename[b]), bn.index(b)) for b in BN_ROLES if b != "Hips"]
-    return np.linalg.norm((got[:, [a for a, _ in pairs]] - got[:, [hips_c]])
-                          - (bn_output[:, [b for _, b in pairs]] - bn_output[:, [hips_b]]), axis=-1)
-
+    return np.linalg.norm(
+        (got[:, [a for a, _ in pairs]] - got[:, [hips_c]])
+        - (bn_output[:, [b for _, b in pairs]] - bn_output[:, [hips_b]]),
+        axis=-1,
+    )

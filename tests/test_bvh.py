@@ -34,7 +34,9 @@ def test_round_trip_reproduces_printed_numbers(index, dataset):
 
 def test_channel_orders_per_dataset(index):
     bn = bvh.read(next(c for c in index if c.dataset == "bandai-namco-1").path)
-    assert all(j.channels == ["Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", "Yrotation"] for j in bn.joints)
+    assert all(
+        j.channels == ["Xposition", "Yposition", "Zposition", "Zrotation", "Xrotation", "Yrotation"] for j in bn.joints
+    )
     cmu = bvh.read(next(c for c in index if c.dataset == "cmu").path)
     assert cmu.joints[0].channels[3:] == ["Zrotation", "Yrotation", "Xrotation"]
     assert all(len(j.channels) == 3 for j in cmu.joints[1:])

@@ -37,14 +37,33 @@ def walk_bvh(index, tmp_path_factory):
     lines = motion.strip().splitlines()
     frame_time = lines[1]
     path = tmp_path_factory.mktemp("bvh") / "walk.bvh"
-    path.write_text(header + "MOTION\n" + f"Frames: {FRAMES}\n" + frame_time + "\n" + "\n".join(lines[2:2 + FRAMES]) + "\n")
+    path.write_text(
+        header + "MOTION\n" + f"Frames: {FRAMES}\n" + frame_time + "\n" + "\n".join(lines[2 : 2 + FRAMES]) + "\n"
+    )
     return path
 
 
 def test_the_written_file_is_the_servers_output_on_the_inputs_hierarchy(server, walk_bvh, tmp_path):
     out, sheet = tmp_path / "walk_elderly.bvh", tmp_path / "walk_elderly.png"
-    assert main(["stylise", str(walk_bvh), "--url", server, "--model", "lti", "--style", "elderly",
-                 "-o", str(out), "--render", str(sheet)]) == 0
+    assert (
+        main(
+            [
+                "stylise",
+                str(walk_bvh),
+                "--url",
+                server,
+                "--model",
+                "lti",
+                "--style",
+                "elderly",
+                "-o",
+                str(out),
+                "--render",
+                str(sheet),
+            ]
+        )
+        == 0
+    )
     source, written = bvh.read(walk_bvh), bvh.read(out)
     assert [(j.name, j.channels) for j in written.joints] == [(j.name, j.channels) for j in source.joints]
     inp, got = from_bvh(source), from_bvh(written)
@@ -60,11 +79,14 @@ def test_the_written_file_is_the_servers_output_on_the_inputs_hierarchy(server, 
     assert sheet.stat().st_size > 10_000
 
 
-@pytest.mark.parametrize("case, expected", [
-    ("not_bvh", "unexpected token"),
-    ("unknown_style", "unknown_style"),
-    ("no_server", "Connection refused"),
-])
+@pytest.mark.parametrize(
+    "case, expected",
+    [
+        ("not_bvh", "unexpected token"),
+        ("unknown_style", "unknown_style"),
+        ("no_server", "Connection refused"),
+    ],
+)
 def test_user_errors_end_in_one_line_and_status_2(server, walk_bvh, tmp_path, capsys, case, expected):
     source, url, style = walk_bvh, server, "elderly"
     if case == "not_bvh":

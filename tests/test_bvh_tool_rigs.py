@@ -35,7 +35,10 @@ def rig_bvh(bn_walk, tmp_path_factory):
 
 def test_stylise_a_made_rig_keeps_its_hierarchy(server, rig_bvh, tmp_path):
     out, sheet = tmp_path / "out.bvh", tmp_path / "out.png"
-    assert main(["stylise", str(rig_bvh), "--url", server, "--style", "elderly", "-o", str(out), "--render", str(sheet)]) == 0
+    assert (
+        main(["stylise", str(rig_bvh), "--url", server, "--style", "elderly", "-o", str(out), "--render", str(sheet)])
+        == 0
+    )
     source, written = bvh.read(rig_bvh), bvh.read(out)
     assert [(j.name, j.channels) for j in written.joints] == [(j.name, j.channels) for j in source.joints]
     inp, got = from_bvh(source), from_bvh(written)

@@ -58,8 +58,14 @@ def image(podman, tmp_path_factory) -> str:
     log = tmp_path_factory.mktemp("image") / "build.log"
     t0 = time.monotonic()
     with log.open("w") as out:
-        done = subprocess.run(["bash", str(REPO / "docker" / "build-image.sh")], cwd=REPO, stdout=out,
-                              stderr=subprocess.STDOUT, env={**os.environ, "IMAGE": IMAGE}, timeout=1200)
+        done = subprocess.run(
+            ["bash", str(REPO / "docker" / "build-image.sh")],
+            cwd=REPO,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, "IMAGE": IMAGE},
+            timeout=1200,
+        )
     assert done.returncode == 0, f"image build failed:\n{log.read_text()[-4000:]}"
     print(f"image built in {time.monotonic() - t0:.0f} s")
     return IMAGE
@@ -87,9 +93,21 @@ def container(image):
     home = f"{name}-home"
     _run("podman", "rm", "-f", "--ignore", name)
     _run("podman", "volume", "rm", "-f", home)
-    _run("podman", "run", "-d", "--name", name, "-p", f"127.0.0.1:{port}:8000",
-         "--read-only", "-v", f"{home}:/var/lib/stylestream",
-         "-e", f"STYLESTREAM_DRAIN_TIMEOUT_S={DRAIN_TIMEOUT_S}", image)
+    _run(
+        "podman",
+        "run",
+        "-d",
+        "--name",
+        name,
+        "-p",
+        f"127.0.0.1:{port}:8000",
+        "--read-only",
+        "-v",
+        f"{home}:/var/lib/stylestream",
+        "-e",
+        f"STYLESTREAM_DRAIN_TIMEOUT_S={DRAIN_TIMEOUT_S}",
+        image,
+    )
     box = Container(name, f"http://127.0.0.1:{port}")
     try:
         t0 = time.monotonic()
@@ -114,7 +132,9 @@ def test_image_runs_as_non_root_and_its_healthcheck_passes(container):
     assert _run("podman", "exec", container.name, "cat", "/proc/1/comm").stdout.strip() == "tini"
     assert _run("podman", "healthcheck", "run", container.name, check=False).returncode == 0
     # the readiness form compose uses, and a failing one: the probe can say no
-    assert _run("podman", "exec", container.name, "python", "/opt/stylestream/healthcheck.py", "/readyz").returncode == 0
+    assert (
+        _run("podman", "exec", container.name, "python", "/opt/stylestream/healthcheck.py", "/readyz").returncode == 0
+    )
     missing = _run("podman", "exec", container.name, "python", "/opt/stylestream/healthcheck.py", "/nope", check=False)
     assert missing.returncode == 1 and "404" in missing.stderr
 
@@ -122,6 +142,7 @@ def test_image_runs_as_non_root_and_its_healthcheck_passes(container):
 def test_numba_kernels_come_compiled_with_the_image(container):
     """The image carries numba's cache from its build and the entrypoint seeds the writable cache
     on the home volume with it, so a fresh container loads the kernels instead of compiling them."""
+
     def cache_files(folder: str) -> set[str]:
         listing = _run("podman", "exec", container.name, "find", folder, "-name", "*.nbi", "-printf", "%P\\n")
         return set(listing.stdout.split())

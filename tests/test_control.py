@@ -17,8 +17,12 @@ from .live_server import live_server
 
 MODELS = load_models(get_settings().weights_dir)
 # walk forward, turn left while walking, run, stop: one tick per model frame (30 fps)
-SCRIPT = [((1.4, 0.0), 0.0, "walk")] * 30 + [((1.4, 0.0), 0.8, "walk")] * 20 + \
-         [((3.5, 0.0), 0.8, "run")] * 20 + [((0.0, 0.0), 0.8, "walk")] * 20
+SCRIPT = (
+    [((1.4, 0.0), 0.0, "walk")] * 30
+    + [((1.4, 0.0), 0.8, "walk")] * 20
+    + [((3.5, 0.0), 0.8, "run")] * 20
+    + [((0.0, 0.0), 0.8, "walk")] * 20
+)
 
 
 def control_rows(script) -> np.ndarray:
@@ -63,8 +67,16 @@ def test_a_model_without_control_refuses_it_and_the_session_goes_on(bn_walk):
             ws.send(json.dumps({"type": "control", "seq": 0, "velocity": [1.0, 0.0], "facing": 0.0}))
             error = json.loads(ws.recv(timeout=10))
             assert (error["type"], error["code"], error["seq"]) == ("error", "control_unsupported", 0)
-            ws.send(json.dumps({"type": "frame", "seq": 1, "root": m.translations[0, 1].tolist(),
-                                "rotations": m.rotations[0].tolist()}))
+            ws.send(
+                json.dumps(
+                    {
+                        "type": "frame",
+                        "seq": 1,
+                        "root": m.translations[0, 1].tolist(),
+                        "rotations": m.rotations[0].tolist(),
+                    }
+                )
+            )
             assert json.loads(ws.recv(timeout=10))["type"] == "frame"
 
 

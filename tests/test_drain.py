@@ -35,8 +35,11 @@ def draining_server(**overrides):
     port = free_port()
     settings = ServiceSettings(port=port, **overrides)
     app = create_app(settings, models=load_models(get_settings().weights_dir))
-    server = DrainingServer(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
-                                           timeout_graceful_shutdown=1), app, settings.drain_timeout_s)
+    server = DrainingServer(
+        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", timeout_graceful_shutdown=1),
+        app,
+        settings.drain_timeout_s,
+    )
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     base = f"http://127.0.0.1:{port}"
@@ -66,8 +69,14 @@ def test_sigterm_refuses_new_sessions_closes_open_ones_with_1012_and_exits_in_ti
     readyz 503, new sessions refused; then the open session is closed with 1012 anyway."""
     root, rot = bn_walk.translations[:10, 1], bn_walk.rotations[:10]
     drain_timeout = 3.0
-    with draining_server(session_store=f"redis://127.0.0.1:{free_port()}/0", drain_timeout_s=drain_timeout) as (base, server, thread), \
-            connect(base.replace("http", "ws") + "/v1/stream") as ws:
+    with (
+        draining_server(session_store=f"redis://127.0.0.1:{free_port()}/0", drain_timeout_s=drain_timeout) as (
+            base,
+            server,
+            thread,
+        ),
+        connect(base.replace("http", "ws") + "/v1/stream") as ws,
+    ):
         token = start(ws)["resume_token"]
         for t in range(10):
             send_frame(ws, t, root[t], rot[t])
@@ -97,9 +106,11 @@ def test_a_drained_session_continues_on_the_other_replica_unchanged(tmp_path, bn
     require("redis-server", "nginx")
     root, rot = bn_walk.translations[:FRAMES, 1], bn_walk.rotations[:FRAMES]
     drain_timeout = 5.0
-    with redis_server(tmp_path) as store, \
-            replicas(tmp_path, 2, session_store=store, drain_timeout_s=drain_timeout) as servers, \
-            nginx(tmp_path, [s.port for s in servers]) as lb:
+    with (
+        redis_server(tmp_path) as store,
+        replicas(tmp_path, 2, session_store=store, drain_timeout_s=drain_timeout) as servers,
+        nginx(tmp_path, [s.port for s in servers]) as lb,
+    ):
         want, _, _ = stream(lb, root, rot)
         drained: dict = {}
 
@@ -108,8 +119,9 @@ def test_a_drained_session_continues_on_the_other_replica_unchanged(tmp_path, bn
                 holder = next(s for s in servers if s.metric("stylestream_active_sessions") == 1)
                 drained.update(replica=holder, at=time.monotonic())
                 holder.signal(signal.SIGTERM)
-                watcher = threading.Thread(target=lambda: (holder.proc.wait(), drained.update(exited=time.monotonic())),
-                                           daemon=True)
+                watcher = threading.Thread(
+                    target=lambda: (holder.proc.wait(), drained.update(exited=time.monotonic())), daemon=True
+                )
                 drained["watcher"] = watcher
                 watcher.start()
 

@@ -10,8 +10,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.interface import FrameBatch, StreamingModel, split_state, stack_states
-from models.motion.skeleton import fk
+from models.interface import FrameBatch, StreamingModel, split_state, stack_states  # noqa: E402 (after the torch check)
+from models.motion.skeleton import fk  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "models" / "weights" / "erd"
@@ -23,6 +23,7 @@ pytestmark = pytest.mark.skipif(not (WEIGHTS / "erd.npz").exists(), reason="Styl
 def model():
     """The served model: network in float32."""
     import models.erd
+
     torch.set_num_threads(1)
     return models.erd.load(WEIGHTS)
 
@@ -31,6 +32,7 @@ def model():
 def reference():
     """The same weights with the network in float64: the reference the float32 model is held to."""
     from models.erd.runtime import load
+
     return load(WEIGHTS, dtype=np.float64)
 
 
@@ -38,7 +40,10 @@ def reference():
 def walks():
     try:
         from models.data import build_index, load_motions, select
-        clips = select(build_index(["bandai-namco-2"]), split="val", style="normal", content=("walk", "wave-right-hand"))
+
+        clips = select(
+            build_index(["bandai-namco-2"]), split="val", style="normal", content=("walk", "wave-right-hand")
+        )
     except Exception as exc:  # dataset not unpacked on this machine
         pytest.skip(f"Bandai Namco dataset 2 unavailable: {exc}")
     clips = [c for c in clips if c.content == "walk"][:2] + [c for c in clips if c.content != "walk"][:1]
@@ -64,6 +69,7 @@ def test_weights_small_and_protocol(model):
 def test_features_match_foundation(model, walks):
     from models.erd.features import CONTACT, NB, POS, ROOTVEL, VEL, YAWRATE
     from models.motion.features import compute_features
+
     motion = walks[0]
     x, yaw = model.maker.sequence(motion.translations[:, 1], motion.rotations)
     ref = compute_features(motion)
@@ -75,7 +81,7 @@ def test_features_match_foundation(model, walks):
     np.testing.assert_allclose(x[:, YAWRATE], ref.yaw_rate, atol=1e-4)
     assert np.array_equal(x[:, CONTACT] > 0.5, ref.contacts)
     # quaternions: unit, sign-continuous over the clip
-    q = x[:, :4 * NB].reshape(F, NB, 4)
+    q = x[:, : 4 * NB].reshape(F, NB, 4)
     np.testing.assert_allclose(np.linalg.norm(q, axis=-1), 1.0, atol=1e-6)
     assert ((q[1:] * q[:-1]).sum(-1) > 0).all()
 
@@ -83,6 +89,7 @@ def test_features_match_foundation(model, walks):
 def test_stream_equals_whole_window(model, walks):
     from models.erd.dataset import CONTENTS
     from models.erd.offline import stylise
+
     motion = walks[0].slice(0, 40)
     w = _onehot(model, "elderly")
     streamed = model.stylise_stream(motion, w, content="walk", input_style="normal")
@@ -101,8 +108,13 @@ def test_stream_equals_whole_window(model, walks):
 def test_batched_equals_per_session_and_no_mutation(which, atol, rtol, request, walks):
     model = request.getfixturevalue(which)
     B = len(walks)
-    weights = np.stack([_onehot(model, "elderly"), _onehot(model, "exhausted", 1.5),
-                        0.5 * _onehot(model, "active") + 0.5 * _onehot(model, "feminine")])
+    weights = np.stack(
+        [
+            _onehot(model, "elderly"),
+            _onehot(model, "exhausted", 1.5),
+            0.5 * _onehot(model, "active") + 0.5 * _onehot(model, "feminine"),
+        ]
+    )
     singles = [model.init_state(1, content="walk", input_style="normal"), model.init_state(1), model.init_state(1)]
     batched = stack_states(singles)
     for t in range(12):
@@ -112,7 +124,7 @@ def test_batched_equals_per_session_and_no_mutation(which, atol, rtol, request, 
         for k in before:
             assert np.array_equal(before[k], batched[k]), f"step_batch mutated state[{k!r}]"
         for i in range(B):
-            out_i, singles[i] = model.step_batch(singles[i], frames.take(i), weights[i:i + 1])
+            out_i, singles[i] = model.step_batch(singles[i], frames.take(i), weights[i : i + 1])
             np.testing.assert_allclose(out_b.rotations[i], out_i.rotations[0], atol=atol, rtol=rtol)
             np.testing.assert_allclose(out_b.root[i], out_i.root[0], atol=atol, rtol=rtol)
         for i, s in enumerate(split_state(new_b)):
@@ -128,19 +140,20 @@ def test_causal(model, walks):
     from dataclasses import replace
 
     from models.erd.offline import stylise
+
     motion = walks[0].slice(0, 30)
     gen = model.torch_generator()
     w = _onehot(model, "exhausted")
     base = stylise(gen, model.maker, motion, w)
     t = 17
     rot = motion.rotations.copy()
-    rot[t + 1:, 2:] = rot[t + 1:, 2:][:, ::-1]  # scramble joints in the future
+    rot[t + 1 :, 2:] = rot[t + 1 :, 2:][:, ::-1]  # scramble joints in the future
     trans = motion.translations.copy()
-    trans[t + 1:, 1] += 25.0
+    trans[t + 1 :, 1] += 25.0
     changed = stylise(gen, model.maker, replace(motion, rotations=rot, translations=trans), w)
-    assert np.array_equal(base.rotations[:t + 1], changed.rotations[:t + 1])
-    assert np.array_equal(base.translations[:t + 1], changed.translations[:t + 1])
-    assert not np.allclose(base.rotations[t + 1:], changed.rotations[t + 1:])
+    assert np.array_equal(base.rotations[: t + 1], changed.rotations[: t + 1])
+    assert np.array_equal(base.translations[: t + 1], changed.translations[: t + 1])
+    assert not np.allclose(base.rotations[t + 1 :], changed.rotations[t + 1 :])
 
 
 def test_missing_labels_and_real_walk_finite(model, walks):
@@ -162,6 +175,7 @@ def test_float32_network_matches_float64_reference(model, reference):
     float64 reference over a long stream with style changes and a mix (the LSTM state must not
     let float32 round-off grow)."""
     from models.data import build_index, load_motions, select
+
     clip = max(select(build_index(["bandai-namco-2"]), split="val", style="normal"), key=lambda c: c.frames)
     motion = load_motions([clip])[0]
     assert motion.num_frames >= 250
@@ -171,7 +185,7 @@ def test_float32_network_matches_float64_reference(model, reference):
         w = _onehot(model, model.styles()[(t // 60) % 6])
         if t % 120 >= 90:
             w = 0.7 * _onehot(model, "elderly") + 0.5 * _onehot(model, "youthful")
-        frames = FrameBatch(motion.translations[t:t + 1, 1], motion.rotations[t:t + 1])
+        frames = FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1])
         outs = {}
         for m in (model, reference):
             outs[m], states[m] = m.step_batch(states[m], frames, w[None])
@@ -200,6 +214,7 @@ def test_planted_feet_stay_put(model, walks):
     the output holds them, and a leg it reports planted keeps its held toe or ankle in place."""
     from models.erd.offline import stylise
     from models.eval.metrics import planted_slide
+
     motion = walks[0].slice(0, 150)
     w = _onehot(model, "active")
     gen = model.torch_generator()
@@ -210,12 +225,16 @@ def test_planted_feet_stay_put(model, walks):
     sk = model.skeleton
     feet = [sk.index(n) for n in ("Foot_L", "Toes_L", "Foot_R", "Toes_R")]
     for t in range(motion.num_frames):
-        out, state = model.step_batch(state, FrameBatch(motion.translations[t:t + 1, 1], motion.rotations[t:t + 1]), w[None])
+        out, state = model.step_batch(
+            state, FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1]), w[None]
+        )
         translations = np.broadcast_to(sk.offsets, (1, sk.num_joints, 3)).copy()
         translations[:, 1] = out.root
         points.append(fk(out.rotations, translations, sk.parents)[1][0, feet].reshape(2, 2, 3))
         held.append(out.contacts[0])
-    step = np.linalg.norm(np.diff(np.array(points)[..., [0, 2]], axis=0), axis=-1).min(-1)  # (F-1, 2 legs): the stiller point
+    step = np.linalg.norm(np.diff(np.array(points)[..., [0, 2]], axis=0), axis=-1).min(
+        -1
+    )  # (F-1, 2 legs): the stiller point
     both = np.array(held[1:]) & np.array(held[:-1])
     # held exactly, but for the odd frame where the held leg cannot reach (cm per frame)
     assert both.sum() > 20 and np.median(step[both]) < 1e-6 and np.all(step[both] < 0.3), np.sort(step[both])[-8:]
@@ -228,7 +247,9 @@ def test_a_state_saved_before_the_foot_planter_still_steps(model, walks):
     w = _onehot(model, "elderly")[None]
     state = model.init_state(1)
     for t in range(5):
-        _, state = model.step_batch(state, FrameBatch(motion.translations[t:t + 1, 1], motion.rotations[t:t + 1]), w)
+        _, state = model.step_batch(
+            state, FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1]), w
+        )
     old = {**{k: v for k, v in state.items() if not k.startswith("feet_")}, "lock_anchor": np.zeros((1, 2, 3))}
     fresh = {**state, **{k: v for k, v in model.init_state(1).items() if k.startswith("feet_")}}
     assert model.upgrade_state(state) is state

@@ -56,6 +56,7 @@ def test_metric_sanity(judges, test_clips):
     shifted = m.translations.copy()
     shifted[:, 1, 0] += np.linspace(0, 30, m.num_frames)  # drift 0 -> 30 cm sideways
     from dataclasses import replace
+
     assert path_deviation(m, replace(m, translations=shifted)) == pytest.approx(15.0, rel=0.05)
     rng = np.random.default_rng(0)
     a = rng.normal(size=(500, 4))
@@ -74,6 +75,7 @@ def test_metric_sanity(judges, test_clips):
 
 def test_eval_end_to_end_quick(tmp_path):
     from models.eval.run import evaluate
+
     t = time.time()
     r = evaluate(quick=True, out_dir=tmp_path)
     assert time.time() - t < 30

@@ -1,18 +1,19 @@
-import numpy as np
 from dataclasses import replace
 
+import numpy as np
+
 from models.motion.features import WORLD_MIRROR, compute_features, foot_contacts, mirror
-from models.motion.rotations import quat_mul, expmap_to_quat
+from models.motion.rotations import expmap_to_quat, quat_mul
 
 
 def _perturb_from(motion, t):
     """Same motion up to frame t, different from t+1 on."""
     rng = np.random.default_rng(0)
     rot = motion.rotations.copy()
-    noise = expmap_to_quat(rng.normal(scale=0.3, size=rot[t + 1:].shape[:-1] + (3,)))
-    rot[t + 1:] = quat_mul(rot[t + 1:], noise)
+    noise = expmap_to_quat(rng.normal(scale=0.3, size=rot[t + 1 :].shape[:-1] + (3,)))
+    rot[t + 1 :] = quat_mul(rot[t + 1 :], noise)
     tr = motion.translations.copy()
-    tr[t + 1:, 1] += rng.normal(scale=10.0, size=tr[t + 1:, 1].shape)
+    tr[t + 1 :, 1] += rng.normal(scale=10.0, size=tr[t + 1 :, 1].shape)
     return replace(motion, rotations=rot, translations=tr)
 
 
@@ -22,7 +23,7 @@ def test_features_are_causal(bn_walk):
     for name in a.__dataclass_fields__:
         fa, fb = getattr(a, name), getattr(b, name)
         np.testing.assert_array_equal(fa[: t + 1], fb[: t + 1], err_msg=name)
-        assert not np.array_equal(fa[t + 1:], fb[t + 1:]) or name == "contacts"
+        assert not np.array_equal(fa[t + 1 :], fb[t + 1 :]) or name == "contacts"
 
 
 def test_walk_features_make_sense(bn_walk):
@@ -45,7 +46,9 @@ def test_contacts_scale_with_the_skeleton(cmu_walk):
 def test_mirror_is_exact_on_the_bandai_namco_skeleton(bn_walk):
     m = mirror(bn_walk)
     pos, mpos = bn_walk.global_positions(), m.global_positions()
-    np.testing.assert_allclose(mpos, WORLD_MIRROR * pos[:, bn_walk.skeleton.mirror_map()], atol=1e-4)  # cm; float32 cache
+    np.testing.assert_allclose(
+        mpos, WORLD_MIRROR * pos[:, bn_walk.skeleton.mirror_map()], atol=1e-4
+    )  # cm; float32 cache
     twice = mirror(m)
     np.testing.assert_allclose(np.abs((twice.rotations * bn_walk.rotations).sum(-1)), 1.0, atol=1e-6)
     # mirrored contacts swap feet

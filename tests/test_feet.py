@@ -84,7 +84,7 @@ def test_sessions_are_planted_independently(bn_walk):
     rots = np.repeat(bn_walk.rotations[None], 3, axis=0)
     together = _plant(planter, roots, rots)
     for b in range(3):
-        alone = _plant(planter, roots[b:b + 1], rots[b:b + 1])
+        alone = _plant(planter, roots[b : b + 1], rots[b : b + 1])
         for a, t in zip(alone, together):
             np.testing.assert_array_equal(a[0], t[b])
 
@@ -103,14 +103,15 @@ def test_two_bone_ik_reaches_its_target_and_keeps_the_foot_turned_as_it_was(bn_w
     up, low, foot = (sk.index(n) for n in ("UpperLeg_L", "LowerLeg_L", "Foot_L"))
     rng = np.random.default_rng(4)
     for t in (10, 50, 90):
-        rots = m.rotations[t:t + 1]
-        g_old, p_old = fk(rots, m.translations[t:t + 1], sk.parents)
+        rots = m.rotations[t : t + 1]
+        g_old, p_old = fk(rots, m.translations[t : t + 1], sk.parents)
         target = p_old[:, foot] + rng.uniform(-4, 4, 3)
-        hip = m.translations[t:t + 1, HIPS] + quat_apply(rots[:, HIPS], sk.offsets[up][None])
+        hip = m.translations[t : t + 1, HIPS] + quat_apply(rots[:, HIPS], sk.offsets[up][None])
         new = rots.copy()
-        new[:, up], new[:, low], new[:, foot] = two_bone_ik(rots[:, HIPS], rots[:, up], rots[:, low], rots[:, foot], hip,
-                                                           sk.offsets[low], sk.offsets[foot], target)
-        g_new, p_new = fk(new, m.translations[t:t + 1], sk.parents)
+        new[:, up], new[:, low], new[:, foot] = two_bone_ik(
+            rots[:, HIPS], rots[:, up], rots[:, low], rots[:, foot], hip, sk.offsets[low], sk.offsets[foot], target
+        )
+        g_new, p_new = fk(new, m.translations[t : t + 1], sk.parents)
         np.testing.assert_allclose(p_new[:, foot], target, atol=1e-3)  # cm
         assert abs(abs(np.sum(g_old[0, foot] * g_new[0, foot])) - 1) < 1e-9
 
@@ -121,7 +122,9 @@ def test_an_inactive_session_gets_its_frame_back_as_it_is(bn_walk):
     state = planter.init_state(1)
     skating_root = _skating(bn_walk, 1.3)
     for t in range(bn_walk.num_frames):
-        root, rot, contacts, state = planter(state, skating_root[t:t + 1], bn_walk.rotations[t:t + 1], np.zeros(1, bool))
+        root, rot, contacts, state = planter(
+            state, skating_root[t : t + 1], bn_walk.rotations[t : t + 1], np.zeros(1, bool)
+        )
         np.testing.assert_array_equal(root[0], skating_root[t])
         np.testing.assert_array_equal(rot[0], bn_walk.rotations[t])
         assert not contacts.any()

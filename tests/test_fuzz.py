@@ -44,19 +44,48 @@ TRANSPORT_LIMIT = 4 * MAX_MESSAGE
 SNAPSHOT_EVERY = 30
 STYLES = ["active", "elderly", "exhausted", "feminine", "masculine", "youthful"]  # LTI's trained styles
 MESSAGE_TYPES = {"start", "frame", "style", "reset", "end"}
-DOCUMENTED_CODES = frozenset({  # docs/protocol.md, "Errors"
-    "bad_json", "bad_message", "bad_frame", "message_too_large", "unknown_style", "bad_style", "style_deleted",
-    "expected_start", "unknown_model", "unsupported_skeleton", "bad_skeleton", "unknown_resume_token",
-    "session_in_use", "already_started", "too_many_sessions", "idle_timeout"})
+DOCUMENTED_CODES = frozenset(
+    {  # docs/protocol.md, "Errors"
+        "bad_json",
+        "bad_message",
+        "bad_frame",
+        "message_too_large",
+        "unknown_style",
+        "bad_style",
+        "style_deleted",
+        "expected_start",
+        "unknown_model",
+        "unsupported_skeleton",
+        "bad_skeleton",
+        "unknown_resume_token",
+        "session_in_use",
+        "already_started",
+        "too_many_sessions",
+        "idle_timeout",
+    }
+)
 BN_HEADER = (Path(__file__).parents[1] / "models/motion/assets/bandai_namco.bvh").read_text().split("MOTION")[0]
 
-settings.register_profile("fuzz", derandomize=True, deadline=None, database=None, print_blob=False,
-                          verbosity=Verbosity.quiet,  # the failing message is in the assertion; a batch is too long to print
-                          phases=(Phase.explicit, Phase.generate),
-                          suppress_health_check=(HealthCheck.too_slow, HealthCheck.data_too_large,
-                                                 HealthCheck.large_base_example, HealthCheck.filter_too_much))
+settings.register_profile(
+    "fuzz",
+    derandomize=True,
+    deadline=None,
+    database=None,
+    print_blob=False,
+    verbosity=Verbosity.quiet,  # the failing message is in the assertion; a batch is too long to print
+    phases=(Phase.explicit, Phase.generate),
+    suppress_health_check=(
+        HealthCheck.too_slow,
+        HealthCheck.data_too_large,
+        HealthCheck.large_base_example,
+        HealthCheck.filter_too_much,
+    ),
+)
 FUZZ = settings.get_profile("fuzz")
-IN_SESSION_BATCHES, BATCH = 200, (40, 80)  # up to ~12 000 messages on one open session (hypothesis may stop short of max_examples)
+IN_SESSION_BATCHES, BATCH = (
+    200,
+    (40, 80),
+)  # up to ~12 000 messages on one open session (hypothesis may stop short of max_examples)
 OPENINGS = 1200  # messages that open (or are sent right after opening) a fresh connection
 
 
@@ -81,8 +110,11 @@ def case(kind: str, message, *codes: str, **extra) -> Case:
 # ---- strategies: JSON values of the wrong type ---------------------------------------------
 
 scalar = st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=12)
-json_value = st.recursive(scalar, lambda kids: st.lists(kids, max_size=3) | st.dictionaries(st.text(max_size=6), kids, max_size=3),
-                          max_leaves=6)
+json_value = st.recursive(
+    scalar,
+    lambda kids: st.lists(kids, max_size=3) | st.dictionaries(st.text(max_size=6), kids, max_size=3),
+    max_leaves=6,
+)
 not_int = json_value.filter(lambda v: type(v) is not int)
 not_number = json_value.filter(lambda v: type(v) not in (int, float))
 not_str = json_value.filter(lambda v: not isinstance(v, str))
@@ -94,8 +126,9 @@ unknown_name = st.text(min_size=1, max_size=16).filter(lambda s: s not in STYLES
 
 
 def extra_keys(known: set[str]):
-    return st.dictionaries(st.text(min_size=1, max_size=10).filter(lambda k: k not in known), json_value,
-                           min_size=1, max_size=3)
+    return st.dictionaries(
+        st.text(min_size=1, max_size=10).filter(lambda k: k not in known), json_value, min_size=1, max_size=3
+    )
 
 
 def valid_frame(seq: int = 0) -> dict:
@@ -112,7 +145,7 @@ def without(message: dict, key: str) -> dict:
 
 def with_rotation(joint: int, quaternion: list) -> dict:
     rotations = [[0.0, 0.0, 0.0, 1.0]] * J
-    rotations = rotations[:joint] + [quaternion] + rotations[joint + 1:]
+    rotations = rotations[:joint] + [quaternion] + rotations[joint + 1 :]
     return with_field(valid_frame(), "rotations", rotations)
 
 
@@ -122,23 +155,48 @@ joint = st.integers(0, J - 1)
 @st.composite
 def bad_frame_json(draw) -> Case:
     f = valid_frame(draw(st.integers(0, 2**32 - 1)))
-    defect = draw(st.sampled_from([
-        "missing", "extra", "seq", "root_type", "root_length", "root_item", "rotations_type", "rotation_type",
-        "rotation_item", "joint_count", "quaternion_length", "non_finite_root", "non_finite_rotation",
-        "zero_quaternion", "tiny_quaternion", "root_out_of_range", "overflowing_quaternion"]))
+    defect = draw(
+        st.sampled_from(
+            [
+                "missing",
+                "extra",
+                "seq",
+                "root_type",
+                "root_length",
+                "root_item",
+                "rotations_type",
+                "rotation_type",
+                "rotation_item",
+                "joint_count",
+                "quaternion_length",
+                "non_finite_root",
+                "non_finite_rotation",
+                "zero_quaternion",
+                "tiny_quaternion",
+                "root_out_of_range",
+                "overflowing_quaternion",
+            ]
+        )
+    )
     match defect:
         case "missing":
             return case("frame", without(f, draw(st.sampled_from(["seq", "root", "rotations"]))), "bad_message")
         case "extra":
             return case("frame", {**f, **draw(extra_keys(set(f)))}, "bad_message")
         case "seq":
-            return case("frame", with_field(f, "seq", draw(not_int | st.integers(max_value=-1) | st.integers(min_value=2**32))),
-                        "bad_message")
+            return case(
+                "frame",
+                with_field(f, "seq", draw(not_int | st.integers(max_value=-1) | st.integers(min_value=2**32))),
+                "bad_message",
+            )
         case "root_type":
             return case("frame", with_field(f, "root", draw(not_list)), "bad_message")
         case "root_length":
-            return case("frame", with_field(f, "root", draw(st.lists(finite, max_size=8).filter(lambda r: len(r) != 3))),
-                        "bad_message")
+            return case(
+                "frame",
+                with_field(f, "root", draw(st.lists(finite, max_size=8).filter(lambda r: len(r) != 3))),
+                "bad_message",
+            )
         case "root_item":
             root = [1.0, 2.0, 3.0]
             root[draw(st.integers(0, 2))] = draw(not_number)
@@ -155,8 +213,11 @@ def bad_frame_json(draw) -> Case:
             n = draw(st.integers(0, 60).filter(lambda n: n != J))
             return case("frame", with_field(f, "rotations", [[0.0, 0.0, 0.0, 1.0]] * n), "bad_frame")
         case "quaternion_length":
-            return case("frame", with_rotation(draw(joint), draw(st.lists(finite, max_size=9).filter(lambda q: len(q) != 4))),
-                        "bad_frame")
+            return case(
+                "frame",
+                with_rotation(draw(joint), draw(st.lists(finite, max_size=9).filter(lambda q: len(q) != 4))),
+                "bad_frame",
+            )
         case "non_finite_root":
             root = [1.0, 2.0, 3.0]
             root[draw(st.integers(0, 2))] = draw(non_finite)
@@ -168,8 +229,11 @@ def bad_frame_json(draw) -> Case:
         case "zero_quaternion":
             return case("frame", with_rotation(draw(joint), [0, 0.0, -0.0, 0]), "bad_frame")
         case "tiny_quaternion":
-            return case("frame", with_rotation(draw(joint), draw(st.lists(st.floats(-4e-7, 4e-7), min_size=4, max_size=4))),
-                        "bad_frame")
+            return case(
+                "frame",
+                with_rotation(draw(joint), draw(st.lists(st.floats(-4e-7, 4e-7), min_size=4, max_size=4))),
+                "bad_frame",
+            )
         case "root_out_of_range":
             root = [1.0, 2.0, 3.0]
             root[draw(st.integers(0, 2))] = draw(st.floats(1.0001e6, 1e300)) * draw(st.sampled_from([1, -1]))
@@ -185,9 +249,26 @@ def bad_frame_json(draw) -> Case:
 def bad_style_json(draw) -> Case:
     s = {"type": "style", "style": draw(st.sampled_from(STYLES))}
     mix_of_known = st.dictionaries(st.sampled_from(STYLES), st.floats(0.01, 10), min_size=1, max_size=3)
-    defect = draw(st.sampled_from(["unknown_style", "unknown_in_mix", "neither", "both", "zero_mix", "negative_weight",
-                                   "non_finite_weight", "intensity_range", "intensity_type", "transition", "style_type",
-                                   "mix_type", "weight_type", "extra"]))
+    defect = draw(
+        st.sampled_from(
+            [
+                "unknown_style",
+                "unknown_in_mix",
+                "neither",
+                "both",
+                "zero_mix",
+                "negative_weight",
+                "non_finite_weight",
+                "intensity_range",
+                "intensity_type",
+                "transition",
+                "style_type",
+                "mix_type",
+                "weight_type",
+                "extra",
+            ]
+        )
+    )
     match defect:
         case "unknown_style":
             return case("style", with_field(s, "style", draw(unknown_name)), "unknown_style")
@@ -211,7 +292,9 @@ def bad_style_json(draw) -> Case:
             value = draw(non_finite | st.floats(max_value=-1e-9) | st.floats(min_value=2.0000001))
             return case("style", with_field(s, "intensity", value), "bad_message")
         case "intensity_type":
-            return case("style", with_field(s, "intensity", draw(not_number.filter(lambda v: v is not None))), "bad_message")
+            return case(
+                "style", with_field(s, "intensity", draw(not_number.filter(lambda v: v is not None))), "bad_message"
+            )
         case "transition":
             value = draw(not_int | st.integers(max_value=-1) | st.integers(min_value=10_001))
             return case("style", with_field(s, "transition_frames", value), "bad_message")
@@ -220,9 +303,13 @@ def bad_style_json(draw) -> Case:
         case "mix_type":
             return case("style", {"type": "style", "mix": draw(not_dict)}, "bad_message")
         case "weight_type":
-            return case("style", {"type": "style", "mix": {draw(st.sampled_from(STYLES)): draw(not_number)}}, "bad_message")
+            return case(
+                "style", {"type": "style", "mix": {draw(st.sampled_from(STYLES)): draw(not_number)}}, "bad_message"
+            )
         case "extra":
-            return case("style", {**s, **draw(extra_keys(set(s) | {"mix", "intensity", "transition_frames"}))}, "bad_message")
+            return case(
+                "style", {**s, **draw(extra_keys(set(s) | {"mix", "intensity", "transition_frames"}))}, "bad_message"
+            )
     raise AssertionError(defect)
 
 
@@ -234,16 +321,39 @@ def bad_other_json(draw) -> Case:
     if kind in ("reset", "end"):
         return case(kind, {"type": kind, **draw(extra_keys({"type"}))}, "bad_message")
     if kind == "start":
-        broken = draw(st.sampled_from([
-            {"type": "start"},  # no model
-            {"type": "start", "model": draw(not_str.filter(lambda v: v is not None)), "style": "elderly"},
-            {"type": "start", "model": "lti", "style": "elderly", "version": draw(not_int | st.integers().filter(lambda v: v != 1))},
-            {"type": "start", "model": "lti", "style": "elderly", "fps": draw(non_finite | st.floats(max_value=0) | st.floats(min_value=240.001))},
-            {"type": "start", "model": "lti", "style": "elderly", "encoding": draw(json_value.filter(lambda v: v not in ("json", "binary")))},
-        ]))
+        broken = draw(
+            st.sampled_from(
+                [
+                    {"type": "start"},  # no model
+                    {"type": "start", "model": draw(not_str.filter(lambda v: v is not None)), "style": "elderly"},
+                    {
+                        "type": "start",
+                        "model": "lti",
+                        "style": "elderly",
+                        "version": draw(not_int | st.integers().filter(lambda v: v != 1)),
+                    },
+                    {
+                        "type": "start",
+                        "model": "lti",
+                        "style": "elderly",
+                        "fps": draw(non_finite | st.floats(max_value=0) | st.floats(min_value=240.001)),
+                    },
+                    {
+                        "type": "start",
+                        "model": "lti",
+                        "style": "elderly",
+                        "encoding": draw(json_value.filter(lambda v: v not in ("json", "binary"))),
+                    },
+                ]
+            )
+        )
         return case("start", broken, "bad_message")
     if kind == "resume":
-        return case("resume", {"type": "resume", "resume_token": draw(st.text(max_size=40)), "last_seq": draw(json_value)}, "bad_message")
+        return case(
+            "resume",
+            {"type": "resume", "resume_token": draw(st.text(max_size=40)), "last_seq": draw(json_value)},
+            "bad_message",
+        )
     message = draw(st.dictionaries(st.text(max_size=8), json_value, max_size=4))
     if draw(st.booleans()):
         message["type"] = draw(json_value.filter(lambda t: not (isinstance(t, str) and t in MESSAGE_TYPES)))
@@ -256,8 +366,10 @@ def bad_other_json(draw) -> Case:
 def not_json(draw) -> Case:
     how = draw(st.sampled_from(["text", "truncated", "bytes_as_text"]))
     if how == "truncated":
-        full = json.dumps(draw(st.sampled_from([valid_frame(3), {"type": "style", "style": "elderly"}, {"type": "reset"}])))
-        return case("not_json", full[:draw(st.integers(0, len(full) - 1))], "bad_json", "bad_message")
+        full = json.dumps(
+            draw(st.sampled_from([valid_frame(3), {"type": "style", "style": "elderly"}, {"type": "reset"}]))
+        )
+        return case("not_json", full[: draw(st.integers(0, len(full) - 1))], "bad_json", "bad_message")
     text = draw(st.text(max_size=200)) if how == "text" else draw(st.binary(max_size=200)).decode("latin-1")
     try:
         if isinstance(json.loads(text), dict):
@@ -275,8 +387,11 @@ def bad_binary(draw) -> Case:
         return case("binary", draw(st.binary(max_size=7)), "bad_frame")
     if defect == "kind":
         body = draw(st.binary(max_size=FRAME_BYTES))
-        return case("binary", struct.pack("<IHH", seq, draw(st.integers(0, 65535).filter(lambda k: k != 1)), 0) + body,
-                    "bad_frame")
+        return case(
+            "binary",
+            struct.pack("<IHH", seq, draw(st.integers(0, 65535).filter(lambda k: k != 1)), 0) + body,
+            "bad_frame",
+        )
     if defect == "length":
         n = draw(st.integers(0, MAX_MESSAGE - 8).filter(lambda n: n != FRAME_BYTES - 8))
         body = (draw(st.binary(max_size=32)) + b"\x00" * n)[:n]
@@ -286,10 +401,12 @@ def bad_binary(draw) -> Case:
     if defect == "non_finite":
         values[draw(st.integers(0, len(values) - 1))] = draw(non_finite)
     elif defect == "root_out_of_range":
-        values[draw(st.integers(0, 2))] = draw(st.floats(2e6, float(np.finfo(np.float32).max), width=32)) * draw(st.sampled_from([1, -1]))
+        values[draw(st.integers(0, 2))] = draw(st.floats(2e6, float(np.finfo(np.float32).max), width=32)) * draw(
+            st.sampled_from([1, -1])
+        )
     else:
         j = draw(joint)
-        values[3 + 4 * j: 7 + 4 * j] = 0.0
+        values[3 + 4 * j : 7 + 4 * j] = 0.0
     return case("binary", struct.pack("<IHH", seq, 1, 0) + values.tobytes(), "bad_frame")
 
 
@@ -301,8 +418,18 @@ def oversized(draw) -> Case:
 
 
 # one_of picks its branches evenly: repeats weight them (oversized ones are few, they are large)
-in_session_case = st.one_of(bad_frame_json(), bad_frame_json(), bad_style_json(), bad_style_json(), bad_other_json(),
-                            bad_other_json(), not_json(), bad_binary(), bad_binary(), oversized())
+in_session_case = st.one_of(
+    bad_frame_json(),
+    bad_frame_json(),
+    bad_style_json(),
+    bad_style_json(),
+    bad_other_json(),
+    bad_other_json(),
+    not_json(),
+    bad_binary(),
+    bad_binary(),
+    oversized(),
+)
 
 
 # ---- connection-fatal messages, each on a fresh connection --------------------------------------
@@ -312,20 +439,38 @@ START = {"type": "start", "model": "lti", "style": "elderly"}
 
 @st.composite
 def opening_case(draw, in_use_token: str) -> Case:
-    kind = draw(st.sampled_from(["first_not_start", "first_valid_not_start", "first_binary", "bad_start",
-                                 "bad_bvh_header", "unknown_resume_token", "session_in_use", "second_start",
-                                 "over_transport_limit"]))
+    kind = draw(
+        st.sampled_from(
+            [
+                "first_not_start",
+                "first_valid_not_start",
+                "first_binary",
+                "bad_start",
+                "bad_bvh_header",
+                "unknown_resume_token",
+                "session_in_use",
+                "second_start",
+                "over_transport_limit",
+            ]
+        )
+    )
     if kind == "first_not_start":
         c = draw(st.one_of(bad_frame_json(), bad_style_json(), bad_other_json(), not_json()))
         if c.kind == "start":  # a start that does not validate is a bad message, not a missing start
             return Case("bad_start", c.payload, frozenset({"bad_message"}), close=1008)
         return Case("wrong_order", c.payload, frozenset({"expected_start", "bad_json", "bad_message"}), close=1008)
     if kind == "first_valid_not_start":  # right messages in the wrong order
-        message = draw(st.sampled_from([valid_frame(0), {"type": "style", "style": "exhausted"}, {"type": "reset"}, {"type": "end"}]))
+        message = draw(
+            st.sampled_from(
+                [valid_frame(0), {"type": "style", "style": "exhausted"}, {"type": "reset"}, {"type": "end"}]
+            )
+        )
         return case("wrong_order", message, "expected_start", close=1008)
     if kind == "first_binary":
         frame = struct.pack("<IHH", 0, 1, 0) + np.tile(np.array([0, 0, 0, 1], "<f4"), J + 1)[1:].tobytes()
-        return case("wrong_order", draw(st.sampled_from([frame, b""]) | st.binary(max_size=400)), "expected_start", close=1008)
+        return case(
+            "wrong_order", draw(st.sampled_from([frame, b""]) | st.binary(max_size=400)), "expected_start", close=1008
+        )
     if kind == "bad_start":
         defect = draw(st.sampled_from(["model", "style", "mix", "neither", "skeleton", "intensity"]))
         message = {
@@ -333,10 +478,18 @@ def opening_case(draw, in_use_token: str) -> Case:
             "style": {**START, "style": draw(unknown_name)},
             "mix": {**START, "mix": {"elderly": 1.0}},
             "neither": without(START, "style"),
-            "skeleton": {**START, "skeleton": draw(json_value.filter(lambda v: v not in ("bandai-namco", "cmu", None)))},
-            "intensity": {**START, "intensity": draw(non_finite | st.floats(min_value=2.0000001) | st.floats(max_value=-1e-9))},
+            "skeleton": {
+                **START,
+                "skeleton": draw(json_value.filter(lambda v: v not in ("bandai-namco", "cmu", None))),
+            },
+            "intensity": {
+                **START,
+                "intensity": draw(non_finite | st.floats(min_value=2.0000001) | st.floats(max_value=-1e-9)),
+            },
         }[defect]
-        code = {"model": "unknown_model", "style": "unknown_style", "mix": "bad_style", "neither": "bad_style"}.get(defect, "bad_message")
+        code = {"model": "unknown_model", "style": "unknown_style", "mix": "bad_style", "neither": "bad_style"}.get(
+            defect, "bad_message"
+        )
         return case("bad_start", message, code, close=1008)
     if kind == "bad_bvh_header":
         lines = BN_HEADER.splitlines()
@@ -344,24 +497,40 @@ def opening_case(draw, in_use_token: str) -> Case:
         if how == "text":
             header = draw(st.text(max_size=300))
         elif how == "truncated":  # braces left open
-            header = BN_HEADER[:draw(st.integers(0, BN_HEADER.rindex("}") - 1))]
+            header = BN_HEADER[: draw(st.integers(0, BN_HEADER.rindex("}") - 1))]
         elif how == "renamed_joint":
             name = st.from_regex(r"[A-Za-z]{1,10}", fullmatch=True).filter(lambda n: n not in ("Hips", "joint_Root"))
-            header = BN_HEADER.replace("JOINT Hips", "JOINT " + draw(name), 1).replace("ROOT joint_Root", "ROOT " + draw(name), 1)
+            header = BN_HEADER.replace("JOINT Hips", "JOINT " + draw(name), 1).replace(
+                "ROOT joint_Root", "ROOT " + draw(name), 1
+            )
         else:
             i = draw(st.integers(1, len(lines) - 1))
-            header = "\n".join(lines[:i] + [draw(st.text(min_size=1, max_size=30).filter(lambda t: t.strip()))] + lines[i:])
+            header = "\n".join(
+                lines[:i] + [draw(st.text(min_size=1, max_size=30).filter(lambda t: t.strip()))] + lines[i:]
+            )
         return case("bad_start", {**START, "bvh_header": header}, "bad_skeleton", "unsupported_skeleton", close=1008)
     if kind == "unknown_resume_token":
-        return case("bad_start", {**START, "resume_token": draw(st.text(min_size=1, max_size=40))}, "unknown_resume_token", close=1008)
+        return case(
+            "bad_start",
+            {**START, "resume_token": draw(st.text(min_size=1, max_size=40))},
+            "unknown_resume_token",
+            close=1008,
+        )
     if kind == "session_in_use":
         return case("wrong_order", {**START, "resume_token": in_use_token}, "session_in_use", close=1008)
     if kind == "second_start":
-        return case("wrong_order", draw(st.sampled_from([START, {**START, "style": "exhausted"}])), "already_started",
-                    close=1008, prelude=(json.dumps(START),))
+        return case(
+            "wrong_order",
+            draw(st.sampled_from([START, {**START, "style": "exhausted"}])),
+            "already_started",
+            close=1008,
+            prelude=(json.dumps(START),),
+        )
     n = draw(st.integers(TRANSPORT_LIMIT + 1, 2 * TRANSPORT_LIMIT))
     payload = b"\x01" * n if draw(st.booleans()) else "x" * n
-    return Case("oversized", payload, frozenset(), close=1009, prelude=(json.dumps(START),) if draw(st.booleans()) else ())
+    return Case(
+        "oversized", payload, frozenset(), close=1009, prelude=(json.dumps(START),) if draw(st.booleans()) else ()
+    )
 
 
 # ---- the server and the well-behaved session ---------------------------------------------------
@@ -374,11 +543,18 @@ def server(tmp_path_factory):
     scratch = tmp_path_factory.mktemp("fuzz")
     log = scratch / "server.log"
     with log.open("w") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "clients.cli", "serve", "--port", str(port), "--log-level", "warning"],
-                                env={**os.environ, "STYLESTREAM_MAX_MESSAGE_BYTES": str(MAX_MESSAGE),
-                                     "STYLESTREAM_SNAPSHOT_EVERY": str(SNAPSHOT_EVERY), "STYLESTREAM_IDLE_TIMEOUT_S": "600",
-                                     "STYLESTREAM_STYLES_DIR": str(scratch / "styles")},  # the trained styles only
-                                stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "clients.cli", "serve", "--port", str(port), "--log-level", "warning"],
+            env={
+                **os.environ,
+                "STYLESTREAM_MAX_MESSAGE_BYTES": str(MAX_MESSAGE),
+                "STYLESTREAM_SNAPSHOT_EVERY": str(SNAPSHOT_EVERY),
+                "STYLESTREAM_IDLE_TIMEOUT_S": "600",
+                "STYLESTREAM_STYLES_DIR": str(scratch / "styles"),
+            },  # the trained styles only
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
     base = f"http://127.0.0.1:{port}"
     try:
         wait_ready(base, lambda: proc.poll() is None, timeout=300)  # model loading, on a busy machine
@@ -404,7 +580,9 @@ def well_behaved_pass(url: str, root: np.ndarray, rot: np.ndarray, fps: float | 
         assert json.loads(ws.recv(timeout=30))["type"] == "started"
         for t in range(len(root)):
             if t == len(root) // 3:
-                ws.send(json.dumps({"type": "style", "mix": {"exhausted": 0.7, "youthful": 0.3}, "transition_frames": 10}))
+                ws.send(
+                    json.dumps({"type": "style", "mix": {"exhausted": 0.7, "youthful": 0.3}, "transition_frames": 10})
+                )
                 assert json.loads(ws.recv(timeout=30))["type"] == "style_set"
             if fps:
                 time.sleep(1 / fps)
@@ -460,7 +638,9 @@ def test_ten_thousand_malformed_messages_get_typed_errors_and_leave_a_good_sessi
     holder.send(json.dumps(START))
     token = json.loads(holder.recv(timeout=30))["resume_token"]
     for t in range(SNAPSHOT_EVERY):
-        holder.send(json.dumps({"type": "frame", "seq": t, "root": clip[0][t].tolist(), "rotations": clip[1][t].tolist()}))
+        holder.send(
+            json.dumps({"type": "frame", "seq": t, "root": clip[0][t].tolist(), "rotations": clip[1][t].tolist()})
+        )
         assert json.loads(holder.recv(timeout=30))["type"] == "frame"
     reference = well_behaved_pass(url, *clip)  # before any fuzzing
 
@@ -519,11 +699,28 @@ def test_ten_thousand_malformed_messages_get_typed_errors_and_leave_a_good_sessi
     seconds = time.perf_counter() - t0
 
     total = sum(sent.values())
-    print(f"\nfuzz: {total} malformed messages in {seconds:.1f} s, {len(passes)} well-behaved passes alongside; "
-          + ", ".join(f"{k} {n}" for k, n in sorted(sent.items())))
+    print(
+        f"\nfuzz: {total} malformed messages in {seconds:.1f} s, {len(passes)} well-behaved passes alongside; "
+        + ", ".join(f"{k} {n}" for k, n in sorted(sent.items()))
+    )
     assert total >= 10_000
-    assert all(sent[k] >= 100 for k in ("not_json", "start", "frame", "style", "reset", "end", "resume", "unknown_type",
-                                         "binary", "oversized", "wrong_order", "bad_start")), sent
+    assert all(
+        sent[k] >= 100
+        for k in (
+            "not_json",
+            "start",
+            "frame",
+            "style",
+            "reset",
+            "end",
+            "resume",
+            "unknown_type",
+            "binary",
+            "oversized",
+            "wrong_order",
+            "bad_start",
+        )
+    ), sent
     assert alive(base, proc)
     assert not failures, failures
     assert len(passes) >= 3

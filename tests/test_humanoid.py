@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from models.motion import bvh
-from models.motion.humanoid import (BN_ROLES, PRESET_NAMES, RigError, humanoid_rig, preset_rig, rig_from_bvh,
-                                    split_name)
+from models.motion.humanoid import BN_ROLES, PRESET_NAMES, RigError, humanoid_rig, preset_rig, rig_from_bvh, split_name
 from models.motion.humanoid_presets import PRESETS
 from models.motion.retarget_stream import FrameRetargeter
 from models.motion.skeleton import fk, skeleton_from_bvh
@@ -22,12 +21,22 @@ FIXTURES = Path(__file__).parent / "fixtures" / "rigs"
 FRAMES = 60
 
 
-@pytest.mark.parametrize("name, side, base", [
-    ("mixamorig:LeftUpLeg", "l", "upleg"), ("upperarm_twist_01_r", "r", "upperarmtwist01"), ("Hand.L", "l", "hand"),
-    ("left_knee", "l", "knee"), ("Bip01 R Thigh", "r", "thigh"), ("J_Bip_L_UpperArm", "l", "upperarm"),
-    ("leftUpperArm", "l", "upperarm"), ("spine_01", None, "spine01"), ("HeadTop_End", None, "headtopend"),
-    ("Shoulder_R", "r", "shoulder"), ("LHipJoint", "l", "hipjoint"),
-])
+@pytest.mark.parametrize(
+    "name, side, base",
+    [
+        ("mixamorig:LeftUpLeg", "l", "upleg"),
+        ("upperarm_twist_01_r", "r", "upperarmtwist01"),
+        ("Hand.L", "l", "hand"),
+        ("left_knee", "l", "knee"),
+        ("Bip01 R Thigh", "r", "thigh"),
+        ("J_Bip_L_UpperArm", "l", "upperarm"),
+        ("leftUpperArm", "l", "upperarm"),
+        ("spine_01", None, "spine01"),
+        ("HeadTop_End", None, "headtopend"),
+        ("Shoulder_R", "r", "shoulder"),
+        ("LHipJoint", "l", "hipjoint"),
+    ],
+)
 def test_split_name(name, side, base):
     assert split_name(name) == (side, base)
 
@@ -93,9 +102,16 @@ def test_partial_rig_names_every_missing_role():
     for role in err.value.missing:
         assert role in err.value.message
     # an explicit joint_map completes it
-    fixed = humanoid_rig(broken, joint_map={"mixamorig:LeftUpStalk": "upperleg_l", "mixamorig:LeftStalk": "lowerleg_l",
-                                            "mixamorig:RightUpStalk": "upperleg_r", "mixamorig:RightStalk": "lowerleg_r",
-                                            "mixamorig:RightPaw": "hand_r"})
+    fixed = humanoid_rig(
+        broken,
+        joint_map={
+            "mixamorig:LeftUpStalk": "upperleg_l",
+            "mixamorig:LeftStalk": "lowerleg_l",
+            "mixamorig:RightUpStalk": "upperleg_r",
+            "mixamorig:RightStalk": "lowerleg_r",
+            "mixamorig:RightPaw": "hand_r",
+        },
+    )
     assert fixed.joint("hand_r") == "mixamorig:RightPaw"
 
 
@@ -112,8 +128,10 @@ def test_joint_map_overrides_and_bad_maps_are_typed():
 
 
 def test_headless_or_legless_hierarchy_is_refused():
-    text = ("HIERARCHY\nROOT Pelvis\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n"
-            " JOINT Knee\n {\n  OFFSET 0 -40 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n  End Site\n  {\n   OFFSET 0 -40 0\n  }\n }\n}\n")
+    text = (
+        "HIERARCHY\nROOT Pelvis\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n"
+        " JOINT Knee\n {\n  OFFSET 0 -40 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n  End Site\n  {\n   OFFSET 0 -40 0\n  }\n }\n}\n"
+    )
     with pytest.raises(RigError) as err:
         rig_from_bvh(text)
     assert err.value.code == "missing_roles" and "head" in err.value.missing and "hand_l" in err.value.missing
@@ -122,8 +140,10 @@ def test_headless_or_legless_hierarchy_is_refused():
     assert err.value.code == "bad_skeleton"
 
 
-@pytest.mark.parametrize("name, up, units", [("unity", "z", "m"), ("ue5", "z", "cm"), ("mixamo", "y", "cm"),
-                                              ("smpl", "y", "m"), ("bvh", "y", "m")])
+@pytest.mark.parametrize(
+    "name, up, units",
+    [("unity", "z", "m"), ("ue5", "z", "cm"), ("mixamo", "y", "cm"), ("smpl", "y", "m"), ("bvh", "y", "m")],
+)
 def test_units_and_up_are_read_from_the_rig(name, up, units):
     rig = rig_from_bvh((FIXTURES / f"{name}.bvh").read_text())
     assert rig.units == units
@@ -190,11 +210,18 @@ def test_round_trip_and_a_new_pose_on_made_rigs(walk, bn_mapper, name):
     bn_trans = np.broadcast_to(sk.offsets, (n, sk.num_joints, 3)).copy()
     bn_trans[:, 1] = hips_bn
     want = fk(rot_bn, bn_trans, sk.parents)[1]
-    pairs = [(motion.skeleton.index(spec.rename[b]), sk.index(b)) for b in spec.rename if b in BN_ROLES or b in ("Spine", "Chest")]
+    pairs = [
+        (motion.skeleton.index(spec.rename[b]), sk.index(b))
+        for b in spec.rename
+        if b in BN_ROLES or b in ("Spine", "Chest")
+    ]
     if name == "ue5":  # its neck role is the inserted neck_02: compare the others
         pairs = [(a, b) for a, b in pairs if sk.names[b] != "Neck"]
-    err = np.linalg.norm((got[:, [a for a, _ in pairs]] - got[:, [0]] * 0 - got[:, [motion.skeleton.index(spec.rename["Hips"])]])
-                         - (want[:, [b for _, b in pairs]] - want[:, [1]]), axis=-1)
+    err = np.linalg.norm(
+        (got[:, [a for a, _ in pairs]] - got[:, [0]] * 0 - got[:, [motion.skeleton.index(spec.rename["Hips"])]])
+        - (want[:, [b for _, b in pairs]] - want[:, [1]]),
+        axis=-1,
+    )
     leg = 80.0
     assert np.median(err) / leg < 0.03 and err.max() / leg < 0.06, (np.median(err), err.max())
     # and the hips, so the feet, land where BN's are: the made rig's own floor is BN's floor here
@@ -204,7 +231,7 @@ def test_round_trip_and_a_new_pose_on_made_rigs(walk, bn_mapper, name):
 def test_made_rig_fixture_motion_positions_are_the_bn_walks(walk):
     """The made rigs are the ground truth only if they move exactly as the BN walk does."""
     pos = walk.global_positions()
-    for name, spec in SPECS.items():
+    for spec in SPECS.values():
         motion = make_rig(walk, spec)
         got = bn_positions(motion, spec)
         for j, b in enumerate(walk.skeleton.names):

@@ -1,8 +1,8 @@
 import numpy as np
 import torch
 
-from models.motion.skeleton import fk, fk_torch, from_bvh, to_bvh
 from models.motion import bvh
+from models.motion.skeleton import fk, fk_torch, from_bvh, to_bvh
 
 
 def test_rest_pose_fk_matches_offsets(bn_walk, cmu_walk):

@@ -99,11 +99,14 @@ def test_per_token_limits_come_from_the_environment(monkeypatch):
     assert b.max_sessions == ServiceSettings().token_max_sessions
 
 
-@pytest.mark.parametrize("bad", [
-    {"api_tokens": ["a"], "token_limits": {"typo": {"max_sessions": 1}}},  # a token the server does not have
-    {"api_tokens": ["a"], "token_limits": {"a": {"max_sessions": 0}}},
-    {"api_tokens": ["a"], "token_limits": {"a": {"sessions": 3}}},  # unknown field
-])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        {"api_tokens": ["a"], "token_limits": {"typo": {"max_sessions": 1}}},  # a token the server does not have
+        {"api_tokens": ["a"], "token_limits": {"a": {"max_sessions": 0}}},
+        {"api_tokens": ["a"], "token_limits": {"a": {"sessions": 3}}},  # unknown field
+    ],
+)
 def test_bad_limit_settings_are_refused_at_start(bad):
     with pytest.raises(ValidationError):
         ServiceSettings(**bad)

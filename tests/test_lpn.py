@@ -9,7 +9,6 @@ import torch
 
 from models.data import build_index, load_motion, select
 from models.interface import FrameBatch, StreamingModel
-from models.lpn import features as lf
 from models.lpn import load
 from models.lpn.dataset import clip_samples
 from models.registry import load_models
@@ -33,7 +32,7 @@ def clips():
 
 
 def _frames(motion, t: int, control=None) -> FrameBatch:
-    return FrameBatch(motion.translations[t:t + 1, 1], motion.rotations[t:t + 1], control=control)
+    return FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1], control=control)
 
 
 def _drive(model, control: np.ndarray, start, style: str = "normal") -> np.ndarray:
@@ -57,8 +56,9 @@ def test_numpy_network_equals_the_trained_torch_network(model, clips):
     ours = model._network(x, g, film)
     net = model.generator()
     with torch.no_grad():
-        theirs = net.denormalise_y(net(net.normalise_x(torch.from_numpy(x)), net.normalise_g(torch.from_numpy(g)),
-                                       torch.from_numpy(film))).numpy()
+        theirs = net.denormalise_y(
+            net(net.normalise_x(torch.from_numpy(x)), net.normalise_g(torch.from_numpy(g)), torch.from_numpy(film))
+        ).numpy()
     scale = np.abs(theirs).mean(0) + 1e-3
     assert np.abs((ours - theirs) / scale).max() < 1e-3
 
@@ -87,7 +87,7 @@ def test_sessions_in_a_batch_are_independent(model, clips):
     for t in range(12):
         out, both = model.step_batch(both, FrameBatch.concat([_frames(walk, t), _frames(run, t)]), w)
         for i, m in enumerate((walk, run)):
-            single, alone[i] = model.step_batch(alone[i], _frames(m, t), w[i:i + 1])
+            single, alone[i] = model.step_batch(alone[i], _frames(m, t), w[i : i + 1])
             np.testing.assert_allclose(out.root[i], single.root[0], atol=1e-3)
 
 
@@ -124,7 +124,9 @@ def test_style_weights_blend_film_vectors_and_lean_to_normal(model):
 
 def test_styles_change_the_motion(model, clips):
     control = np.tile([[1.2, 0.0, 0.0, 0.0, 1.0]], (60, 1))
-    paths = {s: model.run(clips["walk"], model.weight_vector({s: 1.0}), control=control)[0] for s in ("normal", "elderly")}
+    paths = {
+        s: model.run(clips["walk"], model.weight_vector({s: 1.0}), control=control)[0] for s in ("normal", "elderly")
+    }
     pose = {s: m.rotations[30:] for s, m in paths.items()}
     assert np.abs(pose["normal"] - pose["elderly"]).mean() > 0.01
 
@@ -171,6 +173,7 @@ def test_control_sessions_start_standing_whatever_pose_the_input_carries(model):
 def reference(model):
     """The numpy step the compiled kernels replaced, on the same weights."""
     from models.lpn.reference import numpy_twin
+
     return numpy_twin(model)
 
 
@@ -185,14 +188,24 @@ def test_compiled_step_gives_the_numpy_steps_outputs(model, reference, clips):
     ahead[40:70, [0, 2]] = [1.5, np.pi / 2]
     ahead[70:, [0, 2]] = [0.0, np.pi / 2]
     side = np.tile([0.4, 0.9, -0.5, 1.0, 1.0], (T, 1))
-    weights = np.stack([model.weight_vector(mix) for mix in
-                        ({"elderly": 1.0}, {"active": 1.0}, {"feminine": 0.5, "exhausted": 0.3}, {"normal": 1.0})])
+    weights = np.stack(
+        [
+            model.weight_vector(mix)
+            for mix in ({"elderly": 1.0}, {"active": 1.0}, {"feminine": 0.5, "exhausted": 0.3}, {"normal": 1.0})
+        ]
+    )
     states = {m: m.init_state(4) for m in (model, reference)}
     worst = {"root_cm": 0.0, "quaternion": 0.0, "state": 0.0}
     roots, held, released, bent = [], [], [], []
     for t in range(T):
-        frames = FrameBatch.concat([_frames(walk, 0, ahead[t:t + 1]), _frames(walk, 0, side[t:t + 1]), _frames(walk, t),
-                                    _frames(run, min(t, run.num_frames - 1))])  # then stands on its last frame
+        frames = FrameBatch.concat(
+            [
+                _frames(walk, 0, ahead[t : t + 1]),
+                _frames(walk, 0, side[t : t + 1]),
+                _frames(walk, t),
+                _frames(run, min(t, run.num_frames - 1)),
+            ]
+        )  # then stands on its last frame
         outs, before = {}, states[model]
         for m in (model, reference):
             outs[m], states[m] = m.step_batch(states[m], frames, weights)

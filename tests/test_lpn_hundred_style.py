@@ -12,8 +12,10 @@ from models.lpn import features as lf
 from models.lpn.dataset import DataConfig, all_styles, clip_samples, gait_of
 from models.lpn.hundred_style import clips, load_clip, load_take, read_frame_cuts, scan
 
-HEADER = "STYLE_NAME,BR_START,BR_STOP,BW_START,BW_STOP,FR_START,FR_STOP,FW_START,FW_STOP,ID_START,ID_STOP," \
-         "SR_START,SR_STOP,SW_START,SW_STOP,TR1_START,TR1_STOP,TR2_START,TR2_STOP,TR3_START,TR3_STOP"
+HEADER = (
+    "STYLE_NAME,BR_START,BR_STOP,BW_START,BW_STOP,FR_START,FR_STOP,FW_START,FW_STOP,ID_START,ID_STOP,"
+    "SR_START,SR_STOP,SW_START,SW_STOP,TR1_START,TR1_STOP,TR2_START,TR2_STOP,TR3_START,TR3_STOP"
+)
 
 
 @pytest.fixture(scope="module")
@@ -21,9 +23,11 @@ def layout(tmp_path_factory):
     """Neutral (FW, FR) and Old (FW) from dataset 1, in 100STYLE's folders and names."""
     root = tmp_path_factory.mktemp("100style")
     index = build_index(["bandai-namco-1"])
-    files = {("Neutral", "FW"): select(index, style="normal", content="walk")[0],
-             ("Neutral", "FR"): select(index, style="normal", content="run")[0],
-             ("Old", "FW"): select(index, style="old", content="walk")[0]}
+    files = {
+        ("Neutral", "FW"): select(index, style="normal", content="walk")[0],
+        ("Neutral", "FR"): select(index, style="normal", content="run")[0],
+        ("Old", "FW"): select(index, style="old", content="walk")[0],
+    }
     for (style, gait), clip in files.items():
         (root / style).mkdir(exist_ok=True)
         shutil.copy(clip.path, root / style / f"{style}_{gait}.bvh")
@@ -31,7 +35,9 @@ def layout(tmp_path_factory):
     neutral, old = list(na), list(na)
     neutral[4:8] = ["10", "79", "5", "104"]  # FR 10..79, FW 5..104
     old[6:8] = ["0", "89"]  # FW 0..89
-    (root / "Frame_Cuts.csv").write_text("\n".join([HEADER, ",".join(["Neutral", *neutral]), ",".join(["Old", *old])]) + "\n")
+    (root / "Frame_Cuts.csv").write_text(
+        "\n".join([HEADER, ",".join(["Neutral", *neutral]), ",".join(["Old", *old])]) + "\n"
+    )
     return root, files
 
 

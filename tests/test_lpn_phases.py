@@ -6,8 +6,16 @@ import numpy as np
 import pytest
 
 from models.data import build_index, load_motion, select
-from models.lpn.phases import (BONES, circular_mean, fit_sinusoid, local_phases, phase_features,
-                               principal_axis, step_frequency, style_axes)
+from models.lpn.phases import (
+    BONES,
+    circular_mean,
+    fit_sinusoid,
+    local_phases,
+    phase_features,
+    principal_axis,
+    step_frequency,
+    style_axes,
+)
 
 FPS = 30.0
 

@@ -30,7 +30,9 @@ STEPS = 40  # fine-tune steps in these tests (the service default is 300)
 @pytest.fixture(scope="module")
 def giant_clip(index):
     """A walk of a style LPN-FiLM never saw in training (held out for this experiment)."""
-    return frames_json(load_motion(select(index, dataset="bandai-namco-1", style="giant", content="walk")[0]).slice(0, 240))
+    return frames_json(
+        load_motion(select(index, dataset="bandai-namco-1", style="giant", content="walk")[0]).slice(0, 240)
+    )
 
 
 def drive(base: str, style: str) -> np.ndarray:
@@ -52,7 +54,9 @@ def test_an_uploaded_clip_is_a_live_lpn_style_at_once_and_after_a_restart(giant_
         dots = np.abs((giant * normal).sum(-1)).clip(0, 1)
         assert np.degrees(2 * np.arccos(dots)).mean() > 1.0
 
-    assert "my-giant" not in MODEL.styles()  # the server's style set was its own: a restart starts from the trained ones
+    assert (
+        "my-giant" not in MODEL.styles()
+    )  # the server's style set was its own: a restart starts from the trained ones
     with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, _):  # a restarted server
         assert httpx.get(f"{base}/v1/styles/lpn.my-giant").json()["status"] == "ready"
         np.testing.assert_allclose(drive(base, "my-giant"), giant, atol=1e-5)
@@ -104,7 +108,11 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
         streamer.start()
         seen = poll_job(base, job["id"])
         finished = time.monotonic()
-        wait_until(lambda: (streamer.replies and streamer.replies[-1][0] > finished) or streamer.error, "frames after the swap", 30)
+        wait_until(
+            lambda: (streamer.replies and streamer.replies[-1][0] > finished) or streamer.error,
+            "frames after the swap",
+            30,
+        )
         streamer.stop.set()
         streamer.join(timeout=10)
 
@@ -129,7 +137,10 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
         after = [r for t, r in streamer.replies if t > finished]
         assert len(during) > 20 and after and np.isfinite(np.array(during + after)).all()
 
-    with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, app):  # restarted: the tuned vector, not re-embedded
+    with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (
+        base,
+        app,
+    ):  # restarted: the tuned vector, not re-embedded
         np.testing.assert_array_equal(app.state.runtime.models["lpn"].film_of("tuned-giant"), tuned)
         assert httpx.get(f"{base}/v1/styles/lpn.tuned-giant").json()["fine_tune"] == result
         assert httpx.delete(f"{base}/v1/styles/lpn.tuned-giant").status_code == 204

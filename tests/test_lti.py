@@ -23,6 +23,7 @@ from models.motion.rotations import yaw_quat
 def _data():
     """The real data (tests unpack it on first use)."""
     from models.data import build_index, load_motion, select
+
     return build_index(["bandai-namco-2"]), load_motion, select
 
 
@@ -85,7 +86,7 @@ def test_representation_roundtrip_and_streaming_encoder():
     np.testing.assert_allclose(root, m.translations[:, rep.HIPS], atol=1e-8)
     np.testing.assert_allclose(np.abs(np.sum(rots * m.rotations, -1)), 1.0, atol=1e-10)
     enc = rep.FeatureEncoder(1, ref)
-    g = np.concatenate([enc(m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]) for t in range(m.num_frames)])
+    g = np.concatenate([enc(m.translations[t : t + 1, rep.HIPS], m.rotations[t : t + 1]) for t in range(m.num_frames)])
     np.testing.assert_allclose(g, f, atol=1e-12)
 
 
@@ -102,7 +103,7 @@ def test_streaming_equals_offline(footlock, keep_heading):
     offline, contacts = tr.translate_motion(m, timewarp=False, footlock=footlock)
     state, w = model.init_state(1), _one_hot(model, "elderly", 1)
     for t in range(m.num_frames):
-        out, state = model.step_batch(state, FrameBatch(m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]), w)
+        out, state = model.step_batch(state, FrameBatch(m.translations[t : t + 1, rep.HIPS], m.rotations[t : t + 1]), w)
         np.testing.assert_allclose(out.root[0], offline.translations[t, rep.HIPS], atol=1e-8)
         np.testing.assert_allclose(out.rotations[0], offline.rotations[t], atol=1e-10)
         assert (out.contacts[0] == contacts[t]).all()
@@ -118,10 +119,14 @@ def test_batched_step_equals_per_session():
     single = [model.init_state(1) for _ in motions]
     wb, w1 = _one_hot(model, "elderly", len(motions)), _one_hot(model, "elderly", 1)
     for t in range(frames):
-        fb = FrameBatch(np.stack([mo.translations[t, rep.HIPS] for mo in motions]), np.stack([mo.rotations[t] for mo in motions]))
+        fb = FrameBatch(
+            np.stack([mo.translations[t, rep.HIPS] for mo in motions]), np.stack([mo.rotations[t] for mo in motions])
+        )
         out, batch_state = model.step_batch(batch_state, fb, wb)
         for k, mo in enumerate(motions):
-            o, single[k] = model.step_batch(single[k], FrameBatch(mo.translations[t:t + 1, rep.HIPS], mo.rotations[t:t + 1]), w1)
+            o, single[k] = model.step_batch(
+                single[k], FrameBatch(mo.translations[t : t + 1, rep.HIPS], mo.rotations[t : t + 1]), w1
+            )
             np.testing.assert_allclose(out.root[k], o.root[0], atol=1e-9)
             np.testing.assert_allclose(out.rotations[k], o.rotations[0], atol=1e-10)
 
@@ -132,6 +137,7 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
     features (displacement, yaw change, height), body rotations blended by sign-aligned
     normalised quaternion averaging, the path integrated from the input's first frame."""
     from models.motion.rotations import quat_mul
+
     root, rots, F = motion.translations[:, rep.HIPS], motion.rotations, motion.num_frames
     yaw, tilt = rep.split_hips(rots[:, rep.HIPS])
     rest = max(1.0 - w.sum(), 0.0)
@@ -144,7 +150,7 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
             tr = model.translators[style]
             out, xs = tr.translate_features(rep.motion_to_features(motion, tr.ref))
             root_feats += w[s] * out[:, :4]
-            parts.append((w[s], rep.static_to_rotations(out[:, 4:rep.FEATURE_DIM], np.zeros(F), tr.ref)))
+            parts.append((w[s], rep.static_to_rotations(out[:, 4 : rep.FEATURE_DIM], np.zeros(F), tr.ref)))
             votes += w[s] * tr.footplant.predict(xs)
     base = max(parts, key=lambda p: p[0])[1]
     acc = sum(wp * np.where(np.sum(q * base, -1, keepdims=True) < 0, -q, q) for wp, q in parts)
@@ -170,7 +176,9 @@ def test_style_mix_equals_blend_of_offline_translations(mix):
     want_root, want_rot, want_contacts = _offline_mix(model, m, w)
     state = model.init_state(1)
     for t in range(m.num_frames):
-        out, state = model.step_batch(state, FrameBatch(m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]), w[None])
+        out, state = model.step_batch(
+            state, FrameBatch(m.translations[t : t + 1, rep.HIPS], m.rotations[t : t + 1]), w[None]
+        )
         np.testing.assert_allclose(out.root[0], want_root[t], atol=1e-8)
         np.testing.assert_allclose(out.rotations[0], want_rot[t], atol=1e-10)
         assert (out.contacts[0] == want_contacts[t]).all()
@@ -182,7 +190,7 @@ def test_zero_style_weights_pass_the_input_through():
     m = load_motion(select(index, style="normal", content="walk-turn-left", split="val")[0])
     state, w = model.init_state(1), np.zeros((1, len(model.styles())))
     for t in range(m.num_frames):
-        out, state = model.step_batch(state, FrameBatch(m.translations[t:t + 1, rep.HIPS], m.rotations[t:t + 1]), w)
+        out, state = model.step_batch(state, FrameBatch(m.translations[t : t + 1, rep.HIPS], m.rotations[t : t + 1]), w)
         np.testing.assert_allclose(out.root[0], m.translations[t, rep.HIPS], atol=1e-8)
         np.testing.assert_allclose(np.abs(np.sum(out.rotations[0] * m.rotations[t], -1)), 1.0, atol=1e-12)
         assert not out.contacts.any()
@@ -195,7 +203,7 @@ def test_step_leaves_its_input_state_unchanged():
     state, w = model.init_state(2), _one_hot(model, "elderly", 2)
     w[1] = 0.0
     for t in range(40):
-        fb = FrameBatch(np.repeat(m.translations[t:t + 1, rep.HIPS], 2, 0), np.repeat(m.rotations[t:t + 1], 2, 0))
+        fb = FrameBatch(np.repeat(m.translations[t : t + 1, rep.HIPS], 2, 0), np.repeat(m.rotations[t : t + 1], 2, 0))
         before = {k: v.copy() for k, v in state.items()}
         _, new = model.step_batch(state, fb, w)
         for k, v in before.items():
@@ -218,6 +226,7 @@ def test_bad_shapes_and_stale_states_are_clear_errors():
     with pytest.raises(ValueError, match="feet_offset"):
         model.step_batch({**state, "feet_offset": np.zeros((2, 2, 3))}, FrameBatch(np.zeros((1, 3)), rest), w)
     import copy
+
     smaller = copy.copy(model)
     smaller.remove_style("youthful")
     bigger_state = {**state, "x.youthful": np.zeros((1, 3))}  # a wrong size for a style this model has
@@ -240,6 +249,7 @@ def test_trained_models_are_stable_and_listed():
 def test_imw_never_increases_objective():
     index, load_motion, select = _data()
     from models.lti.train import make_pairs, match_features
+
     a, b = make_pairs(index, "exhausted", "val")[0]
     fa, fb = rep.motion_to_features(load_motion(a)), rep.motion_to_features(load_motion(b))
     mean, std = fa.mean(0), np.maximum(fa.std(0), 0.05)
@@ -268,8 +278,22 @@ def test_time_warp_dp_finds_known_shift():
 def _toy_translator() -> StyleTranslator:
     n, d = 2, rep.FEATURE_DIM
     z = np.zeros
-    return StyleTranslator("toy", 0.5 * np.eye(n), z((n, d)), z((d + 1, n)), z((d + 1, d)), z(d), np.ones(d), z(d + 1),
-                           np.ones(d + 1), -np.ones(d), np.ones(d), np.array([n]), k_p=1.0, k_c=2.0)
+    return StyleTranslator(
+        "toy",
+        0.5 * np.eye(n),
+        z((n, d)),
+        z((d + 1, n)),
+        z((d + 1, d)),
+        z(d),
+        np.ones(d),
+        z(d + 1),
+        np.ones(d + 1),
+        -np.ones(d),
+        np.ones(d),
+        np.array([n]),
+        k_p=1.0,
+        k_c=2.0,
+    )
 
 
 def test_erf_blend_zero_inside_and_one_far_outside():
@@ -286,7 +310,7 @@ def test_erf_blend_zero_inside_and_one_far_outside():
     # blended output: far outside the training range the input passes through
     feats = np.full((1, rep.FEATURE_DIM), 60.0)
     out, _ = tr.translate_features(feats)
-    np.testing.assert_allclose(out[0, :rep.FEATURE_DIM], feats[0], rtol=1e-6)
+    np.testing.assert_allclose(out[0, : rep.FEATURE_DIM], feats[0], rtol=1e-6)
 
 
 def test_footplant_classifier_separates_classes():

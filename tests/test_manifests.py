@@ -30,8 +30,13 @@ REPLICAS = ["stylestream-1", "stylestream-2"]
 
 
 def manifests() -> list[dict]:
-    return [doc for path in sorted(K8S.glob("*.yaml")) if path.name != "kustomization.yaml"
-            for doc in yaml.safe_load_all(path.read_text()) if doc]
+    return [
+        doc
+        for path in sorted(K8S.glob("*.yaml"))
+        if path.name != "kustomization.yaml"
+        for doc in yaml.safe_load_all(path.read_text())
+        if doc
+    ]
 
 
 def one(kind: str, name: str) -> dict:
@@ -46,7 +51,9 @@ def selects(selector: dict[str, str], labels: dict[str, str]) -> bool:
 def service_routes() -> set[str]:
     """Paths the app really serves (routes are registered without starting it), those of its
     included routers too (FastAPI keeps an included router whole in `app.routes`)."""
-    return {path for route in iter_route_contexts(create_app(ServiceSettings(), models={}).routes) if (path := route.path)}
+    return {
+        path for route in iter_route_contexts(create_app(ServiceSettings(), models={}).routes) if (path := route.path)
+    }
 
 
 def settings_from_env(env: dict[str, str], monkeypatch) -> ServiceSettings:
@@ -78,8 +85,15 @@ def nginx_seconds(value: str) -> float:
 @pytest.mark.parametrize("version", K8S_VERSIONS)
 def test_every_manifest_is_valid_against_the_kubernetes_schema(version):
     docs = manifests()
-    assert {d["kind"] for d in docs} >= {"ConfigMap", "Deployment", "Service", "Ingress", "HorizontalPodAutoscaler",
-                                         "PodDisruptionBudget", "NetworkPolicy"}
+    assert {d["kind"] for d in docs} >= {
+        "ConfigMap",
+        "Deployment",
+        "Service",
+        "Ingress",
+        "HorizontalPodAutoscaler",
+        "PodDisruptionBudget",
+        "NetworkPolicy",
+    }
     for doc in docs:
         kubernetes_validate.validate(doc, version, strict=True)  # raises ValidationError, naming the field
 
@@ -88,7 +102,8 @@ def test_the_schema_check_rejects_a_misspelt_field():
     """The validation above can fail: a typo in a known field is an error, not ignored."""
     broken = copy.deepcopy(one("Deployment", "stylestream"))
     broken["spec"]["template"]["spec"]["containers"][0]["livenesProbe"] = broken["spec"]["template"]["spec"][
-        "containers"][0].pop("livenessProbe")
+        "containers"
+    ][0].pop("livenessProbe")
     with pytest.raises(kubernetes_validate.ValidationError):
         kubernetes_validate.validate(broken, K8S_VERSIONS[-1], strict=True)
 
@@ -122,7 +137,9 @@ def test_service_hpa_pdb_and_ingress_reach_the_deployment():
     assert backends and all(b["name"] == "stylestream" and b["port"]["name"] == service_port["name"] for b in backends)
 
     redis = one("Deployment", "stylestream-redis")
-    assert selects(one("Service", "stylestream-redis")["spec"]["selector"], redis["spec"]["template"]["metadata"]["labels"])
+    assert selects(
+        one("Service", "stylestream-redis")["spec"]["selector"], redis["spec"]["template"]["metadata"]["labels"]
+    )
     policy = one("NetworkPolicy", "stylestream-redis")
     assert selects(policy["spec"]["podSelector"]["matchLabels"], redis["spec"]["template"]["metadata"]["labels"])
     assert selects(policy["spec"]["ingress"][0]["from"][0]["podSelector"]["matchLabels"], pod_labels)
@@ -180,8 +197,11 @@ def strategic_merge(base, patch):
     the patch replaces."""
     if isinstance(base, dict) and isinstance(patch, dict):
         return {**base, **{k: strategic_merge(base[k], v) if k in base else v for k, v in patch.items()}}
-    if isinstance(base, list) and isinstance(patch, list) and all(isinstance(i, dict) and "name" in i
-                                                                    for i in base + patch):
+    if (
+        isinstance(base, list)
+        and isinstance(patch, list)
+        and all(isinstance(i, dict) and "name" in i for i in base + patch)
+    ):
         merged = {item["name"]: item for item in base}
         for item in patch:
             merged[item["name"]] = strategic_merge(merged[item["name"]], item) if item["name"] in merged else item
@@ -195,12 +215,16 @@ def overlay_manifests() -> list[dict]:
     folder = K8S / "shared-styles"
     kustomization = yaml.safe_load((folder / "kustomization.yaml").read_text())
     assert kustomization["resources"][0] == ".."
-    docs = manifests() + [d for name in kustomization["resources"][1:]
-                          for d in yaml.safe_load_all((folder / name).read_text()) if d]
+    docs = manifests() + [
+        d for name in kustomization["resources"][1:] for d in yaml.safe_load_all((folder / name).read_text()) if d
+    ]
     for entry in kustomization["patches"]:
         patch = yaml.safe_load((folder / entry["path"]).read_text())
-        [i] = [i for i, d in enumerate(docs) if (d["kind"], d["metadata"]["name"]) ==
-               (patch["kind"], patch["metadata"]["name"])]
+        [i] = [
+            i
+            for i, d in enumerate(docs)
+            if (d["kind"], d["metadata"]["name"]) == (patch["kind"], patch["metadata"]["name"])
+        ]
         docs[i] = strategic_merge(docs[i], patch)
     return docs
 
@@ -259,8 +283,9 @@ def test_compose_runs_two_replicas_of_one_image_behind_nginx_with_redis_and_prom
         assert "ports" not in replica  # reached only through nginx (which it trusts for X-Forwarded-For)
         # one styles volume for both, rescanned: an upload through nginx is usable on either replica
         assert replica["volumes"] == ["styles:/var/lib/stylestream/styles"] and settings.styles_refresh_s > 0
-    assert {name: services["nginx"]["depends_on"][name]["condition"] for name in REPLICAS} == \
-        dict.fromkeys(REPLICAS, "service_healthy")
+    assert {name: services["nginx"]["depends_on"][name]["condition"] for name in REPLICAS} == dict.fromkeys(
+        REPLICAS, "service_healthy"
+    )
     mounts = {m.split(":")[1] for s in ("nginx", "prometheus") for m in services[s]["volumes"]}
     assert mounts == {"/etc/nginx/nginx.conf", "/etc/prometheus/prometheus.yml"}
     for service in ("nginx", "prometheus"):
@@ -290,8 +315,12 @@ def _nginx() -> str:
         return binary
     if shutil.which("apt-get") is None or os.geteuid() != 0:
         pytest.skip("nginx not installed and no root apt-get to install it (`make servers` installs it)")
-    subprocess.run("apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nginx >/dev/null",
-                   shell=True, check=True, timeout=600)
+    subprocess.run(
+        "apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nginx >/dev/null",
+        shell=True,
+        check=True,
+        timeout=600,
+    )
     return shutil.which("nginx") or "/usr/sbin/nginx"
 
 
@@ -302,8 +331,12 @@ def test_nginx_accepts_the_config(tmp_path):
     for name in REPLICAS:
         conf = conf.replace(f"server {name}:", "server 127.0.0.1:")
     (tmp_path / "nginx.conf").write_text(conf)
-    done = subprocess.run([_nginx(), "-t", "-p", str(tmp_path), "-e", "/dev/stderr", "-c", str(tmp_path / "nginx.conf")],
-                          capture_output=True, text=True, timeout=30)
+    done = subprocess.run(
+        [_nginx(), "-t", "-p", str(tmp_path), "-e", "/dev/stderr", "-c", str(tmp_path / "nginx.conf")],
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
     assert done.returncode == 0, done.stderr
     assert "test is successful" in done.stderr
 
@@ -316,8 +349,12 @@ def test_prometheus_scrapes_metrics_of_both_replicas(compose, monkeypatch):
     assert [t for c in job["static_configs"] for t in c["targets"]] == [f"{name}:{port}" for name in REPLICAS]
     promtool = shutil.which("promtool")
     if promtool:  # the real checker where Prometheus is installed
-        done = subprocess.run([promtool, "check", "config", "--syntax-only", str(DOCKER / "prometheus.yml")],
-                              capture_output=True, text=True, timeout=60)
+        done = subprocess.run(
+            [promtool, "check", "config", "--syntax-only", str(DOCKER / "prometheus.yml")],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert done.returncode == 0, done.stdout + done.stderr
 
 
@@ -325,8 +362,12 @@ def test_compose_file_passes_the_compose_cli(compose):
     """Only where a compose CLI is installed (none is fetched: it would need the network)."""
     for command in (["docker", "compose"], ["docker-compose"], ["podman-compose"]):
         if shutil.which(command[0]) and subprocess.run([*command, "version"], capture_output=True).returncode == 0:
-            done = subprocess.run([*command, "-f", str(DOCKER / "compose.yaml"), "config", "-q"],
-                                  capture_output=True, text=True, timeout=60)
+            done = subprocess.run(
+                [*command, "-f", str(DOCKER / "compose.yaml"), "config", "-q"],
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
             assert done.returncode == 0, done.stdout + done.stderr
             return
     pytest.skip("no compose CLI installed (docker compose, docker-compose or podman-compose)")

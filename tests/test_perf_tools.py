@@ -15,9 +15,23 @@ from service import protocol as P
 
 
 def _result(sessions: int, p99_ms: float, dropped: int = 0) -> Result:
-    return Result(sessions=sessions, fps=60.0, seconds=1.0, sent=sessions * 60, received=sessions * 60 - dropped,
-                  dropped=dropped, late=0, lost=0, p50_ms=1.0, p95_ms=p99_ms, p99_ms=p99_ms, max_ms=p99_ms,
-                  frames_per_s=sessions * 60.0, client_cpu_s=0.0, client_processes=1)
+    return Result(
+        sessions=sessions,
+        fps=60.0,
+        seconds=1.0,
+        sent=sessions * 60,
+        received=sessions * 60 - dropped,
+        dropped=dropped,
+        late=0,
+        lost=0,
+        p50_ms=1.0,
+        p95_ms=p99_ms,
+        p99_ms=p99_ms,
+        max_ms=p99_ms,
+        frames_per_s=sessions * 60.0,
+        client_cpu_s=0.0,
+        client_processes=1,
+    )
 
 
 @pytest.mark.parametrize("true_capacity", [5, 37, 100, 700])
@@ -38,17 +52,19 @@ def test_dropped_frames_fail_a_run_whatever_the_latency():
 
 
 def test_profile_samples_count_for_their_innermost_named_part_and_idle_threads_not_at_all():
-    stacks = Counter({
-        "run (uvicorn/server.py:1);process (service/stream.py:258);send_bytes (service/stream.py:62);"
-        "WebSocketsSansIOProtocol.send (uvicorn/protocols/websockets/websockets_sansio_impl.py:506)": 6,
-        "run (uvicorn/server.py:1);Batcher._run (service/batcher.py:150);run_step (service/batcher.py:53);"
-        "step_batch (models/lti/model.py:289)": 3,
-        "run (uvicorn/server.py:1);on_binary (service/stream.py:210);decode_binary (service/protocol.py:185)": 2,
-        "Runner.run (asyncio/runners.py:118)": 9,
-        "Thread.run (threading.py:982);_worker (concurrent/futures/thread.py:81)": 7,  # idle: left out
-        "WorkerThread.run (anyio/_backends/_asyncio.py:1113);Queue.get (queue.py:171);"
-        "Condition.wait (threading.py:327)": 5,
-    })
+    stacks = Counter(
+        {
+            "run (uvicorn/server.py:1);process (service/stream.py:258);send_bytes (service/stream.py:62);"
+            "WebSocketsSansIOProtocol.send (uvicorn/protocols/websockets/websockets_sansio_impl.py:506)": 6,
+            "run (uvicorn/server.py:1);Batcher._run (service/batcher.py:150);run_step (service/batcher.py:53);"
+            "step_batch (models/lti/model.py:289)": 3,
+            "run (uvicorn/server.py:1);on_binary (service/stream.py:210);decode_binary (service/protocol.py:185)": 2,
+            "Runner.run (asyncio/runners.py:118)": 9,
+            "Thread.run (threading.py:982);_worker (concurrent/futures/thread.py:81)": 7,  # idle: left out
+            "WorkerThread.run (anyio/_backends/_asyncio.py:1113);Queue.get (queue.py:171);"
+            "Condition.wait (threading.py:327)": 5,
+        }
+    )
     shares = summarise(stacks)
     assert shares["WebSocket send (uvicorn, socket write)"] == pytest.approx(0.3)
     assert shares["model step (batched)"] == pytest.approx(0.15)

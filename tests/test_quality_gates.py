@@ -32,14 +32,16 @@ GATES = (0.95, 2.0)
 
 def _clips(index, style: str, contents: tuple[str, ...], per_content: int, split: str = "val"):
     clips = select(index, dataset=DATASET, split=split, style=style)
-    return [c for content in contents for c in sorted((c for c in clips if c.content == content),
-                                                       key=lambda c: c.name)[:per_content]]
+    return [
+        c
+        for content in contents
+        for c in sorted((c for c in clips if c.content == content), key=lambda c: c.name)[:per_content]
+    ]
 
 
 @pytest.fixture(scope="module")
 def reference(index) -> RotationReference:
-    return RotationReference({s: load_motions(select(index, dataset=DATASET, split="train", style=s))
-                              for s in STYLES})
+    return RotationReference({s: load_motions(select(index, dataset=DATASET, split="train", style=s)) for s in STYLES})
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +64,9 @@ def test_rotations_and_planted_feet_stay_where_the_committed_weights_keep_them(m
         assert np.isfinite(within) and np.isfinite(slide)
         worst_within, worst_slide = min(worst_within, within), max(worst_slide, slide)
     floor_within, ceiling_slide = FLOORS[method]
-    print(f"{method}: worst joint within p99 {worst_within:.2f} (floor {floor_within}, gate {GATES[0]}), "
-          f"toe slide {worst_slide:.1f}x real (ceiling {ceiling_slide}, gate {GATES[1]})")
+    print(
+        f"{method}: worst joint within p99 {worst_within:.2f} (floor {floor_within}, gate {GATES[0]}), "
+        f"toe slide {worst_slide:.1f}x real (ceiling {ceiling_slide}, gate {GATES[1]})"
+    )
     assert worst_within >= floor_within
     assert worst_slide <= ceiling_slide

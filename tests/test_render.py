@@ -35,8 +35,14 @@ def test_joint_sides(bn_walk, cmu_walk):
 
 
 def test_contact_sheet_png(tmp_path, bn_walk, cmu_walk):
-    path = render_contact_sheet([bn_walk.slice(0, 30), resample(cmu_walk.slice(0, 120), 30)], tmp_path / "sheet.png",
-                                frames=3, titles=["bn", "cmu"], panel_size=1.5, dpi=50)
+    path = render_contact_sheet(
+        [bn_walk.slice(0, 30), resample(cmu_walk.slice(0, 120), 30)],
+        tmp_path / "sheet.png",
+        frames=3,
+        titles=["bn", "cmu"],
+        panel_size=1.5,
+        dpi=50,
+    )
     with Image.open(path) as img:
         assert img.format == "PNG" and img.size[0] > 100 and img.size[1] > 100
         _not_blank(img)
@@ -47,8 +53,15 @@ def test_contact_sheet_png(tmp_path, bn_walk, cmu_walk):
 
 
 def test_gif_is_animated(tmp_path, bn_walk, cmu_walk):
-    path = render_gif([bn_walk.slice(0, 30), cmu_walk.slice(0, 120)], tmp_path / "walk.gif", fps=6, seconds=1.0,
-                      titles=["bn", "cmu"], panel_size=1.5, dpi=50)
+    path = render_gif(
+        [bn_walk.slice(0, 30), cmu_walk.slice(0, 120)],
+        tmp_path / "walk.gif",
+        fps=6,
+        seconds=1.0,
+        titles=["bn", "cmu"],
+        panel_size=1.5,
+        dpi=50,
+    )
     with Image.open(path) as img:
         assert img.format == "GIF" and img.n_frames >= 5  # 1 s at 6 fps (Pillow may merge equal frames)
         img.seek(3)
@@ -79,8 +92,14 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def test_parts_are_found_by_name(bn_walk, cmu_walk):
     assert {p: bn_walk.skeleton.names[j] for p, j in find_parts(bn_walk.skeleton).items()} == {
-        "head": "Head", "hand_l": "Hand_L", "hand_r": "Hand_R", "foot_l": "Foot_L", "foot_r": "Foot_R",
-        "toe_l": "Toes_L", "toe_r": "Toes_R"}
+        "head": "Head",
+        "hand_l": "Hand_L",
+        "hand_r": "Hand_R",
+        "foot_l": "Foot_L",
+        "foot_r": "Foot_R",
+        "toe_l": "Toes_L",
+        "toe_r": "Toes_R",
+    }
     parts = {p: cmu_walk.skeleton.names[j] for p, j in find_parts(cmu_walk.skeleton).items()}
     assert parts["head"] == "Head" and parts["hand_l"] == "LeftHand" and parts["hand_r"] == "RightHand"
     assert parts["foot_l"] == "LeftFoot" and parts["toe_r"] == "RightToeBase"
@@ -96,7 +115,7 @@ def test_reference_pose_axes_face_the_body_facing():
         axes = {p: a[0] for p, a in world_axes(pose).items()}
         forward = _body_forward(pose)[0]
         assert _dot(axes["head"][:, 0], forward) > 0.999 and axes["head"][1, 1] > 0.999
-        for tag, side in (("l", 1), ("r", -1)):
+        for tag in ("l", "r"):
             assert _dot(axes[f"hand_{tag}"][:, 1], forward) > 0.5  # thumb forward
             assert _dot(axes[f"foot_{tag}"][:, 0], forward) > 0.8 and axes[f"foot_{tag}"][1, 1] > 0.999
     cmu = world_axes(cmu_pose())
@@ -186,7 +205,9 @@ def test_other_humanoid_rigs_get_solids_from_their_first_frame(tmp_path, bn_walk
         assert np.mean(_dot(axes["head"][:, :, 0], bn["head"][:, :, 0])) > 0.9, name
         for part in ("foot_l", "foot_r"):
             assert np.mean(_dot(axes[part][:, :, 0], bn[part][:, :, 0])) > 0.8, (name, part)
-    path = render_contact_sheet(make_rig(walk, SPECS["mixamo"]), tmp_path / "mixamo.png", frames=2, panel_size=1.5, dpi=50)
+    path = render_contact_sheet(
+        make_rig(walk, SPECS["mixamo"]), tmp_path / "mixamo.png", frames=2, panel_size=1.5, dpi=50
+    )
     with Image.open(path) as img:
         _not_blank(img)  # red and blue limbs: sides from the `mixamorig:Left…` names
 
@@ -207,6 +228,8 @@ def test_z_up_rigs_are_drawn_standing(tmp_path, bn_walk):
         assert np.mean(_dot(axes["head"][:, :, 0], bn["head"][:, :, 0])) > 0.9, spec.name
         for part in ("foot_l", "foot_r"):
             assert np.mean(_dot(axes[part][:, :, 0], bn[part][:, :, 0])) > 0.8, (spec.name, part)
-    path = render_contact_sheet(make_rig(walk, EXTRA_SPECS["xsens"]), tmp_path / "xsens.png", frames=2, panel_size=1.5, dpi=50)
+    path = render_contact_sheet(
+        make_rig(walk, EXTRA_SPECS["xsens"]), tmp_path / "xsens.png", frames=2, panel_size=1.5, dpi=50
+    )
     with Image.open(path) as img:
         _not_blank(img)

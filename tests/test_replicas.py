@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 from clients.sdk import Client, ReplayBuffer, ResumeError
-
 from models.data import load_motion, select
 
 from .clips import frames_json
@@ -49,9 +48,11 @@ def stream(base: str, root, rot, on_reply=None, fps: float = 30.0):
 def cluster(tmp_path):
     """A fresh cluster per test: each kills a replica."""
     require("redis-server", "nginx")
-    with redis_server(tmp_path) as store, \
-            replicas(tmp_path, 2, session_store=store, styles_dir=tmp_path / "styles", styles_refresh_s=1) as (a, b), \
-            nginx(tmp_path, [a.port, b.port]) as lb:
+    with (
+        redis_server(tmp_path) as store,
+        replicas(tmp_path, 2, session_store=store, styles_dir=tmp_path / "styles", styles_refresh_s=1) as (a, b),
+        nginx(tmp_path, [a.port, b.port]) as lb,
+    ):
         yield lb, a, b
 
 

@@ -7,8 +7,17 @@ import pytest
 
 from models.data import load_motion, select
 from models.motion.resample import resample
-from models.motion.retarget import (BN_JOINTS, CMU_TO_BN, MATCHED_BONES, Rig, bone_directions, default_rig,
-                                    leg_length, retarget, source_variant)
+from models.motion.retarget import (
+    BN_JOINTS,
+    CMU_TO_BN,
+    MATCHED_BONES,
+    Rig,
+    bone_directions,
+    default_rig,
+    leg_length,
+    retarget,
+    source_variant,
+)
 
 WALKS = [("cmu", "131_01"), ("cmu", "131_02"), ("xia", "neutral_walk_01_000")]
 
@@ -51,7 +60,9 @@ def test_result_is_a_bn_motion(walks, rig, name):
     np.testing.assert_allclose(np.linalg.norm(out.rotations, axis=-1), 1.0, atol=1e-9)
     hips = sk.index("Hips")
     others = [j for j in range(sk.num_joints) if j != hips]
-    np.testing.assert_allclose(out.translations[:, others], np.broadcast_to(sk.offsets[others], out.translations[:, others].shape))
+    np.testing.assert_allclose(
+        out.translations[:, others], np.broadcast_to(sk.offsets[others], out.translations[:, others].shape)
+    )
     np.testing.assert_allclose(out.rotations[:, 0], np.tile([0, 0, 0, 1.0], (out.num_frames, 1)), atol=1e-9)
 
 
@@ -102,7 +113,9 @@ def test_knees_bend_forward_and_body_upright(walks, rig, name):
     for side in "LR":
         hip, knee, ankle = (pos[:, sk.index(f"{j}_{side}")] for j in ("UpperLeg", "LowerLeg", "Foot"))
         thigh, shin = knee - hip, ankle - knee
-        bend = np.degrees(np.arccos(np.sum(thigh * shin, -1) / np.linalg.norm(thigh, axis=-1) / np.linalg.norm(shin, axis=-1)))
+        bend = np.degrees(
+            np.arccos(np.sum(thigh * shin, -1) / np.linalg.norm(thigh, axis=-1) / np.linalg.norm(shin, axis=-1))
+        )
         bent = bend > 25.0
         assert bent.any()
         assert (np.sum((knee - 0.5 * (hip + ankle)) * forward, -1)[bent] > 0).all()

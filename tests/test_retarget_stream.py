@@ -6,9 +6,16 @@ import numpy as np
 import pytest
 
 from models.data import build_index, load_motion, select
-from models.motion.retarget import (CMU_TO_BN, MATCHED_BONES, contact_height, default_rig, leg_length, retarget,
-                                    source_variant)
 from models.motion.assets import cmu_skeleton
+from models.motion.retarget import (
+    CMU_TO_BN,
+    MATCHED_BONES,
+    contact_height,
+    default_rig,
+    leg_length,
+    retarget,
+    source_variant,
+)
 from models.motion.retarget_stream import FrameRetargeter
 from models.motion.rotations import matrix_to_quat as mat_to_quat
 from models.motion.rotations import quat_to_matrix as quat_to_mat
@@ -134,13 +141,13 @@ def test_batch_equals_per_frame_and_is_causal(walks, variant):
         h1, b1 = fr.to_model(root[t], rot[t][None])  # a single frame, (3,) root accepted
         np.testing.assert_allclose(h1[0], hips[t], atol=1e-12)
         np.testing.assert_allclose(b1[0], bn[t], atol=1e-12)
-        r1, s1 = fr.to_source(hips[t:t + 1], bn[t:t + 1], rot[t:t + 1])
+        r1, s1 = fr.to_source(hips[t : t + 1], bn[t : t + 1], rot[t : t + 1])
         np.testing.assert_allclose(r1[0], back_root[t], atol=1e-12)
         np.testing.assert_allclose(s1[0], back_rot[t], atol=1e-12)
     # causality: scrambling every other frame leaves frame t's output as it was
     rng = np.random.default_rng(1)
     t = 60
-    other = np.r_[0:t, t + 1:motion.num_frames]
+    other = np.r_[0:t, t + 1 : motion.num_frames]
     rot2, root2 = rot.copy(), root.copy()
     rot2[other] = rng.normal(size=rot2[other].shape)
     root2[other] += rng.normal(size=root2[other].shape) * 10

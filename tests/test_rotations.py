@@ -22,8 +22,11 @@ def test_euler_round_trip_and_torch_matches_scipy(order):
 def test_bvh_order_is_intrinsic():
     """Channels "Zrotation Xrotation Yrotation" mean R = Rz @ Rx @ Ry."""
     z, x, y = 30.0, 40.0, 50.0
-    expected = (Rotation.from_euler("z", z, degrees=True) * Rotation.from_euler("x", x, degrees=True)
-                * Rotation.from_euler("y", y, degrees=True)).as_matrix()
+    expected = (
+        Rotation.from_euler("z", z, degrees=True)
+        * Rotation.from_euler("x", x, degrees=True)
+        * Rotation.from_euler("y", y, degrees=True)
+    ).as_matrix()
     np.testing.assert_allclose(R.quat_to_matrix(R.euler_to_quat(np.array([z, x, y]), "ZXY")), expected, atol=1e-12)
 
 
@@ -35,11 +38,18 @@ def test_torch_quaternion_functions_match_scipy():
     other = Rotation.random(500, random_state=2).as_quat()
     np.testing.assert_allclose(
         R.quat_to_matrix(R.quat_mul_t(qt, torch.tensor(other)).numpy()),
-        (Rotation.from_quat(QUATS) * Rotation.from_quat(other)).as_matrix(), atol=1e-12)
+        (Rotation.from_quat(QUATS) * Rotation.from_quat(other)).as_matrix(),
+        atol=1e-12,
+    )
     np.testing.assert_allclose(
-        R.quat_to_matrix(R.quat_mul(QUATS, other)), (Rotation.from_quat(QUATS) * Rotation.from_quat(other)).as_matrix(), atol=1e-12)
+        R.quat_to_matrix(R.quat_mul(QUATS, other)),
+        (Rotation.from_quat(QUATS) * Rotation.from_quat(other)).as_matrix(),
+        atol=1e-12,
+    )
     v = rng.normal(size=(500, 3))
-    np.testing.assert_allclose(R.quat_apply_t(qt, torch.tensor(v)).numpy(), Rotation.from_quat(QUATS).apply(v), atol=1e-12)
+    np.testing.assert_allclose(
+        R.quat_apply_t(qt, torch.tensor(v)).numpy(), Rotation.from_quat(QUATS).apply(v), atol=1e-12
+    )
     np.testing.assert_allclose(R.quat_apply(QUATS, v), Rotation.from_quat(QUATS).apply(v), atol=1e-12)
 
 

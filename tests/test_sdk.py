@@ -147,8 +147,11 @@ def silent_stream_server():
 
     def handler(ws) -> None:
         json.loads(ws.recv())
-        ws.send(json.dumps({"type": "started", "session_id": "s", "resume_token": "t", "joints": ["j"] * 22,
-                            "last_seq": None}))
+        ws.send(
+            json.dumps(
+                {"type": "started", "session_id": "s", "resume_token": "t", "joints": ["j"] * 22, "last_seq": None}
+            )
+        )
         for _ in ws:
             pass
 

@@ -26,8 +26,16 @@ def reply(seq: int, dropped: int = 0) -> bytes:
 
 
 def started(last_seq: int | None = None, **extra) -> str:
-    return json.dumps({"type": "started", "session_id": "s", "resume_token": "tok", "joints": ["j"] * JOINTS,
-                       "last_seq": last_seq, **extra})
+    return json.dumps(
+        {
+            "type": "started",
+            "session_id": "s",
+            "resume_token": "tok",
+            "joints": ["j"] * JOINTS,
+            "last_seq": last_seq,
+            **extra,
+        }
+    )
 
 
 class FakeServer:
@@ -58,8 +66,14 @@ class FakeServer:
 
 
 def core(server: FakeServer, window: int = 4) -> SessionCore:
-    c = SessionCore("ws://fake/v1/stream", StartSettings("lti", "elderly"), timeout=1.0, reconnect_timeout=1.0,
-                    max_in_flight=window, on_reconnect=None)
+    c = SessionCore(
+        "ws://fake/v1/stream",
+        StartSettings("lti", "elderly"),
+        timeout=1.0,
+        reconnect_timeout=1.0,
+        max_in_flight=window,
+        on_reconnect=None,
+    )
     run_sync(c.open(), server)
     return c
 
@@ -68,6 +82,7 @@ def test_replies_lost_with_the_connection_are_reported_and_the_saved_one_handed_
     """Frames 0-3 are pipelined; the server processes all four but only frame 0's reply arrives
     before the connection goes. The resumed state is at frame 3 (its reply saved with it): frames
     1 and 2 are reported lost, 3 comes from the snapshot, and nothing is sent again."""
+
     def answer(server, message):
         if isinstance(message, dict):
             if message.get("resume_token"):
@@ -91,6 +106,7 @@ def test_frames_dropped_by_backpressure_are_skipped_in_order_and_fail_a_call_wai
     """The server drops frame 1 (queue full) and says so on frame 2's reply. A call's frame can be
     dropped only when frames sent after it overtake it (concurrent asyncio tasks on one session):
     the call then gets a typed error rather than waiting for a reply that never comes."""
+
     def answer(server, message):
         if isinstance(message, dict):
             return [started()]
@@ -114,6 +130,7 @@ def test_frames_dropped_by_backpressure_are_skipped_in_order_and_fail_a_call_wai
 def test_an_error_for_one_pipelined_frame_is_raised_in_its_place():
     """Bad frames are refused at once, so frame 1's error overtakes frame 0's reply; the caller
     still meets them in send order."""
+
     def answer(server, message):
         if isinstance(message, dict):
             return [started()]
@@ -136,8 +153,10 @@ def test_a_style_deleted_notice_rides_on_its_frame_instead_of_costing_the_reply(
     def answer(server, message):
         if isinstance(message, dict):
             return [started()]
-        return [json.dumps({"type": "error", "code": "style_deleted", "message": "gone", "seq": message}),
-                reply(message)]
+        return [
+            json.dumps({"type": "error", "code": "style_deleted", "message": "gone", "seq": message}),
+            reply(message),
+        ]
 
     server = FakeServer(answer)
     c = core(server)
@@ -149,6 +168,7 @@ def test_a_control_message_the_restored_snapshot_holds_is_answered_from_it():
     """set_style follows pipelined frame 0 and precedes frame 1; the server processed all three but
     the connection went before any reply. Resumed at frame 1, the style change is in the state:
     the call returns, frame 0 is lost, frame 1 is the snapshot's saved reply."""
+
     def answer(server, message):
         if isinstance(message, dict):
             if message["type"] == "start":
@@ -178,6 +198,7 @@ def test_a_control_message_the_restored_snapshot_holds_is_answered_from_it():
 def test_poll_never_waits_on_a_lost_connection_the_next_receive_reconnects():
     """A game loop's poll returns at once when the connection has gone; the next call that waits
     (here receive) resumes the session and replays the unanswered frame."""
+
     def answer(server, message):
         if isinstance(message, dict):
             return [started()]

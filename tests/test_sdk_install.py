@@ -15,8 +15,19 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SERVER_PACKAGES = ["torch", "numba", "fastapi", "pydantic", "matplotlib", "scipy", "starlette", "uvicorn",
-                   "prometheus_client", "models", "service"]
+SERVER_PACKAGES = [
+    "torch",
+    "numba",
+    "fastapi",
+    "pydantic",
+    "matplotlib",
+    "scipy",
+    "starlette",
+    "uvicorn",
+    "prometheus_client",
+    "models",
+    "service",
+]
 
 BLOCKED_IMPORT = textwrap.dedent("""
     import importlib.abc, json, sys
@@ -35,8 +46,13 @@ BLOCKED_IMPORT = textwrap.dedent("""
 
 
 def test_the_sdk_imports_without_the_servers_packages():
-    done = subprocess.run([sys.executable, "-c", BLOCKED_IMPORT, ",".join(SERVER_PACKAGES)], cwd=REPO,
-                          capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [sys.executable, "-c", BLOCKED_IMPORT, ",".join(SERVER_PACKAGES)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 0, done.stderr
     assert not set(json.loads(done.stdout)) & set(SERVER_PACKAGES)
 
@@ -74,7 +90,10 @@ def interpreter(version: str) -> str | None:
     """A working `python<version>`: this one, one on PATH, or one pyenv installed."""
     if f"{sys.version_info.major}.{sys.version_info.minor}" == version:
         return sys.executable
-    found = [shutil.which(f"python{version}"), *map(str, Path.home().glob(f".pyenv/versions/{version}.*/bin/python{version}"))]
+    found = [
+        shutil.which(f"python{version}"),
+        *map(str, Path.home().glob(f".pyenv/versions/{version}.*/bin/python{version}")),
+    ]
     for candidate in filter(None, found):
         if subprocess.run([candidate, "--version"], capture_output=True).returncode == 0:
             return candidate
@@ -90,16 +109,23 @@ def test_pip_install_brings_the_sdk_alone_and_it_streams(tmp_path, version):
     project = _project_copy(tmp_path / "stylestream")
     subprocess.run([python_x, "-m", "venv", str(tmp_path / "venv")], check=True, timeout=120)  # no system site
     python = tmp_path / "venv" / "bin" / "python"
-    install = subprocess.run([str(python), "-m", "pip", "install", "-q", str(project)], capture_output=True, text=True,
-                             timeout=600)
+    install = subprocess.run(
+        [str(python), "-m", "pip", "install", "-q", str(project)], capture_output=True, text=True, timeout=600
+    )
     assert install.returncode == 0, install.stderr[-3000:]
-    listed = subprocess.run([str(python), "-m", "pip", "list", "--format=json"], capture_output=True, text=True,
-                            check=True).stdout
+    listed = subprocess.run(
+        [str(python), "-m", "pip", "list", "--format=json"], capture_output=True, text=True, check=True
+    ).stdout
     installed = {p["name"].lower().replace("_", "-") for p in json.loads(listed)}
     assert {"numpy", "httpx", "websockets", "stylestream"} <= installed
     assert not installed & {"torch", "numba", "fastapi", "pydantic", "matplotlib", "scipy", "uvicorn", "redis"}
-    cli = subprocess.run([str(tmp_path / "venv" / "bin" / "stylestream"), "--help"], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=60)  # the commands say which extra they need
+    cli = subprocess.run(
+        [str(tmp_path / "venv" / "bin" / "stylestream"), "--help"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=60,
+    )  # the commands say which extra they need
     assert cli.returncode == 2 and "pip install 'stylestream[server]'" in cli.stderr, cli.stderr[-2000:]
 
     from models.registry import load_models
@@ -108,8 +134,9 @@ def test_pip_install_brings_the_sdk_alone_and_it_streams(tmp_path, version):
     from .live_server import live_server
 
     with live_server({"lti": load_models(get_settings().weights_dir)["lti"]}) as (base, _):
-        run = subprocess.run([str(python), "-I", "-c", STREAM, base], cwd=tmp_path, capture_output=True, text=True,
-                             timeout=120)  # -I: the installed package, not this checkout
+        run = subprocess.run(
+            [str(python), "-I", "-c", STREAM, base], cwd=tmp_path, capture_output=True, text=True, timeout=120
+        )  # -I: the installed package, not this checkout
     assert run.returncode == 0, run.stderr[-3000:]
     out = json.loads(run.stdout)
     assert "lti.elderly" in out["styles"] and out["first"] == 0 and out["seqs"] == list(range(1, 9))

@@ -153,8 +153,11 @@ def test_after_a_restart_a_session_keeps_trying_then_opens_a_fresh_one_with_its_
     with sdk_log() as records:
         waiter.start()  # finds the server gone and keeps trying
         # at least 7 failed attempts: the backoff pauses before them add up to more than 1.5 s
-        wait_until(lambda: sum("reconnect attempt" in r.getMessage() for r in records) >= 7,
-                   "seven failed reconnect attempts", timeout=60)
+        wait_until(
+            lambda: sum("reconnect attempt" in r.getMessage() for r in records) >= 7,
+            "seven failed reconnect attempts",
+            timeout=60,
+        )
         with live_server(models, port=port) as (base, _):
             waiter.join(timeout=60)
             assert not waiter.is_alive()

@@ -17,8 +17,12 @@ def test_serve_starts_and_answers_health_and_models(tmp_path):
     port = free_port()
     log = tmp_path / "serve.log"
     with log.open("w") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "clients.cli", "serve", "--port", str(port), "--log-level", "info"],
-                                env={**os.environ}, stdout=out, stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "clients.cli", "serve", "--port", str(port), "--log-level", "info"],
+            env={**os.environ},
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
     try:
         base = f"http://127.0.0.1:{port}"
         wait_ready(base, lambda: proc.poll() is None)
@@ -39,11 +43,15 @@ def test_serve_starts_and_answers_health_and_models(tmp_path):
     session_lines = [line for line in lines if sid in line]
     assert len(session_lines) == 2, lines[-20:]  # started, ended
     assert all(f"session={sid} model=lti" in line for line in session_lines)
-    assert not [line for line in lines if any(p in line for p in ("/healthz", "/readyz", "/metrics", "connection open"))]
+    assert not [
+        line for line in lines if any(p in line for p in ("/healthz", "/readyz", "/metrics", "connection open"))
+    ]
     assert any("GET /v1/models" in line for line in lines)  # the rest of the access log stays
 
 
 def test_cli_help_is_readable():
-    out = subprocess.run([sys.executable, "-m", "clients.cli", "--help"], capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-m", "clients.cli", "--help"], capture_output=True, text=True, check=True
+    ).stdout
     for command in ("serve", "data", "render", "retarget"):
         assert command in out

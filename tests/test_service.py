@@ -54,7 +54,7 @@ def offline(model, style_mix: dict, root: np.ndarray, rot: np.ndarray) -> tuple[
     w = style_vector(model, style_mix)[None]
     roots, rots = [], []
     for t in range(len(root)):
-        out, state = model.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]), w)
+        out, state = model.step_batch(state, FrameBatch(root[t : t + 1], rot[t : t + 1]), w)
         roots.append(out.root[0])
         rots.append(out.rotations[0])
     return np.array(roots), np.array(rots)
@@ -90,7 +90,9 @@ def test_streamed_walk_equals_offline_model_output(server, models, clip):
     want_root, want_rot = offline(models["lti"], {style: 1.0}, *clip)
     np.testing.assert_allclose(got_root, want_root, atol=1e-9)
     np.testing.assert_allclose(got_rot, want_rot, atol=1e-9)
-    assert not np.allclose(got_rot, clip[1] / np.linalg.norm(clip[1], axis=-1, keepdims=True), atol=1e-3)  # it did something
+    assert not np.allclose(
+        got_rot, clip[1] / np.linalg.norm(clip[1], axis=-1, keepdims=True), atol=1e-3
+    )  # it did something
 
 
 def test_binary_and_json_give_the_same_numbers(server, models, clip):
@@ -155,8 +157,12 @@ def test_batching_changes_nothing_but_speed(server, models, clip):
         np.testing.assert_allclose(got_root, want_root, atol=1e-9)
         np.testing.assert_allclose(got_rot, want_rot, atol=1e-9)
     metrics = httpx.get(f"{base}/metrics").text
-    sizes = [float(l.split()[-1]) for l in metrics.splitlines() if l.startswith('stylestream_batch_size_sum{model="lti"}')]
-    counts = [float(l.split()[-1]) for l in metrics.splitlines() if l.startswith('stylestream_batch_size_count{model="lti"}')]
+    sizes = [
+        float(l.split()[-1]) for l in metrics.splitlines() if l.startswith('stylestream_batch_size_sum{model="lti"}')
+    ]
+    counts = [
+        float(l.split()[-1]) for l in metrics.splitlines() if l.startswith('stylestream_batch_size_count{model="lti"}')
+    ]
     assert sizes[0] / counts[0] > 1.0  # some steps really did batch several sessions
 
 
@@ -176,17 +182,26 @@ def test_style_switch_mid_stream_is_continuous(server, models, clip):
     assert step[29:45].max() < 3 * np.percentile(step[:29], 95) + 0.02  # no jump at the switch
 
 
-@pytest.mark.parametrize("message, code", [
-    ("{not json", "bad_json"),
-    ('{"type": "frame", "seq": 1, "root": [0, 0, 0], "rotations": [[0, 0, 0, 1]]}', "bad_frame"),
-    ('{"type": "frame", "seq": 1, "root": [0, 0, NaN], "rotations": ' + json.dumps([[0, 0, 0, 1]] * 22) + "}", "bad_frame"),
-    ('{"type": "frame", "seq": 1, "root": [0, 0, 0], "rotations": ' + json.dumps([[0, 0, 0, 0]] * 22) + "}", "bad_frame"),
-    ('{"type": "dance"}', "bad_message"),
-    ('{"type": "style", "style": "no-such-style"}', "unknown_style"),
-    (b"\x00\x01garbage", "bad_frame"),
-    (struct.pack("<IHH", 3, 1, 0) + b"\x00" * 12, "bad_frame"),
-    ("x" * (300 * 1024), "message_too_large"),
-])
+@pytest.mark.parametrize(
+    "message, code",
+    [
+        ("{not json", "bad_json"),
+        ('{"type": "frame", "seq": 1, "root": [0, 0, 0], "rotations": [[0, 0, 0, 1]]}', "bad_frame"),
+        (
+            '{"type": "frame", "seq": 1, "root": [0, 0, NaN], "rotations": ' + json.dumps([[0, 0, 0, 1]] * 22) + "}",
+            "bad_frame",
+        ),
+        (
+            '{"type": "frame", "seq": 1, "root": [0, 0, 0], "rotations": ' + json.dumps([[0, 0, 0, 0]] * 22) + "}",
+            "bad_frame",
+        ),
+        ('{"type": "dance"}', "bad_message"),
+        ('{"type": "style", "style": "no-such-style"}', "unknown_style"),
+        (b"\x00\x01garbage", "bad_frame"),
+        (struct.pack("<IHH", 3, 1, 0) + b"\x00" * 12, "bad_frame"),
+        ("x" * (300 * 1024), "message_too_large"),
+    ],
+)
 def test_bad_input_gets_a_typed_error_and_the_session_lives_on(server, models, clip, message, code):
     base, _ = server
     style = first_style(models)
@@ -201,14 +216,20 @@ def test_bad_input_gets_a_typed_error_and_the_session_lives_on(server, models, c
     np.testing.assert_allclose(rest[1], want_rot[5:10], atol=1e-9)
 
 
-@pytest.mark.parametrize("first, code", [
-    ('{"type": "frame", "seq": 0, "root": [0, 0, 0], "rotations": []}', "expected_start"),
-    ('{"type": "start", "model": "nope", "style": "x"}', "unknown_model"),
-    ('{"type": "start", "model": "lti", "style": "no-such-style"}', "unknown_style"),
-    ('{"type": "start", "model": "lti", "style": "a", "mix": {"a": 1}}', "bad_style"),
-    ('{"type": "start", "model": "lti", "style": "x", "resume_token": "forged"}', "unknown_resume_token"),
-    ('{"type": "start", "model": "lti", "style": "elderly", "bvh_header": "HIERARCHY\\nROOT Hips\\n{"}', "bad_skeleton"),
-])
+@pytest.mark.parametrize(
+    "first, code",
+    [
+        ('{"type": "frame", "seq": 0, "root": [0, 0, 0], "rotations": []}', "expected_start"),
+        ('{"type": "start", "model": "nope", "style": "x"}', "unknown_model"),
+        ('{"type": "start", "model": "lti", "style": "no-such-style"}', "unknown_style"),
+        ('{"type": "start", "model": "lti", "style": "a", "mix": {"a": 1}}', "bad_style"),
+        ('{"type": "start", "model": "lti", "style": "x", "resume_token": "forged"}', "unknown_resume_token"),
+        (
+            '{"type": "start", "model": "lti", "style": "elderly", "bvh_header": "HIERARCHY\\nROOT Hips\\n{"}',
+            "bad_skeleton",
+        ),
+    ],
+)
 def test_bad_session_openings_are_refused_with_a_typed_error(server, first, code):
     base, _ = server
     with connect(ws_url(base)) as ws:
@@ -266,8 +287,10 @@ def test_backpressure_drops_oldest_frames_and_says_so(models, clip):
         with connect(ws_url(base)) as ws:
             start(ws, style=first_style(models))
             sent = 60
-            payload = [json.dumps({"type": "frame", "seq": t, "root": root[t].tolist(), "rotations": rot[t].tolist()})
-                       for t in range(sent)]
+            payload = [
+                json.dumps({"type": "frame", "seq": t, "root": root[t].tolist(), "rotations": rot[t].tolist()})
+                for t in range(sent)
+            ]
             for p in payload:
                 ws.send(p)
             ws.send(json.dumps({"type": "end"}))
@@ -345,13 +368,14 @@ def test_snapshots_survive_a_round_trip_through_json(server, models, clip):
 
     model = models["lti"]
     style = first_style(models)
-    session = Session(model=model, skeleton="bandai-namco", fps=30.0, encoding="json",
-                      weights={style: 1.0}, state=model.init_state(1))
+    session = Session(
+        model=model, skeleton="bandai-namco", fps=30.0, encoding="json", weights={style: 1.0}, state=model.init_state(1)
+    )
     root, rot = clip
     state = session.state
     w = style_vector(model, {style: 1.0})[None]
     for t in range(10):
-        _, state = model.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]), w)
+        _, state = model.step_batch(state, FrameBatch(root[t : t + 1], rot[t : t + 1]), w)
     session.state, session.last_seq = state, 9
     again = Session.restore(Snapshot.from_json(session.snapshot().to_json()), model, queue_size=8)
     assert again.last_seq == 9 and again.weights == {style: 1.0}

@@ -30,7 +30,7 @@ def test_session_output_equals_the_model_alone(name, bn_walk):
     state, w = model.init_state(1), style_vector(model, {style: 1.0})[None]
     want = []
     for t in range(len(root)):
-        out, state = model.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]), w)
+        out, state = model.step_batch(state, FrameBatch(root[t : t + 1], rot[t : t + 1]), w)
         want.append(out.rotations[0])
     with live_server({name: model}) as (base, _):
         with connect(base.replace("http", "ws") + "/v1/stream") as ws:

@@ -50,9 +50,12 @@ def _made(walk: Motion, name: str) -> tuple[str, Motion]:
 @pytest.fixture(scope="module")
 def bn_outputs(server, walk) -> dict[str, np.ndarray]:
     """Per model, world positions of the stylised walk on the model skeleton (streamed on first use)."""
+
     class Outputs(dict):
         def __missing__(self, model: str) -> np.ndarray:
-            _, root, rot = stream(server, {"skeleton": "bandai-namco"}, walk.translations[:, 1], walk.rotations, model, STYLE)
+            _, root, rot = stream(
+                server, {"skeleton": "bandai-namco"}, walk.translations[:, 1], walk.rotations, model, STYLE
+            )
             trans = walk.translations.copy()
             trans[:, 1] = root
             self[model] = fk(rot, trans, walk.skeleton.parents)[1]
@@ -88,7 +91,10 @@ def test_made_rig_comes_back_as_the_model_rig_does(server, walk, bn_outputs, mod
     # in the rig's own world: head above the hips every frame, the lower toe at the floor (0)
     own = styled.global_positions() / spec.unit
     up = "xyz".index(spec.up)
-    head, toes = motion.skeleton.index(spec.rename["Head"]), [motion.skeleton.index(spec.rename[f"Toes_{s}"]) for s in "LR"]
+    head, toes = (
+        motion.skeleton.index(spec.rename["Head"]),
+        [motion.skeleton.index(spec.rename[f"Toes_{s}"]) for s in "LR"],
+    )
     assert (own[:, head, up] - own[:, hips_c, up]).min() > 0.5 * LEG
     lowest = own[:, toes, up].min(axis=1)
     bn_lowest = bn_output[:, [sk.index("Toes_L"), sk.index("Toes_R")], 1].min(axis=1)
@@ -120,14 +126,16 @@ def test_left_handed_model_rig_is_retargeted_not_passed_through(server, walk, bn
     reflection = np.diag([1.0, 1.0, -1.0])
     header, m = as_bvh_file(mirrored(walk, reflection))
     hips = m.skeleton.index("Hips")
-    started, root, rot = stream(server, {"bvh_header": header, "handedness": "left"}, m.translations[:, hips], m.rotations)
+    started, root, rot = stream(
+        server, {"bvh_header": header, "handedness": "left"}, m.translations[:, hips], m.rotations
+    )
     assert started["rig"]["retargeted"] and started["rig"]["handedness"] == "left"
     trans = m.translations.copy()
     trans[:, hips] = root
     got = Motion(m.skeleton, rot, trans, m.fps).global_positions() @ reflection.T  # back to right-handed
     want = bn_outputs["lti"][:, [walk.skeleton.index(n) for n in m.skeleton.names]]
     hips = m.skeleton.index("Hips")  # as for every made rig: joints relative to the hips, and the hips height
-    err = np.linalg.norm((got - got[:, [hips]]) - (want - want[:, [hips]]), axis=-1)[:, hips + 1:]
+    err = np.linalg.norm((got - got[:, [hips]]) - (want - want[:, [hips]]), axis=-1)[:, hips + 1 :]
     assert np.median(err) / LEG < 0.03, np.median(err)
     assert np.median(np.abs(got[:, hips, 1] - want[:, hips, 1])) / LEG < 0.03
 
@@ -137,8 +145,9 @@ def test_intensity_zero_gives_the_input_back(server, walk, name):
     spec = SPECS[name]
     header, motion = _made(walk, name)
     hips = motion.skeleton.index(spec.rename["Hips"])
-    started, root, rot = stream(server, {"bvh_header": header, "intensity": 0.0}, motion.translations[:, hips],
-                                 motion.rotations)
+    started, root, rot = stream(
+        server, {"bvh_header": header, "intensity": 0.0}, motion.translations[:, hips], motion.rotations
+    )
     assert started["rig"]["root_joint"] == spec.rename["Hips"]
     np.testing.assert_allclose(root, motion.translations[:, hips], atol=1e-3 * (0.01 if spec.metres else 1.0))
     assert angle_deg(rot, motion.rotations).max() < 0.05  # float32 on the wire
@@ -147,22 +156,38 @@ def test_intensity_zero_gives_the_input_back(server, walk, name):
 def test_preset_with_its_joints_in_any_order(server, walk):
     from models.motion.humanoid_presets import PRESETS
 
-    names = [n for n in PRESETS["mixamo"].skeleton().names if "Index" not in n and "Thumb" not in n and "Pinky" not in n
-             and "Ring" not in n and "Middle" not in n][::-1]
+    names = [
+        n
+        for n in PRESETS["mixamo"].skeleton().names
+        if "Index" not in n and "Thumb" not in n and "Pinky" not in n and "Ring" not in n and "Middle" not in n
+    ][::-1]
     rest = np.tile([0.0, 0.0, 0.0, 1.0], (3, len(names), 1))
     started, root, rot = stream(server, {"skeleton": "mixamo", "joints": names}, np.array([[0.0, 95.0, 0.0]] * 3), rest)
     assert started["joints"] == names and started["rig"]["preset"] == "mixamo"
     assert started["rig"]["mapping"]["hand_l"] == "LeftHand" and rot.shape == (3, len(names), 4)
 
 
-@pytest.mark.parametrize("start, code, words", [
-    ({"bvh_header": "HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 3 Zrotation Xrotation Yrotation\n"
-                    " JOINT Head\n {\n  OFFSET 0 50 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n  End Site\n  {\n"
-                    "   OFFSET 0 10 0\n  }\n }\n}\n"}, "unsupported_skeleton", ["missing_roles", "spine1", "hand_l", "foot_r"]),
-    ({"skeleton": "ue5", "joint_map": {"wing_l": "hand_l"}}, "bad_skeleton", ["bad_joint_map", "wing_l"]),
-    ({"skeleton": "mixamo", "joints": ["Hips", "Tail"]}, "bad_skeleton", ["Tail"]),
-    ({"skeleton": "smpl", "joints": ["pelvis", "spine1", "head"]}, "unsupported_skeleton", ["upperarm_l", "foot_r"]),
-])
+@pytest.mark.parametrize(
+    "start, code, words",
+    [
+        (
+            {
+                "bvh_header": "HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 3 Zrotation Xrotation Yrotation\n"
+                " JOINT Head\n {\n  OFFSET 0 50 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n  End Site\n  {\n"
+                "   OFFSET 0 10 0\n  }\n }\n}\n"
+            },
+            "unsupported_skeleton",
+            ["missing_roles", "spine1", "hand_l", "foot_r"],
+        ),
+        ({"skeleton": "ue5", "joint_map": {"wing_l": "hand_l"}}, "bad_skeleton", ["bad_joint_map", "wing_l"]),
+        ({"skeleton": "mixamo", "joints": ["Hips", "Tail"]}, "bad_skeleton", ["Tail"]),
+        (
+            {"skeleton": "smpl", "joints": ["pelvis", "spine1", "head"]},
+            "unsupported_skeleton",
+            ["upperarm_l", "foot_r"],
+        ),
+    ],
+)
 def test_bad_and_partial_rigs_are_refused_with_typed_errors(server, start, code, words):
     with connect(server.replace("http", "ws") + "/v1/stream") as ws:
         ws.send(json.dumps({"type": "start", "model": "lti", "style": STYLE, **start}))
@@ -175,13 +200,14 @@ def test_bad_and_partial_rigs_are_refused_with_typed_errors(server, start, code,
 
 
 def test_post_skeletons_reports_the_mapping_or_what_is_missing(server, walk):
-    spec = SPECS["ue5"]
     header, _ = _made(walk, "ue5")
     r = httpx.post(f"{server}/v1/skeletons", json={"bvh_header": header}, timeout=30)
     assert r.status_code == 200, r.text
     body = r.json()
     assert body["mapping"]["upperleg_l"] == "thigh_l" and body["up"] == "z" and "index_01_l" in body["unmapped"]
-    r = httpx.post(f"{server}/v1/skeletons", json={"skeleton": "smpl", "joints": ["pelvis", "spine1", "head"]}, timeout=30)
+    r = httpx.post(
+        f"{server}/v1/skeletons", json={"skeleton": "smpl", "joints": ["pelvis", "spine1", "head"]}, timeout=30
+    )
     assert r.status_code == 422 and r.json()["code"] == "missing_roles"
     assert set(r.json()["missing"]) >= {"upperarm_l", "hand_r", "foot_l"}
     r = httpx.post(f"{server}/v1/skeletons?preview=true", json={"skeleton": "unity"}, timeout=60)
@@ -193,5 +219,7 @@ def test_style_upload_takes_a_made_rig_clip(server, bn_walk):
     motion = make_rig(bn_walk.slice(0, 90), SPECS["unity"])
     motion.euler_orders = tuple("ZXY" for _ in motion.skeleton.names)
     text = bvh.dumps(to_bvh(motion))
-    r = httpx.post(f"{server}/v1/styles", files={"file": ("walk.bvh", text.encode())}, data={"name": "unity-walk", "model": "lti"})
+    r = httpx.post(
+        f"{server}/v1/styles", files={"file": ("walk.bvh", text.encode())}, data={"name": "unity-walk", "model": "lti"}
+    )
     assert r.status_code == 422 and r.json()["code"] == "fine_tune_required", r.text

@@ -29,19 +29,40 @@ from .live_server import live_server
 
 
 def snapshot(token: str = "tok", last_seq: int | None = 7) -> Snapshot:
-    state = {"h": np.random.default_rng(0).normal(size=(1, 2, 32)).astype(np.float32),
-             "started": np.array([True]), "frame": np.array([41], dtype=np.int64),
-             "yaw": np.array([0.1 + 1e-17], dtype=np.float64)}
-    held = {"root": np.array([1.0, 93.2, -4.5]), "rotations": np.tile([0.0, 0.0, 0.0, 1.0], (22, 1)),
-            "input_root": np.array([0.5, 93.0, -4.0])}
-    return Snapshot(session_id="s1", token=token, model="lti", skeleton="bandai-namco", bvh_header=None, fps=30.0,
-                    encoding="binary", weights={"elderly": 0.25, "active": 0.75}, target={"elderly": 1.0},
-                    transition_left=12, last_seq=last_seq, clock=0.5, held=held, state=state, saved_at=time.time())
+    state = {
+        "h": np.random.default_rng(0).normal(size=(1, 2, 32)).astype(np.float32),
+        "started": np.array([True]),
+        "frame": np.array([41], dtype=np.int64),
+        "yaw": np.array([0.1 + 1e-17], dtype=np.float64),
+    }
+    held = {
+        "root": np.array([1.0, 93.2, -4.5]),
+        "rotations": np.tile([0.0, 0.0, 0.0, 1.0], (22, 1)),
+        "input_root": np.array([0.5, 93.0, -4.0]),
+    }
+    return Snapshot(
+        session_id="s1",
+        token=token,
+        model="lti",
+        skeleton="bandai-namco",
+        bvh_header=None,
+        fps=30.0,
+        encoding="binary",
+        weights={"elderly": 0.25, "active": 0.75},
+        target={"elderly": 1.0},
+        transition_left=12,
+        last_seq=last_seq,
+        clock=0.5,
+        held=held,
+        state=state,
+        saved_at=time.time(),
+    )
 
 
 def assert_same(a: Snapshot, b: Snapshot) -> None:
-    assert {k: v for k, v in a.__dict__.items() if k not in ("state", "held")} == \
-           {k: v for k, v in b.__dict__.items() if k not in ("state", "held")}
+    assert {k: v for k, v in a.__dict__.items() if k not in ("state", "held")} == {
+        k: v for k, v in b.__dict__.items() if k not in ("state", "held")
+    }
     for name in ("state", "held"):
         x, y = getattr(a, name), getattr(b, name)
         assert x.keys() == y.keys()
@@ -126,6 +147,7 @@ def run_writer(store: SessionStore, body):
             return await body(writer)
         finally:
             await writer.stop()
+
     return asyncio.run(run())
 
 
@@ -182,8 +204,11 @@ def test_sessions_keep_streaming_and_resume_on_their_replica_while_redis_is_down
             session.ws.close()
             rest = [session.stylise(root[t], rot[t]).rotations for t in range(20, 40)]
             assert session.reconnects == 1
-        failures = [line for line in httpx.get(f"{base}/metrics").text.splitlines()
-                    if line.startswith("stylestream_snapshot_failures_total")]
+        failures = [
+            line
+            for line in httpx.get(f"{base}/metrics").text.splitlines()
+            if line.startswith("stylestream_snapshot_failures_total")
+        ]
     assert float(failures[0].split()[-1]) > 0
     np.testing.assert_allclose(np.array(first + rest), np.array(whole), atol=1e-6)
 

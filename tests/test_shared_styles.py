@@ -7,7 +7,6 @@ either. Each replica has its own LPN-FiLM instance, as separate processes do."""
 
 from __future__ import annotations
 
-
 import httpx
 import numpy as np
 import pytest
@@ -28,7 +27,9 @@ STEPS = 20  # fine-tune steps (the service default is 300)
 
 @pytest.fixture(scope="module")
 def chimpira_clip(index):
-    return frames_json(load_motion(select(index, dataset="bandai-namco-1", style="chimpira", content="walk")[0]).slice(0, 200))
+    return frames_json(
+        load_motion(select(index, dataset="bandai-namco-1", style="chimpira", content="walk")[0]).slice(0, 200)
+    )
 
 
 def drive(base: str, style: str) -> np.ndarray:
@@ -48,8 +49,10 @@ def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip,
     weights = get_settings().weights_dir
     lti = load_lti(weights / "lti")  # each server takes its own copy of a model that adds styles
     shared = dict(styles_dir=tmp_path, styles_refresh_s=30, lpn_fine_tune_steps=STEPS)  # rescans come from misses
-    with live_server({"lpn": load_lpn(weights / "lpn"), "lti": lti}, **shared) as (a, _), \
-            live_server({"lpn": load_lpn(weights / "lpn"), "lti": lti}, **shared) as (b, _):
+    with (
+        live_server({"lpn": load_lpn(weights / "lpn"), "lti": lti}, **shared) as (a, _),
+        live_server({"lpn": load_lpn(weights / "lpn"), "lti": lti}, **shared) as (b, _),
+    ):
         body = {"name": "street", "model": "lpn", "frames": chimpira_clip, "fps": 30}
         with Client(b).session(model="lpn", style="normal") as waiting:  # open on b before the upload
             waiting.control((1.0, 0.0), 0.0)
@@ -66,7 +69,9 @@ def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip,
         reply = httpx.post(f"{a}/v1/styles", json=body, timeout=60)
         assert reply.status_code == 201, reply.text
         job = reply.json()["job"]["id"]
-        wait_until(lambda: httpx.get(f"{a}/v1/jobs/{job}").json()["status"] in ("done", "failed"), "job did not end", 120)
+        wait_until(
+            lambda: httpx.get(f"{a}/v1/jobs/{job}").json()["status"] in ("done", "failed"), "job did not end", 120
+        )
         assert httpx.get(f"{a}/v1/jobs/{job}").json()["status"] == "done"
         tuned_a = httpx.get(f"{a}/v1/styles/lpn.tuned").json()
         assert tuned_a["fine_tune"]["installed"], tuned_a
@@ -74,23 +79,34 @@ def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip,
         np.testing.assert_allclose(drive(b, "tuned"), drive(a, "tuned"), atol=1e-5)
 
         # an LTI style identified by a job on b is taken in by a once the job is done
-        m = load_motion(select(index, dataset="bandai-namco-2", style="elderly", content="walk", split="test")[0]).slice(0, 300)
+        m = load_motion(
+            select(index, dataset="bandai-namco-2", style="elderly", content="walk", split="test")[0]
+        ).slice(0, 300)
         body = {"name": "slow", "model": "lti", "fps": 30, "frames": frames_json(m)}
         reply = httpx.post(f"{b}/v1/styles?fine_tune=true", json=body, timeout=60)
         assert reply.status_code == 202, reply.text
         job = reply.json()["job"]["id"]
         # a, which does not run the job, answers for it from the record b keeps with the style
         seen_on_a = []
-        wait_until(lambda: seen_on_a.append(httpx.get(f"{a}/v1/jobs/{job}").json()) or
-                   seen_on_a[-1]["status"] in ("done", "failed"), "LTI job did not end", 120)
+        wait_until(
+            lambda: (
+                seen_on_a.append(httpx.get(f"{a}/v1/jobs/{job}").json())
+                or seen_on_a[-1]["status"] in ("done", "failed")
+            ),
+            "LTI job did not end",
+            120,
+        )
         assert seen_on_a[-1] == httpx.get(f"{b}/v1/jobs/{job}").json()  # the finished record, as b has it
         assert seen_on_a[-1]["status"] == "done" and seen_on_a[-1]["result"]["state_dim"] > 0
         assert {r["id"] for r in seen_on_a} == {job} and {r["status"] for r in seen_on_a} >= {"running", "done"}
         assert httpx.get(f"{a}/v1/jobs/0123abc").status_code == 404
         wait_until(lambda: "slow" in styles_of(a, "lti"), "a did not take in the LTI style")
         walk = bn_walk.slice(0, 40)
-        np.testing.assert_allclose(lti_outputs(a, "slow", walk.translations[:, 1], walk.rotations),
-                                   lti_outputs(b, "slow", walk.translations[:, 1], walk.rotations), atol=1e-6)
+        np.testing.assert_allclose(
+            lti_outputs(a, "slow", walk.translations[:, 1], walk.rotations),
+            lti_outputs(b, "slow", walk.translations[:, 1], walk.rotations),
+            atol=1e-6,
+        )
 
         # deleted through b: gone from both, and a new session on it is refused on a
         assert httpx.delete(f"{b}/v1/styles/lpn.street").status_code == 204

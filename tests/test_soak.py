@@ -13,8 +13,10 @@ from clients.soak import metric_values, slope_per_hour
 
 
 def test_metrics_text_is_read_with_labelled_series_summed():
-    text = ("# HELP x\n# TYPE x gauge\nprocess_resident_memory_bytes 3.2e+08\n"
-            'stylestream_active_sessions{model="lti"} 3.0\nstylestream_active_sessions{model="erd"} 2.0\n')
+    text = (
+        "# HELP x\n# TYPE x gauge\nprocess_resident_memory_bytes 3.2e+08\n"
+        'stylestream_active_sessions{model="lti"} 3.0\nstylestream_active_sessions{model="erd"} 2.0\n'
+    )
     values = metric_values(text)
     assert values == {"process_resident_memory_bytes": 3.2e8, "stylestream_active_sessions": 5.0}
 
@@ -28,8 +30,28 @@ def test_slope_leaves_out_the_warm_up_and_is_per_hour():
 
 def test_a_short_soak_run_writes_samples_a_plot_and_the_page(tmp_path):
     out, doc = tmp_path / "soak", tmp_path / "soak.md"
-    assert main(["soak", "--minutes", "0.3", "--sessions", "2", "--fps", "30", "--interval", "2",
-                 "--session-seconds", "6", "--out", str(out), "--doc", str(doc)]) == 0
+    assert (
+        main(
+            [
+                "soak",
+                "--minutes",
+                "0.3",
+                "--sessions",
+                "2",
+                "--fps",
+                "30",
+                "--interval",
+                "2",
+                "--session-seconds",
+                "6",
+                "--out",
+                str(out),
+                "--doc",
+                str(doc),
+            ]
+        )
+        == 0
+    )
     report = json.loads(out.with_suffix(".json").read_text())
     samples, summary = report["samples"], report["summary"]
     assert len(samples) >= 5 and all(s["rss_mb"] > 50 for s in samples)  # a real server process, models loaded

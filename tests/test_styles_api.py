@@ -38,13 +38,21 @@ def server(models, tmp_path_factory):
 @pytest.fixture(scope="module")
 def styled_clip(index):
     from models.data import load_motion
-    m = load_motion(select(index, dataset="bandai-namco-2", style="elderly", content="walk", split="test")[0]).slice(0, 300)
+
+    m = load_motion(select(index, dataset="bandai-namco-2", style="elderly", content="walk", split="test")[0]).slice(
+        0, 300
+    )
     return m.translations[:, 1].copy(), m.rotations.copy()
 
 
 def payload(name, root, rot, **extra) -> dict:
-    return {"name": name, "model": "lti", "frames": {"root": np.asarray(root).tolist(), "rotations": np.asarray(rot).tolist()},
-            "fps": 30, **extra}
+    return {
+        "name": name,
+        "model": "lti",
+        "frames": {"root": np.asarray(root).tolist(), "rotations": np.asarray(rot).tolist()},
+        "fps": 30,
+        **extra,
+    }
 
 
 def ws_url(base: str) -> str:
@@ -64,7 +72,7 @@ def stream(ws, root, rot, seq0=0):
 def offline(model, style, root, rot):
     state, w, out = model.init_state(1), style_vector(model, {style: 1.0})[None], []
     for t in range(len(root)):
-        fb, state = model.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]), w)
+        fb, state = model.step_batch(state, FrameBatch(root[t : t + 1], rot[t : t + 1]), w)
         out.append(fb.rotations[0])
     return np.array(out)
 
@@ -88,9 +96,11 @@ def test_trained_style_cannot_be_deleted(server):
 
 
 def _bad_bvh() -> str:
-    return ("HIERARCHY\nROOT Pelvis\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n"
-            " JOINT Knee\n {\n  OFFSET 0 -40 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n  End Site\n  {\n   OFFSET 0 -40 0\n  }\n }\n}\n"
-            "MOTION\nFrames: 90\nFrame Time: 0.0333333\n" + "0 90 0 0 0 0 0 0 0\n" * 90)
+    return (
+        "HIERARCHY\nROOT Pelvis\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n"
+        " JOINT Knee\n {\n  OFFSET 0 -40 0\n  CHANNELS 3 Zrotation Xrotation Yrotation\n  End Site\n  {\n   OFFSET 0 -40 0\n  }\n }\n}\n"
+        "MOTION\nFrames: 90\nFrame Time: 0.0333333\n" + "0 90 0 0 0 0 0 0 0\n" * 90
+    )
 
 
 def test_upload_validation_errors(server, styled_clip):
@@ -104,12 +114,22 @@ def test_upload_validation_errors(server, styled_clip):
     cases.append((r, 422, "unsupported_skeleton"))
     bad = root[:90].copy()
     bad[5, 1] = np.nan
-    cases.append((httpx.post(url, content=json.dumps(payload("nanny", bad, rot[:90])), headers={"content-type": "application/json"}), 422, "non_finite"))
+    cases.append(
+        (
+            httpx.post(
+                url, content=json.dumps(payload("nanny", bad, rot[:90])), headers={"content-type": "application/json"}
+            ),
+            422,
+            "non_finite",
+        )
+    )
     cases.append((httpx.post(url, json=payload("short", root[:10], rot[:10])), 422, "bad_length"))
     cases.append((httpx.post(url, json=payload("Bad Name!", root[:90], rot[:90])), 422, "bad_name"))
     cases.append((httpx.post(url, json=payload("elderly", root[:90], rot[:90])), 409, "style_exists"))
     cases.append((httpx.post(url, json=payload("wrongjoints", root[:90], rot[:90, :10])), 422, "bad_skeleton"))
-    cases.append((httpx.post(f"{base}/v1/styles", json=payload("nofinetune", root[:90], rot[:90])), 422, "fine_tune_required"))
+    cases.append(
+        (httpx.post(f"{base}/v1/styles", json=payload("nofinetune", root[:90], rot[:90])), 422, "fine_tune_required")
+    )
     for r, status, code in cases:
         assert r.status_code == status, (status, code, r.text[:300])
         body = r.json()
@@ -119,15 +139,36 @@ def test_upload_validation_errors(server, styled_clip):
 def test_cmu_bvh_is_retargeted_and_accepted(server, index):
     """A CMU-skeleton BVH passes validation (retargeted); without fine_tune the LTI model says why not."""
     clip = select(index, dataset="xia", style="neutral", content="walk")[0]
-    r = httpx.post(f"{server[0]}/v1/styles", files={"file": ("walk.bvh", clip.path.read_bytes())},
-                   data={"name": "cmu-walk", "model": "lti"})
+    r = httpx.post(
+        f"{server[0]}/v1/styles",
+        files={"file": ("walk.bvh", clip.path.read_bytes())},
+        data={"name": "cmu-walk", "model": "lti"},
+    )
     assert r.status_code == 422 and r.json()["code"] == "fine_tune_required", r.text
 
 
 def _copy_translator(tr, name: str):
     from models.lti.model import StyleTranslator
-    return StyleTranslator(name, tr.A, tr.B, tr.C, tr.D, tr.in_mean, tr.in_std, tr.out_mean, tr.out_std,
-                           tr.in_lo, tr.in_hi, tr.orders, tr.k_p, tr.k_c, tr.footplant, {}, tr.ref)
+
+    return StyleTranslator(
+        name,
+        tr.A,
+        tr.B,
+        tr.C,
+        tr.D,
+        tr.in_mean,
+        tr.in_std,
+        tr.out_mean,
+        tr.out_std,
+        tr.in_lo,
+        tr.in_hi,
+        tr.orders,
+        tr.k_p,
+        tr.k_c,
+        tr.footplant,
+        {},
+        tr.ref,
+    )
 
 
 def test_adding_a_style_upgrades_older_states(models, styled_clip):
@@ -140,12 +181,19 @@ def test_adding_a_style_upgrades_older_states(models, styled_clip):
     assert bigger.styles() == before + ["zz-copy"] and base.styles() == before
     state = base.init_state(1)
     for t in range(20):
-        _, state = base.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]), style_vector(base, {"exhausted": 1.0})[None])
+        _, state = base.step_batch(
+            state, FrameBatch(root[t : t + 1], rot[t : t + 1]), style_vector(base, {"exhausted": 1.0})[None]
+        )
     s_old, s_new = dict(state), dict(state)
     for t in range(20, 40):
-        a, s_old = base.step_batch(s_old, FrameBatch(root[t:t + 1], rot[t:t + 1]), style_vector(base, {"exhausted": 1.0})[None])
-        b, s_new = bigger.step_batch(bigger.upgrade_state(s_new), FrameBatch(root[t:t + 1], rot[t:t + 1]),
-                                     style_vector(bigger, {"exhausted": 1.0})[None])  # state from before the add
+        a, s_old = base.step_batch(
+            s_old, FrameBatch(root[t : t + 1], rot[t : t + 1]), style_vector(base, {"exhausted": 1.0})[None]
+        )
+        b, s_new = bigger.step_batch(
+            bigger.upgrade_state(s_new),
+            FrameBatch(root[t : t + 1], rot[t : t + 1]),
+            style_vector(bigger, {"exhausted": 1.0})[None],
+        )  # state from before the add
         np.testing.assert_allclose(a.rotations, b.rotations, atol=1e-12)
     assert "x.zz-copy" not in state and s_new["x.zz-copy"].shape[1] == bigger.translators["zz-copy"].n
     assert bigger.state_dim > base.state_dim
@@ -158,8 +206,11 @@ def test_removing_a_style_keeps_other_states_and_drops_its_own(models, styled_cl
     model.add_style(_copy_translator(model.translators["elderly"], "zz-gone"))
     state = model.init_state(1)
     for t in range(10):
-        _, state = model.step_batch(state, FrameBatch(root[t:t + 1], rot[t:t + 1]),
-                                    style_vector(model, {"exhausted": 0.5, "zz-gone": 0.5})[None])
+        _, state = model.step_batch(
+            state,
+            FrameBatch(root[t : t + 1], rot[t : t + 1]),
+            style_vector(model, {"exhausted": 0.5, "zz-gone": 0.5})[None],
+        )
     model.remove_style("zz-gone")
     assert "zz-gone" not in model.styles() and "zz-gone" not in models["lti"].styles()
     up = model.upgrade_state(state)
@@ -255,7 +306,7 @@ def test_sessions_stream_on_unchanged_across_an_upload_and_a_delete(server, mode
             t = 0
             while not stop.is_set() or t < 60:
                 k = t % len(w_root)
-                background.append(stream(ws, w_root[k:k + 1], w_rot[k:k + 1], seq0=t)[0])
+                background.append(stream(ws, w_root[k : k + 1], w_rot[k : k + 1], seq0=t)[0])
                 t += 1
                 time.sleep(0.003)
 
@@ -275,7 +326,9 @@ def test_sessions_stream_on_unchanged_across_an_upload_and_a_delete(server, mode
             assert json.loads(mixed.recv(timeout=10))["type"] == "started"
             stream(mixed, w_root[:5], w_rot[:5])
             assert httpx.delete(f"{base}/v1/styles/lti.mid-a").status_code == 204
-            mixed.send(json.dumps({"type": "frame", "seq": 5, "root": w_root[5].tolist(), "rotations": w_rot[5].tolist()}))
+            mixed.send(
+                json.dumps({"type": "frame", "seq": 5, "root": w_root[5].tolist(), "rotations": w_rot[5].tolist()})
+            )
             error = json.loads(mixed.recv(timeout=10))
             assert error["type"] == "error" and error["code"] == "style_deleted" and error["seq"] == 5, error
             assert "mid-a" in error["message"]
@@ -292,14 +345,18 @@ def test_sessions_stream_on_unchanged_across_an_upload_and_a_delete(server, mode
     np.testing.assert_allclose(np.concatenate([first, second, third]), want, atol=1e-9)
     n = len(background)
     idx = np.arange(n) % len(w_root)
-    np.testing.assert_allclose(np.array(background), offline(models["lti"], "elderly", w_root[idx], w_rot[idx]), atol=1e-9)
+    np.testing.assert_allclose(
+        np.array(background), offline(models["lti"], "elderly", w_root[idx], w_rot[idx]), atol=1e-9
+    )
     assert "mid-a" not in next(m for m in httpx.get(f"{base}/v1/models").json() if m["name"] == "lti")["styles"]
 
 
 def test_uploaded_styles_and_their_job_records_reload_at_startup(models, styled_clip, tmp_path):
     root, rot = styled_clip
     with live_server(models, styles_dir=tmp_path) as (base, _):
-        job = httpx.post(f"{base}/v1/styles?fine_tune=true", json=payload("kept", root[:200], rot[:200]), timeout=30).json()["job"]
+        job = httpx.post(
+            f"{base}/v1/styles?fine_tune=true", json=payload("kept", root[:200], rot[:200]), timeout=30
+        ).json()["job"]
         for _ in range(600):
             if httpx.get(f"{base}/v1/jobs/{job['id']}").json()["status"] in ("done", "failed"):
                 break

@@ -25,8 +25,14 @@ def test_values_take_the_type_of_the_defaults():
     assert parse_overrides(Config(compile=False), ["--compile"]).compile is True
 
 
-@pytest.mark.parametrize("argv,says", [(["--stepz=3"], "unknown option 'stepz'"), (["--steps=ten"], "takes a int"),
-                                       (["--compile=maybe"], "true or false")])
+@pytest.mark.parametrize(
+    "argv,says",
+    [
+        (["--stepz=3"], "unknown option 'stepz'"),
+        (["--steps=ten"], "takes a int"),
+        (["--compile=maybe"], "true or false"),
+    ],
+)
 def test_bad_options_end_the_program_with_one_line(argv, says):
     with pytest.raises(SystemExit, match=says):
         parse_overrides(Config(), argv)

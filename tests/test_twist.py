@@ -79,8 +79,8 @@ def test_lpn_keeps_the_spine_untwisted(index):
     """LPN-FiLM toward `exhausted` turned the spine ~176 degrees about itself (and the chest back):
     invisible in joint positions, a wrung body on a skinned character."""
     from models.data import load_motion, select
-    from models.lpn import load as load_lpn
     from models.interface import FrameBatch
+    from models.lpn import load as load_lpn
     from models.settings import get_settings
 
     model = load_lpn(get_settings().weights_dir / "lpn")
@@ -90,13 +90,16 @@ def test_lpn_keeps_the_spine_untwisted(index):
     state, spine = model.init_state(1), walk.skeleton.index("Spine")
     axis = bone_axes(walk.skeleton)[spine]
     for t in range(60):
-        out, state = model.step_batch(state, FrameBatch(walk.translations[t:t + 1, 1], walk.rotations[t:t + 1]), weights)
+        out, state = model.step_batch(
+            state, FrameBatch(walk.translations[t : t + 1, 1], walk.rotations[t : t + 1]), weights
+        )
         twist = np.degrees(twist_angle(quat_mul(quat_inv(walk.rotations[t, spine]), out.rotations[0, spine]), axis))
         assert abs(twist) < 45.0, (t, twist)
 
 
 def test_compiled_equals_numpy_reference(bn_walk):
     from models.motion.twist import transfer_twist_numpy
+
     walk = bn_walk.slice(0, 30)
     wrung = _twisted(walk, 100.0, ["Head", "Hand_R", "LowerLeg_L", "Spine", "Foot_R"])
     for keep in ((), ("Hand_R", "UpperLeg_L")):
@@ -105,5 +108,7 @@ def test_compiled_equals_numpy_reference(bn_walk):
         assert np.degrees(quat_angle(got, want)).max() < 1e-4  # arccos near 1: ~1e-5 deg of round-off
     # broadcasting one source pose over a batch, as LPN-FiLM does
     got = transfer_twist(walk.skeleton, walk.rotations[0], wrung.rotations)
-    want = transfer_twist_numpy(walk.skeleton, np.broadcast_to(walk.rotations[0], wrung.rotations.shape), wrung.rotations)
+    want = transfer_twist_numpy(
+        walk.skeleton, np.broadcast_to(walk.rotations[0], wrung.rotations.shape), wrung.rotations
+    )
     assert got.shape == wrung.rotations.shape and np.degrees(quat_angle(got, want)).max() < 1e-4

@@ -15,6 +15,7 @@ import re
 import shutil
 import subprocess
 import time
+from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -33,9 +34,18 @@ from tests.live_server import live_server
 CHROMIUM = Path("/usr/bin/chromium")
 OUT = Path(__file__).resolve().parents[1] / "out"  # git-ignored: screenshots to look at
 # WebGL without a GPU: ANGLE on SwiftShader (software), which Chromium only uses when told to
-CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-quic",
-                  "--no-first-run", "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--window-size=1000,600"]
+CHROMIUM_FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--window-size=1000,600",
+]
 # the skeleton colours of scene.js (left limbs): input blue, stylised orange
 INPUT_RGB, OUTPUT_RGB = (0x4E, 0xA1, 0xFF), (0xFF, 0x8A, 0x3D)
 THREE_DIR = VIEWER_DIR / "vendor" / "three"
@@ -74,7 +84,7 @@ def check_two_skeletons(png: Path) -> None:
         assert tall > 1.5 * wide and tall > 0.3 * h, f"{name} skeleton is not upright: {tall} px tall, {wide} px wide"
     # and nothing of the stylised colour on the input side, or the other way round (side by side)
     assert colour_pixels(img, OUTPUT_RGB)[canvas, : w // 2].sum() < 50
-    assert colour_pixels(img, INPUT_RGB)[canvas, w // 2:].sum() < 50
+    assert colour_pixels(img, INPUT_RGB)[canvas, w // 2 :].sum() < 50
 
 
 def test_viewer_page_modules_and_vendored_three_are_served(server):
@@ -82,9 +92,16 @@ def test_viewer_page_modules_and_vendored_three_are_served(server):
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
     assert "/viewer/static/viewer.js" in page.text and '<canvas id="view">' in page.text
     imports = json.loads(re.search(r'<script type="importmap">(.*?)</script>', page.text, re.S).group(1))["imports"]
-    for module in ("viewer.js", "kinematics.js", "scene.js", "triangle.js", "controller.js",
-                   "vendor/three/three.module.min.js", "vendor/three/three.core.min.js",
-                   "vendor/three/addons/controls/OrbitControls.js"):
+    for module in (
+        "viewer.js",
+        "kinematics.js",
+        "scene.js",
+        "triangle.js",
+        "controller.js",
+        "vendor/three/three.module.min.js",
+        "vendor/three/three.core.min.js",
+        "vendor/three/addons/controls/OrbitControls.js",
+    ):
         r = httpx.get(f"{server}/viewer/static/{module}")
         assert r.status_code == 200 and r.headers["content-type"].startswith("text/javascript"), module  # ES modules
     assert all(path.startswith("/viewer/static/vendor/") for path in imports.values())  # served here, no CDN
@@ -92,8 +109,15 @@ def test_viewer_page_modules_and_vendored_three_are_served(server):
     assert httpx.get(f"{server}{imports['three/addons/']}controls/OrbitControls.js").status_code == 200
     assert "/v1/stream" in httpx.get(f"{server}/viewer/static/viewer.js").text
     assert httpx.get(f"{server}/viewer/static/viewer.css").headers["content-type"].startswith("text/css")
-    for bad in ("nope.js", "..%2Fviewer.py", "..%2F..%2Fservice%2Fapp.py", "demo_walk.bvh", "vendor/three/VERSION",
-                "vendor/fetch-three.sh", "vendor/three/..%2F..%2F..%2F..%2Fservice%2Fviewer.py"):
+    for bad in (
+        "nope.js",
+        "..%2Fviewer.py",
+        "..%2F..%2Fservice%2Fapp.py",
+        "demo_walk.bvh",
+        "vendor/three/VERSION",
+        "vendor/fetch-three.sh",
+        "vendor/three/..%2F..%2F..%2F..%2Fservice%2Fviewer.py",
+    ):
         assert httpx.get(f"{server}/viewer/static/{bad}").status_code == 404, bad
 
 
@@ -110,7 +134,9 @@ def test_vendored_three_is_one_recorded_npm_release():
     assert size < 1.5e6, f"vendored three.js is {size / 1e6:.2f} MB"
     for f in VIEWER_DIR.glob("*.*"):
         if f.suffix in (".js", ".html", ".css"):
-            assert not re.search(r"https?://(?!www\.w3\.org/2000/svg)", f.read_text()), f"{f.name} loads something from the web"
+            assert not re.search(r"https?://(?!www\.w3\.org/2000/svg)", f.read_text()), (
+                f"{f.name} loads something from the web"
+            )
 
 
 def check_clip(clip: dict) -> None:
@@ -138,6 +164,7 @@ def test_demo_clip_is_a_walk(server):
     assert 60 < speed < 200, f"a walk covers 0.6-2 m/s, this one {speed:.0f} cm/s"
     # the frames stream as they are: the server stylises every one
     from clients.sdk import Client
+
     with Client(server).session(model="lti", style="elderly") as s:
         for root_t, rot_t in list(zip(clip["frames"]["root"], clip["frames"]["rotations"]))[:10]:
             out = s.stylise(np.array(root_t), np.array(rot_t))
@@ -154,8 +181,14 @@ def test_rocking_pose_fallback_is_valid():
 def test_viewer_screenshot_in_headless_chromium(server, tmp_path):
     need_chromium()
     png = tmp_path / "viewer.png"
-    cmd = [str(CHROMIUM), *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=5000",
-           f"--screenshot={png}", f"{server}/viewer?autoplay=1"]
+    cmd = [
+        str(CHROMIUM),
+        *CHROMIUM_FLAGS,
+        f"--user-data-dir={tmp_path / 'profile'}",
+        "--virtual-time-budget=5000",
+        f"--screenshot={png}",
+        f"{server}/viewer?autoplay=1",
+    ]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert png.exists(), f"chromium wrote no screenshot (rc {proc.returncode}): {proc.stderr[-2000:]}"
     keep = OUT / "viewer_test.png"
@@ -216,9 +249,17 @@ def devtools_page(tmp_path: Path):
     from websockets.sync.client import connect
 
     port = free_port()
-    proc = subprocess.Popen([str(CHROMIUM), *CHROMIUM_FLAGS, f"--user-data-dir={tmp_path / 'profile'}",
-                             f"--remote-debugging-port={port}", "about:blank"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            str(CHROMIUM),
+            *CHROMIUM_FLAGS,
+            f"--user-data-dir={tmp_path / 'profile'}",
+            f"--remote-debugging-port={port}",
+            "about:blank",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.monotonic() + 30
         while True:
@@ -249,12 +290,16 @@ def test_viewer_streams_in_real_time(server, tmp_path):
     need_chromium()
     with devtools_page(tmp_path) as page:
         page.call("Page.navigate", url=f"{server}/viewer?autoplay=1&model=lti&style=elderly")
-        page.wait_for("document.body && document.body.dataset.state === 'streaming' && +document.body.dataset.received >= 5",
-                      "viewer did not stream")
+        page.wait_for(
+            "document.body && document.body.dataset.state === 'streaming' && +document.body.dataset.received >= 5",
+            "viewer did not stream",
+        )
         t0, n0 = time.monotonic(), int(page.js("document.body.dataset.received"))
         time.sleep(3.0)
-        page.js("document.getElementById('style').value = 'exhausted';"
-                "document.getElementById('style').dispatchEvent(new Event('change'))")
+        page.js(
+            "document.getElementById('style').value = 'exhausted';"
+            "document.getElementById('style').dispatchEvent(new Event('change'))"
+        )
         time.sleep(1.0)
         rate = (int(page.js("document.body.dataset.received")) - n0) / (time.monotonic() - t0)
         hud = page.js("document.getElementById('hud').innerText")
@@ -272,23 +317,34 @@ def test_viewer_streams_in_real_time(server, tmp_path):
         # dragging the point past the bottom edge's middle clamps it onto the edge
         page.js("""(() => { const p = [...document.querySelectorAll('#triangle select')];
                    ['elderly', 'active', 'youthful'].forEach((s, i) => { p[i].value = s; }); })()""")
-        box = page.js("(() => { const r = document.querySelector('#triangle svg').getBoundingClientRect();"
-                      " return [r.left, r.top, r.width / 160, r.height / 140]; })()")
+        box = page.js(
+            "(() => { const r = document.querySelector('#triangle svg').getBoundingClientRect();"
+            " return [r.left, r.top, r.width / 160, r.height / 140]; })()"
+        )
 
         def at(x: float, y: float) -> tuple[float, float]:  # viewBox -> page pixels
             return box[0] + x * box[2], box[1] + y * box[3]
 
         page.drag(at(80, 90), at(80, 139))
-        page.wait_for("/active 0\\.50, youthful 0\\.50|youthful 0\\.50, active 0\\.50/"
-                      ".test(document.getElementById('weights').textContent)", "no half-and-half style_set from the triangle")
+        page.wait_for(
+            "/active 0\\.50, youthful 0\\.50|youthful 0\\.50, active 0\\.50/"
+            ".test(document.getElementById('weights').textContent)",
+            "no half-and-half style_set from the triangle",
+        )
         weights = page.js("document.getElementById('weights').textContent")
         assert "elderly" not in weights and page.js("document.getElementById('triangle').classList.contains('active')")
-        page.wait_for("document.getElementById('sub-output').textContent.includes('active 0.50 + youthful 0.50')",
-                      "the stylised panel's label does not name the triangle's mix")  # drawn with the next frame
+        page.wait_for(
+            "document.getElementById('sub-output').textContent.includes('active 0.50 + youthful 0.50')",
+            "the stylised panel's label does not name the triangle's mix",
+        )  # drawn with the next frame
         # a style picked from the menu takes over again
-        page.js("document.getElementById('style').value = 'elderly';"
-                "document.getElementById('style').dispatchEvent(new Event('change'))")
-        page.wait_for("/elderly 1\\.00/.test(document.getElementById('weights').textContent)", "picker did not take over")
+        page.js(
+            "document.getElementById('style').value = 'elderly';"
+            "document.getElementById('style').dispatchEvent(new Event('change'))"
+        )
+        page.wait_for(
+            "/elderly 1\\.00/.test(document.getElementById('weights').textContent)", "picker did not take over"
+        )
         assert not page.js("document.getElementById('triangle').classList.contains('active')")
     png = tmp_path / "viewer_live.png"
     png.write_bytes(base64.b64decode(shot))
@@ -323,19 +379,32 @@ def test_keys_and_gamepad_make_control_messages(server, tmp_path):
         assert msg["velocity"] == pytest.approx([1.4 / math.sqrt(2), -0.9 / math.sqrt(2)], abs=1e-3)
 
         # the lpn model offers the controller drive; its HUD follows the held keys before anything streams
-        page.js("(() => { const m = document.getElementById('model'); m.value = 'lpn'; m.dispatchEvent(new Event('change')); })()")
+        page.js(
+            "(() => { const m = document.getElementById('model'); m.value = 'lpn'; m.dispatchEvent(new Event('change')); })()"
+        )
         assert "control" in page.js(drives)
         assert page.js("document.getElementById('control-hud').hidden")
-        page.js("(() => { const s = document.getElementById('source'); s.value = 'control'; s.dispatchEvent(new Event('change')); })()")
-        assert not page.js("document.getElementById('control-hud').hidden") and page.js("document.body.dataset.mode") == "control"
-        page.wait_for("document.getElementById('control-readout').textContent.startsWith('forward 0.99 m/s · side -0.64 m/s')",
-                      "the controller HUD does not show the held keys")
+        page.js(
+            "(() => { const s = document.getElementById('source'); s.value = 'control'; s.dispatchEvent(new Event('change')); })()"
+        )
+        assert (
+            not page.js("document.getElementById('control-hud').hidden")
+            and page.js("document.body.dataset.mode") == "control"
+        )
+        page.wait_for(
+            "document.getElementById('control-readout').textContent.startsWith('forward 0.99 m/s · side -0.64 m/s')",
+            "the controller HUD does not show the held keys",
+        )
         for k in (W, D):
             page.key("keyUp", *k)
-        page.wait_for("document.getElementById('control-readout').textContent.startsWith('forward 0.00 m/s · side 0.00 m/s')",
-                      "the controller HUD does not show the keys released")
+        page.wait_for(
+            "document.getElementById('control-readout').textContent.startsWith('forward 0.00 m/s · side 0.00 m/s')",
+            "the controller HUD does not show the keys released",
+        )
         # switching back to a clip model takes the controller drive away
-        page.js("(() => { const m = document.getElementById('model'); m.value = 'lti'; m.dispatchEvent(new Event('change')); })()")
+        page.js(
+            "(() => { const m = document.getElementById('model'); m.value = 'lti'; m.dispatchEvent(new Event('change')); })()"
+        )
         assert "control" not in page.js(drives) and page.js("document.getElementById('source').value") == "demo"
         assert page.js("document.getElementById('control-hud').hidden")
 
@@ -350,7 +419,9 @@ def test_keys_and_gamepad_make_control_messages(server, tmp_path):
         assert pad_id == "test pad" and msg["gait"] == "run"
         assert msg["velocity"] == pytest.approx([0.8 * 3.5, -0.6 * 1.8], abs=1e-3)  # full deflection: full speed
         assert msg["facing"] == pytest.approx(0.5, abs=1e-3)  # right stick left turns left at 2 rad/s
-        idle = page.js("import('/viewer/static/controller.js').then(c => c.intentFromGamepad({axes: [0.1, -0.05, 0.1, 0], buttons: []}))")
+        idle = page.js(
+            "import('/viewer/static/controller.js').then(c => c.intentFromGamepad({axes: [0.1, -0.05, 0.1, 0], buttons: []}))"
+        )
         assert idle is None  # inside the dead zone: the keyboard keeps control
 
 
@@ -365,10 +436,14 @@ def test_keys_drive_the_lpn_character_through_the_server(server, tmp_path):
     with devtools_page(tmp_path) as page:
         page.call("Page.navigate", url=f"{server}/viewer?model=lpn&style=elderly")
         page.wait_for("document.body && document.body.dataset.state === 'ready'", "viewer did not load")
-        page.js("(() => { const s = document.getElementById('source'); s.value = 'control'; s.dispatchEvent(new Event('change')); })()")
+        page.js(
+            "(() => { const s = document.getElementById('source'); s.value = 'control'; s.dispatchEvent(new Event('change')); })()"
+        )
         page.js("viewer.controller.reset(); document.getElementById('play').click()")
-        page.wait_for("document.body.dataset.state === 'streaming' && +document.body.dataset.received >= 30",
-                      "the controller session did not stream")
+        page.wait_for(
+            "document.body.dataset.state === 'streaming' && +document.body.dataset.received >= 30",
+            "the controller session did not stream",
+        )
         start = page.js(root)
         page.key("keyDown", *W)
         time.sleep(3.0)
@@ -384,9 +459,13 @@ def test_keys_drive_the_lpn_character_through_the_server(server, tmp_path):
         still = page.js(root)
         hud = page.js("document.getElementById('hud').innerText")
         shot = page.call("Page.captureScreenshot", format="png")["data"]
-    print(f"lpn in the browser: start {start}, after W {walked}, after W+Q {turned}, stopped {stopped} / {still}; HUD {hud!r}")
+    print(
+        f"lpn in the browser: start {start}, after W {walked}, after W+Q {turned}, stopped {stopped} / {still}; HUD {hud!r}"
+    )
     dz, dx = walked[2] - start[2], walked[0] - start[0]
-    assert 150 < dz < 600 and abs(dx) < 0.3 * dz, f"3 s of W should walk ~3 m along +Z, walked dx {dx:.0f} cm, dz {dz:.0f} cm"
+    assert 150 < dz < 600 and abs(dx) < 0.3 * dz, (
+        f"3 s of W should walk ~3 m along +Z, walked dx {dx:.0f} cm, dz {dz:.0f} cm"
+    )
     # Q turns left: facing +Z, the character's left is +X
     assert turned[0] - walked[0] > 20, f"W+Q should curve toward +X, moved {turned[0] - walked[0]:.0f} cm in x"
     assert np.hypot(still[0] - stopped[0], still[2] - stopped[2]) < 25, "released keys should bring it to a stop"
@@ -419,8 +498,10 @@ def test_viewer_maths_match_the_python_motion_core(server, tmp_path):
                 return c.root.map((r, i) => k.fk(c, r, c.rotations[i])); }})()""")
             py_pos = load(assets / name).global_positions()
             assert np.allclose(js_pos, py_pos, atol=1e-3), f"{name}: max {np.abs(np.array(js_pos) - py_pos).max()}"
-        js_pos = np.array(page.js(f"""(async () => {{ {kin} const c = k.clipFromDemo(await (await fetch('/v1/demo/clip')).json());
-            return c.root.map((r, i) => k.fk(c, r, c.rotations[i])); }})()"""))
+        js_pos = np.array(
+            page.js(f"""(async () => {{ {kin} const c = k.clipFromDemo(await (await fetch('/v1/demo/clip')).json());
+            return c.root.map((r, i) => k.fk(c, r, c.rotations[i])); }})()""")
+        )
         sk = bandai_namco_skeleton()
         translations = np.repeat(np.array(clip["offsets"])[None], len(clip["frames"]["root"]), axis=0)
         translations[:, clip["root_joint"]] = clip["frames"]["root"]
@@ -457,10 +538,13 @@ def test_viewer_maths_match_the_python_motion_core(server, tmp_path):
                      frames: [0, 17, 60].map((i) => {{ const t = k.fkTransforms(c, c.root[i], c.rotations[i]);
                        return c.solids.map((s) => k.placeSolid(s, t.rotations, t.positions)); }})}}; }})()""")
         solids = rig(Motion(sk, np.array(clip["frames"]["rotations"]), translations, clip["fps"]))
-        assert placed["parts"] == [s.part for s in solids] and {"head", "nose", "thumb_l", "foot_r"} <= set(placed["parts"])
+        assert placed["parts"] == [s.part for s in solids] and {"head", "nose", "thumb_l", "foot_r"} <= set(
+            placed["parts"]
+        )
         g_rot, g_pos = fk(np.array(clip["frames"]["rotations"]), translations, sk.parents)
         for i, frame in zip((0, 17, 60), placed["frames"]):
             q = np.array([p["quaternion"] for p in frame])
             js = np.array([p["position"] for p in frame])[:, None] + np.einsum(
-                "sab,skb->ska", quat_to_matrix(q), np.array(placed["corners"]))
+                "sab,skb->ska", quat_to_matrix(q), np.array(placed["corners"])
+            )
             assert np.allclose(js, solid_corners(g_rot[i], g_pos[i], solids), atol=0.05)  # cm

@@ -16,8 +16,18 @@ from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder
 
 from clients import vmc_osc as osc
-from clients.vmc import (BODY_BONES, BONE_GROUPS, StyleLink, VmcBridge, VmcState, avatar_rig, model_input,
-                         parse_bones, session_opener, unity_output)
+from clients.vmc import (
+    BODY_BONES,
+    BONE_GROUPS,
+    StyleLink,
+    VmcBridge,
+    VmcState,
+    avatar_rig,
+    model_input,
+    parse_bones,
+    session_opener,
+    unity_output,
+)
 from models.motion import bvh
 from models.motion.humanoid import RigError
 from models.motion.skeleton import Motion, from_bvh
@@ -28,9 +38,13 @@ from .rigs import EXTRA_SPECS, as_bvh_file, make_rig, stream
 
 FRAMES = 30
 UNITY = np.diag([-1.0, 1.0, 1.0])  # right-handed <-> Unity: mirror X
-BLEND = [("/VMC/Ext/Blend/Val", ["A", 0.25]), ("/VMC/Ext/Blend/Val", ["Blink_L", 1.0]), ("/VMC/Ext/Blend/Apply", []),
-         ("/VMC/Ext/Tra/Pos", ["tracker1", 0.1, 1.2, 0.3, 0.0, 0.0, 0.0, 1.0]), ("/VMC/Ext/Cam", ["cam", 0.0, 1.5, -2.0,
-                                                                                               0.0, 0.0, 0.0, 1.0, 60.0])]
+BLEND = [
+    ("/VMC/Ext/Blend/Val", ["A", 0.25]),
+    ("/VMC/Ext/Blend/Val", ["Blink_L", 1.0]),
+    ("/VMC/Ext/Blend/Apply", []),
+    ("/VMC/Ext/Tra/Pos", ["tracker1", 0.1, 1.2, 0.3, 0.0, 0.0, 0.0, 1.0]),
+    ("/VMC/Ext/Cam", ["cam", 0.0, 1.5, -2.0, 0.0, 0.0, 0.0, 1.0, 60.0]),
+]
 
 
 # --------------------------------------------------------------------------- a VMC sender
@@ -129,7 +143,9 @@ def _bridge(url: str | None, reconnect_timeout: float = 60.0, **kw):
     sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sink.bind(("127.0.0.1", 0))
     sink.settimeout(20)
-    link = StyleLink(session_opener(url, "lti", "elderly", fps=30.0, reconnect_timeout=reconnect_timeout)) if url else None
+    link = (
+        StyleLink(session_opener(url, "lti", "elderly", fps=30.0, reconnect_timeout=reconnect_timeout)) if url else None
+    )
     bridge = VmcBridge(link, sink.getsockname(), ("127.0.0.1", 0), **kw)
     thread = bridge.start()
     sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -236,7 +252,9 @@ def test_the_rig_is_the_avatars_own(avatar):
     root, rot = model_input(slots, state)
     hips, back = unity_output(state, root, rot)
     np.testing.assert_allclose(hips, state.pos[slots[0]], atol=1e-12)
-    np.testing.assert_allclose(back, state.rot[slots] / np.linalg.norm(state.rot[slots], axis=1, keepdims=True), atol=1e-12)
+    np.testing.assert_allclose(
+        back, state.rot[slots] / np.linalg.norm(state.rot[slots], axis=1, keepdims=True), atol=1e-12
+    )
     legless = {b: p for b, p in state.body().items() if "Leg" not in b}
     with pytest.raises(RigError, match="upperleg_l"):
         avatar_rig(legless)
@@ -261,19 +279,28 @@ def test_bridge_restyles_on_the_avatars_proportions_and_passes_the_rest(server, 
             j = source.names.index(name)
             np.testing.assert_array_equal(bones[name][1], np.float32(source.rot[t, j]))
         sent = [m for m in source.messages(t) if m[0] not in ("/VMC/Ext/Root/Pos", "/VMC/Ext/Bone/Pos")]
-        assert [(a, [np.float32(v) if isinstance(v, float) else v for v in args]) for a, args in other[1:]] == \
-            [(a, [np.float32(v) if isinstance(v, float) else v for v in args]) for a, args in sent]
+        assert [(a, [np.float32(v) if isinstance(v, float) else v for v in args]) for a, args in other[1:]] == [
+            (a, [np.float32(v) if isinstance(v, float) else v for v in args]) for a, args in sent
+        ]
         assert other[0][0] == "/VMC/Ext/Root/Pos"
-    moved = max(angle_deg(frames[t][0]["LeftUpperArm"][1], source.rot[t, source.names.index("LeftUpperArm")])
-                for t in range(FRAMES))
+    moved = max(
+        angle_deg(frames[t][0]["LeftUpperArm"][1], source.rot[t, source.names.index("LeftUpperArm")])
+        for t in range(FRAMES)
+    )
     assert moved > 2.0  # the style is there
 
 
 def test_a_smaller_avatar_moves_in_proportion(server, avatar):
     """The same walk on an avatar 0.7 times the size: every joint where the full-size avatar's
     is, times 0.7 (the mapping is scale-free; the bridge sends the avatar's own offsets)."""
-    small = Motion(type(avatar.skeleton)(avatar.skeleton.names, avatar.skeleton.parents, avatar.skeleton.offsets * 0.7,
-                                         avatar.skeleton.end_sites), avatar.rotations, avatar.translations * 0.7, avatar.fps)
+    small = Motion(
+        type(avatar.skeleton)(
+            avatar.skeleton.names, avatar.skeleton.parents, avatar.skeleton.offsets * 0.7, avatar.skeleton.end_sites
+        ),
+        avatar.rotations,
+        avatar.translations * 0.7,
+        avatar.fps,
+    )
     out = []
     for m in (avatar, small):
         with _bridge(server) as (bridge, sender, sink):
@@ -301,7 +328,9 @@ def test_bone_mask_restyles_the_chosen_bones_only(server, avatar):
             j = source.names.index(name)
             np.testing.assert_array_equal(bones[name][1], np.float32(source.rot[t, j]))
             np.testing.assert_array_equal(bones[name][0], np.float32(source.pos[t, j]))
-        upper_moved = max(upper_moved, angle_deg(bones["LeftUpperArm"][1], source.rot[t, source.names.index("LeftUpperArm")]))
+        upper_moved = max(
+            upper_moved, angle_deg(bones["LeftUpperArm"][1], source.rot[t, source.names.index("LeftUpperArm")])
+        )
     assert upper_moved > 2.0
 
 

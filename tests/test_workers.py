@@ -40,8 +40,17 @@ def _cpu_s(pid: int) -> float:
 def _stream(url: str, root, rot, resume_token: str | None = None) -> str:
     """Open (or resume) a binary LTI session, stylise 10 frames; returns its resume token."""
     with connect(url) as ws:
-        ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly", "encoding": "binary",
-                            "resume_token": resume_token}))
+        ws.send(
+            json.dumps(
+                {
+                    "type": "start",
+                    "model": "lti",
+                    "style": "elderly",
+                    "encoding": "binary",
+                    "resume_token": resume_token,
+                }
+            )
+        )
         started = json.loads(ws.recv(timeout=30))
         assert started["type"] == "started", started
         seq0 = 0 if started["last_seq"] is None else started["last_seq"] + 1
@@ -58,9 +67,14 @@ def _scrape(base: str) -> dict[str, float]:
 
 
 def test_more_than_one_worker_needs_a_shared_store():
-    done = subprocess.run([sys.executable, "-m", "clients.cli", "serve", "--workers", "2"], cwd=REPO,
-                          capture_output=True, text=True, timeout=60,
-                          env={**os.environ, "STYLESTREAM_SESSION_STORE": "memory"})
+    done = subprocess.run(
+        [sys.executable, "-m", "clients.cli", "serve", "--workers", "2"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "STYLESTREAM_SESSION_STORE": "memory"},
+    )
     assert done.returncode == 2
     assert "shared session_store" in done.stderr
 
@@ -78,12 +92,16 @@ def test_two_workers_share_the_port_and_resume_each_others_sessions(tmp_path, bn
             url = server.url.replace("http", "ws", 1) + "/v1/stream"
             tokens = [_stream(url, root, rot) for _ in range(SESSIONS)]
             assert all(_cpu_s(p) - cpu0[p] > 0.02 for p in workers), "a worker served no session"
-            wait_until(lambda: _scrape(server.url)["stylestream_snapshots_total"] >= SESSIONS,
-                       "the snapshots of the closed sessions to reach the store")
+            wait_until(
+                lambda: _scrape(server.url)["stylestream_snapshots_total"] >= SESSIONS,
+                "the snapshots of the closed sessions to reach the store",
+            )
             for token in tokens:  # about half land on the other worker than the session's first
                 _stream(url, root, rot, resume_token=token)
-            wait_until(lambda: _scrape(server.url)["stylestream_active_sessions"] == 0,
-                       "the last sessions' closes to be counted")
+            wait_until(
+                lambda: _scrape(server.url)["stylestream_active_sessions"] == 0,
+                "the last sessions' closes to be counted",
+            )
             for _ in range(8):  # scrapes land on both workers; each answers for all of them
                 metrics = _scrape(server.url)  # only LTI sessions ran
                 assert metrics["stylestream_frames_total"] == 2 * SESSIONS * 10

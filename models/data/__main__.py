@@ -22,9 +22,13 @@ def format_summary(clips: list[Clip]) -> str:
         minutes = sum(c.seconds for c in members) / 60
         fps = sorted({c.fps for c in members})
         splits = Counter(c.split for c in members)
-        out.append(f"== {name}  ({DATASETS[name].skeleton} skeleton, {'/'.join(f'{f:g}' for f in fps)} fps, {DATASETS[name].licence})")
-        out.append(f"   files {len(members)}  frames {frames}  minutes {minutes:.1f}  "
-                   f"split train/val/test {splits['train']}/{splits['val']}/{splits['test']}")
+        out.append(
+            f"== {name}  ({DATASETS[name].skeleton} skeleton, {'/'.join(f'{f:g}' for f in fps)} fps, {DATASETS[name].licence})"
+        )
+        out.append(
+            f"   files {len(members)}  frames {frames}  minutes {minutes:.1f}  "
+            f"split train/val/test {splits['train']}/{splits['val']}/{splits['test']}"
+        )
         styles = sorted({c.style for c in members})
         contents = sorted({c.content for c in members})
         table = Counter((c.style, c.content) for c in members)

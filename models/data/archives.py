@@ -37,12 +37,31 @@ class DatasetSpec:
 DATASETS: dict[str, DatasetSpec] = {
     spec.name: spec
     for spec in (
-        DatasetSpec("bandai-namco-1", "bandai-namco-1.tar.xz", "Bandai-Namco-Research-Motiondataset-1",
-                    "Bandai-Namco-Research-Motiondataset-1/data", "bandai-namco", "CC BY-NC 4.0"),
-        DatasetSpec("bandai-namco-2", "bandai-namco-2.tar.xz", "Bandai-Namco-Research-Motiondataset-2",
-                    "Bandai-Namco-Research-Motiondataset-2/data", "bandai-namco", "CC BY-NC 4.0"),
+        DatasetSpec(
+            "bandai-namco-1",
+            "bandai-namco-1.tar.xz",
+            "Bandai-Namco-Research-Motiondataset-1",
+            "Bandai-Namco-Research-Motiondataset-1/data",
+            "bandai-namco",
+            "CC BY-NC 4.0",
+        ),
+        DatasetSpec(
+            "bandai-namco-2",
+            "bandai-namco-2.tar.xz",
+            "Bandai-Namco-Research-Motiondataset-2",
+            "Bandai-Namco-Research-Motiondataset-2/data",
+            "bandai-namco",
+            "CC BY-NC 4.0",
+        ),
         DatasetSpec("xia", "xia.tar.xz", "xia", "xia", "cmu", "research use only; cite Xia et al. 2015"),
-        DatasetSpec("cmu", "cmu.tar.xz", "cmu", "cmu", "cmu", "free for research and commercial use; acknowledge mocap.cs.cmu.edu"),
+        DatasetSpec(
+            "cmu",
+            "cmu.tar.xz",
+            "cmu",
+            "cmu",
+            "cmu",
+            "free for research and commercial use; acknowledge mocap.cs.cmu.edu",
+        ),
     )
 }
 
@@ -77,8 +96,10 @@ def dataset_dir(name: str, settings: Settings | None = None) -> Path:
     if not archive.exists():
         if in_place.is_dir():
             return in_place
-        raise DataError(f"dataset {name!r}: neither {archive} nor {in_place} exists "
-                        f"(set STYLESTREAM_DATA_DIR to the folder with the mocap archives)")
+        raise DataError(
+            f"dataset {name!r}: neither {archive} nor {in_place} exists "
+            f"(set STYLESTREAM_DATA_DIR to the folder with the mocap archives)"
+        )
     unpack_root = cache_dir / "unpacked" / name
     ident = {"archive": str(archive.resolve()), "size": archive.stat().st_size, "mtime_ns": archive.stat().st_mtime_ns}
     if _unpacked_from(unpack_root, ident):

@@ -124,6 +124,7 @@ def build_index(datasets: list[str] | None = None, settings: Settings | None = N
 
 def select(clips: list[Clip], **where: str | tuple[str, ...]) -> list[Clip]:
     """Filter by attribute, e.g. select(index, dataset="bandai-namco-2", style=("normal", "elderly"))."""
+
     def keep(clip: Clip) -> bool:
         for attr, want in where.items():
             value = getattr(clip, attr)

@@ -38,9 +38,14 @@ def _parse_to_cache(path: Path, cache: Path) -> None:
     motion = from_bvh(bvhio.parse(text, str(path)))
     cache.parent.mkdir(parents=True, exist_ok=True)
     tmp = cache.with_suffix(".tmp.npz")
-    np.savez(tmp, header=np.array(text[: text.index("MOTION")]), fps=np.array(motion.fps),
-             rotations=motion.rotations.astype(np.float32), translations=motion.translations.astype(np.float32),
-             stamp=_stamp(path))
+    np.savez(
+        tmp,
+        header=np.array(text[: text.index("MOTION")]),
+        fps=np.array(motion.fps),
+        rotations=motion.rotations.astype(np.float32),
+        translations=motion.translations.astype(np.float32),
+        stamp=_stamp(path),
+    )
     os.replace(tmp, cache)  # atomic: a reader never sees half an entry
 
 
@@ -64,8 +69,9 @@ def load_motion(clip: Clip, settings: Settings | None = None) -> Motion:
         _parse_to_cache(clip.path, cache)
     with np.load(cache) as z:
         skeleton, orders = _skeleton(str(z["header"]))
-        return Motion(skeleton, z["rotations"].astype(np.float64), z["translations"].astype(np.float64),
-                      float(z["fps"]), orders)
+        return Motion(
+            skeleton, z["rotations"].astype(np.float64), z["translations"].astype(np.float64), float(z["fps"]), orders
+        )
 
 
 def warm_cache(clips: list[Clip], settings: Settings | None = None, workers: int | None = None) -> int:

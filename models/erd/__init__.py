@@ -11,4 +11,5 @@ WEIGHTS_SUBDIR = "erd"
 
 def load(weights_dir: Path):
     from .runtime import load as _load
+
     return _load(Path(weights_dir))

@@ -1,7 +1,7 @@
 """Style-ERD command line.
 
-    .venv/bin/python -m models.erd render [--styles elderly,exhausted] [--content walk]   # out/erd/*.png|gif
-    .venv/bin/python -m models.erd bench [--threads 1 2] [--json]                       # step time, batch 1 and 256
+.venv/bin/python -m models.erd render [--styles elderly,exhausted] [--content walk]   # out/erd/*.png|gif
+.venv/bin/python -m models.erd bench [--threads 1 2] [--json]                       # step time, batch 1 and 256
 """
 
 from __future__ import annotations
@@ -17,12 +17,14 @@ from ..settings import REPO_ROOT, get_settings
 
 def _model():
     from . import load
+
     return load(get_settings().weights_dir / "erd")
 
 
 def render(args) -> None:
     from ..data import build_index, load_motions, select
     from ..motion.render import render_contact_sheet, render_gif
+
     model = _model()
     clips = select(build_index(["bandai-namco-2"]), split=args.split, style="normal", content=args.content)
     clip = clips[args.clip]
@@ -42,14 +44,28 @@ def render(args) -> None:
             ref = select(index, split="train", style=style, content=args.content)[0]
             outs.append(load_motions([ref])[0])
             titles.append(f"real {style} ({ref.name})")
-    tag = f"{args.content}_{'_'.join(styles)}" + ("_nolabels" if args.unlabelled else "") + \
-        (f"_x{args.intensity:g}" if args.intensity != 1.0 else "") + ("_ref" if args.reference else "") + \
-        ("" if args.view == "10,-60" else f"_view{args.view.replace(',', '_')}")
+    tag = (
+        f"{args.content}_{'_'.join(styles)}"
+        + ("_nolabels" if args.unlabelled else "")
+        + (f"_x{args.intensity:g}" if args.intensity != 1.0 else "")
+        + ("_ref" if args.reference else "")
+        + ("" if args.view == "10,-60" else f"_view{args.view.replace(',', '_')}")
+    )
     view = tuple(float(v) for v in args.view.split(","))
-    print(render_contact_sheet(outs, out_dir / f"erd_{tag}.png", frames=args.frames, titles=titles,
-                               view=view, panel_size=args.panel))
+    print(
+        render_contact_sheet(
+            outs, out_dir / f"erd_{tag}.png", frames=args.frames, titles=titles, view=view, panel_size=args.panel
+        )
+    )
     if args.gif:
-        print(render_gif(outs[:1 + len(styles)], out_dir / f"erd_{tag}.gif", titles=titles[:1 + len(styles)], seconds=args.seconds))
+        print(
+            render_gif(
+                outs[: 1 + len(styles)],
+                out_dir / f"erd_{tag}.gif",
+                titles=titles[: 1 + len(styles)],
+                seconds=args.seconds,
+            )
+        )
 
 
 def bench(args) -> None:
@@ -58,11 +74,14 @@ def bench(args) -> None:
     network's matrix products alone in numpy (see models/stepbench.py)."""
     from ..stepbench import capped_threads, stepper, time_steps
     from .runtime import load
+
     results = []
     for threads in args.threads:
         for dtype in (np.float32, np.float64):
             model = load(get_settings().weights_dir / "erd", dtype=dtype)
-            print(f"Style-ERD step_batch, network {np.dtype(dtype).name}, style elderly, {threads} BLAS/torch thread(s)")
+            print(
+                f"Style-ERD step_batch, network {np.dtype(dtype).name}, style elderly, {threads} BLAS/torch thread(s)"
+            )
             for B in (1, 256):
                 rng = np.random.default_rng(0)
                 q = rng.normal(size=(B, 22, 4)) * 0.05 + np.array([0, 0, 0, 1.0])
@@ -70,8 +89,12 @@ def bench(args) -> None:
                 w = np.zeros((B, len(model.styles())))
                 w[:, model.styles().index("elderly")] = 1.0
                 with capped_threads(threads):
-                    timing = time_steps(B, stepper(model, [frames], w, B), _matmul_floor(model, B),
-                                        args.steps if B == 1 else max(args.steps // 4, 50))
+                    timing = time_steps(
+                        B,
+                        stepper(model, [frames], w, B),
+                        _matmul_floor(model, B),
+                        args.steps if B == 1 else max(args.steps // 4, 50),
+                    )
                 print(timing.line())
                 results.append({"threads": threads, "dtype": np.dtype(dtype).name, **timing.as_dict()})
     if args.json:
@@ -118,7 +141,9 @@ def main() -> None:
     r.add_argument("--no-gif", dest="gif", action="store_false")
     b = sub.add_parser("bench")
     b.add_argument("--steps", type=int, default=400)
-    b.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="BLAS/torch thread caps to run with (service: 1)")
+    b.add_argument(
+        "--threads", type=int, nargs="+", default=[1, 2], help="BLAS/torch thread caps to run with (service: 1)"
+    )
     b.add_argument("--json", action="store_true", help="also print the numbers as JSON")
     args = ap.parse_args()
     {"render": render, "bench": bench}[args.cmd](args)

@@ -25,8 +25,18 @@ from .features import CONTACT, FeatureMaker, mean_rotations
 DATASET = "bandai-namco-2"
 STYLES = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful")  # 0 = neutral
 TARGET_STYLES = STYLES[1:]  # one residual branch each
-CONTENTS = ("walk", "walk-turn-left", "walk-turn-right", "run", "raise-up-both-hands", "raise-up-left-hand",
-            "raise-up-right-hand", "wave-both-hands", "wave-left-hand", "wave-right-hand")
+CONTENTS = (
+    "walk",
+    "walk-turn-left",
+    "walk-turn-right",
+    "run",
+    "raise-up-both-hands",
+    "raise-up-left-hand",
+    "raise-up-right-hand",
+    "wave-both-hands",
+    "wave-left-hand",
+    "wave-right-hand",
+)
 WINDOW = 24
 CACHE_VERSION = 1
 
@@ -67,10 +77,15 @@ def build_cache(out: Path | None = None) -> Path:
             starts.append(offset)
             lengths.append(len(f))
             offset += len(f)
-        np.savez(out / f"{split}.npz", feats=np.concatenate(feats), starts=np.array(starts), lengths=np.array(lengths),
-                 style=np.array([STYLES.index(c.style) for c in clips]),
-                 content=np.array([CONTENTS.index(c.content) for c in clips]),
-                 names=np.array([c.name for c in clips]))
+        np.savez(
+            out / f"{split}.npz",
+            feats=np.concatenate(feats),
+            starts=np.array(starts),
+            lengths=np.array(lengths),
+            style=np.array([STYLES.index(c.style) for c in clips]),
+            content=np.array([CONTENTS.index(c.content) for c in clips]),
+            names=np.array([c.name for c in clips]),
+        )
         meta[split] = len(clips)
     train = np.load(out / "train.npz")["feats"]
     mean, std = train.mean(0), train.std(0)
@@ -114,11 +129,18 @@ class WindowSampler:
 
     def sample(self, batch: int) -> dict[str, torch.Tensor]:
         n_neutral = self.rng.binomial(batch, self.p_neutral)
-        clips = np.concatenate([self.rng.choice(self.neutral, n_neutral), self.rng.choice(self.styled, batch - n_neutral)])
-        starts = self.s.starts[clips] + (self.rng.random(batch) * (self.s.lengths[clips] - self.window + 1)).astype(np.int64)
+        clips = np.concatenate(
+            [self.rng.choice(self.neutral, n_neutral), self.rng.choice(self.styled, batch - n_neutral)]
+        )
+        starts = self.s.starts[clips] + (self.rng.random(batch) * (self.s.lengths[clips] - self.window + 1)).astype(
+            np.int64
+        )
         idx = starts[:, None] + np.arange(self.window)[None]
-        return {"x": self.feats[torch.from_numpy(idx)], "style": torch.from_numpy(self.s.style[clips]),
-                "content": torch.from_numpy(self.s.content[clips])}
+        return {
+            "x": self.feats[torch.from_numpy(idx)],
+            "style": torch.from_numpy(self.s.style[clips]),
+            "content": torch.from_numpy(self.s.content[clips]),
+        }
 
     def fixed(self, n_per_clip: int = 2, stride: int | None = None) -> dict[str, torch.Tensor]:
         """Deterministic windows (for validation): up to n_per_clip evenly spaced windows per clip."""
@@ -129,8 +151,11 @@ class WindowSampler:
                 idx.append(self.s.starts[c] + st + np.arange(self.window))
                 clips.append(c)
         clips = np.array(clips)
-        return {"x": self.feats[torch.from_numpy(np.stack(idx))], "style": torch.from_numpy(self.s.style[clips]),
-                "content": torch.from_numpy(self.s.content[clips])}
+        return {
+            "x": self.feats[torch.from_numpy(np.stack(idx))],
+            "style": torch.from_numpy(self.s.style[clips]),
+            "content": torch.from_numpy(self.s.content[clips]),
+        }
 
 
 if __name__ == "__main__":

@@ -19,11 +19,13 @@ def evaluate(split: str = "val") -> dict:
     from . import load
     from .dataset import WindowSampler, load_split
     from .train import Losses, one_hot_targets, real_rot
+
     torch.set_num_threads(1)
     model = load(get_settings().weights_dir / "erd")
     gen = model.torch_generator()
     std = torch.as_tensor(model.std, dtype=torch.float32)
     from .features import POS, ROOTVEL, VEL
+
     scale = {"pos": std[POS], "vel": torch.cat([std[VEL], std[ROOTVEL]])}
     losses = Losses(model.skeleton, scale)
     v = WindowSampler(load_split(split), 24).fixed(2)
@@ -31,8 +33,12 @@ def evaluate(split: str = "val") -> dict:
     real = losses.real_view(x)
     unknown = torch.full_like(style, -1)
     out: dict = {"windows": int(len(x))}
-    settings = {"labels": (style, content), "no_style": (unknown, content), "no_content": (style, unknown),
-                "no_labels": (unknown, unknown)}
+    settings = {
+        "labels": (style, content),
+        "no_style": (unknown, content),
+        "no_content": (style, unknown),
+        "no_labels": (unknown, unknown),
+    }
     neutral = style == 0
     target = torch.where(neutral, 1 + torch.arange(len(style)) % 6, torch.zeros_like(style))
     transfers = {}
@@ -41,8 +47,12 @@ def evaluate(split: str = "val") -> dict:
         view = losses.fake_view(rec)
         rot, pos, vel = losses.recon(rec, view, real, x)
         dq = (rec["rot"] * real_rot(x)).sum(-1).abs().clamp(max=1.0)
-        out[tag] = {"recon_rot_loss": rot.item(), "recon_pos_loss": pos.item(), "recon_vel_loss": vel.item(),
-                    "recon_rot_deg": torch.rad2deg(2 * torch.acos(dq)).mean().item()}
+        out[tag] = {
+            "recon_rot_loss": rot.item(),
+            "recon_pos_loss": pos.item(),
+            "recon_vel_loss": vel.item(),
+            "recon_rot_deg": torch.rad2deg(2 * torch.acos(dq)).mean().item(),
+        }
         transfers[tag] = gen(x, s_in, c_in, one_hot_targets(target))["rot"]
         dq = (transfers[tag] * real_rot(x)).sum(-1).abs().clamp(max=1.0)
         out[tag]["transfer_change_deg"] = torch.rad2deg(2 * torch.acos(dq)).mean().item()

@@ -60,21 +60,34 @@ class FeatureMaker:
         self.parents = np.asarray(skeleton.parents, dtype=np.int64)
         self.offsets = np.ascontiguousarray(skeleton.offsets, dtype=np.float64)
         self.leg = leg_length(skeleton)
-        self.facing = np.array([body_joint(skeleton, p) for p in ("hip_l", "hip_r", "shoulder_l", "shoulder_r")], np.int64)
-        self.feet = np.array([(body_joint(skeleton, f"ankle_{s}"), body_joint(skeleton, f"toe_{s}")) for s in ("l", "r")],
-                             np.int64)
+        self.facing = np.array(
+            [body_joint(skeleton, p) for p in ("hip_l", "hip_r", "shoulder_l", "shoulder_r")], np.int64
+        )
+        self.feet = np.array(
+            [(body_joint(skeleton, f"ankle_{s}"), body_joint(skeleton, f"toe_{s}")) for s in ("l", "r")], np.int64
+        )
 
     def positions(self, root: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """World joint positions (N, 22, 3) from Hips translations (N, 3) and local rotations (N, 22, 4)."""
         return kernels.forward_kinematics(_f64(root), _f64(rotations), self.parents, self.offsets)
 
-    def features(self, rotations: np.ndarray, pos: np.ndarray, prev_pos: np.ndarray,
-                 prev_yaw: np.ndarray, has_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def features(
+        self, rotations: np.ndarray, pos: np.ndarray, prev_pos: np.ndarray, prev_yaw: np.ndarray, has_prev: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(N, 216) features and (N,) yaw of N frames given each frame's previous positions/yaw
         (ignored where has_prev is False)."""
-        return kernels.features(_f64(rotations), _f64(pos), _f64(prev_pos), _f64(prev_yaw),
-                                np.ascontiguousarray(has_prev, dtype=np.bool_), self.ref, self.facing, self.feet,
-                                self.leg, self.fps)
+        return kernels.features(
+            _f64(rotations),
+            _f64(pos),
+            _f64(prev_pos),
+            _f64(prev_yaw),
+            np.ascontiguousarray(has_prev, dtype=np.bool_),
+            self.ref,
+            self.facing,
+            self.feet,
+            self.leg,
+            self.fps,
+        )
 
     def sequence(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Features (F, 216) and yaw (F,) of one clip, every frame causal (frame 0 has no past)."""

@@ -27,10 +27,12 @@ def qmul(a, b):
     """Hamilton product a * b (apply b, then a), scalar-last."""
     ax, ay, az, aw = a
     bx, by, bz, bw = b
-    return (aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz)
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
 
 
 @njit(cache=True, error_model="numpy")
@@ -120,14 +122,23 @@ def features(rotations, pos, prev_pos, prev_yaw, has_prev, ref, facing, feet, le
         for j in range(1, J):
             i = 3 * (j - 1)
             out[f, pos_at + i], out[f, pos_at + i + 1], out[f, pos_at + i + 2] = turn_y(
-                pos[f, j, 0] - gx, pos[f, j, 1], pos[f, j, 2] - gz, -yaw)
+                pos[f, j, 0] - gx, pos[f, j, 1], pos[f, j, 2] - gz, -yaw
+            )
             if moving:
-                v = turn_y((pos[f, j, 0] - prev_pos[f, j, 0]) * fps, (pos[f, j, 1] - prev_pos[f, j, 1]) * fps,
-                           (pos[f, j, 2] - prev_pos[f, j, 2]) * fps, -yaw)
+                v = turn_y(
+                    (pos[f, j, 0] - prev_pos[f, j, 0]) * fps,
+                    (pos[f, j, 1] - prev_pos[f, j, 1]) * fps,
+                    (pos[f, j, 2] - prev_pos[f, j, 2]) * fps,
+                    -yaw,
+                )
             else:
                 v = (0.0, 0.0, 0.0)
             out[f, vel_at + i], out[f, vel_at + i + 1], out[f, vel_at + i + 2] = v
-        out[f, root_at], out[f, root_at + 1], out[f, root_at + 2] = out[f, vel_at], out[f, vel_at + 1], out[f, vel_at + 2]
+        out[f, root_at], out[f, root_at + 1], out[f, root_at + 2] = (
+            out[f, vel_at],
+            out[f, vel_at + 1],
+            out[f, vel_at + 2],
+        )
         out[f, root_at + 3] = wrap(yaw - prev_yaw[f]) * fps if moving else 0.0
         # contacts: ankle or toe low and slow (thresholds scale with the leg length)
         for k in range(2):
@@ -160,8 +171,12 @@ def output_pose(x, y, yaw, has_prev, prev_root, root, rot_in, fps):
         for i in range(4):
             out_rot[b, 0, i] = rot_in[b, 0, i]
         for k in range(nb):
-            q = (x[b, 4 * k] + y[b, 4 * k], x[b, 4 * k + 1] + y[b, 4 * k + 1], x[b, 4 * k + 2] + y[b, 4 * k + 2],
-                 x[b, 4 * k + 3] + y[b, 4 * k + 3])
+            q = (
+                x[b, 4 * k] + y[b, 4 * k],
+                x[b, 4 * k + 1] + y[b, 4 * k + 1],
+                x[b, 4 * k + 2] + y[b, 4 * k + 2],
+                x[b, 4 * k + 3] + y[b, 4 * k + 3],
+            )
             norm = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-6)
             q = (q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm)
             if k == 0:

@@ -50,9 +50,12 @@ class Generator(nn.Module):
         self.register_buffer("mean", torch.as_tensor(mean, dtype=torch.float32))
         self.register_buffer("std", torch.as_tensor(std, dtype=torch.float32))
         self.encoder = nn.Sequential(
-            nn.Linear(FEATURE_DIM + N_STYLES + N_CONTENTS, cfg.enc_hidden), nn.ReLU(),
-            nn.Linear(cfg.enc_hidden, cfg.enc_hidden), nn.ReLU(),
-            nn.Linear(cfg.enc_hidden, L))
+            nn.Linear(FEATURE_DIM + N_STYLES + N_CONTENTS, cfg.enc_hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.enc_hidden, cfg.enc_hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.enc_hidden, L),
+        )
         self.neutral = nn.LSTM(L, L, cfg.neutral_layers, batch_first=True)
         self.neutral_h0 = nn.Parameter(torch.zeros(N_CONTENTS + 1, cfg.neutral_layers, L))  # last = unknown content
         self.neutral_c0 = nn.Parameter(torch.zeros(N_CONTENTS + 1, cfg.neutral_layers, L))
@@ -60,14 +63,19 @@ class Generator(nn.Module):
         self.style_h0 = nn.Parameter(torch.zeros(N_TARGETS, cfg.style_layers, L))
         self.style_c0 = nn.Parameter(torch.zeros(N_TARGETS, cfg.style_layers, L))
         self.decoder = nn.Sequential(
-            nn.Linear(L + N_TARGETS, cfg.dec_hidden), nn.ReLU(),
-            nn.Linear(cfg.dec_hidden, cfg.dec_hidden), nn.ReLU(),
-            nn.Linear(cfg.dec_hidden, 4 * NB + 3 + 1))
+            nn.Linear(L + N_TARGETS, cfg.dec_hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.dec_hidden, cfg.dec_hidden),
+            nn.ReLU(),
+            nn.Linear(cfg.dec_hidden, 4 * NB + 3 + 1),
+        )
         last = self.decoder[-1]
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
 
-    def forward(self, x: torch.Tensor, style_in: torch.Tensor, content: torch.Tensor, weights: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, style_in: torch.Tensor, content: torch.Tensor, weights: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
         """x (B, T, 216) raw features; style_in (B,) index into the 7 styles or -1 = unknown;
         content (B,) index or -1 = unknown; weights (B, 6) or (B, T, 6) target-style weights."""
         return self.forward_multi(x, style_in, content, [weights])[0]
@@ -94,11 +102,11 @@ class Generator(nn.Module):
                 weights = weights[:, None].expand(B, T, -1)
             latent = neutral
             for s, r in enumerate(branches):
-                latent = latent + weights[..., s:s + 1] * r
+                latent = latent + weights[..., s : s + 1] * r
             y = self.decoder(torch.cat([latent, weights], -1))
-            rot = (x[..., ROT] + y[..., :4 * NB]).reshape(B, T, NB, 4)
+            rot = (x[..., ROT] + y[..., : 4 * NB]).reshape(B, T, NB, 4)
             rot = rot / rot.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-            root_vel = x[..., ROOTVEL] + y[..., 4 * NB:4 * NB + 3]
+            root_vel = x[..., ROOTVEL] + y[..., 4 * NB : 4 * NB + 3]
             height = x[..., POS][..., 1] + y[..., -1]  # POS starts with the Hips: its y is the height
             outs.append({"rot": rot, "root_vel": root_vel, "height": height})
         return outs
@@ -116,11 +124,17 @@ def fk_local(rot: torch.Tensor, height: torch.Tensor, offsets: torch.Tensor, par
     return fk_torch(full, trans, parents)[1][..., 1:, :]
 
 
-def window_motion(pos: torch.Tensor, root_vel: torch.Tensor, rot: torch.Tensor, fps: float = 30.0) -> dict[str, torch.Tensor]:
+def window_motion(
+    pos: torch.Tensor, root_vel: torch.Tensor, rot: torch.Tensor, fps: float = 30.0
+) -> dict[str, torch.Tensor]:
     """The discriminator's / classifier's view of a window: positions, in-window backward
     velocities (frames 1..T-1) plus root velocity, rotations. pos (B,T,21,3)."""
     vel = (pos[:, 1:] - pos[:, :-1]) * fps
-    return {"pos": pos[:, 1:].flatten(2), "vel": torch.cat([vel.flatten(2), root_vel[:, 1:]], -1), "rot": rot[:, 1:].flatten(2)}
+    return {
+        "pos": pos[:, 1:].flatten(2),
+        "vel": torch.cat([vel.flatten(2), root_vel[:, 1:]], -1),
+        "rot": rot[:, 1:].flatten(2),
+    }
 
 
 def _conv(cin: int, cout: int, k: int) -> nn.Sequential:
@@ -139,7 +153,9 @@ class FTAttDiscriminator(nn.Module):
         for a, b in zip(dims[:-1], dims[1:]):
             layers += [_conv(a, b, 3), nn.LeakyReLU(0.2)]
         self.features = nn.Sequential(*layers, _conv(dims[-1], cfg.disc_feature, 3))
-        self.att = nn.Sequential(nn.Linear(N_STYLES + N_CONTENTS, 64), nn.LeakyReLU(0.2), nn.Linear(64, 64), nn.LeakyReLU(0.2))
+        self.att = nn.Sequential(
+            nn.Linear(N_STYLES + N_CONTENTS, 64), nn.LeakyReLU(0.2), nn.Linear(64, 64), nn.LeakyReLU(0.2)
+        )
         self.feature_att = nn.Linear(64, cfg.disc_feature)
         self.temporal_att = nn.Linear(64, frames)
 
@@ -161,15 +177,19 @@ class ContentClassifier(nn.Module):
         super().__init__()
         self.scale = scale
         w = cfg.classifier_width
-        self.blocks = nn.ModuleList([
-            nn.Sequential(_conv(in_dim, w * 2, 5), nn.InstanceNorm1d(w * 2), nn.LeakyReLU(0.2)),
-            nn.Sequential(_conv(w * 2, w, 5), nn.InstanceNorm1d(w), nn.LeakyReLU(0.2)),
-            nn.Sequential(_conv(w, w, 5), nn.InstanceNorm1d(w), nn.LeakyReLU(0.2)),
-        ])
+        self.blocks = nn.ModuleList(
+            [
+                nn.Sequential(_conv(in_dim, w * 2, 5), nn.InstanceNorm1d(w * 2), nn.LeakyReLU(0.2)),
+                nn.Sequential(_conv(w * 2, w, 5), nn.InstanceNorm1d(w), nn.LeakyReLU(0.2)),
+                nn.Sequential(_conv(w, w, 5), nn.InstanceNorm1d(w), nn.LeakyReLU(0.2)),
+            ]
+        )
         self.head = _conv(w, N_CONTENTS, 5)
 
     def prepare(self, view: dict[str, torch.Tensor]) -> torch.Tensor:
-        return torch.cat([view["rot"], view["pos"] / self.scale["pos"], view["vel"] / self.scale["vel"]], -1).transpose(1, 2)
+        return torch.cat([view["rot"], view["pos"] / self.scale["pos"], view["vel"] / self.scale["vel"]], -1).transpose(
+            1, 2
+        )
 
     def forward(self, inp: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
         feats = []

@@ -19,17 +19,18 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from ..motion.skeleton import Motion
-from ..motion.twist import transfer_twist
 from models.motion.rotations import quat_mul, yaw_quat
 
 from ..motion.feet import model_rig_planter
+from ..motion.skeleton import Motion
+from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .model import Generator
 
 
-def to_world(rot: np.ndarray, root_vel: np.ndarray, height: np.ndarray, yaw: np.ndarray, root0: np.ndarray,
-             fps: float = FPS) -> tuple[np.ndarray, np.ndarray]:
+def to_world(
+    rot: np.ndarray, root_vel: np.ndarray, height: np.ndarray, yaw: np.ndarray, root0: np.ndarray, fps: float = FPS
+) -> tuple[np.ndarray, np.ndarray]:
     """Model outputs of a clip (T,21,4), (T,3), (T,), input yaw (T,), input first root (3,) ->
     Hips translations (T,3) and local rotations (T,22,4)."""
     T = len(rot)
@@ -45,16 +46,28 @@ def to_world(rot: np.ndarray, root_vel: np.ndarray, height: np.ndarray, yaw: np.
 
 
 @torch.no_grad()
-def stylise(gen: Generator, maker: FeatureMaker, motion: Motion, weights: np.ndarray,
-            style_in: int = -1, content: int = -1, foot_lock: bool = True) -> Motion:
+def stylise(
+    gen: Generator,
+    maker: FeatureMaker,
+    motion: Motion,
+    weights: np.ndarray,
+    style_in: int = -1,
+    content: int = -1,
+    foot_lock: bool = True,
+) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6)."""
     root_in = motion.translations[:, 1]
     x, yaw = maker.sequence(root_in, motion.rotations)
     w = torch.as_tensor(np.asarray(weights, dtype=np.float32))
     w = w[None] if w.dim() == 1 else w[None]
     out = gen(torch.as_tensor(x, dtype=torch.float32)[None], torch.tensor([style_in]), torch.tensor([content]), w)
-    root, rots = to_world(out["rot"][0].double().numpy(), out["root_vel"][0].double().numpy(),
-                          out["height"][0].double().numpy(), yaw, root_in[0])
+    root, rots = to_world(
+        out["rot"][0].double().numpy(),
+        out["root_vel"][0].double().numpy(),
+        out["height"][0].double().numpy(),
+        yaw,
+        root_in[0],
+    )
     rots = transfer_twist(motion.skeleton, motion.rotations, rots)
     if foot_lock:
         root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)

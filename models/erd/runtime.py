@@ -47,11 +47,12 @@ import numpy as np
 import torch
 
 from ..interface import FrameBatch, State
+from ..motion.feet import STATE_SHAPES as FEET_STATE
+from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Skeleton
 from ..motion.twist import transfer_twist
 from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
-from ..motion.feet import STATE_SHAPES as FEET_STATE, model_rig_planter
 from .features import CONTACT, FPS, FeatureMaker
 
 WEIGHTS_FILE = "erd.npz"
@@ -78,9 +79,17 @@ class ERDModel:
     fps = FPS  # the model runs at 30 fps (Bandai Namco)
     controllable = False  # reads frames, not control
 
-    def __init__(self, params: dict[str, np.ndarray], config: dict, skeleton: Skeleton,
-                 mean: np.ndarray, std: np.ndarray, ref: np.ndarray, meta: dict | None = None,
-                 dtype: type = np.float32):
+    def __init__(
+        self,
+        params: dict[str, np.ndarray],
+        config: dict,
+        skeleton: Skeleton,
+        mean: np.ndarray,
+        std: np.ndarray,
+        ref: np.ndarray,
+        meta: dict | None = None,
+        dtype: type = np.float32,
+    ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
         self.meta = meta or {}
@@ -93,8 +102,10 @@ class ERDModel:
         self.H = config["latent"]
         self.Ln, self.Ls = config["neutral_layers"], config["style_layers"]
         if self.Ln != self.Ls:
-            raise ValueError(f"the runtime stacks the neutral and style LSTM branches: it needs equal layer counts, "
-                             f"got {self.Ln} neutral and {self.Ls} style layers")
+            raise ValueError(
+                f"the runtime stacks the neutral and style LSTM branches: it needs equal layer counts, "
+                f"got {self.Ln} neutral and {self.Ls} style layers"
+            )
         self.branches = ("neutral",) + tuple(TARGET_STYLES)  # branch 0 is the neutral one, weight 1
         self._scratch = threading.local()  # per thread: LSTM buffers reused between steps (`_workspace`)
         self._prepare_weights()
@@ -119,19 +130,25 @@ class ERDModel:
         w0, b0 = p["encoder.0.weight"].T, p["encoder.0.bias"]
         zero = np.zeros((1, w0.shape[1]))
         self.enc_in = w0[:n_in].astype(dt)
-        style_rows = np.concatenate([w0[n_in:n_in + len(STYLES)], zero])  # (8, hidden)
-        content_rows = np.concatenate([w0[n_in + len(STYLES):], zero]) + b0  # (11, hidden), with the bias
+        style_rows = np.concatenate([w0[n_in : n_in + len(STYLES)], zero])  # (8, hidden)
+        content_rows = np.concatenate([w0[n_in + len(STYLES) :], zero]) + b0  # (11, hidden), with the bias
         self.enc_labels = (style_rows[:, None] + content_rows[None]).astype(dt)  # [style, content] -> row
         self.enc = [(p[f"encoder.{i}.weight"].T.astype(dt), p[f"encoder.{i}.bias"].astype(dt)) for i in (2, 4)]
         self.dec = [(p[f"decoder.{i}.weight"].T.astype(dt), p[f"decoder.{i}.bias"].astype(dt)) for i in (0, 2, 4)]
         scale = np.ones(4 * H)
-        scale[2 * H:3 * H] = 2.0  # gates i, f, g, o (PyTorch order): g is the tanh one
+        scale[2 * H : 3 * H] = 2.0  # gates i, f, g, o (PyTorch order): g is the tanh one
         names = ["neutral"] + [f"branches.{k}" for k in range(len(TARGET_STYLES))]
         # per layer, per branch: [input; hidden] @ [W_ih^T; W_hh^T] as one (2H, 4H) matrix: (7, 2H, 4H)
-        self.lstm_w = [np.stack([np.concatenate([p[f"{n}.weight_ih_l{l}"].T, p[f"{n}.weight_hh_l{l}"].T]) * scale
-                                 for n in names]).astype(dt) for l in range(self.Ln)]
-        self.lstm_b = [np.stack([(p[f"{n}.bias_ih_l{l}"] + p[f"{n}.bias_hh_l{l}"]) * scale for n in names])[:, None].astype(dt)
-                       for l in range(self.Ln)]  # (7, 1, 4H)
+        self.lstm_w = [
+            np.stack(
+                [np.concatenate([p[f"{n}.weight_ih_l{l}"].T, p[f"{n}.weight_hh_l{l}"].T]) * scale for n in names]
+            ).astype(dt)
+            for l in range(self.Ln)
+        ]
+        self.lstm_b = [
+            np.stack([(p[f"{n}.bias_ih_l{l}"] + p[f"{n}.bias_hh_l{l}"]) * scale for n in names])[:, None].astype(dt)
+            for l in range(self.Ln)
+        ]  # (7, 1, 4H)
 
     # ------------------------------------------------------------------ interface
 
@@ -149,9 +166,14 @@ class ERDModel:
         h0 = np.concatenate([self.p["neutral_h0"][row][None], self.p["style_h0"]]).astype(self.dtype)  # (7, layers, H)
         c0 = np.concatenate([self.p["neutral_c0"][row][None], self.p["style_c0"]]).astype(self.dtype)
         state: State = {"h": np.repeat(h0[None], batch, 0), "c": np.repeat(c0[None], batch, 0)}
-        state.update(prev_pos=np.zeros((batch, 22, 3)), prev_yaw=np.zeros(batch), out_root=np.zeros((batch, 3)),
-                     frame=np.zeros(batch, dtype=np.int64), style_in=np.full(batch, si, dtype=np.int64),
-                     content=np.full(batch, ci, dtype=np.int64))
+        state.update(
+            prev_pos=np.zeros((batch, 22, 3)),
+            prev_yaw=np.zeros(batch),
+            out_root=np.zeros((batch, 3)),
+            frame=np.zeros(batch, dtype=np.int64),
+            style_in=np.full(batch, si, dtype=np.int64),
+            content=np.full(batch, ci, dtype=np.int64),
+        )
         state.update(self.planter.init_state(batch))
         return state
 
@@ -171,25 +193,44 @@ class ERDModel:
         J = self.skeleton.num_joints
         # the kernels trust every shape (no bounds checks): anything else is a clear error here
         if root.shape != (B, 3) or rot_in.shape != (B, J, 4):
-            raise ValueError(f"frames must be root (B, 3) and rotations (B, {J}, 4), got {root.shape} and {rot_in.shape}")
+            raise ValueError(
+                f"frames must be root (B, 3) and rotations (B, {J}, 4), got {root.shape} and {rot_in.shape}"
+            )
         if w.shape != (B, len(TARGET_STYLES)):
             raise ValueError(f"style_weights must be ({B}, {len(TARGET_STYLES)}), got {w.shape}")
         lstm = (B, len(self.branches), self.Ln, self.H)
-        for key, shape in (("h", lstm), ("c", lstm), ("prev_pos", (B, J, 3)), ("prev_yaw", (B,)), ("out_root", (B, 3)),
-                           ("frame", (B,)), ("style_in", (B,)), ("content", (B,))):
+        for key, shape in (
+            ("h", lstm),
+            ("c", lstm),
+            ("prev_pos", (B, J, 3)),
+            ("prev_yaw", (B,)),
+            ("out_root", (B, 3)),
+            ("frame", (B,)),
+            ("style_in", (B,)),
+            ("content", (B,)),
+        ):
             if state[key].shape != shape:
                 raise ValueError(f"state[{key!r}] must be {shape}, got {state[key].shape}")
         has_prev = state["frame"] > 0
         pos = self.maker.positions(root, rot_in)
         x, yaw = self.maker.features(rot_in, pos, state["prev_pos"], state["prev_yaw"], has_prev)
         y, new = self._network(x, state, w)
-        out_root, out_rot = kernels.output_pose(x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64),
-                                                root, rot_in, float(FPS))
+        out_root, out_rot = kernels.output_pose(
+            x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64), root, rot_in, float(FPS)
+        )
         out_rot = transfer_twist(self.skeleton, rot_in, out_rot)
-        planted_root, planted_rot, contacts, feet = self.planter({k: state[k] for k in FEET_STATE}, out_root, out_rot,
-                                                                 hints=x[:, CONTACT] > 0.5)
-        new.update(prev_pos=pos, prev_yaw=yaw, out_root=out_root, frame=state["frame"] + 1,
-                   style_in=state["style_in"].copy(), content=state["content"].copy(), **feet)
+        planted_root, planted_rot, contacts, feet = self.planter(
+            {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
+        )
+        new.update(
+            prev_pos=pos,
+            prev_yaw=yaw,
+            out_root=out_root,
+            frame=state["frame"] + 1,
+            style_in=state["style_in"].copy(),
+            content=state["content"].copy(),
+            **feet,
+        )
         return FrameBatch(planted_root, planted_rot, contacts), new
 
     # ------------------------------------------------------------------ network
@@ -201,7 +242,10 @@ class ERDModel:
         held = getattr(self._scratch, "held", None)
         if held is None or held[0].shape[1] < batch:
             K, H = len(self.branches), self.H
-            held = self._scratch.held = (np.empty((K, batch, 2 * H), self.dtype), np.empty((K, batch, 4 * H), self.dtype))
+            held = self._scratch.held = (
+                np.empty((K, batch, 2 * H), self.dtype),
+                np.empty((K, batch, 4 * H), self.dtype),
+            )
         return held[0][:, :batch], held[1][:, :batch]
 
     def _network(self, x: np.ndarray, state: State, w: np.ndarray) -> tuple[np.ndarray, State]:
@@ -224,9 +268,9 @@ class ERDModel:
             np.matmul(xin, self.lstm_w[l], out=g)
             g += self.lstm_b[l]
             s = _sigmoid_(g)  # i, f, o gates; g gate = 2 s - 1
-            c = s[..., H:2 * H] * cs[:, :, l].transpose(1, 0, 2) + s[..., :H] * (2.0 * s[..., 2 * H:3 * H] - 1.0)
+            c = s[..., H : 2 * H] * cs[:, :, l].transpose(1, 0, 2) + s[..., :H] * (2.0 * s[..., 2 * H : 3 * H] - 1.0)
             new_c[:, :, l] = c.transpose(1, 0, 2)
-            inp = s[..., 3 * H:] * (2.0 * _sigmoid_(2.0 * c) - 1.0)  # o * tanh(c)
+            inp = s[..., 3 * H :] * (2.0 * _sigmoid_(2.0 * c) - 1.0)  # o * tanh(c)
             new_h[:, :, l] = inp.transpose(1, 0, 2)
         weights = np.empty((B, len(self.branches)), dt)
         weights[:, 0] = 1.0
@@ -246,22 +290,29 @@ class ERDModel:
         import torch
 
         from .model import ERDConfig, Generator
+
         cfg = ERDConfig(**self.config)
         gen = Generator(cfg, self.mean, self.std)
         state = {k: torch.as_tensor(v, dtype=torch.float32) for k, v in self.p.items()}
-        state["mean"], state["std"] = torch.as_tensor(self.mean, dtype=torch.float32), torch.as_tensor(self.std, dtype=torch.float32)
+        state["mean"], state["std"] = (
+            torch.as_tensor(self.mean, dtype=torch.float32),
+            torch.as_tensor(self.std, dtype=torch.float32),
+        )
         gen.load_state_dict(state)
         return gen.eval()
 
     def stylise_stream(self, motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None):
         """Run a whole Motion through step_batch frame by frame (batch 1); returns a Motion."""
         from dataclasses import replace
+
         state = self.init_state(1, content=content, input_style=input_style)
         w = np.asarray(weights, np.float64)
         roots, rots = [], []
         for t in range(motion.num_frames):
             wt = w[t] if w.ndim == 2 else w
-            out, state = self.step_batch(state, FrameBatch(motion.translations[t:t + 1, 1], motion.rotations[t:t + 1]), wt[None])
+            out, state = self.step_batch(
+                state, FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1]), wt[None]
+            )
             roots.append(out.root[0])
             rots.append(out.rotations[0])
         trans = motion.translations.copy()
@@ -275,8 +326,12 @@ def load(weights_dir: Path, dtype: type = np.float32) -> ERDModel:
     config = json.loads((weights_dir / "config.json").read_text())
     with np.load(weights_dir / WEIGHTS_FILE) as z:
         arrays = {k: z[k] for k in z.files}
-    skeleton = Skeleton(tuple(str(n) for n in arrays.pop("skeleton_names")), arrays.pop("skeleton_parents").astype(int),
-                        arrays.pop("skeleton_offsets"), arrays.pop("skeleton_end_sites"))
+    skeleton = Skeleton(
+        tuple(str(n) for n in arrays.pop("skeleton_names")),
+        arrays.pop("skeleton_parents").astype(int),
+        arrays.pop("skeleton_offsets"),
+        arrays.pop("skeleton_end_sites"),
+    )
     mean, std, ref = arrays.pop("norm_mean"), arrays.pop("norm_std"), arrays.pop("ref")
     return ERDModel(arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype)
 
@@ -286,22 +341,39 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skele
     import torch
 
     from ..settings import REPO_ROOT
+
     out_dir = Path(out_dir or REPO_ROOT / "models" / "weights" / "erd")
     out_dir.mkdir(parents=True, exist_ok=True)
     ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     if skeleton is None:
         from ..data import build_index, load_motion, select
+
         skeleton = load_motion(select(build_index(["bandai-namco-2"]), split="val")[0]).skeleton
     sd = ck["generator"]
     arrays = {k: v.numpy().astype(np.float32) for k, v in sd.items() if k not in ("mean", "std")}
-    np.savez_compressed(out_dir / WEIGHTS_FILE, **arrays, norm_mean=sd["mean"].numpy(), norm_std=sd["std"].numpy(),
-                        ref=np.asarray(ck["ref"], np.float64), skeleton_names=np.array(skeleton.names),
-                        skeleton_parents=skeleton.parents, skeleton_offsets=skeleton.offsets,
-                        skeleton_end_sites=skeleton.end_sites)
+    np.savez_compressed(
+        out_dir / WEIGHTS_FILE,
+        **arrays,
+        norm_mean=sd["mean"].numpy(),
+        norm_std=sd["std"].numpy(),
+        ref=np.asarray(ck["ref"], np.float64),
+        skeleton_names=np.array(skeleton.names),
+        skeleton_parents=skeleton.parents,
+        skeleton_offsets=skeleton.offsets,
+        skeleton_end_sites=skeleton.end_sites,
+    )
     hist = ck.get("history", [])
-    config = {"model": ck["model_config"], "styles": list(TARGET_STYLES), "input_styles": list(STYLES),
-              "contents": list(CONTENTS), "iterations": ck["iter"], "train_seconds": round(ck["seconds"], 1),
-              "train_config": ck["train_config"], "classifier_val_acc": ck.get("classifier_val_acc"),
-              "final_validation": hist[-1] if hist else None, "licence": "CC BY-NC 4.0 (inherited from Bandai Namco dataset 2)"}
+    config = {
+        "model": ck["model_config"],
+        "styles": list(TARGET_STYLES),
+        "input_styles": list(STYLES),
+        "contents": list(CONTENTS),
+        "iterations": ck["iter"],
+        "train_seconds": round(ck["seconds"], 1),
+        "train_config": ck["train_config"],
+        "classifier_val_acc": ck.get("classifier_val_acc"),
+        "final_validation": hist[-1] if hist else None,
+        "licence": "CC BY-NC 4.0 (inherited from Bandai Namco dataset 2)",
+    }
     (out_dir / "config.json").write_text(json.dumps(config, indent=1))
     return out_dir

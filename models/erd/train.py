@@ -81,11 +81,16 @@ def parse_args(argv: list[str]) -> TrainConfig:
 
 
 def build(cfg: TrainConfig, stats: dict[str, np.ndarray]):
-    from .features import POS, VEL, ROOTVEL
+    from .features import POS, ROOTVEL, VEL
     from .model import ContentClassifier, ERDConfig, FTAttDiscriminator, Generator
 
-    mcfg = ERDConfig(latent=cfg.latent, enc_hidden=cfg.enc_hidden, dec_hidden=cfg.dec_hidden,
-                     neutral_layers=cfg.neutral_layers, style_layers=cfg.style_layers)
+    mcfg = ERDConfig(
+        latent=cfg.latent,
+        enc_hidden=cfg.enc_hidden,
+        dec_hidden=cfg.dec_hidden,
+        neutral_layers=cfg.neutral_layers,
+        style_layers=cfg.style_layers,
+    )
     std = torch.as_tensor(stats["std"])
     scale = {"pos": std[POS], "vel": torch.cat([std[VEL], std[ROOTVEL]])}
     gen = Generator(mcfg, stats["mean"], stats["std"])
@@ -97,24 +102,28 @@ def build(cfg: TrainConfig, stats: dict[str, np.ndarray]):
 class Losses:
     def __init__(self, skeleton, scale):
         from .model import fk_local
+
         self.offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
         self.parents = skeleton.parents
         self.fk_local = fk_local
         self.scale = scale
 
     def real_view(self, x):
-        from .features import POS, ROOTVEL, ROT, NB
+        from .features import NB, POS, ROOTVEL, ROT
         from .model import window_motion
+
         B, T, _ = x.shape
         return window_motion(x[..., POS].reshape(B, T, NB, 3), x[..., ROOTVEL], x[..., ROT].reshape(B, T, NB, 4))
 
     def fake_view(self, out):
         from .model import window_motion
+
         pos = self.fk_local(out["rot"], out["height"], self.offsets, self.parents)
         return window_motion(pos, out["root_vel"], out["rot"])
 
     def recon(self, out, view, real, x):
-        from .features import ROT, NB
+        from .features import NB, ROT
+
         B, T, _ = x.shape
         q_real = x[..., ROT].reshape(B, T, NB, 4)
         dot = (out["rot"] * q_real).sum(-1)
@@ -129,6 +138,7 @@ def style_rotation_prior(split) -> tuple[torch.Tensor, torch.Tensor]:
     quaternions: Hips without its yaw, hemisphere-aligned) and the p95 angle to it (radians)."""
     from ..motion.rotations import quat_angle, quat_mean
     from .features import NB, ROT
+
     frame_style = np.repeat(split.style, split.lengths)
     means, p95s = [], []
     for s in range(int(split.style.max()) + 1):
@@ -145,6 +155,7 @@ def streamed_rotations(skeleton, rot: torch.Tensor, x: torch.Tensor) -> torch.Te
     """(B, T, 21, 4) the rotations the streaming model outputs for decoder rotations `rot`: its
     bone directions with the input's twists and leaf rotations (`ERDModel` does the same)."""
     from ..motion.twist import transfer_twist_t
+
     root = torch.zeros(rot.shape[:2] + (1, 4), dtype=rot.dtype)
     root[..., 3] = 1.0
     full = lambda q: torch.cat([root, q], dim=-2)  # noqa: E731  (joint_Root, static)
@@ -164,6 +175,7 @@ def target_probs(spec: str) -> torch.Tensor:
     """Sampling probabilities of the 6 target styles for neutral windows; uniform unless `spec`
     ("style=factor,...") boosts styles that come out weak."""
     from .dataset import TARGET_STYLES
+
     w = torch.ones(len(TARGET_STYLES))
     for item in filter(None, spec.split(",")):
         name, _, factor = item.partition("=")
@@ -210,7 +222,10 @@ def validate(gen, disc, clf, losses, v) -> dict[str, float]:
     x, style, content = v["x"], v["style"], v["content"]
     real = losses.real_view(x)
     out_stats = {}
-    for tag, s_in, c_in in (("labels", style, content), ("nolabels", torch.full_like(style, -1), torch.full_like(content, -1))):
+    for tag, s_in, c_in in (
+        ("labels", style, content),
+        ("nolabels", torch.full_like(style, -1), torch.full_like(content, -1)),
+    ):
         out = gen(x, s_in, c_in, one_hot_targets(style))
         view = losses.fake_view(out)
         rot, pos, vel = losses.recon(out, view, real, x)
@@ -233,7 +248,8 @@ def validate(gen, disc, clf, losses, v) -> dict[str, float]:
 
 
 def real_rot(x):
-    from .features import ROT, NB
+    from .features import NB, ROT
+
     return x[..., ROT].reshape(x.shape[0], x.shape[1], NB, 4)
 
 
@@ -241,6 +257,7 @@ def render(gen, maker, out_dir: Path, tag: str, clips_motions) -> None:
     from ..motion.render import render_contact_sheet, render_gif
     from .dataset import TARGET_STYLES
     from .offline import stylise
+
     gen.eval()
     for name, motion in clips_motions:
         outs, titles = [motion], ["input"]
@@ -263,6 +280,7 @@ def main(argv: list[str]) -> None:
     cfg = parse_args(argv)
     if cfg.export:
         from .runtime import export_weights
+
         print(export_weights(Path(cfg.export)))
         return
     torch.set_num_threads(cfg.threads)
@@ -281,8 +299,10 @@ def main(argv: list[str]) -> None:
     val_s = WindowSampler(load_split("val"), cfg.window, cfg.p_neutral, seed=cfg.seed + 1)
     vfixed = val_s.fixed(2)
     index = build_index(["bandai-namco-2"])
-    render_clips = select(index, split="val", style="normal", content=("walk",))[:1] + \
-        select(index, split="val", style="normal", content=("wave-right-hand",))[:1]
+    render_clips = (
+        select(index, split="val", style="normal", content=("walk",))[:1]
+        + select(index, split="val", style="normal", content=("wave-right-hand",))[:1]
+    )
     render_motions = [(c.name, m) for c, m in zip(render_clips, load_motions(render_clips))]
     skeleton = render_motions[0][1].skeleton
     maker = FeatureMaker(skeleton, stats["ref"])
@@ -295,6 +315,7 @@ def main(argv: list[str]) -> None:
 
     if cfg.init_weights:  # fine-tune the committed generator; discriminator and classifier anew
         from .runtime import load as load_exported
+
         gen.load_state_dict(load_exported(Path(cfg.init_weights)).torch_generator().state_dict())
         log(f"generator initialised from {cfg.init_weights}")
     if cfg.init_from:  # fine-tune: same networks, the classifier its run trained
@@ -344,10 +365,19 @@ def main(argv: list[str]) -> None:
         with torch.no_grad():
             _, f_real = clf(clf.prepare(real))
         l_per = sum(F.mse_loss(a, b_) for a, b_ in zip(f_fake, f_real))
-        l_prior = prior_loss(streamed_rotations(skeleton, out["rot"][B:], x), target, prior) if cfg.w_prior else \
-            torch.zeros(())
-        loss_g = (cfg.w_rot * l_rot + cfg.w_pos * l_pos + cfg.w_vel * l_vel + cfg.w_adv * l_adv + cfg.w_per * l_per
-                  + cfg.w_prior * l_prior)
+        l_prior = (
+            prior_loss(streamed_rotations(skeleton, out["rot"][B:], x), target, prior)
+            if cfg.w_prior
+            else torch.zeros(())
+        )
+        loss_g = (
+            cfg.w_rot * l_rot
+            + cfg.w_pos * l_pos
+            + cfg.w_vel * l_vel
+            + cfg.w_adv * l_adv
+            + cfg.w_per * l_per
+            + cfg.w_prior * l_prior
+        )
         if it >= cfg.d_warmup:
             opt_g.zero_grad()
             loss_g.backward()
@@ -356,7 +386,7 @@ def main(argv: list[str]) -> None:
         # ---- discriminator (LSGAN, R1 on real)
         real_in = disc.prepare(real).detach().requires_grad_(True)
         d_real = disc(real_in, style, content)
-        grad, = torch.autograd.grad(d_real.sum(), real_in, create_graph=True)
+        (grad,) = torch.autograd.grad(d_real.sum(), real_in, create_graph=True)
         r1 = grad.pow(2).sum((1, 2)).mean()
         d_fake = disc(disc.prepare({k: v.detach() for k, v in fake_view.items()}), target, content)
         loss_d = (d_real - 1).pow(2).mean() + (d_fake + 1).pow(2).mean() + cfg.w_r1 * r1
@@ -367,14 +397,27 @@ def main(argv: list[str]) -> None:
         it += 1
         bar.update(1)
         if it % 50 == 0:
-            bar.set_postfix(rot=f"{l_rot.item():.4f}", pos=f"{l_pos.item():.4f}", adv=f"{l_adv.item():.3f}",
-                            prior=f"{l_prior.item():.4f}",
-                            per=f"{l_per.item():.3f}", d=f"{loss_d.item():.3f}", r1=f"{r1.item():.3f}")
+            bar.set_postfix(
+                rot=f"{l_rot.item():.4f}",
+                pos=f"{l_pos.item():.4f}",
+                adv=f"{l_adv.item():.3f}",
+                prior=f"{l_prior.item():.4f}",
+                per=f"{l_per.item():.3f}",
+                d=f"{loss_d.item():.3f}",
+                r1=f"{r1.item():.3f}",
+            )
         if it % cfg.eval_every == 0:
             v = validate(gen, disc, clf, losses, vfixed)
-            v.update(iter=it, minutes=round((time.time() - t0) / 60, 2), train_rot=l_rot.item(), train_pos=l_pos.item(),
-                     train_adv=l_adv.item(), train_per=l_per.item(), train_d=loss_d.item(),
-                     train_prior=l_prior.item())
+            v.update(
+                iter=it,
+                minutes=round((time.time() - t0) / 60, 2),
+                train_rot=l_rot.item(),
+                train_pos=l_pos.item(),
+                train_adv=l_adv.item(),
+                train_per=l_per.item(),
+                train_d=loss_d.item(),
+                train_prior=l_prior.item(),
+            )
             history.append(v)
             log("val " + " ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}" for k, val in v.items()))
         if it % cfg.ckpt_every == 0:
@@ -388,14 +431,28 @@ def main(argv: list[str]) -> None:
     log("final val " + " ".join(f"{k}={val:.4g}" for k, val in v.items()))
     save(run_dir / "ckpt.pt", gen, disc, mcfg, cfg, stats, it, time.time() - t0, history, clf_acc)
     render(gen, maker, out_dir, "final", render_motions)
-    log(f"done: {it} iterations, GAN stage {(time.time() - t0) / 60:.1f} min, total {(time.time() - t_start) / 60:.1f} min")
+    log(
+        f"done: {it} iterations, GAN stage {(time.time() - t0) / 60:.1f} min, total {(time.time() - t_start) / 60:.1f} min"
+    )
 
 
 def save(path, gen, disc, mcfg, cfg, stats, it, seconds, history, clf_acc) -> None:
     tmp = path.with_suffix(".tmp")
-    torch.save({"generator": gen.state_dict(), "discriminator": disc.state_dict(), "model_config": asdict(mcfg),
-                "train_config": asdict(cfg), "ref": stats["ref"], "iter": it, "seconds": seconds,
-                "history": history, "classifier_val_acc": clf_acc, "argv": sys.argv}, tmp)
+    torch.save(
+        {
+            "generator": gen.state_dict(),
+            "discriminator": disc.state_dict(),
+            "model_config": asdict(mcfg),
+            "train_config": asdict(cfg),
+            "ref": stats["ref"],
+            "iter": it,
+            "seconds": seconds,
+            "history": history,
+            "classifier_val_acc": clf_acc,
+            "argv": sys.argv,
+        },
+        tmp,
+    )
     tmp.replace(path)
 
 

@@ -22,12 +22,15 @@ def clip_features(motion: Motion) -> np.ndarray:
     """(F, FEATURE_DIM) float32."""
     f = compute_features(motion)
     body = _body(motion)
-    return np.concatenate([
-        f.local_positions[:, body].reshape(len(f.yaw), -1),
-        f.joint_velocities[:, body].reshape(len(f.yaw), -1),
-        f.root_velocity,
-        f.yaw_rate[:, None],
-    ], axis=1).astype(np.float32)
+    return np.concatenate(
+        [
+            f.local_positions[:, body].reshape(len(f.yaw), -1),
+            f.joint_velocities[:, body].reshape(len(f.yaw), -1),
+            f.root_velocity,
+            f.yaw_rate[:, None],
+        ],
+        axis=1,
+    ).astype(np.float32)
 
 
 def pad_to(x: np.ndarray, length: int) -> np.ndarray:
@@ -44,7 +47,7 @@ def windows(x: np.ndarray, length: int, stride: int) -> np.ndarray:
     starts = list(range(0, len(x) - length + 1, stride))
     if starts[-1] != len(x) - length:
         starts.append(len(x) - length)
-    return np.stack([x[s:s + length] for s in starts])
+    return np.stack([x[s : s + length] for s in starts])
 
 
 ROTATION_FEATURE_DIM = NUM_BODY_JOINTS * 6 * 2

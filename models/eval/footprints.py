@@ -4,26 +4,31 @@ by foot speed: a planted foot is a tight cluster of green dots, a sliding one a 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
 
 from ..motion.features import body_joint, leg_length  # noqa: E402
 from ..motion.skeleton import Motion  # noqa: E402
 from .metrics import SKATE_SPEED, flat_foot_contacts, foot_skating  # noqa: E402
 
 
-def render_footprints(motions: Sequence[Motion], path: str | Path, titles: Sequence[str] | None = None,
-                      panel_size: float = 3.2, dpi: int = 90) -> Path:
+def render_footprints(
+    motions: Sequence[Motion],
+    path: str | Path,
+    titles: Sequence[str] | None = None,
+    panel_size: float = 3.2,
+    dpi: int = 90,
+) -> Path:
     """One top-down panel per motion (x right, z up, equal axes); returns the PNG path."""
     titles = list(titles) if titles is not None else [""] * len(motions)
-    fig, axes = plt.subplots(1, len(motions), figsize=(panel_size * len(motions), panel_size + 0.4), dpi=dpi,
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(motions), figsize=(panel_size * len(motions), panel_size + 0.4), dpi=dpi, squeeze=False
+    )
     for ax, motion, title in zip(axes[0], motions, titles):
         pos = motion.global_positions()
         contacts, speeds = flat_foot_contacts(motion, pos)
@@ -32,8 +37,9 @@ def render_footprints(motions: Sequence[Motion], path: str | Path, titles: Seque
             ankle = pos[:, body_joint(motion.skeleton, f"ankle_{side}")]
             ax.plot(ankle[:, 0], ankle[:, 2], lw=0.4, color="0.7")
             on = contacts[:, k]
-            ax.scatter(ankle[on, 0], ankle[on, 2], s=4, c=speeds[on, k], cmap="RdYlGn_r", vmin=0, vmax=2 * limit,
-                       linewidths=0)
+            ax.scatter(
+                ankle[on, 0], ankle[on, 2], s=4, c=speeds[on, k], cmap="RdYlGn_r", vmin=0, vmax=2 * limit, linewidths=0
+            )
         skate = foot_skating(motion, pos)["skate_ratio"]
         ax.set_title(f"{title}\nskate {skate:.0%} (red = over {limit:.0f}/s)", fontsize=7)
         ax.set_aspect("equal", adjustable="datalim")

@@ -3,9 +3,9 @@ weights file, and the clip-level scoring helpers."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -33,10 +33,17 @@ class Classifier(nn.Module):
         super().__init__()
         self.net = nn.Sequential(
             nn.Dropout(0.1),
-            nn.Conv1d(in_dim, width, 5, padding=2), nn.ReLU(),
-            nn.Conv1d(width, width, 5, padding=2, stride=2), nn.ReLU(),
-            nn.Conv1d(width, width, 3, padding=1), nn.ReLU(),
-            nn.AdaptiveAvgPool1d(1), nn.Flatten(), nn.Dropout(dropout), nn.Linear(width, n_classes))
+            nn.Conv1d(in_dim, width, 5, padding=2),
+            nn.ReLU(),
+            nn.Conv1d(width, width, 5, padding=2, stride=2),
+            nn.ReLU(),
+            nn.Conv1d(width, width, 3, padding=1),
+            nn.ReLU(),
+            nn.AdaptiveAvgPool1d(1),
+            nn.Flatten(),
+            nn.Dropout(dropout),
+            nn.Linear(width, n_classes),
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:  # x (N, T, D) normalised
         return self.net(x.transpose(1, 2))
@@ -49,15 +56,25 @@ class DenoisingAE(nn.Module):
         super().__init__()
         self.in_dim, self.window = in_dim, window
         self.enc = nn.Sequential(
-            nn.Conv1d(in_dim, width, 3, padding=1), nn.ReLU(),
-            nn.Conv1d(width, width, 4, stride=2, padding=1), nn.ReLU(),
-            nn.Conv1d(width, 32, 4, stride=2, padding=1), nn.ReLU(),
-            nn.Flatten(), nn.Linear(32 * (window // 4), latent))
+            nn.Conv1d(in_dim, width, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv1d(width, width, 4, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv1d(width, 32, 4, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Flatten(),
+            nn.Linear(32 * (window // 4), latent),
+        )
         self.dec = nn.Sequential(
-            nn.Linear(latent, 32 * (window // 4)), nn.ReLU(), nn.Unflatten(1, (32, window // 4)),
-            nn.ConvTranspose1d(32, width, 4, stride=2, padding=1), nn.ReLU(),
-            nn.ConvTranspose1d(width, width, 4, stride=2, padding=1), nn.ReLU(),
-            nn.Conv1d(width, in_dim, 3, padding=1))
+            nn.Linear(latent, 32 * (window // 4)),
+            nn.ReLU(),
+            nn.Unflatten(1, (32, window // 4)),
+            nn.ConvTranspose1d(32, width, 4, stride=2, padding=1),
+            nn.ReLU(),
+            nn.ConvTranspose1d(width, width, 4, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv1d(width, in_dim, 3, padding=1),
+        )
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         return self.enc(x.transpose(1, 2))
@@ -74,7 +91,7 @@ def clip_logprobs(clf: Classifier, norm: Callable[[np.ndarray], torch.Tensor], f
     logp = torch.log_softmax(clf(norm(np.concatenate(wins))), -1).numpy()
     out, k = [], 0
     for c in counts:
-        out.append(logp[k:k + c].mean(0))
+        out.append(logp[k : k + c].mean(0))
         k += c
     return np.stack(out)
 
@@ -115,9 +132,19 @@ class Judges:
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / WEIGHTS_FILE
         half = lambda m: {k: v.half() for k, v in m.state_dict().items()}  # noqa: E731  (small file)
-        torch.save({"mean": self.mean, "std": self.std, "styles": self.styles, "contents": self.contents,
-                    "style_clf": half(self.style_clf), "content_clf": half(self.content_clf), "dae": half(self.dae),
-                    "meta": self.meta}, path)
+        torch.save(
+            {
+                "mean": self.mean,
+                "std": self.std,
+                "styles": self.styles,
+                "contents": self.contents,
+                "style_clf": half(self.style_clf),
+                "content_clf": half(self.content_clf),
+                "dae": half(self.dae),
+                "meta": self.meta,
+            },
+            path,
+        )
         return path
 
 
@@ -148,8 +175,16 @@ class RotationJudge:
     def save(self, folder: Path) -> Path:
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / ROTATION_JUDGE_FILE
-        torch.save({"mean": self.mean, "std": self.std, "styles": self.styles,
-                    "clf": {k: v.half() for k, v in self.clf.state_dict().items()}, "meta": self.meta}, path)
+        torch.save(
+            {
+                "mean": self.mean,
+                "std": self.std,
+                "styles": self.styles,
+                "clf": {k: v.half() for k, v in self.clf.state_dict().items()},
+                "meta": self.meta,
+            },
+            path,
+        )
         return path
 
 
@@ -158,8 +193,13 @@ def load_rotation_judge(folder: Path | None = None) -> RotationJudge:
     z = torch.load(folder / ROTATION_JUDGE_FILE, weights_only=False)
     clf = Classifier(len(z["styles"]), in_dim=len(z["mean"]))
     clf.load_state_dict({k: v.float() for k, v in z["clf"].items()})
-    return RotationJudge(np.asarray(z["mean"], np.float32), np.asarray(z["std"], np.float32), list(z["styles"]),
-                         clf.eval(), z.get("meta", {}))
+    return RotationJudge(
+        np.asarray(z["mean"], np.float32),
+        np.asarray(z["std"], np.float32),
+        list(z["styles"]),
+        clf.eval(),
+        z.get("meta", {}),
+    )
 
 
 def load_judges(folder: Path | None = None) -> Judges:
@@ -169,5 +209,13 @@ def load_judges(folder: Path | None = None) -> Judges:
     for net, key in ((style_clf, "style_clf"), (content_clf, "content_clf"), (dae, "dae")):
         net.load_state_dict({k: v.float() for k, v in z[key].items()})
         net.eval()
-    return Judges(np.asarray(z["mean"], np.float32), np.asarray(z["std"], np.float32), list(z["styles"]),
-                  list(z["contents"]), style_clf, content_clf, dae, z.get("meta", {}))
+    return Judges(
+        np.asarray(z["mean"], np.float32),
+        np.asarray(z["std"], np.float32),
+        list(z["styles"]),
+        list(z["contents"]),
+        style_clf,
+        content_clf,
+        dae,
+        z.get("meta", {}),
+    )

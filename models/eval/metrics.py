@@ -61,8 +61,11 @@ def foot_skating(motion: Motion, positions: np.ndarray | None = None) -> dict:
     if n == 0:
         return {"skate_ratio": 0.0, "contact_speed": 0.0, "contact_frames": 0}
     s = speeds[contacts]
-    return {"skate_ratio": float((s > SKATE_SPEED * leg_length(motion.skeleton)).mean()),
-            "contact_speed": float(s.mean()), "contact_frames": n}
+    return {
+        "skate_ratio": float((s > SKATE_SPEED * leg_length(motion.skeleton)).mean()),
+        "contact_speed": float(s.mean()),
+        "contact_frames": n,
+    }
 
 
 def path_deviation(source: Motion, output: Motion) -> float:

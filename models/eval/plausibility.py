@@ -113,12 +113,19 @@ class RotationReference:
         per_joint = {}
         for k, name in enumerate(self.joints):
             out = beyond[:, k][beyond[:, k] > 0]
-            per_joint[name] = {"within": float(within[k]),
-                               "excess_deg": float(np.degrees(np.median(out))) if len(out) else 0.0,
-                               "twist_outside": float(twist_out[k]),
-                               "median_deg": float(np.degrees(np.median(dist[:, k]))),
-                               "p99_deg": float(np.degrees(self.p99[style][k]))}
+            per_joint[name] = {
+                "within": float(within[k]),
+                "excess_deg": float(np.degrees(np.median(out))) if len(out) else 0.0,
+                "twist_outside": float(twist_out[k]),
+                "median_deg": float(np.degrees(np.median(dist[:, k]))),
+                "p99_deg": float(np.degrees(self.p99[style][k])),
+            }
         worst, worst_twist = int(np.argmin(within)), int(np.argmax(twist_out))
-        return {"min_within": float(within[worst]), "worst_joint": self.joints[worst],
-                "mean_within": float(within.mean()), "max_twist_outside": float(twist_out[worst_twist]),
-                "worst_twist_joint": self.joints[worst_twist], "per_joint": per_joint}
+        return {
+            "min_within": float(within[worst]),
+            "worst_joint": self.joints[worst],
+            "mean_within": float(within.mean()),
+            "max_twist_outside": float(twist_out[worst_twist]),
+            "worst_twist_joint": self.joints[worst_twist],
+            "per_joint": per_joint,
+        }

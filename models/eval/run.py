@@ -40,8 +40,9 @@ GATE_CONTENT = 0.90  # content accuracy (LPN-FiLM: on locomotion inputs)
 FMD_BEFORE = {"lti": 214.6, "erd": 308.7}  # overall FMD of the committed models before the rotation work
 
 
-def pick_clips(per_content: int, contents: tuple[str, ...] | None = None, style: str = INPUT_STYLE,
-               split: str = "test"):
+def pick_clips(
+    per_content: int, contents: tuple[str, ...] | None = None, style: str = INPUT_STYLE, split: str = "test"
+):
     clips = select(build_index([DATASET]), split=split, style=style)
     out = []
     for content in sorted({c.content for c in clips}):
@@ -56,7 +57,7 @@ def stylise(model: StreamingModel, motions: list[Motion], targets: list[int], ch
     n_styles = len(model.styles())
     out: list[Motion] = []
     for lo in range(0, len(motions), chunk):
-        part, tgt = motions[lo:lo + chunk], targets[lo:lo + chunk]
+        part, tgt = motions[lo : lo + chunk], targets[lo : lo + chunk]
         B = len(part)
         hold = lambda a: np.concatenate([a, np.repeat(a[-1:], T - len(a), 0)])  # noqa: E731
         root = np.stack([hold(m.translations[:, 1]) for m in part]).astype(np.float64)
@@ -78,8 +79,16 @@ def stylise(model: StreamingModel, motions: list[Motion], targets: list[int], ch
     return out
 
 
-def score(judges: Judges, rot_judge: RotationJudge, rot_ref: RotationReference, outputs: list[Motion],
-          inputs: list[Motion], style: str, contents: list[str], real_latents: np.ndarray) -> dict:
+def score(
+    judges: Judges,
+    rot_judge: RotationJudge,
+    rot_ref: RotationReference,
+    outputs: list[Motion],
+    inputs: list[Motion],
+    style: str,
+    contents: list[str],
+    real_latents: np.ndarray,
+) -> dict:
     feats = [clip_features(m) for m in outputs]
     ps, pc = judges.predict_style(feats), judges.predict_content(feats)
     ps_rot = rot_judge.predict_style([rotation_features(m) for m in outputs])
@@ -90,8 +99,10 @@ def score(judges: Judges, rot_judge: RotationJudge, rot_ref: RotationReference, 
         "clips": len(outputs),
         "style_acc": float(np.mean([p == style for p in ps])),
         "style_acc_rot": float(np.mean([p == style for p in ps_rot])),
-        "rot_within_min": plaus["min_within"], "rot_worst_joint": plaus["worst_joint"],
-        "rot_within_mean": plaus["mean_within"], "twist_outside_max": plaus["max_twist_outside"],
+        "rot_within_min": plaus["min_within"],
+        "rot_worst_joint": plaus["worst_joint"],
+        "rot_within_mean": plaus["mean_within"],
+        "twist_outside_max": plaus["max_twist_outside"],
         "twist_worst_joint": plaus["worst_twist_joint"],
         "rot_per_joint": {k: round(v["within"], 4) for k, v in plaus["per_joint"].items()},
         **{f"slide_{k}": v for k, v in slide_summary(outputs).items()},
@@ -104,8 +115,14 @@ def score(judges: Judges, rot_judge: RotationJudge, rot_ref: RotationReference, 
     }
 
 
-def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_dir: Path | None = None,
-             grids: bool = True, methods: tuple[str, ...] | None = None) -> dict:
+def evaluate(
+    quick: bool = False,
+    per_content: int = 4,
+    frames: int = 150,
+    out_dir: Path | None = None,
+    grids: bool = True,
+    methods: tuple[str, ...] | None = None,
+) -> dict:
     torch.set_num_threads(1)
     t0 = time.time()
     # the committed results are only ever written by a full run; a quick run goes to out/
@@ -137,17 +154,21 @@ def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_d
         val_skate = [foot_skating(m) for m in val_motions]
         n = sum(k["contact_frames"] for k in val_skate)
         # slide and plausibility on the same mix of contents and clip length as the inputs
-        like_inputs = [m.slice(0, frames) for m in load_motions(pick_clips(per_content, QUICK_CONTENTS if quick else None,
-                                                                            style=s, split="val"))]
+        like_inputs = [
+            m.slice(0, frames)
+            for m in load_motions(pick_clips(per_content, QUICK_CONTENTS if quick else None, style=s, split="val"))
+        ]
         plaus = rot_ref.plausibility(s, like_inputs)
         reference[s] = {
             "clips": len(val_feats),
             "style_acc": float(np.mean([p == s for p in judges.predict_style(val_feats)])),
-            "style_acc_rot": float(np.mean([p == s for p in rot_judge.predict_style([rotation_features(m)
-                                                                                       for m in val_motions])])),
+            "style_acc_rot": float(
+                np.mean([p == s for p in rot_judge.predict_style([rotation_features(m) for m in val_motions])])
+            ),
             "fmd": frechet_distance(judges.latents(val_feats), real_lat[s]),
             "skate_ratio": float(sum(k["skate_ratio"] * k["contact_frames"] for k in val_skate) / max(n, 1)),
-            "rot_within_min": plaus["min_within"], "rot_worst_joint": plaus["worst_joint"],
+            "rot_within_min": plaus["min_within"],
+            "rot_worst_joint": plaus["worst_joint"],
             "twist_outside_max": plaus["max_twist_outside"],
             **{f"slide_{k}": v for k, v in slide_summary(like_inputs).items()},
         }
@@ -164,37 +185,72 @@ def evaluate(quick: bool = False, per_content: int = 4, frames: int = 150, out_d
         else:
             order = [model.styles().index(s) for s in styles]
             flat = stylise(model, [m for _ in styles for m in inputs], [k for k in order for _ in inputs])
-            outs = {s: flat[i * len(inputs):(i + 1) * len(inputs)] for i, s in enumerate(styles)}
+            outs = {s: flat[i * len(inputs) : (i + 1) * len(inputs)] for i, s in enumerate(styles)}
         t_run = time.time() - t
         outputs_by_method[name] = outs
         per_style = {s: score(judges, rot_judge, rot_ref, outs[s], inputs, s, contents, real_lat[s]) for s in styles}
         loco = [i for i, c in enumerate(contents) if c in LOCOMOTION]
-        per_style_loco = {s: score(judges, rot_judge, rot_ref, [outs[s][i] for i in loco], [inputs[i] for i in loco], s,
-                                   [contents[i] for i in loco], real_lat[s]) for s in styles}
-        keys = ("style_acc", "style_acc_rot", "content_acc", "fmd", "skate_ratio", "contact_speed", "path_dev_cm",
-                "rot_within_min", "twist_outside_max", "slide_toe_median", "slide_toe_p95", "slide_ankle_median",
-                "slide_ankle_p95")
+        per_style_loco = {
+            s: score(
+                judges,
+                rot_judge,
+                rot_ref,
+                [outs[s][i] for i in loco],
+                [inputs[i] for i in loco],
+                s,
+                [contents[i] for i in loco],
+                real_lat[s],
+            )
+            for s in styles
+        }
+        keys = (
+            "style_acc",
+            "style_acc_rot",
+            "content_acc",
+            "fmd",
+            "skate_ratio",
+            "contact_speed",
+            "path_dev_cm",
+            "rot_within_min",
+            "twist_outside_max",
+            "slide_toe_median",
+            "slide_toe_p95",
+            "slide_ankle_median",
+            "slide_ankle_p95",
+        )
         overall = {k: float(np.mean([per_style[s][k] for s in styles])) for k in keys}
         overall_loco = {k: float(np.mean([per_style_loco[s][k] for s in styles])) for k in keys}
-        results["methods"][name] = {"overall": overall, "per_style": per_style, "overall_locomotion": overall_loco,
-                                    "per_style_locomotion": per_style_loco}
+        results["methods"][name] = {
+            "overall": overall,
+            "per_style": per_style,
+            "overall_locomotion": overall_loco,
+            "per_style_locomotion": per_style_loco,
+        }
         results["timing_s"][name] = {"stylise": round(t_run, 2), "total": round(time.time() - t, 2)}
 
     if grids:
         walk = next((i for i, c in enumerate(contents) if c == "walk"), 0)
-        for s in (styles[:1] if quick else styles):
+        for s in styles[:1] if quick else styles:
             rows = [inputs[walk]] + [outputs_by_method[n][s][walk] for n in runners if n != "identity"]
             titles = ["input (normal)"] + [f"{n} -> {s}" for n in runners if n != "identity"]
             path = out_dir / "eval" / f"grid_{s}.png"
             _grid(rows, path, titles)
 
     results["meta"] = {
-        "dataset": DATASET, "split": "test", "input_style": INPUT_STYLE, "styles": styles,
-        "clips": [c.name for c in clips], "per_content": per_content, "frames_per_clip": frames, "quick": quick,
+        "dataset": DATASET,
+        "split": "test",
+        "input_style": INPUT_STYLE,
+        "styles": styles,
+        "clips": [c.name for c in clips],
+        "per_content": per_content,
+        "frames_per_clip": frames,
+        "quick": quick,
         "judges": {k: judges.meta.get(k) for k in ("val", "test")},
-        "reference_real_val": reference, "reference_real_val_locomotion": reference_loco,
+        "reference_real_val": reference,
+        "reference_real_val_locomotion": reference_loco,
         "skate_speed_leg_per_s": SKATE_SPEED,
-        "seconds": round(time.time() - t0, 1), "machine": f"{platform.machine()} CPU, torch threads=1",
+        "seconds": round(time.time() - t0, 1),
+        "machine": f"{platform.machine()} CPU, torch threads=1",
         "command": "python -m models.eval" + (" --quick" if quick else ""),
     }
     results["gates"] = gates(results)
@@ -213,8 +269,11 @@ def gates(r: dict) -> dict:
         if name == "identity":
             continue
         loco = name == "lpn"
-        table, real = (m["per_style_locomotion"], meta["reference_real_val_locomotion"]) if loco else \
-            (m["per_style"], meta["reference_real_val"])
+        table, real = (
+            (m["per_style_locomotion"], meta["reference_real_val_locomotion"])
+            if loco
+            else (m["per_style"], meta["reference_real_val"])
+        )
         out[name] = {}
         for s, p in table.items():
             slide_limit = GATE_SLIDE * real[s]["slide_toe_median"]
@@ -241,12 +300,17 @@ def _slide(row: dict, part: str) -> str:
 def _gates_markdown(r: dict) -> list[str]:
     """The gates table: one row per method x style, a mark per gate, the failing values named."""
     g = r["gates"]
-    lines = ["## Gates", "",
-             f"Per method and target style: every joint ≥ {GATE_WITHIN:.0%} rotation-plausible; planted-toe median slide "
-             f"≤ {GATE_SLIDE:g}× the real clips'; style accuracy ≥ {GATE_STYLE:.0%} on both judges; content accuracy ≥ "
-             f"{GATE_CONTENT:.0%}. LPN-FiLM (a locomotion controller) is judged on the locomotion inputs. FMD overall no "
-             f"worse than before this work (" + ", ".join(f"{k} {v}" for k, v in FMD_BEFORE.items()) + ").", "",
-             "| method | style | rotation | slide | style | style (rot) | content | pass |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "## Gates",
+        "",
+        f"Per method and target style: every joint ≥ {GATE_WITHIN:.0%} rotation-plausible; planted-toe median slide "
+        f"≤ {GATE_SLIDE:g}× the real clips'; style accuracy ≥ {GATE_STYLE:.0%} on both judges; content accuracy ≥ "
+        f"{GATE_CONTENT:.0%}. LPN-FiLM (a locomotion controller) is judged on the locomotion inputs. FMD overall no "
+        f"worse than before this work (" + ", ".join(f"{k} {v}" for k, v in FMD_BEFORE.items()) + ").",
+        "",
+        "| method | style | rotation | slide | style | style (rot) | content | pass |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     mark = lambda c, text: f"{'✅' if c['pass'] else '❌'} {text}"  # noqa: E731
     passed = total = 0
     for name, per in g.items():
@@ -257,20 +321,27 @@ def _gates_markdown(r: dict) -> list[str]:
             passed += c["all"]
             pct = {k: f"{100 * c[k]['value']:.0f}%" for k in ("rotation", "style", "style_rot", "content")}
             slide = f"{c['slide']['value']:.1f} (≤ {c['slide']['limit']:.1f})"
-            lines.append(f"| {name} | {s} | {mark(c['rotation'], pct['rotation'])} | {mark(c['slide'], slide)} | "
-                         f"{mark(c['style'], pct['style'])} | {mark(c['style_rot'], pct['style_rot'])} | "
-                         f"{mark(c['content'], pct['content'])} | {'**pass**' if c['all'] else 'fail'} |")
-    fmd = ", ".join(f"{k} {v['fmd']['value']:.1f} {'✅' if v['fmd']['pass'] else '❌'} (≤ {v['fmd']['limit']})"
-                    for k, v in g.items() if "fmd" in v)
+            lines.append(
+                f"| {name} | {s} | {mark(c['rotation'], pct['rotation'])} | {mark(c['slide'], slide)} | "
+                f"{mark(c['style'], pct['style'])} | {mark(c['style_rot'], pct['style_rot'])} | "
+                f"{mark(c['content'], pct['content'])} | {'**pass**' if c['all'] else 'fail'} |"
+            )
+    fmd = ", ".join(
+        f"{k} {v['fmd']['value']:.1f} {'✅' if v['fmd']['pass'] else '❌'} (≤ {v['fmd']['limit']})"
+        for k, v in g.items()
+        if "fmd" in v
+    )
     lines += ["", f"**{passed} of {total}** method × style rows pass every gate. FMD: {fmd}.", ""]
     return lines
 
 
 def _grid(motions: list[Motion], path: Path, titles: list[str]) -> None:
     from ..motion.render import render_contact_sheet
+
     render_contact_sheet(motions, path, frames=6, titles=titles, dpi=70, panel_size=1.8)
     try:  # quantise to a palette PNG: a few tens of KB
         from PIL import Image
+
         Image.open(path).convert("RGB").quantize(64).save(path, optimize=True)
     except ImportError:
         pass
@@ -281,10 +352,13 @@ def markdown(r: dict) -> str:
     judges = meta["judges"]
     fmt = lambda x: f"{100 * x:.0f}%"  # noqa: E731
     lines = [
-        "# Evaluation: every method on the same held-out clips", "",
+        "# Evaluation: every method on the same held-out clips",
+        "",
         f"Command: `{meta['command']}` (or `make eval`); ran in {meta['seconds']:.0f} s on {meta['machine']}. "
-        "Raw numbers: [`docs/eval/results.json`](eval/results.json).", "",
-        "## How measured", "",
+        "Raw numbers: [`docs/eval/results.json`](eval/results.json).",
+        "",
+        "## How measured",
+        "",
         f"Inputs are the test-split `{meta['input_style']}` clips of Bandai Namco dataset 2 ({len(meta['clips'])} clips, "
         f"up to {meta['per_content']} per content over all contents, first {meta['frames_per_clip']} frames each). "
         "Each method is driven only through the streaming interface (`step_batch`, all clips x target styles as one batch "
@@ -298,17 +372,24 @@ def markdown(r: dict) -> str:
         "lengths of their floor level) whose "
         f"horizontal foot speed exceeds {meta['skate_speed_leg_per_s']} leg lengths/s; **path dev** = mean horizontal "
         "distance (cm) between input and output root paths with starts aligned. Identity (output = input) is the baseline; "
-        "`real val` rows are real validation clips of the target style (what a perfect method would score).", "",
+        "`real val` rows are real validation clips of the target style (what a perfect method would score).",
+        "",
     ]
     if judges.get("test"):
         t, v = judges["test"], judges["val"]
-        lines += [f"Judge reference accuracy on real clips: style {fmt(t['style_acc'])} test / {fmt(v['style_acc'])} val "
-                  f"(7 classes), content {fmt(t['content_acc'])} test / {fmt(v['content_acc'])} val (10 classes).", ""]
+        lines += [
+            f"Judge reference accuracy on real clips: style {fmt(t['style_acc'])} test / {fmt(v['style_acc'])} val "
+            f"(7 classes), content {fmt(t['content_acc'])} test / {fmt(v['content_acc'])} val (10 classes).",
+            "",
+        ]
     if "lpn" in r["methods"]:
-        lines += ["LPN-FiLM is a locomotion controller (trained on walks, runs and turns only): driven by the input's root "
-                  "motion it re-synthesises *locomotion*, so on the waving and hand-raising half of these inputs it walks "
-                  "or stands instead, which the content judge rightly counts as lost content. Its own numbers on a "
-                  "scripted 60 s control sequence are in its model card (`models/weights/lpn/MODEL_CARD.md`).", ""]
+        lines += [
+            "LPN-FiLM is a locomotion controller (trained on walks, runs and turns only): driven by the input's root "
+            "motion it re-synthesises *locomotion*, so on the waving and hand-raising half of these inputs it walks "
+            "or stands instead, which the content judge rightly counts as lost content. Its own numbers on a "
+            "scripted 60 s control sequence are in its model card (`models/weights/lpn/MODEL_CARD.md`).",
+            "",
+        ]
     lines += [
         "**Rotations** (what a skinned character shows; positions miss a leaf joint's rotation and a twist about a bone): "
         "every body joint's local rotation (the Hips without its heading) against real TRAIN clips of the target style "
@@ -318,53 +399,86 @@ def markdown(r: dict) -> str:
         "second style judge over local rotations and their changes only (`RotationJudge`, trained on the same TRAIN clips). "
         "**toe / ankle slide** = median and p95 horizontal speed (cm/s) of a toe / ankle while it is within 2.5 cm "
         "(0.03 leg lengths) of its floor level. `real val` rows: real validation clips of the target style, same contents "
-        "and clip length as the inputs.", "",
+        "and clip length as the inputs.",
+        "",
         "What selected what: no checkpoint or setting of any method was chosen with these judges or the test clips. "
         "The judges, the rotation judge and the rotation reference use TRAIN clips only; the methods' own model cards say "
-        "which validation numbers chose their checkpoints.", "",
+        "which validation numbers chose their checkpoints.",
+        "",
     ]
     lines += _gates_markdown(r)
-    lines += ["## Overall (mean over target styles)", "",
-              "| method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | rot ok ↑ | "
-              "twist out ↓ | toe slide cm/s ↓ | ankle slide cm/s ↓ |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "## Overall (mean over target styles)",
+        "",
+        "| method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | rot ok ↑ | "
+        "twist out ↓ | toe slide cm/s ↓ | ankle slide cm/s ↓ |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, m in r["methods"].items():
         o = m["overall"]
-        lines.append(f"| {name} | {fmt(o['style_acc'])} | {fmt(o['style_acc_rot'])} | {fmt(o['content_acc'])} | "
-                     f"{o['fmd']:.1f} | {fmt(o['skate_ratio'])} | {o['path_dev_cm']:.1f} | {fmt(o['rot_within_min'])} | "
-                     f"{fmt(o['twist_outside_max'])} | {_slide(o, 'toe')} | {_slide(o, 'ankle')} |")
+        lines.append(
+            f"| {name} | {fmt(o['style_acc'])} | {fmt(o['style_acc_rot'])} | {fmt(o['content_acc'])} | "
+            f"{o['fmd']:.1f} | {fmt(o['skate_ratio'])} | {o['path_dev_cm']:.1f} | {fmt(o['rot_within_min'])} | "
+            f"{fmt(o['twist_outside_max'])} | {_slide(o, 'toe')} | {_slide(o, 'ankle')} |"
+        )
     ref = meta["reference_real_val"]
     styles = meta["styles"]
     mean = lambda k: float(np.mean([ref[s][k] for s in styles]))  # noqa: E731
-    lines.append(f"| real val | {fmt(mean('style_acc'))} | {fmt(mean('style_acc_rot'))} | – | {mean('fmd'):.1f} | "
-                 f"{fmt(mean('skate_ratio'))} | – | {fmt(mean('rot_within_min'))} | {fmt(mean('twist_outside_max'))} | "
-                 f"{mean('slide_toe_median'):.1f} / {mean('slide_toe_p95'):.0f} | "
-                 f"{mean('slide_ankle_median'):.1f} / {mean('slide_ankle_p95'):.0f} |")
-    lines += ["", "### Locomotion inputs only (walks, turns, runs)", "",
-              "| method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | rot ok ↑ | toe slide cm/s ↓ |",
-              "|---|---|---|---|---|---|---|"]
+    lines.append(
+        f"| real val | {fmt(mean('style_acc'))} | {fmt(mean('style_acc_rot'))} | – | {mean('fmd'):.1f} | "
+        f"{fmt(mean('skate_ratio'))} | – | {fmt(mean('rot_within_min'))} | {fmt(mean('twist_outside_max'))} | "
+        f"{mean('slide_toe_median'):.1f} / {mean('slide_toe_p95'):.0f} | "
+        f"{mean('slide_ankle_median'):.1f} / {mean('slide_ankle_p95'):.0f} |"
+    )
+    lines += [
+        "",
+        "### Locomotion inputs only (walks, turns, runs)",
+        "",
+        "| method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | rot ok ↑ | toe slide cm/s ↓ |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, m in r["methods"].items():
         o = m["overall_locomotion"]
-        lines.append(f"| {name} | {fmt(o['style_acc'])} | {fmt(o['style_acc_rot'])} | {fmt(o['content_acc'])} | "
-                     f"{o['fmd']:.1f} | {fmt(o['rot_within_min'])} | {_slide(o, 'toe')} |")
-    lines += ["", "## Per target style", "",
-              "| style | method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | "
-              "rot ok (worst joint) ↑ | twist out ↓ | toe slide cm/s ↓ | recognised as |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        lines.append(
+            f"| {name} | {fmt(o['style_acc'])} | {fmt(o['style_acc_rot'])} | {fmt(o['content_acc'])} | "
+            f"{o['fmd']:.1f} | {fmt(o['rot_within_min'])} | {_slide(o, 'toe')} |"
+        )
+    lines += [
+        "",
+        "## Per target style",
+        "",
+        "| style | method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | "
+        "rot ok (worst joint) ↑ | twist out ↓ | toe slide cm/s ↓ | recognised as |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for s in styles:
         for name, m in r["methods"].items():
             p = m["per_style"][s]
             top = ", ".join(f"{k} {v}" for k, v in sorted(p["predicted_styles"].items(), key=lambda kv: -kv[1])[:3])
-            lines.append(f"| {s} | {name} | {fmt(p['style_acc'])} | {fmt(p['style_acc_rot'])} | {fmt(p['content_acc'])} | "
-                         f"{p['fmd']:.1f} | {fmt(p['skate_ratio'])} | {p['path_dev_cm']:.1f} | "
-                         f"{fmt(p['rot_within_min'])} ({p['rot_worst_joint']}) | {fmt(p['twist_outside_max'])} | "
-                         f"{_slide(p, 'toe')} | {top} |")
+            lines.append(
+                f"| {s} | {name} | {fmt(p['style_acc'])} | {fmt(p['style_acc_rot'])} | {fmt(p['content_acc'])} | "
+                f"{p['fmd']:.1f} | {fmt(p['skate_ratio'])} | {p['path_dev_cm']:.1f} | "
+                f"{fmt(p['rot_within_min'])} ({p['rot_worst_joint']}) | {fmt(p['twist_outside_max'])} | "
+                f"{_slide(p, 'toe')} | {top} |"
+            )
         q = ref[s]
-        lines.append(f"| {s} | real val | {fmt(q['style_acc'])} | {fmt(q['style_acc_rot'])} | – | {q['fmd']:.1f} | "
-                     f"{fmt(q['skate_ratio'])} | – | {fmt(q['rot_within_min'])} ({q['rot_worst_joint']}) | "
-                     f"{fmt(q['twist_outside_max'])} | {_slide(q, 'toe')} | |")
-    lines += ["", "## Picture grids", "",
-              "A test-split neutral walk (top row) and each method's output toward the target style:", ""]
+        lines.append(
+            f"| {s} | real val | {fmt(q['style_acc'])} | {fmt(q['style_acc_rot'])} | – | {q['fmd']:.1f} | "
+            f"{fmt(q['skate_ratio'])} | – | {fmt(q['rot_within_min'])} ({q['rot_worst_joint']}) | "
+            f"{fmt(q['twist_outside_max'])} | {_slide(q, 'toe')} | |"
+        )
+    lines += [
+        "",
+        "## Picture grids",
+        "",
+        "A test-split neutral walk (top row) and each method's output toward the target style:",
+        "",
+    ]
     for s in styles:
         lines.append(f"- {s}: ![{s}](eval/grid_{s}.png)")
-    lines += ["", "Timing (s, stylise + score): " + ", ".join(f"{k} {v['total']}" for k, v in r["timing_s"].items()), ""]
+    lines += [
+        "",
+        "Timing (s, stylise + score): " + ", ".join(f"{k} {v['total']}" for k, v in r["timing_s"].items()),
+        "",
+    ]
     return "\n".join(lines)

@@ -44,7 +44,7 @@ class Sampler:
         for y in ys:
             f = self.feats[self.rng.choice(self.by_class[y])]
             s = self.rng.integers(len(f) - self.window + 1)
-            xs.append(f[s:s + self.window])
+            xs.append(f[s : s + self.window])
         return np.stack(xs), ys
 
 
@@ -91,13 +91,18 @@ def train_dae(judges: Judges, feats, iters: int, seed: int) -> DenoisingAE:
 def accuracy(judges: Judges, feats, styles, contents) -> dict:
     ps, pc = judges.predict_style(feats), judges.predict_content(feats)
     per_style = {s: float(np.mean([p == t for p, t in zip(ps, styles) if t == s])) for s in judges.styles}
-    return {"clips": len(feats), "style_acc": float(np.mean([p == t for p, t in zip(ps, styles)])),
-            "content_acc": float(np.mean([p == t for p, t in zip(pc, contents)])), "style_acc_per_style": per_style}
+    return {
+        "clips": len(feats),
+        "style_acc": float(np.mean([p == t for p, t in zip(ps, styles)])),
+        "content_acc": float(np.mean([p == t for p, t in zip(pc, contents)])),
+        "style_acc_per_style": per_style,
+    }
 
 
 @torch.no_grad()
 def dae_error(judges: Judges, feats) -> float:
     from .features import windows
+
     w = judges.norm(np.concatenate([windows(f, DAE_WINDOW, 12) for f in feats]))
     return float(F.mse_loss(judges.dae(w), w))
 
@@ -108,13 +113,22 @@ def main(iters: int = 3000, dae_iters: int = 3000) -> dict:
     feats, styles, contents = load_split("train")
     style_names, content_names = sorted(set(styles)), sorted(set(contents))
     frames = np.concatenate(feats)
-    judges = Judges(frames.mean(0), np.maximum(frames.std(0), 1e-2 * frames.std(0).max() + 1e-6), style_names,
-                    content_names, None, None, None)
+    judges = Judges(
+        frames.mean(0),
+        np.maximum(frames.std(0), 1e-2 * frames.std(0).max() + 1e-6),
+        style_names,
+        content_names,
+        None,
+        None,
+        None,
+    )
     print(f"train: {len(feats)} clips, {len(frames)} frames, loaded in {time.time() - t0:.0f}s")
-    judges.style_clf = train_classifier(judges, feats, [style_names.index(s) for s in styles], len(style_names),
-                                        iters, 1, "style")
-    judges.content_clf = train_classifier(judges, feats, [content_names.index(c) for c in contents],
-                                          len(content_names), iters, 2, "content")
+    judges.style_clf = train_classifier(
+        judges, feats, [style_names.index(s) for s in styles], len(style_names), iters, 1, "style"
+    )
+    judges.content_clf = train_classifier(
+        judges, feats, [content_names.index(c) for c in contents], len(content_names), iters, 2, "content"
+    )
     judges.dae = train_dae(judges, feats, dae_iters, 3)
     report = {"train_clips": len(feats), "iters": iters, "dae_iters": dae_iters}
     for split in ("val", "test"):
@@ -143,7 +157,10 @@ def main_rotation(iters: int = 1500) -> dict:
     report: dict = {"train_clips": len(feats), "iters": iters, "features": "rotation_features"}
     for split in ("val", "test"):
         f, s, _ = load_split(split, rotation_features)
-        report[split] = {"clips": len(f), "style_acc": float(np.mean([p == t for p, t in zip(judge.predict_style(f), s)]))}
+        report[split] = {
+            "clips": len(f),
+            "style_acc": float(np.mean([p == t for p, t in zip(judge.predict_style(f), s)])),
+        }
     report["train_seconds"] = round(time.time() - t0, 1)
     judge.meta = report
     path = judge.save(weights_dir())

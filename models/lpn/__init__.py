@@ -10,18 +10,49 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .phases import (BONES, LocalPhases, SinusoidFit, circular_mean, contact_free_source, contact_source,
-                     fit_sinusoid, local_phases, lowpass, phase_features, principal_axis, sliding_normalise,
-                     step_frequency, style_axes, touchdowns)
+from .phases import (
+    BONES,
+    LocalPhases,
+    SinusoidFit,
+    circular_mean,
+    contact_free_source,
+    contact_source,
+    fit_sinusoid,
+    local_phases,
+    lowpass,
+    phase_features,
+    principal_axis,
+    sliding_normalise,
+    step_frequency,
+    style_axes,
+    touchdowns,
+)
 
 WEIGHTS_SUBDIR = "lpn"
 
 
 def load(weights_dir: Path):
     from .runtime import load as _load
+
     return _load(Path(weights_dir))
 
 
-__all__ = ["BONES", "LocalPhases", "SinusoidFit", "WEIGHTS_SUBDIR", "circular_mean", "contact_free_source",
-           "contact_source", "fit_sinusoid", "load", "local_phases", "lowpass", "phase_features", "principal_axis",
-           "sliding_normalise", "step_frequency", "style_axes", "touchdowns"]
+__all__ = [
+    "BONES",
+    "LocalPhases",
+    "SinusoidFit",
+    "WEIGHTS_SUBDIR",
+    "circular_mean",
+    "contact_free_source",
+    "contact_source",
+    "fit_sinusoid",
+    "load",
+    "local_phases",
+    "lowpass",
+    "phase_features",
+    "principal_axis",
+    "sliding_normalise",
+    "step_frequency",
+    "style_axes",
+    "touchdowns",
+]

@@ -1,11 +1,11 @@
 """LPN-FiLM command line.
 
-    .venv/bin/python -m models.lpn phases-plot [--out out/lpn_phases.png] [--styles 2:normal,2:elderly,1:chimpira]
-    .venv/bin/python -m models.lpn phases-stats [--style normal]       # step vs fitted frequency, L/R offsets
-    .venv/bin/python -m models.lpn train [--minutes 60] [--field=value ...]   # train.TrainConfig, then export
-    .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
-    .venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs numpy
-    .venv/bin/python -m models.lpn heldout [--steps 300 --seed 0]          # new styles from a clip, 3 held-out styles
+.venv/bin/python -m models.lpn phases-plot [--out out/lpn_phases.png] [--styles 2:normal,2:elderly,1:chimpira]
+.venv/bin/python -m models.lpn phases-stats [--style normal]       # step vs fitted frequency, L/R offsets
+.venv/bin/python -m models.lpn train [--minutes 60] [--field=value ...]   # train.TrainConfig, then export
+.venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
+.venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs numpy
+.venv/bin/python -m models.lpn heldout [--steps 300 --seed 0]          # new styles from a clip, 3 held-out styles
 """
 
 from __future__ import annotations
@@ -29,42 +29,60 @@ def _styles(spec: str) -> tuple[tuple[str, str], ...]:
 
 def phases_plot(args) -> None:
     from .plots import DEFAULT_STYLES, phases_figure
+
     styles = _styles(args.styles) if args.styles else DEFAULT_STYLES
     out = Path(args.out)
-    print(phases_figure(out if out.is_absolute() else REPO_ROOT / out, styles, content=args.content,
-                        bones=tuple(args.bones.split(",")), seconds=args.seconds))
+    print(
+        phases_figure(
+            out if out.is_absolute() else REPO_ROOT / out,
+            styles,
+            content=args.content,
+            bones=tuple(args.bones.split(",")),
+            seconds=args.seconds,
+        )
+    )
 
 
 def phases_stats(args) -> None:
     """Per clip: step frequency from contact touchdowns vs the median fitted foot frequency, and the
     circular mean of the left-right phase difference of feet and hands (pi = anti-phase)."""
     from models.data import build_index, load_motion, select
+
     from .phases import circular_mean, local_phases, step_frequency
+
     index = build_index(["bandai-namco-1", "bandai-namco-2"])
     rows = []
     for clip in select(index, style=args.style, content=args.content, split=args.split):
         lp = local_phases(load_motion(clip))
         steps = [step_frequency(lp.contacts[:, s], lp.fps) for s in (0, 1)]
-        rows.append({"clip": clip.name, "step_hz": np.round(steps, 3).tolist(),
-                     "fitted_hz": np.round(np.median(lp.frequency, axis=0), 3).tolist(),
-                     "feet_lr_offset": round(abs(circular_mean(lp.phase[:, 2] - lp.phase[:, 3])), 3),
-                     "hands_lr_offset": round(abs(circular_mean(lp.phase[:, 0] - lp.phase[:, 1])), 3)})
+        rows.append(
+            {
+                "clip": clip.name,
+                "step_hz": np.round(steps, 3).tolist(),
+                "fitted_hz": np.round(np.median(lp.frequency, axis=0), 3).tolist(),
+                "feet_lr_offset": round(abs(circular_mean(lp.phase[:, 2] - lp.phase[:, 3])), 3),
+                "hands_lr_offset": round(abs(circular_mean(lp.phase[:, 0] - lp.phase[:, 1])), 3),
+            }
+        )
         print(json.dumps(rows[-1]))
 
 
 def train(args) -> None:
     from .train import main as train_main
+
     train_main([f"--minutes={args.minutes}", *args.options])
 
 
 def _model():
-    from . import load
     from ..settings import get_settings
+    from . import load
+
     return load(get_settings().weights_dir / "lpn")
 
 
 def demo(args) -> None:
     from .demo import render_demo
+
     out = Path(args.out)
     out = out if out.is_absolute() else REPO_ROOT / out
     png = render_demo(out, tag=args.tag, seconds=args.seconds, styles=tuple(args.styles.split(",")), gif=args.gif)
@@ -80,31 +98,42 @@ def bench(args) -> None:
     wall time (numba loads its cache, or compiles) and the load average."""
     import os
     import time
+
     from ..interface import FrameBatch
     from ..stepbench import capped_threads, stepper
     from .reference import numpy_twin
+
     load_before = os.getloadavg()
     model = _model()
     first = model.rest_motion()
     t = time.perf_counter()
-    model.step_batch(model.init_state(1), FrameBatch(first.translations[:1, 1], first.rotations[:1]),
-                     np.zeros((1, len(model.styles())), np.float32))
+    model.step_batch(
+        model.init_state(1),
+        FrameBatch(first.translations[:1, 1], first.rotations[:1]),
+        np.zeros((1, len(model.styles())), np.float32),
+    )
     out: dict = {"first_step_s": round(time.perf_counter() - t, 3), "blas_threads": args.threads}
     models = {"compiled": model, "numpy": numpy_twin(model)}
     for B in (1, 256):
         control = np.tile(np.array([[1.2, 0.0, 0.0, 0.0, 1.0]], np.float32), (B, 1))
-        frames = FrameBatch(np.repeat(first.translations[:1, 1], B, 0), np.repeat(first.rotations[:1], B, 0),
-                            control=control)
+        frames = FrameBatch(
+            np.repeat(first.translations[:1, 1], B, 0), np.repeat(first.rotations[:1], B, 0), control=control
+        )
         w = np.zeros((B, len(model.styles())), np.float32)
         w[:, model.styles().index("elderly")] = 1.0
         steps = {name: stepper(m, [frames], w, B) for name, m in models.items()}
         steps["floor"] = _products(model, B)
         with capped_threads(args.threads):
             times, cpu = _alternate(steps, args.steps if B == 1 else max(args.steps // 4, 20))
-        out[B] = {name: {"median_ms": round(float(np.median(ts)) * 1e3, 3),
-                         "p99_ms": round(float(np.percentile(ts, 99)) * 1e3, 3),
-                         "frames_per_s": round(B / float(np.median(ts))),
-                         "cpu_median_ms": round(float(np.median(cpu[name])) * 1e3, 3)} for name, ts in times.items()}
+        out[B] = {
+            name: {
+                "median_ms": round(float(np.median(ts)) * 1e3, 3),
+                "p99_ms": round(float(np.percentile(ts, 99)) * 1e3, 3),
+                "frames_per_s": round(B / float(np.median(ts))),
+                "cpu_median_ms": round(float(np.median(cpu[name])) * 1e3, 3),
+            }
+            for name, ts in times.items()
+        }
         median = {name: float(np.median(ts)) for name, ts in times.items()}
         out[B]["numpy_over_compiled"] = round(median["numpy"] / median["compiled"], 2)
         out[B]["compiled_over_floor"] = round(median["compiled"] / median["floor"], 2)
@@ -129,6 +158,7 @@ def _alternate(steps: dict, repeats: int, warmup: int = 20) -> tuple[dict[str, n
     call, the steps called in turn, `repeats` times each after `warmup` untimed rounds. CPU time
     leaves out the time the process waited for a core, most of the wall time on a busy machine."""
     import time
+
     for i in range(warmup):
         for step in steps.values():
             step(i)
@@ -143,8 +173,10 @@ def _alternate(steps: dict, repeats: int, warmup: int = 20) -> tuple[dict[str, n
 
 def heldout(args) -> None:
     import torch
+
     from .finetune import FineTuneConfig
     from .heldout import evaluate
+
     torch.set_num_threads(1)  # as the service's fine-tune job runs
     given = {k: v for k, v in (("steps", args.steps), ("seed", args.seed)) if v is not None}
     cfg = FineTuneConfig(**given, dropout=args.dropout)
@@ -177,11 +209,14 @@ def main(argv: list[str] | None = None) -> None:
     s.add_argument("--steps", type=int, default=300, help="timed steps at batch 1 (a quarter at batch 256)")
     s.add_argument("--threads", type=int, default=1, help="BLAS/torch threads (the service runs with 1)")
     s.set_defaults(fn=bench)
-    s = sub.add_parser("heldout", help="held-out styles from a clip, instant and fine-tuned: distances to the real "
-                       "style, renders")
+    s = sub.add_parser(
+        "heldout", help="held-out styles from a clip, instant and fine-tuned: distances to the real style, renders"
+    )
     s.add_argument("--steps", type=int, help="fine-tune steps (default: FineTuneConfig's)")
     s.add_argument("--seed", type=int, help="fine-tune seed (default: FineTuneConfig's)")
-    s.add_argument("--no-dropout", dest="dropout", action="store_false", help="fine-tune with the network's dropout off")
+    s.add_argument(
+        "--no-dropout", dest="dropout", action="store_false", help="fine-tune with the network's dropout off"
+    )
     s.set_defaults(fn=heldout)
     s = sub.add_parser("train", help="train LPN-FiLM (options of train.TrainConfig as --field=value)")
     s.add_argument("--minutes", type=float, default=60.0)

@@ -73,6 +73,7 @@ def gait_of(content: str) -> float:
 def locomotion_clips(cfg: DataConfig = DataConfig()) -> list[Clip]:
     if cfg.hundred_style_dir:
         from .hundred_style import clips
+
         return clips(Path(cfg.hundred_style_dir))
     index = build_index([D1, D2])
     return select(index, dataset=D1, content=cfg.d1_contents) + select(index, dataset=D2, content=cfg.d2_contents)
@@ -91,6 +92,7 @@ def all_styles(cfg: DataConfig = DataConfig()) -> list[str]:
 
 
 # --------------------------------------------------------------------------- per clip
+
 
 @dataclass
 class ClipSamples:
@@ -112,20 +114,36 @@ def clip_samples(motion: Motion, gait: float, axes=None) -> ClipSamples:
     xz, dirs = root[:, [0, 2]], lf.direction(yaw)
     t = np.arange(0, max(F - 1 - lf.FUTURE * lf.STEP, 0))
     idx = np.clip(t[:, None] + lf.OFFSETS[None], 0, F - 1)
-    X = np.concatenate([lf.trajectory_input(xz[idx], dirs[idx], root_vel[idx], np.full(idx.shape, gait), xz[t], yaw[t]),
-                        pose[t].reshape(len(t), -1)], axis=1)
+    X = np.concatenate(
+        [
+            lf.trajectory_input(xz[idx], dirs[idx], root_vel[idx], np.full(idx.shape, gait), xz[t], yaw[t]),
+            pose[t].reshape(len(t), -1),
+        ],
+        axis=1,
+    )
     G = lp.features[idx].reshape(len(t), -1)
     t1 = t + 1
-    fidx = t1[:, None] + lf.OFFSETS[None, lf.PAST + 1:]
+    fidx = t1[:, None] + lf.OFFSETS[None, lf.PAST + 1 :]
     y1 = yaw[t1][:, None]
-    traj = np.concatenate([lf.to_local_xz(xz[fidx] - xz[t1][:, None], y1), lf.to_local_xz(dirs[fidx], y1),
-                           lf.to_local_xz(root_vel[fidx], y1)], axis=-1).reshape(len(t), -1)
+    traj = np.concatenate(
+        [
+            lf.to_local_xz(xz[fidx] - xz[t1][:, None], y1),
+            lf.to_local_xz(dirs[fidx], y1),
+            lf.to_local_xz(root_vel[fidx], y1),
+        ],
+        axis=-1,
+    ).reshape(len(t), -1)
     delta = np.concatenate([lf.to_local_xz(xz[t1] - xz[t], yaw[t]), wrap_angle(yaw[t1] - yaw[t])[:, None]], axis=1)
-    phases = lp.features[t1[:, None] + lf.OFFSETS[None, lf.PAST:]].reshape(len(t), -1)
-    Y = np.concatenate([traj, pose[t1].reshape(len(t), -1), delta, phases, lp.frequency[t1],
-                        lp.contacts[t1].astype(float)], axis=1)
-    return ClipSamples(X.astype(np.float32), G.astype(np.float32), Y.astype(np.float32),
-                       lf.style_features(pose, root_vel, yaw, motion.fps).astype(np.float32))
+    phases = lp.features[t1[:, None] + lf.OFFSETS[None, lf.PAST :]].reshape(len(t), -1)
+    Y = np.concatenate(
+        [traj, pose[t1].reshape(len(t), -1), delta, phases, lp.frequency[t1], lp.contacts[t1].astype(float)], axis=1
+    )
+    return ClipSamples(
+        X.astype(np.float32),
+        G.astype(np.float32),
+        Y.astype(np.float32),
+        lf.style_features(pose, root_vel, yaw, motion.fps).astype(np.float32),
+    )
 
 
 def clip_style_features(motion: Motion) -> np.ndarray:
@@ -137,6 +155,7 @@ def clip_style_features(motion: Motion) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- cache
+
 
 @dataclass
 class Split:
@@ -156,7 +175,9 @@ def cache_dir(cfg: DataConfig = DataConfig()) -> Path:
     return Path(get_settings().cache_dir) / "lpn" / cfg.key()
 
 
-def _build_split(clips: list[Clip], motions: list[Motion], styles: list[str], mirror_too: bool, log) -> dict[str, np.ndarray]:
+def _build_split(
+    clips: list[Clip], motions: list[Motion], styles: list[str], mirror_too: bool, log
+) -> dict[str, np.ndarray]:
     shortest = lf.FUTURE * lf.STEP + 3  # one sample needs frame t, t + 1 and 30 frames after it
     kept = [(c, m) for c, m in zip(clips, motions) if m.num_frames >= shortest]
     if len(kept) < len(clips):
@@ -187,14 +208,19 @@ def _build_split(clips: list[Clip], motions: list[Motion], styles: list[str], mi
         if i % 200 == 0:
             log(f"  {i}/{len(variants)} clips")
     arrays = {k: np.concatenate(out[k]) for k in ("X", "G", "Y", "style", "clip", "feats")}
-    arrays.update(starts=np.array(out["starts"]), lengths=np.array(out["lengths"]),
-                  clip_style=np.array(out["clip_style"]), names=np.array(out["names"]))
+    arrays.update(
+        starts=np.array(out["starts"]),
+        lengths=np.array(out["lengths"]),
+        clip_style=np.array(out["clip_style"]),
+        names=np.array(out["names"]),
+    )
     return arrays
 
 
 def _load(clips: list[Clip]) -> list[Motion]:
     if clips and clips[0].dataset != D1 and clips[0].dataset != D2:
         from .hundred_style import load_clip
+
         return [load_clip(c) for c in clips]
     return load_motions(clips)
 
@@ -206,9 +232,11 @@ def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
     clips = locomotion_clips(cfg)
     styles = all_styles(cfg)
     everything = styles + list(cfg.held_out)
-    parts = {"train": [c for c in clips if c.split == "train" and style_name(c) in styles],
-             "val": [c for c in clips if c.split == "val" and style_name(c) in styles],
-             "heldout": [c for c in clips if style_name(c) in cfg.held_out]}
+    parts = {
+        "train": [c for c in clips if c.split == "train" and style_name(c) in styles],
+        "val": [c for c in clips if c.split == "val" and style_name(c) in styles],
+        "heldout": [c for c in clips if style_name(c) in cfg.held_out],
+    }
     meta = {"config": asdict(cfg), "styles": styles, "held_out": list(cfg.held_out)}
     for split, cl in parts.items():
         log(f"{split}: {len(cl)} clips")
@@ -243,8 +271,18 @@ def _ensure(cfg: DataConfig) -> Path:
 
 def load_split(split: str, cfg: DataConfig = DataConfig()) -> Split:
     with np.load(_ensure(cfg) / f"{split}.npz") as z:
-        return Split(z["X"], z["G"], z["Y"], z["style"], z["clip"], z["feats"], z["starts"], z["lengths"],
-                     z["clip_style"], [str(n) for n in z["names"]])
+        return Split(
+            z["X"],
+            z["G"],
+            z["Y"],
+            z["style"],
+            z["clip"],
+            z["feats"],
+            z["starts"],
+            z["lengths"],
+            z["clip_style"],
+            [str(n) for n in z["names"]],
+        )
 
 
 def load_stats(cfg: DataConfig = DataConfig()) -> dict[str, np.ndarray]:

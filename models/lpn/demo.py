@@ -47,6 +47,7 @@ def drive(model, styles, seconds: float = 60.0):
     from dataclasses import replace
 
     from ..interface import FrameBatch
+
     control, segments = control_script(seconds, model.fps)
     first = model.rest_motion()
     S, T = len(styles), len(control)
@@ -55,7 +56,7 @@ def drive(model, styles, seconds: float = 60.0):
     root0, rot0 = np.repeat(first.translations[:1, 1], S, 0), np.repeat(first.rotations[:1], S, 0)
     roots, rots, cons = np.zeros((S, T, 3)), np.zeros((S, T, 22, 4)), np.zeros((S, T, 2), bool)
     for t in range(T):
-        out, state = model.step_batch(state, FrameBatch(root0, rot0, control=np.repeat(control[t:t + 1], S, 0)), w)
+        out, state = model.step_batch(state, FrameBatch(root0, rot0, control=np.repeat(control[t : t + 1], S, 0)), w)
         roots[:, t], rots[:, t], cons[:, t] = out.root, out.rotations, out.contacts
     motions = []
     for i in range(S):
@@ -69,6 +70,7 @@ def demo_metrics(motion, segments) -> dict:
     """Foot skating over the whole run, root speed (m/s, Hips on the ground plane) per segment, and
     the longest stretch (s) the root stays within 2 cm while the control asks for motion."""
     from ..eval.metrics import foot_skating
+
     hips = motion.global_positions()[:, 1][:, [0, 2]]
     speed = np.zeros(len(hips))
     speed[1:] = np.linalg.norm(np.diff(hips, axis=0), axis=-1) * motion.fps / 100.0
@@ -85,14 +87,22 @@ def demo_metrics(motion, segments) -> dict:
     return out
 
 
-def render_demo(out_dir: Path, tag: str = "demo", seconds: float = 60.0, styles=TARGETS, gif: bool = True,
-                model=None, gif_fps: float = 5.0) -> Path:
+def render_demo(
+    out_dir: Path,
+    tag: str = "demo",
+    seconds: float = 60.0,
+    styles=TARGETS,
+    gif: bool = True,
+    model=None,
+    gif_fps: float = 5.0,
+) -> Path:
     """Contact sheet PNG (+ GIF) of the scripted control in each style, metrics as JSON; returns the PNG path."""
     import json
 
     from ..eval.footprints import render_footprints
     from ..motion.render import render_contact_sheet, render_gif
     from . import load
+
     model = model or load(get_settings().weights_dir / "lpn")
     motions, _, segments = drive(model, styles, seconds)
     report = {style: demo_metrics(motion, segments) for style, motion in zip(styles, motions)}
@@ -102,6 +112,10 @@ def render_demo(out_dir: Path, tag: str = "demo", seconds: float = 60.0, styles=
     png = render_contact_sheet(motions, out_dir / f"lpn_{tag}.png", frames=frames, titles=list(styles))
     render_footprints(motions, out_dir / f"lpn_{tag}_footprints.png", titles=list(styles))
     if gif:
-        render_gif(motions, out_dir / f"lpn_{tag}.gif", seconds=seconds, fps=gif_fps, titles=list(styles), panel_size=2.2)
-    (out_dir / f"lpn_{tag}.json").write_text(json.dumps({"segments": segments, "metrics": report}, indent=1, default=str))
+        render_gif(
+            motions, out_dir / f"lpn_{tag}.gif", seconds=seconds, fps=gif_fps, titles=list(styles), panel_size=2.2
+        )
+    (out_dir / f"lpn_{tag}.json").write_text(
+        json.dumps({"segments": segments, "metrics": report}, indent=1, default=str)
+    )
     return png

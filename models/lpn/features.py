@@ -93,15 +93,23 @@ def direction(yaw: np.ndarray) -> np.ndarray:
     return np.stack([np.sin(yaw), np.cos(yaw)], axis=-1)
 
 
-def pose_features(positions: np.ndarray, velocities: np.ndarray, global_rot: np.ndarray,
-                  root: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+def pose_features(
+    positions: np.ndarray, velocities: np.ndarray, global_rot: np.ndarray, root: np.ndarray, yaw: np.ndarray
+) -> np.ndarray:
     """(..., NB, 12) pose features of the body joints in the character frame given world joint
     positions/velocities (..., 22, 3), world rotations (..., 22, 4), the ground root (..., 3) and yaw (...).
     The rotation is encoded by its forward (local +Z) and up (local +Y) axes: continuous, unlike quaternions."""
     y = yaw[..., None]
     mats = quat_to_matrix(global_rot[..., BODY, :])
-    return np.concatenate([to_local(positions[..., BODY, :] - root[..., None, :], y), to_local(velocities[..., BODY, :], y),
-                           to_local(mats[..., :, 2], y), to_local(mats[..., :, 1], y)], axis=-1)
+    return np.concatenate(
+        [
+            to_local(positions[..., BODY, :] - root[..., None, :], y),
+            to_local(velocities[..., BODY, :], y),
+            to_local(mats[..., :, 2], y),
+            to_local(mats[..., :, 1], y),
+        ],
+        axis=-1,
+    )
 
 
 def rotations_from_axes(forward: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -114,7 +122,9 @@ def rotations_from_axes(forward: np.ndarray, up: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=-1)
 
 
-def clip_frames(global_rot: np.ndarray, positions: np.ndarray, skeleton: Skeleton, fps: float = FPS) -> dict[str, np.ndarray]:
+def clip_frames(
+    global_rot: np.ndarray, positions: np.ndarray, skeleton: Skeleton, fps: float = FPS
+) -> dict[str, np.ndarray]:
     """Per-frame world quantities of a clip: ground root (F, 3), yaw (F,), joint velocities (F, 22, 3)
     and root velocity (F, 2), all by backward differences (zero at frame 0), as a stream sees them."""
     yaw = facing_yaw(positions, skeleton)
@@ -134,8 +144,9 @@ def style_features(pose: np.ndarray, root_vel: np.ndarray, yaw: np.ndarray, fps:
     return np.concatenate([pose[:, :, :6].reshape(F, -1), to_local_xz(root_vel, yaw), yaw_rate[:, None]], axis=1)
 
 
-def trajectory_input(pos: np.ndarray, dirs: np.ndarray, vel: np.ndarray, gait: np.ndarray,
-                     origin: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+def trajectory_input(
+    pos: np.ndarray, dirs: np.ndarray, vel: np.ndarray, gait: np.ndarray, origin: np.ndarray, yaw: np.ndarray
+) -> np.ndarray:
     """(..., 91) trajectory input from world samples pos/dirs/vel (..., 13, 2), gait (..., 13), relative
     to the character frame at `origin` (..., 2) with `yaw` (...)."""
     y = yaw[..., None]

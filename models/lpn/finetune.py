@@ -28,8 +28,8 @@ from __future__ import annotations
 import copy
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
@@ -80,9 +80,15 @@ class FineTuneResult:
         return self.heldout_loss_after < self.heldout_loss_before
 
     def summary(self) -> dict:
-        return {"steps": self.steps, "seconds": round(self.seconds, 2), "fit_samples": self.fit_samples,
-                "heldout_samples": self.heldout_samples, "heldout_loss_before": round(self.heldout_loss_before, 5),
-                "heldout_loss_after": round(self.heldout_loss_after, 5), "improved": self.improved}
+        return {
+            "steps": self.steps,
+            "seconds": round(self.seconds, 2),
+            "fit_samples": self.fit_samples,
+            "heldout_samples": self.heldout_samples,
+            "heldout_loss_before": round(self.heldout_loss_before, 5),
+            "heldout_loss_after": round(self.heldout_loss_after, 5),
+            "improved": self.improved,
+        }
 
 
 def min_frames(cfg: FineTuneConfig = FineTuneConfig()) -> int:
@@ -119,11 +125,12 @@ def generator_windows(feats: np.ndarray, stride: int, limit: int) -> np.ndarray:
     starts = np.arange(0, len(f) - CLIP_FRAMES + 1, stride)
     if len(starts) > limit:
         starts = starts[np.linspace(0, len(starts) - 1, limit).round().astype(int)]
-    return np.stack([f[s:s + CLIP_FRAMES] for s in starts])
+    return np.stack([f[s : s + CLIP_FRAMES] for s in starts])
 
 
-def fine_tune(net: LPN, motion: Motion, cfg: FineTuneConfig = FineTuneConfig(),
-              progress: Progress | None = None) -> FineTuneResult:
+def fine_tune(
+    net: LPN, motion: Motion, cfg: FineTuneConfig = FineTuneConfig(), progress: Progress | None = None
+) -> FineTuneResult:
     """Fine-tune a copy of `net`'s FiLM generator on `motion` (model skeleton, model fps); `net` is
     not changed. Deterministic for a given seed and torch thread count (dropout draws from torch's
     global generator, seeded here and restored afterwards)."""
@@ -154,8 +161,9 @@ def _fine_tune(net: LPN, motion: Motion, cfg: FineTuneConfig, progress: Progress
     G = model.normalise_g(torch.from_numpy(samples.G))
     Y = model.normalise_y(torch.from_numpy(samples.Y))
     feats = torch.from_numpy(samples.style_feats[:fit_frames])
-    all_windows = torch.from_numpy(generator_windows(samples.style_feats[:fit_frames], cfg.window_stride,
-                                                     cfg.max_windows))
+    all_windows = torch.from_numpy(
+        generator_windows(samples.style_feats[:fit_frames], cfg.window_stride, cfg.max_windows)
+    )
 
     def film_of(windows: torch.Tensor) -> torch.Tensor:
         return model.style_film(windows).mean(0, keepdim=True)
@@ -173,10 +181,11 @@ def _fine_tune(net: LPN, motion: Motion, cfg: FineTuneConfig, progress: Progress
     model.drop.train(cfg.dropout)
     for step in range(cfg.steps):
         starts = rng.integers(0, len(tiled) - CLIP_FRAMES + 1, cfg.windows)
-        windows = torch.stack([tiled[s:s + CLIP_FRAMES] for s in starts])
+        windows = torch.stack([tiled[s : s + CLIP_FRAMES] for s in starts])
         idx = torch.from_numpy(rng.choice(fit, min(cfg.batch, n_fit), replace=False))
-        loss, _, _ = training_loss(model, model(X[idx], G[idx], film_of(windows)), Y[idx], parents, lengths_t,
-                                   cfg.w_bone)
+        loss, _, _ = training_loss(
+            model, model(X[idx], G[idx], film_of(windows)), Y[idx], parents, lengths_t, cfg.w_bone
+        )
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -184,5 +193,13 @@ def _fine_tune(net: LPN, motion: Motion, cfg: FineTuneConfig, progress: Progress
             progress((step + 1) / cfg.steps, loss.item())
     model.drop.eval()
     after, film_after = heldout_loss()
-    return FineTuneResult(film_after.numpy().copy(), film_before.numpy().copy(), before, after, n_fit, n_held,
-                          cfg.steps, time.perf_counter() - t0)
+    return FineTuneResult(
+        film_after.numpy().copy(),
+        film_before.numpy().copy(),
+        before,
+        after,
+        n_fit,
+        n_held,
+        cfg.steps,
+        time.perf_counter() - t0,
+    )

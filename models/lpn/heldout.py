@@ -34,8 +34,9 @@ def motion_stats(motion, S_std: np.ndarray, skip: int = 30) -> np.ndarray:
     return np.concatenate([f.mean(0), f.std(0)])
 
 
-def evaluate(model, out_dir: Path | None = None, frames: int = 240,
-             fine_tune_config: FineTuneConfig = FineTuneConfig()) -> dict:
+def evaluate(
+    model, out_dir: Path | None = None, frames: int = 240, fine_tune_config: FineTuneConfig = FineTuneConfig()
+) -> dict:
     index = build_index([D1])
     S_std = model.p["S_std"]
     source_clip = select(index, style="normal", content="walk")[0]
@@ -48,7 +49,7 @@ def evaluate(model, out_dir: Path | None = None, frames: int = 240,
         real = [load_motion(c) for c in clips]
         reference = np.mean([motion_stats(m, S_std) for m in real], axis=0)
 
-        def distance(motion) -> float:
+        def distance(motion, reference: np.ndarray = reference) -> float:
             return round(float(np.linalg.norm(motion_stats(motion, S_std) - reference) / np.sqrt(reference.size)), 3)
 
         tuned_name = f"{name}-fine-tuned"
@@ -62,13 +63,23 @@ def evaluate(model, out_dir: Path | None = None, frames: int = 240,
             model.remove_style(name)
             model.remove_style(tuned_name)
         neutral, _ = model.run(source, model.weight_vector({"normal": 1.0}), frames=frames)
-        results[name] = {"clip": clips[0].name, "distance_new_style": distance(styled),
-                         "distance_fine_tuned": distance(fine_tuned), "distance_normal": distance(neutral),
-                         "distance_real_normal_walk": distance(source), "fine_tune": tuned.summary()}
+        results[name] = {
+            "clip": clips[0].name,
+            "distance_new_style": distance(styled),
+            "distance_fine_tuned": distance(fine_tuned),
+            "distance_normal": distance(neutral),
+            "distance_real_normal_walk": distance(source),
+            "fine_tune": tuned.summary(),
+        }
         renders.append((name, real[0], styled, fine_tuned, neutral))
     if out_dir is not None:
         from ..motion.render import render_contact_sheet
+
         for name, *motions in renders:
-            render_contact_sheet(motions, Path(out_dir) / f"lpn_heldout_{name}.png", frames=6,
-                                 titles=[f"real {name}", f"{name} from clip", f"{name} fine-tuned", "normal"])
+            render_contact_sheet(
+                motions,
+                Path(out_dir) / f"lpn_heldout_{name}.png",
+                frames=6,
+                titles=[f"real {name}", f"{name} from clip", f"{name} fine-tuned", "normal"],
+            )
     return results

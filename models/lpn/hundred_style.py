@@ -23,8 +23,18 @@ from ..motion.skeleton import Motion, load
 
 DATASET = "100style"
 # gait code -> content name (running contents count as gait 1 in `dataset.gait_of`)
-GAITS = {"FW": "walk", "BW": "walk-back", "SW": "walk-side", "FR": "run", "BR": "run-back", "SR": "run-side",
-         "ID": "idle", "TR1": "transition-1", "TR2": "transition-2", "TR3": "transition-3"}
+GAITS = {
+    "FW": "walk",
+    "BW": "walk-back",
+    "SW": "walk-side",
+    "FR": "run",
+    "BR": "run-back",
+    "SR": "run-side",
+    "ID": "idle",
+    "TR1": "transition-1",
+    "TR2": "transition-2",
+    "TR3": "transition-3",
+}
 LOCOMOTION = ("FW", "BW", "SW", "FR", "BR", "SR")
 CUTS_FILE = "Frame_Cuts.csv"
 
@@ -61,7 +71,9 @@ def read_frame_cuts(root: Path) -> dict[tuple[str, str], tuple[int, int]]:
                 try:
                     start, stop = int(float(a)), int(float(b))
                 except ValueError:
-                    raise DataError(f"{path}: style {row['STYLE_NAME']}, {gait}: bad frame range {a!r}..{b!r}") from None
+                    raise DataError(
+                        f"{path}: style {row['STYLE_NAME']}, {gait}: bad frame range {a!r}..{b!r}"
+                    ) from None
                 if stop < start:
                     raise DataError(f"{path}: style {row['STYLE_NAME']}, {gait}: stop {stop} before start {start}")
                 out[(row["STYLE_NAME"].strip(), gait)] = (start, stop)
@@ -114,6 +126,18 @@ def clips(root: Path, gaits: tuple[str, ...] = LOCOMOTION) -> list[Clip]:
     out = []
     for t in scan(root, gaits):
         style = "normal" if t.style.lower() == "neutral" else t.style.lower()
-        out.append(Clip(dataset=DATASET, name=t.name, path=t.path, style=style, content=GAITS[t.gait],
-                        take=t.gait, fps=30.0, skeleton=DATASET, frames=t.stop - t.start + 1, split=split_of(t.name)))
+        out.append(
+            Clip(
+                dataset=DATASET,
+                name=t.name,
+                path=t.path,
+                style=style,
+                content=GAITS[t.gait],
+                take=t.gait,
+                fps=30.0,
+                skeleton=DATASET,
+                frames=t.stop - t.start + 1,
+                split=split_of(t.name),
+            )
+        )
     return out

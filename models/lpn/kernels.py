@@ -46,11 +46,40 @@ POSE_DIM = 21 * 12  # body joints x (position, velocity, forward axis, up axis)
 # output layout (features.py): future trajectory, pose, root delta, phases, frequencies, contacts
 Y_TRAJ, Y_POSE, Y_DELTA, Y_PHASE, Y_FREQ, Y_CONTACT = 0, 36, 288, 291, 347, 351
 
-_LAYOUT = (lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES, lf.TRAJ_CH, lf.TRAJ_OUT_CH, lf.NUM_BONES, lf.NB * lf.POSE_CH,
-           lf.TRAJ_OUT.start, lf.POSE_OUT.start, lf.DELTA_OUT.start, lf.PHASE_OUT.start, lf.FREQ_OUT.start,
-           lf.CONTACT_OUT.start, lf.HIPS)
-if _LAYOUT != (STEP, PAST, FUTURE, SAMPLES, TRAJ_CH, TRAJ_OUT_CH, NUM_BONES, POSE_DIM,
-               Y_TRAJ, Y_POSE, Y_DELTA, Y_PHASE, Y_FREQ, Y_CONTACT, HIPS):
+_LAYOUT = (
+    lf.STEP,
+    lf.PAST,
+    lf.FUTURE,
+    lf.SAMPLES,
+    lf.TRAJ_CH,
+    lf.TRAJ_OUT_CH,
+    lf.NUM_BONES,
+    lf.NB * lf.POSE_CH,
+    lf.TRAJ_OUT.start,
+    lf.POSE_OUT.start,
+    lf.DELTA_OUT.start,
+    lf.PHASE_OUT.start,
+    lf.FREQ_OUT.start,
+    lf.CONTACT_OUT.start,
+    lf.HIPS,
+)
+if _LAYOUT != (
+    STEP,
+    PAST,
+    FUTURE,
+    SAMPLES,
+    TRAJ_CH,
+    TRAJ_OUT_CH,
+    NUM_BONES,
+    POSE_DIM,
+    Y_TRAJ,
+    Y_POSE,
+    Y_DELTA,
+    Y_PHASE,
+    Y_FREQ,
+    Y_CONTACT,
+    HIPS,
+):
     raise ImportError("models/lpn/features.py changed its layout: update the constants of models/lpn/kernels.py")
 
 # --------------------------------------------------------------------------- small maths on scalars and tuples
@@ -61,10 +90,12 @@ def qmul(a, b):
     """Hamilton product a * b (apply b, then a)."""
     ax, ay, az, aw = a
     bx, by, bz, bw = b
-    return (aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz)
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
 
 
 @njit(cache=True, error_model="numpy")
@@ -168,8 +199,9 @@ def facing_yaw(gpos, facing):
 
 
 @njit(cache=True, error_model="numpy")
-def control_rows(control, given, root, rotations, frame, in_pos, in_vel, parents, offsets, facing, fps, smooth,
-                 run_speed):
+def control_rows(
+    control, given, root, rotations, frame, in_pos, in_vel, parents, offsets, facing, fps, smooth, run_speed
+):
     """(B, 4) control (forward, side in cm/s, yaw, gait) of B sessions: the given rows (m/s in
     `control`) as they are; the others derived from the input frames -- the input Hips velocity
     (exponentially smoothed by the factor `smooth` per frame) in the input's facing frame, its
@@ -187,7 +219,12 @@ def control_rows(control, given, root, rotations, frame, in_pos, in_vel, parents
         in_vel[b, 1] += smooth * (vz - in_vel[b, 1])
         in_pos[b, 0], in_pos[b, 1] = x, z
         if given[b]:
-            out[b, 0], out[b, 1], out[b, 2], out[b, 3] = control[b, 0] * 100.0, control[b, 1] * 100.0, control[b, 2], control[b, 3]
+            out[b, 0], out[b, 1], out[b, 2], out[b, 3] = (
+                control[b, 0] * 100.0,
+                control[b, 1] * 100.0,
+                control[b, 2],
+                control[b, 3],
+            )
             continue
         world_pose(root[b], rotations[b], parents, offsets, grot, gpos)
         yaw = facing_yaw(gpos, facing)
@@ -198,8 +235,24 @@ def control_rows(control, given, root, rotations, frame, in_pos, in_vel, parents
 
 
 @njit(cache=True, error_model="numpy")
-def network_inputs(control, yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel,
-                   fut_phase, pose, fps, bias, x, g):
+def network_inputs(
+    control,
+    yaw,
+    hist_pos,
+    hist_dir,
+    hist_vel,
+    hist_gait,
+    hist_phase,
+    fut_pos,
+    fut_dir,
+    fut_vel,
+    fut_phase,
+    pose,
+    fps,
+    bias,
+    x,
+    g,
+):
     """The network's input x (B, 343) and gating input g (B, 104) of B sessions (layout in
     features.py). First the future trajectory (fut_pos, fut_dir, fut_vel, world, updated in place)
     is blended toward the control (forward, side, yaw, gait): sample k of 6 by
@@ -347,8 +400,28 @@ def output_layer(hw, alpha, bias, y_mean, y_std):
 
 
 @njit(cache=True, error_model="numpy")
-def advance(y, control, yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel,
-            fut_phase, pose, parents, fps, stop_speed, root_hold, phase_damp, phase_blend, contact_threshold):
+def advance(
+    y,
+    control,
+    yaw,
+    hist_pos,
+    hist_dir,
+    hist_vel,
+    hist_gait,
+    hist_phase,
+    fut_pos,
+    fut_dir,
+    fut_vel,
+    fut_phase,
+    pose,
+    parents,
+    fps,
+    stop_speed,
+    root_hold,
+    phase_damp,
+    phase_blend,
+    contact_threshold,
+):
     """Apply the network output y (B, 353) to B sessions and build their output frame.
 
     State, in place: the root moves by the predicted displacement (in the current character
@@ -383,10 +456,17 @@ def advance(y, control, yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase
         # history: shift by one row, the new frame last
         for r in range(H - 1):
             for i in range(2):
-                hist_pos[b, r, i], hist_dir[b, r, i], hist_vel[b, r, i] = hist_pos[b, r + 1, i], hist_dir[b, r + 1, i], hist_vel[b, r + 1, i]
+                hist_pos[b, r, i], hist_dir[b, r, i], hist_vel[b, r, i] = (
+                    hist_pos[b, r + 1, i],
+                    hist_dir[b, r + 1, i],
+                    hist_vel[b, r + 1, i],
+                )
             hist_gait[b, r] = hist_gait[b, r + 1]
             for bone in range(NUM_BONES):
-                hist_phase[b, r, bone, 0], hist_phase[b, r, bone, 1] = hist_phase[b, r + 1, bone, 0], hist_phase[b, r + 1, bone, 1]
+                hist_phase[b, r, bone, 0], hist_phase[b, r, bone, 1] = (
+                    hist_phase[b, r + 1, bone, 0],
+                    hist_phase[b, r + 1, bone, 1],
+                )
         # phases: advanced by the predicted frequency, blended with the predicted, at its amplitude
         for bone in range(NUM_BONES):
             cur_s, cur_c = hist_phase[b, H - 2, bone, 0], hist_phase[b, H - 2, bone, 1]

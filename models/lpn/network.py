@@ -81,16 +81,26 @@ class LPN(nn.Module):
         super().__init__()
         self.cfg = cfg
         H, E = cfg.hidden, cfg.experts
-        self.gating = nn.Sequential(nn.Linear(cfg.g_dim, cfg.gating_hidden), nn.ELU(),
-                                    nn.Linear(cfg.gating_hidden, cfg.gating_hidden), nn.ELU(),
-                                    nn.Linear(cfg.gating_hidden, E))
+        self.gating = nn.Sequential(
+            nn.Linear(cfg.g_dim, cfg.gating_hidden),
+            nn.ELU(),
+            nn.Linear(cfg.gating_hidden, cfg.gating_hidden),
+            nn.ELU(),
+            nn.Linear(cfg.gating_hidden, E),
+        )
         self.l1 = ExpertLinear(E, cfg.x_dim, H)
         self.l2 = ExpertLinear(E, H, H)
         self.l3 = ExpertLinear(E, H, cfg.y_dim)
         self.film = FiLMGenerator(cfg)
         self.drop = nn.Dropout(cfg.dropout)
-        for name, dim in (("X_mean", cfg.x_dim), ("X_std", cfg.x_dim), ("Y_mean", cfg.y_dim), ("Y_std", cfg.y_dim),
-                          ("S_mean", cfg.style_dim), ("S_std", cfg.style_dim)):
+        for name, dim in (
+            ("X_mean", cfg.x_dim),
+            ("X_std", cfg.x_dim),
+            ("Y_mean", cfg.y_dim),
+            ("Y_std", cfg.y_dim),
+            ("S_mean", cfg.style_dim),
+            ("S_std", cfg.style_dim),
+        ):
             init = torch.zeros(dim) if name.endswith("mean") else torch.ones(dim)
             self.register_buffer(name, init)
         self.register_buffer("G_scale", torch.ones(()))

@@ -46,11 +46,15 @@ FOOT_SIDE = {"Foot_L": 0, "Foot_R": 1}  # column of `foot_contacts`
 NORMALISE_WINDOW_S = 1.0
 FIT_WINDOW_S = 1.5  # ~1.3 walk cycles: a 1 s window (< one cycle) lets f wander 0.4-1.3 Hz within a step
 CUTOFF_HZ = 3.0
-FREQ_RANGE_HZ = (0.4, 4.0)  # slowest elderly steps ~0.6 Hz per foot, dash ~2 Hz; upper bound = the paper's max frequency
+FREQ_RANGE_HZ = (
+    0.4,
+    4.0,
+)  # slowest elderly steps ~0.6 Hz per foot, dash ~2 Hz; upper bound = the paper's max frequency
 FREQ_STEP_HZ = 0.02
 
 
 # --------------------------------------------------------------------------- sources
+
 
 def contact_source(contacts: np.ndarray) -> np.ndarray:
     """Contact-based source: the (F,) or (F, k) boolean contacts as 0/1 floats (1 = planted).
@@ -74,8 +78,9 @@ def principal_axis(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return centre, axis
 
 
-def contact_free_source(positions: np.ndarray, centre: np.ndarray | None = None,
-                        axis: np.ndarray | None = None) -> np.ndarray:
+def contact_free_source(
+    positions: np.ndarray, centre: np.ndarray | None = None, axis: np.ndarray | None = None
+) -> np.ndarray:
     """Contact-free source of one bone: its facing-frame positions (F, 3) centred and projected on
     the first principal component. Without `centre`/`axis` they are computed from this clip."""
     if centre is None or axis is None:
@@ -87,8 +92,10 @@ def contact_free_source(positions: np.ndarray, centre: np.ndarray | None = None,
 
 # --------------------------------------------------------------------------- conditioning
 
-def sliding_normalise(x: np.ndarray, fps: float, window_s: float = NORMALISE_WINDOW_S,
-                      floor: float = 0.05) -> np.ndarray:
+
+def sliding_normalise(
+    x: np.ndarray, fps: float, window_s: float = NORMALISE_WINDOW_S, floor: float = 0.05
+) -> np.ndarray:
     """Normalise along axis 0 to zero mean and unit std in a centred window of `window_s` seconds.
 
     Removes slow drift (a hand creeping forward while turning) and makes the fit independent of the
@@ -97,14 +104,15 @@ def sliding_normalise(x: np.ndarray, fps: float, window_s: float = NORMALISE_WIN
     x = np.asarray(x, dtype=float)
     size = max(int(round(window_s * fps)) | 1, 3)
     mean = uniform_filter1d(x, size, axis=0, mode="nearest")
-    var = uniform_filter1d(x * x, size, axis=0, mode="nearest") - mean ** 2
+    var = uniform_filter1d(x * x, size, axis=0, mode="nearest") - mean**2
     std = np.sqrt(np.maximum(var, 0.0))
     std = np.maximum(std, floor * x.std(axis=0) + 1e-9)
     return (x - mean) / std
 
 
-def lowpass(x: np.ndarray, fps: float, cutoff_hz: float = CUTOFF_HZ, order: int = 2,
-            causal: bool = False) -> np.ndarray:
+def lowpass(
+    x: np.ndarray, fps: float, cutoff_hz: float = CUTOFF_HZ, order: int = 2, causal: bool = False
+) -> np.ndarray:
     """Butterworth low-pass along axis 0. Offline (default) it runs forward-backward (`filtfilt`,
     zero phase, effective order 2*order): a one-way filter would shift every phase late by its group
     delay. `causal=True` is the streaming variant (`lfilter`) for reference."""
@@ -117,6 +125,7 @@ def lowpass(x: np.ndarray, fps: float, cutoff_hz: float = CUTOFF_HZ, order: int 
 
 
 # --------------------------------------------------------------------------- sinusoid fit
+
 
 @dataclass(frozen=True)
 class SinusoidFit:
@@ -141,7 +150,7 @@ def _window_stack(x: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
     padded = np.concatenate([np.zeros(half), x, np.zeros(half)])
     idx = np.arange(F)[:, None] + np.arange(2 * half + 1)[None]
     mask = np.zeros(F + 2 * half)
-    mask[half:half + F] = 1.0
+    mask[half : half + F] = 1.0
     return padded[idx], mask[idx]
 
 
@@ -175,9 +184,14 @@ def _basis(omega: np.ndarray, tau: np.ndarray) -> np.ndarray:
     return np.stack([np.sin(wt), np.cos(wt), np.ones_like(wt)], axis=-1)
 
 
-def fit_sinusoid(x: np.ndarray, fps: float, window_s: float = FIT_WINDOW_S,
-                 freq_range: tuple[float, float] = FREQ_RANGE_HZ, freq_step: float = FREQ_STEP_HZ,
-                 ridge: float = 1e-6) -> SinusoidFit:
+def fit_sinusoid(
+    x: np.ndarray,
+    fps: float,
+    window_s: float = FIT_WINDOW_S,
+    freq_range: tuple[float, float] = FREQ_RANGE_HZ,
+    freq_step: float = FREQ_STEP_HZ,
+    ridge: float = 1e-6,
+) -> SinusoidFit:
     """Fit a*sin(2pi f t - s) + b on the centred window of every frame of a 1-D signal (F,).
 
     For a fixed f the model is linear in (a cos s, -a sin s, b), so each (frame, f) is a 3x3
@@ -202,9 +216,13 @@ def fit_sinusoid(x: np.ndarray, fps: float, window_s: float = FIT_WINDOW_S,
     coef, rss_f = _solve(_basis(2 * np.pi * f, tau), y, mask, ridge)  # (F, 3)
     alpha, beta, b = coef[:, 0], coef[:, 1], coef[:, 2]
     # alpha sin(w tau) + beta cos(w tau) = a sin(w tau + theta), a cos theta = alpha, a sin theta = beta
-    return SinusoidFit(amplitude=np.hypot(alpha, beta), frequency=f,
-                       phase=np.mod(np.arctan2(beta, alpha), 2 * np.pi), offset=b,
-                       residual=np.sqrt(rss_f / mask.sum(axis=1)))
+    return SinusoidFit(
+        amplitude=np.hypot(alpha, beta),
+        frequency=f,
+        phase=np.mod(np.arctan2(beta, alpha), 2 * np.pi),
+        offset=b,
+        residual=np.sqrt(rss_f / mask.sum(axis=1)),
+    )
 
 
 def phase_features(phase: np.ndarray, amplitude: np.ndarray) -> np.ndarray:
@@ -214,6 +232,7 @@ def phase_features(phase: np.ndarray, amplitude: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- per clip
+
 
 @dataclass(frozen=True)
 class LocalPhases:
@@ -253,10 +272,17 @@ def style_axes(motions: list[Motion], bones: tuple[str, ...] = BONES) -> Axes:
     return out
 
 
-def local_phases(motion: Motion, axes: Axes | None = None, bones: tuple[str, ...] = BONES,
-                 contact_bones: tuple[str, ...] = ("Foot_L", "Foot_R"), *,
-                 normalise_window_s: float = NORMALISE_WINDOW_S, fit_window_s: float = FIT_WINDOW_S,
-                 cutoff_hz: float = CUTOFF_HZ, freq_range: tuple[float, float] = FREQ_RANGE_HZ) -> LocalPhases:
+def local_phases(
+    motion: Motion,
+    axes: Axes | None = None,
+    bones: tuple[str, ...] = BONES,
+    contact_bones: tuple[str, ...] = ("Foot_L", "Foot_R"),
+    *,
+    normalise_window_s: float = NORMALISE_WINDOW_S,
+    fit_window_s: float = FIT_WINDOW_S,
+    cutoff_hz: float = CUTOFF_HZ,
+    freq_range: tuple[float, float] = FREQ_RANGE_HZ,
+) -> LocalPhases:
     """Local phases of `bones` for one clip.
 
     Bones in `contact_bones` use the contact source (Foot_L/Foot_R columns of the contacts), the
@@ -285,13 +311,23 @@ def local_phases(motion: Motion, axes: Axes | None = None, bones: tuple[str, ...
     phase = np.stack([f.phase for f in fits], axis=1)
     amplitude = fit_amp * speed
     return LocalPhases(
-        bones=tuple(bones), fps=fps, source=source, signal=signal, fit_amplitude=fit_amp,
+        bones=tuple(bones),
+        fps=fps,
+        source=source,
+        signal=signal,
+        fit_amplitude=fit_amp,
         offset=np.stack([f.offset for f in fits], axis=1),
-        frequency=np.stack([f.frequency for f in fits], axis=1), phase=phase, speed=speed,
-        amplitude=amplitude, features=phase_features(phase, amplitude), contacts=feats.contacts)
+        frequency=np.stack([f.frequency for f in fits], axis=1),
+        phase=phase,
+        speed=speed,
+        amplitude=amplitude,
+        features=phase_features(phase, amplitude),
+        contacts=feats.contacts,
+    )
 
 
 # --------------------------------------------------------------------------- checks
+
 
 def touchdowns(contact: np.ndarray) -> np.ndarray:
     """Frame indices where a (F,) contact signal switches from swing to planted."""

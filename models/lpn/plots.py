@@ -12,24 +12,39 @@ from .phases import local_phases, style_axes
 
 # (dataset, style): three dataset-2 walks of contrasting rhythm and one dataset-1 style
 DEFAULT_STYLES: tuple[tuple[str, str], ...] = (
-    ("bandai-namco-2", "normal"), ("bandai-namco-2", "elderly"), ("bandai-namco-2", "exhausted"),
-    ("bandai-namco-1", "chimpira"))
+    ("bandai-namco-2", "normal"),
+    ("bandai-namco-2", "elderly"),
+    ("bandai-namco-2", "exhausted"),
+    ("bandai-namco-1", "chimpira"),
+)
 
 
-def phases_figure(path: Path, styles: tuple[tuple[str, str], ...] = DEFAULT_STYLES, content: str = "walk",
-                  bones: tuple[str, str] = ("Foot_L", "Hand_L"), seconds: float = 4.0, start_s: float = 1.0,
-                  split: str = "train") -> Path:
+def phases_figure(
+    path: Path,
+    styles: tuple[tuple[str, str], ...] = DEFAULT_STYLES,
+    content: str = "walk",
+    bones: tuple[str, str] = ("Foot_L", "Hand_L"),
+    seconds: float = 4.0,
+    start_s: float = 1.0,
+    split: str = "train",
+) -> Path:
     """Write the figure to `path`; hands are centred per style and gait (all `split` clips of the
     style and content), the longest clip of each style is shown."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from models.data import build_index, load_motion, select
 
     index = build_index(sorted({d for d, _ in styles}))
-    fig, axs = plt.subplots(2 * len(styles), len(bones), figsize=(7 * len(bones), 2.6 * 2 * len(styles)),
-                            gridspec_kw={"height_ratios": [2, 1] * len(styles)}, squeeze=False)
+    fig, axs = plt.subplots(
+        2 * len(styles),
+        len(bones),
+        figsize=(7 * len(bones), 2.6 * 2 * len(styles)),
+        gridspec_kw={"height_ratios": [2, 1] * len(styles)},
+        squeeze=False,
+    )
     for r, (dataset, style) in enumerate(styles):
         clips = select(index, dataset=dataset, style=style, content=content, split=split)
         motions = [load_motion(c) for c in clips]
@@ -49,15 +64,18 @@ def phases_figure(path: Path, styles: tuple[tuple[str, str], ...] = DEFAULT_STYL
             else:
                 src = lp.source[sl, i]
                 span = np.ptp(src) or 1.0
-                top.plot(t, 2 * (src - src.min()) / span - 1, color="0.6", lw=1,
-                         label="PC1 position (source, rescaled)")
+                top.plot(
+                    t, 2 * (src - src.min()) / span - 1, color="0.6", lw=1, label="PC1 position (source, rescaled)"
+                )
             top.plot(t, lp.signal[sl, i], "k", lw=2, label="normalised + Butterworth")
             top.plot(t, lp.fitted()[sl, i], "r--", lw=1.5, label="fit a sin(ft-s)+b at each frame")
             # a few whole-window fits (1.5 s), to show the sinusoid each frame was fitted with
             for j in range(sl.start + 22, sl.stop - 22, 30):
                 tw = np.arange(j - 22, j + 23) / fps
-                y = lp.fit_amplitude[j, i] * np.sin(lp.phase[j, i] + 2 * np.pi * lp.frequency[j, i] * (tw - j / fps)) \
+                y = (
+                    lp.fit_amplitude[j, i] * np.sin(lp.phase[j, i] + 2 * np.pi * lp.frequency[j, i] * (tw - j / fps))
                     + lp.offset[j, i]
+                )
                 top.plot(tw, y, color="tab:orange", lw=0.8, alpha=0.8)
             top.set_ylim(-2.5, 2.5)
             f_med = float(np.median(lp.frequency[sl, i]))
@@ -65,8 +83,13 @@ def phases_figure(path: Path, styles: tuple[tuple[str, str], ...] = DEFAULT_STYL
             if r == 0:
                 top.legend(fontsize=7, loc="upper right", ncol=2)
             bot.plot(t, lp.phase[sl, i] / (2 * np.pi), "tab:blue", lw=1.5, label="phase / 2pi")
-            bot.plot(t, lp.features[sl, i, 0] / max(lp.amplitude[sl, i].max(), 1e-9) * 0.5 + 0.5, color="tab:green",
-                     lw=0.8, label="A sin(phase), scaled")
+            bot.plot(
+                t,
+                lp.features[sl, i, 0] / max(lp.amplitude[sl, i].max(), 1e-9) * 0.5 + 0.5,
+                color="tab:green",
+                lw=0.8,
+                label="A sin(phase), scaled",
+            )
             bot.set_ylim(-0.05, 1.05)
             ax2 = bot.twinx()
             ax2.plot(t, lp.amplitude[sl, i], color="tab:purple", lw=1, label="amplitude A")

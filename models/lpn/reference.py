@@ -16,8 +16,18 @@ from scipy.spatial.transform import Rotation
 from ..interface import FrameBatch, State
 from ..motion.features import wrap_angle
 from . import features as lf
-from .runtime import CONTACT_THRESHOLD, CONTROL_BIAS, CONTROL_SMOOTH_S, PAST_IDX, \
-    PHASE_BLEND, RUN_SPEED, STOP_PHASE_DAMP, STOP_ROOT_HOLD, STOP_SPEED, LPNModel
+from .runtime import (
+    CONTACT_THRESHOLD,
+    CONTROL_BIAS,
+    CONTROL_SMOOTH_S,
+    PAST_IDX,
+    PHASE_BLEND,
+    RUN_SPEED,
+    STOP_PHASE_DAMP,
+    STOP_ROOT_HOLD,
+    STOP_SPEED,
+    LPNModel,
+)
 from .weights import read_weights
 
 
@@ -38,7 +48,9 @@ def _normalise(v: np.ndarray) -> np.ndarray:
 class NumpyLPNModel(LPNModel):
     """LPNModel with the numpy step (one vectorised numpy expression per formula, over the batch)."""
 
-    def _control(self, s: State, frames: FrameBatch, root: np.ndarray, rot_in: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+    def _control(
+        self, s: State, frames: FrameBatch, root: np.ndarray, rot_in: np.ndarray, fresh: np.ndarray
+    ) -> np.ndarray:
         """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others derived
         from the input frames."""
         B = root.shape[0]
@@ -78,9 +90,14 @@ class NumpyLPNModel(LPNModel):
         s["fut_dir"] = _normalise(s["fut_dir"] + beta * (target_dir - s["fut_dir"])).astype(np.float32)
         s["fut_vel"] = (s["fut_vel"] + beta * (want_vel[:, None] - s["fut_vel"])).astype(np.float32)
         gait = np.concatenate([s["hist_gait"][:, PAST_IDX], np.repeat(control[:, 3:4], lf.FUTURE, 1)], 1)
-        traj = lf.trajectory_input(np.concatenate([s["hist_pos"][:, PAST_IDX], s["fut_pos"]], 1),
-                                   np.concatenate([s["hist_dir"][:, PAST_IDX], s["fut_dir"]], 1),
-                                   np.concatenate([s["hist_vel"][:, PAST_IDX], s["fut_vel"]], 1), gait, pos, yaw)
+        traj = lf.trajectory_input(
+            np.concatenate([s["hist_pos"][:, PAST_IDX], s["fut_pos"]], 1),
+            np.concatenate([s["hist_dir"][:, PAST_IDX], s["fut_dir"]], 1),
+            np.concatenate([s["hist_vel"][:, PAST_IDX], s["fut_vel"]], 1),
+            gait,
+            pos,
+            yaw,
+        )
         x = np.concatenate([traj, s["pose"].reshape(B, -1)], 1)
         g = np.concatenate([s["hist_phase"][:, PAST_IDX], s["fut_phase"]], 1).reshape(B, -1)
         return x.astype(np.float32), g.astype(np.float32)
@@ -151,14 +168,16 @@ class NumpyLPNModel(LPNModel):
         R_yaw = np.zeros((B, 3, 3), np.float32)
         cy, sy = np.cos(new_yaw), np.sin(new_yaw)
         R_yaw[:, 0, 0], R_yaw[:, 0, 2], R_yaw[:, 1, 1], R_yaw[:, 2, 0], R_yaw[:, 2, 2] = cy, sy, 1.0, -sy, cy
-        g_world = np.concatenate([np.broadcast_to(np.eye(3, dtype=np.float32), (B, 1, 3, 3)),
-                                  R_yaw[:, None] @ g_char], 1)  # (B, 22, 3, 3), joint_Root identity
+        g_world = np.concatenate(
+            [np.broadcast_to(np.eye(3, dtype=np.float32), (B, 1, 3, 3)), R_yaw[:, None] @ g_char], 1
+        )  # (B, 22, 3, 3), joint_Root identity
         parents = np.maximum(self.parents, 0)
         local = np.swapaxes(g_world[:, parents], -1, -2) @ g_world
         local[:, 0] = np.eye(3)
         hips = pose[:, 0, :3]
-        out_root = np.stack([new_pos[:, 0], hips[:, 1], new_pos[:, 1]], -1) + \
-            lf.to_world(np.stack([hips[:, 0], 0 * hips[:, 1], hips[:, 2]], -1), new_yaw)
+        out_root = np.stack([new_pos[:, 0], hips[:, 1], new_pos[:, 1]], -1) + lf.to_world(
+            np.stack([hips[:, 0], 0 * hips[:, 1], hips[:, 2]], -1), new_yaw
+        )
         contacts = y[:, lf.CONTACT_OUT] > CONTACT_THRESHOLD
         quats = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_quat().reshape(B, -1, 4)  # C code: 10x numpy's
         return out_root.astype(np.float32), quats.astype(np.float32), contacts
@@ -166,6 +185,7 @@ class NumpyLPNModel(LPNModel):
     def _fk(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World rotations (B, 22, 4) and positions (B, 22, 3); joint_Root static at the origin."""
         from ..motion.skeleton import fk
+
         trans = np.broadcast_to(self.offsets, rotations.shape[:-1] + (3,)).copy()
         trans[:, lf.HIPS] = root
         g_rot, g_pos = fk(rotations, trans, self.parents)

@@ -41,13 +41,14 @@ from pathlib import Path
 import numpy as np
 
 from ..interface import FrameBatch, State
+from ..motion.assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR
 from ..motion.features import body_joint
+from ..motion.feet import STATE_SHAPES as FEET_STATE
+from ..motion.feet import FootPlanter
 from ..motion.rotations import quat_mul, yaw_quat
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import transfer_twist
 from . import features as lf
-from ..motion.assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR
-from ..motion.feet import STATE_SHAPES as FEET_STATE, FootPlanter
 from . import kernels
 from .styles import LPNStyles
 from .weights import read_weights
@@ -58,7 +59,9 @@ CONTROL_SMOOTH_S = 0.25  # input velocity smoothing for derived control
 RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
 CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias
 PHASE_BLEND = 0.5  # next phase = blend of (current advanced by the predicted frequency) and the predicted phase
-CONTACT_THRESHOLD = 0.35  # predicted contact (regressed 0/1) above which a foot counts as planted (0.5: skate 0.46 -> 0.44)
+CONTACT_THRESHOLD = (
+    0.35  # predicted contact (regressed 0/1) above which a foot counts as planted (0.5: skate 0.46 -> 0.44)
+)
 STOP_SPEED = 30.0  # cm/s: below this wanted speed the phases are damped (standing)
 STOP_PHASE_DAMP = 0.6  # per-frame phase factor when the wanted speed is 0
 STOP_ROOT_HOLD = 0.9  # share of the predicted root translation held back when the wanted speed is 0
@@ -111,11 +114,12 @@ class LPNModel(LPNStyles):
         """FiLM vector (4, H) of a clip: the generator on windows of it (tiled if short), averaged."""
         import torch
 
-        from .train import tile_clip
         from .dataset import clip_style_features
+        from .train import tile_clip
+
         feats = tile_clip(clip_style_features(motion), 120)
         starts = range(0, len(feats) - 120 + 1, 60)
-        windows = torch.from_numpy(np.stack([feats[s:s + 120] for s in starts]).astype(np.float32))
+        windows = torch.from_numpy(np.stack([feats[s : s + 120] for s in starts]).astype(np.float32))
         with torch.no_grad():
             return self.generator().style_film(windows).mean(0).numpy()
 
@@ -154,7 +158,7 @@ class LPNModel(LPNStyles):
                 raise KeyError(f"unknown style {name!r}")
             k = self._styles.index(name)
             self._films = np.delete(self._films, k, axis=0)
-            self._styles = self._styles[:k] + self._styles[k + 1:]
+            self._styles = self._styles[:k] + self._styles[k + 1 :]
 
     def generator(self):
         """The torch network (for the FiLM generator; built on first use)."""
@@ -162,6 +166,7 @@ class LPNModel(LPNStyles):
             import torch
 
             from .network import LPN, LPNConfig
+
             net = LPN(LPNConfig(**self.config["model"]))
             state = {k: torch.as_tensor(v) for k, v in self.p.items() if k != "style_film"}
             net.load_state_dict(state)
@@ -183,14 +188,27 @@ class LPNModel(LPNStyles):
     def init_state(self, batch: int) -> State:
         B = batch
         z = lambda *s: np.zeros((B, *s), np.float32)
-        return {"frame": np.zeros(B, np.int64), "hist_pos": z(HIST, 2), "hist_dir": z(HIST, 2), "hist_vel": z(HIST, 2),
-                "hist_gait": z(HIST), "hist_phase": z(HIST, lf.NUM_BONES, 2), "fut_pos": z(lf.FUTURE, 2),
-                "fut_dir": z(lf.FUTURE, 2), "fut_vel": z(lf.FUTURE, 2), "fut_phase": z(lf.FUTURE, lf.NUM_BONES, 2),
-                "pose": z(lf.NB, lf.POSE_CH), "yaw": z(), "in_pos": z(2), "in_vel": z(2),
-                **self.planter.init_state(B)}
+        return {
+            "frame": np.zeros(B, np.int64),
+            "hist_pos": z(HIST, 2),
+            "hist_dir": z(HIST, 2),
+            "hist_vel": z(HIST, 2),
+            "hist_gait": z(HIST),
+            "hist_phase": z(HIST, lf.NUM_BONES, 2),
+            "fut_pos": z(lf.FUTURE, 2),
+            "fut_dir": z(lf.FUTURE, 2),
+            "fut_vel": z(lf.FUTURE, 2),
+            "fut_phase": z(lf.FUTURE, lf.NUM_BONES, 2),
+            "pose": z(lf.NB, lf.POSE_CH),
+            "yaw": z(),
+            "in_pos": z(2),
+            "in_vel": z(2),
+            **self.planter.init_state(B),
+        }
 
-    def _start(self, state: State, rows: np.ndarray, root: np.ndarray, rotations: np.ndarray,
-               control: np.ndarray | None) -> None:
+    def _start(
+        self, state: State, rows: np.ndarray, root: np.ndarray, rotations: np.ndarray, control: np.ndarray | None
+    ) -> None:
         """Fresh sessions start standing in the input's first pose (as a clip's samples before its
         first frame repeat it in training). A session whose first frame carries control starts from
         the model's standing pose instead (a controller client sends no real pose: the service sends
@@ -204,7 +222,9 @@ class LPNModel(LPNStyles):
                 _, rest_pos = self._fk(pose.translations[:1, lf.HIPS], pose.rotations[:1])
                 turn = np.asarray(control, np.float32)[rows[given], 2] - self._facing(rest_pos)[0]
                 rotations[given] = pose.rotations[0]
-                rotations[given, lf.HIPS] = quat_mul(yaw_quat(turn.astype(np.float64)), np.broadcast_to(pose.rotations[0, lf.HIPS], (len(given), 4)))
+                rotations[given, lf.HIPS] = quat_mul(
+                    yaw_quat(turn.astype(np.float64)), np.broadcast_to(pose.rotations[0, lf.HIPS], (len(given), 4))
+                )
                 root[given, 1] = pose.translations[0, lf.HIPS, 1]
         grot, gpos = self._fk(root, rotations)
         yaw = self._facing(gpos)
@@ -256,9 +276,12 @@ class LPNModel(LPNStyles):
     @cached_property
     def _natural_pose(self) -> np.ndarray:
         from ..motion.assets import bandai_namco_pose
+
         return bandai_namco_pose().rotations[0].astype(np.float64)
 
-    def _control(self, s: State, frames: FrameBatch, root: np.ndarray, rot_in: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+    def _control(
+        self, s: State, frames: FrameBatch, root: np.ndarray, rot_in: np.ndarray, fresh: np.ndarray
+    ) -> np.ndarray:
         """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others derived
         from the input frames (`kernels.control_rows`, which also advances the input tracker)."""
         B = root.shape[0]
@@ -269,9 +292,21 @@ class LPNModel(LPNStyles):
             control = np.ascontiguousarray(frames.control, np.float32)
             given = control[:, 4] > 0.5
         smooth = 1.0 - np.exp(-1.0 / (self.fps * CONTROL_SMOOTH_S))
-        return kernels.control_rows(control, given, np.ascontiguousarray(root), np.ascontiguousarray(rot_in), s["frame"],
-                                    s["in_pos"], s["in_vel"], self.parents, self.offsets, self._facing_joints,
-                                    self.fps, smooth, RUN_SPEED)
+        return kernels.control_rows(
+            control,
+            given,
+            np.ascontiguousarray(root),
+            np.ascontiguousarray(rot_in),
+            s["frame"],
+            s["in_pos"],
+            s["in_vel"],
+            self.parents,
+            self.offsets,
+            self._facing_joints,
+            self.fps,
+            smooth,
+            RUN_SPEED,
+        )
 
     @cached_property
     def _facing_joints(self) -> np.ndarray:
@@ -286,13 +321,19 @@ class LPNModel(LPNStyles):
         """The kernels trust every shape (no bounds checks): anything else is a clear error here."""
         B, J = root.shape[0], len(self.parents)
         if root.shape != (B, 3) or rot_in.shape != (B, J, 4):
-            raise ValueError(f"frames must be root (B, 3) and rotations (B, {J}, 4), got {root.shape} and {rot_in.shape}")
+            raise ValueError(
+                f"frames must be root (B, 3) and rotations (B, {J}, 4), got {root.shape} and {rot_in.shape}"
+            )
         if control is not None and np.shape(control) != (B, 5):
             raise ValueError(f"control must be ({B}, 5), got {np.shape(control)}")
         for key, (shape, dtype) in self._state_layout.items():
             value = s.get(key)
-            if not (isinstance(value, np.ndarray) and value.shape[:1] == (B,) and value.shape[1:] == shape
-                    and (value.dtype is dtype or value.dtype == dtype)):
+            if not (
+                isinstance(value, np.ndarray)
+                and value.shape[:1] == (B,)
+                and value.shape[1:] == shape
+                and (value.dtype is dtype or value.dtype == dtype)
+            ):
                 got = f"{value.dtype} {value.shape}" if isinstance(value, np.ndarray) else type(value).__name__
                 raise ValueError(f"state[{key!r}] must be {dtype} {(B, *shape)}, got {got}")
 
@@ -300,8 +341,24 @@ class LPNModel(LPNStyles):
         """Blend the future trajectory toward the control, then build X and G (`kernels.network_inputs`)."""
         B = control.shape[0]
         x, g = np.empty((B, lf.X_DIM), np.float32), np.empty((B, lf.G_DIM), np.float32)
-        kernels.network_inputs(control, s["yaw"], s["hist_pos"], s["hist_dir"], s["hist_vel"], s["hist_gait"], s["hist_phase"],
-                               s["fut_pos"], s["fut_dir"], s["fut_vel"], s["fut_phase"], s["pose"], self.fps, CONTROL_BIAS, x, g)
+        kernels.network_inputs(
+            control,
+            s["yaw"],
+            s["hist_pos"],
+            s["hist_dir"],
+            s["hist_vel"],
+            s["hist_gait"],
+            s["hist_phase"],
+            s["fut_pos"],
+            s["fut_dir"],
+            s["fut_vel"],
+            s["fut_phase"],
+            s["pose"],
+            self.fps,
+            CONTROL_BIAS,
+            x,
+            g,
+        )
         return x, g
 
     def _network(self, x: np.ndarray, g: np.ndarray, film: np.ndarray) -> np.ndarray:
@@ -329,17 +386,39 @@ class LPNModel(LPNStyles):
         (current and future) are damped toward zero each frame, the amplitude the network learned
         for standing at the start of a take, so its experts for standing take over, and most of the
         predicted root translation is held back (alone, each leaves a 30-60 cm/s shuffle)."""
-        return kernels.advance(y, control, s["yaw"], s["hist_pos"], s["hist_dir"], s["hist_vel"], s["hist_gait"],
-                               s["hist_phase"], s["fut_pos"], s["fut_dir"], s["fut_vel"], s["fut_phase"], s["pose"],
-                               self.parents, self.fps, STOP_SPEED, STOP_ROOT_HOLD, STOP_PHASE_DAMP, PHASE_BLEND,
-                               CONTACT_THRESHOLD)
+        return kernels.advance(
+            y,
+            control,
+            s["yaw"],
+            s["hist_pos"],
+            s["hist_dir"],
+            s["hist_vel"],
+            s["hist_gait"],
+            s["hist_phase"],
+            s["fut_pos"],
+            s["fut_dir"],
+            s["fut_vel"],
+            s["fut_phase"],
+            s["pose"],
+            self.parents,
+            self.fps,
+            STOP_SPEED,
+            STOP_ROOT_HOLD,
+            STOP_PHASE_DAMP,
+            PHASE_BLEND,
+            CONTACT_THRESHOLD,
+        )
 
     # ------------------------------------------------------------------ kinematics
 
     def _fk(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World rotations (B, 22, 4) and positions (B, 22, 3); joint_Root static at the origin."""
-        g_rot, g_pos = kernels.forward_kinematics(np.ascontiguousarray(root, np.float32),
-                                                  np.ascontiguousarray(rotations, np.float32), self.parents, self.offsets)
+        g_rot, g_pos = kernels.forward_kinematics(
+            np.ascontiguousarray(root, np.float32),
+            np.ascontiguousarray(rotations, np.float32),
+            self.parents,
+            self.offsets,
+        )
         return g_rot.astype(np.float32), g_pos.astype(np.float32)
 
     def _facing(self, positions: np.ndarray) -> np.ndarray:
@@ -347,25 +426,29 @@ class LPNModel(LPNStyles):
         left = hl - hr + sl - sr
         return np.arctan2(-left[:, 2], left[:, 0]).astype(np.float32)  # forward = left x up = (-lz, 0, lx)
 
-    def _plant(self, s: State, root: np.ndarray, rotations: np.ndarray, predicted: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _plant(
+        self, s: State, root: np.ndarray, rotations: np.ndarray, predicted: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The frame with its feet planted by the shared planter (`models.motion.feet`), whose
         state it updates in `s`; the controller's own root path is kept, the network's predicted
         contacts are the hints. The planted legs (a toe or ankle held on the ground) are the
         output's contacts."""
-        planted_root, planted_rot, contacts, feet = self.planter({k: s[k] for k in FEET_STATE}, root, rotations,
-                                                                 hints=predicted)
+        planted_root, planted_rot, contacts, feet = self.planter(
+            {k: s[k] for k in FEET_STATE}, root, rotations, hints=predicted
+        )
         s.update(feet)
         return planted_root.astype(np.float32), planted_rot.astype(np.float32), contacts
 
     # ------------------------------------------------------------------ offline helpers
 
-    def run(self, motion: Motion | None, weights: np.ndarray, control: np.ndarray | None = None,
-            frames: int | None = None) -> tuple[Motion, np.ndarray]:
+    def run(
+        self, motion: Motion | None, weights: np.ndarray, control: np.ndarray | None = None, frames: int | None = None
+    ) -> tuple[Motion, np.ndarray]:
         """Drive one session through step_batch (batch 1): by a motion's frames (derived control), by a
         control sequence (T, 5) starting from `motion`'s first pose (or the model's rest pose), or both.
         `weights` is (S,) or per frame (T, S). Returns the output Motion and contacts (T, 2)."""
         from dataclasses import replace
+
         T = frames or (len(control) if control is not None else motion.num_frames)
         first = motion if motion is not None else self.rest_motion()
         state = self.init_state(1)
@@ -373,8 +456,8 @@ class LPNModel(LPNStyles):
         roots, rots, cons = [], [], []
         for t in range(T):
             src = min(t, first.num_frames - 1) if (motion is not None and control is None) else 0
-            c = None if control is None else np.asarray(control[t:t + 1], np.float32)
-            fb = FrameBatch(first.translations[src:src + 1, lf.HIPS], first.rotations[src:src + 1], control=c)
+            c = None if control is None else np.asarray(control[t : t + 1], np.float32)
+            fb = FrameBatch(first.translations[src : src + 1, lf.HIPS], first.rotations[src : src + 1], control=c)
             out, state = self.step_batch(state, fb, (w[t] if w.ndim == 2 else w)[None])
             roots.append(out.root[0])
             rots.append(out.rotations[0])
@@ -386,6 +469,7 @@ class LPNModel(LPNStyles):
     def rest_motion(self) -> Motion:
         """The one-frame natural standing pose (committed asset) control-driven sessions start from."""
         from ..motion.assets import bandai_namco_pose
+
         return bandai_namco_pose()
 
     def weight_vector(self, mix: dict[str, float]) -> np.ndarray:

@@ -34,6 +34,7 @@ class LPNStyles(ClipStyles[np.ndarray]):
     tuning_note = "fine-tuning the FiLM generator"
     _lock: threading.Lock
     if TYPE_CHECKING:
+
         def set_style_film(self, name: str, film: np.ndarray) -> None: ...
         def generator(self) -> LPN: ...
 
@@ -46,9 +47,12 @@ class LPNStyles(ClipStyles[np.ndarray]):
         from .finetune import min_frames  # torch training code, loaded when a style is uploaded
 
         if fine_tune and frames < min_frames():
-            raise StyleRejected("bad_length", f"the clip has {frames} frames at 30 fps; fine-tuning needs at least "
-                                f"{min_frames()} (a fifth of it is held back to check the result); upload it without "
-                                "fine_tune")
+            raise StyleRejected(
+                "bad_length",
+                f"the clip has {frames} frames at 30 fps; fine-tuning needs at least "
+                f"{min_frames()} (a fifth of it is held back to check the result); upload it without "
+                "fine_tune",
+            )
 
     def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[np.ndarray]:
         """The FiLM vector of a copy of the generator fine-tuned on `clip` for `steps` Adam steps;
@@ -63,8 +67,11 @@ class LPNStyles(ClipStyles[np.ndarray]):
         progress(0.97, "installing the fine-tuned FiLM vector" if res.improved else "keeping the clip's embedding")
         if res.improved:
             return FineTuned(res.film, res.summary(), "fine-tuned FiLM generator")
-        return FineTuned(None, res.summary(), "FiLM parameters from the clip (fine-tuning did not lower the loss on "
-                         "the clip's held-back frames)")
+        return FineTuned(
+            None,
+            res.summary(),
+            "FiLM parameters from the clip (fine-tuning did not lower the loss on the clip's held-back frames)",
+        )
 
     def install_style(self, name: str, style: np.ndarray) -> None:
         self.set_style_film(name, style)

@@ -64,6 +64,7 @@ def parse_args(argv: list[str]) -> TrainConfig:
 
 # --------------------------------------------------------------------------- sampling
 
+
 class StyleClips:
     """Random fixed-length windows of one split's clip features per style (short clips of a style are
     concatenated until long enough), for the FiLM generator."""
@@ -75,7 +76,7 @@ class StyleClips:
             self.by_style[int(k)] = np.flatnonzero(split.clip_style == k)
 
     def clip(self, c: int) -> np.ndarray:
-        return self.s.feats[self.s.starts[c]:self.s.starts[c] + self.s.lengths[c]]
+        return self.s.feats[self.s.starts[c] : self.s.starts[c] + self.s.lengths[c]]
 
     def window(self, style: int) -> np.ndarray:
         parts, n = [], 0
@@ -85,7 +86,7 @@ class StyleClips:
             n += len(part)
         seq = np.concatenate(parts)
         start = int(self.rng.integers(0, len(seq) - self.frames + 1))
-        return seq[start:start + self.frames]
+        return seq[start : start + self.frames]
 
     def all_windows(self, style: int, stride: int = 60, limit: int | None = None) -> np.ndarray:
         """Deterministic windows covering every clip of a style (short clips tiled): for per-style means.
@@ -96,7 +97,7 @@ class StyleClips:
             if len(f) < self.frames:
                 f = np.concatenate([f] * int(math.ceil(self.frames / len(f))))
             for st in range(0, len(f) - self.frames + 1, stride):
-                out.append(f[st:st + self.frames])
+                out.append(f[st : st + self.frames])
         if limit is not None and len(out) > limit:
             out = [out[i] for i in np.linspace(0, len(out) - 1, limit).round().astype(int)]
         return np.stack(out)
@@ -115,20 +116,36 @@ def style_films(net, clips: StyleClips, styles: list[int], limit: int | None = N
     out = {}
     for k in styles:
         w = torch.from_numpy(clips.all_windows(k, limit=limit))
-        out[k] = torch.cat([net.style_film(w[i:i + 64]) for i in range(0, len(w), 64)]).mean(0)
+        out[k] = torch.cat([net.style_film(w[i : i + 64]) for i in range(0, len(w), 64)]).mean(0)
     net.train()
     return out
 
 
 # --------------------------------------------------------------------------- validation
 
+
 @torch.no_grad()
-def validate(net, val, films: dict[int, torch.Tensor], heldout, held_clips: StyleClips, normal_film: torch.Tensor,
-             n: int, parents, lengths) -> dict[str, float]:
+def validate(
+    net,
+    val,
+    films: dict[int, torch.Tensor],
+    heldout,
+    held_clips: StyleClips,
+    normal_film: torch.Tensor,
+    n: int,
+    parents,
+    lengths,
+) -> dict[str, float]:
     from .network import bone_length_loss
+
     net.eval()
-    groups = {"traj": lf.TRAJ_OUT, "pose": lf.POSE_OUT, "delta": lf.DELTA_OUT, "phase": lf.PHASE_OUT,
-              "contact": lf.CONTACT_OUT}
+    groups = {
+        "traj": lf.TRAJ_OUT,
+        "pose": lf.POSE_OUT,
+        "delta": lf.DELTA_OUT,
+        "phase": lf.PHASE_OUT,
+        "contact": lf.CONTACT_OUT,
+    }
 
     def run(split, idx, film):
         x = net.normalise_x(torch.from_numpy(split.X[idx]))
@@ -164,12 +181,14 @@ def validate(net, val, films: dict[int, torch.Tensor], heldout, held_clips: Styl
     return out
 
 
-def training_loss(net, pred: torch.Tensor, target: torch.Tensor, parents: np.ndarray, lengths: torch.Tensor,
-                  w_bone: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def training_loss(
+    net, pred: torch.Tensor, target: torch.Tensor, parents: np.ndarray, lengths: torch.Tensor, w_bone: float
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The training objective (loss, mse, bone): MSE on the normalised output plus `w_bone` times the
     bone-length loss on the denormalised pose. One function, so FiLM fine-tuning (`finetune.py`)
     optimises exactly what training did."""
     from .network import bone_length_loss
+
     mse = (pred - target).pow(2).mean()
     bone = bone_length_loss(net.denormalise_y(pred), parents, lengths)
     return mse + w_bone * bone, mse, bone
@@ -188,10 +207,12 @@ def body_bones(skeleton) -> tuple[np.ndarray, np.ndarray]:
 
 # --------------------------------------------------------------------------- main
 
+
 def main(argv: list[str]) -> None:
     cfg = parse_args(argv)
     if cfg.export:
         from .weights import export_weights
+
         print(export_weights(Path(cfg.export)))
         return
     torch.set_num_threads(cfg.threads)
@@ -221,9 +242,11 @@ def main(argv: list[str]) -> None:
             raise SystemExit(f"{cfg.init_from} was trained on other styles: {ckpt['styles']}")
         net.load_state_dict(ckpt["model"])
     log(f"config {json.dumps(asdict(cfg))}")
-    log(f"data: train {len(train.X)} samples / {len(train.names)} clips, val {len(val.X)}, "
+    log(
+        f"data: train {len(train.X)} samples / {len(train.names)} clips, val {len(val.X)}, "
         f"heldout {0 if heldout is None else len(heldout.X)}; "
-        f"{len(styles)} styles; parameters {sum(p.numel() for p in net.parameters())}")
+        f"{len(styles)} styles; parameters {sum(p.numel() for p in net.parameters())}"
+    )
     train_clips = StyleClips(train, 120, rng)
     held_clips = None if heldout is None else StyleClips(heldout, 120, rng)
     by_style = {k: np.flatnonzero(train.style == k) for k in range(len(styles))}
@@ -256,10 +279,16 @@ def main(argv: list[str]) -> None:
             bar.set_postfix(mse=f"{mse.item():.4f}", bone=f"{bone.item():.5f}")
         if it % cfg.eval_every == 0:
             films = style_films(net, train_clips, list(range(len(styles))), limit=cfg.film_eval_windows)
-            v = validate(net, val, films, heldout, held_clips, films[styles.index("normal")], cfg.eval_samples,
-                         parents, lengths)
-            v.update(iter=it, minutes=round((time.time() - t0) / 60, 2), train_mse=mse.item(), train_bone=bone.item(),
-                     lr=opt.param_groups[0]["lr"])
+            v = validate(
+                net, val, films, heldout, held_clips, films[styles.index("normal")], cfg.eval_samples, parents, lengths
+            )
+            v.update(
+                iter=it,
+                minutes=round((time.time() - t0) / 60, 2),
+                train_mse=mse.item(),
+                train_bone=bone.item(),
+                lr=opt.param_groups[0]["lr"],
+            )
             history.append(v)
             log("val " + " ".join(f"{a}={b:.4g}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()))
         if it % cfg.ckpt_every == 0:
@@ -268,7 +297,9 @@ def main(argv: list[str]) -> None:
             render_progress(run_dir, out_dir, f"it{it:06d}", log)
     bar.close()
     films = style_films(net, train_clips, list(range(len(styles))), limit=cfg.film_eval_windows)
-    v = validate(net, val, films, heldout, held_clips, films[styles.index("normal")], cfg.eval_samples, parents, lengths)
+    v = validate(
+        net, val, films, heldout, held_clips, films[styles.index("normal")], cfg.eval_samples, parents, lengths
+    )
     v.update(iter=it, minutes=round((time.time() - t0) / 60, 2))
     history.append(v)
     log("final val " + " ".join(f"{a}={b:.4g}" for a, b in v.items()))
@@ -276,6 +307,7 @@ def main(argv: list[str]) -> None:
     log(f"done: {it} iterations in {(time.time() - t0) / 60:.1f} min")
     if not cfg.no_export:
         from .weights import export_weights
+
         log(f"exported to {export_weights(run_dir / 'ckpt.pt')}")
         render_progress(run_dir, out_dir, "final", log)
 
@@ -284,6 +316,7 @@ def render_progress(run_dir: Path, out_dir: Path, tag: str, log) -> None:
     """Validation render: the exported model driven by a short scripted control sequence."""
     try:
         from .demo import render_demo
+
         log(f"render {render_demo(out_dir, tag=tag, seconds=12.0, styles=('normal', 'elderly'))}")
     except Exception as exc:  # a render must never stop a training run
         log(f"render skipped: {exc!r}")
@@ -291,8 +324,19 @@ def render_progress(run_dir: Path, out_dir: Path, tag: str, log) -> None:
 
 def save(path: Path, net, mcfg, cfg, styles, it, seconds, history) -> None:
     tmp = path.with_suffix(".tmp")
-    torch.save({"model": net.state_dict(), "model_config": asdict(mcfg), "train_config": asdict(cfg), "styles": styles,
-                "iter": it, "seconds": seconds, "history": history, "argv": sys.argv}, tmp)
+    torch.save(
+        {
+            "model": net.state_dict(),
+            "model_config": asdict(mcfg),
+            "train_config": asdict(cfg),
+            "styles": styles,
+            "iter": it,
+            "seconds": seconds,
+            "history": history,
+            "argv": sys.argv,
+        },
+        tmp,
+    )
     tmp.replace(path)
 
 

@@ -42,16 +42,28 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = 
     films = style_films(net, clips, list(range(len(styles))), limit=windows)
     skeleton = bandai_namco_pose().skeleton
     arrays = {k: v.numpy().astype(np.float32 if k in NORMALISATION else np.float16) for k, v in ck["model"].items()}
-    np.savez_compressed(out_dir / WEIGHTS_FILE, **arrays,
-                        style_film=np.stack([films[k].numpy() for k in range(len(styles))]).astype(np.float32),
-                        skeleton_names=np.array(skeleton.names), skeleton_parents=skeleton.parents,
-                        skeleton_offsets=skeleton.offsets, skeleton_end_sites=skeleton.end_sites)
+    np.savez_compressed(
+        out_dir / WEIGHTS_FILE,
+        **arrays,
+        style_film=np.stack([films[k].numpy() for k in range(len(styles))]).astype(np.float32),
+        skeleton_names=np.array(skeleton.names),
+        skeleton_parents=skeleton.parents,
+        skeleton_offsets=skeleton.offsets,
+        skeleton_end_sites=skeleton.end_sites,
+    )
     hist = ck.get("history", [])
     meta = load_meta(data)
-    config = {"model": ck["model_config"], "styles": styles, "held_out": meta["held_out"], "iterations": ck["iter"],
-              "train_seconds": round(ck["seconds"], 1), "train_config": ck["train_config"],
-              "data": {k: meta[k] for k in ("train", "val", "heldout")},
-              "final_validation": hist[-1] if hist else None, "licence": LICENCE}
+    config = {
+        "model": ck["model_config"],
+        "styles": styles,
+        "held_out": meta["held_out"],
+        "iterations": ck["iter"],
+        "train_seconds": round(ck["seconds"], 1),
+        "train_config": ck["train_config"],
+        "data": {k: meta[k] for k in ("train", "val", "heldout")},
+        "final_validation": hist[-1] if hist else None,
+        "licence": LICENCE,
+    }
     (out_dir / CONFIG_FILE).write_text(json.dumps(config, indent=1))
     return out_dir
 
@@ -59,6 +71,7 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = 
 def data_config(train_config: dict):
     """The dataset configuration a run trained on (Bandai Namco, or a 100STYLE folder with nothing held out)."""
     from .dataset import DataConfig
+
     folder = train_config.get("hundred_style_dir", "")
     return DataConfig(hundred_style_dir=folder, held_out=()) if folder else DataConfig()
 
@@ -69,6 +82,10 @@ def read_weights(weights_dir: Path) -> tuple[dict[str, np.ndarray], Skeleton, di
     config = json.loads((weights_dir / CONFIG_FILE).read_text())
     with np.load(weights_dir / WEIGHTS_FILE) as z:
         arrays = {k: z[k] for k in z.files}
-    skeleton = Skeleton(tuple(str(n) for n in arrays.pop("skeleton_names")), arrays.pop("skeleton_parents").astype(int),
-                        arrays.pop("skeleton_offsets"), arrays.pop("skeleton_end_sites"))
+    skeleton = Skeleton(
+        tuple(str(n) for n in arrays.pop("skeleton_names")),
+        arrays.pop("skeleton_parents").astype(int),
+        arrays.pop("skeleton_offsets"),
+        arrays.pop("skeleton_end_sites"),
+    )
     return {k: v.astype(np.float32) for k, v in arrays.items()}, skeleton, config

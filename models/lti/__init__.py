@@ -18,5 +18,14 @@ def load(weights_dir: Path = WEIGHTS_DIR) -> LTIStyleModel:
     return LTIStyleModel(weights_dir=weights_dir)
 
 
-__all__ = ["WEIGHTS_DIR", "LTIStyleModel", "StyleTranslator", "StateSpace", "stabilize", "subspace_id",
-           "dtw", "imw", "load"]
+__all__ = [
+    "WEIGHTS_DIR",
+    "LTIStyleModel",
+    "StyleTranslator",
+    "StateSpace",
+    "stabilize",
+    "subspace_id",
+    "dtw",
+    "imw",
+    "load",
+]

@@ -1,11 +1,11 @@
 """CLI: python -m models.lti {train, translate, bench, align-plot}.
 
-  python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
-  python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
-  python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2]
-  python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
-  python -m models.lti align-plot [-o out/lti_alignment.png]
-  python -m models.lti card --train-time "..."   (benchmark + models/weights/lti/MODEL_CARD.md)
+python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
+python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
+python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2]
+python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
+python -m models.lti align-plot [-o out/lti_alignment.png]
+python -m models.lti card --train-time "..."   (benchmark + models/weights/lti/MODEL_CARD.md)
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import numpy as np
 
 def cmd_train(args) -> None:
     from .train import CONFIG, train
+
     cfg = dict(CONFIG)
     if args.align:
         cfg["align"] = args.align
@@ -28,6 +29,7 @@ def cmd_train(args) -> None:
         cfg["contents"] = args.contents
     t0 = time.time()
     from .model import WEIGHTS_DIR
+
     report = train(args.styles, cfg, Path(args.out) if args.out else WEIGHTS_DIR)
     print(f"trained {len(report)} styles in {time.time() - t0:.1f} s")
 
@@ -37,15 +39,20 @@ def cmd_translate(args) -> None:
     from models.motion.skeleton import from_bvh, to_bvh
 
     from .model import LTIStyleModel
+
     model = LTIStyleModel()
     src = bvhio.read(args.input)
     motion = from_bvh(src)
     tr = model.translators[args.style]
     tr.keep_heading = not args.model_heading
-    out, contacts = tr.translate_motion(motion, timewarp=args.timewarp, blend=not args.no_blend, footlock=not args.no_footlock)
+    out, contacts = tr.translate_motion(
+        motion, timewarp=args.timewarp, blend=not args.no_blend, footlock=not args.no_footlock
+    )
     bvhio.write(to_bvh(out, src), args.output)
-    print(f"{args.input} -> {args.output}: {motion.num_frames} -> {out.num_frames} frames, style {args.style}, "
-          f"contacts L {contacts[:, 0].mean():.0%} R {contacts[:, 1].mean():.0%}")
+    print(
+        f"{args.input} -> {args.output}: {motion.num_frames} -> {out.num_frames} frames, style {args.style}, "
+        f"contacts L {contacts[:, 0].mean():.0%} R {contacts[:, 1].mean():.0%}"
+    )
 
 
 def cmd_bench(args) -> None:
@@ -57,6 +64,7 @@ def cmd_bench(args) -> None:
     from models.stepbench import capped_threads, stepper, time_steps
 
     from .model import LTIStyleModel
+
     clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
     motion = load_motion(clip)
     for threads in args.threads:
@@ -64,18 +72,29 @@ def cmd_bench(args) -> None:
             model = LTIStyleModel(footlock=footlock)
             style = args.style or ("elderly" if "elderly" in model.styles() else model.styles()[0])
             tr = model.translators[style]
-            print(f"LTI step_batch, style {style} (state dim {tr.n}), input {clip.name}, "
-                  f"foot lock {'on (default)' if footlock else 'off'}, {threads} BLAS/torch thread(s)")
+            print(
+                f"LTI step_batch, style {style} (state dim {tr.n}), input {clip.name}, "
+                f"foot lock {'on (default)' if footlock else 'off'}, {threads} BLAS/torch thread(s)"
+            )
             M_T = np.ascontiguousarray(tr.M.T)
             for batch in (1, 256):
-                frames = [FrameBatch(np.repeat(motion.translations[k:k + 1, 1], batch, 0), np.repeat(motion.rotations[k:k + 1], batch, 0))
-                          for k in range(motion.num_frames)]
+                frames = [
+                    FrameBatch(
+                        np.repeat(motion.translations[k : k + 1, 1], batch, 0),
+                        np.repeat(motion.rotations[k : k + 1], batch, 0),
+                    )
+                    for k in range(motion.num_frames)
+                ]
                 weights = np.zeros((batch, len(model.styles())))
                 weights[:, model.styles().index(style)] = 1.0
                 zin = np.random.default_rng(0).standard_normal((batch, M_T.shape[0]))
                 with capped_threads(threads):
-                    timing = time_steps(batch, stepper(model, frames, weights, batch), partial(np.matmul, zin, M_T),
-                                        args.frames if batch == 1 else max(args.frames // 8, 100))
+                    timing = time_steps(
+                        batch,
+                        stepper(model, frames, weights, batch),
+                        partial(np.matmul, zin, M_T),
+                        args.frames if batch == 1 else max(args.frames // 8, 100),
+                    )
                 print(timing.line())
 
 
@@ -85,6 +104,7 @@ def cmd_render(args) -> None:
     from models.motion.render import render_contact_sheet, render_gif
 
     from .model import LTIStyleModel
+
     model = LTIStyleModel()
     clip = select(build_index(["bandai-namco-2"]), style="normal", content=args.content, split="val")[0]
     motion = load_motion(clip)
@@ -106,6 +126,7 @@ def cmd_card(args) -> None:
     import io
 
     from .card import write_model_card
+
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         cmd_bench(argparse.Namespace(style=None, frames=args.frames, threads=[1]))
@@ -116,12 +137,15 @@ def cmd_card(args) -> None:
 
 def cmd_align_plot(args) -> None:
     from .plots import alignment_figure
+
     path = alignment_figure(Path(args.output))
     print(f"wrote {path}")
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="python -m models.lti", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m models.lti", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     sub = p.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train")
     t.add_argument("--styles", nargs="*")
@@ -136,12 +160,16 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("--timewarp", action="store_true")
     r.add_argument("--no-blend", action="store_true")
     r.add_argument("--no-footlock", action="store_true", help="skip the IK foot lock")
-    r.add_argument("--model-heading", action="store_true", help="use the model's yaw change (may drift) instead of the input's")
+    r.add_argument(
+        "--model-heading", action="store_true", help="use the model's yaw change (may drift) instead of the input's"
+    )
     r.set_defaults(func=cmd_translate)
     b = sub.add_parser("bench")
     b.add_argument("--style")
     b.add_argument("--frames", type=int, default=2000)
-    b.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="BLAS/torch thread caps to run with (service: 1)")
+    b.add_argument(
+        "--threads", type=int, nargs="+", default=[1, 2], help="BLAS/torch thread caps to run with (service: 1)"
+    )
     b.set_defaults(func=cmd_bench)
     v = sub.add_parser("render")
     v.add_argument("--styles", nargs="*")

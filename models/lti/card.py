@@ -126,25 +126,45 @@ def write_model_card(bench: str, train_time: str, command: str, out: Path = WEIG
     for style in sorted(styles):
         r = styles[style]
         if not (WEIGHTS_DIR / f"{style}.npz").exists():
-            bn1.append(f"| {style} | {r['train_pairs']} | {r['pairs']} | " + (
-                f"{r['rmse_norm']:.3f} ({r['rmse_norm_identity']:.3f}) | {r['joint_angle_deg']:.2f} ({r['joint_angle_deg_identity']:.2f}) |"
-                if r.get("pairs") else "— | — |"))
+            bn1.append(
+                f"| {style} | {r['train_pairs']} | {r['pairs']} | "
+                + (
+                    f"{r['rmse_norm']:.3f} ({r['rmse_norm_identity']:.3f}) | {r['joint_angle_deg']:.2f} ({r['joint_angle_deg_identity']:.2f}) |"
+                    if r.get("pairs")
+                    else "— | — |"
+                )
+            )
             continue
         orders.append(f"* {style}: {r['orders']}")
         if not r.get("pairs"):
-            rows.append(f"| {style} | 0 | — | — | — | — | {r['train_pairs']} / {r['train_frames']} | {r['state_dim']} | "
-                        f"{r.get('raw_spectral_radius_max', float('nan')):.3f} → {r['spectral_radius']:.3f} | {r.get('eigenvalues_moved', '?')} |")
+            rows.append(
+                f"| {style} | 0 | — | — | — | — | {r['train_pairs']} / {r['train_frames']} | {r['state_dim']} | "
+                f"{r.get('raw_spectral_radius_max', float('nan')):.3f} → {r['spectral_radius']:.3f} | {r.get('eigenvalues_moved', '?')} |"
+            )
             continue
         rows.append(
             f"| {style} | {r['pairs']} | {r['rmse_norm']:.3f} ({r['rmse_norm_identity']:.3f}) | "
             f"{r['joint_angle_deg']:.2f} ({r['joint_angle_deg_identity']:.2f}) | "
             f"{r['root_speed_cm_s']:.1f} ({r['root_speed_cm_s_identity']:.1f}) | {r['contact_accuracy']:.1%} | "
             f"{r['train_pairs']} / {r['train_frames']} | {r['state_dim']} | "
-            f"{r.get('raw_spectral_radius_max', float('nan')):.3f} → {r['spectral_radius']:.3f} | {r.get('eigenvalues_moved', '?')} |")
+            f"{r.get('raw_spectral_radius_max', float('nan')):.3f} → {r['spectral_radius']:.3f} | {r.get('eigenvalues_moved', '?')} |"
+        )
     size = sum(p.stat().st_size for p in WEIGHTS_DIR.glob("*.npz")) / 1024
-    text = TEMPLATE.format(size_kb=size, horizon=cfg["horizon"], energy=cfg["energy"], max_root=cfg["max_order_root"],
-                           max_joint=cfg["max_order_joint"], max_radius=cfg["max_radius"], k_p=cfg["k_p"], k_c=cfg["k_c"],
-                           command=command, train_time=train_time, rows="\n".join(rows), orders="\n".join(orders), bench=bench,
-                           bn1="\n".join(bn1) or "| (none trained) | | | | |")
+    text = TEMPLATE.format(
+        size_kb=size,
+        horizon=cfg["horizon"],
+        energy=cfg["energy"],
+        max_root=cfg["max_order_root"],
+        max_joint=cfg["max_order_joint"],
+        max_radius=cfg["max_radius"],
+        k_p=cfg["k_p"],
+        k_c=cfg["k_c"],
+        command=command,
+        train_time=train_time,
+        rows="\n".join(rows),
+        orders="\n".join(orders),
+        bench=bench,
+        bn1="\n".join(bn1) or "| (none trained) | | | | |",
+    )
     out.write_text(text)
     return out

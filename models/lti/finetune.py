@@ -18,9 +18,9 @@ The service adds the result to its live model with `LTIStyleModel.add_style`.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Callable
 
 import numpy as np
 
@@ -64,6 +64,7 @@ def data_available() -> bool:
     """Whether the Bandai Namco dataset-2 archive or unpacked folder is reachable (cheap check)."""
     from models.data.archives import DATASETS
     from models.settings import get_settings
+
     s = get_settings()
     spec = DATASETS["bandai-namco-2"]
     return (s.data_dir / spec.archive).exists() or (s.data_dir / spec.bvh_dir).is_dir()
@@ -79,8 +80,11 @@ def _descriptor(feats: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndar
 def neutral_bank(ref_key: bytes) -> NeutralBank:
     """Every neutral dataset-2 training clip, featurised once per process (a few seconds)."""
     from models.data import build_index, load_motion, select
+
     ref = np.frombuffer(ref_key).reshape(rep.NUM_JOINTS, 4)
-    clips = select(build_index(["bandai-namco-2"]), dataset="bandai-namco-2", style=CONFIG["input_style"], split="train")
+    clips = select(
+        build_index(["bandai-namco-2"]), dataset="bandai-namco-2", style=CONFIG["input_style"], split="train"
+    )
     if not clips:
         raise FineTuneError("no neutral training clips found")
     motions = {c.name: load_motion(c) for c in clips}
@@ -119,8 +123,9 @@ class FineTuneResult:
     heldout: dict | None
 
 
-def fine_tune(motion, name: str, ref: np.ndarray, progress: Callable[[float, str], None] | None = None,
-              opts: dict | None = None) -> FineTuneResult:
+def fine_tune(
+    motion, name: str, ref: np.ndarray, progress: Callable[[float, str], None] | None = None, opts: dict | None = None
+) -> FineTuneResult:
     """Identify a translator for the style of `motion` (BN skeleton, 30 fps) named `name`."""
     opts = {**FINETUNE, **(opts or {})}
     report = progress or (lambda p, m: None)
@@ -136,9 +141,9 @@ def fine_tune(motion, name: str, ref: np.ndarray, progress: Callable[[float, str
     neutrals = nearest_neutral(bank, feats, opts["pairs"] + (1 if hold_part is not None else 0), train_part.num_frames)
     if not neutrals:
         raise FineTuneError("no neutral clip of comparable length to pair the upload with")
-    report(0.1, f"pairing with {', '.join(c.name for c in neutrals[:opts['pairs']])}")
+    report(0.1, f"pairing with {', '.join(c.name for c in neutrals[: opts['pairs']])}")
     data = []
-    train_neutrals = neutrals[:opts["pairs"]]
+    train_neutrals = neutrals[: opts["pairs"]]
     steps = len(train_neutrals) + (1 if hold_part is not None else 0) + 1
     for i, c in enumerate(train_neutrals):
         mi = bank.motions[c.name]
@@ -146,7 +151,11 @@ def fine_tune(motion, name: str, ref: np.ndarray, progress: Callable[[float, str
         data.append(pair_from_motions(mi, train_part, bank.match_mean, bank.match_std, ref))
         report(0.1 + 0.7 * (i + 1) / steps, f"aligned {c.name}")
     tr, _ = identify(data, name, ref)
-    tr.meta = {"fine_tuned": True, "neutral_clips": [c.name for c in train_neutrals], "frames": int(train_part.num_frames)}
+    tr.meta = {
+        "fine_tuned": True,
+        "neutral_clips": [c.name for c in train_neutrals],
+        "frames": int(train_part.num_frames),
+    }
     report(0.1 + 0.7 * (len(train_neutrals) + 1) / steps, "identified")
     heldout = None
     if hold_part is not None:
@@ -159,4 +168,6 @@ def fine_tune(motion, name: str, ref: np.ndarray, progress: Callable[[float, str
         except Exception as exc:  # noqa: BLE001 - the evaluation is informative only
             heldout = {"error": str(exc)}
     report(0.95, "done identifying")
-    return FineTuneResult(tr, time.time() - t0, [c.name for c in train_neutrals], int(sum(len(d.u) for d in data)), heldout)
+    return FineTuneResult(
+        tr, time.time() - t0, [c.name for c in train_neutrals], int(sum(len(d.u) for d in data)), heldout
+    )

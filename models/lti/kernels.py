@@ -34,10 +34,12 @@ def qmul(a, b):
     """Hamilton product a * b (apply b, then a)."""
     ax, ay, az, aw = a
     bx, by, bz, bw = b
-    return (aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz)
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
 
 
 @njit(cache=True, error_model="numpy")
@@ -179,14 +181,25 @@ def pack_styles(translators: list) -> PackedStyles:
     indptr.append(np.array([nnz]))
     f64 = lambda parts: np.ascontiguousarray(np.stack(parts), dtype=np.float64)
     return PackedStyles(
-        np.array(x_off, np.int64), np.array(row_off, np.int64), np.concatenate(indptr).astype(np.int64),
-        np.concatenate(indices).astype(np.int32), np.concatenate(data).astype(np.float64),
-        f64([tr.in_mean for tr in translators]), f64([tr.in_std for tr in translators]),
-        f64([tr.in_lo for tr in translators]), f64([tr.in_hi for tr in translators]),
-        f64([tr.out_mean for tr in translators]), f64([tr.out_std for tr in translators]),
-        f64([(tr.k_p, tr.k_c) for tr in translators]), f64([tr.ref for tr in translators]),
-        np.ascontiguousarray(np.concatenate(fp_w).T, dtype=np.float64), f64(fp_mean), f64(fp_var), f64(fp_prior),
-        np.array(has_fp, np.bool_))
+        np.array(x_off, np.int64),
+        np.array(row_off, np.int64),
+        np.concatenate(indptr).astype(np.int64),
+        np.concatenate(indices).astype(np.int32),
+        np.concatenate(data).astype(np.float64),
+        f64([tr.in_mean for tr in translators]),
+        f64([tr.in_std for tr in translators]),
+        f64([tr.in_lo for tr in translators]),
+        f64([tr.in_hi for tr in translators]),
+        f64([tr.out_mean for tr in translators]),
+        f64([tr.out_std for tr in translators]),
+        f64([(tr.k_p, tr.k_c) for tr in translators]),
+        f64([tr.ref for tr in translators]),
+        np.ascontiguousarray(np.concatenate(fp_w).T, dtype=np.float64),
+        f64(fp_mean),
+        f64(fp_var),
+        f64(fp_prior),
+        np.array(has_fp, np.bool_),
+    )
 
 
 # --------------------------------------------------------------------------- the step
@@ -200,8 +213,16 @@ def new_workspace(batch: int, packed: PackedStyles) -> tuple[np.ndarray, ...]:
     and fresh allocations that size cost more in page faults than the step's arithmetic."""
     styles = len(packed.x_off) - 1
     rows = int(np.diff(packed.x_off).max()) + FEATURE_DIM
-    return (np.empty((batch, 16)), np.empty((batch, styles, NUM_JOINTS, 4)), np.empty(batch, np.int64), np.empty(batch),
-            np.empty((rows, batch)), np.empty((rows, batch)), np.empty((FEATURE_DIM, batch)), np.empty(FEATURE_DIM))
+    return (
+        np.empty((batch, 16)),
+        np.empty((batch, styles, NUM_JOINTS, 4)),
+        np.empty(batch, np.int64),
+        np.empty(batch),
+        np.empty((rows, batch)),
+        np.empty((rows, batch)),
+        np.empty((FEATURE_DIM, batch)),
+        np.empty(FEATURE_DIM),
+    )
 
 
 @njit(cache=True, error_model="numpy")
@@ -221,8 +242,26 @@ def _style_inputs(s, root_y, rotations, yaw_tilt, delta, x_in, P, blend, zin, fe
     """One session's input to style s's LTI system, into column `col` of zin (the style's state,
     then the normalised features; representation.pose_features / sequence_features) and of
     feats (the raw features). Returns the erf generalisation blend weight."""
-    (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
-     fp_w, fp_mean, fp_var, fp_prior, has_fp) = P
+    (
+        x_off,
+        row_off,
+        indptr,
+        indices,
+        data,
+        in_mean,
+        in_std,
+        in_lo,
+        in_hi,
+        out_mean,
+        out_std,
+        k,
+        ref,
+        fp_w,
+        fp_mean,
+        fp_var,
+        fp_prior,
+        has_fp,
+    ) = P
     n = x_in.shape[0]
     feats[0, col], feats[1, col], feats[2, col], feats[3, col] = delta[0], delta[1], delta[2], root_y
     for j in range(1, NUM_JOINTS):
@@ -247,8 +286,26 @@ def _style_outputs(s, w, z, feats, col, blend_w, x_out, P, keep_heading, root_fe
     """Style s's result for one session from column `col` of z = M [x; u]: the new state into
     x_out, w * (root displacement, yaw change, height) added to root_feats, the body rotations
     (22, 4) into quats. Returns the footplant contacts (left, right). out: scratch (67,)."""
-    (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
-     fp_w, fp_mean, fp_var, fp_prior, has_fp) = P
+    (
+        x_off,
+        row_off,
+        indptr,
+        indices,
+        data,
+        in_mean,
+        in_std,
+        in_lo,
+        in_hi,
+        out_mean,
+        out_std,
+        k,
+        ref,
+        fp_w,
+        fp_mean,
+        fp_var,
+        fp_prior,
+        has_fp,
+    ) = P
     n = x_out.shape[0]
     for i in range(n):
         x_out[i] = z[i, col]
@@ -266,8 +323,9 @@ def _style_outputs(s, w, z, feats, col, blend_w, x_out, P, keep_heading, root_fe
         quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q
     if not has_fp[s]:
         return False, False
-    return _planted(x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 0), \
-        _planted(x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 1)
+    return _planted(x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 0), _planted(
+        x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 1
+    )
 
 
 @njit(cache=True, error_model="numpy")
@@ -292,12 +350,53 @@ def _sparse_product(indptr, indices, data, zin, z, m):
 
 
 @njit(cache=True, error_model="numpy")
-def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_ground,
-             x, out_root, out_rot, contacts, n_yaw, n_ground, n_out_yaw, n_out_ground,
-             n_x, per_session, quats, rows, blend_w, zin, z, feats, out,
-             blend, keep_heading,
-             x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
-             fp_w, fp_mean, fp_var, fp_prior, has_fp):
+def lti_step(
+    root,
+    rotations,
+    weights,
+    started,
+    in_yaw,
+    in_ground,
+    out_yaw,
+    out_ground,
+    x,
+    out_root,
+    out_rot,
+    contacts,
+    n_yaw,
+    n_ground,
+    n_out_yaw,
+    n_out_ground,
+    n_x,
+    per_session,
+    quats,
+    rows,
+    blend_w,
+    zin,
+    z,
+    feats,
+    out,
+    blend,
+    keep_heading,
+    x_off,
+    row_off,
+    indptr,
+    indices,
+    data,
+    in_mean,
+    in_std,
+    in_lo,
+    in_hi,
+    out_mean,
+    out_std,
+    k,
+    ref,
+    fp_w,
+    fp_mean,
+    fp_var,
+    fp_prior,
+    has_fp,
+):
     """One streaming frame for B sessions (see model.LTIStyleModel for the state and the style
     mixing). Reads the frame, the weights and the state (started ... x); fills the outputs
     (out_root ... n_x, allocated by the caller: returning arrays from numba costs ~1 us each);
@@ -309,8 +408,26 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
     style, the LTI step of all sessions using it as one sparse product (each matrix entry is
     loaded once and applied to every session, a loop the compiler vectorises); per session, the
     blend of the styles and the output path. The feet are planted after it (`models.motion.feet`)."""
-    P = (x_off, row_off, indptr, indices, data, in_mean, in_std, in_lo, in_hi, out_mean, out_std, k, ref,
-         fp_w, fp_mean, fp_var, fp_prior, has_fp)
+    P = (
+        x_off,
+        row_off,
+        indptr,
+        indices,
+        data,
+        in_mean,
+        in_std,
+        in_lo,
+        in_hi,
+        out_mean,
+        out_std,
+        k,
+        ref,
+        fp_w,
+        fp_mean,
+        fp_var,
+        fp_prior,
+        has_fp,
+    )
     B, S = weights.shape
     yaws, tilts, deltas, rests = per_session[:, 0], per_session[:, 1:5], per_session[:, 5:8], per_session[:, 8]
     totals, root_feats, votes = per_session[:, 9], per_session[:, 10:14], per_session[:, 14:16]
@@ -324,7 +441,9 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
         tilts[b, 0], tilts[b, 1], tilts[b, 2], tilts[b, 3] = tilt
         gx, gz = root[b, 0], root[b, 2]
         p_yaw = in_yaw[b] if started[b] else yaw
-        dx, dz = rotate_y(gx - (in_ground[b, 0] if started[b] else gx), gz - (in_ground[b, 1] if started[b] else gz), -p_yaw)
+        dx, dz = rotate_y(
+            gx - (in_ground[b, 0] if started[b] else gx), gz - (in_ground[b, 1] if started[b] else gz), -p_yaw
+        )
         deltas[b, 0], deltas[b, 1], deltas[b, 2] = dx, dz, wrap(yaw - p_yaw)
         total = 0.0
         for s in range(S):
@@ -345,15 +464,38 @@ def lti_step(root, rotations, weights, started, in_yaw, in_ground, out_yaw, out_
         n = x_off[s + 1] - x_off[s]
         for c in range(m):
             b = rows[c]
-            blend_w[c] = _style_inputs(s, root[b, 1], rotations[b], row4(tilts, b), deltas[b], x[b, x_off[s]:x_off[s + 1]],
-                                       P, blend, zin, feats, c)
+            blend_w[c] = _style_inputs(
+                s,
+                root[b, 1],
+                rotations[b],
+                row4(tilts, b),
+                deltas[b],
+                x[b, x_off[s] : x_off[s + 1]],
+                P,
+                blend,
+                zin,
+                feats,
+                c,
+            )
         # [x'; y] = M [x; u] for the m sessions; rows: the state, then the outputs (not the log time warp)
-        _sparse_product(indptr[row_off[s]:row_off[s] + n + FEATURE_DIM + 1], indices, data, zin, z, m)
+        _sparse_product(indptr[row_off[s] : row_off[s] + n + FEATURE_DIM + 1], indices, data, zin, z, m)
         for c in range(m):
             b = rows[c]
             w = weights[b, s]
-            planted = _style_outputs(s, w, z, feats, c, blend_w[c], n_x[b, x_off[s]:x_off[s + 1]], P, keep_heading,
-                                     root_feats[b], quats[b, s], out)
+            planted = _style_outputs(
+                s,
+                w,
+                z,
+                feats,
+                c,
+                blend_w[c],
+                n_x[b, x_off[s] : x_off[s + 1]],
+                P,
+                keep_heading,
+                root_feats[b],
+                quats[b, s],
+                out,
+            )
             votes[b, 0] += w * planted[0]
             votes[b, 1] += w * planted[1]
     for b in range(B):

@@ -45,7 +45,8 @@ from scipy.special import erf
 
 from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
-from models.motion.feet import STATE_SHAPES as FEET_STATE, model_rig_planter
+from models.motion.feet import STATE_SHAPES as FEET_STATE
+from models.motion.feet import model_rig_planter
 
 from . import kernels
 from . import representation as rep
@@ -101,8 +102,8 @@ class StyleTranslator:
         if blend:
             w = self.blend_weight(u)[..., None]
             out = out.copy()
-            out[..., :rep.FEATURE_DIM] = (1 - w) * out[..., :rep.FEATURE_DIM] + w * feats
-            out[..., rep.FEATURE_DIM:] *= 1 - w
+            out[..., : rep.FEATURE_DIM] = (1 - w) * out[..., : rep.FEATURE_DIM] + w * feats
+            out[..., rep.FEATURE_DIM :] *= 1 - w
         if self.keep_heading:
             out = out.copy() if not blend else out
             out[..., 2] = feats[..., 2]
@@ -116,22 +117,26 @@ class StyleTranslator:
         xs = np.empty((len(u), self.n))
         for t in range(len(u)):
             z = self.M @ np.concatenate([x, u[t]])
-            x, ys[t] = z[: self.n], z[self.n:]
+            x, ys[t] = z[: self.n], z[self.n :]
             xs[t] = x
         return self._finish(feats, u, ys, blend), xs
 
     def translate_motion(self, motion, timewarp: bool = False, blend: bool = True, footlock: bool = True):
         """Offline translation of a whole `Motion` (BN skeleton). Returns (Motion, contacts (F', 2))."""
         from dataclasses import replace
+
         feats = rep.motion_to_features(motion, self.ref)
         out, xs = self.translate_features(feats, blend)
         yaw0, _ = rep.split_hips(motion.rotations[0, rep.HIPS])
-        root, rots = rep.features_to_sequence(out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), self.ref)
+        root, rots = rep.features_to_sequence(
+            out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), self.ref
+        )
         contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
         if footlock:
             root, rots, contacts = model_rig_planter(motion.fps).clip(root, rots, hints=contacts)
         if timewarp:
             from .warping import resample_pose
+
             rate = np.exp(out[:, rep.FEATURE_DIM])  # output frames per input frame
             clock = np.concatenate([[0.0], np.cumsum(rate[1:])])  # output time of each input frame
             times = np.interp(np.arange(0.0, clock[-1] + 1e-9), clock, np.arange(len(clock)))
@@ -146,18 +151,45 @@ class StyleTranslator:
     def save(self, path: Path) -> None:
         extra = self.footplant.to_arrays() if self.footplant is not None else {}
         np.savez_compressed(
-            path, style=np.array(self.style), A=self.A.astype(np.float32), B=self.B.astype(np.float32),
-            C=self.C.astype(np.float32), D=self.D.astype(np.float32), in_mean=self.in_mean, in_std=self.in_std,
-            out_mean=self.out_mean, out_std=self.out_std, in_lo=self.in_lo, in_hi=self.in_hi, orders=self.orders,
-            k=np.array([self.k_p, self.k_c]), ref=self.ref, meta=np.array(repr(self.meta)), **extra)
+            path,
+            style=np.array(self.style),
+            A=self.A.astype(np.float32),
+            B=self.B.astype(np.float32),
+            C=self.C.astype(np.float32),
+            D=self.D.astype(np.float32),
+            in_mean=self.in_mean,
+            in_std=self.in_std,
+            out_mean=self.out_mean,
+            out_std=self.out_std,
+            in_lo=self.in_lo,
+            in_hi=self.in_hi,
+            orders=self.orders,
+            k=np.array([self.k_p, self.k_c]),
+            ref=self.ref,
+            meta=np.array(repr(self.meta)),
+            **extra,
+        )
 
     @classmethod
     def load(cls, path: Path) -> StyleTranslator:
         with np.load(path) as z:
             fp = FootplantClassifier.from_arrays(z) if "fp_w" in z else None
-            return cls(str(z["style"]), *(z[k].astype(np.float64) for k in ("A", "B", "C", "D")),
-                       z["in_mean"], z["in_std"], z["out_mean"], z["out_std"], z["in_lo"], z["in_hi"], z["orders"],
-                       float(z["k"][0]), float(z["k"][1]), fp, {"source": str(path)}, z["ref"])
+            return cls(
+                str(z["style"]),
+                *(z[k].astype(np.float64) for k in ("A", "B", "C", "D")),
+                z["in_mean"],
+                z["in_std"],
+                z["out_mean"],
+                z["out_std"],
+                z["in_lo"],
+                z["in_hi"],
+                z["orders"],
+                float(z["k"][0]),
+                float(z["k"][1]),
+                fp,
+                {"source": str(path)},
+                z["ref"],
+            )
 
 
 class _StyleSet(NamedTuple):
@@ -191,8 +223,15 @@ class LTIStyleModel(LTIStyles):
     fps = 30.0  # the Bandai Namco rate it was identified at
     controllable = False  # reads frames, not control
 
-    def __init__(self, translators: dict[str, StyleTranslator] | None = None, weights_dir: Path | str = WEIGHTS_DIR,
-                 blend: bool = True, footlock: bool = True, keep_heading: bool = True, skeleton=None):
+    def __init__(
+        self,
+        translators: dict[str, StyleTranslator] | None = None,
+        weights_dir: Path | str = WEIGHTS_DIR,
+        blend: bool = True,
+        footlock: bool = True,
+        keep_heading: bool = True,
+        skeleton=None,
+    ):
         if translators is None:
             translators = {}
             for path in sorted(Path(weights_dir).glob("*.npz")):
@@ -260,7 +299,9 @@ class LTIStyleModel(LTIStyles):
     def upgrade_state(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """`state` on the current style set: added styles at x = 0, removed ones dropped (see
         `models.interface`); `state` itself when it already is (one key-set comparison)."""
-        if state.keys() == self._set.state_keys and all(state[f"x.{s}"].shape[1] == self.translators[s].n for s in self._styles):
+        if state.keys() == self._set.state_keys and all(
+            state[f"x.{s}"].shape[1] == self.translators[s].n for s in self._styles
+        ):
             return state
         batch = len(state["started"])
         # a snapshot from before the foot planter (its `lock_*` keys dropped) plants from its next frame
@@ -274,8 +315,10 @@ class LTIStyleModel(LTIStyles):
         return {
             **{f"x.{s}": np.zeros((batch, self.translators[s].n)) for s in self._styles},
             "started": np.zeros(batch, bool),
-            "in_yaw": np.zeros(batch), "in_ground": np.zeros((batch, 2)),
-            "out_yaw": np.zeros(batch), "out_ground": np.zeros((batch, 2)),
+            "in_yaw": np.zeros(batch),
+            "in_ground": np.zeros((batch, 2)),
+            "out_yaw": np.zeros(batch),
+            "out_ground": np.zeros((batch, 2)),
             **self.planter.init_state(batch),
         }
 
@@ -299,8 +342,10 @@ class LTIStyleModel(LTIStyles):
         B = len(root)
         # the kernel trusts every shape (no bounds checks): anything else is a clear error here
         if root.shape != (B, 3) or rotations.shape != (B, rep.NUM_JOINTS, 4):
-            raise ValueError(f"frames must be root (B, 3) and rotations (B, {rep.NUM_JOINTS}, 4), "
-                             f"got {root.shape} and {rotations.shape}")
+            raise ValueError(
+                f"frames must be root (B, 3) and rotations (B, {rep.NUM_JOINTS}, 4), "
+                f"got {root.shape} and {rotations.shape}"
+            )
         if w.shape != (B, len(styles)):
             raise ValueError(f"style_weights must be ({B}, {len(styles)}), got {w.shape}")
         for key, shape in SHARED_SHAPES.items():
@@ -310,20 +355,47 @@ class LTIStyleModel(LTIStyles):
         try:
             np.concatenate([state[key] for key in x_slices], axis=1, out=x)
         except ValueError:
-            raise ValueError("state is from another style set: bring it to this one with upgrade_state(state)") from None
+            raise ValueError(
+                "state is from another style set: bring it to this one with upgrade_state(state)"
+            ) from None
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
-        new = {"started": np.ones(B, bool), "in_yaw": np.empty(B), "in_ground": np.empty((B, 2)), "out_yaw": np.empty(B),
-               "out_ground": np.empty((B, 2))}
+        new = {
+            "started": np.ones(B, bool),
+            "in_yaw": np.empty(B),
+            "in_ground": np.empty((B, 2)),
+            "out_yaw": np.empty(B),
+            "out_ground": np.empty((B, 2)),
+        }
         new_x = np.empty_like(x)
         kernels.lti_step(
-            root, rotations, w, state["started"], state["in_yaw"], state["in_ground"], state["out_yaw"],
-            state["out_ground"], x, out.root, out.rotations, out.contacts, new["in_yaw"], new["in_ground"],
-            new["out_yaw"], new["out_ground"], new_x, *work, self.blend, self.keep_heading, *packed)
+            root,
+            rotations,
+            w,
+            state["started"],
+            state["in_yaw"],
+            state["in_ground"],
+            state["out_yaw"],
+            state["out_ground"],
+            x,
+            out.root,
+            out.rotations,
+            out.contacts,
+            new["in_yaw"],
+            new["in_ground"],
+            new["out_yaw"],
+            new["out_ground"],
+            new_x,
+            *work,
+            self.blend,
+            self.keep_heading,
+            *packed,
+        )
         for key, cols in x_slices.items():
             new[key] = new_x[:, cols]
         feet = {k: state[k] for k in FEET_STATE}
         if self.footlock:
-            planted_root, planted_rot, contacts, feet = self.planter(feet, out.root, out.rotations, w.sum(1) > 0,
-                                                                     hints=out.contacts)
+            planted_root, planted_rot, contacts, feet = self.planter(
+                feet, out.root, out.rotations, w.sum(1) > 0, hints=out.contacts
+            )
             out = FrameBatch(planted_root, planted_rot, contacts)
         return out, {**new, **feet}

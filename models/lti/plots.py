@@ -11,15 +11,17 @@ from . import representation as rep
 
 def alignment_figure(path: Path, style: str = "elderly", content: str = "walk") -> Path:
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from models.data import build_index, load_motion
+
     from .train import CONFIG, make_pairs, match_features, matching_stats, reference_rotations
     from .warping import dtw_warp, imw
 
     index = build_index(CONFIG["datasets"])
-    a, b = next((p for p in make_pairs(index, style, "train") if p[1].content == content))
+    a, b = next(p for p in make_pairs(index, style, "train") if p[1].content == content)
     ref = reference_rotations(index)
     mean, std = matching_stats(index, ref)
     x = match_features(rep.motion_to_features(load_motion(a), ref), mean, std)
@@ -36,14 +38,21 @@ def alignment_figure(path: Path, style: str = "elderly", content: str = "walk") 
 
     fig, ax = plt.subplots(3, 1, figsize=(10, 10))
     ax[0].plot(t, x[:, dof], "k", lw=2, label=f"input ({a.style}) {a.name}")
-    ax[0].plot(np.arange(len(y)) * (len(x) - 1) / (len(y) - 1), y[:, dof], "0.6", label=f"output ({b.style}), linearly stretched")
+    ax[0].plot(
+        np.arange(len(y)) * (len(x) - 1) / (len(y) - 1),
+        y[:, dof],
+        "0.6",
+        label=f"output ({b.style}), linearly stretched",
+    )
     ax[0].plot(t, at(w_dtw), "tab:blue", label="output, DTW-aligned")
     ax[0].plot(t, at(res.warp), "tab:red", label="output, IMW-aligned")
     ax[0].set_title(f"DOF {names[dof]} (LowerLeg_L expmap, normalised)")
     ax[0].legend(fontsize=8)
     ax[1].plot(t, w_dtw, "tab:blue", label="DTW")
     ax[1].plot(t, res.warp, "tab:red", label="IMW (slope-limited, space-warped)")
-    ax[1].set_xlabel("input frame"); ax[1].set_ylabel("output frame"); ax[1].legend()
+    ax[1].set_xlabel("input frame")
+    ax[1].set_ylabel("output frame")
+    ax[1].legend()
     ax[1].set_title("time warps")
     ax[2].plot(res.objective, "o-")
     ax[2].set_title("IMW objective after each stage (time, space, time, ...)")

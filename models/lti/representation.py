@@ -32,7 +32,6 @@ import numpy as np
 
 from models.motion.rotations import wrap_angle
 
-
 ROOT_DIMS = 7
 NUM_JOINTS = 22
 HIPS = 1
@@ -113,7 +112,9 @@ def rotate_y(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- offline
 
 
-def pose_features(root: np.ndarray, rotations: np.ndarray, ref: np.ndarray = IDENTITY_REF) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pose_features(
+    root: np.ndarray, rotations: np.ndarray, ref: np.ndarray = IDENTITY_REF
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-frame pieces that need no history: (yaw (...), ground xz (..., 2), static features (..., 64))."""
     yaw, tilt = split_hips(rotations[..., HIPS, :])
     q = rotations[..., 1:, :].copy()
@@ -138,8 +139,9 @@ def motion_to_features(motion, ref: np.ndarray = IDENTITY_REF) -> np.ndarray:
     return sequence_features(motion.translations[:, HIPS], motion.rotations, ref)
 
 
-def features_to_sequence(features: np.ndarray, start_ground: np.ndarray, start_yaw: float,
-                         ref: np.ndarray = IDENTITY_REF) -> tuple[np.ndarray, np.ndarray]:
+def features_to_sequence(
+    features: np.ndarray, start_ground: np.ndarray, start_yaw: float, ref: np.ndarray = IDENTITY_REF
+) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of `sequence_features`: (F, 67) -> root (F, 3), rotations (F, 22, 4).
 
     The path is integrated from the given start: frame 0 sits at `start_ground`/`start_yaw`

@@ -28,6 +28,7 @@ class LTIStyles(UploadedStyles["StyleTranslator"]):
 
     translators: dict[str, StyleTranslator]
     if TYPE_CHECKING:
+
         def add_style(self, tr: StyleTranslator) -> None: ...
 
     def with_own_styles(self) -> Self:
@@ -37,11 +38,18 @@ class LTIStyles(UploadedStyles["StyleTranslator"]):
         from .finetune import data_available  # the training code, loaded when a style is uploaded
 
         if not fine_tune:
-            raise StyleRejected("fine_tune_required", "an LTI style is a translator identified from the clip: upload "
-                                "with fine_tune=true to start the identification job (the clip alone is not a style)")
+            raise StyleRejected(
+                "fine_tune_required",
+                "an LTI style is a translator identified from the clip: upload "
+                "with fine_tune=true to start the identification job (the clip alone is not a style)",
+            )
         if not data_available():
-            raise StyleRejected("training_data_unavailable", "fine-tuning needs the training data (Bandai Namco neutral "
-                                "clips), which this server does not have (STYLESTREAM_DATA_DIR)", unavailable=True)
+            raise StyleRejected(
+                "training_data_unavailable",
+                "fine-tuning needs the training data (Bandai Namco neutral "
+                "clips), which this server does not have (STYLESTREAM_DATA_DIR)",
+                unavailable=True,
+            )
 
     def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[StyleTranslator]:
         """Identify a translator for `clip` (`steps` does not apply: identification is closed-form)."""
@@ -49,8 +57,13 @@ class LTIStyles(UploadedStyles["StyleTranslator"]):
 
         ref = next(iter(self.translators.values())).ref  # the reference rotations every translator shares
         res = fine_tune(clip, name, ref, progress)
-        summary = {"seconds": round(res.seconds, 2), "neutral_clips": res.neutral_clips, "train_frames": res.train_frames,
-                   "state_dim": int(res.translator.n), "heldout": res.heldout}
+        summary = {
+            "seconds": round(res.seconds, 2),
+            "neutral_clips": res.neutral_clips,
+            "train_frames": res.train_frames,
+            "state_dim": int(res.translator.n),
+            "heldout": res.heldout,
+        }
         progress(0.97, "installing the style")
         return FineTuned(res.translator, summary, "fine-tuned")
 

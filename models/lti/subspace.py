@@ -95,7 +95,7 @@ def stabilize(A: np.ndarray, max_radius: float = 0.995) -> tuple[np.ndarray, int
 
 def _hankel(x: np.ndarray, start: int, rows: int, cols: int) -> np.ndarray:
     """Block Hankel: block row r holds x[start + r : start + r + cols].T -> (rows * dim, cols)."""
-    return np.concatenate([x[start + r: start + r + cols].T for r in range(rows)], axis=0)
+    return np.concatenate([x[start + r : start + r + cols].T for r in range(rows)], axis=0)
 
 
 def choose_order(sv: np.ndarray, max_order: int, energy: float = 0.99, gap: float = 1e3) -> int:
@@ -105,7 +105,7 @@ def choose_order(sv: np.ndarray, max_order: int, energy: float = 0.99, gap: floa
     k = min(max_order, len(sv) - 1)
     if k <= 0 or sv[0] <= 0:
         return 0
-    ratios = sv[:k] / np.maximum(sv[1:k + 1], 1e-300)
+    ratios = sv[:k] / np.maximum(sv[1 : k + 1], 1e-300)
     big = np.flatnonzero(ratios > gap)
     if big.size:
         return int(big[0] + 1)
@@ -113,9 +113,15 @@ def choose_order(sv: np.ndarray, max_order: int, energy: float = 0.99, gap: floa
     return int(min(k, np.searchsorted(cum, energy) + 1))
 
 
-def subspace_id(records: list[tuple[np.ndarray, np.ndarray]], horizon: int = 10, order: int | None = None,
-                max_order: int = 20, energy: float = 0.99, max_radius: float = 0.995,
-                ridge: float = 1e-6) -> StateSpace:
+def subspace_id(
+    records: list[tuple[np.ndarray, np.ndarray]],
+    horizon: int = 10,
+    order: int | None = None,
+    max_order: int = 20,
+    energy: float = 0.99,
+    max_radius: float = 0.995,
+    ridge: float = 1e-6,
+) -> StateSpace:
     """Identify (A, B, C, D) from records of (u (T, m), y (T, p)). `horizon` is the number of
     block rows i of the past and of the future Hankel matrices."""
     i = horizon
@@ -126,12 +132,17 @@ def subspace_id(records: list[tuple[np.ndarray, np.ndarray]], horizon: int = 10,
         cols = len(u) - 2 * i + 1
         if cols <= 0:
             continue
-        blocks.append(np.concatenate([
-            _hankel(u, i, i, cols),   # U_f
-            _hankel(u, 0, i, cols),   # U_p
-            _hankel(y, 0, i, cols),   # Y_p
-            _hankel(y, i, i, cols),   # Y_f
-        ], axis=0))
+        blocks.append(
+            np.concatenate(
+                [
+                    _hankel(u, i, i, cols),  # U_f
+                    _hankel(u, 0, i, cols),  # U_p
+                    _hankel(y, 0, i, cols),  # Y_p
+                    _hankel(y, i, i, cols),  # Y_f
+                ],
+                axis=0,
+            )
+        )
     if not blocks:
         raise ValueError("records are too short for the chosen horizon")
     rows = 2 * i * (m + p)
@@ -148,7 +159,7 @@ def subspace_id(records: list[tuple[np.ndarray, np.ndarray]], horizon: int = 10,
     U, sv, _ = np.linalg.svd(L32, full_matrices=False)
     n = choose_order(sv, max_order, energy) if order is None else order
     if n == 0:
-        A = np.zeros((0, 0)); C = np.zeros((p, 0))
+        A, C = np.zeros((0, 0)), np.zeros((p, 0))
     else:
         gamma = U[:, :n] * np.sqrt(sv[:n])
         C = gamma[:p]
@@ -178,7 +189,7 @@ def fit_bd(A: np.ndarray, C: np.ndarray, records, ridge: float = 1e-6) -> tuple[
                 phi[t, :, :nb] = np.einsum("pn,jnr->pjr", C, V).reshape(p, nb)
                 V = A @ V + u[t][:, None, None] * eye
         for k in range(p):
-            phi[:, k, nb + k * m: nb + (k + 1) * m] = u
+            phi[:, k, nb + k * m : nb + (k + 1) * m] = u
         phi = phi.reshape(T * p, nb + nd)
         G += phi.T @ phi
         h += phi.T @ y.reshape(T * p)

@@ -31,8 +31,22 @@ CONFIG = dict(
     # dataset 1: one take per (style, content), 1-8 training pairs per style: trainable with
     # `--styles bn1-old ...` (models named "bn1-<style>") but not part of the default run / shipped
     # weights: held-out errors were often worse than the identity baseline (see MODEL_CARD.md)
-    bn1_styles=["active", "angry", "childish", "chimpira", "feminine", "giant", "happy", "masculinity", "musical",
-                "not-confident", "old", "proud", "sad", "tired"],
+    bn1_styles=[
+        "active",
+        "angry",
+        "childish",
+        "chimpira",
+        "feminine",
+        "giant",
+        "happy",
+        "masculinity",
+        "musical",
+        "not-confident",
+        "old",
+        "proud",
+        "sad",
+        "tired",
+    ],
     contents=None,  # None: every content; or e.g. ["walk", "walk-turn-left", "walk-turn-right"]
     align="imw",  # "imw" or "dtw" (plain DTW, the quick first increment)
     imw=dict(s=3, max_step=6, lam=1000.0, mu=1.0, max_iter=8, tol=1e-4),
@@ -77,6 +91,7 @@ def make_pairs(index, style: str, split: str, cfg=CONFIG) -> list[tuple]:
     Dataset 1 has a single take per (style, content), so there the input clip may come from any
     split (the output clip, the thing being predicted, is still held out)."""
     from models.data import select
+
     dataset, label = dataset_of(style)
     s, ms = cfg["imw"]["s"], cfg["imw"]["max_step"]
     lo, hi = 1.0 / s * 1.15, ms / s / 1.15
@@ -85,11 +100,16 @@ def make_pairs(index, style: str, split: str, cfg=CONFIG) -> list[tuple]:
     for out_clip in select(index, dataset=dataset, style=label, split=split):
         if cfg["contents"] and out_clip.content not in cfg["contents"]:
             continue
-        cands = [c for c in select(index, dataset=dataset, style=cfg["input_style"], content=out_clip.content, split=in_split)
-                 if lo <= out_clip.frames / c.frames <= hi]
+        cands = [
+            c
+            for c in select(index, dataset=dataset, style=cfg["input_style"], content=out_clip.content, split=in_split)
+            if lo <= out_clip.frames / c.frames <= hi
+        ]
         if not cands:
             continue
-        best = min(cands, key=lambda c: (round(abs(math.log(out_clip.frames / c.frames)), 1), used.get(c.key, 0), c.name))
+        best = min(
+            cands, key=lambda c: (round(abs(math.log(out_clip.frames / c.frames)), 1), used.get(c.key, 0), c.name)
+        )
         used[best.key] = used.get(best.key, 0) + 1
         pairs.append((best, out_clip))
     return pairs
@@ -105,6 +125,7 @@ class PairData:
 
 def _cache_dir() -> Path:
     from models.settings import get_settings
+
     d = Path(get_settings().cache_dir) / "lti" / "align"
     d.mkdir(parents=True, exist_ok=True)
     return d
@@ -112,6 +133,7 @@ def _cache_dir() -> Path:
 
 def reference_rotations(index, cfg=CONFIG) -> np.ndarray:
     from models.data import load_motion, select
+
     clips = select(index, dataset="bandai-namco-2", style=cfg["input_style"], split="train")
     return rep.mean_rotations(np.concatenate([load_motion(c).rotations for c in clips]))
 
@@ -132,6 +154,7 @@ def pair_from_warp(mi, mo, warp: np.ndarray, ref) -> PairData:
     """A training pair from an input motion, an output motion and the time warp aligning them:
     output features resampled along the warp, plus the log differential warp and contact labels."""
     from models.motion.skeleton import fk
+
     root, rots = resample_pose(mo.translations[:, rep.HIPS], mo.rotations, warp)
     fo = rep.sequence_features(root, rots, ref)
     d = np.diff(warp)
@@ -146,7 +169,10 @@ def pair_from_warp(mi, mo, warp: np.ndarray, ref) -> PairData:
 def pair_data(in_clip, out_clip, match_mean, match_std, ref, cfg=CONFIG) -> PairData:
     """`pair_from_warp` for two dataset clips, the IMW alignment cached on disk."""
     from models.data import load_motion
-    key = hashlib.sha1(json.dumps([in_clip.key, out_clip.key, cfg["align"], cfg["imw"], cfg["match_std_floor"], "ref-v1"]).encode()).hexdigest()[:16]
+
+    key = hashlib.sha1(
+        json.dumps([in_clip.key, out_clip.key, cfg["align"], cfg["imw"], cfg["match_std_floor"], "ref-v1"]).encode()
+    ).hexdigest()[:16]
     cache = _cache_dir() / f"{key}.npy"
     mi, mo = load_motion(in_clip), load_motion(out_clip)
     if cache.exists():
@@ -159,6 +185,7 @@ def pair_data(in_clip, out_clip, match_mean, match_std, ref, cfg=CONFIG) -> Pair
 
 def matching_stats(index, ref, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
     from models.data import load_motion, select
+
     clips = select(index, dataset="bandai-namco-2", style=cfg["input_style"], split="train")
     feats = np.concatenate([rep.motion_to_features(load_motion(c), ref) for c in clips])
     return feats.mean(0), np.maximum(feats.std(0), cfg["match_std_floor"])
@@ -167,7 +194,9 @@ def matching_stats(index, ref, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------- identification
 
 
-def identify(data: list[PairData], style: str, ref: np.ndarray, cfg=CONFIG, progress=None) -> tuple[StyleTranslator, list[StateSpace]]:
+def identify(
+    data: list[PairData], style: str, ref: np.ndarray, cfg=CONFIG, progress=None
+) -> tuple[StyleTranslator, list[StateSpace]]:
     U = np.concatenate([d.u for d in data])
     Y = np.concatenate([d.y for d in data])
     in_mean, in_std = U.mean(0), np.maximum(U.std(0), cfg["norm_std_floor"])
@@ -177,14 +206,17 @@ def identify(data: list[PairData], style: str, ref: np.ndarray, cfg=CONFIG, prog
     for g, (ii, oo) in enumerate(groups()):
         sub = [(u[:, ii], y[:, oo]) for u, y in recs]
         max_order = cfg["max_order_root"] if g == 0 else cfg["max_order_joint"]
-        systems.append(subspace_id(sub, horizon=cfg["horizon"], max_order=max_order, energy=cfg["energy"],
-                                   max_radius=cfg["max_radius"]))
+        systems.append(
+            subspace_id(
+                sub, horizon=cfg["horizon"], max_order=max_order, energy=cfg["energy"], max_radius=cfg["max_radius"]
+            )
+        )
         if progress is not None:
             progress.set_postfix_str(f"{style} {GROUP_NAMES[g]} n={systems[-1].order}")
             progress.update(1)
     n = sum(s.order for s in systems)
-    A = np.zeros((n, n)); B = np.zeros((n, rep.FEATURE_DIM))
-    C = np.zeros((rep.FEATURE_DIM + 1, n)); D = np.zeros((rep.FEATURE_DIM + 1, rep.FEATURE_DIM))
+    A, B = np.zeros((n, n)), np.zeros((n, rep.FEATURE_DIM))
+    C, D = np.zeros((rep.FEATURE_DIM + 1, n)), np.zeros((rep.FEATURE_DIM + 1, rep.FEATURE_DIM))
     k = 0
     for (ii, oo), s in zip(groups(), systems):
         sl = slice(k, k + s.order)
@@ -194,11 +226,38 @@ def identify(data: list[PairData], style: str, ref: np.ndarray, cfg=CONFIG, prog
         D[np.ix_(oo, ii)] = s.D
         k += s.order
     U_n = np.concatenate([u for u, _ in recs])
-    tr = StyleTranslator(style, A, B, C, D, in_mean, in_std, out_mean, out_std, U_n.min(0), U_n.max(0),
-                         np.array([s.order for s in systems]), cfg["k_p"], cfg["k_c"], ref=ref)
+    tr = StyleTranslator(
+        style,
+        A,
+        B,
+        C,
+        D,
+        in_mean,
+        in_std,
+        out_mean,
+        out_std,
+        U_n.min(0),
+        U_n.max(0),
+        np.array([s.order for s in systems]),
+        cfg["k_p"],
+        cfg["k_c"],
+        ref=ref,
+    )
     # the stored matrices are float32: identify the footplant classifier on what will be used
-    tr = StyleTranslator(style, *(m.astype(np.float32).astype(np.float64) for m in (A, B, C, D)), in_mean, in_std,
-                         out_mean, out_std, tr.in_lo, tr.in_hi, tr.orders, cfg["k_p"], cfg["k_c"], ref=ref)
+    tr = StyleTranslator(
+        style,
+        *(m.astype(np.float32).astype(np.float64) for m in (A, B, C, D)),
+        in_mean,
+        in_std,
+        out_mean,
+        out_std,
+        tr.in_lo,
+        tr.in_hi,
+        tr.orders,
+        cfg["k_p"],
+        cfg["k_c"],
+        ref=ref,
+    )
     states = np.concatenate([tr.translate_features(d.u, blend=False)[1] for d in data])
     tr.footplant = FootplantClassifier.fit(states, np.concatenate([d.contacts for d in data]))
     return tr, systems
@@ -222,16 +281,21 @@ def evaluate(tr: StyleTranslator, data: list[PairData]) -> dict[str, float]:
         err_n.append(np.mean(((out - d.y) / tr.out_std) ** 2))
         base = np.concatenate([d.u, np.zeros((len(d.u), 1))], axis=1)
         base_n.append(np.mean(((base - d.y) / tr.out_std) ** 2))
-        ang.append(_angle_error_deg(out, d.y)); base_ang.append(_angle_error_deg(d.u, d.y))
+        ang.append(_angle_error_deg(out, d.y))
+        base_ang.append(_angle_error_deg(d.u, d.y))
         sp = lambda f: np.linalg.norm(f[:, :2], axis=1) * 30.0
-        speed.append(np.mean(np.abs(sp(out) - sp(d.y)))); base_speed.append(np.mean(np.abs(sp(d.u) - sp(d.y))))
+        speed.append(np.mean(np.abs(sp(out) - sp(d.y))))
+        base_speed.append(np.mean(np.abs(sp(d.u) - sp(d.y))))
         if tr.footplant is not None:
             contact_acc.append(np.mean(tr.footplant.predict(xs) == d.contacts))
     return {
         "pairs": len(data),
-        "rmse_norm": float(np.sqrt(np.mean(err_n))), "rmse_norm_identity": float(np.sqrt(np.mean(base_n))),
-        "joint_angle_deg": float(np.mean(ang)), "joint_angle_deg_identity": float(np.mean(base_ang)),
-        "root_speed_cm_s": float(np.mean(speed)), "root_speed_cm_s_identity": float(np.mean(base_speed)),
+        "rmse_norm": float(np.sqrt(np.mean(err_n))),
+        "rmse_norm_identity": float(np.sqrt(np.mean(base_n))),
+        "joint_angle_deg": float(np.mean(ang)),
+        "joint_angle_deg_identity": float(np.mean(base_ang)),
+        "root_speed_cm_s": float(np.mean(speed)),
+        "root_speed_cm_s_identity": float(np.mean(base_speed)),
         "contact_accuracy": float(np.mean(contact_acc)) if contact_acc else float("nan"),
     }
 
@@ -241,6 +305,7 @@ def evaluate(tr: StyleTranslator, data: list[PairData]) -> dict[str, float]:
 
 def train(styles: list[str] | None = None, cfg=CONFIG, out_dir: Path = WEIGHTS_DIR) -> dict:
     from models.data import build_index, warm_cache
+
     np.random.seed(cfg["seed"])
     styles = styles or list(cfg["styles"])
     out_dir = Path(out_dir)
@@ -270,14 +335,24 @@ def train(styles: list[str] | None = None, cfg=CONFIG, out_dir: Path = WEIGHTS_D
             tr.meta = {"config": cfg}
             tr.save(out_dir / f"{style}.npz")
             report[style] = {
-                **metrics, "train_pairs": len(train_pairs), "train_frames": int(sum(len(d.u) for d in data)),
-                "orders": [int(s.order) for s in systems], "state_dim": int(sum(s.order for s in systems)),
-                "spectral_radius": spectral_radius(tr.A), "raw_spectral_radius_max": max(s.raw_radius for s in systems),
+                **metrics,
+                "train_pairs": len(train_pairs),
+                "train_frames": int(sum(len(d.u) for d in data)),
+                "orders": [int(s.order) for s in systems],
+                "state_dim": int(sum(s.order for s in systems)),
+                "spectral_radius": spectral_radius(tr.A),
+                "raw_spectral_radius_max": max(s.raw_radius for s in systems),
                 "blocks_with_unstable_or_capped_A": int(sum(s.n_stabilized > 0 for s in systems)),
-                "eigenvalues_moved": int(sum(s.n_stabilized for s in systems)), "seconds": time.time() - t0, "align_seconds": t_align,
+                "eigenvalues_moved": int(sum(s.n_stabilized for s in systems)),
+                "seconds": time.time() - t0,
+                "align_seconds": t_align,
             }
-            tqdm.write(f"{style}: " + json.dumps({k: (round(v, 4) if isinstance(v, float) else v)
-                                                    for k, v in report[style].items() if k != "orders"}))
+            tqdm.write(
+                f"{style}: "
+                + json.dumps(
+                    {k: (round(v, 4) if isinstance(v, float) else v) for k, v in report[style].items() if k != "orders"}
+                )
+            )
     path = out_dir / "training_report.json"
     old = json.loads(path.read_text())["styles"] if path.exists() else {}
     path.write_text(json.dumps({"config": cfg, "styles": {**old, **report}}, indent=1))

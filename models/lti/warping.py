@@ -29,7 +29,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 
-
 @dataclass
 class WarpResult:
     warp: np.ndarray  # (T,) output time (in output frames, fractional) for each input frame
@@ -103,8 +102,16 @@ def objective(x, yw, a, b, lam, mu) -> float:
     return float(data + smooth + reg)
 
 
-def imw(x: np.ndarray, y: np.ndarray, s: int = 3, max_step: int = 6, lam: float = 10.0, mu: float = 0.1,
-        max_iter: int = 10, tol: float = 1e-4) -> WarpResult:
+def imw(
+    x: np.ndarray,
+    y: np.ndarray,
+    s: int = 3,
+    max_step: int = 6,
+    lam: float = 10.0,
+    mu: float = 0.1,
+    max_iter: int = 10,
+    tol: float = 1e-4,
+) -> WarpResult:
     """Iterative motion warping of output features y (U, D) onto input features x (T, D)."""
     T, D = x.shape
     yu = upsample(y, s)
@@ -114,7 +121,7 @@ def imw(x: np.ndarray, y: np.ndarray, s: int = 3, max_step: int = 6, lam: float 
     for _ in range(max_iter):
         # time stage: cost[t, k] = |x_t - b_t - a_t * yu_k|^2
         xb = x - b
-        cost = (np.sum(xb * xb, axis=1)[:, None] - 2.0 * (xb * a) @ yu.T + (a * a) @ (yu * yu).T)
+        cost = np.sum(xb * xb, axis=1)[:, None] - 2.0 * (xb * a) @ yu.T + (a * a) @ (yu * yu).T
         new_path, _ = time_warp_dp(np.maximum(cost, 0.0), max_step)
         e_time = objective(x, yu[new_path], a, b, lam, mu)
         if history and e_time > history[-1]:  # cannot happen (DP is exact); guard round-off
@@ -179,5 +186,14 @@ def resample_pose(root: np.ndarray, rotations: np.ndarray, times: np.ndarray) ->
     return r, q
 
 
-__all__ = ["WarpResult", "imw", "dtw", "dtw_warp", "time_warp_dp", "space_warp", "objective", "upsample",
-           "resample_pose"]
+__all__ = [
+    "WarpResult",
+    "imw",
+    "dtw",
+    "dtw_warp",
+    "time_warp_dp",
+    "space_warp",
+    "objective",
+    "upsample",
+    "resample_pose",
+]

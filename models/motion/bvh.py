@@ -88,7 +88,7 @@ def parse(text: str, source: str = "<memory>") -> BvhFile:
     motion_at = _MOTION.search(text)
     lines = text[: motion_at.end() if motion_at else len(text)].splitlines()
     # the Frames: and Frame Time: lines (blank lines allowed); the rows are never split into a list
-    lines += text[motion_at.end():].split("\n", 6)[1:6] if motion_at else []
+    lines += text[motion_at.end() :].split("\n", 6)[1:6] if motion_at else []
     joints: list[BvhJoint] = []
     stack: list[int] = []  # open joints; -2 marks an open End Site
     pending: tuple[str, int] | None = None  # a JOINT/ROOT/End Site line awaiting its '{'
@@ -158,7 +158,7 @@ def _parse_motion(lines: list[str], i: int, joints: list[BvhJoint], source: str,
         norm = " ".join(lines[i].split()) if i < len(lines) else ""  # tabs or spaces
         if not norm.startswith(prefix):
             raise BvhError(source, min(i + 1, len(lines)), f"expected '{prefix}'")
-        value = norm[len(prefix):].strip()
+        value = norm[len(prefix) :].strip()
         i += 1
         return value
 
@@ -172,8 +172,9 @@ def _parse_motion(lines: list[str], i: int, joints: list[BvhJoint], source: str,
     body_text = parts[i] if len(parts) > i else ""
     num_rows = body_text.rstrip().count("\n") + 1 if body_text.strip() else 0
     if num_rows != num_frames:
-        raise BvhError(source, i + min(num_rows, num_frames) + 1,
-                       f"header says {num_frames} frames, file has {num_rows} rows")
+        raise BvhError(
+            source, i + min(num_rows, num_frames) + 1, f"header says {num_frames} frames, file has {num_rows} rows"
+        )
     try:  # numpy < 2.3 warns and stops at a bad token (the size check catches it), later ones raise
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", DeprecationWarning)
@@ -246,7 +247,9 @@ def dumps(bvh: BvhFile, precision: int = 6) -> str:
         for child in children.get(idx, []):
             emit(child, depth + 1)
         if joint.end_site is not None:
-            out.extend([f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {_fmt(joint.end_site, precision)}", f"{pad}  }}"])
+            out.extend(
+                [f"{pad}  End Site", f"{pad}  {{", f"{pad}    OFFSET {_fmt(joint.end_site, precision)}", f"{pad}  }}"]
+            )
         out.append(f"{pad}}}")
 
     for root in children.get(-1, []):

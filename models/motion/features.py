@@ -56,8 +56,12 @@ def leg_length(skeleton: Skeleton) -> float:
 
 def facing_yaw(positions: np.ndarray, skeleton: Skeleton) -> np.ndarray:
     """Yaw (radians about +Y, 0 = facing +Z) of each pose from world positions (..., J, 3)."""
-    left = (positions[..., body_joint(skeleton, "hip_l"), :] - positions[..., body_joint(skeleton, "hip_r"), :]
-            + positions[..., body_joint(skeleton, "shoulder_l"), :] - positions[..., body_joint(skeleton, "shoulder_r"), :])
+    left = (
+        positions[..., body_joint(skeleton, "hip_l"), :]
+        - positions[..., body_joint(skeleton, "hip_r"), :]
+        + positions[..., body_joint(skeleton, "shoulder_l"), :]
+        - positions[..., body_joint(skeleton, "shoulder_r"), :]
+    )
     forward = np.cross(left, UP)
     return np.arctan2(forward[..., 0], forward[..., 2])
 
@@ -88,8 +92,9 @@ class Features:
     contacts: np.ndarray  # (F, 2) bool, left and right foot
 
 
-def foot_contacts(positions: np.ndarray, skeleton: Skeleton, fps: float,
-                  height: float = 0.12, speed: float = 0.5) -> np.ndarray:
+def foot_contacts(
+    positions: np.ndarray, skeleton: Skeleton, fps: float, height: float = 0.12, speed: float = 0.5
+) -> np.ndarray:
     """(F, 2) contacts: a foot is planted when its ankle or toe is within `height` leg lengths
     of the floor (y = 0) and moves slower than `speed` leg lengths per second."""
     leg = leg_length(skeleton)

@@ -47,9 +47,14 @@ LEGS = (("UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L"), ("UpperLeg_R", "LowerL
 """The Bandai Namco (model rig) legs: hip joint, knee, ankle, toe, left then right."""
 
 STATE_SHAPES: dict[str, tuple[tuple[int, ...], type]] = {
-    "feet_started": ((), bool), "feet_root": ((3,), np.float64), "feet_model_root": ((3,), np.float64),
-    "feet_rel": ((2, 2, 3), np.float64), "feet_contact": ((2,), bool), "feet_point": ((2,), np.int64),
-    "feet_offset": ((2, 3), np.float64), "feet_floor": ((2, 2), np.float64),
+    "feet_started": ((), bool),
+    "feet_root": ((3,), np.float64),
+    "feet_model_root": ((3,), np.float64),
+    "feet_rel": ((2, 2, 3), np.float64),
+    "feet_contact": ((2,), bool),
+    "feet_point": ((2,), np.int64),
+    "feet_offset": ((2, 3), np.float64),
+    "feet_floor": ((2, 2), np.float64),
 }
 """Per session: whether a frame was seen; the last planted and model roots; the ankle and toe of
 each leg relative to the root; planted legs; held point (0 ankle, 1 toe); the legs' IK offsets;
@@ -75,23 +80,42 @@ class FootPlanter:
     _params: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "_params", (
-            np.int64(self.hips), np.ascontiguousarray(self.chains, np.int64),
-            np.ascontiguousarray(self.offsets, np.float64), np.ascontiguousarray(self.floors, np.float64),
-            float(self.margin), float(self.floor_rise), float(self.onset_speed), float(self.max_offset), float(self.decay),
-            float(self.follow), float(self.fps)))
+        object.__setattr__(
+            self,
+            "_params",
+            (
+                np.int64(self.hips),
+                np.ascontiguousarray(self.chains, np.int64),
+                np.ascontiguousarray(self.offsets, np.float64),
+                np.ascontiguousarray(self.floors, np.float64),
+                float(self.margin),
+                float(self.floor_rise),
+                float(self.onset_speed),
+                float(self.max_offset),
+                float(self.decay),
+                float(self.follow),
+                float(self.fps),
+            ),
+        )
 
     @classmethod
-    def for_skeleton(cls, skeleton: Skeleton, floors: tuple[float, float], fps: float,
-                     legs: tuple[tuple[str, ...], ...] = LEGS, **settings: float) -> FootPlanter:
+    def for_skeleton(
+        cls,
+        skeleton: Skeleton,
+        floors: tuple[float, float],
+        fps: float,
+        legs: tuple[tuple[str, ...], ...] = LEGS,
+        **settings: float,
+    ) -> FootPlanter:
         """A planter for `skeleton`, whose root translation is its Hips position (the Hips are the
         hip joints' parent). `floors`: ankle and toe height of a flat foot on the ground."""
         chains = np.array([[skeleton.index(n) for n in leg] for leg in legs], dtype=np.int64)
         hips = int(skeleton.parents[chains[0, 0]])
         if any(int(skeleton.parents[c[0]]) != hips for c in chains):
             raise ValueError("both legs must hang from one hips joint")
-        return cls(hips, chains, np.asarray(skeleton.offsets, np.float64), np.asarray(floors, np.float64), fps,
-                   **settings)
+        return cls(
+            hips, chains, np.asarray(skeleton.offsets, np.float64), np.asarray(floors, np.float64), fps, **settings
+        )
 
     def init_state(self, batch: int) -> dict[str, np.ndarray]:
         return {k: np.zeros((batch, *shape), dtype) for k, (shape, dtype) in STATE_SHAPES.items()}
@@ -103,9 +127,14 @@ class FootPlanter:
             return state
         return {**self.init_state(batch), **state}
 
-    def __call__(self, state: dict[str, np.ndarray], root: np.ndarray, rotations: np.ndarray,
-                 active: np.ndarray | None = None, hints: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    def __call__(
+        self,
+        state: dict[str, np.ndarray],
+        root: np.ndarray,
+        rotations: np.ndarray,
+        active: np.ndarray | None = None,
+        hints: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """The model's frame (root (B, 3), local rotations (B, J, 4)) with its feet planted:
         (root, rotations, planted legs (B, 2) bool, the planter's new state). `state` is not changed.
         Sessions with `active` False (B,) get their frame back as it is: a style at intensity 0
@@ -116,51 +145,93 @@ class FootPlanter:
         active = np.ones(B, bool) if active is None else np.ascontiguousarray(active, bool)
         hints = np.zeros((B, 2), bool) if hints is None else np.ascontiguousarray(hints, bool)
         out_rot = np.array(rotations, dtype=np.float64, order="C")
-        if root.shape != (B, 3) or out_rot.shape != (B, len(self.offsets), 4) or active.shape != (B,) or hints.shape != (B, 2):
-            raise ValueError(f"root must be (B, 3), rotations (B, {len(self.offsets)}, 4), active (B,) and hints "
-                             f"(B, 2), got {root.shape}, {out_rot.shape}, {active.shape} and {hints.shape}")
+        if (
+            root.shape != (B, 3)
+            or out_rot.shape != (B, len(self.offsets), 4)
+            or active.shape != (B,)
+            or hints.shape != (B, 2)
+        ):
+            raise ValueError(
+                f"root must be (B, 3), rotations (B, {len(self.offsets)}, 4), active (B,) and hints "
+                f"(B, 2), got {root.shape}, {out_rot.shape}, {active.shape} and {hints.shape}"
+            )
         for key, (shape, _) in STATE_SHAPES.items():
             if state[key].shape != (B, *shape):
                 raise ValueError(f"state[{key!r}] must be {(B, *shape)}, got {state[key].shape}")
-        new = {"feet_started": np.ones(B, bool), "feet_root": np.empty((B, 3)), "feet_model_root": root.copy(),
-               "feet_rel": np.empty((B, 2, 2, 3)), "feet_contact": np.empty((B, 2), bool),
-               "feet_point": np.empty((B, 2), np.int64), "feet_offset": np.empty((B, 2, 3)),
-               "feet_floor": np.empty((B, 2, 2))}
+        new = {
+            "feet_started": np.ones(B, bool),
+            "feet_root": np.empty((B, 3)),
+            "feet_model_root": root.copy(),
+            "feet_rel": np.empty((B, 2, 2, 3)),
+            "feet_contact": np.empty((B, 2), bool),
+            "feet_point": np.empty((B, 2), np.int64),
+            "feet_offset": np.empty((B, 2, 3)),
+            "feet_floor": np.empty((B, 2, 2)),
+        }
         s = {k: np.ascontiguousarray(state[k], dtype) for k, (_, dtype) in STATE_SHAPES.items()}
         feet_kernels.plant_feet(
-            root, out_rot, active, hints, s["feet_started"], s["feet_root"], s["feet_model_root"], s["feet_rel"], s["feet_contact"],
-            s["feet_point"], s["feet_offset"], s["feet_floor"], new["feet_root"], out_rot, new["feet_contact"],
-            new["feet_rel"], new["feet_point"], new["feet_offset"], new["feet_floor"], *self._params)
+            root,
+            out_rot,
+            active,
+            hints,
+            s["feet_started"],
+            s["feet_root"],
+            s["feet_model_root"],
+            s["feet_rel"],
+            s["feet_contact"],
+            s["feet_point"],
+            s["feet_offset"],
+            s["feet_floor"],
+            new["feet_root"],
+            out_rot,
+            new["feet_contact"],
+            new["feet_rel"],
+            new["feet_point"],
+            new["feet_offset"],
+            new["feet_floor"],
+            *self._params,
+        )
         return new["feet_root"].copy(), out_rot, new["feet_contact"].copy(), new
 
-    def clip(self, root: np.ndarray, rotations: np.ndarray, hints: np.ndarray | None = None
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def clip(
+        self, root: np.ndarray, rotations: np.ndarray, hints: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """A whole clip (F, 3), (F, J, 4) planted frame by frame as a stream would be (offline
         paths use this to match the streaming step): (root, rotations, planted legs (F, 2))."""
         state = self.init_state(1)
         out_root, out_rot = np.empty((len(root), 3)), np.empty((len(root), len(self.offsets), 4))
         contacts = np.empty((len(root), 2), bool)
         for t in range(len(root)):
-            r, q, c, state = self(state, root[t:t + 1], rotations[t:t + 1],
-                                  hints=None if hints is None else hints[t:t + 1])
+            r, q, c, state = self(
+                state, root[t : t + 1], rotations[t : t + 1], hints=None if hints is None else hints[t : t + 1]
+            )
             out_root[t], out_rot[t], contacts[t] = r[0], q[0], c[0]
         return out_root, out_rot, contacts
 
 
 def model_rig_planter(fps: float, **settings: float) -> FootPlanter:
     """The planter of the models' own (Bandai Namco) rig, which every method streams on."""
-    return FootPlanter.for_skeleton(bandai_namco_skeleton(), (BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR), fps,
-                                    **settings)
+    return FootPlanter.for_skeleton(
+        bandai_namco_skeleton(), (BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR), fps, **settings
+    )
 
 
-def two_bone_ik(gh: np.ndarray, r_up: np.ndarray, r_low: np.ndarray, r_foot: np.ndarray, a: np.ndarray,
-                off_low: np.ndarray, off_foot: np.ndarray, target: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def two_bone_ik(
+    gh: np.ndarray,
+    r_up: np.ndarray,
+    r_low: np.ndarray,
+    r_foot: np.ndarray,
+    a: np.ndarray,
+    off_low: np.ndarray,
+    off_foot: np.ndarray,
+    target: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Analytic two-bone IK for a batch of legs (`feet_kernels.two_bone_ik`). gh: (B, 4) world
     rotation of the parent (Hips); r_*: (B, 4) local rotations of UpperLeg, LowerLeg, Foot; a: (B, 3)
     world hip-joint position; off_*: (3,) bone offsets. Returns new local (r_up, r_low, r_foot)
     putting the ankle at `target` (as close as the bone lengths allow), the foot's world
     orientation unchanged."""
     f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
-    return feet_kernels.two_bone_ik_batch(f64(gh), f64(r_up), f64(r_low), f64(r_foot), f64(a), f64(off_low),
-                                          f64(off_foot), f64(target))
+    return feet_kernels.two_bone_ik_batch(
+        f64(gh), f64(r_up), f64(r_low), f64(r_foot), f64(a), f64(off_low), f64(off_foot), f64(target)
+    )

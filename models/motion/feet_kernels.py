@@ -21,10 +21,12 @@ def qmul(a, b):
     """Hamilton product a * b (apply b, then a)."""
     ax, ay, az, aw = a
     bx, by, bz, bw = b
-    return (aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz)
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
 
 
 @njit(cache=True, error_model="numpy")
@@ -141,8 +143,9 @@ def two_bone_ik_batch(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
     up, low, foot = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4))
     lo, fo = (off_low[0], off_low[1], off_low[2]), (off_foot[0], off_foot[1], off_foot[2])
     for i in range(n):
-        qu, ql, qf = two_bone_ik(row4(gh, i), row4(r_up, i), row4(r_low, i), row4(r_foot, i), row3(a, i), lo, fo,
-                                 row3(target, i))
+        qu, ql, qf = two_bone_ik(
+            row4(gh, i), row4(r_up, i), row4(r_low, i), row4(r_foot, i), row3(a, i), lo, fo, row3(target, i)
+        )
         for c in range(4):
             up[i, c], low[i, c], foot[i, c] = qu[c], ql[c], qf[c]
     return up, low, foot
@@ -165,9 +168,38 @@ def leg_points(rot, hips, chain, offsets, out):
 
 
 @njit(cache=True, error_model="numpy")
-def plant_feet(root, rot, active, hints, started, prev_root, prev_model_root, prev_rel, prev_contact, prev_point, prev_offset,
-               prev_floor, out_root, out_rot, contacts, rel, point, offset, floor,
-               hips, chains, offsets, floors, margin, floor_rise, onset_speed, max_offset, decay, follow, fps):
+def plant_feet(
+    root,
+    rot,
+    active,
+    hints,
+    started,
+    prev_root,
+    prev_model_root,
+    prev_rel,
+    prev_contact,
+    prev_point,
+    prev_offset,
+    prev_floor,
+    out_root,
+    out_rot,
+    contacts,
+    rel,
+    point,
+    offset,
+    floor,
+    hips,
+    chains,
+    offsets,
+    floors,
+    margin,
+    floor_rise,
+    onset_speed,
+    max_offset,
+    decay,
+    follow,
+    fps,
+):
     """One frame of `feet.FootPlanter` for B sessions (see there for what and why). Reads the
     model's frame (root (B, 3), rot (B, J, 4)), which sessions to plant (active (B,)), the model's
     own idea of which feet are down (hints (B, 2), may plant a fast foot) and the
@@ -222,8 +254,12 @@ def plant_feet(root, rot, active, hints, started, prev_root, prev_model_root, pr
                 if prev_contact[b, leg]:
                     planted = True
                     ex, ez = ex - mx, ez - mz  # hold: undo the point's motion
-                elif hints[b, leg] or math.sqrt(mx * mx + mz * mz) * fps < onset_speed or \
-                        mx * (ox - prev_root[b, 0]) + mz * (oz - prev_root[b, 2]) < (ox - prev_root[b, 0]) ** 2 + (oz - prev_root[b, 2]) ** 2:
+                elif (
+                    hints[b, leg]
+                    or math.sqrt(mx * mx + mz * mz) * fps < onset_speed
+                    or mx * (ox - prev_root[b, 0]) + mz * (oz - prev_root[b, 2])
+                    < (ox - prev_root[b, 0]) ** 2 + (oz - prev_root[b, 2]) ** 2
+                ):
                     # touch-down (slow, or slower than the root along its path, i.e. pushing back):
                     # hold from here on, carrying any offset still fading
                     planted = True
@@ -242,7 +278,15 @@ def plant_feet(root, rot, active, hints, started, prev_root, prev_model_root, pr
             gh = row4(out_rot[b], hips)
             hip = add3((ox, root[b, 1], oz), qrot(gh, row3(offsets, up)))
             ankle = (ox + rel[b, leg, 0, 0] + ex, root[b, 1] + rel[b, leg, 0, 1], oz + rel[b, leg, 0, 2] + ez)
-            r_up, r_low, r_foot = two_bone_ik(gh, row4(out_rot[b], up), row4(out_rot[b], low), row4(out_rot[b], ft),
-                                              hip, row3(offsets, low), row3(offsets, ft), ankle)
+            r_up, r_low, r_foot = two_bone_ik(
+                gh,
+                row4(out_rot[b], up),
+                row4(out_rot[b], low),
+                row4(out_rot[b], ft),
+                hip,
+                row3(offsets, low),
+                row3(offsets, ft),
+                ankle,
+            )
             for i in range(4):
                 out_rot[b, up, i], out_rot[b, low, i], out_rot[b, ft, i] = r_up[i], r_low[i], r_foot[i]

@@ -38,32 +38,91 @@ from .skeleton import Motion, Skeleton, skeleton_from_bvh
 
 SIDED_PARTS = ("clavicle", "upperarm", "lowerarm", "hand", "upperleg", "lowerleg", "foot", "toes")
 ARM, LEG = SIDED_PARTS[:4], SIDED_PARTS[4:]
-ROLES = ("hips", "spine1", "spine2", "spine3", "spine4", "neck", "head",
-         *(f"{p}_{s}" for s in "lr" for p in SIDED_PARTS))
-REQUIRED = ("hips", "spine1", "head", *(f"{p}_{s}" for s in "lr" for p in ("upperarm", "lowerarm", "hand",
-                                                                          "upperleg", "lowerleg", "foot")))
+ROLES = (
+    "hips",
+    "spine1",
+    "spine2",
+    "spine3",
+    "spine4",
+    "neck",
+    "head",
+    *(f"{p}_{s}" for s in "lr" for p in SIDED_PARTS),
+)
+REQUIRED = (
+    "hips",
+    "spine1",
+    "head",
+    *(f"{p}_{s}" for s in "lr" for p in ("upperarm", "lowerarm", "hand", "upperleg", "lowerleg", "foot")),
+)
 SPINE = ("spine1", "spine2", "spine3", "spine4")
 
 # BN joint -> the role of the client joint at the same body position
-BN_ROLES = {"Hips": "hips", "Neck": "neck", "Head": "head",
-            **{f"{bn}_{s.upper()}": f"{p}_{s}" for s in "lr" for bn, p in
-               (("Shoulder", "clavicle"), ("UpperArm", "upperarm"), ("LowerArm", "lowerarm"), ("Hand", "hand"),
-                ("UpperLeg", "upperleg"), ("LowerLeg", "lowerleg"), ("Foot", "foot"), ("Toes", "toes"))}}
+BN_ROLES = {
+    "Hips": "hips",
+    "Neck": "neck",
+    "Head": "head",
+    **{
+        f"{bn}_{s.upper()}": f"{p}_{s}"
+        for s in "lr"
+        for bn, p in (
+            ("Shoulder", "clavicle"),
+            ("UpperArm", "upperarm"),
+            ("LowerArm", "lowerarm"),
+            ("Hand", "hand"),
+            ("UpperLeg", "upperleg"),
+            ("LowerLeg", "lowerleg"),
+            ("Foot", "foot"),
+            ("Toes", "toes"),
+        )
+    },
+}
 
 # BN joint -> CMU joint at the same body position, for the two CMU naming variants.
 _CGSPEED = {
-    "Hips": "Hips", "Spine": "Spine", "Chest": "Spine1", "Neck": "Neck1", "Head": "Head",
-    "Shoulder_L": "LeftShoulder", "UpperArm_L": "LeftArm", "LowerArm_L": "LeftForeArm", "Hand_L": "LeftHand",
-    "Shoulder_R": "RightShoulder", "UpperArm_R": "RightArm", "LowerArm_R": "RightForeArm", "Hand_R": "RightHand",
-    "UpperLeg_L": "LeftUpLeg", "LowerLeg_L": "LeftLeg", "Foot_L": "LeftFoot", "Toes_L": "LeftToeBase",
-    "UpperLeg_R": "RightUpLeg", "LowerLeg_R": "RightLeg", "Foot_R": "RightFoot", "Toes_R": "RightToeBase",
+    "Hips": "Hips",
+    "Spine": "Spine",
+    "Chest": "Spine1",
+    "Neck": "Neck1",
+    "Head": "Head",
+    "Shoulder_L": "LeftShoulder",
+    "UpperArm_L": "LeftArm",
+    "LowerArm_L": "LeftForeArm",
+    "Hand_L": "LeftHand",
+    "Shoulder_R": "RightShoulder",
+    "UpperArm_R": "RightArm",
+    "LowerArm_R": "RightForeArm",
+    "Hand_R": "RightHand",
+    "UpperLeg_L": "LeftUpLeg",
+    "LowerLeg_L": "LeftLeg",
+    "Foot_L": "LeftFoot",
+    "Toes_L": "LeftToeBase",
+    "UpperLeg_R": "RightUpLeg",
+    "LowerLeg_R": "RightLeg",
+    "Foot_R": "RightFoot",
+    "Toes_R": "RightToeBase",
 }
 _BVH11 = {
-    "Hips": "Hips", "Spine": "Chest", "Chest": "Chest2", "Neck": "Neck", "Head": "Head",
-    "Shoulder_L": "LeftCollar", "UpperArm_L": "LeftShoulder", "LowerArm_L": "LeftElbow", "Hand_L": "LeftWrist",
-    "Shoulder_R": "RightCollar", "UpperArm_R": "RightShoulder", "LowerArm_R": "RightElbow", "Hand_R": "RightWrist",
-    "UpperLeg_L": "LeftHip", "LowerLeg_L": "LeftKnee", "Foot_L": "LeftAnkle", "Toes_L": "LeftToe",
-    "UpperLeg_R": "RightHip", "LowerLeg_R": "RightKnee", "Foot_R": "RightAnkle", "Toes_R": "RightToe",
+    "Hips": "Hips",
+    "Spine": "Chest",
+    "Chest": "Chest2",
+    "Neck": "Neck",
+    "Head": "Head",
+    "Shoulder_L": "LeftCollar",
+    "UpperArm_L": "LeftShoulder",
+    "LowerArm_L": "LeftElbow",
+    "Hand_L": "LeftWrist",
+    "Shoulder_R": "RightCollar",
+    "UpperArm_R": "RightShoulder",
+    "LowerArm_R": "RightElbow",
+    "Hand_R": "RightWrist",
+    "UpperLeg_L": "LeftHip",
+    "LowerLeg_L": "LeftKnee",
+    "Foot_L": "LeftAnkle",
+    "Toes_L": "LeftToe",
+    "UpperLeg_R": "RightHip",
+    "LowerLeg_R": "RightKnee",
+    "Foot_R": "RightAnkle",
+    "Toes_R": "RightToe",
 }
 CMU_TO_BN = {"cgspeed": _CGSPEED, "bvh11": _BVH11}
 BN_NAMES = {b: b for b in _CGSPEED}
@@ -78,7 +137,9 @@ def _bn_table(bn_to_joint: dict[str, str]) -> dict[str, str]:
 
 # exact tables tried before aliases: preset name -> {role: joint name}
 TABLES: dict[str, dict[str, str]] = {
-    "bandai-namco": _bn_table(BN_NAMES), "cmu": _bn_table(_CGSPEED), "cmu-bvh11": _bn_table(_BVH11),
+    "bandai-namco": _bn_table(BN_NAMES),
+    "cmu": _bn_table(_CGSPEED),
+    "cmu-bvh11": _bn_table(_BVH11),
     **{name: p.role_names() for name, p in PRESETS.items()},
 }
 PRESET_NAMES = ("bandai-namco", "cmu", *PRESETS)
@@ -123,7 +184,7 @@ def split_name(name: str) -> tuple[str | None, str]:
     if len(sides) == 1:
         i = sides[0]
         side = tokens[i][0]
-        tokens = tokens[:i] + tokens[i + 1:]
+        tokens = tokens[:i] + tokens[i + 1 :]
     return side, "".join(t for t in tokens if t not in ("c",) or len(tokens) == 1)
 
 
@@ -168,14 +229,18 @@ def _from_table(skeleton: Skeleton, excluded: set[int]) -> tuple[str | None, dic
     best: tuple[str | None, dict[str, int]] = (None, {})
     score = (0, 0)
     for preset, table in TABLES.items():
-        found = {r: names[n.lower()] for r, n in table.items() if n.lower() in names and names[n.lower()] not in excluded}
+        found = {
+            r: names[n.lower()] for r, n in table.items() if n.lower() in names and names[n.lower()] not in excluded
+        }
         exact = sum(skeleton.names[j].rsplit(":", 1)[-1] == table[r] for r, j in found.items())
         if all(r in found for r in REQUIRED) and (len(found), exact) > score:
             best, score = (preset, found), (len(found), exact)
     return best
 
 
-def _assign_chain(joints: list[int], candidates: list[set[str]], parts: tuple[str, ...], required: set[str]) -> dict[str, int]:
+def _assign_chain(
+    joints: list[int], candidates: list[set[str]], parts: tuple[str, ...], required: set[str]
+) -> dict[str, int]:
     """Roles `parts` (in body order) onto joints in depth order: each role at most once, roles in
     order along the chain, as many required roles as possible, then optional ones, earliest
     joints first (a small exhaustive DP; chains are short)."""
@@ -214,21 +279,32 @@ def _from_aliases(skeleton: Skeleton, fixed: dict[str, int], excluded: set[int])
         if j is not None:
             roles["hips"] = j
     hips = roles.get("hips")
-    below = (lambda j: hips is not None and is_ancestor(parents, hips, j) and j != hips)
+    below = lambda j: hips is not None and is_ancestor(parents, hips, j) and j != hips
     if "head" not in roles:
         j = pick(lambda s, b: s is None and b in _HEAD, lambda j: (not below(j), depth[j]))
         if j is not None:
             roles["head"] = j
     if "neck" not in roles and "head" in roles:
-        j = pick(lambda s, b: s is None and bool(_NECK.match(b)), lambda j: (not is_ancestor(parents, j, roles["head"]), -depth[j]))
+        j = pick(
+            lambda s, b: s is None and bool(_NECK.match(b)),
+            lambda j: (not is_ancestor(parents, j, roles["head"]), -depth[j]),
+        )
         if j is not None and is_ancestor(parents, j, roles["head"]):
             roles["neck"] = j
     for side in "lr":
         for parts in (ARM, LEG):
             want = [f"{p}_{side}" for p in parts]
             todo = tuple(r for r in want if r not in roles)
-            chain = sorted((j for j in free if split[j][0] == side and (hips is None or below(j))
-                            and any(split[j][1] in _PART_ALIASES[r[:-2]] for r in todo)), key=lambda j: depth[j])
+            chain = sorted(
+                (
+                    j
+                    for j in free
+                    if split[j][0] == side
+                    and (hips is None or below(j))
+                    and any(split[j][1] in _PART_ALIASES[r[:-2]] for r in todo)
+                ),
+                key=lambda j: depth[j],
+            )
             cands = [{r for r in todo if split[j][1] in _PART_ALIASES[r[:-2]]} for j in chain]
             roles.update(_assign_chain(chain, cands, todo, set(REQUIRED)))
     return roles
@@ -248,14 +324,30 @@ def _spine_chain(skeleton: Skeleton, roles: dict[str, int]) -> list[int]:
         chain.append(j)
         j = int(skeleton.parents[j])
     chain = chain[::-1]
-    necks = {j for j in chain if _NECK.match(split_name(skeleton.names[j])[1]) and split_name(skeleton.names[j])[0] is None}
-    carries = {j for j in chain if any(is_ancestor(skeleton.parents, j, a) and not any(
-        is_ancestor(skeleton.parents, c, a) for c in chain if c != j and is_ancestor(skeleton.parents, j, c)) for a in arms)}
-    return [j for j in chain if (j not in necks or j in carries) and
-            (np.linalg.norm(skeleton.offsets[j]) > 1e-9 or j in carries)]
+    necks = {
+        j for j in chain if _NECK.match(split_name(skeleton.names[j])[1]) and split_name(skeleton.names[j])[0] is None
+    }
+    carries = {
+        j
+        for j in chain
+        if any(
+            is_ancestor(skeleton.parents, j, a)
+            and not any(
+                is_ancestor(skeleton.parents, c, a) for c in chain if c != j and is_ancestor(skeleton.parents, j, c)
+            )
+            for a in arms
+        )
+    }
+    return [
+        j
+        for j in chain
+        if (j not in necks or j in carries) and (np.linalg.norm(skeleton.offsets[j]) > 1e-9 or j in carries)
+    ]
 
 
-def match_roles(skeleton: Skeleton, joint_map: dict[str, str | None] | None = None) -> tuple[str | None, dict[str, int]]:
+def match_roles(
+    skeleton: Skeleton, joint_map: dict[str, str | None] | None = None
+) -> tuple[str | None, dict[str, int]]:
     """(preset whose table matched or None, {role: joint index}). `joint_map` {joint: role or
     None}: its roles are taken as given, a None takes the joint out of the matching."""
     fixed: dict[str, int] = {}
@@ -264,10 +356,20 @@ def match_roles(skeleton: Skeleton, joint_map: dict[str, str | None] | None = No
     unknown_joints = [j for j in (joint_map or {}) if j.lower() not in names]
     unknown_roles = [r for r in (joint_map or {}).values() if r is not None and r not in ROLES]
     if unknown_joints or unknown_roles:
-        raise RigError("bad_joint_map", "; ".join(filter(None, [
-            unknown_joints and f"joint_map names joints the skeleton lacks: {', '.join(unknown_joints)}",
-            unknown_roles and f"joint_map names unknown roles: {', '.join(unknown_roles)} (roles: {', '.join(ROLES)})"])),
-            tuple(unknown_joints + unknown_roles))
+        raise RigError(
+            "bad_joint_map",
+            "; ".join(
+                filter(
+                    None,
+                    [
+                        unknown_joints and f"joint_map names joints the skeleton lacks: {', '.join(unknown_joints)}",
+                        unknown_roles
+                        and f"joint_map names unknown roles: {', '.join(unknown_roles)} (roles: {', '.join(ROLES)})",
+                    ],
+                )
+            ),
+            tuple(unknown_joints + unknown_roles),
+        )
     for joint, role in (joint_map or {}).items():
         j = names[joint.lower()]
         if role is None:
@@ -307,8 +409,12 @@ def bn_segments(roles: dict[str, int] | set[str]) -> dict[str, tuple[str, str]]:
     chest = chest_role(roles)
     lower_spine = "spine1" if chest != "spine1" else "hips"
     neck = "neck" if "neck" in roles else chest
-    out = {"Hips": ("hips", "spine1"), "Spine": (lower_spine, chest), "Chest": (chest, "neck" if "neck" in roles else "head"),
-           "Neck": (neck, "head")}
+    out = {
+        "Hips": ("hips", "spine1"),
+        "Spine": (lower_spine, chest),
+        "Chest": (chest, "neck" if "neck" in roles else "head"),
+        "Neck": (neck, "head"),
+    }
     for s in "lr":
         S = s.upper()
         out[f"Shoulder_{S}"] = (f"clavicle_{s}" if f"clavicle_{s}" in roles else chest, f"upperarm_{s}")
@@ -336,8 +442,11 @@ def check_topology(skeleton: Skeleton, roles: dict[str, int]) -> None:
     every segment the mapping reads that has no length."""
     missing = [r for r in REQUIRED if r not in roles]
     if missing:
-        raise RigError("missing_roles", f"the skeleton lacks joints for: {', '.join(missing)} (give them in "
-                       "joint_map as {joint: role})", tuple(missing))
+        raise RigError(
+            "missing_roles",
+            f"the skeleton lacks joints for: {', '.join(missing)} (give them in joint_map as {{joint: role}})",
+            tuple(missing),
+        )
     par = skeleton.parents
     chest = chest_role(roles)
     links = [("hips", "spine1"), *zip(SPINE, SPINE[1:]), (chest, "neck"), ("neck", "head"), (chest, "head")]
@@ -349,11 +458,15 @@ def check_topology(skeleton: Skeleton, roles: dict[str, int]) -> None:
     for a, b in links:
         if a in roles and b in roles and (roles[a] == roles[b] or not is_ancestor(par, roles[a], roles[b])):
             broken.append(f"{b} ({skeleton.names[roles[b]]}) is not below {a} ({skeleton.names[roles[a]]})")
-    short = [] if broken else [f"{a} -> {b}" for a, b in bn_segments(roles).values()
-                               if path_length(skeleton, roles[a], roles[b]) < 1e-9]
+    short = (
+        []
+        if broken
+        else [f"{a} -> {b}" for a, b in bn_segments(roles).values() if path_length(skeleton, roles[a], roles[b]) < 1e-9]
+    )
     if broken or short:
-        raise RigError("bad_topology", "; ".join(broken + [f"zero-length segment {s}" for s in short]),
-                       tuple(broken + short))
+        raise RigError(
+            "bad_topology", "; ".join(broken + [f"zero-length segment {s}" for s in short]), tuple(broken + short)
+        )
 
 
 # --------------------------------------------------------------------------- the world a rig lives in
@@ -362,10 +475,16 @@ def check_topology(skeleton: Skeleton, roles: dict[str, int]) -> None:
 def axes_matrix(up: str, handedness: str) -> np.ndarray:
     """Client world -> model world (Y up, right-handed). A reflection for left-handed clients;
     rotations are conjugated by it (A R A^T), which keeps them proper."""
-    table = {("y", "right"): [[1, 0, 0], [0, 1, 0], [0, 0, 1]], ("z", "right"): [[1, 0, 0], [0, 0, 1], [0, -1, 0]],
-             ("y", "left"): [[1, 0, 0], [0, 1, 0], [0, 0, -1]], ("z", "left"): [[1, 0, 0], [0, 0, 1], [0, 1, 0]]}
+    table = {
+        ("y", "right"): [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+        ("z", "right"): [[1, 0, 0], [0, 0, 1], [0, -1, 0]],
+        ("y", "left"): [[1, 0, 0], [0, 1, 0], [0, 0, -1]],
+        ("z", "left"): [[1, 0, 0], [0, 0, 1], [0, 1, 0]],
+    }
     if (up, handedness) not in table:
-        raise RigError("bad_rig", f"up must be 'y' or 'z' and handedness 'right' or 'left' (got {up!r}, {handedness!r})")
+        raise RigError(
+            "bad_rig", f"up must be 'y' or 'z' and handedness 'right' or 'left' (got {up!r}, {handedness!r})"
+        )
     return np.array(table[(up, handedness)], dtype=float)
 
 
@@ -427,14 +546,27 @@ class HumanoidRig:
     def report(self) -> dict:
         """What the `started` reply and `POST /v1/skeletons` say about the mapping."""
         leg = self.leg_length
-        return {"preset": self.preset, "mapping": {r: self.joint(r) for r in ROLES if r in self.roles},
-                "unmapped": self.unmapped(), "root_joint": self.skeleton.names[self.translated],
-                "up": self.up, "up_detected": self.up_detected, "handedness": self.handedness,
-                "units": self.units, "leg_length": round(leg, 6)}
+        return {
+            "preset": self.preset,
+            "mapping": {r: self.joint(r) for r in ROLES if r in self.roles},
+            "unmapped": self.unmapped(),
+            "root_joint": self.skeleton.names[self.translated],
+            "up": self.up,
+            "up_detected": self.up_detected,
+            "handedness": self.handedness,
+            "units": self.units,
+            "leg_length": round(leg, 6),
+        }
 
 
-def humanoid_rig(skeleton: Skeleton, joint_map: dict[str, str | None] | None = None, up: str | None = None,
-                 units: str | None = None, handedness: str = "right", translated: int | None = None) -> HumanoidRig:
+def humanoid_rig(
+    skeleton: Skeleton,
+    joint_map: dict[str, str | None] | None = None,
+    up: str | None = None,
+    units: str | None = None,
+    handedness: str = "right",
+    translated: int | None = None,
+) -> HumanoidRig:
     """Match and check a skeleton; raises `RigError` (typed, naming everything missing)."""
     preset, roles = match_roles(skeleton, joint_map)
     check_topology(skeleton, roles)
@@ -449,9 +581,17 @@ def humanoid_rig(skeleton: Skeleton, joint_map: dict[str, str | None] | None = N
     if not is_ancestor(skeleton.parents, translated, hips):
         raise RigError("bad_topology", f"the translated joint {skeleton.names[translated]} is not above the hips")
     axes_matrix(up or detected or "y", handedness)
-    return HumanoidRig(skeleton, roles, preset, int(translated), up or detected or "y", handedness,
-                       units or detect_units(leg_length_of(skeleton, roles)), up is None and detected is not None,
-                       dict(joint_map or {}))
+    return HumanoidRig(
+        skeleton,
+        roles,
+        preset,
+        int(translated),
+        up or detected or "y",
+        handedness,
+        units or detect_units(leg_length_of(skeleton, roles)),
+        up is None and detected is not None,
+        dict(joint_map or {}),
+    )
 
 
 def rig_from_bvh(text: str, source: str = "bvh_header", **options) -> HumanoidRig:
@@ -507,7 +647,9 @@ def preset_rig(preset: str, joints: list[str] | None = None, **options) -> Human
         key = [n.lower() if n.lower() in names else n.rsplit(":", 1)[-1].lower() for n in joints]
         unknown = [n for n, k in zip(joints, key) if k not in names]
         if unknown:
-            raise RigError("bad_skeleton", f"joints not in the {preset} preset: {', '.join(unknown[:12])}", tuple(unknown))
+            raise RigError(
+                "bad_skeleton", f"joints not in the {preset} preset: {', '.join(unknown[:12])}", tuple(unknown)
+            )
         if len(set(key)) != len(key):
             raise RigError("bad_skeleton", "joints lists a joint twice")
         order = sorted(range(len(joints)), key=lambda k: names[key[k]])

@@ -16,7 +16,7 @@ Left/left/L/l (Right/right/R/r).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 
@@ -24,15 +24,27 @@ from .skeleton import Skeleton
 
 # One template body (cm, Y up, facing +Z, its left side at +X), T-pose: role -> rest position.
 _TEMPLATE = {
-    "hips": (0.0, 95.0, 0.0), "spine1": (0.0, 105.0, -1.0), "spine2": (0.0, 115.0, -1.5),
-    "spine3": (0.0, 125.0, -1.5), "spine4": (0.0, 135.0, -1.0), "neck": (0.0, 150.0, -1.0), "head": (0.0, 160.0, 0.0),
-    "clavicle_l": (3.0, 143.0, 0.0), "upperarm_l": (17.0, 145.0, -2.0), "lowerarm_l": (45.0, 145.0, -2.0),
-    "hand_l": (70.0, 145.0, -2.0), "upperleg_l": (9.0, 90.0, 0.0), "lowerleg_l": (9.0, 50.0, 0.5),
-    "foot_l": (9.0, 9.0, -2.0), "toes_l": (9.0, 1.0, 12.0),
+    "hips": (0.0, 95.0, 0.0),
+    "spine1": (0.0, 105.0, -1.0),
+    "spine2": (0.0, 115.0, -1.5),
+    "spine3": (0.0, 125.0, -1.5),
+    "spine4": (0.0, 135.0, -1.0),
+    "neck": (0.0, 150.0, -1.0),
+    "head": (0.0, 160.0, 0.0),
+    "clavicle_l": (3.0, 143.0, 0.0),
+    "upperarm_l": (17.0, 145.0, -2.0),
+    "lowerarm_l": (45.0, 145.0, -2.0),
+    "hand_l": (70.0, 145.0, -2.0),
+    "upperleg_l": (9.0, 90.0, 0.0),
+    "lowerleg_l": (9.0, 50.0, 0.5),
+    "foot_l": (9.0, 9.0, -2.0),
+    "toes_l": (9.0, 1.0, 12.0),
 }
 _FINGERS = ("thumb", "index", "middle", "ring", "pinky")
-SIDES = {"l": {"Side": "Left", "side": "left", "S": "L", "s": "l"},
-         "r": {"Side": "Right", "side": "right", "S": "R", "s": "r"}}
+SIDES = {
+    "l": {"Side": "Left", "side": "left", "S": "L", "s": "l"},
+    "r": {"Side": "Right", "side": "right", "S": "R", "s": "r"},
+}
 
 
 @dataclass(frozen=True)
@@ -90,7 +102,9 @@ def _template_points(a_pose: bool) -> dict[str, np.ndarray]:
             pivot = pts[f"upperarm_{side}"]
             for part in ("lowerarm", "hand"):
                 d = pts[f"{part}_{side}"] - pivot
-                pts[f"{part}_{side}"] = pivot + np.array([c * d[0] + sign * s * d[1], -sign * s * d[0] + c * d[1], d[2]])
+                pts[f"{part}_{side}"] = pivot + np.array(
+                    [c * d[0] + sign * s * d[1], -sign * s * d[0] + c * d[1], d[2]]
+                )
     return pts
 
 
@@ -116,8 +130,10 @@ def _build(preset: Preset, prefix: str) -> Skeleton:
         below = name
     chest = below
     if preset.necks:
-        for name, p in zip(preset.necks, np.linspace(pts["spine4"] + 0.6 * (pts["neck"] - pts["spine4"]), pts["neck"],
-                                                     len(preset.necks))):
+        for name, p in zip(
+            preset.necks,
+            np.linspace(pts["spine4"] + 0.6 * (pts["neck"] - pts["spine4"]), pts["neck"], len(preset.necks)),
+        ):
             add(name, below, p)
             below = name
     add(roles["head"], below, pts["head"])
@@ -160,68 +176,209 @@ def _build(preset: Preset, prefix: str) -> Skeleton:
 
 
 def _limbs(*names: str) -> dict[str, str]:
-    return dict(zip(("clavicle_x", "upperarm_x", "lowerarm_x", "hand_x", "upperleg_x", "lowerleg_x", "foot_x", "toes_x"), names))
+    return dict(
+        zip(("clavicle_x", "upperarm_x", "lowerarm_x", "hand_x", "upperleg_x", "lowerleg_x", "foot_x", "toes_x"), names)
+    )
 
 
-PRESETS: dict[str, Preset] = {p.name: p for p in (
-    Preset("mixamo", {"hips": "Hips", "head": "Head",
-                      **_limbs("{Side}Shoulder", "{Side}Arm", "{Side}ForeArm", "{Side}Hand",
-                               "{Side}UpLeg", "{Side}Leg", "{Side}Foot", "{Side}ToeBase")},
-           spine=("Spine", "Spine1", "Spine2"), necks=("Neck",), finger="{Side}Hand{Finger}{i}", finger_steps=("1", "2", "3", "4"),
-           extras=(("HeadTop_End", "Head", "", 1.0), ("{Side}Toe_End", "{Side}ToeBase", "", 0.5)),
-           description="Adobe Mixamo, with or without the 'mixamorig:' prefix; T-pose"),
-    Preset("ue4", {"hips": "pelvis", "head": "head",
-                   **_limbs("clavicle_{s}", "upperarm_{s}", "lowerarm_{s}", "hand_{s}", "thigh_{s}", "calf_{s}",
-                            "foot_{s}", "ball_{s}")},
-           spine=("spine_01", "spine_02", "spine_03"), necks=("neck_01",), root="root", finger="{finger}_{i}_{s}",
-           finger_steps=("01", "02", "03"),
-           extras=(("upperarm_twist_01_{s}", "upperarm_{s}", "lowerarm_{s}", 0.5),
-                   ("lowerarm_twist_01_{s}", "lowerarm_{s}", "hand_{s}", 0.5),
-                   ("thigh_twist_01_{s}", "thigh_{s}", "calf_{s}", 0.5), ("calf_twist_01_{s}", "calf_{s}", "foot_{s}", 0.5)),
-           a_pose=True, description="Unreal Engine 4 mannequin; A-pose"),
-    Preset("ue5", {"hips": "pelvis", "head": "head",
-                   **_limbs("clavicle_{s}", "upperarm_{s}", "lowerarm_{s}", "hand_{s}", "thigh_{s}", "calf_{s}",
-                            "foot_{s}", "ball_{s}")},
-           spine=("spine_01", "spine_02", "spine_03", "spine_04", "spine_05"), necks=("neck_01", "neck_02"), root="root",
-           finger="{finger}_{i}_{s}", finger_steps=("01", "02", "03"),
-           extras=(("upperarm_twist_01_{s}", "upperarm_{s}", "lowerarm_{s}", 0.33),
-                   ("upperarm_twist_02_{s}", "upperarm_{s}", "lowerarm_{s}", 0.66),
-                   ("lowerarm_twist_01_{s}", "lowerarm_{s}", "hand_{s}", 0.33),
-                   ("lowerarm_twist_02_{s}", "lowerarm_{s}", "hand_{s}", 0.66),
-                   ("thigh_twist_01_{s}", "thigh_{s}", "calf_{s}", 0.5), ("calf_twist_01_{s}", "calf_{s}", "foot_{s}", 0.5)),
-           a_pose=True, description="Unreal Engine 5 mannequin (Manny/Quinn); A-pose"),
-    Preset("unity", {"hips": "Hips", "head": "Head",
-                     **_limbs("{Side}Shoulder", "{Side}UpperArm", "{Side}LowerArm", "{Side}Hand", "{Side}UpperLeg",
-                              "{Side}LowerLeg", "{Side}Foot", "{Side}Toes")},
-           spine=("Spine", "Chest", "UpperChest"), necks=("Neck",), finger="{Side}{Finger}{i}",
-           finger_steps=("Proximal", "Intermediate", "Distal"),
-           finger_names={"thumb": "thumb", "index": "index", "middle": "middle", "ring": "ring", "pinky": "little"},
-           description="Unity HumanBodyBones; T-pose"),
-    Preset("vrm", {"hips": "hips", "head": "head",
-                   **_limbs("{side}Shoulder", "{side}UpperArm", "{side}LowerArm", "{side}Hand", "{side}UpperLeg",
-                            "{side}LowerLeg", "{side}Foot", "{side}Toes")},
-           spine=("spine", "chest", "upperChest"), necks=("neck",),
-           description="VRM humanoid bone names (lowerCamelCase); T-pose"),
-    Preset("smpl", {"hips": "pelvis", "head": "head",
-                    **_limbs("{side}_collar", "{side}_shoulder", "{side}_elbow", "{side}_wrist", "{side}_hip",
-                             "{side}_knee", "{side}_ankle", "{side}_foot")},
-           spine=("spine1", "spine2", "spine3"), necks=("neck",),
-           extras=(("{side}_hand", "{side}_wrist", "", 0.8),),
-           description="SMPL body joints; T-pose"),
-    Preset("smplx", {"hips": "pelvis", "head": "head",
-                     **_limbs("{side}_collar", "{side}_shoulder", "{side}_elbow", "{side}_wrist", "{side}_hip",
-                              "{side}_knee", "{side}_ankle", "{side}_foot")},
-           spine=("spine1", "spine2", "spine3"), necks=("neck",), finger="{side}_{finger}{i}",
-           extras=(("jaw", "head", "", 0.4), ("{side}_eye_smplx", "head", "", 0.6)),
-           description="SMPL-X body and hand joints; T-pose"),
-    Preset("bvh", {"hips": "Hips", "head": "Head",
-                   **_limbs("{Side}Shoulder", "{Side}Arm", "{Side}ForeArm", "{Side}Hand", "{Side}UpLeg", "{Side}Leg",
-                            "{Side}Foot", "{Side}ToeBase")},
-           spine=("Spine", "Spine1", "Spine2"), necks=("Neck",),
-           description="common BVH exports (MotionBuilder-style names: Hips, Spine, LeftArm, LeftUpLeg, ...); T-pose"),
-)}
+PRESETS: dict[str, Preset] = {
+    p.name: p
+    for p in (
+        Preset(
+            "mixamo",
+            {
+                "hips": "Hips",
+                "head": "Head",
+                **_limbs(
+                    "{Side}Shoulder",
+                    "{Side}Arm",
+                    "{Side}ForeArm",
+                    "{Side}Hand",
+                    "{Side}UpLeg",
+                    "{Side}Leg",
+                    "{Side}Foot",
+                    "{Side}ToeBase",
+                ),
+            },
+            spine=("Spine", "Spine1", "Spine2"),
+            necks=("Neck",),
+            finger="{Side}Hand{Finger}{i}",
+            finger_steps=("1", "2", "3", "4"),
+            extras=(("HeadTop_End", "Head", "", 1.0), ("{Side}Toe_End", "{Side}ToeBase", "", 0.5)),
+            description="Adobe Mixamo, with or without the 'mixamorig:' prefix; T-pose",
+        ),
+        Preset(
+            "ue4",
+            {
+                "hips": "pelvis",
+                "head": "head",
+                **_limbs(
+                    "clavicle_{s}",
+                    "upperarm_{s}",
+                    "lowerarm_{s}",
+                    "hand_{s}",
+                    "thigh_{s}",
+                    "calf_{s}",
+                    "foot_{s}",
+                    "ball_{s}",
+                ),
+            },
+            spine=("spine_01", "spine_02", "spine_03"),
+            necks=("neck_01",),
+            root="root",
+            finger="{finger}_{i}_{s}",
+            finger_steps=("01", "02", "03"),
+            extras=(
+                ("upperarm_twist_01_{s}", "upperarm_{s}", "lowerarm_{s}", 0.5),
+                ("lowerarm_twist_01_{s}", "lowerarm_{s}", "hand_{s}", 0.5),
+                ("thigh_twist_01_{s}", "thigh_{s}", "calf_{s}", 0.5),
+                ("calf_twist_01_{s}", "calf_{s}", "foot_{s}", 0.5),
+            ),
+            a_pose=True,
+            description="Unreal Engine 4 mannequin; A-pose",
+        ),
+        Preset(
+            "ue5",
+            {
+                "hips": "pelvis",
+                "head": "head",
+                **_limbs(
+                    "clavicle_{s}",
+                    "upperarm_{s}",
+                    "lowerarm_{s}",
+                    "hand_{s}",
+                    "thigh_{s}",
+                    "calf_{s}",
+                    "foot_{s}",
+                    "ball_{s}",
+                ),
+            },
+            spine=("spine_01", "spine_02", "spine_03", "spine_04", "spine_05"),
+            necks=("neck_01", "neck_02"),
+            root="root",
+            finger="{finger}_{i}_{s}",
+            finger_steps=("01", "02", "03"),
+            extras=(
+                ("upperarm_twist_01_{s}", "upperarm_{s}", "lowerarm_{s}", 0.33),
+                ("upperarm_twist_02_{s}", "upperarm_{s}", "lowerarm_{s}", 0.66),
+                ("lowerarm_twist_01_{s}", "lowerarm_{s}", "hand_{s}", 0.33),
+                ("lowerarm_twist_02_{s}", "lowerarm_{s}", "hand_{s}", 0.66),
+                ("thigh_twist_01_{s}", "thigh_{s}", "calf_{s}", 0.5),
+                ("calf_twist_01_{s}", "calf_{s}", "foot_{s}", 0.5),
+            ),
+            a_pose=True,
+            description="Unreal Engine 5 mannequin (Manny/Quinn); A-pose",
+        ),
+        Preset(
+            "unity",
+            {
+                "hips": "Hips",
+                "head": "Head",
+                **_limbs(
+                    "{Side}Shoulder",
+                    "{Side}UpperArm",
+                    "{Side}LowerArm",
+                    "{Side}Hand",
+                    "{Side}UpperLeg",
+                    "{Side}LowerLeg",
+                    "{Side}Foot",
+                    "{Side}Toes",
+                ),
+            },
+            spine=("Spine", "Chest", "UpperChest"),
+            necks=("Neck",),
+            finger="{Side}{Finger}{i}",
+            finger_steps=("Proximal", "Intermediate", "Distal"),
+            finger_names={"thumb": "thumb", "index": "index", "middle": "middle", "ring": "ring", "pinky": "little"},
+            description="Unity HumanBodyBones; T-pose",
+        ),
+        Preset(
+            "vrm",
+            {
+                "hips": "hips",
+                "head": "head",
+                **_limbs(
+                    "{side}Shoulder",
+                    "{side}UpperArm",
+                    "{side}LowerArm",
+                    "{side}Hand",
+                    "{side}UpperLeg",
+                    "{side}LowerLeg",
+                    "{side}Foot",
+                    "{side}Toes",
+                ),
+            },
+            spine=("spine", "chest", "upperChest"),
+            necks=("neck",),
+            description="VRM humanoid bone names (lowerCamelCase); T-pose",
+        ),
+        Preset(
+            "smpl",
+            {
+                "hips": "pelvis",
+                "head": "head",
+                **_limbs(
+                    "{side}_collar",
+                    "{side}_shoulder",
+                    "{side}_elbow",
+                    "{side}_wrist",
+                    "{side}_hip",
+                    "{side}_knee",
+                    "{side}_ankle",
+                    "{side}_foot",
+                ),
+            },
+            spine=("spine1", "spine2", "spine3"),
+            necks=("neck",),
+            extras=(("{side}_hand", "{side}_wrist", "", 0.8),),
+            description="SMPL body joints; T-pose",
+        ),
+        Preset(
+            "smplx",
+            {
+                "hips": "pelvis",
+                "head": "head",
+                **_limbs(
+                    "{side}_collar",
+                    "{side}_shoulder",
+                    "{side}_elbow",
+                    "{side}_wrist",
+                    "{side}_hip",
+                    "{side}_knee",
+                    "{side}_ankle",
+                    "{side}_foot",
+                ),
+            },
+            spine=("spine1", "spine2", "spine3"),
+            necks=("neck",),
+            finger="{side}_{finger}{i}",
+            extras=(("jaw", "head", "", 0.4), ("{side}_eye_smplx", "head", "", 0.6)),
+            description="SMPL-X body and hand joints; T-pose",
+        ),
+        Preset(
+            "bvh",
+            {
+                "hips": "Hips",
+                "head": "Head",
+                **_limbs(
+                    "{Side}Shoulder",
+                    "{Side}Arm",
+                    "{Side}ForeArm",
+                    "{Side}Hand",
+                    "{Side}UpLeg",
+                    "{Side}Leg",
+                    "{Side}Foot",
+                    "{Side}ToeBase",
+                ),
+            },
+            spine=("Spine", "Spine1", "Spine2"),
+            necks=("Neck",),
+            description="common BVH exports (MotionBuilder-style names: Hips, Spine, LeftArm, LeftUpLeg, ...); T-pose",
+        ),
+    )
+}
 
 
-@lru_cache(maxsize=None)
+@cache
 def preset_skeleton(name: str, prefix: str = "") -> Skeleton:
     return PRESETS[name].skeleton(prefix)

@@ -27,7 +27,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 
@@ -54,11 +54,13 @@ def joint_sides(skeleton: Skeleton) -> np.ndarray:
     """+1 for left joints, -1 for right joints, 0 for the centre line, from joint names: the side
     marker `humanoid.split_name` finds (`Left…`, `_L`, `_l`, `.L`, `left_`, `mixamorig:Left…`), else
     the older CMU spellings (`LHipJoint`, `lhand`)."""
+
     def side(name: str) -> int:
         marker = split_name(name)[0]
         if marker:
             return 1 if marker == "l" else -1
         return 1 if _LEFT.search(name) else -1 if _RIGHT.search(name) else 0
+
     return np.array([side(n) for n in skeleton.names], int)
 
 
@@ -68,8 +70,15 @@ def _first(names: tuple[str, ...], ok: Callable[[int, str], bool]) -> int | None
 
 
 # humanoid role -> part drawn as a solid
-_ROLE_PARTS = {"head": "head", "hand_l": "hand_l", "hand_r": "hand_r", "foot_l": "foot_l", "foot_r": "foot_r",
-               "toes_l": "toe_l", "toes_r": "toe_r"}
+_ROLE_PARTS = {
+    "head": "head",
+    "hand_l": "hand_l",
+    "hand_r": "hand_r",
+    "foot_l": "foot_l",
+    "foot_r": "foot_r",
+    "toes_l": "toe_l",
+    "toes_r": "toe_r",
+}
 
 
 def find_parts(skeleton: Skeleton) -> dict[str, int]:
@@ -91,14 +100,18 @@ def _parts_by_pattern(skeleton: Skeleton) -> dict[str, int]:
     if head is not None:
         out["head"] = head
     for tag, side in (("l", 1), ("r", -1)):
-        hand = _first(names, lambda j, n: sides[j] == side and bool(_HAND.search(n)) and not _DIGIT.search(n))
+        hand = _first(
+            names, lambda j, n, side=side: sides[j] == side and bool(_HAND.search(n)) and not _DIGIT.search(n)
+        )
         if hand is not None:
             out[f"hand_{tag}"] = hand
         for part, feature, pattern in (("foot", "ankle", _FOOT), ("toe", "toe", _TOE)):
             try:
                 joint: int | None = body_joint(skeleton, f"{feature}_{tag}")
             except KeyError:
-                joint = _first(names, lambda j, n: sides[j] == side and bool(pattern.search(n)))
+                joint = _first(
+                    names, lambda j, n, side=side, pattern=pattern: sides[j] == side and bool(pattern.search(n))
+                )
             if joint is not None:
                 out[f"{part}_{tag}"] = joint
     return out
@@ -132,8 +145,12 @@ def body_forward(positions: np.ndarray, skeleton: Skeleton) -> np.ndarray:
         _, roles = match_roles(skeleton)
         if not all(r in roles for r in ("upperleg_l", "upperleg_r", "upperarm_l", "upperarm_r")):
             return np.array([0.0, 0.0, 1.0])
-        left = (positions[roles["upperleg_l"]] - positions[roles["upperleg_r"]]
-                + positions[roles["upperarm_l"]] - positions[roles["upperarm_r"]])
+        left = (
+            positions[roles["upperleg_l"]]
+            - positions[roles["upperleg_r"]]
+            + positions[roles["upperarm_l"]]
+            - positions[roles["upperarm_r"]]
+        )
         forward = np.cross(left, UP)
         yaw = float(np.arctan2(forward[0], forward[2]))
     return np.array([np.sin(yaw), 0.0, np.cos(yaw)])
@@ -181,8 +198,9 @@ class Solid:
     mark: bool  # the nose and the thumb stubs: drawn in a contrasting colour
 
 
-def _block(x: tuple[float, float], y_back: tuple[float, float], y_front: tuple[float, float],
-           z: tuple[float, float]) -> np.ndarray:
+def _block(
+    x: tuple[float, float], y_back: tuple[float, float], y_front: tuple[float, float], z: tuple[float, float]
+) -> np.ndarray:
     """(8, 3) corners of a box from x[0] to x[1] whose y extent goes from `y_back` (at x[0]) to
     `y_front` (at x[1]): a box when they are equal, a wedge otherwise."""
     return np.array([[x[ix], (y_back, y_front)[ix][iy], z[iz]] for ix in (0, 1) for iy in (0, 1) for iz in (0, 1)])
@@ -221,28 +239,62 @@ def build_solids(skeleton: Skeleton, axes: dict[str, tuple[str, np.ndarray]]) ->
         top = end + 0.01 * L if end > 0.05 * L else 0.22 * L
         h, bottom = 0.25 * L, top - 0.25 * L
         add("head", j, a, _block((-0.1 * L, 0.1 * L), (bottom, top), (bottom, top), (-0.08 * L, 0.08 * L)), 0)
-        add("nose", j, a, _block((0.1 * L, 0.2 * L), (bottom + 0.28 * h, bottom + 0.52 * h),
-                                 (bottom + 0.3 * h, bottom + 0.38 * h), (-0.025 * L, 0.025 * L)), 0, mark=True)
+        add(
+            "nose",
+            j,
+            a,
+            _block(
+                (0.1 * L, 0.2 * L),
+                (bottom + 0.28 * h, bottom + 0.52 * h),
+                (bottom + 0.3 * h, bottom + 0.38 * h),
+                (-0.025 * L, 0.025 * L),
+            ),
+            0,
+            mark=True,
+        )
     for tag, side in (("l", 1), ("r", -1)):
         if f"hand_{tag}" in axes and axes[f"hand_{tag}"][0] in names:
             j, a = names.index(axes[f"hand_{tag}"][0]), axes[f"hand_{tag}"][1]
-            add(f"hand_{tag}", j, a, _block((0.0, 0.2 * L), (-0.05 * L, 0.05 * L), (-0.05 * L, 0.05 * L),
-                                            (-0.018 * L, 0.018 * L)), side)
-            add(f"thumb_{tag}", j, a, _block((0.02 * L, 0.1 * L), (0.03 * L, 0.07 * L), (0.07 * L, 0.12 * L),
-                                             (-0.016 * L, 0.016 * L)), side, mark=True)
+            add(
+                f"hand_{tag}",
+                j,
+                a,
+                _block((0.0, 0.2 * L), (-0.05 * L, 0.05 * L), (-0.05 * L, 0.05 * L), (-0.018 * L, 0.018 * L)),
+                side,
+            )
+            add(
+                f"thumb_{tag}",
+                j,
+                a,
+                _block((0.02 * L, 0.1 * L), (0.03 * L, 0.07 * L), (0.07 * L, 0.12 * L), (-0.016 * L, 0.016 * L)),
+                side,
+                mark=True,
+            )
         if f"foot_{tag}" in axes and axes[f"foot_{tag}"][0] in names:
             j, a = names.index(axes[f"foot_{tag}"][0]), axes[f"foot_{tag}"][1]
-            toe = names.index(axes[f"toe_{tag}"][0]) if f"toe_{tag}" in axes and axes[f"toe_{tag}"][0] in names else None
+            toe = (
+                names.index(axes[f"toe_{tag}"][0]) if f"toe_{tag}" in axes and axes[f"toe_{tag}"][0] in names else None
+            )
             # the toe joint in the foot's part frame (pose-independent: it is the bone's offset)
             d = a.T @ skeleton.offsets[toe] if toe is not None else np.array([0.12 * L, -0.09 * L, 0.0])
             sole = d[1] - 0.05 * L
-            add(f"foot_{tag}", j, a, _block((-0.07 * L, d[0]), (sole, 0.02 * L), (sole, d[1] + 0.035 * L),
-                                            (-0.05 * L, 0.05 * L)), side)
+            add(
+                f"foot_{tag}",
+                j,
+                a,
+                _block((-0.07 * L, d[0]), (sole, 0.02 * L), (sole, d[1] + 0.035 * L), (-0.05 * L, 0.05 * L)),
+                side,
+            )
             if toe is not None:
                 end = _end_length(skeleton, toe)
                 length = end if end > 0.03 * L else 0.08 * L
-                add(f"toe_{tag}", toe, axes[f"toe_{tag}"][1], _block((0.0, length), (-0.05 * L, 0.035 * L),
-                                                                     (-0.05 * L, 0.0), (-0.045 * L, 0.045 * L)), side)
+                add(
+                    f"toe_{tag}",
+                    toe,
+                    axes[f"toe_{tag}"][1],
+                    _block((0.0, length), (-0.05 * L, 0.035 * L), (-0.05 * L, 0.0), (-0.045 * L, 0.045 * L)),
+                    side,
+                )
     return tuple(out)
 
 
@@ -279,7 +331,7 @@ def same_rig(reference: Skeleton, skeleton: Skeleton) -> bool:
     return True
 
 
-@lru_cache(maxsize=None)
+@cache
 def _asset_axes(which: str) -> dict[str, tuple[str, np.ndarray]]:
     return part_axes(bandai_namco_pose() if which == "bandai_namco" else cmu_pose())
 
@@ -339,5 +391,14 @@ def face_normals(corners: np.ndarray) -> np.ndarray:
 def solids_json(solids: tuple[Solid, ...]) -> list[dict]:
     """The solids for the browser viewer: joint, part frame as a quaternion (xyzw) in the joint's
     frame, corners in the part frame (corner k = (bit 2, bit 1, bit 0) as in `FACES`)."""
-    return [{"part": s.part, "joint": s.joint, "rotation": np.round(matrix_to_quat(s.axes), 6).tolist(),
-             "corners": np.round(s.corners, 4).tolist(), "side": s.side, "mark": s.mark} for s in solids]
+    return [
+        {
+            "part": s.part,
+            "joint": s.joint,
+            "rotation": np.round(matrix_to_quat(s.axes), 6).tolist(),
+            "corners": np.round(s.corners, 4).tolist(),
+            "side": s.side,
+            "mark": s.mark,
+        }
+        for s in solids
+    ]

@@ -12,8 +12,8 @@ many capture exports) is drawn standing in its own up axis (`upright`), not lyin
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import matplotlib
 
@@ -53,8 +53,11 @@ def _bones(skeleton: Skeleton) -> list[tuple[int, int, str]]:
     """(parent, child, colour) for every bone of non-zero length inside the body."""
     sides, body = joint_sides(skeleton), _body(skeleton)
     colour = {1: LEFT, -1: RIGHT, 0: CENTRE}
-    return [(int(p), j, colour[int(sides[j])]) for j, p in enumerate(skeleton.parents)
-            if p >= 0 and body[p] and np.linalg.norm(skeleton.offsets[j]) > 1e-6]
+    return [
+        (int(p), j, colour[int(sides[j])])
+        for j, p in enumerate(skeleton.parents)
+        if p >= 0 and body[p] and np.linalg.norm(skeleton.offsets[j]) > 1e-6
+    ]
 
 
 def _as_list(motions: Motion | Sequence[Motion]) -> list[Motion]:
@@ -129,8 +132,9 @@ def bone_ribbons(a: np.ndarray, b: np.ndarray, eye: np.ndarray, width: float) ->
 class _Panel:
     """One 3D axes showing one skeleton; `show(frame)` poses the figure and moves camera and grid."""
 
-    def __init__(self, ax, motion: Motion, transforms: tuple[np.ndarray, np.ndarray], view: tuple[float, float],
-                 title: str = ""):
+    def __init__(
+        self, ax, motion: Motion, transforms: tuple[np.ndarray, np.ndarray], view: tuple[float, float], title: str = ""
+    ):
         self.ax, self.root = ax, _root_index(motion.skeleton)
         self.body = _body(motion.skeleton)
         self.rotations, self.positions = transforms
@@ -148,7 +152,9 @@ class _Panel:
         bone_rgb = np.array([to_rgb(c) for _, _, c in bones]).reshape(-1, 3)
         self.tints = np.concatenate([bone_rgb, face_tints(self.solids).reshape(-1, 3)])
         self.lit = np.concatenate([np.zeros(len(bones), bool), np.ones(6 * len(self.solids), bool)])
-        edges = np.concatenate([np.c_[bone_rgb, np.ones(len(bones))], np.tile((0.1, 0.1, 0.1, 0.6), (6 * len(self.solids), 1))])
+        edges = np.concatenate(
+            [np.c_[bone_rgb, np.ones(len(bones))], np.tile((0.1, 0.1, 0.1, 0.6), (6 * len(self.solids), 1))]
+        )
         ax.computed_zorder = False  # ground under the figure, whatever matplotlib thinks of their depths
         self.grid = ax.plot([], [], [], color="0.75", lw=0.6, zorder=1)[0]
         self.shadow = ax.plot([], [], [], color="0.55", lw=1.0, alpha=0.6, zorder=1.1)[0]
@@ -188,7 +194,10 @@ class _Panel:
         # ground grid: world-fixed lines at multiples of `spacing` inside the view box
         segs = []
         for axis, centre, other in ((0, cx, cz), (2, cz, cx)):
-            v = np.arange(np.ceil((centre - r) / self.spacing), np.floor((centre + r) / self.spacing) + 1) * self.spacing
+            v = (
+                np.arange(np.ceil((centre - r) / self.spacing), np.floor((centre + r) / self.spacing) + 1)
+                * self.spacing
+            )
             seg = np.full((len(v), 3, 3), np.nan)
             seg[:, :2, 1] = 0.0
             seg[:, :2, axis] = v[:, None]

@@ -47,7 +47,9 @@ def resample(motion: Motion, fps: float) -> Motion:
     if fps <= 0:
         raise ValueError(f"fps must be positive, got {fps}")
     if abs(fps - motion.fps) < 1e-9 or motion.num_frames <= 1:
-        return replace(motion, rotations=motion.rotations.copy(), translations=motion.translations.copy(), fps=float(fps))
+        return replace(
+            motion, rotations=motion.rotations.copy(), translations=motion.translations.copy(), fps=float(fps)
+        )
     x = resample_times(motion.num_frames, motion.fps, fps)
     i0 = np.floor(x + 1e-9).astype(int).clip(0, motion.num_frames - 1)
     i1 = np.minimum(i0 + 1, motion.num_frames - 1)

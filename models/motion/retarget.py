@@ -38,23 +38,54 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .humanoid import CMU_TO_BN, HumanoidRig  # noqa: E402  (the CMU namings are one preset of the humanoid mapping)
 from .resample import resample
 from .rotations import quat_canonical
 from .skeleton import Motion, Skeleton, fk
 
-from .humanoid import CMU_TO_BN, HumanoidRig  # noqa: E402  (the CMU namings are one preset of the humanoid mapping)
-
-BN_JOINTS = ("joint_Root", "Hips", "Spine", "Chest", "Neck", "Head",
-             "Shoulder_L", "UpperArm_L", "LowerArm_L", "Hand_L", "Shoulder_R", "UpperArm_R", "LowerArm_R", "Hand_R",
-             "UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L", "UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R")
+BN_JOINTS = (
+    "joint_Root",
+    "Hips",
+    "Spine",
+    "Chest",
+    "Neck",
+    "Head",
+    "Shoulder_L",
+    "UpperArm_L",
+    "LowerArm_L",
+    "Hand_L",
+    "Shoulder_R",
+    "UpperArm_R",
+    "LowerArm_R",
+    "Hand_R",
+    "UpperLeg_L",
+    "LowerLeg_L",
+    "Foot_L",
+    "Toes_L",
+    "UpperLeg_R",
+    "LowerLeg_R",
+    "Foot_R",
+    "Toes_R",
+)
 
 # BN joint -> the child whose bone its rotation is matched on (joints not listed are leaves).
 _PRIMARY_CHILD = {
-    "Hips": "Spine", "Spine": "Chest", "Chest": "Neck", "Neck": "Head",
-    "Shoulder_L": "UpperArm_L", "UpperArm_L": "LowerArm_L", "LowerArm_L": "Hand_L",
-    "Shoulder_R": "UpperArm_R", "UpperArm_R": "LowerArm_R", "LowerArm_R": "Hand_R",
-    "UpperLeg_L": "LowerLeg_L", "LowerLeg_L": "Foot_L", "Foot_L": "Toes_L",
-    "UpperLeg_R": "LowerLeg_R", "LowerLeg_R": "Foot_R", "Foot_R": "Toes_R",
+    "Hips": "Spine",
+    "Spine": "Chest",
+    "Chest": "Neck",
+    "Neck": "Head",
+    "Shoulder_L": "UpperArm_L",
+    "UpperArm_L": "LowerArm_L",
+    "LowerArm_L": "Hand_L",
+    "Shoulder_R": "UpperArm_R",
+    "UpperArm_R": "LowerArm_R",
+    "LowerArm_R": "Hand_R",
+    "UpperLeg_L": "LowerLeg_L",
+    "LowerLeg_L": "Foot_L",
+    "Foot_L": "Toes_L",
+    "UpperLeg_R": "LowerLeg_R",
+    "LowerLeg_R": "Foot_R",
+    "Foot_R": "Toes_R",
 }
 # Joints with several children: (left child, right child) fixing the twist of the up vector.
 # The client side takes the vector between its upper legs / upper arms (CMU collars sit on the
@@ -107,7 +138,9 @@ def default_rig() -> Rig:
     from .assets import BANDAI_NAMCO_TOE_FLOOR, bandai_namco_pose
 
     pose = bandai_namco_pose()
-    return Rig(pose.skeleton, np.array(pose.rotations[0], dtype=float), BANDAI_NAMCO_TOE_FLOOR, tuple(pose.euler_orders))
+    return Rig(
+        pose.skeleton, np.array(pose.rotations[0], dtype=float), BANDAI_NAMCO_TOE_FLOOR, tuple(pose.euler_orders)
+    )
 
 
 def leg_length(skeleton: Skeleton, variant: str | None = None) -> float:
@@ -126,7 +159,12 @@ def _frame(primary: np.ndarray, lateral: np.ndarray) -> np.ndarray:
 
 # BN limb joint -> its hinge child: the limb joint's twist is set by the plane of the limb
 # (hip-knee-ankle, shoulder-elbow-wrist), so the hinge bends about the BN hinge axis.
-_HINGES = {"UpperLeg_L": "LowerLeg_L", "UpperLeg_R": "LowerLeg_R", "UpperArm_L": "LowerArm_L", "UpperArm_R": "LowerArm_R"}
+_HINGES = {
+    "UpperLeg_L": "LowerLeg_L",
+    "UpperLeg_R": "LowerLeg_R",
+    "UpperArm_L": "LowerArm_L",
+    "UpperArm_R": "LowerArm_R",
+}
 # How much a near-straight limb falls back to the natural twist: the hinge axis aims along
 # cross(upper bone, lower bone) + HINGE_FALLBACK * (axis under the natural twist). |cross| is the
 # sine of the bend, so the limb plane decides once the bend is well above ~6 degrees, and a straight
@@ -241,8 +279,9 @@ class TwistPlan:
         return gb
 
 
-def retarget(motion: Motion, target: Rig | Motion | None = None, fps: float = 30.0,
-             source: HumanoidRig | None = None) -> Motion:
+def retarget(
+    motion: Motion, target: Rig | Motion | None = None, fps: float = 30.0, source: HumanoidRig | None = None
+) -> Motion:
     """A humanoid motion (any rig `humanoid` matches; CMU and Xia files included) as a BN-skeleton
     motion at `fps`: the per-frame mapping of `retarget_stream.FrameRetargeter` over the clip,
     with the Hips height set so that the clip's toe contact height (`contact_height`, which looks
@@ -261,7 +300,9 @@ def retarget(motion: Motion, target: Rig | Motion | None = None, fps: float = 30
     sk, n = rig.skeleton, src.num_frames
     trans = np.broadcast_to(sk.offsets, (n, sk.num_joints, 3)).copy()
     if not n:
-        return Motion(sk, np.zeros((0, sk.num_joints, 4)), trans, float(fps), rig.euler_orders or tuple("ZXY" for _ in sk.names))
+        return Motion(
+            sk, np.zeros((0, sk.num_joints, 4)), trans, float(fps), rig.euler_orders or tuple("ZXY" for _ in sk.names)
+        )
     hips_t, local = fr.to_model(src.translations[:, fr.humanoid.translated], src.rotations)
     hips = sk.index("Hips")
     trans[:, hips] = hips_t

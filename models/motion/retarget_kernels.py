@@ -72,7 +72,17 @@ def _quat_to_mat(q, out):
     """(4,) quaternion (normalised here) -> 3x3 (rotations.quat_to_matrix)."""
     x, y, z, w = q[0], q[1], q[2], q[3]
     s = 2.0 / (x * x + y * y + z * z + w * w)  # 2 / |q|^2: the products of the unit quaternion, doubled
-    xx, yy, zz, xy, xz, yz, wx, wy, wz = s * x * x, s * y * y, s * z * z, s * x * y, s * x * z, s * y * z, s * w * x, s * w * y, s * w * z
+    xx, yy, zz, xy, xz, yz, wx, wy, wz = (
+        s * x * x,
+        s * y * y,
+        s * z * z,
+        s * x * y,
+        s * x * z,
+        s * y * z,
+        s * w * x,
+        s * w * y,
+        s * w * z,
+    )
     out[0, 0], out[0, 1], out[0, 2] = 1 - (yy + zz), xy - wz, xz + wy
     out[1, 0], out[1, 1], out[1, 2] = xy + wz, 1 - (xx + zz), yz - wx
     out[2, 0], out[2, 1], out[2, 2] = xz - wy, yz + wx, 1 - (xx + yy)
@@ -183,8 +193,29 @@ def _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t):
 
 
 @njit(cache=True, error_model="numpy")
-def _bn_globals(gs, vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
-                step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, gb, terms, raw, vec, w33, w3):
+def _bn_globals(
+    gs,
+    vec_par_s,
+    vec_off,
+    vec_nz,
+    vec_w,
+    axes,
+    num_plain,
+    m_tgt_t,
+    lateral_j,
+    step_i,
+    step_nat,
+    step_b,
+    step_k,
+    step_m_loc_t,
+    bn_parents,
+    gb,
+    terms,
+    raw,
+    vec,
+    w33,
+    w3,
+):
     """BN world rotations gb (22, 3, 3) from the client's slot rotations gs
     (`FrameRetargeter._bn_globals` then `retarget.TwistPlan.bn_globals`). The segment vectors are
     sums of vec_w[e] * gs[vec_par_s[t]] @ vec_off[t] over the entries e = (v, t) of vec_nz (the
@@ -227,19 +258,39 @@ def _bn_globals(gs, vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t,
             _mv(gb[j], step_k[s], nat)
             n0, n1, n2 = d[1] * lo[2] - d[2] * lo[1], d[2] * lo[0] - d[0] * lo[2], d[0] * lo[1] - d[1] * lo[0]
             w = n0 * nat[0] + n1 * nat[1] + n2 * nat[2]
-            _frame(d[0], d[1], d[2], w * n0 + HINGE_FALLBACK_SQ * nat[0], w * n1 + HINGE_FALLBACK_SQ * nat[1],
-                   w * n2 + HINGE_FALLBACK_SQ * nat[2], m)
+            _frame(
+                d[0],
+                d[1],
+                d[2],
+                w * n0 + HINGE_FALLBACK_SQ * nat[0],
+                w * n1 + HINGE_FALLBACK_SQ * nat[1],
+                w * n2 + HINGE_FALLBACK_SQ * nat[2],
+                m,
+            )
             _mm(m, step_m_loc_t[s], gb[j])
-
-
 
 
 # The rig's arrays travel packed in two buffers, ints and floats, each with its offsets (a part i is
 # buf[at[i]:at[i + 1]], reshaped): numba checks every argument's type on each call (~0.1 us an
 # array), which for the two dozen arrays a rig needs would be most of a batch-1 call.
-INT_PARTS = ("src_order", "src_par_s", "fixed_par_s", "translated_par_s", "vec_par_s", "vec_nz", "num_plain",
-             "lateral_j", "step_i", "bn_parents", "bn_order", "delta_j", "anc_bn_s", "mapped_j", "mapped_s",
-             "mapped_par_s")
+INT_PARTS = (
+    "src_order",
+    "src_par_s",
+    "fixed_par_s",
+    "translated_par_s",
+    "vec_par_s",
+    "vec_nz",
+    "num_plain",
+    "lateral_j",
+    "step_i",
+    "bn_parents",
+    "bn_order",
+    "delta_j",
+    "anc_bn_s",
+    "mapped_j",
+    "mapped_s",
+    "mapped_par_s",
+)
 FLOAT_PARTS = ("fixed_off", "vec_off", "vec_w", "axes", "m_tgt_t", "step_nat", "step_b", "step_k", "step_m_loc_t")
 
 
@@ -253,26 +304,50 @@ def pack(parts: dict, names: tuple[str, ...], dtype) -> tuple[np.ndarray, np.nda
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _part(buf, at, i):
-    return buf[at[i]:at[i + 1]]
+    return buf[at[i] : at[i + 1]]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _part3(buf, at, i):
-    return buf[at[i]:at[i + 1]].reshape(-1, 3)
+    return buf[at[i] : at[i + 1]].reshape(-1, 3)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _part33(buf, at, i):
-    return buf[at[i]:at[i + 1]].reshape(-1, 3, 3)
+    return buf[at[i] : at[i + 1]].reshape(-1, 3, 3)
 
 
 # --------------------------------------------------------------------------- the two directions
 
 
 @njit(cache=True, error_model="numpy")
-def _to_model(root, rot, src_order, src_par_s, fixed_par_s, fixed_off, translated_par_s, scale, vertical_offset,
-             vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
-             step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, hips_out, rot_out):
+def _to_model(
+    root,
+    rot,
+    src_order,
+    src_par_s,
+    fixed_par_s,
+    fixed_off,
+    translated_par_s,
+    scale,
+    vertical_offset,
+    vec_par_s,
+    vec_off,
+    vec_nz,
+    vec_w,
+    axes,
+    num_plain,
+    m_tgt_t,
+    lateral_j,
+    step_i,
+    step_nat,
+    step_b,
+    step_k,
+    step_m_loc_t,
+    bn_parents,
+    hips_out,
+    rot_out,
+):
     """Client frames (root (B, 3), local quaternions (B, Js, 4)) -> BN Hips translations
     hips_out (B, 3) and BN local quaternions rot_out (B, 22, 4) (`FrameRetargeter.to_model`); `to_model` unpacks the rig's arrays for it."""
     nb, nv = bn_parents.shape[0], num_plain + 2 * lateral_j.shape[0]
@@ -292,8 +367,29 @@ def _to_model(root, rot, src_order, src_par_s, fixed_par_s, fixed_off, translate
         for r in range(3):
             hips_out[f, r] = h[r] * scale
         hips_out[f, 1] += vertical_offset
-        _bn_globals(gs, vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
-                    step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, gb, terms, raw, vec, w33, w3)
+        _bn_globals(
+            gs,
+            vec_par_s,
+            vec_off,
+            vec_nz,
+            vec_w,
+            axes,
+            num_plain,
+            m_tgt_t,
+            lateral_j,
+            step_i,
+            step_nat,
+            step_b,
+            step_k,
+            step_m_loc_t,
+            bn_parents,
+            gb,
+            terms,
+            raw,
+            vec,
+            w33,
+            w3,
+        )
         for j in range(nb):
             if bn_parents[j] < 0:
                 _mat_to_quat(gb[j], rot_out[f, j])
@@ -303,10 +399,40 @@ def _to_model(root, rot, src_order, src_par_s, fixed_par_s, fixed_off, translate
 
 
 @njit(cache=True, error_model="numpy")
-def _to_source(root_bn, rot_bn, src_rot, src_order, src_par_s, fixed_par_s, fixed_off, translated_par_s, scale,
-              vertical_offset, vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
-              step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, bn_order, delta_j, anc_bn_s,
-              mapped_j, mapped_s, mapped_par_s, root_out, rot_out):
+def _to_source(
+    root_bn,
+    rot_bn,
+    src_rot,
+    src_order,
+    src_par_s,
+    fixed_par_s,
+    fixed_off,
+    translated_par_s,
+    scale,
+    vertical_offset,
+    vec_par_s,
+    vec_off,
+    vec_nz,
+    vec_w,
+    axes,
+    num_plain,
+    m_tgt_t,
+    lateral_j,
+    step_i,
+    step_nat,
+    step_b,
+    step_k,
+    step_m_loc_t,
+    bn_parents,
+    bn_order,
+    delta_j,
+    anc_bn_s,
+    mapped_j,
+    mapped_s,
+    mapped_par_s,
+    root_out,
+    rot_out,
+):
     """BN frames (Hips translations (B, 3), local quaternions (B, 22, 4)) and the client's own
     rotations (B, Js, 4) -> client root translations root_out (B, 3) and local quaternions
     rot_out (B, Js, 4) (`FrameRetargeter.to_source`). `delta_j`: the BN joints whose change some
@@ -333,8 +459,29 @@ def _to_source(root_bn, rot_bn, src_rot, src_order, src_par_s, fixed_par_s, fixe
                 _quat_to_mat(rot_bn[f, j], m)
                 _mm(gbn[p], m, gbn[j])
         _source_fk(src_rot[f], src_order, src_par_s, gs, m)
-        _bn_globals(gs, vec_par_s, vec_off, vec_nz, vec_w, axes, num_plain, m_tgt_t, lateral_j,
-                    step_i, step_nat, step_b, step_k, step_m_loc_t, bn_parents, gbc, terms, raw, vec, w33, w3)
+        _bn_globals(
+            gs,
+            vec_par_s,
+            vec_off,
+            vec_nz,
+            vec_w,
+            axes,
+            num_plain,
+            m_tgt_t,
+            lateral_j,
+            step_i,
+            step_nat,
+            step_b,
+            step_k,
+            step_m_loc_t,
+            bn_parents,
+            gbc,
+            terms,
+            raw,
+            vec,
+            w33,
+            w3,
+        )
         for i in range(delta_j.shape[0]):  # the change of each BN joint used, in the client's world
             j = delta_j[i]
             _mmt(gbn[j], gbc[j], m)
@@ -362,23 +509,69 @@ def _to_source(root_bn, rot_bn, src_rot, src_order, src_par_s, fixed_par_s, fixe
 @njit(cache=True, error_model="numpy")
 def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, hips_out, rot_out):
     """`_to_model` with the rig's arrays packed (`pack`, `INT_PARTS`, `FLOAT_PARTS`)."""
-    _to_model(root, rot, _part(ints, int_at, 0), _part(ints, int_at, 1), _part(ints, int_at, 2),
-              _part3(floats, float_at, 0), ints[int_at[3]], scale, vertical_offset,
-              _part(ints, int_at, 4), _part3(floats, float_at, 1), _part(ints, int_at, 5).reshape(-1, 2),
-              _part(floats, float_at, 2), _part33(floats, float_at, 3)[0], ints[int_at[6]], _part33(floats, float_at, 4),
-              _part(ints, int_at, 7), _part(ints, int_at, 8).reshape(-1, 5), _part33(floats, float_at, 5),
-              _part3(floats, float_at, 6), _part3(floats, float_at, 7), _part33(floats, float_at, 8),
-              _part(ints, int_at, 9), hips_out, rot_out)
+    _to_model(
+        root,
+        rot,
+        _part(ints, int_at, 0),
+        _part(ints, int_at, 1),
+        _part(ints, int_at, 2),
+        _part3(floats, float_at, 0),
+        ints[int_at[3]],
+        scale,
+        vertical_offset,
+        _part(ints, int_at, 4),
+        _part3(floats, float_at, 1),
+        _part(ints, int_at, 5).reshape(-1, 2),
+        _part(floats, float_at, 2),
+        _part33(floats, float_at, 3)[0],
+        ints[int_at[6]],
+        _part33(floats, float_at, 4),
+        _part(ints, int_at, 7),
+        _part(ints, int_at, 8).reshape(-1, 5),
+        _part33(floats, float_at, 5),
+        _part3(floats, float_at, 6),
+        _part3(floats, float_at, 7),
+        _part33(floats, float_at, 8),
+        _part(ints, int_at, 9),
+        hips_out,
+        rot_out,
+    )
 
 
 @njit(cache=True, error_model="numpy")
 def to_source(root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, vertical_offset, root_out, rot_out):
     """`_to_source` with the rig's arrays packed (`pack`, `INT_PARTS`, `FLOAT_PARTS`)."""
-    _to_source(root_bn, rot_bn, src_rot, _part(ints, int_at, 0), _part(ints, int_at, 1), _part(ints, int_at, 2),
-               _part3(floats, float_at, 0), ints[int_at[3]], scale, vertical_offset,
-               _part(ints, int_at, 4), _part3(floats, float_at, 1), _part(ints, int_at, 5).reshape(-1, 2),
-               _part(floats, float_at, 2), _part33(floats, float_at, 3)[0], ints[int_at[6]], _part33(floats, float_at, 4),
-               _part(ints, int_at, 7), _part(ints, int_at, 8).reshape(-1, 5), _part33(floats, float_at, 5),
-               _part3(floats, float_at, 6), _part3(floats, float_at, 7), _part33(floats, float_at, 8),
-               _part(ints, int_at, 9), _part(ints, int_at, 10), _part(ints, int_at, 11), _part(ints, int_at, 12),
-               _part(ints, int_at, 13), _part(ints, int_at, 14), _part(ints, int_at, 15), root_out, rot_out)
+    _to_source(
+        root_bn,
+        rot_bn,
+        src_rot,
+        _part(ints, int_at, 0),
+        _part(ints, int_at, 1),
+        _part(ints, int_at, 2),
+        _part3(floats, float_at, 0),
+        ints[int_at[3]],
+        scale,
+        vertical_offset,
+        _part(ints, int_at, 4),
+        _part3(floats, float_at, 1),
+        _part(ints, int_at, 5).reshape(-1, 2),
+        _part(floats, float_at, 2),
+        _part33(floats, float_at, 3)[0],
+        ints[int_at[6]],
+        _part33(floats, float_at, 4),
+        _part(ints, int_at, 7),
+        _part(ints, int_at, 8).reshape(-1, 5),
+        _part33(floats, float_at, 5),
+        _part3(floats, float_at, 6),
+        _part3(floats, float_at, 7),
+        _part33(floats, float_at, 8),
+        _part(ints, int_at, 9),
+        _part(ints, int_at, 10),
+        _part(ints, int_at, 11),
+        _part(ints, int_at, 12),
+        _part(ints, int_at, 13),
+        _part(ints, int_at, 14),
+        _part(ints, int_at, 15),
+        root_out,
+        rot_out,
+    )

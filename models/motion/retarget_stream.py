@@ -41,7 +41,6 @@ equal to them to float round-off.
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from . import retarget_kernels as kernels
@@ -50,7 +49,6 @@ from .retarget import _LATERAL, _PRIMARY_CHILD, BN_JOINTS, Rig, TwistPlan, _fram
 from .rotations import matrix_to_quat as mat_to_quat
 from .rotations import quat_to_matrix as quat_to_mat
 from .skeleton import Skeleton, fk
-
 
 # --------------------------------------------------------------------------- small numpy kernels
 
@@ -90,8 +88,10 @@ class _Tree:
         self.pos = np.full(n, -1)  # joint -> slot in `order`
         self.pos[self.order] = np.arange(len(self.order))
         d = depth[self.order]
-        self.levels = [(int(np.searchsorted(d, k)), int(np.searchsorted(d, k, "right")),
-                        self.pos[parents[self.order[d == k]]]) for k in range(1, int(d.max(initial=0)) + 1)]
+        self.levels = [
+            (int(np.searchsorted(d, k)), int(np.searchsorted(d, k, "right")), self.pos[parents[self.order[d == k]]])
+            for k in range(1, int(d.max(initial=0)) + 1)
+        ]
         self.roots = int(np.searchsorted(d, 0, "right"))
 
     def fk(self, local: np.ndarray) -> np.ndarray:
@@ -106,6 +106,7 @@ class _Tree:
 def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
     """(joint k, sign) with pos[b] - pos[a] = sum sign * G[parent k] @ offset[k] (through the
     lowest common ancestor); zero-length offsets are dropped."""
+
     def up(j: int) -> list[int]:
         chain = []
         while j >= 0:
@@ -115,7 +116,7 @@ def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
 
     ca, cb = up(a), up(b)
     common = next(j for j in ca if j in cb)
-    terms = [(k, 1.0) for k in cb[:cb.index(common)]] + [(k, -1.0) for k in ca[:ca.index(common)]]
+    terms = [(k, 1.0) for k in cb[: cb.index(common)]] + [(k, -1.0) for k in ca[: ca.index(common)]]
     return [(k, s) for k, s in terms if np.linalg.norm(skeleton.offsets[k]) > 1e-9]
 
 
@@ -134,8 +135,13 @@ class FrameRetargeter:
     the BN data. `vertical_offset` overrides the derived Hips height shift altogether.
     """
 
-    def __init__(self, source: Skeleton | HumanoidRig, rig: Rig | None = None, source_floor: float | None = None,
-                 vertical_offset: float | None = None):
+    def __init__(
+        self,
+        source: Skeleton | HumanoidRig,
+        rig: Rig | None = None,
+        source_floor: float | None = None,
+        vertical_offset: float | None = None,
+    ):
         rig = default_rig() if rig is None else rig
         hr = source if isinstance(source, HumanoidRig) else humanoid_rig(source)
         src, sk, roles = hr.skeleton, rig.skeleton, hr.roles
@@ -157,7 +163,10 @@ class FrameRetargeter:
         pairs = [segs[n] for n in plain]
         m_tgt = []
         for name, (tl, tr) in _LATERAL.items():
-            pairs += [segs[name], (BN_ROLES[tr].replace("clavicle", "upperarm"), BN_ROLES[tl].replace("clavicle", "upperarm"))]
+            pairs += [
+                segs[name],
+                (BN_ROLES[tr].replace("clavicle", "upperarm"), BN_ROLES[tl].replace("clavicle", "upperarm")),
+            ]
             off = lambda n: sk.offsets[sk.index(n)]  # noqa: E731
             m_tgt.append(_frame(off(_PRIMARY_CHILD[name]), off(tl) - off(tr)))
         terms = [_path_terms(src, roles[a], roles[b]) for a, b in pairs]
@@ -193,16 +202,20 @@ class FrameRetargeter:
         self._mapped_root = np.array([k for k in self._mapped if src.parents[k] < 0], dtype=int)
         vec_par = self._src_parents[flat]
         chain_par = [int(self._src_parents[k]) for k in chain if self._src_parents[k] >= 0]
-        needed = np.unique(np.concatenate([vec_par, self._mapped, self._src_parents[self._mapped_nonroot],
-                                           chain_par, [self._hips]]).astype(int))
+        needed = np.unique(
+            np.concatenate(
+                [vec_par, self._mapped, self._src_parents[self._mapped_nonroot], chain_par, [self._hips]]
+            ).astype(int)
+        )
         tree = self._src_tree = _Tree(src.parents, needed)  # client world rotations live in tree slots
         self._vec_par_s = tree.pos[vec_par]
         self._anc_bn_s = anc[tree.order]
         self._mapped_s = tree.pos[self._mapped_nonroot]
         self._mapped_parents_s = tree.pos[self._src_parents[self._mapped_nonroot]]
         self._mapped_root_s = tree.pos[self._mapped_root]
-        self._fixed_par_s = np.array([tree.pos[self._src_parents[k]] if self._src_parents[k] >= 0 else -1
-                                      for k in self._chain_fixed], dtype=int)
+        self._fixed_par_s = np.array(
+            [tree.pos[self._src_parents[k]] if self._src_parents[k] >= 0 else -1 for k in self._chain_fixed], dtype=int
+        )
         self._fixed_off = src.offsets[self._chain_fixed]
         p = int(self._src_parents[hr.translated])
         self._translated_par_s = int(tree.pos[p]) if p >= 0 else -1
@@ -290,7 +303,9 @@ class FrameRetargeter:
         kernels.to_model(root, rotations, *self._k_plan, self.scale, self.vertical_offset, hips, out)
         return hips, out
 
-    def to_source(self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def to_source(
+        self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """BN frame(s) -> client frame(s) on the client's rig.
 
         root_bn (B, 3): BN Hips translation; rotations_bn (B, 22, 4): BN local quaternions;
@@ -305,7 +320,9 @@ class FrameRetargeter:
         rotations_bn = np.ascontiguousarray(rotations_bn, dtype=np.float64).reshape(b, nb, 4)
         source_rotations = self._client_rotations(source_rotations, b)
         root, out = np.empty((b, 3)), np.empty_like(source_rotations)
-        kernels.to_source(root_bn, rotations_bn, source_rotations, *self._k_plan, self.scale, self.vertical_offset, root, out)
+        kernels.to_source(
+            root_bn, rotations_bn, source_rotations, *self._k_plan, self.scale, self.vertical_offset, root, out
+        )
         return root, out
 
     # ----------------------------------------------------------------------- compiled kernels
@@ -335,17 +352,39 @@ class FrameRetargeter:
                 m_loc_t.append(g["m_loc_t"][i] if limb else np.eye(3))
         nz = np.argwhere(self._vec_coef != 0)  # (v, t) entries, row by row
         bn_count = self._bn_parents.shape[0]
-        ints = {"src_order": tree.order, "src_par_s": par_s, "fixed_par_s": self._fixed_par_s,
-                "translated_par_s": self._translated_par_s, "vec_par_s": self._vec_par_s, "vec_nz": nz,
-                "num_plain": self._num_plain, "lateral_j": plan.lateral, "step_i": steps, "bn_parents": self._bn_parents,
-                "bn_order": self._bn_tree.order, "delta_j": np.unique(self._anc_bn_s[self._anc_bn_s < bn_count]),
-                "anc_bn_s": self._anc_bn_s, "mapped_j": np.concatenate([self._mapped_nonroot, self._mapped_root]),
-                "mapped_s": np.concatenate([self._mapped_s, self._mapped_root_s]),
-                "mapped_par_s": np.concatenate([self._mapped_parents_s, np.full(len(self._mapped_root), -1)])}
-        floats = {"fixed_off": self._fixed_off, "vec_off": self._vec_off, "vec_w": self._vec_coef[nz[:, 0], nz[:, 1]],
-                  "axes": self._axes, "m_tgt_t": self._m_tgt_t, "step_nat": nat, "step_b": bone, "step_k": hinge,
-                  "step_m_loc_t": m_loc_t}
-        self._k_plan = (*kernels.pack(ints, kernels.INT_PARTS, np.int64), *kernels.pack(floats, kernels.FLOAT_PARTS, np.float64))
+        ints = {
+            "src_order": tree.order,
+            "src_par_s": par_s,
+            "fixed_par_s": self._fixed_par_s,
+            "translated_par_s": self._translated_par_s,
+            "vec_par_s": self._vec_par_s,
+            "vec_nz": nz,
+            "num_plain": self._num_plain,
+            "lateral_j": plan.lateral,
+            "step_i": steps,
+            "bn_parents": self._bn_parents,
+            "bn_order": self._bn_tree.order,
+            "delta_j": np.unique(self._anc_bn_s[self._anc_bn_s < bn_count]),
+            "anc_bn_s": self._anc_bn_s,
+            "mapped_j": np.concatenate([self._mapped_nonroot, self._mapped_root]),
+            "mapped_s": np.concatenate([self._mapped_s, self._mapped_root_s]),
+            "mapped_par_s": np.concatenate([self._mapped_parents_s, np.full(len(self._mapped_root), -1)]),
+        }
+        floats = {
+            "fixed_off": self._fixed_off,
+            "vec_off": self._vec_off,
+            "vec_w": self._vec_coef[nz[:, 0], nz[:, 1]],
+            "axes": self._axes,
+            "m_tgt_t": self._m_tgt_t,
+            "step_nat": nat,
+            "step_b": bone,
+            "step_k": hinge,
+            "step_m_loc_t": m_loc_t,
+        }
+        self._k_plan = (
+            *kernels.pack(ints, kernels.INT_PARTS, np.int64),
+            *kernels.pack(floats, kernels.FLOAT_PARTS, np.float64),
+        )
 
     # ----------------------------------------------------------------------- numpy reference
 
@@ -364,7 +403,9 @@ class FrameRetargeter:
         hips[:, 1] += self.vertical_offset
         return hips, self._local_bn(gs)
 
-    def to_source_reference(self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def to_source_reference(
+        self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """`to_source` in numpy: the reference the compiled kernel is tested against.
 
         root_bn (B, 3): BN Hips translation; rotations_bn (B, 22, 4): BN local quaternions;
@@ -383,7 +424,9 @@ class FrameRetargeter:
         g_new = delta[:, self._anc_bn_s] @ gsc  # every client joint turns with its mapped ancestor's BN joint
         out = source_rotations.copy()  # unmapped joints keep the client's local rotations
         if len(self._mapped_nonroot):
-            out[:, self._mapped_nonroot] = mat_to_quat(np.swapaxes(g_new[:, self._mapped_parents_s], -1, -2) @ g_new[:, self._mapped_s])
+            out[:, self._mapped_nonroot] = mat_to_quat(
+                np.swapaxes(g_new[:, self._mapped_parents_s], -1, -2) @ g_new[:, self._mapped_s]
+            )
         if len(self._mapped_root):
             out[:, self._mapped_root] = mat_to_quat(g_new[:, self._mapped_root_s])
         hips = root_bn.copy()

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from . import bvh as bvhio
-from .rotations import euler_to_quat, quat_apply, quat_mul, quat_canonical, quat_to_euler, quat_apply_t, quat_mul_t
+from .rotations import euler_to_quat, quat_apply, quat_apply_t, quat_canonical, quat_mul, quat_mul_t, quat_to_euler
 
 
 @dataclass(frozen=True)
@@ -108,7 +108,9 @@ def fk(rotations: np.ndarray, translations: np.ndarray, parents: np.ndarray) -> 
     return g_rot, g_pos
 
 
-def fk_torch(rotations: torch.Tensor, translations: torch.Tensor, parents: np.ndarray | list[int]) -> tuple[torch.Tensor, torch.Tensor]:
+def fk_torch(
+    rotations: torch.Tensor, translations: torch.Tensor, parents: np.ndarray | list[int]
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched differentiable FK on quaternions (..., J, 4) and translations (..., J, 3)."""
     rots: list[torch.Tensor] = []
     poss: list[torch.Tensor] = []
@@ -171,13 +173,21 @@ def to_bvh(motion: Motion, template: bvhio.BvhFile | None = None) -> bvhio.BvhFi
     on every joint with moving translation, 3 rotation channels elsewhere)."""
     sk = motion.skeleton
     if template is None:
-        moving = np.ptp(motion.translations, axis=0).max(axis=-1) > 1e-6 if motion.num_frames else np.zeros(sk.num_joints, bool)
+        moving = (
+            np.ptp(motion.translations, axis=0).max(axis=-1) > 1e-6
+            if motion.num_frames
+            else np.zeros(sk.num_joints, bool)
+        )
         joints = []
         for j in range(sk.num_joints):
             order = motion.euler_orders[j] if motion.euler_orders else "ZXY"
             pos = list(bvhio.POSITION_CHANNELS) if (sk.parents[j] < 0 or moving[j]) else []
             end = None if np.isnan(sk.end_sites[j]).any() else sk.end_sites[j]
-            joints.append(bvhio.BvhJoint(sk.names[j], int(sk.parents[j]), sk.offsets[j], pos + [f"{a}rotation" for a in order], end))
+            joints.append(
+                bvhio.BvhJoint(
+                    sk.names[j], int(sk.parents[j]), sk.offsets[j], pos + [f"{a}rotation" for a in order], end
+                )
+            )
     else:
         if template.names != list(sk.names):
             raise ValueError("template hierarchy does not match the motion's skeleton")

@@ -74,8 +74,7 @@ def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
-def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray,
-                   keep: tuple[str, ...] = ()) -> np.ndarray:
+def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray, keep: tuple[str, ...] = ()) -> np.ndarray:
     """`transfer_twist_numpy` compiled (`twist_kernels.py`): the same result, ~1 us per frame
     instead of ~1.4 ms, for the per-frame streaming steps."""
     kinds, parents, axes, keep_mask = _kernel_plan(skeleton, keep)
@@ -95,8 +94,9 @@ def _kernel_plan(skeleton: Skeleton, keep: tuple[str, ...]) -> tuple[np.ndarray,
 
 
 @lru_cache(maxsize=16)
-def _kernel_plan_cached(names: tuple[str, ...], parents: tuple[int, ...], offsets: bytes,
-                        keep: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+def _kernel_plan_cached(
+    names: tuple[str, ...], parents: tuple[int, ...], offsets: bytes, keep: tuple[str, ...]
+) -> tuple[np.ndarray, ...]:
     plan = _plan_cached(names, parents, offsets)
     code = {"root": ROOT, "frame": FRAME, "bone": BONE, "leaf": LEAF}
     kinds = np.array([code[k] for _, _, k, _ in plan], dtype=np.int64)
@@ -105,8 +105,9 @@ def _kernel_plan_cached(names: tuple[str, ...], parents: tuple[int, ...], offset
     return kinds, parent_index, axes, np.array([n in keep for n in names])
 
 
-def transfer_twist_numpy(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray,
-                         keep: tuple[str, ...] = ()) -> np.ndarray:
+def transfer_twist_numpy(
+    skeleton: Skeleton, source: np.ndarray, pose: np.ndarray, keep: tuple[str, ...] = ()
+) -> np.ndarray:
     """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
     rotations (see the module docstring). `source` and `pose` are (..., J, 4) local rotations on
     `skeleton`; joints named in `keep` take `pose`'s local rotation as it is (their bone still
