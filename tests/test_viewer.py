@@ -521,6 +521,8 @@ def test_viewer_maths_match_the_python_motion_core(server, tmp_path):
         assert tri["beyond"] == pytest.approx([0, 0, 1])  # past the bottom right corner
         assert tri["mix"] == {"elderly": 0.5, "active": 0.5} and tri["tiny"] == {"elderly": 0.998}
 
+        # the output stage builds its figure when the first stylised frames arrive: wait for it
+        page.wait_for("!!(viewer.view.stages.output.figure && viewer.state.clip)", "the output stage has no figure")
         rings = page.js("""(() => { const c = viewer.state.clip, s = viewer.view.stages.output;
             return import('/viewer/static/kinematics.js').then((k) => {
               const p = k.fk(c, c.root[0], c.rotations[0]);
