@@ -80,11 +80,6 @@ def row4(a, j):
 
 
 @njit(cache=True, error_model="numpy")
-def row3(a, j):
-    return (a[j, 0], a[j, 1], a[j, 2])
-
-
-@njit(cache=True, error_model="numpy")
 def quat_to_rotvec(q):
     """Exponential map, angle in [0, pi] (the w >= 0 branch); see representation.quat_to_rotvec."""
     w = abs(q[3])

@@ -305,7 +305,7 @@ class LTIStyleModel(LTIStyles):
             return state
         batch = len(state["started"])
         # a snapshot from before the foot planter (its `lock_*` keys dropped) plants from its next frame
-        out = {**self.planter.init_state(batch), **{k: state[k] for k in SHARED_KEYS if k in state}}
+        out = self.planter.upgrade_state({k: state[k] for k in SHARED_KEYS if k in state}, batch)
         for s in self._styles:
             x, n = state.get(f"x.{s}"), self.translators[s].n
             out[f"x.{s}"] = x if x is not None and x.shape[1] == n else np.zeros((batch, n))

@@ -210,7 +210,7 @@ def plant_feet(
     for b in range(root.shape[0]):
         for leg in range(2):
             leg_points(rot[b], hips, chains[leg], offsets, rel[b, leg])
-        # the root: where the held points of the legs that were planted say it is
+        # the root: the model's motion, or (by `follow`, or the leash) the held points' of planted legs
         ox, oz = root[b, 0], root[b, 2]
         if started[b]:
             dx, dz = root[b, 0] - prev_model_root[b, 0], root[b, 2] - prev_model_root[b, 2]
@@ -234,15 +234,11 @@ def plant_feet(
         out_root[b, 0], out_root[b, 1], out_root[b, 2] = ox, root[b, 1], oz
         # per leg: which point is on the ground, and how far the leg must move to keep it there
         for leg in range(2):
-            low_ankle, low_toe = False, False
             for k in range(2):  # ankle, toe: its floor follows it down at once and up slowly
-                h = root[b, 1] + rel[b, leg, k, 1]
-                f = prev_floor[b, leg, k] + floor_rise / fps if started[b] else floors[k]
-                floor[b, leg, k] = min(h, f)
-                if k == 0:
-                    low_ankle = h < floor[b, leg, k] + margin
-                else:
-                    low_toe = h < floor[b, leg, k] + margin
+                rise = prev_floor[b, leg, k] + floor_rise / fps if started[b] else floors[k]
+                floor[b, leg, k] = min(root[b, 1] + rel[b, leg, k, 1], rise)
+            low_ankle = root[b, 1] + rel[b, leg, 0, 1] < floor[b, leg, 0] + margin
+            low_toe = root[b, 1] + rel[b, leg, 1, 1] < floor[b, leg, 1] + margin
             k = 1 if low_toe else 0
             point[b, leg] = k
             # horizontal motion of that point since the last frame, this frame's root against the last
