@@ -40,6 +40,7 @@ the model-step worker thread, between steps.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -126,10 +127,14 @@ def style_weights(model: StreamingModel, mix: dict[str, float], intensity: float
     unknown = sorted(set(mix) - set(names))
     if unknown:
         raise KeyError(f"unknown style(s) {', '.join(unknown)} for model {model.name!r}; known: {', '.join(names)}")
-    total = sum(mix.values())
-    if total <= 0 or any(w < 0 for w in mix.values()):
+    if not mix or any(not w >= 0 for w in mix.values()) or max(mix.values()) <= 0:  # `not >=`: NaN too
         raise ValueError("style weights must be non-negative and not all zero")
-    return {style: weight / total * intensity for style, weight in mix.items()}
+    peak = max(mix.values())
+    if not math.isfinite(peak) or not math.isfinite(intensity):
+        raise ValueError("style weights and intensity must be finite")
+    scaled = {style: weight / peak for style, weight in mix.items()}  # so a sum near the float limit cannot overflow
+    total = sum(scaled.values())
+    return {style: weight / total * intensity for style, weight in scaled.items()}
 
 
 def weight_vector(names: list[str], weights: dict[str, float]) -> np.ndarray:

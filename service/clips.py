@@ -62,11 +62,12 @@ def motion_from_json(upload: StyleUpload, skeleton: Skeleton) -> tuple[Motion, s
     return clip_on_skeleton(skeleton, root, rot, upload.fps), "bandai-namco"
 
 
-def motion_from_bvh(text: str, skeleton: Skeleton) -> tuple[Motion, str]:
+def motion_from_bvh(text: str, skeleton: Skeleton, parsed: bvhio.BvhFile | None = None) -> tuple[Motion, str]:
     """BVH text (BN skeleton or any humanoid rig `models.motion.humanoid` maps) -> BN Motion at
-    30 fps, and the source rig (bandai-namco, or the matched preset, or 'humanoid')."""
+    30 fps, and the source rig (bandai-namco, or the matched preset, or 'humanoid'). `parsed`:
+    the text already parsed (to check its frame rate first), so it is not parsed twice."""
     try:
-        motion = from_bvh(bvhio.parse(text, "upload.bvh"))
+        motion = from_bvh(parsed if parsed is not None else bvhio.parse(text, "upload.bvh"))
     except (bvhio.BvhError, ValueError, KeyError, IndexError) as exc:
         raise ApiError(422, "bad_bvh", f"not a readable BVH file: {exc}") from None
     _check_finite(motion.rotations, motion.translations)

@@ -5,15 +5,11 @@ and hand the rest to the style store (`styles.py`); refusals are `ApiError`s."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any, Literal
 
 from fastapi import APIRouter, Depends, Query, Request, Response
 
-from models.motion.skeleton import Motion, Skeleton
-
 from .api import ApiError, StyleInfo, StyleUpload, UploadAccepted, error_responses
-from .clips import motion_from_bvh, motion_from_json
 from .deps import get_runtime, require_token
 from .jobs import JobInfo
 from .limits import Principal
@@ -103,9 +99,8 @@ async def upload_style(
     swaps in the tuned FiLM vector."""
     body = await _read_limited(request, who.limits.upload_max_bytes)
     ctype = request.headers.get("content-type", "")
-    fields: dict[str, str]
-    read_clip: Callable[[Skeleton], tuple[Motion, str]]
-    source: Literal["bvh", "json"]
+    fields: dict[str, Any] = {}
+    kind: Literal["bvh", "json"]
     if ctype.startswith("multipart/form-data"):
 
         async def receive() -> dict:
@@ -118,27 +113,17 @@ async def upload_style(
         file = form.get("file")
         if file is None or isinstance(file, str):
             raise ApiError(422, "bad_request", "multipart upload needs a 'file' part with the BVH clip")
-        try:
-            bvh_text = (await file.read()).decode("utf-8")
-        except UnicodeDecodeError:
-            raise ApiError(422, "bad_bvh", "the BVH file is not UTF-8 text") from None
+        body, kind = await file.read(), "bvh"
         fields = {k: v for k, v in form.items() if isinstance(v, str)}
-        fine = fields.get("fine_tune", "false").lower() in ("1", "true", "yes", "on")
-        read_clip, source = (lambda skeleton: motion_from_bvh(bvh_text, skeleton)), "bvh"
+        fields["name"] = fields.get("name", "")
+        fields["fine_tune"] = fields.get("fine_tune", "false").lower() in ("1", "true", "yes", "on")
     elif ctype.startswith("application/json"):
-        try:
-            upload = StyleUpload.model_validate_json(body)
-        except ValueError as exc:
-            raise ApiError(422, "bad_request", f"invalid JSON upload: {str(exc)[:500]}") from None
-        fields = {"name": upload.name, "model": upload.model}
-        fine = upload.fine_tune
-        read_clip, source = (lambda skeleton: motion_from_json(upload, skeleton)), "json"
+        kind = "json"  # its fields are read with its frames, in the decoding child
     else:
         raise ApiError(415, "unsupported_media_type", "send multipart/form-data (file=BVH) or application/json frames")
-    fine = fine if fine_tune is None else fine_tune
-    style_name = name or fields.get("name") or ""
-    model_name = model or fields.get("model") or "lti"
-    accepted = await rt.styles.upload(style_name, model_name, read_clip, source, fine)
+    overrides = {"name": name, "model": model, "fine_tune": fine_tune}
+    fields.update({k: v for k, v in overrides.items() if v is not None})
+    accepted = await rt.styles.upload(kind, body, fields)
     if accepted.style.status == "ready":  # made from the clip at once (LPN-FiLM): the style exists already, job or not
         response.status_code = 201
     return accepted

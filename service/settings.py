@@ -105,6 +105,22 @@ class ServiceSettings(Settings):
     )
     upload_min_frames: int = Field(default=60, ge=30, description="Shortest uploaded clip, in frames at 30 fps.")
     upload_max_frames: int = Field(default=9000, ge=60, description="Longest uploaded clip, in frames at 30 fps.")
+    upload_min_fps: float = Field(
+        default=10.0, gt=0, le=1000, allow_inf_nan=False, description="Lowest frame rate of an uploaded clip."
+    )
+    upload_max_fps: float = Field(
+        default=480.0, gt=0, le=10000, allow_inf_nan=False, description="Highest frame rate of an uploaded clip."
+    )
+    upload_decode_timeout_s: float = Field(
+        default=20.0,
+        gt=0,
+        le=600,
+        description="Decoding, retargeting and resampling an upload (in a child process) is stopped after this.",
+    )
+    upload_decode_memory_mb: int = Field(
+        default=1024, ge=8, description="Memory a child process decoding an upload may take beyond its start."
+    )
+    upload_decoders: int = Field(default=2, ge=1, le=64, description="Uploads decoded at once; more wait their turn.")
     lpn_fine_tune_steps: int = Field(
         default=300,
         ge=1,

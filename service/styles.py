@@ -31,22 +31,25 @@ received it (its job runs there); the others only read its folder, and answer
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import re
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterable
+import uuid
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 from models.interface import ClipStyles, FineTuned, Progress, StreamingModel, StyleRejected, UploadedStyles
-from models.motion.skeleton import Motion, Skeleton
+from models.motion.skeleton import Motion
 
 from .api import ApiError, StyleInfo, UploadAccepted
 from .batcher import ModelThread
+from .clip_worker import ClipBudget, ClipDecoder, Kind
 from .clips import MODEL_FPS, clip_on_skeleton, hips_track
 from .jobs import JobInfo, JobManager
 from .settings import ServiceSettings
@@ -57,6 +60,7 @@ NAME_RE = re.compile(r"^[a-z0-9](?:[a-z0-9-]{0,38}[a-z0-9])?$")
 # shared folder: a style still "training" whose style.json changed this recently may be another
 # replica's running job, so a starting replica does not mark it interrupted (jobs take < 1 min)
 TRAINING_FRESH_S = 600.0
+INCOMING = ".incoming"  # styles_dir/.incoming/<random>: an upload's files until they are complete
 
 
 class JobStopped(Exception):
@@ -80,6 +84,18 @@ class StyleStore:
         self.uploaded: dict[str, StyleInfo] = {}  # id -> info
         self.seen: dict[str, float] = {}  # id -> mtime of the style.json last read or written here
         self.shared = settings.styles_refresh_s > 0
+        self._claimed: set[str] = set()  # ids of uploads under way (`upload`)
+        self.decoder = ClipDecoder(
+            ClipBudget(
+                settings.upload_min_frames,
+                settings.upload_max_frames,
+                settings.upload_min_fps,
+                settings.upload_max_fps,
+                settings.upload_decode_timeout_s,
+                settings.upload_decode_memory_mb,
+            ),
+            settings.upload_decoders,
+        )
         self._refreshing = asyncio.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
         self.stopping = False
@@ -109,11 +125,6 @@ class StyleStore:
         tmp.write_text(info.model_dump_json(indent=1))
         tmp.replace(d / "style.json")
         self.seen[info.id] = (d / "style.json").stat().st_mtime  # our own write: no refresh reads it back
-
-    def _save_clip(self, model: str, name: str, motion: Motion) -> None:
-        d = self._dir(model, name)
-        d.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(d / "clip.npz", root=hips_track(motion), rotations=motion.rotations, fps=MODEL_FPS)
 
     @staticmethod
     def _saved_clip(model: StreamingModel, d: Path) -> Motion:
@@ -158,6 +169,10 @@ class StyleStore:
         """The persisted uploaded styles, added to the live models (before any session steps)."""
         if not self.root.is_dir():
             return
+        for left in self.root.glob(f"{INCOMING}/*"):  # an upload cut off by a crash (not one under way elsewhere)
+            with contextlib.suppress(OSError):
+                if time.time() - left.stat().st_mtime > TRAINING_FRESH_S:
+                    shutil.rmtree(left, ignore_errors=True)
         for meta in sorted(self.root.glob("*/*/style.json"), key=lambda p: p.stat().st_mtime):
             info = self._read_info(meta)
             model = None if info is None else self.models.get(info.model)
@@ -321,7 +336,8 @@ class StyleStore:
         model = self.models.get(model_name)
         if model is None:
             raise ApiError(422, "unknown_model", f"unknown model {model_name!r}; available: {', '.join(self.models)}")
-        if name in model.styles() or style_id(model_name, name) in self.uploaded:
+        sid = style_id(model_name, name)
+        if name in model.styles() or sid in self.uploaded or sid in self._claimed:
             raise ApiError(409, "style_exists", f"model {model_name!r} already has a style named {name!r}")
         if not isinstance(model, UploadedStyles):
             raise ApiError(
@@ -332,26 +348,36 @@ class StyleStore:
             )
         return model
 
-    async def upload(
-        self,
-        name: str,
-        model_name: str,
-        read_clip: Callable[[Skeleton], tuple[Motion, str]],
-        source: Literal["bvh", "json"],
-        fine_tune: bool,
-    ) -> UploadAccepted:
-        """A new style from an uploaded clip, which `read_clip` brings onto the model's skeleton at
-        30 fps (`clips.py`) and names its rig, once the name and the model are known to be good."""
+    async def upload(self, kind: Kind, body: bytes, fields: dict[str, Any]) -> UploadAccepted:
+        """A new style from an uploaded clip: `body` is the BVH file or the JSON upload, `fields`
+        the name, model and fine_tune given beside it (form fields, query). A bad name or model
+        is refused before the clip is decoded; the decoding (`clip_worker`) brings it onto the
+        model's skeleton at 30 fps in a child process. The name is claimed before anything is
+        awaited, so of concurrent uploads of one name exactly one gets it (the others 409), and
+        the style's files are written before it goes live, so a failed write leaves no trace."""
+        if "name" in fields:
+            self._upload_target(fields["name"], fields.get("model") or "lti")
+        skeletons = {name: m.skeleton for name, m in self.models.items() if isinstance(m, UploadedStyles)}
+        clip = await self.decoder.decode(kind, body, fields, skeletons)
+        name, model_name = clip.fields.get("name") or "", clip.fields.get("model") or "lti"
+        fine_tune = bool(clip.fields.get("fine_tune"))
         model = self._upload_target(name, model_name)
-        motion, rig = read_clip(model.skeleton)
-        n, lo, hi = motion.num_frames, self.settings.upload_min_frames, self.settings.upload_max_frames
-        if not lo <= n <= hi:
-            raise ApiError(422, "bad_length", f"the clip has {n} frames at 30 fps; between {lo} and {hi} are needed")
+        sid = style_id(model_name, name)
+        self._claimed.add(sid)
         try:
-            model.check_upload(n, fine_tune)
+            assert clip.motion is not None  # decoded for every model that takes uploads
+            return await self._create(sid, model, clip.motion, clip.rig, kind, fine_tune)
+        finally:
+            self._claimed.discard(sid)
+
+    async def _create(
+        self, sid: str, model: UploadedStyles[Any], motion: Motion, rig: str, source: Kind, fine_tune: bool
+    ) -> UploadAccepted:
+        model_name, name = sid.split(".", 1)
+        try:
+            model.check_upload(motion.num_frames, fine_tune)
         except StyleRejected as err:
             raise ApiError(409 if err.unavailable else 422, err.code, err.message) from None
-        sid = style_id(model_name, name)
         info = StyleInfo(
             id=sid,
             name=name,
@@ -359,33 +385,65 @@ class StyleStore:
             kind="uploaded",
             status="training",
             created=time.time(),
-            frames=n,
+            frames=motion.num_frames,
             source=source,
             skeleton=rig,
         )
+        await self._write_new(info, motion)
         if isinstance(model, ClipStyles):  # the style exists as soon as this returns; a job may improve it
             try:
                 await self.model_thread.run(model.add_style_from_clip, name, motion)
             except ValueError as exc:
+                shutil.rmtree(self._dir(model_name, name), ignore_errors=True)
                 raise ApiError(422, "bad_clip", str(exc)) from None
             info.status, info.message = "ready", model.clip_style_note
-        self._save_clip(model_name, name, motion)
-        self.uploaded[sid] = info
-        if not fine_tune:
+        self.uploaded[sid] = info  # before its job starts: a job whose style is not there stops
+        job = None
+        if fine_tune:
+            job = self.jobs.submit(
+                "fine_tune",
+                lambda progress: self._fine_tune_job(info, model, motion, progress),
+                target=sid,
+                on_failure=lambda message: self._job_failed(info, model, message),
+                record=lambda job: self._save_job(info, job),
+            )
+            info.job_id = job.id
+            if isinstance(model, ClipStyles):
+                info.message = f"{model.clip_style_note}; {model.tuning_note}"
+        try:
             self._save_info(info)
-            return UploadAccepted(style=info.model_copy())
-        job = self.jobs.submit(
-            "fine_tune",
-            lambda progress: self._fine_tune_job(info, model, motion, progress),
-            target=sid,
-            on_failure=lambda message: self._job_failed(info, model, message),
-            record=lambda job: self._save_job(info, job),
-        )
-        info.job_id = job.id
-        if isinstance(model, ClipStyles):
-            info.message = f"{model.clip_style_note}; {model.tuning_note}"
-        self._save_info(info)
+        except OSError as exc:  # live already (a clip style): take it back, as if never uploaded
+            await self._forget(info)
+            shutil.rmtree(self._dir(model_name, name), ignore_errors=True)
+            raise ApiError(507, "storage_full", f"the style could not be stored: {exc.strerror or exc}") from None
         return UploadAccepted(style=info.model_copy(), job=job)
+
+    async def _write_new(self, info: StyleInfo, motion: Motion) -> None:
+        """The clip and a first style.json into the style's folder, written under a temporary
+        name and renamed into place, off the event loop; 507 (and nothing left) if the disk
+        refuses."""
+        final = self._dir(info.model, info.name)
+        tmp = self.root / INCOMING / uuid.uuid4().hex  # no model is named so: no scan takes it for a style
+
+        def write() -> None:
+            try:
+                tmp.mkdir(parents=True)
+                final.parent.mkdir(parents=True, exist_ok=True)
+                np.savez_compressed(
+                    tmp / "clip.npz", root=hips_track(motion), rotations=motion.rotations, fps=MODEL_FPS
+                )
+                (tmp / "style.json").write_text(info.model_dump_json(indent=1))
+                shutil.rmtree(final, ignore_errors=True)  # leftovers of a style deleted on another replica
+                tmp.rename(final)
+            except OSError:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
+
+        try:
+            await asyncio.to_thread(write)
+        except OSError as exc:
+            raise ApiError(507, "storage_full", f"the style could not be stored: {exc.strerror or exc}") from None
+        self.seen[info.id] = (final / "style.json").stat().st_mtime
 
     # ---- fine-tuning jobs (job thread) ------------------------------------------------
     def _fine_tune_job(

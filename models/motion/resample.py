@@ -34,11 +34,18 @@ def slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray) -> np.ndarray:
     return out / np.linalg.norm(out, axis=-1, keepdims=True)
 
 
+def resampled_length(num_frames: int, src_fps: float, fps: float) -> int:
+    """How many frames `num_frames` at `src_fps` become at `fps` (known before any is made)."""
+    if num_frames <= 1:
+        return num_frames
+    return int(np.floor((num_frames - 1) * fps / src_fps + 1e-6)) + 1
+
+
 def resample_times(num_frames: int, src_fps: float, fps: float) -> np.ndarray:
     """Source-frame coordinates (fractional indices) of the output frames."""
     if num_frames <= 1:
         return np.zeros(num_frames)
-    n_out = int(np.floor((num_frames - 1) * fps / src_fps + 1e-6)) + 1
+    n_out = resampled_length(num_frames, src_fps, fps)
     return np.minimum(np.arange(n_out) * (src_fps / fps), num_frames - 1)
 
 

@@ -1,0 +1,91 @@
+"""A healthy session streaming beside hostile clients: it must get every frame back, exactly the
+output of the model stepped offline, however the others behave."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+
+import numpy as np
+from websockets.sync.client import connect
+
+from models.interface import FrameBatch, StreamingModel, style_vector
+from models.motion.skeleton import Motion
+
+
+def ws_url(base: str) -> str:
+    return base.replace("http", "ws") + "/v1/stream"
+
+
+def offline(model: StreamingModel, style: str, root: np.ndarray, rot: np.ndarray) -> np.ndarray:
+    """The model stepped frame by frame in process: what a session must stream back."""
+    state, w, out = model.init_state(1), style_vector(model, {style: 1.0})[None], []
+    for t in range(len(root)):
+        fb, state = model.step_batch(state, FrameBatch(root[t : t + 1], rot[t : t + 1]), w)
+        out.append(fb.rotations[0])
+    return np.array(out)
+
+
+class Bystander:
+    """Streams `walk` (looped) to `model`/`style` at up to `fps`, one frame in flight, in a thread;
+    keeps every reply's rotations and round-trip time. `check` compares with `offline`."""
+
+    def __init__(self, base: str, walk: Motion, model: str = "lti", style: str = "elderly", fps: float = 60.0) -> None:
+        self.base, self.model, self.style, self.fps = base, model, style, fps
+        self.root, self.rot = walk.translations[:, 1].copy(), walk.rotations.copy()
+        self.outputs: list[list] = []
+        self.rtts: list[float] = []
+        self.errors: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> Bystander:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(timeout=60)
+
+    def _run(self) -> None:
+        try:
+            with connect(ws_url(self.base)) as ws:
+                ws.send(json.dumps({"type": "start", "model": self.model, "style": self.style}))
+                assert json.loads(ws.recv(timeout=30))["type"] == "started"
+                t = 0
+                while not self._stop.is_set():
+                    k = t % len(self.root)
+                    sent = time.perf_counter()
+                    frame = {
+                        "type": "frame",
+                        "seq": t,
+                        "root": self.root[k].tolist(),
+                        "rotations": self.rot[k].tolist(),
+                    }
+                    ws.send(json.dumps(frame))
+                    reply = json.loads(ws.recv(timeout=30))
+                    if reply.get("type") != "frame" or reply.get("seq") != t:
+                        self.errors.append(f"frame {t}: {reply}")
+                        return
+                    self.rtts.append(time.perf_counter() - sent)
+                    self.outputs.append(reply["rotations"])
+                    t += 1
+                    time.sleep(max(0.0, 1 / self.fps - (time.perf_counter() - sent)))
+        except Exception as exc:  # noqa: BLE001  (reported by `check`)
+            self.errors.append(f"{type(exc).__name__}: {exc}")
+
+    def frames(self) -> int:
+        return len(self.outputs)
+
+    def check(self, model: StreamingModel) -> None:
+        """Every frame came back, and each is exactly the offline model's output."""
+        assert not self.errors, self.errors
+        n = len(self.outputs)
+        assert n > 0, "the healthy session got no frames back"
+        idx = np.arange(n) % len(self.root)
+        want = offline(model, self.style, self.root[idx], self.rot[idx])
+        np.testing.assert_allclose(np.array(self.outputs), want, atol=1e-9)
+
+    def p99_ms(self, since: int = 0) -> float:
+        return float(np.percentile(np.array(self.rtts[since:]) * 1000, 99))

@@ -1,0 +1,172 @@
+"""Hostile but ordinary clients (issue #16), each beside a healthy session whose output must stay
+exact: uploads that declare absurd rates or lengths, clips that outgrow their decoding budget,
+races on one style name, a disk that refuses the style's files."""
+
+from __future__ import annotations
+
+import concurrent.futures
+import shutil
+
+import httpx
+import pytest
+
+from models.motion import bvh
+from models.motion.skeleton import to_bvh
+from models.registry import load_models
+from models.settings import get_settings
+
+from .hostile import Bystander
+from .live_server import live_server
+from .waiting import wait_until
+
+
+@pytest.fixture(scope="module")
+def models():
+    return load_models(get_settings().weights_dir)
+
+
+@pytest.fixture(scope="module")
+def server(models, tmp_path_factory):
+    styles_dir = tmp_path_factory.mktemp("styles")
+    with live_server(models, styles_dir=styles_dir, idle_timeout_s=30) as (base, app):
+        yield base, app, styles_dir
+
+
+@pytest.fixture(scope="module")
+def bystander(server, models, bn_walk):
+    """One healthy session for the whole module, checked exact at its end."""
+    with Bystander(server[0], bn_walk.slice(0, 120)) as b:
+        wait_until(lambda: b.frames() > 5 or b.errors, "the healthy session's first frames", timeout=60)
+        yield b
+    b.check(models["lti"])
+
+
+@pytest.fixture(scope="module")
+def walk_bvh(bn_walk) -> str:
+    return bvh.dumps(to_bvh(bn_walk.slice(0, 120)))
+
+
+def with_frame_time(text: str, seconds: str) -> str:
+    head, _, rest = text.partition("Frame Time:")
+    return head + "Frame Time: " + seconds + rest[rest.index("\n") :]
+
+
+def json_clip(name: str, walk, fps: float, model: str = "lpn") -> dict:
+    return {
+        "name": name,
+        "model": model,
+        "fps": fps,
+        "frames": {"root": walk.translations[:, 1].tolist(), "rotations": walk.rotations.tolist()},
+    }
+
+
+def longest_bvh(walk, frames: int = 9000) -> str:
+    """A BVH of `frames` at 30 fps (default: the longest clip accepted) looping `walk`'s rows."""
+    text = bvh.dumps(to_bvh(walk))
+    head, _, body = text.partition("Frame Time:")
+    time_line, _, rows = body.partition("\n")
+    rows = rows.rstrip("\n").split("\n")
+    looped = "\n".join(rows[i % len(rows)] for i in range(frames))
+    head = head.replace(f"Frames: {walk.num_frames}", f"Frames: {frames}")
+    return f"{head}Frame Time:{time_line}\n{looped}\n"
+
+
+def refused(r: httpx.Response, status: int, code: str) -> None:
+    assert r.status_code == status and r.json()["code"] == code, (status, code, r.status_code, r.text[:300])
+
+
+def test_uploads_declaring_absurd_rates_are_refused_before_any_allocation(models, server, bystander, walk_bvh, bn_walk):
+    base = server[0]
+    walk = bn_walk.slice(0, 90)
+    for seconds in ("10", "1000", "1e300", "0.00001"):
+        r = httpx.post(
+            f"{base}/v1/styles",
+            files={"file": ("w.bvh", with_frame_time(walk_bvh, seconds))},
+            data={"name": "slow", "model": "lpn"},
+            timeout=30,
+        )
+        refused(r, 422, "bad_frame_rate")
+    for fps in (0.0001, 1e-300):
+        refused(httpx.post(f"{base}/v1/styles", json=json_clip("slow", walk, fps), timeout=30), 422, "bad_frame_rate")
+    # a legal rate whose clip would be too long once resampled to 30 fps: refused by its declared length
+    long_bvh = with_frame_time(walk_bvh, "0.09")  # 120 rows at 11.1 fps = 322 frames at 30 fps
+    with live_server(models, upload_max_frames=300) as (small, _):
+        r = httpx.post(f"{small}/v1/styles", files={"file": ("w.bvh", long_bvh)}, data={"name": "long", "model": "lpn"})
+        refused(r, 422, "bad_length")
+        assert "322 frames at 30 fps" in r.json()["message"]
+
+
+def test_a_clip_beyond_its_decoding_budget_costs_only_its_child(models, bn_walk, walk_bvh, tmp_path):
+    """Decoding runs in a child process with a deadline and an address-space cap: a clip that
+    needs more gets a typed refusal, and the server goes on serving."""
+    long = longest_bvh(bn_walk, 1800)  # 60 s at 30 fps, ~1 MB
+    with live_server(models, styles_dir=tmp_path, upload_decode_timeout_s=0.01) as (base, _):
+        with Bystander(base, bn_walk.slice(0, 60)) as b:
+            r = httpx.post(f"{base}/v1/styles", files={"file": ("w.bvh", long)}, data={"name": "big", "model": "lpn"})
+            refused(r, 422, "clip_too_slow")
+            wait_until(lambda: b.frames() > 10 or b.errors, "the healthy session streaming on")
+        b.check(models["lti"])
+    with live_server(models, styles_dir=tmp_path, upload_decode_memory_mb=8) as (base, _):
+        r = httpx.post(
+            f"{base}/v1/styles", files={"file": ("w.bvh", longest_bvh(bn_walk))}, data={"name": "huge", "model": "lpn"}
+        )
+        refused(r, 413, "clip_too_large")
+        assert httpx.get(f"{base}/healthz").status_code == 200
+
+
+def test_concurrent_uploads_of_one_name_give_exactly_one_style(server, bystander, bn_walk):
+    base = server[0]
+    clip = json_clip("twins", bn_walk.slice(0, 90), 30.0)
+    with concurrent.futures.ThreadPoolExecutor(6) as pool:
+        replies = list(pool.map(lambda _: httpx.post(f"{base}/v1/styles", json=clip, timeout=60), range(6)))
+    codes = sorted(r.status_code for r in replies)
+    assert codes == [201, 409, 409, 409, 409, 409], [r.text[:200] for r in replies]
+    assert all(r.json()["code"] == "style_exists" for r in replies if r.status_code == 409)
+    assert httpx.delete(f"{base}/v1/styles/lpn.twins").status_code == 204
+
+
+def test_a_style_whose_files_cannot_be_written_leaves_no_trace(server, bystander, bn_walk):
+    base, _, styles_dir = server
+    blocker = styles_dir / ".incoming"  # where a style's files are made before they go live
+    shutil.rmtree(blocker, ignore_errors=True)
+    blocker.write_text("not a folder: every write under it fails")
+    try:
+        r = httpx.post(f"{base}/v1/styles", json=json_clip("ghost", bn_walk.slice(0, 90), 30.0), timeout=60)
+        refused(r, 507, "storage_full")
+        assert "lpn.ghost" not in {s["id"] for s in httpx.get(f"{base}/v1/styles").json()}
+        lpn = next(m for m in httpx.get(f"{base}/v1/models").json() if m["name"] == "lpn")
+        assert "ghost" not in lpn["styles"]
+        refused(httpx.delete(f"{base}/v1/styles/lpn.ghost"), 404, "unknown_style")
+    finally:
+        blocker.unlink()
+    r = httpx.post(f"{base}/v1/styles", json=json_clip("ghost", bn_walk.slice(0, 90), 30.0), timeout=60)
+    assert r.status_code == 201, r.text
+    assert httpx.delete(f"{base}/v1/styles/lpn.ghost").status_code == 204
+
+
+def test_the_longest_clip_is_accepted_while_sessions_stream(server, bystander, bn_walk):
+    base = server[0]
+    before = bystander.frames()
+    r = httpx.post(
+        f"{base}/v1/styles",
+        files={"file": ("w.bvh", longest_bvh(bn_walk))},
+        data={"name": "long-walk", "model": "lpn"},
+        timeout=120,
+    )
+    assert r.status_code == 201, r.text
+    assert r.json()["style"]["frames"] == 9000
+    assert httpx.delete(f"{base}/v1/styles/lpn.long-walk").status_code == 204
+    wait_until(lambda: bystander.frames() > before + 3 or bystander.errors, "the healthy session streaming on")
+
+
+def test_mixes_near_the_float_limit_are_weighed_not_zeroed(models):
+    """Weights whose sum overflows used to normalise to all zeros (the input passed through)."""
+    from models.interface import style_weights
+
+    huge = style_weights(models["lti"], {"elderly": 1e308, "active": 1e308})
+    assert huge == {"elderly": 0.5, "active": 0.5}
+    tiny = style_weights(models["lti"], {"elderly": 5e-324, "active": 0.0})
+    assert tiny == {"elderly": 1.0, "active": 0.0}
+    for bad in ({"elderly": float("nan")}, {"elderly": float("inf")}, {"elderly": 0.0}, {}):
+        with pytest.raises(ValueError):
+            style_weights(models["lti"], bad)
