@@ -68,6 +68,38 @@ def take(bucket: Bucket | None, now: float, rate: float, burst: float) -> tuple[
     return Bucket(tokens, now), (1.0 - tokens) / rate
 
 
+@dataclass
+class MessageRate:
+    """One connection's message budget: `rate` per second in bursts of `burst`. Messages over it
+    are dropped unread; the first of a run of them is answered with a typed `rate_limited`
+    error, and a run a full second's worth long closes the connection (1008): a client that keeps
+    flooding gets nothing more, and the event loop spends almost nothing on it."""
+
+    rate: float
+    burst: float
+    bucket: Bucket | None = None
+    excess: int = 0  # messages dropped since the last one that passed
+
+    def admit(self, now: float) -> bool:
+        """True: handle the message. False: drop it. Raises the error to send (fatal: close)."""
+        self.bucket, wait = take(self.bucket, now, self.rate, self.burst)
+        if wait == 0:
+            self.excess = 0
+            return True
+        self.excess += 1
+        if self.excess == 1:
+            raise P.ProtocolError(
+                "rate_limited",
+                f"more than {self.rate:g} messages/s on this connection (bursts of {self.burst:g}); "
+                "messages beyond are dropped, and a second's worth more closes the connection",
+            )
+        if self.excess >= max(2, self.rate):
+            raise P.ProtocolError(
+                "rate_limited", f"kept sending over {self.rate:g} messages/s after being told", fatal=True
+            )
+        return False
+
+
 def given_token(authorization: str | None, query_token: str | None) -> str | None:
     """The token a request carries: `?token=` or `Authorization: Bearer`."""
     if query_token:

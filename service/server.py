@@ -23,6 +23,7 @@ from .app import create_app
 from .logs import configure_logging
 from .runtime import Runtime
 from .settings import ServiceSettings
+from .transport import uvicorn_config
 
 log = logging.getLogger("uvicorn.error")  # uvicorn's own lifecycle log, so drains show beside it
 
@@ -86,14 +87,6 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> None:
 def serve_once(settings: ServiceSettings, log_level: str = "info", sockets: list | None = None) -> None:
     """This process as one server: on `sockets` if given (a worker's SO_REUSEPORT socket)."""
     app = create_app(settings)
-    config = uvicorn.Config(
-        app,
-        host=settings.host,
-        port=settings.port,
-        log_level=log_level,
-        ws_max_size=4 * settings.max_message_bytes,  # larger ones get a typed error, not a bare close
-        ws_per_message_deflate=False,  # compressing ~400-byte frames costs more CPU than it saves
-        timeout_graceful_shutdown=max(1, round(0.15 * settings.drain_timeout_s)),
-    )
+    config = uvicorn_config(app, settings, log_level=log_level)
     configure_logging()  # session lines with their ids, probes at debug (uvicorn.Config has just set logging up)
     DrainingServer(config, app, settings.drain_timeout_s).run(sockets=sockets)

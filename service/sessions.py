@@ -24,7 +24,7 @@ import numpy as np
 
 from models.interface import State, StreamingModel
 
-from .protocol import End, Reset, SetStyle
+from .protocol import End, ProtocolError, Reset, SetStyle
 
 
 @dataclass
@@ -202,7 +202,16 @@ class Session:
 
     # ---- backpressure -----------------------------------------------------------
     def enqueue(self, item: FrameItem | ControlItem) -> None:
-        if isinstance(item, FrameItem):
+        """Queue work. A frame beyond `queue_size` pushes out the oldest frame; a control message
+        beyond `queue_size` controls is refused (`queue_full`): never dropped once queued, so
+        they are bounded at the door instead."""
+        if isinstance(item, ControlItem):
+            if sum(isinstance(i, ControlItem) for i in self.pending) >= self.queue_size:
+                raise ProtocolError(
+                    "queue_full",
+                    f"{self.queue_size} control messages are already waiting; this one was not taken, send it again later",
+                )
+        else:
             frames = sum(isinstance(i, FrameItem) for i in self.pending)
             if frames >= self.queue_size:
                 oldest = next(i for i in self.pending if isinstance(i, FrameItem))

@@ -52,6 +52,29 @@ class ServiceSettings(Settings):
     session_queue: int = Field(default=8, ge=1, description="Frames queued per session before the oldest are dropped.")
     idle_timeout_s: float = Field(default=60.0, gt=0, description="Sessions silent this long are closed and freed.")
     max_message_bytes: int = Field(default=256 * 1024, ge=1024, description="Largest WebSocket message accepted.")
+    header_timeout_s: float = Field(
+        default=10.0, gt=0, le=600, description="A connection whose request headers take longer is dropped."
+    )
+    send_timeout_s: float = Field(
+        default=10.0,
+        gt=0,
+        le=600,
+        description="A WebSocket client that reads nothing this long while replies wait is disconnected "
+        "(its session kept for resume).",
+    )
+    ping_interval_s: float = Field(
+        default=20.0, gt=0, le=600, description="WebSocket keepalive pings; a peer silent to one this long is dropped."
+    )
+    max_connections: int = Field(
+        default=4096, ge=1, description="Open connections and requests at once; above it 503 (uvicorn)."
+    )
+    max_messages_per_s: float = Field(
+        default=10000.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Per connection: WebSocket messages per second (bursts of a second's worth); beyond it "
+        "they are dropped with a typed error, and a second's worth more closes the connection.",
+    )
     snapshot_every: int = Field(default=30, ge=1, description="Frames between session snapshots (for resume).")
     resume_ttl_s: float = Field(default=600.0, gt=0, description="How long a closed session can be resumed.")
     session_store: str = Field(

@@ -22,6 +22,7 @@ import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from . import protocol as P
+from .limits import MessageRate
 from .logs import session_log
 from .runtime import Runtime
 from .sessions import ControlItem, FrameItem, Session, Snapshot
@@ -31,6 +32,7 @@ log = logging.getLogger(__name__)
 
 CLOSE_NORMAL, CLOSE_RESTART = 1000, 1012
 CLOSE_UNAUTHORIZED, CLOSE_IDLE = 4401, 4408
+YIELD_EVERY = 8  # messages handled back to back before the receiver lets other connections run
 
 
 class Connection:
@@ -45,6 +47,7 @@ class Connection:
         self.stopping = False  # stop after the current item (client gone, or draining)
         self.processor: asyncio.Task | None = None
         self.acks = False  # the client asked for snapshot acknowledgements
+        self.rate = MessageRate(self.settings.max_messages_per_s, self.settings.max_messages_per_s)
         self._ack_tasks: set[asyncio.Task] = set()
         self.log: logging.Logger | logging.LoggerAdapter = log  # once a session is open: its id and model on every line
 
@@ -115,12 +118,18 @@ class Connection:
                 return
             self.rt.connections[self.session.id] = self
             self.processor = asyncio.create_task(self.process())
+            handled = 0
             while not self.closing:
                 try:
                     data = await self.receive()
                     if data is None:
                         self.stopping = True
                         break
+                    handled += 1
+                    if handled % YIELD_EVERY == 0:  # what one read queued must not hold the loop from everyone else
+                        await asyncio.sleep(0)
+                    if not self.rate.admit(time.monotonic()):
+                        continue
                     if isinstance(data, bytes):
                         self.on_binary(data)
                     elif not await self.on_text_or_refresh(data):

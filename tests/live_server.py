@@ -10,6 +10,7 @@ import uvicorn
 from clients.loadtest import free_port, wait_ready
 from service.app import create_app
 from service.settings import ServiceSettings
+from service.transport import uvicorn_config
 
 
 @contextmanager
@@ -19,16 +20,7 @@ def live_server(models: dict, port: int | None = None, **overrides):
     port = port or free_port()
     settings = ServiceSettings(port=port, **overrides)
     app = create_app(settings, models=models)
-    server = uvicorn.Server(
-        uvicorn.Config(
-            app,
-            host="127.0.0.1",
-            port=port,
-            log_level="warning",
-            ws_max_size=4 * settings.max_message_bytes,
-            ws_per_message_deflate=False,
-        )
-    )
+    server = uvicorn.Server(uvicorn_config(app, settings, host="127.0.0.1", log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     base = f"http://127.0.0.1:{port}"

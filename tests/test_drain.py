@@ -13,7 +13,6 @@ from contextlib import contextmanager
 import httpx
 import numpy as np
 import pytest
-import uvicorn
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -23,6 +22,7 @@ from models.settings import get_settings
 from service.app import create_app
 from service.server import DrainingServer
 from service.settings import ServiceSettings
+from service.transport import uvicorn_config
 
 from .cluster import READY_TIMEOUT_S, nginx, redis_server, replicas, require
 from .test_replicas import FRAMES, KILL_AFTER, stream
@@ -36,7 +36,7 @@ def draining_server(**overrides):
     settings = ServiceSettings(port=port, **overrides)
     app = create_app(settings, models=load_models(get_settings().weights_dir))
     server = DrainingServer(
-        uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", timeout_graceful_shutdown=1),
+        uvicorn_config(app, settings, host="127.0.0.1", log_level="warning", timeout_graceful_shutdown=1),
         app,
         settings.drain_timeout_s,
     )

@@ -5,17 +5,21 @@ races on one style name, a disk that refuses the style's files."""
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
+import json
 import shutil
 
 import httpx
 import pytest
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
 
 from models.motion import bvh
 from models.motion.skeleton import to_bvh
 from models.registry import load_models
 from models.settings import get_settings
 
-from .hostile import Bystander
+from .hostile import Bystander, RawClient, RawSocket, ws_url
 from .live_server import live_server
 from .waiting import wait_until
 
@@ -170,3 +174,70 @@ def test_mixes_near_the_float_limit_are_weighed_not_zeroed(models):
     for bad in ({"elderly": float("nan")}, {"elderly": float("inf")}, {"elderly": 0.0}, {}):
         with pytest.raises(ValueError):
             style_weights(models["lti"], bad)
+
+
+def start_message(model: str = "lti", style: str = "elderly") -> str:
+    return json.dumps({"type": "start", "model": model, "style": style})
+
+
+def frame_message(seq: int, walk) -> str:
+    k = seq % walk.num_frames
+    return json.dumps(
+        {"type": "frame", "seq": seq, "root": walk.translations[k, 1].tolist(), "rotations": walk.rotations[k].tolist()}
+    )
+
+
+def test_half_open_connections_are_dropped_after_the_header_timeout(models, bn_walk):
+    with live_server(models, header_timeout_s=0.3) as (base, _):
+        silent, partial = RawSocket(base), RawSocket(base)
+        partial.sock.sendall(b"GET /v1/models HTTP/1.1\r\nHost: x\r\n")  # and never the blank line
+        assert silent.closed_by_server(timeout=20) and partial.closed_by_server(timeout=20)
+        assert httpx.get(f"{base}/healthz").status_code == 200  # an honest request still passes
+
+
+def test_a_client_that_never_reads_is_freed_within_the_idle_timeout(models, bn_walk):
+    """A client that floods frames or resets and then goes quiet without ever reading: the idle
+    timeout's error and close cannot be delivered, so after send_timeout_s more the connection is
+    aborted and its session freed, where before the error's send waited for ever."""
+    with live_server(models, idle_timeout_s=1.5, send_timeout_s=0.5, max_messages_per_s=1e5) as (base, app):
+        runtime = app.state.runtime
+        with Bystander(base, bn_walk.slice(0, 60)) as b:
+            wait_until(lambda: len(runtime.connections) == 1, "the healthy session")
+            for flood in ("frames", "resets"):
+                client = RawClient(base)
+                client.send_text(start_message())
+                client.sock.settimeout(5.0)  # the server stops reading once its replies back up
+                try:
+                    for seq in range(3000):
+                        client.send_text(frame_message(seq, bn_walk) if flood == "frames" else '{"type": "reset"}')
+                except OSError:  # timed out or reset: the server is not taking more
+                    pass
+                wait_until(lambda: len(runtime.connections) == 1, f"the non-reading client ({flood}) freed", 30)
+                assert client.closed_by_server(timeout=20)
+                client.close()
+            assert b.frames() > 0
+        b.check(models["lti"])
+
+
+def test_a_flooding_client_is_told_then_closed(models, bn_walk):
+    """Over the per-connection message rate: dropped, a typed `rate_limited` error at the start of
+    each run over it, and a run a second's worth long closes the connection (1008)."""
+    with live_server(models, max_messages_per_s=100) as (base, _):
+        with Bystander(base, bn_walk.slice(0, 60)) as b:
+            received = []
+            with connect(ws_url(base)) as ws:
+                ws.send(start_message())
+                assert json.loads(ws.recv(timeout=10))["type"] == "started"
+                with contextlib.suppress(ConnectionClosed):  # it may close while these are still going out
+                    for seq in range(2000):
+                        ws.send(frame_message(seq, bn_walk))
+                with pytest.raises(ConnectionClosed) as closed:
+                    while True:  # what came back before the close, then the close
+                        received.append(json.loads(ws.recv(timeout=20)))
+            assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008, closed.value
+            errors = [m["code"] for m in received if m["type"] == "error"]
+            assert set(errors) == {"rate_limited"} and len(errors) >= 2, (
+                errors
+            )  # told (each run over), then why it closed
+            assert sum(m["type"] == "frame" for m in received) >= 1
+        b.check(models["lti"])
