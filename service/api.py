@@ -26,9 +26,37 @@ class ErrorBody(BaseModel):
     message: str
 
 
-def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    """The `responses` of a route that may answer these statuses with an `ErrorBody`."""
-    return {status: {"model": ErrorBody} for status in statuses}
+# What each refusal status means on every route that gives it, with the `code`s it carries; a
+# route adds its own codes (`error_responses(..., notes=...)`)
+ERROR_MEANINGS: dict[int, str] = {
+    401: "No valid API token (`Authorization: Bearer <token>` or `?token=`): `unauthorized`.",
+    404: "Not found.",
+    409: "Conflicts with what the server holds.",
+    413: "Too large.",
+    415: "Unsupported content type: `unsupported_media_type`.",
+    422: "The request is well formed HTTP but its content is refused; `code` says why "
+    "(`bad_request` for a parameter or body that does not match its schema).",
+    429: "Over the token's request rate: `rate_limited`; Retry-After says when the next request passes.",
+    503: "The server is starting: `starting_up`.",
+    507: "The server could not store it: `storage_full`.",
+}
+ERROR_HEADERS: dict[int, dict[str, Any]] = {
+    401: {"WWW-Authenticate": {"description": "Bearer", "schema": {"type": "string"}}},
+    429: {"Retry-After": {"description": "seconds until a request passes", "schema": {"type": "integer"}}},
+}
+
+
+def error_responses(*statuses: int, notes: dict[int, str] | None = None) -> dict[int | str, dict[str, Any]]:
+    """The `responses` of a route that may answer these statuses with an `ErrorBody`: each with
+    its general meaning (`ERROR_MEANINGS`) and the route's own `notes` (the codes it gives), so
+    the OpenAPI document lists every refusal a client must handle."""
+    out: dict[int | str, dict[str, Any]] = {}
+    for status in statuses:
+        text = " ".join(t for t in (ERROR_MEANINGS.get(status, ""), (notes or {}).get(status, "")) if t)
+        out[status] = {"model": ErrorBody, "description": text or "Error."}
+        if status in ERROR_HEADERS:
+            out[status]["headers"] = ERROR_HEADERS[status]
+    return out
 
 
 class Health(BaseModel):

@@ -6,19 +6,25 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import PlainTextResponse
 
-from .api import Health
+from .api import Health, error_responses
 from .deps import get_runtime
 from .runtime import Runtime
 
 router = APIRouter()
 
 
-@router.get("/healthz", response_model=Health)
+@router.get("/healthz", response_model=Health, summary="Liveness: the process answers", tags=["health"])
 async def healthz() -> Health:
     return Health(status="ok")
 
 
-@router.get("/readyz", response_model=Health)
+@router.get(
+    "/readyz",
+    response_model=Health,
+    summary="Readiness: the server takes new sessions",
+    tags=["health"],
+    responses={503: {"model": Health, "description": "Not taking sessions: `status` is `loading` or `draining`."}},
+)
 async def readyz(request: Request, response: Response) -> Health:
     runtime: Runtime | None = request.app.state.runtime
     if runtime is None:
@@ -30,7 +36,13 @@ async def readyz(request: Request, response: Response) -> Health:
     return Health(status="ready")
 
 
-@router.get("/metrics", response_class=PlainTextResponse)
+@router.get(
+    "/metrics",
+    response_class=PlainTextResponse,
+    summary="Prometheus metrics (text exposition format)",
+    tags=["health"],
+    responses=error_responses(503),
+)
 async def metrics(rt: Runtime = Depends(get_runtime)) -> Response:
     body, media_type = rt.metrics.render()
     return Response(body, media_type=media_type)

@@ -15,7 +15,9 @@ router = APIRouter()
     "/v1/models",
     response_model=list[ModelInfo],
     dependencies=[Depends(require_token)],
-    responses=error_responses(401, 429),
+    summary="The models, their styles and joints",
+    tags=["models"],
+    responses=error_responses(401, 429, 503),
 )
 async def list_models(rt: Runtime = Depends(get_runtime)) -> list[ModelInfo]:
     await rt.styles.refresh()  # a styles folder shared with other replicas: what it holds now

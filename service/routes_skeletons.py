@@ -113,7 +113,19 @@ def _preview(body: SkeletonCheck, rig: HumanoidRig) -> bytes:
 @router.post(
     "/v1/skeletons",
     response_model=SkeletonReport,
-    responses={422: {"model": RigProblem}, 200: {"content": {"image/png": {}}}},
+    summary="Check a rig and see how it maps to the model skeleton",
+    tags=["skeletons"],
+    responses={
+        422: {
+            "model": RigProblem,
+            "description": "The rig cannot be mapped (`code` says why, `missing` lists the body roles "
+            "without a joint), or the body does not match its schema (`bad_request`).",
+        },
+        200: {
+            "content": {"image/png": {}},
+            "description": "The mapping (JSON), or with `preview=true` a PNG of the mapped rig.",
+        },
+    },
 )
 async def check_skeleton(body: SkeletonCheck, preview: bool = Query(default=False)) -> Response:
     """The mapping a session with these rig fields would use, or why it cannot be mapped; a PNG

@@ -16,7 +16,16 @@ from .limits import Principal
 from .runtime import Runtime
 
 router = APIRouter()
-ERRORS = error_responses(401, 404, 409, 413, 422, 429)
+UNKNOWN_STYLE = {404: "`unknown_style`: no style with this id."}
+UPLOAD_NOTES = {
+    409: "`style_exists`: the model has a style of this name; `training_data_unavailable`: this server "
+    "lacks the data fine-tuning needs.",
+    413: "`too_large`: the body is over the token's upload limit; `clip_too_large`: decoding the clip "
+    "ran out of its memory budget.",
+    422: "`bad_name`, `unknown_model`, `uploads_unsupported`, `fine_tune_required`, `bad_bvh`, "
+    "`unsupported_skeleton`, `bad_frames`, `bad_skeleton`, `non_finite`, `bad_frame_rate`, `bad_length`, "
+    "`clip_too_slow`, `bad_clip`, `bad_request`.",
+}
 UPLOAD_BODY: dict[str, Any] = {
     "requestBody": {
         "required": True,
@@ -56,19 +65,42 @@ async def _read_limited(request: Request, limit: int) -> bytes:
     return bytes(body)
 
 
-@router.get("/v1/styles", response_model=list[StyleInfo], dependencies=[Depends(require_token)], responses=ERRORS)
+@router.get(
+    "/v1/styles",
+    response_model=list[StyleInfo],
+    dependencies=[Depends(require_token)],
+    summary="Every style: trained and uploaded, ready or training",
+    tags=["styles"],
+    responses=error_responses(401, 429, 503),
+)
 async def list_styles(model: str | None = None, rt: Runtime = Depends(get_runtime)) -> list[StyleInfo]:
     await rt.styles.refresh()
     return rt.styles.list(model)
 
 
-@router.get("/v1/styles/{style_id}", response_model=StyleInfo, dependencies=[Depends(require_token)], responses=ERRORS)
+@router.get(
+    "/v1/styles/{style_id}",
+    response_model=StyleInfo,
+    dependencies=[Depends(require_token)],
+    summary="One style",
+    tags=["styles"],
+    responses=error_responses(401, 404, 429, 503, notes=UNKNOWN_STYLE),
+)
 async def get_style(style_id: str, rt: Runtime = Depends(get_runtime)) -> StyleInfo:
     await rt.styles.refresh()
     return rt.styles.get(style_id)
 
 
-@router.delete("/v1/styles/{style_id}", status_code=204, dependencies=[Depends(require_token)], responses=ERRORS)
+@router.delete(
+    "/v1/styles/{style_id}",
+    status_code=204,
+    dependencies=[Depends(require_token)],
+    summary="Delete an uploaded style",
+    tags=["styles"],
+    responses=error_responses(
+        401, 404, 409, 429, 503, notes={**UNKNOWN_STYLE, 409: "`trained_style`: trained styles cannot be deleted."}
+    ),
+)
 async def delete_style(style_id: str, rt: Runtime = Depends(get_runtime)) -> Response:
     await rt.styles.refresh()  # the style may have come from another replica since the last look
     await rt.styles.delete(style_id)
@@ -80,7 +112,16 @@ async def delete_style(style_id: str, rt: Runtime = Depends(get_runtime)) -> Res
     response_model=UploadAccepted,
     status_code=202,
     dependencies=[Depends(require_token)],
-    responses=ERRORS,
+    summary="Upload a clip as a new style",
+    tags=["styles"],
+    response_description="Accepted: the style is `training`; follow `job` (`GET /v1/jobs/{id}`).",
+    responses={
+        201: {
+            "model": UploadAccepted,
+            "description": "Created: the style is `ready` (LPN-FiLM); `job` if fine-tuning.",
+        },
+        **error_responses(401, 409, 413, 415, 422, 429, 503, 507, notes=UPLOAD_NOTES),
+    },
     openapi_extra=UPLOAD_BODY,
 )
 async def upload_style(
@@ -129,7 +170,14 @@ async def upload_style(
     return accepted
 
 
-@router.get("/v1/jobs/{job_id}", response_model=JobInfo, dependencies=[Depends(require_token)], responses=ERRORS)
+@router.get(
+    "/v1/jobs/{job_id}",
+    response_model=JobInfo,
+    dependencies=[Depends(require_token)],
+    summary="A fine-tuning job: status and progress",
+    tags=["styles"],
+    responses=error_responses(401, 404, 429, 503, notes={404: "`unknown_job`: no job with this id."}),
+)
 async def get_job(job_id: str, rt: Runtime = Depends(get_runtime)) -> JobInfo:
     job = await rt.styles.job(job_id)  # this replica's, or one stored with its style in the folder
     if job is None:
