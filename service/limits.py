@@ -16,6 +16,7 @@ Everything here runs on the event loop, so the counters need no lock.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import secrets
 import time
@@ -37,12 +38,31 @@ class Limits:
     requests_per_s: float
     burst: float  # the bucket's size: requests that may come at once
     upload_max_bytes: int
+    sessions_per_s: float  # new sessions (resumes included), in bursts of `max_sessions`
+    max_stored_sessions: int  # closed sessions kept for resume; beyond it the oldest is forgotten
 
 
 @dataclass(frozen=True)
 class Principal:
-    key: str  # "token:<token>" or "client:<address>"; never sent back to anyone
+    key: str  # "token:<token>" or "client:<address>"; never sent back to anyone, never stored
     limits: Limits
+    admin: bool = False  # an admin token: sees and manages every tenant's styles
+
+    @property
+    def id(self) -> str:
+        """A stable, one-way name for the caller, safe to keep in snapshots and on disk."""
+        return hashlib.sha256(self.key.encode()).hexdigest()[:24]
+
+    @property
+    def tenant(self) -> str:
+        """Whose uploaded styles and sessions these are: the token's id; "" (one shared tenant)
+        when the server runs without tokens, where callers are told apart only by address."""
+        return self.id if self.key.startswith("token:") else ""
+
+
+def _open_burst(limits: Limits) -> float:
+    """New sessions that may open at once: all of a caller's sessions, or a second's worth."""
+    return float(max(limits.max_sessions, limits.sessions_per_s))
 
 
 def unauthorized() -> ApiError:
@@ -129,6 +149,8 @@ class Limiter:
             requests_per_s=rate,
             burst=max(1.0, rate * (o.burst_s or s.token_burst_s)),
             upload_max_bytes=o.upload_max_bytes or s.upload_max_bytes,
+            sessions_per_s=s.token_sessions_per_s,
+            max_stored_sessions=s.token_max_stored_sessions,
         )
 
     def identify(self, authorization: str | None, query_token: str | None, client: str | None) -> Principal | None:
@@ -140,7 +162,9 @@ class Limiter:
             return None
         # compare with every token (no early exit), so timing says nothing about which matched
         matches = [t for t in self.settings.api_tokens if secrets.compare_digest(given.encode(), t.encode())]
-        return Principal(f"token:{matches[0]}", self.limits_for(matches[0])) if matches else None
+        if not matches:
+            return None
+        return Principal(f"token:{matches[0]}", self.limits_for(matches[0]), matches[0] in self.settings.admin_tokens)
 
     def check_request(self, who: Principal) -> None:
         """Count one REST request; raises 429 `rate_limited` (with Retry-After) over the rate."""
@@ -160,12 +184,23 @@ class Limiter:
 
     def open_session(self, who: Principal) -> None:
         """Take one of the principal's streaming sessions; raises `too_many_sessions` (close
-        1013) when all are taken. Pair with `session_closed`."""
+        1013) when all are taken, or when it opens them faster than `sessions_per_s` (churn
+        that would fill the snapshot store). Pair with `session_closed`."""
         if self.sessions[who.key] >= who.limits.max_sessions:
             holder = "this token" if who.key.startswith("token:") else "this client address"
             raise P.ProtocolError(
                 "too_many_sessions",
                 f"{holder} already holds its maximum of {who.limits.max_sessions} sessions",
+                fatal=True,
+                close_code=CLOSE_TRY_AGAIN_LATER,
+            )
+        key = f"open:{who.key}"
+        bucket, wait = take(self.buckets.get(key), self.clock(), who.limits.sessions_per_s, _open_burst(who.limits))
+        self.buckets[key] = bucket
+        if wait > 0:
+            raise P.ProtocolError(
+                "too_many_sessions",
+                f"new sessions faster than {who.limits.sessions_per_s:g}/s; retry in {wait:.2f} s",
                 fatal=True,
                 close_code=CLOSE_TRY_AGAIN_LATER,
             )
@@ -180,7 +215,9 @@ class Limiter:
         """Drop buckets that have refilled: forgetting a full bucket changes nothing."""
 
         def full(key: str, b: Bucket) -> bool:
-            lim = self.limits_for(key[6:] if key.startswith("token:") else None)
-            return b.tokens + (now - b.at) * lim.requests_per_s >= lim.burst
+            kind, _, who = key.partition(":") if key.startswith("open:") else ("", "", key)
+            lim = self.limits_for(who[6:] if who.startswith("token:") else None)
+            rate, burst = (lim.sessions_per_s, _open_burst(lim)) if kind == "open" else (lim.requests_per_s, lim.burst)
+            return b.tokens + (now - b.at) * rate >= burst
 
         self.buckets = {k: b for k, b in self.buckets.items() if not full(k, b)}

@@ -27,7 +27,7 @@ async def stream(ws: WebSocket) -> None:
         await ws.close(CLOSE_UNAUTHORIZED, "missing or invalid API token")
         return
     runtime: Runtime = ws.app.state.runtime  # set before the server takes connections (the app's lifespan)
-    connection = Connection(ws, runtime)
+    connection = Connection(ws, runtime, who)
     try:
         limiter.open_session(who)
     except P.ProtocolError as err:  # the token's session cap: typed error, then 1013,

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from typing import Any, Protocol, TypeVar
 
@@ -26,6 +26,7 @@ from models.interface import FrameBatch, StreamingModel, weight_vector
 from . import frame_check, skeletons
 from . import protocol as P
 from .batcher import Batcher, ModelThread
+from .limits import Principal
 from .metrics import Metrics
 from .session_store import SavedCallback, SnapshotWriter, StoreUnavailable, create_store
 from .sessions import Session
@@ -33,6 +34,7 @@ from .settings import ServiceSettings
 from .styles import StyleStore
 
 T = TypeVar("T")
+MAX_STORED_CALLERS = 10_000  # above this, callers none of whose closed sessions can still be resumed are forgotten
 
 
 class Drainable(Protocol):
@@ -79,6 +81,8 @@ class Runtime:
             for name, model in self.models.items()
         }
         self.sessions: dict[str, Session] = {}
+        self._stored: dict[str, OrderedDict[str, float]] = {}  # caller id -> resume token -> closed at
+        self._ttl = settings.resume_ttl_s
         self._open_per_model: Counter[str] = Counter()
         self.connections: dict[str, Drainable] = {}  # by session id
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
@@ -135,7 +139,9 @@ class Runtime:
                 close_code=1012,
             )
 
-    async def open_session(self, start: P.Start) -> Session:
+    async def open_session(self, start: P.Start, who: Principal) -> Session:
+        """A new session for `who`, or theirs resumed (a snapshot another tenant opened is, to
+        them, as unknown as an expired one)."""
         self._refuse_if_draining()
         if len(self.sessions) >= self.settings.max_sessions:
             raise P.ProtocolError(
@@ -150,7 +156,7 @@ class Runtime:
                 raise P.ProtocolError(
                     "store_unavailable", "the session store cannot be reached; try again", close_code=1013
                 ) from None
-            if snap is None:
+            if snap is None or snap.owner != who.tenant:
                 raise P.ProtocolError("unknown_resume_token", "resume token unknown or expired")
             self._refuse_if_draining()  # checked again after the await: a drain may have begun meanwhile
             if snap.session_id in self.sessions:  # and no two resumes of one session
@@ -158,7 +164,8 @@ class Runtime:
             if snap.model not in self.models:
                 raise P.ProtocolError("unknown_model", f"this replica does not serve model {snap.model!r}")
             await self.styles.ensure_known(snap.model, [*snap.weights, *snap.target])
-            session = Session.restore(snap, self.models[snap.model], self.settings.session_queue)
+            session = Session.restore(snap, self.models[snap.model], self.settings.session_queue, who.id)
+            self._forget_stored(session)
             self.metrics.resumes.inc()
         else:
             model = self.models.get(start.model)
@@ -179,6 +186,8 @@ class Runtime:
                 bvh_header=start.bvh_header,
                 rig=start.rig_options(),
                 queue_size=self.settings.session_queue,
+                owner=who.tenant,
+                caller=who.id,
             )
         self.sessions[session.id] = session
         self._open_per_model[session.model.name] += 1
@@ -197,8 +206,35 @@ class Runtime:
             self.metrics.active_sessions.labels(session.model.name).dec()
             if not session.ended:
                 self.snapshots.put(session.snapshot())
+                self._keep_stored(session)
+
+    def _keep_stored(self, session: Session) -> None:
+        """Count a closed session against its caller's `max_stored_sessions`; beyond it, that
+        caller's oldest closed session is forgotten, so one client's churn never pushes another's
+        snapshot out of a full store."""
+        now = time.monotonic()
+        if len(self._stored) > MAX_STORED_CALLERS:  # callers come and go: forget those whose snapshots expired
+            self._stored = {c: k for c, k in self._stored.items() if next(reversed(k.values())) > now - self._ttl}
+        kept = self._stored.setdefault(session.caller, OrderedDict())
+        kept[session.token] = now
+        kept.move_to_end(session.token)
+        while kept and next(iter(kept.values())) < now - self._ttl:  # expired in the store by now
+            kept.popitem(last=False)
+        while len(kept) > self.settings.token_max_stored_sessions:
+            oldest, _ = kept.popitem(last=False)
+            self.snapshots.delete(oldest)
+            self.metrics.errors.labels("stored_session_evicted").inc()
+
+    def _forget_stored(self, session: Session) -> None:
+        """A session resumed (or ended) is no longer waiting in the store."""
+        kept = self._stored.get(session.caller)
+        if kept is not None:
+            kept.pop(session.token, None)
+            if not kept:
+                del self._stored[session.caller]
 
     def session_ended(self, session: Session) -> None:
         """The client said 'end': nothing to resume."""
         session.ended = True
         self.snapshots.delete(session.token)
+        self._forget_stored(session)

@@ -76,6 +76,7 @@ class Snapshot:
     rig: dict = field(
         default_factory=dict
     )  # the start message's rig options (joints, joint_map, units, up, handedness)
+    owner: str = ""  # the tenant that opened it (`limits.Principal.tenant`): only it may resume
 
     def to_json(self) -> str:
         return json.dumps(
@@ -128,6 +129,8 @@ class Session:
     state: State
     bvh_header: str | None = None
     rig: dict = field(default_factory=dict)  # joints, joint_map, units, up, handedness as started
+    owner: str = ""  # the tenant that opened it (`limits.Principal.tenant`)
+    caller: str = ""  # who opened it (`limits.Principal.id`): their closed sessions are capped
     id: str = field(default_factory=lambda: uuid.uuid4().hex)
     token: str = field(default_factory=lambda: secrets.token_urlsafe(24))
     target: dict[str, float] = field(default_factory=dict)  # where a style transition goes (at its end: the weights)
@@ -252,10 +255,11 @@ class Session:
             saved_at=time.time(),
             last_output=dict(self.last_output),
             rig=dict(self.rig),
+            owner=self.owner,
         )
 
     @classmethod
-    def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int) -> Session:
+    def restore(cls, snap: Snapshot, model: StreamingModel, queue_size: int, caller: str = "") -> Session:
         return cls(
             model=model,
             skeleton=snap.skeleton,
@@ -274,4 +278,6 @@ class Session:
             held=Held(**snap.held) if snap.held else None,
             last_output=dict(snap.last_output),
             rig=dict(snap.rig),
+            owner=snap.owner,
+            caller=caller,
         )

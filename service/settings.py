@@ -94,6 +94,22 @@ class ServiceSettings(Settings):
         description="Per token (per client address without tokens): "
         "concurrent streaming sessions (1013 above); by default as many as the server holds.",
     )
+    token_sessions_per_s: float = Field(
+        default=50.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Per token (per client address without tokens): new streaming sessions per second, "
+        "in bursts of token_max_sessions (1013 above): churn cannot fill the snapshot store.",
+    )
+    token_max_stored_sessions: int = Field(
+        default=256,
+        ge=1,
+        description="Per token (per client address without tokens): closed sessions kept for resume; "
+        "beyond it that caller's oldest is forgotten (never another caller's).",
+    )
+    admin_tokens: list[str] = Field(
+        default_factory=list, description="API tokens that see and manage every tenant's uploaded styles."
+    )
     token_requests_per_s: float = Field(
         default=20.0,
         gt=0,
@@ -159,6 +175,12 @@ class ServiceSettings(Settings):
                 f"workers={self.workers} needs a shared session_store (redis://host:port/db): with the "
                 "in-memory store a client resuming on another worker than its first finds no session"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _admins_are_tokens(self) -> ServiceSettings:
+        if not set(self.admin_tokens) <= set(self.api_tokens):
+            raise ValueError("admin_tokens must also be listed in api_tokens")
         return self
 
     @model_validator(mode="after")

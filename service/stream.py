@@ -22,7 +22,7 @@ import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from . import protocol as P
-from .limits import MessageRate
+from .limits import MessageRate, Principal
 from .logs import session_log
 from .runtime import Runtime
 from .sessions import ControlItem, FrameItem, Session, Snapshot
@@ -36,8 +36,8 @@ YIELD_EVERY = 8  # messages handled back to back before the receiver lets other 
 
 
 class Connection:
-    def __init__(self, ws: WebSocket, runtime: Runtime) -> None:
-        self.ws, self.rt = ws, runtime
+    def __init__(self, ws: WebSocket, runtime: Runtime, who: Principal) -> None:
+        self.ws, self.rt, self.who = ws, runtime, who
         self.settings, self.metrics = runtime.settings, runtime.metrics
         self._session: Session | None = None
         self._adapter: SkeletonAdapter | None = None
@@ -200,7 +200,7 @@ class Connection:
                 self._adapter = adapter_for(
                     message.skeleton or "custom", message.bvh_header, model.skeleton, **message.rig_options()
                 )
-            self._session = s = await self.rt.open_session(message)
+            self._session = s = await self.rt.open_session(message, self.who)
             self.acks = message.snapshot_acks
             if self._adapter is None:  # a resume: the rig the session started with
                 self._adapter = adapter_for(s.skeleton, s.bvh_header, s.model.skeleton, **s.rig)

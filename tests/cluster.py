@@ -7,7 +7,9 @@ one is skipped, saying which.
 
 from __future__ import annotations
 
+import itertools
 import os
+import re
 import shutil
 import signal
 import socket
@@ -189,8 +191,39 @@ def nginx(folder: Path, upstream_ports: list[int]):
     """nginx in the foreground as a WebSocket-aware round-robin load balancer; yields its URL."""
     port = free_port()
     servers = "\n".join(f"        server 127.0.0.1:{p} max_fails=1 fail_timeout=5s;" for p in upstream_ports)
+    with _nginx_running(folder, NGINX_CONF.format(folder=folder, port=port, servers=servers), port) as url:
+        yield url
+
+
+@contextmanager
+def shipped_nginx(folder: Path, upstream_ports: list[int]):
+    """nginx with the shipped configuration (docker/nginx.conf) as compose runs it, only its
+    listening port, upstream addresses and writable paths moved into the test's folder."""
+    port = free_port()
+    conf = (Path(__file__).resolve().parents[1] / "docker" / "nginx.conf").read_text()
+    conf = re.sub(
+        r"server stylestream-\d+:8000",
+        lambda m, ports=itertools.cycle(upstream_ports): f"server 127.0.0.1:{next(ports)}",
+        conf,
+    )
+    conf = conf.replace("listen 8080;", f"listen 127.0.0.1:{port};").replace(
+        "pid /tmp/nginx.pid;", f"pid {folder}/nginx.pid;"
+    )
+    conf = conf.replace("worker_processes auto;", "worker_processes 1;").replace(
+        "access_log /dev/stdout;", "access_log off;"
+    )
+    temp = "".join(
+        f"    {kind}_temp_path {folder}/{kind};\n" for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi")
+    )
+    conf = conf.replace("http {\n", "http {\n" + temp, 1)
+    with _nginx_running(folder, conf, port) as url:
+        yield url
+
+
+@contextmanager
+def _nginx_running(folder: Path, conf_text: str, port: int):
     conf = folder / "nginx.conf"
-    conf.write_text(NGINX_CONF.format(folder=folder, port=port, servers=servers))
+    conf.write_text(conf_text)
     proc = _start(
         [
             _binary("nginx"),

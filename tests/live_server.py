@@ -14,13 +14,15 @@ from service.transport import uvicorn_config
 
 
 @contextmanager
-def live_server(models: dict, port: int | None = None, **overrides):
+def live_server(models: dict, port: int | None = None, uvicorn_options: dict | None = None, **overrides):
     """Serve `models` on `port` (default: a free one; a fixed one lets a test restart the server
-    where its clients expect it)."""
+    where its clients expect it); `overrides` are settings, `uvicorn_options` uvicorn's own."""
     port = port or free_port()
     settings = ServiceSettings(port=port, **overrides)
     app = create_app(settings, models=models)
-    server = uvicorn.Server(uvicorn_config(app, settings, host="127.0.0.1", log_level="warning"))
+    server = uvicorn.Server(
+        uvicorn_config(app, settings, host="127.0.0.1", log_level="warning", **(uvicorn_options or {}))
+    )
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     base = f"http://127.0.0.1:{port}"

@@ -19,6 +19,7 @@ from models.motion.skeleton import to_bvh
 from models.registry import load_models
 from models.settings import get_settings
 
+from .cluster import require, shipped_nginx
 from .hostile import Bystander, RawClient, RawSocket, ws_url
 from .live_server import live_server
 from .waiting import wait_until
@@ -241,3 +242,22 @@ def test_a_flooding_client_is_told_then_closed(models, bn_walk):
             )  # told (each run over), then why it closed
             assert sum(m["type"] == "frame" for m in received) >= 1
         b.check(models["lti"])
+
+
+def test_a_forged_forwarded_for_changes_nothing_through_the_shipped_proxy(models, tmp_path):
+    """Behind docker/nginx.conf, with X-Forwarded-For trusted from the proxy's address only (as
+    compose sets it), a client naming another address in its own header is still counted as
+    itself: its second session hits its cap of one."""
+    require("nginx")
+    with (
+        live_server(models, token_max_sessions=1, uvicorn_options={"forwarded_allow_ips": "127.0.0.1"}) as (base, _),
+        shipped_nginx(tmp_path, [int(base.rsplit(":", 1)[1])]) as proxy,
+    ):
+        url = ws_url(proxy)
+        with connect(url, additional_headers={"X-Forwarded-For": "203.0.113.7"}) as first:
+            first.send(start_message())
+            assert json.loads(first.recv(timeout=10))["type"] == "started"
+            with connect(url, additional_headers={"X-Forwarded-For": "198.51.100.9"}) as second:
+                second.send(start_message())
+                refusal = json.loads(second.recv(timeout=10))
+                assert refusal["type"] == "error" and refusal["code"] == "too_many_sessions", refusal

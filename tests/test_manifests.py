@@ -371,3 +371,24 @@ def test_compose_file_passes_the_compose_cli(compose):
             assert done.returncode == 0, done.stdout + done.stderr
             return
     pytest.skip("no compose CLI installed (docker compose, docker-compose or podman-compose)")
+
+
+def test_forwarded_headers_are_trusted_from_the_proxy_alone(compose):
+    """compose: the replicas take X-Forwarded-For from nginx's fixed address only, inside the
+    network's subnet; k8s: only the ingress controller (and monitoring) can reach the pods, which
+    is what makes trusting every sender safe there; nginx overwrites the header."""
+    import ipaddress
+
+    spec = compose
+    trusted = [spec["services"][name]["environment"]["FORWARDED_ALLOW_IPS"] for name in REPLICAS]
+    address = spec["services"]["nginx"]["networks"]["default"]["ipv4_address"]
+    [subnet] = [c["subnet"] for c in spec["networks"]["default"]["ipam"]["config"]]
+    assert trusted == [address, address] and ipaddress.ip_address(address) in ipaddress.ip_network(subnet)
+    conf = (DOCKER / "nginx.conf").read_text()
+    assert re.findall(r"proxy_set_header X-Forwarded-For (\S+);", conf) == ["$remote_addr"]
+    policy = one("NetworkPolicy", "stylestream")
+    pods = one("Deployment", "stylestream")["spec"]["template"]["metadata"]["labels"]
+    assert selects(policy["spec"]["podSelector"]["matchLabels"], pods)
+    sources = [s["namespaceSelector"]["matchLabels"] for s in policy["spec"]["ingress"][0]["from"]]
+    assert {"kubernetes.io/metadata.name": "ingress-nginx"} in sources
+    assert one("ConfigMap", "stylestream")["data"]["FORWARDED_ALLOW_IPS"] == "*"
