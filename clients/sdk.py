@@ -67,7 +67,7 @@ from .sdk_types import (
     StylestreamError,
     Upload,
 )
-from .sdk_wire import HEADER, ReplayBuffer, StartSettings, ws_url
+from .sdk_wire import HEADER, ReplayBuffer, StartSettings, auth_headers, ws_url
 from .sdk_wire import pack as _pack
 
 __all__ = [
@@ -168,8 +168,9 @@ def _core(
     **start: Any,
 ) -> SessionCore:
     return SessionCore(
-        ws_url(base_url, token),
+        ws_url(base_url),
         StartSettings(**start),
+        headers=auth_headers(token),
         timeout=timeout,
         reconnect_timeout=reconnect_timeout,
         max_in_flight=max_in_flight,

@@ -14,7 +14,7 @@ import asyncio
 import time
 from collections.abc import Generator
 from contextlib import ExitStack
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple, TypeVar
 
 import httpx
@@ -35,6 +35,7 @@ T = TypeVar("T")
 class Connect:
     url: str
     timeout: float | None  # the opening handshake
+    headers: dict[str, str] = field(default_factory=dict)  # the API token, as Authorization: Bearer
 
 
 @dataclass(frozen=True)
@@ -209,7 +210,11 @@ class AsyncIO:
         if isinstance(op, Connect):
             try:
                 self.ws = await websockets.connect(
-                    op.url, open_timeout=op.timeout, max_size=MAX_MESSAGE, compression=None
+                    op.url,
+                    additional_headers=op.headers,
+                    open_timeout=op.timeout,
+                    max_size=MAX_MESSAGE,
+                    compression=None,
                 )
             except (OSError, InvalidHandshake, InvalidURI) as exc:
                 raise ConnectFailed(f"cannot open a session at {op.url}: {exc}") from exc

@@ -98,6 +98,7 @@ class SessionCore:
         url: str,
         settings: StartSettings,
         *,
+        headers: dict[str, str] | None = None,
         timeout: float | None,
         reconnect_timeout: float | None,
         max_in_flight: int,
@@ -105,7 +106,7 @@ class SessionCore:
     ) -> None:
         if max_in_flight < 1:
             raise ValueError("max_in_flight must be at least 1")
-        self.url, self.settings = url, settings
+        self.url, self.settings, self.headers = url, settings, headers or {}
         self.timeout, self.reconnect_timeout, self.window = timeout, reconnect_timeout, max_in_flight
         self.on_reconnect = on_reconnect
         self.seq = 0
@@ -335,7 +336,7 @@ class SessionCore:
     def _start(self, token: str | None) -> Steps[dict[str, Any]]:
         """Connect and send `start` (resuming with `token`); raises `ServerError` for a typed
         refusal and `ConnectFailed` for anything else."""
-        yield Connect(self.url, self.timeout)
+        yield Connect(self.url, self.timeout, self.headers)
         try:
             yield Send(start_message(self.settings, token))
             data = yield Recv(self.timeout)

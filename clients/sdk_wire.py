@@ -126,9 +126,13 @@ def server_error(message: dict[str, Any]) -> ServerError:
     return ServerError(message.get("code", "error"), message.get("message", ""), message.get("seq"))
 
 
-def ws_url(base_url: str, token: str | None) -> str:
-    url = base_url.rstrip("/").replace("http://", "ws://", 1).replace("https://", "wss://", 1) + "/v1/stream"
-    return url + (f"?token={token}" if token else "")
+def ws_url(base_url: str) -> str:
+    return base_url.rstrip("/").replace("http://", "ws://", 1).replace("https://", "wss://", 1) + "/v1/stream"
+
+
+def auth_headers(token: str | None) -> dict[str, str]:
+    """The token as `Authorization: Bearer`, never in the URL (where proxies and logs keep it)."""
+    return {"Authorization": f"Bearer {token}"} if token else {}
 
 
 class ReplayBuffer:

@@ -85,6 +85,10 @@ class StyleInfo(BaseModel):
         default=None,
         description="Rig of the uploaded clip (bandai-namco, a preset such as cmu or mixamo, or humanoid).",
     )
+    owner: str = Field(
+        default="",
+        description="The uploading tenant: a one-way id of its API token (empty: uploaded without tokens, everyone's).",
+    )
     fine_tune: dict | None = Field(
         default=None,
         description="Fine-tuning summary: seconds, and for LTI neutral clips and "

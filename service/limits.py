@@ -29,6 +29,7 @@ from .api import ApiError
 from .settings import ServiceSettings, TokenLimits
 
 CLOSE_TRY_AGAIN_LATER = 1013
+AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST = 1.0, 10.0  # failed authentications per address
 MAX_IDLE_BUCKETS = 10_000  # above this, buckets that have refilled are forgotten (anonymous clients come and go)
 
 
@@ -91,20 +92,22 @@ def take(bucket: Bucket | None, now: float, rate: float, burst: float) -> tuple[
 @dataclass
 class MessageRate:
     """One connection's message budget: `rate` per second in bursts of `burst`. Messages over it
-    are dropped unread; the first of a run of them is answered with a typed `rate_limited`
-    error, and a run a full second's worth long closes the connection (1008): a client that keeps
-    flooding gets nothing more, and the event loop spends almost nothing on it."""
+    are dropped unread; the first dropped is answered with a typed `rate_limited` error, and a
+    second's worth dropped before the client calms down (its bucket full again) closes the
+    connection (1008): a client that keeps flooding gets nothing more, and the event loop spends
+    almost nothing on it."""
 
     rate: float
     burst: float
     bucket: Bucket | None = None
-    excess: int = 0  # messages dropped since the last one that passed
+    excess: int = 0  # messages dropped since the bucket was last full
 
     def admit(self, now: float) -> bool:
         """True: handle the message. False: drop it. Raises the error to send (fatal: close)."""
         self.bucket, wait = take(self.bucket, now, self.rate, self.burst)
         if wait == 0:
-            self.excess = 0
+            if self.bucket.tokens >= self.burst - 1:  # the bucket was full: the client has calmed down
+                self.excess = 0
             return True
         self.excess += 1
         if self.excess == 1:
@@ -154,15 +157,25 @@ class Limiter:
         )
 
     def identify(self, authorization: str | None, query_token: str | None, client: str | None) -> Principal | None:
-        """The caller, or None when the server has tokens and the request carries none of them."""
+        """The caller, or None when the server has tokens and the request carries none of them;
+        429 `rate_limited` while the client address has failed too often."""
         if not self.settings.api_tokens:
             return Principal(f"client:{client or 'unknown'}", self.limits_for(None))
+        now, failures = self.clock(), f"auth-failures:{client or 'unknown'}"
+        bucket = self.buckets.get(failures)
+        if bucket is not None and bucket.tokens + (now - bucket.at) * AUTH_FAILURES_PER_S < 1.0:
+            wait = (1.0 - bucket.tokens) / AUTH_FAILURES_PER_S - (now - bucket.at)
+            raise ApiError(
+                429,
+                "rate_limited",
+                f"too many failed authentications from this address; retry in {wait:.1f} s",
+                {"Retry-After": str(max(1, math.ceil(wait)))},
+            )
         given = given_token(authorization, query_token)
-        if given is None:
-            return None
         # compare with every token (no early exit), so timing says nothing about which matched
-        matches = [t for t in self.settings.api_tokens if secrets.compare_digest(given.encode(), t.encode())]
-        if not matches:
+        matches = [t for t in self.settings.api_tokens if given and secrets.compare_digest(given.encode(), t.encode())]
+        if not matches:  # counted per address: guessing tokens costs a second per try after the first ten
+            self.buckets[failures], _ = take(bucket, now, AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST)
             return None
         return Principal(f"token:{matches[0]}", self.limits_for(matches[0]), matches[0] in self.settings.admin_tokens)
 
@@ -215,6 +228,8 @@ class Limiter:
         """Drop buckets that have refilled: forgetting a full bucket changes nothing."""
 
         def full(key: str, b: Bucket) -> bool:
+            if key.startswith("auth-failures:"):
+                return b.tokens + (now - b.at) * AUTH_FAILURES_PER_S >= AUTH_FAILURES_BURST
             kind, _, who = key.partition(":") if key.startswith("open:") else ("", "", key)
             lim = self.limits_for(who[6:] if who.startswith("token:") else None)
             rate, burst = (lim.sessions_per_s, _open_burst(lim)) if kind == "open" else (lim.requests_per_s, lim.burst)

@@ -9,7 +9,9 @@ import contextlib
 from fastapi import APIRouter, WebSocket
 
 from . import protocol as P
+from .api import ApiError
 from .deps import get_limiter
+from .limits import CLOSE_TRY_AGAIN_LATER
 from .runtime import Runtime
 from .stream import CLOSE_UNAUTHORIZED, Connection
 
@@ -20,9 +22,13 @@ router = APIRouter()
 async def stream(ws: WebSocket) -> None:
     await ws.accept()
     limiter = get_limiter(ws)
-    who = limiter.identify(
-        ws.headers.get("authorization"), ws.query_params.get("token"), ws.client.host if ws.client else None
-    )
+    try:
+        who = limiter.identify(
+            ws.headers.get("authorization"), ws.query_params.get("token"), ws.client.host if ws.client else None
+        )
+    except ApiError as err:  # too many failed authentications from this address
+        await ws.close(CLOSE_TRY_AGAIN_LATER, P.close_reason(err.message))
+        return
     if who is None:
         await ws.close(CLOSE_UNAUTHORIZED, "missing or invalid API token")
         return

@@ -73,9 +73,11 @@ async def _read_limited(request: Request, limit: int) -> bytes:
     tags=["styles"],
     responses=error_responses(401, 429, 503),
 )
-async def list_styles(model: str | None = None, rt: Runtime = Depends(get_runtime)) -> list[StyleInfo]:
+async def list_styles(
+    model: str | None = None, rt: Runtime = Depends(get_runtime), who: Principal = Depends(require_token)
+) -> list[StyleInfo]:
     await rt.styles.refresh()
-    return rt.styles.list(model)
+    return rt.styles.list(model, who)
 
 
 @router.get(
@@ -86,9 +88,11 @@ async def list_styles(model: str | None = None, rt: Runtime = Depends(get_runtim
     tags=["styles"],
     responses=error_responses(401, 404, 429, 503, notes=UNKNOWN_STYLE),
 )
-async def get_style(style_id: str, rt: Runtime = Depends(get_runtime)) -> StyleInfo:
+async def get_style(
+    style_id: str, rt: Runtime = Depends(get_runtime), who: Principal = Depends(require_token)
+) -> StyleInfo:
     await rt.styles.refresh()
-    return rt.styles.get(style_id)
+    return rt.styles.get(style_id, who)
 
 
 @router.delete(
@@ -101,9 +105,11 @@ async def get_style(style_id: str, rt: Runtime = Depends(get_runtime)) -> StyleI
         401, 404, 409, 429, 503, notes={**UNKNOWN_STYLE, 409: "`trained_style`: trained styles cannot be deleted."}
     ),
 )
-async def delete_style(style_id: str, rt: Runtime = Depends(get_runtime)) -> Response:
+async def delete_style(
+    style_id: str, rt: Runtime = Depends(get_runtime), who: Principal = Depends(require_token)
+) -> Response:
     await rt.styles.refresh()  # the style may have come from another replica since the last look
-    await rt.styles.delete(style_id)
+    await rt.styles.delete(style_id, who)
     return Response(status_code=204)
 
 
@@ -164,7 +170,7 @@ async def upload_style(
         raise ApiError(415, "unsupported_media_type", "send multipart/form-data (file=BVH) or application/json frames")
     overrides = {"name": name, "model": model, "fine_tune": fine_tune}
     fields.update({k: v for k, v in overrides.items() if v is not None})
-    accepted = await rt.styles.upload(kind, body, fields)
+    accepted = await rt.styles.upload(kind, body, fields, who)
     if accepted.style.status == "ready":  # made from the clip at once (LPN-FiLM): the style exists already, job or not
         response.status_code = 201
     return accepted

@@ -16,7 +16,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
@@ -174,6 +174,7 @@ class Runtime:
                     "unknown_model", f"unknown model {start.model!r}; available: {', '.join(self.models) or 'none'}"
                 )
             await self.styles.ensure_known(start.model, P.mix_of(start.style, start.mix))
+            self.check_visible(who, start.model, P.mix_of(start.style, start.mix))
             weights = P.requested_weights(model, start.style, start.mix, start.intensity)
             session = Session(
                 model=model,
@@ -193,6 +194,12 @@ class Runtime:
         self._open_per_model[session.model.name] += 1
         self.metrics.active_sessions.labels(session.model.name).inc()
         return session
+
+    def check_visible(self, who: Principal, model: str, names: Iterable[str]) -> None:
+        """Another tenant's uploaded style is, to `who`, a style that does not exist."""
+        hidden = sorted(set(names) & self.styles.hidden_from(who, model))
+        if hidden:
+            raise P.ProtocolError("unknown_style", f"unknown style(s) {', '.join(hidden)} for model {model!r}")
 
     def after_frame(self, session: Session, on_saved: SavedCallback | None = None) -> None:
         """Called after each stylised frame's reply; queues a snapshot every `snapshot_every`."""

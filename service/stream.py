@@ -267,6 +267,7 @@ class Connection:
             self.queue(self.control_item(message))
             return True
         if isinstance(message, P.SetStyle):  # validate now, so the error comes back at once
+            self.rt.check_visible(self.who, self.session.model.name, P.mix_of(message.style, message.mix))
             P.requested_weights(self.session.model, message.style, message.mix, message.intensity)
         self.queue(ControlItem(message))
         return not isinstance(message, P.End)

@@ -52,6 +52,7 @@ from .batcher import ModelThread
 from .clip_worker import ClipBudget, ClipDecoder, Kind
 from .clips import MODEL_FPS, clip_on_skeleton, hips_track
 from .jobs import JobInfo, JobManager
+from .limits import Principal
 from .settings import ServiceSettings
 
 log = logging.getLogger(__name__)
@@ -70,6 +71,11 @@ class JobStopped(Exception):
 
 def style_id(model: str, name: str) -> str:
     return f"{model}.{name}"
+
+
+def visible(info: StyleInfo, who: Principal | None) -> bool:
+    """An uploaded style is its tenant's (and an admin's); one uploaded without tokens is everyone's."""
+    return who is None or who.admin or not info.owner or info.owner == who.tenant
 
 
 class StyleStore:
@@ -283,14 +289,20 @@ class StyleStore:
             await self.refresh()
 
     # ---- queries ---------------------------------------------------------------
-    def list(self, model: str | None = None) -> list[StyleInfo]:
+    def list(self, model: str | None = None, who: Principal | None = None) -> list[StyleInfo]:
+        """Trained styles and the uploaded ones `who` may see (None: all, for the server itself)."""
         out: list[StyleInfo] = []
         for name, m in self.models.items():
             if model and name != model:
                 continue
             out.extend(self._trained_info(name, m, s) for s in m.styles() if s in self.trained[name])
-            out.extend(i for i in self.uploaded.values() if i.model == name)
+            out.extend(i for i in self.uploaded.values() if i.model == name and visible(i, who))
         return out
+
+    def hidden_from(self, who: Principal, model_name: str) -> set[str]:
+        """Names of `model_name`'s uploaded styles that belong to other tenants: to `who`, as if
+        they did not exist (not listed, not usable in a session, 404)."""
+        return {i.name for i in self.uploaded.values() if i.model == model_name and not visible(i, who)}
 
     @staticmethod
     def _trained_info(model_name: str, model: StreamingModel, style: str) -> StyleInfo:
@@ -305,15 +317,15 @@ class StyleStore:
             created=created,
         )
 
-    def get(self, sid: str) -> StyleInfo:
-        for info in self.list():
+    def get(self, sid: str, who: Principal | None = None) -> StyleInfo:
+        for info in self.list(who=who):
             if info.id == sid:
                 return info
         raise ApiError(404, "unknown_style", f"no style {sid!r} (ids look like 'lti.elderly'; see GET /v1/styles)")
 
     # ---- changes ---------------------------------------------------------------
-    async def delete(self, sid: str) -> None:
-        info = self.get(sid)
+    async def delete(self, sid: str, who: Principal) -> None:
+        info = self.get(sid, who)
         if info.kind == "trained":
             raise ApiError(
                 409,
@@ -348,7 +360,7 @@ class StyleStore:
             )
         return model
 
-    async def upload(self, kind: Kind, body: bytes, fields: dict[str, Any]) -> UploadAccepted:
+    async def upload(self, kind: Kind, body: bytes, fields: dict[str, Any], who: Principal) -> UploadAccepted:
         """A new style from an uploaded clip: `body` is the BVH file or the JSON upload, `fields`
         the name, model and fine_tune given beside it (form fields, query). A bad name or model
         is refused before the clip is decoded; the decoding (`clip_worker`) brings it onto the
@@ -366,12 +378,19 @@ class StyleStore:
         self._claimed.add(sid)
         try:
             assert clip.motion is not None  # decoded for every model that takes uploads
-            return await self._create(sid, model, clip.motion, clip.rig, kind, fine_tune)
+            return await self._create(sid, model, clip.motion, clip.rig, kind, fine_tune, who.tenant)
         finally:
             self._claimed.discard(sid)
 
     async def _create(
-        self, sid: str, model: UploadedStyles[Any], motion: Motion, rig: str, source: Kind, fine_tune: bool
+        self,
+        sid: str,
+        model: UploadedStyles[Any],
+        motion: Motion,
+        rig: str,
+        source: Kind,
+        fine_tune: bool,
+        owner: str,
     ) -> UploadAccepted:
         model_name, name = sid.split(".", 1)
         try:
@@ -388,6 +407,7 @@ class StyleStore:
             frames=motion.num_frames,
             source=source,
             skeleton=rig,
+            owner=owner,
         )
         await self._write_new(info, motion)
         if isinstance(model, ClipStyles):  # the style exists as soon as this returns; a job may improve it

@@ -221,8 +221,8 @@ def test_a_client_that_never_reads_is_freed_within_the_idle_timeout(models, bn_w
 
 
 def test_a_flooding_client_is_told_then_closed(models, bn_walk):
-    """Over the per-connection message rate: dropped, a typed `rate_limited` error at the start of
-    each run over it, and a run a second's worth long closes the connection (1008)."""
+    """Over the per-connection message rate: dropped, a typed `rate_limited` error, and a second's
+    worth dropped before the client calms down closes the connection (1008)."""
     with live_server(models, max_messages_per_s=100) as (base, _):
         with Bystander(base, bn_walk.slice(0, 60)) as b:
             received = []
@@ -261,3 +261,125 @@ def test_a_forged_forwarded_for_changes_nothing_through_the_shipped_proxy(models
                 second.send(start_message())
                 refusal = json.loads(second.recv(timeout=10))
                 assert refusal["type"] == "error" and refusal["code"] == "too_many_sessions", refusal
+
+
+# ---- tenants -------------------------------------------------------------------------------------
+
+A, B, ADMIN = "tenant-a-token", "tenant-b-token", "admin-token"
+
+
+def bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+@pytest.fixture(scope="module")
+def tenants(models, tmp_path_factory):
+    with live_server(
+        models,
+        styles_dir=tmp_path_factory.mktemp("tenant-styles"),
+        api_tokens=[A, B, ADMIN],
+        admin_tokens=[ADMIN],
+        token_max_stored_sessions=2,
+    ) as (base, app):
+        yield base, app
+
+
+def start_reply(base: str, token: str, **start) -> dict:
+    """Open a session as `token` (lti, elderly unless `start` says otherwise), and close it: the
+    server's reply to the start message."""
+    with connect(ws_url(base), additional_headers=bearer(token)) as ws:
+        ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly", **start}))
+        return json.loads(ws.recv(timeout=20))
+
+
+def test_uploaded_styles_belong_to_their_tenant(tenants, bn_walk):
+    base, _ = tenants
+    r = httpx.post(f"{base}/v1/styles", json=json_clip("mine", bn_walk.slice(0, 90), 30.0), headers=bearer(A))
+    assert r.status_code == 201, r.text
+    ids = {t: {s["id"] for s in httpx.get(f"{base}/v1/styles", headers=bearer(t)).json()} for t in (A, B, ADMIN)}
+    assert "lpn.mine" in ids[A] and "lpn.mine" in ids[ADMIN] and "lpn.mine" not in ids[B]
+    assert "lpn.elderly" in ids[B]  # trained styles are everyone's
+    refused(httpx.get(f"{base}/v1/styles/lpn.mine", headers=bearer(B)), 404, "unknown_style")
+    refused(httpx.delete(f"{base}/v1/styles/lpn.mine", headers=bearer(B)), 404, "unknown_style")
+    lpn_for = {
+        t: next(m for m in httpx.get(f"{base}/v1/models", headers=bearer(t)).json() if m["name"] == "lpn")
+        for t in (A, B)
+    }
+    assert "mine" in lpn_for[A]["styles"] and "mine" not in lpn_for[B]["styles"]
+    assert start_reply(base, A, model="lpn", style="mine")["type"] == "started"
+    assert start_reply(base, B, model="lpn", style="mine")["code"] == "unknown_style"
+    with connect(ws_url(base), additional_headers=bearer(B)) as ws:  # nor can a running session switch to it
+        ws.send(json.dumps({"type": "start", "model": "lpn", "style": "elderly"}))
+        assert json.loads(ws.recv(timeout=20))["type"] == "started"
+        ws.send(json.dumps({"type": "style", "mix": {"elderly": 0.5, "mine": 0.5}}))
+        assert json.loads(ws.recv(timeout=20))["code"] == "unknown_style"
+    assert httpx.delete(f"{base}/v1/styles/lpn.mine", headers=bearer(ADMIN)).status_code == 204
+
+
+def test_only_the_tenant_that_opened_a_session_may_resume_it(tenants):
+    base, _ = tenants
+    reply = start_reply(base, A)
+    token = reply["resume_token"]
+    refusal = start_reply(base, B, resume_token=token)
+    assert refusal["type"] == "error" and refusal["code"] == "unknown_resume_token", refusal
+    resumed = start_reply(base, A, resume_token=token)
+    assert resumed["type"] == "started" and resumed["session_id"] == reply["session_id"]
+
+
+def test_a_callers_closed_sessions_are_capped_without_touching_anothers(tenants):
+    base, app = tenants
+    runtime = app.state.runtime
+    b_reply = start_reply(base, B)
+    a_tokens = []
+    for _ in range(3):  # A's cap is 2: its first is forgotten
+        reply = start_reply(base, A)
+        a_tokens.append(reply["resume_token"])
+        wait_until(lambda s=reply["session_id"]: s not in runtime.sessions, "the session closed")
+    for token, caller, want in (
+        (a_tokens[0], A, "error"),
+        (a_tokens[2], A, "started"),
+        (b_reply["resume_token"], B, "started"),
+    ):
+        reply = start_reply(base, caller, resume_token=token)
+        assert reply["type"] == want, (want, reply)
+
+
+def test_failed_authentication_is_rate_limited_per_address(tenants):
+    base, _ = tenants
+    codes = [httpx.get(f"{base}/v1/styles", headers=bearer(f"guess-{i}")).status_code for i in range(12)]
+    assert codes[:10] == [401] * 10 and codes[10:] == [429, 429], codes
+    assert httpx.get(f"{base}/v1/styles", headers=bearer(A)).status_code == 429  # until the address cools down
+    wait_until(lambda: httpx.get(f"{base}/healthz").status_code == 200, "health, which needs no token")
+
+
+def test_tokens_never_reach_the_logs():
+    import logging
+
+    from service.logs import RedactTokens
+
+    record = logging.LogRecord(
+        "uvicorn.access",
+        logging.INFO,
+        "",
+        0,
+        '%s - "%s %s HTTP/%s" %d',
+        ("1.2.3.4", "GET", "/v1/stream?model=x&token=s3cret", "1.1", 101),
+        None,
+    )
+    RedactTokens().filter(record)
+    assert "s3cret" not in record.getMessage() and "token=***" in record.getMessage()
+    from clients.sdk_wire import auth_headers
+    from clients.sdk_wire import ws_url as sdk_ws_url
+
+    assert "token" not in sdk_ws_url("http://h:1") and auth_headers("t") == {"Authorization": "Bearer t"}
+
+
+def test_new_sessions_faster_than_the_callers_rate_are_refused(models):
+    with live_server(models, token_sessions_per_s=2, token_max_sessions=3) as (base, _):
+        replies = []
+        for _ in range(6):
+            with connect(ws_url(base)) as ws:
+                ws.send(start_message())
+                replies.append(json.loads(ws.recv(timeout=20)))
+        kinds = [r["type"] if r["type"] == "started" else r["code"] for r in replies]
+        assert kinds[:3] == ["started"] * 3 and "too_many_sessions" in kinds[3:], kinds
