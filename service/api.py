@@ -8,6 +8,7 @@ imports another for it.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, Literal
 
 from pydantic import BaseModel, Field
@@ -43,6 +44,7 @@ ERROR_MEANINGS: dict[int, str] = {
 ERROR_HEADERS: dict[int, dict[str, Any]] = {
     401: {"WWW-Authenticate": {"description": "Bearer", "schema": {"type": "string"}}},
     429: {"Retry-After": {"description": "seconds until a request passes", "schema": {"type": "integer"}}},
+    503: {"Retry-After": {"description": "seconds to wait before trying again", "schema": {"type": "integer"}}},
 }
 
 
@@ -57,6 +59,14 @@ def error_responses(*statuses: int, notes: dict[int, str] | None = None) -> dict
         if status in ERROR_HEADERS:
             out[status]["headers"] = ERROR_HEADERS[status]
     return out
+
+
+def invalid_request(errors: Sequence[Any]) -> dict[str, str]:
+    """A request that does not match its schema (FastAPI's validation errors) as an `ErrorBody`,
+    `bad_request`, naming the first few fields and what is wrong with each: one error shape for
+    every refusal, as clients (the SDK) read it."""
+    parts = [f"{'.'.join(str(p) for p in e.get('loc', ()))}: {e.get('msg', 'invalid')}" for e in errors[:5]]
+    return {"code": "bad_request", "message": "; ".join(parts)[:1000] or "invalid request"}
 
 
 class Health(BaseModel):

@@ -14,17 +14,19 @@ from contextlib import asynccontextmanager
 
 import torch
 from fastapi import Depends, FastAPI, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from threadpoolctl import threadpool_limits
 
 from models.interface import StreamingModel, own_style_set
 from models.registry import load_models
 
-from .api import ApiError
+from .api import ApiError, error_responses, invalid_request
 from .batcher import ModelThread
 from .deps import require_token
 from .jobs import JobManager
 from .limits import Limiter
+from .routes_docs import install_docs
 from .routes_health import router as health_router
 from .routes_models import router as models_router
 from .routes_skeletons import router as skeletons_router
@@ -67,7 +69,8 @@ def create_app(settings: ServiceSettings | None = None, models: dict[str, Stream
         title="stylestream",
         version="0.1.0",
         lifespan=lifespan,
-        description="Online motion style transfer over WebSocket. Protocol: docs/protocol.md",
+        docs_url=None,  # served by routes_docs, from this server instead of a CDN
+        redoc_url=None,
     )
     app.state.runtime = None
     app.state.limiter = Limiter(settings)
@@ -77,7 +80,13 @@ def create_app(settings: ServiceSettings | None = None, models: dict[str, Stream
         """An `ApiError` as its status and `{"code", "message"}`, with its headers."""
         return JSONResponse({"code": exc.code, "message": exc.message}, status_code=exc.status, headers=exc.headers)
 
+    @app.exception_handler(RequestValidationError)
+    async def bad_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        """A request that does not match its schema: 422 in the same shape, `bad_request`."""
+        return JSONResponse(invalid_request(exc.errors()), status_code=422)
+
     for router in (health_router, models_router, styles_router, stream_router, viewer_router):
         app.include_router(router)
-    app.include_router(skeletons_router, dependencies=[Depends(require_token)])
+    app.include_router(skeletons_router, dependencies=[Depends(require_token)], responses=error_responses(401, 429))
+    install_docs(app)
     return app

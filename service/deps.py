@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from fastapi import HTTPException, Request
+from fastapi import Request
 from starlette.requests import HTTPConnection
 
+from .api import ApiError
 from .limits import Limiter, Principal, unauthorized
 from .runtime import Runtime
 
@@ -12,7 +13,7 @@ from .runtime import Runtime
 def get_runtime(request: Request) -> Runtime:
     runtime: Runtime | None = request.app.state.runtime
     if runtime is None:
-        raise HTTPException(503, "starting up")
+        raise ApiError(503, "starting_up", "the server is starting; try again shortly", {"Retry-After": "1"})
     return runtime
 
 

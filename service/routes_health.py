@@ -4,7 +4,6 @@ and `/metrics` (Prometheus text); no token, for probes and scrapers."""
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request, Response
-from fastapi.responses import PlainTextResponse
 
 from .api import Health, error_responses
 from .deps import get_runtime
@@ -38,10 +37,13 @@ async def readyz(request: Request, response: Response) -> Health:
 
 @router.get(
     "/metrics",
-    response_class=PlainTextResponse,
+    response_class=Response,  # PlainTextResponse would describe the 503's JSON body as text/plain
     summary="Prometheus metrics (text exposition format)",
     tags=["health"],
-    responses=error_responses(503),
+    responses={
+        200: {"description": "Prometheus text", "content": {"text/plain": {"schema": {"type": "string"}}}},
+        **error_responses(503),
+    },
 )
 async def metrics(rt: Runtime = Depends(get_runtime)) -> Response:
     body, media_type = rt.metrics.render()
