@@ -3,6 +3,7 @@
     stylestream serve                      start the service (health, models) on 127.0.0.1:8000
     stylestream data summary               what the mocap data holds (files, frames, styles x contents)
     stylestream data warm                  unpack and parse all data into the cache, timed
+    stylestream data fetch [--from URL]    unpack the mocap archives into the cache (downloading missing ones), once
     stylestream render a.bvh [b.bvh] -o x.gif   render motions side by side (GIF, or PNG contact sheet)
     stylestream retarget in.bvh -o out.bvh      any humanoid BVH -> Bandai Namco skeleton (30 fps)
     stylestream loadtest --sessions 1,64 --echo-floor   open-loop latency test against a server it starts
@@ -21,7 +22,14 @@ import sys
 def _data(args: argparse.Namespace) -> int:
     from models.data.__main__ import main as data_main
 
-    return data_main([args.action] + sum((["--dataset", d] for d in args.dataset or []), []))
+    options = sum((["--dataset", d] for d in args.dataset or []), [])
+    if args.action == "fetch":
+        options += ["--from", args.source] if args.source else []
+        options += ["--data-dir", str(args.data_dir)] if args.data_dir else []
+    elif args.source or args.data_dir:
+        print(f"stylestream data {args.action}: --from and --data-dir go with 'fetch'", file=sys.stderr)
+        return 2
+    return data_main([args.action] + options)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -34,13 +42,23 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_serve_command(sub)  # the server's own entry point, where the server lives
 
-    p = sub.add_parser("data", help="inspect the mocap data or build its parse cache")
+    p = sub.add_parser("data", help="make the mocap data ready, inspect it or build its parse cache")
     p.add_argument(
-        "action", choices=["summary", "warm"], help="summary: tables; warm: unpack + parse everything, timed"
+        "action",
+        choices=["summary", "warm", "fetch"],
+        help="summary: tables; warm: unpack + parse everything, timed; fetch: unpack the archives "
+        "into the cache (downloading missing ones with --from), once",
     )
     p.add_argument(
         "--dataset", action="append", help="limit to a dataset (repeatable): bandai-namco-1, bandai-namco-2, xia, cmu"
     )
+    p.add_argument(
+        "--from",
+        dest="source",
+        metavar="URL",
+        help="fetch: download archives the data folder lacks from URL/<archive> (checked against their known SHA-256)",
+    )
+    p.add_argument("--data-dir", help="fetch: the data folder (default: STYLESTREAM_DATA_DIR, else ../shared/data)")
     p.set_defaults(func=_data)
 
     from .loadtest import add_loadtest_command
@@ -55,18 +73,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+USER_ERRORS = (
+    ("models.motion.bvh", "BvhError"),
+    ("models.motion.humanoid", "RigError"),
+    ("models.data.archives", "DataError"),
+    ("httpx", "HTTPError"),
+    ("websockets.exceptions", "WebSocketException"),
+    ("clients.sdk_types", "ServerError"),
+    ("clients.sdk_types", "ResumeError"),
+)
+
+
 def user_errors() -> tuple[type[BaseException], ...]:
-    """Exceptions a user can cause and fix: a malformed or missing file, a port in use, a server
-    that refuses or cannot be reached (imported only once something was raised)."""
-    import httpx
-    from websockets.exceptions import WebSocketException
-
-    from models.motion.bvh import BvhError
-    from models.motion.humanoid import RigError
-
-    from .sdk import ResumeError, ServerError
-
-    return BvhError, RigError, OSError, httpx.HTTPError, WebSocketException, ServerError, ResumeError
+    """Exceptions a user can cause and fix: a malformed or missing file, missing mocap data, a port
+    in use, a server that refuses or cannot be reached. Only the classes of modules already
+    imported: one never imported cannot have been raised, and importing them all (torch, through
+    the rig code) added 2 s to a one-line error."""
+    found = [getattr(sys.modules[module], name) for module, name in USER_ERRORS if module in sys.modules]
+    return (OSError, *found)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,7 +2,19 @@
 
 from .archives import DATASETS, DataError, DatasetSpec, dataset_dir
 from .index import SPLITS, Clip, build_index, select
-from .loader import load_motion, load_motions, warm_cache
+
+_LOADER = ("load_motion", "load_motions", "warm_cache")
+
+
+def __getattr__(name: str):
+    """The loader's functions, imported when first used: the loader needs torch (through the
+    skeleton), which `stylestream data fetch` and `summary` do not, so they start in a moment."""
+    if name in _LOADER:
+        from . import loader
+
+        return getattr(loader, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "DATASETS",

@@ -1,4 +1,5 @@
-"""`python -m models.data summary|warm`: what the mocap data holds, and building the parse cache."""
+"""`python -m models.data summary|warm|fetch`: what the mocap data holds, building the parse cache,
+and making the data ready (`fetch.py`: download from a mirror, check, unpack)."""
 
 from __future__ import annotations
 
@@ -6,10 +7,12 @@ import argparse
 import sys
 import time
 from collections import Counter, defaultdict
+from pathlib import Path
 
+from ..settings import get_settings
 from .archives import DATASETS
+from .fetch import fetch
 from .index import Clip, build_index
-from .loader import warm_cache
 
 
 def format_summary(clips: list[Clip]) -> str:
@@ -48,12 +51,33 @@ def main(argv: list[str] | None = None) -> int:
     p_sum.add_argument("--dataset", action="append", choices=list(DATASETS), help="limit to these datasets")
     p_warm = sub.add_parser("warm", help="unpack and parse every file into the cache; prints the time")
     p_warm.add_argument("--dataset", action="append", choices=list(DATASETS))
+    p_fetch = sub.add_parser(
+        "fetch",
+        help="unpack the archives into the cache (downloading missing ones with --from), once; "
+        "a second run does nothing",
+    )
+    p_fetch.add_argument("--dataset", action="append", choices=list(DATASETS))
+    p_fetch.add_argument(
+        "--from",
+        dest="source",
+        metavar="URL",
+        help="download archives the data folder lacks from URL/<archive> (checked against their known SHA-256)",
+    )
+    p_fetch.add_argument("--data-dir", type=Path, help="the data folder (default: STYLESTREAM_DATA_DIR)")
     args = parser.parse_args(argv)
+    if args.command == "fetch":
+        settings = get_settings()
+        if args.data_dir is not None:
+            settings = settings.model_copy(update={"data_dir": args.data_dir})
+        fetch(args.dataset, settings, args.source)
+        return 0
     t0 = time.perf_counter()
     clips = build_index(args.dataset)
     if args.command == "summary":
         print(format_summary(clips))
     else:
+        from .loader import warm_cache  # torch, through the skeleton: only for this command
+
         parsed = warm_cache(clips)
         print(f"{len(clips)} files, {parsed} parsed, {time.perf_counter() - t0:.1f} s")
     return 0

@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import fcntl
 import hashlib
+import io
 import json
+import os
 import shutil
 import tarfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +25,10 @@ from ..settings import Settings, get_settings
 
 class DataError(RuntimeError):
     """The mocap data is missing or does not match its checksum."""
+
+
+# how far a long step has got: (bytes done, bytes in all)
+Progress = Callable[[int, int], None]
 
 
 @dataclass(frozen=True)
@@ -86,11 +93,12 @@ def _expected_sums(data_dir: Path) -> dict[str, str]:
     return out
 
 
-def dataset_dir(name: str, settings: Settings | None = None) -> Path:
-    """Folder holding the dataset's BVH files, unpacking the archive on first use."""
+def dataset_dir(name: str, settings: Settings | None = None, progress: Progress | None = None) -> Path:
+    """Folder holding the dataset's BVH files, unpacking the archive on first use (`progress`
+    hears how much of the archive has been read while it is unpacked)."""
     settings = settings or get_settings()
     spec = DATASETS[name]
-    data_dir, cache_dir = Path(settings.data_dir), Path(settings.cache_dir)
+    data_dir = Path(settings.data_dir)
     in_place = data_dir / spec.bvh_dir
     archive = data_dir / spec.archive
     if not archive.exists():
@@ -100,8 +108,7 @@ def dataset_dir(name: str, settings: Settings | None = None) -> Path:
             f"dataset {name!r}: neither {archive} nor {in_place} exists "
             f"(set STYLESTREAM_DATA_DIR to the folder with the mocap archives)"
         )
-    unpack_root = cache_dir / "unpacked" / name
-    ident = {"archive": str(archive.resolve()), "size": archive.stat().st_size, "mtime_ns": archive.stat().st_mtime_ns}
+    unpack_root, ident = _unpack_target(name, settings)
     if _unpacked_from(unpack_root, ident):
         return unpack_root / spec.bvh_dir
     unpack_root.parent.mkdir(parents=True, exist_ok=True)
@@ -109,8 +116,27 @@ def dataset_dir(name: str, settings: Settings | None = None) -> Path:
     with open(unpack_root.with_name(unpack_root.name + ".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not _unpacked_from(unpack_root, ident):
-            _unpack(archive, unpack_root, ident, _expected_sums(data_dir).get(spec.archive))
+            _unpack(archive, unpack_root, ident, _expected_sums(data_dir).get(spec.archive), progress)
     return unpack_root / spec.bvh_dir
+
+
+def is_unpacked(name: str, settings: Settings | None = None) -> bool:
+    """Whether the dataset's archive has been unpacked into the cache (from these archive bytes)."""
+    settings = settings or get_settings()
+    if not (Path(settings.data_dir) / DATASETS[name].archive).exists():
+        return False
+    return _unpacked_from(*_unpack_target(name, settings))
+
+
+def _unpack_target(name: str, settings: Settings) -> tuple[Path, dict]:
+    """Where the dataset's archive is unpacked, and what identifies the archive bytes it came from."""
+    archive = Path(settings.data_dir) / DATASETS[name].archive
+    stat = archive.stat()
+    return Path(settings.cache_dir) / "unpacked" / name, {
+        "archive": str(archive.resolve()),
+        "size": stat.st_size,
+        "mtime_ns": stat.st_mtime_ns,
+    }
 
 
 def _unpacked_from(unpack_root: Path, ident: dict) -> bool:
@@ -122,7 +148,21 @@ def _unpacked_from(unpack_root: Path, ident: dict) -> bool:
     return all(recorded.get(k) == v for k, v in ident.items())
 
 
-def _unpack(archive: Path, unpack_root: Path, ident: dict, expected: str | None) -> None:
+class _Counted(io.FileIO):
+    """An archive file that tells `progress` how far it has been read: the compressed bytes an
+    unpack has consumed, known at once (counting members first would decompress it twice)."""
+
+    def __init__(self, path: Path, progress: Progress) -> None:
+        super().__init__(path, "rb")
+        self.total, self.progress = os.fstat(self.fileno()).st_size, progress
+
+    def read(self, size: int | None = -1) -> bytes:
+        block = super().read(size) or b""
+        self.progress(self.tell(), self.total)
+        return block
+
+
+def _unpack(archive: Path, unpack_root: Path, ident: dict, expected: str | None, progress: Progress | None) -> None:
     """Check the archive's sum and unpack it into `unpack_root`, atomically."""
     digest = sha256_file(archive)
     if expected is not None and digest != expected:
@@ -132,8 +172,9 @@ def _unpack(archive: Path, unpack_root: Path, ident: dict, expected: str | None)
     tmp = unpack_root.with_name(unpack_root.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    with tarfile.open(archive, "r:xz") as tar:
-        tar.extractall(tmp, filter="data")
+    with _Counted(archive, progress) if progress else open(archive, "rb") as raw:
+        with tarfile.open(fileobj=raw, mode="r:xz") as tar:
+            tar.extractall(tmp, filter="data")
     (tmp / ".source.json").write_text(json.dumps({**ident, "sha256": digest}))
     tmp.rename(unpack_root)  # atomic: a crash mid-unpack never leaves a half folder that looks done
 
