@@ -30,6 +30,7 @@ from models.registry import load_models
 from models.settings import get_settings
 from service.viewer import VIEWER_DIR, DemoClip, rocking_pose
 from tests.live_server import live_server
+from tests.waiting import wait_until
 
 CHROMIUM = Path("/usr/bin/chromium")
 OUT = Path(__file__).resolve().parents[1] / "out"  # git-ignored: screenshots to look at
@@ -237,11 +238,19 @@ class DevTools:
         self.call("Input.dispatchMouseEvent", type="mouseReleased", x=end[0], y=end[1], button="left", clickCount=1)
 
     def wait_for(self, expr: str, what: str, timeout: float = 20) -> None:
-        deadline = time.monotonic() + timeout
-        while not self.js(expr):
+        """Until the page's expression is true; on timeout the failure names the page's state."""
+        try:
+            wait_until(lambda: self.js(expr), what, timeout, interval=0.1)
+        except AssertionError as timed_out:
+            state = self.js("document.body?.dataset.state")
             status = self.js("document.getElementById('status')?.textContent")
-            assert time.monotonic() < deadline, f"{what}: state {self.js('document.body?.dataset.state')!r}, {status!r}"
-            time.sleep(0.1)
+            raise AssertionError(f"{timed_out}: page state {state!r}, {status!r}") from None
+
+    def wait_frames(self, count: int, what: str, timeout: float = 30) -> None:
+        """Until `count` more replies have arrived: a span of the stream measured in frames, which a
+        loaded machine stretches in time but not in what the character does."""
+        seen = int(self.js("document.body.dataset.received"))
+        self.wait_for(f"+document.body.dataset.received >= {seen + count}", what, timeout)
 
 
 @contextmanager
@@ -260,18 +269,20 @@ def devtools_page(tmp_path: Path):
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
+    pages: list[dict] = []
+
+    def page_listed() -> bool:
+        assert proc.poll() is None, f"chromium exited ({proc.returncode}) before its DevTools endpoint came up"
+        try:
+            targets = httpx.get(f"http://127.0.0.1:{port}/json/list", timeout=1).json()
+        except (httpx.TransportError, ValueError):
+            return False
+        pages.extend(t for t in targets if t.get("type") == "page")
+        return bool(pages)
+
     try:
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                targets = httpx.get(f"http://127.0.0.1:{port}/json/list", timeout=1).json()
-                page = next(t for t in targets if t.get("type") == "page")
-                break
-            except (httpx.TransportError, StopIteration, ValueError):
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise RuntimeError("chromium's DevTools endpoint did not come up") from None
-                time.sleep(0.1)
-        with connect(page["webSocketDebuggerUrl"], max_size=None, open_timeout=10) as cdp:
+        wait_until(page_listed, "chromium's DevTools endpoint", timeout=30, interval=0.1)
+        with connect(pages[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=10) as cdp:
             tools = DevTools(cdp)
             tools.call("Emulation.setDeviceMetricsOverride", width=1000, height=600, deviceScaleFactor=1, mobile=False)
             yield tools
@@ -295,13 +306,16 @@ def test_viewer_streams_in_real_time(server, tmp_path):
             "viewer did not stream",
         )
         t0, n0 = time.monotonic(), int(page.js("document.body.dataset.received"))
-        time.sleep(3.0)
+        page.wait_frames(90, "the viewer stopped streaming")  # 3 s of the clip
         page.js(
             "document.getElementById('style').value = 'exhausted';"
             "document.getElementById('style').dispatchEvent(new Event('change'))"
         )
-        time.sleep(1.0)
+        page.wait_frames(30, "the viewer stopped streaming after a style change")
         rate = (int(page.js("document.body.dataset.received")) - n0) / (time.monotonic() - t0)
+        page.wait_for(
+            "document.getElementById('hud').innerText.includes('exhausted 1.00')", "no style_set for 'exhausted'"
+        )
         hud = page.js("document.getElementById('hud').innerText")
         print(f"viewer in real time: {rate:.1f} frames/s received; HUD: {hud!r}")
         assert 0.7 * 30 < rate < 1.1 * 30, f"expected the clip's 30 frames/s, got {rate:.1f}"
@@ -446,16 +460,16 @@ def test_keys_drive_the_lpn_character_through_the_server(server, tmp_path):
         )
         start = page.js(root)
         page.key("keyDown", *W)
-        time.sleep(3.0)
+        page.wait_frames(90, "no replies while W is held")  # 3 s of ticks at 30 fps
         walked = page.js(root)
         page.key("keyDown", *Q)
-        time.sleep(1.5)
+        page.wait_frames(45, "no replies while W and Q are held")
         for k in (Q, W):
             page.key("keyUp", *k)
         turned = page.js(root)
-        time.sleep(2.0)
+        page.wait_frames(60, "no replies after the keys were released")
         stopped = page.js(root)
-        time.sleep(1.0)
+        page.wait_frames(30, "no replies once stopped")
         still = page.js(root)
         hud = page.js("document.getElementById('hud').innerText")
         shot = page.call("Page.captureScreenshot", format="png")["data"]
