@@ -99,6 +99,7 @@ class MessageRate:
 
     rate: float
     burst: float
+    what: str = "messages"  # what is counted, for the error
     bucket: Bucket | None = None
     excess: int = 0  # messages dropped since the bucket was last full
 
@@ -113,12 +114,12 @@ class MessageRate:
         if self.excess == 1:
             raise P.ProtocolError(
                 "rate_limited",
-                f"more than {self.rate:g} messages/s on this connection (bursts of {self.burst:g}); "
+                f"more than {self.rate:g} {self.what}/s on this connection (bursts of {self.burst:g}); "
                 "messages beyond are dropped, and a second's worth more closes the connection",
             )
         if self.excess >= max(2, self.rate):
             raise P.ProtocolError(
-                "rate_limited", f"kept sending over {self.rate:g} messages/s after being told", fatal=True
+                "rate_limited", f"kept sending over {self.rate:g} {self.what}/s after being told", fatal=True
             )
         return False
 

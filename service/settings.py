@@ -75,6 +75,13 @@ class ServiceSettings(Settings):
         description="Per connection: WebSocket messages per second (bursts of a second's worth); beyond it "
         "they are dropped with a typed error, and a second's worth more closes the connection.",
     )
+    max_controls_per_s: float = Field(
+        default=20.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Per connection: style and reset messages per second (each costs a model reset or a "
+        "reply), counted like max_messages_per_s.",
+    )
     snapshot_every: int = Field(default=30, ge=1, description="Frames between session snapshots (for resume).")
     resume_ttl_s: float = Field(default=600.0, gt=0, description="How long a closed session can be resumed.")
     session_store: str = Field(

@@ -48,6 +48,9 @@ class Connection:
         self.processor: asyncio.Task | None = None
         self.acks = False  # the client asked for snapshot acknowledgements
         self.rate = MessageRate(self.settings.max_messages_per_s, self.settings.max_messages_per_s)
+        self.control_rate = MessageRate(
+            self.settings.max_controls_per_s, self.settings.max_controls_per_s, "style and reset messages"
+        )
         self._ack_tasks: set[asyncio.Task] = set()
         self.log: logging.Logger | logging.LoggerAdapter = log  # once a session is open: its id and model on every line
 
@@ -266,6 +269,8 @@ class Connection:
         if isinstance(message, P.Control):
             self.queue(self.control_item(message))
             return True
+        if not isinstance(message, P.End) and not self.control_rate.admit(time.monotonic()):
+            return True  # style and reset messages over their own, lower rate: dropped (the first one told)
         if isinstance(message, P.SetStyle):  # validate now, so the error comes back at once
             self.rt.check_visible(self.who, self.session.model.name, P.mix_of(message.style, message.mix))
             P.requested_weights(self.session.model, message.style, message.mix, message.intensity)

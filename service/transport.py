@@ -13,7 +13,7 @@ Stock uvicorn waits on a peer for ever in two places:
 `GuardedWebSocket` aborts a connection whose outgoing data does not drain within
 `send_timeout_s` (the app's receive then sees a disconnect, so the session is freed and kept
 for resume), and aborts rather than flushes a closing handshake the peer has not answered within
-`send_timeout_s`.
+`send_timeout_s`, and stops reading from a client it closed for what it sent (1008).
 """
 
 from __future__ import annotations
@@ -27,6 +27,10 @@ from uvicorn.protocols.utils import ClientDisconnected
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from .settings import ServiceSettings
+
+
+CLOSE_POLICY_VIOLATION = 1008
+POLICY_CLOSE_GRACE_S = 1.0  # time for the close frame to reach a client closed for what it sent
 
 
 class GuardedHttp(HttpToolsProtocol):
@@ -78,7 +82,13 @@ class GuardedWebSocket(WebSocketsSansIOProtocol):
         await super().send(message)
         if self.close_timer is not None:  # our close was sent: a peer that does not answer in time is dropped
             self.close_timer.cancel()
-            self.close_timer = self.loop.call_later(self.send_timeout_s, self.transport.abort)
+            grace = self.send_timeout_s
+            if message.get("code") == CLOSE_POLICY_VIOLATION and not self.transport.is_closing():
+                # closed for what it sent (a flood, a protocol violation): read nothing more from it
+                # (parsing a flood's frames after the close still cost the event loop) and let it go soon
+                self.transport.pause_reading()
+                grace = min(grace, POLICY_CLOSE_GRACE_S)
+            self.close_timer = self.loop.call_later(grace, self.transport.abort)
 
     def keepalive_timeout(self) -> None:
         super().keepalive_timeout()  # it closes, which flushes first: a peer that does not read is aborted instead

@@ -3,11 +3,7 @@ output of the model stepped offline, however the others behave."""
 
 from __future__ import annotations
 
-import base64
 import json
-import os
-import socket
-import struct
 import threading
 import time
 
@@ -93,67 +89,3 @@ class Bystander:
 
     def p99_ms(self, since: int = 0) -> float:
         return float(np.percentile(np.array(self.rtts[since:]) * 1000, 99))
-
-
-class RawSocket:
-    """A bare TCP connection to the server, with a small receive buffer so replies back up."""
-
-    def __init__(self, base: str, rcvbuf: int = 4096) -> None:
-        host, port = base.split("//")[1].split(":")
-        self.host, self.port = host, int(port)
-        self.sock = socket.socket()
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-        self.sock.connect((self.host, self.port))
-
-    def closed_by_server(self, timeout: float) -> bool:
-        """Read (and discard) until the server drops the connection; False if it has not within
-        `timeout` seconds."""
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            self.sock.settimeout(max(0.01, deadline - time.monotonic()))
-            try:
-                if not self.sock.recv(65536):
-                    return True
-            except TimeoutError:
-                return False
-            except OSError:  # reset: the server aborted
-                return True
-        return False
-
-    def close(self) -> None:
-        self.sock.close()
-
-
-class RawClient(RawSocket):
-    """A WebSocket client that reads only when told to (a browser tab gone to sleep, a stalled
-    game thread): the handshake by hand, then masked text frames."""
-
-    def __init__(self, base: str, rcvbuf: int = 4096) -> None:
-        super().__init__(base, rcvbuf)
-        key = base64.b64encode(os.urandom(16)).decode()
-        self.sock.sendall(
-            (
-                f"GET /v1/stream HTTP/1.1\r\nHost: {self.host}:{self.port}\r\nUpgrade: websocket\r\n"
-                f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
-            ).encode()
-        )
-        head = b""
-        while b"\r\n\r\n" not in head:
-            chunk = self.sock.recv(1)
-            assert chunk, "connection closed during the handshake"
-            head += chunk
-        assert head.startswith(b"HTTP/1.1 101"), head
-
-    def send_text(self, text: str) -> None:
-        """One masked text frame (RFC 6455: clients mask)."""
-        payload = text.encode()
-        n = len(payload)
-        if n < 126:
-            length = bytes([0x80 | n])
-        elif n < 65536:
-            length = bytes([0x80 | 126]) + struct.pack(">H", n)
-        else:
-            length = bytes([0x80 | 127]) + struct.pack(">Q", n)
-        mask = os.urandom(4)
-        masked = (np.frombuffer(payload, np.uint8) ^ np.resize(np.frombuffer(mask, np.uint8), n)).tobytes()
-        self.sock.sendall(bytes([0x81]) + length + mask + masked)

@@ -551,6 +551,9 @@ def server(tmp_path_factory):
                 "STYLESTREAM_SNAPSHOT_EVERY": str(SNAPSHOT_EVERY),
                 "STYLESTREAM_IDLE_TIMEOUT_S": "600",
                 "STYLESTREAM_STYLES_DIR": str(scratch / "styles"),
+                # malformed input is what is checked here, not rates (tests/test_hostile.py checks those)
+                "STYLESTREAM_MAX_CONTROLS_PER_S": "1e6",
+                "STYLESTREAM_MAX_MESSAGES_PER_S": "1e6",
             },  # the trained styles only
             stdout=out,
             stderr=subprocess.STDOUT,

@@ -14,13 +14,14 @@ import pytest
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from clients.raw_ws import RawClient, RawSocket
 from models.motion import bvh
 from models.motion.skeleton import to_bvh
 from models.registry import load_models
 from models.settings import get_settings
 
 from .cluster import require, shipped_nginx
-from .hostile import Bystander, RawClient, RawSocket, ws_url
+from .hostile import Bystander, ws_url
 from .live_server import live_server
 from .waiting import wait_until
 
@@ -383,3 +384,26 @@ def test_new_sessions_faster_than_the_callers_rate_are_refused(models):
                 replies.append(json.loads(ws.recv(timeout=20)))
         kinds = [r["type"] if r["type"] == "started" else r["code"] for r in replies]
         assert kinds[:3] == ["started"] * 3 and "too_many_sessions" in kinds[3:], kinds
+
+
+def test_style_and_reset_messages_have_their_own_lower_rate(models, bn_walk):
+    """Each reset or style change costs a model reset or a reply: past max_controls_per_s they
+    are dropped (told once), and a second's worth more closes the connection; frames still flow."""
+    with live_server(models, max_controls_per_s=5) as (base, _):
+        received = []
+        with connect(ws_url(base)) as ws:
+            ws.send(start_message())
+            assert json.loads(ws.recv(timeout=10))["type"] == "started"
+            for _ in range(7):  # 5 pass (the burst), the 6th is told, the 7th dropped
+                ws.send('{"type": "reset"}')
+            ws.send(frame_message(0, bn_walk))
+            while not received or received[-1]["type"] != "frame":
+                received.append(json.loads(ws.recv(timeout=20)))
+            with pytest.raises(ConnectionClosed) as closed:
+                for _ in range(10):
+                    ws.send('{"type": "reset"}')
+                while True:
+                    received.append(json.loads(ws.recv(timeout=20)))
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+        kinds = [m["type"] if m["type"] != "error" else m["code"] for m in received]
+        assert 5 <= kinds.count("reset_done") <= 6 and kinds.count("rate_limited") == 2, kinds

@@ -1,0 +1,242 @@
+"""What hostile clients cost a healthy one (issue #16): `python -m clients.hostile_bench`.
+
+Starts `stylestream serve` here, streams one healthy LTI session at 60 fps through every phase,
+and in each phase runs one attack from other processes: a message flood at full speed, the
+worst uploads (absurd frame rates, the largest valid BVH, again and again), a client that floods
+resets and never reads, session churn, and 2,000 half-open connections. Prints, per phase, the
+healthy session's round-trip p50/p99 (and p99 against the quiet phase's), the frames it got
+back, the server's resident memory after the phase, and what the attacker was answered.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import httpx
+import numpy as np
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from .loadtest import real_frames, spawned_server
+from .raw_ws import RawClient, RawSocket
+
+ENV = {  # short deadlines, so a phase's leftovers are gone before the next one
+    "STYLESTREAM_SEND_TIMEOUT_S": "2",
+    "STYLESTREAM_HEADER_TIMEOUT_S": "2",
+    "STYLESTREAM_IDLE_TIMEOUT_S": "5",
+}
+
+
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+class Healthy(threading.Thread):
+    """One session at 60 fps, one frame in flight; keeps each reply's round trip and phase."""
+
+    def __init__(self, url: str, frames: list[str]) -> None:
+        super().__init__(daemon=True)
+        self.url, self.frames, self.phase = url, frames, "quiet"
+        self.rtts: dict[str, list[float]] = {}
+        self.stop, self.error = threading.Event(), ""
+
+    def run(self) -> None:
+        try:
+            with connect(self.url) as ws:
+                ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly"}))
+                json.loads(ws.recv(timeout=60))
+                seq = 0
+                while not self.stop.is_set():
+                    t0 = time.perf_counter()
+                    ws.send(self.frames[seq % len(self.frames)].replace('"seq": 0', f'"seq": {seq}'))
+                    reply = json.loads(ws.recv(timeout=60))
+                    assert reply["seq"] == seq, reply
+                    self.rtts.setdefault(self.phase, []).append(time.perf_counter() - t0)
+                    seq += 1
+                    time.sleep(max(0.0, 1 / 60 - (time.perf_counter() - t0)))
+        except Exception as exc:  # noqa: BLE001  (reported in the table)
+            self.error = f"{type(exc).__name__}: {exc}"
+
+
+# ---- attacks (each in its own process, `seconds` long; returns what it was answered) -------------
+
+
+def flood(url: str, frames: list[str], seconds: float) -> Counter:
+    seen: Counter = Counter()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        try:
+            with connect(url) as ws:
+                ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly"}))
+                ws.recv(timeout=30)
+                while time.monotonic() < end:
+                    for frame in frames:
+                        ws.send(frame)
+        except ConnectionClosed as exc:
+            seen[f"closed {exc.rcvd.code if exc.rcvd else '?'}"] += 1
+    return seen
+
+
+def uploads(base: str, bvh_text: str, seconds: float) -> Counter:
+    seen: Counter = Counter()
+    head, _, rest = bvh_text.partition("Frame Time:")
+    slow = head + "Frame Time: 10" + rest[rest.index("\n") :]  # 0.1 fps: 300x its rows at 30 fps
+    tiny_fps = {
+        "name": "x",
+        "model": "lpn",
+        "fps": 1e-4,
+        "frames": {"root": [[0, 90, 0]] * 60, "rotations": [[[0, 0, 0, 1]] * 22] * 60},
+    }
+    end, i = time.monotonic() + seconds, 0
+    while time.monotonic() < end:
+        i += 1
+        for r in (
+            httpx.post(
+                f"{base}/v1/styles", files={"file": ("a.bvh", slow)}, data={"name": f"s{i}", "model": "lpn"}, timeout=60
+            ),
+            httpx.post(f"{base}/v1/styles", json=tiny_fps, timeout=60),
+            httpx.post(
+                f"{base}/v1/styles",
+                files={"file": ("b.bvh", bvh_text)},
+                data={"name": f"big{i}", "model": "lpn"},
+                timeout=120,
+            ),
+        ):
+            seen[f"{r.status_code} {r.json().get('code', 'created')}"] += 1
+            if r.status_code == 201:
+                httpx.delete(f"{base}/v1/styles/lpn.big{i}", timeout=30)
+    return seen
+
+
+def reset_flood_no_read(base: str, seconds: float) -> Counter:
+    seen: Counter = Counter()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        client = RawClient(base)
+        client.send_text(json.dumps({"type": "start", "model": "lti", "style": "elderly"}))
+        client.sock.settimeout(1.0)
+        try:
+            while time.monotonic() < end:
+                client.send_text('{"type": "reset"}')
+            seen["still open at the end"] += 1
+        except OSError as exc:
+            seen[f"send stopped ({type(exc).__name__})"] += 1
+        client.close()
+    return seen
+
+
+def churn(url: str, seconds: float) -> Counter:
+    seen: Counter = Counter()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        with connect(url) as ws:
+            ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly"}))
+            reply = json.loads(ws.recv(timeout=30))
+            seen[reply["type"] if reply["type"] == "started" else reply["code"]] += 1
+    return seen
+
+
+def half_open(base: str, seconds: float, count: int = 2000) -> Counter:
+    sockets = [RawSocket(base) for _ in range(count)]
+    time.sleep(seconds)
+    closed = sum(s.closed_by_server(timeout=0.01) for s in sockets)
+    for s in sockets:
+        s.close()
+    return Counter({f"{closed}/{count} dropped by the server": 1})
+
+
+def _attack(name: str, args: tuple, out, go) -> None:
+    out.put("ready")  # imports done: they must not count against the phase
+    go.wait()
+    out.put(dict(ATTACKS[name](*args)))
+
+
+ATTACKS = {
+    "flood": flood,
+    "uploads": uploads,
+    "no-read resets": reset_flood_no_read,
+    "churn": churn,
+    "half-open": half_open,
+}
+
+
+def largest_bvh() -> str:
+    """A valid BVH near the 16 MiB upload limit: a real walk looped to 27,000 rows at 120 fps."""
+    from models.data import build_index, load_motion, select
+    from models.motion import bvh
+    from models.motion.skeleton import to_bvh
+
+    walk = load_motion(select(build_index(), dataset="bandai-namco-2", style="normal", content="walk", split="val")[0])
+    head, _, body = bvh.dumps(to_bvh(walk)).partition("Frame Time:")
+    rows = body.partition("\n")[2].rstrip("\n").split("\n")
+    n = 27_000
+    head = head.replace(f"Frames: {walk.num_frames}", f"Frames: {n}")
+    return f"{head}Frame Time: 0.00833333\n" + "\n".join(rows[i % len(rows)] for i in range(n)) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=6.0, help="length of each phase")
+    ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="server settings (STYLESTREAM_NAME)")
+    args = ap.parse_args()
+    root, rot = real_frames(120)
+    frames = [
+        json.dumps({"type": "frame", "seq": 0, "root": r.tolist(), "rotations": q.tolist()}) for r, q in zip(root, rot)
+    ]
+    big = largest_bvh()
+    ctx = multiprocessing.get_context("spawn")
+    env = {**ENV, **{f"STYLESTREAM_{k.upper()}": v for k, v in (kv.split("=", 1) for kv in args.set)}}
+    with spawned_server(env=env) as (url, server):
+        base = url.replace("ws://", "http://").removesuffix("/v1/stream")
+        healthy = Healthy(url, frames)
+        healthy.start()
+        time.sleep(args.seconds)
+        rows = [("quiet", rss_mb(server.pid), {})]
+        plans = {
+            "flood": (url, frames, args.seconds),
+            "uploads": (base, big, args.seconds),
+            "no-read resets": (base, args.seconds),
+            "churn": (url, args.seconds),
+            "half-open": (base, args.seconds),
+        }
+        for name, plan in plans.items():
+            out, go = ctx.Queue(), ctx.Event()
+            proc = ctx.Process(target=_attack, args=(name, plan, out, go))
+            proc.start()
+            assert out.get(timeout=120) == "ready"
+            healthy.phase = name
+            go.set()
+            answered = out.get(timeout=600)
+            proc.join()
+            healthy.phase = f"after {name}"
+            time.sleep(3)  # deadlines (2 s) pass, memory settles
+            rows.append((name, rss_mb(server.pid), answered))
+        healthy.stop.set()
+        healthy.join(timeout=60)
+    quiet = np.percentile(np.array(healthy.rtts["quiet"]) * 1000, 99)
+    print(f"healthy session errors: {healthy.error or 'none'}; bystander BVH {len(big) / 2**20:.1f} MiB")
+    print(
+        f"{'phase':16} {'frames':>6} {'p50 ms':>7} {'p99 ms':>7} {'p99/quiet':>9} {'RSS MB':>7}  attacker was answered"
+    )
+    for name, rss, answered in rows:
+        rtt = np.array(healthy.rtts.get(name, [np.nan])) * 1000
+        p99 = np.percentile(rtt, 99)
+        print(
+            f"{name:16} {len(rtt):6d} {np.percentile(rtt, 50):7.2f} {p99:7.2f} {p99 / quiet:9.2f} {rss:7.0f}  "
+            + ", ".join(f"{k}: {v}" for k, v in answered.items())
+        )
+    print(f"cores: {os.cpu_count()}")
+
+
+if __name__ == "__main__":
+    main()
