@@ -29,6 +29,7 @@ from .api import ApiError
 from .settings import ServiceSettings, TokenLimits
 
 CLOSE_TRY_AGAIN_LATER = 1013
+CLOSE_FLOODING = 4429  # a connection closed for sending too much (service/transport.py stops reading it)
 AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST = 1.0, 10.0  # failed authentications per address
 MAX_IDLE_BUCKETS = 10_000  # above this, buckets that have refilled are forgotten (anonymous clients come and go)
 
@@ -94,7 +95,7 @@ class MessageRate:
     """One connection's message budget: `rate` per second in bursts of `burst`. Messages over it
     are dropped unread; the first dropped is answered with a typed `rate_limited` error, and a
     second's worth dropped before the client calms down (its bucket full again) closes the
-    connection (1008): a client that keeps flooding gets nothing more, and the event loop spends
+    connection (4429): a client that keeps flooding gets nothing more, and the event loop spends
     almost nothing on it."""
 
     rate: float
@@ -119,7 +120,10 @@ class MessageRate:
             )
         if self.excess >= max(2, self.rate):
             raise P.ProtocolError(
-                "rate_limited", f"kept sending over {self.rate:g} {self.what}/s after being told", fatal=True
+                "rate_limited",
+                f"kept sending over {self.rate:g} {self.what}/s after being told",
+                fatal=True,
+                close_code=CLOSE_FLOODING,
             )
         return False
 

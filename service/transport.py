@@ -13,7 +13,7 @@ Stock uvicorn waits on a peer for ever in two places:
 `GuardedWebSocket` aborts a connection whose outgoing data does not drain within
 `send_timeout_s` (the app's receive then sees a disconnect, so the session is freed and kept
 for resume), and aborts rather than flushes a closing handshake the peer has not answered within
-`send_timeout_s`, and stops reading from a client it closed for what it sent (1008).
+`send_timeout_s`, and stops reading from a client it closed for flooding (4429).
 """
 
 from __future__ import annotations
@@ -26,11 +26,10 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.utils import ClientDisconnected
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
+from .limits import CLOSE_FLOODING
 from .settings import ServiceSettings
 
-
-CLOSE_POLICY_VIOLATION = 1008
-POLICY_CLOSE_GRACE_S = 1.0  # time for the close frame to reach a client closed for what it sent
+FLOOD_CLOSE_GRACE_S = 1.0  # time for the close frame to reach a client closed for flooding
 
 
 class GuardedHttp(HttpToolsProtocol):
@@ -83,11 +82,11 @@ class GuardedWebSocket(WebSocketsSansIOProtocol):
         if self.close_timer is not None:  # our close was sent: a peer that does not answer in time is dropped
             self.close_timer.cancel()
             grace = self.send_timeout_s
-            if message.get("code") == CLOSE_POLICY_VIOLATION and not self.transport.is_closing():
-                # closed for what it sent (a flood, a protocol violation): read nothing more from it
-                # (parsing a flood's frames after the close still cost the event loop) and let it go soon
+            if message.get("code") == CLOSE_FLOODING and not self.transport.is_closing():
+                # closed for flooding: read nothing more from it (parsing a flood's frames after the
+                # close still cost the event loop) and let it go soon, without waiting for its close
                 self.transport.pause_reading()
-                grace = min(grace, POLICY_CLOSE_GRACE_S)
+                grace = min(grace, FLOOD_CLOSE_GRACE_S)
             self.close_timer = self.loop.call_later(grace, self.transport.abort)
 
     def keepalive_timeout(self) -> None:

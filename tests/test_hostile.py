@@ -223,7 +223,7 @@ def test_a_client_that_never_reads_is_freed_within_the_idle_timeout(models, bn_w
 
 def test_a_flooding_client_is_told_then_closed(models, bn_walk):
     """Over the per-connection message rate: dropped, a typed `rate_limited` error, and a second's
-    worth dropped before the client calms down closes the connection (1008)."""
+    worth dropped before the client calms down closes the connection (4429)."""
     with live_server(models, max_messages_per_s=100) as (base, _):
         with Bystander(base, bn_walk.slice(0, 60)) as b:
             received = []
@@ -236,7 +236,7 @@ def test_a_flooding_client_is_told_then_closed(models, bn_walk):
                 with pytest.raises(ConnectionClosed) as closed:
                     while True:  # what came back before the close, then the close
                         received.append(json.loads(ws.recv(timeout=20)))
-            assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008, closed.value
+            assert closed.value.rcvd is not None and closed.value.rcvd.code == 4429, closed.value
             errors = [m["code"] for m in received if m["type"] == "error"]
             assert set(errors) == {"rate_limited"} and len(errors) >= 2, (
                 errors
@@ -404,6 +404,6 @@ def test_style_and_reset_messages_have_their_own_lower_rate(models, bn_walk):
                     ws.send('{"type": "reset"}')
                 while True:
                     received.append(json.loads(ws.recv(timeout=20)))
-        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 4429
         kinds = [m["type"] if m["type"] != "error" else m["code"] for m in received]
         assert 5 <= kinds.count("reset_done") <= 6 and kinds.count("rate_limited") == 2, kinds
