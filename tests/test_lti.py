@@ -135,7 +135,9 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
     """Float64 numpy reference of a constant style mix (foot lock off), built from each style's
     offline translation: the input's share 1 - sum(w) plus each style's share of the root
     features (displacement, yaw change, height), body rotations blended by sign-aligned
-    normalised quaternion averaging, the path integrated from the input's first frame."""
+    normalised quaternion averaging (each style's held inside its rotation prior first), the path
+    integrated from the input's first frame."""
+    from models.lti.prior import clamp_rotations
     from models.motion.rotations import quat_mul
 
     root, rots, F = motion.translations[:, rep.HIPS], motion.rotations, motion.num_frames
@@ -150,7 +152,8 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
             tr = model.translators[style]
             out, xs = tr.translate_features(rep.motion_to_features(motion, tr.ref))
             root_feats += w[s] * out[:, :4]
-            parts.append((w[s], rep.static_to_rotations(out[:, 4 : rep.FEATURE_DIM], np.zeros(F), tr.ref)))
+            body = rep.static_to_rotations(out[:, 4 : rep.FEATURE_DIM], np.zeros(F), tr.ref)
+            parts.append((w[s], clamp_rotations(body, tr.prior_mean, tr.prior_radii)))  # each style's prior
             votes += w[s] * tr.footplant.predict(xs)
     base = max(parts, key=lambda p: p[0])[1]
     acc = sum(wp * np.where(np.sum(q * base, -1, keepdims=True) < 0, -q, q) for wp, q in parts)

@@ -2,7 +2,7 @@
 
 python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
 python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
-python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2]
+python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2] [--weights DIR]
 python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
 python -m models.lti align-plot [-o out/lti_alignment.png]
 python -m models.lti card --train-time "..."   (benchmark + models/weights/lti/MODEL_CARD.md)
@@ -17,6 +17,10 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+
+WEIGHTS_DIR_DEFAULT = (
+    Path(__file__).resolve().parents[1] / "weights" / "lti"
+)  # = model.WEIGHTS_DIR, without importing it
 
 
 def cmd_train(args) -> None:
@@ -69,7 +73,7 @@ def cmd_bench(args) -> None:
     motion = load_motion(clip)
     for threads in args.threads:
         for footlock in (True, False):
-            model = LTIStyleModel(footlock=footlock)
+            model = LTIStyleModel(weights_dir=args.weights, footlock=footlock)
             style = args.style or ("elderly" if "elderly" in model.styles() else model.styles()[0])
             tr = model.translators[style]
             print(
@@ -167,6 +171,7 @@ def main(argv: list[str] | None = None) -> None:
     b = sub.add_parser("bench")
     b.add_argument("--style")
     b.add_argument("--frames", type=int, default=2000)
+    b.add_argument("--weights", default=str(WEIGHTS_DIR_DEFAULT), help="folder of translator .npz files")
     b.add_argument(
         "--threads", type=int, nargs="+", default=[1, 2], help="BLAS/torch thread caps to run with (service: 1)"
     )

@@ -150,6 +150,8 @@ class PackedStyles(NamedTuple):
     fp_var: np.ndarray  # (S, 2, 2)
     fp_prior: np.ndarray  # (S, 2, 2) log prior
     has_fp: np.ndarray  # (S,) bool
+    prior_mean: np.ndarray  # (S, 22, 4) rotation prior (prior.py): per joint, the real style's mean rotation
+    prior_radii: np.ndarray  # (S, 2, 22) inner, outer radius (radians; inf: no prior)
 
 
 def pack_styles(translators: list) -> PackedStyles:
@@ -158,6 +160,7 @@ def pack_styles(translators: list) -> PackedStyles:
 
     x_off, row_off, indptr, indices, data = [0], [0], [], [], []
     fp_w, fp_mean, fp_var, fp_prior, has_fp = [], [], [], [], []
+    prior_mean, prior_radii = [], []
     nnz = 0
     for tr in translators:
         M = sparse.csr_matrix(tr.M)
@@ -173,6 +176,10 @@ def pack_styles(translators: list) -> PackedStyles:
         fp_mean.append(fp.mean if fp is not None else np.zeros((2, 2)))
         fp_var.append(fp.var if fp is not None else np.ones((2, 2)))
         fp_prior.append(fp.log_prior if fp is not None else np.zeros((2, 2)))
+        prior_mean.append(
+            tr.prior_mean if tr.prior_mean is not None else np.tile([0.0, 0.0, 0.0, 1.0], (NUM_JOINTS, 1))
+        )
+        prior_radii.append(tr.prior_radii if tr.prior_radii is not None else np.full((2, NUM_JOINTS), np.inf))
     indptr.append(np.array([nnz]))
     f64 = lambda parts: np.ascontiguousarray(np.stack(parts), dtype=np.float64)
     return PackedStyles(
@@ -194,6 +201,8 @@ def pack_styles(translators: list) -> PackedStyles:
         f64(fp_var),
         f64(fp_prior),
         np.array(has_fp, np.bool_),
+        f64(prior_mean),
+        f64(prior_radii),
     )
 
 
@@ -256,6 +265,8 @@ def _style_inputs(s, root_y, rotations, yaw_tilt, delta, x_in, P, blend, zin, fe
         fp_var,
         fp_prior,
         has_fp,
+        prior_mean,
+        prior_radii,
     ) = P
     n = x_in.shape[0]
     feats[0, col], feats[1, col], feats[2, col], feats[3, col] = delta[0], delta[1], delta[2], root_y
@@ -300,6 +311,8 @@ def _style_outputs(s, w, z, feats, col, blend_w, x_out, P, keep_heading, root_fe
         fp_var,
         fp_prior,
         has_fp,
+        prior_mean,
+        prior_radii,
     ) = P
     n = x_out.shape[0]
     for i in range(n):
@@ -315,12 +328,41 @@ def _style_outputs(s, w, z, feats, col, blend_w, x_out, P, keep_heading, root_fe
     quats[0, 0], quats[0, 1], quats[0, 2], quats[0, 3] = 0.0, 0.0, 0.0, 1.0
     for j in range(1, NUM_JOINTS):
         q = qmul(quat_at(ref, s, j), rotvec_to_quat((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
+        q = _clamp_joint(q, quat_at(prior_mean, s, j), prior_radii[s, 0, j], prior_radii[s, 1, j], j == HIPS)
         quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q
     if not has_fp[s]:
         return False, False
     return _planted(x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 0), _planted(
         x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 1
     )
+
+
+@njit(cache=True, error_model="numpy")
+def _clamp_joint(q, mean, inner, outer, hips):
+    """prior.clamp_rotations for one joint: q held within the style's ball around `mean` (the
+    Hips compared without its twist about up, which is put back)."""
+    twist = (0.0, 0.0, 0.0, 1.0)
+    if hips:
+        n = math.sqrt(q[1] * q[1] + q[3] * q[3])
+        if n > 1e-12:
+            twist = (0.0, q[1] / n, 0.0, q[3] / n)
+        c = qmul(qinv(twist), q)
+    else:
+        c = q
+    rel = qmul(qinv(mean), c)
+    if rel[3] < 0.0:
+        rel = (-rel[0], -rel[1], -rel[2], -rel[3])
+    s = math.sqrt(rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2])
+    d = 2.0 * math.atan2(s, rel[3])
+    if not d > inner:
+        return q
+    span = max(outer - inner, 1e-12)
+    new_d = min(inner + span * math.tanh((d - inner) / span), outer)
+    if not new_d < d:
+        return q
+    k = math.sin(0.5 * new_d) / max(s, 1e-300)
+    c = qmul(mean, (rel[0] * k, rel[1] * k, rel[2] * k, math.cos(0.5 * new_d)))
+    return qmul(twist, c) if hips else c
 
 
 @njit(cache=True, error_model="numpy")
@@ -391,6 +433,8 @@ def lti_step(
     fp_var,
     fp_prior,
     has_fp,
+    prior_mean,
+    prior_radii,
 ):
     """One streaming frame for B sessions (see model.LTIStyleModel for the state and the style
     mixing). Reads the frame, the weights and the state (started ... x); fills the outputs
@@ -422,6 +466,8 @@ def lti_step(
         fp_var,
         fp_prior,
         has_fp,
+        prior_mean,
+        prior_radii,
     )
     B, S = weights.shape
     yaws, tilts, deltas, rests = per_session[:, 0], per_session[:, 1:5], per_session[:, 5:8], per_session[:, 8]

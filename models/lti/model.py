@@ -8,7 +8,7 @@ blend) and the footplant classifier. Every frame, per session:
     [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint: a sparse product)
     out = y * out_std + out_mean
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
-    pose = inverse representation(out); contacts from the state; optional foot lock
+    pose = inverse representation(out); rotation prior (prior.py); contacts from the state; foot lock
 
 Heading: the model's own yaw change drifts slowly for some styles (exhausted: ~0.05 deg/frame
 on a straight validation walk, a full circle in ~4 minutes of streaming), so by default the output
@@ -51,6 +51,7 @@ from models.motion.feet import model_rig_planter
 from . import kernels
 from . import representation as rep
 from .footplant import FootplantClassifier
+from .prior import clamp_rotations
 from .styles import LTIStyles
 
 # state entries besides the styles' x.<style>: per-session shape after the session axis
@@ -79,6 +80,8 @@ class StyleTranslator:
     meta: dict = field(default_factory=dict)
     ref: np.ndarray = field(default_factory=lambda: rep.IDENTITY_REF.copy())  # (22, 4) per-joint reference rotations
     keep_heading: bool = True  # output yaw change := input yaw change (no heading drift); not stored
+    prior_mean: np.ndarray | None = None  # (22, 4) rotation prior (prior.py): the real style's mean per joint
+    prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
 
     def __post_init__(self) -> None:
         n = self.A.shape[0]
@@ -131,6 +134,8 @@ class StyleTranslator:
         root, rots = rep.features_to_sequence(
             out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), self.ref
         )
+        if self.prior_mean is not None and self.prior_radii is not None:
+            rots = clamp_rotations(rots, self.prior_mean, self.prior_radii)
         contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
         if footlock:
             root, rots, contacts = model_rig_planter(motion.fps).clip(root, rots, hints=contacts)
@@ -150,6 +155,8 @@ class StyleTranslator:
 
     def save(self, path: Path) -> None:
         extra = self.footplant.to_arrays() if self.footplant is not None else {}
+        if self.prior_mean is not None and self.prior_radii is not None:
+            extra.update(prior_mean=self.prior_mean, prior_radii=self.prior_radii)
         np.savez_compressed(
             path,
             style=np.array(self.style),
@@ -189,6 +196,8 @@ class StyleTranslator:
                 fp,
                 {"source": str(path)},
                 z["ref"],
+                prior_mean=z["prior_mean"] if "prior_mean" in z else None,
+                prior_radii=z["prior_radii"] if "prior_radii" in z else None,
             )
 
 

@@ -21,6 +21,7 @@ from ..motion.rotations import quat_angle
 from . import representation as rep
 from .footplant import FootplantClassifier, contact_labels
 from .model import WEIGHTS_DIR, StyleTranslator
+from .prior import fit_prior
 from .subspace import StateSpace, spectral_radius, subspace_id
 from .warping import dtw_warp, imw, resample_pose
 
@@ -49,7 +50,10 @@ CONFIG = dict(
     ],
     contents=None,  # None: every content; or e.g. ["walk", "walk-turn-left", "walk-turn-right"]
     align="imw",  # "imw" or "dtw" (plain DTW, the quick first increment)
-    imw=dict(s=3, max_step=6, lam=1000.0, mu=1.0, max_iter=8, tol=1e-4),
+    # max_step 9: output slopes up to 3 output frames per input frame. With 6 (slope <= 2) most
+    # elderly raise-ups (~2.5x slower than the neutral ones) had no partner and were skipped
+    # (elderly raise-up-both-hands: 2 of 31 paired), so the elderly arms were learnt from waves
+    imw=dict(s=3, max_step=9, lam=1000.0, mu=1.0, max_iter=8, tol=1e-4),
     match_std_floor=0.05,  # rad / cm, for the matching features only
     norm_std_floor=1e-2,
     horizon=10,  # block rows of the subspace method
@@ -57,6 +61,19 @@ CONFIG = dict(
     max_order_root=16,
     max_order_joint=8,
     max_radius=0.995,  # spectral radius cap for A
+    # joints whose rotations a joint's system also reads (its outputs stay its own): every
+    # upper-body joint sees the whole upper body, the root (Hips: its 7 features) and both hips
+    # (UpperLeg: the gait phase); every leg joint both legs, the root and both upper arms. With
+    # its own joint only, a system cannot tell a raised arm from a waving one, nor swing the arms
+    # with the stride (MODEL_CARD.md: chosen on validation clips among 4 context sets)
+    context={
+        **{j: [k for k in (rep.HIPS, *range(2, 14), 14, 18) if k != j] for j in range(2, 14)},
+        **{j: [k for k in (rep.HIPS, 7, 11, *range(14, 22)) if k != j] for j in range(14, 22)},
+    },
+    # rotation prior (prior.py): radii from the output style's TRAIN clips
+    prior_inner_q=97.0,
+    prior_outer_q=99.0,
+    prior_margin_deg=1.0,
     k_p=1.0,  # erf blend: tolerance (std) outside the training range before blending starts
     k_c=2.0,  # erf blend: softness (std)
     seed=0,
@@ -65,13 +82,25 @@ CONFIG = dict(
 GROUP_NAMES = ("root",) + tuple(f"joint{j}" for j in rep.BODY_JOINTS)
 
 
-def groups() -> list[tuple[np.ndarray, np.ndarray]]:
+def joint_dofs(j: int) -> np.ndarray:
+    """Feature indices of body joint j (2..21) in the representation; the Hips (1) is the root's
+    7 features (ground displacement, yaw change, height, tilt)."""
+    if j == rep.HIPS:
+        return np.arange(rep.ROOT_DIMS)
+    k = j - rep.BODY_JOINTS[0]
+    return np.arange(rep.ROOT_DIMS + 3 * k, rep.ROOT_DIMS + 3 * k + 3)
+
+
+def groups(cfg=None) -> list[tuple[np.ndarray, np.ndarray]]:
     """(input DOF indices, output DOF indices) of each per-joint system; the root system also
-    drives the log time-warp output."""
+    drives the log time-warp output. `cfg["context"]` (joints -> extra input joints) lets a
+    joint's system also read other joints' rotations (its outputs stay its own)."""
+    context = {int(k): v for k, v in ((cfg or CONFIG).get("context") or {}).items()}  # JSON keys are strings
     out = [(np.arange(rep.ROOT_DIMS), np.r_[np.arange(rep.ROOT_DIMS), rep.FEATURE_DIM])]
-    for k in range(len(rep.BODY_JOINTS)):
-        idx = np.arange(rep.ROOT_DIMS + 3 * k, rep.ROOT_DIMS + 3 * k + 3)
-        out.append((idx, idx))
+    for j in rep.BODY_JOINTS:
+        own = joint_dofs(j)
+        extra = [joint_dofs(c) for c in context.get(j, ()) if c != j]
+        out.append((np.concatenate([own, *extra]) if extra else own, own))
     return out
 
 
@@ -203,7 +232,7 @@ def identify(
     out_mean, out_std = Y.mean(0), np.maximum(Y.std(0), cfg["norm_std_floor"])
     recs = [((d.u - in_mean) / in_std, (d.y - out_mean) / out_std) for d in data]
     systems = []
-    for g, (ii, oo) in enumerate(groups()):
+    for g, (ii, oo) in enumerate(groups(cfg)):
         sub = [(u[:, ii], y[:, oo]) for u, y in recs]
         max_order = cfg["max_order_root"] if g == 0 else cfg["max_order_joint"]
         systems.append(
@@ -218,7 +247,7 @@ def identify(
     A, B = np.zeros((n, n)), np.zeros((n, rep.FEATURE_DIM))
     C, D = np.zeros((rep.FEATURE_DIM + 1, n)), np.zeros((rep.FEATURE_DIM + 1, rep.FEATURE_DIM))
     k = 0
-    for (ii, oo), s in zip(groups(), systems):
+    for (ii, oo), s in zip(groups(cfg), systems):
         sl = slice(k, k + s.order)
         A[sl, sl] = s.A
         B[sl, ii] = s.B
@@ -261,6 +290,18 @@ def identify(
     states = np.concatenate([tr.translate_features(d.u, blend=False)[1] for d in data])
     tr.footplant = FootplantClassifier.fit(states, np.concatenate([d.contacts for d in data]))
     return tr, systems
+
+
+def style_prior(index, style: str, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation prior (prior.py) of an output style: every TRAIN-split clip of the style, all
+    contents (paired or not: the prior is about what the style's poses are, not about pairs)."""
+    from models.data import load_motions, select
+
+    dataset, label = dataset_of(style)
+    rotations = np.concatenate(
+        [m.rotations for m in load_motions(select(index, dataset=dataset, style=label, split="train"))]
+    )
+    return fit_prior(rotations, cfg["prior_inner_q"], cfg["prior_outer_q"], cfg["prior_margin_deg"])
 
 
 # --------------------------------------------------------------------------- evaluation
@@ -315,7 +356,7 @@ def train(styles: list[str] | None = None, cfg=CONFIG, out_dir: Path = WEIGHTS_D
     ref = reference_rotations(index, cfg)
     match_mean, match_std = matching_stats(index, ref, cfg)
     plan = {s: (make_pairs(index, s, "train", cfg), make_pairs(index, s, "val", cfg)) for s in styles}
-    total = sum(len(a) + len(b) + len(groups()) for a, b in plan.values())
+    total = sum(len(a) + len(b) + len(groups(cfg)) for a, b in plan.values())
     report = {}
     with tqdm(total=total, desc="lti train", unit="step") as bar:
         for style, (train_pairs, val_pairs) in plan.items():
@@ -332,6 +373,7 @@ def train(styles: list[str] | None = None, cfg=CONFIG, out_dir: Path = WEIGHTS_D
                 val.append(pair_data(a, b, match_mean, match_std, ref, cfg))
                 bar.update(1)
             metrics = evaluate(tr, val) if val else {"pairs": 0}
+            tr.prior_mean, tr.prior_radii = style_prior(index, style, cfg)
             tr.meta = {"config": cfg}
             tr.save(out_dir / f"{style}.npz")
             report[style] = {
