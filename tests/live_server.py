@@ -26,7 +26,7 @@ def live_server(models: dict, port: int | None = None, uvicorn_options: dict | N
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     base = f"http://127.0.0.1:{port}"
-    wait_ready(base, lambda: thread.is_alive())
+    wait_ready(base, lambda: thread.is_alive(), timeout=300)  # a fresh clone compiles every numba kernel first
     try:
         yield base, app
     finally:
