@@ -7,7 +7,8 @@ turned by the INPUT's facing yaw, starting from the input's first root position;
 the predicted Hips height. So the path keeps the input's shape and direction while the speed may
 change with the style. The output Hips rotation is the input's facing yaw times the predicted
 yaw-free Hips rotation. As in the streaming model, the bones keep the input's twists and the
-leaves its rotations (`models.motion.twist.transfer_twist`). Then the feet are planted frame by
+leaves its rotations (`models.motion.twist.transfer_twist`), carried to the target style and the
+output carried to the style's real rotations when the rotation prior is given (`rotation_prior.py`). Then the feet are planted frame by
 frame as in the streaming model (`models.motion.feet`; `foot_lock=False` gives the network's
 output alone).
 """
@@ -24,6 +25,7 @@ from models.motion.rotations import quat_mul, yaw_quat
 from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Motion
 from ..motion.twist import transfer_twist
+from .carry import StyleCarry
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .model import Generator
 
@@ -54,8 +56,11 @@ def stylise(
     style_in: int = -1,
     content: int = -1,
     foot_lock: bool = True,
+    leaf_prior: StyleCarry | None = None,
+    output_prior: StyleCarry | None = None,
 ) -> Motion:
-    """The clip stylised with target weights (6,) or per frame (T, 6)."""
+    """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
+    rotation prior (`leaf_prior`, `output_prior`) where given."""
     root_in = motion.translations[:, 1]
     x, yaw = maker.sequence(root_in, motion.rotations)
     w = torch.as_tensor(np.asarray(weights, dtype=np.float32))
@@ -68,7 +73,11 @@ def stylise(
         yaw,
         root_in[0],
     )
-    rots = transfer_twist(motion.skeleton, motion.rotations, rots)
+    w_frames = np.broadcast_to(np.asarray(weights, np.float64), (len(rots), w.shape[-1]))
+    source = leaf_prior(motion.rotations, w_frames) if leaf_prior is not None else motion.rotations
+    rots = transfer_twist(motion.skeleton, source, rots)
+    if output_prior is not None:
+        rots = output_prior(rots, w_frames)
     if foot_lock:
         root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()

@@ -25,7 +25,12 @@ speed follows the style); the height is predicted.
 Twists and leaves: the decoder's rotations are trusted only where they move joints. Its positions
 are kept exactly, but each bone's twist about itself and the head, hands and toes take the
 input's rotations (`models.motion.twist.transfer_twist`): trained on positions, the network had
-left those free and wrung wrists by 60-140 degrees and turned necks by 90 (issue #14).
+left those free and wrung wrists by 60-140 degrees and turned necks by 90 (issue #14). The input's
+rotations are first carried from the neutral style's real distribution to the target style's,
+so the head and wrists take the style's attitude inside its real range instead of the neutral
+input's; then the output's rotations are carried from what the network produces to the style's
+real distribution and clamped into its real range (`rotation_prior.py`: `leaf_prior.npz`,
+`output_prior.npz` beside the weights).
 
 Planted feet: the network knows nothing of the floor, so its planted feet slid (20 % of flat-foot
 frames over the eval suite's inputs, 40 % toward `active`, against 3 % for the inputs). The
@@ -52,8 +57,10 @@ from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Skeleton
 from ..motion.twist import transfer_twist
 from . import kernels
+from .carry import StyleCarry
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
+from .rotation_prior import LEAF_FILE, OUTPUT_FILE
 
 WEIGHTS_FILE = "erd.npz"
 
@@ -89,6 +96,8 @@ class ERDModel:
         ref: np.ndarray,
         meta: dict | None = None,
         dtype: type = np.float32,
+        leaf_prior: StyleCarry | None = None,
+        output_prior: StyleCarry | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
@@ -97,6 +106,9 @@ class ERDModel:
         self.dtype = np.dtype(dtype)
         self.mean, self.std = np.asarray(mean, np.float64), np.asarray(std, np.float64)
         self.ref = np.asarray(ref, np.float64)
+        # the rotation prior (`rotation_prior.py`): twists and leaves from the input carried to the
+        # target style (None: the input's), and the output carried to the style's real rotations
+        self.leaf_prior, self.output_prior = leaf_prior, output_prior
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
@@ -218,7 +230,10 @@ class ERDModel:
         out_root, out_rot = kernels.output_pose(
             x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64), root, rot_in, float(FPS)
         )
-        out_rot = transfer_twist(self.skeleton, rot_in, out_rot)
+        source = self.leaf_prior(rot_in, w) if self.leaf_prior is not None else rot_in
+        out_rot = transfer_twist(self.skeleton, source, out_rot)
+        if self.output_prior is not None:
+            out_rot = self.output_prior(out_rot, w)
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
         )
@@ -333,7 +348,11 @@ def load(weights_dir: Path, dtype: type = np.float32) -> ERDModel:
         arrays.pop("skeleton_end_sites"),
     )
     mean, std, ref = arrays.pop("norm_mean"), arrays.pop("norm_std"), arrays.pop("ref")
-    return ERDModel(arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype)
+    priors = {  # the rotation prior (`rotation_prior.py`), where fitted
+        key: StyleCarry.load(weights_dir / name) if (weights_dir / name).exists() else None
+        for key, name in (("leaf_prior", LEAF_FILE), ("output_prior", OUTPUT_FILE))
+    }
+    return ERDModel(arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype, **priors)
 
 
 def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skeleton | None = None) -> Path:

@@ -52,6 +52,12 @@ class TrainConfig:
     # rotations (models.motion.twist); on transferred windows `w_prior` penalises a joint of that
     # pose leaving the target style's real range (angle to the style's mean beyond its p95)
     w_prior: float = 0.0
+    # stage 4: twists and leaves from the input carried to the target style by this prior
+    # (`rotation_prior.py`, e.g. models/weights/erd/leaf_prior.npz; empty = the input's), and a second
+    # FT-Att discriminator over the streamed rotations (6-D per joint and their frame differences)
+    leaf_prior: str = ""
+    w_adv_rot: float = 0.0
+    snapshot_every: int = 0  # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest)
     d_warmup: int = 0  # iterations that train only the discriminator first (a new one, with --init_weights)
     p_drop_style: float = 0.3
     p_drop_content: float = 0.3
@@ -97,6 +103,20 @@ def build(cfg: TrainConfig, stats: dict[str, np.ndarray]):
     disc = FTAttDiscriminator(mcfg, 63 + 66, cfg.window - 1, scale)
     clf = ContentClassifier(mcfg, 84 + 63 + 66, scale)
     return mcfg, gen, disc, clf, scale
+
+
+class RotationDiscriminator(torch.nn.Module):
+    """The FT-Att discriminator over `rotation_view` (the generator's swings with the leaf
+    prior's twists and leaves), so that a style's rotations, not only its positions, are judged."""
+
+    def __init__(self, mcfg, frames: int):
+        super().__init__()
+        from .model import FTAttDiscriminator
+
+        self.net = FTAttDiscriminator(mcfg, 21 * 12, frames, {})
+
+    def forward(self, view: torch.Tensor, style: torch.Tensor, content: torch.Tensor) -> torch.Tensor:
+        return self.net(view.transpose(1, 2), style, content)
 
 
 class Losses:
@@ -151,15 +171,42 @@ def style_rotation_prior(split) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.as_tensor(np.stack(means), dtype=torch.float32), torch.as_tensor(np.stack(p95s), dtype=torch.float32)
 
 
-def streamed_rotations(skeleton, rot: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+def streamed_rotations(
+    skeleton, rot: torch.Tensor, x: torch.Tensor, source: torch.Tensor | None = None
+) -> torch.Tensor:
     """(B, T, 21, 4) the rotations the streaming model outputs for decoder rotations `rot`: its
-    bone directions with the input's twists and leaf rotations (`ERDModel` does the same)."""
+    bone directions with the twists and leaf rotations of `source` (B, T, 21, 4; default the
+    input's), as `ERDModel` does."""
     from ..motion.twist import transfer_twist_t
 
     root = torch.zeros(rot.shape[:2] + (1, 4), dtype=rot.dtype)
     root[..., 3] = 1.0
     full = lambda q: torch.cat([root, q], dim=-2)  # noqa: E731  (joint_Root, static)
-    return transfer_twist_t(skeleton, full(real_rot(x)), full(rot))[..., 1:, :]
+    src = real_rot(x) if source is None else source
+    return transfer_twist_t(skeleton, full(src), full(rot))[..., 1:, :]
+
+
+def leaf_source(prior, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B, T, 21, 4) the twist/leaf source the streaming model uses toward `target` (B,) (index
+    in the 7 styles): the input's rotations carried by the leaf prior (`rotation_prior.py`)."""
+    q = real_rot(x).double().numpy()
+    B, T = q.shape[:2]
+    full = np.zeros((B * T, 22, 4))
+    full[..., 3] = 1.0
+    full[:, 1:] = q.reshape(B * T, 21, 4)
+    w = np.repeat(one_hot_targets(target).double().numpy(), T, axis=0)
+    src = prior(full, w)[:, 1:]
+    return torch.as_tensor(src.reshape(B, T, 21, 4), dtype=x.dtype)
+
+
+def rotation_view(rot: torch.Tensor) -> torch.Tensor:
+    """(B, T-1, 21*12) the rotation discriminator's view of rotations (B, T, 21, 4): 6-D per
+    joint (as the eval suite's rotation judge reads them) and their frame-to-frame differences."""
+    from ..motion.rotations import quat_to_matrix_t
+
+    m = quat_to_matrix_t(rot)
+    six = torch.cat([m[..., :, 0], m[..., :, 1]], -1).flatten(2)
+    return torch.cat([six[:, 1:], six[:, 1:] - six[:, :-1]], -1)
 
 
 def prior_loss(rot: torch.Tensor, target: torch.Tensor, prior: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -331,6 +378,14 @@ def main(argv: list[str]) -> None:
     torch.save(clf.state_dict(), run_dir / "classifier.pt")
     p_target = target_probs(cfg.target_weights)
     prior = style_rotation_prior(train_s.s)
+    leaf_prior = None
+    if cfg.leaf_prior:
+        from .carry import StyleCarry
+
+        leaf_prior = StyleCarry.load(Path(cfg.leaf_prior))
+        log(f"twists and leaves carried by {cfg.leaf_prior}")
+    disc_rot = RotationDiscriminator(mcfg, cfg.window - 1) if cfg.w_adv_rot else None
+    opt_dr = torch.optim.Adam(disc_rot.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999)) if disc_rot else None
 
     opt_g = torch.optim.Adam(gen.parameters(), lr=cfg.lr_g, betas=(0.5, 0.999))
     opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999))
@@ -341,7 +396,9 @@ def main(argv: list[str]) -> None:
     it = 0
     while it < cfg.max_iters and time.time() - t0 < budget:
         frac = (time.time() - t0) / budget
-        for opt, base in ((opt_g, cfg.lr_g), (opt_d, cfg.lr_d)):
+        for opt, base in ((opt_g, cfg.lr_g), (opt_d, cfg.lr_d), (opt_dr, cfg.lr_d)):
+            if opt is None:
+                continue
             for group in opt.param_groups:
                 group["lr"] = base * lr_at(cfg, frac)
         b = train_s.sample(cfg.batch)
@@ -365,9 +422,14 @@ def main(argv: list[str]) -> None:
         with torch.no_grad():
             _, f_real = clf(clf.prepare(real))
         l_per = sum(F.mse_loss(a, b_) for a, b_ in zip(f_fake, f_real))
-        l_prior = (
-            prior_loss(streamed_rotations(skeleton, out["rot"][B:], x), target, prior)
-            if cfg.w_prior
+        streamed = None
+        if cfg.w_prior or disc_rot is not None:
+            source = leaf_source(leaf_prior, x, target) if leaf_prior is not None else None
+            streamed = streamed_rotations(skeleton, out["rot"][B:], x, source)
+        l_prior = prior_loss(streamed, target, prior) if cfg.w_prior else torch.zeros(())
+        l_adv_rot = (
+            disc_rot(rotation_view(streamed), target, content).pow(2).mean()
+            if disc_rot is not None
             else torch.zeros(())
         )
         loss_g = (
@@ -377,6 +439,7 @@ def main(argv: list[str]) -> None:
             + cfg.w_adv * l_adv
             + cfg.w_per * l_per
             + cfg.w_prior * l_prior
+            + cfg.w_adv_rot * l_adv_rot
         )
         if it >= cfg.d_warmup:
             opt_g.zero_grad()
@@ -393,6 +456,17 @@ def main(argv: list[str]) -> None:
         opt_d.zero_grad()
         loss_d.backward()
         opt_d.step()
+        if disc_rot is not None:  # the same for the rotation discriminator, on real rotations
+            rv = rotation_view(real_rot(x)).detach().requires_grad_(True)
+            dr_real = disc_rot(rv, style, content)
+            (grad,) = torch.autograd.grad(dr_real.sum(), rv, create_graph=True)
+            dr_fake = disc_rot(rotation_view(streamed.detach()), target, content)
+            loss_dr = (
+                (dr_real - 1).pow(2).mean() + (dr_fake + 1).pow(2).mean() + cfg.w_r1 * grad.pow(2).sum((1, 2)).mean()
+            )
+            opt_dr.zero_grad()
+            loss_dr.backward()
+            opt_dr.step()
 
         it += 1
         bar.update(1)
@@ -402,6 +476,7 @@ def main(argv: list[str]) -> None:
                 pos=f"{l_pos.item():.4f}",
                 adv=f"{l_adv.item():.3f}",
                 prior=f"{l_prior.item():.4f}",
+                adv_rot=f"{l_adv_rot.item():.3f}",
                 per=f"{l_per.item():.3f}",
                 d=f"{loss_d.item():.3f}",
                 r1=f"{r1.item():.3f}",
@@ -417,11 +492,14 @@ def main(argv: list[str]) -> None:
                 train_per=l_per.item(),
                 train_d=loss_d.item(),
                 train_prior=l_prior.item(),
+                train_adv_rot=l_adv_rot.item(),
             )
             history.append(v)
             log("val " + " ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}" for k, val in v.items()))
         if it % cfg.ckpt_every == 0:
             save(run_dir / "ckpt.pt", gen, disc, mcfg, cfg, stats, it, time.time() - t0, history, clf_acc)
+        if cfg.snapshot_every and it % cfg.snapshot_every == 0:
+            save(run_dir / f"ckpt_{it:06d}.pt", gen, disc, mcfg, cfg, stats, it, time.time() - t0, history, clf_acc)
         if it % cfg.render_every == 0:
             render(gen, maker, out_dir, f"it{it:06d}", render_motions)
     bar.close()

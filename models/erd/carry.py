@@ -1,0 +1,145 @@
+"""Carry local rotations from one distribution to a style's real one, per joint: the rotation
+prior Style-ERD's streaming output passes through (`rotation_prior.py` fits it).
+
+Per target style s and joint j, a rotation q is read as its deviation from a source mean,
+d = log(src_s^-1 q) (a rotation vector in the joint's own frame, so a twist about the bone stays
+a twist about the bone), mapped by the linear optimal-transport map between the source's and
+the style's Gaussians of such deviations, and kept inside the style's real p98 angle from its
+mean (a radial clamp in the tangent space):
+
+    f_s(q) = m_s exp(clamp_r_s(M_s d)),   M_s = C^-1/2 (C^1/2 C_s C^1/2)^1/2 C^-1/2
+
+so a typical source frame lands as a typical style frame, with the style's spread in each
+direction, and never farther from the style's mean than real frames go. A style mix (or an
+intensity) blends the corrections: q' = q exp(sum_s w_s log(q^-1 f_s(q))); zero weights give q.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..motion.rotations import quat_inv, quat_mean, quat_mul
+
+CLAMP_PERCENTILE = 98.0
+MAX_SAMPLES = 60_000  # an even subsample per style keeps a fit to seconds
+
+
+def quat_log(q: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors of unit quaternions (..., 4), scalar-last, shortest arc."""
+    q = np.where(q[..., 3:] < 0, -q, q)
+    s = np.linalg.norm(q[..., :3], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, q[..., 3:])
+    scale = np.where(s > 1e-9, angle / np.maximum(s, 1e-12), 2.0)
+    return q[..., :3] * scale
+
+
+def quat_exp(v: np.ndarray) -> np.ndarray:
+    """(..., 4) unit quaternions of rotation vectors (..., 3)."""
+    angle = np.linalg.norm(v, axis=-1, keepdims=True)
+    scale = np.where(angle > 1e-9, np.sin(0.5 * angle) / np.maximum(angle, 1e-12), 0.5)
+    return np.concatenate([v * scale, np.cos(0.5 * angle)], axis=-1)
+
+
+def _sqrtm(c: np.ndarray) -> np.ndarray:
+    """Square root of symmetric positive semi-definite matrices (..., 3, 3)."""
+    w, v = np.linalg.eigh(c)
+    return (v * np.sqrt(np.maximum(w, 0.0))[..., None, :]) @ np.swapaxes(v, -1, -2)
+
+
+def gaussian_map(c_from: np.ndarray, c_to: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) the linear optimal-transport map between zero-mean Gaussians N(0, c_from) ->
+    N(0, c_to): symmetric, the smallest displacement that gives the target covariance."""
+    r = _sqrtm(c_from)
+    r_inv = np.linalg.inv(r)
+    return r_inv @ _sqrtm(r @ c_to @ r) @ r_inv
+
+
+def tangent_stats(q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per joint of rotations (N, J, 4): mean (J, 4), covariance (J, 3, 3) of the deviations from
+    it and their CLAMP_PERCENTILE angle (J,), on an even subsample."""
+    q = q[np.linspace(0, len(q) - 1, min(len(q), MAX_SAMPLES)).astype(int)]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    mean = quat_mean(q, axis=0)
+    d = quat_log(quat_mul(quat_inv(mean)[None], q))
+    cov = np.einsum("nji,njk->jik", d, d) / len(d) + 1e-8 * np.eye(3)
+    return mean, cov, np.percentile(np.linalg.norm(d, axis=-1), CLAMP_PERCENTILE, axis=0)
+
+
+@dataclass(frozen=True)
+class StyleCarry:
+    """Per target style (S) and joint (J): source mean (S, J, 4), style mean (S, J, 4), map
+    (S, J, 3, 3), clamp radius (S, J) in radians."""
+
+    source: np.ndarray
+    mean: np.ndarray
+    map: np.ndarray
+    radius: np.ndarray
+
+    @classmethod
+    def fit(
+        cls,
+        sources: list[np.ndarray],
+        targets: list[np.ndarray],
+        fixed: tuple[int, ...] = (),
+        clamp_only: tuple[int, ...] = (),
+    ) -> StyleCarry:
+        """From rotations (N, J, 4) to carry and the real ones (N', J, 4), one pair per target
+        style; joints in `fixed` are left as they are, joints in `clamp_only` only clamped into
+        the style's real range."""
+        src, tgt = [tangent_stats(q) for q in sources], [tangent_stats(q) for q in targets]
+        source = np.stack([s[0] for s in src])
+        mean = np.stack([t[0] for t in tgt])
+        lin = gaussian_map(np.stack([s[1] for s in src]), np.stack([t[1] for t in tgt]))
+        radius = np.stack([t[2] for t in tgt])
+        clamp_ = list(clamp_only)
+        source[:, clamp_] = mean[:, clamp_]
+        lin[:, clamp_] = np.eye(3)
+        fixed_ = list(fixed)
+        source[:, fixed_] = mean[:, fixed_] = (0.0, 0.0, 0.0, 1.0)
+        lin[:, fixed_] = np.eye(3)
+        radius[:, fixed_] = np.pi
+        return cls(source, mean, lin, radius)
+
+    def style(self, q: np.ndarray, s: int) -> np.ndarray:
+        """f_s(q) for rotations (N, J, 4) toward style s."""
+        d = quat_log(quat_mul(quat_inv(self.source[s])[None], q))
+        d = np.einsum("jik,njk->nji", self.map[s], d)
+        norm = np.linalg.norm(d, axis=-1)
+        d = d * np.minimum(1.0, self.radius[s] / np.maximum(norm, 1e-12))[..., None]
+        return quat_mul(self.mean[s][None], quat_exp(d))
+
+    def __call__(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """(B, J, 4) rotations (B, J, 4) carried toward the styles of weights (B, S), compiled
+        (`carry_kernels.py`; `apply_numpy` is the reference)."""
+        from .carry_kernels import carry
+
+        return carry(q, weights, self.source, self.mean, self.map, self.radius)
+
+    def apply_numpy(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
+        """The numpy reference of `__call__`. Only the (row, style) pairs with a weight are
+        computed, so a batch of single styles costs one carry per row."""
+        q = np.asarray(q, np.float64)
+        q = q / np.linalg.norm(q, axis=-1, keepdims=True)  # the data's quaternions are unit to ~1e-7
+        w = np.asarray(weights, np.float64)
+        rows, styles = np.nonzero(w)
+        if len(rows) == 0:
+            return q.copy()
+        correction = np.zeros(q.shape[:-1] + (3,))
+        for s in np.unique(styles):
+            r = rows[styles == s]
+            fs = self.style(q[r], int(s))
+            np.add.at(correction, r, w[r, s][:, None, None] * quat_log(quat_mul(quat_inv(q[r]), fs)))
+        return quat_mul(q, quat_exp(correction))
+
+    def save(self, path: Path) -> Path:
+        np.savez(path, source=self.source, mean=self.mean, map=self.map, radius=self.radius)
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> StyleCarry:
+        with np.load(path) as z:
+            arrays = [np.ascontiguousarray(z[k], np.float64) for k in ("source", "mean", "map", "radius")]
+        return cls(*arrays)

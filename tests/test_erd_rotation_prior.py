@@ -1,0 +1,153 @@
+"""Style-ERD's rotation prior (models/erd/carry.py, rotation_prior.py): the input's head, hands
+and twists are carried from the neutral style's real distribution to the target style's, the
+output's rotations to the style's real ones, inside the style's real range, and nothing moves
+when no style is asked for."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.interface import FrameBatch
+from models.motion.rotations import quat_angle, quat_inv, quat_mul
+
+REPO = Path(__file__).resolve().parents[1]
+WEIGHTS = REPO / "models" / "weights" / "erd"
+
+pytestmark = pytest.mark.skipif(not (WEIGHTS / "leaf_prior.npz").exists(), reason="Style-ERD leaf prior not committed")
+
+
+@pytest.fixture(scope="module")
+def model():
+    import models.erd
+
+    return models.erd.load(WEIGHTS)
+
+
+@pytest.fixture(scope="module")
+def neutral(index):
+    from models.data import load_motions, select
+
+    clips = select(index, dataset="bandai-namco-2", split="val", style="normal")
+    picked = [next(c for c in clips if c.content == k) for k in ("walk", "wave-both-hands", "raise-up-left-hand")]
+    return [m.slice(0, 60) for m in load_motions(picked)]
+
+
+def _apart(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Quaternion distance blind to sign and to the data's last-digit norms (an angle from
+    arccos is only good to ~1e-4 near zero)."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.minimum(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))
+
+
+def _onehot(model, style: str, scale: float = 1.0) -> np.ndarray:
+    w = np.zeros(len(model.styles()))
+    w[model.styles().index(style)] = scale
+    return w
+
+
+def test_log_and_exp_invert_each_other():
+    from models.erd.carry import quat_exp, quat_log
+
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(500, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    assert np.all(quat_angle(quat_exp(quat_log(q)), q) < 1e-6)
+    assert np.all(np.linalg.norm(quat_log(q), axis=-1) <= np.pi + 1e-9)
+
+
+@pytest.mark.parametrize("which", ["leaf_prior", "output_prior"])
+def test_no_style_changes_nothing_and_a_style_stays_in_its_real_range(model, neutral, which):
+    prior = getattr(model, which)
+    if prior is None:
+        pytest.skip(f"no {which} committed")
+    rot = np.concatenate([m.rotations for m in neutral])
+    same = prior(rot, np.zeros((len(rot), 6)))
+    assert np.all(_apart(same, rot) < 1e-7)
+    outside_before = 0
+    for k, style in enumerate(model.styles()):
+        w = np.repeat(_onehot(model, style)[None], len(rot), 0)
+        moved = prior(rot, w)
+        # every joint inside the target style's real p98 angle from its mean (the clamp), where
+        # the neutral input was not always
+        dist = quat_angle(moved, prior.mean[k][None])
+        assert np.all(dist <= prior.radius[k][None] + 1e-6), style
+        outside_before += int(np.sum(quat_angle(rot, prior.mean[k][None]) > prior.radius[k][None]))
+        # the root and hips (the heading) untouched
+        assert np.all(_apart(moved[:, :2], rot[:, :2]) < 1e-7)
+        # a small weight moves a little (the prior is continuous in the weights), and a mix of
+        # two styles lies between them
+        small = prior(rot, 0.01 * w)
+        assert np.max(quat_angle(small, rot)) < np.max(quat_angle(moved, rot)) * 0.05
+        other = np.roll(w, 1, axis=1)
+        half = prior(rot, 0.5 * w + 0.5 * other)
+        assert np.all(quat_angle(half, moved) <= quat_angle(prior(rot, other), moved) + 1e-6)
+    assert outside_before > 0
+
+
+def test_a_batch_carries_each_row_as_alone(model, neutral):
+    """Rows with different styles, mixes and no style in one batch: each as if alone, and as
+    the numpy reference computes it."""
+    prior = model.output_prior or model.leaf_prior
+    rot = neutral[0].rotations[:5]
+    w = np.zeros((5, 6))
+    w[0, 1], w[1, 3], w[2, [0, 4]], w[3, 5] = 1.0, 1.5, 0.5, 1.0
+    batch = prior(rot, w)
+    for b in range(5):
+        assert np.all(_apart(batch[b], prior(rot[b : b + 1], w[b : b + 1])[0]) < 1e-12)
+    # the compiled step is the numpy reference
+    assert np.all(_apart(batch, prior.apply_numpy(rot, w)) < 1e-9)
+
+
+def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
+    """Without the output prior, the output's leaves are exactly the leaf prior's carried input
+    (the decoder's own leaf rotations, which no position loss trained, are not used), and the
+    twist source changes rotations, never where the joints are."""
+    from models.motion.skeleton import fk
+
+    motion = neutral[1]
+    w = _onehot(model, "feminine")
+    leaves = [model.skeleton.index(n) for n in ("Head", "Hand_L", "Hand_R")]
+    priors = model.leaf_prior, model.output_prior
+
+    def joints(o):
+        tr = np.broadcast_to(model.skeleton.offsets, (1, model.skeleton.num_joints, 3)).copy()
+        tr[:, 1] = o.root
+        return fk(o.rotations, tr, model.skeleton.parents)[1][0]
+
+    try:
+        model.output_prior = None
+        runs = {}
+        for tag, leaf in (("bare", None), ("leaf", priors[0])):
+            model.leaf_prior = leaf
+            state, runs[tag] = model.init_state(1), []
+            for t in range(30):
+                frame = FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1])
+                out, state = model.step_batch(state, frame, w[None])
+                runs[tag].append(out)
+    finally:
+        model.leaf_prior, model.output_prior = priors
+    for t in range(30):
+        src = priors[0](motion.rotations[t : t + 1], w[None])
+        assert np.all(_apart(runs["leaf"][t].rotations[0, leaves], src[0, leaves]) < 1e-7)
+        np.testing.assert_allclose(joints(runs["leaf"][t]), joints(runs["bare"][t]), atol=1e-6)
+
+
+@pytest.mark.parametrize("which", ["leaf_prior", "output_prior"])
+def test_committed_prior_is_well_formed(model, which):
+    prior = getattr(model, which)
+    if prior is None:
+        pytest.skip(f"no {which} committed")
+    S, J = len(model.styles()), model.skeleton.num_joints
+    assert prior.source.shape == prior.mean.shape == (S, J, 4)
+    assert prior.map.shape == (S, J, 3, 3) and prior.radius.shape == (S, J)
+    np.testing.assert_allclose(np.linalg.norm(prior.mean, axis=-1), 1.0, atol=1e-9)
+    # the maps are symmetric positive definite (optimal transport between Gaussians)
+    np.testing.assert_allclose(prior.map, np.swapaxes(prior.map, -1, -2), atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(prior.map) > 0)
+    # the styles' means really differ from the source somewhere (else the prior does nothing)
+    shift = quat_angle(quat_mul(quat_inv(prior.source), prior.mean), np.array([0.0, 0, 0, 1]))
+    assert np.degrees(shift.max()) > 2.0
