@@ -59,32 +59,52 @@ def test_log_and_exp_invert_each_other():
     assert np.all(np.linalg.norm(quat_log(q), axis=-1) <= np.pi + 1e-9)
 
 
+def _carry(model, which: str, rot: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The prior as the step applies it: the output prior reads the Hips without their heading."""
+    from models.erd.rotation_prior import carry_output
+
+    prior = getattr(model, which)
+    return carry_output(prior, rot, w) if which == "output_prior" else prior(rot, w)
+
+
+def _compared(which: str, rot: np.ndarray) -> np.ndarray:
+    from models.erd.rotation_prior import without_heading
+
+    return without_heading(rot)[1] if which == "output_prior" else rot
+
+
 @pytest.mark.parametrize("which", ["leaf_prior", "output_prior"])
 def test_no_style_changes_nothing_and_a_style_stays_in_its_real_range(model, neutral, which):
+    from models.erd.rotation_prior import without_heading
+
     prior = getattr(model, which)
     if prior is None:
         pytest.skip(f"no {which} committed")
     rot = np.concatenate([m.rotations for m in neutral])
-    same = prior(rot, np.zeros((len(rot), 6)))
+    same = _carry(model, which, rot, np.zeros((len(rot), 6)))
     assert np.all(_apart(same, rot) < 1e-7)
     outside_before = 0
     for k, style in enumerate(model.styles()):
         w = np.repeat(_onehot(model, style)[None], len(rot), 0)
-        moved = prior(rot, w)
+        moved = _carry(model, which, rot, w)
         # every joint inside the target style's real p98 angle from its mean (the clamp), where
         # the neutral input was not always
-        dist = quat_angle(moved, prior.mean[k][None])
+        dist = quat_angle(_compared(which, moved), prior.mean[k][None])
         assert np.all(dist <= prior.radius[k][None] + 1e-6), style
-        outside_before += int(np.sum(quat_angle(rot, prior.mean[k][None]) > prior.radius[k][None]))
-        # the root and hips (the heading) untouched
-        assert np.all(_apart(moved[:, :2], rot[:, :2]) < 1e-7)
+        outside_before += int(np.sum(quat_angle(_compared(which, rot), prior.mean[k][None]) > prior.radius[k][None]))
+        # the root untouched; the hips too by the leaf prior, their heading by the output prior
+        assert np.all(_apart(moved[:, 0], rot[:, 0]) < 1e-7)
+        if which == "leaf_prior":
+            assert np.all(_apart(moved[:, 1], rot[:, 1]) < 1e-7)
+        else:
+            assert np.all(_apart(without_heading(moved)[0], without_heading(rot)[0]) < 1e-7)
         # a small weight moves a little (the prior is continuous in the weights), and a mix of
         # two styles lies between them
-        small = prior(rot, 0.01 * w)
+        small = _carry(model, which, rot, 0.01 * w)
         assert np.max(quat_angle(small, rot)) < np.max(quat_angle(moved, rot)) * 0.05
         other = np.roll(w, 1, axis=1)
-        half = prior(rot, 0.5 * w + 0.5 * other)
-        assert np.all(quat_angle(half, moved) <= quat_angle(prior(rot, other), moved) + 1e-6)
+        half = _carry(model, which, rot, 0.5 * w + 0.5 * other)
+        assert np.all(quat_angle(half, moved) <= quat_angle(_carry(model, which, rot, other), moved) + 1e-6)
     assert outside_before > 0
 
 
@@ -98,8 +118,13 @@ def test_a_batch_carries_each_row_as_alone(model, neutral):
     batch = prior(rot, w)
     for b in range(5):
         assert np.all(_apart(batch[b], prior(rot[b : b + 1], w[b : b + 1])[0]) < 1e-12)
-    # the compiled step is the numpy reference
+    # the compiled step is the numpy reference, the Hips' heading removal included
     assert np.all(_apart(batch, prior.apply_numpy(rot, w)) < 1e-9)
+    if model.output_prior is not None:
+        from models.erd.rotation_prior import carry_output, carry_output_numpy
+
+        compiled = carry_output(model.output_prior, rot, w)
+        assert np.all(_apart(compiled, carry_output_numpy(model.output_prior, rot, w)) < 1e-9)
 
 
 def test_streamed_head_and_hands_are_the_carried_input(model, neutral):

@@ -111,12 +111,13 @@ class StyleCarry:
         d = d * np.minimum(1.0, self.radius[s] / np.maximum(norm, 1e-12))[..., None]
         return quat_mul(self.mean[s][None], quat_exp(d))
 
-    def __call__(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    def __call__(self, q: np.ndarray, weights: np.ndarray, hips: int = -1) -> np.ndarray:
         """(B, J, 4) rotations (B, J, 4) carried toward the styles of weights (B, S), compiled
-        (`carry_kernels.py`; `apply_numpy` is the reference)."""
+        (`carry_kernels.py`; `apply_numpy` is the reference). Joint `hips` (if >= 0) is carried
+        without its heading (its twist about world up), which is put back after."""
         from .carry_kernels import carry
 
-        return carry(q, weights, self.source, self.mean, self.map, self.radius)
+        return carry(q, weights, self.source, self.mean, self.map, self.radius, hips)
 
     def apply_numpy(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """The numpy reference of `__call__`. Only the (row, style) pairs with a weight are

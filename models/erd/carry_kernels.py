@@ -42,14 +42,22 @@ def _exp(x, y, z):
 
 
 @njit(cache=True, error_model="numpy")
-def carry_batch(q, w, source, mean, lin, radius, out):
-    """out (B, J, 4) = q (B, J, 4) carried toward the styles of weights w (B, S)."""
+def carry_batch(q, w, source, mean, lin, radius, hips, out):
+    """out (B, J, 4) = q (B, J, 4) carried toward the styles of weights w (B, S). Joint `hips`
+    (-1: none) is carried without its heading, its twist about world up (+Y), which is put back
+    after (`rotation_prior.carry_output`'s numpy reference)."""
     B, J = q.shape[0], q.shape[1]
     S = w.shape[1]
     for b in range(B):
         for j in range(J):
             n = math.sqrt(q[b, j, 0] ** 2 + q[b, j, 1] ** 2 + q[b, j, 2] ** 2 + q[b, j, 3] ** 2)
             qx, qy, qz, qw = q[b, j, 0] / n, q[b, j, 1] / n, q[b, j, 2] / n, q[b, j, 3] / n
+            hy, hw = 0.0, 1.0  # heading (0, hy, 0, hw)
+            if j == hips:
+                hn = math.sqrt(qy * qy + qw * qw)
+                if hn > 1e-9:
+                    hy, hw = qy / hn, qw / hn
+                qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
             cx = cy = cz = 0.0
             for s in range(S):
                 ws = w[b, s]
@@ -78,12 +86,14 @@ def carry_batch(q, w, source, mean, lin, radius, out):
                 cz += ws * lz
             ex, ey, ez, ew = _exp(cx, cy, cz)
             ox, oy, oz, ow = _mul(qx, qy, qz, qw, ex, ey, ez, ew)
+            if j == hips:
+                ox, oy, oz, ow = _mul(0.0, hy, 0.0, hw, ox, oy, oz, ow)
             out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = ox, oy, oz, ow
     return out
 
 
-def carry(q: np.ndarray, w: np.ndarray, source, mean, lin, radius) -> np.ndarray:
+def carry(q: np.ndarray, w: np.ndarray, source, mean, lin, radius, hips: int = -1) -> np.ndarray:
     """`carry_batch` on any (B, J, 4) rotations and (B, S) weights."""
     q = np.ascontiguousarray(q, np.float64)
     out = np.empty_like(q)
-    return carry_batch(q, np.ascontiguousarray(w, np.float64), source, mean, lin, radius, out)
+    return carry_batch(q, np.ascontiguousarray(w, np.float64), source, mean, lin, radius, hips, out)

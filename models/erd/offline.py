@@ -28,6 +28,7 @@ from ..motion.twist import transfer_twist
 from .carry import StyleCarry
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .model import Generator
+from .rotation_prior import carry_output
 
 
 def to_world(
@@ -77,7 +78,7 @@ def stylise(
     source = leaf_prior(motion.rotations, w_frames) if leaf_prior is not None else motion.rotations
     rots = transfer_twist(motion.skeleton, source, rots)
     if output_prior is not None:
-        rots = output_prior(rots, w_frames)
+        rots = carry_output(output_prior, rots, w_frames)
     if foot_lock:
         root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()

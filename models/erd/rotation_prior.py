@@ -19,7 +19,9 @@
    well made the content judge read straight validation walks as turns (content 0.70-0.90
    per style against 0.79-0.97 with the legs only clamped).
 
-The Root and Hips (the heading) are left alone by both.
+The Root is left alone by both, the Hips by the leaf prior (the decoder's legs and spine fix
+them). The output prior reads the Hips without their heading (their twist about world up, as the
+eval suite compares them) and only clamps them: the rest of the body hangs from them.
 """
 
 from __future__ import annotations
@@ -29,11 +31,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..motion.rotations import quat_inv, quat_mul, swing_twist
 from .carry import StyleCarry
 
 LEAF_FILE = "leaf_prior.npz"
 OUTPUT_FILE = "output_prior.npz"
 FIXED = (0, 1)  # joint_Root and Hips: their rotation holds the heading
+HIPS = 1
+UP = np.array([0.0, 1.0, 0.0])
 FIT_CLIPS_PER_CONTENT = 4
 FIT_FRAMES = 240
 LEGS = ("UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L", "UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R")
@@ -57,6 +62,29 @@ def real_rotations() -> list[np.ndarray]:
     return out
 
 
+def without_heading(rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(heading (..., 4), rotations (..., J, 4) with the Hips' heading removed): the Hips'
+    twist about world up, and the rest of their rotation (`models.eval.plausibility`'s
+    comparable rotation; joint_Root is static at the identity on this rig)."""
+    heading = swing_twist(rot[..., HIPS, :], UP)[1]
+    out = np.array(rot, np.float64)
+    out[..., HIPS, :] = quat_mul(quat_inv(heading), rot[..., HIPS, :])
+    return heading, out
+
+
+def carry_output(prior: StyleCarry, rot: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The output prior on rotations (B, J, 4): the Hips carried without their heading (compiled;
+    `carry_output_numpy` is the reference)."""
+    return prior(rot, weights, hips=HIPS)
+
+
+def carry_output_numpy(prior: StyleCarry, rot: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    heading, free = without_heading(rot)
+    out = prior.apply_numpy(free, weights)
+    out[:, HIPS] = quat_mul(heading, out[:, HIPS])
+    return out
+
+
 def fit_leaf_prior(real: list[np.ndarray]) -> StyleCarry:
     """Real neutral -> real target style, for each of the 6 target styles."""
     return StyleCarry.fit([real[0]] * (len(real) - 1), real[1:], FIXED)
@@ -77,9 +105,11 @@ def fit_output_prior(model, real: list[np.ndarray]) -> StyleCarry:
     finally:
         model.output_prior = saved
     n = len(inputs)
-    produced = [np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]) for k in range(len(styles))]
-    legs = tuple(model.skeleton.index(n) for n in LEGS)
-    return StyleCarry.fit(produced, real[1:], FIXED, clamp_only=legs)
+    produced = [
+        without_heading(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]))[1] for k in range(len(styles))
+    ]
+    clamped = (HIPS,) + tuple(model.skeleton.index(n) for n in LEGS)
+    return StyleCarry.fit(produced, [without_heading(q)[1] for q in real[1:]], (0,), clamp_only=clamped)
 
 
 def main(argv: list[str]) -> None:

@@ -60,7 +60,7 @@ from . import kernels
 from .carry import StyleCarry
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
-from .rotation_prior import LEAF_FILE, OUTPUT_FILE
+from .rotation_prior import LEAF_FILE, OUTPUT_FILE, carry_output
 
 WEIGHTS_FILE = "erd.npz"
 
@@ -233,7 +233,7 @@ class ERDModel:
         source = self.leaf_prior(rot_in, w) if self.leaf_prior is not None else rot_in
         out_rot = transfer_twist(self.skeleton, source, out_rot)
         if self.output_prior is not None:
-            out_rot = self.output_prior(out_rot, w)
+            out_rot = carry_output(self.output_prior, out_rot, w)
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
         )
