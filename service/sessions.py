@@ -3,9 +3,9 @@
 A session owns its model state (batch axis of 1), its style weights as a `{style: weight}` dict
 (current and transition target; the vector over the model's styles is built at each step, so
 the model's style set may change under a live session) and a bounded queue of pending work.
-Frames beyond the queue bound push out the oldest *frame* (control messages are never dropped),
-and the next reply reports how many were dropped: the newest frames win and memory stays
-bounded. Snapshots hold everything needed to continue exactly where a session left
+Frames beyond the queue bound push out the oldest *frame*, and the next reply reports how many
+were dropped: the newest frames win and memory stays bounded. Control messages are never
+dropped once queued; beyond the bound they are refused at the door (`queue_full`). Snapshots hold everything needed to continue exactly where a session left
 off, on this replica or another (`service.session_store` keeps them).
 """
 
