@@ -10,21 +10,10 @@ import time
 import numpy as np
 from websockets.sync.client import connect
 
-from models.interface import FrameBatch, StreamingModel, style_vector
+from models.interface import StreamingModel
 from models.motion.skeleton import Motion
 
-
-def ws_url(base: str) -> str:
-    return base.replace("http", "ws") + "/v1/stream"
-
-
-def offline(model: StreamingModel, style: str, root: np.ndarray, rot: np.ndarray) -> np.ndarray:
-    """The model stepped frame by frame in process: what a session must stream back."""
-    state, w, out = model.init_state(1), style_vector(model, {style: 1.0})[None], []
-    for t in range(len(root)):
-        fb, state = model.step_batch(state, FrameBatch(root[t : t + 1], rot[t : t + 1]), w)
-        out.append(fb.rotations[0])
-    return np.array(out)
+from .live_server import offline, ws_url
 
 
 class Bystander:
@@ -84,7 +73,7 @@ class Bystander:
         n = len(self.outputs)
         assert n > 0, "the healthy session got no frames back"
         idx = np.arange(n) % len(self.root)
-        want = offline(model, self.style, self.root[idx], self.rot[idx])
+        _, want = offline(model, {self.style: 1.0}, self.root[idx], self.rot[idx])
         np.testing.assert_allclose(np.array(self.outputs), want, atol=1e-9)
 
     def p99_ms(self, since: int = 0) -> float:

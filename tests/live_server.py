@@ -5,9 +5,11 @@ from __future__ import annotations
 import threading
 from contextlib import contextmanager
 
+import numpy as np
 import uvicorn
 
 from clients.loadtest import free_port, wait_ready
+from models.interface import FrameBatch, style_vector
 from service.app import create_app
 from service.settings import ServiceSettings
 from service.transport import uvicorn_config
@@ -32,3 +34,19 @@ def live_server(models: dict, port: int | None = None, uvicorn_options: dict | N
     finally:
         server.should_exit = True
         thread.join(timeout=10)
+
+
+def ws_url(base: str, path: str = "/v1/stream") -> str:
+    return base.replace("http", "ws") + path
+
+
+def offline(model, style_mix: dict, root: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The model run alone, frame by frame, on a fresh state: what a session must reproduce."""
+    state = model.init_state(1)
+    w = style_vector(model, style_mix)[None]
+    roots, rots = [], []
+    for t in range(len(root)):
+        out, state = model.step_batch(state, FrameBatch(root[t : t + 1], rot[t : t + 1]), w)
+        roots.append(out.root[0])
+        rots.append(out.rotations[0])
+    return np.array(roots), np.array(rots)

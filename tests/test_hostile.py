@@ -21,8 +21,8 @@ from models.registry import load_models
 from models.settings import get_settings
 
 from .cluster import require, shipped_nginx
-from .hostile import Bystander, ws_url
-from .live_server import live_server
+from .hostile import Bystander
+from .live_server import live_server, ws_url
 from .waiting import wait_until
 
 

@@ -19,7 +19,7 @@ from models.registry import load_models
 from models.settings import get_settings
 from service import protocol as P
 
-from .live_server import live_server
+from .live_server import live_server, offline, ws_url
 from .waiting import wait_until
 
 N_FRAMES = 60
@@ -42,22 +42,6 @@ def server(models):
 def clip(bn_walk):
     m = bn_walk.slice(0, N_FRAMES)
     return m.translations[:, 1].copy(), m.rotations.copy()  # Hips translation, local rotations
-
-
-def ws_url(base: str, path: str = "/v1/stream") -> str:
-    return base.replace("http", "ws") + path
-
-
-def offline(model, style_mix: dict, root: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The model run alone, frame by frame, on a fresh state: what a session must reproduce."""
-    state = model.init_state(1)
-    w = style_vector(model, style_mix)[None]
-    roots, rots = [], []
-    for t in range(len(root)):
-        out, state = model.step_batch(state, FrameBatch(root[t : t + 1], rot[t : t + 1]), w)
-        roots.append(out.root[0])
-        rots.append(out.rotations[0])
-    return np.array(roots), np.array(rots)
 
 
 def start(ws, **fields) -> dict:

@@ -18,7 +18,7 @@ from models.interface import FrameBatch, style_vector
 from models.registry import load_models
 from models.settings import get_settings
 
-from .live_server import live_server
+from .live_server import live_server, offline, ws_url
 
 LIMIT = 2 * 1024 * 1024
 
@@ -55,10 +55,6 @@ def payload(name, root, rot, **extra) -> dict:
     }
 
 
-def ws_url(base: str) -> str:
-    return base.replace("http", "ws") + "/v1/stream"
-
-
 def stream(ws, root, rot, seq0=0):
     out = []
     for t in range(len(root)):
@@ -66,14 +62,6 @@ def stream(ws, root, rot, seq0=0):
         reply = json.loads(ws.recv(timeout=20))
         assert reply["type"] == "frame" and reply["seq"] == seq0 + t, reply
         out.append(reply["rotations"])
-    return np.array(out)
-
-
-def offline(model, style, root, rot):
-    state, w, out = model.init_state(1), style_vector(model, {style: 1.0})[None], []
-    for t in range(len(root)):
-        fb, state = model.step_batch(state, FrameBatch(root[t : t + 1], rot[t : t + 1]), w)
-        out.append(fb.rotations[0])
     return np.array(out)
 
 
@@ -255,7 +243,7 @@ def test_fine_tune_upload_job_session_delete(server, models, styled_clip, bn_wal
 
         # the old session carries on exactly as the original model would have it
         second = stream(live, w_root[30:], w_rot[30:], seq0=30)
-        want = offline(models["lti"], "exhausted", w_root, w_rot)
+        want = offline(models["lti"], {"exhausted": 1.0}, w_root, w_rot)[1]
         np.testing.assert_allclose(np.concatenate([first, second]), want, atol=1e-9)
 
         # a new session uses the new style, and it changes the motion
@@ -341,12 +329,12 @@ def test_sessions_stream_on_unchanged_across_an_upload_and_a_delete(server, mode
     finally:
         stop.set()
         thread.join()
-    want = offline(models["lti"], "exhausted", w_root, w_rot)
+    want = offline(models["lti"], {"exhausted": 1.0}, w_root, w_rot)[1]
     np.testing.assert_allclose(np.concatenate([first, second, third]), want, atol=1e-9)
     n = len(background)
     idx = np.arange(n) % len(w_root)
     np.testing.assert_allclose(
-        np.array(background), offline(models["lti"], "elderly", w_root[idx], w_rot[idx]), atol=1e-9
+        np.array(background), offline(models["lti"], {"elderly": 1.0}, w_root[idx], w_rot[idx])[1], atol=1e-9
     )
     assert "mid-a" not in next(m for m in httpx.get(f"{base}/v1/models").json() if m["name"] == "lti")["styles"]
 
