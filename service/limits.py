@@ -41,7 +41,6 @@ class Limits:
     burst: float  # the bucket's size: requests that may come at once
     upload_max_bytes: int
     sessions_per_s: float  # new sessions (resumes included), in bursts of `max_sessions`
-    max_stored_sessions: int  # closed sessions kept for resume; beyond it the oldest is forgotten
 
 
 @dataclass(frozen=True)
@@ -80,11 +79,16 @@ class Bucket:
     at: float  # clock reading when `tokens` was counted
 
 
+def level(bucket: Bucket, now: float, rate: float, burst: float) -> float:
+    """What a bucket that refills at `rate` per second up to `burst` holds at `now`."""
+    return min(burst, bucket.tokens + (now - bucket.at) * rate)
+
+
 def take(bucket: Bucket | None, now: float, rate: float, burst: float) -> tuple[Bucket, float]:
     """Take one request from a bucket that refills at `rate` per second up to `burst` (a missing
     bucket is full). Returns the bucket after, and 0 when the request may pass or else the
     seconds until it would."""
-    tokens = burst if bucket is None else min(burst, bucket.tokens + (now - bucket.at) * rate)
+    tokens = burst if bucket is None else level(bucket, now, rate, burst)
     if tokens >= 1.0:
         return Bucket(tokens - 1.0, now), 0.0
     return Bucket(tokens, now), (1.0 - tokens) / rate
@@ -158,7 +162,6 @@ class Limiter:
             burst=max(1.0, rate * (o.burst_s or s.token_burst_s)),
             upload_max_bytes=o.upload_max_bytes or s.upload_max_bytes,
             sessions_per_s=s.token_sessions_per_s,
-            max_stored_sessions=s.token_max_stored_sessions,
         )
 
     def identify(self, authorization: str | None, query_token: str | None, client: str | None) -> Principal | None:
@@ -168,8 +171,9 @@ class Limiter:
             return Principal(f"client:{client or 'unknown'}", self.limits_for(None))
         now, failures = self.clock(), f"auth-failures:{client or 'unknown'}"
         bucket = self.buckets.get(failures)
-        if bucket is not None and bucket.tokens + (now - bucket.at) * AUTH_FAILURES_PER_S < 1.0:
-            wait = (1.0 - bucket.tokens) / AUTH_FAILURES_PER_S - (now - bucket.at)
+        left = AUTH_FAILURES_BURST if bucket is None else level(bucket, now, AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST)
+        if left < 1.0:
+            wait = (1.0 - left) / AUTH_FAILURES_PER_S
             raise ApiError(
                 429,
                 "rate_limited",
@@ -234,10 +238,13 @@ class Limiter:
 
         def full(key: str, b: Bucket) -> bool:
             if key.startswith("auth-failures:"):
-                return b.tokens + (now - b.at) * AUTH_FAILURES_PER_S >= AUTH_FAILURES_BURST
-            kind, _, who = key.partition(":") if key.startswith("open:") else ("", "", key)
-            lim = self.limits_for(who[6:] if who.startswith("token:") else None)
-            rate, burst = (lim.sessions_per_s, _open_burst(lim)) if kind == "open" else (lim.requests_per_s, lim.burst)
-            return b.tokens + (now - b.at) * rate >= burst
+                rate, burst = AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST
+            else:
+                kind, _, who = key.partition(":") if key.startswith("open:") else ("", "", key)
+                lim = self.limits_for(who[6:] if who.startswith("token:") else None)
+                rate, burst = (
+                    (lim.sessions_per_s, _open_burst(lim)) if kind == "open" else (lim.requests_per_s, lim.burst)
+                )
+            return level(b, now, rate, burst) >= burst
 
         self.buckets = {k: b for k, b in self.buckets.items() if not full(k, b)}

@@ -216,7 +216,7 @@ class Runtime:
                 self._keep_stored(session)
 
     def _keep_stored(self, session: Session) -> None:
-        """Count a closed session against its caller's `max_stored_sessions`; beyond it, that
+        """Count a closed session against its caller's `token_max_stored_sessions`; beyond it, that
         caller's oldest closed session is forgotten, so one client's churn never pushes another's
         snapshot out of a full store."""
         now = time.monotonic()
