@@ -56,6 +56,7 @@ from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Skeleton
 from ..motion.twist import transfer_twist
+from ..rowwise import matmul_rows
 from . import kernels
 from .carry import StyleCarry
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
@@ -267,11 +268,11 @@ class ERDModel:
         """Encoder -> 7 stacked LSTM branches -> latent = neutral + sum_s w_s branch_s -> decoder.
         Returns the decoder output (B, 88) and the new LSTM states."""
         dt, H, B = self.dtype, self.H, x.shape[0]
-        h = ((x - self.mean) / self.std).astype(dt) @ self.enc_in
+        h = matmul_rows(((x - self.mean) / self.std).astype(dt), self.enc_in)
         h += self.enc_labels[state["style_in"], state["content"]]
         for W, b in self.enc:
             np.maximum(h, 0.0, out=h)
-            h = h @ W + b
+            h = matmul_rows(h, W) + b
         z = h
         hs, cs = state["h"].astype(dt, copy=False), state["c"].astype(dt, copy=False)  # (B, 7, layers, H)
         new_h, new_c = np.empty_like(hs), np.empty_like(cs)
@@ -280,7 +281,7 @@ class ERDModel:
         for l in range(self.Ln):
             # [input, hidden] (7, B, 2H) @ (7, 2H, 4H): the branch axis first, as np.matmul batches over it
             xin[..., :H], xin[..., H:] = inp, hs[:, :, l].transpose(1, 0, 2)
-            np.matmul(xin, self.lstm_w[l], out=g)
+            g[...] = matmul_rows(xin, self.lstm_w[l])  # each row as if alone (`models.rowwise`)
             g += self.lstm_b[l]
             s = _sigmoid_(g)  # i, f, o gates; g gate = 2 s - 1
             c = s[..., H : 2 * H] * cs[:, :, l].transpose(1, 0, 2) + s[..., :H] * (2.0 * s[..., 2 * H : 3 * H] - 1.0)
@@ -293,7 +294,7 @@ class ERDModel:
         latent = np.einsum("bk,kbh->bh", weights, inp)
         h = np.concatenate([latent, weights[:, 1:]], -1)
         for i, (W, b) in enumerate(self.dec):
-            h = h @ W + b
+            h = matmul_rows(h, W) + b
             if i < 2:
                 np.maximum(h, 0.0, out=h)
         return h, {"h": new_h, "c": new_c}

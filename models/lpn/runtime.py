@@ -48,6 +48,7 @@ from ..motion.feet import FootPlanter
 from ..motion.rotations import quat_mul, yaw_quat
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import transfer_twist
+from ..rowwise import matmul_rows
 from . import features as lf
 from . import kernels
 from .styles import LPNStyles
@@ -180,7 +181,7 @@ class LPNModel(LPNStyles):
         w = np.asarray(weights, np.float32)
         if w.ndim != 2 or w.shape[1] != len(styles):
             raise ValueError(f"style_weights must be (B, {len(styles)}), got {w.shape}")
-        film = w @ films + (1.0 - w.sum(1, keepdims=True)) * films[styles.index("normal")]
+        film = matmul_rows(w, films) + (1.0 - w.sum(1, keepdims=True)) * films[styles.index("normal")]
         return film.reshape(-1, 4, self.H)
 
     # ------------------------------------------------------------------ state
@@ -372,10 +373,10 @@ class LPNModel(LPNStyles):
         h = (x - self.x_mean) / self.x_std
         (W1, bias1, n1), (W2, bias2, n2), (W3, bias3, _) = self.layers
         h1 = np.empty((len(x), n1), np.float32)
-        kernels.hidden_layer(h @ W1, alpha, bias1, film, 0, h1)
+        kernels.hidden_layer(matmul_rows(h, W1), alpha, bias1, film, 0, h1)
         h2 = np.empty((len(x), n2), np.float32)
-        kernels.hidden_layer(h1 @ W2, alpha, bias2, film, 1, h2)
-        return kernels.output_layer(h2 @ W3, alpha, bias3, self.y_mean, self.y_std)
+        kernels.hidden_layer(matmul_rows(h1, W2), alpha, bias2, film, 1, h2)
+        return kernels.output_layer(matmul_rows(h2, W3), alpha, bias3, self.y_mean, self.y_std)
 
     def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply the prediction: move the root, shift the history, store pose/phases/future; returns

@@ -1,0 +1,51 @@
+"""A row's result never depends on the batch it is computed in: the products (`models.rowwise`)
+and every model's step, which the service's batching and crowds rely on for exact replies."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.data import build_index, load_motion, select
+from models.interface import FrameBatch, weight_vector
+from models.registry import load_models
+from models.rowwise import matmul_rows
+from models.settings import get_settings
+
+# the layer shapes the models multiply by: Style-ERD's encoder, LSTM and decoder, LPN-FiLM's experts
+SHAPES = [(216, 128), (128, 32), (64, 128), (38, 128), (128, 88), (19, 1024), (343, 2048), (256, 2824)]
+
+
+@pytest.mark.parametrize("inner,outer", SHAPES)
+def test_a_row_of_a_product_is_the_same_in_any_batch(inner, outer):
+    rng = np.random.default_rng(inner)
+    w = rng.standard_normal((inner, outer)).astype(np.float32)
+    x = rng.standard_normal((67, inner)).astype(np.float32)
+    alone = np.stack([matmul_rows(x[i : i + 1], w)[0] for i in range(len(x))])
+    for batch in (2, 7, 8, 13, 67):
+        assert np.array_equal(matmul_rows(x[:batch], w), alone[:batch]), batch
+    np.testing.assert_allclose(alone, x @ w, rtol=1e-5, atol=1e-4)  # and it is the product
+    # stacked weights (Style-ERD's branches) broadcast as np.matmul does
+    stacked = matmul_rows(np.stack([x[:13], x[1:14]]), np.stack([w, w]))
+    assert np.array_equal(stacked[1, 0], alone[1])
+
+
+@pytest.fixture(scope="module")
+def models():
+    return load_models(get_settings().weights_dir)
+
+
+@pytest.mark.parametrize("name", ["lti", "erd", "lpn"])
+def test_every_model_steps_a_row_as_it_steps_it_alone(models, name):
+    model = models[name]
+    clips = [load_motion(c) for c in select(build_index(), dataset="bandai-namco-2", style="normal", split="val")[:5]]
+    styles = model.styles()
+    weights = np.stack([weight_vector(styles, {styles[i % len(styles)]: 1.0}) for i in range(len(clips))])
+    together, alone = model.init_state(len(clips)), [model.init_state(1) for _ in clips]
+    for t in range(12):
+        frames = FrameBatch(np.stack([c.translations[t, 1] for c in clips]), np.stack([c.rotations[t] for c in clips]))
+        out, together = model.step_batch(together, frames, weights)
+        for i in range(len(clips)):
+            single, alone[i] = model.step_batch(alone[i], frames.take(i), weights[i : i + 1])
+            assert np.array_equal(single.rotations[0], out.rotations[i]), (t, i)
+            assert np.array_equal(single.root[0], out.root[i]), (t, i)
