@@ -16,6 +16,12 @@
             for out in s.poll():                          # replies that have arrived, in order
                 draw(out)
 
+    # a crowd: many characters on one connection, one binary message per tick each way
+    with client.crowd([Character(i, "lti", "elderly") for i in range(100)], fps=60) as crowd:
+        for roots, rotations in ticks:                    # (100, 3), (100, J, 4)
+            out = crowd.tick(range(100), roots, rotations)
+            out_roots, out_rotations = out.arrays()
+
     # asyncio: the same calls, awaited
     async with AsyncClient("http://127.0.0.1:8000") as client:
         async with client.session(model="lti", style="elderly") as s:
@@ -39,7 +45,7 @@ The protocol is written once (`sdk_session`, `sdk_rest`); `Session`/`Client` and
 from __future__ import annotations
 
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from types import EllipsisType
 from typing import Any
 
@@ -47,6 +53,7 @@ import httpx
 import numpy as np
 
 from . import sdk_rest as rest
+from .sdk_crowd import AsyncCrowd, Character, Crowd, CrowdCore, CrowdFrames
 from .sdk_io import AsyncIO, SyncIO, run_async, run_sync
 from .sdk_session import SessionCore
 from .sdk_types import (
@@ -72,8 +79,12 @@ from .sdk_wire import pack as _pack
 
 __all__ = [
     "AsyncClient",
+    "AsyncCrowd",
     "AsyncSession",
+    "Character",
     "Client",
+    "Crowd",
+    "CrowdFrames",
     "ConnectFailed",
     "ConnectionLost",
     "FrameDropped",
@@ -353,6 +364,10 @@ class _ClientBase:
             "on_reconnect": on_reconnect,
         }
 
+    def _crowd_core(self, characters: Sequence[Character], fps: float, timeout: Default) -> CrowdCore:
+        url = self.base_url.replace("http", "ws", 1) + "/v1/stream"
+        return CrowdCore(url, self.headers, characters, fps, self.timeout if timeout is ... else timeout)
+
 
 class Client(_ClientBase):
     """Synchronous REST client plus sessions. `timeout` (seconds, None: no limit) bounds each REST
@@ -446,6 +461,11 @@ class Client(_ClientBase):
         )
         self._sessions.add(session)
         return session
+
+    def crowd(self, characters: Sequence[Character], fps: float = 30.0, *, timeout: Default = ...) -> Crowd:
+        """Open a crowd: many characters on one connection, one binary message per tick each way
+        (protocol v1.1). Characters the server refuses are in the crowd's `errors`."""
+        return Crowd(self._crowd_core(characters, fps, timeout))
 
     def close(self) -> None:
         for session in list(self._sessions):
@@ -543,6 +563,10 @@ class AsyncClient(_ClientBase):
         )
         self._sessions.add(session)
         return session
+
+    async def crowd(self, characters: Sequence[Character], fps: float = 30.0, *, timeout: Default = ...) -> AsyncCrowd:
+        """`Client.crowd` for asyncio."""
+        return await AsyncCrowd(self._crowd_core(characters, fps, timeout)).open()
 
     async def close(self) -> None:
         for session in list(self._sessions):

@@ -150,7 +150,13 @@ class SyncIO:
             self._connection = ExitStack()
             try:
                 self.ws = self._connection.enter_context(
-                    connect_sync(op.url, open_timeout=op.timeout, max_size=MAX_MESSAGE, compression=None)
+                    connect_sync(
+                        op.url,
+                        additional_headers=op.headers,
+                        open_timeout=op.timeout,
+                        max_size=MAX_MESSAGE,
+                        compression=None,
+                    )
                 )
             except (OSError, InvalidHandshake, InvalidURI) as exc:
                 raise ConnectFailed(f"cannot open a session at {op.url}: {exc}") from exc

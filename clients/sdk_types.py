@@ -37,10 +37,11 @@ class ServerError(StylestreamError):
         seq: int | None = None,
         status: int | None = None,
         retry_after: float | None = None,
+        character: int | None = None,  # in a crowd: the character it concerns
     ) -> None:
-        super().__init__(f"{code}: {message}")
+        super().__init__(f"{code}: {message}" if character is None else f"{code} (character {character}): {message}")
         self.code, self.message, self.seq = code, message, seq
-        self.status, self.retry_after = status, retry_after
+        self.status, self.retry_after, self.character = status, retry_after, character
 
 
 class ResumeError(StylestreamError):

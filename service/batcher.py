@@ -1,10 +1,12 @@
 """Cross-session batching: frames of many sessions run as one `step_batch` call.
 
-Each session has at most one frame in flight (its processor awaits the reply before taking the
-next), so a batch never holds two frames of one session. The batcher waits at most `wait_s`
-after the first frame for others to join, or until every open session of the model has one in,
-then runs the step and scatters the results back (one future per frame, nothing else per frame:
-no queue, no task, no timer per frame).
+A request is one session's frame, or all of one crowd connection's characters of the model
+(`service.crowd`): rows that go into the batch together and come back as slices. Each
+connection has at most one request in flight (its processor awaits the reply before taking the
+next), so a batch never holds two frames of one character. The batcher waits at most `wait_s`
+after the first request for others to join, or until every open connection of the model has one
+in, then runs the step and scatters the results back (one future per request, nothing else per
+request or row: no queue, no task, no timer).
 
 Where the step runs: model steps and style changes share one worker thread (`ModelThread`), so
 a style change never runs in the middle of a step. A step predicted to take less than
@@ -14,7 +16,8 @@ the GIL; a long one goes to the thread, which lets the event loop in between ker
 
 The model's style set may change between steps, so the step first brings every session's state
 to the current style set (`upgrade_state`) and builds the weight vectors over the current
-`styles()` from each session's `{style: weight}` dict.
+`styles()` from each session's `{style: weight}` dict (a crowd's weight rows are remapped by
+style name).
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from models.interface import FrameBatch, State, StreamingModel, split_state, stack_states, upgrade_state, weight_vector
+from models.interface import FrameBatch, State, StreamingModel, stack_states, upgrade_state, weight_vector
 
 from .metrics import Metrics
 
@@ -37,27 +40,61 @@ T = TypeVar("T")
 
 @dataclass
 class StepRequest:
-    state: State
-    root: np.ndarray
-    rotations: np.ndarray
-    weights: dict[str, float]  # {style: weight}
+    """Rows to step together: one session's frame (one row), or one crowd's characters of this
+    model (many rows, `service.crowd`), kept together through the step and back."""
+
+    state: State  # every entry with the rows first
+    root: np.ndarray  # (n, 3)
+    rotations: np.ndarray  # (n, J, 4)
+    weights: dict[str, float] | np.ndarray  # one session's {style: weight}, or (n, S) over `names`
     future: asyncio.Future
-    control: np.ndarray | None = None  # (5,) a controller tick, see `FrameBatch.control`
+    control: np.ndarray | None = None  # (n, 5) controller ticks, see `FrameBatch.control`
+    names: list[str] | None = None  # the styles the columns of an array `weights` stand for
+
+    @property
+    def rows(self) -> int:
+        return len(self.root)
+
+    def weights_over(self, names: list[str]) -> np.ndarray:
+        """(n, len(names)) weights over the model's styles at step time: a style deleted since the
+        request was made drops out (its share passes the input through), one added weighs 0."""
+        if isinstance(self.weights, dict):
+            return weight_vector(names, self.weights)[None]
+        if self.names == names:
+            return self.weights
+        column = {style: i for i, style in enumerate(self.names or [])}
+        out = np.zeros((self.rows, len(names)))
+        for j, style in enumerate(names):
+            if style in column:
+                out[:, j] = self.weights[:, column[style]]
+        return out
 
 
-def run_step(model: StreamingModel, requests: list[StepRequest]) -> list[tuple[np.ndarray, np.ndarray, State]]:
-    """One batched step over the requests' sessions; pure, runs on the worker thread."""
-    state = stack_states([upgrade_state(model, r.state) for r in requests])
+StepResult = tuple[np.ndarray, np.ndarray, State]  # root (n, 3), rotations (n, J, 4), state (n rows)
+
+
+def run_step(model: StreamingModel, requests: list[StepRequest]) -> list[StepResult]:
+    """One batched step over the requests' rows; pure, runs on the worker thread. Each request
+    gets its rows back as slices of the batch's arrays (states are never modified in place)."""
+    names = model.styles()
+    states = [upgrade_state(model, r.state) for r in requests]
+    state = states[0] if len(states) == 1 else stack_states(states)
     control = None
     if any(r.control is not None for r in requests):  # rows without control: flag 0, follow the input frames
-        control = np.stack([r.control if r.control is not None else np.zeros(5) for r in requests])
-    frames = FrameBatch(
-        np.stack([r.root for r in requests]), np.stack([r.rotations for r in requests]), control=control
-    )
-    names = model.styles()
-    out, new_state = model.step_batch(state, frames, np.stack([weight_vector(names, r.weights) for r in requests]))
-    states = split_state(new_state)
-    return [(out.root[i], out.rotations[i], states[i]) for i in range(len(requests))]
+        control = np.concatenate([r.control if r.control is not None else np.zeros((r.rows, 5)) for r in requests])
+    if len(requests) == 1:
+        root, rotations, weights = requests[0].root, requests[0].rotations, requests[0].weights_over(names)
+    else:
+        root = np.concatenate([r.root for r in requests])
+        rotations = np.concatenate([r.rotations for r in requests])
+        weights = np.concatenate([r.weights_over(names) for r in requests])
+    out, new_state = model.step_batch(state, FrameBatch(root, rotations, control=control), weights)
+    results, start = [], 0
+    for r in requests:
+        rows = slice(start, start + r.rows)
+        results.append((out.root[rows], out.rotations[rows], {key: value[rows] for key, value in new_state.items()}))
+        start += r.rows
+    return results
 
 
 class ModelThread:
@@ -111,6 +148,7 @@ class Batcher:
         # a large fixed part (LTI: ~1.2 ms at 1 session, ~5 ms at 256), so no per-session rate fits
         self.step_s: dict[int, float] = {}
         self._pending: list[StepRequest] = []
+        self._pending_rows = 0
         self._want = 1  # requests pending that wake the gathering batcher
         self._arrived = asyncio.Event()
         self._task: asyncio.Task | None = None
@@ -130,12 +168,32 @@ class Batcher:
         rotations: np.ndarray,
         weights: dict[str, float],
         control: np.ndarray | None = None,
-    ):
-        future = asyncio.get_running_loop().create_future()
-        self._pending.append(StepRequest(state, root, rotations, weights, future, control))
+    ) -> tuple[np.ndarray, np.ndarray, State]:
+        """One session's frame: root (3,), rotations (J, 4), its {style: weight}; returns its
+        output root and rotations and its new (one-row) state."""
+        out_root, out_rot, new_state = await self.step_rows(
+            state, root[None], rotations[None], weights, None if control is None else control[None]
+        )
+        return out_root[0], out_rot[0], new_state
+
+    def step_rows(
+        self,
+        state: State,
+        root: np.ndarray,
+        rotations: np.ndarray,
+        weights: dict[str, float] | np.ndarray,
+        control: np.ndarray | None = None,
+        names: list[str] | None = None,
+    ) -> asyncio.Future[StepResult]:
+        """Rows stepped in one batch with every other request waiting: (n, 3) roots, (n, J, 4)
+        rotations, an (n, S) weight array over `names` (or one row's dict); the future gives
+        their outputs and new state, rows in the same order."""
+        future: asyncio.Future[StepResult] = asyncio.get_running_loop().create_future()
+        self._pending.append(StepRequest(state, root, rotations, weights, future, control, names))
+        self._pending_rows += len(root)
         if len(self._pending) >= self._want:
             self._arrived.set()
-        return await future
+        return future
 
     async def _wait_for(self, count: int) -> None:
         """Until `count` requests are pending (no timeout: the caller bounds it)."""
@@ -147,14 +205,20 @@ class Batcher:
     async def _gather(self) -> list[StepRequest]:
         await self._wait_for(1)
         full = min(self.max_batch, max(1, self.open_sessions()))
-        if len(self._pending) < full and self.wait_s > 0:
+        if len(self._pending) < full and self._pending_rows < self.max_batch and self.wait_s > 0:
             try:
                 async with asyncio.timeout(self.wait_s):
                     await self._wait_for(full)
             except TimeoutError:
                 pass
         self._want = 1
-        batch, self._pending = self._pending[: self.max_batch], self._pending[self.max_batch :]
+        # whole requests up to `max_batch` rows (a crowd's rows stay together; at least one request)
+        taken, rows = 0, 0
+        while taken < len(self._pending) and (taken == 0 or rows + self._pending[taken].rows <= self.max_batch):
+            rows += self._pending[taken].rows
+            taken += 1
+        batch, self._pending = self._pending[:taken], self._pending[taken:]
+        self._pending_rows -= rows
         return batch
 
     def _inline(self, size: int) -> bool:
@@ -165,7 +229,7 @@ class Batcher:
             batch = await self._gather()
             t0 = time.perf_counter()
             try:
-                if self._inline(len(batch)):
+                if self._inline(sum(r.rows for r in batch)):
                     results = run_step(self.model, batch)
                 else:
                     results = await asyncio.get_running_loop().run_in_executor(
@@ -177,10 +241,10 @@ class Batcher:
                         req.future.set_exception(exc)
                 continue
             seconds = time.perf_counter() - t0
-            size_class = len(batch).bit_length()
+            size_class = sum(r.rows for r in batch).bit_length()
             self.step_s[size_class] = self.step_s.get(size_class, seconds) * 0.8 + 0.2 * seconds
             self.metrics.step_latency.observe(seconds)
-            self.metrics.batch_size.observe(len(batch))
+            self.metrics.batch_size.observe(sum(r.rows for r in batch))
             for req, result in zip(batch, results):
                 if not req.future.done():
                     req.future.set_result(result)

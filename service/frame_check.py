@@ -57,3 +57,16 @@ def warm() -> None:
         rot = np.zeros((1, 4), dtype)
         rot[0, 3] = 1.0
         check_frame(np.zeros(3, dtype), rot, np.empty(3), np.empty((1, 4)))
+
+
+@njit(cache=True, error_model="numpy")
+def check_rows(payload, offsets, root_out, rot_out, status) -> None:
+    """`check_frame` for many frames laid end to end in one message: the frame at float offset
+    `offsets[i]` of `payload` (root, then J quaternions) into row i of the (n, 3) and (n, J, 4)
+    outputs, its code into `status[i]`. The same checks and arithmetic, so a row is bit for bit
+    what `check_frame` gives that frame alone."""
+    num_joints = rot_out.shape[1]
+    for i in range(offsets.shape[0]):
+        start = offsets[i]
+        frame = payload[start : start + 3 + 4 * num_joints]
+        status[i] = check_frame(frame[:3], frame[3:].reshape((num_joints, 4)), root_out[i], rot_out[i])

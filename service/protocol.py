@@ -32,9 +32,18 @@ KIND_FRAME = 1
 class ProtocolError(Exception):
     """A client error, reported as a typed error message. `fatal` ones close the session."""
 
-    def __init__(self, code: str, message: str, seq: int | None = None, fatal: bool = False, close_code: int = 1008):
+    def __init__(
+        self,
+        code: str,
+        message: str,
+        seq: int | None = None,
+        fatal: bool = False,
+        close_code: int = 1008,
+        character: int | None = None,  # in a crowd: the character it concerns
+    ):
         super().__init__(message)
         self.code, self.message, self.seq, self.fatal, self.close_code = code, message, seq, fatal, close_code
+        self.character = character
 
 
 class _Message(BaseModel):
@@ -46,9 +55,10 @@ MAX_CONTROL_SPEED = 12.0  # m/s: faster than any sprint, so a wild stick value i
 StyleMix = dict[str, Annotated[float, Field(ge=0, allow_inf_nan=False)]]  # an infinite weight made every weight NaN
 
 
-class Start(_Message):
-    type: Literal["start"]
-    version: int = PROTOCOL_VERSION
+class CharacterSpec(_Message):
+    """What one character is: its model, style and rig (a session's `start`, or one member of a
+    crowd's `characters`)."""
+
     model: str
     style: str | None = None
     mix: StyleMix | None = None  # {style: weight}; alternative to `style`
@@ -71,10 +81,6 @@ class Start(_Message):
     units: Literal["m", "dm", "cm", "mm", "in"] | None = None  # default: read from the leg length
     up: Literal["y", "z"] | None = None  # default: read from a standing rest pose, else y
     handedness: Literal["right", "left"] = "right"
-    fps: float = Field(default=30.0, gt=0, le=240)
-    encoding: Literal["json", "binary"] = "json"
-    resume_token: str | None = None
-    snapshot_acks: bool = False  # send {"type": "snapshot", "last_seq": n} once a snapshot is stored
 
     def rig_options(self) -> dict:
         """The rig choices beyond `skeleton` and `bvh_header` (kept with the session for resumes)."""
@@ -90,12 +96,54 @@ class Start(_Message):
             if v is not None and (k != "handedness" or v != "right")
         }
 
-    @field_validator("version")
-    @classmethod
-    def _supported(cls, v: int) -> int:
-        if v != PROTOCOL_VERSION:
-            raise ValueError(f"protocol version {v} not supported (server speaks {PROTOCOL_VERSION})")
-        return v
+
+def _supported_version(v: int) -> int:
+    if v != PROTOCOL_VERSION:
+        raise ValueError(f"protocol version {v} not supported (server speaks {PROTOCOL_VERSION})")
+    return v
+
+
+class Start(CharacterSpec):
+    type: Literal["start"]
+    version: int = PROTOCOL_VERSION
+    fps: float = Field(default=30.0, gt=0, le=240)
+    encoding: Literal["json", "binary"] = "json"
+    resume_token: str | None = None
+    snapshot_acks: bool = False  # send {"type": "snapshot", "last_seq": n} once a snapshot is stored
+
+    _supported = field_validator("version")(_supported_version)
+
+
+MAX_CHARACTER_ID = 2**32 - 1
+CharacterIds = Annotated[list[Annotated[int, Field(ge=0, le=MAX_CHARACTER_ID)]], Field(min_length=1, max_length=65_535)]
+
+
+class CrowdCharacter(CharacterSpec):
+    id: int = Field(ge=0, le=MAX_CHARACTER_ID, description="the client's name for the character in ticks and replies")
+
+
+CharacterList = Annotated[list[CrowdCharacter], Field(min_length=1, max_length=65_535)]
+
+
+class CrowdStart(_Message):
+    """Opens a crowd connection (protocol v1.1): many characters, one binary tick per frame time."""
+
+    type: Literal["crowd"]
+    version: int = PROTOCOL_VERSION
+    fps: float = Field(default=30.0, gt=0, le=240)
+    characters: CharacterList
+
+    _supported = field_validator("version")(_supported_version)
+
+
+class Join(_Message):
+    type: Literal["join"]
+    characters: CharacterList
+
+
+class Leave(_Message):
+    type: Literal["leave"]
+    characters: CharacterIds
 
 
 class Frame(_Message):
@@ -107,6 +155,7 @@ class Frame(_Message):
 
 class SetStyle(_Message):
     type: Literal["style"]
+    characters: CharacterIds | None = None  # in a crowd: which characters (default: every one)
     style: str | None = None
     mix: StyleMix | None = None
     intensity: float = Field(default=1.0, ge=0.0, le=2.0)
@@ -131,13 +180,16 @@ class Control(_Message):
 
 class Reset(_Message):
     type: Literal["reset"]
+    characters: CharacterIds | None = None  # in a crowd: which characters (default: every one)
 
 
 class End(_Message):
     type: Literal["end"]
 
 
-ClientMessage = Annotated[Start | Frame | Control | SetStyle | Reset | End, Field(discriminator="type")]
+ClientMessage = Annotated[
+    Start | CrowdStart | Frame | Control | SetStyle | Reset | End | Join | Leave, Field(discriminator="type")
+]
 client_message = TypeAdapter(ClientMessage)
 
 
@@ -160,7 +212,7 @@ def requested_weights(model, style: str | None, mix: StyleMix | None, intensity:
         raise ProtocolError("bad_style", str(exc)) from None
 
 
-def parse_text(text: str) -> Start | Frame | Control | SetStyle | Reset | End:
+def parse_text(text: str) -> Start | CrowdStart | Frame | Control | SetStyle | Reset | End | Join | Leave:
     from pydantic import ValidationError
 
     try:
@@ -193,11 +245,11 @@ def check_values(root: np.ndarray, rot: np.ndarray, seq: int) -> tuple[np.ndarra
     root_out, rot_out = np.empty(3), np.empty((len(rot), 4))
     status = check_frame(root, rot, root_out, rot_out)
     if status != FC.OK:
-        raise ProtocolError("bad_frame", _FRAME_CHECK_ERRORS[status], seq)
+        raise ProtocolError("bad_frame", FRAME_CHECK_ERRORS[status], seq)
     return root_out, rot_out
 
 
-_FRAME_CHECK_ERRORS = {
+FRAME_CHECK_ERRORS = {
     FC.NOT_FINITE: "frame contains NaN or Inf",
     FC.ZERO_QUATERNION: "zero-length quaternion",
     FC.QUATERNION_RANGE: "quaternion components out of range",
@@ -241,5 +293,31 @@ def close_reason(text: str) -> str:
     return text.encode("utf-8", "replace")[:123].decode("utf-8", "ignore")
 
 
-def error_message(code: str, message: str, seq: int | None = None) -> dict:
-    return {"type": "error", "code": code, "message": message, "seq": seq}
+def error_message(code: str, message: str, seq: int | None = None, character: int | None = None) -> dict:
+    if character is None:
+        return {"type": "error", "code": code, "message": message, "seq": seq}
+    return {"type": "error", "code": code, "message": message, "seq": seq, "character": character}
+
+
+# ---- crowd ticks (protocol v1.1) ----------------------------------------------------------
+TICK_HEADER = struct.Struct("<IHHI")  # seq, kind, characters, dropped (server -> client; 0 from clients)
+KIND_TICK = 2
+
+
+def decode_tick(data: bytes) -> tuple[int, bytes, np.ndarray]:
+    """A crowd's binary tick: (seq, the character ids as sent (uint32 LE), float32 payload view).
+    Which floats belong to whom is the crowd's to say (`service.crowd.Plan`)."""
+    if len(data) < TICK_HEADER.size:
+        raise ProtocolError("bad_frame", f"binary message of {len(data)} bytes is shorter than the 12-byte tick header")
+    seq, kind, count, _ = TICK_HEADER.unpack_from(data)
+    if kind != KIND_TICK:
+        raise ProtocolError("bad_frame", f"a crowd sends ticks (binary kind {KIND_TICK}), got kind {kind}", seq)
+    start = TICK_HEADER.size + 4 * count
+    if len(data) < start or (len(data) - start) % 4:
+        raise ProtocolError("bad_frame", f"a tick of {count} characters cannot be {len(data)} bytes", seq)
+    return seq, data[TICK_HEADER.size : start], np.frombuffer(data, "<f4", offset=start)
+
+
+def encode_tick(seq: int, ids: np.ndarray, payload: np.ndarray, dropped: int = 0) -> bytes:
+    header = TICK_HEADER.pack(seq, KIND_TICK, len(ids), min(dropped, 0xFFFFFFFF))
+    return header + ids.astype("<u4").tobytes() + payload.astype("<f4", copy=False).tobytes()

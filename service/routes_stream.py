@@ -13,7 +13,7 @@ from .api import ApiError
 from .deps import get_limiter
 from .limits import CLOSE_TRY_AGAIN_LATER
 from .runtime import Runtime
-from .stream import CLOSE_UNAUTHORIZED, Connection
+from .stream import CLOSE_UNAUTHORIZED, Connection, serve
 
 router = APIRouter()
 
@@ -43,6 +43,6 @@ async def stream(ws: WebSocket) -> None:
         await connection.close(err.close_code, err.message)
         return
     try:
-        await connection.run()
+        await serve(ws, runtime, who)
     finally:
         limiter.session_closed(who)

@@ -84,7 +84,9 @@ class Runtime:
         self._stored: dict[str, OrderedDict[str, float]] = {}  # caller id -> resume token -> closed at
         self._ttl = settings.resume_ttl_s
         self._open_per_model: Counter[str] = Counter()
-        self.connections: dict[str, Drainable] = {}  # by session id
+        self.connections: dict[str, Drainable] = {}  # by session id (a crowd: by crowd id)
+        self.crowds = 0  # open crowd connections
+        self.characters = 0  # characters in them
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
         self.draining = False
 
@@ -143,7 +145,7 @@ class Runtime:
         """A new session for `who`, or theirs resumed (a snapshot another tenant opened is, to
         them, as unknown as an expired one)."""
         self._refuse_if_draining()
-        if len(self.sessions) >= self.settings.max_sessions:
+        if len(self.sessions) + self.crowds >= self.settings.max_sessions:
             raise P.ProtocolError(
                 "too_many_sessions",
                 f"server holds its maximum of {self.settings.max_sessions} sessions",
@@ -194,6 +196,42 @@ class Runtime:
         self._open_per_model[session.model.name] += 1
         self.metrics.active_sessions.labels(session.model.name).inc()
         return session
+
+    # ---- crowds (protocol v1.1) -------------------------------------------------------
+    def open_crowd(self) -> None:
+        """A crowd connection takes one of the server's `max_sessions` (its characters count
+        against `max_characters`)."""
+        self._refuse_if_draining()
+        if len(self.sessions) + self.crowds >= self.settings.max_sessions:
+            raise P.ProtocolError(
+                "too_many_sessions",
+                f"server holds its maximum of {self.settings.max_sessions} sessions",
+                close_code=1013,
+            )
+        self.crowds += 1
+
+    def crowd_closed(self) -> None:
+        self.crowds -= 1
+
+    def add_characters(self, count: int) -> None:
+        if self.characters + count > self.settings.max_characters:
+            raise P.ProtocolError(
+                "too_many_characters",
+                f"server holds its maximum of {self.settings.max_characters} crowd characters "
+                f"({self.characters} now); {count} more do not fit",
+            )
+        self.characters += count
+
+    def remove_characters(self, count: int) -> None:
+        self.characters -= count
+
+    def crowd_model_opened(self, model: str) -> None:
+        """A crowd's characters of `model` go through its batcher as one request per tick: one
+        more request for a full batch to wait for."""
+        self._open_per_model[model] += 1
+
+    def crowd_model_closed(self, model: str) -> None:
+        self._open_per_model[model] -= 1
 
     def check_visible(self, who: Principal, model: str, names: Iterable[str]) -> None:
         """Another tenant's uploaded style is, to `who`, a style that does not exist."""

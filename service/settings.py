@@ -49,6 +49,9 @@ class ServiceSettings(Settings):
     )
     max_batch: int = Field(default=256, ge=1)
     max_sessions: int = Field(default=1024, ge=1)
+    max_characters: int = Field(
+        default=16384, ge=1, description="Characters in all crowd connections together (protocol v1.1)."
+    )
     session_queue: int = Field(default=8, ge=1, description="Frames queued per session before the oldest are dropped.")
     idle_timeout_s: float = Field(default=60.0, gt=0, description="Sessions silent this long are closed and freed.")
     max_message_bytes: int = Field(default=256 * 1024, ge=1024, description="Largest WebSocket message accepted.")

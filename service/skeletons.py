@@ -30,6 +30,10 @@ from .protocol import ProtocolError
 
 
 class SkeletonAdapter(Protocol):
+    """A client's rig <-> the model skeleton. The `_rows` forms take many frames at once, one row
+    each ((n, 3) roots, (n, J, 4) rotations: a crowd's characters of one rig); row by row they
+    give exactly what the one-frame forms give."""
+
     joint_names: list[str]
 
     @property
@@ -38,10 +42,36 @@ class SkeletonAdapter(Protocol):
     def from_model(
         self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]: ...
+    def to_model_rows(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+    def from_model_rows(
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]: ...
     def report(self) -> dict: ...
 
 
-class Reorder:
+class _OneFrame:
+    """The one-frame forms, as rows of one."""
+
+    def to_model_rows(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def from_model_rows(
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        out_root, out_rot = self.to_model_rows(root[None], rotations[None])
+        return out_root[0], out_rot[0]
+
+    def from_model(
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        out_root, out_rot = self.from_model_rows(root[None], rotations[None], input_rotations[None])
+        return out_root[0], out_rot[0]
+
+
+class Reorder(_OneFrame):
     """Identity or a joint reordering between a client's joint order and the model's."""
 
     def __init__(self, joint_names: list[str], model_skeleton: Skeleton) -> None:
@@ -54,16 +84,16 @@ class Reorder:
     def num_joints(self) -> int:
         return len(self.joint_names)
 
-    def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return root, rotations if self.identity else rotations[self.to_model_index]
+    def to_model_rows(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return root, rotations if self.identity else rotations[:, self.to_model_index]
 
-    def from_model(
+    def from_model_rows(
         self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         if self.identity:
             return root, rotations
         out = input_rotations.copy()  # joints the model does not have pass through unchanged
-        out[self.to_model_index] = rotations
+        out[:, self.to_model_index] = rotations
         return root, out
 
     def report(self) -> dict:
@@ -77,7 +107,7 @@ class Reorder:
         }
 
 
-class Retarget:
+class Retarget(_OneFrame):
     """Any other humanoid: per-frame retargeting onto the model skeleton and back. The client's
     joint order may differ from the rig's internal parents-first order (`order`)."""
 
@@ -92,21 +122,19 @@ class Retarget:
     def num_joints(self) -> int:
         return len(self.joint_names)
 
-    def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rot = rotations if self.order is None else rotations[self.order]
-        hips, out = self.retargeter.to_model(root[None], rot[None])
-        return hips[0], out[0]
+    def to_model_rows(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.retargeter.to_model(root, rotations if self.order is None else rotations[:, self.order])
 
-    def from_model(
+    def from_model_rows(
         self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        inp = input_rotations if self.order is None else input_rotations[self.order]
-        out_root, out_rot = self.retargeter.to_source(root[None], rotations[None], inp[None])
+        inp = input_rotations if self.order is None else input_rotations[:, self.order]
+        out_root, out_rot = self.retargeter.to_source(root, rotations, inp)
         if self.order is None:
-            return out_root[0], out_rot[0]
-        back = np.empty_like(out_rot[0])
-        back[self.order] = out_rot[0]
-        return out_root[0], back
+            return out_root, out_rot
+        back = np.empty_like(out_rot)
+        back[:, self.order] = out_rot
+        return out_root, back
 
     def report(self) -> dict:
         return {**self.rig.report(), "retargeted": True}

@@ -1,4 +1,4 @@
-"""`WS /v1/stream`: one WebSocket connection = one session.
+"""`WS /v1/stream`: one WebSocket connection = one session (or one crowd: `service.crowd_stream`).
 
 Two tasks per connection: the receiver parses and validates messages and queues work on the
 session (bad frames get a typed error and are skipped; protocol violations close the socket),
@@ -35,38 +35,53 @@ CLOSE_UNAUTHORIZED, CLOSE_IDLE = 4401, 4408
 YIELD_EVERY = 8  # messages handled back to back before the receiver lets other connections run
 
 
-class Connection:
+class Socket:
+    """One WebSocket connection: replies sent whole under one lock, messages received under the
+    idle timeout and size limit, the per-connection message rates, and the receive loop feeding
+    a processor task. What the messages mean is the subclass's: `Connection` (one session) or
+    `service.crowd_stream.CrowdConnection` (many characters, protocol v1.1); `serve` picks it
+    from the first message."""
+
     def __init__(self, ws: WebSocket, runtime: Runtime, who: Principal) -> None:
         self.ws, self.rt, self.who = ws, runtime, who
         self.settings, self.metrics = runtime.settings, runtime.metrics
-        self._session: Session | None = None
-        self._adapter: SkeletonAdapter | None = None
         self.send_lock = asyncio.Lock()
         self.wakeup = asyncio.Event()
         self.closing = False  # no more input: process what is queued, then stop
         self.stopping = False  # stop after the current item (client gone, or draining)
         self.processor: asyncio.Task | None = None
-        self.acks = False  # the client asked for snapshot acknowledgements
         self.rate = MessageRate(self.settings.max_messages_per_s, self.settings.max_messages_per_s)
         self.control_rate = MessageRate(
             self.settings.max_controls_per_s, self.settings.max_controls_per_s, "style and reset messages"
         )
-        self._ack_tasks: set[asyncio.Task] = set()
-        self.log: logging.Logger | logging.LoggerAdapter = log  # once a session is open: its id and model on every line
+        self.log: logging.Logger | logging.LoggerAdapter = log  # once open: its id and model on every line
 
-    @property
-    def session(self) -> Session:
-        """The session `open_session` opened; everything after the start message works on it."""
-        if self._session is None:
-            raise RuntimeError("no session opened on this connection")
-        return self._session
+    # ---- what a subclass does with the messages -------------------------------------
+    async def open(self, first: P.Start | P.CrowdStart) -> bool:
+        """Act on the first message; False if the connection is to close (refused, and told)."""
+        raise NotImplementedError
 
-    @property
-    def adapter(self) -> SkeletonAdapter:
-        """The client's rig <-> the model skeleton, set up with the session."""
-        if self._adapter is None:
-            raise RuntimeError("no session opened on this connection")
-        return self._adapter
+    def on_binary(self, data: bytes) -> None:
+        raise NotImplementedError
+
+    async def on_text_or_refresh(self, data: str) -> bool:
+        """A text message after the first; False once it ended the connection."""
+        raise NotImplementedError
+
+    async def process(self) -> None:
+        """The processor task: queued work in order, until `stopping` (or `closing` and done)."""
+        raise NotImplementedError
+
+    def finish(self) -> None:
+        """The connection is over and its processor stopped: release what it held."""
+
+    async def stop_processing(self) -> None:
+        """Drain, step 1: finish the current frame, process nothing more, queue the snapshot."""
+        raise NotImplementedError
+
+    async def close_for_restart(self) -> None:
+        """Drain, step 2 (the snapshot is stored): close with 1012."""
+        raise NotImplementedError
 
     # ---- sending ------------------------------------------------------------------
     def _sendable(self) -> bool:
@@ -87,7 +102,7 @@ class Connection:
 
     async def send_error(self, err: P.ProtocolError) -> None:
         self.metrics.errors.labels(err.code).inc()
-        await self.send_json(P.error_message(err.code, err.message, err.seq))
+        await self.send_json(P.error_message(err.code, err.message, err.seq, err.character))
 
     async def close(self, code: int, reason: str = "") -> None:
         self.closing = True
@@ -115,11 +130,35 @@ class Connection:
             )
         return data
 
-    async def run(self) -> None:
+    async def first_message(self) -> P.Start | P.CrowdStart | None:
+        """The opening message, parsed; None when the client left first or sent something else
+        (it was told, with a fatal error)."""
         try:
-            if not await self.open_session():
+            data = await self.receive()
+            if data is None:
+                return None
+            if isinstance(data, bytes):
+                raise P.ProtocolError("expected_start", "the first message must be a JSON 'start' message", fatal=True)
+            message = P.parse_text(data)
+            if not isinstance(message, P.Start | P.CrowdStart):
+                raise P.ProtocolError(
+                    "expected_start", f"the first message must be 'start', got '{message.type}'", fatal=True
+                )
+            return message
+        except P.ProtocolError as err:
+            await self.refuse(err)
+            return None
+
+    async def refuse(self, err: P.ProtocolError) -> None:
+        """A fatal error: told, then the socket closed with the error's code."""
+        err.fatal = True
+        await self.send_error(err)
+        await self.close(err.close_code, err.message)
+
+    async def run(self, first: P.Start | P.CrowdStart) -> None:
+        try:
+            if not await self.open(first):
                 return
-            self.rt.connections[self.session.id] = self
             self.processor = asyncio.create_task(self.process())
             handled = 0
             while not self.closing:
@@ -149,15 +188,55 @@ class Connection:
             self.wakeup.set()
             if self.processor is not None:
                 await asyncio.gather(self.processor, return_exceptions=True)
-            if self._session is not None:
-                self.log.info(
-                    "%s after frame %s",
-                    "ended" if self._session.ended else "disconnected (resumable)",
-                    self._session.last_seq,
-                )
-                self.rt.session_closed(self._session)
-                if self.rt.connections.get(self._session.id) is self:
-                    del self.rt.connections[self._session.id]
+            self.finish()
+
+
+async def serve(ws: WebSocket, runtime: Runtime, who: Principal) -> None:
+    """Run a connection to its end: a session (`start`) or a crowd (`crowd`, protocol v1.1)."""
+    from .crowd_stream import CrowdConnection
+
+    opening = Connection(ws, runtime, who)
+    first = await opening.first_message()
+    if first is None:
+        return
+    connection: Socket = CrowdConnection(ws, runtime, who) if isinstance(first, P.CrowdStart) else opening
+    await connection.run(first)
+
+
+class Connection(Socket):
+    """One session on the connection (protocol v1)."""
+
+    def __init__(self, ws: WebSocket, runtime: Runtime, who: Principal) -> None:
+        super().__init__(ws, runtime, who)
+        self._session: Session | None = None
+        self._adapter: SkeletonAdapter | None = None
+        self.acks = False  # the client asked for snapshot acknowledgements
+        self._ack_tasks: set[asyncio.Task] = set()
+
+    @property
+    def session(self) -> Session:
+        """The session `open` opened; everything after the start message works on it."""
+        if self._session is None:
+            raise RuntimeError("no session opened on this connection")
+        return self._session
+
+    @property
+    def adapter(self) -> SkeletonAdapter:
+        """The client's rig <-> the model skeleton, set up with the session."""
+        if self._adapter is None:
+            raise RuntimeError("no session opened on this connection")
+        return self._adapter
+
+    def finish(self) -> None:
+        if self._session is not None:
+            self.log.info(
+                "%s after frame %s",
+                "ended" if self._session.ended else "disconnected (resumable)",
+                self._session.last_seq,
+            )
+            self.rt.session_closed(self._session)
+            if self.rt.connections.get(self._session.id) is self:
+                del self.rt.connections[self._session.id]
 
     # ---- drain and snapshot acknowledgements ----------------------------------------
     async def stop_processing(self) -> None:
@@ -186,18 +265,11 @@ class Connection:
         except (WebSocketDisconnect, RuntimeError, OSError):  # the client left meanwhile: it has no use for it
             pass
 
-    async def open_session(self) -> bool:
+    async def open(self, first: P.Start | P.CrowdStart) -> bool:
+        if not isinstance(first, P.Start):
+            raise TypeError("a session opens with a 'start' message")
+        message = first
         try:
-            data = await self.receive()
-            if data is None:
-                return False
-            if isinstance(data, bytes):
-                raise P.ProtocolError("expected_start", "the first message must be a JSON 'start' message", fatal=True)
-            message = P.parse_text(data)
-            if not isinstance(message, P.Start):
-                raise P.ProtocolError(
-                    "expected_start", f"the first message must be 'start', got '{message.type}'", fatal=True
-                )
             model = self.rt.models.get(message.model)
             if message.resume_token is None and model is not None:  # a bad rig opens no session at all
                 self._adapter = adapter_for(
@@ -208,9 +280,7 @@ class Connection:
             if self._adapter is None:  # a resume: the rig the session started with
                 self._adapter = adapter_for(s.skeleton, s.bvh_header, s.model.skeleton, **s.rig)
         except P.ProtocolError as err:
-            err.fatal = True
-            await self.send_error(err)
-            await self.close(err.close_code, err.message)
+            await self.refuse(err)
             return False
         s, adapter = self.session, self.adapter
         started = {
@@ -236,6 +306,7 @@ class Connection:
         ):  # the reply to last_seq, in case the client lost it
             started["last_frame"] = P.frame_message(s.last_seq, s.last_output["root"], s.last_output["rotations"])
         await self.send_json(started)
+        self.rt.connections[s.id] = self
         self.log = session_log(log, s.id, s.model.name)
         client = f"{self.ws.client.host}:{self.ws.client.port}" if self.ws.client else "?"
         self.log.info(
@@ -260,8 +331,12 @@ class Connection:
 
     def on_text(self, data: str) -> bool:
         message = P.parse_text(data)
-        if isinstance(message, P.Start):
+        if isinstance(message, P.Start | P.CrowdStart):
             raise P.ProtocolError("already_started", "session already started", fatal=True)
+        if isinstance(message, P.Join | P.Leave) or (
+            isinstance(message, P.SetStyle | P.Reset) and message.characters is not None
+        ):
+            raise P.ProtocolError("not_a_crowd", "characters are named only on a crowd connection (see 'crowd')")
         if isinstance(message, P.Frame):
             root, rot = P.frame_arrays(message, self.adapter.num_joints)
             self.queue(FrameItem(message.seq, root, rot, time.perf_counter()))

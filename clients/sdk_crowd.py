@@ -1,0 +1,314 @@
+"""A crowd on one connection (protocol v1.1, docs/protocol.md#crowds): many characters, one binary
+message per tick each way.
+
+`CrowdCore` is the protocol, written once as generators of I/O operations (`sdk_io`); `Crowd` and
+`AsyncCrowd` drive it with the sync and asyncio clients. A tick's frames go in as arrays (ids,
+roots (n, 3), rotations (n, J, 4) or one (J, 4) array per character where rigs differ) and come
+back as one `CrowdFrames`, which slices a character's frame out of the reply without copying.
+A refused character (bad rig, unknown style) or frame (NaN) is reported in `errors` with its
+character id, and the others go on.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from .sdk_io import AsyncIO, Close, Connect, Recv, Send, Steps, SyncIO, run_async, run_sync
+from .sdk_types import ServerError
+
+TICK_HEADER = struct.Struct("<IHHI")  # seq, kind (2 = tick), characters, dropped
+KIND_TICK = 2
+
+
+@dataclass(frozen=True)
+class Character:
+    """One member of a crowd: its id (the client's name for it in ticks), model, style and rig."""
+
+    id: int
+    model: str
+    style: str | None = None
+    mix: dict[str, float] | None = None
+    intensity: float = 1.0
+    skeleton: str | None = "bandai-namco"
+    bvh_header: str | None = None
+    joints: list[str] | None = None
+
+    def message(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"id": self.id, "model": self.model, "intensity": self.intensity}
+        out.update({"mix": self.mix} if self.mix is not None else {"style": self.style})
+        if self.bvh_header is not None:
+            out["bvh_header"] = self.bvh_header
+        elif self.skeleton is not None:
+            out["skeleton"] = self.skeleton
+        if self.joints is not None:
+            out["joints"] = self.joints
+        return out
+
+
+@dataclass
+class CrowdFrames:
+    """One tick's reply: every character's stylised frame, in the tick's order (a character whose
+    frame was refused is left out; its error is in the crowd's `errors`)."""
+
+    seq: int
+    ids: np.ndarray  # (n,) character ids
+    dropped: int  # ticks the server dropped (queue full) since its previous reply
+    payload: np.ndarray  # float32: each character's root (3) then rotations (J x 4), end to end
+    starts: np.ndarray  # (n,) where each character's frame begins in `payload`
+    sizes: np.ndarray  # (n,) floats in each character's frame
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def frame(self, character: int) -> tuple[np.ndarray, np.ndarray]:
+        """(root (3,), rotations (J, 4)) of one character."""
+        k = int(np.flatnonzero(self.ids == character)[0])
+        chunk = self.payload[self.starts[k] : self.starts[k] + self.sizes[k]]
+        return chunk[:3], chunk[3:].reshape(-1, 4)
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(roots (n, 3), rotations (n, J, 4)) when every character has the same rig size."""
+        if len(self.sizes) and (self.sizes != self.sizes[0]).any():
+            raise ValueError("the characters' rigs differ in size: use frame(id)")
+        rows = self.payload.reshape(len(self.ids), -1)
+        return rows[:, :3], rows[:, 3:].reshape(len(self.ids), -1, 4)
+
+
+class CrowdCore:
+    """What to send and what the replies mean; no I/O of its own (`sdk_io`)."""
+
+    def __init__(
+        self, url: str, headers: dict[str, str], characters: Sequence[Character], fps: float, timeout: float | None
+    ) -> None:
+        self.url, self.headers, self.fps, self.timeout = url, headers, fps, timeout
+        self.opening = list(characters)
+        self.frame_floats: dict[int, int] = {}  # per character in the crowd
+        self.errors: list[ServerError] = []  # per-character refusals, in arrival order
+        self.crowd_id: str | None = None
+        self.seq = 0
+        self._arrived: deque[bytes] = deque()  # tick replies that came while waiting for a text reply
+        self._layout: tuple[bytes, np.ndarray, np.ndarray] | None = None  # ids bytes -> starts, sizes
+
+    # ---- membership ---------------------------------------------------------------------
+    def open(self) -> Steps[dict[str, Any]]:
+        yield Connect(self.url, self.timeout, self.headers)
+        message = {"type": "crowd", "fps": self.fps, "characters": [c.message() for c in self.opening]}
+        yield Send(json.dumps(message))
+        reply = yield from self._text_reply("crowd_started")
+        self.crowd_id = reply["crowd_id"]
+        return self._joined(reply)
+
+    def join(self, characters: Sequence[Character]) -> Steps[dict[str, Any]]:
+        yield Send(json.dumps({"type": "join", "characters": [c.message() for c in characters]}))
+        return self._joined((yield from self._text_reply("joined")))
+
+    def leave(self, ids: Sequence[int]) -> Steps[list[int]]:
+        yield Send(json.dumps({"type": "leave", "characters": [int(i) for i in ids]}))
+        left = (yield from self._text_reply("left"))["characters"]
+        for i in left:
+            self.frame_floats.pop(i, None)
+        return left
+
+    def set_style(
+        self,
+        style: str | None = None,
+        characters: Sequence[int] | None = None,
+        mix: dict[str, float] | None = None,
+        intensity: float = 1.0,
+        transition_frames: int = 0,
+    ) -> Steps[dict[str, Any]]:
+        message: dict[str, Any] = {"type": "style", "intensity": intensity, "transition_frames": transition_frames}
+        message.update({"mix": mix} if mix is not None else {"style": style})
+        if characters is not None:
+            message["characters"] = [int(i) for i in characters]
+        yield Send(json.dumps(message))
+        return (yield from self._text_reply("style_set"))
+
+    def reset(self, characters: Sequence[int] | None = None) -> Steps[dict[str, Any]]:
+        message: dict[str, Any] = {"type": "reset"}
+        if characters is not None:
+            message["characters"] = [int(i) for i in characters]
+        yield Send(json.dumps(message))
+        return (yield from self._text_reply("reset_done"))
+
+    def close(self) -> Steps[None]:
+        yield Close()
+
+    def _joined(self, reply: dict[str, Any]) -> dict[str, Any]:
+        for c in reply["characters"]:
+            self.frame_floats[c["id"]] = reply["rigs"][c["rig"]]["frame_floats"]
+        for e in reply["errors"]:
+            self.errors.append(ServerError(e["code"], e["message"], character=e["id"]))
+        return reply
+
+    # ---- ticks --------------------------------------------------------------------------
+    def encode_tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> bytes:
+        """One tick: `rotations` (n, J, 4), or a list of (J_i, 4) arrays where rigs differ."""
+        ids = np.asarray(ids, "<u4")
+        roots = np.asarray(roots, np.float64).reshape(len(ids), 3)
+        if isinstance(rotations, np.ndarray):
+            payload = np.concatenate([roots, rotations.reshape(len(ids), -1)], 1)
+        else:
+            payload = np.concatenate([np.concatenate([r, np.ravel(q)]) for r, q in zip(roots, rotations, strict=True)])
+        header = TICK_HEADER.pack(self.seq, KIND_TICK, len(ids), 0)
+        self.seq = (self.seq + 1) % 2**32
+        return header + ids.tobytes() + payload.astype("<f4").tobytes()
+
+    def send_tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> Steps[int]:
+        """Send a tick without waiting for its reply (pipelined); returns its sequence number."""
+        seq = self.seq
+        yield Send(self.encode_tick(ids, roots, rotations))
+        return seq
+
+    def tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> Steps[CrowdFrames]:
+        """Send a tick and wait for its reply (replies come in order)."""
+        yield from self.send_tick(ids, roots, rotations)
+        return (yield from self.receive())
+
+    def receive(self) -> Steps[CrowdFrames]:
+        """The next tick reply (text messages met on the way are errors, recorded or raised)."""
+        while not self._arrived:
+            message = yield Recv(self.timeout)
+            if isinstance(message, bytes):
+                self._arrived.append(message)
+            else:
+                self._text(json.loads(message))
+        return self.decode_reply(self._arrived.popleft())
+
+    def decode_reply(self, data: bytes) -> CrowdFrames:
+        seq, kind, count, dropped = TICK_HEADER.unpack_from(data)
+        if kind != KIND_TICK:
+            raise ServerError("bad_reply", f"expected a tick reply (kind {KIND_TICK}), got kind {kind}")
+        ids_raw = data[TICK_HEADER.size : TICK_HEADER.size + 4 * count]
+        ids = np.frombuffer(ids_raw, "<u4")
+        if self._layout is None or self._layout[0] != ids_raw:  # worked out once per list of characters
+            sizes = np.array([self.frame_floats[int(i)] for i in ids], np.int64)
+            self._layout = (bytes(ids_raw), np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64), sizes)
+        _, starts, sizes = self._layout
+        payload = np.frombuffer(data, "<f4", offset=TICK_HEADER.size + 4 * count)
+        return CrowdFrames(seq, ids, dropped, payload, starts, sizes)
+
+    # ---- text replies -------------------------------------------------------------------
+    def _text_reply(self, kind: str) -> Steps[dict[str, Any]]:
+        while True:
+            message = yield Recv(self.timeout)
+            if isinstance(message, bytes):
+                self._arrived.append(message)
+                continue
+            reply = json.loads(message)
+            if reply.get("type") == kind:
+                return reply
+            self._text(reply)
+
+    def _text(self, reply: dict[str, Any]) -> None:
+        if reply.get("type") != "error":
+            return  # a reply no call waits for (e.g. a `left` after a timed-out call)
+        error = ServerError(reply["code"], reply["message"], reply.get("seq"), character=reply.get("character"))
+        if error.character is None:
+            raise error
+        self.errors.append(error)
+
+
+class _CrowdState:
+    core: CrowdCore
+
+    @property
+    def crowd_id(self) -> str | None:
+        return self.core.crowd_id
+
+    @property
+    def errors(self) -> list[ServerError]:
+        """Per-character refusals so far (join errors, refused frames, deleted styles)."""
+        return self.core.errors
+
+    @property
+    def characters(self) -> list[int]:
+        return list(self.core.frame_floats)
+
+
+class Crowd(_CrowdState):
+    """A crowd with the sync client: `tick` sends one tick and returns its reply."""
+
+    def __init__(self, core: CrowdCore) -> None:
+        self.core, self.io = core, SyncIO()
+        run_sync(core.open(), self.io)
+
+    def tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> CrowdFrames:
+        return run_sync(self.core.tick(ids, roots, rotations), self.io)
+
+    def send_tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> int:
+        return run_sync(self.core.send_tick(ids, roots, rotations), self.io)
+
+    def receive(self) -> CrowdFrames:
+        return run_sync(self.core.receive(), self.io)
+
+    def join(self, characters: Sequence[Character]) -> dict[str, Any]:
+        return run_sync(self.core.join(characters), self.io)
+
+    def leave(self, ids: Sequence[int]) -> list[int]:
+        return run_sync(self.core.leave(ids), self.io)
+
+    def set_style(self, style: str | None = None, characters: Sequence[int] | None = None, **options: Any) -> dict:
+        return run_sync(self.core.set_style(style, characters, **options), self.io)
+
+    def reset(self, characters: Sequence[int] | None = None) -> dict[str, Any]:
+        return run_sync(self.core.reset(characters), self.io)
+
+    def close(self) -> None:
+        run_sync(self.core.close(), self.io)
+
+    def __enter__(self) -> Crowd:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class AsyncCrowd(_CrowdState):
+    """A crowd with the asyncio client (`await AsyncClient.crowd(...)` or `async with`)."""
+
+    def __init__(self, core: CrowdCore) -> None:
+        self.core, self.io = core, AsyncIO()
+
+    async def open(self) -> AsyncCrowd:
+        await run_async(self.core.open(), self.io)
+        return self
+
+    async def tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> CrowdFrames:
+        return await run_async(self.core.tick(ids, roots, rotations), self.io)
+
+    async def send_tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> int:
+        return await run_async(self.core.send_tick(ids, roots, rotations), self.io)
+
+    async def receive(self) -> CrowdFrames:
+        return await run_async(self.core.receive(), self.io)
+
+    async def join(self, characters: Sequence[Character]) -> dict[str, Any]:
+        return await run_async(self.core.join(characters), self.io)
+
+    async def leave(self, ids: Sequence[int]) -> list[int]:
+        return await run_async(self.core.leave(ids), self.io)
+
+    async def set_style(
+        self, style: str | None = None, characters: Sequence[int] | None = None, **options: Any
+    ) -> dict:
+        return await run_async(self.core.set_style(style, characters, **options), self.io)
+
+    async def reset(self, characters: Sequence[int] | None = None) -> dict[str, Any]:
+        return await run_async(self.core.reset(characters), self.io)
+
+    async def close(self) -> None:
+        await run_async(self.core.close(), self.io)
+
+    async def __aenter__(self) -> AsyncCrowd:
+        return await self.open()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.close()

@@ -1,0 +1,407 @@
+"""A crowd: many characters on one connection (protocol v1.1), held as arrays.
+
+The characters of one model on a connection form a `Troupe`: their model state, rate-adaptation
+clocks, held outputs and style weights are arrays with one row per character, so a tick takes all
+of them through the model's batcher as one request, with no Python object per character on the
+way. Characters that share a rig (model, skeleton and rig options) form a `RigGroup`, whose frames
+map onto the model skeleton and back as one array each. Which bytes of a tick belong to whom is
+worked out once per list of characters (`Plan`) and reused while the client sends the same list.
+
+Row by row a troupe does what a session does (`service.sessions.Session`): the same clock, the
+same held output between model steps, the same style ramp, in the same float64 arithmetic, so a
+character's replies in a crowd equal those of the same character streamed alone, bit for bit
+(tests/test_crowd.py); the models' steps give each row what it would get in any other batch.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models.interface import State, StreamingModel, stack_states, upgrade_state, weight_vector
+
+from . import protocol as P
+from .frame_check import check_rows
+from .skeletons import SkeletonAdapter
+
+StepRows = Callable[[State, np.ndarray, np.ndarray, np.ndarray, list[str]], Awaitable[tuple]]
+
+
+def take_rows(state: State, rows: np.ndarray) -> State:
+    return {key: value[rows] for key, value in state.items()}
+
+
+def put_rows(state: State, rows: np.ndarray, new: State) -> State:
+    """`state` with `rows` replaced by `new`, as new arrays: a state is never changed in place (a
+    snapshot or a step in flight may hold it)."""
+    out = {}
+    for key, value in state.items():
+        copy = value.copy()
+        copy[rows] = new[key]
+        out[key] = copy
+    return out
+
+
+class Troupe:
+    """The characters of one model on a connection, one row each."""
+
+    def __init__(self, model: StreamingModel, fps: float) -> None:
+        self.model, self.ratio = model, model.fps / fps
+        self.ids = np.zeros(0, np.int64)
+        self.state: State = {}
+        self.clock = np.zeros(0)  # model steps owed, fractional; < 0 until the first frame
+        num_joints = model.skeleton.num_joints
+        self.held_root, self.held_rot = np.zeros((0, 3)), np.zeros((0, num_joints, 4))
+        self.held_input_root = np.zeros((0, 3))  # the input root each held output was made from
+        self.names = list(model.styles())  # what the weight columns stand for
+        self.weights, self.target = np.zeros((0, len(self.names))), np.zeros((0, len(self.names)))
+        self.left = np.zeros(0, np.int64)  # transition frames left
+        self.row_of: dict[int, int] = {}
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    # ---- membership (join, leave, reset: rare, so plain Python is fine) ------------------
+    def add(self, ids: Sequence[int], weights: Sequence[dict[str, float]]) -> None:
+        self.sync_styles()
+        k, num_joints = len(ids), self.model.skeleton.num_joints
+        fresh = self.model.init_state(k)
+        self.state = fresh if not self.state else stack_states([upgrade_state(self.model, self.state), fresh])
+        vectors = np.stack([weight_vector(self.names, w) for w in weights]).reshape(k, len(self.names))
+        self.ids = np.concatenate([self.ids, np.asarray(ids, np.int64)])
+        self.clock = np.concatenate([self.clock, np.full(k, -1.0)])
+        self.held_root = np.concatenate([self.held_root, np.zeros((k, 3))])
+        self.held_rot = np.concatenate([self.held_rot, np.zeros((k, num_joints, 4))])
+        self.held_input_root = np.concatenate([self.held_input_root, np.zeros((k, 3))])
+        self.weights = np.concatenate([self.weights, vectors])
+        self.target = np.concatenate([self.target, vectors])
+        self.left = np.concatenate([self.left, np.zeros(k, np.int64)])
+        self._index()
+
+    def remove(self, ids: Sequence[int]) -> None:
+        keep = ~np.isin(self.ids, np.asarray(ids, np.int64))
+        self.state = {key: value[keep] for key, value in self.state.items()}
+        for name in ("ids", "clock", "held_root", "held_rot", "held_input_root", "weights", "target", "left"):
+            setattr(self, name, getattr(self, name)[keep])
+        self._index()
+
+    def _index(self) -> None:
+        self.row_of = {int(i): row for row, i in enumerate(self.ids)}
+
+    def rows(self, ids: Sequence[int]) -> np.ndarray:
+        return np.array([self.row_of[i] for i in ids], np.int64)
+
+    def reset(self, rows: np.ndarray) -> None:
+        """Recurrent state back to its start (`Session.reset`, per row)."""
+        self.state = put_rows(self.state, rows, self.model.init_state(len(rows)))
+        self.clock[rows] = -1.0
+
+    def set_style(self, rows: np.ndarray, target: dict[str, float], transition_frames: int) -> None:
+        """`Session.set_style` for these rows."""
+        self.sync_styles()
+        vector = weight_vector(self.names, target)
+        self.target[rows] = vector
+        self.left[rows] = transition_frames
+        if transition_frames == 0:
+            self.weights[rows] = vector
+
+    def style_rows(self, rows: np.ndarray) -> list[dict[str, float]]:
+        """The current weights of these rows as {style: weight} (for replies)."""
+        return [{n: float(self.target[r, j]) for j, n in enumerate(self.names)} for r in rows]
+
+    def sync_styles(self) -> np.ndarray:
+        """Follow a change of the model's style set: columns of deleted styles go (their share
+        passes the input through, as `Session.drop_deleted`), new styles get a zero column.
+        Returns the ids of characters that had weight on a deleted style."""
+        names = list(self.model.styles())
+        if names == self.names:
+            return np.zeros(0, np.int64)
+        old = {n: j for j, n in enumerate(self.names)}
+        gone = [old[n] for n in self.names if n not in names]
+        had = (self.weights[:, gone] > 0).any(1) | (self.target[:, gone] > 0).any(1) if gone else None
+        remap = [old.get(n, -1) for n in names]
+
+        def columns(a: np.ndarray) -> np.ndarray:
+            out = np.zeros((len(a), len(names)))
+            for j, src in enumerate(remap):
+                if src >= 0:
+                    out[:, j] = a[:, src]
+            return out
+
+        self.weights, self.target, self.names = columns(self.weights), columns(self.target), names
+        return self.ids[had] if had is not None else np.zeros(0, np.int64)
+
+    # ---- one tick (arrays only) ---------------------------------------------------------
+    def steps_due(self, rows: np.ndarray) -> np.ndarray:
+        """`Session.model_steps_due` for each row, in the same float64 arithmetic."""
+        clock = self.clock[rows]
+        clock[clock < 0] = max(0.0, 1.0 - self.ratio)
+        clock += self.ratio
+        steps = (clock + 1e-9).astype(np.int64)
+        self.clock[rows] = clock - steps
+        return steps
+
+    def advance_style(self, rows: np.ndarray) -> np.ndarray:
+        """`Session.advance_style` for each row: one step of the linear ramp where a transition runs."""
+        moving = rows[self.left[rows] > 0]
+        if len(moving):
+            cur, tgt = self.weights[moving], self.target[moving]
+            self.weights[moving] = cur + (tgt - cur) / self.left[moving, None]
+            self.left[moving] -= 1
+        return self.weights[rows]
+
+    async def step(self, step_rows: StepRows, rows: np.ndarray, root: np.ndarray, rot: np.ndarray) -> None:
+        """The model steps each row owes for this frame (rate adaptation), holding the outputs."""
+        steps = self.steps_due(rows)
+        for k in range(1, int(steps.max(initial=0)) + 1):
+            due = steps >= k
+            sel, sel_root, sel_rot = (rows, root, rot) if due.all() else (rows[due], root[due], rot[due])
+            whole = len(sel) == len(self) and np.array_equal(sel, np.arange(len(self)))
+            state = self.state if whole else take_rows(self.state, sel)
+            out_root, out_rot, new_state = await step_rows(
+                state, sel_root, sel_rot, self.advance_style(sel), self.names
+            )
+            self.state = new_state if whole else put_rows(self.state, sel, new_state)
+            self.held_root[sel], self.held_rot[sel], self.held_input_root[sel] = out_root, out_rot, sel_root
+
+    def held_output(self, rows: np.ndarray, root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`Session.held_output` for each row."""
+        return self.held_root[rows] + (root - self.held_input_root[rows]), self.held_rot[rows]
+
+
+@dataclass(eq=False)  # one object per rig: grouped by identity
+class RigGroup:
+    """Characters of one model sharing one rig: their frames convert as one array."""
+
+    model: str
+    adapter: SkeletonAdapter
+
+    @property
+    def frame_floats(self) -> int:
+        return 3 + 4 * self.adapter.num_joints
+
+
+@dataclass
+class Part:
+    """The characters of one rig group in one tick's layout."""
+
+    group: RigGroup
+    troupe: Troupe
+    positions: np.ndarray  # places in the tick's list of characters
+    offsets: np.ndarray  # float offsets of their frames in the tick's payload
+    rows: np.ndarray  # their troupe rows
+
+
+@dataclass
+class Plan:
+    """Where each character's frame lies in a tick with this list of characters."""
+
+    ids: np.ndarray  # (count,) uint32, as sent
+    sizes: np.ndarray  # (count,) floats of each character's frame
+    parts: list[Part]
+
+    @property
+    def floats(self) -> int:
+        return int(self.sizes.sum())
+
+
+@dataclass
+class Character:
+    id: int
+    group: RigGroup
+    spec: P.CrowdCharacter
+
+
+@dataclass
+class Joining:
+    """A character about to join, its request checked: model, rig and starting style weights."""
+
+    spec: P.CrowdCharacter
+    model: StreamingModel
+    rig_key: tuple
+    adapter: SkeletonAdapter
+    weights: dict[str, float]
+
+
+@dataclass
+class TickResult:
+    reply: bytes  # the binary reply (characters whose frame was refused left out)
+    errors: list[P.ProtocolError] = field(default_factory=list)  # one per refused character frame
+    frames: int = 0  # character frames stylised
+
+
+class Crowd:
+    """The characters of one crowd connection, by model (troupes) and rig (groups)."""
+
+    def __init__(self, fps: float) -> None:
+        self.fps = fps
+        self.characters: dict[int, Character] = {}
+        self.troupes: dict[str, Troupe] = {}
+        self.groups: dict[tuple, RigGroup] = {}
+        self._plan: Plan | None = None
+        self._plan_key = b""
+
+    def __len__(self) -> int:
+        return len(self.characters)
+
+    # ---- membership -------------------------------------------------------------------
+    def add(self, joining: Sequence[Joining]) -> list[str]:
+        """Add characters (ids not in the crowd yet), each troupe's in one go; returns the models
+        that had no character here before."""
+        by_model: dict[str, list[Joining]] = {}
+        for j in joining:
+            by_model.setdefault(j.model.name, []).append(j)
+        opened = []
+        for name, members in by_model.items():
+            troupe = self.troupes.get(name)
+            if troupe is None:
+                troupe = self.troupes[name] = Troupe(members[0].model, self.fps)
+                opened.append(name)
+            troupe.add([j.spec.id for j in members], [j.weights for j in members])
+            for j in members:
+                group = self.groups.setdefault((name, *j.rig_key), RigGroup(name, j.adapter))
+                self.characters[j.spec.id] = Character(j.spec.id, group, j.spec)
+        self._plan = None
+        return opened
+
+    def remove(self, ids: Sequence[int]) -> list[str]:
+        """Drop these characters; returns the models left with no character here."""
+        by_model: dict[str, list[int]] = {}
+        for i in ids:
+            character = self.characters.pop(i)
+            by_model.setdefault(character.group.model, []).append(i)
+        emptied = []
+        for name, gone in by_model.items():
+            troupe = self.troupes[name]
+            troupe.remove(gone)
+            if not len(troupe):
+                del self.troupes[name]
+                emptied.append(name)
+        used = {(c.group.model, id(c.group)) for c in self.characters.values()}
+        self.groups = {k: g for k, g in self.groups.items() if (g.model, id(g)) in used}
+        self._plan = None
+        return emptied
+
+    def troupe_rows(self, ids: Sequence[int]) -> dict[str, tuple[Troupe, np.ndarray, list[int]]]:
+        """The named characters by troupe: (troupe, their rows, their ids)."""
+        grouped: dict[str, list[int]] = {}
+        for i in ids:
+            grouped.setdefault(self.characters[i].group.model, []).append(i)
+        return {name: (self.troupes[name], self.troupes[name].rows(m), m) for name, m in grouped.items()}
+
+    # ---- a tick -------------------------------------------------------------------------
+    def plan(self, ids_raw: bytes, seq: int) -> Plan:
+        """The layout of a tick listing these characters (bytes as sent); reused while the list
+        is unchanged, so a steady stream pays one bytes comparison for it."""
+        if self._plan is not None and ids_raw == self._plan_key:
+            return self._plan
+        ids = np.frombuffer(ids_raw, "<u4")
+        unknown = [int(i) for i in ids if int(i) not in self.characters]
+        if unknown:
+            raise P.ProtocolError(
+                "unknown_character", f"no character {', '.join(map(str, unknown[:10]))} in this crowd", seq
+            )
+        if len(np.unique(ids)) != len(ids):
+            raise P.ProtocolError("bad_frame", "a character appears twice in the tick", seq)
+        groups = [self.characters[int(i)].group for i in ids]
+        sizes = np.array([g.frame_floats for g in groups], np.int64)
+        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        parts = []
+        for group in dict.fromkeys(groups):  # first-seen order
+            positions = np.array([k for k, g in enumerate(groups) if g is group], np.int64)
+            troupe = self.troupes[group.model]
+            parts.append(
+                Part(group, troupe, positions, starts[positions], troupe.rows([int(ids[k]) for k in positions]))
+            )
+        self._plan, self._plan_key = Plan(ids.copy(), sizes, parts), bytes(ids_raw)
+        return self._plan
+
+    async def tick(
+        self, seq: int, ids_raw: bytes, payload: np.ndarray, step: Callable[[str], StepRows], dropped: int = 0
+    ) -> TickResult:
+        """Stylise one tick: every listed character's frame through its model, a refused frame
+        costing only its own character's reply. `step(model)` gives that model's batcher entry."""
+        plan = self.plan(ids_raw, seq)
+        if len(payload) != plan.floats:
+            raise P.ProtocolError(
+                "bad_frame",
+                f"tick payload holds {len(payload)} floats, its {len(plan.ids)} characters' frames take {plan.floats}",
+                seq,
+            )
+        result = TickResult(b"")
+        ok = np.ones(len(plan.ids), bool)
+        inputs = []  # per part: (rows ok, client rotations, model root, model rotations)
+        for part in plan.parts:
+            n, num_joints = len(part.positions), part.group.adapter.num_joints
+            root, rot, status = np.empty((n, 3)), np.empty((n, num_joints, 4)), np.empty(n, np.int64)
+            check_rows(payload, part.offsets, root, rot, status)
+            good = status == 0
+            for k in np.flatnonzero(~good):
+                ok[part.positions[k]] = False
+                result.errors.append(
+                    P.ProtocolError(
+                        "bad_frame",
+                        P.FRAME_CHECK_ERRORS[int(status[k])],
+                        seq,
+                        character=int(plan.ids[part.positions[k]]),
+                    )
+                )
+            if not good.all():
+                root, rot = root[good], rot[good]
+            model_root, model_rot = part.group.adapter.to_model_rows(root, rot) if len(root) else (root, rot)
+            inputs.append((good, rot, model_root, model_rot))
+        outputs = await self._step(plan, inputs, step, result)
+        out = np.empty(int(plan.sizes[ok].sum()), "<f4")
+        starts = np.concatenate([[0], np.cumsum(plan.sizes[ok])[:-1]])
+        place = np.full(len(plan.ids), -1, np.int64)
+        place[ok] = starts
+        for part, (good, rot, _, _), (out_root, out_rot) in zip(plan.parts, inputs, outputs, strict=True):
+            if not len(out_root):
+                continue
+            client_root, client_rot = part.group.adapter.from_model_rows(out_root, out_rot, rot)
+            at = place[part.positions[good]]
+            n = len(at)
+            rows = np.concatenate([client_root, client_rot.reshape(n, -1)], 1)
+            out[at[:, None] + np.arange(rows.shape[1])] = rows
+            result.frames += n
+        result.reply = P.encode_tick(seq, plan.ids[ok], out, dropped)
+        return result
+
+    async def _step(
+        self, plan: Plan, inputs: list, step: Callable[[str], StepRows], result: TickResult
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Each troupe's characters of this tick as one batcher request (all troupes at once)."""
+        by_troupe: dict[str, list[int]] = {}
+        for k, part in enumerate(plan.parts):
+            by_troupe.setdefault(part.group.model, []).append(k)
+
+        async def run(name: str, members: list[int]) -> None:
+            troupe = self.troupes[name]
+            for i in troupe.sync_styles():
+                result.errors.append(
+                    P.ProtocolError(
+                        "style_deleted",
+                        "a style of this character's mix was deleted; its share now passes the input through",
+                        None,
+                        character=int(i),
+                    )
+                )
+            rows = np.concatenate([plan.parts[k].rows[inputs[k][0]] for k in members])
+            if not len(rows):
+                return
+            root = np.concatenate([inputs[k][2] for k in members])
+            rot = np.concatenate([inputs[k][3] for k in members])
+            await troupe.step(step(name), rows, root, rot)
+            held_root, held_rot = troupe.held_output(rows, root)
+            start = 0
+            for k in members:
+                n = len(inputs[k][2])
+                outputs[k] = (held_root[start : start + n], held_rot[start : start + n])
+                start += n
+
+        outputs: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros((0, 3)), np.zeros((0, 0, 4))) for _ in plan.parts]
+        await asyncio.gather(*(run(name, members) for name, members in by_troupe.items()))
+        return outputs

@@ -1,0 +1,253 @@
+"""`WS /v1/stream` opened with `crowd` (protocol v1.1): many characters on one connection.
+
+The client opens the crowd with its characters, then sends one binary tick per frame time
+holding every listed character's frame; the server answers each tick with one binary reply
+holding every character's stylised frame (`service.crowd`). Characters join and leave with
+`join` and `leave`; `style` and `reset` name the characters they are for. A refused character
+(bad rig, unknown style) or a refused frame (NaN, zero quaternion) costs that character alone: a
+typed error naming it, and the others go on.
+
+As for a session, the receiver only checks sizes and rates and queues; the processor takes the
+queue in order, so a tick sent after a `join` always finds the character there. Ticks beyond
+the queue bound push out the oldest tick (the next reply counts them in `dropped`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+import uuid
+from collections import deque
+
+from . import protocol as P
+from .crowd import Crowd, Joining, StepRows
+from .logs import session_log
+from .skeletons import SkeletonAdapter, adapter_for
+from .stream import CLOSE_NORMAL, CLOSE_RESTART, Socket, log
+
+ControlMessage = P.Join | P.Leave | P.SetStyle | P.Reset | P.End
+
+
+class CrowdConnection(Socket):
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.id = uuid.uuid4().hex
+        self.crowd = Crowd(30.0)
+        self.pending: deque[bytes | ControlMessage] = deque()
+        self.ticks_pending = 0
+        self.dropped = 0  # ticks dropped since the last reply
+        self.opened = False
+
+    # ---- opening, joining, leaving ------------------------------------------------------
+    async def open(self, first: P.Start | P.CrowdStart) -> bool:
+        if not isinstance(first, P.CrowdStart):
+            raise TypeError("a crowd opens with a 'crowd' message")
+        try:
+            self.rt.open_crowd()
+        except P.ProtocolError as err:
+            await self.refuse(err)
+            return False
+        self.opened = True
+        self.crowd = Crowd(first.fps)
+        self.rt.connections[self.id] = self
+        self.log = session_log(log, self.id, "crowd")
+        joined = await self.join(first.characters)
+        await self.send_json({"type": "crowd_started", "version": P.PROTOCOL_VERSION, "crowd_id": self.id, **joined})
+        self.log.info("crowd started with %d characters", len(self.crowd))
+        return True
+
+    async def join(self, specs: list[P.CrowdCharacter]) -> dict:
+        """Check each character's request and add those that pass, in one go; each refusal is
+        that character's alone. Returns the reply's `characters`, `rigs` and `errors`."""
+        joining: list[Joining] = []
+        errors: list[dict] = []
+        adapters: dict[tuple, SkeletonAdapter] = {}
+        seen = set(self.crowd.characters)
+        for spec in specs:
+            try:
+                if spec.id in seen:
+                    raise P.ProtocolError("character_exists", f"character {spec.id} is already in this crowd")
+                model = self.rt.models.get(spec.model)
+                if model is None:
+                    raise P.ProtocolError(
+                        "unknown_model", f"unknown model {spec.model!r}; available: {', '.join(self.rt.models)}"
+                    )
+                mix = P.mix_of(spec.style, spec.mix)
+                await self.rt.styles.ensure_known(spec.model, mix)
+                self.rt.check_visible(self.who, spec.model, mix)
+                weights = P.requested_weights(model, spec.style, spec.mix, spec.intensity)
+                options = spec.rig_options()
+                key = (spec.model, spec.skeleton, spec.bvh_header, json.dumps(options, sort_keys=True))
+                if key not in adapters:
+                    adapters[key] = adapter_for(spec.skeleton or "custom", spec.bvh_header, model.skeleton, **options)
+                joining.append(Joining(spec, model, key[1:], adapters[key], weights))
+                seen.add(spec.id)
+            except P.ProtocolError as err:
+                self.metrics.errors.labels(err.code).inc()
+                errors.append({"id": spec.id, "code": err.code, "message": err.message})
+        try:
+            self.rt.add_characters(len(joining))
+        except P.ProtocolError as err:
+            self.metrics.errors.labels(err.code).inc()
+            errors += [{"id": j.spec.id, "code": err.code, "message": err.message} for j in joining]
+            joining = []
+        for name in self.crowd.add(joining):
+            self.rt.crowd_model_opened(name)
+        rigs = list({id(j.adapter): j.adapter for j in joining}.values())
+        rig_index = {id(a): k for k, a in enumerate(rigs)}
+        return {
+            "characters": [{"id": j.spec.id, "model": j.model.name, "rig": rig_index[id(j.adapter)]} for j in joining],
+            "rigs": [
+                {
+                    "joints": a.joint_names,
+                    "frame_floats": 3 + 4 * a.num_joints,
+                    "rig": a.report(),
+                }
+                for a in rigs
+            ],
+            "errors": errors,
+        }
+
+    def leave(self, ids: list[int]) -> list[int]:
+        present = [i for i in dict.fromkeys(ids) if i in self.crowd.characters]
+        for name in self.crowd.remove(present):
+            self.rt.crowd_model_closed(name)
+        self.rt.remove_characters(len(present))
+        return present
+
+    def finish(self) -> None:
+        if not self.opened:
+            return
+        self.log.info("crowd closed with %d characters", len(self.crowd))
+        self.leave(list(self.crowd.characters))
+        self.rt.crowd_closed()
+        if self.rt.connections.get(self.id) is self:
+            del self.rt.connections[self.id]
+
+    # ---- receiving ----------------------------------------------------------------------
+    def on_binary(self, data: bytes) -> None:
+        if self.ticks_pending >= self.settings.session_queue:  # the newest ticks win; memory stays bounded
+            oldest = next(i for i, item in enumerate(self.pending) if isinstance(item, bytes))
+            del self.pending[oldest]
+            self.ticks_pending -= 1
+            self.dropped += 1
+            for name, troupe in self.crowd.troupes.items():
+                self.metrics.model(name).dropped_frames.inc(len(troupe))
+        self.pending.append(data)
+        self.ticks_pending += 1
+        self.wakeup.set()
+
+    async def on_text_or_refresh(self, data: str) -> bool:
+        message = P.parse_text(data)
+        if isinstance(message, P.Start | P.CrowdStart):
+            raise P.ProtocolError("already_started", "crowd already started", fatal=True)
+        if isinstance(message, P.Frame | P.Control):
+            raise P.ProtocolError("bad_message", "a crowd sends binary ticks (kind 2), not 'frame' or 'control'")
+        if not isinstance(message, P.End) and not self.control_rate.admit(time.monotonic()):
+            return True  # over the control-message rate: dropped (the first one told)
+        if sum(not isinstance(i, bytes) for i in self.pending) >= self.settings.session_queue:
+            raise P.ProtocolError(
+                "queue_full", f"{self.settings.session_queue} control messages are already waiting; send it again later"
+            )
+        self.pending.append(message)
+        self.wakeup.set()
+        return not isinstance(message, P.End)
+
+    # ---- processing ---------------------------------------------------------------------
+    def _step_for(self, model: str) -> StepRows:
+        batcher = self.rt.batchers[model]
+        return lambda state, root, rot, weights, names: batcher.step_rows(state, root, rot, weights, None, names)
+
+    async def process(self) -> None:
+        while not self.stopping:
+            if not self.pending:
+                if self.closing:
+                    return
+                self.wakeup.clear()
+                await self.wakeup.wait()
+                continue
+            item = self.pending.popleft()
+            if isinstance(item, bytes):
+                self.ticks_pending -= 1
+                await self.tick(item)
+            elif not await self.control(item):
+                return
+
+    async def tick(self, data: bytes) -> None:
+        received = time.perf_counter()
+        try:
+            seq, ids_raw, payload = P.decode_tick(data)
+            dropped, self.dropped = self.dropped, 0
+            result = await self.crowd.tick(seq, ids_raw, payload, self._step_for, dropped)
+        except P.ProtocolError as err:
+            await self.send_error(err)
+            return
+        except Exception:  # noqa: BLE001 - a model failure costs this tick, not the crowd
+            self.log.exception("crowd tick failed")
+            await self.send_error(P.ProtocolError("internal", "model step failed", int.from_bytes(data[:4], "little")))
+            return
+        for refused in result.errors:
+            await self.send_error(refused)
+        await self.send_bytes(result.reply)
+        for name, troupe in self.crowd.troupes.items():
+            metrics = self.metrics.model(name)
+            metrics.frames.inc(len(troupe))
+            metrics.frame_latency.observe(time.perf_counter() - received)
+
+    async def control(self, message: ControlMessage) -> bool:
+        if isinstance(message, P.Join):
+            await self.send_json({"type": "joined", **await self.join(message.characters)})
+        elif isinstance(message, P.Leave):
+            await self.send_json({"type": "left", "characters": self.leave(message.characters)})
+        elif isinstance(message, P.SetStyle | P.Reset):
+            await self.restyle_or_reset(message)
+        else:
+            await self.send_json({"type": "ended", "session_id": self.id, "last_seq": None})
+            await self.close(CLOSE_NORMAL, "end")
+            return False
+        return True
+
+    async def restyle_or_reset(self, message: P.SetStyle | P.Reset) -> None:
+        ids = list(self.crowd.characters) if message.characters is None else list(dict.fromkeys(message.characters))
+        unknown = [i for i in ids if i not in self.crowd.characters]
+        if unknown:
+            await self.send_error(
+                P.ProtocolError("unknown_character", f"no character {', '.join(map(str, unknown[:10]))} in this crowd")
+            )
+            return
+        troupes = self.crowd.troupe_rows(ids)
+        if isinstance(message, P.Reset):
+            for troupe, rows, _ in troupes.values():
+                troupe.reset(rows)
+            await self.send_json({"type": "reset_done", "characters": ids})
+            return
+        try:  # every model of the named characters must know the style, or none changes
+            targets = {}
+            for name, (troupe, _, _) in troupes.items():
+                await self.rt.styles.ensure_known(name, P.mix_of(message.style, message.mix))
+                self.rt.check_visible(self.who, name, P.mix_of(message.style, message.mix))
+                targets[name] = P.requested_weights(troupe.model, message.style, message.mix, message.intensity)
+        except P.ProtocolError as err:
+            await self.send_error(err)
+            return
+        for name, (troupe, rows, _) in troupes.items():
+            troupe.set_style(rows, targets[name], message.transition_frames)
+        await self.send_json(
+            {
+                "type": "style_set",
+                "characters": ids,
+                "weights": {name: targets[name] for name in targets},
+                "transition_frames": message.transition_frames,
+            }
+        )
+
+    # ---- drain ----------------------------------------------------------------------------
+    async def stop_processing(self) -> None:
+        self.stopping = True
+        self.wakeup.set()
+        if self.processor is not None:
+            await asyncio.gather(self.processor, return_exceptions=True)
+
+    async def close_for_restart(self) -> None:
+        await self.close(CLOSE_RESTART, "service restart; open the crowd again")

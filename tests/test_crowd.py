@@ -1,0 +1,159 @@
+"""Crowds (protocol v1.1): many characters on one connection, each exactly as if streamed alone.
+
+A real server on loopback, the committed models, real Bandai Namco walks; the crowd driven
+through the SDK (`Client.crowd`), each character compared bit for bit with the same character
+streamed alone in a session of its own (`Client.session`)."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+from websockets.sync.client import connect
+
+from clients.sdk import AsyncClient, Character, Client
+from models.data import build_index, load_motion, select
+from models.registry import load_models
+from models.settings import get_settings
+from service import protocol as P
+
+from .live_server import live_server, ws_url
+
+TICKS, FPS = 24, 60.0  # 60 fps in, the models' 30 out: rate adaptation runs per character
+
+
+@pytest.fixture(scope="module")
+def models():
+    return load_models(get_settings().weights_dir)
+
+
+@pytest.fixture(scope="module")
+def server(models):
+    with live_server(models, idle_timeout_s=30, max_characters=40) as (base, _app):
+        yield base
+
+
+@pytest.fixture(scope="module")
+def walks():
+    clips = select(build_index(), dataset="bandai-namco-2", style="normal", split="val")[:5]
+    return [load_motion(c).slice(0, TICKS) for c in clips]
+
+
+def alone(base: str, model: str, style: str, motion, start: int = 0, restyle: tuple | None = None):
+    """One character in a session of its own from tick `start`: (roots, rotations) per tick."""
+    roots, rots = [], []
+    with Client(base, timeout=30) as client, client.session(model=model, style=style, fps=FPS) as s:
+        for t in range(start, TICKS):
+            if restyle is not None and t == restyle[0]:
+                s.set_style(restyle[1], transition_frames=restyle[2])
+            out = s.stylise(motion.translations[t, 1], motion.rotations[t])
+            roots.append(out.root)
+            rots.append(out.rotations)
+    return np.array(roots), np.array(rots)
+
+
+@pytest.mark.parametrize("model", ["lti", "erd", "lpn"])
+def test_each_character_of_a_crowd_gets_what_it_gets_alone(server, models, walks, model):
+    """Five characters with their own styles, one sending its joints in another order, one
+    joining mid-stream, one changing style with a transition: every reply equals that
+    character's own session's, bit for bit."""
+    styles = models[model].styles()
+    names = list(models[model].skeleton.names)
+    order = np.roll(np.arange(len(names)), 5)  # character 3 sends its joints in this order
+    crowd_roots: dict[int, list] = {i: [] for i in range(5)}
+    crowd_rots: dict[int, list] = {i: [] for i in range(5)}
+    chars = [Character(i, model, styles[i % len(styles)]) for i in range(4)]
+    chars[3] = Character(3, model, styles[3 % len(styles)], joints=[names[k] for k in order])
+    with Client(server, timeout=30) as client, client.crowd(chars, fps=FPS) as crowd:
+        assert crowd.errors == [] and sorted(crowd.characters) == [0, 1, 2, 3]
+        for t in range(TICKS):
+            if t == 6:
+                crowd.join([Character(4, model, styles[-1])])
+            if t == 9:
+                crowd.set_style(styles[0], characters=[1], transition_frames=8)
+            ids = [0, 1, 2, 3, 4] if t >= 6 else [0, 1, 2, 3]
+            rots = [walks[i].rotations[t] if i != 3 else walks[i].rotations[t][order] for i in ids]
+            out = crowd.tick(ids, np.stack([walks[i].translations[t, 1] for i in ids]), np.stack(rots))
+            assert out.seq == t and list(out.ids) == ids and out.dropped == 0
+            for i in ids:
+                root, rot = out.frame(i)
+                crowd_roots[i].append(root.copy())
+                back = np.empty_like(rot)
+                back[order] = rot
+                crowd_rots[i].append(back if i == 3 else rot.copy())
+        assert crowd.errors == []
+    for i in range(5):
+        restyle = (9, styles[0], 8) if i == 1 else None
+        want_root, want_rot = alone(
+            server, model, chars[i].style if i < 4 else styles[-1], walks[i], 6 * (i == 4), restyle
+        )
+        assert np.array_equal(np.array(crowd_roots[i]), want_root.astype(np.float32)), i
+        assert np.array_equal(np.array(crowd_rots[i]), want_rot.astype(np.float32)), i
+
+
+def test_a_refused_frame_or_character_costs_only_its_own(server, models, walks):
+    lti = models["lti"].styles()
+    chars = [
+        Character(7, "lti", lti[0]),
+        Character(8, "lti", "no-such-style"),
+        Character(9, "nope", lti[0]),
+        Character(10, "lti", lti[1]),
+    ]
+    with Client(server, timeout=30) as client, client.crowd(chars, fps=30) as crowd:
+        assert sorted(crowd.characters) == [7, 10]
+        assert {(e.character, e.code) for e in crowd.errors} == {(8, "unknown_style"), (9, "unknown_model")}
+        roots = np.stack([walks[0].translations[0, 1], walks[1].translations[0, 1]])
+        rots = np.stack([walks[0].rotations[0], walks[1].rotations[0]])
+        rots[0, 4, :] = np.nan
+        out = crowd.tick([7, 10], roots, rots)
+        assert list(out.ids) == [10]  # 7's frame refused, 10's stylised
+        assert (crowd.errors[-1].character, crowd.errors[-1].code) == (7, "bad_frame")
+        with pytest.raises(Exception) as refused:  # a character not in the crowd: the tick is refused
+            crowd.tick([7, 99], roots, rots)
+        assert getattr(refused.value, "code", None) == "unknown_character"
+        assert crowd.leave([10, 55]) == [10]
+        out = crowd.tick([7], roots[:1], np.stack([walks[0].rotations[0]]))
+        assert list(out.ids) == [7]
+
+
+def test_the_server_caps_characters_and_a_full_crowd_still_streams(server, models, walks):
+    style = models["lti"].styles()[0]
+    motion = walks[2]
+    with (
+        Client(server, timeout=30) as client,
+        client.crowd([Character(i, "lti", style) for i in range(30)], FPS) as crowd,
+    ):
+        joined = crowd.join([Character(100 + i, "lti", style) for i in range(20)])  # 30 + 20 > 40: none joins
+        assert joined["characters"] == [] and {e["code"] for e in joined["errors"]} == {"too_many_characters"}
+        got = []
+        for t in range(TICKS):
+            out = crowd.tick(
+                range(30), np.tile(motion.translations[t, 1], (30, 1)), np.tile(motion.rotations[t], (30, 1, 1))
+            )
+            got.append(out.arrays()[1].copy())
+    _, want_rot = alone(server, "lti", style, motion)
+    for k in (0, 17, 29):  # thirty copies of one walk: thirty copies of its reply
+        assert np.array_equal(np.array(got)[:, k], want_rot.astype(np.float32))
+
+
+def test_a_crowd_opens_with_the_asyncio_client_and_speaks_binary_ticks_only(server, models, walks):
+    style = models["erd"].styles()[0]
+
+    async def run():
+        async with AsyncClient(server, timeout=30) as client:
+            crowd = await client.crowd([Character(1, "erd", style), Character(2, "erd", style)], fps=30)
+            out = await crowd.tick([1, 2], walks[0].translations[:2, 1], walks[0].rotations[:2])
+            await crowd.close()
+            return out
+
+    roots, rots = asyncio.run(run()).arrays()
+    assert rots.shape == (2, 22, 4) and np.allclose(np.linalg.norm(rots, axis=-1), 1.0, atol=1e-5)
+    with connect(ws_url(server)) as ws:  # JSON frames and ticks of the wrong kind are typed errors
+        ws.send(json.dumps({"type": "crowd", "characters": [{"id": 1, "model": "lti", "style": style}]}))
+        assert json.loads(ws.recv(timeout=30))["type"] == "crowd_started"
+        ws.send(json.dumps({"type": "frame", "seq": 0, "root": [0, 0, 0], "rotations": []}))
+        assert json.loads(ws.recv(timeout=30))["code"] == "bad_message"
+        ws.send(P.encode_binary(0, np.zeros(3), np.tile([0.0, 0, 0, 1], (22, 1))))
+        assert json.loads(ws.recv(timeout=30))["code"] == "bad_frame"
