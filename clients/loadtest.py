@@ -58,10 +58,12 @@ class Result:
     server_cpu_s: float = float("nan")
     phase: str = "spread"  # the sessions' clocks: spread over a period, or aligned
     client_behind: int = 0  # frames a client process sent over a period after their slot (harness overloaded)
+    characters: int = 1  # per connection: above 1 a crowd (protocol v1.1); counts above are character-frames
 
     def line(self) -> str:
+        crowd = f" x {self.characters} characters" if self.characters > 1 else ""
         return (
-            f"sessions {self.sessions:4d}  p50 {self.p50_ms:6.2f} ms  p95 {self.p95_ms:6.2f}  p99 {self.p99_ms:6.2f}  "
+            f"sessions {self.sessions:4d}{crowd}  p50 {self.p50_ms:6.2f} ms  p95 {self.p95_ms:6.2f}  p99 {self.p99_ms:6.2f}  "
             f"max {self.max_ms:7.2f}  dropped {self.dropped}  late {self.late}  lost {self.lost}  "
             f"client behind {self.client_behind}  "
             f"{self.frames_per_s:8.0f} frames/s  client cpu {self.client_cpu_s:.1f} s"
@@ -88,9 +90,12 @@ async def _session(
     offset: float = 0.0,
     clock: asyncio.Future | None = None,
     connected: Callable[[], None] = lambda: None,
+    characters: int = 1,
 ) -> None:
     """One session: connect and start, report `connected()`, wait for the common `clock` (or start
-    at once without one), then send frame i at `clock + offset + i / fps` whatever the replies do."""
+    at once without one), then send frame i at `clock + offset + i / fps` whatever the replies do.
+    With `characters` > 1 the session is a crowd: each tick carries that many characters' frames
+    (each character its own phase of the walk); a tick's latency is each of its characters'."""
     import websockets
 
     period = 1.0 / fps
@@ -102,8 +107,11 @@ async def _session(
         if start is not None:
             await ws.send(json.dumps(start))
             reply = json.loads(await ws.recv())
-            if reply.get("type") != "started":
+            if reply.get("type") not in ("started", "crowd_started") or reply.get("errors"):
                 raise RuntimeError(f"session refused: {reply}")
+        crowd = characters > 1
+        ids = np.arange(characters, dtype="<u4")
+        phases = (ids.astype(np.int64) * 13) % len(frames)  # characters at different points of the walk
 
         async def receiver() -> None:
             nonlocal dropped
@@ -111,7 +119,11 @@ async def _session(
                 data = await ws.recv()
                 if isinstance(data, str):
                     continue  # control acknowledgements
-                seq, _, d = struct.unpack_from("<IHH", data)
+                if crowd:
+                    seq, _, _, d = TICK_HEADER.unpack_from(data)
+                    d *= characters  # every character of a dropped tick
+                else:
+                    seq, _, d = struct.unpack_from("<IHH", data)
                 got_at[seq] = time.perf_counter()
                 dropped += d
 
@@ -127,7 +139,11 @@ async def _session(
             elif delay < -period:
                 behind += 1  # this process could not keep its own clock: the harness, not the server
             sent_at[i] = time.perf_counter()
-            await ws.send(_pack(i, frames[i % len(frames)]))  # the echo server returns it as is
+            if crowd:
+                rows = frames[(phases + i) % len(frames)]
+                await ws.send(TICK_HEADER.pack(i, 2, characters, 0) + ids.tobytes() + rows.tobytes())
+            else:
+                await ws.send(_pack(i, frames[i % len(frames)]))  # the echo server returns it as is
         await asyncio.sleep(0.5)  # let the last replies arrive
         recv_task.cancel()
     stats["latency"].append(got_at - sent_at)
@@ -135,11 +151,16 @@ async def _session(
     stats["behind"] += behind
 
 
+TICK_HEADER = struct.Struct("<IHHI")  # a crowd's tick: seq, kind 2, characters, dropped
+
+
 def _pack(seq: int, payload: np.ndarray) -> bytes:
     return struct.pack("<IHH", seq, 1, 0) + payload.tobytes()
 
 
-def _worker(url: str, start: dict | None, offsets: list[float], fps: float, seconds: float, results, go) -> None:
+def _worker(
+    url: str, start: dict | None, offsets: list[float], fps: float, seconds: float, results, go, characters: int = 1
+) -> None:
     """A client process with one session per clock offset in `offsets`. Once all its sessions are
     connected it puts "ready" on `results` and waits for the common clock start on `go`; at the
     end it puts (latencies, dropped, frames sent behind, CPU s), or the traceback if it failed,
@@ -165,7 +186,10 @@ def _worker(url: str, start: dict | None, offsets: list[float], fps: float, seco
                     ).start()
 
             await asyncio.gather(
-                *(_session(url, start, payload, fps, seconds, stats, offset, clock, connected) for offset in offsets)
+                *(
+                    _session(url, start, payload, fps, seconds, stats, offset, clock, connected, characters)
+                    for offset in offsets
+                )
             )
 
         cpu0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -218,19 +242,24 @@ def run(
     processes: int | None = None,
     echo: bool = False,
     phase: str = "spread",
+    characters: int = 1,
 ) -> tuple[Result, np.ndarray]:
-    """One open-loop run: `sessions` sessions over `processes` client processes (default: one per
-    core), all connected before one common clock starts. Returns the summary and every frame's
+    """One open-loop run: `sessions` connections over `processes` client processes (default: one
+    per core), all connected before one common clock starts; each a session, or with `characters`
+    > 1 a crowd of that many. Returns the summary (counts in character-frames) and every tick's
     round trip in ms (NaN: no reply), session by session in send order."""
     processes = processes or max(1, min(sessions, (os.cpu_count() or 2)))
     start = None if echo else {"type": "start", "model": model, "style": style, "encoding": "binary", "fps": fps}
+    if characters > 1 and not echo:
+        crowd = [{"id": k, "model": model, "style": style} for k in range(characters)]
+        start = {"type": "crowd", "fps": fps, "characters": crowd}
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
     offsets = clock_offsets(sessions, fps, phase)
     gos = [ctx.Queue() for _ in range(min(processes, sessions))]  # one clock-start message per process
     # session k goes to process k % processes, so each process has sessions of every phase
     procs = [
-        ctx.Process(target=_worker, args=(url, start, offsets[i::processes], fps, seconds, results, go))
+        ctx.Process(target=_worker, args=(url, start, offsets[i::processes], fps, seconds, results, go, characters))
         for i, go in enumerate(gos)
     ]
     for p in procs:
@@ -248,26 +277,28 @@ def run(
     lat = np.concatenate([p[0] for p in parts]) * 1000.0
     dropped = sum(p[1] for p in parts)
     done = lat[np.isfinite(lat)]
-    sent = len(lat)
+    k = characters  # every count in character-frames: a tick's latency is each of its characters'
+    sent = len(lat) * k
     q = np.percentile(done, [50, 95, 99]) if len(done) else [np.nan] * 3
     result = Result(
         sessions=sessions,
         fps=fps,
         seconds=seconds,
         sent=sent,
-        received=len(done),
+        received=len(done) * k,
         dropped=dropped,
-        late=int((done > 1000.0 / fps).sum()),
-        lost=int(sent - len(done) - dropped),
+        late=int((done > 1000.0 / fps).sum()) * k,
+        lost=int(sent - len(done) * k - dropped),
         p50_ms=float(q[0]),
         p95_ms=float(q[1]),
         p99_ms=float(q[2]),
         max_ms=float(done.max()) if len(done) else float("nan"),
-        frames_per_s=len(done) / seconds,
+        frames_per_s=len(done) * k / seconds,
         client_cpu_s=sum(p[3] for p in parts),
         client_processes=len(procs),
         phase=phase,
         client_behind=sum(p[2] for p in parts),
+        characters=characters,
     )
     return result, lat
 
@@ -452,6 +483,9 @@ def add_loadtest_command(sub) -> None:
     p = sub.add_parser("loadtest", help="open-loop load test: N sessions at a fixed frame rate, latency percentiles")
     p.add_argument("--url", help="ws://host:port/v1/stream of a running server (default: start one here)")
     p.add_argument("--sessions", default="64", help="session count, or a comma list to sweep (e.g. 1,16,64,256)")
+    p.add_argument(
+        "--characters", type=int, default=1, help="characters per connection (above 1: crowds, protocol v1.1)"
+    )
     p.add_argument("--fps", type=float, default=60.0)
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--model", default="lti")
@@ -487,6 +521,7 @@ def measure_fn(
     results: list | None = None,
     lats: list | None = None,
     phase: str = "spread",
+    characters: int = 1,
 ):
     """A function n -> Result that runs one open-loop load test against `url` and prints it."""
     base = url.replace("ws", "http", 1).replace("/v1/stream", "")
@@ -494,7 +529,7 @@ def measure_fn(
     def measure(n: int) -> Result:
         cpu0 = _cpu_seconds(server.pid) if server else None
         hist0 = server_histogram(base, model)
-        result, lat = run(url, n, fps, seconds, model, style, processes, phase=phase)
+        result, lat = run(url, n, fps, seconds, model, style, processes, phase=phase, characters=characters)
         server_cpu = (_cpu_seconds(server.pid) - cpu0) if server else float("nan")
         s50, s99 = histogram_quantiles(hist0, server_histogram(base, model))
         result.server_p50_ms, result.server_p99_ms, result.server_cpu_s = s50, s99, server_cpu
@@ -576,6 +611,7 @@ def _loadtest(args) -> int:
             results,
             lats,
             phase=args.phase,
+            characters=args.characters,
         )
         if args.find_max:
             best = find_max(measure, counts[0])

@@ -45,3 +45,14 @@ def test_a_refused_session_fails_the_run_with_the_servers_reason(server):
     url, _ = server
     with pytest.raises(RuntimeError, match="session refused.*unknown_model"):
         run(url, sessions=2, fps=60.0, seconds=0.5, model="no-such-model", style="x", processes=2)
+
+
+def test_crowds_count_every_characters_frame(server):
+    """`--characters 5`: two crowd connections of five characters; every count is in
+    character-frames, one latency per tick."""
+    url, style = server
+    result, latency = run(url, sessions=2, fps=60.0, seconds=1.0, model="lti", style=style, processes=1, characters=5)
+    assert len(latency) == 2 * 60 and result.characters == 5
+    assert result.sent == 2 * 60 * 5 == result.received and result.lost == 0 and result.dropped == 0
+    assert result.frames_per_s == pytest.approx(600.0)
+    assert np.isfinite(latency).all()
