@@ -61,9 +61,10 @@ ROUTES: dict[tuple[str, str], set[int]] = {
 ASYNCAPI = yaml.safe_load(ASYNCAPI_FILE.read_text())
 SCHEMAS = ASYNCAPI["components"]["schemas"]
 CLIENT_SCHEMAS = {"start": "Start", "frame": "Frame", "control": "Control", "style": "SetStyle", "reset": "Reset"}
-CLIENT_SCHEMAS["end"] = "End"
+CLIENT_SCHEMAS |= {"end": "End", "crowd": "CrowdStart", "join": "Join", "leave": "Leave"}
 SERVER_SCHEMAS = {"started": "Started", "frame": "FrameReply", "style_set": "StyleSet", "reset_done": "ResetDone"}
 SERVER_SCHEMAS |= {"ended": "Ended", "snapshot": "Snapshot", "error": "Error"}
+SERVER_SCHEMAS |= {"crowd_started": "CrowdStarted", "joined": "Joined", "left": "Left"}
 
 
 @pytest.fixture(scope="module")
@@ -278,6 +279,18 @@ def canonical(schema):
     return out
 
 
+def inline(schema, prefix: str, defs: dict):
+    """`schema` with every `$ref` under `prefix` replaced by the schema it names (and `$defs` gone)."""
+    if isinstance(schema, list):
+        return [inline(s, prefix, defs) for s in schema]
+    if not isinstance(schema, dict):
+        return schema
+    ref = schema.get("$ref", "")
+    if ref.startswith(prefix):
+        return inline(defs[ref[len(prefix) :]], prefix, defs)
+    return {k: inline(v, prefix, defs) for k, v in schema.items() if k != "$defs"}
+
+
 def client_models() -> dict[str, type]:
     union = typing.get_args(P.ClientMessage)[0]
     return {typing.get_args(m.model_fields["type"].annotation)[0]: m for m in typing.get_args(union)}
@@ -291,10 +304,13 @@ def test_asyncapi_client_messages_are_the_protocol_models():
     models = client_models()
     assert set(models) == set(CLIENT_SCHEMAS), "a client message is missing from the AsyncAPI document, or extra"
     for kind, model in models.items():
-        assert canonical(SCHEMAS[CLIENT_SCHEMAS[kind]]) == canonical(model.model_json_schema()), kind
+        schema = model.model_json_schema()  # nested models as pydantic's $defs, the document's as components
+        assert canonical(inline(SCHEMAS[CLIENT_SCHEMAS[kind]], "#/components/schemas/", SCHEMAS)) == canonical(
+            inline(schema, "#/$defs/", schema.get("$defs", {}))
+        ), kind
     received = [m for op in ASYNCAPI["operations"].values() if op["action"] == "receive" for m in op["messages"]]
     names = {ref["$ref"].rsplit("/", 1)[1] for ref in received}
-    assert names == set(models) | {"binaryFrame"}
+    assert names == set(models) | {"binaryFrame", "binaryTick"}
     for name, message in ASYNCAPI["components"]["messages"].items():
         for example in message.get("examples", []):
             schema = message["payload"]["$ref"].rsplit("/", 1)[1]
@@ -423,4 +439,26 @@ def test_every_message_a_live_session_sends_matches_its_schema(server, bn_walk):
         assert isinstance(reply, bytes) and len(reply) == 8 + 4 * (3 + 4 * joints)
         assert len(reply) == started["layout"]["binary_frame_bytes"]
         assert struct.unpack_from("<IHH", reply) == (5, 1, 0)
+    with connect(url) as ws:  # a crowd (v1.1): open, a refused character, a tick, join, style, reset, leave
+        chars = [{"id": 1, "model": "lti", "style": "elderly"}, {"id": 2, "model": "lti", "style": "nope"}]
+        ws.send(json.dumps({"type": "crowd", "fps": 30, "characters": chars}))
+        opened = check(ws.recv(timeout=30))
+        assert [c["id"] for c in opened["characters"]] == [1] and opened["errors"][0]["id"] == 2
+        floats = opened["rigs"][0]["frame_floats"]
+        tick = np.concatenate([root[0], rot[0].ravel()]).astype("<f4")
+        ws.send(struct.pack("<IHHI", 3, 2, 1, 0) + struct.pack("<I", 1) + tick.tobytes())
+        reply = ws.recv(timeout=30)  # the documented layout: 12-byte header, ids, the frames
+        assert isinstance(reply, bytes) and len(reply) == 12 + 4 + 4 * floats
+        assert struct.unpack_from("<IHHI", reply) == (3, 2, 1, 0)
+        ws.send(json.dumps({"type": "join", "characters": [{"id": 5, "model": "erd", "style": "elderly"}]}))
+        assert check(ws.recv(timeout=30))["characters"][0]["id"] == 5
+        ws.send(json.dumps({"type": "style", "characters": [1], "style": "exhausted"}))
+        check(ws.recv(timeout=30))
+        ws.send(json.dumps({"type": "reset", "characters": [5]}))
+        check(ws.recv(timeout=30))
+        ws.send(json.dumps({"type": "leave", "characters": [5, 9]}))
+        assert check(ws.recv(timeout=30))["characters"] == [5]
+        tick[4] = np.nan  # a refused frame: an error naming its character
+        ws.send(struct.pack("<IHHI", 4, 2, 1, 0) + struct.pack("<I", 1) + tick.tobytes())
+        assert check(ws.recv(timeout=30))["character"] == 1
     assert set(seen) == set(SERVER_SCHEMAS), f"messages seen: {seen}"
