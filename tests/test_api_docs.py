@@ -461,4 +461,8 @@ def test_every_message_a_live_session_sends_matches_its_schema(server, bn_walk):
         tick[4] = np.nan  # a refused frame: an error naming its character
         ws.send(struct.pack("<IHHI", 4, 2, 1, 0) + struct.pack("<I", 1) + tick.tobytes())
         assert check(ws.recv(timeout=30))["character"] == 1
+        reply = ws.recv(timeout=30)  # still one reply, without the refused character
+        assert isinstance(reply, bytes) and len(reply) == 12 and struct.unpack_from("<IHHI", reply) == (4, 2, 0, 0)
+        ws.send(json.dumps({"type": "end"}))
+        assert check(ws.recv(timeout=30)) == {"type": "ended", "session_id": opened["crowd_id"], "last_seq": None}
     assert set(seen) == set(SERVER_SCHEMAS), f"messages seen: {seen}"
