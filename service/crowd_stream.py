@@ -178,8 +178,8 @@ class CrowdConnection(Socket):
         received = time.perf_counter()
         try:
             seq, ids_raw, payload = P.decode_tick(data)
-            dropped, self.dropped = self.dropped, 0
-            result = await self.crowd.tick(seq, ids_raw, payload, self._step_for, dropped)
+            result = await self.crowd.tick(seq, ids_raw, payload, self._step_for, self.dropped)
+            self.dropped = 0  # told in this reply (a refused tick gets none: the next reply tells)
         except P.ProtocolError as err:
             await self.send_error(err)
             return
