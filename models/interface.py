@@ -143,6 +143,18 @@ def weight_vector(names: list[str], weights: dict[str, float]) -> np.ndarray:
     return np.array([weights.get(style, 0.0) for style in names], dtype=np.float64)
 
 
+def weight_columns(weights: np.ndarray, names: list[str], to: list[str]) -> np.ndarray:
+    """(n, len(names)) weight rows over styles `names` as rows over `to` (a model's styles now):
+    `weight_vector` for many rows at once. A style no longer among them drops out, a new one
+    weighs 0."""
+    column = {style: i for i, style in enumerate(names)}
+    out = np.zeros((len(weights), len(to)))
+    for j, style in enumerate(to):
+        if style in column:
+            out[:, j] = weights[:, column[style]]
+    return out
+
+
 def style_vector(model: StreamingModel, mix: dict[str, float], intensity: float = 1.0) -> np.ndarray:
     """Weights over model.styles() from a {style: weight} mix (normalised to sum 1) times intensity."""
     return weight_vector(model.styles(), style_weights(model, mix, intensity))

@@ -31,7 +31,15 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from models.interface import FrameBatch, State, StreamingModel, stack_states, upgrade_state, weight_vector
+from models.interface import (
+    FrameBatch,
+    State,
+    StreamingModel,
+    stack_states,
+    upgrade_state,
+    weight_columns,
+    weight_vector,
+)
 
 from .metrics import Metrics
 
@@ -62,12 +70,7 @@ class StepRequest:
             return weight_vector(names, self.weights)[None]
         if self.names == names:
             return self.weights
-        column = {style: i for i, style in enumerate(self.names or [])}
-        out = np.zeros((self.rows, len(names)))
-        for j, style in enumerate(names):
-            if style in column:
-                out[:, j] = self.weights[:, column[style]]
-        return out
+        return weight_columns(self.weights, self.names or [], names)
 
 
 StepResult = tuple[np.ndarray, np.ndarray, State]  # root (n, 3), rotations (n, J, 4), state (n rows)

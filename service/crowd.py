@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models.interface import State, StreamingModel, stack_states, upgrade_state, weight_vector
+from models.interface import State, StreamingModel, stack_states, upgrade_state, weight_columns, weight_vector
 
 from . import protocol as P
 from .frame_check import check_rows
@@ -122,16 +122,9 @@ class Troupe:
         old = {n: j for j, n in enumerate(self.names)}
         gone = [old[n] for n in self.names if n not in names]
         had = (self.weights[:, gone] > 0).any(1) | (self.target[:, gone] > 0).any(1) if gone else None
-        remap = [old.get(n, -1) for n in names]
-
-        def columns(a: np.ndarray) -> np.ndarray:
-            out = np.zeros((len(a), len(names)))
-            for j, src in enumerate(remap):
-                if src >= 0:
-                    out[:, j] = a[:, src]
-            return out
-
-        self.weights, self.target, self.names = columns(self.weights), columns(self.target), names
+        self.weights = weight_columns(self.weights, self.names, names)
+        self.target = weight_columns(self.target, self.names, names)
+        self.names = names
         return self.ids[had] if had is not None else np.zeros(0, np.int64)
 
     # ---- one tick (arrays only) ---------------------------------------------------------

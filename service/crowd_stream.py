@@ -68,15 +68,7 @@ class CrowdConnection(Socket):
             try:
                 if spec.id in seen:
                     raise P.ProtocolError("character_exists", f"character {spec.id} is already in this crowd")
-                model = self.rt.models.get(spec.model)
-                if model is None:
-                    raise P.ProtocolError(
-                        "unknown_model", f"unknown model {spec.model!r}; available: {', '.join(self.rt.models)}"
-                    )
-                mix = P.mix_of(spec.style, spec.mix)
-                await self.rt.styles.ensure_known(spec.model, mix)
-                self.rt.check_visible(self.who, spec.model, mix)
-                weights = P.requested_weights(model, spec.style, spec.mix, spec.intensity)
+                model, weights = await self.rt.new_character(spec, self.who)
                 options = spec.rig_options()
                 key = (spec.model, spec.skeleton, spec.bvh_header, json.dumps(options, sort_keys=True))
                 if key not in adapters:
@@ -160,14 +152,7 @@ class CrowdConnection(Socket):
         return lambda state, root, rot, weights, names: batcher.step_rows(state, root, rot, weights, None, names)
 
     async def process(self) -> None:
-        while not self.stopping:
-            if not self.pending:
-                if self.closing:
-                    return
-                self.wakeup.clear()
-                await self.wakeup.wait()
-                continue
-            item = self.pending.popleft()
+        while (item := await self.next_work(self.pending)) is not None:
             if isinstance(item, bytes):
                 self.ticks_pending -= 1
                 await self.tick(item)

@@ -141,9 +141,8 @@ class Runtime:
                 close_code=1012,
             )
 
-    async def open_session(self, start: P.Start, who: Principal) -> Session:
-        """A new session for `who`, or theirs resumed (a snapshot another tenant opened is, to
-        them, as unknown as an expired one)."""
+    def _refuse_if_full(self) -> None:
+        """Draining, or every one of `max_sessions` taken (a crowd connection takes one)."""
         self._refuse_if_draining()
         if len(self.sessions) + self.crowds >= self.settings.max_sessions:
             raise P.ProtocolError(
@@ -151,6 +150,24 @@ class Runtime:
                 f"server holds its maximum of {self.settings.max_sessions} sessions",
                 close_code=1013,
             )
+
+    async def new_character(self, spec: P.CharacterSpec, who: Principal) -> tuple[StreamingModel, dict[str, float]]:
+        """The model and starting {style: weight} a new session or crowd character asks for, or
+        the typed error that refuses it (an unknown model, or a style unknown or not `who`'s)."""
+        model = self.models.get(spec.model)
+        if model is None:
+            raise P.ProtocolError(
+                "unknown_model", f"unknown model {spec.model!r}; available: {', '.join(self.models) or 'none'}"
+            )
+        mix = P.mix_of(spec.style, spec.mix)
+        await self.styles.ensure_known(spec.model, mix)
+        self.check_visible(who, spec.model, mix)
+        return model, P.requested_weights(model, spec.style, spec.mix, spec.intensity)
+
+    async def open_session(self, start: P.Start, who: Principal) -> Session:
+        """A new session for `who`, or theirs resumed (a snapshot another tenant opened is, to
+        them, as unknown as an expired one)."""
+        self._refuse_if_full()
         if start.resume_token:
             try:
                 snap = await self.snapshots.get(start.resume_token)
@@ -170,14 +187,7 @@ class Runtime:
             self._forget_stored(session)
             self.metrics.resumes.inc()
         else:
-            model = self.models.get(start.model)
-            if model is None:
-                raise P.ProtocolError(
-                    "unknown_model", f"unknown model {start.model!r}; available: {', '.join(self.models) or 'none'}"
-                )
-            await self.styles.ensure_known(start.model, P.mix_of(start.style, start.mix))
-            self.check_visible(who, start.model, P.mix_of(start.style, start.mix))
-            weights = P.requested_weights(model, start.style, start.mix, start.intensity)
+            model, weights = await self.new_character(start, who)
             session = Session(
                 model=model,
                 skeleton=start.skeleton or "custom",
@@ -201,13 +211,7 @@ class Runtime:
     def open_crowd(self) -> None:
         """A crowd connection takes one of the server's `max_sessions` (its characters count
         against `max_characters`)."""
-        self._refuse_if_draining()
-        if len(self.sessions) + self.crowds >= self.settings.max_sessions:
-            raise P.ProtocolError(
-                "too_many_sessions",
-                f"server holds its maximum of {self.settings.max_sessions} sessions",
-                close_code=1013,
-            )
+        self._refuse_if_full()
         self.crowds += 1
 
     def crowd_closed(self) -> None:

@@ -17,6 +17,8 @@ import asyncio
 import json
 import logging
 import time
+from collections import deque
+from typing import TypeVar
 
 import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
@@ -32,6 +34,7 @@ log = logging.getLogger(__name__)
 
 CLOSE_NORMAL, CLOSE_RESTART = 1000, 1012
 CLOSE_UNAUTHORIZED, CLOSE_IDLE = 4401, 4408
+T = TypeVar("T")
 YIELD_EVERY = 8  # messages handled back to back before the receiver lets other connections run
 
 
@@ -148,6 +151,17 @@ class Socket:
         except P.ProtocolError as err:
             await self.refuse(err)
             return None
+
+    async def next_work(self, pending: deque[T]) -> T | None:
+        """The processor's next queued item; None once `stopping`, or `closing` with nothing left."""
+        while not self.stopping:
+            if pending:
+                return pending.popleft()
+            if self.closing:
+                return None
+            self.wakeup.clear()
+            await self.wakeup.wait()
+        return None
 
     async def refuse(self, err: P.ProtocolError) -> None:
         """A fatal error: told, then the socket closed with the error's code."""
@@ -383,14 +397,7 @@ class Connection(Socket):
         s, adapter = self.session, self.adapter
         batcher = self.rt.batchers[s.model.name]
         metrics = self.metrics.model(s.model.name)
-        while not self.stopping:
-            if not s.pending:
-                if self.closing:
-                    return
-                self.wakeup.clear()
-                await self.wakeup.wait()
-                continue
-            item = s.pending.popleft()
+        while (item := await self.next_work(s.pending)) is not None:
             if isinstance(item, ControlItem):
                 if not await self.control(item.message):
                     return
