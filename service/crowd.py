@@ -223,7 +223,7 @@ class Joining:
 class TickResult:
     reply: bytes  # the binary reply (characters whose frame was refused left out)
     errors: list[P.ProtocolError] = field(default_factory=list)  # one per refused character frame
-    frames: int = 0  # character frames stylised
+    frames: dict[str, int] = field(default_factory=dict)  # character frames stylised, by model
 
 
 class Crowd:
@@ -359,7 +359,7 @@ class Crowd:
             n = len(at)
             rows = np.concatenate([client_root, client_rot.reshape(n, -1)], 1)
             out[at[:, None] + np.arange(rows.shape[1])] = rows
-            result.frames += n
+            result.frames[part.group.model] = result.frames.get(part.group.model, 0) + n
         result.reply = P.encode_tick(seq, plan.ids[ok], out, dropped)
         return result
 

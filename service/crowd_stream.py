@@ -175,9 +175,9 @@ class CrowdConnection(Socket):
         for refused in result.errors:
             await self.send_error(refused)
         await self.send_bytes(result.reply)
-        for name, troupe in self.crowd.troupes.items():
+        for name, frames in result.frames.items():
             metrics = self.metrics.model(name)
-            metrics.frames.inc(len(troupe))
+            metrics.frames.inc(frames)
             metrics.frame_latency.observe(time.perf_counter() - received)
 
     async def control(self, message: ControlMessage) -> bool:
