@@ -2,26 +2,101 @@
 
 The service steps many sessions (and a crowd's characters) as one batch, and promises that a
 character's output is the same bit for bit whoever else is in the batch. A BLAS product does not
-keep that promise: OpenBLAS picks its kernels and its split of the rows by the number of rows, so
-row i of `X @ W` differs in the last bits between a batch of 1 and a batch of 64 (measured here:
-up to 1e-5 on Style-ERD's and LPN-FiLM's layers). Within one call of a fixed row count the rows
-are computed alike, wherever they sit (checked for 8 rows on every layer shape the models use,
-`tests/test_rowwise.py`). So the rows go through BLAS in blocks of exactly `BLOCK`, the last one
-padded with zeros: each row then meets the same kernel whatever the batch. The price is the
-padding for small batches and BLAS's weaker amortisation over 8-row blocks (about 2x on
-LPN-FiLM's 2048-wide expert layers at 256 rows); LTI needs none of this (its kernels are per row).
+keep that promise by itself: the library picks its kernels and its split of the rows by the number
+of rows, so row i of `X @ W` differs in the last bits between a batch of 1 and a batch of 64
+(measured here: up to 1e-5 on Style-ERD's and LPN-FiLM's layers, with numpy's OpenBLAS for almost
+every row count).
+
+Two ways keep it; which one is fixed per product shape (never per batch, which is the point):
+
+- **torch (MKL), rows padded to a multiple of `QUANTUM`.** Measured on this machine's MKL (AVX2):
+  with one thread every row count of 4 and up gives each row the same bits; with two threads the
+  counts that are multiples of 4 do. So padding to a multiple of 4 makes the row count stop
+  mattering, at full BLAS speed for large batches (LPN-FiLM at 256 rows: 49 us per row, against 72
+  for the blocks below and 41 for plain numpy).
+- **numpy in fixed 8-row blocks**: each 8-row BLAS call computes its rows alike wherever they
+  sit, so every row meets the same kernel whatever the batch. It costs BLAS's weaker amortisation
+  over 8-row calls, which matters only for large weights: products with fewer than
+  `TORCH_MIN_WEIGHTS` weights (all of Style-ERD's; LPN-FiLM's gating and style blend) take this
+  path, where torch's per-call overhead would cost more than it saves (Style-ERD at batch 1: 0.23
+  ms through torch, 0.17 in blocks).
+
+A library, CPU or thread count where the first does not hold is caught by `_rows_agree` (row
+counts 4..max, rows at shifted positions) before any model output depends on it, and falls back
+to the second; `tests/test_rowwise.py` checks both and every model's step. LTI needs none of this
+(its kernels are per row).
 """
 
 from __future__ import annotations
 
-import numpy as np
+import logging
+import threading
 
-BLOCK = 8
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+QUANTUM = 4  # torch path: rows padded to a multiple of this
+BLOCK = 8  # numpy path: rows go through BLAS in blocks of exactly this
+TORCH_MIN_WEIGHTS = 1 << 18  # weights in one product (per stacked matrix) from which torch is used
+CHECKED_ROWS = (4, 8, 12, 16, 20, 24, 28, 32, 40, 48, 64, 100, 128, 200, 256, 512)
+
+_verdicts: dict[tuple, bool] = {}
+_lock = threading.Lock()
 
 
 def matmul_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """`x @ w` for x (..., B, K) and w (..., K, N) (leading axes broadcast as `np.matmul`), each
-    of the B rows computed in an 8-row BLAS call of its own block."""
+    """`x @ w` for x (..., B, K) and w (..., K, N) (leading axes broadcast as `np.matmul`), each of
+    the B rows bit for bit what it would be in a batch of any other size."""
+    if w.shape[-2] * w.shape[-1] >= TORCH_MIN_WEIGHTS and torch_rows_hold(x.shape[:-2], w.shape, x.dtype):
+        return _torch_rows(x, w)
+    return _blocked_rows(x, w)
+
+
+def torch_rows_hold(lead: tuple[int, ...], w_shape: tuple[int, ...], dtype: np.dtype) -> bool:
+    """Whether the padded torch product keeps rows independent of the batch for this shape at the
+    current torch thread count (checked once per shape and thread count, on random data: which
+    kernel runs depends on the shapes, not the values)."""
+    key = (tuple(lead), tuple(w_shape), np.dtype(dtype).str, torch.get_num_threads())
+    verdict = _verdicts.get(key)
+    if verdict is None:
+        with _lock:
+            verdict = _verdicts.get(key)
+            if verdict is None:
+                verdict = _verdicts[key] = _rows_agree(key[0], key[1], np.dtype(dtype))
+                if not verdict:
+                    log.warning("torch products depend on the batch for %s @ %s: 8-row numpy blocks", lead, w_shape)
+    return verdict
+
+
+def _rows_agree(lead: tuple[int, ...], w_shape: tuple[int, ...], dtype: np.dtype) -> bool:
+    rng = np.random.default_rng(0)
+    w = rng.standard_normal(w_shape).astype(dtype)
+    most = max(CHECKED_ROWS)
+    x = rng.standard_normal((*lead, most + QUANTUM, w_shape[-2])).astype(dtype)
+    full = _torch_rows(x[..., :most, :], w)
+    for rows in CHECKED_ROWS[:-1]:
+        if not np.array_equal(_torch_rows(x[..., :rows, :], w), full[..., :rows, :]):
+            return False
+    odd = 2 * QUANTUM + 1
+    shifted = _torch_rows(x[..., 3 : 3 + odd, :], w)  # the same rows at other places in a batch
+    return bool(np.array_equal(shifted, full[..., 3 : 3 + odd, :]))
+
+
+def _torch_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    rows, inner = x.shape[-2], x.shape[-1]
+    padded_rows = max(QUANTUM, -(-rows // QUANTUM) * QUANTUM)
+    if padded_rows != rows:
+        padded = np.zeros((*x.shape[:-2], padded_rows, inner), x.dtype)
+        padded[..., :rows, :] = x
+    else:
+        padded = np.ascontiguousarray(x)
+    out = torch.matmul(torch.from_numpy(padded), torch.from_numpy(np.ascontiguousarray(w))).numpy()
+    return out[..., :rows, :]
+
+
+def _blocked_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:
     rows, inner = x.shape[-2], x.shape[-1]
     blocks = -(-rows // BLOCK)
     if rows % BLOCK:

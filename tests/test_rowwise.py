@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
+from models import rowwise
 from models.data import build_index, load_motion, select
 from models.interface import FrameBatch, weight_vector
 from models.registry import load_models
@@ -28,6 +30,28 @@ def test_a_row_of_a_product_is_the_same_in_any_batch(inner, outer):
     # stacked weights (Style-ERD's branches) broadcast as np.matmul does
     stacked = matmul_rows(np.stack([x[:13], x[1:14]]), np.stack([w, w]))
     assert np.array_equal(stacked[1, 0], alone[1])
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("inner,outer", SHAPES[-2:])
+def test_padded_torch_products_keep_rows_apart_at_any_thread_count(inner, outer, threads):
+    """The torch path LPN-FiLM's expert layers take; where the first-use check finds it does not
+    hold, the product falls back to 8-row blocks (checked above), so exactness never depends on it."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        if not rowwise.torch_rows_hold((), (inner, outer), np.dtype(np.float32)):
+            pytest.skip(f"this machine's torch depends on the batch at {threads} threads: blocks are used")
+        rng = np.random.default_rng(outer)
+        w = rng.standard_normal((inner, outer)).astype(np.float32)
+        x = rng.standard_normal((300, inner)).astype(np.float32)
+        full = rowwise._torch_rows(x, w)
+        for batch in (1, 2, 3, 5, 9, 31, 77, 150, 299):
+            assert np.array_equal(rowwise._torch_rows(x[:batch], w), full[:batch]), batch
+            assert np.array_equal(rowwise._torch_rows(x[batch : batch + 5], w), full[batch : batch + 5]), batch
+        assert np.array_equal(matmul_rows(x, w), full)  # the shape is large enough to take this path
+    finally:
+        torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")
