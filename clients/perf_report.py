@@ -3,9 +3,10 @@
 For every committed model: the step cost through the streaming interface (batch 1 and 256), the
 session capacity at 60 fps (largest count holding p99 <= 16.7 ms with no drops) with and
 without cross-session batching, a session sweep, and, in the same run, the echo floor and the
-echo server's own capacity (the transport's ceiling), capacity with 1 and 2 worker processes
-(sharing a throwaway redis-server, as `--workers` requires) and a py-spy profile of the loaded
-server. Everything printed is also written, so the document is only ever what this command
+echo server's own capacity (the transport's ceiling), crowd capacity (many characters per
+connection, protocol v1.1) with the server's CPU per character-frame, capacity with 1 and 2
+worker processes (sharing a throwaway redis-server, as `--workers` requires) and a py-spy
+profile of the loaded server. Everything printed is also written, so the document is only ever what this command
 measured.
 """
 
@@ -35,6 +36,8 @@ from . import server_profile
 from .loadtest import Result, echo_capacity, echo_floor, find_max, free_port, measure_fn, real_frames, spawned_server
 
 SWEEP = (1, 16, 64)
+CROWD = 100  # characters per connection in the crowd runs (protocol v1.1)
+CROWD_TARGETS = {"lti": 2000, "erd": 1000, "lpn": 400}  # characters at 60 fps, issue 17
 PROFILE_SESSIONS = 64  # LTI, batching on: the issue's 64-session target
 
 
@@ -118,25 +121,59 @@ def workers_section(models: dict, fps: float, seconds: float) -> list[str]:
     if redis is None:
         return ["Not measured: redis-server is not installed (`make servers` installs it)."]
     style = models["lti"].styles()[0]
-    caps = {}
+    caps, crowd_caps = {}, {}
     with tempfile.TemporaryDirectory() as tmp, _redis(redis, tmp) as store:
         for workers in (1, 2):
             env = {"STYLESTREAM_WORKERS": str(workers), "STYLESTREAM_SESSION_STORE": store}
             with spawned_server(True, env) as (url, server):
                 measure = measure_fn(url, "lti", style, fps, seconds, None, server, None, None, None)
                 caps[workers] = find_max(measure, 8)
+                crowd = measure_fn(url, "lti", style, fps, seconds, None, server, None, None, None, characters=CROWD)
+                crowd_caps[workers] = find_max(crowd, 2) * CROWD
     return [
         "`stylestream serve --workers N`: N processes on one port (SO_REUSEPORT), each with its own batcher; "
         "the kernel spreads connections over them. Both runs use a Redis session store (snapshots every 30 "
         "frames go to it).",
         "",
-        "| workers | capacity at 60 fps | vs 1 worker |",
-        "|---|---|---|",
-        f"| 1 | {caps[1]} | 1.0× |",
-        f"| 2 | {caps[2]} | {caps[2] / max(caps[1], 1):.1f}× |",
+        f"| workers | sessions at 60 fps | vs 1 worker | characters in crowds of {CROWD} | vs 1 worker |",
+        "|---|---|---|---|---|",
+        f"| 1 | {caps[1]} | 1.0× | {crowd_caps[1]:,} | 1.0× |",
+        f"| 2 | {caps[2]} | {caps[2] / max(caps[1], 1):.1f}× | {crowd_caps[2]:,} | "
+        f"{crowd_caps[2] / max(crowd_caps[1], 1):.1f}× |",
         "",
         f"Cores: {os.cpu_count()}, shared by the server processes and the load test's client processes.",
     ]
+
+
+def crowd_section(models: dict, fps: float, seconds: float) -> tuple[list[str], dict[str, int]]:
+    """Crowd capacity per model: connections of `CROWD` characters each (doubling, then bisection
+    over the connection count), and one run at the model's target count for its latency and the
+    server's CPU per character-frame. Returns the section and the capacities in characters."""
+    caps: dict[str, int] = {}
+    rows = []
+    for name, model in models.items():
+        style = model.styles()[0]
+        with spawned_server(True) as (url, server):
+            measure = measure_fn(url, name, style, fps, seconds, None, server, None, None, None, characters=CROWD)
+            caps[name] = find_max(measure, 2) * CROWD
+            target = CROWD_TARGETS.get(name, caps[name])
+            at = measure(max(1, target // CROWD))
+        rows.append(
+            f"| {name} | {caps[name]:,} | {at.sessions} × {CROWD} | {at.p50_ms:.2f} / {at.p99_ms:.2f} | "
+            f"{at.server_p50_ms:.2f} / {at.server_p99_ms:.2f} | {at.dropped} | {cpu_per_frame_us(at):.1f} |"
+        )
+    return [
+        f"Connections of {CROWD} characters each (`stylestream loadtest --sessions N --characters {CROWD}`): one "
+        "binary tick per connection per frame time carrying every character's frame, one reply per tick; each "
+        "character a real walk at its own phase, the first style. Capacity = the most characters holding p99 ≤ "
+        f"{1000 / fps:.1f} ms with nothing dropped or lost (search over the connection count); the next columns "
+        "are one run at the model's target count.",
+        "",
+        "| model | capacity (characters) | run at target | p50 / p99 ms | server-side p50 / p99 ms | dropped | "
+        "server CPU µs / character-frame |",
+        "|---|---|---|---|---|---|---|",
+        *rows,
+    ], caps
 
 
 def baseline_section(rev: str, models: dict, fps: float, seconds: float, sessions: int = 48) -> list[str]:
@@ -312,6 +349,28 @@ def main(argv: list[str] | None = None) -> int:
         "share the same cores), so a session target above that is out of reach for any server on this stack "
         "here, whatever the model costs.",
     ]
+    crowd_lines, crowd_caps = crowd_section(models, fps, args.seconds)
+    lines += ["", "## Crowds: many characters per connection", "", *crowd_lines]
+    lines += ["", "## Targets (issue 17)", "", "| target | measured | met |", "|---|---|---|"]
+    for name, need in CROWD_TARGETS.items():
+        if name in crowd_caps:
+            got = crowd_caps[name]
+            lines.append(f"| {name}: ≥ {need:,} characters in crowds | {got:,} | {'yes' if got >= need else 'no'} |")
+    for name, cap in capacity.items():
+        share = cap[True] / max(echo_cap, 1)
+        lines.append(
+            f"| {name}: single-character capacity ≥ 0.8× the echo server's ({echo_cap}) | {cap[True]} = "
+            f"{share:.2f}× | {'yes' if share >= 0.8 else 'no'} |"
+        )
+    for name, runs in at_64.items():
+        spread = [r for r in runs if r.phase == "spread"]
+        if spread:
+            ratio = cpu_per_frame_us(spread[0]) / max(cpu_per_frame_us(floor), 1e-9)
+            lines.append(
+                f"| {name}: server CPU per frame ≤ 1.3× the echo server's, {SWEEP[-1]} single-character sessions | "
+                f"{cpu_per_frame_us(spread[0]):.0f} µs vs {cpu_per_frame_us(floor):.0f} µs = {ratio:.2f}× | "
+                f"{'yes' if ratio <= 1.3 else 'no'} |"
+            )
     lines += ["", "## Worker processes (lti, batching on)", ""] + workers_section(models, fps, args.seconds)
     if args.baseline:
         lines += ["", f"## Before / after: this tree against `{args.baseline}`", ""] + baseline_section(
