@@ -22,8 +22,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-HIPS = 1
-NUM_JOINTS = 22
+from ..motion.bn_skeleton import HIPS, NUM_JOINTS
+
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
 
 # --------------------------------------------------------------------------- quaternions on 4-tuples

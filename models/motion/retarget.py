@@ -38,35 +38,11 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .bn_skeleton import BN_JOINTS
 from .humanoid import CMU_TO_BN, HumanoidRig  # noqa: E402  (the CMU namings are one preset of the humanoid mapping)
 from .resample import resample
 from .rotations import quat_canonical
 from .skeleton import Motion, Skeleton, fk
-
-BN_JOINTS = (
-    "joint_Root",
-    "Hips",
-    "Spine",
-    "Chest",
-    "Neck",
-    "Head",
-    "Shoulder_L",
-    "UpperArm_L",
-    "LowerArm_L",
-    "Hand_L",
-    "Shoulder_R",
-    "UpperArm_R",
-    "LowerArm_R",
-    "Hand_R",
-    "UpperLeg_L",
-    "LowerLeg_L",
-    "Foot_L",
-    "Toes_L",
-    "UpperLeg_R",
-    "LowerLeg_R",
-    "Foot_R",
-    "Toes_R",
-)
 
 # BN joint -> the child whose bone its rotation is matched on (joints not listed are leaves).
 _PRIMARY_CHILD = {

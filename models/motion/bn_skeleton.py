@@ -1,0 +1,37 @@
+"""The models' skeleton: Bandai Namco's (BN) joints by name, and the indices the kernels need.
+
+Every model (LTI, Style-ERD, LPN-FiLM) runs on this skeleton in this joint order: the committed
+asset `assets/bandai_namco.bvh` (`assets.bandai_namco_skeleton`; tests/test_retarget.py checks
+that its names are `BN_JOINTS`). Joint indices are derived here from the names; numba kernels
+read them as module-level ints (compile-time constants), so they import them from here.
+"""
+
+from __future__ import annotations
+
+BN_JOINTS = (
+    "joint_Root",
+    "Hips",
+    "Spine",
+    "Chest",
+    "Neck",
+    "Head",
+    "Shoulder_L",
+    "UpperArm_L",
+    "LowerArm_L",
+    "Hand_L",
+    "Shoulder_R",
+    "UpperArm_R",
+    "LowerArm_R",
+    "Hand_R",
+    "UpperLeg_L",
+    "LowerLeg_L",
+    "Foot_L",
+    "Toes_L",
+    "UpperLeg_R",
+    "LowerLeg_R",
+    "Foot_R",
+    "Toes_R",
+)
+NUM_JOINTS = len(BN_JOINTS)
+ROOT = BN_JOINTS.index("joint_Root")  # static at the origin, identity rotation
+HIPS = BN_JOINTS.index("Hips")  # carries the world translation and heading
