@@ -341,9 +341,9 @@ class Connection(Socket):
             if err.code != "unknown_style" or styles is None or not styles.shared:
                 raise
             await styles.refresh()
-            return self.on_text(data)
+            return self.on_text(data, admitted=True)  # the same message: counted once against the rate
 
-    def on_text(self, data: str) -> bool:
+    def on_text(self, data: str, admitted: bool = False) -> bool:
         message = P.parse_text(data)
         if isinstance(message, P.Start | P.CrowdStart):
             raise P.ProtocolError("already_started", "session already started", fatal=True)
@@ -358,7 +358,7 @@ class Connection(Socket):
         if isinstance(message, P.Control):
             self.queue(self.control_item(message))
             return True
-        if not isinstance(message, P.End) and not self.control_rate.admit(time.monotonic()):
+        if not (admitted or isinstance(message, P.End)) and not self.control_rate.admit(time.monotonic()):
             return True  # style and reset messages over their own, lower rate: dropped (the first one told)
         if isinstance(message, P.SetStyle):  # validate now, so the error comes back at once
             self.rt.check_visible(self.who, self.session.model.name, P.mix_of(message.style, message.mix))
