@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from models.eval.metrics import planted_slide
+from models.motion.bn_skeleton import HIPS
 from models.motion.feet import STATE_SHAPES, model_rig_planter, two_bone_ik
 from models.motion.rotations import quat_apply
 from models.motion.skeleton import fk
-
-HIPS = 1
 
 
 def _plant(planter, roots: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -17,7 +17,7 @@ import math
 import numpy as np
 from numba import njit
 
-HIPS = 1
+from ..motion.bn_skeleton import HIPS
 
 # --------------------------------------------------------------------------- small vector maths on tuples
 

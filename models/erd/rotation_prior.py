@@ -31,13 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.rotations import quat_inv, quat_mul, swing_twist
 from .carry import StyleCarry
 
 LEAF_FILE = "leaf_prior.npz"
 OUTPUT_FILE = "output_prior.npz"
-FIXED = (0, 1)  # joint_Root and Hips: their rotation holds the heading
-HIPS = 1
+FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 UP = np.array([0.0, 1.0, 0.0])
 FIT_CLIPS_PER_CONTENT = 4
 FIT_FRAMES = 240
@@ -48,7 +48,7 @@ def real_rotations() -> list[np.ndarray]:
     """Per style (dataset order, neutral first): local rotations (N, 22, 4) of every TRAIN frame,
     from the feature cache (`dataset.py`; joint_Root static, left at the identity)."""
     from .dataset import STYLES, load_split
-    from .features import NB, NUM_JOINTS, ROT
+    from .features import NB, ROT
 
     split = load_split("train")
     frame_style = np.repeat(split.style, split.lengths)

@@ -32,9 +32,9 @@ import math
 import numpy as np
 from numba import njit
 
+from ..motion.bn_skeleton import HIPS
 from . import features as lf
 
-HIPS = 1
 STEP = 5  # frames between trajectory samples
 PAST = 6  # past samples; the current frame is sample PAST
 FUTURE = 6

@@ -30,11 +30,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.motion.bn_skeleton import HIPS, NUM_JOINTS
 from models.motion.rotations import wrap_angle
 
 ROOT_DIMS = 7
-NUM_JOINTS = 22
-HIPS = 1
 BODY_JOINTS = tuple(range(2, NUM_JOINTS))  # joints carried as expmaps
 FEATURE_DIM = ROOT_DIMS + 3 * len(BODY_JOINTS)  # 67
 HIPS_LEFT_LOCAL = np.array([0.0, -1.0, 0.0])
