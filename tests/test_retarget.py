@@ -6,18 +6,10 @@ import numpy as np
 import pytest
 
 from models.data import load_motion, select
+from models.motion.bn_skeleton import BN_JOINTS
+from models.motion.humanoid import CMU_TO_BN, leg_length, rig_kind
 from models.motion.resample import resample
-from models.motion.retarget import (
-    BN_JOINTS,
-    CMU_TO_BN,
-    MATCHED_BONES,
-    Rig,
-    bone_directions,
-    default_rig,
-    leg_length,
-    retarget,
-    source_variant,
-)
+from models.motion.retarget import MATCHED_BONES, Rig, bone_directions, default_rig, retarget
 
 WALKS = [("cmu", "131_01"), ("cmu", "131_02"), ("xia", "neutral_walk_01_000")]
 
@@ -79,17 +71,17 @@ def test_feet_stay_on_the_floor(walks, rig, name):
 @pytest.mark.parametrize("name", [n for _, n in WALKS])
 def test_stride_scales_with_leg_length(walks, rig, name):
     src, out = walks[name]
-    variant = source_variant(src.skeleton)
-    ratio = leg_length(rig.skeleton) / leg_length(src.skeleton, variant)
+    variant = rig_kind(src.skeleton)
+    ratio = leg_length(rig.skeleton) / leg_length(src.skeleton)
     assert 5.0 < ratio < 6.2  # cm per CMU unit (~5.64), by leg length
     src_pos, out_pos = src.global_positions(), out.global_positions()
-    src_travel = _path_length(src_pos[:, src.skeleton.index("Hips")][:, [0, 2]]) / leg_length(src.skeleton, variant)
+    src_travel = _path_length(src_pos[:, src.skeleton.index("Hips")][:, [0, 2]]) / leg_length(src.skeleton)
     out_travel = _path_length(out_pos[:, rig.skeleton.index("Hips")][:, [0, 2]]) / leg_length(rig.skeleton)
     assert src_travel > 1.0  # it does walk
     assert out_travel == pytest.approx(src_travel, rel=0.01)
     # feet travel with the body: the toes' travel in leg lengths matches too (no sliding added)
     toes = [CMU_TO_BN[variant]["Toes_L"], "Toes_L"]
-    s = _path_length(src_pos[:, src.skeleton.index(toes[0])][:, [0, 2]]) / leg_length(src.skeleton, variant)
+    s = _path_length(src_pos[:, src.skeleton.index(toes[0])][:, [0, 2]]) / leg_length(src.skeleton)
     o = _path_length(out_pos[:, rig.skeleton.index(toes[1])][:, [0, 2]]) / leg_length(rig.skeleton)
     assert o == pytest.approx(s, rel=0.1)
 
@@ -97,7 +89,7 @@ def test_stride_scales_with_leg_length(walks, rig, name):
 @pytest.mark.parametrize("name", [n for _, n in WALKS])
 def test_bones_point_where_the_source_bones_point(walks, name):
     src, out = walks[name]
-    names = CMU_TO_BN[source_variant(src.skeleton)]
+    names = CMU_TO_BN[rig_kind(src.skeleton)]
     cos = np.sum(bone_directions(src, list(MATCHED_BONES), names) * bone_directions(out, list(MATCHED_BONES)), axis=-1)
     assert cos.min() > 0.95
 

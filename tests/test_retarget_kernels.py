@@ -80,7 +80,7 @@ def test_kernel_equals_numpy_on_made_rigs(walk, bn_frames, name):
 def test_kernel_equals_numpy_on_a_cmu_walk(cmu_walk, bn_frames):
     motion = cmu_walk.slice(0, FRAMES)
     fr = FrameRetargeter(motion.skeleton)
-    assert fr.variant is not None and fr.variant.startswith("cmu")
+    assert fr.humanoid.preset is not None and fr.humanoid.preset.startswith("cmu")
     _same(fr, motion.translations[:, fr.humanoid.translated], motion.rotations, *bn_frames)
 
 

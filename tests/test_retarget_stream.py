@@ -7,15 +7,8 @@ import pytest
 
 from models.data import build_index, load_motion, select
 from models.motion.assets import cmu_skeleton
-from models.motion.retarget import (
-    CMU_TO_BN,
-    MATCHED_BONES,
-    contact_height,
-    default_rig,
-    leg_length,
-    retarget,
-    source_variant,
-)
+from models.motion.humanoid import CMU_TO_BN, leg_length, rig_kind
+from models.motion.retarget import MATCHED_BONES, contact_height, default_rig, retarget
 from models.motion.retarget_stream import FrameRetargeter
 from models.motion.rotations import matrix_to_quat as mat_to_quat
 from models.motion.rotations import quat_to_matrix as quat_to_mat
@@ -23,8 +16,8 @@ from models.motion.skeleton import Motion, fk
 
 from .clips import angle_deg
 
-# one walk per CMU naming variant: Xia (cgspeed names), CMU 131 (bvh11 names)
-WALKS = {"cgspeed": ("xia", "neutral_walk_01_000"), "bvh11": ("cmu", "131_01")}
+# one walk per CMU naming (`rig_kind`): Xia (cgspeed names, 'cmu'), CMU 131 (bvh11 names, 'cmu-bvh11')
+WALKS = {"cmu": ("xia", "neutral_walk_01_000"), "cmu-bvh11": ("cmu", "131_01")}
 FRAMES = 150
 
 
@@ -39,7 +32,7 @@ def walks(rig) -> dict[str, tuple[Motion, FrameRetargeter]]:
     out = {}
     for variant, (dataset, name) in WALKS.items():
         motion = load_motion(select(index, dataset=dataset, name=name)[0]).slice(0, FRAMES)
-        assert source_variant(motion.skeleton) == variant
+        assert rig_kind(motion.skeleton) == variant
         out[variant] = (motion, FrameRetargeter(motion.skeleton, rig))
     return out
 
@@ -78,11 +71,11 @@ def test_rest_offset_puts_cmu_toes_on_the_floor(walks, rig):
     """CMU files keep the toes about where the default source floor assumes them; Xia files need
     their own floor, which then lands the BN toes near the BN contact height too."""
     toes = [rig.skeleton.index("Toes_L"), rig.skeleton.index("Toes_R")]
-    motion, fr = walks["bvh11"]
+    motion, fr = walks["cmu-bvh11"]
     pos = _bn_positions(rig, *fr.to_model(motion.translations[:, 0], motion.rotations))
     assert abs(contact_height(pos[:, toes, 1]) - rig.floor) < 2.0
-    motion, fr = walks["cgspeed"]  # Xia
-    smap = CMU_TO_BN["cgspeed"]
+    motion, fr = walks["cmu"]  # Xia
+    smap = CMU_TO_BN["cmu"]
     src_toes = [motion.skeleton.index(smap["Toes_L"]), motion.skeleton.index(smap["Toes_R"])]
     xia = FrameRetargeter(motion.skeleton, rig, source_floor=contact_height(motion.global_positions()[:, src_toes, 1]))
     pos = _bn_positions(rig, *xia.to_model(motion.translations[:, 0], motion.rotations))
@@ -101,8 +94,8 @@ def test_round_trip_reproduces_the_source(walks, variant):
     smap = CMU_TO_BN[variant]
     mapped = [motion.skeleton.index(n) for n in smap.values()]
     err = np.linalg.norm(pos - motion.global_positions(), axis=-1)
-    assert err[:, mapped].max() < 1e-6 * leg_length(motion.skeleton, variant)  # brief asked < 2 %
-    assert err.max() < 1e-6 * leg_length(motion.skeleton, variant)  # unmapped joints too
+    assert err[:, mapped].max() < 1e-6 * leg_length(motion.skeleton)  # brief asked < 2 %
+    assert err.max() < 1e-6 * leg_length(motion.skeleton)  # unmapped joints too
     assert angle_deg(back_rot, rot).max() < 1e-4
     unmapped = [j for j in range(motion.skeleton.num_joints) if j not in mapped]
     np.testing.assert_array_equal(back_rot[:, unmapped], rot[:, unmapped])  # kept as the client sent them
@@ -161,6 +154,6 @@ def test_batch_equals_per_frame_and_is_causal(walks, variant):
 
 def test_cmu_skeleton():
     sk = cmu_skeleton()
-    assert source_variant(sk) == "cgspeed" and sk.num_joints == 31 and sk.names[0] == "Hips"
+    assert rig_kind(sk) == "cmu" and sk.num_joints == 31 and sk.names[0] == "Hips"
     fr = FrameRetargeter(sk)
     assert 5.0 < fr.scale < 6.2  # cm per CMU unit, by leg length

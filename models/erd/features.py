@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion.bn_skeleton import NUM_JOINTS
-from ..motion.features import body_joint, facing_yaw, leg_length
+from ..motion.features import body_joint, facing_yaw, left_leg_length
 from ..motion.skeleton import Skeleton
 from . import kernels
 
@@ -58,7 +58,7 @@ class FeatureMaker:
         self.fps = float(fps)
         self.parents = np.asarray(skeleton.parents, dtype=np.int64)
         self.offsets = np.ascontiguousarray(skeleton.offsets, dtype=np.float64)
-        self.leg = leg_length(skeleton)
+        self.leg = left_leg_length(skeleton)
         self.facing = np.array(
             [body_joint(skeleton, p) for p in ("hip_l", "hip_r", "shoulder_l", "shoulder_r")], np.int64
         )

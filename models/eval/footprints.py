@@ -12,7 +12,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from ..motion.features import body_joint, leg_length  # noqa: E402
+from ..motion.features import body_joint, left_leg_length  # noqa: E402
 from ..motion.skeleton import Motion  # noqa: E402
 from .metrics import SKATE_SPEED, flat_foot_contacts, foot_skating  # noqa: E402
 
@@ -32,7 +32,7 @@ def render_footprints(
     for ax, motion, title in zip(axes[0], motions, titles):
         pos = motion.global_positions()
         contacts, speeds = flat_foot_contacts(motion, pos)
-        limit = SKATE_SPEED * leg_length(motion.skeleton)
+        limit = SKATE_SPEED * left_leg_length(motion.skeleton)
         for k, side in enumerate("lr"):
             ankle = pos[:, body_joint(motion.skeleton, f"ankle_{side}")]
             ax.plot(ankle[:, 0], ankle[:, 2], lw=0.4, color="0.7")

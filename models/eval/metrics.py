@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..motion.features import body_joint, leg_length
+from ..motion.features import body_joint, left_leg_length
 from ..motion.skeleton import Motion
 
 SKATE_SPEED = 0.2  # leg lengths per second of horizontal foot motion while in contact counts as skating
@@ -35,7 +35,7 @@ def flat_foot_contacts(motion: Motion, positions: np.ndarray | None = None) -> t
     "skating" under it and the metric could not tell a sliding foot from a stepping one."""
     sk = motion.skeleton
     pos = motion.global_positions() if positions is None else positions
-    leg = leg_length(sk)
+    leg = left_leg_length(sk)
     contacts, speeds = [], []
     for side in ("l", "r"):
         planted = np.ones(len(pos), dtype=bool)
@@ -62,7 +62,7 @@ def foot_skating(motion: Motion, positions: np.ndarray | None = None) -> dict:
         return {"skate_ratio": 0.0, "contact_speed": 0.0, "contact_frames": 0}
     s = speeds[contacts]
     return {
-        "skate_ratio": float((s > SKATE_SPEED * leg_length(motion.skeleton)).mean()),
+        "skate_ratio": float((s > SKATE_SPEED * left_leg_length(motion.skeleton)).mean()),
         "contact_speed": float(s.mean()),
         "contact_frames": n,
     }
@@ -90,7 +90,7 @@ def planted_slide(motion: Motion, positions: np.ndarray | None = None) -> dict[s
     push-off a skinned foot shows most) counts too."""
     sk = motion.skeleton
     pos = motion.global_positions() if positions is None else positions
-    limit = PLANT_HEIGHT * leg_length(sk)
+    limit = PLANT_HEIGHT * left_leg_length(sk)
     out: dict[str, list[np.ndarray]] = {"toe": [], "ankle": []}
     for part in out:
         for side in "lr":

@@ -37,7 +37,7 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 from scipy.signal import butter, filtfilt, lfilter
 
-from ..motion.features import backward_diff, compute_features, leg_length
+from ..motion.features import backward_diff, compute_features, left_leg_length
 from ..motion.skeleton import Motion
 
 BONES: tuple[str, ...] = ("Hand_L", "Hand_R", "Foot_L", "Foot_R")
@@ -267,7 +267,7 @@ def style_axes(motions: list[Motion], bones: tuple[str, ...] = BONES) -> Axes:
     for bone in bones:
         if bone in FOOT_SIDE:
             continue
-        pts = np.concatenate([lp[:, sk.index(bone)] / leg_length(sk) for lp, sk in feats])
+        pts = np.concatenate([lp[:, sk.index(bone)] / left_leg_length(sk) for lp, sk in feats])
         out[bone] = principal_axis(pts)
     return out
 
@@ -291,7 +291,7 @@ def local_phases(
     fps = motion.fps
     feats = compute_features(motion)
     sk = motion.skeleton
-    leg = leg_length(sk)
+    leg = left_leg_length(sk)
     local = feats.local_positions / leg  # leg lengths: skeleton-independent amplitudes
     sources = []
     for bone in bones:

@@ -43,8 +43,12 @@ def body_joint(skeleton: Skeleton, part: str) -> int:
     raise KeyError(f"skeleton has no joint for {part!r} (tried {', '.join(_PARTS[part])})")
 
 
-def leg_length(skeleton: Skeleton) -> float:
-    """Hip-to-ankle length at rest: the scale that makes thresholds skeleton-independent."""
+def left_leg_length(skeleton: Skeleton) -> float:
+    """Left hip-to-ankle length at rest: the scale that makes thresholds skeleton-independent
+    (foot contacts here, the metrics' skating and planting limits, Style-ERD's and LPN-FiLM's
+    features, the render solids). The left leg only, as those thresholds and the trained models'
+    inputs were set with it; `humanoid.leg_length` (mean of both legs, any rig) is the scale
+    *between* rigs. They differ on captured rigs: CMU 14.649 (left) vs 14.796 (mean) units."""
     rest = skeleton.rest_positions()
     hip, knee_to_ankle = body_joint(skeleton, "hip_l"), body_joint(skeleton, "ankle_l")
     total, j = 0.0, knee_to_ankle
@@ -97,7 +101,7 @@ def foot_contacts(
 ) -> np.ndarray:
     """(F, 2) contacts: a foot is planted when its ankle or toe is within `height` leg lengths
     of the floor (y = 0) and moves slower than `speed` leg lengths per second."""
-    leg = leg_length(skeleton)
+    leg = left_leg_length(skeleton)
     out = []
     for side in ("l", "r"):
         planted = np.zeros(positions.shape[0], dtype=bool)

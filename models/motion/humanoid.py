@@ -124,7 +124,7 @@ _BVH11 = {
     "Foot_R": "RightAnkle",
     "Toes_R": "RightToe",
 }
-CMU_TO_BN = {"cgspeed": _CGSPEED, "bvh11": _BVH11}
+CMU_TO_BN = {"cmu": _CGSPEED, "cmu-bvh11": _BVH11}  # by `rig_kind`: Xia uses the first, 100STYLE the second
 BN_NAMES = {b: b for b in _CGSPEED}
 
 
@@ -397,6 +397,14 @@ def match_roles(
     return preset, {r: roles[r] for r in ROLES if r in roles}
 
 
+def rig_kind(skeleton: Skeleton) -> str:
+    """What a skeleton is, by its joint names: the preset table `match_roles` matches
+    ('bandai-namco', the models' skeleton; 'cmu' and 'cmu-bvh11', CMU's two namings; 'mixamo',
+    'ue5', ...), else 'humanoid' (matched by aliases, or not at all: `humanoid_rig` says why).
+    The one classifier: the retargeter, the upload path and the tests all ask it."""
+    return match_roles(skeleton)[0] or "humanoid"
+
+
 def chest_role(roles: dict[str, int]) -> str:
     """The top spine role (the chest)."""
     return [r for r in SPINE if r in roles][-1]
@@ -502,8 +510,13 @@ def detect_up(skeleton: Skeleton, roles: dict[str, int]) -> str | None:
     return "yz"[axis - 1]
 
 
-def leg_length_of(skeleton: Skeleton, roles: dict[str, int]) -> float:
-    """Thigh + shin (mean of both legs), in the rig's units: pose-independent."""
+def leg_length(skeleton: Skeleton, roles: dict[str, int] | None = None) -> float:
+    """Thigh + shin (mean of both legs), in the rig's units: pose-independent. The scale between
+    rigs (the retargeter's units and stride) and of a rig's `units`. `roles` default to
+    `match_roles` (any rig it matches: BN, both CMU namings, Mixamo, ...). Not the feature scale
+    `features.left_leg_length`, which takes the left leg only (see there why both exist)."""
+    if roles is None:
+        roles = match_roles(skeleton)[1]
     return 0.5 * sum(path_length(skeleton, roles[f"upperleg_{s}"], roles[f"foot_{s}"]) for s in "lr")
 
 
@@ -534,7 +547,7 @@ class HumanoidRig:
 
     @property
     def leg_length(self) -> float:
-        return leg_length_of(self.skeleton, self.roles)
+        return leg_length(self.skeleton, self.roles)
 
     def joint(self, role: str) -> str:
         return self.skeleton.names[self.roles[role]]
@@ -588,7 +601,7 @@ def humanoid_rig(
         int(translated),
         up or detected or "y",
         handedness,
-        units or detect_units(leg_length_of(skeleton, roles)),
+        units or detect_units(leg_length(skeleton, roles)),
         up is None and detected is not None,
         dict(joint_map or {}),
     )

@@ -32,7 +32,7 @@ from functools import cache
 import numpy as np
 
 from .assets import bandai_namco_pose, cmu_pose
-from .features import UP, body_joint, facing_yaw, leg_length
+from .features import UP, body_joint, facing_yaw, left_leg_length
 from .humanoid import match_roles, split_name
 from .rotations import matrix_to_quat, quat_to_matrix
 from .skeleton import Motion, Skeleton
@@ -207,9 +207,9 @@ def _block(
 
 
 def _size(skeleton: Skeleton) -> float:
-    """Leg length (hip to ankle at rest), or half the rest pose's extent for skeletons without legs."""
+    """Left leg length (hip to ankle at rest), or half the rest pose's extent for skeletons without legs."""
     try:
-        return leg_length(skeleton)
+        return left_leg_length(skeleton)
     except KeyError:
         rest = skeleton.rest_positions()
         return 0.5 * float(np.ptp(rest, axis=0).max()) or 1.0

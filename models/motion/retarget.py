@@ -7,7 +7,7 @@ all rotations zero is meaningless (legs point up the spine). So the mapping is b
 
 1. `humanoid.match_roles` names the client joint of each body role (hips, spine, chest, neck,
    head, clavicles, arms, hands, legs, feet, toes); both CMU namings are presets of it
-   (`CMU_TO_BN`). `humanoid.bn_segments` gives, per BN bone, the client segment (between two
+   (`humanoid.CMU_TO_BN`). `humanoid.bn_segments` gives, per BN bone, the client segment (between two
    role joints, through any joints in between) whose direction it takes.
 2. Hips and Chest have several children: their global rotation is a two-vector frame of the
    client joint positions (the bone up the spine and the left-right vector between the legs /
@@ -39,7 +39,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .bn_skeleton import BN_JOINTS
-from .humanoid import CMU_TO_BN, HumanoidRig  # noqa: E402  (the CMU namings are one preset of the humanoid mapping)
+from .humanoid import HumanoidRig
 from .resample import resample
 from .rotations import quat_canonical
 from .skeleton import Motion, Skeleton, fk
@@ -99,14 +99,6 @@ def contact_height(toe_heights: np.ndarray, percentile: float = 5.0) -> float:
     return float(np.percentile(np.asarray(toe_heights).min(axis=-1), percentile))
 
 
-def source_variant(skeleton: Skeleton) -> str:
-    """'cgspeed' or 'bvh11', the CMU naming variant of a skeleton."""
-    for variant, mapping in CMU_TO_BN.items():
-        if all(name in skeleton.names for name in mapping.values()):
-            return variant
-    raise ValueError(f"not a CMU skeleton I know: {', '.join(skeleton.names)}")
-
-
 @lru_cache(maxsize=1)
 def default_rig() -> Rig:
     """The BN rig from the committed asset (first frame of Bandai Namco data set 2's first normal
@@ -117,12 +109,6 @@ def default_rig() -> Rig:
     return Rig(
         pose.skeleton, np.array(pose.rotations[0], dtype=float), BANDAI_NAMCO_TOE_FLOOR, tuple(pose.euler_orders)
     )
-
-
-def leg_length(skeleton: Skeleton, variant: str | None = None) -> float:
-    """Thigh + shin length (mean of both legs) of a BN or CMU skeleton, in its own units."""
-    names = dict(zip(BN_JOINTS, BN_JOINTS)) if variant is None else CMU_TO_BN[variant]
-    return 0.5 * sum(skeleton.chain_length(names[f"UpperLeg_{s}"], names[f"Foot_{s}"]) for s in "LR")
 
 
 def _frame(primary: np.ndarray, lateral: np.ndarray) -> np.ndarray:
@@ -290,7 +276,7 @@ def retarget(
 
 def bone_directions(motion: Motion, bones: list[tuple[str, str]], names: dict[str, str] | None = None) -> np.ndarray:
     """Unit world directions (F, B, 3) of bones given as (joint, child) pairs of BN names,
-    translated to the motion's own joints through `names` (e.g. `CMU_TO_BN[variant]`)."""
+    translated to the motion's own joints through `names` (e.g. `CMU_TO_BN[rig_kind(skeleton)]`)."""
     sk = motion.skeleton
     pos = motion.global_positions()
     idx = [(sk.index(names[a] if names else a), sk.index(names[b] if names else b)) for a, b in bones]

@@ -44,8 +44,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import retarget_kernels as kernels
-from .humanoid import BN_ROLES, HumanoidRig, bn_joints_of, bn_segments, humanoid_rig
-from .retarget import _LATERAL, _PRIMARY_CHILD, BN_JOINTS, Rig, TwistPlan, _frame, default_rig, leg_length
+from .humanoid import BN_ROLES, HumanoidRig, bn_joints_of, bn_segments, humanoid_rig, leg_length
+from .retarget import _LATERAL, _PRIMARY_CHILD, BN_JOINTS, Rig, TwistPlan, _frame, default_rig
 from .rotations import matrix_to_quat as mat_to_quat
 from .rotations import quat_to_matrix as quat_to_mat
 from .skeleton import Skeleton, fk
@@ -224,11 +224,6 @@ class FrameRetargeter:
         self.scale = leg_length(sk) / hr.leg_length
         self.source_floor = rig.floor / self.scale if source_floor is None else float(source_floor)
         self.vertical_offset = self._standing_offset() if vertical_offset is None else float(vertical_offset)
-
-    @property
-    def variant(self) -> str | None:
-        """The matched preset table ('cmu', 'cmu-bvh11', 'mixamo', ...), None for alias matches."""
-        return self.humanoid.preset
 
     # ----------------------------------------------------------------------- internals
 

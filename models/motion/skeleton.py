@@ -41,16 +41,6 @@ class Skeleton:
     def children(self, j: int) -> list[int]:
         return [i for i, p in enumerate(self.parents) if p == j]
 
-    def chain_length(self, start: str, end: str) -> float:
-        """Sum of bone lengths from `end` up to (excluding) `start`, e.g. hip to foot."""
-        j, k, total = self.index(end), self.index(start), 0.0
-        while j != k:
-            if j < 0:
-                raise ValueError(f"{start} is not an ancestor of {end}")
-            total += float(np.linalg.norm(self.offsets[j]))
-            j = int(self.parents[j])
-        return total
-
     def rest_positions(self) -> np.ndarray:
         """World joint positions with every rotation identity (the pose the offsets describe)."""
         pos = np.zeros((self.num_joints, 3))
