@@ -27,6 +27,7 @@ from .runtime import (
     STOP_ROOT_HOLD,
     STOP_SPEED,
     LPNModel,
+    read_balls,
 )
 from .weights import read_weights
 
@@ -202,4 +203,4 @@ def numpy_twin(model: LPNModel) -> NumpyLPNModel:
 
 def load(weights_dir: Path) -> NumpyLPNModel:
     arrays, skeleton, config = read_weights(weights_dir)
-    return NumpyLPNModel(arrays, skeleton, config)
+    return NumpyLPNModel(arrays, skeleton, config, read_balls(weights_dir))

@@ -21,6 +21,16 @@ clips), mixed barycentrically by the style weights; weights summing below 1 give
 `normal`. A style can be added from a clip (`add_style_from_clip`) or removed while sessions run:
 the state holds no per-style entries, so no state upgrade is needed.
 
+Rotation prior (`rotation_prior.npz` beside the weights, `models.motion.rotation_ball`): each
+built-in style's output rotations are held, per joint, inside the ball its real TRAIN clips fill
+around their mean rotation (the network's spine, Hips and shoulders otherwise left the real
+style's p99 range in 14-72 % of frames, worst joint on validation clips). Mixed weights take the
+weighted mean of each style's clamped rotation (`rotation_ball_kernels.clamp_mixed`). An uploaded
+style, or one replacing a built-in's FiLM vector, gets no clamp: it has no real data to fit a ball
+on, and a nearest built-in's ball would pull the new style back toward an old one. The ball is
+applied to the output only, before the feet are planted: the network's own state keeps its
+unclamped pose.
+
 State per session (session axis first): `frame`; the root trajectory history of the last 30
 frames + the current one (`hist_pos`, `hist_dir`, `hist_vel` world xz, `hist_gait`, `hist_phase`);
 the network's last future prediction (`fut_pos`, `fut_dir`, `fut_vel`, `fut_phase`, world); the
@@ -45,6 +55,8 @@ from ..motion.assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR
 from ..motion.features import body_joint
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter
+from ..motion.rotation_ball import StyleBalls
+from ..motion.rotation_ball_kernels import clamp_mixed
 from ..motion.rotations import quat_mul, yaw_quat
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import transfer_twist
@@ -54,6 +66,7 @@ from . import kernels
 from .styles import LPNStyles
 from .weights import read_weights
 
+BALLS_FILE = "rotation_prior.npz"  # per-style rotation balls (`models.lpn.rotation_prior`)
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
 PAST_IDX = np.arange(0, HIST, lf.STEP)  # history rows of the 7 past-and-current samples
 CONTROL_SMOOTH_S = 0.25  # input velocity smoothing for derived control
@@ -76,7 +89,9 @@ class LPNModel(LPNStyles):
     controllable = True  # reads FrameBatch.control (the service's `control` message)
     fps = lf.FPS
 
-    def __init__(self, arrays: dict[str, np.ndarray], skeleton: Skeleton, config: dict):
+    def __init__(
+        self, arrays: dict[str, np.ndarray], skeleton: Skeleton, config: dict, balls: StyleBalls | None = None
+    ):
         self.config = config
         self.skeleton = skeleton
         self.p = arrays
@@ -96,6 +111,12 @@ class LPNModel(LPNStyles):
         self._styles: list[str] = list(config["styles"])
         self._films: np.ndarray = a["style_film"].reshape(len(self._styles), 4 * self.H)
         self._generator = None
+        self.balls = balls
+        # per style (aligned with _styles, replaced together under the lock): mean (S, 22, 4),
+        # radii (S, 2, 22); None: no prior file
+        self._ball: tuple[np.ndarray, np.ndarray] | None = (
+            balls.for_styles(self._styles, skeleton.num_joints) if balls is not None else None
+        )
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
         self.parents = sk.parents
@@ -147,9 +168,20 @@ class LPNModel(LPNStyles):
                 films = self._films.copy()
                 films[self._styles.index(name)] = row[0]
                 self._films = films
+                if self._ball is not None:  # no longer the built-in style its ball was fitted on
+                    radii = self._ball[1].copy()
+                    radii[self._styles.index(name)] = np.inf
+                    self._ball = (self._ball[0], radii)
             else:
                 self._films = np.concatenate([self._films, row])
                 self._styles = self._styles + [name]
+                if self._ball is not None:
+                    mean, radii = self._ball
+                    identity = np.tile((0.0, 0.0, 0.0, 1.0), (1, mean.shape[1], 1))
+                    self._ball = (
+                        np.concatenate([mean, identity]),
+                        np.concatenate([radii, np.full_like(radii[:1], np.inf)]),
+                    )
 
     def remove_style(self, name: str) -> None:
         if name == "normal":
@@ -160,6 +192,8 @@ class LPNModel(LPNStyles):
             k = self._styles.index(name)
             self._films = np.delete(self._films, k, axis=0)
             self._styles = self._styles[:k] + self._styles[k + 1 :]
+            if self._ball is not None:
+                self._ball = (np.delete(self._ball[0], k, axis=0), np.delete(self._ball[1], k, axis=0))
 
     def generator(self):
         """The torch network (for the FiLM generator; built on first use)."""
@@ -178,6 +212,9 @@ class LPNModel(LPNStyles):
         """(B, S) style weights -> (B, 4, H) FiLM; the weights' shortfall from 1 goes to `normal`."""
         with self._lock:
             films, styles = self._films, self._styles
+        return self._blend(films, styles, weights)
+
+    def _blend(self, films: np.ndarray, styles: list[str], weights: np.ndarray) -> np.ndarray:
         w = np.asarray(weights, np.float32)
         if w.ndim != 2 or w.shape[1] != len(styles):
             raise ValueError(f"style_weights must be (B, {len(styles)}), got {w.shape}")
@@ -250,7 +287,9 @@ class LPNModel(LPNStyles):
         root = np.asarray(frames.root, np.float32)
         rot_in = np.asarray(frames.rotations, np.float32)
         B = root.shape[0]
-        film = self.blend_films(style_weights)
+        with self._lock:  # one snapshot of the style set: the FiLM rows and the balls agree
+            films, styles, ball = self._films, self._styles, self._ball
+        film = self._blend(films, styles, style_weights)
         if film.shape[0] != B:
             raise ValueError(f"style_weights has {film.shape[0]} rows for {B} frames")
         s = {k: v.copy() for k, v in state.items()}
@@ -262,6 +301,8 @@ class LPNModel(LPNStyles):
         y = self._network(x, g, film)
         out_root, out_rot, contacts = self._advance(s, y, control)
         out_rot = self._untwist(out_rot)
+        if ball is not None:
+            out_rot = self._hold(out_rot, style_weights, styles.index("normal"), ball)
         out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
@@ -273,6 +314,21 @@ class LPNModel(LPNStyles):
         skinned body. Leaves and limb roots keep the network's rotations (`OWN_ROTATIONS`)."""
         source = np.broadcast_to(self._natural_pose, rotations.shape)
         return transfer_twist(self.skeleton, source, rotations, OWN_ROTATIONS).astype(rotations.dtype)
+
+    def _hold(
+        self, rotations: np.ndarray, weights: np.ndarray, normal: int, ball: tuple[np.ndarray, np.ndarray]
+    ) -> np.ndarray:
+        """The output rotations held inside the styles' rotation balls (module docstring)."""
+        out = np.empty(rotations.shape, np.float64)
+        clamp_mixed(
+            np.ascontiguousarray(rotations, np.float64),
+            np.ascontiguousarray(weights, np.float64),
+            normal,
+            ball[0],
+            ball[1],
+            out,
+        )
+        return out.astype(rotations.dtype)
 
     @cached_property
     def _natural_pose(self) -> np.ndarray:
@@ -478,6 +534,12 @@ class LPNModel(LPNStyles):
         return np.array([mix.get(n, 0.0) for n in names], np.float32)
 
 
+def read_balls(weights_dir: Path) -> StyleBalls | None:
+    """The rotation prior beside the weights (`BALLS_FILE`), or None if there is none."""
+    path = Path(weights_dir) / BALLS_FILE
+    return StyleBalls.load(path) if path.exists() else None
+
+
 def load(weights_dir: Path) -> LPNModel:
     arrays, skeleton, config = read_weights(weights_dir)
-    return LPNModel(arrays, skeleton, config)
+    return LPNModel(arrays, skeleton, config, read_balls(weights_dir))

@@ -23,6 +23,7 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS
+from ..motion.rotation_ball_kernels import clamp_joint as _clamp_joint
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
 
@@ -335,34 +336,6 @@ def _style_outputs(s, w, z, feats, col, blend_w, x_out, P, keep_heading, root_fe
     return _planted(x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 0), _planted(
         x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 1
     )
-
-
-@njit(cache=True, error_model="numpy")
-def _clamp_joint(q, mean, inner, outer, hips):
-    """prior.clamp_rotations for one joint: q held within the style's ball around `mean` (the
-    Hips compared without its twist about up, which is put back)."""
-    twist = (0.0, 0.0, 0.0, 1.0)
-    if hips:
-        n = math.sqrt(q[1] * q[1] + q[3] * q[3])
-        if n > 1e-12:
-            twist = (0.0, q[1] / n, 0.0, q[3] / n)
-        c = qmul(qinv(twist), q)
-    else:
-        c = q
-    rel = qmul(qinv(mean), c)
-    if rel[3] < 0.0:
-        rel = (-rel[0], -rel[1], -rel[2], -rel[3])
-    s = math.sqrt(rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2])
-    d = 2.0 * math.atan2(s, rel[3])
-    if not d > inner:
-        return q
-    span = max(outer - inner, 1e-12)
-    new_d = min(inner + span * math.tanh((d - inner) / span), outer)
-    if not new_d < d:
-        return q
-    k = math.sin(0.5 * new_d) / max(s, 1e-300)
-    c = qmul(mean, (rel[0] * k, rel[1] * k, rel[2] * k, math.cos(0.5 * new_d)))
-    return qmul(twist, c) if hips else c
 
 
 @njit(cache=True, error_model="numpy")

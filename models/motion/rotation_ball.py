@@ -1,0 +1,185 @@
+"""Rotation ball: every joint's output rotation stays inside the ball that real data of the output
+style fills around that joint's mean rotation. Used by LTI (`models.lti.prior`) and LPN-FiLM
+(`models.lpn.runtime`); the per-frame compiled form is `rotation_ball_kernels.py`.
+
+Why: a model's output can carry a joint past anything the style shows (LTI is linear in the
+exponential map, so a deep bend near the edge of the data is carried further; LPN-FiLM's spine and
+shoulders drift out of the style's range). What a skinned character shows is the rotation itself,
+so the output is held to the region real data of the style occupies: per joint, the angle d to the
+style's mean rotation is kept as it is up to an inner radius and then saturates smoothly (tanh)
+toward an outer radius it never passes:
+
+    d' = d                                                  d <= inner
+    d' = inner + (outer - inner) tanh((d - inner) / (outer - inner))   d > inner
+
+along the same geodesic from the mean (the direction of the rotation away from the mean is kept,
+only its distance shrinks). The map is continuous with a continuous first derivative, so a
+trajectory crossing the inner radius does not kink, and it is the identity inside.
+
+The Hips rotation carries the heading, which is arbitrary: it is compared without its twist about
+world up (q = t * c with t the twist of q about +Y, as `models.eval.plausibility` does), so the
+ball is the same whatever way the character faces; the twist is put back after clamping.
+
+Radii are quantiles of real angles (`fit_prior`): inner = `inner_q`, outer = `outer_q` minus a
+`margin`. `StyleBalls` holds one ball per style (saved as a small npz beside a model's weights).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+HIPS = 1  # the Bandai Namco model rig: joint_Root (static, index 0), then Hips
+NO_PRIOR = np.inf  # radius of a joint (or a style) without a prior: nothing is clamped
+
+
+def _mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        axis=-1,
+    )
+
+
+def _inv(q: np.ndarray) -> np.ndarray:
+    return q * np.array([-1.0, -1.0, -1.0, 1.0])
+
+
+def up_twist(q: np.ndarray) -> np.ndarray:
+    """(..., 4) -> the twist of q about world up (+Y), (0, y, 0, w) normalised; identity when q
+    has no part about Y (a half turn about a horizontal axis)."""
+    t = np.zeros_like(q)
+    t[..., 1], t[..., 3] = q[..., 1], q[..., 3]
+    n = np.linalg.norm(t, axis=-1, keepdims=True)
+    return np.where(n > 1e-12, t / np.maximum(n, 1e-300), np.array([0.0, 0.0, 0.0, 1.0]))
+
+
+def comparable(rotations: np.ndarray) -> np.ndarray:
+    """(..., J, 4) local rotations -> the same with the Hips' twist about up removed (c in q = t c)."""
+    out = np.array(rotations, float, copy=True)
+    out /= np.linalg.norm(out, axis=-1, keepdims=True)
+    h = out[..., HIPS, :]
+    out[..., HIPS, :] = _mul(_inv(up_twist(h)), h)
+    return out
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return 2.0 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
+
+
+def mean_rotation(q: np.ndarray) -> np.ndarray:
+    """(N, 4) -> (4,) sign-blind mean (principal eigenvector of sum q q^T), w >= 0."""
+    _, vecs = np.linalg.eigh(q.T @ q)
+    m = vecs[:, -1]
+    return m if m[3] >= 0 else -m
+
+
+def fit_prior(
+    rotations: np.ndarray, inner_q: float = 97.0, outer_q: float = 99.0, margin_deg: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Real frames (F, J, 4) of one style -> (mean (J, 4), radii (2, J): inner, outer, radians).
+    Joint 0 (`joint_Root`, static) gets no prior. The outer radius sits `margin_deg` inside the
+    real `outer_q` quantile, so an output on it is still within that quantile of real frames; the
+    inner radius is the `inner_q` quantile, at most the outer one."""
+    c = comparable(rotations)
+    joints = c.shape[-2]
+    mean = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (joints, 1))
+    radii = np.full((2, joints), NO_PRIOR)
+    for j in range(1, joints):
+        mean[j] = mean_rotation(c[:, j])
+        d = _angle(c[:, j], mean[j])
+        outer = max(np.percentile(d, outer_q) - np.radians(margin_deg), 1e-3)
+        radii[:, j] = min(np.percentile(d, inner_q), outer), outer
+    return mean, radii
+
+
+def saturate(d: np.ndarray, inner: np.ndarray, outer: np.ndarray) -> np.ndarray:
+    """The clamped distance d' (see the module docstring); `inner`/`outer` broadcast with d."""
+    with np.errstate(invalid="ignore"):  # inf radii (no prior): d stays
+        span = np.maximum(outer - inner, 1e-12)
+        soft = inner + span * np.tanh((d - inner) / span)
+    return np.where(d > inner, np.minimum(soft, outer), d)
+
+
+def clamp_rotations(rotations: np.ndarray, mean: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(..., J, 4) local rotations (the Hips with or without its heading) held inside the ball
+    (`fit_prior`); a rotation inside the inner radius is returned unchanged."""
+    q = np.array(rotations, float, copy=True)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    twist = up_twist(q[..., HIPS, :])
+    q[..., HIPS, :] = _mul(_inv(twist), q[..., HIPS, :])
+    rel = _mul(_inv(mean), q)  # rotation from the mean, taken with w >= 0 (the short way)
+    rel = np.where(rel[..., 3:] < 0, -rel, rel)
+    s = np.linalg.norm(rel[..., :3], axis=-1)
+    d = 2.0 * np.arctan2(s, rel[..., 3])
+    new_d = saturate(d, radii[0], radii[1])
+    moved = new_d < d
+    axis = rel[..., :3] / np.maximum(s, 1e-300)[..., None]
+    half = 0.5 * new_d[..., None]
+    clamped = _mul(mean, np.concatenate([axis * np.sin(half), np.cos(half)], axis=-1))
+    q = np.where(moved[..., None], clamped, q)
+    q[..., HIPS, :] = _mul(twist, q[..., HIPS, :])
+    # rotations that were not moved are returned exactly as given (same sign, no round trip)
+    return np.where(moved[..., None], q, rotations)
+
+
+@dataclass(frozen=True)
+class StyleBalls:
+    """One ball per named style: `mean` (S, J, 4), `radii` (S, 2, J) inner / outer (radians), and
+    how they were fitted (`fit`: quantiles, margin, data), saved beside a model's weights."""
+
+    styles: tuple[str, ...]
+    mean: np.ndarray
+    radii: np.ndarray
+    fit: dict = field(default_factory=dict)
+
+    @classmethod
+    def fit_styles(
+        cls, rotations: dict[str, np.ndarray], inner_q: float, outer_q: float, margin_deg: float, data: str = ""
+    ) -> StyleBalls:
+        """Per style, real frames (F, J, 4) -> its ball (`fit_prior`)."""
+        fitted = [fit_prior(q, inner_q, outer_q, margin_deg) for q in rotations.values()]
+        return cls(
+            tuple(rotations),
+            np.stack([m for m, _ in fitted]),
+            np.stack([r for _, r in fitted]),
+            {"inner_q": inner_q, "outer_q": outer_q, "margin_deg": margin_deg, "data": data},
+        )
+
+    def for_styles(self, names: list[str] | tuple[str, ...], joints: int) -> tuple[np.ndarray, np.ndarray]:
+        """(mean (S, J, 4), radii (S, 2, J)) aligned with `names`; a name without a ball gets
+        infinite radii (nothing clamped)."""
+        mean = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (len(names), joints, 1))
+        radii = np.full((len(names), 2, joints), NO_PRIOR)
+        for k, name in enumerate(names):
+            if name in self.styles:
+                i = self.styles.index(name)
+                mean[k], radii[k] = self.mean[i], self.radii[i]
+        return mean, radii
+
+    def save(self, path: Path) -> Path:
+        import json
+
+        np.savez_compressed(
+            path,
+            styles=np.array(self.styles),
+            mean=self.mean.astype(np.float64),
+            radii=self.radii.astype(np.float64),
+            fit=np.array(json.dumps(self.fit)),
+        )
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> StyleBalls:
+        import json
+
+        with np.load(path) as z:
+            return cls(tuple(str(s) for s in z["styles"]), z["mean"], z["radii"], json.loads(str(z["fit"])))

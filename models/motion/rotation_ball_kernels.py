@@ -1,0 +1,109 @@
+"""Compiled rotation ball (`rotation_ball.py`) for streaming steps: one joint of one frame on
+4-tuples (`clamp_joint`, used inside LTI's step kernel), and a whole batch of frames under mixed
+style weights (`clamp_mixed`, LPN-FiLM). Float64; equal to `rotation_ball.clamp_rotations` to
+round-off (tests).
+
+numba's on-disk cache of a kernel that calls `clamp_joint` from another module is keyed on that
+kernel's own file only: after editing this file, clear `__pycache__` of its callers (LTI's kernels).
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+HIPS = 1
+
+
+@njit(cache=True, error_model="numpy")
+def qmul(a, b):
+    """Hamilton product a * b (apply b, then a)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
+
+
+@njit(cache=True, error_model="numpy")
+def qinv(q):
+    return (-q[0], -q[1], -q[2], q[3])
+
+
+@njit(cache=True, error_model="numpy")
+def clamp_joint(q, mean, inner, outer, hips):
+    """rotation_ball.clamp_rotations for one joint: q held within the style's ball around `mean`
+    (the Hips compared without their twist about up, which is put back)."""
+    twist = (0.0, 0.0, 0.0, 1.0)
+    if hips:
+        n = math.sqrt(q[1] * q[1] + q[3] * q[3])
+        if n > 1e-12:
+            twist = (0.0, q[1] / n, 0.0, q[3] / n)
+        c = qmul(qinv(twist), q)
+    else:
+        c = q
+    rel = qmul(qinv(mean), c)
+    if rel[3] < 0.0:
+        rel = (-rel[0], -rel[1], -rel[2], -rel[3])
+    s = math.sqrt(rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2])
+    d = 2.0 * math.atan2(s, rel[3])
+    if not d > inner:
+        return q
+    span = max(outer - inner, 1e-12)
+    new_d = min(inner + span * math.tanh((d - inner) / span), outer)
+    if not new_d < d:
+        return q
+    k = math.sin(0.5 * new_d) / max(s, 1e-300)
+    c = qmul(mean, (rel[0] * k, rel[1] * k, rel[2] * k, math.cos(0.5 * new_d)))
+    return qmul(twist, c) if hips else c
+
+
+@njit(cache=True, error_model="numpy")
+def clamp_mixed(rotations, weights, rest_style, mean, radii, out):
+    """Frames (B, J, 4) under style weights (B, S) -> out (B, J, 4): per joint, the weighted mean
+    of the rotation held in each active style's ball (`clamp_joint`), the weights' shortfall from
+    1 given to `rest_style` (negative weights count as 0; signs aligned to the heaviest style's
+    result, the first on ties). One style at weight 1: exactly its ball. The result moves continuously with the
+    weights, so a style fade does not jump between balls. Joint 0 is copied."""
+    B, S = weights.shape
+    J = rotations.shape[1]
+    for b in range(B):
+        total = 0.0
+        for s in range(S):
+            total += max(weights[b, s], 0.0)
+        rest = max(1.0 - total, 0.0)
+        base, base_w = 0, -1.0
+        for s in range(S):
+            w = max(weights[b, s], 0.0) + (rest if s == rest_style else 0.0)
+            if w > base_w:
+                base, base_w = s, w
+        for c in range(4):
+            out[b, 0, c] = rotations[b, 0, c]
+        for j in range(1, J):
+            q = (rotations[b, j, 0], rotations[b, j, 1], rotations[b, j, 2], rotations[b, j, 3])
+            n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+            q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+            ref = clamp_joint(q, _row(mean, base, j), radii[base, 0, j], radii[base, 1, j], j == HIPS)
+            acc = (0.0, 0.0, 0.0, 0.0)
+            for s in range(S):
+                w = max(weights[b, s], 0.0) + (rest if s == rest_style else 0.0)
+                if w <= 0.0:
+                    continue
+                p = ref if s == base else clamp_joint(q, _row(mean, s, j), radii[s, 0, j], radii[s, 1, j], j == HIPS)
+                if p[0] * ref[0] + p[1] * ref[1] + p[2] * ref[2] + p[3] * ref[3] < 0.0:
+                    w = -w
+                acc = (acc[0] + w * p[0], acc[1] + w * p[1], acc[2] + w * p[2], acc[3] + w * p[3])
+            n = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
+            if n < 1e-12:
+                acc, n = ref, 1.0
+            for c in range(4):
+                out[b, j, c] = acc[c] / n
+
+
+@njit(cache=True, error_model="numpy")
+def _row(a, s, j):
+    return (a[s, j, 0], a[s, j, 1], a[s, j, 2], a[s, j, 3])

@@ -1,0 +1,85 @@
+"""LPN-FiLM's rotation prior (`rotation_prior.npz`, `models.motion.rotation_ball`): streamed output
+stays inside each style's ball; mixed weights blend the balls; uploaded styles are not clamped."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.data import build_index, load_motion, select
+from models.lpn import load
+from models.lpn.runtime import LPNModel
+from models.motion.feet import LEGS
+from models.motion.rotation_ball import clamp_rotations, comparable
+from models.motion.rotation_ball_kernels import clamp_mixed
+from models.motion.rotations import quat_angle
+from models.settings import get_settings
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load(get_settings().weights_dir / "lpn")
+
+
+@pytest.fixture(scope="module")
+def walk():
+    index = build_index(["bandai-namco-2"])
+    clip = select(index, split="val", style="normal", content="walk")[0]
+    return load_motion(clip).slice(0, 90)
+
+
+def _beyond(model, motion, style: str) -> np.ndarray:
+    """(T, J) angle past the style's outer radius (radians, <= 0 inside) of each joint the foot
+    planter does not re-pose (it runs after the prior and moves only the legs)."""
+    k = model.balls.styles.index(style)
+    mean, radii = model.balls.mean[k], model.balls.radii[k]
+    keep = [j for j in range(1, 22) if model.skeleton.names[j] not in sum(LEGS, ())]
+    angle = quat_angle(comparable(motion.rotations.astype(np.float64)), mean)
+    return (angle - radii[1])[:, keep]
+
+
+def test_streamed_output_stays_inside_the_ball(model, walk):
+    bare = LPNModel(model.p, model.skeleton, model.config)  # the same network without the prior
+    left = []
+    for style in ("elderly", "exhausted"):
+        out, _ = model.run(walk, model.weight_vector({style: 1.0}))
+        assert _beyond(model, out, style).max() < 1e-3, style  # float32 output: round-off only
+        loose, _ = bare.run(walk, bare.weight_vector({style: 1.0}))
+        left.append((_beyond(model, loose, style) > 0).mean())
+    assert max(left) > 0.01  # the network alone does leave the ball (exhausted: its spine)
+
+
+def test_mixed_weights_blend_each_styles_clamp(model, walk):
+    """One style at weight 1: exactly its ball (the numpy map); a mix: the normalised weighted
+    mean of each style's clamped rotation, the shortfall from 1 going to `normal`."""
+    q = walk.rotations.astype(np.float64)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)  # stored in float32: arccos would magnify that
+    mean, radii = model.balls.for_styles(model.styles(), 22)
+    e, x, n = (model.styles().index(s) for s in ("elderly", "exhausted", "normal"))
+    w = np.zeros((len(q), len(model.styles())))
+    w[:, e] = 1.0
+    out = np.empty_like(q)
+    clamp_mixed(q, w, n, mean, radii, out)
+    assert quat_angle(out, clamp_rotations(q, mean[e], radii[e])).max() < 1e-6
+    w[:, e], w[:, x] = 0.5, 0.3
+    clamp_mixed(q, w, n, mean, radii, out)
+    parts = [clamp_rotations(q, mean[s], radii[s]) for s in (e, x, n)]
+    signs = [np.sign(np.sum(p * parts[0], -1, keepdims=True)) for p in parts]
+    want = sum(k * s * p for k, s, p in zip((0.5, 0.3, 0.2), signs, parts))
+    want /= np.linalg.norm(want, axis=-1, keepdims=True)
+    assert quat_angle(out[:, 1:], want[:, 1:]).max() < 1e-6
+
+
+def test_uploaded_styles_are_not_clamped(model, walk):
+    twin = model.with_own_styles()
+    twin.set_style_film("mine", twin.film_of("elderly"))
+    twin.set_style_film("elderly", twin.film_of("elderly"))  # a built-in's vector replaced: no longer its data
+    mean, radii = twin._ball
+    for name in ("mine", "elderly"):
+        assert np.isinf(radii[twin.styles().index(name)]).all()
+    assert np.isfinite(radii[twin.styles().index("exhausted"), :, 1:]).all()
+    assert np.isfinite(model._ball[1][model.styles().index("elderly"), :, 1:]).all()  # the original keeps it
+    twin.remove_style("mine")
+    assert len(twin._ball[0]) == len(twin._ball[1]) == len(twin.styles())
+    out, _ = twin.run(walk, twin.weight_vector({"elderly": 1.0}))
+    assert np.isfinite(out.rotations).all()
