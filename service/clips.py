@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from models.motion import bvh as bvhio
-from models.motion.humanoid import RigError, rig_from_bvh
+from models.motion.humanoid import RigError, rig_from_bvh, rig_kind
 from models.motion.resample import resample
 from models.motion.retarget import retarget
 from models.motion.skeleton import Motion, Skeleton, from_bvh
@@ -86,7 +86,8 @@ def motion_from_bvh(text: str, skeleton: Skeleton, parsed: bvhio.BvhFile | None 
         ) from None
     bn = retarget(motion, fps=MODEL_FPS, source=rig)
     idx = [bn.skeleton.index(n) for n in skeleton.names]
-    kind = {"cmu-bvh11": "cmu"}.get(rig.preset or "", rig.preset) or "humanoid"
+    kind = rig_kind(rig)
+    kind = {"cmu-bvh11": "cmu"}.get(kind, kind)  # the API names presets: 'cmu' is either CMU naming
     return clip_on_skeleton(
         skeleton, bn.translations[:, bn.skeleton.index("Hips")], bn.rotations[:, idx], MODEL_FPS
     ), kind

@@ -397,12 +397,14 @@ def match_roles(
     return preset, {r: roles[r] for r in ROLES if r in roles}
 
 
-def rig_kind(skeleton: Skeleton) -> str:
+def rig_kind(rig: Skeleton | HumanoidRig) -> str:
     """What a skeleton is, by its joint names: the preset table `match_roles` matches
     ('bandai-namco', the models' skeleton; 'cmu' and 'cmu-bvh11', CMU's two namings; 'mixamo',
     'ue5', ...), else 'humanoid' (matched by aliases, or not at all: `humanoid_rig` says why).
-    The one classifier: the retargeter, the upload path and the tests all ask it."""
-    return match_roles(skeleton)[0] or "humanoid"
+    A matched `HumanoidRig` answers from its match. The one classifier: the upload path and the
+    tests ask it."""
+    preset = rig.preset if isinstance(rig, HumanoidRig) else match_roles(rig)[0]
+    return preset or "humanoid"
 
 
 def chest_role(roles: dict[str, int]) -> str:
