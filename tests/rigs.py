@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models.motion.bn_skeleton import PRIMARY_CHILD
 from models.motion.rotations import matrix_to_quat, quat_to_matrix
 from models.motion.skeleton import Motion, Skeleton
 
@@ -420,24 +421,6 @@ _TPOSE = {
     "LowerLeg_R": (0, -1, 0),
     "Foot_R": (0, -0.5, 1),
 }
-_MAIN_CHILD = {
-    "Hips": "Spine",
-    "Spine": "Chest",
-    "Chest": "Neck",
-    "Neck": "Head",
-    "Shoulder_L": "UpperArm_L",
-    "UpperArm_L": "LowerArm_L",
-    "LowerArm_L": "Hand_L",
-    "Shoulder_R": "UpperArm_R",
-    "UpperArm_R": "LowerArm_R",
-    "LowerArm_R": "Hand_R",
-    "UpperLeg_L": "LowerLeg_L",
-    "LowerLeg_L": "Foot_L",
-    "Foot_L": "Toes_L",
-    "UpperLeg_R": "LowerLeg_R",
-    "LowerLeg_R": "Foot_R",
-    "Foot_R": "Toes_R",
-}
 
 
 def _swing(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -472,7 +455,7 @@ def make_rig(bn: Motion, spec: RigSpec) -> Motion:
             trans[c] = (1 - frac) * trans[c]
             parents[c] = n
         else:  # a leaf halfway along the parent's main bone
-            c = names.index(_MAIN_CHILD.get(parent, parent))
+            c = names.index(PRIMARY_CHILD.get(parent, parent))
             add(new, p, frac * trans[c][0] if c != p else np.array([0.0, 5.0, 0.0]))
     for new, parent in spec.fingers:
         p = (
@@ -512,7 +495,7 @@ def make_rig(bn: Motion, spec: RigSpec) -> Motion:
                 target = np.array(_TPOSE[bn_name], float)
                 if spec.rest == "apose" and ("Arm" in bn_name):
                     target = target + np.array([0, -1.0, 0])
-                child = names.index(_MAIN_CHILD[bn_name])
+                child = names.index(PRIMARY_CHILD[bn_name])
                 while parents[child] != j:
                     child = parents[child]
                 c[j] = _swing(trans[0, child], target).T

@@ -35,3 +35,24 @@ BN_JOINTS = (
 NUM_JOINTS = len(BN_JOINTS)
 ROOT = BN_JOINTS.index("joint_Root")  # static at the origin, identity rotation
 HIPS = BN_JOINTS.index("Hips")  # carries the world translation and heading
+
+# BN joint -> its main child, along the limb or up the spine: the bone the joint's rotation points
+# (the retargeter matches it; joints not listed are leaves).
+PRIMARY_CHILD = {
+    "Hips": "Spine",
+    "Spine": "Chest",
+    "Chest": "Neck",
+    "Neck": "Head",
+    "Shoulder_L": "UpperArm_L",
+    "UpperArm_L": "LowerArm_L",
+    "LowerArm_L": "Hand_L",
+    "Shoulder_R": "UpperArm_R",
+    "UpperArm_R": "LowerArm_R",
+    "LowerArm_R": "Hand_R",
+    "UpperLeg_L": "LowerLeg_L",
+    "LowerLeg_L": "Foot_L",
+    "Foot_L": "Toes_L",
+    "UpperLeg_R": "LowerLeg_R",
+    "LowerLeg_R": "Foot_R",
+    "Foot_R": "Toes_R",
+}

@@ -38,31 +38,12 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .bn_skeleton import BN_JOINTS
+from .bn_skeleton import BN_JOINTS, PRIMARY_CHILD
 from .humanoid import HumanoidRig
 from .resample import resample
 from .rotations import quat_canonical
 from .skeleton import Motion, Skeleton, fk
 
-# BN joint -> the child whose bone its rotation is matched on (joints not listed are leaves).
-_PRIMARY_CHILD = {
-    "Hips": "Spine",
-    "Spine": "Chest",
-    "Chest": "Neck",
-    "Neck": "Head",
-    "Shoulder_L": "UpperArm_L",
-    "UpperArm_L": "LowerArm_L",
-    "LowerArm_L": "Hand_L",
-    "Shoulder_R": "UpperArm_R",
-    "UpperArm_R": "LowerArm_R",
-    "LowerArm_R": "Hand_R",
-    "UpperLeg_L": "LowerLeg_L",
-    "LowerLeg_L": "Foot_L",
-    "Foot_L": "Toes_L",
-    "UpperLeg_R": "LowerLeg_R",
-    "LowerLeg_R": "Foot_R",
-    "Foot_R": "Toes_R",
-}
 # Joints with several children: (left child, right child) fixing the twist of the up vector.
 # The client side takes the vector between its upper legs / upper arms (CMU collars sit on the
 # spine, so the chest's left-right vector is taken between the shoulder joints).
@@ -70,7 +51,7 @@ _LATERAL = {"Hips": ("UpperLeg_L", "UpperLeg_R"), "Chest": ("Shoulder_L", "Shoul
 
 # Bones (BN parent, BN child) that span the same body segment in both skeletons: their directions
 # are matched exactly and are what `bone_directions` compares.
-MATCHED_BONES = tuple((p, c) for p, c in _PRIMARY_CHILD.items())
+MATCHED_BONES = tuple((p, c) for p, c in PRIMARY_CHILD.items())
 
 
 @dataclass(frozen=True)
@@ -204,13 +185,13 @@ class TwistPlan:
                 js = np.array([sk.index(n) for n in names])
                 g = {"kind": kind, "j": js, "p": sk.parents[js], "nat": nat[js]}
                 if kind in ("swing", "limb"):
-                    g["b"] = np.stack([_unit(off(_PRIMARY_CHILD[n])) for n in names])
+                    g["b"] = np.stack([_unit(off(PRIMARY_CHILD[n])) for n in names])
                     g["dir"] = np.array([col[n] for n in names])
                 if kind == "limb":
                     hinge = [_HINGES[n] for n in names]
                     g["dir_c"] = np.array([col[h] for h in hinge])
                     # the natural bend's axis in the limb joint's frame: cross(upper bone, lower bone)
-                    k = np.stack([_unit(np.cross(off(h), nat[sk.index(h)] @ off(_PRIMARY_CHILD[h]))) for h in hinge])
+                    k = np.stack([_unit(np.cross(off(h), nat[sk.index(h)] @ off(PRIMARY_CHILD[h]))) for h in hinge])
                     g["k"] = k
                     g["m_loc_t"] = np.swapaxes(_frame(g["b"], k), -1, -2)
                 self.groups.append(g)

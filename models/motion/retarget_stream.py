@@ -44,8 +44,9 @@ from __future__ import annotations
 import numpy as np
 
 from . import retarget_kernels as kernels
+from .bn_skeleton import BN_JOINTS, PRIMARY_CHILD
 from .humanoid import BN_ROLES, HumanoidRig, bn_joints_of, bn_segments, humanoid_rig, leg_length
-from .retarget import _LATERAL, _PRIMARY_CHILD, BN_JOINTS, Rig, TwistPlan, _frame, default_rig
+from .retarget import _LATERAL, Rig, TwistPlan, _frame, default_rig
 from .rotations import matrix_to_quat as mat_to_quat
 from .rotations import quat_to_matrix as quat_to_mat
 from .skeleton import Skeleton, fk
@@ -168,7 +169,7 @@ class FrameRetargeter:
                 (BN_ROLES[tr].replace("clavicle", "upperarm"), BN_ROLES[tl].replace("clavicle", "upperarm")),
             ]
             off = lambda n: sk.offsets[sk.index(n)]  # noqa: E731
-            m_tgt.append(_frame(off(_PRIMARY_CHILD[name]), off(tl) - off(tr)))
+            m_tgt.append(_frame(off(PRIMARY_CHILD[name]), off(tl) - off(tr)))
         terms = [_path_terms(src, roles[a], roles[b]) for a, b in pairs]
         flat = sorted({k for t in terms for k, _ in t})
         self._num_plain = len(plain)
