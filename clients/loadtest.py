@@ -159,14 +159,22 @@ def _pack(seq: int, payload: np.ndarray) -> bytes:
 
 
 def _worker(
-    url: str, start: dict | None, offsets: list[float], fps: float, seconds: float, results, go, characters: int = 1
+    url: str,
+    start: dict | None,
+    offsets: list[float],
+    fps: float,
+    seconds: float,
+    results,
+    go,
+    frames: tuple[np.ndarray, np.ndarray],
+    characters: int = 1,
 ) -> None:
-    """A client process with one session per clock offset in `offsets`. Once all its sessions are
-    connected it puts "ready" on `results` and waits for the common clock start on `go`; at the
-    end it puts (latencies, dropped, frames sent behind, CPU s), or the traceback if it failed,
-    so the parent never waits on a process that died."""
+    """A client process with one session per clock offset in `offsets`, sending `frames` (root,
+    rotations). Once all its sessions are connected it puts "ready" on `results` and waits for the
+    common clock start on `go`; at the end it puts (latencies, dropped, frames sent behind, CPU s),
+    or the traceback if it failed, so the parent never waits on a process that died."""
     try:
-        root, rot = real_frames()
+        root, rot = frames
         payload = np.concatenate([root, rot.reshape(len(rot), -1)], axis=1).astype("<f4")
         stats = {"latency": [], "dropped": 0, "behind": 0}
 
@@ -253,13 +261,16 @@ def run(
     if characters > 1 and not echo:
         crowd = [{"id": k, "model": model, "style": style} for k in range(characters)]
         start = {"type": "crowd", "fps": fps, "characters": crowd}
+    frames = real_frames()  # read here, once: a machine without the data says so before any client starts
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
     offsets = clock_offsets(sessions, fps, phase)
     gos = [ctx.Queue() for _ in range(min(processes, sessions))]  # one clock-start message per process
     # session k goes to process k % processes, so each process has sessions of every phase
     procs = [
-        ctx.Process(target=_worker, args=(url, start, offsets[i::processes], fps, seconds, results, go, characters))
+        ctx.Process(
+            target=_worker, args=(url, start, offsets[i::processes], fps, seconds, results, go, frames, characters)
+        )
         for i, go in enumerate(gos)
     ]
     for p in procs:

@@ -5,7 +5,8 @@ import pytest
 
 from models.data import DataError, build_index, dataset_dir, select
 from models.data.__main__ import main
-from models.settings import Settings, get_settings
+from models.data.archives import archive_file
+from models.settings import Settings
 
 
 def test_index_labels_come_from_the_files(index):
@@ -50,7 +51,7 @@ def test_summary_prints_all_four_datasets(capsys):
 def test_archive_with_wrong_checksum_is_refused(tmp_path):
     data = tmp_path / "data"
     data.mkdir()
-    shutil.copy(get_settings().data_dir / "xia.tar.xz", data / "xia.tar.xz")
+    shutil.copy(archive_file("xia"), data / "xia.tar.xz")
     (data / "SHA256SUMS").write_text("0" * 64 + "  xia.tar.xz\n")
     with pytest.raises(DataError, match="does not match SHA256SUMS"):
         dataset_dir("xia", Settings(data_dir=data, cache_dir=tmp_path / "cache"))

@@ -41,7 +41,7 @@ def test_every_frame_of_every_session_gets_its_reply(server, phase):
     assert result.client_cpu_s > 0
 
 
-def test_a_refused_session_fails_the_run_with_the_servers_reason(server):
+def test_a_refused_session_fails_the_run_with_the_servers_reason(server, mocap_data):
     url, _ = server
     with pytest.raises(RuntimeError, match="session refused.*unknown_model"):
         run(url, sessions=2, fps=60.0, seconds=0.5, model="no-such-model", style="x", processes=2)

@@ -28,7 +28,7 @@ def test_slope_leaves_out_the_warm_up_and_is_per_hour():
     assert np.isnan(slope_per_hour(t[:2], rss[:2], warmup_s=0))
 
 
-def test_a_short_soak_run_writes_samples_a_plot_and_the_page(tmp_path):
+def test_a_short_soak_run_writes_samples_a_plot_and_the_page(tmp_path, mocap_data):
     out, doc = tmp_path / "soak", tmp_path / "soak.md"
     assert (
         main(

@@ -27,6 +27,12 @@ class DataError(RuntimeError):
     """The mocap data is missing or does not match its checksum."""
 
 
+class DataMissing(DataError):
+    """A dataset is neither in the data folder (as its archive) nor unpacked in place: this
+    machine has no copy, which is a fact about the machine, not a fault (tests that need the
+    data skip on it, `tests/conftest.py`)."""
+
+
 # how far a long step has got: (bytes done, bytes in all)
 Progress = Callable[[int, int], None]
 
@@ -93,6 +99,16 @@ def _expected_sums(data_dir: Path) -> dict[str, str]:
     return out
 
 
+def archive_file(name: str, settings: Settings | None = None) -> Path:
+    """The dataset's archive in the data folder (`DataMissing` where this machine has none)."""
+    path = Path((settings or get_settings()).data_dir) / DATASETS[name].archive
+    if not path.exists():
+        raise DataMissing(
+            f"dataset {name!r}: no {path} (set STYLESTREAM_DATA_DIR to the folder with the mocap archives)"
+        )
+    return path
+
+
 def dataset_dir(name: str, settings: Settings | None = None, progress: Progress | None = None) -> Path:
     """Folder holding the dataset's BVH files, unpacking the archive on first use (`progress`
     hears how much of the archive has been read while it is unpacked)."""
@@ -104,9 +120,9 @@ def dataset_dir(name: str, settings: Settings | None = None, progress: Progress 
     if not archive.exists():
         if in_place.is_dir():
             return in_place
-        raise DataError(
+        raise DataMissing(
             f"dataset {name!r}: neither {archive} nor {in_place} exists "
-            f"(set STYLESTREAM_DATA_DIR to the folder with the mocap archives)"
+            f"(set STYLESTREAM_DATA_DIR to the folder with the mocap archives, or `stylestream data fetch --from URL`)"
         )
     unpack_root, ident = _unpack_target(name, settings)
     if _unpacked_from(unpack_root, ident):
