@@ -116,6 +116,26 @@ def _mat_to_quat(m, out):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _world_of(g, p, c, q, m):
+    """g[c] = g[p] @ R(q), the world rotation of joint c from its parent's (p < 0: a root, R(q))."""
+    if p < 0:
+        _quat_to_mat(q, g[c])
+    else:
+        _quat_to_mat(q, m)
+        _mm(g[p], m, g[c])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _local_of(g, p, c, m, out):
+    """out = the local quaternion of joint c, g[p].T @ g[c] (p < 0: a root, g[c])."""
+    if p < 0:
+        _mat_to_quat(g[c], out)
+    else:
+        _mtm(g[p], g[c], m)
+        _mat_to_quat(m, out)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _frame(p0, p1, p2, l0, l1, l2, out):
     """retarget._frame: columns (primary, lateral made orthogonal, their cross), all unit."""
     n = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
@@ -167,11 +187,7 @@ def _swing(a, b, out):
 def _source_fk(rot, order, par_s, gs, m):
     """Client world rotations in slots: gs[s] = gs[par_s[s]] @ R(rot[order[s]]) (par_s -1: a root)."""
     for s in range(order.shape[0]):
-        if par_s[s] < 0:
-            _quat_to_mat(rot[order[s]], gs[s])
-        else:
-            _quat_to_mat(rot[order[s]], m)
-            _mm(gs[par_s[s]], m, gs[s])
+        _world_of(gs, par_s[s], s, rot[order[s]], m)
 
 
 @njit(cache=True, error_model="numpy")
@@ -391,11 +407,7 @@ def _to_model(
             w3,
         )
         for j in range(nb):
-            if bn_parents[j] < 0:
-                _mat_to_quat(gb[j], rot_out[f, j])
-            else:
-                _mtm(gb[bn_parents[j]], gb[j], m)
-                _mat_to_quat(m, rot_out[f, j])
+            _local_of(gb, bn_parents[j], j, m, rot_out[f, j])
 
 
 @njit(cache=True, error_model="numpy")
@@ -452,12 +464,7 @@ def _to_source(
     for f in range(root_bn.shape[0]):
         for s in range(bn_order.shape[0]):  # BN world rotations of the given frame, parents first
             j = bn_order[s]
-            p = bn_parents[j]
-            if p < 0:
-                _quat_to_mat(rot_bn[f, j], gbn[j])
-            else:
-                _quat_to_mat(rot_bn[f, j], m)
-                _mm(gbn[p], m, gbn[j])
+            _world_of(gbn, bn_parents[j], j, rot_bn[f, j], m)
         _source_fk(src_rot[f], src_order, src_par_s, gs, m)
         _bn_globals(
             gs,
@@ -491,11 +498,7 @@ def _to_source(
             _mm(delta[anc_bn_s[s]], gs[s], g_new[s])
         rot_out[f] = src_rot[f]  # unmapped joints keep the client's local rotations
         for i in range(mapped_j.shape[0]):
-            if mapped_par_s[i] < 0:
-                _mat_to_quat(g_new[mapped_s[i]], rot_out[f, mapped_j[i]])
-            else:
-                _mtm(g_new[mapped_par_s[i]], g_new[mapped_s[i]], m)
-                _mat_to_quat(m, rot_out[f, mapped_j[i]])
+            _local_of(g_new, mapped_par_s[i], mapped_s[i], m, rot_out[f, mapped_j[i]])
         t[0], t[1], t[2] = root_bn[f, 0] / scale, (root_bn[f, 1] - vertical_offset) / scale, root_bn[f, 2] / scale
         for r in range(3):  # axes.T @ t: the client's world
             h[r] = axes[0, r] * t[0] + axes[1, r] * t[1] + axes[2, r] * t[2]

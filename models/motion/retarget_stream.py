@@ -51,23 +51,6 @@ from .rotations import matrix_to_quat as mat_to_quat
 from .rotations import quat_to_matrix as quat_to_mat
 from .skeleton import Skeleton, fk
 
-# --------------------------------------------------------------------------- small numpy kernels
-
-
-_EPS = np.zeros((3, 3, 3))  # Levi-Civita: cross(a, b)_i = eps[j, k, i] a_j b_k
-_EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
-_EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
-_EPS = _EPS.reshape(9, 3)
-
-
-def _frame_fast(primary: np.ndarray, lateral: np.ndarray) -> np.ndarray:
-    """`retarget._frame` (columns: primary, lateral made orthogonal, their cross) in few numpy calls."""
-    e1 = primary / np.sqrt(np.sum(primary * primary, axis=-1, keepdims=True))
-    e2 = lateral - np.sum(lateral * e1, axis=-1, keepdims=True) * e1
-    e2 = e2 / np.sqrt(np.sum(e2 * e2, axis=-1, keepdims=True))
-    e3 = (e1[..., :, None] * e2[..., None, :]).reshape(e1.shape[:-1] + (9,)) @ _EPS
-    return np.stack([e1, e2, e3], axis=-1)
-
 
 class _Tree:
     """FK over a joint subset, one `matmul` per tree depth: the kept joints are stored depth by
@@ -236,7 +219,7 @@ class FrameRetargeter:
         k = self._num_plain
         dirs = vec[:, :k] / np.sqrt(np.sum(vec[:, :k] ** 2, axis=-1, keepdims=True))
         lat = vec[:, k:].reshape(b, -1, 2, 3)
-        return self._plan.bn_globals(dirs, _frame_fast(lat[:, :, 0], lat[:, :, 1]) @ self._m_tgt_t)
+        return self._plan.bn_globals(dirs, _frame(lat[:, :, 0], lat[:, :, 1]) @ self._m_tgt_t)
 
     def _source_globals(self, rotations: np.ndarray) -> np.ndarray:
         return self._src_tree.fk(quat_to_mat(rotations))
