@@ -16,23 +16,28 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .humanoid import CMU_TO_BN
 from .rotations import matrix_to_quat, quat_to_matrix, wrap_angle
 from .skeleton import Motion, Skeleton
 
 UP = np.array([0.0, 1.0, 0.0])
 
-# Candidate joint names per body part, first match wins. Order matters: in the bvh11 CMU
-# naming "LeftShoulder" is the upper arm, in the cgspeed naming it is the collar.
+# Candidate joint names per body part, first match wins: the BN joint, then its name in CMU's two
+# namings (`humanoid.CMU_TO_BN`: cgspeed, then bvh11). Order matters: in the bvh11 naming
+# "LeftShoulder" is the upper arm, in the cgspeed naming it is the collar.
+_PART_BN = {
+    "hips": "Hips",
+    "hip_l": "UpperLeg_L",
+    "hip_r": "UpperLeg_R",
+    "shoulder_l": "UpperArm_L",
+    "shoulder_r": "UpperArm_R",
+    "ankle_l": "Foot_L",
+    "ankle_r": "Foot_R",
+    "toe_l": "Toes_L",
+    "toe_r": "Toes_R",
+}
 _PARTS = {
-    "hips": ("Hips",),
-    "hip_l": ("UpperLeg_L", "LeftUpLeg", "LeftHip"),
-    "hip_r": ("UpperLeg_R", "RightUpLeg", "RightHip"),
-    "shoulder_l": ("UpperArm_L", "LeftArm", "LeftShoulder"),
-    "shoulder_r": ("UpperArm_R", "RightArm", "RightShoulder"),
-    "ankle_l": ("Foot_L", "LeftFoot", "LeftAnkle"),
-    "ankle_r": ("Foot_R", "RightFoot", "RightAnkle"),
-    "toe_l": ("Toes_L", "LeftToeBase", "LeftToe"),
-    "toe_r": ("Toes_R", "RightToeBase", "RightToe"),
+    part: tuple(dict.fromkeys((bn, *(names[bn] for names in CMU_TO_BN.values())))) for part, bn in _PART_BN.items()
 }
 
 
