@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-HIPS = 1  # the Bandai Namco model rig: joint_Root (static, index 0), then Hips
+from .bn_skeleton import HIPS
+
 NO_PRIOR = np.inf  # radius of a joint (or a style) without a prior: nothing is clamped
 
 

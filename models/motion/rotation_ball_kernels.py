@@ -13,7 +13,7 @@ import math
 
 from numba import njit
 
-HIPS = 1
+from .bn_skeleton import HIPS
 
 
 @njit(cache=True, error_model="numpy")
