@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import bvh as bvhio
+from .bn_skeleton import BN_JOINTS
 from .humanoid_presets import PRESETS, preset_skeleton
 from .rotations import matrix_to_quat, quat_to_matrix
 from .skeleton import Motion, Skeleton, skeleton_from_bvh
@@ -125,7 +126,6 @@ _BVH11 = {
     "Toes_R": "RightToe",
 }
 CMU_TO_BN = {"cmu": _CGSPEED, "cmu-bvh11": _BVH11}  # by `rig_kind`: Xia uses the first, 100STYLE the second
-BN_NAMES = {b: b for b in _CGSPEED}
 
 
 def _bn_table(bn_to_joint: dict[str, str]) -> dict[str, str]:
@@ -137,7 +137,7 @@ def _bn_table(bn_to_joint: dict[str, str]) -> dict[str, str]:
 
 # exact tables tried before aliases: preset name -> {role: joint name}
 TABLES: dict[str, dict[str, str]] = {
-    "bandai-namco": _bn_table(BN_NAMES),
+    "bandai-namco": _bn_table({b: b for b in BN_JOINTS}),
     "cmu": _bn_table(_CGSPEED),
     "cmu-bvh11": _bn_table(_BVH11),
     **{name: p.role_names() for name, p in PRESETS.items()},
