@@ -17,8 +17,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..data import Clip, DataError
+from ..motion.bn_skeleton import BN_JOINTS
 from ..motion.resample import resample
-from ..motion.retarget import BN_JOINTS, retarget
+from ..motion.retarget import retarget
 from ..motion.skeleton import Motion, load
 
 DATASET = "100style"
