@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import struct
+import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -20,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .sdk_io import AsyncIO, Close, Connect, Recv, Send, Steps, SyncIO, run_async, run_sync
+from .sdk_io import AsyncIO, Close, Connect, Disconnected, Recv, RecvTimeout, Send, Steps, SyncIO, run_async, run_sync
 from .sdk_types import ServerError
 
 TICK_HEADER = struct.Struct("<IHHI")  # seq, kind (2 = tick), characters, dropped
@@ -39,9 +40,18 @@ class Character:
     skeleton: str | None = "bandai-namco"
     bvh_header: str | None = None
     joints: list[str] | None = None
+    resume_token: str | None = None  # continue this character where it left off (`Crowd.resume_tokens`)
+
+    @classmethod
+    def resuming(cls, id: int, model: str, resume_token: str) -> Character:
+        """The character `resume_token` was given for, under (new) `id`: its model, style and rig
+        are the server's stored ones."""
+        return cls(id, model, resume_token=resume_token)
 
     def message(self) -> dict[str, Any]:
         out: dict[str, Any] = {"id": self.id, "model": self.model, "intensity": self.intensity}
+        if self.resume_token is not None:
+            out["resume_token"] = self.resume_token
         out.update({"mix": self.mix} if self.mix is not None else {"style": self.style})
         if self.bvh_header is not None:
             out["bvh_header"] = self.bvh_header
@@ -90,6 +100,8 @@ class CrowdCore:
         self.url, self.headers, self.fps, self.timeout = url, headers, fps, timeout
         self.opening = list(characters)
         self.frame_floats: dict[int, int] = {}  # per character in the crowd
+        self.resume_tokens: dict[int, str] = {}  # per character: where a new crowd can pick it up
+        self.resumed: dict[int, int | None] = {}  # characters that resumed: the last tick their snapshot had
         self.errors: list[ServerError] = []  # per-character refusals, in arrival order
         self.crowd_id: str | None = None
         self.seq = 0
@@ -114,6 +126,7 @@ class CrowdCore:
         left = (yield from self._text_reply("left"))["characters"]
         for i in left:
             self.frame_floats.pop(i, None)
+            self.resume_tokens.pop(i, None)
         return left
 
     def set_style(
@@ -139,11 +152,26 @@ class CrowdCore:
         return (yield from self._text_reply("reset_done"))
 
     def close(self) -> Steps[None]:
+        """End the crowd (`end`, then the server's `ended`, briefly) and close the socket: its
+        characters are done and cannot be resumed. A connection that is lost instead leaves
+        each character resumable by its token (`resume_tokens`)."""
+        try:
+            yield Send(json.dumps({"type": "end"}))
+            deadline = time.monotonic() + min(self.timeout or 5.0, 5.0)
+            while True:
+                data = yield Recv(max(0.0, deadline - time.monotonic()))
+                if isinstance(data, str) and json.loads(data).get("type") == "ended":
+                    break
+        except (Disconnected, RecvTimeout):
+            pass
         yield Close()
 
     def _joined(self, reply: dict[str, Any]) -> dict[str, Any]:
         for c in reply["characters"]:
             self.frame_floats[c["id"]] = reply["rigs"][c["rig"]]["frame_floats"]
+            self.resume_tokens[c["id"]] = c["resume_token"]
+            if c.get("resumed"):
+                self.resumed[c["id"]] = c["last_seq"]
         for e in reply["errors"]:
             self.errors.append(ServerError(e["code"], e["message"], character=e["id"]))
         return reply
@@ -231,6 +259,17 @@ class _CrowdState:
     @property
     def characters(self) -> list[int]:
         return list(self.core.frame_floats)
+
+    @property
+    def resume_tokens(self) -> dict[int, str]:
+        """Each character's resume token: after a lost connection or a server restart (1012), a
+        new crowd continues them exactly with `Character.resuming(id, model, token)`."""
+        return dict(self.core.resume_tokens)
+
+    @property
+    def resumed(self) -> dict[int, int | None]:
+        """Characters this crowd resumed, with the last tick their stored state had answered."""
+        return dict(self.core.resumed)
 
 
 class Crowd(_CrowdState):

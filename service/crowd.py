@@ -16,6 +16,10 @@ character's replies in a crowd equal those of the same character streamed alone,
 from __future__ import annotations
 
 import asyncio
+import json
+import secrets
+import time
+import uuid
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -25,6 +29,7 @@ from models.interface import State, StreamingModel, stack_states, upgrade_state,
 
 from . import protocol as P
 from .frame_check import check_rows
+from .sessions import Snapshot
 from .skeletons import SkeletonAdapter
 
 StepRows = Callable[[State, np.ndarray, np.ndarray, np.ndarray, list[str]], Awaitable[tuple]]
@@ -65,21 +70,68 @@ class Troupe:
         return len(self.ids)
 
     # ---- membership (join, leave, reset: rare, so plain Python is fine) ------------------
-    def add(self, ids: Sequence[int], weights: Sequence[dict[str, float]]) -> None:
+    def add(
+        self,
+        ids: Sequence[int],
+        weights: Sequence[dict[str, float]],
+        resumed: Sequence[Snapshot | None] | None = None,
+    ) -> None:
+        """New rows for `ids`: fresh, or where `resumed` gives a snapshot, exactly where that
+        character (or session: the two snapshot alike) left off."""
         self.sync_styles()
         k, num_joints = len(ids), self.model.skeleton.num_joints
-        fresh = self.model.init_state(k)
+        snaps = list(resumed) if resumed is not None else [None] * k
+        if any(s is not None for s in snaps):
+            fresh = stack_states(
+                [self.model.init_state(1) if s is None else upgrade_state(self.model, s.state) for s in snaps]
+            )
+        else:
+            fresh = self.model.init_state(k)
         self.state = fresh if not self.state else stack_states([upgrade_state(self.model, self.state), fresh])
         vectors = np.stack([weight_vector(self.names, w) for w in weights]).reshape(k, len(self.names))
+        target, clock, left = vectors.copy(), np.full(k, -1.0), np.zeros(k, np.int64)
+        held_root, held_rot, held_input = np.zeros((k, 3)), np.zeros((k, num_joints, 4)), np.zeros((k, 3))
+        for r, snap in enumerate(snaps):
+            if snap is None:
+                continue
+            vectors[r], target[r] = weight_vector(self.names, snap.weights), weight_vector(self.names, snap.target)
+            clock[r], left[r] = snap.clock, snap.transition_left
+            if snap.held:
+                held_root[r], held_rot[r], held_input[r] = (
+                    snap.held["root"],
+                    snap.held["rotations"],
+                    snap.held["input_root"],
+                )
         self.ids = np.concatenate([self.ids, np.asarray(ids, np.int64)])
-        self.clock = np.concatenate([self.clock, np.full(k, -1.0)])
-        self.held_root = np.concatenate([self.held_root, np.zeros((k, 3))])
-        self.held_rot = np.concatenate([self.held_rot, np.zeros((k, num_joints, 4))])
-        self.held_input_root = np.concatenate([self.held_input_root, np.zeros((k, 3))])
+        self.clock = np.concatenate([self.clock, clock])
+        self.held_root = np.concatenate([self.held_root, held_root])
+        self.held_rot = np.concatenate([self.held_rot, held_rot])
+        self.held_input_root = np.concatenate([self.held_input_root, held_input])
         self.weights = np.concatenate([self.weights, vectors])
-        self.target = np.concatenate([self.target, vectors])
-        self.left = np.concatenate([self.left, np.zeros(k, np.int64)])
+        self.target = np.concatenate([self.target, target])
+        self.left = np.concatenate([self.left, left])
         self._index()
+
+    def snapshot_fields(self, row: int) -> dict:
+        """One row as a session snapshot's fields (`Session.snapshot`): copies, so the row may
+        step on while the snapshot waits to be stored."""
+        held = (
+            {}
+            if self.clock[row] < 0
+            else {
+                "root": self.held_root[row].copy(),
+                "rotations": self.held_rot[row].copy(),
+                "input_root": self.held_input_root[row].copy(),
+            }
+        )
+        return {
+            "state": take_rows(self.state, np.array([row])),
+            "clock": float(self.clock[row]),
+            "held": held,
+            "weights": {n: float(self.weights[row, j]) for j, n in enumerate(self.names)},
+            "target": {n: float(self.target[row, j]) for j, n in enumerate(self.names)},
+            "transition_left": int(self.left[row]),
+        }
 
     def remove(self, ids: Sequence[int]) -> None:
         keep = ~np.isin(self.ids, np.asarray(ids, np.int64))
@@ -206,6 +258,11 @@ class Character:
     id: int
     group: RigGroup
     spec: P.CrowdCharacter
+    skeleton: str  # the rig as opened (kept in its snapshots, so a resume maps frames the same way)
+    bvh_header: str | None
+    rig: dict
+    session_id: str = field(default_factory=lambda: uuid.uuid4().hex)
+    token: str = field(default_factory=lambda: secrets.token_urlsafe(24))
 
 
 @dataclass
@@ -214,9 +271,10 @@ class Joining:
 
     spec: P.CrowdCharacter
     model: StreamingModel
-    rig_key: tuple
+    rig_key: tuple  # (skeleton, bvh_header, rig options as JSON)
     adapter: SkeletonAdapter
     weights: dict[str, float]
+    resumed: Snapshot | None = None  # where it left off, when it joins with a resume token
 
 
 @dataclass
@@ -253,10 +311,14 @@ class Crowd:
             if troupe is None:
                 troupe = self.troupes[name] = Troupe(members[0].model, self.fps)
                 opened.append(name)
-            troupe.add([j.spec.id for j in members], [j.weights for j in members])
+            troupe.add([j.spec.id for j in members], [j.weights for j in members], [j.resumed for j in members])
             for j in members:
                 group = self.groups.setdefault((name, *j.rig_key), RigGroup(name, j.adapter))
-                self.characters[j.spec.id] = Character(j.spec.id, group, j.spec)
+                skeleton, bvh_header, rig = j.rig_key[0] or "custom", j.rig_key[1], json.loads(j.rig_key[2])
+                character = Character(j.spec.id, group, j.spec, skeleton, bvh_header, rig)
+                if j.resumed is not None:
+                    character.session_id, character.token = j.resumed.session_id, j.resumed.token
+                self.characters[j.spec.id] = character
         self._plan = None
         return opened
 
@@ -277,6 +339,32 @@ class Crowd:
         self.groups = {k: g for k, g in self.groups.items() if (g.model, id(g)) in used}
         self._plan = None
         return emptied
+
+    def snapshots(self, owner: str, last_seq: int | None, ids: Sequence[int] | None = None) -> list[Snapshot]:
+        """Each character (or those in `ids`) as a session snapshot under its own resume token:
+        resumable in a crowd, or alone as a session. `last_seq` is the crowd's last answered tick.
+        The reply to it is not kept per character (a resumed crowd's client asks again)."""
+        now, out = time.time(), []
+        for i in self.characters if ids is None else ids:
+            c = self.characters[i]
+            troupe = self.troupes[c.group.model]
+            out.append(
+                Snapshot(
+                    session_id=c.session_id,
+                    token=c.token,
+                    model=c.group.model,
+                    skeleton=c.skeleton,
+                    bvh_header=c.bvh_header,
+                    fps=self.fps,
+                    encoding="binary",
+                    last_seq=last_seq,
+                    saved_at=now,
+                    rig=dict(c.rig),
+                    owner=owner,
+                    **troupe.snapshot_fields(troupe.row_of[i]),
+                )
+            )
+        return out
 
     def troupe_rows(self, ids: Sequence[int]) -> dict[str, tuple[Troupe, np.ndarray, list[int]]]:
         """The named characters by troupe: (troupe, their rows, their ids)."""

@@ -38,6 +38,9 @@ class CrowdConnection(Socket):
         self.ticks_pending = 0
         self.dropped = 0  # ticks dropped since the last reply
         self.opened = False
+        self.last_seq: int | None = None  # the last tick answered (kept with the characters' snapshots)
+        self.ticks_since_snapshot = 0
+        self.ended = False  # the client said 'end': nothing to resume
 
     # ---- opening, joining, leaving ------------------------------------------------------
     async def open(self, first: P.Start | P.CrowdStart) -> bool:
@@ -64,16 +67,26 @@ class CrowdConnection(Socket):
         errors: list[dict] = []
         adapters: dict[tuple, SkeletonAdapter] = {}
         seen = set(self.crowd.characters)
+        resuming: set[str] = set()
         for spec in specs:
             try:
                 if spec.id in seen:
                     raise P.ProtocolError("character_exists", f"character {spec.id} is already in this crowd")
-                model, weights = await self.rt.new_character(spec, self.who)
-                options = spec.rig_options()
-                key = (spec.model, spec.skeleton, spec.bvh_header, json.dumps(options, sort_keys=True))
+                snap, skeleton = None, spec.skeleton
+                if spec.resume_token is not None:  # model, style and rig as stored
+                    snap = await self.rt.resumable(spec.resume_token, self.who)
+                    if snap.session_id in resuming:
+                        raise P.ProtocolError("session_in_use", "that resume token is already taken in this message")
+                    model, weights = self.rt.models[snap.model], dict(snap.weights)
+                    skeleton, bvh_header, options = snap.skeleton, snap.bvh_header, dict(snap.rig)
+                    resuming.add(snap.session_id)
+                else:
+                    model, weights = await self.rt.new_character(spec, self.who)
+                    skeleton, bvh_header, options = spec.skeleton, spec.bvh_header, spec.rig_options()
+                key = (model.name, skeleton, bvh_header, json.dumps(options, sort_keys=True))
                 if key not in adapters:
-                    adapters[key] = adapter_for(spec.skeleton or "custom", spec.bvh_header, model.skeleton, **options)
-                joining.append(Joining(spec, model, key[1:], adapters[key], weights))
+                    adapters[key] = adapter_for(skeleton or "custom", bvh_header, model.skeleton, **options)
+                joining.append(Joining(spec, model, key[1:], adapters[key], weights, snap))
                 seen.add(spec.id)
             except P.ProtocolError as err:
                 self.metrics.errors.labels(err.code).inc()
@@ -86,10 +99,25 @@ class CrowdConnection(Socket):
             joining = []
         for name in self.crowd.add(joining):
             self.rt.crowd_model_opened(name)
+        for j in joining:
+            character = self.crowd.characters[j.spec.id]
+            self.rt.crowd_members.add(character.session_id)
+            if j.resumed is not None:
+                self.rt.character_resumed(self.who.id, character.token)
         rigs = list({id(j.adapter): j.adapter for j in joining}.values())
         rig_index = {id(a): k for k, a in enumerate(rigs)}
         return {
-            "characters": [{"id": j.spec.id, "model": j.model.name, "rig": rig_index[id(j.adapter)]} for j in joining],
+            "characters": [
+                {
+                    "id": j.spec.id,
+                    "model": j.model.name,
+                    "rig": rig_index[id(j.adapter)],
+                    "resume_token": self.crowd.characters[j.spec.id].token,
+                    "resumed": j.resumed is not None,
+                    "last_seq": j.resumed.last_seq if j.resumed is not None else None,
+                }
+                for j in joining
+            ],
             "rigs": [
                 {
                     "joints": a.joint_names,
@@ -101,8 +129,17 @@ class CrowdConnection(Socket):
             "errors": errors,
         }
 
-    def leave(self, ids: list[int]) -> list[int]:
+    def leave(self, ids: list[int], resumable: bool = False) -> list[int]:
+        """Take characters out of the crowd: for good (`leave`, `end`), or `resumable` (their
+        connection went), each then kept in the store under its resume token."""
         present = [i for i in dict.fromkeys(ids) if i in self.crowd.characters]
+        if resumable:
+            self.rt.characters_stored(self.who.id, self.crowd.snapshots(self.who.tenant, self.last_seq, present))
+        for i in present:
+            character = self.crowd.characters[i]
+            self.rt.crowd_members.discard(character.session_id)
+            if not resumable:
+                self.rt.character_ended(self.who.id, character.token)
         for name in self.crowd.remove(present):
             self.rt.crowd_model_closed(name)
         self.rt.remove_characters(len(present))
@@ -112,7 +149,7 @@ class CrowdConnection(Socket):
         if not self.opened:
             return
         self.log.info("crowd closed with %d characters", len(self.crowd))
-        self.leave(list(self.crowd.characters))
+        self.leave(list(self.crowd.characters), resumable=not self.ended)
         self.rt.crowd_closed()
         if self.rt.connections.get(self.id) is self:
             del self.rt.connections[self.id]
@@ -165,6 +202,7 @@ class CrowdConnection(Socket):
             seq, ids_raw, payload = P.decode_tick(data)
             result = await self.crowd.tick(seq, ids_raw, payload, self._step_for, self.dropped)
             self.dropped = 0  # told in this reply (a refused tick gets none: the next reply tells)
+            self.last_seq = seq
         except P.ProtocolError as err:
             await self.send_error(err)
             return
@@ -179,6 +217,11 @@ class CrowdConnection(Socket):
             metrics = self.metrics.model(name)
             metrics.frames.inc(frames)
             metrics.frame_latency.observe(time.perf_counter() - received)
+        self.ticks_since_snapshot += 1
+        if self.ticks_since_snapshot >= self.settings.snapshot_every:  # as a session's: for a replica that dies
+            self.ticks_since_snapshot = 0
+            for snap in self.crowd.snapshots(self.who.tenant, self.last_seq):
+                self.rt.snapshots.put(snap)
 
     async def control(self, message: ControlMessage) -> bool:
         if isinstance(message, P.Join):
@@ -188,7 +231,8 @@ class CrowdConnection(Socket):
         elif isinstance(message, P.SetStyle | P.Reset):
             await self.restyle_or_reset(message)
         else:
-            await self.send_json({"type": "ended", "session_id": self.id, "last_seq": None})
+            self.ended = True
+            await self.send_json({"type": "ended", "session_id": self.id, "last_seq": self.last_seq})
             await self.close(CLOSE_NORMAL, "end")
             return False
         return True
@@ -229,10 +273,13 @@ class CrowdConnection(Socket):
 
     # ---- drain ----------------------------------------------------------------------------
     async def stop_processing(self) -> None:
+        """Drain, step 1: finish the current tick, then store every character for resume."""
         self.stopping = True
         self.wakeup.set()
         if self.processor is not None:
             await asyncio.gather(self.processor, return_exceptions=True)
+        if not self.ended:
+            self.leave(list(self.crowd.characters), resumable=True)
 
     async def close_for_restart(self) -> None:
-        await self.close(CLOSE_RESTART, "service restart; open the crowd again")
+        await self.close(CLOSE_RESTART, "service restart; open the crowd again with the characters' resume tokens")

@@ -120,6 +120,12 @@ CharacterIds = Annotated[list[Annotated[int, Field(ge=0, le=MAX_CHARACTER_ID)]],
 
 class CrowdCharacter(CharacterSpec):
     id: int = Field(ge=0, le=MAX_CHARACTER_ID, description="the client's name for the character in ticks and replies")
+    resume_token: str | None = Field(
+        default=None,
+        max_length=200,
+        description="continue the character (or session) this token was given for, exactly where it left "
+        "off: its model, style and rig are the stored ones",
+    )
 
 
 CharacterList = Annotated[list[CrowdCharacter], Field(min_length=1, max_length=65_535)]

@@ -29,7 +29,7 @@ from .batcher import Batcher, ModelThread
 from .limits import Principal
 from .metrics import Metrics
 from .session_store import SavedCallback, SnapshotWriter, StoreUnavailable, create_store
-from .sessions import Session
+from .sessions import Session, Snapshot
 from .settings import ServiceSettings
 from .styles import StyleStore
 
@@ -87,6 +87,7 @@ class Runtime:
         self.connections: dict[str, Drainable] = {}  # by session id (a crowd: by crowd id)
         self.crowds = 0  # open crowd connections
         self.characters = 0  # characters in them
+        self.crowd_members: set[str] = set()  # the session ids of those characters (resumes check it)
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
         self.draining = False
 
@@ -164,27 +165,34 @@ class Runtime:
         self.check_visible(who, spec.model, mix)
         return model, P.requested_weights(model, spec.style, spec.mix, spec.intensity)
 
+    async def resumable(self, token: str, who: Principal) -> Snapshot:
+        """The snapshot `token` names, if `who` may take it up here (a session's, or a crowd
+        character's: either resumes as either); a snapshot another tenant opened is, to them, as
+        unknown as an expired one."""
+        try:
+            snap = await self.snapshots.get(token)
+        except StoreUnavailable:
+            raise P.ProtocolError(
+                "store_unavailable", "the session store cannot be reached; try again", close_code=1013
+            ) from None
+        if snap is None or snap.owner != who.tenant:
+            raise P.ProtocolError("unknown_resume_token", "resume token unknown or expired")
+        self._refuse_if_draining()  # checked again after the await: a drain may have begun meanwhile
+        if snap.session_id in self.sessions or snap.session_id in self.crowd_members:  # no two resumes of one
+            raise P.ProtocolError("session_in_use", "that session is still connected")
+        if snap.model not in self.models:
+            raise P.ProtocolError("unknown_model", f"this replica does not serve model {snap.model!r}")
+        await self.styles.ensure_known(snap.model, [*snap.weights, *snap.target])
+        return snap
+
     async def open_session(self, start: P.Start, who: Principal) -> Session:
         """A new session for `who`, or theirs resumed (a snapshot another tenant opened is, to
         them, as unknown as an expired one)."""
         self._refuse_if_full()
         if start.resume_token:
-            try:
-                snap = await self.snapshots.get(start.resume_token)
-            except StoreUnavailable:
-                raise P.ProtocolError(
-                    "store_unavailable", "the session store cannot be reached; try again", close_code=1013
-                ) from None
-            if snap is None or snap.owner != who.tenant:
-                raise P.ProtocolError("unknown_resume_token", "resume token unknown or expired")
-            self._refuse_if_draining()  # checked again after the await: a drain may have begun meanwhile
-            if snap.session_id in self.sessions:  # and no two resumes of one session
-                raise P.ProtocolError("session_in_use", "that session is still connected")
-            if snap.model not in self.models:
-                raise P.ProtocolError("unknown_model", f"this replica does not serve model {snap.model!r}")
-            await self.styles.ensure_known(snap.model, [*snap.weights, *snap.target])
+            snap = await self.resumable(start.resume_token, who)
             session = Session.restore(snap, self.models[snap.model], self.settings.session_queue, who.id)
-            self._forget_stored(session)
+            self._forget_stored(session.caller, session.token)
             self.metrics.resumes.inc()
         else:
             model, weights = await self.new_character(start, who)
@@ -255,18 +263,25 @@ class Runtime:
             self.metrics.active_sessions.labels(session.model.name).dec()
             if not session.ended:
                 self.snapshots.put(session.snapshot())
-                self._keep_stored(session)
+                self._keep_stored(session.caller, session.token)
 
-    def _keep_stored(self, session: Session) -> None:
+    def characters_stored(self, caller: str, snaps: list[Snapshot]) -> None:
+        """A crowd's characters left with their connection: each kept for resume like a session,
+        and counted like one against `caller`'s `token_max_stored_sessions`."""
+        for snap in snaps:
+            self.snapshots.put(snap)
+            self._keep_stored(caller, snap.token)
+
+    def _keep_stored(self, caller: str, token: str) -> None:
         """Count a closed session against its caller's `token_max_stored_sessions`; beyond it, that
         caller's oldest closed session is forgotten, so one client's churn never pushes another's
         snapshot out of a full store."""
         now = time.monotonic()
         if len(self._stored) > MAX_STORED_CALLERS:  # callers come and go: forget those whose snapshots expired
             self._stored = {c: k for c, k in self._stored.items() if next(reversed(k.values())) > now - self._ttl}
-        kept = self._stored.setdefault(session.caller, OrderedDict())
-        kept[session.token] = now
-        kept.move_to_end(session.token)
+        kept = self._stored.setdefault(caller, OrderedDict())
+        kept[token] = now
+        kept.move_to_end(token)
         while kept and next(iter(kept.values())) < now - self._ttl:  # expired in the store by now
             kept.popitem(last=False)
         while len(kept) > self.settings.token_max_stored_sessions:
@@ -274,16 +289,25 @@ class Runtime:
             self.snapshots.delete(oldest)
             self.metrics.errors.labels("stored_session_evicted").inc()
 
-    def _forget_stored(self, session: Session) -> None:
-        """A session resumed (or ended) is no longer waiting in the store."""
-        kept = self._stored.get(session.caller)
+    def _forget_stored(self, caller: str, token: str) -> None:
+        """A session (or crowd character) resumed or ended is no longer waiting in the store."""
+        kept = self._stored.get(caller)
         if kept is not None:
-            kept.pop(session.token, None)
+            kept.pop(token, None)
             if not kept:
-                del self._stored[session.caller]
+                del self._stored[caller]
+
+    def character_resumed(self, caller: str, token: str) -> None:
+        self._forget_stored(caller, token)
+        self.metrics.resumes.inc()
+
+    def character_ended(self, caller: str, token: str) -> None:
+        """A crowd character that left (or whose crowd ended): nothing to resume."""
+        self.snapshots.delete(token)
+        self._forget_stored(caller, token)
 
     def session_ended(self, session: Session) -> None:
         """The client said 'end': nothing to resume."""
         session.ended = True
         self.snapshots.delete(session.token)
-        self._forget_stored(session)
+        self._forget_stored(session.caller, session.token)

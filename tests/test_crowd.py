@@ -20,6 +20,7 @@ from models.settings import get_settings
 from service import protocol as P
 
 from .live_server import live_server, ws_url
+from .waiting import wait_until
 
 TICKS, FPS = 24, 60.0  # 60 fps in, the models' 30 out: rate adaptation runs per character
 
@@ -157,3 +158,51 @@ def test_a_crowd_opens_with_the_asyncio_client_and_speaks_binary_ticks_only(serv
         assert json.loads(ws.recv(timeout=30))["code"] == "bad_message"
         ws.send(P.encode_binary(0, np.zeros(3), np.tile([0.0, 0, 0, 1], (22, 1))))
         assert json.loads(ws.recv(timeout=30))["code"] == "bad_frame"
+
+
+def test_a_crowd_resumes_every_character_exactly_where_it_left_off(models, walks):
+    """Characters of two models, one mid-transition, one on reordered joints: the connection
+    drops after 10 ticks, a new crowd picks them up by their resume tokens (under new ids), and
+    every later reply equals an uninterrupted crowd's, bit for bit."""
+    lti, erd = models["lti"].styles(), models["erd"].styles()
+    names = list(models["lti"].skeleton.names)
+    order = np.roll(np.arange(len(names)), 3)
+    chars = [
+        Character(0, "lti", lti[1]),
+        Character(1, "erd", erd[2]),
+        Character(2, "lti", lti[3], joints=[names[k] for k in order]),
+    ]
+
+    def frames(t: int):
+        rots = [walks[i].rotations[t] if i != 2 else walks[i].rotations[t][order] for i in range(3)]
+        return np.stack([walks[i].translations[t, 1] for i in range(3)]), np.stack(rots)
+
+    def run(crowd, ids, ticks) -> list[np.ndarray]:
+        out = []
+        for t in ticks:
+            if t == 7:
+                crowd.set_style(lti[0], characters=[ids[0]], transition_frames=8)
+            reply = crowd.tick(ids, *frames(t))
+            out.append(np.concatenate([reply.frame(i)[1].ravel() for i in ids]))
+        return out
+
+    with live_server(models, idle_timeout_s=30) as (base, app), Client(base, timeout=30) as client:
+        with client.crowd(chars, fps=FPS) as crowd:
+            want = run(crowd, [0, 1, 2], range(TICKS))
+        crowd = client.crowd(chars, fps=FPS)
+        run(crowd, [0, 1, 2], range(10))
+        tokens = crowd.resume_tokens
+        crowd.io.ws.close()  # the connection drops (no 'end'): each character stays resumable
+        runtime = app.state.runtime
+        wait_until(lambda: not runtime.crowd_members, "the dropped crowd's characters were not stored")
+        again = [Character.resuming(10 + i, chars[i].model, tokens[i]) for i in range(3)]
+        again.append(Character.resuming(13, "lti", "no-such-token"))
+        with client.crowd(again, fps=FPS) as resumed:
+            assert resumed.resumed == {10: 9, 11: 9, 12: 9}
+            assert [(e.character, e.code) for e in resumed.errors] == [(13, "unknown_resume_token")]
+            got = run(resumed, [10, 11, 12], range(10, TICKS))
+        for t, (a, b) in enumerate(zip(got, want[10:], strict=True)):
+            assert np.array_equal(a, b), t
+        # the tokens were taken up: a second resume of the same characters is refused
+        with client.crowd([Character.resuming(20, "lti", tokens[0])], fps=FPS) as late:
+            assert [e.code for e in late.errors] == ["unknown_resume_token"]

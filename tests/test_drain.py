@@ -17,6 +17,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from clients.loadtest import free_port, wait_ready
+from clients.sdk import Character, Client
 from models.registry import load_models
 from models.settings import get_settings
 from service.app import create_app
@@ -137,3 +138,42 @@ def test_a_drained_session_continues_on_the_other_replica_unchanged(tmp_path, bn
         assert reconnects[-1] == 1
         assert survivor.metric("stylestream_sessions_resumed_total") == 1
         np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_a_drained_crowd_continues_on_another_server_unchanged(tmp_path, bn_walk):
+    """SIGTERM to the server holding a crowd after 10 ticks: it stores every character and closes
+    with 1012; a crowd on another server sharing the store picks them up by their resume tokens,
+    and the replies go on as an uninterrupted crowd's, bit for bit."""
+    require("redis-server")
+    chars = [Character(0, "lti", "elderly"), Character(1, "erd", "feminine"), Character(2, "lpn", "exhausted")]
+    ticks = 24
+
+    def run(crowd, ids, span) -> list[np.ndarray]:
+        out = []
+        for t in span:
+            roots, rots = np.tile(bn_walk.translations[t, 1], (3, 1)), np.tile(bn_walk.rotations[t], (3, 1, 1))
+            reply = crowd.tick(ids, roots, rots)
+            out.append(np.concatenate([reply.frame(i)[1].ravel() for i in ids]))
+        return out
+
+    with (
+        redis_server(tmp_path) as store,
+        draining_server(session_store=store, drain_timeout_s=3.0) as (a, server_a, thread_a),
+        draining_server(session_store=store) as (b, _, _),
+    ):
+        with Client(b, timeout=30).crowd(chars, fps=30) as whole:
+            want = run(whole, [0, 1, 2], range(ticks))
+        crowd = Client(a, timeout=30).crowd(chars, fps=30)
+        run(crowd, [0, 1, 2], range(10))
+        tokens = crowd.resume_tokens
+        server_a.handle_exit(signal.SIGTERM, None)
+        with pytest.raises(ConnectionClosed) as closed:
+            crowd.io.ws.recv(timeout=10)
+        assert closed.value.rcvd.code == 1012 and "resume tokens" in closed.value.rcvd.reason
+        thread_a.join(timeout=10)
+        again = [Character.resuming(i, chars[i].model, tokens[i]) for i in range(3)]
+        with Client(b, timeout=30).crowd(again, fps=30) as resumed:
+            assert resumed.errors == [] and resumed.resumed == {0: 9, 1: 9, 2: 9}
+            got = run(resumed, [0, 1, 2], range(10, ticks))
+    for t, (g, w) in enumerate(zip(got, want[10:], strict=True)):
+        assert np.array_equal(g, w), t
