@@ -92,7 +92,7 @@ class CrowdConnection(Socket):
                 self.metrics.errors.labels(err.code).inc()
                 errors.append({"id": spec.id, "code": err.code, "message": err.message})
         try:
-            self.rt.add_characters(len(joining))
+            self.rt.add_characters(self.who, len(joining))
         except P.ProtocolError as err:
             self.metrics.errors.labels(err.code).inc()
             errors += [{"id": j.spec.id, "code": err.code, "message": err.message} for j in joining]
@@ -142,7 +142,7 @@ class CrowdConnection(Socket):
                 self.rt.character_ended(self.who.id, character.token)
         for name in self.crowd.remove(present):
             self.rt.crowd_model_closed(name)
-        self.rt.remove_characters(len(present))
+        self.rt.remove_characters(self.who, len(present))
         return present
 
     def finish(self) -> None:

@@ -37,6 +37,7 @@ MAX_IDLE_BUCKETS = 10_000  # above this, buckets that have refilled are forgotte
 @dataclass(frozen=True)
 class Limits:
     max_sessions: int
+    max_characters: int  # in the caller's crowds together
     requests_per_s: float
     burst: float  # the bucket's size: requests that may come at once
     upload_max_bytes: int
@@ -158,6 +159,7 @@ class Limiter:
         rate = o.requests_per_s or s.token_requests_per_s
         return Limits(
             max_sessions=o.max_sessions or s.token_max_sessions,
+            max_characters=o.max_characters or s.token_max_characters,
             requests_per_s=rate,
             burst=max(1.0, rate * (o.burst_s or s.token_burst_s)),
             upload_max_bytes=o.upload_max_bytes or s.upload_max_bytes,

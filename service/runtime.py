@@ -87,6 +87,7 @@ class Runtime:
         self.connections: dict[str, Drainable] = {}  # by session id (a crowd: by crowd id)
         self.crowds = 0  # open crowd connections
         self.characters = 0  # characters in them
+        self._characters_of: Counter[str] = Counter()  # by caller (`Principal.key`), against its own cap
         self.crowd_members: set[str] = set()  # the session ids of those characters (resumes check it)
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
         self.draining = False
@@ -225,17 +226,31 @@ class Runtime:
     def crowd_closed(self) -> None:
         self.crowds -= 1
 
-    def add_characters(self, count: int) -> None:
+    def add_characters(self, who: Principal, count: int) -> None:
+        """Room for `count` more crowd characters of `who`: within the server's `max_characters`
+        and the caller's own cap (`token_max_characters`), or `too_many_characters`."""
         if self.characters + count > self.settings.max_characters:
             raise P.ProtocolError(
                 "too_many_characters",
                 f"server holds its maximum of {self.settings.max_characters} crowd characters "
                 f"({self.characters} now); {count} more do not fit",
             )
+        held = self._characters_of[who.key]
+        if held + count > who.limits.max_characters:
+            holder = "this token" if who.key.startswith("token:") else "this client address"
+            raise P.ProtocolError(
+                "too_many_characters",
+                f"{holder} holds its maximum of {who.limits.max_characters} crowd characters "
+                f"({held} now); {count} more do not fit",
+            )
         self.characters += count
+        self._characters_of[who.key] += count
 
-    def remove_characters(self, count: int) -> None:
+    def remove_characters(self, who: Principal, count: int) -> None:
         self.characters -= count
+        self._characters_of[who.key] -= count
+        if self._characters_of[who.key] <= 0:
+            del self._characters_of[who.key]
 
     def crowd_model_opened(self, model: str) -> None:
         """A crowd's characters of `model` go through its batcher as one request per tick: one

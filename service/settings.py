@@ -16,6 +16,7 @@ class TokenLimits(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     max_sessions: int | None = Field(default=None, ge=1)
+    max_characters: int | None = Field(default=None, ge=1)
     requests_per_s: float | None = Field(default=None, gt=0, allow_inf_nan=False)
     burst_s: float | None = Field(default=None, gt=0, allow_inf_nan=False)
     upload_max_bytes: int | None = Field(default=None, ge=1024)
@@ -103,6 +104,12 @@ class ServiceSettings(Settings):
         ge=1,
         description="Per token (per client address without tokens): "
         "concurrent streaming sessions (1013 above); by default as many as the server holds.",
+    )
+    token_max_characters: int = Field(
+        default=16384,
+        ge=1,
+        description="Per token (per client address without tokens): characters in its crowds together "
+        "(too_many_characters above); by default as many as the server holds.",
     )
     token_sessions_per_s: float = Field(
         default=50.0,

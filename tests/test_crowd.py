@@ -206,3 +206,24 @@ def test_a_crowd_resumes_every_character_exactly_where_it_left_off(models, walks
         # the tokens were taken up: a second resume of the same characters is refused
         with client.crowd([Character.resuming(20, "lti", tokens[0])], fps=FPS) as late:
             assert [e.code for e in late.errors] == ["unknown_resume_token"]
+
+
+def test_a_callers_crowds_share_its_own_character_cap(models, walks):
+    """`token_max_characters`: one caller (here a client address) cannot take every character
+    the server holds; across its connections, a join that does not fit is refused whole."""
+    style = models["lti"].styles()[0]
+    with live_server(models, token_max_characters=6) as (base, _), Client(base, timeout=30) as client:
+        with client.crowd([Character(i, "lti", style) for i in range(4)], fps=FPS) as a:
+            joined = a.join([Character(10 + i, "lti", style) for i in range(3)])
+            assert joined["characters"] == [] and {e["code"] for e in joined["errors"]} == {"too_many_characters"}
+            assert "this client address holds its maximum of 6" in joined["errors"][0]["message"]
+            with client.crowd([Character(i, "lti", style) for i in range(2)], fps=FPS) as b:  # 4 + 2 = 6
+                assert b.errors == [] and b.characters == [0, 1]
+                refused = b.join([Character(5, "lti", style)])
+                assert refused["characters"] == [] and refused["errors"][0]["code"] == "too_many_characters"
+                a.leave([0])
+                assert b.join([Character(5, "lti", style)])["characters"][0]["id"] == 5
+                out = b.tick(
+                    [0, 1, 5], np.tile(walks[0].translations[0, 1], (3, 1)), np.tile(walks[0].rotations[0], (3, 1, 1))
+                )
+                assert list(out.ids) == [0, 1, 5]
