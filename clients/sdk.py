@@ -364,9 +364,18 @@ class _ClientBase:
             "on_reconnect": on_reconnect,
         }
 
-    def _crowd_core(self, characters: Sequence[Character], fps: float, timeout: Default) -> CrowdCore:
+    def _crowd_core(
+        self, characters: Sequence[Character], fps: float, timeout: Default, reconnect_timeout: Default
+    ) -> CrowdCore:
         url = self.base_url.replace("http", "ws", 1) + "/v1/stream"
-        return CrowdCore(url, self.headers, characters, fps, self.timeout if timeout is ... else timeout)
+        return CrowdCore(
+            url,
+            self.headers,
+            characters,
+            fps,
+            self.timeout if timeout is ... else timeout,
+            self.reconnect_timeout if reconnect_timeout is ... else reconnect_timeout,
+        )
 
 
 class Client(_ClientBase):
@@ -462,10 +471,18 @@ class Client(_ClientBase):
         self._sessions.add(session)
         return session
 
-    def crowd(self, characters: Sequence[Character], fps: float = 30.0, *, timeout: Default = ...) -> Crowd:
+    def crowd(
+        self,
+        characters: Sequence[Character],
+        fps: float = 30.0,
+        *,
+        timeout: Default = ...,
+        reconnect_timeout: Default = ...,
+    ) -> Crowd:
         """Open a crowd: many characters on one connection, one binary message per tick each way
-        (protocol v1.1). Characters the server refuses are in the crowd's `errors`."""
-        return Crowd(self._crowd_core(characters, fps, timeout))
+        (protocol v1.1). Characters the server refuses are in the crowd's `errors`. If the
+        connection goes, `tick` brings the crowd back by itself until `reconnect_timeout` (0: not)."""
+        return Crowd(self._crowd_core(characters, fps, timeout, reconnect_timeout))
 
     def close(self) -> None:
         for session in list(self._sessions):
@@ -564,9 +581,16 @@ class AsyncClient(_ClientBase):
         self._sessions.add(session)
         return session
 
-    async def crowd(self, characters: Sequence[Character], fps: float = 30.0, *, timeout: Default = ...) -> AsyncCrowd:
+    async def crowd(
+        self,
+        characters: Sequence[Character],
+        fps: float = 30.0,
+        *,
+        timeout: Default = ...,
+        reconnect_timeout: Default = ...,
+    ) -> AsyncCrowd:
         """`Client.crowd` for asyncio."""
-        return await AsyncCrowd(self._crowd_core(characters, fps, timeout)).open()
+        return await AsyncCrowd(self._crowd_core(characters, fps, timeout, reconnect_timeout)).open()
 
     async def close(self) -> None:
         for session in list(self._sessions):

@@ -12,6 +12,8 @@ character id, and the others go on.
 from __future__ import annotations
 
 import json
+import logging
+import random
 import struct
 import time
 from collections import deque
@@ -21,11 +23,28 @@ from typing import Any
 
 import numpy as np
 
-from .sdk_io import AsyncIO, Close, Connect, Disconnected, Recv, RecvTimeout, Send, Steps, SyncIO, run_async, run_sync
-from .sdk_types import ServerError
+from .sdk_io import (
+    AsyncIO,
+    Close,
+    Connect,
+    Disconnected,
+    Recv,
+    RecvTimeout,
+    Send,
+    Sleep,
+    Steps,
+    SyncIO,
+    run_async,
+    run_sync,
+)
+from .sdk_session import BACKOFF_FIRST_S, BACKOFF_MAX_S, RETRY_CODES
+from .sdk_types import ConnectFailed, ConnectionLost, CrowdReconnect, ResumeError, ServerError
+
+log = logging.getLogger(__name__)
 
 TICK_HEADER = struct.Struct("<IHHI")  # seq, kind (2 = tick), characters, dropped
 KIND_TICK = 2
+REPLAY_MESSAGES = 128  # ticks and controls held to send again after a resume (the server stores every 30 ticks)
 
 
 @dataclass(frozen=True)
@@ -62,6 +81,15 @@ class Character:
         return out
 
 
+@dataclass(frozen=True)
+class Sent:
+    """A message kept for replay: a tick (`seq`), or a control message and the reply it awaits."""
+
+    data: bytes | str
+    seq: int | None = None
+    reply: str = ""
+
+
 @dataclass
 class CrowdFrames:
     """One tick's reply: every character's stylised frame, in the tick's order (a character whose
@@ -95,10 +123,21 @@ class CrowdCore:
     """What to send and what the replies mean; no I/O of its own (`sdk_io`)."""
 
     def __init__(
-        self, url: str, headers: dict[str, str], characters: Sequence[Character], fps: float, timeout: float | None
+        self,
+        url: str,
+        headers: dict[str, str],
+        characters: Sequence[Character],
+        fps: float,
+        timeout: float | None,
+        reconnect_timeout: float | None = None,
     ) -> None:
         self.url, self.headers, self.fps, self.timeout = url, headers, fps, timeout
+        self.reconnect_timeout = reconnect_timeout
         self.opening = list(characters)
+        self.members: dict[int, Character] = {}  # as they joined: how to open one again if its token is gone
+        self.sent: deque[Sent] = deque(maxlen=REPLAY_MESSAGES)  # recent ticks and controls, to replay after a resume
+        self.reconnects = 0
+        self.last_reconnect: CrowdReconnect | None = None
         self.frame_floats: dict[int, int] = {}  # per character in the crowd
         self.resume_tokens: dict[int, str] = {}  # per character: where a new crowd can pick it up
         self.resumed: dict[int, int | None] = {}  # characters that resumed: the last tick their snapshot had
@@ -115,18 +154,21 @@ class CrowdCore:
         yield Send(json.dumps(message))
         reply = yield from self._text_reply("crowd_started")
         self.crowd_id = reply["crowd_id"]
-        return self._joined(reply)
+        return self._joined(reply, self.opening)
 
     def join(self, characters: Sequence[Character]) -> Steps[dict[str, Any]]:
-        yield Send(json.dumps({"type": "join", "characters": [c.message() for c in characters]}))
-        return self._joined((yield from self._text_reply("joined")))
+        yield Send(
+            self._record("joined", json.dumps({"type": "join", "characters": [c.message() for c in characters]}))
+        )
+        return self._joined((yield from self._text_reply("joined")), characters)
 
     def leave(self, ids: Sequence[int]) -> Steps[list[int]]:
-        yield Send(json.dumps({"type": "leave", "characters": [int(i) for i in ids]}))
+        yield Send(self._record("left", json.dumps({"type": "leave", "characters": [int(i) for i in ids]})))
         left = (yield from self._text_reply("left"))["characters"]
         for i in left:
             self.frame_floats.pop(i, None)
             self.resume_tokens.pop(i, None)
+            self.members.pop(i, None)
         return left
 
     def set_style(
@@ -141,14 +183,14 @@ class CrowdCore:
         message.update({"mix": mix} if mix is not None else {"style": style})
         if characters is not None:
             message["characters"] = [int(i) for i in characters]
-        yield Send(json.dumps(message))
+        yield Send(self._record("style_set", json.dumps(message)))
         return (yield from self._text_reply("style_set"))
 
     def reset(self, characters: Sequence[int] | None = None) -> Steps[dict[str, Any]]:
         message: dict[str, Any] = {"type": "reset"}
         if characters is not None:
             message["characters"] = [int(i) for i in characters]
-        yield Send(json.dumps(message))
+        yield Send(self._record("reset_done", json.dumps(message)))
         return (yield from self._text_reply("reset_done"))
 
     def close(self) -> Steps[None]:
@@ -166,8 +208,10 @@ class CrowdCore:
             pass
         yield Close()
 
-    def _joined(self, reply: dict[str, Any]) -> dict[str, Any]:
+    def _joined(self, reply: dict[str, Any], asked: Sequence[Character]) -> dict[str, Any]:
+        by_id = {c.id: c for c in asked}
         for c in reply["characters"]:
+            self.members[c["id"]] = by_id[c["id"]]
             self.frame_floats[c["id"]] = reply["rigs"][c["rig"]]["frame_floats"]
             self.resume_tokens[c["id"]] = c["resume_token"]
             if c.get("resumed"):
@@ -192,13 +236,133 @@ class CrowdCore:
     def send_tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> Steps[int]:
         """Send a tick without waiting for its reply (pipelined); returns its sequence number."""
         seq = self.seq
-        yield Send(self.encode_tick(ids, roots, rotations))
+        data = self.encode_tick(ids, roots, rotations)
+        self.sent.append(Sent(data, seq))
+        yield Send(data)
         return seq
 
     def tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> Steps[CrowdFrames]:
-        """Send a tick and wait for its reply (replies come in order)."""
-        yield from self.send_tick(ids, roots, rotations)
-        return (yield from self.receive())
+        """Send a tick and wait for its reply (replies come in order). If the connection goes,
+        the crowd comes back by itself (`_recover`) and the tick gets its reply from the resumed
+        characters, as if nothing had happened."""
+        seq = self.seq
+        try:
+            yield from self.send_tick(ids, roots, rotations)
+        except Disconnected as gone:
+            yield from self._recover(gone, seq)
+        while True:
+            try:
+                return (yield from self.receive())
+            except Disconnected as gone:
+                yield from self._recover(gone, seq)
+
+    # ---- reconnecting ---------------------------------------------------------------------
+    def _record(self, reply: str, message: str) -> str:
+        self.sent.append(Sent(message, None, reply))
+        return message
+
+    def _recover(self, gone: Disconnected, pending: int) -> Steps[None]:
+        """Open the crowd again, every character by its resume token (a character whose token the
+        server no longer knows joins afresh from its first settings), then send again what the
+        stored state lacks: the ticks and style/reset messages after its last answered tick, up to
+        and including tick `pending`, whose reply `tick` then reads (the others' are dropped)."""
+        if self.reconnect_timeout == 0:
+            raise ConnectionLost(f"lost the crowd's connection to {self.url}: {gone}")
+        began = time.monotonic()
+        yield Close()
+        self._arrived.clear()
+        reply, attempts = yield from self._reopen(gone)
+        answered = [c["last_seq"] for c in reply["characters"] if c.get("resumed")]
+        last = min(answered) if answered else None  # a crowd's characters are stored together
+        window = self._after(last, pending)
+        for entry in window:
+            yield Send(entry.data)
+            if entry.seq == pending:
+                break
+            if entry.seq is not None:
+                yield from self.receive()  # answered before, lost with the connection: stepped again
+            else:
+                yield from self._text_reply(entry.reply)
+        fresh = [c["id"] for c in reply["characters"] if not c.get("resumed")]
+        self.reconnects += 1
+        self.last_reconnect = CrowdReconnect(attempts, time.monotonic() - began, last, len(window), fresh, str(gone))
+        log.info(
+            "crowd back after %d attempt(s): %d message(s) sent again, %d character(s) afresh",
+            attempts,
+            len(window),
+            len(fresh),
+        )
+
+    def _after(self, last: int | None, pending: int) -> list[Sent]:
+        """What was sent after tick `last` (None: only tick `pending`), or `ResumeError` where that
+        cannot be replayed exactly."""
+        entries = list(self.sent)
+        if last is not None and last >= pending:
+            raise ResumeError(f"the reply to tick {pending} went with the connection after the server had stepped it")
+        if last is None:
+            return [e for e in entries if e.seq == pending]
+        at = next((k for k, e in enumerate(entries) if e.seq == last), None)
+        if at is None:
+            raise ResumeError(f"the messages after tick {last} are no longer held here to send again")
+        window = entries[at + 1 :]
+        if any(e.reply in ("joined", "left") for e in window):
+            raise ResumeError(f"characters joined or left after tick {last}, the last the server had stored")
+        if not window or window[-1].seq != pending:
+            raise ResumeError("ticks sent ahead without waiting (send_tick) are not resumed by tick()")
+        return window
+
+    def _reopen(self, gone: Disconnected) -> Steps[tuple[dict[str, Any], int]]:
+        deadline = None if self.reconnect_timeout is None else time.monotonic() + self.reconnect_timeout
+        delay, attempts, last_error = BACKOFF_FIRST_S, 0, str(gone)
+        while True:
+            attempts += 1
+            try:
+                yield Connect(self.url, self.timeout, self.headers)
+                chars = [
+                    Character.resuming(i, c.model, self.resume_tokens[i]) if i in self.resume_tokens else c
+                    for i, c in self.members.items()
+                ]
+                yield Send(json.dumps({"type": "crowd", "fps": self.fps, "characters": [c.message() for c in chars]}))
+                reply = yield from self._text_reply("crowd_started")
+                busy = [e for e in reply["errors"] if e["code"] in RETRY_CODES]
+                if busy:  # e.g. the server has not yet noticed the old connection go: try again shortly
+                    raise ServerError(busy[0]["code"], busy[0]["message"], character=busy[0]["id"])
+                expired = [e["id"] for e in reply["errors"] if e["code"] == "unknown_resume_token"]
+                if expired:  # the store forgot them: they start over with their first settings
+                    rejoined = yield from self._rejoin(expired)
+                    reply["characters"] += rejoined["characters"]
+                    reply["errors"] = [e for e in reply["errors"] if e["id"] not in expired] + rejoined["errors"]
+                self.crowd_id = reply["crowd_id"]
+                back = {c["id"] for c in reply["characters"]}
+                for i in [i for i in self.members if i not in back]:  # refused now (its error is in `errors`)
+                    self.members.pop(i)
+                    self.frame_floats.pop(i, None)
+                    self.resume_tokens.pop(i, None)
+                self._joined(reply, list(self.members.values()))
+                return reply, attempts
+            except ServerError as err:
+                if err.code not in RETRY_CODES:
+                    raise
+                last_error = str(err)
+                yield Close()
+            except (Disconnected, RecvTimeout, ConnectFailed) as err:
+                last_error = str(err)
+                yield Close()
+            left = None if deadline is None else deadline - time.monotonic()
+            if left is not None and left <= 0:
+                raise ConnectionLost(
+                    f"lost the crowd's connection to {self.url} ({gone}) and could not get back within "
+                    f"{self.reconnect_timeout:g} s ({attempts} attempts): {last_error}"
+                )
+            pause = delay * random.uniform(0.5, 1.0)
+            yield Sleep(pause if left is None else min(pause, left))
+            delay = min(delay * 2, BACKOFF_MAX_S)
+
+    def _rejoin(self, ids: list[int]) -> Steps[dict[str, Any]]:
+        for i in ids:
+            self.resume_tokens.pop(i, None)
+        yield Send(json.dumps({"type": "join", "characters": [self.members[i].message() for i in ids]}))
+        return (yield from self._text_reply("joined"))
 
     def receive(self) -> Steps[CrowdFrames]:
         """The next tick reply (text messages met on the way are errors, recorded or raised)."""
@@ -259,6 +423,15 @@ class _CrowdState:
     @property
     def characters(self) -> list[int]:
         return list(self.core.frame_floats)
+
+    @property
+    def reconnects(self) -> int:
+        """Times the crowd came back by itself after its connection went (`tick`)."""
+        return self.core.reconnects
+
+    @property
+    def last_reconnect(self) -> CrowdReconnect | None:
+        return self.core.last_reconnect
 
     @property
     def resume_tokens(self) -> dict[int, str]:

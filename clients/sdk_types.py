@@ -118,6 +118,21 @@ class Reconnect:
     cause: str  # why the connection went
 
 
+@dataclass(frozen=True)
+class CrowdReconnect:
+    """How a crowd came back after its connection went (`crowd.last_reconnect`): its characters
+    resumed by their tokens and the ticks their stored state lacked were sent again, so replies go
+    on as an uninterrupted crowd's; characters in `fresh` had been forgotten by the server (store
+    restarted or snapshot expired) and started over with their first settings."""
+
+    attempts: int
+    seconds: float
+    last_seq: int | None  # the last tick the resumed characters' stored state had answered
+    replayed: int  # ticks sent again (the one waiting for its reply included)
+    fresh: list[int]
+    cause: str
+
+
 # ---- REST resources --------------------------------------------------------------------------
 
 

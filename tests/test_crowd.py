@@ -227,3 +227,40 @@ def test_a_callers_crowds_share_its_own_character_cap(models, walks):
                     [0, 1, 5], np.tile(walks[0].translations[0, 1], (3, 1)), np.tile(walks[0].rotations[0], (3, 1, 1))
                 )
                 assert list(out.ids) == [0, 1, 5]
+
+
+def test_a_crowd_comes_back_by_itself_when_its_connection_drops(models, walks):
+    """The socket dies after tick 11 (a style transition under way): the next `tick` reconnects,
+    resumes every character by its token and answers as the uninterrupted crowd does."""
+    lti, erd = models["lti"].styles(), models["erd"].styles()
+    chars = [Character(0, "lti", lti[2]), Character(1, "erd", erd[1])]
+
+    def run(crowd, on_tick=None) -> list[np.ndarray]:
+        out = []
+        for t in range(TICKS):
+            if t == 5:
+                crowd.set_style(lti[4], characters=[0], transition_frames=10)
+            reply = crowd.tick(
+                [0, 1],
+                np.stack([w.translations[t, 1] for w in walks[:2]]),
+                np.stack([w.rotations[t] for w in walks[:2]]),
+            )
+            out.append(np.concatenate([reply.frame(i)[1].ravel() for i in (0, 1)]))
+            if on_tick:
+                on_tick(crowd, t)
+        return out
+
+    def drop(crowd, t: int) -> None:
+        if t == 11:
+            crowd.io.ws.close()
+
+    with live_server(models, idle_timeout_s=30) as (base, _), Client(base, timeout=30) as client:
+        with client.crowd(chars, fps=FPS) as crowd:
+            want = run(crowd)
+        with client.crowd(chars, fps=FPS, reconnect_timeout=10) as crowd:
+            got = run(crowd, drop)
+            assert crowd.reconnects == 1
+            event = crowd.last_reconnect
+            assert (event.last_seq, event.replayed, event.fresh) == (11, 1, [])
+    for t, (g, w) in enumerate(zip(got, want, strict=True)):
+        assert np.array_equal(g, w), t

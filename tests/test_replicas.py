@@ -13,7 +13,7 @@ import httpx
 import numpy as np
 import pytest
 
-from clients.sdk import Client, ReplayBuffer, ResumeError
+from clients.sdk import Character, Client, ReplayBuffer, ResumeError
 from models.data import load_motion, select
 
 from .clips import frames_json
@@ -151,3 +151,42 @@ def test_an_overflowing_buffer_says_it_cannot_resume_exactly():
     assert [s for s, _ in buf.after(7)] == [8, 9]
     with pytest.raises(ResumeError, match="unacknowledged"):
         buf.after(1)
+
+
+def test_a_crowd_survives_a_replica_kill_with_one_reconnect_and_unchanged_output(cluster, bn_walk):
+    """SIGKILL of the replica holding a crowd: its characters were last stored at tick 29, a
+    style change came at 35; the SDK comes back through nginx on the other replica, resumes every
+    character and sends again ticks 30.. and the style change, so the replies equal an
+    uninterrupted crowd's exactly."""
+    lb, *servers = cluster
+    chars = [Character(0, "lti", "elderly"), Character(1, "erd", "exhausted"), Character(2, "lpn", "feminine")]
+    roots, rots = bn_walk.translations[:FRAMES, 1], bn_walk.rotations[:FRAMES]
+
+    def run(on_tick=None):
+        out = []
+        with Client(lb, timeout=30).crowd(chars, fps=30, reconnect_timeout=20) as crowd:
+            for t in range(FRAMES):
+                if t == STYLE_AT:
+                    crowd.set_style("exhausted", characters=[0], transition_frames=20)
+                reply = crowd.tick([0, 1, 2], np.tile(roots[t], (3, 1)), np.tile(rots[t], (3, 1, 1)))
+                out.append(np.concatenate([reply.frame(i)[1].ravel() for i in range(3)]))
+                if on_tick:
+                    on_tick(t)
+            return np.array(out), crowd.reconnects, crowd.last_reconnect
+
+    want, _, _ = run()
+    before = {s.port: s.metric("stylestream_frames_total") for s in servers}
+    killed = []
+
+    def kill_the_holder(t: int) -> None:
+        if t + 1 == KILL_AFTER:
+            holder = next(s for s in servers if s.metric("stylestream_frames_total") > before[s.port])
+            holder.signal(signal.SIGKILL)
+            holder.proc.wait(timeout=10)
+            killed.append(holder)
+
+    got, reconnects, event = run(kill_the_holder)
+    assert killed and reconnects == 1
+    assert (event.last_seq, event.replayed, event.fresh) == (29, KILL_AFTER - 30 + 2, [])  # 18 ticks and a style
+    for t, (g, w) in enumerate(zip(got, want, strict=True)):
+        assert np.array_equal(g, w), t
