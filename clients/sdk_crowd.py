@@ -44,6 +44,7 @@ log = logging.getLogger(__name__)
 
 TICK_HEADER = struct.Struct("<IHHI")  # seq, kind (2 = tick), characters, dropped
 KIND_TICK = 2
+KIND_CONTROL_TICK, CONTROL_FLOATS = 3, 4  # a controller tick: forward, side (m/s), facing (rad), gait (0/1)
 REPLAY_MESSAGES = 128  # ticks and controls held to send again after a resume (the server stores every 30 ticks)
 
 
@@ -233,6 +234,22 @@ class CrowdCore:
         self.seq = (self.seq + 1) % 2**32
         return header + ids.tobytes() + payload.astype("<f4").tobytes()
 
+    def encode_control(
+        self, ids: Sequence[int] | np.ndarray, velocity: np.ndarray, facing: np.ndarray, gait: Any = "walk"
+    ) -> bytes:
+        """One controller tick: per character its desired `velocity` (n, 2) [forward, side] m/s,
+        `facing` (n,) yaw in radians and `gait` ("walk"/"run", one for all or one each)."""
+        ids = np.asarray(ids, "<u4")
+        n = len(ids)
+        gaits = np.broadcast_to(np.asarray(gait), (n,))
+        values = np.empty((n, CONTROL_FLOATS))
+        values[:, :2] = np.asarray(velocity, np.float64).reshape(n, 2)
+        values[:, 2] = np.broadcast_to(np.asarray(facing, np.float64), (n,))
+        values[:, 3] = [1.0 if g in ("run", 1, 1.0) else 0.0 for g in gaits]
+        header = TICK_HEADER.pack(self.seq, KIND_CONTROL_TICK, n, 0)
+        self.seq = (self.seq + 1) % 2**32
+        return header + ids.tobytes() + values.astype("<f4").tobytes()
+
     def send_tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> Steps[int]:
         """Send a tick without waiting for its reply (pipelined); returns its sequence number."""
         seq = self.seq
@@ -246,8 +263,20 @@ class CrowdCore:
         the crowd comes back by itself (`_recover`) and the tick gets its reply from the resumed
         characters, as if nothing had happened."""
         seq = self.seq
+        return (yield from self._round_trip(self.encode_tick(ids, roots, rotations), seq))
+
+    def control(
+        self, ids: Sequence[int] | np.ndarray, velocity: np.ndarray, facing: np.ndarray, gait: Any = "walk"
+    ) -> Steps[CrowdFrames]:
+        """A controller tick (LPN-FiLM characters): each listed character's desired motion in, its
+        synthesised frame back, as `tick` (and, like it, through a lost connection)."""
+        seq = self.seq
+        return (yield from self._round_trip(self.encode_control(ids, velocity, facing, gait), seq))
+
+    def _round_trip(self, data: bytes, seq: int) -> Steps[CrowdFrames]:
+        self.sent.append(Sent(data, seq))
         try:
-            yield from self.send_tick(ids, roots, rotations)
+            yield Send(data)
         except Disconnected as gone:
             yield from self._recover(gone, seq)
         while True:
@@ -458,6 +487,9 @@ class Crowd(_CrowdState):
     def send_tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> int:
         return run_sync(self.core.send_tick(ids, roots, rotations), self.io)
 
+    def control(self, ids: Sequence[int] | np.ndarray, velocity: Any, facing: Any, gait: Any = "walk") -> CrowdFrames:
+        return run_sync(self.core.control(ids, velocity, facing, gait), self.io)
+
     def receive(self) -> CrowdFrames:
         return run_sync(self.core.receive(), self.io)
 
@@ -498,6 +530,11 @@ class AsyncCrowd(_CrowdState):
 
     async def send_tick(self, ids: Sequence[int] | np.ndarray, roots: np.ndarray, rotations: Any) -> int:
         return await run_async(self.core.send_tick(ids, roots, rotations), self.io)
+
+    async def control(
+        self, ids: Sequence[int] | np.ndarray, velocity: Any, facing: Any, gait: Any = "walk"
+    ) -> CrowdFrames:
+        return await run_async(self.core.control(ids, velocity, facing, gait), self.io)
 
     async def receive(self) -> CrowdFrames:
         return await run_async(self.core.receive(), self.io)

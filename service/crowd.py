@@ -32,7 +32,8 @@ from .frame_check import check_rows
 from .sessions import Snapshot
 from .skeletons import SkeletonAdapter
 
-StepRows = Callable[[State, np.ndarray, np.ndarray, np.ndarray, list[str]], Awaitable[tuple]]
+# (state, root, rotations, weights over names, names, controller rows or None) -> the batcher's step
+StepRows = Callable[[State, np.ndarray, np.ndarray, np.ndarray, list[str], np.ndarray | None], Awaitable[tuple]]
 
 
 def take_rows(state: State, rows: np.ndarray) -> State:
@@ -198,16 +199,25 @@ class Troupe:
             self.left[moving] -= 1
         return self.weights[rows]
 
-    async def step(self, step_rows: StepRows, rows: np.ndarray, root: np.ndarray, rot: np.ndarray) -> None:
-        """The model steps each row owes for this frame (rate adaptation), holding the outputs."""
+    async def step(
+        self,
+        step_rows: StepRows,
+        rows: np.ndarray,
+        root: np.ndarray,
+        rot: np.ndarray,
+        control: np.ndarray | None = None,
+    ) -> None:
+        """The model steps each row owes for this frame (rate adaptation), holding the outputs;
+        `control`: the rows' controller input (`FrameBatch.control`), for a controller tick."""
         steps = self.steps_due(rows)
         for k in range(1, int(steps.max(initial=0)) + 1):
             due = steps >= k
             sel, sel_root, sel_rot = (rows, root, rot) if due.all() else (rows[due], root[due], rot[due])
+            sel_control = control if control is None or due.all() else control[due]
             whole = len(sel) == len(self) and np.array_equal(sel, np.arange(len(self)))
             state = self.state if whole else take_rows(self.state, sel)
             out_root, out_rot, new_state = await step_rows(
-                state, sel_root, sel_rot, self.advance_style(sel), self.names
+                state, sel_root, sel_rot, self.advance_style(sel), self.names, sel_control
             )
             self.state = new_state if whole else put_rows(self.state, sel, new_state)
             self.held_root[sel], self.held_rot[sel], self.held_input_root[sel] = out_root, out_rot, sel_root
@@ -238,6 +248,7 @@ class Part:
     positions: np.ndarray  # places in the tick's list of characters
     offsets: np.ndarray  # float offsets of their frames in the tick's payload
     rows: np.ndarray  # their troupe rows
+    ids: np.ndarray  # their character ids
 
 
 @dataclass
@@ -394,52 +405,53 @@ class Crowd:
         for group in dict.fromkeys(groups):  # first-seen order
             positions = np.array([k for k, g in enumerate(groups) if g is group], np.int64)
             troupe = self.troupes[group.model]
+            members = [int(ids[k]) for k in positions]
             parts.append(
-                Part(group, troupe, positions, starts[positions], troupe.rows([int(ids[k]) for k in positions]))
+                Part(group, troupe, positions, starts[positions], troupe.rows(members), np.array(members, np.int64))
             )
         self._plan, self._plan_key = Plan(ids.copy(), sizes, parts), bytes(ids_raw)
         return self._plan
 
     async def tick(
-        self, seq: int, ids_raw: bytes, payload: np.ndarray, step: Callable[[str], StepRows], dropped: int = 0
+        self,
+        seq: int,
+        ids_raw: bytes,
+        payload: np.ndarray,
+        step: Callable[[str], StepRows],
+        dropped: int = 0,
+        control: bool = False,
     ) -> TickResult:
         """Stylise one tick: every listed character's frame through its model, a refused frame
-        costing only its own character's reply. `step(model)` gives that model's batcher entry."""
+        costing only its own character's reply. `step(model)` gives that model's batcher entry.
+        A controller tick (`control`) carries each character's desired motion instead of a
+        frame, as a session's `control` message does (the input pose is the rest pose)."""
         plan = self.plan(ids_raw, seq)
-        if len(payload) != plan.floats:
+        want = len(plan.ids) * P.CONTROL_FLOATS if control else plan.floats
+        if len(payload) != want:
             raise P.ProtocolError(
                 "bad_frame",
-                f"tick payload holds {len(payload)} floats, its {len(plan.ids)} characters' frames take {plan.floats}",
+                f"tick payload holds {len(payload)} floats, its {len(plan.ids)} characters' "
+                f"{'controls' if control else 'frames'} take {want}",
                 seq,
             )
         result = TickResult(b"")
         ok = np.ones(len(plan.ids), bool)
-        inputs = []  # per part: (rows ok, client rotations, model root, model rotations)
+        inputs = []  # per part: (rows ok, client rotations, model root, model rotations, controller rows)
         for part in plan.parts:
-            n, num_joints = len(part.positions), part.group.adapter.num_joints
-            root, rot, status = np.empty((n, 3)), np.empty((n, num_joints, 4)), np.empty(n, np.int64)
-            check_rows(payload, part.offsets, root, rot, status)
-            good = status == 0
-            for k in np.flatnonzero(~good):
-                ok[part.positions[k]] = False
-                result.errors.append(
-                    P.ProtocolError(
-                        "bad_frame",
-                        P.FRAME_CHECK_ERRORS[int(status[k])],
-                        seq,
-                        character=int(plan.ids[part.positions[k]]),
-                    )
-                )
-            if not good.all():
-                root, rot = root[good], rot[good]
+            if control:
+                good, root, rot, rows_control = self._controls(part, payload, seq, result)
+            else:
+                good, root, rot = self._frames(part, payload, seq, result)
+                rows_control = None
+            ok[part.positions[~good]] = False
             model_root, model_rot = part.group.adapter.to_model_rows(root, rot) if len(root) else (root, rot)
-            inputs.append((good, rot, model_root, model_rot))
+            inputs.append((good, rot, model_root, model_rot, rows_control))
         outputs = await self._step(plan, inputs, step, result)
         out = np.empty(int(plan.sizes[ok].sum()), "<f4")
         starts = np.concatenate([[0], np.cumsum(plan.sizes[ok])[:-1]])
         place = np.full(len(plan.ids), -1, np.int64)
         place[ok] = starts
-        for part, (good, rot, _, _), (out_root, out_rot) in zip(plan.parts, inputs, outputs, strict=True):
+        for part, (good, rot, _, _, _), (out_root, out_rot) in zip(plan.parts, inputs, outputs, strict=True):
             if not len(out_root):
                 continue
             client_root, client_rot = part.group.adapter.from_model_rows(out_root, out_rot, rot)
@@ -450,6 +462,54 @@ class Crowd:
             result.frames[part.group.model] = result.frames.get(part.group.model, 0) + n
         result.reply = P.encode_tick(seq, plan.ids[ok], out, dropped)
         return result
+
+    @staticmethod
+    def _frames(part: Part, payload: np.ndarray, seq: int, result: TickResult) -> tuple:
+        """A part's frames, checked in one compiled pass: (valid rows, roots, rotations) of the
+        valid ones; each refused frame's error in `result`."""
+        n, num_joints = len(part.positions), part.group.adapter.num_joints
+        root, rot, status = np.empty((n, 3)), np.empty((n, num_joints, 4)), np.empty(n, np.int64)
+        check_rows(payload, part.offsets, root, rot, status)
+        good = status == 0
+        for k in np.flatnonzero(~good):
+            result.errors.append(
+                P.ProtocolError("bad_frame", P.FRAME_CHECK_ERRORS[int(status[k])], seq, character=int(part.ids[k]))
+            )
+        return good, root[good], rot[good]
+
+    @staticmethod
+    def _controls(part: Part, payload: np.ndarray, seq: int, result: TickResult) -> tuple:
+        """A part's controller input: (valid rows, rest-pose roots and rotations, (m, 5) control
+        rows) of the valid ones; a non-controller model's characters are refused."""
+        num_joints = part.group.adapter.num_joints
+        values = payload.reshape(-1, P.CONTROL_FLOATS)[part.positions]
+        rows, good = P.control_rows(values)
+        if not part.troupe.model.controllable:
+            for character in part.ids:
+                result.errors.append(
+                    P.ProtocolError(
+                        "control_unsupported",
+                        f"model {part.troupe.model.name!r} is not a character controller: send it frames",
+                        seq,
+                        character=int(character),
+                    )
+                )
+            good[:] = False
+        else:
+            for k in np.flatnonzero(~good):
+                result.errors.append(
+                    P.ProtocolError(
+                        "bad_frame",
+                        f"controller values out of range (speeds within ±{P.MAX_CONTROL_SPEED:g} m/s, "
+                        "facing within ±1e4 rad, gait 0 or 1)",
+                        seq,
+                        character=int(part.ids[k]),
+                    )
+                )
+        m = int(good.sum())
+        rest = np.zeros((m, num_joints, 4))
+        rest[..., 3] = 1.0
+        return good, np.zeros((m, 3)), rest, rows[good]
 
     async def _step(
         self, plan: Plan, inputs: list, step: Callable[[str], StepRows], result: TickResult
@@ -475,7 +535,9 @@ class Crowd:
                 return
             root = np.concatenate([inputs[k][2] for k in members])
             rot = np.concatenate([inputs[k][3] for k in members])
-            await troupe.step(step(name), rows, root, rot)
+            given = [inputs[k][4] for k in members]
+            control = None if given[0] is None else np.concatenate(given)  # a tick is all frames or all controls
+            await troupe.step(step(name), rows, root, rot, control)
             held_root, held_rot = troupe.held_output(rows, root)
             start = 0
             for k in members:

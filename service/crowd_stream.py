@@ -186,7 +186,9 @@ class CrowdConnection(Socket):
     # ---- processing ---------------------------------------------------------------------
     def _step_for(self, model: str) -> StepRows:
         batcher = self.rt.batchers[model]
-        return lambda state, root, rot, weights, names: batcher.step_rows(state, root, rot, weights, None, names)
+        return lambda state, root, rot, weights, names, control: batcher.step_rows(
+            state, root, rot, weights, control, names
+        )
 
     async def process(self) -> None:
         while (item := await self.next_work(self.pending)) is not None:
@@ -199,8 +201,10 @@ class CrowdConnection(Socket):
     async def tick(self, data: bytes) -> None:
         received = time.perf_counter()
         try:
-            seq, ids_raw, payload = P.decode_tick(data)
-            result = await self.crowd.tick(seq, ids_raw, payload, self._step_for, self.dropped)
+            seq, kind, ids_raw, payload = P.decode_tick(data)
+            result = await self.crowd.tick(
+                seq, ids_raw, payload, self._step_for, self.dropped, control=kind == P.KIND_CONTROL_TICK
+            )
             self.dropped = 0  # told in this reply (a refused tick gets none: the next reply tells)
             self.last_seq = seq
         except P.ProtocolError as err:

@@ -308,20 +308,40 @@ def error_message(code: str, message: str, seq: int | None = None, character: in
 # ---- crowd ticks (protocol v1.1) ----------------------------------------------------------
 TICK_HEADER = struct.Struct("<IHHI")  # seq, kind, characters, dropped (server -> client; 0 from clients)
 KIND_TICK = 2
+KIND_CONTROL_TICK = 3  # each character's desired motion: forward, side (m/s), facing (rad), gait (0 walk, 1 run)
+CONTROL_FLOATS = 4
 
 
-def decode_tick(data: bytes) -> tuple[int, bytes, np.ndarray]:
-    """A crowd's binary tick: (seq, the character ids as sent (uint32 LE), float32 payload view).
-    Which floats belong to whom is the crowd's to say (`service.crowd.Plan`)."""
+def decode_tick(data: bytes) -> tuple[int, int, bytes, np.ndarray]:
+    """A crowd's binary tick: (seq, kind, the character ids as sent (uint32 LE), float32 payload
+    view). Which floats belong to whom is the crowd's to say (`service.crowd.Plan`)."""
     if len(data) < TICK_HEADER.size:
         raise ProtocolError("bad_frame", f"binary message of {len(data)} bytes is shorter than the 12-byte tick header")
     seq, kind, count, _ = TICK_HEADER.unpack_from(data)
-    if kind != KIND_TICK:
-        raise ProtocolError("bad_frame", f"a crowd sends ticks (binary kind {KIND_TICK}), got kind {kind}", seq)
+    if kind not in (KIND_TICK, KIND_CONTROL_TICK):
+        raise ProtocolError(
+            "bad_frame",
+            f"a crowd sends ticks (binary kind {KIND_TICK}) or controller ticks (kind {KIND_CONTROL_TICK}), got kind {kind}",
+            seq,
+        )
     start = TICK_HEADER.size + 4 * count
     if len(data) < start or (len(data) - start) % 4:
         raise ProtocolError("bad_frame", f"a tick of {count} characters cannot be {len(data)} bytes", seq)
-    return seq, data[TICK_HEADER.size : start], np.frombuffer(data, "<f4", offset=start)
+    return seq, kind, data[TICK_HEADER.size : start], np.frombuffer(data, "<f4", offset=start)
+
+
+def control_rows(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 4) controller-tick values -> the (n, 5) rows of `FrameBatch.control` (as
+    `control_array` makes them) and which rows are valid (finite, speeds within
+    `MAX_CONTROL_SPEED`, facing within 1e4 rad, gait 0 or 1), as a `control` message's fields are."""
+    v = values.astype(np.float64)
+    ok = (
+        np.isfinite(v).all(1)
+        & (np.abs(v[:, :2]) <= MAX_CONTROL_SPEED).all(1)
+        & (np.abs(v[:, 2]) <= 1e4)
+        & np.isin(v[:, 3], (0.0, 1.0))
+    )
+    return np.concatenate([v, np.ones((len(v), 1))], 1), ok
 
 
 def encode_tick(seq: int, ids: np.ndarray, payload: np.ndarray, dropped: int = 0) -> bytes:

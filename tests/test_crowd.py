@@ -264,3 +264,74 @@ def test_a_crowd_comes_back_by_itself_when_its_connection_drops(models, walks):
             assert (event.last_seq, event.replayed, event.fresh) == (11, 1, [])
     for t, (g, w) in enumerate(zip(got, want, strict=True)):
         assert np.array_equal(g, w), t
+
+
+def test_controller_ticks_drive_each_lpn_character_as_its_own_session(server, models):
+    """Controller ticks (kind 3): LPN-FiLM characters in a crowd synthesise from the desired
+    motion exactly as a session does from `control` messages; a character of a model that is no
+    controller, or with a NaN in its values, is refused alone."""
+    lpn, lti = models["lpn"].styles(), models["lti"].styles()
+    plan = [((1.1 + 0.03 * t, 0.2 - 0.02 * t), 0.05 * t, "run" if t >= 16 else "walk") for t in range(TICKS)]
+    chars = [Character(0, "lpn", lpn[0]), Character(1, "lpn", lpn[4]), Character(2, "lti", lti[0])]
+    got: dict[int, list] = {0: [], 1: []}
+    with Client(server, timeout=30) as client:
+        with client.crowd(chars, fps=FPS) as crowd:
+            for velocity, facing, gait in plan:
+                out = crowd.control([0, 1, 2], np.tile(velocity, (3, 1)), np.full(3, facing), gait)
+                assert list(out.ids) == [0, 1]
+                for i in (0, 1):
+                    got[i].append(np.concatenate([out.frame(i)[0], out.frame(i)[1].ravel()]))
+            assert {e.code for e in crowd.errors} == {"control_unsupported"} and len(crowd.errors) == TICKS
+            assert {e.character for e in crowd.errors} == {2}
+            bad = crowd.control([0, 1], np.array([[1.0, 0.0], [np.nan, 0.0]]), np.zeros(2))
+            assert list(bad.ids) == [0] and (crowd.errors[-1].character, crowd.errors[-1].code) == (1, "bad_frame")
+        for i, style in ((0, lpn[0]), (1, lpn[4])):
+            with client.session(model="lpn", style=style, fps=FPS) as alone:
+                want = [alone.control(v, f, g) for v, f, g in plan]
+            want_rows = np.array([np.concatenate([w.root, w.rotations.ravel()]) for w in want], np.float32)
+            assert np.array_equal(np.array(got[i]), want_rows), i
+
+
+def test_a_crowd_character_resumes_as_a_session_and_a_session_as_a_crowd_character(models, walks):
+    """One snapshot format for both: a crowd character's token opens a session that goes on
+    exactly where the character was, and a session's token a crowd character."""
+    style = models["lti"].styles()[1]
+    walk = walks[0]
+    floats = 3 + 4 * walk.rotations.shape[1]
+
+    def crowd_run(crowd, span):
+        return [
+            crowd.tick([0], walk.translations[t, 1][None], walk.rotations[t][None]).frame(0)[1].copy() for t in span
+        ]
+
+    with live_server(models, idle_timeout_s=30) as (base, app), Client(base, timeout=30) as client:
+        runtime = app.state.runtime
+        with client.crowd([Character(0, "lti", style)], fps=FPS) as whole:
+            want = crowd_run(whole, range(TICKS))
+        crowd = client.crowd([Character(0, "lti", style)], fps=FPS, reconnect_timeout=0)
+        crowd_run(crowd, range(8))
+        token = crowd.resume_tokens[0]
+        crowd.io.ws.close()
+        wait_until(lambda: not runtime.crowd_members, "the crowd character was not stored")
+        with connect(ws_url(base)) as ws:  # the character as a session (its snapshot speaks binary)
+            ws.send(json.dumps({"type": "start", "model": "lti", "resume_token": token}))
+            started = json.loads(ws.recv(timeout=30))
+            assert started["type"] == "started" and started["last_seq"] == 7 and started["encoding"] == "binary"
+            for t in range(8, 12):
+                payload = np.concatenate([walk.translations[t, 1], walk.rotations[t].ravel()]).astype("<f4")
+                ws.send(P.BINARY_HEADER.pack(t, P.KIND_FRAME, 0) + payload.tobytes())
+                reply = np.frombuffer(ws.recv(timeout=30), "<f4", offset=P.BINARY_HEADER.size)
+                assert len(reply) == floats and np.array_equal(reply[3:].reshape(-1, 4), want[t]), t
+        with client.session(model="lti", style=style, fps=FPS) as session:  # and a session as a character
+            alone = [session.stylise(walk.translations[t, 1], walk.rotations[t]).rotations for t in range(8)]
+            token = session.resume_token
+            session.ws.close()  # the connection drops: the session stays resumable
+            wait_until(lambda: not runtime.sessions, "the session was not stored")
+            with client.crowd([Character.resuming(5, "lti", token)], fps=FPS) as resumed:
+                assert resumed.resumed == {5: 7}
+                got = [
+                    resumed.tick([5], walk.translations[t, 1][None], walk.rotations[t][None]).frame(5)[1].copy()
+                    for t in range(8, 12)
+                ]
+        assert np.array_equal(np.array(alone, np.float32), np.array(want[:8]))
+        assert np.array_equal(np.array(got), np.array(want[8:12]))
