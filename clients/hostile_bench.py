@@ -184,10 +184,15 @@ def largest_bvh() -> str:
     return f"{head}Frame Time: 0.00833333\n" + "\n".join(rows[i % len(rows)] for i in range(n)) + "\n"
 
 
+PHASES = ("flood", "uploads", "no-read resets", "churn", "half-open")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=6.0, help="length of each phase")
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="server settings (STYLESTREAM_NAME)")
+    ap.add_argument("--phases", nargs="*", default=list(PHASES), choices=PHASES, help="attacks to run (default: all)")
+    ap.add_argument("--checkout", type=Path, help="run the server of another checkout of the repository (before/after)")
     args = ap.parse_args()
     root, rot = real_frames(120)
     frames = [
@@ -196,7 +201,7 @@ def main() -> None:
     big = largest_bvh()
     ctx = multiprocessing.get_context("spawn")
     env = {**ENV, **{f"STYLESTREAM_{k.upper()}": v for k, v in (kv.split("=", 1) for kv in args.set)}}
-    with spawned_server(env=env) as (url, server):
+    with spawned_server(env=env, checkout=args.checkout) as (url, server):
         base = url.replace("ws://", "http://").removesuffix("/v1/stream")
         healthy = Healthy(url, frames)
         healthy.start()
@@ -209,7 +214,7 @@ def main() -> None:
             "churn": (url, args.seconds),
             "half-open": (base, args.seconds),
         }
-        for name, plan in plans.items():
+        for name, plan in ((n, plans[n]) for n in args.phases):
             out, go = ctx.Queue(), ctx.Event()
             proc = ctx.Process(target=_attack, args=(name, plan, out, go))
             proc.start()

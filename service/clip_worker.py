@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from typing import Any, Literal
 
+from starlette.requests import Request
+
 from models.motion import bvh as bvhio
 from models.motion.resample import resampled_length
 from models.motion.skeleton import Motion, Skeleton
@@ -32,7 +34,8 @@ from models.motion.skeleton import Motion, Skeleton
 from .api import ApiError, StyleUpload
 from .clips import MODEL_FPS, motion_from_bvh, motion_from_json
 
-Kind = Literal["bvh", "json"]
+Kind = Literal["bvh", "json"]  # what a style was made from (`StyleInfo.source`)
+Upload = Literal["multipart", "json"]  # how its clip came: a form with a BVH file part, or JSON frames
 
 
 @dataclass(frozen=True)
@@ -55,6 +58,7 @@ class DecodedClip:
     fields: dict[str, Any] = field(default_factory=dict)
     motion: Motion | None = None
     rig: str = ""
+    source: Kind = "bvh"
 
 
 def check_rate(num_frames: int, fps: float, budget: ClipBudget) -> None:
@@ -76,11 +80,44 @@ def check_rate(num_frames: int, fps: float, budget: ClipBudget) -> None:
         )
 
 
+def read_multipart(body: bytes, content_type: str) -> tuple[bytes, dict[str, Any]]:
+    """A multipart upload's BVH `file` part and its text fields (`fine_tune` as a bool), parsed
+    as the route would parse a form (Starlette's parser), but here in the child: a 15 MB form
+    costs the event loop nothing but reading its bytes."""
+
+    async def receive() -> dict:
+        return {"type": "http.request", "body": body, "more_body": False}
+
+    async def parse() -> tuple[bytes, dict[str, Any]]:
+        scope = {"type": "http", "method": "POST", "headers": [(b"content-type", content_type.encode("latin-1"))]}
+        try:
+            form = await Request(scope, receive).form()
+        except MemoryError:
+            raise  # over the child's budget: 413, as for the clip itself
+        except Exception as exc:  # noqa: BLE001
+            raise ApiError(422, "bad_request", f"unreadable multipart body: {exc}") from None
+        file = form.get("file")
+        if file is None or isinstance(file, str):
+            raise ApiError(422, "bad_request", "multipart upload needs a 'file' part with the BVH clip")
+        fields: dict[str, Any] = {k: v for k, v in form.items() if isinstance(v, str)}
+        fields["name"] = fields.get("name", "")
+        fields["fine_tune"] = fields.get("fine_tune", "false").lower() in ("1", "true", "yes", "on")
+        return await file.read(), fields
+
+    return asyncio.run(parse())
+
+
 def decode_clip(
-    kind: Kind, body: bytes, fields: dict[str, Any], skeletons: dict[str, Skeleton], budget: ClipBudget
+    kind: Upload | Kind,
+    body: bytes,
+    fields: dict[str, Any],
+    skeletons: dict[str, Skeleton],
+    budget: ClipBudget,
+    content_type: str = "",
 ) -> DecodedClip:
     """The upload's clip on the skeleton of the model it names (in `skeletons`: the models that
-    take uploads). Runs in the child; every refusal is an `ApiError`."""
+    take uploads); `fields` (the query's name, model, fine_tune) override the upload's own. Runs
+    in the child; every refusal is an `ApiError`."""
     if kind == "json":
         try:
             upload = StyleUpload.model_validate_json(body)
@@ -89,10 +126,13 @@ def decode_clip(
         fields = {"name": upload.name, "model": upload.model, "fine_tune": upload.fine_tune, **fields}
         skeleton = skeletons.get(fields["model"])
         if skeleton is None:  # the style store says why (unknown model, or one without uploads)
-            return DecodedClip(fields)
+            return DecodedClip(fields, source="json")
         check_rate(len(upload.frames.root), upload.fps, budget)
         motion, rig = motion_from_json(upload, skeleton)
-        return DecodedClip(fields, motion, rig)
+        return DecodedClip(fields, motion, rig, "json")
+    if kind == "multipart":
+        body, form = read_multipart(body, content_type)
+        fields = {**form, **fields}
     skeleton = skeletons.get(fields.get("model") or "lti")
     if skeleton is None:
         return DecodedClip(fields)
@@ -123,15 +163,16 @@ def _cap_memory(extra_mb: int) -> None:
 
 def _child(
     conn: Connection,
-    kind: Kind,
+    kind: Upload | Kind,
     body: bytes,
     fields: dict[str, Any],
     skeletons: dict[str, Skeleton],
     budget: ClipBudget,
+    content_type: str,
 ) -> None:
     try:
         _cap_memory(budget.memory_mb)
-        conn.send(("ok", decode_clip(kind, body, fields, skeletons, budget)))
+        conn.send(("ok", decode_clip(kind, body, fields, skeletons, budget, content_type)))
     except ApiError as err:
         conn.send(("error", (err.status, err.code, err.message)))
     except MemoryError:
@@ -152,16 +193,28 @@ class ClipDecoder:
         self._context.set_forkserver_preload([__name__])  # children start with numpy, scipy and the parsers loaded
 
     async def decode(
-        self, kind: Kind, body: bytes, fields: dict[str, Any], skeletons: dict[str, Skeleton]
+        self,
+        kind: Upload | Kind,
+        body: bytes,
+        fields: dict[str, Any],
+        skeletons: dict[str, Skeleton],
+        content_type: str = "",
     ) -> DecodedClip:
         async with self._slots:
-            return await asyncio.to_thread(self._run, kind, body, fields, skeletons)
+            return await asyncio.to_thread(self._run, kind, body, fields, skeletons, content_type)
 
-    def _run(self, kind: Kind, body: bytes, fields: dict[str, Any], skeletons: dict[str, Skeleton]) -> DecodedClip:
+    def _run(
+        self,
+        kind: Upload | Kind,
+        body: bytes,
+        fields: dict[str, Any],
+        skeletons: dict[str, Skeleton],
+        content_type: str,
+    ) -> DecodedClip:
         """A worker thread: start the child, wait for its answer or the deadline, reap it."""
         receiver, sender = self._context.Pipe(duplex=False)
         child = self._context.Process(
-            target=_child, args=(sender, kind, body, fields, skeletons, self.budget), daemon=True
+            target=_child, args=(sender, kind, body, fields, skeletons, self.budget, content_type), daemon=True
         )
         child.start()
         sender.close()

@@ -5,14 +5,17 @@ and hand the rest to the style store (`styles.py`); refusals are `ApiError`s."""
 
 from __future__ import annotations
 
-from typing import Any, Literal
+import asyncio
+from typing import Any
 
 from fastapi import APIRouter, Depends, Query, Request, Response
 
 from .api import ApiError, StyleInfo, StyleUpload, UploadAccepted, error_responses
+from .clip_worker import Upload
 from .deps import get_runtime, require_token
 from .jobs import JobInfo
 from .limits import Principal
+from .memory import LARGE_REQUEST_BYTES, release_freed_memory
 from .runtime import Runtime
 
 router = APIRouter()
@@ -146,31 +149,22 @@ async def upload_style(
     swaps in the tuned FiLM vector."""
     body = await _read_limited(request, who.limits.upload_max_bytes)
     ctype = request.headers.get("content-type", "")
-    fields: dict[str, Any] = {}
-    kind: Literal["bvh", "json"]
+    kind: Upload
     if ctype.startswith("multipart/form-data"):
-
-        async def receive() -> dict:
-            return {"type": "http.request", "body": body, "more_body": False}
-
-        try:
-            form = await Request(request.scope, receive).form()
-        except Exception as exc:  # noqa: BLE001
-            raise ApiError(422, "bad_request", f"unreadable multipart body: {exc}") from None
-        file = form.get("file")
-        if file is None or isinstance(file, str):
-            raise ApiError(422, "bad_request", "multipart upload needs a 'file' part with the BVH clip")
-        body, kind = await file.read(), "bvh"
-        fields = {k: v for k, v in form.items() if isinstance(v, str)}
-        fields["name"] = fields.get("name", "")
-        fields["fine_tune"] = fields.get("fine_tune", "false").lower() in ("1", "true", "yes", "on")
+        kind = "multipart"  # parsed in the decoding child, with the clip: a large form never holds the event loop
     elif ctype.startswith("application/json"):
         kind = "json"  # its fields are read with its frames, in the decoding child
     else:
         raise ApiError(415, "unsupported_media_type", "send multipart/form-data (file=BVH) or application/json frames")
     overrides = {"name": name, "model": model, "fine_tune": fine_tune}
-    fields.update({k: v for k, v in overrides.items() if v is not None})
-    accepted = await rt.styles.upload(kind, body, fields, who)
+    fields = {k: v for k, v in overrides.items() if v is not None}
+    large = len(body) >= LARGE_REQUEST_BYTES
+    try:
+        accepted = await rt.styles.upload(kind, body, fields, who, ctype)
+    finally:
+        del body
+        if large:  # its copies are freed by now: hand their pages back (`service.memory`)
+            await asyncio.to_thread(release_freed_memory)
     if accepted.style.status == "ready":  # made from the clip at once (LPN-FiLM): the style exists already, job or not
         response.status_code = 201
     return accepted

@@ -49,7 +49,7 @@ from models.motion.skeleton import Motion
 
 from .api import ApiError, StyleInfo, UploadAccepted
 from .batcher import ModelThread
-from .clip_worker import ClipBudget, ClipDecoder, Kind
+from .clip_worker import ClipBudget, ClipDecoder, Kind, Upload
 from .clips import MODEL_FPS, clip_on_skeleton, hips_track
 from .jobs import JobInfo, JobManager
 from .limits import Principal
@@ -360,7 +360,9 @@ class StyleStore:
             )
         return model
 
-    async def upload(self, kind: Kind, body: bytes, fields: dict[str, Any], who: Principal) -> UploadAccepted:
+    async def upload(
+        self, kind: Upload, body: bytes, fields: dict[str, Any], who: Principal, content_type: str = ""
+    ) -> UploadAccepted:
         """A new style from an uploaded clip: `body` is the BVH file or the JSON upload, `fields`
         the name, model and fine_tune given beside it (form fields, query). A bad name or model
         is refused before the clip is decoded; the decoding (`clip_worker`) brings it onto the
@@ -370,7 +372,7 @@ class StyleStore:
         if "name" in fields:
             self._upload_target(fields["name"], fields.get("model") or "lti")
         skeletons = {name: m.skeleton for name, m in self.models.items() if isinstance(m, UploadedStyles)}
-        clip = await self.decoder.decode(kind, body, fields, skeletons)
+        clip = await self.decoder.decode(kind, body, fields, skeletons, content_type)
         name, model_name = clip.fields.get("name") or "", clip.fields.get("model") or "lti"
         fine_tune = bool(clip.fields.get("fine_tune"))
         model = self._upload_target(name, model_name)
@@ -378,7 +380,7 @@ class StyleStore:
         self._claimed.add(sid)
         try:
             assert clip.motion is not None  # decoded for every model that takes uploads
-            return await self._create(sid, model, clip.motion, clip.rig, kind, fine_tune, who.tenant)
+            return await self._create(sid, model, clip.motion, clip.rig, clip.source, fine_tune, who.tenant)
         finally:
             self._claimed.discard(sid)
 

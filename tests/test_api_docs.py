@@ -339,8 +339,8 @@ def protocol_error_codes() -> set[str]:
 
 def server_message_types() -> set[str]:
     """The `type` of every message dict the server's code builds (dict literals with a string
-    `type`, leaving out JSON-schema type names and ASGI event types)."""
-    schema_words = {"object", "string", "integer", "number", "boolean", "array", "null"}
+    `type`, leaving out JSON-schema type names and ASGI event and scope types)."""
+    schema_words = {"object", "string", "integer", "number", "boolean", "array", "null", "http", "websocket"}
     found = set()
     for path in SERVICE_DIR.glob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):
