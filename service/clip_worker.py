@@ -34,6 +34,7 @@ from models.motion.skeleton import Motion, Skeleton
 from .api import ApiError, StyleUpload
 from .clips import MODEL_FPS, motion_from_bvh, motion_from_json
 
+DECODE_NICENESS = 10  # the decoding child's CPU priority below the server's (Linux nice)
 Kind = Literal["bvh", "json"]  # what a style was made from (`StyleInfo.source`)
 Upload = Literal["multipart", "json"]  # how its clip came: a form with a BVH file part, or JSON frames
 
@@ -164,14 +165,15 @@ def _cap_memory(extra_mb: int) -> None:
 def _child(
     conn: Connection,
     kind: Upload | Kind,
-    body: bytes,
     fields: dict[str, Any],
     skeletons: dict[str, Skeleton],
     budget: ClipBudget,
     content_type: str,
 ) -> None:
     try:
+        os.nice(DECODE_NICENESS)  # the streams' event loop gets the core first when both want it
         _cap_memory(budget.memory_mb)
+        body = conn.recv_bytes()
         conn.send(("ok", decode_clip(kind, body, fields, skeletons, budget, content_type)))
     except ApiError as err:
         conn.send(("error", (err.status, err.code, err.message)))
@@ -195,7 +197,7 @@ class ClipDecoder:
     async def decode(
         self,
         kind: Upload | Kind,
-        body: bytes,
+        body: bytes | bytearray,
         fields: dict[str, Any],
         skeletons: dict[str, Skeleton],
         content_type: str = "",
@@ -206,19 +208,25 @@ class ClipDecoder:
     def _run(
         self,
         kind: Upload | Kind,
-        body: bytes,
+        body: bytes | bytearray,
         fields: dict[str, Any],
         skeletons: dict[str, Skeleton],
         content_type: str,
     ) -> DecodedClip:
-        """A worker thread: start the child, wait for its answer or the deadline, reap it."""
-        receiver, sender = self._context.Pipe(duplex=False)
+        """A worker thread: start the child, send it the body, wait for its answer or the
+        deadline, reap it. The body goes through the pipe, not with the child's arguments: a
+        pipe write of 15 MB lets go of the GIL, pickling it would hold the event loop."""
+        receiver, sender = self._context.Pipe(duplex=True)
         child = self._context.Process(
-            target=_child, args=(sender, kind, body, fields, skeletons, self.budget, content_type), daemon=True
+            target=_child, args=(sender, kind, fields, skeletons, self.budget, content_type), daemon=True
         )
         child.start()
         sender.close()
         try:
+            try:
+                receiver.send_bytes(body)
+            except OSError:  # the child is already gone (over its memory budget at start)
+                pass
             if not receiver.poll(self.budget.timeout_s):
                 raise ApiError(
                     422,

@@ -361,7 +361,7 @@ class StyleStore:
         return model
 
     async def upload(
-        self, kind: Upload, body: bytes, fields: dict[str, Any], who: Principal, content_type: str = ""
+        self, kind: Upload, body: bytes | bytearray, fields: dict[str, Any], who: Principal, content_type: str = ""
     ) -> UploadAccepted:
         """A new style from an uploaded clip: `body` is the BVH file or the JSON upload, `fields`
         the name, model and fine_tune given beside it (form fields, query). A bad name or model
