@@ -32,26 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from .bn_skeleton import HIPS
+from .rotations import quat_inv, quat_mul
 
 NO_PRIOR = np.inf  # radius of a joint (or a style) without a prior: nothing is clamped
-
-
-def _mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        axis=-1,
-    )
-
-
-def _inv(q: np.ndarray) -> np.ndarray:
-    return q * np.array([-1.0, -1.0, -1.0, 1.0])
 
 
 def up_twist(q: np.ndarray) -> np.ndarray:
@@ -68,7 +51,7 @@ def comparable(rotations: np.ndarray) -> np.ndarray:
     out = np.array(rotations, float, copy=True)
     out /= np.linalg.norm(out, axis=-1, keepdims=True)
     h = out[..., HIPS, :]
-    out[..., HIPS, :] = _mul(_inv(up_twist(h)), h)
+    out[..., HIPS, :] = quat_mul(quat_inv(up_twist(h)), h)
     return out
 
 
@@ -116,8 +99,8 @@ def clamp_rotations(rotations: np.ndarray, mean: np.ndarray, radii: np.ndarray) 
     q = np.array(rotations, float, copy=True)
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
     twist = up_twist(q[..., HIPS, :])
-    q[..., HIPS, :] = _mul(_inv(twist), q[..., HIPS, :])
-    rel = _mul(_inv(mean), q)  # rotation from the mean, taken with w >= 0 (the short way)
+    q[..., HIPS, :] = quat_mul(quat_inv(twist), q[..., HIPS, :])
+    rel = quat_mul(quat_inv(mean), q)  # rotation from the mean, taken with w >= 0 (the short way)
     rel = np.where(rel[..., 3:] < 0, -rel, rel)
     s = np.linalg.norm(rel[..., :3], axis=-1)
     d = 2.0 * np.arctan2(s, rel[..., 3])
@@ -125,9 +108,9 @@ def clamp_rotations(rotations: np.ndarray, mean: np.ndarray, radii: np.ndarray) 
     moved = new_d < d
     axis = rel[..., :3] / np.maximum(s, 1e-300)[..., None]
     half = 0.5 * new_d[..., None]
-    clamped = _mul(mean, np.concatenate([axis * np.sin(half), np.cos(half)], axis=-1))
+    clamped = quat_mul(mean, np.concatenate([axis * np.sin(half), np.cos(half)], axis=-1))
     q = np.where(moved[..., None], clamped, q)
-    q[..., HIPS, :] = _mul(twist, q[..., HIPS, :])
+    q[..., HIPS, :] = quat_mul(twist, q[..., HIPS, :])
     # rotations that were not moved are returned exactly as given (same sign, no round trip)
     return np.where(moved[..., None], q, rotations)
 
