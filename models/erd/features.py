@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..motion.bn_skeleton import NUM_JOINTS
+from ..motion.bn_skeleton import BODY
 from ..motion.features import body_joint, facing_yaw, left_leg_length
 from ..motion.skeleton import Skeleton
 from . import kernels
 
-BODY = np.arange(1, NUM_JOINTS)  # joints carried by the features
 NB = len(BODY)  # 21
 ROT = slice(0, 4 * NB)
 POS = slice(4 * NB, 7 * NB)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..motion.bn_skeleton import body_joints
 from ..motion.features import compute_features
 from ..motion.skeleton import Motion
 
@@ -15,7 +16,8 @@ FEATURE_DIM = NUM_BODY_JOINTS * 6 + 4
 
 
 def _body(motion: Motion) -> slice:
-    return slice(1, None) if motion.skeleton.names[0] == "joint_Root" else slice(0, None)
+    """The body's joints (`bn_skeleton.body_joints`): a static root, if any, comes first."""
+    return slice(len(motion.skeleton.names) - len(body_joints(motion.skeleton.names)), None)
 
 
 def clip_features(motion: Motion) -> np.ndarray:

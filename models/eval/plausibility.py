@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..motion import bn_skeleton
 from ..motion.rotations import quat_angle, quat_inv, quat_mean, quat_mul, swing_twist, twist_angle
 from ..motion.skeleton import Motion, Skeleton
 
@@ -29,8 +30,8 @@ MAX_FRAMES_PER_STYLE = 60_000  # an even subsample keeps building the reference 
 
 
 def body_joints(skeleton: Skeleton) -> np.ndarray:
-    """Indices of the joints that carry the body: all but Bandai Namco's static `joint_Root`."""
-    return np.array([j for j, n in enumerate(skeleton.names) if n != "joint_Root"])
+    """Indices of the joints that carry the body (`bn_skeleton.body_joints`)."""
+    return np.array(bn_skeleton.body_joints(skeleton.names))
 
 
 def bone_axes(skeleton: Skeleton) -> np.ndarray:

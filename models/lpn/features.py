@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..motion.bn_skeleton import HIPS, NUM_JOINTS
+from ..motion.bn_skeleton import BODY, HIPS
 from ..motion.features import facing_yaw, wrap_angle
 from ..motion.rotations import quat_to_matrix
 from ..motion.skeleton import Skeleton
@@ -39,7 +39,6 @@ PAST = 6  # samples before the current frame
 FUTURE = 6  # samples after it
 SAMPLES = PAST + 1 + FUTURE  # 13
 OFFSETS = np.arange(-PAST, FUTURE + 1) * STEP  # frame offsets of the samples
-BODY = np.arange(1, NUM_JOINTS)  # joint_Root (static at the origin) carries nothing
 NB = len(BODY)  # 21
 NUM_BONES = 4  # phase bones: Hand_L, Hand_R, Foot_L, Foot_R
 

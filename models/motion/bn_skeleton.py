@@ -8,6 +8,10 @@ read them as module-level ints (compile-time constants), so they import them fro
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import numpy as np
+
 BN_JOINTS = (
     "joint_Root",
     "Hips",
@@ -35,6 +39,15 @@ BN_JOINTS = (
 NUM_JOINTS = len(BN_JOINTS)
 ROOT = BN_JOINTS.index("joint_Root")  # static at the origin, identity rotation
 HIPS = BN_JOINTS.index("Hips")  # carries the world translation and heading
+BODY = np.array([j for j in range(NUM_JOINTS) if j != ROOT])  # the joints that carry the body (index array)
+
+
+def body_joints(names: Sequence[str]) -> list[int]:
+    """Indices of a skeleton's joints that carry the body: all but Bandai Namco's static root
+    (a joint of that name, at the origin with the identity rotation, carries nothing); every
+    joint of any other rig."""
+    return [j for j, n in enumerate(names) if n != BN_JOINTS[ROOT]]
+
 
 # BN joint -> its main child, along the limb or up the spine: the bone the joint's rotation points
 # (the retargeter matches it; joints not listed are leaves).

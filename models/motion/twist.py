@@ -26,6 +26,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
+from .bn_skeleton import body_joints
 from .rotations import cross, quat_apply, quat_apply_t, quat_inv, quat_mul, quat_mul_t
 from .skeleton import Skeleton
 from .twist_kernels import BONE, FRAME, LEAF, ROOT, transfer_twist_batch
@@ -44,7 +45,7 @@ def _plan_cached(names: tuple[str, ...], parents: tuple[int, ...], offsets: byte
     bones, or the body root), "bone" (one child bone) or "leaf"."""
     off = np.frombuffer(offsets).reshape(len(names), 3)
     plan = []
-    body_root = next(j for j, n in enumerate(names) if n != "joint_Root")
+    body_root = body_joints(names)[0]
     for j, p in enumerate(parents):
         bones = [c for c, q in enumerate(parents) if q == j and np.linalg.norm(off[c]) > _MIN_BONE]
         if p < 0:
