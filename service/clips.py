@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from models.motion import bvh as bvhio
+from models.motion.bn_skeleton import missing_joints
 from models.motion.humanoid import RigError, rig_from_bvh, rig_kind
 from models.motion.resample import resample
 from models.motion.retarget import retarget
@@ -72,7 +73,7 @@ def motion_from_bvh(text: str, skeleton: Skeleton, parsed: bvhio.BvhFile | None 
         raise ApiError(422, "bad_bvh", f"not a readable BVH file: {exc}") from None
     _check_finite(motion.rotations, motion.translations)
     src = motion.skeleton
-    if all(n in src.names for n in skeleton.names):
+    if not missing_joints(src.names, skeleton.names):
         idx = [src.index(n) for n in skeleton.names]
         hips = src.index("Hips")
         return clip_on_skeleton(

@@ -22,6 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from models.motion import bvh as bvhio
+from models.motion.bn_skeleton import missing_joints
 from models.motion.humanoid import HumanoidRig, RigError, preset_rig, rig_from_bvh
 from models.motion.retarget_stream import FrameRetargeter
 from models.motion.skeleton import Skeleton, skeleton_from_bvh
@@ -184,7 +185,7 @@ def _as_model_world(options: dict) -> bool:
 
 
 def _is_model_skeleton(names: list[str], model_skeleton: Skeleton, options: dict) -> bool:
-    return all(n in names for n in model_skeleton.names) and _as_model_world(options)
+    return not missing_joints(names, model_skeleton.names) and _as_model_world(options)
 
 
 def adapter_for(

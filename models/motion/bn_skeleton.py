@@ -42,6 +42,15 @@ HIPS = BN_JOINTS.index("Hips")  # carries the world translation and heading
 BODY = np.array([j for j in range(NUM_JOINTS) if j != ROOT])  # the joints that carry the body (index array)
 
 
+def missing_joints(names: Sequence[str], wanted: Sequence[str] = BN_JOINTS) -> list[str]:
+    """The joints of `wanted` (the model skeleton's) that a rig's `names` lack, in their order.
+    None missing: the rig carries every model joint by name, in any order and with any extra
+    joints, which is what streaming and uploads take as the model's own rig (mapped by name, no
+    retargeting); a caller that needs the exact order compares the names themselves."""
+    have = set(names)
+    return [n for n in wanted if n not in have]
+
+
 def body_joints(names: Sequence[str]) -> list[int]:
     """Indices of a skeleton's joints that carry the body: all but Bandai Namco's static root
     (a joint of that name, at the origin with the identity rotation, carries nothing); every

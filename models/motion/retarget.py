@@ -38,7 +38,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .bn_skeleton import BN_JOINTS, PRIMARY_CHILD
+from .bn_skeleton import PRIMARY_CHILD, missing_joints
 from .humanoid import HumanoidRig
 from .resample import resample
 from .rotations import quat_canonical
@@ -66,7 +66,7 @@ class Rig:
     @classmethod
     def from_motion(cls, motion: Motion, frame: int = 0) -> Rig:
         sk = motion.skeleton
-        missing = [n for n in BN_JOINTS if n not in sk.names]
+        missing = missing_joints(sk.names)
         if missing:
             raise ValueError(f"not a Bandai Namco skeleton (missing {', '.join(missing)})")
         toes = [sk.index("Toes_L"), sk.index("Toes_R")]
