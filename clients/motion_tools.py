@@ -11,14 +11,14 @@ def _load_any(path: str, to_model_skeleton: bool):
     skeleton (the model's own skeleton as it is); otherwise as it is, turned Y up in cm for
     drawing. A rig that is not a humanoid raises `RigError` (one line from the CLI)."""
     from models.motion import bvh
-    from models.motion.assets import bandai_namco_skeleton
+    from models.motion.bn_skeleton import missing_joints
     from models.motion.humanoid import RigError, in_model_world, rig_from_bvh
     from models.motion.retarget import retarget
     from models.motion.skeleton import from_bvh
 
     text = Path(path).read_text()
     motion = from_bvh(bvh.parse(text, str(path)))
-    if all(n in motion.skeleton.names for n in bandai_namco_skeleton().names):
+    if not missing_joints(motion.skeleton.names):
         return motion  # already the model skeleton
     try:
         rig = rig_from_bvh(text, str(path))
