@@ -83,3 +83,20 @@ def test_uploaded_styles_are_not_clamped(model, walk):
     assert len(twin._ball[0]) == len(twin._ball[1]) == len(twin.styles())
     out, _ = twin.run(walk, twin.weight_vector({"elderly": 1.0}))
     assert np.isfinite(out.rotations).all()
+
+
+def test_tuned_builtin_styles_keep_their_prior(model):
+    """The built-in vectors tuned on their own clips (`tuned_film.npz`) are what the model loads,
+    and those styles are still clamped by their balls (unlike a vector set at run time)."""
+    from models.lpn.weights import TUNED_FILE, read_weights
+
+    folder = get_settings().weights_dir / "lpn"
+    with np.load(folder / TUNED_FILE) as z:
+        tuned = dict(zip((str(n) for n in z["styles"]), z["film"]))
+    assert tuned, "no tuned built-in styles"
+    exported, _, _ = read_weights(folder, tuned=False)
+    for name, film in tuned.items():
+        k = model.styles().index(name)
+        assert np.array_equal(model.film_of(name), film)
+        assert not np.array_equal(exported["style_film"][k], film)
+        assert np.isfinite(model._ball[1][k, :, 1:]).all(), name

@@ -26,8 +26,11 @@ built-in style's output rotations are held, per joint, inside the ball its real 
 around their mean rotation (the network's spine, Hips and shoulders otherwise left the real
 style's p99 range in 14-72 % of frames, worst joint on validation clips). Mixed weights take the
 weighted mean of each style's clamped rotation (`rotation_ball_kernels.clamp_mixed`). An uploaded
-style, or one replacing a built-in's FiLM vector, gets no clamp: it has no real data to fit a ball
-on, and a nearest built-in's ball would pull the new style back toward an old one. The ball is
+style, or one replacing a built-in's FiLM vector at run time (`set_style_film`), gets no clamp: it
+has no real data to fit a ball on, and a nearest built-in's ball would pull the new style back
+toward an old one. The built-in vectors tuned offline on the style's own TRAIN clips
+(`tune_builtin.py`, `tuned_film.npz`, applied by `read_weights`) are still the built-in styles,
+fitted on the very data the ball was, and keep their clamp. The ball is
 applied to the output only, before the feet are planted: the network's own state keeps its
 unclamped pose.
 

@@ -1,5 +1,9 @@
 """LPN-FiLM weights on disk: `models/weights/lpn/lpn.npz` (network parameters as float16,
-normalisation as float32, per-style FiLM vectors, the Bandai Namco skeleton) + `config.json`.
+normalisation as float32, per-style FiLM vectors, the Bandai Namco skeleton) + `config.json`, and
+optionally `tuned_film.npz`: built-in styles' FiLM vectors fine-tuned on their own clips with the
+network frozen (`tune_builtin.py`), which replace those styles' exported vectors when read. They
+are still the built-in styles (same data, so they keep their rotation prior); kept apart so a
+tuning run rewrites a few KB, not the 8 MB network.
 
 float16 halves the size (the H=256 network is 4.7 M parameters, ~9 MB); the runtime computes
 in float32, so the only loss is the rounding of the weights themselves (relative 5e-4)."""
@@ -15,6 +19,7 @@ from ..motion.skeleton import Skeleton
 
 WEIGHTS_FILE = "lpn.npz"
 CONFIG_FILE = "config.json"
+TUNED_FILE = "tuned_film.npz"  # `tune_builtin.py`: styles (n,), film (n, 4, H) float32
 NORMALISATION = ("X_mean", "X_std", "Y_mean", "Y_std", "S_mean", "S_std", "G_scale")
 EXPORT_WINDOWS = 32  # windows per style averaged into its FiLM vector (evenly spread over its training clips)
 LICENCE = "CC BY-NC 4.0 (inherited from the Bandai Namco Research Motion datasets 1 and 2)"
@@ -42,6 +47,7 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = 
     films = style_films(net, clips, list(range(len(styles))), limit=windows)
     skeleton = bandai_namco_pose().skeleton
     arrays = {k: v.numpy().astype(np.float32 if k in NORMALISATION else np.float16) for k, v in ck["model"].items()}
+    (out_dir / TUNED_FILE).unlink(missing_ok=True)  # tuned for the previous network: meaningless for this one
     np.savez_compressed(
         out_dir / WEIGHTS_FILE,
         **arrays,
@@ -76,12 +82,15 @@ def data_config(train_config: dict):
     return DataConfig(hundred_style_dir=folder, held_out=()) if folder else DataConfig()
 
 
-def read_weights(weights_dir: Path) -> tuple[dict[str, np.ndarray], Skeleton, dict]:
-    """(arrays as float32, skeleton, config) from a weights folder."""
+def read_weights(weights_dir: Path, tuned: bool = True) -> tuple[dict[str, np.ndarray], Skeleton, dict]:
+    """(arrays as float32, skeleton, config) from a weights folder; with `tuned`, `style_film` holds
+    the tuned built-in vectors (TUNED_FILE) where there are any."""
     weights_dir = Path(weights_dir)
     config = json.loads((weights_dir / CONFIG_FILE).read_text())
     with np.load(weights_dir / WEIGHTS_FILE) as z:
         arrays = {k: z[k] for k in z.files}
+    if tuned and (weights_dir / TUNED_FILE).exists():
+        arrays["style_film"] = apply_tuned(arrays["style_film"], config["styles"], weights_dir / TUNED_FILE)
     skeleton = Skeleton(
         tuple(str(n) for n in arrays.pop("skeleton_names")),
         arrays.pop("skeleton_parents").astype(int),
@@ -89,3 +98,14 @@ def read_weights(weights_dir: Path) -> tuple[dict[str, np.ndarray], Skeleton, di
         arrays.pop("skeleton_end_sites"),
     )
     return {k: v.astype(np.float32) for k, v in arrays.items()}, skeleton, config
+
+
+def apply_tuned(films: np.ndarray, styles: list[str], path: Path) -> np.ndarray:
+    """(S, 4, H) exported style vectors with the tuned ones in `path` in their styles' rows."""
+    out = np.array(films, np.float32)
+    with np.load(path) as z:
+        for name, film in zip(z["styles"], z["film"]):
+            if str(name) not in styles:
+                raise ValueError(f"{path}: {name!r} is not a style of these weights")
+            out[styles.index(str(name))] = film.reshape(out.shape[1:])
+    return out
