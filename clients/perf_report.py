@@ -228,6 +228,16 @@ def _redis(binary: str, folder: str):
         proc.wait(timeout=10)
 
 
+KEPT = "<!-- The sections below are kept by make perf: each was measured by the command it names. -->"
+
+
+def _kept_sections(out: Path) -> str:
+    """What follows the `KEPT` marker in the current document (hand-run measurements of other
+    tools), carried over so a new run does not lose them."""
+    old = out.read_text() if out.exists() else ""
+    return "\n" + old[old.index(KEPT) :] if KEPT in old else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m clients.perf_report", description=__doc__)
     parser.add_argument("--seconds", type=float, default=4.0, help="length of each load run")
@@ -256,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
         "with aligned clocks (every session sends at the same instant: the worst case, where each burst's last "
         "frame waits for all the others). Round trip = send to reply; "
         "server-side = frame arrival to reply sent (the server's `/metrics` histogram); capacity = the most "
-        f"sessions holding p99 ≤ {1000 / fps:.1f} ms with no drops (doubling, then bisection). The echo floor is a "
+        f"sessions holding p99 ≤ {1000 / fps:.1f} ms with no drops (doubling, then bisection; a count that fails is run once more before it counts as failed). The echo floor is a "
         "plain WebSocket echo server on the same stack (uvicorn + Starlette, same route), measured in the same run, "
         "as is its capacity (below). "
         "Sessions announce 60 fps; models run at their own 30 fps (every other frame is a held output).",
@@ -392,7 +402,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{', '.join(f'{x:.1f}' for x in os.getloadavg())} (the machine is shared).",
         ]
     )
-    args.out.write_text("\n".join(lines) + "\n")
+    args.out.write_text("\n".join(lines) + "\n" + _kept_sections(args.out))
     print(f"wrote {args.out}")
     return 0
 
