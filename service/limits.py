@@ -145,13 +145,31 @@ def given_token(authorization: str | None, query_token: str | None) -> str | Non
 # ---- the limiter -------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class Meter:
+    """A bucket with the rule it refills by, so an idle one can be judged full on its own."""
+
+    bucket: Bucket
+    rate: float
+    burst: float
+
+
 class Limiter:
     """Per-principal request buckets and open-session counts for one app."""
 
     def __init__(self, settings: ServiceSettings, clock: Callable[[], float] = time.monotonic) -> None:
         self.settings, self.clock = settings, clock
-        self.buckets: dict[str, Bucket] = {}
+        self.buckets: dict[str, Meter] = {}
         self.sessions: Counter[str] = Counter()
+
+    def _take(self, key: str, now: float, rate: float, burst: float) -> float:
+        """Take one from the bucket `key` (refilling at `rate` up to `burst`); the wait, 0 if it passes."""
+        held = self.buckets.get(key)
+        bucket, wait = take(held.bucket if held else None, now, rate, burst)
+        self.buckets[key] = Meter(bucket, rate, burst)
+        if len(self.buckets) > MAX_IDLE_BUCKETS:
+            self._forget_full_buckets(now)
+        return wait
 
     def limits_for(self, token: str | None) -> Limits:
         s = self.settings
@@ -172,8 +190,10 @@ class Limiter:
         if not self.settings.api_tokens:
             return Principal(f"client:{client or 'unknown'}", self.limits_for(None))
         now, failures = self.clock(), f"auth-failures:{client or 'unknown'}"
-        bucket = self.buckets.get(failures)
-        left = AUTH_FAILURES_BURST if bucket is None else level(bucket, now, AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST)
+        held = self.buckets.get(failures)
+        left = (
+            AUTH_FAILURES_BURST if held is None else level(held.bucket, now, AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST)
+        )
         if left < 1.0:
             wait = (1.0 - left) / AUTH_FAILURES_PER_S
             raise ApiError(
@@ -186,17 +206,13 @@ class Limiter:
         # compare with every token (no early exit), so timing says nothing about which matched
         matches = [t for t in self.settings.api_tokens if given and secrets.compare_digest(given.encode(), t.encode())]
         if not matches:  # counted per address: guessing tokens costs a second per try after the first ten
-            self.buckets[failures], _ = take(bucket, now, AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST)
+            self._take(failures, now, AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST)
             return None
         return Principal(f"token:{matches[0]}", self.limits_for(matches[0]), matches[0] in self.settings.admin_tokens)
 
     def check_request(self, who: Principal) -> None:
         """Count one REST request; raises 429 `rate_limited` (with Retry-After) over the rate."""
-        now = self.clock()
-        bucket, wait = take(self.buckets.get(who.key), now, who.limits.requests_per_s, who.limits.burst)
-        self.buckets[who.key] = bucket
-        if len(self.buckets) > MAX_IDLE_BUCKETS:
-            self._forget_full_buckets(now)
+        wait = self._take(who.key, self.clock(), who.limits.requests_per_s, who.limits.burst)
         if wait > 0:
             raise ApiError(
                 429,
@@ -218,9 +234,7 @@ class Limiter:
                 fatal=True,
                 close_code=CLOSE_TRY_AGAIN_LATER,
             )
-        key = f"open:{who.key}"
-        bucket, wait = take(self.buckets.get(key), self.clock(), who.limits.sessions_per_s, _open_burst(who.limits))
-        self.buckets[key] = bucket
+        wait = self._take(f"open:{who.key}", self.clock(), who.limits.sessions_per_s, _open_burst(who.limits))
         if wait > 0:
             raise P.ProtocolError(
                 "too_many_sessions",
@@ -237,16 +251,4 @@ class Limiter:
 
     def _forget_full_buckets(self, now: float) -> None:
         """Drop buckets that have refilled: forgetting a full bucket changes nothing."""
-
-        def full(key: str, b: Bucket) -> bool:
-            if key.startswith("auth-failures:"):
-                rate, burst = AUTH_FAILURES_PER_S, AUTH_FAILURES_BURST
-            else:
-                kind, _, who = key.partition(":") if key.startswith("open:") else ("", "", key)
-                lim = self.limits_for(who[6:] if who.startswith("token:") else None)
-                rate, burst = (
-                    (lim.sessions_per_s, _open_burst(lim)) if kind == "open" else (lim.requests_per_s, lim.burst)
-                )
-            return level(b, now, rate, burst) >= burst
-
-        self.buckets = {k: b for k, b in self.buckets.items() if not full(k, b)}
+        self.buckets = {k: m for k, m in self.buckets.items() if level(m.bucket, now, m.rate, m.burst) < m.burst}

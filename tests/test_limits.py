@@ -15,6 +15,7 @@ from websockets.sync.client import connect
 
 from models.registry import load_models
 from models.settings import get_settings
+from service.api import ApiError
 from service.limits import Bucket, take
 from service.settings import ServiceSettings
 
@@ -80,8 +81,12 @@ def test_buckets_of_callers_gone_quiet_are_forgotten():
     for i in range(limits.MAX_IDLE_BUCKETS):
         limiter.check_request(limiter.identify(None, None, f"10.0.{i // 256}.{i % 256}"))
     now[0] = 10.0  # every bucket has refilled
-    limiter.check_request(limiter.identify(None, None, "10.9.9.9"))
-    assert len(limiter.buckets) == 1
+    busy = limiter.identify(None, None, "10.9.9.8")
+    limiter.check_request(busy)
+    limiter.check_request(busy)  # its burst of 2 is spent
+    assert set(limiter.buckets) == {busy.key}  # the rest refilled and were forgotten
+    with pytest.raises(ApiError):  # and what was spent is not forgotten with them
+        limiter.check_request(busy)
 
 
 # ---- settings --------------------------------------------------------------------------------
