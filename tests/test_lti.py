@@ -11,6 +11,8 @@ from models.lti.footplant import FootplantClassifier
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel, StyleTranslator
 from models.lti.subspace import (
     StateSpace,
+    fit_bd,
+    noise_energy,
     simulate,
     spectral_radius,
     stabilize,
@@ -60,6 +62,36 @@ def test_identification_recovers_known_system():
     assert np.abs(ss.markov(40) - true).max() < 1e-7 * np.abs(true).max()
     u = rng.standard_normal((200, m))  # fresh input: same simulated output
     np.testing.assert_allclose(ss.simulate(u), simulate(A, B, C, D, u), atol=1e-6)
+
+
+def _small_system(seed: int, n: int = 3, m: int = 2, p: int = 2):
+    rng = np.random.default_rng(seed)
+    A = np.diag(rng.uniform(-0.8, 0.8, n))
+    return A, rng.standard_normal((n, m)), rng.standard_normal((p, n)), rng.standard_normal((p, m)), rng
+
+
+def test_noise_energy_is_the_output_energy_of_white_input_noise():
+    A, B, C, D, rng = _small_system(2)
+    sigma, frames = np.array([0.5, 2.0]), 200_000
+    theta = np.concatenate([B.T.ravel(), D.ravel()])  # fit_bd's unknowns: vec(B^T), vec(D)
+    predicted = theta @ noise_energy(A, C, sigma, frames) @ theta
+    simulated = np.sum(simulate(A, B, C, D, rng.standard_normal((frames, 2)) * sigma) ** 2)
+    assert simulated == pytest.approx(predicted, rel=0.02)
+
+
+def test_noise_aware_fit_is_least_squares_on_noisy_inputs():
+    """fit_bd with input_noise = the fit on many noisy copies of the input (its expectation)."""
+    A, B, C, D, rng = _small_system(3)
+    u = rng.standard_normal((400, 2))
+    y = simulate(A, B, C, D, u) + 0.1 * rng.standard_normal((400, 2))
+    sigma = np.array([0.0, 0.7])  # the second input is noisy
+    B_fit, D_fit = fit_bd(A, C, [(u, y)], ridge=1e-12, input_noise=sigma)
+    copies = [(u + rng.standard_normal(u.shape) * sigma, y) for _ in range(400)]
+    B_mc, D_mc = fit_bd(A, C, copies, ridge=1e-12)
+    np.testing.assert_allclose(B_fit, B_mc, atol=0.05)
+    np.testing.assert_allclose(D_fit, D_mc, atol=0.05)
+    B_plain, _ = fit_bd(A, C, [(u, y)], ridge=1e-12)
+    assert np.linalg.norm(B_fit[:, 1]) < np.linalg.norm(B_plain[:, 1])  # the noisy input is trusted less
 
 
 def test_stabilize_reflects_unstable_eigenvalues():

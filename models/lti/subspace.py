@@ -23,7 +23,12 @@ B and D for simulation from x0 = 0. So this is a compact numpy/scipy implementat
    `max_radius`; A is rebuilt from the modified eigen-decomposition (kept real).
 5. B and D are the linear least-squares fit of the simulated output from x0 = 0 to the data,
    over all records (the output is linear in B and D once A and C are fixed); the normal
-   equations are accumulated record by record.
+   equations are accumulated record by record. Inputs may be given an assumed noise level
+   (`input_noise`): the fit then minimises the expected error as if those inputs carried white
+   noise of that standard deviation, which adds the noise's output energy, sigma_j^2 times the
+   squared H2 norm of input j's channel (||d_j||^2 + b_j^T W_o b_j, W_o the observability
+   Gramian), to the objective: a ridge shaped by the system, so many correlated inputs cannot
+   buy a small fit error with large cancelling gains that a live stream's noise would excite.
 """
 
 from __future__ import annotations
@@ -121,9 +126,11 @@ def subspace_id(
     energy: float = 0.99,
     max_radius: float = 0.995,
     ridge: float = 1e-6,
+    input_noise: np.ndarray | None = None,
 ) -> StateSpace:
     """Identify (A, B, C, D) from records of (u (T, m), y (T, p)). `horizon` is the number of
-    block rows i of the past and of the future Hankel matrices."""
+    block rows i of the past and of the future Hankel matrices; `input_noise` (m,) is passed to
+    `fit_bd`."""
     i = horizon
     m = records[0][0].shape[1]
     p = records[0][1].shape[1]
@@ -166,12 +173,16 @@ def subspace_id(
         A = np.linalg.lstsq(gamma[:-p], gamma[p:], rcond=None)[0]
     raw = spectral_radius(A)
     A, changed = stabilize(A, max_radius)
-    B, D = fit_bd(A, C, records, ridge)
+    B, D = fit_bd(A, C, records, ridge, input_noise)
     return StateSpace(A, B, C, D, sv, raw, changed)
 
 
-def fit_bd(A: np.ndarray, C: np.ndarray, records, ridge: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares B, D for simulation from x0 = 0 with A, C fixed.
+def fit_bd(
+    A: np.ndarray, C: np.ndarray, records, ridge: float = 1e-6, input_noise: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares B, D for simulation from x0 = 0 with A, C fixed; with `input_noise` (m,), the
+    expected squared error were each input j to carry white noise of standard deviation
+    input_noise[j] (module docstring, step 5).
 
     x_t = sum_j V_t^(j) b_j with V_{t+1}^(j) = A V_t^(j) + u_t[j] I, so y_t = sum_j C V_t^(j) b_j + D u_t;
     unknowns ordered [vec(B^T) (j-major), vec(D) (row-major)]."""
@@ -193,8 +204,28 @@ def fit_bd(A: np.ndarray, C: np.ndarray, records, ridge: float = 1e-6) -> tuple[
         phi = phi.reshape(T * p, nb + nd)
         G += phi.T @ phi
         h += phi.T @ y.reshape(T * p)
+    if input_noise is not None and np.any(input_noise):
+        G += noise_energy(A, C, np.asarray(input_noise, float), sum(len(u) for u, _ in records))
     G[np.diag_indices_from(G)] += ridge * max(1.0, np.trace(G) / len(G))
     theta = sla.solve(G, h, assume_a="pos")
     B = theta[:nb].reshape(m, n).T
     D = theta[nb:].reshape(p, m)
     return B, D
+
+
+def noise_energy(A: np.ndarray, C: np.ndarray, sigma: np.ndarray, frames: int) -> np.ndarray:
+    """The quadratic form, over fit_bd's unknowns, of the output energy that white input noise
+    (standard deviation sigma[j] on input j) adds over `frames` frames: for each input j,
+    frames * sigma_j^2 * (b_j^T W_o b_j + ||d_j||^2), where W_o = sum_k (A^k)^T C^T C A^k is the
+    observability Gramian (what the state, once pushed by b_j, puts out from then on)."""
+    n, p, m = A.shape[0], C.shape[0], len(sigma)
+    nb = n * m
+    out = np.zeros((nb + p * m, nb + p * m))
+    w = frames * sigma**2
+    if n:
+        gram = sla.solve_discrete_lyapunov(A.T, C.T @ C)
+        for j in range(m):
+            out[j * n : (j + 1) * n, j * n : (j + 1) * n] = w[j] * gram
+    d = nb + np.arange(p * m)
+    out[d, d] = np.tile(w, p)  # D[k, j] sits at nb + k * m + j
+    return out

@@ -25,6 +25,13 @@ from .prior import fit_prior
 from .subspace import StateSpace, spectral_radius, subspace_id
 from .warping import dtw_warp, imw, resample_pose
 
+_UPPER = (2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13)  # Spine .. Hand_R
+_LEGS = (14, 15, 16, 17, 18, 19, 20, 21)  # UpperLeg_L .. Toes_R
+CONTEXT = {
+    **{j: [1, 14, 18] + [k for k in _UPPER if k != j] for j in _UPPER},  # Hips (root), UpperLegs, upper body
+    **{j: [1, 7, 11] + [k for k in _LEGS if k != j] for j in _LEGS},  # Hips (root), UpperArms, legs
+}
+
 CONFIG = dict(
     datasets=["bandai-namco-2", "bandai-namco-1"],
     input_style="normal",
@@ -61,13 +68,19 @@ CONFIG = dict(
     max_order_root=16,
     max_order_joint=8,
     max_radius=0.995,  # spectral radius cap for A
-    # joints whose rotations a joint's system also reads (its outputs stay its own), e.g.
-    # {joint: [other joints]}. Empty: one joint per system, as the paper. Reading related joints
-    # (upper body + root + hips for the arms and spine, both legs + root + upper arms for the legs)
-    # lifted the content judge on validation (feminine 46 -> 72 %) but multiplied the output's
-    # response to input noise ~7x (1e-4 quaternion noise: median 0.073 vs 0.010 degrees, the
-    # planter off) and moved a made rig's round trip from 0.2 to 3.9 cm: not kept (MODEL_CARD.md)
-    context={},
+    # joints whose rotations a joint's system also reads (its outputs stay its own): {joint:
+    # [other joints]}; empty = one joint per system, as the paper. The spine, head and arms read
+    # the root, both UpperLegs and the rest of the upper body; the legs read the root, both legs
+    # and both UpperArms. Without it a raise-up's spine, head and free arm cannot differ from a
+    # wave's (the UpperArm angle maps alike for both), nor the arms swing with the stride
+    # (validation content: feminine 50 -> 72 %, youthful 67 -> 87 %; MODEL_CARD.md).
+    context=CONTEXT,
+    # ... fitted as if those inputs carried noise of this std (normalised units; subspace.fit_bd):
+    # a plain least-squares fit of 37-49 correlated inputs bought its error with large cancelling
+    # gains that multiplied a live stream's noise ~9x (0.017 -> 0.14 degrees median for 1e-4
+    # quaternion noise); at 0.3 it is 1.4x the one-joint systems'. Chosen from 0.1 / 0.3 / 1.0
+    # on the validation clips (MODEL_CARD.md)
+    context_noise=0.3,
     # rotation prior (prior.py): radii from the output style's TRAIN clips
     prior_inner_q=97.0,
     prior_outer_q=99.0,
@@ -233,9 +246,16 @@ def identify(
     for g, (ii, oo) in enumerate(groups(cfg)):
         sub = [(u[:, ii], y[:, oo]) for u, y in recs]
         max_order = cfg["max_order_root"] if g == 0 else cfg["max_order_joint"]
+        # a joint's own rotation is fitted as given; other joints' (context) as if noisy
+        noise = np.where(np.isin(ii, oo), 0.0, cfg.get("context_noise", 0.0))
         systems.append(
             subspace_id(
-                sub, horizon=cfg["horizon"], max_order=max_order, energy=cfg["energy"], max_radius=cfg["max_radius"]
+                sub,
+                horizon=cfg["horizon"],
+                max_order=max_order,
+                energy=cfg["energy"],
+                max_radius=cfg["max_radius"],
+                input_noise=noise,
             )
         )
         if progress is not None:
