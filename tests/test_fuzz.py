@@ -554,6 +554,7 @@ def server(tmp_path_factory):
                 # malformed input is what is checked here, not rates (tests/test_hostile.py checks those)
                 "STYLESTREAM_MAX_CONTROLS_PER_S": "1e6",
                 "STYLESTREAM_MAX_MESSAGES_PER_S": "1e6",
+                "STYLESTREAM_TOKEN_SESSIONS_PER_S": "1e6",  # ~1200 openings as fast as the machine goes
             },  # the trained styles only
             stdout=out,
             stderr=subprocess.STDOUT,

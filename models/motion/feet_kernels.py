@@ -107,12 +107,31 @@ def _rotation_between(u, v):
 
 
 @njit(cache=True, error_model="numpy")
-def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
+def soft_reach(d, d0, reach, soft):
+    """The hip-ankle distance a leg is given for a target `d` away (its pose has it `d0` away,
+    `reach` is the longest it can be): `d` itself up to `reach - soft` (or `d0`, if longer), then
+    eased toward `reach` without ever getting there. Why: near full extension the knee angle is
+    infinitely sensitive to the distance, so an exact IK snaps the knee straight while a hold
+    stretches the leg and pops it bent again on release (a 30 degree knee jump in one frame);
+    the eased distance keeps the knee's change per frame bounded, at the cost of the ankle
+    lagging the target by at most `soft`. soft = 0: exact."""
+    start = max(reach - soft, d0)
+    if soft <= 0.0 or d <= start:
+        return min(d, reach)
+    room = reach - start
+    if room <= 1e-9:
+        return start
+    return start + room * (1.0 - math.exp(-(d - start) / room))
+
+
+@njit(cache=True, error_model="numpy")
+def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target, soft):
     """Analytic two-bone IK for one leg. gh: world rotation of the parent (Hips); r_*: local
     rotations of UpperLeg, LowerLeg, Foot; a: world hip-joint position; off_*: bone offsets.
     Returns new local (r_up, r_low, r_foot) putting the ankle at `target` (as close as the bone
-    lengths allow) with the foot's world orientation unchanged: bend thigh and knee about the leg
-    plane's normal to get the hip-ankle distance right, then swing the leg onto the target."""
+    lengths allow; within `soft` of full reach, eased by `soft_reach`) with the foot's world
+    orientation unchanged: bend thigh and knee about the leg plane's normal to get the hip-ankle
+    distance right, then swing the leg onto the target."""
     ga = qmul(gh, r_up)
     gb = qmul(ga, r_low)
     gf = qmul(gb, r_foot)
@@ -120,7 +139,8 @@ def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
     c = add3(b, qrot(gb, off_foot))
     lab, lcb = math.sqrt(dot3(off_low, off_low)), math.sqrt(dot3(off_foot, off_foot))
     at = sub3(target, a)
-    lat = min(max(math.sqrt(dot3(at, at)), 1e-3), lab + lcb - 1e-3)
+    ac = sub3(c, a)
+    lat = max(soft_reach(math.sqrt(dot3(at, at)), math.sqrt(dot3(ac, ac)), lab + lcb - 1e-3, soft), 1e-3)
     ac_ab_0 = math.acos(_cos(sub3(c, a), sub3(b, a)))
     ba_bc_0 = math.acos(_cos(sub3(a, b), sub3(c, b)))
     ac_ab_1 = math.acos(min(max((lcb * lcb - lab * lab - lat * lat) / (-2.0 * lab * lat), -1.0), 1.0))
@@ -137,14 +157,14 @@ def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
 
 
 @njit(cache=True, error_model="numpy")
-def two_bone_ik_batch(gh, r_up, r_low, r_foot, a, off_low, off_foot, target):
+def two_bone_ik_batch(gh, r_up, r_low, r_foot, a, off_low, off_foot, target, soft):
     """`two_bone_ik` over a batch of legs: (B, 4) rotations, (B, 3) hip positions and targets, (3,) offsets."""
     n = gh.shape[0]
     up, low, foot = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4))
     lo, fo = (off_low[0], off_low[1], off_low[2]), (off_foot[0], off_foot[1], off_foot[2])
     for i in range(n):
         qu, ql, qf = two_bone_ik(
-            row4(gh, i), row4(r_up, i), row4(r_low, i), row4(r_foot, i), row3(a, i), lo, fo, row3(target, i)
+            row4(gh, i), row4(r_up, i), row4(r_low, i), row4(r_foot, i), row3(a, i), lo, fo, row3(target, i), soft
         )
         for c in range(4):
             up[i, c], low[i, c], foot[i, c] = qu[c], ql[c], qf[c]
@@ -198,6 +218,7 @@ def plant_feet(
     max_offset,
     decay,
     follow,
+    soft,
     fps,
 ):
     """One frame of `feet.FootPlanter` for B sessions (see there for what and why). Reads the
@@ -283,6 +304,7 @@ def plant_feet(
                 row3(offsets, low),
                 row3(offsets, ft),
                 ankle,
+                soft,
             )
             for i in range(4):
                 out_rot[b, up, i], out_rot[b, low, i], out_rot[b, ft, i] = r_up[i], r_low[i], r_foot[i]
