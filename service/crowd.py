@@ -113,26 +113,34 @@ class Troupe:
         self.left = np.concatenate([self.left, left])
         self._index()
 
-    def snapshot_fields(self, row: int) -> dict:
-        """One row as a session snapshot's fields (`Session.snapshot`): copies, so the row may
-        step on while the snapshot waits to be stored."""
-        held = (
-            {}
-            if self.clock[row] < 0
-            else {
-                "root": self.held_root[row].copy(),
-                "rotations": self.held_rot[row].copy(),
-                "input_root": self.held_input_root[row].copy(),
-            }
-        )
-        return {
-            "state": take_rows(self.state, np.array([row])),
-            "clock": float(self.clock[row]),
-            "held": held,
-            "weights": {n: float(self.weights[row, j]) for j, n in enumerate(self.names)},
-            "target": {n: float(self.target[row, j]) for j, n in enumerate(self.names)},
-            "transition_left": int(self.left[row]),
-        }
+    def snapshot_fields(self, rows: np.ndarray) -> list[dict]:
+        """These rows as session snapshots' fields (`Session.snapshot`), one dict per row. Each
+        array is copied once for all the rows (one gather per key, not one per row and key: a
+        crowd of 2,000 snapshots in a few milliseconds, not 50 of stalled event loop) and every
+        row's fields are views of that copy, so rows may step on while the snapshots wait to be
+        stored."""
+        keys = list(self.state)
+        # iterating a gathered (n, 1, ...) array yields each row's (1, ...) view without a Python slice per key
+        per_row = zip(*(list(self.state[key][rows][:, None]) for key in keys), strict=True)
+        held_root, held_rot, held_input = self.held_root[rows], self.held_rot[rows], self.held_input_root[rows]
+        clock, left = self.clock[rows].tolist(), self.left[rows].tolist()
+        weights, target = self.weights[rows].tolist(), self.target[rows].tolist()
+        names = self.names
+        out = []
+        for k, values in enumerate(per_row):
+            out.append(
+                {
+                    "state": dict(zip(keys, values, strict=True)),
+                    "clock": clock[k],
+                    "held": {}
+                    if clock[k] < 0
+                    else {"root": held_root[k], "rotations": held_rot[k], "input_root": held_input[k]},
+                    "weights": dict(zip(names, weights[k], strict=True)),
+                    "target": dict(zip(names, target[k], strict=True)),
+                    "transition_left": left[k],
+                }
+            )
+        return out
 
     def remove(self, ids: Sequence[int]) -> None:
         keep = ~np.isin(self.ids, np.asarray(ids, np.int64))
@@ -356,25 +364,30 @@ class Crowd:
         resumable in a crowd, or alone as a session. `last_seq` is the crowd's last answered tick.
         The reply to it is not kept per character (a resumed crowd's client asks again)."""
         now, out = time.time(), []
+        by_troupe: dict[str, list[Character]] = {}
         for i in self.characters if ids is None else ids:
             c = self.characters[i]
-            troupe = self.troupes[c.group.model]
-            out.append(
-                Snapshot(
-                    session_id=c.session_id,
-                    token=c.token,
-                    model=c.group.model,
-                    skeleton=c.skeleton,
-                    bvh_header=c.bvh_header,
-                    fps=self.fps,
-                    encoding="binary",
-                    last_seq=last_seq,
-                    saved_at=now,
-                    rig=dict(c.rig),
-                    owner=owner,
-                    **troupe.snapshot_fields(troupe.row_of[i]),
+            by_troupe.setdefault(c.group.model, []).append(c)
+        for name, members in by_troupe.items():
+            troupe = self.troupes[name]
+            fields = troupe.snapshot_fields(np.array([troupe.row_of[c.id] for c in members], np.int64))
+            for c, f in zip(members, fields, strict=True):
+                out.append(
+                    Snapshot(
+                        session_id=c.session_id,
+                        token=c.token,
+                        model=name,
+                        skeleton=c.skeleton,
+                        bvh_header=c.bvh_header,
+                        fps=self.fps,
+                        encoding="binary",
+                        last_seq=last_seq,
+                        saved_at=now,
+                        rig=dict(c.rig),
+                        owner=owner,
+                        **f,
+                    )
                 )
-            )
         return out
 
     def troupe_rows(self, ids: Sequence[int]) -> dict[str, tuple[Troupe, np.ndarray, list[int]]]:

@@ -53,6 +53,9 @@ class CrowdConnection(Socket):
             return False
         self.opened = True
         self.crowd = Crowd(first.fps)
+        # each crowd's snapshots on a tick of its own (its id is random): crowds opened together
+        # would otherwise all store every character on the same tick, stalling every stream at once
+        self.ticks_since_snapshot = int(self.id, 16) % self.settings.snapshot_every
         self.rt.connections[self.id] = self
         self.log = session_log(log, self.id, "crowd")
         joined = await self.join(first.characters)
