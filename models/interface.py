@@ -246,9 +246,15 @@ class ClipStyles(UploadedStyles[S]):
     tuning_note: str  # what its fine-tuning job does, for the style's record
 
     @abstractmethod
+    def style_from_clip(self, clip: Motion) -> S:
+        """A style's parameters made from `clip` (model skeleton, model fps) at once; raises
+        ValueError for a clip it cannot use. Leaves the model as it is, so it may run on any
+        thread beside the model's steps: the service makes it there and only installs it between
+        steps (made between steps, an upload's clip held every session's frame up)."""
+
     def add_style_from_clip(self, name: str, clip: Motion) -> None:
-        """Add (or replace) style `name` made from `clip` (model skeleton, model fps); raises
-        ValueError for a clip it cannot use."""
+        """Add (or replace) style `name` made from `clip`: `install_style(name, style_from_clip(clip))`."""
+        self.install_style(name, self.style_from_clip(clip))
 
 
 def own_style_set(model: StreamingModel) -> StreamingModel:

@@ -7,7 +7,8 @@ store knows nothing else of the methods. An uploaded clip (already on the model 
 own saved parameters, style.json, and job.json, the record of its fine-tuning job) and turned
 into a style:
 
-- a `ClipStyles` model (LPN-FiLM) makes one from the clip at once (`add_style_from_clip`); with
+- a `ClipStyles` model (LPN-FiLM) makes one from the clip at once (`style_from_clip`, on a worker
+  thread beside the model's steps; only `install_style` runs between them); with
   `fine_tune` a job also fine-tunes (`fine_tune_style`) and, if that gives better parameters,
   swaps them in (`install_style`) and saves them, so a restart keeps them;
 - any other uploading model (LTI) gets its style from the fine-tuning job alone, added when
@@ -190,7 +191,7 @@ class StyleStore:
                 self._save_info(info)
             if info.status == "ready":
                 try:
-                    self._install(model, info, meta.parent, startup=True)
+                    self._install(model, info, meta.parent)
                 except Exception as exc:  # noqa: BLE001
                     log.warning("could not load style %s: %s", info.id, exc)
                     info.status, info.message = "failed", f"could not load its translator: {exc}"
@@ -205,22 +206,26 @@ class StyleStore:
             log.warning("skipping unreadable %s", meta)
             return None
 
-    def _install(self, model: UploadedStyles[Any], info: StyleInfo, d: Path, startup: bool = False) -> None:
-        """A ready style from its folder into `model` (at startup, or by a refresh on the model
-        thread): the parameters saved there, or for a clip style without any, made from its clip
-        again (a fine-tune cut off by a restart is said so in its message)."""
+    def _saved_style(self, model: UploadedStyles[Any], info: StyleInfo, d: Path) -> Any:
+        """The parameters of a ready style in its folder: those saved there, or for a clip style
+        without any, made from its clip again. Leaves the model as it is (any thread)."""
         if isinstance(model, ClipStyles) and not model.has_saved_style(d):
-            model.add_style_from_clip(info.name, self._saved_clip(model, d))
-            if (
-                startup
-                and info.job_id is not None
-                and info.fine_tune is None
-                and not (self.shared and time.time() - (d / "style.json").stat().st_mtime < TRAINING_FRESH_S)
-            ):
-                info.message = f"{model.clip_style_note}; fine-tuning was interrupted by a server restart"
-                self._save_info(info)
-            return
-        model.install_style(info.name, model.load_style(info.name, d))
+            return model.style_from_clip(self._saved_clip(model, d))
+        return model.load_style(info.name, d)
+
+    def _install(self, model: UploadedStyles[Any], info: StyleInfo, d: Path) -> None:
+        """A ready style from its folder into `model` at startup (a clip style's fine-tune cut
+        off by a restart is said so in its message)."""
+        model.install_style(info.name, self._saved_style(model, info, d))
+        if (
+            isinstance(model, ClipStyles)
+            and not model.has_saved_style(d)
+            and info.job_id is not None
+            and info.fine_tune is None
+            and not (self.shared and time.time() - (d / "style.json").stat().st_mtime < TRAINING_FRESH_S)
+        ):
+            info.message = f"{model.clip_style_note}; fine-tuning was interrupted by a server restart"
+            self._save_info(info)
 
     # ---- a styles folder shared with other replicas ---------------------------------
     async def refresh(self) -> None:
@@ -249,8 +254,9 @@ class StyleStore:
                 newly_ready = info.status == "ready" and (before is None or before.status != "ready")
                 refit = isinstance(model, ClipStyles) and model.has_saved_style(meta.parent)  # fine-tuned since
                 if newly_ready or (info.status == "ready" and refit):
-                    try:
-                        await self.model_thread.run(self._install, model, info, meta.parent)
+                    try:  # made beside the model's steps, installed between them
+                        style = await asyncio.to_thread(self._saved_style, model, info, meta.parent)
+                        await self.model_thread.run(model.install_style, info.name, style)
                     except Exception as exc:  # noqa: BLE001  (half-written by its replica: the next look retries)
                         log.warning("could not take in style %s: %s", sid, exc)
                         continue
@@ -413,8 +419,9 @@ class StyleStore:
         )
         await self._write_new(info, motion)
         if isinstance(model, ClipStyles):  # the style exists as soon as this returns; a job may improve it
-            try:
-                await self.model_thread.run(model.add_style_from_clip, name, motion)
+            try:  # made beside the model's steps (the FiLM generator over the clip), installed between them
+                style = await asyncio.to_thread(model.style_from_clip, motion)
+                await self.model_thread.run(model.install_style, name, style)
             except ValueError as exc:
                 shutil.rmtree(self._dir(model_name, name), ignore_errors=True)
                 raise ApiError(422, "bad_clip", str(exc)) from None

@@ -94,6 +94,38 @@ def poll_job(base: str, job_id: str, timeout: float = 120) -> list[dict]:
         time.sleep(0.05)
 
 
+def test_sessions_stream_on_while_an_uploaded_clip_is_made_into_a_style(giant_clip, tmp_path, monkeypatch):
+    """The FiLM generator's pass over an uploaded clip runs beside the model's steps, not between
+    them: held open here, a session of the same model still gets every frame; only the finished
+    style is installed between steps. (Made on the model's step thread, a 15 MiB clip held every
+    session's frames up for its whole embedding.)"""
+    entered, release = threading.Event(), threading.Event()
+    make = type(MODEL).style_from_clip
+
+    def held_open(model, clip):
+        entered.set()
+        assert release.wait(60), "the test never let the embedding finish"
+        return make(model, clip)
+
+    monkeypatch.setattr(type(MODEL), "style_from_clip", held_open)
+    body = {"name": "slow-giant", "model": "lpn", "frames": giant_clip, "fps": 30}
+    with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, _):
+        upload: dict = {}
+        poster = threading.Thread(
+            target=lambda: upload.setdefault("reply", httpx.post(f"{base}/v1/styles", json=body, timeout=60))
+        )
+        poster.start()
+        try:
+            assert entered.wait(60), "the upload never reached the clip embedding"
+            streamed = drive(base, "normal")  # times out (10 s a frame) if the steps wait for the embedding
+        finally:
+            release.set()
+            poster.join(timeout=60)
+        assert len(streamed) == len(WALK) and np.isfinite(streamed).all()
+        assert upload["reply"].status_code == 201, upload["reply"].text
+        assert "slow-giant" in httpx.get(f"{base}/v1/models").json()[0]["styles"]
+
+
 def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_streams_on(giant_clip, tmp_path):
     body = {"name": "tuned-giant", "model": "lpn", "frames": giant_clip, "fps": 30, "fine_tune": True}
     with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=STEPS) as (base, app):

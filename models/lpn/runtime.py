@@ -148,15 +148,15 @@ class LPNModel(LPNStyles):
         with torch.no_grad():
             return self.generator().style_film(windows).mean(0).numpy()
 
-    def add_style_from_clip(self, name: str, motion: Motion) -> None:
-        """Make a new style usable at once: the FiLM generator's embedding of `motion` (a clip of
-        the style, any length >= 1 s, on the Bandai Namco skeleton at 30 fps; longer is better).
-        Replaces a style of the same name."""
+    def style_from_clip(self, motion: Motion) -> np.ndarray:
+        """A new style's FiLM vector (4, H), usable at once: the FiLM generator's embedding of
+        `motion` (a clip of the style, any length >= 1 s, on the Bandai Namco skeleton at 30 fps;
+        longer is better). `add_style_from_clip(name, motion)` installs it under `name`."""
         if motion.skeleton.names != self.skeleton.names:
-            raise ValueError("add_style_from_clip needs a clip on the model skeleton (Bandai Namco, 22 joints)")
+            raise ValueError("a style clip must be on the model skeleton (Bandai Namco, 22 joints)")
         if motion.num_frames < self.fps:
             raise ValueError(f"style clip too short: {motion.num_frames} frames, need at least {int(self.fps)}")
-        self.set_style_film(name, self.clip_film(motion).reshape(4, self.H))
+        return self.clip_film(motion).reshape(4, self.H)
 
     def set_style_film(self, name: str, film: np.ndarray) -> None:
         """Make `name` the style with FiLM vector `film` (4, H): a fine-tuned vector
