@@ -21,7 +21,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from .loadtest import real_frames, spawned_server
@@ -84,6 +84,8 @@ def flood(url: str, frames: list[str], seconds: float) -> Counter:
                         ws.send(frame)
         except ConnectionClosed as exc:
             seen[f"closed {exc.rcvd.code if exc.rcvd else '?'}"] += 1
+        except InvalidStatus as exc:  # refused at the handshake: try again at once, as a flood script does
+            seen[f"refused {exc.response.status_code}"] += 1
     return seen
 
 

@@ -161,6 +161,7 @@ class Limiter:
         self.settings, self.clock = settings, clock
         self.buckets: dict[str, Meter] = {}
         self.sessions: Counter[str] = Counter()
+        self.cooling: dict[str, float] = {}  # principal key -> clock reading its flood cool-down ends
 
     def _take(self, key: str, now: float, rate: float, burst: float) -> float:
         """Take one from the bucket `key` (refilling at `rate` up to `burst`); the wait, 0 if it passes."""
@@ -243,6 +244,27 @@ class Limiter:
                 close_code=CLOSE_TRY_AGAIN_LATER,
             )
         self.sessions[who.key] += 1
+
+    def flooded(self, who: Principal) -> None:
+        """One of the caller's connections was closed for flooding (4429): refuse its new streams
+        for `flood_cooldown_s`. Reconnecting at once is what a flood script does, and each new
+        connection would cost the server another burst of messages read before the close."""
+        if self.settings.flood_cooldown_s > 0:
+            now = self.clock()
+            if len(self.cooling) >= MAX_IDLE_BUCKETS:
+                self.cooling = {k: t for k, t in self.cooling.items() if t > now}
+            self.cooling[who.key] = now + self.settings.flood_cooldown_s
+
+    def cooldown_left(self, who: Principal) -> float:
+        """Seconds until the caller may open streams again after a flood; 0 if it may now."""
+        until = self.cooling.get(who.key)
+        if until is None:
+            return 0.0
+        left = until - self.clock()
+        if left <= 0:
+            del self.cooling[who.key]
+            return 0.0
+        return left
 
     def session_closed(self, who: Principal) -> None:
         self.sessions[who.key] -= 1

@@ -118,6 +118,15 @@ class ServiceSettings(Settings):
         description="Per token (per client address without tokens): new streaming sessions per second, "
         "in bursts of token_max_sessions (1013 above): churn cannot fill the snapshot store.",
     )
+    flood_cooldown_s: float = Field(
+        default=10.0,
+        ge=0,
+        le=3600,
+        allow_inf_nan=False,
+        description="Per token (per client address without tokens): after one of its connections is closed "
+        "for flooding (4429), its WebSocket handshakes are refused this long (HTTP 429 rate_limited), so a "
+        "flood that reconnects costs the server one connection's burst; its open sessions go on. 0: off.",
+    )
     token_max_stored_sessions: int = Field(
         default=256,
         ge=1,

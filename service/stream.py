@@ -24,7 +24,8 @@ import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from . import protocol as P
-from .limits import MessageRate, Principal
+from .deps import get_limiter
+from .limits import CLOSE_FLOODING, MessageRate, Principal
 from .logs import session_log
 from .runtime import Runtime
 from .sessions import ControlItem, FrameItem, Session, Snapshot
@@ -193,6 +194,8 @@ class Socket:
                 except P.ProtocolError as err:
                     await self.send_error(err)
                     if err.fatal:
+                        if err.close_code == CLOSE_FLOODING:  # its reconnects are refused for a while
+                            get_limiter(self.ws).flooded(self.who)
                         await self.close(err.close_code, err.message)
                         break
         except WebSocketDisconnect:

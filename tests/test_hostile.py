@@ -11,7 +11,7 @@ import shutil
 
 import httpx
 import pytest
-from websockets.exceptions import ConnectionClosed
+from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
 
 from clients.raw_ws import RawClient, RawSocket
@@ -242,6 +242,30 @@ def test_a_flooding_client_is_told_then_closed(models, bn_walk):
                 errors
             )  # told (each run over), then why it closed
             assert sum(m["type"] == "frame" for m in received) >= 1
+        b.check(models["lti"])
+
+
+def test_a_flooding_client_that_reconnects_is_refused_while_it_cools_down(models, bn_walk):
+    """A flood script reconnects at once; each new connection would cost the server another
+    burst read before the close. Its caller's handshakes are refused (HTTP 429 `rate_limited`,
+    Retry-After) for flood_cooldown_s; a session it already had open goes on, exact."""
+    with live_server(models, max_messages_per_s=100, flood_cooldown_s=600) as (base, _):
+        with Bystander(base, bn_walk.slice(0, 60)) as b:  # the same address as the flooder
+            with connect(ws_url(base)) as ws:
+                ws.send(start_message())
+                assert json.loads(ws.recv(timeout=10))["type"] == "started"
+                with contextlib.suppress(ConnectionClosed):  # sends fail once it is closed
+                    for seq in range(100_000):
+                        ws.send(frame_message(seq, bn_walk))
+                    while True:
+                        ws.recv(timeout=20)
+            assert ws.close_code == 4429
+            with pytest.raises(InvalidStatus) as refused:
+                connect(ws_url(base))
+            response = refused.value.response
+            assert response.status_code == 429 and 590 <= int(response.headers["Retry-After"]) <= 600
+            assert json.loads(response.body)["code"] == "rate_limited"
+            assert "closed for flooding" in json.loads(response.body)["message"]
         b.check(models["lti"])
 
 

@@ -89,6 +89,29 @@ def test_buckets_of_callers_gone_quiet_are_forgotten():
         limiter.check_request(busy)
 
 
+def test_a_caller_closed_for_flooding_cools_down_alone_and_for_its_cooldown_only():
+    from service import limits
+
+    now = [0.0]
+    limiter = limits.Limiter(ServiceSettings(flood_cooldown_s=10), clock=lambda: now[0])
+    flooder, other = limiter.identify(None, None, "10.0.0.1"), limiter.identify(None, None, "10.0.0.2")
+    limiter.flooded(flooder)
+    now[0] = 9.5
+    assert limiter.cooldown_left(flooder) == pytest.approx(0.5)
+    assert limiter.cooldown_left(other) == 0.0
+    now[0] = 10.0
+    assert limiter.cooldown_left(flooder) == 0.0 and not limiter.cooling  # forgotten once over
+
+
+def test_no_flood_cooldown_when_it_is_set_to_zero():
+    from service import limits
+
+    limiter = limits.Limiter(ServiceSettings(flood_cooldown_s=0))
+    flooder = limiter.identify(None, None, "10.0.0.1")
+    limiter.flooded(flooder)
+    assert limiter.cooldown_left(flooder) == 0.0
+
+
 # ---- settings --------------------------------------------------------------------------------
 
 
