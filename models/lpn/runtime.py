@@ -21,6 +21,10 @@ clips), mixed barycentrically by the style weights; weights summing below 1 give
 `normal`. A style can be added from a clip (`add_style_from_clip`) or removed while sessions run:
 the state holds no per-style entries, so no state upgrade is needed.
 
+Arm carriage (`carriage.npz` beside the weights, `carriage.py`): each built-in style's arm joints
+are turned by the offset that takes the network's mean arm pose to the real style's, before the
+rotation prior; the same file can pace the derived control by the style's real speed (not shipped).
+
 Rotation prior (`rotation_prior.npz` beside the weights, `models.motion.rotation_ball`): each
 built-in style's output rotations are held, per joint, inside the ball its real TRAIN clips fill
 around their mean rotation (the network's spine, Hips and shoulders otherwise left the real
@@ -66,6 +70,7 @@ from ..motion.twist import transfer_twist
 from ..rowwise import matmul_rows
 from . import features as lf
 from . import kernels
+from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, blend_pace, carry_arms
 from .styles import LPNStyles
 from .weights import read_weights
 
@@ -93,7 +98,12 @@ class LPNModel(LPNStyles):
     fps = lf.FPS
 
     def __init__(
-        self, arrays: dict[str, np.ndarray], skeleton: Skeleton, config: dict, balls: StyleBalls | None = None
+        self,
+        arrays: dict[str, np.ndarray],
+        skeleton: Skeleton,
+        config: dict,
+        balls: StyleBalls | None = None,
+        carriage: Carriage | None = None,
     ):
         self.config = config
         self.skeleton = skeleton
@@ -120,6 +130,10 @@ class LPNModel(LPNStyles):
         self._ball: tuple[np.ndarray, np.ndarray] | None = (
             balls.for_styles(self._styles, skeleton.num_joints) if balls is not None else None
         )
+        # pace (S, 2) and arm offsets (S, A, 4), aligned with _styles like the balls; None: no file
+        self._carriage: tuple[np.ndarray, np.ndarray] | None = None
+        self._arm_joints = np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)
+        self.carriage = carriage
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
         self.parents = sk.parents
@@ -127,6 +141,17 @@ class LPNModel(LPNStyles):
         self.facing_joints = [body_joint(sk, p) for p in ("hip_l", "hip_r", "shoulder_l", "shoulder_r")]
 
     # ------------------------------------------------------------------ styles
+
+    @property
+    def carriage(self) -> Carriage | None:
+        """The built-in styles' pace and arm carriage (`carriage.py`); None: walk at the input's speed."""
+        return self._carriage_fit
+
+    @carriage.setter
+    def carriage(self, carriage: Carriage | None) -> None:
+        with self._lock:
+            self._carriage_fit = carriage
+            self._carriage = carriage.rows(self._styles) if carriage is not None else None
 
     def styles(self) -> list[str]:
         return list(self._styles)
@@ -175,6 +200,8 @@ class LPNModel(LPNStyles):
                     radii = self._ball[1].copy()
                     radii[self._styles.index(name)] = np.inf
                     self._ball = (self._ball[0], radii)
+                if self._carriage is not None:  # nor the style whose walks gave its pace and carriage
+                    self._carriage = _carriage_rows(self._carriage, self._styles.index(name), "replace")
             else:
                 self._films = np.concatenate([self._films, row])
                 self._styles = self._styles + [name]
@@ -185,6 +212,8 @@ class LPNModel(LPNStyles):
                         np.concatenate([mean, identity]),
                         np.concatenate([radii, np.full_like(radii[:1], np.inf)]),
                     )
+                if self._carriage is not None:
+                    self._carriage = _carriage_rows(self._carriage, len(self._styles) - 1, "add")
 
     def remove_style(self, name: str) -> None:
         if name == "normal":
@@ -197,6 +226,8 @@ class LPNModel(LPNStyles):
             self._styles = self._styles[:k] + self._styles[k + 1 :]
             if self._ball is not None:
                 self._ball = (np.delete(self._ball[0], k, axis=0), np.delete(self._ball[1], k, axis=0))
+            if self._carriage is not None:
+                self._carriage = _carriage_rows(self._carriage, k, "remove")
 
     def generator(self):
         """The torch network (for the FiLM generator; built on first use)."""
@@ -290,8 +321,8 @@ class LPNModel(LPNStyles):
         root = np.asarray(frames.root, np.float32)
         rot_in = np.asarray(frames.rotations, np.float32)
         B = root.shape[0]
-        with self._lock:  # one snapshot of the style set: the FiLM rows and the balls agree
-            films, styles, ball = self._films, self._styles, self._ball
+        with self._lock:  # one snapshot of the style set: the FiLM rows, balls and carriage agree
+            films, styles, ball, carriage = self._films, self._styles, self._ball, self._carriage
         film = self._blend(films, styles, style_weights)
         if film.shape[0] != B:
             raise ValueError(f"style_weights has {film.shape[0]} rows for {B} frames")
@@ -300,15 +331,31 @@ class LPNModel(LPNStyles):
         if len(fresh):
             self._start(s, fresh, root, rot_in, frames.control)
         control = self._control(s, frames, root, rot_in, fresh)
+        if carriage is not None:
+            control = self._paced(control, frames.control, style_weights, carriage[0])
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
         out_root, out_rot, contacts = self._advance(s, y, control)
         out_rot = self._untwist(out_rot)
+        if carriage is not None:
+            offsets = blend_arms(carriage[1], style_weights, styles.index("normal"))
+            out_rot = carry_arms(out_rot, offsets, self._arm_joints)
         if ball is not None:
             out_rot = self._hold(out_rot, style_weights, styles.index("normal"), ball)
         out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
+
+    @staticmethod
+    def _paced(control: np.ndarray, given: np.ndarray | None, weights: np.ndarray, pace: np.ndarray) -> np.ndarray:
+        """The derived control's velocity at the styles' pace (`carriage.py`); its gait stays the
+        input's (re-deriving it from the paced speed turned elderly runs into walks the content
+        judge read as turns: validation locomotion content 77 -> 69 %); given rows as they are."""
+        derived = np.ones(len(control), bool) if given is None else np.asarray(given)[:, 4] <= 0.5
+        factor = blend_pace(pace, weights, control[:, 3]).astype(np.float32)
+        out = control.copy()
+        out[derived, :2] *= factor[derived, None]
+        return out
 
     def _untwist(self, rotations: np.ndarray) -> np.ndarray:
         """The pose with its joint positions, bones twisted as in the natural pose (the committed
@@ -543,6 +590,26 @@ def read_balls(weights_dir: Path) -> StyleBalls | None:
     return StyleBalls.load(path) if path.exists() else None
 
 
+def read_carriage(weights_dir: Path) -> Carriage | None:
+    """The built-in styles' pace and arm carriage beside the weights (`CARRIAGE_FILE`), or None."""
+    path = Path(weights_dir) / CARRIAGE_FILE
+    return Carriage.load(path) if path.exists() else None
+
+
+def _carriage_rows(rows: tuple[np.ndarray, np.ndarray], k: int, change: str) -> tuple[np.ndarray, np.ndarray]:
+    """The carriage arrays after style row `k` is replaced by (or added as) one with pace 1 and no
+    offset, or removed."""
+    pace, arms = rows
+    if change == "remove":
+        return np.delete(pace, k, axis=0), np.delete(arms, k, axis=0)
+    plain_pace, plain_arms = np.ones((1, 2)), np.tile((0.0, 0.0, 0.0, 1.0), (1, *arms.shape[1:-1], 1))
+    if change == "add":
+        return np.concatenate([pace, plain_pace]), np.concatenate([arms, plain_arms])
+    pace, arms = pace.copy(), arms.copy()
+    pace[k], arms[k] = plain_pace[0], plain_arms[0]
+    return pace, arms
+
+
 def load(weights_dir: Path) -> LPNModel:
     arrays, skeleton, config = read_weights(weights_dir)
-    return LPNModel(arrays, skeleton, config, read_balls(weights_dir))
+    return LPNModel(arrays, skeleton, config, read_balls(weights_dir), read_carriage(weights_dir))

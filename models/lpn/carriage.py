@@ -1,0 +1,165 @@
+"""A built-in style's arm carriage, and optionally its pace, from real TRAIN clips
+(`CARRIAGE_FILE` beside the weights, written by `python -m models.lpn.carriage [--paced]`;
+`runtime.LPNModel` applies it).
+
+LPN-FiLM's FiLM vectors alone barely move the arms' mean pose: driven by the validation
+locomotion inputs, its active walks were read as active by the rotation style judge in 8 % of
+clips and its exhausted ones in 0 %, where the real active walks carry the elbows ~30 degrees
+more bent. What a style's real clips measure can be put back:
+
+- **arm carriage** (shipped), per style and arm joint (Shoulder .. Hand, both sides): the rotation
+  that takes the network's mean local rotation (driven by the `normal` TRAIN locomotion clips
+  toward the style) to the mean of the style's real TRAIN locomotion clips, applied to the output
+  in the parent's frame before the rotation prior; the network's state keeps its own pose.
+- **pace** (`--paced`, not shipped), per style and gait: the median Hips speed of the style's
+  TRAIN walks (runs) over the `normal` style's (active 1.31 / 1.24, elderly 0.67 / 0.52). The
+  derived control's velocity is multiplied by it (blended by the style weights, between walk and
+  run by the gait); a control the caller gives is kept as it is. Measured on the validation
+  locomotion inputs it made active walks read as active by the position judge (23 -> 100 %), but
+  the slowed elderly walks and runs were read as turns (content 85 -> 77 %), and a character
+  slower than the input it is driven by falls ever further behind that input's root, which a game
+  driving a character by its capsule cannot use. So it is off unless a deployment fits it.
+
+Uploaded styles get neither (pace 1, no offset): they have no walks of their own to measure.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..motion.rotations import quat_inv, quat_mean, quat_mul
+
+CARRIAGE_FILE = "carriage.npz"
+ARM_JOINTS = ("Shoulder_L", "UpperArm_L", "LowerArm_L", "Hand_L", "Shoulder_R", "UpperArm_R", "LowerArm_R", "Hand_R")
+LOCOMOTION = {"walk": ("walk", "walk-turn-left", "walk-turn-right"), "run": ("run",)}
+SKIP_FRAMES = 30  # the network's first second settles from the input's first pose: not its carriage
+
+
+@dataclass(frozen=True)
+class Carriage:
+    """Per built-in style: pace (walk, run) and the arm joints' offset rotations (xyzw)."""
+
+    styles: tuple[str, ...]
+    pace: np.ndarray  # (S, 2) speed factors for walking and running
+    arms: np.ndarray  # (S, len(ARM_JOINTS), 4) offsets, applied as offset * rotation
+
+    def rows(self, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        """(pace, arms) aligned with `names`; a style not fitted gets pace 1 and no offset."""
+        pace = np.ones((len(names), 2))
+        arms = np.tile((0.0, 0.0, 0.0, 1.0), (len(names), len(ARM_JOINTS), 1))
+        for i, n in enumerate(names):
+            if n in self.styles:
+                k = self.styles.index(n)
+                pace[i], arms[i] = self.pace[k], self.arms[k]
+        return pace, arms
+
+    def save(self, path: Path) -> Path:
+        np.savez(path, styles=np.array(self.styles), pace=self.pace, arms=self.arms)
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> Carriage:
+        with np.load(path) as z:
+            return cls(tuple(str(s) for s in z["styles"]), z["pace"].astype(np.float64), z["arms"].astype(np.float64))
+
+
+def blend_pace(pace: np.ndarray, weights: np.ndarray, gait: np.ndarray) -> np.ndarray:
+    """(B,) speed factor: the weights' mix of the styles' (walk, run) paces, the shortfall of the
+    weights from 1 at pace 1 (`normal`), between walk and run by the gait (0 walk .. 1 run)."""
+    w = np.asarray(weights, np.float64)  # sums, not BLAS products: a row's result never depends on its batch
+    mixed = (w[:, :, None] * pace).sum(1) + (1.0 - w.sum(1, keepdims=True))
+    g = np.clip(gait, 0.0, 1.0)
+    return mixed[:, 0] + (mixed[:, 1] - mixed[:, 0]) * g
+
+
+def blend_arms(arms: np.ndarray, weights: np.ndarray, normal: int) -> np.ndarray:
+    """(B, A, 4) offsets: the weights' normalised mix of the styles' offsets (all within tens of
+    degrees of identity, one hemisphere), the shortfall from 1 given to `normal`."""
+    w = np.asarray(weights, np.float64)
+    mixed = (w[:, :, None, None] * arms).sum(1) + (1.0 - w.sum(1))[:, None, None] * arms[normal]
+    return mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
+
+
+def carry_arms(rotations: np.ndarray, offsets: np.ndarray, joints: np.ndarray) -> np.ndarray:
+    """The local rotations with each arm joint's offset applied in its parent's frame."""
+    out = np.array(rotations, copy=True)
+    out[:, joints] = quat_mul(offsets, rotations[:, joints]).astype(rotations.dtype)
+    return out
+
+
+# ---- fitting (offline) -----------------------------------------------------------------------
+
+
+def median_speed(clips: list) -> float:
+    """Median horizontal Hips speed (cm/s) over the frames of `clips` (Motions at 30 fps)."""
+    speeds = [
+        np.linalg.norm(np.diff(m.translations[:, 1][:, [0, 2]], axis=0), axis=1) * m.fps
+        for m in clips
+        if m.num_frames > 1
+    ]
+    return float(np.median(np.concatenate(speeds)))
+
+
+def fit(model, styles: list[str], dataset: str = "bandai-namco-2", frames: int = 300, paced: bool = False) -> Carriage:
+    """The arm offsets from the network (paced, with `paced`: each style's pace from its real
+    clips; otherwise pace 1) against the real clips."""
+    from ..data import build_index, load_motions, select
+    from ..eval.run import stylise
+    from ..motion.rotation_ball import comparable
+
+    index = build_index([dataset])
+
+    def clips(style: str, contents: tuple[str, ...]) -> list:
+        return load_motions([c for c in select(index, split="train", style=style) if c.content in contents])
+
+    normal = {g: median_speed(clips("normal", contents)) for g, contents in LOCOMOTION.items()}
+    pace = np.array([[median_speed(clips(s, LOCOMOTION[g])) / normal[g] for g in ("walk", "run")] for s in styles])
+    if not paced:
+        pace = np.ones_like(pace)
+    model.carriage = Carriage(tuple(styles), pace, np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
+    every = LOCOMOTION["walk"] + LOCOMOTION["run"]
+    inputs = [m.slice(0, frames) for m in clips("normal", every)]
+    joints = [model.skeleton.names.index(j) for j in ARM_JOINTS]
+    arms = np.empty((len(styles), len(ARM_JOINTS), 4))
+    for k, s in enumerate(styles):
+        outs = stylise(model, inputs, [model.styles().index(s)] * len(inputs))
+        made = quat_mean(comparable(np.concatenate([o.rotations[SKIP_FRAMES:] for o in outs]))[:, joints], axis=0)
+        real = quat_mean(comparable(np.concatenate([m.rotations for m in clips(s, every)]))[:, joints], axis=0)
+        arms[k] = quat_mul(real, quat_inv(made))
+    return Carriage(tuple(styles), pace, arms)
+
+
+def main(argv: list[str]) -> None:
+    import json
+    import time
+
+    import torch
+
+    from ..settings import get_settings
+    from .runtime import load
+    from .weights import CONFIG_FILE
+
+    torch.set_num_threads(1)
+    paced = "--paced" in argv
+    argv = [a for a in argv if a != "--paced"]
+    t0 = time.time()
+    folder = get_settings().weights_dir / "lpn"
+    names = json.loads((folder / CONFIG_FILE).read_text())["styles"]
+    styles = argv or [
+        s for s in names if not s.startswith("d1-")
+    ]  # dataset 2's styles: its clips are paired by content
+    model = load(folder)
+    carriage = fit(model, styles, paced=paced)
+    carriage.save(folder / CARRIAGE_FILE)
+    for s, p, a in zip(carriage.styles, carriage.pace, carriage.arms):
+        degrees = np.degrees(2 * np.arccos(np.clip(np.abs(a[:, 3]), 0.0, 1.0)))
+        print(f"{s:10s} pace walk {p[0]:.2f} run {p[1]:.2f}  arm offsets (deg) {np.round(degrees, 1).tolist()}")
+    print(f"wrote {folder / CARRIAGE_FILE} in {time.time() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
