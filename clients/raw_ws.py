@@ -42,6 +42,15 @@ class RawSocket:
         self.sock.close()
 
 
+class HandshakeRefused(Exception):
+    """The server answered the WebSocket handshake with something other than 101 (e.g. 429)."""
+
+    def __init__(self, status_line: str, head: bytes) -> None:
+        super().__init__(status_line)
+        self.status = int(status_line.split()[1]) if len(status_line.split()) > 1 else 0
+        self.head = head
+
+
 class RawClient(RawSocket):
     """A WebSocket client that reads only when told to (a browser tab gone to sleep, a stalled
     game thread): the handshake by hand, then masked text frames."""
@@ -60,7 +69,9 @@ class RawClient(RawSocket):
             chunk = self.sock.recv(1)
             assert chunk, "connection closed during the handshake"
             head += chunk
-        assert head.startswith(b"HTTP/1.1 101"), head
+        if not head.startswith(b"HTTP/1.1 101"):
+            self.sock.close()
+            raise HandshakeRefused(head.split(b"\r\n", 1)[0].decode(errors="replace"), head)
 
     def send_text(self, text: str) -> None:
         """One masked text frame (RFC 6455: clients mask)."""
