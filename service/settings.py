@@ -57,7 +57,11 @@ class ServiceSettings(Settings):
     idle_timeout_s: float = Field(default=60.0, gt=0, description="Sessions silent this long are closed and freed.")
     max_message_bytes: int = Field(default=256 * 1024, ge=1024, description="Largest WebSocket message accepted.")
     header_timeout_s: float = Field(
-        default=10.0, gt=0, le=600, description="A connection whose request headers take longer is dropped."
+        default=10.0,
+        gt=0,
+        le=600,
+        description="A connection whose request headers take longer (this to 1.5x it, spread per "
+        "connection so a burst is not dropped in one go) is dropped.",
     )
     send_timeout_s: float = Field(
         default=10.0,

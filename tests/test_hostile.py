@@ -10,6 +10,7 @@ import json
 import shutil
 
 import httpx
+import numpy as np
 import pytest
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import connect
@@ -195,6 +196,26 @@ def test_half_open_connections_are_dropped_after_the_header_timeout(models, bn_w
         partial.sock.sendall(b"GET /v1/models HTTP/1.1\r\nHost: x\r\n")  # and never the blank line
         assert silent.closed_by_server(timeout=20) and partial.closed_by_server(timeout=20)
         assert httpx.get(f"{base}/healthz").status_code == 200  # an honest request still passes
+
+
+def test_header_deadlines_are_spread_so_a_burst_is_not_dropped_at_once(monkeypatch):
+    """Each connection's deadline lies in [timeout, 1.5 x timeout): 2,000 half-open connections
+    opened together used to be aborted in one pass of the event loop."""
+    from service import transport
+
+    armed = []
+
+    class Loop:
+        def call_later(self, delay, callback):
+            armed.append(delay)
+            return None
+
+    http = transport.GuardedHttp.__new__(transport.GuardedHttp)
+    http.loop, http._header_timer, http.header_timeout_s = Loop(), None, 10.0
+    for _ in range(2000):
+        http._arm_header_timer()
+    assert 10.0 <= min(armed) and max(armed) < 15.0
+    assert np.ptp(armed) > 4.0 and len(set(armed)) > 1900  # spread over the window, not a few instants
 
 
 def test_a_client_that_never_reads_is_freed_within_the_idle_timeout(models, bn_walk):
