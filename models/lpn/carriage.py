@@ -67,11 +67,22 @@ class Carriage:
             return cls(tuple(str(s) for s in z["styles"]), z["pace"].astype(np.float64), z["arms"].astype(np.float64))
 
 
+def _mix(values: np.ndarray, weights: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """(B, ...) sum over styles of weight x value, plus the weights' shortfall from 1 times `rest`.
+    Accumulated style by style in index order over the styles some row uses: a row's sum is its
+    own nonzero terms in that order (the others add exact zeros), whatever else is in the batch."""
+    w = np.asarray(weights, np.float64)
+    extra = (1,) * (values.ndim - 1)
+    mixed = (1.0 - w.sum(1)).reshape(-1, *extra) * rest
+    for k in np.flatnonzero(w.any(0)):
+        mixed = mixed + w[:, k].reshape(-1, *extra) * values[k]
+    return mixed
+
+
 def blend_pace(pace: np.ndarray, weights: np.ndarray, gait: np.ndarray) -> np.ndarray:
     """(B,) speed factor: the weights' mix of the styles' (walk, run) paces, the shortfall of the
     weights from 1 at pace 1 (`normal`), between walk and run by the gait (0 walk .. 1 run)."""
-    w = np.asarray(weights, np.float64)  # sums, not BLAS products: a row's result never depends on its batch
-    mixed = (w[:, :, None] * pace).sum(1) + (1.0 - w.sum(1, keepdims=True))
+    mixed = _mix(pace, weights, np.ones(2))
     g = np.clip(gait, 0.0, 1.0)
     return mixed[:, 0] + (mixed[:, 1] - mixed[:, 0]) * g
 
@@ -79,8 +90,7 @@ def blend_pace(pace: np.ndarray, weights: np.ndarray, gait: np.ndarray) -> np.nd
 def blend_arms(arms: np.ndarray, weights: np.ndarray, normal: int) -> np.ndarray:
     """(B, A, 4) offsets: the weights' normalised mix of the styles' offsets (all within tens of
     degrees of identity, one hemisphere), the shortfall from 1 given to `normal`."""
-    w = np.asarray(weights, np.float64)
-    mixed = (w[:, :, None, None] * arms).sum(1) + (1.0 - w.sum(1))[:, None, None] * arms[normal]
+    mixed = _mix(arms, weights, arms[normal])
     return mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
 
 

@@ -331,7 +331,7 @@ class LPNModel(LPNStyles):
         if len(fresh):
             self._start(s, fresh, root, rot_in, frames.control)
         control = self._control(s, frames, root, rot_in, fresh)
-        if carriage is not None:
+        if carriage is not None and (carriage[0] != 1.0).any():
             control = self._paced(control, frames.control, style_weights, carriage[0])
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
