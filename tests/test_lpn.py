@@ -53,7 +53,7 @@ def test_numpy_network_equals_the_trained_torch_network(model, clips):
     samples = clip_samples(clips["walk"], gait=0.0)
     x, g = samples.X[::7][:16], samples.G[::7][:16]
     film = model.blend_films(np.tile(model.weight_vector({"elderly": 0.7, "active": 0.3}), (len(x), 1)))
-    ours = model._network(x, g, film)
+    ours = model.in_float32()._network(x, g, film)
     net = model.generator()
     with torch.no_grad():
         theirs = net.denormalise_y(
@@ -61,6 +61,9 @@ def test_numpy_network_equals_the_trained_torch_network(model, clips):
         ).numpy()
     scale = np.abs(theirs).mean(0) + 1e-3
     assert np.abs((ours - theirs) / scale).max() < 1e-3
+    # in bfloat16 products (where this machine uses them) one prediction moves by rounding only
+    fast = np.abs((model._network(x, g, film) - theirs) / scale)
+    assert np.median(fast) < 1e-2 and fast.max() < 0.1
 
 
 def test_step_never_reads_future_frames(model, clips):
@@ -194,6 +197,7 @@ def test_compiled_step_gives_the_numpy_steps_outputs(model, reference, clips):
             for mix in ({"elderly": 1.0}, {"active": 1.0}, {"feminine": 0.5, "exhausted": 0.3}, {"normal": 1.0})
         ]
     )
+    model = model.in_float32()  # the reference multiplies in float32 (bfloat16 products: tests/test_rowwise.py)
     states = {m: m.init_state(4) for m in (model, reference)}
     worst = {"root_cm": 0.0, "quaternion": 0.0, "state": 0.0}
     roots, held, released, bent = [], [], [], []

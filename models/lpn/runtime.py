@@ -51,8 +51,10 @@ tested against.
 
 from __future__ import annotations
 
+import copy
 import threading
-from functools import cached_property
+from collections.abc import Callable
+from functools import cached_property, partial
 from pathlib import Path
 
 import numpy as np
@@ -67,7 +69,8 @@ from ..motion.rotation_ball_kernels import clamp_mixed
 from ..motion.rotations import quat_mul, yaw_quat
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import transfer_twist
-from ..rowwise import matmul_rows
+from ..rowwise import Bfloat16Product, matmul_rows
+from ..settings import get_settings
 from . import features as lf
 from . import kernels
 from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, blend_pace, carry_arms
@@ -96,6 +99,7 @@ class LPNModel(LPNStyles):
     name = "lpn"
     controllable = True  # reads FrameBatch.control (the service's `control` message)
     fps = lf.FPS
+    bfloat16 = True  # expert products may run in bfloat16 (`_products`); False: always float32
 
     def __init__(
         self,
@@ -478,11 +482,32 @@ class LPNModel(LPNStyles):
         alpha = kernels.gating(g, self.g_scale, w0, b0, w1, b1, w2, b2)
         h = (x - self.x_mean) / self.x_std
         (W1, bias1, n1), (W2, bias2, n2), (W3, bias3, _) = self.layers
+        p1, p2, p3 = self._products
         h1 = np.empty((len(x), n1), np.float32)
-        kernels.hidden_layer(matmul_rows(h, W1), alpha, bias1, film, 0, h1)
+        kernels.hidden_layer(p1(h), alpha, bias1, film, 0, h1)
         h2 = np.empty((len(x), n2), np.float32)
-        kernels.hidden_layer(matmul_rows(h1, W2), alpha, bias2, film, 1, h2)
-        return kernels.output_layer(matmul_rows(h2, W3), alpha, bias3, self.y_mean, self.y_std)
+        kernels.hidden_layer(p2(h1), alpha, bias2, film, 1, h2)
+        return kernels.output_layer(p3(h2), alpha, bias3, self.y_mean, self.y_std)
+
+    def in_float32(self) -> LPNModel:
+        """This model (weights and styles shared) with its expert products always in float32: the
+        arithmetic the numpy reference step (`reference.py`) is compared with."""
+        twin = copy.copy(self)
+        twin.bfloat16 = False
+        twin.__dict__.pop("_products", None)
+        return twin
+
+    @cached_property
+    def _products(self) -> list[Callable[[np.ndarray], np.ndarray]]:
+        """The three expert products: bfloat16 where this machine does them faster with rows
+        independent of the batch (`rowwise.Bfloat16Product`, setting `bfloat16_products`), else
+        the float32 row product."""
+        fast = get_settings().bfloat16_products and self.bfloat16
+        out: list[Callable[[np.ndarray], np.ndarray]] = []
+        for W, _, _ in self.layers:
+            product = Bfloat16Product.for_weights(W) if fast else None
+            out.append(product if product is not None else partial(_float32_rows, w=W))
+        return out
 
     def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply the prediction: move the root, shift the history, store pose/phases/future; returns
@@ -588,6 +613,10 @@ def read_balls(weights_dir: Path) -> StyleBalls | None:
     """The rotation prior beside the weights (`BALLS_FILE`), or None if there is none."""
     path = Path(weights_dir) / BALLS_FILE
     return StyleBalls.load(path) if path.exists() else None
+
+
+def _float32_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    return matmul_rows(x, w)
 
 
 def read_carriage(weights_dir: Path) -> Carriage | None:
