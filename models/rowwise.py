@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
 import numpy as np
 import torch
@@ -128,8 +129,6 @@ class Bfloat16Product:
 
     @classmethod
     def _holds(cls, w_shape: tuple[int, ...]) -> bool:
-        import time
-
         rng = np.random.default_rng(0)
         w = rng.standard_normal(w_shape).astype(np.float32)
         product = cls(w)

@@ -506,7 +506,7 @@ class LPNModel(LPNStyles):
         out: list[Callable[[np.ndarray], np.ndarray]] = []
         for W, _, _ in self.layers:
             product = Bfloat16Product.for_weights(W) if fast else None
-            out.append(product if product is not None else partial(_float32_rows, w=W))
+            out.append(product if product is not None else partial(matmul_rows, w=W))
         return out
 
     def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -613,10 +613,6 @@ def read_balls(weights_dir: Path) -> StyleBalls | None:
     """The rotation prior beside the weights (`BALLS_FILE`), or None if there is none."""
     path = Path(weights_dir) / BALLS_FILE
     return StyleBalls.load(path) if path.exists() else None
-
-
-def _float32_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:
-    return matmul_rows(x, w)
 
 
 def read_carriage(weights_dir: Path) -> Carriage | None:
