@@ -74,27 +74,36 @@ def torch_rows_hold(lead: tuple[int, ...], w_shape: tuple[int, ...], dtype: np.d
 def _rows_agree(lead: tuple[int, ...], w_shape: tuple[int, ...], dtype: np.dtype) -> bool:
     rng = np.random.default_rng(0)
     w = rng.standard_normal(w_shape).astype(dtype)
-    most = max(CHECKED_ROWS)
-    x = rng.standard_normal((*lead, most + QUANTUM, w_shape[-2])).astype(dtype)
-    full = _torch_rows(x[..., :most, :], w)
-    for rows in CHECKED_ROWS[:-1]:
-        if not np.array_equal(_torch_rows(x[..., :rows, :], w), full[..., :rows, :]):
+    x = rng.standard_normal((*lead, max(CHECKED_ROWS) + QUANTUM, w_shape[-2])).astype(dtype)
+    return _rows_independent(lambda a: _torch_rows(a, w), x, CHECKED_ROWS[:-1])
+
+
+def _rows_independent(product, x: np.ndarray, counts: tuple[int, ...]) -> bool:
+    """Whether `product` gives the first rows of `x` the same bits in batches of every size in
+    `counts` as in one of max(CHECKED_ROWS) rows, and rows at a shifted place in a batch too."""
+    full = product(x[..., : max(CHECKED_ROWS), :])
+    for rows in counts:
+        if not np.array_equal(product(x[..., :rows, :]), full[..., :rows, :]):
             return False
     odd = 2 * QUANTUM + 1
-    shifted = _torch_rows(x[..., 3 : 3 + odd, :], w)  # the same rows at other places in a batch
+    shifted = product(x[..., 3 : 3 + odd, :])  # the same rows at other places in a batch
     return bool(np.array_equal(shifted, full[..., 3 : 3 + odd, :]))
 
 
-def _torch_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+def _padded(x: np.ndarray) -> np.ndarray:
+    """x with zero rows added up to a multiple of QUANTUM (at least QUANTUM rows)."""
     rows, inner = x.shape[-2], x.shape[-1]
     padded_rows = max(QUANTUM, -(-rows // QUANTUM) * QUANTUM)
-    if padded_rows != rows:
-        padded = np.zeros((*x.shape[:-2], padded_rows, inner), x.dtype)
-        padded[..., :rows, :] = x
-    else:
-        padded = np.ascontiguousarray(x)
-    out = torch.matmul(torch.from_numpy(padded), torch.from_numpy(np.ascontiguousarray(w))).numpy()
-    return out[..., :rows, :]
+    if padded_rows == rows:
+        return np.ascontiguousarray(x)
+    padded = np.zeros((*x.shape[:-2], padded_rows, inner), x.dtype)
+    padded[..., :rows, :] = x
+    return padded
+
+
+def _torch_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+    out = torch.matmul(torch.from_numpy(_padded(x)), torch.from_numpy(np.ascontiguousarray(w))).numpy()
+    return out[..., : x.shape[-2], :]
 
 
 class Bfloat16Product:
@@ -111,11 +120,8 @@ class Bfloat16Product:
         self.w = torch.from_numpy(np.ascontiguousarray(w, np.float32)).to(torch.bfloat16)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
-        rows = x.shape[-2]
-        padded_rows = max(QUANTUM, -(-rows // QUANTUM) * QUANTUM)
-        xt = torch.zeros((padded_rows, x.shape[-1]), dtype=torch.bfloat16)
-        xt[:rows] = torch.from_numpy(np.ascontiguousarray(x, np.float32))
-        return torch.matmul(xt, self.w)[:rows].float().numpy()
+        xt = torch.from_numpy(_padded(np.asarray(x, np.float32))).to(torch.bfloat16)
+        return torch.matmul(xt, self.w)[: x.shape[-2]].float().numpy()
 
     @classmethod
     def for_weights(cls, w: np.ndarray) -> Bfloat16Product | None:
@@ -132,12 +138,8 @@ class Bfloat16Product:
         rng = np.random.default_rng(0)
         w = rng.standard_normal(w_shape).astype(np.float32)
         product = cls(w)
-        most = max(CHECKED_ROWS)
-        x = rng.standard_normal((most + QUANTUM, w_shape[-2])).astype(np.float32)
-        full = product(x[:most])
-        if not all(np.array_equal(product(x[:rows]), full[:rows]) for rows in (1, 2, 3, *CHECKED_ROWS[:-1])):
-            return False
-        if not np.array_equal(product(x[3 : 3 + 2 * QUANTUM + 1]), full[3 : 3 + 2 * QUANTUM + 1]):
+        x = rng.standard_normal((max(CHECKED_ROWS) + QUANTUM, w_shape[-2])).astype(np.float32)
+        if not _rows_independent(product, x, (1, 2, 3, *CHECKED_ROWS[:-1])):
             return False
 
         def best(f, repeat: int = 5) -> float:
