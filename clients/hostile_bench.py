@@ -6,6 +6,10 @@ worst uploads (absurd frame rates, the largest valid BVH, again and again), a cl
 resets and never reads, session churn, and 2,000 half-open connections. Prints, per phase, the
 healthy session's round-trip p50/p99 (and p99 against the quiet phase's), the frames it got
 back, the server's resident memory after the phase, and what the attacker was answered.
+
+The attackers share this machine's cores with the server, which a remote attacker does not:
+`--attacker-nice 19` runs them at the lowest niceness, and `--phases "cpu load"` (not run by default)
+runs two busy processes instead of an attack, what CPU load alone costs the healthy session here.
 """
 
 from __future__ import annotations
@@ -162,7 +166,25 @@ def half_open(base: str, seconds: float, count: int = 2000) -> Counter:
     return Counter({f"{closed}/{count} dropped by the server": 1})
 
 
-def _attack(name: str, args: tuple, out, go) -> None:
+def _spin(seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+
+def cpu_load(seconds: float) -> Counter:
+    """Not an attack, a reference: two busy processes (at the attacker's niceness), what CPU load
+    alone costs the healthy session on this machine."""
+    procs = [multiprocessing.get_context("spawn").Process(target=_spin, args=(seconds,)) for _ in range(2)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join()
+    return Counter({f"2 busy processes at nice {os.nice(0)}": 1})
+
+
+def _attack(name: str, args: tuple, out, go, nice: int) -> None:
+    os.nice(nice)  # --attacker-nice: the attacker's own CPU is, on a deployment, another machine's
     out.put("ready")  # imports done: they must not count against the phase
     go.wait()
     out.put(dict(ATTACKS[name](*args)))
@@ -174,6 +196,7 @@ ATTACKS = {
     "no-read resets": reset_flood_no_read,
     "churn": churn,
     "half-open": half_open,
+    "cpu load": cpu_load,
 }
 
 
@@ -191,14 +214,23 @@ def largest_bvh() -> str:
     return f"{head}Frame Time: 0.00833333\n" + "\n".join(rows[i % len(rows)] for i in range(n)) + "\n"
 
 
-PHASES = ("flood", "uploads", "no-read resets", "churn", "half-open")
+PHASES = ("flood", "uploads", "no-read resets", "churn", "half-open")  # the default; "cpu load" on request
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=6.0, help="length of each phase")
     ap.add_argument("--set", nargs="*", default=[], metavar="NAME=VALUE", help="server settings (STYLESTREAM_NAME)")
-    ap.add_argument("--phases", nargs="*", default=list(PHASES), choices=PHASES, help="attacks to run (default: all)")
+    ap.add_argument(
+        "--phases", nargs="*", default=list(PHASES), choices=list(ATTACKS), help="attacks to run (default: all)"
+    )
+    ap.add_argument(
+        "--attacker-nice",
+        type=int,
+        default=0,
+        help="the attacking processes' niceness (19: their own CPU, another machine's on a deployment, "
+        "barely competes with the server here)",
+    )
     ap.add_argument("--checkout", type=Path, help="run the server of another checkout of the repository (before/after)")
     args = ap.parse_args()
     root, rot = real_frames(120)
@@ -220,10 +252,11 @@ def main() -> None:
             "no-read resets": (base, args.seconds),
             "churn": (url, args.seconds),
             "half-open": (base, args.seconds),
+            "cpu load": (args.seconds,),
         }
         for name, plan in ((n, plans[n]) for n in args.phases):
             out, go = ctx.Queue(), ctx.Event()
-            proc = ctx.Process(target=_attack, args=(name, plan, out, go))
+            proc = ctx.Process(target=_attack, args=(name, plan, out, go, args.attacker_nice))
             proc.start()
             assert out.get(timeout=120) == "ready"
             healthy.phase = name

@@ -8,11 +8,12 @@ frames), so it is refused early and run late:
 - `check_rate` refuses a frame rate outside [upload_min_fps, upload_max_fps] and a clip whose
   length *at 30 fps* falls outside the frame limits, from the declared count and rate, before
   anything is resampled (typed 422, never an allocation);
-- `ClipDecoder` runs the decoding in a child process forked from a preloaded server
-  (multiprocessing's forkserver, so the server's threads are never forked), capped in address
-  space and killed after `upload_decode_timeout_s`: the event loop only waits on a pipe, no
-  upload can stall the streams, and a clip that still exhausts its budget costs its own child
-  (413 / 422), never the server.
+- `ClipDecoder` runs the decoding in child processes forked from a preloaded server
+  (multiprocessing's forkserver, so the server's threads are never forked), at the lowest CPU
+  priority, capped in address space and killed after `upload_decode_timeout_s`: the event loop
+  only waits on a pipe, no upload can stall the streams, and a clip that still exhausts its
+  budget costs its own child (413 / 422), never the server. A child that answered takes the
+  next clip: starting processes was itself what the streams felt.
 """
 
 from __future__ import annotations
@@ -21,22 +22,28 @@ import asyncio
 import multiprocessing
 import os
 import resource
+import threading
+from collections.abc import AsyncGenerator
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from typing import Any, Literal
 
-from starlette.requests import Request
+from starlette.datastructures import Headers
+from starlette.formparsers import MultiPartParser
 
 from models.motion import bvh as bvhio
 from models.motion.resample import resampled_length
 from models.motion.skeleton import Motion, Skeleton
 
 from .api import ApiError, StyleUpload
+from .background import in_background, lower_priority
 from .clips import MODEL_FPS, motion_from_bvh, motion_from_json
+from .memory import release_freed_memory
 
-DECODE_NICENESS = 10  # the decoding child's CPU priority below the server's (Linux nice)
 Kind = Literal["bvh", "json"]  # what a style was made from (`StyleInfo.source`)
 Upload = Literal["multipart", "json"]  # how its clip came: a form with a BVH file part, or JSON frames
+Body = list[bytes]  # a request body as the non-empty chunks it was read in (joined in the child)
 
 
 @dataclass(frozen=True)
@@ -81,18 +88,25 @@ def check_rate(num_frames: int, fps: float, budget: ClipBudget) -> None:
         )
 
 
+class _PartsInMemory(MultiPartParser):
+    """Starlette's multipart parser, keeping file parts in memory: the whole body is in memory
+    already, and spilling a 15 MB part to a temporary file (Starlette's default above 1 MB) put
+    disk writes behind every large upload, which the streams felt (issue #16)."""
+
+    spool_max_size = 1 << 62
+
+
 def read_multipart(body: bytes, content_type: str) -> tuple[bytes, dict[str, Any]]:
     """A multipart upload's BVH `file` part and its text fields (`fine_tune` as a bool), parsed
     as the route would parse a form (Starlette's parser), but here in the child: a 15 MB form
     costs the event loop nothing but reading its bytes."""
 
-    async def receive() -> dict:
-        return {"type": "http.request", "body": body, "more_body": False}
+    async def chunks() -> AsyncGenerator[bytes, None]:
+        yield body
 
     async def parse() -> tuple[bytes, dict[str, Any]]:
-        scope = {"type": "http", "method": "POST", "headers": [(b"content-type", content_type.encode("latin-1"))]}
         try:
-            form = await Request(scope, receive).form()
+            form = await _PartsInMemory(Headers({"content-type": content_type}), chunks()).parse()
         except MemoryError:
             raise  # over the child's budget: 413, as for the clip itself
         except Exception as exc:  # noqa: BLE001
@@ -162,86 +176,152 @@ def _cap_memory(extra_mb: int) -> None:
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
 
-def _child(
+MAX_CLIPS_PER_CHILD = 200  # then a fresh child: what a long run of clips left in its heap goes back
+
+
+def _decode_one(
     conn: Connection,
     kind: Upload | Kind,
     fields: dict[str, Any],
     skeletons: dict[str, Skeleton],
-    budget: ClipBudget,
     content_type: str,
-) -> None:
+    budget: ClipBudget,
+    last: bool,
+) -> bool:
+    """Receive one clip's body (its chunks, then an empty message), decode it and answer
+    (status, payload, retiring); True, and said in the answer, when this child takes no other
+    clip: its `last`, or one that ran out of its memory budget (what that left is not kept)."""
+    retire = last
     try:
-        os.nice(DECODE_NICENESS)  # the streams' event loop gets the core first when both want it
-        _cap_memory(budget.memory_mb)
-        body = conn.recv_bytes()
-        conn.send(("ok", decode_clip(kind, body, fields, skeletons, budget, content_type)))
+        body = b"".join(iter(conn.recv_bytes, b""))
+        answer: tuple = ("ok", decode_clip(kind, body, fields, skeletons, budget, content_type))
     except ApiError as err:
-        conn.send(("error", (err.status, err.code, err.message)))
+        answer = ("error", (err.status, err.code, err.message))
     except MemoryError:
-        conn.send(("error", (413, "clip_too_large", f"decoding the clip needs more than {budget.memory_mb} MB")))
+        answer = ("error", (413, "clip_too_large", f"decoding the clip needs more than {budget.memory_mb} MB"))
+        retire = True
     except Exception as exc:  # noqa: BLE001  (whatever else a hostile file provokes is still the file's fault)
-        conn.send(("error", (422, "bad_clip", f"the clip could not be decoded: {type(exc).__name__}: {exc}"[:500])))
+        answer = ("error", (422, "bad_clip", f"the clip could not be decoded: {type(exc).__name__}: {exc}"[:500]))
+    conn.send((*answer, retire))
+    return retire
+
+
+def _child(conn: Connection, budget: ClipBudget) -> None:
+    """A decoding child: clips one after another until the server closes the pipe, it has done
+    `MAX_CLIPS_PER_CHILD` or one exhausted its memory. It lives on between uploads because
+    starting a process is what cost the streams: 7-10 forks a second, even of an empty child
+    from another process, tripled a healthy session's round-trip p99 on the 2-core test machine
+    (`clients.hostile_bench`, docs/deploy.md)."""
+    lower_priority()  # every core the streams want is theirs first (`background`)
+    _cap_memory(budget.memory_mb)
+    try:
+        for done in range(MAX_CLIPS_PER_CHILD):
+            try:
+                kind, fields, skeletons, content_type = conn.recv()
+            except EOFError:  # the server is done with this child
+                return
+            if _decode_one(conn, kind, fields, skeletons, content_type, budget, done == MAX_CLIPS_PER_CHILD - 1):
+                return
+            release_freed_memory()
     finally:
         conn.close()
 
 
+@dataclass
+class _Child:
+    process: BaseProcess
+    conn: Connection
+
+
 class ClipDecoder:
-    """Runs `decode_clip` in child processes, at most `concurrency` at a time (others wait)."""
+    """Runs `decode_clip` in child processes, at most `concurrency` at a time (others wait). A
+    child that answered is kept for the next clip; one past its deadline is killed."""
 
     def __init__(self, budget: ClipBudget, concurrency: int = 2) -> None:
         self.budget = budget
         self._slots = asyncio.Semaphore(concurrency)
         self._context = multiprocessing.get_context("forkserver")
         self._context.set_forkserver_preload([__name__])  # children start with numpy, scipy and the parsers loaded
+        self._idle: list[_Child] = []
+        self._lock = threading.Lock()
+        self.started = 0  # children started so far
 
     async def decode(
         self,
         kind: Upload | Kind,
-        body: bytes | bytearray,
+        body: Body,
         fields: dict[str, Any],
         skeletons: dict[str, Skeleton],
         content_type: str = "",
     ) -> DecodedClip:
         async with self._slots:
-            return await asyncio.to_thread(self._run, kind, body, fields, skeletons, content_type)
+            return await in_background(self._run, kind, body, fields, skeletons, content_type)
+
+    def close(self) -> None:
+        """Let the idle children go (they exit when their pipe closes)."""
+        with self._lock:
+            idle, self._idle = self._idle, []
+        for child in idle:
+            self._reap(child, timeout=5.0)
+
+    def _take(self) -> _Child:
+        with self._lock:
+            while self._idle:
+                child = self._idle.pop()
+                if child.process.is_alive():
+                    return child
+                self._reap(child)
+        receiver, sender = self._context.Pipe(duplex=True)
+        process = self._context.Process(target=_child, args=(sender, self.budget), daemon=True)
+        process.start()
+        sender.close()
+        self.started += 1
+        return _Child(process, receiver)
+
+    @staticmethod
+    def _reap(child: _Child, timeout: float = 0.0) -> None:
+        child.conn.close()
+        child.process.join(timeout)
+        if child.process.is_alive():
+            child.process.kill()
+            child.process.join()
 
     def _run(
         self,
         kind: Upload | Kind,
-        body: bytes | bytearray,
+        body: Body,
         fields: dict[str, Any],
         skeletons: dict[str, Skeleton],
         content_type: str,
     ) -> DecodedClip:
-        """A worker thread: start the child, send it the body, wait for its answer or the
-        deadline, reap it. The body goes through the pipe, not with the child's arguments: a
-        pipe write of 15 MB lets go of the GIL, pickling it would hold the event loop."""
-        receiver, sender = self._context.Pipe(duplex=True)
-        child = self._context.Process(
-            target=_child, args=(sender, kind, fields, skeletons, self.budget, content_type), daemon=True
-        )
-        child.start()
-        sender.close()
+        """A background thread: hand a child the clip, wait for its answer or the deadline. The
+        body goes through the pipe chunk by chunk, not pickled with the job: pipe writes let go
+        of the GIL, pickling 15 MB would hold the event loop."""
+        child, keep, answered = self._take(), False, False
         try:
             try:
-                receiver.send_bytes(body)
-            except OSError:  # the child is already gone (over its memory budget at start)
+                child.conn.send((kind, fields, skeletons, content_type))
+                for chunk in (*body, b""):  # non-empty chunks, then the end
+                    child.conn.send_bytes(chunk)
+            except OSError:  # the child is gone (over its memory budget at start)
                 pass
-            if not receiver.poll(self.budget.timeout_s):
+            if not child.conn.poll(self.budget.timeout_s):
                 raise ApiError(
                     422,
                     "clip_too_slow",
                     f"decoding the clip took longer than {self.budget.timeout_s:g} s; send a shorter one",
                 )
             try:
-                status, payload = receiver.recv()
+                status, payload, retiring = child.conn.recv()
             except EOFError:  # the child died without answering (killed for memory)
                 raise ApiError(413, "clip_too_large", "decoding the clip ran out of its memory budget") from None
+            answered, keep = True, not retiring
         finally:
-            receiver.close()
-            if child.is_alive():
-                child.kill()
-            child.join()
+            if keep:
+                with self._lock:
+                    self._idle.append(child)
+            else:  # past its deadline (killed), or retiring (it exits by itself)
+                self._reap(child, timeout=1.0 if answered else 0.0)
         if status == "error":
             raise ApiError(*payload)
         return payload

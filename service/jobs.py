@@ -21,6 +21,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
+from .background import lower_priority
+
 log = logging.getLogger(__name__)
 
 JobStatus = Literal["queued", "running", "done", "failed"]
@@ -42,7 +44,7 @@ class JobInfo(BaseModel):
 
 class JobManager:
     def __init__(self, workers: int = 1, keep: int = 200) -> None:
-        self.executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jobs")
+        self.executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jobs", initializer=lower_priority)
         self.jobs: dict[str, JobInfo] = {}
         self.futures: dict[str, Future] = {}
         self.keep = keep

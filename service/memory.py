@@ -26,6 +26,6 @@ LARGE_REQUEST_BYTES = 1 << 20  # from here a request is worth trimming after
 
 def release_freed_memory() -> bool:
     """`malloc_trim(0)` where the C library has it (glibc); True if it gave memory back. The
-    foreign call releases the GIL, so run it in a worker thread (`asyncio.to_thread`)."""
+    foreign call releases the GIL, so run it in a worker thread (`background.in_background`)."""
     trim = getattr(_libc, "malloc_trim", None)
     return bool(trim(0)) if trim is not None else False

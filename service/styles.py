@@ -49,8 +49,9 @@ from models.interface import ClipStyles, FineTuned, Progress, StreamingModel, St
 from models.motion.skeleton import Motion
 
 from .api import ApiError, StyleInfo, UploadAccepted
+from .background import in_background
 from .batcher import ModelThread
-from .clip_worker import ClipBudget, ClipDecoder, Kind, Upload
+from .clip_worker import Body, ClipBudget, ClipDecoder, Kind, Upload
 from .clips import MODEL_FPS, clip_on_skeleton, hips_track
 from .jobs import JobInfo, JobManager
 from .limits import Principal
@@ -120,6 +121,7 @@ class StyleStore:
     async def stop(self) -> None:
         self.stopping = True  # a running fine-tune stops at its next progress report
         self.jobs.shutdown()
+        await in_background(self.decoder.close)
 
     # ---- persistence -----------------------------------------------------------
     def _dir(self, model: str, name: str) -> Path:
@@ -255,7 +257,7 @@ class StyleStore:
                 refit = isinstance(model, ClipStyles) and model.has_saved_style(meta.parent)  # fine-tuned since
                 if newly_ready or (info.status == "ready" and refit):
                     try:  # made beside the model's steps, installed between them
-                        style = await asyncio.to_thread(self._saved_style, model, info, meta.parent)
+                        style = await in_background(self._saved_style, model, info, meta.parent)
                         await self.model_thread.run(model.install_style, info.name, style)
                     except Exception as exc:  # noqa: BLE001  (half-written by its replica: the next look retries)
                         log.warning("could not take in style %s: %s", sid, exc)
@@ -367,9 +369,10 @@ class StyleStore:
         return model
 
     async def upload(
-        self, kind: Upload, body: bytes | bytearray, fields: dict[str, Any], who: Principal, content_type: str = ""
+        self, kind: Upload, body: Body, fields: dict[str, Any], who: Principal, content_type: str = ""
     ) -> UploadAccepted:
-        """A new style from an uploaded clip: `body` is the BVH file or the JSON upload, `fields`
+        """A new style from an uploaded clip: `body` is the BVH file or the JSON upload (as the
+        chunks it was read in), `fields`
         the name, model and fine_tune given beside it (form fields, query). A bad name or model
         is refused before the clip is decoded; the decoding (`clip_worker`) brings it onto the
         model's skeleton at 30 fps in a child process. The name is claimed before anything is
@@ -420,7 +423,7 @@ class StyleStore:
         await self._write_new(info, motion)
         if isinstance(model, ClipStyles):  # the style exists as soon as this returns; a job may improve it
             try:  # made beside the model's steps (the FiLM generator over the clip), installed between them
-                style = await asyncio.to_thread(model.style_from_clip, motion)
+                style = await in_background(model.style_from_clip, motion)
                 await self.model_thread.run(model.install_style, name, style)
             except ValueError as exc:
                 shutil.rmtree(self._dir(model_name, name), ignore_errors=True)
@@ -469,7 +472,7 @@ class StyleStore:
                 raise
 
         try:
-            await asyncio.to_thread(write)
+            await in_background(write)
         except OSError as exc:
             raise ApiError(507, "storage_full", f"the style could not be stored: {exc.strerror or exc}") from None
         self.seen[info.id] = (final / "style.json").stat().st_mtime

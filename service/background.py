@@ -1,0 +1,49 @@
+"""Work the streams must not wait for, on threads at the lowest CPU priority.
+
+Building a style from an uploaded clip (the FiLM generator over it), writing and reading style
+files, fine-tuning, handing a large request's memory back, and the decoding child that turns an
+uploaded clip into a motion are CPU work that no frame waits for. On a machine with few cores
+the streams' frames wait for whatever else is runnable: on the 2-core test machine two busy
+processes at nice 10 tripled a healthy session's round-trip p99, at nice 19 they cost it
+nothing measurable (`python -m clients.hostile_bench --phases "cpu load"`, docs/deploy.md).
+So that work runs at nice 19: it still gets every core nobody else wants, and a core the
+event loop or the model thread wants is theirs at once.
+
+Linux gives each thread its own niceness (`setpriority` on a thread id); elsewhere the call is
+refused and the work simply runs at normal priority.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from typing import ParamSpec, TypeVar
+
+LOWEST_PRIORITY = 19  # Linux nice: the scheduler's lightest weight short of SCHED_IDLE
+WORKERS = 4  # two decoding children waited on, a style built and a file written at once
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+
+def lower_priority(niceness: int = LOWEST_PRIORITY) -> None:
+    """Give the calling thread (or a forked child's only thread) `niceness`; no-op where the
+    platform does not set it per thread."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), niceness)
+    except (OSError, AttributeError):  # not Linux, or not allowed: normal priority
+        pass
+
+
+@functools.cache
+def _executor() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(WORKERS, thread_name_prefix="background", initializer=lower_priority)
+
+
+async def in_background(fn: Callable[P, R], /, *args: P.args, **kwargs: P.kwargs) -> R:
+    """`asyncio.to_thread`, on a lowest-priority thread."""
+    return await asyncio.get_running_loop().run_in_executor(_executor(), functools.partial(fn, *args, **kwargs))

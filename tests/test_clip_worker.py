@@ -1,0 +1,104 @@
+"""Decoding uploads off the event loop without costing the streams (issue #16): children that
+live on between clips, file parts kept in memory, and background work at the lowest priority."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import sys
+import tempfile
+import threading
+
+import pytest
+
+from models.motion import bvh
+from models.motion.skeleton import to_bvh
+from service.api import ApiError
+from service.background import LOWEST_PRIORITY, in_background
+from service.clip_worker import ClipBudget, ClipDecoder, read_multipart
+
+BUDGET = ClipBudget(min_frames=30, max_frames=9000, min_fps=1.0, max_fps=1000.0, timeout_s=60.0, memory_mb=1024)
+
+
+def json_body(walk, fps: float = 30.0) -> list[bytes]:
+    clip = {
+        "name": "clip",
+        "model": "lpn",
+        "fps": fps,
+        "frames": {"root": walk.translations[:, 1].tolist(), "rotations": walk.rotations.tolist()},
+    }
+    return [json.dumps(clip).encode()]
+
+
+Job = tuple[str, list[bytes], str]  # kind, body, content type
+
+
+def decode_all(decoder: ClipDecoder, jobs: list[Job], skeleton) -> list:
+    """Each upload decoded in turn for LPN-FiLM; an `ApiError` is returned, not raised."""
+
+    async def run() -> list:
+        out = []
+        for kind, body, content_type in jobs:
+            try:
+                out.append(await decoder.decode(kind, body, {"model": "lpn"}, {"lpn": skeleton}, content_type))
+            except ApiError as err:
+                out.append(err)
+        await in_background(decoder.close)
+        return out
+
+    return asyncio.run(run())
+
+
+def test_one_decoding_child_takes_clip_after_clip(bn_walk):
+    """Starting a process per upload was what the streams felt: a child that answered, clip
+    or refusal, takes the next one."""
+    decoder = ClipDecoder(BUDGET, concurrency=1)
+    walk = bn_walk.slice(0, 60)
+    good, slow = ("json", json_body(walk), ""), ("json", json_body(walk, fps=1e-4), "")
+    answers = decode_all(decoder, [good, slow, good], walk.skeleton)
+    assert [a.motion.num_frames for a in answers[::2]] == [60, 60]
+    assert isinstance(answers[1], ApiError) and answers[1].code == "bad_frame_rate"
+    assert decoder.started == 1
+
+
+def test_a_child_that_ran_out_of_memory_is_not_reused(bn_walk):
+    decoder = ClipDecoder(ClipBudget(**{**BUDGET.__dict__, "memory_mb": 8}), concurrency=1)
+    text = bvh.dumps(to_bvh(bn_walk))
+    head, _, rest = text.partition("Frame Time:")
+    time_line, _, rows = rest.partition("\n")
+    looped = "\n".join(rows.splitlines()[i % bn_walk.num_frames] for i in range(9000))
+    huge = f"{head.replace(f'Frames: {bn_walk.num_frames}', 'Frames: 9000')}Frame Time:{time_line}\n{looped}\n"
+    form = b'--x\r\nContent-Disposition: form-data; name="file"; filename="w.bvh"\r\n\r\n'
+    big = ("multipart", [form, huge.encode(), b"\r\n--x--\r\n"], "multipart/form-data; boundary=x")
+    slow = ("json", json_body(bn_walk.slice(0, 60), fps=1e-4), "")
+    answers = decode_all(decoder, [big, slow], bn_walk.skeleton)
+    assert [a.code for a in answers] == ["clip_too_large", "bad_frame_rate"]
+    assert decoder.started == 2
+
+
+def test_a_large_file_part_is_parsed_in_memory_not_spilled_to_disk(monkeypatch):
+    """Starlette spools file parts over 1 MB to a temporary file; every large upload then wrote
+    to disk, which the streams felt."""
+
+    def no_disk(self):
+        raise AssertionError("a file part was spilled to disk")
+
+    monkeypatch.setattr(tempfile.SpooledTemporaryFile, "rollover", no_disk)
+    data = b"HIERARCHY\n" + b"0 " * 1_500_000
+    body = b'--b\r\nContent-Disposition: form-data; name="file"; filename="a.bvh"\r\n\r\n' + data
+    body += b'\r\n--b\r\nContent-Disposition: form-data; name="name"\r\n\r\nx\r\n--b--\r\n'
+    file, fields = read_multipart(body, "multipart/form-data; boundary=b")
+    assert file == data and fields["name"] == "x" and fields["fine_tune"] is False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread niceness is Linux's")
+def test_background_work_runs_at_the_lowest_priority():
+    def niceness() -> int:
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    async def run() -> tuple[int, int]:
+        return niceness(), await in_background(niceness)
+
+    loop_nice, background_nice = asyncio.run(run())
+    assert background_nice == max(loop_nice, LOWEST_PRIORITY)
