@@ -10,7 +10,10 @@ import pytest
 
 from models.data import Clip, build_index, dataset_dir, load_motion, select
 from models.data.archives import DataMissing
+from models.lpn import load as load_lpn
+from models.lpn.runtime import LPNModel
 from models.motion.skeleton import Motion
+from models.settings import get_settings
 
 
 @pytest.fixture(scope="session")
@@ -29,6 +32,13 @@ def index() -> list[Clip]:
 def bn_walk(index) -> Motion:
     """A neutral Bandai Namco dataset-2 walk from the validation split."""
     return load_motion(select(index, dataset="bandai-namco-2", style="normal", content="walk", split="val")[0])
+
+
+@pytest.fixture(scope="session")
+def lpn_model() -> LPNModel:
+    """The committed LPN-FiLM model, loaded once: a test that adds, replaces or removes styles does
+    it on a copy (`with_own_styles`)."""
+    return load_lpn(get_settings().weights_dir / "lpn")
 
 
 @pytest.fixture(scope="session")

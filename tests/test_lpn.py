@@ -9,7 +9,6 @@ import torch
 
 from models.data import build_index, load_motion, select
 from models.interface import FrameBatch, StreamingModel
-from models.lpn import load
 from models.lpn.dataset import clip_samples
 from models.registry import load_models
 from models.settings import get_settings
@@ -18,8 +17,8 @@ TARGETS = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", 
 
 
 @pytest.fixture(scope="module")
-def model():
-    return load(get_settings().weights_dir / "lpn")
+def model(lpn_model):
+    return lpn_model
 
 
 @pytest.fixture(scope="module")
@@ -134,7 +133,8 @@ def test_styles_change_the_motion(model, clips):
     assert np.abs(pose["normal"] - pose["elderly"]).mean() > 0.01
 
 
-def test_add_style_from_clip_gives_a_usable_style_and_remove_drops_it(model, clips):
+def test_add_style_from_clip_gives_a_usable_style_and_remove_drops_it(lpn_model, clips):
+    model = lpn_model.with_own_styles()
     model.add_style_from_clip("giant-from-clip", clips["giant"])
     try:
         assert model.styles()[-1] == "giant-from-clip"

@@ -7,24 +7,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.data import build_index, load_motion, load_motions, select
-from models.lpn import load
+from models.data import build_index, load_motions, select
 from models.lpn.carriage import ARM_JOINTS, Carriage, blend_arms, blend_pace
 from models.motion.rotation_ball import comparable
 from models.motion.rotations import quat_angle, quat_mean
-from models.settings import get_settings
 
 
 @pytest.fixture(scope="module")
-def model():
-    return load(get_settings().weights_dir / "lpn")
+def model(lpn_model):
+    return lpn_model
 
 
 @pytest.fixture(scope="module")
-def walk():
-    index = build_index(["bandai-namco-2"])
-    clip = select(index, split="val", style="normal", content="walk")[0]
-    return load_motion(clip).slice(0, 150)
+def walk(bn_walk):
+    return bn_walk.slice(0, 150)
 
 
 def speed(motion, skip: int = 30) -> float:
@@ -101,13 +97,13 @@ def test_uploaded_and_replaced_styles_get_no_pace_or_carriage(model, walk):
     twin = paced(model, {"active": (1.3, 1.25)})
     twin.set_style_film("mine", twin.film_of("active"))
     twin.set_style_film("active", twin.film_of("active"))  # a built-in's vector replaced: no longer its walks
-    pace, arms = twin._carriage
+    pace, arms = twin.style_table.get("pace"), twin.style_table.get("arms")
     for name in ("mine", "active"):
         k = twin.styles().index(name)
         assert (pace[k] == 1.0).all() and np.allclose(arms[k], (0, 0, 0, 1))
     k = model.styles().index("active")
-    assert not np.allclose(model._carriage[1][k], (0, 0, 0, 1))  # the original keeps it
+    assert not np.allclose(model.style_table.get("arms")[k], (0, 0, 0, 1))  # the original keeps it
     twin.remove_style("mine")
-    assert len(twin._carriage[0]) == len(twin._carriage[1]) == len(twin.styles())
+    assert len(twin.style_table.get("pace")) == len(twin.style_table.get("arms")) == len(twin.styles())
     out, _ = twin.run(walk, twin.weight_vector({"elderly": 1.0}))
     assert np.isfinite(out.rotations).all()

@@ -6,8 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.data import build_index, load_motion, select
-from models.lpn import load
 from models.lpn.runtime import LPNModel
 from models.motion.feet import LEGS
 from models.motion.rotation_ball import clamp_rotations, comparable
@@ -17,15 +15,13 @@ from models.settings import get_settings
 
 
 @pytest.fixture(scope="module")
-def model():
-    return load(get_settings().weights_dir / "lpn")
+def model(lpn_model):
+    return lpn_model
 
 
 @pytest.fixture(scope="module")
-def walk():
-    index = build_index(["bandai-namco-2"])
-    clip = select(index, split="val", style="normal", content="walk")[0]
-    return load_motion(clip).slice(0, 90)
+def walk(bn_walk):
+    return bn_walk.slice(0, 90)
 
 
 def _beyond(model, motion, style: str) -> np.ndarray:
@@ -74,13 +70,14 @@ def test_uploaded_styles_are_not_clamped(model, walk):
     twin = model.with_own_styles()
     twin.set_style_film("mine", twin.film_of("elderly"))
     twin.set_style_film("elderly", twin.film_of("elderly"))  # a built-in's vector replaced: no longer its data
-    mean, radii = twin._ball
+    radii = twin.style_table.get("ball_radii")
     for name in ("mine", "elderly"):
         assert np.isinf(radii[twin.styles().index(name)]).all()
     assert np.isfinite(radii[twin.styles().index("exhausted"), :, 1:]).all()
-    assert np.isfinite(model._ball[1][model.styles().index("elderly"), :, 1:]).all()  # the original keeps it
+    original = model.style_table.get("ball_radii")[model.styles().index("elderly")]
+    assert np.isfinite(original[:, 1:]).all()  # the original keeps it
     twin.remove_style("mine")
-    assert len(twin._ball[0]) == len(twin._ball[1]) == len(twin.styles())
+    assert len(twin.style_table.get("ball_mean")) == len(twin.style_table.get("ball_radii")) == len(twin.styles())
     out, _ = twin.run(walk, twin.weight_vector({"elderly": 1.0}))
     assert np.isfinite(out.rotations).all()
 
@@ -99,4 +96,4 @@ def test_tuned_builtin_styles_keep_their_prior(model):
         k = model.styles().index(name)
         assert np.array_equal(model.film_of(name), film)
         assert not np.array_equal(exported["style_film"][k], film)
-        assert np.isfinite(model._ball[1][k, :, 1:]).all(), name
+        assert np.isfinite(model.style_table.get("ball_radii")[k, :, 1:]).all(), name

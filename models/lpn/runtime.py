@@ -74,6 +74,7 @@ from ..settings import get_settings
 from . import features as lf
 from . import kernels
 from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, blend_pace, carry_arms
+from .style_table import StyleTable
 from .styles import LPNStyles
 from .weights import read_weights
 
@@ -125,17 +126,13 @@ class LPNModel(LPNStyles):
         self.y_mean, self.y_std = a["Y_mean"], a["Y_std"]
         self.g_scale = float(a["G_scale"])
         self._lock = threading.Lock()
-        self._styles: list[str] = list(config["styles"])
-        self._films: np.ndarray = a["style_film"].reshape(len(self._styles), 4 * self.H)
+        styles = tuple(config["styles"])
+        self._table = StyleTable(styles, a["style_film"].reshape(len(styles), 4 * self.H))  # replaced under the lock
         self._generator = None
         self.balls = balls
-        # per style (aligned with _styles, replaced together under the lock): mean (S, 22, 4),
-        # radii (S, 2, 22); None: no prior file
-        self._ball: tuple[np.ndarray, np.ndarray] | None = (
-            balls.for_styles(self._styles, skeleton.num_joints) if balls is not None else None
-        )
-        # pace (S, 2) and arm offsets (S, A, 4), aligned with _styles like the balls; None: no file
-        self._carriage: tuple[np.ndarray, np.ndarray] | None = None
+        if balls is not None:
+            mean, radii = balls.for_styles(list(styles), skeleton.num_joints)
+            self._table = self._table.measuring(ball_mean=mean, ball_radii=radii)
         self._arm_joints = np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)
         self.carriage = carriage
         sk = skeleton
@@ -155,14 +152,21 @@ class LPNModel(LPNStyles):
     def carriage(self, carriage: Carriage | None) -> None:
         with self._lock:
             self._carriage_fit = carriage
-            self._carriage = carriage.rows(self._styles) if carriage is not None else None
+            pace, arms = carriage.rows(list(self._table.names)) if carriage is not None else (None, None)
+            self._table = self._table.measuring(pace=pace, arms=arms)
+
+    @property
+    def style_table(self) -> StyleTable:
+        """Every style's FiLM vector and measured rows (`style_table.py`), as one snapshot."""
+        return self._table
 
     def styles(self) -> list[str]:
-        return list(self._styles)
+        return list(self._table.names)
 
     def film_of(self, name: str) -> np.ndarray:
         """The (4, H) FiLM vector of a style."""
-        return self._films[self._styles.index(name)].reshape(4, self.H).copy()
+        table = self._table
+        return table.films[table.index(name)].reshape(4, self.H).copy()
 
     def clip_film(self, motion: Motion) -> np.ndarray:
         """FiLM vector (4, H) of a clip: the generator on windows of it (tiled if short), averaged."""
@@ -194,44 +198,16 @@ class LPNModel(LPNStyles):
         film = np.asarray(film, np.float32)
         if film.shape != (4, self.H) or not np.all(np.isfinite(film)):
             raise ValueError(f"a FiLM vector must be finite with shape (4, {self.H}), got {film.shape}")
-        row = film.reshape(1, -1)
-        with self._lock:
-            if name in self._styles:
-                films = self._films.copy()
-                films[self._styles.index(name)] = row[0]
-                self._films = films
-                if self._ball is not None:  # no longer the built-in style its ball was fitted on
-                    radii = self._ball[1].copy()
-                    radii[self._styles.index(name)] = np.inf
-                    self._ball = (self._ball[0], radii)
-                if self._carriage is not None:  # nor the style whose walks gave its pace and carriage
-                    self._carriage = _carriage_rows(self._carriage, self._styles.index(name), "replace")
-            else:
-                self._films = np.concatenate([self._films, row])
-                self._styles = self._styles + [name]
-                if self._ball is not None:
-                    mean, radii = self._ball
-                    identity = np.tile((0.0, 0.0, 0.0, 1.0), (1, mean.shape[1], 1))
-                    self._ball = (
-                        np.concatenate([mean, identity]),
-                        np.concatenate([radii, np.full_like(radii[:1], np.inf)]),
-                    )
-                if self._carriage is not None:
-                    self._carriage = _carriage_rows(self._carriage, len(self._styles) - 1, "add")
+        with self._lock:  # a vector not fitted on the style's own clips: no ball, pace or carriage
+            self._table = self._table.with_film(name, film.reshape(-1))
 
     def remove_style(self, name: str) -> None:
         if name == "normal":
             raise ValueError("'normal' is the base style of LPN-FiLM and cannot be removed")
         with self._lock:
-            if name not in self._styles:
+            if name not in self._table.names:
                 raise KeyError(f"unknown style {name!r}")
-            k = self._styles.index(name)
-            self._films = np.delete(self._films, k, axis=0)
-            self._styles = self._styles[:k] + self._styles[k + 1 :]
-            if self._ball is not None:
-                self._ball = (np.delete(self._ball[0], k, axis=0), np.delete(self._ball[1], k, axis=0))
-            if self._carriage is not None:
-                self._carriage = _carriage_rows(self._carriage, k, "remove")
+            self._table = self._table.without(name)
 
     def generator(self):
         """The torch network (for the FiLM generator; built on first use)."""
@@ -248,15 +224,13 @@ class LPNModel(LPNStyles):
 
     def blend_films(self, weights: np.ndarray) -> np.ndarray:
         """(B, S) style weights -> (B, 4, H) FiLM; the weights' shortfall from 1 goes to `normal`."""
-        with self._lock:
-            films, styles = self._films, self._styles
-        return self._blend(films, styles, weights)
+        return self._blend(self._table, weights)
 
-    def _blend(self, films: np.ndarray, styles: list[str], weights: np.ndarray) -> np.ndarray:
+    def _blend(self, table: StyleTable, weights: np.ndarray) -> np.ndarray:
         w = np.asarray(weights, np.float32)
-        if w.ndim != 2 or w.shape[1] != len(styles):
-            raise ValueError(f"style_weights must be (B, {len(styles)}), got {w.shape}")
-        film = matmul_rows(w, films) + (1.0 - w.sum(1, keepdims=True)) * films[styles.index("normal")]
+        if w.ndim != 2 or w.shape[1] != len(table.names):
+            raise ValueError(f"style_weights must be (B, {len(table.names)}), got {w.shape}")
+        film = matmul_rows(w, table.films) + (1.0 - w.sum(1, keepdims=True)) * table.films[table.index("normal")]
         return film.reshape(-1, 4, self.H)
 
     # ------------------------------------------------------------------ state
@@ -325,9 +299,8 @@ class LPNModel(LPNStyles):
         root = np.asarray(frames.root, np.float32)
         rot_in = np.asarray(frames.rotations, np.float32)
         B = root.shape[0]
-        with self._lock:  # one snapshot of the style set: the FiLM rows, balls and carriage agree
-            films, styles, ball, carriage = self._films, self._styles, self._ball, self._carriage
-        film = self._blend(films, styles, style_weights)
+        table = self._table  # one snapshot of the style set: the FiLM rows, balls and carriage agree
+        film = self._blend(table, style_weights)
         if film.shape[0] != B:
             raise ValueError(f"style_weights has {film.shape[0]} rows for {B} frames")
         s = {k: v.copy() for k, v in state.items()}
@@ -335,17 +308,18 @@ class LPNModel(LPNStyles):
         if len(fresh):
             self._start(s, fresh, root, rot_in, frames.control)
         control = self._control(s, frames, root, rot_in, fresh)
-        if carriage is not None and (carriage[0] != 1.0).any():
-            control = self._paced(control, frames.control, style_weights, carriage[0])
+        pace, arms, normal = table.get("pace"), table.get("arms"), table.index("normal")
+        if pace is not None and (pace != 1.0).any():
+            control = self._paced(control, frames.control, style_weights, pace)
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
         out_root, out_rot, contacts = self._advance(s, y, control)
         out_rot = self._untwist(out_rot)
-        if carriage is not None:
-            offsets = blend_arms(carriage[1], style_weights, styles.index("normal"))
-            out_rot = carry_arms(out_rot, offsets, self._arm_joints)
-        if ball is not None:
-            out_rot = self._hold(out_rot, style_weights, styles.index("normal"), ball)
+        if arms is not None:
+            out_rot = carry_arms(out_rot, blend_arms(arms, style_weights, normal), self._arm_joints)
+        ball_mean, ball_radii = table.get("ball_mean"), table.get("ball_radii")
+        if ball_mean is not None and ball_radii is not None:
+            out_rot = self._hold(out_rot, style_weights, normal, (ball_mean, ball_radii))
         out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
@@ -619,20 +593,6 @@ def read_carriage(weights_dir: Path) -> Carriage | None:
     """The built-in styles' pace and arm carriage beside the weights (`CARRIAGE_FILE`), or None."""
     path = Path(weights_dir) / CARRIAGE_FILE
     return Carriage.load(path) if path.exists() else None
-
-
-def _carriage_rows(rows: tuple[np.ndarray, np.ndarray], k: int, change: str) -> tuple[np.ndarray, np.ndarray]:
-    """The carriage arrays after style row `k` is replaced by (or added as) one with pace 1 and no
-    offset, or removed."""
-    pace, arms = rows
-    if change == "remove":
-        return np.delete(pace, k, axis=0), np.delete(arms, k, axis=0)
-    plain_pace, plain_arms = np.ones((1, 2)), np.tile((0.0, 0.0, 0.0, 1.0), (1, *arms.shape[1:-1], 1))
-    if change == "add":
-        return np.concatenate([pace, plain_pace]), np.concatenate([arms, plain_arms])
-    pace, arms = pace.copy(), arms.copy()
-    pace[k], arms[k] = plain_pace[0], plain_arms[0]
-    return pace, arms
 
 
 def load(weights_dir: Path) -> LPNModel:

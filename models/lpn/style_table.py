@@ -1,0 +1,78 @@
+"""What LPN-FiLM keeps per style: one row per style, in one immutable table.
+
+A step reads the FiLM vectors, the rotation balls (`rotation_prior.py`) and the carriage
+(`carriage.py`) of one and the same style set, so the table is replaced whole when a style is
+added, given a new FiLM vector or removed, never edited in place: a step that took the table
+before the change finishes on the old one. Rows measured on a built-in style's real clips (its
+ball, its pace and arm carriage) describe that style only: a style added at run time, or a
+built-in given another FiLM vector, gets the plain row (no clamp, the input's pace, no offset).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+
+def _identity(shape: tuple[int, ...]) -> np.ndarray:
+    return np.broadcast_to(np.array((0.0, 0.0, 0.0, 1.0)), shape).copy()
+
+
+# measured per-style arrays, and the row of a style nothing was measured for (given its shape)
+PLAIN: dict[str, Callable[[tuple[int, ...]], np.ndarray]] = {
+    "ball_mean": _identity,  # (J, 4) the ball's centre: any, with an infinite radius
+    "ball_radii": lambda shape: np.full(shape, np.inf),  # (2, J): no clamp
+    "pace": np.ones,  # (2,) walk / run speed factors: the input's
+    "arms": _identity,  # (A, 4) arm offsets: none
+}
+
+
+@dataclass(frozen=True)
+class StyleTable:
+    names: tuple[str, ...]
+    films: np.ndarray  # (S, 4H) FiLM vectors
+    measured: dict[str, np.ndarray] = field(default_factory=dict)  # key of PLAIN -> (S, ...)
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    def get(self, key: str) -> np.ndarray | None:
+        return self.measured.get(key)
+
+    def measuring(self, **arrays: np.ndarray | None) -> StyleTable:
+        """This table with measured arrays (rows aligned with `names`) set, or dropped where None."""
+        measured = {k: v for k, v in self.measured.items() if k not in arrays}
+        for key, rows in arrays.items():
+            if key not in PLAIN:
+                raise KeyError(f"not a per-style measurement: {key!r}")
+            if rows is not None:
+                if len(rows) != len(self.names):
+                    raise ValueError(f"{key} has {len(rows)} rows for {len(self.names)} styles")
+                measured[key] = rows
+        return replace(self, measured=measured)
+
+    def with_film(self, name: str, film: np.ndarray) -> StyleTable:
+        """`name` with FiLM vector `film` (4H,), added if new; its measured rows become plain."""
+        row = np.asarray(film, self.films.dtype).reshape(1, -1)
+        if name not in self.names:
+            return StyleTable(
+                (*self.names, name),
+                np.concatenate([self.films, row]),
+                {k: np.concatenate([v, PLAIN[k](v.shape[1:])[None]]) for k, v in self.measured.items()},
+            )
+        k, films = self.index(name), self.films.copy()
+        films[k] = row[0]
+        measured = {key: v.copy() for key, v in self.measured.items()}
+        for key, v in measured.items():
+            v[k] = PLAIN[key](v.shape[1:])
+        return StyleTable(self.names, films, measured)
+
+    def without(self, name: str) -> StyleTable:
+        k = self.index(name)
+        return StyleTable(
+            self.names[:k] + self.names[k + 1 :],
+            np.delete(self.films, k, axis=0),
+            {key: np.delete(v, k, axis=0) for key, v in self.measured.items()},
+        )
