@@ -116,7 +116,8 @@ def median_speed(clips: list) -> float:
 
 def fit(model, styles: list[str], dataset: str = "bandai-namco-2", frames: int = 300, paced: bool = False) -> Carriage:
     """The arm offsets from the network (paced, with `paced`: each style's pace from its real
-    clips; otherwise pace 1) against the real clips."""
+    clips; otherwise pace 1) against the real clips. `model` itself is left as it was: the
+    network runs on a copy carrying the pace and no offsets."""
     from ..data import build_index, load_motions, select
     from ..eval.run import stylise
     from ..motion.rotation_ball import comparable
@@ -126,10 +127,11 @@ def fit(model, styles: list[str], dataset: str = "bandai-namco-2", frames: int =
     def clips(style: str, contents: tuple[str, ...]) -> list:
         return load_motions([c for c in select(index, split="train", style=style) if c.content in contents])
 
-    normal = {g: median_speed(clips("normal", contents)) for g, contents in LOCOMOTION.items()}
-    pace = np.array([[median_speed(clips(s, LOCOMOTION[g])) / normal[g] for g in ("walk", "run")] for s in styles])
-    if not paced:
-        pace = np.ones_like(pace)
+    pace = np.ones((len(styles), 2))
+    if paced:
+        normal = {g: median_speed(clips("normal", contents)) for g, contents in LOCOMOTION.items()}
+        pace = np.array([[median_speed(clips(s, LOCOMOTION[g])) / normal[g] for g in ("walk", "run")] for s in styles])
+    model = model.with_own_styles()
     model.carriage = Carriage(tuple(styles), pace, np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
     every = LOCOMOTION["walk"] + LOCOMOTION["run"]
     inputs = [m.slice(0, frames) for m in clips("normal", every)]
