@@ -18,6 +18,7 @@ import argparse
 import json
 import multiprocessing
 import os
+import tempfile
 import threading
 import time
 from collections import Counter
@@ -121,7 +122,9 @@ def uploads(base: str, bvh_text: str, seconds: float) -> Counter:
         ):
             seen[f"{r.status_code} {r.json().get('code', 'created')}"] += 1
             if r.status_code == 201:
-                httpx.delete(f"{base}/v1/styles/lpn.big{i}", timeout=30)
+                gone = httpx.delete(f"{base}/v1/styles/lpn.big{i}", timeout=30)
+                if gone.status_code != 204:
+                    seen[f"delete {gone.status_code}"] += 1
     return seen
 
 
@@ -239,8 +242,13 @@ def main() -> None:
     ]
     big = largest_bvh()
     ctx = multiprocessing.get_context("spawn")
-    env = {**ENV, **{f"STYLESTREAM_{k.upper()}": v for k, v in (kv.split("=", 1) for kv in args.set)}}
-    with spawned_server(env=env, checkout=args.checkout) as (url, server):
+    styles_dir = tempfile.TemporaryDirectory(prefix="hostile-bench-styles-")  # not `make serve`'s own styles
+    env = {
+        **ENV,
+        "STYLESTREAM_STYLES_DIR": styles_dir.name,
+        **{f"STYLESTREAM_{k.upper()}": v for k, v in (kv.split("=", 1) for kv in args.set)},
+    }
+    with styles_dir, spawned_server(env=env, checkout=args.checkout) as (url, server):
         base = url.replace("ws://", "http://").removesuffix("/v1/stream")
         healthy = Healthy(url, frames)
         healthy.start()
