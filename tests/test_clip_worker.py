@@ -4,6 +4,7 @@ live on between clips, file parts kept in memory, and background work at the low
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import os
 import sys
@@ -63,7 +64,7 @@ def test_one_decoding_child_takes_clip_after_clip(bn_walk):
 
 
 def test_a_child_that_ran_out_of_memory_is_not_reused(bn_walk):
-    decoder = ClipDecoder(ClipBudget(**{**BUDGET.__dict__, "memory_mb": 8}), concurrency=1)
+    decoder = ClipDecoder(dataclasses.replace(BUDGET, memory_mb=8), concurrency=1)
     text = bvh.dumps(to_bvh(bn_walk))
     head, _, rest = text.partition("Frame Time:")
     time_line, _, rows = rest.partition("\n")
@@ -75,6 +76,26 @@ def test_a_child_that_ran_out_of_memory_is_not_reused(bn_walk):
     answers = decode_all(decoder, [big, slow], bn_walk.skeleton)
     assert [a.code for a in answers] == ["clip_too_large", "bad_frame_rate"]
     assert decoder.started == 2
+
+
+def test_a_child_past_its_deadline_is_killed_and_the_next_clip_gets_a_fresh_one(bn_walk):
+    decoder = ClipDecoder(dataclasses.replace(BUDGET, timeout_s=0.001), concurrency=1)
+    walk = bn_walk.slice(0, 60)
+
+    async def run() -> list:
+        answers = []
+        for timeout_s in (0.001, 60.0):  # the parent waits this long for the child's answer
+            decoder.budget = dataclasses.replace(BUDGET, timeout_s=timeout_s)
+            try:
+                answers.append(await decoder.decode("json", json_body(walk), {}, {"lpn": walk.skeleton}))
+            except ApiError as err:
+                answers.append(err)
+        await in_background(decoder.close)
+        return answers
+
+    late, fresh = asyncio.run(run())
+    assert isinstance(late, ApiError) and late.code == "clip_too_slow"
+    assert fresh.motion.num_frames == 60 and decoder.started == 2
 
 
 def test_a_large_file_part_is_parsed_in_memory_not_spilled_to_disk(monkeypatch):
