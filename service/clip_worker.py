@@ -275,7 +275,8 @@ class ClipDecoder:
         process = self._context.Process(target=_child, args=(sender, self.budget), daemon=True)
         process.start()
         sender.close()
-        self.started += 1
+        with self._lock:
+            self.started += 1
         return _Child(process, receiver)
 
     @staticmethod
