@@ -4,8 +4,9 @@ Building a style from an uploaded clip (the FiLM generator over it), writing and
 files, fine-tuning, handing a large request's memory back, and the decoding child that turns an
 uploaded clip into a motion are CPU work that no frame waits for. On a machine with few cores
 the streams' frames wait for whatever else is runnable: on the 2-core test machine two busy
-processes at nice 10 tripled a healthy session's round-trip p99, at nice 19 they cost it
-nothing measurable (`python -m clients.hostile_bench --phases "cpu load"`, docs/deploy.md).
+processes cost a healthy session 3.5-4.5x its quiet round-trip p99 at nice 0, up to 2.1x at
+nice 10 and nothing measurable at nice 19 (`python -m clients.hostile_bench --phases "cpu load"
+--attacker-nice N`, docs/deploy.md).
 So that work runs at nice 19: it still gets every core nobody else wants, and a core the
 event loop or the model thread wants is theirs at once.
 
