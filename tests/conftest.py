@@ -6,14 +6,17 @@ or the code under test first reaches for a dataset); on CI the data is there and
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import pytest
 
 from models.data import Clip, build_index, dataset_dir, load_motion, select
 from models.data.archives import DataMissing
-from models.lpn import load as load_lpn
-from models.lpn.runtime import LPNModel
 from models.motion.skeleton import Motion
 from models.settings import get_settings
+
+if TYPE_CHECKING:
+    from models.lpn.runtime import LPNModel
 
 
 @pytest.fixture(scope="session")
@@ -38,7 +41,9 @@ def bn_walk(index) -> Motion:
 def lpn_model() -> LPNModel:
     """The committed LPN-FiLM model, loaded once: a test that adds, replaces or removes styles does
     it on a copy (`with_own_styles`)."""
-    return load_lpn(get_settings().weights_dir / "lpn")
+    from models.lpn import load  # its compiled kernels, only for the tests that use it
+
+    return load(get_settings().weights_dir / "lpn")
 
 
 @pytest.fixture(scope="session")
