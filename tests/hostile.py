@@ -1,5 +1,5 @@
 """A healthy session streaming beside hostile clients: it must get every frame back, exactly the
-output of the model stepped offline, however the others behave."""
+output of the model stepped offline, however the others behave; and the uploads they send."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ import numpy as np
 from websockets.sync.client import connect
 
 from models.interface import StreamingModel
-from models.motion.skeleton import Motion
+from models.motion import bvh
+from models.motion.skeleton import Motion, to_bvh
 
 from .live_server import offline, ws_url
 
@@ -78,3 +79,23 @@ class Bystander:
 
     def p99_ms(self, since: int = 0) -> float:
         return float(np.percentile(np.array(self.rtts[since:]) * 1000, 99))
+
+
+def json_clip(name: str, walk, fps: float, model: str = "lpn") -> dict:
+    return {
+        "name": name,
+        "model": model,
+        "fps": fps,
+        "frames": {"root": walk.translations[:, 1].tolist(), "rotations": walk.rotations.tolist()},
+    }
+
+
+def longest_bvh(walk, frames: int = 9000) -> str:
+    """A BVH of `frames` at 30 fps (default: the longest clip accepted) looping `walk`'s rows."""
+    text = bvh.dumps(to_bvh(walk))
+    head, _, body = text.partition("Frame Time:")
+    time_line, _, rows = body.partition("\n")
+    rows = rows.rstrip("\n").split("\n")
+    looped = "\n".join(rows[i % len(rows)] for i in range(frames))
+    head = head.replace(f"Frames: {walk.num_frames}", f"Frames: {frames}")
+    return f"{head}Frame Time:{time_line}\n{looped}\n"

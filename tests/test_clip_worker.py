@@ -13,23 +13,17 @@ import threading
 
 import pytest
 
-from models.motion import bvh
-from models.motion.skeleton import to_bvh
 from service.api import ApiError
 from service.background import LOWEST_PRIORITY, in_background
 from service.clip_worker import ClipBudget, ClipDecoder, read_multipart
+
+from .hostile import json_clip, longest_bvh
 
 BUDGET = ClipBudget(min_frames=30, max_frames=9000, min_fps=1.0, max_fps=1000.0, timeout_s=60.0, memory_mb=1024)
 
 
 def json_body(walk, fps: float = 30.0) -> list[bytes]:
-    clip = {
-        "name": "clip",
-        "model": "lpn",
-        "fps": fps,
-        "frames": {"root": walk.translations[:, 1].tolist(), "rotations": walk.rotations.tolist()},
-    }
-    return [json.dumps(clip).encode()]
+    return [json.dumps(json_clip("clip", walk, fps)).encode()]
 
 
 Job = tuple[str, list[bytes], str]  # kind, body, content type
@@ -65,13 +59,8 @@ def test_one_decoding_child_takes_clip_after_clip(bn_walk):
 
 def test_a_child_that_ran_out_of_memory_is_not_reused(bn_walk):
     decoder = ClipDecoder(dataclasses.replace(BUDGET, memory_mb=8), concurrency=1)
-    text = bvh.dumps(to_bvh(bn_walk))
-    head, _, rest = text.partition("Frame Time:")
-    time_line, _, rows = rest.partition("\n")
-    looped = "\n".join(rows.splitlines()[i % bn_walk.num_frames] for i in range(9000))
-    huge = f"{head.replace(f'Frames: {bn_walk.num_frames}', 'Frames: 9000')}Frame Time:{time_line}\n{looped}\n"
     form = b'--x\r\nContent-Disposition: form-data; name="file"; filename="w.bvh"\r\n\r\n'
-    big = ("multipart", [form, huge.encode(), b"\r\n--x--\r\n"], "multipart/form-data; boundary=x")
+    big = ("multipart", [form, longest_bvh(bn_walk).encode(), b"\r\n--x--\r\n"], "multipart/form-data; boundary=x")
     slow = ("json", json_body(bn_walk.slice(0, 60), fps=1e-4), "")
     answers = decode_all(decoder, [big, slow], bn_walk.skeleton)
     assert [a.code for a in answers] == ["clip_too_large", "bad_frame_rate"]

@@ -22,7 +22,7 @@ from models.registry import load_models
 from models.settings import get_settings
 
 from .cluster import require, shipped_nginx
-from .hostile import Bystander
+from .hostile import Bystander, json_clip, longest_bvh
 from .live_server import live_server, ws_url
 from .waiting import wait_until
 
@@ -56,26 +56,6 @@ def walk_bvh(bn_walk) -> str:
 def with_frame_time(text: str, seconds: str) -> str:
     head, _, rest = text.partition("Frame Time:")
     return head + "Frame Time: " + seconds + rest[rest.index("\n") :]
-
-
-def json_clip(name: str, walk, fps: float, model: str = "lpn") -> dict:
-    return {
-        "name": name,
-        "model": model,
-        "fps": fps,
-        "frames": {"root": walk.translations[:, 1].tolist(), "rotations": walk.rotations.tolist()},
-    }
-
-
-def longest_bvh(walk, frames: int = 9000) -> str:
-    """A BVH of `frames` at 30 fps (default: the longest clip accepted) looping `walk`'s rows."""
-    text = bvh.dumps(to_bvh(walk))
-    head, _, body = text.partition("Frame Time:")
-    time_line, _, rows = body.partition("\n")
-    rows = rows.rstrip("\n").split("\n")
-    looped = "\n".join(rows[i % len(rows)] for i in range(frames))
-    head = head.replace(f"Frames: {walk.num_frames}", f"Frames: {frames}")
-    return f"{head}Frame Time:{time_line}\n{looped}\n"
 
 
 def refused(r: httpx.Response, status: int, code: str) -> None:
