@@ -341,8 +341,12 @@ class StyleStore:
                 f"style {sid!r} is a trained style of model {info.model!r} and "
                 "cannot be deleted; only uploaded styles can",
             )
-        await self._remove_files(info.model, info.name)  # then forget: the name is taken until the files are gone
-        await self._forget(info)
+        self._claimed.add(info.id)  # the name stays taken until its files are gone
+        try:
+            await self._forget(info)  # first: a fine-tune job on it stops recording into its folder
+            await self._remove_files(info.model, info.name)
+        finally:
+            self._claimed.discard(info.id)
 
     def _upload_target(self, name: str, model_name: str) -> UploadedStyles[Any]:
         """The model an upload of style `name` goes to, or the ApiError why there is none."""
