@@ -75,6 +75,11 @@ class RawClient(RawSocket):
 
     def send_text(self, text: str) -> None:
         """One masked text frame (RFC 6455: clients mask)."""
+        self.sock.sendall(self.text_frame(text))
+
+    @staticmethod
+    def text_frame(text: str) -> bytes:
+        """A masked text frame's bytes, to send again and again without building it each time."""
         payload = text.encode()
         n = len(payload)
         if n < 126:
@@ -85,4 +90,24 @@ class RawClient(RawSocket):
             length = bytes([0x80 | 127]) + struct.pack(">Q", n)
         mask = os.urandom(4)
         masked = (np.frombuffer(payload, np.uint8) ^ np.resize(np.frombuffer(mask, np.uint8), n)).tobytes()
-        self.sock.sendall(bytes([0x81]) + length + mask + masked)
+        return bytes([0x81]) + length + mask + masked
+
+    def recv_frame(self) -> tuple[int, bytes]:
+        """The server's next frame as (opcode, payload) (servers do not mask); EOFError at the end
+        of the stream. Fragmented messages are not joined: the service sends none."""
+        first, second = self._recv_exactly(2)
+        n = second & 0x7F
+        if n == 126:
+            (n,) = struct.unpack(">H", self._recv_exactly(2))
+        elif n == 127:
+            (n,) = struct.unpack(">Q", self._recv_exactly(8))
+        return first & 0x0F, self._recv_exactly(n)
+
+    def _recv_exactly(self, n: int) -> bytes:
+        data = b""
+        while len(data) < n:
+            chunk = self.sock.recv(n - len(data))
+            if not chunk:
+                raise EOFError("the server ended the stream")
+            data += chunk
+        return data

@@ -15,6 +15,7 @@ from models.motion import bvh
 from models.motion.skeleton import Motion, to_bvh
 
 from .live_server import offline, ws_url
+from .waiting import wait_until
 
 
 class Bystander:
@@ -31,7 +32,10 @@ class Bystander:
         self._thread = threading.Thread(target=self._run, daemon=True)
 
     def __enter__(self) -> Bystander:
+        """Starts streaming and returns once the first frame is back (or the session failed), so
+        whatever the test does next happens while this session streams."""
         self._thread.start()
+        wait_until(lambda: self.outputs or self.errors, "the healthy session's first frame", timeout=60)
         return self
 
     def __exit__(self, *exc) -> None:

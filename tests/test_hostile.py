@@ -20,6 +20,7 @@ from models.motion import bvh
 from models.motion.skeleton import to_bvh
 from models.registry import load_models
 from models.settings import get_settings
+from service.transport import FLOOD_LINGER_MAX_BYTES
 
 from .cluster import require, shipped_nginx
 from .hostile import Bystander, json_clip, longest_bvh
@@ -43,7 +44,6 @@ def server(models, tmp_path_factory):
 def bystander(server, models, bn_walk):
     """One healthy session for the whole module, checked exact at its end."""
     with Bystander(server[0], bn_walk.slice(0, 120)) as b:
-        wait_until(lambda: b.frames() > 5 or b.errors, "the healthy session's first frames", timeout=60)
         yield b
     b.check(models["lti"])
 
@@ -246,18 +246,50 @@ def test_a_flooding_client_is_told_then_closed(models, bn_walk):
         b.check(models["lti"])
 
 
+def test_a_client_closed_for_flooding_can_still_send_and_then_reads_the_close(models, bn_walk):
+    """A flood script is usually still writing when it is closed, and a client library may not
+    read the close until its write returns (the websockets sync client holds its lock while a send
+    blocks). So after the 4429 close the server goes on taking what the client sends (here 32 MiB
+    more, beyond what the kernel buffers would hold) and ends the stream cleanly after the close
+    frame. Before, it stopped reading and reset the connection a second later: the flooder's sends
+    blocked, and it could see 1006 instead of 4429."""
+    with live_server(models, max_messages_per_s=100) as (base, _):
+        with Bystander(base, bn_walk.slice(0, 60)) as b:
+            client = RawClient(base, rcvbuf=1 << 20)
+            client.send_text(start_message())
+            client.sock.settimeout(20.0)
+            frame = client.text_frame(frame_message(0, bn_walk))
+            for _ in range(2000 + (32 << 20) // len(frame)):  # the flood, then 32 MiB more, unread
+                client.sock.sendall(frame)
+            opcodes = []
+            with contextlib.suppress(EOFError):
+                while True:
+                    opcode, payload = client.recv_frame()
+                    opcodes.append(opcode)
+            assert opcodes[0] == 0x1 and opcodes[-1] == 0x8, opcodes  # replies, then the close
+            assert int.from_bytes(payload[:2], "big") == 4429
+            client.close()
+        b.check(models["lti"])
+
+
 def test_a_flooding_client_that_reconnects_is_refused_while_it_cools_down(models, bn_walk):
     """A flood script reconnects at once; each new connection would cost the server another
     burst read before the close. Its caller's handshakes are refused (HTTP 429 `rate_limited`,
-    Retry-After) for flood_cooldown_s; a session it already had open goes on, exact."""
+    Retry-After) for flood_cooldown_s; a session it already had open goes on, exact.
+
+    The flood is 5,000 frames, within what the server drains after the close: this client's reader
+    thread cannot take the close in while its sender holds the connection lock, and on a loaded
+    machine it was starved through 64 MiB of sends (reset: 1006, not 4429) of a 100,000-frame one."""
+    flood = [frame_message(seq, bn_walk) for seq in range(5000)]
+    assert sum(map(len, flood)) < FLOOD_LINGER_MAX_BYTES // 2
     with live_server(models, max_messages_per_s=100, flood_cooldown_s=600) as (base, _):
         with Bystander(base, bn_walk.slice(0, 60)) as b:  # the same address as the flooder
             with connect(ws_url(base)) as ws:
                 ws.send(start_message())
                 assert json.loads(ws.recv(timeout=10))["type"] == "started"
                 with contextlib.suppress(ConnectionClosed):  # sends fail once it is closed
-                    for seq in range(100_000):
-                        ws.send(frame_message(seq, bn_walk))
+                    for frame in flood:
+                        ws.send(frame)
                     while True:
                         ws.recv(timeout=20)
             assert ws.close_code == 4429
