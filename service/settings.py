@@ -73,6 +73,14 @@ class ServiceSettings(Settings):
     ping_interval_s: float = Field(
         default=20.0, gt=0, le=600, description="WebSocket keepalive pings; a peer silent to one this long is dropped."
     )
+    gil_switch_interval_s: float = Field(
+        default=0.0005,
+        gt=0,
+        le=0.1,
+        description="How long a Python thread may hold the GIL while another waits for it (sys.setswitchinterval; "
+        "Python's default is 0.005). Style building and fine-tunes run on background threads: at the default "
+        "the event loop waited up to 5 ms behind them, each a stream's late frame.",
+    )
     max_connections: int = Field(
         default=4096, ge=1, description="Open connections and requests at once; above it 503 (uvicorn)."
     )

@@ -55,3 +55,19 @@ def test_cli_help_is_readable():
     ).stdout
     for command in ("serve", "data", "render", "retarget"):
         assert command in out
+
+
+def test_a_serving_process_lets_the_event_loop_take_the_gil_back_sooner():
+    """Background threads (style building, fine-tunes) would otherwise hold the GIL for Python's
+    5 ms switch interval whenever the event loop wants it: each such wait a stream's late frame."""
+    from service.server import tune_interpreter
+    from service.settings import ServiceSettings
+
+    before = sys.getswitchinterval()
+    try:
+        tune_interpreter(ServiceSettings())
+        assert sys.getswitchinterval() == ServiceSettings().gil_switch_interval_s < before
+        tune_interpreter(ServiceSettings(gil_switch_interval_s=0.002))
+        assert sys.getswitchinterval() == 0.002
+    finally:
+        sys.setswitchinterval(before)
