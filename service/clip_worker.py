@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import multiprocessing
 import os
+import pickle
 import resource
 import threading
 from collections.abc import AsyncGenerator
@@ -29,6 +30,7 @@ from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from typing import Any, Literal
 
+import numpy as np
 from starlette.datastructures import Headers
 from starlette.formparsers import MultiPartParser
 
@@ -202,8 +204,37 @@ def _decode_one(
         retire = True
     except Exception as exc:  # noqa: BLE001  (whatever else a hostile file provokes is still the file's fault)
         answer = ("error", (422, "bad_clip", f"the clip could not be decoded: {type(exc).__name__}: {exc}"[:500]))
-    conn.send((*answer, retire))
+    send_answer(conn, (*answer, retire))
     return retire
+
+
+ANSWER_PIECE_BYTES = 256 << 10
+
+
+def send_answer(conn: Connection, answer: tuple) -> None:
+    """Pickle `answer` with its arrays out of band (protocol 5) and send the arrays' bytes in
+    pieces, so the reader never holds the GIL for long (`receive_answer`)."""
+    buffers: list[pickle.PickleBuffer] = []
+    conn.send_bytes(pickle.dumps(answer, protocol=5, buffer_callback=buffers.append))
+    conn.send([len(b.raw()) for b in buffers])
+    for buffer in buffers:
+        raw = buffer.raw()
+        for start in range(0, len(raw), ANSWER_PIECE_BYTES):
+            conn.send_bytes(raw[start : start + ANSWER_PIECE_BYTES])
+
+
+def receive_answer(conn: Connection) -> tuple:
+    """What `send_answer` sent. Unpickling a decoded clip in one go (~6 MB of arrays for the
+    longest) is one C call that holds the GIL, and with it the event loop, for its whole copy,
+    whatever the switch interval; read piece by piece, no hold is longer than one piece's copy,
+    and the arrays are made over the buffers they were read into, without another copy."""
+    head = conn.recv_bytes()
+    buffers = [np.empty(size, np.uint8) for size in conn.recv()]  # not zeroed first: the reads fill them
+    for buffer in buffers:
+        view, start = buffer.data, 0
+        while start < len(buffer):
+            start += conn.recv_bytes_into(view[start : start + ANSWER_PIECE_BYTES])
+    return pickle.loads(head, buffers=buffers)
 
 
 def _child(conn: Connection, budget: ClipBudget) -> None:
@@ -313,7 +344,7 @@ class ClipDecoder:
                     f"decoding the clip took longer than {self.budget.timeout_s:g} s; send a shorter one",
                 )
             try:
-                status, payload, retiring = child.conn.recv()
+                status, payload, retiring = receive_answer(child.conn)
             except EOFError:  # the child died without answering (killed for memory)
                 raise ApiError(413, "clip_too_large", "decoding the clip ran out of its memory budget") from None
             answered, keep = True, not retiring

@@ -11,6 +11,7 @@ import sys
 import tempfile
 import threading
 
+import numpy as np
 import pytest
 
 from service.api import ApiError
@@ -112,3 +113,26 @@ def test_background_work_runs_at_the_lowest_priority():
 
     loop_nice, background_nice = asyncio.run(run())
     assert background_nice == max(loop_nice, LOWEST_PRIORITY)
+
+
+def test_a_decoded_clips_arrays_come_back_beside_its_pickle_not_in_it(bn_walk):
+    """The thread that reads the child's answer holds the GIL for the length of any one C call,
+    and unpickling ~6 MB of arrays in one call held the event loop that long: the answer's arrays
+    travel out of band, in pieces, and come back equal."""
+    from multiprocessing import Pipe
+
+    from service.clip_worker import ANSWER_PIECE_BYTES, receive_answer, send_answer
+
+    rotations = np.tile(bn_walk.rotations, (40, 1, 1))  # ~5 MB
+    answer = ("ok", {"rotations": rotations, "name": "x"}, False)
+    reader, writer = Pipe(duplex=False)
+    sent: list[int] = []
+    original = writer.send_bytes
+    writer.send_bytes = lambda data, *a: (sent.append(len(memoryview(data))), original(data, *a))[1]
+    thread = threading.Thread(target=send_answer, args=(writer, answer))
+    thread.start()
+    got = receive_answer(reader)
+    thread.join()
+    np.testing.assert_array_equal(got[1]["rotations"], rotations)
+    assert got[0] == "ok" and got[1]["name"] == "x" and got[2] is False
+    assert sent[0] < 10_000 and max(sent) <= ANSWER_PIECE_BYTES < rotations.nbytes  # the pickle, then pieces
