@@ -49,7 +49,7 @@ from models.interface import ClipStyles, FineTuned, Progress, StreamingModel, St
 from models.motion.skeleton import Motion
 
 from .api import ApiError, StyleInfo, UploadAccepted
-from .background import in_background
+from .background import in_background, save_npz
 from .batcher import ModelThread
 from .clip_worker import Body, ClipBudget, ClipDecoder, Kind, Upload
 from .clips import MODEL_FPS, clip_on_skeleton, hips_track
@@ -470,9 +470,7 @@ class StyleStore:
             try:
                 tmp.mkdir(parents=True)
                 final.parent.mkdir(parents=True, exist_ok=True)
-                np.savez_compressed(
-                    tmp / "clip.npz", root=hips_track(motion), rotations=motion.rotations, fps=MODEL_FPS
-                )
+                save_npz(tmp / "clip.npz", root=hips_track(motion), rotations=motion.rotations, fps=MODEL_FPS)
                 (tmp / "style.json").write_text(info.model_dump_json(indent=1))
                 shutil.rmtree(final, ignore_errors=True)  # leftovers of a style deleted on another replica
                 tmp.rename(final)

@@ -136,3 +136,16 @@ def test_a_decoded_clips_arrays_come_back_beside_its_pickle_not_in_it(bn_walk):
     np.testing.assert_array_equal(got[1]["rotations"], rotations)
     assert got[0] == "ok" and got[1]["name"] == "x" and got[2] is False
     assert sent[0] < 10_000 and max(sent) <= ANSWER_PIECE_BYTES < rotations.nbytes  # the pickle, then pieces
+
+
+def test_style_files_saved_in_pieces_load_back_exactly(bn_walk, tmp_path):
+    """`save_npz` writes what `np.savez` would (read back by `np.load`): a clip's arrays, a
+    transposed (non-contiguous) one and a scalar, each exactly."""
+    from service.background import save_npz
+
+    rotations = np.tile(bn_walk.rotations, (20, 1, 1))  # several pieces
+    save_npz(tmp_path / "clip.npz", rotations=rotations, root=bn_walk.translations[:, 0].T, fps=30.0)
+    with np.load(tmp_path / "clip.npz") as clip:
+        np.testing.assert_array_equal(clip["rotations"], rotations)
+        np.testing.assert_array_equal(clip["root"], bn_walk.translations[:, 0].T)
+        assert clip["fps"].shape == () and float(clip["fps"]) == 30.0
