@@ -120,7 +120,8 @@ class GuardedWebSocket(WebSocketsSansIOProtocol):
         if self.read_paused:  # uvicorn resumes reads on close already; said here, it is relied on
             self.read_paused = False
             self.transport.resume_reading()
-        self.transport.write_eof()  # after the buffered close frame: the client's reader sees it, then EOF
+        if self.transport.can_write_eof():  # not over TLS: there the client's own close, or the deadline, ends it
+            self.transport.write_eof()  # after the buffered close frame: the client's reader sees it, then EOF
 
     def keepalive_timeout(self) -> None:
         super().keepalive_timeout()  # it closes, which flushes first: a peer that does not read is aborted instead
