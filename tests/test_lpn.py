@@ -247,3 +247,20 @@ def test_step_refuses_a_state_that_does_not_fit_the_frames(model, clips):
             model.step_batch({**state, key: bad}, _frames(clips["walk"], 1), w)
     with pytest.raises(ValueError, match="rotations"):
         model.step_batch(state, FrameBatch(np.zeros((1, 3)), np.ones((1, 21, 4))), w)
+
+
+def test_a_long_clips_style_features_in_blocks_equal_them_in_one_go(bn_walk):
+    """Worked out in blocks (so no numpy call spans the clip, beside the service's event loop),
+    a clip longer than a block has exactly the features it has in one go, block seams included."""
+    from dataclasses import replace
+
+    from models.lpn.dataset import STYLE_FEATURE_BLOCK, _style_features_in_one_go, clip_style_features
+
+    frames = 2 * STYLE_FEATURE_BLOCK + 37
+    reps = -(-frames // bn_walk.num_frames)
+    long = replace(
+        bn_walk,
+        rotations=np.tile(bn_walk.rotations, (reps, 1, 1))[:frames],
+        translations=np.tile(bn_walk.translations, (reps, 1, 1))[:frames],
+    )
+    np.testing.assert_array_equal(clip_style_features(long), _style_features_in_one_go(long))

@@ -146,8 +146,30 @@ def clip_samples(motion: Motion, gait: float, axes=None) -> ClipSamples:
     )
 
 
+STYLE_FEATURE_BLOCK = 1024  # frames per block of `clip_style_features`
+
+
 def clip_style_features(motion: Motion) -> np.ndarray:
-    """(F, STYLE_DIM) FiLM-generator features of a whole clip (what `clip_samples` stores as style_feats)."""
+    """(F, STYLE_DIM) FiLM-generator features of a whole clip (what `clip_samples` stores as style_feats).
+
+    Worked out in blocks of frames, each with the frame before it for the backward differences:
+    every feature depends on its frame and the one before, so the numbers are the same as in one
+    go, but no numpy call spans a long clip. An uploaded clip's style is built on a (nice 19) thread
+    beside the service's event loop, which waits for the GIL for the whole of any one call: over 20
+    builds from a 9,000-frame clip the loop was late by a median 1.6 ms in one go, 1.1 ms in blocks
+    (its idle floor ~0.9; both had rare 3-5 ms outliers; `out/s14/stylehold.py`, scratch)."""
+    F = motion.num_frames
+    if F <= STYLE_FEATURE_BLOCK:
+        return _style_features_in_one_go(motion)
+    blocks = []
+    for start in range(0, F, STYLE_FEATURE_BLOCK):
+        before = min(start, 1)
+        block = _style_features_in_one_go(motion.slice(start - before, min(F, start + STYLE_FEATURE_BLOCK)))
+        blocks.append(block[before:])
+    return np.concatenate(blocks)
+
+
+def _style_features_in_one_go(motion: Motion) -> np.ndarray:
     grot, gpos = motion.global_transforms()
     w = lf.clip_frames(grot, gpos, motion.skeleton, motion.fps)
     pose = lf.pose_features(gpos, w["vel"], grot, w["root"], w["yaw"])
