@@ -23,6 +23,7 @@ import threading
 import time
 from collections import Counter
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import httpx
 import numpy as np
@@ -31,6 +32,9 @@ from websockets.sync.client import connect
 
 from .loadtest import real_frames, spawned_server
 from .raw_ws import HandshakeRefused, RawClient, RawSocket
+
+if TYPE_CHECKING:
+    from models.motion.skeleton import Motion
 
 ENV = {  # short deadlines, so a phase's leftovers are gone before the next one
     "STYLESTREAM_SEND_TIMEOUT_S": "2",
@@ -206,15 +210,24 @@ ATTACKS = {
 def largest_bvh() -> str:
     """A valid BVH near the 16 MiB upload limit: a real walk looped to 27,000 rows at 120 fps."""
     from models.data import build_index, load_motion, select
+
+    walk = load_motion(select(build_index(), dataset="bandai-namco-2", style="normal", content="walk", split="val")[0])
+    return looped_bvh(walk, 27_000, frame_time="0.00833333")
+
+
+def looped_bvh(walk: Motion, rows: int, frame_time: str | None = None) -> str:
+    """`walk` as a BVH of `rows` motion rows, its own rows over and over (at `frame_time` seconds
+    per row if given, else at its own rate): a long, valid upload from a short real clip."""
     from models.motion import bvh
     from models.motion.skeleton import to_bvh
 
-    walk = load_motion(select(build_index(), dataset="bandai-namco-2", style="normal", content="walk", split="val")[0])
     head, _, body = bvh.dumps(to_bvh(walk)).partition("Frame Time:")
-    rows = body.partition("\n")[2].rstrip("\n").split("\n")
-    n = 27_000
-    head = head.replace(f"Frames: {walk.num_frames}", f"Frames: {n}")
-    return f"{head}Frame Time: 0.00833333\n" + "\n".join(rows[i % len(rows)] for i in range(n)) + "\n"
+    time_line, _, motion = body.partition("\n")
+    lines = motion.rstrip("\n").split("\n")
+    head = head.replace(f"Frames: {walk.num_frames}", f"Frames: {rows}")
+    if frame_time is not None:
+        time_line = f" {frame_time}"
+    return f"{head}Frame Time:{time_line}\n" + "\n".join(lines[i % len(lines)] for i in range(rows)) + "\n"
 
 
 PHASES = ("flood", "uploads", "no-read resets", "churn", "half-open")  # the default; "cpu load" on request

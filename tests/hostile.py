@@ -10,9 +10,9 @@ import time
 import numpy as np
 from websockets.sync.client import connect
 
+from clients.hostile_bench import looped_bvh
 from models.interface import StreamingModel
-from models.motion import bvh
-from models.motion.skeleton import Motion, to_bvh
+from models.motion.skeleton import Motion
 
 from .live_server import offline, ws_url
 from .waiting import wait_until
@@ -96,10 +96,4 @@ def json_clip(name: str, walk, fps: float, model: str = "lpn") -> dict:
 
 def longest_bvh(walk, frames: int = 9000) -> str:
     """A BVH of `frames` at 30 fps (default: the longest clip accepted) looping `walk`'s rows."""
-    text = bvh.dumps(to_bvh(walk))
-    head, _, body = text.partition("Frame Time:")
-    time_line, _, rows = body.partition("\n")
-    rows = rows.rstrip("\n").split("\n")
-    looped = "\n".join(rows[i % len(rows)] for i in range(frames))
-    head = head.replace(f"Frames: {walk.num_frames}", f"Frames: {frames}")
-    return f"{head}Frame Time:{time_line}\n{looped}\n"
+    return looped_bvh(walk, frames)
