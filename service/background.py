@@ -21,7 +21,7 @@ import functools
 import os
 import threading
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import ParamSpec, TypeVar
 
@@ -53,7 +53,15 @@ async def in_background(fn: Callable[P, R], /, *args: P.args, **kwargs: P.kwargs
     return await asyncio.get_running_loop().run_in_executor(_executor(), functools.partial(fn, *args, **kwargs))
 
 
-NPZ_PIECE_BYTES = 256 << 10
+# The most a background thread copies in one C call while moving large data (a decoded clip
+# from its child, a style file to disk): the event loop waits for the GIL through any one call
+PIECE_BYTES = 256 << 10
+
+
+def pieces(data: memoryview) -> Iterator[memoryview]:
+    """`data` (bytes) in views of at most PIECE_BYTES, without copying."""
+    for start in range(0, len(data), PIECE_BYTES):
+        yield data[start : start + PIECE_BYTES]
 
 
 def save_npz(path: str | os.PathLike, **arrays: np.ndarray | float) -> None:
@@ -70,6 +78,5 @@ def save_npz(path: str | os.PathLike, **arrays: np.ndarray | float) -> None:
                 array = array.copy(order="C")
             with archive.open(f"{name}.npy", "w", force_zip64=True) as member:
                 np.lib.format.write_array_header_2_0(member, np.lib.format.header_data_from_array_1_0(array))
-                data = array.data.cast("B")
-                for start in range(0, len(data), NPZ_PIECE_BYTES):
-                    member.write(data[start : start + NPZ_PIECE_BYTES])
+                for piece in pieces(array.data.cast("B")):
+                    member.write(piece)

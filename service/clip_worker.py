@@ -39,7 +39,7 @@ from models.motion.resample import resampled_length
 from models.motion.skeleton import Motion, Skeleton
 
 from .api import ApiError, StyleUpload
-from .background import in_background, lower_priority
+from .background import in_background, lower_priority, pieces
 from .clips import MODEL_FPS, motion_from_bvh, motion_from_json
 from .memory import release_freed_memory
 
@@ -208,9 +208,6 @@ def _decode_one(
     return retire
 
 
-ANSWER_PIECE_BYTES = 256 << 10
-
-
 def send_answer(conn: Connection, answer: tuple) -> None:
     """Pickle `answer` with its arrays out of band (protocol 5) and send the arrays' bytes in
     pieces, so the reader never holds the GIL for long (`receive_answer`)."""
@@ -218,9 +215,8 @@ def send_answer(conn: Connection, answer: tuple) -> None:
     conn.send_bytes(pickle.dumps(answer, protocol=5, buffer_callback=buffers.append))
     conn.send([len(b.raw()) for b in buffers])
     for buffer in buffers:
-        raw = buffer.raw()
-        for start in range(0, len(raw), ANSWER_PIECE_BYTES):
-            conn.send_bytes(raw[start : start + ANSWER_PIECE_BYTES])
+        for piece in pieces(buffer.raw()):
+            conn.send_bytes(piece)
 
 
 def receive_answer(conn: Connection) -> tuple:
@@ -231,9 +227,8 @@ def receive_answer(conn: Connection) -> tuple:
     head = conn.recv_bytes()
     buffers = [np.empty(size, np.uint8) for size in conn.recv()]  # not zeroed first: the reads fill them
     for buffer in buffers:
-        view, start = buffer.data, 0
-        while start < len(buffer):
-            start += conn.recv_bytes_into(view[start : start + ANSWER_PIECE_BYTES])
+        for piece in pieces(buffer.data):  # the very pieces `send_answer` sent
+            conn.recv_bytes_into(piece)
     return pickle.loads(head, buffers=buffers)
 
 

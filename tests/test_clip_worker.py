@@ -121,7 +121,8 @@ def test_a_decoded_clips_arrays_come_back_beside_its_pickle_not_in_it(bn_walk):
     travel out of band, in pieces, and come back equal."""
     from multiprocessing import Pipe
 
-    from service.clip_worker import ANSWER_PIECE_BYTES, receive_answer, send_answer
+    from service.background import PIECE_BYTES
+    from service.clip_worker import receive_answer, send_answer
 
     rotations = np.tile(bn_walk.rotations, (40, 1, 1))  # ~5 MB
     answer = ("ok", {"rotations": rotations, "name": "x"}, False)
@@ -135,7 +136,7 @@ def test_a_decoded_clips_arrays_come_back_beside_its_pickle_not_in_it(bn_walk):
     thread.join()
     np.testing.assert_array_equal(got[1]["rotations"], rotations)
     assert got[0] == "ok" and got[1]["name"] == "x" and got[2] is False
-    assert sent[0] < 10_000 and max(sent) <= ANSWER_PIECE_BYTES < rotations.nbytes  # the pickle, then pieces
+    assert sent[0] < 10_000 and max(sent) <= PIECE_BYTES < rotations.nbytes  # the pickle, then pieces
 
 
 def test_style_files_saved_in_pieces_load_back_exactly(bn_walk, tmp_path):
