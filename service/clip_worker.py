@@ -9,22 +9,30 @@ frames), so it is refused early and run late:
   length *at 30 fps* falls outside the frame limits, from the declared count and rate, before
   anything is resampled (typed 422, never an allocation);
 - `ClipDecoder` runs the decoding in child processes forked from a preloaded server
-  (multiprocessing's forkserver, so the server's threads are never forked), at the lowest CPU
-  priority, capped in address space and killed after `upload_decode_timeout_s`: the event loop
-  only waits on a pipe, no upload can stall the streams, and a clip that still exhausts its
-  budget costs its own child (413 / 422), never the server. A child that answered takes the
-  next clip: starting processes was itself what the streams felt.
+  (multiprocessing's forkserver, so the server's threads are never forked), at the background's
+  CPU priority, capped in address space and in CPU time: the event loop only waits on a pipe, no
+  upload can stall the streams, and a clip that still exhausts its budget costs its own child
+  (413 / 422), never the server. A child that answered takes the next clip: starting processes
+  was itself what the streams felt.
+
+The time budget is CPU time, counted by the child itself, because what a clip costs is the
+clip's doing and how long it waits for a core is not: at a low priority beside busy processes a
+child gets a sliver of a core, and a wall-clock deadline refused valid clips as "too slow" on a loaded
+machine. A wall-clock limit remains, far longer, for a server too busy to decode at all (503).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import multiprocessing
+import multiprocessing.forkserver
 import os
 import pickle
 import resource
+import signal
 import threading
-from collections.abc import AsyncGenerator
+from collections.abc import AsyncGenerator, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
@@ -39,7 +47,7 @@ from models.motion.resample import resampled_length
 from models.motion.skeleton import Motion, Skeleton
 
 from .api import ApiError, StyleUpload
-from .background import in_background, lower_priority, pieces
+from .background import background_nice, in_background, lower_priority, pieces
 from .clips import MODEL_FPS, motion_from_bvh, motion_from_json
 from .memory import release_freed_memory
 
@@ -50,14 +58,16 @@ Body = list[bytes]  # a request body as the non-empty chunks it was read in (joi
 
 @dataclass(frozen=True)
 class ClipBudget:
-    """What one upload may cost: frame limits at 30 fps, the accepted rates, time and memory."""
+    """What one upload may cost: frame limits at 30 fps, the accepted rates, CPU time and memory,
+    and how long the server waits for its answer however busy the machine."""
 
     min_frames: int
     max_frames: int
     min_fps: float
     max_fps: float
-    timeout_s: float
+    cpu_s: float
     memory_mb: int
+    wall_s: float = 120.0
 
 
 @dataclass
@@ -178,6 +188,30 @@ def _cap_memory(extra_mb: int) -> None:
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
 
+class _OverBudget(BaseException):
+    """Raised in the child by its CPU timer. A BaseException, so that no `except Exception` on
+    the decoding path (the multipart parser's, the catch-all below) takes it for the clip's own
+    error."""
+
+
+@contextlib.contextmanager
+def cpu_budget(seconds: float) -> Iterator[None]:
+    """Raise `_OverBudget` once this process has used `seconds` of CPU inside the block (a
+    profiling timer: it counts CPU time, not the time spent waiting for a core). Main thread
+    only, as every Python signal handler."""
+
+    def expire(signum: int, frame: object) -> None:
+        raise _OverBudget
+
+    previous = signal.signal(signal.SIGPROF, expire)
+    signal.setitimer(signal.ITIMER_PROF, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_PROF, 0)
+        signal.signal(signal.SIGPROF, previous)  # a timer that fired but was not yet handled is dropped
+
+
 MAX_CLIPS_PER_CHILD = 200  # then a fresh child: what a long run of clips left in its heap goes back
 
 
@@ -192,13 +226,20 @@ def _decode_one(
 ) -> bool:
     """Receive one clip's body (its chunks, then an empty message), decode it and answer
     (status, payload, retiring); True, and said in the answer, when this child takes no other
-    clip: its `last`, or one that ran out of its memory budget (what that left is not kept)."""
+    clip: its `last`, or one that ran out of its memory or CPU budget (what that left, perhaps
+    half-built, is not kept)."""
     retire = last
     try:
         body = b"".join(iter(conn.recv_bytes, b""))
-        answer: tuple = ("ok", decode_clip(kind, body, fields, skeletons, budget, content_type))
+        with cpu_budget(budget.cpu_s):
+            clip = decode_clip(kind, body, fields, skeletons, budget, content_type)
+        answer: tuple = ("ok", clip)
     except ApiError as err:
         answer = ("error", (err.status, err.code, err.message))
+    except _OverBudget:
+        message = f"decoding the clip took more than {budget.cpu_s:g} s of CPU; send a shorter one"
+        answer = ("error", (422, "clip_too_slow", message))
+        retire = True
     except MemoryError:
         answer = ("error", (413, "clip_too_large", f"decoding the clip needs more than {budget.memory_mb} MB"))
         retire = True
@@ -232,18 +273,19 @@ def receive_answer(conn: Connection) -> tuple:
     return pickle.loads(head, buffers=buffers)
 
 
-def _child(conn: Connection, budget: ClipBudget) -> None:
+def _child(conn: Connection, memory_mb: int, niceness: int) -> None:
     """A decoding child: clips one after another until the server closes the pipe, it has done
-    `MAX_CLIPS_PER_CHILD` or one exhausted its memory. It lives on between uploads because
-    starting a process is what cost the streams: 7-10 forks a second, even of an empty child
-    from another process, tripled a healthy session's round-trip p99 on the 2-core test machine
-    (`clients.hostile_bench`, docs/deploy.md)."""
-    lower_priority()  # every core the streams want is theirs first (`background`)
-    _cap_memory(budget.memory_mb)
+    `MAX_CLIPS_PER_CHILD` or one exhausted its memory or CPU budget. It lives on between uploads
+    because starting a process is what cost the streams: 7-10 forks a second, even of an empty
+    child from another process, tripled a healthy session's round-trip p99 on the 2-core test
+    machine (`clients.hostile_bench`, docs/deploy.md). Each clip comes with its budget; the
+    address-space cap (`memory_mb`) is set once, at start."""
+    lower_priority(niceness)  # the streams' cores are theirs first (`background`)
+    _cap_memory(memory_mb)
     try:
         for done in range(MAX_CLIPS_PER_CHILD):
             try:
-                kind, fields, skeletons, content_type = conn.recv()
+                kind, fields, skeletons, content_type, budget = conn.recv()
             except EOFError:  # the server is done with this child
                 return
             if _decode_one(conn, kind, fields, skeletons, content_type, budget, done == MAX_CLIPS_PER_CHILD - 1):
@@ -261,13 +303,19 @@ class _Child:
 
 class ClipDecoder:
     """Runs `decode_clip` in child processes, at most `concurrency` at a time (others wait). A
-    child that answered is kept for the next clip; one past its deadline is killed."""
+    child that answered is kept for the next clip; one that has not answered by the wall-clock
+    limit is killed."""
 
     def __init__(self, budget: ClipBudget, concurrency: int = 2) -> None:
         self.budget = budget
         self._slots = asyncio.Semaphore(concurrency)
         self._context = multiprocessing.get_context("forkserver")
         self._context.set_forkserver_preload([__name__])  # children start with numpy, scipy and the parsers loaded
+        # The fork server starts now, from the thread building the app: started by the first
+        # upload's waiting thread it inherited that thread's niceness (19 then), and its
+        # imports (~1.4 s of CPU) waited behind every busy process on the machine: beside four
+        # spinning processes the first upload was still unanswered after 30 s.
+        multiprocessing.forkserver.ensure_running()
         self._idle: list[_Child] = []
         self._lock = threading.Lock()
         self.started = 0  # children started so far
@@ -298,7 +346,9 @@ class ClipDecoder:
                     return child
                 self._reap(child)
         receiver, sender = self._context.Pipe(duplex=True)
-        process = self._context.Process(target=_child, args=(sender, self.budget), daemon=True)
+        process = self._context.Process(
+            target=_child, args=(sender, self.budget.memory_mb, background_nice()), daemon=True
+        )
         process.start()
         sender.close()
         with self._lock:
@@ -327,16 +377,18 @@ class ClipDecoder:
         child, keep, answered = self._take(), False, False
         try:
             try:
-                child.conn.send((kind, fields, skeletons, content_type))
+                child.conn.send((kind, fields, skeletons, content_type, self.budget))
                 for chunk in (*body, b""):  # non-empty chunks, then the end
                     child.conn.send_bytes(chunk)
             except OSError:  # the child is gone (over its memory budget at start)
                 pass
-            if not child.conn.poll(self.budget.timeout_s):
+            if not child.conn.poll(self.budget.wall_s):  # within its CPU budget, but given no core to use it
                 raise ApiError(
-                    422,
-                    "clip_too_slow",
-                    f"decoding the clip took longer than {self.budget.timeout_s:g} s; send a shorter one",
+                    503,
+                    "server_busy",
+                    f"the server is too busy to decode the clip (not done after {self.budget.wall_s:g} s); "
+                    "try again later",
+                    {"Retry-After": "30"},
                 )
             try:
                 status, payload, retiring = receive_answer(child.conn)

@@ -28,6 +28,8 @@ UPLOAD_NOTES = {
     422: "`bad_name`, `unknown_model`, `uploads_unsupported`, `fine_tune_required`, `bad_bvh`, "
     "`unsupported_skeleton`, `bad_frames`, `bad_skeleton`, `non_finite`, `bad_frame_rate`, `bad_length`, "
     "`clip_too_slow`, `bad_clip`, `bad_request`.",
+    503: "`server_busy`: the clip's decoding was given no CPU in time (`upload_decode_wall_s`); Retry-After "
+    "says when to try again.",
 }
 UPLOAD_BODY: dict[str, Any] = {
     "requestBody": {

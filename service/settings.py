@@ -73,6 +73,14 @@ class ServiceSettings(Settings):
     ping_interval_s: float = Field(
         default=20.0, gt=0, le=600, description="WebSocket keepalive pings; a peer silent to one this long is dropped."
     )
+    background_nice: int = Field(
+        default=10,
+        ge=0,
+        le=19,
+        description="Niceness of work no frame waits for (style building, upload decoding, fine-tunes, file "
+        "writes). Higher keeps it further from the streams, but also behind every other busy process: at 19 an "
+        "upload beside a few busy processes barely runs.",
+    )
     gil_switch_interval_s: float = Field(
         default=0.0005,
         gt=0,
@@ -188,11 +196,18 @@ class ServiceSettings(Settings):
     upload_max_fps: float = Field(
         default=480.0, gt=0, le=10000, allow_inf_nan=False, description="Highest frame rate of an uploaded clip."
     )
-    upload_decode_timeout_s: float = Field(
+    upload_decode_cpu_s: float = Field(
         default=20.0,
         gt=0,
         le=600,
-        description="Decoding, retargeting and resampling an upload (in a child process) is stopped after this.",
+        description="CPU seconds decoding, retargeting and resampling an upload (in a child process) may take: "
+        "422 clip_too_slow above. CPU, not wall-clock time: a busy machine slows an upload, it does not refuse it.",
+    )
+    upload_decode_wall_s: float = Field(
+        default=120.0,
+        gt=0,
+        le=3600,
+        description="How long an upload waits for its decoding however busy the machine: 503 server_busy after.",
     )
     upload_decode_memory_mb: int = Field(
         default=1024, ge=8, description="Memory a child process decoding an upload may take beyond its start."

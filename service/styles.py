@@ -99,8 +99,9 @@ class StyleStore:
                 settings.upload_max_frames,
                 settings.upload_min_fps,
                 settings.upload_max_fps,
-                settings.upload_decode_timeout_s,
+                settings.upload_decode_cpu_s,
                 settings.upload_decode_memory_mb,
+                settings.upload_decode_wall_s,
             ),
             settings.upload_decoders,
         )

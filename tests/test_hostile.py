@@ -87,7 +87,7 @@ def test_a_clip_beyond_its_decoding_budget_costs_only_its_child(models, bn_walk,
     """Decoding runs in a child process with a deadline and an address-space cap: a clip that
     needs more gets a typed refusal, and the server goes on serving."""
     long = longest_bvh(bn_walk, 1800)  # 60 s at 30 fps, ~1 MB
-    with live_server(models, styles_dir=tmp_path, upload_decode_timeout_s=0.01) as (base, _):
+    with live_server(models, styles_dir=tmp_path, upload_decode_cpu_s=0.01) as (base, _):
         with Bystander(base, bn_walk.slice(0, 60)) as b:
             r = httpx.post(f"{base}/v1/styles", files={"file": ("w.bvh", long)}, data={"name": "big", "model": "lpn"})
             refused(r, 422, "clip_too_slow")
