@@ -14,6 +14,11 @@ from service.app import create_app
 from service.settings import ServiceSettings
 from service.transport import uvicorn_config
 
+# How long a test waits for an upload's answer: a clip is decoded and its style built at the
+# background's low priority (`service.background`), which on a loaded machine waits long for a
+# core (httpx's own 5 s default was not enough beside four busy processes)
+UPLOAD_TIMEOUT_S = 120.0
+
 
 @contextmanager
 def live_server(models: dict, port: int | None = None, uvicorn_options: dict | None = None, **overrides):

@@ -38,7 +38,7 @@ from service.routes_docs import ASSET_TYPES, ASYNCAPI_FILE
 from service.settings import ServiceSettings
 
 from .clips import frames_json
-from .live_server import live_server
+from .live_server import UPLOAD_TIMEOUT_S, live_server
 from .test_viewer import devtools_page, need_chromium
 
 SERVICE_DIR = Path(__file__).resolve().parents[1] / "service"
@@ -164,14 +164,15 @@ def test_real_replies_are_documented_with_their_bodies(server, openapi, index):
         )
     )
     body = {"name": "Bad Name", "model": "lpn", "frames": walk, "fps": 30}
-    check_reply(doc, "post", "/v1/styles", httpx.post(styles, json=body, headers=ok), 422, "bad_name")
+    named = httpx.post(styles, json=body, headers=ok, timeout=UPLOAD_TIMEOUT_S)
+    check_reply(doc, "post", "/v1/styles", named, 422, "bad_name")
     maybe = httpx.post(f"{styles}?fine_tune=maybe", json=body, headers=ok)  # FastAPI's own validation
     check_reply(doc, "post", "/v1/styles", maybe, 422, "bad_request")
     assert "fine_tune" in maybe.json()["message"]
-    made = httpx.post(styles, json={**body, "name": "docs-walk"}, headers=ok, timeout=60)
+    made = httpx.post(styles, json={**body, "name": "docs-walk"}, headers=ok, timeout=UPLOAD_TIMEOUT_S)
     check_reply(doc, "post", "/v1/styles", made, 201)
     assert made.json()["style"]["status"] == "ready"
-    again = httpx.post(styles, json={**body, "name": "docs-walk"}, headers=ok, timeout=60)
+    again = httpx.post(styles, json={**body, "name": "docs-walk"}, headers=ok, timeout=UPLOAD_TIMEOUT_S)
     check_reply(doc, "post", "/v1/styles", again, 409, "style_exists")
     gone = httpx.delete(f"{styles}/lpn.docs-walk", headers=ok)
     check_reply(doc, "delete", "/v1/styles/{style_id}", gone, 204)

@@ -24,7 +24,7 @@ from service.transport import FLOOD_LINGER_MAX_BYTES
 
 from .cluster import require, shipped_nginx
 from .hostile import Bystander, json_clip, longest_bvh
-from .live_server import live_server, ws_url
+from .live_server import UPLOAD_TIMEOUT_S, live_server, ws_url
 from .waiting import wait_until
 
 
@@ -70,15 +70,24 @@ def test_uploads_declaring_absurd_rates_are_refused_before_any_allocation(models
             f"{base}/v1/styles",
             files={"file": ("w.bvh", with_frame_time(walk_bvh, seconds))},
             data={"name": "slow", "model": "lpn"},
-            timeout=30,
+            timeout=UPLOAD_TIMEOUT_S,
         )
         refused(r, 422, "bad_frame_rate")
     for fps in (0.0001, 1e-300):
-        refused(httpx.post(f"{base}/v1/styles", json=json_clip("slow", walk, fps), timeout=30), 422, "bad_frame_rate")
+        refused(
+            httpx.post(f"{base}/v1/styles", json=json_clip("slow", walk, fps), timeout=UPLOAD_TIMEOUT_S),
+            422,
+            "bad_frame_rate",
+        )
     # a legal rate whose clip would be too long once resampled to 30 fps: refused by its declared length
     long_bvh = with_frame_time(walk_bvh, "0.09")  # 120 rows at 11.1 fps = 322 frames at 30 fps
     with live_server(models, upload_max_frames=300) as (small, _):
-        r = httpx.post(f"{small}/v1/styles", files={"file": ("w.bvh", long_bvh)}, data={"name": "long", "model": "lpn"})
+        r = httpx.post(
+            f"{small}/v1/styles",
+            files={"file": ("w.bvh", long_bvh)},
+            data={"name": "long", "model": "lpn"},
+            timeout=UPLOAD_TIMEOUT_S,
+        )
         refused(r, 422, "bad_length")
         assert "322 frames at 30 fps" in r.json()["message"]
 
@@ -89,13 +98,21 @@ def test_a_clip_beyond_its_decoding_budget_costs_only_its_child(models, bn_walk,
     long = longest_bvh(bn_walk, 1800)  # 60 s at 30 fps, ~1 MB
     with live_server(models, styles_dir=tmp_path, upload_decode_cpu_s=0.01) as (base, _):
         with Bystander(base, bn_walk.slice(0, 60)) as b:
-            r = httpx.post(f"{base}/v1/styles", files={"file": ("w.bvh", long)}, data={"name": "big", "model": "lpn"})
+            r = httpx.post(
+                f"{base}/v1/styles",
+                files={"file": ("w.bvh", long)},
+                data={"name": "big", "model": "lpn"},
+                timeout=UPLOAD_TIMEOUT_S,
+            )
             refused(r, 422, "clip_too_slow")
             wait_until(lambda: b.frames() > 10 or b.errors, "the healthy session streaming on")
         b.check(models["lti"])
     with live_server(models, styles_dir=tmp_path, upload_decode_memory_mb=8) as (base, _):
         r = httpx.post(
-            f"{base}/v1/styles", files={"file": ("w.bvh", longest_bvh(bn_walk))}, data={"name": "huge", "model": "lpn"}
+            f"{base}/v1/styles",
+            files={"file": ("w.bvh", longest_bvh(bn_walk))},
+            data={"name": "huge", "model": "lpn"},
+            timeout=UPLOAD_TIMEOUT_S,
         )
         refused(r, 413, "clip_too_large")
         assert httpx.get(f"{base}/healthz").status_code == 200
@@ -105,7 +122,9 @@ def test_concurrent_uploads_of_one_name_give_exactly_one_style(server, bystander
     base = server[0]
     clip = json_clip("twins", bn_walk.slice(0, 90), 30.0)
     with concurrent.futures.ThreadPoolExecutor(6) as pool:
-        replies = list(pool.map(lambda _: httpx.post(f"{base}/v1/styles", json=clip, timeout=60), range(6)))
+        replies = list(
+            pool.map(lambda _: httpx.post(f"{base}/v1/styles", json=clip, timeout=UPLOAD_TIMEOUT_S), range(6))
+        )
     codes = sorted(r.status_code for r in replies)
     assert codes == [201, 409, 409, 409, 409, 409], [r.text[:200] for r in replies]
     assert all(r.json()["code"] == "style_exists" for r in replies if r.status_code == 409)
@@ -118,7 +137,9 @@ def test_a_style_whose_files_cannot_be_written_leaves_no_trace(server, bystander
     shutil.rmtree(blocker, ignore_errors=True)
     blocker.write_text("not a folder: every write under it fails")
     try:
-        r = httpx.post(f"{base}/v1/styles", json=json_clip("ghost", bn_walk.slice(0, 90), 30.0), timeout=60)
+        r = httpx.post(
+            f"{base}/v1/styles", json=json_clip("ghost", bn_walk.slice(0, 90), 30.0), timeout=UPLOAD_TIMEOUT_S
+        )
         refused(r, 507, "storage_full")
         assert "lpn.ghost" not in {s["id"] for s in httpx.get(f"{base}/v1/styles").json()}
         lpn = next(m for m in httpx.get(f"{base}/v1/models").json() if m["name"] == "lpn")
@@ -126,7 +147,7 @@ def test_a_style_whose_files_cannot_be_written_leaves_no_trace(server, bystander
         refused(httpx.delete(f"{base}/v1/styles/lpn.ghost"), 404, "unknown_style")
     finally:
         blocker.unlink()
-    r = httpx.post(f"{base}/v1/styles", json=json_clip("ghost", bn_walk.slice(0, 90), 30.0), timeout=60)
+    r = httpx.post(f"{base}/v1/styles", json=json_clip("ghost", bn_walk.slice(0, 90), 30.0), timeout=UPLOAD_TIMEOUT_S)
     assert r.status_code == 201, r.text
     assert httpx.delete(f"{base}/v1/styles/lpn.ghost").status_code == 204
 
@@ -138,7 +159,7 @@ def test_the_longest_clip_is_accepted_while_sessions_stream(server, bystander, b
         f"{base}/v1/styles",
         files={"file": ("w.bvh", longest_bvh(bn_walk))},
         data={"name": "long-walk", "model": "lpn"},
-        timeout=120,
+        timeout=UPLOAD_TIMEOUT_S,
     )
     assert r.status_code == 201, r.text
     assert r.json()["style"]["frames"] == 9000
@@ -352,7 +373,12 @@ def start_reply(base: str, token: str, **start) -> dict:
 
 def test_uploaded_styles_belong_to_their_tenant(tenants, bn_walk):
     base, _ = tenants
-    r = httpx.post(f"{base}/v1/styles", json=json_clip("mine", bn_walk.slice(0, 90), 30.0), headers=bearer(A))
+    r = httpx.post(
+        f"{base}/v1/styles",
+        json=json_clip("mine", bn_walk.slice(0, 90), 30.0),
+        headers=bearer(A),
+        timeout=UPLOAD_TIMEOUT_S,
+    )
     assert r.status_code == 201, r.text
     ids = {t: {s["id"] for s in httpx.get(f"{base}/v1/styles", headers=bearer(t)).json()} for t in (A, B, ADMIN)}
     assert "lpn.mine" in ids[A] and "lpn.mine" in ids[ADMIN] and "lpn.mine" not in ids[B]

@@ -19,7 +19,7 @@ from service.api import ApiError
 from service.limits import Bucket, take
 from service.settings import ServiceSettings
 
-from .live_server import live_server
+from .live_server import UPLOAD_TIMEOUT_S, live_server
 
 RATED, CAPPED, OTHER = "tok-rated", "tok-capped", "tok-other"
 LIMITS = {RATED: {"requests_per_s": 1, "burst_s": 3}, CAPPED: {"max_sessions": 2, "upload_max_bytes": 2000}}
@@ -186,7 +186,12 @@ def test_an_upload_over_the_tokens_size_limit_gets_413(server):
     assert over.status_code == 413 and over.json()["code"] == "too_large"
     assert "2000" in over.json()["message"]
     # the same body is within the default limit of another token: it is read and refused for its content
-    other = httpx.post(f"{base}/v1/styles", content=body, headers={**auth(OTHER), "Content-Type": "application/json"})
+    other = httpx.post(
+        f"{base}/v1/styles",
+        content=body,
+        headers={**auth(OTHER), "Content-Type": "application/json"},
+        timeout=UPLOAD_TIMEOUT_S,
+    )
     assert other.status_code == 422 and other.json()["code"] == "bad_request"
 
 

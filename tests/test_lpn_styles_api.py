@@ -19,7 +19,7 @@ from models.registry import load_models
 from models.settings import get_settings
 
 from .clips import drive_lpn, frames_json
-from .live_server import live_server
+from .live_server import UPLOAD_TIMEOUT_S, live_server
 from .waiting import wait_until
 
 MODEL = load_models(get_settings().weights_dir)["lpn"]
@@ -42,7 +42,7 @@ def drive(base: str, style: str) -> np.ndarray:
 def test_an_uploaded_clip_is_a_live_lpn_style_at_once_and_after_a_restart(giant_clip, tmp_path):
     body = {"name": "my-giant", "model": "lpn", "frames": giant_clip, "fps": 30}
     with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, _):
-        reply = httpx.post(f"{base}/v1/styles", json=body, timeout=60)
+        reply = httpx.post(f"{base}/v1/styles", json=body, timeout=UPLOAD_TIMEOUT_S)
         assert reply.status_code == 201, reply.text  # created, not accepted for a job
         style = reply.json()["style"]
         assert (style["id"], style["status"], reply.json()["job"]) == ("lpn.my-giant", "ready", None)
@@ -112,7 +112,9 @@ def test_sessions_stream_on_while_an_uploaded_clip_is_made_into_a_style(giant_cl
     with live_server({"lpn": MODEL}, styles_dir=tmp_path) as (base, _):
         upload: dict = {}
         poster = threading.Thread(
-            target=lambda: upload.setdefault("reply", httpx.post(f"{base}/v1/styles", json=body, timeout=60))
+            target=lambda: upload.setdefault(
+                "reply", httpx.post(f"{base}/v1/styles", json=body, timeout=UPLOAD_TIMEOUT_S)
+            )
         )
         poster.start()
         try:
@@ -130,7 +132,7 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
     body = {"name": "tuned-giant", "model": "lpn", "frames": giant_clip, "fps": 30, "fine_tune": True}
     with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=STEPS) as (base, app):
         served = app.state.runtime.models["lpn"]
-        reply = httpx.post(f"{base}/v1/styles", json=body, timeout=60)
+        reply = httpx.post(f"{base}/v1/styles", json=body, timeout=UPLOAD_TIMEOUT_S)
         assert reply.status_code == 201, reply.text  # the style exists at once; the job improves it later
         style, job = reply.json()["style"], reply.json()["job"]
         assert style["status"] == "ready" and style["job_id"] == job["id"] and job["kind"] == "fine_tune"
@@ -190,11 +192,11 @@ def test_deleting_a_style_or_stopping_the_server_while_a_fine_tune_job_runs_stop
     with live_server({"lpn": MODEL}, styles_dir=tmp_path, lpn_fine_tune_steps=5000) as (base, app):
         served = app.state.runtime.models["lpn"]
         short = {**body, "frames": {k: v[:90] for k, v in giant_clip.items()}}
-        refused = httpx.post(f"{base}/v1/styles", json=short)  # long enough for a style, not to hold frames back
+        refused = httpx.post(f"{base}/v1/styles", json=short, timeout=UPLOAD_TIMEOUT_S)  # too short to hold frames back
         assert refused.status_code == 422 and refused.json()["code"] == "bad_length", refused.text
         assert httpx.get(f"{base}/v1/styles/lpn.doomed").status_code == 404
 
-        job = httpx.post(f"{base}/v1/styles", json=body, timeout=60).json()["job"]
+        job = httpx.post(f"{base}/v1/styles", json=body, timeout=UPLOAD_TIMEOUT_S).json()["job"]
         wait_stepping(base, job["id"])
         streamer = Streamer(base, "normal")
         streamer.start()
@@ -204,7 +206,7 @@ def test_deleting_a_style_or_stopping_the_server_while_a_fine_tune_job_runs_stop
         assert failed["status"] == "failed" and "deleted" in failed["message"], failed
         assert httpx.get(f"{base}/v1/styles/lpn.doomed").status_code == 404
         assert "doomed" not in served.styles() and not (tmp_path / "lpn" / "doomed").exists()
-        again = httpx.post(f"{base}/v1/styles", json={**body, "fine_tune": False}, timeout=60)
+        again = httpx.post(f"{base}/v1/styles", json={**body, "fine_tune": False}, timeout=UPLOAD_TIMEOUT_S)
         assert again.status_code == 201 and again.json()["job"] is None  # the name is free again
         wait_until(lambda: len(streamer.replies) > 5 or streamer.error, "the streamer's frames", 30)
         streamer.stop.set()
@@ -213,7 +215,9 @@ def test_deleting_a_style_or_stopping_the_server_while_a_fine_tune_job_runs_stop
         assert httpx.delete(f"{base}/v1/styles/lpn.doomed").status_code == 204
 
         jobs = app.state.runtime.styles.jobs
-        running = httpx.post(f"{base}/v1/styles", json={**body, "name": "cut-short"}, timeout=60).json()["job"]
+        running = httpx.post(f"{base}/v1/styles", json={**body, "name": "cut-short"}, timeout=UPLOAD_TIMEOUT_S).json()[
+            "job"
+        ]
         wait_stepping(base, running["id"])
     jobs.futures[running["id"]].result(timeout=10)  # the stopped server's job ended within a step
     assert jobs.get(running["id"]).message == "JobStopped: the server is stopping"

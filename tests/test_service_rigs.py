@@ -21,7 +21,7 @@ from models.registry import load_models
 from models.settings import get_settings
 
 from .clips import angle_deg
-from .live_server import live_server
+from .live_server import UPLOAD_TIMEOUT_S, live_server
 from .rigs import SPECS, as_bvh_file, bn_positions, make_rig, mapped_error, mirrored, stream, stream_made_rig
 
 FRAMES = 45
@@ -220,6 +220,9 @@ def test_style_upload_takes_a_made_rig_clip(server, bn_walk):
     motion.euler_orders = tuple("ZXY" for _ in motion.skeleton.names)
     text = bvh.dumps(to_bvh(motion))
     r = httpx.post(
-        f"{server}/v1/styles", files={"file": ("walk.bvh", text.encode())}, data={"name": "unity-walk", "model": "lti"}
+        f"{server}/v1/styles",
+        files={"file": ("walk.bvh", text.encode())},
+        data={"name": "unity-walk", "model": "lti"},
+        timeout=UPLOAD_TIMEOUT_S,
     )
     assert r.status_code == 422 and r.json()["code"] == "fine_tune_required", r.text

@@ -18,7 +18,7 @@ from models.interface import FrameBatch, style_vector
 from models.registry import load_models
 from models.settings import get_settings
 
-from .live_server import live_server, offline, ws_url
+from .live_server import UPLOAD_TIMEOUT_S, live_server, offline, ws_url
 
 LIMIT = 2 * 1024 * 1024
 
@@ -111,13 +111,15 @@ def test_upload_validation_errors(server, styled_clip):
             "non_finite",
         )
     )
-    cases.append((httpx.post(url, json=payload("short", root[:10], rot[:10])), 422, "bad_length"))
-    cases.append((httpx.post(url, json=payload("Bad Name!", root[:90], rot[:90])), 422, "bad_name"))
-    cases.append((httpx.post(url, json=payload("elderly", root[:90], rot[:90])), 409, "style_exists"))
-    cases.append((httpx.post(url, json=payload("wrongjoints", root[:90], rot[:90, :10])), 422, "bad_skeleton"))
-    cases.append(
-        (httpx.post(f"{base}/v1/styles", json=payload("nofinetune", root[:90], rot[:90])), 422, "fine_tune_required")
-    )
+
+    def post(url: str, body: dict) -> httpx.Response:
+        return httpx.post(url, json=body, timeout=UPLOAD_TIMEOUT_S)
+
+    cases.append((post(url, payload("short", root[:10], rot[:10])), 422, "bad_length"))
+    cases.append((post(url, payload("Bad Name!", root[:90], rot[:90])), 422, "bad_name"))
+    cases.append((post(url, payload("elderly", root[:90], rot[:90])), 409, "style_exists"))
+    cases.append((post(url, payload("wrongjoints", root[:90], rot[:90, :10])), 422, "bad_skeleton"))
+    cases.append((post(f"{base}/v1/styles", payload("nofinetune", root[:90], rot[:90])), 422, "fine_tune_required"))
     for r, status, code in cases:
         assert r.status_code == status, (status, code, r.text[:300])
         body = r.json()
@@ -131,6 +133,7 @@ def test_cmu_bvh_is_retargeted_and_accepted(server, index):
         f"{server[0]}/v1/styles",
         files={"file": ("walk.bvh", clip.path.read_bytes())},
         data={"name": "cmu-walk", "model": "lti"},
+        timeout=UPLOAD_TIMEOUT_S,
     )
     assert r.status_code == 422 and r.json()["code"] == "fine_tune_required", r.text
 
@@ -218,7 +221,9 @@ def test_fine_tune_upload_job_session_delete(server, models, styled_clip, bn_wal
         first = stream(live, w_root[:30], w_rot[:30])
 
         t0 = time.monotonic()
-        r = httpx.post(f"{base}/v1/styles?fine_tune=true", json=payload("my-elderly", root, rot), timeout=30)
+        r = httpx.post(
+            f"{base}/v1/styles?fine_tune=true", json=payload("my-elderly", root, rot), timeout=UPLOAD_TIMEOUT_S
+        )
         assert r.status_code == 202, r.text
         accepted = r.json()
         assert accepted["style"]["id"] == "lti.my-elderly" and accepted["style"]["status"] == "training"
@@ -305,7 +310,11 @@ def test_sessions_stream_on_unchanged_across_an_upload_and_a_delete(server, mode
             ws.send(json.dumps({"type": "start", "model": "lti", "style": "exhausted"}))
             token = json.loads(ws.recv(timeout=10))["resume_token"]
             first = stream(ws, w_root[:20], w_rot[:20])
-            r = httpx.post(f"{base}/v1/styles?fine_tune=true", json=payload("mid-a", root[:200], rot[:200]), timeout=30)
+            r = httpx.post(
+                f"{base}/v1/styles?fine_tune=true",
+                json=payload("mid-a", root[:200], rot[:200]),
+                timeout=UPLOAD_TIMEOUT_S,
+            )
             assert r.status_code == 202, r.text
             assert _wait_job(base, r.json()["job"]["id"])["status"] == "done"
             second = stream(ws, w_root[20:35], w_rot[20:35], seq0=20)  # the session's state now upgraded
