@@ -165,6 +165,16 @@ def test_a_serving_process_decodes_uploads_at_its_configured_niceness(bn_walk):
         sys.setswitchinterval(switch_interval)
 
 
+def test_the_decoding_children_never_load_torch():
+    """The fork server preloads what a child runs; with torch it held 170 MB of private memory in
+    every server from its start (measured in /proc/<pid>/smaps_rollup), and 1 s more CPU to start."""
+    import subprocess
+
+    check = "import sys, service.clip_worker; print(sorted(m for m in sys.modules if m.split('.')[0] == 'torch'))"
+    out = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
 def test_a_decoded_clips_arrays_come_back_beside_its_pickle_not_in_it(bn_walk):
     """The thread that reads the child's answer holds the GIL for the length of any one C call,
     and unpickling ~6 MB of arrays in one call held the event loop that long: the answer's arrays

@@ -202,7 +202,7 @@ def leaf_source(prior, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def rotation_view(rot: torch.Tensor) -> torch.Tensor:
     """(B, T-1, 21*12) the rotation discriminator's view of rotations (B, T, 21, 4): 6-D per
     joint (as the eval suite's rotation judge reads them) and their frame-to-frame differences."""
-    from ..motion.rotations import quat_to_matrix_t
+    from ..motion.rotations_torch import quat_to_matrix_t
 
     m = quat_to_matrix_t(rot)
     six = torch.cat([m[..., :, 0], m[..., :, 1]], -1).flatten(2)

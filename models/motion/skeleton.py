@@ -9,12 +9,15 @@ without position channels simply repeat their offset.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from . import bvh as bvhio
-from .rotations import euler_to_quat, quat_apply, quat_apply_t, quat_canonical, quat_mul, quat_mul_t, quat_to_euler
+from .rotations import euler_to_quat, quat_apply, quat_canonical, quat_mul, quat_to_euler
+
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass(frozen=True)
@@ -101,7 +104,12 @@ def fk(rotations: np.ndarray, translations: np.ndarray, parents: np.ndarray) -> 
 def fk_torch(
     rotations: torch.Tensor, translations: torch.Tensor, parents: np.ndarray | list[int]
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched differentiable FK on quaternions (..., J, 4) and translations (..., J, 3)."""
+    """Batched differentiable FK on quaternions (..., J, 4) and translations (..., J, 3). Torch is
+    imported here, not with the module: what needs only the numpy FK never loads it."""
+    import torch
+
+    from .rotations_torch import quat_apply_t, quat_mul_t
+
     rots: list[torch.Tensor] = []
     poss: list[torch.Tensor] = []
     rotations = rotations / rotations.norm(dim=-1, keepdim=True).clamp_min(1e-8)

@@ -22,14 +22,17 @@ leading axes, one pass over the joints (parents first): `transfer_twist_numpy` i
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from .bn_skeleton import body_joints
-from .rotations import cross, quat_apply, quat_apply_t, quat_inv, quat_mul, quat_mul_t
+from .rotations import cross, quat_apply, quat_inv, quat_mul
 from .skeleton import Skeleton
 from .twist_kernels import BONE, FRAME, LEAF, ROOT, transfer_twist_batch
+
+if TYPE_CHECKING:
+    import torch
 
 _MIN_BONE = 1e-6
 
@@ -136,7 +139,12 @@ def transfer_twist_numpy(
 
 def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
     """`transfer_twist` in torch, differentiable in `pose` (for training losses that must see the
-    rotations the streaming model will output)."""
+    rotations the streaming model will output). Torch is imported here, not with the module: the
+    streaming and decoding paths, which use the numpy twins, never load it."""
+    import torch
+
+    from .rotations_torch import quat_apply_t, quat_mul_t
+
     source = source / source.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     pose = pose / pose.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     g_pose: list[torch.Tensor] = []
@@ -165,5 +173,7 @@ def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tenso
 def _rotation_between_t(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Smallest rotation carrying unit u onto v (torch); opposite vectors do not occur between a
     bone and its own stylised direction, and get a finite (if arbitrary) answer."""
+    import torch
+
     q = torch.cat([torch.linalg.cross(u, v), 1.0 + (u * v).sum(-1, keepdim=True)], dim=-1)
     return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-8)
