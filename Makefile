@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-all lint typecheck summary eval perf clean browser viewer-vendor servers image
+.PHONY: install serve test test-loaded test-all lint typecheck summary eval perf clean browser viewer-vendor servers image
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -57,6 +57,9 @@ typecheck: install
 
 test: install browser servers lint typecheck
 	$(BIN)/python -m pytest -q -m "not slow"
+
+test-loaded: install browser servers  # the suite beside four busy processes (tests/busy.py)
+	$(BIN)/python -m tests.busy 4 -- $(BIN)/python -m pytest -q -m "not slow"
 
 test-all: install
 	$(BIN)/python -m pytest -q
