@@ -10,7 +10,7 @@ frames), so it is refused early and run late:
   anything is resampled (typed 422, never an allocation);
 - `ClipDecoder` runs the decoding in child processes forked from a preloaded server
   (multiprocessing's forkserver, so the server's threads are never forked), at the background's
-  CPU priority, capped in address space and in CPU time: the event loop only waits on a pipe, no
+  CPU priority and on its CPUs, capped in address space and in CPU time: the event loop only waits on a pipe, no
   upload can stall the streams, and a clip that still exhausts its budget costs its own child
   (413 / 422), never the server. A child that answered takes the next clip: starting processes
   was itself what the streams felt.
@@ -47,7 +47,7 @@ from models.motion.resample import resampled_length
 from models.motion.skeleton import Motion, Skeleton
 
 from .api import ApiError, StyleUpload
-from .background import background_nice, in_background, lower_priority, pieces
+from .background import Placement, background_placement, enter_background, in_background, pieces
 from .clips import MODEL_FPS, motion_from_bvh, motion_from_json
 from .memory import release_freed_memory
 
@@ -273,14 +273,14 @@ def receive_answer(conn: Connection) -> tuple:
     return pickle.loads(head, buffers=buffers)
 
 
-def _child(conn: Connection, memory_mb: int, niceness: int) -> None:
+def _child(conn: Connection, memory_mb: int, where: Placement) -> None:
     """A decoding child: clips one after another until the server closes the pipe, it has done
     `MAX_CLIPS_PER_CHILD` or one exhausted its memory or CPU budget. It lives on between uploads
     because starting a process is what cost the streams: 7-10 forks a second, even of an empty
     child from another process, tripled a healthy session's round-trip p99 on the 2-core test
     machine (`clients.hostile_bench`, docs/deploy.md). Each clip comes with its budget; the
     address-space cap (`memory_mb`) is set once, at start."""
-    lower_priority(niceness)  # the streams' cores are theirs first (`background`)
+    enter_background(where)  # the streams' cores are theirs first (`background`)
     _cap_memory(memory_mb)
     try:
         for done in range(MAX_CLIPS_PER_CHILD):
@@ -347,7 +347,7 @@ class ClipDecoder:
                 self._reap(child)
         receiver, sender = self._context.Pipe(duplex=True)
         process = self._context.Process(
-            target=_child, args=(sender, self.budget.memory_mb, background_nice()), daemon=True
+            target=_child, args=(sender, self.budget.memory_mb, background_placement()), daemon=True
         )
         process.start()
         sender.close()

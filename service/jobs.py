@@ -21,7 +21,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
-from .background import lower_priority
+from .background import enter_background
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +44,7 @@ class JobInfo(BaseModel):
 
 class JobManager:
     def __init__(self, workers: int = 1, keep: int = 200) -> None:
-        self.executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jobs", initializer=lower_priority)
+        self.executor = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jobs", initializer=enter_background)
         self.jobs: dict[str, JobInfo] = {}
         self.futures: dict[str, Future] = {}
         self.keep = keep

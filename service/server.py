@@ -23,7 +23,7 @@ import uvicorn
 from fastapi import FastAPI
 
 from .app import create_app
-from .background import set_background_nice
+from .background import placement, set_background
 from .logs import configure_logging
 from .runtime import Runtime
 from .settings import ServiceSettings
@@ -101,15 +101,15 @@ def serve(settings: ServiceSettings, log_level: str = "info") -> None:
 
 
 def tune_interpreter(settings: ServiceSettings) -> None:
-    """Process-wide settings for a serving process: the background work's niceness
-    (`service.background`), and the GIL switch interval. The switch interval: a
+    """Process-wide settings for a serving process: where background work runs (niceness and
+    CPUs, `service.background`), and the GIL switch interval. The switch interval: a
     background thread (decoding waits, style building, fine-tunes; `service.background`) holds
     the GIL until the interval runs out whenever the event loop wants it, however low its nice
     level. hostile_bench uploads phase (`--seconds 15 --phases uploads --attacker-nice 19`, four
     alternating pairs): p99 / quiet 3.00, 2.42, 2.73, 2.49 at Python's 5 ms; 1.87, 2.22, 1.35,
     1.75 at 0.5 ms."""
     sys.setswitchinterval(settings.gil_switch_interval_s)
-    set_background_nice(settings.background_nice)
+    set_background(placement(settings.background_nice, settings.background_cpus))
 
 
 def serve_once(settings: ServiceSettings, log_level: str = "info", sockets: list | None = None) -> None:

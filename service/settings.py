@@ -81,6 +81,13 @@ class ServiceSettings(Settings):
         "writes). Higher keeps it further from the streams, but also behind every other busy process: at 19 an "
         "upload beside a few busy processes barely runs.",
     )
+    background_cpus: int = Field(
+        default=0,
+        ge=0,
+        le=4096,
+        description="How many CPUs that background work may use (the last of those the process may use; Linux): "
+        "0 = all but one, leaving the streams a core no upload competes for.",
+    )
     gil_switch_interval_s: float = Field(
         default=0.0005,
         gt=0,

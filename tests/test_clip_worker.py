@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 
 from service.api import ApiError
-from service.background import BACKGROUND_NICE, in_background
+from service.background import BACKGROUND_NICE, in_background, placement, set_background
 from service.clip_worker import ClipBudget, ClipDecoder, read_multipart
 
 from .hostile import json_clip, longest_bvh
+from .waiting import wait_until
 
 BUDGET = ClipBudget(min_frames=30, max_frames=9000, min_fps=1.0, max_fps=1000.0, cpu_s=60.0, memory_mb=1024)
 
@@ -128,40 +129,48 @@ def test_a_large_file_part_is_parsed_in_memory_not_spilled_to_disk(monkeypatch):
     assert file == data and fields["name"] == "x" and fields["fine_tune"] is False
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread niceness is Linux's")
-def test_background_work_runs_below_the_event_loops_priority():
-    def niceness() -> int:
-        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-
-    async def run() -> tuple[int, int]:
-        return niceness(), await in_background(niceness)
-
-    loop_nice, background_nice = asyncio.run(run())
-    assert background_nice == max(loop_nice, BACKGROUND_NICE)
+def where(tid: int) -> tuple[int, set[int]]:
+    """A thread's (or process's) niceness and CPU set."""
+    return os.getpriority(os.PRIO_PROCESS, tid), os.sched_getaffinity(tid)
 
 
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread niceness is Linux's")
-def test_a_serving_process_decodes_uploads_at_its_configured_niceness(bn_walk):
-    from service.background import set_background_nice
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread niceness and CPU sets are Linux's")
+def test_background_work_runs_below_the_event_loops_priority_and_off_one_cpu():
+    async def run() -> tuple[tuple[int, set[int]], tuple[int, set[int]]]:
+        return where(threading.get_native_id()), await in_background(lambda: where(threading.get_native_id()))
+
+    (loop_nice, loop_cpus), background = asyncio.run(run())
+    assert background == (max(loop_nice, BACKGROUND_NICE), set(placement().cpus or loop_cpus))
+    if len(loop_cpus) > 1:
+        assert len(background[1]) == len(loop_cpus) - 1
+
+
+def test_background_work_is_kept_off_one_cpu_unless_told_otherwise(monkeypatch):
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+    assert placement(10).cpus == {1, 2, 3}
+    assert placement(10, cpus=2).cpus == {2, 3}
+    assert placement(10, cpus=4).cpus is None and placement(10, cpus=9).cpus is None
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {5}, raising=False)
+    assert placement(10).cpus is None  # one CPU: nothing to keep free
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread niceness and CPU sets are Linux's")
+def test_a_serving_process_decodes_uploads_where_its_settings_say():
     from service.server import tune_interpreter
     from service.settings import ServiceSettings
 
     decoder = ClipDecoder(BUDGET, concurrency=1)
-    walk = bn_walk.slice(0, 60)
-
-    async def child_niceness() -> int:
-        await decoder.decode("json", json_body(walk), {"model": "lpn"}, {"lpn": walk.skeleton})
-        (child,) = decoder._idle
-        nice = os.getpriority(os.PRIO_PROCESS, child.process.pid)
-        await in_background(decoder.close)
-        return nice
-
     switch_interval = sys.getswitchinterval()
     try:
-        tune_interpreter(ServiceSettings(background_nice=15))
-        assert asyncio.run(child_niceness()) == 15
+        tune_interpreter(ServiceSettings(background_nice=15, background_cpus=1))
+        child = decoder._take()  # a fresh child, as an upload would start it
+        try:
+            wait_until(lambda: where(child.process.pid)[0] == 15, "the child's niceness set")
+            assert where(child.process.pid) == (15, set(placement(15, 1).cpus or os.sched_getaffinity(0)))
+        finally:
+            decoder._reap(child, timeout=5.0)
     finally:
-        set_background_nice(BACKGROUND_NICE)
+        set_background(placement())
         sys.setswitchinterval(switch_interval)
 
 
