@@ -1,5 +1,5 @@
 """Decoding uploads off the event loop without costing the streams (issue #16): children that
-live on between clips, file parts kept in memory, and background work at the lowest priority."""
+live on between clips, file parts kept in memory, and background work below the streams (lower niceness, off one CPU)."""
 
 from __future__ import annotations
 
