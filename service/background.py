@@ -22,6 +22,7 @@ thread id); elsewhere the calls are refused and the work simply runs at normal p
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import os
 import threading
@@ -83,12 +84,11 @@ def enter_background(where: Placement | None = None) -> None:
     the thread stays as it is."""
     where = where or _placement
     tid = threading.get_native_id()
-    try:
-        if where.cpus is not None:
-            os.sched_setaffinity(tid, where.cpus)
+    with contextlib.suppress(OSError, AttributeError):  # not Linux, or not allowed
         os.setpriority(os.PRIO_PROCESS, tid, where.niceness)
-    except (OSError, AttributeError):  # not Linux, or not allowed
-        pass
+    if where.cpus is not None:
+        with contextlib.suppress(OSError, AttributeError):
+            os.sched_setaffinity(tid, where.cpus)
 
 
 @functools.cache

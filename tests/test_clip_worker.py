@@ -165,8 +165,8 @@ def test_a_serving_process_decodes_uploads_where_its_settings_say():
         tune_interpreter(ServiceSettings(background_nice=15, background_cpus=1))
         child = decoder._take()  # a fresh child, as an upload would start it
         try:
-            wait_until(lambda: where(child.process.pid)[0] == 15, "the child's niceness set")
-            assert where(child.process.pid) == (15, set(placement(15, 1).cpus or os.sched_getaffinity(0)))
+            placed = (15, set(placement(15, 1).cpus or os.sched_getaffinity(0)))
+            wait_until(lambda: where(child.process.pid) == placed, f"the child placed at {placed}")
         finally:
             decoder._reap(child, timeout=5.0)
     finally:
