@@ -15,6 +15,7 @@ runs two busy processes instead of an attack, what CPU load alone costs the heal
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import multiprocessing
 import os
@@ -22,6 +23,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -34,6 +36,8 @@ from .loadtest import real_frames, spawned_server
 from .raw_ws import HandshakeRefused, RawClient, RawSocket
 
 if TYPE_CHECKING:
+    from multiprocessing.synchronize import Event
+
     from models.motion.skeleton import Motion
 
 ENV = {  # short deadlines, so a phase's leftovers are gone before the next one
@@ -173,20 +177,34 @@ def half_open(base: str, seconds: float, count: int = 2000) -> Counter:
     return Counter({f"{closed}/{count} dropped by the server": 1})
 
 
-def _spin(seconds: float) -> None:
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        pass
+def _spin(stop: Event) -> None:
+    while not stop.is_set():
+        for _ in range(100_000):
+            pass
+
+
+@contextlib.contextmanager
+def busy_processes(count: int) -> Iterator[None]:
+    """`count` processes spinning at this process's niceness for as long as the block runs: CPU
+    load from beside the server (here, the "cpu load" phase; `tests/busy.py`, the loaded test suite)."""
+    ctx = multiprocessing.get_context("spawn")
+    stop = ctx.Event()
+    procs = [ctx.Process(target=_spin, args=(stop,), daemon=True) for _ in range(count)]
+    for p in procs:
+        p.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        for p in procs:
+            p.join()
 
 
 def cpu_load(seconds: float) -> Counter:
     """Not an attack, a reference: two busy processes (at the attacker's niceness), what CPU load
     alone costs the healthy session on this machine."""
-    procs = [multiprocessing.get_context("spawn").Process(target=_spin, args=(seconds,)) for _ in range(2)]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join()
+    with busy_processes(2):
+        time.sleep(seconds)
     return Counter({f"2 busy processes at nice {os.nice(0)}": 1})
 
 

@@ -34,8 +34,8 @@ from typing import ParamSpec, TypeVar
 
 import numpy as np
 
-BACKGROUND_NICE = 10  # the default of `ServiceSettings.background_nice`
-BACKGROUND_CPUS = 0  # the default of `ServiceSettings.background_cpus`: all but one
+BACKGROUND_NICE = 10  # `ServiceSettings.background_nice`'s default, and this process's until set
+BACKGROUND_CPUS = 0  # `ServiceSettings.background_cpus`'s: all CPUs but one
 WORKERS = 4  # two decoding children waited on, a style built and a file written at once
 
 P = ParamSpec("P")

@@ -10,15 +10,16 @@ frames), so it is refused early and run late:
   anything is resampled (typed 422, never an allocation);
 - `ClipDecoder` runs the decoding in child processes forked from a preloaded server
   (multiprocessing's forkserver, so the server's threads are never forked), at the background's
-  CPU priority and on its CPUs, capped in address space and in CPU time: the event loop only waits on a pipe, no
-  upload can stall the streams, and a clip that still exhausts its budget costs its own child
-  (413 / 422), never the server. A child that answered takes the next clip: starting processes
-  was itself what the streams felt.
+  CPU priority and on its CPUs, capped in address space and in CPU time: the event loop only
+  waits on a pipe, no upload can stall the streams, and a clip that still exhausts its budget
+  costs its own child (413 / 422), never the server. A child that answered takes the next clip:
+  starting processes was itself what the streams felt.
 
 The time budget is CPU time, counted by the child itself, because what a clip costs is the
 clip's doing and how long it waits for a core is not: at a low priority beside busy processes a
-child gets a sliver of a core, and a wall-clock deadline refused valid clips as "too slow" on a loaded
-machine. A wall-clock limit remains, far longer, for a server too busy to decode at all (503).
+child gets a sliver of a core, and a wall-clock deadline refused valid clips as "too slow" on a
+loaded machine. A wall-clock limit remains, far longer, for a server too busy to decode at all
+(503).
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ class ClipBudget:
     max_fps: float
     cpu_s: float
     memory_mb: int
-    wall_s: float = 120.0
+    wall_s: float
 
 
 @dataclass

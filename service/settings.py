@@ -10,6 +10,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from models.settings import REPO_ROOT, Settings
 
+from .background import BACKGROUND_CPUS, BACKGROUND_NICE
+
 
 class TokenLimits(BaseModel):
     """One API token's own limits (`token_limits`); a field left out takes the default."""
@@ -74,7 +76,7 @@ class ServiceSettings(Settings):
         default=20.0, gt=0, le=600, description="WebSocket keepalive pings; a peer silent to one this long is dropped."
     )
     background_nice: int = Field(
-        default=10,
+        default=BACKGROUND_NICE,
         ge=0,
         le=19,
         description="Niceness of work no frame waits for (style building, upload decoding, fine-tunes, file "
@@ -82,7 +84,7 @@ class ServiceSettings(Settings):
         "upload beside a few busy processes barely runs.",
     )
     background_cpus: int = Field(
-        default=0,
+        default=BACKGROUND_CPUS,
         ge=0,
         le=4096,
         description="How many CPUs that background work may use (the last of those the process may use; Linux): "

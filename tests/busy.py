@@ -11,19 +11,10 @@ the same machine. Four on the 2-core machine is twice the cores' worth of load.
 from __future__ import annotations
 
 import argparse
-import multiprocessing
 import subprocess
 import sys
-from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from multiprocessing.synchronize import Event
-
-
-def _spin(stop: Event) -> None:
-    while not stop.is_set():
-        for _ in range(100_000):
-            pass
+from clients.hostile_bench import busy_processes
 
 
 def main() -> int:
@@ -34,16 +25,8 @@ def main() -> int:
     command = args.command[1:] if args.command[:1] == ["--"] else args.command
     if not command:
         ap.error("no command given")
-    stop = multiprocessing.Event()
-    spinners = [multiprocessing.Process(target=_spin, args=(stop,), daemon=True) for _ in range(args.processes)]
-    for p in spinners:
-        p.start()
-    try:
+    with busy_processes(args.processes):
         return subprocess.call(command)
-    finally:
-        stop.set()
-        for p in spinners:
-            p.join()
 
 
 if __name__ == "__main__":

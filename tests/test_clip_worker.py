@@ -21,7 +21,9 @@ from service.clip_worker import ClipBudget, ClipDecoder, read_multipart
 from .hostile import json_clip, longest_bvh
 from .waiting import wait_until
 
-BUDGET = ClipBudget(min_frames=30, max_frames=9000, min_fps=1.0, max_fps=1000.0, cpu_s=60.0, memory_mb=1024)
+BUDGET = ClipBudget(
+    min_frames=30, max_frames=9000, min_fps=1.0, max_fps=1000.0, cpu_s=60.0, memory_mb=1024, wall_s=120.0
+)
 
 
 def json_body(walk, fps: float = 30.0) -> list[bytes]:
