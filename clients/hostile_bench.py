@@ -3,9 +3,13 @@
 Starts `stylestream serve` here, streams one healthy LTI session at 60 fps through every phase,
 and in each phase runs one attack from other processes: a message flood at full speed, the
 worst uploads (absurd frame rates, the largest valid BVH, again and again), a client that floods
-resets and never reads, session churn, and 2,000 half-open connections. Prints, per phase, the
-healthy session's round-trip p50/p99 (and p99 against the quiet phase's), the frames it got
-back, the server's resident memory after the phase, and what the attacker was answered.
+resets and never reads, session churn, and 2,000 half-open connections. Each attack comes right
+after a quiet period of the same length, and its p99 is put against that period's: over a run of
+several minutes the machine's own background load drifts, which a single quiet phase at the start
+does not see (`--repeat N` runs every attack N times, each after its own quiet period). Prints, per
+attack, the healthy session's round-trip p50/p99, the quiet period's p99 and the ratio, the frames
+it got back, the server's resident memory after the quiet period and after the attack, and what
+the attacker was answered.
 
 The attackers share this machine's cores with the server, which a remote attacker does not:
 `--attacker-nice 19` runs them at the lowest niceness, and `--phases "cpu load"` (not run by default)
@@ -265,6 +269,13 @@ def main() -> None:
         help="the attacking processes' niceness (19: their own CPU, another machine's on a deployment, "
         "barely competes with the server here)",
     )
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="run each attack this many times, each after a quiet period of its own (its p99 / quiet is "
+        "against that period: the machine's background load drifts over a run)",
+    )
     ap.add_argument("--checkout", type=Path, help="run the server of another checkout of the repository (before/after)")
     args = ap.parse_args()
     root, rot = real_frames(120)
@@ -283,8 +294,6 @@ def main() -> None:
         base = url.replace("ws://", "http://").removesuffix("/v1/stream")
         healthy = Healthy(url, frames)
         healthy.start()
-        time.sleep(args.seconds)
-        rows = [("quiet", rss_mb(server.pid), {})]
         plans = {
             "flood": (url, frames, args.seconds),
             "uploads": (base, big, args.seconds),
@@ -293,35 +302,46 @@ def main() -> None:
             "half-open": (base, args.seconds),
             "cpu load": (args.seconds,),
         }
-        for name, plan in ((n, plans[n]) for n in args.phases):
-            out, go = ctx.Queue(), ctx.Event()
-            proc = ctx.Process(target=_attack, args=(name, plan, out, go, args.attacker_nice))
-            proc.start()
-            assert out.get(timeout=120) == "ready"
-            healthy.phase = name
-            go.set()
-            answered = out.get(timeout=600)
-            proc.join()
-            healthy.phase = f"after {name}"
-            time.sleep(3)  # deadlines (2 s) pass, memory settles
-            if name in ("flood", "no-read resets"):  # closed for flooding (4429), and every attacker comes
-                # from this address: the next one waits out the cool-down
-                time.sleep(float(env["STYLESTREAM_FLOOD_COOLDOWN_S"]))
-            rows.append((name, rss_mb(server.pid), answered))
+        runs = []  # (attack, quiet label, attack label, RSS after quiet, RSS after attack, answered)
+        for r in range(args.repeat):
+            for name in args.phases:
+                label = name if args.repeat == 1 else f"{name} #{r + 1}"
+                healthy.phase = f"quiet before {label}"
+                time.sleep(args.seconds)
+                quiet_rss = rss_mb(server.pid)
+                out, go = ctx.Queue(), ctx.Event()
+                proc = ctx.Process(target=_attack, args=(name, plans[name], out, go, args.attacker_nice))
+                proc.start()
+                assert out.get(timeout=120) == "ready"
+                healthy.phase = label
+                go.set()
+                answered = out.get(timeout=600)
+                proc.join()
+                healthy.phase = f"after {label}"
+                time.sleep(3)  # deadlines (2 s) pass, memory settles
+                if name in ("flood", "no-read resets"):  # closed for flooding (4429), and every attacker comes
+                    # from this address: the next one waits out the cool-down
+                    time.sleep(float(env["STYLESTREAM_FLOOD_COOLDOWN_S"]))
+                runs.append((name, f"quiet before {label}", label, quiet_rss, rss_mb(server.pid), answered))
         healthy.stop.set()
         healthy.join(timeout=60)
-    quiet = np.percentile(np.array(healthy.rtts["quiet"]) * 1000, 99)
+    p99 = {k: float(np.percentile(np.array(v) * 1000, 99)) for k, v in healthy.rtts.items()}
     print(f"healthy session errors: {healthy.error or 'none'}; bystander BVH {len(big) / 2**20:.1f} MiB")
     print(
-        f"{'phase':16} {'frames':>6} {'p50 ms':>7} {'p99 ms':>7} {'p99/quiet':>9} {'RSS MB':>7}  attacker was answered"
+        f"{'phase':20} {'frames':>6} {'p50 ms':>7} {'p99 ms':>7} {'quiet p99':>9} {'p99/quiet':>9} {'RSS MB':>7}"
+        "  attacker was answered"
     )
-    for name, rss, answered in rows:
-        rtt = np.array(healthy.rtts.get(name, [np.nan])) * 1000
-        p99 = np.percentile(rtt, 99)
+    for _, quiet, label, quiet_rss, rss, answered in runs:
+        rtt = np.array(healthy.rtts.get(label, [np.nan])) * 1000
         print(
-            f"{name:16} {len(rtt):6d} {np.percentile(rtt, 50):7.2f} {p99:7.2f} {p99 / quiet:9.2f} {rss:7.0f}  "
-            + ", ".join(f"{k}: {v}" for k, v in answered.items())
+            f"{label:20} {len(rtt):6d} {np.percentile(rtt, 50):7.2f} {p99.get(label, np.nan):7.2f} "
+            f"{p99.get(quiet, np.nan):9.2f} {p99.get(label, np.nan) / p99.get(quiet, np.nan):9.2f} "
+            f"{quiet_rss:4.0f}>{rss:<4.0f}  " + ", ".join(f"{k}: {v}" for k, v in answered.items())
         )
+    if args.repeat > 1:
+        for name in args.phases:
+            ratios = [p99[label] / p99[quiet] for n, quiet, label, *_ in runs if n == name]
+            print(f"{name:20} p99/quiet over {len(ratios)} runs: median {np.median(ratios):.2f}, max {max(ratios):.2f}")
     print(f"cores: {os.cpu_count()}")
 
 
