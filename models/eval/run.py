@@ -22,6 +22,7 @@ from ..motion.skeleton import Motion
 from ..registry import load_models
 from ..settings import REPO_ROOT, get_settings
 from .features import clip_features, rotation_features
+from .history import with_history
 from .judges import Judges, RotationJudge, load_judges, load_rotation_judge
 from .metrics import SKATE_SPEED, foot_skating, frechet_distance, path_deviation, slide_summary
 from .plausibility import RotationReference
@@ -38,6 +39,7 @@ GATE_SLIDE = 2.0  # planted-toe median slide at most this times the real clips'
 GATE_STYLE = 0.90  # style accuracy, both judges
 GATE_CONTENT = 0.90  # content accuracy (LPN-FiLM: on locomotion inputs)
 FMD_BEFORE = {"lti": 214.6, "erd": 308.7}  # overall FMD of the committed models before the rotation work
+HISTORY_FRAMES = 300  # running sessions: each clip after 10 s of the clips before it (`history.py`)
 
 
 def pick_clips(
@@ -188,6 +190,26 @@ def evaluate(
             outs = {s: flat[i * len(inputs) : (i + 1) * len(inputs)] for i, s in enumerate(styles)}
         t_run = time.time() - t
         outputs_by_method[name] = outs
+        if model is not None:
+            running_in, running_out = run_after_history(model, inputs, styles)
+            per_style_running = {
+                s: score(judges, rot_judge, rot_ref, running_out[s], running_in, s, contents, real_lat[s])
+                for s in styles
+            }
+            loco_in = [running_in[i] for i in range(len(inputs)) if contents[i] in LOCOMOTION]
+            per_style_running_loco = {
+                s: score(
+                    judges,
+                    rot_judge,
+                    rot_ref,
+                    [running_out[s][i] for i in range(len(inputs)) if contents[i] in LOCOMOTION],
+                    loco_in,
+                    s,
+                    [c for c in contents if c in LOCOMOTION],
+                    real_lat[s],
+                )
+                for s in styles
+            }
         per_style = {s: score(judges, rot_judge, rot_ref, outs[s], inputs, s, contents, real_lat[s]) for s in styles}
         loco = [i for i, c in enumerate(contents) if c in LOCOMOTION]
         per_style_loco = {
@@ -226,6 +248,9 @@ def evaluate(
             "overall_locomotion": overall_loco,
             "per_style_locomotion": per_style_loco,
         }
+        if model is not None:
+            results["methods"][name]["per_style_running"] = per_style_running
+            results["methods"][name]["per_style_running_locomotion"] = per_style_running_loco
         results["timing_s"][name] = {"stylise": round(t_run, 2), "total": round(time.time() - t, 2)}
 
     if grids:
@@ -244,6 +269,7 @@ def evaluate(
         "clips": [c.name for c in clips],
         "per_content": per_content,
         "frames_per_clip": frames,
+        "history_frames": HISTORY_FRAMES,
         "quick": quick,
         "judges": {k: judges.meta.get(k) for k in ("val", "test")},
         "reference_real_val": reference,
@@ -254,25 +280,28 @@ def evaluate(
         "command": "python -m models.eval" + (" --quick" if quick else ""),
     }
     results["gates"] = gates(results)
+    results["gates_running"] = gates(results, running=True)
     (out_dir / "eval").mkdir(parents=True, exist_ok=True)
     (out_dir / "eval" / "results.json").write_text(json.dumps(results, indent=1) + "\n")
     (out_dir / "evaluation.md").write_text(markdown(results))
     return results
 
 
-def gates(r: dict) -> dict:
+def gates(r: dict, running: bool = False) -> dict:
     """Pass/fail of every gate per method x target style (LPN-FiLM judged on its locomotion
-    inputs, what a locomotion controller is for); each entry keeps the value it was judged on."""
+    inputs, what a locomotion controller is for); each entry keeps the value it was judged on.
+    `running`: on the running sessions' scores (no FMD gate there: it is judged on fresh ones)."""
     meta = r["meta"]
     out: dict = {}
+    key = "per_style_running" if running else "per_style"
     for name, m in r["methods"].items():
         if name == "identity":
             continue
         loco = name == "lpn"
         table, real = (
-            (m["per_style_locomotion"], meta["reference_real_val_locomotion"])
+            (m[f"{key}_locomotion"], meta["reference_real_val_locomotion"])
             if loco
-            else (m["per_style"], meta["reference_real_val"])
+            else (m[key], meta["reference_real_val"])
         )
         out[name] = {}
         for s, p in table.items():
@@ -287,10 +316,27 @@ def gates(r: dict) -> dict:
             out[name][s] = {k: {"value": v, "pass": bool(ok)} for k, (v, ok) in checks.items()}
             out[name][s]["slide"]["limit"] = slide_limit
             out[name][s]["all"] = all(ok for _, ok in checks.values())
-        if name in FMD_BEFORE:
+        if name in FMD_BEFORE and not running:
             fmd = m["overall"]["fmd"]
             out[name]["fmd"] = {"value": fmd, "limit": FMD_BEFORE[name], "pass": fmd <= FMD_BEFORE[name]}
     return out
+
+
+def run_after_history(
+    model: StreamingModel, inputs: list[Motion], styles: list[str]
+) -> tuple[list[Motion], dict[str, list[Motion]]]:
+    """Running sessions (`history.py`): every input streamed after HISTORY_FRAMES of the inputs
+    before it, toward every style. Returns the inputs as placed in their streams and, per style,
+    the outputs over the scored part only."""
+    runs = [with_history(inputs, i, HISTORY_FRAMES) for i in range(len(inputs))]
+    placed = [whole.slice(start, whole.num_frames) for whole, start in runs]
+    order = [model.styles().index(s) for s in styles]
+    flat = stylise(model, [whole for _ in styles for whole, _ in runs], [k for k in order for _ in runs])
+    outs = {
+        s: [o.slice(start, o.num_frames) for o, (_, start) in zip(flat[i * len(runs) : (i + 1) * len(runs)], runs)]
+        for i, s in enumerate(styles)
+    }
+    return placed, outs
 
 
 def _slide(row: dict, part: str) -> str:
@@ -332,6 +378,47 @@ def _gates_markdown(r: dict) -> list[str]:
         if "fmd" in v
     )
     lines += ["", f"**{passed} of {total}** method × style rows pass every gate. FMD: {fmd}.", ""]
+    return lines
+
+
+def _running_markdown(r: dict) -> list[str]:
+    """Fresh sessions (the gates above) against running ones, per method x style, on the gates'
+    columns, and how many rows would pass every gate if it were judged on running sessions."""
+    if "gates_running" not in r:
+        return []
+    seconds = r["meta"]["history_frames"] / 30
+    lines = [
+        "## Running sessions",
+        "",
+        f"The table above gives every clip a fresh session, so it scores at most a session's first "
+        f"{r['meta']['frames_per_clip'] / 30:.0f} seconds. Here every clip is streamed after {seconds:.0f} s of the "
+        "clips before it in the list, each turned and moved to continue the previous one and joined by a third of a "
+        "second's eased transition (`models/eval/history.py`); only the clip itself is scored, on the same judges. "
+        "Each cell: fresh → running. The gates are judged on fresh sessions; the last column says whether the row "
+        "would also pass them running.",
+        "",
+        "| method | style | rotation | slide | style | style (rot) | content | pass running |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    passed = total = 0
+    for name, per in r["gates_running"].items():
+        for s, run in per.items():
+            if s == "fmd":
+                continue
+            fresh = r["gates"][name][s]
+            total += 1
+            passed += run["all"]
+            pct = lambda c, k: f"{100 * c[k]['value']:.0f}%"  # noqa: E731
+            cells = [f"{pct(fresh, k)} → {'' if run[k]['pass'] else '❌ '}{pct(run, k)}" for k in ("rotation",)]
+            cells.append(
+                f"{fresh['slide']['value']:.1f} → {'' if run['slide']['pass'] else '❌ '}{run['slide']['value']:.1f}"
+            )
+            cells += [
+                f"{pct(fresh, k)} → {'' if run[k]['pass'] else '❌ '}{pct(run, k)}"
+                for k in ("style", "style_rot", "content")
+            ]
+            lines.append(f"| {name} | {s} | " + " | ".join(cells) + f" | {'**pass**' if run['all'] else 'fail'} |")
+    lines += ["", f"**{passed} of {total}** method × style rows would pass every gate in running sessions.", ""]
     return lines
 
 
@@ -401,12 +488,14 @@ def markdown(r: dict) -> str:
         "(0.03 leg lengths) of its floor level. `real val` rows: real validation clips of the target style, same contents "
         "and clip length as the inputs.",
         "",
-        "What selected what: no checkpoint or setting of any method was chosen with these judges or the test clips. "
-        "The judges, the rotation judge and the rotation reference use TRAIN clips only; the methods' own model cards say "
-        "which validation numbers chose their checkpoints.",
+        "What selected what: no checkpoint or setting of any method was chosen on the test clips. Some were chosen on "
+        "VALIDATION clips scored by these same judges (the LTI context inputs, the Style-ERD rotation prior variant, "
+        "the LPN-FiLM arm carriage); each model card says which validation numbers chose what. The judges, the "
+        "rotation judge and the rotation reference are trained or fitted on TRAIN clips only.",
         "",
     ]
     lines += _gates_markdown(r)
+    lines += _running_markdown(r)
     lines += [
         "## Overall (mean over target styles)",
         "",
