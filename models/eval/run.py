@@ -24,7 +24,7 @@ from ..settings import REPO_ROOT, get_settings
 from .features import clip_features, rotation_features
 from .history import with_history
 from .judges import Judges, RotationJudge, load_judges, load_rotation_judge
-from .metrics import SKATE_SPEED, foot_skating, frechet_distance, path_deviation, slide_summary
+from .metrics import SKATE_SPEED, foot_skating, frechet_distance, lingering, path_deviation, slide_summary
 from .plausibility import RotationReference
 
 DATASET = "bandai-namco-2"
@@ -249,6 +249,9 @@ def evaluate(
             "per_style_locomotion": per_style_loco,
         }
         if model is not None:
+            results["methods"][name]["lingering"] = lingering(
+                [o for s in styles for o in outs[s]], [o for s in styles for o in running_out[s]]
+            )
             results["methods"][name]["per_style_running"] = per_style_running
             results["methods"][name]["per_style_running_locomotion"] = per_style_running_loco
         results["timing_s"][name] = {"stylise": round(t_run, 2), "total": round(time.time() - t, 2)}
@@ -419,6 +422,21 @@ def _running_markdown(r: dict) -> list[str]:
             ]
             lines.append(f"| {name} | {s} | " + " | ".join(cells) + f" | {'**pass**' if run['all'] else 'fail'} |")
     lines += ["", f"**{passed} of {total}** method × style rows would pass every gate in running sessions.", ""]
+    linger = {name: m["lingering"] for name, m in r["methods"].items() if "lingering" in m}
+    times = sorted({t for per in linger.values() for t in per}, key=float)
+    lines += [
+        "How long a session shows what came before (no judge): at each time into a clip, the worst upper-body "
+        "joint's angle between its output in the running session and in a fresh one, median / p90 over clips and "
+        "styles, in degrees (0: forgotten). LPN-FiLM is a controller with its own gait phase, so its running and "
+        "fresh motions need never meet.",
+        "",
+        "| method | " + " | ".join(f"{t} s" for t in times) + " |",
+        "|---|" + "---|" * len(times),
+    ]
+    for name, per in linger.items():
+        cells = [f"{per[t]['median']:.1f} / {per[t]['p90']:.1f}" if t in per else "–" for t in times]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines.append("")
     return lines
 
 
