@@ -338,14 +338,14 @@ def main() -> None:
             f"{p99.get(quiet, np.nan):9.2f} {p99.get(label, np.nan) / p99.get(quiet, np.nan):9.2f} "
             f"{quiet_rss:4.0f}>{rss:<4.0f}  " + ", ".join(f"{k}: {v}" for k, v in answered.items())
         )
-    quiet = [p99[q] for _, q, *_ in runs if q in p99]
+    quiet = [p99[q] for _, q, *_ in runs if q in p99] or [np.nan]
     print(
         f"quiet periods' p99: min {min(quiet):.2f}, median {np.median(quiet):.2f}, max {max(quiet):.2f} ms "
         "(how far this machine moves with no attack at all)"
     )
     if args.repeat > 1:
         for name in args.phases:
-            ratios = [p99[label] / p99[quiet] for n, quiet, label, *_ in runs if n == name]
+            ratios = [p99.get(label, np.nan) / p99.get(q, np.nan) for n, q, label, *_ in runs if n == name]
             print(f"{name:20} p99/quiet over {len(ratios)} runs: median {np.median(ratios):.2f}, max {max(ratios):.2f}")
     print(f"cores: {os.cpu_count()}")
 
