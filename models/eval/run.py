@@ -1,4 +1,5 @@
-"""Run every method on the same held-out clips and score it; write the report.
+"""Run every method on the same held-out clips and score it; write the report. Each clip is
+scored in a fresh session (the gates) and in one that has been running (`history.py`).
 
 Every method is reached only through the streaming interface (`models/interface.py`), loaded from
 the committed weights by `models.registry.load_models`. Clips run as one batch of sessions per
