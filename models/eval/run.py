@@ -180,6 +180,25 @@ def evaluate(
 
     results: dict = {"methods": {}, "timing_s": {}}
     outputs_by_method: dict[str, dict[str, list[Motion]]] = {}
+
+    def per_style(outputs: dict[str, list[Motion]], sources: list[Motion], rows: list[int]) -> dict:
+        """Every style's score over the clips `rows` (indices into the inputs)."""
+        return {
+            s: score(
+                judges,
+                rot_judge,
+                rot_ref,
+                [outputs[s][i] for i in rows],
+                [sources[i] for i in rows],
+                s,
+                [contents[i] for i in rows],
+                real_lat[s],
+            )
+            for s in styles
+        }
+
+    every = list(range(len(inputs)))
+    loco = [i for i, c in enumerate(contents) if c in LOCOMOTION]
     runners = {"identity": None, **models}
     for name, model in runners.items():
         t = time.time()
@@ -191,41 +210,13 @@ def evaluate(
             outs = {s: flat[i * len(inputs) : (i + 1) * len(inputs)] for i, s in enumerate(styles)}
         t_run = time.time() - t
         outputs_by_method[name] = outs
+
         if model is not None:
             running_in, running_out = run_after_history(model, inputs, styles)
-            per_style_running = {
-                s: score(judges, rot_judge, rot_ref, running_out[s], running_in, s, contents, real_lat[s])
-                for s in styles
-            }
-            loco_in = [running_in[i] for i in range(len(inputs)) if contents[i] in LOCOMOTION]
-            per_style_running_loco = {
-                s: score(
-                    judges,
-                    rot_judge,
-                    rot_ref,
-                    [running_out[s][i] for i in range(len(inputs)) if contents[i] in LOCOMOTION],
-                    loco_in,
-                    s,
-                    [c for c in contents if c in LOCOMOTION],
-                    real_lat[s],
-                )
-                for s in styles
-            }
-        per_style = {s: score(judges, rot_judge, rot_ref, outs[s], inputs, s, contents, real_lat[s]) for s in styles}
-        loco = [i for i, c in enumerate(contents) if c in LOCOMOTION]
-        per_style_loco = {
-            s: score(
-                judges,
-                rot_judge,
-                rot_ref,
-                [outs[s][i] for i in loco],
-                [inputs[i] for i in loco],
-                s,
-                [contents[i] for i in loco],
-                real_lat[s],
-            )
-            for s in styles
-        }
+            per_style_running = per_style(running_out, running_in, every)
+            per_style_running_loco = per_style(running_out, running_in, loco)
+        per_style_all = per_style(outs, inputs, every)
+        per_style_loco = per_style(outs, inputs, loco)
         keys = (
             "style_acc",
             "style_acc_rot",
@@ -241,11 +232,11 @@ def evaluate(
             "slide_ankle_median",
             "slide_ankle_p95",
         )
-        overall = {k: float(np.mean([per_style[s][k] for s in styles])) for k in keys}
+        overall = {k: float(np.mean([per_style_all[s][k] for s in styles])) for k in keys}
         overall_loco = {k: float(np.mean([per_style_loco[s][k] for s in styles])) for k in keys}
         results["methods"][name] = {
             "overall": overall,
-            "per_style": per_style,
+            "per_style": per_style_all,
             "overall_locomotion": overall_loco,
             "per_style_locomotion": per_style_loco,
         }
@@ -404,6 +395,8 @@ def _running_markdown(r: dict) -> list[str]:
         "| method | style | rotation | slide | style | style (rot) | content | pass running |",
         "|---|---|---|---|---|---|---|---|",
     ]
+    pct = lambda v: f"{100 * v:.0f}%"  # noqa: E731
+    num = lambda v: f"{v:.1f}"  # noqa: E731
     passed = total = 0
     for name, per in r["gates_running"].items():
         for s, run in per.items():
@@ -412,14 +405,15 @@ def _running_markdown(r: dict) -> list[str]:
             fresh = r["gates"][name][s]
             total += 1
             passed += run["all"]
-            pct = lambda c, k: f"{100 * c[k]['value']:.0f}%"  # noqa: E731
-            cells = [f"{pct(fresh, k)} → {'' if run[k]['pass'] else '❌ '}{pct(run, k)}" for k in ("rotation",)]
-            cells.append(
-                f"{fresh['slide']['value']:.1f} → {'' if run['slide']['pass'] else '❌ '}{run['slide']['value']:.1f}"
-            )
-            cells += [
-                f"{pct(fresh, k)} → {'' if run[k]['pass'] else '❌ '}{pct(run, k)}"
-                for k in ("style", "style_rot", "content")
+            cells = [
+                f"{shown(fresh[k]['value'])} → {'' if run[k]['pass'] else '❌ '}{shown(run[k]['value'])}"
+                for k, shown in (
+                    ("rotation", pct),
+                    ("slide", num),
+                    ("style", pct),
+                    ("style_rot", pct),
+                    ("content", pct),
+                )
             ]
             lines.append(f"| {name} | {s} | " + " | ".join(cells) + f" | {'**pass**' if run['all'] else 'fail'} |")
     lines += ["", f"**{passed} of {total}** method × style rows would pass every gate in running sessions.", ""]
