@@ -1,4 +1,4 @@
-"""`python -m models.data summary|warm|fetch`: what the mocap data holds, building the parse cache,
+"""`python -m models.data summary|warm|fetch|subset`: what the mocap data holds, building the parse cache,
 and making the data ready (`fetch.py`: download from a mirror, check, unpack)."""
 
 from __future__ import annotations
@@ -64,7 +64,23 @@ def main(argv: list[str] | None = None) -> int:
         help="download archives the data folder lacks from URL/<archive> (checked against their known SHA-256)",
     )
     p_fetch.add_argument("--data-dir", type=Path, help="the data folder (default: STYLESTREAM_DATA_DIR)")
+    p_subset = sub.add_parser(
+        "subset", help="write a smaller archive of a Bandai Namco dataset: only the takes of some contents (subset.py)"
+    )
+    p_subset.add_argument(
+        "--dataset", required=True, choices=[n for n, s in DATASETS.items() if s.skeleton == "bandai-namco"]
+    )
+    p_subset.add_argument("--content", default="", help="comma-separated contents to keep (default: all)")
+    p_subset.add_argument("--out", type=Path, required=True, help="folder for the archive and its SHA256SUMS")
+    t0 = time.perf_counter()
     args = parser.parse_args(argv)
+    if args.command == "subset":
+        from .subset import write_subset
+
+        contents = tuple(c for c in args.content.split(",") if c)
+        path = write_subset(args.dataset, contents, args.out)
+        print(f"{path}: {path.stat().st_size / 1e6:.1f} MB, {time.perf_counter() - t0:.1f} s")
+        return 0
     if args.command == "fetch":
         settings = get_settings()
         if args.data_dir is not None:

@@ -35,6 +35,7 @@ from . import features as lf
 class TrainConfig:
     seed: int = 1234
     threads: int = 2
+    device: str = "cpu"  # "cuda" on a GPU lease (MODEL_CARD, Training); "auto" takes a GPU where there is one
     batch: int = 128
     hidden: int = 256  # 512 (the paper) runs at 1400 samples/s on 2 cores and exceeds 12 MB in float16; see MODEL_CARD
     dropout: float = 0.3
@@ -115,7 +116,7 @@ def style_films(net, clips: StyleClips, styles: list[int], limit: int | None = N
     net.eval()
     out = {}
     for k in styles:
-        w = torch.from_numpy(clips.all_windows(k, limit=limit))
+        w = torch.from_numpy(clips.all_windows(k, limit=limit)).to(net.X_mean.device)
         out[k] = torch.cat([net.style_film(w[i : i + 64]) for i in range(0, len(w), 64)]).mean(0)
     net.train()
     return out
@@ -147,10 +148,12 @@ def validate(
         "contact": lf.CONTACT_OUT,
     }
 
+    device = net.X_mean.device
+
     def run(split, idx, film):
-        x = net.normalise_x(torch.from_numpy(split.X[idx]))
-        g = net.normalise_g(torch.from_numpy(split.G[idx]))
-        y = net.normalise_y(torch.from_numpy(split.Y[idx]))
+        x = net.normalise_x(torch.from_numpy(split.X[idx]).to(device))
+        g = net.normalise_g(torch.from_numpy(split.G[idx]).to(device))
+        y = net.normalise_y(torch.from_numpy(split.Y[idx]).to(device))
         p = net(x, g, film[None])
         return ((p - y) ** 2), net.denormalise_y(p)
 
@@ -173,7 +176,7 @@ def validate(
     for k in held_clips.by_style:
         idx = np.flatnonzero(heldout.style == k)
         idx = idx[np.linspace(0, len(idx) - 1, min(n, len(idx))).astype(int)]
-        film = net.style_film(torch.from_numpy(held_clips.all_windows(k, limit=8))).mean(0)
+        film = net.style_film(torch.from_numpy(held_clips.all_windows(k, limit=8)).to(device)).mean(0)
         own.append(run(heldout, idx, film)[0].mean().item())
         neutral.append(run(heldout, idx, normal_film)[0].mean().item())
     out["heldout_clip_film"], out["heldout_normal_film"] = float(np.mean(own)), float(np.mean(neutral))
@@ -217,6 +220,9 @@ def main(argv: list[str]) -> None:
         return
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
+    device = torch.device(
+        "cuda" if cfg.device == "auto" and torch.cuda.is_available() else cfg.device.replace("auto", "cpu")
+    )
     rng = np.random.default_rng(cfg.seed)
     from ..motion.assets import bandai_namco_pose
     from .dataset import load_meta, load_split, load_stats
@@ -233,7 +239,7 @@ def main(argv: list[str]) -> None:
     stats = load_stats(data)
     skeleton = bandai_namco_pose().skeleton
     parents, lengths_np = body_bones(skeleton)
-    lengths = torch.as_tensor(lengths_np, dtype=torch.float32)
+    lengths = torch.as_tensor(lengths_np, dtype=torch.float32, device=device)
     mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout)
     net = LPN(mcfg, stats)
     if cfg.init_from:
@@ -241,7 +247,8 @@ def main(argv: list[str]) -> None:
         if ckpt["styles"] != styles:
             raise SystemExit(f"{cfg.init_from} was trained on other styles: {ckpt['styles']}")
         net.load_state_dict(ckpt["model"])
-    log(f"config {json.dumps(asdict(cfg))}")
+    net.to(device)
+    log(f"config {json.dumps(asdict(cfg))}; device {device}")
     log(
         f"data: train {len(train.X)} samples / {len(train.names)} clips, val {len(val.X)}, "
         f"heldout {0 if heldout is None else len(heldout.X)}; "
@@ -250,7 +257,7 @@ def main(argv: list[str]) -> None:
     train_clips = StyleClips(train, 120, rng)
     held_clips = None if heldout is None else StyleClips(heldout, 120, rng)
     by_style = {k: np.flatnonzero(train.style == k) for k in range(len(styles))}
-    X, G, Y = (torch.from_numpy(a) for a in (train.X, train.G, train.Y))
+    X, G, Y = (torch.from_numpy(a).to(device) for a in (train.X, train.G, train.Y))
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     t0 = time.time()
     budget = cfg.minutes * 60
@@ -264,8 +271,8 @@ def main(argv: list[str]) -> None:
         if not order:
             order = list(rng.permutation(len(styles)))
         k = int(order.pop())
-        idx = torch.from_numpy(rng.choice(by_style[k], cfg.batch))
-        windows = torch.from_numpy(np.stack([train_clips.window(k) for _ in range(cfg.film_windows)]))
+        idx = torch.from_numpy(rng.choice(by_style[k], cfg.batch)).to(device)
+        windows = torch.from_numpy(np.stack([train_clips.window(k) for _ in range(cfg.film_windows)])).to(device)
         film = net.style_film(windows).mean(0, keepdim=True)
         pred = net(net.normalise_x(X[idx]), net.normalise_g(G[idx]), film)
         target = net.normalise_y(Y[idx])
@@ -326,7 +333,7 @@ def save(path: Path, net, mcfg, cfg, styles, it, seconds, history) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save(
         {
-            "model": net.state_dict(),
+            "model": {k: v.cpu() for k, v in net.state_dict().items()},
             "model_config": asdict(mcfg),
             "train_config": asdict(cfg),
             "styles": styles,

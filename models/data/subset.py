@@ -1,0 +1,54 @@
+"""A smaller copy of a dataset's archive: the same layout, only the takes of some contents.
+
+A training machine that cannot reach `../shared` gets its data as a carried folder of at most
+tens of MB (the GPU lease carries 64 MiB); Bandai Namco dataset 2 is 79 MB, its locomotion takes
+about a third of that. The copy keeps every non-take file (cfg/ labels, LICENSE, README) and,
+for each kept take, its BVH and label JSON, so `build_index` on the copy lists exactly the
+original's clips of those contents with the same train/validation/test split (splits are drawn
+within each dataset x style x content group, and groups are kept whole).
+
+    python -m models.data subset --dataset bandai-namco-2 --content walk,run --out .carry/data
+"""
+
+from __future__ import annotations
+
+import hashlib
+import tarfile
+from pathlib import Path
+
+from ..settings import Settings, get_settings
+from .archives import DATASETS, archive_file
+
+
+def take_content(member: str) -> str | None:
+    """The content named in a Bandai Namco take's file name (`dataset-N_{content}_{style}_{take}`),
+    None for a file that is no take."""
+    name = Path(member).name
+    if not name.startswith("dataset-") or not name.endswith((".bvh", ".json")):
+        return None
+    parts = name.split("_")
+    return parts[1] if len(parts) == 4 else None
+
+
+def write_subset(name: str, contents: tuple[str, ...], out_dir: Path, settings: Settings | None = None) -> Path:
+    """Write `out_dir/<archive>` holding the dataset's takes of `contents` (all of them where
+    `contents` is empty) and append its sum to `out_dir/SHA256SUMS`. Returns the archive."""
+    spec = DATASETS[name]
+    if not spec.skeleton == "bandai-namco":
+        raise ValueError(f"{name}: subsets are made of Bandai Namco archives only (take names carry the content)")
+    source = archive_file(name, settings or get_settings())
+    out_dir.mkdir(parents=True, exist_ok=True)
+    target = out_dir / spec.archive
+    tmp = target.with_suffix(".partial")
+    with tarfile.open(source, "r:xz") as src, tarfile.open(tmp, "w:xz") as dst:
+        for member in src:
+            content = take_content(member.name)
+            if content is not None and contents and content not in contents:
+                continue
+            dst.addfile(member, src.extractfile(member) if member.isfile() else None)
+    tmp.replace(target)
+    digest = hashlib.sha256(target.read_bytes()).hexdigest()
+    sums = out_dir / "SHA256SUMS"
+    lines = [ln for ln in (sums.read_text().splitlines() if sums.exists() else []) if not ln.endswith(spec.archive)]
+    sums.write_text("\n".join([*lines, f"{digest}  {spec.archive}"]) + "\n")
+    return target
