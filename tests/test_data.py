@@ -69,3 +69,20 @@ def test_data_dir_may_hold_an_unpacked_copy(tmp_path):
 def test_missing_data_gives_a_clear_error(tmp_path):
     with pytest.raises(DataError, match="STYLESTREAM_DATA_DIR"):
         dataset_dir("cmu", Settings(data_dir=tmp_path, cache_dir=tmp_path / "c"))
+
+
+def test_a_subset_archive_lists_the_same_clips_and_splits(index, tmp_path):
+    """What a GPU lease is carried: only some contents' takes, same clips, same splits, checked sum."""
+    from models.data.subset import write_subset
+
+    out = tmp_path / "data"
+    main(["subset", "--dataset", "bandai-namco-1", "--content", "walk-back,dash", "--out", str(out), "--preset", "0"])
+    subset = build_index(["bandai-namco-1"], Settings(data_dir=out, cache_dir=tmp_path / "cache"))
+    original = select(index, dataset="bandai-namco-1", content=("walk-back", "dash"))
+    assert len(original) > 20
+    assert [(c.key, c.style, c.content, c.split, c.frames) for c in subset] == [
+        (c.key, c.style, c.content, c.split, c.frames) for c in original
+    ]
+    assert (out / "SHA256SUMS").read_text().split()[1] == "bandai-namco-1.tar.xz"
+    with pytest.raises(ValueError, match="Bandai Namco archives only"):
+        write_subset("xia", ("walk",), out)

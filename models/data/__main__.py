@@ -72,13 +72,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     p_subset.add_argument("--content", default="", help="comma-separated contents to keep (default: all)")
     p_subset.add_argument("--out", type=Path, required=True, help="folder for the archive and its SHA256SUMS")
+    p_subset.add_argument("--preset", type=int, default=6, choices=range(10), help="xz level (default 6)")
     t0 = time.perf_counter()
     args = parser.parse_args(argv)
     if args.command == "subset":
         from .subset import write_subset
 
         contents = tuple(c for c in args.content.split(",") if c)
-        path = write_subset(args.dataset, contents, args.out)
+        path = write_subset(args.dataset, contents, args.out, preset=args.preset)
         print(f"{path}: {path.stat().st_size / 1e6:.1f} MB, {time.perf_counter() - t0:.1f} s")
         return 0
     if args.command == "fetch":
