@@ -39,6 +39,7 @@ class TrainConfig:
     batch: int = 128
     hidden: int = 256  # 512 (the paper) runs at 1400 samples/s on 2 cores and exceeds 12 MB in float16; see MODEL_CARD
     dropout: float = 0.3
+    film_norm: bool = True  # LPNConfig.film_norm: keeps the FiLM generator's units from saturating
     minutes: float = 60.0  # wall-clock budget
     max_iters: int = 1_000_000
     lr: float = 7e-4
@@ -240,7 +241,7 @@ def main(argv: list[str]) -> None:
     skeleton = bandai_namco_pose().skeleton
     parents, lengths_np = body_bones(skeleton)
     lengths = torch.as_tensor(lengths_np, dtype=torch.float32, device=device)
-    mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout)
+    mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout, film_norm=cfg.film_norm)
     net = LPN(mcfg, stats)
     if cfg.init_from:
         ckpt = torch.load(cfg.init_from, map_location="cpu", weights_only=False)
