@@ -264,3 +264,24 @@ def test_a_long_clips_style_features_in_blocks_equal_them_in_one_go(bn_walk):
         translations=np.tile(bn_walk.translations, (reps, 1, 1))[:frames],
     )
     np.testing.assert_array_equal(clip_style_features(long), _style_features_in_one_go(long))
+
+
+def test_a_normalised_film_generator_keeps_telling_clips_apart_when_its_units_drift_negative():
+    """The failure `LPNConfig.film_norm` prevents (MODEL_CARD, session 17): once the second
+    convolution's outputs all sit below zero, ELU passes -1 for every clip and every style gets the
+    same FiLM vector."""
+    import torch
+
+    from models.lpn.network import LPN, LPNConfig
+
+    torch.manual_seed(0)
+    windows = torch.randn(2, 120, LPNConfig.style_dim)
+    films = {}
+    for norm in (False, True):
+        gen = LPN(LPNConfig(hidden=32, filters=16, film_norm=norm)).film
+        torch.nn.init.normal_(gen.out.weight)
+        with torch.no_grad():
+            gen.conv2.bias.fill_(-1e3)  # every unit far below zero, as in the collapsed runs
+            films[norm] = gen(windows)
+    assert torch.allclose(films[False][0], films[False][1])
+    assert (films[True][0] - films[True][1]).abs().max() > 0.1

@@ -52,6 +52,10 @@ class TrainConfig:
     eval_samples: int = 256  # per style
     render_every: int = 0  # 0: render only at the end
     ckpt_every: int = 200
+    # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest): the lowest one-frame
+    # validation loss is not the best closed-loop controller (MODEL_CARD, session 17), so runs keep
+    # snapshots to be chosen by streaming the validation clips
+    snapshot_every: int = 0
     run_dir: str = str(REPO_ROOT / ".data" / "lpn" / "run")
     out_dir: str = str(REPO_ROOT / "out" / "lpn")
     hundred_style_dir: str = ""  # train on a 100STYLE folder (hundred_style.py) instead of Bandai Namco
@@ -301,6 +305,8 @@ def main(argv: list[str]) -> None:
             log("val " + " ".join(f"{a}={b:.4g}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()))
         if it % cfg.ckpt_every == 0:
             save(run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, time.time() - t0, history)
+        if cfg.snapshot_every and it % cfg.snapshot_every == 0:
+            save(run_dir / f"ckpt_{it:06d}.pt", net, mcfg, cfg, styles, it, time.time() - t0, history)
         if cfg.render_every and it % cfg.render_every == 0:
             render_progress(run_dir, out_dir, f"it{it:06d}", log)
     bar.close()
