@@ -40,6 +40,10 @@ class TrainConfig:
     hidden: int = 256  # 512 (the paper) runs at 1400 samples/s on 2 cores and exceeds 12 MB in float16; see MODEL_CARD
     dropout: float = 0.3
     film_norm: bool = True  # LPNConfig.film_norm: keeps the FiLM generator's units from saturating
+    # std of Gaussian noise on the normalised input pose (the pose the runtime feeds back from the
+    # network's own last output) and phases, so the network learns to pull a drifted pose back
+    # rather than only to continue a clean one (0 = teacher forcing alone, as the committed run)
+    pose_noise: float = 0.0
     minutes: float = 60.0  # wall-clock budget
     max_iters: int = 1_000_000
     lr: float = 7e-4
@@ -279,7 +283,12 @@ def main(argv: list[str]) -> None:
         idx = torch.from_numpy(rng.choice(by_style[k], cfg.batch)).to(device)
         windows = torch.from_numpy(np.stack([train_clips.window(k) for _ in range(cfg.film_windows)])).to(device)
         film = net.style_film(windows).mean(0, keepdim=True)
-        pred = net(net.normalise_x(X[idx]), net.normalise_g(G[idx]), film)
+        xn, gn = net.normalise_x(X[idx]), net.normalise_g(G[idx])
+        if cfg.pose_noise:
+            xn = xn.clone()
+            xn[:, lf.POSE_IN] += cfg.pose_noise * torch.randn_like(xn[:, lf.POSE_IN])
+            gn = gn + cfg.pose_noise * torch.randn_like(gn)
+        pred = net(xn, gn, film)
         target = net.normalise_y(Y[idx])
         loss, mse, bone = training_loss(net, pred, target, parents, lengths, cfg.w_bone)
         opt.zero_grad(set_to_none=True)
