@@ -7,7 +7,7 @@ for each kept take, its BVH and label JSON, so `build_index` on the copy lists e
 original's clips of those contents with the same train/validation/test split (splits are drawn
 within each dataset x style x content group, and groups are kept whole).
 
-    python -m models.data subset --dataset bandai-namco-2 --content walk,run --out .carry/data
+    python -m models.data subset --dataset bandai-namco-2 --content walk,run --out .data/carry/data   # .data/ is git-ignored
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def write_subset(
     `contents` is empty) and append its sum to `out_dir/SHA256SUMS`. Returns the archive.
     `preset`: xz's level (0 fast and ~1.5x larger, 6 its default)."""
     spec = DATASETS[name]
-    if not spec.skeleton == "bandai-namco":
+    if spec.skeleton != "bandai-namco":
         raise ValueError(f"{name}: subsets are made of Bandai Namco archives only (take names carry the content)")
     source = archive_file(name, settings or get_settings())
     out_dir.mkdir(parents=True, exist_ok=True)
