@@ -285,3 +285,14 @@ def test_a_normalised_film_generator_keeps_telling_clips_apart_when_its_units_dr
             films[norm] = gen(windows)
     assert torch.allclose(films[False][0], films[False][1])
     assert (films[True][0] - films[True][1]).abs().max() > 0.1
+
+
+def test_pose_noise_falls_on_the_fed_back_pose_and_never_on_the_control():
+    from models.lpn import features as lf
+    from models.lpn.train import TrainConfig, pose_noise_scale
+
+    scale = pose_noise_scale(TrainConfig(pose_noise=0.2)).numpy()
+    assert (scale[lf.TRAJ_IN] == 0).all() and np.allclose(scale[lf.POSE_IN], 0.2)
+    per_joint = pose_noise_scale(TrainConfig(pose_noise=0.2, noise_velocities=False)).numpy()[lf.POSE_IN]
+    per_joint = per_joint.reshape(lf.NB, lf.POSE_CH)
+    assert (per_joint[:, 3:6] == 0).all() and np.allclose(np.delete(per_joint, [3, 4, 5], axis=1), 0.2)

@@ -44,6 +44,7 @@ class TrainConfig:
     # network's own last output) and phases, so the network learns to pull a drifted pose back
     # rather than only to continue a clean one (0 = teacher forcing alone, as the committed run)
     pose_noise: float = 0.0
+    noise_velocities: bool = True  # with pose_noise: also on the joints' velocities (False: positions and axes only)
     minutes: float = 60.0  # wall-clock budget
     max_iters: int = 1_000_000
     lr: float = 7e-4
@@ -206,6 +207,17 @@ def training_loss(
     return mse + w_bone * bone, mse, bone
 
 
+def pose_noise_scale(cfg: TrainConfig) -> torch.Tensor:
+    """(X_DIM,) standard deviation of the noise on each normalised input: `pose_noise` on the pose
+    block (without the velocity channels unless `noise_velocities`), 0 on the trajectory (the control)."""
+    scale = torch.zeros(lf.X_DIM)
+    pose = torch.full((lf.NB, lf.POSE_CH), cfg.pose_noise)
+    if not cfg.noise_velocities:
+        pose[:, 3:6] = 0.0  # position, velocity, forward axis, up axis (features.pose_features)
+    scale[lf.POSE_IN] = pose.flatten()
+    return scale
+
+
 def lr_at(cfg: TrainConfig, frac: float) -> float:
     return cfg.lr * (cfg.lr_decay_to + (1 - cfg.lr_decay_to) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
 
@@ -267,6 +279,7 @@ def main(argv: list[str]) -> None:
     held_clips = None if heldout is None else StyleClips(heldout, 120, rng)
     by_style = {k: np.flatnonzero(train.style == k) for k in range(len(styles))}
     X, G, Y = (torch.from_numpy(a).to(device) for a in (train.X, train.G, train.Y))
+    noise_scale = pose_noise_scale(cfg).to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     t0 = time.time()
     budget = cfg.minutes * 60
@@ -285,8 +298,7 @@ def main(argv: list[str]) -> None:
         film = net.style_film(windows).mean(0, keepdim=True)
         xn, gn = net.normalise_x(X[idx]), net.normalise_g(G[idx])
         if cfg.pose_noise:
-            xn = xn.clone()
-            xn[:, lf.POSE_IN] += cfg.pose_noise * torch.randn_like(xn[:, lf.POSE_IN])
+            xn = xn + noise_scale * torch.randn_like(xn)
             gn = gn + cfg.pose_noise * torch.randn_like(gn)
         pred = net(xn, gn, film)
         target = net.normalise_y(Y[idx])
