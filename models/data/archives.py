@@ -99,6 +99,15 @@ def _expected_sums(data_dir: Path) -> dict[str, str]:
     return out
 
 
+def record_sum(data_dir: Path, archive: str, digest: str) -> None:
+    """Add (or correct) the archive's line in the folder's SHA256SUMS, written whole."""
+    sums = data_dir / "SHA256SUMS"
+    lines = [ln for ln in (sums.read_text().splitlines() if sums.exists() else []) if ln.split()[-1:] != [archive]]
+    tmp = sums.with_name("SHA256SUMS.partial")
+    tmp.write_text("".join(f"{ln}\n" for ln in [*lines, f"{digest}  {archive}"]))
+    tmp.rename(sums)
+
+
 def archive_file(name: str, settings: Settings | None = None) -> Path:
     """The dataset's archive in the data folder (`DataMissing` where this machine has none)."""
     path = Path((settings or get_settings()).data_dir) / DATASETS[name].archive

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TextIO
 
 from ..settings import Settings
-from .archives import DATASETS, DataError, Progress, dataset_dir, is_unpacked
+from .archives import DATASETS, DataError, Progress, dataset_dir, is_unpacked, record_sum
 
 KNOWN_SHA256 = {
     "bandai-namco-1.tar.xz": "a8232ac0c4ebf29c4645cf5b8e21dabd2fee872e47cc53210708015ddd3a345c",
@@ -109,15 +109,6 @@ def _download(url: str, dest: Path, expected: str, progress: Progress, timeout: 
     partial.rename(dest)
 
 
-def _record_sum(data_dir: Path, archive: str, digest: str) -> None:
-    """Add (or correct) the archive's line in the folder's SHA256SUMS, written whole."""
-    sums = data_dir / "SHA256SUMS"
-    lines = [ln for ln in (sums.read_text().splitlines() if sums.exists() else []) if ln.split()[-1:] != [archive]]
-    tmp = sums.with_name("SHA256SUMS.partial")
-    tmp.write_text("".join(f"{ln}\n" for ln in [*lines, f"{digest}  {archive}"]))
-    tmp.rename(sums)
-
-
 def fetch(
     names: list[str] | None,
     settings: Settings,
@@ -153,7 +144,7 @@ def fetch(
             assert source is not None
             progress = line(f"{name} (download)")
             _download(f"{source.rstrip('/')}/{spec.archive}", archive, known[spec.archive], progress, timeout)
-            _record_sum(data_dir, spec.archive, known[spec.archive])
+            record_sum(data_dir, spec.archive, known[spec.archive])
             progress.end(f"{archive.stat().st_size / 1e6:.1f} MB, SHA-256 checked")
         if not archive.exists():
             state = "in place"

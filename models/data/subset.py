@@ -12,12 +12,11 @@ within each dataset x style x content group, and groups are kept whole).
 
 from __future__ import annotations
 
-import hashlib
 import tarfile
 from pathlib import Path
 
 from ..settings import Settings, get_settings
-from .archives import DATASETS, archive_file
+from .archives import DATASETS, archive_file, record_sum, sha256_file
 
 
 def take_content(member: str) -> str | None:
@@ -50,8 +49,5 @@ def write_subset(
                 continue
             dst.addfile(member, src.extractfile(member) if member.isfile() else None)
     tmp.replace(target)
-    digest = hashlib.sha256(target.read_bytes()).hexdigest()
-    sums = out_dir / "SHA256SUMS"
-    lines = [ln for ln in (sums.read_text().splitlines() if sums.exists() else []) if not ln.endswith(spec.archive)]
-    sums.write_text("\n".join([*lines, f"{digest}  {spec.archive}"]) + "\n")
+    record_sum(out_dir, spec.archive, sha256_file(target))
     return target
