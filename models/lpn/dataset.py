@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing
 import os
 import time
 from collections import defaultdict
@@ -255,7 +254,7 @@ def _samples_of_every_clip(jobs: Sequence[tuple[Motion, float, Any]]) -> Iterato
     if workers == 1 or len(jobs) < 8:
         yield from map(_clip_samples_job, jobs)
         return
-    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+    with ProcessPoolExecutor(workers) as pool:  # the platform's default, as the parse cache's pool (loader.py)
         yield from pool.map(_clip_samples_job, jobs, chunksize=8)
 
 

@@ -241,9 +241,8 @@ def main(argv: list[str]) -> None:
         return
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    device = torch.device(
-        "cuda" if cfg.device == "auto" and torch.cuda.is_available() else cfg.device.replace("auto", "cpu")
-    )
+    auto = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(auto if cfg.device == "auto" else cfg.device)
     rng = np.random.default_rng(cfg.seed)
     from ..motion.assets import bandai_namco_pose
     from .dataset import load_meta, load_split, load_stats
