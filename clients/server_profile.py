@@ -22,7 +22,10 @@ PARTS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("model step (batched)", ("run_step (service/batcher.py",)),
     ("frame decode + validation", ("decode_binary (service/protocol.py", "frame_arrays (service/protocol.py")),
     ("reply encode", ("encode_binary (service/protocol.py", "frame_message (service/protocol.py")),
-    ("WebSocket send (uvicorn, socket write)", ("send (uvicorn/protocols/websockets",)),
+    (
+        "WebSocket send (uvicorn, socket write)",
+        ("send (uvicorn/protocols/websockets", "write_binary (service/transport.py"),  # the latter: the direct path's
+    ),
     (
         "WebSocket receive (uvicorn, Starlette)",
         (

@@ -155,9 +155,13 @@ class Batcher:
         self._want = 1  # requests pending that wake the gathering batcher
         self._arrived = asyncio.Event()
         self._task: asyncio.Task | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     def start(self) -> None:
-        self._task = asyncio.get_running_loop().create_task(self._run(), name=f"batcher-{self.model.name}")
+        # kept: `asyncio.get_running_loop` makes a getpid() system call on every call (3 % of a
+        # loaded server's busy time when it ran once per frame, py-spy --native)
+        self._loop = asyncio.get_running_loop()
+        self._task = self._loop.create_task(self._run(), name=f"batcher-{self.model.name}")
 
     async def stop(self) -> None:
         if self._task:
@@ -191,29 +195,39 @@ class Batcher:
         """Rows stepped in one batch with every other request waiting: (n, 3) roots, (n, J, 4)
         rotations, an (n, S) weight array over `names` (or one row's dict); the future gives
         their outputs and new state, rows in the same order."""
-        future: asyncio.Future[StepResult] = asyncio.get_running_loop().create_future()
+        future: asyncio.Future[StepResult] = (self._loop or asyncio.get_running_loop()).create_future()
         self._pending.append(StepRequest(state, root, rotations, weights, future, control, names))
         self._pending_rows += len(root)
         if len(self._pending) >= self._want:
             self._arrived.set()
         return future
 
-    async def _wait_for(self, count: int) -> None:
-        """Until `count` requests are pending (no timeout: the caller bounds it)."""
-        while len(self._pending) < count:
-            self._want = count
-            self._arrived.clear()
-            await self._arrived.wait()
+    async def _wait_for(self, count: int, seconds: float | None = None) -> None:
+        """Until `count` requests are pending, or `seconds` have passed. A timer that sets the
+        event, not `asyncio.timeout`: nearly every batch of spread sessions waits out its
+        `wait_s`, and a timeout ends the wait by raising through the coroutines."""
+        expired = False
+
+        def expire() -> None:
+            nonlocal expired
+            expired = True
+            self._arrived.set()
+
+        timer = None if seconds is None else (self._loop or asyncio.get_running_loop()).call_later(seconds, expire)
+        try:
+            while len(self._pending) < count and not expired:
+                self._want = count
+                self._arrived.clear()
+                await self._arrived.wait()
+        finally:
+            if timer is not None:
+                timer.cancel()
 
     async def _gather(self) -> list[StepRequest]:
         await self._wait_for(1)
         full = min(self.max_batch, max(1, self.open_sessions()))
         if len(self._pending) < full and self._pending_rows < self.max_batch and self.wait_s > 0:
-            try:
-                async with asyncio.timeout(self.wait_s):
-                    await self._wait_for(full)
-            except TimeoutError:
-                pass
+            await self._wait_for(full, self.wait_s)
         self._want = 1
         # whole requests up to `max_batch` rows (a crowd's rows stay together; at least one request)
         taken, rows = 0, 0

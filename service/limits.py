@@ -109,6 +109,11 @@ class MessageRate:
     bucket: Bucket | None = None
     excess: int = 0  # messages dropped since the bucket was last full
 
+    def would_admit(self, now: float) -> bool:
+        """Whether `admit` would pass a message now (nothing taken): the direct frame path takes
+        only what passes, and leaves the rest to the receive loop's `admit`, which answers it."""
+        return self.bucket is None or level(self.bucket, now, self.rate, self.burst) >= 1.0
+
     def admit(self, now: float) -> bool:
         """True: handle the message. False: drop it. Raises the error to send (fatal: close)."""
         self.bucket, wait = take(self.bucket, now, self.rate, self.burst)

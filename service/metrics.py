@@ -41,6 +41,7 @@ class ModelMetrics:
 
     frame_latency: Histogram
     frames: Counter
+    direct_frames: Counter
     dropped_frames: Counter
     step_latency: Histogram
     batch_size: Histogram
@@ -83,6 +84,12 @@ class Metrics:
         )
         self.errors = Counter("stylestream_errors_total", "Client errors by code", ["code"], registry=self.registry)
         self.frames = Counter("stylestream_frames_total", "Frames stylised", ["model"], registry=self.registry)
+        self.direct_frames = Counter(
+            "stylestream_direct_frames_total",
+            "Frames of them taken by the direct path, without an ASGI message (service.transport)",
+            ["model"],
+            registry=self.registry,
+        )
         self.snapshots = Counter(
             "stylestream_snapshots_total", "Session snapshots written to the store", registry=self.registry
         )
@@ -125,6 +132,7 @@ class Metrics:
             children = self._per_model[name] = ModelMetrics(
                 self.frame_latency.labels(name),
                 self.frames.labels(name),
+                self.direct_frames.labels(name),
                 self.dropped_frames.labels(name),
                 self.step_latency.labels(name),
                 self.batch_size.labels(name),

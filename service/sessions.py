@@ -163,10 +163,14 @@ class Session:
             self.transition_left -= 1
         return dict(self.weights)
 
+    def styles_gone(self, styles: list[str]) -> list[str]:
+        """The styles of the mix (current or target) that are not among `styles`."""
+        return [k for k in {**self.weights, **self.target} if k not in styles]
+
     def drop_deleted(self, styles: list[str]) -> list[str]:
         """Forget styles the model no longer has (deleted uploads): their share of the mix passes
         the input through from now on. Returns those that had weight, to tell the client."""
-        gone = [k for k in {**self.weights, **self.target} if k not in styles]
+        gone = self.styles_gone(styles)
         if not gone:
             return []
         had = sorted(k for k in gone if self.weights.get(k, 0.0) > 0 or self.target.get(k, 0.0) > 0)

@@ -37,6 +37,12 @@ class ServiceSettings(Settings):
     batch_wait_ms: float = Field(
         default=1.0, ge=0, le=50, description="How long a batch waits for more sessions' frames."
     )
+    direct_frames: bool = Field(
+        default=True,
+        description="Single-session binary frames taken straight from the WebSocket protocol and "
+        "answered from the batch step's callback, without the per-message ASGI path "
+        "(`service.transport`); off = every message through ASGI receive/send (for benchmarks).",
+    )
     step_inline_max_ms: float = Field(
         default=5.0,
         ge=0,
