@@ -45,6 +45,8 @@ class TrainConfig:
     # rather than only to continue a clean one (0 = teacher forcing alone, as the committed run)
     pose_noise: float = 0.0
     noise_velocities: bool = True  # with pose_noise: also on the joints' velocities (False: positions and axes only)
+    # with pose_noise: also on the phases (False: the gating sees clean phases, which set the cadence)
+    noise_phases: bool = True
     minutes: float = 60.0  # wall-clock budget
     max_iters: int = 1_000_000
     lr: float = 7e-4
@@ -298,7 +300,8 @@ def main(argv: list[str]) -> None:
         xn, gn = net.normalise_x(X[idx]), net.normalise_g(G[idx])
         if cfg.pose_noise:
             xn = xn + noise_scale * torch.randn_like(xn)
-            gn = gn + cfg.pose_noise * torch.randn_like(gn)
+            if cfg.noise_phases:
+                gn = gn + cfg.pose_noise * torch.randn_like(gn)
         pred = net(xn, gn, film)
         target = net.normalise_y(Y[idx])
         loss, mse, bone = training_loss(net, pred, target, parents, lengths, cfg.w_bone)
