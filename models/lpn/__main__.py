@@ -6,6 +6,7 @@
 .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
 .venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs numpy
 .venv/bin/python -m models.lpn heldout [--steps 300 --seed 0]          # new styles from a clip, 3 held-out styles
+.venv/bin/python -m models.lpn validate [WEIGHTS_DIR ...]              # streamed on the validation split (validate.py)
 """
 
 from __future__ import annotations
@@ -183,6 +184,13 @@ def heldout(args) -> None:
     print(json.dumps(evaluate(_model(), REPO_ROOT / "out" / "lpn", fine_tune_config=cfg), indent=1))
 
 
+def validate(args) -> None:
+    from ..settings import get_settings
+    from .validate import main as validate_main
+
+    validate_main([Path(d) for d in args.weights] or [get_settings().weights_dir / "lpn"], args.frames)
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m models.lpn")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -218,6 +226,12 @@ def main(argv: list[str] | None = None) -> None:
         "--no-dropout", dest="dropout", action="store_false", help="fine-tune with the network's dropout off"
     )
     s.set_defaults(fn=heldout)
+    s = sub.add_parser(
+        "validate", help="candidate weights streamed on the VALIDATION locomotion inputs: judges, rotations, pace"
+    )
+    s.add_argument("weights", nargs="*", help="weights folders (an export: lpn.npz, config.json, ...)")
+    s.add_argument("--frames", type=int, default=150)
+    s.set_defaults(fn=validate)
     s = sub.add_parser("train", help="train LPN-FiLM (options of train.TrainConfig as --field=value)")
     s.add_argument("--minutes", type=float, default=60.0)
     s.set_defaults(fn=train)
