@@ -555,18 +555,20 @@ class Connection(Socket):
         payload = self.reply(item, root)
         assert isinstance(payload, bytes)  # the direct path is offered to binary sessions only
         if self.send_lock.locked() or self.direct is None or not self.direct.write_binary(payload):
-            self._send_then_done(self.send_bytes(payload))  # the peer is slow, or a send is under way
-        else:
-            self._direct_done()
+            self._send_then_done(self.send_bytes(payload), item)  # the peer is slow, or a send is under way
+            return
         self.replied(item)
+        self._direct_done()
 
-    def _send_then_done(self, send: Coroutine[Any, Any, None]) -> None:
+    def _send_then_done(self, send: Coroutine[Any, Any, None], answered: FrameItem | None = None) -> None:
         """A reply the direct path cannot write at once: sent by a task, in order (nothing else
-        of this session is taken before it has gone)."""
+        of this session is taken before it has gone); `answered`: the frame it answers."""
 
         async def sending() -> None:
             try:
                 await send
+                if answered is not None:
+                    self.replied(answered)
             except Exception:  # noqa: BLE001 - the client left meanwhile: the receiver sees its disconnect
                 self.log.debug("direct reply not sent", exc_info=True)
             finally:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import re
+import socket
 import time
 
 import httpx
@@ -18,6 +19,7 @@ from websockets.sync.client import connect
 from models.registry import load_models
 from models.settings import get_settings
 from service import protocol as P
+from service.transport import GuardedWebSocket
 
 from .live_server import live_server, ws_url
 
@@ -183,3 +185,51 @@ def test_a_failing_model_step_costs_its_frame_and_the_session_goes_on(served, cl
     assert direct == asgi
     assert direct[5]["type"] == "error" and (direct[5]["code"], direct[5]["seq"]) == ("internal", 5)
     assert all(isinstance(r, bytes) for i, r in enumerate(direct) if i != 5)
+
+
+def test_a_client_that_stops_reading_gets_every_reply_in_order_or_is_told_it_was_dropped(servers, models, clip):
+    """Thousands of frames sent before reading any reply: the socket fills, direct replies that
+    cannot be written at once are sent the awaiting way, frames beyond the queue are dropped;
+    every reply comes in order and replies + reported drops add up to what was sent."""
+    root, rot = clip
+    sent = 2000
+    host, port = servers[0].removeprefix("http://").split(":")
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a small window: the server's writes back up
+    sock.connect((host, int(port)))
+    with connect(ws_url(servers[0]), sock=sock, max_size=None) as ws:
+        open_session(ws, style=models["lti"].styles()[0])
+        for t in range(sent):
+            ws.send(P.encode_binary(t, root[t % N_FRAMES], rot[t % N_FRAMES]))
+            time.sleep(0.001)  # paced, so most frames find the session idle and take the direct path
+        ws.send(json.dumps({"type": "end"}))
+        seqs, dropped = [], 0
+        while isinstance(answer := reply(ws), bytes):
+            seqs.append(struct_seq(answer))
+            dropped += int(np.frombuffer(answer[6:8], "<u2")[0])
+        assert answer["type"] == "ended", answer
+    assert seqs == sorted(seqs) and seqs[-1] == sent - 1
+    assert len(seqs) + dropped == sent
+
+
+def test_a_direct_reply_the_socket_cannot_take_at_once_is_sent_in_order_the_awaiting_way(
+    servers, models, clip, monkeypatch
+):
+    """Every other direct reply refused by the transport (as when the peer's buffer is full):
+    those go by a send task, and the stream is still byte for byte the ASGI path's."""
+    write_binary = GuardedWebSocket.write_binary
+    calls = []
+
+    def refuse_every_other(self, data: bytes) -> bool:
+        calls.append(len(calls) % 2 == 0)
+        return calls[-1] and write_binary(self, data)
+
+    monkeypatch.setattr(GuardedWebSocket, "write_binary", refuse_every_other)
+    style = models["lti"].styles()[0]
+    answers = []
+    for base in servers:
+        with connect(ws_url(base)) as ws:
+            open_session(ws, style=style)
+            answers.append(lockstep(ws, clip, range(N_FRAMES), style_changes(models)))
+    assert answers[0] == answers[1]
+    assert len(calls) == N_FRAMES and calls.count(False) == N_FRAMES // 2  # the ASGI server never calls it
