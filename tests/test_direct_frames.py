@@ -10,6 +10,7 @@ import json
 import re
 import socket
 import time
+from collections.abc import Callable
 
 import httpx
 import numpy as np
@@ -59,6 +60,17 @@ def direct_frames(base: str) -> float:
     return float(found.group(1)) if found else 0.0
 
 
+def on_both(servers: tuple[str, str], session: Callable[[str], list]) -> list[tuple[list, float]]:
+    """`session(url)`'s replies from the direct server, then the ASGI one, each with how many
+    frames that server took by the direct path meanwhile."""
+    out = []
+    for base in servers:
+        before = direct_frames(base)
+        replies = session(base)
+        out.append((replies, direct_frames(base) - before))
+    return out
+
+
 def open_session(ws, **fields) -> dict:
     ws.send(json.dumps({"type": "start", "model": "lti", "encoding": "binary", "fps": 60, **fields}))
     started = json.loads(ws.recv(timeout=30))
@@ -100,17 +112,16 @@ def test_lockstep_binary_frames_all_go_direct_and_answer_as_the_asgi_path(server
     what the ASGI path sends."""
     style = models["lti"].styles()[0]
     controls = style_changes(models)
-    answers = {}
-    for base in servers:
-        before = direct_frames(base)
+
+    def session(base: str) -> list:
         with connect(ws_url(base)) as ws:
             token = open_session(ws, style=style)["resume_token"]
             got = lockstep(ws, clip, range(0, 30), controls)
         with connect(ws_url(base)) as ws:
             assert open_session(ws, style=style, resume_token=token)["last_seq"] == 29
-            got += lockstep(ws, clip, range(30, N_FRAMES), controls)
-        answers[base] = (got, direct_frames(base) - before)
-    (direct, direct_count), (asgi, asgi_count) = answers[servers[0]], answers[servers[1]]
+            return got + lockstep(ws, clip, range(30, N_FRAMES), controls)
+
+    (direct, direct_count), (asgi, asgi_count) = on_both(servers, session)
     assert (direct_count, asgi_count) == (N_FRAMES, 0)
     assert len(direct) == N_FRAMES + len(controls) and direct == asgi
     frames = [r for r in direct if isinstance(r, bytes)]
@@ -123,17 +134,17 @@ def test_pipelined_frames_mixing_both_paths_answer_as_the_asgi_path(servers, mod
     root, rot = clip
     style = models["lti"].styles()[0]
     controls = style_changes(models)
-    answers = {}
-    for base in servers:
-        before = direct_frames(base)
+
+    def session(base: str) -> list:
         with connect(ws_url(base)) as ws:
             open_session(ws, style=style)
             for t in range(N_FRAMES):
                 if t in controls:
                     ws.send(json.dumps(controls[t]))
                 ws.send(P.encode_binary(t, root[t], rot[t]))
-            answers[base] = ([reply(ws) for _ in range(N_FRAMES + len(controls))], direct_frames(base) - before)
-    (direct, direct_count), (asgi, asgi_count) = answers[servers[0]], answers[servers[1]]
+            return [reply(ws) for _ in range(N_FRAMES + len(controls))]
+
+    (direct, direct_count), (asgi, asgi_count) = on_both(servers, session)
     assert direct_count >= 1 and asgi_count == 0
     assert direct == asgi
     seqs = [struct_seq(r) for r in direct if isinstance(r, bytes)]
