@@ -26,9 +26,10 @@ connection lock while a send blocks, so its reader cannot parse the close meanwh
 DIRECT_FRAMES in the connection's scope: the app may set `binary_sink`, which is offered each
 binary message as the protocol parses it, before it is queued for the app's `receive`, and
 may answer with `write_binary` from any callback. A frame taken that way costs no task wake-up,
-no ASGI message dict and no pause/resume of the socket's reads (issue 17: the per-message ASGI
-path was two thirds of a single-character session's server CPU). The sink declines whatever it
-cannot finish at once; that message then takes the ASGI path, in order.
+no ASGI message dict and no pause/resume of the socket's reads (issue 17; 64 spread LTI sessions,
+alternating: 89-111 us of server CPU per frame this way, 115-126 us through ASGI receive/send).
+The sink declines whatever it cannot finish at once; that message then takes the ASGI path, in
+order.
 """
 
 from __future__ import annotations
