@@ -24,7 +24,7 @@ PARTS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("reply encode", ("encode_binary (service/protocol.py", "frame_message (service/protocol.py")),
     (
         "WebSocket send (uvicorn, socket write)",
-        ("send (uvicorn/protocols/websockets", "write_binary (service/transport.py"),  # the latter: the direct path's
+        ("send (uvicorn/protocols/websockets", "write_binary (service/transport.py"),  # the latter: direct-path replies
     ),
     (
         "WebSocket receive (uvicorn, Starlette)",

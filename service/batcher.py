@@ -157,11 +157,16 @@ class Batcher:
         self._task: asyncio.Task | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
 
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The event loop, looked up once: `asyncio.get_running_loop` makes a getpid() system call
+        on every call (3 % of a loaded server's busy time when it ran once per frame, py-spy --native)."""
+        if self._loop is None:
+            self._loop = asyncio.get_running_loop()
+        return self._loop
+
     def start(self) -> None:
-        # kept: `asyncio.get_running_loop` makes a getpid() system call on every call (3 % of a
-        # loaded server's busy time when it ran once per frame, py-spy --native)
-        self._loop = asyncio.get_running_loop()
-        self._task = self._loop.create_task(self._run(), name=f"batcher-{self.model.name}")
+        self._task = self.loop.create_task(self._run(), name=f"batcher-{self.model.name}")
 
     async def stop(self) -> None:
         if self._task:
@@ -195,7 +200,7 @@ class Batcher:
         """Rows stepped in one batch with every other request waiting: (n, 3) roots, (n, J, 4)
         rotations, an (n, S) weight array over `names` (or one row's dict); the future gives
         their outputs and new state, rows in the same order."""
-        future: asyncio.Future[StepResult] = (self._loop or asyncio.get_running_loop()).create_future()
+        future: asyncio.Future[StepResult] = self.loop.create_future()
         self._pending.append(StepRequest(state, root, rotations, weights, future, control, names))
         self._pending_rows += len(root)
         if len(self._pending) >= self._want:
@@ -213,7 +218,7 @@ class Batcher:
             expired = True
             self._arrived.set()
 
-        timer = None if seconds is None else (self._loop or asyncio.get_running_loop()).call_later(seconds, expire)
+        timer = None if seconds is None else self.loop.call_later(seconds, expire)
         try:
             while len(self._pending) < count and not expired:
                 self._want = count
@@ -249,9 +254,7 @@ class Batcher:
                 if self._inline(sum(r.rows for r in batch)):
                     results = run_step(self.model, batch)
                 else:
-                    results = await asyncio.get_running_loop().run_in_executor(
-                        self.thread.executor, run_step, self.model, batch
-                    )
+                    results = await self.loop.run_in_executor(self.thread.executor, run_step, self.model, batch)
             except Exception as exc:  # a model failure fails this batch's frames, never the batcher
                 for req in batch:
                     if not req.future.done():

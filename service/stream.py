@@ -264,6 +264,10 @@ def style_deleted(gone: list[str], seq: int) -> P.ProtocolError:
     )
 
 
+def step_failed(seq: int) -> P.ProtocolError:
+    return P.ProtocolError("internal", "model step failed", seq)
+
+
 class Connection(Socket):
     """One session on the connection (protocol v1)."""
 
@@ -443,7 +447,7 @@ class Connection(Socket):
         before = s.dropped_pending
         s.enqueue(item)
         if s.dropped_pending > before:
-            self.metrics.model(s.model.name).dropped_frames.inc(s.dropped_pending - before)
+            self.model_metrics.dropped_frames.inc(s.dropped_pending - before)
         self.wakeup.set()
 
     # ---- processing -----------------------------------------------------------------
@@ -464,7 +468,7 @@ class Connection(Socket):
                     s.hold(out_root, out_rot, root)
             except Exception:  # noqa: BLE001 - a model failure costs this frame, not the session
                 self.log.exception("model step failed")
-                await self.send_error(P.ProtocolError("internal", "model step failed", item.seq))
+                await self.send_error(step_failed(item.seq))
                 continue
             reply = self.reply(item, root)
             if isinstance(reply, bytes):
@@ -549,7 +553,7 @@ class Connection(Socket):
 
     def _direct_failed(self, item: FrameItem) -> None:
         self.log.exception("model step failed")
-        self._send_then_done(self.send_error(P.ProtocolError("internal", "model step failed", item.seq)))
+        self._send_then_done(self.send_error(step_failed(item.seq)))
 
     def _answer_directly(self, item: FrameItem, root: np.ndarray) -> None:
         payload = self.reply(item, root)

@@ -147,12 +147,8 @@ def test_pipelined_frames_mixing_both_paths_answer_as_the_asgi_path(servers, mod
     (direct, direct_count), (asgi, asgi_count) = on_both(servers, session)
     assert direct_count >= 1 and asgi_count == 0
     assert direct == asgi
-    seqs = [struct_seq(r) for r in direct if isinstance(r, bytes)]
+    seqs = [P.BINARY_HEADER.unpack_from(r)[0] for r in direct if isinstance(r, bytes)]
     assert seqs == list(range(N_FRAMES))
-
-
-def struct_seq(data: bytes) -> int:
-    return int(np.frombuffer(data[:4], "<u4")[0])
 
 
 def test_a_session_fed_only_by_the_direct_path_is_not_idle(models, clip):
@@ -216,8 +212,9 @@ def test_a_client_that_stops_reading_gets_every_reply_in_order_or_is_told_it_was
         ws.send(json.dumps({"type": "end"}))
         seqs, dropped = [], 0
         while isinstance(answer := reply(ws), bytes):
-            seqs.append(struct_seq(answer))
-            dropped += int(np.frombuffer(answer[6:8], "<u2")[0])
+            seq, _, was_dropped = P.BINARY_HEADER.unpack_from(answer)
+            seqs.append(seq)
+            dropped += was_dropped
         assert answer["type"] == "ended", answer
     assert seqs == sorted(seqs) and seqs[-1] == sent - 1
     assert len(seqs) + dropped == sent

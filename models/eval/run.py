@@ -91,8 +91,10 @@ def score(
     style: str,
     contents: list[str],
     real_latents: np.ndarray,
+    feats: list[np.ndarray] | None = None,
 ) -> dict:
-    feats = [clip_features(m) for m in outputs]
+    """`feats`: the outputs' `clip_features`, where the caller has them already."""
+    feats = feats if feats is not None else [clip_features(m) for m in outputs]
     ps, pc = judges.predict_style(feats), judges.predict_content(feats)
     ps_rot = rot_judge.predict_style([rotation_features(m) for m in outputs])
     skate = [foot_skating(m) for m in outputs]

@@ -90,10 +90,11 @@ def validate(
     out = {}
     for style in styles:
         outputs = stylise(model, inputs, [names.index(style)] * len(inputs))
+        feats = [clip_features(m) for m in outputs]
         scores = score(
-            ref.judges, ref.rotation_judge, ref.rotations, outputs, inputs, style, contents, ref.latents[style]
+            ref.judges, ref.rotation_judge, ref.rotations, outputs, inputs, style, contents, ref.latents[style], feats
         )
-        predicted = ref.judges.predict_content([clip_features(m) for m in outputs])
+        predicted = ref.judges.predict_content(feats)
         out[style] = {**scores, "pace": pace(outputs, inputs), "content_misread": misread(contents, predicted)}
     return out
 
