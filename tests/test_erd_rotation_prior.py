@@ -120,6 +120,9 @@ def test_a_batch_carries_each_row_as_alone(model, neutral):
         assert np.all(_apart(batch[b], prior(rot[b : b + 1], w[b : b + 1])[0]) < 1e-12)
     # the compiled step is the numpy reference, the Hips' heading removal included
     assert np.all(_apart(batch, prior.apply_numpy(rot, w)) < 1e-9)
+    # and keeps each quaternion on its input's side (a stream's quaternions never flip sign),
+    # plain styles (rows 0 and 3, taken without the blend's round trip) as well as the rest
+    assert np.all(np.sum(batch * rot, axis=-1) > 0)
     if model.output_prior is not None:
         from models.erd.rotation_prior import carry_output, carry_output_numpy
 

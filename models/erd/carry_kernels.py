@@ -42,13 +42,36 @@ def _exp(x, y, z):
 
 
 @njit(cache=True, error_model="numpy")
+def _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius):
+    """f_s(q) = mean exp(clamp(M log(src^-1 q))) for joint j and style s."""
+    px, py, pz, pw = _mul(-source[s, j, 0], -source[s, j, 1], -source[s, j, 2], source[s, j, 3], qx, qy, qz, qw)
+    lx, ly, lz = _log(px, py, pz, pw)
+    dx = lin[s, j, 0, 0] * lx + lin[s, j, 0, 1] * ly + lin[s, j, 0, 2] * lz
+    dy = lin[s, j, 1, 0] * lx + lin[s, j, 1, 1] * ly + lin[s, j, 1, 2] * lz
+    dz = lin[s, j, 2, 0] * lx + lin[s, j, 2, 1] * ly + lin[s, j, 2, 2] * lz
+    dn = math.sqrt(dx * dx + dy * dy + dz * dz)
+    r = radius[s, j]
+    if dn > r:
+        k = r / dn
+        dx, dy, dz = k * dx, k * dy, k * dz
+    ex, ey, ez, ew = _exp(dx, dy, dz)
+    return _mul(mean[s, j, 0], mean[s, j, 1], mean[s, j, 2], mean[s, j, 3], ex, ey, ez, ew)
+
+
+@njit(cache=True, error_model="numpy")
 def carry_batch(q, w, source, mean, lin, radius, hips, out):
     """out (B, J, 4) = q (B, J, 4) carried toward the styles of weights w (B, S). Joint `hips`
     (-1: none) is carried without its heading, its twist about world up (+Y), which is put back
-    after (`rotation_prior.carry_output`'s numpy reference)."""
+    after (`rotation_prior.carry_output`'s numpy reference). A row with one style at weight 1 (no
+    mix, no intensity) takes f_s(q) itself, in q's hemisphere: the blend q exp(log(q^-1 f_s(q)))
+    is the same rotation, and skipping its log and exp halves the kernel's cost for such rows."""
     B, J = q.shape[0], q.shape[1]
     S = w.shape[1]
     for b in range(B):
+        lone = -1  # the row's one style at weight 1, if that is all it has
+        for s in range(S):
+            if w[b, s] != 0.0:
+                lone = s if lone == -1 and w[b, s] == 1.0 else -2
         for j in range(J):
             n = math.sqrt(q[b, j, 0] ** 2 + q[b, j, 1] ** 2 + q[b, j, 2] ** 2 + q[b, j, 3] ** 2)
             qx, qy, qz, qw = q[b, j, 0] / n, q[b, j, 1] / n, q[b, j, 2] / n, q[b, j, 3] / n
@@ -58,34 +81,24 @@ def carry_batch(q, w, source, mean, lin, radius, hips, out):
                 if hn > 1e-9:
                     hy, hw = qy / hn, qw / hn
                 qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
-            cx = cy = cz = 0.0
-            for s in range(S):
-                ws = w[b, s]
-                if ws == 0.0:
-                    continue
-                # d = M log(src^-1 q), clamped to the radius; f = mean exp(d)
-                px, py, pz, pw = _mul(
-                    -source[s, j, 0], -source[s, j, 1], -source[s, j, 2], source[s, j, 3], qx, qy, qz, qw
-                )
-                lx, ly, lz = _log(px, py, pz, pw)
-                dx = lin[s, j, 0, 0] * lx + lin[s, j, 0, 1] * ly + lin[s, j, 0, 2] * lz
-                dy = lin[s, j, 1, 0] * lx + lin[s, j, 1, 1] * ly + lin[s, j, 1, 2] * lz
-                dz = lin[s, j, 2, 0] * lx + lin[s, j, 2, 1] * ly + lin[s, j, 2, 2] * lz
-                dn = math.sqrt(dx * dx + dy * dy + dz * dz)
-                r = radius[s, j]
-                if dn > r:
-                    k = r / dn
-                    dx, dy, dz = k * dx, k * dy, k * dz
-                ex, ey, ez, ew = _exp(dx, dy, dz)
-                fx, fy, fz, fw = _mul(mean[s, j, 0], mean[s, j, 1], mean[s, j, 2], mean[s, j, 3], ex, ey, ez, ew)
-                # correction log(q^-1 f), weighted
-                gx, gy, gz, gw = _mul(-qx, -qy, -qz, qw, fx, fy, fz, fw)
-                lx, ly, lz = _log(gx, gy, gz, gw)
-                cx += ws * lx
-                cy += ws * ly
-                cz += ws * lz
-            ex, ey, ez, ew = _exp(cx, cy, cz)
-            ox, oy, oz, ow = _mul(qx, qy, qz, qw, ex, ey, ez, ew)
+            if lone >= 0:
+                ox, oy, oz, ow = _toward(qx, qy, qz, qw, lone, j, source, mean, lin, radius)
+                if ox * qx + oy * qy + oz * qz + ow * qw < 0.0:
+                    ox, oy, oz, ow = -ox, -oy, -oz, -ow
+            else:
+                cx = cy = cz = 0.0
+                for s in range(S):
+                    ws = w[b, s]
+                    if ws == 0.0:
+                        continue
+                    fx, fy, fz, fw = _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius)
+                    # correction log(q^-1 f), weighted
+                    lx, ly, lz = _log(*_mul(-qx, -qy, -qz, qw, fx, fy, fz, fw))
+                    cx += ws * lx
+                    cy += ws * ly
+                    cz += ws * lz
+                ex, ey, ez, ew = _exp(cx, cy, cz)
+                ox, oy, oz, ow = _mul(qx, qy, qz, qw, ex, ey, ez, ew)
             if j == hips:
                 ox, oy, oz, ow = _mul(0.0, hy, 0.0, hw, ox, oy, oz, ow)
             out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = ox, oy, oz, ow

@@ -136,18 +136,23 @@ class ERDModel:
         the input normalisation stays a float64 subtraction (features reach ~1e3, the weights
         ~1e-2), the label one-hots become row lookups (index -1 = unknown = a zero row), and the
         seven LSTM branches (neutral + six styles) are stacked, input and hidden weights together,
-        so each layer is one batched product. The cell-input gate's rows are doubled so one sigmoid over all four gates serves
+        so each layer is one batched product; every matrix row-major (a torch product would
+        otherwise copy a transposed one on every call). The cell-input gate's rows are doubled so one sigmoid over all four gates serves
         it too: tanh(x) = 2 sigmoid(2x) - 1 (doubling is exact)."""
         p, dt, H = self.p, self.dtype, self.H
         n_in = len(self.mean)
         w0, b0 = p["encoder.0.weight"].T, p["encoder.0.bias"]
         zero = np.zeros((1, w0.shape[1]))
-        self.enc_in = w0[:n_in].astype(dt)
+        self.enc_in = np.ascontiguousarray(w0[:n_in], dt)
         style_rows = np.concatenate([w0[n_in : n_in + len(STYLES)], zero])  # (8, hidden)
         content_rows = np.concatenate([w0[n_in + len(STYLES) :], zero]) + b0  # (11, hidden), with the bias
         self.enc_labels = (style_rows[:, None] + content_rows[None]).astype(dt)  # [style, content] -> row
-        self.enc = [(p[f"encoder.{i}.weight"].T.astype(dt), p[f"encoder.{i}.bias"].astype(dt)) for i in (2, 4)]
-        self.dec = [(p[f"decoder.{i}.weight"].T.astype(dt), p[f"decoder.{i}.bias"].astype(dt)) for i in (0, 2, 4)]
+        self.enc = [
+            (np.ascontiguousarray(p[f"encoder.{i}.weight"].T, dt), p[f"encoder.{i}.bias"].astype(dt)) for i in (2, 4)
+        ]
+        self.dec = [
+            (np.ascontiguousarray(p[f"decoder.{i}.weight"].T, dt), p[f"decoder.{i}.bias"].astype(dt)) for i in (0, 2, 4)
+        ]
         scale = np.ones(4 * H)
         scale[2 * H : 3 * H] = 2.0  # gates i, f, g, o (PyTorch order): g is the tanh one
         names = ["neutral"] + [f"branches.{k}" for k in range(len(TARGET_STYLES))]
