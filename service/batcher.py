@@ -12,7 +12,11 @@ Where the step runs: model steps and style changes share one worker thread (`Mod
 a style change never runs in the middle of a step. A step predicted to take less than
 `inline_max_s` runs right on the event loop when that thread is idle: the compiled step kernels
 hold the GIL, so handing a short step to the thread only adds two thread switches and a wait for
-the GIL; a long one goes to the thread, which lets the event loop in between kernels.
+the GIL; a long one goes to the thread, which lets the event loop in between kernels. (Compiling
+the kernels with `nogil=True`, so the loop could run beside them, was measured worse on the 2-core
+machine: Style-ERD crowds of 10 x 100, alternated with the kernels holding the GIL, p99 16.4-20.6
+against 15.6-17.8 ms: the loop, the step's Python glue and the load test's clients then fight for
+the same two cores and the GIL hands over more often.)
 
 The model's style set may change between steps, so the step first brings every session's state
 to the current style set (`upgrade_state`) and builds the weight vectors over the current
