@@ -246,23 +246,39 @@ def rotation_guard(weights_dir: Path, results: list[StyleResult]) -> None:
 
 
 def save(weights_dir: Path, results: list[StyleResult], cfg: TuneConfig, seconds: float) -> None:
-    """The replaced vectors into TUNED_FILE, the run's record into config.json (`tuned_film`)."""
-    kept = [r for r in results if r.kept]
+    """This run's styles into TUNED_FILE and config.json's `tuned_film` record: a style it kept
+    gets its new vector, one it tuned but did not keep goes back to the exported vector, and the
+    styles it did not tune keep what an earlier run gave them (tuning one style must not undo
+    the others)."""
+    tuned = {r.style for r in results}
+    films: dict[str, np.ndarray] = {}
+    path = weights_dir / TUNED_FILE
+    if path.exists():
+        with np.load(path) as z:
+            films = {str(name): film for name, film in zip(z["styles"], z["film"]) if str(name) not in tuned}
+    films.update({r.style: r.film for r in results if r.kept})
     np.savez(
-        weights_dir / TUNED_FILE,
-        styles=np.array([r.style for r in kept]),
-        film=np.stack([r.film for r in kept]).astype(np.float32) if kept else np.zeros((0, 4, 0), np.float32),
+        path,
+        styles=np.array(list(films)),
+        film=np.stack(list(films.values())).astype(np.float32) if films else np.zeros((0, 4, 0), np.float32),
     )
     path = weights_dir / CONFIG_FILE
     config = json.loads(path.read_text())
+    runs = config.get("tuned_film", {})
+    styles = {s: r for s, r in runs.get("styles", {}).items() if s not in tuned}
+    styles.update({r.style: r.record() | {"command": _command()} for r in results})
     config["tuned_film"] = {
-        "command": "python -m models.lpn.tune_builtin " + " ".join(sys.argv[1:]),
+        "command": _command(),
         "config": {k: v for k, v in asdict(cfg).items() if k not in ("weights_dir", "save")},
         "seconds": round(seconds, 1),
         "selection": "validation-split clips of the same style (one-frame loss); never test clips or judges",
-        "styles": {r.style: r.record() for r in results},
+        "styles": styles,
     }
     path.write_text(json.dumps(config, indent=1))
+
+
+def _command() -> str:
+    return "python -m models.lpn.tune_builtin " + " ".join(sys.argv[1:])
 
 
 def main(argv: list[str]) -> list[StyleResult]:
