@@ -101,13 +101,12 @@ def test_stream_equals_whole_window(model, walks):
         w,
         style_in=0,
         content=CONTENTS.index("walk"),
-        leaf_prior=model.leaf_prior,
-        output_prior=model.output_prior,
+        **model.priors,
     )
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
     np.testing.assert_allclose(streamed.translations, whole.translations, atol=2e-2)  # cm; float32 torch
     streamed = model.stylise_stream(motion, w)  # unlabelled
-    whole = stylise(gen, model.maker, motion, w, leaf_prior=model.leaf_prior, output_prior=model.output_prior)
+    whole = stylise(gen, model.maker, motion, w, **model.priors)
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
 
 

@@ -179,3 +179,82 @@ def test_committed_prior_is_well_formed(model, which):
     # the styles' means really differ from the source somewhere (else the prior does nothing)
     shift = quat_angle(quat_mul(quat_inv(prior.source), prior.mean), np.array([0.0, 0, 0, 1]))
     assert np.degrees(shift.max()) > 2.0
+
+
+@pytest.fixture(scope="module")
+def run(index):
+    from models.data import load_motions, select
+
+    clip = select(index, dataset="bandai-namco-2", split="val", style="normal", content="run")[0]
+    return load_motions([clip])[0].slice(0, 60)
+
+
+def _stream(model, motion, w: np.ndarray) -> np.ndarray:
+    state, out = model.init_state(1), []
+    for t in range(motion.num_frames):
+        frame = FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1])
+        o, state = model.step_batch(state, frame, w[None])
+        out.append(o.rotations[0])
+    return np.stack(out)
+
+
+def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
+    """A running input is carried by the priors fitted on runs (`gait.py`); a walk never
+    reaches the ramp, so its output is exactly what the all-content priors alone give."""
+    from models.erd.features import FPS
+    from models.erd.gait import clip_hips_speed, run_share
+
+    if model.run_output_prior is None:
+        pytest.skip("no run priors committed")
+    share = run_share(clip_hips_speed(model.maker.positions(run.translations[:, 1], run.rotations), FPS))
+    assert share[20:].min() == 1.0  # a run, once under way
+    walk = neutral[0]
+    assert run_share(clip_hips_speed(model.maker.positions(walk.translations[:, 1], walk.rotations), FPS)).max() == 0.0
+    w = _onehot(model, "feminine")
+    priors = model.run_leaf_prior, model.run_output_prior
+    with_runs = {"run": _stream(model, run, w), "walk": _stream(model, walk, w)}
+    try:
+        model.run_leaf_prior = model.run_output_prior = None
+        without = {"run": _stream(model, run, w), "walk": _stream(model, walk, w)}
+    finally:
+        model.run_leaf_prior, model.run_output_prior = priors
+    np.testing.assert_array_equal(with_runs["walk"], without["walk"])
+    moved = np.degrees(quat_angle(with_runs["run"][20:], without["run"][20:]))
+    assert np.median(moved.max(axis=-1)) > 2.0  # the run priors do change a run
+
+
+def test_run_frames_stay_inside_the_styles_whole_real_range(model, run):
+    """The run priors carry toward the style's real runs, then clamp into the range the
+    all-content prior keeps every frame in: no running row leaves it."""
+    from models.erd.gait import carry_by_gait
+    from models.erd.rotation_prior import without_heading
+    from models.motion.bn_skeleton import HIPS
+
+    if model.run_output_prior is None:
+        pytest.skip("no run priors committed")
+    rot = run.rotations[:40]
+    for k, style in enumerate(model.styles()):
+        w = np.tile(_onehot(model, style), (len(rot), 1))
+        out = carry_by_gait(model.output_prior, model.run_output_prior, rot, w, np.ones(len(rot)), hips=HIPS)
+        bounds = model.output_prior
+        angle = quat_angle(quat_mul(quat_inv(bounds.mean[k])[None], without_heading(out)[1]), np.array([0.0, 0, 0, 1]))
+        assert np.all(angle <= bounds.radius[k][None] + 1e-6), style
+
+
+def test_a_batch_of_runs_and_walks_steps_each_row_as_alone(model, run, neutral):
+    """Rows running, walking and between (a row's share of the run priors is its own) in one
+    batch give exactly what each gives alone."""
+    w = np.stack([_onehot(model, "active"), _onehot(model, "feminine"), 0.5 * _onehot(model, "youthful")])
+    motions = [run, neutral[0], run]
+    state = model.init_state(3)
+    alone = [model.init_state(1) for _ in motions]
+    for t in range(30):
+        frames = FrameBatch(
+            np.stack([m.translations[t, 1] for m in motions]), np.stack([m.rotations[t] for m in motions])
+        )
+        out, state = model.step_batch(state, frames, w)
+        for b, m in enumerate(motions):
+            one, alone[b] = model.step_batch(
+                alone[b], FrameBatch(m.translations[t : t + 1, 1], m.rotations[t : t + 1]), w[b : b + 1]
+            )
+            np.testing.assert_array_equal(out.rotations[b], one.rotations[0])

@@ -16,6 +16,7 @@ intensity) blends the corrections: q' = q exp(sum_s w_s log(q^-1 f_s(q))); zero 
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,6 +103,14 @@ class StyleCarry:
         lin[:, fixed_] = np.eye(3)
         radius[:, fixed_] = np.pi
         return cls(source, mean, lin, radius)
+
+    @functools.cached_property
+    def bounds(self) -> StyleCarry:
+        """The clamp alone: each style's rotations kept within its real radius of its mean, not
+        carried (`gait.carry_by_gait` holds what another prior carried inside this one's range)."""
+        return StyleCarry(
+            self.mean, self.mean, np.ascontiguousarray(np.broadcast_to(np.eye(3), self.map.shape)), self.radius
+        )
 
     def style(self, q: np.ndarray, s: int) -> np.ndarray:
         """f_s(q) for rotations (N, J, 4) toward style s."""

@@ -8,7 +8,8 @@ the predicted Hips height. So the path keeps the input's shape and direction whi
 change with the style. The output Hips rotation is the input's facing yaw times the predicted
 yaw-free Hips rotation. As in the streaming model, the bones keep the input's twists and the
 leaves its rotations (`models.motion.twist.transfer_twist`), carried to the target style and the
-output carried to the style's real rotations when the rotation prior is given (`rotation_prior.py`). Then the feet are planted frame by
+output carried to the style's real rotations when the rotation prior is given (`rotation_prior.py`;
+run priors for the frames the input runs in, `gait.py`). Then the feet are planted frame by
 frame as in the streaming model (`models.motion.feet`; `foot_lock=False` gives the network's
 output alone).
 """
@@ -22,13 +23,14 @@ import torch
 
 from models.motion.rotations import quat_mul, yaw_quat
 
+from ..motion.bn_skeleton import HIPS
 from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Motion
 from ..motion.twist import transfer_twist
 from .carry import StyleCarry
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
+from .gait import carry_by_gait, clip_hips_speed, run_share
 from .model import Generator
-from .rotation_prior import carry_output
 
 
 def to_world(
@@ -59,9 +61,12 @@ def stylise(
     foot_lock: bool = True,
     leaf_prior: StyleCarry | None = None,
     output_prior: StyleCarry | None = None,
+    run_leaf_prior: StyleCarry | None = None,
+    run_output_prior: StyleCarry | None = None,
 ) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
-    rotation prior (`leaf_prior`, `output_prior`) where given."""
+    rotation prior (`leaf_prior`, `output_prior`, and their run versions for the frames the input
+    runs in, `gait.py`) where given."""
     root_in = motion.translations[:, 1]
     x, yaw = maker.sequence(root_in, motion.rotations)
     w = torch.as_tensor(np.asarray(weights, dtype=np.float32))
@@ -75,10 +80,10 @@ def stylise(
         root_in[0],
     )
     w_frames = np.broadcast_to(np.asarray(weights, np.float64), (len(rots), w.shape[-1]))
-    source = leaf_prior(motion.rotations, w_frames) if leaf_prior is not None else motion.rotations
+    share = run_share(clip_hips_speed(maker.positions(root_in, motion.rotations), FPS))
+    source = carry_by_gait(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots)
-    if output_prior is not None:
-        rots = carry_output(output_prior, rots, w_frames)
+    rots = carry_by_gait(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)
     if foot_lock:
         root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()

@@ -1,6 +1,7 @@
 """The rotation prior of the streaming Style-ERD, fitted from real TRAIN clips (`carry.StyleCarry`):
 
-    .venv/bin/python -m models.erd.rotation_prior        # both -> models/weights/erd/{leaf,output}_prior.npz
+    .venv/bin/python -m models.erd.rotation_prior        # all -> models/weights/erd/{leaf,output}_prior{,_run}.npz
+    .venv/bin/python -m models.erd.rotation_prior runs   # the run priors alone
 
 1. **Twists and leaves** (`leaf_prior.npz`). The decoder is trusted only for where bones point
    (`models.motion.twist.transfer_twist`): a bone's twist about itself and the head, hands and
@@ -18,6 +19,11 @@
    legs are only clamped: the planter re-poses them anyway, and carrying their rotations as
    well made the content judge read straight validation walks as turns (content 0.70-0.90
    per style against 0.79-0.97 with the legs only clamped).
+
+3. **Runs** (`leaf_prior_run.npz`, `output_prior_run.npz`): both fitted again on runs alone (the
+   real neutral and style runs; the network driven by TRAIN neutral runs), for the frames where
+   the input runs (`gait.py`: the share ramps with the input's Hips speed). Fitted over every
+   content, the priors carried runs toward walks and gestures.
 
 The Root is left alone by both, the Hips by the leaf prior (the decoder's legs and spine fix
 them). The output prior reads the Hips without their heading (their twist about world up, as the
@@ -37,24 +43,35 @@ from .carry import StyleCarry
 
 LEAF_FILE = "leaf_prior.npz"
 OUTPUT_FILE = "output_prior.npz"
+RUN_LEAF_FILE = "leaf_prior_run.npz"
+RUN_OUTPUT_FILE = "output_prior_run.npz"
+PRIOR_FILES = {  # `runtime.ERDModel`'s prior attributes and their files beside the weights
+    "leaf_prior": LEAF_FILE,
+    "output_prior": OUTPUT_FILE,
+    "run_leaf_prior": RUN_LEAF_FILE,
+    "run_output_prior": RUN_OUTPUT_FILE,
+}
 FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 UP = np.array([0.0, 1.0, 0.0])
 FIT_CLIPS_PER_CONTENT = 4
+RUN_FIT_CLIPS = 12  # TRAIN neutral runs for the run output prior: 4, as per content above, would be 960 frames
 FIT_FRAMES = 240
 LEGS = ("UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L", "UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R")
 
 
-def real_rotations() -> list[np.ndarray]:
-    """Per style (dataset order, neutral first): local rotations (N, 22, 4) of every TRAIN frame,
-    from the feature cache (`dataset.py`; joint_Root static, left at the identity)."""
-    from .dataset import STYLES, load_split
+def real_rotations(runs: bool = False) -> list[np.ndarray]:
+    """Per style (dataset order, neutral first): local rotations (N, 22, 4) of every TRAIN frame
+    (with `runs`: of the runs only), from the feature cache (`dataset.py`; joint_Root static,
+    left at the identity)."""
+    from .dataset import CONTENTS, STYLES, load_split
     from .features import NB, ROT
 
     split = load_split("train")
     frame_style = np.repeat(split.style, split.lengths)
+    wanted = np.repeat(split.content == CONTENTS.index("run"), split.lengths) if runs else True
     out = []
     for s in range(len(STYLES)):
-        body = split.feats[frame_style == s][:, ROT].reshape(-1, NB, 4).astype(np.float64)
+        body = split.feats[(frame_style == s) & wanted][:, ROT].reshape(-1, NB, 4).astype(np.float64)
         q = np.zeros((len(body), NUM_JOINTS, 4))
         q[..., 3] = 1.0
         q[:, 1:] = body
@@ -90,20 +107,28 @@ def fit_leaf_prior(real: list[np.ndarray]) -> StyleCarry:
     return StyleCarry.fit([real[0]] * (len(real) - 1), real[1:], FIXED)
 
 
-def fit_output_prior(model, real: list[np.ndarray]) -> StyleCarry:
+def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> StyleCarry:
     """The model's outputs (its leaf prior in place, no output prior) over TRAIN neutral clips
-    toward each style -> the real style."""
+    toward each style -> the real style. With `runs`: TRAIN neutral runs, the model's run leaf
+    prior taking every frame, against the real runs in `real`."""
     from ..data import load_motions
     from ..eval.run import pick_clips, stylise
 
-    saved, model.output_prior = model.output_prior, None
+    saved = model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior
+    if runs:
+        model.leaf_prior = model.run_leaf_prior
+    model.output_prior = model.run_leaf_prior = model.run_output_prior = None
     try:
-        clips = pick_clips(FIT_CLIPS_PER_CONTENT, None, split="train")
+        clips = (
+            pick_clips(RUN_FIT_CLIPS, ("run",), split="train")
+            if runs
+            else pick_clips(FIT_CLIPS_PER_CONTENT, split="train")
+        )
         inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(clips)]
         styles = model.styles()
         outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
     finally:
-        model.output_prior = saved
+        model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior = saved
     n = len(inputs)
     produced = [
         without_heading(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]))[1] for k in range(len(styles))
@@ -121,11 +146,16 @@ def main(argv: list[str]) -> None:
     torch.set_num_threads(1)
     what = argv[0] if argv else "both"
     folder = Path(argv[1]) if len(argv) > 1 else get_settings().weights_dir / "erd"
-    real = real_rotations()
-    if what in ("both", "leaves"):
-        print(fit_leaf_prior(real).save(folder / LEAF_FILE))
-    if what in ("both", "output"):
-        print(fit_output_prior(load(folder), real).save(folder / OUTPUT_FILE))
+    if what in ("both", "leaves", "output"):
+        real = real_rotations()
+        if what in ("both", "leaves"):
+            print(fit_leaf_prior(real).save(folder / LEAF_FILE))
+        if what in ("both", "output"):
+            print(fit_output_prior(load(folder), real).save(folder / OUTPUT_FILE))
+    if what in ("both", "runs"):
+        real = real_rotations(runs=True)
+        print(fit_leaf_prior(real).save(folder / RUN_LEAF_FILE))
+        print(fit_output_prior(load(folder), real, runs=True).save(folder / RUN_OUTPUT_FILE))
 
 
 if __name__ == "__main__":

@@ -30,7 +30,8 @@ rotations are first carried from the neutral style's real distribution to the ta
 so the head and wrists take the style's attitude inside its real range instead of the neutral
 input's; then the output's rotations are carried from what the network produces to the style's
 real distribution and clamped into its real range (`rotation_prior.py`: `leaf_prior.npz`,
-`output_prior.npz` beside the weights).
+`output_prior.npz` beside the weights). Frames where the input runs take priors fitted on runs
+alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`).
 
 Planted feet: the network knows nothing of the floor, so its planted feet slid (20 % of flat-foot
 frames over the eval suite's inputs, 40 % toward `active`, against 3 % for the inputs). The
@@ -52,6 +53,7 @@ import numpy as np
 import torch
 
 from ..interface import FrameBatch, State
+from ..motion.bn_skeleton import HIPS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Skeleton
@@ -61,7 +63,8 @@ from . import kernels
 from .carry import StyleCarry
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
-from .rotation_prior import LEAF_FILE, OUTPUT_FILE, carry_output
+from .gait import carry_by_gait, hips_speed, run_share
+from .rotation_prior import PRIOR_FILES
 
 WEIGHTS_FILE = "erd.npz"
 
@@ -99,6 +102,8 @@ class ERDModel:
         dtype: type = np.float32,
         leaf_prior: StyleCarry | None = None,
         output_prior: StyleCarry | None = None,
+        run_leaf_prior: StyleCarry | None = None,
+        run_output_prior: StyleCarry | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
@@ -110,6 +115,8 @@ class ERDModel:
         # the rotation prior (`rotation_prior.py`): twists and leaves from the input carried to the
         # target style (None: the input's), and the output carried to the style's real rotations
         self.leaf_prior, self.output_prior = leaf_prior, output_prior
+        # the same two fitted on runs alone, for frames the input runs in (`gait.py`)
+        self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
@@ -238,10 +245,10 @@ class ERDModel:
         out_root, out_rot = kernels.output_pose(
             x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64), root, rot_in, float(FPS)
         )
-        source = self.leaf_prior(rot_in, w) if self.leaf_prior is not None else rot_in
+        share = run_share(hips_speed(pos, state["prev_pos"], has_prev, float(FPS)))
+        source = carry_by_gait(self.leaf_prior, self.run_leaf_prior, rot_in, w, share)
         out_rot = transfer_twist(self.skeleton, source, out_rot)
-        if self.output_prior is not None:
-            out_rot = carry_output(self.output_prior, out_rot, w)
+        out_rot = carry_by_gait(self.output_prior, self.run_output_prior, out_rot, w, share, hips=HIPS)
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
         )
@@ -324,6 +331,12 @@ class ERDModel:
         gen.load_state_dict(state)
         return gen.eval()
 
+    @property
+    def priors(self) -> dict[str, StyleCarry | None]:
+        """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), as the
+        whole-clip path (`offline.stylise`) takes them."""
+        return {key: getattr(self, key) for key in PRIOR_FILES}
+
     def stylise_stream(self, motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None):
         """Run a whole Motion through step_batch frame by frame (batch 1); returns a Motion."""
         from dataclasses import replace
@@ -358,7 +371,7 @@ def load(weights_dir: Path, dtype: type = np.float32) -> ERDModel:
     mean, std, ref = arrays.pop("norm_mean"), arrays.pop("norm_std"), arrays.pop("ref")
     priors = {  # the rotation prior (`rotation_prior.py`), where fitted
         key: StyleCarry.load(weights_dir / name) if (weights_dir / name).exists() else None
-        for key, name in (("leaf_prior", LEAF_FILE), ("output_prior", OUTPUT_FILE))
+        for key, name in PRIOR_FILES.items()
     }
     return ERDModel(arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype, **priors)
 

@@ -1,0 +1,73 @@
+"""Running or not, frame by frame from the input alone: which of Style-ERD's rotation priors a
+frame gets (`rotation_prior.py`).
+
+The priors map what the network makes toward a style onto the style's real rotations, one
+Gaussian per joint. Fitted over every content at once, runs (a tenth of the frames, with the
+widest arm and leg swings) were carried toward where walks and gestures sit: on the VALIDATION
+split's runs the rotation judge read 0 of 4 runs toward active, feminine or youthful as their
+style, and the position judge 0 of 4 toward exhausted (`out/s20/erd_runs.py`, scratch). Runs
+therefore get priors fitted on runs alone (`*_prior_run.npz`), every other frame keeps the
+all-content priors, and a frame's share of the run priors ramps with the input's horizontal
+Hips speed over `RUN_RAMP_CM_S`: from the TRAIN `normal` walks' p99 (1.70 m/s; walk turns 1.61)
+to the TRAIN `normal` runs' p5 (2.11 m/s). Gestures stand (under 0.1 m/s). Causal: the speed is
+the step from the previous input frame; a session's first frame counts as standing.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..motion.bn_skeleton import HIPS
+from .carry import StyleCarry
+
+RUN_RAMP_CM_S = (170.0, 210.0)
+
+
+def hips_speed(pos: np.ndarray, prev_pos: np.ndarray, has_prev: np.ndarray, fps: float) -> np.ndarray:
+    """(B,) horizontal Hips speed (cm/s) from the previous input frame's world joint positions
+    (B, J, 3) to this one's; 0 where there is no previous frame."""
+    step = pos[:, HIPS, ::2] - prev_pos[:, HIPS, ::2]  # x and z
+    return np.where(has_prev, np.hypot(step[:, 0], step[:, 1]) * fps, 0.0)
+
+
+def clip_hips_speed(pos: np.ndarray, fps: float) -> np.ndarray:
+    """(T,) `hips_speed` of every frame of a clip's world positions (T, J, 3), as a stream sees it."""
+    prev = np.concatenate([pos[:1], pos[:-1]])
+    return hips_speed(pos, prev, np.arange(len(pos)) > 0, fps)
+
+
+def run_share(speed: np.ndarray) -> np.ndarray:
+    """(B,) how far each frame is a run: 0 up to the ramp, 1 past it, linear between."""
+    lo, hi = RUN_RAMP_CM_S
+    return np.clip((np.asarray(speed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+
+def carry_by_gait(
+    other: StyleCarry | None,
+    run: StyleCarry | None,
+    q: np.ndarray,
+    weights: np.ndarray,
+    share: np.ndarray,
+    hips: int = -1,
+) -> np.ndarray:
+    """Rotations (B, J, 4) carried by the all-content prior `other` with each row's weights
+    scaled by 1 - share, then the rows with a share by the `run` prior with their weights
+    scaled by it, then clamped into `other`'s range (the style's real range over every
+    content: carried alone, the arms of validation runs toward feminine left it in 9 % of
+    frames, against 0 % with the clamp, which also lifted the rotation judge). A row at share
+    0 gets exactly what `other` alone gives it, one at share 1 the run prior's carry of the
+    input (zero weights only normalise) within `other`'s range; between, the run prior
+    continues from where part of the other one left it. Either prior may be None (without a
+    run prior, `other` takes every row at full weight). Row by row:
+    a row's result never depends on the others in the batch."""
+    w = np.asarray(weights, np.float64)
+    r = np.asarray(share, np.float64) if run is not None else np.zeros(len(w))  # no run prior: all to `other`
+    out = q if other is None else other(q, w * (1.0 - r)[:, None], hips=hips)
+    running = np.flatnonzero(r > 0.0)
+    if run is not None and len(running):
+        out = np.array(out, np.float64, copy=True)
+        wr = w[running] * r[running, None]
+        out[running] = run(out[running], wr, hips=hips)
+        if other is not None:  # and inside the style's whole real range, which `other` clamps to
+            out[running] = other.bounds(out[running], wr, hips=hips)
+    return out
