@@ -264,17 +264,31 @@ def save(weights_dir: Path, results: list[StyleResult], cfg: TuneConfig, seconds
     )
     path = weights_dir / CONFIG_FILE
     config = json.loads(path.read_text())
-    runs = config.get("tuned_film", {})
-    styles = {s: r for s, r in runs.get("styles", {}).items() if s not in tuned}
-    styles.update({r.style: r.record() | {"command": _command()} for r in results})
-    config["tuned_film"] = {
-        "command": _command(),
-        "config": {k: v for k, v in asdict(cfg).items() if k not in ("weights_dir", "save")},
-        "seconds": round(seconds, 1),
-        "selection": "validation-split clips of the same style (one-frame loss); never test clips or judges",
-        "styles": styles,
+    record = _record_runs(config.get("tuned_film", {}))
+    record["runs"].append(
+        {
+            "command": _command(),
+            "config": {k: v for k, v in asdict(cfg).items() if k not in ("weights_dir", "save")},
+            "seconds": round(seconds, 1),
+        }
+    )
+    record["styles"] = {s: r for s, r in record["styles"].items() if s not in tuned} | {
+        r.style: r.record() | {"command": _command()} for r in results
     }
+    config["tuned_film"] = record
     path.write_text(json.dumps(config, indent=1))
+
+
+def _record_runs(old: dict) -> dict:
+    """config.json's `tuned_film` as a list of runs and the latest record per style; a record
+    written before runs were kept (one run's command at the top) becomes that run."""
+    runs = list(old.get("runs", []))
+    styles = dict(old.get("styles", {}))
+    if "command" in old:
+        runs.append({k: old[k] for k in ("command", "config", "seconds") if k in old})
+        styles = {s: {"command": old["command"]} | r for s, r in styles.items()}
+    selection = "validation-split clips of the same style (one-frame loss); never test clips or judges"
+    return {"selection": selection, "runs": runs, "styles": styles}
 
 
 def _command() -> str:
