@@ -26,7 +26,7 @@ foot planter, which re-poses the legs after the prior, turn Foot_L past the real
 (A first version took the lowest point of constant-rate curves: 0.5-3 %
 lower losses, but its picks sat on dips of a curve jittering by about as much.) The result goes to `TUNED_FILE`
 beside the weights (`weights.read_weights` applies it; a few KB instead of rewriting `lpn.npz`)
-and a record of the run into config.json's `tuned_film`.
+and the run appended to config.json's `tuned_film` (`runs`; `styles` keeps each style's latest record).
 """
 
 from __future__ import annotations
