@@ -505,7 +505,7 @@ def markdown(r: dict) -> str:
         "",
         "What selected what: no checkpoint or setting of any method was chosen on the test clips. Some were chosen on "
         "VALIDATION clips scored by these same judges (the LTI context inputs, the Style-ERD rotation prior variant and its run priors, "
-        "the LPN-FiLM arm carriage); each model card says which validation numbers chose what. The judges, the "
+        "the LPN-FiLM arm and run carriage); each model card says which validation numbers chose what. The judges, the "
         "rotation judge and the rotation reference are trained or fitted on TRAIN clips only.",
         "",
     ]

@@ -73,7 +73,7 @@ from ..rowwise import Bfloat16Product, matmul_rows
 from ..settings import get_settings
 from . import features as lf
 from . import kernels
-from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, blend_pace, carry_arms
+from .carriage import ARM_JOINTS, CARRIAGE_FILE, RUN_JOINTS, Carriage, blend_arms, blend_pace, blend_run, carry_arms
 from .style_table import StyleTable
 from .styles import LPNStyles
 from .weights import read_weights
@@ -134,6 +134,7 @@ class LPNModel(LPNStyles):
             mean, radii = balls.for_styles(list(styles), skeleton.num_joints)
             self._table = self._table.measuring(ball_mean=mean, ball_radii=radii)
         self._arm_joints = np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)
+        self._run_joints = np.array([skeleton.names.index(j) for j in RUN_JOINTS], np.int64)
         self.carriage = carriage
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
@@ -152,8 +153,8 @@ class LPNModel(LPNStyles):
     def carriage(self, carriage: Carriage | None) -> None:
         with self._lock:
             self._carriage_fit = carriage
-            pace, arms = carriage.rows(list(self._table.names)) if carriage is not None else (None, None)
-            self._table = self._table.measuring(pace=pace, arms=arms)
+            pace, arms, run = carriage.rows(list(self._table.names)) if carriage is not None else (None, None, None)
+            self._table = self._table.measuring(pace=pace, arms=arms, run_body=run)
 
     @property
     def style_table(self) -> StyleTable:
@@ -317,6 +318,9 @@ class LPNModel(LPNStyles):
         out_rot = self._untwist(out_rot)
         if arms is not None:
             out_rot = carry_arms(out_rot, blend_arms(arms, style_weights, normal), self._arm_joints)
+        run_body = table.get("run_body")
+        if run_body is not None and (control[:, 3] > 0).any():
+            out_rot = carry_arms(out_rot, blend_run(run_body, style_weights, normal, control[:, 3]), self._run_joints)
         ball_mean, ball_radii = table.get("ball_mean"), table.get("ball_radii")
         if ball_mean is not None and ball_radii is not None:
             out_rot = self._hold(out_rot, style_weights, normal, (ball_mean, ball_radii))

@@ -26,6 +26,7 @@ PLAIN: dict[str, Callable[[tuple[int, ...]], np.ndarray]] = {
     "ball_radii": lambda shape: np.full(shape, np.inf),  # (2, J): no clamp
     "pace": np.ones,  # (2,) walk / run speed factors: the input's
     "arms": _identity,  # (A, 4) arm offsets: none
+    "run_body": _identity,  # (R, 4) run carriage offsets (`carriage.RUN_JOINTS`): none
 }
 
 
