@@ -1,4 +1,4 @@
-"""Style-ERD's rotation prior (models/erd/carry.py, rotation_prior.py): the input's head, hands
+"""Style-ERD's rotation prior (models/motion/style_carry.py, models/erd/rotation_prior.py): the input's head, hands
 and twists are carried from the neutral style's real distribution to the target style's, the
 output's rotations to the style's real ones, inside the style's real range, and nothing moves
 when no style is asked for."""
@@ -50,7 +50,7 @@ def _onehot(model, style: str, scale: float = 1.0) -> np.ndarray:
 
 
 def test_log_and_exp_invert_each_other():
-    from models.erd.carry import quat_exp, quat_log
+    from models.motion.style_carry import quat_exp, quat_log
 
     rng = np.random.default_rng(0)
     q = rng.normal(size=(500, 4))

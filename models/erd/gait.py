@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion.bn_skeleton import HIPS
-from .carry import StyleCarry
+from ..motion.style_carry import StyleCarry
 
 RUN_RAMP_CM_S = (170.0, 210.0)
 

@@ -26,8 +26,8 @@ from models.motion.rotations import quat_mul, yaw_quat
 from ..motion.bn_skeleton import HIPS
 from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Motion
+from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
-from .carry import StyleCarry
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .gait import carry_by_gait, clip_hips_speed, run_share
 from .model import Generator

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.rotations import quat_inv, quat_mul, swing_twist
-from .carry import StyleCarry
+from ..motion.style_carry import StyleCarry
 
 LEAF_FILE = "leaf_prior.npz"
 OUTPUT_FILE = "output_prior.npz"

@@ -57,10 +57,10 @@ from ..motion.bn_skeleton import HIPS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Skeleton
+from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
 from ..rowwise import matmul_rows
 from . import kernels
-from .carry import StyleCarry
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
 from .gait import carry_by_gait, hips_speed, run_share

@@ -380,7 +380,7 @@ def main(argv: list[str]) -> None:
     prior = style_rotation_prior(train_s.s)
     leaf_prior = None
     if cfg.leaf_prior:
-        from .carry import StyleCarry
+        from ..motion.style_carry import StyleCarry
 
         leaf_prior = StyleCarry.load(Path(cfg.leaf_prior))
         log(f"twists and leaves carried by {cfg.leaf_prior}")

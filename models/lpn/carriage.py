@@ -45,7 +45,8 @@ from ..motion.rotations import quat_inv, quat_mean, quat_mul
 
 CARRIAGE_FILE = "carriage.npz"
 ARM_JOINTS = ("Shoulder_L", "UpperArm_L", "LowerArm_L", "Hand_L", "Shoulder_R", "UpperArm_R", "LowerArm_R", "Hand_R")
-RUN_JOINTS = ("Spine", "Chest", "Neck", "Head", *ARM_JOINTS)
+UPPER_BODY = ("Spine", "Chest", "Neck", "Head", *ARM_JOINTS)
+RUN_JOINTS = UPPER_BODY  # the run carriage's joints
 LOCOMOTION = {"walk": ("walk", "walk-turn-left", "walk-turn-right"), "run": ("run",)}
 SKIP_FRAMES = 30  # the network's first second settles from the input's first pose: not its carriage
 

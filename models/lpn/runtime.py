@@ -23,7 +23,10 @@ the state holds no per-style entries, so no state upgrade is needed.
 
 Arm carriage (`carriage.npz` beside the weights, `carriage.py`): each built-in style's arm joints
 are turned by the offset that takes the network's mean arm pose to the real style's, before the
-rotation prior; the same file can pace the derived control by the style's real speed (not shipped).
+rotation prior; the same file can pace the derived control by the style's real speed (not shipped)
+and holds a run carriage (spine, neck, head and arms at the run gait; exhausted). Then the output
+prior (`output_prior.npz`, `output_prior.py`; active and exhausted) carries the upper body's
+rotations from the network's distribution to the real style's.
 
 Rotation prior (`rotation_prior.npz` beside the weights, `models.motion.rotation_ball`): each
 built-in style's output rotations are held, per joint, inside the ball its real TRAIN clips fill
@@ -74,6 +77,7 @@ from ..settings import get_settings
 from . import features as lf
 from . import kernels
 from .carriage import ARM_JOINTS, CARRIAGE_FILE, RUN_JOINTS, Carriage, blend_arms, blend_pace, blend_run, carry_arms
+from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
 from .style_table import StyleTable
 from .styles import LPNStyles
 from .weights import read_weights
@@ -109,6 +113,7 @@ class LPNModel(LPNStyles):
         config: dict,
         balls: StyleBalls | None = None,
         carriage: Carriage | None = None,
+        output_prior: OutputPrior | None = None,
     ):
         self.config = config
         self.skeleton = skeleton
@@ -136,6 +141,7 @@ class LPNModel(LPNStyles):
         self._arm_joints = np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)
         self._run_joints = np.array([skeleton.names.index(j) for j in RUN_JOINTS], np.int64)
         self.carriage = carriage
+        self.output_prior = output_prior
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
         self.parents = sk.parents
@@ -155,6 +161,19 @@ class LPNModel(LPNStyles):
             self._carriage_fit = carriage
             pace, arms, run = carriage.rows(list(self._table.names)) if carriage is not None else (None, None, None)
             self._table = self._table.measuring(pace=pace, arms=arms, run_body=run)
+
+    @property
+    def output_prior(self) -> OutputPrior | None:
+        """The built-in styles' output prior (`output_prior.py`); None: no upper-body carry."""
+        return self._output_prior_fit
+
+    @output_prior.setter
+    def output_prior(self, prior: OutputPrior | None) -> None:
+        with self._lock:
+            self._output_prior_fit = prior
+            names = list(self._table.names)
+            rows = prior.rows(names, self.skeleton.num_joints) if prior is not None else dict.fromkeys(PRIOR_ROWS)
+            self._table = self._table.measuring(**rows)
 
     @property
     def style_table(self) -> StyleTable:
@@ -321,6 +340,7 @@ class LPNModel(LPNStyles):
         run_body = table.get("run_body")
         if run_body is not None and (control[:, 3] > 0).any():
             out_rot = carry_arms(out_rot, blend_run(run_body, style_weights, normal, control[:, 3]), self._run_joints)
+        out_rot = carry_rows(table, out_rot, style_weights)
         ball_mean, ball_radii = table.get("ball_mean"), table.get("ball_radii")
         if ball_mean is not None and ball_radii is not None:
             out_rot = self._hold(out_rot, style_weights, normal, (ball_mean, ball_radii))
@@ -599,6 +619,14 @@ def read_carriage(weights_dir: Path) -> Carriage | None:
     return Carriage.load(path) if path.exists() else None
 
 
+def read_output_prior(weights_dir: Path) -> OutputPrior | None:
+    """The built-in styles' output prior beside the weights (`OUTPUT_PRIOR_FILE`), or None."""
+    path = Path(weights_dir) / OUTPUT_PRIOR_FILE
+    return OutputPrior.load(path) if path.exists() else None
+
+
 def load(weights_dir: Path) -> LPNModel:
     arrays, skeleton, config = read_weights(weights_dir)
-    return LPNModel(arrays, skeleton, config, read_balls(weights_dir), read_carriage(weights_dir))
+    return LPNModel(
+        arrays, skeleton, config, read_balls(weights_dir), read_carriage(weights_dir), read_output_prior(weights_dir)
+    )

@@ -27,6 +27,12 @@ PLAIN: dict[str, Callable[[tuple[int, ...]], np.ndarray]] = {
     "pace": np.ones,  # (2,) walk / run speed factors: the input's
     "arms": _identity,  # (A, 4) arm offsets: none
     "run_body": _identity,  # (R, 4) run carriage offsets (`carriage.RUN_JOINTS`): none
+    # the output prior (`output_prior.py`): source and style means (J, 4), maps (J, 3, 3), radii (J,), on (): off
+    "prior_source": _identity,
+    "prior_mean": _identity,
+    "prior_map": lambda shape: np.broadcast_to(np.eye(3), shape).copy(),
+    "prior_radius": lambda shape: np.full(shape, np.inf),
+    "prior_on": np.zeros,
 }
 
 

@@ -1,5 +1,6 @@
 """Carry local rotations from one distribution to a style's real one, per joint: the rotation
-prior Style-ERD's streaming output passes through (`rotation_prior.py` fits it).
+priors Style-ERD's streaming output passes through (`models/erd/rotation_prior.py` fits them)
+and LPN-FiLM's output prior (`models/lpn/output_prior.py`).
 
 Per target style s and joint j, a rotation q is read as its deviation from a source mean,
 d = log(src_s^-1 q) (a rotation vector in the joint's own frame, so a twist about the bone stays
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..motion.rotations import quat_inv, quat_mean, quat_mul
+from .rotations import quat_inv, quat_mean, quat_mul
 
 CLAMP_PERCENTILE = 98.0
 MAX_SAMPLES = 60_000  # an even subsample per style keeps a fit to seconds
@@ -122,9 +123,9 @@ class StyleCarry:
 
     def __call__(self, q: np.ndarray, weights: np.ndarray, hips: int = -1) -> np.ndarray:
         """(B, J, 4) rotations (B, J, 4) carried toward the styles of weights (B, S), compiled
-        (`carry_kernels.py`; `apply_numpy` is the reference). Joint `hips` (if >= 0) is carried
+        (`style_carry_kernels.py`; `apply_numpy` is the reference). Joint `hips` (if >= 0) is carried
         without its heading (its twist about world up), which is put back after."""
-        from .carry_kernels import carry
+        from .style_carry_kernels import carry
 
         return carry(q, weights, self.source, self.mean, self.map, self.radius, hips)
 

@@ -1,4 +1,4 @@
-"""`carry.StyleCarry` compiled (numba) for the per-frame step: the same formulas as the numpy
+"""`style_carry.StyleCarry` compiled (numba) for the per-frame step: the same formulas as the numpy
 reference (`StyleCarry.apply_numpy`), as per-row, per-joint loops. Vectorised numpy took ~40
 small calls per prior and frame (~0.16 ms each at batch 1, 3-4 ms at batch 256); this is
 ~1 us of arithmetic per session. Self-contained: numba's disk cache only sees this file.

@@ -1,0 +1,79 @@
+"""LPN-FiLM's output prior (`models/lpn/output_prior.py`): the upper body of the styles that have
+one is carried to the style's real rotations and kept in its real range; every other row, style
+and joint steps exactly as without it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.lpn.carriage import UPPER_BODY
+from models.lpn.output_prior import OutputPrior
+from models.motion.rotations import quat_angle, quat_inv, quat_mul
+
+
+@pytest.fixture(scope="module")
+def model(lpn_model):
+    if lpn_model.output_prior is None:
+        pytest.skip("no LPN-FiLM output prior committed")
+    return lpn_model
+
+
+@pytest.fixture(scope="module")
+def walk(bn_walk):
+    return bn_walk.slice(0, 90)
+
+
+def _without(model):
+    bare = model.with_own_styles()
+    bare.output_prior = None
+    return bare
+
+
+def test_only_the_upper_body_of_styles_with_a_prior_moves(model, walk):
+    bare = _without(model)
+    assert set(model.output_prior.styles) == {"active", "exhausted"}  # where validation gained (model card)
+    for style in ("elderly", "feminine"):  # no prior: exactly as before
+        w = model.weight_vector({style: 1.0})
+        np.testing.assert_array_equal(model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations)
+    w = model.weight_vector({"active": 1.0})
+    carried, plain = model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations
+    upper = [model.skeleton.names.index(j) for j in UPPER_BODY]
+    assert np.degrees(quat_angle(carried[:, upper], plain[:, upper])).max() > 5.0
+    # the legs may differ only through the foot planter's state, never the Hips or the root joint
+    np.testing.assert_array_equal(carried[:, :2], plain[:, :2])
+
+
+def test_carried_joints_stay_inside_the_styles_real_range(model, walk):
+    prior = model.output_prior.carry
+    k = model.output_prior.styles.index("active")
+    out = model.run(walk, model.weight_vector({"active": 1.0}))[0].rotations.astype(np.float64)
+    for name in UPPER_BODY:
+        j = model.skeleton.names.index(name)
+        angle = quat_angle(quat_mul(quat_inv(prior.mean[k, j])[None], out[:, j]), np.array([0.0, 0, 0, 1]))
+        assert np.all(angle <= prior.radius[k, j] + 1e-4), name  # float32 output
+
+
+def test_a_mixed_batch_steps_each_row_as_alone(model, walk):
+    from models.interface import FrameBatch
+
+    w = np.stack([model.weight_vector({"active": 1.0}), model.weight_vector({"elderly": 1.0})])
+    w = np.concatenate([w, model.weight_vector({"active": 0.5, "exhausted": 0.5})[None]])
+    state, alone = model.init_state(3), [model.init_state(1) for _ in range(3)]
+    for t in range(20):
+        root = np.repeat(walk.translations[t : t + 1, 1], 3, 0)
+        rot = np.repeat(walk.rotations[t : t + 1], 3, 0)
+        out, state = model.step_batch(state, FrameBatch(root, rot), w)
+        for b in range(3):
+            one, alone[b] = model.step_batch(alone[b], FrameBatch(root[b : b + 1], rot[b : b + 1]), w[b : b + 1])
+            np.testing.assert_array_equal(out.rotations[b], one.rotations[0])
+
+
+def test_a_replaced_vector_gets_no_prior_and_the_file_round_trips(model, tmp_path):
+    twin = model.with_own_styles()
+    twin.set_style_film("active", twin.film_of("exhausted"))
+    assert twin.style_table.get("prior_on")[twin.styles().index("active")] == 0.0
+    assert model.style_table.get("prior_on")[model.styles().index("active")] == 1.0
+    back = OutputPrior.load(model.output_prior.save(tmp_path / "prior.npz"))
+    assert back.styles == model.output_prior.styles
+    np.testing.assert_array_equal(back.carry.map, model.output_prior.carry.map)
