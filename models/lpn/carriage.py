@@ -184,6 +184,7 @@ def fit(model, styles: list[str], dataset: str = "bandai-namco-2", frames: int =
         normal = {g: median_speed(clips("normal", contents)) for g, contents in LOCOMOTION.items()}
         pace = np.array([[median_speed(clips(s, LOCOMOTION[g])) / normal[g] for g in ("walk", "run")] for s in styles])
     model = model.with_own_styles()
+    model.output_prior = None  # fitted on top of the carriage (`output_prior.py`): refit it after
     model.carriage = Carriage(tuple(styles), pace, np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
     every = LOCOMOTION["walk"] + LOCOMOTION["run"]
     inputs = [m.slice(0, frames) for m in clips("normal", every)]
@@ -198,6 +199,7 @@ def fit_runs(
     to the style's real TRAIN runs."""
     clips = _train_clips(dataset)
     model = model.with_own_styles()
+    model.output_prior = None
     model.carriage = replace(carriage, run=None)
     inputs = [m.slice(0, frames) for m in clips("normal", LOCOMOTION["run"])]
     run = np.tile((0.0, 0.0, 0.0, 1.0), (len(carriage.styles), len(RUN_JOINTS), 1))
@@ -214,7 +216,8 @@ def _degrees(offsets: np.ndarray) -> list[float]:
 def main(argv: list[str]) -> None:
     """`[STYLE ...] [--paced]`: fit pace and arms (a run carriage in the file is dropped: it was
     fitted on top of the old arms); `--runs=STYLE,...`: add a run carriage for those styles on
-    top of the file's pace and arms, which stay."""
+    top of the file's pace and arms, which stay. Either way the output prior (`output_prior.py`),
+    fitted on top of the carriage, is then to be fitted again."""
     import json
     import time
 
