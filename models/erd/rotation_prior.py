@@ -109,14 +109,15 @@ def fit_leaf_prior(real: list[np.ndarray]) -> StyleCarry:
 
 def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> StyleCarry:
     """The model's outputs (its leaf prior in place, no output prior) over TRAIN neutral clips
-    toward each style -> the real style. With `runs`: TRAIN neutral runs, the model's run leaf
-    prior taking every frame, against the real runs in `real`."""
+    toward each style -> the real style. With `runs`: TRAIN neutral runs with the input's own
+    twists and leaves (no leaf prior: chosen on validation over the run leaf prior in place,
+    model card), against the real runs in `real`."""
     from ..data import load_motions
     from ..eval.run import pick_clips, stylise
 
     saved = model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior
     if runs:
-        model.leaf_prior = model.run_leaf_prior
+        model.leaf_prior = None
     model.output_prior = model.run_leaf_prior = model.run_output_prior = None
     try:
         clips = (
