@@ -70,13 +70,17 @@ class Result:
         )
 
 
-def real_frames(n: int = 300) -> tuple[np.ndarray, np.ndarray]:
-    """Hips translation and local rotations of a neutral Bandai Namco walk (validation split)."""
+def real_frames(n: int = 300, fps: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Hips translation and local rotations of a neutral Bandai Namco walk (validation split), n
+    frames; at `fps` (default: the clip's own 30) each frame is the clip's frame at that frame's
+    time, held, so the walk plays at its real speed whatever the rate it is sent at. (Sent
+    frame by frame at 60 fps, the 30-fps clip walked twice as fast, a 2.1 m/s jog in median.)"""
     from models.data import build_index, load_motion, select
 
     clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
     m = load_motion(clip)
-    idx = np.arange(n) % m.num_frames
+    step = 1.0 if fps is None else m.fps / fps
+    idx = np.floor(np.arange(n) * step + 1e-9).astype(np.int64) % m.num_frames
     return m.translations[idx, 1].astype(np.float32), m.rotations[idx].astype(np.float32)
 
 
@@ -261,7 +265,8 @@ def run(
     if characters > 1 and not echo:
         crowd = [{"id": k, "model": model, "style": style} for k in range(characters)]
         start = {"type": "crowd", "fps": fps, "characters": crowd}
-    frames = real_frames()  # read here, once: a machine without the data says so before any client starts
+    # read here, once (a machine without the data says so before any client starts); at the send rate
+    frames = real_frames(round(300 * fps / 30.0), fps)
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
     offsets = clock_offsets(sessions, fps, phase)

@@ -258,3 +258,20 @@ def test_a_batch_of_runs_and_walks_steps_each_row_as_alone(model, run, neutral):
                 alone[b], FrameBatch(m.translations[t : t + 1, 1], m.rotations[t : t + 1]), w[b : b + 1]
             )
             np.testing.assert_array_equal(out.rotations[b], one.rotations[0])
+
+
+def test_the_gait_mix_compiled_is_its_numpy_reference(model, run):
+    """`StyleCarry.mixed_with`: the all-content prior and the clamped run prior mixed by each
+    row's share in one compiled pass, as the numpy reference computes it; share 0 is the
+    all-content prior alone, exactly."""
+    if model.run_output_prior is None:
+        pytest.skip("no run priors committed")
+    rot = run.rotations[:20]
+    w = np.zeros((20, 6))
+    w[:10, 2], w[10:, [1, 4]] = 1.0, 0.5  # plain rows and mixed rows
+    share = np.tile([0.0, 0.3, 1.0, 0.7], 5)
+    other, ran = model.leaf_prior, model.run_leaf_prior
+    compiled = other.mixed_with(ran, other.bounds, rot, w, share)
+    assert np.all(_apart(compiled, other.mixed_with_numpy(ran, other.bounds, rot, w, share)) < 1e-9)
+    walking = share == 0.0
+    np.testing.assert_array_equal(compiled[walking], other(rot[walking], w[walking]))

@@ -59,6 +59,29 @@ def _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius):
 
 
 @njit(cache=True, error_model="numpy")
+def _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius):
+    """Unit quaternion q of row b, joint j carried toward the styles of w[b] (`carry_batch`)."""
+    if lone >= 0:
+        ox, oy, oz, ow = _toward(qx, qy, qz, qw, lone, j, source, mean, lin, radius)
+        if ox * qx + oy * qy + oz * qz + ow * qw < 0.0:
+            ox, oy, oz, ow = -ox, -oy, -oz, -ow
+        return ox, oy, oz, ow
+    cx = cy = cz = 0.0
+    for s in range(w.shape[1]):
+        ws = w[b, s]
+        if ws == 0.0:
+            continue
+        fx, fy, fz, fw = _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius)
+        # correction log(q^-1 f), weighted
+        lx, ly, lz = _log(*_mul(-qx, -qy, -qz, qw, fx, fy, fz, fw))
+        cx += ws * lx
+        cy += ws * ly
+        cz += ws * lz
+    ex, ey, ez, ew = _exp(cx, cy, cz)
+    return _mul(qx, qy, qz, qw, ex, ey, ez, ew)
+
+
+@njit(cache=True, error_model="numpy")
 def carry_batch(q, w, source, mean, lin, radius, hips, out):
     """out (B, J, 4) = q (B, J, 4) carried toward the styles of weights w (B, S). Joint `hips`
     (-1: none) is carried without its heading, its twist about world up (+Y), which is put back
@@ -81,24 +104,7 @@ def carry_batch(q, w, source, mean, lin, radius, hips, out):
                 if hn > 1e-9:
                     hy, hw = qy / hn, qw / hn
                 qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
-            if lone >= 0:
-                ox, oy, oz, ow = _toward(qx, qy, qz, qw, lone, j, source, mean, lin, radius)
-                if ox * qx + oy * qy + oz * qz + ow * qw < 0.0:
-                    ox, oy, oz, ow = -ox, -oy, -oz, -ow
-            else:
-                cx = cy = cz = 0.0
-                for s in range(S):
-                    ws = w[b, s]
-                    if ws == 0.0:
-                        continue
-                    fx, fy, fz, fw = _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius)
-                    # correction log(q^-1 f), weighted
-                    lx, ly, lz = _log(*_mul(-qx, -qy, -qz, qw, fx, fy, fz, fw))
-                    cx += ws * lx
-                    cy += ws * ly
-                    cz += ws * lz
-                ex, ey, ez, ew = _exp(cx, cy, cz)
-                ox, oy, oz, ow = _mul(qx, qy, qz, qw, ex, ey, ez, ew)
+            ox, oy, oz, ow = _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius)
             if j == hips:
                 ox, oy, oz, ow = _mul(0.0, hy, 0.0, hw, ox, oy, oz, ow)
             out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = ox, oy, oz, ow
@@ -110,3 +116,80 @@ def carry(q: np.ndarray, w: np.ndarray, source, mean, lin, radius, hips: int = -
     q = np.ascontiguousarray(q, np.float64)
     out = np.empty_like(q)
     return carry_batch(q, np.ascontiguousarray(w, np.float64), source, mean, lin, radius, hips, out)
+
+
+@njit(cache=True, error_model="numpy")
+def _correction(qx, qy, qz, qw, fx, fy, fz, fw):
+    """log(q^-1 f): the rotation vector taking q to f."""
+    return _log(*_mul(-qx, -qy, -qz, qw, fx, fy, fz, fw))
+
+
+@njit(cache=True, error_model="numpy")
+def carry_pair_batch(q, w, share, a, b, c, hips, out):
+    """out (B, J, 4): each row's rotations carried toward the styles of w (B, S) by two carries
+    mixed by the row's share (B,) in [0, 1]: carry `a` (source, mean, lin, radius) and carry `b`
+    followed by carry `c`, both with the row's weights:
+
+        q exp(sum_s w_s [(1 - r) log(q^-1 a_s(q)) + r log(q^-1 c_s(b_s(q)))])
+
+    A row with one style at weight 1 and share 0 or 1 takes a_s(q) or c_s(b_s(q)) itself, in
+    q's hemisphere (the same rotation, without the log and exp). Joint `hips` as in `carry_batch`."""
+    B, J = q.shape[0], q.shape[1]
+    S = w.shape[1]
+    for row in range(B):
+        lone = -1
+        for s in range(S):
+            if w[row, s] != 0.0:
+                lone = s if lone == -1 and w[row, s] == 1.0 else -2
+        r = share[row]
+        for j in range(J):
+            n = math.sqrt(q[row, j, 0] ** 2 + q[row, j, 1] ** 2 + q[row, j, 2] ** 2 + q[row, j, 3] ** 2)
+            qx, qy, qz, qw = q[row, j, 0] / n, q[row, j, 1] / n, q[row, j, 2] / n, q[row, j, 3] / n
+            hy, hw = 0.0, 1.0
+            if j == hips:
+                hn = math.sqrt(qy * qy + qw * qw)
+                if hn > 1e-9:
+                    hy, hw = qy / hn, qw / hn
+                qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
+            if lone >= 0 and (r == 0.0 or r == 1.0):
+                if r == 0.0:
+                    ox, oy, oz, ow = _toward(qx, qy, qz, qw, lone, j, a[0], a[1], a[2], a[3])
+                else:
+                    bx, by, bz, bw = _toward(qx, qy, qz, qw, lone, j, b[0], b[1], b[2], b[3])
+                    ox, oy, oz, ow = _toward(bx, by, bz, bw, lone, j, c[0], c[1], c[2], c[3])
+                if ox * qx + oy * qy + oz * qz + ow * qw < 0.0:
+                    ox, oy, oz, ow = -ox, -oy, -oz, -ow
+            else:
+                cx = cy = cz = 0.0
+                for s in range(S):
+                    ws = w[row, s]
+                    if ws == 0.0:
+                        continue
+                    if r < 1.0:
+                        fx, fy, fz, fw = _toward(qx, qy, qz, qw, s, j, a[0], a[1], a[2], a[3])
+                        lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)
+                        k = ws * (1.0 - r)
+                        cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
+                    if r > 0.0:
+                        bx, by, bz, bw = _toward(qx, qy, qz, qw, s, j, b[0], b[1], b[2], b[3])
+                        fx, fy, fz, fw = _toward(bx, by, bz, bw, s, j, c[0], c[1], c[2], c[3])
+                        lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)
+                        k = ws * r
+                        cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
+                ex, ey, ez, ew = _exp(cx, cy, cz)
+                ox, oy, oz, ow = _mul(qx, qy, qz, qw, ex, ey, ez, ew)
+            if j == hips:
+                ox, oy, oz, ow = _mul(0.0, hy, 0.0, hw, ox, oy, oz, ow)
+            out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = ox, oy, oz, ow
+    return out
+
+
+def carry_pair(
+    q: np.ndarray, w: np.ndarray, share: np.ndarray, a: tuple, b: tuple, c: tuple, hips: int = -1
+) -> np.ndarray:
+    """`carry_pair_batch` on any (B, J, 4) rotations, (B, S) weights and (B,) shares; a, b, c:
+    (source, mean, lin, radius) of each carry."""
+    q = np.ascontiguousarray(q, np.float64)
+    out = np.empty_like(q)
+    w, share = np.ascontiguousarray(w, np.float64), np.ascontiguousarray(share, np.float64)
+    return carry_pair_batch(q, w, share, a, b, c, hips, out)
