@@ -89,13 +89,9 @@ def without_heading(rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return heading, out
 
 
-def carry_output(prior: StyleCarry, rot: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The output prior on rotations (B, J, 4): the Hips carried without their heading (compiled;
-    `carry_output_numpy` is the reference)."""
-    return prior(rot, weights, hips=HIPS)
-
-
 def carry_output_numpy(prior: StyleCarry, rot: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The numpy reference of the output prior on rotations (B, J, 4), the Hips carried without
+    their heading: what `prior(rot, weights, hips=HIPS)` computes compiled."""
     heading, free = without_heading(rot)
     out = prior.apply_numpy(free, weights)
     out[:, HIPS] = quat_mul(heading, out[:, HIPS])

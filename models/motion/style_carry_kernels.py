@@ -59,21 +59,64 @@ def _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius):
 
 
 @njit(cache=True, error_model="numpy")
+def _correction(qx, qy, qz, qw, fx, fy, fz, fw):
+    """log(q^-1 f): the rotation vector taking q to f."""
+    return _log(*_mul(-qx, -qy, -qz, qw, fx, fy, fz, fw))
+
+
+@njit(cache=True, error_model="numpy")
+def _lone(w, b):
+    """Row b's one style at weight 1 if that is all it has (no mix, no intensity), else < 0."""
+    lone = -1
+    for s in range(w.shape[1]):
+        if w[b, s] != 0.0:
+            lone = s if lone == -1 and w[b, s] == 1.0 else -2
+    return lone
+
+
+@njit(cache=True, error_model="numpy")
+def _unit(q, b, j, hips):
+    """q[b, j] normalised, and for joint `hips` without its heading (its twist about world up):
+    (qx, qy, qz, qw, hy, hw), the heading being (0, hy, 0, hw) (identity for other joints)."""
+    n = math.sqrt(q[b, j, 0] ** 2 + q[b, j, 1] ** 2 + q[b, j, 2] ** 2 + q[b, j, 3] ** 2)
+    qx, qy, qz, qw = q[b, j, 0] / n, q[b, j, 1] / n, q[b, j, 2] / n, q[b, j, 3] / n
+    hy, hw = 0.0, 1.0
+    if j == hips:
+        hn = math.sqrt(qy * qy + qw * qw)
+        if hn > 1e-9:
+            hy, hw = qy / hn, qw / hn
+        qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
+    return qx, qy, qz, qw, hy, hw
+
+
+@njit(cache=True, error_model="numpy")
+def _store(out, b, j, hips, hy, hw, ox, oy, oz, ow):
+    """out[b, j] = o, with the heading `_unit` took off joint `hips` put back."""
+    if j == hips:
+        ox, oy, oz, ow = _mul(0.0, hy, 0.0, hw, ox, oy, oz, ow)
+    out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = ox, oy, oz, ow
+
+
+@njit(cache=True, error_model="numpy")
+def _same_side(qx, qy, qz, qw, ox, oy, oz, ow):
+    """o in q's hemisphere (the same rotation): a stream's quaternions never flip sign."""
+    if ox * qx + oy * qy + oz * qz + ow * qw < 0.0:
+        return -ox, -oy, -oz, -ow
+    return ox, oy, oz, ow
+
+
+@njit(cache=True, error_model="numpy")
 def _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius):
     """Unit quaternion q of row b, joint j carried toward the styles of w[b] (`carry_batch`)."""
     if lone >= 0:
-        ox, oy, oz, ow = _toward(qx, qy, qz, qw, lone, j, source, mean, lin, radius)
-        if ox * qx + oy * qy + oz * qz + ow * qw < 0.0:
-            ox, oy, oz, ow = -ox, -oy, -oz, -ow
-        return ox, oy, oz, ow
+        return _same_side(qx, qy, qz, qw, *_toward(qx, qy, qz, qw, lone, j, source, mean, lin, radius))
     cx = cy = cz = 0.0
     for s in range(w.shape[1]):
         ws = w[b, s]
         if ws == 0.0:
             continue
         fx, fy, fz, fw = _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius)
-        # correction log(q^-1 f), weighted
-        lx, ly, lz = _log(*_mul(-qx, -qy, -qz, qw, fx, fy, fz, fw))
+        lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)  # weighted
         cx += ws * lx
         cy += ws * ly
         cz += ws * lz
@@ -85,29 +128,16 @@ def _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius):
 def carry_batch(q, w, source, mean, lin, radius, hips, out):
     """out (B, J, 4) = q (B, J, 4) carried toward the styles of weights w (B, S). Joint `hips`
     (-1: none) is carried without its heading, its twist about world up (+Y), which is put back
-    after (`rotation_prior.carry_output`'s numpy reference). A row with one style at weight 1 (no
-    mix, no intensity) takes f_s(q) itself, in q's hemisphere: the blend q exp(log(q^-1 f_s(q)))
-    is the same rotation, and skipping its log and exp halves the kernel's cost for such rows."""
-    B, J = q.shape[0], q.shape[1]
-    S = w.shape[1]
-    for b in range(B):
-        lone = -1  # the row's one style at weight 1, if that is all it has
-        for s in range(S):
-            if w[b, s] != 0.0:
-                lone = s if lone == -1 and w[b, s] == 1.0 else -2
-        for j in range(J):
-            n = math.sqrt(q[b, j, 0] ** 2 + q[b, j, 1] ** 2 + q[b, j, 2] ** 2 + q[b, j, 3] ** 2)
-            qx, qy, qz, qw = q[b, j, 0] / n, q[b, j, 1] / n, q[b, j, 2] / n, q[b, j, 3] / n
-            hy, hw = 0.0, 1.0  # heading (0, hy, 0, hw)
-            if j == hips:
-                hn = math.sqrt(qy * qy + qw * qw)
-                if hn > 1e-9:
-                    hy, hw = qy / hn, qw / hn
-                qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
+    after (`rotation_prior.carry_output_numpy` is the numpy reference). A row with one style at
+    weight 1 (no mix, no intensity) takes f_s(q) itself, in q's hemisphere: the blend
+    q exp(log(q^-1 f_s(q))) is the same rotation, and skipping its log and exp halves the
+    kernel's cost for such rows."""
+    for b in range(q.shape[0]):
+        lone = _lone(w, b)
+        for j in range(q.shape[1]):
+            qx, qy, qz, qw, hy, hw = _unit(q, b, j, hips)
             ox, oy, oz, ow = _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius)
-            if j == hips:
-                ox, oy, oz, ow = _mul(0.0, hy, 0.0, hw, ox, oy, oz, ow)
-            out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = ox, oy, oz, ow
+            _store(out, b, j, hips, hy, hw, ox, oy, oz, ow)
     return out
 
 
@@ -119,12 +149,6 @@ def carry(q: np.ndarray, w: np.ndarray, source, mean, lin, radius, hips: int = -
 
 
 @njit(cache=True, error_model="numpy")
-def _correction(qx, qy, qz, qw, fx, fy, fz, fw):
-    """log(q^-1 f): the rotation vector taking q to f."""
-    return _log(*_mul(-qx, -qy, -qz, qw, fx, fy, fz, fw))
-
-
-@njit(cache=True, error_model="numpy")
 def carry_pair_batch(q, w, share, a, b, c, hips, out):
     """out (B, J, 4): each row's rotations carried toward the styles of w (B, S) by two carries
     mixed by the row's share (B,) in [0, 1]: carry `a` (source, mean, lin, radius) and carry `b`
@@ -133,35 +157,22 @@ def carry_pair_batch(q, w, share, a, b, c, hips, out):
         q exp(sum_s w_s [(1 - r) log(q^-1 a_s(q)) + r log(q^-1 c_s(b_s(q)))])
 
     A row with one style at weight 1 and share 0 or 1 takes a_s(q) or c_s(b_s(q)) itself, in
-    q's hemisphere (the same rotation, without the log and exp). Joint `hips` as in `carry_batch`."""
-    B, J = q.shape[0], q.shape[1]
-    S = w.shape[1]
-    for row in range(B):
-        lone = -1
-        for s in range(S):
-            if w[row, s] != 0.0:
-                lone = s if lone == -1 and w[row, s] == 1.0 else -2
+    q's hemisphere (the same rotation, without the log and exp); at share 0 every row is what
+    `carry_batch` with `a` gives it. Joint `hips` as in `carry_batch`."""
+    for row in range(q.shape[0]):
+        lone = _lone(w, row)
         r = share[row]
-        for j in range(J):
-            n = math.sqrt(q[row, j, 0] ** 2 + q[row, j, 1] ** 2 + q[row, j, 2] ** 2 + q[row, j, 3] ** 2)
-            qx, qy, qz, qw = q[row, j, 0] / n, q[row, j, 1] / n, q[row, j, 2] / n, q[row, j, 3] / n
-            hy, hw = 0.0, 1.0
-            if j == hips:
-                hn = math.sqrt(qy * qy + qw * qw)
-                if hn > 1e-9:
-                    hy, hw = qy / hn, qw / hn
-                qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
-            if lone >= 0 and (r == 0.0 or r == 1.0):
-                if r == 0.0:
-                    ox, oy, oz, ow = _toward(qx, qy, qz, qw, lone, j, a[0], a[1], a[2], a[3])
-                else:
-                    bx, by, bz, bw = _toward(qx, qy, qz, qw, lone, j, b[0], b[1], b[2], b[3])
-                    ox, oy, oz, ow = _toward(bx, by, bz, bw, lone, j, c[0], c[1], c[2], c[3])
-                if ox * qx + oy * qy + oz * qz + ow * qw < 0.0:
-                    ox, oy, oz, ow = -ox, -oy, -oz, -ow
+        for j in range(q.shape[1]):
+            qx, qy, qz, qw, hy, hw = _unit(q, row, j, hips)
+            if r == 0.0:
+                ox, oy, oz, ow = _carry_joint(qx, qy, qz, qw, row, j, w, lone, a[0], a[1], a[2], a[3])
+            elif lone >= 0 and r == 1.0:
+                bx, by, bz, bw = _toward(qx, qy, qz, qw, lone, j, b[0], b[1], b[2], b[3])
+                fx, fy, fz, fw = _toward(bx, by, bz, bw, lone, j, c[0], c[1], c[2], c[3])
+                ox, oy, oz, ow = _same_side(qx, qy, qz, qw, fx, fy, fz, fw)
             else:
                 cx = cy = cz = 0.0
-                for s in range(S):
+                for s in range(w.shape[1]):
                     ws = w[row, s]
                     if ws == 0.0:
                         continue
@@ -170,17 +181,14 @@ def carry_pair_batch(q, w, share, a, b, c, hips, out):
                         lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)
                         k = ws * (1.0 - r)
                         cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
-                    if r > 0.0:
-                        bx, by, bz, bw = _toward(qx, qy, qz, qw, s, j, b[0], b[1], b[2], b[3])
-                        fx, fy, fz, fw = _toward(bx, by, bz, bw, s, j, c[0], c[1], c[2], c[3])
-                        lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)
-                        k = ws * r
-                        cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
+                    bx, by, bz, bw = _toward(qx, qy, qz, qw, s, j, b[0], b[1], b[2], b[3])
+                    fx, fy, fz, fw = _toward(bx, by, bz, bw, s, j, c[0], c[1], c[2], c[3])
+                    lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)
+                    k = ws * r
+                    cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
                 ex, ey, ez, ew = _exp(cx, cy, cz)
                 ox, oy, oz, ow = _mul(qx, qy, qz, qw, ex, ey, ez, ew)
-            if j == hips:
-                ox, oy, oz, ow = _mul(0.0, hy, 0.0, hw, ox, oy, oz, ow)
-            out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = ox, oy, oz, ow
+            _store(out, row, j, hips, hy, hw, ox, oy, oz, ow)
     return out
 
 
