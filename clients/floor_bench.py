@@ -21,15 +21,13 @@ from .loadtest import Result, _cpu_seconds, _spawn, free_port, run, spawned_serv
 VARIANTS = ("echo", "service", "identity")
 
 
-def _identity_step(state, frames, style_weights):
-    from models.interface import FrameBatch
-
-    return FrameBatch(frames.root.copy(), frames.rotations.copy()), state
-
-
 def serve_identity(argv: list[str]) -> None:
     """`stylestream serve` with each loaded model's `step_batch` an identity (the child process)."""
     import models.registry as registry
+    from models.interface import FrameBatch
+
+    def _identity_step(state, frames, style_weights):  # on the measured frame path: no import in it
+        return FrameBatch(frames.root.copy(), frames.rotations.copy()), state
 
     load = registry.load_models
 
