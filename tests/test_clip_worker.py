@@ -106,13 +106,36 @@ def test_the_cpu_budget_counts_cpu_not_time_spent_waiting():
 
 
 def test_a_child_given_no_cpu_in_time_is_killed_and_answered_busy(bn_walk):
-    """The wall-clock limit: the server was too busy to decode in time, not the clip's fault."""
+    """The wall-clock limit: the server was too busy to decode in time, not the clip's fault. The
+    child is stopped (SIGSTOP), so it truly gets no CPU, however fast or loaded the machine."""
+    import multiprocessing
+    import signal
+
     walk = bn_walk.slice(0, 60)
     decoder = ClipDecoder(BUDGET, concurrency=1)
-    clip = ("json", json_body(walk), "")
-    busy, fresh = decode_all(decoder, [clip, clip], walk.skeleton, [dataclasses.replace(BUDGET, wall_s=0.001), BUDGET])
+    body = json_body(walk)
+
+    async def run() -> list:
+        before = set(multiprocessing.active_children())
+        first = await decoder.decode("json", body, {"model": "lpn"}, {"lpn": walk.skeleton})
+        (child,) = set(multiprocessing.active_children()) - before  # idle, kept for the next clip
+        os.kill(child.pid, signal.SIGSTOP)
+        decoder.budget = dataclasses.replace(BUDGET, wall_s=0.2)
+        busy: object = None
+        try:
+            await decoder.decode("json", body, {"model": "lpn"}, {"lpn": walk.skeleton})
+        except ApiError as err:
+            busy = err
+        decoder.budget = BUDGET
+        fresh = await decoder.decode("json", body, {"model": "lpn"}, {"lpn": walk.skeleton})
+        await in_background(decoder.close)
+        return [first, busy, fresh, child.is_alive()]
+
+    first, busy, fresh, stopped_alive = asyncio.run(run())
+    assert first.motion.num_frames == 60
     assert isinstance(busy, ApiError) and (busy.status, busy.code) == (503, "server_busy")
     assert busy.headers == {"Retry-After": "30"}
+    assert not stopped_alive  # killed, not left stopped
     assert fresh.motion.num_frames == 60 and decoder.started == 2
 
 
