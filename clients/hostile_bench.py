@@ -278,7 +278,7 @@ def main() -> None:
     )
     ap.add_argument("--checkout", type=Path, help="run the server of another checkout of the repository (before/after)")
     args = ap.parse_args()
-    root, rot = real_frames(120)
+    root, rot = real_frames(240, 60.0)  # the healthy session sends at 60 fps: the walk at its own speed
     frames = [
         json.dumps({"type": "frame", "seq": 0, "root": r.tolist(), "rotations": q.tolist()}) for r, q in zip(root, rot)
     ]

@@ -152,7 +152,7 @@ async def soak(
     """Stream `sessions` open-loop sessions (loadtest's session, reopened every `session_seconds`,
     staggered) for `minutes`, sampling the server every `interval_s`. Returns (samples, client
     round trips in ms, frames the server reported dropped)."""
-    root, rot = real_frames()
+    root, rot = real_frames(round(300 * fps / 30.0), fps)  # the walk at its own speed at `fps`
     payload = np.concatenate([root, rot.reshape(len(rot), -1)], axis=1).astype("<f4")
     start = {"type": "start", "model": model, "style": style, "encoding": "binary", "fps": fps}
     base = url.replace("ws", "http", 1).replace("/v1/stream", "")

@@ -34,7 +34,7 @@ BLEND = [("/VMC/Ext/Blend/Val", [name, 0.0]) for name in ("A", "I", "U", "E", "O
 EXTRA_BONES = {"LeftEye": (0.03, 0.07, 0.08), "RightEye": (-0.03, 0.07, 0.08), "Jaw": (0.0, 0.0, 0.05)}
 
 
-def sender_frames(n: int) -> tuple[list[str], np.ndarray, np.ndarray]:
+def sender_frames(n: int, fps: float) -> tuple[list[str], np.ndarray, np.ndarray]:
     """(bone names, local positions (n, B, 3), rotations (n, B, 4)) of a real walk on a Unity
     humanoid avatar, in VMC's Unity axes and metres."""
     from models.motion.humanoid import preset_rig
@@ -42,7 +42,7 @@ def sender_frames(n: int) -> tuple[list[str], np.ndarray, np.ndarray]:
 
     from .loadtest import real_frames
 
-    root, rot = real_frames(n)
+    root, rot = real_frames(n, fps)  # the walk at its own speed at `fps`
     rig = preset_rig("unity")
     sk = rig.skeleton
     rest = np.tile([0.0, 0.0, 0.0, 1.0], (n, sk.num_joints, 1))
@@ -130,7 +130,7 @@ def main(argv: list[str]) -> int:
     p.add_argument("--frames", type=int, default=600, help="measured frames per path (two turns of half)")
     p.add_argument("--fps", type=float, default=60.0)
     args = p.parse_args(argv)
-    names, pos, rot = sender_frames(args.frames + 60)
+    names, pos, rot = sender_frames(args.frames + 60, args.fps)
     data = bundles(names, pos, rot, args.fps)
     arm_in = rot[:, names.index("LeftUpperArm")]
     # the model input the bridge makes of each frame, for the direct path
