@@ -27,6 +27,7 @@ from .sessions import Snapshot
 log = logging.getLogger(__name__)
 
 KEY_PREFIX = "stylestream:snapshot:"
+WRITE_CHUNK = 64  # snapshots per Redis pipeline (`RedisStore.write`)
 
 
 class StoreUnavailable(RuntimeError):
@@ -81,7 +82,7 @@ class MemoryStore(SessionStore):
 
 class RedisStore(SessionStore):
     """Shared by every replica pointing at the same Redis: `SET key json PX ttl` per snapshot
-    (`Snapshot.to_json`), pipelined. Short socket timeouts and a single retry, so an outage costs
+    (`Snapshot.to_bytes`), pipelined. Short socket timeouts and a single retry, so an outage costs
     a failed write within about a second rather than stalling the writer."""
 
     def __init__(self, url: str, ttl_s: float, timeout_s: float = 1.0) -> None:
@@ -99,22 +100,28 @@ class RedisStore(SessionStore):
         from redis.exceptions import RedisError
 
         try:
-            text = await self.redis.get(KEY_PREFIX + token)
+            data = await self.redis.get(KEY_PREFIX + token)
         except (RedisError, OSError) as exc:
             raise StoreUnavailable(f"session store {self.url}: {exc}") from exc
-        return Snapshot.from_json(text) if text is not None else None
+        return Snapshot.from_bytes(data) if data is not None else None
 
     async def write(self, puts: dict[str, Snapshot], deletes: list[str]) -> None:
         from redis.exceptions import RedisError
 
         ttl_ms = int(self.ttl_s * 1000)
+        puts_left, deletes_left = list(puts.items()), list(deletes)
         try:
-            async with self.redis.pipeline(transaction=False) as pipe:
-                for token, snap in puts.items():
-                    pipe.set(KEY_PREFIX + token, snap.to_json(), px=ttl_ms)
-                for token in deletes:
-                    pipe.delete(KEY_PREFIX + token)
-                await pipe.execute()
+            while puts_left or deletes_left:
+                # a pipeline per WRITE_CHUNK snapshots: each is encoded on the event loop, and a
+                # crowd's thousands at once would hold its streams for tens of milliseconds
+                chunk, puts_left = puts_left[:WRITE_CHUNK], puts_left[WRITE_CHUNK:]
+                gone, deletes_left = deletes_left[: WRITE_CHUNK - len(chunk)], deletes_left[WRITE_CHUNK - len(chunk) :]
+                async with self.redis.pipeline(transaction=False) as pipe:
+                    for token, snap in chunk:
+                        pipe.set(KEY_PREFIX + token, snap.to_bytes(), px=ttl_ms)
+                    for token in gone:
+                        pipe.delete(KEY_PREFIX + token)
+                    await pipe.execute()
         except (RedisError, OSError) as exc:
             raise StoreUnavailable(f"session store {self.url}: {exc}") from exc
 

@@ -52,8 +52,9 @@ class Held(NamedTuple):
 @dataclass
 class Snapshot:
     """Everything needed to continue a session exactly where it left off. Held in memory as is
-    (model states are never modified in place, so no copy is needed); `to_json`/`from_json` give
-    the portable form for a shared store."""
+    (model states are never modified in place, so no copy is needed); `to_bytes`/`from_bytes`
+    give the portable form for a shared store (`from_bytes` also reads `to_json`'s, the form
+    stores held before)."""
 
     session_id: str
     token: str
@@ -78,7 +79,48 @@ class Snapshot:
     )  # the start message's rig options (joints, joint_map, units, up, handedness)
     owner: str = ""  # the tenant that opened it (`limits.Principal.tenant`): only it may resume
 
+    def to_bytes(self) -> bytes:
+        """`SNAPSHOT_MAGIC`, one line of JSON (the other fields, and each array's name, dtype and
+        shape), then the arrays' raw bytes: exact. A crowd snapshots every character every
+        `snapshot_every` ticks on the event loop; JSON with base64 arrays took ~50 us a character
+        (JSON's scan of ~12 kB of text), this ~6 us, and stores ~40 % fewer bytes."""
+        header = {k: v for k, v in self.__dict__.items() if k not in ARRAY_FIELDS}
+        layout: dict[str, list[list]] = {}
+        blobs: list[memoryview] = []
+        for group in ARRAY_FIELDS:
+            layout[group] = []
+            for name, value in getattr(self, group).items():
+                array = np.asarray(value)
+                array = array if array.flags.c_contiguous else array.copy()  # ascontiguousarray makes 0-d 1-d
+                layout[group].append([name, array.dtype.str, list(array.shape)])
+                blobs.append(array.data)
+        header["arrays"] = layout
+        return b"".join([SNAPSHOT_MAGIC, json.dumps(header).encode(), b"\n", *blobs])
+
+    @classmethod
+    def from_bytes(cls, data: bytes | str) -> Snapshot:
+        """A snapshot from `to_bytes`, or from `to_json` (written by a replica of an earlier
+        version: a rolling upgrade resumes its sessions)."""
+        if isinstance(data, str) or data[:1] == b"{":
+            return cls.from_json(data)
+        if not data.startswith(SNAPSHOT_MAGIC):
+            raise ValueError("not a stylestream session snapshot")
+        end = data.index(b"\n", len(SNAPSHOT_MAGIC))
+        fields = json.loads(data[len(SNAPSHOT_MAGIC) : end])
+        offset = end + 1
+        for group, arrays in fields.pop("arrays").items():
+            fields[group] = {}
+            for name, dtype, shape in arrays:
+                kind = np.dtype(dtype)
+                count = int(np.prod(shape, dtype=np.int64))
+                fields[group][name] = np.frombuffer(data, kind, count, offset).reshape(shape).copy()
+                offset += count * kind.itemsize
+        if offset != len(data):
+            raise ValueError("session snapshot: its arrays do not fill it")
+        return cls(**fields)
+
     def to_json(self) -> str:
+        """The form stores held before `to_bytes` (still read by `from_bytes`)."""
         return json.dumps(
             {
                 **self.__dict__,
@@ -94,6 +136,10 @@ class Snapshot:
         for name in ("held", "state", "last_output"):
             data[name] = decode_state(data.get(name) or {})
         return cls(**data)
+
+
+SNAPSHOT_MAGIC = b"stylestream-snapshot/2\n"
+ARRAY_FIELDS = ("held", "state", "last_output")  # a snapshot's fields that are {name: array}
 
 
 def encode_state(state: State) -> dict[str, dict]:
