@@ -189,3 +189,54 @@ def output_pose(x, y, yaw, has_prev, prev_root, root, rot_in, fps):
             out_root[b, i] = prev_root[b, i] + step[i] / fps if has_prev[b] else root[b, i]
         out_root[b, 1] = x[b, 4 * nb + 1] + y[b, 4 * nb + 3]  # Hips height: first position feature's y + offset
     return out_root, out_rot
+
+
+# --------------------------------------------------------------------------- the LSTM cell around its products
+# The network's products stay BLAS calls (`models.rowwise`) and its sigmoids torch's; these do the
+# elementwise rest of a layer in one pass each, with the state's (B, branches, layers, H) layout read
+# and written in place of numpy's transposed copies and temporaries (~1 ms of a 1,000-row step). The
+# arithmetic is numpy's, operation for operation in the arrays' own dtype (2x as x + x, exact), so
+# the outputs are the same bits.
+
+
+@njit(cache=True, error_model="numpy")
+def lstm_inputs(inp, hs, layer, xin):
+    """xin (K, B, 2H) = [inp, hs[:, :, layer] per branch]: inp (K, B, H) (the encoding broadcast
+    over the branches for the first layer), hs the state's (B, K, layers, H)."""
+    K, B, H = inp.shape
+    for k in range(K):
+        for b in range(B):
+            for j in range(H):
+                xin[k, b, j] = inp[k, b, j]
+                xin[k, b, H + j] = hs[b, k, layer, j]
+    return xin
+
+
+@njit(cache=True, error_model="numpy")
+def lstm_cell(s, cs, layer, one, new_c, twice_c):
+    """From the sigmoids s (K, B, 4H) of gates i, f, g, o (g's tanh as 2 sigmoid - 1): the new cell
+    c = f c_prev + i (2 s_g - 1) into new_c (B, K, layers, H) at `layer`, and 2c (K, B, H), whose
+    sigmoid gives tanh(c)."""
+    K, B, H = twice_c.shape
+    for k in range(K):
+        for b in range(B):
+            for j in range(H):
+                g = s[k, b, 2 * H + j]
+                c = s[k, b, H + j] * cs[b, k, layer, j] + s[k, b, j] * ((g + g) - one)
+                new_c[b, k, layer, j] = c
+                twice_c[k, b, j] = c + c
+    return twice_c
+
+
+@njit(cache=True, error_model="numpy")
+def lstm_hidden(s, sig_twice_c, layer, one, new_h, out):
+    """h = o tanh(c) = s_o (2 sigmoid(2c) - 1) into out (K, B, H) and new_h (B, K, layers, H)."""
+    K, B, H = out.shape
+    for k in range(K):
+        for b in range(B):
+            for j in range(H):
+                t = sig_twice_c[k, b, j]
+                h = s[k, b, 3 * H + j] * ((t + t) - one)
+                out[k, b, j] = h
+                new_h[b, k, layer, j] = h
+    return out

@@ -290,18 +290,17 @@ class ERDModel:
         z = h
         hs, cs = state["h"].astype(dt, copy=False), state["c"].astype(dt, copy=False)  # (B, 7, layers, H)
         new_h, new_c = np.empty_like(hs), np.empty_like(cs)
-        inp = z  # every branch reads the encoding
+        K, one = len(self.branches), dt.type(1.0)
+        inp = np.broadcast_to(z, (K, B, H))  # every branch reads the encoding
         xin, g = self._workspace(B)
         for l in range(self.Ln):
             # [input, hidden] (7, B, 2H) @ (7, 2H, 4H): the branch axis first, as np.matmul batches over it
-            xin[..., :H], xin[..., H:] = inp, hs[:, :, l].transpose(1, 0, 2)
+            kernels.lstm_inputs(inp, hs, l, xin)
             g[...] = matmul_rows(xin, self.lstm_w[l])  # each row as if alone (`models.rowwise`)
             g += self.lstm_b[l]
-            s = _sigmoid_(g)  # i, f, o gates; g gate = 2 s - 1
-            c = s[..., H : 2 * H] * cs[:, :, l].transpose(1, 0, 2) + s[..., :H] * (2.0 * s[..., 2 * H : 3 * H] - 1.0)
-            new_c[:, :, l] = c.transpose(1, 0, 2)
-            inp = s[..., 3 * H :] * (2.0 * _sigmoid_(2.0 * c) - 1.0)  # o * tanh(c)
-            new_h[:, :, l] = inp.transpose(1, 0, 2)
+            s = _sigmoid_(g)  # i, f, g, o gates through the sigmoid; the g gate's tanh = 2 s - 1
+            twice_c = kernels.lstm_cell(s, cs, l, one, new_c, np.empty((K, B, H), dt))
+            inp = kernels.lstm_hidden(s, _sigmoid_(twice_c), l, one, new_h, np.empty((K, B, H), dt))  # o tanh(c)
         weights = np.empty((B, len(self.branches)), dt)
         weights[:, 0] = 1.0
         weights[:, 1:] = w
