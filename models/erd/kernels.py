@@ -1,5 +1,6 @@
 """Compiled kernels (numba) for Style-ERD's per-frame geometry: forward kinematics, the causal
-input features and the output pose. The network itself stays in numpy (BLAS matrix products).
+input features and the output pose; and the LSTM cell's elementwise passes around the network's
+products, which stay BLAS calls (`models.rowwise`).
 
 Why compiled: these steps are per-joint loops over 22 joints; as vectorised numpy they took
 ~100 small numpy calls per frame (the forward kinematics alone a Python loop over the joints),
