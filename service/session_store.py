@@ -103,7 +103,13 @@ class RedisStore(SessionStore):
             data = await self.redis.get(KEY_PREFIX + token)
         except (RedisError, OSError) as exc:
             raise StoreUnavailable(f"session store {self.url}: {exc}") from exc
-        return Snapshot.from_bytes(data) if data is not None else None
+        if data is None:
+            return None
+        try:
+            return Snapshot.from_bytes(data)
+        except (ValueError, TypeError, KeyError) as exc:  # damaged, or another program's value under our key
+            log.warning("unreadable session snapshot under token %s…, taken as unknown: %s", token[:8], exc)
+            return None
 
     async def write(self, puts: dict[str, Snapshot], deletes: list[str]) -> None:
         from redis.exceptions import RedisError

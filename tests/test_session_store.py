@@ -16,6 +16,7 @@ from models.registry import load_models
 from models.settings import get_settings
 from service.metrics import Metrics
 from service.session_store import (
+    KEY_PREFIX,
     MemoryStore,
     RedisStore,
     SessionStore,
@@ -126,6 +127,25 @@ def test_stores_keep_replace_delete_and_expire_snapshots(kind, request):
             assert await store.get("b") is None and await store.get("never") is None
             await asyncio.sleep(0.7)
             assert await store.get("a") is None  # expired after resume_ttl_s
+        finally:
+            await store.close()
+
+    asyncio.run(run())
+
+
+def test_an_unreadable_value_in_redis_is_an_unknown_snapshot_not_a_crash(redis_url):
+    """A damaged value, or another program's under our key: the resume gets `unknown_resume_token`."""
+
+    async def run():
+        store = RedisStore(redis_url, ttl_s=60)
+        try:
+            kept = snapshot("ok")
+            good = kept.to_bytes()
+            for token, value in (("cut", good[:-3]), ("foreign", b"PNG..."), ("json", b'{"a": 1}')):
+                await store.redis.set(KEY_PREFIX + token, value)
+                assert await store.get(token) is None
+            await store.redis.set(KEY_PREFIX + "ok", good)
+            assert_same(await store.get("ok"), kept)
         finally:
             await store.close()
 
