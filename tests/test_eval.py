@@ -86,3 +86,20 @@ def test_eval_end_to_end_quick(tmp_path):
     assert set(saved["methods"]) == set(r["methods"])
     assert "| identity |" in (tmp_path / "evaluation.md").read_text()
     assert list((tmp_path / "eval").glob("grid_*.png"))
+
+
+def test_a_missed_accuracy_gate_says_how_many_clips_short_it_is():
+    """30 of 34 is 88 %: one clip short of 90 % (31 of 34); passed gates are not listed."""
+    from models.eval.run import _clips_short
+
+    def row(style: float, content: float, clips: int) -> dict:
+        ok = {"value": 1.0, "pass": True}
+        return {
+            "style": {"value": style, "pass": style >= 0.9},
+            "style_rot": ok,
+            "content": {"value": content, "pass": content >= 0.9},
+            "clips": clips,
+        }
+
+    gates = {"erd": {"elderly": row(30 / 34, 1.0, 34), "fmd": {}}, "lpn": {"active": row(1.0, 7 / 13, 13)}}
+    assert _clips_short(gates) == ["erd elderly style 30 of 34, 1 short", "lpn active content 7 of 13, 5 short"]

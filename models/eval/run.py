@@ -9,6 +9,7 @@ truncated back to each clip's own length afterwards."""
 from __future__ import annotations
 
 import json
+import math
 import platform
 import time
 from dataclasses import replace
@@ -312,6 +313,7 @@ def gates(r: dict, running: bool = False) -> dict:
             }
             out[name][s] = {k: {"value": v, "pass": bool(ok)} for k, (v, ok) in checks.items()}
             out[name][s]["slide"]["limit"] = slide_limit
+            out[name][s]["clips"] = p["clips"]
             out[name][s]["all"] = all(ok for _, ok in checks.values())
         if name in FMD_BEFORE and not running:
             fmd = m["overall"]["fmd"]
@@ -375,7 +377,31 @@ def _gates_markdown(r: dict) -> list[str]:
         if "fmd" in v
     )
     lines += ["", f"**{passed} of {total}** method × style rows pass every gate. FMD: {fmd}.", ""]
+    short = _clips_short(g)
+    if short:
+        lines += [
+            "How far each missed accuracy gate is, in clips of the row's inputs (one clip moves a row of n "
+            "clips by 1/n): " + "; ".join(short) + ".",
+            "",
+        ]
     return lines
+
+
+def _clips_short(g: dict) -> list[str]:
+    """'method style judge: k of n clips, m short' for every accuracy gate a row misses."""
+    labels = {"style": "style", "style_rot": "style (rot)", "content": "content"}
+    limits = {"style": GATE_STYLE, "style_rot": GATE_STYLE, "content": GATE_CONTENT}
+    out = []
+    for name, per in g.items():
+        for s, c in per.items():
+            if s == "fmd":
+                continue
+            n = c["clips"]
+            for key, label in labels.items():
+                if not c[key]["pass"]:
+                    have, need = round(c[key]["value"] * n), math.ceil(limits[key] * n - 1e-9)
+                    out.append(f"{name} {s} {label} {have} of {n}, {need - have} short")
+    return out
 
 
 def _running_markdown(r: dict) -> list[str]:
