@@ -146,7 +146,7 @@ def median_speed(clips: list) -> float:
     return float(np.median(np.concatenate(speeds)))
 
 
-def _train_clips(dataset: str) -> Callable[[str, tuple[str, ...]], list]:
+def train_clips(dataset: str) -> Callable[[str, tuple[str, ...]], list]:
     """(style, contents) -> that style's TRAIN clips of those contents, as Motions."""
     from ..data import build_index, load_motions, select
 
@@ -178,7 +178,7 @@ def fit(model, styles: list[str], dataset: str = "bandai-namco-2", frames: int =
     """The arm offsets from the network (paced, with `paced`: each style's pace from its real
     clips; otherwise pace 1) against the real clips. `model` itself is left as it was: the
     network runs on a copy carrying the pace and no offsets."""
-    clips = _train_clips(dataset)
+    clips = train_clips(dataset)
     pace = np.ones((len(styles), 2))
     if paced:
         normal = {g: median_speed(clips("normal", contents)) for g, contents in LOCOMOTION.items()}
@@ -197,7 +197,7 @@ def fit_runs(
     """`carriage` with a run carriage for `styles` (the others none): offsets of `RUN_JOINTS`
     from the network with `carriage`'s pace and arms in place, driven by the `normal` TRAIN runs,
     to the style's real TRAIN runs."""
-    clips = _train_clips(dataset)
+    clips = train_clips(dataset)
     model = model.with_own_styles()
     model.output_prior = None
     model.carriage = replace(carriage, run=None)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..motion.style_carry import StyleCarry
-from .carriage import LOCOMOTION, SKIP_FRAMES, UPPER_BODY
+from .carriage import LOCOMOTION, SKIP_FRAMES, UPPER_BODY, train_clips
 
 OUTPUT_PRIOR_FILE = "output_prior.npz"
 PRIOR_ROWS = ("prior_source", "prior_mean", "prior_map", "prior_radius", "prior_on")  # its style-table rows
@@ -91,23 +91,18 @@ def carry_rows(table, rotations: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
 def fit(model, styles: list[str], dataset: str = "bandai-namco-2") -> OutputPrior:
     """The prior of `styles` from `model` (its carriage in place, no output prior)."""
-    from ..data import build_index, load_motions, select
     from ..eval.run import stylise
 
-    index = build_index([dataset])
+    clips = train_clips(dataset)
     every = LOCOMOTION["walk"] + LOCOMOTION["run"]
-
-    def clips(style: str) -> list:
-        return load_motions([c for c in select(index, split="train", style=style) if c.content in every])
-
     model = model.with_own_styles()
     model.output_prior = None
-    inputs = [m.slice(0, FIT_FRAMES) for m in clips("normal")]
+    inputs = [m.slice(0, FIT_FRAMES) for m in clips("normal", every)]
     made, real = [], []
     for s in styles:
         outs = stylise(model, inputs, [model.styles().index(s)] * len(inputs))
         made.append(np.concatenate([o.rotations[SKIP_FRAMES:] for o in outs]).astype(np.float64))
-        real.append(np.concatenate([m.rotations for m in clips(s)]).astype(np.float64))
+        real.append(np.concatenate([m.rotations for m in clips(s, every)]).astype(np.float64))
     names = model.skeleton.names
     fixed = tuple(j for j, name in enumerate(names) if name not in UPPER_BODY)
     return OutputPrior(tuple(styles), StyleCarry.fit(made, real, fixed))
