@@ -115,18 +115,17 @@ class RedisStore(SessionStore):
         from redis.exceptions import RedisError
 
         ttl_ms = int(self.ttl_s * 1000)
-        puts_left, deletes_left = list(puts.items()), list(deletes)
+        ops: list[tuple[str, Snapshot | None]] = [*puts.items(), *((token, None) for token in deletes)]
         try:
-            while puts_left or deletes_left:
-                # a pipeline per WRITE_CHUNK snapshots: each is encoded on the event loop, and a
-                # crowd's thousands at once would hold its streams for tens of milliseconds
-                chunk, puts_left = puts_left[:WRITE_CHUNK], puts_left[WRITE_CHUNK:]
-                gone, deletes_left = deletes_left[: WRITE_CHUNK - len(chunk)], deletes_left[WRITE_CHUNK - len(chunk) :]
+            # a pipeline per WRITE_CHUNK snapshots: each is encoded on the event loop, and a
+            # crowd's thousands at once would hold its streams for tens of milliseconds
+            for first in range(0, len(ops), WRITE_CHUNK):
                 async with self.redis.pipeline(transaction=False) as pipe:
-                    for token, snap in chunk:
-                        pipe.set(KEY_PREFIX + token, snap.to_bytes(), px=ttl_ms)
-                    for token in gone:
-                        pipe.delete(KEY_PREFIX + token)
+                    for token, snap in ops[first : first + WRITE_CHUNK]:
+                        if snap is None:
+                            pipe.delete(KEY_PREFIX + token)
+                        else:
+                            pipe.set(KEY_PREFIX + token, snap.to_bytes(), px=ttl_ms)
                     await pipe.execute()
         except (RedisError, OSError) as exc:
             raise StoreUnavailable(f"session store {self.url}: {exc}") from exc

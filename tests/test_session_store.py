@@ -133,6 +133,25 @@ def test_stores_keep_replace_delete_and_expire_snapshots(kind, request):
     asyncio.run(run())
 
 
+def test_a_batch_larger_than_one_pipeline_is_written_whole(redis_url):
+    """A crowd's snapshots go to Redis `WRITE_CHUNK` at a time: every one arrives, deletes too."""
+    from service.session_store import WRITE_CHUNK
+
+    async def run():
+        store = RedisStore(redis_url, ttl_s=60)
+        try:
+            tokens = [f"crowd-{k}" for k in range(2 * WRITE_CHUNK + 5)]
+            await store.write({t: snapshot(t) for t in tokens}, [])
+            await store.write({}, tokens[: WRITE_CHUNK + 1])
+            kept = [await store.get(t) for t in tokens]
+            assert [s is None for s in kept] == [True] * (WRITE_CHUNK + 1) + [False] * (WRITE_CHUNK + 4)
+            assert [s.token for s in kept[WRITE_CHUNK + 1 :]] == tokens[WRITE_CHUNK + 1 :]
+        finally:
+            await store.close()
+
+    asyncio.run(run())
+
+
 def test_an_unreadable_value_in_redis_is_an_unknown_snapshot_not_a_crash(redis_url):
     """A damaged value, or another program's under our key: the resume gets `unknown_resume_token`."""
 
