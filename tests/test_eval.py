@@ -103,3 +103,30 @@ def test_a_missed_accuracy_gate_says_how_many_clips_short_it_is():
 
     gates = {"erd": {"elderly": row(30 / 34, 1.0, 34), "fmd": {}}, "lpn": {"active": row(1.0, 7 / 13, 13)}}
     assert _clips_short(gates) == ["erd elderly style 30 of 34, 1 short", "lpn active content 7 of 13, 5 short"]
+
+
+def test_the_validation_table_scores_validation_clips_and_names_each_miss(tmp_path):
+    """`--split val` (what settings are chosen by) never scores a test clip, holds the methods
+    against TRAIN clips, and lists every clip a judge misses with what it read."""
+    from models.eval.run import evaluate
+
+    r = evaluate(quick=True, out_dir=tmp_path, split="val", methods=("lti",), grids=False)
+    meta = r["meta"]
+    assert (meta["split"], meta["reference_split"]) == ("val", "train")
+    val = {c.name for c in select(build_index(["bandai-namco-2"]), split="val", style="normal")}
+    assert meta["clips"] and set(meta["clips"]) <= val
+    for name, m in r["methods"].items():
+        for style, p in m["per_style"].items():
+            for key in ("style", "content"):
+                missed = p["misses"][key]
+                assert set(missed) <= set(meta["clips"])
+                assert len(missed) == round((1 - p[f"{key}_acc"]) * p["clips"]), (name, style, key)
+            assert all(read != style for read in p["misses"]["style"].values())
+    assert "VALIDATION" in (tmp_path / "evaluation.md").read_text()
+
+
+def test_only_the_test_and_validation_splits_can_be_scored():
+    from models.eval.run import evaluate
+
+    with pytest.raises(ValueError, match="split"):
+        evaluate(quick=True, split="train")

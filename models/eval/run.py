@@ -42,6 +42,9 @@ GATE_STYLE = 0.90  # style accuracy, both judges
 GATE_CONTENT = 0.90  # content accuracy (LPN-FiLM: on locomotion inputs)
 FMD_BEFORE = {"lti": 214.6, "erd": 308.7}  # overall FMD of the committed models before the rotation work
 HISTORY_FRAMES = 300  # running sessions: each clip after 10 s of the clips before it (`history.py`)
+# the real clips a method is held against (slide floor, `real` rows): a split the scored one is not;
+# FMD is against real clips of the scored split itself
+REFERENCE_SPLIT = {"test": "val", "val": "train"}
 
 
 def pick_clips(
@@ -93,11 +96,15 @@ def score(
     contents: list[str],
     real_latents: np.ndarray,
     feats: list[np.ndarray] | None = None,
+    names: list[str] | None = None,
 ) -> dict:
-    """`feats`: the outputs' `clip_features`, where the caller has them already."""
+    """`feats`: the outputs' `clip_features`, where the caller has them already; `names`: the
+    inputs' clip names, to list which clips each judge misses and what it reads them as."""
     feats = feats if feats is not None else [clip_features(m) for m in outputs]
     ps, pc = judges.predict_style(feats), judges.predict_content(feats)
     ps_rot = rot_judge.predict_style([rotation_features(m) for m in outputs])
+    names = names if names is not None else [str(i) for i in range(len(outputs))]
+    misses = lambda got, want: {n: g for n, g, w in zip(names, got, want) if g != w}  # noqa: E731
     skate = [foot_skating(m) for m in outputs]
     frames = sum(s["contact_frames"] for s in skate)
     plaus = rot_ref.plausibility(style, outputs)
@@ -118,6 +125,11 @@ def score(
         "contact_speed": float(sum(s["contact_speed"] * s["contact_frames"] for s in skate) / max(frames, 1)),
         "path_dev_cm": float(np.mean([path_deviation(i, o) for i, o in zip(inputs, outputs)])),
         "predicted_styles": {s: ps.count(s) for s in sorted(set(ps))},
+        "misses": {
+            "style": misses(ps, [style] * len(ps)),
+            "style_rot": misses(ps_rot, [style] * len(ps_rot)),
+            "content": misses(pc, contents),
+        },
     }
 
 
@@ -128,11 +140,18 @@ def evaluate(
     out_dir: Path | None = None,
     grids: bool = True,
     methods: tuple[str, ...] | None = None,
+    split: str = "test",
 ) -> dict:
+    """Score every method on `split`'s neutral clips. "test" writes the report (docs/); "val" is
+    the same table on the validation clips, what settings are chosen by (out/eval-val)."""
+    if split not in REFERENCE_SPLIT:
+        raise ValueError(f"split must be one of {sorted(REFERENCE_SPLIT)}, not {split!r}")
     torch.set_num_threads(1)
     t0 = time.time()
-    # the committed results are only ever written by a full run; a quick run goes to out/
-    out_dir = Path(out_dir) if out_dir is not None else REPO_ROOT / ("out/eval-quick" if quick else "docs")
+    # the committed results are only ever written by a full run on the test clips; others go to out/
+    default = "out/eval-quick" if quick else "docs" if split == "test" else f"out/eval-{split}"
+    out_dir = Path(out_dir) if out_dir is not None else REPO_ROOT / default
+    ref_split = REFERENCE_SPLIT[split]
     judges = load_judges()
     models = load_models(get_settings().weights_dir)
     if methods is not None:
@@ -140,11 +159,13 @@ def evaluate(
     styles = [s for s in judges.styles if s != INPUT_STYLE and all(s in m.styles() for m in models.values())]
     if quick:
         styles, per_content, frames = [s for s in styles if s in QUICK_STYLES], 1, min(frames, 60)
-    clips = pick_clips(per_content, QUICK_CONTENTS if quick else None)
+    clips = pick_clips(per_content, QUICK_CONTENTS if quick else None, split=split)
     inputs = [m.slice(0, frames) for m in load_motions(clips)]
     contents = [c.content for c in clips]
+    names = [c.name for c in clips]
 
-    # real references: test clips of each target style (whole clips), and val clips as the floor
+    # real references: the scored split's clips of each target style (whole clips) for FMD, and
+    # the reference split's clips as the floor
     index = build_index([DATASET])
     cap = 8 if quick else None
     # the rotation reference: TRAIN clips of every target style (never the scored test clips)
@@ -152,33 +173,32 @@ def evaluate(
     rot_ref = RotationReference({s: load_motions(select(index, split="train", style=s)) for s in styles})
     real_lat, reference, reference_loco = {}, {}, {}
     for s in styles:
-        test_clips = select(index, split="test", style=s)[:cap]
-        test_feats = [clip_features(m) for m in load_motions(test_clips)]
-        real_lat[s] = judges.latents(test_feats)
-        val_motions = load_motions(select(index, split="val", style=s)[:cap])
-        val_feats = [clip_features(m) for m in val_motions]
-        val_skate = [foot_skating(m) for m in val_motions]
-        n = sum(k["contact_frames"] for k in val_skate)
+        scored_clips = select(index, split=split, style=s)[:cap]
+        real_lat[s] = judges.latents([clip_features(m) for m in load_motions(scored_clips)])
+        ref_motions = load_motions(select(index, split=ref_split, style=s)[:cap])
+        ref_feats = [clip_features(m) for m in ref_motions]
+        ref_skate = [foot_skating(m) for m in ref_motions]
+        n = sum(k["contact_frames"] for k in ref_skate)
         # slide and plausibility on the same mix of contents and clip length as the inputs
         like_inputs = [
             m.slice(0, frames)
-            for m in load_motions(pick_clips(per_content, QUICK_CONTENTS if quick else None, style=s, split="val"))
+            for m in load_motions(pick_clips(per_content, QUICK_CONTENTS if quick else None, style=s, split=ref_split))
         ]
         plaus = rot_ref.plausibility(s, like_inputs)
         reference[s] = {
-            "clips": len(val_feats),
-            "style_acc": float(np.mean([p == s for p in judges.predict_style(val_feats)])),
+            "clips": len(ref_feats),
+            "style_acc": float(np.mean([p == s for p in judges.predict_style(ref_feats)])),
             "style_acc_rot": float(
-                np.mean([p == s for p in rot_judge.predict_style([rotation_features(m) for m in val_motions])])
+                np.mean([p == s for p in rot_judge.predict_style([rotation_features(m) for m in ref_motions])])
             ),
-            "fmd": frechet_distance(judges.latents(val_feats), real_lat[s]),
-            "skate_ratio": float(sum(k["skate_ratio"] * k["contact_frames"] for k in val_skate) / max(n, 1)),
+            "fmd": frechet_distance(judges.latents(ref_feats), real_lat[s]),
+            "skate_ratio": float(sum(k["skate_ratio"] * k["contact_frames"] for k in ref_skate) / max(n, 1)),
             "rot_within_min": plaus["min_within"],
             "rot_worst_joint": plaus["worst_joint"],
             "twist_outside_max": plaus["max_twist_outside"],
             **{f"slide_{k}": v for k, v in slide_summary(like_inputs).items()},
         }
-        loco = [m.slice(0, frames) for m in load_motions(pick_clips(per_content, LOCOMOTION, style=s, split="val"))]
+        loco = [m.slice(0, frames) for m in load_motions(pick_clips(per_content, LOCOMOTION, style=s, split=ref_split))]
         reference_loco[s] = {f"slide_{k}": v for k, v in slide_summary(loco).items()}
 
     results: dict = {"methods": {}, "timing_s": {}}
@@ -196,6 +216,7 @@ def evaluate(
                 s,
                 [contents[i] for i in rows],
                 real_lat[s],
+                names=[names[i] for i in rows],
             )
             for s in styles
         }
@@ -261,7 +282,8 @@ def evaluate(
 
     results["meta"] = {
         "dataset": DATASET,
-        "split": "test",
+        "split": split,
+        "reference_split": ref_split,
         "input_style": INPUT_STYLE,
         "styles": styles,
         "clips": [c.name for c in clips],
@@ -270,12 +292,14 @@ def evaluate(
         "history_frames": HISTORY_FRAMES,
         "quick": quick,
         "judges": {k: judges.meta.get(k) for k in ("val", "test")},
-        "reference_real_val": reference,
-        "reference_real_val_locomotion": reference_loco,
+        "reference_real": reference,
+        "reference_real_locomotion": reference_loco,
         "skate_speed_leg_per_s": SKATE_SPEED,
         "seconds": round(time.time() - t0, 1),
         "machine": f"{platform.machine()} CPU, torch threads=1",
-        "command": "python -m models.eval" + (" --quick" if quick else ""),
+        "command": "python -m models.eval"
+        + (" --quick" if quick else "")
+        + (f" --split {split}" if split != "test" else ""),
     }
     results["gates"] = gates(results)
     results["gates_running"] = gates(results, running=True)
@@ -297,9 +321,7 @@ def gates(r: dict, running: bool = False) -> dict:
             continue
         loco = name == "lpn"
         table, real = (
-            (m[f"{key}_locomotion"], meta["reference_real_val_locomotion"])
-            if loco
-            else (m[key], meta["reference_real_val"])
+            (m[f"{key}_locomotion"], meta["reference_real_locomotion"]) if loco else (m[key], meta["reference_real"])
         )
         out[name] = {}
         for s, p in table.items():
@@ -404,6 +426,33 @@ def _clips_short(g: dict) -> list[str]:
     return out
 
 
+def _misses_markdown(r: dict) -> list[str]:
+    """Which clips each missed accuracy gate misses, and what the judge read them as."""
+    labels = {"style": "style", "style_rot": "style (rot)", "content": "content"}
+    lines = []
+    for name, per in r["gates"].items():
+        scores = r["methods"][name]["per_style_locomotion" if name == "lpn" else "per_style"]
+        for s, c in per.items():
+            if s == "fmd" or "misses" not in scores[s]:
+                continue
+            for key, label in labels.items():
+                if not c[key]["pass"]:
+                    read = ", ".join(f"{_short(n)} → {g}" for n, g in sorted(scores[s]["misses"][key].items()))
+                    lines.append(f"- {name} {s} {label}: {read}")
+    if not lines:
+        return []
+    return ["### Which clips miss", "", "Each missed accuracy gate: the clips it misses → what the judge read.", ""] + [
+        *lines,
+        "",
+    ]
+
+
+def _short(clip: str) -> str:
+    """'dataset-2_raise-up-left-hand_normal_012' -> 'raise-up-left-hand 012'."""
+    parts = clip.split("_")
+    return f"{parts[1]} {parts[-1]}" if len(parts) >= 4 else clip
+
+
 def _running_markdown(r: dict) -> list[str]:
     """Fresh sessions (the gates above) against running ones, per method x style, on the gates'
     columns, and how many rows would pass every gate if it were judged on running sessions."""
@@ -478,16 +527,23 @@ def _grid(motions: list[Motion], path: Path, titles: list[str]) -> None:
 def markdown(r: dict) -> str:
     meta = r["meta"]
     judges = meta["judges"]
+    split, ref_split = meta["split"], meta["reference_split"]
+    real = f"real {ref_split}"  # the rows of real clips beside the methods
     fmt = lambda x: f"{100 * x:.0f}%"  # noqa: E731
+    title = (
+        "# Evaluation: every method on the same held-out clips"
+        if split == "test"
+        else f"# Evaluation on the {split.upper()} clips: what settings are chosen by (the report is docs/evaluation.md)"
+    )
     lines = [
-        "# Evaluation: every method on the same held-out clips",
+        title,
         "",
-        f"Command: `{meta['command']}` (or `make eval`); ran in {meta['seconds']:.0f} s on {meta['machine']}. "
-        "Raw numbers: [`docs/eval/results.json`](eval/results.json).",
+        f"Command: `{meta['command']}`{' (or `make eval`)' if split == 'test' else ''}; ran in "
+        f"{meta['seconds']:.0f} s on {meta['machine']}. Raw numbers: [`eval/results.json`](eval/results.json).",
         "",
         "## How measured",
         "",
-        f"Inputs are the test-split `{meta['input_style']}` clips of Bandai Namco dataset 2 ({len(meta['clips'])} clips, "
+        f"Inputs are the {split}-split `{meta['input_style']}` clips of Bandai Namco dataset 2 ({len(meta['clips'])} clips, "
         f"up to {meta['per_content']} per content over all contents, first {meta['frames_per_clip']} frames each). "
         "Each method is driven only through the streaming interface (`step_batch`, all clips x target styles as one batch "
         "of sessions, one-hot style weights, no input labels) and scored by judges trained on real training clips only "
@@ -496,11 +552,11 @@ def markdown(r: dict) -> str:
         "its windows) and a denoising autoencoder over 24-frame windows. "
         "**Style acc** = share of outputs recognised as the target style; **content acc** = share recognised as the input's "
         "content (10 classes); **FMD** = Fréchet distance between the autoencoder latents of the outputs' windows and of "
-        "real test clips of the target style; **skate** = share of flat-foot frames (ankle and toe both within 0.02 leg "
+        f"real {split} clips of the target style; **skate** = share of flat-foot frames (ankle and toe both within 0.02 leg "
         "lengths of their floor level) whose "
         f"horizontal foot speed exceeds {meta['skate_speed_leg_per_s']} leg lengths/s; **path dev** = mean horizontal "
         "distance (cm) between input and output root paths with starts aligned. Identity (output = input) is the baseline; "
-        "`real val` rows are real validation clips of the target style (what a perfect method would score).",
+        f"`{real}` rows are real {ref_split} clips of the target style (what a perfect method would score).",
         "",
     ]
     if judges.get("test"):
@@ -526,8 +582,8 @@ def markdown(r: dict) -> str:
         "whose twist about the bone, relative to that mean, leaves the real p0.5..p99.5 interval. **style acc (rot)** = a "
         "second style judge over local rotations and their changes only (`RotationJudge`, trained on the same TRAIN clips). "
         "**toe / ankle slide** = median and p95 horizontal speed (cm/s) of a toe / ankle while it is within 2.5 cm "
-        "(0.03 leg lengths) of its floor level. `real val` rows: real validation clips of the target style, same contents "
-        "and clip length as the inputs.",
+        f"(0.03 leg lengths) of its floor level. `{real}` rows: real {ref_split} clips of the target style, same "
+        "contents and clip length as the inputs.",
         "",
         "What selected what: no checkpoint or setting of any method was chosen on the test clips. Some were chosen on "
         "VALIDATION clips scored by these same judges (the LTI context inputs, the Style-ERD rotation prior variant and its run priors, "
@@ -536,6 +592,7 @@ def markdown(r: dict) -> str:
         "",
     ]
     lines += _gates_markdown(r)
+    lines += _misses_markdown(r)
     lines += _running_markdown(r)
     lines += [
         "## Overall (mean over target styles)",
@@ -551,11 +608,11 @@ def markdown(r: dict) -> str:
             f"{o['fmd']:.1f} | {fmt(o['skate_ratio'])} | {o['path_dev_cm']:.1f} | {fmt(o['rot_within_min'])} | "
             f"{fmt(o['twist_outside_max'])} | {_slide(o, 'toe')} | {_slide(o, 'ankle')} |"
         )
-    ref = meta["reference_real_val"]
+    ref = meta["reference_real"]
     styles = meta["styles"]
     mean = lambda k: float(np.mean([ref[s][k] for s in styles]))  # noqa: E731
     lines.append(
-        f"| real val | {fmt(mean('style_acc'))} | {fmt(mean('style_acc_rot'))} | – | {mean('fmd'):.1f} | "
+        f"| {real} | {fmt(mean('style_acc'))} | {fmt(mean('style_acc_rot'))} | – | {mean('fmd'):.1f} | "
         f"{fmt(mean('skate_ratio'))} | – | {fmt(mean('rot_within_min'))} | {fmt(mean('twist_outside_max'))} | "
         f"{mean('slide_toe_median'):.1f} / {mean('slide_toe_p95'):.0f} | "
         f"{mean('slide_ankle_median'):.1f} / {mean('slide_ankle_p95'):.0f} |"
@@ -593,7 +650,7 @@ def markdown(r: dict) -> str:
             )
         q = ref[s]
         lines.append(
-            f"| {s} | real val | {fmt(q['style_acc'])} | {fmt(q['style_acc_rot'])} | – | {q['fmd']:.1f} | "
+            f"| {s} | {real} | {fmt(q['style_acc'])} | {fmt(q['style_acc_rot'])} | – | {q['fmd']:.1f} | "
             f"{fmt(q['skate_ratio'])} | – | {fmt(q['rot_within_min'])} ({q['rot_worst_joint']}) | "
             f"{fmt(q['twist_outside_max'])} | {_slide(q, 'toe')} | |"
         )
@@ -601,7 +658,7 @@ def markdown(r: dict) -> str:
         "",
         "## Picture grids",
         "",
-        "A test-split neutral walk (top row) and each method's output toward the target style:",
+        f"A {split}-split neutral walk (top row) and each method's output toward the target style:",
         "",
     ]
     for s in styles:

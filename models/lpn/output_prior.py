@@ -84,8 +84,12 @@ def carry_rows(table, rotations: np.ndarray, weights: np.ndarray) -> np.ndarray:
     carry = StyleCarry(
         table.get("prior_source"), table.get("prior_mean"), table.get("prior_map"), table.get("prior_radius")
     )
+    carried = carry(np.asarray(rotations[rows], np.float64), w[rows]).astype(rotations.dtype)
+    # the joints the fit left fixed (radius pi for every style: Hips, legs) keep their own bits;
+    # taken from the carry they would be renormalised in float64, a float32 ulp off
+    joints = np.flatnonzero((table.get("prior_radius") < np.pi).any(axis=0))
     out = np.array(rotations, copy=True)
-    out[rows] = carry(np.asarray(rotations[rows], np.float64), w[rows]).astype(rotations.dtype)
+    out[np.ix_(rows, joints)] = carried[:, joints]
     return out
 
 
