@@ -23,7 +23,10 @@
 3. **Runs** (`leaf_prior_run.npz`, `output_prior_run.npz`): both fitted again on runs alone (the
    real neutral and style runs; the network driven by TRAIN neutral runs), for the frames where
    the input runs (`gait.py`: the share ramps with the input's Hips speed). Fitted over every
-   content, the priors carried runs toward walks and gestures.
+   content, the priors carried runs toward walks and gestures. The run output prior carries the
+   legs too: only clamped, the runs' legs stayed the network's near-neutral stride, and the
+   position judge read 2 of the 4 validation runs toward elderly and toward exhausted as normal
+   (a walk, below the ramp, never takes it, so no straight walk turns).
 
 The Root is left alone by both, the Hips by the leaf prior (the decoder's legs and spine fix
 them). The output prior reads the Hips without their heading (their twist about world up, as the
@@ -107,7 +110,8 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     """The model's outputs (its leaf prior in place, no output prior) over TRAIN neutral clips
     toward each style -> the real style. With `runs`: TRAIN neutral runs with the input's own
     twists and leaves (no leaf prior: chosen on validation over the run leaf prior in place,
-    model card), against the real runs in `real`."""
+    model card), against the real runs in `real`; the legs carried as well, not only clamped
+    (module docstring)."""
     from ..data import load_motions
     from ..eval.run import pick_clips, stylise
 
@@ -130,7 +134,7 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     produced = [
         without_heading(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]))[1] for k in range(len(styles))
     ]
-    clamped = (HIPS,) + tuple(model.skeleton.index(n) for n in LEGS)
+    clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEGS))
     return StyleCarry.fit(produced, [without_heading(q)[1] for q in real[1:]], (0,), clamp_only=clamped)
 
 

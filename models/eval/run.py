@@ -586,8 +586,9 @@ def markdown(r: dict) -> str:
         "contents and clip length as the inputs.",
         "",
         "What selected what: no checkpoint or setting of any method was chosen on the test clips. Some were chosen on "
-        "VALIDATION clips scored by these same judges (the LTI context inputs, the Style-ERD rotation prior variant and its run priors, "
-        "the LPN-FiLM arm and run carriage); each model card says which validation numbers chose what. The judges, the "
+        "VALIDATION clips scored by these same judges (the LTI context inputs, the Style-ERD rotation prior variant and "
+        "its run priors, the LPN-FiLM arm and run carriage and output prior); each model card says which validation "
+        "numbers chose what, and `python -m models.eval --split val` prints this report on those clips. The judges, the "
         "rotation judge and the rotation reference are trained or fitted on TRAIN clips only.",
         "",
     ]
