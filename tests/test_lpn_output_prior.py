@@ -1,6 +1,6 @@
 """LPN-FiLM's output prior (`models/lpn/output_prior.py`): the upper body of the styles that have
-one is carried to the style's real rotations and kept in its real range; every other row, style
-and joint steps exactly as without it."""
+one (and active's legs) is carried to the style's real rotations and kept in its real range;
+every other row, style and joint steps exactly as without it."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from models.lpn.carriage import UPPER_BODY
-from models.lpn.output_prior import OutputPrior
+from models.lpn.output_prior import CARRIED, LEGS, OutputPrior
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
 
@@ -30,7 +30,17 @@ def _without(model):
     return bare
 
 
-def test_only_the_upper_body_of_styles_with_a_prior_moves(model, walk):
+def test_each_style_carries_only_its_chosen_joints(model):
+    """Active carries its legs too, exhausted only the upper body; the Hips never (model card)."""
+    prior = model.output_prior.carry
+    names = model.skeleton.names
+    for k, style in enumerate(model.output_prior.styles):
+        carried = {names[j] for j in np.flatnonzero(prior.radius[k] < np.pi)}
+        assert carried == set(CARRIED[style]), style
+    assert set(LEGS) <= set(CARRIED["active"]) and not set(LEGS) & set(CARRIED["exhausted"])
+
+
+def test_only_the_carried_joints_of_styles_with_a_prior_move(model, walk):
     bare = _without(model)
     assert set(model.output_prior.styles) == {"active", "exhausted"}  # where validation gained (model card)
     for style in ("elderly", "feminine"):  # no prior: exactly as before

@@ -26,7 +26,7 @@ are turned by the offset that takes the network's mean arm pose to the real styl
 rotation prior; the same file can pace the derived control by the style's real speed (not shipped)
 and holds a run carriage (spine, neck, head and arms at the run gait; exhausted). Then the output
 prior (`output_prior.npz`, `output_prior.py`; active and exhausted) carries the upper body's
-rotations from the network's distribution to the real style's.
+rotations (and active's legs) from the network's distribution to the real style's.
 
 Rotation prior (`rotation_prior.npz` beside the weights, `models.motion.rotation_ball`): each
 built-in style's output rotations are held, per joint, inside the ball its real TRAIN clips fill

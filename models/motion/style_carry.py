@@ -134,6 +134,12 @@ class StyleCarry:
         """(source, mean, map, radius), as the compiled kernels take a carry."""
         return self.source, self.mean, self.map, self.radius
 
+    @classmethod
+    def stack(cls, carries: list[StyleCarry]) -> StyleCarry:
+        """One carry holding each of `carries`' styles in turn (fitted apart, e.g. each with its
+        own fixed joints)."""
+        return cls(*(np.concatenate([getattr(c, f) for c in carries]) for f in ("source", "mean", "map", "radius")))
+
     def mixed_with(
         self,
         then_b: StyleCarry,
