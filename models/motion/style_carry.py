@@ -87,14 +87,19 @@ class StyleCarry:
         targets: list[np.ndarray],
         fixed: tuple[int, ...] = (),
         clamp_only: tuple[int, ...] = (),
+        source_floor: float = 0.0,
     ) -> StyleCarry:
         """From rotations (N, J, 4) to carry and the real ones (N', J, 4), one pair per target
         style; joints in `fixed` are left as they are, joints in `clamp_only` only clamped into
-        the style's real range."""
+        the style's real range. `source_floor` (radians): the spread the sources are taken to
+        have at least along every axis, so an axis they hardly move along (a network that keeps
+        a twist still) is not stretched to the style's spread, which would magnify its noise;
+        it bounds every gain by the style's spread over the floor."""
         src, tgt = [tangent_stats(q) for q in sources], [tangent_stats(q) for q in targets]
         source = np.stack([s[0] for s in src])
         mean = np.stack([t[0] for t in tgt])
-        lin = gaussian_map(np.stack([s[1] for s in src]), np.stack([t[1] for t in tgt]))
+        c_from = np.stack([s[1] for s in src]) + source_floor**2 * np.eye(3)
+        lin = gaussian_map(c_from, np.stack([t[1] for t in tgt]))
         radius = np.stack([t[2] for t in tgt])
         clamp_ = list(clamp_only)
         source[:, clamp_] = mean[:, clamp_]
