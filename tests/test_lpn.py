@@ -296,3 +296,18 @@ def test_pose_noise_falls_on_the_fed_back_pose_and_never_on_the_control():
     per_joint = pose_noise_scale(TrainConfig(pose_noise=0.2, noise_velocities=False)).numpy()[lf.POSE_IN]
     per_joint = per_joint.reshape(lf.NB, lf.POSE_CH)
     assert (per_joint[:, 3:6] == 0).all() and np.allclose(np.delete(per_joint, [3, 4, 5], axis=1), 0.2)
+
+
+def test_the_torso_turns_as_smoothly_as_real_walks(model, bn_walk):
+    """The network can turn the spine ~180 degrees about itself and the chest back over a few
+    frames; in between the pair bent against each other (the chest joint dropped 8 cm for one
+    frame). Real validation walks never change the spine's or chest's rotation by more than ~6
+    degrees per frame per frame; every style's output stays under 10 (model card)."""
+    from models.motion.rotations import quat_inv, quat_mul, quat_to_expmap
+
+    walk = bn_walk.slice(0, 90)
+    torso = [model.skeleton.index("Spine"), model.skeleton.index("Chest")]
+    for style in model.styles()[:7]:  # the dataset-2 styles, normal first
+        q = model.run(walk, model.weight_vector({style: 1.0}))[0].rotations[:, torso].astype(np.float64)
+        step = quat_to_expmap(quat_mul(quat_inv(q[:-1]), q[1:]))
+        assert np.degrees(np.linalg.norm(np.diff(step, axis=0), axis=-1)).max() < 10.0, style

@@ -112,3 +112,21 @@ def test_compiled_equals_numpy_reference(bn_walk):
         walk.skeleton, np.broadcast_to(walk.rotations[0], wrung.rotations.shape), wrung.rotations
     )
     assert got.shape == wrung.rotations.shape and np.degrees(quat_angle(got, want)).max() < 1e-4
+
+
+def test_split_evenly_keeps_the_chain_and_shares_its_turn():
+    """The composite parent * child is kept; the parent takes half the chain's turn from rest,
+    so a spine flipped 180 degrees about itself with the chest flipped back is split as no turn."""
+    from models.motion.twist import split_evenly
+
+    rng = np.random.default_rng(1)
+    rest_p, rest_c = expmap_to_quat(rng.normal(0, 0.5, (2, 3)))
+    p, c = expmap_to_quat(rng.normal(0, 0.8, (2, 50, 3)))
+    new_p, new_c = split_evenly(p, c, rest_p, rest_c)
+    assert quat_angle(quat_mul(new_p, new_c), quat_mul(p, c)).max() < 1e-6  # quat_angle resolves ~3e-8
+    turn = quat_angle(quat_mul(p, c), quat_mul(rest_p, rest_c))
+    np.testing.assert_allclose(quat_angle(new_p, np.broadcast_to(rest_p, new_p.shape)), turn / 2, atol=1e-6)
+    flip = expmap_to_quat(np.array([np.pi, 0.0, 0.0]))
+    flipped_p, flipped_c = quat_mul(rest_p, flip), quat_mul(quat_inv(flip), rest_c)
+    back_p, back_c = split_evenly(flipped_p, flipped_c, rest_p, rest_c)
+    assert quat_angle(back_p, rest_p) < 1e-6 and quat_angle(back_c, rest_c) < 1e-6

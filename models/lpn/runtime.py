@@ -71,7 +71,7 @@ from ..motion.rotation_ball import StyleBalls
 from ..motion.rotation_ball_kernels import clamp_mixed
 from ..motion.rotations import quat_mul, yaw_quat
 from ..motion.skeleton import Motion, Skeleton
-from ..motion.twist import transfer_twist
+from ..motion.twist import split_evenly, transfer_twist
 from ..rowwise import Bfloat16Product, matmul_rows
 from ..settings import get_settings
 from . import features as lf
@@ -363,9 +363,20 @@ class LPNModel(LPNStyles):
         """The pose with its joint positions, bones twisted as in the natural pose (the committed
         one-frame asset): the network sometimes turns a bone about itself by ~180 degrees and its
         child back (exhausted: Spine -176, Chest -177 degrees), which moves no joint but wrings a
-        skinned body. Leaves and limb roots keep the network's rotations (`OWN_ROTATIONS`)."""
+        skinned body. Leaves and limb roots keep the network's rotations (`OWN_ROTATIONS`); the
+        spine and chest share their composite turn evenly (`twist.split_evenly`)."""
         source = np.broadcast_to(self._natural_pose, rotations.shape)
-        return transfer_twist(self.skeleton, source, rotations, OWN_ROTATIONS).astype(rotations.dtype)
+        out = transfer_twist(self.skeleton, source, rotations, OWN_ROTATIONS)
+        # the flip's frames in between bend the spine and chest against each other (the chest
+        # joint dropped 8 cm for a frame): the pair is re-split from its composite, which is smooth
+        spine, chest = self._torso
+        natural = self._natural_pose
+        out[:, spine], out[:, chest] = split_evenly(out[:, spine], out[:, chest], natural[spine], natural[chest])
+        return out.astype(rotations.dtype)
+
+    @cached_property
+    def _torso(self) -> tuple[int, int]:
+        return self.skeleton.index("Spine"), self.skeleton.index("Chest")
 
     def _hold(
         self, rotations: np.ndarray, weights: np.ndarray, normal: int, ball: tuple[np.ndarray, np.ndarray]
