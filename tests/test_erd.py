@@ -265,3 +265,24 @@ def test_a_state_saved_before_the_foot_planter_still_steps(model, walks):
     upgraded, _ = model.step_batch(model.upgrade_state(old), frame, w)
     expected, _ = model.step_batch(fresh, frame, w)
     np.testing.assert_array_equal(upgraded.rotations, expected.rotations)
+
+
+def test_a_state_saved_before_the_averaged_gait_speed_still_steps(model, walks):
+    """Snapshots from a replica before `gait_speed` (and before the foot planter): the average
+    restarts from the next frame's speed, the rest of the state is kept."""
+    motion = walks[0]
+    w = _onehot(model, "elderly")[None]
+    state = model.init_state(1)
+    for t in range(5):
+        _, state = model.step_batch(
+            state, FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1]), w
+        )
+    frame = FrameBatch(motion.translations[5:6, 1], motion.rotations[5:6])
+    for old in (
+        {k: v for k, v in state.items() if k != "gait_speed"},
+        {k: v for k, v in state.items() if k != "gait_speed" and not k.startswith("feet_")},
+    ):
+        up = model.upgrade_state(old)
+        assert up["gait_speed"][0] < 0 and all(np.array_equal(up[k], v) for k, v in old.items())
+        _, after = model.step_batch(up, frame, w)
+        assert after["gait_speed"][0] > 0  # measured again from this frame

@@ -203,14 +203,18 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     """A running input is carried by the priors fitted on runs (`gait.py`); a walk never
     reaches the ramp, so its output is exactly what the all-content priors alone give."""
     from models.erd.features import FPS
-    from models.erd.gait import clip_hips_speed, run_share
+    from models.erd.gait import clip_smoothed_speed, run_share
 
     if model.run_output_prior is None:
         pytest.skip("no run priors committed")
-    share = run_share(clip_hips_speed(model.maker.positions(run.translations[:, 1], run.rotations), FPS))
-    assert share[20:].min() == 1.0  # a run, once under way
+
+    def share_of(motion):
+        speed = clip_smoothed_speed(model.maker.positions(motion.translations[:, 1], motion.rotations), FPS)
+        return run_share(np.maximum(speed, 0.0))
+
+    assert share_of(run)[20:].min() == 1.0  # a run, once under way
     walk = neutral[0]
-    assert run_share(clip_hips_speed(model.maker.positions(walk.translations[:, 1], walk.rotations), FPS)).max() == 0.0
+    assert share_of(walk).max() == 0.0
     w = _onehot(model, "feminine")
     priors = model.run_leaf_prior, model.run_output_prior
     with_runs = {"run": _stream(model, run, w), "walk": _stream(model, walk, w)}
@@ -222,6 +226,24 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     np.testing.assert_array_equal(with_runs["walk"], without["walk"])
     moved = np.degrees(quat_angle(with_runs["run"][20:], without["run"][20:]))
     assert np.median(moved.max(axis=-1)) > 2.0  # the run priors do change a run
+
+
+def test_a_runs_share_of_the_run_priors_does_not_swing_within_its_steps(model, run):
+    """The Hips speed swings by +-40 cm/s within each running step; frame by frame it swung the
+    share between the priors by ~0.5 a frame. Averaged over about a step (`gait.py`), it moves by
+    at most 0.2 a frame once measured, and a stream steps it as the clip function computes it."""
+    from models.erd.features import FPS
+    from models.erd.gait import UNMEASURED, clip_hips_speed, clip_smoothed_speed, hips_speed, run_share, smoothed_speed
+
+    pos = model.maker.positions(run.translations[:, 1], run.rotations)
+    raw, smooth = run_share(clip_hips_speed(pos, FPS)), run_share(np.maximum(clip_smoothed_speed(pos, FPS), 0.0))
+    assert np.abs(np.diff(raw[1:60])).max() > 0.3  # what the steps do to the raw speed on this run
+    assert np.abs(np.diff(smooth[1:60])).max() < 0.2
+    average = np.array([UNMEASURED])
+    for t in range(30):
+        prev = pos[max(t - 1, 0)][None]
+        average = smoothed_speed(average, hips_speed(pos[t][None], prev, np.array([t > 0]), FPS), np.array([t > 0]))
+        assert average[0] == clip_smoothed_speed(pos, FPS)[t]
 
 
 def test_run_frames_stay_inside_the_styles_whole_real_range(model, run):

@@ -11,6 +11,12 @@ all-content priors, and a frame's share of the run priors ramps with the input's
 Hips speed over `RUN_RAMP_CM_S`: from the TRAIN `normal` walks' p99 (1.70 m/s; walk turns 1.61)
 to the TRAIN `normal` runs' p5 (2.11 m/s). Gestures stand (under 0.1 m/s). Causal: the speed is
 the step from the previous input frame; a session's first frame counts as standing.
+
+The speed is averaged over about a running step (`SPEED_SMOOTHING`: an exponential average as
+long as a 10-frame window, a third of a second): a run's Hips speed swings by +-40 cm/s within
+each step, and frame by frame the share swung between 0 and 1 within three frames (validation
+runs at 2.0-2.5 m/s), switching the arms and head between the two priors; those frames' rotations
+turned up to 5-8x faster than the real runs' (`out/s22/erd_popfind.py`, scratch).
 """
 
 from __future__ import annotations
@@ -21,6 +27,8 @@ from ..motion.bn_skeleton import HIPS
 from ..motion.style_carry import StyleCarry
 
 RUN_RAMP_CM_S = (170.0, 210.0)
+SPEED_SMOOTHING = 2.0 / 11.0  # the exponential average's weight on the newest frame (~10-frame window)
+UNMEASURED = -1.0  # a session's average before its second frame
 
 
 def hips_speed(pos: np.ndarray, prev_pos: np.ndarray, has_prev: np.ndarray, fps: float) -> np.ndarray:
@@ -36,8 +44,28 @@ def clip_hips_speed(pos: np.ndarray, fps: float) -> np.ndarray:
     return hips_speed(pos, prev, np.arange(len(pos)) > 0, fps)
 
 
+def smoothed_speed(average: np.ndarray, speed: np.ndarray, has_prev: np.ndarray) -> np.ndarray:
+    """(B,) the running average of the Hips speed after this frame: `UNMEASURED` until a frame
+    has a previous one, then the first measured speed, then exponentially averaged."""
+    average, speed = np.asarray(average, np.float64), np.asarray(speed, np.float64)
+    moved = np.where(average < 0.0, speed, average + SPEED_SMOOTHING * (speed - average))
+    return np.where(has_prev, moved, UNMEASURED)
+
+
+def clip_smoothed_speed(pos: np.ndarray, fps: float) -> np.ndarray:
+    """(T,) `smoothed_speed` of every frame of a clip's world positions (T, J, 3), as a stream sees it."""
+    raw = clip_hips_speed(pos, fps)
+    out = np.empty(len(raw))
+    average = np.array([UNMEASURED])
+    for t, v in enumerate(raw):
+        average = smoothed_speed(average, np.array([v]), np.array([t > 0]))
+        out[t] = average[0]
+    return out
+
+
 def run_share(speed: np.ndarray) -> np.ndarray:
-    """(B,) how far each frame is a run: 0 up to the ramp, 1 past it, linear between."""
+    """(B,) how far each frame is a run: 0 up to the ramp, 1 past it, linear between (an
+    unmeasured speed: 0)."""
     lo, hi = RUN_RAMP_CM_S
     return np.clip((np.asarray(speed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 

@@ -29,7 +29,7 @@ from ..motion.skeleton import Motion
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
-from .gait import carry_by_gait, clip_hips_speed, run_share
+from .gait import carry_by_gait, clip_smoothed_speed, run_share
 from .model import Generator
 
 
@@ -80,7 +80,7 @@ def stylise(
         root_in[0],
     )
     w_frames = np.broadcast_to(np.asarray(weights, np.float64), (len(rots), w.shape[-1]))
-    share = run_share(clip_hips_speed(maker.positions(root_in, motion.rotations), FPS))
+    share = run_share(np.maximum(clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS), 0.0))
     source = carry_by_gait(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots)
     rots = carry_by_gait(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)

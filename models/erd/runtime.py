@@ -11,6 +11,7 @@ State per session (every entry has the session axis first):
                                                         one, then one residual branch per target
                                                         style (in `styles()` order); network dtype
     prev_pos (B, 22, 3), prev_yaw (B,)                  previous input frame (causal velocities)
+    gait_speed (B,)                                     the input's averaged Hips speed (`gait.py`)
     out_root (B, 3)                                     last output Hips translation
     frame (B,)                                          frames seen
     style_in (B,), content (B,)                         input labels, -1 = unknown (the default)
@@ -63,7 +64,7 @@ from ..rowwise import matmul_rows
 from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
-from .gait import carry_by_gait, hips_speed, run_share
+from .gait import UNMEASURED, carry_by_gait, hips_speed, run_share, smoothed_speed
 from .rotation_prior import PRIOR_FILES
 
 WEIGHTS_FILE = "erd.npz"
@@ -196,6 +197,7 @@ class ERDModel:
         state.update(
             prev_pos=np.zeros((batch, 22, 3)),
             prev_yaw=np.zeros(batch),
+            gait_speed=np.full(batch, UNMEASURED),
             out_root=np.zeros((batch, 3)),
             frame=np.zeros(batch, dtype=np.int64),
             style_in=np.full(batch, si, dtype=np.int64),
@@ -205,11 +207,16 @@ class ERDModel:
         return state
 
     def upgrade_state(self, state: State) -> State:
-        """A state saved before the foot planter (a snapshot from an older replica, with or
-        without the old `lock_*` keys) gets a fresh planter state; anything else is returned as it is."""
-        if all(k in state for k in FEET_STATE):
+        """A state saved by an older replica: before the foot planter (with or without the old
+        `lock_*` keys) it gets a fresh planter state, before the averaged gait speed an
+        unmeasured one (its next frame's speed starts the average); a current state is returned
+        as it is."""
+        if all(k in state for k in FEET_STATE) and "gait_speed" in state:
             return state
         old = {k: v for k, v in state.items() if not k.startswith("lock_")}
+        old.setdefault("gait_speed", np.full(len(state["frame"]), UNMEASURED))
+        if all(k in old for k in FEET_STATE):
+            return old
         return self.planter.upgrade_state(old, len(state["frame"]))
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
@@ -231,6 +238,7 @@ class ERDModel:
             ("c", lstm),
             ("prev_pos", (B, J, 3)),
             ("prev_yaw", (B,)),
+            ("gait_speed", (B,)),
             ("out_root", (B, 3)),
             ("frame", (B,)),
             ("style_in", (B,)),
@@ -245,7 +253,8 @@ class ERDModel:
         out_root, out_rot = kernels.output_pose(
             x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64), root, rot_in, float(FPS)
         )
-        share = run_share(hips_speed(pos, state["prev_pos"], has_prev, float(FPS)))
+        gait_speed = smoothed_speed(state["gait_speed"], hips_speed(pos, state["prev_pos"], has_prev, FPS), has_prev)
+        share = run_share(np.maximum(gait_speed, 0.0))
         source = carry_by_gait(self.leaf_prior, self.run_leaf_prior, rot_in, w, share)
         out_rot = transfer_twist(self.skeleton, source, out_rot)
         out_rot = carry_by_gait(self.output_prior, self.run_output_prior, out_rot, w, share, hips=HIPS)
@@ -255,6 +264,7 @@ class ERDModel:
         new.update(
             prev_pos=pos,
             prev_yaw=yaw,
+            gait_speed=gait_speed,
             out_root=out_root,
             frame=state["frame"] + 1,
             style_in=state["style_in"].copy(),
