@@ -37,12 +37,14 @@ def _beyond(model, motion, style: str) -> np.ndarray:
 def test_streamed_output_stays_inside_the_ball(model, walk):
     bare = LPNModel(model.p, model.skeleton, model.config)  # the same network without the prior
     left = []
-    for style in ("elderly", "exhausted"):
+    for style in ("elderly", "exhausted", "feminine", "masculine"):
         out, _ = model.run(walk, model.weight_vector({style: 1.0}))
         assert _beyond(model, out, style).max() < 1e-3, style  # float32 output: round-off only
         loose, _ = bare.run(walk, bare.weight_vector({style: 1.0}))
         left.append((_beyond(model, loose, style) > 0).mean())
-    assert max(left) > 0.01  # the network alone does leave the ball (exhausted: its spine)
+    # the network alone does leave the ball (feminine: its shoulders, masculine: its spine; the
+    # spine flips that took exhausted out of it are re-split since session 22, `_untwist`)
+    assert max(left) > 0.01
 
 
 def test_mixed_weights_blend_each_styles_clamp(model, walk):
