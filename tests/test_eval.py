@@ -130,3 +130,25 @@ def test_only_the_test_and_validation_splits_can_be_scored():
 
     with pytest.raises(ValueError, match="split"):
         evaluate(quick=True, split="train")
+
+
+def test_a_one_frame_flick_of_the_head_is_a_pop():
+    """`RotationReference.pops`: a real clip turns no faster from frame to frame than the real
+    data mostly does; the same clip with the head flicked 30 degrees for one frame pops there."""
+    from dataclasses import replace
+
+    from models.eval.plausibility import RotationReference, rotation_acceleration
+    from models.motion.rotations import expmap_to_quat, quat_mul
+
+    index = build_index(["bandai-namco-2"])
+    ref = RotationReference({"elderly": load_motions(select(index, split="train", style="elderly"))})
+    clip = load_motions(select(index, split="val", style="elderly", content="walk")[:1])[0].slice(0, 90)
+    calm = ref.pops("elderly", [clip])
+    head = clip.skeleton.index("Head")
+    rot = clip.rotations.copy()
+    rot[45, head] = quat_mul(rot[45, head], expmap_to_quat(np.radians([0.0, 30.0, 0.0])))
+    flicked = replace(clip, rotations=rot)
+    assert calm["pops_largest_deg"] < 15.0 and ref.pops("elderly", [flicked])["pops_largest_deg"] > 50.0
+    k = ref.joints.index("Head")
+    over = lambda m: int((rotation_acceleration(m, ref.joint_index)[:, k] > ref.pop_limit["elderly"][k]).sum())  # noqa: E731
+    assert over(clip) == 0 and over(flicked) == 3  # the frame before, the flick, the frame after

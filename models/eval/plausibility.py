@@ -9,7 +9,10 @@ the style, per joint:
 - **distance**: angle to the real data's mean rotation of that joint; a frame is *plausible* when
   it is no farther than the real data's own p99 distance;
 - **twist**: the part of the rotation relative to that mean that turns the bone about itself
-  (swing-twist split about the bone's axis), against the real p0.5..p99.5 interval.
+  (swing-twist split about the bone's axis), against the real p0.5..p99.5 interval;
+- **pops**: how fast the rotation's turning changes from frame to frame (the angle of the second
+  difference, degrees per frame per frame), against the real p99.9 of that joint: a one-frame
+  flick of the torso or a wrist that no pose metric sees (LPN-FiLM's spine flips, session 22).
 
 The Hips rotation holds the character's heading, which is arbitrary, so it is compared with its
 heading removed (its swing away from world up). The reference (`RotationReference`) is built from
@@ -22,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion import bn_skeleton
-from ..motion.rotations import quat_angle, quat_inv, quat_mean, quat_mul, swing_twist, twist_angle
+from ..motion.rotations import quat_angle, quat_inv, quat_mean, quat_mul, quat_to_expmap, swing_twist, twist_angle
 from ..motion.skeleton import Motion, Skeleton
 
 UP = np.array([0.0, 1.0, 0.0])
@@ -69,10 +72,18 @@ def comparable_rotations(motion: Motion) -> np.ndarray:
     return out
 
 
+def rotation_acceleration(motion: Motion, joints: np.ndarray) -> np.ndarray:
+    """(F - 2, len(joints)) angle (degrees) of the change of each joint's frame-to-frame turn:
+    the second difference of its comparable local rotation."""
+    q = comparable_rotations(motion)[:, joints].astype(np.float64)
+    turn = quat_to_expmap(quat_mul(quat_inv(q[:-1]), q[1:]))
+    return np.degrees(np.linalg.norm(np.diff(turn, axis=0), axis=-1))
+
+
 class RotationReference:
     """Per style and body joint, from the real TRAIN-split clips of the style (all contents):
-    the mean local rotation, the p99 angle of real frames to it, and the p0.5/p99.5 twist
-    about the bone of real frames relative to it."""
+    the mean local rotation, the p99 angle of real frames to it, the p0.5/p99.5 twist about the
+    bone of real frames relative to it, and the p99.9 of the rotation's acceleration."""
 
     def __init__(self, train: dict[str, list[Motion]]):
         sk = next(iter(train.values()))[0].skeleton
@@ -83,7 +94,11 @@ class RotationReference:
         self.mean: dict[str, np.ndarray] = {}  # style -> (J, 4)
         self.p99: dict[str, np.ndarray] = {}  # style -> (J,) radians
         self.twist_range: dict[str, np.ndarray] = {}  # style -> (2, J) radians
+        self.pop_limit: dict[str, np.ndarray] = {}  # style -> (J,) degrees per frame per frame
         for style, motions in train.items():
+            self.pop_limit[style] = np.percentile(
+                np.concatenate([rotation_acceleration(m, self.joint_index) for m in motions]), 99.9, axis=0
+            )
             q = self.rotations(motions)
             q = q[np.linspace(0, len(q) - 1, min(len(q), MAX_FRAMES_PER_STYLE)).astype(int)]
             self.mean[style] = quat_mean(q, axis=0)
@@ -100,6 +115,15 @@ class RotationReference:
         joint's bone of the difference from the mean (radians)."""
         mean = self.mean[style]
         return quat_angle(q, mean), twist_angle(quat_mul(quat_inv(mean), q), self.axes)
+
+    def pops(self, style: str, motions: list[Motion]) -> dict:
+        """`pops_max`: the worst joint's share of frames whose rotation acceleration exceeds the
+        real p99.9 of that joint (real clips: about 0.001), `pops_joint` which, `pops_largest_deg`
+        the largest acceleration of any joint."""
+        acc = np.concatenate([rotation_acceleration(m, self.joint_index) for m in motions])
+        share = (acc > self.pop_limit[style]).mean(axis=0)
+        worst = int(np.argmax(share))
+        return {"pops_max": float(share[worst]), "pops_joint": self.joints[worst], "pops_largest_deg": float(acc.max())}
 
     def plausibility(self, style: str, motions: list[Motion]) -> dict:
         """Per joint over all frames of `motions`: `within` = share of frames no farther from the
