@@ -248,16 +248,21 @@ def test_planted_feet_stay_put(model, walks):
     assert both.sum() > 20 and np.median(step[both]) < 1e-6 and np.all(step[both] < 0.3), np.sort(step[both])[-8:]
 
 
-def test_a_state_saved_before_the_foot_planter_still_steps(model, walks):
-    """Snapshots written by an older replica have no planter state (or the old foot lock's):
-    `upgrade_state` (which the service's batcher applies to every state) gives them a fresh one."""
-    motion = walks[0]
+def _five_frames_in(model, motion):
+    """(motion, elderly weights, the state of one session after motion's first 5 frames)."""
     w = _onehot(model, "elderly")[None]
     state = model.init_state(1)
     for t in range(5):
         _, state = model.step_batch(
             state, FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1]), w
         )
+    return motion, w, state
+
+
+def test_a_state_saved_before_the_foot_planter_still_steps(model, walks):
+    """Snapshots written by an older replica have no planter state (or the old foot lock's):
+    `upgrade_state` (which the service's batcher applies to every state) gives them a fresh one."""
+    motion, w, state = _five_frames_in(model, walks[0])
     old = {**{k: v for k, v in state.items() if not k.startswith("feet_")}, "lock_anchor": np.zeros((1, 2, 3))}
     fresh = {**state, **{k: v for k, v in model.init_state(1).items() if k.startswith("feet_")}}
     assert model.upgrade_state(state) is state
@@ -270,13 +275,7 @@ def test_a_state_saved_before_the_foot_planter_still_steps(model, walks):
 def test_a_state_saved_before_the_averaged_gait_speed_still_steps(model, walks):
     """Snapshots from a replica before `gait_speed` (and before the foot planter): the average
     restarts from the next frame's speed, the rest of the state is kept."""
-    motion = walks[0]
-    w = _onehot(model, "elderly")[None]
-    state = model.init_state(1)
-    for t in range(5):
-        _, state = model.step_batch(
-            state, FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1]), w
-        )
+    motion, w, state = _five_frames_in(model, walks[0])
     frame = FrameBatch(motion.translations[5:6, 1], motion.rotations[5:6])
     for old in (
         {k: v for k, v in state.items() if k != "gait_speed"},
