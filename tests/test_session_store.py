@@ -113,62 +113,63 @@ def redis_url(tmp_path_factory):
         yield url
 
 
-@pytest.mark.parametrize("kind", ["memory", "redis"])
-def test_stores_keep_replace_delete_and_expire_snapshots(kind, request):
-    url = request.getfixturevalue("redis_url") if kind == "redis" else "memory"
+def on_store(url: str, ttl_s: float, body) -> None:
+    """Run the coroutine function `body(store)` on a fresh store of `url`, closed afterwards."""
 
     async def run():
-        store = create_store(url, ttl_s=0.5)
+        store = create_store(url, ttl_s=ttl_s)
         try:
-            newest = snapshot("a", 3)
-            await store.write({"a": snapshot("a", 1), "b": snapshot("b", 2)}, [])
-            await store.write({"a": newest}, ["b"])
-            assert_same(await store.get("a"), newest)
-            assert await store.get("b") is None and await store.get("never") is None
-            await asyncio.sleep(0.7)
-            assert await store.get("a") is None  # expired after resume_ttl_s
+            await body(store)
         finally:
             await store.close()
 
     asyncio.run(run())
+
+
+@pytest.mark.parametrize("kind", ["memory", "redis"])
+def test_stores_keep_replace_delete_and_expire_snapshots(kind, request):
+    url = request.getfixturevalue("redis_url") if kind == "redis" else "memory"
+
+    async def body(store):
+        newest = snapshot("a", 3)
+        await store.write({"a": snapshot("a", 1), "b": snapshot("b", 2)}, [])
+        await store.write({"a": newest}, ["b"])
+        assert_same(await store.get("a"), newest)
+        assert await store.get("b") is None and await store.get("never") is None
+        await asyncio.sleep(0.7)
+        assert await store.get("a") is None  # expired after resume_ttl_s
+
+    on_store(url, 0.5, body)
 
 
 def test_a_batch_larger_than_one_pipeline_is_written_whole(redis_url):
     """A crowd's snapshots go to Redis `WRITE_CHUNK` at a time: every one arrives, deletes too."""
     from service.session_store import WRITE_CHUNK
 
-    async def run():
-        store = RedisStore(redis_url, ttl_s=60)
-        try:
-            tokens = [f"crowd-{k}" for k in range(2 * WRITE_CHUNK + 5)]
-            await store.write({t: snapshot(t) for t in tokens}, [])
-            await store.write({}, tokens[: WRITE_CHUNK + 1])
-            kept = [await store.get(t) for t in tokens]
-            assert [s is None for s in kept] == [True] * (WRITE_CHUNK + 1) + [False] * (WRITE_CHUNK + 4)
-            assert [s.token for s in kept[WRITE_CHUNK + 1 :]] == tokens[WRITE_CHUNK + 1 :]
-        finally:
-            await store.close()
+    async def body(store):
+        tokens = [f"crowd-{k}" for k in range(2 * WRITE_CHUNK + 5)]
+        await store.write({t: snapshot(t) for t in tokens}, [])
+        await store.write({}, tokens[: WRITE_CHUNK + 1])
+        kept = [await store.get(t) for t in tokens]
+        assert [s is None for s in kept] == [True] * (WRITE_CHUNK + 1) + [False] * (WRITE_CHUNK + 4)
+        assert [s.token for s in kept[WRITE_CHUNK + 1 :]] == tokens[WRITE_CHUNK + 1 :]
 
-    asyncio.run(run())
+    on_store(redis_url, 60, body)
 
 
 def test_an_unreadable_value_in_redis_is_an_unknown_snapshot_not_a_crash(redis_url):
     """A damaged value, or another program's under our key: the resume gets `unknown_resume_token`."""
 
-    async def run():
-        store = RedisStore(redis_url, ttl_s=60)
-        try:
-            kept = snapshot("ok")
-            good = kept.to_bytes()
-            for token, value in (("cut", good[:-3]), ("foreign", b"PNG..."), ("json", b'{"a": 1}')):
-                await store.redis.set(KEY_PREFIX + token, value)
-                assert await store.get(token) is None
-            await store.redis.set(KEY_PREFIX + "ok", good)
-            assert_same(await store.get("ok"), kept)
-        finally:
-            await store.close()
+    async def body(store):
+        kept = snapshot("ok")
+        good = kept.to_bytes()
+        for token, value in (("cut", good[:-3]), ("foreign", b"PNG..."), ("json", b'{"a": 1}')):
+            await store.redis.set(KEY_PREFIX + token, value)
+            assert await store.get(token) is None
+        await store.redis.set(KEY_PREFIX + "ok", good)
+        assert_same(await store.get("ok"), kept)
 
-    asyncio.run(run())
+    on_store(redis_url, 60, body)
 
 
 def test_an_unreachable_redis_is_a_typed_error_within_about_a_second():
