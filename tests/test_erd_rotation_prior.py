@@ -210,7 +210,7 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
 
     def share_of(motion):
         speed = clip_smoothed_speed(model.maker.positions(motion.translations[:, 1], motion.rotations), FPS)
-        return run_share(np.maximum(speed, 0.0))
+        return run_share(speed)
 
     assert share_of(run)[20:].min() == 1.0  # a run, once under way
     walk = neutral[0]
@@ -236,7 +236,7 @@ def test_a_runs_share_of_the_run_priors_does_not_swing_within_its_steps(model, r
     from models.erd.gait import UNMEASURED, clip_hips_speed, clip_smoothed_speed, hips_speed, run_share, smoothed_speed
 
     pos = model.maker.positions(run.translations[:, 1], run.rotations)
-    raw, smooth = run_share(clip_hips_speed(pos, FPS)), run_share(np.maximum(clip_smoothed_speed(pos, FPS), 0.0))
+    raw, smooth = run_share(clip_hips_speed(pos, FPS)), run_share(clip_smoothed_speed(pos, FPS))
     assert np.abs(np.diff(raw[1:60])).max() > 0.3  # what the steps do to the raw speed on this run
     assert np.abs(np.diff(smooth[1:60])).max() < 0.2
     average = np.array([UNMEASURED])

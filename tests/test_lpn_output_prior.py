@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from models.lpn.carriage import UPPER_BODY
-from models.lpn.output_prior import CARRIED, LEGS, OutputPrior
+from models.lpn.output_prior import CARRIED, OutputPrior
+from models.motion.feet import LEG_JOINTS
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
 
@@ -37,7 +38,7 @@ def test_each_style_carries_only_its_chosen_joints(model):
     for k, style in enumerate(model.output_prior.styles):
         carried = {names[j] for j in np.flatnonzero(prior.radius[k] < np.pi)}
         assert carried == set(CARRIED[style]), style
-    assert set(LEGS) <= set(CARRIED["active"]) and not set(LEGS) & set(CARRIED["exhausted"])
+    assert set(LEG_JOINTS) <= set(CARRIED["active"]) and not set(LEG_JOINTS) & set(CARRIED["exhausted"])
 
 
 def test_only_the_carried_joints_of_styles_with_a_prior_move(model, walk):

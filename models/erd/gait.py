@@ -65,7 +65,7 @@ def clip_smoothed_speed(pos: np.ndarray, fps: float) -> np.ndarray:
 
 def run_share(speed: np.ndarray) -> np.ndarray:
     """(B,) how far each frame is a run: 0 up to the ramp, 1 past it, linear between (an
-    unmeasured speed: 0)."""
+    unmeasured speed, `UNMEASURED` < 0: 0)."""
     lo, hi = RUN_RAMP_CM_S
     return np.clip((np.asarray(speed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 

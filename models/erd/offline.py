@@ -80,7 +80,7 @@ def stylise(
         root_in[0],
     )
     w_frames = np.broadcast_to(np.asarray(weights, np.float64), (len(rots), w.shape[-1]))
-    share = run_share(np.maximum(clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS), 0.0))
+    share = run_share(clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS))
     source = carry_by_gait(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots)
     rots = carry_by_gait(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)

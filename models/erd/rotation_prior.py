@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
+from ..motion.feet import LEG_JOINTS
 from ..motion.rotations import quat_inv, quat_mul, swing_twist
 from ..motion.style_carry import StyleCarry
 
@@ -59,7 +60,6 @@ UP = np.array([0.0, 1.0, 0.0])
 FIT_CLIPS_PER_CONTENT = 4
 RUN_FIT_CLIPS = 12  # TRAIN neutral runs for the run output prior: 4, as per content above, would be 960 frames
 FIT_FRAMES = 240
-LEGS = ("UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L", "UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R")
 
 
 def real_rotations(runs: bool = False) -> list[np.ndarray]:
@@ -134,7 +134,7 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     produced = [
         without_heading(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]))[1] for k in range(len(styles))
     ]
-    clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEGS))
+    clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEG_JOINTS))
     return StyleCarry.fit(produced, [without_heading(q)[1] for q in real[1:]], (0,), clamp_only=clamped)
 
 

@@ -254,7 +254,7 @@ class ERDModel:
             x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64), root, rot_in, float(FPS)
         )
         gait_speed = smoothed_speed(state["gait_speed"], hips_speed(pos, state["prev_pos"], has_prev, FPS), has_prev)
-        share = run_share(np.maximum(gait_speed, 0.0))
+        share = run_share(gait_speed)
         source = carry_by_gait(self.leaf_prior, self.run_leaf_prior, rot_in, w, share)
         out_rot = transfer_twist(self.skeleton, source, out_rot)
         out_rot = carry_by_gait(self.output_prior, self.run_output_prior, out_rot, w, share, hips=HIPS)

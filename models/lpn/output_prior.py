@@ -35,12 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..motion.feet import LEG_JOINTS
 from ..motion.style_carry import StyleCarry
 from .carriage import LOCOMOTION, SKIP_FRAMES, UPPER_BODY, train_clips
 
 OUTPUT_PRIOR_FILE = "output_prior.npz"
-LEGS = ("UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L", "UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R")
-CARRIED = {"active": UPPER_BODY + LEGS, "exhausted": UPPER_BODY}  # per style, chosen on validation (module doc)
+CARRIED = {"active": UPPER_BODY + LEG_JOINTS, "exhausted": UPPER_BODY}  # per style, chosen on validation (module doc)
 SOURCE_FLOOR_DEG = 2.0  # the network's least spread along any axis, as the fit takes it (module doc)
 PRIOR_ROWS = ("prior_source", "prior_mean", "prior_map", "prior_radius", "prior_on")  # its style-table rows
 FIT_FRAMES = 300

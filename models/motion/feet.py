@@ -48,6 +48,7 @@ from .skeleton import Skeleton
 
 LEGS = (("UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L"), ("UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R"))
 """The Bandai Namco (model rig) legs: hip joint, knee, ankle, toe, left then right."""
+LEG_JOINTS = LEGS[0] + LEGS[1]  # every leg joint, left then right
 
 STATE_SHAPES: dict[str, tuple[tuple[int, ...], type]] = {
     "feet_started": ((), bool),
