@@ -41,6 +41,7 @@ GATE_SLIDE = 2.0  # planted-toe median slide at most this times the real clips'
 GATE_STYLE = 0.90  # style accuracy, both judges
 GATE_CONTENT = 0.90  # content accuracy (LPN-FiLM: on locomotion inputs)
 FMD_BEFORE = {"lti": 214.6, "erd": 308.7}  # overall FMD of the committed models before the rotation work
+ACCURACY_GATES = {"style": "style", "style_rot": "style (rot)", "content": "content"}  # key -> label
 HISTORY_FRAMES = 300  # running sessions: each clip after 10 s of the clips before it (`history.py`)
 # the real clips a method is held against (slide floor, `real` rows): a split the scored one is not;
 # FMD is against real clips of the scored split itself
@@ -419,7 +420,6 @@ def _gates_markdown(r: dict) -> list[str]:
 
 def _clips_short(g: dict) -> list[str]:
     """'method style judge: k of n clips, m short' for every accuracy gate a row misses."""
-    labels = {"style": "style", "style_rot": "style (rot)", "content": "content"}
     limits = {"style": GATE_STYLE, "style_rot": GATE_STYLE, "content": GATE_CONTENT}
     out = []
     for name, per in g.items():
@@ -427,7 +427,7 @@ def _clips_short(g: dict) -> list[str]:
             if s == "fmd":
                 continue
             n = c["clips"]
-            for key, label in labels.items():
+            for key, label in ACCURACY_GATES.items():
                 if not c[key]["pass"]:
                     have, need = round(c[key]["value"] * n), math.ceil(limits[key] * n - 1e-9)
                     out.append(f"{name} {s} {label} {have} of {n}, {need - have} short")
@@ -436,14 +436,13 @@ def _clips_short(g: dict) -> list[str]:
 
 def _misses_markdown(r: dict) -> list[str]:
     """Which clips each missed accuracy gate misses, and what the judge read them as."""
-    labels = {"style": "style", "style_rot": "style (rot)", "content": "content"}
     lines = []
     for name, per in r["gates"].items():
         scores = r["methods"][name]["per_style_locomotion" if name == "lpn" else "per_style"]
         for s, c in per.items():
             if s == "fmd" or "misses" not in scores[s]:
                 continue
-            for key, label in labels.items():
+            for key, label in ACCURACY_GATES.items():
                 if not c[key]["pass"]:
                     read = ", ".join(f"{_short(n)} → {g}" for n, g in sorted(scores[s]["misses"][key].items()))
                     lines.append(f"- {name} {s} {label}: {read}")
