@@ -34,6 +34,7 @@ from queue import Empty
 import numpy as np
 
 PHASES = ("spread", "aligned")
+DRAIN_S = 10.0  # after its last frame, how long a session waits for the replies still due
 
 
 @dataclass
@@ -45,7 +46,7 @@ class Result:
     received: int
     dropped: int
     late: int  # replies later than one frame period
-    lost: int  # sent frames with neither a reply nor a drop count
+    lost: int  # sent frames with neither a reply nor a drop count DRAIN_S after the last send
     p50_ms: float
     p95_ms: float
     p99_ms: float
@@ -107,6 +108,8 @@ async def _session(
     sent_at = np.full(n, np.nan)
     got_at = np.full(n, np.nan)
     dropped = behind = 0
+    accounted = 0  # ticks answered or reported dropped
+    all_accounted = asyncio.Event()
     async with websockets.connect(url, max_size=2**22) as ws:
         if start is not None:
             await ws.send(json.dumps(start))
@@ -118,18 +121,20 @@ async def _session(
         phases = (ids.astype(np.int64) * 13) % len(frames)  # characters at different points of the walk
 
         async def receiver() -> None:
-            nonlocal dropped
+            nonlocal dropped, accounted
             while True:
                 data = await ws.recv()
                 if isinstance(data, str):
                     continue  # control acknowledgements
                 if crowd:
                     seq, _, _, d = TICK_HEADER.unpack_from(data)
-                    d *= characters  # every character of a dropped tick
                 else:
                     seq, _, d = struct.unpack_from("<IHH", data)
+                accounted += d + bool(np.isnan(got_at[seq]))
                 got_at[seq] = time.perf_counter()
-                dropped += d
+                dropped += d * characters  # every character of a dropped tick
+                if accounted >= n:
+                    all_accounted.set()
 
         recv_task = asyncio.create_task(receiver())
         connected()
@@ -148,7 +153,10 @@ async def _session(
                 await ws.send(TICK_HEADER.pack(i, 2, characters, 0) + ids.tobytes() + rows.tobytes())
             else:
                 await ws.send(_pack(i, frames[i % len(frames)]))  # the echo server returns it as is
-        await asyncio.sleep(0.5)  # let the last replies arrive
+        # the last replies: until every tick is answered or counted dropped (a slow server's
+        # replies are late, not lost), at most DRAIN_S
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(all_accounted.wait(), DRAIN_S)
         recv_task.cancel()
     stats["latency"].append(got_at - sent_at)
     stats["dropped"] += dropped
