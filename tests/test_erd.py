@@ -285,3 +285,20 @@ def test_a_state_saved_before_the_averaged_gait_speed_still_steps(model, walks):
         assert up["gait_speed"][0] < 0 and all(np.array_equal(up[k], v) for k, v in old.items())
         _, after = model.step_batch(up, frame, w)
         assert after["gait_speed"][0] > 0  # measured again from this frame
+
+
+def test_a_state_saved_before_the_slow_copies_still_steps(model, walks):
+    """Snapshots from a replica before `slow_in` / `slow_out` (`slow_carry.py`): unset copies
+    (zeros) that start again from the next frame, the rest of the state kept."""
+    motion, w, state = _five_frames_in(model, walks[0])
+    frame = FrameBatch(motion.translations[5:6, 1], motion.rotations[5:6])
+    old = {k: v for k, v in state.items() if not k.startswith("slow_")}
+    up = model.upgrade_state(old)
+    assert not up["slow_in"].any() and not up["slow_out"].any()
+    assert all(np.array_equal(up[k], v) for k, v in old.items())
+    _, after = model.step_batch(up, frame, w)
+    np.testing.assert_allclose(
+        after["slow_in"][0],
+        motion.rotations[5] / np.linalg.norm(motion.rotations[5], axis=-1, keepdims=True),
+        atol=1e-12,
+    )

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from models.erd.slow_carry import carry_slow, carry_slow_numpy, clip_carry_slow
 from models.interface import FrameBatch
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
@@ -133,8 +134,9 @@ def test_a_batch_carries_each_row_as_alone(model, neutral):
 
 def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
     """Without the output prior, the output's leaves are exactly the leaf prior's carried input
-    (the decoder's own leaf rotations, which no position loss trained, are not used), and the
-    twist source changes rotations, never where the joints are."""
+    (its slow part carried, the fast part on top: `slow_carry.py`; the decoder's own leaf
+    rotations, which no position loss trained, are not used), and the twist source changes
+    rotations, never where the joints are."""
     from models.motion.skeleton import fk
 
     motion = neutral[1]
@@ -159,8 +161,9 @@ def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
                 runs[tag].append(out)
     finally:
         model.leaf_prior, model.output_prior = priors
+    source = clip_carry_slow(priors[0], None, motion.rotations[:30], np.tile(w, (30, 1)), np.zeros(30))
     for t in range(30):
-        src = priors[0](motion.rotations[t : t + 1], w[None])
+        src = source[t : t + 1]
         assert np.all(_apart(runs["leaf"][t].rotations[0, leaves], src[0, leaves]) < 1e-7)
         np.testing.assert_allclose(joints(runs["leaf"][t]), joints(runs["bare"][t]), atol=1e-6)
 
@@ -298,3 +301,68 @@ def test_the_gait_mix_compiled_is_its_numpy_reference(model, run):
     assert np.all(_apart(compiled, other.mixed_with_numpy(ran, other.bounds, rot, w, share)) < 1e-9)
     walking = share == 0.0
     np.testing.assert_array_equal(compiled[walking], other(rot[walking], w[walking]))
+
+
+def test_a_held_pose_is_carried_as_the_prior_carries_it(model, neutral):
+    """Slow part = the pose itself: the output prior's carry, unchanged by `slow_carry`."""
+    from models.erd.gait import carry_by_gait
+    from models.motion.bn_skeleton import HIPS
+
+    q = neutral[0].rotations[:8]
+    w = np.tile(_onehot(model, "feminine"), (len(q), 1))
+    share = np.zeros(len(q))
+    slowly, slow = carry_slow(model.output_prior, None, q, q, w, share, hips=HIPS)
+    assert np.all(_apart(slow, q) < 1e-12)
+    assert np.all(_apart(slowly, carry_by_gait(model.output_prior, None, q, w, share, hips=HIPS)) < 1e-9)
+
+
+def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
+    """A held pose whose head flicks 20 degrees for one frame: carried whole, the flick grows by
+    the prior's gain g toward feminine (above 1 on the head); carried slowly, only the slow copy's
+    share of it (SLOW_WEIGHT) is carried with the gain, the rest passes at most as it came:
+    about SLOW_WEIGHT g + (1 - SLOW_WEIGHT) times the flick instead of g times."""
+    from models.erd.gait import carry_by_gait
+    from models.erd.slow_carry import SLOW_WEIGHT
+    from models.motion.bn_skeleton import HIPS
+    from models.motion.rotations import expmap_to_quat
+
+    head = model.skeleton.index("Head")
+    prior, w = model.output_prior, _onehot(model, "feminine")[None]
+    gains, axes = np.linalg.eigh(prior.map[model.styles().index("feminine"), head])
+    assert gains[-1] > 1.2
+    pose = neutral[0].rotations[:1]
+    flicked = pose.copy()  # about the axis the map stretches most
+    flicked[:, head] = quat_mul(pose[:, head], expmap_to_quat(np.radians(20.0) * axes[:, -1]))
+    frames = [pose] * 10 + [flicked] + [pose] * 3
+    slow, whole, slowly = np.zeros_like(pose), [], []
+    for q in frames:
+        whole.append(carry_by_gait(prior, None, q, w, np.zeros(1), hips=HIPS)[0, head])
+        out, slow = carry_slow(prior, None, q, slow, w, np.zeros(1), hips=HIPS)
+        slowly.append(out[0, head])
+    jump = lambda out: np.degrees(quat_angle(out[9], out[10]))  # noqa: E731
+    assert jump(whole) > 1.2 * 20.0
+    # within a degree: rotations compose, they do not add
+    assert jump(slowly) <= SLOW_WEIGHT * jump(whole) + (1.0 - SLOW_WEIGHT) * 20.0 + 1.0, (jump(whole), jump(slowly))
+
+
+@pytest.mark.parametrize("mix", ["one style", "a mix at part intensity"])
+def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
+    """`carry_slow` (one compiled pass) against `carry_slow_numpy` (follow, `carry_by_gait`, the
+    fast part and the clamp, each in numpy), both stages, with the run priors part-shared."""
+    from models.motion.bn_skeleton import HIPS
+
+    rng = np.random.default_rng(3)
+    q = np.concatenate([m.rotations[:20] for m in neutral])
+    B = len(q)
+    w = np.tile(_onehot(model, "elderly"), (B, 1)) if mix == "one style" else rng.dirichlet(np.ones(6), B) * 0.8
+    share = rng.choice([0.0, 0.4, 1.0], B)
+    slow = np.roll(q, 1, axis=0) + 0.05 * rng.normal(size=q.shape)
+    slow[::7] = 0.0  # unset rows start at q
+    for other, run, hips in (
+        (model.leaf_prior, model.run_leaf_prior, -1),
+        (model.output_prior, model.run_output_prior, HIPS),
+    ):
+        got, got_slow = carry_slow(other, run, q, slow, w, share, hips=hips)
+        want, want_slow = carry_slow_numpy(other, run, q, slow, w, share, hips=hips)
+        assert np.all(_apart(got_slow, want_slow) < 1e-12)
+        assert np.all(_apart(got, want) < 1e-9)

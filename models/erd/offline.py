@@ -9,9 +9,9 @@ change with the style. The output Hips rotation is the input's facing yaw times 
 yaw-free Hips rotation. As in the streaming model, the bones keep the input's twists and the
 leaves its rotations (`models.motion.twist.transfer_twist`), carried to the target style and the
 output carried to the style's real rotations when the rotation prior is given (`rotation_prior.py`;
-run priors for the frames the input runs in, `gait.py`). Then the feet are planted frame by
-frame as in the streaming model (`models.motion.feet`; `foot_lock=False` gives the network's
-output alone).
+run priors for the frames the input runs in, `gait.py`; the slow part carried, the fast part on
+top, `slow_carry.py`). Then the feet are planted frame by frame as in the streaming model
+(`models.motion.feet`; `foot_lock=False` gives the network's output alone).
 """
 
 from __future__ import annotations
@@ -29,8 +29,9 @@ from ..motion.skeleton import Motion
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
-from .gait import carry_by_gait, clip_smoothed_speed, run_share
+from .gait import clip_smoothed_speed, run_share
 from .model import Generator
+from .slow_carry import clip_carry_slow
 
 
 def to_world(
@@ -81,9 +82,9 @@ def stylise(
     )
     w_frames = np.broadcast_to(np.asarray(weights, np.float64), (len(rots), w.shape[-1]))
     share = run_share(clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS))
-    source = carry_by_gait(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
+    source = clip_carry_slow(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots)
-    rots = carry_by_gait(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)
+    rots = clip_carry_slow(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)
     if foot_lock:
         root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()

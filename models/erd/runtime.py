@@ -12,6 +12,8 @@ State per session (every entry has the session axis first):
                                                         style (in `styles()` order); network dtype
     prev_pos (B, 22, 3), prev_yaw (B,)                  previous input frame (causal velocities)
     gait_speed (B,)                                     the input's averaged Hips speed (`gait.py`)
+    slow_in, slow_out (B, 22, 4)                        slowly following copies of the input's and
+                                                        the output's rotations (`slow_carry.py`)
     out_root (B, 3)                                     last output Hips translation
     frame (B,)                                          frames seen
     style_in (B,), content (B,)                         input labels, -1 = unknown (the default)
@@ -32,7 +34,9 @@ so the head and wrists take the style's attitude inside its real range instead o
 input's; then the output's rotations are carried from what the network produces to the style's
 real distribution and clamped into its real range (`rotation_prior.py`: `leaf_prior.npz`,
 `output_prior.npz` beside the weights). Frames where the input runs take priors fitted on runs
-alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`).
+alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`). Each prior carries only
+a slowly following copy of the rotations; their frame-to-frame rest passes unscaled, so the
+priors' gains do not shake the head and arms (`slow_carry.py`).
 
 Planted feet: the network knows nothing of the floor, so its planted feet slid (20 % of flat-foot
 frames over the eval suite's inputs, 40 % toward `active`, against 3 % for the inputs). The
@@ -64,10 +68,12 @@ from ..rowwise import matmul_rows
 from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
-from .gait import UNMEASURED, carry_by_gait, hips_speed, run_share, smoothed_speed
+from .gait import UNMEASURED, hips_speed, run_share, smoothed_speed
 from .rotation_prior import PRIOR_FILES
+from .slow_carry import carry_slow
 
 WEIGHTS_FILE = "erd.npz"
+NEWER_KEYS = ("gait_speed", "slow_in", "slow_out")  # state entries snapshots from older replicas may lack
 
 
 def _sigmoid_(a: np.ndarray) -> np.ndarray:
@@ -198,6 +204,8 @@ class ERDModel:
             prev_pos=np.zeros((batch, 22, 3)),
             prev_yaw=np.zeros(batch),
             gait_speed=np.full(batch, UNMEASURED),
+            slow_in=np.zeros((batch, 22, 4)),
+            slow_out=np.zeros((batch, 22, 4)),
             out_root=np.zeros((batch, 3)),
             frame=np.zeros(batch, dtype=np.int64),
             style_in=np.full(batch, si, dtype=np.int64),
@@ -209,15 +217,18 @@ class ERDModel:
     def upgrade_state(self, state: State) -> State:
         """A state saved by an older replica: before the foot planter (with or without the old
         `lock_*` keys) it gets a fresh planter state, before the averaged gait speed an
-        unmeasured one (its next frame's speed starts the average); a current state is returned
-        as it is."""
-        if all(k in state for k in FEET_STATE) and "gait_speed" in state:
+        unmeasured one (its next frame's speed starts the average), before the slow copies
+        unset ones (zeros: its next frame starts them); a current state is returned as it is."""
+        if all(k in state for k in (*FEET_STATE, *NEWER_KEYS)):
             return state
+        batch = len(state["frame"])
         old = {k: v for k, v in state.items() if not k.startswith("lock_")}
-        old.setdefault("gait_speed", np.full(len(state["frame"]), UNMEASURED))
+        old.setdefault("gait_speed", np.full(batch, UNMEASURED))
+        for key in ("slow_in", "slow_out"):
+            old.setdefault(key, np.zeros((batch, self.skeleton.num_joints, 4)))
         if all(k in old for k in FEET_STATE):
             return old
-        return self.planter.upgrade_state(old, len(state["frame"]))
+        return self.planter.upgrade_state(old, batch)
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
         root = np.ascontiguousarray(frames.root, np.float64)
@@ -239,6 +250,8 @@ class ERDModel:
             ("prev_pos", (B, J, 3)),
             ("prev_yaw", (B,)),
             ("gait_speed", (B,)),
+            ("slow_in", (B, J, 4)),
+            ("slow_out", (B, J, 4)),
             ("out_root", (B, 3)),
             ("frame", (B,)),
             ("style_in", (B,)),
@@ -255,9 +268,11 @@ class ERDModel:
         )
         gait_speed = smoothed_speed(state["gait_speed"], hips_speed(pos, state["prev_pos"], has_prev, FPS), has_prev)
         share = run_share(gait_speed)
-        source = carry_by_gait(self.leaf_prior, self.run_leaf_prior, rot_in, w, share)
+        source, slow_in = carry_slow(self.leaf_prior, self.run_leaf_prior, rot_in, state["slow_in"], w, share)
         out_rot = transfer_twist(self.skeleton, source, out_rot)
-        out_rot = carry_by_gait(self.output_prior, self.run_output_prior, out_rot, w, share, hips=HIPS)
+        out_rot, slow_out = carry_slow(
+            self.output_prior, self.run_output_prior, out_rot, state["slow_out"], w, share, hips=HIPS
+        )
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
         )
@@ -265,6 +280,8 @@ class ERDModel:
             prev_pos=pos,
             prev_yaw=yaw,
             gait_speed=gait_speed,
+            slow_in=slow_in,
+            slow_out=slow_out,
             out_root=out_root,
             frame=state["frame"] + 1,
             style_in=state["style_in"].copy(),

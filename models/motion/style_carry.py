@@ -118,6 +118,23 @@ class StyleCarry:
             self.mean, self.mean, np.ascontiguousarray(np.broadcast_to(np.eye(3), self.map.shape)), self.radius
         )
 
+    @functools.cached_property
+    def damping(self) -> np.ndarray:
+        """(S, J, 3, 3) each map with its gains capped at 1 (the map is symmetric: the capped
+        eigen-decomposition): where a style moves a joint less than the carried source it
+        shrinks the source's motion, and it never magnifies it (Style-ERD's fast part,
+        `models/erd/slow_carry.py`)."""
+        vals, vecs = np.linalg.eigh(self.map)
+        return (vecs * np.minimum(vals, 1.0)[..., None, :]) @ np.swapaxes(vecs, -1, -2)
+
+    @functools.cached_property
+    def clamps_only(self) -> np.ndarray:
+        """(J,) bool: the joints this carry only clamps for every style (its map the identity
+        and its source the style's mean: the legs of a clamp-only fit, fixed joints)."""
+        eye = np.all(np.abs(self.map - np.eye(3)) == 0.0, axis=(-1, -2))
+        same = np.all(self.source == self.mean, axis=-1)
+        return np.all(eye & same, axis=0)
+
     def style(self, q: np.ndarray, s: int) -> np.ndarray:
         """f_s(q) for rotations (N, J, 4) toward style s."""
         d = quat_log(quat_mul(quat_inv(self.source[s])[None], q))
