@@ -231,6 +231,21 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     assert np.median(moved.max(axis=-1)) > 2.0  # the run priors do change a run
 
 
+def test_a_stream_that_starts_mid_run_eases_into_the_run_priors(model, run):
+    """A session's first frame has no speed yet and counts as standing; the run priors then fade
+    in over its first frames (`gait.eased_in`) instead of turning the head by ~20 degrees
+    between its first and second frame (toward feminine), and are whole once it is under way."""
+    from models.erd.gait import START_FRAMES, eased_in
+
+    if model.run_output_prior is None:
+        pytest.skip("no run priors committed")
+    head = model.skeleton.index("Head")
+    out = _stream(model, run.slice(0, 2 * START_FRAMES), _onehot(model, "feminine"))
+    steps = np.degrees(quat_angle(out[:-1, head], out[1:, head]))
+    assert steps.max() < 6.0, steps.round(1)
+    assert eased_in(np.ones(3), np.array([0, 1, START_FRAMES])).tolist() == [0.0, 1.0 / START_FRAMES, 1.0]
+
+
 def test_a_runs_share_of_the_run_priors_does_not_swing_within_its_steps(model, run):
     """The Hips speed swings by +-40 cm/s within each running step; frame by frame it swung the
     share between the priors by ~0.5 a frame. Averaged over about a step (`gait.py`), it moves by

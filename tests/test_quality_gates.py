@@ -35,8 +35,8 @@ GATES = (0.95, 2.0)
 # per method: the highest share of a joint's frames turning faster from frame to frame than the
 # style's real p99.9 (`RotationReference.pops`), over the styles. Real validation walks and runs
 # of each style score 0.011-0.023; measured here: lti 0.185 (elderly UpperArm_L: the input run's
-# arm swing, at running pace where real elderly arms move slowly), erd 0.301 (elderly LowerArm_R;
-# feminine and youthful Head 0.10, 0.21 before its priors carried only the slow part of each
+# arm swing, at running pace where real elderly arms move slowly), erd 0.304 (elderly LowerArm_R;
+# feminine and youthful Head 0.09, 0.21 before its priors carried only the slow part of each
 # rotation, models/erd/slow_carry.py), lpn 0.045
 POPS = {"lti": 0.2, "erd": 0.33, "lpn": 0.06}
 

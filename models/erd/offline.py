@@ -29,7 +29,7 @@ from ..motion.skeleton import Motion
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
-from .gait import clip_smoothed_speed, run_share
+from .gait import clip_smoothed_speed, eased_in, run_share
 from .model import Generator
 from .slow_carry import clip_carry_slow
 
@@ -81,7 +81,8 @@ def stylise(
         root_in[0],
     )
     w_frames = np.broadcast_to(np.asarray(weights, np.float64), (len(rots), w.shape[-1]))
-    share = run_share(clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS))
+    speed = clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS)
+    share = eased_in(run_share(speed), np.arange(len(speed)))
     source = clip_carry_slow(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots)
     rots = clip_carry_slow(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)

@@ -68,7 +68,7 @@ from ..rowwise import matmul_rows
 from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
-from .gait import UNMEASURED, hips_speed, run_share, smoothed_speed
+from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
 from .rotation_prior import PRIOR_FILES
 from .slow_carry import carry_slow
 
@@ -267,7 +267,7 @@ class ERDModel:
             x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64), root, rot_in, float(FPS)
         )
         gait_speed = smoothed_speed(state["gait_speed"], hips_speed(pos, state["prev_pos"], has_prev, FPS), has_prev)
-        share = run_share(gait_speed)
+        share = eased_in(run_share(gait_speed), state["frame"])
         source, slow_in = carry_slow(self.leaf_prior, self.run_leaf_prior, rot_in, state["slow_in"], w, share)
         out_rot = transfer_twist(self.skeleton, source, out_rot)
         out_rot, slow_out = carry_slow(
