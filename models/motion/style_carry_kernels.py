@@ -80,19 +80,24 @@ def _lone(w, b):
     return lone
 
 
-@njit(cache=True, error_model="numpy")
-def _unit(q, b, j, hips):
-    """q[b, j] normalised, and for joint `hips` without its heading (its twist about world up):
-    (qx, qy, qz, qw, hy, hw), the heading being (0, hy, 0, hw) (identity for other joints)."""
-    n = math.sqrt(q[b, j, 0] ** 2 + q[b, j, 1] ** 2 + q[b, j, 2] ** 2 + q[b, j, 3] ** 2)
-    qx, qy, qz, qw = q[b, j, 0] / n, q[b, j, 1] / n, q[b, j, 2] / n, q[b, j, 3] / n
+@njit(cache=True, error_model="numpy", inline="always")
+def _headless(qx, qy, qz, qw, is_hips):
+    """Unit q without its heading when it is the Hips (heading = (0, hy, 0, hw)): (q', hy, hw)."""
     hy, hw = 0.0, 1.0
-    if j == hips:
+    if is_hips:
         hn = math.sqrt(qy * qy + qw * qw)
         if hn > 1e-9:
             hy, hw = qy / hn, qw / hn
         qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
     return qx, qy, qz, qw, hy, hw
+
+
+@njit(cache=True, error_model="numpy")
+def _unit(q, b, j, hips):
+    """q[b, j] normalised, and for joint `hips` without its heading (its twist about world up):
+    (qx, qy, qz, qw, hy, hw), the heading being (0, hy, 0, hw) (identity for other joints)."""
+    n = math.sqrt(q[b, j, 0] ** 2 + q[b, j, 1] ** 2 + q[b, j, 2] ** 2 + q[b, j, 3] ** 2)
+    return _headless(q[b, j, 0] / n, q[b, j, 1] / n, q[b, j, 2] / n, q[b, j, 3] / n, j == hips)
 
 
 @njit(cache=True, error_model="numpy")
@@ -228,18 +233,6 @@ def _clamped(qx, qy, qz, qw, row, j, w, lone, clamp):
     `carry_batch` keeps it; out of line (most joints are inside and skip it), so the caller's
     loop stays small."""
     return _carry_joint(qx, qy, qz, qw, row, j, w, lone, clamp[0], clamp[1], clamp[2], clamp[3])
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _headless(qx, qy, qz, qw, is_hips):
-    """Unit q without its heading when it is the Hips (`_unit`, on values): (q', hy, hw)."""
-    hy, hw = 0.0, 1.0
-    if is_hips:
-        hn = math.sqrt(qy * qy + qw * qw)
-        if hn > 1e-9:
-            hy, hw = qy / hn, qw / hn
-        qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
-    return qx, qy, qz, qw, hy, hw
 
 
 @njit(cache=True, error_model="numpy")
