@@ -287,6 +287,8 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
                 sx, sy, sz, sw = k * sx, k * sy, k * sz, k * sw
             new_slow[row, j, 0], new_slow[row, j, 1], new_slow[row, j, 2], new_slow[row, j, 3] = sx, sy, sz, sw
             is_hips = j == hips
+            # the carry is written out for both cases below: one inlined helper for the two made
+            # the pass 40 % slower (0.64 -> 0.90 ms at 256 rows; numba's inlining)
             if plain[j]:
                 hx, hy_, hz, hw_, hy, hw = _headless(ux, uy, uz, uw, is_hips)
                 if r == 0.0:
