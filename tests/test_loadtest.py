@@ -56,3 +56,54 @@ def test_crowds_count_every_characters_frame(server):
     assert result.sent == 2 * 60 * 5 == result.received and result.lost == 0 and result.dropped == 0
     assert result.frames_per_s == pytest.approx(600.0)
     assert np.isfinite(latency).all()
+
+
+@pytest.fixture
+def late_echo():
+    """An echo server that answers every message `LATE_S` after it arrived (without holding up the
+    ones behind it): a server that has fallen that far behind."""
+    import asyncio
+    import threading
+
+    from websockets.asyncio.server import serve
+
+    loop = asyncio.new_event_loop()
+    ready: dict = {}
+
+    async def echo_late(ws) -> None:
+        async def answer(message) -> None:
+            await asyncio.sleep(LATE_S)
+            await ws.send(message)
+
+        tasks = set()
+        async for message in ws:
+            task = asyncio.create_task(answer(message))
+            tasks.add(task)
+            task.add_done_callback(tasks.discard)
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def main() -> None:
+        async with serve(echo_late, "127.0.0.1", 0) as server:
+            ready["port"] = server.sockets[0].getsockname()[1]
+            ready["stop"] = loop.create_future()
+            started.set()
+            await ready["stop"]
+
+    started = threading.Event()
+    thread = threading.Thread(target=loop.run_until_complete, args=(main(),), daemon=True)
+    thread.start()
+    assert started.wait(30)
+    yield f"ws://127.0.0.1:{ready['port']}/v1/stream"
+    loop.call_soon_threadsafe(ready["stop"].set_result, None)
+    thread.join(30)
+
+
+LATE_S = 0.8  # longer than the half second the load test used to wait after its last frame
+
+
+def test_replies_still_due_after_the_last_frame_are_late_not_lost(late_echo, mocap_data):
+    """A server 0.8 s behind: every reply arrives after the session's last frame went out; the
+    run waits for them (it counts what it never gets as lost) and counts them late."""
+    result, latency = run(late_echo, sessions=2, fps=30.0, seconds=0.5, processes=1, echo=True)
+    assert result.sent == 2 * 15 == result.received and result.lost == 0
+    assert result.late == result.sent and np.nanmin(latency) >= 1000.0 * LATE_S
