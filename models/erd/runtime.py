@@ -223,9 +223,9 @@ class ERDModel:
             return state
         batch = len(state["frame"])
         old = {k: v for k, v in state.items() if not k.startswith("lock_")}
-        old.setdefault("gait_speed", np.full(batch, UNMEASURED))
-        for key in ("slow_in", "slow_out"):
-            old.setdefault(key, np.zeros((batch, self.skeleton.num_joints, 4)))
+        fresh = self.init_state(batch)  # what a new session starts these entries at
+        for key in NEWER_KEYS:
+            old.setdefault(key, fresh[key])
         if all(k in old for k in FEET_STATE):
             return old
         return self.planter.upgrade_state(old, batch)
