@@ -55,14 +55,19 @@ lint: install
 typecheck: install
 	$(BIN)/python -m mypy
 
+# pytest-xdist: one worker per core, at most 4 (each loads torch and the models); a test file stays
+# on one worker, so its module fixtures (servers, loaded models) start once. TEST_JOBS=0: one process
+TEST_JOBS ?= auto
+PYTEST := $(BIN)/python -m pytest -q -n $(TEST_JOBS) --maxprocesses 4 --dist loadfile
+
 test: install browser servers lint typecheck
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(PYTEST) -m "not slow"
 
 test-loaded: install browser servers  # the suite beside four busy processes (tests/busy.py)
-	$(BIN)/python -m tests.busy 4 -- $(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m tests.busy 4 -- $(PYTEST) -m "not slow"
 
 test-all: install
-	$(BIN)/python -m pytest -q
+	$(PYTEST)
 
 perf: install
 	$(BIN)/python -m clients.perf_report $(PERF_ARGS)

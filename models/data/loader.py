@@ -37,7 +37,7 @@ def _parse_to_cache(path: Path, cache: Path) -> None:
     text = path.read_text(encoding="utf-8")
     motion = from_bvh(bvhio.parse(text, str(path)))
     cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache.with_suffix(".tmp.npz")
+    tmp = cache.with_suffix(f".{os.getpid()}.tmp.npz")  # own name: test workers parse in parallel
     np.savez(
         tmp,
         header=np.array(text[: text.index("MOTION")]),
