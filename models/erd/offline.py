@@ -9,7 +9,8 @@ change with the style. The output Hips rotation is the input's facing yaw times 
 yaw-free Hips rotation. As in the streaming model, the bones keep the input's twists and the
 leaves its rotations (`models.motion.twist.transfer_twist`), carried to the target style and the
 output carried to the style's real rotations when the rotation prior is given (`rotation_prior.py`;
-run priors for the frames the input runs in, `gait.py`; the slow part carried, the fast part on
+run priors for the frames the input runs in, `gait.py`; the output prior faded for some styles
+while the input raises a hand, `raised_hand.py`; the slow part carried, the fast part on
 top, `slow_carry.py`). Then the feet are planted frame by frame as in the streaming model
 (`models.motion.feet`; `foot_lock=False` gives the network's output alone).
 """
@@ -31,6 +32,7 @@ from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .gait import clip_smoothed_speed, eased_in, run_share
 from .model import Generator
+from .raised_hand import kept_in_range, output_prior_weights
 from .slow_carry import clip_carry_slow
 
 
@@ -81,11 +83,13 @@ def stylise(
         root_in[0],
     )
     w_frames = np.broadcast_to(np.asarray(weights, np.float64), (len(rots), w.shape[-1]))
-    speed = clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS)
-    share = eased_in(run_share(speed), np.arange(len(speed)))
+    pos = maker.positions(root_in, motion.rotations)
+    share = eased_in(run_share(clip_smoothed_speed(pos, FPS)), np.arange(len(pos)))
     source = clip_carry_slow(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots)
-    rots = clip_carry_slow(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)
+    faded = output_prior_weights(w_frames, pos)
+    rots = clip_carry_slow(output_prior, run_output_prior, rots, faded, share, hips=HIPS)
+    rots = kept_in_range(output_prior, rots, w_frames, faded)
     if foot_lock:
         root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()

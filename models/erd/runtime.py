@@ -34,7 +34,8 @@ so the head and wrists take the style's attitude inside its real range instead o
 input's; then the output's rotations are carried from what the network produces to the style's
 real distribution and clamped into its real range (`rotation_prior.py`: `leaf_prior.npz`,
 `output_prior.npz` beside the weights). Frames where the input runs take priors fitted on runs
-alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`). Each prior carries only
+alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`); while the input raises a hand, elderly's output
+prior steps aside (`raised_hand.py`: fitted over every content, it made raise-ups waves). Each prior carries only
 a slowly following copy of the rotations; their frame-to-frame rest passes unscaled, so the
 priors' gains do not shake the head and arms (`slow_carry.py`).
 
@@ -69,6 +70,7 @@ from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
 from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
+from .raised_hand import kept_in_range, output_prior_weights
 from .rotation_prior import PRIOR_FILES
 from .slow_carry import carry_slow
 
@@ -143,7 +145,10 @@ class ERDModel:
         from its cache) here, when the model loads, instead of on a live session's first frame."""
         rest = np.zeros((1, 22, 4))
         rest[..., 3] = 1.0
-        self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), np.zeros((1, len(TARGET_STYLES))))
+        none = np.zeros((1, len(TARGET_STYLES)))
+        self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), none)
+        if self.output_prior is not None:  # the clamp alone, which a raised hand takes (`raised_hand.py`)
+            self.output_prior.clamped(rest, none, hips=HIPS)
 
     def _prepare_weights(self) -> None:
         """Everything constant, once, in the network's dtype and in the layout the step multiplies:
@@ -270,9 +275,11 @@ class ERDModel:
         share = eased_in(run_share(gait_speed), state["frame"])
         source, slow_in = carry_slow(self.leaf_prior, self.run_leaf_prior, rot_in, state["slow_in"], w, share)
         out_rot = transfer_twist(self.skeleton, source, out_rot)
+        faded = output_prior_weights(w, pos)
         out_rot, slow_out = carry_slow(
-            self.output_prior, self.run_output_prior, out_rot, state["slow_out"], w, share, hips=HIPS
+            self.output_prior, self.run_output_prior, out_rot, state["slow_out"], faded, share, hips=HIPS
         )
+        out_rot = kept_in_range(self.output_prior, out_rot, w, faded)
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
         )

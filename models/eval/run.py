@@ -596,10 +596,12 @@ def markdown(r: dict) -> str:
         "contents and clip length as the inputs.",
         "",
         "What selected what: no checkpoint or setting of any method was chosen on the test clips. Some were chosen on "
-        "VALIDATION clips scored by these same judges (the LTI context inputs, the Style-ERD rotation prior variant and "
-        "its run priors, the LPN-FiLM arm and run carriage and output prior); each model card says which validation "
-        "numbers chose what, and `python -m models.eval --split val` prints this report on those clips. The judges, the "
-        "rotation judge and the rotation reference are trained or fitted on TRAIN clips only.",
+        "VALIDATION clips scored by these same judges (the LTI context inputs, the Style-ERD rotation prior variant, "
+        "its run priors and its raised-hand fade, the LPN-FiLM arm and run carriage and output prior); each model card "
+        "says which validation numbers chose what, and `python -m models.eval --split val` prints this report on those "
+        "clips. Two settings were seen on the test clips before the choice was final, and the cards say so: LPN-FiLM's "
+        "pace (not shipped) and Style-ERD's raised-hand fade without its clamp (the clamp was added after). The judges, "
+        "the rotation judge and the rotation reference are trained or fitted on TRAIN clips only.",
         "",
     ]
     lines += _gates_markdown(r)
