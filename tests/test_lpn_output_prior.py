@@ -88,6 +88,62 @@ def test_a_replaced_vector_gets_no_prior_and_the_file_round_trips(model, tmp_pat
     back = OutputPrior.load(model.output_prior.save(tmp_path / "prior.npz"))
     assert back.styles == model.output_prior.styles
     np.testing.assert_array_equal(back.carry.map, model.output_prior.carry.map)
+    np.testing.assert_array_equal(back.run.map, model.output_prior.run.map)
+
+
+@pytest.fixture(scope="module")
+def run(index):
+    from models.data import load_motions, select
+
+    clip = select(index, dataset="bandai-namco-2", split="val", style="normal", content="run")[0]
+    return load_motions([clip])[0].slice(0, 90)
+
+
+def _table_without_run_prior(model):
+    """A copy whose run prior rows are its walk prior's: every style fitted once."""
+    from models.lpn.output_prior import OutputPrior
+
+    bare = model.with_own_styles()
+    prior = model.output_prior
+    bare.output_prior = OutputPrior(prior.styles, prior.carry, prior.carry)
+    return bare
+
+
+def test_active_runs_take_their_own_prior_and_walks_and_exhausted_the_one_they_had(model, walk, run):
+    """Active's prior is fitted on walks and on runs apart (`GAIT_SPLIT`), mixed by the gait: a walk
+    is carried exactly as by the walk prior alone; a run moves; exhausted, fitted once, runs as before."""
+    from models.lpn.output_prior import GAIT_SPLIT
+
+    assert GAIT_SPLIT == ("active",)
+    once = _table_without_run_prior(model)
+    upper = [model.skeleton.names.index(j) for j in UPPER_BODY]
+    active, exhausted = model.weight_vector({"active": 1.0}), model.weight_vector({"exhausted": 1.0})
+    np.testing.assert_array_equal(model.run(walk, active)[0].rotations, once.run(walk, active)[0].rotations)
+    np.testing.assert_array_equal(model.run(run, exhausted)[0].rotations, once.run(run, exhausted)[0].rotations)
+    moved = np.degrees(
+        quat_angle(model.run(run, active)[0].rotations[30:, upper], once.run(run, active)[0].rotations[30:, upper])
+    )
+    assert np.median(moved.max(axis=-1)) > 2.0
+
+
+def test_a_refit_of_some_styles_keeps_the_others_and_an_older_file_has_one_prior(model, tmp_path):
+    """`python -m models.lpn.output_prior active` refits active alone (`with_styles_of`); a file
+    written before the run prior existed loads with each style's one prior for both gaits."""
+    from models.motion.style_carry import StyleCarry
+
+    prior = model.output_prior
+    c = prior.carry
+    path = tmp_path / "old.npz"
+    np.savez(path, styles=np.array(prior.styles), source=c.source, mean=c.mean, map=c.map, radius=c.radius)
+    old = OutputPrior.load(path)
+    np.testing.assert_array_equal(old.run.map, old.carry.map)
+    k = prior.styles.index("active")
+    refit = StyleCarry(*(a[k : k + 1] for a in prior.run.arrays))
+    merged = old.with_styles_of(OutputPrior(("active",), refit, refit))
+    assert sorted(merged.styles) == sorted(prior.styles)
+    e, a = merged.styles.index("exhausted"), merged.styles.index("active")
+    np.testing.assert_array_equal(merged.carry.map[e], c.map[prior.styles.index("exhausted")])
+    np.testing.assert_array_equal(merged.carry.map[a], prior.run.map[k])
 
 
 def test_an_axis_the_source_keeps_still_is_not_stretched_past_the_floor():

@@ -21,6 +21,15 @@ judge (7 of 13 validation locomotion inputs right, 10 of 13 with the legs); exha
 read right, lost a clip of content in running sessions with them, and keeps the upper body only.
 The foot planter runs after the prior, so planted feet stay planted.
 
+Active's prior is fitted twice (`GAIT_SPLIT`): on walks and turns alone, and on runs alone, and a
+frame takes the two mixed by the control's gait share (0 walking, 1 running), as the run carriage
+is. Fitted over walks and runs at once, its target was their pooled mean, which neither has:
+toward active the walks' neck and head stayed 3.9 and 9.1 degrees from the real active walks'
+mean (as far as real normal walks are) and the position judge read a validation run and two
+right turns as exhausted. Split: the run is read right (position judge 10 -> 11 of 13 validation
+locomotion inputs), the rotation judge keeps its 12 of 13 (fitted on walks alone for every frame:
+the runs lose it, 10 of 13); the model card has the table. Exhausted keeps one prior.
+
 The network hardly moves some joints along some axis (a neck twist, an elbow's side bend): taken
 at face value, the map stretched those to the style's spread with gains up to 621 (active Neck),
 magnifying the network's arithmetic noise (its products run in bfloat16 on some CPUs). The fit
@@ -41,52 +50,79 @@ from .carriage import LOCOMOTION, SKIP_FRAMES, UPPER_BODY, train_clips
 
 OUTPUT_PRIOR_FILE = "output_prior.npz"
 CARRIED = {"active": UPPER_BODY + LEG_JOINTS, "exhausted": UPPER_BODY}  # per style, chosen on validation (module doc)
+GAIT_SPLIT = ("active",)  # styles fitted on walks and on runs apart, mixed by the gait (module doc)
 SOURCE_FLOOR_DEG = 2.0  # the network's least spread along any axis, as the fit takes it (module doc)
-PRIOR_ROWS = ("prior_source", "prior_mean", "prior_map", "prior_radius", "prior_on")  # its style-table rows
+CARRY_ROWS = ("source", "mean", "map", "radius")  # a carry's arrays, as the style table's rows name them
+PRIOR_ROWS = (  # its style-table rows: the walk prior, the run prior, on
+    *(f"prior_{k}" for k in CARRY_ROWS),
+    *(f"prior_run_{k}" for k in CARRY_ROWS),
+    "prior_on",
+)
 FIT_FRAMES = 300
 
 
 @dataclass(frozen=True)
 class OutputPrior:
-    """Per fitted style: `carry`'s rows (source mean, style mean, map, clamp radius per joint)."""
+    """Per fitted style: `carry`'s rows (source mean, style mean, map, clamp radius per joint) for
+    walking frames and `run`'s for running ones (the same rows for a style fitted once)."""
 
     styles: tuple[str, ...]
     carry: StyleCarry
+    run: StyleCarry
 
     def rows(self, names: list[str], num_joints: int) -> dict[str, np.ndarray]:
         """The style table's rows aligned with `names` (`style_table.PLAIN` for a style without one)."""
         from .style_table import PLAIN
 
-        rows = {
-            "prior_source": PLAIN["prior_source"]((len(names), num_joints, 4)),
-            "prior_mean": PLAIN["prior_mean"]((len(names), num_joints, 4)),
-            "prior_map": PLAIN["prior_map"]((len(names), num_joints, 3, 3)),
-            "prior_radius": PLAIN["prior_radius"]((len(names), num_joints)),
-            "prior_on": PLAIN["prior_on"]((len(names),)),
+        shapes = {
+            "source": (num_joints, 4),
+            "mean": (num_joints, 4),
+            "map": (num_joints, 3, 3),
+            "radius": (num_joints,),
         }
+        rows = {key: PLAIN[key]((len(names), *shapes[key.rsplit("_", 1)[1]])) for key in PRIOR_ROWS[:-1]}
+        rows["prior_on"] = PLAIN["prior_on"]((len(names),))
         for i, name in enumerate(names):
             if name in self.styles:
                 k = self.styles.index(name)
-                rows["prior_source"][i], rows["prior_mean"][i] = self.carry.source[k], self.carry.mean[k]
-                rows["prior_map"][i], rows["prior_radius"][i] = self.carry.map[k], self.carry.radius[k]
+                for field_, carry in (("prior", self.carry), ("prior_run", self.run)):
+                    for key, array in zip(CARRY_ROWS, carry.arrays):
+                        rows[f"{field_}_{key}"][i] = array[k]
                 rows["prior_on"][i] = 1.0
         return rows
 
     def save(self, path: Path) -> Path:
-        c = self.carry
-        np.savez(path, styles=np.array(self.styles), source=c.source, mean=c.mean, map=c.map, radius=c.radius)
+        arrays = dict(zip(CARRY_ROWS, self.carry.arrays)) | {f"run_{k}": a for k, a in zip(CARRY_ROWS, self.run.arrays)}
+        np.savez(path, styles=np.array(self.styles), **arrays)
         return path
 
     @classmethod
     def load(cls, path: Path) -> OutputPrior:
         with np.load(path) as z:
-            arrays = [np.ascontiguousarray(z[k], np.float64) for k in ("source", "mean", "map", "radius")]
-            return cls(tuple(str(s) for s in z["styles"]), StyleCarry(*arrays))
+            walk = StyleCarry(*(np.ascontiguousarray(z[k], np.float64) for k in CARRY_ROWS))
+            run = (
+                StyleCarry(*(np.ascontiguousarray(z[f"run_{k}"], np.float64) for k in CARRY_ROWS))
+                if "run_map" in z
+                else walk
+            )
+            return cls(tuple(str(s) for s in z["styles"]), walk, run)
+
+    def with_styles_of(self, other: OutputPrior) -> OutputPrior:
+        """This prior with `other`'s styles added or replacing this one's (a refit of some styles)."""
+        keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
+        styles = tuple(self.styles[k] for k in keep) + other.styles
+
+        def merged(a: StyleCarry, b: StyleCarry) -> StyleCarry:
+            return StyleCarry(*(np.concatenate([x[keep], y]) for x, y in zip(a.arrays, b.arrays)))
+
+        return OutputPrior(styles, merged(self.carry, other.carry), merged(self.run, other.run))
 
 
-def carry_rows(table, rotations: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def carry_rows(table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarray) -> np.ndarray:
     """The rotations (B, J, 4) of the rows that weigh a style with an output prior carried by it
-    (`table`: a `StyleTable` with the prior's rows); other rows exactly as they were."""
+    (`table`: a `StyleTable` with the prior's rows), the walk and run priors mixed by each row's
+    gait share (B,) (`StyleCarry.mixed_with`; a walking row takes the walk prior alone, exactly);
+    other rows exactly as they were."""
     on = table.get("prior_on")
     if on is None:
         return rotations
@@ -94,10 +130,24 @@ def carry_rows(table, rotations: np.ndarray, weights: np.ndarray) -> np.ndarray:
     rows = np.flatnonzero(w.any(axis=1))
     if len(rows) == 0:
         return rotations
-    carry = StyleCarry(
-        table.get("prior_source"), table.get("prior_mean"), table.get("prior_map"), table.get("prior_radius")
-    )
-    carried = carry(np.asarray(rotations[rows], np.float64), w[rows]).astype(rotations.dtype)
+    walk = StyleCarry(*(table.get(f"prior_{k}") for k in CARRY_ROWS))
+    q, w = np.asarray(rotations[rows], np.float64), w[rows]
+    # a run share only where a row weighs a style whose run prior is its own (`GAIT_SPLIT`): a row
+    # of styles fitted once is carried exactly as by one prior
+    split = (table.get("prior_run_map") != table.get("prior_map")).any(axis=(1, 2, 3))
+    share = np.clip(np.asarray(gait, np.float64)[rows], 0.0, 1.0) * (w[:, split] > 0.0).any(axis=1)
+    walking, running = share == 0.0, share == 1.0
+    between = ~walking & ~running
+    carried = np.empty_like(q)
+    if walking.any():  # exactly what the walk prior alone gives
+        carried[walking] = walk(q[walking], w[walking])
+    if not walking.all():
+        run = StyleCarry(*(table.get(f"prior_run_{k}") for k in CARRY_ROWS))
+        if running.any():  # the mix at share 1 (to round-off), in one carry instead of two
+            carried[running] = run(q[running], w[running])
+        if between.any():
+            carried[between] = walk.mixed_with(run, run.bounds, q[between], w[between], share[between])
+    carried = carried.astype(rotations.dtype)
     # the joints the fit left fixed (radius pi for every style: Hips, legs) keep their own bits;
     # taken from the carry they would be renormalised in float64, a float32 ulp off
     joints = np.flatnonzero((table.get("prior_radius") < np.pi).any(axis=0))
@@ -108,30 +158,38 @@ def carry_rows(table, rotations: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
 def fit(model, styles: list[str], dataset: str = "bandai-namco-2") -> OutputPrior:
     """The prior of `styles` from `model` (its carriage in place, no output prior); each style
-    carries its `CARRIED` joints (the upper body for a style not listed), the rest left alone."""
+    carries its `CARRIED` joints (the upper body for a style not listed), the rest left alone,
+    fitted over walks and runs at once, or on each apart for a style in `GAIT_SPLIT`."""
     from ..eval.run import stylise
 
     clips = train_clips(dataset)
-    every = LOCOMOTION["walk"] + LOCOMOTION["run"]
     model = model.with_own_styles()
     model.output_prior = None
-    inputs = [m.slice(0, FIT_FRAMES) for m in clips("normal", every)]
-    made, real = [], []
-    for s in styles:
-        outs = stylise(model, inputs, [model.styles().index(s)] * len(inputs))
-        made.append(np.concatenate([o.rotations[SKIP_FRAMES:] for o in outs]).astype(np.float64))
-        real.append(np.concatenate([m.rotations for m in clips(s, every)]).astype(np.float64))
     names = model.skeleton.names
-    per_style = []
-    for s, source, target in zip(styles, made, real):
-        carried = CARRIED.get(s, UPPER_BODY)
-        fixed = tuple(j for j, n in enumerate(names) if n not in carried)
-        per_style.append(StyleCarry.fit([source], [target], fixed, source_floor=np.radians(SOURCE_FLOOR_DEG)))
-    return OutputPrior(tuple(styles), StyleCarry.stack(per_style))
+
+    def fitted(style: str, contents: tuple[str, ...]) -> StyleCarry:
+        inputs = [m.slice(0, FIT_FRAMES) for m in clips("normal", contents)]
+        outs = stylise(model, inputs, [model.styles().index(style)] * len(inputs))
+        source = np.concatenate([o.rotations[SKIP_FRAMES:] for o in outs]).astype(np.float64)
+        target = np.concatenate([m.rotations for m in clips(style, contents)]).astype(np.float64)
+        fixed = tuple(j for j, n in enumerate(names) if n not in CARRIED.get(style, UPPER_BODY))
+        return StyleCarry.fit([source], [target], fixed, source_floor=np.radians(SOURCE_FLOOR_DEG))
+
+    walks, runs = [], []
+    for s in styles:
+        if s in GAIT_SPLIT:
+            walks.append(fitted(s, LOCOMOTION["walk"]))
+            runs.append(fitted(s, LOCOMOTION["run"]))
+        else:
+            walks.append(fitted(s, LOCOMOTION["walk"] + LOCOMOTION["run"]))
+            runs.append(walks[-1])
+    return OutputPrior(tuple(styles), StyleCarry.stack(walks), StyleCarry.stack(runs))
 
 
 def main(argv: list[str]) -> None:
-    """`STYLE ...` (default: active exhausted, the styles validation chose)."""
+    """`STYLE ...` (default: every style in `CARRIED`, the styles validation chose): refits those,
+    keeping the file's other styles as they are (a refit is machine-dependent beyond round-off:
+    the model card)."""
     import time
 
     import torch
@@ -143,6 +201,8 @@ def main(argv: list[str]) -> None:
     t0 = time.time()
     folder = get_settings().weights_dir / "lpn"
     prior = fit(load(folder), argv or list(CARRIED))
+    if argv and (folder / OUTPUT_PRIOR_FILE).exists():
+        prior = OutputPrior.load(folder / OUTPUT_PRIOR_FILE).with_styles_of(prior)
     print(f"wrote {prior.save(folder / OUTPUT_PRIOR_FILE)} for {', '.join(prior.styles)} in {time.time() - t0:.0f} s")
 
 

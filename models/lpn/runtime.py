@@ -26,7 +26,8 @@ are turned by the offset that takes the network's mean arm pose to the real styl
 rotation prior; the same file can pace the derived control by the style's real speed (not shipped)
 and holds a run carriage (spine, neck, head and arms at the run gait; exhausted). Then the output
 prior (`output_prior.npz`, `output_prior.py`; active and exhausted) carries the upper body's
-rotations (and active's legs) from the network's distribution to the real style's.
+rotations (and active's legs) from the network's distribution to the real style's; active's is
+fitted on walks and on runs apart and mixed by the gait, as the run carriage is.
 
 Rotation prior (`rotation_prior.npz` beside the weights, `models.motion.rotation_ball`): each
 built-in style's output rotations are held, per joint, inside the ball its real TRAIN clips fill
@@ -340,7 +341,7 @@ class LPNModel(LPNStyles):
         run_body = table.get("run_body")
         if run_body is not None and (control[:, 3] > 0).any():
             out_rot = carry_arms(out_rot, blend_run(run_body, style_weights, normal, control[:, 3]), self._run_joints)
-        out_rot = carry_rows(table, out_rot, style_weights)
+        out_rot = carry_rows(table, out_rot, style_weights, control[:, 3])
         ball_mean, ball_radii = table.get("ball_mean"), table.get("ball_radii")
         if ball_mean is not None and ball_radii is not None:
             out_rot = self._hold(out_rot, style_weights, normal, (ball_mean, ball_radii))

@@ -32,6 +32,11 @@ PLAIN: dict[str, Callable[[tuple[int, ...]], np.ndarray]] = {
     "prior_mean": _identity,
     "prior_map": lambda shape: np.broadcast_to(np.eye(3), shape).copy(),
     "prior_radius": lambda shape: np.full(shape, np.inf),
+    # the run prior's rows, the same as the walk prior's for a style fitted once
+    "prior_run_source": _identity,
+    "prior_run_mean": _identity,
+    "prior_run_map": lambda shape: np.broadcast_to(np.eye(3), shape).copy(),
+    "prior_run_radius": lambda shape: np.full(shape, np.inf),
     "prior_on": np.zeros,
 }
 
