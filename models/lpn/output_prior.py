@@ -24,9 +24,9 @@ The foot planter runs after the prior, so planted feet stay planted.
 Active's prior is fitted twice (`GAIT_SPLIT`): on walks and turns alone, and on runs alone, and a
 frame takes the two mixed by the control's gait share (0 walking, 1 running), as the run carriage
 is. Fitted over walks and runs at once, its target was their pooled mean, which neither has:
-toward active the walks' neck and head stayed 3.9 and 9.1 degrees from the real active walks'
-mean (as far as real normal walks are) and the position judge read a validation run and two
-right turns as exhausted. Split: the run is read right (position judge 10 -> 11 of 13 validation
+toward active the validation walks' and turns' forearms stayed 16-18 degrees from the mean of
+the real active walks (runs bend the elbows more), 7 with the split, and the position judge read
+a validation run and two right turns as exhausted. Split: the run is read right (position judge 10 -> 11 of 13 validation
 locomotion inputs), the rotation judge keeps its 12 of 13 (fitted on walks alone for every frame:
 the runs lose it, 10 of 13); the model card has the table. Exhausted keeps one prior.
 
