@@ -152,3 +152,25 @@ def test_a_one_frame_flick_of_the_head_is_a_pop():
     k = ref.joints.index("Head")
     over = lambda m: int((rotation_acceleration(m, ref.joint_index)[:, k] > ref.pop_limit["elderly"][k]).sum())  # noqa: E731
     assert over(clip) == 0 and over(flicked) == 3  # the frame before, the flick, the frame after
+
+
+def test_a_forearm_wrung_past_the_real_twists_reads_as_that_many_degrees_beyond():
+    """`RotationReference.plausibility`: a real clip's twists lie inside the real interval (0
+    degrees beyond at the p95); the same clip with the left forearm twisted 40 degrees about its
+    bone reads about 40 degrees less the interval's upper end beyond it, on that joint."""
+    from dataclasses import replace
+
+    from models.eval.plausibility import RotationReference, bone_axes
+    from models.motion.rotations import expmap_to_quat, quat_mul
+
+    index = build_index(["bandai-namco-2"])
+    ref = RotationReference({"elderly": load_motions(select(index, split="train", style="elderly"))})
+    clip = load_motions(select(index, split="val", style="elderly", content="walk")[:1])[0].slice(0, 90)
+    arm = clip.skeleton.index("LowerArm_L")
+    rot = clip.rotations.copy()
+    rot[:, arm] = quat_mul(rot[:, arm], expmap_to_quat(np.radians(40.0) * bone_axes(clip.skeleton)[arm]))
+    calm, wrung = ref.plausibility("elderly", [clip]), ref.plausibility("elderly", [replace(clip, rotations=rot)])
+    assert calm["per_joint"]["LowerArm_L"]["twist_beyond_p95_deg"] == 0.0
+    hi = np.degrees(ref.twist_range["elderly"][1, ref.joints.index("LowerArm_L")])
+    beyond = wrung["per_joint"]["LowerArm_L"]["twist_beyond_p95_deg"]
+    assert wrung["farthest_twist_joint"] == "LowerArm_L" and abs(beyond - (40.0 - hi)) < 6.0  # the clip's own spread

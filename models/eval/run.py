@@ -118,6 +118,8 @@ def score(
         "rot_within_mean": plaus["mean_within"],
         "twist_outside_max": plaus["max_twist_outside"],
         "twist_worst_joint": plaus["worst_twist_joint"],
+        "twist_beyond_deg": plaus["max_twist_beyond_deg"],
+        "twist_farthest_joint": plaus["farthest_twist_joint"],
         **rot_ref.pops(style, outputs),
         "rot_per_joint": {k: round(v["within"], 4) for k, v in plaus["per_joint"].items()},
         **{f"slide_{k}": v for k, v in slide_summary(outputs).items()},
@@ -198,6 +200,9 @@ def evaluate(
             "rot_within_min": plaus["min_within"],
             "rot_worst_joint": plaus["worst_joint"],
             "twist_outside_max": plaus["max_twist_outside"],
+            "twist_worst_joint": plaus["worst_twist_joint"],
+            "twist_beyond_deg": plaus["max_twist_beyond_deg"],
+            "twist_farthest_joint": plaus["farthest_twist_joint"],
             **rot_ref.pops(s, like_inputs),
             **{f"slide_{k}": v for k, v in slide_summary(like_inputs).items()},
         }
@@ -254,6 +259,7 @@ def evaluate(
             "path_dev_cm",
             "rot_within_min",
             "twist_outside_max",
+            "twist_beyond_deg",
             "pops_max",
             "slide_toe_median",
             "slide_toe_p95",
@@ -367,6 +373,17 @@ def run_after_history(
 def _pops(share: float) -> str:
     """A share of frames, to a tenth of a percent (real clips sit near 0.1 %)."""
     return f"{100 * share:.1f}%"
+
+
+def _degrees(value: float) -> str:
+    return f"{value:.1f}°"
+
+
+def _twist(row: dict) -> str:
+    """Twist out (share, worst joint) | twist beyond (degrees, farthest joint): two cells."""
+    out = f"{row['twist_outside_max'] * 100:.0f}% ({row['twist_worst_joint']})"
+    beyond = _degrees(row["twist_beyond_deg"])
+    return f"{out} | {beyond} ({row['twist_farthest_joint']})" if row["twist_beyond_deg"] > 0.0 else f"{out} | {beyond}"
 
 
 def _slide(row: dict, part: str) -> str:
@@ -586,7 +603,9 @@ def markdown(r: dict) -> str:
         "every body joint's local rotation (the Hips without its heading) against real TRAIN clips of the target style "
         "(`models/eval/plausibility.py`). **rot ok** = the worst joint's share of frames no farther from the style's mean "
         "rotation of that joint than the real p99 (and which joint); **twist out** = the worst joint's share of frames "
-        "whose twist about the bone, relative to that mean, leaves the real p0.5..p99.5 interval; **pops** = the worst joint's "
+        "whose twist about the bone, relative to that mean, leaves the real p0.5..p99.5 interval (and which joint), and "
+        "**twist beyond** = how far past it in degrees (the largest p95 over joints, 0 inside; the shins and toes twist "
+        "within a degree or two in the real data, so a small share there can be a toe rolled by a degree); **pops** = the worst joint's "
         "share of frames whose rotation turns faster from one frame to the next than the real p99.9 of that joint "
         "(the angle of the rotation's second difference: one-frame flicks no pose metric sees; real clips about 0.1%). "
         "**style acc (rot)** = a "
@@ -611,15 +630,16 @@ def markdown(r: dict) -> str:
         "## Overall (mean over target styles)",
         "",
         "| method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | rot ok ↑ | "
-        "twist out ↓ | pops ↓ | toe slide cm/s ↓ | ankle slide cm/s ↓ |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "twist out ↓ | twist beyond ↓ | pops ↓ | toe slide cm/s ↓ | ankle slide cm/s ↓ |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, m in r["methods"].items():
         o = m["overall"]
         lines.append(
             f"| {name} | {fmt(o['style_acc'])} | {fmt(o['style_acc_rot'])} | {fmt(o['content_acc'])} | "
             f"{o['fmd']:.1f} | {fmt(o['skate_ratio'])} | {o['path_dev_cm']:.1f} | {fmt(o['rot_within_min'])} | "
-            f"{fmt(o['twist_outside_max'])} | {_pops(o['pops_max'])} | {_slide(o, 'toe')} | {_slide(o, 'ankle')} |"
+            f"{fmt(o['twist_outside_max'])} | {_degrees(o['twist_beyond_deg'])} | {_pops(o['pops_max'])} | "
+            f"{_slide(o, 'toe')} | {_slide(o, 'ankle')} |"
         )
     ref = meta["reference_real"]
     styles = meta["styles"]
@@ -627,7 +647,8 @@ def markdown(r: dict) -> str:
     lines.append(
         f"| {real} | {fmt(mean('style_acc'))} | {fmt(mean('style_acc_rot'))} | – | {mean('fmd'):.1f} | "
         f"{fmt(mean('skate_ratio'))} | – | {fmt(mean('rot_within_min'))} | {fmt(mean('twist_outside_max'))} | "
-        f"{_pops(mean('pops_max'))} | {mean('slide_toe_median'):.1f} / {mean('slide_toe_p95'):.0f} | "
+        f"{_degrees(mean('twist_beyond_deg'))} | {_pops(mean('pops_max'))} | "
+        f"{mean('slide_toe_median'):.1f} / {mean('slide_toe_p95'):.0f} | "
         f"{mean('slide_ankle_median'):.1f} / {mean('slide_ankle_p95'):.0f} |"
     )
     lines += [
@@ -648,8 +669,9 @@ def markdown(r: dict) -> str:
         "## Per target style",
         "",
         "| style | method | style acc ↑ | style acc (rot) ↑ | content acc ↑ | FMD ↓ | skate ↓ | path dev cm ↓ | "
-        "rot ok (worst joint) ↑ | twist out ↓ | pops (worst joint) ↓ | toe slide cm/s ↓ | recognised as |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "rot ok (worst joint) ↑ | twist out ↓ | twist beyond ↓ | pops (worst joint) ↓ | toe slide cm/s ↓ | "
+        "recognised as |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for s in styles:
         for name, m in r["methods"].items():
@@ -658,14 +680,14 @@ def markdown(r: dict) -> str:
             lines.append(
                 f"| {s} | {name} | {fmt(p['style_acc'])} | {fmt(p['style_acc_rot'])} | {fmt(p['content_acc'])} | "
                 f"{p['fmd']:.1f} | {fmt(p['skate_ratio'])} | {p['path_dev_cm']:.1f} | "
-                f"{fmt(p['rot_within_min'])} ({p['rot_worst_joint']}) | {fmt(p['twist_outside_max'])} | "
+                f"{fmt(p['rot_within_min'])} ({p['rot_worst_joint']}) | {_twist(p)} | "
                 f"{_pops(p['pops_max'])} ({p['pops_joint']}) | {_slide(p, 'toe')} | {top} |"
             )
         q = ref[s]
         lines.append(
             f"| {s} | {real} | {fmt(q['style_acc'])} | {fmt(q['style_acc_rot'])} | – | {q['fmd']:.1f} | "
             f"{fmt(q['skate_ratio'])} | – | {fmt(q['rot_within_min'])} ({q['rot_worst_joint']}) | "
-            f"{fmt(q['twist_outside_max'])} | {_pops(q['pops_max'])} ({q['pops_joint']}) | {_slide(q, 'toe')} | |"
+            f"{_twist(q)} | {_pops(q['pops_max'])} ({q['pops_joint']}) | {_slide(q, 'toe')} | |"
         )
     lines += [
         "",
