@@ -160,8 +160,9 @@ def test_a_forearm_wrung_past_the_real_twists_reads_as_that_many_degrees_beyond(
     bone reads about 40 degrees less the interval's upper end beyond it, on that joint."""
     from dataclasses import replace
 
-    from models.eval.plausibility import RotationReference, bone_axes
+    from models.eval.plausibility import RotationReference
     from models.motion.rotations import expmap_to_quat, quat_mul
+    from models.motion.twist import bone_axes
 
     index = build_index(["bandai-namco-2"])
     ref = RotationReference({"elderly": load_motions(select(index, split="train", style="elderly"))})

@@ -8,9 +8,8 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from models.eval.plausibility import bone_axes
 from models.motion.rotations import expmap_to_quat, quat_angle, quat_inv, quat_mul, swing_twist, twist_angle
-from models.motion.twist import transfer_twist, transfer_twist_t
+from models.motion.twist import bone_axes, transfer_twist, transfer_twist_t
 
 
 def _twisted(motion, degrees: float, joints: list[str]):

@@ -241,3 +241,33 @@ def lstm_hidden(s, sig_twice_c, layer, one, new_h, out):
                 out[k, b, j] = h
                 new_h[b, k, layer, j] = h
     return out
+
+
+# --------------------------------------------------------------------------- the arms' twist range
+
+
+@njit(cache=True, error_model="numpy")
+def twist_clamp_batch(q, w, joints, axes, mean, lo, hi, out):
+    """out = q with each listed joint's twist about its bone (`axes`, (K, 3)), measured against
+    each weighted style's mean (`mean` (S, K, 4)), moved into [lo, hi] (S, K) by the weights
+    (B, S): t + sum_s w_s (clip(t_s) - t_s), applied as a turn about the bone on the right
+    (`twist_range.TwistRange.__call__` is the numpy reference). Rows with no weight are copied."""
+    out[:] = q
+    for b in range(q.shape[0]):
+        for k in range(joints.shape[0]):
+            j = joints[k]
+            ax, ay, az = axes[k, 0], axes[k, 1], axes[k, 2]
+            qj = (q[b, j, 0], q[b, j, 1], q[b, j, 2], q[b, j, 3])
+            delta = 0.0
+            for s in range(w.shape[1]):
+                ws = w[b, s]
+                if ws == 0.0:
+                    continue
+                d = qmul((-mean[s, k, 0], -mean[s, k, 1], -mean[s, k, 2], mean[s, k, 3]), qj)
+                t = wrap(2.0 * math.atan2(d[0] * ax + d[1] * ay + d[2] * az, d[3]))
+                delta += ws * (min(max(t, lo[s, k]), hi[s, k]) - t)
+            if delta != 0.0:
+                sn, cs = math.sin(0.5 * delta), math.cos(0.5 * delta)
+                o = qmul(qj, (sn * ax, sn * ay, sn * az, cs))
+                out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = o
+    return out

@@ -34,6 +34,7 @@ from .gait import clip_smoothed_speed, eased_in, run_share
 from .model import Generator
 from .raised_hand import kept_in_range, output_prior_weights
 from .slow_carry import clip_carry_slow
+from .twist_range import TwistRange
 
 
 def to_world(
@@ -66,6 +67,7 @@ def stylise(
     output_prior: StyleCarry | None = None,
     run_leaf_prior: StyleCarry | None = None,
     run_output_prior: StyleCarry | None = None,
+    twist_range: TwistRange | None = None,
 ) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
     rotation prior (`leaf_prior`, `output_prior`, and their run versions for the frames the input
@@ -90,6 +92,8 @@ def stylise(
     faded = output_prior_weights(w_frames, pos)
     rots = clip_carry_slow(output_prior, run_output_prior, rots, faded, share, hips=HIPS)
     rots = kept_in_range(output_prior, rots, w_frames, faded)
+    if twist_range is not None:
+        rots = twist_range(rots, w_frames)
     if foot_lock:
         root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()

@@ -2,6 +2,7 @@
 
     .venv/bin/python -m models.erd.rotation_prior        # all -> models/weights/erd/{leaf,output}_prior{,_run}.npz
     .venv/bin/python -m models.erd.rotation_prior runs   # the run priors alone
+    .venv/bin/python -m models.erd.rotation_prior twists # the arms' twist range alone (`twist_range.py`)
 
 1. **Twists and leaves** (`leaf_prior.npz`). The decoder is trusted only for where bones point
    (`models.motion.twist.transfer_twist`): a bone's twist about itself and the head, hands and
@@ -115,10 +116,10 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     from ..data import load_motions
     from ..eval.run import pick_clips, stylise
 
-    saved = model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior
+    saved = model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range
     if runs:
         model.leaf_prior = None
-    model.output_prior = model.run_leaf_prior = model.run_output_prior = None
+    model.output_prior = model.run_leaf_prior = model.run_output_prior = model.twist_range = None
     try:
         clips = (
             pick_clips(RUN_FIT_CLIPS, ("run",), split="train")
@@ -129,7 +130,7 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
         styles = model.styles()
         outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
     finally:
-        model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior = saved
+        model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range = saved
     n = len(inputs)
     produced = [
         without_heading(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]))[1] for k in range(len(styles))
@@ -153,6 +154,10 @@ def main(argv: list[str]) -> None:
             print(fit_leaf_prior(real).save(folder / LEAF_FILE))
         if what in ("both", "output"):
             print(fit_output_prior(load(folder), real).save(folder / OUTPUT_FILE))
+    if what in ("both", "twists"):
+        from .twist_range import TWIST_FILE, TwistRange
+
+        print(TwistRange.fit(load(folder).skeleton, real_rotations()[1:]).save(folder / TWIST_FILE))
     if what in ("both", "runs"):
         real = real_rotations(runs=True)
         print(fit_leaf_prior(real).save(folder / RUN_LEAF_FILE))

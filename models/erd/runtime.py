@@ -73,6 +73,7 @@ from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
 from .raised_hand import kept_in_range, output_prior_weights
 from .rotation_prior import PRIOR_FILES
 from .slow_carry import carry_slow
+from .twist_range import TWIST_FILE, TwistRange
 
 WEIGHTS_FILE = "erd.npz"
 NEWER_KEYS = ("gait_speed", "slow_in", "slow_out")  # state entries snapshots from older replicas may lack
@@ -113,6 +114,7 @@ class ERDModel:
         output_prior: StyleCarry | None = None,
         run_leaf_prior: StyleCarry | None = None,
         run_output_prior: StyleCarry | None = None,
+        twist_range: TwistRange | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
@@ -126,6 +128,7 @@ class ERDModel:
         self.leaf_prior, self.output_prior = leaf_prior, output_prior
         # the same two fitted on runs alone, for frames the input runs in (`gait.py`)
         self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
+        self.twist_range = twist_range  # the arms' twists kept in the style's real interval (`twist_range.py`)
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
@@ -149,6 +152,8 @@ class ERDModel:
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), none)
         if self.output_prior is not None:  # the clamp alone, which a raised hand takes (`raised_hand.py`)
             self.output_prior.clamped(rest, none, hips=HIPS)
+        if self.twist_range is not None:  # its kernel runs only for rows with a style weight
+            self.twist_range(rest, np.ones_like(none))
 
     def _prepare_weights(self) -> None:
         """Everything constant, once, in the network's dtype and in the layout the step multiplies:
@@ -280,6 +285,8 @@ class ERDModel:
             self.output_prior, self.run_output_prior, out_rot, state["slow_out"], faded, share, hips=HIPS
         )
         out_rot = kept_in_range(self.output_prior, out_rot, w, faded)
+        if self.twist_range is not None:
+            out_rot = self.twist_range(out_rot, w)
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
         )
@@ -365,10 +372,10 @@ class ERDModel:
         return gen.eval()
 
     @property
-    def priors(self) -> dict[str, StyleCarry | None]:
-        """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), as the
-        whole-clip path (`offline.stylise`) takes them."""
-        return {key: getattr(self, key) for key in PRIOR_FILES}
+    def priors(self) -> dict[str, StyleCarry | TwistRange | None]:
+        """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), and the twist
+        range, as the whole-clip path (`offline.stylise`) takes them."""
+        return {**{key: getattr(self, key) for key in PRIOR_FILES}, "twist_range": self.twist_range}
 
     def stylise_stream(self, motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None):
         """Run a whole Motion through step_batch frame by frame (batch 1); returns a Motion."""
@@ -406,7 +413,10 @@ def load(weights_dir: Path, dtype: type = np.float32) -> ERDModel:
         key: StyleCarry.load(weights_dir / name) if (weights_dir / name).exists() else None
         for key, name in PRIOR_FILES.items()
     }
-    return ERDModel(arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype, **priors)
+    twists = TwistRange.load(weights_dir / TWIST_FILE) if (weights_dir / TWIST_FILE).exists() else None
+    return ERDModel(
+        arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype, twist_range=twists, **priors
+    )
 
 
 def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skeleton | None = None) -> Path:

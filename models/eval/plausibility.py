@@ -27,6 +27,7 @@ import numpy as np
 from ..motion import bn_skeleton
 from ..motion.rotations import quat_angle, quat_inv, quat_mean, quat_mul, quat_to_expmap, swing_twist, twist_angle
 from ..motion.skeleton import Motion, Skeleton
+from ..motion.twist import bone_axes
 
 UP = np.array([0.0, 1.0, 0.0])
 MAX_FRAMES_PER_STYLE = 60_000  # an even subsample keeps building the reference to seconds
@@ -35,28 +36,6 @@ MAX_FRAMES_PER_STYLE = 60_000  # an even subsample keeps building the reference 
 def body_joints(skeleton: Skeleton) -> np.ndarray:
     """Indices of the joints that carry the body (`bn_skeleton.body_joints`)."""
     return np.array(bn_skeleton.body_joints(skeleton.names))
-
-
-def bone_axes(skeleton: Skeleton) -> np.ndarray:
-    """(J, 3) unit axis of each joint's bone in the joint's own frame, the axis its twist turns
-    about: the child offset that best continues the joint's own bone (the spine over the
-    shoulders at the chest); for leaves, the End Site, or the joint's own offset where the End
-    Site has no length (Bandai Namco: every bone lies along its parent's local X)."""
-    axes = np.zeros((skeleton.num_joints, 3))
-    for j in range(skeleton.num_joints):
-        own = skeleton.offsets[j]
-        kids = [skeleton.offsets[c] for c in skeleton.children(j) if np.linalg.norm(skeleton.offsets[c]) > 1e-6]
-        end = skeleton.end_sites[j]
-        if kids:
-            unit_own = own / max(np.linalg.norm(own), 1e-9)
-            axis = max(kids, key=lambda k: float(np.dot(k / np.linalg.norm(k), unit_own)))
-        elif not np.isnan(end).any() and np.linalg.norm(end) > 1e-6:
-            axis = end
-        else:
-            axis = own
-        n = np.linalg.norm(axis)
-        axes[j] = axis / n if n > 1e-9 else (1.0, 0.0, 0.0)
-    return axes
 
 
 def comparable_rotations(motion: Motion) -> np.ndarray:

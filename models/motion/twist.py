@@ -195,3 +195,25 @@ def split_evenly(
     turn = quat_mul(composite, quat_inv(quat_mul(rest_parent, rest_child)))
     new_parent = quat_mul(quat_exp(share * quat_log(turn)), rest_parent)
     return new_parent, quat_mul(quat_inv(new_parent), composite)
+
+
+def bone_axes(skeleton: Skeleton) -> np.ndarray:
+    """(J, 3) unit axis of each joint's bone in the joint's own frame, the axis its twist turns
+    about: the child offset that best continues the joint's own bone (the spine over the
+    shoulders at the chest); for leaves, the End Site, or the joint's own offset where the End
+    Site has no length (Bandai Namco: every bone lies along its parent's local X)."""
+    axes = np.zeros((skeleton.num_joints, 3))
+    for j in range(skeleton.num_joints):
+        own = skeleton.offsets[j]
+        kids = [skeleton.offsets[c] for c in skeleton.children(j) if np.linalg.norm(skeleton.offsets[c]) > 1e-6]
+        end = skeleton.end_sites[j]
+        if kids:
+            unit_own = own / max(np.linalg.norm(own), 1e-9)
+            axis = max(kids, key=lambda k: float(np.dot(k / np.linalg.norm(k), unit_own)))
+        elif not np.isnan(end).any() and np.linalg.norm(end) > 1e-6:
+            axis = end
+        else:
+            axis = own
+        n = np.linalg.norm(axis)
+        axes[j] = axis / n if n > 1e-9 else (1.0, 0.0, 0.0)
+    return axes
