@@ -34,10 +34,12 @@ so the head and wrists take the style's attitude inside its real range instead o
 input's; then the output's rotations are carried from what the network produces to the style's
 real distribution and clamped into its real range (`rotation_prior.py`: `leaf_prior.npz`,
 `output_prior.npz` beside the weights). Frames where the input runs take priors fitted on runs
-alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`); while the input raises a hand, elderly's output
-prior steps aside (`raised_hand.py`: fitted over every content, it made raise-ups waves). Each prior carries only
-a slowly following copy of the rotations; their frame-to-frame rest passes unscaled, so the
-priors' gains do not shake the head and arms (`slow_carry.py`).
+alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`); while the input raises
+a hand, elderly's output prior steps aside (`raised_hand.py`: fitted over every content, it made
+raise-ups waves). Each prior carries only a slowly following copy of the rotations; their
+frame-to-frame rest passes unscaled, so the priors' gains do not shake the head and arms
+(`slow_carry.py`). Last, the arms' twists about their bones are kept inside the style's real
+interval (`twist_range.py`: the priors scaled them up to 17 degrees past anything real).
 
 Planted feet: the network knows nothing of the floor, so its planted feet slid (20 % of flat-foot
 frames over the eval suite's inputs, 40 % toward `active`, against 3 % for the inputs). The
@@ -152,7 +154,7 @@ class ERDModel:
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), none)
         if self.output_prior is not None:  # the clamp alone, which a raised hand takes (`raised_hand.py`)
             self.output_prior.clamped(rest, none, hips=HIPS)
-        if self.twist_range is not None:  # its kernel runs only for rows with a style weight
+        if self.twist_range is not None:  # its kernel, with a style weight so that all of it runs
             self.twist_range(rest, np.ones_like(none))
 
     def _prepare_weights(self) -> None:
