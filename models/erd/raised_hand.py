@@ -13,7 +13,7 @@ for feminine, masculine and youthful, against 16-21 with it), so for them it sta
 So a frame's weight on the output prior of each style in `FADED_STYLES` falls off as the input
 raises a hand: the share ramps with the higher hand's height above its shoulder (the UpperArm
 joint) over `RAISE_RAMP_CM`, from the TRAIN `normal` runs' p99 (-12 cm: a running arm's swing
-reaches past it in about 1 % of frames, and then by 3 cm at most, a share of 0.25; the walks'
+reaches past it in about 1 % of frames, its p99.9 3 cm past (a share of 0.25); the walks'
 p99.9 is -21 to -25 cm) to the shoulder's height. What the fade takes away is the carry, not
 the style's real range: the faded rows are still clamped into it at their full
 weights (`kept_in_range`). Causal and per frame: it reads the input frame's own pose.
