@@ -10,7 +10,8 @@ yaw-free Hips rotation. As in the streaming model, the bones keep the input's tw
 leaves its rotations (`models.motion.twist.transfer_twist`), carried to the target style and the
 output carried to the style's real rotations when the rotation prior is given (`rotation_prior.py`;
 run priors for the frames the input runs in, `gait.py`; the output prior faded for some styles
-while the input raises a hand, `raised_hand.py`; the slow part carried, the fast part on
+while the input raises a hand, `raised_hand.py`, or following what the raised hand does,
+`gestures.py`; the slow part carried, the fast part on
 top, `slow_carry.py`). Then the feet are planted frame by frame as in the streaming model
 (`models.motion.feet`; `foot_lock=False` gives the network's output alone).
 """
@@ -31,6 +32,7 @@ from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .gait import clip_smoothed_speed, eased_in, run_share
+from .gestures import by_gesture, clip_sway
 from .model import Generator
 from .raised_hand import kept_in_range, output_prior_weights
 from .slow_carry import clip_carry_slow
@@ -67,6 +69,7 @@ def stylise(
     output_prior: StyleCarry | None = None,
     run_leaf_prior: StyleCarry | None = None,
     run_output_prior: StyleCarry | None = None,
+    gesture_prior: StyleCarry | None = None,
     twist_range: TwistRange | None = None,
 ) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
@@ -90,7 +93,20 @@ def stylise(
     source = clip_carry_slow(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots)
     faded = output_prior_weights(w_frames, pos)
-    rots = clip_carry_slow(output_prior, run_output_prior, rots, faded, share, hips=HIPS)
+    network_rots = rots
+    rots = clip_carry_slow(output_prior, run_output_prior, network_rots, faded, share, hips=HIPS)
+    if gesture_prior is not None and output_prior is not None:
+
+        def carry(rows: np.ndarray, weights: np.ndarray, gesture: np.ndarray | None) -> np.ndarray:
+            """`gestures.Carry` over the clip: those frames re-weighted, the clip carried again."""
+            w_all, by = faded.copy(), share.copy() if gesture is None else np.zeros(len(share))
+            w_all[rows] = weights
+            if gesture is not None:
+                by[rows] = gesture
+            run = run_output_prior if gesture is None else gesture_prior
+            return clip_carry_slow(output_prior, run, network_rots, w_all, by, hips=HIPS)[rows]
+
+        rots = by_gesture(rots, carry, output_prior, faded, pos, clip_sway(pos, FPS))
     rots = kept_in_range(output_prior, rots, w_frames, faded)
     if twist_range is not None:
         rots = twist_range(rots, w_frames)

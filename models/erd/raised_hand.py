@@ -40,10 +40,16 @@ _HAND_L, _HAND_R = BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")
 _SHOULDER_L, _SHOULDER_R = BN_JOINTS.index("UpperArm_L"), BN_JOINTS.index("UpperArm_R")
 
 
+def side_heights(pos: np.ndarray) -> np.ndarray:
+    """(..., 2) each hand's height (cm) above its own shoulder (left, right), from world joint positions (..., J, 3)."""
+    return np.stack(
+        [pos[..., _HAND_L, 1] - pos[..., _SHOULDER_L, 1], pos[..., _HAND_R, 1] - pos[..., _SHOULDER_R, 1]], -1
+    )
+
+
 def hand_height(pos: np.ndarray) -> np.ndarray:
     """(...,) the higher hand's height (cm) above its own shoulder, from world joint positions (..., J, 3)."""
-    left = pos[..., _HAND_L, 1] - pos[..., _SHOULDER_L, 1]
-    return np.maximum(left, pos[..., _HAND_R, 1] - pos[..., _SHOULDER_R, 1])
+    return side_heights(pos).max(-1)
 
 
 def raise_share(height: np.ndarray) -> np.ndarray:

@@ -3,6 +3,7 @@
     .venv/bin/python -m models.erd.rotation_prior        # all -> models/weights/erd/{leaf,output}_prior{,_run}.npz
     .venv/bin/python -m models.erd.rotation_prior runs   # the run priors alone
     .venv/bin/python -m models.erd.rotation_prior twists # the arms' twist range alone (`twist_range.py`)
+    .venv/bin/python -m models.erd.rotation_prior gestures  # a waving hand's output prior alone (`gestures.py`)
 
 1. **Twists and leaves** (`leaf_prior.npz`). The decoder is trusted only for where bones point
    (`models.motion.twist.transfer_twist`): a bone's twist about itself and the head, hands and
@@ -50,11 +51,13 @@ LEAF_FILE = "leaf_prior.npz"
 OUTPUT_FILE = "output_prior.npz"
 RUN_LEAF_FILE = "leaf_prior_run.npz"
 RUN_OUTPUT_FILE = "output_prior_run.npz"
+GESTURE_FILE = "output_prior_gesture.npz"
 PRIOR_FILES = {  # `runtime.ERDModel`'s prior attributes and their files beside the weights
     "leaf_prior": LEAF_FILE,
     "output_prior": OUTPUT_FILE,
     "run_leaf_prior": RUN_LEAF_FILE,
     "run_output_prior": RUN_OUTPUT_FILE,
+    "gesture_prior": GESTURE_FILE,
 }
 FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 UP = np.array([0.0, 1.0, 0.0])
@@ -114,29 +117,79 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     model card), against the real runs in `real`; the legs carried as well, not only clamped
     (module docstring)."""
     from ..data import load_motions
-    from ..eval.run import pick_clips, stylise
+    from ..eval.run import pick_clips
+
+    clips = (
+        pick_clips(RUN_FIT_CLIPS, ("run",), split="train") if runs else pick_clips(FIT_CLIPS_PER_CONTENT, split="train")
+    )
+    inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(clips)]
+    produced = network_rotations(model, inputs, leaf_prior=not runs)
+    clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEG_JOINTS))
+    return StyleCarry.fit(produced, [without_heading(q)[1] for q in real[1:]], (0,), clamp_only=clamped)
+
+
+def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.ndarray]:
+    """Per target style: the rotations (N, J, 4, the Hips without their heading) of every frame
+    of `inputs` streamed toward it by the network, with its leaf prior where `leaf_prior`, and
+    no output priors or twist range (what the output priors carry from)."""
+    from ..eval.run import stylise
 
     saved = model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range
-    if runs:
+    gesture = model.gesture_prior
+    if not leaf_prior:
         model.leaf_prior = None
-    model.output_prior = model.run_leaf_prior = model.run_output_prior = model.twist_range = None
+    model.output_prior = model.run_leaf_prior = model.run_output_prior = model.twist_range = model.gesture_prior = None
     try:
-        clips = (
-            pick_clips(RUN_FIT_CLIPS, ("run",), split="train")
-            if runs
-            else pick_clips(FIT_CLIPS_PER_CONTENT, split="train")
-        )
-        inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(clips)]
         styles = model.styles()
         outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
     finally:
         model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range = saved
+        model.gesture_prior = gesture
     n = len(inputs)
-    produced = [
+    return [
         without_heading(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]))[1] for k in range(len(styles))
     ]
-    clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEG_JOINTS))
-    return StyleCarry.fit(produced, [without_heading(q)[1] for q in real[1:]], (0,), clamp_only=clamped)
+
+
+def raised_frames(motion) -> np.ndarray:
+    """(T,) bool: the frames of a Bandai Namco `Motion` with a hand at its shoulder or above (more
+    than half way up `raised_hand.RAISE_RAMP_CM`)."""
+    from .raised_hand import hand_height, raise_share
+
+    return raise_share(hand_height(motion.global_positions())) > 0.5
+
+
+def fit_gesture_prior(model) -> StyleCarry:
+    """The output prior of a waving hand (`gestures.py`): the network (its leaf prior in place, no
+    output prior) over the first `FIT_FRAMES` of `FIT_CLIPS_PER_CONTENT` TRAIN neutral clips of
+    each raise-up and wave content, toward each style, against every real TRAIN gesture of the
+    style, both on the frames with a hand raised; the legs and Hips only clamped, as the
+    all-content prior. The styles outside `gestures.GESTURE_STYLES` keep the all-content prior's
+    maps, so a mix with them carries them as before."""
+    from ..data import build_index, load_motions, select
+    from ..eval.run import pick_clips
+    from .dataset import CONTENTS
+    from .gestures import GESTURE_STYLES
+
+    gestures = tuple(c for c in CONTENTS if c.startswith(("raise-up", "wave")))
+    inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(pick_clips(FIT_CLIPS_PER_CONTENT, gestures, split="train"))]
+    raised = np.concatenate([raised_frames(m) for m in inputs])
+    produced = [q[raised] for q in network_rotations(model, inputs)]
+    index = build_index(["bandai-namco-2"])
+    real = []
+    for style in model.styles():
+        motions = load_motions([c for c in select(index, split="train", style=style) if c.content in gestures])
+        q = np.concatenate([m.rotations[raised_frames(m)] for m in motions])
+        q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)  # static on this rig, as in the feature cache `real_rotations` reads
+        real.append(without_heading(q)[1])
+    clamped = (HIPS,) + tuple(model.skeleton.index(n) for n in LEG_JOINTS)
+    fitted = StyleCarry.fit(produced, real, (ROOT,), clamp_only=clamped)
+    keep = np.array([s not in GESTURE_STYLES for s in model.styles()])
+    arrays = [
+        np.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
+        for a, b in zip(fitted.arrays, model.output_prior.arrays)
+    ]
+    return StyleCarry(*(np.ascontiguousarray(a) for a in arrays))
 
 
 def main(argv: list[str]) -> None:
@@ -162,6 +215,8 @@ def main(argv: list[str]) -> None:
         real = real_rotations(runs=True)
         print(fit_leaf_prior(real).save(folder / RUN_LEAF_FILE))
         print(fit_output_prior(load(folder), real, runs=True).save(folder / RUN_OUTPUT_FILE))
+    if what in ("both", "gestures"):  # after the output prior: the other styles keep its maps
+        print(fit_gesture_prior(load(folder)).save(folder / GESTURE_FILE))
 
 
 if __name__ == "__main__":
