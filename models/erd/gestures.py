@@ -85,14 +85,21 @@ def wave_share(swayed: np.ndarray) -> np.ndarray:
 
 
 def by_gesture(
-    carried: np.ndarray, carry: Carry, prior: StyleCarry, weights: np.ndarray, pos: np.ndarray, swayed: np.ndarray
+    carried: np.ndarray,
+    carry: Carry,
+    prior: StyleCarry,
+    weights: np.ndarray,
+    pos: np.ndarray,
+    swayed: np.ndarray,
+    network: np.ndarray,
 ) -> np.ndarray:
-    """(B, J, 4) the output prior's result `carried`, with the rows toward a gesture style
-    re-carried where the input raises a hand: a waving hand's row by `carry` with the gesture
-    prior at the raise share times the wave share (the larger hand's), a still raised hand's
-    upper arm and forearm moved back toward the network's (`carry` without the gesture styles'
-    weights) by its raise share, then clamped into the styles' real ranges at the full weights.
-    Rows toward no gesture style and rows with both hands down are `carried` as they are."""
+    """(B, J, 4) the output prior's result `carried` (from the `network`'s rotations), with the
+    rows toward a gesture style re-carried where the input raises a hand: a waving hand's row by
+    `carry` with the gesture prior at the raise share times the wave share (the larger hand's)
+    times `GESTURE_SHARE`, a still raised hand's upper arm and forearm moved back toward the
+    network's (`carry` without the gesture styles' weights: the network's own where no other
+    style is asked for) by its raise share, then clamped into the styles' real ranges at the full
+    weights. Rows toward no gesture style and rows with both hands down are `carried` as they are."""
     w = np.asarray(weights, np.float64)
     toward = w[:, _GESTURE].sum(-1)
     if not toward.any():
@@ -110,7 +117,10 @@ def by_gesture(
     if rows.size:
         others = w[rows].copy()
         others[:, _GESTURE] = 0.0
-        bare = carry(rows, others, None)
+        bare = np.array(network[rows], np.float64)  # what a carry with no weight gives, to round-off
+        mixed = np.flatnonzero(others.any(-1))
+        if mixed.size:
+            bare[mixed] = carry(rows[mixed], others[mixed], None)
         part = out[rows]
         for side, joints in enumerate(_HELD):
             a, b = part[:, joints], bare[:, joints]

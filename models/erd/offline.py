@@ -106,7 +106,7 @@ def stylise(
             run = run_output_prior if gesture is None else gesture_prior
             return clip_carry_slow(output_prior, run, network_rots, w_all, by, hips=HIPS)[rows]
 
-        rots = by_gesture(rots, carry, output_prior, faded, pos, clip_sway(pos, FPS))
+        rots = by_gesture(rots, carry, output_prior, faded, pos, clip_sway(pos, FPS), network_rots)
     rots = kept_in_range(output_prior, rots, w_frames, faded)
     if twist_range is not None:
         rots = twist_range(rots, w_frames)

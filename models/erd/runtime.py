@@ -304,7 +304,7 @@ class ERDModel:
                     self.output_prior, run, network_rot[rows], state["slow_out"][rows], weights, by, HIPS
                 )[0]
 
-            out_rot = by_gesture(out_rot, carry, self.output_prior, faded, pos, hand_sway)
+            out_rot = by_gesture(out_rot, carry, self.output_prior, faded, pos, hand_sway, network_rot)
         out_rot = kept_in_range(self.output_prior, out_rot, w, faded)
         if self.twist_range is not None:
             out_rot = self.twist_range(out_rot, w)
