@@ -1,6 +1,7 @@
-"""Style-ERD toward feminine and youthful: a raised hand's output prior follows what the hand does
-(`models/erd/gestures.py`): a waving hand takes the prior fitted on gestures, a still raised arm
-the network's own upper arm and forearm, and every other style streams exactly as before."""
+"""Style-ERD toward feminine, youthful and active: a raised hand's output prior follows what the
+hand does (`models/erd/gestures.py`): a waving hand takes the prior fitted on gestures, a still
+raised arm (feminine, youthful) the network's own upper arm and forearm, and every other style
+streams exactly as before."""
 
 from __future__ import annotations
 
@@ -105,12 +106,13 @@ def test_a_still_raised_arm_toward_feminine_is_the_networks_own(model, raise_up)
     assert np.median(moved[:, rest].max(axis=-1)) > 2.0
 
 
-def test_a_waving_hand_toward_feminine_takes_the_gesture_prior(model, wave):
+@pytest.mark.parametrize("style", ["feminine", "active"])
+def test_a_waving_hand_takes_the_gesture_prior(model, wave, style):
     """Frames with the hand waving are carried by the gesture prior; until a hand goes up the
     frames are exactly what the all-content prior alone gives."""
     without = copy.copy(model)
     without.gesture_prior = None
-    w = _weights(model, feminine=1.0)
+    w = _weights(model, **{style: 1.0})
     raised, waves = _shares(model, wave)
     got, before = _stream(model, wave, w), _stream(without, wave, w)
     waving = (raised * waves).max(-1) == 1.0
@@ -120,7 +122,7 @@ def test_a_waving_hand_toward_feminine_takes_the_gesture_prior(model, wave):
     np.testing.assert_array_equal(got[down], before[down])
 
 
-@pytest.mark.parametrize("mix", [{"masculine": 1.0}, {"elderly": 1.0}, {"active": 0.6, "exhausted": 0.4}])
+@pytest.mark.parametrize("mix", [{"masculine": 1.0}, {"elderly": 1.0}, {"masculine": 0.6, "exhausted": 0.4}])
 def test_other_styles_stream_as_before(model, raise_up, wave, mix):
     """`GESTURE_STYLES` only: every other style and mix of them is untouched, raised hand or not."""
     without = copy.copy(model)
@@ -128,6 +130,21 @@ def test_other_styles_stream_as_before(model, raise_up, wave, mix):
     w = _weights(model, **mix)
     for motion in (raise_up, wave):
         np.testing.assert_array_equal(_stream(model, motion, w), _stream(without, motion, w))
+
+
+def test_a_still_raised_arm_toward_active_keeps_the_all_content_prior(model, raise_up):
+    """Active takes the gesture prior for a waving hand only (`HELD_STYLES`): on a raise-up's
+    frames with the hand up and not swaying, its upper body is what it was before (the legs are
+    the foot planter's, which remembers the frames before)."""
+    without = copy.copy(model)
+    without.gesture_prior = None
+    w = _weights(model, active=1.0)
+    raised, waves = _shares(model, raise_up)
+    still = (raised.max(-1) == 1.0) & ((raised * waves).max(-1) == 0.0)
+    assert still.sum() >= 10
+    upper = slice(2, 14)  # Spine .. Hand_R
+    got, before = _stream(model, raise_up, w)[still, upper], _stream(without, raise_up, w)[still, upper]
+    np.testing.assert_array_equal(got, before)
 
 
 def test_the_gesture_prior_keeps_the_other_styles_maps(model):

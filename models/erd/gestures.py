@@ -1,4 +1,4 @@
-"""Toward feminine and youthful, a raised hand's output prior follows what the hand does.
+"""Toward feminine, youthful and active, a raised hand's output prior follows what the hand does.
 
 The output prior (`rotation_prior.py`) is fitted over every content at once, and waves, three
 times as long as raise-ups in the data, shape where it carries a raised arm. Toward feminine on
@@ -10,9 +10,10 @@ raise-ups but lost the waves (model card). So the hand's own motion picks:
 
 - a hand that **waves**, swaying sideways against its shoulder, takes a prior fitted on the real
   style's gestures with a hand raised (`output_prior_gesture.npz`), mixed in by the raise share
-  (`raised_hand.raise_share`) times the wave share, at most `GESTURE_SHARE`;
+  (`raised_hand.raise_share`) times the wave share, at most `GESTURE_SHARE` (`GESTURE_STYLES`);
 - a hand raised **without waving** (a raise-up) takes the network's own upper arm and forearm on
-  its side (with its leaf prior), out of the output prior and clamped into the style's range.
+  its side (with its leaf prior), out of the output prior and clamped into the style's range
+  (`HELD_STYLES`).
 
 The sway is each hand's horizontal speed relative to its shoulder (the UpperArm joint), averaged
 over `SWAY_FRAMES`. On the validation inputs' raised frames (hand at its shoulder or above) a
@@ -22,9 +23,10 @@ previous input frame; a session's first frame has no sway.
 
 Chosen on validation (`python -m models.eval --split val --methods erd`): feminine's rotation
 judge 85 -> 97 % and content 79 -> 94 % (the row passes), youthful's rotation judge 91 -> 94 %,
-every other cell unchanged; ramps of 40..60 and 50..70 cm/s and sway averages of 5-20 frames give
-the same rows, 30..50 loses a feminine raise-up. Toward active, masculine and exhausted the same
-rule cost their rotation judges, so `GESTURE_STYLES` holds the two. The gesture prior's whole
+active's 91 -> 94 %, every other cell unchanged; ramps of 40..60 and 50..70 cm/s and sway averages
+of 5-20 frames give the same rows, 30..50 loses a feminine raise-up. The held arm cost the
+rotation judge of active (91 -> 85 %) and masculine (100 -> 94 %); the gesture prior alone toward
+masculine and exhausted changed no judge cell, so neither takes either. The gesture prior's whole
 share (`GESTURE_SHARE` 1) gave the same fresh rows, but in running sessions (`history.py`) the
 content judge read three validation waves toward feminine as raise-ups (85 % against 91 % at 0.5).
 """
@@ -40,12 +42,14 @@ from ..motion.style_carry import StyleCarry
 from .dataset import TARGET_STYLES
 from .raised_hand import raise_share, side_heights
 
-GESTURE_STYLES = ("feminine", "youthful")
+GESTURE_STYLES = ("feminine", "youthful", "active")  # a waving hand takes the gesture prior
+HELD_STYLES = ("feminine", "youthful")  # a still raised arm takes the network's
 WAVE_RAMP_CM_S = (40.0, 60.0)
 GESTURE_SHARE = 0.5  # a fully waving hand's share of the gesture prior (the rest: the all-content prior)
-SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it this fraction of the way (1 / SWAY_FRAMES)
+SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it 1 / SWAY_FRAMES of the way to the new speed
 HELD_JOINTS = ("UpperArm", "LowerArm")  # a raised, still arm's joints taken out of the output prior
 _GESTURE = np.array([TARGET_STYLES.index(s) for s in GESTURE_STYLES])
+_HOLDING = np.array([TARGET_STYLES.index(s) for s in HELD_STYLES])
 _HANDS = np.array([BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")])
 _SHOULDERS = np.array([BN_JOINTS.index("UpperArm_L"), BN_JOINTS.index("UpperArm_R")])
 _HELD = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in HELD_JOINTS]) for side in "LR"]
@@ -94,39 +98,40 @@ def by_gesture(
     network: np.ndarray,
 ) -> np.ndarray:
     """(B, J, 4) the output prior's result `carried` (from the `network`'s rotations), with the
-    rows toward a gesture style re-carried where the input raises a hand: a waving hand's row by
-    `carry` with the gesture prior at the raise share times the wave share (the larger hand's)
-    times `GESTURE_SHARE`, a still raised hand's upper arm and forearm moved back toward the
-    network's (`carry` without the gesture styles' weights: the network's own where no other
-    style is asked for) by its raise share, then clamped into the styles' real ranges at the full
-    weights. Rows toward no gesture style and rows with both hands down are `carried` as they are."""
+    rows toward a gesture style re-carried where the input raises a hand: a waving hand's row
+    (toward a `GESTURE_STYLES` style) by `carry` with the gesture prior at the raise share times
+    the wave share (the larger hand's) times `GESTURE_SHARE`; a still raised hand's upper arm and
+    forearm (toward a `HELD_STYLES` style) moved back toward the network's by its raise share
+    (`carry` without those styles' weights: the network's own where no other style is asked
+    for), then clamped into the styles' real ranges at the full weights. Rows toward neither
+    and rows with both hands down are `carried` as they are."""
     w = np.asarray(weights, np.float64)
-    toward = w[:, _GESTURE].sum(-1)
-    if not toward.any():
+    toward, holding = w[:, _GESTURE].sum(-1), w[:, _HOLDING].sum(-1)
+    if not (toward.any() or holding.any()):
         return carried
-    raised = raise_share(side_heights(pos)) * (toward > 0.0)[:, None]  # (B, 2)
-    if not raised.any():
+    heights = raise_share(side_heights(pos))  # (B, 2)
+    if not heights.any():
         return carried
     out = np.array(carried, np.float64)
-    waving = (raised * wave_share(swayed)).max(-1) * GESTURE_SHARE
+    waving = (heights * (toward > 0.0)[:, None] * wave_share(swayed)).max(-1) * GESTURE_SHARE
     rows = np.flatnonzero(waving > 0.0)
     if rows.size:
         out[rows] = carry(rows, w[rows], waving[rows])
-    held = raised * toward[:, None] * (waving == 0.0)[:, None]
+    held = heights * holding[:, None] * (waving == 0.0)[:, None]
     rows = np.flatnonzero(held.max(-1) > 0.0)
     if rows.size:
         others = w[rows].copy()
-        others[:, _GESTURE] = 0.0
+        others[:, _HOLDING] = 0.0
         bare = np.array(network[rows], np.float64)  # what a carry with no weight gives, to round-off
-        mixed = np.flatnonzero(others.any(-1))
-        if mixed.size:
-            bare[mixed] = carry(rows[mixed], others[mixed], None)
+        mixes = np.flatnonzero(others.any(-1))
+        if mixes.size:
+            bare[mixes] = carry(rows[mixes], others[mixes], None)
         part = out[rows]
         for side, joints in enumerate(_HELD):
             a, b = part[:, joints], bare[:, joints]
             b = np.where(np.sum(a * b, axis=-1, keepdims=True) < 0.0, -b, b)
             share = held[rows, side][:, None, None]
-            mixed = (1.0 - share) * a + share * b
-            part[:, joints] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
+            blend = (1.0 - share) * a + share * b
+            part[:, joints] = blend / np.linalg.norm(blend, axis=-1, keepdims=True)
         out[rows] = prior.clamped(part, w[rows], hips=HIPS)
     return out

@@ -38,8 +38,8 @@ real distribution and clamped into its real range (`rotation_prior.py`: `leaf_pr
 `output_prior.npz` beside the weights). Frames where the input runs take priors fitted on runs
 alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`); while the input raises
 a hand, elderly's output prior steps aside (`raised_hand.py`: fitted over every content, it made
-raise-ups waves), and toward feminine and youthful a waving hand takes a prior fitted on
-gestures while a still raised arm takes the network's own (`gestures.py`). Each prior carries
+raise-ups waves), and toward feminine, youthful and active a waving hand takes a prior fitted
+on gestures, toward the first two a still raised arm the network's own (`gestures.py`). Each prior carries
 only a slowly following copy of the rotations; their frame-to-frame rest passes unscaled, so the
 priors' gains do not shake the head and arms (`slow_carry.py`). Last, the arms' twists about their bones are kept inside the style's real
 interval (`twist_range.py`: the priors scaled them up to 17 degrees past anything real).
