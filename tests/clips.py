@@ -1,11 +1,13 @@
-"""What several service tests share: a clip as the `frames` of a JSON style upload, an LPN-FiLM
-controller session driven through a list of control ticks, and the angle between rotations."""
+"""What several tests share: a clip as the `frames` of a JSON style upload, an LPN-FiLM
+controller session driven through a list of control ticks, a clip streamed through a model one
+frame at a time, and the angle between rotations."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from clients.sdk import Client
+from models.interface import FrameBatch
 from models.motion.rotations import quat_angle
 from models.motion.skeleton import Motion
 
@@ -20,6 +22,17 @@ def drive_lpn(base: str, style: str, ticks) -> np.ndarray:
     (velocity, facing, gait) in `ticks`."""
     with Client(base).session(model="lpn", style=style) as session:
         return np.array([session.control(v, facing, gait).rotations for v, facing, gait in ticks])
+
+
+def streamed_rotations(model, motion: Motion, weights: np.ndarray) -> np.ndarray:
+    """(T, J, 4) the output rotations of `motion` streamed through `model` in one fresh session
+    with style weights (S,), one frame per `step_batch`."""
+    state, out = model.init_state(1), []
+    for t in range(motion.num_frames):
+        frame = FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1])
+        o, state = model.step_batch(state, frame, weights[None])
+        out.append(o.rotations[0])
+    return np.stack(out)
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.interface import FrameBatch
 from models.motion.rotations import quat_angle
+
+from .clips import streamed_rotations
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "models" / "weights" / "erd"
 
@@ -52,15 +53,6 @@ def _weights(model, **mix: float) -> np.ndarray:
     return w
 
 
-def _stream(model, motion, w: np.ndarray) -> np.ndarray:
-    state, out = model.init_state(1), []
-    for t in range(motion.num_frames):
-        frame = FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1])
-        o, state = model.step_batch(state, frame, w[None])
-        out.append(o.rotations[0])
-    return np.stack(out)
-
-
 def _shares(model, motion) -> tuple[np.ndarray, np.ndarray]:
     """(T, 2) each hand's raise share and wave share, as the stream measures them."""
     from models.erd.features import FPS
@@ -96,8 +88,8 @@ def test_a_still_raised_arm_toward_feminine_is_the_networks_own(model, raise_up)
     raised, waves = _shares(model, raise_up)
     held = (raised[:, 0] == 1.0) & (waves.max(-1) == 0.0)
     assert held.sum() >= 10
-    network = model.output_prior.bounds(_stream(bare, raise_up, w), np.tile(w, (len(held), 1)), hips=HIPS)
-    moved = np.degrees(quat_angle(_stream(shipped, raise_up, w), network))[held]
+    network = model.output_prior.bounds(streamed_rotations(bare, raise_up, w), np.tile(w, (len(held), 1)), hips=HIPS)
+    moved = np.degrees(quat_angle(streamed_rotations(shipped, raise_up, w), network))[held]
     arm = [model.skeleton.index(f"{j}_L") for j in HELD_JOINTS]
     rest = [
         model.skeleton.index(j) for j in ("Spine", "Chest", "Neck", "Head", "Shoulder_L", "UpperArm_R", "LowerArm_R")
@@ -114,7 +106,7 @@ def test_a_waving_hand_takes_the_gesture_prior(model, wave, style):
     without.gesture_prior = None
     w = _weights(model, **{style: 1.0})
     raised, waves = _shares(model, wave)
-    got, before = _stream(model, wave, w), _stream(without, wave, w)
+    got, before = streamed_rotations(model, wave, w), streamed_rotations(without, wave, w)
     waving = (raised * waves).max(-1) == 1.0
     down = np.cumsum(raised.max(-1)) == 0.0  # both hands down so far
     assert waving.sum() >= 10 and down.sum() >= 5
@@ -129,7 +121,7 @@ def test_other_styles_stream_as_before(model, raise_up, wave, mix):
     without.gesture_prior = None
     w = _weights(model, **mix)
     for motion in (raise_up, wave):
-        np.testing.assert_array_equal(_stream(model, motion, w), _stream(without, motion, w))
+        np.testing.assert_array_equal(streamed_rotations(model, motion, w), streamed_rotations(without, motion, w))
 
 
 def test_a_still_raised_arm_toward_active_keeps_the_all_content_prior(model, raise_up):
@@ -143,7 +135,10 @@ def test_a_still_raised_arm_toward_active_keeps_the_all_content_prior(model, rai
     still = (raised.max(-1) == 1.0) & ((raised * waves).max(-1) == 0.0)
     assert still.sum() >= 10
     upper = slice(2, 14)  # Spine .. Hand_R
-    got, before = _stream(model, raise_up, w)[still, upper], _stream(without, raise_up, w)[still, upper]
+    got, before = (
+        streamed_rotations(model, raise_up, w)[still, upper],
+        streamed_rotations(without, raise_up, w)[still, upper],
+    )
     np.testing.assert_array_equal(got, before)
 
 

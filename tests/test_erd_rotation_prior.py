@@ -14,6 +14,8 @@ from models.erd.slow_carry import carry_slow, carry_slow_numpy, clip_carry_slow
 from models.interface import FrameBatch
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
+from .clips import streamed_rotations
+
 REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "models" / "weights" / "erd"
 
@@ -194,15 +196,6 @@ def run(index):
     return load_motions([clip])[0].slice(0, 60)
 
 
-def _stream(model, motion, w: np.ndarray) -> np.ndarray:
-    state, out = model.init_state(1), []
-    for t in range(motion.num_frames):
-        frame = FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1])
-        o, state = model.step_batch(state, frame, w[None])
-        out.append(o.rotations[0])
-    return np.stack(out)
-
-
 def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     """A running input is carried by the priors fitted on runs (`gait.py`); a walk never
     reaches the ramp, so its output is exactly what the all-content priors alone give."""
@@ -221,10 +214,10 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     assert share_of(walk).max() == 0.0
     w = _onehot(model, "feminine")
     priors = model.run_leaf_prior, model.run_output_prior
-    with_runs = {"run": _stream(model, run, w), "walk": _stream(model, walk, w)}
+    with_runs = {"run": streamed_rotations(model, run, w), "walk": streamed_rotations(model, walk, w)}
     try:
         model.run_leaf_prior = model.run_output_prior = None
-        without = {"run": _stream(model, run, w), "walk": _stream(model, walk, w)}
+        without = {"run": streamed_rotations(model, run, w), "walk": streamed_rotations(model, walk, w)}
     finally:
         model.run_leaf_prior, model.run_output_prior = priors
     np.testing.assert_array_equal(with_runs["walk"], without["walk"])
@@ -241,7 +234,7 @@ def test_a_stream_that_starts_mid_run_eases_into_the_run_priors(model, run):
     if model.run_output_prior is None:
         pytest.skip("no run priors committed")
     head = model.skeleton.index("Head")
-    out = _stream(model, run.slice(0, 2 * START_FRAMES), _onehot(model, "feminine"))
+    out = streamed_rotations(model, run.slice(0, 2 * START_FRAMES), _onehot(model, "feminine"))
     steps = np.degrees(quat_angle(out[:-1, head], out[1:, head]))
     assert steps.max() < 6.0, steps.round(1)
     assert eased_in(np.ones(3), np.array([0, 1, START_FRAMES])).tolist() == [0.0, 1.0 / START_FRAMES, 1.0]
@@ -406,8 +399,10 @@ def test_a_raised_hand_takes_elderlys_output_prior_away_and_a_walk_or_run_never(
     upper = slice(2, 14)  # Spine .. Hand_R: the legs are the foot planter's
     for style, faded in (("elderly", True), ("feminine", False)):
         w = _onehot(model, style)
-        alone = model.output_prior.bounds(_stream(without, raise_up, w), np.tile(w, (len(share), 1)), hips=HIPS)
-        moved = np.degrees(quat_angle(_stream(model, raise_up, w), alone))[:, upper]
+        alone = model.output_prior.bounds(
+            streamed_rotations(without, raise_up, w), np.tile(w, (len(share), 1)), hips=HIPS
+        )
+        moved = np.degrees(quat_angle(streamed_rotations(model, raise_up, w), alone))[:, upper]
         assert moved[share == 0.0].max() > 2.0  # the prior works while the hand hangs
         if faded:
             assert moved[share == 1.0].max() < 1e-3
@@ -470,11 +465,13 @@ def test_the_arms_twist_inside_the_styles_real_interval(model, neutral):
     without.twist_range = None
     for style in ("masculine", "youthful"):
         k = model.styles().index(style)
-        arms = np.concatenate([_stream(model, m, _onehot(model, style)) for m in neutral])[:, ranges.joints]
+        arms = np.concatenate([streamed_rotations(model, m, _onehot(model, style)) for m in neutral])[:, ranges.joints]
         t = twist_angle(quat_mul(quat_inv(ranges.mean[k])[None], arms), ranges.axes)
         assert np.all(t >= ranges.lo[k] - 1e-9) and np.all(t <= ranges.hi[k] + 1e-9), style
     none = np.zeros(len(model.styles()))
-    np.testing.assert_array_equal(_stream(model, neutral[0], none), _stream(without, neutral[0], none))
+    np.testing.assert_array_equal(
+        streamed_rotations(model, neutral[0], none), streamed_rotations(without, neutral[0], none)
+    )
 
 
 def test_the_compiled_twist_range_is_its_numpy_reference(model):
