@@ -74,9 +74,11 @@ def test_the_sway_tells_a_wave_from_a_raise_up(model, index):
             assert np.median(waves[up, 0]) == waving
 
 
-def test_a_still_raised_arm_toward_feminine_is_the_networks_own(model, raise_up):
+@pytest.mark.parametrize("intensity", [1.0, 1.5])
+def test_a_still_raised_arm_toward_feminine_is_the_networks_own(model, raise_up, intensity):
     """While the raised hand holds still, its upper arm and forearm are the network's (with its
-    leaf prior) kept in the style's range; the rest of the upper body is still carried."""
+    leaf prior) kept in the style's range, at any intensity; the rest of the upper body is still
+    carried."""
     from models.erd.gestures import HELD_JOINTS
     from models.motion.bn_skeleton import HIPS
 
@@ -84,7 +86,7 @@ def test_a_still_raised_arm_toward_feminine_is_the_networks_own(model, raise_up)
     shipped.twist_range = None  # applied after either; off, the arms compare as the priors leave them
     bare = copy.copy(shipped)
     bare.output_prior = None
-    w = _weights(model, feminine=1.0)
+    w = _weights(model, feminine=intensity)
     raised, waves = _shares(model, raise_up)
     held = (raised[:, 0] == 1.0) & (waves.max(-1) == 0.0)
     assert held.sum() >= 10

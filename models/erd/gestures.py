@@ -117,7 +117,7 @@ def by_gesture(
     rows = np.flatnonzero(waving > 0.0)
     if rows.size:
         out[rows] = carry(rows, w[rows], waving[rows])
-    held = heights * holding[:, None] * (waving == 0.0)[:, None]
+    held = heights * np.minimum(holding, 1.0)[:, None] * (waving == 0.0)[:, None]  # an intensity over 1 holds it all
     rows = np.flatnonzero(held.max(-1) > 0.0)
     if rows.size:
         others = w[rows].copy()
