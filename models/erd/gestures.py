@@ -40,7 +40,7 @@ import numpy as np
 from ..motion.bn_skeleton import BN_JOINTS, HIPS
 from ..motion.style_carry import StyleCarry
 from .dataset import TARGET_STYLES
-from .raised_hand import raise_share, side_heights
+from .raised_hand import hand_offsets, raise_share, side_heights
 
 GESTURE_STYLES = ("feminine", "youthful", "active")  # a waving hand takes the gesture prior
 HELD_STYLES = ("feminine", "youthful")  # a still raised arm takes the network's
@@ -50,19 +50,12 @@ SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it 1 / SW
 HELD_JOINTS = ("UpperArm", "LowerArm")  # a raised, still arm's joints taken out of the output prior
 _GESTURE = np.array([TARGET_STYLES.index(s) for s in GESTURE_STYLES])
 _HOLDING = np.array([TARGET_STYLES.index(s) for s in HELD_STYLES])
-_HANDS = np.array([BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")])
-_SHOULDERS = np.array([BN_JOINTS.index("UpperArm_L"), BN_JOINTS.index("UpperArm_R")])
 _HELD = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in HELD_JOINTS]) for side in "LR"]
 
 # (rows, their weights, a share of the gesture prior or None) -> those rows' rotations carried by
 # the output prior, with the gesture prior in the run prior's place by that share (None: the
 # run prior by the gait, as the step carries every row)
 Carry = Callable[[np.ndarray, np.ndarray, "np.ndarray | None"], np.ndarray]
-
-
-def hand_offsets(pos: np.ndarray) -> np.ndarray:
-    """(..., 2, 3) each hand (left, right) from its shoulder, from world joint positions (..., J, 3)."""
-    return pos[..., _HANDS, :] - pos[..., _SHOULDERS, :]
 
 
 def sway(before: np.ndarray, pos: np.ndarray, prev_pos: np.ndarray, has_prev: np.ndarray, fps: float) -> np.ndarray:

@@ -36,15 +36,18 @@ from .dataset import TARGET_STYLES
 RAISE_RAMP_CM = (-12.0, 0.0)
 FADED_STYLES = ("elderly",)
 _FADED = np.array([TARGET_STYLES.index(s) for s in FADED_STYLES])
-_HAND_L, _HAND_R = BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")
-_SHOULDER_L, _SHOULDER_R = BN_JOINTS.index("UpperArm_L"), BN_JOINTS.index("UpperArm_R")
+_HANDS = np.array([BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")])
+_SHOULDERS = np.array([BN_JOINTS.index("UpperArm_L"), BN_JOINTS.index("UpperArm_R")])
+
+
+def hand_offsets(pos: np.ndarray) -> np.ndarray:
+    """(..., 2, 3) each hand (left, right) from its own shoulder, from world joint positions (..., J, 3)."""
+    return pos[..., _HANDS, :] - pos[..., _SHOULDERS, :]
 
 
 def side_heights(pos: np.ndarray) -> np.ndarray:
     """(..., 2) each hand's height (cm) above its own shoulder (left, right), from world joint positions (..., J, 3)."""
-    return np.stack(
-        [pos[..., _HAND_L, 1] - pos[..., _SHOULDER_L, 1], pos[..., _HAND_R, 1] - pos[..., _SHOULDER_R, 1]], -1
-    )
+    return hand_offsets(pos)[..., 1]
 
 
 def hand_height(pos: np.ndarray) -> np.ndarray:

@@ -39,10 +39,11 @@ real distribution and clamped into its real range (`rotation_prior.py`: `leaf_pr
 alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`); while the input raises
 a hand, elderly's output prior steps aside (`raised_hand.py`: fitted over every content, it made
 raise-ups waves), and toward feminine, youthful and active a waving hand takes a prior fitted
-on gestures, toward the first two a still raised arm the network's own (`gestures.py`). Each prior carries
-only a slowly following copy of the rotations; their frame-to-frame rest passes unscaled, so the
-priors' gains do not shake the head and arms (`slow_carry.py`). Last, the arms' twists about their bones are kept inside the style's real
-interval (`twist_range.py`: the priors scaled them up to 17 degrees past anything real).
+on gestures, toward the first two a still raised arm the network's own (`gestures.py`). Each
+prior carries only a slowly following copy of the rotations; their frame-to-frame rest passes
+unscaled, so the priors' gains do not shake the head and arms (`slow_carry.py`). Last, the arms'
+twists about their bones are kept inside the style's real interval (`twist_range.py`: the
+priors scaled them up to 17 degrees past anything real).
 
 Planted feet: the network knows nothing of the floor, so its planted feet slid (20 % of flat-foot
 frames over the eval suite's inputs, 40 % toward `active`, against 3 % for the inputs). The
