@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 
 import numpy as np
 import torch
@@ -112,10 +111,13 @@ class Bfloat16Product:
     `QUANTUM` like the torch path above. Where the CPU multiplies bfloat16 natively (AVX512-BF16,
     AMX) the expert layers of LPN-FiLM run ~4x faster than in float32 (0.4 % rounding of inputs and
     weights; its model card has what that does to its output). `for_weights` returns one only where
-    this machine keeps the rows independent of the batch and is faster with it."""
+    this machine has native bfloat16 and keeps the rows independent of the batch.
 
-    SPEEDUP = 2.0  # at least this much faster than the float32 row product at 256 rows, or not used (native
-    # bfloat16 measured 4.5x here; emulated is slower than float32, so timing noise cannot flip the choice)
+    The choice reads the CPU's features, never a timing: it used to take bfloat16 where it timed
+    at least 2x faster than float32, and on a loaded machine that verdict flipped from process to
+    process (the three LPN-FiLM products, six fresh processes beside four busy ones: four
+    different mixes of bfloat16 and float32), so two replicas of one service computed the same
+    session differently and a session resumed on the other one did not go on as it would have."""
 
     def __init__(self, w: np.ndarray) -> None:
         self.w = torch.from_numpy(np.ascontiguousarray(w, np.float32)).to(torch.bfloat16)
@@ -130,28 +132,24 @@ class Bfloat16Product:
         with _lock:
             verdict = _verdicts.get(key)
             if verdict is None:
-                verdict = _verdicts[key] = cls._holds(w.shape)
+                verdict = _verdicts[key] = native_bfloat16() and cls._rows_hold(w.shape)
                 log.info("bfloat16 products for %s: %s", w.shape, "used" if verdict else "not used")
         return cls(w) if verdict else None
 
     @classmethod
-    def _holds(cls, w_shape: tuple[int, ...]) -> bool:
+    def _rows_hold(cls, w_shape: tuple[int, ...]) -> bool:
         rng = np.random.default_rng(0)
-        w = rng.standard_normal(w_shape).astype(np.float32)
-        product = cls(w)
+        product = cls(rng.standard_normal(w_shape).astype(np.float32))
         x = rng.standard_normal((max(CHECKED_ROWS) + QUANTUM, w_shape[-2])).astype(np.float32)
-        if not _rows_independent(product, x, (1, 2, 3, *CHECKED_ROWS[:-1])):
-            return False
+        return _rows_independent(product, x, (1, 2, 3, *CHECKED_ROWS[:-1]))
 
-        def best(f, repeat: int = 5) -> float:
-            times = []
-            for _ in range(repeat):
-                t = time.perf_counter()
-                f(x[:256])
-                times.append(time.perf_counter() - t)
-            return min(times)
 
-        return best(lambda a: matmul_rows(a, w)) >= cls.SPEEDUP * best(product)
+def native_bfloat16() -> bool:
+    """Whether this CPU multiplies bfloat16 in hardware (AVX512-BF16 or AMX tiles), as torch's
+    oneDNN sees it: there bfloat16 products ran 2.4-8x faster than float32 at 256 rows; emulated,
+    they are slower."""
+    probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+    return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in probes)
 
 
 def _blocked_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:

@@ -26,8 +26,9 @@ class Settings(BaseSettings):
     weights_dir: Path = Field(default=REPO_ROOT / "models" / "weights", description="Committed model weights.")
     bfloat16_products: bool = Field(
         default=True,
-        description="LPN-FiLM's expert products in bfloat16 (float32 sums) where this CPU computes them at least "
-        "2x faster than float32 with rows independent of the batch (measured at first use; models/rowwise.py).",
+        description="LPN-FiLM's expert products in bfloat16 (float32 sums) where this CPU multiplies bfloat16 "
+        "natively (AVX512-BF16 or AMX) with rows independent of the batch (checked at first use; models/rowwise.py); "
+        "false: always float32.",
     )
 
 

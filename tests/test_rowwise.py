@@ -77,14 +77,14 @@ def test_every_model_steps_a_row_as_it_steps_it_alone(models, name):
 
 @pytest.mark.parametrize("inner,outer", SHAPES[-2:])
 def test_bfloat16_products_keep_rows_apart_and_round_only(inner, outer):
-    """LPN-FiLM's expert layers in bfloat16 (`rowwise.Bfloat16Product`), where this machine is
-    faster with them: a row's bits never depend on its batch, and the product is x @ w to
+    """LPN-FiLM's expert layers in bfloat16 (`rowwise.Bfloat16Product`), where this machine
+    multiplies bfloat16 natively: a row's bits never depend on its batch, and the product is x @ w to
     bfloat16 rounding (8 significant bits of each factor, float32 sums)."""
     rng = np.random.default_rng(inner)
     w = rng.standard_normal((inner, outer)).astype(np.float32)
     product = rowwise.Bfloat16Product.for_weights(w)
     if product is None:
-        pytest.skip("bfloat16 products are not faster here (or depend on the batch): float32 is used")
+        pytest.skip("no native bfloat16 here (or its rows depend on the batch): float32 is used")
     x = rng.standard_normal((300, inner)).astype(np.float32)
     full = product(x)
     for batch in (1, 2, 3, 5, 9, 31, 77, 150, 299):
@@ -92,3 +92,18 @@ def test_bfloat16_products_keep_rows_apart_and_round_only(inner, outer):
         assert np.array_equal(product(x[batch : batch + 5]), full[batch : batch + 5]), batch
     exact = x.astype(np.float64) @ w
     assert np.abs(full - exact).max() < 0.02 * np.abs(exact).max()
+
+
+def test_bfloat16_is_chosen_by_the_cpu_not_by_a_clock(monkeypatch):
+    """Replicas of one service must compute a session alike: whether LPN-FiLM's products run in
+    bfloat16 follows the CPU's native bfloat16 support (and rows kept apart), not a timing that a
+    loaded machine can flip."""
+    w = np.random.default_rng(0).standard_normal(SHAPES[-1]).astype(np.float32)
+    monkeypatch.setattr(rowwise, "_verdicts", {})
+    for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported"):
+        monkeypatch.setattr(rowwise.torch.cpu, name, lambda: False)
+    assert not rowwise.native_bfloat16() and rowwise.Bfloat16Product.for_weights(w) is None
+    monkeypatch.setattr(rowwise, "_verdicts", {})
+    monkeypatch.setattr(rowwise.torch.cpu, "_is_amx_tile_supported", lambda: True)
+    assert rowwise.native_bfloat16()
+    assert (rowwise.Bfloat16Product.for_weights(w) is not None) == rowwise.Bfloat16Product._rows_hold(w.shape)

@@ -509,7 +509,7 @@ class LPNModel(LPNStyles):
 
     @cached_property
     def _products(self) -> list[Callable[[np.ndarray], np.ndarray]]:
-        """The three expert products: bfloat16 where this machine does them faster with rows
+        """The three expert products: bfloat16 where this machine does them natively with rows
         independent of the batch (`rowwise.Bfloat16Product`, setting `bfloat16_products`), else
         the float32 row product."""
         fast = get_settings().bfloat16_products and self.bfloat16
