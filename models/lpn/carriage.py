@@ -185,6 +185,7 @@ def fit(model, styles: list[str], dataset: str = "bandai-namco-2", frames: int =
         pace = np.array([[median_speed(clips(s, LOCOMOTION[g])) / normal[g] for g in ("walk", "run")] for s in styles])
     model = model.with_own_styles()
     model.output_prior = None  # fitted on top of the carriage (`output_prior.py`): refit it after
+    model.arm_coupling = None  # and the arm coupling on top of that (`arm_coupling.py`)
     model.carriage = Carriage(tuple(styles), pace, np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
     every = LOCOMOTION["walk"] + LOCOMOTION["run"]
     inputs = [m.slice(0, frames) for m in clips("normal", every)]
@@ -199,7 +200,7 @@ def fit_runs(
     to the style's real TRAIN runs."""
     clips = train_clips(dataset)
     model = model.with_own_styles()
-    model.output_prior = None
+    model.output_prior = model.arm_coupling = None
     model.carriage = replace(carriage, run=None)
     inputs = [m.slice(0, frames) for m in clips("normal", LOCOMOTION["run"])]
     run = np.tile((0.0, 0.0, 0.0, 1.0), (len(carriage.styles), len(RUN_JOINTS), 1))

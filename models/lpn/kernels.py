@@ -532,3 +532,68 @@ def advance(
         contacts[b, 0] = y[b, Y_CONTACT] > contact_threshold
         contacts[b, 1] = y[b, Y_CONTACT + 1] > contact_threshold
     return out_root, out_rot, contacts
+
+
+@njit(cache=True, error_model="numpy")
+def qlog(q):
+    """Rotation vector of a unit quaternion (tuple), shortest arc."""
+    x, y, z, w = q
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    s = math.sqrt(x * x + y * y + z * z)
+    if s <= 1e-9:
+        return 2.0 * x, 2.0 * y, 2.0 * z
+    k = 2.0 * math.atan2(s, w) / s
+    return k * x, k * y, k * z
+
+
+@njit(cache=True, error_model="numpy")
+def qexp(v):
+    """Unit quaternion of a rotation vector (tuple)."""
+    x, y, z = v
+    a = math.sqrt(x * x + y * y + z * z)
+    k = math.sin(0.5 * a) / a if a > 1e-9 else 0.5
+    return k * x, k * y, k * z, math.cos(0.5 * a)
+
+
+@njit(cache=True, error_model="numpy")
+def _unit(q):
+    x, y, z, w = q[0], q[1], q[2], q[3]
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    return x / n, y / n, z / n, w / n
+
+
+@njit(cache=True, error_model="numpy")
+def couple_arms(q, rows, w, share, drivers, forearms, mean, walk, run, out):
+    """`arm_coupling.couple_rows_numpy` per row, side and style (its docstring has the formula):
+    out[rows] = q[rows] with each forearm turned by sum_s w_s log(q^-1 f_s(q)). `mean` (S, 2, D + 1, 4),
+    `walk`/`run` (S, 2, 3D + 1, 3); out holds q's other rows and joints already."""
+    D = drivers.shape[1]
+    x = np.empty(3 * D + 1)
+    x[3 * D] = 1.0
+    for b in rows:
+        for k in range(2):
+            j = forearms[k]
+            a = _unit(q[b, j])
+            cx, cy, cz = 0.0, 0.0, 0.0
+            for s in range(w.shape[1]):
+                ws = w[b, s]
+                if ws == 0.0:
+                    continue
+                for i in range(D):
+                    m = mean[s, k, i]
+                    d = qlog(qmul((-m[0], -m[1], -m[2], m[3]), _unit(q[b, drivers[k, i]])))
+                    x[3 * i], x[3 * i + 1], x[3 * i + 2] = d
+                m = mean[s, k, D]
+                dx, dy, dz = qlog(qmul((-m[0], -m[1], -m[2], m[3]), a))
+                r = share[b]
+                for i in range(3 * D + 1):
+                    gx = walk[s, k, i, 0] + r * (run[s, k, i, 0] - walk[s, k, i, 0])
+                    gy = walk[s, k, i, 1] + r * (run[s, k, i, 1] - walk[s, k, i, 1])
+                    gz = walk[s, k, i, 2] + r * (run[s, k, i, 2] - walk[s, k, i, 2])
+                    dx, dy, dz = dx + x[i] * gx, dy + x[i] * gy, dz + x[i] * gz
+                styled = qmul((m[0], m[1], m[2], m[3]), qexp((dx, dy, dz)))
+                ex, ey, ez = qlog(qmul((-a[0], -a[1], -a[2], a[3]), styled))
+                cx, cy, cz = cx + ws * ex, cy + ws * ey, cz + ws * ez
+            o = qmul(a, qexp((cx, cy, cz)))
+            out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = o

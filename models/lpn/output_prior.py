@@ -164,7 +164,7 @@ def fit(model, styles: list[str], dataset: str = "bandai-namco-2") -> OutputPrio
 
     clips = train_clips(dataset)
     model = model.with_own_styles()
-    model.output_prior = None
+    model.output_prior = model.arm_coupling = None  # the coupling is fitted on top of the prior
     names = model.skeleton.names
 
     def fitted(style: str, contents: tuple[str, ...]) -> StyleCarry:

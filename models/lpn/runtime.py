@@ -27,7 +27,9 @@ rotation prior; the same file can pace the derived control by the style's real s
 and holds a run carriage (spine, neck, head and arms at the run gait; exhausted). Then the output
 prior (`output_prior.npz`, `output_prior.py`; active and exhausted) carries the upper body's
 rotations (and active's legs) from the network's distribution to the real style's; active's is
-fitted on walks and on runs apart and mixed by the gait, as the run carriage is.
+fitted on walks and on runs apart and mixed by the gait, as the run carriage is. Then the arm
+coupling (`arm_coupling.npz`, `arm_coupling.py`; active) moves the forearms with the upper arms,
+shoulders and chest as the real style's do (the network's forearms did not pump).
 
 Rotation prior (`rotation_prior.npz` beside the weights, `models.motion.rotation_ball`): each
 built-in style's output rotations are held, per joint, inside the ball its real TRAIN clips fill
@@ -77,6 +79,7 @@ from ..rowwise import Bfloat16Product, matmul_rows
 from ..settings import get_settings
 from . import features as lf
 from . import kernels
+from .arm_coupling import ARM_COUPLING_FILE, COUPLING_ROWS, ArmCoupling, couple_rows, side_joints
 from .carriage import ARM_JOINTS, CARRIAGE_FILE, RUN_JOINTS, Carriage, blend_arms, blend_pace, blend_run, carry_arms
 from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
 from .style_table import StyleTable
@@ -115,6 +118,7 @@ class LPNModel(LPNStyles):
         balls: StyleBalls | None = None,
         carriage: Carriage | None = None,
         output_prior: OutputPrior | None = None,
+        arm_coupling: ArmCoupling | None = None,
     ):
         self.config = config
         self.skeleton = skeleton
@@ -143,6 +147,8 @@ class LPNModel(LPNStyles):
         self._run_joints = np.array([skeleton.names.index(j) for j in RUN_JOINTS], np.int64)
         self.carriage = carriage
         self.output_prior = output_prior
+        self._coupled_joints = side_joints(skeleton.names)
+        self.arm_coupling = arm_coupling
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
         self.parents = sk.parents
@@ -174,6 +180,19 @@ class LPNModel(LPNStyles):
             self._output_prior_fit = prior
             names = list(self._table.names)
             rows = prior.rows(names, self.skeleton.num_joints) if prior is not None else dict.fromkeys(PRIOR_ROWS)
+            self._table = self._table.measuring(**rows)
+
+    @property
+    def arm_coupling(self) -> ArmCoupling | None:
+        """The built-in styles' arm coupling (`arm_coupling.py`); None: forearms as carried."""
+        return self._arm_coupling_fit
+
+    @arm_coupling.setter
+    def arm_coupling(self, coupling: ArmCoupling | None) -> None:
+        with self._lock:
+            self._arm_coupling_fit = coupling
+            names = list(self._table.names)
+            rows = coupling.rows(names) if coupling is not None else dict.fromkeys(COUPLING_ROWS)
             self._table = self._table.measuring(**rows)
 
     @property
@@ -342,6 +361,7 @@ class LPNModel(LPNStyles):
         if run_body is not None and (control[:, 3] > 0).any():
             out_rot = carry_arms(out_rot, blend_run(run_body, style_weights, normal, control[:, 3]), self._run_joints)
         out_rot = carry_rows(table, out_rot, style_weights, control[:, 3])
+        out_rot = couple_rows(table, out_rot, style_weights, control[:, 3], self._coupled_joints)
         ball_mean, ball_radii = table.get("ball_mean"), table.get("ball_radii")
         if ball_mean is not None and ball_radii is not None:
             out_rot = self._hold(out_rot, style_weights, normal, (ball_mean, ball_radii))
@@ -637,8 +657,20 @@ def read_output_prior(weights_dir: Path) -> OutputPrior | None:
     return OutputPrior.load(path) if path.exists() else None
 
 
+def read_arm_coupling(weights_dir: Path) -> ArmCoupling | None:
+    """The built-in styles' arm coupling beside the weights (`ARM_COUPLING_FILE`), or None."""
+    path = Path(weights_dir) / ARM_COUPLING_FILE
+    return ArmCoupling.load(path) if path.exists() else None
+
+
 def load(weights_dir: Path) -> LPNModel:
     arrays, skeleton, config = read_weights(weights_dir)
     return LPNModel(
-        arrays, skeleton, config, read_balls(weights_dir), read_carriage(weights_dir), read_output_prior(weights_dir)
+        arrays,
+        skeleton,
+        config,
+        read_balls(weights_dir),
+        read_carriage(weights_dir),
+        read_output_prior(weights_dir),
+        read_arm_coupling(weights_dir),
     )

@@ -1,0 +1,135 @@
+"""LPN-FiLM's arm coupling (`models/lpn/arm_coupling.py`): toward active the forearms move with
+the upper arms, shoulders and chest as in the real active clips, so they pump where the network
+held them still; every other style, row and joint steps exactly as without it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.lpn.arm_coupling import COUPLED, ArmCoupling
+from models.motion.rotations import quat_angle, quat_inv, quat_mul
+from models.motion.style_carry import quat_log
+
+
+@pytest.fixture(scope="module")
+def model(lpn_model):
+    if lpn_model.arm_coupling is None:
+        pytest.skip("no LPN-FiLM arm coupling committed")
+    return lpn_model
+
+
+@pytest.fixture(scope="module")
+def bare(model):
+    twin = model.with_own_styles()
+    twin.arm_coupling = None
+    return twin
+
+
+@pytest.fixture(scope="module")
+def walk(bn_walk):
+    return bn_walk.slice(0, 150)
+
+
+def _forearms(model) -> list[int]:
+    return [model.skeleton.names.index(f"LowerArm_{s}") for s in "LR"]
+
+
+def _turn_speed(rotations: np.ndarray) -> float:
+    """Mean angular speed (degrees/s at 30 fps) after the first second."""
+    q = rotations[30:].astype(np.float64)
+    return float(np.degrees(np.linalg.norm(quat_log(quat_mul(quat_inv(q[:-1]), q[1:])), axis=-1)).mean() * 30)
+
+
+def test_only_active_is_coupled_and_only_its_forearms_move(model, bare, walk):
+    assert model.arm_coupling.styles == COUPLED == ("active",)  # where validation gained (model card)
+    for style in ("elderly", "exhausted", "feminine"):
+        w = model.weight_vector({style: 1.0})
+        np.testing.assert_array_equal(model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations)
+    w = model.weight_vector({"active": 1.0})
+    coupled, plain = model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations
+    forearms = _forearms(model)
+    others = [j for j in range(model.skeleton.num_joints) if j not in forearms]
+    np.testing.assert_array_equal(coupled[:, others], plain[:, others])
+    assert np.degrees(quat_angle(coupled[:, forearms], plain[:, forearms])).max() > 5.0
+
+
+def test_active_forearms_pump_faster_toward_the_real_style(model, bare, walk):
+    """The network's active forearms turned at less than half the real active speed (model card):
+    coupled, both turn faster, and no faster than the real style's."""
+    w = model.weight_vector({"active": 1.0})
+    coupled, plain = model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations
+    for j in _forearms(model):
+        before, after = _turn_speed(plain[:, j]), _turn_speed(coupled[:, j])
+        assert after > 1.1 * before, (model.skeleton.names[j], before, after)
+        assert after < 160.0  # the real active forearms: 154-180 degrees/s (model card)
+
+
+def test_a_mixed_batch_steps_each_row_as_alone(model, walk):
+    from models.interface import FrameBatch
+
+    w = np.stack(
+        [
+            model.weight_vector({"active": 1.0}),
+            model.weight_vector({"elderly": 1.0}),
+            model.weight_vector({"active": 0.5, "feminine": 0.5}),
+        ]
+    )
+    state, alone = model.init_state(3), [model.init_state(1) for _ in range(3)]
+    for t in range(20):
+        root = np.repeat(walk.translations[t : t + 1, 1], 3, 0)
+        rot = np.repeat(walk.rotations[t : t + 1], 3, 0)
+        out, state = model.step_batch(state, FrameBatch(root, rot), w)
+        for b in range(3):
+            one, alone[b] = model.step_batch(alone[b], FrameBatch(root[b : b + 1], rot[b : b + 1]), w[b : b + 1])
+            np.testing.assert_array_equal(out.rotations[b], one.rotations[0])
+
+
+def test_a_run_takes_the_run_gains_and_a_walk_the_walk_gains(model, walk, index):
+    from models.data import load_motions, select
+
+    run = load_motions([select(index, dataset="bandai-namco-2", split="val", style="normal", content="run")[0]])[0]
+    c = model.arm_coupling
+    once = model.with_own_styles()
+    once.arm_coupling = ArmCoupling(c.styles, c.mean, c.walk, c.walk)  # walk gains for both gaits
+    w = model.weight_vector({"active": 1.0})
+    np.testing.assert_array_equal(model.run(walk, w)[0].rotations, once.run(walk, w)[0].rotations)
+    forearms = _forearms(model)
+    ran, walked = model.run(run.slice(0, 90), w)[0].rotations, once.run(run.slice(0, 90), w)[0].rotations
+    assert np.degrees(quat_angle(ran[30:, forearms], walked[30:, forearms])).max() > 2.0
+
+
+def test_a_replaced_vector_gets_no_coupling_and_the_file_round_trips(model, tmp_path):
+    twin = model.with_own_styles()
+    twin.set_style_film("active", twin.film_of("exhausted"))
+    assert twin.style_table.get("couple_on")[twin.styles().index("active")] == 0.0
+    assert model.style_table.get("couple_on")[model.styles().index("active")] == 1.0
+    c = model.arm_coupling
+    back = ArmCoupling.load(c.save(tmp_path / "coupling.npz"))
+    assert back.styles == c.styles
+    for field in ("mean", "walk", "run"):
+        np.testing.assert_array_equal(getattr(back, field), getattr(c, field))
+    other = ArmCoupling(("elderly",), c.mean, c.walk * 0.5, c.run)
+    merged = c.with_styles_of(other)
+    assert merged.styles == ("active", "elderly")
+    np.testing.assert_array_equal(merged.walk[1], c.walk[0] * 0.5)
+    assert c.with_styles_of(ArmCoupling(("active",), c.mean, c.walk * 0.5, c.run)).styles == ("active",)
+
+
+def test_the_compiled_coupling_is_the_numpy_reference(model, walk):
+    """Mixed weights, gait shares between walk and run, rows without a coupled style."""
+    from models.lpn.arm_coupling import couple_rows, couple_rows_numpy, side_joints
+
+    rng = np.random.default_rng(0)
+    rot = np.repeat(walk.rotations[:40], 2, axis=0).astype(np.float32)
+    rot = rot * rng.choice([-1.0, 1.0], size=rot.shape[:2] + (1,)).astype(np.float32)  # either sign
+    w = np.zeros((len(rot), len(model.styles())))
+    active, elderly = model.styles().index("active"), model.styles().index("elderly")
+    w[:, active] = rng.choice([0.0, 0.3, 1.0, 1.4], len(rot))
+    w[:, elderly] = rng.choice([0.0, 0.7], len(rot))
+    gait = rng.choice([0.0, 0.4, 1.0], len(rot))
+    joints, table = side_joints(model.skeleton.names), model.style_table
+    compiled, reference = couple_rows(table, rot, w, gait, joints), couple_rows_numpy(table, rot, w, gait, joints)
+    assert compiled.dtype == rot.dtype
+    np.testing.assert_array_equal(compiled[w[:, active] == 0], rot[w[:, active] == 0])
+    np.testing.assert_allclose(compiled, reference, atol=1e-6)  # float32 outputs: an ulp or two
