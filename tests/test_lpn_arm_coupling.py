@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.lpn.arm_coupling import COUPLED, ArmCoupling
+from models.lpn.arm_coupling import COUPLED, LINKS
+from models.motion.coupling import Coupling
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
 from models.motion.style_carry import quat_log
 
@@ -91,7 +92,7 @@ def test_a_run_takes_the_run_gains_and_a_walk_the_walk_gains(model, walk, index)
     run = load_motions([select(index, dataset="bandai-namco-2", split="val", style="normal", content="run")[0]])[0]
     c = model.arm_coupling
     once = model.with_own_styles()
-    once.arm_coupling = ArmCoupling(c.styles, c.mean, c.walk, c.walk)  # walk gains for both gaits
+    once.arm_coupling = Coupling(c.styles, c.links, c.mean, c.walk, c.walk)  # walk gains for both gaits
     w = model.weight_vector({"active": 1.0})
     np.testing.assert_array_equal(model.run(walk, w)[0].rotations, once.run(walk, w)[0].rotations)
     forearms = _forearms(model)
@@ -105,20 +106,21 @@ def test_a_replaced_vector_gets_no_coupling_and_the_file_round_trips(model, tmp_
     assert twin.style_table.get("couple_on")[twin.styles().index("active")] == 0.0
     assert model.style_table.get("couple_on")[model.styles().index("active")] == 1.0
     c = model.arm_coupling
-    back = ArmCoupling.load(c.save(tmp_path / "coupling.npz"))
-    assert back.styles == c.styles
+    back = Coupling.load(c.save(tmp_path / "coupling.npz"))
+    assert back.styles == c.styles and back.links == c.links == LINKS
     for field in ("mean", "walk", "run"):
         np.testing.assert_array_equal(getattr(back, field), getattr(c, field))
-    other = ArmCoupling(("elderly",), c.mean, c.walk * 0.5, c.run)
+    other = Coupling(("elderly",), c.links, c.mean, c.walk * 0.5, c.run)
     merged = c.with_styles_of(other)
     assert merged.styles == ("active", "elderly")
     np.testing.assert_array_equal(merged.walk[1], c.walk[0] * 0.5)
-    assert c.with_styles_of(ArmCoupling(("active",), c.mean, c.walk * 0.5, c.run)).styles == ("active",)
+    assert c.with_styles_of(Coupling(("active",), c.links, c.mean, c.walk * 0.5, c.run)).styles == ("active",)
 
 
 def test_the_compiled_coupling_is_the_numpy_reference(model, walk):
     """Mixed weights, gait shares between walk and run, rows without a coupled style."""
-    from models.lpn.arm_coupling import couple_rows, couple_rows_numpy, side_joints
+    from models.lpn.arm_coupling import couple_rows, couple_rows_numpy
+    from models.motion.coupling import link_indices
 
     rng = np.random.default_rng(0)
     rot = np.repeat(walk.rotations[:40], 2, axis=0).astype(np.float32)
@@ -128,7 +130,7 @@ def test_the_compiled_coupling_is_the_numpy_reference(model, walk):
     w[:, active] = rng.choice([0.0, 0.3, 1.0, 1.4], len(rot))
     w[:, elderly] = rng.choice([0.0, 0.7], len(rot))
     gait = rng.choice([0.0, 0.4, 1.0], len(rot))
-    joints, table = side_joints(model.skeleton.names), model.style_table
+    joints, table = link_indices(LINKS, model.skeleton.names), model.style_table
     compiled, reference = couple_rows(table, rot, w, gait, joints), couple_rows_numpy(table, rot, w, gait, joints)
     assert compiled.dtype == rot.dtype
     np.testing.assert_array_equal(compiled[w[:, active] == 0], rot[w[:, active] == 0])

@@ -131,20 +131,21 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
 def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.ndarray]:
     """Per target style: the rotations (N, J, 4, the Hips without their heading) of every frame
     of `inputs` streamed toward it by the network, with its leaf prior where `leaf_prior`, and
-    no output priors or twist range (what the output priors carry from)."""
+    no output priors, twist range or arm coupling (what the output priors carry from)."""
     from ..eval.run import stylise
 
     saved = model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range
-    gesture = model.gesture_prior
+    gesture, coupling = model.gesture_prior, model.arm_coupling
     if not leaf_prior:
         model.leaf_prior = None
     model.output_prior = model.run_leaf_prior = model.run_output_prior = model.twist_range = model.gesture_prior = None
+    model.arm_coupling = None
     try:
         styles = model.styles()
         outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
     finally:
         model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range = saved
-        model.gesture_prior = gesture
+        model.gesture_prior, model.arm_coupling = gesture, coupling
     n = len(inputs)
     return [
         without_heading(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]))[1] for k in range(len(styles))

@@ -29,185 +29,66 @@ no coupled style, and every joint but the forearms, is left exactly as it was.
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from ..motion.rotations import quat_inv, quat_mean, quat_mul
-from ..motion.style_carry import quat_exp, quat_log
+from ..motion.coupling import Coupling, Link, couple, couple_numpy
 from .carriage import LOCOMOTION, SKIP_FRAMES, train_clips
 
 ARM_COUPLING_FILE = "arm_coupling.npz"
 COUPLED = ("active",)  # the styles validation chose (model card)
-SIDES = ("L", "R")
-DRIVERS = ("UpperArm", "Shoulder", "Chest")  # a side's joints the forearm follows (Chest: both sides)
+LINKS: tuple[Link, ...] = tuple((f"LowerArm_{s}", (f"UpperArm_{s}", f"Shoulder_{s}", "Chest")) for s in "LR")
 COUPLING_ROWS = ("couple_mean", "couple_walk", "couple_run", "couple_on")  # its style-table rows
 FIT_FRAMES = 300
 
 
-def side_joints(names: list[str] | tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """(drivers (2, len(DRIVERS)), forearms (2,)): joint indices per side, left then right."""
-    drivers = [[list(names).index(j if j == "Chest" else f"{j}_{s}") for j in DRIVERS] for s in SIDES]
-    return np.array(drivers), np.array([list(names).index(f"LowerArm_{s}") for s in SIDES])
+def table_rows(coupling: Coupling, names: list[str]) -> dict[str, np.ndarray]:
+    """The style table's rows aligned with `names` (a style without a coupling: identity means,
+    zero gains, off)."""
+    return {f"couple_{k}": v for k, v in coupling.aligned(names).items()}
 
 
-def deviations(q: np.ndarray, mean: np.ndarray) -> np.ndarray:
-    """(..., K, 3) rotation vectors of rotations (..., K, 4) away from means (K, 4), in each joint's frame."""
-    q = np.asarray(q, np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return quat_log(quat_mul(quat_inv(mean), q))
-
-
-def design(d: np.ndarray) -> np.ndarray:
-    """(N, 3K + 1): the drivers' deviations (N, K, 3), flattened, and a constant."""
-    return np.concatenate([d.reshape(len(d), -1), np.ones((len(d), 1))], axis=1)
-
-
-@dataclass(frozen=True)
-class ArmCoupling:
-    """Per coupled style (S) and side (2): the real means of the drivers and the forearm
-    (S, 2, len(DRIVERS) + 1, 4), and the regression's difference, real minus made, for walking
-    and running frames (S, 2, 3 len(DRIVERS) + 1, 3)."""
-
-    styles: tuple[str, ...]
-    mean: np.ndarray
-    walk: np.ndarray
-    run: np.ndarray
-
-    def rows(self, names: list[str]) -> dict[str, np.ndarray]:
-        """The style table's rows aligned with `names` (`style_table.PLAIN` for a style without one)."""
-        from .style_table import PLAIN
-
-        shapes = {"couple_mean": self.mean.shape[1:], "couple_walk": self.walk.shape[1:]}
-        shapes["couple_run"], shapes["couple_on"] = self.run.shape[1:], ()
-        rows = {key: PLAIN[key]((len(names), *shapes[key])) for key in COUPLING_ROWS}
-        for i, name in enumerate(names):
-            if name in self.styles:
-                k = self.styles.index(name)
-                rows["couple_mean"][i], rows["couple_walk"][i], rows["couple_run"][i] = (
-                    self.mean[k],
-                    self.walk[k],
-                    self.run[k],
-                )
-                rows["couple_on"][i] = 1.0
-        return rows
-
-    def save(self, path: Path) -> Path:
-        np.savez(path, styles=np.array(self.styles), mean=self.mean, walk=self.walk, run=self.run)
-        return path
-
-    @classmethod
-    def load(cls, path: Path) -> ArmCoupling:
-        with np.load(path) as z:
-            return cls(
-                tuple(str(s) for s in z["styles"]), *(np.asarray(z[k], np.float64) for k in ("mean", "walk", "run"))
-            )
-
-    def with_styles_of(self, other: ArmCoupling) -> ArmCoupling:
-        """This coupling with `other`'s styles added or replacing this one's (a refit of some styles)."""
-        keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
-        return ArmCoupling(
-            tuple(self.styles[k] for k in keep) + other.styles,
-            *(np.concatenate([getattr(self, f)[keep], getattr(other, f)]) for f in ("mean", "walk", "run")),
-        )
+def _aligned(table) -> dict[str, np.ndarray] | None:
+    rows = {k: table.get(f"couple_{k}") for k in ("mean", "walk", "run", "on")}
+    return None if rows["on"] is None else rows
 
 
 def couple_rows(
     table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarray, joints: tuple[np.ndarray, np.ndarray]
 ) -> np.ndarray:
     """The rotations (B, J, 4) with the forearms of the rows that weigh a coupled style moved with
-    their drivers (`table`: a `StyleTable` with the coupling's rows; `joints`: `side_joints`);
-    walking and running gains mixed by each row's gait share (B,). Other rows and joints exactly
-    as they were. Compiled (`kernels.couple_arms`): the numpy reference (`couple_rows_numpy`)
-    took ~0.3 ms a step at batch 1, a sixth of the whole LPN-FiLM step."""
-    from .kernels import couple_arms
-
-    coupled = _coupled(table, weights, gait)
-    if coupled is None:
-        return rotations
-    rows, w, share = coupled
-    out = np.array(rotations, np.float64)
-    mean, walk, run = (table.get(k) for k in COUPLING_ROWS[:3])
-    couple_arms(np.asarray(rotations, np.float64), rows, w, share, *joints, mean, walk, run, out)
-    return out.astype(rotations.dtype)
-
-
-def _coupled(table, weights: np.ndarray, gait: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(the rows that weigh a coupled style, every row's weights on coupled styles (B, S), every
-    row's gait share (B,)), or None when no row weighs one."""
-    on = table.get("couple_on")
-    if on is None:
-        return None
-    w = np.asarray(weights, np.float64) * on[None]
-    rows = np.flatnonzero(w.any(axis=1))
-    return (rows, w, np.clip(np.asarray(gait, np.float64), 0.0, 1.0)) if len(rows) else None
+    their drivers (`table`: a `StyleTable` with the coupling's rows; `joints`: `link_indices` of
+    `LINKS`), walking and running gains mixed by each row's gait share (B,). Other rows and joints
+    exactly as they were. Compiled (`models.motion.coupling.couple`)."""
+    aligned = _aligned(table)
+    return rotations if aligned is None else couple(rotations, weights, gait, joints, aligned)
 
 
 def couple_rows_numpy(
     table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarray, joints: tuple[np.ndarray, np.ndarray]
 ) -> np.ndarray:
     """The numpy reference of `couple_rows`."""
-    coupled = _coupled(table, weights, gait)
-    if coupled is None:
-        return rotations
-    rows, w, share = coupled
-    w, share = w[rows], share[rows][:, None, None]
-    mean, walk, run = (table.get(k) for k in COUPLING_ROWS[:3])
-    drivers, forearms = joints  # both sides at once: (2, D) and (2,)
-    q = np.asarray(rotations[rows], np.float64)
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    arm = q[:, forearms]  # (R, 2, 4)
-    correction = np.zeros(arm.shape[:-1] + (3,))
-    for s in np.flatnonzero(w.any(axis=0)):
-        d = deviations(q[:, drivers], mean[s, :, :-1])  # (R, 2, D, 3)
-        x = np.concatenate([d.reshape(*d.shape[:2], -1), np.ones(d.shape[:2] + (1,))], axis=-1)
-        gains = walk[s] + share[..., None] * (run[s] - walk[s])  # (R, 2, 3D + 1, 3)
-        moved = deviations(arm, mean[s, :, -1]) + np.einsum("nki,nkij->nkj", x, gains)
-        styled = quat_mul(mean[s, :, -1], quat_exp(moved))
-        correction += w[:, s, None, None] * quat_log(quat_mul(quat_inv(arm), styled))
-    out = np.array(rotations, copy=True)
-    out[rows[:, None], forearms[None]] = quat_mul(arm, quat_exp(correction))
-    return out
+    aligned = _aligned(table)
+    return rotations if aligned is None else couple_numpy(rotations, weights, gait, joints, aligned)
 
 
-def regression(clips: list[np.ndarray], means: np.ndarray, joints: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """(2, 3 len(DRIVERS) + 1, 3): per side, the least-squares map from the drivers' deviations
-    to the forearm's over every frame of `clips` (each (F, J, 4))."""
-    q = np.concatenate(clips)
-    drivers, forearms = joints
-    return np.stack(
-        [
-            np.linalg.lstsq(
-                design(deviations(q[:, ins], means[k, :-1])), deviations(q[:, j], means[k, -1]), rcond=None
-            )[0]
-            for k, (ins, j) in enumerate(zip(drivers, forearms))
-        ]
-    )
-
-
-def fit(model, styles: list[str], dataset: str = "bandai-namco-2") -> ArmCoupling:
-    """The coupling of `styles` from `model` (its carriage and output prior in place, no coupling)."""
+def fit(model, styles: list[str], dataset: str = "bandai-namco-2") -> Coupling:
+    """The coupling of `styles` from `model` (its carriage and output prior in place, no coupling),
+    on walks and on runs apart (`carriage.LOCOMOTION`)."""
     from ..eval.run import stylise
 
     clips = train_clips(dataset)
     model = model.with_own_styles()
     model.arm_coupling = None
-    joints = side_joints(model.skeleton.names)
-    order = np.concatenate([joints[0], joints[1][:, None]], axis=1)  # per side: drivers, then the forearm
-    means, gains = [], {"walk": [], "run": []}
-    for style in styles:
-        real = {g: [m.rotations.astype(np.float64) for m in clips(style, c)] for g, c in LOCOMOTION.items()}
-        mean = quat_mean(np.concatenate(real["walk"] + real["run"])[:, order], axis=0)  # (2, D + 1, 4)
-        means.append(mean)
-        for gait, contents in LOCOMOTION.items():
-            inputs = [m.slice(0, FIT_FRAMES) for m in clips("normal", contents)]
-            made = stylise(model, inputs, [model.styles().index(style)] * len(inputs))
-            gains[gait].append(
-                regression(real[gait], mean, joints)
-                - regression([o.rotations[SKIP_FRAMES:].astype(np.float64) for o in made], mean, joints)
-            )
-    return ArmCoupling(tuple(styles), np.stack(means), np.stack(gains["walk"]), np.stack(gains["run"]))
+
+    def real(style: str, gait: str) -> list[np.ndarray]:
+        return [m.rotations for m in clips(style, LOCOMOTION[gait])]
+
+    def made(style: str, gait: str) -> list[np.ndarray]:
+        inputs = [m.slice(0, FIT_FRAMES) for m in clips("normal", LOCOMOTION[gait])]
+        return [o.rotations[SKIP_FRAMES:] for o in stylise(model, inputs, [model.styles().index(style)] * len(inputs))]
+
+    return Coupling.fit(styles, LINKS, model.skeleton.names, real, made)
 
 
 def main(argv: list[str]) -> None:
@@ -224,7 +105,7 @@ def main(argv: list[str]) -> None:
     folder = get_settings().weights_dir / "lpn"
     coupling = fit(load(folder), argv or list(COUPLED))
     if argv and (folder / ARM_COUPLING_FILE).exists():
-        coupling = ArmCoupling.load(folder / ARM_COUPLING_FILE).with_styles_of(coupling)
+        coupling = Coupling.load(folder / ARM_COUPLING_FILE).with_styles_of(coupling)
     print(
         f"wrote {coupling.save(folder / ARM_COUPLING_FILE)} for {', '.join(coupling.styles)} in {time.time() - t0:.0f} s"
     )

@@ -67,6 +67,7 @@ import numpy as np
 
 from ..interface import FrameBatch, State
 from ..motion.assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR
+from ..motion.coupling import Coupling, link_indices
 from ..motion.features import body_joint
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter
@@ -79,7 +80,7 @@ from ..rowwise import Bfloat16Product, matmul_rows
 from ..settings import get_settings
 from . import features as lf
 from . import kernels
-from .arm_coupling import ARM_COUPLING_FILE, COUPLING_ROWS, ArmCoupling, couple_rows, side_joints
+from .arm_coupling import ARM_COUPLING_FILE, COUPLING_ROWS, LINKS, couple_rows, table_rows
 from .carriage import ARM_JOINTS, CARRIAGE_FILE, RUN_JOINTS, Carriage, blend_arms, blend_pace, blend_run, carry_arms
 from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
 from .style_table import StyleTable
@@ -118,7 +119,7 @@ class LPNModel(LPNStyles):
         balls: StyleBalls | None = None,
         carriage: Carriage | None = None,
         output_prior: OutputPrior | None = None,
-        arm_coupling: ArmCoupling | None = None,
+        arm_coupling: Coupling | None = None,
     ):
         self.config = config
         self.skeleton = skeleton
@@ -147,7 +148,7 @@ class LPNModel(LPNStyles):
         self._run_joints = np.array([skeleton.names.index(j) for j in RUN_JOINTS], np.int64)
         self.carriage = carriage
         self.output_prior = output_prior
-        self._coupled_joints = side_joints(skeleton.names)
+        self._coupled_joints = link_indices(LINKS, skeleton.names)
         self.arm_coupling = arm_coupling
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
@@ -183,16 +184,16 @@ class LPNModel(LPNStyles):
             self._table = self._table.measuring(**rows)
 
     @property
-    def arm_coupling(self) -> ArmCoupling | None:
+    def arm_coupling(self) -> Coupling | None:
         """The built-in styles' arm coupling (`arm_coupling.py`); None: forearms as carried."""
         return self._arm_coupling_fit
 
     @arm_coupling.setter
-    def arm_coupling(self, coupling: ArmCoupling | None) -> None:
+    def arm_coupling(self, coupling: Coupling | None) -> None:
         with self._lock:
             self._arm_coupling_fit = coupling
             names = list(self._table.names)
-            rows = coupling.rows(names) if coupling is not None else dict.fromkeys(COUPLING_ROWS)
+            rows = table_rows(coupling, names) if coupling is not None else dict.fromkeys(COUPLING_ROWS)
             self._table = self._table.measuring(**rows)
 
     @property
@@ -657,10 +658,10 @@ def read_output_prior(weights_dir: Path) -> OutputPrior | None:
     return OutputPrior.load(path) if path.exists() else None
 
 
-def read_arm_coupling(weights_dir: Path) -> ArmCoupling | None:
+def read_arm_coupling(weights_dir: Path) -> Coupling | None:
     """The built-in styles' arm coupling beside the weights (`ARM_COUPLING_FILE`), or None."""
     path = Path(weights_dir) / ARM_COUPLING_FILE
-    return ArmCoupling.load(path) if path.exists() else None
+    return Coupling.load(path) if path.exists() else None
 
 
 def load(weights_dir: Path) -> LPNModel:

@@ -38,7 +38,7 @@ PLAIN: dict[str, Callable[[tuple[int, ...]], np.ndarray]] = {
     "prior_run_map": lambda shape: np.broadcast_to(np.eye(3), shape).copy(),
     "prior_run_radius": lambda shape: np.full(shape, np.inf),
     "prior_on": np.zeros,
-    # the arm coupling (`arm_coupling.py`): real means (2, D + 1, 4), walk and run gains (2, 3D + 1, 3), on (): off
+    # the arm coupling (`arm_coupling.py`): real means (J, 4), walk and run gains (L, 3D + 1, 3), on (): off
     "couple_mean": _identity,
     "couple_walk": np.zeros,
     "couple_run": np.zeros,

@@ -1,0 +1,226 @@
+"""Couple joints the way a style's real clips move them together: a joint's rotation moved with
+the joints it follows (its drivers) by the style's real linear relation instead of the model's.
+
+The output priors (`style_carry.py`) map each joint on its own: they can widen or narrow a
+joint's spread along its axes, but they cannot put a motion in step with another joint's where
+the model keeps it still (LPN-FiLM's active forearms did not pump with the swing of the upper
+arms) or turn a swing onto another axis (Style-ERD's feminine runs: the run prior narrowed the
+upper arms' swing to less than half the real speed). In a style's real clips a joint's
+deviation from its mean is often close to a linear function of its drivers' (the forearm of
+the upper arm, shoulder and chest; a running upper arm of the thighs). Per link, target t
+following drivers u:
+
+    d_t' = d_t + (B_real - B_made)^T [d_u, 1]
+
+every d a rotation vector away from the style's real mean (in the joint's own frame), B fitted
+by least squares on the style's real TRAIN clips and on the model's output toward the style, per
+gait (walk, run), and mixed by a frame's gait share. What the model's joint does apart from its
+drivers stays. Links apply in order, a later link reading the joints an earlier one moved (the
+fit does the same). A style mix blends each link's corrections, as the priors do:
+q' = q exp(sum_s w_s log(q^-1 f_s(q))); rows that weigh no coupled style are left exactly as
+they were. `couple` is compiled (`coupling_kernels.py`); `couple_numpy` is its reference.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .rotations import quat_inv, quat_mean, quat_mul
+from .style_carry import quat_exp, quat_log
+
+Link = tuple[str, tuple[str, ...]]  # a joint and the joints it follows
+GAITS = ("walk", "run")
+
+
+def link_indices(links: Sequence[Link], names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(targets (L,), drivers (L, D) padded with -1): joint indices of `links` in `names`."""
+    names = list(names)
+    width = max(len(d) for _, d in links)
+    drivers = np.full((len(links), width), -1, np.int64)
+    for k, (_, ds) in enumerate(links):
+        drivers[k, : len(ds)] = [names.index(d) for d in ds]
+    return np.array([names.index(t) for t, _ in links], np.int64), drivers
+
+
+def deviations(q: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """(..., K, 3) rotation vectors of rotations (..., K, 4) away from means (K, 4), in each joint's frame."""
+    q = np.asarray(q, np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return quat_log(quat_mul(quat_inv(mean), q))
+
+
+def design(q: np.ndarray, mean: np.ndarray, drivers: np.ndarray) -> np.ndarray:
+    """(N, 3D + 1): the drivers' deviations in rotations (N, J, 4), flattened (zeros for padding),
+    and a constant."""
+    used = drivers >= 0
+    d = np.zeros((len(q), len(drivers), 3))
+    d[:, used] = deviations(q[:, drivers[used]], mean[drivers[used]])
+    return np.concatenate([d.reshape(len(q), -1), np.ones((len(q), 1))], axis=1)
+
+
+def regression(q: np.ndarray, mean: np.ndarray, target: int, drivers: np.ndarray) -> np.ndarray:
+    """(3D + 1, 3): the least-squares map from the drivers' deviations to the target's over the
+    frames of rotations (N, J, 4); zero rows for padded drivers."""
+    x = design(q, mean, drivers)
+    used = np.concatenate([np.repeat(drivers >= 0, 3), [True]])
+    out = np.zeros((x.shape[1], 3))
+    out[used] = np.linalg.lstsq(x[:, used], deviations(q[:, target], mean[target]), rcond=None)[0]
+    return out
+
+
+def moved(q: np.ndarray, mean: np.ndarray, target: int, drivers: np.ndarray, gains: np.ndarray) -> np.ndarray:
+    """(N, 4) the target's rotation in rotations (N, J, 4) moved by one style's link gains (N, 3D + 1, 3)."""
+    d = deviations(q[:, target], mean[target]) + np.einsum("ni,nij->nj", design(q, mean, drivers), gains)
+    return quat_mul(mean[target], quat_exp(d))
+
+
+@dataclass(frozen=True)
+class Coupling:
+    """Per coupled style (S): its real mean rotation of every joint (S, J, 4) and, per link (L),
+    the regressions' difference, real minus made, for walking and running frames
+    (S, L, 3D + 1, 3; zero rows for a link's padded drivers)."""
+
+    styles: tuple[str, ...]
+    links: tuple[Link, ...]
+    mean: np.ndarray
+    walk: np.ndarray
+    run: np.ndarray
+
+    def aligned(self, names: Sequence[str]) -> dict[str, np.ndarray]:
+        """`mean`, `walk`, `run` and `on` (S',) with rows aligned with the style list `names`: a
+        style without a coupling gets identity means, zero gains and `on` 0."""
+        S, (J, L, G) = len(names), (self.mean.shape[1], len(self.links), self.walk.shape[2])
+        out = {
+            "mean": np.broadcast_to(np.array((0.0, 0.0, 0.0, 1.0)), (S, J, 4)).copy(),
+            "walk": np.zeros((S, L, G, 3)),
+            "run": np.zeros((S, L, G, 3)),
+            "on": np.zeros(S),
+        }
+        for i, name in enumerate(names):
+            if name in self.styles:
+                k = self.styles.index(name)
+                out["mean"][i], out["walk"][i], out["run"][i], out["on"][i] = (
+                    self.mean[k],
+                    self.walk[k],
+                    self.run[k],
+                    1.0,
+                )
+        return out
+
+    def save(self, path: Path) -> Path:
+        links = np.array([f"{t}:{','.join(ds)}" for t, ds in self.links])
+        np.savez(path, styles=np.array(self.styles), links=links, mean=self.mean, walk=self.walk, run=self.run)
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> Coupling:
+        with np.load(path) as z:
+            links = tuple((t, tuple(ds.split(","))) for t, ds in (str(s).split(":") for s in z["links"]))
+            arrays = (np.asarray(z[k], np.float64) for k in ("mean", "walk", "run"))
+            return cls(tuple(str(s) for s in z["styles"]), links, *arrays)
+
+    def with_styles_of(self, other: Coupling) -> Coupling:
+        """This coupling with `other`'s styles added or replacing this one's (a refit of some styles)."""
+        if other.links != self.links:
+            raise ValueError("couplings of different links cannot be merged")
+        keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
+        merged = (np.concatenate([getattr(self, f)[keep], getattr(other, f)]) for f in ("mean", "walk", "run"))
+        return Coupling(tuple(self.styles[k] for k in keep) + other.styles, self.links, *merged)
+
+    @classmethod
+    def fit(
+        cls,
+        styles: Sequence[str],
+        links: Sequence[Link],
+        names: Sequence[str],
+        real: Callable[[str, str], list[np.ndarray]],
+        made: Callable[[str, str], list[np.ndarray]],
+        gaits: Sequence[str] = GAITS,
+    ) -> Coupling:
+        """Per style, from its real rotations and the model's, `real(style, gait)` and
+        `made(style, gait)` (lists of (F, J, 4)), for each gait in `gaits` (a gait left out gets
+        zero gains: not coupled). The mean is the real rotations' over the fitted gaits; each link
+        is fitted on the model's rotations with the links before it applied."""
+        targets, drivers = link_indices(links, names)
+        means, gains = [], {g: [] for g in GAITS}
+        for style in styles:
+            ours = {g: np.concatenate(real(style, g)).astype(np.float64) for g in gaits}
+            mean = quat_mean(np.concatenate(list(ours.values())), axis=0)
+            means.append(mean)
+            for gait in GAITS:
+                rows = np.zeros((len(links), drivers.shape[1] * 3 + 1, 3))
+                if gait in gaits:
+                    theirs = np.concatenate(made(style, gait)).astype(np.float64)
+                    for k, (t, ds) in enumerate(zip(targets, drivers)):
+                        rows[k] = regression(ours[gait], mean, t, ds) - regression(theirs, mean, t, ds)
+                        theirs[:, t] = moved(
+                            theirs, mean, t, ds, np.broadcast_to(rows[k], (len(theirs), *rows[k].shape))
+                        )
+                gains[gait].append(rows)
+        return cls(
+            tuple(styles),
+            tuple((t, tuple(ds)) for t, ds in links),
+            np.stack(means),
+            *(np.stack(gains[g]) for g in GAITS),
+        )
+
+
+def _coupled(weights: np.ndarray, share: np.ndarray, aligned: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(the rows that weigh a style coupled at their gait share, every row's weights on coupled
+    styles (B, S)): a walking row toward a style coupled on runs alone is left as it was, exactly."""
+    w = np.asarray(weights, np.float64) * np.asarray(aligned["on"], np.float64)[None]
+    walks, runs = (aligned[g].reshape(len(w[0]), -1).any(axis=1) for g in GAITS)
+    r = np.clip(np.asarray(share, np.float64), 0.0, 1.0)[:, None]
+    moving = (w != 0.0) & (((r < 1.0) & walks[None]) | ((r > 0.0) & runs[None]))
+    return np.flatnonzero(moving.any(axis=1)), w
+
+
+def couple(
+    rotations: np.ndarray,
+    weights: np.ndarray,
+    share: np.ndarray,
+    joints: tuple[np.ndarray, np.ndarray],
+    aligned: dict[str, np.ndarray],
+) -> np.ndarray:
+    """Rotations (B, J, 4) with each link's target moved toward the styles of weights (B, S) by
+    `aligned` (`Coupling.aligned` for those styles), walking and running gains mixed by each
+    row's gait share (B,); `joints`: `link_indices`. Compiled; the same dtype back."""
+    from .coupling_kernels import couple_batch
+
+    rows, w = _coupled(weights, share, aligned)
+    if len(rows) == 0:
+        return rotations
+    share = np.clip(np.asarray(share, np.float64), 0.0, 1.0)
+    out = np.array(rotations, np.float64)
+    couple_batch(out, rows, w, share, *joints, aligned["mean"], aligned["walk"], aligned["run"])
+    return out.astype(rotations.dtype)
+
+
+def couple_numpy(
+    rotations: np.ndarray,
+    weights: np.ndarray,
+    share: np.ndarray,
+    joints: tuple[np.ndarray, np.ndarray],
+    aligned: dict[str, np.ndarray],
+) -> np.ndarray:
+    """The numpy reference of `couple`."""
+    rows, w = _coupled(weights, share, aligned)
+    if len(rows) == 0:
+        return rotations
+    w, r = w[rows], np.clip(np.asarray(share, np.float64)[rows], 0.0, 1.0)[:, None, None]
+    q = np.asarray(rotations[rows], np.float64)
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    for k, (t, ds) in enumerate(zip(*joints)):
+        correction = np.zeros((len(rows), 3))
+        for s in np.flatnonzero(w.any(axis=0)):
+            walk, run = aligned["walk"][s, k], aligned["run"][s, k]
+            styled = moved(q, aligned["mean"][s], t, ds, walk + r * (run - walk))
+            correction += w[:, s, None] * quat_log(quat_mul(quat_inv(q[:, t]), styled))
+        q[:, t] = quat_mul(q[:, t], quat_exp(correction))
+    out = np.array(rotations, copy=True)
+    out[np.ix_(rows, joints[0])] = q[:, joints[0]]
+    return out
