@@ -35,7 +35,7 @@ import sys
 
 import numpy as np
 
-from ..motion.coupling import Coupling, Link
+from ..motion.coupling import Coupling, Link, write_coupling
 
 ARM_COUPLING_FILE = "arm_coupling.npz"
 COUPLED = ("feminine", "active")  # the styles validation chose (module doc)
@@ -82,12 +82,9 @@ def main(argv: list[str]) -> None:
     torch.set_num_threads(1)
     t0 = time.time()
     folder = get_settings().weights_dir / "erd"
-    coupling = fit(load(folder), argv or list(COUPLED))
-    if argv and (folder / ARM_COUPLING_FILE).exists():
-        coupling = Coupling.load(folder / ARM_COUPLING_FILE).with_styles_of(coupling)
-    print(
-        f"wrote {coupling.save(folder / ARM_COUPLING_FILE)} for {', '.join(coupling.styles)} in {time.time() - t0:.0f} s"
-    )
+    path = folder / ARM_COUPLING_FILE
+    coupling = write_coupling(fit(load(folder), argv or list(COUPLED)), path, keep_others=bool(argv))
+    print(f"wrote {path} for {', '.join(coupling.styles)} in {time.time() - t0:.0f} s")
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ import sys
 
 import numpy as np
 
-from ..motion.coupling import Coupling, Link, couple, couple_numpy
+from ..motion.coupling import Coupling, Link, couple, couple_numpy, write_coupling
 from .carriage import LOCOMOTION, SKIP_FRAMES, train_clips
 
 ARM_COUPLING_FILE = "arm_coupling.npz"
@@ -103,12 +103,9 @@ def main(argv: list[str]) -> None:
     torch.set_num_threads(1)
     t0 = time.time()
     folder = get_settings().weights_dir / "lpn"
-    coupling = fit(load(folder), argv or list(COUPLED))
-    if argv and (folder / ARM_COUPLING_FILE).exists():
-        coupling = Coupling.load(folder / ARM_COUPLING_FILE).with_styles_of(coupling)
-    print(
-        f"wrote {coupling.save(folder / ARM_COUPLING_FILE)} for {', '.join(coupling.styles)} in {time.time() - t0:.0f} s"
-    )
+    path = folder / ARM_COUPLING_FILE
+    coupling = write_coupling(fit(load(folder), argv or list(COUPLED)), path, keep_others=bool(argv))
+    print(f"wrote {path} for {', '.join(coupling.styles)} in {time.time() - t0:.0f} s")
 
 
 if __name__ == "__main__":

@@ -169,6 +169,15 @@ class Coupling:
         )
 
 
+def write_coupling(coupling: Coupling, path: Path, keep_others: bool) -> Coupling:
+    """`coupling` saved at `path`; with `keep_others`, merged into the file's styles first (a refit
+    of some styles keeps the others). Returns what was written."""
+    if keep_others and path.exists():
+        coupling = Coupling.load(path).with_styles_of(coupling)
+    coupling.save(path)
+    return coupling
+
+
 def _coupled(weights: np.ndarray, share: np.ndarray, aligned: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """(the rows that weigh a style coupled at their gait share, every row's weights on coupled
     styles (B, S)): a walking row toward a style coupled on runs alone is left as it was, exactly."""
