@@ -26,12 +26,10 @@ import torch
 from models.motion.rotations import quat_mul, yaw_quat
 
 from ..motion.bn_skeleton import HIPS
-from ..motion.coupling import Coupling, couple, link_indices
 from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Motion
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
-from .dataset import TARGET_STYLES
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .gait import clip_smoothed_speed, eased_in, run_share
 from .gestures import by_gesture, clip_sway
@@ -73,7 +71,6 @@ def stylise(
     run_output_prior: StyleCarry | None = None,
     gesture_prior: StyleCarry | None = None,
     twist_range: TwistRange | None = None,
-    arm_coupling: Coupling | None = None,
 ) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
     rotation prior (`leaf_prior`, `output_prior`, and their run versions for the frames the input
@@ -110,9 +107,6 @@ def stylise(
             return clip_carry_slow(output_prior, run, network_rots, w_all, by, hips=HIPS)[rows]
 
         rots = by_gesture(rots, carry, output_prior, faded, pos, clip_sway(pos, FPS), network_rots)
-    if arm_coupling is not None:
-        joints = link_indices(arm_coupling.links, motion.skeleton.names)
-        rots = couple(rots, w_frames, share, joints, arm_coupling.aligned(TARGET_STYLES))
     rots = kept_in_range(output_prior, rots, w_frames, faded)
     if twist_range is not None:
         rots = twist_range(rots, w_frames)

@@ -63,6 +63,9 @@ FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 UP = np.array([0.0, 1.0, 0.0])
 FIT_CLIPS_PER_CONTENT = 4
 RUN_FIT_CLIPS = 12  # TRAIN neutral runs for the run output prior: 4, as per content above, would be 960 frames
+ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))
+# per style, the joints whose run output prior is fitted with the run leaf prior in place (None: every joint)
+RUN_SOURCE_WITH_LEAF: dict[str, tuple[str, ...] | None] = {"feminine": ARMS, "active": None}
 FIT_FRAMES = 240
 
 
@@ -114,8 +117,11 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     """The model's outputs (its leaf prior in place, no output prior) over TRAIN neutral clips
     toward each style -> the real style. With `runs`: TRAIN neutral runs with the input's own
     twists and leaves (no leaf prior: chosen on validation over the run leaf prior in place,
-    model card), against the real runs in `real`; the legs carried as well, not only clamped
-    (module docstring)."""
+    model card), except the joints `RUN_SOURCE_WITH_LEAF` names, taken as the stream carries them
+    (the leaf prior in place: without it feminine's arm source means sat 29-66 degrees from what
+    the stream makes of the validation runs; feminine's head and spine keep the first source,
+    whose change made the head jump as a stream starts mid-run, model card), against the real
+    runs in `real`; the legs carried as well, not only clamped (module docstring)."""
     from ..data import load_motions
     from ..eval.run import pick_clips
 
@@ -124,6 +130,13 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     )
     inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(clips)]
     produced = network_rotations(model, inputs, leaf_prior=not runs)
+    if runs:  # these styles' joints as the stream makes them, the run leaf prior in place
+        leafed = network_rotations(model, inputs, leaf_prior=True)
+        for k, style in enumerate(model.styles()):
+            if style in RUN_SOURCE_WITH_LEAF:
+                names = RUN_SOURCE_WITH_LEAF[style] or model.skeleton.names
+                joints = [model.skeleton.index(n) for n in names]
+                produced[k][:, joints] = leafed[k][:, joints]
     clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEG_JOINTS))
     return StyleCarry.fit(produced, [without_heading(q)[1] for q in real[1:]], (0,), clamp_only=clamped)
 
@@ -131,21 +144,20 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
 def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.ndarray]:
     """Per target style: the rotations (N, J, 4, the Hips without their heading) of every frame
     of `inputs` streamed toward it by the network, with its leaf prior where `leaf_prior`, and
-    no output priors, twist range or arm coupling (what the output priors carry from)."""
+    no output priors or twist range (what the output priors carry from)."""
     from ..eval.run import stylise
 
     saved = model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range
-    gesture, coupling = model.gesture_prior, model.arm_coupling
+    gesture = model.gesture_prior
     if not leaf_prior:
         model.leaf_prior = None
     model.output_prior = model.run_leaf_prior = model.run_output_prior = model.twist_range = model.gesture_prior = None
-    model.arm_coupling = None
     try:
         styles = model.styles()
         outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
     finally:
         model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range = saved
-        model.gesture_prior, model.arm_coupling = gesture, coupling
+        model.gesture_prior = gesture
     n = len(inputs)
     return [
         without_heading(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]))[1] for k in range(len(styles))

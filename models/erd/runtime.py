@@ -39,9 +39,7 @@ real distribution and clamped into its real range (`rotation_prior.py`: `leaf_pr
 alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`); while the input raises
 a hand, elderly's output prior steps aside (`raised_hand.py`: fitted over every content, it made
 raise-ups waves), and toward feminine, youthful and active a waving hand takes a prior fitted
-on gestures, toward the first two a still raised arm the network's own (`gestures.py`). Running
-toward feminine and active, the upper arms then swing with the thighs as in the style's real runs
-(`arm_coupling.py`: the run prior had stilled them). Each
+on gestures, toward the first two a still raised arm the network's own (`gestures.py`). Each
 prior carries only a slowly following copy of the rotations; their frame-to-frame rest passes
 unscaled, so the priors' gains do not shake the head and arms (`slow_carry.py`). Last, the arms'
 twists about their bones are kept inside the style's real interval (`twist_range.py`: the
@@ -68,7 +66,6 @@ import torch
 
 from ..interface import FrameBatch, State
 from ..motion.bn_skeleton import HIPS
-from ..motion.coupling import Coupling, couple, link_indices
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
 from ..motion.skeleton import Skeleton
@@ -76,7 +73,6 @@ from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
 from ..rowwise import matmul_rows
 from . import kernels
-from .arm_coupling import ARM_COUPLING_FILE
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
 from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
@@ -127,7 +123,6 @@ class ERDModel:
         run_output_prior: StyleCarry | None = None,
         gesture_prior: StyleCarry | None = None,
         twist_range: TwistRange | None = None,
-        arm_coupling: Coupling | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
@@ -143,7 +138,6 @@ class ERDModel:
         self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
         self.gesture_prior = gesture_prior  # a waving hand's output prior (`gestures.py`)
         self.twist_range = twist_range  # the arms' twists kept in the style's real interval (`twist_range.py`)
-        self.arm_coupling = arm_coupling  # runs: the upper arms swing with the thighs (`arm_coupling.py`)
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
@@ -312,8 +306,6 @@ class ERDModel:
                 )[0]
 
             out_rot = by_gesture(out_rot, carry, self.output_prior, faded, pos, hand_sway, network_rot)
-        if self.arm_coupling is not None:
-            out_rot = couple(out_rot, w, share, *self._coupling)
         out_rot = kept_in_range(self.output_prior, out_rot, w, faded)
         if self.twist_range is not None:
             out_rot = self.twist_range(out_rot, w)
@@ -403,22 +395,10 @@ class ERDModel:
         return gen.eval()
 
     @property
-    def arm_coupling(self) -> Coupling | None:
-        """The runs' arm coupling (`arm_coupling.py`); None: the arms as the priors leave them."""
-        return self._arm_coupling
-
-    @arm_coupling.setter
-    def arm_coupling(self, coupling: Coupling | None) -> None:
-        self._arm_coupling = coupling
-        if coupling is not None:
-            self._coupling = (link_indices(coupling.links, self.skeleton.names), coupling.aligned(TARGET_STYLES))
-
-    @property
-    def priors(self) -> dict[str, StyleCarry | TwistRange | Coupling | None]:
-        """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), the twist
-        range and the arm coupling, as the whole-clip path (`offline.stylise`) takes them."""
-        extra = {"twist_range": self.twist_range, "arm_coupling": self.arm_coupling}
-        return {**{key: getattr(self, key) for key in PRIOR_FILES}, **extra}
+    def priors(self) -> dict[str, StyleCarry | TwistRange | None]:
+        """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), and the twist
+        range, as the whole-clip path (`offline.stylise`) takes them."""
+        return {**{key: getattr(self, key) for key in PRIOR_FILES}, "twist_range": self.twist_range}
 
     def stylise_stream(self, motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None):
         """Run a whole Motion through step_batch frame by frame (batch 1); returns a Motion."""
@@ -457,19 +437,8 @@ def load(weights_dir: Path, dtype: type = np.float32) -> ERDModel:
         for key, name in PRIOR_FILES.items()
     }
     twists = TwistRange.load(weights_dir / TWIST_FILE) if (weights_dir / TWIST_FILE).exists() else None
-    coupling = weights_dir / ARM_COUPLING_FILE
     return ERDModel(
-        arrays,
-        config["model"],
-        skeleton,
-        mean,
-        std,
-        ref,
-        meta=config,
-        dtype=dtype,
-        twist_range=twists,
-        arm_coupling=Coupling.load(coupling) if coupling.exists() else None,
-        **priors,
+        arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype, twist_range=twists, **priors
     )
 
 

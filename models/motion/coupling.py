@@ -4,11 +4,9 @@ the joints it follows (its drivers) by the style's real linear relation instead 
 The output priors (`style_carry.py`) map each joint on its own: they can widen or narrow a
 joint's spread along its axes, but they cannot put a motion in step with another joint's where
 the model keeps it still (LPN-FiLM's active forearms did not pump with the swing of the upper
-arms) or turn a swing onto another axis (Style-ERD's feminine runs: the run prior narrowed the
-upper arms' swing to less than half the real speed). In a style's real clips a joint's
-deviation from its mean is often close to a linear function of its drivers' (the forearm of
-the upper arm, shoulder and chest; a running upper arm of the thighs). Per link, target t
-following drivers u:
+arms), nor turn a swing onto another axis. In a style's real clips a joint's deviation from its
+mean is often close to a linear function of its drivers' (the forearm of the upper arm,
+shoulder and chest; a running upper arm of the thighs). Per link, target t following drivers u:
 
     d_t' = d_t + (B_real - B_made)^T [d_u, 1]
 
