@@ -12,7 +12,7 @@ validation locomotion inputs as exhausted. The output prior maps each joint on i
 widen a forearm's spread but not put a pump in step with the swing the network keeps still. In
 the real active clips the forearm's deviation from its mean is, to R^2 0.81 and 0.74 on its two
 main axes, a linear function of the deviations of its upper arm, its shoulder and the chest
-(`DRIVERS`); in the network's output the same regression has other coefficients. The coupling
+(`LINKS`); in the network's output the same regression has other coefficients. The coupling
 swaps the network's for the real ones:
 
     d_f' = d_f + (B_real - B_made)^T [d_u, d_s, d_c, 1]
@@ -58,7 +58,7 @@ def couple_rows(
 ) -> np.ndarray:
     """The rotations (B, J, 4) with the forearms of the rows that weigh a coupled style moved with
     their drivers (`table`: a `StyleTable` with the coupling's rows; `joints`: `link_indices` of
-    `LINKS`), walking and running gains mixed by each row's gait share (B,). Other rows and joints
+    the coupling's links), walking and running gains mixed by each row's gait share (B,). Other rows and joints
     exactly as they were. Compiled (`models.motion.coupling.couple`)."""
     aligned = _aligned(table)
     return rotations if aligned is None else couple(rotations, weights, gait, joints, aligned)

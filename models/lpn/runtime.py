@@ -80,7 +80,7 @@ from ..rowwise import Bfloat16Product, matmul_rows
 from ..settings import get_settings
 from . import features as lf
 from . import kernels
-from .arm_coupling import ARM_COUPLING_FILE, COUPLING_ROWS, LINKS, couple_rows, table_rows
+from .arm_coupling import ARM_COUPLING_FILE, COUPLING_ROWS, couple_rows, table_rows
 from .carriage import ARM_JOINTS, CARRIAGE_FILE, RUN_JOINTS, Carriage, blend_arms, blend_pace, blend_run, carry_arms
 from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
 from .style_table import StyleTable
@@ -148,7 +148,6 @@ class LPNModel(LPNStyles):
         self._run_joints = np.array([skeleton.names.index(j) for j in RUN_JOINTS], np.int64)
         self.carriage = carriage
         self.output_prior = output_prior
-        self._coupled_joints = link_indices(LINKS, skeleton.names)
         self.arm_coupling = arm_coupling
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
@@ -192,6 +191,8 @@ class LPNModel(LPNStyles):
     def arm_coupling(self, coupling: Coupling | None) -> None:
         with self._lock:
             self._arm_coupling_fit = coupling
+            # the joints of the links the file was fitted for (none without one: nothing is coupled)
+            self._coupled_joints = link_indices(coupling.links if coupling is not None else (), self.skeleton.names)
             names = list(self._table.names)
             rows = table_rows(coupling, names) if coupling is not None else dict.fromkeys(COUPLING_ROWS)
             self._table = self._table.measuring(**rows)

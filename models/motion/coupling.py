@@ -37,7 +37,7 @@ GAITS = ("walk", "run")
 def link_indices(links: Sequence[Link], names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
     """(targets (L,), drivers (L, D) padded with -1): joint indices of `links` in `names`."""
     names = list(names)
-    width = max(len(d) for _, d in links)
+    width = max((len(d) for _, d in links), default=0)
     drivers = np.full((len(links), width), -1, np.int64)
     for k, (_, ds) in enumerate(links):
         drivers[k, : len(ds)] = [names.index(d) for d in ds]
@@ -137,27 +137,23 @@ class Coupling:
         names: Sequence[str],
         real: Callable[[str, str], list[np.ndarray]],
         made: Callable[[str, str], list[np.ndarray]],
-        gaits: Sequence[str] = GAITS,
     ) -> Coupling:
-        """Per style, from its real rotations and the model's, `real(style, gait)` and
-        `made(style, gait)` (lists of (F, J, 4)), for each gait in `gaits` (a gait left out gets
-        zero gains: not coupled). The mean is the real rotations' over the fitted gaits; each link
-        is fitted on the model's rotations with the links before it applied."""
+        """Per style, from its real rotations and the model's for each gait in `GAITS`,
+        `real(style, gait)` and `made(style, gait)` (lists of (F, J, 4)). The mean is the real
+        rotations' over both gaits; each link is fitted on the model's rotations with the links
+        before it applied."""
         targets, drivers = link_indices(links, names)
         means, gains = [], {g: [] for g in GAITS}
         for style in styles:
-            ours = {g: np.concatenate(real(style, g)).astype(np.float64) for g in gaits}
+            ours = {g: np.concatenate(real(style, g)).astype(np.float64) for g in GAITS}
             mean = quat_mean(np.concatenate(list(ours.values())), axis=0)
             means.append(mean)
             for gait in GAITS:
                 rows = np.zeros((len(links), drivers.shape[1] * 3 + 1, 3))
-                if gait in gaits:
-                    theirs = np.concatenate(made(style, gait)).astype(np.float64)
-                    for k, (t, ds) in enumerate(zip(targets, drivers)):
-                        rows[k] = regression(ours[gait], mean, t, ds) - regression(theirs, mean, t, ds)
-                        theirs[:, t] = moved(
-                            theirs, mean, t, ds, np.broadcast_to(rows[k], (len(theirs), *rows[k].shape))
-                        )
+                theirs = np.concatenate(made(style, gait)).astype(np.float64)
+                for k, (t, ds) in enumerate(zip(targets, drivers)):
+                    rows[k] = regression(ours[gait], mean, t, ds) - regression(theirs, mean, t, ds)
+                    theirs[:, t] = moved(theirs, mean, t, ds, np.broadcast_to(rows[k], (len(theirs), *rows[k].shape)))
                 gains[gait].append(rows)
         return cls(
             tuple(styles),
@@ -176,14 +172,10 @@ def write_coupling(coupling: Coupling, path: Path, keep_others: bool) -> Couplin
     return coupling
 
 
-def _coupled(weights: np.ndarray, share: np.ndarray, aligned: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(the rows that weigh a style coupled at their gait share, every row's weights on coupled
-    styles (B, S)): a walking row toward a style coupled on runs alone is left as it was, exactly."""
-    w = np.asarray(weights, np.float64) * np.asarray(aligned["on"], np.float64)[None]
-    walks, runs = (aligned[g].reshape(len(w[0]), -1).any(axis=1) for g in GAITS)
-    r = np.clip(np.asarray(share, np.float64), 0.0, 1.0)[:, None]
-    moving = (w != 0.0) & (((r < 1.0) & walks[None]) | ((r > 0.0) & runs[None]))
-    return np.flatnonzero(moving.any(axis=1)), w
+def _coupled(weights: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the rows that weigh a coupled style, every row's weights on coupled styles (B, S))."""
+    w = np.asarray(weights, np.float64) * np.asarray(on, np.float64)[None]
+    return np.flatnonzero(w.any(axis=1)), w
 
 
 def couple(
@@ -198,7 +190,7 @@ def couple(
     row's gait share (B,); `joints`: `link_indices`. Compiled; the same dtype back."""
     from .coupling_kernels import couple_batch
 
-    rows, w = _coupled(weights, share, aligned)
+    rows, w = _coupled(weights, aligned["on"])
     if len(rows) == 0:
         return rotations
     share = np.clip(np.asarray(share, np.float64), 0.0, 1.0)
@@ -215,7 +207,7 @@ def couple_numpy(
     aligned: dict[str, np.ndarray],
 ) -> np.ndarray:
     """The numpy reference of `couple`."""
-    rows, w = _coupled(weights, share, aligned)
+    rows, w = _coupled(weights, aligned["on"])
     if len(rows) == 0:
         return rotations
     w, r = w[rows], np.clip(np.asarray(share, np.float64)[rows], 0.0, 1.0)[:, None, None]
