@@ -11,9 +11,12 @@ raise-ups but lost the waves (model card). So the hand's own motion picks:
 - a hand that **waves**, swaying sideways against its shoulder, takes a prior fitted on the real
   style's gestures with a hand raised (`output_prior_gesture.npz`), mixed in by the raise share
   (`raised_hand.raise_share`) times the wave share, at most `GESTURE_SHARE` (`GESTURE_STYLES`);
-- a hand raised **without waving** (a raise-up) takes the network's own upper arm and forearm on
-  its side (with its leaf prior), out of the output prior and clamped into the style's range
-  (`HELD_STYLES`).
+- a hand raised **without waving** (a raise-up) takes, toward feminine and youthful, the network's
+  own upper arm and forearm on its side (with its leaf prior), out of the output prior and clamped
+  into the style's range (`HELD_STYLES`); toward active, a prior fitted on the real style's
+  raise-ups with that hand raised on that side's arm (`output_prior_raise.npz`, `RAISED_STYLES`),
+  mixed in by the raise share times the still share (the wave share's complement over the lower
+  ramp `STILL_RAMP_CM_S`).
 
 The sway is each hand's horizontal speed relative to its shoulder (the UpperArm joint), averaged
 over `SWAY_FRAMES`. On the validation inputs' raised frames (hand at its shoulder or above) a
@@ -29,6 +32,12 @@ rotation judge of active (91 -> 85 %) and masculine (100 -> 94 %); the gesture p
 masculine and exhausted changed no judge cell, so neither takes either. The gesture prior's whole
 share (`GESTURE_SHARE` 1) gave the same fresh rows, but in running sessions (`history.py`) the
 content judge read three validation waves toward feminine as raise-ups (85 % against 91 % at 0.5).
+
+Toward active (session 27) the held arm had cost the rotation judge (91 -> 85 %), and the
+all-content prior left a raised arm 17-26 degrees from the real active raise-ups' mean; a raise-up
+prior per side took active's validation rotation judge 94 -> 97 % (running sessions 76 -> 85 %),
+every other fresh cell unchanged; still ramps of 20..40, 25..45 and 30..50 cm/s give the same rows,
+the wave ramp's 40..60 moved a wave's frames too (model card).
 """
 
 from __future__ import annotations
@@ -44,18 +53,23 @@ from .raised_hand import hand_offsets, raise_share, side_heights
 
 GESTURE_STYLES = ("feminine", "youthful", "active")  # a waving hand takes the gesture prior
 HELD_STYLES = ("feminine", "youthful")  # a still raised arm takes the network's
+RAISED_STYLES = ("active",)  # a still raised arm takes the raise-up prior
 WAVE_RAMP_CM_S = (40.0, 60.0)
+STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it (and takes the raise-up prior whole), not above
 GESTURE_SHARE = 0.5  # a fully waving hand's share of the gesture prior (the rest: the all-content prior)
 SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it 1 / SWAY_FRAMES of the way to the new speed
 HELD_JOINTS = ("UpperArm", "LowerArm")  # a raised, still arm's joints taken out of the output prior
+ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")  # a raised, still arm's joints the raise-up prior carries
 _GESTURE = np.array([TARGET_STYLES.index(s) for s in GESTURE_STYLES])
 _HOLDING = np.array([TARGET_STYLES.index(s) for s in HELD_STYLES])
+_RAISED = np.array([TARGET_STYLES.index(s) for s in RAISED_STYLES])
 _HELD = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in HELD_JOINTS]) for side in "LR"]
+_ARM = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in ARM_JOINTS]) for side in "LR"]
 
-# (rows, their weights, a share of the gesture prior or None) -> those rows' rotations carried by
-# the output prior, with the gesture prior in the run prior's place by that share (None: the
-# run prior by the gait, as the step carries every row)
-Carry = Callable[[np.ndarray, np.ndarray, "np.ndarray | None"], np.ndarray]
+# (rows, their weights, a prior and its share per row, or None) -> those rows' rotations carried
+# by the output prior, with that prior in the run prior's place by that share (None: the run
+# prior by the gait, as the step carries every row)
+Carry = Callable[[np.ndarray, np.ndarray, "tuple[StyleCarry, np.ndarray] | None"], np.ndarray]
 
 
 def sway(before: np.ndarray, pos: np.ndarray, prev_pos: np.ndarray, has_prev: np.ndarray, fps: float) -> np.ndarray:
@@ -81,6 +95,12 @@ def wave_share(swayed: np.ndarray) -> np.ndarray:
     return np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
+def still_share(swayed: np.ndarray) -> np.ndarray:
+    """(..., 2) how still each hand is: 1 up to `STILL_RAMP_CM_S`, 0 from its end, linear between."""
+    lo, hi = STILL_RAMP_CM_S
+    return 1.0 - np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+
 def by_gesture(
     carried: np.ndarray,
     carry: Carry,
@@ -89,18 +109,23 @@ def by_gesture(
     pos: np.ndarray,
     swayed: np.ndarray,
     network: np.ndarray,
+    gesture_prior: StyleCarry,
+    raise_prior: StyleCarry | None = None,
 ) -> np.ndarray:
     """(B, J, 4) the output prior's result `carried` (from the `network`'s rotations), with the
     rows toward a gesture style re-carried where the input raises a hand: a waving hand's row
-    (toward a `GESTURE_STYLES` style) by `carry` with the gesture prior at the raise share times
-    the wave share (the larger hand's) times `GESTURE_SHARE`; a still raised hand's upper arm and
-    forearm (toward a `HELD_STYLES` style) moved back toward the network's by its raise share
-    (`carry` without those styles' weights: the network's own where no other style is asked
-    for), then clamped into the styles' real ranges at the full weights. Rows toward neither
-    and rows with both hands down are `carried` as they are."""
+    (toward a `GESTURE_STYLES` style) by `carry` with `gesture_prior` at the raise share times
+    the wave share (the larger hand's) times `GESTURE_SHARE`; a still raised hand's arm (toward
+    a `RAISED_STYLES` style) by `carry` with `raise_prior` at its raise share times its still
+    share, that side's `ARM_JOINTS` only; a still raised hand's upper arm and forearm (toward a
+    `HELD_STYLES` style) moved back toward the network's by its raise share (`carry` without
+    those styles' weights: the network's own where no other style is asked for), then clamped
+    into the styles' real ranges at the full weights. Rows toward none of them and rows with
+    both hands down are `carried` as they are."""
     w = np.asarray(weights, np.float64)
     toward, holding = w[:, _GESTURE].sum(-1), w[:, _HOLDING].sum(-1)
-    if not (toward.any() or holding.any()):
+    raising = w[:, _RAISED].sum(-1) if raise_prior is not None else np.zeros(len(w))
+    if not (toward.any() or holding.any() or raising.any()):
         return carried
     heights = raise_share(side_heights(pos))  # (B, 2)
     if not heights.any():
@@ -109,7 +134,13 @@ def by_gesture(
     waving = (heights * (toward > 0.0)[:, None] * wave_share(swayed)).max(-1) * GESTURE_SHARE
     rows = np.flatnonzero(waving > 0.0)
     if rows.size:
-        out[rows] = carry(rows, w[rows], waving[rows])
+        out[rows] = carry(rows, w[rows], (gesture_prior, waving[rows]))
+    if raise_prior is not None:
+        still = heights * (raising > 0.0)[:, None] * still_share(swayed)
+        for side, joints in enumerate(_ARM):
+            rows = np.flatnonzero(still[:, side] > 0.0)
+            if rows.size:
+                out[np.ix_(rows, joints)] = carry(rows, w[rows], (raise_prior, still[rows, side]))[:, joints]
     held = heights * np.minimum(holding, 1.0)[:, None] * (waving == 0.0)[:, None]  # an intensity over 1 holds it all
     rows = np.flatnonzero(held.max(-1) > 0.0)
     if rows.size:

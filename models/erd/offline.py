@@ -70,6 +70,7 @@ def stylise(
     run_leaf_prior: StyleCarry | None = None,
     run_output_prior: StyleCarry | None = None,
     gesture_prior: StyleCarry | None = None,
+    raise_prior: StyleCarry | None = None,
     twist_range: TwistRange | None = None,
 ) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
@@ -97,16 +98,18 @@ def stylise(
     rots = clip_carry_slow(output_prior, run_output_prior, network_rots, faded, share, hips=HIPS)
     if gesture_prior is not None and output_prior is not None:
 
-        def carry(rows: np.ndarray, weights: np.ndarray, gesture: np.ndarray | None) -> np.ndarray:
+        def carry(rows: np.ndarray, weights: np.ndarray, mix: tuple[StyleCarry, np.ndarray] | None) -> np.ndarray:
             """`gestures.Carry` over the clip: those frames re-weighted, the clip carried again."""
-            w_all, by = faded.copy(), share.copy() if gesture is None else np.zeros(len(share))
+            w_all, by, run = faded.copy(), share.copy(), run_output_prior
             w_all[rows] = weights
-            if gesture is not None:
-                by[rows] = gesture
-            run = run_output_prior if gesture is None else gesture_prior
+            if mix is not None:
+                run, by = mix[0], np.zeros(len(share))
+                by[rows] = mix[1]
             return clip_carry_slow(output_prior, run, network_rots, w_all, by, hips=HIPS)[rows]
 
-        rots = by_gesture(rots, carry, output_prior, faded, pos, clip_sway(pos, FPS), network_rots)
+        rots = by_gesture(
+            rots, carry, output_prior, faded, pos, clip_sway(pos, FPS), network_rots, gesture_prior, raise_prior
+        )
     rots = kept_in_range(output_prior, rots, w_frames, faded)
     if twist_range is not None:
         rots = twist_range(rots, w_frames)

@@ -3,7 +3,7 @@
     .venv/bin/python -m models.erd.rotation_prior        # all -> models/weights/erd/{leaf,output}_prior{,_run}.npz
     .venv/bin/python -m models.erd.rotation_prior runs   # the run priors alone
     .venv/bin/python -m models.erd.rotation_prior twists # the arms' twist range alone (`twist_range.py`)
-    .venv/bin/python -m models.erd.rotation_prior gestures  # a waving hand's output prior alone (`gestures.py`)
+    .venv/bin/python -m models.erd.rotation_prior gestures  # a raised hand's output priors alone (`gestures.py`)
 
 1. **Twists and leaves** (`leaf_prior.npz`). The decoder is trusted only for where bones point
    (`models.motion.twist.transfer_twist`): a bone's twist about itself and the head, hands and
@@ -37,7 +37,9 @@ eval suite compares them) and only clamps them: the rest of the body hangs from 
 
 from __future__ import annotations
 
+import functools
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -52,12 +54,14 @@ OUTPUT_FILE = "output_prior.npz"
 RUN_LEAF_FILE = "leaf_prior_run.npz"
 RUN_OUTPUT_FILE = "output_prior_run.npz"
 GESTURE_FILE = "output_prior_gesture.npz"
+RAISE_FILE = "output_prior_raise.npz"
 PRIOR_FILES = {  # `runtime.ERDModel`'s prior attributes and their files beside the weights
     "leaf_prior": LEAF_FILE,
     "output_prior": OUTPUT_FILE,
     "run_leaf_prior": RUN_LEAF_FILE,
     "run_output_prior": RUN_OUTPUT_FILE,
     "gesture_prior": GESTURE_FILE,
+    "raise_prior": RAISE_FILE,
 }
 FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 UP = np.array([0.0, 1.0, 0.0])
@@ -164,45 +168,82 @@ def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.n
     ]
 
 
-def raised_frames(motion) -> np.ndarray:
-    """(T,) bool: the frames of a Bandai Namco `Motion` with a hand at its shoulder or above (more
-    than half way up `raised_hand.RAISE_RAMP_CM`)."""
-    from .raised_hand import hand_height, raise_share
+def raised_frames(motion, side: int | None = None) -> np.ndarray:
+    """(T,) bool: the frames of a Bandai Namco `Motion` with a hand (`side` 0: the left, 1: the
+    right; None: either) at its shoulder or above (more than half way up `raised_hand.RAISE_RAMP_CM`)."""
+    from .raised_hand import raise_share, side_heights
 
-    return raise_share(hand_height(motion.global_positions())) > 0.5
+    heights = side_heights(motion.global_positions())
+    return raise_share(heights.max(-1) if side is None else heights[:, side]) > 0.5
+
+
+def _fit_on_frames(model, contents: tuple[str, ...], frames: Callable) -> StyleCarry:
+    """An output prior on chosen frames (`frames(motion)` -> (T,) bool): the network (its leaf
+    prior in place, no output prior) over the first `FIT_FRAMES` of `FIT_CLIPS_PER_CONTENT`
+    TRAIN neutral clips of each of `contents`, toward each style, against every real TRAIN clip
+    of those contents in the style; the legs and Hips only clamped, as the all-content prior."""
+    from ..data import build_index, load_motions, select
+    from ..eval.run import pick_clips
+
+    inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(pick_clips(FIT_CLIPS_PER_CONTENT, contents, split="train"))]
+    chosen = np.concatenate([frames(m) for m in inputs])
+    produced = [q[chosen] for q in network_rotations(model, inputs)]
+    index = build_index(["bandai-namco-2"])
+    real = []
+    for style in model.styles():
+        motions = load_motions([c for c in select(index, split="train", style=style) if c.content in contents])
+        q = np.concatenate([m.rotations[frames(m)] for m in motions])
+        q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)  # static on this rig, as in the feature cache `real_rotations` reads
+        real.append(without_heading(q)[1])
+    clamped = (HIPS,) + tuple(model.skeleton.index(n) for n in LEG_JOINTS)
+    return StyleCarry.fit(produced, real, (ROOT,), clamp_only=clamped)
+
+
+def _merged(base: StyleCarry, parts: list[tuple[StyleCarry, list[int]]], styles: tuple[str, ...], names: list[str]):
+    """`base` with the rows of `styles` (of the model's `names`) replaced, joint by joint, by the
+    `parts` (a carry and the joints taken from it); every other style keeps `base`'s maps, so a
+    mix with them carries them as before (each joint's map is fitted on its own)."""
+    arrays = [np.array(a) for a in base.arrays]
+    rows = [names.index(s) for s in styles]
+    for part, joints in parts:
+        for out, a in zip(arrays, part.arrays):
+            out[np.ix_(rows, joints)] = a[np.ix_(rows, joints)]
+    return StyleCarry(*(np.ascontiguousarray(a) for a in arrays))
 
 
 def fit_gesture_prior(model) -> StyleCarry:
-    """The output prior of a waving hand (`gestures.py`): the network (its leaf prior in place, no
-    output prior) over the first `FIT_FRAMES` of `FIT_CLIPS_PER_CONTENT` TRAIN neutral clips of
-    each raise-up and wave content, toward each style, against every real TRAIN gesture of the
-    style, both on the frames with a hand raised; the legs and Hips only clamped, as the
-    all-content prior. The styles outside `gestures.GESTURE_STYLES` keep the all-content prior's
-    maps, so a mix with them carries them as before."""
-    from ..data import build_index, load_motions, select
-    from ..eval.run import pick_clips
+    """The output prior of a waving hand (`gestures.py`): fitted on every raise-up and wave
+    content, on the frames with a hand raised (`_fit_on_frames`), for `gestures.GESTURE_STYLES`;
+    the other styles keep the all-content prior's maps."""
     from .dataset import CONTENTS
     from .gestures import GESTURE_STYLES
 
     gestures = tuple(c for c in CONTENTS if c.startswith(("raise-up", "wave")))
-    inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(pick_clips(FIT_CLIPS_PER_CONTENT, gestures, split="train"))]
-    raised = np.concatenate([raised_frames(m) for m in inputs])
-    produced = [q[raised] for q in network_rotations(model, inputs)]
-    index = build_index(["bandai-namco-2"])
-    real = []
-    for style in model.styles():
-        motions = load_motions([c for c in select(index, split="train", style=style) if c.content in gestures])
-        q = np.concatenate([m.rotations[raised_frames(m)] for m in motions])
-        q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)  # static on this rig, as in the feature cache `real_rotations` reads
-        real.append(without_heading(q)[1])
-    clamped = (HIPS,) + tuple(model.skeleton.index(n) for n in LEG_JOINTS)
-    fitted = StyleCarry.fit(produced, real, (ROOT,), clamp_only=clamped)
-    keep = np.array([s not in GESTURE_STYLES for s in model.styles()])
-    arrays = [
-        np.where(keep.reshape((-1,) + (1,) * (a.ndim - 1)), b, a)
-        for a, b in zip(fitted.arrays, model.output_prior.arrays)
+    fitted = _fit_on_frames(model, gestures, raised_frames)
+    every = list(range(NUM_JOINTS))
+    return _merged(model.output_prior, [(fitted, every)], GESTURE_STYLES, list(model.styles()))
+
+
+def fit_raise_prior(model) -> StyleCarry:
+    """The output prior of a hand raised and held still (`gestures.py`): for each side, fitted on
+    the raise-up contents on the frames with that side's hand raised, and that side's arm
+    (`gestures.ARM_JOINTS`) taken from its own fit, for `gestures.RAISED_STYLES`. Fitted on
+    either hand at once, a joint's one Gaussian had to hold the raised arm and the hanging one
+    of a raise-up with the other hand (validation: right-hand raise-ups toward active lost
+    content margin instead of gaining it, model card). Every other joint and style keeps the
+    all-content prior's maps."""
+    from .dataset import CONTENTS
+    from .gestures import ARM_JOINTS, RAISED_STYLES
+
+    raise_ups = tuple(c for c in CONTENTS if c.startswith("raise-up"))
+    parts = [
+        (
+            _fit_on_frames(model, raise_ups, functools.partial(raised_frames, side=side)),
+            [model.skeleton.index(f"{j}_{s}") for j in ARM_JOINTS],
+        )
+        for side, s in enumerate("LR")
     ]
-    return StyleCarry(*(np.ascontiguousarray(a) for a in arrays))
+    return _merged(model.output_prior, parts, RAISED_STYLES, list(model.styles()))
 
 
 def main(argv: list[str]) -> None:
@@ -230,6 +271,7 @@ def main(argv: list[str]) -> None:
         print(fit_output_prior(load(folder), real, runs=True).save(folder / RUN_OUTPUT_FILE))
     if what in ("both", "gestures"):  # after the output prior: the other styles keep its maps
         print(fit_gesture_prior(load(folder)).save(folder / GESTURE_FILE))
+        print(fit_raise_prior(load(folder)).save(folder / RAISE_FILE))
 
 
 if __name__ == "__main__":

@@ -122,6 +122,7 @@ class ERDModel:
         run_leaf_prior: StyleCarry | None = None,
         run_output_prior: StyleCarry | None = None,
         gesture_prior: StyleCarry | None = None,
+        raise_prior: StyleCarry | None = None,
         twist_range: TwistRange | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
@@ -137,6 +138,7 @@ class ERDModel:
         # the same two fitted on runs alone, for frames the input runs in (`gait.py`)
         self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
         self.gesture_prior = gesture_prior  # a waving hand's output prior (`gestures.py`)
+        self.raise_prior = raise_prior  # a still raised arm's output prior toward active (`gestures.py`)
         self.twist_range = twist_range  # the arms' twists kept in the style's real interval (`twist_range.py`)
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
@@ -299,13 +301,23 @@ class ERDModel:
         hand_sway = sway(state["hand_sway"], pos, state["prev_pos"], has_prev, FPS)
         if self.gesture_prior is not None and self.output_prior is not None:
 
-            def carry(rows: np.ndarray, weights: np.ndarray, gesture: np.ndarray | None) -> np.ndarray:
-                run, by = (self.run_output_prior, share[rows]) if gesture is None else (self.gesture_prior, gesture)
+            def carry(rows: np.ndarray, weights: np.ndarray, mix: tuple[StyleCarry, np.ndarray] | None) -> np.ndarray:
+                run, by = (self.run_output_prior, share[rows]) if mix is None else mix
                 return carry_slow(
                     self.output_prior, run, network_rot[rows], state["slow_out"][rows], weights, by, HIPS
                 )[0]
 
-            out_rot = by_gesture(out_rot, carry, self.output_prior, faded, pos, hand_sway, network_rot)
+            out_rot = by_gesture(
+                out_rot,
+                carry,
+                self.output_prior,
+                faded,
+                pos,
+                hand_sway,
+                network_rot,
+                self.gesture_prior,
+                self.raise_prior,
+            )
         out_rot = kept_in_range(self.output_prior, out_rot, w, faded)
         if self.twist_range is not None:
             out_rot = self.twist_range(out_rot, w)
