@@ -165,6 +165,40 @@ def test_the_raise_up_prior_is_fitted_for_active_s_arms_alone(model):
             assert same == (style not in RAISED_STYLES or j not in arms), (style, model.skeleton.names[j])
 
 
+def test_toward_active_the_hanging_right_arm_takes_the_hanging_prior_alone(model, raise_up):
+    """While the left hand is up and the right one down, toward active the right arm is carried by
+    the hanging prior and nothing else moves; before the hand goes up every joint is as before."""
+    from models.erd.gestures import ARM_JOINTS
+
+    without = copy.copy(model)
+    without.hanging_prior = None
+    w = _weights(model, active=1.0)
+    raised, _ = _shares(model, raise_up)
+    hanging = (raised[:, 0] == 1.0) & (raised[:, 1] == 0.0)
+    down = np.cumsum(raised.max(-1)) == 0.0
+    assert hanging.sum() >= 10 and down.sum() >= 5
+    got, before = streamed_rotations(model, raise_up, w), streamed_rotations(without, raise_up, w)
+    arm = [model.skeleton.index(f"{j}_R") for j in ARM_JOINTS]
+    rest = [model.skeleton.index(j) for j in ("Spine", "Chest", "Neck", "Head")]
+    rest += [model.skeleton.index(f"{j}_L") for j in ARM_JOINTS]
+    assert np.median(np.degrees(quat_angle(got, before))[hanging][:, arm].max(axis=-1)) > 2.0
+    np.testing.assert_array_equal(got[hanging][:, rest], before[hanging][:, rest])
+    np.testing.assert_array_equal(got[down], before[down])
+
+
+def test_the_hanging_prior_is_fitted_for_active_s_right_arm_alone(model):
+    """The committed hanging prior: active's right arm fitted anew (`HANGING_SIDES`), every other
+    joint and style the all-content prior's maps."""
+    from models.erd.gestures import ARM_JOINTS, HANGING_SIDES, RAISED_STYLES
+
+    arms = {model.skeleton.index(f"{j}_{s}") for j in ARM_JOINTS for s in HANGING_SIDES}
+    for s, style in enumerate(model.styles()):
+        for j in range(len(model.skeleton.names)):
+            pairs = zip(model.hanging_prior.arrays, model.output_prior.arrays)
+            same = all(np.array_equal(a[s, j], b[s, j]) for a, b in pairs)
+            assert same == (style not in RAISED_STYLES or j not in arms), (style, model.skeleton.names[j])
+
+
 def test_the_gesture_prior_keeps_the_other_styles_maps(model):
     """The committed gesture prior: fitted anew for the gesture styles, the all-content prior's
     maps for the rest (a mix carries them as before)."""
@@ -202,14 +236,16 @@ def test_validation_left_raise_ups_toward_feminine_read_as_feminine_raise_ups(mo
     assert load_rotation_judge().predict_style([rotation_features(o) for o in outs]) == ["feminine"] * 4
 
 
-def test_validation_raise_ups_with_both_hands_toward_active_read_as_active(model, index):
-    """What the raise-up prior is for: with the all-content prior on the raised arms the rotation
-    judge read 1 of these 4 validation raise-ups toward active as masculine (its log-odds
-    -0.05..+1.69 over the next style); now all 4 (+0.85..+2.44)."""
+@pytest.mark.parametrize("content,n", [("raise-up-both-hands", 4), ("wave-left-hand", 3)])
+def test_validation_gestures_toward_active_read_as_active(model, index, content, n):
+    """What the raise-up and hanging priors are for: with the all-content prior on the arms the
+    rotation judge read 1 of these 4 validation raise-ups with both hands toward active as
+    masculine (log-odds over the next style -0.05..+1.69; raise-up prior: +0.85..+2.44), and 1
+    of the 3 left-hand waves (-0.63..+5.96; hanging prior: +3.85..+4.24); now all of them."""
     from models.eval.features import rotation_features
     from models.eval.judges import load_rotation_judge
     from models.eval.run import stylise
 
-    inputs = _val(index, "raise-up-both-hands", n=4, frames=150)
+    inputs = _val(index, content, n=n, frames=150)
     outs = stylise(model, inputs, [model.styles().index("active")] * len(inputs))
-    assert load_rotation_judge().predict_style([rotation_features(o) for o in outs]) == ["active"] * 4
+    assert load_rotation_judge().predict_style([rotation_features(o) for o in outs]) == ["active"] * n

@@ -16,7 +16,10 @@ raise-ups but lost the waves (model card). So the hand's own motion picks:
   into the style's range (`HELD_STYLES`); toward active, a prior fitted on the real style's
   raise-ups with that hand raised on that side's arm (`output_prior_raise.npz`, `RAISED_STYLES`),
   mixed in by the raise share times the still share (the wave share's complement over the lower
-  ramp `STILL_RAMP_CM_S`).
+  ramp `STILL_RAMP_CM_S`);
+- toward active, while one hand is up (raise-up or wave) the other, hanging arm takes a prior
+  fitted on the real style's one-hand gestures with that arm down and the other hand raised
+  (`output_prior_hanging.npz`, the right arm only: `HANGING_SIDES`).
 
 The sway is each hand's horizontal speed relative to its shoulder (the UpperArm joint), averaged
 over `SWAY_FRAMES`. On the validation inputs' raised frames (hand at its shoulder or above) a
@@ -37,12 +40,17 @@ Toward active (session 27) the held arm had cost the rotation judge (91 -> 85 %)
 all-content prior left a raised arm 17-26 degrees from the real active raise-ups' mean; a raise-up
 prior per side took active's validation rotation judge 94 -> 97 % (running sessions 76 -> 85 %),
 every other fresh cell unchanged; still ramps of 20..40, 25..45 and 30..50 cm/s give the same rows,
-the wave ramp's 40..60 moved a wave's frames too (model card).
+the wave ramp's 40..60 moved a wave's frames too (model card). The hanging right arm then took
+the left-hand waves (rotation log-odds -0.63..+5.96 -> +3.85..+4.24) and active's validation
+rotation judge 97 -> 100 %; the hanging left arm, at the whole share or half of it, lost two
+right-hand raise-ups' content and a right-hand wave's rotation judge, so it keeps the all-content
+prior.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -53,7 +61,8 @@ from .raised_hand import hand_offsets, raise_share, side_heights
 
 GESTURE_STYLES = ("feminine", "youthful", "active")  # a waving hand takes the gesture prior
 HELD_STYLES = ("feminine", "youthful")  # a still raised arm takes the network's
-RAISED_STYLES = ("active",)  # a still raised arm takes the raise-up prior
+RAISED_STYLES = ("active",)  # a still raised arm takes the raise-up prior, the other arm the hanging prior
+HANGING_SIDES = ("R",)  # the arms that take the hanging prior (the left one's cost right-hand gestures, module doc)
 WAVE_RAMP_CM_S = (40.0, 60.0)
 STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it (and takes the raise-up prior whole), not above
 GESTURE_SHARE = 0.5  # a fully waving hand's share of the gesture prior (the rest: the all-content prior)
@@ -65,6 +74,7 @@ _HOLDING = np.array([TARGET_STYLES.index(s) for s in HELD_STYLES])
 _RAISED = np.array([TARGET_STYLES.index(s) for s in RAISED_STYLES])
 _HELD = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in HELD_JOINTS]) for side in "LR"]
 _ARM = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in ARM_JOINTS]) for side in "LR"]
+_HANGING = tuple("LR".index(side) for side in HANGING_SIDES)
 
 # (rows, their weights, a prior and its share per row, or None) -> those rows' rotations carried
 # by the output prior, with that prior in the run prior's place by that share (None: the run
@@ -101,6 +111,26 @@ def still_share(swayed: np.ndarray) -> np.ndarray:
     return 1.0 - np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
+@dataclass(frozen=True)
+class ArmPriors:
+    """The output priors a raised hand switches to (fitted by `rotation_prior.py`): a waving
+    hand's row (`output_prior_gesture.npz`), a still raised arm (`output_prior_raise.npz`) and
+    the other, hanging arm (`output_prior_hanging.npz`)."""
+
+    waving: StyleCarry
+    raised: StyleCarry | None = None
+    hanging: StyleCarry | None = None
+
+
+def _arm_by(out: np.ndarray, carry: Carry, prior: StyleCarry, w: np.ndarray, shares: np.ndarray, sides) -> None:
+    """Each of `sides`' `ARM_JOINTS` in `out` re-carried with `prior` at that side's share (B, 2),
+    on the rows where it is above 0."""
+    for side in sides:
+        rows = np.flatnonzero(shares[:, side] > 0.0)
+        if rows.size:
+            out[np.ix_(rows, _ARM[side])] = carry(rows, w[rows], (prior, shares[rows, side]))[:, _ARM[side]]
+
+
 def by_gesture(
     carried: np.ndarray,
     carry: Carry,
@@ -109,22 +139,21 @@ def by_gesture(
     pos: np.ndarray,
     swayed: np.ndarray,
     network: np.ndarray,
-    gesture_prior: StyleCarry,
-    raise_prior: StyleCarry | None = None,
+    arms: ArmPriors,
 ) -> np.ndarray:
     """(B, J, 4) the output prior's result `carried` (from the `network`'s rotations), with the
     rows toward a gesture style re-carried where the input raises a hand: a waving hand's row
-    (toward a `GESTURE_STYLES` style) by `carry` with `gesture_prior` at the raise share times
-    the wave share (the larger hand's) times `GESTURE_SHARE`; a still raised hand's arm (toward
-    a `RAISED_STYLES` style) by `carry` with `raise_prior` at its raise share times its still
-    share, that side's `ARM_JOINTS` only; a still raised hand's upper arm and forearm (toward a
-    `HELD_STYLES` style) moved back toward the network's by its raise share (`carry` without
-    those styles' weights: the network's own where no other style is asked for), then clamped
-    into the styles' real ranges at the full weights. Rows toward none of them and rows with
-    both hands down are `carried` as they are."""
+    (toward a `GESTURE_STYLES` style) by `carry` with `arms.waving` at the raise share times the
+    wave share (the larger hand's) times `GESTURE_SHARE`; toward a `RAISED_STYLES` style, a still
+    raised hand's arm (`ARM_JOINTS`) by `carry` with `arms.raised` at its raise share times its
+    still share, and the other arm (on the `HANGING_SIDES`) with `arms.hanging` at the raised
+    hand's share times the share this one is not raised; a still raised hand's upper arm and
+    forearm (toward a `HELD_STYLES` style) moved back toward the network's by its raise share
+    (`carry` without those styles' weights: the network's own where no other style is asked
+    for), then clamped into the styles' real ranges at the full weights. Rows toward none of
+    them and rows with both hands down are `carried` as they are."""
     w = np.asarray(weights, np.float64)
-    toward, holding = w[:, _GESTURE].sum(-1), w[:, _HOLDING].sum(-1)
-    raising = w[:, _RAISED].sum(-1) if raise_prior is not None else np.zeros(len(w))
+    toward, holding, raising = w[:, _GESTURE].sum(-1), w[:, _HOLDING].sum(-1), w[:, _RAISED].sum(-1)
     if not (toward.any() or holding.any() or raising.any()):
         return carried
     heights = raise_share(side_heights(pos))  # (B, 2)
@@ -134,13 +163,12 @@ def by_gesture(
     waving = (heights * (toward > 0.0)[:, None] * wave_share(swayed)).max(-1) * GESTURE_SHARE
     rows = np.flatnonzero(waving > 0.0)
     if rows.size:
-        out[rows] = carry(rows, w[rows], (gesture_prior, waving[rows]))
-    if raise_prior is not None:
-        still = heights * (raising > 0.0)[:, None] * still_share(swayed)
-        for side, joints in enumerate(_ARM):
-            rows = np.flatnonzero(still[:, side] > 0.0)
-            if rows.size:
-                out[np.ix_(rows, joints)] = carry(rows, w[rows], (raise_prior, still[rows, side]))[:, joints]
+        out[rows] = carry(rows, w[rows], (arms.waving, waving[rows]))
+    raising_rows = (raising > 0.0)[:, None]
+    if arms.raised is not None:
+        _arm_by(out, carry, arms.raised, w, heights * raising_rows * still_share(swayed), (0, 1))
+    if arms.hanging is not None:
+        _arm_by(out, carry, arms.hanging, w, heights[:, ::-1] * (1.0 - heights) * raising_rows, _HANGING)
     held = heights * np.minimum(holding, 1.0)[:, None] * (waving == 0.0)[:, None]  # an intensity over 1 holds it all
     rows = np.flatnonzero(held.max(-1) > 0.0)
     if rows.size:

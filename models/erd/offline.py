@@ -32,7 +32,7 @@ from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .gait import clip_smoothed_speed, eased_in, run_share
-from .gestures import by_gesture, clip_sway
+from .gestures import ArmPriors, by_gesture, clip_sway
 from .model import Generator
 from .raised_hand import kept_in_range, output_prior_weights
 from .slow_carry import clip_carry_slow
@@ -71,6 +71,7 @@ def stylise(
     run_output_prior: StyleCarry | None = None,
     gesture_prior: StyleCarry | None = None,
     raise_prior: StyleCarry | None = None,
+    hanging_prior: StyleCarry | None = None,
     twist_range: TwistRange | None = None,
 ) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
@@ -107,9 +108,8 @@ def stylise(
                 by[rows] = mix[1]
             return clip_carry_slow(output_prior, run, network_rots, w_all, by, hips=HIPS)[rows]
 
-        rots = by_gesture(
-            rots, carry, output_prior, faded, pos, clip_sway(pos, FPS), network_rots, gesture_prior, raise_prior
-        )
+        arms = ArmPriors(gesture_prior, raise_prior, hanging_prior)
+        rots = by_gesture(rots, carry, output_prior, faded, pos, clip_sway(pos, FPS), network_rots, arms)
     rots = kept_in_range(output_prior, rots, w_frames, faded)
     if twist_range is not None:
         rots = twist_range(rots, w_frames)

@@ -55,6 +55,7 @@ RUN_LEAF_FILE = "leaf_prior_run.npz"
 RUN_OUTPUT_FILE = "output_prior_run.npz"
 GESTURE_FILE = "output_prior_gesture.npz"
 RAISE_FILE = "output_prior_raise.npz"
+HANGING_FILE = "output_prior_hanging.npz"
 PRIOR_FILES = {  # `runtime.ERDModel`'s prior attributes and their files beside the weights
     "leaf_prior": LEAF_FILE,
     "output_prior": OUTPUT_FILE,
@@ -62,6 +63,7 @@ PRIOR_FILES = {  # `runtime.ERDModel`'s prior attributes and their files beside 
     "run_output_prior": RUN_OUTPUT_FILE,
     "gesture_prior": GESTURE_FILE,
     "raise_prior": RAISE_FILE,
+    "hanging_prior": HANGING_FILE,
 }
 FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 UP = np.array([0.0, 1.0, 0.0])
@@ -177,6 +179,15 @@ def raised_frames(motion, side: int | None = None) -> np.ndarray:
     return raise_share(heights.max(-1) if side is None else heights[:, side]) > 0.5
 
 
+def hanging_frames(motion, side: int) -> np.ndarray:
+    """(T,) bool: the frames of a Bandai Namco `Motion` with the other hand raised and this
+    `side`'s not (each more or less than half way up `raised_hand.RAISE_RAMP_CM`)."""
+    from .raised_hand import raise_share, side_heights
+
+    up = raise_share(side_heights(motion.global_positions())) > 0.5
+    return up[:, 1 - side] & ~up[:, side]
+
+
 def _fit_on_frames(model, contents: tuple[str, ...], frames: Callable) -> StyleCarry:
     """An output prior on chosen frames (`frames(motion)` -> (T,) bool): the network (its leaf
     prior in place, no output prior) over the first `FIT_FRAMES` of `FIT_CLIPS_PER_CONTENT`
@@ -246,6 +257,27 @@ def fit_raise_prior(model) -> StyleCarry:
     return _merged(model.output_prior, parts, RAISED_STYLES, list(model.styles()))
 
 
+def fit_hanging_prior(model) -> StyleCarry:
+    """The output prior of the arm that hangs while the other hand is raised (`gestures.py`): for
+    each of `gestures.HANGING_SIDES`, fitted on the one-hand raise-ups and waves on the frames
+    with that arm down and the other hand raised, that side's arm taken from its fit, for
+    `gestures.RAISED_STYLES`. The all-content prior carried the hanging arm by maps fitted mostly
+    on swinging arms; the real one hangs within a few degrees (active: 3-10 degrees of spread in
+    the upper arm). Every other joint and style keeps the all-content prior's maps."""
+    from .dataset import CONTENTS
+    from .gestures import ARM_JOINTS, HANGING_SIDES, RAISED_STYLES
+
+    one_hand = tuple(c for c in CONTENTS if c.startswith(("raise-up", "wave")) and "both" not in c)
+    parts = [
+        (
+            _fit_on_frames(model, one_hand, functools.partial(hanging_frames, side="LR".index(s))),
+            [model.skeleton.index(f"{j}_{s}") for j in ARM_JOINTS],
+        )
+        for s in HANGING_SIDES
+    ]
+    return _merged(model.output_prior, parts, RAISED_STYLES, list(model.styles()))
+
+
 def main(argv: list[str]) -> None:
     import torch
 
@@ -272,6 +304,7 @@ def main(argv: list[str]) -> None:
     if what in ("both", "gestures"):  # after the output prior: the other styles keep its maps
         print(fit_gesture_prior(load(folder)).save(folder / GESTURE_FILE))
         print(fit_raise_prior(load(folder)).save(folder / RAISE_FILE))
+        print(fit_hanging_prior(load(folder)).save(folder / HANGING_FILE))
 
 
 if __name__ == "__main__":

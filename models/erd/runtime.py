@@ -76,7 +76,7 @@ from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
 from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
-from .gestures import by_gesture, sway
+from .gestures import ArmPriors, by_gesture, sway
 from .raised_hand import kept_in_range, output_prior_weights
 from .rotation_prior import PRIOR_FILES
 from .slow_carry import carry_slow
@@ -123,6 +123,7 @@ class ERDModel:
         run_output_prior: StyleCarry | None = None,
         gesture_prior: StyleCarry | None = None,
         raise_prior: StyleCarry | None = None,
+        hanging_prior: StyleCarry | None = None,
         twist_range: TwistRange | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
@@ -139,6 +140,7 @@ class ERDModel:
         self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
         self.gesture_prior = gesture_prior  # a waving hand's output prior (`gestures.py`)
         self.raise_prior = raise_prior  # a still raised arm's output prior toward active (`gestures.py`)
+        self.hanging_prior = hanging_prior  # the other arm's, while one hand is raised (`gestures.py`)
         self.twist_range = twist_range  # the arms' twists kept in the style's real interval (`twist_range.py`)
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
@@ -307,17 +309,8 @@ class ERDModel:
                     self.output_prior, run, network_rot[rows], state["slow_out"][rows], weights, by, HIPS
                 )[0]
 
-            out_rot = by_gesture(
-                out_rot,
-                carry,
-                self.output_prior,
-                faded,
-                pos,
-                hand_sway,
-                network_rot,
-                self.gesture_prior,
-                self.raise_prior,
-            )
+            arms = ArmPriors(self.gesture_prior, self.raise_prior, self.hanging_prior)
+            out_rot = by_gesture(out_rot, carry, self.output_prior, faded, pos, hand_sway, network_rot, arms)
         out_rot = kept_in_range(self.output_prior, out_rot, w, faded)
         if self.twist_range is not None:
             out_rot = self.twist_range(out_rot, w)
