@@ -6,6 +6,7 @@ or the code under test first reaches for a dataset); on CI the data is there and
 
 from __future__ import annotations
 
+import os
 from typing import TYPE_CHECKING
 
 import pytest
@@ -17,6 +18,15 @@ from models.settings import get_settings
 
 if TYPE_CHECKING:
     from models.lpn.runtime import LPNModel
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """With pytest-xdist (`make test`), the controller compiles the kernels and unpacks the data
+    once before the workers start, which would each do it (`tests/warm.py`)."""
+    if not os.environ.get("PYTEST_XDIST_WORKER") and getattr(config.option, "numprocesses", None):
+        from .warm import warm_all
+
+        warm_all()
 
 
 @pytest.fixture(scope="session")
