@@ -56,8 +56,7 @@ def _weights(model, **mix: float) -> np.ndarray:
 def _shares(model, motion) -> tuple[np.ndarray, np.ndarray]:
     """(T, 2) each hand's raise share and wave share, as the stream measures them."""
     from models.erd.features import FPS
-    from models.erd.gestures import clip_sway, wave_share
-    from models.erd.raised_hand import raise_share, side_heights
+    from models.motion.hands import clip_sway, raise_share, side_heights, wave_share
 
     pos = model.maker.positions(motion.translations[:, 1], motion.rotations)
     return raise_share(side_heights(pos)), wave_share(clip_sway(pos, FPS))
@@ -132,7 +131,8 @@ def test_a_still_raised_hand_toward_active_takes_the_raise_up_prior_on_its_arm_a
     was without it (the legs are the foot planter's, which remembers the frames before); until
     the hand goes up every joint is as before."""
     from models.erd.features import FPS
-    from models.erd.gestures import ARM_JOINTS, clip_sway, still_share
+    from models.erd.gestures import ARM_JOINTS
+    from models.motion.hands import clip_sway, still_share
 
     without = copy.copy(model)
     without.raise_prior = None

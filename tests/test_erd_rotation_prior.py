@@ -384,8 +384,8 @@ def test_a_raised_hand_takes_elderlys_output_prior_away_and_a_walk_or_run_never(
     far, so they keep the prior whole."""
     import copy
 
-    from models.erd.raised_hand import hand_height, raise_share
     from models.motion.bn_skeleton import HIPS
+    from models.motion.hands import hand_height, raise_share
 
     def share_of(motion):
         return raise_share(hand_height(model.maker.positions(motion.translations[:, 1], motion.rotations)))

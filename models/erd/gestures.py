@@ -10,7 +10,7 @@ raise-ups but lost the waves (model card). So the hand's own motion picks:
 
 - a hand that **waves**, swaying sideways against its shoulder, takes a prior fitted on the real
   style's gestures with a hand raised (`output_prior_gesture.npz`), mixed in by the raise share
-  (`raised_hand.raise_share`) times the wave share, at most `GESTURE_SHARE` (`GESTURE_STYLES`);
+  (`models.motion.hands.raise_share`) times the wave share, at most `GESTURE_SHARE` (`GESTURE_STYLES`);
 - a hand raised **without waving** (a raise-up) takes, toward feminine and youthful, the network's
   own upper arm and forearm on its side (with its leaf prior), out of the output prior and clamped
   into the style's range (`HELD_STYLES`); toward active, a prior fitted on the real style's
@@ -22,7 +22,7 @@ raise-ups but lost the waves (model card). So the hand's own motion picks:
   (`output_prior_hanging.npz`, the right arm only: `HANGING_SIDES`).
 
 The sway is each hand's horizontal speed relative to its shoulder (the UpperArm joint), averaged
-over `SWAY_FRAMES`. On the validation inputs' raised frames (hand at its shoulder or above) a
+over `SWAY_FRAMES` (`models.motion.hands`, with the ramps). On the validation inputs' raised frames (hand at its shoulder or above) a
 raise-up's sway has a median of 21-34 cm/s and a p90 of 41-60, a wave's a median of 57-96 and a
 p10 of 50-84; the wave share ramps between over `WAVE_RAMP_CM_S`. Causal: the step from the
 previous input frame; a session's first frame has no sway.
@@ -55,18 +55,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..motion.bn_skeleton import BN_JOINTS, HIPS
+from ..motion.hands import raise_share, side_heights, still_share, wave_share
 from ..motion.style_carry import StyleCarry
 from .dataset import TARGET_STYLES
-from .raised_hand import hand_offsets, raise_share, side_heights
 
 GESTURE_STYLES = ("feminine", "youthful", "active")  # a waving hand takes the gesture prior
 HELD_STYLES = ("feminine", "youthful")  # a still raised arm takes the network's
 RAISED_STYLES = ("active",)  # a still raised arm takes the raise-up prior, the other arm the hanging prior
 HANGING_SIDES = ("R",)  # the arms that take the hanging prior (the left one's cost right-hand gestures, module doc)
-WAVE_RAMP_CM_S = (40.0, 60.0)
-STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it (and takes the raise-up prior whole), not above
 GESTURE_SHARE = 0.5  # a fully waving hand's share of the gesture prior (the rest: the all-content prior)
-SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it 1 / SWAY_FRAMES of the way to the new speed
 HELD_JOINTS = ("UpperArm", "LowerArm")  # a raised, still arm's joints taken out of the output prior
 ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")  # a raised, still arm's joints the raise-up prior carries
 _GESTURE = np.array([TARGET_STYLES.index(s) for s in GESTURE_STYLES])
@@ -80,35 +77,6 @@ _HANGING = tuple("LR".index(side) for side in HANGING_SIDES)
 # by the output prior, with that prior in the run prior's place by that share (None: the run
 # prior by the gait, as the step carries every row)
 Carry = Callable[[np.ndarray, np.ndarray, "tuple[StyleCarry, np.ndarray] | None"], np.ndarray]
-
-
-def sway(before: np.ndarray, pos: np.ndarray, prev_pos: np.ndarray, has_prev: np.ndarray, fps: float) -> np.ndarray:
-    """(B, 2) each hand's averaged horizontal speed (cm/s) against its shoulder after this frame,
-    from the average before it (B, 2) and this and the previous input frame's world joint
-    positions (B, J, 3); a row without a previous frame starts at 0."""
-    step = hand_offsets(pos)[..., ::2] - hand_offsets(prev_pos)[..., ::2]  # x and z
-    speed = np.linalg.norm(step, axis=-1) * fps
-    return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
-
-
-def clip_sway(pos: np.ndarray, fps: float) -> np.ndarray:
-    """(T, 2) `sway` over every frame of a clip's positions (T, J, 3), as a stream sees it."""
-    out = np.zeros((len(pos), 2))
-    for t in range(1, len(pos)):
-        out[t] = sway(out[t - 1 : t], pos[t : t + 1], pos[t - 1 : t], np.ones(1, bool), fps)[0]
-    return out
-
-
-def wave_share(swayed: np.ndarray) -> np.ndarray:
-    """(..., 2) how much each hand waves: 0 up to the ramp, 1 from its end, linear between."""
-    lo, hi = WAVE_RAMP_CM_S
-    return np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
-
-
-def still_share(swayed: np.ndarray) -> np.ndarray:
-    """(..., 2) how still each hand is: 1 up to `STILL_RAMP_CM_S`, 0 from its end, linear between."""
-    lo, hi = STILL_RAMP_CM_S
-    return 1.0 - np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
 @dataclass(frozen=True)

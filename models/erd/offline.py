@@ -27,12 +27,13 @@ from models.motion.rotations import quat_mul, yaw_quat
 
 from ..motion.bn_skeleton import HIPS
 from ..motion.feet import model_rig_planter
+from ..motion.hands import clip_sway
 from ..motion.skeleton import Motion
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .gait import clip_smoothed_speed, eased_in, run_share
-from .gestures import ArmPriors, by_gesture, clip_sway
+from .gestures import ArmPriors, by_gesture
 from .model import Generator
 from .raised_hand import kept_in_range, output_prior_weights
 from .slow_carry import clip_carry_slow

@@ -29,36 +29,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..motion.bn_skeleton import BN_JOINTS, HIPS
+from ..motion.bn_skeleton import HIPS
+from ..motion.hands import hand_height, raise_share
 from ..motion.style_carry import StyleCarry
 from .dataset import TARGET_STYLES
 
-RAISE_RAMP_CM = (-12.0, 0.0)
 FADED_STYLES = ("elderly",)
 _FADED = np.array([TARGET_STYLES.index(s) for s in FADED_STYLES])
-_HANDS = np.array([BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")])
-_SHOULDERS = np.array([BN_JOINTS.index("UpperArm_L"), BN_JOINTS.index("UpperArm_R")])
-
-
-def hand_offsets(pos: np.ndarray) -> np.ndarray:
-    """(..., 2, 3) each hand (left, right) from its own shoulder, from world joint positions (..., J, 3)."""
-    return pos[..., _HANDS, :] - pos[..., _SHOULDERS, :]
-
-
-def side_heights(pos: np.ndarray) -> np.ndarray:
-    """(..., 2) each hand's height (cm) above its own shoulder (left, right), from world joint positions (..., J, 3)."""
-    return hand_offsets(pos)[..., 1]
-
-
-def hand_height(pos: np.ndarray) -> np.ndarray:
-    """(...,) the higher hand's height (cm) above its own shoulder, from world joint positions (..., J, 3)."""
-    return side_heights(pos).max(-1)
-
-
-def raise_share(height: np.ndarray) -> np.ndarray:
-    """(...,) how far each frame's hand is raised: 0 up to the ramp, 1 from the shoulder's height, linear between."""
-    lo, hi = RAISE_RAMP_CM
-    return np.minimum(np.maximum((np.asarray(height, np.float64) - lo) / (hi - lo), 0.0), 1.0)
 
 
 def output_prior_weights(weights: np.ndarray, pos: np.ndarray) -> np.ndarray:

@@ -46,6 +46,7 @@ import numpy as np
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
+from ..motion.hands import hanging_frames, raised_frames
 from ..motion.rotations import quat_inv, quat_mul, swing_twist
 from ..motion.style_carry import StyleCarry
 
@@ -170,24 +171,6 @@ def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.n
     ]
 
 
-def raised_frames(motion, side: int | None = None) -> np.ndarray:
-    """(T,) bool: the frames of a Bandai Namco `Motion` with a hand (`side` 0: the left, 1: the
-    right; None: either) at its shoulder or above (more than half way up `raised_hand.RAISE_RAMP_CM`)."""
-    from .raised_hand import raise_share, side_heights
-
-    heights = side_heights(motion.global_positions())
-    return raise_share(heights.max(-1) if side is None else heights[:, side]) > 0.5
-
-
-def hanging_frames(motion, side: int) -> np.ndarray:
-    """(T,) bool: the frames of a Bandai Namco `Motion` with the other hand raised and this
-    `side`'s not (each more or less than half way up `raised_hand.RAISE_RAMP_CM`)."""
-    from .raised_hand import raise_share, side_heights
-
-    up = raise_share(side_heights(motion.global_positions())) > 0.5
-    return up[:, 1 - side] & ~up[:, side]
-
-
 def _fit_on_frames(model, contents: tuple[str, ...], frames: Callable) -> StyleCarry:
     """An output prior on chosen frames (`frames(motion)` -> (T,) bool): the network (its leaf
     prior in place, no output prior) over the first `FIT_FRAMES` of `FIT_CLIPS_PER_CONTENT`
@@ -214,12 +197,10 @@ def _merged(base: StyleCarry, parts: list[tuple[StyleCarry, list[int]]], styles:
     """`base` with the rows of `styles` (of the model's `names`) replaced, joint by joint, by the
     `parts` (a carry and the joints taken from it); every other style keeps `base`'s maps, so a
     mix with them carries them as before (each joint's map is fitted on its own)."""
-    arrays = [np.array(a) for a in base.arrays]
     rows = [names.index(s) for s in styles]
     for part, joints in parts:
-        for out, a in zip(arrays, part.arrays):
-            out[np.ix_(rows, joints)] = a[np.ix_(rows, joints)]
-    return StyleCarry(*(np.ascontiguousarray(a) for a in arrays))
+        base = base.with_maps_of(part, rows, joints)
+    return base
 
 
 def fit_gesture_prior(model) -> StyleCarry:

@@ -68,6 +68,7 @@ from ..interface import FrameBatch, State
 from ..motion.bn_skeleton import HIPS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
+from ..motion.hands import hand_offsets, sway
 from ..motion.skeleton import Skeleton
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
@@ -76,7 +77,7 @@ from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
 from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
-from .gestures import ArmPriors, by_gesture, sway
+from .gestures import ArmPriors, by_gesture
 from .raised_hand import kept_in_range, output_prior_weights
 from .rotation_prior import PRIOR_FILES
 from .slow_carry import carry_slow
@@ -300,7 +301,7 @@ class ERDModel:
         out_rot, slow_out = carry_slow(
             self.output_prior, self.run_output_prior, network_rot, state["slow_out"], faded, share, hips=HIPS
         )
-        hand_sway = sway(state["hand_sway"], pos, state["prev_pos"], has_prev, FPS)
+        hand_sway = sway(state["hand_sway"], hand_offsets(pos), hand_offsets(state["prev_pos"]), has_prev, FPS)
         if self.gesture_prior is not None and self.output_prior is not None:
 
             def carry(rows: np.ndarray, weights: np.ndarray, mix: tuple[StyleCarry, np.ndarray] | None) -> np.ndarray:

@@ -164,6 +164,14 @@ class StyleCarry:
         """(source, mean, map, radius), as the compiled kernels take a carry."""
         return self.source, self.mean, self.map, self.radius
 
+    def with_maps_of(self, other: StyleCarry, styles, joints) -> StyleCarry:
+        """This carry with the maps of `styles` x `joints` (index lists) taken from `other`, fitted
+        apart on other frames (each joint's map is fitted on its own, so they combine)."""
+        arrays = [np.array(a) for a in self.arrays]
+        for out, a in zip(arrays, other.arrays):
+            out[np.ix_(styles, joints)] = a[np.ix_(styles, joints)]
+        return StyleCarry(*(np.ascontiguousarray(a) for a in arrays))
+
     @classmethod
     def stack(cls, carries: list[StyleCarry]) -> StyleCarry:
         """One carry holding each of `carries`' styles in turn (fitted apart, e.g. each with its

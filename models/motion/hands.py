@@ -1,0 +1,120 @@
+"""What a hand does, measured on the Bandai Namco rig: how far it is raised and how much it sways.
+
+Style-ERD (`models/erd/gestures.py`, `raised_hand.py`) and LTI (`models/lti/raised_arm.py`) switch
+a raised arm's rotation prior by these: a raised hand that holds still is a raise-up, one that
+sways is a wave. Causal, per frame: a frame's shares read that frame and the sway's running
+average.
+
+- **Raise share:** each hand's height above its own shoulder (the UpperArm joint) on a ramp over
+  `RAISE_RAMP_CM`: from the TRAIN `normal` runs' p99 (-12 cm; a running arm's swing reaches past it
+  in about 1 % of frames) to the shoulder's height (Style-ERD's card chose it on validation).
+- **Sway:** each hand's horizontal speed against its shoulder, an exponential average over
+  `SWAY_FRAMES`. On the validation inputs' raised frames a raise-up's has a median of 21-34 cm/s
+  (p90 41-60), a wave's a median of 57-96 (p10 50-84): the wave share ramps over `WAVE_RAMP_CM_S`,
+  the still share falls over `STILL_RAMP_CM_S`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .bn_skeleton import BN_JOINTS
+from .rotations import quat_apply, quat_mul
+from .skeleton import Skeleton
+
+RAISE_RAMP_CM = (-12.0, 0.0)
+WAVE_RAMP_CM_S = (40.0, 60.0)
+STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it, not above
+SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it 1 / SWAY_FRAMES of the way to the new speed
+_HANDS = np.array([BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")])
+_SHOULDERS = np.array([BN_JOINTS.index("UpperArm_L"), BN_JOINTS.index("UpperArm_R")])
+
+
+def hand_offsets(pos: np.ndarray) -> np.ndarray:
+    """(..., 2, 3) each hand (left, right) from its own shoulder, from world joint positions (..., J, 3)."""
+    return pos[..., _HANDS, :] - pos[..., _SHOULDERS, :]
+
+
+def hand_offsets_of(rotations: np.ndarray, skeleton: Skeleton) -> np.ndarray:
+    """(B, 2, 3) `hand_offsets` from local rotations (B, J, 4) alone: forward kinematics over the
+    hands' and shoulders' chains only (a translation moves both ends alike)."""
+    names = list(skeleton.names)
+    chain: set[int] = set()
+    for j in (*[names.index(BN_JOINTS[h]) for h in _HANDS], *[names.index(BN_JOINTS[s]) for s in _SHOULDERS]):
+        while j >= 0:
+            chain.add(j)
+            j = int(skeleton.parents[j])
+    q = np.asarray(rotations, np.float64)
+    g_rot: dict[int, np.ndarray] = {}
+    g_pos: dict[int, np.ndarray] = {}
+    for j in sorted(chain):  # parents come before their children on the rig
+        p = int(skeleton.parents[j])
+        if p < 0:
+            g_rot[j], g_pos[j] = q[:, j], np.zeros((len(q), 3))
+        else:
+            g_rot[j] = quat_mul(g_rot[p], q[:, j])
+            g_pos[j] = g_pos[p] + quat_apply(g_rot[p], np.broadcast_to(skeleton.offsets[j], (len(q), 3)))
+    ends = [[names.index(BN_JOINTS[i]) for i in idx] for idx in (_HANDS, _SHOULDERS)]
+    return np.stack([g_pos[h] - g_pos[s] for h, s in zip(*ends)], axis=1)
+
+
+def side_heights(pos: np.ndarray) -> np.ndarray:
+    """(..., 2) each hand's height (cm) above its own shoulder (left, right), from world joint positions (..., J, 3)."""
+    return hand_offsets(pos)[..., 1]
+
+
+def hand_height(pos: np.ndarray) -> np.ndarray:
+    """(...,) the higher hand's height (cm) above its own shoulder, from world joint positions (..., J, 3)."""
+    return side_heights(pos).max(-1)
+
+
+def raise_share(height: np.ndarray) -> np.ndarray:
+    """(...,) how far each frame's hand is raised: 0 up to the ramp, 1 from the shoulder's height, linear between."""
+    lo, hi = RAISE_RAMP_CM
+    return np.minimum(np.maximum((np.asarray(height, np.float64) - lo) / (hi - lo), 0.0), 1.0)
+
+
+def sway(
+    before: np.ndarray, offsets: np.ndarray, prev_offsets: np.ndarray, has_prev: np.ndarray, fps: float
+) -> np.ndarray:
+    """(B, 2) each hand's averaged horizontal speed (cm/s) against its shoulder after this frame,
+    from the average before it (B, 2) and this and the previous input frame's `hand_offsets`
+    (B, 2, 3); a row without a previous frame starts at 0."""
+    step = np.asarray(offsets)[..., ::2] - np.asarray(prev_offsets)[..., ::2]  # x and z
+    speed = np.linalg.norm(step, axis=-1) * fps
+    return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
+
+
+def clip_sway(pos: np.ndarray, fps: float) -> np.ndarray:
+    """(T, 2) `sway` over every frame of a clip's positions (T, J, 3), as a stream sees it."""
+    offsets = hand_offsets(pos)
+    out = np.zeros((len(pos), 2))
+    for t in range(1, len(pos)):
+        out[t] = sway(out[t - 1 : t], offsets[t : t + 1], offsets[t - 1 : t], np.ones(1, bool), fps)[0]
+    return out
+
+
+def wave_share(swayed: np.ndarray) -> np.ndarray:
+    """(..., 2) how much each hand waves: 0 up to `WAVE_RAMP_CM_S`, 1 from its end, linear between."""
+    lo, hi = WAVE_RAMP_CM_S
+    return np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+
+def still_share(swayed: np.ndarray) -> np.ndarray:
+    """(..., 2) how still each hand is: 1 up to `STILL_RAMP_CM_S`, 0 from its end, linear between."""
+    lo, hi = STILL_RAMP_CM_S
+    return 1.0 - np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+
+def raised_frames(motion, side: int | None = None) -> np.ndarray:
+    """(T,) bool: the frames of a Bandai Namco `Motion` with a hand (`side` 0: the left, 1: the
+    right; None: either) at its shoulder or above (more than half way up `RAISE_RAMP_CM`)."""
+    heights = side_heights(motion.global_positions())
+    return raise_share(heights.max(-1) if side is None else heights[:, side]) > 0.5
+
+
+def hanging_frames(motion, side: int) -> np.ndarray:
+    """(T,) bool: the frames of a Bandai Namco `Motion` with the other hand raised and this
+    `side`'s not (each more or less than half way up `RAISE_RAMP_CM`)."""
+    up = raise_share(side_heights(motion.global_positions())) > 0.5
+    return up[:, 1 - side] & ~up[:, side]
