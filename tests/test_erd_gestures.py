@@ -56,10 +56,10 @@ def _weights(model, **mix: float) -> np.ndarray:
 def _shares(model, motion) -> tuple[np.ndarray, np.ndarray]:
     """(T, 2) each hand's raise share and wave share, as the stream measures them."""
     from models.erd.features import FPS
-    from models.motion.hands import clip_sway, raise_share, side_heights, wave_share
+    from models.motion.hands import clip_sway, hand_offsets, raise_share, side_heights, wave_share
 
     pos = model.maker.positions(motion.translations[:, 1], motion.rotations)
-    return raise_share(side_heights(pos)), wave_share(clip_sway(pos, FPS))
+    return raise_share(side_heights(pos)), wave_share(clip_sway(hand_offsets(pos), FPS))
 
 
 def test_the_sway_tells_a_wave_from_a_raise_up(model, index):
@@ -132,14 +132,16 @@ def test_a_still_raised_hand_toward_active_takes_the_raise_up_prior_on_its_arm_a
     the hand goes up every joint is as before."""
     from models.erd.features import FPS
     from models.erd.gestures import ARM_JOINTS
-    from models.motion.hands import clip_sway, still_share
+    from models.motion.hands import clip_sway, hand_offsets, still_share
 
     without = copy.copy(model)
     without.raise_prior = None
     w = _weights(model, active=1.0)
     raised, _ = _shares(model, raise_up)
     pos = model.maker.positions(raise_up.translations[:, 1], raise_up.rotations)
-    still = (raised[:, 0] == 1.0) & (still_share(clip_sway(pos, FPS))[:, 0] == 1.0) & (raised[:, 1] == 0.0)
+    still = (
+        (raised[:, 0] == 1.0) & (still_share(clip_sway(hand_offsets(pos), FPS))[:, 0] == 1.0) & (raised[:, 1] == 0.0)
+    )
     down = np.cumsum(raised.max(-1)) == 0.0
     assert still.sum() >= 10 and down.sum() >= 5
     got, before = streamed_rotations(model, raise_up, w), streamed_rotations(without, raise_up, w)

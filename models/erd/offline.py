@@ -27,7 +27,7 @@ from models.motion.rotations import quat_mul, yaw_quat
 
 from ..motion.bn_skeleton import HIPS
 from ..motion.feet import model_rig_planter
-from ..motion.hands import clip_sway
+from ..motion.hands import clip_sway, hand_offsets
 from ..motion.skeleton import Motion
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
@@ -110,7 +110,7 @@ def stylise(
             return clip_carry_slow(output_prior, run, network_rots, w_all, by, hips=HIPS)[rows]
 
         arms = ArmPriors(gesture_prior, raise_prior, hanging_prior)
-        rots = by_gesture(rots, carry, output_prior, faded, pos, clip_sway(pos, FPS), network_rots, arms)
+        rots = by_gesture(rots, carry, output_prior, faded, pos, clip_sway(hand_offsets(pos), FPS), network_rots, arms)
     rots = kept_in_range(output_prior, rots, w_frames, faded)
     if twist_range is not None:
         rots = twist_range(rots, w_frames)

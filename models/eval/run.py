@@ -615,7 +615,7 @@ def markdown(r: dict) -> str:
         "contents and clip length as the inputs.",
         "",
         "What selected what: no checkpoint or setting of any method was chosen on the test clips. Some were chosen on "
-        "VALIDATION clips scored by these same judges (the LTI context inputs, the Style-ERD rotation prior variant, "
+        "VALIDATION clips scored by these same judges (the LTI context inputs and raised arm, the Style-ERD rotation prior variant, "
         "its run priors and the run output prior's source for feminine and active, its raised-hand fade, its gesture "
         "prior, held raised arm, raise-up and hanging arm priors, its arms' twist range, the LPN-FiLM arm and run carriage, output prior, that prior's split by gait and its arm coupling); each model card "
         "says which validation numbers chose what, and `python -m models.eval --split val` prints this report on those "

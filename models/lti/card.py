@@ -149,7 +149,7 @@ def write_model_card(bench: str, train_time: str, command: str, out: Path = WEIG
             f"{r['train_pairs']} / {r['train_frames']} | {r['state_dim']} | "
             f"{r.get('raw_spectral_radius_max', float('nan')):.3f} → {r['spectral_radius']:.3f} | {r.get('eigenvalues_moved', '?')} |"
         )
-    size = sum(p.stat().st_size for p in WEIGHTS_DIR.glob("*.npz")) / 1024
+    size = sum(p.stat().st_size for p in WEIGHTS_DIR.glob("*.npz")) / 1024  # the translators and the raised arm
     text = TEMPLATE.format(
         size_kb=size,
         horizon=cfg["horizon"],

@@ -47,15 +47,25 @@ from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import STATE_SHAPES as FEET_STATE
 from models.motion.feet import model_rig_planter
+from models.motion.hands import clip_sway, hand_offsets_of, sway
+from models.motion.style_carry import StyleCarry
 
-from . import kernels
+from . import kernels, raised_arm
 from . import representation as rep
 from .footplant import FootplantClassifier
 from .prior import clamp_rotations
 from .styles import LTIStyles
 
 # state entries besides the styles' x.<style>: per-session shape after the session axis
-SHARED_SHAPES = {"started": (), "in_yaw": (), "in_ground": (2,), "out_yaw": (), "out_ground": (2,)}
+SHARED_SHAPES = {
+    "started": (),
+    "in_yaw": (),
+    "in_ground": (2,),
+    "out_yaw": (),
+    "out_ground": (2,),
+    "hand_prev": (2, 3),  # the input's hands from their shoulders, the frame before (`models.motion.hands`)
+    "hand_sway": (2,),  # their sway (`raised_arm.py`)
+}
 SHARED_KEYS = tuple(SHARED_SHAPES) + tuple(FEET_STATE)  # and the foot planter's
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 
@@ -82,6 +92,7 @@ class StyleTranslator:
     keep_heading: bool = True  # output yaw change := input yaw change (no heading drift); not stored
     prior_mean: np.ndarray | None = None  # (22, 4) rotation prior (prior.py): the real style's mean per joint
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
+    raised_arm: StyleCarry | None = None  # a still raised hand's arm carry (`raised_arm.py`); not stored here
 
     def __post_init__(self) -> None:
         n = self.A.shape[0]
@@ -136,6 +147,10 @@ class StyleTranslator:
         )
         if self.prior_mean is not None and self.prior_radii is not None:
             rots = clamp_rotations(rots, self.prior_mean, self.prior_radii)
+        if self.raised_arm is not None:
+            offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
+            share = raised_arm.shares(offsets, clip_sway(offsets, motion.fps))
+            rots = raised_arm.carried(self.raised_arm, rots, np.ones((len(rots), 1)), share)
         contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
         if footlock:
             root, rots, contacts = model_rig_planter(motion.fps).clip(root, rots, hints=contacts)
@@ -206,6 +221,7 @@ class _StyleSet(NamedTuple):
     x_slices: dict[str, slice]  # state key of each style's LTI state -> its columns in the kernel's x, in style order
     state_keys: frozenset[str]
     packed: kernels.PackedStyles
+    arm: tuple[StyleCarry, np.ndarray] | None  # the styles' raised-arm carries stacked, and their weight columns
 
 
 class LTIStyleModel(LTIStyles):
@@ -240,11 +256,16 @@ class LTIStyleModel(LTIStyles):
         footlock: bool = True,
         keep_heading: bool = True,
         skeleton=None,
+        raised_arms: bool = True,
     ):
         if translators is None:
             translators = {}
+            arms = raised_arm.load(Path(weights_dir)) if raised_arms else {}
             for path in sorted(Path(weights_dir).glob("*.npz")):
+                if path.name == raised_arm.FILE:
+                    continue
                 t = StyleTranslator.load(path)
+                t.raised_arm = arms.get(t.style)
                 translators[t.style] = t
         if not translators:
             raise FileNotFoundError(f"no LTI weights (*.npz) in {weights_dir}")
@@ -282,7 +303,10 @@ class LTIStyleModel(LTIStyles):
         kernel's packed constants) and replaced whole, so a reader sees one consistent set."""
         packed = kernels.pack_styles([self.translators[s] for s in styles])
         x_slices = {f"x.{s}": slice(int(a), int(b)) for s, a, b in zip(styles, packed.x_off[:-1], packed.x_off[1:])}
-        self._set = _StyleSet(styles, x_slices, frozenset(SHARED_KEYS) | set(x_slices), packed)
+        cols = [k for k, s in enumerate(styles) if self.translators[s].raised_arm is not None]
+        carries = [self.translators[styles[k]].raised_arm for k in cols]
+        arm = (StyleCarry.stack(carries), np.array(cols)) if carries else None  # type: ignore[arg-type]
+        self._set = _StyleSet(styles, x_slices, frozenset(SHARED_KEYS) | set(x_slices), packed, arm)
 
     @property
     def _styles(self) -> list[str]:
@@ -315,6 +339,9 @@ class LTIStyleModel(LTIStyles):
         batch = len(state["started"])
         # a snapshot from before the foot planter (its `lock_*` keys dropped) plants from its next frame
         out = self.planter.upgrade_state({k: state[k] for k in SHARED_KEYS if k in state}, batch)
+        for key, shape in SHARED_SHAPES.items():  # a snapshot from before the raised arm: its sway starts again
+            if key not in out:
+                out[key] = np.zeros((batch, *shape))
         for s in self._styles:
             x, n = state.get(f"x.{s}"), self.translators[s].n
             out[f"x.{s}"] = x if x is not None and x.shape[1] == n else np.zeros((batch, n))
@@ -328,6 +355,8 @@ class LTIStyleModel(LTIStyles):
             "in_ground": np.zeros((batch, 2)),
             "out_yaw": np.zeros(batch),
             "out_ground": np.zeros((batch, 2)),
+            "hand_prev": np.zeros((batch, 2, 3)),
+            "hand_sway": np.zeros((batch, 2)),
             **self.planter.init_state(batch),
         }
 
@@ -347,7 +376,7 @@ class LTIStyleModel(LTIStyles):
         root = np.ascontiguousarray(frames.root, dtype=np.float64)
         rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
         w = np.ascontiguousarray(style_weights, dtype=np.float64)
-        styles, x_slices, _, packed = self._set
+        styles, x_slices, _, packed, _ = self._set
         B = len(root)
         # the kernel trusts every shape (no bounds checks): anything else is a clear error here
         if root.shape != (B, 3) or rotations.shape != (B, rep.NUM_JOINTS, 4):
@@ -401,6 +430,17 @@ class LTIStyleModel(LTIStyles):
         )
         for key, cols in x_slices.items():
             new[key] = new_x[:, cols]
+        # the input's hands: while one is raised and still, its arm is carried (`raised_arm.py`);
+        # the first frame of a session (or of a snapshot from before them) has no sway
+        offsets = hand_offsets_of(rotations, self.skeleton)
+        has_prev = state["started"] & np.any(state["hand_prev"] != 0.0, axis=(1, 2))
+        new["hand_prev"] = offsets
+        new["hand_sway"] = sway(state["hand_sway"], offsets, state["hand_prev"], has_prev, self.fps)
+        if self._set.arm is not None:
+            carry, arm_cols = self._set.arm
+            arm_w = w[:, arm_cols]
+            share = raised_arm.shares(offsets, new["hand_sway"]) * (arm_w.sum(-1) > 0.0)[:, None]
+            out = FrameBatch(out.root, raised_arm.carried(carry, out.rotations, arm_w, share), out.contacts)
         feet = {k: state[k] for k in FEET_STATE}
         if self.footlock:
             planted_root, planted_rot, contacts, feet = self.planter(

@@ -85,11 +85,10 @@ def sway(
     return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
 
 
-def clip_sway(pos: np.ndarray, fps: float) -> np.ndarray:
-    """(T, 2) `sway` over every frame of a clip's positions (T, J, 3), as a stream sees it."""
-    offsets = hand_offsets(pos)
-    out = np.zeros((len(pos), 2))
-    for t in range(1, len(pos)):
+def clip_sway(offsets: np.ndarray, fps: float) -> np.ndarray:
+    """(T, 2) `sway` over every frame of a clip's `hand_offsets` (T, 2, 3), as a stream sees it."""
+    out = np.zeros((len(offsets), 2))
+    for t in range(1, len(offsets)):
         out[t] = sway(out[t - 1 : t], offsets[t : t + 1], offsets[t - 1 : t], np.ones(1, bool), fps)[0]
     return out
 
