@@ -47,7 +47,7 @@ from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import STATE_SHAPES as FEET_STATE
 from models.motion.feet import model_rig_planter
-from models.motion.hands import clip_sway, hand_offsets_of, sway
+from models.motion.hands import HandMeter, clip_sway, hand_offsets_of
 from models.motion.style_carry import StyleCarry
 
 from . import kernels, raised_arm
@@ -277,6 +277,7 @@ class LTIStyleModel(LTIStyles):
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
         self.planter = model_rig_planter(self.fps)
+        self._hands = HandMeter(self.skeleton)  # the input's hands, for the raised arm (`raised_arm.py`)
         self._scratch = threading.local()  # per thread: step scratch reused between steps (`_workspace`)
         self._set_styles(sorted(translators))
         self._compile_step()
@@ -287,6 +288,9 @@ class LTIStyleModel(LTIStyles):
         rest = np.zeros((1, rep.NUM_JOINTS, 4))
         rest[..., 3] = 1.0
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), np.zeros((1, len(self._styles))))
+        if self._set.arm is not None:  # the raised arm's carry too, which a rest pose's hands never reach
+            carry, cols = self._set.arm
+            raised_arm.carried(carry, rest, np.full((1, len(cols)), 1.0 / len(cols)), np.ones((1, 2)))
 
     def styles(self) -> list[str]:
         return list(self._styles)
@@ -432,11 +436,12 @@ class LTIStyleModel(LTIStyles):
             new[key] = new_x[:, cols]
         # the input's hands: while one is raised and still, its arm is carried (`raised_arm.py`);
         # the first frame of a session (or of a snapshot from before them) has no sway
-        offsets = hand_offsets_of(rotations, self.skeleton)
         has_prev = state["started"] & np.any(state["hand_prev"] != 0.0, axis=(1, 2))
+        offsets, new["hand_sway"] = self._hands.step(
+            rotations, state["hand_prev"], state["hand_sway"], has_prev, self.fps
+        )
         new["hand_prev"] = offsets
-        new["hand_sway"] = sway(state["hand_sway"], offsets, state["hand_prev"], has_prev, self.fps)
-        if self._set.arm is not None:
+        if self._set.arm is not None and raised_arm.any_raised(offsets):  # a walk's hands never are
             carry, arm_cols = self._set.arm
             arm_w = w[:, arm_cols]
             share = raised_arm.shares(offsets, new["hand_sway"]) * (arm_w.sum(-1) > 0.0)[:, None]

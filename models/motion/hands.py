@@ -35,27 +35,74 @@ def hand_offsets(pos: np.ndarray) -> np.ndarray:
     return pos[..., _HANDS, :] - pos[..., _SHOULDERS, :]
 
 
-def hand_offsets_of(rotations: np.ndarray, skeleton: Skeleton) -> np.ndarray:
-    """(B, 2, 3) `hand_offsets` from local rotations (B, J, 4) alone: forward kinematics over the
-    hands' and shoulders' chains only (a translation moves both ends alike)."""
+def _arm_chain(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(the joints from the root to each hand and shoulder, parents first; the hands; the
+    shoulders), as indices into `skeleton`."""
     names = list(skeleton.names)
+    hands = np.array([names.index(BN_JOINTS[h]) for h in _HANDS])
+    shoulders = np.array([names.index(BN_JOINTS[s]) for s in _SHOULDERS])
     chain: set[int] = set()
-    for j in (*[names.index(BN_JOINTS[h]) for h in _HANDS], *[names.index(BN_JOINTS[s]) for s in _SHOULDERS]):
+    for j in (*hands, *shoulders):
+        j = int(j)
         while j >= 0:
             chain.add(j)
             j = int(skeleton.parents[j])
+    return np.array(sorted(chain)), hands, shoulders  # parents come before their children on the rig
+
+
+class HandMeter:
+    """`hand_offsets` from local rotations alone and the sway's step, compiled
+    (`hands_kernels.hand_step`): forward kinematics over the arm chains of `skeleton` only (a
+    translation moves both ends alike), set up once per skeleton (numpy: `hand_offsets_of`, `sway`)."""
+
+    def __init__(self, skeleton: Skeleton) -> None:
+        self.chain, self.hands, self.shoulders = _arm_chain(skeleton)
+        self.parents = np.ascontiguousarray(skeleton.parents, np.int64)
+        self.offsets = np.ascontiguousarray(skeleton.offsets, np.float64)
+
+    def step(
+        self, rotations: np.ndarray, prev: np.ndarray, before: np.ndarray, has_prev: np.ndarray, fps: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """((B, 2, 3) each hand's offset from its shoulder, (B, 2) the sway after this frame) from
+        local rotations (B, J, 4), the previous frame's offsets `prev` and the sway `before`."""
+        from .hands_kernels import hand_step
+
+        q = np.ascontiguousarray(rotations, np.float64)
+        out, swayed = np.empty((len(q), 2, 3)), np.empty((len(q), 2))
+        hand_step(
+            q,
+            self.parents,
+            self.offsets,
+            self.chain,
+            self.hands,
+            self.shoulders,
+            np.ascontiguousarray(prev, np.float64),
+            np.ascontiguousarray(before, np.float64),
+            np.asarray(has_prev, np.bool_),
+            float(fps),
+            SWAY_FRAMES,
+            out,
+            swayed,
+        )
+        return out, swayed
+
+
+def hand_offsets_of(rotations: np.ndarray, skeleton: Skeleton) -> np.ndarray:
+    """(B, 2, 3) `hand_offsets` from local rotations (B, J, 4) alone (numpy forward kinematics
+    over the arm chains; the reference of `hand_step`)."""
+    chain, hands, shoulders = _arm_chain(skeleton)
     q = np.asarray(rotations, np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     g_rot: dict[int, np.ndarray] = {}
     g_pos: dict[int, np.ndarray] = {}
-    for j in sorted(chain):  # parents come before their children on the rig
+    for j in chain:
         p = int(skeleton.parents[j])
         if p < 0:
             g_rot[j], g_pos[j] = q[:, j], np.zeros((len(q), 3))
         else:
             g_rot[j] = quat_mul(g_rot[p], q[:, j])
             g_pos[j] = g_pos[p] + quat_apply(g_rot[p], np.broadcast_to(skeleton.offsets[j], (len(q), 3)))
-    ends = [[names.index(BN_JOINTS[i]) for i in idx] for idx in (_HANDS, _SHOULDERS)]
-    return np.stack([g_pos[h] - g_pos[s] for h, s in zip(*ends)], axis=1)
+    return np.stack([g_pos[h] - g_pos[s] for h, s in zip(hands, shoulders)], axis=1)
 
 
 def side_heights(pos: np.ndarray) -> np.ndarray:
