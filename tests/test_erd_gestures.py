@@ -125,32 +125,40 @@ def test_other_styles_stream_as_before(model, raise_up, wave, mix):
         np.testing.assert_array_equal(streamed_rotations(model, motion, w), streamed_rotations(without, motion, w))
 
 
+def _only_the_arm_moves(model, motion, prior: str, side: str, frames: np.ndarray, raised: np.ndarray) -> None:
+    """Toward active, with and without the model's `prior`: on `frames` the `side` arm moved and
+    the spine, head and other arm exactly as they were; before any hand goes up every joint."""
+    from models.erd.gestures import ARM_JOINTS
+
+    without = copy.copy(model)
+    setattr(without, prior, None)
+    w = _weights(model, active=1.0)
+    down = np.cumsum(raised.max(-1)) == 0.0
+    assert frames.sum() >= 10 and down.sum() >= 5
+    got, before = streamed_rotations(model, motion, w), streamed_rotations(without, motion, w)
+    other = "R" if side == "L" else "L"
+    arm = [model.skeleton.index(f"{j}_{side}") for j in ARM_JOINTS]
+    rest = [model.skeleton.index(j) for j in ("Spine", "Chest", "Neck", "Head")]
+    rest += [model.skeleton.index(f"{j}_{other}") for j in ARM_JOINTS]
+    assert np.median(np.degrees(quat_angle(got, before))[frames][:, arm].max(axis=-1)) > 2.0
+    np.testing.assert_array_equal(got[frames][:, rest], before[frames][:, rest])
+    np.testing.assert_array_equal(got[down], before[down])
+
+
 def test_a_still_raised_hand_toward_active_takes_the_raise_up_prior_on_its_arm_alone(model, raise_up):
     """Toward active (`RAISED_STYLES`), on a raise-up's frames with the hand up and still, the
     raised side's arm is carried by the raise-up prior and the rest of the upper body is what it
     was without it (the legs are the foot planter's, which remembers the frames before); until
     the hand goes up every joint is as before."""
     from models.erd.features import FPS
-    from models.erd.gestures import ARM_JOINTS
     from models.motion.hands import clip_sway, hand_offsets, still_share
 
-    without = copy.copy(model)
-    without.raise_prior = None
-    w = _weights(model, active=1.0)
     raised, _ = _shares(model, raise_up)
     pos = model.maker.positions(raise_up.translations[:, 1], raise_up.rotations)
-    still = (
-        (raised[:, 0] == 1.0) & (still_share(clip_sway(hand_offsets(pos), FPS))[:, 0] == 1.0) & (raised[:, 1] == 0.0)
+    still = still_share(clip_sway(hand_offsets(pos), FPS))[:, 0] == 1.0
+    _only_the_arm_moves(
+        model, raise_up, "raise_prior", "L", (raised[:, 0] == 1.0) & still & (raised[:, 1] == 0.0), raised
     )
-    down = np.cumsum(raised.max(-1)) == 0.0
-    assert still.sum() >= 10 and down.sum() >= 5
-    got, before = streamed_rotations(model, raise_up, w), streamed_rotations(without, raise_up, w)
-    arm = [model.skeleton.index(f"{j}_L") for j in ARM_JOINTS]
-    rest = [model.skeleton.index(j) for j in ("Spine", "Chest", "Neck", "Head")]
-    rest += [model.skeleton.index(f"{j}_R") for j in ARM_JOINTS]
-    assert np.median(np.degrees(quat_angle(got, before))[still][:, arm].max(axis=-1)) > 2.0
-    np.testing.assert_array_equal(got[still][:, rest], before[still][:, rest])
-    np.testing.assert_array_equal(got[down], before[down])
 
 
 def test_the_raise_up_prior_is_fitted_for_active_s_arms_alone(model):
@@ -170,22 +178,8 @@ def test_the_raise_up_prior_is_fitted_for_active_s_arms_alone(model):
 def test_toward_active_the_hanging_right_arm_takes_the_hanging_prior_alone(model, raise_up):
     """While the left hand is up and the right one down, toward active the right arm is carried by
     the hanging prior and nothing else moves; before the hand goes up every joint is as before."""
-    from models.erd.gestures import ARM_JOINTS
-
-    without = copy.copy(model)
-    without.hanging_prior = None
-    w = _weights(model, active=1.0)
     raised, _ = _shares(model, raise_up)
-    hanging = (raised[:, 0] == 1.0) & (raised[:, 1] == 0.0)
-    down = np.cumsum(raised.max(-1)) == 0.0
-    assert hanging.sum() >= 10 and down.sum() >= 5
-    got, before = streamed_rotations(model, raise_up, w), streamed_rotations(without, raise_up, w)
-    arm = [model.skeleton.index(f"{j}_R") for j in ARM_JOINTS]
-    rest = [model.skeleton.index(j) for j in ("Spine", "Chest", "Neck", "Head")]
-    rest += [model.skeleton.index(f"{j}_L") for j in ARM_JOINTS]
-    assert np.median(np.degrees(quat_angle(got, before))[hanging][:, arm].max(axis=-1)) > 2.0
-    np.testing.assert_array_equal(got[hanging][:, rest], before[hanging][:, rest])
-    np.testing.assert_array_equal(got[down], before[down])
+    _only_the_arm_moves(model, raise_up, "hanging_prior", "R", (raised[:, 0] == 1.0) & (raised[:, 1] == 0.0), raised)
 
 
 def test_the_hanging_prior_is_fitted_for_active_s_right_arm_alone(model):
