@@ -307,9 +307,8 @@ class LTIStyleModel(LTIStyles):
         kernel's packed constants) and replaced whole, so a reader sees one consistent set."""
         packed = kernels.pack_styles([self.translators[s] for s in styles])
         x_slices = {f"x.{s}": slice(int(a), int(b)) for s, a, b in zip(styles, packed.x_off[:-1], packed.x_off[1:])}
-        cols = [k for k, s in enumerate(styles) if self.translators[s].raised_arm is not None]
-        carries = [self.translators[styles[k]].raised_arm for k in cols]
-        arm = (StyleCarry.stack(carries), np.array(cols)) if carries else None  # type: ignore[arg-type]
+        fitted = [(k, c) for k, c in enumerate(self.translators[s].raised_arm for s in styles) if c is not None]
+        arm = (StyleCarry.stack([c for _, c in fitted]), np.array([k for k, _ in fitted])) if fitted else None
         self._set = _StyleSet(styles, x_slices, frozenset(SHARED_KEYS) | set(x_slices), packed, arm)
 
     @property
