@@ -17,13 +17,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
 PARTS = ("erd", "lpn", "lti", "service", "data")
 
 
 def warm(part: str) -> None:
-    """Compile (or load) one part's kernels, or unpack the archives (`data`)."""
+    """Compile (or load) one part's kernels, or unpack the archives (`data`): a model is loaded
+    and stepped once, as the server's start (and the image build) warms it."""
     if part == "data":
         from models.data import build_index
 
@@ -35,17 +34,10 @@ def warm(part: str) -> None:
         frame_check.warm()
         skeletons.warm()
         return
-    from models.interface import FrameBatch
     from models.settings import get_settings
+    from service.runtime import warm_up
 
-    model = importlib.import_module(f"models.{part}").load(get_settings().weights_dir / part)
-    rotations = np.zeros((2, len(model.skeleton.names), 4), np.float32)
-    rotations[..., 3] = 1.0
-    weights = np.zeros((2, len(model.styles())), np.float32)
-    weights[:, 0] = 1.0
-    state = model.init_state(2)
-    for _ in range(3):  # a few frames of two sessions: the paths a first frame skips compile too
-        _, state = model.step_batch(state, FrameBatch(np.tile([0.0, 90.0, 0.0], (2, 1)), rotations), weights)
+    warm_up(importlib.import_module(f"models.{part}").load(get_settings().weights_dir / part))
 
 
 def warm_all() -> None:
