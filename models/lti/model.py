@@ -435,12 +435,11 @@ class LTIStyleModel(LTIStyles):
             new[key] = new_x[:, cols]
         # the input's hands: while one is raised and still, its arm is carried (`raised_arm.py`);
         # the first frame of a session (or of a snapshot from before them) has no sway
-        has_prev = state["started"] & np.any(state["hand_prev"] != 0.0, axis=(1, 2))
-        offsets, new["hand_sway"] = self._hands.step(
-            rotations, state["hand_prev"], state["hand_sway"], has_prev, self.fps
+        offsets, new["hand_sway"], raised = self._hands.step(
+            rotations, state["hand_prev"], state["hand_sway"], state["started"], self.fps
         )
         new["hand_prev"] = offsets
-        if self._set.arm is not None and raised_arm.any_raised(offsets):  # a walk's hands never are
+        if self._set.arm is not None and raised:
             carry, arm_cols = self._set.arm
             arm_w = w[:, arm_cols]
             share = raised_arm.shares(offsets, new["hand_sway"]) * (arm_w.sum(-1) > 0.0)[:, None]

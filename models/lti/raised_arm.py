@@ -29,7 +29,7 @@ import numpy as np
 
 from ..motion.bn_skeleton import BN_JOINTS, HIPS, ROOT
 from ..motion.feet import LEG_JOINTS
-from ..motion.hands import RAISE_RAMP_CM, raise_share, raised_frames, still_share
+from ..motion.hands import raise_share, raised_frames, still_share
 from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry
 
@@ -45,12 +45,6 @@ def shares(offsets: np.ndarray, swayed: np.ndarray) -> np.ndarray:
     """(B, 2) how far each arm is moved: its hand's raise share times its still share, from the
     input's `hand_offsets` (B, 2, 3) and sway (B, 2)."""
     return raise_share(np.asarray(offsets)[..., 1]) * still_share(swayed)
-
-
-def any_raised(offsets: np.ndarray) -> bool:
-    """Whether any hand (`hand_offsets` (B, 2, 3)) is on its raise ramp: the step's shortcut,
-    since a walk's or a run's never is."""
-    return bool(np.any(np.asarray(offsets)[..., 1] > RAISE_RAMP_CM[0]))
 
 
 def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share: np.ndarray) -> np.ndarray:

@@ -61,15 +61,18 @@ class HandMeter:
         self.offsets = np.ascontiguousarray(skeleton.offsets, np.float64)
 
     def step(
-        self, rotations: np.ndarray, prev: np.ndarray, before: np.ndarray, has_prev: np.ndarray, fps: float
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """((B, 2, 3) each hand's offset from its shoulder, (B, 2) the sway after this frame) from
-        local rotations (B, J, 4), the previous frame's offsets `prev` and the sway `before`."""
+        self, rotations: np.ndarray, prev: np.ndarray, before: np.ndarray, started: np.ndarray, fps: float
+    ) -> tuple[np.ndarray, np.ndarray, bool]:
+        """((B, 2, 3) each hand's offset from its shoulder, (B, 2) the sway after this frame, whether
+        any hand is on its raise ramp) from local rotations (B, J, 4), the previous frame's offsets
+        `prev` and the sway `before`. A row has no previous frame unless `started`, nor while
+        `prev` is all zeros (a state from before the meter); its sway starts at 0. The last value
+        lets a caller skip what only a raised hand needs (a walk's or a run's never is)."""
         from .hands_kernels import hand_step
 
         q = np.ascontiguousarray(rotations, np.float64)
         out, swayed = np.empty((len(q), 2, 3)), np.empty((len(q), 2))
-        hand_step(
+        raised = hand_step(
             q,
             self.parents,
             self.offsets,
@@ -78,13 +81,14 @@ class HandMeter:
             self.shoulders,
             np.ascontiguousarray(prev, np.float64),
             np.ascontiguousarray(before, np.float64),
-            np.asarray(has_prev, np.bool_),
+            np.asarray(started, np.bool_),
             float(fps),
             SWAY_FRAMES,
+            RAISE_RAMP_CM[0],
             out,
             swayed,
         )
-        return out, swayed
+        return out, swayed, bool(raised)
 
 
 def hand_offsets_of(rotations: np.ndarray, skeleton: Skeleton) -> np.ndarray:

@@ -33,15 +33,24 @@ def _apply(x, y, z, w, vx, vy, vz):
 
 
 @njit(cache=True, error_model="numpy")
-def hand_step(rot, parents, offsets, chain, hands, shoulders, prev, before, has_prev, fps, frames, out, swayed):
+def hand_step(rot, parents, offsets, chain, hands, shoulders, prev, before, started, fps, frames, above, out, swayed):
     """Per row b of local rotations rot (B, J, 4): each hand's offset from its shoulder (out
     (B, 2, 3)) by forward kinematics over `chain` (joint indices, parents first; the chain's root
     at the origin), and its sway after this frame (swayed (B, 2)) from the sway `before` and the
-    previous frame's offsets `prev`, averaged over `frames` (0 where the row has no previous frame)."""
+    previous frame's offsets `prev`, averaged over `frames`. A row has no previous frame (its sway
+    is 0) unless `started`, or when `prev` is all zeros (a hand is never at its shoulder: a state
+    from before the meter). Returns whether any hand is higher than `above` over its shoulder."""
     J = rot.shape[1]
     g = np.empty((J, 4))
     p = np.empty((J, 3))
+    raised = False
     for b in range(rot.shape[0]):
+        has_prev = False
+        if started[b]:
+            for s in range(2):
+                for k in range(3):
+                    if prev[b, s, k] != 0.0:
+                        has_prev = True
         for j in chain:
             x, y, z, w = rot[b, j, 0], rot[b, j, 1], rot[b, j, 2], rot[b, j, 3]
             n = math.sqrt(x * x + y * y + z * z + w * w)
@@ -57,9 +66,12 @@ def hand_step(rot, parents, offsets, chain, hands, shoulders, prev, before, has_
         for s in range(2):
             for k in range(3):
                 out[b, s, k] = p[hands[s], k] - p[shoulders[s], k]
-            if has_prev[b]:
+            if out[b, s, 1] > above:
+                raised = True
+            if has_prev:
                 dx, dz = out[b, s, 0] - prev[b, s, 0], out[b, s, 2] - prev[b, s, 2]
                 speed = math.sqrt(dx * dx + dz * dz) * fps
                 swayed[b, s] = before[b, s] + (speed - before[b, s]) / frames
             else:
                 swayed[b, s] = 0.0
+    return raised
