@@ -71,14 +71,14 @@ def _carry(model, which: str, rot: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _compared(which: str, rot: np.ndarray) -> np.ndarray:
-    from models.erd.rotation_prior import without_heading
+    from models.motion.rotation_ball import comparable
 
-    return without_heading(rot)[1] if which == "output_prior" else rot
+    return comparable(rot) if which == "output_prior" else rot
 
 
 @pytest.mark.parametrize("which", ["leaf_prior", "output_prior"])
 def test_no_style_changes_nothing_and_a_style_stays_in_its_real_range(model, neutral, which):
-    from models.erd.rotation_prior import without_heading
+    from models.motion.rotation_ball import split_heading
 
     prior = getattr(model, which)
     if prior is None:
@@ -100,7 +100,7 @@ def test_no_style_changes_nothing_and_a_style_stays_in_its_real_range(model, neu
         if which == "leaf_prior":
             assert np.all(_apart(moved[:, 1], rot[:, 1]) < 1e-7)
         else:
-            assert np.all(_apart(without_heading(moved)[0], without_heading(rot)[0]) < 1e-7)
+            assert np.all(_apart(split_heading(moved)[0], split_heading(rot)[0]) < 1e-7)
         # a small weight moves a little (the prior is continuous in the weights), and a mix of
         # two styles lies between them
         small = _carry(model, which, rot, 0.01 * w)
@@ -262,8 +262,8 @@ def test_run_frames_stay_inside_the_styles_whole_real_range(model, run):
     """The run priors carry toward the style's real runs, then clamp into the range the
     all-content prior keeps every frame in: no running row leaves it."""
     from models.erd.gait import carry_by_gait
-    from models.erd.rotation_prior import without_heading
     from models.motion.bn_skeleton import HIPS
+    from models.motion.rotation_ball import comparable
 
     if model.run_output_prior is None:
         pytest.skip("no run priors committed")
@@ -272,7 +272,7 @@ def test_run_frames_stay_inside_the_styles_whole_real_range(model, run):
         w = np.tile(_onehot(model, style), (len(rot), 1))
         out = carry_by_gait(model.output_prior, model.run_output_prior, rot, w, np.ones(len(rot)), hips=HIPS)
         bounds = model.output_prior
-        angle = quat_angle(quat_mul(quat_inv(bounds.mean[k])[None], without_heading(out)[1]), np.array([0.0, 0, 0, 1]))
+        angle = quat_angle(quat_mul(quat_inv(bounds.mean[k])[None], comparable(out)), np.array([0.0, 0, 0, 1]))
         assert np.all(angle <= bounds.radius[k][None] + 1e-6), style
 
 

@@ -47,8 +47,9 @@ import numpy as np
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
 from ..motion.hands import hanging_frames, raised_frames
-from ..motion.rotations import quat_inv, quat_mul, swing_twist
-from ..motion.style_carry import StyleCarry
+from ..motion.rotation_ball import comparable, split_heading
+from ..motion.rotations import quat_mul
+from ..motion.style_carry import StyleCarry, real_train_frames
 
 LEAF_FILE = "leaf_prior.npz"
 OUTPUT_FILE = "output_prior.npz"
@@ -67,7 +68,6 @@ PRIOR_FILES = {  # `runtime.ERDModel`'s prior attributes and their files beside 
     "hanging_prior": HANGING_FILE,
 }
 FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
-UP = np.array([0.0, 1.0, 0.0])
 FIT_CLIPS_PER_CONTENT = 4
 RUN_FIT_CLIPS = 12  # TRAIN neutral runs for the run output prior: 4, as per content above, would be 960 frames
 ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))
@@ -96,20 +96,10 @@ def real_rotations(runs: bool = False) -> list[np.ndarray]:
     return out
 
 
-def without_heading(rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(heading (..., 4), rotations (..., J, 4) with the Hips' heading removed): the Hips'
-    twist about world up, and the rest of their rotation (`models.eval.plausibility`'s
-    comparable rotation; joint_Root is static at the identity on this rig)."""
-    heading = swing_twist(rot[..., HIPS, :], UP)[1]
-    out = np.array(rot, np.float64)
-    out[..., HIPS, :] = quat_mul(quat_inv(heading), rot[..., HIPS, :])
-    return heading, out
-
-
 def carry_output_numpy(prior: StyleCarry, rot: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """The numpy reference of the output prior on rotations (B, J, 4), the Hips carried without
     their heading: what `prior(rot, weights, hips=HIPS)` computes compiled."""
-    heading, free = without_heading(rot)
+    heading, free = split_heading(rot)
     out = prior.apply_numpy(free, weights)
     out[:, HIPS] = quat_mul(heading, out[:, HIPS])
     return out
@@ -145,7 +135,7 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
                 joints = [model.skeleton.index(n) for n in names]
                 produced[k][:, joints] = leafed[k][:, joints]
     clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEG_JOINTS))
-    return StyleCarry.fit(produced, [without_heading(q)[1] for q in real[1:]], (0,), clamp_only=clamped)
+    return StyleCarry.fit(produced, [comparable(q) for q in real[1:]], (0,), clamp_only=clamped)
 
 
 def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.ndarray]:
@@ -166,9 +156,7 @@ def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.n
         model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range = saved
         model.gesture_prior = gesture
     n = len(inputs)
-    return [
-        without_heading(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]]))[1] for k in range(len(styles))
-    ]
+    return [comparable(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]])) for k in range(len(styles))]
 
 
 def _fit_on_frames(model, contents: tuple[str, ...], frames: Callable) -> StyleCarry:
@@ -176,19 +164,13 @@ def _fit_on_frames(model, contents: tuple[str, ...], frames: Callable) -> StyleC
     prior in place, no output prior) over the first `FIT_FRAMES` of `FIT_CLIPS_PER_CONTENT`
     TRAIN neutral clips of each of `contents`, toward each style, against every real TRAIN clip
     of those contents in the style; the legs and Hips only clamped, as the all-content prior."""
-    from ..data import build_index, load_motions, select
+    from ..data import load_motions
     from ..eval.run import pick_clips
 
     inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(pick_clips(FIT_CLIPS_PER_CONTENT, contents, split="train"))]
     chosen = np.concatenate([frames(m) for m in inputs])
     produced = [q[chosen] for q in network_rotations(model, inputs)]
-    index = build_index(["bandai-namco-2"])
-    real = []
-    for style in model.styles():
-        motions = load_motions([c for c in select(index, split="train", style=style) if c.content in contents])
-        q = np.concatenate([m.rotations[frames(m)] for m in motions])
-        q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)  # static on this rig, as in the feature cache `real_rotations` reads
-        real.append(without_heading(q)[1])
+    real = real_train_frames(model.styles(), contents, frames)
     clamped = (HIPS,) + tuple(model.skeleton.index(n) for n in LEG_JOINTS)
     return StyleCarry.fit(produced, real, (ROOT,), clamp_only=clamped)
 

@@ -31,7 +31,7 @@ from ..motion.bn_skeleton import BN_JOINTS, HIPS, ROOT
 from ..motion.feet import LEG_JOINTS
 from ..motion.hands import raise_share, raised_frames, still_share
 from ..motion.rotation_ball import comparable
-from ..motion.style_carry import StyleCarry
+from ..motion.style_carry import StyleCarry, real_train_frames
 
 FILE = "raised_arm.npz"
 ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")
@@ -87,7 +87,7 @@ def save(carries: dict[str, StyleCarry], folder: Path) -> Path:
 
 def fit(model) -> dict[str, StyleCarry]:
     """Per style of the `LTIStyleModel` (its raised arms off): the carry described above."""
-    from ..data import build_index, load_motions, select
+    from ..data import load_motions
     from ..eval.run import pick_clips, stylise
 
     inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(pick_clips(FIT_CLIPS_PER_CONTENT, RAISE_UPS, split="train"))]
@@ -95,20 +95,12 @@ def fit(model) -> dict[str, StyleCarry]:
     outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
     n = len(inputs)
     made = [comparable(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]])) for k in range(len(styles))]
-    index = build_index(["bandai-namco-2"])
-    real_motions = [
-        load_motions([c for c in select(index, split="train", style=s) if c.content in RAISE_UPS]) for s in styles
-    ]
     clamped = (HIPS,) + tuple(BN_JOINTS.index(j) for j in LEG_JOINTS)
     sides = []
     for side in (0, 1):
         frames = functools.partial(raised_frames, side=side)
         chosen = np.concatenate([frames(m) for m in inputs])
-        real = []
-        for motions in real_motions:
-            q = np.concatenate([m.rotations[frames(m)] for m in motions]).astype(np.float64)
-            q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)  # static on this rig
-            real.append(comparable(q))
+        real = real_train_frames(styles, RAISE_UPS, frames)
         sides.append(StyleCarry.fit([q[chosen] for q in made], real, (ROOT,), clamp_only=clamped))
     every = list(range(len(styles)))
     both = sides[0].with_maps_of(sides[1], every, list(_ARM[1]))

@@ -46,13 +46,21 @@ def up_twist(q: np.ndarray) -> np.ndarray:
     return np.where(n > 1e-12, t / np.maximum(n, 1e-300), np.array([0.0, 0.0, 0.0, 1.0]))
 
 
-def comparable(rotations: np.ndarray) -> np.ndarray:
-    """(..., J, 4) local rotations -> the same with the Hips' twist about up removed (c in q = t c)."""
+def split_heading(rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., J, 4) local rotations -> (the heading (..., 4): the Hips' twist about world up t, the
+    rotations normalised with the Hips' rest c in q = t c). What every rotation prior compares
+    and fits: a heading is where the character faces, never a style."""
     out = np.array(rotations, float, copy=True)
     out /= np.linalg.norm(out, axis=-1, keepdims=True)
     h = out[..., HIPS, :]
-    out[..., HIPS, :] = quat_mul(quat_inv(up_twist(h)), h)
-    return out
+    heading = up_twist(h)
+    out[..., HIPS, :] = quat_mul(quat_inv(heading), h)
+    return heading, out
+
+
+def comparable(rotations: np.ndarray) -> np.ndarray:
+    """(..., J, 4) local rotations -> the same with the Hips' twist about up removed (`split_heading`)."""
+    return split_heading(rotations)[1]
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
