@@ -50,7 +50,7 @@ from models.motion.feet import model_rig_planter
 from models.motion.hands import HandMeter, clip_sway, hand_offsets_of
 from models.motion.style_carry import StyleCarry
 
-from . import kernels, raised_arm
+from . import kernels, raised_arm, waving_arm
 from . import representation as rep
 from .footplant import FootplantClassifier
 from .prior import clamp_rotations
@@ -65,6 +65,8 @@ SHARED_SHAPES = {
     "out_ground": (2,),
     "hand_prev": (2, 3),  # the input's hands from their shoulders, the frame before (`models.motion.hands`)
     "hand_sway": (2,),  # their sway (`raised_arm.py`)
+    "wave_in_mean": waving_arm.MEAN_SHAPE,  # the input's raised arms' running mean (`waving_arm.py`)
+    "wave_out_mean": waving_arm.MEAN_SHAPE,  # the output's
 }
 SHARED_KEYS = tuple(SHARED_SHAPES) + tuple(FEET_STATE)  # and the foot planter's
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
@@ -93,6 +95,7 @@ class StyleTranslator:
     prior_mean: np.ndarray | None = None  # (22, 4) rotation prior (prior.py): the real style's mean per joint
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
     raised_arm: StyleCarry | None = None  # a still raised hand's arm carry (`raised_arm.py`); not stored here
+    waving_arm: bool = True  # a waving hand's arm takes the input's swing (`waving_arm.py`); not stored
 
     def __post_init__(self) -> None:
         n = self.A.shape[0]
@@ -135,6 +138,13 @@ class StyleTranslator:
             xs[t] = x
         return self._finish(feats, u, ys, blend), xs
 
+    def _balls(self) -> tuple[np.ndarray, np.ndarray]:
+        """(means (1, 22, 4), radii (1, 2, 22)): this style's rotation prior as `waving_arm.held`
+        reads a style set's (no prior: infinite radii, nothing held)."""
+        if self.prior_mean is None or self.prior_radii is None:
+            return np.tile([0.0, 0.0, 0.0, 1.0], (1, rep.NUM_JOINTS, 1)), np.full((1, 2, rep.NUM_JOINTS), np.inf)
+        return self.prior_mean[None], self.prior_radii[None]
+
     def translate_motion(self, motion, timewarp: bool = False, blend: bool = True, footlock: bool = True):
         """Offline translation of a whole `Motion` (BN skeleton). Returns (Motion, contacts (F', 2))."""
         from dataclasses import replace
@@ -151,6 +161,10 @@ class StyleTranslator:
             offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
             share = raised_arm.shares(offsets, clip_sway(offsets, motion.fps))
             rots = raised_arm.carried(self.raised_arm, rots, np.ones((len(rots), 1)), share)
+        if self.waving_arm:
+            offsets = hand_offsets_of(motion.rotations, motion.skeleton)
+            balls = self._balls()
+            rots = waving_arm.clip(rots, motion.rotations, offsets, clip_sway(offsets, motion.fps), *balls)
         contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
         if footlock:
             root, rots, contacts = model_rig_planter(motion.fps).clip(root, rots, hints=contacts)
@@ -257,6 +271,7 @@ class LTIStyleModel(LTIStyles):
         keep_heading: bool = True,
         skeleton=None,
         raised_arms: bool = True,
+        waving_arms: bool = True,
     ):
         if translators is None:
             translators = {}
@@ -272,6 +287,8 @@ class LTIStyleModel(LTIStyles):
         self.translators = dict(translators)
         for tr in translators.values():
             tr.keep_heading = keep_heading
+            tr.waving_arm = waving_arms
+        self.waving_arms = waving_arms
         self.keep_heading = keep_heading
         self.blend = blend
         self.footlock = footlock
@@ -291,6 +308,34 @@ class LTIStyleModel(LTIStyles):
         if self._set.arm is not None:  # the raised arm's carry too, which a rest pose's hands never reach
             carry, cols = self._set.arm
             raised_arm.carried(carry, rest, np.full((1, len(cols)), 1.0 / len(cols)), np.ones((1, 2)))
+        waving_arm.compile_now(rep.NUM_JOINTS)  # and the waving arm's
+
+    def _raised_arms(self, state, new, rotations: np.ndarray, out_rot: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """The output rotations with the arms of raised hands carried: a still one toward the
+        style's raised arm (`raised_arm.py`), a waving one by the input's swing (`waving_arm.py`,
+        whose running means in `new` are brought up to this frame)."""
+        offsets, swayed = new["hand_prev"], new["hand_sway"]
+        if self._set.arm is not None:
+            carry, arm_cols = self._set.arm
+            arm_w = w[:, arm_cols]
+            share = raised_arm.shares(offsets, swayed) * (arm_w.sum(-1) > 0.0)[:, None]
+            out_rot = raised_arm.carried(carry, out_rot, arm_w, share)
+        packed = self._set.packed
+        out_rot, new["wave_in_mean"], new["wave_out_mean"] = waving_arm.step(
+            rotations,
+            out_rot,
+            w,
+            state["started"],
+            state["hand_prev"],
+            offsets,
+            swayed,
+            state["wave_in_mean"],
+            state["wave_out_mean"],
+            packed.prior_mean,
+            packed.prior_radii,
+            swing=self.waving_arms,
+        )
+        return out_rot
 
     def styles(self) -> list[str]:
         return list(self._styles)
@@ -320,6 +365,7 @@ class LTIStyleModel(LTIStyles):
         if tr.style in self.translators:
             raise ValueError(f"style {tr.style!r} already exists")
         tr.keep_heading = self.keep_heading
+        tr.waving_arm = self.waving_arms
         self.translators = {**self.translators, tr.style: tr}
         self._set_styles(self._styles + [tr.style])
 
@@ -360,6 +406,8 @@ class LTIStyleModel(LTIStyles):
             "out_ground": np.zeros((batch, 2)),
             "hand_prev": np.zeros((batch, 2, 3)),
             "hand_sway": np.zeros((batch, 2)),
+            "wave_in_mean": np.zeros((batch, *waving_arm.MEAN_SHAPE)),
+            "wave_out_mean": np.zeros((batch, *waving_arm.MEAN_SHAPE)),
             **self.planter.init_state(batch),
         }
 
@@ -439,11 +487,9 @@ class LTIStyleModel(LTIStyles):
             rotations, state["hand_prev"], state["hand_sway"], state["started"], self.fps
         )
         new["hand_prev"] = offsets
-        if self._set.arm is not None and raised:
-            carry, arm_cols = self._set.arm
-            arm_w = w[:, arm_cols]
-            share = raised_arm.shares(offsets, new["hand_sway"]) * (arm_w.sum(-1) > 0.0)[:, None]
-            out = FrameBatch(out.root, raised_arm.carried(carry, out.rotations, arm_w, share), out.contacts)
+        new["wave_in_mean"], new["wave_out_mean"] = state["wave_in_mean"], state["wave_out_mean"]
+        if raised:  # a walk's or a run's hands never are
+            out = FrameBatch(out.root, self._raised_arms(state, new, rotations, out.rotations, w), out.contacts)
         feet = {k: state[k] for k in FEET_STATE}
         if self.footlock:
             planted_root, planted_rot, contacts, feet = self.planter(

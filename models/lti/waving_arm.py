@@ -1,0 +1,218 @@
+"""A waving hand keeps its wave: the input's swing carried onto the translated arm.
+
+Why: the translators damp a wave's swing. They are linear maps identified over every content,
+walks most of all, and fitted as if their inputs were noisy (`train.py`, `context_noise`), which
+shrinks their gains; a wave's arm lies far from where they were fitted. On the validation waves
+the translated hand swung 4-8 cm from side to side toward elderly where the input's swung 17-35 cm
+and the real elderly waves' 15-26 cm (a third of the real swing), and the content judge read
+waves toward masculine as raise-ups (model card, session 28).
+
+What: each arm's UpperArm and LowerArm rotation is read as a running mean (an exponential average
+over `TRACK_FRAMES`, started afresh each time the hand comes up onto its raise ramp) and the
+rotation from it. While the input's hand is raised and waving (`models.motion.hands`: raise share
+times wave share), the output joint is turned from the output's own running mean by `GAIN` times
+the input's rotation from its running mean, mixed in by the share, and then held inside each
+target style's rotation ball (`models.motion.rotation_ball`, the translators' priors), so the
+swing never leaves what the style's real data shows. The translated pose (where the arm is held)
+is the model's; the swing (how it moves about that pose) is the input's. A raised hand that holds
+still is `raised_arm.py`'s; a hand below its raise ramp is left as the translator made it.
+
+`GAIN`, the joints and `TRACK_FRAMES` were chosen on the validation clips (model card).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..motion.bn_skeleton import BN_JOINTS
+from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, raise_share, wave_share
+from ..motion.rotation_ball import clamp_rotations
+from ..motion.rotations import quat_inv, quat_mul
+from ..motion.style_carry import quat_exp, quat_log
+
+JOINTS = ("UpperArm", "LowerArm")
+TRACK_FRAMES = 15.0  # the running mean's exponential average: each frame moves it 1 / TRACK_FRAMES of the way
+GAIN = 1.3  # the input's swing, scaled
+ARM = np.array([[BN_JOINTS.index(f"{j}_{side}") for j in JOINTS] for side in "LR"])  # (2 sides, 2 joints)
+MEAN_SHAPE = (2, len(JOINTS), 4)  # a session's running mean of each side's joints
+
+
+def shares(offsets: np.ndarray, swayed: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(B, 2) how far each arm takes the input's swing: its hand's raise share times its wave
+    share, from the input's `hand_offsets` (B, 2, 3) and sway (B, 2), times the style weights'
+    total (B, S) up to 1 (at no style the output is the input's, swing and all)."""
+    total = np.minimum(np.sum(weights, axis=-1), 1.0)[:, None]
+    return raise_share(np.asarray(offsets)[..., 1]) * wave_share(swayed) * total
+
+
+def _aligned(q: np.ndarray, to: np.ndarray) -> np.ndarray:
+    """q with each quaternion's sign flipped where it lies on the far side of `to`'s."""
+    return np.where(np.sum(q * to, axis=-1, keepdims=True) < 0.0, -q, q)
+
+
+def tracked(mean: np.ndarray, q: np.ndarray, fresh: np.ndarray) -> np.ndarray:
+    """(B, 2, J, 4) the running mean after this frame's rotations q (B, 2, J, 4): a normalised
+    step of 1 / `TRACK_FRAMES` toward q; the sides where `fresh` (B, 2) start at q."""
+    step = mean + (_aligned(q, mean) - mean) / TRACK_FRAMES
+    out = np.where(fresh[..., None, None], q, step)
+    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+
+
+def fresh_sides(started: np.ndarray, prev_offsets: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """(B, 2) the sides whose running means start again this frame: a session's first frame, a
+    hand that was below its raise ramp the frame before, and a mean never set (all zeros: a
+    snapshot from before the waving arm)."""
+    below = np.asarray(prev_offsets)[..., 1] <= RAISE_RAMP_CM[0]
+    return ~np.asarray(started, bool)[:, None] | below | ~np.any(mean != 0.0, axis=(-2, -1))
+
+
+def held(
+    rotations: np.ndarray, joints: np.ndarray, weights: np.ndarray, means: np.ndarray, radii: np.ndarray
+) -> np.ndarray:
+    """(B, len(joints), 4) `joints` of `rotations` (B, J, 4) held inside each style's rotation
+    ball (means (S, J, 4), radii (S, 2, J)) and blended by the style weights (B, S, every row's
+    sum > 0): what the translator's own step does with every joint (`kernels.lti_step`)."""
+    share = weights / np.sum(weights, axis=-1, keepdims=True)
+    acc = np.zeros((len(rotations), len(joints), 4))
+    for s in np.flatnonzero(np.any(weights > 0.0, axis=0)):
+        clamped = clamp_rotations(rotations, means[s], radii[s])[:, joints]
+        acc += share[:, s, None, None] * _aligned(clamped, rotations[:, joints])
+    return acc / np.linalg.norm(acc, axis=-1, keepdims=True)
+
+
+def swung(
+    out_rot: np.ndarray,
+    in_rot: np.ndarray,
+    out_mean: np.ndarray,
+    in_mean: np.ndarray,
+    share: np.ndarray,
+    weights: np.ndarray,
+    means: np.ndarray,
+    radii: np.ndarray,
+) -> np.ndarray:
+    """(B, J, 4) the output rotations `out_rot` with each side's arm turned from the output's
+    running mean `out_mean` by `GAIN` times the input's (`in_rot`) rotation from its running
+    mean `in_mean` (both (B, 2, 2, 4), this frame's), mixed in by that side's `share` (B, 2,
+    `shares`) and held inside the styles' balls (`held`). A side without a share is left as it
+    was. The numpy reference of `step`."""
+    out = out_rot
+    for side in (0, 1):
+        rows = np.flatnonzero(share[:, side] > 0.0)
+        if rows.size == 0:
+            continue
+        if out is out_rot:
+            out = np.array(out_rot, np.float64, copy=True)
+        joints = ARM[side]
+        a = out[np.ix_(rows, joints)]
+        swing = quat_log(quat_mul(quat_inv(in_mean[rows, side]), in_rot[np.ix_(rows, joints)]))
+        target = _aligned(quat_mul(out_mean[rows, side], quat_exp(GAIN * swing)), a)
+        s = share[rows, side][:, None, None]
+        mixed = (1.0 - s) * a + s * target
+        out[np.ix_(rows, joints)] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
+        out[np.ix_(rows, joints)] = held(out[rows], joints, weights[rows], means, radii)
+    return out
+
+
+def step(
+    rot_in: np.ndarray,
+    rot_out: np.ndarray,
+    weights: np.ndarray,
+    started: np.ndarray,
+    prev_offsets: np.ndarray,
+    offsets: np.ndarray,
+    swayed: np.ndarray,
+    in_mean: np.ndarray,
+    out_mean: np.ndarray,
+    means: np.ndarray,
+    radii: np.ndarray,
+    swing: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame for every row, compiled (`waving_kernels.waving_step`): (the output rotations
+    with the waving arms swung (a copy where any is; `rot_out` itself where `swing` is off), the
+    input's and the output's running means after this frame), from the input's and the output's
+    rotations (B, J, 4), the style weights (B, S), whether each row has started, the input's
+    `hand_offsets` before and now (B, 2, 3), its sway (B, 2), the running means before (B, 2, 2,
+    4) and the styles' balls (means (S, J, 4), radii (S, 2, J)). Equal to `fresh_sides`,
+    `tracked`, `shares` and `swung` to round-off (tests)."""
+    from .waving_kernels import waving_step
+
+    f64 = lambda a: np.ascontiguousarray(a, np.float64)  # noqa: E731
+    out = np.array(rot_out, np.float64, copy=True) if swing else f64(rot_out)
+    new_in, new_out = np.empty((len(out), *MEAN_SHAPE)), np.empty((len(out), *MEAN_SHAPE))
+    waving_step(
+        f64(rot_in),
+        out,
+        f64(weights),
+        np.asarray(started, np.bool_),
+        f64(prev_offsets),
+        f64(offsets),
+        f64(swayed),
+        f64(in_mean),
+        f64(out_mean),
+        f64(means),
+        f64(radii),
+        ARM,
+        np.array(RAISE_RAMP_CM),
+        np.array(WAVE_RAMP_CM_S),
+        TRACK_FRAMES,
+        GAIN,
+        swing,
+        new_in,
+        new_out,
+    )
+    return out, new_in, new_out
+
+
+def compile_now(joints: int) -> None:
+    """Compile `step` (or load it from numba's cache) on one waving row of a `joints`-joint rig:
+    a model's load does, since a rest pose's hands never reach it."""
+    rot = np.zeros((1, joints, 4))
+    rot[..., 3] = 1.0
+    means = np.zeros((1, *MEAN_SHAPE))
+    up = np.full((1, 2, 3), 10.0)
+    step(
+        rot,
+        rot,
+        np.ones((1, 1)),
+        np.ones(1, bool),
+        up,
+        up,
+        np.full((1, 2), 100.0),
+        means,
+        means,
+        rot,
+        np.full((1, 2, joints), np.inf),
+    )
+
+
+def clip(
+    out_rots: np.ndarray,
+    in_rots: np.ndarray,
+    offsets: np.ndarray,
+    swayed: np.ndarray,
+    means: np.ndarray,
+    radii: np.ndarray,
+) -> np.ndarray:
+    """(T, J, 4) a whole clip's output rotations of one style (balls means (1, J, 4), radii
+    (1, 2, J)) with its waving arms swung, frame by frame as a stream does (`step`), from the
+    input's rotations, `hand_offsets` (T, 2, 3) and sway (T, 2)."""
+    out = np.array(out_rots, np.float64, copy=True)
+    in_mean, out_mean = np.zeros((1, *MEAN_SHAPE)), np.zeros((1, *MEAN_SHAPE))
+    one = np.ones((1, 1))
+    for t in range(len(out)):
+        prev = offsets[max(t - 1, 0) : max(t, 1)]
+        frame, in_mean, out_mean = step(
+            in_rots[t : t + 1],
+            out[t : t + 1],
+            one,
+            np.array([t > 0]),
+            prev,
+            offsets[t : t + 1],
+            swayed[t : t + 1],
+            in_mean,
+            out_mean,
+            means,
+            radii,
+        )
+        out[t] = frame[0]
+    return out
