@@ -8,6 +8,7 @@ import numpy as np
 from models.motion.hands import (
     RAISE_RAMP_CM,
     HandMeter,
+    clip_rise,
     clip_sway,
     hand_offsets,
     hand_offsets_of,
@@ -24,20 +25,24 @@ def _val(index, content: str):
 
 def test_the_compiled_meter_measures_what_the_positions_give(index):
     """Frame by frame, as a stream calls it: the offsets are the world positions' (to round-off),
-    the sway is `clip_sway`'s and the meter says so while a hand is on its raise ramp."""
+    the sway and the rise are `clip_sway`'s and `clip_rise`'s and the meter says so while a hand is on its raise ramp."""
     motion = _val(index, "wave-right-hand").slice(0, 120)
     meter = HandMeter(motion.skeleton)
-    prev, swayed = np.zeros((1, 2, 3)), np.zeros((1, 2))
-    offsets, sways, raised = [], [], []
+    prev, swayed, risen = np.zeros((1, 2, 3)), np.zeros((1, 2)), np.zeros((1, 2))
+    offsets, sways, rises, raised = [], [], [], []
     for t in range(motion.num_frames):
-        prev, swayed, up = meter.step(motion.rotations[t : t + 1], prev, swayed, np.array([t > 0]), motion.fps)
+        prev, swayed, risen, up = meter.step(
+            motion.rotations[t : t + 1], prev, swayed, risen, np.array([t > 0]), motion.fps
+        )
         offsets.append(prev[0])
         sways.append(swayed[0])
+        rises.append(risen[0])
         raised.append(up)
     world = hand_offsets(motion.global_positions())
     np.testing.assert_allclose(np.array(offsets), world, atol=1e-3)  # the clip's positions are float32
     np.testing.assert_allclose(np.array(offsets), hand_offsets_of(motion.rotations, motion.skeleton), atol=1e-9)
     np.testing.assert_allclose(np.array(sways), clip_sway(np.array(offsets), motion.fps), atol=1e-9)
+    np.testing.assert_allclose(np.array(rises), clip_rise(np.array(offsets), motion.fps), atol=1e-9)
     on_ramp = np.any(np.array(offsets)[..., 1] > RAISE_RAMP_CM[0], axis=-1)
     assert on_ramp.any() and not on_ramp.all()
     assert raised == list(on_ramp)
@@ -48,8 +53,10 @@ def test_a_state_from_before_the_meter_starts_its_sway_at_zero(index):
     has no previous frame: its sway restarts at 0 instead of a jump from the shoulder."""
     motion = _val(index, "wave-right-hand")
     meter = HandMeter(motion.skeleton)
-    _, swayed, _ = meter.step(motion.rotations[:1], np.zeros((1, 2, 3)), np.full((1, 2), 7.0), np.array([True]), 30.0)
+    seven = np.full((1, 2), 7.0)
+    _, swayed, risen, _ = meter.step(motion.rotations[:1], np.zeros((1, 2, 3)), seven, seven, np.array([True]), 30.0)
     np.testing.assert_array_equal(swayed, 0.0)
+    np.testing.assert_array_equal(risen, 0.0)
 
 
 def test_a_waving_hand_sways_and_a_raised_one_holds_still(index):

@@ -1,5 +1,5 @@
 """LTI: a waving hand keeps its wave (`models/lti/waving_arm.py`): only the waving arm's UpperArm
-and LowerArm move, only while the hand is up, a walk streams as before, the stream and the offline
+and LowerArm move, only while the hand is up, a walk and a raise-up stream as before, the stream and the offline
 path agree, the swing stays in the style's rotation ball, and validation waves swing as the real
 style's do and are read as waves."""
 
@@ -64,6 +64,16 @@ def test_only_the_waving_arm_moves_and_a_walk_streams_as_before(models, index):
     assert np.median(moved[raise_share(height) == 1.0]) > 5.0
     walk = _val(index, "walk", frames=90)[0]
     np.testing.assert_array_equal(_stream(on, walk, "elderly")[0], _stream(off, walk, "elderly")[0])
+
+
+def test_a_raise_up_is_not_swung(models, index):
+    """A raise-up's hand sways too as it goes up (the wave share alone reached 0.7-1.0 on the
+    validation raise-ups' rise); it is not level, so no raise-up of either hand is swung: each
+    streams to the bit as without the waving arm."""
+    on, off = models
+    for content in ("raise-up-left-hand", "raise-up-right-hand", "raise-up-both-hands"):
+        for motion in _val(index, content, n=4, frames=90):
+            np.testing.assert_array_equal(_stream(on, motion, "feminine")[0], _stream(off, motion, "feminine")[0])
 
 
 def test_a_wave_streamed_equals_the_offline_path(models, index):
@@ -142,13 +152,14 @@ def test_the_compiled_step_equals_the_numpy_reference(models, index):
     """`waving_arm.step` (compiled) against `fresh_sides`, `tracked`, `shares` and `swung`, frame
     by frame over three validation waves at once, under a style mix, a lone style and an
     intensity below 1, each with its own running means."""
-    from models.motion.hands import clip_sway
+    from models.motion.hands import clip_rise, clip_sway
 
     on, _ = models
     waves = [_val(index, c, frames=90)[0] for c in ("wave-left-hand", "wave-right-hand", "wave-both-hands")]
     rot = np.stack([m.rotations for m in waves], axis=1).astype(np.float64)  # (T, 3, J, 4)
     offsets = np.stack([hand_offsets(m.global_positions()) for m in waves], axis=1)
     swayed = np.stack([clip_sway(hand_offsets(m.global_positions()), m.fps) for m in waves], axis=1)
+    risen = np.stack([clip_rise(hand_offsets(m.global_positions()), m.fps) for m in waves], axis=1)
     styles = on.styles()
     w = np.zeros((3, len(styles)))
     w[0, styles.index("elderly")], w[0, styles.index("feminine")] = 0.6, 0.4
@@ -168,6 +179,7 @@ def test_the_compiled_step_equals_the_numpy_reference(models, index):
             prev,
             offsets[t],
             swayed[t],
+            risen[t],
             means[0],
             means[1],
             packed.prior_mean,
@@ -176,7 +188,7 @@ def test_the_compiled_step_equals_the_numpy_reference(models, index):
         fresh = waving_arm.fresh_sides(started, prev, means[2])
         means[2] = waving_arm.tracked(means[2], rot[t][:, waving_arm.ARM], fresh)
         means[3] = waving_arm.tracked(means[3], out[t][:, waving_arm.ARM], fresh)
-        share = waving_arm.shares(offsets[t], swayed[t], w)
+        share = waving_arm.shares(offsets[t], swayed[t], risen[t], w)
         want = waving_arm.swung(out[t], rot[t], means[3], means[2], share, w, packed.prior_mean, packed.prior_radii)
         np.testing.assert_allclose(means[0], means[2], atol=1e-12)
         np.testing.assert_allclose(means[1], means[3], atol=1e-12)

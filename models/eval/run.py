@@ -615,12 +615,13 @@ def markdown(r: dict) -> str:
         "contents and clip length as the inputs.",
         "",
         "What selected what: no checkpoint or setting of any method was chosen on the test clips. Some were chosen on "
-        "VALIDATION clips scored by these same judges (the LTI context inputs and raised arm, the Style-ERD rotation prior variant, "
+        "VALIDATION clips scored by these same judges (the LTI context inputs, raised arm and waving arm, the Style-ERD rotation prior variant, "
         "its run priors and the run output prior's source for feminine and active, its raised-hand fade, its gesture "
         "prior, held raised arm, raise-up and hanging arm priors, its arms' twist range, the LPN-FiLM arm and run carriage, output prior, that prior's split by gait and its arm coupling); each model card "
         "says which validation numbers chose what, and `python -m models.eval --split val` prints this report on those "
-        "clips. Five settings were seen on the test clips before the choice was final, and the cards say so: "
-        "LPN-FiLM's pace (not shipped), Style-ERD's raised-hand fade without its clamp (the clamp was added after), "
+        "clips. Six settings were seen on the test clips before the choice was final, and the cards say so: "
+        "LPN-FiLM's pace (not shipped), LTI's waving arm without its level share (added after, for raise-ups it swung "
+        "on validation), Style-ERD's raised-hand fade without its clamp (the clamp was added after), "
         "its gesture prior at its whole share (halved after, for running sessions on validation), its runs' arm "
         "coupling (dropped for the upper arms' pops on validation) and its run output prior's source taken whole for "
         "feminine (narrowed to the arms for a head jump found on validation). The judges, "

@@ -65,6 +65,7 @@ SHARED_SHAPES = {
     "out_ground": (2,),
     "hand_prev": (2, 3),  # the input's hands from their shoulders, the frame before (`models.motion.hands`)
     "hand_sway": (2,),  # their sway (`raised_arm.py`)
+    "hand_rise": (2,),  # their rise (`waving_arm.py`)
     "wave_in_mean": waving_arm.MEAN_SHAPE,  # the input's raised arms' running mean (`waving_arm.py`)
     "wave_out_mean": waving_arm.MEAN_SHAPE,  # the output's
 }
@@ -164,7 +165,7 @@ class StyleTranslator:
         if self.waving_arm:
             offsets = hand_offsets_of(motion.rotations, motion.skeleton)
             balls = self._balls()
-            rots = waving_arm.clip(rots, motion.rotations, offsets, clip_sway(offsets, motion.fps), *balls)
+            rots = waving_arm.clip(rots, motion.rotations, offsets, motion.fps, *balls)
         contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
         if footlock:
             root, rots, contacts = model_rig_planter(motion.fps).clip(root, rots, hints=contacts)
@@ -314,7 +315,7 @@ class LTIStyleModel(LTIStyles):
         """The output rotations with the arms of raised hands carried: a still one toward the
         style's raised arm (`raised_arm.py`), a waving one by the input's swing (`waving_arm.py`,
         whose running means in `new` are brought up to this frame)."""
-        offsets, swayed = new["hand_prev"], new["hand_sway"]
+        offsets, swayed, risen = new["hand_prev"], new["hand_sway"], new["hand_rise"]
         if self._set.arm is not None:
             carry, arm_cols = self._set.arm
             arm_w = w[:, arm_cols]
@@ -329,6 +330,7 @@ class LTIStyleModel(LTIStyles):
             state["hand_prev"],
             offsets,
             swayed,
+            risen,
             state["wave_in_mean"],
             state["wave_out_mean"],
             packed.prior_mean,
@@ -406,6 +408,7 @@ class LTIStyleModel(LTIStyles):
             "out_ground": np.zeros((batch, 2)),
             "hand_prev": np.zeros((batch, 2, 3)),
             "hand_sway": np.zeros((batch, 2)),
+            "hand_rise": np.zeros((batch, 2)),
             "wave_in_mean": np.zeros((batch, *waving_arm.MEAN_SHAPE)),
             "wave_out_mean": np.zeros((batch, *waving_arm.MEAN_SHAPE)),
             **self.planter.init_state(batch),
@@ -483,8 +486,8 @@ class LTIStyleModel(LTIStyles):
             new[key] = new_x[:, cols]
         # the input's hands: while one is raised and still, its arm is carried (`raised_arm.py`);
         # the first frame of a session (or of a snapshot from before them) has no sway
-        offsets, new["hand_sway"], raised = self._hands.step(
-            rotations, state["hand_prev"], state["hand_sway"], state["started"], self.fps
+        offsets, new["hand_sway"], new["hand_rise"], raised = self._hands.step(
+            rotations, state["hand_prev"], state["hand_sway"], state["hand_rise"], state["started"], self.fps
         )
         new["hand_prev"] = offsets
         new["wave_in_mean"], new["wave_out_mean"] = state["wave_in_mean"], state["wave_out_mean"]

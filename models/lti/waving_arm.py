@@ -10,7 +10,7 @@ waves toward masculine as raise-ups (model card, session 28).
 What: each arm's UpperArm and LowerArm rotation is read as a running mean (an exponential average
 over `TRACK_FRAMES`, started afresh each time the hand comes up onto its raise ramp) and the
 rotation from it. While the input's hand is raised and waving (`models.motion.hands`: raise share
-times wave share), the output joint is turned from the output's own running mean by `GAIN` times
+times wave share, at a level height: a raise-up's hand sways too as it goes up), the output joint is turned from the output's own running mean by `GAIN` times
 the input's rotation from its running mean, mixed in by the share, and then held inside each
 target style's rotation ball (`models.motion.rotation_ball`, the translators' priors), so the
 swing never leaves what the style's real data shows. The translated pose (where the arm is held)
@@ -25,7 +25,16 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion.bn_skeleton import BN_JOINTS
-from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, raise_share, wave_share
+from ..motion.hands import (
+    LEVEL_RAMP_CM_S,
+    RAISE_RAMP_CM,
+    WAVE_RAMP_CM_S,
+    clip_rise,
+    clip_sway,
+    level_share,
+    raise_share,
+    wave_share,
+)
 from ..motion.rotation_ball import clamp_rotations
 from ..motion.rotations import quat_inv, quat_mul
 from ..motion.style_carry import quat_exp, quat_log
@@ -37,12 +46,13 @@ ARM = np.array([[BN_JOINTS.index(f"{j}_{side}") for j in JOINTS] for side in "LR
 MEAN_SHAPE = (2, len(JOINTS), 4)  # a session's running mean of each side's joints
 
 
-def shares(offsets: np.ndarray, swayed: np.ndarray, weights: np.ndarray) -> np.ndarray:
+def shares(offsets: np.ndarray, swayed: np.ndarray, risen: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(B, 2) how far each arm takes the input's swing: its hand's raise share times its wave
-    share, from the input's `hand_offsets` (B, 2, 3) and sway (B, 2), times the style weights'
-    total (B, S) up to 1 (at no style the output is the input's, swing and all)."""
+    share times its level share, from the input's `hand_offsets` (B, 2, 3), sway and rise (B, 2),
+    times the style weights' total (B, S) up to 1 (at no style the output is the input's, swing
+    and all)."""
     total = np.minimum(np.sum(weights, axis=-1), 1.0)[:, None]
-    return raise_share(np.asarray(offsets)[..., 1]) * wave_share(swayed) * total
+    return raise_share(np.asarray(offsets)[..., 1]) * wave_share(swayed) * level_share(risen) * total
 
 
 def _aligned(q: np.ndarray, to: np.ndarray) -> np.ndarray:
@@ -121,6 +131,7 @@ def step(
     prev_offsets: np.ndarray,
     offsets: np.ndarray,
     swayed: np.ndarray,
+    risen: np.ndarray,
     in_mean: np.ndarray,
     out_mean: np.ndarray,
     means: np.ndarray,
@@ -131,7 +142,7 @@ def step(
     with the waving arms swung (a copy where any is; `rot_out` itself where `swing` is off), the
     input's and the output's running means after this frame), from the input's and the output's
     rotations (B, J, 4), the style weights (B, S), whether each row has started, the input's
-    `hand_offsets` before and now (B, 2, 3), its sway (B, 2), the running means before (B, 2, 2,
+    `hand_offsets` before and now (B, 2, 3), its sway and rise (B, 2), the running means before (B, 2, 2,
     4) and the styles' balls (means (S, J, 4), radii (S, 2, J)). Equal to `fresh_sides`,
     `tracked`, `shares` and `swung` to round-off (tests)."""
     from .waving_kernels import waving_step
@@ -147,6 +158,7 @@ def step(
         f64(prev_offsets),
         f64(offsets),
         f64(swayed),
+        f64(risen),
         f64(in_mean),
         f64(out_mean),
         f64(means),
@@ -154,6 +166,7 @@ def step(
         ARM,
         np.array(RAISE_RAMP_CM),
         np.array(WAVE_RAMP_CM_S),
+        np.array(LEVEL_RAMP_CM_S),
         TRACK_FRAMES,
         GAIN,
         swing,
@@ -168,47 +181,37 @@ def compile_now(joints: int) -> None:
     a model's load does, since a rest pose's hands never reach it."""
     rot = np.zeros((1, joints, 4))
     rot[..., 3] = 1.0
-    means = np.zeros((1, *MEAN_SHAPE))
-    up = np.full((1, 2, 3), 10.0)
-    step(
-        rot,
-        rot,
-        np.ones((1, 1)),
-        np.ones(1, bool),
-        up,
-        up,
-        np.full((1, 2), 100.0),
-        means,
-        means,
-        rot,
-        np.full((1, 2, joints), np.inf),
-    )
+    means, up = np.zeros((1, *MEAN_SHAPE)), np.full((1, 2, 3), 10.0)
+    swayed, risen, radii = np.full((1, 2), 100.0), np.zeros((1, 2)), np.full((1, 2, joints), np.inf)
+    step(rot, rot, np.ones((1, 1)), np.ones(1, bool), up, up, swayed, risen, means, means, rot, radii)
 
 
 def clip(
     out_rots: np.ndarray,
     in_rots: np.ndarray,
     offsets: np.ndarray,
-    swayed: np.ndarray,
+    fps: float,
     means: np.ndarray,
     radii: np.ndarray,
 ) -> np.ndarray:
     """(T, J, 4) a whole clip's output rotations of one style (balls means (1, J, 4), radii
     (1, 2, J)) with its waving arms swung, frame by frame as a stream does (`step`), from the
-    input's rotations, `hand_offsets` (T, 2, 3) and sway (T, 2)."""
+    input's rotations and `hand_offsets` (T, 2, 3)."""
     out = np.array(out_rots, np.float64, copy=True)
+    swayed, risen = clip_sway(offsets, fps), clip_rise(offsets, fps)
     in_mean, out_mean = np.zeros((1, *MEAN_SHAPE)), np.zeros((1, *MEAN_SHAPE))
     one = np.ones((1, 1))
     for t in range(len(out)):
-        prev = offsets[max(t - 1, 0) : max(t, 1)]
+        now, prev = slice(t, t + 1), slice(max(t - 1, 0), max(t, 1))
         frame, in_mean, out_mean = step(
-            in_rots[t : t + 1],
-            out[t : t + 1],
+            in_rots[now],
+            out[now],
             one,
             np.array([t > 0]),
-            prev,
-            offsets[t : t + 1],
-            swayed[t : t + 1],
+            offsets[prev],
+            offsets[now],
+            swayed[now],
+            risen[now],
             in_mean,
             out_mean,
             means,

@@ -77,6 +77,7 @@ def waving_step(
     prev_offsets,
     offsets,
     swayed,
+    risen,
     in_mean,
     out_mean,
     prior_mean,
@@ -84,6 +85,7 @@ def waving_step(
     arm,
     raise_ramp,
     wave_ramp,
+    level_ramp,
     frames,
     gain,
     swing,
@@ -92,7 +94,8 @@ def waving_step(
 ):
     """Per row b and side: the running means of the arm joints `arm` (2, K) brought up to this
     frame (new_in_mean, new_out_mean (B, 2, K, 4)) and, where `swing`, rot_out's arm turned in
-    place as `waving_arm.swung` does, by the share raise x wave x min(style weight total, 1)."""
+    place as `waving_arm.swung` does, by the share raise x wave x level x min(style weight
+    total, 1)."""
     B, S = weights.shape
     K = arm.shape[1]
     for b in range(B):
@@ -124,7 +127,8 @@ def waving_step(
                     new_in_mean[b, side, k, c] = mi[c]
                     new_out_mean[b, side, k, c] = mo[c]
             share = _ramp(offsets[b, side, 1], raise_ramp[0], raise_ramp[1])
-            share *= _ramp(swayed[b, side], wave_ramp[0], wave_ramp[1]) * min(total, 1.0)
+            share *= _ramp(swayed[b, side], wave_ramp[0], wave_ramp[1])
+            share *= (1.0 - _ramp(risen[b, side], level_ramp[0], level_ramp[1])) * min(total, 1.0)
             if not swing or share <= 0.0:
                 continue
             for k in range(K):

@@ -9,7 +9,7 @@ average.
   `RAISE_RAMP_CM`: from the TRAIN `normal` runs' p99 (-12 cm; a running arm's swing reaches past it
   in about 1 % of frames) to the shoulder's height (Style-ERD's card chose it on validation).
 - **Sway:** each hand's horizontal speed against its shoulder, an exponential average over
-  `SWAY_FRAMES`. On the validation inputs' raised frames a raise-up's has a median of 21-34 cm/s
+  `SWAY_FRAMES` (its vertical speed, the **rise**, likewise). On the validation inputs' raised frames a raise-up's has a median of 21-34 cm/s
   (p90 41-60), a wave's a median of 57-96 (p10 50-84): the wave share ramps over `WAVE_RAMP_CM_S`,
   the still share falls over `STILL_RAMP_CM_S`.
 """
@@ -25,6 +25,7 @@ from .skeleton import Skeleton
 RAISE_RAMP_CM = (-12.0, 0.0)
 WAVE_RAMP_CM_S = (40.0, 60.0)
 STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it, not above
+LEVEL_RAMP_CM_S = (30.0, 60.0)  # a hand rising or falling faster than this is raising or lowering, not waving
 SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it 1 / SWAY_FRAMES of the way to the new speed
 _HANDS = np.array([BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")])
 _SHOULDERS = np.array([BN_JOINTS.index("UpperArm_L"), BN_JOINTS.index("UpperArm_R")])
@@ -61,17 +62,24 @@ class HandMeter:
         self.offsets = np.ascontiguousarray(skeleton.offsets, np.float64)
 
     def step(
-        self, rotations: np.ndarray, prev: np.ndarray, before: np.ndarray, started: np.ndarray, fps: float
-    ) -> tuple[np.ndarray, np.ndarray, bool]:
-        """((B, 2, 3) each hand's offset from its shoulder, (B, 2) the sway after this frame, whether
-        any hand is on its raise ramp) from local rotations (B, J, 4), the previous frame's offsets
-        `prev` and the sway `before`. A row has no previous frame unless `started`, nor while
-        `prev` is all zeros (a state from before the meter); its sway starts at 0. The last value
-        lets a caller skip what only a raised hand needs (a walk's or a run's never is)."""
+        self,
+        rotations: np.ndarray,
+        prev: np.ndarray,
+        before: np.ndarray,
+        rise_before: np.ndarray,
+        started: np.ndarray,
+        fps: float,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+        """((B, 2, 3) each hand's offset from its shoulder, (B, 2) its sway and (B, 2) its rise
+        after this frame, whether any hand is on its raise ramp) from local rotations (B, J, 4),
+        the previous frame's offsets `prev` and the averages `before` and `rise_before`. A row has
+        no previous frame unless `started`, nor while `prev` is all zeros (a state from before
+        the meter); its averages start at 0. The last value lets a caller skip what only a
+        raised hand needs (a walk's or a run's never is)."""
         from .hands_kernels import hand_step
 
         q = np.ascontiguousarray(rotations, np.float64)
-        out, swayed = np.empty((len(q), 2, 3)), np.empty((len(q), 2))
+        out, swayed, risen = np.empty((len(q), 2, 3)), np.empty((len(q), 2)), np.empty((len(q), 2))
         raised = hand_step(
             q,
             self.parents,
@@ -81,14 +89,16 @@ class HandMeter:
             self.shoulders,
             np.ascontiguousarray(prev, np.float64),
             np.ascontiguousarray(before, np.float64),
+            np.ascontiguousarray(rise_before, np.float64),
             np.asarray(started, np.bool_),
             float(fps),
             SWAY_FRAMES,
             RAISE_RAMP_CM[0],
             out,
             swayed,
+            risen,
         )
-        return out, swayed, bool(raised)
+        return out, swayed, risen, bool(raised)
 
 
 def hand_offsets_of(rotations: np.ndarray, skeleton: Skeleton) -> np.ndarray:
@@ -136,18 +146,44 @@ def sway(
     return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
 
 
-def clip_sway(offsets: np.ndarray, fps: float) -> np.ndarray:
-    """(T, 2) `sway` over every frame of a clip's `hand_offsets` (T, 2, 3), as a stream sees it."""
+def rise(
+    before: np.ndarray, offsets: np.ndarray, prev_offsets: np.ndarray, has_prev: np.ndarray, fps: float
+) -> np.ndarray:
+    """(B, 2) each hand's averaged vertical speed (cm/s, up or down) against its shoulder after
+    this frame, as `sway` averages the horizontal one."""
+    speed = np.abs(np.asarray(offsets)[..., 1] - np.asarray(prev_offsets)[..., 1]) * fps
+    return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
+
+
+def _over_clip(average, offsets: np.ndarray, fps: float) -> np.ndarray:
     out = np.zeros((len(offsets), 2))
     for t in range(1, len(offsets)):
-        out[t] = sway(out[t - 1 : t], offsets[t : t + 1], offsets[t - 1 : t], np.ones(1, bool), fps)[0]
+        out[t] = average(out[t - 1 : t], offsets[t : t + 1], offsets[t - 1 : t], np.ones(1, bool), fps)[0]
     return out
+
+
+def clip_sway(offsets: np.ndarray, fps: float) -> np.ndarray:
+    """(T, 2) `sway` over every frame of a clip's `hand_offsets` (T, 2, 3), as a stream sees it."""
+    return _over_clip(sway, offsets, fps)
+
+
+def clip_rise(offsets: np.ndarray, fps: float) -> np.ndarray:
+    """(T, 2) `rise` over every frame of a clip's `hand_offsets` (T, 2, 3), as a stream sees it."""
+    return _over_clip(rise, offsets, fps)
 
 
 def wave_share(swayed: np.ndarray) -> np.ndarray:
     """(..., 2) how much each hand waves: 0 up to `WAVE_RAMP_CM_S`, 1 from its end, linear between."""
     lo, hi = WAVE_RAMP_CM_S
     return np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+
+def level_share(risen: np.ndarray) -> np.ndarray:
+    """(..., 2) how level each hand is held: 1 up to `LEVEL_RAMP_CM_S` of `rise`, 0 from its end.
+    A raise-up's hand also sways as it goes up (on the validation raise-ups the wave share
+    reached 0.7-1.0 for about 13 frames of the rise); at a level one it does not."""
+    lo, hi = LEVEL_RAMP_CM_S
+    return 1.0 - np.clip((np.asarray(risen, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
 def still_share(swayed: np.ndarray) -> np.ndarray:

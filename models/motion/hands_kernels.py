@@ -33,12 +33,30 @@ def _apply(x, y, z, w, vx, vy, vz):
 
 
 @njit(cache=True, error_model="numpy")
-def hand_step(rot, parents, offsets, chain, hands, shoulders, prev, before, started, fps, frames, above, out, swayed):
+def hand_step(
+    rot,
+    parents,
+    offsets,
+    chain,
+    hands,
+    shoulders,
+    prev,
+    before,
+    rise_before,
+    started,
+    fps,
+    frames,
+    above,
+    out,
+    swayed,
+    risen,
+):
     """Per row b of local rotations rot (B, J, 4): each hand's offset from its shoulder (out
     (B, 2, 3)) by forward kinematics over `chain` (joint indices, parents first; the chain's root
-    at the origin), and its sway after this frame (swayed (B, 2)) from the sway `before` and the
-    previous frame's offsets `prev`, averaged over `frames`. A row has no previous frame (its sway
-    is 0) unless `started`, or when `prev` is all zeros (a hand is never at its shoulder: a state
+    at the origin), and its sway and rise after this frame (swayed, risen (B, 2): the horizontal
+    and the vertical speed) from the averages before (`before`, `rise_before`) and the previous
+    frame's offsets `prev`, averaged over `frames`. A row has no previous frame (its averages
+    are 0) unless `started`, or when `prev` is all zeros (a hand is never at its shoulder: a state
     from before the meter). Returns whether any hand is higher than `above` over its shoulder."""
     J = rot.shape[1]
     g = np.empty((J, 4))
@@ -72,6 +90,9 @@ def hand_step(rot, parents, offsets, chain, hands, shoulders, prev, before, star
                 dx, dz = out[b, s, 0] - prev[b, s, 0], out[b, s, 2] - prev[b, s, 2]
                 speed = math.sqrt(dx * dx + dz * dz) * fps
                 swayed[b, s] = before[b, s] + (speed - before[b, s]) / frames
+                vertical = abs(out[b, s, 1] - prev[b, s, 1]) * fps
+                risen[b, s] = rise_before[b, s] + (vertical - rise_before[b, s]) / frames
             else:
                 swayed[b, s] = 0.0
+                risen[b, s] = 0.0
     return raised
