@@ -9,10 +9,11 @@ import pytest
 
 from models.interface import FrameBatch
 from models.lti import raised_arm
-from models.lti import representation as rep
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel
 from models.motion.hands import clip_sway, hand_offsets, raise_share
 from models.motion.rotations import quat_angle
+
+from .one_session import assert_lti_streams_as_offline, contents_read, stream, val_motions
 
 pytestmark = pytest.mark.skipif(not (WEIGHTS_DIR / raised_arm.FILE).exists(), reason="LTI raised arm not committed")
 
@@ -22,34 +23,14 @@ def models() -> tuple[LTIStyleModel, LTIStyleModel]:
     return LTIStyleModel(), LTIStyleModel(raised_arms=False)
 
 
-def _val(index, content: str, n: int = 1, frames: int = 150):
-    from models.data import load_motions, select
-
-    clips = select(index, dataset="bandai-namco-2", split="val", style="normal", content=content)[:n]
-    return [m.slice(0, frames) for m in load_motions(clips)]
-
-
-def _stream(model: LTIStyleModel, motion, style: str) -> tuple[np.ndarray, np.ndarray]:
-    """(T, J, 4) rotations and (T, 3) roots streamed frame by frame toward `style`."""
-    w = np.zeros((1, len(model.styles())))
-    w[0, model.styles().index(style)] = 1.0
-    state, rots, roots = model.init_state(1), [], []
-    for t in range(motion.num_frames):
-        frame = FrameBatch(motion.translations[t : t + 1, rep.HIPS], motion.rotations[t : t + 1])
-        out, state = model.step_batch(state, frame, w)
-        rots.append(out.rotations[0])
-        roots.append(out.root[0])
-    return np.array(rots), np.array(roots)
-
-
 def test_only_the_raised_still_arm_moves_and_only_while_it_is_up(models, index):
     """A left-hand raise-up toward youthful: on the frames with the left hand up and still only
     the left arm differs from the model without raised arms; before any hand goes up nothing does."""
     on, off = models
-    motion = _val(index, "raise-up-left-hand")[0]
+    motion = val_motions(index, "raise-up-left-hand")[0]
     pos = motion.global_positions()
     share = raised_arm.shares(hand_offsets(pos), clip_sway(hand_offsets(pos), motion.fps))
-    got, before = _stream(on, motion, "youthful")[0], _stream(off, motion, "youthful")[0]
+    got, before = stream(on, motion, "youthful")[0], stream(off, motion, "youthful")[0]
     moved = np.degrees(quat_angle(got, before))
     arm = [on.skeleton.index(f"{j}_L") for j in raised_arm.ARM_JOINTS]
     rest = [j for j in range(len(on.skeleton.names)) if j not in arm]
@@ -63,11 +44,7 @@ def test_only_the_raised_still_arm_moves_and_only_while_it_is_up(models, index):
 def test_a_raise_up_streamed_equals_the_offline_path(models, index):
     """`StyleTranslator.translate_motion` carries the raised arm as the stream does, frame by frame."""
     on, _ = models
-    motion = _val(index, "raise-up-right-hand")[0]
-    offline, _ = on.translators["feminine"].translate_motion(motion)
-    rots, roots = _stream(on, motion, "feminine")
-    np.testing.assert_allclose(roots, offline.translations[:, rep.HIPS], atol=1e-8)
-    np.testing.assert_allclose(rots, offline.rotations, atol=1e-10)
+    assert_lti_streams_as_offline(on, val_motions(index, "raise-up-right-hand")[0], "feminine")
 
 
 def test_a_style_without_a_fit_streams_as_before(models, index):
@@ -76,16 +53,16 @@ def test_a_style_without_a_fit_streams_as_before(models, index):
     import copy
     import dataclasses
 
-    motion = _val(index, "raise-up-left-hand", frames=60)[0]
+    motion = val_motions(index, "raise-up-left-hand", frames=60)[0]
     with_added = copy.copy(on)
     with_added.add_style(dataclasses.replace(off.translators["youthful"], style="mine", raised_arm=None))
-    np.testing.assert_array_equal(_stream(with_added, motion, "mine")[0], _stream(off, motion, "youthful")[0])
+    np.testing.assert_array_equal(stream(with_added, motion, "mine")[0], stream(off, motion, "youthful")[0])
 
 
 def test_a_snapshot_from_before_the_raised_arm_resumes(models, index):
     """A state without the hand keys (a replica before them) is upgraded: the sway starts again."""
     on, _ = models
-    motion = _val(index, "raise-up-left-hand", frames=10)[0]
+    motion = val_motions(index, "raise-up-left-hand", frames=10)[0]
     state = on.init_state(1)
     w = np.zeros((1, len(on.styles())))
     w[0, 0] = 1.0
@@ -102,14 +79,7 @@ def test_validation_raise_ups_toward_youthful_read_as_raise_ups(models, index):
     """What it is for: without it the content judge read 2 of these 4 validation right-hand
     raise-ups toward youthful as waves (the hand 20-23 cm above the shoulder, the real youthful
     raise-ups' 42-45); with it at most one."""
-    from models.eval.features import clip_features
-    from models.eval.judges import load_judges
-    from models.eval.run import stylise
-
     on, off = models
-    inputs = _val(index, "raise-up-right-hand", n=4)
-    k = on.styles().index("youthful")
-    judges = load_judges()
-    read = [judges.predict_content([clip_features(o) for o in stylise(m, inputs, [k] * 4)]) for m in (off, on)]
+    read = contents_read((off, on), val_motions(index, "raise-up-right-hand", n=4), "youthful")
     assert sum(r == "raise-up-right-hand" for r in read[0]) == 2
     assert sum(r == "raise-up-right-hand" for r in read[1]) >= 3

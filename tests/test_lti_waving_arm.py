@@ -9,36 +9,17 @@ import numpy as np
 import pytest
 
 from models.interface import FrameBatch
-from models.lti import representation as rep
 from models.lti import waving_arm
 from models.lti.model import LTIStyleModel
 from models.motion.hands import hand_offsets, raise_share
 from models.motion.rotations import quat_angle
 
+from .one_session import assert_lti_streams_as_offline, contents_read, stream, val_motions
+
 
 @pytest.fixture(scope="module")
 def models() -> tuple[LTIStyleModel, LTIStyleModel]:
     return LTIStyleModel(), LTIStyleModel(waving_arms=False)
-
-
-def _val(index, content: str, style: str = "normal", n: int = 1, frames: int = 150):
-    from models.data import load_motions, select
-
-    clips = select(index, dataset="bandai-namco-2", split="val", style=style, content=content)[:n]
-    return [m.slice(0, frames) for m in load_motions(clips)]
-
-
-def _stream(model: LTIStyleModel, motion, style: str) -> tuple[np.ndarray, np.ndarray]:
-    """(T, J, 4) rotations and (T, 3) roots streamed frame by frame toward `style`."""
-    w = np.zeros((1, len(model.styles())))
-    w[0, model.styles().index(style)] = 1.0
-    state, rots, roots = model.init_state(1), [], []
-    for t in range(motion.num_frames):
-        frame = FrameBatch(motion.translations[t : t + 1, rep.HIPS], motion.rotations[t : t + 1])
-        out, state = model.step_batch(state, frame, w)
-        rots.append(out.rotations[0])
-        roots.append(out.root[0])
-    return np.array(rots), np.array(roots)
 
 
 def _swing(motion, side: int) -> float:
@@ -53,8 +34,8 @@ def test_only_the_waving_arm_moves_and_a_walk_streams_as_before(models, index):
     """A right-hand wave toward elderly: only the right UpperArm and LowerArm differ from the model
     without the waving arm, and only once the hand is up; a walk is the same to the bit."""
     on, off = models
-    wave = _val(index, "wave-right-hand")[0]
-    got, before = _stream(on, wave, "elderly")[0], _stream(off, wave, "elderly")[0]
+    wave = val_motions(index, "wave-right-hand")[0]
+    got, before = stream(on, wave, "elderly")[0], stream(off, wave, "elderly")[0]
     arm = list(waving_arm.ARM[1])
     rest = [j for j in range(len(on.skeleton.names)) if j not in arm]
     np.testing.assert_array_equal(got[:, rest], before[:, rest])
@@ -62,8 +43,8 @@ def test_only_the_waving_arm_moves_and_a_walk_streams_as_before(models, index):
     height = hand_offsets(wave.global_positions())[:, 1, 1]
     assert np.all(moved[np.cumsum(height > -12.0) == 0] == 0.0)  # before the hand comes up
     assert np.median(moved[raise_share(height) == 1.0]) > 5.0
-    walk = _val(index, "walk", frames=90)[0]
-    np.testing.assert_array_equal(_stream(on, walk, "elderly")[0], _stream(off, walk, "elderly")[0])
+    walk = val_motions(index, "walk", frames=90)[0]
+    np.testing.assert_array_equal(stream(on, walk, "elderly")[0], stream(off, walk, "elderly")[0])
 
 
 def test_a_raise_up_is_not_swung(models, index):
@@ -72,25 +53,21 @@ def test_a_raise_up_is_not_swung(models, index):
     streams to the bit as without the waving arm."""
     on, off = models
     for content in ("raise-up-left-hand", "raise-up-right-hand", "raise-up-both-hands"):
-        for motion in _val(index, content, n=4, frames=90):
-            np.testing.assert_array_equal(_stream(on, motion, "feminine")[0], _stream(off, motion, "feminine")[0])
+        for motion in val_motions(index, content, n=4, frames=90):
+            np.testing.assert_array_equal(stream(on, motion, "feminine")[0], stream(off, motion, "feminine")[0])
 
 
 def test_a_wave_streamed_equals_the_offline_path(models, index):
     """`StyleTranslator.translate_motion` swings the waving arm as the stream does, frame by frame."""
     on, _ = models
-    motion = _val(index, "wave-both-hands")[0]
-    offline, _ = on.translators["masculine"].translate_motion(motion)
-    rots, roots = _stream(on, motion, "masculine")
-    np.testing.assert_allclose(roots, offline.translations[:, rep.HIPS], atol=1e-8)
-    np.testing.assert_allclose(rots, offline.rotations, atol=1e-10)
+    assert_lti_streams_as_offline(on, val_motions(index, "wave-both-hands")[0], "masculine")
 
 
 def test_the_swing_stays_in_the_styles_rotation_ball(models, index):
     """The input's swing, scaled, could carry the arm past what the style shows: on a wave toward
     feminine every frame's swung joints lie within the style's outer radius of its mean."""
     on, _ = models
-    rots = _stream(on, _val(index, "wave-left-hand")[0], "feminine")[0]
+    rots = stream(on, val_motions(index, "wave-left-hand")[0], "feminine")[0]
     tr = on.translators["feminine"]
     for j in waving_arm.ARM.ravel():
         assert quat_angle(rots[:, j], tr.prior_mean[j][None]).max() <= tr.prior_radii[1, j] + 1e-9
@@ -100,7 +77,7 @@ def test_a_snapshot_from_before_the_waving_arm_resumes(models, index):
     """A state without the running means (a replica before them) is upgraded; its means start
     again from the next frame with a hand up."""
     on, _ = models
-    motion = _val(index, "wave-left-hand", frames=40)[0]
+    motion = val_motions(index, "wave-left-hand", frames=40)[0]
     w = np.zeros((1, len(on.styles())))
     w[0, on.styles().index("elderly")] = 1.0
     state = on.init_state(1)
@@ -122,11 +99,11 @@ def test_validation_waves_toward_elderly_swing_as_the_real_ones(models, index):
 
     on, off = models
     for content, side in (("wave-left-hand", 0), ("wave-right-hand", 1)):
-        inputs = _val(index, content, n=3)
+        inputs = val_motions(index, content, n=3)
         k = on.styles().index("elderly")
         before = [_swing(m, side) for m in stylise(off, inputs, [k] * 3)]
         after = [_swing(m, side) for m in stylise(on, inputs, [k] * 3)]
-        real = [_swing(m, side) for m in _val(index, content, style="elderly", n=3)]
+        real = [_swing(m, side) for m in val_motions(index, content, style="elderly", n=3)]
         assert max(before) < 10.0
         assert all(a > 2.5 * b for a, b in zip(after, before))
         assert min(real) - 5.0 < min(after) and max(after) < max(real) + 5.0
@@ -135,15 +112,8 @@ def test_validation_waves_toward_elderly_swing_as_the_real_ones(models, index):
 def test_validation_waves_toward_masculine_read_as_waves(models, index):
     """Without it the content judge read 2 of the 3 validation right-hand waves toward masculine
     as raise-ups (their swing damped); with it all 3 are waves."""
-    from models.eval.features import clip_features
-    from models.eval.judges import load_judges
-    from models.eval.run import stylise
-
     on, off = models
-    inputs = _val(index, "wave-right-hand", n=3)
-    k = on.styles().index("masculine")
-    judges = load_judges()
-    read = [judges.predict_content([clip_features(o) for o in stylise(m, inputs, [k] * 3)]) for m in (off, on)]
+    read = contents_read((off, on), val_motions(index, "wave-right-hand", n=3), "masculine")
     assert sum(r == "wave-right-hand" for r in read[0]) == 1
     assert sum(r == "wave-right-hand" for r in read[1]) == 3
 
@@ -155,7 +125,7 @@ def test_the_compiled_step_equals_the_numpy_reference(models, index):
     from models.motion.hands import clip_rise, clip_sway
 
     on, _ = models
-    waves = [_val(index, c, frames=90)[0] for c in ("wave-left-hand", "wave-right-hand", "wave-both-hands")]
+    waves = [val_motions(index, c, frames=90)[0] for c in ("wave-left-hand", "wave-right-hand", "wave-both-hands")]
     rot = np.stack([m.rotations for m in waves], axis=1).astype(np.float64)  # (T, 3, J, 4)
     offsets = np.stack([hand_offsets(m.global_positions()) for m in waves], axis=1)
     swayed = np.stack([clip_sway(hand_offsets(m.global_positions()), m.fps) for m in waves], axis=1)
