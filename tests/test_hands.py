@@ -8,10 +8,12 @@ import numpy as np
 from models.motion.hands import (
     RAISE_RAMP_CM,
     HandMeter,
+    calm_frames,
     clip_rise,
     clip_sway,
     hand_offsets,
     hand_offsets_of,
+    raised_frames,
     still_share,
     wave_share,
 )
@@ -69,3 +71,15 @@ def test_a_waving_hand_sways_and_a_raised_one_holds_still(index):
         assert up.sum() >= 10
         assert np.median(wave_share(swayed[up])) == (1.0 if waving else 0.0)
         assert np.median(still_share(swayed[up])) == (0.0 if waving else 1.0)
+
+
+def test_a_raise_ups_raised_frames_are_calm_and_a_waves_are_not(index):
+    """`calm_frames` (what LTI's raised arm is fitted on): on the first validation one-hand
+    raise-ups nearly every raised frame is calm, on the waves at most one in ten."""
+    for side, hand in enumerate(("left", "right")):
+        for content, calm in ((f"raise-up-{hand}-hand", True), (f"wave-{hand}-hand", False)):
+            motion = _val(index, content).slice(0, 150)
+            up = raised_frames(motion, side)
+            assert up.sum() >= 20
+            share = calm_frames(motion, side)[up].mean()
+            assert share > 0.95 if calm else share <= 0.1

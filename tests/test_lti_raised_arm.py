@@ -1,5 +1,5 @@
-"""LTI: a raised hand that holds still takes the real style's raised arm (`models/lti/raised_arm.py`):
-only that arm moves, only while the hand is up and still, the stream and the offline path agree,
+"""LTI: a raised hand that does not wave takes the real style's raised arm (`models/lti/raised_arm.py`):
+only that arm moves, only while the hand is up and calm, the stream and the offline path agree,
 and the validation raise-ups toward youthful read as raise-ups."""
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ def models() -> tuple[LTIStyleModel, LTIStyleModel]:
     return LTIStyleModel(), LTIStyleModel(raised_arms=False)
 
 
-def test_only_the_raised_still_arm_moves_and_only_while_it_is_up(models, index):
-    """A left-hand raise-up toward youthful: on the frames with the left hand up and still only
+def test_only_the_raised_calm_arm_moves_and_only_while_it_is_up(models, index):
+    """A left-hand raise-up toward youthful: on the frames with the left hand up and calm only
     the left arm differs from the model without raised arms; before any hand goes up nothing does."""
     on, off = models
     motion = val_motions(index, "raise-up-left-hand")[0]

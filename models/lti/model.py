@@ -95,7 +95,7 @@ class StyleTranslator:
     keep_heading: bool = True  # output yaw change := input yaw change (no heading drift); not stored
     prior_mean: np.ndarray | None = None  # (22, 4) rotation prior (prior.py): the real style's mean per joint
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
-    raised_arm: StyleCarry | None = None  # a still raised hand's arm carry (`raised_arm.py`); not stored here
+    raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`); not stored here
     waving_arm: bool = True  # a waving hand's arm takes the input's swing (`waving_arm.py`); not stored
 
     def __post_init__(self) -> None:
@@ -312,7 +312,7 @@ class LTIStyleModel(LTIStyles):
         waving_arm.compile_now(rep.NUM_JOINTS)  # and the waving arm's
 
     def _raised_arms(self, state, new, rotations: np.ndarray, out_rot: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """The output rotations with the arms of raised hands carried: a still one toward the
+        """The output rotations with the arms of raised hands carried: a calm one toward the
         style's raised arm (`raised_arm.py`), a waving one by the input's swing (`waving_arm.py`,
         whose running means in `new` are brought up to this frame)."""
         offsets, swayed, risen = new["hand_prev"], new["hand_sway"], new["hand_rise"]
@@ -484,7 +484,7 @@ class LTIStyleModel(LTIStyles):
         )
         for key, cols in x_slices.items():
             new[key] = new_x[:, cols]
-        # the input's hands: while one is raised and still, its arm is carried (`raised_arm.py`);
+        # the input's hands: while one is raised, its arm is carried (`raised_arm.py`, `waving_arm.py`);
         # the first frame of a session (or of a snapshot from before them) has no sway
         offsets, new["hand_sway"], new["hand_rise"], raised = self._hands.step(
             rotations, state["hand_prev"], state["hand_sway"], state["hand_rise"], state["started"], self.fps

@@ -1,4 +1,4 @@
-"""A raised hand that holds still: its arm carried toward the real style's raise-ups.
+"""A raised hand that does not wave: its arm carried toward the real style's raise-ups.
 
     .venv/bin/python -m models.lti.raised_arm      # fit -> models/weights/lti/raised_arm.npz (~20 s)
 
@@ -10,13 +10,17 @@ and the content judge read such raise-ups as waves (its p(raise-up) follows the 
 
 What: per output style, a `StyleCarry` (`models.motion.style_carry`) from the rotations the
 translator makes of TRAIN neutral raise-ups to the style's real TRAIN raise-ups, on the frames with
-that hand raised, fitted for each side apart (each arm's joints, Shoulder to Hand, from its own
-side's fit; the other joints are never used), with its gains capped at 1 (`StyleCarry.damping`:
-with the full gains the carry doubled the raised hand's sway toward youthful, 50-75 cm/s against
-the real 25-32). While the input's hand is raised and still (`models.motion.hands`: raise share
-times still share), that arm is mixed toward the carried one by the share, after the step (the
-foot planter moves only the legs and root). The translator of a style without a fit (an uploaded
-one) is left as it was.
+that hand raised and not waving (`models.motion.hands.calm_frames`), fitted for each side apart
+(each arm's joints, Shoulder to Hand, from its own side's fit; the other joints are never used),
+with its gains capped at 1 (`StyleCarry.damping`: with the full gains the carry doubled the raised
+hand's sway toward youthful, 50-75 cm/s against the real 25-32). While the input's hand is raised
+and not waving (raise share times one minus the wave share: what `waving_arm.py` leaves), that
+arm is mixed toward the carried one by the share, after the step (the foot planter moves only the
+legs and root). The translator of a style without a fit (an uploaded one) is left as it was.
+
+Until session 28 the share used the still share (a sway of 25..45 cm/s, Style-ERD's) and the fit
+every raised frame; the complement of the waving arm's share, and the fit on the frames where it
+applies, took validation content from 262 to 265 of 276 inputs (model card).
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import numpy as np
 
 from ..motion.bn_skeleton import BN_JOINTS, HIPS, ROOT
 from ..motion.feet import LEG_JOINTS
-from ..motion.hands import raise_share, raised_frames, still_share
+from ..motion.hands import calm_frames, raise_share, wave_share
 from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry, real_train_frames
 
@@ -42,9 +46,9 @@ _ARM = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in ARM_JOINTS]) for side 
 
 
 def shares(offsets: np.ndarray, swayed: np.ndarray) -> np.ndarray:
-    """(B, 2) how far each arm is moved: its hand's raise share times its still share, from the
-    input's `hand_offsets` (B, 2, 3) and sway (B, 2)."""
-    return raise_share(np.asarray(offsets)[..., 1]) * still_share(swayed)
+    """(B, 2) how far each arm is moved: its hand's raise share times one minus its wave share,
+    from the input's `hand_offsets` (B, 2, 3) and sway (B, 2)."""
+    return raise_share(np.asarray(offsets)[..., 1]) * (1.0 - wave_share(swayed))
 
 
 def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share: np.ndarray) -> np.ndarray:
@@ -98,7 +102,7 @@ def fit(model) -> dict[str, StyleCarry]:
     clamped = (HIPS,) + tuple(BN_JOINTS.index(j) for j in LEG_JOINTS)
     sides = []
     for side in (0, 1):
-        frames = functools.partial(raised_frames, side=side)
+        frames = functools.partial(calm_frames, side=side)
         chosen = np.concatenate([frames(m) for m in inputs])
         real = real_train_frames(styles, RAISE_UPS, frames)
         sides.append(StyleCarry.fit([q[chosen] for q in made], real, (ROOT,), clamp_only=clamped))

@@ -199,6 +199,13 @@ def raised_frames(motion, side: int | None = None) -> np.ndarray:
     return raise_share(heights.max(-1) if side is None else heights[:, side]) > 0.5
 
 
+def calm_frames(motion, side: int) -> np.ndarray:
+    """(T,) bool: the frames of a Bandai Namco `Motion` with the `side` hand raised (`raised_frames`)
+    and not waving (its wave share, from the clip's sway, under a half)."""
+    swayed = clip_sway(hand_offsets(motion.global_positions()), motion.fps)[:, side]
+    return raised_frames(motion, side) & (wave_share(swayed) < 0.5)
+
+
 def hanging_frames(motion, side: int) -> np.ndarray:
     """(T,) bool: the frames of a Bandai Namco `Motion` with the other hand raised and this
     `side`'s not (each more or less than half way up `RAISE_RAMP_CM`)."""
