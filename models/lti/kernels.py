@@ -177,10 +177,9 @@ def pack_styles(translators: list) -> PackedStyles:
         fp_mean.append(fp.mean if fp is not None else np.zeros((2, 2)))
         fp_var.append(fp.var if fp is not None else np.ones((2, 2)))
         fp_prior.append(fp.log_prior if fp is not None else np.zeros((2, 2)))
-        prior_mean.append(
-            tr.prior_mean if tr.prior_mean is not None else np.tile([0.0, 0.0, 0.0, 1.0], (NUM_JOINTS, 1))
-        )
-        prior_radii.append(tr.prior_radii if tr.prior_radii is not None else np.full((2, NUM_JOINTS), np.inf))
+        mean, radii = tr.ball()
+        prior_mean.append(mean)
+        prior_radii.append(radii)
     indptr.append(np.array([nnz]))
     f64 = lambda parts: np.ascontiguousarray(np.stack(parts), dtype=np.float64)
     return PackedStyles(

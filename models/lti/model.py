@@ -139,12 +139,12 @@ class StyleTranslator:
             xs[t] = x
         return self._finish(feats, u, ys, blend), xs
 
-    def _balls(self) -> tuple[np.ndarray, np.ndarray]:
-        """(means (1, 22, 4), radii (1, 2, 22)): this style's rotation prior as `waving_arm.held`
-        reads a style set's (no prior: infinite radii, nothing held)."""
-        if self.prior_mean is None or self.prior_radii is None:
-            return np.tile([0.0, 0.0, 0.0, 1.0], (1, rep.NUM_JOINTS, 1)), np.full((1, 2, rep.NUM_JOINTS), np.inf)
-        return self.prior_mean[None], self.prior_radii[None]
+    def ball(self) -> tuple[np.ndarray, np.ndarray]:
+        """(mean (22, 4), radii (2, 22)): this style's rotation prior as the compiled step reads it
+        (`kernels.pack_styles`); without a prior the radii are infinite and nothing is held."""
+        mean = self.prior_mean if self.prior_mean is not None else np.tile([0.0, 0.0, 0.0, 1.0], (rep.NUM_JOINTS, 1))
+        radii = self.prior_radii if self.prior_radii is not None else np.full((2, rep.NUM_JOINTS), np.inf)
+        return mean, radii
 
     def translate_motion(self, motion, timewarp: bool = False, blend: bool = True, footlock: bool = True):
         """Offline translation of a whole `Motion` (BN skeleton). Returns (Motion, contacts (F', 2))."""
@@ -158,14 +158,15 @@ class StyleTranslator:
         )
         if self.prior_mean is not None and self.prior_radii is not None:
             rots = clamp_rotations(rots, self.prior_mean, self.prior_radii)
-        if self.raised_arm is not None:
+        if self.raised_arm is not None or self.waving_arm:
             offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
-            share = raised_arm.shares(offsets, clip_sway(offsets, motion.fps))
+            swayed = clip_sway(offsets, motion.fps)
+        if self.raised_arm is not None:
+            share = raised_arm.shares(offsets, swayed)
             rots = raised_arm.carried(self.raised_arm, rots, np.ones((len(rots), 1)), share)
         if self.waving_arm:
-            offsets = hand_offsets_of(motion.rotations, motion.skeleton)
-            balls = self._balls()
-            rots = waving_arm.clip(rots, motion.rotations, offsets, motion.fps, *balls)
+            mean, radii = self.ball()
+            rots = waving_arm.clip(rots, motion.rotations, offsets, swayed, motion.fps, mean[None], radii[None])
         contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
         if footlock:
             root, rots, contacts = model_rig_planter(motion.fps).clip(root, rots, hints=contacts)

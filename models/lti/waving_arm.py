@@ -31,7 +31,6 @@ from ..motion.hands import (
     RAISE_RAMP_CM,
     WAVE_RAMP_CM_S,
     clip_rise,
-    clip_sway,
     level_share,
     raise_share,
     wave_share,
@@ -191,15 +190,16 @@ def clip(
     out_rots: np.ndarray,
     in_rots: np.ndarray,
     offsets: np.ndarray,
+    swayed: np.ndarray,
     fps: float,
     means: np.ndarray,
     radii: np.ndarray,
 ) -> np.ndarray:
     """(T, J, 4) a whole clip's output rotations of one style (balls means (1, J, 4), radii
     (1, 2, J)) with its waving arms swung, frame by frame as a stream does (`step`), from the
-    input's rotations and `hand_offsets` (T, 2, 3)."""
+    input's rotations, `hand_offsets` (T, 2, 3) and their `clip_sway` (T, 2)."""
     out = np.array(out_rots, np.float64, copy=True)
-    swayed, risen = clip_sway(offsets, fps), clip_rise(offsets, fps)
+    risen = clip_rise(offsets, fps)
     in_mean, out_mean = np.zeros((1, *MEAN_SHAPE)), np.zeros((1, *MEAN_SHAPE))
     one = np.ones((1, 1))
     for t in range(len(out)):

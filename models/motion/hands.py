@@ -1,17 +1,18 @@
-"""What a hand does, measured on the Bandai Namco rig: how far it is raised and how much it sways.
+"""What a hand does, measured on the Bandai Namco rig: how far it is raised and how it moves.
 
-Style-ERD (`models/erd/gestures.py`, `raised_hand.py`) and LTI (`models/lti/raised_arm.py`) switch
-a raised arm's rotation prior by these: a raised hand that holds still is a raise-up, one that
-sways is a wave. Causal, per frame: a frame's shares read that frame and the sway's running
-average.
+Style-ERD (`models/erd/gestures.py`, `raised_hand.py`) and LTI (`models/lti/raised_arm.py`,
+`waving_arm.py`) switch a raised arm's treatment by these: a raised hand that holds still is a
+raise-up, one that sways at a level height is a wave. Causal, per frame: a frame's shares read
+that frame and the running averages.
 
 - **Raise share:** each hand's height above its own shoulder (the UpperArm joint) on a ramp over
   `RAISE_RAMP_CM`: from the TRAIN `normal` runs' p99 (-12 cm; a running arm's swing reaches past it
   in about 1 % of frames) to the shoulder's height (Style-ERD's card chose it on validation).
 - **Sway:** each hand's horizontal speed against its shoulder, an exponential average over
-  `SWAY_FRAMES` (its vertical speed, the **rise**, likewise). On the validation inputs' raised frames a raise-up's has a median of 21-34 cm/s
+  `SWAY_FRAMES`. On the validation inputs' raised frames a raise-up's has a median of 21-34 cm/s
   (p90 41-60), a wave's a median of 57-96 (p10 50-84): the wave share ramps over `WAVE_RAMP_CM_S`,
   the still share falls over `STILL_RAMP_CM_S`.
+- **Rise:** its vertical speed, averaged alike; the level share falls over `LEVEL_RAMP_CM_S`.
 """
 
 from __future__ import annotations
