@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-loaded test-all lint typecheck summary eval perf clean browser viewer-vendor servers image
+.PHONY: install serve test test-loaded test-all lint typecheck summary eval eval-final perf clean browser viewer-vendor servers image
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -75,8 +75,14 @@ perf: install
 summary: install
 	$(BIN)/python -m models.data summary
 
+# the sealed evaluation (docs/evaluation.md): every choice is made on `make eval` (validation
+# inputs, out/eval-val/); `make eval-final` scores the test inputs once a change is finished and
+# records the run in docs/eval/final_runs.md
 eval: install
 	$(BIN)/python -m models.eval
+
+eval-final: install
+	$(BIN)/python -m models.eval --final
 
 clean:
 	rm -rf $(VENV) .cache .pytest_cache

@@ -15,7 +15,9 @@ METHODS = ("lti", "erd", "lpn")
 log = logging.getLogger(__name__)
 
 
-def load_models(weights_dir: Path) -> dict[str, StreamingModel]:
+def load_models(weights_dir: Path, core_only: bool = False) -> dict[str, StreamingModel]:
+    """Every committed method; `core_only`: each one's published core alone, without the fitted
+    stages after it (what the evaluation's core-alone rows score)."""
     models: dict[str, StreamingModel] = {}
     for method in METHODS:
         try:
@@ -26,6 +28,6 @@ def load_models(weights_dir: Path) -> dict[str, StreamingModel]:
         folder = Path(weights_dir) / method
         if loader is None or not folder.is_dir():
             continue
-        models[method] = loader(folder)
+        models[method] = loader(folder, core_only=True) if core_only else loader(folder)
         log.info("loaded model %s with styles %s", method, models[method].styles())
     return models

@@ -9,7 +9,8 @@ from pathlib import Path
 WEIGHTS_SUBDIR = "erd"
 
 
-def load(weights_dir: Path):
+def load(weights_dir: Path, core_only: bool = False):
+    """The committed model; `core_only`: the published core alone (`runtime.load`)."""
     from .runtime import load as _load
 
-    return _load(Path(weights_dir))
+    return _load(Path(weights_dir), core_only=core_only)

@@ -425,8 +425,11 @@ class ERDModel:
         return replace(motion, rotations=np.array(rots), translations=trans)
 
 
-def load(weights_dir: Path, dtype: type = np.float32) -> ERDModel:
-    """The committed model; `dtype` = the network's arithmetic (np.float64: the reference)."""
+def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False) -> ERDModel:
+    """The committed model; `dtype` = the network's arithmetic (np.float64: the reference).
+    `core_only`: the network without the fitted stages after it (every rotation prior and the
+    twist range; the input's twist transfer and the foot planter stay): the evaluation's
+    core-alone row."""
     weights_dir = Path(weights_dir)
     config = json.loads((weights_dir / "config.json").read_text())
     with np.load(weights_dir / WEIGHTS_FILE) as z:
@@ -443,6 +446,8 @@ def load(weights_dir: Path, dtype: type = np.float32) -> ERDModel:
         for key, name in PRIOR_FILES.items()
     }
     twists = TwistRange.load(weights_dir / TWIST_FILE) if (weights_dir / TWIST_FILE).exists() else None
+    if core_only:
+        priors, twists = dict.fromkeys(priors), None
     return ERDModel(
         arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype, twist_range=twists, **priors
     )

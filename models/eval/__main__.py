@@ -1,6 +1,9 @@
-"""`python -m models.eval [--quick] [--split val]`: score identity and every committed method; write
-docs/evaluation.md, docs/eval/results.json and docs/eval/grid_<style>.png (the test clips), or the
-same table on the validation clips, where settings are chosen, into out/eval-val/."""
+"""`python -m models.eval [--final] [--quick] [--methods ...]`: the sealed evaluation (`sealed.py`).
+
+Without `--final` (`make eval`) it scores the VALIDATION inputs into out/eval-val/, where every
+choice is made. `--final` (`make eval-final`) scores the sealed test inputs, writes
+docs/evaluation.md and docs/eval/results.json, and appends a line to docs/eval/final_runs.md:
+run it once a change is finished, never to choose between changes."""
 
 from __future__ import annotations
 
@@ -8,42 +11,25 @@ import argparse
 import logging
 from pathlib import Path
 
-from .run import evaluate
+from .sealed import evaluate
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(prog="python -m models.eval", description=__doc__)
-    ap.add_argument("--quick", action="store_true", help="tiny subset (4 clips, 2 styles, 60 frames)")
-    ap.add_argument("--per-content", type=int, default=4, help="test clips per content (default 4)")
-    ap.add_argument("--frames", type=int, default=150, help="frames per clip (default 150)")
-    ap.add_argument(
-        "--out", type=Path, default=None, help="output folder (default docs/; out/eval-quick, out/eval-val)"
-    )
-    ap.add_argument("--no-grids", action="store_true")
-    ap.add_argument(
-        "--split",
-        choices=("test", "val"),
-        default="test",
-        help="clips to score: test (the report, docs/) or val (what settings are chosen by, out/eval-val)",
-    )
+    ap.add_argument("--final", action="store_true", help="score the sealed test inputs and record the run")
+    ap.add_argument("--quick", action="store_true", help="two clips a source, two styles (a smoke run)")
     ap.add_argument("--methods", nargs="+", default=None, help="only these methods (default: every committed one)")
+    ap.add_argument("--out", type=Path, default=None, help="output folder (default docs/ or out/eval-val)")
     a = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    r = evaluate(
-        quick=a.quick,
-        per_content=a.per_content,
-        frames=a.frames,
-        out_dir=a.out,
-        grids=not a.no_grids,
-        split=a.split,
-        methods=tuple(a.methods) if a.methods else None,
-    )
-    for name, m in r["methods"].items():
-        o = m["overall"]
-        print(
-            f"{name:9s} style {o['style_acc']:.2f}  content {o['content_acc']:.2f}  FMD {o['fmd']:.1f}  "
-            f"skate {o['skate_ratio']:.2f}  path {o['path_dev_cm']:.1f} cm"
-        )
+    r = evaluate(final=a.final, quick=a.quick, methods=tuple(a.methods) if a.methods else None, out=a.out)
+    for row in r["rows"]:
+        if row["gates"]:
+            print(
+                f"{row['source']:10s} {row['variant']:9s} {row['session']:7s} {row['style']:10s} "
+                f"style {row['style_acc']['share']:.2f} plausible {row['plausible']['share']:.2f} "
+                f"jitter {row['jitter_p90']:.2f} {'pass' if row['gates']['all'] else 'fail'}"
+            )
     print(f"done in {r['meta']['seconds']} s")
 
 

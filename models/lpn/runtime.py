@@ -665,8 +665,13 @@ def read_arm_coupling(weights_dir: Path) -> Coupling | None:
     return Coupling.load(path) if path.exists() else None
 
 
-def load(weights_dir: Path) -> LPNModel:
+def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
+    """The committed model. `core_only`: the network alone (its built-in FiLM styles and the foot
+    planter), without the fitted stages after it (the rotation prior, the pace and arm carriage,
+    the output prior and the arm coupling): the evaluation's core-alone row."""
     arrays, skeleton, config = read_weights(weights_dir)
+    if core_only:
+        return LPNModel(arrays, skeleton, config)
     return LPNModel(
         arrays,
         skeleton,

@@ -1,0 +1,111 @@
+"""The sealed evaluation: what each run may see, the judge's and the metrics' sanity, and a quick
+run end to end (`models/eval/sealed.py`)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from models.data import build_index, load_motions, select
+from models.eval import sealed
+from models.eval.intervals import share, wilson
+from models.eval.physical import measure
+from models.eval.plausibility import RotationReference
+from models.eval.sources import D1, D2, SEEN_BY, input_sources
+from models.eval.style_judge import load_style_judge
+from models.motion.rotations import expmap_to_quat, quat_mul
+
+
+def test_no_input_of_a_validation_run_is_scored_by_the_final_one():
+    for dataset in SEEN_BY["val"]:
+        assert not set(SEEN_BY["val"][dataset]) & set(SEEN_BY["test"][dataset]), dataset
+    assert SEEN_BY["test"][D2] == ("test",) and "test" not in SEEN_BY["val"][D2]
+
+
+def test_the_validation_run_streams_every_neutral_validation_clip_at_full_length():
+    index = build_index([D2])
+    want = select(index, dataset=D2, split="val", style="normal")
+    bn2 = next(s for s in input_sources("val") if s.dataset == D2)
+    assert bn2.names == [c.name for c in want]
+    assert [m.num_frames for m in bn2.motions] == [c.frames for c in want]
+    assert len({c.content for c in want}) == 10
+
+
+def test_wilson_intervals_stay_inside_zero_and_one_and_hold_the_share():
+    lo, hi = wilson(0, 10)
+    assert lo == 0.0 and hi == pytest.approx(0.2775, abs=1e-3)
+    lo, hi = wilson(10, 10)
+    assert lo == pytest.approx(0.7225, abs=1e-3) and hi == 1.0
+    s = share(31, 34)
+    assert s["lo"] < s["share"] < s["hi"] and s["hi"] - s["lo"] > 0.15  # one clip is not noise at 34
+
+
+@pytest.fixture(scope="module")
+def judge():
+    return load_style_judge()
+
+
+def test_the_style_judge_reads_real_held_out_clips_of_both_datasets(judge):
+    index = build_index([D1, D2])
+    for style in ("elderly", "feminine", "normal"):
+        clips = select(index, dataset=D2, split="test", style=style, content="walk")[:2]
+        assert judge.predict(load_motions(clips)) == [style] * len(clips)
+    old = select(index, dataset=D1, style="old", content="walk")
+    assert judge.mapping.get("old") == "elderly"
+    assert judge.predict(load_motions(old)).count("elderly") >= 1
+    report = json.loads((sealed.REPO_ROOT / "docs/eval/style_judge.json").read_text())
+    assert report["held_out"]["dataset-2 test"]["accuracy"]["share"] >= 0.9
+
+
+@pytest.fixture(scope="module")
+def walk():
+    clip = select(build_index([D2]), split="val", style="normal", content="walk")[0]
+    return load_motions([clip])[0]
+
+
+def test_a_shaking_head_is_jitter_and_a_dragged_foot_is_slide(walk):
+    ref = RotationReference({"normal": load_motions(select(build_index([D2]), split="val", style="normal"))[:12]})
+    same = measure(ref, "normal", walk, walk)
+    assert same.jitter == pytest.approx(1.0) and same.path_ratio == pytest.approx(1.0) and same.end_drift < 1e-9
+    rot = walk.rotations.copy()
+    head = walk.skeleton.index("Head")
+    shake = np.where(np.arange(walk.num_frames) % 2, 0.05, -0.05)[:, None] * np.array([0.0, 0.0, 1.0])
+    rot[:, head] = quat_mul(expmap_to_quat(shake), rot[:, head])  # +-3 degrees, every other frame
+    shaking = measure(ref, "normal", replace(walk, rotations=rot), walk)
+    assert shaking.jitter > 1.5
+    trans = walk.translations.copy()
+    trans[:, walk.skeleton.index("Hips"), 0] += np.arange(walk.num_frames) * 3.0  # the whole body glides 90 cm/s
+    glide = measure(ref, "normal", replace(walk, translations=trans), walk)
+    assert np.percentile(glide.foot_speeds, 95) > np.percentile(same.foot_speeds, 95) + 50
+
+
+def test_a_quick_validation_run_scores_every_source_and_records_no_final_run(tmp_path, monkeypatch):
+    monkeypatch.setattr(sealed, "FINAL_RUNS", str(tmp_path / "final_runs.md"))
+    r = sealed.evaluate(quick=True, methods=("lti",), out=tmp_path)
+    rows = r["rows"]
+    assert {x["source"] for x in rows} == {"real", "dataset 2", "dataset 1", "Xia"}
+    assert {x["variant"] for x in rows} == {"real", "identity", "lti", "lti core"}
+    for x in rows:
+        if x["variant"] == "identity":
+            assert x["jitter_median"] == pytest.approx(1.0) and x["path_ratio_median"] == pytest.approx(1.0)
+            assert not x["gates"]
+        if x["variant"] == "lti":
+            assert set(x["gates"]) >= {"plausible", "pops", "jitter", "slide", "style", "all"}
+            assert ("content" in x["gates"]) == (x["dataset"] == D2)
+    assert {x["session"] for x in rows if x["variant"] == "lti"} == {"fresh", "running"}
+    assert "VALIDATION" in (tmp_path / "evaluation.md").read_text()
+    assert not (tmp_path / "final_runs.md").exists()
+    assert json.loads((tmp_path / "eval" / "results.json").read_text())["meta"]["split"] == "val"
+
+
+def test_a_final_run_appends_one_line_and_the_report_counts_them(tmp_path, monkeypatch):
+    monkeypatch.setattr(sealed, "FINAL_RUNS", str(tmp_path / "final_runs.md"))
+    row = {"variant": "lti", "session": "fresh", "gates": {"all": True}}
+    r = {"rows": [row, {**row, "gates": {"all": False}}], "meta": {"date": "2026-11-28", "commit": "abc1234"}}
+    sealed._append_final_run(r)
+    sealed._append_final_run(r)
+    assert len(sealed.final_runs()) == 2
+    assert "| 2026-11-28 | abc1234 | lti fresh: 1/2 rows pass |" in (tmp_path / "final_runs.md").read_text()
