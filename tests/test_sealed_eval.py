@@ -12,8 +12,7 @@ import pytest
 from models.data import build_index, load_motions, select
 from models.eval import sealed
 from models.eval.intervals import share, wilson
-from models.eval.physical import measure
-from models.eval.plausibility import RotationReference
+from models.eval.physical import Reference, measure
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import load_style_judge
 from models.motion.rotations import expmap_to_quat, quat_mul
@@ -67,7 +66,9 @@ def walk():
 
 
 def test_a_shaking_head_is_jitter_and_a_dragged_foot_is_slide(walk):
-    ref = RotationReference({"normal": load_motions(select(build_index([D2]), split="val", style="normal"))[:12]})
+    ref = Reference.fit(
+        {"normal": load_motions(select(build_index([D2]), split="val", style="normal", content="walk"))}
+    )
     same = measure(ref, "normal", walk, walk)
     assert same.jitter == pytest.approx(1.0) and same.path_ratio == pytest.approx(1.0) and same.end_drift < 1e-9
     rot = walk.rotations.copy()
@@ -90,7 +91,7 @@ def test_a_quick_validation_run_scores_every_source_and_records_no_final_run(tmp
     assert {x["variant"] for x in rows} == {"real", "identity", "lti", "lti core"}
     for x in rows:
         if x["variant"] == "identity":
-            assert x["jitter_median"] == pytest.approx(1.0) and x["path_ratio_median"] == pytest.approx(1.0)
+            assert x["jitter_p90"] <= 1.0 + 1e-9 and x["path_ratio_median"] == pytest.approx(1.0)
             assert not x["gates"]
         if x["variant"] == "lti":
             assert set(x["gates"]) >= {"plausible", "pops", "jitter", "slide", "style", "all"}

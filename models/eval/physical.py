@@ -1,18 +1,21 @@
 """What a viewer sees go wrong, measured so that no clamp or lock in a model enforces it.
 
-- **plausible clip**: every body joint's local rotation lies within the p99 distance of real
-  VALIDATION clips of the style in ≥ 95 % of the clip's frames (the models' clamps stop at TRAIN
-  statistics, and a clip fails on its worst joint, not on a pool over clips);
-- **pops**: the worst joint's share of frames whose rotation acceleration passes the real p99.9,
-  beside the same share of real clips of the style;
-- **jitter**: each clip's p99 rotation acceleration over its input's, per joint, the worst joint
-  (1 = no jitter added; a joint the input holds still counts from `STILL` degrees/frame², and
-  per joint, because the planted feet's accelerations dominate a pool over joints);
+- **plausible clip**: every body joint's local rotation lies near some real frame of the style in
+  ≥ 95 % of the clip's frames (`RotationSupport`). Near a real *frame*, not inside a ball about
+  the style's mean rotation: the models hold their rotations in such balls (fitted on TRAIN
+  clips), so a ball test passes by construction, while a pose between two real ones, or a wave's
+  arm that a ball keeps but no real clip makes, is caught here;
+- **pops**: the worst joint's share of frames whose rotation acceleration passes the p99.9 of
+  real clips of every style (a flick is a flick whatever the style), beside the real rows';
+- **jitter**: per joint, the clip's p99 rotation acceleration over the larger of its input's and
+  the real style's, the worst joint (1 or less: nothing added that neither the input nor the
+  style has; per joint, because the planted feet's accelerations dominate a pool over joints);
 - **slide**: the p95 horizontal speed of a planted foot (ankle and toe both on the floor,
   `metrics.flat_foot_contacts`; the median a foot lock pins to 0 says nothing), and the
   **skating** share: planted-foot frames faster than `skate_limit`, calibrated on real clips as
   their p95 (real clips skate in 5 % of planted frames by construction);
-- **path**: the hips' path length over the input's, and how far apart the two paths end.
+- **path**: the hips' path length over the input's (each plus one leg length, so a standing
+  input's few centimetres of sway do not make a ratio), and how far apart the two paths end.
 """
 
 from __future__ import annotations
@@ -20,14 +23,81 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from ..motion.features import body_joint
+from ..motion.features import body_joint, left_leg_length
+from ..motion.rotations import quat_inv, quat_mean, quat_mul, quat_to_expmap
 from ..motion.skeleton import Motion
 from .metrics import flat_foot_contacts
-from .plausibility import RotationReference, rotation_acceleration
+from .plausibility import body_joints, comparable_rotations, rotation_acceleration
 
 PLAUSIBLE_FRAMES = 0.95  # a joint is plausible in a clip when this share of its frames is
-STILL = 1.0  # degrees per frame per frame: the p99 acceleration below which an input joint is still
+SUPPORT_FRAMES = 12_000  # real frames per style in each joint's search tree (evenly spread)
+SUPPORT_PERCENTILE = 99.0  # of held-out real frames' distance to the tree: a frame within is plausible
+
+
+def _log_about(q: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """(F, J, 3) each rotation as a rotation vector from the joint's mean: three numbers a
+    KD-tree searches fast, close to the angle between rotations near the data."""
+    return quat_to_expmap(quat_mul(quat_inv(mean), q))
+
+
+class RotationSupport:
+    """Per style and body joint: a search tree over real frames' local rotations and the distance
+    within which held-out real frames lie (`SUPPORT_PERCENTILE`). The clips of each style are
+    split alternately: even clips build the tree, odd ones set the distance."""
+
+    def __init__(self, real: dict[str, list[Motion]]):
+        sk = next(iter(real.values()))[0].skeleton
+        self.joint_index = body_joints(sk)
+        self.joints = [sk.names[j] for j in self.joint_index]
+        self.mean: dict[str, np.ndarray] = {}
+        self.trees: dict[str, list[cKDTree]] = {}
+        self.radius: dict[str, np.ndarray] = {}
+        for style, motions in real.items():
+            build = self._rotations(motions[0::2])
+            held = self._rotations(motions[1::2])
+            self.mean[style] = quat_mean(build, axis=0)
+            pts = _log_about(build, self.mean[style])
+            pts = pts[np.linspace(0, len(pts) - 1, min(len(pts), SUPPORT_FRAMES)).astype(int)]
+            self.trees[style] = [cKDTree(pts[:, j]) for j in range(len(self.joints))]
+            self.radius[style] = np.percentile(self._distances(style, held), SUPPORT_PERCENTILE, axis=0)
+
+    def _rotations(self, motions: list[Motion]) -> np.ndarray:
+        return np.concatenate([comparable_rotations(m)[:, self.joint_index] for m in motions])
+
+    def _distances(self, style: str, q: np.ndarray) -> np.ndarray:
+        """(F, J) distance of each frame's joint rotation to the nearest real one."""
+        x = _log_about(q, self.mean[style])
+        return np.stack([tree.query(x[:, j])[0] for j, tree in enumerate(self.trees[style])], axis=1)
+
+    def within(self, style: str, motion: Motion) -> np.ndarray:
+        """(J,) share of the clip's frames whose joint rotation lies near a real one."""
+        q = comparable_rotations(motion)[:, self.joint_index]
+        return (self._distances(style, q) <= self.radius[style]).mean(axis=0)
+
+
+@dataclass
+class Reference:
+    """Everything a row is measured against, from real VALIDATION clips: the rotation support per
+    style, the pop limit (all styles), each style's p99 acceleration and the skating limit."""
+
+    support: RotationSupport
+    pop_limit: np.ndarray  # (J,) degrees per frame per frame
+    style_p99: dict[str, np.ndarray]  # style -> (J,)
+    skate_limit: float  # units/s
+
+    @classmethod
+    def fit(cls, real: dict[str, list[Motion]]) -> Reference:
+        support = RotationSupport(real)
+        acc = {s: np.concatenate([rotation_acceleration(m, support.joint_index) for m in ms]) for s, ms in real.items()}
+        speeds = np.concatenate([planted_speeds(m) for ms in real.values() for m in ms])
+        return cls(
+            support,
+            np.percentile(np.concatenate(list(acc.values())), 99.9, axis=0),
+            {s: np.percentile(a, 99, axis=0) for s, a in acc.items()},
+            float(np.percentile(speeds, 95)),
+        )
 
 
 def planted_speeds(motion: Motion) -> np.ndarray:
@@ -36,76 +106,63 @@ def planted_speeds(motion: Motion) -> np.ndarray:
     return speeds[1:][contacts[1:]]
 
 
-def skate_limit(real: list[Motion]) -> float:
-    """Planted-foot speed (units/s) that real clips pass in 5 % of their planted frames."""
-    return float(np.percentile(np.concatenate([planted_speeds(m) for m in real]), 95))
-
-
 @dataclass
 class ClipPhysics:
-    """One output clip's measurements (the input's where a ratio needs it)."""
+    """One output clip's measurements (against its input where a ratio needs one)."""
 
-    plausible: bool
-    worst_within: float
-    worst_joint: str
+    within: np.ndarray  # (J,) share of frames near real rotations
     acc: np.ndarray  # (F - 2, J) rotation acceleration, degrees per frame per frame
-    jitter: float  # p99 acceleration, output / input
+    jitter: float
     foot_speeds: np.ndarray  # planted-foot speeds, units/s
     path_ratio: float
     end_drift: float  # units (cm on the model rig)
 
+    @property
+    def plausible(self) -> bool:
+        return bool(self.within.min() >= PLAUSIBLE_FRAMES)
 
-def measure(ref: RotationReference, style: str, out: Motion, inp: Motion | None) -> ClipPhysics:
-    plaus = ref.plausibility(style, [out])
-    acc = rotation_acceleration(out, ref.joint_index)
+
+def measure(ref: Reference, style: str, out: Motion, inp: Motion | None) -> ClipPhysics:
+    joints = ref.support.joint_index
+    acc = rotation_acceleration(out, joints)
     jitter, path_ratio, drift = float("nan"), float("nan"), float("nan")
     if inp is not None and out.num_frames > 3:
-        acc_in = rotation_acceleration(inp, ref.joint_index)
-        p99_in = np.maximum(np.percentile(acc_in, 99, axis=0), STILL)
-        jitter = float((np.percentile(acc, 99, axis=0) / p99_in).max())
+        floor = np.maximum(np.percentile(rotation_acceleration(inp, joints), 99, axis=0), ref.style_p99[style])
+        jitter = float((np.percentile(acc, 99, axis=0) / floor).max())
         path_ratio, drift = _paths(inp, out)
-    return ClipPhysics(
-        plaus["min_within"] >= PLAUSIBLE_FRAMES,
-        plaus["min_within"],
-        plaus["worst_joint"],
-        acc,
-        jitter,
-        planted_speeds(out),
-        path_ratio,
-        drift,
-    )
+    return ClipPhysics(ref.support.within(style, out), acc, jitter, planted_speeds(out), path_ratio, drift)
 
 
 def _paths(inp: Motion, out: Motion) -> tuple[float, float]:
-    hips = body_joint(inp.skeleton, "hips")
+    hips, leg = body_joint(inp.skeleton, "hips"), left_leg_length(inp.skeleton)
     a = inp.global_positions()[:, hips][:, [0, 2]]
     b = out.global_positions()[:, hips][:, [0, 2]]
     length = lambda p: float(np.linalg.norm(np.diff(p, axis=0), axis=-1).sum())  # noqa: E731
     n = min(len(a), len(b))
     drift = float(np.linalg.norm((a[n - 1] - a[0]) - (b[n - 1] - b[0])))
-    return length(b) / max(length(a), 1.0), drift
+    return (length(b) + leg) / (length(a) + leg), drift
 
 
-def summarise(clips: list[ClipPhysics], ref: RotationReference, style: str, limit: float) -> dict:
+def summarise(clips: list[ClipPhysics], ref: Reference) -> dict:
     """A row's physical columns over its clips."""
+    joints = ref.support.joints
     acc = np.concatenate([c.acc for c in clips if len(c.acc)])
-    pops = (acc > ref.pop_limit[style]).mean(axis=0) if len(acc) else np.zeros(len(ref.joints))
+    pops = (acc > ref.pop_limit).mean(axis=0) if len(acc) else np.zeros(len(joints))
     feet = np.concatenate([c.foot_speeds for c in clips])
     finite = lambda xs: [x for x in xs if np.isfinite(x)]  # noqa: E731
-    jit, ratio = finite([c.jitter for c in clips]), finite([c.path_ratio for c in clips])
-    drift = finite([c.end_drift for c in clips])
-    worst = min(clips, key=lambda c: c.worst_within)
+    jit, ratio, drift = (finite([getattr(c, k) for c in clips]) for k in ("jitter", "path_ratio", "end_drift"))
+    worst = min(clips, key=lambda c: c.within.min())
     return {
         "plausible_hits": sum(c.plausible for c in clips),
-        "worst_within": worst.worst_within,
-        "worst_joint": worst.worst_joint,
+        "worst_within": float(worst.within.min()),
+        "worst_joint": joints[int(np.argmin(worst.within))],
         "pops": float(pops.max()),
-        "pops_joint": ref.joints[int(np.argmax(pops))],
+        "pops_joint": joints[int(np.argmax(pops))],
         "jitter_median": float(np.median(jit)) if jit else float("nan"),
         "jitter_p90": float(np.percentile(jit, 90)) if jit else float("nan"),
         "slide_p95": float(np.percentile(feet, 95)) if len(feet) else 0.0,
-        "skate": float((feet > limit).mean()) if len(feet) else 0.0,
+        "skate": float((feet > ref.skate_limit).mean()) if len(feet) else 0.0,
         "path_ratio_median": float(np.median(ratio)) if ratio else float("nan"),
-        "path_ratio_worst": float(max(ratio, key=lambda r: abs(np.log(max(r, 1e-6))))) if ratio else float("nan"),
+        "path_ratio_worst": float(max(ratio, key=lambda r: abs(np.log(r)))) if ratio else float("nan"),
         "end_drift_median": float(np.median(drift)) if drift else float("nan"),
     }

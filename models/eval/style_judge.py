@@ -27,6 +27,13 @@ from .plausibility import body_joints, comparable_rotations
 
 WINDOW = 60  # frames (2 s at 30 fps): about two gait cycles
 STRIDE = 30
+# Standardisation floor and clip. A hinge joint (elbow, knee) turns about one axis in real data,
+# so some of its 6-D components barely vary there (std ~1e-3); a model's half-degree off the hinge
+# is then hundreds of standard deviations and alone decides the read. A degree-sized floor and a
+# clip on every standardised statistic keep the read on the style, not on a model's off-axis noise
+# (which the plausibility and pop metrics measure).
+SCALE_FLOOR = 0.05
+Z_CLIP = 5.0
 FILE = "style_judge.npz"
 # positions that say how the body is carried: head and hands and feet relative to the hips
 POSED_PARTS = ("Head", "Hand_L", "Hand_R", "Foot_L", "Foot_R")
@@ -86,7 +93,7 @@ class StyleJudge:
 
     def log_proba(self, stats: np.ndarray) -> np.ndarray:
         """(K,) mean log-probability of each label over a clip's windows."""
-        z = ((stats - self.mean) / self.scale) @ self.coef.T + self.intercept
+        z = np.clip((stats - self.mean) / self.scale, -Z_CLIP, Z_CLIP) @ self.coef.T + self.intercept
         z -= z.max(axis=1, keepdims=True)
         return (z - np.log(np.exp(z).sum(axis=1, keepdims=True))).mean(axis=0)
 
@@ -130,13 +137,13 @@ def fit_linear(stats: list[np.ndarray], labels: list[str], c: float, seed: int =
     x = np.concatenate(stats)
     y = np.concatenate([[lab] * len(s) for s, lab in zip(stats, labels)])
     w = np.concatenate([np.full(len(s), 1.0 / len(s)) for s in stats])
-    mean, scale = x.mean(0), x.std(0) + 1e-6
+    mean, scale = x.mean(0), np.maximum(x.std(0), SCALE_FLOOR)
     names = sorted(set(labels))
     # each label weighs the same: dataset 1 has 11 clips a style where dataset 2 has hundreds
     counts = {lab: labels.count(lab) for lab in names}
     w = w * np.array([len(labels) / (len(names) * counts[lab]) for lab in y])
     clf = LogisticRegression(C=c, max_iter=3000, random_state=seed)
-    clf.fit((x - mean) / scale, y, sample_weight=w)
+    clf.fit(np.clip((x - mean) / scale, -Z_CLIP, Z_CLIP), y, sample_weight=w)
     order = [list(clf.classes_).index(n) for n in names]
     return mean, scale, clf.coef_[order], clf.intercept_[order], names
 
