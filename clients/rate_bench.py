@@ -94,9 +94,13 @@ def sources(seconds: float) -> dict[str, Motion]:
 
 
 def at_rate(motion: Motion, fps: float) -> Motion:
-    """The 120 fps motion at `fps` (120 / fps whole: every k-th frame)."""
-    k = int(round(motion.fps / fps))
-    return Motion(motion.skeleton, motion.rotations[::k], motion.translations[::k], fps, motion.euler_orders)
+    """The 120 fps motion at `fps`: every k-th frame where 120 / fps is a whole k (real frames),
+    else interpolated (`models.motion.resample`)."""
+    k = motion.fps / fps
+    if abs(k - round(k)) > 1e-9:
+        return resample(motion, fps)
+    step = int(round(k))
+    return Motion(motion.skeleton, motion.rotations[::step], motion.translations[::step], fps, motion.euler_orders)
 
 
 @dataclass
@@ -109,8 +113,8 @@ class Row:
     jitter_out: float
     slide_in: float
     slide_out: float
-    lag: int  # behind the input
-    lag_own: int  # behind the model's own 30 fps output
+    lag: float  # behind the input, frames
+    lag_own: float  # behind the model's own 30 fps output, frames
     stated: float  # the stated delay, input frames
 
     @property
@@ -160,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     inputs = sources(args.seconds)
     print(
         f"{'source':13} {'fps':>4} {'model':5} {'style':9} {'jitter in':>10} {'out':>10} {'ratio':>6}"
-        f" {'slide in':>9} {'out':>6} {'ratio':>6} {'lag in':>6} {'own':>4} {'stated':>6}"
+        f" {'slide in':>9} {'out':>6} {'ratio':>6} {'lag in':>6} {'own':>5} {'stated':>6}"
     )
     worst = {"jitter": 0.0, "slide": 0.0, "lag": 0.0}
     for source in args.sources:
@@ -175,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
                     print(
                         f"{r.source:13} {r.fps:4.0f} {r.model:5} {r.style:9} {r.jitter_in:10.0f} {r.jitter_out:10.0f}"
                         f" {r.jitter_ratio:6.2f} {r.slide_in:9.3f} {r.slide_out:6.3f} {r.slide_ratio:6.2f}"
-                        f" {r.lag:6d} {r.lag_own:4d} {r.stated:6.2f}",
+                        f" {r.lag:6.2f} {r.lag_own:5.2f} {r.stated:6.2f}",
                         flush=True,
                     )
                     worst["jitter"] = max(worst["jitter"], r.jitter_ratio)

@@ -41,21 +41,27 @@ def _continuous(rotations: np.ndarray) -> np.ndarray:
     return q
 
 
-def lag_frames(reference: np.ndarray, delayed: np.ndarray, max_lag: int) -> int:
+def lag_frames(reference: np.ndarray, delayed: np.ndarray, max_lag: int) -> float:
     """The shift (frames; positive: `delayed` comes later) that best aligns two (T, J, 4)
     rotation tracks: the peak of the cross-correlation of their mean-removed quaternion
-    components, summed over joints."""
+    components, summed over joints, placed between frames by the parabola through the peak and
+    its neighbours."""
     a, b = _continuous(reference), _continuous(delayed)
     n = min(len(a), len(b))
     a = (a[:n] - a[:n].mean(0)).reshape(n, -1)
     b = (b[:n] - b[:n].mean(0)).reshape(n, -1)
-    best, best_score = 0, -np.inf
-    for lag in range(-max_lag, max_lag + 1):
+    lags = np.arange(-max_lag, max_lag + 1)
+    scores = np.empty(len(lags))
+    for i, lag in enumerate(lags):
         x, y = (a[: n - lag], b[lag:]) if lag >= 0 else (a[-lag:], b[: n + lag])
-        score = float(np.sum(x * y)) / max(len(x), 1)
-        if score > best_score:
-            best, best_score = lag, score
-    return best
+        scores[i] = float(np.sum(x * y)) / max(len(x), 1)
+    i = int(np.argmax(scores))
+    if 0 < i < len(lags) - 1:
+        left, mid, right = scores[i - 1 : i + 2]
+        curve = left - 2 * mid + right
+        if curve < 0:
+            return float(lags[i] + 0.5 * (left - right) / curve)
+    return float(lags[i])
 
 
 def planted_slide_p95(motion: Motion, root_joint: int, root: np.ndarray, rotations: np.ndarray) -> float:
