@@ -182,3 +182,14 @@ def test_a_snapshot_from_before_interpolation_starts_the_rate_afresh(lti, cmu_wa
     assert again.held is None
     inputs = again.model_inputs(cmu_walk_120.translations[1, HIPS], cmu_walk_120.rotations[1])
     assert len(inputs) == 1 and np.array_equal(inputs[0][1], cmu_walk_120.rotations[1])
+
+
+def test_the_load_test_sends_real_motion_at_60_fps():
+    """At 60 fps the load test (sessions and crowds) sends a real capture at 60 fps: a new pose
+    in every frame, where the 30 fps walk it sent before repeated every other one."""
+    from clients.loadtest import load_frames, real_frames
+
+    _, rot = load_frames(240, 60.0)
+    assert (np.abs(np.diff(rot, axis=0)).max(axis=(1, 2)) > 1e-4).all()
+    _, before = real_frames(240, 60.0)
+    assert (np.abs(np.diff(before, axis=0)).max(axis=(1, 2)) == 0).sum() >= 100
