@@ -8,7 +8,7 @@ feet that glide, then snap. Here, with no look-ahead:
   interpolated from the two input frames around it (the second one has just arrived);
 - each input frame at time t gets the model's output at t - delay, root and pose at that one
   instant (planted feet stay planted), on the parabola through the three latest model outputs
-  (each joint's in the tangent space of the middle one). A parabola, not a straight line: a
+  (each joint's through its quaternions, normalised). A parabola, not a straight line: a
   straight line between outputs turns at each one, which at 120 fps showed as rotation
   acceleration spikes (p99 1.6x the input's on a CMU walk, 1.3x with the parabola); the curve
   still passes through every model output, so nothing is smoothed away.
@@ -29,7 +29,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from .resample import slerp
+from .rate_kernels import blend_rows, interpolate_rows
 
 EPS = 1e-9
 HISTORY = 3  # model outputs kept: the parabola's three points
@@ -70,15 +70,10 @@ def blend(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rows of (root, rotations) a fraction `w` (n,) of the way from pose 0 to pose 1: roots
     lerped, each joint slerped; w == 1 gives pose 1 exactly and w == 0 pose 0 (copies)."""
-    w = np.asarray(w, float)
-    root = root0 + w[:, None] * (root1 - root0)
-    rot = np.array(rot1, dtype=float, copy=True)
-    root[w == 1.0] = root1[w == 1.0]
-    between = (w > 0.0) & (w < 1.0)
-    if between.any():
-        rot[between] = slerp(rot0[between], rot1[between], w[between, None, None])
-    rot[w == 0.0] = rot0[w == 0.0]
-    return root, rot
+    root1, rot1 = _f64(root1), _f64(rot1)
+    out_root, out_rot = np.empty_like(root1), np.empty_like(rot1)
+    blend_rows(_f64(root0), _f64(rot0), root1, rot1, _f64(w), out_root, out_rot)
+    return out_root, out_rot
 
 
 def output_weight(clock: np.ndarray, lag: float) -> np.ndarray:
@@ -92,42 +87,17 @@ def push(history: np.ndarray, latest: np.ndarray) -> np.ndarray:
     return np.concatenate([history[:, 1:], latest[:, None]], axis=1)
 
 
-def log_quat(q: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4) -> rotation vectors (..., 3), the shorter way round."""
-    q = np.where(q[..., 3:] < 0, -q, q)
-    s = np.linalg.norm(q[..., :3], axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, q[..., 3:])
-    return q[..., :3] * np.where(s < 1e-12, 2.0, angle / np.maximum(s, 1e-300))
-
-
-def exp_quat(v: np.ndarray) -> np.ndarray:
-    """Rotation vectors (..., 3) -> unit quaternions (..., 4)."""
-    half = 0.5 * np.linalg.norm(v, axis=-1, keepdims=True)
-    scale = np.where(half < 1e-12, 0.5, np.sin(half) / np.maximum(2.0 * half, 1e-300))
-    return np.concatenate([v * scale, np.cos(half)], axis=-1)
-
-
 def interpolate(roots: np.ndarray, rotations: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows' (root, rotations) at `u` (n,) between their second-latest output (0) and latest (1)
-    on the parabola through their three latest: roots (n, 3, 3), rotations (n, 3, J, 4), oldest
-    first. u == 1 gives the latest output exactly (every frame at 30 fps)."""
-    from .rotations import quat_inv, quat_mul
+    on the parabola through their three latest (each joint's through its quaternions, the outer
+    two on the middle one's side, normalised): roots (n, 3, 3), rotations (n, 3, J, 4), oldest
+    first. u == 1 gives the latest output
+    exactly (every frame at 30 fps)."""
+    roots, rotations = _f64(roots), _f64(rotations)
+    out_root, out_rot = np.empty_like(roots[:, 0]), np.empty_like(rotations[:, 0])
+    interpolate_rows(roots, rotations, _f64(u), out_root, out_rot)
+    return out_root, out_rot
 
-    u = np.asarray(u, float)
-    root = np.array(roots[:, 2], dtype=float, copy=True)
-    rot = np.array(rotations[:, 2], dtype=float, copy=True)
-    between = u < 1.0
-    if between.any():
-        x = u[between]
-        before, now, after = x * (x - 1.0) / 2.0, 1.0 - x * x, x * (x + 1.0) / 2.0
-        r = roots[between]
-        root[between] = before[:, None] * r[:, 0] + now[:, None] * r[:, 1] + after[:, None] * r[:, 2]
-        q = rotations[between]
-        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-        base = q[:, 1]
-        inv = quat_inv(base)
-        tangent = before[:, None, None] * log_quat(quat_mul(inv, q[:, 0])) + after[:, None, None] * log_quat(
-            quat_mul(inv, q[:, 2])
-        )
-        rot[between] = quat_mul(base, exp_quat(tangent))
-    return root, rot
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
