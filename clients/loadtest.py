@@ -85,6 +85,37 @@ def real_frames(n: int = 300, fps: float | None = None) -> tuple[np.ndarray, np.
     return m.translations[idx, 1].astype(np.float32), m.rotations[idx].astype(np.float32)
 
 
+CAPTURE = ("cmu", "131_02")  # a 120 fps walk (start, walk, stop): real motion at 60 fps and above
+
+
+def capture_frames(n: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Hips translation and local rotations of a real 120 fps capture (`CAPTURE`) retargeted to
+    the model rig, at `fps` (every (120 / fps)-th frame where that is whole, else interpolated),
+    n frames, looped. Why not `real_frames` above 30 fps: its 30 fps walk sent at 60 fps repeats
+    every other frame, so a 60 fps load carried no 60 fps motion."""
+    from models.data import build_index, load_motion, select
+    from models.motion.resample import resample
+    from models.motion.retarget import retarget
+
+    dataset, name = CAPTURE
+    m = load_motion(next(c for c in select(build_index([dataset])) if c.name == name))
+    k = m.fps / fps
+    m = retarget(m, fps=m.fps)
+    if abs(k - round(k)) < 1e-9:
+        root, rot = m.translations[:: round(k), 1], m.rotations[:: round(k)]
+    else:
+        m = resample(m, fps)
+        root, rot = m.translations[:, 1], m.rotations
+    idx = np.arange(n) % len(rot)
+    return root[idx].astype(np.float32), rot[idx].astype(np.float32)
+
+
+def load_frames(n: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """What a load test sends at `fps`: the Bandai Namco walk at 30 fps and below, a real
+    capture at its rate above (`capture_frames`)."""
+    return real_frames(n, fps) if fps <= 30.0 else capture_frames(n, fps)
+
+
 async def _session(
     url: str,
     start: dict | None,
@@ -274,7 +305,7 @@ def run(
         crowd = [{"id": k, "model": model, "style": style} for k in range(characters)]
         start = {"type": "crowd", "fps": fps, "characters": crowd}
     # read here, once (a machine without the data says so before any client starts); at the send rate
-    frames = real_frames(round(300 * fps / 30.0), fps)
+    frames = load_frames(round(300 * fps / 30.0), fps)
     ctx = mp.get_context("spawn")
     results = ctx.Queue()
     offsets = clock_offsets(sessions, fps, phase)

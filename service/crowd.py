@@ -26,10 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from models.interface import State, StreamingModel, stack_states, upgrade_state, weight_columns, weight_vector
+from models.motion import rate
 
 from . import protocol as P
 from .frame_check import check_rows
-from .sessions import Snapshot
+from .sessions import Held, Snapshot
 from .skeletons import SkeletonAdapter
 
 # (state, root, rotations, weights over names, names, controller rows or None) -> the batcher's step
@@ -55,13 +56,15 @@ class Troupe:
     """The characters of one model on a connection, one row each."""
 
     def __init__(self, model: StreamingModel, fps: float) -> None:
-        self.model, self.ratio = model, model.fps / fps
+        self.model, self.ratio, self.lag = model, model.fps / fps, rate.output_lag(model.fps, fps)
         self.ids = np.zeros(0, np.int64)
         self.state: State = {}
-        self.clock = np.zeros(0)  # model steps owed, fractional; < 0 until the first frame
+        self.clock = np.zeros(0)  # `Session.clock` per row; < 0 until the first frame
         num_joints = model.skeleton.num_joints
-        self.held_root, self.held_rot = np.zeros((0, 3)), np.zeros((0, num_joints, 4))
-        self.held_input_root = np.zeros((0, 3))  # the input root each held output was made from
+        self.held_root = np.zeros((0, rate.HISTORY, 3))  # the latest model outputs, oldest first
+        self.held_rot = np.zeros((0, rate.HISTORY, num_joints, 4))
+        self.held_input_root = np.zeros((0, 3))  # the latest input frames (model skeleton)
+        self.held_input_rot = np.zeros((0, num_joints, 4))
         self.names = list(model.styles())  # what the weight columns stand for
         self.weights, self.target = np.zeros((0, len(self.names))), np.zeros((0, len(self.names)))
         self.left = np.zeros(0, np.int64)  # transition frames left
@@ -80,7 +83,7 @@ class Troupe:
         """New rows for `ids`: fresh, or where `resumed` gives a snapshot, exactly where that
         character (or session: the two snapshot alike) left off."""
         self.sync_styles()
-        k, num_joints = len(ids), self.model.skeleton.num_joints
+        k = len(ids)
         snaps = list(resumed) if resumed is not None else [None] * k
         if any(s is not None for s in snaps):
             fresh = stack_states(
@@ -91,23 +94,20 @@ class Troupe:
         self.state = fresh if not self.state else stack_states([upgrade_state(self.model, self.state), fresh])
         vectors = np.stack([weight_vector(self.names, w) for w in weights]).reshape(k, len(self.names))
         target, clock, left = vectors.copy(), np.full(k, -1.0), np.zeros(k, np.int64)
-        held_root, held_rot, held_input = np.zeros((k, 3)), np.zeros((k, num_joints, 4)), np.zeros((k, 3))
+        held = {name: np.zeros((k, *getattr(self, array).shape[1:])) for array, name in HELD_ARRAYS.items()}
         for r, snap in enumerate(snaps):
             if snap is None:
                 continue
             vectors[r], target[r] = weight_vector(self.names, snap.weights), weight_vector(self.names, snap.target)
-            clock[r], left[r] = snap.clock, snap.transition_left
-            if snap.held:
-                held_root[r], held_rot[r], held_input[r] = (
-                    snap.held["root"],
-                    snap.held["rotations"],
-                    snap.held["input_root"],
-                )
+            left[r] = snap.transition_left
+            if (restored := Held.restore(snap.held)) is not None:  # else: the rate starts afresh (`Held.restore`)
+                clock[r] = snap.clock
+                for name, value in restored._asdict().items():
+                    held[name][r] = value
         self.ids = np.concatenate([self.ids, np.asarray(ids, np.int64)])
         self.clock = np.concatenate([self.clock, clock])
-        self.held_root = np.concatenate([self.held_root, held_root])
-        self.held_rot = np.concatenate([self.held_rot, held_rot])
-        self.held_input_root = np.concatenate([self.held_input_root, held_input])
+        for name, field_name in HELD_ARRAYS.items():
+            setattr(self, name, np.concatenate([getattr(self, name), held[field_name]]))
         self.weights = np.concatenate([self.weights, vectors])
         self.target = np.concatenate([self.target, target])
         self.left = np.concatenate([self.left, left])
@@ -122,7 +122,7 @@ class Troupe:
         keys = list(self.state)
         # iterating a gathered (n, 1, ...) array yields each row's (1, ...) view without a Python slice per key
         per_row = zip(*(list(self.state[key][rows][:, None]) for key in keys), strict=True)
-        held_root, held_rot, held_input = self.held_root[rows], self.held_rot[rows], self.held_input_root[rows]
+        held = {field_name: getattr(self, name)[rows] for name, field_name in HELD_ARRAYS.items()}
         clock, left = self.clock[rows].tolist(), self.left[rows].tolist()
         weights, target = self.weights[rows].tolist(), self.target[rows].tolist()
         names = self.names
@@ -132,9 +132,7 @@ class Troupe:
                 {
                     "state": dict(zip(keys, values, strict=True)),
                     "clock": clock[k],
-                    "held": {}
-                    if clock[k] < 0
-                    else {"root": held_root[k], "rotations": held_rot[k], "input_root": held_input[k]},
+                    "held": {} if clock[k] < 0 else {name: value[k] for name, value in held.items()},
                     "weights": dict(zip(names, weights[k], strict=True)),
                     "target": dict(zip(names, target[k], strict=True)),
                     "transition_left": left[k],
@@ -145,7 +143,7 @@ class Troupe:
     def remove(self, ids: Sequence[int]) -> None:
         keep = ~np.isin(self.ids, np.asarray(ids, np.int64))
         self.state = {key: value[keep] for key, value in self.state.items()}
-        for name in ("ids", "clock", "held_root", "held_rot", "held_input_root", "weights", "target", "left"):
+        for name in ("ids", "clock", *HELD_ARRAYS, "weights", "target", "left"):
             setattr(self, name, getattr(self, name)[keep])
         self._index()
 
@@ -189,14 +187,18 @@ class Troupe:
         return self.ids[had] if had is not None else np.zeros(0, np.int64)
 
     # ---- one tick (arrays only) ---------------------------------------------------------
-    def steps_due(self, rows: np.ndarray) -> np.ndarray:
-        """`Session.model_steps_due` for each row, in the same float64 arithmetic."""
-        clock = self.clock[rows]
-        clock[clock < 0] = max(0.0, 1.0 - self.ratio)
-        clock += self.ratio
-        steps = (clock + 1e-9).astype(np.int64)
-        self.clock[rows] = clock - steps
-        return steps
+    def model_inputs(self, rows: np.ndarray, root: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, list]:
+        """`Session.model_inputs` for each row, in the same float64 arithmetic: (steps due per
+        row, per k-th step the input poses of the rows that take one)."""
+        clock, steps, weights = rate.steps_due(self.clock[rows], self.ratio)
+        self.clock[rows] = clock
+        inputs = []
+        for k in range(int(steps.max(initial=0))):
+            due = steps > k
+            w, prev = weights[due, k], rows[due]  # a row's first frame: weight 1, itself
+            inputs.append(rate.blend(self.held_input_root[prev], self.held_input_rot[prev], root[due], rot[due], w))
+        self.held_input_root[rows], self.held_input_rot[rows] = root, rot
+        return steps, inputs
 
     def advance_style(self, rows: np.ndarray) -> np.ndarray:
         """`Session.advance_style` for each row: one step of the linear ramp where a transition runs."""
@@ -217,10 +219,11 @@ class Troupe:
     ) -> None:
         """The model steps each row owes for this frame (rate adaptation), holding the outputs;
         `control`: the rows' controller input (`FrameBatch.control`), for a controller tick."""
-        steps = self.steps_due(rows)
-        for k in range(1, int(steps.max(initial=0)) + 1):
-            due = steps >= k
-            sel, sel_root, sel_rot = (rows, root, rot) if due.all() else (rows[due], root[due], rot[due])
+        first = rows[self.clock[rows] < 0]
+        steps, inputs = self.model_inputs(rows, root, rot)
+        for k, (sel_root, sel_rot) in enumerate(inputs):
+            due = steps > k
+            sel = rows if due.all() else rows[due]
             sel_control = control if control is None or due.all() else control[due]
             whole = len(sel) == len(self) and np.array_equal(sel, np.arange(len(self)))
             state = self.state if whole else take_rows(self.state, sel)
@@ -228,11 +231,24 @@ class Troupe:
                 state, sel_root, sel_rot, self.advance_style(sel), self.names, sel_control
             )
             self.state = new_state if whole else put_rows(self.state, sel, new_state)
-            self.held_root[sel], self.held_rot[sel], self.held_input_root[sel] = out_root, out_rot, sel_root
+            self.held_root[sel] = rate.push(self.held_root[sel], out_root)
+            self.held_rot[sel] = rate.push(self.held_rot[sel], out_rot)
+            if k == 0 and len(first):  # a row's first output stands for the earlier ones too
+                self.held_root[first] = self.held_root[first, -1:]
+                self.held_rot[first] = self.held_rot[first, -1:]
 
-    def held_output(self, rows: np.ndarray, root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def held_output(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`Session.held_output` for each row."""
-        return self.held_root[rows] + (root - self.held_input_root[rows]), self.held_rot[rows]
+        u = rate.output_weight(self.clock[rows], self.lag)
+        return rate.interpolate(self.held_root[rows], self.held_rot[rows], u)
+
+
+HELD_ARRAYS = {  # a troupe's rate arrays: the `Held` field each row's snapshot keeps it under
+    "held_root": "outputs_root",
+    "held_rot": "outputs_rotations",
+    "held_input_root": "input_root",
+    "held_input_rot": "input_rotations",
+}
 
 
 @dataclass(eq=False)  # one object per rig: grouped by identity
@@ -551,7 +567,7 @@ class Crowd:
             given = [inputs[k][4] for k in members]
             control = None if given[0] is None else np.concatenate(given)  # a tick is all frames or all controls
             await troupe.step(step(name), rows, root, rot, control)
-            held_root, held_rot = troupe.held_output(rows, root)
+            held_root, held_rot = troupe.held_output(rows)
             start = 0
             for k in members:
                 n = len(inputs[k][2])

@@ -24,7 +24,7 @@ from . import protocol as P
 from .crowd import Crowd, Joining, StepRows
 from .logs import session_log
 from .skeletons import SkeletonAdapter, adapter_for
-from .stream import CLOSE_NORMAL, CLOSE_RESTART, Socket, log
+from .stream import CLOSE_NORMAL, CLOSE_RESTART, Socket, delay_ms, log
 
 ControlMessage = P.Join | P.Leave | P.SetStyle | P.Reset | P.End
 
@@ -59,7 +59,16 @@ class CrowdConnection(Socket):
         self.rt.connections[self.id] = self
         self.log = session_log(log, self.id, "crowd")
         joined = await self.join(first.characters)
-        await self.send_json({"type": "crowd_started", "version": P.PROTOCOL_VERSION, "crowd_id": self.id, **joined})
+        delays = {name: delay_ms(t.model.fps, first.fps) for name, t in self.crowd.troupes.items()}
+        await self.send_json(
+            {
+                "type": "crowd_started",
+                "version": P.PROTOCOL_VERSION,
+                "crowd_id": self.id,
+                "output_delay_ms": delays,  # by model: each reply is its output this long ago
+                **joined,
+            }
+        )
         self.log.info("crowd started with %d characters", len(self.crowd))
         return True
 

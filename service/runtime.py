@@ -22,6 +22,7 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 
 from models.interface import FrameBatch, StreamingModel, weight_vector
+from models.motion import rate_kernels
 
 from . import frame_check, skeletons
 from . import protocol as P
@@ -94,6 +95,7 @@ class Runtime:
 
     async def start(self) -> None:
         frame_check.warm()
+        rate_kernels.warm()
         await self.on_model_thread(skeletons.warm)
         for model in self.models.values():
             await self.on_model_thread(warm_up, model)

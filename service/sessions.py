@@ -12,6 +12,7 @@ off, on this replica or another (`service.session_store` keeps them).
 from __future__ import annotations
 
 import base64
+import functools
 import json
 import secrets
 import time
@@ -23,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from models.interface import State, StreamingModel
+from models.motion import rate
 
 from .protocol import End, ProtocolError, Reset, SetStyle
 
@@ -42,11 +44,19 @@ class ControlItem:
 
 
 class Held(NamedTuple):
-    """The latest model output and the input root it was made from (rate adaptation)."""
+    """Rate adaptation (`models.motion.rate`): the latest model outputs, oldest first, and the
+    latest input frame (model skeleton)."""
 
-    root: np.ndarray
-    rotations: np.ndarray
+    outputs_root: np.ndarray  # (rate.HISTORY, 3)
+    outputs_rotations: np.ndarray  # (rate.HISTORY, J, 4)
     input_root: np.ndarray
+    input_rotations: np.ndarray
+
+    @classmethod
+    def restore(cls, held: dict[str, np.ndarray]) -> Held | None:
+        """From a snapshot's `held`; None for one saved before rates were interpolated (it lacks
+        the input pose and the earlier outputs), so the next frame starts the rate afresh."""
+        return cls(**held) if set(held) == set(cls._fields) else None
 
 
 @dataclass
@@ -185,7 +195,7 @@ class Session:
     last_seq: int | None = None
     dropped_pending: int = 0
     ended: bool = False
-    clock: float = -1.0  # model steps owed, fractional (rate adaptation); < 0 until the first frame
+    clock: float = -1.0  # the latest frame's lead on the latest model step, in model frames; < 0 before any
     held: Held | None = None  # None until the first model step
     last_output: dict[str, np.ndarray] = field(default_factory=dict)  # the reply to `last_seq`
     frames_since_snapshot: int = 0
@@ -232,27 +242,55 @@ class Session:
         self.clock, self.held = -1.0, None
 
     # ---- frame rate ----------------------------------------------------------------
-    def model_steps_due(self) -> int:
-        """Model steps to run for the next input frame, so the model sees its own frame rate: at
-        120 fps in and 30 fps model, every 4th frame steps (the first always does); at 15 fps in,
-        each frame steps twice. Causal sample-and-hold: no interpolation across future frames."""
-        ratio = self.model.fps / self.fps
-        if self.clock < 0:
-            self.clock = max(0.0, 1.0 - ratio)
-        self.clock += ratio
-        steps = int(self.clock + 1e-9)
-        self.clock -= steps
-        return steps
+    @functools.cached_property
+    def lag(self) -> float:
+        """The output's delay behind the input, in model frames (`models.motion.rate`)."""
+        return rate.output_lag(self.model.fps, self.fps)
 
-    def hold(self, root: np.ndarray, rotations: np.ndarray, input_root: np.ndarray) -> None:
-        self.held = Held(root, rotations, input_root)
-
-    def held_output(self, input_root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The latest model output, its root moved on by the input's motion since that step (the
-        first frame always steps, so there is one)."""
+    def model_inputs(self, root: np.ndarray, rotations: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The model steps due for this input frame (model skeleton), each with its input pose, so
+        the model runs at its own frame rate on the input at its own times: at 120 fps in, every
+        4th frame steps; at 24 fps, some frames step twice. No look-ahead: each pose is
+        interpolated between the previous input frame and this one."""
+        root, rotations = np.asarray(root, np.float64), np.asarray(rotations, np.float64)  # as a crowd's rows
         if self.held is None:
+            self.clock = -1.0  # no output yet (a first step failed): start the rate afresh
+        clock, steps, weights = rate.steps_due(np.array([self.clock]), self.model.fps / self.fps)
+        self.clock = float(clock[0])
+        if self.held is None:
+            return [(root, rotations)] * int(steps[0])
+        r0, q0 = self.held.input_root[None], self.held.input_rotations[None]
+        inputs = []
+        for k in range(int(steps[0])):
+            r, q = rate.blend(r0, q0, root[None], rotations[None], weights[0, k : k + 1])
+            inputs.append((r[0], q[0]))
+        self.held = self.held._replace(input_root=root, input_rotations=rotations)
+        return inputs
+
+    def hold(
+        self, root: np.ndarray, rotations: np.ndarray, input_root: np.ndarray, input_rotations: np.ndarray
+    ) -> None:
+        """Keep a model output made for the input frame (`input_root`, `input_rotations`); the
+        first one stands for the earlier ones too."""
+        root, rotations = np.asarray(root, np.float64), np.asarray(rotations, np.float64)  # as a crowd's rows
+        if self.held is None:
+            roots = np.repeat(root[None], rate.HISTORY, axis=0)
+            rots = np.repeat(rotations[None], rate.HISTORY, axis=0)
+        else:
+            roots = rate.push(self.held.outputs_root[None], root[None])[0]
+            rots = rate.push(self.held.outputs_rotations[None], rotations[None])[0]
+        self.held = Held(roots, rots, np.asarray(input_root, np.float64), np.asarray(input_rotations, np.float64))
+
+    def held_output(self) -> tuple[np.ndarray, np.ndarray]:
+        """The output for the latest input frame: the model's output `lag` model frames before
+        it, root and pose at that one instant on the parabola through the three latest model
+        outputs (the first frame always steps, so there is one)."""
+        h = self.held
+        if h is None:
             raise RuntimeError("no model output held yet")
-        return self.held.root + (input_root - self.held.input_root), self.held.rotations
+        u = rate.output_weight(np.array([self.clock]), self.lag)
+        out_root, out_rot = rate.interpolate(h.outputs_root[None], h.outputs_rotations[None], u)
+        return out_root[0], out_rot[0]
 
     # ---- backpressure -----------------------------------------------------------
     def enqueue(self, item: FrameItem | ControlItem) -> None:
@@ -326,7 +364,7 @@ class Session:
             last_seq=snap.last_seq,
             queue_size=queue_size,
             clock=snap.clock,
-            held=Held(**snap.held) if snap.held else None,
+            held=Held.restore(snap.held),
             last_output=dict(snap.last_output),
             rig=dict(snap.rig),
             owner=snap.owner,

@@ -32,6 +32,8 @@ from typing import Any, TypeVar
 import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
+from models.motion.rate import output_delay_s
+
 from . import protocol as P
 from .deps import get_limiter
 from .limits import CLOSE_FLOODING, MessageRate, Principal
@@ -256,6 +258,11 @@ async def serve(ws: WebSocket, runtime: Runtime, who: Principal) -> None:
     await connection.run(first)
 
 
+def delay_ms(model_fps: float, fps: float) -> float:
+    """The fixed delay of a reply behind its frame at this rate (`models.motion.rate`), in ms."""
+    return round(output_delay_s(model_fps, fps) * 1000.0, 3)
+
+
 def style_deleted(gone: list[str], seq: int) -> P.ProtocolError:
     return P.ProtocolError(
         "style_deleted",
@@ -368,6 +375,7 @@ class Connection(Socket):
                 "binary_frame_bytes": P.binary_frame_size(adapter.num_joints),
             },
             "rig": adapter.report(),  # the mapping used and the joints left unmapped
+            "output_delay_ms": delay_ms(s.model.fps, s.fps),  # each reply: the model's output this long ago
         }
         if (
             message.resume_token and s.last_output and s.last_seq is not None
@@ -463,25 +471,27 @@ class Connection(Socket):
             if gone := s.drop_deleted(s.model.styles()):
                 await self.send_error(style_deleted(gone, item.seq))
             try:
-                for _ in range(s.model_steps_due()):  # rate adaptation: the model runs at its own fps
-                    out_root, out_rot, s.state = await batcher.step(s.state, root, rot, s.advance_style(), item.control)
-                    s.hold(out_root, out_rot, root)
+                for step_root, step_rot in s.model_inputs(root, rot):  # rate adaptation: the model's own fps
+                    out_root, out_rot, s.state = await batcher.step(
+                        s.state, step_root, step_rot, s.advance_style(), item.control
+                    )
+                    s.hold(out_root, out_rot, root, rot)
             except Exception:  # noqa: BLE001 - a model failure costs this frame, not the session
                 self.log.exception("model step failed")
                 await self.send_error(step_failed(item.seq))
                 continue
-            reply = self.reply(item, root)
+            reply = self.reply(item)
             if isinstance(reply, bytes):
                 await self.send_bytes(reply)
             else:
                 await self.send_json(reply)
             self.replied(item)
 
-    def reply(self, item: FrameItem, root: np.ndarray) -> bytes | dict:
-        """The answer to a stepped frame (`root`: its model-skeleton input root), in the
-        session's encoding; the session now stands at `item.seq`."""
+    def reply(self, item: FrameItem) -> bytes | dict:
+        """The answer to a stepped frame, in the session's encoding; the session now stands at
+        `item.seq`."""
         s = self.session
-        out_root, out_rot = s.held_output(root)
+        out_root, out_rot = s.held_output()
         s.last_seq = item.seq
         out_root, out_rot = self.adapter.from_model(out_root, out_rot, item.rotations)
         s.last_output = {"root": out_root, "rotations": out_rot}
@@ -527,27 +537,32 @@ class Connection(Socket):
         item = FrameItem(seq, root, rot, time.perf_counter())
         try:
             model_root, model_rot = self.adapter.to_model(root, rot)
-            self._step_directly(item, model_root, model_rot, s.model_steps_due())
+            self._step_directly(item, model_root, model_rot, deque(s.model_inputs(model_root, model_rot)))
         except Exception:  # noqa: BLE001 - as in `process`: it costs this frame, not the session
             self._direct_failed(item)
         return True
 
-    def _step_directly(self, item: FrameItem, root: np.ndarray, rot: np.ndarray, steps: int) -> None:
+    def _step_directly(self, item: FrameItem, root: np.ndarray, rot: np.ndarray, inputs: deque) -> None:
+        """Step the model on each of `inputs` (this frame's model steps, `Session.model_inputs`),
+        one batch at a time, then answer; `root`, `rot`: the frame on the model skeleton."""
         s = self.session
-        if steps == 0:
-            self._answer_directly(item, root)
+        if not inputs:
+            self._answer_directly(item)
             return
-        future = self.rt.batchers[s.model.name].step_rows(s.state, root[None], rot[None], s.advance_style())
-        future.add_done_callback(functools.partial(self._stepped, item, root, rot, steps))
+        step_root, step_rot = inputs.popleft()
+        future = self.rt.batchers[s.model.name].step_rows(s.state, step_root[None], step_rot[None], s.advance_style())
+        future.add_done_callback(functools.partial(self._stepped, item, root, rot, inputs))
 
-    def _stepped(self, item: FrameItem, root: np.ndarray, rot: np.ndarray, steps: int, future: asyncio.Future) -> None:
+    def _stepped(
+        self, item: FrameItem, root: np.ndarray, rot: np.ndarray, inputs: deque, future: asyncio.Future
+    ) -> None:
         if future.cancelled():  # the batcher stopped: the server is going down
             self._direct_done()
             return
         try:
             out_root, out_rot, self.session.state = future.result()
-            self.session.hold(out_root[0], out_rot[0], root)
-            self._step_directly(item, root, rot, steps - 1)
+            self.session.hold(out_root[0], out_rot[0], root, rot)
+            self._step_directly(item, root, rot, inputs)
         except Exception:  # noqa: BLE001 - a model failure costs this frame, not the session
             self._direct_failed(item)
 
@@ -555,8 +570,8 @@ class Connection(Socket):
         self.log.exception("model step failed")
         self._send_then_done(self.send_error(step_failed(item.seq)))
 
-    def _answer_directly(self, item: FrameItem, root: np.ndarray) -> None:
-        payload = self.reply(item, root)
+    def _answer_directly(self, item: FrameItem) -> None:
+        payload = self.reply(item)
         assert isinstance(payload, bytes)  # the direct path is offered to binary sessions only
         if self.send_lock.locked() or self.direct is None or not self.direct.write_binary(payload):
             self._send_then_done(self.send_bytes(payload), item)  # the peer is slow, or a send is under way

@@ -305,22 +305,28 @@ def test_resume_after_a_dropped_connection_continues_exactly(server, models, cli
     np.testing.assert_allclose(np.concatenate([first[0], second[0]]), want_root, atol=1e-9)
 
 
-def test_faster_clients_get_every_frame_while_the_model_keeps_its_rate(server, models, clip):
-    """A 120 fps stream: one reply per frame; the model steps on every 4th frame (its 30 fps) and
-    the frames between hold that output, moved along by the input root."""
+def test_faster_clients_get_every_frame_while_the_model_keeps_its_rate(server, models, clip, bn_walk):
+    """A 120 fps stream (the 30 fps clip interpolated up, so the model's own times fall on
+    frames): one reply per frame, the model stepping on every 4th frame on those very frames, and
+    each reply the model's output 3 frames (the stated 25 ms) earlier: exactly a model output on
+    every 4th frame, a new pose in between (no held ones)."""
+    from models.motion.resample import resample
+
     base, _ = server
     style = first_style(models)
-    root, rot = clip
-    fast_root = np.repeat(root, 4, axis=0)
-    fast_rot = np.repeat(rot, 4, axis=0)
+    fast = resample(bn_walk.slice(0, N_FRAMES), 120.0)
+    fast_root, fast_rot = fast.translations[:, 1], fast.rotations
+    fast_root[::4], fast_rot[::4] = clip  # the very frames (resampling may flip a quaternion's sign)
     with connect(ws_url(base)) as ws:
-        start(ws, style=style, fps=120)
+        started = start(ws, style=style, fps=120)
+        assert started["output_delay_ms"] == pytest.approx(25.0)
         got_root, got_rot = stream_json(ws, fast_root, fast_rot)
-    want_root, want_rot = offline(models["lti"], {style: 1.0}, root, rot)
+    want_root, want_rot = offline(models["lti"], {style: 1.0}, *clip)
     assert len(got_root) == len(fast_root)
-    np.testing.assert_allclose(got_rot[::4], want_rot, atol=1e-9)
-    np.testing.assert_allclose(got_rot[1::4], want_rot, atol=1e-9)  # held
-    np.testing.assert_allclose(got_root[::4], want_root, atol=1e-9)
+    n = len(want_rot[:-1])
+    np.testing.assert_allclose(got_rot[3::4][:n], want_rot[:n], atol=1e-9)
+    np.testing.assert_allclose(got_root[3::4][:n], want_root[:n], atol=1e-9)
+    assert (np.abs(np.diff(got_rot[3:], axis=0)).max(axis=(1, 2)) > 1e-6).all()  # a new pose every frame
 
 
 def test_metrics_show_the_latency_histogram(server):

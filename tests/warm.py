@@ -29,9 +29,11 @@ def warm(part: str) -> None:
         build_index()
         return
     if part == "service":
+        from models.motion import rate_kernels
         from service import frame_check, skeletons
 
         frame_check.warm()
+        rate_kernels.warm()
         skeletons.warm()
         return
     from models.settings import get_settings
