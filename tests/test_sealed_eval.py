@@ -66,11 +66,11 @@ def walk():
 
 
 def test_a_shaking_head_is_jitter_and_a_dragged_foot_is_slide(walk):
-    ref = Reference.fit(
-        {"normal": load_motions(select(build_index([D2]), split="val", style="normal", content="walk"))}
-    )
+    index = build_index([D2])
+    train = load_motions(select(index, split="train", style="normal", content="walk")[:8])
+    ref = Reference.fit({"normal": train}, {"normal": load_motions(select(index, split="val", style="normal"))[1::4]})
     same = measure(ref, "normal", walk, walk)
-    assert same.jitter == pytest.approx(1.0) and same.path_ratio == pytest.approx(1.0) and same.end_drift < 1e-9
+    assert same.jitter <= 1.0 and same.path_ratio == pytest.approx(1.0) and same.end_drift < 1e-9
     rot = walk.rotations.copy()
     head = walk.skeleton.index("Head")
     shake = np.where(np.arange(walk.num_frames) % 2, 0.05, -0.05)[:, None] * np.array([0.0, 0.0, 1.0])

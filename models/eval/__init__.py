@@ -1,14 +1,15 @@
-"""Evaluation suite scoring every streaming method on the same held-out clips.
+"""The sealed evaluation of every streaming method (`sealed.py`), and what it is built from.
 
-Independent judges trained on real data only (never on any method's output):
-  - a style classifier and a content classifier (1-D temporal convs over ~1 s windows),
-  - a denoising autoencoder over 24-frame windows whose latent feeds the FMD.
-Metrics on stylised test-split `normal` clips: target-style recognition, content kept, FMD to the
-real target style, foot-skating ratio, root-path deviation from the input.
+Judges trained on real data only (never on any method's output):
+  - the style judge (`style_judge.py`): window statistics and a linear read, both Bandai Namco
+    datasets, refit by `python -m models.eval.fit_style_judge`;
+  - the conv-net content judge (`judges.py`, refit by `python -m models.eval.train`).
+Physical metrics no clamp or lock in a model enforces (`physical.py`), inputs from every source
+(`sources.py`), running sessions (`history.py`), 95 % intervals (`intervals.py`).
 
-    .venv/bin/python -m models.eval            # full run -> docs/evaluation.md, docs/eval/
-    .venv/bin/python -m models.eval --quick    # tiny subset, seconds
-    .venv/bin/python -m models.eval.train      # re-train the judges -> models/weights/eval/
+    make eval                                  # validation inputs -> out/eval-val/
+    make eval-final                            # sealed test inputs -> docs/evaluation.md, once a change is finished
+    .venv/bin/python -m models.eval --quick    # two clips a source, seconds
 """
 
 from .features import FEATURE_DIM, clip_features
