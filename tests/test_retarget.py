@@ -204,4 +204,6 @@ def test_lti_sees_bn_data_as_in_range(bn_walk):
 
 def test_retargeted_xia_walk_is_mostly_in_the_lti_range(walks):
     tr, u, _ = _lti_distances(walks["neutral_walk_01_000"][1])
-    assert tr.blend_weight(u).mean() < 0.7  # 1.0 (input passed through unchanged) with CMU twists
+    # 1.0 (input passed through unchanged) with CMU twists; 0.67 when near-straight knees took the
+    # limb plane from ~2 degrees of bend, which flipped the thighs (retarget.HINGE_FALLBACK)
+    assert tr.blend_weight(u).mean() < 0.8

@@ -104,6 +104,24 @@ def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
     return [(k, s) for k, s in terms if np.linalg.norm(skeleton.offsets[k]) > 1e-9]
 
 
+# Two-vector joints whose side vector is the client's rest-pose line carried by the joint's own
+# rotation (`_rest_side`) instead of the line read per frame. Not the Chest: Xia's collars sit
+# forward of their rest pose, and the chest turned with the rest line left the LTI model's training
+# range on the Xia walk (blend weight 0.80 -> 0.85); the spine's twist share (`retarget.TWIST_SHARE`)
+# takes the chest's jitter down instead.
+_REST_SIDE = ("Hips",)
+
+
+def _rest_side(skeleton: Skeleton, a: int, b: int) -> np.ndarray:
+    """pos[b] - pos[a] in the rest pose (every local rotation identity, so also in any joint's
+    frame). Carried by the hips' own rotation it is the side vector of BN's Hips frame: the
+    client's hip line as its pelvis holds it. The line between the upper legs read per frame also
+    carries joints between the hips and the thighs (Xia's animated LHipJoint), whose motion turned
+    BN's whole pelvis (p99 rotation acceleration up to 1.4x the source's hips on Xia clips). With
+    no such joints (CMU files, the made rigs) both are the same vector."""
+    return sum((s * skeleton.offsets[k] for k, s in _path_terms(skeleton, a, b)), np.zeros(3))
+
+
 # --------------------------------------------------------------------------- the retargeter
 
 
@@ -140,27 +158,33 @@ class FrameRetargeter:
         self._bn_hips = sk.index("Hips")
         self._hips = roles["hips"]
 
-        # Vectors read from each frame: the BN bones' segments, then (up, side) per two-vector joint,
-        # each a signed sum of G[parent k] offset[k] (`_path_terms`).
+        # Vectors read from each frame: the BN bones' segments, then (up, side) per two-vector joint.
+        # A segment is a signed sum of G[parent k] offset[k] (`_path_terms`); a side is the rest
+        # pose's side vector carried by the joint's own rotation (`_rest_side`). Terms are keyed
+        # (parent joint, offset) pairs: `vec_par` and `vec_off` below.
         segs = bn_segments(roles)
         plain = tuple(n for n in BN_JOINTS if n in segs and n not in _LATERAL)
-        pairs = [segs[n] for n in plain]
+        terms = [self._segment_terms(src, roles[a], roles[b]) for a, b in (segs[n] for n in plain)]
         m_tgt = []
         for name, (tl, tr) in _LATERAL.items():
-            pairs += [
-                segs[name],
-                (BN_ROLES[tr].replace("clavicle", "upperarm"), BN_ROLES[tl].replace("clavicle", "upperarm")),
-            ]
+            side = (BN_ROLES[tr].replace("clavicle", "upperarm"), BN_ROLES[tl].replace("clavicle", "upperarm"))
+            anchor = roles[segs[name][0]]
+            terms += [self._segment_terms(src, roles[segs[name][0]], roles[segs[name][1]])]
+            if name in _REST_SIDE:
+                terms += [[(("side", name), anchor, _rest_side(src, roles[side[0]], roles[side[1]]), 1.0)]]
+            else:
+                terms += [self._segment_terms(src, roles[side[0]], roles[side[1]])]
             off = lambda n: sk.offsets[sk.index(n)]  # noqa: E731
             m_tgt.append(_frame(off(PRIMARY_CHILD[name]), off(tl) - off(tr)))
-        terms = [_path_terms(src, roles[a], roles[b]) for a, b in pairs]
-        flat = sorted({k for t in terms for k, _ in t})
+        keys = sorted({key for t in terms for key, *_ in t}, key=str)
+        flat = {key: (par, vec) for t in terms for key, par, vec, _ in t}
         self._num_plain = len(plain)
-        self._vec_off = src.offsets[flat][:, :, None]  # (T, 3, 1)
-        self._vec_coef = np.zeros((len(terms), len(flat)))
+        self._vec_off = np.array([flat[key][1] for key in keys])[:, :, None]  # (T, 3, 1)
+        vec_par = np.array([flat[key][0] for key in keys], dtype=int)
+        self._vec_coef = np.zeros((len(terms), len(keys)))
         for v, t in enumerate(terms):
-            for k, sign in t:
-                self._vec_coef[v, flat.index(k)] += sign
+            for key, _, _, sign in t:
+                self._vec_coef[v, keys.index(key)] += sign
         self._m_tgt_t = np.swapaxes(np.stack(m_tgt), -1, -2)  # (L, 3, 3), transposed
         self._plan = TwistPlan(rig, plain)
 
@@ -184,7 +208,6 @@ class FrameRetargeter:
         self._mapped = np.array(sorted(mapped), dtype=int)
         self._mapped_nonroot = np.array([k for k in self._mapped if src.parents[k] >= 0], dtype=int)
         self._mapped_root = np.array([k for k in self._mapped if src.parents[k] < 0], dtype=int)
-        vec_par = self._src_parents[flat]
         chain_par = [int(self._src_parents[k]) for k in chain if self._src_parents[k] >= 0]
         needed = np.unique(
             np.concatenate(
@@ -210,6 +233,11 @@ class FrameRetargeter:
         self.vertical_offset = self._standing_offset() if vertical_offset is None else float(vertical_offset)
 
     # ----------------------------------------------------------------------- internals
+
+    @staticmethod
+    def _segment_terms(src: Skeleton, a: int, b: int) -> list[tuple[object, int, np.ndarray, float]]:
+        """pos[b] - pos[a] as terms (key, parent joint, offset, sign): sign * G[parent] @ offset."""
+        return [(k, int(src.parents[k]), src.offsets[k], sign) for k, sign in _path_terms(src, a, b)]
 
     def _bn_globals(self, gs: np.ndarray) -> np.ndarray:
         """BN world rotation matrices (B, 22, 3, 3) from client world rotation matrices (tree slots)."""
@@ -319,12 +347,23 @@ class FrameRetargeter:
         par_s = np.full(len(tree.order), -1)
         for a, b, par in tree.levels:
             par_s[a:b] = par
-        steps, nat, bone, hinge, m_loc_t = [], [], [], [], []
+        steps, nat, bone, hinge, m_loc_t, split_nat = [], [], [], [], [], []
         kinds = {"leaf": kernels.KIND_LEAF, "swing": kernels.KIND_SWING, "limb": kernels.KIND_LIMB}
         for g in plan.groups:  # TwistPlan's groups, one joint a step
             for i, (j, p) in enumerate(zip(g["j"], g["p"])):
                 limb = g["kind"] == "limb"
-                steps.append((kinds[g["kind"]], j, p, g["dir"][i] if "dir" in g else -1, g["dir_c"][i] if limb else -1))
+                split = g.get("split", (-1, np.eye(3)))
+                steps.append(
+                    (
+                        kinds[g["kind"]],
+                        j,
+                        p,
+                        g["dir"][i] if "dir" in g else -1,
+                        g["dir_c"][i] if limb else -1,
+                        split[0],
+                    )
+                )
+                split_nat.append(split[1])
                 nat.append(g["nat"][i])
                 bone.append(g["b"][i] if "b" in g else np.zeros(3))
                 hinge.append(g["k"][i] if limb else np.zeros(3))
@@ -359,11 +398,23 @@ class FrameRetargeter:
             "step_b": bone,
             "step_k": hinge,
             "step_m_loc_t": m_loc_t,
+            "bn_fixed_q": self._fixed_locals(),
+            "step_split_nat": split_nat,
         }
         self._k_plan = (
             *kernels.pack(ints, kernels.INT_PARTS, np.int64),
             *kernels.pack(floats, kernels.FLOAT_PARTS, np.float64),
         )
+
+    def _fixed_locals(self) -> np.ndarray:
+        """(22, 4) per BN joint, the local quaternion `to_model` gives it on every frame: the natural
+        one of a leaf, identity for the static root; (-1, -1, -1, -1) for the joints that move."""
+        out = np.full((self._bn_parents.shape[0], 4), -1.0)
+        out[self._bn_parents < 0] = [0.0, 0.0, 0.0, 1.0]
+        for g in self._plan.groups:
+            if g["kind"] == "leaf":
+                out[g["j"]] = mat_to_quat(g["nat"])
+        return out
 
     # ----------------------------------------------------------------------- numpy reference
 
