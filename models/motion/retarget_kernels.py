@@ -204,6 +204,23 @@ def _split_twist(g, gc, nat_c, b, m, dev, r):
     g[:, :] = m
 
 
+@njit(cache=True, error_model="numpy")
+def _bn_lowest(gb, drop_par, drop_off, drop_ref):
+    """The lowest BN foot point's height below the Hips, each off its standing height drop_ref[1]:
+    per point, the sum of gb[parent] @ offset (its y) down the chain from the Hips
+    (`FrameRetargeter._drop`; parent -1: padding)."""
+    low = np.inf
+    for i in range(drop_par.shape[0]):
+        y = -drop_ref[1, i]
+        for q in range(drop_par.shape[1]):
+            p = drop_par[i, q]
+            if p < 0:
+                break
+            y += gb[p, 1, 0] * drop_off[i, q, 0] + gb[p, 1, 1] * drop_off[i, q, 1] + gb[p, 1, 2] * drop_off[i, q, 2]
+        low = min(low, y)
+    return low
+
+
 # --------------------------------------------------------------------------- per-frame steps
 # Scratch arrays come from the callers (allocated once per call, not per frame): w33 (3, 3, 3), w3 (3, 3).
 
@@ -342,6 +359,7 @@ INT_PARTS = (
     "mapped_j",
     "mapped_s",
     "mapped_par_s",
+    "drop_par",
 )
 FLOAT_PARTS = (
     "fixed_off",
@@ -355,6 +373,8 @@ FLOAT_PARTS = (
     "step_m_loc_t",
     "bn_fixed_q",
     "step_split_nat",
+    "drop_off",
+    "drop_ref",
 )
 
 
@@ -411,12 +431,16 @@ def _to_model(
     step_split_nat,
     bn_parents,
     bn_fixed_q,
+    drop_par,
+    drop_off,
+    drop_ref,
     hips_out,
     rot_out,
 ):
     """Client frames (root (B, 3), local quaternions (B, Js, 4)) -> BN Hips translations
     hips_out (B, 3) and BN local quaternions rot_out (B, 22, 4) (`FrameRetargeter.to_model`); `to_model` unpacks the rig's arrays for it."""
-    nb, nv = bn_parents.shape[0], num_plain + 2 * lateral_j.shape[0]
+    nb, base = bn_parents.shape[0], num_plain + 2 * lateral_j.shape[0]
+    nv = base + drop_par.shape[0]
     gs = np.empty((src_order.shape[0], 3, 3))
     gb = np.empty((nb, 3, 3))
     terms, raw, vec = np.empty((vec_off.shape[0], 3)), np.empty((nv, 3)), np.empty((nv, 3))
@@ -457,6 +481,10 @@ def _to_model(
             w33,
             w3,
         )
+        low = np.inf  # the client's lowest foot point below its hips (`FrameRetargeter._drop`)
+        for v in range(base, nv):
+            low = min(low, vec[v, 1] - drop_ref[0, v - base])
+        hips_out[f, 1] += max(scale * low - _bn_lowest(gb, drop_par, drop_off, drop_ref), 0.0)
         for j in range(nb):
             if bn_fixed_q[j, 3] >= 0.0:  # a leaf (or the static root): its natural local rotation
                 for r in range(4):
@@ -498,6 +526,9 @@ def _to_source(
     mapped_j,
     mapped_s,
     mapped_par_s,
+    drop_par,
+    drop_off,
+    drop_ref,
     root_out,
     rot_out,
 ):
@@ -506,7 +537,8 @@ def _to_source(
     rot_out (B, Js, 4) (`FrameRetargeter.to_source`). `delta_j`: the BN joints whose change some
     client joint takes; `anc_bn_s`: that BN joint per slot (22: none, no change); `mapped_par_s`
     -1: a mapped root joint. `to_source` unpacks the rig's arrays for it."""
-    nb, ns, nv = bn_parents.shape[0], src_order.shape[0], num_plain + 2 * lateral_j.shape[0]
+    nb, ns, base = bn_parents.shape[0], src_order.shape[0], num_plain + 2 * lateral_j.shape[0]
+    nv = base + drop_par.shape[0]
     gs = np.empty((ns, 3, 3))
     gbc = np.empty((nb, 3, 3))
     gbn = np.empty((nb, 3, 3))
@@ -560,7 +592,29 @@ def _to_source(
         rot_out[f] = src_rot[f]  # unmapped joints keep the client's local rotations
         for i in range(mapped_j.shape[0]):
             _local_of(g_new, mapped_par_s[i], mapped_s[i], m, rot_out[f, mapped_j[i]])
-        t[0], t[1], t[2] = root_bn[f, 0] / scale, (root_bn[f, 1] - vertical_offset) / scale, root_bn[f, 2] / scale
+        for v in range(base, nv):  # hips -> foot points of the new client pose (`FrameRetargeter._drop`)
+            raw[v, 0], raw[v, 1], raw[v, 2] = 0.0, 0.0, 0.0
+        for e in range(vec_nz.shape[0]):
+            v = vec_nz[e, 0]
+            if v >= base:
+                tt, w, par = vec_nz[e, 1], vec_w[e], vec_par_s[vec_nz[e, 1]]
+                for r in range(3):
+                    raw[v, r] += w * (
+                        g_new[par, r, 0] * vec_off[tt, 0]
+                        + g_new[par, r, 1] * vec_off[tt, 1]
+                        + g_new[par, r, 2] * vec_off[tt, 2]
+                    )
+        low = np.inf
+        for v in range(base, nv):
+            low = min(
+                low, axes[1, 0] * raw[v, 0] + axes[1, 1] * raw[v, 1] + axes[1, 2] * raw[v, 2] - drop_ref[0, v - base]
+            )
+        drop = max(scale * low - _bn_lowest(gbn, drop_par, drop_off, drop_ref), 0.0)
+        t[0], t[1], t[2] = (
+            root_bn[f, 0] / scale,
+            (root_bn[f, 1] - vertical_offset - drop) / scale,
+            root_bn[f, 2] / scale,
+        )
         for r in range(3):  # axes.T @ t: the client's world
             h[r] = axes[0, r] * t[0] + axes[1, r] * t[1] + axes[2, r] * t[2]
         _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t)  # the chain above the hips is unchanged
@@ -599,6 +653,9 @@ def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, 
         _part33(floats, float_at, 10),
         _part(ints, int_at, 9),
         _part(floats, float_at, 9).reshape(-1, 4),
+        _part(ints, int_at, 16).reshape(-1, 4),
+        _part(floats, float_at, 11).reshape(-1, 4, 3),
+        _part(floats, float_at, 12).reshape(2, -1),
         hips_out,
         rot_out,
     )
@@ -639,6 +696,9 @@ def to_source(root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, v
         _part(ints, int_at, 13),
         _part(ints, int_at, 14),
         _part(ints, int_at, 15),
+        _part(ints, int_at, 16).reshape(-1, 4),
+        _part(floats, float_at, 11).reshape(-1, 4, 3),
+        _part(floats, float_at, 12).reshape(2, -1),
         root_out,
         rot_out,
     )
