@@ -550,6 +550,9 @@ def _to_source(
     c, h, t = np.empty(3), np.empty(3), np.empty(3)
     _eye(delta[nb])
     same_axes = axes[0, 0] == 1.0 and axes[1, 1] == 1.0 and axes[2, 2] == 1.0  # the client's world is BN's
+    drop_e = 0  # vec_nz lists its entries row by row: the foot points' rows come last
+    while drop_e < vec_nz.shape[0] and vec_nz[drop_e, 0] < base:
+        drop_e += 1
     for f in range(root_bn.shape[0]):
         for s in range(bn_order.shape[0]):  # BN world rotations of the given frame, parents first
             j = bn_order[s]
@@ -594,7 +597,7 @@ def _to_source(
             _local_of(g_new, mapped_par_s[i], mapped_s[i], m, rot_out[f, mapped_j[i]])
         for v in range(base, nv):  # hips -> foot points of the new client pose (`FrameRetargeter._drop`)
             raw[v, 0], raw[v, 1], raw[v, 2] = 0.0, 0.0, 0.0
-        for e in range(vec_nz.shape[0]):
+        for e in range(drop_e, vec_nz.shape[0]):
             v = vec_nz[e, 0]
             if v >= base:
                 tt, w, par = vec_nz[e, 1], vec_w[e], vec_par_s[vec_nz[e, 1]]
