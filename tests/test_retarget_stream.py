@@ -120,8 +120,11 @@ def test_to_source_points_bones_where_bn_does(walks, rig, variant):
         t = bn_pos[:, bsk.index(b)] - bn_pos[:, bsk.index(a)]
         cos = np.sum(s * t, -1) / np.linalg.norm(s, axis=-1) / np.linalg.norm(t, axis=-1)
         assert np.degrees(np.arccos(cos.clip(-1, 1))).max() < 1e-4, (a, b)
-    # and the hips: same place after scaling
-    np.testing.assert_allclose(src_pos[:, 0], motion.global_positions()[40:, 0], atol=1e-9)
+    # and the hips: same place after scaling, but for the height the root rises by for the feet
+    # (`FrameRetargeter._drop`), which the client's new pose sets on the way back
+    want = motion.global_positions()[40:, 0]
+    np.testing.assert_allclose(src_pos[:, 0, [0, 2]], want[:, [0, 2]], atol=1e-9)
+    assert np.abs(src_pos[:, 0, 1] - want[:, 1]).max() * fr.scale < 1.0  # cm
 
 
 @pytest.mark.parametrize("variant", list(WALKS))

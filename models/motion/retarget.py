@@ -11,7 +11,10 @@ all rotations zero is meaningless (legs point up the spine). So the mapping is b
    role joints, through any joints in between) whose direction it takes.
 2. Hips and Chest have several children: their global rotation is a two-vector frame of the
    client joint positions (the bone up the spine and the left-right vector between the legs /
-   upper arms), so the spine bone and the hip / shoulder line follow the client exactly.
+   upper arms), so the spine bone and the hip / shoulder line follow the client exactly. The
+   hips' side vector is the client's rest-pose hip line carried by its hips joint
+   (`retarget_stream._rest_side`), so hip joints between the hips and the thighs (Xia's animated
+   LHipJoint) do not turn BN's whole pelvis.
 3. Every other joint with a segment (`TwistPlan`, parents first): start from the BN parent's
    new global rotation times the joint's local rotation in the natural BN pose (`Rig.pose`), then
    apply the smallest swing that carries the BN bone onto the segment direction. The bone
@@ -19,8 +22,11 @@ all rotations zero is meaningless (legs point up the spine). So the mapping is b
    and the natural pose, never the client joint's own twist (which puts e.g. CMU knees 30 standard
    deviations outside BN's range for the LTI model). Limb roots (UpperLeg, UpperArm) instead take
    the twist that lays BN's hinge axis (the natural knee / elbow bend axis) along the normal of the
-   client's limb plane, so knees and elbows bend about BN's hinge axis; a near-straight limb
-   blends to the natural twist (`HINGE_FALLBACK`). Leaves (Head, Hands, Toes) keep the natural
+   client's limb plane, so knees and elbows bend about BN's hinge axis. The normal keeps its own
+   sign, cross(upper bone, lower bone), which is the bend's side for a flexed limb whatever the
+   twist; a near-straight limb, whose plane is noise, blends to BN's natural twist
+   (`HINGE_FALLBACK`). The Spine takes half of the Chest's twist about it (`TWIST_SHARE`), as
+   Unity's humanoid spreads a twist over a chain. Leaves (Head, Hands, Toes) keep the natural
    local rotation: they move no joint, and BN data holds them nearly fixed.
 4. Hips translation is scaled by the leg-length ratio (BN thigh + shin / client thigh + shin,
    which also converts units) and shifted vertically so that the toe on the ground sits at the
@@ -109,10 +115,37 @@ _HINGES = {
     "UpperArm_R": "LowerArm_R",
 }
 # How much a near-straight limb falls back to the natural twist: the hinge axis aims along
-# cross(upper bone, lower bone) + HINGE_FALLBACK * (axis under the natural twist). |cross| is the
-# sine of the bend, so the limb plane decides once the bend is well above ~6 degrees, and a straight
-# (or slightly hyperextended) limb keeps the natural twist instead of flipping.
-HINGE_FALLBACK = 0.03
+# |n| n + HINGE_FALLBACK^2 natural, n = cross(upper bone, lower bone), |n| the sine of the bend. The
+# limb plane decides once the bend is well above ~17 degrees; a straighter limb turns smoothly to
+# the natural twist. The axis passes through zero (a half-turn flip) only for a limb bent ~17
+# degrees against its natural bend, e.g. a knee hyperextended that far. Before, the axis was
+# (n . natural) n + 0.03^2 natural: it flipped whenever the plane crossed a quarter turn from the
+# natural twist (CMU's right arm) or a hyperextended knee straightened (Xia's thighs), p99 rotation
+# acceleration 80-180 deg/frame^2 against 3-30 in the source at 30 fps (`retarget_check`); smaller
+# values than 0.3 jitter where the plane and the natural twist disagree (Xia legs 1.3-2.5x at 0.2).
+HINGE_FALLBACK = 0.3
+
+
+# The share of the chest's twist about the spine bone (relative to the natural pose) that BN's Spine
+# takes, as Unity's humanoid spreads a twist over the joints of a chain: with none, a client's
+# whole spine twist lands in BN's Chest, whose rotation then jitters 1.8x the client's worst spine
+# joint (Xia runs; retarget_check).
+TWIST_SHARE = 0.5
+
+
+def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) by `angle` (...) about the unit `axis` (3,) (Rodrigues)."""
+    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    a = np.asarray(angle)[..., None, None]
+    return np.eye(3) + np.sin(a) * k + (1.0 - np.cos(a)) * (k @ k)
+
+
+def twist_angle(m: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """The twist (...) about the unit `axis` (3,) of rotation matrices m (..., 3, 3), radians in
+    (-pi, pi]: 2 atan2(q_v . axis, q_w) for m's quaternion q with q_w >= 0, written on the matrix
+    (q_v 4 q_w is the skew part's vector, 4 q_w^2 is 1 + trace)."""
+    v = np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1)
+    return 2.0 * np.arctan2(v @ axis, 1.0 + np.trace(m, axis1=-2, axis2=-1))
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -151,7 +184,8 @@ class TwistPlan:
       that carries the bone onto the given direction (twist about the bone follows the parent);
     * limb (UpperLeg, UpperArm): bone onto the given direction, twist such that the BN hinge axis
       (in the limb joint's frame, from the natural pose's bend) is the normal of the client's limb
-      plane (upper and lower bone directions);
+      plane (upper and lower bone directions), or the natural twist when the limb is near
+      straight;
     * leaf (Head, Hand, Toes, and Foot when the client has no toes): the natural local rotation
       under the new BN parent.
     """
@@ -187,6 +221,10 @@ class TwistPlan:
                 if kind in ("swing", "limb"):
                     g["b"] = np.stack([_unit(off(PRIMARY_CHILD[n])) for n in names])
                     g["dir"] = np.array([col[n] for n in names])
+                if kind == "swing" and any(PRIMARY_CHILD[n] in _LATERAL for n in names):
+                    (n,) = names  # the spine: one joint under Hips, the Chest above it
+                    c = sk.index(PRIMARY_CHILD[n])
+                    g["split"] = (c, nat[c])
                 if kind == "limb":
                     hinge = [_HINGES[n] for n in names]
                     g["dir_c"] = np.array([col[h] for h in hinge])
@@ -214,10 +252,14 @@ class TwistPlan:
             if g["kind"] == "limb":
                 lower = dirs[:, g["dir_c"]]
                 natural = (rot @ g["k"][..., None])[..., 0]
-                normal = np.cross(d, lower)
-                w = np.sum(normal * natural, axis=-1, keepdims=True)
-                axis = w * normal + HINGE_FALLBACK**2 * natural
+                normal = np.cross(d, lower)  # its sign is the bend's: cross(upper, lower) for a flexed limb
+                axis = np.linalg.norm(normal, axis=-1, keepdims=True) * normal + HINGE_FALLBACK**2 * natural
                 rot = _frame(d, axis) @ g["m_loc_t"]
+            if "split" in g:  # take a share of the two-vector child's twist about the bone
+                c, nat_c = g["split"]
+                axis = g["b"][0]
+                dev = np.swapaxes(rot[:, 0], -1, -2) @ gb[:, c] @ nat_c.T  # the child's local, off natural
+                rot = rot @ _axis_angle(axis, TWIST_SHARE * twist_angle(dev, axis))[:, None]
             gb[:, g["j"]] = rot
         return gb
 

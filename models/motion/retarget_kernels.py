@@ -22,7 +22,8 @@ import numpy as np
 from numba import njit
 
 KIND_LEAF, KIND_SWING, KIND_LIMB = 0, 1, 2
-HINGE_FALLBACK_SQ = 0.03**2  # retarget.HINGE_FALLBACK squared (checked by the tests against the numpy path)
+HINGE_FALLBACK_SQ = 0.3**2  # retarget.HINGE_FALLBACK squared (checked by the tests against the numpy path)
+TWIST_SHARE = 0.5  # retarget.TWIST_SHARE (checked likewise)
 
 # --------------------------------------------------------------------------- 3x3 helpers
 # Inlined: called on views of bigger arrays, a call each costs the view's reference counting
@@ -179,6 +180,47 @@ def _swing(a, b, out):
     out[2, 1] = lin * v0 + s * v1 * v2
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _split_twist(g, gc, nat_c, b, m, dev, r):
+    """g = g @ R(b, TWIST_SHARE * twist), the twist about the unit bone b (in g's frame) of the
+    child's local rotation g.T @ gc off its natural one nat_c (retarget.TwistPlan's "split";
+    `retarget.twist_angle`). Scratch m, dev, r (3x3)."""
+    _mtm(g, gc, m)
+    _mmt(m, nat_c, dev)
+    v = (dev[2, 1] - dev[1, 2]) * b[0] + (dev[0, 2] - dev[2, 0]) * b[1] + (dev[1, 0] - dev[0, 1]) * b[2]
+    a = TWIST_SHARE * 2.0 * np.arctan2(v, 1.0 + dev[0, 0] + dev[1, 1] + dev[2, 2])
+    sn, cs = np.sin(a), 1.0 - np.cos(a)
+    # Rodrigues: I + sin K + (1 - cos) K^2, K = [b]x, K^2 = b b^T - I
+    for i in range(3):
+        for k in range(3):
+            r[i, k] = cs * b[i] * b[k] + (1.0 - cs if i == k else 0.0)
+    r[0, 1] -= sn * b[2]
+    r[1, 0] += sn * b[2]
+    r[0, 2] += sn * b[1]
+    r[2, 0] -= sn * b[1]
+    r[1, 2] -= sn * b[0]
+    r[2, 1] += sn * b[0]
+    _mm(g, r, m)
+    g[:, :] = m
+
+
+@njit(cache=True, error_model="numpy")
+def _bn_lowest(gb, drop_par, drop_off, drop_ref):
+    """The lowest BN foot point's height below the Hips, each off its standing height drop_ref[1]:
+    per point, the sum of gb[parent] @ offset (its y) down the chain from the Hips
+    (`FrameRetargeter._drop`; parent -1: padding)."""
+    low = np.inf
+    for i in range(drop_par.shape[0]):
+        y = -drop_ref[1, i]
+        for q in range(drop_par.shape[1]):
+            p = drop_par[i, q]
+            if p < 0:
+                break
+            y += gb[p, 1, 0] * drop_off[i, q, 0] + gb[p, 1, 1] * drop_off[i, q, 1] + gb[p, 1, 2] * drop_off[i, q, 2]
+        low = min(low, y)
+    return low
+
+
 # --------------------------------------------------------------------------- per-frame steps
 # Scratch arrays come from the callers (allocated once per call, not per frame): w33 (3, 3, 3), w3 (3, 3).
 
@@ -224,6 +266,7 @@ def _bn_globals(
     step_b,
     step_k,
     step_m_loc_t,
+    step_split_nat,
     bn_parents,
     gb,
     terms,
@@ -238,17 +281,20 @@ def _bn_globals(
     nonzero entries of `FrameRetargeter._vec_coef`); scratch: terms (T, 3), raw and vec (V, 3)."""
     for t in range(vec_off.shape[0]):
         _mv(gs[vec_par_s[t]], vec_off[t], terms[t])
-    raw[:, :] = 0.0
+    same_axes = axes[0, 0] == 1.0 and axes[1, 1] == 1.0 and axes[2, 2] == 1.0  # the client's world is BN's
+    acc = vec if same_axes else raw
+    acc[:, :] = 0.0
     for e in range(vec_nz.shape[0]):
         v, t, w = vec_nz[e, 0], vec_nz[e, 1], vec_w[e]
         for r in range(3):
-            raw[v, r] += w * terms[t, r]
-    for v in range(raw.shape[0]):
-        _mv(axes, raw[v], vec[v])  # in BN's world
+            acc[v, r] += w * terms[t, r]
+    if not same_axes:
+        for v in range(raw.shape[0]):
+            _mv(axes, raw[v], vec[v])  # in BN's world
     for v in range(num_plain):  # bone directions
-        n = np.sqrt(vec[v, 0] * vec[v, 0] + vec[v, 1] * vec[v, 1] + vec[v, 2] * vec[v, 2])
+        n = 1.0 / np.sqrt(vec[v, 0] * vec[v, 0] + vec[v, 1] * vec[v, 1] + vec[v, 2] * vec[v, 2])
         for r in range(3):
-            vec[v, r] /= n
+            vec[v, r] *= n
 
     m, base, sw = w33[0], w33[1], w33[2]
     bone, nat = w3[0], w3[1]
@@ -268,12 +314,19 @@ def _bn_globals(
         _mv(base, step_b[s], bone)
         d = vec[col]
         _swing(bone, d, sw)
-        _mm(sw, base, gb[j])
-        if kind == KIND_LIMB:
+        if kind != KIND_LIMB:
+            _mm(sw, base, gb[j])
+            if step_i[s, 5] >= 0:  # take a share of the two-vector child's twist about the bone
+                _split_twist(gb[j], gb[step_i[s, 5]], step_split_nat[s], step_b[s], m, base, sw)
+        else:
+            # the natural hinge axis, swung: sw @ base @ k (scalar indexing, no views)
+            for r in range(3):
+                bone[r] = base[r, 0] * step_k[s, 0] + base[r, 1] * step_k[s, 1] + base[r, 2] * step_k[s, 2]
+            for r in range(3):
+                nat[r] = sw[r, 0] * bone[0] + sw[r, 1] * bone[1] + sw[r, 2] * bone[2]
             lo = vec[col_c]
-            _mv(gb[j], step_k[s], nat)
             n0, n1, n2 = d[1] * lo[2] - d[2] * lo[1], d[2] * lo[0] - d[0] * lo[2], d[0] * lo[1] - d[1] * lo[0]
-            w = n0 * nat[0] + n1 * nat[1] + n2 * nat[2]
+            w = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)  # the plane's normal weighs its sine: |n| n
             _frame(
                 d[0],
                 d[1],
@@ -306,8 +359,23 @@ INT_PARTS = (
     "mapped_j",
     "mapped_s",
     "mapped_par_s",
+    "drop_par",
 )
-FLOAT_PARTS = ("fixed_off", "vec_off", "vec_w", "axes", "m_tgt_t", "step_nat", "step_b", "step_k", "step_m_loc_t")
+FLOAT_PARTS = (
+    "fixed_off",
+    "vec_off",
+    "vec_w",
+    "axes",
+    "m_tgt_t",
+    "step_nat",
+    "step_b",
+    "step_k",
+    "step_m_loc_t",
+    "bn_fixed_q",
+    "step_split_nat",
+    "drop_off",
+    "drop_ref",
+)
 
 
 def pack(parts: dict, names: tuple[str, ...], dtype) -> tuple[np.ndarray, np.ndarray]:
@@ -360,13 +428,19 @@ def _to_model(
     step_b,
     step_k,
     step_m_loc_t,
+    step_split_nat,
     bn_parents,
+    bn_fixed_q,
+    drop_par,
+    drop_off,
+    drop_ref,
     hips_out,
     rot_out,
 ):
     """Client frames (root (B, 3), local quaternions (B, Js, 4)) -> BN Hips translations
     hips_out (B, 3) and BN local quaternions rot_out (B, 22, 4) (`FrameRetargeter.to_model`); `to_model` unpacks the rig's arrays for it."""
-    nb, nv = bn_parents.shape[0], num_plain + 2 * lateral_j.shape[0]
+    nb, base = bn_parents.shape[0], num_plain + 2 * lateral_j.shape[0]
+    nv = base + drop_par.shape[0]
     gs = np.empty((src_order.shape[0], 3, 3))
     gb = np.empty((nb, 3, 3))
     terms, raw, vec = np.empty((vec_off.shape[0], 3)), np.empty((nv, 3)), np.empty((nv, 3))
@@ -398,6 +472,7 @@ def _to_model(
             step_b,
             step_k,
             step_m_loc_t,
+            step_split_nat,
             bn_parents,
             gb,
             terms,
@@ -406,8 +481,16 @@ def _to_model(
             w33,
             w3,
         )
+        low = np.inf  # the client's lowest foot point below its hips (`FrameRetargeter._drop`)
+        for v in range(base, nv):
+            low = min(low, vec[v, 1] - drop_ref[0, v - base])
+        hips_out[f, 1] += max(scale * low - _bn_lowest(gb, drop_par, drop_off, drop_ref), 0.0)
         for j in range(nb):
-            _local_of(gb, bn_parents[j], j, m, rot_out[f, j])
+            if bn_fixed_q[j, 3] >= 0.0:  # a leaf (or the static root): its natural local rotation
+                for r in range(4):
+                    rot_out[f, j, r] = bn_fixed_q[j, r]
+            else:
+                _local_of(gb, bn_parents[j], j, m, rot_out[f, j])
 
 
 @njit(cache=True, error_model="numpy")
@@ -435,6 +518,7 @@ def _to_source(
     step_b,
     step_k,
     step_m_loc_t,
+    step_split_nat,
     bn_parents,
     bn_order,
     delta_j,
@@ -442,6 +526,9 @@ def _to_source(
     mapped_j,
     mapped_s,
     mapped_par_s,
+    drop_par,
+    drop_off,
+    drop_ref,
     root_out,
     rot_out,
 ):
@@ -450,7 +537,8 @@ def _to_source(
     rot_out (B, Js, 4) (`FrameRetargeter.to_source`). `delta_j`: the BN joints whose change some
     client joint takes; `anc_bn_s`: that BN joint per slot (22: none, no change); `mapped_par_s`
     -1: a mapped root joint. `to_source` unpacks the rig's arrays for it."""
-    nb, ns, nv = bn_parents.shape[0], src_order.shape[0], num_plain + 2 * lateral_j.shape[0]
+    nb, ns, base = bn_parents.shape[0], src_order.shape[0], num_plain + 2 * lateral_j.shape[0]
+    nv = base + drop_par.shape[0]
     gs = np.empty((ns, 3, 3))
     gbc = np.empty((nb, 3, 3))
     gbn = np.empty((nb, 3, 3))
@@ -461,6 +549,10 @@ def _to_source(
     m, m2, gp = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     c, h, t = np.empty(3), np.empty(3), np.empty(3)
     _eye(delta[nb])
+    same_axes = axes[0, 0] == 1.0 and axes[1, 1] == 1.0 and axes[2, 2] == 1.0  # the client's world is BN's
+    drop_e = 0  # vec_nz lists its entries row by row: the foot points' rows come last
+    while drop_e < vec_nz.shape[0] and vec_nz[drop_e, 0] < base:
+        drop_e += 1
     for f in range(root_bn.shape[0]):
         for s in range(bn_order.shape[0]):  # BN world rotations of the given frame, parents first
             j = bn_order[s]
@@ -481,6 +573,7 @@ def _to_source(
             step_b,
             step_k,
             step_m_loc_t,
+            step_split_nat,
             bn_parents,
             gbc,
             terms,
@@ -491,15 +584,40 @@ def _to_source(
         )
         for i in range(delta_j.shape[0]):  # the change of each BN joint used, in the client's world
             j = delta_j[i]
-            _mmt(gbn[j], gbc[j], m)
-            _mtm(axes, m, m2)
-            _mm(m2, axes, delta[j])
+            if same_axes:
+                _mmt(gbn[j], gbc[j], delta[j])
+            else:
+                _mmt(gbn[j], gbc[j], m)
+                _mtm(axes, m, m2)
+                _mm(m2, axes, delta[j])
         for s in range(ns):
             _mm(delta[anc_bn_s[s]], gs[s], g_new[s])
         rot_out[f] = src_rot[f]  # unmapped joints keep the client's local rotations
         for i in range(mapped_j.shape[0]):
             _local_of(g_new, mapped_par_s[i], mapped_s[i], m, rot_out[f, mapped_j[i]])
-        t[0], t[1], t[2] = root_bn[f, 0] / scale, (root_bn[f, 1] - vertical_offset) / scale, root_bn[f, 2] / scale
+        for v in range(base, nv):  # hips -> foot points of the new client pose (`FrameRetargeter._drop`)
+            raw[v, 0], raw[v, 1], raw[v, 2] = 0.0, 0.0, 0.0
+        for e in range(drop_e, vec_nz.shape[0]):
+            v = vec_nz[e, 0]
+            if v >= base:
+                tt, w, par = vec_nz[e, 1], vec_w[e], vec_par_s[vec_nz[e, 1]]
+                for r in range(3):
+                    raw[v, r] += w * (
+                        g_new[par, r, 0] * vec_off[tt, 0]
+                        + g_new[par, r, 1] * vec_off[tt, 1]
+                        + g_new[par, r, 2] * vec_off[tt, 2]
+                    )
+        low = np.inf
+        for v in range(base, nv):
+            low = min(
+                low, axes[1, 0] * raw[v, 0] + axes[1, 1] * raw[v, 1] + axes[1, 2] * raw[v, 2] - drop_ref[0, v - base]
+            )
+        drop = max(scale * low - _bn_lowest(gbn, drop_par, drop_off, drop_ref), 0.0)
+        t[0], t[1], t[2] = (
+            root_bn[f, 0] / scale,
+            (root_bn[f, 1] - vertical_offset - drop) / scale,
+            root_bn[f, 2] / scale,
+        )
         for r in range(3):  # axes.T @ t: the client's world
             h[r] = axes[0, r] * t[0] + axes[1, r] * t[1] + axes[2, r] * t[2]
         _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t)  # the chain above the hips is unchanged
@@ -530,12 +648,17 @@ def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, 
         ints[int_at[6]],
         _part33(floats, float_at, 4),
         _part(ints, int_at, 7),
-        _part(ints, int_at, 8).reshape(-1, 5),
+        _part(ints, int_at, 8).reshape(-1, 6),
         _part33(floats, float_at, 5),
         _part3(floats, float_at, 6),
         _part3(floats, float_at, 7),
         _part33(floats, float_at, 8),
+        _part33(floats, float_at, 10),
         _part(ints, int_at, 9),
+        _part(floats, float_at, 9).reshape(-1, 4),
+        _part(ints, int_at, 16).reshape(-1, 4),
+        _part(floats, float_at, 11).reshape(-1, 4, 3),
+        _part(floats, float_at, 12).reshape(2, -1),
         hips_out,
         rot_out,
     )
@@ -563,11 +686,12 @@ def to_source(root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, v
         ints[int_at[6]],
         _part33(floats, float_at, 4),
         _part(ints, int_at, 7),
-        _part(ints, int_at, 8).reshape(-1, 5),
+        _part(ints, int_at, 8).reshape(-1, 6),
         _part33(floats, float_at, 5),
         _part3(floats, float_at, 6),
         _part3(floats, float_at, 7),
         _part33(floats, float_at, 8),
+        _part33(floats, float_at, 10),
         _part(ints, int_at, 9),
         _part(ints, int_at, 10),
         _part(ints, int_at, 11),
@@ -575,6 +699,9 @@ def to_source(root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, v
         _part(ints, int_at, 13),
         _part(ints, int_at, 14),
         _part(ints, int_at, 15),
+        _part(ints, int_at, 16).reshape(-1, 4),
+        _part(floats, float_at, 11).reshape(-1, 4, 3),
+        _part(floats, float_at, 12).reshape(2, -1),
         root_out,
         rot_out,
     )

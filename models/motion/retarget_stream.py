@@ -104,6 +104,24 @@ def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
     return [(k, s) for k, s in terms if np.linalg.norm(skeleton.offsets[k]) > 1e-9]
 
 
+# Two-vector joints whose side vector is the client's rest-pose line carried by the joint's own
+# rotation (`_rest_side`) instead of the line read per frame. Not the Chest: Xia's collars sit
+# forward of their rest pose, and the chest turned with the rest line left the LTI model's training
+# range on the Xia walk (blend weight 0.80 -> 0.85); the spine's twist share (`retarget.TWIST_SHARE`)
+# takes the chest's jitter down instead.
+_REST_SIDE = ("Hips",)
+
+
+def _rest_side(skeleton: Skeleton, a: int, b: int) -> np.ndarray:
+    """pos[b] - pos[a] in the rest pose (every local rotation identity, so also in any joint's
+    frame). Carried by the hips' own rotation it is the side vector of BN's Hips frame: the
+    client's hip line as its pelvis holds it. The line between the upper legs read per frame also
+    carries joints between the hips and the thighs (Xia's animated LHipJoint), whose motion turned
+    BN's whole pelvis (p99 rotation acceleration up to 1.4x the source's hips on Xia clips). With
+    no such joints (CMU files, the made rigs) both are the same vector."""
+    return sum((s * skeleton.offsets[k] for k, s in _path_terms(skeleton, a, b)), np.zeros(3))
+
+
 # --------------------------------------------------------------------------- the retargeter
 
 
@@ -140,27 +158,50 @@ class FrameRetargeter:
         self._bn_hips = sk.index("Hips")
         self._hips = roles["hips"]
 
-        # Vectors read from each frame: the BN bones' segments, then (up, side) per two-vector joint,
-        # each a signed sum of G[parent k] offset[k] (`_path_terms`).
+        # Vectors read from each frame: the BN bones' segments, then (up, side) per two-vector joint.
+        # A segment is a signed sum of G[parent k] offset[k] (`_path_terms`); a side is the rest
+        # pose's side vector carried by the joint's own rotation (`_rest_side`). Terms are keyed
+        # (parent joint, offset) pairs: `vec_par` and `vec_off` below.
         segs = bn_segments(roles)
         plain = tuple(n for n in BN_JOINTS if n in segs and n not in _LATERAL)
-        pairs = [segs[n] for n in plain]
+        terms = [self._segment_terms(src, roles[a], roles[b]) for a, b in (segs[n] for n in plain)]
         m_tgt = []
         for name, (tl, tr) in _LATERAL.items():
-            pairs += [
-                segs[name],
-                (BN_ROLES[tr].replace("clavicle", "upperarm"), BN_ROLES[tl].replace("clavicle", "upperarm")),
-            ]
+            side = (BN_ROLES[tr].replace("clavicle", "upperarm"), BN_ROLES[tl].replace("clavicle", "upperarm"))
+            anchor = roles[segs[name][0]]
+            terms += [self._segment_terms(src, roles[segs[name][0]], roles[segs[name][1]])]
+            if name in _REST_SIDE:
+                terms += [[(("side", name), anchor, _rest_side(src, roles[side[0]], roles[side[1]]), 1.0)]]
+            else:
+                terms += [self._segment_terms(src, roles[side[0]], roles[side[1]])]
             off = lambda n: sk.offsets[sk.index(n)]  # noqa: E731
             m_tgt.append(_frame(off(PRIMARY_CHILD[name]), off(tl) - off(tr)))
-        terms = [_path_terms(src, roles[a], roles[b]) for a, b in pairs]
-        flat = sorted({k for t in terms for k, _ in t})
+        # Then the feet: hips -> each foot point (toes and ankles), for `_drop`.
+        points = [(f"{p}_{x}", f"{b}_{x.upper()}") for p, b in (("toes", "Toes"), ("foot", "Foot")) for x in "lr"]
+        points = [(r, b) for r, b in points if r in roles]
+        terms += [self._segment_terms(src, roles["hips"], roles[r]) for r, _ in points]
+        self._drop_rows = slice(len(terms) - len(points), len(terms))
+        chains = []  # per BN foot point, (parent joint, offset) of each joint from the Hips down to it
+        for _, b in points:
+            chain, j = [], sk.index(b)
+            while sk.names[j] != "Hips":
+                chain.append((int(sk.parents[j]), sk.offsets[j]))
+                j = int(sk.parents[j])
+            chains.append(chain[::-1] + [(-1, np.zeros(3))] * (4 - len(chain)))
+        self._drop_par = np.array([[p for p, _ in c] for c in chains], dtype=int)  # (P, 4), -1: padding
+        self._drop_off = np.array([[o for _, o in c] for c in chains])  # (P, 4, 3)
+        self._drop_kind = [r.split("_")[0] for r, _ in points]
+        # each point's height below the hips when standing (`_standing_offset`): client, BN
+        self._drop_ref = np.zeros((2, len(points)))
+        keys = sorted({key for t in terms for key, *_ in t}, key=str)
+        flat = {key: (par, vec) for t in terms for key, par, vec, _ in t}
         self._num_plain = len(plain)
-        self._vec_off = src.offsets[flat][:, :, None]  # (T, 3, 1)
-        self._vec_coef = np.zeros((len(terms), len(flat)))
+        self._vec_off = np.array([flat[key][1] for key in keys])[:, :, None]  # (T, 3, 1)
+        vec_par = np.array([flat[key][0] for key in keys], dtype=int)
+        self._vec_coef = np.zeros((len(terms), len(keys)))
         for v, t in enumerate(terms):
-            for k, sign in t:
-                self._vec_coef[v, flat.index(k)] += sign
+            for key, _, _, sign in t:
+                self._vec_coef[v, keys.index(key)] += sign
         self._m_tgt_t = np.swapaxes(np.stack(m_tgt), -1, -2)  # (L, 3, 3), transposed
         self._plan = TwistPlan(rig, plain)
 
@@ -184,7 +225,6 @@ class FrameRetargeter:
         self._mapped = np.array(sorted(mapped), dtype=int)
         self._mapped_nonroot = np.array([k for k in self._mapped if src.parents[k] >= 0], dtype=int)
         self._mapped_root = np.array([k for k in self._mapped if src.parents[k] < 0], dtype=int)
-        vec_par = self._src_parents[flat]
         chain_par = [int(self._src_parents[k]) for k in chain if self._src_parents[k] >= 0]
         needed = np.unique(
             np.concatenate(
@@ -211,14 +251,41 @@ class FrameRetargeter:
 
     # ----------------------------------------------------------------------- internals
 
-    def _bn_globals(self, gs: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def _segment_terms(src: Skeleton, a: int, b: int) -> list[tuple[object, int, np.ndarray, float]]:
+        """pos[b] - pos[a] as terms (key, parent joint, offset, sign): sign * G[parent] @ offset."""
+        return [(k, int(src.parents[k]), src.offsets[k], sign) for k, sign in _path_terms(src, a, b)]
+
+    def _vectors(self, gs: np.ndarray) -> np.ndarray:
+        """The vectors read from a frame (B, V, 3) in BN's world, from client world rotation
+        matrices (tree slots): segments, two-vector joints' (up, side), hips -> foot points."""
+        vec = (gs[:, self._vec_par_s] @ self._vec_off)[..., 0]  # (B, T, 3)
+        return (self._vec_coef @ vec) @ self._axes.T
+
+    def _drop(self, vec: np.ndarray, gb: np.ndarray) -> np.ndarray:
+        """(B,) how far the root rises so that BN's lowest foot point is no lower than the client's.
+
+        Bones are laid along the client's segments, so with other limb proportions BN's feet do
+        not land where the client's do: on a rig with a longer shin than BN's (thigh x0.75, shin
+        x1.25), a kneeling client's BN feet sank 6.8 cm into the floor. Per frame, each foot point
+        (toes, ankles) is taken below the hips and above its own standing height (`_drop_ref`;
+        toes against toes, ankles against ankles, as the rigs' feet differ), the client's scaled;
+        when BN's lowest is lower than the client's, the root rises by the difference. It never
+        sinks: a client's toe pressed into its floor (CMU 131_02's, by 5 cm) does not pull BN's
+        under, and a sitting client's BN feet may float as before. `vec` from `_vectors`, `gb`
+        BN world rotations (B, 22, 3, 3)."""
+        client = self.scale * (vec[:, self._drop_rows, 1] - self._drop_ref[0]).min(axis=1)
+        gbp = np.concatenate([gb, np.zeros_like(gb[:, :1])], axis=1)  # parent -1 (padding): a zero matrix
+        bn = np.sum((gbp[:, self._drop_par] @ self._drop_off[..., None])[..., 1, 0], axis=-1)
+        return np.maximum(client - (bn - self._drop_ref[1]).min(axis=1), 0.0)
+
+    def _bn_globals(self, gs: np.ndarray, vec: np.ndarray | None = None) -> np.ndarray:
         """BN world rotation matrices (B, 22, 3, 3) from client world rotation matrices (tree slots)."""
         b = gs.shape[0]
-        vec = (gs[:, self._vec_par_s] @ self._vec_off)[..., 0]  # (B, T, 3)
-        vec = (self._vec_coef @ vec) @ self._axes.T  # (B, V, 3), in BN's world
+        vec = self._vectors(gs) if vec is None else vec
         k = self._num_plain
         dirs = vec[:, :k] / np.sqrt(np.sum(vec[:, :k] ** 2, axis=-1, keepdims=True))
-        lat = vec[:, k:].reshape(b, -1, 2, 3)
+        lat = vec[:, k : self._drop_rows.start].reshape(b, -1, 2, 3)
         return self._plan.bn_globals(dirs, _frame(lat[:, :, 0], lat[:, :, 1]) @ self._m_tgt_t)
 
     def _source_globals(self, rotations: np.ndarray) -> np.ndarray:
@@ -230,12 +297,6 @@ class FrameRetargeter:
         g = np.concatenate([gs, np.broadcast_to(np.eye(3), (b, 1, 3, 3))], axis=1)  # slot -1: identity
         c = np.sum((g[:, self._fixed_par_s] @ self._fixed_off[..., None])[..., 0], axis=1)
         return c, g[:, self._translated_par_s]
-
-    def _local_bn(self, gs: np.ndarray) -> np.ndarray:
-        gb = self._bn_globals(gs)
-        local = gb.copy()
-        local[:, 1:] = np.swapaxes(gb[:, self._bn_parents[1:]], -1, -2) @ gb[:, 1:]
-        return mat_to_quat(local)
 
     def _standing_offset(self) -> float:
         """Hips height shift (BN hips y = scale * client hips height + offset): both skeletons in
@@ -249,8 +310,26 @@ class FrameRetargeter:
         _, rot = self.to_source(np.zeros((1, 3)), self.rig.pose[None], rest)
         trans = np.broadcast_to(src.offsets, (1, src.num_joints, 3)).copy()
         c_pos = fk(rot, trans, src.parents)[1][0] @ self._axes.T
-        hips_bn, local = self.to_model(trans[:, self._translated], rot)
+        _, local = self.to_model(trans[:, self._translated], rot)
         bn_trans = np.broadcast_to(sk.offsets, (1, sk.num_joints, 3)).copy()
+        b_pos = fk(local, bn_trans, sk.parents)[1][0]
+        # each foot point's standing height below the hips (per kind, the lower side's), for `_drop`
+        pts = (
+            [roles[f"{k}_{x}"] for k in ("toes", "foot") for x in "lr" if f"{k}_{x}" in roles],
+            [
+                sk.index(f"{b}_{x}")
+                for k, b in (("toes", "Toes"), ("foot", "Foot"))
+                for x in "LR"
+                if f"{k}_{x.lower()}" in roles
+            ],
+        )
+        for row, (pos, hips) in enumerate(((c_pos, self._hips), (b_pos, self._bn_hips))):
+            rel = pos[pts[row], 1] - pos[hips, 1]
+            self._drop_ref[row] = [
+                rel[[i for i, x in enumerate(self._drop_kind) if x == k]].min() for k in self._drop_kind
+            ]
+        self._kernel_plan()
+        hips_bn, _ = self.to_model(trans[:, self._translated], rot)
         bn_trans[:, self._bn_hips] = hips_bn
         b_pos = fk(local, bn_trans, sk.parents)[1][0]
         part = "toes" if all(f"toes_{s}" in roles for s in "lr") else "foot"
@@ -261,7 +340,8 @@ class FrameRetargeter:
         t_bn_toe = b_pos[toes_b, 1].mean() - b_pos[self._bn_hips, 1]
         t_bn_ref = b_pos[ref_b, 1].mean() - b_pos[self._bn_hips, 1]
         h = self.source_floor + (t_bn_ref - t_bn_toe) / self.scale - t_c  # client hips height, standing
-        return float(self.rig.floor - t_bn_toe - self.scale * h)
+        drop = hips_bn[0, 1] - self.scale * c_pos[self._hips, 1]  # `_drop` in this pose, which to_model added
+        return float(self.rig.floor - t_bn_toe - self.scale * h - drop)
 
     # ----------------------------------------------------------------------- API
 
@@ -319,12 +399,23 @@ class FrameRetargeter:
         par_s = np.full(len(tree.order), -1)
         for a, b, par in tree.levels:
             par_s[a:b] = par
-        steps, nat, bone, hinge, m_loc_t = [], [], [], [], []
+        steps, nat, bone, hinge, m_loc_t, split_nat = [], [], [], [], [], []
         kinds = {"leaf": kernels.KIND_LEAF, "swing": kernels.KIND_SWING, "limb": kernels.KIND_LIMB}
         for g in plan.groups:  # TwistPlan's groups, one joint a step
             for i, (j, p) in enumerate(zip(g["j"], g["p"])):
                 limb = g["kind"] == "limb"
-                steps.append((kinds[g["kind"]], j, p, g["dir"][i] if "dir" in g else -1, g["dir_c"][i] if limb else -1))
+                split = g.get("split", (-1, np.eye(3)))
+                steps.append(
+                    (
+                        kinds[g["kind"]],
+                        j,
+                        p,
+                        g["dir"][i] if "dir" in g else -1,
+                        g["dir_c"][i] if limb else -1,
+                        split[0],
+                    )
+                )
+                split_nat.append(split[1])
                 nat.append(g["nat"][i])
                 bone.append(g["b"][i] if "b" in g else np.zeros(3))
                 hinge.append(g["k"][i] if limb else np.zeros(3))
@@ -348,6 +439,7 @@ class FrameRetargeter:
             "mapped_j": np.concatenate([self._mapped_nonroot, self._mapped_root]),
             "mapped_s": np.concatenate([self._mapped_s, self._mapped_root_s]),
             "mapped_par_s": np.concatenate([self._mapped_parents_s, np.full(len(self._mapped_root), -1)]),
+            "drop_par": self._drop_par,
         }
         floats = {
             "fixed_off": self._fixed_off,
@@ -359,11 +451,25 @@ class FrameRetargeter:
             "step_b": bone,
             "step_k": hinge,
             "step_m_loc_t": m_loc_t,
+            "bn_fixed_q": self._fixed_locals(),
+            "drop_off": self._drop_off,
+            "drop_ref": self._drop_ref,
+            "step_split_nat": split_nat,
         }
         self._k_plan = (
             *kernels.pack(ints, kernels.INT_PARTS, np.int64),
             *kernels.pack(floats, kernels.FLOAT_PARTS, np.float64),
         )
+
+    def _fixed_locals(self) -> np.ndarray:
+        """(22, 4) per BN joint, the local quaternion `to_model` gives it on every frame: the natural
+        one of a leaf, identity for the static root; (-1, -1, -1, -1) for the joints that move."""
+        out = np.full((self._bn_parents.shape[0], 4), -1.0)
+        out[self._bn_parents < 0] = [0.0, 0.0, 0.0, 1.0]
+        for g in self._plan.groups:
+            if g["kind"] == "leaf":
+                out[g["j"]] = mat_to_quat(g["nat"])
+        return out
 
     # ----------------------------------------------------------------------- numpy reference
 
@@ -379,8 +485,12 @@ class FrameRetargeter:
         gs = self._source_globals(np.asarray(rotations, dtype=np.float64).reshape(root.shape[0], -1, 4))
         c, gp = self._hips_terms(gs)
         hips = ((c + (gp @ root[..., None])[..., 0]) @ self._axes.T) * self.scale
-        hips[:, 1] += self.vertical_offset
-        return hips, self._local_bn(gs)
+        vec = self._vectors(gs)
+        gb = self._bn_globals(gs, vec)
+        hips[:, 1] += self.vertical_offset + self._drop(vec, gb)
+        local = gb.copy()
+        local[:, 1:] = np.swapaxes(gb[:, self._bn_parents[1:]], -1, -2) @ gb[:, 1:]
+        return hips, mat_to_quat(local)
 
     def to_source_reference(
         self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray
@@ -409,7 +519,7 @@ class FrameRetargeter:
         if len(self._mapped_root):
             out[:, self._mapped_root] = mat_to_quat(g_new[:, self._mapped_root_s])
         hips = root_bn.copy()
-        hips[:, 1] -= self.vertical_offset
+        hips[:, 1] -= self.vertical_offset + self._drop(self._vectors(g_new), gbn[:, self._bn_unorder])
         hips = (hips / self.scale) @ self._axes  # client world (axes are orthogonal: inverse = transpose)
         c, gp = self._hips_terms(gsc)  # the chain above the hips is unchanged
         return (np.swapaxes(gp, -1, -2) @ (hips - c)[..., None])[..., 0], out
