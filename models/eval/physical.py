@@ -35,6 +35,10 @@ from .plausibility import body_joints, comparable_rotations, rotation_accelerati
 PLAUSIBLE_FRAMES = 0.95  # a joint is plausible in a clip when this share of its frames is
 SUPPORT_FRAMES = 40_000  # real TRAIN frames per style in each joint's search tree (evenly spread)
 REAL_CLIPS_PASSING = 0.95  # the share of held-out real clips the radius is calibrated to pass
+# the least "near" means, in degrees: among 40k real frames the nearest is often a fraction of a
+# degree away, and a hinge joint (knee, toes, clavicle) turns about one axis only in the data, so
+# without a floor a model's half-degree off the hinge, which no viewer sees, would fail a clip
+MIN_RADIUS_DEG = 5.0
 
 
 def _log_about(q: np.ndarray, mean: np.ndarray) -> np.ndarray:
@@ -47,8 +51,8 @@ class RotationSupport:
     """Per style and body joint: a search tree over real TRAIN frames' local rotations, and radii
     calibrated on held-out real VALIDATION clips. Each joint's radius is a common multiple of the
     p99 of the held-out frames' distances, the multiple at which `REAL_CLIPS_PASSING` of the
-    held-out clips have every joint within in `PLAUSIBLE_FRAMES` of their frames: a plausible
-    clip is one as close to real data as real clips are. A real take's hands or head sit where no
+    held-out clips have every joint within in `PLAUSIBLE_FRAMES` of their frames (a plausible
+    clip is one as close to real data as real clips are), and never under `MIN_RADIUS_DEG`. A real take's hands or head sit where no
     other take's do for a whole clip, so a per-frame radius alone fails most real clips."""
 
     def __init__(self, train: dict[str, list[Motion]], held: dict[str, list[Motion]]):
@@ -67,7 +71,8 @@ class RotationSupport:
             clips = [self._distances(style, self._rotations([m])) for m in held[style]]
             base = np.percentile(np.concatenate(clips), 99, axis=0)
             worst = [float((np.percentile(d, 100 * PLAUSIBLE_FRAMES, axis=0) / base).max()) for d in clips]
-            self.radius[style] = base * max(1.0, float(np.percentile(worst, 100 * REAL_CLIPS_PASSING)))
+            scaled = base * max(1.0, float(np.percentile(worst, 100 * REAL_CLIPS_PASSING)))
+            self.radius[style] = np.maximum(scaled, np.radians(MIN_RADIUS_DEG))
 
     def _rotations(self, motions: list[Motion]) -> np.ndarray:
         return np.concatenate([comparable_rotations(m)[:, self.joint_index] for m in motions])

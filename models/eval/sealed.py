@@ -282,7 +282,7 @@ def markdown(r: dict) -> str:
         f"≥ {GATE_STYLE_OTHER:.0%} on the other sources. **content** (dataset 2 only): the conv-net content "
         f"judge reads the input's content, gate ≥ {GATE_CONTENT:.0%}.",
         "- **plausible clips**: clips whose every body joint lies near a real TRAIN frame of the style in ≥ 95 % of "
-        'frames, "near" calibrated on VALIDATION clips of the style (the even ones in `make eval`) so that 95 % of '
+        'frames, "near" (never under 5°) calibrated on VALIDATION clips of the style (the even ones in `make eval`) so that 95 % of '
         "them pass (gate: ≥ 95 % "
         "of clips); the worst clip's worst joint. Near a real frame, not inside a ball about the mean: the models "
         "hold their rotations in such balls, so a ball test would pass by construction.",
