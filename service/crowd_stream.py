@@ -23,7 +23,7 @@ from collections import deque
 from . import protocol as P
 from .crowd import Crowd, Joining, StepRows
 from .logs import session_log
-from .skeletons import SkeletonAdapter, adapter_for
+from .skeletons import SkeletonAdapter
 from .stream import CLOSE_NORMAL, CLOSE_RESTART, Socket, log
 
 ControlMessage = P.Join | P.Leave | P.SetStyle | P.Reset | P.End
@@ -87,8 +87,10 @@ class CrowdConnection(Socket):
                     model, weights = await self.rt.new_character(spec, self.who)
                     skeleton, bvh_header, options = spec.skeleton, spec.bvh_header, spec.rig_options()
                 key = (model.name, skeleton, bvh_header, json.dumps(options, sort_keys=True))
-                if key not in adapters:
-                    adapters[key] = adapter_for(skeleton or "custom", bvh_header, model.skeleton, **options)
+                if key not in adapters:  # built off the event loop, within this caller's gate
+                    adapters[key] = await self.rt.rig_builds.adapter(
+                        self.who.key, skeleton or "custom", bvh_header, model.skeleton, **options
+                    )
                 joining.append(Joining(spec, model, key[1:], adapters[key], weights, snap))
                 seen.add(spec.id)
             except P.ProtocolError as err:

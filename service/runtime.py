@@ -28,6 +28,7 @@ from . import protocol as P
 from .batcher import Batcher, ModelThread
 from .limits import Principal
 from .metrics import Metrics
+from .rig_builds import RigBuilds
 from .session_store import SavedCallback, SnapshotWriter, StoreUnavailable, create_store
 from .sessions import Session, Snapshot
 from .settings import ServiceSettings
@@ -90,6 +91,7 @@ class Runtime:
         self._characters_of: Counter[str] = Counter()  # by caller (`Principal.key`), against its own cap
         self.crowd_members: set[str] = set()  # the session ids of those characters (resumes check it)
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
+        self.rig_builds = RigBuilds()  # rigs parsed and built off the event loop, per caller
         self.draining = False
 
     async def start(self) -> None:
