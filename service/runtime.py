@@ -145,10 +145,14 @@ class Runtime:
                 close_code=1012,
             )
 
+    def full(self) -> bool:
+        """Every one of `max_sessions` taken (a crowd connection takes one): readiness says so."""
+        return len(self.sessions) + self.crowds >= self.settings.max_sessions
+
     def _refuse_if_full(self) -> None:
         """Draining, or every one of `max_sessions` taken (a crowd connection takes one)."""
         self._refuse_if_draining()
-        if len(self.sessions) + self.crowds >= self.settings.max_sessions:
+        if self.full():
             raise P.ProtocolError(
                 "too_many_sessions",
                 f"server holds its maximum of {self.settings.max_sessions} sessions",
