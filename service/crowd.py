@@ -282,6 +282,9 @@ class Character:
     rig: dict
     session_id: str = field(default_factory=lambda: uuid.uuid4().hex)
     token: str = field(default_factory=lambda: secrets.token_urlsafe(24))
+    # a resumed character's place (its snapshot's `last_seq`), kept until the crowd answers a tick
+    resumed_seq: int | None = None
+    joined_at: int = 0  # the crowd's answered ticks when it joined
 
 
 @dataclass
@@ -313,6 +316,7 @@ class Crowd:
         self.groups: dict[tuple, RigGroup] = {}
         self._plan: Plan | None = None
         self._plan_key = b""
+        self.answered = 0  # ticks answered
 
     def __len__(self) -> int:
         return len(self.characters)
@@ -337,6 +341,8 @@ class Crowd:
                 character = Character(j.spec.id, group, j.spec, skeleton, bvh_header, rig)
                 if j.resumed is not None:
                     character.session_id, character.token = j.resumed.session_id, j.resumed.token
+                    character.resumed_seq = j.resumed.last_seq
+                character.joined_at = self.answered
                 self.characters[j.spec.id] = character
         self._plan = None
         return opened
@@ -361,8 +367,10 @@ class Crowd:
 
     def snapshots(self, owner: str, last_seq: int | None, ids: Sequence[int] | None = None) -> list[Snapshot]:
         """Each character (or those in `ids`) as a session snapshot under its own resume token:
-        resumable in a crowd, or alone as a session. `last_seq` is the crowd's last answered tick.
-        The reply to it is not kept per character (a resumed crowd's client asks again)."""
+        resumable in a crowd, or alone as a session. `last_seq` is the crowd's last answered tick;
+        a character resumed since the last tick keeps the place it was resumed at (its client would
+        otherwise replay every frame). The reply to it is not kept per character (a resumed
+        crowd's client asks again)."""
         now, out = time.time(), []
         by_troupe: dict[str, list[Character]] = {}
         for i in self.characters if ids is None else ids:
@@ -381,7 +389,7 @@ class Crowd:
                         bvh_header=c.bvh_header,
                         fps=self.fps,
                         encoding="binary",
-                        last_seq=last_seq,
+                        last_seq=last_seq if c.joined_at < self.answered else c.resumed_seq,
                         saved_at=now,
                         rig=dict(c.rig),
                         owner=owner,
@@ -474,6 +482,7 @@ class Crowd:
             out[at[:, None] + np.arange(rows.shape[1])] = rows
             result.frames[part.group.model] = result.frames.get(part.group.model, 0) + n
         result.reply = P.encode_tick(seq, plan.ids[ok], out, dropped)
+        self.answered += 1
         return result
 
     @staticmethod

@@ -66,23 +66,28 @@ class CrowdConnection(Socket):
     async def join(self, specs: list[P.CrowdCharacter]) -> dict:
         """Check each character's request and add those that pass, in one go; each refusal is
         that character's alone. Returns the reply's `characters`, `rigs` and `errors`."""
+        resuming: set[str] = set()  # claimed (`Runtime.resumable`): released once joined or refused
+        try:
+            return await self._join(specs, resuming)
+        finally:
+            for session_id in resuming:
+                self.rt.resumed(session_id)
+
+    async def _join(self, specs: list[P.CrowdCharacter], resuming: set[str]) -> dict:
         joining: list[Joining] = []
         errors: list[dict] = []
         adapters: dict[tuple, SkeletonAdapter] = {}
         seen = set(self.crowd.characters)
-        resuming: set[str] = set()
         for spec in specs:
             try:
                 if spec.id in seen:
                     raise P.ProtocolError("character_exists", f"character {spec.id} is already in this crowd")
                 snap, skeleton = None, spec.skeleton
                 if spec.resume_token is not None:  # model, style and rig as stored
-                    snap = await self.rt.resumable(spec.resume_token, self.who)
-                    if snap.session_id in resuming:
-                        raise P.ProtocolError("session_in_use", "that resume token is already taken in this message")
+                    snap = await self.rt.resumable(spec.resume_token, self.who)  # claimed (a second: in use)
+                    resuming.add(snap.session_id)
                     model, weights = self.rt.models[snap.model], dict(snap.weights)
                     skeleton, bvh_header, options = snap.skeleton, snap.bvh_header, dict(snap.rig)
-                    resuming.add(snap.session_id)
                 else:
                     model, weights = await self.rt.new_character(spec, self.who)
                     skeleton, bvh_header, options = spec.skeleton, spec.bvh_header, spec.rig_options()
