@@ -184,8 +184,8 @@ class Limiter:
         o = s.token_limits.get(token, TokenLimits()) if token is not None else TokenLimits()
         rate = o.requests_per_s or s.token_requests_per_s
         return Limits(
-            max_sessions=o.max_sessions or s.token_max_sessions,
-            max_characters=o.max_characters or s.token_max_characters,
+            max_sessions=o.max_sessions or s.token_sessions,
+            max_characters=o.max_characters or s.token_characters,
             requests_per_s=rate,
             burst=max(1.0, rate * (o.burst_s or s.token_burst_s)),
             upload_max_bytes=o.upload_max_bytes or s.upload_max_bytes,
