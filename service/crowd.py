@@ -29,6 +29,7 @@ from models.interface import State, StreamingModel, stack_states, upgrade_state,
 
 from . import protocol as P
 from .frame_check import check_rows
+from .rows import Rows
 from .sessions import Snapshot
 from .skeletons import SkeletonAdapter
 
@@ -40,37 +41,83 @@ def take_rows(state: State, rows: np.ndarray) -> State:
     return {key: value[rows] for key, value in state.items()}
 
 
-def put_rows(state: State, rows: np.ndarray, new: State) -> State:
-    """`state` with `rows` replaced by `new`, as new arrays: a state is never changed in place (a
-    snapshot or a step in flight may hold it)."""
-    out = {}
-    for key, value in state.items():
-        copy = value.copy()
-        copy[rows] = new[key]
-        out[key] = copy
-    return out
+STATE = "state:"  # the model state's keys, among a troupe's per-row arrays
 
 
 class Troupe:
-    """The characters of one model on a connection, one row each."""
+    """The characters of one model on a connection, one row each. Its per-row arrays live in
+    `service.rows.Rows`: a tick, join or leave costs in proportion to the rows it touches, not
+    to the troupe (a leave moves the last rows into the freed places: `row_of` follows)."""
 
     def __init__(self, model: StreamingModel, fps: float) -> None:
         self.model, self.ratio = model, model.fps / fps
-        self.ids = np.zeros(0, np.int64)
-        self.state: State = {}
-        self.clock = np.zeros(0)  # model steps owed, fractional; < 0 until the first frame
+        self._rows = Rows()
         num_joints = model.skeleton.num_joints
-        self.held_root, self.held_rot = np.zeros((0, 3)), np.zeros((0, num_joints, 4))
-        self.held_input_root = np.zeros((0, 3))  # the input root each held output was made from
         self.names = list(model.styles())  # what the weight columns stand for
-        self.weights, self.target = np.zeros((0, len(self.names))), np.zeros((0, len(self.names)))
-        self.left = np.zeros(0, np.int64)  # transition frames left
+        empty = {
+            "ids": np.zeros(0, np.int64),
+            "clock": np.zeros(0),  # model steps owed, fractional; < 0 until the first frame
+            "held_root": np.zeros((0, 3)),
+            "held_rot": np.zeros((0, num_joints, 4)),
+            "held_input_root": np.zeros((0, 3)),  # the input root each held output was made from
+            "weights": np.zeros((0, len(self.names))),
+            "target": np.zeros((0, len(self.names))),
+            "left": np.zeros(0, np.int64),  # transition frames left
+        }
+        self._rows.append(empty)
         self.row_of: dict[int, int] = {}
 
     def __len__(self) -> int:
-        return len(self.ids)
+        return len(self._rows)
 
-    # ---- membership (join, leave, reset: rare, so plain Python is fine) ------------------
+    # ---- the per-row arrays, as views (written through) ----------------------------------
+    @property
+    def state(self) -> State:
+        """The model state of every row: views, so `state[key][rows] = ...` writes the troupe's."""
+        return {key[len(STATE) :]: self._rows.view(key) for key in self._rows.keys() if key.startswith(STATE)}
+
+    @state.setter
+    def state(self, state: State) -> None:
+        """Every row's state at once (a step of the whole troupe): copied into place."""
+        stale = [key for key in self._rows.keys() if key.startswith(STATE) and key[len(STATE) :] not in state]
+        for key in stale:
+            self._rows.drop(key)
+        for key, value in state.items():
+            self._rows.replace(STATE + key, value)
+
+    def put_rows(self, rows: np.ndarray, new: State) -> None:
+        """`rows`' state replaced by `new`, in place: only those rows are written (the whole
+        troupe's copy per partial tick was 130 MB at 16,384 characters). No one else holds these
+        arrays: steps and snapshots get gathered copies of their rows."""
+        if set(new) - {key[len(STATE) :] for key in self._rows.keys() if key.startswith(STATE)}:
+            self.state = upgrade_state(self.model, self.state)  # the model's style set grew meanwhile
+        for key, value in new.items():
+            self._rows.view(STATE + key)[rows] = value
+
+    ids = property(lambda self: self._rows.view("ids"))
+    clock = property(lambda self: self._rows.view("clock"))
+    held_root = property(lambda self: self._rows.view("held_root"))
+    held_rot = property(lambda self: self._rows.view("held_rot"))
+    held_input_root = property(lambda self: self._rows.view("held_input_root"))
+    left = property(lambda self: self._rows.view("left"))
+
+    @property
+    def weights(self) -> np.ndarray:
+        return self._rows.view("weights")
+
+    @weights.setter
+    def weights(self, value: np.ndarray) -> None:
+        self._rows.replace("weights", value)
+
+    @property
+    def target(self) -> np.ndarray:
+        return self._rows.view("target")
+
+    @target.setter
+    def target(self, value: np.ndarray) -> None:
+        self._rows.replace("target", value)
+
+    # ---- membership (join, leave, reset: in proportion to the rows touched) ---------------
     def add(
         self,
         ids: Sequence[int],
@@ -88,7 +135,9 @@ class Troupe:
             )
         else:
             fresh = self.model.init_state(k)
-        self.state = fresh if not self.state else stack_states([upgrade_state(self.model, self.state), fresh])
+        if len(self) and set(fresh) != set(self.state):  # the style set changed: every row gets the new keys
+            self.state = upgrade_state(self.model, self.state)
+            fresh = upgrade_state(self.model, fresh)
         vectors = np.stack([weight_vector(self.names, w) for w in weights]).reshape(k, len(self.names))
         target, clock, left = vectors.copy(), np.full(k, -1.0), np.zeros(k, np.int64)
         held_root, held_rot, held_input = np.zeros((k, 3)), np.zeros((k, num_joints, 4)), np.zeros((k, 3))
@@ -103,15 +152,22 @@ class Troupe:
                     snap.held["rotations"],
                     snap.held["input_root"],
                 )
-        self.ids = np.concatenate([self.ids, np.asarray(ids, np.int64)])
-        self.clock = np.concatenate([self.clock, clock])
-        self.held_root = np.concatenate([self.held_root, held_root])
-        self.held_rot = np.concatenate([self.held_rot, held_rot])
-        self.held_input_root = np.concatenate([self.held_input_root, held_input])
-        self.weights = np.concatenate([self.weights, vectors])
-        self.target = np.concatenate([self.target, target])
-        self.left = np.concatenate([self.left, left])
-        self._index()
+        first = len(self)
+        self._rows.append(
+            {
+                "ids": np.asarray(ids, np.int64),
+                "clock": clock,
+                "held_root": held_root,
+                "held_rot": held_rot,
+                "held_input_root": held_input,
+                "weights": vectors,
+                "target": target,
+                "left": left,
+                **{STATE + key: value for key, value in fresh.items()},
+            }
+        )
+        for row, i in enumerate(ids, first):
+            self.row_of[int(i)] = row
 
     def snapshot_fields(self, rows: np.ndarray) -> list[dict]:
         """These rows as session snapshots' fields (`Session.snapshot`), one dict per row. Each
@@ -119,9 +175,10 @@ class Troupe:
         crowd of 2,000 snapshots in a few milliseconds, not 50 of stalled event loop) and every
         row's fields are views of that copy, so rows may step on while the snapshots wait to be
         stored."""
-        keys = list(self.state)
+        state = self.state
+        keys = list(state)
         # iterating a gathered (n, 1, ...) array yields each row's (1, ...) view without a Python slice per key
-        per_row = zip(*(list(self.state[key][rows][:, None]) for key in keys), strict=True)
+        per_row = zip(*(list(state[key][rows][:, None]) for key in keys), strict=True)
         held_root, held_rot, held_input = self.held_root[rows], self.held_rot[rows], self.held_input_root[rows]
         clock, left = self.clock[rows].tolist(), self.left[rows].tolist()
         weights, target = self.weights[rows].tolist(), self.target[rows].tolist()
@@ -143,21 +200,21 @@ class Troupe:
         return out
 
     def remove(self, ids: Sequence[int]) -> None:
-        keep = ~np.isin(self.ids, np.asarray(ids, np.int64))
-        self.state = {key: value[keep] for key, value in self.state.items()}
-        for name in ("ids", "clock", "held_root", "held_rot", "held_input_root", "weights", "target", "left"):
-            setattr(self, name, getattr(self, name)[keep])
-        self._index()
-
-    def _index(self) -> None:
-        self.row_of = {int(i): row for row, i in enumerate(self.ids)}
+        """Drop these characters' rows; the last rows move into their places."""
+        gone = np.array([self.row_of.pop(int(i)) for i in ids], np.int64)
+        moved_from, moved_to = self._rows.remove(gone)
+        ids_now = self.ids
+        for row in moved_to.tolist():
+            self.row_of[int(ids_now[row])] = row
+        if not moved_from.size and not len(self):
+            self.row_of.clear()
 
     def rows(self, ids: Sequence[int]) -> np.ndarray:
         return np.array([self.row_of[i] for i in ids], np.int64)
 
     def reset(self, rows: np.ndarray) -> None:
         """Recurrent state back to its start (`Session.reset`, per row)."""
-        self.state = put_rows(self.state, rows, self.model.init_state(len(rows)))
+        self.put_rows(rows, self.model.init_state(len(rows)))
         self.clock[rows] = -1.0
 
     def set_style(self, rows: np.ndarray, target: dict[str, float], transition_frames: int) -> None:
@@ -227,7 +284,10 @@ class Troupe:
             out_root, out_rot, new_state = await step_rows(
                 state, sel_root, sel_rot, self.advance_style(sel), self.names, sel_control
             )
-            self.state = new_state if whole else put_rows(self.state, sel, new_state)
+            if whole:
+                self.state = new_state
+            else:
+                self.put_rows(sel, new_state)
             self.held_root[sel], self.held_rot[sel], self.held_input_root[sel] = out_root, out_rot, sel_root
 
     def held_output(self, rows: np.ndarray, root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -138,3 +138,30 @@ def test_two_resumes_of_one_token_at_once_give_it_to_one(server, as_crowd):
         assert asyncio.run(_resume_twice(base, token, as_crowd)) == ["resumed", "session_in_use"]
     stored(runtime)
     assert resume_session(base, token)["last_seq"] == 2  # and the place is still right
+
+
+def test_a_closing_crowd_stores_only_what_its_caller_may_keep(models):
+    """A crowd larger than `token_max_stored_sessions` stores its last characters up to that cap
+    when its connection drops, and ends the others, with no store-then-evict: storing all and
+    evicting all but 256 stalled every stream for 733 ms at 16,384 characters. Every character
+    was stored periodically meanwhile (a share of them per tick)."""
+    with live_server(models, idle_timeout_s=30, token_max_stored_sessions=5, snapshot_every=3) as (base, app):
+        runtime = app.state.runtime
+        with connect(ws_url(base)) as ws:
+            chars = [{"id": i, "model": "lti", "style": "elderly"} for i in range(12)]
+            ws.send(json.dumps({"type": "crowd", "characters": chars}))
+            tokens = [c["resume_token"] for c in json.loads(ws.recv(timeout=30))["characters"]]
+            payload = np.tile(np.frombuffer(rest_frame(0)[P.BINARY_HEADER.size :], "<f4"), 12)
+            for seq in range(3):
+                ws.send(P.encode_tick(seq, np.arange(12, dtype="<u4"), payload))
+                assert isinstance(ws.recv(timeout=30), bytes)
+            wait_until(
+                lambda: all(t in runtime.snapshots._pending or t in runtime.snapshots.store._data for t in tokens),
+                "every character's periodic snapshot",
+            )
+        stored(runtime)
+        evicted = runtime.metrics.errors.labels("stored_session_evicted")._value.get()
+        assert evicted == 0
+        outcomes = [resume_session(base, t) for t in tokens]
+        assert [o.get("code") for o in outcomes[:7]] == ["unknown_resume_token"] * 7
+        assert [(o["type"], o["last_seq"]) for o in outcomes[7:]] == [("started", 2)] * 5
