@@ -21,12 +21,16 @@ import uuid
 from collections import deque
 
 from . import protocol as P
+from .background import in_background
 from .crowd import Crowd, Joining, StepRows
 from .logs import session_log
+from .memory import release_freed_memory
 from .skeletons import SkeletonAdapter
 from .stream import CLOSE_NORMAL, CLOSE_RESTART, Socket, log
 
 ControlMessage = P.Join | P.Leave | P.SetStyle | P.Reset | P.End
+TRIM_AFTER_CHARACTERS = 256  # a crowd this large leaves tens of MB freed in the heap when it closes
+_trims: set[asyncio.Task] = set()  # held until done (the loop keeps only weak references)
 
 
 class CrowdConnection(Socket):
@@ -163,7 +167,12 @@ class CrowdConnection(Socket):
         if not self.opened:
             return
         self.log.info("crowd closed with %d characters", len(self.crowd))
+        large = len(self.crowd) >= TRIM_AFTER_CHARACTERS
         self.leave(list(self.crowd.characters), resumable=not self.ended)
+        if large:  # its arrays went back to the heap: hand the pages to the system (off the loop)
+            trim = asyncio.get_running_loop().create_task(in_background(release_freed_memory))
+            _trims.add(trim)
+            trim.add_done_callback(_trims.discard)
         self.rt.crowd_closed()
         if self.rt.connections.get(self.id) is self:
             del self.rt.connections[self.id]
