@@ -33,6 +33,7 @@ from .rows import Rows
 from .sessions import Snapshot
 from .skeletons import SkeletonAdapter
 
+FAIR_ROWS = 128  # a troupe's rows per batcher request (`Troupe.step`)
 # (state, root, rotations, weights over names, names, controller rows or None) -> the batcher's step
 StepRows = Callable[[State, np.ndarray, np.ndarray, np.ndarray, list[str], np.ndarray | None], Awaitable[tuple]]
 
@@ -273,22 +274,40 @@ class Troupe:
         control: np.ndarray | None = None,
     ) -> None:
         """The model steps each row owes for this frame (rate adaptation), holding the outputs;
-        `control`: the rows' controller input (`FrameBatch.control`), for a controller tick."""
+        `control`: the rows' controller input (`FrameBatch.control`), for a controller tick.
+
+        At most FAIR_ROWS rows go to the batcher at a time, one part after the other: a session's
+        frame that comes meanwhile joins the next part's batch instead of waiting behind the
+        whole troupe (a 712-row LTI step held the model thread ~20 ms; the neighbour's frames
+        waited that long on every tick). Rows are independent in every model's step
+        (tests/test_rowwise.py), so the replies are the same whatever the parts."""
         steps = self.steps_due(rows)
         for k in range(1, int(steps.max(initial=0)) + 1):
             due = steps >= k
             sel, sel_root, sel_rot = (rows, root, rot) if due.all() else (rows[due], root[due], rot[due])
             sel_control = control if control is None or due.all() else control[due]
-            whole = len(sel) == len(self) and np.array_equal(sel, np.arange(len(self)))
-            state = self.state if whole else take_rows(self.state, sel)
-            out_root, out_rot, new_state = await step_rows(
-                state, sel_root, sel_rot, self.advance_style(sel), self.names, sel_control
-            )
-            if whole:
-                self.state = new_state
-            else:
-                self.put_rows(sel, new_state)
-            self.held_root[sel], self.held_rot[sel], self.held_input_root[sel] = out_root, out_rot, sel_root
+            weights = self.advance_style(sel)
+            for start in range(0, len(sel), FAIR_ROWS):
+                part = slice(start, start + FAIR_ROWS)
+                some = sel[part]
+                whole = len(some) == len(self) and np.array_equal(some, np.arange(len(self)))
+                out_root, out_rot, new_state = await step_rows(
+                    self.state if whole else take_rows(self.state, some),
+                    sel_root[part],
+                    sel_rot[part],
+                    weights[part],
+                    self.names,
+                    None if sel_control is None else sel_control[part],
+                )
+                if whole:
+                    self.state = new_state
+                else:
+                    self.put_rows(some, new_state)
+                self.held_root[some], self.held_rot[some], self.held_input_root[some] = (
+                    out_root,
+                    out_rot,
+                    sel_root[part],
+                )
 
     def held_output(self, rows: np.ndarray, root: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`Session.held_output` for each row."""

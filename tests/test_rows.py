@@ -68,3 +68,42 @@ def test_a_partial_tick_join_and_leave_touch_only_their_rows(lti):
         if i < 100:
             assert values[row] == i + (1000 if i in (3, 97) else 0), i
     assert sorted(troupe.row_of) == [i for i in range(102) if i not in (0, 50)]
+
+
+def test_a_large_troupe_steps_in_parts_that_give_the_whole_steps_replies(lti, monkeypatch):
+    """A troupe's step goes to the batcher FAIR_ROWS rows at a time, one part after the other (a
+    neighbour's frame joins the next part's batch rather than waiting for the whole troupe),
+    and the outputs and states are exactly those of one whole step."""
+    import asyncio
+
+    from models.interface import FrameBatch
+    from service import crowd as crowd_module
+
+    rng = np.random.default_rng(1)
+    n = 300
+    root = rng.normal(size=(n, 3)) + [0.0, 92.0, 0.0]
+    rot = rng.normal(size=(n, 22, 4))
+    rot /= np.linalg.norm(rot, axis=-1, keepdims=True)
+    sizes: list[int] = []
+
+    async def step_rows(state, r, q, weights, names, control):
+        sizes.append(len(r))
+        out, new = lti.step_batch(state, FrameBatch(r, q), weights)
+        return out.root, out.rotations, new
+
+    def run(fair_rows: int):
+        monkeypatch.setattr(crowd_module, "FAIR_ROWS", fair_rows)
+        troupe = Troupe(lti, 30.0)
+        troupe.add(list(range(n)), [{lti.styles()[i % 3]: 1.0} for i in range(n)])
+        rows = troupe.rows(list(range(n)))
+        for _ in range(3):
+            asyncio.run(troupe.step(step_rows, rows, root, rot))
+        return troupe.held_rot.copy(), {k: v.copy() for k, v in troupe.state.items()}
+
+    whole_rot, whole_state = run(10_000)
+    sizes.clear()
+    parts_rot, parts_state = run(128)
+    assert max(sizes) == 128 and sum(sizes) == 3 * n
+    assert np.array_equal(parts_rot, whole_rot)
+    for key, value in whole_state.items():
+        assert np.array_equal(parts_state[key], value), key
