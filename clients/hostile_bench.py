@@ -415,14 +415,25 @@ def crowd_resume(url: str, seconds: float) -> Counter:
         try:
             with connect(url) as ws:
                 ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly"}))
-                token = json.loads(ws.recv(timeout=60))["resume_token"]
+                started = json.loads(ws.recv(timeout=60))
+                if started["type"] != "started":  # e.g. too_many_sessions: the token's rate of new sessions
+                    seen[started["code"]] += 1
+                    continue
+                token = started["resume_token"]
                 for seq in range(5):
                     ws.send(json.dumps({**frame, "seq": seq}))
                     ws.recv(timeout=60)
             crowd = {"type": "crowd", "characters": [{"id": 1, "model": "lti", "resume_token": token}]}
-            character = _resumed(url, crowd)["characters"][0]
+            opened = _resumed(url, crowd)
+            if not opened.get("characters"):
+                seen[f"crowd {opened.get('code') or opened['errors'][0]['code']}"] += 1
+                continue
+            character = opened["characters"][0]
             again = _resumed(url, {"type": "start", "model": "lti", "resume_token": character["resume_token"]})
-            seen["kept its place" if (character["last_seq"], again.get("last_seq")) == (4, 4) else "lost it"] += 1
+            if again["type"] != "started":
+                seen[f"resume {again['code']}"] += 1
+                continue
+            seen["kept its place" if (character["last_seq"], again["last_seq"]) == (4, 4) else "lost it"] += 1
         except ConnectionClosed as exc:
             seen[f"closed {exc.rcvd.code if exc.rcvd else '?'}"] += 1
     return seen

@@ -29,6 +29,7 @@ from .skeletons import SkeletonAdapter
 from .stream import CLOSE_NORMAL, CLOSE_RESTART, Socket, log
 
 ControlMessage = P.Join | P.Leave | P.SetStyle | P.Reset | P.End
+JOIN_PART = 256  # characters added at a time (~10 ms of Python each), the loop free between parts
 TRIM_AFTER_CHARACTERS = 256  # a crowd this large leaves tens of MB freed in the heap when it closes
 _trims: set[asyncio.Task] = set()  # held until done (the loop keeps only weak references)
 
@@ -111,8 +112,11 @@ class CrowdConnection(Socket):
             self.metrics.errors.labels(err.code).inc()
             errors += [{"id": j.spec.id, "code": err.code, "message": err.message} for j in joining]
             joining = []
-        for name in self.crowd.add(joining):
-            self.rt.crowd_model_opened(name)
+        for start in range(0, len(joining), JOIN_PART):  # a large join lets other connections run between parts
+            if start:
+                await asyncio.sleep(0)
+            for name in self.crowd.add(joining[start : start + JOIN_PART]):
+                self.rt.crowd_model_opened(name)
         for j in joining:
             character = self.crowd.characters[j.spec.id]
             self.rt.crowd_members.add(character.session_id)

@@ -168,3 +168,26 @@ def test_a_failing_session_processor_ends_the_session_with_a_typed_error(server,
         ws.send(json.dumps({"type": "start", "model": "lti", "resume_token": started["resume_token"]}))
         again = json.loads(ws.recv(timeout=30))
         assert again["type"] == "started" and again["last_seq"] == 0, again
+
+
+def test_a_large_join_goes_in_parts_and_every_character_answers(server, style):
+    """A join of 600 characters is added 256 at a time (other connections run between parts);
+    a tick of all of them is answered for each, on every part's rows."""
+    base, _ = server
+    with connect(ws_url(base), max_size=None) as ws:
+        ws.send(json.dumps({"type": "crowd", "characters": [{"id": 0, "model": "lti", "style": style}]}))
+        assert json.loads(ws.recv(timeout=30))["type"] == "crowd_started"
+        ws.send(
+            json.dumps(
+                {"type": "join", "characters": [{"id": i, "model": "lti", "style": style} for i in range(1, 601)]}
+            )
+        )
+        joined = json.loads(ws.recv(timeout=60))
+        assert len(joined["characters"]) == 600 and joined["errors"] == []
+        ids = np.arange(601, dtype="<u4")[::-1].copy()
+        payload = np.tile(np.frombuffer(rest_frame(0)[P.BINARY_HEADER.size :], "<f4"), 601)
+        ws.send(P.encode_tick(0, ids, payload))
+        seq, _, got, floats = P.decode_tick(ws.recv(timeout=60))
+        assert seq == 0 and got == ids.tobytes() and len(floats) == 601 * 91
+        rows = np.asarray(floats).reshape(601, 91)
+        assert np.allclose(rows, rows[0])  # the same rest frame in: the same frame out, for every one
