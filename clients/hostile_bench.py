@@ -11,6 +11,16 @@ attack, the healthy session's round-trip p50/p99, the quiet period's p99 and the
 it got back, the server's resident memory after the quiet period and after the attack, and what
 the attacker was answered.
 
+Crowds and custom rigs (issue #48; the server has three tokens, the attackers use one, the
+healthy session another): a tenant filling a crowd to its cap and sending 712-character ticks
+with a new list each time, then dropping it (`crowd fill`); joins of 45 characters on new CMU
+rigs (`crowd rigs`); session starts on 1,800- and 400-joint rigs (`big rigs`); rig previews of a
+1,000-deep chain and of new rigs (`rig previews`); a 1e308 OFFSET through POST /v1/skeletons, a
+start and a join (`bad rigs`: each a typed error, a hang counted); a session resumed as a crowd
+character and dropped before a tick, then resumed again (`crowd resume`: its place kept).
+`/healthz` is polled every 100 ms throughout, the half-open phase beyond the server's connection
+cap (1,500 here), and every answer other than 200 is counted.
+
 The attackers share this machine's cores with the server, which a remote attacker does not:
 `--attacker-nice 19` runs them at the lowest niceness, and `--phases "cpu load"` (not run by default)
 runs two busy processes instead of an attack, what CPU load alone costs the healthy session here.
@@ -19,10 +29,12 @@ runs two busy processes instead of an attack, what CPU load alone costs the heal
 from __future__ import annotations
 
 import argparse
+import base64
 import contextlib
 import json
 import multiprocessing
 import os
+import re
 import tempfile
 import threading
 import time
@@ -44,7 +56,11 @@ if TYPE_CHECKING:
 
     from models.motion.skeleton import Motion
 
+HEALTHY, ATTACKER = "healthy-token", "attacker-token"  # the server has three tenants (issue #48)
 ENV = {  # short deadlines, so a phase's leftovers are gone before the next one
+    "STYLESTREAM_API_TOKENS": json.dumps([HEALTHY, ATTACKER, "third-token"]),
+    # below the half-open phase's 2,000: /healthz (polled throughout) must answer at the cap
+    "STYLESTREAM_MAX_CONNECTIONS": "1500",
     "STYLESTREAM_SEND_TIMEOUT_S": "2",
     "STYLESTREAM_HEADER_TIMEOUT_S": "2",
     "STYLESTREAM_IDLE_TIMEOUT_S": "5",
@@ -118,14 +134,15 @@ def uploads(base: str, bvh_text: str, seconds: float) -> Counter:
         "frames": {"root": [[0, 90, 0]] * 60, "rotations": [[[0, 0, 0, 1]] * 22] * 60},
     }
     end, i = time.monotonic() + seconds, 0
+    http = httpx.Client(headers={"Authorization": f"Bearer {ATTACKER}"})
     while time.monotonic() < end:
         i += 1
         for r in (
-            httpx.post(
+            http.post(
                 f"{base}/v1/styles", files={"file": ("a.bvh", slow)}, data={"name": f"s{i}", "model": "lpn"}, timeout=60
             ),
-            httpx.post(f"{base}/v1/styles", json=tiny_fps, timeout=60),
-            httpx.post(
+            http.post(f"{base}/v1/styles", json=tiny_fps, timeout=60),
+            http.post(
                 f"{base}/v1/styles",
                 files={"file": ("b.bvh", bvh_text)},
                 data={"name": f"big{i}", "model": "lpn"},
@@ -134,10 +151,32 @@ def uploads(base: str, bvh_text: str, seconds: float) -> Counter:
         ):
             seen[f"{r.status_code} {r.json().get('code', 'created')}"] += 1
             if r.status_code == 201:
-                gone = httpx.delete(f"{base}/v1/styles/lpn.big{i}", timeout=30)
+                gone = http.delete(f"{base}/v1/styles/lpn.big{i}", timeout=30)
                 if gone.status_code != 204:
                     seen[f"delete {gone.status_code}"] += 1
     return seen
+
+
+class TokenRawClient(RawClient):
+    """`RawClient` whose handshake carries the attacker's token (the server has tokens)."""
+
+    def __init__(self, base: str, token: str = ATTACKER, rcvbuf: int = 4096) -> None:
+        RawSocket.__init__(self, base, rcvbuf)
+        key = base64.b64encode(os.urandom(16)).decode()
+        self.sock.sendall(
+            (
+                f"GET /v1/stream?token={token} HTTP/1.1\r\nHost: {self.host}:{self.port}\r\nUpgrade: websocket\r\n"
+                f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
+            ).encode()
+        )
+        head = b""
+        while b"\r\n\r\n" not in head:
+            chunk = self.sock.recv(1)
+            assert chunk, "connection closed during the handshake"
+            head += chunk
+        if not head.startswith(b"HTTP/1.1 101"):
+            self.sock.close()
+            raise HandshakeRefused(head.split(b"\r\n", 1)[0].decode(errors="replace"), head)
 
 
 def reset_flood_no_read(base: str, seconds: float) -> Counter:
@@ -145,7 +184,7 @@ def reset_flood_no_read(base: str, seconds: float) -> Counter:
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         try:
-            client = RawClient(base)
+            client = TokenRawClient(base)
         except HandshakeRefused as refused:  # closed for flooding a moment ago: cooling down
             seen[f"refused {refused.status}"] += 1
             continue
@@ -179,6 +218,241 @@ def half_open(base: str, seconds: float, count: int = 2000) -> Counter:
     for s in sockets:
         s.close()
     return Counter({f"{closed}/{count} dropped by the server": 1})
+
+
+# ---- crowds and custom rigs (issue #48) -----------------------------------------------------------
+
+CROWD_BATCH = 1000  # characters per crowd / join message (well under the 256 KiB message limit)
+TICK_CHARACTERS = 712  # characters per tick, a new list each tick
+
+
+def _rest_floats(joints: int = 22) -> np.ndarray:
+    rot = np.tile(np.array([0.0, 0.0, 0.0, 1.0], np.float32), (joints, 1))
+    return np.concatenate([np.array([0.0, 92.0, 0.0], np.float32), rot.ravel()])
+
+
+def _reply(ws, timeout: float = 30) -> dict | bytes:
+    """The next reply: a binary tick reply, or a JSON message."""
+    raw = ws.recv(timeout=timeout)
+    return raw if isinstance(raw, bytes) else json.loads(raw)
+
+
+def crowd_fill(url: str, seconds: float) -> Counter:
+    """One tenant takes every character it may (joins of 1,000 until refused), sends ticks of 712
+    characters with a new list each time, then drops the connection (every character stored)."""
+    from service import protocol as P
+
+    seen: Counter = Counter()
+    end = time.monotonic() + seconds
+    spec = lambda i: {"id": i, "model": "lti", "style": "elderly"}  # noqa: E731
+    with connect(url, max_size=None) as ws:
+        ws.send(json.dumps({"type": "crowd", "characters": [spec(i) for i in range(CROWD_BATCH)]}))
+        opened = _reply(ws, 120)
+        members = [c["id"] for c in opened["characters"]]
+        seen.update(e["code"] for e in opened["errors"])
+        while time.monotonic() < end:
+            first = len(members)
+            ws.send(json.dumps({"type": "join", "characters": [spec(first + i) for i in range(CROWD_BATCH)]}))
+            joined = _reply(ws, 120)
+            members += [c["id"] for c in joined["characters"]]
+            seen.update(f"join refused: {e['code']}" for e in joined["errors"][:1])
+            if joined["errors"]:
+                break
+        seen[f"{len(members)} characters held"] += 1
+        frame, seq = _rest_floats(), 0
+        while time.monotonic() < end:
+            at = (seq * 97) % max(1, len(members) - TICK_CHARACTERS)
+            ids = np.array(members[at : at + TICK_CHARACTERS], np.uint32)
+            ws.send(P.encode_tick(seq, ids, np.tile(frame, len(ids))))
+            while not isinstance(reply := _reply(ws), bytes):
+                seen[f"error {reply.get('code')}"] += 1
+            seq += 1
+        seen["ticks answered"] += seq
+    time.sleep(1.0)  # the close (every character stored) falls within the phase
+    return seen
+
+
+def _cmu_header() -> str:
+    from models.motion.assets import ASSETS
+
+    return (ASSETS / "cmu.bvh").read_text().split("MOTION")[0] + "MOTION\n"
+
+
+def _with_offset(header: str, nth: int, offset: str) -> str:
+    """The rig with its `nth` OFFSET (0: the root's) set to `offset`."""
+    parts = re.split(r"(OFFSET[^\n]*)", header)
+    parts[2 * nth + 1] = f"OFFSET {offset}"
+    return "".join(parts)
+
+
+def _distinct(header: str, k: int) -> str:
+    """The rig with a root offset of its own: a new rig to the server's cache, the same humanoid."""
+    return _with_offset(header, 0, f"{k * 1e-3:.3f} 0 0")
+
+
+def _with_leaves(header: str, count: int) -> str:
+    """The rig with `count` extra leaf joints under its root (a large but valid rig)."""
+    leaves = "".join(
+        f"JOINT extra{i}\n{{\nOFFSET 0 1 0\nCHANNELS 3 Zrotation Xrotation Yrotation\nEnd Site\n{{\nOFFSET 0 1 0\n}}\n}}\n"
+        for i in range(count)
+    )
+    at = header.index("JOINT")
+    return header[:at] + leaves + header[at:]
+
+
+def crowd_rigs(url: str, seconds: float) -> Counter:
+    """Joins of 45 characters, each on a CMU rig never seen before."""
+    seen: Counter = Counter()
+    header, end, k = _cmu_header(), time.monotonic() + seconds, 0
+    with connect(url, max_size=None) as ws:
+        ws.send(json.dumps({"type": "crowd", "characters": [{"id": 0, "model": "lti", "style": "elderly"}]}))
+        _reply(ws, 60)
+        while time.monotonic() < end:
+            chars = [
+                {"id": 1 + k + i, "model": "lti", "style": "elderly", "bvh_header": _distinct(header, k + i)}
+                for i in range(45)
+            ]
+            k += 45
+            ws.send(json.dumps({"type": "join", "characters": chars}))
+            joined = _reply(ws, 120)
+            seen["joined"] += len(joined["characters"])
+            seen.update(e["code"] for e in joined["errors"])
+            ws.send(json.dumps({"type": "leave", "characters": [c["id"] for c in chars]}))
+            _reply(ws, 60)
+    return seen
+
+
+def big_rigs(url: str, seconds: float) -> Counter:
+    """Session starts on rigs of 1,800 joints (refused) and of 400 (built), each new."""
+    seen: Counter = Counter()
+    header, end, k = _cmu_header(), time.monotonic() + seconds, 0
+    huge, large = _with_leaves(header, 1800), _with_leaves(header, 400)
+    while time.monotonic() < end:
+        for rig in (huge, large):
+            k += 1
+            try:
+                with connect(url, max_size=None) as ws:
+                    start = {"type": "start", "model": "lti", "style": "elderly", "bvh_header": _distinct(rig, k)}
+                    ws.send(json.dumps(start))
+                    reply = _reply(ws, 120)
+                    assert isinstance(reply, dict)
+                    seen["started" if reply["type"] == "started" else reply["message"].split(":", 1)[0]] += 1
+            except ConnectionClosed as exc:
+                seen[f"closed {exc.rcvd.code if exc.rcvd else '?'}"] += 1
+            except InvalidStatus as exc:
+                seen[f"refused {exc.response.status_code}"] += 1
+    return seen
+
+
+def rig_previews(base: str, seconds: float) -> Counter:
+    """POST /v1/skeletons?preview=true with a 1,000-deep chain, and with a CMU rig."""
+    seen: Counter = Counter()
+    deep = "HIERARCHY\nROOT a\n{\nOFFSET 0 0 0\n" + "JOINT a\n{\nOFFSET 0 1 0\n" * 999 + "}\n" * 1000 + "MOTION\n"
+    http = httpx.Client(headers={"Authorization": f"Bearer {ATTACKER}"}, timeout=60)
+    end, k = time.monotonic() + seconds, 0
+    while time.monotonic() < end:
+        for rig in (deep, _distinct(_cmu_header(), k)):
+            k += 1
+            r = http.post(f"{base}/v1/skeletons", params={"preview": "true"}, json={"bvh_header": rig})
+            seen[f"{r.status_code} {r.json().get('code') if r.status_code != 200 else 'png'}"] += 1
+    return seen
+
+
+def bad_rigs(url: str, base: str, seconds: float) -> Counter:
+    """A rig with an OFFSET of 1e308, in POST /v1/skeletons, a session's start and a crowd's join:
+    each must be a typed error (a hang is counted, after 30 s)."""
+    seen: Counter = Counter()
+    bad = _with_offset(_cmu_header(), 2, "1e308 0 0")
+    http = httpx.Client(headers={"Authorization": f"Bearer {ATTACKER}"}, timeout=60)
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        r = http.post(f"{base}/v1/skeletons", json={"bvh_header": bad})
+        seen[f"POST {r.status_code} {r.json().get('code')}"] += 1
+        try:
+            with connect(url, max_size=None) as ws:
+                ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly", "bvh_header": bad}))
+                reply = _reply(ws)
+                seen[f"start {reply.get('code') if isinstance(reply, dict) else '?'}"] += 1
+            with connect(url, max_size=None) as ws:
+                ws.send(json.dumps({"type": "crowd", "characters": [{"id": 0, "model": "lti", "style": "elderly"}]}))
+                _reply(ws, 60)
+                join = {"id": 1, "model": "lti", "style": "elderly", "bvh_header": bad}
+                ws.send(json.dumps({"type": "join", "characters": [join]}))
+                reply = _reply(ws)
+                seen[f"join {reply['errors'][0]['code'] if isinstance(reply, dict) and reply['errors'] else '?'}"] += 1
+        except TimeoutError:
+            seen["hang"] += 1
+        except ConnectionClosed as exc:  # refused for opening too fast (its token's rate): counted
+            seen[f"closed {exc.rcvd.code if exc.rcvd else '?'}"] += 1
+        except InvalidStatus as exc:
+            seen[f"refused {exc.response.status_code}"] += 1
+    return seen
+
+
+def _resumed(url: str, opening: dict, seconds: float = 10) -> dict:
+    """The answer to `opening` (a resume), tried again while the old connection is still being
+    closed (`session_in_use`); the connection is left at once, without a frame."""
+    deadline = time.monotonic() + seconds
+    while True:
+        with connect(url, max_size=None) as ws:
+            ws.send(json.dumps(opening))
+            reply = _reply(ws, 60)
+        assert isinstance(reply, dict)
+        errors = reply.get("errors") or []
+        busy = reply.get("code") == "session_in_use" or any(e["code"] == "session_in_use" for e in errors)
+        if not busy or time.monotonic() > deadline:
+            return reply
+        time.sleep(0.05)
+
+
+def crowd_resume(url: str, seconds: float) -> Counter:
+    """A session of five frames, resumed as a crowd character and dropped without a tick, then
+    resumed as a session: its `last_seq` must still be 4 (it was stored as null)."""
+    seen: Counter = Counter()
+    frame = {"type": "frame", "seq": 0, "root": [0.0, 92.0, 0.0], "rotations": [[0.0, 0.0, 0.0, 1.0]] * 22}
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        try:
+            with connect(url) as ws:
+                ws.send(json.dumps({"type": "start", "model": "lti", "style": "elderly"}))
+                started = json.loads(ws.recv(timeout=60))
+                if started["type"] != "started":  # e.g. too_many_sessions: the token's rate of new sessions
+                    seen[started["code"]] += 1
+                    continue
+                token = started["resume_token"]
+                for seq in range(5):
+                    ws.send(json.dumps({**frame, "seq": seq}))
+                    ws.recv(timeout=60)
+            crowd = {"type": "crowd", "characters": [{"id": 1, "model": "lti", "resume_token": token}]}
+            opened = _resumed(url, crowd)
+            if not opened.get("characters"):
+                seen[f"crowd {opened.get('code') or opened['errors'][0]['code']}"] += 1
+                continue
+            character = opened["characters"][0]
+            again = _resumed(url, {"type": "start", "model": "lti", "resume_token": character["resume_token"]})
+            if again["type"] != "started":
+                seen[f"resume {again['code']}"] += 1
+                continue
+            seen["kept its place" if (character["last_seq"], again["last_seq"]) == (4, 4) else "lost it"] += 1
+        except ConnectionClosed as exc:
+            seen[f"closed {exc.rcvd.code if exc.rcvd else '?'}"] += 1
+    return seen
+
+
+class Prober(threading.Thread):
+    """`/healthz` every 100 ms for the whole run: any answer but 200 is counted."""
+
+    def __init__(self, base: str) -> None:
+        super().__init__(daemon=True)
+        self.base, self.stop, self.answers = base, threading.Event(), Counter()
+
+    def run(self) -> None:
+        with httpx.Client(timeout=10) as http:
+            while not self.stop.wait(0.1):
+                try:
+                    self.answers[http.get(f"{self.base}/healthz").status_code] += 1
+                except httpx.HTTPError as exc:
+                    self.answers[type(exc).__name__] += 1
 
 
 def _spin(stop: Event) -> None:
@@ -216,7 +490,10 @@ def _attack(name: str, args: tuple, out, go, nice: int) -> None:
     os.nice(nice)  # --attacker-nice: the attacker's own CPU is, on a deployment, another machine's
     out.put("ready")  # imports done: they must not count against the phase
     go.wait()
-    out.put(dict(ATTACKS[name](*args)))
+    try:
+        out.put(dict(ATTACKS[name](*args)))
+    except Exception as exc:  # noqa: BLE001 - reported in the table, not a run left waiting for it
+        out.put({f"attack failed: {type(exc).__name__}: {exc}"[:200]: 1})
 
 
 ATTACKS = {
@@ -225,6 +502,12 @@ ATTACKS = {
     "no-read resets": reset_flood_no_read,
     "churn": churn,
     "half-open": half_open,
+    "crowd fill": crowd_fill,
+    "crowd rigs": crowd_rigs,
+    "big rigs": big_rigs,
+    "rig previews": rig_previews,
+    "bad rigs": bad_rigs,
+    "crowd resume": crowd_resume,
     "cpu load": cpu_load,
 }
 
@@ -252,7 +535,19 @@ def looped_bvh(walk: Motion, rows: int, frame_time: str | None = None) -> str:
     return f"{head}Frame Time:{time_line}\n" + "\n".join(lines[i % len(lines)] for i in range(rows)) + "\n"
 
 
-PHASES = ("flood", "uploads", "no-read resets", "churn", "half-open")  # the default; "cpu load" on request
+PHASES = (  # the default; "cpu load" on request
+    "flood",
+    "uploads",
+    "no-read resets",
+    "churn",
+    "half-open",
+    "crowd fill",
+    "crowd rigs",
+    "big rigs",
+    "rig previews",
+    "bad rigs",
+    "crowd resume",
+)
 
 
 def main() -> None:
@@ -290,16 +585,25 @@ def main() -> None:
         "STYLESTREAM_STYLES_DIR": styles_dir.name,
         **{f"STYLESTREAM_{k.upper()}": v for k, v in (kv.split("=", 1) for kv in args.set)},
     }
-    with styles_dir, spawned_server(env=env, checkout=args.checkout) as (url, server):
-        base = url.replace("ws://", "http://").removesuffix("/v1/stream")
-        healthy = Healthy(url, frames)
+    with styles_dir, spawned_server(env=env, checkout=args.checkout) as (bare, server):
+        base = bare.replace("ws://", "http://").removesuffix("/v1/stream")
+        url = f"{bare}?token={ATTACKER}"  # every attacker is one tenant; the healthy session another
+        healthy = Healthy(f"{bare}?token={HEALTHY}", frames)
         healthy.start()
+        prober = Prober(base)
+        prober.start()
         plans = {
             "flood": (url, frames, args.seconds),
             "uploads": (base, big, args.seconds),
             "no-read resets": (base, args.seconds),
             "churn": (url, args.seconds),
             "half-open": (base, args.seconds),
+            "crowd fill": (url, args.seconds),
+            "crowd rigs": (url, args.seconds),
+            "big rigs": (url, args.seconds),
+            "rig previews": (base, args.seconds),
+            "bad rigs": (url, base, args.seconds),
+            "crowd resume": (url, args.seconds),
             "cpu load": (args.seconds,),
         }
         runs = []  # (attack, quiet label, attack label, RSS after quiet, RSS after attack, answered)
@@ -325,8 +629,11 @@ def main() -> None:
                 runs.append((name, f"quiet before {label}", label, quiet_rss, rss_mb(server.pid), answered))
         healthy.stop.set()
         healthy.join(timeout=60)
+        prober.stop.set()
+        prober.join(timeout=30)
     p99 = {k: float(np.percentile(np.array(v) * 1000, 99)) for k, v in healthy.rtts.items()}
     print(f"healthy session errors: {healthy.error or 'none'}; bystander BVH {len(big) / 2**20:.1f} MiB")
+    print("/healthz every 100 ms throughout: " + ", ".join(f"{k}: {v}" for k, v in prober.answers.items()))
     print(
         f"{'phase':20} {'frames':>6} {'p50 ms':>7} {'p99 ms':>7} {'quiet p99':>9} {'p99/quiet':>9} {'RSS MB':>7}"
         "  attacker was answered"

@@ -19,7 +19,6 @@ import asyncio
 import json
 import secrets
 import time
-import uuid
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 
@@ -30,9 +29,11 @@ from models.motion import rate
 
 from . import protocol as P
 from .frame_check import check_rows
+from .rows import Rows
 from .sessions import Held, Snapshot
 from .skeletons import SkeletonAdapter
 
+FAIR_ROWS = 64  # a troupe's rows per batcher request (`Troupe.step`): ~2-3 ms of an LTI step
 # (state, root, rotations, weights over names, names, controller rows or None) -> the batcher's step
 StepRows = Callable[[State, np.ndarray, np.ndarray, np.ndarray, list[str], np.ndarray | None], Awaitable[tuple]]
 
@@ -41,39 +42,85 @@ def take_rows(state: State, rows: np.ndarray) -> State:
     return {key: value[rows] for key, value in state.items()}
 
 
-def put_rows(state: State, rows: np.ndarray, new: State) -> State:
-    """`state` with `rows` replaced by `new`, as new arrays: a state is never changed in place (a
-    snapshot or a step in flight may hold it)."""
-    out = {}
-    for key, value in state.items():
-        copy = value.copy()
-        copy[rows] = new[key]
-        out[key] = copy
-    return out
+STATE = "state:"  # the model state's keys, among a troupe's per-row arrays
 
 
 class Troupe:
-    """The characters of one model on a connection, one row each."""
+    """The characters of one model on a connection, one row each. Its per-row arrays live in
+    `service.rows.Rows`: a tick, join or leave costs in proportion to the rows it touches, not
+    to the troupe (a leave moves the last rows into the freed places: `row_of` follows)."""
 
     def __init__(self, model: StreamingModel, fps: float) -> None:
         self.model, self.ratio, self.lag = model, model.fps / fps, rate.output_lag(model.fps, fps)
-        self.ids = np.zeros(0, np.int64)
-        self.state: State = {}
-        self.clock = np.zeros(0)  # `Session.clock` per row; < 0 until the first frame
+        self._rows = Rows()
         num_joints = model.skeleton.num_joints
-        self.held_root = np.zeros((0, rate.HISTORY, 3))  # the latest model outputs, oldest first
-        self.held_rot = np.zeros((0, rate.HISTORY, num_joints, 4))
-        self.held_input_root = np.zeros((0, 3))  # the latest input frames (model skeleton)
-        self.held_input_rot = np.zeros((0, num_joints, 4))
         self.names = list(model.styles())  # what the weight columns stand for
-        self.weights, self.target = np.zeros((0, len(self.names))), np.zeros((0, len(self.names)))
-        self.left = np.zeros(0, np.int64)  # transition frames left
+        empty = {
+            "ids": np.zeros(0, np.int64),
+            "clock": np.zeros(0),  # `Session.clock` per row; < 0 until the first frame
+            "held_root": np.zeros((0, rate.HISTORY, 3)),  # the latest model outputs, oldest first
+            "held_rot": np.zeros((0, rate.HISTORY, num_joints, 4)),
+            "held_input_root": np.zeros((0, 3)),  # the latest input frames (model skeleton)
+            "held_input_rot": np.zeros((0, num_joints, 4)),
+            "weights": np.zeros((0, len(self.names))),
+            "target": np.zeros((0, len(self.names))),
+            "left": np.zeros(0, np.int64),  # transition frames left
+        }
+        self._rows.append(empty)
         self.row_of: dict[int, int] = {}
 
     def __len__(self) -> int:
-        return len(self.ids)
+        return len(self._rows)
 
-    # ---- membership (join, leave, reset: rare, so plain Python is fine) ------------------
+    # ---- the per-row arrays, as views (written through) ----------------------------------
+    @property
+    def state(self) -> State:
+        """The model state of every row: views, so `state[key][rows] = ...` writes the troupe's."""
+        return {key[len(STATE) :]: self._rows.view(key) for key in self._rows.keys() if key.startswith(STATE)}
+
+    @state.setter
+    def state(self, state: State) -> None:
+        """Every row's state at once (a step of the whole troupe): copied into place."""
+        stale = [key for key in self._rows.keys() if key.startswith(STATE) and key[len(STATE) :] not in state]
+        for key in stale:
+            self._rows.drop(key)
+        for key, value in state.items():
+            self._rows.replace(STATE + key, value)
+
+    def put_rows(self, rows: np.ndarray, new: State) -> None:
+        """`rows`' state replaced by `new`, in place: only those rows are written (the whole
+        troupe's copy per partial tick was 130 MB at 16,384 characters). No one else holds these
+        arrays: steps and snapshots get gathered copies of their rows."""
+        if set(new) - {key[len(STATE) :] for key in self._rows.keys() if key.startswith(STATE)}:
+            self.state = upgrade_state(self.model, self.state)  # the model's style set grew meanwhile
+        for key, value in new.items():
+            self._rows.view(STATE + key)[rows] = value
+
+    ids = property(lambda self: self._rows.view("ids"))
+    clock = property(lambda self: self._rows.view("clock"))
+    held_root = property(lambda self: self._rows.view("held_root"))
+    held_rot = property(lambda self: self._rows.view("held_rot"))
+    held_input_root = property(lambda self: self._rows.view("held_input_root"))
+    held_input_rot = property(lambda self: self._rows.view("held_input_rot"))
+    left = property(lambda self: self._rows.view("left"))
+
+    @property
+    def weights(self) -> np.ndarray:
+        return self._rows.view("weights")
+
+    @weights.setter
+    def weights(self, value: np.ndarray) -> None:
+        self._rows.replace("weights", value)
+
+    @property
+    def target(self) -> np.ndarray:
+        return self._rows.view("target")
+
+    @target.setter
+    def target(self, value: np.ndarray) -> None:
+        self._rows.replace("target", value)
+
+    # ---- membership (join, leave, reset: in proportion to the rows touched) ---------------
     def add(
         self,
         ids: Sequence[int],
@@ -91,7 +138,9 @@ class Troupe:
             )
         else:
             fresh = self.model.init_state(k)
-        self.state = fresh if not self.state else stack_states([upgrade_state(self.model, self.state), fresh])
+        if len(self) and set(fresh) != set(self.state):  # the style set changed: every row gets the new keys
+            self.state = upgrade_state(self.model, self.state)
+            fresh = upgrade_state(self.model, fresh)
         vectors = np.stack([weight_vector(self.names, w) for w in weights]).reshape(k, len(self.names))
         target, clock, left = vectors.copy(), np.full(k, -1.0), np.zeros(k, np.int64)
         held = {name: np.zeros((k, *getattr(self, array).shape[1:])) for array, name in HELD_ARRAYS.items()}
@@ -104,14 +153,20 @@ class Troupe:
                 clock[r] = snap.clock
                 for name, value in restored._asdict().items():
                     held[name][r] = value
-        self.ids = np.concatenate([self.ids, np.asarray(ids, np.int64)])
-        self.clock = np.concatenate([self.clock, clock])
-        for name, field_name in HELD_ARRAYS.items():
-            setattr(self, name, np.concatenate([getattr(self, name), held[field_name]]))
-        self.weights = np.concatenate([self.weights, vectors])
-        self.target = np.concatenate([self.target, target])
-        self.left = np.concatenate([self.left, left])
-        self._index()
+        first = len(self)
+        self._rows.append(
+            {
+                "ids": np.asarray(ids, np.int64),
+                "clock": clock,
+                **{array: held[name] for array, name in HELD_ARRAYS.items()},
+                "weights": vectors,
+                "target": target,
+                "left": left,
+                **{STATE + key: value for key, value in fresh.items()},
+            }
+        )
+        for row, i in enumerate(ids, first):
+            self.row_of[int(i)] = row
 
     def snapshot_fields(self, rows: np.ndarray) -> list[dict]:
         """These rows as session snapshots' fields (`Session.snapshot`), one dict per row. Each
@@ -119,9 +174,10 @@ class Troupe:
         crowd of 2,000 snapshots in a few milliseconds, not 50 of stalled event loop) and every
         row's fields are views of that copy, so rows may step on while the snapshots wait to be
         stored."""
-        keys = list(self.state)
+        state = self.state
+        keys = list(state)
         # iterating a gathered (n, 1, ...) array yields each row's (1, ...) view without a Python slice per key
-        per_row = zip(*(list(self.state[key][rows][:, None]) for key in keys), strict=True)
+        per_row = zip(*(list(state[key][rows][:, None]) for key in keys), strict=True)
         held = {field_name: getattr(self, name)[rows] for name, field_name in HELD_ARRAYS.items()}
         clock, left = self.clock[rows].tolist(), self.left[rows].tolist()
         weights, target = self.weights[rows].tolist(), self.target[rows].tolist()
@@ -141,21 +197,21 @@ class Troupe:
         return out
 
     def remove(self, ids: Sequence[int]) -> None:
-        keep = ~np.isin(self.ids, np.asarray(ids, np.int64))
-        self.state = {key: value[keep] for key, value in self.state.items()}
-        for name in ("ids", "clock", *HELD_ARRAYS, "weights", "target", "left"):
-            setattr(self, name, getattr(self, name)[keep])
-        self._index()
-
-    def _index(self) -> None:
-        self.row_of = {int(i): row for row, i in enumerate(self.ids)}
+        """Drop these characters' rows; the last rows move into their places."""
+        gone = np.array([self.row_of.pop(int(i)) for i in ids], np.int64)
+        moved_from, moved_to = self._rows.remove(gone)
+        ids_now = self.ids
+        for row in moved_to.tolist():
+            self.row_of[int(ids_now[row])] = row
+        if not moved_from.size and not len(self):
+            self.row_of.clear()
 
     def rows(self, ids: Sequence[int]) -> np.ndarray:
         return np.array([self.row_of[i] for i in ids], np.int64)
 
     def reset(self, rows: np.ndarray) -> None:
         """Recurrent state back to its start (`Session.reset`, per row)."""
-        self.state = put_rows(self.state, rows, self.model.init_state(len(rows)))
+        self.put_rows(rows, self.model.init_state(len(rows)))
         self.clock[rows] = -1.0
 
     def set_style(self, rows: np.ndarray, target: dict[str, float], transition_frames: int) -> None:
@@ -218,21 +274,38 @@ class Troupe:
         control: np.ndarray | None = None,
     ) -> None:
         """The model steps each row owes for this frame (rate adaptation), holding the outputs;
-        `control`: the rows' controller input (`FrameBatch.control`), for a controller tick."""
+        `control`: the rows' controller input (`FrameBatch.control`), for a controller tick.
+
+        At most FAIR_ROWS rows go to the batcher at a time, one part after the other: a session's
+        frame that comes meanwhile joins the next part's batch instead of waiting behind the
+        whole troupe (a 712-row LTI step held the model thread ~20 ms; the neighbour's frames
+        waited that long on every tick). Rows are independent in every model's step
+        (tests/test_rowwise.py), so the replies are the same whatever the parts."""
         first = rows[self.clock[rows] < 0]
         steps, inputs = self.model_inputs(rows, root, rot)
         for k, (sel_root, sel_rot) in enumerate(inputs):
             due = steps > k
             sel = rows if due.all() else rows[due]
             sel_control = control if control is None or due.all() else control[due]
-            whole = len(sel) == len(self) and np.array_equal(sel, np.arange(len(self)))
-            state = self.state if whole else take_rows(self.state, sel)
-            out_root, out_rot, new_state = await step_rows(
-                state, sel_root, sel_rot, self.advance_style(sel), self.names, sel_control
-            )
-            self.state = new_state if whole else put_rows(self.state, sel, new_state)
-            self.held_root[sel] = rate.push(self.held_root[sel], out_root)
-            self.held_rot[sel] = rate.push(self.held_rot[sel], out_rot)
+            weights = self.advance_style(sel)
+            for start in range(0, len(sel), FAIR_ROWS):
+                part = slice(start, start + FAIR_ROWS)
+                some = sel[part]
+                whole = len(some) == len(self) and np.array_equal(some, np.arange(len(self)))
+                out_root, out_rot, new_state = await step_rows(
+                    self.state if whole else take_rows(self.state, some),
+                    sel_root[part],
+                    sel_rot[part],
+                    weights[part],
+                    self.names,
+                    None if sel_control is None else sel_control[part],
+                )
+                if whole:
+                    self.state = new_state
+                else:
+                    self.put_rows(some, new_state)
+                self.held_root[some] = rate.push(self.held_root[some], out_root)
+                self.held_rot[some] = rate.push(self.held_rot[some], out_rot)
             if k == 0 and len(first):  # a row's first output stands for the earlier ones too
                 self.held_root[first] = self.held_root[first, -1:]
                 self.held_rot[first] = self.held_rot[first, -1:]
@@ -296,8 +369,11 @@ class Character:
     skeleton: str  # the rig as opened (kept in its snapshots, so a resume maps frames the same way)
     bvh_header: str | None
     rig: dict
-    session_id: str = field(default_factory=lambda: uuid.uuid4().hex)
+    session_id: str = field(default_factory=lambda: secrets.token_hex(16))  # as uuid4().hex, at 1/10 the cost
     token: str = field(default_factory=lambda: secrets.token_urlsafe(24))
+    # a resumed character's place (its snapshot's `last_seq`), kept until the crowd answers a tick
+    resumed_seq: int | None = None
+    joined_at: int = 0  # the crowd's answered ticks when it joined
 
 
 @dataclass
@@ -329,6 +405,7 @@ class Crowd:
         self.groups: dict[tuple, RigGroup] = {}
         self._plan: Plan | None = None
         self._plan_key = b""
+        self.answered = 0  # ticks answered
 
     def __len__(self) -> int:
         return len(self.characters)
@@ -353,6 +430,8 @@ class Crowd:
                 character = Character(j.spec.id, group, j.spec, skeleton, bvh_header, rig)
                 if j.resumed is not None:
                     character.session_id, character.token = j.resumed.session_id, j.resumed.token
+                    character.resumed_seq = j.resumed.last_seq
+                character.joined_at = self.answered
                 self.characters[j.spec.id] = character
         self._plan = None
         return opened
@@ -377,8 +456,10 @@ class Crowd:
 
     def snapshots(self, owner: str, last_seq: int | None, ids: Sequence[int] | None = None) -> list[Snapshot]:
         """Each character (or those in `ids`) as a session snapshot under its own resume token:
-        resumable in a crowd, or alone as a session. `last_seq` is the crowd's last answered tick.
-        The reply to it is not kept per character (a resumed crowd's client asks again)."""
+        resumable in a crowd, or alone as a session. `last_seq` is the crowd's last answered tick;
+        a character resumed since the last tick keeps the place it was resumed at (its client would
+        otherwise replay every frame). The reply to it is not kept per character (a resumed
+        crowd's client asks again)."""
         now, out = time.time(), []
         by_troupe: dict[str, list[Character]] = {}
         for i in self.characters if ids is None else ids:
@@ -397,7 +478,7 @@ class Crowd:
                         bvh_header=c.bvh_header,
                         fps=self.fps,
                         encoding="binary",
-                        last_seq=last_seq,
+                        last_seq=last_seq if c.joined_at < self.answered else c.resumed_seq,
                         saved_at=now,
                         rig=dict(c.rig),
                         owner=owner,
@@ -490,6 +571,7 @@ class Crowd:
             out[at[:, None] + np.arange(rows.shape[1])] = rows
             result.frames[part.group.model] = result.frames.get(part.group.model, 0) + n
         result.reply = P.encode_tick(seq, plan.ids[ok], out, dropped)
+        self.answered += 1
         return result
 
     @staticmethod

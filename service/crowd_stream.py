@@ -21,12 +21,17 @@ import uuid
 from collections import deque
 
 from . import protocol as P
+from .background import in_background
 from .crowd import Crowd, Joining, StepRows
 from .logs import session_log
-from .skeletons import SkeletonAdapter, adapter_for
+from .memory import release_freed_memory
+from .skeletons import SkeletonAdapter
 from .stream import CLOSE_NORMAL, CLOSE_RESTART, Socket, delay_ms, log
 
 ControlMessage = P.Join | P.Leave | P.SetStyle | P.Reset | P.End
+JOIN_PART = 256  # characters added at a time (~10 ms of Python each), the loop free between parts
+TRIM_AFTER_CHARACTERS = 256  # a crowd this large leaves tens of MB freed in the heap when it closes
+_trims: set[asyncio.Task] = set()  # held until done (the loop keeps only weak references)
 
 
 class CrowdConnection(Socket):
@@ -75,29 +80,36 @@ class CrowdConnection(Socket):
     async def join(self, specs: list[P.CrowdCharacter]) -> dict:
         """Check each character's request and add those that pass, in one go; each refusal is
         that character's alone. Returns the reply's `characters`, `rigs` and `errors`."""
+        resuming: set[str] = set()  # claimed (`Runtime.resumable`): released once joined or refused
+        try:
+            return await self._join(specs, resuming)
+        finally:
+            for session_id in resuming:
+                self.rt.resumed(session_id)
+
+    async def _join(self, specs: list[P.CrowdCharacter], resuming: set[str]) -> dict:
         joining: list[Joining] = []
         errors: list[dict] = []
         adapters: dict[tuple, SkeletonAdapter] = {}
         seen = set(self.crowd.characters)
-        resuming: set[str] = set()
         for spec in specs:
             try:
                 if spec.id in seen:
                     raise P.ProtocolError("character_exists", f"character {spec.id} is already in this crowd")
                 snap, skeleton = None, spec.skeleton
                 if spec.resume_token is not None:  # model, style and rig as stored
-                    snap = await self.rt.resumable(spec.resume_token, self.who)
-                    if snap.session_id in resuming:
-                        raise P.ProtocolError("session_in_use", "that resume token is already taken in this message")
+                    snap = await self.rt.resumable(spec.resume_token, self.who)  # claimed (a second: in use)
+                    resuming.add(snap.session_id)
                     model, weights = self.rt.models[snap.model], dict(snap.weights)
                     skeleton, bvh_header, options = snap.skeleton, snap.bvh_header, dict(snap.rig)
-                    resuming.add(snap.session_id)
                 else:
                     model, weights = await self.rt.new_character(spec, self.who)
                     skeleton, bvh_header, options = spec.skeleton, spec.bvh_header, spec.rig_options()
                 key = (model.name, skeleton, bvh_header, json.dumps(options, sort_keys=True))
-                if key not in adapters:
-                    adapters[key] = adapter_for(skeleton or "custom", bvh_header, model.skeleton, **options)
+                if key not in adapters:  # built off the event loop, within this caller's gate
+                    adapters[key] = await self.rt.rig_builds.adapter(
+                        self.who.key, skeleton or "custom", bvh_header, model.skeleton, **options
+                    )
                 joining.append(Joining(spec, model, key[1:], adapters[key], weights, snap))
                 seen.add(spec.id)
             except P.ProtocolError as err:
@@ -109,8 +121,11 @@ class CrowdConnection(Socket):
             self.metrics.errors.labels(err.code).inc()
             errors += [{"id": j.spec.id, "code": err.code, "message": err.message} for j in joining]
             joining = []
-        for name in self.crowd.add(joining):
-            self.rt.crowd_model_opened(name)
+        for start in range(0, len(joining), JOIN_PART):  # a large join lets other connections run between parts
+            if start:
+                await asyncio.sleep(0)
+            for name in self.crowd.add(joining[start : start + JOIN_PART]):
+                self.rt.crowd_model_opened(name)
         for j in joining:
             character = self.crowd.characters[j.spec.id]
             self.rt.crowd_members.add(character.session_id)
@@ -145,12 +160,16 @@ class CrowdConnection(Socket):
         """Take characters out of the crowd: for good (`leave`, `end`), or `resumable` (their
         connection went), each then kept in the store under its resume token."""
         present = [i for i in dict.fromkeys(ids) if i in self.crowd.characters]
-        if resumable:
-            self.rt.characters_stored(self.who.id, self.crowd.snapshots(self.who.tenant, self.last_seq, present))
+        # the caller keeps at most `token_max_stored_sessions` closed: store only those (storing
+        # all, then evicting all but those, stalled every stream for 733 ms at 16,384 characters)
+        kept = present[max(0, len(present) - self.settings.token_max_stored_sessions) :] if resumable else []
+        if kept:
+            self.rt.characters_stored(self.who.id, self.crowd.snapshots(self.who.tenant, self.last_seq, kept))
+        stored = set(kept)
         for i in present:
             character = self.crowd.characters[i]
             self.rt.crowd_members.discard(character.session_id)
-            if not resumable:
+            if i not in stored:
                 self.rt.character_ended(self.who.id, character.token)
         for name in self.crowd.remove(present):
             self.rt.crowd_model_closed(name)
@@ -161,7 +180,12 @@ class CrowdConnection(Socket):
         if not self.opened:
             return
         self.log.info("crowd closed with %d characters", len(self.crowd))
+        large = len(self.crowd) >= TRIM_AFTER_CHARACTERS
         self.leave(list(self.crowd.characters), resumable=not self.ended)
+        if large:  # its arrays went back to the heap: hand the pages to the system (off the loop)
+            trim = asyncio.get_running_loop().create_task(in_background(release_freed_memory))
+            _trims.add(trim)
+            trim.add_done_callback(_trims.discard)
         self.rt.crowd_closed()
         if self.rt.connections.get(self.id) is self:
             del self.rt.connections[self.id]
@@ -233,10 +257,19 @@ class CrowdConnection(Socket):
             metrics = self.metrics.model(name)
             metrics.frames.inc(frames)
             metrics.frame_latency.observe(time.perf_counter() - received)
-        self.ticks_since_snapshot += 1
-        if self.ticks_since_snapshot >= self.settings.snapshot_every:  # as a session's: for a replica that dies
-            self.ticks_since_snapshot = 0
-            for snap in self.crowd.snapshots(self.who.tenant, self.last_seq):
+        self.store_some()
+
+    def store_some(self) -> None:
+        """Every character is stored every `snapshot_every` ticks (as a session: for a replica
+        that dies), a share of them on each tick: all of a 16,384-character crowd on one tick
+        held every stream for ~400 ms."""
+        every = self.settings.snapshot_every
+        self.ticks_since_snapshot = (self.ticks_since_snapshot + 1) % every
+        ids = list(self.crowd.characters)
+        share = -(-len(ids) // every)  # ceil: each id once per `every` ticks
+        due = ids[self.ticks_since_snapshot * share : (self.ticks_since_snapshot + 1) * share]
+        if due:
+            for snap in self.crowd.snapshots(self.who.tenant, self.last_seq, due):
                 self.rt.snapshots.put(snap)
 
     async def control(self, message: ControlMessage) -> bool:

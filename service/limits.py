@@ -85,14 +85,16 @@ def level(bucket: Bucket, now: float, rate: float, burst: float) -> float:
     return min(burst, bucket.tokens + (now - bucket.at) * rate)
 
 
-def take(bucket: Bucket | None, now: float, rate: float, burst: float) -> tuple[Bucket, float]:
-    """Take one request from a bucket that refills at `rate` per second up to `burst` (a missing
-    bucket is full). Returns the bucket after, and 0 when the request may pass or else the
-    seconds until it would."""
+def take(bucket: Bucket | None, now: float, rate: float, burst: float, cost: float = 1.0) -> tuple[Bucket, float]:
+    """Take a request costing `cost` (one, or a costly request's worth of them, at most the
+    bucket) from a bucket that refills at `rate` per second up to `burst` (a missing bucket is
+    full). Returns the bucket after, and 0 when the request may pass or else the seconds until
+    it would."""
+    cost = min(cost, burst)
     tokens = burst if bucket is None else level(bucket, now, rate, burst)
-    if tokens >= 1.0:
-        return Bucket(tokens - 1.0, now), 0.0
-    return Bucket(tokens, now), (1.0 - tokens) / rate
+    if tokens >= cost:
+        return Bucket(tokens - cost, now), 0.0
+    return Bucket(tokens, now), (cost - tokens) / rate
 
 
 @dataclass
@@ -168,10 +170,10 @@ class Limiter:
         self.sessions: Counter[str] = Counter()
         self.cooling: dict[str, float] = {}  # principal key -> clock reading its flood cool-down ends
 
-    def _take(self, key: str, now: float, rate: float, burst: float) -> float:
-        """Take one from the bucket `key` (refilling at `rate` up to `burst`); the wait, 0 if it passes."""
+    def _take(self, key: str, now: float, rate: float, burst: float, cost: float = 1.0) -> float:
+        """Take `cost` from the bucket `key` (refilling at `rate` up to `burst`); the wait, 0 if it passes."""
         held = self.buckets.get(key)
-        bucket, wait = take(held.bucket if held else None, now, rate, burst)
+        bucket, wait = take(held.bucket if held else None, now, rate, burst, cost)
         self.buckets[key] = Meter(bucket, rate, burst)
         if len(self.buckets) > MAX_IDLE_BUCKETS:
             self._forget_full_buckets(now)
@@ -182,8 +184,8 @@ class Limiter:
         o = s.token_limits.get(token, TokenLimits()) if token is not None else TokenLimits()
         rate = o.requests_per_s or s.token_requests_per_s
         return Limits(
-            max_sessions=o.max_sessions or s.token_max_sessions,
-            max_characters=o.max_characters or s.token_max_characters,
+            max_sessions=o.max_sessions or s.token_sessions,
+            max_characters=o.max_characters or s.token_characters,
             requests_per_s=rate,
             burst=max(1.0, rate * (o.burst_s or s.token_burst_s)),
             upload_max_bytes=o.upload_max_bytes or s.upload_max_bytes,
@@ -216,9 +218,10 @@ class Limiter:
             return None
         return Principal(f"token:{matches[0]}", self.limits_for(matches[0]), matches[0] in self.settings.admin_tokens)
 
-    def check_request(self, who: Principal) -> None:
-        """Count one REST request; raises 429 `rate_limited` (with Retry-After) over the rate."""
-        wait = self._take(who.key, self.clock(), who.limits.requests_per_s, who.limits.burst)
+    def check_request(self, who: Principal, cost: float = 1.0) -> None:
+        """Count one REST request (a costly one as `cost` requests: a rig preview); raises 429
+        `rate_limited` (with Retry-After) over the rate."""
+        wait = self._take(who.key, self.clock(), who.limits.requests_per_s, who.limits.burst, cost)
         if wait > 0:
             raise ApiError(
                 429,

@@ -1,5 +1,7 @@
-"""`/healthz` (the process answers), `/readyz` (it takes sessions: 503 while loading or draining)
-and `/metrics` (Prometheus text); no token, for probes and scrapers."""
+"""`/healthz` (the process answers), `/readyz` (it takes sessions: 503 while loading, draining or
+full) and `/metrics` (Prometheus text); no token, for probes and scrapers. The two probes are
+answered whatever the connection count (`transport.GuardedHttp`): a server at `max_connections`
+is alive, and says it is full."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ from fastapi import APIRouter, Depends, Request, Response
 from .api import Health, error_responses
 from .deps import get_runtime
 from .runtime import Runtime
+from .transport import CONNECTIONS
 
 router = APIRouter()
 
@@ -22,7 +25,13 @@ async def healthz() -> Health:
     response_model=Health,
     summary="Readiness: the server takes new sessions",
     tags=["health"],
-    responses={503: {"model": Health, "description": "Not taking sessions: `status` is `loading` or `draining`."}},
+    responses={
+        503: {
+            "model": Health,
+            "description": "Not taking sessions: `status` is `loading`, `draining` or `full` (every session "
+            "or connection taken).",
+        }
+    },
 )
 async def readyz(request: Request, response: Response) -> Health:
     runtime: Runtime | None = request.app.state.runtime
@@ -32,6 +41,10 @@ async def readyz(request: Request, response: Response) -> Health:
     if runtime.draining:  # SIGTERM: load balancers stop sending new sessions
         response.status_code = 503
         return Health(status="draining")
+    connections, most = request.scope.get(CONNECTIONS, (0, None))
+    if runtime.full() or (most is not None and connections >= most):  # alive, but send new work elsewhere
+        response.status_code = 503
+        return Health(status="full")
     return Health(status="ready")
 
 

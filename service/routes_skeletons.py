@@ -12,15 +12,21 @@ model's standing pose) above the model skeleton it maps to, drawn Y up in cm.
 from __future__ import annotations
 
 import numpy as np
-from fastapi import APIRouter, Query
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from models.motion import bvh as bvhio
-from models.motion.humanoid import PRESET_NAMES, HumanoidRig, RigError, in_model_world, preset_rig, rig_from_bvh
+from models.motion.humanoid import PRESET_NAMES, HumanoidRig, RigError, in_model_world, preset_rig
+
+from . import rig_check
+from .deps import get_limiter, get_runtime, require_token
+from .limits import Principal
+from .runtime import Runtime
+from .skeletons import checked_build, rig_from_header
 
 router = APIRouter()
+PREVIEW_COST = 10  # requests of the caller's rate a preview costs: it renders (~0.1-1 s of a thread)
 
 
 class SkeletonCheck(BaseModel):
@@ -56,12 +62,19 @@ class RigProblem(BaseModel):
 
 
 def _rig(body: SkeletonCheck) -> HumanoidRig:
+    """The rig, checked as a session's is (`service.rig_check`): limits first, then the match,
+    then the retargeter's set-up, so what passes here streams."""
     options = {"joint_map": body.joint_map, "units": body.units, "up": body.up, "handedness": body.handedness}
     if body.bvh_header is not None and body.skeleton is None:
-        return rig_from_bvh(body.bvh_header, "bvh_header", **options)
-    if body.skeleton is not None and body.bvh_header is None:
-        return preset_rig(body.skeleton, joints=body.joints, **options)
-    raise RigError("bad_request", "give exactly one of 'skeleton' (a preset) or 'bvh_header'")
+        rig = rig_from_header(body.bvh_header, **options)
+    elif body.skeleton is not None and body.bvh_header is None:
+        if body.joints is not None:
+            rig_check.check_names(body.joints)
+        rig = preset_rig(body.skeleton, joints=body.joints, **options)
+    else:
+        raise RigError("bad_request", "give exactly one of 'skeleton' (a preset) or 'bvh_header'")
+    checked_build(rig)
+    return rig
 
 
 def _preview(body: SkeletonCheck, rig: HumanoidRig) -> bytes:
@@ -127,13 +140,23 @@ def _preview(body: SkeletonCheck, rig: HumanoidRig) -> bytes:
         },
     },
 )
-async def check_skeleton(body: SkeletonCheck, preview: bool = Query(default=False)) -> Response:
+async def check_skeleton(
+    request: Request,
+    body: SkeletonCheck,
+    preview: bool = Query(default=False),
+    rt: Runtime = Depends(get_runtime),
+    who: Principal = Depends(require_token),
+) -> Response:
     """The mapping a session with these rig fields would use, or why it cannot be mapped; a PNG
-    preview of the mapped rig with `preview=true`."""
+    preview of the mapped rig with `preview=true` (costs PREVIEW_COST requests of the caller's
+    rate). Either runs on a background thread within the caller's rig-build gate
+    (`service.rig_builds`), never on the event loop."""
+    if preview:  # the request itself was counted once already
+        get_limiter(request).check_request(who, PREVIEW_COST - 1)
     try:
-        rig = await run_in_threadpool(_rig, body)
+        rig = await rt.rig_builds.run(who.key, _rig, body)
+        if preview:
+            return Response(await rt.rig_builds.run(who.key, _preview, body, rig), media_type="image/png")
     except RigError as err:
         return JSONResponse({"code": err.code, "message": err.message, "missing": list(err.missing)}, status_code=422)
-    if preview:
-        return Response(await run_in_threadpool(_preview, body, rig), media_type="image/png")
     return JSONResponse(rig.report())

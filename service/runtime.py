@@ -29,6 +29,7 @@ from . import protocol as P
 from .batcher import Batcher, ModelThread
 from .limits import Principal
 from .metrics import Metrics
+from .rig_builds import RigBuilds
 from .session_store import SavedCallback, SnapshotWriter, StoreUnavailable, create_store
 from .sessions import Session, Snapshot
 from .settings import ServiceSettings
@@ -90,7 +91,9 @@ class Runtime:
         self.characters = 0  # characters in them
         self._characters_of: Counter[str] = Counter()  # by caller (`Principal.key`), against its own cap
         self.crowd_members: set[str] = set()  # the session ids of those characters (resumes check it)
+        self.resuming: set[str] = set()  # session ids claimed by a resume not yet registered
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
+        self.rig_builds = RigBuilds()  # rigs parsed and built off the event loop, per caller
         self.draining = False
 
     async def start(self) -> None:
@@ -145,10 +148,14 @@ class Runtime:
                 close_code=1012,
             )
 
+    def full(self) -> bool:
+        """Every one of `max_sessions` taken (a crowd connection takes one): readiness says so."""
+        return len(self.sessions) + self.crowds >= self.settings.max_sessions
+
     def _refuse_if_full(self) -> None:
         """Draining, or every one of `max_sessions` taken (a crowd connection takes one)."""
         self._refuse_if_draining()
-        if len(self.sessions) + self.crowds >= self.settings.max_sessions:
+        if self.full():
             raise P.ProtocolError(
                 "too_many_sessions",
                 f"server holds its maximum of {self.settings.max_sessions} sessions",
@@ -180,13 +187,24 @@ class Runtime:
             ) from None
         if snap is None or snap.owner != who.tenant:
             raise P.ProtocolError("unknown_resume_token", "resume token unknown or expired")
-        self._refuse_if_draining()  # checked again after the await: a drain may have begun meanwhile
-        if snap.session_id in self.sessions or snap.session_id in self.crowd_members:  # no two resumes of one
-            raise P.ProtocolError("session_in_use", "that session is still connected")
         if snap.model not in self.models:
             raise P.ProtocolError("unknown_model", f"this replica does not serve model {snap.model!r}")
         await self.styles.ensure_known(snap.model, [*snap.weights, *snap.target])
+        # checked after the last await, with nothing awaited until it is claimed: two resumes of
+        # one token at once both passed a check made before an await, and both opened
+        self._refuse_if_draining()
+        if (
+            snap.session_id in self.sessions
+            or snap.session_id in self.crowd_members
+            or snap.session_id in self.resuming
+        ):
+            raise P.ProtocolError("session_in_use", "that session is still connected")
+        self.resuming.add(snap.session_id)  # the caller registers it, then `resumed`; or `resume_failed`
         return snap
+
+    def resumed(self, session_id: str) -> None:
+        """A claimed resume is registered (a session, or a crowd member) or given up."""
+        self.resuming.discard(session_id)
 
     async def open_session(self, start: P.Start, who: Principal) -> Session:
         """A new session for `who`, or theirs resumed (a snapshot another tenant opened is, to
@@ -194,7 +212,10 @@ class Runtime:
         self._refuse_if_full()
         if start.resume_token:
             snap = await self.resumable(start.resume_token, who)
-            session = Session.restore(snap, self.models[snap.model], self.settings.session_queue, who.id)
+            try:
+                session = Session.restore(snap, self.models[snap.model], self.settings.session_queue, who.id)
+            finally:
+                self.resumed(snap.session_id)  # registered below, with no await in between
             self._forget_stored(session.caller, session.token)
             self.metrics.resumes.inc()
         else:

@@ -12,6 +12,8 @@ from models.settings import REPO_ROOT, Settings
 
 from .background import BACKGROUND_CPUS, BACKGROUND_NICE
 
+TOKEN_SHARE = 0.25  # of the server's sessions and characters, one token's by default
+
 
 class TokenLimits(BaseModel):
     """One API token's own limits (`token_limits`); a field left out takes the default."""
@@ -134,17 +136,19 @@ class ServiceSettings(Settings):
     api_tokens: list[str] = Field(
         default_factory=list, description="When set, every request needs one (Bearer or ?token=)."
     )
-    token_max_sessions: int = Field(
-        default=1024,
+    token_max_sessions: int | None = Field(
+        default=None,
         ge=1,
-        description="Per token (per client address without tokens): "
-        "concurrent streaming sessions (1013 above); by default as many as the server holds.",
+        description="Per token (per client address without tokens): concurrent streaming sessions and "
+        "crowd connections (1013 above); by default a quarter of max_sessions, so one caller cannot "
+        "take every session.",
     )
-    token_max_characters: int = Field(
-        default=16384,
+    token_max_characters: int | None = Field(
+        default=None,
         ge=1,
         description="Per token (per client address without tokens): characters in its crowds together "
-        "(too_many_characters above); by default as many as the server holds.",
+        "(too_many_characters above); by default a quarter of max_characters, so one caller cannot "
+        "take every character.",
     )
     token_sessions_per_s: float = Field(
         default=50.0,
@@ -244,6 +248,18 @@ class ServiceSettings(Settings):
                 "in-memory store a client resuming on another worker than its first finds no session"
             )
         return self
+
+    @property
+    def token_sessions(self) -> int:
+        """One token's sessions by default: `token_max_sessions`, else TOKEN_SHARE of the server's."""
+        return self.token_max_sessions or max(1, int(self.max_sessions * TOKEN_SHARE))
+
+    @property
+    def token_characters(self) -> int:
+        """One token's crowd characters by default: `token_max_characters`, else TOKEN_SHARE of
+        the server's (at the server's own maximum, the old default, one token's crowd held all
+        16,384 characters and stalled every stream)."""
+        return self.token_max_characters or max(1, int(self.max_characters * TOKEN_SHARE))
 
     @model_validator(mode="after")
     def _admins_are_tokens(self) -> ServiceSettings:

@@ -16,17 +16,19 @@ is applied.
 from __future__ import annotations
 
 import json
-from functools import lru_cache
-from typing import Protocol
+import threading
+from collections import OrderedDict
+from typing import Any, Protocol
 
 import numpy as np
 
 from models.motion import bvh as bvhio
 from models.motion.bn_skeleton import missing_joints
-from models.motion.humanoid import HumanoidRig, RigError, preset_rig, rig_from_bvh
+from models.motion.humanoid import HumanoidRig, RigError, humanoid_rig, preset_rig, translated_joint
 from models.motion.retarget_stream import FrameRetargeter
 from models.motion.skeleton import Skeleton, skeleton_from_bvh
 
+from . import rig_check
 from .protocol import ProtocolError
 
 
@@ -156,22 +158,92 @@ def rig_error(err: RigError) -> ProtocolError:
     return ProtocolError(_CODES.get(err.code, "bad_skeleton"), f"{err.code}: {err.message}", fatal=True)
 
 
-@lru_cache(maxsize=256)
-def _retarget(skeleton: str | None, bvh_header: str | None, options: str) -> Retarget:
-    """The adapter for a start message's rig fields (`options` as sorted JSON). Cached: many
-    sessions bring the same rig, and the adapter is stateless."""
-    opts = json.loads(options)
-    joints = opts.pop("joints", None)
-    if bvh_header is not None:
-        if joints is not None:
-            raise RigError(
-                "bad_skeleton",
-                "give 'joints' with a preset 'skeleton', not with 'bvh_header' (its order is the header's)",
-            )
-        return Retarget(rig_from_bvh(bvh_header, **opts))
-    if skeleton is None:  # `adapter_for` refuses that before it gets here
-        raise RigError("bad_skeleton", "give a preset 'skeleton' or a 'bvh_header'")
-    return Retarget(preset_rig(skeleton, joints=joints, **opts), joints)
+def _rig_key(skeleton: Skeleton, translated: int | None, options: dict) -> tuple:
+    """What makes two rigs the same rig: names, hierarchy, offsets, the translated joint and the
+    options; not the header's spelling (spacing, number format, channel order, MOTION rows)."""
+    return (
+        tuple(skeleton.names),
+        np.asarray(skeleton.parents, np.int64).tobytes(),
+        np.asarray(skeleton.offsets, np.float64).tobytes(),
+        np.asarray(skeleton.end_sites, np.float64).tobytes(),
+        translated,
+        json.dumps(options, sort_keys=True),
+    )
+
+
+# canonical rig -> its adapter; and the texts seen -> that adapter (a repeat costs a dict lookup
+# on the event loop, with no worker hop): many sessions and characters bring the same rig
+_BY_RIG: OrderedDict[tuple, Retarget] = OrderedDict()
+_BY_TEXT: OrderedDict[tuple, SkeletonAdapter] = OrderedDict()
+_CACHE_SIZE = 256
+_cache_lock = threading.Lock()  # builds run on worker threads
+
+
+def _remember(cache: OrderedDict, key: tuple, value: Any) -> Any:
+    with _cache_lock:
+        cache[key] = value
+        cache.move_to_end(key)
+        while len(cache) > _CACHE_SIZE:
+            cache.popitem(last=False)
+    return value
+
+
+def _recall(cache: OrderedDict, key: tuple) -> Any:
+    with _cache_lock:
+        value = cache.get(key)
+        if value is not None:
+            cache.move_to_end(key)
+        return value
+
+
+def checked_build(rig: HumanoidRig, joints: list[str] | None = None) -> Retarget:
+    """The retargeter for a checked rig; whatever its set-up trips over is the rig's fault
+    (a typed `degenerate_rig`), never an exception that escapes to the connection."""
+    rig_check.check_rig(rig)
+    try:
+        with np.errstate(divide="raise", over="raise", invalid="raise", under="ignore"):
+            adapter = Retarget(rig, joints)
+    except (ArithmeticError, ValueError, FloatingPointError, IndexError) as exc:
+        raise RigError("degenerate_rig", f"the retargeter cannot be set up for this rig ({exc})") from None
+    r = adapter.retargeter
+    if not (np.isfinite(r.scale) and np.isfinite(r.vertical_offset)):
+        raise RigError("degenerate_rig", "the rig's scale or standing height is not finite")
+    return adapter
+
+
+def _from_header(bvh_header: str, options: dict) -> Retarget:
+    """A custom rig's adapter, through the canonical-rig cache."""
+    if "joints" in options:
+        raise RigError(
+            "bad_skeleton", "give 'joints' with a preset 'skeleton', not with 'bvh_header' (its order is the header's)"
+        )
+    parsed, skeleton = _parse(bvh_header)
+    translated = translated_joint(parsed, skeleton, options.get("joint_map"))
+    key = _rig_key(skeleton, translated, options)
+    cached = _recall(_BY_RIG, key)
+    if cached is not None:
+        return cached
+    rig = humanoid_rig(skeleton, **options, translated=translated)
+    return _remember(_BY_RIG, key, checked_build(rig))
+
+
+def rig_from_header(bvh_header: str, **options) -> HumanoidRig:
+    """`humanoid.rig_from_bvh` within the limits (`service.rig_check`), checked before the match."""
+    parsed, skeleton = _parse(bvh_header)
+    return humanoid_rig(skeleton, **options, translated=translated_joint(parsed, skeleton, options.get("joint_map")))
+
+
+def _parse(bvh_header: str) -> tuple[bvhio.BvhFile, Skeleton]:
+    """The header's hierarchy, within the limits (`service.rig_check`), or a typed `RigError`."""
+    rig_check.check_header(bvh_header)
+    text = bvh_header.split("MOTION")[0] + "MOTION\nFrames: 0\nFrame Time: 0.0333333\n"
+    try:
+        parsed = bvhio.parse(text, "bvh_header")
+    except bvhio.BvhError as exc:
+        raise RigError("bad_skeleton", str(exc)) from None
+    skeleton = skeleton_from_bvh(parsed)[0]
+    rig_check.check_skeleton(skeleton)
+    return parsed, skeleton
 
 
 def _as_model_world(options: dict) -> bool:
@@ -188,20 +260,18 @@ def _is_model_skeleton(names: list[str], model_skeleton: Skeleton, options: dict
     return not missing_joints(names, model_skeleton.names) and _as_model_world(options)
 
 
-def adapter_for(
-    skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None = None, **options
+def _adapter(
+    skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None, options: dict
 ) -> SkeletonAdapter:
-    """The adapter for a start message's rig; raises `ProtocolError` (fatal, typed) for a rig
-    that cannot be mapped, before anything is set up."""
+    if joints is not None:
+        rig_check.check_names(joints)
     if bvh_header is not None:
-        text = bvh_header.split("MOTION")[0] + "MOTION\nFrames: 0\nFrame Time: 0.0333333\n"
-        try:
-            names = list(skeleton_from_bvh(bvhio.parse(text, "bvh_header"))[0].names)
-        except bvhio.BvhError as exc:
-            raise ProtocolError("bad_skeleton", str(exc), fatal=True) from None
-        if _is_model_skeleton(names, model_skeleton, options):
-            return Reorder(names, model_skeleton)
-    elif skeleton == "bandai-namco" and _as_model_world(options):
+        if joints is None and _as_model_world(options):  # the model's own rig needs no retargeter
+            names = list(_parse(bvh_header)[1].names)
+            if _is_model_skeleton(names, model_skeleton, options):
+                return Reorder(names, model_skeleton)
+        return _from_header(bvh_header, {**options, **({"joints": joints} if joints is not None else {})})
+    if skeleton == "bandai-namco" and _as_model_world(options):
         names = list(joints) if joints is not None else list(model_skeleton.names)
         missing = [n for n in model_skeleton.names if n not in names]
         if missing or len(set(names)) != len(names):
@@ -211,16 +281,38 @@ def adapter_for(
                 fatal=True,
             )
         return Reorder(names, model_skeleton)
-    elif skeleton in (None, "custom"):
+    if skeleton in (None, "custom"):
         raise ProtocolError("unsupported_skeleton", "give a preset 'skeleton' or a 'bvh_header'", fatal=True)
+    key = ("preset", skeleton, json.dumps({**options, "joints": joints}, sort_keys=True))
+    cached = _recall(_BY_RIG, key)
+    if cached is not None:
+        return cached
+    return _remember(_BY_RIG, key, checked_build(preset_rig(skeleton, joints=joints, **options), joints))
+
+
+def adapter_for(
+    skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None = None, **options
+) -> SkeletonAdapter:
+    """The adapter for a start message's rig; raises `ProtocolError` (fatal, typed) for a rig
+    that cannot be mapped, before anything is set up. Synchronous and up to a few hundred ms for
+    a large rig: a connection calls `build_adapter`, which runs it off the event loop."""
+    text_key = (skeleton, bvh_header, tuple(model_skeleton.names), json.dumps([joints, options], sort_keys=True))
+    cached = _recall(_BY_TEXT, text_key)
+    if cached is not None:
+        return cached
     try:
-        return _retarget(
-            skeleton if bvh_header is None else None,
-            bvh_header,
-            json.dumps({**options, **({"joints": joints} if joints is not None else {})}, sort_keys=True),
-        )
+        adapter = _adapter(skeleton, bvh_header, model_skeleton, joints, options)
     except RigError as err:
         raise rig_error(err) from None
+    return _remember(_BY_TEXT, text_key, adapter)
+
+
+def cached_adapter(
+    skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None = None, **options
+) -> SkeletonAdapter | None:
+    """The adapter `adapter_for` gave for exactly these fields before, if it still has it."""
+    text_key = (skeleton, bvh_header, tuple(model_skeleton.names), json.dumps([joints, options], sort_keys=True))
+    return _recall(_BY_TEXT, text_key)
 
 
 def warm() -> None:

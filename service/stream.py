@@ -41,12 +41,12 @@ from .logs import session_log
 from .metrics import ModelMetrics
 from .runtime import Runtime
 from .sessions import ControlItem, FrameItem, Session, Snapshot
-from .skeletons import SkeletonAdapter, adapter_for
+from .skeletons import SkeletonAdapter
 from .transport import DIRECT_FRAMES, GuardedWebSocket
 
 log = logging.getLogger(__name__)
 
-CLOSE_NORMAL, CLOSE_RESTART = 1000, 1012
+CLOSE_NORMAL, CLOSE_INTERNAL, CLOSE_RESTART = 1000, 1011, 1012
 CLOSE_UNAUTHORIZED, CLOSE_IDLE = 4401, 4408
 T = TypeVar("T")
 YIELD_EVERY = 8  # messages handled back to back before the receiver lets other connections run
@@ -76,6 +76,7 @@ class Socket:
             self.settings.max_controls_per_s, self.settings.max_controls_per_s, "style and reset messages"
         )
         self.log: logging.Logger | logging.LoggerAdapter = log  # once open: its id and model on every line
+        self._failing: asyncio.Task | None = None  # ending the connection after its processor failed
 
     # ---- what a subclass does with the messages -------------------------------------
     async def open(self, first: P.Start | P.CrowdStart) -> bool:
@@ -207,12 +208,37 @@ class Socket:
         await self.send_error(err)
         await self.close(err.close_code, err.message)
 
+    def _processor_done(self, task: asyncio.Task) -> None:
+        """The processor ended. If by an exception (a bug, or a model or rig failure nothing
+        caught), the connection ends with it: a log line with the traceback, a fatal typed
+        `internal` error and close 1011, so the client reconnects and resumes instead of waiting
+        on a connection nobody serves (it hung for ever, with nothing logged)."""
+        if task.cancelled() or task.exception() is None:
+            return
+        self.log.error("processor failed; closing the connection", exc_info=task.exception())
+        self.stopping = True
+        failing = asyncio.get_running_loop().create_task(self._end_failed())
+        self._failing = failing  # held until it has run (the loop keeps only a weak reference)
+
+    async def _end_failed(self) -> None:
+        err = P.ProtocolError(
+            "internal",
+            "the server failed on this connection; connect again (resume with your resume token)",
+            fatal=True,
+            close_code=CLOSE_INTERNAL,
+        )
+        try:
+            await self.refuse(err)
+        except Exception:  # noqa: BLE001 - the client left meanwhile: its disconnect ends the receive loop
+            self.log.debug("failure not sent", exc_info=True)
+
     async def run(self, first: P.Start | P.CrowdStart) -> None:
         try:
             if not await self.open(first):
                 return
             self.parked = True  # the processor has nothing in hand; its first act is to wait for work
             self.processor = asyncio.create_task(self.process())
+            self.processor.add_done_callback(self._processor_done)
             handled = 0
             while not self.closing:
                 try:
@@ -346,14 +372,19 @@ class Connection(Socket):
         message = first
         try:
             model = self.rt.models.get(message.model)
+            builds = self.rt.rig_builds  # rigs are built off the event loop
             if message.resume_token is None and model is not None:  # a bad rig opens no session at all
-                self._adapter = adapter_for(
-                    message.skeleton or "custom", message.bvh_header, model.skeleton, **message.rig_options()
+                self._adapter = await builds.adapter(
+                    self.who.key,
+                    message.skeleton or "custom",
+                    message.bvh_header,
+                    model.skeleton,
+                    **message.rig_options(),
                 )
             self._session = s = await self.rt.open_session(message, self.who)
             self.acks = message.snapshot_acks
             if self._adapter is None:  # a resume: the rig the session started with
-                self._adapter = adapter_for(s.skeleton, s.bvh_header, s.model.skeleton, **s.rig)
+                self._adapter = await builds.adapter(self.who.key, s.skeleton, s.bvh_header, s.model.skeleton, **s.rig)
         except P.ProtocolError as err:
             await self.refuse(err)
             return False

@@ -39,6 +39,7 @@ import random
 from collections.abc import Callable
 from typing import Any
 
+import httptools
 import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.utils import ClientDisconnected
@@ -59,6 +60,10 @@ FLOOD_LINGER_MAX_BYTES = 64 << 20
 # event loop, which held the healthy sessions' frames (hostile_bench half-open phase, p99 / quiet
 # 1.07-4.91 in three runs at one deadline, 0.81-1.14 spread)
 HEADER_DEADLINE_SPREAD = 0.5
+# Probes are never refused by the connection cap (`GuardedHttp.on_headers_complete`); their scope
+# carries (open connections, max_connections) under CONNECTIONS for the readiness answer
+PROBE_PATHS = (b"/healthz", b"/readyz")
+CONNECTIONS = "stylestream.connections"
 # The ASGI scope extension under which `GuardedWebSocket` offers its direct frame path (module doc)
 DIRECT_FRAMES = "stylestream.direct_frames"
 
@@ -90,7 +95,19 @@ class GuardedHttp(HttpToolsProtocol):
         if self._header_timer is not None:
             self._header_timer.cancel()
             self._header_timer = None
-        super().on_headers_complete()
+        limit = self.limit_concurrency
+        if limit is None or httptools.parse_url(self.url).path not in PROBE_PATHS:
+            super().on_headers_complete()
+            return
+        # a probe: answered whatever the connection count (uvicorn's limit answers 503 before the
+        # app: at max_connections an orchestrator would restart a healthy, merely full, server),
+        # and told that count, so readiness can say the server is full
+        self.scope[CONNECTIONS] = (len(self.connections), limit)  # type: ignore[literal-required]
+        self.limit_concurrency = None
+        try:
+            super().on_headers_complete()
+        finally:
+            self.limit_concurrency = limit
 
     def connection_lost(self, exc: Exception | None) -> None:
         if self._header_timer is not None:

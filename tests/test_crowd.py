@@ -32,7 +32,7 @@ def models():
 
 @pytest.fixture(scope="module")
 def server(models):
-    with live_server(models, idle_timeout_s=30, max_characters=40) as (base, _app):
+    with live_server(models, idle_timeout_s=30, max_characters=40, token_max_characters=40) as (base, _app):
         yield base
 
 

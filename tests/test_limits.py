@@ -124,7 +124,30 @@ def test_per_token_limits_come_from_the_environment(monkeypatch):
     a, b = limiter.limits_for("tok-a"), limiter.limits_for("tok-b")
     assert (a.max_sessions, a.requests_per_s) == (4, 5.0)
     assert a.upload_max_bytes == b.upload_max_bytes == ServiceSettings().upload_max_bytes  # the default
-    assert b.max_sessions == ServiceSettings().token_max_sessions
+    assert b.max_sessions == ServiceSettings().token_sessions
+
+
+def test_a_tokens_caps_default_to_a_share_of_the_servers():
+    """One caller cannot take every session or crowd character by default (it could: the
+    defaults were the server's own maxima), and an explicit cap still wins."""
+    from service.limits import Limiter
+
+    limits = Limiter(ServiceSettings(max_sessions=100, max_characters=1000)).limits_for(None)
+    assert (limits.max_sessions, limits.max_characters) == (25, 250)
+    default = Limiter(ServiceSettings()).limits_for(None)
+    assert default.max_characters < ServiceSettings().max_characters
+    assert default.max_sessions < ServiceSettings().max_sessions
+    own = Limiter(ServiceSettings(token_max_characters=7, token_max_sessions=3)).limits_for(None)
+    assert (own.max_sessions, own.max_characters) == (3, 7)
+
+
+def test_a_costly_request_takes_its_cost_from_the_bucket_but_never_more_than_it_holds():
+    bucket, wait = take(None, 0.0, rate=20.0, burst=40.0, cost=10.0)
+    assert (bucket.tokens, wait) == (30.0, 0.0)
+    bucket, wait = take(Bucket(5.0, 0.0), 0.0, rate=20.0, burst=40.0, cost=10.0)
+    assert wait == pytest.approx(0.25)  # 5 short at 20/s
+    _, wait = take(None, 0.0, rate=1.0, burst=2.0, cost=10.0)  # a bucket smaller than the cost: a full one passes
+    assert wait == 0.0
 
 
 @pytest.mark.parametrize(
