@@ -299,6 +299,13 @@ def markdown(r: dict) -> str:
     lines += _gate_summary(r)
     for source in ["real", *meta["sources"]]:
         lines += _source_table(r, source)
+    lines += [
+        "## Renders",
+        "",
+        "Oriented contact sheets of a CMU, a Xia and a dataset-1 input through every method and core "
+        "(`python -m models.eval.renders`): [docs/eval/renders/](eval/renders/).",
+        "",
+    ]
     return "\n".join(lines) + "\n"
 
 
