@@ -144,7 +144,7 @@ def test_a_closing_crowd_stores_only_what_its_caller_may_keep(models):
     """A crowd larger than `token_max_stored_sessions` stores its last characters up to that cap
     when its connection drops, and ends the others, with no store-then-evict: storing all and
     evicting all but 256 stalled every stream for 733 ms at 16,384 characters. Every character
-    was stored periodically meanwhile (a share of them per tick)."""
+    was stored periodically meanwhile."""
     with live_server(models, idle_timeout_s=30, token_max_stored_sessions=5, snapshot_every=3) as (base, app):
         runtime = app.state.runtime
         with connect(ws_url(base)) as ws:
