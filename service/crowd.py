@@ -216,8 +216,7 @@ class Troupe:
         """A copy of every row as it stands (for `Crowd.frozen`): its own arrays, same rows."""
         copy = Troupe.__new__(Troupe)
         copy.model, copy.ratio, copy.names = self.model, self.ratio, list(self.names)
-        copy._rows = Rows()
-        copy._rows.append({key: self._rows.view(key).copy() for key in self._rows.keys()})
+        copy._rows = Rows.adopt({key: self._rows.view(key).copy() for key in self._rows.keys()})
         copy.row_of = dict(self.row_of)
         return copy
 
