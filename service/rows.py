@@ -30,6 +30,14 @@ class Rows:
         self._buf: dict[str, np.ndarray] = {}
         self.n = 0
 
+    @classmethod
+    def adopt(cls, arrays: dict[str, np.ndarray]) -> Rows:
+        """Rows made of these arrays as they are (no spare room, no copy): a frozen copy's."""
+        rows = cls()
+        rows._buf = dict(arrays)
+        rows.n = len(next(iter(arrays.values()))) if arrays else 0
+        return rows
+
     def __len__(self) -> int:
         return self.n
 

@@ -211,13 +211,12 @@ def checked_build(rig: HumanoidRig, joints: list[str] | None = None) -> Retarget
     return adapter
 
 
-def _from_header(bvh_header: str, options: dict) -> Retarget:
-    """A custom rig's adapter, through the canonical-rig cache."""
+def _from_header(parsed: bvhio.BvhFile, skeleton: Skeleton, options: dict) -> Retarget:
+    """A custom rig's adapter (its header parsed and checked), through the canonical-rig cache."""
     if "joints" in options:
         raise RigError(
             "bad_skeleton", "give 'joints' with a preset 'skeleton', not with 'bvh_header' (its order is the header's)"
         )
-    parsed, skeleton = _parse(bvh_header)
     translated = translated_joint(parsed, skeleton, options.get("joint_map"))
     key = _rig_key(skeleton, translated, options)
     cached = _recall(_BY_RIG, key)
@@ -266,11 +265,11 @@ def _adapter(
     if joints is not None:
         rig_check.check_names(joints)
     if bvh_header is not None:
-        if joints is None and _as_model_world(options):  # the model's own rig needs no retargeter
-            names = list(_parse(bvh_header)[1].names)
-            if _is_model_skeleton(names, model_skeleton, options):
-                return Reorder(names, model_skeleton)
-        return _from_header(bvh_header, {**options, **({"joints": joints} if joints is not None else {})})
+        parsed, parsed_skeleton = _parse(bvh_header)
+        names = list(parsed_skeleton.names)
+        if joints is None and _is_model_skeleton(names, model_skeleton, options):  # no retargeter needed
+            return Reorder(names, model_skeleton)
+        return _from_header(parsed, parsed_skeleton, {**options, **({"joints": joints} if joints is not None else {})})
     if skeleton == "bandai-namco" and _as_model_world(options):
         names = list(joints) if joints is not None else list(model_skeleton.names)
         missing = [n for n in model_skeleton.names if n not in names]
@@ -295,7 +294,7 @@ def adapter_for(
 ) -> SkeletonAdapter:
     """The adapter for a start message's rig; raises `ProtocolError` (fatal, typed) for a rig
     that cannot be mapped, before anything is set up. Synchronous and up to a few hundred ms for
-    a large rig: a connection calls `build_adapter`, which runs it off the event loop."""
+    a large rig: a connection calls `rig_builds.RigBuilds.adapter`, which runs it off the event loop."""
     text_key = (skeleton, bvh_header, tuple(model_skeleton.names), json.dumps([joints, options], sort_keys=True))
     cached = _recall(_BY_TEXT, text_key)
     if cached is not None:

@@ -144,7 +144,7 @@ def test_a_closing_crowd_stores_only_what_its_caller_may_keep(models):
     """A crowd larger than `token_max_stored_sessions` stores its last characters up to that cap
     when its connection drops, and ends the others, with no store-then-evict: storing all and
     evicting all but 256 stalled every stream for 733 ms at 16,384 characters. Every character
-    was stored periodically meanwhile (a share of them per tick)."""
+    was stored periodically meanwhile."""
     with live_server(models, idle_timeout_s=30, token_max_stored_sessions=5, snapshot_every=3) as (base, app):
         runtime = app.state.runtime
         with connect(ws_url(base)) as ws:
@@ -165,3 +165,39 @@ def test_a_closing_crowd_stores_only_what_its_caller_may_keep(models):
         outcomes = [resume_session(base, t) for t in tokens]
         assert [o.get("code") for o in outcomes[:7]] == ["unknown_resume_token"] * 7
         assert [(o["type"], o["last_seq"]) for o in outcomes[7:]] == [("started", 2)] * 5
+
+
+def test_a_large_crowds_periodic_snapshots_come_in_parts_all_from_one_tick(models):
+    """600 characters stored every 2 ticks, built 256 at a time after the tick (the loop free
+    between parts): every one carries the same tick's `last_seq`, and one that left meanwhile
+    is not brought back."""
+    with live_server(models, idle_timeout_s=30, snapshot_every=2) as (base, app):
+        runtime = app.state.runtime
+
+        def stored_seqs(tokens):
+            seqs = []
+            for t in tokens:
+                entry = runtime.snapshots._pending.get(t)
+                snap = entry.snapshot if entry is not None else runtime.snapshots.store._data.get(t, (0, None))[1]
+                seqs.append(None if snap is None else snap.last_seq)
+            return seqs
+
+        with connect(ws_url(base), max_size=None) as ws:
+            chars = [{"id": i, "model": "lti", "style": "elderly"} for i in range(600)]
+            ws.send(json.dumps({"type": "crowd", "characters": chars}))
+            tokens = [c["resume_token"] for c in json.loads(ws.recv(timeout=60))["characters"]]
+            payload = np.tile(np.frombuffer(rest_frame(0)[P.BINARY_HEADER.size :], "<f4"), 600)
+            for seq in range(2):
+                ws.send(P.encode_tick(seq, np.arange(600, dtype="<u4"), payload))
+                assert isinstance(ws.recv(timeout=60), bytes)
+            wait_until(lambda: None not in stored_seqs(tokens), "every character's periodic snapshot", timeout=30)
+            first = set(stored_seqs(tokens))
+            assert len(first) == 1 and first <= {0, 1}  # one tick's, whichever the crowd's phase stores after
+            ws.send(json.dumps({"type": "leave", "characters": [599]}))
+            assert json.loads(ws.recv(timeout=30))["characters"] == [599]
+            for seq in range(2, 4):
+                ws.send(P.encode_tick(seq, np.arange(599, dtype="<u4"), payload[: 599 * 91]))
+                assert isinstance(ws.recv(timeout=60), bytes)
+            later = {min(first) + 2}  # the next period's tick
+            wait_until(lambda: set(stored_seqs(tokens[:599])) == later, "the next period's snapshots", timeout=30)
+            assert stored_seqs(tokens[599:]) == [None]  # left for good: not stored again
