@@ -29,7 +29,6 @@ runs two busy processes instead of an attack, what CPU load alone costs the heal
 from __future__ import annotations
 
 import argparse
-import base64
 import contextlib
 import json
 import multiprocessing
@@ -157,34 +156,12 @@ def uploads(base: str, bvh_text: str, seconds: float) -> Counter:
     return seen
 
 
-class TokenRawClient(RawClient):
-    """`RawClient` whose handshake carries the attacker's token (the server has tokens)."""
-
-    def __init__(self, base: str, token: str = ATTACKER, rcvbuf: int = 4096) -> None:
-        RawSocket.__init__(self, base, rcvbuf)
-        key = base64.b64encode(os.urandom(16)).decode()
-        self.sock.sendall(
-            (
-                f"GET /v1/stream?token={token} HTTP/1.1\r\nHost: {self.host}:{self.port}\r\nUpgrade: websocket\r\n"
-                f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
-            ).encode()
-        )
-        head = b""
-        while b"\r\n\r\n" not in head:
-            chunk = self.sock.recv(1)
-            assert chunk, "connection closed during the handshake"
-            head += chunk
-        if not head.startswith(b"HTTP/1.1 101"):
-            self.sock.close()
-            raise HandshakeRefused(head.split(b"\r\n", 1)[0].decode(errors="replace"), head)
-
-
 def reset_flood_no_read(base: str, seconds: float) -> Counter:
     seen: Counter = Counter()
     end = time.monotonic() + seconds
     while time.monotonic() < end:
         try:
-            client = TokenRawClient(base)
+            client = RawClient(base, token=ATTACKER)
         except HandshakeRefused as refused:  # closed for flooding a moment ago: cooling down
             seen[f"refused {refused.status}"] += 1
             continue

@@ -53,14 +53,16 @@ class HandshakeRefused(Exception):
 
 class RawClient(RawSocket):
     """A WebSocket client that reads only when told to (a browser tab gone to sleep, a stalled
-    game thread): the handshake by hand, then masked text frames."""
+    game thread): the handshake by hand (with `token` in the query where the server has tokens),
+    then masked text frames."""
 
-    def __init__(self, base: str, rcvbuf: int = 4096) -> None:
+    def __init__(self, base: str, rcvbuf: int = 4096, token: str | None = None) -> None:
         super().__init__(base, rcvbuf)
         key = base64.b64encode(os.urandom(16)).decode()
+        path = "/v1/stream" if token is None else f"/v1/stream?token={token}"
         self.sock.sendall(
             (
-                f"GET /v1/stream HTTP/1.1\r\nHost: {self.host}:{self.port}\r\nUpgrade: websocket\r\n"
+                f"GET {path} HTTP/1.1\r\nHost: {self.host}:{self.port}\r\nUpgrade: websocket\r\n"
                 f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
             ).encode()
         )
