@@ -12,7 +12,7 @@ import pytest
 from models.data import build_index, load_motions, select
 from models.eval import sealed
 from models.eval.intervals import share, wilson
-from models.eval.physical import Reference, measure
+from models.eval.physical import Input, Reference, measure
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import load_style_judge
 from models.motion.rotations import expmap_to_quat, quat_mul
@@ -69,17 +69,17 @@ def test_a_shaking_head_is_jitter_and_a_dragged_foot_is_slide(walk):
     index = build_index([D2])
     train = load_motions(select(index, split="train", style="normal", content="walk")[:8])
     ref = Reference.fit({"normal": train}, {"normal": load_motions(select(index, split="val", style="normal"))[1::4]})
-    same = measure(ref, "normal", walk, walk)
+    same = measure(ref, "normal", walk, Input.of(walk, ref))
     assert same.jitter <= 1.0 and same.path_ratio == pytest.approx(1.0) and same.end_drift < 1e-9
     rot = walk.rotations.copy()
     head = walk.skeleton.index("Head")
     shake = np.where(np.arange(walk.num_frames) % 2, 0.05, -0.05)[:, None] * np.array([0.0, 0.0, 1.0])
     rot[:, head] = quat_mul(expmap_to_quat(shake), rot[:, head])  # +-3 degrees, every other frame
-    shaking = measure(ref, "normal", replace(walk, rotations=rot), walk)
+    shaking = measure(ref, "normal", replace(walk, rotations=rot), Input.of(walk, ref))
     assert shaking.jitter > 1.5
     trans = walk.translations.copy()
     trans[:, walk.skeleton.index("Hips"), 0] += np.arange(walk.num_frames) * 3.0  # the whole body glides 90 cm/s
-    glide = measure(ref, "normal", replace(walk, translations=trans), walk)
+    glide = measure(ref, "normal", replace(walk, translations=trans), Input.of(walk, ref))
     assert np.percentile(glide.foot_speeds, 95) > np.percentile(same.foot_speeds, 95) + 50
 
 

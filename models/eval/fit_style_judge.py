@@ -25,7 +25,7 @@ import numpy as np
 
 from ..data import build_index, load_motions, select
 from ..settings import REPO_ROOT
-from .intervals import share, shown
+from .intervals import share, share_table, shown
 from .style_judge import StyleJudge, clip_statistics, d1_label, fit_linear, judges_file
 
 D1, D2 = "bandai-namco-1", "bandai-namco-2"
@@ -160,10 +160,8 @@ def markdown(r: dict, confusion: Counter, d1) -> str:
         "",
         "## Held-out accuracy (clips read as their own label; 95 % Wilson interval)",
         "",
-        "| clips | accuracy |",
-        "|---|---|",
     ]
-    lines += [f"| {k} | {shown(v['accuracy'])} |" for k, v in r["held_out"].items()]
+    lines += share_table("clips", {k: v["accuracy"] for k, v in r["held_out"].items()})
     lines += [
         "",
         "## Which labels the datasets share",

@@ -31,3 +31,8 @@ def shown(s: dict) -> str:
     if not s["n"]:
         return "–"
     return f"{100 * s['share']:.0f}% ({s['hits']}/{s['n']}, {100 * s['lo']:.0f}–{100 * s['hi']:.0f})"
+
+
+def share_table(header: str, shares: dict[str, dict]) -> list[str]:
+    """Markdown rows: one `shown` share per named row, under `header`."""
+    return [f"| {header} | accuracy |", "|---|---|", *(f"| {k} | {shown(v)} |" for k, v in shares.items())]

@@ -134,25 +134,40 @@ class ClipPhysics:
         return bool(self.within.min() >= PLAUSIBLE_FRAMES)
 
 
-def measure(ref: Reference, style: str, out: Motion, inp: Motion | None) -> ClipPhysics:
-    joints = ref.support.joint_index
-    acc = rotation_acceleration(out, joints)
+@dataclass
+class Input:
+    """What the ratios need of an input clip, measured once for every style and variant that
+    streams it: each joint's p99 rotation acceleration and the hips' path on the ground."""
+
+    p99_acc: np.ndarray  # (J,) degrees per frame per frame
+    hips_xz: np.ndarray  # (F, 2)
+    leg: float  # units
+
+    @classmethod
+    def of(cls, motion: Motion, ref: Reference) -> Input:
+        acc = rotation_acceleration(motion, ref.support.joint_index)
+        return cls(np.percentile(acc, 99, axis=0), _hips_xz(motion), left_leg_length(motion.skeleton))
+
+
+def measure(ref: Reference, style: str, out: Motion, inp: Input | None) -> ClipPhysics:
+    acc = rotation_acceleration(out, ref.support.joint_index)
     jitter, path_ratio, drift = float("nan"), float("nan"), float("nan")
     if inp is not None and out.num_frames > 3:
-        floor = np.maximum(np.percentile(rotation_acceleration(inp, joints), 99, axis=0), ref.style_p99[style])
-        jitter = float((np.percentile(acc, 99, axis=0) / floor).max())
-        path_ratio, drift = _paths(inp, out)
+        jitter = float((np.percentile(acc, 99, axis=0) / np.maximum(inp.p99_acc, ref.style_p99[style])).max())
+        path_ratio, drift = _paths(inp, _hips_xz(out))
     return ClipPhysics(ref.support.within(style, out), acc, jitter, planted_speeds(out), path_ratio, drift)
 
 
-def _paths(inp: Motion, out: Motion) -> tuple[float, float]:
-    hips, leg = body_joint(inp.skeleton, "hips"), left_leg_length(inp.skeleton)
-    a = inp.global_positions()[:, hips][:, [0, 2]]
-    b = out.global_positions()[:, hips][:, [0, 2]]
+def _hips_xz(motion: Motion) -> np.ndarray:
+    return motion.global_positions()[:, body_joint(motion.skeleton, "hips")][:, [0, 2]]
+
+
+def _paths(inp: Input, b: np.ndarray) -> tuple[float, float]:
+    a = inp.hips_xz
     length = lambda p: float(np.linalg.norm(np.diff(p, axis=0), axis=-1).sum())  # noqa: E731
     n = min(len(a), len(b))
     drift = float(np.linalg.norm((a[n - 1] - a[0]) - (b[n - 1] - b[0])))
-    return (length(b) + leg) / (length(a) + leg), drift
+    return (length(b) + inp.leg) / (length(a) + inp.leg), drift
 
 
 def summarise(clips: list[ClipPhysics], ref: Reference) -> dict:

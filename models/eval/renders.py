@@ -16,7 +16,7 @@ from ..motion.render import render_contact_sheet
 from ..motion.retarget import retarget
 from ..registry import load_models
 from ..settings import REPO_ROOT, get_settings
-from .sealed import _outputs
+from .run import stylise_toward
 
 # (dataset, clip): other sources than the models' training data, none of them a test input
 INPUTS = (("cmu", "131_02"), ("xia", "neutral_walk_01_000"), ("bandai-namco-1", "dataset-1_walk_normal_001"))
@@ -37,7 +37,7 @@ def main() -> None:
         motion = load_motion(clip)
         motion = motion if clip.skeleton == "bandai-namco" else retarget(motion)
         motion = motion.slice(0, int(SECONDS * motion.fps))
-        outs = {k: _outputs(m, [motion], a.style) for k, m in variants.items()}
+        outs = {k: stylise_toward(m, [motion], a.style) for k, m in variants.items()}
         for style in a.style:
             rows = [motion] + [outs[k][style][0] for k in variants]
             titles = [f"input: {dataset} {name}"] + [f"{k} -> {style}" for k in variants]

@@ -118,6 +118,16 @@ def score(
     }
 
 
+def stylise_toward(model: StreamingModel | None, inputs: list[Motion], styles: list[str]) -> dict[str, list[Motion]]:
+    """Every input toward every style in one batch of sessions: style -> outputs (None: the
+    inputs themselves, the identity row)."""
+    if model is None:
+        return {s: inputs for s in styles}
+    order = [model.styles().index(s) for s in styles]
+    flat = stylise(model, [m for _ in styles for m in inputs], [k for k in order for _ in inputs])
+    return {s: flat[i * len(inputs) : (i + 1) * len(inputs)] for i, s in enumerate(styles)}
+
+
 def run_after_history(
     model: StreamingModel, inputs: list[Motion], styles: list[str]
 ) -> tuple[list[Motion], dict[str, list[Motion]]]:
@@ -126,10 +136,5 @@ def run_after_history(
     the outputs over the scored part only."""
     runs = [with_history(inputs, i, HISTORY_FRAMES) for i in range(len(inputs))]
     placed = [whole.slice(start, whole.num_frames) for whole, start in runs]
-    order = [model.styles().index(s) for s in styles]
-    flat = stylise(model, [whole for _ in styles for whole, _ in runs], [k for k in order for _ in runs])
-    outs = {
-        s: [o.slice(start, o.num_frames) for o, (_, start) in zip(flat[i * len(runs) : (i + 1) * len(runs)], runs)]
-        for i, s in enumerate(styles)
-    }
-    return placed, outs
+    outs = stylise_toward(model, [whole for whole, _ in runs], styles)
+    return placed, {s: [o.slice(start, o.num_frames) for o, (_, start) in zip(outs[s], runs)] for s in styles}

@@ -21,14 +21,13 @@ import torch
 
 from ..data import build_index, load_motions, select
 from ..interface import StreamingModel
-from ..motion.skeleton import Motion
 from ..registry import load_models
 from ..settings import REPO_ROOT, get_settings
 from .features import clip_features
-from .intervals import share, shown
+from .intervals import share, share_table, shown
 from .judges import load_judges
-from .physical import ClipPhysics, Reference, measure, summarise
-from .run import HISTORY_FRAMES, run_after_history, stylise
+from .physical import ClipPhysics, Input, Reference, measure, summarise
+from .run import HISTORY_FRAMES, run_after_history, stylise_toward
 from .sources import D2, Source, input_sources
 from .style_judge import load_style_judge
 
@@ -83,17 +82,19 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
     for s in styles:
         rows.append(_row("real", None, "fresh", s, real[s], None, None, judge, old, ref))
     for source in sources:
+        measured = [Input.of(m, ref) for m in source.motions]
         for variant, model in variants.items():
-            fresh = _outputs(model, source.motions, styles)
+            fresh = stylise_toward(model, source.motions, styles)
             for s in styles:
-                rows.append(
-                    _row(variant, source, "fresh", s, fresh[s], source.motions, source.contents, judge, old, ref)
-                )
+                rows.append(_row(variant, source, "fresh", s, fresh[s], measured, source.contents, judge, old, ref))
             if model is None:
                 continue
             placed, running = run_after_history(model, source.motions, styles)
+            placed_measured = [Input.of(m, ref) for m in placed]
             for s in styles:
-                rows.append(_row(variant, source, "running", s, running[s], placed, source.contents, judge, old, ref))
+                rows.append(
+                    _row(variant, source, "running", s, running[s], placed_measured, source.contents, judge, old, ref)
+                )
     for r in rows:
         r["gates"] = gates(r, rows)
     results = {
@@ -122,16 +123,20 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
     return results
 
 
-def _outputs(model: StreamingModel | None, inputs: list[Motion], styles: list[str]) -> dict[str, list[Motion]]:
-    if model is None:
-        return {s: inputs for s in styles}
-    order = [model.styles().index(s) for s in styles]
-    flat = stylise(model, [m for _ in styles for m in inputs], [k for k in order for _ in inputs])
-    return {s: flat[i * len(inputs) : (i + 1) * len(inputs)] for i, s in enumerate(styles)}
-
-
-def _row(variant, source: Source | None, session, style, outs, inputs, contents, judge, old, ref: Reference) -> dict:
-    """One row: a variant's outputs toward `style` from one source's inputs (or real clips)."""
+def _row(
+    variant,
+    source: Source | None,
+    session,
+    style,
+    outs,
+    inputs: list[Input] | None,
+    contents,
+    judge,
+    old,
+    ref: Reference,
+) -> dict:
+    """One row: a variant's outputs toward `style` from one source's inputs (measured once by
+    the caller; None for real clips)."""
     read = judge.predict(outs)
     phys: list[ClipPhysics] = [
         measure(ref, style, o, None if inputs is None else inputs[i]) for i, o in enumerate(outs)
@@ -270,10 +275,8 @@ def markdown(r: dict) -> str:
         "positions, a linear read, trained on datasets 1 and 2 with the labels they share mapped where the data "
         "agrees. Held-out real clips it reads as their own style (95 % interval):",
         "",
-        "| real clips | accuracy |",
-        "|---|---|",
     ]
-    lines += [f"| {k} | {shown(v['accuracy'])} |" for k, v in meta["judge"].items()]
+    lines += share_table("real clips", {k: v["accuracy"] for k, v in meta["judge"].items()})
     lines += [
         "",
         "## Metrics and gates",
