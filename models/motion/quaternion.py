@@ -1,0 +1,132 @@
+"""The one home of quaternion maths inside compiled kernels (numba), on 4-tuples.
+
+Quaternions are (x, y, z, w), scalar-last like the rest of the project; vectors are 3-tuples;
+everything is float64. Kernels import these instead of repeating them: tuples keep the maths
+readable (`qmul(qinv(a), b)`) and numba inlines them, so they cost nothing over hand-written code.
+Array-level numpy maths lives in `rotations.py`.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+
+@njit(cache=True, error_model="numpy")
+def qmul(a, b):
+    """Hamilton product a * b (apply b, then a)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    )
+
+
+@njit(cache=True, error_model="numpy")
+def qinv(q):
+    """Inverse of a unit quaternion (its conjugate)."""
+    return (-q[0], -q[1], -q[2], q[3])
+
+
+@njit(cache=True, error_model="numpy")
+def qunit(q):
+    """q scaled to unit length."""
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+@njit(cache=True, error_model="numpy")
+def qdot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
+
+
+@njit(cache=True, error_model="numpy")
+def qneg(q):
+    """The same rotation from the other hemisphere."""
+    return (-q[0], -q[1], -q[2], -q[3])
+
+
+@njit(cache=True, error_model="numpy")
+def cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@njit(cache=True, error_model="numpy")
+def dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True, error_model="numpy")
+def add3(a, b):
+    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
+
+
+@njit(cache=True, error_model="numpy")
+def sub3(a, b):
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+@njit(cache=True, error_model="numpy")
+def scale3(a, k):
+    return (k * a[0], k * a[1], k * a[2])
+
+
+@njit(cache=True, error_model="numpy")
+def qrot(q, v):
+    """Rotate vector v by unit quaternion q (two cross products, no matrix)."""
+    xyz = (q[0], q[1], q[2])
+    t = cross(xyz, v)
+    t = (2.0 * t[0], 2.0 * t[1], 2.0 * t[2])
+    u = cross(xyz, t)
+    w = q[3]
+    return (v[0] + w * t[0] + u[0], v[1] + w * t[1] + u[1], v[2] + w * t[2] + u[2])
+
+
+@njit(cache=True, error_model="numpy")
+def qlog(q):
+    """Rotation vector (axis * angle) of a unit quaternion, along the shortest arc."""
+    x, y, z, w = q
+    if w < 0.0:
+        x, y, z, w = -x, -y, -z, -w
+    s = math.sqrt(x * x + y * y + z * z)
+    if s <= 1e-9:
+        return (2.0 * x, 2.0 * y, 2.0 * z)
+    k = 2.0 * math.atan2(s, w) / s
+    return (k * x, k * y, k * z)
+
+
+@njit(cache=True, error_model="numpy")
+def qexp(v):
+    """Unit quaternion of a rotation vector; the inverse of `qlog`."""
+    a = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    k = math.sin(0.5 * a) / a if a > 1e-9 else 0.5
+    return (k * v[0], k * v[1], k * v[2], math.cos(0.5 * a))
+
+
+@njit(cache=True, error_model="numpy")
+def axis_angle(axis, angle):
+    """Unit quaternion turning by `angle` radians about the unit vector `axis`."""
+    s = math.sin(0.5 * angle)
+    return (s * axis[0], s * axis[1], s * axis[2], math.cos(0.5 * angle))
+
+
+@njit(cache=True, error_model="numpy")
+def quat_at(a, i, j):
+    """Quaternion a[i, j] of a (n, m, 4) array as a 4-tuple."""
+    return (a[i, j, 0], a[i, j, 1], a[i, j, 2], a[i, j, 3])
+
+
+@njit(cache=True, error_model="numpy")
+def row4(a, j):
+    """Row j of an (n, 4) array as a 4-tuple."""
+    return (a[j, 0], a[j, 1], a[j, 2], a[j, 3])
+
+
+@njit(cache=True, error_model="numpy")
+def row3(a, j):
+    """Row j of an (n, 3) array as a 3-tuple."""
+    return (a[j, 0], a[j, 1], a[j, 2])

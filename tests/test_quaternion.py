@@ -1,0 +1,34 @@
+"""The compiled quaternion helpers agree with scipy's rotations on random unit quaternions."""
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from models.motion import quaternion as Q
+
+RNG = np.random.default_rng(7)
+
+
+def _random_quats(n: int) -> np.ndarray:
+    return Rotation.random(n, random_state=RNG).as_quat()  # scalar-last, like the project
+
+
+def test_product_inverse_and_rotation_match_scipy():
+    a, b = _random_quats(50), _random_quats(50)
+    v = RNG.normal(size=(50, 3))
+    for i in range(50):
+        expect = (Rotation.from_quat(a[i]) * Rotation.from_quat(b[i])).as_quat()
+        got = np.array(Q.qmul(tuple(a[i]), tuple(b[i])))
+        assert min(np.abs(got - expect).max(), np.abs(got + expect).max()) < 1e-12
+        assert np.allclose(Q.qrot(tuple(a[i]), tuple(v[i])), Rotation.from_quat(a[i]).apply(v[i]))
+        ident = Q.qmul(Q.qinv(tuple(a[i])), tuple(a[i]))
+        assert np.allclose(ident, (0.0, 0.0, 0.0, 1.0))
+
+
+def test_log_and_exp_invert_each_other_on_the_shortest_arc():
+    for q in _random_quats(50):
+        v = np.array(Q.qlog(tuple(q)))
+        assert np.linalg.norm(v) <= np.pi + 1e-12
+        assert np.allclose(v, Rotation.from_quat(q).as_rotvec())
+        back = np.array(Q.qexp(tuple(v)))
+        assert min(np.abs(back - q).max(), np.abs(back + q).max()) < 1e-12
+    assert Q.qexp((0.0, 0.0, 0.0)) == (0.0, 0.0, 0.0, 1.0)
