@@ -5,7 +5,6 @@ python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [-
 python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2] [--weights DIR]
 python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
 python -m models.lti align-plot [-o out/lti_alignment.png]
-python -m models.lti card --train-time "..."   (benchmark + models/weights/lti/MODEL_CARD.md)
 """
 
 from __future__ import annotations
@@ -125,20 +124,6 @@ def cmd_render(args) -> None:
             print(f"wrote {gif}")
 
 
-def cmd_card(args) -> None:
-    import contextlib
-    import io
-
-    from .card import write_model_card
-
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        cmd_bench(argparse.Namespace(style=None, frames=args.frames, threads=[1]))
-    path = write_model_card(buf.getvalue().strip(), args.train_time, args.command)
-    print(buf.getvalue().strip())
-    print(f"wrote {path}")
-
-
 def cmd_align_plot(args) -> None:
     from .plots import alignment_figure
 
@@ -183,11 +168,6 @@ def main(argv: list[str] | None = None) -> None:
     v.add_argument("--seconds", type=float, default=6.0)
     v.add_argument("--no-gif", action="store_true")
     v.set_defaults(func=cmd_render)
-    c = sub.add_parser("card")
-    c.add_argument("--train-time", required=True)
-    c.add_argument("--command", default="python -m models.lti train")
-    c.add_argument("--frames", type=int, default=3000)
-    c.set_defaults(func=cmd_card)
     a = sub.add_parser("align-plot")
     a.add_argument("-o", "--output", default="out/lti_alignment.png")
     a.set_defaults(func=cmd_align_plot)
