@@ -11,6 +11,8 @@ the data says they agree (`fit_style_judge`).
 
 What it reads: rotations and angular speeds only. Positions (hips height, hands and feet relative
 to the hips) carry the performer's bone lengths, which tell recordings apart rather than styles.
+Each clip is read against the centre of its own session and content (`StyleJudge.reference`), so
+the caller names both: the dataset the input came from and what it performs.
 
 What it answers (`predict`): one of the labels the evaluation asks about (dataset 2's styles and
 the styles mapped onto them, `normal` among them) or `OTHER`, a style outside that set (dataset
