@@ -14,7 +14,7 @@ from models.eval import sealed
 from models.eval.intervals import share, wilson
 from models.eval.physical import Input, Reference, measure
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
-from models.eval.style_judge import load_style_judge
+from models.eval.style_judge import OTHER, load_style_judge
 from models.motion.rotations import expmap_to_quat, quat_mul
 
 
@@ -48,15 +48,39 @@ def judge():
 
 
 def test_the_style_judge_reads_real_held_out_clips_of_both_datasets(judge):
+    """Every VALIDATION clip of both datasets (never fitted on): dataset 2's read as their style,
+    dataset 1's as the label their style maps to, or `other`; >= 90 % of each dataset."""
     index = build_index([D1, D2])
-    for style in ("elderly", "feminine", "normal"):
-        clips = select(index, dataset=D2, split="test", style=style, content="walk")[:2]
-        assert judge.predict(load_motions(clips)) == [style] * len(clips)
+    for dataset in (D2, D1):
+        clips = [c for c in select(index, dataset=dataset, split="val") if f"{dataset}/{c.content}" in judge.centres]
+        truth = [c.style if dataset == D2 else judge.mapping.get(c.style, OTHER) for c in clips]
+        read = judge.predict(load_motions(clips), dataset, [c.content for c in clips])
+        hits = sum(r == t for r, t in zip(read, truth))
+        assert len(clips) >= 18 and hits >= 0.9 * len(clips), (dataset, hits, len(clips))
     old = select(index, dataset=D1, style="old", content="walk")
     assert judge.mapping.get("old") == "elderly"
-    assert judge.predict(load_motions(old)).count("elderly") >= 1
+    assert judge.predict(load_motions(old), D1, ["walk"] * len(old)).count("elderly") >= 1
     report = json.loads((sealed.REPO_ROOT / "docs/eval/style_judge.json").read_text())
-    assert report["held_out"]["dataset-2 test"]["accuracy"]["share"] >= 0.9
+    assert report["held_out"]["dataset-2 val"]["accuracy"]["share"] >= 0.9
+
+
+def test_half_a_degree_off_the_hinges_does_not_change_the_read(judge):
+    """A model's elbows and knees a fraction of a degree off their hinge axis (noise real clips never
+    show) must not move the read: the standardisation floor and clip keep it on the style."""
+    index = build_index([D2])
+    clips = [c for s in judge.named for c in select(index, dataset=D2, split="val", style=s, content="walk")[:2]]
+    motions = load_motions(clips)
+    rng = np.random.default_rng(0)
+    noisy = []
+    for m in motions:
+        rot = m.rotations.copy()
+        for name in ("LowerArm_L", "LowerArm_R", "LowerLeg_L", "LowerLeg_R"):
+            j = m.skeleton.index(name)
+            off = rng.normal(size=(m.num_frames, 3)) * np.radians(0.5) / np.sqrt(3)
+            rot[:, j] = quat_mul(rot[:, j], expmap_to_quat(off))
+        noisy.append(replace(m, rotations=rot))
+    contents = [c.content for c in clips]
+    assert judge.predict(noisy, D2, contents) == judge.predict(motions, D2, contents) == [c.style for c in clips]
 
 
 @pytest.fixture(scope="module")

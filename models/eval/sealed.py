@@ -73,6 +73,11 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
         real = {s: v[1::2] for s, v in val.items()}
     if quick:
         real = {s: v[:4] for s, v in real.items()}
+    # what each real clip performs: the style judge reads a clip against its session's content
+    real_contents = {s: [c.content for c in select(index, split=split, style=s)] for s in styles}
+    if not final:
+        real_contents = {s: v[1::2] for s, v in real_contents.items()}
+    real_contents = {s: v[: len(real[s])] for s, v in real_contents.items()}
     sources = input_sources(split, quick=quick)
     variants: dict[str, StreamingModel | None] = {"identity": None}
     for name in full:
@@ -80,7 +85,7 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
 
     rows: list[dict] = []
     for s in styles:
-        rows.append(_row("real", None, "fresh", s, real[s], None, None, judge, old, ref))
+        rows.append(_row("real", None, "fresh", s, real[s], None, real_contents[s], judge, old, ref))
     for source in sources:
         measured = [Input.of(m, ref) for m in source.motions]
         for variant, model in variants.items():
@@ -137,7 +142,7 @@ def _row(
 ) -> dict:
     """One row: a variant's outputs toward `style` from one source's inputs (measured once by
     the caller; None for real clips)."""
-    read = judge.predict(outs)
+    read = judge.predict(outs, D2 if source is None else source.dataset, contents)
     phys: list[ClipPhysics] = [
         measure(ref, style, o, None if inputs is None else inputs[i]) for i, o in enumerate(outs)
     ]
@@ -271,9 +276,10 @@ def markdown(r: dict) -> str:
         "## The style judge first",
         "",
         "A new judge built by another recipe than the models were tuned against (`models/eval/style_judge.py`, "
-        "[its report](eval/style_judge.md)): per-window statistics of local rotations, speeds and body-relative "
-        "positions, a linear read, trained on datasets 1 and 2 with the labels they share mapped where the data "
-        "agrees. Held-out real clips it reads as their own style (95 % interval):",
+        "[its report](eval/style_judge.md)): per-window statistics of local rotations and angular speeds, read "
+        "against the mean of the input's own session and content, a linear read, trained on datasets 1 and 2 with "
+        "the labels they share mapped where the data agrees; it answers a dataset-2 style or `other`. Held-out "
+        "real clips it reads right (95 % interval):",
         "",
     ]
     lines += share_table("real clips", {k: v["accuracy"] for k, v in meta["judge"].items()})

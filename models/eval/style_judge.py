@@ -1,16 +1,28 @@
-"""The style judge of the sealed evaluation: per-window statistics of local rotations, joint speeds
-and body-relative positions, and a multinomial logistic regression over them, trained on Bandai
-Namco datasets 1 and 2 together.
+"""The style judge of the sealed evaluation: per-window statistics of local rotations and angular
+speeds, and a multinomial logistic regression over them, trained on Bandai Namco datasets 1 and 2
+together.
 
 Why another judge: the conv-net judges (`judges.py`) were trained on dataset 2 alone and learned
 its recordings as much as its styles (on real dataset-1 clips sharing a style label they were right
 49 % and 31 % of the time). This one is built by a different recipe, so a model tuned against the
-old judges gets no free pass here: a linear read of summary statistics (what a human would check:
-posture, how much each joint moves, how fast), trained on both datasets, with the labels the two
-share mapped only where the data says they agree (`label_mapping`).
+old judges gets no free pass here: a linear read of summary statistics (posture, how much each
+joint moves, how fast), trained on both datasets, with the labels the two share mapped only where
+the data says they agree (`fit_style_judge`).
 
-A clip is read as the style whose mean log-probability over its windows is highest. Inference is
-numpy only; `fit` (scikit-learn) runs in `python -m models.eval.style_judge`.
+What it reads: rotations and angular speeds only. Positions (hips height, hands and feet relative
+to the hips) carry the performer's bone lengths, which tell recordings apart rather than styles.
+Each clip is read against the centre of its own session and content (`StyleJudge.reference`), so
+the caller names both: the dataset the input came from and what it performs.
+
+What it answers (`predict`): one of the labels the evaluation asks about (dataset 2's styles and
+the styles mapped onto them, `normal` among them) or `OTHER`, a style outside that set (dataset
+1's own styles: happy, giant, ...). A label shared by both datasets weighs each dataset the same
+in the fit, so it is learnt from both recordings and not from dataset 2's hundreds of takes alone;
+the dataset-1-only styles stay classes of their own in the fit (a linear read cannot draw one
+class round eleven different styles), and a clip reads as `OTHER` when their probabilities
+together beat every named label.
+
+Inference is numpy only; `fit_linear` (scikit-learn) runs in `python -m models.eval.fit_style_judge`.
 """
 
 from __future__ import annotations
@@ -20,7 +32,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..motion.features import body_joint, facing_yaw, left_leg_length, yaw_matrix
 from ..motion.rotations import matrix_to_6d, quat_angle, quat_to_matrix
 from ..motion.skeleton import Motion
 from .plausibility import body_joints, comparable_rotations
@@ -35,34 +46,20 @@ STRIDE = 30
 SCALE_FLOOR = 0.05
 Z_CLIP = 5.0
 FILE = "style_judge.npz"
-# positions that say how the body is carried: head and hands and feet relative to the hips
-POSED_PARTS = ("Head", "Hand_L", "Hand_R", "Foot_L", "Foot_R")
+OTHER = "other"  # what `predict` answers for a style outside the evaluation's labels
+OWN_PREFIX = "d1-"  # a dataset-1 style that no dataset-2 label agrees with
 
 
 def frame_descriptors(motion: Motion) -> np.ndarray:
-    """(F, D) per-frame descriptors on the Bandai Namco rig: every body joint's local rotation as
-    6-D (the Hips without its heading), its angular speed (rad/s, backward difference), the
-    hips' height and horizontal speed and the head, hands and feet relative to the hips in the
-    facing frame (leg lengths)."""
-    sk = motion.skeleton
-    leg = left_leg_length(sk)
-    body = body_joints(sk)
-    rot = comparable_rotations(motion)[:, body]
+    """(F, 7 J) per-frame descriptors on the Bandai Namco rig: every body joint's local rotation
+    as 6-D (the Hips without its heading) and its angular speed (rad/s, backward difference)."""
+    rot = comparable_rotations(motion)[:, body_joints(motion.skeleton)]
     six = matrix_to_6d(quat_to_matrix(rot)).reshape(len(rot), -1)
     speed = np.zeros(rot.shape[:2])
     speed[1:] = quat_angle(rot[1:], rot[:-1]) * motion.fps
     if len(rot) > 1:
         speed[0] = speed[1]
-    pos = motion.global_positions()
-    hips = pos[:, body_joint(sk, "hips")]
-    turn = yaw_matrix(-facing_yaw(pos, sk))  # world -> facing frame
-    parts = pos[:, [sk.index(p) for p in POSED_PARTS]] - hips[:, None]
-    local = np.einsum("fij,fpj->fpi", turn, parts).reshape(len(pos), -1) / leg
-    step = np.zeros(len(pos))
-    step[1:] = np.linalg.norm(np.diff(hips[:, [0, 2]], axis=0), axis=-1) * motion.fps / leg
-    if len(pos) > 1:
-        step[0] = step[1]
-    return np.concatenate([six, speed, local, hips[:, 1:2] / leg, step[:, None]], axis=1)
+    return np.concatenate([six, speed], axis=1)
 
 
 def window_statistics(desc: np.ndarray, window: int = WINDOW, stride: int = STRIDE) -> np.ndarray:
@@ -81,8 +78,15 @@ def clip_statistics(motion: Motion) -> np.ndarray:
 
 @dataclass
 class StyleJudge:
-    """A fitted judge: standardisation, the linear read, its labels and the dataset-1 label
-    mapping it was trained with (dataset-1 style -> the label it was given)."""
+    """A fitted judge: per-(dataset, content) centres, standardisation, the linear read, its
+    labels (dataset-1-only styles carry `OWN_PREFIX`) and the dataset-1 label mapping it was
+    trained with (dataset-1 style -> the label it was given).
+
+    Why centres: dataset 1 has one take of each style and content, so a read of raw statistics
+    learns what a content and a recording session look like as much as the style. Every clip's
+    statistics are read relative to the mean, over styles, of its own session's TRAIN clips of the
+    same content (`reference`), so what is left is how this performance departs from the average
+    one. The evaluation knows both: the input's source and content, which an output must keep."""
 
     mean: np.ndarray
     scale: np.ndarray
@@ -90,17 +94,57 @@ class StyleJudge:
     intercept: np.ndarray  # (K,)
     labels: list[str]
     mapping: dict[str, str]
+    centres: dict[str, np.ndarray]  # "dataset/content" -> (2 D,)
 
-    def log_proba(self, stats: np.ndarray) -> np.ndarray:
+    def reference(self, dataset: str, content: str) -> np.ndarray:
+        """The centre of `content` in `dataset`; for a pair the TRAIN clips lack, the content's
+        centre over the sessions that have it, else the session's mean centre, else all of them."""
+        if f"{dataset}/{content}" in self.centres:
+            return self.centres[f"{dataset}/{content}"]
+        for prefix in (None, dataset):
+            same = [
+                v
+                for k, v in self.centres.items()
+                if (k.split("/", 1)[1] == content if prefix is None else k.split("/", 1)[0] == prefix)
+            ]
+            if same:
+                return np.mean(same, axis=0)
+        return np.mean(list(self.centres.values()), axis=0)
+
+    def log_proba(self, stats: np.ndarray, dataset: str, content: str) -> np.ndarray:
         """(K,) mean log-probability of each label over a clip's windows."""
-        z = np.clip((stats - self.mean) / self.scale, -Z_CLIP, Z_CLIP) @ self.coef.T + self.intercept
+        x = stats - self.reference(dataset, content)
+        z = np.clip((x - self.mean) / self.scale, -Z_CLIP, Z_CLIP) @ self.coef.T + self.intercept
         z -= z.max(axis=1, keepdims=True)
         return (z - np.log(np.exp(z).sum(axis=1, keepdims=True))).mean(axis=0)
 
-    def predict(self, motions: list[Motion]) -> list[str]:
-        return [self.labels[int(np.argmax(self.log_proba(clip_statistics(m))))] for m in motions]
+    @property
+    def named(self) -> list[str]:
+        """The labels the evaluation asks about (everything but the dataset-1-only styles)."""
+        return [s for s in self.labels if not s.startswith(OWN_PREFIX)]
+
+    def read(self, stats: np.ndarray, dataset: str, content: str) -> str:
+        """A named label, or `OTHER` when the dataset-1-only styles together are likelier."""
+        lp = self.log_proba(stats, dataset, content)
+        p = np.exp(lp - lp.max())
+        own = np.array([s.startswith(OWN_PREFIX) for s in self.labels])
+        if own.any() and p[own].sum() > p[~own].max():
+            return OTHER
+        return self.labels[int(np.argmax(np.where(own, -np.inf, lp)))]
+
+    def read_own(self, stats: np.ndarray, dataset: str, content: str) -> str:
+        """The single likeliest label, dataset-1-only styles included."""
+        return self.labels[int(np.argmax(self.log_proba(stats, dataset, content)))]
+
+    def predict(self, motions: list[Motion], dataset: str, contents: list[str]) -> list[str]:
+        """Each clip's read; `dataset` is the session the clips (or the inputs they were made
+        from) come from and `contents` what each performs."""
+        if len(contents) != len(motions):
+            raise ValueError(f"{len(motions)} clips but {len(contents)} contents")
+        return [self.read(clip_statistics(m), dataset, c) for m, c in zip(motions, contents)]
 
     def save(self, path: Path) -> None:
+        keys = sorted(self.centres)
         np.savez_compressed(
             path,
             mean=self.mean,
@@ -109,6 +153,8 @@ class StyleJudge:
             intercept=self.intercept,
             labels=np.array(self.labels),
             mapping=np.array([f"{k}={v}" for k, v in sorted(self.mapping.items())]),
+            centre_keys=np.array(keys),
+            centres=np.stack([self.centres[k] for k in keys]),
         )
 
     @classmethod
@@ -121,27 +167,42 @@ class StyleJudge:
             z["intercept"],
             [str(s) for s in z["labels"]],
             dict(str(s).split("=", 1) for s in z["mapping"]),
+            {str(k): v for k, v in zip(z["centre_keys"], z["centres"])},
         )
+
+
+def centres_of(stats: list[np.ndarray], sessions: list[str], contents: list[str], styles: list[str]):
+    """ "dataset/content" -> the mean over styles of the mean over that style's clips of their
+    window statistics: every style counts once, however many takes it has."""
+    groups: dict[str, dict[str, list[np.ndarray]]] = {}
+    for s, d, c, st in zip(stats, sessions, contents, styles):
+        groups.setdefault(f"{d}/{c}", {}).setdefault(st, []).append(s.mean(axis=0))
+    return {k: np.mean([np.mean(v, axis=0) for v in g.values()], axis=0) for k, g in sorted(groups.items())}
 
 
 def d1_label(style: str) -> str:
     """A dataset-1 style kept apart from dataset 2's labels."""
-    return f"d1-{style}"
+    return f"{OWN_PREFIX}{style}"
 
 
-def fit_linear(stats: list[np.ndarray], labels: list[str], c: float, seed: int = 0):
-    """Standardise the pooled windows and fit a multinomial logistic regression; every window of a
-    clip carries the clip's label, and each clip weighs the same whatever its length."""
+def fit_linear(stats: list[np.ndarray], labels: list[str], groups: list[str], c: float, seed: int = 0):
+    """Standardise the pooled windows and fit a multinomial logistic regression. Every window of a
+    clip carries the clip's label; each clip weighs the same whatever its length; each label
+    weighs the same, and within a label each group (dataset) weighs the same: dataset 1 has ten
+    clips a style where dataset 2 has hundreds, and a shared label fitted on their pool learns
+    dataset 2's recording (then dataset 1's clips of it read as some dataset-1-only style)."""
     from sklearn.linear_model import LogisticRegression
 
     x = np.concatenate(stats)
     y = np.concatenate([[lab] * len(s) for s, lab in zip(stats, labels)])
-    w = np.concatenate([np.full(len(s), 1.0 / len(s)) for s in stats])
-    mean, scale = x.mean(0), np.maximum(x.std(0), SCALE_FLOOR)
     names = sorted(set(labels))
-    # each label weighs the same: dataset 1 has 11 clips a style where dataset 2 has hundreds
-    counts = {lab: labels.count(lab) for lab in names}
-    w = w * np.array([len(labels) / (len(names) * counts[lab]) for lab in y])
+    count: dict[tuple[str, str], int] = {}
+    for key in zip(labels, groups):
+        count[key] = count.get(key, 0) + 1
+    split = {lab: sum(1 for k in count if k[0] == lab) for lab in names}
+    clip_w = [len(labels) / (len(names) * split[lab] * count[(lab, g)]) for lab, g in zip(labels, groups)]
+    w = np.concatenate([np.full(len(s), cw / len(s)) for s, cw in zip(stats, clip_w)])
+    mean, scale = x.mean(0), np.maximum(x.std(0), SCALE_FLOOR)
     clf = LogisticRegression(C=c, max_iter=3000, random_state=seed)
     clf.fit(np.clip((x - mean) / scale, -Z_CLIP, Z_CLIP), y, sample_weight=w)
     order = [list(clf.classes_).index(n) for n in names]
