@@ -17,12 +17,8 @@ The formulas are those of `features.py` and of the numpy step kept as the refere
 (`reference.py`), which the tests compare with; arithmetic is float64 inside a kernel, the state
 and the outputs stay float32 as before. Conventions: quaternions scalar-last, Y up, yaw about +Y
 with 0 = facing +Z, horizontal vectors as (x, z).
-
-This module is self-contained on purpose: numba's on-disk cache (`cache=True`) is invalidated by
-changes to a kernel's own source file only, so the feature layout is spelled out here (and
-checked against `features.py` at import) rather than read from globals of another module. The
-foot lock is not here: the runtime calls the LTI model's compiled one (`models.lti.kernels.
-foot_lock`) from Python, which keeps its own cache honest.
+The foot lock is not here: the runtime calls the LTI model's compiled one
+(`models.lti.kernels.foot_lock`).
 """
 
 from __future__ import annotations
@@ -33,83 +29,18 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS
+from ..motion.quaternion import qmul, qrot, wrap
 from . import features as lf
 
-STEP = 5  # frames between trajectory samples
-PAST = 6  # past samples; the current frame is sample PAST
-FUTURE = 6
-SAMPLES = 13
-TRAJ_CH = 7  # position xz, direction xz, velocity xz, gait
-TRAJ_OUT_CH = 6
-NUM_BONES = 4  # phase bones
-POSE_DIM = 21 * 12  # body joints x (position, velocity, forward axis, up axis)
-# output layout (features.py): future trajectory, pose, root delta, phases, frequencies, contacts
-Y_TRAJ, Y_POSE, Y_DELTA, Y_PHASE, Y_FREQ, Y_CONTACT = 0, 36, 288, 291, 347, 351
-
-_LAYOUT = (
-    lf.STEP,
-    lf.PAST,
-    lf.FUTURE,
-    lf.SAMPLES,
-    lf.TRAJ_CH,
-    lf.TRAJ_OUT_CH,
-    lf.NUM_BONES,
-    lf.NB * lf.POSE_CH,
-    lf.TRAJ_OUT.start,
-    lf.POSE_OUT.start,
-    lf.DELTA_OUT.start,
-    lf.PHASE_OUT.start,
-    lf.FREQ_OUT.start,
-    lf.CONTACT_OUT.start,
-    lf.HIPS,
-)
-if _LAYOUT != (
-    STEP,
-    PAST,
-    FUTURE,
-    SAMPLES,
-    TRAJ_CH,
-    TRAJ_OUT_CH,
-    NUM_BONES,
-    POSE_DIM,
-    Y_TRAJ,
-    Y_POSE,
-    Y_DELTA,
-    Y_PHASE,
-    Y_FREQ,
-    Y_CONTACT,
-    HIPS,
-):
-    raise ImportError("models/lpn/features.py changed its layout: update the constants of models/lpn/kernels.py")
+STEP, PAST, FUTURE, SAMPLES = lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES  # trajectory sampling
+TRAJ_CH, TRAJ_OUT_CH = lf.TRAJ_CH, lf.TRAJ_OUT_CH  # position xz, direction xz, velocity xz (, gait)
+NUM_BONES = lf.NUM_BONES  # phase bones
+POSE_DIM = lf.NB * lf.POSE_CH  # body joints x (position, velocity, forward axis, up axis)
+# output layout: future trajectory, pose, root delta, phases, frequencies, contacts
+Y_TRAJ, Y_POSE, Y_DELTA = lf.TRAJ_OUT.start, lf.POSE_OUT.start, lf.DELTA_OUT.start
+Y_PHASE, Y_FREQ, Y_CONTACT = lf.PHASE_OUT.start, lf.FREQ_OUT.start, lf.CONTACT_OUT.start
 
 # --------------------------------------------------------------------------- small maths on scalars and tuples
-
-
-@njit(cache=True, error_model="numpy")
-def qmul(a, b):
-    """Hamilton product a * b (apply b, then a)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def qrot(q, v):
-    """Vector v rotated by the unit quaternion q."""
-    x, y, z, w = q
-    tx, ty, tz = 2.0 * (y * v[2] - z * v[1]), 2.0 * (z * v[0] - x * v[2]), 2.0 * (x * v[1] - y * v[0])
-    return (v[0] + w * tx + y * tz - z * ty, v[1] + w * ty + z * tx - x * tz, v[2] + w * tz + x * ty - y * tx)
-
-
-@njit(cache=True, error_model="numpy")
-def wrap(a):
-    """Angle in [-pi, pi)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @njit(cache=True, error_model="numpy")
