@@ -333,7 +333,7 @@ def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
     from models.erd.gait import carry_by_gait
     from models.erd.slow_carry import SLOW_WEIGHT
     from models.motion.bn_skeleton import HIPS
-    from models.motion.rotations import expmap_to_quat
+    from models.motion.rotations import quat_exp
 
     head = model.skeleton.index("Head")
     prior, w = model.output_prior, _onehot(model, "feminine")[None]
@@ -341,7 +341,7 @@ def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
     assert gains[-1] > 1.2
     pose = neutral[0].rotations[:1]
     flicked = pose.copy()  # about the axis the map stretches most
-    flicked[:, head] = quat_mul(pose[:, head], expmap_to_quat(np.radians(20.0) * axes[:, -1]))
+    flicked[:, head] = quat_mul(pose[:, head], quat_exp(np.radians(20.0) * axes[:, -1]))
     frames = [pose] * 10 + [flicked] + [pose] * 3
     slow, whole, slowly = np.zeros_like(pose), [], []
     for q in frames:

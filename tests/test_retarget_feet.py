@@ -13,7 +13,7 @@ import pytest
 
 from models.data import load_motion, select
 from models.motion.retarget_stream import FrameRetargeter
-from models.motion.rotations import expmap_to_quat
+from models.motion.rotations import quat_exp
 from models.motion.skeleton import Skeleton, fk
 
 from .clips import angle_deg
@@ -48,7 +48,7 @@ def _pose(fr: FrameRetargeter, thigh: float, knee: float, ankle: float) -> tuple
     rot[..., 3] = 1.0
     for s in "lr":
         for role, angle in (("upperleg", -thigh), ("lowerleg", knee), ("foot", ankle)):
-            rot[0, roles[f"{role}_{s}"]] = expmap_to_quat(np.array([np.radians(angle), 0.0, 0.0]))
+            rot[0, roles[f"{role}_{s}"]] = quat_exp(np.array([np.radians(angle), 0.0, 0.0]))
     trans = np.broadcast_to(sk.offsets, (1, sk.num_joints, 3)).copy()
     pos = fk(rot, trans, sk.parents)[1][0]
     trans[0, fr.humanoid.translated, 1] += fr.source_floor - pos[_feet(sk, roles), 1].min()

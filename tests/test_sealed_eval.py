@@ -15,7 +15,7 @@ from models.eval.intervals import share, wilson
 from models.eval.physical import Input, Reference, measure
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import load_style_judge
-from models.motion.rotations import expmap_to_quat, quat_mul
+from models.motion.rotations import quat_exp, quat_mul
 
 
 def test_no_input_of_a_validation_run_is_scored_by_the_final_one():
@@ -74,7 +74,7 @@ def test_a_shaking_head_is_jitter_and_a_dragged_foot_is_slide(walk):
     rot = walk.rotations.copy()
     head = walk.skeleton.index("Head")
     shake = np.where(np.arange(walk.num_frames) % 2, 0.05, -0.05)[:, None] * np.array([0.0, 0.0, 1.0])
-    rot[:, head] = quat_mul(expmap_to_quat(shake), rot[:, head])  # +-3 degrees, every other frame
+    rot[:, head] = quat_mul(quat_exp(shake), rot[:, head])  # +-3 degrees, every other frame
     shaking = measure(ref, "normal", replace(walk, rotations=rot), Input.of(walk, ref))
     assert shaking.jitter > 1.5
     trans = walk.translations.copy()

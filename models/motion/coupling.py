@@ -27,8 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .rotations import quat_inv, quat_mean, quat_mul
-from .style_carry import quat_exp, quat_log
+from .rotations import quat_exp, quat_inv, quat_log, quat_mean, quat_mul
 
 Link = tuple[str, tuple[str, ...]]  # a joint and the joints it follows
 GAITS = ("walk", "run")

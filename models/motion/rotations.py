@@ -93,12 +93,16 @@ def matrix_to_quat(mat: np.ndarray) -> np.ndarray:
     return np.where(q[..., 3:] < 0, -q, q)
 
 
-def quat_to_expmap(quat: np.ndarray) -> np.ndarray:
+def quat_log(quat: np.ndarray) -> np.ndarray:
+    """(..., 4) quaternions -> (..., 3) rotation vectors (axis * angle) along the shortest arc,
+    angle in [0, pi]: the tangent space the style maps and metrics work in. (`qlog` in
+    `quaternion.py` is the compiled one.)"""
     flat, lead = _flat(quat, 1)
     return Rotation.from_quat(flat).as_rotvec().reshape(*lead, 3)
 
 
-def expmap_to_quat(rotvec: np.ndarray) -> np.ndarray:
+def quat_exp(rotvec: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors -> (..., 4) unit quaternions; the inverse of `quat_log`."""
     flat, lead = _flat(rotvec, 1)
     return Rotation.from_rotvec(flat).as_quat().reshape(*lead, 4)
 

@@ -23,26 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .rotations import quat_inv, quat_mean, quat_mul
+from .rotations import quat_exp, quat_inv, quat_log, quat_mean, quat_mul
 
 CLAMP_PERCENTILE = 98.0
 MAX_SAMPLES = 60_000  # an even subsample per style keeps a fit to seconds
-
-
-def quat_log(q: np.ndarray) -> np.ndarray:
-    """(..., 3) rotation vectors of unit quaternions (..., 4), scalar-last, shortest arc."""
-    q = np.where(q[..., 3:] < 0, -q, q)
-    s = np.linalg.norm(q[..., :3], axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, q[..., 3:])
-    scale = np.where(s > 1e-9, angle / np.maximum(s, 1e-12), 2.0)
-    return q[..., :3] * scale
-
-
-def quat_exp(v: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions of rotation vectors (..., 3)."""
-    angle = np.linalg.norm(v, axis=-1, keepdims=True)
-    scale = np.where(angle > 1e-9, np.sin(0.5 * angle) / np.maximum(angle, 1e-12), 0.5)
-    return np.concatenate([v * scale, np.cos(0.5 * angle)], axis=-1)
 
 
 def _sqrtm(c: np.ndarray) -> np.ndarray:

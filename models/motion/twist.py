@@ -27,9 +27,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .bn_skeleton import body_joints
-from .rotations import cross, quat_apply, quat_inv, quat_mul
+from .rotations import cross, quat_apply, quat_exp, quat_inv, quat_log, quat_mul
 from .skeleton import Skeleton
-from .style_carry import quat_exp, quat_log
 from .twist_kernels import BONE, FRAME, LEAF, ROOT, transfer_twist_batch
 
 if TYPE_CHECKING:
