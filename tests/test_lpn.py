@@ -175,7 +175,7 @@ def test_control_sessions_start_standing_whatever_pose_the_input_carries(model):
 @pytest.fixture(scope="module")
 def reference(model):
     """The numpy step the compiled kernels replaced, on the same weights."""
-    from models.lpn.reference import numpy_twin
+    from tests.reference.lpn_step import numpy_twin
 
     return numpy_twin(model)
 

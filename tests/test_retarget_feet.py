@@ -17,6 +17,7 @@ from models.motion.rotations import quat_exp
 from models.motion.skeleton import Skeleton, fk
 
 from .clips import angle_deg
+from .reference import retarget as reference
 
 # (thigh forward, knee bend, ankle), degrees, about the CMU rig's lateral axis (its rest is a T-pose)
 POSES = {
@@ -74,7 +75,7 @@ def test_feet_stay_above_the_floor(rigs, rig, pose):
     root, rot = _pose(fr, *POSES[pose])
     hips, bn = fr.to_model(root, rot)
     assert _bn_lowest(fr, hips, bn) > fr.rig.floor - 1.0
-    ref_hips, ref_bn = fr.to_model_reference(root, rot)
+    ref_hips, ref_bn = reference.to_model(fr, root, rot)
     np.testing.assert_allclose(hips, ref_hips, atol=1e-9)
     # and back: the client's own frame again, root included
     back_root, back_rot = fr.to_source(hips, bn, rot)

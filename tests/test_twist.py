@@ -97,7 +97,7 @@ def test_lpn_keeps_the_spine_untwisted(index):
 
 
 def test_compiled_equals_numpy_reference(bn_walk):
-    from models.motion.twist import transfer_twist_numpy
+    from tests.reference.twist import transfer_twist_numpy
 
     walk = bn_walk.slice(0, 30)
     wrung = _twisted(walk, 100.0, ["Head", "Hand_R", "LowerLeg_L", "Spine", "Foot_R"])

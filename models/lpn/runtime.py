@@ -1,9 +1,9 @@
 """Streaming LPN-FiLM: the project's `StreamingModel` interface as a character controller in
 float32, the per-session maths (control, trajectory blend, gating, FiLM, phase and root update,
-output pose) in numba kernels (`kernels.py`) and the expert products in BLAS;
-`reference.py` keeps the plain numpy step the kernels are tested against. Per frame, the network reads the character's trajectory (past from its own
-history, future blended from the control and its own last prediction), its pose and its local
-phases, and predicts the next pose, root motion, phases and contacts.
+output pose) in numba kernels (`kernels.py`) and the expert products in BLAS (the plain numpy
+step the kernels are tested against is `tests/reference/lpn_step.py`). Per frame, the network
+reads the character's trajectory (past from its own history, future blended from the control and
+its own last prediction), its pose and its local phases, and predicts the next pose, root motion, phases and contacts.
 
 Control (`FrameBatch.control`, (B, 5), optional; a row whose flag is 0 counts as not given):
     [0] forward velocity, [1] side velocity (+ = to the character's left), m/s, both in the frame of
@@ -51,8 +51,7 @@ current pose in its character frame (`pose`), `yaw`; the input tracker for deriv
 (`in_pos`, `in_vel`); and the foot planter's (`feet_*`, `models.motion.feet`).
 
 The step's geometry and the network's per-row maths are compiled (`kernels.py`, numba; the three
-big matrix products stay BLAS); `reference.NumpyLPNModel` is the numpy step they replaced and are
-tested against.
+big matrix products stay BLAS).
 """
 
 from __future__ import annotations
@@ -523,7 +522,7 @@ class LPNModel(LPNStyles):
 
     def in_float32(self) -> LPNModel:
         """This model (weights and styles shared) with its expert products always in float32: the
-        arithmetic the numpy reference step (`reference.py`) is compared with."""
+        arithmetic the numpy reference step (`tests/reference/lpn_step.py`) is compared with."""
         twin = copy.copy(self)
         twin.bfloat16 = False
         twin.__dict__.pop("_products", None)
