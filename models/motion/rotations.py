@@ -159,19 +159,6 @@ def matrix_to_6d(mat: np.ndarray) -> np.ndarray:
     return np.concatenate([mat[..., :, 0], mat[..., :, 1]], axis=-1)
 
 
-def sixd_to_matrix(d6: np.ndarray) -> np.ndarray:
-    """(..., 6) -> the nearest rotation matrix by Gram-Schmidt (Zhou et al. 2019)."""
-    d6 = np.asarray(d6, dtype=np.float64)
-    a1, a2 = d6[..., :3], d6[..., 3:]
-    b1 = a1 / np.maximum(np.linalg.norm(a1, axis=-1, keepdims=True), 1e-12)
-    b2 = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
-    b2 = b2 / np.maximum(np.linalg.norm(b2, axis=-1, keepdims=True), 1e-12)
-    return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)
-
-
-# --------------------------------------------------------------------------- swing-twist, angles, means
-
-
 def quat_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle (radians, 0..pi) of the rotation between unit quaternions a and b, broadcasting;
     sign-blind (q and -q are one rotation)."""
