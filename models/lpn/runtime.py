@@ -61,6 +61,7 @@ import threading
 from collections.abc import Callable
 from functools import cached_property, partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -85,6 +86,9 @@ from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
 from .style_table import StyleTable
 from .styles import LPNStyles
 from .weights import read_weights
+
+if TYPE_CHECKING:
+    from .network import LPN
 
 BALLS_FILE = "rotation_prior.npz"  # per-style rotation balls (`models.lpn.rotation_prior`)
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
@@ -138,7 +142,7 @@ class LPNModel(LPNStyles):
         self._lock = threading.Lock()
         styles = tuple(config["styles"])
         self._table = StyleTable(styles, a["style_film"].reshape(len(styles), 4 * self.H))  # replaced under the lock
-        self._generator = None
+        self._generator: LPN | None = None  # the FiLM generator, built on first use
         self.balls = balls
         if balls is not None:
             mean, radii = balls.for_styles(list(styles), skeleton.num_joints)
@@ -309,14 +313,14 @@ class LPNModel(LPNStyles):
         if control is not None:
             given = np.flatnonzero(np.asarray(control)[rows, 4] > 0.5)
             if len(given):
-                pose = self.rest_motion()
-                _, rest_pos = self._fk(pose.translations[:1, lf.HIPS], pose.rotations[:1])
+                rest = self.rest_motion()
+                _, rest_pos = self._fk(rest.translations[:1, lf.HIPS], rest.rotations[:1])
                 turn = np.asarray(control, np.float32)[rows[given], 2] - self._facing(rest_pos)[0]
-                rotations[given] = pose.rotations[0]
+                rotations[given] = rest.rotations[0]
                 rotations[given, lf.HIPS] = quat_mul(
-                    yaw_quat(turn.astype(np.float64)), np.broadcast_to(pose.rotations[0, lf.HIPS], (len(given), 4))
+                    yaw_quat(turn.astype(np.float64)), np.broadcast_to(rest.rotations[0, lf.HIPS], (len(given), 4))
                 )
-                root[given, 1] = pose.translations[0, lf.HIPS, 1]
+                root[given, 1] = rest.translations[0, lf.HIPS, 1]
         grot, gpos = self._fk(root, rotations)
         yaw = self._facing(gpos)
         ground = gpos[:, lf.HIPS] * np.array([1.0, 0.0, 1.0], np.float32)
@@ -612,8 +616,8 @@ class LPNModel(LPNStyles):
         `weights` is (S,) or per frame (T, S). Returns the output Motion and contacts (T, 2)."""
         from dataclasses import replace
 
-        T = frames or (len(control) if control is not None else motion.num_frames)
         first = motion if motion is not None else self.rest_motion()
+        T = frames or (len(control) if control is not None else first.num_frames)
         state = self.init_state(1)
         w = np.asarray(weights, np.float32)
         roots, rots, cons = [], [], []
@@ -624,6 +628,7 @@ class LPNModel(LPNStyles):
             out, state = self.step_batch(state, fb, (w[t] if w.ndim == 2 else w)[None])
             roots.append(out.root[0])
             rots.append(out.rotations[0])
+            assert out.contacts is not None  # this model always reports contacts
             cons.append(out.contacts[0])
         trans = np.broadcast_to(self.skeleton.offsets, (T, self.skeleton.num_joints, 3)).copy()
         trans[:, lf.HIPS] = np.array(roots)

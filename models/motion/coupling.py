@@ -142,7 +142,8 @@ class Coupling:
         rotations' over both gaits; each link is fitted on the model's rotations with the links
         before it applied."""
         targets, drivers = link_indices(links, names)
-        means, gains = [], {g: [] for g in GAITS}
+        means: list[np.ndarray] = []
+        gains: dict[str, list[np.ndarray]] = {g: [] for g in GAITS}
         for style in styles:
             ours = {g: np.concatenate(real(style, g)).astype(np.float64) for g in GAITS}
             mean = quat_mean(np.concatenate(list(ours.values())), axis=0)

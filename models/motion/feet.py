@@ -174,7 +174,7 @@ class FootPlanter:
             "feet_offset": np.empty((B, 2, 3)),
             "feet_floor": np.empty((B, 2, 2)),
         }
-        s = {k: np.ascontiguousarray(state[k], dtype) for k, (_, dtype) in STATE_SHAPES.items()}
+        s: dict[str, np.ndarray] = {k: np.ascontiguousarray(state[k], dtype) for k, (_, dtype) in STATE_SHAPES.items()}
         feet_kernels.plant_feet(
             root,
             out_rot,
@@ -218,7 +218,7 @@ class FootPlanter:
 def model_rig_planter(fps: float, **settings: float) -> FootPlanter:
     """The planter of the models' own (Bandai Namco) rig, which every method streams on."""
     return FootPlanter.for_skeleton(
-        bandai_namco_skeleton(), (BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR), fps, **settings
+        bandai_namco_skeleton(), (BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR), fps, LEGS, **settings
     )
 
 

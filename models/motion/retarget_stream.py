@@ -196,11 +196,11 @@ class FrameRetargeter:
         self._plan = TwistPlan(rig, plain)
 
         # Hips position = c + Gp @ t, t the translated joint's translation (the frame's root)
-        chain = [self._hips]
-        while self._src_parents[chain[-1]] >= 0:
-            chain.append(int(self._src_parents[chain[-1]]))
+        above = [self._hips]
+        while self._src_parents[above[-1]] >= 0:
+            above.append(int(self._src_parents[above[-1]]))
         self._translated = hr.translated
-        self._chain_fixed = [k for k in chain if k != hr.translated]  # joints contributing their offset
+        self._chain_fixed = [k for k in above if k != hr.translated]  # joints contributing their offset
 
         # to_source: each client joint takes the delta of the BN joint of its nearest mapped ancestor
         mapped = {roles[r]: sk.index(b) for r, b in bn_joints_of(roles).items()}
