@@ -12,7 +12,7 @@ the style, per joint:
   (swing-twist split about the bone's axis), against the real p0.5..p99.5 interval;
 - **pops**: how fast the rotation's turning changes from frame to frame (the angle of the second
   difference, degrees per frame per frame), against the real p99.9 of that joint: a one-frame
-  flick of the torso or a wrist that no pose metric sees (LPN-FiLM's spine flips, session 22).
+  flick of the torso or a wrist that no pose metric sees.
 
 The Hips rotation holds the character's heading, which is arbitrary, so it is compared with its
 heading removed (its swing away from world up). The reference (`RotationReference`) is built from

@@ -118,11 +118,10 @@ _HINGES = {
 # |n| n + HINGE_FALLBACK^2 natural, n = cross(upper bone, lower bone), |n| the sine of the bend. The
 # limb plane decides once the bend is well above ~17 degrees; a straighter limb turns smoothly to
 # the natural twist. The axis passes through zero (a half-turn flip) only for a limb bent ~17
-# degrees against its natural bend, e.g. a knee hyperextended that far. Before, the axis was
-# (n . natural) n + 0.03^2 natural: it flipped whenever the plane crossed a quarter turn from the
-# natural twist (CMU's right arm) or a hyperextended knee straightened (Xia's thighs), p99 rotation
-# acceleration 80-180 deg/frame^2 against 3-30 in the source at 30 fps (`retarget_check`); smaller
-# values than 0.3 jitter where the plane and the natural twist disagree (Xia legs 1.3-2.5x at 0.2).
+# degrees against its natural bend, e.g. a knee hyperextended that far. An axis weighted by
+# (n . natural) instead flips whenever the plane crosses a quarter turn from the natural twist
+# (CMU's right arm) or a hyperextended knee straightens (Xia's thighs); values smaller than 0.3
+# jitter where the plane and the natural twist disagree (Xia legs 1.3-2.5x at 0.2; `retarget_check`).
 HINGE_FALLBACK = 0.3
 
 

@@ -3,11 +3,9 @@ reference (`StyleCarry.apply_numpy`), as per-row, per-joint loops. Vectorised nu
 small calls per prior and frame (~0.16 ms each at batch 1, 3-4 ms at batch 256); this is
 ~1 us of arithmetic per session.
 
-`_toward` and `_carry_joint` are inlined by numba (`inline="always"`), as LLVM left them out of
-line: each call passed its four arrays as numba's array structs, dozens of words per joint, and
-the calls took a quarter to a half of the kernel (a batch of 1,000 rows: `carry_batch` 2.46 ->
-1.89 ms, `carry_pair_batch` at share 0 3.39 -> 1.93 ms; the same bits). Inlining the small
-helpers too bought nothing more and tripled the first compile (2.2 -> 6.2 s).
+`_toward` and `_carry_joint` are inlined by numba (`inline="always"`): out of line, each call
+passes its four arrays as numba's array structs, dozens of words per joint, a quarter to a half of
+the kernel's time. Inlining the small helpers too buys nothing and triples the first compile.
 """
 
 from __future__ import annotations
@@ -292,8 +290,8 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
                 sx, sy, sz, sw = k * sx, k * sy, k * sz, k * sw
             new_slow[row, j, 0], new_slow[row, j, 1], new_slow[row, j, 2], new_slow[row, j, 3] = sx, sy, sz, sw
             is_hips = j == hips
-            # the carry is written out for both cases below: one inlined helper for the two made
-            # the pass 40 % slower (0.64 -> 0.90 ms at 256 rows; numba's inlining)
+            # the carry is written out for both cases below: one inlined helper for the two makes
+            # the pass ~40 % slower (numba's inlining)
             if plain[j]:
                 hx, hy_, hz, hw_, hy, hw = _headless(ux, uy, uz, uw, is_hips)
                 if r == 0.0:
