@@ -13,8 +13,8 @@ but the three expert products, which stay BLAS. The foot lock (numpy around the 
 IK, ~0.4 ms of a ~0.9 ms batch-1 step once the rest was compiled) is now the LTI model's whole
 compiled foot lock.
 
-The formulas are those of `features.py` and of the numpy step kept as the reference
-(`reference.py`), which the tests compare with; arithmetic is float64 inside a kernel, the state
+The formulas are those of `features.py` and of the numpy step the tests compare with
+(`tests/reference/lpn_step.py`); arithmetic is float64 inside a kernel, the state
 and the outputs stay float32 as before. Conventions: quaternions scalar-last, Y up, yaw about +Y
 with 0 = facing +Z, horizontal vectors as (x, z).
 The foot lock is not here: the runtime calls the LTI model's compiled one

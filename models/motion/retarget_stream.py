@@ -215,7 +215,7 @@ class FrameRetargeter:
         self._mapped = np.array(sorted(mapped), dtype=int)
         self._mapped_nonroot = np.array([k for k in self._mapped if src.parents[k] >= 0], dtype=int)
         self._mapped_root = np.array([k for k in self._mapped if src.parents[k] < 0], dtype=int)
-        chain_par = [int(self._src_parents[k]) for k in chain if self._src_parents[k] >= 0]
+        chain_par = [int(self._src_parents[k]) for k in above if self._src_parents[k] >= 0]
         needed = np.unique(
             np.concatenate(
                 [vec_par, self._mapped, self._src_parents[self._mapped_nonroot], chain_par, [self._hips]]

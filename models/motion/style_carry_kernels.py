@@ -271,8 +271,8 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
         rest = max(rest, 0.0)
         unset = True
         for j in range(J):
-            for c in range(4):
-                if slow[row, j, c] != 0.0:
+            for ch in range(4):
+                if slow[row, j, ch] != 0.0:
                     unset = False
         for j in range(J):
             k = 1.0 / math.sqrt(q[row, j, 0] ** 2 + q[row, j, 1] ** 2 + q[row, j, 2] ** 2 + q[row, j, 3] ** 2)

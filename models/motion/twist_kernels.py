@@ -1,8 +1,8 @@
 """Compiled `transfer_twist` for the per-frame streaming steps (numba).
 
-The numpy version in `twist.py` is ~25 small array operations per joint: ~1.4 ms for one frame of
-22 joints, six times a Style-ERD step. Here one pass over the joints does the same arithmetic on
-scalars (~1 us per frame). `twist.py` stays the reference; tests check that they agree.
+In numpy (`tests/reference/twist.py`, the reference the tests hold it to) it is ~25 small array
+operations per joint: ~1.4 ms for one frame of 22 joints, six times a Style-ERD step. Here one pass
+over the joints does the same arithmetic on scalars (~1 us per frame).
 """
 
 from __future__ import annotations
