@@ -3,22 +3,17 @@ network (control, trajectory blending, input assembly, phase update, output pose
 the network's small per-row maths (gating MLP, expert blend, layer norm, FiLM, ELU). The network's
 three big matrix products stay in numpy (BLAS).
 
-Why compiled: the vectorised numpy step (with its foot lock) made ~780 Python-level calls per
-frame, most of them small numpy calls of 1-5 us at batch 1, plus scipy's `Rotation.from_matrix`,
-which orthogonalises every float32 matrix by an SVD (none is orthogonal to its 1e-12 tolerance).
-Measured on the shared 2-core machine (load ~3, one BLAS thread): at batch 1 ~2.8 ms a step
-against ~0.3 ms of matrix products; at batch 256 ~56 ms, of which the output pose alone was
-~29 ms. Here each session is a loop over scalars: a few microseconds per session for everything
-but the three expert products, which stay BLAS. The foot lock (numpy around the LTI's compiled
-IK, ~0.4 ms of a ~0.9 ms batch-1 step once the rest was compiled) is now the LTI model's whole
-compiled foot lock.
-
-The formulas are those of `features.py` and of the numpy step the tests compare with
-(`tests/reference/lpn_step.py`); arithmetic is float64 inside a kernel, the state
-and the outputs stay float32 as before. Conventions: quaternions scalar-last, Y up, yaw about +Y
-with 0 = facing +Z, horizontal vectors as (x, z).
+Why compiled: the vectorised numpy step (`tests/reference/lpn_step.py`, which the tests compare
+with) makes ~780 Python-level calls per frame, most of them small numpy calls of 1-5 us at batch
+1, plus scipy's `Rotation.from_matrix`, which orthogonalises every float32 matrix by an SVD: ~2.8
+ms a step at batch 1 against ~0.3 ms of matrix products, ~56 ms at batch 256. Here each session is
+a loop over scalars: a few microseconds per session for everything but the three expert products.
 The foot lock is not here: the runtime calls the LTI model's compiled one
 (`models.lti.kernels.foot_lock`).
+
+The formulas are those of `features.py`; arithmetic is float64 inside a kernel, the state and the
+outputs stay float32. Conventions: quaternions scalar-last, Y up, yaw about +Y with 0 = facing +Z,
+horizontal vectors as (x, z).
 """
 
 from __future__ import annotations
