@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS
-from ..motion.quaternion import qinv, qmul, qrot, quat_at, qunit, wrap
+from ..motion.quaternion import qinv, qmul, quat_at, qunit, wrap
 
 # --------------------------------------------------------------------------- small helpers
 
@@ -29,29 +29,6 @@ def turn_y(x, y, z, yaw):
 
 
 # --------------------------------------------------------------------------- kernels
-
-
-@njit(cache=True, error_model="numpy")
-def forward_kinematics(root, rotations, parents, offsets):
-    """World joint positions (N, J, 3) from Hips translations (N, 3) and local rotations (N, J, 4)
-    (normalised here); parents must come before their children, as in every BVH."""
-    n, J = rotations.shape[0], rotations.shape[1]
-    pos = np.empty((n, J, 3))
-    glob = np.empty((J, 4))
-    for f in range(n):
-        for j in range(J):
-            q = qunit(quat_at(rotations, f, j))
-            p = parents[j]
-            if p < 0:
-                glob[j, 0], glob[j, 1], glob[j, 2], glob[j, 3] = q
-                pos[f, j, 0], pos[f, j, 1], pos[f, j, 2] = offsets[j, 0], offsets[j, 1], offsets[j, 2]
-                continue
-            gp = (glob[p, 0], glob[p, 1], glob[p, 2], glob[p, 3])
-            t = (root[f, 0], root[f, 1], root[f, 2]) if j == HIPS else (offsets[j, 0], offsets[j, 1], offsets[j, 2])
-            d = qrot(gp, t)
-            pos[f, j, 0], pos[f, j, 1], pos[f, j, 2] = pos[f, p, 0] + d[0], pos[f, p, 1] + d[1], pos[f, p, 2] + d[2]
-            glob[j, 0], glob[j, 1], glob[j, 2], glob[j, 3] = qmul(gp, q)
-    return pos
 
 
 @njit(cache=True, error_model="numpy")

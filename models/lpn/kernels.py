@@ -23,8 +23,8 @@ import math
 import numpy as np
 from numba import njit
 
-from ..motion.bn_skeleton import HIPS
-from ..motion.quaternion import qmul, qrot, wrap
+from ..motion.kinematics_kernels import world_pose
+from ..motion.quaternion import wrap
 from . import features as lf
 
 STEP, PAST, FUTURE, SAMPLES = lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES  # trajectory sampling
@@ -80,35 +80,6 @@ def matrix_quat(m):
 
 
 # --------------------------------------------------------------------------- kinematics
-
-
-@njit(cache=True, error_model="numpy")
-def world_pose(root, rotations, parents, offsets, grot, gpos):
-    """Forward kinematics of one frame into grot (J, 4) and gpos (J, 3): Hips translation root (3,),
-    local rotations (J, 4) (normalised here, as `models.motion.skeleton.fk`); parents come first."""
-    for j in range(rotations.shape[0]):
-        n = math.sqrt(rotations[j, 0] ** 2 + rotations[j, 1] ** 2 + rotations[j, 2] ** 2 + rotations[j, 3] ** 2)
-        q = (rotations[j, 0] / n, rotations[j, 1] / n, rotations[j, 2] / n, rotations[j, 3] / n)
-        t = (root[0], root[1], root[2]) if j == HIPS else (offsets[j, 0], offsets[j, 1], offsets[j, 2])
-        p = parents[j]
-        if p < 0:
-            grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = q
-            gpos[j, 0], gpos[j, 1], gpos[j, 2] = t
-            continue
-        gp = (grot[p, 0], grot[p, 1], grot[p, 2], grot[p, 3])
-        d = qrot(gp, t)
-        gpos[j, 0], gpos[j, 1], gpos[j, 2] = gpos[p, 0] + d[0], gpos[p, 1] + d[1], gpos[p, 2] + d[2]
-        grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = qmul(gp, q)
-
-
-@njit(cache=True, error_model="numpy")
-def forward_kinematics(root, rotations, parents, offsets):
-    """World rotations (N, J, 4) and positions (N, J, 3) of N frames."""
-    n, J = rotations.shape[0], rotations.shape[1]
-    grot, gpos = np.empty((n, J, 4)), np.empty((n, J, 3))
-    for f in range(n):
-        world_pose(root[f], rotations[f], parents, offsets, grot[f], gpos[f])
-    return grot, gpos
 
 
 @njit(cache=True, error_model="numpy")

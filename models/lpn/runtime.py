@@ -71,6 +71,7 @@ from ..motion.coupling import Coupling, link_indices
 from ..motion.features import body_joint
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter
+from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.rotation_ball import StyleBalls
 from ..motion.rotation_ball_kernels import clamp_mixed
 from ..motion.rotations import quat_mul, yaw_quat
@@ -580,7 +581,7 @@ class LPNModel(LPNStyles):
 
     def _fk(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World rotations (B, 22, 4) and positions (B, 22, 3); joint_Root static at the origin."""
-        g_rot, g_pos = kernels.forward_kinematics(
+        g_rot, g_pos = forward_kinematics(
             np.ascontiguousarray(root, np.float32),
             np.ascontiguousarray(rotations, np.float32),
             self.parents,
