@@ -3,6 +3,8 @@
 Quaternions are (x, y, z, w), scalar-last like the rest of the project; vectors are 3-tuples;
 everything is float64. Kernels import these instead of repeating them: tuples keep the maths
 readable (`qmul(qinv(a), b)`) and numba inlines them, so they cost nothing over hand-written code.
+Importing them from another file is safe for numba's on-disk cache because `models/numba_cache.py`
+keys the cache folder by every kernel source.
 Array-level numpy maths lives in `rotations.py`.
 """
 
