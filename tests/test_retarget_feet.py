@@ -90,7 +90,9 @@ def test_the_root_rises_only_when_the_bn_feet_would_sink(rigs):
     rises = {}
     for pose in ("stand", "kneel"):
         root, rot = _pose(fr, *POSES[pose])
-        c = (fr._hips_terms(fr._source_globals(rot))[0] + root) @ fr._axes.T  # client hips, BN axes
+        c = (
+            reference._hips_terms(fr, reference._source_globals(fr, rot))[0] + root
+        ) @ fr._axes.T  # client hips, BN axes
         rises[pose] = fr.to_model(root, rot)[0][0, 1] - (fr.scale * c[0, 1] + fr.vertical_offset)
     assert 0.0 <= rises["stand"] < 0.5
     assert rises["kneel"] > 3.0, rises
