@@ -4,7 +4,7 @@ numba's on-disk cache (`cache=True`) checks only the file that defines a kernel,
 calls into (numba #1833): a kernel calling `quaternion.qmul` would keep running an old `qmul` after
 an edit. So, unless the user set NUMBA_CACHE_DIR, the cache lives in `.cache/numba/<key>/` of the
 checkout, where the key hashes every kernel source under `models/` and every `models` module they
-import from (constants such as joint indices are frozen into compiled code too). Any edit there
+import from, directly or not (constants such as joint indices are frozen into compiled code too). Any edit there
 starts a fresh folder. `models/__init__.py` imports this module, so it runs before any kernel
 module is decorated.
 """
@@ -14,21 +14,27 @@ from __future__ import annotations
 import ast
 import hashlib
 import os
+import re
+import shutil
 import sys
+import time
 from collections.abc import Mapping
 from pathlib import Path
 
 MODELS = Path(__file__).resolve().parent
+STALE_DAYS = 7  # a keyed folder no process has added to for this long belongs to old sources
+_DECORATOR = re.compile(r"^@njit\b", re.MULTILINE)
 
 
 def _is_kernel(text: str) -> bool:
-    return "@njit" in text
+    return _DECORATOR.search(text) is not None
 
 
 def _imported_files(path: Path, tree: ast.Module, root: Path) -> set[Path]:
-    """The files under `root` that `path` imports from (relative or `models.` imports)."""
+    """The files under `root` that `path` imports from at module level (relative or `models.`
+    imports): where the globals a kernel reads come from."""
     found: set[Path] = set()
-    for node in ast.walk(tree):
+    for node in tree.body:
         if not isinstance(node, ast.ImportFrom):
             continue
         if node.level:
@@ -47,13 +53,15 @@ def _imported_files(path: Path, tree: ast.Module, root: Path) -> set[Path]:
 
 
 def kernel_sources(root: Path = MODELS) -> list[Path]:
-    """Every file defining a kernel, and every file under `root` those files import from."""
+    """Every file defining a kernel, and every file under `root` those files import from, directly
+    or not (a constant a kernel reads may be computed from another module's)."""
+    todo = [path for path in root.rglob("*.py") if _is_kernel(path.read_text(encoding="utf-8"))]
     files: set[Path] = set()
-    for path in root.rglob("*.py"):
-        text = path.read_text(encoding="utf-8")
-        if _is_kernel(text):
+    while todo:
+        path = todo.pop()
+        if path not in files:
             files.add(path)
-            files.update(_imported_files(path, ast.parse(text), root))
+            todo += _imported_files(path, ast.parse(path.read_text(encoding="utf-8")), root)
     return sorted(files)
 
 
@@ -76,6 +84,17 @@ def cache_dir(environ: Mapping[str, str], root: Path = MODELS) -> Path | None:
     return root.parent / ".cache" / "numba" / cache_key(root)
 
 
+def prune(folder: Path, now: float | None = None) -> None:
+    """Remove the other keyed folders beside `folder` that nothing was added to for `STALE_DAYS`:
+    every edit of a kernel source starts a new folder, and the old ones would pile up."""
+    cutoff = (time.time() if now is None else now) - STALE_DAYS * 86400
+    if not folder.parent.is_dir():
+        return
+    for old in folder.parent.iterdir():
+        if old != folder and old.is_dir() and old.stat().st_mtime < cutoff:
+            shutil.rmtree(old, ignore_errors=True)
+
+
 def configure() -> None:
     """Point numba at the keyed folder. numba reads NUMBA_CACHE_DIR when it is imported and its
     cache locator reads `numba.config.CACHE_DIR` when a kernel is decorated, so both are set."""
@@ -83,6 +102,7 @@ def configure() -> None:
     if folder is None:
         return
     os.environ["NUMBA_CACHE_DIR"] = str(folder)
+    prune(folder)
     config = sys.modules.get("numba.core.config")
     if config is not None:
         config.CACHE_DIR = str(folder)  # type: ignore[attr-defined]

@@ -21,7 +21,8 @@ def _tree(root: Path) -> Path:
     (models / "pkg" / "helpers.py").write_text(
         "from numba import njit\n\n\n@njit(cache=True)\ndef twice(x):\n    return 2 * x\n"
     )
-    (models / "shared.py").write_text("SCALE = 3\n")
+    (models / "shared.py").write_text("from .deep import BASE\n\nSCALE = BASE\n")
+    (models / "deep.py").write_text("BASE = 3\n")
     (models / "unrelated.py").write_text("X = 1\n")
     return models
 
@@ -29,14 +30,15 @@ def _tree(root: Path) -> Path:
 def test_key_follows_kernels_and_what_they_import(tmp_path):
     models = _tree(tmp_path)
     names = {p.relative_to(models).as_posix() for p in numba_cache.kernel_sources(models)}
-    assert names == {"pkg/kernels.py", "pkg/helpers.py", "shared.py"}
+    assert names == {"pkg/kernels.py", "pkg/helpers.py", "shared.py", "deep.py"}
     key = numba_cache.cache_key(models)
     assert numba_cache.cache_key(models) == key
     (models / "unrelated.py").write_text("X = 2\n")
     assert numba_cache.cache_key(models) == key
     edits = (
         ("pkg/helpers.py", "2 * x", "3 * x"),
-        ("shared.py", "= 3", "= 4"),
+        ("shared.py", "= BASE", "= 2 * BASE"),
+        ("deep.py", "= 3", "= 4"),
         ("pkg/kernels.py", "* SCALE", "* SCALE + 1"),
     )
     for name, old, edit in edits:
@@ -54,6 +56,19 @@ def test_folder_is_in_the_checkout_unless_the_user_chose_one(tmp_path):
     assert numba_cache.cache_dir({"NUMBA_CACHE_DIR": "/somewhere"}, models) is None
     (tmp_path / "pyproject.toml").unlink()
     assert numba_cache.cache_dir({}, models) is None
+
+
+def test_old_folders_are_pruned_and_recent_ones_kept(tmp_path):
+    current, recent, old = (tmp_path / name for name in ("current", "recent", "old"))
+    for folder in (current, recent, old):
+        folder.mkdir()
+    now = 1_000_000_000.0
+    days = 86400.0
+    os.utime(current, (now - 30 * days, now - 30 * days))  # the folder in use is kept, however old
+    os.utime(recent, (now - days, now - days))
+    os.utime(old, (now - (numba_cache.STALE_DAYS + 1) * days, now - (numba_cache.STALE_DAYS + 1) * days))
+    numba_cache.prune(current, now)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["current", "recent"]
 
 
 def test_this_checkout_compiles_into_the_keyed_folder():
