@@ -4,9 +4,9 @@ numba's on-disk cache (`cache=True`) checks only the file that defines a kernel,
 calls into (numba #1833): a kernel calling `quaternion.qmul` would keep running an old `qmul` after
 an edit. So, unless the user set NUMBA_CACHE_DIR, the cache lives in `.cache/numba/<key>/` of the
 checkout, where the key hashes every kernel source under `models/` and every `models` module they
-import from, directly or not (constants such as joint indices are frozen into compiled code too). Any edit there
-starts a fresh folder. `models/__init__.py` imports this module, so it runs before any kernel
-module is decorated.
+import from at module level, directly or not (constants such as joint indices are frozen into
+compiled code too). Any edit there starts a fresh folder. `models/__init__.py` imports this
+module, so it runs before any kernel module is decorated.
 """
 
 from __future__ import annotations
