@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
 
 from .quaternion import add3, axis_angle, between, cross, dot3, qinv, qmul, qrot, row3, row4, sub3
@@ -75,21 +74,6 @@ def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target, soft):
     ga3 = qmul(w2, ga2)
     gb3 = qmul(w2, gb2)
     return qmul(qinv(gh), ga3), qmul(qinv(ga3), gb3), qmul(qinv(gb3), gf)
-
-
-@njit(cache=True, error_model="numpy")
-def two_bone_ik_batch(gh, r_up, r_low, r_foot, a, off_low, off_foot, target, soft):
-    """`two_bone_ik` over a batch of legs: (B, 4) rotations, (B, 3) hip positions and targets, (3,) offsets."""
-    n = gh.shape[0]
-    up, low, foot = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4))
-    lo, fo = (off_low[0], off_low[1], off_low[2]), (off_foot[0], off_foot[1], off_foot[2])
-    for i in range(n):
-        qu, ql, qf = two_bone_ik(
-            row4(gh, i), row4(r_up, i), row4(r_low, i), row4(r_foot, i), row3(a, i), lo, fo, row3(target, i), soft
-        )
-        for c in range(4):
-            up[i, c], low[i, c], foot[i, c] = qu[c], ql[c], qf[c]
-    return up, low, foot
 
 
 # --------------------------------------------------------------------------- the planter
