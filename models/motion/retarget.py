@@ -55,10 +55,6 @@ from .skeleton import Motion, Skeleton, fk
 # spine, so the chest's left-right vector is taken between the shoulder joints).
 _LATERAL = {"Hips": ("UpperLeg_L", "UpperLeg_R"), "Chest": ("Shoulder_L", "Shoulder_R")}
 
-# Bones (BN parent, BN child) that span the same body segment in both skeletons: their directions
-# are matched exactly and are what `bone_directions` compares.
-MATCHED_BONES = tuple((p, c) for p, c in PRIMARY_CHILD.items())
-
 
 @dataclass(frozen=True)
 class Rig:
@@ -231,13 +227,3 @@ def retarget(
     toes = [sk.index("Toes_L"), sk.index("Toes_R")]
     trans[:, hips, 1] += rig.floor - contact_height(pos[:, toes, 1])
     return Motion(sk, quat_canonical(local), trans, float(fps), rig.euler_orders or tuple("ZXY" for _ in sk.names))
-
-
-def bone_directions(motion: Motion, bones: list[tuple[str, str]], names: dict[str, str] | None = None) -> np.ndarray:
-    """Unit world directions (F, B, 3) of bones given as (joint, child) pairs of BN names,
-    translated to the motion's own joints through `names` (e.g. `CMU_TO_BN[rig_kind(skeleton)]`)."""
-    sk = motion.skeleton
-    pos = motion.global_positions()
-    idx = [(sk.index(names[a] if names else a), sk.index(names[b] if names else b)) for a, b in bones]
-    vec = np.stack([pos[:, b] - pos[:, a] for a, b in idx], axis=1)
-    return vec / np.linalg.norm(vec, axis=-1, keepdims=True).clip(min=1e-9)
