@@ -47,7 +47,7 @@ image:
 	@[ "$$(id -u)" != 0 ] || bash ../shared/tools/container-base.sh
 	bash docker/build-image.sh
 
-# mypy over the service and the model interface ([tool.mypy] in pyproject.toml)
+# ruff's lint and format check; mypy over service/ and models/ ([tool.mypy] in pyproject.toml)
 lint: install
 	$(BIN)/python -m ruff check .
 	$(BIN)/python -m ruff format --check .

@@ -113,11 +113,9 @@ class Bfloat16Product:
     weights; its model card has what that does to its output). `for_weights` returns one only where
     this machine has native bfloat16 and keeps the rows independent of the batch.
 
-    The choice reads the CPU's features, never a timing: it used to take bfloat16 where it timed
-    at least 2x faster than float32, and on a loaded machine that verdict flipped from process to
-    process (the three LPN-FiLM products, six fresh processes beside four busy ones: four
-    different mixes of bfloat16 and float32), so two replicas of one service computed the same
-    session differently and a session resumed on the other one did not go on as it would have."""
+    The choice reads the CPU's features, never a timing: on a loaded machine a timed verdict flips
+    from process to process, so two replicas of one service would compute the same session
+    differently and a session resumed on the other one would not go on as it would have."""
 
     def __init__(self, w: np.ndarray) -> None:
         self.w = torch.from_numpy(np.ascontiguousarray(w, np.float32)).to(torch.bfloat16)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from models.motion.coupling import Coupling, couple, couple_numpy, deviations, link_indices, regression
-from models.motion.rotations import expmap_to_quat
+from models.motion.rotations import quat_exp
 
 NAMES = ("Hips", "Thigh", "Arm", "Forearm")
 LINKS = (("Arm", ("Hips", "Thigh")), ("Forearm", ("Arm",)))
@@ -24,7 +24,7 @@ def _clips(gain_arm: float, gain_forearm: float, seed: int, frames: int = 600) -
     v[:, 1, 0] = 0.5 * np.sin(2 * np.pi * 1.3 * t)
     v[:, 2, 0] = gain_arm * v[:, 1, 0] + rng.normal(0, 0.02, frames)
     v[:, 3, 2] = gain_forearm * v[:, 2, 0] + rng.normal(0, 0.02, frames)
-    return [expmap_to_quat(v)]
+    return [quat_exp(v)]
 
 
 @pytest.fixture(scope="module")

@@ -76,7 +76,7 @@ def test_a_one_frame_flick_of_the_head_is_a_pop():
     from dataclasses import replace
 
     from models.eval.plausibility import RotationReference, rotation_acceleration
-    from models.motion.rotations import expmap_to_quat, quat_mul
+    from models.motion.rotations import quat_exp, quat_mul
 
     index = build_index(["bandai-namco-2"])
     ref = RotationReference({"elderly": load_motions(select(index, split="train", style="elderly"))})
@@ -84,7 +84,7 @@ def test_a_one_frame_flick_of_the_head_is_a_pop():
     calm = ref.pops("elderly", [clip])
     head = clip.skeleton.index("Head")
     rot = clip.rotations.copy()
-    rot[45, head] = quat_mul(rot[45, head], expmap_to_quat(np.radians([0.0, 30.0, 0.0])))
+    rot[45, head] = quat_mul(rot[45, head], quat_exp(np.radians([0.0, 30.0, 0.0])))
     flicked = replace(clip, rotations=rot)
     assert calm["pops_largest_deg"] < 15.0 and ref.pops("elderly", [flicked])["pops_largest_deg"] > 50.0
     k = ref.joints.index("Head")
@@ -99,7 +99,7 @@ def test_a_forearm_wrung_past_the_real_twists_reads_as_that_many_degrees_beyond(
     from dataclasses import replace
 
     from models.eval.plausibility import RotationReference
-    from models.motion.rotations import expmap_to_quat, quat_mul
+    from models.motion.rotations import quat_exp, quat_mul
     from models.motion.twist import bone_axes
 
     index = build_index(["bandai-namco-2"])
@@ -107,7 +107,7 @@ def test_a_forearm_wrung_past_the_real_twists_reads_as_that_many_degrees_beyond(
     clip = load_motions(select(index, split="val", style="elderly", content="walk")[:1])[0].slice(0, 90)
     arm = clip.skeleton.index("LowerArm_L")
     rot = clip.rotations.copy()
-    rot[:, arm] = quat_mul(rot[:, arm], expmap_to_quat(np.radians(40.0) * bone_axes(clip.skeleton)[arm]))
+    rot[:, arm] = quat_mul(rot[:, arm], quat_exp(np.radians(40.0) * bone_axes(clip.skeleton)[arm]))
     calm, wrung = ref.plausibility("elderly", [clip]), ref.plausibility("elderly", [replace(clip, rotations=rot)])
     assert calm["per_joint"]["LowerArm_L"]["twist_beyond_p95_deg"] == 0.0
     hi = np.degrees(ref.twist_range["elderly"][1, ref.joints.index("LowerArm_L")])

@@ -3,14 +3,14 @@ from dataclasses import replace
 import numpy as np
 
 from models.motion.features import WORLD_MIRROR, compute_features, foot_contacts, mirror
-from models.motion.rotations import expmap_to_quat, quat_mul
+from models.motion.rotations import quat_exp, quat_mul
 
 
 def _perturb_from(motion, t):
     """Same motion up to frame t, different from t+1 on."""
     rng = np.random.default_rng(0)
     rot = motion.rotations.copy()
-    noise = expmap_to_quat(rng.normal(scale=0.3, size=rot[t + 1 :].shape[:-1] + (3,)))
+    noise = quat_exp(rng.normal(scale=0.3, size=rot[t + 1 :].shape[:-1] + (3,)))
     rot[t + 1 :] = quat_mul(rot[t + 1 :], noise)
     tr = motion.translations.copy()
     tr[t + 1 :, 1] += rng.normal(scale=10.0, size=tr[t + 1 :, 1].shape)

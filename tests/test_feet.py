@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from models.eval.metrics import planted_slide
+from models.motion import feet_kernels
 from models.motion.bn_skeleton import HIPS
-from models.motion.feet import STATE_SHAPES, model_rig_planter, two_bone_ik
+from models.motion.feet import STATE_SHAPES, model_rig_planter
 from models.motion.rotations import quat_apply
 from models.motion.skeleton import fk
 
@@ -124,9 +125,11 @@ def test_two_bone_ik_reaches_its_target_and_keeps_the_foot_turned_as_it_was(bn_w
         target = p_old[:, foot] + rng.uniform(-4, 4, 3)
         hip = m.translations[t : t + 1, HIPS] + quat_apply(rots[:, HIPS], sk.offsets[up][None])
         new = rots.copy()
-        new[:, up], new[:, low], new[:, foot] = two_bone_ik(
-            rots[:, HIPS], rots[:, up], rots[:, low], rots[:, foot], hip, sk.offsets[low], sk.offsets[foot], target
-        )
+        row = lambda a: tuple(np.asarray(a, np.float64)[0])  # noqa: E731
+        new[0, up], new[0, low], new[0, foot] = feet_kernels.two_bone_ik(
+            row(rots[:, HIPS]), row(rots[:, up]), row(rots[:, low]), row(rots[:, foot]), row(hip),
+            tuple(sk.offsets[low]), tuple(sk.offsets[foot]), row(target), 0.0,
+        )  # fmt: skip
         g_new, p_new = fk(new, m.translations[t : t + 1], sk.parents)
         np.testing.assert_allclose(p_new[:, foot], target, atol=1e-3)  # cm
         assert abs(abs(np.sum(g_old[0, foot] * g_new[0, foot])) - 1) < 1e-9

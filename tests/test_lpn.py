@@ -175,7 +175,7 @@ def test_control_sessions_start_standing_whatever_pose_the_input_carries(model):
 @pytest.fixture(scope="module")
 def reference(model):
     """The numpy step the compiled kernels replaced, on the same weights."""
-    from models.lpn.reference import numpy_twin
+    from tests.reference.lpn_step import numpy_twin
 
     return numpy_twin(model)
 
@@ -303,11 +303,11 @@ def test_the_torso_turns_as_smoothly_as_real_walks(model, bn_walk):
     frames; in between the pair bent against each other (the chest joint dropped 8 cm for one
     frame). Real validation walks never change the spine's or chest's rotation by more than ~6
     degrees per frame per frame; every style's output stays under 10 (model card)."""
-    from models.motion.rotations import quat_inv, quat_mul, quat_to_expmap
+    from models.motion.rotations import quat_inv, quat_log, quat_mul
 
     walk = bn_walk.slice(0, 90)
     torso = [model.skeleton.index("Spine"), model.skeleton.index("Chest")]
     for style in model.styles()[:7]:  # the dataset-2 styles, normal first
         q = model.run(walk, model.weight_vector({style: 1.0}))[0].rotations[:, torso].astype(np.float64)
-        step = quat_to_expmap(quat_mul(quat_inv(q[:-1]), q[1:]))
+        step = quat_log(quat_mul(quat_inv(q[:-1]), q[1:]))
         assert np.degrees(np.linalg.norm(np.diff(step, axis=0), axis=-1)).max() < 10.0, style

@@ -150,13 +150,13 @@ def test_an_axis_the_source_keeps_still_is_not_stretched_past_the_floor():
     """A source that never twists about x, toward a style that does: without a floor the map
     stretches x by the style's spread over numerical noise; with one, by at most spread / floor."""
     from models.lpn.output_prior import SOURCE_FLOOR_DEG
-    from models.motion.rotations import expmap_to_quat
+    from models.motion.rotations import quat_exp
     from models.motion.style_carry import StyleCarry
 
     rng = np.random.default_rng(0)
     still = rng.normal(0, 0.2, (5000, 1, 3)) * [0.0, 1.0, 1.0]
     spread = rng.normal(0, 0.2, (5000, 1, 3))
-    source, target = expmap_to_quat(still), expmap_to_quat(spread)
+    source, target = quat_exp(still), quat_exp(spread)
     floor = np.radians(SOURCE_FLOOR_DEG)
     gain = lambda carry: np.linalg.svd(carry.map[0, 0], compute_uv=False)[0]  # noqa: E731
     assert gain(StyleCarry.fit([source], [target])) > 100

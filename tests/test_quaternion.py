@@ -32,3 +32,15 @@ def test_log_and_exp_invert_each_other_on_the_shortest_arc():
         back = np.array(Q.qexp(tuple(v)))
         assert min(np.abs(back - q).max(), np.abs(back + q).max()) < 1e-12
     assert Q.qexp((0.0, 0.0, 0.0)) == (0.0, 0.0, 0.0, 1.0)
+
+
+def test_between_carries_u_onto_v_including_opposite_directions():
+    u = RNG.normal(size=(20, 3))
+    v = RNG.normal(size=(20, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for a, b in zip(u, v):
+        q = Q.between(tuple(a), tuple(b))
+        assert np.allclose(Q.qrot(q, tuple(a)), b)
+        opposite = Q.between(tuple(a), tuple(-a))
+        assert np.allclose(Q.qrot(opposite, tuple(a)), -a)

@@ -9,7 +9,7 @@ import pytest
 
 from models.motion import rate
 from models.motion.bn_skeleton import BODY, HIPS
-from models.motion.rotations import expmap_to_quat
+from models.motion.rotations import quat_exp
 from models.settings import get_settings
 
 RATES = (24.0, 25.0, 30.0, 50.0, 60.0, 90.0, 120.0)
@@ -57,7 +57,7 @@ def test_the_parabola_passes_through_the_outputs_and_follows_a_steady_accelerati
     axis = np.array([0.3, 0.9, -0.3]) / np.linalg.norm([0.3, 0.9, -0.3])
 
     def pose(t: float) -> tuple[np.ndarray, np.ndarray]:
-        return np.array([t * t, 2 * t, -t]), expmap_to_quat(axis * (0.2 + 0.3 * t + 0.1 * t * t))[None]
+        return np.array([t * t, 2 * t, -t]), quat_exp(axis * (0.2 + 0.3 * t + 0.1 * t * t))[None]
 
     def degrees(a: np.ndarray, b: np.ndarray) -> float:
         return float(np.degrees(2 * np.arccos(min(1.0, abs(float(np.dot(a, b)))))))
@@ -80,7 +80,7 @@ def test_the_input_at_a_model_step_is_the_slerp_between_the_frames_around_it():
     from models.motion.resample import slerp
 
     rng = np.random.default_rng(3)
-    q0, q1 = expmap_to_quat(rng.normal(size=(4, 22, 3))), expmap_to_quat(rng.normal(size=(4, 22, 3)))
+    q0, q1 = quat_exp(rng.normal(size=(4, 22, 3))), quat_exp(rng.normal(size=(4, 22, 3)))
     r0, r1 = rng.normal(size=(4, 3)), rng.normal(size=(4, 3))
     w = np.array([0.0, 0.3, 0.8, 1.0])
     root, rot = rate.blend(r0, q0, r1, q1, w)

@@ -14,7 +14,7 @@ from models.motion.features import facing_yaw
 from models.motion.orientation import FACES, face_normals, find_parts, reference_rig, rig, solid_corners, world_axes
 from models.motion.render import joint_sides, render_contact_sheet, render_gif, up_axis, upright
 from models.motion.resample import resample
-from models.motion.rotations import expmap_to_quat, quat_mul
+from models.motion.rotations import quat_exp, quat_mul
 from models.motion.skeleton import Motion
 from tests.rigs import EXTRA_SPECS, SPECS, bn_positions, make_rig
 
@@ -75,7 +75,7 @@ def _turn(motion: Motion, joint: str, degrees: float) -> Motion:
     """A copy with `joint` turned about its own bone (the offset from its parent): moves no joint."""
     sk = motion.skeleton
     j = sk.index(joint)
-    q = expmap_to_quat(sk.offsets[j] / np.linalg.norm(sk.offsets[j]) * np.radians(degrees))
+    q = quat_exp(sk.offsets[j] / np.linalg.norm(sk.offsets[j]) * np.radians(degrees))
     rotations = motion.rotations.copy()
     rotations[:, j] = quat_mul(q, rotations[:, j])
     return replace(motion, rotations=rotations)

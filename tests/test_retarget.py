@@ -6,12 +6,27 @@ import numpy as np
 import pytest
 
 from models.data import load_motion, select
-from models.motion.bn_skeleton import BN_JOINTS
+from models.motion.bn_skeleton import BN_JOINTS, PRIMARY_CHILD
 from models.motion.humanoid import CMU_TO_BN, leg_length, rig_kind
 from models.motion.resample import resample
-from models.motion.retarget import MATCHED_BONES, Rig, bone_directions, default_rig, retarget
+from models.motion.retarget import Rig, default_rig, retarget
+from models.motion.skeleton import Motion
 
 WALKS = [("cmu", "131_01"), ("cmu", "131_02"), ("xia", "neutral_walk_01_000")]
+
+# Bones (BN parent, BN child) that span the same body segment in both skeletons: their directions
+# are matched exactly.
+MATCHED_BONES = tuple(PRIMARY_CHILD.items())
+
+
+def bone_directions(motion: Motion, bones: list[tuple[str, str]], names: dict[str, str] | None = None) -> np.ndarray:
+    """Unit world directions (F, B, 3) of bones given as (joint, child) pairs of BN names,
+    translated to the motion's own joints through `names` (e.g. `CMU_TO_BN[rig_kind(skeleton)]`)."""
+    sk = motion.skeleton
+    pos = motion.global_positions()
+    idx = [(sk.index(names[a] if names else a), sk.index(names[b] if names else b)) for a, b in bones]
+    vec = np.stack([pos[:, b] - pos[:, a] for a, b in idx], axis=1)
+    return vec / np.linalg.norm(vec, axis=-1, keepdims=True).clip(min=1e-9)
 
 
 @pytest.fixture(scope="module")

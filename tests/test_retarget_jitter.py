@@ -14,7 +14,7 @@ from models.data import load_motion, select
 from models.motion.humanoid import humanoid_rig
 from models.motion.retarget_check import BOUND, clip_jitter, group_ratios, rotation_acceleration
 from models.motion.retarget_stream import FrameRetargeter
-from models.motion.rotations import expmap_to_quat, quat_mul
+from models.motion.rotations import quat_exp, quat_mul
 
 from .rigs import SPECS, make_rig
 
@@ -70,10 +70,10 @@ def test_no_group_carries_more_jitter_than_the_source(jitter, name, group):
 def test_rotation_acceleration_sees_a_flip():
     """The measure itself: a steady turn has none; one frame turned by a half turn is a spike."""
     t = np.arange(40)[:, None, None]
-    q = expmap_to_quat(np.array([0.0, 0.05, 0.0]) * t)
+    q = quat_exp(np.array([0.0, 0.05, 0.0]) * t)
     assert rotation_acceleration(q).max() < 1e-6
     flipped = q.copy()
-    flipped[20] = quat_mul(flipped[20], expmap_to_quat(np.array([np.pi * 0.9, 0.0, 0.0])))
+    flipped[20] = quat_mul(flipped[20], quat_exp(np.array([np.pi * 0.9, 0.0, 0.0])))
     assert rotation_acceleration(flipped).max() > 150.0
 
 

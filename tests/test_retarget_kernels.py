@@ -1,5 +1,5 @@
 """The compiled per-frame retargeter (`retarget_kernels`, behind `FrameRetargeter.to_model` /
-`to_source`) against its numpy reference (`to_model_reference` / `to_source_reference`): equal to
+`to_source`) against its numpy reference (`tests/reference/retarget.py`): equal to
 float round-off on made rigs (tests/rigs.py), on a CMU walk, on presets and on random poses, at
 batch 1 and batched."""
 
@@ -13,6 +13,7 @@ from models.motion.humanoid import humanoid_rig, preset_rig
 from models.motion.retarget import HINGE_FALLBACK, TWIST_SHARE
 from models.motion.retarget_stream import FrameRetargeter
 
+from .reference import retarget as reference
 from .rigs import SPECS, make_rig
 
 FRAMES = 60
@@ -32,13 +33,13 @@ def _same(fr: FrameRetargeter, root: np.ndarray, rot: np.ndarray, new_hips: np.n
     w ~ 0 round-off may pick either)."""
     unit = fr.source.offsets.std() + 1.0  # translations compared relative to the rig's size
     hips, bn = fr.to_model(root, rot)
-    ref_hips, ref_bn = fr.to_model_reference(root, rot)
+    ref_hips, ref_bn = reference.to_model(fr, root, rot)
     np.testing.assert_allclose(hips / unit, ref_hips / unit, atol=1e-9)
     assert _qdiff(bn, ref_bn) < 1e-9
     assert np.abs(bn - ref_bn).max() < 1e-6  # and the same sign
     for bn_root, bn_rot in ((hips, bn), (new_hips, new_rot)):
         back_root, back_rot = fr.to_source(bn_root, bn_rot, rot)
-        ref_root, ref_rot = fr.to_source_reference(bn_root, bn_rot, rot)
+        ref_root, ref_rot = reference.to_source(fr, bn_root, bn_rot, rot)
         np.testing.assert_allclose(back_root / unit, ref_root / unit, atol=1e-9)
         assert _qdiff(back_rot, ref_rot) < 1e-9
         assert np.abs(back_rot - ref_rot).max() < 1e-6
@@ -47,7 +48,7 @@ def _same(fr: FrameRetargeter, root: np.ndarray, rot: np.ndarray, new_hips: np.n
         np.testing.assert_allclose(h1[0], hips[f], rtol=0, atol=1e-9 * unit)
         np.testing.assert_allclose(b1[0], bn[f], atol=1e-12)
         r1, q1 = fr.to_source(new_hips[f], new_rot[f], rot[f])
-        r2, q2 = fr.to_source_reference(new_hips[f][None], new_rot[f][None], rot[f][None])
+        r2, q2 = reference.to_source(fr, new_hips[f][None], new_rot[f][None], rot[f][None])
         np.testing.assert_allclose(r1 / unit, r2 / unit, atol=1e-9)
         assert _qdiff(q1, q2) < 1e-9
 
@@ -66,7 +67,7 @@ def walk(bn_walk):
 def bn_frames(walk):
     """BN frames from later in the walk (what a style would send back)."""
     fr = FrameRetargeter(humanoid_rig(walk.skeleton, translated=walk.skeleton.index("Hips")))
-    return fr.to_model_reference(walk.translations[::-1, 1], walk.rotations[::-1])
+    return reference.to_model(fr, walk.translations[::-1, 1], walk.rotations[::-1])
 
 
 @pytest.mark.parametrize("name", list(SPECS))
@@ -101,7 +102,7 @@ def test_float32_frames_and_bad_shapes():
     rot = (rng.normal(size=(fr.source.num_joints, 4)) * 0.2 + [0, 0, 0, 1]).astype(np.float32)
     root = np.array([1.0, 90.0, 3.0], np.float32)
     hips, bn = fr.to_model(root, rot)
-    ref_hips, ref_bn = fr.to_model_reference(root, rot)
+    ref_hips, ref_bn = reference.to_model(fr, root, rot)
     np.testing.assert_allclose(hips, ref_hips, atol=1e-9)
     np.testing.assert_allclose(bn, ref_bn, atol=1e-12)
     with pytest.raises(ValueError, match="client joints"):

@@ -7,8 +7,9 @@ import pytest
 
 from models.data import build_index, load_motion, select
 from models.motion.assets import cmu_skeleton
+from models.motion.bn_skeleton import PRIMARY_CHILD
 from models.motion.humanoid import CMU_TO_BN, leg_length, rig_kind
-from models.motion.retarget import MATCHED_BONES, contact_height, default_rig, retarget
+from models.motion.retarget import contact_height, default_rig, retarget
 from models.motion.retarget_stream import FrameRetargeter
 from models.motion.rotations import matrix_to_quat as mat_to_quat
 from models.motion.rotations import quat_to_matrix as quat_to_mat
@@ -115,7 +116,7 @@ def test_to_source_points_bones_where_bn_does(walks, rig, variant):
     src_pos = fk(new_rot, trans, motion.skeleton.parents)[1]
     bn_pos = _bn_positions(rig, hips[40:], bn[40:])
     sk, bsk, smap = motion.skeleton, rig.skeleton, CMU_TO_BN[variant]
-    for a, b in MATCHED_BONES:
+    for a, b in PRIMARY_CHILD.items():
         s = src_pos[:, sk.index(smap[b])] - src_pos[:, sk.index(smap[a])]
         t = bn_pos[:, bsk.index(b)] - bn_pos[:, bsk.index(a)]
         cos = np.sum(s * t, -1) / np.linalg.norm(s, axis=-1) / np.linalg.norm(t, axis=-1)

@@ -15,7 +15,7 @@ from models.eval.intervals import share, wilson
 from models.eval.physical import Input, Reference, measure
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import OTHER, load_style_judge
-from models.motion.rotations import expmap_to_quat, quat_mul
+from models.motion.rotations import quat_exp, quat_mul
 
 
 def test_no_input_of_a_validation_run_is_scored_by_the_final_one():
@@ -77,7 +77,7 @@ def test_half_a_degree_off_the_hinges_does_not_change_the_read(judge):
         for name in ("LowerArm_L", "LowerArm_R", "LowerLeg_L", "LowerLeg_R"):
             j = m.skeleton.index(name)
             off = rng.normal(size=(m.num_frames, 3)) * np.radians(0.5) / np.sqrt(3)
-            rot[:, j] = quat_mul(rot[:, j], expmap_to_quat(off))
+            rot[:, j] = quat_mul(rot[:, j], quat_exp(off))
         noisy.append(replace(m, rotations=rot))
     contents = [c.content for c in clips]
     assert judge.predict(noisy, D2, contents) == judge.predict(motions, D2, contents) == [c.style for c in clips]
@@ -98,7 +98,7 @@ def test_a_shaking_head_is_jitter_and_a_dragged_foot_is_slide(walk):
     rot = walk.rotations.copy()
     head = walk.skeleton.index("Head")
     shake = np.where(np.arange(walk.num_frames) % 2, 0.05, -0.05)[:, None] * np.array([0.0, 0.0, 1.0])
-    rot[:, head] = quat_mul(expmap_to_quat(shake), rot[:, head])  # +-3 degrees, every other frame
+    rot[:, head] = quat_mul(quat_exp(shake), rot[:, head])  # +-3 degrees, every other frame
     shaking = measure(ref, "normal", replace(walk, rotations=rot), Input.of(walk, ref))
     assert shaking.jitter > 1.5
     trans = walk.translations.copy()

@@ -14,9 +14,12 @@ from __future__ import annotations
 
 import tarfile
 from pathlib import Path
+from typing import Literal
 
 from ..settings import Settings, get_settings
 from .archives import DATASETS, archive_file, record_sum, sha256_file
+
+XzPreset = Literal[0, 1, 2, 3, 4, 5, 6, 7, 8, 9]
 
 
 def take_content(member: str) -> str | None:
@@ -30,7 +33,7 @@ def take_content(member: str) -> str | None:
 
 
 def write_subset(
-    name: str, contents: tuple[str, ...], out_dir: Path, settings: Settings | None = None, preset: int = 6
+    name: str, contents: tuple[str, ...], out_dir: Path, settings: Settings | None = None, preset: XzPreset = 6
 ) -> Path:
     """Write `out_dir/<archive>` holding the dataset's takes of `contents` (all of them where
     `contents` is empty) and append its sum to `out_dir/SHA256SUMS`. Returns the archive.
@@ -42,7 +45,7 @@ def write_subset(
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / spec.archive
     tmp = target.with_suffix(".partial")
-    with tarfile.open(source, "r:xz") as src, tarfile.open(tmp, "w:xz", preset=preset) as dst:
+    with tarfile.open(source, "r:xz") as src, tarfile.open(tmp, mode="w:xz", preset=preset) as dst:
         for member in src:
             content = take_content(member.name)
             if content is not None and contents and content not in contents:

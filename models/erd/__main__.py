@@ -51,7 +51,8 @@ def render(args) -> None:
         + ("_ref" if args.reference else "")
         + ("" if args.view == "10,-60" else f"_view{args.view.replace(',', '_')}")
     )
-    view = tuple(float(v) for v in args.view.split(","))
+    elev, azim = (float(v) for v in args.view.split(","))
+    view = (elev, azim)
     print(
         render_contact_sheet(
             outs, out_dir / f"erd_{tag}.png", frames=args.frames, titles=titles, view=view, panel_size=args.panel

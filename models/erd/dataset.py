@@ -150,11 +150,11 @@ class WindowSampler:
             for st in np.linspace(0, L - self.window, n_per_clip).round().astype(int):
                 idx.append(self.s.starts[c] + st + np.arange(self.window))
                 clips.append(c)
-        clips = np.array(clips)
+        clip_rows = np.array(clips)
         return {
             "x": self.feats[torch.from_numpy(np.stack(idx))],
-            "style": torch.from_numpy(self.s.style[clips]),
-            "content": torch.from_numpy(self.s.content[clips]),
+            "style": torch.from_numpy(self.s.style[clip_rows]),
+            "content": torch.from_numpy(self.s.content[clip_rows]),
         }
 
 

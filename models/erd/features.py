@@ -25,6 +25,7 @@ import numpy as np
 
 from ..motion.bn_skeleton import BODY
 from ..motion.features import body_joint, facing_yaw, left_leg_length
+from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.skeleton import Skeleton
 from . import kernels
 
@@ -67,7 +68,7 @@ class FeatureMaker:
 
     def positions(self, root: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """World joint positions (N, 22, 3) from Hips translations (N, 3) and local rotations (N, 22, 4)."""
-        return kernels.forward_kinematics(_f64(root), _f64(rotations), self.parents, self.offsets)
+        return forward_kinematics(_f64(root), _f64(rotations), self.parents, self.offsets)[1]
 
     def features(
         self, rotations: np.ndarray, pos: np.ndarray, prev_pos: np.ndarray, prev_yaw: np.ndarray, has_prev: np.ndarray

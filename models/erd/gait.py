@@ -5,7 +5,7 @@ The priors map what the network makes toward a style onto the style's real rotat
 Gaussian per joint. Fitted over every content at once, runs (a tenth of the frames, with the
 widest arm and leg swings) were carried toward where walks and gestures sit: on the VALIDATION
 split's runs the rotation judge read 0 of 4 runs toward active, feminine or youthful as their
-style, and the position judge 0 of 4 toward exhausted (`out/s20/erd_runs.py`, scratch). Runs
+style, and the position judge 0 of 4 toward exhausted. Runs
 therefore get priors fitted on runs alone (`*_prior_run.npz`), every other frame keeps the
 all-content priors, and a frame's share of the run priors ramps with the input's horizontal
 Hips speed over `RUN_RAMP_CM_S`: from the TRAIN `normal` walks' p99 (1.70 m/s; walk turns 1.61)
@@ -17,7 +17,7 @@ The speed is averaged over about a running step (`SPEED_SMOOTHING`: an exponenti
 long as a 10-frame window, a third of a second): a run's Hips speed swings by +-40 cm/s within
 each step, and frame by frame the share swung between 0 and 1 within three frames (validation
 runs at 2.0-2.5 m/s), switching the arms and head between the two priors; those frames' rotations
-turned up to 5-8x faster than the real runs' (`out/s22/erd_popfind.py`, scratch).
+turned up to 5-8x faster than the real runs'.
 """
 
 from __future__ import annotations

@@ -6,9 +6,6 @@ Why compiled: these steps are per-joint loops over 22 joints; as vectorised nump
 ~100 small numpy calls per frame (the forward kinematics alone a Python loop over the joints),
 ~0.5 ms at batch 1, against ~1 us of arithmetic per session here. The formulas are those of
 `features.py` (documented there) and of `models.motion.features`, which the tests compare with.
-
-This module is self-contained on purpose: numba's on-disk cache (`cache=True`) is invalidated by
-changes to a kernel's own source file only, not to jitted helpers it calls in other files.
 """
 
 from __future__ import annotations
@@ -19,37 +16,9 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS
+from ..motion.quaternion import qinv, qmul, quat_at, qunit, wrap
 
-# --------------------------------------------------------------------------- small vector maths on tuples
-
-
-@njit(cache=True, error_model="numpy")
-def qmul(a, b):
-    """Hamilton product a * b (apply b, then a), scalar-last."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def qrot(q, v):
-    """Rotate vector v by unit quaternion q."""
-    x, y, z, w = q
-    tx, ty, tz = 2.0 * (y * v[2] - z * v[1]), 2.0 * (z * v[0] - x * v[2]), 2.0 * (x * v[1] - y * v[0])
-    return (v[0] + w * tx + y * tz - z * ty, v[1] + w * ty + z * tx - x * tz, v[2] + w * tz + x * ty - y * tx)
-
-
-@njit(cache=True, error_model="numpy")
-def unit(a, i, j):
-    """Quaternion a[i, j] normalised, as a 4-tuple."""
-    x, y, z, w = a[i, j, 0], a[i, j, 1], a[i, j, 2], a[i, j, 3]
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    return (x / n, y / n, z / n, w / n)
+# --------------------------------------------------------------------------- small helpers
 
 
 @njit(cache=True, error_model="numpy")
@@ -59,35 +28,7 @@ def turn_y(x, y, z, yaw):
     return c * x + s * z, y, -s * x + c * z
 
 
-@njit(cache=True, error_model="numpy")
-def wrap(a):
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 # --------------------------------------------------------------------------- kernels
-
-
-@njit(cache=True, error_model="numpy")
-def forward_kinematics(root, rotations, parents, offsets):
-    """World joint positions (N, J, 3) from Hips translations (N, 3) and local rotations (N, J, 4)
-    (normalised here); parents must come before their children, as in every BVH."""
-    n, J = rotations.shape[0], rotations.shape[1]
-    pos = np.empty((n, J, 3))
-    glob = np.empty((J, 4))
-    for f in range(n):
-        for j in range(J):
-            q = unit(rotations, f, j)
-            p = parents[j]
-            if p < 0:
-                glob[j, 0], glob[j, 1], glob[j, 2], glob[j, 3] = q
-                pos[f, j, 0], pos[f, j, 1], pos[f, j, 2] = offsets[j, 0], offsets[j, 1], offsets[j, 2]
-                continue
-            gp = (glob[p, 0], glob[p, 1], glob[p, 2], glob[p, 3])
-            t = (root[f, 0], root[f, 1], root[f, 2]) if j == HIPS else (offsets[j, 0], offsets[j, 1], offsets[j, 2])
-            d = qrot(gp, t)
-            pos[f, j, 0], pos[f, j, 1], pos[f, j, 2] = pos[f, p, 0] + d[0], pos[f, p, 1] + d[1], pos[f, p, 2] + d[2]
-            glob[j, 0], glob[j, 1], glob[j, 2], glob[j, 3] = qmul(gp, q)
-    return pos
 
 
 @njit(cache=True, error_model="numpy")
@@ -112,7 +53,7 @@ def features(rotations, pos, prev_pos, prev_yaw, has_prev, ref, facing, feet, le
         half = -0.5 * yaw
         unyaw = (0.0, math.sin(half), 0.0, math.cos(half))
         for b in range(nb):
-            q = unit(rotations, f, b + 1)
+            q = qunit(quat_at(rotations, f, b + 1))
             if b == 0:
                 q = qmul(unyaw, q)
             if q[0] * ref[b, 0] + q[1] * ref[b, 1] + q[2] * ref[b, 2] + q[3] * ref[b, 3] < 0.0:
@@ -263,7 +204,7 @@ def twist_clamp_batch(q, w, joints, axes, mean, lo, hi, out):
                 ws = w[b, s]
                 if ws == 0.0:
                     continue
-                d = qmul((-mean[s, k, 0], -mean[s, k, 1], -mean[s, k, 2], mean[s, k, 3]), qj)
+                d = qmul(qinv(quat_at(mean, s, k)), qj)
                 t = wrap(2.0 * math.atan2(d[0] * ax + d[1] * ay + d[2] * az, d[3]))
                 delta += ws * (min(max(t, lo[s, k]), hi[s, k]) - t)
             if delta != 0.0:

@@ -70,6 +70,7 @@ class Generator(nn.Module):
             nn.Linear(cfg.dec_hidden, 4 * NB + 3 + 1),
         )
         last = self.decoder[-1]
+        assert isinstance(last, nn.Linear)
         nn.init.zeros_(last.weight)
         nn.init.zeros_(last.bias)
 

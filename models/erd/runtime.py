@@ -30,7 +30,7 @@ speed follows the style); the height is predicted.
 Twists and leaves: the decoder's rotations are trusted only where they move joints. Its positions
 are kept exactly, but each bone's twist about itself and the head, hands and toes take the
 input's rotations (`models.motion.twist.transfer_twist`): trained on positions, the network had
-left those free and wrung wrists by 60-140 degrees and turned necks by 90 (issue #14). The input's
+left those free and wrung wrists by 60-140 degrees and turned necks by 90. The input's
 rotations are first carried from the neutral style's real distribution to the target style's,
 so the head and wrists take the style's attitude inside its real range instead of the neutral
 input's; then the output's rotations are carried from what the network produces to the style's

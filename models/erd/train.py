@@ -421,15 +421,17 @@ def main(argv: list[str]) -> None:
         _, f_fake = clf(clf.prepare(fake_view))
         with torch.no_grad():
             _, f_real = clf(clf.prepare(real))
-        l_per = sum(F.mse_loss(a, b_) for a, b_ in zip(f_fake, f_real))
+        l_per = torch.zeros(())
+        for a, b_ in zip(f_fake, f_real):
+            l_per = l_per + F.mse_loss(a, b_)
         streamed = None
         if cfg.w_prior or disc_rot is not None:
             source = leaf_source(leaf_prior, x, target) if leaf_prior is not None else None
             streamed = streamed_rotations(skeleton, out["rot"][B:], x, source)
-        l_prior = prior_loss(streamed, target, prior) if cfg.w_prior else torch.zeros(())
+        l_prior = prior_loss(streamed, target, prior) if cfg.w_prior and streamed is not None else torch.zeros(())
         l_adv_rot = (
             disc_rot(rotation_view(streamed), target, content).pow(2).mean()
-            if disc_rot is not None
+            if disc_rot is not None and streamed is not None
             else torch.zeros(())
         )
         loss_g = (
@@ -456,7 +458,7 @@ def main(argv: list[str]) -> None:
         opt_d.zero_grad()
         loss_d.backward()
         opt_d.step()
-        if disc_rot is not None:  # the same for the rotation discriminator, on real rotations
+        if disc_rot is not None and opt_dr is not None and streamed is not None:  # the same on real rotations
             rv = rotation_view(real_rot(x)).detach().requires_grad_(True)
             dr_real = disc_rot(rv, style, content)
             (grad,) = torch.autograd.grad(dr_real.sum(), rv, create_graph=True)

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..motion.features import body_joint, left_leg_length
-from ..motion.rotations import quat_inv, quat_mean, quat_mul, quat_to_expmap
+from ..motion.rotations import quat_inv, quat_log, quat_mean, quat_mul
 from ..motion.skeleton import Motion
 from .metrics import flat_foot_contacts
 from .plausibility import body_joints, comparable_rotations, rotation_acceleration
@@ -44,7 +44,7 @@ MIN_RADIUS_DEG = 5.0
 def _log_about(q: np.ndarray, mean: np.ndarray) -> np.ndarray:
     """(F, J, 3) each rotation as a rotation vector from the joint's mean: three numbers a
     KD-tree searches fast, close to the angle between rotations near the data."""
-    return quat_to_expmap(quat_mul(quat_inv(mean), q))
+    return quat_log(quat_mul(quat_inv(mean), q))
 
 
 class RotationSupport:

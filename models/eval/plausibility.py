@@ -12,7 +12,7 @@ the style, per joint:
   (swing-twist split about the bone's axis), against the real p0.5..p99.5 interval;
 - **pops**: how fast the rotation's turning changes from frame to frame (the angle of the second
   difference, degrees per frame per frame), against the real p99.9 of that joint: a one-frame
-  flick of the torso or a wrist that no pose metric sees (LPN-FiLM's spine flips, session 22).
+  flick of the torso or a wrist that no pose metric sees.
 
 The Hips rotation holds the character's heading, which is arbitrary, so it is compared with its
 heading removed (its swing away from world up). The reference (`RotationReference`) is built from
@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion import bn_skeleton
-from ..motion.rotations import quat_angle, quat_inv, quat_mean, quat_mul, quat_to_expmap, swing_twist, twist_angle
+from ..motion.rotations import quat_angle, quat_inv, quat_log, quat_mean, quat_mul, swing_twist, twist_angle
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import bone_axes
 
@@ -55,7 +55,7 @@ def rotation_acceleration(motion: Motion, joints: np.ndarray) -> np.ndarray:
     """(F - 2, len(joints)) angle (degrees) of the change of each joint's frame-to-frame turn:
     the second difference of its comparable local rotation."""
     q = comparable_rotations(motion)[:, joints].astype(np.float64)
-    turn = quat_to_expmap(quat_mul(quat_inv(q[:-1]), q[1:]))
+    turn = quat_log(quat_mul(quat_inv(q[:-1]), q[1:]))
     return np.degrees(np.linalg.norm(np.diff(turn, axis=0), axis=-1))
 
 

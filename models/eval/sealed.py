@@ -213,7 +213,7 @@ def _append_final_run(r: dict) -> None:
 
 def _summary(r: dict) -> str:
     scored = [x for x in r["rows"] if x["gates"]]
-    by = {}
+    by: dict = {}
     for x in scored:
         key = (x["variant"], x["session"])
         passed, total = by.get(key, (0, 0))

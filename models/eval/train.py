@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -48,8 +49,15 @@ class Sampler:
         return np.stack(xs), ys
 
 
-def train_classifier(judges, feats, labels, n_classes: int, iters: int, seed: int, desc: str) -> Classifier:
-    """`judges` supplies the input normalisation (`norm`): Judges or RotationJudge."""
+Norm = Callable[[np.ndarray], torch.Tensor]
+
+
+def normaliser(mean: np.ndarray, std: np.ndarray) -> Norm:
+    """The judges' input normalisation (`Judges.norm`), before the judges exist."""
+    return lambda x: torch.as_tensor((x - mean) / std, dtype=torch.float32)
+
+
+def train_classifier(norm: Norm, feats, labels, n_classes: int, iters: int, seed: int, desc: str) -> Classifier:
     torch.manual_seed(seed)
     clf = Classifier(n_classes, in_dim=feats[0].shape[1])
     opt = torch.optim.AdamW(clf.parameters(), lr=2e-3, weight_decay=1e-2)
@@ -57,8 +65,8 @@ def train_classifier(judges, feats, labels, n_classes: int, iters: int, seed: in
     sampler = Sampler(feats, labels, CLF_WINDOW, seed)
     clf.train()
     for _ in tqdm(range(iters), desc=desc, mininterval=5):
-        x, y = sampler.sample(128)
-        x = judges.norm(x)
+        batch, y = sampler.sample(128)
+        x = norm(batch)
         x = x + 0.05 * torch.randn_like(x)
         loss = F.cross_entropy(clf(x), torch.as_tensor(y), label_smoothing=0.05)
         opt.zero_grad()
@@ -68,7 +76,7 @@ def train_classifier(judges, feats, labels, n_classes: int, iters: int, seed: in
     return clf.eval()
 
 
-def train_dae(judges: Judges, feats, iters: int, seed: int) -> DenoisingAE:
+def train_dae(norm: Norm, feats, iters: int, seed: int) -> DenoisingAE:
     torch.manual_seed(seed)
     dae = DenoisingAE()
     opt = torch.optim.AdamW(dae.parameters(), lr=1e-3, weight_decay=1e-4)
@@ -76,8 +84,8 @@ def train_dae(judges: Judges, feats, iters: int, seed: int) -> DenoisingAE:
     sampler = Sampler(feats, [0] * len(feats), DAE_WINDOW, seed)
     dae.train()
     for _ in tqdm(range(iters), desc="dae", mininterval=5):
-        x, _ = sampler.sample(128)
-        x = judges.norm(x)
+        batch, _ = sampler.sample(128)
+        x = norm(batch)
         noisy = x + 0.2 * torch.randn_like(x)
         noisy = noisy * (torch.rand(x.shape[0], 1, x.shape[2]) > 0.1)  # drop 10% of feature channels
         loss = F.mse_loss(dae(noisy), x)
@@ -113,24 +121,17 @@ def main(iters: int = 3000, dae_iters: int = 3000) -> dict:
     feats, styles, contents = load_split("train")
     style_names, content_names = sorted(set(styles)), sorted(set(contents))
     frames = np.concatenate(feats)
-    judges = Judges(
-        frames.mean(0),
-        np.maximum(frames.std(0), 1e-2 * frames.std(0).max() + 1e-6),
-        style_names,
-        content_names,
-        None,
-        None,
-        None,
-    )
+    mean, std = frames.mean(0), np.maximum(frames.std(0), 1e-2 * frames.std(0).max() + 1e-6)
+    norm = normaliser(mean, std)
     print(f"train: {len(feats)} clips, {len(frames)} frames, loaded in {time.time() - t0:.0f}s")
-    judges.style_clf = train_classifier(
-        judges, feats, [style_names.index(s) for s in styles], len(style_names), iters, 1, "style"
+    style_clf = train_classifier(
+        norm, feats, [style_names.index(s) for s in styles], len(style_names), iters, 1, "style"
     )
-    judges.content_clf = train_classifier(
-        judges, feats, [content_names.index(c) for c in contents], len(content_names), iters, 2, "content"
+    content_clf = train_classifier(
+        norm, feats, [content_names.index(c) for c in contents], len(content_names), iters, 2, "content"
     )
-    judges.dae = train_dae(judges, feats, dae_iters, 3)
-    report = {"train_clips": len(feats), "iters": iters, "dae_iters": dae_iters}
+    judges = Judges(mean, std, style_names, content_names, style_clf, content_clf, train_dae(norm, feats, dae_iters, 3))
+    report: dict = {"train_clips": len(feats), "iters": iters, "dae_iters": dae_iters}
     for split in ("val", "test"):
         f, s, c = load_split(split)
         report[split] = accuracy(judges, f, s, c)
@@ -152,8 +153,11 @@ def main_rotation(iters: int = 1500) -> dict:
     names = sorted(set(styles))
     frames = np.concatenate(feats)
     std = frames.std(0)
-    judge = RotationJudge(frames.mean(0), np.maximum(std, 1e-2 * std.max() + 1e-6), names, None)
-    judge.clf = train_classifier(judge, feats, [names.index(s) for s in styles], len(names), iters, 4, "rotation style")
+    mean, std = frames.mean(0), np.maximum(std, 1e-2 * std.max() + 1e-6)
+    clf = train_classifier(
+        normaliser(mean, std), feats, [names.index(s) for s in styles], len(names), iters, 4, "rotation style"
+    )
+    judge = RotationJudge(mean, std, names, clf)
     report: dict = {"train_clips": len(feats), "iters": iters, "features": "rotation_features"}
     for split in ("val", "test"):
         f, s, _ = load_split(split, rotation_features)

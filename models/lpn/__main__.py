@@ -92,17 +92,15 @@ def demo(args) -> None:
 
 
 def bench(args) -> None:
-    """Step time at batch 1 and 256, control-driven, after a warm-up: the compiled step, the numpy
-    reference it replaced (`reference.py`, on the same weight arrays) and the floor (the network's
-    three expert products alone), called in turn so the shared machine's drifting load hits all
-    alike. BLAS and torch threads are capped as the service caps them (1). Also the first step's
+    """Step time at batch 1 and 256, control-driven, after a warm-up: the compiled step and the
+    floor (the network's three expert products alone), called in turn so the shared machine's
+    drifting load hits both alike. BLAS and torch threads are capped as the service caps them (1). Also the first step's
     wall time (numba loads its cache, or compiles) and the load average."""
     import os
     import time
 
     from ..interface import FrameBatch
     from ..stepbench import capped_threads, stepper
-    from .reference import numpy_twin
 
     load_before = os.getloadavg()
     model = _model()
@@ -114,7 +112,6 @@ def bench(args) -> None:
         np.zeros((1, len(model.styles())), np.float32),
     )
     out: dict = {"first_step_s": round(time.perf_counter() - t, 3), "blas_threads": args.threads}
-    models = {"compiled": model, "numpy": numpy_twin(model)}
     for B in (1, 256):
         control = np.tile(np.array([[1.2, 0.0, 0.0, 0.0, 1.0]], np.float32), (B, 1))
         frames = FrameBatch(
@@ -122,8 +119,7 @@ def bench(args) -> None:
         )
         w = np.zeros((B, len(model.styles())), np.float32)
         w[:, model.styles().index("elderly")] = 1.0
-        steps = {name: stepper(m, [frames], w, B) for name, m in models.items()}
-        steps["floor"] = _products(model, B)
+        steps = {"compiled": stepper(model, [frames], w, B), "floor": _products(model, B)}
         with capped_threads(args.threads):
             times, cpu = _alternate(steps, args.steps if B == 1 else max(args.steps // 4, 20))
         out[B] = {
@@ -136,7 +132,6 @@ def bench(args) -> None:
             for name, ts in times.items()
         }
         median = {name: float(np.median(ts)) for name, ts in times.items()}
-        out[B]["numpy_over_compiled"] = round(median["numpy"] / median["compiled"], 2)
         out[B]["compiled_over_floor"] = round(median["compiled"] / median["floor"], 2)
     out["load_average_1min"] = {"start": round(load_before[0], 2), "end": round(os.getloadavg()[0], 2)}
     print(json.dumps(out, indent=1))
@@ -213,7 +208,7 @@ def main(argv: list[str] | None = None) -> None:
     s.add_argument("--out", default="out/lpn")
     s.add_argument("--no-gif", dest="gif", action="store_false")
     s.set_defaults(fn=demo)
-    s = sub.add_parser("bench", help="per-frame step time at batch 1 and 256, compiled vs numpy reference")
+    s = sub.add_parser("bench", help="per-frame step time at batch 1 and 256, against the expert products alone")
     s.add_argument("--steps", type=int, default=300, help="timed steps at batch 1 (a quarter at batch 256)")
     s.add_argument("--threads", type=int, default=1, help="BLAS/torch threads (the service runs with 1)")
     s.set_defaults(fn=bench)

@@ -41,7 +41,7 @@ def evaluate(
     S_std = model.p["S_std"]
     source_clip = select(index, style="normal", content="walk")[0]
     source = load_motion(source_clip)
-    results = {"source": source_clip.name}
+    results: dict[str, object] = {"source": source_clip.name}
     renders = []
     for name in HELD_OUT:
         style = name.removeprefix("d1-")

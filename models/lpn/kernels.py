@@ -3,26 +3,17 @@ network (control, trajectory blending, input assembly, phase update, output pose
 the network's small per-row maths (gating MLP, expert blend, layer norm, FiLM, ELU). The network's
 three big matrix products stay in numpy (BLAS).
 
-Why compiled: the vectorised numpy step (with its foot lock) made ~780 Python-level calls per
-frame, most of them small numpy calls of 1-5 us at batch 1, plus scipy's `Rotation.from_matrix`,
-which orthogonalises every float32 matrix by an SVD (none is orthogonal to its 1e-12 tolerance).
-Measured on the shared 2-core machine (load ~3, one BLAS thread): at batch 1 ~2.8 ms a step
-against ~0.3 ms of matrix products; at batch 256 ~56 ms, of which the output pose alone was
-~29 ms. Here each session is a loop over scalars: a few microseconds per session for everything
-but the three expert products, which stay BLAS. The foot lock (numpy around the LTI's compiled
-IK, ~0.4 ms of a ~0.9 ms batch-1 step once the rest was compiled) is now the LTI model's whole
-compiled foot lock.
+Why compiled: the vectorised numpy step (`tests/reference/lpn_step.py`, which the tests compare
+with) makes ~780 Python-level calls per frame, most of them small numpy calls of 1-5 us at batch
+1, plus scipy's `Rotation.from_matrix`, which orthogonalises every float32 matrix by an SVD: ~2.8
+ms a step at batch 1 against ~0.3 ms of matrix products, ~56 ms at batch 256. Here each session is
+a loop over scalars: a few microseconds per session for everything but the three expert products.
+The foot lock is not here: the runtime calls the LTI model's compiled one
+(`models.lti.kernels.foot_lock`).
 
-The formulas are those of `features.py` and of the numpy step kept as the reference
-(`reference.py`), which the tests compare with; arithmetic is float64 inside a kernel, the state
-and the outputs stay float32 as before. Conventions: quaternions scalar-last, Y up, yaw about +Y
-with 0 = facing +Z, horizontal vectors as (x, z).
-
-This module is self-contained on purpose: numba's on-disk cache (`cache=True`) is invalidated by
-changes to a kernel's own source file only, so the feature layout is spelled out here (and
-checked against `features.py` at import) rather than read from globals of another module. The
-foot lock is not here: the runtime calls the LTI model's compiled one (`models.lti.kernels.
-foot_lock`) from Python, which keeps its own cache honest.
+The formulas are those of `features.py`; arithmetic is float64 inside a kernel, the state and the
+outputs stay float32. Conventions: quaternions scalar-last, Y up, yaw about +Y with 0 = facing +Z,
+horizontal vectors as (x, z).
 """
 
 from __future__ import annotations
@@ -32,84 +23,19 @@ import math
 import numpy as np
 from numba import njit
 
-from ..motion.bn_skeleton import HIPS
+from ..motion.kinematics_kernels import world_pose
+from ..motion.quaternion import wrap
 from . import features as lf
 
-STEP = 5  # frames between trajectory samples
-PAST = 6  # past samples; the current frame is sample PAST
-FUTURE = 6
-SAMPLES = 13
-TRAJ_CH = 7  # position xz, direction xz, velocity xz, gait
-TRAJ_OUT_CH = 6
-NUM_BONES = 4  # phase bones
-POSE_DIM = 21 * 12  # body joints x (position, velocity, forward axis, up axis)
-# output layout (features.py): future trajectory, pose, root delta, phases, frequencies, contacts
-Y_TRAJ, Y_POSE, Y_DELTA, Y_PHASE, Y_FREQ, Y_CONTACT = 0, 36, 288, 291, 347, 351
-
-_LAYOUT = (
-    lf.STEP,
-    lf.PAST,
-    lf.FUTURE,
-    lf.SAMPLES,
-    lf.TRAJ_CH,
-    lf.TRAJ_OUT_CH,
-    lf.NUM_BONES,
-    lf.NB * lf.POSE_CH,
-    lf.TRAJ_OUT.start,
-    lf.POSE_OUT.start,
-    lf.DELTA_OUT.start,
-    lf.PHASE_OUT.start,
-    lf.FREQ_OUT.start,
-    lf.CONTACT_OUT.start,
-    lf.HIPS,
-)
-if _LAYOUT != (
-    STEP,
-    PAST,
-    FUTURE,
-    SAMPLES,
-    TRAJ_CH,
-    TRAJ_OUT_CH,
-    NUM_BONES,
-    POSE_DIM,
-    Y_TRAJ,
-    Y_POSE,
-    Y_DELTA,
-    Y_PHASE,
-    Y_FREQ,
-    Y_CONTACT,
-    HIPS,
-):
-    raise ImportError("models/lpn/features.py changed its layout: update the constants of models/lpn/kernels.py")
+STEP, PAST, FUTURE, SAMPLES = lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES  # trajectory sampling
+TRAJ_CH, TRAJ_OUT_CH = lf.TRAJ_CH, lf.TRAJ_OUT_CH  # position xz, direction xz, velocity xz (, gait)
+NUM_BONES = lf.NUM_BONES  # phase bones
+POSE_DIM = lf.NB * lf.POSE_CH  # body joints x (position, velocity, forward axis, up axis)
+# output layout: future trajectory, pose, root delta, phases, frequencies, contacts
+Y_TRAJ, Y_POSE, Y_DELTA = lf.TRAJ_OUT.start, lf.POSE_OUT.start, lf.DELTA_OUT.start
+Y_PHASE, Y_FREQ, Y_CONTACT = lf.PHASE_OUT.start, lf.FREQ_OUT.start, lf.CONTACT_OUT.start
 
 # --------------------------------------------------------------------------- small maths on scalars and tuples
-
-
-@njit(cache=True, error_model="numpy")
-def qmul(a, b):
-    """Hamilton product a * b (apply b, then a)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def qrot(q, v):
-    """Vector v rotated by the unit quaternion q."""
-    x, y, z, w = q
-    tx, ty, tz = 2.0 * (y * v[2] - z * v[1]), 2.0 * (z * v[0] - x * v[2]), 2.0 * (x * v[1] - y * v[0])
-    return (v[0] + w * tx + y * tz - z * ty, v[1] + w * ty + z * tx - x * tz, v[2] + w * tz + x * ty - y * tx)
-
-
-@njit(cache=True, error_model="numpy")
-def wrap(a):
-    """Angle in [-pi, pi)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @njit(cache=True, error_model="numpy")
@@ -154,35 +80,6 @@ def matrix_quat(m):
 
 
 # --------------------------------------------------------------------------- kinematics
-
-
-@njit(cache=True, error_model="numpy")
-def world_pose(root, rotations, parents, offsets, grot, gpos):
-    """Forward kinematics of one frame into grot (J, 4) and gpos (J, 3): Hips translation root (3,),
-    local rotations (J, 4) (normalised here, as `models.motion.skeleton.fk`); parents come first."""
-    for j in range(rotations.shape[0]):
-        n = math.sqrt(rotations[j, 0] ** 2 + rotations[j, 1] ** 2 + rotations[j, 2] ** 2 + rotations[j, 3] ** 2)
-        q = (rotations[j, 0] / n, rotations[j, 1] / n, rotations[j, 2] / n, rotations[j, 3] / n)
-        t = (root[0], root[1], root[2]) if j == HIPS else (offsets[j, 0], offsets[j, 1], offsets[j, 2])
-        p = parents[j]
-        if p < 0:
-            grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = q
-            gpos[j, 0], gpos[j, 1], gpos[j, 2] = t
-            continue
-        gp = (grot[p, 0], grot[p, 1], grot[p, 2], grot[p, 3])
-        d = qrot(gp, t)
-        gpos[j, 0], gpos[j, 1], gpos[j, 2] = gpos[p, 0] + d[0], gpos[p, 1] + d[1], gpos[p, 2] + d[2]
-        grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = qmul(gp, q)
-
-
-@njit(cache=True, error_model="numpy")
-def forward_kinematics(root, rotations, parents, offsets):
-    """World rotations (N, J, 4) and positions (N, J, 3) of N frames."""
-    n, J = rotations.shape[0], rotations.shape[1]
-    grot, gpos = np.empty((n, J, 4)), np.empty((n, J, 3))
-    for f in range(n):
-        world_pose(root[f], rotations[f], parents, offsets, grot[f], gpos[f])
-    return grot, gpos
 
 
 @njit(cache=True, error_model="numpy")

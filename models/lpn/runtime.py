@@ -1,9 +1,9 @@
 """Streaming LPN-FiLM: the project's `StreamingModel` interface as a character controller in
 float32, the per-session maths (control, trajectory blend, gating, FiLM, phase and root update,
-output pose) in numba kernels (`kernels.py`) and the expert products in BLAS;
-`reference.py` keeps the plain numpy step the kernels are tested against. Per frame, the network reads the character's trajectory (past from its own
-history, future blended from the control and its own last prediction), its pose and its local
-phases, and predicts the next pose, root motion, phases and contacts.
+output pose) in numba kernels (`kernels.py`) and the expert products in BLAS (the plain numpy
+step the kernels are tested against is `tests/reference/lpn_step.py`). Per frame, the network
+reads the character's trajectory (past from its own history, future blended from the control and
+its own last prediction), its pose and its local phases, and predicts the next pose, root motion, phases and contacts.
 
 Control (`FrameBatch.control`, (B, 5), optional; a row whose flag is 0 counts as not given):
     [0] forward velocity, [1] side velocity (+ = to the character's left), m/s, both in the frame of
@@ -51,8 +51,7 @@ current pose in its character frame (`pose`), `yaw`; the input tracker for deriv
 (`in_pos`, `in_vel`); and the foot planter's (`feet_*`, `models.motion.feet`).
 
 The step's geometry and the network's per-row maths are compiled (`kernels.py`, numba; the three
-big matrix products stay BLAS); `reference.NumpyLPNModel` is the numpy step they replaced and are
-tested against.
+big matrix products stay BLAS).
 """
 
 from __future__ import annotations
@@ -62,6 +61,7 @@ import threading
 from collections.abc import Callable
 from functools import cached_property, partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -71,6 +71,7 @@ from ..motion.coupling import Coupling, link_indices
 from ..motion.features import body_joint
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter
+from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.rotation_ball import StyleBalls
 from ..motion.rotation_ball_kernels import clamp_mixed
 from ..motion.rotations import quat_mul, yaw_quat
@@ -86,6 +87,9 @@ from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
 from .style_table import StyleTable
 from .styles import LPNStyles
 from .weights import read_weights
+
+if TYPE_CHECKING:
+    from .network import LPN
 
 BALLS_FILE = "rotation_prior.npz"  # per-style rotation balls (`models.lpn.rotation_prior`)
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
@@ -139,7 +143,7 @@ class LPNModel(LPNStyles):
         self._lock = threading.Lock()
         styles = tuple(config["styles"])
         self._table = StyleTable(styles, a["style_film"].reshape(len(styles), 4 * self.H))  # replaced under the lock
-        self._generator = None
+        self._generator: LPN | None = None  # the FiLM generator, built on first use
         self.balls = balls
         if balls is not None:
             mean, radii = balls.for_styles(list(styles), skeleton.num_joints)
@@ -310,14 +314,14 @@ class LPNModel(LPNStyles):
         if control is not None:
             given = np.flatnonzero(np.asarray(control)[rows, 4] > 0.5)
             if len(given):
-                pose = self.rest_motion()
-                _, rest_pos = self._fk(pose.translations[:1, lf.HIPS], pose.rotations[:1])
+                rest = self.rest_motion()
+                _, rest_pos = self._fk(rest.translations[:1, lf.HIPS], rest.rotations[:1])
                 turn = np.asarray(control, np.float32)[rows[given], 2] - self._facing(rest_pos)[0]
-                rotations[given] = pose.rotations[0]
+                rotations[given] = rest.rotations[0]
                 rotations[given, lf.HIPS] = quat_mul(
-                    yaw_quat(turn.astype(np.float64)), np.broadcast_to(pose.rotations[0, lf.HIPS], (len(given), 4))
+                    yaw_quat(turn.astype(np.float64)), np.broadcast_to(rest.rotations[0, lf.HIPS], (len(given), 4))
                 )
-                root[given, 1] = pose.translations[0, lf.HIPS, 1]
+                root[given, 1] = rest.translations[0, lf.HIPS, 1]
         grot, gpos = self._fk(root, rotations)
         yaw = self._facing(gpos)
         ground = gpos[:, lf.HIPS] * np.array([1.0, 0.0, 1.0], np.float32)
@@ -523,7 +527,7 @@ class LPNModel(LPNStyles):
 
     def in_float32(self) -> LPNModel:
         """This model (weights and styles shared) with its expert products always in float32: the
-        arithmetic the numpy reference step (`reference.py`) is compared with."""
+        arithmetic the numpy reference step (`tests/reference/lpn_step.py`) is compared with."""
         twin = copy.copy(self)
         twin.bfloat16 = False
         twin.__dict__.pop("_products", None)
@@ -577,7 +581,7 @@ class LPNModel(LPNStyles):
 
     def _fk(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World rotations (B, 22, 4) and positions (B, 22, 3); joint_Root static at the origin."""
-        g_rot, g_pos = kernels.forward_kinematics(
+        g_rot, g_pos = forward_kinematics(
             np.ascontiguousarray(root, np.float32),
             np.ascontiguousarray(rotations, np.float32),
             self.parents,
@@ -613,8 +617,8 @@ class LPNModel(LPNStyles):
         `weights` is (S,) or per frame (T, S). Returns the output Motion and contacts (T, 2)."""
         from dataclasses import replace
 
-        T = frames or (len(control) if control is not None else motion.num_frames)
         first = motion if motion is not None else self.rest_motion()
+        T = frames or (len(control) if control is not None else first.num_frames)
         state = self.init_state(1)
         w = np.asarray(weights, np.float32)
         roots, rots, cons = [], [], []
@@ -625,6 +629,7 @@ class LPNModel(LPNStyles):
             out, state = self.step_batch(state, fb, (w[t] if w.ndim == 2 else w)[None])
             roots.append(out.root[0])
             rots.append(out.rotations[0])
+            assert out.contacts is not None  # this model always reports contacts
             cons.append(out.contacts[0])
         trans = np.broadcast_to(self.skeleton.offsets, (T, self.skeleton.num_joints, 3)).copy()
         trans[:, lf.HIPS] = np.array(roots)

@@ -1,5 +1,5 @@
 """Fine-tune the built-in dataset-2 styles' FiLM vectors on their own TRAIN clips, the motion
-network frozen (issue #14: LPN-FiLM was barely recognised as `active` or `exhausted`).
+network frozen: the generator's mean vector is an average embedding the network was never fitted to.
 
     nice -n 10 .venv/bin/python -m models.lpn.tune_builtin            # writes models/weights/lpn/tuned_film.npz
     nice -n 10 .venv/bin/python -m models.lpn.tune_builtin --save=false --steps=200
@@ -21,11 +21,10 @@ A vector that lowers the loss must also keep the streamed output rotation-plausi
 with its rotation prior, steered by VALIDATION normal walks and runs (`GUARD_CLIPS`, the clips
 `tests/test_quality_gates.py` holds it to) toward the style, must keep every joint within the real
 TRAIN data's p99 in at least `models.eval.run.GATE_WITHIN` of frames, as the exported vector
-does; otherwise the exported vector stays. (The guard was added when the tuned `exhausted` made the
-foot planter, which re-poses the legs after the prior, turn Foot_L past the real range on runs.)
-(A first version took the lowest point of constant-rate curves: 0.5-3 %
-lower losses, but its picks sat on dips of a curve jittering by about as much.) The result goes to `TUNED_FILE`
-beside the weights (`weights.read_weights` applies it; a few KB instead of rewriting `lpn.npz`)
+does; otherwise the exported vector stays (a tuned vector can make the foot planter, which re-poses
+the legs after the prior, turn a foot past the real range on runs). Runs end settled rather than
+at the lowest point of a curve, whose dips are as deep as its jitter. The result goes to
+`TUNED_FILE` beside the weights (`weights.read_weights` applies it; a few KB instead of rewriting `lpn.npz`)
 and the run appended to config.json's `tuned_film` (`runs`; `styles` keeps each style's latest record).
 """
 

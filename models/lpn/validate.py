@@ -1,7 +1,7 @@
 """Streamed validation of LPN-FiLM weights, for choosing between training runs and snapshots.
 
-A one-frame validation loss does not rank closed-loop controllers (MODEL_CARD, "Retraining tried in
-session 17": the lowest loss carried itself worst), so candidates are streamed through the runtime
+A one-frame validation loss does not rank closed-loop controllers (the run with the lowest loss
+can carry itself worst), so candidates are streamed through the runtime
 on the VALIDATION split, never the test clips `make eval` scores: the dataset-2 `normal` locomotion
 inputs (`pick_clips(4, LOCOMOTION, split="val")`, 13 clips) toward each common style. Per style:
 both judges' style accuracy, content accuracy and what the misses were read as, the worst joint's
@@ -42,7 +42,7 @@ def hips_travel(motion: Motion) -> float:
 
 def pace(outputs: list[Motion], inputs: list[Motion]) -> float:
     """Median over clips of the output's hip travel over its input's: 1 keeps up with the control,
-    below 1 lags it (the noise-trained networks of session 17 walked at 0.64-0.89)."""
+    below 1 lags it."""
     return float(np.median([hips_travel(o) / max(hips_travel(i), 1e-6) for o, i in zip(outputs, inputs)]))
 
 

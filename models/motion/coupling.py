@@ -27,8 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .rotations import quat_inv, quat_mean, quat_mul
-from .style_carry import quat_exp, quat_log
+from .rotations import quat_exp, quat_inv, quat_log, quat_mean, quat_mul
 
 Link = tuple[str, tuple[str, ...]]  # a joint and the joints it follows
 GAITS = ("walk", "run")
@@ -143,7 +142,8 @@ class Coupling:
         rotations' over both gaits; each link is fitted on the model's rotations with the links
         before it applied."""
         targets, drivers = link_indices(links, names)
-        means, gains = [], {g: [] for g in GAITS}
+        means: list[np.ndarray] = []
+        gains: dict[str, list[np.ndarray]] = {g: [] for g in GAITS}
         for style in styles:
             ours = {g: np.concatenate(real(style, g)).astype(np.float64) for g in GAITS}
             mean = quat_mean(np.concatenate(list(ours.values())), axis=0)

@@ -174,7 +174,7 @@ class FootPlanter:
             "feet_offset": np.empty((B, 2, 3)),
             "feet_floor": np.empty((B, 2, 2)),
         }
-        s = {k: np.ascontiguousarray(state[k], dtype) for k, (_, dtype) in STATE_SHAPES.items()}
+        s: dict[str, np.ndarray] = {k: np.ascontiguousarray(state[k], dtype) for k, (_, dtype) in STATE_SHAPES.items()}
         feet_kernels.plant_feet(
             root,
             out_rot,
@@ -218,27 +218,5 @@ class FootPlanter:
 def model_rig_planter(fps: float, **settings: float) -> FootPlanter:
     """The planter of the models' own (Bandai Namco) rig, which every method streams on."""
     return FootPlanter.for_skeleton(
-        bandai_namco_skeleton(), (BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR), fps, **settings
-    )
-
-
-def two_bone_ik(
-    gh: np.ndarray,
-    r_up: np.ndarray,
-    r_low: np.ndarray,
-    r_foot: np.ndarray,
-    a: np.ndarray,
-    off_low: np.ndarray,
-    off_foot: np.ndarray,
-    target: np.ndarray,
-    soft: float = 0.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Analytic two-bone IK for a batch of legs (`feet_kernels.two_bone_ik`). gh: (B, 4) world
-    rotation of the parent (Hips); r_*: (B, 4) local rotations of UpperLeg, LowerLeg, Foot; a: (B, 3)
-    world hip-joint position; off_*: (3,) bone offsets. Returns new local (r_up, r_low, r_foot)
-    putting the ankle at `target` (as close as the bone lengths allow; the last `soft` of the
-    reach eased, `feet_kernels.soft_reach`), the foot's world orientation unchanged."""
-    f64 = lambda v: np.ascontiguousarray(v, dtype=np.float64)  # noqa: E731
-    return feet_kernels.two_bone_ik_batch(
-        f64(gh), f64(r_up), f64(r_low), f64(r_foot), f64(a), f64(off_low), f64(off_foot), f64(target), float(soft)
+        bandai_namco_skeleton(), (BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR), fps, LEGS, **settings
     )

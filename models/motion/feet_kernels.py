@@ -1,78 +1,15 @@
 """Compiled kernels (numba) for `feet.FootPlanter` and the two-bone leg IK it uses.
 
-Self-contained on purpose: numba's on-disk cache of a function does not notice changes in the
-functions it calls from other files (numba #1833), so the quaternion helpers are repeated here
-rather than imported from another kernel module. Quaternions are 4-tuples (x, y, z, w), the
-project's scalar-last order; everything is float64.
+Quaternions are 4-tuples (x, y, z, w), the project's scalar-last order; everything is float64.
 """
 
 from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
 
-# --------------------------------------------------------------------------- small vector maths
-
-
-@njit(cache=True, error_model="numpy")
-def qmul(a, b):
-    """Hamilton product a * b (apply b, then a)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def qinv(q):
-    return (-q[0], -q[1], -q[2], q[3])
-
-
-@njit(cache=True, error_model="numpy")
-def cross(a, b):
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-@njit(cache=True, error_model="numpy")
-def dot3(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-@njit(cache=True, error_model="numpy")
-def add3(a, b):
-    return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
-
-
-@njit(cache=True, error_model="numpy")
-def sub3(a, b):
-    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
-
-
-@njit(cache=True, error_model="numpy")
-def qrot(q, v):
-    """Rotate vector v by unit quaternion q."""
-    xyz = (q[0], q[1], q[2])
-    t = cross(xyz, v)
-    t = (2.0 * t[0], 2.0 * t[1], 2.0 * t[2])
-    u = cross(xyz, t)
-    w = q[3]
-    return (v[0] + w * t[0] + u[0], v[1] + w * t[1] + u[1], v[2] + w * t[2] + u[2])
-
-
-@njit(cache=True, error_model="numpy")
-def row4(a, j):
-    return (a[j, 0], a[j, 1], a[j, 2], a[j, 3])
-
-
-@njit(cache=True, error_model="numpy")
-def row3(a, j):
-    return (a[j, 0], a[j, 1], a[j, 2])
+from .quaternion import add3, axis_angle, between, cross, dot3, qinv, qmul, qrot, row3, row4, sub3
 
 
 @njit(cache=True, error_model="numpy")
@@ -84,23 +21,6 @@ def _nrm(v):
 @njit(cache=True, error_model="numpy")
 def _cos(u, v):
     return min(max(dot3(_nrm(u), _nrm(v)), -1.0), 1.0)
-
-
-@njit(cache=True, error_model="numpy")
-def _axis_angle(axis, angle):
-    a = _nrm(axis)
-    s = math.sin(0.5 * angle)
-    return (a[0] * s, a[1] * s, a[2] * s, math.cos(0.5 * angle))
-
-
-@njit(cache=True, error_model="numpy")
-def _rotation_between(u, v):
-    """Shortest-arc quaternion taking direction u to direction v."""
-    u, v = _nrm(u), _nrm(v)
-    c = cross(u, v)
-    q = (c[0], c[1], c[2], 1.0 + dot3(u, v))
-    n = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-12)
-    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
 
 
 # --------------------------------------------------------------------------- two-bone leg IK
@@ -146,29 +66,14 @@ def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target, soft):
     ac_ab_1 = math.acos(min(max((lcb * lcb - lab * lab - lat * lat) / (-2.0 * lab * lat), -1.0), 1.0))
     ba_bc_1 = math.acos(min(max((lat * lat - lab * lab - lcb * lcb) / (-2.0 * lab * lcb), -1.0), 1.0))
     axis = cross(ac, sub3(b, a))
-    ga2 = qmul(_axis_angle(axis, ac_ab_1 - ac_ab_0), ga)
-    gb2 = qmul(_axis_angle(axis, ba_bc_1 - ba_bc_0), qmul(ga2, r_low))
+    ga2 = qmul(axis_angle(_nrm(axis), ac_ab_1 - ac_ab_0), ga)
+    gb2 = qmul(axis_angle(_nrm(axis), ba_bc_1 - ba_bc_0), qmul(ga2, r_low))
     b2 = add3(a, qrot(ga2, off_low))
     c2 = add3(b2, qrot(gb2, off_foot))
-    w2 = _rotation_between(sub3(c2, a), at)
+    w2 = between(_nrm(sub3(c2, a)), _nrm(at))
     ga3 = qmul(w2, ga2)
     gb3 = qmul(w2, gb2)
     return qmul(qinv(gh), ga3), qmul(qinv(ga3), gb3), qmul(qinv(gb3), gf)
-
-
-@njit(cache=True, error_model="numpy")
-def two_bone_ik_batch(gh, r_up, r_low, r_foot, a, off_low, off_foot, target, soft):
-    """`two_bone_ik` over a batch of legs: (B, 4) rotations, (B, 3) hip positions and targets, (3,) offsets."""
-    n = gh.shape[0]
-    up, low, foot = np.empty((n, 4)), np.empty((n, 4)), np.empty((n, 4))
-    lo, fo = (off_low[0], off_low[1], off_low[2]), (off_foot[0], off_foot[1], off_foot[2])
-    for i in range(n):
-        qu, ql, qf = two_bone_ik(
-            row4(gh, i), row4(r_up, i), row4(r_low, i), row4(r_foot, i), row3(a, i), lo, fo, row3(target, i), soft
-        )
-        for c in range(4):
-            up[i, c], low[i, c], foot[i, c] = qu[c], ql[c], qf[c]
-    return up, low, foot
 
 
 # --------------------------------------------------------------------------- the planter

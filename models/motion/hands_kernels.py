@@ -1,7 +1,6 @@
 """`hands.hand_offsets_of` and the sway step compiled (numba): forward kinematics over the arm
 chains and the sway's average, per row. In numpy they cost ~0.45 ms a step at batch 1 (eight times
-LTI's whole step); this is a few microseconds. Self-contained: numba's disk cache only sees this
-file."""
+LTI's whole step); this is a few microseconds."""
 
 from __future__ import annotations
 
@@ -10,26 +9,7 @@ import math
 import numpy as np
 from numba import njit
 
-
-@njit(cache=True, error_model="numpy")
-def _mul(ax, ay, az, aw, bx, by, bz, bw):
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def _apply(x, y, z, w, vx, vy, vz):
-    """v turned by the unit quaternion (x, y, z, w): v + 2w (u x v) + 2 u x (u x v)."""
-    tx, ty, tz = 2.0 * (y * vz - z * vy), 2.0 * (z * vx - x * vz), 2.0 * (x * vy - y * vx)
-    return (
-        vx + w * tx + (y * tz - z * ty),
-        vy + w * ty + (z * tx - x * tz),
-        vz + w * tz + (x * ty - y * tx),
-    )
+from .quaternion import qmul, qrot, quat_at, qunit, row3, row4
 
 
 @njit(cache=True, error_model="numpy")
@@ -70,16 +50,15 @@ def hand_step(
                     if prev[b, s, k] != 0.0:
                         has_prev = True
         for j in chain:
-            x, y, z, w = rot[b, j, 0], rot[b, j, 1], rot[b, j, 2], rot[b, j, 3]
-            n = math.sqrt(x * x + y * y + z * z + w * w)
-            x, y, z, w = x / n, y / n, z / n, w / n
+            u = qunit(quat_at(rot, b, j))
             a = parents[j]
             if a < 0:
-                g[j, 0], g[j, 1], g[j, 2], g[j, 3] = x, y, z, w
+                g[j, 0], g[j, 1], g[j, 2], g[j, 3] = u
                 p[j, 0], p[j, 1], p[j, 2] = 0.0, 0.0, 0.0
             else:
-                g[j, 0], g[j, 1], g[j, 2], g[j, 3] = _mul(g[a, 0], g[a, 1], g[a, 2], g[a, 3], x, y, z, w)
-                ox, oy, oz = _apply(g[a, 0], g[a, 1], g[a, 2], g[a, 3], offsets[j, 0], offsets[j, 1], offsets[j, 2])
+                ga = row4(g, a)
+                g[j, 0], g[j, 1], g[j, 2], g[j, 3] = qmul(ga, u)
+                ox, oy, oz = qrot(ga, row3(offsets, j))
                 p[j, 0], p[j, 1], p[j, 2] = p[a, 0] + ox, p[a, 1] + oy, p[a, 2] + oz
         for s in range(2):
             for k in range(3):

@@ -359,13 +359,11 @@ def match_roles(
         raise RigError(
             "bad_joint_map",
             "; ".join(
-                filter(
-                    None,
-                    [
-                        unknown_joints and f"joint_map names joints the skeleton lacks: {', '.join(unknown_joints)}",
-                        unknown_roles
-                        and f"joint_map names unknown roles: {', '.join(unknown_roles)} (roles: {', '.join(ROLES)})",
-                    ],
+                ([f"joint_map names joints the skeleton lacks: {', '.join(unknown_joints)}"] if unknown_joints else [])
+                + (
+                    [f"joint_map names unknown roles: {', '.join(unknown_roles)} (roles: {', '.join(ROLES)})"]
+                    if unknown_roles
+                    else []
                 )
             ),
             tuple(unknown_joints + unknown_roles),
@@ -389,7 +387,7 @@ def match_roles(
         chain = _spine_chain(skeleton, roles)
         keep = chain if len(chain) <= 4 else chain[:3] + chain[-1:]
         roles.update({SPINE[k]: j for k, j in enumerate(keep)})
-    taken = {}
+    taken: dict = {}
     for r, j in list(roles.items()):
         if j in taken and r not in fixed:
             del roles[r]
@@ -407,7 +405,7 @@ def rig_kind(rig: Skeleton | HumanoidRig) -> str:
     return preset or "humanoid"
 
 
-def chest_role(roles: dict[str, int]) -> str:
+def chest_role(roles: dict[str, int] | set[str]) -> str:
     """The top spine role (the chest)."""
     return [r for r in SPINE if r in roles][-1]
 

@@ -170,9 +170,9 @@ def _build(preset: Preset, prefix: str) -> Skeleton:
             b = where[names.index(prefix + preset.sided(toward, side))] if toward else a + np.array([0.0, 10.0, 0.0])
             add(name, par, a + frac * (b - a))
     pos = np.stack(where)
-    par = np.array(parents)
-    offsets = np.where(par[:, None] >= 0, pos - pos[np.maximum(par, 0)], pos)
-    return Skeleton(tuple(names), par, offsets, np.full((len(names), 3), np.nan))
+    parent_index = np.array(parents)
+    offsets = np.where(parent_index[:, None] >= 0, pos - pos[np.maximum(parent_index, 0)], pos)
+    return Skeleton(tuple(names), parent_index, offsets, np.full((len(names), 3), np.nan))
 
 
 def _limbs(*names: str) -> dict[str, str]:

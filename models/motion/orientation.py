@@ -100,18 +100,21 @@ def _parts_by_pattern(skeleton: Skeleton) -> dict[str, int]:
     if head is not None:
         out["head"] = head
     for tag, side in (("l", 1), ("r", -1)):
-        hand = _first(
-            names, lambda j, n, side=side: sides[j] == side and bool(_HAND.search(n)) and not _DIGIT.search(n)
-        )
+
+        def is_hand(j: int, n: str, side: int = side) -> bool:
+            return sides[j] == side and bool(_HAND.search(n)) and not _DIGIT.search(n)
+
+        def found(pattern: re.Pattern[str], side: int = side) -> int | None:
+            return _first(names, lambda j, n: sides[j] == side and bool(pattern.search(n)))
+
+        hand = _first(names, is_hand)
         if hand is not None:
             out[f"hand_{tag}"] = hand
         for part, feature, pattern in (("foot", "ankle", _FOOT), ("toe", "toe", _TOE)):
             try:
                 joint: int | None = body_joint(skeleton, f"{feature}_{tag}")
             except KeyError:
-                joint = _first(
-                    names, lambda j, n, side=side, pattern=pattern: sides[j] == side and bool(pattern.search(n))
-                )
+                joint = found(pattern)
             if joint is not None:
                 out[f"{part}_{tag}"] = joint
     return out
@@ -132,7 +135,7 @@ def _frame(x: np.ndarray, y_hint: np.ndarray, fallback: np.ndarray = UP) -> np.n
 def _level(v: np.ndarray, default: np.ndarray) -> np.ndarray:
     """`v` projected onto the ground plane, or `default` where it is (nearly) vertical."""
     flat = v * np.array([1.0, 0.0, 1.0])
-    return flat if np.linalg.norm(flat) > 1e-3 * max(np.linalg.norm(v), 1e-12) else default
+    return flat if np.linalg.norm(flat) > 1e-3 * max(float(np.linalg.norm(v)), 1e-12) else default
 
 
 def body_forward(positions: np.ndarray, skeleton: Skeleton) -> np.ndarray:

@@ -3,6 +3,8 @@
 Quaternions are (x, y, z, w), scalar-last like the rest of the project; vectors are 3-tuples;
 everything is float64. Kernels import these instead of repeating them: tuples keep the maths
 readable (`qmul(qinv(a), b)`) and numba inlines them, so they cost nothing over hand-written code.
+Importing them from another file is safe for numba's on-disk cache because `models/numba_cache.py`
+keys the cache folder by every kernel source.
 Array-level numpy maths lives in `rotations.py`.
 """
 
@@ -115,6 +117,21 @@ def axis_angle(axis, angle):
 
 
 @njit(cache=True, error_model="numpy")
+def between(u, v):
+    """Shortest-arc unit quaternion carrying unit vector u onto unit vector v (about any axis
+    perpendicular to u when they are opposite)."""
+    d = dot3(u, v)
+    c = cross(u, v)
+    q = (c[0], c[1], c[2], 1.0 + d)
+    if q[3] < 1e-9:
+        ax = (0.0, u[2], -u[1])  # u x (1, 0, 0)
+        if ax[1] * ax[1] + ax[2] * ax[2] < 1e-12:
+            ax = (-u[2], 0.0, u[0])  # u x (0, 1, 0)
+        q = (ax[0], ax[1], ax[2], 0.0)
+    return qunit(q)
+
+
+@njit(cache=True, error_model="numpy")
 def quat_at(a, i, j):
     """Quaternion a[i, j] of a (n, m, 4) array as a 4-tuple."""
     return (a[i, j, 0], a[i, j, 1], a[i, j, 2], a[i, j, 3])
@@ -130,3 +147,9 @@ def row4(a, j):
 def row3(a, j):
     """Row j of an (n, 3) array as a 3-tuple."""
     return (a[j, 0], a[j, 1], a[j, 2])
+
+
+@njit(cache=True, error_model="numpy")
+def wrap(a):
+    """Angle a wrapped into [-pi, pi)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi

@@ -1,14 +1,12 @@
 """Compiled per-frame interpolation for `rate.py` (numba).
 
-Why: in numpy the parabola through three outputs (in each joint's tangent space then) was ~40
-array operations a call: ~0.3 ms for one session's frame and ~54 ms (CPU) for a crowd tick of
-2,000 characters, over a 60 fps frame's 16.7 ms. Here one pass over rows and joints, and the
-parabola through the quaternions themselves, normalised (no transcendental function; it differs
-from the tangent-space one by well under a degree at a model frame's rotations): ~2 us a session's
-frame, ~0.7 ms CPU a 2,000-character tick. Row by row, so a row's
-result does not depend on the other rows (a crowd's character equals the same session alone, bit
-for bit). Self-contained on purpose: numba's on-disk cache does not notice changes in helpers
-imported from other files.
+Why: in numpy the parabola through three outputs is ~40 array operations a call: ~0.3 ms for one
+session's frame and ~54 ms (CPU) for a crowd tick of 2,000 characters, over a 60 fps frame's
+16.7 ms. Here one pass over rows and joints, and the parabola through the quaternions themselves,
+normalised (no transcendental function; it differs from one in each joint's tangent space by well
+under a degree at a model frame's rotations): ~2 us a session's frame, ~0.7 ms CPU a
+2,000-character tick. Row by row, so a row's result does not depend on the other rows (a crowd's
+character equals the same session alone, bit for bit).
 """
 
 from __future__ import annotations
@@ -18,11 +16,7 @@ import math
 import numpy as np
 from numba import njit
 
-
-@njit(cache=True, inline="always")
-def _unit(x, y, z, w):
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    return x / n, y / n, z / n, w / n
+from .quaternion import quat_at, qunit
 
 
 @njit(cache=True)
@@ -57,7 +51,7 @@ def interpolate_rows(roots, rotations, u, out_root, out_rot):
             x1 = s0 * q0[j, 1] + now * q1[j, 1] + s2 * q2[j, 1]
             x2 = s0 * q0[j, 2] + now * q1[j, 2] + s2 * q2[j, 2]
             x3 = s0 * q0[j, 3] + now * q1[j, 3] + s2 * q2[j, 3]
-            out_rot[i, j, 0], out_rot[i, j, 1], out_rot[i, j, 2], out_rot[i, j, 3] = _unit(x0, x1, x2, x3)
+            out_rot[i, j, 0], out_rot[i, j, 1], out_rot[i, j, 2], out_rot[i, j, 3] = qunit((x0, x1, x2, x3))
 
 
 @njit(cache=True)
@@ -78,8 +72,8 @@ def blend_rows(root0, rot0, root1, rot1, w, out_root, out_rot):
         for c in range(3):
             out_root[i, c] = root0[i, c] + t * (root1[i, c] - root0[i, c])
         for j in range(num_joints):
-            ax, ay, az, aw = _unit(rot0[i, j, 0], rot0[i, j, 1], rot0[i, j, 2], rot0[i, j, 3])
-            bx, by, bz, bw = _unit(rot1[i, j, 0], rot1[i, j, 1], rot1[i, j, 2], rot1[i, j, 3])
+            ax, ay, az, aw = qunit(quat_at(rot0, i, j))
+            bx, by, bz, bw = qunit(quat_at(rot1, i, j))
             dot = ax * bx + ay * by + az * bz + aw * bw
             if dot < 0.0:
                 bx, by, bz, bw, dot = -bx, -by, -bz, -bw, -dot

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .rotations import quat_inv, quat_mul, quat_to_expmap
+from .rotations import quat_inv, quat_log, quat_mul
 from .skeleton import Motion
 
 
@@ -21,7 +21,7 @@ def rotation_acceleration(rotations: np.ndarray, fps: float) -> np.ndarray:
     its per-frame rotation (as a rotation vector) from one frame to the next, times fps^2."""
     q = np.asarray(rotations, float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    step = quat_to_expmap(quat_mul(quat_inv(q[:-1]), q[1:]))  # (T - 1, J, 3), shortest path
+    step = quat_log(quat_mul(quat_inv(q[:-1]), q[1:]))  # (T - 1, J, 3), shortest path
     return np.linalg.norm(np.diff(step, axis=0), axis=-1) * fps * fps
 
 

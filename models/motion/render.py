@@ -289,7 +289,7 @@ def render_gif(
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    writer = PillowWriter(fps=fps)
+    writer = PillowWriter(fps=round(fps))
     with writer.saving(fig, str(path), dpi):
         for i in range(len(times)):
             for panel, idx in zip(panels, indices):

@@ -55,10 +55,6 @@ from .skeleton import Motion, Skeleton, fk
 # spine, so the chest's left-right vector is taken between the shoulder joints).
 _LATERAL = {"Hips": ("UpperLeg_L", "UpperLeg_R"), "Chest": ("Shoulder_L", "Shoulder_R")}
 
-# Bones (BN parent, BN child) that span the same body segment in both skeletons: their directions
-# are matched exactly and are what `bone_directions` compares.
-MATCHED_BONES = tuple((p, c) for p, c in PRIMARY_CHILD.items())
-
 
 @dataclass(frozen=True)
 class Rig:
@@ -118,11 +114,10 @@ _HINGES = {
 # |n| n + HINGE_FALLBACK^2 natural, n = cross(upper bone, lower bone), |n| the sine of the bend. The
 # limb plane decides once the bend is well above ~17 degrees; a straighter limb turns smoothly to
 # the natural twist. The axis passes through zero (a half-turn flip) only for a limb bent ~17
-# degrees against its natural bend, e.g. a knee hyperextended that far. Before, the axis was
-# (n . natural) n + 0.03^2 natural: it flipped whenever the plane crossed a quarter turn from the
-# natural twist (CMU's right arm) or a hyperextended knee straightened (Xia's thighs), p99 rotation
-# acceleration 80-180 deg/frame^2 against 3-30 in the source at 30 fps (`retarget_check`); smaller
-# values than 0.3 jitter where the plane and the natural twist disagree (Xia legs 1.3-2.5x at 0.2).
+# degrees against its natural bend, e.g. a knee hyperextended that far. An axis weighted by
+# (n . natural) instead flips whenever the plane crosses a quarter turn from the natural twist
+# (CMU's right arm) or a hyperextended knee straightens (Xia's thighs); values smaller than 0.3
+# jitter where the plane and the natural twist disagree (Xia legs 1.3-2.5x at 0.2; `retarget_check`).
 HINGE_FALLBACK = 0.3
 
 
@@ -133,42 +128,8 @@ HINGE_FALLBACK = 0.3
 TWIST_SHARE = 0.5
 
 
-def _axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) by `angle` (...) about the unit `axis` (3,) (Rodrigues)."""
-    k = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    a = np.asarray(angle)[..., None, None]
-    return np.eye(3) + np.sin(a) * k + (1.0 - np.cos(a)) * (k @ k)
-
-
-def twist_angle(m: np.ndarray, axis: np.ndarray) -> np.ndarray:
-    """The twist (...) about the unit `axis` (3,) of rotation matrices m (..., 3, 3), radians in
-    (-pi, pi]: 2 atan2(q_v . axis, q_w) for m's quaternion q with q_w >= 0, written on the matrix
-    (q_v 4 q_w is the skew part's vector, 4 q_w^2 is 1 + trace)."""
-    v = np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1)
-    return 2.0 * np.arctan2(v @ axis, 1.0 + np.trace(m, axis1=-2, axis2=-1))
-
-
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _swing_mats(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Smallest rotations (..., 3, 3) taking unit vectors a to unit vectors b (Rodrigues without
-    trigonometry: I + [v]x + [v]x^2 / (1 + c), v = a x b, c = a . b). Exactly opposite vectors
-    (a bone pointing exactly away from its natural direction in its parent's frame; not met in
-    walks) get the half turn about an axis perpendicular to a."""
-    v, c = np.cross(a, b), np.sum(a * b, axis=-1)
-    flip = c < -1.0 + 1e-9
-    if np.any(flip):  # replace v by a unit axis perpendicular to a; the formula then gives the half turn
-        perp = np.cross(a, np.where(np.abs(a[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]))
-        v = np.where(flip[..., None], _unit(perp), v)
-        c = np.where(flip, -1.0 + 1e-12, c)
-    k = np.zeros(v.shape[:-1] + (3, 3))
-    k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    scale = np.where(flip, 1.0, 1.0 / (1.0 + c))[..., None, None]
-    m = np.eye(3) + np.where(flip[..., None, None], 0.0, k) + (k @ k) * scale
-    return m
 
 
 class TwistPlan:
@@ -234,35 +195,6 @@ class TwistPlan:
                     g["m_loc_t"] = np.swapaxes(_frame(g["b"], k), -1, -2)
                 self.groups.append(g)
 
-    def bn_globals(self, dirs: np.ndarray, lateral: np.ndarray) -> np.ndarray:
-        """BN world rotation matrices (B, J, 3, 3) from unit bone directions `dirs` (B, K, 3),
-        columns as `segments`, and the two-vector joints' world rotations `lateral` (B, 2, 3, 3)."""
-        b = dirs.shape[0]
-        gb = np.empty((b, self.num_joints, 3, 3))
-        gb[:] = np.eye(3)  # joint_Root
-        gb[:, self.lateral] = lateral
-        for g in self.groups:
-            gp = gb[:, g["p"]]
-            if g["kind"] == "leaf":
-                gb[:, g["j"]] = gp @ g["nat"]
-                continue
-            base = gp @ g["nat"]  # natural local rotation under the BN parent
-            d = dirs[:, g["dir"]]
-            rot = _swing_mats((base @ g["b"][..., None])[..., 0], d) @ base
-            if g["kind"] == "limb":
-                lower = dirs[:, g["dir_c"]]
-                natural = (rot @ g["k"][..., None])[..., 0]
-                normal = np.cross(d, lower)  # its sign is the bend's: cross(upper, lower) for a flexed limb
-                axis = np.linalg.norm(normal, axis=-1, keepdims=True) * normal + HINGE_FALLBACK**2 * natural
-                rot = _frame(d, axis) @ g["m_loc_t"]
-            if "split" in g:  # take a share of the two-vector child's twist about the bone
-                c, nat_c = g["split"]
-                axis = g["b"][0]
-                dev = np.swapaxes(rot[:, 0], -1, -2) @ gb[:, c] @ nat_c.T  # the child's local, off natural
-                rot = rot @ _axis_angle(axis, TWIST_SHARE * twist_angle(dev, axis))[:, None]
-            gb[:, g["j"]] = rot
-        return gb
-
 
 def retarget(
     motion: Motion, target: Rig | Motion | None = None, fps: float = 30.0, source: HumanoidRig | None = None
@@ -295,13 +227,3 @@ def retarget(
     toes = [sk.index("Toes_L"), sk.index("Toes_R")]
     trans[:, hips, 1] += rig.floor - contact_height(pos[:, toes, 1])
     return Motion(sk, quat_canonical(local), trans, float(fps), rig.euler_orders or tuple("ZXY" for _ in sk.names))
-
-
-def bone_directions(motion: Motion, bones: list[tuple[str, str]], names: dict[str, str] | None = None) -> np.ndarray:
-    """Unit world directions (F, B, 3) of bones given as (joint, child) pairs of BN names,
-    translated to the motion's own joints through `names` (e.g. `CMU_TO_BN[rig_kind(skeleton)]`)."""
-    sk = motion.skeleton
-    pos = motion.global_positions()
-    idx = [(sk.index(names[a] if names else a), sk.index(names[b] if names else b)) for a, b in bones]
-    vec = np.stack([pos[:, b] - pos[:, a] for a, b in idx], axis=1)
-    return vec / np.linalg.norm(vec, axis=-1, keepdims=True).clip(min=1e-9)

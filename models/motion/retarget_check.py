@@ -23,7 +23,7 @@ import numpy as np
 from .humanoid import bn_joints_of, bn_segments
 from .resample import resample
 from .retarget_stream import FrameRetargeter, _path_terms
-from .rotations import expmap_to_quat, matrix_to_quat, quat_inv, quat_mul, quat_to_expmap, quat_to_matrix
+from .rotations import matrix_to_quat, quat_exp, quat_inv, quat_log, quat_mul, quat_to_matrix
 from .skeleton import Motion
 
 # Joint groups the acceptance compares (BN names); leaves the retargeter holds still are left out.
@@ -51,7 +51,7 @@ STYLE_OFFSETS = {
 def rotation_acceleration(q: np.ndarray) -> np.ndarray:
     """(F - 2, K) degrees per frame squared: the change of each joint's frame-to-frame turn (the
     turn as a rotation vector in the joint's previous frame), from rotations (F, K, 4)."""
-    turn = quat_to_expmap(quat_mul(quat_inv(q[:-1]), q[1:]))
+    turn = quat_log(quat_mul(quat_inv(q[:-1]), q[1:]))
     return np.degrees(np.linalg.norm(np.diff(turn, axis=0), axis=-1))
 
 
@@ -94,7 +94,7 @@ def styled(rotations: np.ndarray, names: tuple[str, ...]) -> np.ndarray:
     out = rotations.copy()
     for n, v in STYLE_OFFSETS.items():
         j = names.index(n)
-        out[:, j] = quat_mul(out[:, j], expmap_to_quat(np.asarray(v, float)))
+        out[:, j] = quat_mul(out[:, j], quat_exp(np.asarray(v, float)))
     return out
 
 

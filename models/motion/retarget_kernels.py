@@ -1,16 +1,14 @@
 """Compiled kernels (numba) for `retarget_stream.FrameRetargeter`: one frame at a time on scalars.
 
-The numpy path of `FrameRetargeter` (kept as the reference: `to_model_reference`,
-`to_source_reference`) batches 3x3 matrix products over frames and over the joints of one tree
+The numpy reference (`tests/reference/retarget.py`) batches 3x3 matrix products over frames and over the joints of one tree
 depth; at batch 1 that is a few hundred numpy calls of a few microseconds each (~2 ms a frame
 both ways), batched it is bound by numpy's small-matrix `matmul` (~70 us a character). Here a
 frame is a loop over the joints on 3x3 scratch arrays, a few microseconds a character at batch 1
-as well as batched. The maths is the numpy path's, step for step (see `retarget_stream` for what
+as well as batched. The maths is the reference's, step for step (see `retarget_stream` for what
 each step means); results equal it to float round-off.
 
 Everything the kernels need of a rig is precomputed by `FrameRetargeter._kernel_plan` into plain
-arrays, packed into one int and one float buffer (`pack`). This file is self-contained on purpose: numba's on-disk cache
-(`cache=True`) does not notice changes in helpers imported from other files.
+arrays, packed into one int and one float buffer (`pack`).
 
 Conventions: quaternions (x, y, z, w); rotation matrices act on column vectors; slots are the
 client's needed joints in depth order (`retarget_stream._Tree`), slot -1 meaning "identity".
@@ -152,7 +150,7 @@ def _frame(p0, p1, p2, l0, l1, l2, out):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _swing(a, b, out):
-    """retarget._swing_mats: the smallest rotation taking unit a to unit b (I + [v]x + [v]x^2 / (1 + c),
+    """The reference's `_swing_mats`: the smallest rotation taking unit a to unit b (I + [v]x + [v]x^2 / (1 + c),
     v = a x b, c = a . b); exactly opposite vectors get the half turn about an axis perpendicular to a."""
     v0, v1, v2 = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
     c = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
@@ -184,7 +182,7 @@ def _swing(a, b, out):
 def _split_twist(g, gc, nat_c, b, m, dev, r):
     """g = g @ R(b, TWIST_SHARE * twist), the twist about the unit bone b (in g's frame) of the
     child's local rotation g.T @ gc off its natural one nat_c (retarget.TwistPlan's "split";
-    `retarget.twist_angle`). Scratch m, dev, r (3x3)."""
+    the reference's `twist_angle`). Scratch m, dev, r (3x3)."""
     _mtm(g, gc, m)
     _mmt(m, nat_c, dev)
     v = (dev[2, 1] - dev[1, 2]) * b[0] + (dev[0, 2] - dev[2, 0]) * b[1] + (dev[1, 0] - dev[0, 1]) * b[2]
@@ -234,7 +232,7 @@ def _source_fk(rot, order, par_s, gs, m):
 
 @njit(cache=True, error_model="numpy")
 def _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t):
-    """The client hips' world position is c + gp @ root (`FrameRetargeter._hips_terms`)."""
+    """The client hips' world position is c + gp @ root (the reference's `_hips_terms`)."""
     c[:] = 0.0
     for i in range(fixed_par_s.shape[0]):
         if fixed_par_s[i] < 0:
@@ -276,7 +274,7 @@ def _bn_globals(
     w3,
 ):
     """BN world rotations gb (22, 3, 3) from the client's slot rotations gs
-    (`FrameRetargeter._bn_globals` then `retarget.TwistPlan.bn_globals`). The segment vectors are
+    (the reference's `_bn_globals` then `bn_globals`). The segment vectors are
     sums of vec_w[e] * gs[vec_par_s[t]] @ vec_off[t] over the entries e = (v, t) of vec_nz (the
     nonzero entries of `FrameRetargeter._vec_coef`); scratch: terms (T, 3), raw and vec (V, 3)."""
     for t in range(vec_off.shape[0]):

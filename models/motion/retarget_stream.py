@@ -33,10 +33,9 @@ k's nearest mapped ancestor-or-self (none: no change). So
 and `to_source(*to_model(root, rot), rot) == (root, rot)` up to float rounding.
 
 `to_model` and `to_source` run compiled kernels (`retarget_kernels`, numba), one frame at a time on
-scalars: a few microseconds a character at batch 1 as well as batched. `to_model_reference` and
-`to_source_reference` are the same mapping in numpy, on rotation matrices batched over frames (or
-sessions) and over joints of one tree depth (one `matmul` per depth level); the kernels are tested
-equal to them to float round-off.
+scalars: a few microseconds a character at batch 1 as well as batched. The same mapping in numpy,
+on rotation matrices batched over frames and over the joints of one tree depth, is the reference
+the kernels are tested equal to (`tests/reference/retarget.py`).
 """
 
 from __future__ import annotations
@@ -48,7 +47,6 @@ from .bn_skeleton import BN_JOINTS, PRIMARY_CHILD
 from .humanoid import BN_ROLES, HumanoidRig, bn_joints_of, bn_segments, humanoid_rig, leg_length
 from .retarget import _LATERAL, Rig, TwistPlan, _frame, default_rig
 from .rotations import matrix_to_quat as mat_to_quat
-from .rotations import quat_to_matrix as quat_to_mat
 from .skeleton import Skeleton, fk
 
 
@@ -77,14 +75,6 @@ class _Tree:
             for k in range(1, int(d.max(initial=0)) + 1)
         ]
         self.roots = int(np.searchsorted(d, 0, "right"))
-
-    def fk(self, local: np.ndarray) -> np.ndarray:
-        """World rotation matrices (B, K, 3, 3) of the kept joints, in `order`, from all the
-        joints' local matrices (B, J, 3, 3)."""
-        g = local[:, self.order]
-        for a, b, par in self.levels:
-            g[:, a:b] = g[:, par] @ g[:, a:b]
-        return g
 
 
 def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
@@ -206,11 +196,11 @@ class FrameRetargeter:
         self._plan = TwistPlan(rig, plain)
 
         # Hips position = c + Gp @ t, t the translated joint's translation (the frame's root)
-        chain = [self._hips]
-        while self._src_parents[chain[-1]] >= 0:
-            chain.append(int(self._src_parents[chain[-1]]))
+        above = [self._hips]
+        while self._src_parents[above[-1]] >= 0:
+            above.append(int(self._src_parents[above[-1]]))
         self._translated = hr.translated
-        self._chain_fixed = [k for k in chain if k != hr.translated]  # joints contributing their offset
+        self._chain_fixed = [k for k in above if k != hr.translated]  # joints contributing their offset
 
         # to_source: each client joint takes the delta of the BN joint of its nearest mapped ancestor
         mapped = {roles[r]: sk.index(b) for r, b in bn_joints_of(roles).items()}
@@ -225,7 +215,7 @@ class FrameRetargeter:
         self._mapped = np.array(sorted(mapped), dtype=int)
         self._mapped_nonroot = np.array([k for k in self._mapped if src.parents[k] >= 0], dtype=int)
         self._mapped_root = np.array([k for k in self._mapped if src.parents[k] < 0], dtype=int)
-        chain_par = [int(self._src_parents[k]) for k in chain if self._src_parents[k] >= 0]
+        chain_par = [int(self._src_parents[k]) for k in above if self._src_parents[k] >= 0]
         needed = np.unique(
             np.concatenate(
                 [vec_par, self._mapped, self._src_parents[self._mapped_nonroot], chain_par, [self._hips]]
@@ -255,48 +245,6 @@ class FrameRetargeter:
     def _segment_terms(src: Skeleton, a: int, b: int) -> list[tuple[object, int, np.ndarray, float]]:
         """pos[b] - pos[a] as terms (key, parent joint, offset, sign): sign * G[parent] @ offset."""
         return [(k, int(src.parents[k]), src.offsets[k], sign) for k, sign in _path_terms(src, a, b)]
-
-    def _vectors(self, gs: np.ndarray) -> np.ndarray:
-        """The vectors read from a frame (B, V, 3) in BN's world, from client world rotation
-        matrices (tree slots): segments, two-vector joints' (up, side), hips -> foot points."""
-        vec = (gs[:, self._vec_par_s] @ self._vec_off)[..., 0]  # (B, T, 3)
-        return (self._vec_coef @ vec) @ self._axes.T
-
-    def _drop(self, vec: np.ndarray, gb: np.ndarray) -> np.ndarray:
-        """(B,) how far the root rises so that BN's lowest foot point is no lower than the client's.
-
-        Bones are laid along the client's segments, so with other limb proportions BN's feet do
-        not land where the client's do: on a rig with a longer shin than BN's (thigh x0.75, shin
-        x1.25), a kneeling client's BN feet sank 6.8 cm into the floor. Per frame, each foot point
-        (toes, ankles) is taken below the hips and above its own standing height (`_drop_ref`;
-        toes against toes, ankles against ankles, as the rigs' feet differ), the client's scaled;
-        when BN's lowest is lower than the client's, the root rises by the difference. It never
-        sinks: a client's toe pressed into its floor (CMU 131_02's, by 5 cm) does not pull BN's
-        under, and a sitting client's BN feet may float as before. `vec` from `_vectors`, `gb`
-        BN world rotations (B, 22, 3, 3)."""
-        client = self.scale * (vec[:, self._drop_rows, 1] - self._drop_ref[0]).min(axis=1)
-        gbp = np.concatenate([gb, np.zeros_like(gb[:, :1])], axis=1)  # parent -1 (padding): a zero matrix
-        bn = np.sum((gbp[:, self._drop_par] @ self._drop_off[..., None])[..., 1, 0], axis=-1)
-        return np.maximum(client - (bn - self._drop_ref[1]).min(axis=1), 0.0)
-
-    def _bn_globals(self, gs: np.ndarray, vec: np.ndarray | None = None) -> np.ndarray:
-        """BN world rotation matrices (B, 22, 3, 3) from client world rotation matrices (tree slots)."""
-        b = gs.shape[0]
-        vec = self._vectors(gs) if vec is None else vec
-        k = self._num_plain
-        dirs = vec[:, :k] / np.sqrt(np.sum(vec[:, :k] ** 2, axis=-1, keepdims=True))
-        lat = vec[:, k : self._drop_rows.start].reshape(b, -1, 2, 3)
-        return self._plan.bn_globals(dirs, _frame(lat[:, :, 0], lat[:, :, 1]) @ self._m_tgt_t)
-
-    def _source_globals(self, rotations: np.ndarray) -> np.ndarray:
-        return self._src_tree.fk(quat_to_mat(rotations))
-
-    def _hips_terms(self, gs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(c (B, 3), Gp (B, 3, 3)): the client hips' world position is c + Gp @ root."""
-        b = gs.shape[0]
-        g = np.concatenate([gs, np.broadcast_to(np.eye(3), (b, 1, 3, 3))], axis=1)  # slot -1: identity
-        c = np.sum((g[:, self._fixed_par_s] @ self._fixed_off[..., None])[..., 0], axis=1)
-        return c, g[:, self._translated_par_s]
 
     def _standing_offset(self) -> float:
         """Hips height shift (BN hips y = scale * client hips height + offset): both skeletons in
@@ -353,8 +301,7 @@ class FrameRetargeter:
         Returns (Hips translation (B, 3), BN local rotations (B, 22, 4), w >= 0). Every other BN
         translation is the BN skeleton's offset.
 
-        Compiled (`retarget_kernels.to_model`), a few microseconds a frame at any batch size;
-        `to_model_reference` is the same mapping in numpy."""
+        Compiled (`retarget_kernels.to_model`), a few microseconds a frame at any batch size."""
         root = np.ascontiguousarray(root, dtype=np.float64).reshape(-1, 3)
         b = root.shape[0]
         rotations = self._client_rotations(rotations, b)
@@ -372,7 +319,7 @@ class FrameRetargeter:
         (unmapped joints keep these; they also fix the twist the BN change is applied to).
         Returns (client root translation (B, 3), client local rotations (B, Js, 4)).
 
-        Compiled (`retarget_kernels.to_source`); `to_source_reference` is the same in numpy."""
+        Compiled (`retarget_kernels.to_source`)."""
         root_bn = np.ascontiguousarray(root_bn, dtype=np.float64).reshape(-1, 3)
         b = root_bn.shape[0]
         nb = self._bn_parents.shape[0]
@@ -470,56 +417,3 @@ class FrameRetargeter:
             if g["kind"] == "leaf":
                 out[g["j"]] = mat_to_quat(g["nat"])
         return out
-
-    # ----------------------------------------------------------------------- numpy reference
-
-    def to_model_reference(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`to_model` in numpy (batched over frames and tree depths): the reference the compiled
-        kernel is tested against.
-
-        root (B, 3): the translation of the client's translated joint (`HumanoidRig.translated`:
-        the hips, or the root above them); rotations (B, Js, 4): client local quaternions (xyzw).
-        Returns (Hips translation (B, 3), BN local rotations (B, 22, 4), w >= 0). Every other BN
-        translation is the BN skeleton's offset."""
-        root = np.asarray(root, dtype=np.float64).reshape(-1, 3)
-        gs = self._source_globals(np.asarray(rotations, dtype=np.float64).reshape(root.shape[0], -1, 4))
-        c, gp = self._hips_terms(gs)
-        hips = ((c + (gp @ root[..., None])[..., 0]) @ self._axes.T) * self.scale
-        vec = self._vectors(gs)
-        gb = self._bn_globals(gs, vec)
-        hips[:, 1] += self.vertical_offset + self._drop(vec, gb)
-        local = gb.copy()
-        local[:, 1:] = np.swapaxes(gb[:, self._bn_parents[1:]], -1, -2) @ gb[:, 1:]
-        return hips, mat_to_quat(local)
-
-    def to_source_reference(
-        self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """`to_source` in numpy: the reference the compiled kernel is tested against.
-
-        root_bn (B, 3): BN Hips translation; rotations_bn (B, 22, 4): BN local quaternions;
-        source_rotations (B, Js, 4): the client's own local rotations for the same frame(s)
-        (unmapped joints keep these; they also fix the twist the BN change is applied to).
-        Returns (client root translation (B, 3), client local rotations (B, Js, 4))."""
-        root_bn = np.asarray(root_bn, dtype=np.float64).reshape(-1, 3)
-        b = root_bn.shape[0]
-        source_rotations = np.asarray(source_rotations, dtype=np.float64).reshape(b, -1, 4)
-        gbn = self._bn_tree.fk(quat_to_mat(np.asarray(rotations_bn, dtype=np.float64).reshape(b, -1, 4)))
-        gsc = self._source_globals(source_rotations)
-        gbc = self._bn_globals(gsc)
-        delta = gbn[:, self._bn_unorder] @ np.swapaxes(gbc, -1, -2)  # (B, 22, 3, 3), BN joint order, BN world
-        delta = self._axes.T @ delta @ self._axes  # the same change in the client's world
-        delta = np.concatenate([delta, np.broadcast_to(np.eye(3), (b, 1, 3, 3))], axis=1)
-        g_new = delta[:, self._anc_bn_s] @ gsc  # every client joint turns with its mapped ancestor's BN joint
-        out = source_rotations.copy()  # unmapped joints keep the client's local rotations
-        if len(self._mapped_nonroot):
-            out[:, self._mapped_nonroot] = mat_to_quat(
-                np.swapaxes(g_new[:, self._mapped_parents_s], -1, -2) @ g_new[:, self._mapped_s]
-            )
-        if len(self._mapped_root):
-            out[:, self._mapped_root] = mat_to_quat(g_new[:, self._mapped_root_s])
-        hips = root_bn.copy()
-        hips[:, 1] -= self.vertical_offset + self._drop(self._vectors(g_new), gbn[:, self._bn_unorder])
-        hips = (hips / self.scale) @ self._axes  # client world (axes are orthogonal: inverse = transpose)
-        c, gp = self._hips_terms(gsc)  # the chain above the hips is unchanged
-        return (np.swapaxes(gp, -1, -2) @ (hips - c)[..., None])[..., 0], out

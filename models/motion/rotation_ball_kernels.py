@@ -2,9 +2,6 @@
 4-tuples (`clamp_joint`, used inside LTI's step kernel), and a whole batch of frames under mixed
 style weights (`clamp_mixed`, LPN-FiLM). Float64; equal to `rotation_ball.clamp_rotations` to
 round-off (tests).
-
-numba's on-disk cache of a kernel that calls `clamp_joint` from another module is keyed on that
-kernel's own file only: after editing this file, clear `__pycache__` of its callers (LTI's kernels).
 """
 
 from __future__ import annotations
@@ -14,24 +11,7 @@ import math
 from numba import njit
 
 from .bn_skeleton import HIPS
-
-
-@njit(cache=True, error_model="numpy")
-def qmul(a, b):
-    """Hamilton product a * b (apply b, then a)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def qinv(q):
-    return (-q[0], -q[1], -q[2], q[3])
+from .quaternion import qinv, qmul, qneg, quat_at, qunit
 
 
 @njit(cache=True, error_model="numpy")
@@ -48,7 +28,7 @@ def clamp_joint(q, mean, inner, outer, hips):
         c = q
     rel = qmul(qinv(mean), c)
     if rel[3] < 0.0:
-        rel = (-rel[0], -rel[1], -rel[2], -rel[3])
+        rel = qneg(rel)
     s = math.sqrt(rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2])
     d = 2.0 * math.atan2(s, rel[3])
     if not d > inner:
@@ -84,16 +64,14 @@ def clamp_mixed(rotations, weights, rest_style, mean, radii, out):
         for c in range(4):
             out[b, 0, c] = rotations[b, 0, c]
         for j in range(1, J):
-            q = (rotations[b, j, 0], rotations[b, j, 1], rotations[b, j, 2], rotations[b, j, 3])
-            n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-            q = (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
-            ref = clamp_joint(q, _row(mean, base, j), radii[base, 0, j], radii[base, 1, j], j == HIPS)
+            q = qunit(quat_at(rotations, b, j))
+            ref = clamp_joint(q, quat_at(mean, base, j), radii[base, 0, j], radii[base, 1, j], j == HIPS)
             acc = (0.0, 0.0, 0.0, 0.0)
             for s in range(S):
                 w = max(weights[b, s], 0.0) + (rest if s == rest_style else 0.0)
                 if w <= 0.0:
                     continue
-                p = ref if s == base else clamp_joint(q, _row(mean, s, j), radii[s, 0, j], radii[s, 1, j], j == HIPS)
+                p = ref if s == base else clamp_joint(q, quat_at(mean, s, j), radii[s, 0, j], radii[s, 1, j], j == HIPS)
                 if p[0] * ref[0] + p[1] * ref[1] + p[2] * ref[2] + p[3] * ref[3] < 0.0:
                     w = -w
                 acc = (acc[0] + w * p[0], acc[1] + w * p[1], acc[2] + w * p[2], acc[3] + w * p[3])
@@ -102,8 +80,3 @@ def clamp_mixed(rotations, weights, rest_style, mean, radii, out):
                 acc, n = ref, 1.0
             for c in range(4):
                 out[b, j, c] = acc[c] / n
-
-
-@njit(cache=True, error_model="numpy")
-def _row(a, s, j):
-    return (a[s, j, 0], a[s, j, 1], a[s, j, 2], a[s, j, 3])

@@ -93,12 +93,16 @@ def matrix_to_quat(mat: np.ndarray) -> np.ndarray:
     return np.where(q[..., 3:] < 0, -q, q)
 
 
-def quat_to_expmap(quat: np.ndarray) -> np.ndarray:
+def quat_log(quat: np.ndarray) -> np.ndarray:
+    """(..., 4) quaternions -> (..., 3) rotation vectors (axis * angle) along the shortest arc,
+    angle in [0, pi]: the tangent space the style maps and metrics work in. (`qlog` in
+    `quaternion.py` is the compiled one.)"""
     flat, lead = _flat(quat, 1)
     return Rotation.from_quat(flat).as_rotvec().reshape(*lead, 3)
 
 
-def expmap_to_quat(rotvec: np.ndarray) -> np.ndarray:
+def quat_exp(rotvec: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors -> (..., 4) unit quaternions; the inverse of `quat_log`."""
     flat, lead = _flat(rotvec, 1)
     return Rotation.from_rotvec(flat).as_quat().reshape(*lead, 4)
 
@@ -153,19 +157,6 @@ def matrix_to_6d(mat: np.ndarray) -> np.ndarray:
     """The first two columns of a rotation matrix (Zhou et al. 2019), flattened to (..., 6)."""
     mat = np.asarray(mat, float)
     return np.concatenate([mat[..., :, 0], mat[..., :, 1]], axis=-1)
-
-
-def sixd_to_matrix(d6: np.ndarray) -> np.ndarray:
-    """(..., 6) -> the nearest rotation matrix by Gram-Schmidt (Zhou et al. 2019)."""
-    d6 = np.asarray(d6, dtype=np.float64)
-    a1, a2 = d6[..., :3], d6[..., 3:]
-    b1 = a1 / np.maximum(np.linalg.norm(a1, axis=-1, keepdims=True), 1e-12)
-    b2 = a2 - (b1 * a2).sum(-1, keepdims=True) * b1
-    b2 = b2 / np.maximum(np.linalg.norm(b2, axis=-1, keepdims=True), 1e-12)
-    return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)
-
-
-# --------------------------------------------------------------------------- swing-twist, angles, means
 
 
 def quat_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:

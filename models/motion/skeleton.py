@@ -193,7 +193,7 @@ def to_bvh(motion: Motion, template: bvhio.BvhFile | None = None) -> bvhio.BvhFi
     columns = []
     for j, joint in enumerate(joints):
         order = _rotation_order(joint.channels)
-        euler = quat_to_euler(motion.rotations[:, j], order) if order else None
+        euler = quat_to_euler(motion.rotations[:, j], order) if order else np.zeros((motion.num_frames, 0))
         for name in joint.channels:
             if name.endswith("position"):
                 columns.append(motion.translations[:, j, "XYZ".index(name[0])])

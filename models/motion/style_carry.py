@@ -23,26 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .rotations import quat_inv, quat_mean, quat_mul
+from .rotations import quat_exp, quat_inv, quat_log, quat_mean, quat_mul
 
 CLAMP_PERCENTILE = 98.0
 MAX_SAMPLES = 60_000  # an even subsample per style keeps a fit to seconds
-
-
-def quat_log(q: np.ndarray) -> np.ndarray:
-    """(..., 3) rotation vectors of unit quaternions (..., 4), scalar-last, shortest arc."""
-    q = np.where(q[..., 3:] < 0, -q, q)
-    s = np.linalg.norm(q[..., :3], axis=-1, keepdims=True)
-    angle = 2.0 * np.arctan2(s, q[..., 3:])
-    scale = np.where(s > 1e-9, angle / np.maximum(s, 1e-12), 2.0)
-    return q[..., :3] * scale
-
-
-def quat_exp(v: np.ndarray) -> np.ndarray:
-    """(..., 4) unit quaternions of rotation vectors (..., 3)."""
-    angle = np.linalg.norm(v, axis=-1, keepdims=True)
-    scale = np.where(angle > 1e-9, np.sin(0.5 * angle) / np.maximum(angle, 1e-12), 0.5)
-    return np.concatenate([v * scale, np.cos(0.5 * angle)], axis=-1)
 
 
 def _sqrtm(c: np.ndarray) -> np.ndarray:
@@ -189,28 +173,11 @@ class StyleCarry:
     ) -> np.ndarray:
         """Each row carried by this carry and by `then_b` followed by `then_c`, mixed by the row's
         share (B,): q exp(sum_s w_s [(1 - r) log(q^-1 f_s(q)) + r log(q^-1 c_s(b_s(q)))]), compiled
-        (`style_carry_kernels.carry_pair_batch`; `mixed_with_numpy` is the reference). A row at
+        (`style_carry_kernels.carry_pair_batch`; the numpy reference is `tests/reference/style_carry.py`). A row at
         share 0 gets exactly what this carry alone gives it."""
         from .style_carry_kernels import carry_pair
 
         return carry_pair(q, weights, share, self.arrays, then_b.arrays, then_c.arrays, hips)
-
-    def mixed_with_numpy(
-        self, then_b: StyleCarry, then_c: StyleCarry, q: np.ndarray, weights: np.ndarray, share: np.ndarray
-    ) -> np.ndarray:
-        """The numpy reference of `mixed_with` (no Hips heading handling)."""
-        q = np.asarray(q, np.float64)
-        q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-        w = np.asarray(weights, np.float64)
-        r = np.asarray(share, np.float64)[:, None, None]
-        correction = np.zeros(q.shape[:-1] + (3,))
-        for s in range(w.shape[1]):
-            ws = w[:, s][:, None, None]
-            a = np.stack([self.style(q[i : i + 1], s)[0] for i in range(len(q))])
-            bc = np.stack([then_c.style(then_b.style(q[i : i + 1], s), s)[0] for i in range(len(q))])
-            inv = quat_inv(q)
-            correction += ws * ((1 - r) * quat_log(quat_mul(inv, a)) + r * quat_log(quat_mul(inv, bc)))
-        return quat_mul(q, quat_exp(correction))
 
     def apply_numpy(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """The numpy reference of `__call__`. Only the (row, style) pairs with a weight are

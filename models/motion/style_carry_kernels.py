@@ -1,13 +1,11 @@
 """`style_carry.StyleCarry` compiled (numba) for the per-frame step: the same formulas as the numpy
 reference (`StyleCarry.apply_numpy`), as per-row, per-joint loops. Vectorised numpy took ~40
 small calls per prior and frame (~0.16 ms each at batch 1, 3-4 ms at batch 256); this is
-~1 us of arithmetic per session. Self-contained: numba's disk cache only sees this file.
+~1 us of arithmetic per session.
 
-`_toward` and `_carry_joint` are inlined by numba (`inline="always"`), as LLVM left them out of
-line: each call passed its four arrays as numba's array structs, dozens of words per joint, and
-the calls took a quarter to a half of the kernel (a batch of 1,000 rows: `carry_batch` 2.46 ->
-1.89 ms, `carry_pair_batch` at share 0 3.39 -> 1.93 ms; the same bits). Inlining the small
-helpers too bought nothing more and tripled the first compile (2.2 -> 6.2 s).
+`_toward` and `_carry_joint` are inlined by numba (`inline="always"`): out of line, each call
+passes its four arrays as numba's array structs, dozens of words per joint, a quarter to a half of
+the kernel's time. Inlining the small helpers too buys nothing and triples the first compile.
 """
 
 from __future__ import annotations
@@ -17,41 +15,13 @@ import math
 import numpy as np
 from numba import njit
 
-
-@njit(cache=True, error_model="numpy")
-def _mul(ax, ay, az, aw, bx, by, bz, bw):
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def _log(x, y, z, w):
-    """Rotation vector of a unit quaternion, shortest arc."""
-    if w < 0.0:
-        x, y, z, w = -x, -y, -z, -w
-    s = math.sqrt(x * x + y * y + z * z)
-    if s <= 1e-9:
-        return 2.0 * x, 2.0 * y, 2.0 * z
-    k = 2.0 * math.atan2(s, w) / s
-    return k * x, k * y, k * z
-
-
-@njit(cache=True, error_model="numpy")
-def _exp(x, y, z):
-    a = math.sqrt(x * x + y * y + z * z)
-    k = math.sin(0.5 * a) / a if a > 1e-9 else 0.5
-    return k * x, k * y, k * z, math.cos(0.5 * a)
+from .quaternion import qexp, qinv, qlog, qmul, quat_at
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius):
     """f_s(q) = mean exp(clamp(M log(src^-1 q))) for joint j and style s."""
-    px, py, pz, pw = _mul(-source[s, j, 0], -source[s, j, 1], -source[s, j, 2], source[s, j, 3], qx, qy, qz, qw)
-    lx, ly, lz = _log(px, py, pz, pw)
+    lx, ly, lz = qlog(qmul(qinv(quat_at(source, s, j)), (qx, qy, qz, qw)))
     dx = lin[s, j, 0, 0] * lx + lin[s, j, 0, 1] * ly + lin[s, j, 0, 2] * lz
     dy = lin[s, j, 1, 0] * lx + lin[s, j, 1, 1] * ly + lin[s, j, 1, 2] * lz
     dz = lin[s, j, 2, 0] * lx + lin[s, j, 2, 1] * ly + lin[s, j, 2, 2] * lz
@@ -60,14 +30,13 @@ def _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius):
     if dn > r:
         k = r / dn
         dx, dy, dz = k * dx, k * dy, k * dz
-    ex, ey, ez, ew = _exp(dx, dy, dz)
-    return _mul(mean[s, j, 0], mean[s, j, 1], mean[s, j, 2], mean[s, j, 3], ex, ey, ez, ew)
+    return qmul(quat_at(mean, s, j), qexp((dx, dy, dz)))
 
 
 @njit(cache=True, error_model="numpy")
 def _correction(qx, qy, qz, qw, fx, fy, fz, fw):
     """log(q^-1 f): the rotation vector taking q to f."""
-    return _log(*_mul(-qx, -qy, -qz, qw, fx, fy, fz, fw))
+    return qlog(qmul(qinv((qx, qy, qz, qw)), (fx, fy, fz, fw)))
 
 
 @njit(cache=True, error_model="numpy")
@@ -88,7 +57,7 @@ def _headless(qx, qy, qz, qw, is_hips):
         hn = math.sqrt(qy * qy + qw * qw)
         if hn > 1e-9:
             hy, hw = qy / hn, qw / hn
-        qx, qy, qz, qw = _mul(0.0, -hy, 0.0, hw, qx, qy, qz, qw)
+        qx, qy, qz, qw = qmul((0.0, -hy, 0.0, hw), (qx, qy, qz, qw))
     return qx, qy, qz, qw, hy, hw
 
 
@@ -104,7 +73,7 @@ def _unit(q, b, j, hips):
 def _store(out, b, j, hips, hy, hw, ox, oy, oz, ow):
     """out[b, j] = o, with the heading `_unit` took off joint `hips` put back."""
     if j == hips:
-        ox, oy, oz, ow = _mul(0.0, hy, 0.0, hw, ox, oy, oz, ow)
+        ox, oy, oz, ow = qmul((0.0, hy, 0.0, hw), (ox, oy, oz, ow))
     out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = ox, oy, oz, ow
 
 
@@ -132,8 +101,7 @@ def _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius):
         cx += ws * lx
         cy += ws * ly
         cz += ws * lz
-    ex, ey, ez, ew = _exp(cx, cy, cz)
-    return _mul(qx, qy, qz, qw, ex, ey, ez, ew)
+    return qmul((qx, qy, qz, qw), qexp((cx, cy, cz)))
 
 
 @njit(cache=True, error_model="numpy")
@@ -185,8 +153,7 @@ def _pair_joint(qx, qy, qz, qw, row, j, w, lone, r, a, b, c):
         lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)
         k = ws * r
         cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
-    ex, ey, ez, ew = _exp(cx, cy, cz)
-    return _mul(qx, qy, qz, qw, ex, ey, ez, ew)
+    return qmul((qx, qy, qz, qw), qexp((cx, cy, cz)))
 
 
 @njit(cache=True, error_model="numpy")
@@ -304,8 +271,8 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
         rest = max(rest, 0.0)
         unset = True
         for j in range(J):
-            for k in range(4):
-                if slow[row, j, k] != 0.0:
+            for ch in range(4):
+                if slow[row, j, ch] != 0.0:
                     unset = False
         for j in range(J):
             k = 1.0 / math.sqrt(q[row, j, 0] ** 2 + q[row, j, 1] ** 2 + q[row, j, 2] ** 2 + q[row, j, 3] ** 2)
@@ -323,8 +290,8 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
                 sx, sy, sz, sw = k * sx, k * sy, k * sz, k * sw
             new_slow[row, j, 0], new_slow[row, j, 1], new_slow[row, j, 2], new_slow[row, j, 3] = sx, sy, sz, sw
             is_hips = j == hips
-            # the carry is written out for both cases below: one inlined helper for the two made
-            # the pass 40 % slower (0.64 -> 0.90 ms at 256 rows; numba's inlining)
+            # the carry is written out for both cases below: one inlined helper for the two makes
+            # the pass ~40 % slower (numba's inlining)
             if plain[j]:
                 hx, hy_, hz, hw_, hy, hw = _headless(ux, uy, uz, uw, is_hips)
                 if r == 0.0:
@@ -332,7 +299,7 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
                 else:
                     cx, cy, cz, cw = _paired(hx, hy_, hz, hw_, row, j, w, lone, r, a, b, c)
                 if is_hips:
-                    cx, cy, cz, cw = _mul(0.0, hy, 0.0, hw, cx, cy, cz, cw)
+                    cx, cy, cz, cw = qmul((0.0, hy, 0.0, hw), (cx, cy, cz, cw))
                 out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = cx, cy, cz, cw
                 continue
             # the slow copy, carried
@@ -342,9 +309,9 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
             else:
                 cx, cy, cz, cw = _paired(hx, hy_, hz, hw_, row, j, w, lone, r, a, b, c)
             if is_hips:
-                cx, cy, cz, cw = _mul(0.0, hy, 0.0, hw, cx, cy, cz, cw)
+                cx, cy, cz, cw = qmul((0.0, hy, 0.0, hw), (cx, cy, cz, cw))
             # the fast part on top
-            px, py, pz, pw = _mul(-sx, -sy, -sz, sw, ux, uy, uz, uw)
+            px, py, pz, pw = qmul(qinv((sx, sy, sz, sw)), (ux, uy, uz, uw))
             if pw < 0.0:
                 px, py, pz, pw = -px, -py, -pz, -pw
             if not is_hips:
@@ -363,7 +330,7 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
                             gz += ws * (gain[s, j, 2, 0] * px + gain[s, j, 2, 1] * py + gain[s, j, 2, 2] * pz)
                 k = 1.0 / math.sqrt(gx * gx + gy * gy + gz * gz + pw * pw)
                 px, py, pz, pw = k * gx, k * gy, k * gz, k * pw
-            ox, oy, oz, ow = _mul(cx, cy, cz, cw, px, py, pz, pw)
+            ox, oy, oz, ow = qmul((cx, cy, cz, cw), (px, py, pz, pw))
             # the clamp
             k = 1.0 / math.sqrt(ox * ox + oy * oy + oz * oz + ow * ow)
             qx, qy, qz, qw, hy, hw = _headless(k * ox, k * oy, k * oz, k * ow, is_hips)
@@ -374,7 +341,7 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
                     continue
             qx, qy, qz, qw = _clamped(qx, qy, qz, qw, row, j, w, lone, clamp)
             if is_hips:
-                qx, qy, qz, qw = _mul(0.0, hy, 0.0, hw, qx, qy, qz, qw)
+                qx, qy, qz, qw = qmul((0.0, hy, 0.0, hw), (qx, qy, qz, qw))
             out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = qx, qy, qz, qw
     return out, new_slow
 

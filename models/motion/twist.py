@@ -14,9 +14,10 @@ from `source` (the input frame) that reproduce `pose`'s joint positions exactly:
 - a joint with several child bones (hips, chest) is fixed by them already: `pose`'s rotation;
 - a leaf keeps `source`'s local rotation.
 
-By induction from the root every joint lands where `pose` puts it. Pure numpy, batched over any
-leading axes, one pass over the joints (parents first): `transfer_twist_numpy` is the reference,
-`transfer_twist` the compiled step the streaming models call, `transfer_twist_t` the torch twin.
+By induction from the root every joint lands where `pose` puts it, in one pass over the joints
+(parents first): `transfer_twist` is the compiled step the streaming models call,
+`transfer_twist_t` the differentiable torch one training uses (the numpy reference is
+`tests/reference/twist.py`).
 """
 
 from __future__ import annotations
@@ -27,9 +28,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .bn_skeleton import body_joints
-from .rotations import cross, quat_apply, quat_inv, quat_mul
+from .rotations import quat_exp, quat_inv, quat_log, quat_mul
 from .skeleton import Skeleton
-from .style_carry import quat_exp, quat_log
 from .twist_kernels import BONE, FRAME, LEAF, ROOT, transfer_twist_batch
 
 if TYPE_CHECKING:
@@ -64,24 +64,11 @@ def _plan_cached(names: tuple[str, ...], parents: tuple[int, ...], offsets: byte
     return tuple(plan)
 
 
-def rotation_between(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """(..., 4) smallest rotation carrying unit vectors u onto v; about any axis perpendicular to
-    u when they are opposite."""
-    d = np.sum(u * v, axis=-1, keepdims=True)
-    axis = cross(u, v)
-    q = np.concatenate([axis, 1.0 + d], axis=-1)
-    opposite = q[..., 3] < 1e-9
-    if np.any(opposite):
-        ortho = cross(u[opposite], np.array([1.0, 0.0, 0.0]))
-        weak = np.linalg.norm(ortho, axis=-1) < 1e-6
-        ortho[weak] = cross(u[opposite][weak], np.array([0.0, 1.0, 0.0]))
-        q[opposite] = np.concatenate([ortho, np.zeros(ortho.shape[:-1] + (1,))], axis=-1)
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
 def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray, keep: tuple[str, ...] = ()) -> np.ndarray:
-    """`transfer_twist_numpy` compiled (`twist_kernels.py`): the same result, ~1 us per frame
-    instead of ~1.4 ms, for the per-frame streaming steps."""
+    """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
+    rotations (see the module docstring), compiled (`twist_kernels.py`, ~1 us per frame).
+    `source` and `pose` are (..., J, 4) local rotations on `skeleton`; joints named in `keep` take
+    `pose`'s local rotation as it is (their bone still lands where `pose` puts it)."""
     kinds, parents, axes, keep_mask = _kernel_plan(skeleton, keep)
     J = skeleton.num_joints
     shape = np.broadcast_shapes(np.shape(source), np.shape(pose))
@@ -108,34 +95,6 @@ def _kernel_plan_cached(
     parent_index = np.array(parents, dtype=np.int64)
     axes = np.array([a if a is not None else (1.0, 0.0, 0.0) for _, _, _, a in plan], dtype=np.float64)
     return kinds, parent_index, axes, np.array([n in keep for n in names])
-
-
-def transfer_twist_numpy(
-    skeleton: Skeleton, source: np.ndarray, pose: np.ndarray, keep: tuple[str, ...] = ()
-) -> np.ndarray:
-    """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
-    rotations (see the module docstring). `source` and `pose` are (..., J, 4) local rotations on
-    `skeleton`; joints named in `keep` take `pose`'s local rotation as it is (their bone still
-    lands where `pose` puts it)."""
-    source = source / np.linalg.norm(source, axis=-1, keepdims=True)
-    pose = pose / np.linalg.norm(pose, axis=-1, keepdims=True)
-    out = np.empty_like(pose)
-    g_pose = np.empty_like(pose)  # world rotations of `pose`
-    g_new = np.empty_like(pose)  # world rotations of the result
-    for j, p, kind, axis in _plan(skeleton):
-        if kind == "root":
-            g_pose[..., j, :] = g_new[..., j, :] = out[..., j, :] = pose[..., j, :]
-            continue
-        g_pose[..., j, :] = quat_mul(g_pose[..., p, :], pose[..., j, :])
-        if kind == "frame":
-            g_new[..., j, :] = g_pose[..., j, :]
-        else:
-            g = quat_mul(g_new[..., p, :], (pose if skeleton.names[j] in keep else source)[..., j, :])
-            if kind == "bone":
-                g = quat_mul(rotation_between(quat_apply(g, axis), quat_apply(g_pose[..., j, :], axis)), g)
-            g_new[..., j, :] = g
-        out[..., j, :] = quat_mul(quat_inv(g_new[..., p, :]), g_new[..., j, :])
-    return out
 
 
 def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:

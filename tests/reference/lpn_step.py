@@ -1,6 +1,5 @@
-"""The vectorised numpy LPN-FiLM step that the compiled kernels (`kernels.py`) replaced, kept as
-the reference they are held to: `tests/test_lpn.py` compares the two step by step, and
-`python -m models.lpn bench` times them side by side. Same weights, same state, same outputs up
+"""The LPN-FiLM step in vectorised numpy, the reference the compiled kernels
+(`models/lpn/kernels.py`) are held to: `tests/test_lpn.py` compares the two step by step. Same weights, same state, same outputs up
 to float32 round-off; only `_control`, `_inputs`, `_network`, `_advance` and `_fk` differ (both
 plant the feet with the shared compiled planter, `models.motion.feet`).
 """
@@ -8,15 +7,13 @@ plant the feet with the shared compiled planter, `models.motion.feet`).
 from __future__ import annotations
 
 import copy
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..interface import FrameBatch, State
-from ..motion.features import wrap_angle
-from . import features as lf
-from .runtime import (
+from models.interface import FrameBatch, State
+from models.lpn import features as lf
+from models.lpn.runtime import (
     CONTACT_THRESHOLD,
     CONTROL_BIAS,
     CONTROL_SMOOTH_S,
@@ -27,9 +24,8 @@ from .runtime import (
     STOP_ROOT_HOLD,
     STOP_SPEED,
     LPNModel,
-    read_balls,
 )
-from .weights import read_weights
+from models.motion.features import wrap_angle
 
 
 def _elu(x: np.ndarray) -> np.ndarray:
@@ -185,7 +181,7 @@ class NumpyLPNModel(LPNModel):
 
     def _fk(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World rotations (B, 22, 4) and positions (B, 22, 3); joint_Root static at the origin."""
-        from ..motion.skeleton import fk
+        from models.motion.skeleton import fk
 
         trans = np.broadcast_to(self.offsets, rotations.shape[:-1] + (3,)).copy()
         trans[:, lf.HIPS] = root
@@ -199,8 +195,3 @@ def numpy_twin(model: LPNModel) -> NumpyLPNModel:
     twin = copy.copy(model)
     twin.__class__ = NumpyLPNModel
     return twin
-
-
-def load(weights_dir: Path) -> NumpyLPNModel:
-    arrays, skeleton, config = read_weights(weights_dir)
-    return NumpyLPNModel(arrays, skeleton, config, read_balls(weights_dir))

@@ -1,0 +1,1 @@
+"""numpy reference implementations the compiled kernels are tested against (test-only)."""
