@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from models.eval.plausibility import RotationReference
-from models.lti import kernels
+from models.motion.rotation_ball_kernels import clamp_joint
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel
 from models.lti.prior import clamp_rotations, comparable, fit_prior, saturate
 from models.lti.representation import HIPS
@@ -84,7 +84,7 @@ def test_compiled_clamp_equals_numpy(real):
     got = np.array(
         [
             [
-                kernels._clamp_joint(tuple(q[f, j]), tuple(mean[j]), radii[0, j], radii[1, j], j == HIPS)
+                clamp_joint(tuple(q[f, j]), tuple(mean[j]), radii[0, j], radii[1, j], j == HIPS)
                 for j in range(22)
             ]
             for f in range(len(q))

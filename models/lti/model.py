@@ -47,7 +47,7 @@ from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import STATE_SHAPES as FEET_STATE
 from models.motion.feet import model_rig_planter
-from models.motion.hands import HandMeter, clip_sway, hand_offsets_of
+from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter, clip_sway, hand_offsets_of
 from models.motion.style_carry import StyleCarry
 
 from . import kernels, raised_arm, waving_arm
@@ -70,6 +70,12 @@ SHARED_SHAPES = {
     "wave_out_mean": waving_arm.MEAN_SHAPE,  # the output's
 }
 SHARED_KEYS = tuple(SHARED_SHAPES) + tuple(FEET_STATE)  # and the foot planter's
+SESSION_KEYS = tuple(SHARED_SHAPES)  # `kernels.Session`'s fields, less x
+# every shared entry's (shape, dtype), in the order of the step's records (`kernels.Session`, `kernels.Feet`)
+STATE_ARRAYS = {
+    **{k: (shape, np.bool_ if k == "started" else np.float64) for k, shape in SHARED_SHAPES.items()},
+    **FEET_STATE,
+}
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 
 
@@ -232,12 +238,24 @@ class StyleTranslator:
             )
 
 
+class _Scratch(NamedTuple):
+    systems: kernels.Systems  # the style set it was made for
+    batch: int
+    x: np.ndarray  # (B, N) the styles' LTI states side by side
+    work: tuple  # `kernels.Work`
+    shapes: list[tuple[int, ...]]  # each shared state entry's shape (STATE_ARRAYS' order)
+    allocations: list[tuple[tuple[int, ...], type]]  # and its (shape, dtype)
+
+
 class _StyleSet(NamedTuple):
     styles: list[str]
     x_slices: dict[str, slice]  # state key of each style's LTI state -> its columns in the kernel's x, in style order
     state_keys: frozenset[str]
-    packed: kernels.PackedStyles
-    arm: tuple[StyleCarry, np.ndarray] | None  # the styles' raised-arm carries stacked, and their weight columns
+    systems: kernels.Systems
+    footplant: kernels.Footplant
+    ball: kernels.Ball
+    arm: kernels.RaisedArm  # the styles' raised-arm carries stacked
+    constants: tuple  # the step's constant records as plain tuples, in its argument order
 
 
 class LTIStyleModel(LTIStyles):
@@ -291,6 +309,7 @@ class LTIStyleModel(LTIStyles):
             tr.keep_heading = keep_heading
             tr.waving_arm = waving_arms
         self.waving_arms = waving_arms
+        self.raised_arms = raised_arms
         self.keep_heading = keep_heading
         self.blend = blend
         self.footlock = footlock
@@ -302,43 +321,12 @@ class LTIStyleModel(LTIStyles):
         self._compile_step()
 
     def _compile_step(self) -> None:
-        """One step of one session on the rest pose: numba compiles the kernels (or loads them
-        from its cache) here, when the model loads, instead of on a live session's first frame."""
+        """One step of one session on the rest pose: numba compiles the step, every stage of it
+        (or loads it from its cache) here, when the model loads, instead of on a live session's
+        first frame."""
         rest = np.zeros((1, rep.NUM_JOINTS, 4))
         rest[..., 3] = 1.0
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), np.zeros((1, len(self._styles))))
-        if self._set.arm is not None:  # the raised arm's carry too, which a rest pose's hands never reach
-            carry, cols = self._set.arm
-            raised_arm.carried(carry, rest, np.full((1, len(cols)), 1.0 / len(cols)), np.ones((1, 2)))
-        waving_arm.compile_now(rep.NUM_JOINTS)  # and the waving arm's
-
-    def _raised_arms(self, state, new, rotations: np.ndarray, out_rot: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """The output rotations with the arms of raised hands carried: a calm one toward the
-        style's raised arm (`raised_arm.py`), a waving one by the input's swing (`waving_arm.py`,
-        whose running means in `new` are brought up to this frame)."""
-        offsets, swayed, risen = new["hand_prev"], new["hand_sway"], new["hand_rise"]
-        if self._set.arm is not None:
-            carry, arm_cols = self._set.arm
-            arm_w = w[:, arm_cols]
-            share = raised_arm.shares(offsets, swayed) * (arm_w.sum(-1) > 0.0)[:, None]
-            out_rot = raised_arm.carried(carry, out_rot, arm_w, share)
-        packed = self._set.packed
-        out_rot, new["wave_in_mean"], new["wave_out_mean"] = waving_arm.step(
-            rotations,
-            out_rot,
-            w,
-            state["started"],
-            state["hand_prev"],
-            offsets,
-            swayed,
-            risen,
-            state["wave_in_mean"],
-            state["wave_out_mean"],
-            packed.prior_mean,
-            packed.prior_radii,
-            swing=self.waving_arms,
-        )
-        return out_rot
 
     def styles(self) -> list[str]:
         return list(self._styles)
@@ -352,12 +340,17 @@ class LTIStyleModel(LTIStyles):
 
     def _set_styles(self, styles: list[str]) -> None:
         """Everything the step needs per style set, computed here once (the state keys, the
-        kernel's packed constants) and replaced whole, so a reader sees one consistent set."""
-        packed = kernels.pack_styles([self.translators[s] for s in styles])
-        x_slices = {f"x.{s}": slice(int(a), int(b)) for s, a, b in zip(styles, packed.x_off[:-1], packed.x_off[1:])}
-        fitted = [(k, c) for k, c in enumerate(self.translators[s].raised_arm for s in styles) if c is not None]
-        arm = (StyleCarry.stack([c for _, c in fitted]), np.array([k for k, _ in fitted])) if fitted else None
-        self._set = _StyleSet(styles, x_slices, frozenset(SHARED_KEYS) | set(x_slices), packed, arm)
+        kernel's records) and replaced whole, so a reader sees one consistent set."""
+        systems, footplant, ball = kernels.pack_styles([self.translators[s] for s in styles])
+        x_slices = {f"x.{s}": slice(int(a), int(b)) for s, a, b in zip(styles, systems.x_off[:-1], systems.x_off[1:])}
+        arm = raised_arm.settings([self.translators[s].raised_arm for s in styles])
+        h = self._hands
+        hands = kernels.Hands(h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0])
+        constants = tuple(
+            tuple(r) for r in (systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params)
+        )
+        keys = frozenset(SHARED_KEYS) | set(x_slices)
+        self._set = _StyleSet(styles, x_slices, keys, systems, footplant, ball, arm, constants)
 
     @property
     def _styles(self) -> list[str]:
@@ -415,23 +408,30 @@ class LTIStyleModel(LTIStyles):
             **self.planter.init_state(batch),
         }
 
-    def _workspace(self, batch: int, packed: kernels.PackedStyles) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-        """This thread's scratch for a step of `batch` sessions (the kernel's input state vectors
-        side by side, and `kernels.new_workspace`), reused while the style set stays and the batch
-        fits: at batch 256 fresh ~4 MB per step cost more in page faults than the step itself."""
+    def _workspace(self, batch: int) -> _Scratch:
+        """This thread's scratch for steps of `batch` sessions, reused while the style set and the
+        batch stay: at batch 256 fresh ~4 MB per step cost more in page faults than the step."""
         held = getattr(self._scratch, "held", None)
-        if held is None or held[0] is not packed or held[1] < batch:
-            held = (packed, batch, np.empty((batch, int(packed.x_off[-1]))), kernels.new_workspace(batch, packed))
+        if held is None or held.systems is not self._set.systems or held.batch != batch:
+            systems = self._set.systems
+            held = _Scratch(
+                systems,
+                batch,
+                np.empty((batch, int(systems.x_off[-1]))),
+                tuple(kernels.new_work(batch, systems, len(self._set.arm.source))),
+                [(batch, *shape) for shape, _ in STATE_ARRAYS.values()],
+                [((batch, *shape), dtype) for shape, dtype in STATE_ARRAYS.values()],
+            )
             self._scratch.held = held
-        return held[2][:batch], held[3]
+        return held
 
     def step_batch(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray):
-        """One frame for every session: one compiled pass (`kernels.lti_step`) over the sessions,
-        the styles' LTI state vectors laid side by side as the kernel expects."""
+        """One frame for every session: one compiled call (`kernels.step`), the styles' LTI
+        state vectors laid side by side as the kernel expects."""
         root = np.ascontiguousarray(frames.root, dtype=np.float64)
         rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
         w = np.ascontiguousarray(style_weights, dtype=np.float64)
-        styles, x_slices, _, packed, _ = self._set
+        styles, x_slices, *_, constants = self._set
         B = len(root)
         # the kernel trusts every shape (no bounds checks): anything else is a clear error here
         if root.shape != (B, 3) or rotations.shape != (B, rep.NUM_JOINTS, 4):
@@ -441,63 +441,37 @@ class LTIStyleModel(LTIStyles):
             )
         if w.shape != (B, len(styles)):
             raise ValueError(f"style_weights must be ({B}, {len(styles)}), got {w.shape}")
-        for key, shape in SHARED_SHAPES.items():
-            if state[key].shape != (B, *shape):
-                raise ValueError(f"state[{key!r}] must be {(B, *shape)}, got {state[key].shape}")
-        x, work = self._workspace(B, packed)
+        held = self._workspace(B)
+        before = [state[key] for key in STATE_ARRAYS]
+        if [a.shape for a in before] != held.shapes:
+            for key, a, shape in zip(STATE_ARRAYS, before, held.shapes):
+                if a.shape != shape:
+                    raise ValueError(f"state[{key!r}] must be {shape}, got {a.shape}")
+        x = held.x
         try:
             np.concatenate([state[key] for key in x_slices], axis=1, out=x)
         except ValueError:
             raise ValueError(
                 "state is from another style set: bring it to this one with upgrade_state(state)"
             ) from None
-        out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
-        new = {
-            "started": np.ones(B, bool),
-            "in_yaw": np.empty(B),
-            "in_ground": np.empty((B, 2)),
-            "out_yaw": np.empty(B),
-            "out_ground": np.empty((B, 2)),
-        }
+        after = [np.empty(shape, dtype) for shape, dtype in held.allocations]
         new_x = np.empty_like(x)
-        kernels.lti_step(
-            root,
-            rotations,
-            w,
-            state["started"],
-            state["in_yaw"],
-            state["in_ground"],
-            state["out_yaw"],
-            state["out_ground"],
-            x,
-            out.root,
-            out.rotations,
-            out.contacts,
-            new["in_yaw"],
-            new["in_ground"],
-            new["out_yaw"],
-            new["out_ground"],
-            new_x,
-            *work,
-            self.blend,
-            self.keep_heading,
-            *packed,
+        n = len(SESSION_KEYS)
+        feet_before = tuple(before[n:])
+        feet_after = tuple(after[n:]) if self.footlock else feet_before
+        out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
+        kernels.step(
+            (root, rotations, w),
+            (*before[:5], x, *before[5:n]),
+            (*after[:5], new_x, *after[5:n]),
+            feet_before,
+            feet_after,
+            (out.root, out.rotations, out.contacts),
+            *constants,
+            (self.blend, self.keep_heading, self.raised_arms, self.waving_arms, self.footlock),
+            held.work,
         )
+        new = dict(zip(STATE_ARRAYS, after[:n] + list(feet_after)))
         for key, cols in x_slices.items():
             new[key] = new_x[:, cols]
-        # the input's hands: while one is raised, its arm is carried (`raised_arm.py`, `waving_arm.py`);
-        # the first frame of a session (or of a snapshot from before them) has no sway
-        offsets, new["hand_sway"], new["hand_rise"], raised = self._hands.step(
-            rotations, state["hand_prev"], state["hand_sway"], state["hand_rise"], state["started"], self.fps
-        )
-        new["hand_prev"] = offsets
-        new["wave_in_mean"], new["wave_out_mean"] = state["wave_in_mean"], state["wave_out_mean"]
-        if raised:  # a walk's or a run's hands never are
-            out = FrameBatch(out.root, self._raised_arms(state, new, rotations, out.rotations, w), out.contacts)
-        feet = {k: state[k] for k in FEET_STATE}
-        if self.footlock:
-            planted_root, planted_rot, contacts, feet = self.planter(
-                feet, out.root, out.rotations, w.sum(1) > 0, hints=out.contacts
-            )
-            out = FrameBatch(planted_root, planted_rot, contacts)
-        return out, {**new, **feet}
+        return out, new

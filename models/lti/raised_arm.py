@@ -31,11 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..motion.bn_skeleton import BN_JOINTS, HIPS, ROOT
+from ..motion.bn_skeleton import BN_JOINTS, HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
-from ..motion.hands import calm_frames, raise_share, wave_share
+from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, raise_share, wave_share
 from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry, real_train_frames
+from .kernels import RaisedArm
 
 FILE = "raised_arm.npz"
 ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")
@@ -69,6 +70,28 @@ def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share
         mixed = (1.0 - s) * a + s * b
         out[np.ix_(rows, joints)] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
     return out
+
+
+def settings(carries: list[StyleCarry | None]) -> RaisedArm:
+    """The record the compiled step takes (`kernels.RaisedArm`) for the styles' carries, in style
+    order (None: a style without one)."""
+    fitted = [c for c in carries if c is not None]
+    both = StyleCarry.stack(fitted) if fitted else StyleCarry(*_no_carry())
+    rows, k = [], 0
+    for c in carries:
+        rows.append(k if c is not None else -1)
+        k += c is not None
+    return RaisedArm(
+        *(np.ascontiguousarray(a, np.float64) for a in both.arrays),
+        np.array(rows, np.int64),
+        np.ascontiguousarray(_ARM, np.int64),
+        np.array(RAISE_RAMP_CM, np.float64),
+        np.array(WAVE_RAMP_CM_S, np.float64),
+    )
+
+
+def _no_carry() -> tuple[np.ndarray, ...]:
+    return np.zeros((0, NUM_JOINTS, 4)), np.zeros((0, NUM_JOINTS, 4)), np.zeros((0, NUM_JOINTS, 3, 3)), np.zeros((0, NUM_JOINTS))
 
 
 def load(folder: Path) -> dict[str, StyleCarry]:
