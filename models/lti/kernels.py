@@ -54,6 +54,7 @@ class Frame(NamedTuple):
     root: np.ndarray  # (B, 3) the input's Hips position
     rotations: np.ndarray  # (B, J, 4) its local rotations
     weights: np.ndarray  # (B, S) style weights
+    x_at: np.ndarray  # (S,) int64: where each style's LTI state sits in `Session.x` (-1: no session uses the style)
 
 
 class Output(NamedTuple):
@@ -72,7 +73,7 @@ class Session(NamedTuple):
     in_ground: np.ndarray  # (B, 2) and its ground position
     out_yaw: np.ndarray  # (B,) the output's heading
     out_ground: np.ndarray  # (B, 2) and its ground position
-    x: np.ndarray  # (B, N) every style's LTI state side by side (`Systems.x_off`)
+    x: np.ndarray  # (B, n) the LTI states of the styles in use side by side (`Frame.x_at`)
     hand_prev: np.ndarray  # (B, 2, 3) the input's hands from their shoulders, the frame before
     hand_sway: np.ndarray  # (B, 2) their horizontal speed, averaged
     hand_rise: np.ndarray  # (B, 2) their vertical speed, averaged
@@ -95,9 +96,10 @@ class Feet(NamedTuple):
 
 class Systems(NamedTuple):
     """Every style's translator, concatenated over the model's styles in order, so the kernel
-    takes a fixed set of arrays whatever the style set is. Style s owns state entries
-    x[x_off[s]:x_off[s+1]] and rows row_off[s]:row_off[s+1] of M_s = [[A, B], [C, D]]: its
-    state columns [A; C] in CSR (columns local to the style), its input columns [B; D] dense."""
+    takes a fixed set of arrays whatever the style set is. Style s has x_off[s+1] - x_off[s]
+    state entries (`Footplant.w`'s columns x_off[s]...) and rows row_off[s]:row_off[s+1] of
+    M_s = [[A, B], [C, D]]: its state columns [A; C] in CSR (columns local to the style), its
+    input columns [B; D] dense."""
 
     x_off: np.ndarray  # (S + 1,) int64
     row_off: np.ndarray  # (S + 1,) int64
@@ -191,6 +193,7 @@ class Work(NamedTuple):
 
 
 def new_work(batch: int, systems: Systems, carries: int) -> Work:
+    """Scratch for steps of up to `batch` sessions of these styles."""
     styles = len(systems.x_off) - 1
     n = int(np.diff(systems.x_off).max())
     return Work(
@@ -370,7 +373,7 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
     totals, root_feats, votes = per[:, 9], per[:, 10:14], per[:, 14:16]
     for b in range(B):
         for i in range(after.x.shape[1]):
-            after.x[b, i] = 0.0  # inactive styles rest at their initial state x = 0
+            after.x[b, i] = 0.0  # a style at weight 0 rests at its initial state x = 0
         work.contacts[b, 0], work.contacts[b, 1] = False, False
         yaw, tilt = split_hips(quat_at(frame.rotations, b, HIPS))
         yaws[b], votes[b, 0], votes[b, 1] = yaw, 0.0, 0.0
@@ -398,7 +401,8 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
                 m += 1
         if m == 0:
             continue
-        a, e = sys.x_off[s], sys.x_off[s + 1]
+        a = frame.x_at[s]
+        e = a + sys.x_off[s + 1] - sys.x_off[s]
         xin = work.xin[: (e - a) * m].reshape((e - a, m))
         u = work.u[: FEATURE_DIM * m].reshape((FEATURE_DIM, m))
         z = work.z[: (e - a + FEATURE_DIM) * m].reshape((e - a + FEATURE_DIM, m))
@@ -419,8 +423,8 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
                 work.quats[b, s], work.out,
             )  # fmt: skip
             if fp.fitted[s]:
-                votes[b, 0] += w * planted(x_out, fp, s, a, 0)
-                votes[b, 1] += w * planted(x_out, fp, s, a, 1)
+                votes[b, 0] += w * planted(x_out, fp, s, sys.x_off[s], 0)
+                votes[b, 1] += w * planted(x_out, fp, s, sys.x_off[s], 1)
     for b in range(B):
         fresh = not before.started[b]
         yaw, rest, rf = yaws[b], rests[b], root_feats[b]

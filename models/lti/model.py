@@ -241,10 +241,11 @@ class StyleTranslator:
 class _Scratch(NamedTuple):
     systems: kernels.Systems  # the style set it was made for
     batch: int
-    x: np.ndarray  # (B, N) the styles' LTI states side by side
+    x: np.ndarray  # (B * N,) room for the styles' LTI states side by side
     work: tuple  # `kernels.Work`
     shapes: list[tuple[int, ...]]  # each shared state entry's shape (STATE_ARRAYS' order)
-    allocations: list[tuple[tuple[int, ...], type]]  # and its (shape, dtype)
+    x_shapes: list[tuple[int, ...]]  # each style's LTI state's
+    allocations: list[tuple[tuple[int, ...], type]]  # each shared state entry's (shape, dtype)
 
 
 class _StyleSet(NamedTuple):
@@ -417,9 +418,10 @@ class LTIStyleModel(LTIStyles):
             held = _Scratch(
                 systems,
                 batch,
-                np.empty((batch, int(systems.x_off[-1]))),
+                np.empty(batch * int(systems.x_off[-1])),
                 tuple(kernels.new_work(batch, systems, len(self._set.arm.source))),
                 [(batch, *shape) for shape, _ in STATE_ARRAYS.values()],
+                [(batch, int(b - a)) for a, b in zip(systems.x_off[:-1], systems.x_off[1:])],
                 [((batch, *shape), dtype) for shape, dtype in STATE_ARRAYS.values()],
             )
             self._scratch.held = held
@@ -447,21 +449,28 @@ class LTIStyleModel(LTIStyles):
             for key, a, shape in zip(STATE_ARRAYS, before, held.shapes):
                 if a.shape != shape:
                     raise ValueError(f"state[{key!r}] must be {shape}, got {a.shape}")
-        x = held.x
+        # the LTI states of the styles in use, side by side (the others' stay at x = 0)
         try:
-            np.concatenate([state[key] for key in x_slices], axis=1, out=x)
-        except ValueError:
-            raise ValueError(
-                "state is from another style set: bring it to this one with upgrade_state(state)"
-            ) from None
+            xs = [state[key] for key in x_slices]
+        except KeyError:
+            xs = []
+        if [a.shape for a in xs] != held.x_shapes:
+            raise ValueError("state is from another style set: bring it to this one with upgrade_state(state)")
+        used = np.flatnonzero((w > 0.0).any(axis=0))
+        x_at, width = np.full(len(styles), -1, np.int64), 0
+        for s in used:
+            x_at[s], width = width, width + xs[s].shape[1]
+        x = held.x[: B * width].reshape(B, width)
+        for s in used:
+            x[:, x_at[s] : x_at[s] + xs[s].shape[1]] = xs[s]
         after = [np.empty(shape, dtype) for shape, dtype in held.allocations]
-        new_x = np.empty_like(x)
+        new_x = np.empty((B, width))
         n = len(SESSION_KEYS)
         feet_before = tuple(before[n:])
         feet_after = tuple(after[n:]) if self.footlock else feet_before
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
         kernels.step(
-            (root, rotations, w),
+            (root, rotations, w, x_at),
             (*before[:5], x, *before[5:n]),
             (*after[:5], new_x, *after[5:n]),
             feet_before,
@@ -472,6 +481,7 @@ class LTIStyleModel(LTIStyles):
             held.work,
         )
         new = dict(zip(STATE_ARRAYS, after[:n] + list(feet_after)))
-        for key, cols in x_slices.items():
-            new[key] = new_x[:, cols]
+        for key, at, x_old in zip(x_slices, x_at, xs):
+            n_s = x_old.shape[1]
+            new[key] = new_x[:, at : at + n_s] if at >= 0 else np.zeros((B, n_s))
         return out, new
