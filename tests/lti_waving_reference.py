@@ -87,5 +87,3 @@ def swung(
         out[np.ix_(rows, joints)] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
         out[np.ix_(rows, joints)] = held(out[rows], joints, weights[rows], means, radii)
     return out
-
-

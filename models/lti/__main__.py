@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -76,7 +77,7 @@ def cmd_bench(args) -> None:
     variants = {
         "shipped": load(Path(args.weights)),
         "core alone": load(Path(args.weights), core_only=True),
-        "foot lock off": LTIStyleModel_without_footlock(Path(args.weights)),
+        "foot lock off": _without_footlock(Path(args.weights)),
     }
     shipped = variants["shipped"]
     style = args.style or ("elderly" if "elderly" in shipped.styles() else shipped.styles()[0])
@@ -90,7 +91,8 @@ def cmd_bench(args) -> None:
         for batch in (1, 256):
             frames = [
                 FrameBatch(
-                    np.repeat(motion.translations[k : k + 1, 1], batch, 0), np.repeat(motion.rotations[k : k + 1], batch, 0)
+                    np.repeat(motion.translations[k : k + 1, 1], batch, 0),
+                    np.repeat(motion.rotations[k : k + 1], batch, 0),
                 )
                 for k in range(motion.num_frames)
             ]
@@ -98,7 +100,7 @@ def cmd_bench(args) -> None:
             weights[:, shipped.styles().index(style)] = 1.0
             zin = np.random.default_rng(0).standard_normal((batch, M_T.shape[0]))
             steps = {name: stepper(model, frames, weights, batch) for name, model in variants.items()}
-            steps["floor (dense product)"] = lambda i: np.matmul(zin, M_T)
+            steps["floor (dense product)"] = partial(_floor, zin, M_T)
             repeats = args.frames if batch == 1 else max(args.frames // 8, 100)
             with capped_threads(threads):
                 wall, cpu = interleaved(steps, repeats)
@@ -111,7 +113,11 @@ def cmd_bench(args) -> None:
                 )
 
 
-def LTIStyleModel_without_footlock(weights: Path):
+def _floor(zin: np.ndarray, M_T: np.ndarray, i: int) -> None:
+    np.matmul(zin, M_T)
+
+
+def _without_footlock(weights: Path):
     from .model import LTIStyleModel
 
     return LTIStyleModel(weights_dir=weights, footlock=False)

@@ -191,7 +191,7 @@ class StyleTranslator:
     # ---------------------------------------------------------------- persistence
 
     def save(self, path: Path) -> None:
-        extra = self.footplant.to_arrays() if self.footplant is not None else {}
+        extra: dict = self.footplant.to_arrays() if self.footplant is not None else {}
         if self.prior_mean is not None and self.prior_radii is not None:
             extra.update(prior_mean=self.prior_mean, prior_radii=self.prior_radii)
         np.savez_compressed(
@@ -218,9 +218,13 @@ class StyleTranslator:
     def load(cls, path: Path) -> StyleTranslator:
         with np.load(path) as z:
             fp = FootplantClassifier.from_arrays(z) if "fp_w" in z else None
+            A, B, C, D = (z[k].astype(np.float64) for k in ("A", "B", "C", "D"))
             return cls(
                 str(z["style"]),
-                *(z[k].astype(np.float64) for k in ("A", "B", "C", "D")),
+                A,
+                B,
+                C,
+                D,
                 z["in_mean"],
                 z["in_std"],
                 z["out_mean"],
@@ -346,7 +350,9 @@ class LTIStyleModel(LTIStyles):
         x_slices = {f"x.{s}": slice(int(a), int(b)) for s, a, b in zip(styles, systems.x_off[:-1], systems.x_off[1:])}
         arm = raised_arm.settings([self.translators[s].raised_arm for s in styles])
         h = self._hands
-        hands = kernels.Hands(h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0])
+        hands = kernels.Hands(
+            h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
+        )
         constants = tuple(
             tuple(r) for r in (systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params)
         )
@@ -463,7 +469,7 @@ class LTIStyleModel(LTIStyles):
         x = held.x[: B * width].reshape(B, width)
         for s in used:
             x[:, x_at[s] : x_at[s] + xs[s].shape[1]] = xs[s]
-        after = [np.empty(shape, dtype) for shape, dtype in held.allocations]
+        after: list[np.ndarray] = [np.empty(shape, dtype) for shape, dtype in held.allocations]
         new_x = np.empty((B, width))
         n = len(SESSION_KEYS)
         feet_before = tuple(before[n:])

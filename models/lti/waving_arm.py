@@ -5,7 +5,7 @@ walks most of all, and fitted as if their inputs were noisy (`train.py`, `contex
 shrinks their gains; a wave's arm lies far from where they were fitted. On the validation waves
 the translated hand swung 4-9 cm from side to side toward elderly where the input's swung 17-35 cm
 and the real elderly waves' 15-26 cm (a third of the real swing), and the content judge read
-waves toward masculine as raise-ups (model card, session 28).
+waves toward masculine as raise-ups (model card).
 
 What: each arm's UpperArm and LowerArm rotation is read as a running mean (an exponential average
 over `TRACK_FRAMES`, started afresh each time the hand comes up onto its raise ramp) and the

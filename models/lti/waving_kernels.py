@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from ..motion.quaternion import qdot, qexp, qinv, qlog, qmul, qneg, qunit, quat_at
+from ..motion.quaternion import qdot, qexp, qinv, qlog, qmul, qneg, quat_at, qunit
 from ..motion.rotation_ball_kernels import clamp_joint
 
 
@@ -146,4 +146,3 @@ def swing_batch(arm, rot_in, rot_out, weights, started, prev_offsets, offsets, s
             b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
             prior_mean, prior_radii, swing, new_in_mean, new_out_mean,
         )  # fmt: skip
-
