@@ -32,3 +32,20 @@ def test_every_stage_shows_in_the_reference(reference, stage):
     (root, rot), want = reference
     got = stream(LTIStyleModel(weights_dir=WEIGHTS_DIR, **{stage: False}), root, rot)
     assert np.abs(got["rotations"] - want["rotations"]).max() > 1e-3
+
+
+def test_a_large_batch_copies_only_the_styles_in_use_and_gives_the_same(reference, monkeypatch):
+    """From `COMPACT_FROM` sessions on, the step sees only the LTI states of the styles in use:
+    the reference's sessions five times over (20 sessions) give the reference five times."""
+    import models.lti.model as lti_model
+
+    from . import lti_reference
+
+    (root, rot), want = reference
+    assert 4 * 5 >= lti_model.COMPACT_FROM
+    monkeypatch.setattr(lti_reference, "MIXES", lti_reference.MIXES * 5)
+    got = stream(load(), np.tile(root, (1, 5, 1)), np.tile(rot, (1, 5, 1, 1)))
+    for k in range(5):
+        rows = slice(4 * k, 4 * k + 4)
+        np.testing.assert_allclose(got["rotations"][:, rows], want["rotations"], atol=1e-9)
+        np.testing.assert_allclose(got["root"][:, rows], want["root"], atol=1e-8)

@@ -77,6 +77,7 @@ STATE_ARRAYS = {
     **FEET_STATE,
 }
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
+COMPACT_FROM = 16  # sessions in a step from which only the styles in use are copied (`_side_by_side`)
 
 
 @dataclass
@@ -249,6 +250,7 @@ class _Scratch(NamedTuple):
     work: tuple  # `kernels.Work`
     shapes: list[tuple[int, ...]]  # each shared state entry's shape (STATE_ARRAYS' order)
     x_shapes: list[tuple[int, ...]]  # each style's LTI state's
+    x_off: np.ndarray  # (S,) int64: where each style's state starts when all sit side by side
     allocations: list[tuple[tuple[int, ...], type]]  # each shared state entry's (shape, dtype)
 
 
@@ -428,10 +430,28 @@ class LTIStyleModel(LTIStyles):
                 tuple(kernels.new_work(batch, systems, len(self._set.arm.source))),
                 [(batch, *shape) for shape, _ in STATE_ARRAYS.values()],
                 [(batch, int(b - a)) for a, b in zip(systems.x_off[:-1], systems.x_off[1:])],
+                np.ascontiguousarray(systems.x_off[:-1], np.int64),
                 [((batch, *shape), dtype) for shape, dtype in STATE_ARRAYS.values()],
             )
             self._scratch.held = held
         return held
+
+    @staticmethod
+    def _side_by_side(xs: list[np.ndarray], w: np.ndarray, held: _Scratch) -> tuple[np.ndarray, np.ndarray]:
+        """The styles' LTI states side by side for the kernel, and where each sits (`kernels.Frame`).
+        A small batch takes them all (a few numpy calls); from `COMPACT_FROM` sessions on, only
+        the styles in use (with six styles at batch 256 the rest is ~2 MB copied for nothing)."""
+        B = len(w)
+        if B < COMPACT_FROM:
+            return np.concatenate(xs, axis=1), held.x_off
+        used = np.flatnonzero((w > 0.0).any(axis=0))
+        x_at, width = np.full(len(xs), -1, np.int64), 0
+        for s in used:
+            x_at[s], width = width, width + xs[s].shape[1]
+        x = held.x[: B * width].reshape(B, width)
+        for s in used:
+            x[:, x_at[s] : x_at[s] + xs[s].shape[1]] = xs[s]
+        return x, x_at
 
     def step_batch(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray):
         """One frame for every session: one compiled call (`kernels.step`), the styles' LTI
@@ -455,22 +475,15 @@ class LTIStyleModel(LTIStyles):
             for key, a, shape in zip(STATE_ARRAYS, before, held.shapes):
                 if a.shape != shape:
                     raise ValueError(f"state[{key!r}] must be {shape}, got {a.shape}")
-        # the LTI states of the styles in use, side by side (the others' stay at x = 0)
         try:
             xs = [state[key] for key in x_slices]
         except KeyError:
             xs = []
         if [a.shape for a in xs] != held.x_shapes:
             raise ValueError("state is from another style set: bring it to this one with upgrade_state(state)")
-        used = np.flatnonzero((w > 0.0).any(axis=0))
-        x_at, width = np.full(len(styles), -1, np.int64), 0
-        for s in used:
-            x_at[s], width = width, width + xs[s].shape[1]
-        x = held.x[: B * width].reshape(B, width)
-        for s in used:
-            x[:, x_at[s] : x_at[s] + xs[s].shape[1]] = xs[s]
+        x, x_at = self._side_by_side(xs, w, held)
         after: list[np.ndarray] = [np.empty(shape, dtype) for shape, dtype in held.allocations]
-        new_x = np.empty((B, width))
+        new_x = np.empty_like(x)
         n = len(SESSION_KEYS)
         feet_before = tuple(before[n:])
         feet_after = tuple(after[n:]) if self.footlock else feet_before
@@ -487,7 +500,7 @@ class LTIStyleModel(LTIStyles):
             held.work,
         )
         new = dict(zip(STATE_ARRAYS, after[:n] + list(feet_after)))
-        for key, at, x_old in zip(x_slices, x_at, xs):
+        for key, at, x_old in zip(x_slices, x_at.tolist(), xs):
             n_s = x_old.shape[1]
             new[key] = new_x[:, at : at + n_s] if at >= 0 else np.zeros((B, n_s))
         return out, new

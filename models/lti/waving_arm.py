@@ -92,16 +92,6 @@ def step(
     return out, new_in, new_out
 
 
-def compile_now(joints: int) -> None:
-    """Compile `step` (or load it from numba's cache) on one waving row of a `joints`-joint rig:
-    a model's load does, since a rest pose's hands never reach it."""
-    rot = np.zeros((1, joints, 4))
-    rot[..., 3] = 1.0
-    means, up = np.zeros((1, *MEAN_SHAPE)), np.full((1, 2, 3), 10.0)
-    swayed, risen, radii = np.full((1, 2), 100.0), np.zeros((1, 2)), np.full((1, 2, joints), np.inf)
-    step(rot, rot, np.ones((1, 1)), np.ones(1, bool), up, up, swayed, risen, means, means, rot, radii)
-
-
 def clip(
     out_rots: np.ndarray,
     in_rots: np.ndarray,
