@@ -1,7 +1,9 @@
 """A recorded reference of LTI's streaming step: a few validation clips streamed as a batch of
-sessions (single styles, a mix, an intensity), with every stage on. `tests/test_lti_step.py`
-checks that the step still gives these outputs to round-off, so a change to how the step is
-computed (kernels, fusing, records) cannot change what it computes unnoticed.
+sessions (single styles, a mix, an intensity), with every stage on and the committed weights.
+`tests/test_lti_step.py` checks that the step still gives these outputs to round-off, so a change
+to how the step is computed (kernels, fusing, records) cannot change what it computes unnoticed.
+The fixture was written by the step as it was before it became one compiled call (commit
+2eb1966, separate kernels per stage); after refitting weights, rewrite it with that code.
 
     .venv/bin/python -m tests.lti_reference      # rewrite tests/fixtures/lti_step_reference.npz
 """

@@ -1,26 +1,21 @@
-"""A raised hand that does not wave: its arm carried toward the real style's raise-ups.
+"""A raised hand that does not wave: its arm carried toward how the real style holds a raised arm.
 
-    .venv/bin/python -m models.lti.raised_arm      # fit -> models/weights/lti/raised_arm.npz (~20 s)
+    .venv/bin/python -m models.lti.raised_arm      # fit every style -> models/weights/lti/raised_arm.npz
 
-Why: the translators are linear maps identified over every content, walks most of all, and the
-raise-up's arm lies far from where they were fitted. The translated hand does not rise as the
-style's does (validation one-hand raise-ups, highest point above the shoulder: feminine -13..-6 cm,
-never at the shoulder, against the real feminine takes' -4..+1; youthful 20-40 against 42-45),
-and the content judge read such raise-ups as waves (its p(raise-up) follows the height; model card).
+Why: the translators are linear maps identified over every content, walks most of all, and an
+arm raised above the shoulder lies far from where they were fitted: the translated hand does not
+rise as the style's does, and the content judge then reads a raise-up as a wave (model card).
 
 What: per output style, a `StyleCarry` (`models.motion.style_carry`) from the rotations the
-translator makes of TRAIN neutral raise-ups to the style's real TRAIN raise-ups, on the frames with
-that hand raised and not waving (`models.motion.hands.calm_frames`), fitted for each side apart
-(each arm's joints, Shoulder to Hand, from its own side's fit; the other joints are never used),
-with its gains capped at 1 (`StyleCarry.damping`: with the full gains the carry doubled the raised
-hand's sway toward youthful, 50-75 cm/s against the real 25-32). While the input's hand is raised
-and not waving (raise share times one minus the wave share: what `waving_arm.py` leaves), that
-arm is mixed toward the carried one by the share, after the step (the foot planter moves only the
-legs and root). The translator of a style without a fit (an uploaded one) is left as it was.
-
-Until session 28 the share used the still share (a sway of 25..45 cm/s, Style-ERD's) and the fit
-every raised frame; the complement of the waving arm's share, and the fit on the frames where it
-applies, took validation content from 262 to 265 of 276 inputs (model card).
+translator makes of the neutral TRAIN clips to the style's real TRAIN clips, both on the frames
+where a hand is raised and calm (`models.motion.hands.calm_frames`: the hand's height over its
+shoulder and its sway, measured on the motion; no content label picks the clips), fitted for
+each side apart (each arm's joints, Shoulder to Hand, from its own side's fit), with its gains
+capped at 1 (`StyleCarry.damping`: with the full gains the carry magnified the raised hand's
+sway). While the input's hand is raised and calm (raise share times one minus the wave share:
+what `waving_arm.py` leaves), that arm is mixed toward the carried one by the share, inside the
+compiled step (`kernels.carry_raised_arms`). A style without a fit (an uploaded one) is left as
+the translator made it.
 """
 
 from __future__ import annotations
@@ -40,9 +35,7 @@ from .kernels import RaisedArm
 
 FILE = "raised_arm.npz"
 ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")
-FIT_CLIPS_PER_CONTENT = 4
 FIT_FRAMES = 240
-RAISE_UPS = ("raise-up-both-hands", "raise-up-left-hand", "raise-up-right-hand")
 _ARM = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in ARM_JOINTS]) for side in "LR"]
 
 
@@ -81,8 +74,12 @@ def settings(carries: list[StyleCarry | None]) -> RaisedArm:
     for c in carries:
         rows.append(k if c is not None else -1)
         k += c is not None
+    source, mean, lin, radius = (np.ascontiguousarray(a, np.float64) for a in both.arrays)
     return RaisedArm(
-        *(np.ascontiguousarray(a, np.float64) for a in both.arrays),
+        source,
+        mean,
+        lin,
+        radius,
         np.array(rows, np.int64),
         np.ascontiguousarray(_ARM, np.int64),
         np.array(RAISE_RAMP_CM, np.float64),
@@ -91,7 +88,12 @@ def settings(carries: list[StyleCarry | None]) -> RaisedArm:
 
 
 def _no_carry() -> tuple[np.ndarray, ...]:
-    return np.zeros((0, NUM_JOINTS, 4)), np.zeros((0, NUM_JOINTS, 4)), np.zeros((0, NUM_JOINTS, 3, 3)), np.zeros((0, NUM_JOINTS))
+    return (
+        np.zeros((0, NUM_JOINTS, 4)),
+        np.zeros((0, NUM_JOINTS, 4)),
+        np.zeros((0, NUM_JOINTS, 3, 3)),
+        np.zeros((0, NUM_JOINTS)),
+    )
 
 
 def load(folder: Path) -> dict[str, StyleCarry]:
@@ -113,11 +115,14 @@ def save(carries: dict[str, StyleCarry], folder: Path) -> Path:
 
 
 def fit(model) -> dict[str, StyleCarry]:
-    """Per style of the `LTIStyleModel` (its raised arms off): the carry described above."""
-    from ..data import load_motions
-    from ..eval.run import pick_clips, stylise
+    """Per style of the `LTIStyleModel` (its raised arms off): the carry described above, fitted
+    the same way for every style from all its TRAIN clips."""
+    from ..data import build_index, load_motions, select
+    from ..eval.run import DATASET, INPUT_STYLE, stylise
 
-    inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(pick_clips(FIT_CLIPS_PER_CONTENT, RAISE_UPS, split="train"))]
+    train = select(build_index([DATASET]), split="train")
+    every_content = tuple(sorted({c.content for c in train}))  # which frames count is measured, not named
+    inputs = [m.slice(0, FIT_FRAMES) for m in load_motions([c for c in train if c.style == INPUT_STYLE])]
     styles = model.styles()
     outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
     n = len(inputs)
@@ -127,7 +132,7 @@ def fit(model) -> dict[str, StyleCarry]:
     for side in (0, 1):
         frames = functools.partial(calm_frames, side=side)
         chosen = np.concatenate([frames(m) for m in inputs])
-        real = real_train_frames(styles, RAISE_UPS, frames)
+        real = real_train_frames(styles, every_content, frames)
         sides.append(StyleCarry.fit([q[chosen] for q in made], real, (ROOT,), clamp_only=clamped))
     every = list(range(len(styles)))
     both = sides[0].with_maps_of(sides[1], every, list(_ARM[1]))
