@@ -38,7 +38,7 @@ from numba import njit
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS
 from ..motion.feet_kernels import plant_feet
 from ..motion.hands_kernels import hand_step
-from ..motion.quaternion import qinv, qmul, quat_at, row4
+from ..motion.quaternion import qdot, qinv, qmul, quat_at, row4
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
 from .waving_kernels import WavingArm, swing_arms
@@ -133,6 +133,7 @@ class Ball(NamedTuple):
 
     mean: np.ndarray  # (S, 22, 4)
     radii: np.ndarray  # (S, 2, 22) inner, outer (radians; inf: no prior)
+    cos_inner: np.ndarray  # (S, 22) cos(inner / 2), -1 without a prior: a rotation this close is left as it is
 
 
 class Hands(NamedTuple):
@@ -336,6 +337,13 @@ def system_product(sys, s, xin, u, z):
 
 
 @njit(cache=True, error_model="numpy")
+def inside(q, mean, cos_inner):
+    """Whether unit q lies within the ball's inner radius of `mean`, where `clamp_joint` leaves it
+    as it is: cos(angle / 2) >= cos(inner / 2), without the arc tangent."""
+    return abs(qdot(mean, q)) >= cos_inner
+
+
+@njit(cache=True, error_model="numpy")
 def style_outputs(sys, ball, s, w, z, feats, c, blend_w, x_out, keep_heading, root_feats, quats, out):
     """Style s's result for one session from column c of z = M [x; u]: the new state into x_out,
     w * (root displacement, yaw change, height) added to root_feats, the body rotations (22, 4),
@@ -354,7 +362,8 @@ def style_outputs(sys, ball, s, w, z, feats, c, blend_w, x_out, keep_heading, ro
     quats[0, 0], quats[0, 1], quats[0, 2], quats[0, 3] = 0.0, 0.0, 0.0, 1.0
     for j in range(1, NUM_JOINTS):
         q = qmul(quat_at(sys.ref, s, j), rotvec_to_quat((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
-        q = clamp_joint(q, quat_at(ball.mean, s, j), ball.radii[s, 0, j], ball.radii[s, 1, j], j == HIPS)
+        if j == HIPS or not inside(q, quat_at(ball.mean, s, j), ball.cos_inner[s, j]):
+            q = clamp_joint(q, quat_at(ball.mean, s, j), ball.radii[s, 0, j], ball.radii[s, 1, j], j == HIPS)
         quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q
 
 
@@ -624,4 +633,6 @@ def pack_styles(translators: list) -> tuple[Systems, Footplant, Ball]:
         f64(fp_prior),
         np.array(fitted, np.bool_),
     )
-    return systems, footplant, Ball(f64(ball_mean), f64(ball_radii))
+    radii = f64(ball_radii)
+    cos_inner = np.where(np.isfinite(radii[:, 0]), np.cos(0.5 * np.minimum(radii[:, 0], np.pi)), -1.0)
+    return systems, footplant, Ball(f64(ball_mean), radii, np.ascontiguousarray(cos_inner))
