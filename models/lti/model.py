@@ -8,7 +8,10 @@ blend) and the footplant classifier. Every frame, per session:
     [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint: a sparse product)
     out = y * out_std + out_mean
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
-    pose = inverse representation(out); rotation prior (prior.py); contacts from the state; foot lock
+    pose = inverse representation(out); rotation prior (prior.py); contacts from the state
+    then the stages after the translator, each measured on the input and fitted per style the same
+    way: a raised, calm hand's arm (raised_arm.py), a waving hand's swing (waving_arm.py), the
+    planted feet
 
 Heading: the model's own yaw change drifts slowly for some styles (exhausted: ~0.05 deg/frame
 on a straight validation walk, a full circle in ~4 minutes of streaming), so by default the output
@@ -24,9 +27,9 @@ style's). The footplant classifier's contacts are the planter's hints (a foot it
 fast the translation moves it); `FrameBatch.contacts` are the planted legs, or the classifier's
 contacts when the feet are not planted.
 
-The streaming step (`LTIStyleModel.step_batch`) is one compiled pass over the sessions
-(`kernels.py`, numba): ~1 us of arithmetic per frame would otherwise drown in ~1,000 small numpy
-calls. The offline path (`StyleTranslator.translate_motion`) stays numpy over whole clips; the
+The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and
+stage (`kernels.step`, numba): ~10 us of arithmetic per frame would otherwise drown in ~1,000
+small numpy calls and the argument checks of one kernel call per stage. The offline path (`StyleTranslator.translate_motion`) stays numpy over whole clips; the
 tests check that the two agree frame for frame.
 
 The log-time-warp output (last output DOF) is only used offline (`translate_motion(...,
