@@ -44,6 +44,7 @@ from ..motion.style_carry_kernels import carry_batch
 from .waving_kernels import WavingArm, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
+CHUNK = 32  # sessions whose LTI step is computed together: their inputs and outputs (~50 kB) stay in cache
 
 # --------------------------------------------------------------------------- records
 
@@ -180,11 +181,11 @@ class Work(NamedTuple):
     session: np.ndarray  # (B, 16): yaw, yaw-free hips, root displacement and yaw change, the input's share, ...
     quats: np.ndarray  # (B, S, 22, 4) each style's body rotations
     rows: np.ndarray  # (B,) int64: the sessions using a style
-    blend_w: np.ndarray  # (B,)
-    xin: np.ndarray  # flat: x of the sessions using a style, (n, m)
-    u: np.ndarray  # flat: their normalised features, (67, m)
-    z: np.ndarray  # flat: M [x; u], (n + 67, m)
-    feats: np.ndarray  # flat: the raw features
+    blend_w: np.ndarray  # (CHUNK,) of a chunk of the sessions using a style
+    xin: np.ndarray  # flat: their x, (n, k)
+    u: np.ndarray  # flat: their normalised features, (67, k)
+    z: np.ndarray  # flat: M [x; u], (n + 67, k)
+    feats: np.ndarray  # flat: their raw features, (67, k)
     out: np.ndarray  # (67,)
     root: np.ndarray  # (B, 3) the translated root, before the feet are planted
     contacts: np.ndarray  # (B, 2) bool: the footplant classifier's
@@ -196,16 +197,16 @@ class Work(NamedTuple):
 def new_work(batch: int, systems: Systems, carries: int) -> Work:
     """Scratch for steps of up to `batch` sessions of these styles."""
     styles = len(systems.x_off) - 1
-    n = int(np.diff(systems.x_off).max())
+    n, k = int(np.diff(systems.x_off).max()), min(batch, CHUNK)
     return Work(
         np.empty((batch, 16)),
         np.empty((batch, styles, NUM_JOINTS, 4)),
         np.empty(batch, np.int64),
-        np.empty(batch),
-        np.empty(n * batch),
-        np.empty(FEATURE_DIM * batch),
-        np.empty((n + FEATURE_DIM) * batch),
-        np.empty(FEATURE_DIM * batch),
+        np.empty(k),
+        np.empty(n * k),
+        np.empty(FEATURE_DIM * k),
+        np.empty((n + FEATURE_DIM) * k),
+        np.empty(FEATURE_DIM * k),
         np.empty(FEATURE_DIM),
         np.empty((batch, 3)),
         np.empty((batch, 2), np.bool_),
@@ -412,28 +413,30 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
             continue
         a = frame.x_at[s]
         e = a + sys.x_off[s + 1] - sys.x_off[s]
-        xin = work.xin[: (e - a) * m].reshape((e - a, m))
-        u = work.u[: FEATURE_DIM * m].reshape((FEATURE_DIM, m))
-        z = work.z[: (e - a + FEATURE_DIM) * m].reshape((e - a + FEATURE_DIM, m))
-        feats = work.feats[: FEATURE_DIM * m].reshape((FEATURE_DIM, m))
-        for c in range(m):
-            b = work.rows[c]
-            work.blend_w[c] = style_inputs(
-                sys, s, frame.root[b, 1], frame.rotations[b], row4(tilts, b), deltas[b], before.x[b, a:e],
-                switches.blend, xin, u, feats, c,
-            )  # fmt: skip
-        system_product(sys, s, xin, u, z)
-        for c in range(m):
-            b = work.rows[c]
-            w = weights[b, s]
-            x_out = after.x[b, a:e]
-            style_outputs(
-                sys, ball, s, w, z, feats, c, work.blend_w[c], x_out, switches.keep_heading, root_feats[b],
-                work.quats[b, s], work.out,
-            )  # fmt: skip
-            if fp.fitted[s]:
-                votes[b, 0] += w * planted(x_out, fp, s, sys.x_off[s], 0)
-                votes[b, 1] += w * planted(x_out, fp, s, sys.x_off[s], 1)
+        for lo in range(0, m, CHUNK):  # a few sessions at a time: their columns stay in cache
+            k = min(CHUNK, m - lo)
+            xin = work.xin[: (e - a) * k].reshape((e - a, k))
+            u = work.u[: FEATURE_DIM * k].reshape((FEATURE_DIM, k))
+            z = work.z[: (e - a + FEATURE_DIM) * k].reshape((e - a + FEATURE_DIM, k))
+            feats = work.feats[: FEATURE_DIM * k].reshape((FEATURE_DIM, k))
+            for c in range(k):
+                b = work.rows[lo + c]
+                work.blend_w[c] = style_inputs(
+                    sys, s, frame.root[b, 1], frame.rotations[b], row4(tilts, b), deltas[b], before.x[b, a:e],
+                    switches.blend, xin, u, feats, c,
+                )  # fmt: skip
+            system_product(sys, s, xin, u, z)
+            for c in range(k):
+                b = work.rows[lo + c]
+                w = weights[b, s]
+                x_out = after.x[b, a:e]
+                style_outputs(
+                    sys, ball, s, w, z, feats, c, work.blend_w[c], x_out, switches.keep_heading, root_feats[b],
+                    work.quats[b, s], work.out,
+                )  # fmt: skip
+                if fp.fitted[s]:
+                    votes[b, 0] += w * planted(x_out, fp, s, sys.x_off[s], 0)
+                    votes[b, 1] += w * planted(x_out, fp, s, sys.x_off[s], 1)
     for b in range(B):
         fresh = not before.started[b]
         yaw, rest, rf = yaws[b], rests[b], root_feats[b]
