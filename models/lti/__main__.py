@@ -169,7 +169,7 @@ def cmd_card(args) -> None:
 
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        cmd_bench(argparse.Namespace(style=None, frames=args.frames, threads=[1]))
+        cmd_bench(argparse.Namespace(style=None, frames=args.frames, threads=[1], weights=str(WEIGHTS_DIR_DEFAULT)))
     path = write_model_card(buf.getvalue().strip(), args.train_time, args.command)
     print(buf.getvalue().strip())
     print(f"wrote {path}")
