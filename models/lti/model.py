@@ -80,6 +80,7 @@ STATE_ARRAYS = {
     **FEET_STATE,
 }
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
+ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
 COMPACT_FROM = 16  # sessions in a step from which only the styles in use are copied (`_side_by_side`)
 
 
@@ -105,7 +106,7 @@ class StyleTranslator:
     keep_heading: bool = True  # output yaw change := input yaw change (no heading drift); not stored
     prior_mean: np.ndarray | None = None  # (22, 4) rotation prior (prior.py): the real style's mean per joint
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
-    raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`); not stored here
+    raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`)
     waving_arm: bool = True  # a waving hand's arm takes the input's swing (`waving_arm.py`); not stored
 
     def __post_init__(self) -> None:
@@ -198,6 +199,8 @@ class StyleTranslator:
         extra: dict = self.footplant.to_arrays() if self.footplant is not None else {}
         if self.prior_mean is not None and self.prior_radii is not None:
             extra.update(prior_mean=self.prior_mean, prior_radii=self.prior_radii)
+        if self.raised_arm is not None:  # an uploaded style's (the built-in ones share raised_arm.FILE)
+            extra.update(zip(ARM_KEYS, self.raised_arm.arrays))
         np.savez_compressed(
             path,
             style=np.array(self.style),
@@ -243,6 +246,7 @@ class StyleTranslator:
                 z["ref"],
                 prior_mean=z["prior_mean"] if "prior_mean" in z else None,
                 prior_radii=z["prior_radii"] if "prior_radii" in z else None,
+                raised_arm=StyleCarry(*(z[k] for k in ARM_KEYS)) if ARM_KEYS[0] in z else None,
             )
 
 
@@ -310,7 +314,7 @@ class LTIStyleModel(LTIStyles):
                 if path.name == raised_arm.FILE:
                     continue
                 t = StyleTranslator.load(path)
-                t.raised_arm = arms.get(t.style)
+                t.raised_arm = arms.get(t.style, t.raised_arm) if raised_arms else None
                 translators[t.style] = t
         if not translators:
             raise FileNotFoundError(f"no LTI weights (*.npz) in {weights_dir}")
