@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from models.eval.plausibility import RotationReference
-from models.lti import kernels
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel
 from models.lti.prior import clamp_rotations, comparable, fit_prior, saturate
 from models.lti.representation import HIPS
+from models.motion.rotation_ball_kernels import clamp_joint
 from models.motion.rotations import quat_angle, quat_mul, yaw_quat
 
 
@@ -83,10 +83,7 @@ def test_compiled_clamp_equals_numpy(real):
     want = clamp_rotations(q, mean, radii)
     got = np.array(
         [
-            [
-                kernels._clamp_joint(tuple(q[f, j]), tuple(mean[j]), radii[0, j], radii[1, j], j == HIPS)
-                for j in range(22)
-            ]
+            [clamp_joint(tuple(q[f, j]), tuple(mean[j]), radii[0, j], radii[1, j], j == HIPS) for j in range(22)]
             for f in range(len(q))
         ]
     )

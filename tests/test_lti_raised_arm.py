@@ -83,3 +83,27 @@ def test_validation_raise_ups_toward_youthful_read_as_raise_ups(models, index):
     read = contents_read((off, on), val_motions(index, "raise-up-right-hand", n=4), "youthful")
     assert sum(r == "raise-up-right-hand" for r in read[0]) == 2
     assert sum(r == "raise-up-right-hand" for r in read[1]) >= 3
+
+
+def test_an_uploaded_style_is_fitted_the_same_way_from_its_clip(models, index, tmp_path):
+    """`fit_styles` on one clip, as an upload gets it (`fit_upload`): a clip with a raised, calm
+    left hand fits the left arm and leaves the right one as the translator makes it; a walk (no
+    hand raised) fits nothing. The carry is saved with the uploaded translator and read back."""
+    import copy
+
+    _, off = models
+    inputs = val_motions(index, "raise-up-left-hand", n=2) + val_motions(index, "raise-up-right-hand", n=2)
+    raise_up = val_motions(index, "raise-up-left-hand", style="youthful", frames=400)[0]
+    walk = val_motions(index, "walk", style="youthful")[0]
+    carries = raised_arm.fit_styles(off, {"youthful": [raise_up]}, inputs)
+    carry = carries["youthful"]
+    assert carry is not None and raised_arm.fit_styles(off, {"youthful": [walk]}, inputs)["youthful"] is None
+    left, right = raised_arm._ARM
+    assert not np.allclose(carry.map[0, left], np.eye(3))  # fitted
+    assert np.array_equal(carry.map[0, right], np.broadcast_to(np.eye(3), (len(right), 3, 3)))  # kept
+    assert np.all(carry.radius[0, right] == np.pi)
+    tr = copy.copy(off.translators["youthful"])
+    tr.raised_arm = carry
+    tr.save(tmp_path / "translator.npz")
+    back = type(tr).load(tmp_path / "translator.npz").raised_arm
+    assert back is not None and all(np.array_equal(a, b) for a, b in zip(back.arrays, carry.arrays))

@@ -14,6 +14,7 @@ from models.lti.model import LTIStyleModel
 from models.motion.hands import hand_offsets, raise_share
 from models.motion.rotations import quat_angle
 
+from . import lti_waving_reference as reference
 from .one_session import assert_lti_streams_as_offline, contents_read, stream, val_motions
 
 
@@ -119,7 +120,7 @@ def test_validation_waves_toward_masculine_read_as_waves(models, index):
 
 
 def test_the_compiled_step_equals_the_numpy_reference(models, index):
-    """`waving_arm.step` (compiled) against `fresh_sides`, `tracked`, `shares` and `swung`, frame
+    """`waving_arm.step` (compiled) against the numpy reference (`tests/lti_waving_reference.py`), frame
     by frame over three validation waves at once, under a style mix, a lone style and an
     intensity below 1, each with its own running means."""
     from models.motion.hands import clip_rise, clip_sway
@@ -135,7 +136,7 @@ def test_the_compiled_step_equals_the_numpy_reference(models, index):
     w[0, styles.index("elderly")], w[0, styles.index("feminine")] = 0.6, 0.4
     w[1, styles.index("masculine")] = 1.0
     w[2, styles.index("youthful")] = 0.5
-    packed = on._set.packed
+    ball = on._set.ball
     out = np.roll(rot, 1, axis=2)  # any output rotations: the translator's are not what is tested
     means = [np.zeros((3, *waving_arm.MEAN_SHAPE))] * 4  # compiled in, out; numpy in, out
     swung_frames = 0
@@ -152,14 +153,14 @@ def test_the_compiled_step_equals_the_numpy_reference(models, index):
             risen[t],
             means[0],
             means[1],
-            packed.prior_mean,
-            packed.prior_radii,
+            ball.mean,
+            ball.radii,
         )
-        fresh = waving_arm.fresh_sides(started, prev, means[2])
-        means[2] = waving_arm.tracked(means[2], rot[t][:, waving_arm.ARM], fresh)
-        means[3] = waving_arm.tracked(means[3], out[t][:, waving_arm.ARM], fresh)
-        share = waving_arm.shares(offsets[t], swayed[t], risen[t], w)
-        want = waving_arm.swung(out[t], rot[t], means[3], means[2], share, w, packed.prior_mean, packed.prior_radii)
+        fresh = reference.fresh_sides(started, prev, means[2])
+        means[2] = reference.tracked(means[2], rot[t][:, waving_arm.ARM], fresh)
+        means[3] = reference.tracked(means[3], out[t][:, waving_arm.ARM], fresh)
+        share = reference.shares(offsets[t], swayed[t], risen[t], w)
+        want = reference.swung(out[t], rot[t], means[3], means[2], share, w, ball.mean, ball.radii)
         np.testing.assert_allclose(means[0], means[2], atol=1e-12)
         np.testing.assert_allclose(means[1], means[3], atol=1e-12)
         np.testing.assert_allclose(got, want, atol=1e-10)

@@ -59,46 +59,82 @@ def cmd_translate(args) -> None:
 
 
 def cmd_bench(args) -> None:
-    """Per-frame cost of `step_batch` at batch 1 and 256, foot lock on and off, with the threads
-    capped (1 = as the service runs). Floor: the dense [[A, B], [C, D]] @ [x; u] product of the
-    same batch in numpy, the paper's one matrix product per frame (see models/stepbench.py)."""
+    """Per-frame cost of `step_batch` at batch 1 and 256, with the threads capped (1 = as the
+    service runs): every stage on (as shipped), against the published core alone (`load(...,
+    core_only=True)`: the translators and the foot planter), and the foot lock off. The machines
+    are shared and noisy, so the variants are timed interleaved, step by step, in one run, with
+    the paper's one dense [[A, B], [C, D]] @ [x; u] product of the same batch in numpy as a
+    floor; the medians' ratios are what compares across runs."""
     from models.data import build_index, load_motion, select
     from models.interface import FrameBatch
-    from models.stepbench import capped_threads, stepper, time_steps
+    from models.stepbench import capped_threads, stepper
 
-    from .model import LTIStyleModel
+    from . import load
 
     clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
     motion = load_motion(clip)
+    variants = {
+        "shipped": load(Path(args.weights)),
+        "core alone": load(Path(args.weights), core_only=True),
+        "foot lock off": _without_footlock(Path(args.weights)),
+    }
+    shipped = variants["shipped"]
+    style = args.style or ("elderly" if "elderly" in shipped.styles() else shipped.styles()[0])
+    tr = shipped.translators[style]
+    M_T = np.ascontiguousarray(tr.M.T)
     for threads in args.threads:
-        for footlock in (True, False):
-            model = LTIStyleModel(weights_dir=args.weights, footlock=footlock)
-            style = args.style or ("elderly" if "elderly" in model.styles() else model.styles()[0])
-            tr = model.translators[style]
-            print(
-                f"LTI step_batch, style {style} (state dim {tr.n}), input {clip.name}, "
-                f"foot lock {'on (default)' if footlock else 'off'}, {threads} BLAS/torch thread(s)"
-            )
-            M_T = np.ascontiguousarray(tr.M.T)
-            for batch in (1, 256):
-                frames = [
-                    FrameBatch(
-                        np.repeat(motion.translations[k : k + 1, 1], batch, 0),
-                        np.repeat(motion.rotations[k : k + 1], batch, 0),
-                    )
-                    for k in range(motion.num_frames)
-                ]
-                weights = np.zeros((batch, len(model.styles())))
-                weights[:, model.styles().index(style)] = 1.0
-                zin = np.random.default_rng(0).standard_normal((batch, M_T.shape[0]))
-                with capped_threads(threads):
-                    timing = time_steps(
-                        batch,
-                        stepper(model, frames, weights, batch),
-                        partial(np.matmul, zin, M_T),
-                        args.frames if batch == 1 else max(args.frames // 8, 100),
-                    )
-                print(timing.line())
+        print(
+            f"LTI step_batch, style {style} (state dim {tr.n}), input {clip.name}, {threads} BLAS/torch thread(s); "
+            "medians of interleaved steps, process CPU time in brackets"
+        )
+        for batch in (1, 256):
+            frames = [
+                FrameBatch(
+                    np.repeat(motion.translations[k : k + 1, 1], batch, 0),
+                    np.repeat(motion.rotations[k : k + 1], batch, 0),
+                )
+                for k in range(motion.num_frames)
+            ]
+            weights = np.zeros((batch, len(shipped.styles())))
+            weights[:, shipped.styles().index(style)] = 1.0
+            zin = np.random.default_rng(0).standard_normal((batch, M_T.shape[0]))
+            steps = {name: stepper(model, frames, weights, batch) for name, model in variants.items()}
+            steps["floor (dense product)"] = partial(_floor, zin, M_T)
+            repeats = args.frames if batch == 1 else max(args.frames // 8, 100)
+            with capped_threads(threads):
+                wall, cpu = interleaved(steps, repeats)
+            base = np.median(wall["core alone"])
+            for name in steps:
+                w, c = np.median(wall[name]) * 1e6, np.median(cpu[name]) * 1e6
+                print(
+                    f"  batch {batch:4d} {name:22s}: {w:8.1f} us/step ({w / batch:6.2f} us/frame) "
+                    f"[CPU {c:8.1f}], x{np.median(wall[name]) / base:5.2f} the core alone"
+                )
+
+
+def _floor(zin: np.ndarray, M_T: np.ndarray, i: int) -> None:
+    np.matmul(zin, M_T)
+
+
+def _without_footlock(weights: Path):
+    from .model import LTIStyleModel
+
+    return LTIStyleModel(weights_dir=weights, footlock=False)
+
+
+def interleaved(steps: dict, repeats: int, warmup: int = 10) -> tuple[dict, dict]:
+    """Wall and process CPU seconds of each step(i) of `steps`, called in turn, `repeats` times."""
+    for i in range(warmup):
+        for step in steps.values():
+            step(i)
+    wall = {name: np.empty(repeats) for name in steps}
+    cpu = {name: np.empty(repeats) for name in steps}
+    for i in range(repeats):
+        for name, step in steps.items():
+            c0, t0 = time.process_time(), time.perf_counter()
+            step(warmup + i)
+            wall[name][i], cpu[name][i] = time.perf_counter() - t0, time.process_time() - c0
+    return wall, cpu
 
 
 def cmd_render(args) -> None:

@@ -1,17 +1,30 @@
-"""Compiled kernels (numba) for the LTI streaming step: one pass per session over plain arrays.
+"""LTI's streaming step, compiled (numba): one call per frame for every session.
 
-Why compiled: the vectorised numpy step spent ~1.3 ms per frame at batch 1 in ~950 small numpy
-calls of about a microsecond each, while the arithmetic
-of a frame is a few thousand multiply-adds. Here the geometry of each session is a loop on
-scalars and 4-tuples (quaternions, scalar-last like the rest of the project), so a frame costs a
-few microseconds, at batch 1 as well as batched, and the maths reads like the formulas in
-`representation.py` (offline, numpy) and the paper.
+The step reads top to bottom (`step`):
 
-The LTI product uses each style's [[A, B], [C, D]] in CSR form (the per-joint systems are
-combined block-diagonally, so ~95% of the matrix is zeros), applied to all the sessions using
-the style at once: each matrix entry is loaded once per frame, not once per session.
+1. `translate`: the published translator. Per session, the input's features; per style, the
+   LTI systems of all the sessions using it; per session, the styles blended and the output
+   path integrated. Each style's rotations are held in its rotation ball on the way (`prior.py`).
+2. the input's hands measured (`models.motion.hands_kernels.hand_step`);
+3. `carry_raised_arms`: a raised hand that holds still, its arm carried toward the style's
+   (`raised_arm.py`);
+4. `waving_kernels.swing_arms`: a waving hand's arm takes the input's swing (`waving_arm.py`);
+5. the feet planted (`models.motion.feet_kernels.plant_feet`).
 
-Everything is float64; the results equal the numpy formulas to round-off.
+Why compiled, and in one call: the arithmetic of a frame is a few thousand multiply-adds, which
+numpy spreads over ~1,000 calls of a microsecond each, and each call from Python into a kernel
+costs a few microseconds more of argument checks. Geometry is a loop on scalars and 4-tuples
+(`models.motion.quaternion`).
+
+The LTI product [x'; y] = [[A, B], [C, D]] [x; u] is split: the state columns [A; C] are block
+diagonal per joint (~5 % non-zero, a sparse product), the input columns [B; D] are more than half
+full (a dense product, `np.dot`). Both run on all the sessions using a style at once.
+
+Arguments are records (NamedTuples of arrays), one per concern. Python passes each as a plain
+tuple (`tuple(record)`): numba reads a plain tuple's types in C but a NamedTuple's in Python
+(~0.2 us a field), and the kernel names the fields again (`Session(*before)`).
+
+Everything is float64; the results equal the numpy formulas (the offline path) to round-off.
 """
 
 from __future__ import annotations
@@ -23,61 +36,187 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS
-from ..motion.rotation_ball_kernels import clamp_joint as _clamp_joint
+from ..motion.feet_kernels import plant_feet
+from ..motion.hands_kernels import hand_step
+from ..motion.quaternion import qdot, qinv, qmul, quat_at, row4
+from ..motion.rotation_ball_kernels import clamp_joint
+from ..motion.style_carry_kernels import carry_batch
+from .waving_kernels import WavingArm, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
+CHUNK = 32  # sessions whose LTI step is computed together: their inputs and outputs (~50 kB) stay in cache
 
-# --------------------------------------------------------------------------- quaternions on 4-tuples
+# --------------------------------------------------------------------------- records
 
 
-@njit(cache=True, error_model="numpy")
-def qmul(a, b):
-    """Hamilton product a * b (apply b, then a)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return (
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-        aw * bw - ax * bx - ay * by - az * bz,
+class Frame(NamedTuple):
+    """This frame of B sessions."""
+
+    root: np.ndarray  # (B, 3) the input's Hips position
+    rotations: np.ndarray  # (B, J, 4) its local rotations
+    weights: np.ndarray  # (B, S) style weights
+    x_at: np.ndarray  # (S,) int64: where each style's LTI state sits in `Session.x` (-1: no session uses the style)
+
+
+class Output(NamedTuple):
+    """The step's frame for B sessions."""
+
+    root: np.ndarray  # (B, 3)
+    rotations: np.ndarray  # (B, J, 4)
+    contacts: np.ndarray  # (B, 2) bool: planted legs, or the footplant classifier's without the planter
+
+
+class Session(NamedTuple):
+    """What a session carries from one frame to the next (besides the planter's `feet` state)."""
+
+    started: np.ndarray  # (B,) bool: a frame was seen
+    in_yaw: np.ndarray  # (B,) the input's heading the frame before
+    in_ground: np.ndarray  # (B, 2) and its ground position
+    out_yaw: np.ndarray  # (B,) the output's heading
+    out_ground: np.ndarray  # (B, 2) and its ground position
+    x: np.ndarray  # (B, n) the LTI states of the styles in use side by side (`Frame.x_at`)
+    hand_prev: np.ndarray  # (B, 2, 3) the input's hands from their shoulders, the frame before
+    hand_sway: np.ndarray  # (B, 2) their horizontal speed, averaged
+    hand_rise: np.ndarray  # (B, 2) their vertical speed, averaged
+    wave_in_mean: np.ndarray  # (B, 2, K, 4) the input's arm joints' running mean (`waving_arm.py`)
+    wave_out_mean: np.ndarray  # (B, 2, K, 4) the output's
+
+
+class Feet(NamedTuple):
+    """The foot planter's state (`models.motion.feet.STATE_SHAPES`, in its order)."""
+
+    started: np.ndarray  # (B,) bool
+    root: np.ndarray  # (B, 3) the planted root
+    model_root: np.ndarray  # (B, 3) the translator's
+    rel: np.ndarray  # (B, 2, 2, 3) each leg's ankle and toe from the root
+    contact: np.ndarray  # (B, 2) bool: planted legs
+    point: np.ndarray  # (B, 2) int64: held point (0 ankle, 1 toe)
+    offset: np.ndarray  # (B, 2, 3) the legs' IK offsets
+    floor: np.ndarray  # (B, 2, 2) each leg's ankle and toe floor
+
+
+class Systems(NamedTuple):
+    """Every style's translator, concatenated over the model's styles in order, so the kernel
+    takes a fixed set of arrays whatever the style set is. Style s has x_off[s+1] - x_off[s]
+    state entries (`Footplant.w`'s columns x_off[s]...) and rows row_off[s]:row_off[s+1] of
+    M_s = [[A, B], [C, D]]: its state columns [A; C] in CSR (columns local to the style), its
+    input columns [B; D] dense."""
+
+    x_off: np.ndarray  # (S + 1,) int64
+    row_off: np.ndarray  # (S + 1,) int64
+    indptr: np.ndarray  # (rows + 1,) int64, into indices/data
+    indices: np.ndarray  # (nnz,) int32
+    data: np.ndarray  # (nnz,)
+    inputs: np.ndarray  # (rows, 67) [B; D]
+    in_mean: np.ndarray  # (S, 67)
+    in_std: np.ndarray  # (S, 67)
+    in_lo: np.ndarray  # (S, 67) training range of the normalised input (erf blend)
+    in_hi: np.ndarray  # (S, 67)
+    out_mean: np.ndarray  # (S, 68)
+    out_std: np.ndarray  # (S, 68)
+    k: np.ndarray  # (S, 2) erf blend k_p, k_c
+    ref: np.ndarray  # (S, 22, 4) per-joint reference rotations
+
+
+class Footplant(NamedTuple):
+    """Each style's footplant classifier (`footplant.py`) on its LTI state."""
+
+    w: np.ndarray  # (2, N) projection per foot, columns aligned with the state
+    mean: np.ndarray  # (S, 2, 2) per foot, per class (free, planted)
+    var: np.ndarray  # (S, 2, 2)
+    log_prior: np.ndarray  # (S, 2, 2)
+    fitted: np.ndarray  # (S,) bool
+
+
+class Ball(NamedTuple):
+    """Each style's rotation prior (`prior.py`): per joint, the real style's mean rotation and
+    the radii it is held within."""
+
+    mean: np.ndarray  # (S, 22, 4)
+    radii: np.ndarray  # (S, 2, 22) inner, outer (radians; inf: no prior)
+    cos_inner: np.ndarray  # (S, 22) cos(inner / 2), -1 without a prior: a rotation this close is left as it is
+
+
+class Hands(NamedTuple):
+    """The rig's arm chains for `hand_step` (`models.motion.hands.HandMeter`)."""
+
+    parents: np.ndarray  # (J,) int64
+    offsets: np.ndarray  # (J, 3)
+    chain: np.ndarray  # joints from the root to the hands and shoulders, parents first
+    hands: np.ndarray  # (2,) int64
+    shoulders: np.ndarray  # (2,) int64
+    fps: float
+    frames: float  # the sway's and rise's exponential average
+    above: float  # a hand higher than this over its shoulder is on its raise ramp
+
+
+class RaisedArm(NamedTuple):
+    """The styles' raised-arm carries (`raised_arm.py`), stacked: style s uses carry row[s]
+    (-1: none)."""
+
+    source: np.ndarray  # (C, J, 4)
+    mean: np.ndarray  # (C, J, 4)
+    map: np.ndarray  # (C, J, 3, 3)
+    radius: np.ndarray  # (C, J)
+    row: np.ndarray  # (S,) int64
+    joints: np.ndarray  # (2, K) int64: each side's arm, Shoulder to Hand
+    raise_ramp: np.ndarray  # (2,) cm: the hand's height over its shoulder, raise share 0 -> 1
+    wave_ramp: np.ndarray  # (2,) cm/s: its sway, wave share 0 -> 1
+
+
+class Switches(NamedTuple):
+    """The stages after the translator, each on or off."""
+
+    blend: bool  # toward the input outside the training range (erf)
+    keep_heading: bool  # the output's yaw change is the input's
+    raised_arm: bool
+    waving_arm: bool
+    footlock: bool
+
+
+class Work(NamedTuple):
+    """Scratch for up to B sessions, kept between steps (fresh ~2 MB at batch 256 cost more in
+    page faults than the step's arithmetic); flat buffers take each style's (rows, m) shape."""
+
+    session: np.ndarray  # (B, 16): yaw, yaw-free hips, root displacement and yaw change, the input's share, ...
+    quats: np.ndarray  # (B, S, 22, 4) each style's body rotations
+    rows: np.ndarray  # (B,) int64: the sessions using a style
+    blend_w: np.ndarray  # (CHUNK,) of a chunk of the sessions using a style
+    xin: np.ndarray  # flat: their x, (n, k)
+    u: np.ndarray  # flat: their normalised features, (67, k)
+    z: np.ndarray  # flat: M [x; u], (n + 67, k)
+    feats: np.ndarray  # flat: their raw features, (67, k)
+    out: np.ndarray  # (67,)
+    root: np.ndarray  # (B, 3) the translated root, before the feet are planted
+    contacts: np.ndarray  # (B, 2) bool: the footplant classifier's
+    active: np.ndarray  # (B,) bool: a style weight > 0
+    carry_w: np.ndarray  # (1, C) one session's raised-arm carry weights
+    carried: np.ndarray  # (1, J, 4) its carried rotations
+
+
+def new_work(batch: int, systems: Systems, carries: int) -> Work:
+    """Scratch for steps of up to `batch` sessions of these styles."""
+    styles = len(systems.x_off) - 1
+    n, k = int(np.diff(systems.x_off).max()), min(batch, CHUNK)
+    return Work(
+        np.empty((batch, 16)),
+        np.empty((batch, styles, NUM_JOINTS, 4)),
+        np.empty(batch, np.int64),
+        np.empty(k),
+        np.empty(n * k),
+        np.empty(FEATURE_DIM * k),
+        np.empty((n + FEATURE_DIM) * k),
+        np.empty(FEATURE_DIM * k),
+        np.empty(FEATURE_DIM),
+        np.empty((batch, 3)),
+        np.empty((batch, 2), np.bool_),
+        np.empty(batch, np.bool_),
+        np.empty((1, carries)),
+        np.empty((1, NUM_JOINTS, 4)),
     )
 
 
-@njit(cache=True, error_model="numpy")
-def qinv(q):
-    return (-q[0], -q[1], -q[2], q[3])
-
-
-@njit(cache=True, error_model="numpy")
-def cross(a, b):
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-@njit(cache=True, error_model="numpy")
-def dot3(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-@njit(cache=True, error_model="numpy")
-def qrot(q, v):
-    """Rotate vector v by unit quaternion q."""
-    xyz = (q[0], q[1], q[2])
-    t = cross(xyz, v)
-    t = (2.0 * t[0], 2.0 * t[1], 2.0 * t[2])
-    u = cross(xyz, t)
-    w = q[3]
-    return (v[0] + w * t[0] + u[0], v[1] + w * t[1] + u[1], v[2] + w * t[2] + u[2])
-
-
-@njit(cache=True, error_model="numpy")
-def quat_at(a, i, j):
-    """Quaternion a[i, j] of a (..., ..., 4) array as a 4-tuple."""
-    return (a[i, j, 0], a[i, j, 1], a[i, j, 2], a[i, j, 3])
-
-
-@njit(cache=True, error_model="numpy")
-def row4(a, j):
-    return (a[j, 0], a[j, 1], a[j, 2], a[j, 3])
+# --------------------------------------------------------------------------- small maths
 
 
 @njit(cache=True, error_model="numpy")
@@ -86,14 +225,14 @@ def quat_to_rotvec(q):
     w = abs(q[3])
     sign = 1.0 if q[3] + 1e-300 >= 0.0 else -1.0
     v = (q[0] * sign, q[1] * sign, q[2] * sign)
-    s = math.sqrt(dot3(v, v))
+    s = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
     scale = 2.0 * math.atan2(s, w) / s if s > 1e-8 else 2.0 / max(w, 1e-12)
     return (v[0] * scale, v[1] * scale, v[2] * scale)
 
 
 @njit(cache=True, error_model="numpy")
 def rotvec_to_quat(r):
-    angle = math.sqrt(dot3(r, r))
+    angle = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
     scale = 0.5 - angle * angle / 48.0 if angle < 1e-8 else math.sin(0.5 * angle) / angle
     return (r[0] * scale, r[1] * scale, r[2] * scale, math.cos(0.5 * angle))
 
@@ -124,339 +263,137 @@ def wrap(a):
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-# --------------------------------------------------------------------------- styles, packed
-
-
-class PackedStyles(NamedTuple):
-    """Every style translator's constants concatenated over the model's current styles, in order,
-    so the step kernel takes a fixed set of arrays whatever the style set is. Style s owns state
-    entries x[x_off[s]:x_off[s+1]] and rows row_off[s]:row_off[s+1] of the stacked CSR matrices
-    M_s = [[A, B], [C, D]] (columns local to the style: its state, then the 67 inputs)."""
-
-    x_off: np.ndarray  # (S + 1,) int64
-    row_off: np.ndarray  # (S + 1,) int64
-    indptr: np.ndarray  # (rows + 1,) int64, into indices/data
-    indices: np.ndarray  # (nnz,) int32 (half the memory traffic of int64)
-    data: np.ndarray  # (nnz,)
-    in_mean: np.ndarray  # (S, 67)
-    in_std: np.ndarray  # (S, 67)
-    in_lo: np.ndarray  # (S, 67) training range of the normalised input (erf blend)
-    in_hi: np.ndarray  # (S, 67)
-    out_mean: np.ndarray  # (S, 68)
-    out_std: np.ndarray  # (S, 68)
-    k: np.ndarray  # (S, 2) erf blend k_p, k_c
-    ref: np.ndarray  # (S, 22, 4) per-joint reference rotations
-    fp_w: np.ndarray  # (2, N) footplant projection per foot, columns aligned with the state
-    fp_mean: np.ndarray  # (S, 2, 2) per foot, per class (free, planted)
-    fp_var: np.ndarray  # (S, 2, 2)
-    fp_prior: np.ndarray  # (S, 2, 2) log prior
-    has_fp: np.ndarray  # (S,) bool
-    prior_mean: np.ndarray  # (S, 22, 4) rotation prior (prior.py): per joint, the real style's mean rotation
-    prior_radii: np.ndarray  # (S, 2, 22) inner, outer radius (radians; inf: no prior)
-
-
-def pack_styles(translators: list) -> PackedStyles:
-    """PackedStyles of `StyleTranslator`s (in style order); done once per style-set change."""
-    from scipy import sparse
-
-    x_off, row_off, indptr, indices, data = [0], [0], [], [], []
-    fp_w, fp_mean, fp_var, fp_prior, has_fp = [], [], [], [], []
-    prior_mean, prior_radii = [], []
-    nnz = 0
-    for tr in translators:
-        M = sparse.csr_matrix(tr.M)
-        indptr.append(M.indptr[:-1] + nnz)
-        indices.append(M.indices)
-        data.append(M.data)
-        nnz += M.nnz
-        x_off.append(x_off[-1] + tr.n)
-        row_off.append(row_off[-1] + M.shape[0])
-        fp = tr.footplant
-        has_fp.append(fp is not None)
-        fp_w.append(fp.w if fp is not None else np.zeros((tr.n, 2)))
-        fp_mean.append(fp.mean if fp is not None else np.zeros((2, 2)))
-        fp_var.append(fp.var if fp is not None else np.ones((2, 2)))
-        fp_prior.append(fp.log_prior if fp is not None else np.zeros((2, 2)))
-        mean, radii = tr.ball()
-        prior_mean.append(mean)
-        prior_radii.append(radii)
-    indptr.append(np.array([nnz]))
-    f64 = lambda parts: np.ascontiguousarray(np.stack(parts), dtype=np.float64)
-    return PackedStyles(
-        np.array(x_off, np.int64),
-        np.array(row_off, np.int64),
-        np.concatenate(indptr).astype(np.int64),
-        np.concatenate(indices).astype(np.int32),
-        np.concatenate(data).astype(np.float64),
-        f64([tr.in_mean for tr in translators]),
-        f64([tr.in_std for tr in translators]),
-        f64([tr.in_lo for tr in translators]),
-        f64([tr.in_hi for tr in translators]),
-        f64([tr.out_mean for tr in translators]),
-        f64([tr.out_std for tr in translators]),
-        f64([(tr.k_p, tr.k_c) for tr in translators]),
-        f64([tr.ref for tr in translators]),
-        np.ascontiguousarray(np.concatenate(fp_w).T, dtype=np.float64),
-        f64(fp_mean),
-        f64(fp_var),
-        f64(fp_prior),
-        np.array(has_fp, np.bool_),
-        f64(prior_mean),
-        f64(prior_radii),
-    )
-
-
-# --------------------------------------------------------------------------- the step
-
-
-def new_workspace(batch: int, packed: PackedStyles) -> tuple[np.ndarray, ...]:
-    """Scratch arrays of `lti_step` for up to `batch` sessions: per session (yaw, yaw-free hips,
-    root displacement and yaw change, the input's share, the weight total, root features, contact
-    votes), each style's body rotations, and per style its sessions, their erf weights, [x; u],
-    M [x; u], the raw features, one output row. Kept between steps: at batch 256 they are ~2 MB,
-    and fresh allocations that size cost more in page faults than the step's arithmetic."""
-    styles = len(packed.x_off) - 1
-    rows = int(np.diff(packed.x_off).max()) + FEATURE_DIM
-    return (
-        np.empty((batch, 16)),
-        np.empty((batch, styles, NUM_JOINTS, 4)),
-        np.empty(batch, np.int64),
-        np.empty(batch),
-        np.empty((rows, batch)),
-        np.empty((rows, batch)),
-        np.empty((FEATURE_DIM, batch)),
-        np.empty(FEATURE_DIM),
-    )
+@njit(cache=True, error_model="numpy")
+def ramp(x, lo, hi):
+    """0 up to lo, 1 from hi, linear between (`models.motion.hands` shares)."""
+    return min(max((x - lo) / (hi - lo), 0.0), 1.0)
 
 
 @njit(cache=True, error_model="numpy")
-def _planted(x, fp_w, row0, mean, var, log_prior, foot):
-    """Footplant class of one foot: the more likely Gaussian class (free, planted) of the state
-    projected on the foot's discriminant (FootplantClassifier.predict)."""
+def add_signed(acc, w, q, ref):
+    """acc + w * q, with q's sign flipped when it points away from ref (q and -q are one rotation)."""
+    sign = -w if q[0] * ref[0] + q[1] * ref[1] + q[2] * ref[2] + q[3] * ref[3] < 0.0 else w
+    return (acc[0] + sign * q[0], acc[1] + sign * q[1], acc[2] + sign * q[2], acc[3] + sign * q[3])
+
+
+# --------------------------------------------------------------------------- 1. the translator
+
+
+@njit(cache=True, error_model="numpy")
+def planted(x, fp, s, a, foot):
+    """Footplant class of one foot: the more likely Gaussian class (free, planted) of style s's
+    state x (columns a... of the side-by-side states) projected on the foot's discriminant
+    (FootplantClassifier.predict)."""
     proj = 0.0
     for i in range(x.shape[0]):
-        proj += x[i] * fp_w[foot, row0 + i]
-    ll_free = -0.5 * (proj - mean[foot, 0]) ** 2 / var[foot, 0] - 0.5 * math.log(var[foot, 0]) + log_prior[foot, 0]
-    ll_planted = -0.5 * (proj - mean[foot, 1]) ** 2 / var[foot, 1] - 0.5 * math.log(var[foot, 1]) + log_prior[foot, 1]
+        proj += x[i] * fp.w[foot, a + i]
+    mean, var, log_prior = fp.mean[s, foot], fp.var[s, foot], fp.log_prior[s, foot]
+    ll_free = -0.5 * (proj - mean[0]) ** 2 / var[0] - 0.5 * math.log(var[0]) + log_prior[0]
+    ll_planted = -0.5 * (proj - mean[1]) ** 2 / var[1] - 0.5 * math.log(var[1]) + log_prior[1]
     return ll_planted > ll_free
 
 
 @njit(cache=True, error_model="numpy")
-def _style_inputs(s, root_y, rotations, yaw_tilt, delta, x_in, P, blend, zin, feats, col):
-    """One session's input to style s's LTI system, into column `col` of zin (the style's state,
-    then the normalised features; representation.pose_features / sequence_features) and of
-    feats (the raw features). Returns the erf generalisation blend weight."""
-    (
-        x_off,
-        row_off,
-        indptr,
-        indices,
-        data,
-        in_mean,
-        in_std,
-        in_lo,
-        in_hi,
-        out_mean,
-        out_std,
-        k,
-        ref,
-        fp_w,
-        fp_mean,
-        fp_var,
-        fp_prior,
-        has_fp,
-        prior_mean,
-        prior_radii,
-    ) = P
-    n = x_in.shape[0]
-    feats[0, col], feats[1, col], feats[2, col], feats[3, col] = delta[0], delta[1], delta[2], root_y
+def style_inputs(sys, s, root_y, rotations, tilt, delta, x, blend, xin, u, feats, c):
+    """One session's input to style s's system into column c of xin (its state x), u (the
+    normalised features; representation.pose_features / sequence_features) and feats (the raw
+    features). Returns the erf generalisation blend weight."""
+    feats[0, c], feats[1, c], feats[2, c], feats[3, c] = delta[0], delta[1], delta[2], root_y
     for j in range(1, NUM_JOINTS):
-        q = yaw_tilt if j == HIPS else row4(rotations, j)
-        r = quat_to_rotvec(qmul(qinv(quat_at(ref, s, j)), q))
-        feats[3 * j + 1, col], feats[3 * j + 2, col], feats[3 * j + 3, col] = r
-    for i in range(n):
-        zin[i, col] = x_in[i]
+        q = tilt if j == HIPS else row4(rotations, j)
+        r = quat_to_rotvec(qmul(qinv(quat_at(sys.ref, s, j)), q))
+        feats[3 * j + 1, c], feats[3 * j + 2, c], feats[3 * j + 3, c] = r
+    for i in range(x.shape[0]):
+        xin[i, c] = x[i]
     blend_w = 0.0
     for d in range(FEATURE_DIM):
-        u = (feats[d, col] - in_mean[s, d]) / in_std[s, d]
-        zin[n + d, col] = u
+        ud = (feats[d, c] - sys.in_mean[s, d]) / sys.in_std[s, d]
+        u[d, c] = ud
         if blend:  # max over DOFs of erf(max(0, dist - k_p) / k_c)
-            beyond = max(u - in_hi[s, d], in_lo[s, d] - u) - k[s, 0]
+            beyond = max(ud - sys.in_hi[s, d], sys.in_lo[s, d] - ud) - sys.k[s, 0]
             if beyond > 0.0:  # erf(0) = 0 inside the training range: most DOFs, most frames
-                blend_w = max(blend_w, math.erf(beyond / k[s, 1]))
+                blend_w = max(blend_w, math.erf(beyond / sys.k[s, 1]))
     return blend_w
 
 
 @njit(cache=True, error_model="numpy")
-def _style_outputs(s, w, z, feats, col, blend_w, x_out, P, keep_heading, root_feats, quats, out):
-    """Style s's result for one session from column `col` of z = M [x; u]: the new state into
-    x_out, w * (root displacement, yaw change, height) added to root_feats, the body rotations
-    (22, 4) into quats. Returns the footplant contacts (left, right). out: scratch (67,)."""
-    (
-        x_off,
-        row_off,
-        indptr,
-        indices,
-        data,
-        in_mean,
-        in_std,
-        in_lo,
-        in_hi,
-        out_mean,
-        out_std,
-        k,
-        ref,
-        fp_w,
-        fp_mean,
-        fp_var,
-        fp_prior,
-        has_fp,
-        prior_mean,
-        prior_radii,
-    ) = P
+def system_product(sys, s, xin, u, z):
+    """z = M_s [xin; u] for the m sessions in the columns (rows of z: the state, then the
+    outputs; not the log time warp): the dense input columns [B; D] u, then the sparse state
+    columns [A; C] xin added (one session: a sum per row; several: each matrix entry applied to
+    all of them, a loop the compiler vectorises)."""
+    r0, m = sys.row_off[s], xin.shape[1]
+    np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u, z)
+    for r in range(z.shape[0]):
+        if m == 1:
+            acc = z[r, 0]
+            for p in range(sys.indptr[r0 + r], sys.indptr[r0 + r + 1]):
+                acc += sys.data[p] * xin[sys.indices[p], 0]
+            z[r, 0] = acc
+            continue
+        for p in range(sys.indptr[r0 + r], sys.indptr[r0 + r + 1]):
+            coef, col = sys.data[p], sys.indices[p]
+            for c in range(m):
+                z[r, c] += coef * xin[col, c]
+
+
+@njit(cache=True, error_model="numpy")
+def inside(q, mean, cos_inner):
+    """Whether unit q lies within the ball's inner radius of `mean`, where `clamp_joint` leaves it
+    as it is: cos(angle / 2) >= cos(inner / 2), without the arc tangent."""
+    return abs(qdot(mean, q)) >= cos_inner
+
+
+@njit(cache=True, error_model="numpy")
+def style_outputs(sys, ball, s, w, z, feats, c, blend_w, x_out, keep_heading, root_feats, quats, out):
+    """Style s's result for one session from column c of z = M [x; u]: the new state into x_out,
+    w * (root displacement, yaw change, height) added to root_feats, the body rotations (22, 4),
+    each held in the style's ball, into quats. out: scratch (67,)."""
     n = x_out.shape[0]
     for i in range(n):
-        x_out[i] = z[i, col]
+        x_out[i] = z[i, c]
     for d in range(FEATURE_DIM):  # the log time warp (last output) is not used online
-        y = z[n + d, col] * out_std[s, d] + out_mean[s, d]
-        out[d] = (1.0 - blend_w) * y + blend_w * feats[d, col]
+        y = z[n + d, c] * sys.out_std[s, d] + sys.out_mean[s, d]
+        out[d] = (1.0 - blend_w) * y + blend_w * feats[d, c]
     if keep_heading:
-        out[2] = feats[2, col]
+        out[2] = feats[2, c]
     for d in range(4):
         root_feats[d] += w * out[d]
     # body rotations (representation.static_to_rotations with yaw 0)
     quats[0, 0], quats[0, 1], quats[0, 2], quats[0, 3] = 0.0, 0.0, 0.0, 1.0
     for j in range(1, NUM_JOINTS):
-        q = qmul(quat_at(ref, s, j), rotvec_to_quat((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
-        q = _clamp_joint(q, quat_at(prior_mean, s, j), prior_radii[s, 0, j], prior_radii[s, 1, j], j == HIPS)
+        q = qmul(quat_at(sys.ref, s, j), rotvec_to_quat((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
+        if j == HIPS or not inside(q, quat_at(ball.mean, s, j), ball.cos_inner[s, j]):
+            q = clamp_joint(q, quat_at(ball.mean, s, j), ball.radii[s, 0, j], ball.radii[s, 1, j], j == HIPS)
         quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q
-    if not has_fp[s]:
-        return False, False
-    return _planted(x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 0), _planted(
-        x_out, fp_w, x_off[s], fp_mean[s], fp_var[s], fp_prior[s], 1
-    )
 
 
 @njit(cache=True, error_model="numpy")
-def _sparse_product(indptr, indices, data, zin, z, m):
-    """z[:, :m] = M @ zin[:, :m] for the CSR matrix M (indptr, indices, data). Several sessions:
-    each matrix entry is loaded once and applied to all of them (an inner loop over sessions that
-    the compiler vectorises); one session: a plain dot product per row (the vectorised loop's
-    set-up would cost more than the work). Either way each sum adds the same terms in the same order."""
-    for r in range(indptr.shape[0] - 1):
-        if m == 1:
-            acc = 0.0
-            for p in range(indptr[r], indptr[r + 1]):
-                acc += data[p] * zin[indices[p], 0]
-            z[r, 0] = acc
-            continue
-        for c in range(m):
-            z[r, c] = 0.0
-        for p in range(indptr[r], indptr[r + 1]):
-            coef, col = data[p], indices[p]
-            for c in range(m):
-                z[r, c] += coef * zin[col, c]
-
-
-@njit(cache=True, error_model="numpy")
-def lti_step(
-    root,
-    rotations,
-    weights,
-    started,
-    in_yaw,
-    in_ground,
-    out_yaw,
-    out_ground,
-    x,
-    out_root,
-    out_rot,
-    contacts,
-    n_yaw,
-    n_ground,
-    n_out_yaw,
-    n_out_ground,
-    n_x,
-    per_session,
-    quats,
-    rows,
-    blend_w,
-    zin,
-    z,
-    feats,
-    out,
-    blend,
-    keep_heading,
-    x_off,
-    row_off,
-    indptr,
-    indices,
-    data,
-    in_mean,
-    in_std,
-    in_lo,
-    in_hi,
-    out_mean,
-    out_std,
-    k,
-    ref,
-    fp_w,
-    fp_mean,
-    fp_var,
-    fp_prior,
-    has_fp,
-    prior_mean,
-    prior_radii,
-):
-    """One streaming frame for B sessions (see model.LTIStyleModel for the state and the style
-    mixing). Reads the frame, the weights and the state (started ... x); fills the outputs
-    (out_root ... n_x, allocated by the caller: returning arrays from numba costs ~1 us each);
-    per_session ... out are scratch (`new_workspace`) for at least B sessions, kept by the caller
-    between calls. Arrays are passed one by one (the scratch, the `PackedStyles` fields) because
-    numba checks the types of top-level arrays much faster than those inside a tuple.
+def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
+    """The published translator (see model.LTIStyleModel for the state and the style mixing):
+    the translated root into work.root, the body into out_rot, the footplant classifier's
+    contacts into work.contacts, the input and output paths and the LTI states into `after`.
 
     Three passes: per session, the input's root transform and its share of the output; per
-    style, the LTI step of all sessions using it as one sparse product (each matrix entry is
-    loaded once and applied to every session, a loop the compiler vectorises); per session, the
-    blend of the styles and the output path. The feet are planted after it (`models.motion.feet`)."""
-    P = (
-        x_off,
-        row_off,
-        indptr,
-        indices,
-        data,
-        in_mean,
-        in_std,
-        in_lo,
-        in_hi,
-        out_mean,
-        out_std,
-        k,
-        ref,
-        fp_w,
-        fp_mean,
-        fp_var,
-        fp_prior,
-        has_fp,
-        prior_mean,
-        prior_radii,
-    )
-    B, S = weights.shape
-    yaws, tilts, deltas, rests = per_session[:, 0], per_session[:, 1:5], per_session[:, 5:8], per_session[:, 8]
-    totals, root_feats, votes = per_session[:, 9], per_session[:, 10:14], per_session[:, 14:16]
+    style, the LTI step of all sessions using it; per session, the blend of the styles and the
+    output path."""
+    B, S = frame.weights.shape
+    weights, per = frame.weights, work.session
+    yaws, tilts, deltas, rests = per[:, 0], per[:, 1:5], per[:, 5:8], per[:, 8]
+    totals, root_feats, votes = per[:, 9], per[:, 10:14], per[:, 14:16]
     for b in range(B):
-        for i in range(n_x.shape[1]):
-            n_x[b, i] = 0.0  # inactive styles rest at their initial state x = 0
-        for leg in range(2):
-            contacts[b, leg] = False
-        yaw, tilt = split_hips(quat_at(rotations, b, HIPS))
+        for i in range(after.x.shape[1]):
+            after.x[b, i] = 0.0  # a style at weight 0 rests at its initial state x = 0
+        work.contacts[b, 0], work.contacts[b, 1] = False, False
+        yaw, tilt = split_hips(quat_at(frame.rotations, b, HIPS))
         yaws[b], votes[b, 0], votes[b, 1] = yaw, 0.0, 0.0
         tilts[b, 0], tilts[b, 1], tilts[b, 2], tilts[b, 3] = tilt
-        gx, gz = root[b, 0], root[b, 2]
-        p_yaw = in_yaw[b] if started[b] else yaw
-        dx, dz = rotate_y(
-            gx - (in_ground[b, 0] if started[b] else gx), gz - (in_ground[b, 1] if started[b] else gz), -p_yaw
-        )
+        gx, gz = frame.root[b, 0], frame.root[b, 2]
+        started = before.started[b]
+        p_yaw = before.in_yaw[b] if started else yaw
+        p_x = before.in_ground[b, 0] if started else gx
+        p_z = before.in_ground[b, 1] if started else gz
+        dx, dz = rotate_y(gx - p_x, gz - p_z, -p_yaw)
         deltas[b, 0], deltas[b, 1], deltas[b, 2] = dx, dz, wrap(yaw - p_yaw)
         total = 0.0
         for s in range(S):
@@ -465,54 +402,43 @@ def lti_step(
         rests[b] = max(1.0 - total, 0.0)  # share of the input passing through
         for d in range(3):
             root_feats[b, d] = rests[b] * deltas[b, d]
-        root_feats[b, 3] = rests[b] * root[b, 1]
+        root_feats[b, 3] = rests[b] * frame.root[b, 1]
     for s in range(S):
         m = 0
         for b in range(B):
             if weights[b, s] > 0.0:
-                rows[m] = b
+                work.rows[m] = b
                 m += 1
         if m == 0:
             continue
-        n = x_off[s + 1] - x_off[s]
-        for c in range(m):
-            b = rows[c]
-            blend_w[c] = _style_inputs(
-                s,
-                root[b, 1],
-                rotations[b],
-                row4(tilts, b),
-                deltas[b],
-                x[b, x_off[s] : x_off[s + 1]],
-                P,
-                blend,
-                zin,
-                feats,
-                c,
-            )
-        # [x'; y] = M [x; u] for the m sessions; rows: the state, then the outputs (not the log time warp)
-        _sparse_product(indptr[row_off[s] : row_off[s] + n + FEATURE_DIM + 1], indices, data, zin, z, m)
-        for c in range(m):
-            b = rows[c]
-            w = weights[b, s]
-            planted = _style_outputs(
-                s,
-                w,
-                z,
-                feats,
-                c,
-                blend_w[c],
-                n_x[b, x_off[s] : x_off[s + 1]],
-                P,
-                keep_heading,
-                root_feats[b],
-                quats[b, s],
-                out,
-            )
-            votes[b, 0] += w * planted[0]
-            votes[b, 1] += w * planted[1]
+        a = frame.x_at[s]
+        e = a + sys.x_off[s + 1] - sys.x_off[s]
+        for lo in range(0, m, CHUNK):  # a few sessions at a time: their columns stay in cache
+            k = min(CHUNK, m - lo)
+            xin = work.xin[: (e - a) * k].reshape((e - a, k))
+            u = work.u[: FEATURE_DIM * k].reshape((FEATURE_DIM, k))
+            z = work.z[: (e - a + FEATURE_DIM) * k].reshape((e - a + FEATURE_DIM, k))
+            feats = work.feats[: FEATURE_DIM * k].reshape((FEATURE_DIM, k))
+            for c in range(k):
+                b = work.rows[lo + c]
+                work.blend_w[c] = style_inputs(
+                    sys, s, frame.root[b, 1], frame.rotations[b], row4(tilts, b), deltas[b], before.x[b, a:e],
+                    switches.blend, xin, u, feats, c,
+                )  # fmt: skip
+            system_product(sys, s, xin, u, z)
+            for c in range(k):
+                b = work.rows[lo + c]
+                w = weights[b, s]
+                x_out = after.x[b, a:e]
+                style_outputs(
+                    sys, ball, s, w, z, feats, c, work.blend_w[c], x_out, switches.keep_heading, root_feats[b],
+                    work.quats[b, s], work.out,
+                )  # fmt: skip
+                if fp.fitted[s]:
+                    votes[b, 0] += w * planted(x_out, fp, s, sys.x_off[s], 0)
+                    votes[b, 1] += w * planted(x_out, fp, s, sys.x_off[s], 1)
     for b in range(B):
-        fresh = not started[b]
+        fresh = not before.started[b]
         yaw, rest, rf = yaws[b], rests[b], root_feats[b]
         base, base_w = -1, rest  # the heaviest part (first on ties): the sign reference of the blend
         for s in range(S):
@@ -521,36 +447,195 @@ def lti_step(
         # blend the body: input (with the yaw-free hips) and each style, signs aligned to the base part
         out_rot[b, 0, 0], out_rot[b, 0, 1], out_rot[b, 0, 2], out_rot[b, 0, 3] = 0.0, 0.0, 0.0, 1.0
         for j in range(1, NUM_JOINTS):
-            q_in = row4(tilts, b) if j == HIPS else quat_at(rotations, b, j)
-            q_base = q_in if base < 0 else quat_at(quats[b], base, j)
+            q_in = row4(tilts, b) if j == HIPS else quat_at(frame.rotations, b, j)
+            q_base = q_in if base < 0 else quat_at(work.quats[b], base, j)
             acc = (0.0, 0.0, 0.0, 0.0)
             if rest > 0.0:
-                acc = _add_signed(acc, rest, q_in, q_base)
+                acc = add_signed(acc, rest, q_in, q_base)
             for s in range(S):
                 if weights[b, s] > 0.0:
-                    acc = _add_signed(acc, weights[b, s], quat_at(quats[b], s, j), q_base)
+                    acc = add_signed(acc, weights[b, s], quat_at(work.quats[b], s, j), q_base)
             norm = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
             q = (acc[0] / norm, acc[1] / norm, acc[2] / norm, acc[3] / norm)
             if j == HIPS:
-                q = qmul(qyaw(yaw if fresh else out_yaw[b] + rf[2]), q)
+                q = qmul(qyaw(yaw if fresh else before.out_yaw[b] + rf[2]), q)
             out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = q
         # integrate the output path: the first frame starts where the input is
-        gx, gz = root[b, 0], root[b, 2]
+        gx, gz = frame.root[b, 0], frame.root[b, 2]
         if fresh:
-            n_out_yaw[b], n_out_ground[b, 0], n_out_ground[b, 1] = yaw, gx, gz
+            after.out_yaw[b], after.out_ground[b, 0], after.out_ground[b, 1] = yaw, gx, gz
         else:
-            sx, sz = rotate_y(rf[0], rf[1], out_yaw[b])
-            n_out_yaw[b] = out_yaw[b] + rf[2]
-            n_out_ground[b, 0], n_out_ground[b, 1] = out_ground[b, 0] + sx, out_ground[b, 1] + sz
-        out_root[b, 0], out_root[b, 1], out_root[b, 2] = n_out_ground[b, 0], rf[3], n_out_ground[b, 1]
-        n_yaw[b], n_ground[b, 0], n_ground[b, 1] = yaw, gx, gz
+            sx, sz = rotate_y(rf[0], rf[1], before.out_yaw[b])
+            after.out_yaw[b] = before.out_yaw[b] + rf[2]
+            after.out_ground[b, 0] = before.out_ground[b, 0] + sx
+            after.out_ground[b, 1] = before.out_ground[b, 1] + sz
+        work.root[b, 0], work.root[b, 1], work.root[b, 2] = after.out_ground[b, 0], rf[3], after.out_ground[b, 1]
+        after.started[b] = True
+        after.in_yaw[b], after.in_ground[b, 0], after.in_ground[b, 1] = yaw, gx, gz
         if totals[b] > 0.0:
             limit = 0.5 * max(totals[b], 1e-12)
-            contacts[b, 0], contacts[b, 1] = votes[b, 0] > limit, votes[b, 1] > limit
+            work.contacts[b, 0], work.contacts[b, 1] = votes[b, 0] > limit, votes[b, 1] > limit
+
+
+# --------------------------------------------------------------------------- 3. the raised arm
 
 
 @njit(cache=True, error_model="numpy")
-def _add_signed(acc, w, q, ref):
-    """acc + w * q, with q's sign flipped when it points away from ref (q and -q are one rotation)."""
-    sign = -w if q[0] * ref[0] + q[1] * ref[1] + q[2] * ref[2] + q[3] * ref[3] < 0.0 else w
-    return (acc[0] + sign * q[0], acc[1] + sign * q[1], acc[2] + sign * q[2], acc[3] + sign * q[3])
+def calm_share(arm, height, sway):
+    """How far a hand is raised and calm: its raise share times one minus its wave share."""
+    return ramp(height, arm.raise_ramp[0], arm.raise_ramp[1]) * (1.0 - ramp(sway, arm.wave_ramp[0], arm.wave_ramp[1]))
+
+
+@njit(cache=True, error_model="numpy")
+def carry_raised_arms(b, arm, weights, offsets, swayed, out_rot, work):
+    """Session b's arms mixed toward the styles' raised arms (`raised_arm.carried`): each side
+    by its share, the hand's raise share times one minus its wave share (`raised_arm.shares`)."""
+    total = 0.0
+    for s in range(weights.shape[1]):
+        k = arm.row[s]
+        if k >= 0:
+            work.carry_w[0, k] = weights[b, s]
+            total += weights[b, s]
+    if not total > 0.0:
+        return
+    left, right = calm_share(arm, offsets[b, 0, 1], swayed[b, 0]), calm_share(arm, offsets[b, 1, 1], swayed[b, 1])
+    if not (left > 0.0 or right > 0.0):
+        return
+    carry_batch(out_rot[b : b + 1], work.carry_w, arm.source, arm.mean, arm.map, arm.radius, HIPS, work.carried)
+    for side in range(2):
+        share = left if side == 0 else right
+        if not share > 0.0:
+            continue
+        for j in arm.joints[side]:
+            a, t = quat_at(out_rot, b, j), quat_at(work.carried, 0, j)
+            if a[0] * t[0] + a[1] * t[1] + a[2] * t[2] + a[3] * t[3] < 0.0:
+                t = (-t[0], -t[1], -t[2], -t[3])
+            mixed = (
+                (1.0 - share) * a[0] + share * t[0],
+                (1.0 - share) * a[1] + share * t[1],
+                (1.0 - share) * a[2] + share * t[2],
+                (1.0 - share) * a[3] + share * t[3],
+            )
+            norm = math.sqrt(mixed[0] ** 2 + mixed[1] ** 2 + mixed[2] ** 2 + mixed[3] ** 2)
+            for i in range(4):
+                out_rot[b, j, i] = mixed[i] / norm
+
+
+# --------------------------------------------------------------------------- the step
+
+
+@njit(cache=True, error_model="numpy")
+def step(frame, before, after, feet_before, feet_after, out, sys, fp, ball, hands, arm, waving, planter, on, work):
+    """One frame for every session: reads `frame` and the state `before` (`feet_before`: the
+    planter's); writes `out` and the state `after` (`feet_after`, unless the feet are not
+    planted). Records as plain tuples (module docstring); `planter` is `FootPlanter`'s."""
+    frame, before, after, out = Frame(*frame), Session(*before), Session(*after), Output(*out)
+    feet_after = Feet(*feet_after)
+    sys, fp, ball, hands = Systems(*sys), Footplant(*fp), Ball(*ball), Hands(*hands)
+    arm, waving, on, work = RaisedArm(*arm), WavingArm(*waving), Switches(*on), Work(*work)
+    B = frame.root.shape[0]
+
+    # 1. the translator
+    translate(frame, before, after, sys, fp, ball, on, work, out.rotations)
+
+    # 2. the input's hands: how high, how they sway and rise
+    hand_step(
+        frame.rotations, hands.parents, hands.offsets, hands.chain, hands.hands, hands.shoulders,
+        before.hand_prev, before.hand_sway, before.hand_rise, before.started, hands.fps, hands.frames,
+        hands.above, after.hand_prev, after.hand_sway, after.hand_rise,
+    )  # fmt: skip
+
+    # 3., 4. the arms of raised hands: a calm one carried, a waving one swung
+    for b in range(B):
+        raised = False
+        for side in range(2):
+            raised = raised or after.hand_prev[b, side, 1] > hands.above
+        if not raised:  # a walk's or a run's hands never are: the running means wait
+            after.wave_in_mean[b] = before.wave_in_mean[b]
+            after.wave_out_mean[b] = before.wave_out_mean[b]
+            continue
+        if on.raised_arm and arm.source.shape[0] > 0:
+            carry_raised_arms(b, arm, frame.weights, after.hand_prev, after.hand_sway, out.rotations, work)
+        swing_arms(
+            b, waving, frame.rotations, out.rotations, frame.weights, before.started, before.hand_prev,
+            after.hand_prev, after.hand_sway, after.hand_rise, before.wave_in_mean, before.wave_out_mean,
+            ball.mean, ball.radii, on.waving_arm, after.wave_in_mean, after.wave_out_mean,
+        )  # fmt: skip
+
+    # 5. the feet planted
+    if not on.footlock:
+        out.root[:] = work.root
+        out.contacts[:] = work.contacts
+        return
+    for b in range(B):
+        total = 0.0
+        for s in range(frame.weights.shape[1]):
+            total += frame.weights[b, s]
+        work.active[b] = total > 0.0
+    feet_after.started[:] = True
+    feet_after.model_root[:] = work.root  # the translator's root, which the planter remembers
+    plant_feet(  # type: ignore[call-arg]  # numba Dispatcher: starred records
+        work.root, out.rotations, work.active, work.contacts, *feet_before, feet_after.root, out.rotations,
+        feet_after.contact, feet_after.rel, feet_after.point, feet_after.offset, feet_after.floor, *planter,
+    )  # fmt: skip
+    out.root[:] = feet_after.root
+    out.contacts[:] = feet_after.contact
+
+
+# --------------------------------------------------------------------------- packing
+
+
+def pack_styles(translators: list) -> tuple[Systems, Footplant, Ball]:
+    """The records of `StyleTranslator`s (in style order); done once per style-set change."""
+    from scipy import sparse
+
+    x_off, row_off, indptr, indices, data, inputs = [0], [0], [], [], [], []
+    fp_w, fp_mean, fp_var, fp_prior, fitted, ball_mean, ball_radii = [], [], [], [], [], [], []
+    nnz = 0
+    for tr in translators:
+        M = tr.M[: tr.n + FEATURE_DIM]  # not the log time warp, which is not used online
+        states = sparse.csr_matrix(M[:, : tr.n])
+        indptr.append(states.indptr[:-1] + nnz)
+        indices.append(states.indices)
+        data.append(states.data)
+        inputs.append(M[:, tr.n :])
+        nnz += states.nnz
+        x_off.append(x_off[-1] + tr.n)
+        row_off.append(row_off[-1] + M.shape[0])
+        f = tr.footplant
+        fitted.append(f is not None)
+        fp_w.append(f.w if f is not None else np.zeros((tr.n, 2)))
+        fp_mean.append(f.mean if f is not None else np.zeros((2, 2)))
+        fp_var.append(f.var if f is not None else np.ones((2, 2)))
+        fp_prior.append(f.log_prior if f is not None else np.zeros((2, 2)))
+        mean, radii = tr.ball()
+        ball_mean.append(mean)
+        ball_radii.append(radii)
+    indptr.append(np.array([nnz]))
+    f64 = lambda parts: np.ascontiguousarray(np.stack(parts), dtype=np.float64)  # noqa: E731
+    systems = Systems(
+        np.array(x_off, np.int64),
+        np.array(row_off, np.int64),
+        np.concatenate(indptr).astype(np.int64),
+        np.concatenate(indices).astype(np.int32),
+        np.concatenate(data).astype(np.float64),
+        np.ascontiguousarray(np.concatenate(inputs), dtype=np.float64),
+        f64([tr.in_mean for tr in translators]),
+        f64([tr.in_std for tr in translators]),
+        f64([tr.in_lo for tr in translators]),
+        f64([tr.in_hi for tr in translators]),
+        f64([tr.out_mean for tr in translators]),
+        f64([tr.out_std for tr in translators]),
+        f64([(tr.k_p, tr.k_c) for tr in translators]),
+        f64([tr.ref for tr in translators]),
+    )
+    footplant = Footplant(
+        np.ascontiguousarray(np.concatenate(fp_w).T, dtype=np.float64),
+        f64(fp_mean),
+        f64(fp_var),
+        f64(fp_prior),
+        np.array(fitted, np.bool_),
+    )
+    radii = f64(ball_radii)
+    cos_inner = np.where(np.isfinite(radii[:, 0]), np.cos(0.5 * np.minimum(radii[:, 0], np.pi)), -1.0)
+    return systems, footplant, Ball(f64(ball_mean), radii, np.ascontiguousarray(cos_inner))

@@ -8,7 +8,10 @@ blend) and the footplant classifier. Every frame, per session:
     [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint: a sparse product)
     out = y * out_std + out_mean
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
-    pose = inverse representation(out); rotation prior (prior.py); contacts from the state; foot lock
+    pose = inverse representation(out); rotation prior (prior.py); contacts from the state
+    then the stages after the translator, each measured on the input and fitted per style the same
+    way: a raised, calm hand's arm (raised_arm.py), a waving hand's swing (waving_arm.py), the
+    planted feet
 
 Heading: the model's own yaw change drifts slowly for some styles (exhausted: ~0.05 deg/frame
 on a straight validation walk, a full circle in ~4 minutes of streaming), so by default the output
@@ -24,9 +27,9 @@ style's). The footplant classifier's contacts are the planter's hints (a foot it
 fast the translation moves it); `FrameBatch.contacts` are the planted legs, or the classifier's
 contacts when the feet are not planted.
 
-The streaming step (`LTIStyleModel.step_batch`) is one compiled pass over the sessions
-(`kernels.py`, numba): ~1 us of arithmetic per frame would otherwise drown in ~1,000 small numpy
-calls. The offline path (`StyleTranslator.translate_motion`) stays numpy over whole clips; the
+The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and
+stage (`kernels.step`, numba): ~10 us of arithmetic per frame would otherwise drown in ~1,000
+small numpy calls and the argument checks of one kernel call per stage. The offline path (`StyleTranslator.translate_motion`) stays numpy over whole clips; the
 tests check that the two agree frame for frame.
 
 The log-time-warp output (last output DOF) is only used offline (`translate_motion(...,
@@ -47,7 +50,7 @@ from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import STATE_SHAPES as FEET_STATE
 from models.motion.feet import model_rig_planter
-from models.motion.hands import HandMeter, clip_sway, hand_offsets_of
+from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter, clip_sway, hand_offsets_of
 from models.motion.style_carry import StyleCarry
 
 from . import kernels, raised_arm, waving_arm
@@ -70,7 +73,15 @@ SHARED_SHAPES = {
     "wave_out_mean": waving_arm.MEAN_SHAPE,  # the output's
 }
 SHARED_KEYS = tuple(SHARED_SHAPES) + tuple(FEET_STATE)  # and the foot planter's
+SESSION_KEYS = tuple(SHARED_SHAPES)  # `kernels.Session`'s fields, less x
+# every shared entry's (shape, dtype), in the order of the step's records (`kernels.Session`, `kernels.Feet`)
+STATE_ARRAYS = {
+    **{k: (shape, np.bool_ if k == "started" else np.float64) for k, shape in SHARED_SHAPES.items()},
+    **FEET_STATE,
+}
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
+ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
+COMPACT_FROM = 16  # sessions in a step from which only the styles in use are copied (`_side_by_side`)
 
 
 @dataclass
@@ -95,7 +106,7 @@ class StyleTranslator:
     keep_heading: bool = True  # output yaw change := input yaw change (no heading drift); not stored
     prior_mean: np.ndarray | None = None  # (22, 4) rotation prior (prior.py): the real style's mean per joint
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
-    raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`); not stored here
+    raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`)
     waving_arm: bool = True  # a waving hand's arm takes the input's swing (`waving_arm.py`); not stored
 
     def __post_init__(self) -> None:
@@ -185,9 +196,11 @@ class StyleTranslator:
     # ---------------------------------------------------------------- persistence
 
     def save(self, path: Path) -> None:
-        extra = self.footplant.to_arrays() if self.footplant is not None else {}
+        extra: dict = self.footplant.to_arrays() if self.footplant is not None else {}
         if self.prior_mean is not None and self.prior_radii is not None:
             extra.update(prior_mean=self.prior_mean, prior_radii=self.prior_radii)
+        if self.raised_arm is not None:  # an uploaded style's (the built-in ones share raised_arm.FILE)
+            extra.update(zip(ARM_KEYS, self.raised_arm.arrays))
         np.savez_compressed(
             path,
             style=np.array(self.style),
@@ -212,9 +225,13 @@ class StyleTranslator:
     def load(cls, path: Path) -> StyleTranslator:
         with np.load(path) as z:
             fp = FootplantClassifier.from_arrays(z) if "fp_w" in z else None
+            A, B, C, D = (z[k].astype(np.float64) for k in ("A", "B", "C", "D"))
             return cls(
                 str(z["style"]),
-                *(z[k].astype(np.float64) for k in ("A", "B", "C", "D")),
+                A,
+                B,
+                C,
+                D,
                 z["in_mean"],
                 z["in_std"],
                 z["out_mean"],
@@ -229,15 +246,30 @@ class StyleTranslator:
                 z["ref"],
                 prior_mean=z["prior_mean"] if "prior_mean" in z else None,
                 prior_radii=z["prior_radii"] if "prior_radii" in z else None,
+                raised_arm=StyleCarry(*(z[k] for k in ARM_KEYS)) if ARM_KEYS[0] in z else None,
             )
+
+
+class _Scratch(NamedTuple):
+    systems: kernels.Systems  # the style set it was made for
+    batch: int
+    x: np.ndarray  # (B * N,) room for the styles' LTI states side by side
+    work: tuple  # `kernels.Work`
+    shapes: list[tuple[int, ...]]  # each shared state entry's shape (STATE_ARRAYS' order)
+    x_shapes: list[tuple[int, ...]]  # each style's LTI state's
+    x_off: np.ndarray  # (S,) int64: where each style's state starts when all sit side by side
+    allocations: list[tuple[tuple[int, ...], type]]  # each shared state entry's (shape, dtype)
 
 
 class _StyleSet(NamedTuple):
     styles: list[str]
     x_slices: dict[str, slice]  # state key of each style's LTI state -> its columns in the kernel's x, in style order
     state_keys: frozenset[str]
-    packed: kernels.PackedStyles
-    arm: tuple[StyleCarry, np.ndarray] | None  # the styles' raised-arm carries stacked, and their weight columns
+    systems: kernels.Systems
+    footplant: kernels.Footplant
+    ball: kernels.Ball
+    arm: kernels.RaisedArm  # the styles' raised-arm carries stacked
+    constants: tuple  # the step's constant records as plain tuples, in its argument order
 
 
 class LTIStyleModel(LTIStyles):
@@ -282,7 +314,7 @@ class LTIStyleModel(LTIStyles):
                 if path.name == raised_arm.FILE:
                     continue
                 t = StyleTranslator.load(path)
-                t.raised_arm = arms.get(t.style)
+                t.raised_arm = arms.get(t.style, t.raised_arm) if raised_arms else None
                 translators[t.style] = t
         if not translators:
             raise FileNotFoundError(f"no LTI weights (*.npz) in {weights_dir}")
@@ -291,6 +323,7 @@ class LTIStyleModel(LTIStyles):
             tr.keep_heading = keep_heading
             tr.waving_arm = waving_arms
         self.waving_arms = waving_arms
+        self.raised_arms = raised_arms
         self.keep_heading = keep_heading
         self.blend = blend
         self.footlock = footlock
@@ -302,43 +335,12 @@ class LTIStyleModel(LTIStyles):
         self._compile_step()
 
     def _compile_step(self) -> None:
-        """One step of one session on the rest pose: numba compiles the kernels (or loads them
-        from its cache) here, when the model loads, instead of on a live session's first frame."""
+        """One step of one session on the rest pose: numba compiles the step, every stage of it
+        (or loads it from its cache) here, when the model loads, instead of on a live session's
+        first frame."""
         rest = np.zeros((1, rep.NUM_JOINTS, 4))
         rest[..., 3] = 1.0
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), np.zeros((1, len(self._styles))))
-        if self._set.arm is not None:  # the raised arm's carry too, which a rest pose's hands never reach
-            carry, cols = self._set.arm
-            raised_arm.carried(carry, rest, np.full((1, len(cols)), 1.0 / len(cols)), np.ones((1, 2)))
-        waving_arm.compile_now(rep.NUM_JOINTS)  # and the waving arm's
-
-    def _raised_arms(self, state, new, rotations: np.ndarray, out_rot: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """The output rotations with the arms of raised hands carried: a calm one toward the
-        style's raised arm (`raised_arm.py`), a waving one by the input's swing (`waving_arm.py`,
-        whose running means in `new` are brought up to this frame)."""
-        offsets, swayed, risen = new["hand_prev"], new["hand_sway"], new["hand_rise"]
-        if self._set.arm is not None:
-            carry, arm_cols = self._set.arm
-            arm_w = w[:, arm_cols]
-            share = raised_arm.shares(offsets, swayed) * (arm_w.sum(-1) > 0.0)[:, None]
-            out_rot = raised_arm.carried(carry, out_rot, arm_w, share)
-        packed = self._set.packed
-        out_rot, new["wave_in_mean"], new["wave_out_mean"] = waving_arm.step(
-            rotations,
-            out_rot,
-            w,
-            state["started"],
-            state["hand_prev"],
-            offsets,
-            swayed,
-            risen,
-            state["wave_in_mean"],
-            state["wave_out_mean"],
-            packed.prior_mean,
-            packed.prior_radii,
-            swing=self.waving_arms,
-        )
-        return out_rot
 
     def styles(self) -> list[str]:
         return list(self._styles)
@@ -352,12 +354,19 @@ class LTIStyleModel(LTIStyles):
 
     def _set_styles(self, styles: list[str]) -> None:
         """Everything the step needs per style set, computed here once (the state keys, the
-        kernel's packed constants) and replaced whole, so a reader sees one consistent set."""
-        packed = kernels.pack_styles([self.translators[s] for s in styles])
-        x_slices = {f"x.{s}": slice(int(a), int(b)) for s, a, b in zip(styles, packed.x_off[:-1], packed.x_off[1:])}
-        fitted = [(k, c) for k, c in enumerate(self.translators[s].raised_arm for s in styles) if c is not None]
-        arm = (StyleCarry.stack([c for _, c in fitted]), np.array([k for k, _ in fitted])) if fitted else None
-        self._set = _StyleSet(styles, x_slices, frozenset(SHARED_KEYS) | set(x_slices), packed, arm)
+        kernel's records) and replaced whole, so a reader sees one consistent set."""
+        systems, footplant, ball = kernels.pack_styles([self.translators[s] for s in styles])
+        x_slices = {f"x.{s}": slice(int(a), int(b)) for s, a, b in zip(styles, systems.x_off[:-1], systems.x_off[1:])}
+        arm = raised_arm.settings([self.translators[s].raised_arm for s in styles])
+        h = self._hands
+        hands = kernels.Hands(
+            h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
+        )
+        constants = tuple(
+            tuple(r) for r in (systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params)
+        )
+        keys = frozenset(SHARED_KEYS) | set(x_slices)
+        self._set = _StyleSet(styles, x_slices, keys, systems, footplant, ball, arm, constants)
 
     @property
     def _styles(self) -> list[str]:
@@ -415,23 +424,49 @@ class LTIStyleModel(LTIStyles):
             **self.planter.init_state(batch),
         }
 
-    def _workspace(self, batch: int, packed: kernels.PackedStyles) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
-        """This thread's scratch for a step of `batch` sessions (the kernel's input state vectors
-        side by side, and `kernels.new_workspace`), reused while the style set stays and the batch
-        fits: at batch 256 fresh ~4 MB per step cost more in page faults than the step itself."""
+    def _workspace(self, batch: int) -> _Scratch:
+        """This thread's scratch for steps of `batch` sessions, reused while the style set and the
+        batch stay: at batch 256 fresh ~4 MB per step cost more in page faults than the step."""
         held = getattr(self._scratch, "held", None)
-        if held is None or held[0] is not packed or held[1] < batch:
-            held = (packed, batch, np.empty((batch, int(packed.x_off[-1]))), kernels.new_workspace(batch, packed))
+        if held is None or held.systems is not self._set.systems or held.batch != batch:
+            systems = self._set.systems
+            held = _Scratch(
+                systems,
+                batch,
+                np.empty(batch * int(systems.x_off[-1])),
+                tuple(kernels.new_work(batch, systems, len(self._set.arm.source))),
+                [(batch, *shape) for shape, _ in STATE_ARRAYS.values()],
+                [(batch, int(b - a)) for a, b in zip(systems.x_off[:-1], systems.x_off[1:])],
+                np.ascontiguousarray(systems.x_off[:-1], np.int64),
+                [((batch, *shape), dtype) for shape, dtype in STATE_ARRAYS.values()],
+            )
             self._scratch.held = held
-        return held[2][:batch], held[3]
+        return held
+
+    @staticmethod
+    def _side_by_side(xs: list[np.ndarray], w: np.ndarray, held: _Scratch) -> tuple[np.ndarray, np.ndarray]:
+        """The styles' LTI states side by side for the kernel, and where each sits (`kernels.Frame`).
+        A small batch takes them all (a few numpy calls); from `COMPACT_FROM` sessions on, only
+        the styles in use (with six styles at batch 256 the rest is ~2 MB copied for nothing)."""
+        B = len(w)
+        if B < COMPACT_FROM:
+            return np.concatenate(xs, axis=1), held.x_off
+        used = np.flatnonzero((w > 0.0).any(axis=0))
+        x_at, width = np.full(len(xs), -1, np.int64), 0
+        for s in used:
+            x_at[s], width = width, width + xs[s].shape[1]
+        x = held.x[: B * width].reshape(B, width)
+        for s in used:
+            x[:, x_at[s] : x_at[s] + xs[s].shape[1]] = xs[s]
+        return x, x_at
 
     def step_batch(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray):
-        """One frame for every session: one compiled pass (`kernels.lti_step`) over the sessions,
-        the styles' LTI state vectors laid side by side as the kernel expects."""
+        """One frame for every session: one compiled call (`kernels.step`), the styles' LTI
+        state vectors laid side by side as the kernel expects."""
         root = np.ascontiguousarray(frames.root, dtype=np.float64)
         rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
         w = np.ascontiguousarray(style_weights, dtype=np.float64)
-        styles, x_slices, _, packed, _ = self._set
+        styles, x_slices, *_, constants = self._set
         B = len(root)
         # the kernel trusts every shape (no bounds checks): anything else is a clear error here
         if root.shape != (B, 3) or rotations.shape != (B, rep.NUM_JOINTS, 4):
@@ -441,63 +476,38 @@ class LTIStyleModel(LTIStyles):
             )
         if w.shape != (B, len(styles)):
             raise ValueError(f"style_weights must be ({B}, {len(styles)}), got {w.shape}")
-        for key, shape in SHARED_SHAPES.items():
-            if state[key].shape != (B, *shape):
-                raise ValueError(f"state[{key!r}] must be {(B, *shape)}, got {state[key].shape}")
-        x, work = self._workspace(B, packed)
+        held = self._workspace(B)
+        before = [state[key] for key in STATE_ARRAYS]
+        if [a.shape for a in before] != held.shapes:
+            for key, a, shape in zip(STATE_ARRAYS, before, held.shapes):
+                if a.shape != shape:
+                    raise ValueError(f"state[{key!r}] must be {shape}, got {a.shape}")
         try:
-            np.concatenate([state[key] for key in x_slices], axis=1, out=x)
-        except ValueError:
-            raise ValueError(
-                "state is from another style set: bring it to this one with upgrade_state(state)"
-            ) from None
-        out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
-        new = {
-            "started": np.ones(B, bool),
-            "in_yaw": np.empty(B),
-            "in_ground": np.empty((B, 2)),
-            "out_yaw": np.empty(B),
-            "out_ground": np.empty((B, 2)),
-        }
+            xs = [state[key] for key in x_slices]
+        except KeyError:
+            xs = []
+        if [a.shape for a in xs] != held.x_shapes:
+            raise ValueError("state is from another style set: bring it to this one with upgrade_state(state)")
+        x, x_at = self._side_by_side(xs, w, held)
+        after: list[np.ndarray] = [np.empty(shape, dtype) for shape, dtype in held.allocations]
         new_x = np.empty_like(x)
-        kernels.lti_step(
-            root,
-            rotations,
-            w,
-            state["started"],
-            state["in_yaw"],
-            state["in_ground"],
-            state["out_yaw"],
-            state["out_ground"],
-            x,
-            out.root,
-            out.rotations,
-            out.contacts,
-            new["in_yaw"],
-            new["in_ground"],
-            new["out_yaw"],
-            new["out_ground"],
-            new_x,
-            *work,
-            self.blend,
-            self.keep_heading,
-            *packed,
+        n = len(SESSION_KEYS)
+        feet_before = tuple(before[n:])
+        feet_after = tuple(after[n:]) if self.footlock else feet_before
+        out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
+        kernels.step(
+            (root, rotations, w, x_at),
+            (*before[:5], x, *before[5:n]),
+            (*after[:5], new_x, *after[5:n]),
+            feet_before,
+            feet_after,
+            (out.root, out.rotations, out.contacts),
+            *constants,
+            (self.blend, self.keep_heading, self.raised_arms, self.waving_arms, self.footlock),
+            held.work,
         )
-        for key, cols in x_slices.items():
-            new[key] = new_x[:, cols]
-        # the input's hands: while one is raised, its arm is carried (`raised_arm.py`, `waving_arm.py`);
-        # the first frame of a session (or of a snapshot from before them) has no sway
-        offsets, new["hand_sway"], new["hand_rise"], raised = self._hands.step(
-            rotations, state["hand_prev"], state["hand_sway"], state["hand_rise"], state["started"], self.fps
-        )
-        new["hand_prev"] = offsets
-        new["wave_in_mean"], new["wave_out_mean"] = state["wave_in_mean"], state["wave_out_mean"]
-        if raised:  # a walk's or a run's hands never are
-            out = FrameBatch(out.root, self._raised_arms(state, new, rotations, out.rotations, w), out.contacts)
-        feet = {k: state[k] for k in FEET_STATE}
-        if self.footlock:
-            planted_root, planted_rot, contacts, feet = self.planter(
-                feet, out.root, out.rotations, w.sum(1) > 0, hints=out.contacts
-            )
-            out = FrameBatch(planted_root, planted_rot, contacts)
-        return out, {**new, **feet}
+        new = dict(zip(STATE_ARRAYS, after[:n] + list(feet_after)))
+        for key, at, x_old in zip(x_slices, x_at.tolist(), xs):
+            n_s = x_old.shape[1]
+            new[key] = new_x[:, at : at + n_s] if at >= 0 else np.zeros((B, n_s))
+        return out, new

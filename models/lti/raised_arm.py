@@ -1,47 +1,42 @@
-"""A raised hand that does not wave: its arm carried toward the real style's raise-ups.
+"""A raised hand that does not wave: its arm carried toward how the real style holds a raised arm.
 
-    .venv/bin/python -m models.lti.raised_arm      # fit -> models/weights/lti/raised_arm.npz (~20 s)
+    .venv/bin/python -m models.lti.raised_arm      # fit every style -> models/weights/lti/raised_arm.npz
 
-Why: the translators are linear maps identified over every content, walks most of all, and the
-raise-up's arm lies far from where they were fitted. The translated hand does not rise as the
-style's does (validation one-hand raise-ups, highest point above the shoulder: feminine -13..-6 cm,
-never at the shoulder, against the real feminine takes' -4..+1; youthful 20-40 against 42-45),
-and the content judge read such raise-ups as waves (its p(raise-up) follows the height; model card).
+Why: the translators are linear maps identified over every content, walks most of all, and an
+arm raised above the shoulder lies far from where they were fitted: the translated hand does not
+rise as the style's does, and the content judge then reads a raise-up as a wave (model card).
 
 What: per output style, a `StyleCarry` (`models.motion.style_carry`) from the rotations the
-translator makes of TRAIN neutral raise-ups to the style's real TRAIN raise-ups, on the frames with
-that hand raised and not waving (`models.motion.hands.calm_frames`), fitted for each side apart
-(each arm's joints, Shoulder to Hand, from its own side's fit; the other joints are never used),
-with its gains capped at 1 (`StyleCarry.damping`: with the full gains the carry doubled the raised
-hand's sway toward youthful, 50-75 cm/s against the real 25-32). While the input's hand is raised
-and not waving (raise share times one minus the wave share: what `waving_arm.py` leaves), that
-arm is mixed toward the carried one by the share, after the step (the foot planter moves only the
-legs and root). The translator of a style without a fit (an uploaded one) is left as it was.
-
-Until session 28 the share used the still share (a sway of 25..45 cm/s, Style-ERD's) and the fit
-every raised frame; the complement of the waving arm's share, and the fit on the frames where it
-applies, took validation content from 262 to 265 of 276 inputs (model card).
+translator makes of the neutral TRAIN clips to the style's real TRAIN clips, both on the frames
+where a hand is raised and calm (`models.motion.hands.calm_frames`: the hand's height over its
+shoulder and its sway, measured on the motion; no content label picks the clips), fitted for
+each side apart (each arm's joints, Shoulder to Hand, from its own side's fit), with its gains
+capped at 1 (`StyleCarry.damping`: with the full gains the carry magnified the raised hand's
+sway). While the input's hand is raised and calm (raise share times one minus the wave share:
+what `waving_arm.py` leaves), that arm is mixed toward the carried one by the share, inside the
+compiled step (`kernels.carry_raised_arms`). A style without a fit is left as the translator made
+it; an uploaded style gets the same fit from its clip (`fit_upload`), where the
+clip shows a raised, calm hand.
 """
 
 from __future__ import annotations
 
-import functools
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from ..motion.bn_skeleton import BN_JOINTS, HIPS, ROOT
+from ..motion.bn_skeleton import BN_JOINTS, HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
-from ..motion.hands import calm_frames, raise_share, wave_share
+from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, raise_share, wave_share
 from ..motion.rotation_ball import comparable
-from ..motion.style_carry import StyleCarry, real_train_frames
+from ..motion.style_carry import StyleCarry
+from .kernels import RaisedArm
 
 FILE = "raised_arm.npz"
 ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")
-FIT_CLIPS_PER_CONTENT = 4
 FIT_FRAMES = 240
-RAISE_UPS = ("raise-up-both-hands", "raise-up-left-hand", "raise-up-right-hand")
+MIN_CALM_FRAMES = 15  # a side whose real clips hold fewer raised, calm frames is not fitted
 _ARM = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in ARM_JOINTS]) for side in "LR"]
 
 
@@ -71,6 +66,37 @@ def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share
     return out
 
 
+def settings(carries: list[StyleCarry | None]) -> RaisedArm:
+    """The record the compiled step takes (`kernels.RaisedArm`) for the styles' carries, in style
+    order (None: a style without one)."""
+    fitted = [c for c in carries if c is not None]
+    both = StyleCarry.stack(fitted) if fitted else StyleCarry(*_no_carry())
+    rows, k = [], 0
+    for c in carries:
+        rows.append(k if c is not None else -1)
+        k += c is not None
+    source, mean, lin, radius = (np.ascontiguousarray(a, np.float64) for a in both.arrays)
+    return RaisedArm(
+        source,
+        mean,
+        lin,
+        radius,
+        np.array(rows, np.int64),
+        np.ascontiguousarray(_ARM, np.int64),
+        np.array(RAISE_RAMP_CM, np.float64),
+        np.array(WAVE_RAMP_CM_S, np.float64),
+    )
+
+
+def _no_carry() -> tuple[np.ndarray, ...]:
+    return (
+        np.zeros((0, NUM_JOINTS, 4)),
+        np.zeros((0, NUM_JOINTS, 4)),
+        np.zeros((0, NUM_JOINTS, 3, 3)),
+        np.zeros((0, NUM_JOINTS)),
+    )
+
+
 def load(folder: Path) -> dict[str, StyleCarry]:
     """Per style, its one-style carry from `folder`/`FILE` (none when the file is missing)."""
     path = Path(folder) / FILE
@@ -89,27 +115,71 @@ def save(carries: dict[str, StyleCarry], folder: Path) -> Path:
     return path
 
 
-def fit(model) -> dict[str, StyleCarry]:
-    """Per style of the `LTIStyleModel` (its raised arms off): the carry described above."""
-    from ..data import load_motions
-    from ..eval.run import pick_clips, stylise
+def fit(model) -> dict[str, StyleCarry | None]:
+    """Per style of the `LTIStyleModel` (its raised arms off): the carry described above, from
+    all the style's TRAIN clips."""
+    from ..data import build_index, load_motions, select
+    from ..eval.run import DATASET, INPUT_STYLE
 
-    inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(pick_clips(FIT_CLIPS_PER_CONTENT, RAISE_UPS, split="train"))]
-    styles = model.styles()
-    outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
+    train = select(build_index([DATASET]), split="train")
+    inputs = [m.slice(0, FIT_FRAMES) for m in load_motions([c for c in train if c.style == INPUT_STYLE])]
+    real = {s: load_motions([c for c in train if c.style == s]) for s in model.styles()}
+    return fit_styles(model, real, inputs)
+
+
+def fit_styles(model, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
+    """Per style of `model` (its raised arms off) with real clips in `real` ({style: [Motion]}):
+    the carry from what the translator makes of the neutral `inputs` (BN `Motion`s) to the real
+    clips, each side on its calm raised frames. The same for a built-in style (its TRAIN clips)
+    and an uploaded one (its clip): a side whose clips hold fewer than `MIN_CALM_FRAMES` such
+    frames keeps the translator's arm, and a style with neither side gets None."""
+    from ..eval.run import stylise
+
+    styles = list(real)
+    rows = [model.styles().index(s) for s in styles]
+    outs = stylise(model, [m for _ in styles for m in inputs], [k for k in rows for _ in inputs])
     n = len(inputs)
     made = [comparable(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]])) for k in range(len(styles))]
     clamped = (HIPS,) + tuple(BN_JOINTS.index(j) for j in LEG_JOINTS)
-    sides = []
-    for side in (0, 1):
-        frames = functools.partial(calm_frames, side=side)
-        chosen = np.concatenate([frames(m) for m in inputs])
-        real = real_train_frames(styles, RAISE_UPS, frames)
-        sides.append(StyleCarry.fit([q[chosen] for q in made], real, (ROOT,), clamp_only=clamped))
-    every = list(range(len(styles)))
-    both = sides[0].with_maps_of(sides[1], every, list(_ARM[1]))
-    damped = StyleCarry(both.source, both.mean, np.ascontiguousarray(both.damping), both.radius)
-    return {s: StyleCarry(*(a[k : k + 1] for a in damped.arrays)) for k, s in enumerate(styles)}
+    chosen = [np.concatenate([calm_frames(m, side) for m in inputs]) for side in (0, 1)]
+    carries: dict[str, StyleCarry | None] = {}
+    for k, style in enumerate(styles):
+        sides, fitted = [], []
+        for side in (0, 1):
+            target = _real_frames(real[style], side)
+            fitted.append(len(target) >= MIN_CALM_FRAMES)
+            kept = (ROOT,) if fitted[-1] else (ROOT, *_ARM[side])  # an unfitted arm is left as it is
+            target = target if fitted[-1] else made[k][:1]
+            sides.append(StyleCarry.fit([made[k][chosen[side]]], [target], kept, clamp_only=clamped))
+        if not any(fitted):
+            carries[style] = None
+            continue
+        both = sides[0].with_maps_of(sides[1], [0], list(_ARM[1]))
+        carries[style] = StyleCarry(both.source, both.mean, np.ascontiguousarray(both.damping), both.radius)
+    return carries
+
+
+def fit_upload(translator, clip, ref: np.ndarray) -> StyleCarry | None:
+    """The carry of an uploaded style (`styles.LTIStyles.fine_tune_style`): `fit_styles` with the
+    neutral TRAIN clips fine-tuning already holds (`finetune.neutral_bank`) and the uploaded clip
+    as the style's real clips. None when the clip holds no raised, calm hand."""
+    from .finetune import neutral_bank
+    from .model import LTIStyleModel
+
+    bank = neutral_bank(np.ascontiguousarray(ref, dtype=np.float64).tobytes())
+    inputs = [m.slice(0, FIT_FRAMES) for m in bank.motions.values()]
+    model = LTIStyleModel({translator.style: translator}, raised_arms=False)
+    return fit_styles(model, {translator.style: [clip]}, inputs)[translator.style]
+
+
+def _real_frames(motions: list, side: int) -> np.ndarray:
+    """(N, J, 4) the `comparable` local rotations of the frames of `motions` with the `side`
+    hand raised and calm (joint_Root at the identity, as `style_carry.real_train_frames`)."""
+    if not motions:
+        return np.zeros((0, NUM_JOINTS, 4))
+    q = np.concatenate([m.rotations[calm_frames(m, side)] for m in motions]).astype(np.float64)
+    q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)
+    return comparable(q)
 
 
 def main(argv: list[str]) -> None:
@@ -117,7 +187,8 @@ def main(argv: list[str]) -> None:
 
     folder = Path(argv[0]) if argv else WEIGHTS_DIR
     model = LTIStyleModel(weights_dir=folder, raised_arms=False)
-    print(save(fit(model), folder))
+    carries = fit(model)
+    print(save({s: c for s, c in carries.items() if c is not None}, folder))
 
 
 if __name__ == "__main__":

@@ -54,15 +54,19 @@ class LTIStyles(UploadedStyles["StyleTranslator"]):
     def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[StyleTranslator]:
         """Identify a translator for `clip` (`steps` does not apply: identification is closed-form)."""
         from .finetune import fine_tune
+        from .raised_arm import fit_upload
 
         ref = next(iter(self.translators.values())).ref  # the reference rotations every translator shares
         res = fine_tune(clip, name, ref, progress)
+        progress(0.9, "fitting the raised arm")  # as for a built-in style, from the style's clip
+        res.translator.raised_arm = fit_upload(res.translator, clip, ref)
         summary = {
             "seconds": round(res.seconds, 2),
             "neutral_clips": res.neutral_clips,
             "train_frames": res.train_frames,
             "state_dim": int(res.translator.n),
             "heldout": res.heldout,
+            "raised_arm": res.translator.raised_arm is not None,
         }
         progress(0.97, "installing the style")
         return FineTuned(res.translator, summary, "fine-tuned")

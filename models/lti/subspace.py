@@ -56,15 +56,6 @@ class StateSpace:
     def simulate(self, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
         return simulate(self.A, self.B, self.C, self.D, u, x0)
 
-    def markov(self, k: int) -> np.ndarray:
-        """Impulse response D, CB, CAB, ... up to k terms: (k, p, m)."""
-        out = [self.D]
-        x = self.B
-        for _ in range(k - 1):
-            out.append(self.C @ x)
-            x = self.A @ x
-        return np.stack(out)
-
 
 def simulate(A, B, C, D, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
     n = A.shape[0]

@@ -36,13 +36,6 @@ class WarpResult:
     offset: np.ndarray  # (T, D)
     objective: list[float] = field(default_factory=list)  # E after every stage (time, space, time, ...)
 
-    @property
-    def log_rate(self) -> np.ndarray:
-        """log of the differential time warp (output frames per input frame); frame 0 copies frame 1."""
-        d = np.diff(self.warp)
-        d = np.concatenate([d[:1], d]) if len(d) else np.zeros(1)
-        return np.log(np.maximum(d, 1e-6))
-
 
 def upsample(y: np.ndarray, s: int) -> np.ndarray:
     """Linear interpolation at times k/s, k = 0 .. s*(U-1)."""

@@ -5,7 +5,7 @@ walks most of all, and fitted as if their inputs were noisy (`train.py`, `contex
 shrinks their gains; a wave's arm lies far from where they were fitted. On the validation waves
 the translated hand swung 4-9 cm from side to side toward elderly where the input's swung 17-35 cm
 and the real elderly waves' 15-26 cm (a third of the real swing), and the content judge read
-waves toward masculine as raise-ups (model card, session 28).
+waves toward masculine as raise-ups (model card).
 
 What: each arm's UpperArm and LowerArm rotation is read as a running mean (an exponential average
 over `TRACK_FRAMES`, started afresh each time the hand comes up onto its raise ramp) and the
@@ -26,18 +26,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion.bn_skeleton import BN_JOINTS
-from ..motion.hands import (
-    LEVEL_RAMP_CM_S,
-    RAISE_RAMP_CM,
-    WAVE_RAMP_CM_S,
-    clip_rise,
-    level_share,
-    raise_share,
-    wave_share,
-)
-from ..motion.rotation_ball import clamp_rotations
-from ..motion.rotations import quat_inv, quat_mul
-from ..motion.style_carry import quat_exp, quat_log
+from ..motion.hands import LEVEL_RAMP_CM_S, RAISE_RAMP_CM, WAVE_RAMP_CM_S, clip_rise
+from .waving_kernels import WavingArm, swing_batch
 
 JOINTS = ("UpperArm", "LowerArm")
 TRACK_FRAMES = 15.0  # the running mean's exponential average: each frame moves it 1 / TRACK_FRAMES of the way
@@ -46,81 +36,16 @@ ARM = np.array([[BN_JOINTS.index(f"{j}_{side}") for j in JOINTS] for side in "LR
 MEAN_SHAPE = (2, len(JOINTS), 4)  # a session's running mean of each side's joints
 
 
-def shares(offsets: np.ndarray, swayed: np.ndarray, risen: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(B, 2) how far each arm takes the input's swing: its hand's raise share times its wave
-    share times its level share, from the input's `hand_offsets` (B, 2, 3), sway and rise (B, 2),
-    times the style weights' total (B, S) up to 1 (at no style the output is the input's, swing
-    and all)."""
-    total = np.minimum(np.sum(weights, axis=-1), 1.0)[:, None]
-    return raise_share(np.asarray(offsets)[..., 1]) * wave_share(swayed) * level_share(risen) * total
-
-
-def _aligned(q: np.ndarray, to: np.ndarray) -> np.ndarray:
-    """q with each quaternion's sign flipped where it lies on the far side of `to`'s."""
-    return np.where(np.sum(q * to, axis=-1, keepdims=True) < 0.0, -q, q)
-
-
-def tracked(mean: np.ndarray, q: np.ndarray, fresh: np.ndarray) -> np.ndarray:
-    """(B, 2, J, 4) the running mean after this frame's rotations q (B, 2, J, 4): a normalised
-    step of 1 / `TRACK_FRAMES` toward q; the sides where `fresh` (B, 2) start at q."""
-    step = mean + (_aligned(q, mean) - mean) / TRACK_FRAMES
-    out = np.where(fresh[..., None, None], q, step)
-    return out / np.linalg.norm(out, axis=-1, keepdims=True)
-
-
-def fresh_sides(started: np.ndarray, prev_offsets: np.ndarray, mean: np.ndarray) -> np.ndarray:
-    """(B, 2) the sides whose running means start again this frame: a session's first frame, a
-    hand that was below its raise ramp the frame before, and a mean never set (all zeros: a
-    snapshot from before the waving arm)."""
-    below = np.asarray(prev_offsets)[..., 1] <= RAISE_RAMP_CM[0]
-    return ~np.asarray(started, bool)[:, None] | below | ~np.any(mean != 0.0, axis=(-2, -1))
-
-
-def held(
-    rotations: np.ndarray, joints: np.ndarray, weights: np.ndarray, means: np.ndarray, radii: np.ndarray
-) -> np.ndarray:
-    """(B, len(joints), 4) `joints` of `rotations` (B, J, 4) held inside each style's rotation
-    ball (means (S, J, 4), radii (S, 2, J)) and blended by the style weights (B, S, every row's
-    sum > 0): what the translator's own step does with every joint (`kernels.lti_step`)."""
-    share = weights / np.sum(weights, axis=-1, keepdims=True)
-    acc = np.zeros((len(rotations), len(joints), 4))
-    for s in np.flatnonzero(np.any(weights > 0.0, axis=0)):
-        clamped = clamp_rotations(rotations, means[s], radii[s])[:, joints]
-        acc += share[:, s, None, None] * _aligned(clamped, rotations[:, joints])
-    return acc / np.linalg.norm(acc, axis=-1, keepdims=True)
-
-
-def swung(
-    out_rot: np.ndarray,
-    in_rot: np.ndarray,
-    out_mean: np.ndarray,
-    in_mean: np.ndarray,
-    share: np.ndarray,
-    weights: np.ndarray,
-    means: np.ndarray,
-    radii: np.ndarray,
-) -> np.ndarray:
-    """(B, J, 4) the output rotations `out_rot` with each side's arm turned from the output's
-    running mean `out_mean` by `GAIN` times the input's (`in_rot`) rotation from its running
-    mean `in_mean` (both (B, 2, 2, 4), this frame's), mixed in by that side's `share` (B, 2,
-    `shares`) and held inside the styles' balls (`held`). A side without a share is left as it
-    was. The numpy reference of `step`."""
-    out = out_rot
-    for side in (0, 1):
-        rows = np.flatnonzero(share[:, side] > 0.0)
-        if rows.size == 0:
-            continue
-        if out is out_rot:
-            out = np.array(out_rot, np.float64, copy=True)
-        joints = ARM[side]
-        a = out[np.ix_(rows, joints)]
-        swing = quat_log(quat_mul(quat_inv(in_mean[rows, side]), in_rot[np.ix_(rows, joints)]))
-        target = _aligned(quat_mul(out_mean[rows, side], quat_exp(GAIN * swing)), a)
-        s = share[rows, side][:, None, None]
-        mixed = (1.0 - s) * a + s * target
-        out[np.ix_(rows, joints)] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
-        out[np.ix_(rows, joints)] = held(out[rows], joints, weights[rows], means, radii)
-    return out
+def settings() -> WavingArm:
+    """The record the compiled step takes (`waving_kernels.WavingArm`)."""
+    return WavingArm(
+        ARM,
+        np.array(RAISE_RAMP_CM, np.float64),
+        np.array(WAVE_RAMP_CM_S, np.float64),
+        np.array(LEVEL_RAMP_CM_S, np.float64),
+        TRACK_FRAMES,
+        GAIN,
+    )
 
 
 def step(
@@ -138,19 +63,16 @@ def step(
     radii: np.ndarray,
     swing: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One frame for every row, compiled (`waving_kernels.waving_step`): (the output rotations
-    with the waving arms swung (a copy where any is; `rot_out` itself where `swing` is off), the
-    input's and the output's running means after this frame), from the input's and the output's
-    rotations (B, J, 4), the style weights (B, S), whether each row has started, the input's
-    `hand_offsets` before and now (B, 2, 3), its sway and rise (B, 2), the running means before (B, 2, 2,
-    4) and the styles' balls (means (S, J, 4), radii (S, 2, J)). Equal to `fresh_sides`,
-    `tracked`, `shares` and `swung` to round-off (tests)."""
-    from .waving_kernels import waving_step
-
+    """One frame for every row (`waving_kernels.swing_arms`): (the output rotations with the
+    waving arms swung, a copy; the input's and the output's running means after this frame), from
+    the input's and the output's rotations (B, J, 4), the style weights (B, S), whether each row
+    has started, the input's `hand_offsets` before and now (B, 2, 3), its sway and rise (B, 2),
+    the running means before (B, 2, 2, 4) and the styles' balls (means (S, J, 4), radii (S, 2, J))."""
     f64 = lambda a: np.ascontiguousarray(a, np.float64)  # noqa: E731
-    out = np.array(rot_out, np.float64, copy=True) if swing else f64(rot_out)
+    out = np.array(rot_out, np.float64, copy=True)
     new_in, new_out = np.empty((len(out), *MEAN_SHAPE)), np.empty((len(out), *MEAN_SHAPE))
-    waving_step(
+    swing_batch(
+        tuple(settings()),
         f64(rot_in),
         out,
         f64(weights),
@@ -163,27 +85,11 @@ def step(
         f64(out_mean),
         f64(means),
         f64(radii),
-        ARM,
-        np.array(RAISE_RAMP_CM),
-        np.array(WAVE_RAMP_CM_S),
-        np.array(LEVEL_RAMP_CM_S),
-        TRACK_FRAMES,
-        GAIN,
         swing,
         new_in,
         new_out,
     )
     return out, new_in, new_out
-
-
-def compile_now(joints: int) -> None:
-    """Compile `step` (or load it from numba's cache) on one waving row of a `joints`-joint rig:
-    a model's load does, since a rest pose's hands never reach it."""
-    rot = np.zeros((1, joints, 4))
-    rot[..., 3] = 1.0
-    means, up = np.zeros((1, *MEAN_SHAPE)), np.full((1, 2, 3), 10.0)
-    swayed, risen, radii = np.full((1, 2), 100.0), np.zeros((1, 2)), np.full((1, 2, joints), np.inf)
-    step(rot, rot, np.ones((1, 1)), np.ones(1, bool), up, up, swayed, risen, means, means, rot, radii)
 
 
 def clip(

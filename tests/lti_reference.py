@@ -1,0 +1,73 @@
+"""A recorded reference of LTI's streaming step: a few validation clips streamed as a batch of
+sessions (single styles, a mix, an intensity), with every stage on and the committed weights.
+`tests/test_lti_step.py` checks that the step still gives these outputs to round-off, so a change
+to how the step is computed (kernels, fusing, records) cannot change what it computes unnoticed.
+The fixture was written by the step as it was before it became one compiled call (commit
+2eb1966, separate kernels per stage); after refitting weights, rewrite it with that code.
+
+    .venv/bin/python -m tests.lti_reference      # rewrite tests/fixtures/lti_step_reference.npz
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+FIXTURE = Path(__file__).parent / "fixtures" / "lti_step_reference.npz"
+CLIPS = (("walk", 0), ("wave-both-hands", 0), ("raise-up-left-hand", 0), ("run", 0))
+FRAMES = 120
+EVERY = 6  # outputs kept every EVERY frames (the state carries every frame into them)
+# per session: {style: weight}
+MIXES = ({"elderly": 1.0}, {"youthful": 1.0}, {"feminine": 0.6, "active": 0.4}, {"exhausted": 0.7})
+
+
+def inputs(index) -> tuple[np.ndarray, np.ndarray]:
+    """(T, B, 3) roots and (T, B, 22, 4) rotations of the reference clips, cut to `FRAMES`
+    (a shorter clip holds its last frame)."""
+    from models.data import load_motions, select
+    from models.motion.bn_skeleton import HIPS
+
+    clips = [select(index, dataset="bandai-namco-2", split="val", style="normal", content=c)[k] for c, k in CLIPS]
+    motions = [m.slice(0, FRAMES) for m in load_motions(clips)]
+    held = lambda a: np.concatenate([a, np.repeat(a[-1:], FRAMES - len(a), 0)])  # noqa: E731
+    root = np.stack([held(m.translations[:, HIPS]) for m in motions], axis=1).astype(np.float64)
+    rot = np.stack([held(m.rotations) for m in motions], axis=1).astype(np.float64)
+    return root, rot
+
+
+def weights(styles: list[str]) -> np.ndarray:
+    w = np.zeros((len(MIXES), len(styles)))
+    for b, mix in enumerate(MIXES):
+        for s, v in mix.items():
+            w[b, styles.index(s)] = v
+    return w
+
+
+def stream(model, root: np.ndarray, rot: np.ndarray) -> dict[str, np.ndarray]:
+    """Every `EVERY`-th output frame of the sessions streamed together."""
+    from models.interface import FrameBatch
+
+    w = weights(model.styles())
+    state = model.init_state(root.shape[1])
+    out: dict[str, list] = {"root": [], "rotations": [], "contacts": []}
+    for t in range(len(root)):
+        frame, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
+        if t % EVERY == 0:
+            out["root"].append(frame.root)
+            out["rotations"].append(frame.rotations)
+            out["contacts"].append(frame.contacts)
+    return {k: np.stack(v) for k, v in out.items()}
+
+
+def main() -> None:
+    from models.data import build_index
+    from models.lti import load
+
+    root, rot = inputs(build_index(["bandai-namco-2"]))
+    np.savez_compressed(FIXTURE, **stream(load(), root, rot))
+    print(FIXTURE, FIXTURE.stat().st_size, "bytes")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,54 @@
+"""LTI's streaming step computes what it computed before it was fused into one compiled call:
+the recorded reference (`tests/lti_reference.py`) to round-off, every stage on; and the
+reference exercises every stage (switching one off changes it)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.lti import WEIGHTS_DIR, LTIStyleModel, load
+
+from .lti_reference import FIXTURE, inputs, stream
+
+
+@pytest.fixture(scope="module")
+def reference(index):
+    with np.load(FIXTURE) as z:
+        want = {k: z[k] for k in z}
+    return inputs(index), want
+
+
+def test_the_step_equals_the_recorded_reference(reference):
+    (root, rot), want = reference
+    got = stream(load(), root, rot)
+    np.testing.assert_allclose(got["root"], want["root"], atol=1e-8)
+    np.testing.assert_allclose(got["rotations"], want["rotations"], atol=1e-9)
+    assert np.array_equal(got["contacts"], want["contacts"])
+
+
+@pytest.mark.parametrize("stage", ["raised_arms", "waving_arms", "footlock"])
+def test_every_stage_shows_in_the_reference(reference, stage):
+    (root, rot), want = reference
+    got = stream(LTIStyleModel(weights_dir=WEIGHTS_DIR, **{stage: False}), root, rot)
+    assert np.abs(got["rotations"] - want["rotations"]).max() > 1e-3
+
+
+def test_a_large_batch_gives_the_same(reference, monkeypatch):
+    """From `COMPACT_FROM` sessions on, the step sees only the LTI states of the styles in use,
+    and a style's sessions are stepped `CHUNK` at a time: the reference's sessions 36 times over
+    (144 sessions, 36 on each style) give the reference 36 times."""
+    import models.lti.model as lti_model
+    from models.lti.kernels import CHUNK
+
+    from . import lti_reference
+
+    (root, rot), want = reference
+    copies = 36
+    assert 4 * copies >= lti_model.COMPACT_FROM and copies > CHUNK
+    monkeypatch.setattr(lti_reference, "MIXES", lti_reference.MIXES * copies)
+    got = stream(load(), np.tile(root, (1, copies, 1)), np.tile(rot, (1, copies, 1, 1)))
+    for k in range(copies):
+        rows = slice(4 * k, 4 * k + 4)
+        np.testing.assert_allclose(got["rotations"][:, rows], want["rotations"], atol=1e-9)
+        np.testing.assert_allclose(got["root"][:, rows], want["root"], atol=1e-8)
