@@ -20,6 +20,7 @@ from service.sessions import Snapshot
 from .clips import frames_json
 from .cluster import redis_server, require
 from .live_server import UPLOAD_TIMEOUT_S, live_server, offline, ws_url
+from .test_api_docs import validator
 from .waiting import wait_until
 
 FRAMES = 40
@@ -78,6 +79,7 @@ def test_a_core_session_streams_the_core_alone(server, full, cores, walk, name):
         started = start(ws, model=name, pipeline="core", style=style)
         assert (started["type"], started["model"], started["pipeline"]) == ("started", name, "core"), started
         assert started["styles"] == cores[name].styles()
+        validator("Started").validate(started)  # as service/asyncapi.yaml documents it
         got_root, got_rot = stream(ws, root, rot)
     want_root, want_rot = offline(cores[name], {style: 1.0}, root, rot)
     np.testing.assert_allclose(got_root, want_root, atol=1e-5)
