@@ -208,3 +208,13 @@ def test_a_snapshot_saved_before_pipelines_resumes_the_full_pipeline():
     assert Snapshot.from_json(json.dumps(fields)).pipeline == "full"
     core = Snapshot(**fields, pipeline="core")
     assert Snapshot.from_bytes(core.to_bytes()).pipeline == "core"
+
+
+def test_the_sdk_opens_a_core_session(server, cores, walk):
+    base, _ = server
+    root, rot = walk
+    style = cores["erd"].styles()[0]
+    with Client(base, timeout=30) as client, client.session(model="erd", style=style, pipeline="core") as s:
+        assert s.info["pipeline"] == "core"
+        got = np.array([s.stylise(root[t], rot[t]).rotations for t in range(len(root))])
+    np.testing.assert_allclose(got, offline(cores["erd"], {style: 1.0}, root, rot)[1], atol=1e-5)
