@@ -180,7 +180,9 @@ def test_a_resumed_core_session_stays_on_the_core(store_server, cores, walk):
     wait_until(lambda: not runtime.sessions, "the dropped session to be stored")
     with connect(ws_url(base)) as ws:  # the stored pipeline wins over the start's (default) one
         resumed = start(ws, model="lti", resume_token=token)
-        assert (resumed["type"], resumed["pipeline"], resumed["last_seq"]) == ("started", "core", half - 1), resumed
+        assert (resumed["type"], resumed.get("pipeline"), resumed.get("last_seq")) == ("started", "core", half - 1), (
+            resumed
+        )
         second = stream(ws, root[half:], rot[half:], seq0=half)
     want_root, want_rot = offline(cores["lti"], {style: 1.0}, root, rot)
     np.testing.assert_allclose(np.concatenate([first[0], second[0]]), want_root, atol=1e-5)
