@@ -3,7 +3,7 @@
 `create_app` builds the app from its routers (`routes_*.py`, `viewer.py`) and, in its lifespan,
 the server's parts in the order they depend on each other: the models (each with a style set of
 its own) and, unless `core_pipelines` is off, each one's published core alone
-(`service.pipelines`; loaded at start: ~0.2 s and ~33 MB beside the shipped models, too little
+(`service.pipelines`; loaded at start: ~0.3 s and ~35 MB beside the shipped models, too little
 to defer), the model-step worker thread, the style store (which loads the persisted uploaded
 styles into the models), and the runtime that streams them.
 """
