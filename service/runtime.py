@@ -207,10 +207,7 @@ class Runtime:
             ) from None
         if snap is None or snap.owner != who.tenant:
             raise P.ProtocolError("unknown_resume_token", "resume token unknown or expired")
-        if pipelines.key(snap.model, snap.pipeline) not in self.pipelines:
-            raise P.ProtocolError(
-                "unknown_model", f"this replica does not serve model {snap.model!r} with pipeline {snap.pipeline!r}"
-            )
+        self.pipeline(snap.model, snap.pipeline)  # served here, or unknown_model / pipeline_unavailable
         await self.styles.ensure_known(snap.model, [*snap.weights, *snap.target])
         # checked after the last await, with nothing awaited until it is claimed: two resumes of
         # one token at once both passed a check made before an await, and both opened
