@@ -92,6 +92,8 @@ def test_models_say_which_pipelines_they_offer(server, full, walk):
     base, _ = server
     listed = {m["name"]: m["pipelines"] for m in httpx.get(f"{base}/v1/models").json()}
     assert listed == {name: ["full", "core"] for name in full}
+    with Client(base) as client:
+        assert {m.name: m.pipelines for m in client.models()} == listed
     with live_server({"lti": full["lti"]}) as (alone, _):  # no cores given: the full pipeline only
         assert httpx.get(f"{alone}/v1/models").json()[0]["pipelines"] == ["full"]
         with connect(ws_url(alone)) as ws:
