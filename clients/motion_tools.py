@@ -77,7 +77,12 @@ def _stylise(args: argparse.Namespace) -> int:
     period = 1.0 / (args.rate or motion.fps) if args.realtime else 0.0
     dropped = 0
     with client.session(
-        model=args.model, style=args.style, bvh_header=header, fps=motion.fps, intensity=args.intensity
+        model=args.model,
+        style=args.style,
+        bvh_header=header,
+        fps=motion.fps,
+        intensity=args.intensity,
+        pipeline=args.pipeline,
     ) as session:
         # the joint whose translation frames carry: the server says (`rig.root_joint`; BN animates
         # Hips under a static root, other rigs their hips or their root)
@@ -118,6 +123,12 @@ def add_motion_commands(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default="lti")
     p.add_argument("--style", required=True)
     p.add_argument("--intensity", type=float, default=1.0)
+    p.add_argument(
+        "--pipeline",
+        choices=["full", "core"],
+        default="full",
+        help="full: the shipped pipeline (default); core: the method's published core alone",
+    )
     p.add_argument("-o", "--output", type=Path, required=True, help="stylised BVH (same hierarchy as the input)")
     p.add_argument("--url", default="http://127.0.0.1:8000", help="server (default http://127.0.0.1:8000)")
     p.add_argument("--token", help="API token, if the server requires one")

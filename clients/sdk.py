@@ -347,6 +347,7 @@ class _ClientBase:
         reconnect_timeout: Default,
         max_in_flight: int,
         on_reconnect: Callable[[Reconnect], None] | None,
+        pipeline: str,
     ) -> dict[str, Any]:
         return {
             "base_url": self.base_url,
@@ -358,6 +359,7 @@ class _ClientBase:
             "bvh_header": bvh_header,
             "fps": fps,
             "intensity": intensity,
+            "pipeline": pipeline,
             "timeout": self.timeout if timeout is ... else timeout,
             "reconnect_timeout": self.reconnect_timeout if reconnect_timeout is ... else reconnect_timeout,
             "max_in_flight": max_in_flight,
@@ -451,6 +453,7 @@ class Client(_ClientBase):
         reconnect_timeout: Default = ...,
         max_in_flight: int = MAX_IN_FLIGHT,
         on_reconnect: Callable[[Reconnect], None] | None = None,
+        pipeline: str = "full",
     ) -> Session:
         """Open a streaming session (timeouts default to the client's)."""
         session = Session(
@@ -466,6 +469,7 @@ class Client(_ClientBase):
                 reconnect_timeout,
                 max_in_flight,
                 on_reconnect,
+                pipeline,
             )
         )
         self._sessions.add(session)
@@ -561,6 +565,7 @@ class AsyncClient(_ClientBase):
         reconnect_timeout: Default = ...,
         max_in_flight: int = MAX_IN_FLIGHT,
         on_reconnect: Callable[[Reconnect], None] | None = None,
+        pipeline: str = "full",
     ) -> AsyncSession:
         """A session to open with `async with` or `await session.open()`."""
         session = AsyncSession(
@@ -576,6 +581,7 @@ class AsyncClient(_ClientBase):
                 reconnect_timeout,
                 max_in_flight,
                 on_reconnect,
+                pipeline,
             )
         )
         self._sessions.add(session)

@@ -61,6 +61,7 @@ class Character:
     bvh_header: str | None = None
     joints: list[str] | None = None
     resume_token: str | None = None  # continue this character where it left off (`Crowd.resume_tokens`)
+    pipeline: str = "full"  # "core": the method's published core alone (docs/protocol.md)
 
     @classmethod
     def resuming(cls, id: int, model: str, resume_token: str) -> Character:
@@ -70,6 +71,8 @@ class Character:
 
     def message(self) -> dict[str, Any]:
         out: dict[str, Any] = {"id": self.id, "model": self.model, "intensity": self.intensity}
+        if self.pipeline != "full":
+            out["pipeline"] = self.pipeline
         if self.resume_token is not None:
             out["resume_token"] = self.resume_token
         out.update({"mix": self.mix} if self.mix is not None else {"style": self.style})

@@ -148,6 +148,9 @@ class ModelInfo:
     styles: list[str]
     joints: list[str]
     controllable: bool = False  # sessions may send `control` ticks (Session.control) instead of frames
+    pipelines: list[str] = field(
+        default_factory=lambda: ["full"]
+    )  # what a session may ask for in `pipeline` ("full", "core")
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ class StartSettings:
     bvh_header: str | None = None
     fps: float = 30.0
     intensity: float = 1.0
+    pipeline: str = "full"  # "core": the method's published core alone (docs/protocol.md, Pipelines)
 
     def restyled(self, style: str | None, mix: dict[str, float] | None, intensity: float) -> StartSettings:
         return replace(self, style=style, mix=mix, intensity=intensity)
@@ -46,6 +47,8 @@ def start_message(settings: StartSettings, resume_token: str | None) -> str:
         "encoding": "binary",
         "intensity": settings.intensity,
     }
+    if settings.pipeline != "full":
+        msg["pipeline"] = settings.pipeline
     if settings.mix is not None:
         msg["mix"] = settings.mix
     else:

@@ -78,6 +78,11 @@ class ModelInfo(BaseModel):
     styles: list[str]
     joints: list[str]
     controllable: bool = False  # a character controller: sessions may send `control` ticks instead of frames
+    pipelines: list[Literal["full", "core"]] = Field(
+        default=["full"],
+        description="What a session may ask for in `pipeline`: `full` (the shipped pipeline) and, where "
+        "served, `core` (the published method alone: its built-in styles, no fitted stages)",
+    )
 
 
 class StyleInfo(BaseModel):

@@ -27,6 +27,7 @@ import numpy as np
 from models.interface import State, StreamingModel, stack_states, upgrade_state, weight_columns, weight_vector
 from models.motion import rate
 
+from . import pipelines
 from . import protocol as P
 from .frame_check import check_rows
 from .rows import Rows
@@ -485,13 +486,15 @@ class Crowd:
             by_troupe.setdefault(c.group.model, []).append(c)
         for name, members in by_troupe.items():
             troupe = self.troupes[name]
+            model, pipeline = pipelines.split(name)
             fields = troupe.snapshot_fields(np.array([troupe.row_of[c.id] for c in members], np.int64))
             for c, f in zip(members, fields, strict=True):
                 out.append(
                     Snapshot(
                         session_id=c.session_id,
                         token=c.token,
-                        model=name,
+                        model=model,
+                        pipeline=pipeline,
                         skeleton=c.skeleton,
                         bvh_header=c.bvh_header,
                         fps=self.fps,

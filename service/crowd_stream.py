@@ -20,6 +20,7 @@ import time
 import uuid
 from collections import deque
 
+from . import pipelines
 from . import protocol as P
 from .background import in_background
 from .crowd import Crowd, Joining, StepRows
@@ -102,7 +103,7 @@ class CrowdConnection(Socket):
                 if spec.resume_token is not None:  # model, style and rig as stored
                     snap = await self.rt.resumable(spec.resume_token, self.who)  # claimed (a second: in use)
                     resuming.add(snap.session_id)
-                    model, weights = self.rt.models[snap.model], dict(snap.weights)
+                    model, weights = self.rt.pipeline(snap.model, snap.pipeline), dict(snap.weights)
                     skeleton, bvh_header, options = snap.skeleton, snap.bvh_header, dict(snap.rig)
                 else:
                     model, weights = await self.rt.new_character(spec, self.who)
@@ -139,7 +140,8 @@ class CrowdConnection(Socket):
             "characters": [
                 {
                     "id": j.spec.id,
-                    "model": j.model.name,
+                    "model": pipelines.split(j.model.name)[0],
+                    "pipeline": pipelines.split(j.model.name)[1],
                     "rig": rig_index[id(j.adapter)],
                     "resume_token": self.crowd.characters[j.spec.id].token,
                     "resumed": j.resumed is not None,
@@ -325,8 +327,8 @@ class CrowdConnection(Socket):
         try:  # every model of the named characters must know the style, or none changes
             targets = {}
             for name, (troupe, _, _) in troupes.items():
-                await self.rt.styles.ensure_known(name, P.mix_of(message.style, message.mix))
-                self.rt.check_visible(self.who, name, P.mix_of(message.style, message.mix))
+                await self.rt.styles.ensure_known(pipelines.split(name)[0], P.mix_of(message.style, message.mix))
+                self.rt.check_style(self.who, name, P.mix_of(message.style, message.mix))
                 targets[name] = P.requested_weights(troupe.model, message.style, message.mix, message.intensity)
         except P.ProtocolError as err:
             await self.send_error(err)

@@ -60,6 +60,8 @@ class CharacterSpec(_Message):
     crowd's `characters`)."""
 
     model: str
+    # "core": the method's published core alone, without the fitted stages after it (`service.pipelines`)
+    pipeline: Literal["full", "core"] = "full"
     style: str | None = None
     mix: StyleMix | None = None  # {style: weight}; alternative to `style`
     intensity: float = Field(default=1.0, ge=0.0, le=2.0)

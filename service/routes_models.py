@@ -1,4 +1,4 @@
-"""`GET /v1/models`: the models this server streams, their current styles and joints."""
+"""`GET /v1/models`: the models this server streams, their current styles, joints and pipelines."""
 
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ async def list_models(rt: Runtime = Depends(get_runtime), who: Principal = Depen
             styles=[s for s in m.styles() if s not in rt.styles.hidden_from(who, n)],  # other tenants' uploads
             joints=list(m.skeleton.names),
             controllable=m.controllable,
+            pipelines=rt.offered(n),
         )
         for n, m in rt.models.items()
     ]

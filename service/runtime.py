@@ -8,7 +8,9 @@ background `SnapshotWriter`, so a client can resume here or on any replica shari
 The runtime is given the models, the worker thread and the style store, built before it (the
 app's lifespan): a model whose style set can change is this server's own copy
 (`models.interface.own_style_set`), so the styles its store adds or removes (on the worker
-thread) stay its own even when several servers share one process.
+thread) stay its own even when several servers share one process. Beside them it may be given
+each method's published core alone (`service.pipelines`): `pipelines` holds both under their
+keys, and batchers, session counts and snapshots go by those keys.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import numpy as np
 from models.interface import FrameBatch, StreamingModel, weight_vector
 from models.motion import rate_kernels
 
-from . import frame_check, skeletons
+from . import frame_check, pipelines, skeletons
 from . import protocol as P
 from .batcher import Batcher, ModelThread
 from .limits import Principal
@@ -66,8 +68,11 @@ class Runtime:
         models: dict[str, StreamingModel],
         model_thread: ModelThread,
         styles: StyleStore,
+        cores: dict[str, StreamingModel] | None = None,
     ) -> None:
         self.settings, self.models, self.model_thread, self.styles = settings, models, model_thread, styles
+        # every pipeline served, by key (`pipelines.key`): the full ones (`models`) and the cores
+        self.pipelines: dict[str, StreamingModel] = {**models, **(cores or {})}
         self.metrics = Metrics()
         self.batchers = {
             name: Batcher(
@@ -80,7 +85,7 @@ class Runtime:
                 open_sessions=self._counter(name),
                 inline_max_s=settings.step_inline_max_ms / 1000,
             )
-            for name, model in self.models.items()
+            for name, model in self.pipelines.items()
         }
         self.sessions: dict[str, Session] = {}
         self._stored: dict[str, OrderedDict[str, float]] = {}  # caller id -> resume token -> closed at
@@ -100,7 +105,7 @@ class Runtime:
         frame_check.warm()
         rate_kernels.warm()
         await self.on_model_thread(skeletons.warm)
-        for model in self.models.values():
+        for model in self.pipelines.values():
             await self.on_model_thread(warm_up, model)
         for batcher in self.batchers.values():
             batcher.start()
@@ -162,17 +167,32 @@ class Runtime:
                 close_code=1013,
             )
 
-    async def new_character(self, spec: P.CharacterSpec, who: Principal) -> tuple[StreamingModel, dict[str, float]]:
-        """The model and starting {style: weight} a new session or crowd character asks for, or
-        the typed error that refuses it (an unknown model, or a style unknown or not `who`'s)."""
-        model = self.models.get(spec.model)
-        if model is None:
+    def offered(self, model: str) -> list[pipelines.Pipeline]:
+        """The pipelines this server serves of `model` (GET /v1/models)."""
+        return [p for p in pipelines.PIPELINES if pipelines.key(model, p) in self.pipelines]
+
+    def pipeline(self, model: str, pipeline: str) -> StreamingModel:
+        """The served `pipeline` of `model`, or the typed error that refuses it."""
+        found = self.pipelines.get(pipelines.key(model, pipeline))
+        if found is not None:
+            return found
+        if model in self.models:
             raise P.ProtocolError(
-                "unknown_model", f"unknown model {spec.model!r}; available: {', '.join(self.models) or 'none'}"
+                "pipeline_unavailable",
+                f"model {model!r} is served here with pipeline(s) {', '.join(self.offered(model))}, not {pipeline!r}",
             )
+        raise P.ProtocolError(
+            "unknown_model", f"unknown model {model!r}; available: {', '.join(self.models) or 'none'}"
+        )
+
+    async def new_character(self, spec: P.CharacterSpec, who: Principal) -> tuple[StreamingModel, dict[str, float]]:
+        """The pipeline and starting {style: weight} a new session or crowd character asks for,
+        or the typed error that refuses it (an unknown model or pipeline, or a style unknown, not
+        `who`'s, or not in that pipeline)."""
+        model = self.pipeline(spec.model, spec.pipeline)
         mix = P.mix_of(spec.style, spec.mix)
         await self.styles.ensure_known(spec.model, mix)
-        self.check_visible(who, spec.model, mix)
+        self.check_style(who, model.name, mix)
         return model, P.requested_weights(model, spec.style, spec.mix, spec.intensity)
 
     async def resumable(self, token: str, who: Principal) -> Snapshot:
@@ -187,8 +207,7 @@ class Runtime:
             ) from None
         if snap is None or snap.owner != who.tenant:
             raise P.ProtocolError("unknown_resume_token", "resume token unknown or expired")
-        if snap.model not in self.models:
-            raise P.ProtocolError("unknown_model", f"this replica does not serve model {snap.model!r}")
+        self.pipeline(snap.model, snap.pipeline)  # served here, or unknown_model / pipeline_unavailable
         await self.styles.ensure_known(snap.model, [*snap.weights, *snap.target])
         # checked after the last await, with nothing awaited until it is claimed: two resumes of
         # one token at once both passed a check made before an await, and both opened
@@ -213,7 +232,9 @@ class Runtime:
         if start.resume_token:
             snap = await self.resumable(start.resume_token, who)
             try:
-                session = Session.restore(snap, self.models[snap.model], self.settings.session_queue, who.id)
+                session = Session.restore(
+                    snap, self.pipelines[pipelines.key(snap.model, snap.pipeline)], self.settings.session_queue, who.id
+                )
             finally:
                 self.resumed(snap.session_id)  # registered below, with no await in between
             self._forget_stored(session.caller, session.token)
@@ -282,6 +303,24 @@ class Runtime:
 
     def crowd_model_closed(self, model: str) -> None:
         self._open_per_model[model] -= 1
+
+    def check_style(self, who: Principal, name: str, names: Iterable[str]) -> None:
+        """`check_visible` for the pipeline keyed `name`; and a core offers its method's built-in
+        styles only: an uploaded style there is `style_not_in_pipeline`, not unknown."""
+        model, pipeline = pipelines.split(name)
+        names = list(names)
+        self.check_visible(who, model, names)
+        served = self.pipelines.get(name)
+        full = self.models.get(model)
+        if pipeline == "full" or served is None or full is None:
+            return
+        missing = sorted((set(names) - set(served.styles())) & set(full.styles()))
+        if missing:
+            raise P.ProtocolError(
+                "style_not_in_pipeline",
+                f"style(s) {', '.join(missing)} of model {model!r} are uploaded styles, made for its full "
+                f"pipeline; the core pipeline has its built-in styles {', '.join(served.styles())}",
+            )
 
     def check_visible(self, who: Principal, model: str, names: Iterable[str]) -> None:
         """Another tenant's uploaded style is, to `who`, a style that does not exist."""

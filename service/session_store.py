@@ -163,6 +163,7 @@ class SnapshotWriter:
     def __init__(self, store: SessionStore, metrics: Metrics, retry_s: float = 1.0) -> None:
         self.store, self.metrics, self.retry_s = store, metrics, retry_s
         self._pending: dict[str, _Pending] = {}
+        self._writing: dict[str, _Pending] = {}  # the batch the store is writing now
         self._wake = asyncio.Event()
         self._idle = asyncio.Event()
         self._idle.set()
@@ -192,7 +193,12 @@ class SnapshotWriter:
         self._wake.set()
 
     async def get(self, token: str) -> Snapshot | None:
+        # the batch being written too: between taking it from the queue and the store's answer, a
+        # shared store (redis) did not hold it yet, and a client resuming at once was told the
+        # token was unknown
         entry = self._pending.get(token)
+        if entry is None:
+            entry = self._writing.get(token)
         if entry is not None:
             return entry.snapshot
         return await self.store.get(token)
@@ -214,12 +220,14 @@ class SnapshotWriter:
                 await self._wake.wait()
                 continue
             batch, self._pending = self._pending, {}
+            self._writing = batch
             puts = {t: e.snapshot for t, e in batch.items() if e.snapshot is not None}
             deletes = [t for t, e in batch.items() if e.snapshot is None]
             t0 = time.perf_counter()
             try:
                 await self.store.write(puts, deletes)
             except StoreUnavailable as exc:
+                self._writing = {}
                 self.metrics.snapshot_failures.inc(len(batch))
                 if not self._failing:
                     log.error("snapshots not saved, retrying every %.1f s: %s", self.retry_s, exc)
@@ -227,6 +235,7 @@ class SnapshotWriter:
                 self._requeue(batch)
                 await asyncio.sleep(self.retry_s)
                 continue
+            self._writing = {}
             if self._failing:
                 log.warning("session store reachable again")
                 self._failing = False

@@ -26,6 +26,7 @@ import numpy as np
 from models.interface import State, StreamingModel
 from models.motion import rate
 
+from . import pipelines
 from .protocol import End, ProtocolError, Reset, SetStyle
 
 
@@ -88,6 +89,7 @@ class Snapshot:
         default_factory=dict
     )  # the start message's rig options (joints, joint_map, units, up, handedness)
     owner: str = ""  # the tenant that opened it (`limits.Principal.tenant`): only it may resume
+    pipeline: str = "full"  # `model`'s pipeline (`service.pipelines`); a snapshot saved before pipelines: full
 
     def to_bytes(self) -> bytes:
         """`SNAPSHOT_MAGIC`, one line of JSON (the other fields, and each array's name, dtype and
@@ -326,10 +328,12 @@ class Session:
         return True
 
     def snapshot(self) -> Snapshot:
+        model, pipeline = pipelines.split(self.model.name)
         return Snapshot(
             session_id=self.id,
             token=self.token,
-            model=self.model.name,
+            model=model,
+            pipeline=pipeline,
             skeleton=self.skeleton,
             bvh_header=self.bvh_header,
             fps=self.fps,

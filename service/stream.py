@@ -34,6 +34,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
 from models.motion.rate import output_delay_s
 
+from . import pipelines
 from . import protocol as P
 from .deps import get_limiter
 from .limits import CLOSE_FLOODING, MessageRate, Principal
@@ -394,7 +395,8 @@ class Connection(Socket):
             "version": P.PROTOCOL_VERSION,
             "session_id": s.id,
             "resume_token": s.token,
-            "model": s.model.name,
+            "model": pipelines.split(s.model.name)[0],
+            "pipeline": pipelines.split(s.model.name)[1],
             "styles": s.model.styles(),
             "joints": adapter.joint_names,
             "last_seq": s.last_seq,
@@ -458,7 +460,7 @@ class Connection(Socket):
         if not (admitted or isinstance(message, P.End)) and not self.control_rate.admit(time.monotonic()):
             return True  # style and reset messages over their own, lower rate: dropped (the first one told)
         if isinstance(message, P.SetStyle):  # validate now, so the error comes back at once
-            self.rt.check_visible(self.who, self.session.model.name, P.mix_of(message.style, message.mix))
+            self.rt.check_style(self.who, self.session.model.name, P.mix_of(message.style, message.mix))
             P.requested_weights(self.session.model, message.style, message.mix, message.intensity)
         self.queue(ControlItem(message))
         return not isinstance(message, P.End)

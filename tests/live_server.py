@@ -21,12 +21,19 @@ UPLOAD_TIMEOUT_S = 120.0
 
 
 @contextmanager
-def live_server(models: dict, port: int | None = None, uvicorn_options: dict | None = None, **overrides):
-    """Serve `models` on `port` (default: a free one; a fixed one lets a test restart the server
-    where its clients expect it); `overrides` are settings, `uvicorn_options` uvicorn's own."""
+def live_server(
+    models: dict,
+    port: int | None = None,
+    uvicorn_options: dict | None = None,
+    core_models: dict | None = None,
+    **overrides,
+):
+    """Serve `models` (and the cores in `core_models`, as their `core` pipelines) on `port`
+    (default: a free one; a fixed one lets a test restart the server where its clients expect
+    it); `overrides` are settings, `uvicorn_options` uvicorn's own."""
     port = port or free_port()
     settings = ServiceSettings(port=port, **overrides)
-    app = create_app(settings, models=models)
+    app = create_app(settings, models=models, core_models=core_models)
     server = uvicorn.Server(
         uvicorn_config(app, settings, host="127.0.0.1", log_level="warning", **(uvicorn_options or {}))
     )

@@ -316,3 +316,32 @@ def test_the_async_sdk_resumes_exactly_too(bn_walk):
         got, reconnects = asyncio.run(run(base, drop=True))
     assert reconnects == 1
     np.testing.assert_array_equal(got, want)
+
+
+class HeldStore(MemoryStore):
+    """A store whose writes wait until released, as a shared store's round trip does."""
+
+    def __init__(self) -> None:
+        super().__init__(ttl_s=60)
+        self.writing, self.release = asyncio.Event(), asyncio.Event()
+
+    async def write(self, puts: dict[str, Snapshot], deletes: list[str]) -> None:
+        self.writing.set()
+        await self.release.wait()
+        await super().write(puts, deletes)
+
+
+def test_a_snapshot_being_written_is_seen_by_a_resume():
+    """Taken from the queue but not yet in the store, a snapshot is still the writer's to give:
+    a client resuming at that moment was told its token was unknown."""
+    store = HeldStore()
+
+    async def body(writer: SnapshotWriter):
+        writer.put(snapshot("a", 29))
+        await asyncio.wait_for(store.writing.wait(), 2)
+        seen = await writer.get("a")
+        store.release.set()
+        assert await writer.flush(2)
+        return None if seen is None else seen.last_seq, (await writer.get("a")).last_seq
+
+    assert run_writer(store, body) == (29, 29)
