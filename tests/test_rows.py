@@ -73,7 +73,9 @@ def test_a_partial_tick_join_and_leave_touch_only_their_rows(lti):
 def test_a_large_troupe_steps_in_parts_that_give_the_whole_steps_replies(lti, monkeypatch):
     """A troupe's step goes to the batcher FAIR_ROWS rows at a time, one part after the other (a
     neighbour's frame joins the next part's batch rather than waiting for the whole troupe),
-    and the outputs and states are exactly those of one whole step."""
+    and the outputs and states are those of one whole step, to round-off: LTI's dense product
+    runs over the sessions of a style a chunk at a time, and BLAS may round a chunk of 11
+    differently from one of 32."""
     import asyncio
 
     from models.interface import FrameBatch
@@ -104,6 +106,6 @@ def test_a_large_troupe_steps_in_parts_that_give_the_whole_steps_replies(lti, mo
     sizes.clear()
     parts_rot, parts_state = run(128)
     assert max(sizes) == 128 and sum(sizes) == 3 * n
-    assert np.array_equal(parts_rot, whole_rot)
+    assert np.allclose(parts_rot, whole_rot, rtol=0.0, atol=1e-9)
     for key, value in whole_state.items():
-        assert np.array_equal(parts_state[key], value), key
+        assert np.allclose(parts_state[key], value, rtol=1e-12, atol=1e-9), key
