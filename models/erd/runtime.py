@@ -37,9 +37,8 @@ input's; then the output's rotations are carried from what the network produces 
 real distribution and clamped into its real range (`rotation_prior.py`: `leaf_prior.npz`,
 `output_prior.npz` beside the weights). Frames where the input runs take priors fitted on runs
 alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`); while the input raises
-a hand, elderly's output prior steps aside (`raised_hand.py`: fitted over every content, it made
-raise-ups waves), and toward feminine, youthful and active a waving hand takes a prior fitted
-on gestures, toward the first two a still raised arm the network's own (`gestures.py`). Each
+a hand, the arms take priors fitted on real frames where a hand does the same: waving, raised
+and still, or hanging while the other is up (`gestures.py`). Each
 prior carries only a slowly following copy of the rotations; their frame-to-frame rest passes
 unscaled, so the priors' gains do not shake the head and arms (`slow_carry.py`). Last, the arms'
 twists about their bones are kept inside the style's real interval (`twist_range.py`: the
@@ -78,7 +77,6 @@ from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
 from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
 from .gestures import ArmPriors, by_gesture
-from .raised_hand import kept_in_range, output_prior_weights
 from .rotation_prior import PRIOR_FILES
 from .slow_carry import carry_slow
 from .twist_range import TWIST_FILE, TwistRange
@@ -140,7 +138,7 @@ class ERDModel:
         # the same two fitted on runs alone, for frames the input runs in (`gait.py`)
         self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
         self.gesture_prior = gesture_prior  # a waving hand's output prior (`gestures.py`)
-        self.raise_prior = raise_prior  # a still raised arm's output prior toward active (`gestures.py`)
+        self.raise_prior = raise_prior  # a still raised arm's output prior (`gestures.py`)
         self.hanging_prior = hanging_prior  # the other arm's, while one hand is raised (`gestures.py`)
         self.twist_range = twist_range  # the arms' twists kept in the style's real interval (`twist_range.py`)
         self.maker = FeatureMaker(skeleton, self.ref)
@@ -164,8 +162,6 @@ class ERDModel:
         rest[..., 3] = 1.0
         none = np.zeros((1, len(TARGET_STYLES)))
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), none)
-        if self.output_prior is not None:  # the clamp alone, which a raised hand takes (`raised_hand.py`)
-            self.output_prior.clamped(rest, none, hips=HIPS)
         if self.twist_range is not None:  # its kernel, with a style weight so that all of it runs
             self.twist_range(rest, np.ones_like(none))
 
@@ -296,10 +292,9 @@ class ERDModel:
         share = eased_in(run_share(gait_speed), state["frame"])
         source, slow_in = carry_slow(self.leaf_prior, self.run_leaf_prior, rot_in, state["slow_in"], w, share)
         out_rot = transfer_twist(self.skeleton, source, out_rot)
-        faded = output_prior_weights(w, pos)
         network_rot = out_rot
         out_rot, slow_out = carry_slow(
-            self.output_prior, self.run_output_prior, network_rot, state["slow_out"], faded, share, hips=HIPS
+            self.output_prior, self.run_output_prior, network_rot, state["slow_out"], w, share, hips=HIPS
         )
         hand_sway = sway(state["hand_sway"], hand_offsets(pos), hand_offsets(state["prev_pos"]), has_prev, FPS)
         if self.gesture_prior is not None and self.output_prior is not None:
@@ -311,8 +306,7 @@ class ERDModel:
                 )[0]
 
             arms = ArmPriors(self.gesture_prior, self.raise_prior, self.hanging_prior)
-            out_rot = by_gesture(out_rot, carry, self.output_prior, faded, pos, hand_sway, network_rot, arms)
-        out_rot = kept_in_range(self.output_prior, out_rot, w, faded)
+            out_rot = by_gesture(out_rot, carry, w, pos, hand_sway, arms)
         if self.twist_range is not None:
             out_rot = self.twist_range(out_rot, w)
         planted_root, planted_rot, contacts, feet = self.planter(
