@@ -98,7 +98,9 @@ def test_no_style_and_a_walk_stream_as_before(model, index, raise_up, wave):
     without.gesture_prior = without.raise_prior = without.hanging_prior = None
     for motion in (raise_up, wave):
         none = np.zeros(len(model.styles()))
-        np.testing.assert_array_equal(streamed_rotations(model, motion, none), streamed_rotations(without, motion, none))
+        np.testing.assert_array_equal(
+            streamed_rotations(model, motion, none), streamed_rotations(without, motion, none)
+        )
     walk = _val(index, "walk")[0]
     w = _weights(model, masculine=0.6, exhausted=0.4)
     np.testing.assert_array_equal(streamed_rotations(model, walk, w), streamed_rotations(without, walk, w))
@@ -168,18 +170,24 @@ def test_the_gesture_prior_is_fitted_for_every_style(model):
         assert not all(same), style
 
 
-def test_arm_frames_are_measured_from_the_motion(model, raise_up, wave):
-    """`rotation_prior.arm_frames`, what the arm priors are fitted on: a left-hand raise-up has
-    still left-hand frames with the right arm hanging, a left-hand wave raised frames that are
-    mostly not still, and no frame has the left hand both still and hanging."""
+def test_arm_frames_split_each_styles_waves_from_its_raise_ups(index):
+    """`rotation_prior.arm_frames`, what the arm priors are fitted on: each style's clips that wave
+    are told from those that hold a hand up by the style's own sway (elderly waves sway less than
+    normal raise-ups), and a held left hand is never also hanging."""
+    from models.data import load_motions, select
     from models.erd.rotation_prior import arm_frames
 
-    up, waving = arm_frames(raise_up), arm_frames(wave)
-    assert up["still_L"].sum() >= 10 and (up["hanging_R"] & up["still_L"]).sum() >= 10
-    assert up["still_R"].sum() == 0
-    assert waving["raised"].sum() >= 10 and waving["still_L"].sum() < waving["raised"].sum() / 2
-    for frames in (up, waving):
-        assert not (frames["still_L"] & frames["hanging_L"]).any()
+    for style in ("elderly", "active"):
+        clips = [
+            c
+            for c in select(index, dataset="bandai-namco-2", split="train", style=style)
+            if c.content in ("raise-up-left-hand", "wave-left-hand")
+        ][::4]
+        for clip, frames in zip(clips, arm_frames(load_motions(clips))):
+            waves = clip.content.startswith("wave")
+            assert frames["waving"].any() == waves, (style, clip.name)
+            assert frames["still_L"].any() != waves, (style, clip.name)
+            assert not (frames["still_L"] & frames["hanging_L"]).any()
 
 
 @pytest.mark.parametrize(

@@ -7,8 +7,8 @@ and added a sideways wobble, and the content judge read raise-ups as waves. So w
 measured from the input motion frame by frame, picks a prior fitted on the real frames where a
 hand does the same (`rotation_prior.fit_arm_priors`, the same fit for every style):
 
-- a hand that **waves** (sways sideways against its shoulder) takes the prior fitted on every
-  frame with a hand raised (`output_prior_gesture.npz`), mixed in by the raise share
+- a hand that **waves** (sways sideways against its shoulder) takes the prior fitted on the
+  frames with a raised hand waving (`output_prior_gesture.npz`), mixed in by the raise share
   (`models.motion.hands.raise_share`) times the wave share, at most `GESTURE_SHARE`;
 - a hand raised **and still** puts its arm (`ARM_JOINTS`) on the prior fitted on that side's
   raised, still arms (`output_prior_raise.npz`), by the raise share times the still share;
@@ -21,6 +21,9 @@ The sway is each hand's horizontal speed relative to its shoulder (the UpperArm 
 over `models.motion.hands.SWAY_FRAMES`: a raise-up's raised hand sways at a median of 21-34 cm/s,
 a wave's at 57-96. Causal: the step from the previous input frame; a session's first frame has no
 sway. A row with no style weight, and every row with both hands down, is carried as before.
+The three priors' gains are capped at 1 (`rotation_prior.fit_arm_priors`): they move an arm's
+pose toward the style's and keep it in range, but never magnify its motion (a magnified sway made
+raise-ups read as waves).
 """
 
 from __future__ import annotations

@@ -30,8 +30,9 @@ the same way for every style:
    the network as the stream runs it (the leaf prior in place) and it carries the legs too: only
    clamped, the runs' legs stayed the network's near-neutral stride.
 4. **Raised hands** (`output_prior_{gesture,raise,hanging}.npz`, `gestures.py`): fitted on the
-   frames where a hand is raised, raised and still, or hanging while the other is raised
-   (`models.motion.hands`), measured on the real clips and the neutral inputs of every content.
+   frames where a raised hand waves, a hand is raised and held, or an arm hangs while the other
+   hand is raised (`arm_frames`: which clips wave, by the style's own split of its clips' sway),
+   measured on the real clips and the neutral inputs of every content.
 
 The Root is left alone by both, the Hips by the leaf prior (the decoder's legs and spine fix
 them). The output prior reads the Hips without their heading (their twist about world up, as the
@@ -47,8 +48,8 @@ import numpy as np
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
-from ..motion.gait_split import running, split_by_gait
-from ..motion.hands import clip_sway, hand_offsets, raise_share, wave_share
+from ..motion.gait_split import running, split_by_gait, two_groups
+from ..motion.hands import clip_sway, hand_offsets, raise_share
 from ..motion.rotation_ball import comparable, split_heading
 from ..motion.rotations import quat_mul
 from ..motion.style_carry import StyleCarry
@@ -73,21 +74,33 @@ FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 FIT_CLIPS_PER_CONTENT = 4
 RUN_FIT_CLIPS = 12  # TRAIN neutral clips that run, for the run output prior
 FIT_FRAMES = 240
-ARM_FRAMES = ("raised", "still_L", "still_R", "hanging_L", "hanging_R")  # `arm_frames`' keys
+ARM_FRAMES = ("waving", "still_L", "still_R", "hanging_L", "hanging_R")  # `arm_frames`' keys
+MIN_RAISED = 10  # a clip with fewer raised frames does not say whether it waves
 
 
-def arm_frames(motion) -> dict[str, np.ndarray]:
-    """(T,) bool per `ARM_FRAMES` key: the frames of a Bandai Namco `Motion` with a hand raised
-    (at its shoulder or above, `hands.raise_share` over a half), with that side's hand raised and
-    not waving (`hands.wave_share` under a half), with that side's arm down while the other hand
-    is raised."""
-    offsets = hand_offsets(motion.global_positions())
-    up = raise_share(offsets[..., 1]) > 0.5  # (T, 2)
-    out = {"raised": up.any(-1)}
-    calm = wave_share(clip_sway(offsets, motion.fps)) < 0.5 if up.any() else np.ones_like(up)
-    for side, s in enumerate("LR"):
-        out[f"still_{s}"] = up[:, side] & calm[:, side]
-        out[f"hanging_{s}"] = up[:, 1 - side] & ~up[:, side]
+def arm_frames(motions: list) -> list[dict[str, np.ndarray]]:
+    """Per Bandai Namco `Motion` of one style, (T,) bool per `ARM_FRAMES` key: the frames with a
+    hand raised (at its shoulder or above, `hands.raise_share` over a half) in a clip that waves,
+    with that side's hand raised in a clip that holds it still, with that side's arm down while
+    the other hand is raised. Which clips wave is the style's own: styles wave at their own
+    pace (the real elderly waves sway less than the normal raise-ups, the active raise-ups more
+    than the normal waves), so the clips' median sway over their raised frames is split in two
+    groups (`gait_split.two_groups`), as the gait is."""
+    ups, swayed = [], []
+    for motion in motions:
+        offsets = hand_offsets(motion.global_positions())
+        up = raise_share(offsets[..., 1]) > 0.5  # (T, 2)
+        ups.append(up)
+        swayed.append(np.median(clip_sway(offsets, motion.fps)[up]) if up.sum() >= MIN_RAISED else np.nan)
+    cut = two_groups([v for v in swayed if np.isfinite(v)])
+    out = []
+    for up, v in zip(ups, swayed):
+        waves = bool(np.isfinite(v) and v > cut)
+        frames = {"waving": up.any(-1) & waves}
+        for side, s in enumerate("LR"):
+            frames[f"still_{s}"] = up[:, side] & (not waves)
+            frames[f"hanging_{s}"] = up[:, 1 - side] & ~up[:, side]
+        out.append(frames)
     return out
 
 
@@ -194,8 +207,9 @@ def real_arm_frames(styles: list[str]) -> dict[str, list[np.ndarray]]:
     out: dict[str, list[np.ndarray]] = {k: [] for k in ARM_FRAMES}
     for style in styles:
         picked: dict[str, list[np.ndarray]] = {k: [] for k in ARM_FRAMES}
-        for motion in load_motions(select(index, split="train", style=style)):
-            for key, frames in arm_frames(motion).items():
+        motions = load_motions(select(index, split="train", style=style))
+        for motion, chosen in zip(motions, arm_frames(motions)):
+            for key, frames in chosen.items():
                 picked[key].append(motion.rotations[frames])
         for key, parts in picked.items():
             q = np.concatenate(parts).astype(np.float64)
@@ -206,24 +220,28 @@ def real_arm_frames(styles: list[str]) -> dict[str, list[np.ndarray]]:
 
 def fit_arm_priors(model) -> tuple[StyleCarry, StyleCarry, StyleCarry]:
     """The output priors of a raised hand (`gestures.py`), for every style: the gesture prior
-    fitted on every frame with a hand raised; the raise prior with each side's arm
+    fitted on the frames with a raised hand waving; the raise prior with each side's arm
     (`gestures.ARM_JOINTS`) fitted on the frames with that hand raised and still, the hanging
     prior on the frames with that arm down and the other hand raised (a joint's one Gaussian
     cannot hold both a raised and a hanging arm). Sources: the network (its leaf prior in place)
-    over the neutral inputs' frames of that kind; targets: every real TRAIN frame of that kind. The
-    legs and Hips are only clamped, as by the all-content prior; the raise and hanging priors keep
-    its maps for every other joint."""
+    over the neutral inputs' frames of that kind; targets: every real TRAIN frame of that kind.
+    Each map's gains are capped at 1 (`StyleCarry.damping`): it moves the arm's mean pose and
+    range to the style's but never magnifies the network's arm motion; with the full gains a
+    raised hand's sway grew and the content judge read validation raise-ups toward masculine,
+    elderly and feminine as waves. The legs and Hips are only clamped, as by the all-content
+    prior; the raise and hanging priors keep its maps for every other joint."""
     from .gestures import ARM_JOINTS
 
     inputs = _neutral_inputs()
     made = network_rotations(model, inputs)
-    frames = [arm_frames(m) for m in inputs]
+    frames = arm_frames(inputs)
     chosen = {k: np.concatenate([f[k] for f in frames]) for k in ARM_FRAMES}
     real = real_arm_frames(list(model.styles()))
     clamped = (HIPS,) + tuple(model.skeleton.index(n) for n in LEG_JOINTS)
 
     def fitted(key: str) -> StyleCarry:
-        return StyleCarry.fit([q[chosen[key]] for q in made], real[key], (ROOT,), clamp_only=clamped)
+        fit = StyleCarry.fit([q[chosen[key]] for q in made], real[key], (ROOT,), clamp_only=clamped)
+        return StyleCarry(fit.source, fit.mean, fit.damping, fit.radius)  # gains capped at 1
 
     def per_side(kind: str) -> StyleCarry:
         out, rows = model.output_prior, list(range(len(model.styles())))
@@ -231,7 +249,7 @@ def fit_arm_priors(model) -> tuple[StyleCarry, StyleCarry, StyleCarry]:
             out = out.with_maps_of(fitted(f"{kind}_{s}"), rows, [model.skeleton.index(f"{j}_{s}") for j in ARM_JOINTS])
         return out
 
-    return fitted("raised"), per_side("still"), per_side("hanging")
+    return fitted("waving"), per_side("still"), per_side("hanging")
 
 
 def main(argv: list[str]) -> None:

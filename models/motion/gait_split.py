@@ -25,20 +25,25 @@ def clip_speed(motion) -> float:
     return float(np.median(np.linalg.norm(step, axis=1)) * motion.fps) if len(step) else 0.0
 
 
-def run_threshold(speeds: Sequence[float]) -> float:
-    """The median Hips speed (cm/s) above which a clip of these clips' style runs: between the two
-    groups of the moving clips' speeds (`MOVING_CM_S` and over) that leave the least variance
-    within them; infinite where there are fewer than two moving clips or the groups' means are
-    less than `SEPARATION` apart (one gait)."""
-    moving = np.sort(np.asarray([s for s in speeds if s >= MOVING_CM_S], np.float64))
-    if len(moving) < 2:
+def two_groups(values: Sequence[float], separation: float = SEPARATION) -> float:
+    """The value splitting `values` into the two groups that leave the least variance within them
+    (Otsu's split in one dimension): half way between the groups; infinite where there are fewer
+    than two values or the faster group's mean is less than `separation` times the slower's."""
+    v = np.sort(np.asarray(values, np.float64))
+    if len(v) < 2:
         return float("inf")
-    cost = [np.var(moving[:k]) * k + np.var(moving[k:]) * (len(moving) - k) for k in range(1, len(moving))]
+    cost = [np.var(v[:k]) * k + np.var(v[k:]) * (len(v) - k) for k in range(1, len(v))]
     k = int(np.argmin(cost)) + 1
-    slow, fast = moving[:k], moving[k:]
-    if fast.mean() < SEPARATION * slow.mean():
+    slow, fast = v[:k], v[k:]
+    if fast.mean() < separation * slow.mean():
         return float("inf")
     return float(0.5 * (slow[-1] + fast[0]))
+
+
+def run_threshold(speeds: Sequence[float]) -> float:
+    """The median Hips speed (cm/s) above which a clip of these clips' style runs: `two_groups` of
+    the moving clips' speeds (`MOVING_CM_S` and over); infinite for one gait."""
+    return two_groups([s for s in speeds if s >= MOVING_CM_S])
 
 
 def running(speeds: Sequence[float]) -> np.ndarray:
