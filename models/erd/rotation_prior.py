@@ -26,9 +26,10 @@ the same way for every style:
    real clips and the neutral inputs alike, by each style's own split of its clips' median Hips
    speeds (`models.motion.gait_split`: a fixed speed cannot tell elderly runs from active
    walks), whatever the clip's label. Fitted over every
-   frame, the priors carried runs toward walks and gestures. The run output prior's source is
-   the network as the stream runs it (the leaf prior in place) and it carries the legs too: only
-   clamped, the runs' legs stayed the network's near-neutral stride.
+   frame, the priors carried runs toward walks and gestures. The run output prior's source takes
+   the arms as the stream makes them (the leaf prior in place) and the rest with the input's own
+   twists and leaves, and it carries the legs too: only clamped, the runs' legs stayed the
+   network's near-neutral stride.
 4. **Raised hands** (`output_prior_{gesture,raise,hanging}.npz`, `gestures.py`): fitted on the
    frames where a raised hand waves, a hand is raised and held, or an arm hangs while the other
    hand is raised (`arm_frames`: which clips wave, by the style's own split of its clips' sway),
@@ -74,6 +75,7 @@ FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 FIT_CLIPS_PER_CONTENT = 4
 RUN_FIT_CLIPS = 12  # TRAIN neutral clips that run, for the run output prior
 FIT_FRAMES = 240
+RUN_ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))  # `fit_output_prior`
 ARM_FRAMES = ("waving", "still_L", "still_R", "hanging_L", "hanging_R")  # `arm_frames`' keys
 MIN_RAISED = 10  # a clip with fewer raised frames does not say whether it waves
 
@@ -170,8 +172,17 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     """The model's outputs (its leaf prior in place, no output prior) over TRAIN neutral clips
     toward each style -> the real style. With `runs`: TRAIN neutral clips that run
     (`_running_inputs`), against the real runs in `real`, the legs carried as well, not only
-    clamped (module docstring)."""
-    produced = network_rotations(model, _running_inputs() if runs else _neutral_inputs())
+    clamped (module docstring); the arms (`RUN_ARMS`) as the stream makes them, the leaf prior in
+    place, every other joint with the input's own twists and leaves: taken with the leaf prior
+    too, the head jumped by 6-7 degrees in a frame as a stream started mid-run."""
+    if runs:
+        inputs = _running_inputs()
+        produced = network_rotations(model, inputs, leaf_prior=False)
+        arms = [model.skeleton.index(n) for n in RUN_ARMS]
+        for own, leafed in zip(produced, network_rotations(model, inputs)):
+            own[:, arms] = leafed[:, arms]
+    else:
+        produced = network_rotations(model, _neutral_inputs())
     clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEG_JOINTS))
     return StyleCarry.fit(produced, [comparable(q) for q in real[1:]], (0,), clamp_only=clamped)
 
