@@ -78,7 +78,7 @@ def by_gesture(
     share times its still share; the other arm with `arms.hanging` at the raised hand's share
     times the share it is not raised itself."""
     w = np.asarray(weights, np.float64)
-    styled = w.any(-1)
+    styled = np.asarray(w.any(-1), bool)
     if not styled.any():
         return carried
     heights = raise_share(side_heights(pos)) * styled[:, None]  # (B, 2)

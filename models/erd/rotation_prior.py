@@ -98,7 +98,7 @@ def arm_frames(motions: list) -> list[dict[str, np.ndarray]]:
     out = []
     for up, v in zip(ups, swayed):
         waves = bool(np.isfinite(v) and v > cut)
-        frames = {"waving": up.any(-1) & waves}
+        frames = {"waving": np.asarray(up.any(-1) & waves, bool)}
         for side, s in enumerate("LR"):
             frames[f"still_{s}"] = up[:, side] & (not waves)
             frames[f"hanging_{s}"] = up[:, 1 - side] & ~up[:, side]
