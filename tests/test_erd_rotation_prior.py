@@ -378,7 +378,7 @@ def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
 
 
 def test_a_raise_up_streamed_equals_the_whole_clip(model, neutral):
-    """The offline path (`offline.stylise`) takes the raised hand's priors frame by frame as the stream does."""
+    """The offline path (`offline.stylise`) carries a raise-up frame by frame as the stream does."""
     from models.erd.offline import stylise
 
     motion, w = neutral[2], _onehot(model, "elderly")

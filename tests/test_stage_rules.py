@@ -20,7 +20,6 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE_MODULES = (
-    "models/erd/gestures.py",
     "models/erd/rotation_prior.py",
     "models/erd/slow_carry.py",
     "models/erd/twist_range.py",

@@ -4,7 +4,6 @@ the same way for every style:
     .venv/bin/python -m models.erd.rotation_prior        # all -> models/weights/erd/*_prior*.npz
     .venv/bin/python -m models.erd.rotation_prior runs   # the run priors alone
     .venv/bin/python -m models.erd.rotation_prior twists # the arms' twist range alone (`twist_range.py`)
-    .venv/bin/python -m models.erd.rotation_prior gestures  # a raised hand's output priors alone (`gestures.py`)
 
 1. **Twists and leaves** (`leaf_prior.npz`). The decoder is trusted only for where bones point
    (`models.motion.twist.transfer_twist`): a bone's twist about itself and the head, hands and
@@ -30,11 +29,6 @@ the same way for every style:
    the arms as the stream makes them (the leaf prior in place) and the rest with the input's own
    twists and leaves, and it carries the legs too: only clamped, the runs' legs stayed the
    network's near-neutral stride.
-4. **Raised hands** (`output_prior_{gesture,raise,hanging}.npz`, `gestures.py`): fitted on the
-   frames where a raised hand waves, a hand is raised and held, or an arm hangs while the other
-   hand is raised (`arm_frames`: which clips wave, by the style's own split of its clips' sway),
-   measured on the real clips and the neutral inputs of every content.
-
 The Root is left alone by both, the Hips by the leaf prior (the decoder's legs and spine fix
 them). The output prior reads the Hips without their heading (their twist about world up, as the
 eval suite compares them) and only clamps them: the rest of the body hangs from them.
@@ -49,8 +43,7 @@ import numpy as np
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
-from ..motion.gait_split import running, split_by_gait, two_groups
-from ..motion.hands import clip_sway, hand_offsets, raise_share
+from ..motion.gait_split import running, split_by_gait
 from ..motion.rotation_ball import comparable, split_heading
 from ..motion.rotations import quat_mul
 from ..motion.style_carry import StyleCarry
@@ -59,51 +52,17 @@ LEAF_FILE = "leaf_prior.npz"
 OUTPUT_FILE = "output_prior.npz"
 RUN_LEAF_FILE = "leaf_prior_run.npz"
 RUN_OUTPUT_FILE = "output_prior_run.npz"
-GESTURE_FILE = "output_prior_gesture.npz"
-RAISE_FILE = "output_prior_raise.npz"
-HANGING_FILE = "output_prior_hanging.npz"
 PRIOR_FILES = {  # `runtime.ERDModel`'s prior attributes and their files beside the weights
     "leaf_prior": LEAF_FILE,
     "output_prior": OUTPUT_FILE,
     "run_leaf_prior": RUN_LEAF_FILE,
     "run_output_prior": RUN_OUTPUT_FILE,
-    "gesture_prior": GESTURE_FILE,
-    "raise_prior": RAISE_FILE,
-    "hanging_prior": HANGING_FILE,
 }
 FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 FIT_CLIPS_PER_CONTENT = 4
 RUN_FIT_CLIPS = 12  # TRAIN neutral clips that run, for the run output prior
 FIT_FRAMES = 240
 RUN_ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))  # `fit_output_prior`
-ARM_FRAMES = ("waving", "still_L", "still_R", "hanging_L", "hanging_R")  # `arm_frames`' keys
-MIN_RAISED = 10  # a clip with fewer raised frames does not say whether it waves
-
-
-def arm_frames(motions: list) -> list[dict[str, np.ndarray]]:
-    """Per Bandai Namco `Motion` of one style, (T,) bool per `ARM_FRAMES` key: the frames with a
-    hand raised (at its shoulder or above, `hands.raise_share` over a half) in a clip that waves,
-    with that side's hand raised in a clip that holds it still, with that side's arm down while
-    the other hand is raised. Which clips wave is the style's own: styles wave at their own
-    pace (the real elderly waves sway less than the normal raise-ups, the active raise-ups more
-    than the normal waves), so the clips' median sway over their raised frames is split in two
-    groups (`gait_split.two_groups`), as the gait is."""
-    ups, swayed = [], []
-    for motion in motions:
-        offsets = hand_offsets(motion.global_positions())
-        up = raise_share(offsets[..., 1]) > 0.5  # (T, 2)
-        ups.append(up)
-        swayed.append(np.median(clip_sway(offsets, motion.fps)[up]) if up.sum() >= MIN_RAISED else np.nan)
-    cut = two_groups([v for v in swayed if np.isfinite(v)])
-    out = []
-    for up, v in zip(ups, swayed):
-        waves = bool(np.isfinite(v) and v > cut)
-        frames = {"waving": np.asarray(up.any(-1) & waves, bool)}
-        for side, s in enumerate("LR"):
-            frames[f"still_{s}"] = up[:, side] & (not waves)
-            frames[f"hanging_{s}"] = up[:, 1 - side] & ~up[:, side]
-        out.append(frames)
-    return out
 
 
 def real_rotations(runs: bool = False) -> list[np.ndarray]:
@@ -194,73 +153,16 @@ def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.n
     from ..eval.run import stylise
 
     saved = model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range
-    gesture = model.gesture_prior
     if not leaf_prior:
         model.leaf_prior = None
-    model.output_prior = model.run_leaf_prior = model.run_output_prior = model.twist_range = model.gesture_prior = None
+    model.output_prior = model.run_leaf_prior = model.run_output_prior = model.twist_range = None
     try:
         styles = model.styles()
         outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
     finally:
         model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range = saved
-        model.gesture_prior = gesture
     n = len(inputs)
     return [comparable(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]])) for k in range(len(styles))]
-
-
-def real_arm_frames(styles: list[str]) -> dict[str, list[np.ndarray]]:
-    """Per `ARM_FRAMES` key, per style: the local rotations (N, J, 4, `comparable`, joint_Root at
-    the identity) of the frames `arm_frames` picks in every real TRAIN clip of the style."""
-    from ..data import build_index, load_motions, select
-    from .dataset import DATASET
-
-    index = build_index([DATASET])
-    out: dict[str, list[np.ndarray]] = {k: [] for k in ARM_FRAMES}
-    for style in styles:
-        picked: dict[str, list[np.ndarray]] = {k: [] for k in ARM_FRAMES}
-        motions = load_motions(select(index, split="train", style=style))
-        for motion, chosen in zip(motions, arm_frames(motions)):
-            for key, frames in chosen.items():
-                picked[key].append(motion.rotations[frames])
-        for key, parts in picked.items():
-            q = np.concatenate(parts).astype(np.float64)
-            q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)
-            out[key].append(comparable(q))
-    return out
-
-
-def fit_arm_priors(model) -> tuple[StyleCarry, StyleCarry, StyleCarry]:
-    """The output priors of a raised hand (`gestures.py`), for every style: the gesture prior
-    fitted on the frames with a raised hand waving; the raise prior with each side's arm
-    (`gestures.ARM_JOINTS`) fitted on the frames with that hand raised and still, the hanging
-    prior on the frames with that arm down and the other hand raised (a joint's one Gaussian
-    cannot hold both a raised and a hanging arm). Sources: the network (its leaf prior in place)
-    over the neutral inputs' frames of that kind; targets: every real TRAIN frame of that kind.
-    Each map's gains are capped at 1 (`StyleCarry.damping`): it moves the arm's mean pose and
-    range to the style's but never magnifies the network's arm motion; with the full gains a
-    raised hand's sway grew and the content judge read validation raise-ups toward masculine,
-    elderly and feminine as waves. The legs and Hips are only clamped, as by the all-content
-    prior; the raise and hanging priors keep its maps for every other joint."""
-    from .gestures import ARM_JOINTS
-
-    inputs = _neutral_inputs()
-    made = network_rotations(model, inputs)
-    frames = arm_frames(inputs)
-    chosen = {k: np.concatenate([f[k] for f in frames]) for k in ARM_FRAMES}
-    real = real_arm_frames(list(model.styles()))
-    clamped = (HIPS,) + tuple(model.skeleton.index(n) for n in LEG_JOINTS)
-
-    def fitted(key: str) -> StyleCarry:
-        fit = StyleCarry.fit([q[chosen[key]] for q in made], real[key], (ROOT,), clamp_only=clamped)
-        return StyleCarry(fit.source, fit.mean, fit.damping, fit.radius)  # gains capped at 1
-
-    def per_side(kind: str) -> StyleCarry:
-        out, rows = model.output_prior, list(range(len(model.styles())))
-        for s in "LR":
-            out = out.with_maps_of(fitted(f"{kind}_{s}"), rows, [model.skeleton.index(f"{j}_{s}") for j in ARM_JOINTS])
-        return out
-
-    return fitted("waving"), per_side("still"), per_side("hanging")
 
 
 def main(argv: list[str]) -> None:
@@ -286,9 +188,6 @@ def main(argv: list[str]) -> None:
         real = real_rotations(runs=True)
         print(fit_leaf_prior(real).save(folder / RUN_LEAF_FILE))
         print(fit_output_prior(load(folder), real, runs=True).save(folder / RUN_OUTPUT_FILE))
-    if what in ("all", "gestures"):  # after the output prior: the arm priors keep its other maps
-        for name, prior in zip((GESTURE_FILE, RAISE_FILE, HANGING_FILE), fit_arm_priors(load(folder))):
-            print(prior.save(folder / name))
 
 
 if __name__ == "__main__":
