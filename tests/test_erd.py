@@ -302,15 +302,3 @@ def test_a_state_saved_before_the_slow_copies_still_steps(model, walks):
         motion.rotations[5] / np.linalg.norm(motion.rotations[5], axis=-1, keepdims=True),
         atol=1e-12,
     )
-
-
-def test_a_state_saved_before_the_hand_sway_still_steps(model, walks):
-    """Snapshots from a replica before `hand_sway` (`gestures.py`): the sway starts again at 0,
-    the rest of the state is kept."""
-    motion, w, state = _five_frames_in(model, walks[0])
-    frame = FrameBatch(motion.translations[5:6, 1], motion.rotations[5:6])
-    old = {k: v for k, v in state.items() if k != "hand_sway"}
-    up = model.upgrade_state(old)
-    assert not up["hand_sway"].any() and all(np.array_equal(up[k], v) for k, v in old.items())
-    _, after = model.step_batch(up, frame, w)
-    assert after["hand_sway"].shape == (1, 2) and after["hand_sway"].any()  # measured again from this frame

@@ -1,6 +1,6 @@
-"""LPN-FiLM's output prior (`models/lpn/output_prior.py`): the upper body of the styles that have
-one (and active's legs) is carried to the style's real rotations and kept in its real range;
-every other row, style and joint steps exactly as without it."""
+"""LPN-FiLM's output prior (`models/lpn/output_prior.py`): every built-in style's upper body is
+carried to the style's real rotations and kept in its real range, by a prior fitted on its walks
+and one on its runs; the legs, the Hips, and a row with no fitted style, step exactly as without it."""
 
 from __future__ import annotations
 
@@ -31,28 +31,26 @@ def _without(model):
     return bare
 
 
-def test_each_style_carries_only_its_chosen_joints(model):
-    """Active carries its legs too, exhausted only the upper body; the Hips never (model card)."""
-    prior = model.output_prior.carry
+def test_every_style_carries_the_same_joints(model):
+    """Every fitted style, walking and running, carries `CARRIED` and nothing else: the legs and Hips never."""
     names = model.skeleton.names
-    for k, style in enumerate(model.output_prior.styles):
-        carried = {names[j] for j in np.flatnonzero(prior.radius[k] < np.pi)}
-        assert carried == set(CARRIED[style]), style
-    assert set(LEG_JOINTS) <= set(CARRIED["active"]) and not set(LEG_JOINTS) & set(CARRIED["exhausted"])
+    for carry in (model.output_prior.carry, model.output_prior.run):
+        for k, style in enumerate(model.output_prior.styles):
+            carried = {names[j] for j in np.flatnonzero(carry.radius[k] < np.pi)}
+            assert carried == set(CARRIED), style
+    assert not set(LEG_JOINTS) & set(CARRIED) and set(UPPER_BODY) == set(CARRIED)
 
 
-def test_only_the_carried_joints_of_styles_with_a_prior_move(model, walk):
+def test_every_dataset_2_style_has_a_prior_and_only_the_carried_joints_move(model, walk):
     bare = _without(model)
-    assert set(model.output_prior.styles) == {"active", "exhausted"}  # where validation gained (model card)
-    for style in ("elderly", "feminine"):  # no prior: exactly as before
+    assert {"active", "elderly", "exhausted", "feminine", "masculine", "youthful"} <= set(model.output_prior.styles)
+    for style in ("elderly", "feminine"):
         w = model.weight_vector({style: 1.0})
-        np.testing.assert_array_equal(model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations)
-    w = model.weight_vector({"active": 1.0})
-    carried, plain = model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations
-    upper = [model.skeleton.names.index(j) for j in UPPER_BODY]
-    assert np.degrees(quat_angle(carried[:, upper], plain[:, upper])).max() > 5.0
-    # the legs may differ only through the foot planter's state, never the Hips or the root joint
-    np.testing.assert_array_equal(carried[:, :2], plain[:, :2])
+        carried, plain = model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations
+        upper = [model.skeleton.names.index(j) for j in UPPER_BODY]
+        assert np.degrees(quat_angle(carried[:, upper], plain[:, upper])).max() > 2.0
+        # never the Hips or the root joint
+        np.testing.assert_array_equal(carried[:, :2], plain[:, :2])
 
 
 def test_carried_joints_stay_inside_the_styles_real_range(model, walk):
@@ -109,19 +107,16 @@ def _table_without_run_prior(model):
     return bare
 
 
-def test_active_runs_take_their_own_prior_and_walks_and_exhausted_the_one_they_had(model, walk, run):
-    """Active's prior is fitted on walks and on runs apart (`GAIT_SPLIT`), mixed by the gait: a walk
-    is carried exactly as by the walk prior alone; a run moves; exhausted, fitted once, runs as before."""
-    from models.lpn.output_prior import GAIT_SPLIT
-
-    assert GAIT_SPLIT == ("active",)
+@pytest.mark.parametrize("style", ["active", "elderly"])
+def test_runs_take_their_own_prior_and_walks_the_walk_prior(model, walk, run, style):
+    """Each style's prior is fitted on walks and on runs apart, mixed by the gait: a walk is
+    carried exactly as by the walk prior alone; a run moves."""
     once = _table_without_run_prior(model)
     upper = [model.skeleton.names.index(j) for j in UPPER_BODY]
-    active, exhausted = model.weight_vector({"active": 1.0}), model.weight_vector({"exhausted": 1.0})
-    np.testing.assert_array_equal(model.run(walk, active)[0].rotations, once.run(walk, active)[0].rotations)
-    np.testing.assert_array_equal(model.run(run, exhausted)[0].rotations, once.run(run, exhausted)[0].rotations)
+    w = model.weight_vector({style: 1.0})
+    np.testing.assert_array_equal(model.run(walk, w)[0].rotations, once.run(walk, w)[0].rotations)
     moved = np.degrees(
-        quat_angle(model.run(run, active)[0].rotations[30:, upper], once.run(run, active)[0].rotations[30:, upper])
+        quat_angle(model.run(run, w)[0].rotations[30:, upper], once.run(run, w)[0].rotations[30:, upper])
     )
     assert np.median(moved.max(axis=-1)) > 2.0
 

@@ -9,9 +9,7 @@ change with the style. The output Hips rotation is the input's facing yaw times 
 yaw-free Hips rotation. As in the streaming model, the bones keep the input's twists and the
 leaves its rotations (`models.motion.twist.transfer_twist`), carried to the target style and the
 output carried to the style's real rotations when the rotation prior is given (`rotation_prior.py`;
-run priors for the frames the input runs in, `gait.py`; the output prior faded for some styles
-while the input raises a hand, `raised_hand.py`, or following what the raised hand does,
-`gestures.py`; the slow part carried, the fast part on
+run priors for the frames the input runs in, `gait.py`; the slow part carried, the fast part on
 top, `slow_carry.py`). Then the feet are planted frame by frame as in the streaming model
 (`models.motion.feet`; `foot_lock=False` gives the network's output alone).
 """
@@ -27,15 +25,12 @@ from models.motion.rotations import quat_mul, yaw_quat
 
 from ..motion.bn_skeleton import HIPS
 from ..motion.feet import model_rig_planter
-from ..motion.hands import clip_sway, hand_offsets
 from ..motion.skeleton import Motion
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
 from .gait import clip_smoothed_speed, eased_in, run_share
-from .gestures import ArmPriors, by_gesture
 from .model import Generator
-from .raised_hand import kept_in_range, output_prior_weights
 from .slow_carry import clip_carry_slow
 from .twist_range import TwistRange
 
@@ -70,9 +65,6 @@ def stylise(
     output_prior: StyleCarry | None = None,
     run_leaf_prior: StyleCarry | None = None,
     run_output_prior: StyleCarry | None = None,
-    gesture_prior: StyleCarry | None = None,
-    raise_prior: StyleCarry | None = None,
-    hanging_prior: StyleCarry | None = None,
     twist_range: TwistRange | None = None,
 ) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
@@ -95,23 +87,7 @@ def stylise(
     share = eased_in(run_share(clip_smoothed_speed(pos, FPS)), np.arange(len(pos)))
     source = clip_carry_slow(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots)
-    faded = output_prior_weights(w_frames, pos)
-    network_rots = rots
-    rots = clip_carry_slow(output_prior, run_output_prior, network_rots, faded, share, hips=HIPS)
-    if gesture_prior is not None and output_prior is not None:
-
-        def carry(rows: np.ndarray, weights: np.ndarray, mix: tuple[StyleCarry, np.ndarray] | None) -> np.ndarray:
-            """`gestures.Carry` over the clip: those frames re-weighted, the clip carried again."""
-            w_all, by, run = faded.copy(), share.copy(), run_output_prior
-            w_all[rows] = weights
-            if mix is not None:
-                run, by = mix[0], np.zeros(len(share))
-                by[rows] = mix[1]
-            return clip_carry_slow(output_prior, run, network_rots, w_all, by, hips=HIPS)[rows]
-
-        arms = ArmPriors(gesture_prior, raise_prior, hanging_prior)
-        rots = by_gesture(rots, carry, output_prior, faded, pos, clip_sway(hand_offsets(pos), FPS), network_rots, arms)
-    rots = kept_in_range(output_prior, rots, w_frames, faded)
+    rots = clip_carry_slow(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)
     if twist_range is not None:
         rots = twist_range(rots, w_frames)
     if foot_lock:

@@ -12,8 +12,6 @@ State per session (every entry has the session axis first):
                                                         style (in `styles()` order); network dtype
     prev_pos (B, 22, 3), prev_yaw (B,)                  previous input frame (causal velocities)
     gait_speed (B,)                                     the input's averaged Hips speed (`gait.py`)
-    hand_sway (B, 2)                                    each input hand's averaged sideways speed
-                                                        against its shoulder (`gestures.py`)
     slow_in, slow_out (B, 22, 4)                        slowly following copies of the input's and
                                                         the output's rotations (`slow_carry.py`)
     out_root (B, 3)                                     last output Hips translation
@@ -36,10 +34,7 @@ so the head and wrists take the style's attitude inside its real range instead o
 input's; then the output's rotations are carried from what the network produces to the style's
 real distribution and clamped into its real range (`rotation_prior.py`: `leaf_prior.npz`,
 `output_prior.npz` beside the weights). Frames where the input runs take priors fitted on runs
-alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`); while the input raises
-a hand, elderly's output prior steps aside (`raised_hand.py`: fitted over every content, it made
-raise-ups waves), and toward feminine, youthful and active a waving hand takes a prior fitted
-on gestures, toward the first two a still raised arm the network's own (`gestures.py`). Each
+alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`). Each
 prior carries only a slowly following copy of the rotations; their frame-to-frame rest passes
 unscaled, so the priors' gains do not shake the head and arms (`slow_carry.py`). Last, the arms'
 twists about their bones are kept inside the style's real interval (`twist_range.py`: the
@@ -68,7 +63,6 @@ from ..interface import FrameBatch, State
 from ..motion.bn_skeleton import HIPS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
-from ..motion.hands import hand_offsets, sway
 from ..motion.skeleton import Skeleton
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
@@ -77,14 +71,12 @@ from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
 from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
-from .gestures import ArmPriors, by_gesture
-from .raised_hand import kept_in_range, output_prior_weights
 from .rotation_prior import PRIOR_FILES
 from .slow_carry import carry_slow
 from .twist_range import TWIST_FILE, TwistRange
 
 WEIGHTS_FILE = "erd.npz"
-NEWER_KEYS = ("gait_speed", "slow_in", "slow_out", "hand_sway")  # state entries snapshots from older replicas may lack
+NEWER_KEYS = ("gait_speed", "slow_in", "slow_out")  # state entries snapshots from older replicas may lack
 
 
 def _sigmoid_(a: np.ndarray) -> np.ndarray:
@@ -122,9 +114,6 @@ class ERDModel:
         output_prior: StyleCarry | None = None,
         run_leaf_prior: StyleCarry | None = None,
         run_output_prior: StyleCarry | None = None,
-        gesture_prior: StyleCarry | None = None,
-        raise_prior: StyleCarry | None = None,
-        hanging_prior: StyleCarry | None = None,
         twist_range: TwistRange | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
@@ -139,9 +128,6 @@ class ERDModel:
         self.leaf_prior, self.output_prior = leaf_prior, output_prior
         # the same two fitted on runs alone, for frames the input runs in (`gait.py`)
         self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
-        self.gesture_prior = gesture_prior  # a waving hand's output prior (`gestures.py`)
-        self.raise_prior = raise_prior  # a still raised arm's output prior toward active (`gestures.py`)
-        self.hanging_prior = hanging_prior  # the other arm's, while one hand is raised (`gestures.py`)
         self.twist_range = twist_range  # the arms' twists kept in the style's real interval (`twist_range.py`)
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
@@ -164,8 +150,6 @@ class ERDModel:
         rest[..., 3] = 1.0
         none = np.zeros((1, len(TARGET_STYLES)))
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), none)
-        if self.output_prior is not None:  # the clamp alone, which a raised hand takes (`raised_hand.py`)
-            self.output_prior.clamped(rest, none, hips=HIPS)
         if self.twist_range is not None:  # its kernel, with a style weight so that all of it runs
             self.twist_range(rest, np.ones_like(none))
 
@@ -228,7 +212,6 @@ class ERDModel:
             prev_pos=np.zeros((batch, 22, 3)),
             prev_yaw=np.zeros(batch),
             gait_speed=np.full(batch, UNMEASURED),
-            hand_sway=np.zeros((batch, 2)),
             slow_in=np.zeros((batch, 22, 4)),
             slow_out=np.zeros((batch, 22, 4)),
             out_root=np.zeros((batch, 3)),
@@ -275,7 +258,6 @@ class ERDModel:
             ("prev_pos", (B, J, 3)),
             ("prev_yaw", (B,)),
             ("gait_speed", (B,)),
-            ("hand_sway", (B, 2)),
             ("slow_in", (B, J, 4)),
             ("slow_out", (B, J, 4)),
             ("out_root", (B, 3)),
@@ -296,23 +278,9 @@ class ERDModel:
         share = eased_in(run_share(gait_speed), state["frame"])
         source, slow_in = carry_slow(self.leaf_prior, self.run_leaf_prior, rot_in, state["slow_in"], w, share)
         out_rot = transfer_twist(self.skeleton, source, out_rot)
-        faded = output_prior_weights(w, pos)
-        network_rot = out_rot
         out_rot, slow_out = carry_slow(
-            self.output_prior, self.run_output_prior, network_rot, state["slow_out"], faded, share, hips=HIPS
+            self.output_prior, self.run_output_prior, out_rot, state["slow_out"], w, share, hips=HIPS
         )
-        hand_sway = sway(state["hand_sway"], hand_offsets(pos), hand_offsets(state["prev_pos"]), has_prev, FPS)
-        if self.gesture_prior is not None and self.output_prior is not None:
-
-            def carry(rows: np.ndarray, weights: np.ndarray, mix: tuple[StyleCarry, np.ndarray] | None) -> np.ndarray:
-                run, by = (self.run_output_prior, share[rows]) if mix is None else mix
-                return carry_slow(
-                    self.output_prior, run, network_rot[rows], state["slow_out"][rows], weights, by, HIPS
-                )[0]
-
-            arms = ArmPriors(self.gesture_prior, self.raise_prior, self.hanging_prior)
-            out_rot = by_gesture(out_rot, carry, self.output_prior, faded, pos, hand_sway, network_rot, arms)
-        out_rot = kept_in_range(self.output_prior, out_rot, w, faded)
         if self.twist_range is not None:
             out_rot = self.twist_range(out_rot, w)
         planted_root, planted_rot, contacts, feet = self.planter(
@@ -322,7 +290,6 @@ class ERDModel:
             prev_pos=pos,
             prev_yaw=yaw,
             gait_speed=gait_speed,
-            hand_sway=hand_sway,
             slow_in=slow_in,
             slow_out=slow_out,
             out_root=out_root,

@@ -5,9 +5,9 @@ the input's twists carried by the leaf prior, and then the output prior maps who
 with gains up to 2; each scales a twist with the rest. On the validation clips the p95 of how far
 the arms' twist (relative to the style's real mean) went past the real p0.5..p99.5 interval was
 13.2 degrees toward masculine (UpperArm_L), 16.4 toward youthful (LowerArm_L) and 9.8 toward
-elderly (LowerArm_R), against 0.0 for real clips (`out/s24/erd_twist.py`, scratch; both priors
-add to it). The angle clamps of the priors bound a rotation's distance from the style's mean, not
-its twist: a small swing leaves room for a large twist.
+elderly (LowerArm_R), against 0.0 for real clips (both priors add to it). The angle clamps of
+the priors bound a rotation's distance from the style's mean, not its twist: a small swing
+leaves room for a large twist.
 
 So after the priors each arm joint's twist about its bone, relative to the style's real mean, is
 clamped into the style's real TRAIN p1..p99 twist interval (inside the evaluation's p0.5..p99.5,

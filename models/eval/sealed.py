@@ -58,10 +58,13 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
     core = load_models(weights, core_only=True)
     if methods is not None:
         full, core = {k: v for k, v in full.items() if k in methods}, {k: v for k, v in core.items() if k in methods}
-    styles = [s for s in judge.labels if all(s in m.styles() for m in full.values()) and s != "normal"]
+    index = build_index([D2])
+    d2_styles = {c.style for c in index}  # the styles scored: every method's, with dataset-2 clips
+    styles = [
+        s for s in judge.labels if all(s in m.styles() for m in full.values()) and s != "normal" and s in d2_styles
+    ]
     if quick:
         styles = styles[:2]
-    index = build_index([D2])
     # the reference: TRAIN frames for the rotation support, VALIDATION clips for every radius and
     # limit (a validation run keeps the odd ones for its real rows; a final run's are the test clips)
     val = {s: load_motions(select(index, split="val", style=s)) for s in styles}

@@ -1,7 +1,7 @@
 """LPN-FiLM's arm coupling: a style's forearms moved with its upper arms, shoulders and chest as
 they move together in the style's real clips (`ARM_COUPLING_FILE` beside the weights, written by
-`python -m models.lpn.arm_coupling [STYLE ...]`; `runtime.LPNModel` applies it after the output
-prior and before the rotation balls).
+`python -m models.lpn.arm_coupling [STYLE ...]`, the same fit for every style; `runtime.LPNModel`
+applies it after the output prior and before the rotation balls).
 
 After the output prior (`output_prior.py`), LPN-FiLM's active walks swung their upper arms as the
 real active walks do (mean deviation 31.6 against 33.0 degrees) but did not pump their forearms:
@@ -19,9 +19,9 @@ swaps the network's for the real ones:
 
 every d a joint's rotation vector away from the style's real mean (in the joint's own frame, as
 the output prior reads it), B fitted by least squares on the style's real TRAIN locomotion and on
-the network's output (its carriage and output prior in place, driven by the `normal` TRAIN
-locomotion), on walks and on runs apart and mixed by the control's gait share, as the output
-prior is. What the network's forearm does apart from its drivers stays. A style mix blends the
+the network's output (its carriage and output prior in place, driven by the neutral TRAIN
+locomotion), on walks and on runs apart (`carriage.locomotion`) and mixed by the control's gait
+share, as the output prior is. What the network's forearm does apart from its drivers stays. A style mix blends the
 corrections as the output prior does (q' = q exp(sum_s w_s log(q^-1 f_s(q)))); a row that weighs
 no coupled style, and every joint but the forearms, is left exactly as it was.
 """
@@ -32,13 +32,14 @@ import sys
 
 import numpy as np
 
-from ..motion.coupling import Coupling, Link, couple, couple_numpy, write_coupling
-from .carriage import LOCOMOTION, SKIP_FRAMES, train_clips
+from ..eval.run import DATASET, INPUT_STYLE
+from ..motion.coupling import GAITS, Coupling, Link, couple, couple_numpy, write_coupling
+from .carriage import SKIP_FRAMES, fitted_styles, locomotion
 
 ARM_COUPLING_FILE = "arm_coupling.npz"
-COUPLED = ("active",)  # the styles validation chose (model card)
 LINKS: tuple[Link, ...] = tuple((f"LowerArm_{s}", (f"UpperArm_{s}", f"Shoulder_{s}", "Chest")) for s in "LR")
-COUPLING_ROWS = ("couple_mean", "couple_walk", "couple_run", "couple_on")  # its style-table rows
+ROW_KEYS = ("mean", *GAITS, "on")  # `Coupling.aligned`'s arrays
+COUPLING_ROWS = tuple(f"couple_{k}" for k in ROW_KEYS)  # its style-table rows
 FIT_FRAMES = 300
 
 
@@ -49,7 +50,7 @@ def table_rows(coupling: Coupling, names: list[str]) -> dict[str, np.ndarray]:
 
 
 def _aligned(table) -> dict[str, np.ndarray] | None:
-    rows = {k: table.get(f"couple_{k}") for k in ("mean", "walk", "run", "on")}
+    rows = {k: table.get(f"couple_{k}") for k in ROW_KEYS}
     return None if rows["on"] is None else rows
 
 
@@ -72,27 +73,28 @@ def couple_rows_numpy(
     return rotations if aligned is None else couple_numpy(rotations, weights, gait, joints, aligned)
 
 
-def fit(model, styles: list[str], dataset: str = "bandai-namco-2") -> Coupling:
+def fit(model, styles: list[str], dataset: str = DATASET) -> Coupling:
     """The coupling of `styles` from `model` (its carriage and output prior in place, no coupling),
-    on walks and on runs apart (`carriage.LOCOMOTION`)."""
+    on walks and on runs apart (`carriage.locomotion`)."""
     from ..eval.run import stylise
 
-    clips = train_clips(dataset)
+    clips = locomotion(dataset)
     model = model.with_own_styles()
     model.arm_coupling = None
 
     def real(style: str, gait: str) -> list[np.ndarray]:
-        return [m.rotations for m in clips(style, LOCOMOTION[gait])]
+        return [m.rotations for m in clips(style)[gait]]
 
     def made(style: str, gait: str) -> list[np.ndarray]:
-        inputs = [m.slice(0, FIT_FRAMES) for m in clips("normal", LOCOMOTION[gait])]
+        inputs = [m.slice(0, FIT_FRAMES) for m in clips(INPUT_STYLE)[gait]]
         return [o.rotations[SKIP_FRAMES:] for o in stylise(model, inputs, [model.styles().index(style)] * len(inputs))]
 
     return Coupling.fit(styles, LINKS, model.skeleton.names, real, made)
 
 
 def main(argv: list[str]) -> None:
-    """`STYLE ...` (default: `COUPLED`): refits those, keeping the file's other styles."""
+    """`STYLE ...` (default: every style with TRAIN clips in the dataset): refits those, keeping
+    the file's other styles."""
     import time
 
     import torch
@@ -104,7 +106,9 @@ def main(argv: list[str]) -> None:
     t0 = time.time()
     folder = get_settings().weights_dir / "lpn"
     path = folder / ARM_COUPLING_FILE
-    coupling = write_coupling(fit(load(folder), argv or list(COUPLED)), path, keep_others=bool(argv))
+    model = load(folder)
+    styles = argv or fitted_styles(model.styles(), DATASET)
+    coupling = write_coupling(fit(model, styles), path, keep_others=bool(argv))
     print(f"wrote {path} for {', '.join(coupling.styles)} in {time.time() - t0:.0f} s")
 
 

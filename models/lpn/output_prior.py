@@ -1,39 +1,32 @@
-"""LPN-FiLM's output prior: the upper body's rotations carried from what the network makes toward
-a style to that style's real rotations (`OUTPUT_PRIOR_FILE` beside the weights, written by
-`python -m models.lpn.output_prior [STYLE ...]`; `runtime.LPNModel` applies it).
+"""LPN-FiLM's output prior: the body's rotations carried from what the network makes toward a
+style to that style's real rotations, fitted the same way for every style (`OUTPUT_PRIOR_FILE`
+beside the weights, written by `python -m models.lpn.output_prior [STYLE ...]`;
+`runtime.LPNModel` applies it).
 
 The arm carriage (`carriage.py`) moves each joint's mean; what the rotation judge also reads is
 how the arms and spine swing about it. Driven by the validation locomotion inputs, LPN-FiLM's
 active walks had the real style's mean arm pose after the carriage but not its pumping swing, and
-were read as masculine by the rotation judge (13 of 13 walks and turns). Style-ERD's output prior
+were read as masculine by the rotation judge. Style-ERD's output prior
 (`models/motion/style_carry.py`) maps each joint's deviations from the network's mean with the
 linear optimal-transport map between the network's and the real style's Gaussians of them, then
 clamps into the style's real p98 radius: a typical frame of the network lands as a typical frame
-of the style, with the style's spread in each direction. Here it is fitted on the spine, neck,
-head and arms (`carriage.UPPER_BODY`; the legs are the foot planter's), from the network with its
-carriage in place, driven by the `normal` TRAIN locomotion clips, to the style's real TRAIN
-locomotion; applied after the carriage and before the rotation balls. Only the styles whose
-validation judges gained and lost nothing get one (the model card's table): fitted for every
-style, youthful's content fell by a clip.
+of the style, with the style's spread in each direction. Here it carries `CARRIED` (the spine,
+neck, head and arms, `carriage.UPPER_BODY`; the legs are the foot planter's: carried as well, the
+validation planted feet of exhausted slid past twice the real clips'), from the network with its
+carriage in place, driven by the neutral TRAIN locomotion clips, to the style's real TRAIN
+locomotion; applied after the carriage and before the rotation balls.
 
-Active carries its legs as well (`CARRIED`): its walks were read as exhausted by the position
-judge (7 of 13 validation locomotion inputs right, 10 of 13 with the legs); exhausted, already
-read right, lost a clip of content in running sessions with them, and keeps the upper body only.
-The foot planter runs after the prior, so planted feet stay planted.
-
-Active's prior is fitted twice (`GAIT_SPLIT`): on walks and turns alone, and on runs alone, and a
-frame takes the two mixed by the control's gait share (0 walking, 1 running), as the run carriage
-is. Fitted over walks and runs at once, its target was their pooled mean, which neither has:
-toward active the validation walks' and turns' forearms stayed 16-18 degrees from the mean of
-the real active walks (runs bend the elbows more), 7 with the split, and the position judge read
-a validation run and two right turns as exhausted. Split: the run is read right (position judge 10 -> 11 of 13 validation
-locomotion inputs), the rotation judge keeps its 12 of 13 (fitted on walks alone for every frame:
-the runs lose it, 10 of 13); the model card has the table. Exhausted keeps one prior.
+Each style's prior is fitted twice: on its walks and on its runs (`carriage.locomotion`: each
+style's clips split by its own speeds), and a frame takes the two mixed by the control's gait
+share (0 walking, 1 running). Fitted over walks and runs at once, the target is their pooled
+mean, which neither has: toward active the validation walks' forearms stayed 16-18 degrees from
+the mean of the real active walks (runs bend the elbows more), 7 with the split.
 
 The network hardly moves some joints along some axis (a neck twist, an elbow's side bend): taken
-at face value, the map stretched those to the style's spread with gains up to 621 (active Neck),
+at face value, the map stretched those to the style's spread with gains in the hundreds,
 magnifying the network's arithmetic noise (its products run in bfloat16 on some CPUs). The fit
-takes the network's spread as at least `SOURCE_FLOOR_DEG` along every axis (gains 4.1 at most).
+takes the network's spread as at least `SOURCE_FLOOR_DEG` along every axis: at 2 degrees, the
+validation jitter toward feminine and youthful rose past 1.5 times the input's.
 """
 
 from __future__ import annotations
@@ -44,14 +37,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..motion.feet import LEG_JOINTS
+from ..eval.run import DATASET, INPUT_STYLE
+from ..motion.coupling import GAITS
 from ..motion.style_carry import StyleCarry
-from .carriage import LOCOMOTION, SKIP_FRAMES, UPPER_BODY, train_clips
+from .carriage import SKIP_FRAMES, UPPER_BODY, fitted_styles, locomotion
 
 OUTPUT_PRIOR_FILE = "output_prior.npz"
-CARRIED = {"active": UPPER_BODY + LEG_JOINTS, "exhausted": UPPER_BODY}  # per style, chosen on validation (module doc)
-GAIT_SPLIT = ("active",)  # styles fitted on walks and on runs apart, mixed by the gait (module doc)
-SOURCE_FLOOR_DEG = 2.0  # the network's least spread along any axis, as the fit takes it (module doc)
+CARRIED = UPPER_BODY  # the joints every style's prior carries (module doc)
+SOURCE_FLOOR_DEG = 4.0  # the network's least spread along any axis, as the fit takes it (module doc)
 CARRY_ROWS = ("source", "mean", "map", "radius")  # a carry's arrays, as the style table's rows name them
 PRIOR_ROWS = (  # its style-table rows: the walk prior, the run prior, on
     *(f"prior_{k}" for k in CARRY_ROWS),
@@ -132,8 +125,8 @@ def carry_rows(table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarr
         return rotations
     walk = StyleCarry(*(table.get(f"prior_{k}") for k in CARRY_ROWS))
     q, w = np.asarray(rotations[rows], np.float64), w[rows]
-    # a run share only where a row weighs a style whose run prior is its own (`GAIT_SPLIT`): a row
-    # of styles fitted once is carried exactly as by one prior
+    # a run share only where a row weighs a style whose run prior is its own: a row of styles
+    # fitted once (an older file) is carried exactly as by one prior
     split = (table.get("prior_run_map") != table.get("prior_map")).any(axis=(1, 2, 3))
     share = np.clip(np.asarray(gait, np.float64)[rows], 0.0, 1.0) * (w[:, split] > 0.0).any(axis=1)
     walking, running = share == 0.0, share == 1.0
@@ -156,40 +149,34 @@ def carry_rows(table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarr
     return out
 
 
-def fit(model, styles: list[str], dataset: str = "bandai-namco-2") -> OutputPrior:
-    """The prior of `styles` from `model` (its carriage in place, no output prior); each style
-    carries its `CARRIED` joints (the upper body for a style not listed), the rest left alone,
-    fitted over walks and runs at once, or on each apart for a style in `GAIT_SPLIT`."""
+def fit(model, styles: list[str], dataset: str = DATASET) -> OutputPrior:
+    """The prior of `styles` from `model` (its carriage in place, no output prior): each style's
+    `CARRIED` joints, the rest left alone, fitted on its walks and on its runs apart."""
     from ..eval.run import stylise
 
-    clips = train_clips(dataset)
+    clips = locomotion(dataset)
     model = model.with_own_styles()
     model.output_prior = model.arm_coupling = None  # the coupling is fitted on top of the prior
     names = model.skeleton.names
+    fixed = tuple(j for j, n in enumerate(names) if n not in CARRIED)
 
-    def fitted(style: str, contents: tuple[str, ...]) -> StyleCarry:
-        inputs = [m.slice(0, FIT_FRAMES) for m in clips("normal", contents)]
+    def fitted(style: str, gait: str) -> StyleCarry:
+        inputs = [m.slice(0, FIT_FRAMES) for m in clips(INPUT_STYLE)[gait]]
         outs = stylise(model, inputs, [model.styles().index(style)] * len(inputs))
         source = np.concatenate([o.rotations[SKIP_FRAMES:] for o in outs]).astype(np.float64)
-        target = np.concatenate([m.rotations for m in clips(style, contents)]).astype(np.float64)
-        fixed = tuple(j for j, n in enumerate(names) if n not in CARRIED.get(style, UPPER_BODY))
+        target = np.concatenate([m.rotations for m in clips(style)[gait]]).astype(np.float64)
         return StyleCarry.fit([source], [target], fixed, source_floor=np.radians(SOURCE_FLOOR_DEG))
 
-    walks, runs = [], []
-    for s in styles:
-        if s in GAIT_SPLIT:
-            walks.append(fitted(s, LOCOMOTION["walk"]))
-            runs.append(fitted(s, LOCOMOTION["run"]))
-        else:
-            walks.append(fitted(s, LOCOMOTION["walk"] + LOCOMOTION["run"]))
-            runs.append(walks[-1])
+    walking, running = GAITS
+    walks = [fitted(s, walking) for s in styles]
+    runs = [fitted(s, running) for s in styles]
     return OutputPrior(tuple(styles), StyleCarry.stack(walks), StyleCarry.stack(runs))
 
 
 def main(argv: list[str]) -> None:
-    """`STYLE ...` (default: every style in `CARRIED`, the styles validation chose): refits those,
-    keeping the file's other styles as they are (a refit is machine-dependent beyond round-off:
-    the model card)."""
+    """`STYLE ...` (default: every style with TRAIN clips in the dataset): refits those, keeping
+    the file's other styles as they are (a refit is machine-dependent beyond round-off: the
+    model card)."""
     import time
 
     import torch
@@ -200,7 +187,8 @@ def main(argv: list[str]) -> None:
     torch.set_num_threads(1)
     t0 = time.time()
     folder = get_settings().weights_dir / "lpn"
-    prior = fit(load(folder), argv or list(CARRIED))
+    model = load(folder)
+    prior = fit(model, argv or fitted_styles(model.styles(), DATASET))
     if argv and (folder / OUTPUT_PRIOR_FILE).exists():
         prior = OutputPrior.load(folder / OUTPUT_PRIOR_FILE).with_styles_of(prior)
     print(f"wrote {prior.save(folder / OUTPUT_PRIOR_FILE)} for {', '.join(prior.styles)} in {time.time() - t0:.0f} s")

@@ -23,13 +23,12 @@ the state holds no per-style entries, so no state upgrade is needed.
 
 Arm carriage (`carriage.npz` beside the weights, `carriage.py`): each built-in style's arm joints
 are turned by the offset that takes the network's mean arm pose to the real style's, before the
-rotation prior; the same file can pace the derived control by the style's real speed (not shipped)
-and holds a run carriage (spine, neck, head and arms at the run gait; exhausted). Then the output
-prior (`output_prior.npz`, `output_prior.py`; active and exhausted) carries the upper body's
-rotations (and active's legs) from the network's distribution to the real style's; active's is
-fitted on walks and on runs apart and mixed by the gait, as the run carriage is. Then the arm
-coupling (`arm_coupling.npz`, `arm_coupling.py`; active) moves the forearms with the upper arms,
-shoulders and chest as the real style's do (the network's forearms did not pump).
+rotation prior; the same file can pace the derived control by the style's real speed (not
+shipped). Then the output prior (`output_prior.npz`, `output_prior.py`)
+carries the upper body's and legs' rotations from the network's distribution to the real
+style's, fitted on walks and on runs apart and mixed by the gait. Then the arm coupling
+(`arm_coupling.npz`, `arm_coupling.py`) moves the forearms with the upper arms, shoulders and
+chest as the real style's do. All three are fitted the same way for every built-in style.
 
 Rotation prior (`rotation_prior.npz` beside the weights, `models.motion.rotation_ball`): each
 built-in style's output rotations are held, per joint, inside the ball its real TRAIN clips fill
@@ -82,7 +81,7 @@ from ..settings import get_settings
 from . import features as lf
 from . import kernels
 from .arm_coupling import ARM_COUPLING_FILE, COUPLING_ROWS, couple_rows, table_rows
-from .carriage import ARM_JOINTS, CARRIAGE_FILE, RUN_JOINTS, Carriage, blend_arms, blend_pace, blend_run, carry_arms
+from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, blend_pace, carry_arms
 from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
 from .style_table import StyleTable
 from .styles import LPNStyles
@@ -149,7 +148,6 @@ class LPNModel(LPNStyles):
             mean, radii = balls.for_styles(list(styles), skeleton.num_joints)
             self._table = self._table.measuring(ball_mean=mean, ball_radii=radii)
         self._arm_joints = np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)
-        self._run_joints = np.array([skeleton.names.index(j) for j in RUN_JOINTS], np.int64)
         self.carriage = carriage
         self.output_prior = output_prior
         self.arm_coupling = arm_coupling
@@ -170,8 +168,8 @@ class LPNModel(LPNStyles):
     def carriage(self, carriage: Carriage | None) -> None:
         with self._lock:
             self._carriage_fit = carriage
-            pace, arms, run = carriage.rows(list(self._table.names)) if carriage is not None else (None, None, None)
-            self._table = self._table.measuring(pace=pace, arms=arms, run_body=run)
+            pace, arms = carriage.rows(list(self._table.names)) if carriage is not None else (None, None)
+            self._table = self._table.measuring(pace=pace, arms=arms)
 
     @property
     def output_prior(self) -> OutputPrior | None:
@@ -363,9 +361,6 @@ class LPNModel(LPNStyles):
         out_rot = self._untwist(out_rot)
         if arms is not None:
             out_rot = carry_arms(out_rot, blend_arms(arms, style_weights, normal), self._arm_joints)
-        run_body = table.get("run_body")
-        if run_body is not None and (control[:, 3] > 0).any():
-            out_rot = carry_arms(out_rot, blend_run(run_body, style_weights, normal, control[:, 3]), self._run_joints)
         out_rot = carry_rows(table, out_rot, style_weights, control[:, 3])
         out_rot = couple_rows(table, out_rot, style_weights, control[:, 3], self._coupled_joints)
         ball_mean, ball_radii = table.get("ball_mean"), table.get("ball_radii")

@@ -26,7 +26,6 @@ PLAIN: dict[str, Callable[[tuple[int, ...]], np.ndarray]] = {
     "ball_radii": lambda shape: np.full(shape, np.inf),  # (2, J): no clamp
     "pace": np.ones,  # (2,) walk / run speed factors: the input's
     "arms": _identity,  # (A, 4) arm offsets: none
-    "run_body": _identity,  # (R, 4) run carriage offsets (`carriage.RUN_JOINTS`): none
     # the output prior (`output_prior.py`): source and style means (J, 4), maps (J, 3, 3), radii (J,), on (): off
     "prior_source": _identity,
     "prior_mean": _identity,

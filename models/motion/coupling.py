@@ -31,6 +31,7 @@ from .rotations import quat_exp, quat_inv, quat_log, quat_mean, quat_mul
 
 Link = tuple[str, tuple[str, ...]]  # a joint and the joints it follows
 GAITS = ("walk", "run")
+RCOND = 1e-2  # `regression`'s cut-off, relative to the largest singular value
 
 
 def link_indices(links: Sequence[Link], names: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -61,11 +62,13 @@ def design(q: np.ndarray, mean: np.ndarray, drivers: np.ndarray) -> np.ndarray:
 
 def regression(q: np.ndarray, mean: np.ndarray, target: int, drivers: np.ndarray) -> np.ndarray:
     """(3D + 1, 3): the least-squares map from the drivers' deviations to the target's over the
-    frames of rotations (N, J, 4); zero rows for padded drivers."""
+    frames of rotations (N, J, 4); zero rows for padded drivers. Directions of the drivers'
+    deviations under `RCOND` of the largest are left out: a network that keeps a driver's axis
+    still gave that axis gains of 1e4-1e6, which turned float32 round-off into visible turns."""
     x = design(q, mean, drivers)
     used = np.concatenate([np.repeat(drivers >= 0, 3), [True]])
     out = np.zeros((x.shape[1], 3))
-    out[used] = np.linalg.lstsq(x[:, used], deviations(q[:, target], mean[target]), rcond=None)[0]
+    out[used] = np.linalg.lstsq(x[:, used], deviations(q[:, target], mean[target]), rcond=RCOND)[0]
     return out
 
 

@@ -1,9 +1,8 @@
 """What a hand does, measured on the Bandai Namco rig: how far it is raised and how it moves.
 
-Style-ERD (`models/erd/gestures.py`, `raised_hand.py`) and LTI (`models/lti/raised_arm.py`,
-`waving_arm.py`) switch a raised arm's treatment by these: a raised hand that holds still is a
-raise-up, one that sways at a level height is a wave. Causal, per frame: a frame's shares read
-that frame and the running averages.
+LTI (`models/lti/raised_arm.py`, `waving_arm.py`) switches a raised arm's treatment by these: a
+raised hand that holds still is a raise-up, one that sways at a level height is a wave. Causal,
+per frame: a frame's shares read that frame and the running averages.
 
 - **Raise share:** each hand's height above its own shoulder (the UpperArm joint) on a ramp over
   `RAISE_RAMP_CM`: from the TRAIN `normal` runs' p99 (-12 cm; a running arm's swing reaches past it
