@@ -79,6 +79,9 @@ class TrainConfig:
     # axis, `hinge_axes`): `w_hinge` penalises the streamed rotation's swing off that axis, which
     # the streaming model's bone-direction rotations leave free
     w_hinge: float = 0.0
+    # fine-tuning: keep the transferred positions and velocities near those of the generator the
+    # run started from (a frozen copy), so a rotation loss moves only what it must, not the style
+    w_teacher: float = 0.0
     w_adv_rot: float = 0.0
     snapshot_every: int = 0  # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest)
     d_warmup: int = 0  # iterations that train only the discriminator first (a new one, with --init_weights)
@@ -529,6 +532,14 @@ def main(argv: list[str]) -> None:
             clf.load_state_dict(torch.load(Path(cfg.init_from).with_name("classifier.pt"), map_location="cpu"))
             clf_acc = init["classifier_val_acc"]
             log(f"initialised from {cfg.init_from} (iteration {init['iter']})")
+    teacher = None
+    if cfg.w_teacher:  # the generator as it starts (or as the resumed run started)
+        import copy
+
+        teacher = copy.deepcopy(gen)
+        if ck is not None and ck.get("teacher") is not None:
+            teacher.load_state_dict(ck["teacher"])
+        teacher.eval().requires_grad_(False).to(device)
     gen.to(device)
     disc.to(device)
     clf.to(device)
@@ -589,6 +600,7 @@ def main(argv: list[str]) -> None:
                 "opt_dr": None if opt_dr is None else opt_dr.state_dict(),
                 "schedule": asdict(schedule),
                 "rng": rng_state(train_s.rng),
+                "teacher": None if teacher is None else {k: v.cpu() for k, v in teacher.state_dict().items()},
             },
         )
 
@@ -636,6 +648,12 @@ def main(argv: list[str]) -> None:
             source = leaf_source(leaf_prior, x, target) if leaf_prior is not None else None
             streamed = streamed_rotations(skeleton, out["rot"][B:], x, source)
         zero = torch.zeros((), device=device)
+        l_teacher = zero
+        if teacher is not None:
+            with torch.no_grad(), autocast:
+                t_out = teacher(x, s_in, c_in, one_hot_targets(target))
+            t_view = losses.fake_view({k: v.float() for k, v in t_out.items()})
+            l_teacher = sum(((fake_view[k] - t_view[k]) / scale[k]).pow(2).mean() for k in ("pos", "vel"))
         l_prior = prior_loss(streamed, target, prior) if cfg.w_prior and streamed is not None else zero
         l_hinge = hinge_loss(streamed, hinges) if cfg.w_hinge and streamed is not None else zero
         l_adv_rot = (
@@ -651,6 +669,7 @@ def main(argv: list[str]) -> None:
             + cfg.w_per * l_per
             + cfg.w_prior * l_prior
             + cfg.w_hinge * l_hinge
+            + cfg.w_teacher * l_teacher
             + cfg.w_adv_rot * l_adv_rot
         )
         if it >= cfg.d_warmup:
@@ -692,6 +711,7 @@ def main(argv: list[str]) -> None:
                 pos=f"{l_pos.item():.4f}",
                 adv=f"{l_adv.item():.3f}",
                 hinge=f"{l_hinge.item():.4f}",
+                teacher=f"{float(l_teacher):.4f}",
                 prior=f"{l_prior.item():.4f}",
                 per=f"{l_per.item():.3f}",
                 d=f"{loss_d.item():.3f}",
@@ -710,6 +730,7 @@ def main(argv: list[str]) -> None:
                 train_d=loss_d.item(),
                 train_prior=l_prior.item(),
                 train_hinge=l_hinge.item(),
+                train_teacher=float(l_teacher),
                 train_adv_rot=l_adv_rot.item(),
             )
             history.append(v)
