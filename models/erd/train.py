@@ -15,7 +15,10 @@ perceptual loss), (2) the generator + FT-Att discriminator: reconstruction (quat
 FK position, velocity) with target style = input style, LSGAN (real 1, fake -1, generator 0)
 with R1 on real samples, perceptual loss against the input's classifier features. Neutral
 clips get a random target style, styled clips the neutral target. Input labels are dropped at
-random so that unlabelled streams work.
+random so that unlabelled streams work. Optional terms on the streamed rotations (what the
+streaming model outputs: the decoder's bone directions with the input's twists): `w_prior`
+(the target style's range), `w_hinge` (hinge joints off their hinge), `w_adv_rot` (a second
+discriminator); `w_teacher` anchors a fine-tune's transfer to the generator it started from.
 """
 
 from __future__ import annotations
