@@ -116,7 +116,7 @@ class Generator(nn.Module):
 def fk_local(rot: torch.Tensor, height: torch.Tensor, offsets: torch.Tensor, parents) -> torch.Tensor:
     """Joint positions (..., 21, 3) in the facing frame from body rotations (..., 21, 4) (Hips
     rotation relative to the facing frame) and Hips heights (...)."""
-    ident = torch.zeros(rot.shape[:-2] + (1, 4), dtype=rot.dtype)
+    ident = torch.zeros(rot.shape[:-2] + (1, 4), dtype=rot.dtype, device=rot.device)
     ident[..., 3] = 1.0
     full = torch.cat([ident, rot], -2)
     trans = offsets.expand(rot.shape[:-2] + offsets.shape).clone()

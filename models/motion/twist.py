@@ -122,7 +122,7 @@ def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tenso
         else:
             g = quat_mul_t(g_new[p], source[..., j, :])
             if kind == "bone":
-                a = torch.as_tensor(axis, dtype=pose.dtype).expand(g.shape[:-1] + (3,))
+                a = torch.as_tensor(axis, dtype=pose.dtype, device=pose.device).expand(g.shape[:-1] + (3,))
                 g = quat_mul_t(_rotation_between_t(quat_apply_t(g, a), quat_apply_t(g_pose[j], a)), g)
         g_new.append(g)
         inv = torch.cat([-g_new[p][..., :3], g_new[p][..., 3:]], dim=-1)
