@@ -35,6 +35,7 @@ from ..runlog import start_run
 from ..settings import REPO_ROOT
 from ..train_config import parse_overrides
 from . import features as lf
+from .weights import NORMALISATION
 
 try:
     from tqdm import tqdm
@@ -83,6 +84,7 @@ class TrainConfig:
     # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest): the lowest validation
     # loss is not the best closed-loop controller, so runs keep snapshots to be chosen by streaming
     snapshot_every: int = 0
+    snapshot_half: bool = False  # snapshots as float16 networks (9 MB: what a device run can send back)
     run_dir: str = str(REPO_ROOT / ".data" / "lpn" / "run")
     out_dir: str = str(REPO_ROOT / "out" / "lpn")
     resume: bool = False  # continue run_dir/ckpt.pt (its settings, then these overrides) if it exists
@@ -303,12 +305,30 @@ def set_rng_state(rng: np.random.Generator, state: dict) -> None:
     random.setstate(state["python"])
 
 
-def save(path: Path, net, mcfg, cfg, styles, it, seconds, history, opt=None, schedule=None, rng=None) -> None:
-    """A checkpoint that `--resume` continues exactly: network, optimiser, schedule, RNG, step."""
+def save(
+    path: Path,
+    net,
+    mcfg,
+    cfg,
+    styles,
+    it,
+    seconds,
+    history,
+    opt=None,
+    schedule=None,
+    rng=None,
+    order=None,
+    half: bool = False,
+) -> None:
+    """A checkpoint that `--resume` continues exactly: network, optimiser, schedule, RNG, step
+    (a snapshot: the network alone, in float16 with `half`; loading converts it back)."""
     tmp = path.with_suffix(".tmp")
+    model = {k: v.detach().cpu() for k, v in net.state_dict().items()}
+    if half:
+        model = {k: v.half() if v.is_floating_point() and k not in NORMALISATION else v for k, v in model.items()}
     torch.save(
         {
-            "model": {k: v.cpu() for k, v in net.state_dict().items()},
+            "model": model,
             "model_config": asdict(mcfg),
             "train_config": asdict(cfg),
             "styles": styles,
@@ -319,6 +339,7 @@ def save(path: Path, net, mcfg, cfg, styles, it, seconds, history, opt=None, sch
             "optimizer": None if opt is None else opt.state_dict(),
             "schedule": None if schedule is None else asdict(schedule),
             "rng": None if rng is None else rng_state(rng),
+            "order": None if order is None else [int(k) for k in order],  # styles left in this cycle
         },
         tmp,
     )
@@ -438,17 +459,17 @@ def main(argv: list[str]) -> None:
     schedule = Schedule(cfg.lr, cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
     history: list[dict] = []
     it = 0
+    order: list[int] = []  # the styles left in this cycle, popped one per step
     if ck is not None:
         opt.load_state_dict(ck["optimizer"])
         schedule = Schedule(
             **{**ck["schedule"], "total_s": schedule.total_s if cfg.schedule_minutes else ck["schedule"]["total_s"]}
         )
         set_rng_state(rng, ck["rng"])
-        it, history = ck["iter"], ck["history"]
+        it, history, order = ck["iter"], ck["history"], ck.get("order") or []
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16(cfg.bf16, device))
     rollouts = max(cfg.batch // K, 1)
     t0, budget, seconds0, first_it = time.time(), cfg.minutes * 60, schedule.elapsed_s, it
-    order: list[int] = []
     bar = (tqdm or _Quiet)(total=cfg.max_iters, initial=it, desc="lpn", mininterval=10, file=sys.stderr)
     last = time.time()
     while it < cfg.max_iters and time.time() - t0 < budget:
@@ -494,9 +515,21 @@ def main(argv: list[str]) -> None:
             log("val " + " ".join(f"{a}={b:.4g}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()))
             last = time.time()  # validation is not training time
         if it % cfg.ckpt_every == 0:
-            save(run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng)
+            save(
+                run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng, order
+            )
         if cfg.snapshot_every and it % cfg.snapshot_every == 0:
-            save(run_dir / f"ckpt_{it:06d}.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history)
+            save(
+                run_dir / f"ckpt_{it:06d}.pt",
+                net,
+                mcfg,
+                cfg,
+                styles,
+                it,
+                schedule.elapsed_s,
+                history,
+                half=cfg.snapshot_half,
+            )
         if schedule.progress() >= 1.0:
             break
     bar.close()
@@ -504,7 +537,19 @@ def main(argv: list[str]) -> None:
     v.update(iter=it, minutes=round(schedule.elapsed_s / 60, 2))
     history.append(v)
     log("final val " + " ".join(f"{a}={b:.4g}" for a, b in v.items()))
-    save(run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng)
+    save(run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng, order)
+    if cfg.snapshot_every:
+        save(
+            run_dir / f"ckpt_{it:06d}.pt",
+            net,
+            mcfg,
+            cfg,
+            styles,
+            it,
+            schedule.elapsed_s,
+            history,
+            half=cfg.snapshot_half,
+        )
     trained = schedule.elapsed_s - seconds0
     log(
         f"done: {it} iterations, {schedule.elapsed_s / 60:.1f} min of training; this session "
