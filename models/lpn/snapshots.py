@@ -2,7 +2,9 @@
 
 Streams dataset-2 VALIDATION neutral clips (never the test split) through each candidate's core
 alone (network + foot planter, `load(..., core_only=True)`) toward every dataset-2 style and
-prints, per style: the sealed evaluation's style judge accuracy (`eval/style_judge.py`), the
+prints, per style: the sealed evaluation's style judge accuracy (`eval/style_judge.py`) over all
+clips and over the locomotion ones alone ("walking": the others are gestures standing still, which
+the judge reads as `elderly` unless the network's standing posture carries the style), the
 content judge's accuracy (`eval/judges.py`, as the sealed evaluation's content gate), the pace
 (median over the locomotion clips of the output's hip travel over the input's) and the FiLM generator's live
 units: over 120-frame windows of that style's real validation clips, the share of the second
@@ -11,7 +13,7 @@ above 5 %; a unit below it passes the same value for every clip and gets no grad
 share above zero.
 
     .venv/bin/python -m models.lpn.snapshots models/weights/lpn .data/lpn/run_loop/ckpt_003000.pt
-    .venv/bin/python -m models.lpn.snapshots --clips=20 --frames=150 CANDIDATE ...
+    .venv/bin/python -m models.lpn.snapshots --clips=20 --frames=150 --tuned=false CANDIDATE ...
 
 A candidate is a weights folder (its tuned vectors applied, as shipped) or a training checkpoint
 (exported to a scratch folder first: style vectors = the generator's mean over training clips).
@@ -47,6 +49,7 @@ class Options:
     clips: int = 0  # validation neutral clips streamed (0 = all), spread over the contents
     frames: int = 150  # frames of each (5 s at 30 fps; 0 = whole clips)
     styles: tuple[str, ...] = tuple(s for s in D2_STYLES if s != "normal")
+    tuned: bool = True  # a weights folder with its tuned style vectors (False: the generator's means)
 
 
 def validation_inputs(opts: Options) -> tuple[list[Motion], list[str]]:
@@ -91,16 +94,16 @@ def live_units(net, windows: np.ndarray) -> tuple[float, float]:
     return float((h > FLOOR).float().mean()), float((h > 0).float().mean())
 
 
-def load_candidate(path: Path, scratch: Path):
+def load_candidate(path: Path, scratch: Path, tuned: bool = True):
     """The core alone of a weights folder or of a checkpoint (exported into `scratch`)."""
-    from . import load
-    from .weights import export_weights
+    from .runtime import LPNModel
+    from .weights import export_weights, read_weights
 
     if path.is_file():
         folder = scratch / path.stem
         export_weights(path, folder)
         path = folder
-    return load(path, core_only=True)
+    return LPNModel(*read_weights(path, tuned=tuned))  # as `load(path, core_only=True)`
 
 
 def evaluate(model, inputs, contents, windows, opts: Options, judge, old) -> dict[str, dict]:
@@ -114,6 +117,7 @@ def evaluate(model, inputs, contents, windows, opts: Options, judge, old) -> dic
         live, positive = live_units(net, windows[s])
         rows[s] = {
             "style": float(np.mean([r == s for r in read])),
+            "walking": float(np.mean([r == s for r, w in zip(read, walks) if w])),
             "content": float(np.mean([g == c for g, c in zip(got, contents)])),
             "pace": pace([o for o, w in zip(outs[s], walks) if w], [i for i, w in zip(inputs, walks) if w]),
             "live": live,
@@ -133,22 +137,27 @@ def main(argv: list[str]) -> None:
     windows = style_windows(opts.styles)
     judge, old = load_style_judge(), load_judges()
     print(f"{len(inputs)} dataset-2 validation neutral clips, {opts.frames or 'all'} frames, core alone", flush=True)
+    standing = sum(c not in LOCOMOTION for c in contents)
+    print(f"{standing} of them stand (gestures); 'walking': the style judge on the others", flush=True)
     print(
-        f"{'candidate':34s} {'style':10s} {'judge':>6s} {'content':>8s} {'pace':>5s} {'live':>5s} {'>0':>5s}  read as"
+        f"{'candidate':34s} {'style':10s} {'judge':>6s} {'walking':>8s} {'content':>8s} {'pace':>5s} {'live':>5s} "
+        f"{'>0':>5s}  read as"
     )
     with tempfile.TemporaryDirectory() as scratch:
         for path in paths:
-            rows = evaluate(load_candidate(path, Path(scratch)), inputs, contents, windows, opts, judge, old)
+            model = load_candidate(path, Path(scratch), opts.tuned)
+            rows = evaluate(model, inputs, contents, windows, opts, judge, old)
             for s, r in rows.items():
                 print(
-                    f"{str(path)[-34:]:34s} {s:10s} {r['style']:6.2f} {r['content']:8.2f} {r['pace']:5.2f} "
-                    f"{r['live']:5.2f} {r['above0']:5.2f}  {r['read_as']}"
+                    f"{str(path)[-34:]:34s} {s:10s} {r['style']:6.2f} {r['walking']:8.2f} {r['content']:8.2f} "
+                    f"{r['pace']:5.2f} {r['live']:5.2f} {r['above0']:5.2f}  {r['read_as']}"
                 )
-            means = {k: np.mean([r[k] for r in rows.values()]) for k in ("style", "content", "pace", "live")}
+            keys = ("style", "walking", "content", "pace", "live")
+            m = {k: np.mean([r[k] for r in rows.values()]) for k in keys}
             worst = min(r["style"] for r in rows.values())
             print(
-                f"{str(path)[-34:]:34s} {'MEAN':10s} {means['style']:6.2f} {means['content']:8.2f} "
-                f"{means['pace']:5.2f} {means['live']:5.2f}  worst style {worst:.2f}",
+                f"{str(path)[-34:]:34s} {'MEAN':10s} {m['style']:6.2f} {m['walking']:8.2f} {m['content']:8.2f} "
+                f"{m['pace']:5.2f} {m['live']:5.2f}  worst style {worst:.2f}",
                 flush=True,
             )
 
