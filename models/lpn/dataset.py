@@ -106,16 +106,41 @@ class ClipSamples:
     style_feats: np.ndarray  # (F, STYLE_DIM) every frame of the clip, for the FiLM generator
 
 
+@dataclass
+class ClipFrames:
+    """A clip's per-frame quantities, from which every sample is a gather (`samples_from_frames`):
+    what a packed training set keeps (`carry.py`)."""
+
+    pose: np.ndarray  # (F, NB, 12) pose features in the character frame
+    xz: np.ndarray  # (F, 2) world ground position of the Hips
+    yaw: np.ndarray  # (F,) facing yaw
+    phases: np.ndarray  # (F, 4, 2) local phase features
+    frequency: np.ndarray  # (F, 4) Hz
+    contacts: np.ndarray  # (F, 2) 0/1
+
+
+def clip_frames(motion: Motion, axes=None) -> ClipFrames:
+    grot, gpos = motion.global_transforms()
+    w = lf.clip_frames(grot, gpos, motion.skeleton, motion.fps)
+    yaw, root, vel = w["yaw"], w["root"], w["vel"]
+    lp = local_phases(motion, axes)
+    pose = lf.pose_features(gpos, vel, grot, root, yaw)
+    return ClipFrames(pose, root[:, [0, 2]], yaw, lp.features, lp.frequency, lp.contacts.astype(float))
+
+
 def clip_samples(motion: Motion, gait: float, axes=None) -> ClipSamples:
     """Every frame t with a full future (t + 1 + 30 inside the clip) as one sample; past samples
     before the clip start repeat its first frame, as a stream's history does."""
-    grot, gpos = motion.global_transforms()
-    w = lf.clip_frames(grot, gpos, motion.skeleton, motion.fps)
-    yaw, root, vel, root_vel = w["yaw"], w["root"], w["vel"], w["root_vel"]
-    pose = lf.pose_features(gpos, vel, grot, root, yaw)  # (F, NB, 12)
-    lp = local_phases(motion, axes)
-    F = motion.num_frames
-    xz, dirs = root[:, [0, 2]], lf.direction(yaw)
+    return samples_from_frames(clip_frames(motion, axes), gait, motion.fps)
+
+
+def samples_from_frames(fr: ClipFrames, gait: float, fps: float = lf.FPS) -> ClipSamples:
+    F = len(fr.yaw)
+    xz, yaw, pose = fr.xz, fr.yaw, fr.pose
+    root_vel = np.zeros_like(xz)
+    root_vel[1:] = (xz[1:] - xz[:-1]) * fps  # the Hips' backward difference, as `features.clip_frames`
+    dirs = lf.direction(yaw)
+    feats = fr.phases.reshape(F, -1)
     t = np.arange(0, max(F - 1 - lf.FUTURE * lf.STEP, 0))
     idx = np.clip(t[:, None] + lf.OFFSETS[None], 0, F - 1)
     X = np.concatenate(
@@ -125,7 +150,7 @@ def clip_samples(motion: Motion, gait: float, axes=None) -> ClipSamples:
         ],
         axis=1,
     )
-    G = lp.features[idx].reshape(len(t), -1)
+    G = feats[idx].reshape(len(t), -1)
     t1 = t + 1
     fidx = t1[:, None] + lf.OFFSETS[None, lf.PAST + 1 :]
     y1 = yaw[t1][:, None]
@@ -138,15 +163,15 @@ def clip_samples(motion: Motion, gait: float, axes=None) -> ClipSamples:
         axis=-1,
     ).reshape(len(t), -1)
     delta = np.concatenate([lf.to_local_xz(xz[t1] - xz[t], yaw[t]), wrap_angle(yaw[t1] - yaw[t])[:, None]], axis=1)
-    phases = lp.features[t1[:, None] + lf.OFFSETS[None, lf.PAST :]].reshape(len(t), -1)
+    phases = feats[t1[:, None] + lf.OFFSETS[None, lf.PAST :]].reshape(len(t), -1)
     Y = np.concatenate(
-        [traj, pose[t1].reshape(len(t), -1), delta, phases, lp.frequency[t1], lp.contacts[t1].astype(float)], axis=1
+        [traj, pose[t1].reshape(len(t), -1), delta, phases, fr.frequency[t1], fr.contacts[t1].astype(float)], axis=1
     )
     return ClipSamples(
         X.astype(np.float32),
         G.astype(np.float32),
         Y.astype(np.float32),
-        lf.style_features(pose, root_vel, yaw, motion.fps).astype(np.float32),
+        lf.style_features(pose, root_vel, yaw, fps).astype(np.float32),
     )
 
 
@@ -202,8 +227,10 @@ def cache_dir(cfg: DataConfig = DataConfig()) -> Path:
 
 
 def _build_split(
-    clips: list[Clip], motions: list[Motion], styles: list[str], mirror_too: bool, log
-) -> dict[str, np.ndarray]:
+    clips: list[Clip], motions: list[Motion], styles: list[str], mirror_too: bool, log, frames_only: bool = False
+) -> dict:
+    """The split's arrays as the cache stores them; `frames_only`: each variant's `ClipFrames`
+    instead of its samples, with the names, styles and gaits (what `carry.pack` keeps)."""
     shortest = lf.FUTURE * lf.STEP + 3  # one sample needs frame t, t + 1 and 30 frames after it
     kept = [(c, m) for c, m in zip(clips, motions) if m.num_frames >= shortest]
     if len(kept) < len(clips):
@@ -215,11 +242,20 @@ def _build_split(
     for c, m, _ in variants:
         groups[(c.dataset, c.style, c.content)].append(m)
     axes = {k: style_axes(v) for k, v in groups.items()}
-    jobs = [(m, gait_of(c.content), axes[(c.dataset, c.style, c.content)]) for c, m, _ in variants]
+    jobs = [(m, axes[(c.dataset, c.style, c.content)]) for c, m, _ in variants]
     out = defaultdict(list)
     offset = 0
-    for i, ((c, _, mirrored), s) in enumerate(zip(variants, _samples_of_every_clip(jobs))):
+    for i, ((c, m, mirrored), fr) in enumerate(zip(variants, _frames_of_every_clip(jobs))):
         k = styles.index(style_name(c))
+        out["clip_style"].append(k)
+        out["names"].append(c.name + ("-mirror" if mirrored else ""))
+        out["gait"].append(gait_of(c.content))
+        if i % 200 == 0:
+            log(f"  {i}/{len(variants)} clips")
+        if frames_only:
+            out["frames"].append(fr)
+            continue
+        s = samples_from_frames(fr, gait_of(c.content), m.fps)
         out["X"].append(s.X)
         out["G"].append(s.G)
         out["Y"].append(s.Y)
@@ -228,11 +264,14 @@ def _build_split(
         out["feats"].append(s.style_feats)
         out["starts"].append(offset)
         out["lengths"].append(len(s.style_feats))
-        out["clip_style"].append(k)
-        out["names"].append(c.name + ("-mirror" if mirrored else ""))
         offset += len(s.style_feats)
-        if i % 200 == 0:
-            log(f"  {i}/{len(variants)} clips")
+    if frames_only:
+        return {
+            "frames": out["frames"],
+            "names": out["names"],
+            "clip_style": np.array(out["clip_style"]),
+            "gait": np.array(out["gait"]),
+        }
     arrays = {k: np.concatenate(out[k]) for k in ("X", "G", "Y", "style", "clip", "feats")}
     arrays.update(
         starts=np.array(out["starts"]),
@@ -243,19 +282,19 @@ def _build_split(
     return arrays
 
 
-def _clip_samples_job(job: tuple[Motion, float, Any]) -> ClipSamples:
-    return clip_samples(*job)
+def _clip_frames_job(job: tuple[Motion, Any]) -> ClipFrames:
+    return clip_frames(*job)
 
 
-def _samples_of_every_clip(jobs: Sequence[tuple[Motion, float, Any]]) -> Iterator[ClipSamples]:
-    """`clip_samples` of every job, in order, on every core: each clip is independent, and the
+def _frames_of_every_clip(jobs: Sequence[tuple[Motion, Any]]) -> Iterator[ClipFrames]:
+    """`clip_frames` of every job, in order, on every core: each clip is independent, and the
     build is the first step of a GPU lease (16 cores there) as well as of a 2-core machine."""
     workers = min(os.cpu_count() or 1, 16)
     if workers == 1 or len(jobs) < 8:
-        yield from map(_clip_samples_job, jobs)
+        yield from map(_clip_frames_job, jobs)
         return
     with ProcessPoolExecutor(workers) as pool:  # the platform's default, as the parse cache's pool (loader.py)
-        yield from pool.map(_clip_samples_job, jobs, chunksize=8)
+        yield from pool.map(_clip_frames_job, jobs, chunksize=8)
 
 
 def _load(clips: list[Clip]) -> list[Motion]:

@@ -1,21 +1,28 @@
-"""Train LPN-FiLM on Bandai Namco locomotion (CPU-friendly, nanoGPT style: the config is the
-dataclass below; override any field on the command line as --field=value).
+"""Train LPN-FiLM on Bandai Namco locomotion (nanoGPT style: the config is the dataclass below;
+override any field on the command line as --field=value).
 
-    .venv/bin/python -m models.lpn train --minutes=60          # then exports models/weights/lpn
+    .venv/bin/python -m models.lpn train --minutes=60                     # then exports models/weights/lpn
+    .venv/bin/python -m models.lpn.train --resume --minutes=60 --no_export # continue run_dir/ckpt.pt
     .venv/bin/python -m models.lpn.train --export=.data/lpn/run/ckpt.pt
 
 Every step is a minibatch of one style (cycling through the styles in a shuffled order); the
-FiLM parameters come from the generator run on random 120-frame windows of that style's training
-clips, so the generator learns to embed a clip and the motion network to obey it. Loss: MSE on the
-normalised output plus the bone-length loss on the predicted pose. AdamW with a cosine learning
-rate over the wall-clock budget; validation loss (trained styles with their mean FiLM, held-out
-styles with the FiLM of their own clips vs. of `normal`) every `eval_every` steps.
+FiLM parameters come from the generator run on a random 120-frame window of that style's training
+clips, so the generator learns to embed a clip and the motion network to obey it. A minibatch is
+`batch // rollout` rollouts of `rollout` consecutive frames (`rollout.py`): a share of them (rising
+from `closed_from` to `closed_to`) feed the network its own previous output, as the runtime does,
+so it learns to carry itself rather than only to continue recorded frames. Loss: MSE on the
+normalised output plus the bone-length loss on the predicted pose, over every rollout frame. AdamW
+with a cosine learning rate over the training time (`Schedule`, counted across resumed sessions);
+validation every `eval_every` steps: one-frame loss (trained styles with their mean FiLM, held-out
+styles with the FiLM of their own clips vs. of `normal`) and the closed-loop loss `val_loop`.
+Choose a snapshot by streaming validation clips (`python -m models.lpn.snapshots`), not by loss.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import random
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -23,51 +30,72 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from ..runlog import start_run
 from ..settings import REPO_ROOT
 from ..train_config import parse_overrides
 from . import features as lf
+from .weights import NORMALISATION
+
+try:
+    from tqdm import tqdm
+except ImportError:  # a bare device machine: the log lines are the progress
+    tqdm = None  # type: ignore[assignment]
 
 
 @dataclass
 class TrainConfig:
     seed: int = 1234
-    threads: int = 2
-    device: str = "cpu"  # "cuda" on a GPU lease (MODEL_CARD, Training); "auto" takes a GPU where there is one
-    batch: int = 128
+    threads: int = 1  # the machine is shared; a GPU lease may take more
+    device: str = "cpu"  # "cuda" on a GPU lease (`make lpn-gpu`); "auto" takes a GPU where there is one
+    # bfloat16 autocast: "auto" where the hardware multiplies it natively (a CUDA device, a CPU with
+    # avx512_bf16 or AMX; measured in MODEL_CARD), else "true" / "false"
+    bf16: str = "auto"
+    batch: int = 128  # frames per step: batch // rollout rollouts
     hidden: int = 256  # 512 (the paper) runs at 1400 samples/s on 2 cores and exceeds 12 MB in float16; see MODEL_CARD
     dropout: float = 0.3
     film_norm: bool = True  # LPNConfig.film_norm: keeps the FiLM generator's units from saturating
+    # closed-loop training (`rollout.py`): frames per rollout (1 = teacher forcing), the share of
+    # rollouts fed back the network's own output from `closed_from` to `closed_to` over the first
+    # `closed_ramp` of the schedule, and whether gradients stop at each fed-back output
+    rollout: int = 8
+    closed_from: float = 0.25
+    closed_to: float = 1.0
+    closed_ramp: float = 0.3
+    detach: bool = False
+    val_rollouts: int = 32  # per style, for the closed-loop validation loss
     # std of Gaussian noise on the normalised input pose (the pose the runtime feeds back from the
-    # network's own last output) and phases, so the network learns to pull a drifted pose back
-    # rather than only to continue a clean one (0 = teacher forcing alone, as the committed run)
+    # network's own last output) and phases (0 = none)
     pose_noise: float = 0.0
     noise_velocities: bool = True  # with pose_noise: also on the joints' velocities (False: positions and axes only)
-    # with pose_noise: also on the phases (False: the gating sees clean phases, which set the cadence)
-    noise_phases: bool = True
-    minutes: float = 60.0  # wall-clock budget
+    noise_phases: bool = True  # with pose_noise: also on the phases
+    minutes: float = 60.0  # this session's wall-clock budget
+    schedule_minutes: float = 0.0  # training time the cosine spans, across resumed sessions (0: `minutes`)
     max_iters: int = 1_000_000
     lr: float = 7e-4
-    lr_decay_to: float = 0.05  # cosine to this fraction of lr over the budget
+    lr_decay_to: float = 0.05  # cosine to this fraction of lr over the schedule
     weight_decay: float = 1e-4
     w_bone: float = 1.0
     film_windows: int = 1  # windows per step whose FiLM parameters are averaged
     film_eval_windows: int = 4  # windows per style for the style means during validation (the export uses 32)
     eval_every: int = 500
     eval_samples: int = 256  # per style
-    render_every: int = 0  # 0: render only at the end
-    ckpt_every: int = 200
-    # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest): the lowest one-frame
-    # validation loss is not the best closed-loop controller (MODEL_CARD, session 17), so runs keep
-    # snapshots to be chosen by streaming the validation clips
+    ckpt_every: int = 200  # run_dir/ckpt.pt, what --resume continues
+    # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest): the lowest validation
+    # loss is not the best closed-loop controller, so runs keep snapshots to be chosen by streaming
     snapshot_every: int = 0
+    snapshot_half: bool = False  # snapshots as float16 networks (9 MB: what a device run can send back)
     run_dir: str = str(REPO_ROOT / ".data" / "lpn" / "run")
     out_dir: str = str(REPO_ROOT / "out" / "lpn")
+    resume: bool = False  # continue run_dir/ckpt.pt (its settings, then these overrides) if it exists
+    data: str = ""  # a packed training set (`carry.py`) instead of the cache, e.g. on a GPU lease
     hundred_style_dir: str = ""  # train on a 100STYLE folder (hundred_style.py) instead of Bandai Namco
     export: str = ""  # path of a checkpoint to export to models/weights/lpn instead of training
     init_from: str = ""  # continue from this checkpoint's network (same data and sizes); a fresh optimiser
+    # start from a weights folder's network (gating, experts, normalisation) with a fresh generator,
+    # first fitted for `film_fit_steps` to that folder's style vectors
+    warm_from: str = ""
+    film_fit_steps: int = 300
     no_export: bool = False
 
 
@@ -220,15 +248,135 @@ def pose_noise_scale(cfg: TrainConfig) -> torch.Tensor:
     return scale
 
 
-def lr_at(cfg: TrainConfig, frac: float) -> float:
-    return cfg.lr * (cfg.lr_decay_to + (1 - cfg.lr_decay_to) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0))))
-
-
 def body_bones(skeleton) -> tuple[np.ndarray, np.ndarray]:
     """Parents of the body joints as body indices (-1 for Hips) and rest bone lengths (NB,)."""
     parents = np.array([int(skeleton.parents[j]) - 1 for j in lf.BODY])
     lengths = np.linalg.norm(skeleton.offsets[lf.BODY], axis=-1)
     return parents, lengths
+
+
+# --------------------------------------------------------------------------- state that resumes
+
+
+@dataclass
+class Schedule:
+    """Cosine learning rate over `total_s` seconds of training, counted across resumed sessions
+    (a wall-clock budget, so a contended CPU and a GPU lease both end where they were told)."""
+
+    lr: float
+    decay_to: float
+    total_s: float
+    elapsed_s: float = 0.0
+
+    def progress(self) -> float:
+        return min(self.elapsed_s / max(self.total_s, 1e-9), 1.0)
+
+    def rate(self) -> float:
+        return self.lr * (self.decay_to + (1 - self.decay_to) * 0.5 * (1 + math.cos(math.pi * self.progress())))
+
+
+def use_bf16(setting: str, device: torch.device) -> bool:
+    """Whether to autocast to bfloat16: "auto" where it is native (CUDA; avx512_bf16 or AMX CPUs)."""
+    if setting != "auto":
+        return setting.lower() in ("1", "true", "yes", "on")
+    if device.type == "cuda":
+        return True
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return " avx512_bf16" in flags or " amx_bf16" in flags
+
+
+def closed_share(cfg: TrainConfig, progress: float) -> float:
+    """Share of rollouts that feed back the network's own output: `closed_from` rising linearly to
+    `closed_to` over the first `closed_ramp` of the schedule (scheduled sampling)."""
+    ramp = min(progress / cfg.closed_ramp, 1.0) if cfg.closed_ramp > 0 else 1.0
+    return cfg.closed_from + (cfg.closed_to - cfg.closed_from) * ramp
+
+
+def rng_state(rng: np.random.Generator) -> dict:
+    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(), "python": random.getstate()}
+
+
+def set_rng_state(rng: np.random.Generator, state: dict) -> None:
+    rng.bit_generator.state = state["numpy"]
+    torch.set_rng_state(state["torch"])
+    random.setstate(state["python"])
+
+
+def save(
+    path: Path,
+    net,
+    mcfg,
+    cfg,
+    styles,
+    it,
+    seconds,
+    history,
+    opt=None,
+    schedule=None,
+    rng=None,
+    order=None,
+    half: bool = False,
+) -> None:
+    """A checkpoint that `--resume` continues exactly: network, optimiser, schedule, RNG, step
+    (a snapshot: the network alone, in float16 with `half`; loading converts it back)."""
+    tmp = path.with_suffix(".tmp")
+    model = {k: v.detach().cpu() for k, v in net.state_dict().items()}
+    if half:
+        model = {k: v.half() if v.is_floating_point() and k not in NORMALISATION else v for k, v in model.items()}
+    torch.save(
+        {
+            "model": model,
+            "model_config": asdict(mcfg),
+            "train_config": asdict(cfg),
+            "styles": styles,
+            "iter": it,
+            "seconds": seconds,
+            "history": history,
+            "argv": sys.argv,
+            "optimizer": None if opt is None else opt.state_dict(),
+            "schedule": None if schedule is None else asdict(schedule),
+            "rng": None if rng is None else rng_state(rng),
+            "order": None if order is None else [int(k) for k in order],  # styles left in this cycle
+        },
+        tmp,
+    )
+    tmp.replace(path)
+
+
+def warm_start(net, weights_dir: Path, styles: list[str]) -> torch.Tensor:
+    """Load a weights folder's gating, motion network and normalisation into `net` (the FiLM
+    generator stays fresh: the committed one is dead, `film_norm` gives a new one that is not);
+    returns that folder's per-style FiLM vectors (S, 4, H), the new generator's first target."""
+    from .weights import read_weights
+
+    arrays, _, config = read_weights(weights_dir)
+    if config["styles"] != styles:
+        raise SystemExit(f"{weights_dir} has other styles: {config['styles']}")
+    own = net.state_dict()
+    kept = {k: torch.as_tensor(v) for k, v in arrays.items() if k in own and not k.startswith("film.")}
+    net.load_state_dict(kept, strict=False)
+    return torch.as_tensor(arrays["style_film"]).view(len(styles), 4, -1)
+
+
+def fit_generator(net, clips: StyleClips, targets: torch.Tensor, steps: int, log, batch: int = 8) -> None:
+    """Regress the generator's output on windows of each style onto that style's vector, so a
+    warm-started network starts from the styles it had (its motion network reads those vectors)."""
+    dev = net.X_mean.device
+    with torch.no_grad():  # the shared part in the bias at once, the per-style part learnt
+        net.film.out.bias.copy_(targets.mean(0).reshape(-1).to(dev))
+    opt = torch.optim.Adam(net.film.parameters(), lr=1e-3)
+    for step in range(steps):
+        k = step % len(targets)
+        w = torch.from_numpy(np.stack([clips.window(k) for _ in range(batch)])).to(dev)
+        loss = (net.style_film(w) - targets[k].to(dev)).pow(2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if (step + 1) % 100 == 0:
+            log(f"generator fit {step + 1}/{steps}: mse {loss.item():.4f}")
 
 
 # --------------------------------------------------------------------------- main
@@ -241,7 +389,13 @@ def main(argv: list[str]) -> None:
 
         print(export_weights(Path(cfg.export)))
         return
+    resume = Path(cfg.run_dir) / "ckpt.pt" if cfg.resume else None
+    ck = None
+    if resume is not None and resume.exists():
+        ck = torch.load(resume, map_location="cpu", weights_only=False)
+        cfg = parse_overrides(TrainConfig(**ck["train_config"]), argv)  # the run's settings, then today's overrides
     torch.set_num_threads(cfg.threads)
+    random.seed(cfg.seed)
     torch.manual_seed(cfg.seed)
     auto = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(auto if cfg.device == "auto" else cfg.device)
@@ -249,104 +403,211 @@ def main(argv: list[str]) -> None:
     from ..motion.assets import bandai_namco_pose
     from .dataset import load_meta, load_split, load_stats
     from .network import LPN, LPNConfig
+    from .rollout import rollout, rollout_starts
     from .weights import data_config
 
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
     log = start_run(run_dir, out_dir)
 
     data = data_config(asdict(cfg))
-    meta = load_meta(data)
-    styles, train, val = meta["styles"], load_split("train", data), load_split("val", data)
-    heldout = load_split("heldout", data) if meta["heldout"]["clips"] else None
-    stats = load_stats(data)
+    if cfg.data:  # a packed training set (`carry.py`): no cache, no raw data needed
+        from .carry import unpack
+
+        meta, train, val, stats = unpack(Path(cfg.data))
+        heldout = None
+    else:
+        meta = load_meta(data)
+        train, val = load_split("train", data), load_split("val", data)
+        heldout = load_split("heldout", data) if meta["heldout"]["clips"] else None
+        stats = load_stats(data)
+    styles = meta["styles"]
     skeleton = bandai_namco_pose().skeleton
     parents, lengths_np = body_bones(skeleton)
     lengths = torch.as_tensor(lengths_np, dtype=torch.float32, device=device)
     mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout, film_norm=cfg.film_norm)
     net = LPN(mcfg, stats)
-    if cfg.init_from:
-        ckpt = torch.load(cfg.init_from, map_location="cpu", weights_only=False)
-        if ckpt["styles"] != styles:
-            raise SystemExit(f"{cfg.init_from} was trained on other styles: {ckpt['styles']}")
-        net.load_state_dict(ckpt["model"])
+    train_clips = StyleClips(train, 120, rng)
+    held_clips = None if heldout is None else StyleClips(heldout, 120, rng)
+    warm_films = None
+    if ck is not None:
+        net.load_state_dict(ck["model"])
+    elif cfg.init_from:
+        init = torch.load(cfg.init_from, map_location="cpu", weights_only=False)
+        if init["styles"] != styles:
+            raise SystemExit(f"{cfg.init_from} was trained on other styles: {init['styles']}")
+        net.load_state_dict(init["model"])
+    elif cfg.warm_from:
+        warm_films = warm_start(net, Path(cfg.warm_from), styles)
     net.to(device)
-    log(f"config {json.dumps(asdict(cfg))}; device {device}")
+    log(
+        f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {use_bf16(cfg.bf16, device)}; "
+        f"resumed from {resume if ck else None}"
+    )
     log(
         f"data: train {len(train.X)} samples / {len(train.names)} clips, val {len(val.X)}, "
         f"heldout {0 if heldout is None else len(heldout.X)}; "
         f"{len(styles)} styles; parameters {sum(p.numel() for p in net.parameters())}"
     )
-    train_clips = StyleClips(train, 120, rng)
-    held_clips = None if heldout is None else StyleClips(heldout, 120, rng)
-    by_style = {k: np.flatnonzero(train.style == k) for k in range(len(styles))}
+    if warm_films is not None and cfg.film_fit_steps:
+        fit_generator(net, train_clips, warm_films, cfg.film_fit_steps, log)
+    K = max(cfg.rollout, 1)
+    starts = rollout_starts(train.clip, train.style, K)
+    val_starts = rollout_starts(val.clip, val.style, K)
     X, G, Y = (torch.from_numpy(a).to(device) for a in (train.X, train.G, train.Y))
-    noise_scale = pose_noise_scale(cfg).to(device)
+    noise_scale = pose_noise_scale(cfg).to(device) if cfg.pose_noise else None
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    t0 = time.time()
-    budget = cfg.minutes * 60
+    schedule = Schedule(cfg.lr, cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
     history: list[dict] = []
-    order: list[int] = []
-    bar = tqdm(total=cfg.max_iters, desc="lpn", mininterval=10, file=sys.stderr)
     it = 0
+    order: list[int] = []  # the styles left in this cycle, popped one per step
+    if ck is not None:
+        opt.load_state_dict(ck["optimizer"])
+        schedule = Schedule(
+            **{**ck["schedule"], "total_s": schedule.total_s if cfg.schedule_minutes else ck["schedule"]["total_s"]}
+        )
+        set_rng_state(rng, ck["rng"])
+        it, history, order = ck["iter"], ck["history"], ck.get("order") or []
+    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16(cfg.bf16, device))
+    rollouts = max(cfg.batch // K, 1)
+    t0, budget, seconds0, first_it = time.time(), cfg.minutes * 60, schedule.elapsed_s, it
+    bar = (tqdm or _Quiet)(total=cfg.max_iters, initial=it, desc="lpn", mininterval=10, file=sys.stderr)
+    last = time.time()
     while it < cfg.max_iters and time.time() - t0 < budget:
+        lr = schedule.rate()
         for group in opt.param_groups:
-            group["lr"] = lr_at(cfg, (time.time() - t0) / budget)
+            group["lr"] = lr
         if not order:
             order = list(rng.permutation(len(styles)))
         k = int(order.pop())
-        idx = torch.from_numpy(rng.choice(by_style[k], cfg.batch)).to(device)
+        first = torch.from_numpy(rng.choice(starts[k], rollouts)).to(device)
+        idx = first[:, None] + torch.arange(K, device=device)
         windows = torch.from_numpy(np.stack([train_clips.window(k) for _ in range(cfg.film_windows)])).to(device)
-        film = net.style_film(windows).mean(0, keepdim=True)
-        xn, gn = net.normalise_x(X[idx]), net.normalise_g(G[idx])
-        if cfg.pose_noise:
-            xn = xn + noise_scale * torch.randn_like(xn)
-            if cfg.noise_phases:
-                gn = gn + cfg.pose_noise * torch.randn_like(gn)
-        pred = net(xn, gn, film)
-        target = net.normalise_y(Y[idx])
-        loss, mse, bone = training_loss(net, pred, target, parents, lengths, cfg.w_bone)
+        closed = torch.from_numpy(rng.random(rollouts) < closed_share(cfg, schedule.progress())).to(device)
+        with autocast:
+            film = net.style_film(windows).mean(0, keepdim=True)
+            pred, target = rollout(
+                net, X[idx], G[idx], Y[idx], film, closed, cfg.detach, noise_scale, cfg.pose_noise * cfg.noise_phases
+            )
+        pred = pred.float().reshape(-1, pred.shape[-1])
+        loss, mse, bone = training_loss(net, pred, target.reshape(pred.shape), parents, lengths, cfg.w_bone)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         it += 1
+        now = time.time()
+        schedule.elapsed_s += now - last
+        last = now
         bar.update(1)
         if it % 50 == 0:
-            bar.set_postfix(mse=f"{mse.item():.4f}", bone=f"{bone.item():.5f}")
+            bar.set_postfix(mse=f"{mse.item():.4f}", bone=f"{bone.item():.5f}", closed=f"{closed.float().mean():.2f}")
         if it % cfg.eval_every == 0:
-            films = style_films(net, train_clips, list(range(len(styles))), limit=cfg.film_eval_windows)
-            v = validate(
-                net, val, films, heldout, held_clips, films[styles.index("normal")], cfg.eval_samples, parents, lengths
-            )
+            v = evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths, rng)
             v.update(
                 iter=it,
-                minutes=round((time.time() - t0) / 60, 2),
+                minutes=round(schedule.elapsed_s / 60, 2),
+                samples_per_s=round((it - first_it) * rollouts * K / max(schedule.elapsed_s - seconds0, 1e-9), 1),
                 train_mse=mse.item(),
                 train_bone=bone.item(),
-                lr=opt.param_groups[0]["lr"],
+                lr=lr,
+                closed=closed_share(cfg, schedule.progress()),
             )
             history.append(v)
             log("val " + " ".join(f"{a}={b:.4g}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()))
+            last = time.time()  # validation is not training time
         if it % cfg.ckpt_every == 0:
-            save(run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, time.time() - t0, history)
+            save(
+                run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng, order
+            )
         if cfg.snapshot_every and it % cfg.snapshot_every == 0:
-            save(run_dir / f"ckpt_{it:06d}.pt", net, mcfg, cfg, styles, it, time.time() - t0, history)
-        if cfg.render_every and it % cfg.render_every == 0:
-            render_progress(run_dir, out_dir, f"it{it:06d}", log)
+            save(
+                run_dir / f"ckpt_{it:06d}.pt",
+                net,
+                mcfg,
+                cfg,
+                styles,
+                it,
+                schedule.elapsed_s,
+                history,
+                half=cfg.snapshot_half,
+            )
+        if schedule.progress() >= 1.0:
+            break
     bar.close()
-    films = style_films(net, train_clips, list(range(len(styles))), limit=cfg.film_eval_windows)
-    v = validate(
-        net, val, films, heldout, held_clips, films[styles.index("normal")], cfg.eval_samples, parents, lengths
-    )
-    v.update(iter=it, minutes=round((time.time() - t0) / 60, 2))
+    v = evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths, rng)
+    v.update(iter=it, minutes=round(schedule.elapsed_s / 60, 2))
     history.append(v)
     log("final val " + " ".join(f"{a}={b:.4g}" for a, b in v.items()))
-    save(run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, time.time() - t0, history)
-    log(f"done: {it} iterations in {(time.time() - t0) / 60:.1f} min")
+    save(run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng, order)
+    if cfg.snapshot_every:
+        save(
+            run_dir / f"ckpt_{it:06d}.pt",
+            net,
+            mcfg,
+            cfg,
+            styles,
+            it,
+            schedule.elapsed_s,
+            history,
+            half=cfg.snapshot_half,
+        )
+    trained = schedule.elapsed_s - seconds0
+    log(
+        f"done: {it} iterations, {schedule.elapsed_s / 60:.1f} min of training; this session "
+        f"{(it - first_it) * rollouts * K / max(trained, 1e-9):.0f} samples/s"
+    )
     if not cfg.no_export:
         from .weights import export_weights
 
         log(f"exported to {export_weights(run_dir / 'ckpt.pt')}")
         render_progress(run_dir, out_dir, "final", log)
+
+
+def evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths, rng) -> dict:
+    """One-frame validation (`validate`) and the closed-loop loss: `val_rollouts` rollouts per
+    style of `rollout` frames on validation clips, every one feeding back the network's output."""
+    from .rollout import rollout
+
+    films = style_films(net, train_clips, list(range(len(styles))), limit=cfg.film_eval_windows)
+    v = validate(
+        net, val, films, heldout, held_clips, films[styles.index("normal")], cfg.eval_samples, parents, lengths
+    )
+    K, dev = max(cfg.rollout, 1), net.X_mean.device
+    net.eval()
+    errs = []
+    with torch.no_grad():
+        for k, film in films.items():
+            if len(val_starts.get(k, ())) == 0:
+                continue
+            pick = np.random.default_rng(k).choice(
+                val_starts[k], min(cfg.val_rollouts, len(val_starts[k])), replace=False
+            )
+            idx = torch.from_numpy(pick).to(dev)[:, None] + torch.arange(K, device=dev)
+            p, t = rollout(
+                net,
+                *(torch.from_numpy(a).to(dev)[idx] for a in (val.X, val.G, val.Y)),
+                film[None],
+                torch.ones(len(pick), dtype=torch.bool, device=dev),
+            )
+            errs.append(((p - t) ** 2).mean().item())
+    net.train()
+    v["val_loop"] = float(np.mean(errs)) if errs else float("nan")
+    return v
+
+
+class _Quiet:
+    """The progress bar where tqdm is not installed: the log lines carry the progress."""
+
+    def __init__(self, **_: object) -> None:
+        pass
+
+    def update(self, n: int) -> None:
+        pass
+
+    def set_postfix(self, **_: object) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
 
 
 def render_progress(run_dir: Path, out_dir: Path, tag: str, log) -> None:
@@ -357,24 +618,6 @@ def render_progress(run_dir: Path, out_dir: Path, tag: str, log) -> None:
         log(f"render {render_demo(out_dir, tag=tag, seconds=12.0, styles=('normal', 'elderly'))}")
     except Exception as exc:  # a render must never stop a training run
         log(f"render skipped: {exc!r}")
-
-
-def save(path: Path, net, mcfg, cfg, styles, it, seconds, history) -> None:
-    tmp = path.with_suffix(".tmp")
-    torch.save(
-        {
-            "model": {k: v.cpu() for k, v in net.state_dict().items()},
-            "model_config": asdict(mcfg),
-            "train_config": asdict(cfg),
-            "styles": styles,
-            "iter": it,
-            "seconds": seconds,
-            "history": history,
-            "argv": sys.argv,
-        },
-        tmp,
-    )
-    tmp.replace(path)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,187 @@
+"""Closed-loop training: K-frame rollouts in which the network reads back its own output, as the
+runtime (`runtime.py`, `kernels.py`) makes it do, instead of the recorded next frame.
+
+Teacher forcing alone trains a controller that never sees its own mistakes, and the better it fits
+one frame ahead the worse it carries itself (MODEL_CARD). Here a rollout starts on a recorded
+frame; from its second frame on the network's input is built from its previous prediction:
+
+- the pose: the predicted pose, as the runtime feeds it back;
+- the root: the network's own track, moved by its predicted root delta and yaw change;
+- the trajectory: past samples from that track (recorded frames before the rollout's start),
+  future samples the network's own predicted future blended toward the recording by the runtime's
+  rule (sample k of 6 by 1 - (1 - k/6)^2), with the recording moved along with the network's root
+  (the control says where to go from where the character is, and which way to face);
+- the phases: the current phase advanced by the predicted frequency and blended with the
+  predicted phase at its amplitude (the runtime's `advance`), the future phases predicted, the past
+  ones the rollout's own.
+
+Every step is scored against the recorded next frame. Gradients flow through the whole rollout
+unless `detach` (then each step learns only from where the previous step left it).
+
+Horizontal vectors are (x, z); yaw about +Y, 0 = +Z (`features.py`). "World" is the recorded
+character frame of the rollout's first frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from . import features as lf
+from .runtime import CONTROL_BIAS, PHASE_BLEND
+
+SAMPLE = lf.TRAJ_CH  # pos xz, dir xz, vel xz, gait
+PHASE = lf.NUM_BONES * 2
+
+
+def to_world(v: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    """(..., 2) vectors in the frame facing `yaw` (broadcast over the last axis of v) into the world."""
+    c, s = torch.cos(yaw)[..., None], torch.sin(yaw)[..., None]
+    x, z = v[..., 0:1], v[..., 1:2]
+    return torch.cat([c * x + s * z, -s * x + c * z], dim=-1)
+
+
+def to_local(v: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
+    c, s = torch.cos(yaw)[..., None], torch.sin(yaw)[..., None]
+    x, z = v[..., 0:1], v[..., 1:2]
+    return torch.cat([c * x - s * z, s * x + c * z], dim=-1)
+
+
+def rollout_starts(clip: np.ndarray, style: np.ndarray, frames: int) -> dict[int, np.ndarray]:
+    """Per style, the sample indices that begin `frames` consecutive samples of one clip (a clip's
+    samples are stored as consecutive frames, `dataset.clip_samples`)."""
+    n = len(clip) - frames + 1
+    ok = np.zeros(len(clip), bool)
+    ok[:n] = clip[:n] == clip[frames - 1 :]
+    return {int(k): np.flatnonzero(ok & (style == k)) for k in np.unique(style)}
+
+
+def control_weights(device) -> torch.Tensor:
+    """(6, 1) share of the recording in each future sample (the runtime's control blend)."""
+    k = torch.arange(1, lf.FUTURE + 1, dtype=torch.float32, device=device) / lf.FUTURE
+    return (1.0 - (1.0 - k) ** CONTROL_BIAS)[:, None]
+
+
+def _samples(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Trajectory input (B, 91) -> positions, directions, velocities (B, 13, 2) and gait (B, 13)."""
+    t = x[:, lf.TRAJ_IN].view(-1, lf.SAMPLES, SAMPLE)
+    return t[..., 0:2], t[..., 2:4], t[..., 4:6], t[..., 6]
+
+
+def rollout(
+    net,
+    X: torch.Tensor,
+    G: torch.Tensor,
+    Y: torch.Tensor,
+    film: torch.Tensor,
+    closed: torch.Tensor,
+    detach: bool = False,
+    noise: torch.Tensor | None = None,
+    noise_phases: float = 0.0,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Run K steps on B recorded windows X (B, K, X_DIM), G (B, K, G_DIM), Y (B, K, Y_DIM).
+
+    `closed` (B,) bool: which rollouts feed back the network's output (the others are teacher forced).
+    `noise` (X_DIM,): optional std of Gaussian noise on the normalised input (`pose_noise`).
+    Returns the normalised predictions (B, K, Y_DIM) and the normalised targets."""
+    B, K = X.shape[:2]
+    dev = X.device
+    fps = lf.FPS
+    beta = control_weights(dev)
+    cl = closed.view(B, 1).float()
+    # the recording's root track in world (the first frame's character frame), from its root deltas
+    d = Y[..., lf.DELTA_OUT]
+    o_rec, yaw_rec = [torch.zeros(B, 2, device=dev)], [torch.zeros(B, device=dev)]
+    for k in range(K - 1):
+        o_rec.append(o_rec[k] + to_world(d[:, k, :2], yaw_rec[k]))
+        yaw_rec.append(yaw_rec[k] + d[:, k, 2])
+    o_net, yaw_net = [o_rec[0]], [yaw_rec[0]]  # the network's own track, frame by frame
+    phase_net = [G[:, 0].view(B, lf.SAMPLES, PHASE)[:, lf.PAST]]  # its current phase, frame by frame
+    preds, prev = [], None
+    for k in range(K):
+        x_rec, g_rec = X[:, k], G[:, k]
+        if prev is None:
+            x, g = x_rec, g_rec
+        else:
+            x_own, g_own, o, yw, ph = _own_inputs(
+                prev, x_rec, g_rec, k, o_rec, yaw_rec, o_net, yaw_net, phase_net, beta, fps
+            )
+            o_net.append(torch.where(cl > 0, o, o_rec[k]))
+            yaw_net.append(torch.where(closed, yw, yaw_rec[k]))
+            phase_net.append(torch.where(cl > 0, ph, g_rec.view(B, lf.SAMPLES, PHASE)[:, lf.PAST]))
+            x = torch.where(cl > 0, x_own, x_rec)
+            g = torch.where(cl > 0, g_own, g_rec)
+        xn, gn = net.normalise_x(x), net.normalise_g(g)
+        if noise is not None:
+            xn = xn + noise * torch.randn_like(xn)
+            if noise_phases:
+                gn = gn + noise_phases * torch.randn_like(gn)
+        pred = net(xn, gn, film)
+        preds.append(pred)
+        prev = net.denormalise_y(pred.float())
+        if detach:
+            prev = prev.detach()
+    return torch.stack(preds, 1), net.normalise_y(Y)
+
+
+def _own_inputs(y, x_rec, g_rec, k, o_rec, yaw_rec, o_net, yaw_net, phase_net, beta, fps):
+    """The input of step k built from the previous step's (denormalised) output y, and the
+    network's new root position, yaw and current phase."""
+    B = y.shape[0]
+    delta = y[:, lf.DELTA_OUT]
+    o = o_net[k - 1] + to_world(delta[:, :2], yaw_net[k - 1])
+    yw = yaw_net[k - 1] + delta[:, 2]
+    # the recording's samples in world; as the control, moved along with the network's root
+    pos, dirs, vel, gait = _samples(x_rec)
+    rec_pos = o_rec[k][:, None] + to_world(pos, yaw_rec[k][:, None])
+    ctrl_pos = rec_pos + (o - o_rec[k])[:, None]
+    rec_dir, rec_vel = to_world(dirs, yaw_rec[k][:, None]), to_world(vel, yaw_rec[k][:, None])
+    # past and current samples: the network's own frames where the rollout made them
+    P_pos, P_dir, P_vel = [], [], []
+    track_o, track_yaw = [*o_net, o], [*yaw_net, yw]
+    for i in range(lf.PAST + 1):
+        m = k + (i - lf.PAST) * lf.STEP
+        if m >= 1:
+            P_pos.append(track_o[m])
+            P_dir.append(torch.stack([torch.sin(track_yaw[m]), torch.cos(track_yaw[m])], -1))
+            P_vel.append((track_o[m] - track_o[m - 1]) * fps)
+        else:
+            P_pos.append(rec_pos[:, i])  # before the rollout: the recorded path
+            P_dir.append(rec_dir[:, i])
+            P_vel.append(rec_vel[:, i])
+    # future samples: the predicted future blended toward the recording (the control)
+    fut = y[:, lf.TRAJ_OUT].view(B, lf.FUTURE, lf.TRAJ_OUT_CH)
+    f_pos = o[:, None] + to_world(fut[..., 0:2], yw[:, None])
+    f_dir = to_world(fut[..., 2:4], yw[:, None])
+    f_vel = to_world(fut[..., 4:6], yw[:, None])
+    s = slice(lf.PAST + 1, lf.SAMPLES)
+    f_pos = f_pos + beta * (ctrl_pos[:, s] - f_pos)
+    f_dir = f_dir + beta * (rec_dir[:, s] - f_dir)
+    f_dir = f_dir / f_dir.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    f_vel = f_vel + beta * (rec_vel[:, s] - f_vel)
+    w_pos = torch.cat([torch.stack(P_pos, 1), f_pos], 1)
+    w_dir = torch.cat([torch.stack(P_dir, 1), f_dir], 1)
+    w_vel = torch.cat([torch.stack(P_vel, 1), f_vel], 1)
+    yv = yw[:, None]
+    traj = torch.cat(
+        [to_local(w_pos - o[:, None], yv), to_local(w_dir, yv), to_local(w_vel, yv), gait[..., None]], -1
+    ).reshape(B, -1)
+    x = torch.cat([traj, y[:, lf.POSE_OUT]], -1)
+    # phases: current = previous advanced by the predicted frequency, blended with the predicted
+    pred_ph = y[:, lf.PHASE_OUT].view(B, lf.FUTURE + 1, PHASE)
+    cur = phase_net[k - 1].view(B, lf.NUM_BONES, 2)
+    step = 2 * np.pi * y[:, lf.FREQ_OUT] / fps
+    c, sn = torch.cos(step), torch.sin(step)
+    adv = torch.stack([cur[..., 0] * c + cur[..., 1] * sn, cur[..., 1] * c - cur[..., 0] * sn], -1)
+    p0 = pred_ph[:, 0].view(B, lf.NUM_BONES, 2)
+    blend = (1 - PHASE_BLEND) * adv + PHASE_BLEND * p0
+    scale = p0.norm(dim=-1, keepdim=True) / blend.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    ph = (blend * scale).reshape(B, PHASE)
+    rec_g = g_rec.view(B, lf.SAMPLES, PHASE)
+    track_ph = [*phase_net, ph]
+    past = [
+        track_ph[k + (i - lf.PAST) * lf.STEP] if k + (i - lf.PAST) * lf.STEP >= 1 else rec_g[:, i]
+        for i in range(lf.PAST)
+    ]
+    g = torch.cat([torch.stack(past, 1), ph[:, None], pred_ph[:, 1:]], 1).reshape(B, -1)
+    return x, g, o, yw, ph
