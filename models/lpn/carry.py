@@ -118,7 +118,7 @@ def pack(out: Path, cfg: DataConfig = DataConfig()) -> Path:
     meta = {k: v for k, v in load_meta(cfg).items() if k in ("config", "styles", "held_out")}
     arrays["meta"] = np.array(json.dumps(meta))
     out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out, **arrays)
+    np.savez_compressed(out, allow_pickle=False, **arrays)
     return out
 
 

@@ -59,7 +59,8 @@ def validation_inputs(opts: Options) -> tuple[list[Motion], list[str]]:
         by_content: dict[str, list] = {}
         for c in clips:
             by_content.setdefault(c.content, []).append(c)
-        picked, row = [], 0
+        picked: list = []
+        row = 0
         while len(picked) < opts.clips and any(row < len(v) for v in by_content.values()):
             picked += [v[row] for v in by_content.values() if row < len(v)][: opts.clips - len(picked)]
             row += 1
