@@ -41,17 +41,18 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..eval.run import DATASET, INPUT_STYLE
 from ..settings import REPO_ROOT, get_settings
 from ..train_config import parse_overrides
+from .carriage import fitted_styles
 from .weights import CONFIG_FILE, TUNED_FILE, read_weights
 
-STYLES = ("active", "elderly", "exhausted", "feminine", "masculine", "youthful")
 GUARD_CLIPS = (("walk", "run"), 2, 90)  # validation normal clips per content, frames: the rotation guard's inputs
 
 
 @dataclass
 class TuneConfig:
-    styles: str = ",".join(STYLES)  # comma-separated built-in styles to tune
+    styles: str = ""  # comma-separated built-in styles to tune; empty: every style with dataset-2 TRAIN clips
     lrs: str = "1e-3,3e-3,1e-2,3e-2"  # Adam learning rates tried, each from the committed vector
     steps: str = "400,1200"  # run lengths tried (cosine decay to 0 over each), with every learning rate
     batch: int = 256
@@ -299,7 +300,9 @@ def main(argv: list[str]) -> list[StyleResult]:
     torch.set_num_threads(cfg.threads)
     weights_dir = Path(cfg.weights_dir)
     net, films, config = frozen_network(weights_dir)
-    styles = [s for s in cfg.styles.split(",") if s]
+    styles = [s for s in cfg.styles.split(",") if s] or [
+        s for s in fitted_styles(list(films), DATASET) if s != INPUT_STYLE
+    ]
     unknown = [s for s in styles if s not in films]
     if unknown:
         raise SystemExit(f"not built-in styles: {unknown}")
