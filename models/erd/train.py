@@ -34,11 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-
-try:
-    from tqdm import tqdm
-except ImportError:  # a bare device machine: the log lines are the progress
-    tqdm = None
+from tqdm import tqdm
 
 from ..runlog import start_run
 from ..settings import REPO_ROOT
@@ -271,7 +267,7 @@ def one_hot_targets(style: torch.Tensor) -> torch.Tensor:
 
 def train_classifier(cfg, clf, losses, train_s, val_s, log, device=torch.device("cpu")):
     opt = torch.optim.Adam(clf.parameters(), lr=1e-3)
-    bar = (tqdm or _Quiet)(total=cfg.clf_iters, desc="classifier", mininterval=5, file=sys.stderr)
+    bar = tqdm(total=cfg.clf_iters, desc="classifier", mininterval=5, file=sys.stderr)
     for it in range(cfg.clf_iters):
         bar.update(1)
         b = to_device(train_s.sample(cfg.batch), device)
@@ -438,22 +434,6 @@ def set_rng_state(sampler_rng: np.random.Generator, state: dict) -> None:
     random.setstate(state["python"])
 
 
-class _Quiet:
-    """The progress bar where tqdm is not installed: the log lines carry the progress."""
-
-    def __init__(self, **_: object) -> None:
-        pass
-
-    def update(self, n: int) -> None:
-        pass
-
-    def set_postfix(self, **_: object) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
@@ -608,7 +588,7 @@ def main(argv: list[str]) -> None:
         )
 
     t0, budget, first_it, seconds0 = time.time(), cfg.minutes * 60, it, schedule.elapsed_s
-    bar = (tqdm or _Quiet)(total=cfg.max_iters, initial=it, desc="style-erd", mininterval=10, file=sys.stderr)
+    bar = tqdm(total=cfg.max_iters, initial=it, desc="style-erd", mininterval=10, file=sys.stderr)
     last = time.time()
     while it < cfg.max_iters and time.time() - t0 < budget and schedule.progress(it) < 1.0:
         factor = schedule.factor(it)

@@ -30,17 +30,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from ..runlog import start_run
 from ..settings import REPO_ROOT
 from ..train_config import parse_overrides
 from . import features as lf
 from .weights import NORMALISATION
-
-try:
-    from tqdm import tqdm
-except ImportError:  # a bare device machine: the log lines are the progress
-    tqdm = None  # type: ignore[assignment]
 
 
 @dataclass
@@ -470,7 +466,22 @@ def main(argv: list[str]) -> None:
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16(cfg.bf16, device))
     rollouts = max(cfg.batch // K, 1)
     t0, budget, seconds0, first_it = time.time(), cfg.minutes * 60, schedule.elapsed_s, it
-    bar = (tqdm or _Quiet)(total=cfg.max_iters, initial=it, desc="lpn", mininterval=10, file=sys.stderr)
+
+    def snapshot() -> None:
+        """A kept snapshot of the network at this step (`cfg.snapshot_every`), to pick by streaming."""
+        save(
+            run_dir / f"ckpt_{it:06d}.pt",
+            net,
+            mcfg,
+            cfg,
+            styles,
+            it,
+            schedule.elapsed_s,
+            history,
+            half=cfg.snapshot_half,
+        )
+
+    bar = tqdm(total=cfg.max_iters, initial=it, desc="lpn", mininterval=10, file=sys.stderr)
     last = time.time()
     while it < cfg.max_iters and time.time() - t0 < budget:
         lr = schedule.rate()
@@ -519,17 +530,7 @@ def main(argv: list[str]) -> None:
                 run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng, order
             )
         if cfg.snapshot_every and it % cfg.snapshot_every == 0:
-            save(
-                run_dir / f"ckpt_{it:06d}.pt",
-                net,
-                mcfg,
-                cfg,
-                styles,
-                it,
-                schedule.elapsed_s,
-                history,
-                half=cfg.snapshot_half,
-            )
+            snapshot()
         if schedule.progress() >= 1.0:
             break
     bar.close()
@@ -539,17 +540,7 @@ def main(argv: list[str]) -> None:
     log("final val " + " ".join(f"{a}={b:.4g}" for a, b in v.items()))
     save(run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng, order)
     if cfg.snapshot_every:
-        save(
-            run_dir / f"ckpt_{it:06d}.pt",
-            net,
-            mcfg,
-            cfg,
-            styles,
-            it,
-            schedule.elapsed_s,
-            history,
-            half=cfg.snapshot_half,
-        )
+        snapshot()
     trained = schedule.elapsed_s - seconds0
     log(
         f"done: {it} iterations, {schedule.elapsed_s / 60:.1f} min of training; this session "
@@ -592,22 +583,6 @@ def evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips
     net.train()
     v["val_loop"] = float(np.mean(errs)) if errs else float("nan")
     return v
-
-
-class _Quiet:
-    """The progress bar where tqdm is not installed: the log lines carry the progress."""
-
-    def __init__(self, **_: object) -> None:
-        pass
-
-    def update(self, n: int) -> None:
-        pass
-
-    def set_postfix(self, **_: object) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
 
 
 def render_progress(run_dir: Path, out_dir: Path, tag: str, log) -> None:
