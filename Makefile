@@ -60,8 +60,12 @@ typecheck: install
 TEST_JOBS ?= auto
 PYTEST := $(BIN)/python -m pytest -q -n $(TEST_JOBS) --maxprocesses 4 --dist loadfile
 
-test: install browser servers lint typecheck
-	$(PYTEST) -m "not slow"
+# mypy runs beside pytest, whose workers wait on servers and subprocesses about a third of the time
+test: install browser servers lint
+	@mkdir -p .cache; $(BIN)/python -m mypy > .cache/typecheck.log 2>&1 & typecheck=$$!; \
+	$(PYTEST) -m "not slow"; tests=$$?; \
+	wait $$typecheck; types=$$?; echo "$(BIN)/python -m mypy"; cat .cache/typecheck.log; \
+	[ $$tests = 0 ] && [ $$types = 0 ]
 
 test-loaded: install browser servers  # the suite beside four busy processes (tests/busy.py)
 	$(BIN)/python -m tests.busy 4 -- $(PYTEST) -m "not slow"
