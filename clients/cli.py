@@ -8,6 +8,7 @@
     stylestream retarget in.bvh -o out.bvh      any humanoid BVH -> Bandai Namco skeleton (30 fps)
     stylestream loadtest --sessions 1,64 --echo-floor   open-loop latency test against a server it starts
     stylestream soak --minutes 30 --sessions 16         long run sampling server memory (docs/soak.md)
+    stylestream styles add clip.bvh --name proud --model all   a new style from a clip, its jobs followed
 
 Every subcommand has --help. Settings (data folder, cache folder, port...) come from
 STYLESTREAM_* environment variables or a .env file; see README.md.
@@ -64,11 +65,13 @@ def build_parser() -> argparse.ArgumentParser:
     from .loadtest import add_loadtest_command
     from .motion_tools import add_motion_commands
     from .soak import add_soak_command
+    from .styles_cli import add_styles_command
     from .vmc import add_vmc_command
 
     add_motion_commands(sub)
     add_loadtest_command(sub)
     add_soak_command(sub)
+    add_styles_command(sub)
     add_vmc_command(sub)
     return parser
 

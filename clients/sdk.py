@@ -57,6 +57,7 @@ from .sdk_crowd import AsyncCrowd, Character, Crowd, CrowdCore, CrowdFrames
 from .sdk_io import AsyncIO, SyncIO, run_async, run_sync
 from .sdk_session import SessionCore
 from .sdk_types import (
+    AddedStyle,
     ConnectFailed,
     ConnectionLost,
     FrameDropped,
@@ -78,6 +79,7 @@ from .sdk_wire import HEADER, ReplayBuffer, StartSettings, auth_headers, ws_url
 from .sdk_wire import pack as _pack
 
 __all__ = [
+    "AddedStyle",
     "AsyncClient",
     "AsyncCrowd",
     "AsyncSession",
@@ -425,6 +427,26 @@ class Client(_ClientBase):
     def delete_style(self, style_id: str) -> None:
         run_sync(rest.delete_style(style_id), self._io)
 
+    def add_style(
+        self,
+        name: str,
+        *,
+        models: Sequence[str] | None = None,
+        bvh: rest.Bvh | None = None,
+        frames: tuple[np.ndarray, np.ndarray] | None = None,
+        fps: float = 30.0,
+        fine_tune: bool = True,
+        progress: Callable[[str, JobInfo], None] | None = None,
+        timeout: float | None = None,
+        poll_interval: float = 0.25,
+    ) -> dict[str, AddedStyle]:
+        """One clip as style `name` on each of `models` (default: every model the server has),
+        every job followed to its end (`progress(model, job)` on each change; `timeout` stops the
+        waiting, not the jobs). A model that refuses the clip is reported in its `AddedStyle.error`."""
+        names = None if models is None else list(models)
+        steps = rest.add_style(name, names, bvh, frames, fps, fine_tune, progress, timeout, poll_interval)
+        return run_sync(steps, self._io)
+
     def job(self, job_id: str) -> JobInfo:
         return run_sync(rest.job(job_id), self._io)
 
@@ -538,6 +560,23 @@ class AsyncClient(_ClientBase):
 
     async def delete_style(self, style_id: str) -> None:
         await run_async(rest.delete_style(style_id), self._io)
+
+    async def add_style(
+        self,
+        name: str,
+        *,
+        models: Sequence[str] | None = None,
+        bvh: rest.Bvh | None = None,
+        frames: tuple[np.ndarray, np.ndarray] | None = None,
+        fps: float = 30.0,
+        fine_tune: bool = True,
+        progress: Callable[[str, JobInfo], None] | None = None,
+        timeout: float | None = None,
+        poll_interval: float = 0.25,
+    ) -> dict[str, AddedStyle]:
+        names = None if models is None else list(models)
+        steps = rest.add_style(name, names, bvh, frames, fps, fine_tune, progress, timeout, poll_interval)
+        return await run_async(steps, self._io)
 
     async def job(self, job_id: str) -> JobInfo:
         return await run_async(rest.job(job_id), self._io)

@@ -10,7 +10,17 @@ from pathlib import Path
 import numpy as np
 
 from .sdk_io import HttpReply, Request, Sleep, Steps
-from .sdk_types import JobFailed, JobInfo, JobTimeout, ModelInfo, ServerError, StyleInfo, Upload, from_json
+from .sdk_types import (
+    AddedStyle,
+    JobFailed,
+    JobInfo,
+    JobTimeout,
+    ModelInfo,
+    ServerError,
+    StyleInfo,
+    Upload,
+    from_json,
+)
 
 Bvh = str | bytes | os.PathLike[str]
 
@@ -75,6 +85,17 @@ def job(job_id: str) -> Steps[JobInfo]:
     return from_json(JobInfo, reply.body)
 
 
+def _job_polite(job_id: str, poll_interval: float) -> Steps[JobInfo]:
+    """The job, after waiting out any 429 with the server's `Retry-After`."""
+    while True:
+        try:
+            return (yield from job(job_id))
+        except ServerError as err:
+            if err.status != 429:
+                raise
+            yield Sleep(err.retry_after or poll_interval)
+
+
 def wait_job(
     job_id: str, progress: Callable[[JobInfo], None] | None, timeout: float | None, poll_interval: float
 ) -> Steps[JobInfo]:
@@ -83,13 +104,7 @@ def wait_job(
     deadline = None if timeout is None else time.monotonic() + timeout
     seen: tuple[str, float, str] | None = None
     while True:
-        try:
-            info = yield from job(job_id)
-        except ServerError as err:
-            if err.status != 429:
-                raise
-            yield Sleep(err.retry_after or poll_interval)
-            continue
+        info = yield from _job_polite(job_id, poll_interval)
         if progress is not None and (info.status, info.progress, info.message) != seen:
             seen = (info.status, info.progress, info.message)
             progress(info)
@@ -101,6 +116,61 @@ def wait_job(
         if left is not None and left <= 0:
             raise JobTimeout(f"job {job_id} still {info.status} ({info.progress:.0%}) after {timeout:g} s")
         yield Sleep(poll_interval if left is None else min(poll_interval, left))
+
+
+def add_style(
+    name: str,
+    model_names: list[str] | None,
+    bvh: Bvh | None,
+    frames: tuple[np.ndarray, np.ndarray] | None,
+    fps: float,
+    fine_tune: bool,
+    progress: Callable[[str, JobInfo], None] | None,
+    timeout: float | None,
+    poll_interval: float,
+) -> Steps[dict[str, AddedStyle]]:
+    """Upload one clip as style `name` to each of `model_names` (None: every model the server has),
+    then follow every job at once, so each style's `live_s` is when it could first be streamed.
+    A model that refuses the clip (Style-ERD: `uploads_unsupported`) is an outcome, not a raise."""
+    names = model_names if model_names is not None else [m.name for m in (yield from models())]
+    t0 = time.monotonic()
+    added: dict[str, AddedStyle] = {}
+    jobs: dict[str, tuple[str, StyleInfo]] = {}
+    for model in names:
+        try:
+            upload = yield from upload_style(name, model, bvh, frames, fps, fine_tune)
+        except ServerError as err:
+            added[model] = AddedStyle(model, error=err)
+            continue
+        live = time.monotonic() - t0 if upload.created else None
+        added[model] = AddedStyle(model, upload.style, live_s=live)
+        if upload.job is not None:
+            jobs[model] = (upload.job.id, upload.style)
+    deadline = None if timeout is None else t0 + timeout
+    seen: dict[str, tuple[str, float, str]] = {}
+    while jobs:
+        for model, (job_id, started) in list(jobs.items()):
+            info = yield from _job_polite(job_id, poll_interval)
+            if progress is not None and seen.get(model) != (info.status, info.progress, info.message):
+                seen[model] = (info.status, info.progress, info.message)
+                progress(model, info)
+            if info.status in ("done", "failed"):
+                del jobs[model]
+                now = time.monotonic() - t0
+                before = added[model]
+                if info.status == "failed":
+                    added[model] = AddedStyle(model, before.style, JobFailed(info), before.live_s, now)
+                else:
+                    ready = yield from style(started.id)
+                    added[model] = AddedStyle(model, ready, None, before.live_s or now, now)
+        if jobs and deadline is not None and time.monotonic() >= deadline:
+            for model, (job_id, _) in jobs.items():
+                error = JobTimeout(f"job {job_id} still running after {timeout:g} s (it goes on)")
+                added[model] = AddedStyle(model, added[model].style, error, added[model].live_s)
+            break
+        if jobs:
+            yield Sleep(poll_interval)
+    return added
 
 
 def _bvh_file(bvh: Bvh) -> tuple[str, bytes]:

@@ -184,6 +184,19 @@ class JobInfo:
 
 
 @dataclass(frozen=True)
+class AddedStyle:
+    """One model's outcome of `add_style`: the style (ready, or still training when the wait ran
+    out), or why that model refused it; with the seconds from the upload until the style could
+    be streamed (`live_s`) and until its job finished (`done_s`)."""
+
+    model: str
+    style: StyleInfo | None = None
+    error: StylestreamError | None = None
+    live_s: float | None = None
+    done_s: float | None = None
+
+
+@dataclass(frozen=True)
 class Upload:
     """`POST /v1/styles`' answer: the new style and, when fine-tuning was asked for, its job."""
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import socket
 import threading
 import time
@@ -14,6 +15,7 @@ import httpx
 import numpy as np
 import pytest
 
+from clients.cli import main as cli_main
 from clients.sdk import AsyncClient, Client, JobInfo, NothingInFlight, ReplyTimeout, ServerError, StyleInfo
 from models.data import select
 from models.registry import load_models
@@ -114,6 +116,40 @@ def test_a_bvh_upload_is_fine_tuned_followed_to_the_end_used_and_deleted(base, i
         with pytest.raises(ServerError) as err:
             client.delete_style("lti.sdk-elderly")
         assert err.value.status == 404
+
+
+def test_add_style_follows_every_job_and_reports_each_models_answer(base, index):
+    """One call uploads to several models: LTI's identification job is followed to the end, and
+    Style-ERD's refusal is its outcome, not a raise."""
+    clip = select(index, dataset="bandai-namco-1", style="proud", content="walk")[0]
+    seen: list[tuple[str, JobInfo]] = []
+    with Client(base) as client:
+        added = client.add_style(
+            "sdk-proud", models=["lti", "erd"], bvh=clip.path, progress=lambda m, j: seen.append((m, j))
+        )
+        lti, erd = added["lti"], added["erd"]
+        assert lti.error is None and lti.style is not None and lti.style.status == "ready"
+        assert lti.live_s is not None and lti.done_s is not None and 0 < lti.live_s <= lti.done_s
+        assert seen and {m for m, _ in seen} == {"lti"} and seen[-1][1].status == "done"
+        assert erd.style is None and isinstance(erd.error, ServerError) and erd.error.code == "uploads_unsupported"
+        client.delete_style("lti.sdk-proud")
+
+
+def test_styles_add_on_the_command_line_says_when_each_style_went_live(base, index, capsys):
+    clip = select(index, dataset="bandai-namco-1", style="proud", content="walk")[0]
+    server = ["--url", base]
+    assert (
+        cli_main(["styles", "add", str(clip.path), "--name", "cli-proud", "--model", "lpn", "--no-fine-tune", *server])
+        == 0
+    )
+    assert re.search(r"^lpn  lpn\.cli-proud: ready, live after \d+\.\d s$", capsys.readouterr().out, re.M)
+    assert cli_main(["styles", "add", str(clip.path), "--name", "cli-proud", "--model", "erd", *server]) == 1
+    assert "erd  refused: uploads_unsupported" in capsys.readouterr().out
+    assert cli_main(["styles", "list", "--model", "lpn", *server]) == 0
+    assert re.search(r"^lpn\.cli-proud +uploaded +ready$", capsys.readouterr().out, re.M)
+    assert cli_main(["styles", "rm", "lpn.cli-proud", *server]) == 0
+    with Client(base) as client:
+        assert "lpn.cli-proud" not in {s.id for s in client.styles()}
 
 
 def test_a_frames_upload_says_what_is_wrong_with_it(base, bn_walk):
