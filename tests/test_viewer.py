@@ -25,6 +25,7 @@ import pytest
 from PIL import Image
 
 from clients.loadtest import free_port
+from models.data import select
 from models.motion.assets import bandai_namco_skeleton
 from models.registry import load_models
 from models.settings import get_settings
@@ -53,8 +54,9 @@ THREE_DIR = VIEWER_DIR / "vendor" / "three"
 
 
 @pytest.fixture(scope="module")
-def server():
-    with live_server(load_models(get_settings().weights_dir)) as (base, _app):
+def server(tmp_path_factory):
+    styles = tmp_path_factory.mktemp("styles")  # where a dropped clip's style goes
+    with live_server(load_models(get_settings().weights_dir), styles_dir=styles) as (base, _app):
         yield base
 
 
@@ -365,6 +367,28 @@ def test_viewer_streams_in_real_time(server, tmp_path):
     OUT.mkdir(exist_ok=True)
     shutil.copy(png, OUT / "viewer_live.png")
     check_two_skeletons(png)
+
+
+def test_a_dropped_bvh_clip_becomes_a_style_the_stream_switches_to(server, tmp_path, index):
+    """A real dataset-1 walk dropped on the page is uploaded as a new LTI style, its job is
+    followed, and the running session is switched to it."""
+    need_chromium()
+    clip = select(index, dataset="bandai-namco-1", style="proud", content="walk")[0]
+    with devtools_page(tmp_path) as page:
+        page.call("Page.navigate", url=f"{server}/viewer?autoplay=1&model=lti&style=elderly")
+        page.wait_for("document.body && document.body.dataset.state === 'streaming'", "viewer did not stream")
+        page.js(
+            f"""(() => {{ const data = new DataTransfer();
+                data.items.add(new File([{json.dumps(clip.path.read_text())}], "Proud Walk.bvh"));
+                window.dispatchEvent(new DragEvent("drop", {{ dataTransfer: data, bubbles: true }})); }})()"""
+        )
+        page.wait_for("['done', 'failed'].includes(document.body.dataset.upload)", "the upload's job", timeout=120)
+        status = page.js("document.getElementById('status').textContent")
+        assert page.js("document.body.dataset.upload") == "done", status
+        assert page.js("document.getElementById('style').value") == "proud-walk", status
+        page.wait_for("/proud-walk 1\\.00/.test(document.getElementById('weights').textContent)", "no style_set")
+        page.wait_frames(10, "the viewer stopped streaming on the new style")
+    assert "lti.proud-walk" in {s["id"] for s in httpx.get(f"{server}/v1/styles").json()}
 
 
 def test_keys_and_gamepad_make_control_messages(server, tmp_path):

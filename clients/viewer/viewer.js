@@ -19,7 +19,7 @@ const $ = (id) => document.getElementById(id);
 const ui = {
   model: $("model"), style: $("style"), style2: $("style2"), blend: $("blend"), blendVal: $("blend-val"),
   intensity: $("intensity"), intensityVal: $("intensity-val"), transition: $("transition"),
-  source: $("source"), file: $("bvh-file"), play: $("play"), reset: $("reset"), canvas: $("view"),
+  source: $("source"), file: $("bvh-file"), addStyle: $("add-style"), styleFile: $("style-file"), play: $("play"), reset: $("reset"), canvas: $("view"),
   status: $("status"), counts: $("counts"), rate: $("rate"), weights: $("weights"),
   latLast: $("lat-last"), latMean: $("lat-mean"), latP95: $("lat-p95"), latMax: $("lat-max"),
   subInput: $("sub-input"), subOutput: $("sub-output"), controlHud: $("control-hud"), controlReadout: $("control-readout"),
@@ -41,7 +41,7 @@ const triangle = new StyleTriangle($("triangle"), (mix, final) => {
   const now = performance.now();
   if (final || now - lastTriangleSend >= TRIANGLE_SEND_MS) { lastTriangleSend = now; sendStyle(); }
 });
-window.viewer = { state, view, controller, triangle }; // for the console and the browser tests
+window.viewer = { state, view, controller, triangle, addStyleFromClip }; // for the console and the browser tests
 
 const controlMode = () => ui.source.value === "control";
 
@@ -287,6 +287,87 @@ function play(on) {
   else if (state.session.ready) { setBodyState("streaming"); schedule(); }
 }
 
+// ------------------------------------------------------------------ a new style from a dropped clip
+const JOB_POLL_MS = 400;
+
+/** A style name the server takes (a slug of 1-40 a-z, 0-9 and '-') from a file name, not yet in `taken`. */
+function styleSlug(fileName, taken) {
+  const base = fileName.replace(/\.bvh$/i, "").toLowerCase().replace(/[^a-z0-9]+/g, "-")
+    .replace(/^-+|-+$/g, "").slice(0, 34).replace(/-+$/, "") || "clip";
+  let name = base;
+  for (let n = 2; taken.includes(name); n++) name = `${base}-${n}`;
+  return name;
+}
+
+/** Upload a BVH clip as a new style of the chosen model, with a fine-tuning job followed to its
+ * end, then stream with it: at once where the model makes a style from the clip on the spot
+ * (LPN-FiLM answers 201 and its job refines it), else when the job is done (LTI). The page's
+ * `data-upload` says where it is: uploading, queued, running, done or failed. */
+async function addStyleFromClip(file) {
+  const model = ui.model.value;
+  const m = state.models.find((x) => x.name === model);
+  const name = styleSlug(file.name, m ? m.styles : []);
+  const form = new FormData();
+  form.append("name", name); form.append("model", model); form.append("fine_tune", "true");
+  form.append("file", file, file.name);
+  document.body.dataset.upload = "uploading";
+  setStatus(`uploading ${file.name} to ${model} as '${name}'…`);
+  const r = await fetch(withToken("/v1/styles"), { method: "POST", body: form });
+  const body = await r.json().catch(() => ({}));
+  if (!r.ok) {
+    document.body.dataset.upload = "failed";
+    setStatus(`${file.name}: ${body.code || `HTTP ${r.status}`}: ${body.message || ""}`, true);
+    return;
+  }
+  const live = r.status === 201;
+  if (live) await useNewStyle(model, name);
+  if (body.job) await followJob(body.job.id, model, name, live);
+  else document.body.dataset.upload = "done";
+}
+
+async function followJob(id, model, name, live) {
+  for (;;) {
+    const job = await getJSON(`/v1/jobs/${id}`);
+    document.body.dataset.upload = job.status;
+    const pct = Math.round(100 * job.progress);
+    if (job.status === "failed") { setStatus(`${model}.${name}: job failed: ${job.message}`, true); return; }
+    if (job.status === "done") {
+      if (!live) await useNewStyle(model, name);
+      setStatus(`${model}.${name} ready${live ? " (fine-tuned)" : ""}`);
+      return;
+    }
+    setStatus(`${model}.${name}: ${job.status} ${pct}%${job.message ? ` · ${job.message}` : ""}${live ? " · streaming it already" : ""}`);
+    await new Promise((done) => setTimeout(done, JOB_POLL_MS));
+  }
+}
+
+/** The server's styles again, and the new one picked (sent to a running session as a style change). */
+async function useNewStyle(model, name) {
+  state.models = await getJSON("/v1/models");
+  if (ui.model.value !== model) return;
+  fillStyles();
+  ui.style.value = name;
+  usePickers();
+}
+
+function acceptDroppedClips() {
+  window.addEventListener("dragover", (e) => { e.preventDefault(); document.body.classList.add("dropping"); });
+  window.addEventListener("dragleave", () => document.body.classList.remove("dropping"));
+  window.addEventListener("drop", (e) => {
+    e.preventDefault();
+    document.body.classList.remove("dropping");
+    const f = [...(e.dataTransfer ? e.dataTransfer.files : [])].find((x) => /\.bvh$/i.test(x.name));
+    if (f) addStyleFromClip(f).catch((err) => setStatus(`${f.name}: ${err.message}`, true));
+    else setStatus("drop a .bvh file to make a new style from it", true);
+  });
+  ui.addStyle.onclick = () => ui.styleFile.click();
+  ui.styleFile.onchange = () => {
+    const f = ui.styleFile.files[0];
+    if (f) addStyleFromClip(f).catch((err) => setStatus(`${f.name}: ${err.message}`, true));
+    ui.styleFile.value = "";
+  };
+}
+
 // ------------------------------------------------------------------ wiring
 function fillStyles() {
   const m = state.models.find((x) => x.name === ui.model.value);
@@ -357,6 +438,7 @@ async function init() {
     if (n >= 1 && n <= 9 && ui.style.options[n - 1]) { ui.style.selectedIndex = n - 1; usePickers(); }
   });
   window.addEventListener("resize", requestRender);
+  acceptDroppedClips();
   // preview while nothing streams: the input clip plays locally, or the controller's wish is shown
   setInterval(() => {
     const streaming = state.session && state.session.ready && state.playing; // then the send ticks do this
