@@ -124,11 +124,6 @@ def side_heights(pos: np.ndarray) -> np.ndarray:
     return hand_offsets(pos)[..., 1]
 
 
-def hand_height(pos: np.ndarray) -> np.ndarray:
-    """(...,) the higher hand's height (cm) above its own shoulder, from world joint positions (..., J, 3)."""
-    return side_heights(pos).max(-1)
-
-
 def raise_share(height: np.ndarray) -> np.ndarray:
     """(...,) how far each frame's hand is raised: 0 up to the ramp, 1 from the shoulder's height, linear between."""
     lo, hi = RAISE_RAMP_CM
@@ -204,10 +199,3 @@ def calm_frames(motion, side: int) -> np.ndarray:
     and not waving (its wave share, from the clip's sway, under a half)."""
     swayed = clip_sway(hand_offsets(motion.global_positions()), motion.fps)[:, side]
     return raised_frames(motion, side) & (wave_share(swayed) < 0.5)
-
-
-def hanging_frames(motion, side: int) -> np.ndarray:
-    """(T,) bool: the frames of a Bandai Namco `Motion` with the other hand raised and this
-    `side`'s not (each more or less than half way up `RAISE_RAMP_CM`)."""
-    up = raise_share(side_heights(motion.global_positions())) > 0.5
-    return up[:, 1 - side] & ~up[:, side]

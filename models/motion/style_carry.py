@@ -204,22 +204,3 @@ class StyleCarry:
         with np.load(path) as z:
             arrays = [np.ascontiguousarray(z[k], np.float64) for k in ("source", "mean", "map", "radius")]
         return cls(*arrays)
-
-
-def real_train_frames(styles: list[str], contents: tuple[str, ...], frames) -> list[np.ndarray]:
-    """Per style, what a carry is fitted toward: the local rotations (N, J, 4, `comparable`: the
-    Hips without their heading, joint_Root at the identity, static on this rig) of the frames
-    `frames(motion)` ((T,) bool) picks in every real Bandai Namco dataset-2 TRAIN clip of the
-    style with one of `contents`."""
-    from ..data import build_index, load_motions, select
-    from .bn_skeleton import ROOT
-    from .rotation_ball import comparable
-
-    index = build_index(["bandai-namco-2"])
-    out = []
-    for style in styles:
-        motions = load_motions([c for c in select(index, split="train", style=style) if c.content in contents])
-        q = np.concatenate([m.rotations[frames(m)] for m in motions]).astype(np.float64)
-        q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)
-        out.append(comparable(q))
-    return out
