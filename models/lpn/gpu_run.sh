@@ -1,7 +1,7 @@
 #!/bin/sh
 # LPN-FiLM closed-loop training on a lent GPU, from the packed training set: the device machine
 # gets the working tree and the carried .data/carry (`python -m models.lpn.carry pack
-# .data/carry/lpn.npz`, and the pydantic wheels its image lacks in .data/carry/whl), none of the
+# .data/carry/lpn.npz`, and the wheels its image lacks, `sh models/carry_wheels.sh`), none of the
 # mocap. It trains for $MINUTES (default 8) from the committed network (`--warm_from`, as the CPU
 # run), and sends back the last six float16 snapshots and the log in $OUT, to be chosen with
 # `python -m models.lpn.snapshots` and exported with `python -m models.lpn.train --export=...`.
