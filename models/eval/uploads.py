@@ -1,0 +1,202 @@
+"""Styles from one clip, measured on styles the method never trained on (issue 47).
+
+For each dataset-1 style held out of a method's training (a style is held out when the method
+ships no style trained on it: LTI and Style-ERD train on dataset 2 alone, LPN-FiLM ships its
+dataset-1 styles as `d1-<style>`), one real walk of the style is uploaded the way `POST /v1/styles`
+does it (`fine_tune_style`, and for a `ClipStyles` model the instant `style_from_clip` too), and
+neutral walks of both datasets are streamed through it.
+
+How far the output moves toward the style is read as a *coverage*: on clip statistics of local
+rotations and angular speeds (the style judge's, averaged over the clip and standardised over real
+walks), the share of the way from the neutral walk it started from to the style's other real
+walking clips (other walk takes, walk-left, walk-right; never the uploaded clip):
+
+    coverage(out | in) = 1 - |z(out) - T| / |z(in) - T|,   T = c(in) + mean(z(others)) - c(dataset 1)
+
+where c is the mean of the neutral walks of a dataset, so the style's displacement from dataset
+1's normal is laid onto the input's own recording, as the judge reads each clip against its own
+session. The input unchanged is 0, the style's other clips 1; each clip's own noise is in both
+distances. A copy of the uploaded clip gets a coverage too, from each dataset-1 neutral walk: the
+most one clip can say about its style. A method passes a style when its outputs average at least
+70 % of the copy's, wherever the copy is clearly closer than normal (coverage >= 0.1).
+
+    python -m models.eval.uploads [--split val] [--methods lti,lpn] [--styles proud,giant]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..data import build_index, load_motions, select
+from ..interface import ClipStyles, StreamingModel, UploadedStyles
+from ..motion.skeleton import Motion
+from .run import stylise_toward
+from .style_judge import SCALE_FLOOR, clip_statistics
+
+D1, D2 = "bandai-namco-1", "bandai-namco-2"
+HELD_OUT = ("happy", "sad", "angry", "proud", "not-confident", "musical", "giant", "chimpira")
+REFERENCE_CONTENTS = ("walk", "walk-left", "walk-right")  # the style's other walking clips
+PASS_SHARE, CLEAR_COPY = 0.7, 0.1
+FINE_TUNE_STEPS = 300  # the service's default (`lpn_fine_tune_steps`)
+
+
+def clip_vector(motion: Motion) -> np.ndarray:
+    """The clip's statistics averaged over its windows: what the coverage compares."""
+    return clip_statistics(motion).mean(0)
+
+
+@dataclass
+class Ruler:
+    """Standardised clip vectors and the neutral centre of each dataset."""
+
+    scale: np.ndarray
+    centre: dict[str, np.ndarray]
+
+    def z(self, motion: Motion) -> np.ndarray:
+        return clip_vector(motion) / self.scale
+
+    def coverage(self, out: Motion, start: Motion, dataset: str, target: np.ndarray) -> float:
+        """Share of the way from `start` (a neutral walk of `dataset`) to the style, `target` being
+        the style's displacement from dataset 1's normal."""
+        goal = self.centre[dataset] + target
+        return float(1.0 - np.linalg.norm(self.z(out) - goal) / np.linalg.norm(self.z(start) - goal))
+
+
+def fit_ruler(index) -> Ruler:
+    """Scale over every real dataset-1 walk and dataset-2 TRAIN walk; centres from each dataset's neutral walks."""
+    d1 = [c for c in select(index, dataset=D1) if c.content in REFERENCE_CONTENTS]
+    d2 = [c for c in select(index, dataset=D2, split="train") if c.content == "walk"]
+    vectors = {c.name: clip_vector(m) for c, m in zip(d1 + d2, load_motions(d1 + d2))}
+    scale = np.maximum(np.std(np.stack(list(vectors.values())), axis=0), SCALE_FLOOR)
+    centre = {
+        ds: np.mean([vectors[c.name] / scale for c in clips if c.style == "normal"], axis=0)
+        for ds, clips in ((D1, d1), (D2, d2))
+    }
+    return Ruler(scale, centre)
+
+
+def held_out_styles(model: StreamingModel, styles: tuple[str, ...]) -> list[str]:
+    """The styles of `styles` the model was not trained on: it ships no style by that name."""
+    shipped = set(model.styles())
+    return [s for s in styles if s not in shipped and f"d1-{s}" not in shipped]
+
+
+def upload_variants(model: StreamingModel, clip: Motion) -> dict[str, StreamingModel]:
+    """The model with the clip's style installed as `upload`, per way of making it: `tuned` (the
+    fine-tuning job) and, for a model that makes a style from a clip at once, `instant`."""
+    out: dict[str, StreamingModel] = {}
+    if not isinstance(model, UploadedStyles):
+        return out
+    if isinstance(model, ClipStyles):
+        instant = model.with_own_styles()
+        instant.install_style("upload", instant.style_from_clip(clip))
+        out["instant"] = instant
+    tuned = model.with_own_styles()
+    job = tuned.fine_tune_style("upload", clip, lambda fraction, message: None, FINE_TUNE_STEPS)
+    if job.style is not None:
+        tuned.install_style("upload", job.style)
+        out["tuned"] = tuned
+    elif "instant" in out:  # tuning kept the clip's own style
+        out["tuned"] = out["instant"]
+    return out
+
+
+def neutral_inputs(index, split: str) -> dict[str, list[Motion]]:
+    """Neutral straight walks of both datasets: dataset 2's of `split`, and every dataset-1 one
+    (all in its train split, and no dataset-1 style the rows measure is neutral)."""
+    d2 = [c for c in select(index, dataset=D2, split=split, style="normal") if c.content == "walk"]
+    d1 = [c for c in select(index, dataset=D1, style="normal") if c.content == "walk"]
+    return {D2: load_motions(d2), D1: load_motions(d1)}
+
+
+def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, ...] = HELD_OUT) -> list[dict]:
+    index = build_index([D1, D2])
+    ruler = fit_ruler(index)
+    inputs = neutral_inputs(index, split)
+    rows = []
+    for style in styles:
+        walks = [c for c in select(index, dataset=D1, style=style) if c.content in REFERENCE_CONTENTS]
+        upload = next(c for c in sorted(walks, key=lambda c: c.name) if c.content == "walk")
+        reference = [c for c in walks if c.name != upload.name]
+        clip, *others = load_motions([upload, *reference])
+        target = np.mean([ruler.z(m) for m in others], axis=0) - ruler.centre[D1]
+        copy = float(np.mean([ruler.coverage(clip, n, D1, target) for n in inputs[D1]]))
+        for method, model in models.items():
+            if style not in held_out_styles(model, styles):
+                continue
+            t0 = time.perf_counter()
+            variants = upload_variants(model, clip)
+            seconds = time.perf_counter() - t0
+            if not variants:
+                rows.append({"style": style, "method": method, "variant": "refused", "copy": copy})
+                continue
+            for variant, styled in variants.items():
+                cov = {
+                    ds: [
+                        ruler.coverage(out, start, ds, target)
+                        for out, start in zip(stylise_toward(styled, motions, ["upload"])["upload"], motions)
+                    ]
+                    for ds, motions in inputs.items()
+                }
+                share = float(np.mean([np.mean(v) for v in cov.values()]) / copy) if copy > 0 else float("nan")
+                rows.append(
+                    {
+                        "style": style,
+                        "method": method,
+                        "variant": variant,
+                        "copy": copy,
+                        "coverage": {ds: float(np.mean(v)) for ds, v in cov.items()},
+                        "clips": {ds: len(v) for ds, v in cov.items()},
+                        "share_of_copy": share,
+                        "passes": bool(copy < CLEAR_COPY or share >= PASS_SHARE),
+                        "make_seconds": round(seconds, 1),
+                    }
+                )
+    return rows
+
+
+def table(rows: list[dict]) -> list[str]:
+    lines = [
+        "| method | way | style | copy | coverage D2 | coverage D1 | share of copy | passes |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if r["variant"] == "refused":
+            lines.append(f"| {r['method']} | refused | {r['style']} | {r['copy']:.2f} | | | | no |")
+            continue
+        c = r["coverage"]
+        lines.append(
+            f"| {r['method']} | {r['variant']} | {r['style']} | {r['copy']:.2f} | {c[D2]:.2f} ({r['clips'][D2]}) "
+            f"| {c[D1]:.2f} ({r['clips'][D1]}) | {r['share_of_copy']:.0%} | {'yes' if r['passes'] else 'no'} |"
+        )
+    return lines
+
+
+def main() -> None:
+    from ..registry import load_models
+    from ..settings import get_settings
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--split", default="val", choices=["val", "test"], help="dataset-2 inputs (test: final runs only)"
+    )
+    parser.add_argument("--methods", default="lti,erd,lpn")
+    parser.add_argument("--styles", default=",".join(HELD_OUT))
+    parser.add_argument("--out", type=Path, help="also write the rows as JSON here")
+    args = parser.parse_args()
+    methods = args.methods.split(",")
+    models = {k: v for k, v in load_models(get_settings().weights_dir).items() if k in methods}
+    rows = evaluate(models, args.split, tuple(args.styles.split(",")))
+    print("\n".join(table(rows)))
+    if args.out:
+        args.out.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,35 @@
+"""The held-out upload ruler (`models.eval.uploads`): its coverage is 0 for the input unchanged and
+positive for a real clip of the style, and a style counts as held out only where the method ships
+no style trained on it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.data import load_motions, select
+from models.eval.uploads import D1, D2, REFERENCE_CONTENTS, fit_ruler, held_out_styles
+
+
+class Shipping:
+    def __init__(self, styles: list[str]) -> None:
+        self._styles = styles
+
+    def styles(self) -> list[str]:
+        return self._styles
+
+
+def test_coverage_is_zero_for_the_input_and_positive_for_a_real_clip_of_the_style(index):
+    d1 = [c for c in select(index, dataset=D1) if c.content in REFERENCE_CONTENTS and c.style in ("normal", "giant")]
+    d2 = [c for c in select(index, dataset=D2, split="train", style="normal") if c.content == "walk"][:4]
+    ruler = fit_ruler(d1 + d2)
+    giant = sorted((c for c in d1 if c.style == "giant"), key=lambda c: c.name)
+    upload, *others = load_motions(giant)
+    neutral = load_motions([c for c in d1 if c.style == "normal" and c.content == "walk"])
+    target = np.mean([ruler.z(m) for m in others], axis=0) - ruler.centre[D1]
+    assert all(ruler.coverage(n, n, D1, target) == 0.0 for n in neutral)
+    assert min(ruler.coverage(upload, n, D1, target) for n in neutral) > 0.3
+
+
+def test_a_style_is_held_out_only_where_no_style_was_trained_on_it():
+    assert held_out_styles(Shipping(["active", "elderly"]), ("proud", "giant")) == ["proud", "giant"]
+    assert held_out_styles(Shipping(["normal", "d1-happy", "elderly"]), ("happy", "proud")) == ["proud"]
