@@ -13,6 +13,7 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -32,7 +33,7 @@ CONTEXT = {
     **{j: [1, 7, 11] + [k for k in _LEGS if k != j] for j in _LEGS},  # Hips (root), UpperArms, legs
 }
 
-CONFIG = dict(
+CONFIG: dict[str, Any] = dict(
     datasets=["bandai-namco-2", "bandai-namco-1"],
     input_style="normal",
     styles=["elderly", "exhausted", "active", "feminine", "masculine", "youthful"],  # dataset 2
@@ -140,7 +141,8 @@ def make_pairs(index, style: str, split: str, cfg=CONFIG) -> list[tuple]:
     dataset, label = dataset_of(style)
     s, ms = cfg["imw"]["s"], cfg["imw"]["max_step"]
     lo, hi = 1.0 / s * 1.15, ms / s / 1.15
-    pairs, used = [], {}
+    pairs: list[tuple] = []
+    used: dict[str, int] = {}
     in_split = split if dataset == "bandai-namco-2" else ("train", "val", "test")
     for out_clip in select(index, dataset=dataset, style=label, split=split):
         if cfg["contents"] and out_clip.content not in cfg["contents"]:
@@ -278,6 +280,9 @@ def identify(
         D[np.ix_(oo, ii)] = s.D
         k += s.order
     U_n = np.concatenate([u for u, _ in recs])
+    # the stored matrices are float32: identify the footplant classifier on what will be used
+    A, B, C, D = (m.astype(np.float32).astype(np.float64) for m in (A, B, C, D))
+    orders = np.array([s.order for s in systems])
     tr = StyleTranslator(
         style,
         A,
@@ -290,22 +295,7 @@ def identify(
         out_std,
         U_n.min(0),
         U_n.max(0),
-        np.array([s.order for s in systems]),
-        cfg["k_p"],
-        cfg["k_c"],
-        ref=ref,
-    )
-    # the stored matrices are float32: identify the footplant classifier on what will be used
-    tr = StyleTranslator(
-        style,
-        *(m.astype(np.float32).astype(np.float64) for m in (A, B, C, D)),
-        in_mean,
-        in_std,
-        out_mean,
-        out_std,
-        tr.in_lo,
-        tr.in_hi,
-        tr.orders,
+        orders,
         cfg["k_p"],
         cfg["k_c"],
         ref=ref,
