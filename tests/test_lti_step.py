@@ -52,3 +52,25 @@ def test_a_large_batch_gives_the_same(reference, monkeypatch):
         rows = slice(4 * k, 4 * k + 4)
         np.testing.assert_allclose(got["rotations"][:, rows], want["rotations"], atol=1e-9)
         np.testing.assert_allclose(got["root"][:, rows], want["root"], atol=1e-8)
+
+
+def test_a_snapshot_from_before_the_packed_carry_resumes_exactly(reference):
+    """A session's state saved before the carry was packed (every entry under its own key, flags
+    as bools) is packed by `upgrade_state` and steps on exactly as the state it was saved from."""
+    from models.interface import FrameBatch
+
+    from .lti_reference import unpacked, weights
+
+    (root, rot), _ = reference
+    model = load()
+    w = weights(model.styles())
+    state = model.init_state(root.shape[1])
+    for t in range(40):
+        _, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
+    old = unpacked(state)
+    assert "carry" not in old and old["feet_point"].dtype == np.int64
+    resumed = model.upgrade_state(old)
+    for t in range(40, 60):
+        a, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
+        b, resumed = model.step_batch(resumed, FrameBatch(root[t], rot[t]), w)
+        assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.root, b.root)

@@ -36,11 +36,13 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS
+from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet_kernels import plant_feet
 from ..motion.hands_kernels import hand_step
 from ..motion.quaternion import qdot, qinv, qmul, quat_at, row4
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
+from .waving_arm import MEAN_SHAPE
 from .waving_kernels import WavingArm, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
@@ -67,32 +69,87 @@ class Output(NamedTuple):
 
 
 class Session(NamedTuple):
-    """What a session carries from one frame to the next (besides the planter's `feet` state)."""
+    """What a session carries from one frame to the next besides the planter's `Feet`: views of
+    the packed carry (`CARRY`; flags as 0.0 / 1.0), and its LTI states."""
 
-    started: np.ndarray  # (B,) bool: a frame was seen
+    started: np.ndarray  # (B,) a frame was seen
     in_yaw: np.ndarray  # (B,) the input's heading the frame before
     in_ground: np.ndarray  # (B, 2) and its ground position
     out_yaw: np.ndarray  # (B,) the output's heading
     out_ground: np.ndarray  # (B, 2) and its ground position
-    x: np.ndarray  # (B, n) the LTI states of the styles in use side by side (`Frame.x_at`)
     hand_prev: np.ndarray  # (B, 2, 3) the input's hands from their shoulders, the frame before
     hand_sway: np.ndarray  # (B, 2) their horizontal speed, averaged
     hand_rise: np.ndarray  # (B, 2) their vertical speed, averaged
     wave_in_mean: np.ndarray  # (B, 2, K, 4) the input's arm joints' running mean (`waving_arm.py`)
     wave_out_mean: np.ndarray  # (B, 2, K, 4) the output's
+    x: np.ndarray  # (B, n) the LTI states of the styles in use side by side (`Frame.x_at`)
 
 
 class Feet(NamedTuple):
-    """The foot planter's state (`models.motion.feet.STATE_SHAPES`, in its order)."""
+    """The foot planter's state (`models.motion.feet.STATE_SHAPES`, in its order): views of the
+    packed carry, its flags and held points as floats."""
 
-    started: np.ndarray  # (B,) bool
+    started: np.ndarray  # (B,)
     root: np.ndarray  # (B, 3) the planted root
     model_root: np.ndarray  # (B, 3) the translator's
     rel: np.ndarray  # (B, 2, 2, 3) each leg's ankle and toe from the root
-    contact: np.ndarray  # (B, 2) bool: planted legs
-    point: np.ndarray  # (B, 2) int64: held point (0 ankle, 1 toe)
+    contact: np.ndarray  # (B, 2) planted legs
+    point: np.ndarray  # (B, 2) held point (0 ankle, 1 toe)
     offset: np.ndarray  # (B, 2, 3) the legs' IK offsets
     floor: np.ndarray  # (B, 2, 2) each leg's ankle and toe floor
+
+
+# A session's carry (`Session` less x, then `Feet`) packed in one float64 row: the model's state
+# is this array and the styles' LTI states, so a step passes and allocates a few arrays, not ~20.
+CARRY = {
+    "started": (),
+    "in_yaw": (),
+    "in_ground": (2,),
+    "out_yaw": (),
+    "out_ground": (2,),
+    "hand_prev": (2, 3),
+    "hand_sway": (2,),
+    "hand_rise": (2,),
+    "wave_in_mean": MEAN_SHAPE,
+    "wave_out_mean": MEAN_SHAPE,
+    **{key: shape for key, (shape, _) in FEET_STATE.items()},
+}
+
+
+def _layout() -> tuple[dict[str, tuple], int]:
+    """Each carry entry's (first column, shape, C strides in bytes) in the packed row; the width."""
+    spans, at = {}, 0
+    for key, shape in CARRY.items():
+        strides = tuple(int(8 * np.prod(shape[k + 1 :])) for k in range(len(shape)))
+        spans[key] = (at, shape, strides)
+        at += int(np.prod(shape))
+    return spans, at
+
+
+SPANS, CARRY_WIDTH = _layout()
+_S = tuple(SPANS.values())  # as the kernels read it (numba takes a global tuple as a constant)
+FEET_AT = SPANS["feet_started"][0]  # the planter's columns start here
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _view(carry, span):
+    """(B, *shape) view of one entry of the packed carry (B, CARRY_WIDTH), C-contiguous."""
+    at, shape, strides = span
+    return np.lib.stride_tricks.as_strided(carry.ravel()[at:], (carry.shape[0],) + shape, (carry.strides[0],) + strides)
+
+
+@njit(cache=True, error_model="numpy")
+def unpack(carry, x):
+    """The `Session` (with the LTI states x) and `Feet` records of a packed carry: views."""
+    session = Session(
+        _view(carry, _S[0]), _view(carry, _S[1]), _view(carry, _S[2]), _view(carry, _S[3]), _view(carry, _S[4]),
+        _view(carry, _S[5]), _view(carry, _S[6]), _view(carry, _S[7]), _view(carry, _S[8]), _view(carry, _S[9]), x,
+    )  # fmt: skip
+    feet = Feet(
+        _view(carry, _S[10]), _view(carry, _S[11]), _view(carry, _S[12]), _view(carry, _S[13]),
+        _view(carry, _S[14]), _view(carry, _S[15]), _view(carry, _S[16]), _view(carry, _S[17]),
+    )  # fmt: skip
+    return session, feet
 
 
 class Systems(NamedTuple):
@@ -192,6 +249,7 @@ class Work(NamedTuple):
     active: np.ndarray  # (B,) bool: a style weight > 0
     carry_w: np.ndarray  # (1, C) one session's raised-arm carry weights
     carried: np.ndarray  # (1, J, 4) its carried rotations
+    point: np.ndarray  # (B, 2) int64: the planter's held points, as it indexes with them
 
 
 def new_work(batch: int, systems: Systems, carries: int) -> Work:
@@ -213,6 +271,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> Work:
         np.empty(batch, np.bool_),
         np.empty((1, carries)),
         np.empty((1, NUM_JOINTS, 4)),
+        np.empty((batch, 2), np.int64),
     )
 
 
@@ -323,7 +382,10 @@ def system_product(sys, s, xin, u, z):
     columns [A; C] xin added (one session: a sum per row; several: each matrix entry applied to
     all of them, a loop the compiler vectorises)."""
     r0, m = sys.row_off[s], xin.shape[1]
-    np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u, z)
+    if m == 1:  # a matrix-vector product (BLAS gemv): ~2.5x faster than gemm on one column
+        np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u.reshape(u.shape[0]), z.reshape(z.shape[0]))
+    else:
+        np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u, z)
     for r in range(z.shape[0]):
         if m == 1:
             acc = z[r, 0]
@@ -525,12 +587,13 @@ def carry_raised_arms(b, arm, weights, offsets, swayed, out_rot, work):
 
 
 @njit(cache=True, error_model="numpy")
-def step(frame, before, after, feet_before, feet_after, out, sys, fp, ball, hands, arm, waving, planter, on, work):
-    """One frame for every session: reads `frame` and the state `before` (`feet_before`: the
-    planter's); writes `out` and the state `after` (`feet_after`, unless the feet are not
-    planted). Records as plain tuples (module docstring); `planter` is `FootPlanter`'s."""
-    frame, before, after, out = Frame(*frame), Session(*before), Session(*after), Output(*out)
-    feet_after = Feet(*feet_after)
+def step(frame, x, new_x, carry, new_carry, out, sys, fp, ball, hands, arm, waving, planter, on, work):
+    """One frame for every session: reads `frame`, the packed carry (B, CARRY_WIDTH) and the LTI
+    states x side by side; writes `out`, new_carry and new_x. Records as plain tuples (module
+    docstring); `planter` is `FootPlanter`'s."""
+    frame, out = Frame(*frame), Output(*out)
+    before, feet_before = unpack(carry, x)
+    after, feet_after = unpack(new_carry, new_x)
     sys, fp, ball, hands = Systems(*sys), Footplant(*fp), Ball(*ball), Hands(*hands)
     arm, waving, on, work = RaisedArm(*arm), WavingArm(*waving), Switches(*on), Work(*work)
     B = frame.root.shape[0]
@@ -563,7 +626,8 @@ def step(frame, before, after, feet_before, feet_after, out, sys, fp, ball, hand
         )  # fmt: skip
 
     # 5. the feet planted
-    if not on.footlock:
+    if not on.footlock:  # the planter's state waits
+        new_carry[:, FEET_AT:] = carry[:, FEET_AT:]
         out.root[:] = work.root
         out.contacts[:] = work.contacts
         return
@@ -572,14 +636,20 @@ def step(frame, before, after, feet_before, feet_after, out, sys, fp, ball, hand
         for s in range(frame.weights.shape[1]):
             total += frame.weights[b, s]
         work.active[b] = total > 0.0
-    feet_after.started[:] = True
+        feet_after.started[b] = 1.0
+        for leg in range(2):
+            work.point[b, leg] = int(feet_before.point[b, leg])
     feet_after.model_root[:] = work.root  # the translator's root, which the planter remembers
-    plant_feet(  # type: ignore[call-arg]  # numba Dispatcher: starred records
-        work.root, out.rotations, work.active, work.contacts, *feet_before, feet_after.root, out.rotations,
-        feet_after.contact, feet_after.rel, feet_after.point, feet_after.offset, feet_after.floor, *planter,
+    plant_feet(
+        work.root, out.rotations, work.active, work.contacts, feet_before.started, feet_before.root,
+        feet_before.model_root, feet_before.rel, feet_before.contact, work.point, feet_before.offset,
+        feet_before.floor, feet_after.root, out.rotations, feet_after.contact, feet_after.rel, feet_after.point,
+        feet_after.offset, feet_after.floor, *planter,
     )  # fmt: skip
     out.root[:] = feet_after.root
-    out.contacts[:] = feet_after.contact
+    for b in range(B):
+        for leg in range(2):
+            out.contacts[b, leg] = feet_after.contact[b, leg] != 0.0
 
 
 # --------------------------------------------------------------------------- packing
