@@ -74,3 +74,27 @@ def test_a_snapshot_from_before_the_packed_carry_resumes_exactly(reference):
         a, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
         b, resumed = model.step_batch(resumed, FrameBatch(root[t], rot[t]), w)
         assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.root, b.root)
+
+
+def test_a_large_batch_of_one_style_gives_the_same(reference, monkeypatch):
+    """From `COMPACT_FROM` sessions of one style on, the step reads that style's state array as it
+    is and hands the other styles one shared (read-only) zero state: the reference's first
+    session (elderly) 20 times over gives its outputs 20 times, and the other styles rest at 0."""
+    from . import lti_reference
+
+    (root, rot), want = reference
+    copies = 20
+    monkeypatch.setattr(lti_reference, "MIXES", lti_reference.MIXES[:1] * copies)
+    model = load()
+    got = stream(model, np.repeat(root[:, :1], copies, 1), np.repeat(rot[:, :1], copies, 1))
+    for k in range(copies):
+        np.testing.assert_allclose(got["rotations"][:, k], want["rotations"][:, 0], atol=1e-9)
+        np.testing.assert_allclose(got["root"][:, k], want["root"][:, 0], atol=1e-8)
+    from models.interface import FrameBatch
+
+    w = lti_reference.weights(model.styles())
+    _, state = model.step_batch(
+        model.init_state(copies), FrameBatch(root[0, :1].repeat(copies, 0), rot[0, :1].repeat(copies, 0)), w
+    )
+    rest = [v for k, v in state.items() if k.startswith("x.") and k != "x.elderly"]
+    assert state["x.elderly"].any() and not any(v.any() or v.flags.writeable for v in rest)

@@ -501,7 +501,7 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
                     votes[b, 1] += w * planted(x_out, fp, s, sys.x_off[s], 1)
     for b in range(B):
         fresh = not before.started[b]
-        yaw, rest, rf = yaws[b], rests[b], root_feats[b]
+        yaw, rest, rf, quats = yaws[b], rests[b], root_feats[b], work.quats[b]
         base, base_w = -1, rest  # the heaviest part (first on ties): the sign reference of the blend
         for s in range(S):
             if weights[b, s] > base_w:
@@ -510,13 +510,13 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
         out_rot[b, 0, 0], out_rot[b, 0, 1], out_rot[b, 0, 2], out_rot[b, 0, 3] = 0.0, 0.0, 0.0, 1.0
         for j in range(1, NUM_JOINTS):
             q_in = row4(tilts, b) if j == HIPS else quat_at(frame.rotations, b, j)
-            q_base = q_in if base < 0 else quat_at(work.quats[b], base, j)
+            q_base = q_in if base < 0 else quat_at(quats, base, j)
             acc = (0.0, 0.0, 0.0, 0.0)
             if rest > 0.0:
                 acc = add_signed(acc, rest, q_in, q_base)
             for s in range(S):
                 if weights[b, s] > 0.0:
-                    acc = add_signed(acc, weights[b, s], quat_at(work.quats[b], s, j), q_base)
+                    acc = add_signed(acc, weights[b, s], quat_at(quats, s, j), q_base)
             norm = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
             q = (acc[0] / norm, acc[1] / norm, acc[2] / norm, acc[3] / norm)
             if j == HIPS:

@@ -237,6 +237,7 @@ class _Scratch(NamedTuple):
     work: tuple  # `kernels.Work`
     x_shapes: list[tuple[int, ...]]  # each style's LTI state's
     x_off: np.ndarray  # (S,) int64: where each style's state starts when all sit side by side
+    zeros: np.ndarray  # (B * max n,) read-only: the LTI state of every style no session of a step uses
 
 
 class _StyleSet(NamedTuple):
@@ -416,7 +417,9 @@ class LTIStyleModel(LTIStyles):
                 tuple(kernels.new_work(batch, systems, len(self._set.arm.source))),
                 [(batch, int(b - a)) for a, b in zip(systems.x_off[:-1], systems.x_off[1:])],
                 np.ascontiguousarray(systems.x_off[:-1], np.int64),
+                np.zeros(batch * int(np.diff(systems.x_off).max())),
             )
+            held.zeros.flags.writeable = False
             self._scratch.held = held
         return held
 
@@ -424,12 +427,16 @@ class LTIStyleModel(LTIStyles):
     def _side_by_side(xs: list[np.ndarray], w: np.ndarray, held: _Scratch) -> tuple[np.ndarray, np.ndarray]:
         """The styles' LTI states side by side for the kernel, and where each sits (`kernels.Frame`).
         A small batch takes them all (a few numpy calls); from `COMPACT_FROM` sessions on, only
-        the styles in use (with six styles at batch 256 the rest is ~2 MB copied for nothing)."""
+        the styles in use (with six styles at batch 256 the rest is ~2 MB copied for nothing), and
+        one style's own array when it is the only one."""
         B = len(w)
         if B < COMPACT_FROM:
             return np.concatenate(xs, axis=1), held.x_off
         used = np.flatnonzero((w > 0.0).any(axis=0))
         x_at, width = np.full(len(xs), -1, np.int64), 0
+        if len(used) == 1 and xs[used[0]].flags.c_contiguous and xs[used[0]].dtype == np.float64:
+            x_at[used[0]] = 0
+            return xs[used[0]], x_at
         for s in used:
             x_at[s], width = width, width + xs[s].shape[1]
         x = held.x[: B * width].reshape(B, width)
@@ -471,5 +478,5 @@ class LTIStyleModel(LTIStyles):
         new = {CARRY: new_carry}
         for key, at, x_old in zip(x_keys, x_at.tolist(), xs):
             n_s = x_old.shape[1]
-            new[key] = new_x[:, at : at + n_s] if at >= 0 else np.zeros((B, n_s))
+            new[key] = new_x[:, at : at + n_s] if at >= 0 else held.zeros[: B * n_s].reshape(B, n_s)
         return out, new
