@@ -98,3 +98,16 @@ def test_a_large_batch_of_one_style_gives_the_same(reference, monkeypatch):
     )
     rest = [v for k, v in state.items() if k.startswith("x.") and k != "x.elderly"]
     assert state["x.elderly"].any() and not any(v.any() or v.flags.writeable for v in rest)
+
+
+def test_packing_checks_each_field_against_its_schema():
+    """The kernel rebuilds packed records by position (`kernels.unpack_constants`): a field of
+    another kind or shape than its schema says is refused when packing, not misread."""
+    from models.lti.kernels import pack
+
+    f, i, b, index = pack([(np.ones((2, 3)), np.arange(4), True)], ["f2 i1 b0"])
+    assert f.tolist() == [1.0] * 6 and i.tolist() == [0, 1, 2, 3] and b.tolist() == [True]
+    assert index[:, :4].tolist() == [[0, 6, 2, 3], [0, 4, 4, 0], [0, 1, 0, 0]]
+    for wrong in ("f1 i1 b0", "f2 f1 b0", "f2 i1"):
+        with pytest.raises(ValueError):
+            pack([(np.ones((2, 3)), np.arange(4), True)], [wrong])

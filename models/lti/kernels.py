@@ -252,11 +252,11 @@ class Work(NamedTuple):
     point: np.ndarray  # (B, 2) int64: the planter's held points, as it indexes with them
 
 
-def new_work(batch: int, systems: Systems, carries: int) -> Work:
-    """Scratch for steps of up to `batch` sessions of these styles."""
+def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ...]:
+    """Scratch for steps of up to `batch` sessions of these styles, packed (`pack`)."""
     styles = len(systems.x_off) - 1
     n, k = int(np.diff(systems.x_off).max()), min(batch, CHUNK)
-    return Work(
+    work = Work(
         np.empty((batch, 16)),
         np.empty((batch, styles, NUM_JOINTS, 4)),
         np.empty(batch, np.int64),
@@ -273,6 +273,126 @@ def new_work(batch: int, systems: Systems, carries: int) -> Work:
         np.empty((1, NUM_JOINTS, 4)),
         np.empty((batch, 2), np.int64),
     )
+    return pack([work], [WORK_SCHEMA])
+
+
+# --------------------------------------------------------------------------- records in flat buffers
+
+# Each record's fields as the kernel reads them: f float64, i int64, b bool; 0 a scalar, else the
+# number of dimensions. `pack` checks records against these, `unpack_constants` and `unpack_work` rebuild them in the kernel.
+CONSTANT_SCHEMAS = (
+    "i1 i1 i1 i1 f1 f2 f2 f2 f2 f2 f2 f2 f2 f3",  # Systems
+    "f2 f3 f3 f3 b1",  # Footplant
+    "f3 f3 f2",  # Ball
+    "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
+    "f3 f3 f4 f2 i1 i2 f1 f1",  # RaisedArm
+    "i2 f1 f1 f1 f0 f0",  # WavingArm
+    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
+    "b0 b0 b0 b0 b0",  # Switches
+)
+WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2"
+
+
+def pack(records: list[tuple], schemas: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every field of `records` (in order) in one float64, one int64 and one bool buffer, and an
+    index (fields, 6) int64 of each field's offset, size and shape: the kernel takes four arrays
+    for all of them (each array passed to a compiled call costs ~70 ns to unbox, more than the
+    step's arithmetic at batch 1 for ~70 arrays). Views into the buffers are the fields (`Work`
+    is written through them)."""
+    kinds = [kind for schema in schemas for kind in schema.split()]
+    fields = [np.asarray(v) for record in records for v in record]
+    if len(fields) != len(kinds):
+        raise ValueError(f"{len(fields)} fields for a schema of {len(kinds)}")
+    buffers: dict[str, list[np.ndarray]] = {"f": [], "i": [], "b": []}
+    index = np.zeros((len(fields), 6), np.int64)
+    sizes = {"f": 0, "i": 0, "b": 0}
+    for k, (value, kind) in enumerate(zip(fields, kinds)):
+        if value.ndim != int(kind[1]) or value.dtype.kind not in {"f": "f", "i": "iu", "b": "b"}[kind[0]]:
+            raise ValueError(f"field {k}: {value.dtype}{value.shape} is not {kind}")
+        index[k, :2] = sizes[kind[0]], value.size
+        index[k, 2 : 2 + value.ndim] = value.shape
+        buffers[kind[0]].append(value.ravel())
+        sizes[kind[0]] += value.size
+    dtypes = {"f": np.float64, "i": np.int64, "b": np.bool_}
+    flat: list[np.ndarray] = [
+        np.concatenate(buffers[c]).astype(dtypes[c]) if buffers[c] else np.zeros(0, dtypes[c]) for c in "fib"
+    ]
+    return flat[0], flat[1], flat[2], index
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _f(p, k):
+    at = p[3][k, 0]
+    return p[0][at : at + p[3][k, 1]]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _i(p, k):
+    at = p[3][k, 0]
+    return p[1][at : at + p[3][k, 1]]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _b(p, k):
+    at = p[3][k, 0]
+    return p[2][at : at + p[3][k, 1]]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _s2(p, k):
+    return (p[3][k, 2], p[3][k, 3])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _s3(p, k):
+    return (p[3][k, 2], p[3][k, 3], p[3][k, 4])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _s4(p, k):
+    return (p[3][k, 2], p[3][k, 3], p[3][k, 4], p[3][k, 5])
+
+
+@njit(cache=True, error_model="numpy")
+def unpack_constants(p):
+    """The step's constant records from `pack([systems, footplant, ball, hands, arm, waving,
+    planter, switches])`: views, in `SCHEMAS`' order."""
+    sys = Systems(
+        _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _f(p, 5).reshape(_s2(p, 5)), _f(p, 6).reshape(_s2(p, 6)),
+        _f(p, 7).reshape(_s2(p, 7)), _f(p, 8).reshape(_s2(p, 8)), _f(p, 9).reshape(_s2(p, 9)),
+        _f(p, 10).reshape(_s2(p, 10)), _f(p, 11).reshape(_s2(p, 11)), _f(p, 12).reshape(_s2(p, 12)),
+        _f(p, 13).reshape(_s3(p, 13)),
+    )  # fmt: skip
+    fp = Footplant(
+        _f(p, 14).reshape(_s2(p, 14)), _f(p, 15).reshape(_s3(p, 15)), _f(p, 16).reshape(_s3(p, 16)),
+        _f(p, 17).reshape(_s3(p, 17)), _b(p, 18),
+    )  # fmt: skip
+    ball = Ball(_f(p, 19).reshape(_s3(p, 19)), _f(p, 20).reshape(_s3(p, 20)), _f(p, 21).reshape(_s2(p, 21)))
+    hands = Hands(
+        _i(p, 22), _f(p, 23).reshape(_s2(p, 23)), _i(p, 24), _i(p, 25), _i(p, 26), _f(p, 27)[0], _f(p, 28)[0],
+        _f(p, 29)[0],
+    )  # fmt: skip
+    arm = RaisedArm(
+        _f(p, 30).reshape(_s3(p, 30)), _f(p, 31).reshape(_s3(p, 31)), _f(p, 32).reshape(_s4(p, 32)),
+        _f(p, 33).reshape(_s2(p, 33)), _i(p, 34), _i(p, 35).reshape(_s2(p, 35)), _f(p, 36), _f(p, 37),
+    )  # fmt: skip
+    waving = WavingArm(_i(p, 38).reshape(_s2(p, 38)), _f(p, 39), _f(p, 40), _f(p, 41), _f(p, 42)[0], _f(p, 43)[0])
+    planter = (
+        _i(p, 44)[0], _i(p, 45).reshape(_s2(p, 45)), _f(p, 46).reshape(_s2(p, 46)), _f(p, 47), _f(p, 48)[0],
+        _f(p, 49)[0], _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0],
+    )  # fmt: skip
+    on = Switches(_b(p, 56)[0], _b(p, 57)[0], _b(p, 58)[0], _b(p, 59)[0], _b(p, 60)[0])
+    return sys, fp, ball, hands, arm, waving, planter, on
+
+
+@njit(cache=True, error_model="numpy")
+def unpack_work(p):
+    """The `Work` record from `pack([work])`: views."""
+    return Work(
+        _f(p, 0).reshape(_s2(p, 0)), _f(p, 1).reshape(_s4(p, 1)), _i(p, 2), _f(p, 3), _f(p, 4), _f(p, 5), _f(p, 6),
+        _f(p, 7), _f(p, 8), _f(p, 9).reshape(_s2(p, 9)), _b(p, 10).reshape(_s2(p, 10)), _b(p, 11),
+        _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s3(p, 13)), _i(p, 14).reshape(_s2(p, 14)),
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- small maths
@@ -587,15 +707,15 @@ def carry_raised_arms(b, arm, weights, offsets, swayed, out_rot, work):
 
 
 @njit(cache=True, error_model="numpy")
-def step(frame, x, new_x, carry, new_carry, out, sys, fp, ball, hands, arm, waving, planter, on, work):
+def step(frame, x, new_x, carry, new_carry, out, constants, work):
     """One frame for every session: reads `frame`, the packed carry (B, CARRY_WIDTH) and the LTI
-    states x side by side; writes `out`, new_carry and new_x. Records as plain tuples (module
-    docstring); `planter` is `FootPlanter`'s."""
+    states x side by side; writes `out`, new_carry and new_x. `constants` and `work` are packed
+    records (`pack`; `planter` is `FootPlanter`'s parameters)."""
     frame, out = Frame(*frame), Output(*out)
     before, feet_before = unpack(carry, x)
     after, feet_after = unpack(new_carry, new_x)
-    sys, fp, ball, hands = Systems(*sys), Footplant(*fp), Ball(*ball), Hands(*hands)
-    arm, waving, on, work = RaisedArm(*arm), WavingArm(*waving), Switches(*on), Work(*work)
+    sys, fp, ball, hands, arm, waving, planter, on = unpack_constants(constants)
+    work = unpack_work(work)
     B = frame.root.shape[0]
 
     # 1. the translator

@@ -234,7 +234,7 @@ class _Scratch(NamedTuple):
     systems: kernels.Systems  # the style set it was made for
     batch: int
     x: np.ndarray  # (B * N,) room for the styles' LTI states side by side
-    work: tuple  # `kernels.Work`
+    work: tuple  # `kernels.Work`, packed
     x_shapes: list[tuple[int, ...]]  # each style's LTI state's
     x_off: np.ndarray  # (S,) int64: where each style's state starts when all sit side by side
     zeros: np.ndarray  # (B * max n,) read-only: the LTI state of every style no session of a step uses
@@ -247,7 +247,7 @@ class _StyleSet(NamedTuple):
     systems: kernels.Systems
     ball: kernels.Ball  # the styles' rotation priors
     arm: kernels.RaisedArm  # the styles' raised-arm carries stacked
-    constants: tuple  # the step's constant records as plain tuples, in its argument order
+    constants: tuple  # the step's constant records, packed (`kernels.pack`)
 
 
 def carry_entry(carry: np.ndarray, key: str) -> np.ndarray:
@@ -346,10 +346,16 @@ class LTIStyleModel(LTIStyles):
             h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
         )
         switches = (self.blend, self.keep_heading, self.raised_arms, self.waving_arms, self.footlock)
-        records = (systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params, switches)
+        records = [systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params, switches]
         x_keys = [f"x.{s}" for s in styles]
         self._set = _StyleSet(
-            styles, x_keys, frozenset([CARRY, *x_keys]), systems, ball, arm, tuple(map(tuple, records))
+            styles,
+            x_keys,
+            frozenset([CARRY, *x_keys]),
+            systems,
+            ball,
+            arm,
+            kernels.pack(records, list(kernels.CONSTANT_SCHEMAS)),
         )
 
     @property
@@ -414,7 +420,7 @@ class LTIStyleModel(LTIStyles):
                 systems,
                 batch,
                 np.empty(batch * int(systems.x_off[-1])),
-                tuple(kernels.new_work(batch, systems, len(self._set.arm.source))),
+                kernels.new_work(batch, systems, len(self._set.arm.source)),
                 [(batch, int(b - a)) for a, b in zip(systems.x_off[:-1], systems.x_off[1:])],
                 np.ascontiguousarray(systems.x_off[:-1], np.int64),
                 np.zeros(batch * int(np.diff(systems.x_off).max())),
@@ -474,7 +480,7 @@ class LTIStyleModel(LTIStyles):
         new_x, new_carry = np.empty_like(x), np.empty_like(carry)
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
         frame, outputs = (root, rotations, w, x_at), (out.root, out.rotations, out.contacts)
-        kernels.step(*(frame, x, new_x, carry, new_carry, outputs, *constants, held.work))
+        kernels.step(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work))
         new = {CARRY: new_carry}
         for key, at, x_old in zip(x_keys, x_at.tolist(), xs):
             n_s = x_old.shape[1]
