@@ -179,7 +179,7 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
     features (displacement, yaw change, height), body rotations blended by sign-aligned
     normalised quaternion averaging (each style's held inside its rotation prior first), the path
     integrated from the input's first frame."""
-    from models.lti.prior import clamp_rotations
+    from models.motion.rotation_ball import clamp_rotations
     from models.motion.rotations import quat_mul
 
     root, rots, F = motion.translations[:, rep.HIPS], motion.rotations, motion.num_frames

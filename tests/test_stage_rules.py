@@ -29,7 +29,6 @@ STAGE_MODULES = (
     "models/lpn/carriage.py",
     "models/lti/model.py",
     "models/lti/kernels.py",
-    "models/lti/prior.py",
     "models/lti/footplant.py",
     "models/lti/raised_arm.py",
     "models/lti/waving_arm.py",

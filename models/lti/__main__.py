@@ -1,10 +1,9 @@
-"""CLI: python -m models.lti {train, translate, bench, align-plot}.
+"""CLI: python -m models.lti {train, translate, bench, render}.
 
 python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
 python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
 python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2] [--weights DIR]
 python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
-python -m models.lti align-plot [-o out/lti_alignment.png]
 """
 
 from __future__ import annotations
@@ -160,13 +159,6 @@ def cmd_render(args) -> None:
             print(f"wrote {gif}")
 
 
-def cmd_align_plot(args) -> None:
-    from .plots import alignment_figure
-
-    path = alignment_figure(Path(args.output))
-    print(f"wrote {path}")
-
-
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(
         prog="python -m models.lti", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -204,9 +196,6 @@ def main(argv: list[str] | None = None) -> None:
     v.add_argument("--seconds", type=float, default=6.0)
     v.add_argument("--no-gif", action="store_true")
     v.set_defaults(func=cmd_render)
-    a = sub.add_parser("align-plot")
-    a.add_argument("-o", "--output", default="out/lti_alignment.png")
-    a.set_defaults(func=cmd_align_plot)
     args = p.parse_args(argv)
     args.func(args)
 

@@ -8,7 +8,7 @@ blend) and the footplant classifier. Every frame, per session:
     [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint: a sparse product)
     out = y * out_std + out_mean
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
-    pose = inverse representation(out); rotation prior (prior.py); contacts from the state
+    pose = inverse representation(out); rotation prior (`train.style_prior`); contacts from the state
     then the stages after the translator, each measured on the input and fitted per style the same
     way: a raised, calm hand's arm (raised_arm.py), a waving hand's swing (waving_arm.py), the
     planted feet
@@ -18,19 +18,14 @@ on a straight validation walk, a full circle in ~4 minutes of streaming), so by 
 takes the input's yaw change (`keep_heading=True`); speed, posture and timing stay translated.
 
 The feet are planted (on by default, `footlock`) by `models.motion.feet.FootPlanter`, shared by
-every method: a toe or ankle on the ground is held there by two-bone leg IK, and the root keeps the
-translated path (`follow=0`). The translated legs take shorter strides than the translated root
-displacement implies; holding the planted foot and letting it catch up in the swing lengthens the
-stride instead of shrinking the path (moving the root with the feet shrank it to 0.76 of the
-translated path on elderly validation walks, and the translated speed is already below the real
-style's). The footplant classifier's contacts are the planter's hints (a foot it says is down plants however
-fast the translation moves it); `FrameBatch.contacts` are the planted legs, or the classifier's
-contacts when the feet are not planted.
+every method, keeping the translated root path: the translated legs take shorter strides than the
+root displacement implies, and a held foot catching up in its swing lengthens them. The footplant
+classifier's contacts are the planter's hints; `FrameBatch.contacts` are the planted legs, or the
+classifier's contacts when the feet are not planted.
 
-The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and
-stage (`kernels.step`, numba): ~10 us of arithmetic per frame would otherwise drown in ~1,000
-small numpy calls and the argument checks of one kernel call per stage. The offline path (`StyleTranslator.translate_motion`) stays numpy over whole clips; the
-tests check that the two agree frame for frame.
+The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and stage
+(`kernels.step`) on a few arrays; the offline path (`StyleTranslator.translate_motion`) stays
+numpy over whole clips, and the tests check that the two agree frame for frame.
 
 The log-time-warp output (last output DOF) is only used offline (`translate_motion(...,
 timewarp=True)`); online it is ignored, since honouring it would break synchrony.
@@ -50,12 +45,12 @@ from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import model_rig_planter
 from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter, clip_sway, hand_offsets_of
+from models.motion.rotation_ball import clamp_rotations
 from models.motion.style_carry import StyleCarry
 
 from . import kernels, raised_arm, waving_arm
 from . import representation as rep
 from .footplant import FootplantClassifier
-from .prior import clamp_rotations
 from .styles import LTIStyles
 
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
@@ -84,7 +79,9 @@ class StyleTranslator:
     meta: dict = field(default_factory=dict)
     ref: np.ndarray = field(default_factory=lambda: rep.IDENTITY_REF.copy())  # (22, 4) per-joint reference rotations
     keep_heading: bool = True  # output yaw change := input yaw change (no heading drift); not stored
-    prior_mean: np.ndarray | None = None  # (22, 4) rotation prior (prior.py): the real style's mean per joint
+    prior_mean: np.ndarray | None = (
+        None  # (22, 4) rotation prior (`train.style_prior`): the real style's mean per joint
+    )
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
     raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`)
     waving_arm: bool = True  # a waving hand's arm takes the input's swing (`waving_arm.py`); not stored
@@ -93,10 +90,6 @@ class StyleTranslator:
         n = self.A.shape[0]
         self.M = np.block([[self.A, self.B], [self.C, self.D]])
         self.n = n
-
-    @property
-    def state_dim(self) -> int:
-        return self.n
 
     # ---------------------------------------------------------------- core
 
@@ -107,14 +100,12 @@ class StyleTranslator:
         return erf(np.maximum(dist - self.k_p, 0.0) / self.k_c).max(axis=-1)
 
     def _finish(self, feats: np.ndarray, u: np.ndarray, y: np.ndarray, blend: bool) -> np.ndarray:
-        out = y * self.out_std + self.out_mean
+        out = y * self.out_std + self.out_mean  # a new array
         if blend:
             w = self.blend_weight(u)[..., None]
-            out = out.copy()
             out[..., : rep.FEATURE_DIM] = (1 - w) * out[..., : rep.FEATURE_DIM] + w * feats
             out[..., rep.FEATURE_DIM :] *= 1 - w
         if self.keep_heading:
-            out = out.copy() if not blend else out
             out[..., 2] = feats[..., 2]
         return out
 
