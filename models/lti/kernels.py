@@ -128,7 +128,7 @@ def _layout() -> tuple[dict[str, tuple], int]:
 
 SPANS, CARRY_WIDTH = _layout()
 _S = tuple(SPANS.values())  # as the kernels read it (numba takes a global tuple as a constant)
-FEET_AT = SPANS["feet_started"][0]  # the planter's columns start here
+WAVE_AT, FEET_AT = SPANS["wave_in_mean"][0], SPANS["feet_started"][0]  # the running means, the planter
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -273,7 +273,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
         np.empty((1, NUM_JOINTS, 4)),
         np.empty((batch, 2), np.int64),
     )
-    return pack([work], [WORK_SCHEMA])
+    return pack([work], [WORK_SCHEMA], copy=False)
 
 
 # --------------------------------------------------------------------------- records in flat buffers
@@ -293,17 +293,19 @@ CONSTANT_SCHEMAS = (
 WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2"
 
 
-def pack(records: list[tuple], schemas: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def pack(
+    records: list[tuple], schemas: list[str], copy: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every field of `records` (in order) in one float64, one int64 and one bool buffer, and an
     index (fields, 6) int64 of each field's offset, size and shape: the kernel takes four arrays
     for all of them (each array passed to a compiled call costs ~70 ns to unbox, more than the
-    step's arithmetic at batch 1 for ~70 arrays). Views into the buffers are the fields (`Work`
-    is written through them)."""
+    step's arithmetic at batch 1 for ~70 arrays). Views into the buffers are the fields. `copy`
+    False: the buffers are left uninitialised (scratch: only the fields' shapes count)."""
     kinds = [kind for schema in schemas for kind in schema.split()]
     fields = [np.asarray(v) for record in records for v in record]
     if len(fields) != len(kinds):
         raise ValueError(f"{len(fields)} fields for a schema of {len(kinds)}")
-    buffers: dict[str, list[np.ndarray]] = {"f": [], "i": [], "b": []}
+    dtypes = {"f": np.float64, "i": np.int64, "b": np.bool_}
     index = np.zeros((len(fields), 6), np.int64)
     sizes = {"f": 0, "i": 0, "b": 0}
     for k, (value, kind) in enumerate(zip(fields, kinds)):
@@ -311,12 +313,11 @@ def pack(records: list[tuple], schemas: list[str]) -> tuple[np.ndarray, np.ndarr
             raise ValueError(f"field {k}: {value.dtype}{value.shape} is not {kind}")
         index[k, :2] = sizes[kind[0]], value.size
         index[k, 2 : 2 + value.ndim] = value.shape
-        buffers[kind[0]].append(value.ravel())
         sizes[kind[0]] += value.size
-    dtypes = {"f": np.float64, "i": np.int64, "b": np.bool_}
-    flat: list[np.ndarray] = [
-        np.concatenate(buffers[c]).astype(dtypes[c]) if buffers[c] else np.zeros(0, dtypes[c]) for c in "fib"
-    ]
+    flat: list[np.ndarray] = [np.empty(sizes[c], dtypes[c]) for c in "fib"]
+    for value, kind, (at, size) in zip(fields, kinds, index[:, :2]):
+        if copy:
+            flat["fib".index(kind[0])][at : at + size] = value.ravel()
     return flat[0], flat[1], flat[2], index
 
 
@@ -734,8 +735,7 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
         for side in range(2):
             raised = raised or after.hand_prev[b, side, 1] > hands.above
         if not raised:  # a walk's or a run's hands never are: the running means wait
-            after.wave_in_mean[b] = before.wave_in_mean[b]
-            after.wave_out_mean[b] = before.wave_out_mean[b]
+            new_carry[b, WAVE_AT:FEET_AT] = carry[b, WAVE_AT:FEET_AT]
             continue
         if on.raised_arm and arm.source.shape[0] > 0:
             carry_raised_arms(b, arm, frame.weights, after.hand_prev, after.hand_sway, out.rotations, work)
