@@ -253,8 +253,8 @@ class LTIStyleModel(LTIStyles):
 
     State per session (all arrays, session axis first): the LTI state of each style in its own
     array `x.<style>` (a style whose weight is 0 is held at x = 0, its identified initial state),
-    the previous input root transform, the integrated output root transform and the foot-lock
-    memory.
+    and `carry`, one float64 row of everything else (`kernels.CARRY`: the input's and the
+    output's root transforms, the hands' measures, the running means, the foot planter's memory).
     A style weight vector w mixes the styles: the root displacement features are blended
     linearly, joint rotations by normalised quaternion blending, and 1 - sum(w) of the input
     passes through (intensity < 1). With a one-hot w this is exactly the paper's translator.
