@@ -183,6 +183,7 @@ class Footplant(NamedTuple):
     var: np.ndarray  # (S, 2, 2)
     log_prior: np.ndarray  # (S, 2, 2)
     fitted: np.ndarray  # (S,) bool
+    log_var: np.ndarray  # (S, 2, 2) log(var), computed once (math.log, as the step did per frame)
 
 
 class Ball(NamedTuple):
@@ -282,7 +283,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
 # number of dimensions. `pack` checks records against these, `unpack_constants` and `unpack_work` rebuild them in the kernel.
 CONSTANT_SCHEMAS = (
     "i1 i1 i1 i1 f1 f2 f2 f2 f2 f2 f2 f2 f2 f3",  # Systems
-    "f2 f3 f3 f3 b1",  # Footplant
+    "f2 f3 f3 f3 b1 f3",  # Footplant
     "f3 f3 f2",  # Ball
     "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
     "f3 f3 f4 f2 i1 i2 f1 f1",  # RaisedArm
@@ -357,7 +358,7 @@ def _s4(p, k):
 @njit(cache=True, error_model="numpy")
 def unpack_constants(p):
     """The step's constant records from `pack([systems, footplant, ball, hands, arm, waving,
-    planter, switches])`: views, in `SCHEMAS`' order."""
+    planter, switches])`: views, in `CONSTANT_SCHEMAS`' order."""
     sys = Systems(
         _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _f(p, 5).reshape(_s2(p, 5)), _f(p, 6).reshape(_s2(p, 6)),
         _f(p, 7).reshape(_s2(p, 7)), _f(p, 8).reshape(_s2(p, 8)), _f(p, 9).reshape(_s2(p, 9)),
@@ -366,23 +367,23 @@ def unpack_constants(p):
     )  # fmt: skip
     fp = Footplant(
         _f(p, 14).reshape(_s2(p, 14)), _f(p, 15).reshape(_s3(p, 15)), _f(p, 16).reshape(_s3(p, 16)),
-        _f(p, 17).reshape(_s3(p, 17)), _b(p, 18),
+        _f(p, 17).reshape(_s3(p, 17)), _b(p, 18), _f(p, 19).reshape(_s3(p, 19)),
     )  # fmt: skip
-    ball = Ball(_f(p, 19).reshape(_s3(p, 19)), _f(p, 20).reshape(_s3(p, 20)), _f(p, 21).reshape(_s2(p, 21)))
+    ball = Ball(_f(p, 20).reshape(_s3(p, 20)), _f(p, 21).reshape(_s3(p, 21)), _f(p, 22).reshape(_s2(p, 22)))
     hands = Hands(
-        _i(p, 22), _f(p, 23).reshape(_s2(p, 23)), _i(p, 24), _i(p, 25), _i(p, 26), _f(p, 27)[0], _f(p, 28)[0],
-        _f(p, 29)[0],
+        _i(p, 23), _f(p, 24).reshape(_s2(p, 24)), _i(p, 25), _i(p, 26), _i(p, 27), _f(p, 28)[0], _f(p, 29)[0],
+        _f(p, 30)[0],
     )  # fmt: skip
     arm = RaisedArm(
-        _f(p, 30).reshape(_s3(p, 30)), _f(p, 31).reshape(_s3(p, 31)), _f(p, 32).reshape(_s4(p, 32)),
-        _f(p, 33).reshape(_s2(p, 33)), _i(p, 34), _i(p, 35).reshape(_s2(p, 35)), _f(p, 36), _f(p, 37),
+        _f(p, 31).reshape(_s3(p, 31)), _f(p, 32).reshape(_s3(p, 32)), _f(p, 33).reshape(_s4(p, 33)),
+        _f(p, 34).reshape(_s2(p, 34)), _i(p, 35), _i(p, 36).reshape(_s2(p, 36)), _f(p, 37), _f(p, 38),
     )  # fmt: skip
-    waving = WavingArm(_i(p, 38).reshape(_s2(p, 38)), _f(p, 39), _f(p, 40), _f(p, 41), _f(p, 42)[0], _f(p, 43)[0])
+    waving = WavingArm(_i(p, 39).reshape(_s2(p, 39)), _f(p, 40), _f(p, 41), _f(p, 42), _f(p, 43)[0], _f(p, 44)[0])
     planter = (
-        _i(p, 44)[0], _i(p, 45).reshape(_s2(p, 45)), _f(p, 46).reshape(_s2(p, 46)), _f(p, 47), _f(p, 48)[0],
-        _f(p, 49)[0], _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0],
+        _i(p, 45)[0], _i(p, 46).reshape(_s2(p, 46)), _f(p, 47).reshape(_s2(p, 47)), _f(p, 48), _f(p, 49)[0],
+        _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0],
     )  # fmt: skip
-    on = Switches(_b(p, 56)[0], _b(p, 57)[0], _b(p, 58)[0], _b(p, 59)[0], _b(p, 60)[0])
+    on = Switches(_b(p, 57)[0], _b(p, 58)[0], _b(p, 59)[0], _b(p, 60)[0], _b(p, 61)[0])
     return sys, fp, ball, hands, arm, waving, planter, on
 
 
@@ -468,8 +469,9 @@ def planted(x, fp, s, a, foot):
     for i in range(x.shape[0]):
         proj += x[i] * fp.w[foot, a + i]
     mean, var, log_prior = fp.mean[s, foot], fp.var[s, foot], fp.log_prior[s, foot]
-    ll_free = -0.5 * (proj - mean[0]) ** 2 / var[0] - 0.5 * math.log(var[0]) + log_prior[0]
-    ll_planted = -0.5 * (proj - mean[1]) ** 2 / var[1] - 0.5 * math.log(var[1]) + log_prior[1]
+    log_var = fp.log_var[s, foot]
+    ll_free = -0.5 * (proj - mean[0]) ** 2 / var[0] - 0.5 * log_var[0] + log_prior[0]
+    ll_planted = -0.5 * (proj - mean[1]) ** 2 / var[1] - 0.5 * log_var[1] + log_prior[1]
     return ll_planted > ll_free
 
 
@@ -825,6 +827,7 @@ def pack_styles(translators: list) -> tuple[Systems, Footplant, Ball]:
         f64(fp_var),
         f64(fp_prior),
         np.array(fitted, np.bool_),
+        f64([[[math.log(v) for v in foot] for foot in var] for var in fp_var]),
     )
     radii = f64(ball_radii)
     cos_inner = np.where(np.isfinite(radii[:, 0]), np.cos(0.5 * np.minimum(radii[:, 0], np.pi)), -1.0)
