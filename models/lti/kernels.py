@@ -461,13 +461,20 @@ def add_signed(acc, w, q, ref):
 
 
 @njit(cache=True, error_model="numpy")
-def planted(x, fp, s, a, foot):
-    """Footplant class of one foot: the more likely Gaussian class (free, planted) of style s's
+def planted(x, fp, s, a):
+    """Footplant class of each foot: the more likely Gaussian class (free, planted) of style s's
     state x (columns a... of the side-by-side states) projected on the foot's discriminant
-    (FootplantClassifier.predict)."""
-    proj = 0.0
+    (FootplantClassifier.predict). Both projections in one pass: two independent sums."""
+    left, right = 0.0, 0.0
     for i in range(x.shape[0]):
-        proj += x[i] * fp.w[foot, a + i]
+        left += x[i] * fp.w[0, a + i]
+        right += x[i] * fp.w[1, a + i]
+    return _likelier(left, fp, s, 0), _likelier(right, fp, s, 1)
+
+
+@njit(cache=True, error_model="numpy")
+def _likelier(proj, fp, s, foot):
+    """Whether the planted class is the likelier one for this projection (`planted`)."""
     mean, var, log_prior = fp.mean[s, foot], fp.var[s, foot], fp.log_prior[s, foot]
     log_var = fp.log_var[s, foot]
     ll_free = -0.5 * (proj - mean[0]) ** 2 / var[0] - 0.5 * log_var[0] + log_prior[0]
@@ -620,8 +627,9 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
                     work.quats[b, s], work.out,
                 )  # fmt: skip
                 if fp.fitted[s]:
-                    votes[b, 0] += w * planted(x_out, fp, s, sys.x_off[s], 0)
-                    votes[b, 1] += w * planted(x_out, fp, s, sys.x_off[s], 1)
+                    left, right = planted(x_out, fp, s, sys.x_off[s])
+                    votes[b, 0] += w * left
+                    votes[b, 1] += w * right
     for b in range(B):
         fresh = not before.started[b]
         yaw, rest, rf, quats = yaws[b], rests[b], root_feats[b], work.quats[b]
