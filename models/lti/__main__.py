@@ -69,13 +69,14 @@ def cmd_bench(args) -> None:
     from models.stepbench import capped_threads, stepper
 
     from . import load
+    from .model import LTIStyleModel
 
     clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
     motion = load_motion(clip)
     variants = {
         "shipped": load(Path(args.weights)),
         "core alone": load(Path(args.weights), core_only=True),
-        "foot lock off": _without_footlock(Path(args.weights)),
+        "foot lock off": LTIStyleModel(weights_dir=Path(args.weights), footlock=False),
     }
     shipped = variants["shipped"]
     style = args.style or ("elderly" if "elderly" in shipped.styles() else shipped.styles()[0])
@@ -113,12 +114,6 @@ def cmd_bench(args) -> None:
 
 def _floor(zin: np.ndarray, M_T: np.ndarray, i: int) -> None:
     np.matmul(zin, M_T)
-
-
-def _without_footlock(weights: Path):
-    from .model import LTIStyleModel
-
-    return LTIStyleModel(weights_dir=weights, footlock=False)
 
 
 def interleaved(steps: dict, repeats: int, warmup: int = 10) -> tuple[dict, dict]:
