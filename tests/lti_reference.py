@@ -60,6 +60,19 @@ def stream(model, root: np.ndarray, rot: np.ndarray) -> dict[str, np.ndarray]:
     return {k: np.stack(v) for k, v in out.items()}
 
 
+def unpacked(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """`state` as the step kept it before its carry was packed (`kernels.CARRY`): each entry
+    under its own key, with its own dtype; the styles' x as they are."""
+    from models.lti.kernels import CARRY
+    from models.lti.model import CARRY as KEY
+    from models.lti.model import carry_entry
+    from models.motion.feet import STATE_SHAPES
+
+    dtypes = {"started": bool, **{k: dtype for k, (_, dtype) in STATE_SHAPES.items()}}
+    old = {k: carry_entry(state[KEY], k).astype(dtypes.get(k, np.float64)) for k in CARRY}
+    return {**old, **{k: v for k, v in state.items() if k != KEY}}
+
+
 def main() -> None:
     from models.data import build_index
     from models.lti import load

@@ -179,7 +179,7 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
     features (displacement, yaw change, height), body rotations blended by sign-aligned
     normalised quaternion averaging (each style's held inside its rotation prior first), the path
     integrated from the input's first frame."""
-    from models.lti.prior import clamp_rotations
+    from models.motion.rotation_ball import clamp_rotations
     from models.motion.rotations import quat_mul
 
     root, rots, F = motion.translations[:, rep.HIPS], motion.rotations, motion.num_frames
@@ -268,8 +268,8 @@ def test_bad_shapes_and_stale_states_are_clear_errors():
         model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest[:, :21]), w)
     with pytest.raises(ValueError, match="style_weights"):
         model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest), w[:, :3])
-    with pytest.raises(ValueError, match="feet_offset"):
-        model.step_batch({**state, "feet_offset": np.zeros((2, 2, 3))}, FrameBatch(np.zeros((1, 3)), rest), w)
+    with pytest.raises(ValueError, match="carry"):
+        model.step_batch({**state, "carry": np.zeros((2, 3))}, FrameBatch(np.zeros((1, 3)), rest), w)
     import copy
 
     smaller = copy.copy(model)

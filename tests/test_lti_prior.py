@@ -1,4 +1,5 @@
-"""LTI rotation prior (models/lti/prior.py): the ball real data of a style fills, per joint."""
+"""LTI rotation prior (`train.style_prior`, models/motion/rotation_ball.py): the ball real data of
+a style fills, per joint."""
 
 from __future__ import annotations
 
@@ -7,8 +8,8 @@ import pytest
 
 from models.eval.plausibility import RotationReference
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel
-from models.lti.prior import clamp_rotations, comparable, fit_prior, saturate
 from models.lti.representation import HIPS
+from models.motion.rotation_ball import clamp_rotations, comparable, fit_prior, saturate
 from models.motion.rotation_ball_kernels import clamp_joint
 from models.motion.rotations import quat_angle, quat_mul, yaw_quat
 

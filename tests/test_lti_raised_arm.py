@@ -9,10 +9,11 @@ import pytest
 
 from models.interface import FrameBatch
 from models.lti import raised_arm
-from models.lti.model import WEIGHTS_DIR, LTIStyleModel
+from models.lti.model import CARRY, WEIGHTS_DIR, LTIStyleModel, carry_entry
 from models.motion.hands import clip_sway, hand_offsets, raise_share
 from models.motion.rotations import quat_angle
 
+from .lti_reference import unpacked
 from .one_session import assert_lti_streams_as_offline, contents_read, stream, val_motions
 
 pytestmark = pytest.mark.skipif(not (WEIGHTS_DIR / raised_arm.FILE).exists(), reason="LTI raised arm not committed")
@@ -68,11 +69,11 @@ def test_a_snapshot_from_before_the_raised_arm_resumes(models, index):
     w[0, 0] = 1.0
     for t in range(5):
         _, state = on.step_batch(state, FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1]), w)
-    old = {k: v for k, v in state.items() if not k.startswith("hand_")}
+    old = {k: v for k, v in unpacked(state).items() if not k.startswith("hand_")}
     upgraded = on.upgrade_state(old)
-    assert upgraded["hand_sway"].shape == (1, 2) and not upgraded["hand_prev"].any()
+    assert not carry_entry(upgraded[CARRY], "hand_prev").any()
     out, state = on.step_batch(upgraded, FrameBatch(motion.translations[5:6, 1], motion.rotations[5:6]), w)
-    assert np.isfinite(out.rotations).all() and state["hand_sway"][0].tolist() == [0.0, 0.0]
+    assert np.isfinite(out.rotations).all() and carry_entry(state[CARRY], "hand_sway")[0].tolist() == [0.0, 0.0]
 
 
 def test_validation_raise_ups_toward_youthful_read_as_raise_ups(models, index):

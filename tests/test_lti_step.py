@@ -52,3 +52,62 @@ def test_a_large_batch_gives_the_same(reference, monkeypatch):
         rows = slice(4 * k, 4 * k + 4)
         np.testing.assert_allclose(got["rotations"][:, rows], want["rotations"], atol=1e-9)
         np.testing.assert_allclose(got["root"][:, rows], want["root"], atol=1e-8)
+
+
+def test_a_snapshot_from_before_the_packed_carry_resumes_exactly(reference):
+    """A session's state saved before the carry was packed (every entry under its own key, flags
+    as bools) is packed by `upgrade_state` and steps on exactly as the state it was saved from."""
+    from models.interface import FrameBatch
+
+    from .lti_reference import unpacked, weights
+
+    (root, rot), _ = reference
+    model = load()
+    w = weights(model.styles())
+    state = model.init_state(root.shape[1])
+    for t in range(40):
+        _, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
+    old = unpacked(state)
+    assert "carry" not in old and old["feet_point"].dtype == np.int64
+    resumed = model.upgrade_state(old)
+    for t in range(40, 60):
+        a, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
+        b, resumed = model.step_batch(resumed, FrameBatch(root[t], rot[t]), w)
+        assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.root, b.root)
+
+
+def test_a_large_batch_of_one_style_gives_the_same(reference, monkeypatch):
+    """From `COMPACT_FROM` sessions of one style on, the step reads that style's state array as it
+    is and hands the other styles one shared (read-only) zero state: the reference's first
+    session (elderly) 20 times over gives its outputs 20 times, and the other styles rest at 0."""
+    from . import lti_reference
+
+    (root, rot), want = reference
+    copies = 20
+    monkeypatch.setattr(lti_reference, "MIXES", lti_reference.MIXES[:1] * copies)
+    model = load()
+    got = stream(model, np.repeat(root[:, :1], copies, 1), np.repeat(rot[:, :1], copies, 1))
+    for k in range(copies):
+        np.testing.assert_allclose(got["rotations"][:, k], want["rotations"][:, 0], atol=1e-9)
+        np.testing.assert_allclose(got["root"][:, k], want["root"][:, 0], atol=1e-8)
+    from models.interface import FrameBatch
+
+    w = lti_reference.weights(model.styles())
+    _, state = model.step_batch(
+        model.init_state(copies), FrameBatch(root[0, :1].repeat(copies, 0), rot[0, :1].repeat(copies, 0)), w
+    )
+    rest = [v for k, v in state.items() if k.startswith("x.") and k != "x.elderly"]
+    assert state["x.elderly"].any() and not any(v.any() or v.flags.writeable for v in rest)
+
+
+def test_packing_checks_each_field_against_its_schema():
+    """The kernel rebuilds packed records by position (`kernels.unpack_constants`): a field of
+    another kind or shape than its schema says is refused when packing, not misread."""
+    from models.lti.kernels import pack
+
+    f, i, b, index = pack([(np.ones((2, 3)), np.arange(4), True)], ["f2 i1 b0"])
+    assert f.tolist() == [1.0] * 6 and i.tolist() == [0, 1, 2, 3] and b.tolist() == [True]
+    assert index[:, :4].tolist() == [[0, 6, 2, 3], [0, 4, 4, 0], [0, 1, 0, 0]]
+    for wrong in ("f1 i1 b0", "f2 f1 b0", "f2 i1"):
+        with pytest.raises(ValueError):
+            pack([(np.ones((2, 3)), np.arange(4), True)], [wrong])

@@ -27,7 +27,7 @@ FRAMES = 90
 # per method: (lowest share of joint-frames within the real p99 rotation distance over the
 # styles, worst joint; highest planted-toe median slide over the styles as a multiple of real)
 # The slide ceiling is the gate since the shared foot planter (models.motion.feet): measured 0.0x for all three
-# measured: within lti 0.97 (its rotation prior, models/lti/prior.py), erd 0.96 (its rotation prior,
+# measured: within lti 0.97 (its rotation prior, models/motion/rotation_ball.py), erd 0.96 (its rotation prior,
 # models/erd/rotation_prior.py), lpn 0.953 (its rotation prior, models/weights/lpn/rotation_prior.npz; 0.51
 # without it; the worst joints left are legs, which the foot planter re-poses after the prior)
 FLOORS = {"lti": (0.95, 2.0), "erd": (0.95, 2.0), "lpn": (0.95, 2.0)}

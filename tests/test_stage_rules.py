@@ -27,6 +27,12 @@ STAGE_MODULES = (
     "models/lpn/output_prior.py",
     "models/lpn/arm_coupling.py",
     "models/lpn/carriage.py",
+    "models/lti/model.py",
+    "models/lti/kernels.py",
+    "models/lti/footplant.py",
+    "models/lti/raised_arm.py",
+    "models/lti/waving_arm.py",
+    "models/lti/waving_kernels.py",
 )
 SIDE_WORDS = {"l", "r", "left", "right"}
 SIDE_SUFFIXES = {"_l": "_r", "_r": "_l"}

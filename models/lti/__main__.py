@@ -1,10 +1,9 @@
-"""CLI: python -m models.lti {train, translate, bench, align-plot}.
+"""CLI: python -m models.lti {train, translate, bench, render}.
 
 python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
 python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
 python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2] [--weights DIR]
 python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
-python -m models.lti align-plot [-o out/lti_alignment.png]
 """
 
 from __future__ import annotations
@@ -70,13 +69,14 @@ def cmd_bench(args) -> None:
     from models.stepbench import capped_threads, stepper
 
     from . import load
+    from .model import LTIStyleModel
 
     clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
     motion = load_motion(clip)
     variants = {
         "shipped": load(Path(args.weights)),
         "core alone": load(Path(args.weights), core_only=True),
-        "foot lock off": _without_footlock(Path(args.weights)),
+        "foot lock off": LTIStyleModel(weights_dir=Path(args.weights), footlock=False),
     }
     shipped = variants["shipped"]
     style = args.style or ("elderly" if "elderly" in shipped.styles() else shipped.styles()[0])
@@ -114,12 +114,6 @@ def cmd_bench(args) -> None:
 
 def _floor(zin: np.ndarray, M_T: np.ndarray, i: int) -> None:
     np.matmul(zin, M_T)
-
-
-def _without_footlock(weights: Path):
-    from .model import LTIStyleModel
-
-    return LTIStyleModel(weights_dir=weights, footlock=False)
 
 
 def interleaved(steps: dict, repeats: int, warmup: int = 10) -> tuple[dict, dict]:
@@ -160,13 +154,6 @@ def cmd_render(args) -> None:
             print(f"wrote {gif}")
 
 
-def cmd_align_plot(args) -> None:
-    from .plots import alignment_figure
-
-    path = alignment_figure(Path(args.output))
-    print(f"wrote {path}")
-
-
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(
         prog="python -m models.lti", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -204,9 +191,6 @@ def main(argv: list[str] | None = None) -> None:
     v.add_argument("--seconds", type=float, default=6.0)
     v.add_argument("--no-gif", action="store_true")
     v.set_defaults(func=cmd_render)
-    a = sub.add_parser("align-plot")
-    a.add_argument("-o", "--output", default="out/lti_alignment.png")
-    a.set_defaults(func=cmd_align_plot)
     args = p.parse_args(argv)
     args.func(args)
 

@@ -158,7 +158,7 @@ def fine_tune(
         "frames": int(train_part.num_frames),
     }
     report(0.1 + 0.7 * (len(train_neutrals) + 1) / steps, "identified")
-    heldout = None
+    heldout: dict | None = None
     if hold_part is not None:
         c = neutrals[-1] if len(neutrals) > len(train_neutrals) else neutrals[0]
         mi = bank.motions[c.name]

@@ -4,7 +4,7 @@ The step reads top to bottom (`step`):
 
 1. `translate`: the published translator. Per session, the input's features; per style, the
    LTI systems of all the sessions using it; per session, the styles blended and the output
-   path integrated. Each style's rotations are held in its rotation ball on the way (`prior.py`).
+   path integrated. Each style's rotations are held in its rotation ball (`train.style_prior`).
 2. the input's hands measured (`models.motion.hands_kernels.hand_step`);
 3. `carry_raised_arms`: a raised hand that holds still, its arm carried toward the style's
    (`raised_arm.py`);
@@ -20,9 +20,9 @@ The LTI product [x'; y] = [[A, B], [C, D]] [x; u] is split: the state columns [A
 diagonal per joint (~5 % non-zero, a sparse product), the input columns [B; D] are more than half
 full (a dense product, `np.dot`). Both run on all the sessions using a style at once.
 
-Arguments are records (NamedTuples of arrays), one per concern. Python passes each as a plain
-tuple (`tuple(record)`): numba reads a plain tuple's types in C but a NamedTuple's in Python
-(~0.2 us a field), and the kernel names the fields again (`Session(*before)`).
+Records (NamedTuples of arrays), one per concern, travel in a few flat buffers: a session's carry
+(`CARRY`, the model's state), the constant records and the scratch (`pack`); each array passed
+into a compiled call costs ~70 ns, and the kernel rebuilds the records as views.
 
 Everything is float64; the results equal the numpy formulas (the offline path) to round-off.
 """
@@ -36,11 +36,13 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS
+from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet_kernels import plant_feet
 from ..motion.hands_kernels import hand_step
 from ..motion.quaternion import qdot, qinv, qmul, quat_at, row4
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
+from .waving_arm import MEAN_SHAPE
 from .waving_kernels import WavingArm, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
@@ -67,32 +69,87 @@ class Output(NamedTuple):
 
 
 class Session(NamedTuple):
-    """What a session carries from one frame to the next (besides the planter's `feet` state)."""
+    """What a session carries from one frame to the next besides the planter's `Feet`: views of
+    the packed carry (`CARRY`; flags as 0.0 / 1.0), and its LTI states."""
 
-    started: np.ndarray  # (B,) bool: a frame was seen
+    started: np.ndarray  # (B,) a frame was seen
     in_yaw: np.ndarray  # (B,) the input's heading the frame before
     in_ground: np.ndarray  # (B, 2) and its ground position
     out_yaw: np.ndarray  # (B,) the output's heading
     out_ground: np.ndarray  # (B, 2) and its ground position
-    x: np.ndarray  # (B, n) the LTI states of the styles in use side by side (`Frame.x_at`)
     hand_prev: np.ndarray  # (B, 2, 3) the input's hands from their shoulders, the frame before
     hand_sway: np.ndarray  # (B, 2) their horizontal speed, averaged
     hand_rise: np.ndarray  # (B, 2) their vertical speed, averaged
     wave_in_mean: np.ndarray  # (B, 2, K, 4) the input's arm joints' running mean (`waving_arm.py`)
     wave_out_mean: np.ndarray  # (B, 2, K, 4) the output's
+    x: np.ndarray  # (B, n) the LTI states of the styles in use side by side (`Frame.x_at`)
 
 
 class Feet(NamedTuple):
-    """The foot planter's state (`models.motion.feet.STATE_SHAPES`, in its order)."""
+    """The foot planter's state (`models.motion.feet.STATE_SHAPES`, in its order): views of the
+    packed carry, its flags and held points as floats."""
 
-    started: np.ndarray  # (B,) bool
+    started: np.ndarray  # (B,)
     root: np.ndarray  # (B, 3) the planted root
     model_root: np.ndarray  # (B, 3) the translator's
     rel: np.ndarray  # (B, 2, 2, 3) each leg's ankle and toe from the root
-    contact: np.ndarray  # (B, 2) bool: planted legs
-    point: np.ndarray  # (B, 2) int64: held point (0 ankle, 1 toe)
+    contact: np.ndarray  # (B, 2) planted legs
+    point: np.ndarray  # (B, 2) held point (0 ankle, 1 toe)
     offset: np.ndarray  # (B, 2, 3) the legs' IK offsets
     floor: np.ndarray  # (B, 2, 2) each leg's ankle and toe floor
+
+
+# A session's carry (`Session` less x, then `Feet`) packed in one float64 row: the model's state
+# is this array and the styles' LTI states, so a step passes and allocates a few arrays, not ~20.
+CARRY = {
+    "started": (),
+    "in_yaw": (),
+    "in_ground": (2,),
+    "out_yaw": (),
+    "out_ground": (2,),
+    "hand_prev": (2, 3),
+    "hand_sway": (2,),
+    "hand_rise": (2,),
+    "wave_in_mean": MEAN_SHAPE,
+    "wave_out_mean": MEAN_SHAPE,
+    **{key: shape for key, (shape, _) in FEET_STATE.items()},
+}
+
+
+def _layout() -> tuple[dict[str, tuple], int]:
+    """Each carry entry's (first column, shape, C strides in bytes) in the packed row; the width."""
+    spans, at = {}, 0
+    for key, shape in CARRY.items():
+        strides = tuple(int(8 * np.prod(shape[k + 1 :])) for k in range(len(shape)))
+        spans[key] = (at, shape, strides)
+        at += int(np.prod(shape))
+    return spans, at
+
+
+SPANS, CARRY_WIDTH = _layout()
+_S = tuple(SPANS.values())  # as the kernels read it (numba takes a global tuple as a constant)
+WAVE_AT, FEET_AT = SPANS["wave_in_mean"][0], SPANS["feet_started"][0]  # the running means, the planter
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _view(carry, span):
+    """(B, *shape) view of one entry of the packed carry (B, CARRY_WIDTH), C-contiguous."""
+    at, shape, strides = span
+    return np.lib.stride_tricks.as_strided(carry.ravel()[at:], (carry.shape[0],) + shape, (carry.strides[0],) + strides)
+
+
+@njit(cache=True, error_model="numpy")
+def unpack(carry, x):
+    """The `Session` (with the LTI states x) and `Feet` records of a packed carry: views."""
+    session = Session(
+        _view(carry, _S[0]), _view(carry, _S[1]), _view(carry, _S[2]), _view(carry, _S[3]), _view(carry, _S[4]),
+        _view(carry, _S[5]), _view(carry, _S[6]), _view(carry, _S[7]), _view(carry, _S[8]), _view(carry, _S[9]), x,
+    )  # fmt: skip
+    feet = Feet(
+        _view(carry, _S[10]), _view(carry, _S[11]), _view(carry, _S[12]), _view(carry, _S[13]),
+        _view(carry, _S[14]), _view(carry, _S[15]), _view(carry, _S[16]), _view(carry, _S[17]),
+    )  # fmt: skip
+    return session, feet
 
 
 class Systems(NamedTuple):
@@ -126,10 +183,11 @@ class Footplant(NamedTuple):
     var: np.ndarray  # (S, 2, 2)
     log_prior: np.ndarray  # (S, 2, 2)
     fitted: np.ndarray  # (S,) bool
+    log_var: np.ndarray  # (S, 2, 2) log(var), computed once (math.log, as the step did per frame)
 
 
 class Ball(NamedTuple):
-    """Each style's rotation prior (`prior.py`): per joint, the real style's mean rotation and
+    """Each style's rotation prior (`train.style_prior`): per joint, the real style's mean rotation and
     the radii it is held within."""
 
     mean: np.ndarray  # (S, 22, 4)
@@ -192,13 +250,14 @@ class Work(NamedTuple):
     active: np.ndarray  # (B,) bool: a style weight > 0
     carry_w: np.ndarray  # (1, C) one session's raised-arm carry weights
     carried: np.ndarray  # (1, J, 4) its carried rotations
+    point: np.ndarray  # (B, 2) int64: the planter's held points, as it indexes with them
 
 
-def new_work(batch: int, systems: Systems, carries: int) -> Work:
-    """Scratch for steps of up to `batch` sessions of these styles."""
+def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ...]:
+    """Scratch for steps of up to `batch` sessions of these styles, packed (`pack`)."""
     styles = len(systems.x_off) - 1
     n, k = int(np.diff(systems.x_off).max()), min(batch, CHUNK)
-    return Work(
+    work = Work(
         np.empty((batch, 16)),
         np.empty((batch, styles, NUM_JOINTS, 4)),
         np.empty(batch, np.int64),
@@ -213,7 +272,129 @@ def new_work(batch: int, systems: Systems, carries: int) -> Work:
         np.empty(batch, np.bool_),
         np.empty((1, carries)),
         np.empty((1, NUM_JOINTS, 4)),
+        np.empty((batch, 2), np.int64),
     )
+    return pack([work], [WORK_SCHEMA], copy=False)
+
+
+# --------------------------------------------------------------------------- records in flat buffers
+
+# Each record's fields as the kernel reads them: f float64, i int64, b bool; 0 a scalar, else the
+# number of dimensions. `pack` checks records against these, `unpack_constants` and `unpack_work` rebuild them in the kernel.
+CONSTANT_SCHEMAS = (
+    "i1 i1 i1 i1 f1 f2 f2 f2 f2 f2 f2 f2 f2 f3",  # Systems
+    "f2 f3 f3 f3 b1 f3",  # Footplant
+    "f3 f3 f2",  # Ball
+    "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
+    "f3 f3 f4 f2 i1 i2 f1 f1",  # RaisedArm
+    "i2 f1 f1 f1 f0 f0",  # WavingArm
+    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
+    "b0 b0 b0 b0 b0",  # Switches
+)
+WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2"
+
+
+def pack(
+    records: list[tuple], schemas: list[str], copy: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every field of `records` (in order) in one float64, one int64 and one bool buffer, and an
+    index (fields, 6) int64 of each field's offset, size and shape: the kernel takes four arrays
+    for all of them (each array passed to a compiled call costs ~70 ns to unbox, more than the
+    step's arithmetic at batch 1 for ~70 arrays). Views into the buffers are the fields. `copy`
+    False: the buffers are left uninitialised (scratch: only the fields' shapes count)."""
+    kinds = [kind for schema in schemas for kind in schema.split()]
+    fields = [np.asarray(v) for record in records for v in record]
+    if len(fields) != len(kinds):
+        raise ValueError(f"{len(fields)} fields for a schema of {len(kinds)}")
+    dtypes = {"f": np.float64, "i": np.int64, "b": np.bool_}
+    index = np.zeros((len(fields), 6), np.int64)
+    sizes = {"f": 0, "i": 0, "b": 0}
+    for k, (value, kind) in enumerate(zip(fields, kinds)):
+        if value.ndim != int(kind[1]) or value.dtype.kind not in {"f": "f", "i": "iu", "b": "b"}[kind[0]]:
+            raise ValueError(f"field {k}: {value.dtype}{value.shape} is not {kind}")
+        index[k, :2] = sizes[kind[0]], value.size
+        index[k, 2 : 2 + value.ndim] = value.shape
+        sizes[kind[0]] += value.size
+    flat: list[np.ndarray] = [np.empty(sizes[c], dtypes[c]) for c in "fib"]
+    for value, kind, (at, size) in zip(fields, kinds, index[:, :2]):
+        if copy:
+            flat["fib".index(kind[0])][at : at + size] = value.ravel()
+    return flat[0], flat[1], flat[2], index
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _f(p, k):
+    at = p[3][k, 0]
+    return p[0][at : at + p[3][k, 1]]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _i(p, k):
+    at = p[3][k, 0]
+    return p[1][at : at + p[3][k, 1]]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _b(p, k):
+    at = p[3][k, 0]
+    return p[2][at : at + p[3][k, 1]]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _s2(p, k):
+    return (p[3][k, 2], p[3][k, 3])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _s3(p, k):
+    return (p[3][k, 2], p[3][k, 3], p[3][k, 4])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _s4(p, k):
+    return (p[3][k, 2], p[3][k, 3], p[3][k, 4], p[3][k, 5])
+
+
+@njit(cache=True, error_model="numpy")
+def unpack_constants(p):
+    """The step's constant records from `pack([systems, footplant, ball, hands, arm, waving,
+    planter, switches])`: views, in `CONSTANT_SCHEMAS`' order."""
+    sys = Systems(
+        _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _f(p, 5).reshape(_s2(p, 5)), _f(p, 6).reshape(_s2(p, 6)),
+        _f(p, 7).reshape(_s2(p, 7)), _f(p, 8).reshape(_s2(p, 8)), _f(p, 9).reshape(_s2(p, 9)),
+        _f(p, 10).reshape(_s2(p, 10)), _f(p, 11).reshape(_s2(p, 11)), _f(p, 12).reshape(_s2(p, 12)),
+        _f(p, 13).reshape(_s3(p, 13)),
+    )  # fmt: skip
+    fp = Footplant(
+        _f(p, 14).reshape(_s2(p, 14)), _f(p, 15).reshape(_s3(p, 15)), _f(p, 16).reshape(_s3(p, 16)),
+        _f(p, 17).reshape(_s3(p, 17)), _b(p, 18), _f(p, 19).reshape(_s3(p, 19)),
+    )  # fmt: skip
+    ball = Ball(_f(p, 20).reshape(_s3(p, 20)), _f(p, 21).reshape(_s3(p, 21)), _f(p, 22).reshape(_s2(p, 22)))
+    hands = Hands(
+        _i(p, 23), _f(p, 24).reshape(_s2(p, 24)), _i(p, 25), _i(p, 26), _i(p, 27), _f(p, 28)[0], _f(p, 29)[0],
+        _f(p, 30)[0],
+    )  # fmt: skip
+    arm = RaisedArm(
+        _f(p, 31).reshape(_s3(p, 31)), _f(p, 32).reshape(_s3(p, 32)), _f(p, 33).reshape(_s4(p, 33)),
+        _f(p, 34).reshape(_s2(p, 34)), _i(p, 35), _i(p, 36).reshape(_s2(p, 36)), _f(p, 37), _f(p, 38),
+    )  # fmt: skip
+    waving = WavingArm(_i(p, 39).reshape(_s2(p, 39)), _f(p, 40), _f(p, 41), _f(p, 42), _f(p, 43)[0], _f(p, 44)[0])
+    planter = (
+        _i(p, 45)[0], _i(p, 46).reshape(_s2(p, 46)), _f(p, 47).reshape(_s2(p, 47)), _f(p, 48), _f(p, 49)[0],
+        _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0],
+    )  # fmt: skip
+    on = Switches(_b(p, 57)[0], _b(p, 58)[0], _b(p, 59)[0], _b(p, 60)[0], _b(p, 61)[0])
+    return sys, fp, ball, hands, arm, waving, planter, on
+
+
+@njit(cache=True, error_model="numpy")
+def unpack_work(p):
+    """The `Work` record from `pack([work])`: views."""
+    return Work(
+        _f(p, 0).reshape(_s2(p, 0)), _f(p, 1).reshape(_s4(p, 1)), _i(p, 2), _f(p, 3), _f(p, 4), _f(p, 5), _f(p, 6),
+        _f(p, 7), _f(p, 8), _f(p, 9).reshape(_s2(p, 9)), _b(p, 10).reshape(_s2(p, 10)), _b(p, 11),
+        _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s3(p, 13)), _i(p, 14).reshape(_s2(p, 14)),
+    )  # fmt: skip
 
 
 # --------------------------------------------------------------------------- small maths
@@ -280,16 +461,24 @@ def add_signed(acc, w, q, ref):
 
 
 @njit(cache=True, error_model="numpy")
-def planted(x, fp, s, a, foot):
-    """Footplant class of one foot: the more likely Gaussian class (free, planted) of style s's
+def planted(x, fp, s, a):
+    """Footplant class of each foot: the more likely Gaussian class (free, planted) of style s's
     state x (columns a... of the side-by-side states) projected on the foot's discriminant
-    (FootplantClassifier.predict)."""
-    proj = 0.0
+    (FootplantClassifier.predict). Both projections in one pass: two independent sums."""
+    left, right = 0.0, 0.0
     for i in range(x.shape[0]):
-        proj += x[i] * fp.w[foot, a + i]
+        left += x[i] * fp.w[0, a + i]
+        right += x[i] * fp.w[1, a + i]
+    return _likelier(left, fp, s, 0), _likelier(right, fp, s, 1)
+
+
+@njit(cache=True, error_model="numpy")
+def _likelier(proj, fp, s, foot):
+    """Whether the planted class is the likelier one for this projection (`planted`)."""
     mean, var, log_prior = fp.mean[s, foot], fp.var[s, foot], fp.log_prior[s, foot]
-    ll_free = -0.5 * (proj - mean[0]) ** 2 / var[0] - 0.5 * math.log(var[0]) + log_prior[0]
-    ll_planted = -0.5 * (proj - mean[1]) ** 2 / var[1] - 0.5 * math.log(var[1]) + log_prior[1]
+    log_var = fp.log_var[s, foot]
+    ll_free = -0.5 * (proj - mean[0]) ** 2 / var[0] - 0.5 * log_var[0] + log_prior[0]
+    ll_planted = -0.5 * (proj - mean[1]) ** 2 / var[1] - 0.5 * log_var[1] + log_prior[1]
     return ll_planted > ll_free
 
 
@@ -323,7 +512,10 @@ def system_product(sys, s, xin, u, z):
     columns [A; C] xin added (one session: a sum per row; several: each matrix entry applied to
     all of them, a loop the compiler vectorises)."""
     r0, m = sys.row_off[s], xin.shape[1]
-    np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u, z)
+    if m == 1:  # a matrix-vector product (BLAS gemv): ~2.5x faster than gemm on one column
+        np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u.reshape(u.shape[0]), z.reshape(z.shape[0]))
+    else:
+        np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u, z)
     for r in range(z.shape[0]):
         if m == 1:
             acc = z[r, 0]
@@ -435,11 +627,12 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
                     work.quats[b, s], work.out,
                 )  # fmt: skip
                 if fp.fitted[s]:
-                    votes[b, 0] += w * planted(x_out, fp, s, sys.x_off[s], 0)
-                    votes[b, 1] += w * planted(x_out, fp, s, sys.x_off[s], 1)
+                    left, right = planted(x_out, fp, s, sys.x_off[s])
+                    votes[b, 0] += w * left
+                    votes[b, 1] += w * right
     for b in range(B):
         fresh = not before.started[b]
-        yaw, rest, rf = yaws[b], rests[b], root_feats[b]
+        yaw, rest, rf, quats = yaws[b], rests[b], root_feats[b], work.quats[b]
         base, base_w = -1, rest  # the heaviest part (first on ties): the sign reference of the blend
         for s in range(S):
             if weights[b, s] > base_w:
@@ -448,13 +641,13 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
         out_rot[b, 0, 0], out_rot[b, 0, 1], out_rot[b, 0, 2], out_rot[b, 0, 3] = 0.0, 0.0, 0.0, 1.0
         for j in range(1, NUM_JOINTS):
             q_in = row4(tilts, b) if j == HIPS else quat_at(frame.rotations, b, j)
-            q_base = q_in if base < 0 else quat_at(work.quats[b], base, j)
+            q_base = q_in if base < 0 else quat_at(quats, base, j)
             acc = (0.0, 0.0, 0.0, 0.0)
             if rest > 0.0:
                 acc = add_signed(acc, rest, q_in, q_base)
             for s in range(S):
                 if weights[b, s] > 0.0:
-                    acc = add_signed(acc, weights[b, s], quat_at(work.quats[b], s, j), q_base)
+                    acc = add_signed(acc, weights[b, s], quat_at(quats, s, j), q_base)
             norm = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
             q = (acc[0] / norm, acc[1] / norm, acc[2] / norm, acc[3] / norm)
             if j == HIPS:
@@ -525,14 +718,15 @@ def carry_raised_arms(b, arm, weights, offsets, swayed, out_rot, work):
 
 
 @njit(cache=True, error_model="numpy")
-def step(frame, before, after, feet_before, feet_after, out, sys, fp, ball, hands, arm, waving, planter, on, work):
-    """One frame for every session: reads `frame` and the state `before` (`feet_before`: the
-    planter's); writes `out` and the state `after` (`feet_after`, unless the feet are not
-    planted). Records as plain tuples (module docstring); `planter` is `FootPlanter`'s."""
-    frame, before, after, out = Frame(*frame), Session(*before), Session(*after), Output(*out)
-    feet_after = Feet(*feet_after)
-    sys, fp, ball, hands = Systems(*sys), Footplant(*fp), Ball(*ball), Hands(*hands)
-    arm, waving, on, work = RaisedArm(*arm), WavingArm(*waving), Switches(*on), Work(*work)
+def step(frame, x, new_x, carry, new_carry, out, constants, work):
+    """One frame for every session: reads `frame`, the packed carry (B, CARRY_WIDTH) and the LTI
+    states x side by side; writes `out`, new_carry and new_x. `constants` and `work` are packed
+    records (`pack`; `planter` is `FootPlanter`'s parameters)."""
+    frame, out = Frame(*frame), Output(*out)
+    before, feet_before = unpack(carry, x)
+    after, feet_after = unpack(new_carry, new_x)
+    sys, fp, ball, hands, arm, waving, planter, on = unpack_constants(constants)
+    work = unpack_work(work)
     B = frame.root.shape[0]
 
     # 1. the translator
@@ -551,8 +745,7 @@ def step(frame, before, after, feet_before, feet_after, out, sys, fp, ball, hand
         for side in range(2):
             raised = raised or after.hand_prev[b, side, 1] > hands.above
         if not raised:  # a walk's or a run's hands never are: the running means wait
-            after.wave_in_mean[b] = before.wave_in_mean[b]
-            after.wave_out_mean[b] = before.wave_out_mean[b]
+            new_carry[b, WAVE_AT:FEET_AT] = carry[b, WAVE_AT:FEET_AT]
             continue
         if on.raised_arm and arm.source.shape[0] > 0:
             carry_raised_arms(b, arm, frame.weights, after.hand_prev, after.hand_sway, out.rotations, work)
@@ -563,7 +756,8 @@ def step(frame, before, after, feet_before, feet_after, out, sys, fp, ball, hand
         )  # fmt: skip
 
     # 5. the feet planted
-    if not on.footlock:
+    if not on.footlock:  # the planter's state waits
+        new_carry[:, FEET_AT:] = carry[:, FEET_AT:]
         out.root[:] = work.root
         out.contacts[:] = work.contacts
         return
@@ -572,14 +766,20 @@ def step(frame, before, after, feet_before, feet_after, out, sys, fp, ball, hand
         for s in range(frame.weights.shape[1]):
             total += frame.weights[b, s]
         work.active[b] = total > 0.0
-    feet_after.started[:] = True
+        feet_after.started[b] = 1.0
+        for leg in range(2):
+            work.point[b, leg] = int(feet_before.point[b, leg])
     feet_after.model_root[:] = work.root  # the translator's root, which the planter remembers
-    plant_feet(  # type: ignore[call-arg]  # numba Dispatcher: starred records
-        work.root, out.rotations, work.active, work.contacts, *feet_before, feet_after.root, out.rotations,
-        feet_after.contact, feet_after.rel, feet_after.point, feet_after.offset, feet_after.floor, *planter,
+    plant_feet(
+        work.root, out.rotations, work.active, work.contacts, feet_before.started, feet_before.root,
+        feet_before.model_root, feet_before.rel, feet_before.contact, work.point, feet_before.offset,
+        feet_before.floor, feet_after.root, out.rotations, feet_after.contact, feet_after.rel, feet_after.point,
+        feet_after.offset, feet_after.floor, *planter,
     )  # fmt: skip
     out.root[:] = feet_after.root
-    out.contacts[:] = feet_after.contact
+    for b in range(B):
+        for leg in range(2):
+            out.contacts[b, leg] = feet_after.contact[b, leg] != 0.0
 
 
 # --------------------------------------------------------------------------- packing
@@ -635,6 +835,7 @@ def pack_styles(translators: list) -> tuple[Systems, Footplant, Ball]:
         f64(fp_var),
         f64(fp_prior),
         np.array(fitted, np.bool_),
+        f64([[[math.log(v) for v in foot] for foot in var] for var in fp_var]),
     )
     radii = f64(ball_radii)
     cos_inner = np.where(np.isfinite(radii[:, 0]), np.cos(0.5 * np.minimum(radii[:, 0], np.pi)), -1.0)

@@ -8,7 +8,7 @@ blend) and the footplant classifier. Every frame, per session:
     [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint: a sparse product)
     out = y * out_std + out_mean
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
-    pose = inverse representation(out); rotation prior (prior.py); contacts from the state
+    pose = inverse representation(out); rotation prior (`train.style_prior`); contacts from the state
     then the stages after the translator, each measured on the input and fitted per style the same
     way: a raised, calm hand's arm (raised_arm.py), a waving hand's swing (waving_arm.py), the
     planted feet
@@ -18,19 +18,14 @@ on a straight validation walk, a full circle in ~4 minutes of streaming), so by 
 takes the input's yaw change (`keep_heading=True`); speed, posture and timing stay translated.
 
 The feet are planted (on by default, `footlock`) by `models.motion.feet.FootPlanter`, shared by
-every method: a toe or ankle on the ground is held there by two-bone leg IK, and the root keeps the
-translated path (`follow=0`). The translated legs take shorter strides than the translated root
-displacement implies; holding the planted foot and letting it catch up in the swing lengthens the
-stride instead of shrinking the path (moving the root with the feet shrank it to 0.76 of the
-translated path on elderly validation walks, and the translated speed is already below the real
-style's). The footplant classifier's contacts are the planter's hints (a foot it says is down plants however
-fast the translation moves it); `FrameBatch.contacts` are the planted legs, or the classifier's
-contacts when the feet are not planted.
+every method, keeping the translated root path: the translated legs take shorter strides than the
+root displacement implies, and a held foot catching up in its swing lengthens them. The footplant
+classifier's contacts are the planter's hints; `FrameBatch.contacts` are the planted legs, or the
+classifier's contacts when the feet are not planted.
 
-The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and
-stage (`kernels.step`, numba): ~10 us of arithmetic per frame would otherwise drown in ~1,000
-small numpy calls and the argument checks of one kernel call per stage. The offline path (`StyleTranslator.translate_motion`) stays numpy over whole clips; the
-tests check that the two agree frame for frame.
+The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and stage
+(`kernels.step`) on a few arrays; the offline path (`StyleTranslator.translate_motion`) stays
+numpy over whole clips, and the tests check that the two agree frame for frame.
 
 The log-time-warp output (last output DOF) is only used offline (`translate_motion(...,
 timewarp=True)`); online it is ignored, since honouring it would break synchrony.
@@ -48,37 +43,17 @@ from scipy.special import erf
 
 from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
-from models.motion.feet import STATE_SHAPES as FEET_STATE
 from models.motion.feet import model_rig_planter
 from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter, clip_sway, hand_offsets_of
+from models.motion.rotation_ball import clamp_rotations
 from models.motion.style_carry import StyleCarry
 
 from . import kernels, raised_arm, waving_arm
 from . import representation as rep
 from .footplant import FootplantClassifier
-from .prior import clamp_rotations
 from .styles import LTIStyles
 
-# state entries besides the styles' x.<style>: per-session shape after the session axis
-SHARED_SHAPES = {
-    "started": (),
-    "in_yaw": (),
-    "in_ground": (2,),
-    "out_yaw": (),
-    "out_ground": (2,),
-    "hand_prev": (2, 3),  # the input's hands from their shoulders, the frame before (`models.motion.hands`)
-    "hand_sway": (2,),  # their sway (`raised_arm.py`)
-    "hand_rise": (2,),  # their rise (`waving_arm.py`)
-    "wave_in_mean": waving_arm.MEAN_SHAPE,  # the input's raised arms' running mean (`waving_arm.py`)
-    "wave_out_mean": waving_arm.MEAN_SHAPE,  # the output's
-}
-SHARED_KEYS = tuple(SHARED_SHAPES) + tuple(FEET_STATE)  # and the foot planter's
-SESSION_KEYS = tuple(SHARED_SHAPES)  # `kernels.Session`'s fields, less x
-# every shared entry's (shape, dtype), in the order of the step's records (`kernels.Session`, `kernels.Feet`)
-STATE_ARRAYS = {
-    **{k: (shape, np.bool_ if k == "started" else np.float64) for k, shape in SHARED_SHAPES.items()},
-    **FEET_STATE,
-}
+CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
 COMPACT_FROM = 16  # sessions in a step from which only the styles in use are copied (`_side_by_side`)
@@ -104,7 +79,9 @@ class StyleTranslator:
     meta: dict = field(default_factory=dict)
     ref: np.ndarray = field(default_factory=lambda: rep.IDENTITY_REF.copy())  # (22, 4) per-joint reference rotations
     keep_heading: bool = True  # output yaw change := input yaw change (no heading drift); not stored
-    prior_mean: np.ndarray | None = None  # (22, 4) rotation prior (prior.py): the real style's mean per joint
+    prior_mean: np.ndarray | None = (
+        None  # (22, 4) rotation prior (`train.style_prior`): the real style's mean per joint
+    )
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
     raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`)
     waving_arm: bool = True  # a waving hand's arm takes the input's swing (`waving_arm.py`); not stored
@@ -113,10 +90,6 @@ class StyleTranslator:
         n = self.A.shape[0]
         self.M = np.block([[self.A, self.B], [self.C, self.D]])
         self.n = n
-
-    @property
-    def state_dim(self) -> int:
-        return self.n
 
     # ---------------------------------------------------------------- core
 
@@ -127,14 +100,12 @@ class StyleTranslator:
         return erf(np.maximum(dist - self.k_p, 0.0) / self.k_c).max(axis=-1)
 
     def _finish(self, feats: np.ndarray, u: np.ndarray, y: np.ndarray, blend: bool) -> np.ndarray:
-        out = y * self.out_std + self.out_mean
+        out = y * self.out_std + self.out_mean  # a new array
         if blend:
             w = self.blend_weight(u)[..., None]
-            out = out.copy()
             out[..., : rep.FEATURE_DIM] = (1 - w) * out[..., : rep.FEATURE_DIM] + w * feats
             out[..., rep.FEATURE_DIM :] *= 1 - w
         if self.keep_heading:
-            out = out.copy() if not blend else out
             out[..., 2] = feats[..., 2]
         return out
 
@@ -254,22 +225,26 @@ class _Scratch(NamedTuple):
     systems: kernels.Systems  # the style set it was made for
     batch: int
     x: np.ndarray  # (B * N,) room for the styles' LTI states side by side
-    work: tuple  # `kernels.Work`
-    shapes: list[tuple[int, ...]]  # each shared state entry's shape (STATE_ARRAYS' order)
+    work: tuple  # `kernels.Work`, packed
     x_shapes: list[tuple[int, ...]]  # each style's LTI state's
     x_off: np.ndarray  # (S,) int64: where each style's state starts when all sit side by side
-    allocations: list[tuple[tuple[int, ...], type]]  # each shared state entry's (shape, dtype)
+    zeros: np.ndarray  # (B * max n,) read-only: the LTI state of every style no session of a step uses
 
 
 class _StyleSet(NamedTuple):
     styles: list[str]
-    x_slices: dict[str, slice]  # state key of each style's LTI state -> its columns in the kernel's x, in style order
+    x_keys: list[str]  # state key of each style's LTI state, in style order
     state_keys: frozenset[str]
     systems: kernels.Systems
-    footplant: kernels.Footplant
-    ball: kernels.Ball
+    ball: kernels.Ball  # the styles' rotation priors
     arm: kernels.RaisedArm  # the styles' raised-arm carries stacked
-    constants: tuple  # the step's constant records as plain tuples, in its argument order
+    constants: tuple  # the step's constant records, packed (`kernels.pack`)
+
+
+def carry_entry(carry: np.ndarray, key: str) -> np.ndarray:
+    """(B, *shape) view of one entry of a packed carry (`kernels.CARRY`)."""
+    at, shape, _ = kernels.SPANS[key]
+    return carry[:, at : at + int(np.prod(shape))].reshape(len(carry), *shape)
 
 
 class LTIStyleModel(LTIStyles):
@@ -278,8 +253,8 @@ class LTIStyleModel(LTIStyles):
 
     State per session (all arrays, session axis first): the LTI state of each style in its own
     array `x.<style>` (a style whose weight is 0 is held at x = 0, its identified initial state),
-    the previous input root transform, the integrated output root transform and the foot-lock
-    memory.
+    and `carry`, one float64 row of everything else (`kernels.CARRY`: the input's and the
+    output's root transforms, the hands' measures, the running means, the foot planter's memory).
     A style weight vector w mixes the styles: the root displacement features are blended
     linearly, joint rotations by normalised quaternion blending, and 1 - sum(w) of the input
     passes through (intensity < 1). With a one-hot w this is exactly the paper's translator.
@@ -356,17 +331,23 @@ class LTIStyleModel(LTIStyles):
         """Everything the step needs per style set, computed here once (the state keys, the
         kernel's records) and replaced whole, so a reader sees one consistent set."""
         systems, footplant, ball = kernels.pack_styles([self.translators[s] for s in styles])
-        x_slices = {f"x.{s}": slice(int(a), int(b)) for s, a, b in zip(styles, systems.x_off[:-1], systems.x_off[1:])}
         arm = raised_arm.settings([self.translators[s].raised_arm for s in styles])
         h = self._hands
         hands = kernels.Hands(
             h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
         )
-        constants = tuple(
-            tuple(r) for r in (systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params)
+        switches = (self.blend, self.keep_heading, self.raised_arms, self.waving_arms, self.footlock)
+        records = [systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params, switches]
+        x_keys = [f"x.{s}" for s in styles]
+        self._set = _StyleSet(
+            styles,
+            x_keys,
+            frozenset([CARRY, *x_keys]),
+            systems,
+            ball,
+            arm,
+            kernels.pack(records, list(kernels.CONSTANT_SCHEMAS)),
         )
-        keys = frozenset(SHARED_KEYS) | set(x_slices)
-        self._set = _StyleSet(styles, x_slices, keys, systems, footplant, ball, arm, constants)
 
     @property
     def _styles(self) -> list[str]:
@@ -392,17 +373,23 @@ class LTIStyleModel(LTIStyles):
 
     def upgrade_state(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """`state` on the current style set: added styles at x = 0, removed ones dropped (see
-        `models.interface`); `state` itself when it already is (one key-set comparison)."""
+        `models.interface`); `state` itself when it already is (one key-set comparison). A state
+        from before the carry was packed (its entries under their own keys; those it lacks,
+        from before a stage, start again) is packed."""
         if state.keys() == self._set.state_keys and all(
             state[f"x.{s}"].shape[1] == self.translators[s].n for s in self._styles
         ):
             return state
-        batch = len(state["started"])
-        # a snapshot from before the foot planter (its `lock_*` keys dropped) plants from its next frame
-        out = self.planter.upgrade_state({k: state[k] for k in SHARED_KEYS if k in state}, batch)
-        for key, shape in SHARED_SHAPES.items():  # a snapshot from before the raised arm: its sway starts again
-            if key not in out:
-                out[key] = np.zeros((batch, *shape))
+        batch = len(next(iter(state.values())))
+        carry = state.get(CARRY)
+        if carry is None:
+            carry = np.zeros((batch, kernels.CARRY_WIDTH))
+            for key in kernels.CARRY:
+                if key in state:
+                    carry[:, kernels.SPANS[key][0] : kernels.SPANS[key][0] + state[key][0].size] = state[key].reshape(
+                        batch, -1
+                    )
+        out = {CARRY: carry}
         for s in self._styles:
             x, n = state.get(f"x.{s}"), self.translators[s].n
             out[f"x.{s}"] = x if x is not None and x.shape[1] == n else np.zeros((batch, n))
@@ -410,18 +397,8 @@ class LTIStyleModel(LTIStyles):
 
     def init_state(self, batch: int) -> dict[str, np.ndarray]:
         return {
+            CARRY: np.zeros((batch, kernels.CARRY_WIDTH)),
             **{f"x.{s}": np.zeros((batch, self.translators[s].n)) for s in self._styles},
-            "started": np.zeros(batch, bool),
-            "in_yaw": np.zeros(batch),
-            "in_ground": np.zeros((batch, 2)),
-            "out_yaw": np.zeros(batch),
-            "out_ground": np.zeros((batch, 2)),
-            "hand_prev": np.zeros((batch, 2, 3)),
-            "hand_sway": np.zeros((batch, 2)),
-            "hand_rise": np.zeros((batch, 2)),
-            "wave_in_mean": np.zeros((batch, *waving_arm.MEAN_SHAPE)),
-            "wave_out_mean": np.zeros((batch, *waving_arm.MEAN_SHAPE)),
-            **self.planter.init_state(batch),
         }
 
     def _workspace(self, batch: int) -> _Scratch:
@@ -434,12 +411,12 @@ class LTIStyleModel(LTIStyles):
                 systems,
                 batch,
                 np.empty(batch * int(systems.x_off[-1])),
-                tuple(kernels.new_work(batch, systems, len(self._set.arm.source))),
-                [(batch, *shape) for shape, _ in STATE_ARRAYS.values()],
+                kernels.new_work(batch, systems, len(self._set.arm.source)),
                 [(batch, int(b - a)) for a, b in zip(systems.x_off[:-1], systems.x_off[1:])],
                 np.ascontiguousarray(systems.x_off[:-1], np.int64),
-                [((batch, *shape), dtype) for shape, dtype in STATE_ARRAYS.values()],
+                np.zeros(batch * int(np.diff(systems.x_off).max())),
             )
+            held.zeros.flags.writeable = False
             self._scratch.held = held
         return held
 
@@ -447,12 +424,16 @@ class LTIStyleModel(LTIStyles):
     def _side_by_side(xs: list[np.ndarray], w: np.ndarray, held: _Scratch) -> tuple[np.ndarray, np.ndarray]:
         """The styles' LTI states side by side for the kernel, and where each sits (`kernels.Frame`).
         A small batch takes them all (a few numpy calls); from `COMPACT_FROM` sessions on, only
-        the styles in use (with six styles at batch 256 the rest is ~2 MB copied for nothing)."""
+        the styles in use (with six styles at batch 256 the rest is ~2 MB copied for nothing), and
+        one style's own array when it is the only one."""
         B = len(w)
         if B < COMPACT_FROM:
             return np.concatenate(xs, axis=1), held.x_off
         used = np.flatnonzero((w > 0.0).any(axis=0))
         x_at, width = np.full(len(xs), -1, np.int64), 0
+        if len(used) == 1 and xs[used[0]].flags.c_contiguous and xs[used[0]].dtype == np.float64:
+            x_at[used[0]] = 0
+            return xs[used[0]], x_at
         for s in used:
             x_at[s], width = width, width + xs[s].shape[1]
         x = held.x[: B * width].reshape(B, width)
@@ -461,12 +442,12 @@ class LTIStyleModel(LTIStyles):
         return x, x_at
 
     def step_batch(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray):
-        """One frame for every session: one compiled call (`kernels.step`), the styles' LTI
-        state vectors laid side by side as the kernel expects."""
+        """One frame for every session: one compiled call (`kernels.step`) on the packed carry
+        and the styles' LTI states laid side by side."""
         root = np.ascontiguousarray(frames.root, dtype=np.float64)
         rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
         w = np.ascontiguousarray(style_weights, dtype=np.float64)
-        styles, x_slices, *_, constants = self._set
+        styles, x_keys, *_, constants = self._set
         B = len(root)
         # the kernel trusts every shape (no bounds checks): anything else is a clear error here
         if root.shape != (B, 3) or rotations.shape != (B, rep.NUM_JOINTS, 4):
@@ -477,37 +458,22 @@ class LTIStyleModel(LTIStyles):
         if w.shape != (B, len(styles)):
             raise ValueError(f"style_weights must be ({B}, {len(styles)}), got {w.shape}")
         held = self._workspace(B)
-        before = [state[key] for key in STATE_ARRAYS]
-        if [a.shape for a in before] != held.shapes:
-            for key, a, shape in zip(STATE_ARRAYS, before, held.shapes):
-                if a.shape != shape:
-                    raise ValueError(f"state[{key!r}] must be {shape}, got {a.shape}")
         try:
-            xs = [state[key] for key in x_slices]
+            carry, xs = np.ascontiguousarray(state[CARRY], dtype=np.float64), [state[key] for key in x_keys]
         except KeyError:
-            xs = []
-        if [a.shape for a in xs] != held.x_shapes:
-            raise ValueError("state is from another style set: bring it to this one with upgrade_state(state)")
+            carry, xs = np.empty(0), []
+        if carry.shape != (B, kernels.CARRY_WIDTH) or [a.shape for a in xs] != held.x_shapes:
+            raise ValueError(
+                f"state must hold {CARRY} ({B}, {kernels.CARRY_WIDTH}) and each style's x for this style set: "
+                "bring an older state to it with upgrade_state(state)"
+            )
         x, x_at = self._side_by_side(xs, w, held)
-        after: list[np.ndarray] = [np.empty(shape, dtype) for shape, dtype in held.allocations]
-        new_x = np.empty_like(x)
-        n = len(SESSION_KEYS)
-        feet_before = tuple(before[n:])
-        feet_after = tuple(after[n:]) if self.footlock else feet_before
+        new_x, new_carry = np.empty_like(x), np.empty_like(carry)
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
-        kernels.step(
-            (root, rotations, w, x_at),
-            (*before[:5], x, *before[5:n]),
-            (*after[:5], new_x, *after[5:n]),
-            feet_before,
-            feet_after,
-            (out.root, out.rotations, out.contacts),
-            *constants,
-            (self.blend, self.keep_heading, self.raised_arms, self.waving_arms, self.footlock),
-            held.work,
-        )
-        new = dict(zip(STATE_ARRAYS, after[:n] + list(feet_after)))
-        for key, at, x_old in zip(x_slices, x_at.tolist(), xs):
+        frame, outputs = (root, rotations, w, x_at), (out.root, out.rotations, out.contacts)
+        kernels.step(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work))
+        new = {CARRY: new_carry}
+        for key, at, x_old in zip(x_keys, x_at.tolist(), xs):
             n_s = x_old.shape[1]
-            new[key] = new_x[:, at : at + n_s] if at >= 0 else np.zeros((B, n_s))
+            new[key] = new_x[:, at : at + n_s] if at >= 0 else held.zeros[: B * n_s].reshape(B, n_s)
         return out, new

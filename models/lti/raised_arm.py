@@ -70,7 +70,8 @@ def settings(carries: list[StyleCarry | None]) -> RaisedArm:
     """The record the compiled step takes (`kernels.RaisedArm`) for the styles' carries, in style
     order (None: a style without one)."""
     fitted = [c for c in carries if c is not None]
-    both = StyleCarry.stack(fitted) if fitted else StyleCarry(*_no_carry())
+    none = (np.zeros((0, NUM_JOINTS, *shape)) for shape in ((4,), (4,), (3, 3), ()))  # no style has one
+    both = StyleCarry.stack(fitted) if fitted else StyleCarry(*none)
     rows, k = [], 0
     for c in carries:
         rows.append(k if c is not None else -1)
@@ -85,15 +86,6 @@ def settings(carries: list[StyleCarry | None]) -> RaisedArm:
         np.ascontiguousarray(_ARM, np.int64),
         np.array(RAISE_RAMP_CM, np.float64),
         np.array(WAVE_RAMP_CM_S, np.float64),
-    )
-
-
-def _no_carry() -> tuple[np.ndarray, ...]:
-    return (
-        np.zeros((0, NUM_JOINTS, 4)),
-        np.zeros((0, NUM_JOINTS, 4)),
-        np.zeros((0, NUM_JOINTS, 3, 3)),
-        np.zeros((0, NUM_JOINTS)),
     )
 
 

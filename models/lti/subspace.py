@@ -106,7 +106,7 @@ def choose_order(sv: np.ndarray, max_order: int, energy: float = 0.99, gap: floa
     if big.size:
         return int(big[0] + 1)
     cum = np.cumsum(sv**2) / np.sum(sv**2)
-    return int(min(k, np.searchsorted(cum, energy) + 1))
+    return min(k, int(np.searchsorted(cum, energy)) + 1)
 
 
 def subspace_id(

@@ -13,15 +13,16 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
+from ..motion.rotation_ball import fit_prior
 from ..motion.rotations import quat_angle
 from . import representation as rep
 from .footplant import FootplantClassifier, contact_labels
 from .model import WEIGHTS_DIR, StyleTranslator
-from .prior import fit_prior
 from .subspace import StateSpace, spectral_radius, subspace_id
 from .warping import dtw_warp, imw, resample_pose
 
@@ -32,29 +33,13 @@ CONTEXT = {
     **{j: [1, 7, 11] + [k for k in _LEGS if k != j] for j in _LEGS},  # Hips (root), UpperArms, legs
 }
 
-CONFIG = dict(
+CONFIG: dict[str, Any] = dict(
     datasets=["bandai-namco-2", "bandai-namco-1"],
     input_style="normal",
-    styles=["elderly", "exhausted", "active", "feminine", "masculine", "youthful"],  # dataset 2
-    # dataset 1: one take per (style, content), 1-8 training pairs per style: trainable with
-    # `--styles bn1-old ...` (models named "bn1-<style>") but not part of the default run / shipped
-    # weights: held-out errors were often worse than the identity baseline (see MODEL_CARD.md)
-    bn1_styles=[
-        "active",
-        "angry",
-        "childish",
-        "chimpira",
-        "feminine",
-        "giant",
-        "happy",
-        "masculinity",
-        "musical",
-        "not-confident",
-        "old",
-        "proud",
-        "sad",
-        "tired",
-    ],
+    # None: every dataset-2 style besides the input's. Dataset 1 (one take per style and content,
+    # 1-8 training pairs) trains with `--styles bn1-<style>` but is not shipped: held-out errors
+    # were often worse than the identity baseline (MODEL_CARD.md)
+    styles=None,
     contents=None,  # None: every content; or e.g. ["walk", "walk-turn-left", "walk-turn-right"]
     align="imw",  # "imw" or "dtw" (plain DTW, the quick first increment)
     # max_step 9: output slopes up to 3 output frames per input frame. With 6 (slope <= 2) most
@@ -86,7 +71,7 @@ CONFIG = dict(
     # quaternion noise); at 0.3 it is 1.4x the one-joint systems'. Chosen from 0.1 / 0.3 / 1.0
     # on the validation clips (MODEL_CARD.md)
     context_noise=0.3,
-    # rotation prior (prior.py): radii from the output style's TRAIN clips
+    # rotation prior (`style_prior`): radii from the output style's TRAIN clips
     prior_inner_q=97.0,
     prior_outer_q=99.0,
     prior_margin_deg=1.0,
@@ -140,7 +125,8 @@ def make_pairs(index, style: str, split: str, cfg=CONFIG) -> list[tuple]:
     dataset, label = dataset_of(style)
     s, ms = cfg["imw"]["s"], cfg["imw"]["max_step"]
     lo, hi = 1.0 / s * 1.15, ms / s / 1.15
-    pairs, used = [], {}
+    pairs: list[tuple] = []
+    used: dict[str, int] = {}
     in_split = split if dataset == "bandai-namco-2" else ("train", "val", "test")
     for out_clip in select(index, dataset=dataset, style=label, split=split):
         if cfg["contents"] and out_clip.content not in cfg["contents"]:
@@ -278,6 +264,9 @@ def identify(
         D[np.ix_(oo, ii)] = s.D
         k += s.order
     U_n = np.concatenate([u for u, _ in recs])
+    # the stored matrices are float32: identify the footplant classifier on what will be used
+    A, B, C, D = (m.astype(np.float32).astype(np.float64) for m in (A, B, C, D))
+    orders = np.array([s.order for s in systems])
     tr = StyleTranslator(
         style,
         A,
@@ -290,22 +279,7 @@ def identify(
         out_std,
         U_n.min(0),
         U_n.max(0),
-        np.array([s.order for s in systems]),
-        cfg["k_p"],
-        cfg["k_c"],
-        ref=ref,
-    )
-    # the stored matrices are float32: identify the footplant classifier on what will be used
-    tr = StyleTranslator(
-        style,
-        *(m.astype(np.float32).astype(np.float64) for m in (A, B, C, D)),
-        in_mean,
-        in_std,
-        out_mean,
-        out_std,
-        tr.in_lo,
-        tr.in_hi,
-        tr.orders,
+        orders,
         cfg["k_p"],
         cfg["k_c"],
         ref=ref,
@@ -316,7 +290,10 @@ def identify(
 
 
 def style_prior(index, style: str, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
-    """The rotation prior (prior.py) of an output style: every TRAIN-split clip of the style, all
+    """The rotation prior of an output style (`models.motion.rotation_ball`): every joint's output is
+    held inside the ball the style's real data fills around its mean rotation, since a linear map
+    of the exponential map carries a raised arm or a deep knee bend past anything the style shows
+    (an elbow 15 degrees past any real elderly take). Radii from every TRAIN-split clip of the style, all
     contents (paired or not: the prior is about what the style's poses are, not about pairs)."""
     from models.data import load_motions, select
 
@@ -371,10 +348,11 @@ def train(styles: list[str] | None = None, cfg=CONFIG, out_dir: Path = WEIGHTS_D
     from models.data import build_index, warm_cache
 
     np.random.seed(cfg["seed"])
-    styles = styles or list(cfg["styles"])
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     index = build_index(cfg["datasets"])
+    default = sorted({c.style for c in index if c.dataset == "bandai-namco-2"} - {cfg["input_style"]})
+    styles = styles or cfg["styles"] or default
     warm_cache(index)
     ref = reference_rotations(index, cfg)
     match_mean, match_std = matching_stats(index, ref, cfg)

@@ -110,7 +110,7 @@ def imw(
     yu = upsample(y, s)
     a, b = np.ones((T, D)), np.zeros((T, D))
     history: list[float] = []
-    path = None
+    path = np.zeros(T, np.int64)
     for _ in range(max_iter):
         # time stage: cost[t, k] = |x_t - b_t - a_t * yu_k|^2
         xb = x - b

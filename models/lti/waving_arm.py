@@ -48,47 +48,17 @@ def settings() -> WavingArm:
     )
 
 
-def step(
-    rot_in: np.ndarray,
-    rot_out: np.ndarray,
-    weights: np.ndarray,
-    started: np.ndarray,
-    prev_offsets: np.ndarray,
-    offsets: np.ndarray,
-    swayed: np.ndarray,
-    risen: np.ndarray,
-    in_mean: np.ndarray,
-    out_mean: np.ndarray,
-    means: np.ndarray,
-    radii: np.ndarray,
-    swing: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One frame for every row (`waving_kernels.swing_arms`): (the output rotations with the
-    waving arms swung, a copy; the input's and the output's running means after this frame), from
-    the input's and the output's rotations (B, J, 4), the style weights (B, S), whether each row
-    has started, the input's `hand_offsets` before and now (B, 2, 3), its sway and rise (B, 2),
-    the running means before (B, 2, 2, 4) and the styles' balls (means (S, J, 4), radii (S, 2, J))."""
-    f64 = lambda a: np.ascontiguousarray(a, np.float64)  # noqa: E731
-    out = np.array(rot_out, np.float64, copy=True)
+def step(*arrays: np.ndarray, swing: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame for every row (`waving_kernels.swing_arms`) from `arrays`: the input's and the
+    output's rotations (B, J, 4), the style weights (B, S), whether each row has started, the
+    input's `hand_offsets` before and now (B, 2, 3), its sway and rise (B, 2), the running means
+    before (B, 2, 2, 4) and the styles' balls (means (S, J, 4), radii (S, 2, J)). Returns the
+    output rotations with the waving arms swung (a copy) and the running means after this frame."""
+    out = np.array(arrays[1], np.float64, copy=True)
     new_in, new_out = np.empty((len(out), *MEAN_SHAPE)), np.empty((len(out), *MEAN_SHAPE))
-    swing_batch(
-        tuple(settings()),
-        f64(rot_in),
-        out,
-        f64(weights),
-        np.asarray(started, np.bool_),
-        f64(prev_offsets),
-        f64(offsets),
-        f64(swayed),
-        f64(risen),
-        f64(in_mean),
-        f64(out_mean),
-        f64(means),
-        f64(radii),
-        swing,
-        new_in,
-        new_out,
-    )
+    inputs = (arrays[0], out, *arrays[2:])
+    args = (tuple(settings()), *(np.ascontiguousarray(a, np.float64) for a in inputs), swing, new_in, new_out)
+    swing_batch(*args)
     return out, new_in, new_out
 
 
@@ -110,19 +80,7 @@ def clip(
     one = np.ones((1, 1))
     for t in range(len(out)):
         now, prev = slice(t, t + 1), slice(max(t - 1, 0), max(t, 1))
-        frame, in_mean, out_mean = step(
-            in_rots[now],
-            out[now],
-            one,
-            np.array([t > 0]),
-            offsets[prev],
-            offsets[now],
-            swayed[now],
-            risen[now],
-            in_mean,
-            out_mean,
-            means,
-            radii,
-        )
+        rows = (in_rots[now], out[now], one, np.array([t > 0]), offsets[prev], offsets[now], swayed[now], risen[now])
+        frame, in_mean, out_mean = step(*rows, in_mean, out_mean, means, radii)
         out[t] = frame[0]
     return out

@@ -1,5 +1,5 @@
 """Rotation ball: every joint's output rotation stays inside the ball that real data of the output
-style fills around that joint's mean rotation. Used by LTI (`models.lti.prior`) and LPN-FiLM
+style fills around that joint's mean rotation. Used by LTI (`models.lti.train.style_prior`) and LPN-FiLM
 (`models.lpn.runtime`); the per-frame compiled form is `rotation_ball_kernels.py`.
 
 Why: a model's output can carry a joint past anything the style shows (LTI is linear in the
