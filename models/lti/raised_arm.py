@@ -166,7 +166,7 @@ def fit_upload(translator, clip, ref: np.ndarray) -> StyleCarry | None:
 
 def _real_frames(motions: list, side: int) -> np.ndarray:
     """(N, J, 4) the `comparable` local rotations of the frames of `motions` with the `side`
-    hand raised and calm (joint_Root at the identity, as `style_carry.real_train_frames`)."""
+    hand raised and calm (joint_Root at the identity: static on this rig)."""
     if not motions:
         return np.zeros((0, NUM_JOINTS, 4))
     q = np.concatenate([m.rotations[calm_frames(m, side)] for m in motions]).astype(np.float64)
