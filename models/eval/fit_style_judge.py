@@ -8,7 +8,8 @@
    which the judge answers as `other`.
 2. **The regularisation** is chosen by 5-fold cross-validation over dataset 1's TRAIN and
    VALIDATION clips (dataset 1 has one take per style and content, so its validation split alone
-   is 18 clips), repeated over `REPEATS` fold draws, each fold fitted with dataset 2's TRAIN clips.
+   is 18 clips), the takes of one style and content held out together, repeated over `REPEATS`
+   fold draws, each fold fitted with dataset 2's TRAIN clips.
 3. **The judge** is fitted on the TRAIN clips of both datasets and scored on the held-out clips
    of each: validation, and dataset 1's cross-validation reads (takes never seen; the data names
    no performers, so none can be held out).
@@ -55,6 +56,15 @@ def shared_contents(clips) -> set[str]:
     for c in clips:
         styles.setdefault(c.content, set()).add(c.style)
     return {k for k, v in styles.items() if len(v) > 1}
+
+
+def folds(clips, draw: int) -> np.ndarray:
+    """Each clip's fold in cross-validation draw `draw`: every take of one style and content falls
+    in the same fold, so a judge is never scored on a take whose twin (dataset 1 has two of some
+    walks) it was fitted on."""
+    groups = sorted({(c.style, c.content) for c in clips})
+    fold = dict(zip(groups, np.random.default_rng(draw).permutation(len(groups)) % FOLDS))
+    return np.array([fold[(c.style, c.content)] for c in clips])
 
 
 def load_clips() -> tuple[list, dict[str, np.ndarray]]:
@@ -128,7 +138,7 @@ def main() -> None:
     for c in C_GRID:
         oof[c] = []
         for rep in range(REPEATS):
-            fold = np.random.default_rng(rep).permutation(len(seen)) % FOLDS
+            fold = folds(seen, rep)
             got: dict[str, tuple] = {}
             for k in range(FOLDS):
                 j = fit(part(d2, "train") + [x for x, f in zip(seen, fold) if f != k], stats, label, c, mapping)
@@ -215,7 +225,7 @@ def markdown(r: dict, confusion: Counter, d1) -> str:
         "(clips read right per draw: "
         + "; ".join(f"{c}: {'/'.join(map(str, h))} of {r['cv_clips']}" for c, h in r["c_grid_cv"].items())
         + "). Contents only one style performs are left out. The data names no performers, so takes are held "
-        "out, not performers.",
+        "out (every take of a style and content in the same fold), not performers.",
         "",
         "**What it answers.** The evaluation asks whether an output reads as a dataset-2 style. The judge "
         "answers one of dataset 2's labels (`normal` among them; a dataset-1 style mapped onto its namesake "
@@ -240,7 +250,7 @@ def markdown(r: dict, confusion: Counter, d1) -> str:
     lines += [
         "",
         "*dataset-1 cross-validation*: each of dataset 1's TRAIN and VALIDATION clips read by a judge fitted "
-        f"without it (5 folds, with dataset 2's TRAIN clips), at the chosen C, first of {len(r['d1_cv_draws'])} "
+        f"without it (5 folds, the takes of one style and content together, with dataset 2's TRAIN clips), at the chosen C, first of {len(r['d1_cv_draws'])} "
         "fold draws. Every draw: "
         + "; ".join(shown(d) for d in r["d1_cv_draws"])
         + f"; mean {100 * sum(d['share'] for d in r['d1_cv_draws']) / len(r['d1_cv_draws']):.1f} %. The test split "
