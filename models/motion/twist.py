@@ -14,6 +14,10 @@ from `source` (the input frame) that reproduce `pose`'s joint positions exactly:
 - a joint with several child bones (hips, chest) is fixed by them already: `pose`'s rotation;
 - a leaf keeps `source`'s local rotation.
 
+With `hinges` (`hinge.py`, fitted from real rotations), the parent of a hinge joint (an upper
+arm, a thigh) takes instead the twist that lays its child's bone in the hinge plane, so the elbow
+or knee bends as a hinge while keeping `source`'s own twist; that moves no joint either.
+
 By induction from the root every joint lands where `pose` puts it, in one pass over the joints
 (parents first): `transfer_twist` is the compiled step the streaming models call,
 `transfer_twist_t` the differentiable torch one training uses (the numpy reference is
@@ -22,12 +26,14 @@ By induction from the root every joint lands where `pose` puts it, in one pass o
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .bn_skeleton import body_joints
+from .hinge import Hinges, kernel_hinges
 from .rotations import quat_exp, quat_inv, quat_log, quat_mul
 from .skeleton import Skeleton
 from .twist_kernels import BONE, FRAME, LEAF, ROOT, transfer_twist_batch
@@ -64,18 +70,26 @@ def _plan_cached(names: tuple[str, ...], parents: tuple[int, ...], offsets: byte
     return tuple(plan)
 
 
-def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray, keep: tuple[str, ...] = ()) -> np.ndarray:
+def transfer_twist(
+    skeleton: Skeleton,
+    source: np.ndarray,
+    pose: np.ndarray,
+    keep: tuple[str, ...] = (),
+    hinges: Hinges | None = None,
+) -> np.ndarray:
     """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
     rotations (see the module docstring), compiled (`twist_kernels.py`, ~1 us per frame).
     `source` and `pose` are (..., J, 4) local rotations on `skeleton`; joints named in `keep` take
-    `pose`'s local rotation as it is (their bone still lands where `pose` puts it)."""
+    `pose`'s local rotation as it is (their bone still lands where `pose` puts it); the parents
+    of `hinges`' joints take the twist that keeps them hinges."""
     kinds, parents, axes, keep_mask = _kernel_plan(skeleton, keep)
+    hinge_child, bend, mean, limits, fade = kernel_hinges(skeleton, hinges)
     J = skeleton.num_joints
     shape = np.broadcast_shapes(np.shape(source), np.shape(pose))
     src = np.ascontiguousarray(np.broadcast_to(source, shape), dtype=np.float64).reshape(-1, J, 4)
     pos = np.ascontiguousarray(np.broadcast_to(pose, shape), dtype=np.float64).reshape(-1, J, 4)
     out = np.empty_like(pos)
-    transfer_twist_batch(kinds, parents, axes, keep_mask, src, pos, out)
+    transfer_twist_batch(kinds, parents, axes, keep_mask, hinge_child, bend, mean, limits, fade, src, pos, out)
     return out.reshape(shape)
 
 
@@ -97,7 +111,9 @@ def _kernel_plan_cached(
     return kinds, parent_index, axes, np.array([n in keep for n in names])
 
 
-def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+def transfer_twist_t(
+    skeleton: Skeleton, source: torch.Tensor, pose: torch.Tensor, hinges: Hinges | None = None
+) -> torch.Tensor:
     """`transfer_twist` in torch, differentiable in `pose` (for training losses that must see the
     rotations the streaming model will output). Torch is imported here, not with the module: the
     streaming and decoding paths, which use the numpy twins, never load it."""
@@ -105,12 +121,15 @@ def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tenso
 
     from .rotations_torch import quat_apply_t, quat_mul_t
 
+    hinge_child, bend, mean, limits, fade = kernel_hinges(skeleton, hinges)
+
     source = source / source.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     pose = pose / pose.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     g_pose: list[torch.Tensor] = []
     g_new: list[torch.Tensor] = []
     out: list[torch.Tensor] = []
-    for j, p, kind, axis in _plan(skeleton):
+    plan = _plan(skeleton)
+    for j, p, kind, axis in plan:
         if kind == "root":
             g_pose.append(pose[..., j, :])
             g_new.append(pose[..., j, :])
@@ -124,10 +143,39 @@ def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tenso
             if kind == "bone":
                 a = torch.as_tensor(axis, dtype=pose.dtype, device=pose.device).expand(g.shape[:-1] + (3,))
                 g = quat_mul_t(_rotation_between_t(quat_apply_t(g, a), quat_apply_t(g_pose[j], a)), g)
+                k = int(hinge_child[j])
+                if k >= 0:
+                    g_child = quat_mul_t(g_pose[j], pose[..., k, :])
+                    inv = torch.cat([-g_new[p][..., :3], g_new[p][..., 3:]], dim=-1)
+                    m = torch.as_tensor(mean[j] * (-1, -1, -1, 1), dtype=g.dtype, device=g.device)
+                    local = quat_mul_t(m.expand(g.shape), quat_mul_t(inv, g))
+                    g = _hinge_twist_t(g, g_child, axis, plan[k][3], bend[j], limits[j], fade, local)
         g_new.append(g)
         inv = torch.cat([-g_new[p][..., :3], g_new[p][..., 3:]], dim=-1)
         out.append(quat_mul_t(inv, g))
     return torch.stack(out, dim=-2)
+
+
+def _hinge_twist_t(g, g_child, axis, child_axis, bend, limits, fade: float, local):
+    """`twist_kernels.hinge_twist` in torch, applied: `g` turned about its bone `axis`."""
+    import torch
+
+    from .rotations_torch import quat_apply_t, quat_mul_t
+
+    as_t = lambda v: torch.as_tensor(v, dtype=g.dtype, device=g.device).expand(g.shape[:-1] + (3,))  # noqa: E731
+    a, b = as_t(axis), as_t(bend)
+    inv = torch.cat([-g[..., :3], g[..., 3:]], dim=-1)
+    d = quat_apply_t(inv, quat_apply_t(g_child, as_t(child_axis)))
+    across = d - (d * a).sum(-1, keepdim=True) * a
+    tau = torch.atan2((torch.linalg.cross(b, across) * a).sum(-1), (across * b).sum(-1))
+    if fade > 0.0:
+        tau = tau * (across.norm(dim=-1) / math.sin(fade)).clamp(max=1.0)
+    twist = 2.0 * torch.atan2((local[..., :3] * a).sum(-1), local[..., 3])
+    twist = torch.remainder(twist + math.pi, 2.0 * math.pi) - math.pi
+    lo, hi = float(limits[0]), float(limits[1])
+    tau = torch.minimum(torch.maximum(twist + tau, twist.clamp(max=lo)), twist.clamp(min=hi)) - twist
+    turn = torch.cat([torch.sin(0.5 * tau)[..., None] * a, torch.cos(0.5 * tau)[..., None]], dim=-1)
+    return quat_mul_t(g, turn)
 
 
 def _rotation_between_t(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
