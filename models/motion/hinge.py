@@ -14,12 +14,14 @@ each elbow and knee, and their swings turn about one axis exactly. It stores, pe
 the hinge axis (signed so that the real bends are positive) and the parent's real twist
 interval (the parent's twist is what the re-twist changes).
 
-`hinge_twist` is the angle to turn the parent about its own bone so that the child's bone lies
-in the hinge plane, bent the way real joints bend, kept inside the parent's real twist interval.
-Turning a parent about its own bone moves no joint; `transfer_twist` then lays the child's bone
-along the model's direction with the smallest swing, which in the hinge plane is a turn about the
-hinge axis: the joint bends as a hinge and keeps its source twist. With the arm nearly straight
-the plane is ill-defined, so the turn fades out below `fade` radians of bend.
+`twist_kernels.hinge_twist` is the angle to turn the parent about its own bone so that the
+child's bone lies in the hinge plane, bent the way real joints bend, kept inside the parent's real
+twist interval. Turning a parent about its own bone moves no joint; `transfer_twist` then lays the
+child's bone along the model's direction with the smallest swing, which in the hinge plane is a
+turn about the hinge axis: the joint bends as a hinge. The child turns back about its own bone by
+as much of the parent's turn as its real twist interval allows, as a forearm pronates, so the
+hand below keeps facing where the source has it. With the limb nearly straight the plane is
+ill-defined, so the turn fades out below `fade` radians of bend.
 """
 
 from __future__ import annotations
@@ -44,15 +46,15 @@ FADE_DEGREES = 10.0  # below this bend the hinge plane is ill-defined: the re-tw
 class Hinges:
     """Per hinge joint: its index, its hinge axis in its rest frame (real bends positive), the
     direction its bone bends toward (hinge x bone, made square to the parent's bone) in the
-    parent's frame, its parent's real mean local rotation and the parent's real twist interval
-    relative to it (radians, about the parent's bone); `fade` in radians."""
+    parent's frame; for its parent and itself, the real mean local rotation and the real twist
+    interval relative to it (radians, about each one's bone); `fade` in radians."""
 
     joints: np.ndarray  # (K,) int
     axes: np.ndarray  # (K, 3)
     bend: np.ndarray  # (K, 3)
-    mean: np.ndarray  # (K, 4)
-    lo: np.ndarray  # (K,)
-    hi: np.ndarray  # (K,)
+    mean: np.ndarray  # (K, 2, 4) parent, joint
+    lo: np.ndarray  # (K, 2)
+    hi: np.ndarray  # (K, 2)
     fade: float = float(np.radians(FADE_DEGREES))
 
     def save(self, path: Path) -> Path:
@@ -102,23 +104,24 @@ def fit_hinges(skeleton: Skeleton, rotations: np.ndarray, share: float = HINGE_S
         p = int(skeleton.parents[j])
         t = np.cross(h, axes[j])
         t -= (t @ axes[p]) * axes[p]
-        m = quat_mean(q[:, p])
-        twist = twist_angle(quat_mul(quat_inv(m)[None], q[:, p]), axes[p])
+        m = quat_mean(q[:, [p, j]], axis=0)  # (2, 4)
+        twist = twist_angle(quat_mul(quat_inv(m)[None], q[:, [p, j]]), axes[[p, j]])  # (N, 2)
         joints.append(j)
         hinge.append(h)
         bend.append(t / np.linalg.norm(t))
         mean.append(m)
-        lo.append(np.percentile(twist, TWIST_PERCENTILES[0]))
-        hi.append(np.percentile(twist, TWIST_PERCENTILES[1]))
+        lo.append(np.percentile(twist, TWIST_PERCENTILES[0], axis=0))
+        hi.append(np.percentile(twist, TWIST_PERCENTILES[1], axis=0))
     as3 = lambda a: np.array(a).reshape(-1, 3)  # noqa: E731
-    means = np.array(mean).reshape(-1, 4)
-    return Hinges(np.array(joints, np.int64), as3(hinge), as3(bend), means, np.array(lo), np.array(hi))
+    as2 = lambda a: np.array(a).reshape(-1, 2)  # noqa: E731
+    means = np.array(mean).reshape(-1, 2, 4)
+    return Hinges(np.array(joints, np.int64), as3(hinge), as3(bend), means, as2(lo), as2(hi))
 
 
 def kernel_hinges(skeleton: Skeleton, hinges: Hinges | None) -> KernelHinges:
     """Per joint (J), as `twist_kernels` takes them: the hinge child it re-twists for (-1: none),
-    that child's bend direction in the joint's frame, the joint's real mean rotation (J, 4) and
-    its twist interval about it (J, 2); and the fade. Cached per parents and `Hinges` instance: the streaming steps call it every frame."""
+    that child's bend direction in the joint's frame, and for parents and hinge joints the real
+    mean rotation (J, 4) and the twist interval about it (J, 2); and the fade. Cached per parents and `Hinges` instance: the streaming steps call it every frame."""
     return _kernel_hinges(tuple(map(int, skeleton.parents)), hinges)
 
 
@@ -133,7 +136,9 @@ def _kernel_hinges(parents: tuple[int, ...], hinges: Hinges | None) -> KernelHin
         return child, bend, mean, limits, 0.0
     for k, j in enumerate(hinges.joints):
         p = parents[j]
-        child[p], bend[p], mean[p], limits[p] = j, hinges.bend[k], hinges.mean[k], (hinges.lo[k], hinges.hi[k])
+        child[p], bend[p] = j, hinges.bend[k]
+        mean[[p, j]] = hinges.mean[k]
+        limits[[p, j]] = np.stack([hinges.lo[k], hinges.hi[k]], axis=-1)
     return child, bend, mean, limits, hinges.fade
 
 

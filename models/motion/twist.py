@@ -129,6 +129,8 @@ def transfer_twist_t(
     g_new: list[torch.Tensor] = []
     out: list[torch.Tensor] = []
     plan = _plan(skeleton)
+    as_t = lambda v: torch.as_tensor(v, dtype=pose.dtype, device=pose.device)  # noqa: E731
+    turned: dict[int, torch.Tensor] = {}  # hinge joint -> how far its parent turned about its bone
     for j, p, kind, axis in plan:
         if kind == "root":
             g_pose.append(pose[..., j, :])
@@ -139,43 +141,60 @@ def transfer_twist_t(
         if kind == "frame":
             g = g_pose[j]
         else:
-            g = quat_mul_t(g_new[p], source[..., j, :])
+            local = source[..., j, :]
+            if j in turned:  # turns back as far as its twist interval allows
+                a = as_t(axis).expand(local.shape[:-1] + (3,))
+                rel = quat_mul_t(as_t(mean[j] * (-1, -1, -1, 1)).expand(local.shape), local)
+                local = quat_mul_t(local, _turn_t(a, _clamped_twist_t(rel, a, -turned[j], limits[j])))
+            g = quat_mul_t(g_new[p], local)
             if kind == "bone":
-                a = torch.as_tensor(axis, dtype=pose.dtype, device=pose.device).expand(g.shape[:-1] + (3,))
+                a = as_t(axis).expand(g.shape[:-1] + (3,))
                 g = quat_mul_t(_rotation_between_t(quat_apply_t(g, a), quat_apply_t(g_pose[j], a)), g)
                 k = int(hinge_child[j])
                 if k >= 0:
                     g_child = quat_mul_t(g_pose[j], pose[..., k, :])
                     inv = torch.cat([-g_new[p][..., :3], g_new[p][..., 3:]], dim=-1)
-                    m = torch.as_tensor(mean[j] * (-1, -1, -1, 1), dtype=g.dtype, device=g.device)
-                    local = quat_mul_t(m.expand(g.shape), quat_mul_t(inv, g))
-                    g = _hinge_twist_t(g, g_child, axis, plan[k][3], bend[j], limits[j], fade, local)
+                    rel = quat_mul_t(as_t(mean[j] * (-1, -1, -1, 1)).expand(g.shape), quat_mul_t(inv, g))
+                    tau = _hinge_twist_t(g, g_child, a, as_t(plan[k][3]), as_t(bend[j]), fade)
+                    turned[k] = _clamped_twist_t(rel, a, tau, limits[j])
+                    g = quat_mul_t(g, _turn_t(a, turned[k]))
         g_new.append(g)
         inv = torch.cat([-g_new[p][..., :3], g_new[p][..., 3:]], dim=-1)
         out.append(quat_mul_t(inv, g))
     return torch.stack(out, dim=-2)
 
 
-def _hinge_twist_t(g, g_child, axis, child_axis, bend, limits, fade: float, local):
-    """`twist_kernels.hinge_twist` in torch, applied: `g` turned about its bone `axis`."""
+def _hinge_twist_t(g, g_child, axis, child_axis, bend, fade: float):
+    """`twist_kernels.hinge_twist` in torch, before the twist interval (`_clamped_twist_t`)."""
     import torch
 
-    from .rotations_torch import quat_apply_t, quat_mul_t
+    from .rotations_torch import quat_apply_t
 
-    as_t = lambda v: torch.as_tensor(v, dtype=g.dtype, device=g.device).expand(g.shape[:-1] + (3,))  # noqa: E731
-    a, b = as_t(axis), as_t(bend)
     inv = torch.cat([-g[..., :3], g[..., 3:]], dim=-1)
-    d = quat_apply_t(inv, quat_apply_t(g_child, as_t(child_axis)))
-    across = d - (d * a).sum(-1, keepdim=True) * a
-    tau = torch.atan2((torch.linalg.cross(b, across) * a).sum(-1), (across * b).sum(-1))
+    d = quat_apply_t(inv, quat_apply_t(g_child, child_axis.expand(axis.shape)))
+    across = d - (d * axis).sum(-1, keepdim=True) * axis
+    b = bend.expand(axis.shape)
+    tau = torch.atan2((torch.linalg.cross(b, across) * axis).sum(-1), (across * b).sum(-1))
     if fade > 0.0:
-        tau = tau * (across.norm(dim=-1) / math.sin(fade)).clamp(max=1.0)
-    twist = 2.0 * torch.atan2((local[..., :3] * a).sum(-1), local[..., 3])
+        tau = tau * (across.pow(2).sum(-1).clamp_min(1e-12).sqrt() / math.sin(fade)).clamp(max=1.0)
+    return tau
+
+
+def _clamped_twist_t(rel, axis, turn, limits):
+    """`twist_kernels.clamped_twist` in torch."""
+    import torch
+
+    twist = 2.0 * torch.atan2((rel[..., :3] * axis).sum(-1), rel[..., 3])
     twist = torch.remainder(twist + math.pi, 2.0 * math.pi) - math.pi
     lo, hi = float(limits[0]), float(limits[1])
-    tau = torch.minimum(torch.maximum(twist + tau, twist.clamp(max=lo)), twist.clamp(min=hi)) - twist
-    turn = torch.cat([torch.sin(0.5 * tau)[..., None] * a, torch.cos(0.5 * tau)[..., None]], dim=-1)
-    return quat_mul_t(g, turn)
+    return torch.minimum(torch.maximum(twist + turn, twist.clamp(max=lo)), twist.clamp(min=hi)) - twist
+
+
+def _turn_t(axis, angle):
+    """Unit quaternions turning by `angle` about unit `axis` (torch)."""
+    import torch
+
+    return torch.cat([torch.sin(0.5 * angle)[..., None] * axis, torch.cos(0.5 * angle)[..., None]], dim=-1)
 
 
 def _rotation_between_t(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

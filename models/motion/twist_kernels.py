@@ -18,6 +18,14 @@ ROOT, FRAME, BONE, LEAF = 0, 1, 2, 3  # joint kinds, as `twist._plan` names them
 
 
 @njit(cache=True, error_model="numpy")
+def clamped_twist(local, axis, turn, lo, hi):
+    """The part of `turn` (radians about `axis`) that keeps the twist of `local` (a local rotation
+    relative to its real mean) inside [lo, hi], or where it already is when outside."""
+    twist = wrap(2.0 * math.atan2(local[0] * axis[0] + local[1] * axis[1] + local[2] * axis[2], local[3]))
+    return min(max(twist + turn, min(lo, twist)), max(hi, twist)) - twist
+
+
+@njit(cache=True, error_model="numpy")
 def hinge_twist(g, g_child, axis, child_axis, bend, lo, hi, fade, local):
     """The angle (radians) to turn a joint of global rotation `g` about its own bone `axis` so
     that its hinge child's bone (global rotation `g_child`, bone `child_axis`) lies along `bend`
@@ -30,8 +38,7 @@ def hinge_twist(g, g_child, axis, child_axis, bend, lo, hi, fade, local):
     tau = math.atan2(dot3(cross(bend, across), axis), dot3(across, bend))
     if fade > 0.0:
         tau *= min(1.0, math.sqrt(dot3(across, across)) / math.sin(fade))
-    twist = wrap(2.0 * math.atan2(local[0] * axis[0] + local[1] * axis[1] + local[2] * axis[2], local[3]))
-    return min(max(twist + tau, min(lo, twist)), max(hi, twist)) - twist
+    return clamped_twist(local, axis, tau, lo, hi)
 
 
 @njit(cache=True)
@@ -43,6 +50,7 @@ def transfer_twist_batch(kinds, parents, axes, keep, hinge_child, bend, mean, li
     J = kinds.shape[0]
     g_pose = np.empty((J, 4))
     g_new = np.empty((J, 4))
+    turned = np.zeros(J)  # per hinge joint, how far its parent turned about its bone
     for b in range(pose.shape[0]):
         for j in range(J):
             pj = qunit(row4(pose[b], j))
@@ -57,6 +65,11 @@ def transfer_twist_batch(kinds, parents, axes, keep, hinge_child, bend, mean, li
                 g = gp
             else:
                 local = pj if keep[j] else qunit(row4(source[b], j))
+                turn, turned[j] = turned[j], 0.0
+                if turn != 0.0 and not keep[j]:  # a hinge joint turns back as far as its twist interval allows
+                    a = row3(axes, j)
+                    back = clamped_twist(qmul(qinv(row4(mean, j)), local), a, -turn, limits[j, 0], limits[j, 1])
+                    local = qmul(local, axis_angle(a, back))
                 g = qmul(gn_parent, local)
                 if kinds[j] == BONE:
                     a = row3(axes, j)
@@ -69,6 +82,7 @@ def transfer_twist_batch(kinds, parents, axes, keep, hinge_child, bend, mean, li
                             g, g_child, a, row3(axes, k), row3(bend, j), limits[j, 0], limits[j, 1], fade, local
                         )
                         g = qmul(g, axis_angle(a, tau))
+                        turned[k] = tau
             loc = qmul(qinv(gn_parent), g)
             for c in range(4):
                 g_pose[j, c] = gp[c]
