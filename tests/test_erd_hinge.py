@@ -8,8 +8,8 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from models.motion.hinge import Hinges, fit_hinges, off_hinge
-from models.motion.rotations import quat_angle, quat_exp, quat_inv, quat_mul, twist_angle
+from models.motion.hinge import Hinges, fit_hinges
+from models.motion.rotations import quat_angle, quat_apply, quat_exp, quat_inv, quat_mul, twist_angle
 from models.motion.twist import bone_axes, transfer_twist, transfer_twist_t
 
 HINGED = ("LowerArm_L", "LowerArm_R", "LowerLeg_L", "LowerLeg_R")
@@ -109,11 +109,17 @@ def test_saved_hinges_load_the_same(bn_walk, tmp_path):
     assert back.fade == hinges.fade
 
 
+def off_hinge(sk, hinges: Hinges, rotations: np.ndarray) -> np.ndarray:
+    """(T, K) angle (radians) by which each hinge joint's bone leaves its hinge plane."""
+    axes = bone_axes(sk)[hinges.joints]
+    q = rotations[:, hinges.joints]
+    d = quat_apply(q, np.broadcast_to(axes, q.shape[:-1] + (3,)))
+    return np.arcsin(np.clip(np.abs(np.sum(d * hinges.axes, -1)), 0.0, 1.0))
+
+
 def _bend(sk, hinges: Hinges, rotations: np.ndarray) -> np.ndarray:
     """(T, K) the angle between each hinge joint's bone and its parent's (radians)."""
     axes = bone_axes(sk)
-    from models.motion.rotations import quat_apply
-
     q = rotations[:, hinges.joints]
     d = quat_apply(q, np.broadcast_to(axes[hinges.joints], q.shape[:-1] + (3,)))
     parent_axes = axes[sk.parents[hinges.joints]]

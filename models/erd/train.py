@@ -360,6 +360,8 @@ def hinge_loss(rot: torch.Tensor, hinges, skeleton) -> torch.Tensor:
     from ..motion.rotations_torch import quat_apply_t
     from ..motion.twist import bone_axes
 
+    if len(hinges.joints) == 0:
+        return rot.new_zeros(())
     as_t = lambda a: torch.as_tensor(a, dtype=rot.dtype, device=rot.device)  # noqa: E731
     q = rot[..., hinges.joints - 1, :]  # body indices: joint_Root is not in `rot`
     bone, hinge = as_t(bone_axes(skeleton)[hinges.joints]), as_t(hinges.axes)

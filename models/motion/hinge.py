@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .rotations import quat_apply, quat_inv, quat_log, quat_mean, quat_mul, swing_twist, twist_angle
+from .rotations import quat_inv, quat_log, quat_mean, quat_mul, swing_twist, twist_angle
 from .skeleton import Skeleton
 
 HINGE_FILE = "hinges.npz"
@@ -77,12 +77,11 @@ class Hinges:
             return cls(np.asarray(z["joints"], np.int64), fade=float(z["fade"]), **arrays)
 
 
-def single_bone_parent(skeleton: Skeleton, j: int) -> bool:
+def _single_bone_parent(skeleton: Skeleton, j: int) -> bool:
     """Whether j has a parent whose only child bone is j (turning the parent moves nothing else)."""
     p = int(skeleton.parents[j])
-    if p < 0 or np.linalg.norm(skeleton.offsets[j]) < 1e-6:
-        return False
-    return [c for c in skeleton.children(p) if np.linalg.norm(skeleton.offsets[c]) > 1e-6] == [j]
+    bones = [c for c in skeleton.children(p) if np.linalg.norm(skeleton.offsets[c]) > 1e-6]
+    return p >= 0 and bones == [j]
 
 
 def fit_hinges(skeleton: Skeleton, rotations: np.ndarray, share: float = HINGE_SHARE) -> Hinges:
@@ -94,7 +93,7 @@ def fit_hinges(skeleton: Skeleton, rotations: np.ndarray, share: float = HINGE_S
     axes = bone_axes(skeleton)
     joints, hinge, bend, mean, lo, hi = [], [], [], [], [], []
     for j in range(skeleton.num_joints):
-        if not skeleton.children(j) or not single_bone_parent(skeleton, j):
+        if not skeleton.children(j) or not _single_bone_parent(skeleton, j):
             continue
         v = quat_log(swing_twist(q[:, j], axes[j])[0])
         vals, vecs = np.linalg.eigh(v.T @ v)
@@ -140,14 +139,3 @@ def _kernel_hinges(parents: tuple[int, ...], hinges: Hinges | None) -> KernelHin
         mean[[p, j]] = hinges.mean[k]
         limits[[p, j]] = np.stack([hinges.lo[k], hinges.hi[k]], axis=-1)
     return child, bend, mean, limits, hinges.fade
-
-
-def off_hinge(skeleton: Skeleton, hinges: Hinges, rotations: np.ndarray) -> np.ndarray:
-    """(..., K) angle (radians) by which each hinge joint's bone leaves its hinge plane, for local
-    rotations (..., J, 4): zero where the joint turns as a hinge."""
-    from .twist import bone_axes
-
-    axes = bone_axes(skeleton)[hinges.joints]
-    q = np.asarray(rotations, np.float64)[..., hinges.joints, :]
-    d = quat_apply(q, np.broadcast_to(axes, q.shape[:-1] + (3,)))
-    return np.arcsin(np.clip(np.abs(np.sum(d * hinges.axes, -1)), 0.0, 1.0))
