@@ -21,7 +21,8 @@ child's bone along the model's direction with the smallest swing, which in the h
 turn about the hinge axis: the joint bends as a hinge. The child turns back about its own bone by
 as much of the parent's turn as its real twist interval allows, as a forearm pronates, so the
 hand below keeps facing where the source has it. With the limb nearly straight the plane is
-ill-defined, so the turn fades out below `fade` radians of bend.
+ill-defined, so the turn fades out below `fade` radians of bend; where the model bends the joint
+backward, the parent would turn by half a turn, so the turn fades out from a quarter turn on.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ HINGE_FILE = "hinges.npz"
 KernelHinges = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]
 HINGE_SHARE = 0.999  # share of a joint's real swing (squared angle) about one axis that makes it a hinge
 TWIST_PERCENTILES = (0.5, 99.5)  # the parent's real twist interval the re-twist stays in
-FADE_DEGREES = 10.0  # below this bend the hinge plane is ill-defined: the re-twist fades to none
+FADE_DEGREES = 20.0  # below this bend the hinge plane is ill-defined: the re-twist fades to none
 
 
 @dataclass(frozen=True, eq=False)  # hashed by identity: the kernel plan is cached per instance

@@ -175,9 +175,10 @@ def _hinge_twist_t(g, g_child, axis, child_axis, bend, fade: float):
     across = d - (d * axis).sum(-1, keepdim=True) * axis
     b = bend.expand(axis.shape)
     tau = torch.atan2((torch.linalg.cross(b, across) * axis).sum(-1), (across * b).sum(-1))
+    weight = (2.0 - 2.0 * tau.abs() / math.pi).clamp(0.0, 1.0)
     if fade > 0.0:
-        tau = tau * (across.pow(2).sum(-1).clamp_min(1e-12).sqrt() / math.sin(fade)).clamp(max=1.0)
-    return tau
+        weight = weight * (across.pow(2).sum(-1).clamp_min(1e-12).sqrt() / math.sin(fade)).clamp(max=1.0)
+    return tau * weight
 
 
 def _clamped_twist_t(rel, axis, turn, limits):

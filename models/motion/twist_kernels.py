@@ -29,16 +29,23 @@ def clamped_twist(local, axis, turn, lo, hi):
 def hinge_twist(g, g_child, axis, child_axis, bend, lo, hi, fade, local):
     """The angle (radians) to turn a joint of global rotation `g` about its own bone `axis` so
     that its hinge child's bone (global rotation `g_child`, bone `child_axis`) lies along `bend`
-    across it (`models.motion.hinge`): faded out below `fade` radians of bend, and the joint's
+    across it (`models.motion.hinge`), weighted by `hinge_weight`, and the joint's
     twist (of `local`, its local rotation relative to its real mean) kept in [lo, hi] (or where
     it already is)."""
     d = qrot(qinv(g), qrot(g_child, child_axis))  # the child's bone in the joint's frame
     along = dot3(d, axis)
     across = (d[0] - along * axis[0], d[1] - along * axis[1], d[2] - along * axis[2])
     tau = math.atan2(dot3(cross(bend, across), axis), dot3(across, bend))
-    if fade > 0.0:
-        tau *= min(1.0, math.sqrt(dot3(across, across)) / math.sin(fade))
-    return clamped_twist(local, axis, tau, lo, hi)
+    return clamped_twist(local, axis, tau * hinge_weight(tau, math.sqrt(dot3(across, across)), fade), lo, hi)
+
+
+@njit(cache=True, error_model="numpy")
+def hinge_weight(tau, across, fade):
+    """How much of the turn `tau` to take: none as the limb straightens (`across`, the sine of its
+    bend, below the sine of `fade`), and none as the turn nears a half turn (the model bends the
+    joint backward; `tau` = +-pi are one pose, and a clamp that took either limit would jump)."""
+    straight = min(1.0, across / math.sin(fade)) if fade > 0.0 else 1.0
+    return straight * min(1.0, max(0.0, 2.0 - 2.0 * abs(tau) / math.pi))
 
 
 @njit(cache=True)
