@@ -50,8 +50,8 @@ def test_hinge_transfer_keeps_positions_and_puts_the_child_back_on_its_hinge(bn_
     hinged = transfer_twist(sk, walk.rotations, swung.rotations, hinges=hinges)
     for out in (plain, hinged):
         assert np.abs(replace(walk, rotations=out).global_positions() - swung.global_positions()).max() < 1e-4
-    bent = _bend(sk, hinges, swung.rotations) > 2 * hinges.fade  # where the plane is well defined
-    assert bent.mean() > 0.3
+    bent = _bend(sk, hinges, swung.rotations) > hinges.fade  # where the turn is not faded
+    assert bent.mean() > 0.2
     assert np.degrees(off_hinge(sk, hinges, plain)[bent]).max() > 15.0  # the input's twist leaves it off
     assert np.degrees(off_hinge(sk, hinges, hinged)[bent]).max() < 0.5
     # the hinge joint turns back about its own bone, so the hands and feet face nearer where

@@ -40,7 +40,7 @@ HINGE_FILE = "hinges.npz"
 KernelHinges = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]
 HINGE_SHARE = 0.999  # share of a joint's real swing (squared angle) about one axis that makes it a hinge
 TWIST_PERCENTILES = (0.5, 99.5)  # the parent's real twist interval the re-twist stays in
-FADE_DEGREES = 20.0  # below this bend the hinge plane is ill-defined: the re-twist fades to none
+FADE_DEGREES = 35.0  # below this bend the hinge plane is ill-defined: the re-twist fades to none
 
 
 @dataclass(frozen=True, eq=False)  # hashed by identity: the kernel plan is cached per instance
