@@ -105,6 +105,22 @@ def load_split(split: str, folder: Path | None = None) -> Split:
         return Split(z["feats"], z["starts"], z["lengths"], z["style"], z["content"], [str(n) for n in z["names"]])
 
 
+HINGE_FIT_FRAMES = 60_000  # TRAIN frames (every style) the decoding's hinges are fitted from
+
+
+def split_hinges(split: Split, skeleton):
+    """The hinge joints (`models.motion.hinge`) of a split's real rotations, every style: the
+    runtime's `hinges.npz` and the trainer's decoding come from this one fit."""
+    from ..motion.hinge import fit_hinges
+    from .features import NB, ROT
+
+    body = split.feats[:: max(1, len(split.feats) // HINGE_FIT_FRAMES), ROT].reshape(-1, NB, 4)
+    q = np.zeros((len(body), NB + 1, 4))
+    q[..., 3] = 1.0  # joint_Root, static
+    q[:, 1:] = body
+    return fit_hinges(skeleton, q)
+
+
 def load_stats(folder: Path | None = None) -> dict[str, np.ndarray]:
     folder = folder or cache_dir()
     if not (folder / "stats.npz").exists():

@@ -7,7 +7,8 @@ turned by the INPUT's facing yaw, starting from the input's first root position;
 the predicted Hips height. So the path keeps the input's shape and direction while the speed may
 change with the style. The output Hips rotation is the input's facing yaw times the predicted
 yaw-free Hips rotation. As in the streaming model, the bones keep the input's twists and the
-leaves its rotations (`models.motion.twist.transfer_twist`), carried to the target style and the
+leaves its rotations (`models.motion.twist.transfer_twist`; elbows and knees as hinges where
+`hinges` is given), carried to the target style and the
 output carried to the style's real rotations when the rotation prior is given (`rotation_prior.py`;
 run priors for the frames the input runs in, `gait.py`; the slow part carried, the fast part on
 top, `slow_carry.py`). Then the feet are planted frame by frame as in the streaming model
@@ -25,6 +26,7 @@ from models.motion.rotations import quat_mul, yaw_quat
 
 from ..motion.bn_skeleton import HIPS
 from ..motion.feet import model_rig_planter
+from ..motion.hinge import Hinges
 from ..motion.skeleton import Motion
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
@@ -66,6 +68,7 @@ def stylise(
     run_leaf_prior: StyleCarry | None = None,
     run_output_prior: StyleCarry | None = None,
     twist_range: TwistRange | None = None,
+    hinges: Hinges | None = None,
 ) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
     rotation prior (`leaf_prior`, `output_prior`, and their run versions for the frames the input
@@ -86,7 +89,7 @@ def stylise(
     pos = maker.positions(root_in, motion.rotations)
     share = eased_in(run_share(clip_smoothed_speed(pos, FPS)), np.arange(len(pos)))
     source = clip_carry_slow(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
-    rots = transfer_twist(motion.skeleton, source, rots)
+    rots = transfer_twist(motion.skeleton, source, rots, hinges=hinges)
     rots = clip_carry_slow(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)
     if twist_range is not None:
         rots = twist_range(rots, w_frames)

@@ -4,6 +4,7 @@ the same way for every style:
     .venv/bin/python -m models.erd.rotation_prior        # all -> models/weights/erd/*_prior*.npz
     .venv/bin/python -m models.erd.rotation_prior runs   # the run priors alone
     .venv/bin/python -m models.erd.rotation_prior twists # the arms' twist range alone (`twist_range.py`)
+    .venv/bin/python -m models.erd.rotation_prior hinges # the decoding's hinge joints (`models.motion.hinge`)
 
 1. **Twists and leaves** (`leaf_prior.npz`). The decoder is trusted only for where bones point
    (`models.motion.twist.transfer_twist`): a bone's twist about itself and the head, hands and
@@ -172,8 +173,14 @@ def main(argv: list[str]) -> None:
     from .runtime import load
 
     torch.set_num_threads(1)
-    what = argv[0] if argv else "all"
+    what = argv[0] if argv else "all"  # the hinges first: the output priors carry from the decoded pose
     folder = Path(argv[1]) if len(argv) > 1 else get_settings().weights_dir / "erd"
+    if what in ("all", "hinges"):
+        from ..motion.assets import bandai_namco_skeleton
+        from ..motion.hinge import HINGE_FILE
+        from .dataset import load_split, split_hinges
+
+        print(split_hinges(load_split("train"), bandai_namco_skeleton()).save(folder / HINGE_FILE))
     if what in ("all", "leaves", "output"):
         real = real_rotations()
         if what in ("all", "leaves"):

@@ -28,7 +28,11 @@ speed follows the style); the height is predicted.
 Twists and leaves: the decoder's rotations are trusted only where they move joints. Its positions
 are kept exactly, but each bone's twist about itself and the head, hands and toes take the
 input's rotations (`models.motion.twist.transfer_twist`): trained on positions, the network had
-left those free and wrung wrists by 60-140 degrees and turned necks by 90. The input's
+left those free and wrung wrists by 60-140 degrees and turned necks by 90. Elbows and knees are
+hinges (`models.motion.hinge`, fitted once from TRAIN rotations of every style, `hinges.npz`):
+the upper arm and thigh take the twist that lays the forearm and shin in their hinge plane
+instead of the input's, or the forearm swung up to 28 degrees (p95) off its hinge. This is part
+of decoding the network's pose (the trainer decodes the same way), not a stage. The input's
 rotations are first carried from the neutral style's real distribution to the target style's,
 so the head and wrists take the style's attitude inside its real range instead of the neutral
 input's; then the output's rotations are carried from what the network produces to the style's
@@ -63,6 +67,7 @@ from ..interface import FrameBatch, State
 from ..motion.bn_skeleton import HIPS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
+from ..motion.hinge import HINGE_FILE, Hinges
 from ..motion.skeleton import Skeleton
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
@@ -115,6 +120,7 @@ class ERDModel:
         run_leaf_prior: StyleCarry | None = None,
         run_output_prior: StyleCarry | None = None,
         twist_range: TwistRange | None = None,
+        hinges: Hinges | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
@@ -129,6 +135,7 @@ class ERDModel:
         # the same two fitted on runs alone, for frames the input runs in (`gait.py`)
         self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
         self.twist_range = twist_range  # the arms' twists kept in the style's real interval (`twist_range.py`)
+        self.hinges = hinges  # elbows and knees decoded as hinges (`models.motion.hinge`; None: the input's twists)
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
@@ -277,7 +284,7 @@ class ERDModel:
         gait_speed = smoothed_speed(state["gait_speed"], hips_speed(pos, state["prev_pos"], has_prev, FPS), has_prev)
         share = eased_in(run_share(gait_speed), state["frame"])
         source, slow_in = carry_slow(self.leaf_prior, self.run_leaf_prior, rot_in, state["slow_in"], w, share)
-        out_rot = transfer_twist(self.skeleton, source, out_rot)
+        out_rot = transfer_twist(self.skeleton, source, out_rot, hinges=self.hinges)
         out_rot, slow_out = carry_slow(
             self.output_prior, self.run_output_prior, out_rot, state["slow_out"], w, share, hips=HIPS
         )
@@ -368,10 +375,14 @@ class ERDModel:
         return gen.eval()
 
     @property
-    def priors(self) -> dict[str, StyleCarry | TwistRange | None]:
-        """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), and the twist
-        range, as the whole-clip path (`offline.stylise`) takes them."""
-        return {**{key: getattr(self, key) for key in PRIOR_FILES}, "twist_range": self.twist_range}
+    def priors(self) -> dict[str, StyleCarry | TwistRange | Hinges | None]:
+        """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), the twist
+        range and the hinges, as the whole-clip path (`offline.stylise`) takes them."""
+        return {
+            **{key: getattr(self, key) for key in PRIOR_FILES},
+            "twist_range": self.twist_range,
+            "hinges": self.hinges,
+        }
 
     def stylise_stream(self, motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None):
         """Run a whole Motion through step_batch frame by frame (batch 1); returns a Motion."""
@@ -392,11 +403,11 @@ class ERDModel:
         return replace(motion, rotations=np.array(rots), translations=trans)
 
 
-def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False) -> ERDModel:
+def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, hinges: bool = True) -> ERDModel:
     """The committed model; `dtype` = the network's arithmetic (np.float64: the reference).
     `core_only`: the network without the fitted stages after it (every rotation prior and the
-    twist range; the input's twist transfer and the foot planter stay): the evaluation's
-    core-alone row."""
+    twist range; the decoding, twist transfer and hinges, and the foot planter stay): the
+    evaluation's core-alone row. `hinges=False` decodes without the hinges (for comparison)."""
     weights_dir = Path(weights_dir)
     config = json.loads((weights_dir / "config.json").read_text())
     with np.load(weights_dir / WEIGHTS_FILE) as z:
@@ -415,13 +426,26 @@ def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False) -
     twists = TwistRange.load(weights_dir / TWIST_FILE) if (weights_dir / TWIST_FILE).exists() else None
     if core_only:
         priors, twists = dict.fromkeys(priors), None
+    hinge_file = weights_dir / HINGE_FILE
+    fitted = Hinges.load(hinge_file) if hinges and hinge_file.exists() else None
     return ERDModel(
-        arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype, twist_range=twists, **priors
+        arrays,
+        config["model"],
+        skeleton,
+        mean,
+        std,
+        ref,
+        meta=config,
+        dtype=dtype,
+        twist_range=twists,
+        hinges=fitted,
+        **priors,
     )
 
 
 def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skeleton | None = None) -> Path:
-    """Write models/weights/erd/{erd.npz, config.json} from a training checkpoint."""
+    """Write models/weights/erd/{erd.npz, config.json, hinges.npz} from a training checkpoint (the
+    hinges fitted from the TRAIN split, as the trainer decodes with them)."""
     import torch
 
     from ..settings import REPO_ROOT
@@ -460,4 +484,7 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skele
         "licence": "CC BY-NC 4.0 (inherited from Bandai Namco dataset 2)",
     }
     (out_dir / "config.json").write_text(json.dumps(config, indent=1))
+    from .dataset import load_split, split_hinges
+
+    split_hinges(load_split("train"), skeleton).save(out_dir / HINGE_FILE)
     return out_dir

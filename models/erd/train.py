@@ -16,7 +16,8 @@ FK position, velocity) with target style = input style, LSGAN (real 1, fake -1, 
 with R1 on real samples, perceptual loss against the input's classifier features. Neutral
 clips get a random target style, styled clips the neutral target. Input labels are dropped at
 random so that unlabelled streams work. Optional terms on the streamed rotations (what the
-streaming model outputs: the decoder's bone directions with the input's twists): `w_prior`
+streaming model outputs: the decoder's bone directions with the input's twists, elbows and knees
+as hinges fitted from the training rotations, `dataset.split_hinges`): `w_prior`
 (the target style's range), `w_hinge` (hinge joints off their hinge), `w_adv_rot` (a second
 discriminator); `w_teacher` anchors a fine-tune's transfer to the generator it started from.
 """
@@ -74,9 +75,10 @@ class TrainConfig:
     # (`rotation_prior.py`, e.g. models/weights/erd/leaf_prior.npz; empty = the input's), and a second
     # FT-Att discriminator over the streamed rotations (6-D per joint and their frame differences)
     leaf_prior: str = ""
-    # hinge joints (fitted from the training rotations: a joint whose real swing turns about one
-    # axis, `hinge_axes`): `w_hinge` penalises the streamed rotation's swing off that axis, which
-    # the streaming model's bone-direction rotations leave free
+    # hinge joints (fitted from the training rotations, `models.motion.hinge`): the streamed
+    # rotations decode them as hinges (`hinge_decode`, as the runtime does); `w_hinge` penalises
+    # what stays off the hinge (a straight limb, a parent twist at its real limit)
+    hinge_decode: bool = True
     w_hinge: float = 0.0
     # fine-tuning: keep the transferred positions and velocities near those of the generator the
     # run started from (a frozen copy), so a rotation loss moves only what it must, not the style
@@ -197,18 +199,19 @@ def style_rotation_prior(split) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def streamed_rotations(
-    skeleton, rot: torch.Tensor, x: torch.Tensor, source: torch.Tensor | None = None
+    skeleton, rot: torch.Tensor, x: torch.Tensor, source: torch.Tensor | None = None, hinges=None
 ) -> torch.Tensor:
     """(B, T, 21, 4) the rotations the streaming model outputs for decoder rotations `rot`: its
     bone directions with the twists and leaf rotations of `source` (B, T, 21, 4; default the
-    input's), as `ERDModel` does."""
+    input's), and with `hinges` (`models.motion.hinge.Hinges`) its elbows and knees as hinges,
+    as `ERDModel` does."""
     from ..motion.twist import transfer_twist_t
 
     root = torch.zeros(rot.shape[:2] + (1, 4), dtype=rot.dtype, device=rot.device)
     root[..., 3] = 1.0
     full = lambda q: torch.cat([root, q], dim=-2)  # noqa: E731  (joint_Root, static)
     src = real_rot(x) if source is None else source
-    return transfer_twist_t(skeleton, full(src), full(rot))[..., 1:, :]
+    return transfer_twist_t(skeleton, full(src), full(rot), hinges)[..., 1:, :]
 
 
 def leaf_source(prior, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -290,7 +293,9 @@ def train_classifier(cfg, clf, losses, train_s, val_s, log, device=torch.device(
 
 
 @torch.no_grad()
-def validate(gen, disc, clf, losses, v, hinges=None, skeleton=None) -> dict[str, float]:
+def validate(gen, disc, clf, losses, v, hinges=None, skeleton=None, decode=None) -> dict[str, float]:
+    """Losses on fixed validation windows; with `hinges` and `skeleton`, how far the streamed
+    transfer (decoded with `decode`, the hinges or None) leaves the hinges."""
     gen.eval()
     x, style, content = v["x"], v["style"], v["content"]
     real = losses.real_view(x)
@@ -316,7 +321,7 @@ def validate(gen, disc, clf, losses, v, hinges=None, skeleton=None) -> dict[str,
         dq = (fake["rot"] * real_rot(x)).sum(-1).abs().clamp(max=1.0)
         out_stats[f"{tag}/transfer_deg"] = torch.rad2deg(2 * torch.acos(dq)).mean().item()
         if hinges is not None and skeleton is not None:  # the streamed transfer's hinge joints off their hinge
-            off = hinge_loss(streamed_rotations(skeleton, fake["rot"], x), hinges).sqrt()
+            off = hinge_loss(streamed_rotations(skeleton, fake["rot"], x, hinges=decode), hinges, skeleton).sqrt()
             out_stats[f"{tag}/off_hinge_deg"] = math.degrees(math.asin(min(off.item(), 1.0)))
     out_stats["d_real"] = disc(disc.prepare(real), style, content).mean().item()
     gen.train()
@@ -348,41 +353,18 @@ def render(gen, maker, out_dir: Path, tag: str, clips_motions) -> None:
     gen.train()
 
 
-HINGE_SHARE = 0.999  # share of a joint's real swing (squared angle) about its main axis that makes it a hinge
-
-
-def hinge_axes(split, skeleton) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Body joints (indices into the 21) whose real training rotations swing about one axis only,
-    with their bone axes and hinge axes (K, 3) in the joint's frame. The same fit for every joint
-    and style: a rotation q = swing(hinge) * twist(bone) keeps its bone in the plane normal to the
-    hinge, `hinge_loss`'s target."""
-    from ..motion.bn_skeleton import BODY
-    from ..motion.rotations import quat_log, swing_twist
-    from ..motion.twist import bone_axes
-    from .features import NB, ROT
-
-    q = split.feats[:: max(1, len(split.feats) // 60_000), ROT].reshape(-1, NB, 4).astype(np.float64)
-    axes = bone_axes(skeleton)[list(BODY)]
-    joints, bones, hinges = [], [], []
-    for j in range(NB):
-        b = axes[j] / np.linalg.norm(axes[j])
-        v = quat_log(swing_twist(q[:, j], b)[0])
-        vals, vecs = np.linalg.eigh(v.T @ v)
-        if vals[-1] >= HINGE_SHARE * vals.sum():
-            joints.append(j)
-            bones.append(b)
-            hinges.append(vecs[:, -1])
-    as_t = lambda a: torch.as_tensor(np.array(a), dtype=torch.float32)  # noqa: E731
-    return torch.as_tensor(joints, dtype=torch.long), as_t(bones), as_t(hinges)
-
-
-def hinge_loss(rot: torch.Tensor, hinges: tuple[torch.Tensor, torch.Tensor, torch.Tensor]) -> torch.Tensor:
-    """Mean squared sine of the angle by which each hinge joint's bone (rotations (B, T, 21, 4))
-    leaves the plane normal to its hinge axis: zero exactly when the joint turns as a hinge."""
+def hinge_loss(rot: torch.Tensor, hinges, skeleton) -> torch.Tensor:
+    """Mean squared sine of the angle by which each hinge joint's bone (rotations (B, T, 21, 4),
+    `hinges` a `models.motion.hinge.Hinges`) leaves the plane normal to its hinge axis: zero
+    exactly when the joint turns as a hinge."""
     from ..motion.rotations_torch import quat_apply_t
+    from ..motion.twist import bone_axes
 
-    joints, bone, hinge = hinges
-    q = rot[..., joints, :]
+    if len(hinges.joints) == 0:
+        return rot.new_zeros(())
+    as_t = lambda a: torch.as_tensor(a, dtype=rot.dtype, device=rot.device)  # noqa: E731
+    q = rot[..., hinges.joints - 1, :]  # body indices: joint_Root is not in `rot`
+    bone, hinge = as_t(bone_axes(skeleton)[hinges.joints]), as_t(hinges.axes)
     return (quat_apply_t(q, bone.expand(q.shape[:-1] + (3,))) * hinge).sum(-1).pow(2).mean()
 
 
@@ -533,9 +515,11 @@ def main(argv: list[str]) -> None:
     p_target = target_probs(cfg.target_weights)
     prior_mean, prior_p95 = style_rotation_prior(train_s.s)
     prior = (prior_mean.to(device), prior_p95.to(device))
-    h_joints, h_bones, h_axes = hinge_axes(train_s.s, skeleton)
-    hinges = (h_joints.to(device), h_bones.to(device), h_axes.to(device))
-    log(f"hinge joints (body indices) {hinges[0].tolist()}")
+    from .dataset import split_hinges
+
+    hinges = split_hinges(train_s.s, skeleton)
+    decode = hinges if cfg.hinge_decode else None
+    log(f"hinge joints {[skeleton.names[j] for j in hinges.joints]}, decoded as hinges: {cfg.hinge_decode}")
     leaf_prior = None
     if cfg.leaf_prior:
         from ..motion.style_carry import StyleCarry
@@ -629,7 +613,7 @@ def main(argv: list[str]) -> None:
         streamed = None
         if cfg.w_prior or cfg.w_hinge or disc_rot is not None:
             source = leaf_source(leaf_prior, x, target) if leaf_prior is not None else None
-            streamed = streamed_rotations(skeleton, out["rot"][B:], x, source)
+            streamed = streamed_rotations(skeleton, out["rot"][B:], x, source, decode)
         zero = torch.zeros((), device=device)
         l_teacher = zero
         if teacher is not None:
@@ -638,7 +622,7 @@ def main(argv: list[str]) -> None:
             t_view = losses.fake_view({k: v.float() for k, v in t_out.items()})
             l_teacher = sum(((fake_view[k] - t_view[k]) / scale[k]).pow(2).mean() for k in ("pos", "vel"))
         l_prior = prior_loss(streamed, target, prior) if cfg.w_prior and streamed is not None else zero
-        l_hinge = hinge_loss(streamed, hinges) if cfg.w_hinge and streamed is not None else zero
+        l_hinge = hinge_loss(streamed, hinges, skeleton) if cfg.w_hinge and streamed is not None else zero
         l_adv_rot = (
             disc_rot(rotation_view(streamed), target, content).pow(2).mean()
             if disc_rot is not None and streamed is not None
@@ -700,7 +684,7 @@ def main(argv: list[str]) -> None:
                 d=f"{loss_d.item():.3f}",
             )
         if it % cfg.eval_every == 0:
-            v = validate(gen, disc, clf, losses, vfixed, hinges, skeleton)
+            v = validate(gen, disc, clf, losses, vfixed, hinges, skeleton, decode)
             v.update(
                 iter=it,
                 minutes=round(schedule.elapsed_s / 60, 2),
@@ -726,7 +710,7 @@ def main(argv: list[str]) -> None:
         if render_motions and it % cfg.render_every == 0:
             render(gen, maker, out_dir, f"it{it:06d}", render_motions)
     bar.close()
-    v = validate(gen, disc, clf, losses, vfixed, hinges, skeleton)
+    v = validate(gen, disc, clf, losses, vfixed, hinges, skeleton, decode)
     v.update(iter=it, minutes=round(schedule.elapsed_s / 60, 2))
     history.append(v)
     log("final val " + " ".join(f"{k}={val:.4g}" for k, val in v.items()))

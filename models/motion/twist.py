@@ -14,6 +14,10 @@ from `source` (the input frame) that reproduce `pose`'s joint positions exactly:
 - a joint with several child bones (hips, chest) is fixed by them already: `pose`'s rotation;
 - a leaf keeps `source`'s local rotation.
 
+With `hinges` (`hinge.py`, fitted from real rotations), the parent of a hinge joint (an upper
+arm, a thigh) takes instead the twist that lays its child's bone in the hinge plane, so the elbow
+or knee bends as a hinge while keeping `source`'s own twist; that moves no joint either.
+
 By induction from the root every joint lands where `pose` puts it, in one pass over the joints
 (parents first): `transfer_twist` is the compiled step the streaming models call,
 `transfer_twist_t` the differentiable torch one training uses (the numpy reference is
@@ -22,12 +26,14 @@ By induction from the root every joint lands where `pose` puts it, in one pass o
 
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .bn_skeleton import body_joints
+from .hinge import Hinges, kernel_hinges
 from .rotations import quat_exp, quat_inv, quat_log, quat_mul
 from .skeleton import Skeleton
 from .twist_kernels import BONE, FRAME, LEAF, ROOT, transfer_twist_batch
@@ -64,18 +70,26 @@ def _plan_cached(names: tuple[str, ...], parents: tuple[int, ...], offsets: byte
     return tuple(plan)
 
 
-def transfer_twist(skeleton: Skeleton, source: np.ndarray, pose: np.ndarray, keep: tuple[str, ...] = ()) -> np.ndarray:
+def transfer_twist(
+    skeleton: Skeleton,
+    source: np.ndarray,
+    pose: np.ndarray,
+    keep: tuple[str, ...] = (),
+    hinges: Hinges | None = None,
+) -> np.ndarray:
     """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
     rotations (see the module docstring), compiled (`twist_kernels.py`, ~1 us per frame).
     `source` and `pose` are (..., J, 4) local rotations on `skeleton`; joints named in `keep` take
-    `pose`'s local rotation as it is (their bone still lands where `pose` puts it)."""
+    `pose`'s local rotation as it is (their bone still lands where `pose` puts it); the parents
+    of `hinges`' joints take the twist that keeps them hinges."""
     kinds, parents, axes, keep_mask = _kernel_plan(skeleton, keep)
+    hinge_child, bend, mean, limits, fade = kernel_hinges(skeleton, hinges)
     J = skeleton.num_joints
     shape = np.broadcast_shapes(np.shape(source), np.shape(pose))
     src = np.ascontiguousarray(np.broadcast_to(source, shape), dtype=np.float64).reshape(-1, J, 4)
     pos = np.ascontiguousarray(np.broadcast_to(pose, shape), dtype=np.float64).reshape(-1, J, 4)
     out = np.empty_like(pos)
-    transfer_twist_batch(kinds, parents, axes, keep_mask, src, pos, out)
+    transfer_twist_batch(kinds, parents, axes, keep_mask, hinge_child, bend, mean, limits, fade, src, pos, out)
     return out.reshape(shape)
 
 
@@ -97,7 +111,9 @@ def _kernel_plan_cached(
     return kinds, parent_index, axes, np.array([n in keep for n in names])
 
 
-def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+def transfer_twist_t(
+    skeleton: Skeleton, source: torch.Tensor, pose: torch.Tensor, hinges: Hinges | None = None
+) -> torch.Tensor:
     """`transfer_twist` in torch, differentiable in `pose` (for training losses that must see the
     rotations the streaming model will output). Torch is imported here, not with the module: the
     streaming and decoding paths, which use the numpy twins, never load it."""
@@ -105,12 +121,17 @@ def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tenso
 
     from .rotations_torch import quat_apply_t, quat_mul_t
 
+    hinge_child, bend, mean, limits, fade = kernel_hinges(skeleton, hinges)
+
     source = source / source.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     pose = pose / pose.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     g_pose: list[torch.Tensor] = []
     g_new: list[torch.Tensor] = []
     out: list[torch.Tensor] = []
-    for j, p, kind, axis in _plan(skeleton):
+    plan = _plan(skeleton)
+    as_t = lambda v: torch.as_tensor(v, dtype=pose.dtype, device=pose.device)  # noqa: E731
+    turned: dict[int, torch.Tensor] = {}  # hinge joint -> how far its parent turned about its bone
+    for j, p, kind, axis in plan:
         if kind == "root":
             g_pose.append(pose[..., j, :])
             g_new.append(pose[..., j, :])
@@ -120,14 +141,61 @@ def transfer_twist_t(skeleton: Skeleton, source: torch.Tensor, pose: torch.Tenso
         if kind == "frame":
             g = g_pose[j]
         else:
-            g = quat_mul_t(g_new[p], source[..., j, :])
+            local = source[..., j, :]
+            if j in turned:  # turns back as far as its twist interval allows
+                a = as_t(axis).expand(local.shape[:-1] + (3,))
+                rel = quat_mul_t(as_t(mean[j] * (-1, -1, -1, 1)).expand(local.shape), local)
+                local = quat_mul_t(local, _turn_t(a, _clamped_twist_t(rel, a, -turned[j], limits[j])))
+            g = quat_mul_t(g_new[p], local)
             if kind == "bone":
-                a = torch.as_tensor(axis, dtype=pose.dtype, device=pose.device).expand(g.shape[:-1] + (3,))
+                a = as_t(axis).expand(g.shape[:-1] + (3,))
                 g = quat_mul_t(_rotation_between_t(quat_apply_t(g, a), quat_apply_t(g_pose[j], a)), g)
+                k = int(hinge_child[j])
+                if k >= 0:
+                    g_child = quat_mul_t(g_pose[j], pose[..., k, :])
+                    inv = torch.cat([-g_new[p][..., :3], g_new[p][..., 3:]], dim=-1)
+                    rel = quat_mul_t(as_t(mean[j] * (-1, -1, -1, 1)).expand(g.shape), quat_mul_t(inv, g))
+                    tau = _hinge_twist_t(g, g_child, a, as_t(plan[k][3]), as_t(bend[j]), fade)
+                    turned[k] = _clamped_twist_t(rel, a, tau, limits[j])
+                    g = quat_mul_t(g, _turn_t(a, turned[k]))
         g_new.append(g)
         inv = torch.cat([-g_new[p][..., :3], g_new[p][..., 3:]], dim=-1)
         out.append(quat_mul_t(inv, g))
     return torch.stack(out, dim=-2)
+
+
+def _hinge_twist_t(g, g_child, axis, child_axis, bend, fade: float):
+    """`twist_kernels.hinge_twist` in torch, before the twist interval (`_clamped_twist_t`)."""
+    import torch
+
+    from .rotations_torch import quat_apply_t
+
+    inv = torch.cat([-g[..., :3], g[..., 3:]], dim=-1)
+    d = quat_apply_t(inv, quat_apply_t(g_child, child_axis.expand(axis.shape)))
+    across = d - (d * axis).sum(-1, keepdim=True) * axis
+    b = bend.expand(axis.shape)
+    tau = torch.atan2((torch.linalg.cross(b, across) * axis).sum(-1), (across * b).sum(-1))
+    weight = (2.0 - 2.0 * tau.abs() / math.pi).clamp(0.0, 1.0)
+    if fade > 0.0:
+        weight = weight * (across.pow(2).sum(-1).clamp_min(1e-12).sqrt() / math.sin(fade)).clamp(max=1.0)
+    return tau * weight
+
+
+def _clamped_twist_t(rel, axis, turn, limits):
+    """`twist_kernels.clamped_twist` in torch."""
+    import torch
+
+    twist = 2.0 * torch.atan2((rel[..., :3] * axis).sum(-1), rel[..., 3])
+    twist = torch.remainder(twist + math.pi, 2.0 * math.pi) - math.pi
+    lo, hi = float(limits[0]), float(limits[1])
+    return torch.minimum(torch.maximum(twist + turn, twist.clamp(max=lo)), twist.clamp(min=hi)) - twist
+
+
+def _turn_t(axis, angle):
+    """Unit quaternions turning by `angle` about unit `axis` (torch)."""
+    import torch
+
+    return torch.cat([torch.sin(0.5 * angle)[..., None] * axis, torch.cos(0.5 * angle)[..., None]], dim=-1)
 
 
 def _rotation_between_t(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

@@ -7,21 +7,57 @@ over the joints does the same arithmetic on scalars (~1 us per frame).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
-from .quaternion import between, qinv, qmul, qrot, qunit, row4
+from .quaternion import axis_angle, between, cross, dot3, qinv, qmul, qrot, qunit, row3, row4, wrap
 
 ROOT, FRAME, BONE, LEAF = 0, 1, 2, 3  # joint kinds, as `twist._plan` names them
 
 
+@njit(cache=True, error_model="numpy")
+def clamped_twist(local, axis, turn, lo, hi):
+    """The part of `turn` (radians about `axis`) that keeps the twist of `local` (a local rotation
+    relative to its real mean) inside [lo, hi], or where it already is when outside."""
+    twist = wrap(2.0 * math.atan2(local[0] * axis[0] + local[1] * axis[1] + local[2] * axis[2], local[3]))
+    return min(max(twist + turn, min(lo, twist)), max(hi, twist)) - twist
+
+
+@njit(cache=True, error_model="numpy")
+def hinge_twist(g, g_child, axis, child_axis, bend, lo, hi, fade, local):
+    """The angle (radians) to turn a joint of global rotation `g` about its own bone `axis` so
+    that its hinge child's bone (global rotation `g_child`, bone `child_axis`) lies along `bend`
+    across it (`models.motion.hinge`), weighted by `hinge_weight`, and the joint's
+    twist (of `local`, its local rotation relative to its real mean) kept in [lo, hi] (or where
+    it already is)."""
+    d = qrot(qinv(g), qrot(g_child, child_axis))  # the child's bone in the joint's frame
+    along = dot3(d, axis)
+    across = (d[0] - along * axis[0], d[1] - along * axis[1], d[2] - along * axis[2])
+    tau = math.atan2(dot3(cross(bend, across), axis), dot3(across, bend))
+    return clamped_twist(local, axis, tau * hinge_weight(tau, math.sqrt(dot3(across, across)), fade), lo, hi)
+
+
+@njit(cache=True, error_model="numpy")
+def hinge_weight(tau, across, fade):
+    """How much of the turn `tau` to take: none as the limb straightens (`across`, the sine of its
+    bend, below the sine of `fade`), and none as the turn nears a half turn (the model bends the
+    joint backward; `tau` = +-pi are one pose, and a clamp that took either limit would jump)."""
+    straight = min(1.0, across / math.sin(fade)) if fade > 0.0 else 1.0
+    return straight * min(1.0, max(0.0, 2.0 - 2.0 * abs(tau) / math.pi))
+
+
 @njit(cache=True)
-def transfer_twist_batch(kinds, parents, axes, keep, source, pose, out):
+def transfer_twist_batch(kinds, parents, axes, keep, hinge_child, bend, mean, limits, fade, source, pose, out):
     """`twist.transfer_twist` for (B, J, 4) float64 `source` and `pose` into `out`; the plan as
-    arrays: kinds (J,) int64, parents (J,) int64, axes (J, 3), keep (J,) bool."""
+    arrays: kinds (J,) int64, parents (J,) int64, axes (J, 3), keep (J,) bool; the hinges as
+    `hinge.kernel_hinges` gives them: hinge_child (J,) int64 (-1: none), bend (J, 3), mean (J, 4),
+    limits (J, 2), fade (radians)."""
     J = kinds.shape[0]
     g_pose = np.empty((J, 4))
     g_new = np.empty((J, 4))
+    turned = np.zeros(J)  # per hinge joint, how far its parent turned about its bone
     for b in range(pose.shape[0]):
         for j in range(J):
             pj = qunit(row4(pose[b], j))
@@ -36,10 +72,24 @@ def transfer_twist_batch(kinds, parents, axes, keep, source, pose, out):
                 g = gp
             else:
                 local = pj if keep[j] else qunit(row4(source[b], j))
+                turn, turned[j] = turned[j], 0.0
+                if turn != 0.0 and not keep[j]:  # a hinge joint turns back as far as its twist interval allows
+                    a = row3(axes, j)
+                    back = clamped_twist(qmul(qinv(row4(mean, j)), local), a, -turn, limits[j, 0], limits[j, 1])
+                    local = qmul(local, axis_angle(a, back))
                 g = qmul(gn_parent, local)
                 if kinds[j] == BONE:
-                    a = (axes[j, 0], axes[j, 1], axes[j, 2])
+                    a = row3(axes, j)
                     g = qmul(between(qrot(g, a), qrot(gp, a)), g)
+                    k = hinge_child[j]
+                    if k >= 0 and not keep[j]:
+                        g_child = qmul(gp, qunit(row4(pose[b], k)))
+                        local = qmul(qinv(row4(mean, j)), qmul(qinv(gn_parent), g))
+                        tau = hinge_twist(
+                            g, g_child, a, row3(axes, k), row3(bend, j), limits[j, 0], limits[j, 1], fade, local
+                        )
+                        g = qmul(g, axis_angle(a, tau))
+                        turned[k] = tau
             loc = qmul(qinv(gn_parent), g)
             for c in range(4):
                 g_pose[j, c] = gp[c]

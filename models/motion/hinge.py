@@ -1,0 +1,142 @@
+"""Hinge joints, fitted from real rotations, and the parent twist that keeps them hinges.
+
+A model that decides where bones point (`twist.transfer_twist`) leaves each bone's twist about
+itself free: it takes the twist from another pose (the input frame). For an upper arm that is
+not enough. The elbow is a hinge: the forearm can only swing about one axis of the upper arm's
+frame, so the upper arm's twist must place that axis square to the plane of the three joints
+(shoulder, elbow, wrist) that the model's positions give. With the input's twist it usually does
+not, and the forearm swings sideways off its hinge, a pose no real arm takes.
+
+`fit_hinges` finds the hinge joints from real local rotations, the same way for every joint:
+a joint whose swing (its rotation without the twist about its own bone) turns about one
+direction only, whose parent has this joint as its only child. On Bandai Namco's data that is
+each elbow and knee, and their swings turn about one axis exactly. It stores, per hinge joint,
+the hinge axis (signed so that the real bends are positive) and the parent's real twist
+interval (the parent's twist is what the re-twist changes).
+
+`twist_kernels.hinge_twist` is the angle to turn the parent about its own bone so that the
+child's bone lies in the hinge plane, bent the way real joints bend, kept inside the parent's real
+twist interval. Turning a parent about its own bone moves no joint; `transfer_twist` then lays the
+child's bone along the model's direction with the smallest swing, which in the hinge plane is a
+turn about the hinge axis: the joint bends as a hinge. The child turns back about its own bone by
+as much of the parent's turn as its real twist interval allows, as a forearm pronates, so the
+hand below keeps facing where the source has it. With the limb nearly straight the plane is
+ill-defined, so the turn fades out below `fade` radians of bend; where the model bends the joint
+backward, the parent would turn by half a turn, so the turn fades out from a quarter turn on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from .rotations import quat_inv, quat_log, quat_mean, quat_mul, swing_twist, twist_angle
+from .skeleton import Skeleton
+
+HINGE_FILE = "hinges.npz"
+KernelHinges = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]
+HINGE_SHARE = 0.999  # share of a joint's real swing (squared angle) about one axis that makes it a hinge
+TWIST_PERCENTILES = (0.5, 99.5)  # the parent's real twist interval the re-twist stays in
+FADE_DEGREES = 35.0  # below this bend the hinge plane is ill-defined: the re-twist fades to none
+
+
+@dataclass(frozen=True, eq=False)  # hashed by identity: the kernel plan is cached per instance
+class Hinges:
+    """Per hinge joint: its index, its hinge axis in its rest frame (real bends positive), the
+    direction its bone bends toward (hinge x bone, made square to the parent's bone) in the
+    parent's frame; for its parent and itself, the real mean local rotation and the real twist
+    interval relative to it (radians, about each one's bone); `fade` in radians."""
+
+    joints: np.ndarray  # (K,) int
+    axes: np.ndarray  # (K, 3)
+    bend: np.ndarray  # (K, 3)
+    mean: np.ndarray  # (K, 2, 4) parent, joint
+    lo: np.ndarray  # (K, 2)
+    hi: np.ndarray  # (K, 2)
+    fade: float = float(np.radians(FADE_DEGREES))
+
+    def save(self, path: Path) -> Path:
+        np.savez(
+            path,
+            joints=self.joints,
+            axes=self.axes,
+            bend=self.bend,
+            mean=self.mean,
+            lo=self.lo,
+            hi=self.hi,
+            fade=self.fade,
+        )
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> Hinges:
+        with np.load(path) as z:
+            arrays = {k: np.asarray(z[k], np.float64) for k in ("axes", "bend", "mean", "lo", "hi")}
+            return cls(np.asarray(z["joints"], np.int64), fade=float(z["fade"]), **arrays)
+
+
+def _single_bone_parent(skeleton: Skeleton, j: int) -> bool:
+    """Whether j has a parent whose only child bone is j (turning the parent moves nothing else)."""
+    p = int(skeleton.parents[j])
+    bones = [c for c in skeleton.children(p) if np.linalg.norm(skeleton.offsets[c]) > 1e-6]
+    return p >= 0 and bones == [j]
+
+
+def fit_hinges(skeleton: Skeleton, rotations: np.ndarray, share: float = HINGE_SHARE) -> Hinges:
+    """Hinge joints from real local rotations (N, J, 4) of every style (module docstring)."""
+    from .twist import bone_axes  # twist imports this module
+
+    q = np.asarray(rotations, np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    axes = bone_axes(skeleton)
+    joints, hinge, bend, mean, lo, hi = [], [], [], [], [], []
+    for j in range(skeleton.num_joints):
+        if not skeleton.children(j) or not _single_bone_parent(skeleton, j):
+            continue
+        v = quat_log(swing_twist(q[:, j], axes[j])[0])
+        vals, vecs = np.linalg.eigh(v.T @ v)
+        if vals[-1] < share * vals.sum():
+            continue
+        h = vecs[:, -1] if np.median(v @ vecs[:, -1]) >= 0 else -vecs[:, -1]
+        p = int(skeleton.parents[j])
+        t = np.cross(h, axes[j])
+        t -= (t @ axes[p]) * axes[p]
+        m = quat_mean(q[:, [p, j]], axis=0)  # (2, 4)
+        twist = twist_angle(quat_mul(quat_inv(m)[None], q[:, [p, j]]), axes[[p, j]])  # (N, 2)
+        joints.append(j)
+        hinge.append(h)
+        bend.append(t / np.linalg.norm(t))
+        mean.append(m)
+        lo.append(np.percentile(twist, TWIST_PERCENTILES[0], axis=0))
+        hi.append(np.percentile(twist, TWIST_PERCENTILES[1], axis=0))
+    as3 = lambda a: np.array(a).reshape(-1, 3)  # noqa: E731
+    as2 = lambda a: np.array(a).reshape(-1, 2)  # noqa: E731
+    means = np.array(mean).reshape(-1, 2, 4)
+    return Hinges(np.array(joints, np.int64), as3(hinge), as3(bend), means, as2(lo), as2(hi))
+
+
+def kernel_hinges(skeleton: Skeleton, hinges: Hinges | None) -> KernelHinges:
+    """Per joint (J), as `twist_kernels` takes them: the hinge child it re-twists for (-1: none),
+    that child's bend direction in the joint's frame, and for parents and hinge joints the real
+    mean rotation (J, 4) and the twist interval about it (J, 2); and the fade. Cached per parents and `Hinges` instance: the streaming steps call it every frame."""
+    return _kernel_hinges(tuple(map(int, skeleton.parents)), hinges)
+
+
+@lru_cache(maxsize=16)
+def _kernel_hinges(parents: tuple[int, ...], hinges: Hinges | None) -> KernelHinges:
+    J = len(parents)
+    child = np.full(J, -1, np.int64)
+    bend = np.zeros((J, 3))
+    mean = np.tile([0.0, 0.0, 0.0, 1.0], (J, 1))
+    limits = np.tile([-np.pi, np.pi], (J, 1))
+    if hinges is None:
+        return child, bend, mean, limits, 0.0
+    for k, j in enumerate(hinges.joints):
+        p = parents[j]
+        child[p], bend[p] = j, hinges.bend[k]
+        mean[[p, j]] = hinges.mean[k]
+        limits[[p, j]] = np.stack([hinges.lo[k], hinges.hi[k]], axis=-1)
+    return child, bend, mean, limits, hinges.fade
