@@ -1,0 +1,118 @@
+"""Unseen content is kept: every shipped model fades toward the input on a crouch it never saw
+(`models/motion/novelty.py`), comes back after, and leaves a neutral walk of its own data alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.data import load_motion, select
+from models.interface import FrameBatch, style_vector
+from models.motion.bn_skeleton import BN_JOINTS, HIPS, ROOT
+from models.motion.novelty import FADED, NoveltyReference, blend_rotations, body_parts, reference_path, smooth
+from models.motion.novelty_clip import pick_up
+from models.motion.novelty_stage import KEYS, faded
+from models.motion.retarget import retarget
+from models.motion.rotations import quat_angle, quat_exp
+from models.registry import METHODS, load_model
+from models.settings import get_settings
+
+WEIGHTS = get_settings().weights_dir
+
+
+@pytest.fixture(scope="module")
+def crouch(index):
+    """A Xia walk that stops to crouch and pick something up (on the model rig at 30 fps), the
+    seconds it is fully down, and when its legs are back in the walk's pose."""
+    made = pick_up(load_motion(select(index, dataset="xia", name="neutral_walk_01_000")[0]), walk_s=1.0)
+    return retarget(made.motion), made.down, made.crouch[1]
+
+
+def test_parts_cover_the_body_once():
+    from models.motion.assets import bandai_namco_skeleton
+
+    parts = body_parts(bandai_namco_skeleton().parents)
+    names = [[BN_JOINTS[j] for j in p] for p in parts]
+    joined = sorted(j for p in parts for j in p)
+    assert joined == [j for j in range(len(BN_JOINTS)) if j != ROOT]
+    assert names[0][0] == "Hips" and "Toes_L" in names[0] and "Toes_R" in names[0]
+    assert names[1] == ["Spine", "Chest", "Neck", "Head"]
+    assert sorted(len(p) for p in names[2:]) == [4, 4]  # one part per arm
+
+
+def test_the_fade_rises_and_falls_without_a_step():
+    w1 = w2 = np.zeros(1)
+    trace = []
+    for t in range(80):
+        w1, w2 = smooth(w1, w2, np.array([1.0 if 10 <= t < 40 else 0.0]))
+        trace.append(float(w2[0]))
+    w = np.array(trace)
+    assert w[:10].max() == 0.0 and w[30] > 0.95 and w[79] < 0.05
+    assert np.all(np.diff(w[10:40]) >= 0) and np.all(np.diff(w[40:]) <= 0)
+    assert np.abs(np.diff(w, 2)).max() < 0.15  # its rate changes by little each frame: no pop
+
+
+def test_blend_keeps_the_output_at_zero_and_gives_the_input_at_one():
+    rng = np.random.default_rng(0)
+    out, inp = quat_exp(rng.normal(size=(3, 5, 3))), quat_exp(rng.normal(size=(3, 5, 3)))
+    w = np.zeros((3, 5))
+    w[1] = 1.0
+    w[2] = 0.5
+    got = blend_rotations(out, inp, w)
+    np.testing.assert_array_equal(got[0], out[0])
+    assert quat_angle(got[1], inp[1]).max() < 1e-6
+    half = quat_angle(got[2], out[2]) - quat_angle(got[2], inp[2])
+    assert np.abs(half).max() < 1e-6  # halfway along the arc
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_reference_fades_on_the_crouch_and_not_after(method, crouch):
+    motion, down, back = crouch
+    ref = NoveltyReference.load(reference_path(WEIGHTS, method))
+    lower = ref.clip_fades(motion.rotations, motion.translations[:, HIPS, 1], motion.fps)[:, 0]
+    t = np.arange(len(lower)) / motion.fps
+    assert lower[(t > down[0] + 0.3) & (t < down[1])].min() > FADED, method
+    assert lower[t > back + 0.8].max() < 0.1, method
+    assert lower[t < down[0] - 0.6].max() < 0.1, method
+
+
+@pytest.mark.parametrize("method", ("lti", "erd"))
+def test_a_neutral_walk_of_the_training_data_hardly_fades(method, bn_walk):
+    ref = NoveltyReference.load(reference_path(WEIGHTS, method))
+    w = ref.clip_fades(bn_walk.rotations, bn_walk.translations[:, HIPS, 1], bn_walk.fps).max(axis=1)
+    assert np.mean(w > FADED) < 0.02, method
+
+
+def test_the_shipped_model_keeps_the_crouch_and_its_style_after(crouch):
+    """Through the streaming interface: faded frames carry the input's legs and root, the frames
+    long after carry the style again, and the state survives an upgrade."""
+    motion, down, back = crouch
+    model = load_model(WEIGHTS, "lti")
+    weights = style_vector(model, {"elderly": 1.0})[None]
+    state = model.init_state(1)
+    assert set(KEYS) <= set(state)
+    assert model.upgrade_state(state) is state
+    legs = [BN_JOINTS.index(n) for n in ("UpperLeg_L", "LowerLeg_L", "UpperLeg_R", "LowerLeg_R")]
+    t_down = int((down[0] + down[1]) / 2 * motion.fps)
+    t_after = motion.num_frames - 1
+    for t in range(t_after + 1):
+        frame = FrameBatch(motion.translations[t : t + 1, HIPS], motion.rotations[t : t + 1])
+        out, state = model.step_batch(state, frame, weights)
+        if t == t_down:
+            assert out.faded[0] > 0.9 and faded(state)[0] == out.faded[0]
+            assert quat_angle(out.rotations[0, legs], motion.rotations[t, legs]).max() < np.radians(5)
+            assert abs(out.root[0, 1] - motion.translations[t, HIPS, 1]) < 2.0  # cm
+    assert out.faded[0] < 0.05
+    assert quat_angle(out.rotations[0, 1:], motion.rotations[t_after, 1:]).max() > np.radians(3)  # styled again
+
+
+def test_an_old_snapshot_gets_a_fresh_fade():
+    model = load_model(WEIGHTS, "lti")
+    old = {k: v for k, v in model.init_state(2).items() if k not in KEYS}
+    upgraded = model.upgrade_state(old)
+    assert set(KEYS) <= set(upgraded) and upgraded["novelty.fade"].shape == (2, model.novelty.parts)
+
+
+def test_the_core_has_no_fade():
+    core = load_model(WEIGHTS, "lti", core_only=True)
+    assert not any(k in core.init_state(1) for k in KEYS)
