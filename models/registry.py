@@ -31,8 +31,9 @@ def load_models(weights_dir: Path, core_only: bool = False) -> dict[str, Streami
     return models
 
 
-def load_model(weights_dir: Path, method: str, core_only: bool = False) -> StreamingModel | None:
-    """One committed method as `load_models` has it; None where it is not committed."""
+def load_model(weights_dir: Path, method: str, core_only: bool = False, novelty: bool = True) -> StreamingModel | None:
+    """One committed method as `load_models` has it; None where it is not committed. `novelty`
+    False: the full pipeline without its last stage, the unseen-content fade (to compare)."""
     try:
         package = importlib.import_module(f"models.{method}")
     except ModuleNotFoundError:
@@ -44,5 +45,5 @@ def load_model(weights_dir: Path, method: str, core_only: bool = False) -> Strea
     if core_only:
         return loader(folder, core_only=True)
     model = loader(folder)
-    novelty = reference_path(weights_dir, method)
-    return with_novelty(model, NoveltyReference.load(novelty)) if novelty.is_file() else model
+    reference = reference_path(weights_dir, method)
+    return with_novelty(model, NoveltyReference.load(reference)) if novelty and reference.is_file() else model

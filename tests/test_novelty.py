@@ -9,11 +9,24 @@ import pytest
 from models.data import load_motion, select
 from models.interface import FrameBatch, style_vector
 from models.motion.bn_skeleton import BN_JOINTS, HIPS, ROOT
-from models.motion.novelty import FADED, NoveltyReference, blend_rotations, body_parts, reference_path, smooth
+from models.motion.novelty import (
+    ATTACK_FRAMES,
+    FADED,
+    FULL_FADE,
+    HEIGHT_WEIGHT,
+    RELEASE_FRAMES,
+    SPEED_WEIGHT,
+    START,
+    NoveltyReference,
+    body_parts,
+    reference_path,
+    smooth,
+)
 from models.motion.novelty_clip import pick_up
+from models.motion.novelty_kernels import fade_step
 from models.motion.novelty_stage import KEYS, faded
 from models.motion.retarget import retarget
-from models.motion.rotations import quat_angle, quat_exp
+from models.motion.rotations import quat_angle, quat_exp, quat_inv, quat_log, quat_mul
 from models.registry import METHODS, load_model
 from models.settings import get_settings
 
@@ -52,17 +65,43 @@ def test_the_fade_rises_and_falls_without_a_step():
     assert np.abs(np.diff(w, 2)).max() < 0.15  # its rate changes by little each frame: no pop
 
 
-def test_blend_keeps_the_output_at_zero_and_gives_the_input_at_one():
+def _blend(out: np.ndarray, inp: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The numpy reference of the compiled blend: slerp along the shorter arc, by w (B, J)."""
+    rel = quat_mul(quat_inv(out), inp)
+    rel = np.where(rel[..., 3:] < 0.0, -rel, rel)
+    return np.where(w[..., None] > 0.0, quat_mul(out, quat_exp(w[..., None] * quat_log(rel))), out)
+
+
+def test_the_compiled_step_is_the_numpy_reference(crouch):
+    """`fade_step` frame by frame gives the fades `clip_fades` computes over the whole clip and
+    the numpy slerp and lerp toward the input; at fade 0 the output is the method's, exactly."""
+    motion = crouch[0]
+    ref = NoveltyReference.load(reference_path(WEIGHTS, "lti"))
     rng = np.random.default_rng(0)
-    out, inp = quat_exp(rng.normal(size=(3, 5, 3))), quat_exp(rng.normal(size=(3, 5, 3)))
-    w = np.zeros((3, 5))
-    w[1] = 1.0
-    w[2] = 0.5
-    got = blend_rotations(out, inp, w)
-    np.testing.assert_array_equal(got[0], out[0])
-    assert quat_angle(got[1], inp[1]).max() < 1e-6
-    half = quat_angle(got[2], out[2]) - quat_angle(got[2], inp[2])
-    assert np.abs(half).max() < 1e-6  # halfway along the arc
+    rot = motion.rotations.astype(np.float64)
+    root = motion.translations[:, HIPS].astype(np.float64)
+    method_rot = quat_mul(rot, quat_exp(0.3 * rng.normal(size=(1, rot.shape[1], 3))))  # a "style"
+    method_root = root + (5.0, -3.0, 2.0)
+    want = ref.clip_fades(rot, root[:, 1], motion.fps)
+    w1, fade, hint = np.zeros((1, ref.parts)), np.zeros((1, ref.parts)), np.zeros((1, ref.parts), np.int64)
+    prev, started = np.zeros(1), np.zeros(1, bool)
+    knobs = (motion.fps, HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES)
+    for t in range(len(rot)):
+        out_rot, out_root = np.empty((1, rot.shape[1], 4)), np.empty((1, 3))
+        fade_step(
+            rot[t : t + 1], root[t : t + 1], method_rot[t : t + 1], method_root[t : t + 1], w1, fade, hint, prev, started,
+            np.ones(1, bool), ref.arrays, knobs, out_rot, out_root,
+        )  # fmt: skip
+        prev, started = root[t : t + 1, 1].copy(), np.ones(1, bool)
+        np.testing.assert_allclose(fade[0], want[t], atol=1e-9)
+        joint = ref.joint_weights(fade)
+        assert quat_angle(out_rot, _blend(method_rot[t : t + 1], rot[t : t + 1], joint)).max() < 1e-6
+        np.testing.assert_allclose(
+            out_root, method_root[t : t + 1] + joint[:, [HIPS]] * (root - method_root)[t : t + 1]
+        )
+        if fade.max() == 0.0:
+            np.testing.assert_array_equal(out_rot, method_rot[t : t + 1])
+    assert want.max() > 0.99  # the clip went through the whole fade
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -30,7 +30,8 @@ that model's own TRAINING input frames (`fit`):
   `ATTACK_FRAMES`, release `RELEASE_FRAMES`, no look-ahead), so the weight and its rate change
   without steps and a fade cannot pop the pose.
 - **Toward the input**: each joint's rotation slerps toward the input's by its part's weight, the
-  hips translation toward the input's by the lower body's. The model keeps stepping on the input
+  hips translation toward the input's by the lower body's (per frame compiled in
+  `novelty_kernels.py`; these numpy functions fit, report and are its reference). The model keeps stepping on the input
   underneath, so its style comes back as the input returns to what it knows.
 
 `python -m models.motion.novelty fit --method NAME --datasets ... [--contents ...]` writes
@@ -42,6 +43,7 @@ The streaming stage that applies it is `novelty_stage.py`.
 from __future__ import annotations
 
 import argparse
+import functools
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -49,7 +51,6 @@ import numpy as np
 
 from .bn_skeleton import BN_JOINTS, HIPS, PRIMARY_CHILD, ROOT
 from .rotation_ball import split_heading
-from .rotations import quat_exp, quat_inv, quat_log, quat_mul
 from .skeleton import Skeleton, fk
 
 FOLDER = "novelty"  # under the weights folder: <method>.npz
@@ -118,6 +119,31 @@ class NoveltyReference:
     def parts(self) -> int:
         return len(self.threshold)
 
+    @property
+    def anchors(self) -> np.ndarray:
+        """(parts,) the joint each part's positions are taken from: the hips for the part that
+        holds them, else the parent of the part's first joint."""
+        out = np.empty(self.parts, np.int64)
+        for p in range(self.parts):
+            joints = np.flatnonzero(self.part == p)
+            out[p] = HIPS if HIPS in joints else int(self.parents[joints[0]])
+        return out
+
+    @functools.cached_property
+    def arrays(self) -> tuple:
+        """The reference as the compiled step takes it (`novelty_kernels.fade_step`)."""
+        c = np.ascontiguousarray
+        return (
+            c(self.parents, np.int64),
+            c(self.bones, np.float64),
+            c(self.part, np.int64),
+            self.anchors,
+            c(self.centres, np.float64),
+            c(self.starts, np.int64),
+            c(self.threshold, np.float64),
+            float(self.leg),
+        )
+
     def features(self, rotations: np.ndarray, hips: np.ndarray) -> list[np.ndarray]:
         """(N, J, 4) local rotations and (N, 2) `hips_motion` -> per part (N, D_p): where the
         part's joints are from its anchor (the hips for the lower body and trunk, the joint an arm
@@ -129,9 +155,8 @@ class NoveltyReference:
         bones[:, [ROOT, HIPS]] = 0.0
         pos = fk(q, bones, self.parents)[1] / self.leg
         out = []
-        for p in range(self.parts):
+        for p, anchor in enumerate(self.anchors):
             joints = np.flatnonzero(self.part == p)
-            anchor = HIPS if HIPS in joints else int(self.parents[joints[0]])
             f = (pos[:, joints[joints != anchor]] - pos[:, anchor : anchor + 1]).reshape(len(pos), -1)
             if p == 0:
                 f = np.concatenate([f, hips * (HEIGHT_WEIGHT, SPEED_WEIGHT)], axis=1)
@@ -285,17 +310,6 @@ def smooth(w1: np.ndarray, w2: np.ndarray, target: np.ndarray) -> tuple[np.ndarr
     return w1, w2 + a2 * (w1 - w2)
 
 
-def blend_rotations(out: np.ndarray, inp: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """(B, J, 4) output rotations slerped toward the input's by per-joint weights (B, J) along
-    the shorter arc; a weight of 0 leaves the output exactly as it is."""
-    if not np.any(w > 0.0):
-        return out
-    rel = quat_mul(quat_inv(out), inp)
-    rel = np.where(rel[..., 3:] < 0.0, -rel, rel)
-    moved = quat_mul(out, quat_exp(w[..., None] * quat_log(rel)))
-    return np.where(w[..., None] > 0.0, moved, out)
-
-
 # --------------------------------------------------------------------------- fitting and reports
 
 
@@ -317,10 +331,6 @@ def _as_model(motion) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..settings import get_settings
-    from .assets import bandai_namco_skeleton
-    from .features import left_leg_length
-
     p = argparse.ArgumentParser(prog="python -m models.motion.novelty", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     for name in ("fit", "report"):
@@ -330,17 +340,28 @@ def main(argv: list[str] | None = None) -> int:
         s.add_argument("--contents", help="comma-separated contents (default: every one)")
         s.add_argument("--styles", help="comma-separated input styles (default: every one)")
     sub.choices["report"].add_argument("--split", default="val")
+    s = sub.add_parser("pickup", help="stream a walk that stops to pick something up, with and without the fade")
+    s.add_argument("--method", default="lti")
+    s.add_argument("--style", default="elderly")
+    s.add_argument("--out", type=Path, help="also write an oriented contact sheet (PNG) into this folder")
     args = p.parse_args(argv)
+    if args.cmd == "pickup":
+        return _pickup(args.method, args.style, args.out)
+    from ..settings import get_settings
+
     datasets = args.datasets.split(",")
     contents = args.contents.split(",") if args.contents else None
     styles = args.styles.split(",") if args.styles else None
     path = reference_path(get_settings().weights_dir, args.method)
-    path.parent.mkdir(exist_ok=True)
     if args.cmd == "fit":
+        from .assets import bandai_namco_skeleton
+        from .features import left_leg_length
+
         skeleton = bandai_namco_skeleton()
         train = [_as_model(m) for m in _clips(datasets, contents, styles, "train")[1]]
         val = [_as_model(m) for m in _clips(datasets, contents, styles, "val")[1]]
         ref = NoveltyReference.fit(train, val, skeleton, left_leg_length(skeleton), 30.0)
+        path.parent.mkdir(exist_ok=True)
         ref.save(path)
         print(f"{path}: {len(train)} train clips, {len(val)} val clips, thresholds {np.round(ref.threshold, 3)}")
         return 0
@@ -350,6 +371,45 @@ def main(argv: list[str] | None = None) -> int:
         rot, y = _as_model(m)
         w = ref.clip_fades(rot, y, 30.0).max(axis=1)
         print(f"{clip.name:50s} faded {np.mean(w > FADED):6.1%} of {len(w)} frames")
+    return 0
+
+
+PICKUP_BASE = ("xia", "neutral_walk_01_000")  # a validation input of the evaluation, never a test one
+
+
+def _pickup(method: str, style: str, out: Path | None) -> int:
+    """The pick-up clip through `method` toward `style`, with the fade and without it: the fade
+    and the lowest foot point against the input's, every 0.2 s; optionally a contact sheet."""
+    from ..data import build_index, load_motion, select
+    from ..eval.run import stylise_toward
+    from ..registry import load_model
+    from ..settings import get_settings
+    from .novelty_clip import pick_up
+    from .retarget import retarget
+
+    clip = select(build_index([PICKUP_BASE[0]]), name=PICKUP_BASE[1])[0]
+    made = pick_up(load_motion(clip), walk_s=1.0)
+    motion = retarget(made.motion)
+    weights = get_settings().weights_dir
+    fades: dict[str, list[np.ndarray]] = {}
+    faded = stylise_toward(load_model(weights, method), [motion], [style], fades)[style][0]
+    plain = stylise_toward(load_model(weights, method, novelty=False), [motion], [style])[style][0]
+    feet = [BN_JOINTS.index(f"{p}_{s}") for p in ("Foot", "Toes") for s in "LR"]
+    low = {k: m.global_positions()[:, feet, 1].min(axis=1) for k, m in (("in", motion), ("on", faded), ("off", plain))}
+    print(f"{PICKUP_BASE[1]} with a pick-up ({made.down[0]:.1f}-{made.down[1]:.1f} s down) through {method} -> {style}")
+    print(" time  fade  lowest foot - input's (cm): with fade, without")
+    for t in range(0, motion.num_frames, 6):
+        f = fades[style][0][t]
+        print(f"{t / 30:5.1f} {f:5.2f} {low['on'][t] - low['in'][t]:8.1f} {low['off'][t] - low['in'][t]:8.1f}")
+    if out is not None:
+        from .render import render_contact_sheet
+
+        lo, hi = int((made.crouch[0] - 0.3) * 30), int((made.crouch[1] + 0.9) * 30)
+        frames = [int(f) for f in np.linspace(lo, hi, 8).round()]
+        rows = [motion, faded, plain]
+        titles = ["input (Xia walk + pick-up)", f"{method} -> {style}, fade", f"{method} -> {style}, no fade"]
+        path = render_contact_sheet(rows, out / f"pickup_{method}_{style}.png", frames=frames, titles=titles, dpi=60)
+        print(path)
     return 0
 
 

@@ -5,8 +5,8 @@ The stage is the method itself with `FadesUnseen` put in front of its class (`wi
 a wrapper: the model keeps every ability the service tests with `isinstance` (uploaded styles),
 `with_own_styles` copies keep the stage, and the service, crowds, the offline path and the
 evaluation all step it through the one `step_batch` they already call. Its state rides in the
-session state under `KEYS` (so snapshots, resumes and batching carry it like any other), and the
-method's own `upgrade_state` never sees those keys. A published core (`pipeline: core`) is the
+session state under `KEYS` (so snapshots, resumes and batching carry it like any other); the
+method's own `upgrade_state` never sees those keys, its `step_batch` passes them by. A published core (`pipeline: core`) is the
 method alone: the fade is a fitted stage like the others after the core.
 """
 
@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 
 from ..interface import FrameBatch, State
-from .bn_skeleton import HIPS
-from .novelty import NoveltyReference, blend_rotations, smooth
+from .novelty import ATTACK_FRAMES, FULL_FADE, HEIGHT_WEIGHT, RELEASE_FRAMES, SPEED_WEIGHT, START, NoveltyReference
+from .novelty_kernels import fade_step
 
-KEYS = ("novelty.w1", "novelty.fade", "novelty.prev_y", "novelty.started")
+KEYS = ("novelty.w1", "novelty.fade", "novelty.hint", "novelty.prev_y", "novelty.started")
 _CLASSES: dict[type, type] = {}
 
 
@@ -30,6 +30,7 @@ def fresh_state(batch: int, parts: int) -> State:
     return {
         "novelty.w1": np.zeros((batch, parts)),
         "novelty.fade": np.zeros((batch, parts)),
+        "novelty.hint": np.zeros((batch, parts), np.int64),
         "novelty.prev_y": np.zeros(batch),
         "novelty.started": np.zeros(batch, bool),
     }
@@ -64,22 +65,21 @@ class FadesUnseen:
         return {**upgraded, **own}
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
-        inner = {k: v for k, v in state.items() if k not in KEYS}
-        out, new = super().step_batch(inner, frames, style_weights)  # type: ignore[misc]
-        ref = self.novelty
-        root = np.asarray(frames.root, np.float64)
-        started = state["novelty.started"]
-        speed = np.where(started, (root[:, 1] - state["novelty.prev_y"]) * self.fps / ref.leg, 0.0)  # type: ignore[attr-defined]
-        target = ref.target(ref.distances(frames.rotations, np.stack([root[:, 1] / ref.leg, speed], axis=1)))
-        if frames.control is not None:  # a controller tick carries no pose: nothing to keep
-            target[frames.control[:, 4] > 0.5] = 0.0
-        w1, fade = smooth(state["novelty.w1"], state["novelty.fade"], target)
-        joint = ref.joint_weights(fade)
-        rotations = blend_rotations(np.asarray(out.rotations, np.float64), np.asarray(frames.rotations), joint)
-        lower = joint[:, HIPS : HIPS + 1]
-        out_root = out.root + lower * (root - out.root) if np.any(lower > 0.0) else out.root
+        # the whole state: a method may check it against its own `init_state`, which has these keys
+        out, new = super().step_batch(state, frames, style_weights)  # type: ignore[misc]
+        root = np.ascontiguousarray(frames.root, np.float64)
         posed = np.ones(len(root), bool) if frames.control is None else frames.control[:, 4] <= 0.5
-        own = {"novelty.w1": w1, "novelty.fade": fade, "novelty.prev_y": root[:, 1].copy(), "novelty.started": posed}
+        w1, fade, hint = (state[k].copy() for k in ("novelty.w1", "novelty.fade", "novelty.hint"))
+        rotations, out_root = np.empty((*np.shape(out.rotations)[:2], 4)), np.empty_like(root)
+        knobs = (float(self.fps), HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES)  # type: ignore[attr-defined]
+        fade_step(
+            np.ascontiguousarray(frames.rotations, np.float64), root,
+            np.ascontiguousarray(out.rotations, np.float64), np.ascontiguousarray(out.root, np.float64),
+            w1, fade, hint, state["novelty.prev_y"], state["novelty.started"], posed, self.novelty.arrays, knobs,
+            rotations, out_root,
+        )  # fmt: skip
+        own = {"novelty.w1": w1, "novelty.fade": fade, "novelty.hint": hint, "novelty.prev_y": root[:, 1].copy()}
+        own["novelty.started"] = posed
         return replace(out, root=out_root, rotations=rotations, faded=fade.max(axis=1)), {**new, **own}
 
 
