@@ -367,10 +367,15 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     ref = NoveltyReference.load(path)
     clips, motions = _clips(datasets, contents, styles, args.split)
+    by_content: dict[str, list[int]] = {}
     for clip, m in zip(clips, motions):
         rot, y = _as_model(m)
         w = ref.clip_fades(rot, y, 30.0).max(axis=1)
         print(f"{clip.name:50s} faded {np.mean(w > FADED):6.1%} of {len(w)} frames")
+        total = by_content.setdefault(clip.content, [0, 0])
+        total[0], total[1] = total[0] + int(np.sum(w > FADED)), total[1] + len(w)
+    for content, (hits, n) in sorted(by_content.items()):
+        print(f"{content:30s} faded {hits / n:6.1%} of {n} frames")
     return 0
 
 
