@@ -6,8 +6,9 @@ a wrapper: the model keeps every ability the service tests with `isinstance` (up
 `with_own_styles` copies keep the stage, and the service, crowds, the offline path and the
 evaluation all step it through the one `step_batch` they already call. Its state rides in the
 session state under `KEYS` (so snapshots, resumes and batching carry it like any other); the
-method's own `upgrade_state` never sees those keys, its `step_batch` passes them by. A published core (`pipeline: core`) is the
-method alone: the fade is a fitted stage like the others after the core.
+method's own `upgrade_state` never sees those keys, its `step_batch` passes them by. A published
+core (`pipeline: core`) is the method alone: the fade is a fitted stage like the others after
+the core, and the core is what the method does by itself.
 """
 
 from __future__ import annotations
