@@ -81,26 +81,31 @@ def test_the_compiled_step_is_the_numpy_reference(crouch):
     rot = motion.rotations.astype(np.float64)
     root = motion.translations[:, HIPS].astype(np.float64)
     method_rot = quat_mul(rot, quat_exp(0.3 * rng.normal(size=(1, rot.shape[1], 3))))  # a "style"
-    method_root = root + (5.0, -3.0, 2.0)
+    method_root = root + (5.0, -3.0, 2.0) + np.arange(len(root))[:, None] * (1.0, 0.0, 0.0)  # it walks on
     want = ref.clip_fades(rot, root[:, 1], motion.fps)
     w1, fade, hint = np.zeros((1, ref.parts)), np.zeros((1, ref.parts)), np.zeros((1, ref.parts), np.int64)
-    prev, started = np.zeros(1), np.zeros(1, bool)
+    prev_in, prev_model, offset, started = np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1, bool)
     knobs = (motion.fps, HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES)
+    ground = np.zeros(3)  # the reference's offset across the ground
     for t in range(len(rot)):
         out_rot, out_root = np.empty((1, rot.shape[1], 4)), np.empty((1, 3))
         fade_step(
-            rot[t : t + 1], root[t : t + 1], method_rot[t : t + 1], method_root[t : t + 1], w1, fade, hint, prev, started,
-            np.ones(1, bool), ref.arrays, knobs, out_rot, out_root,
+            rot[t : t + 1], root[t : t + 1], method_rot[t : t + 1], method_root[t : t + 1], w1, fade, hint,
+            prev_in, prev_model, offset, started, np.ones(1, bool), ref.arrays, knobs, out_rot, out_root,
         )  # fmt: skip
-        prev, started = root[t : t + 1, 1].copy(), np.ones(1, bool)
         np.testing.assert_allclose(fade[0], want[t], atol=1e-9)
         joint = ref.joint_weights(fade)
         assert quat_angle(out_rot, _blend(method_rot[t : t + 1], rot[t : t + 1], joint)).max() < 1e-6
-        np.testing.assert_allclose(
-            out_root, method_root[t : t + 1] + joint[:, [HIPS]] * (root - method_root)[t : t + 1]
-        )
+        w = joint[0, HIPS]
+        if t > 0:
+            ground[[0, 2]] += w * ((root[t] - root[t - 1]) - (method_root[t] - method_root[t - 1]))[[0, 2]]
+        want_root = method_root[t] + ground
+        want_root[1] = method_root[t, 1] + w * (root[t, 1] - method_root[t, 1])
+        np.testing.assert_allclose(out_root[0], want_root, atol=1e-9)
         if fade.max() == 0.0:
             np.testing.assert_array_equal(out_rot, method_rot[t : t + 1])
+        prev_in, prev_model, started = root[t : t + 1].copy(), method_root[t : t + 1].copy(), np.ones(1, bool)
+    assert ground[0] < -10.0  # fully faded, the output stopped walking with the input
     assert want.max() > 0.99  # the clip went through the whole fade
 
 

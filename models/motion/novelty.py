@@ -29,9 +29,10 @@ that model's own TRAINING input frames (`fit`):
 - **Smoothly, causally**: the per-frame target passes two one-pole filters in a row (attack
   `ATTACK_FRAMES`, release `RELEASE_FRAMES`, no look-ahead), so the weight and its rate change
   without steps and a fade cannot pop the pose.
-- **Toward the input**: each joint's rotation slerps toward the input's by its part's weight, the
-  hips translation toward the input's by the lower body's (per frame compiled in
-  `novelty_kernels.py`; these numpy functions fit, report and are its reference). The model keeps stepping on the input
+- **Toward the input**: each joint's rotation slerps toward the input's by its part's weight; the
+  hips height moves toward the input's by the lower body's, and across the ground the hips move
+  by the method's step and the input's mixed by it (per frame compiled in `novelty_kernels.py`;
+  these numpy functions fit, report and are its reference). The model keeps stepping on the input
   underneath, so its style comes back as the input returns to what it knows.
 
 `python -m models.motion.novelty fit --method NAME --datasets ... [--contents ...]` writes

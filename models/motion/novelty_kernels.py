@@ -29,15 +29,37 @@ def _heading_free(q):
 
 @njit(cache=True, error_model="numpy")
 def fade_step(
-    rot_in, root_in, rot_out, root_out, w1, fade, hint, prev_y, started, posed, ref, knobs, out_rot, out_root
+    rot_in,
+    root_in,
+    rot_out,
+    root_out,
+    w1,
+    fade,
+    hint,
+    prev_in,
+    prev_model,
+    offset,
+    started,
+    posed,
+    ref,
+    knobs,
+    out_rot,
+    out_root,
 ):
     """One frame for B sessions. In: the input frames rot_in (B, J, 4), root_in (B, 3); the
     method's output rot_out, root_out; the fade state w1, fade (B, P), hint (B, P) int (the
-    nearest covering frame last time, where the search starts), prev_y (B,), started (B,) bool;
-    posed (B,) bool (False: a controller tick, nothing to keep). `ref` = (parents, bones,
+    nearest covering frame last time, where the search starts), the previous input and method
+    roots prev_in, prev_model (B, 3), the output root's horizontal offset from the method's
+    offset (B, 3), started (B,) bool (prev_* hold a frame); posed (B,) bool (False: a
+    controller tick, nothing to keep). `ref` = (parents, bones,
     part, anchor, centres, starts, threshold, leg) of the reference, `knobs` = (fps,
     HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES). Writes
-    out_rot, out_root, and w1, fade, hint in place."""
+    out_rot, out_root, and w1, fade, hint, offset in place.
+
+    The root: its height moves toward the input's by the lower body's weight; across the ground
+    it moves by the method's step and the input's mixed by that weight, so a fade never glides
+    the character from the method's path to the input's (a planted foot would slide by the
+    distance between them): the path it leaves behind stays as the steps made it."""
     parents, bones, part, anchor, centres, starts, threshold, leg = ref
     fps, height_w, speed_w, start, full, attack, release = knobs
     B, J = rot_in.shape[0], rot_in.shape[1]
@@ -58,7 +80,7 @@ def fade_step(
             d = (0.0, 0.0, 0.0) if j == HIPS else qrot(gp, row3(bones, j))
             gpos[j, 0], gpos[j, 1], gpos[j, 2] = gpos[p, 0] + d[0], gpos[p, 1] + d[1], gpos[p, 2] + d[2]
             grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = qmul(gp, q)
-        speed = (root_in[b, 1] - prev_y[b]) * fps / leg if started[b] else 0.0
+        speed = (root_in[b, 1] - prev_in[b, 1]) * fps / leg if started[b] else 0.0
         for p in range(P):
             a, n = anchor[p], 0
             for j in range(J):
@@ -102,5 +124,8 @@ def fade_step(
                 o = qmul(o, qexp((w * v[0], w * v[1], w * v[2])))
             out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = o
         w = fade[b, part[HIPS]]
-        for c in range(3):
-            out_root[b, c] = root_out[b, c] + w * (root_in[b, c] - root_out[b, c])
+        for c in (0, 2):
+            if started[b] and w > 0.0:
+                offset[b, c] += w * ((root_in[b, c] - prev_in[b, c]) - (root_out[b, c] - prev_model[b, c]))
+            out_root[b, c] = root_out[b, c] + offset[b, c]
+        out_root[b, 1] = root_out[b, 1] + w * (root_in[b, 1] - root_out[b, 1])

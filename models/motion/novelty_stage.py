@@ -23,7 +23,15 @@ from ..interface import FrameBatch, State
 from .novelty import ATTACK_FRAMES, FULL_FADE, HEIGHT_WEIGHT, RELEASE_FRAMES, SPEED_WEIGHT, START, NoveltyReference
 from .novelty_kernels import fade_step
 
-KEYS = ("novelty.w1", "novelty.fade", "novelty.hint", "novelty.prev_y", "novelty.started")
+KEYS = (
+    "novelty.w1",
+    "novelty.fade",
+    "novelty.hint",
+    "novelty.prev_in",
+    "novelty.prev_model",
+    "novelty.offset",
+    "novelty.started",
+)
 _CLASSES: dict[type, type] = {}
 
 
@@ -32,7 +40,9 @@ def fresh_state(batch: int, parts: int) -> State:
         "novelty.w1": np.zeros((batch, parts)),
         "novelty.fade": np.zeros((batch, parts)),
         "novelty.hint": np.zeros((batch, parts), np.int64),
-        "novelty.prev_y": np.zeros(batch),
+        "novelty.prev_in": np.zeros((batch, 3)),
+        "novelty.prev_model": np.zeros((batch, 3)),
+        "novelty.offset": np.zeros((batch, 3)),
         "novelty.started": np.zeros(batch, bool),
     }
 
@@ -70,17 +80,20 @@ class FadesUnseen:
         out, new = super().step_batch(state, frames, style_weights)  # type: ignore[misc]
         root = np.ascontiguousarray(frames.root, np.float64)
         posed = np.ones(len(root), bool) if frames.control is None else frames.control[:, 4] <= 0.5
-        w1, fade, hint = (state[k].copy() for k in ("novelty.w1", "novelty.fade", "novelty.hint"))
+        w1, fade, hint, offset = (
+            state[k].copy() for k in ("novelty.w1", "novelty.fade", "novelty.hint", "novelty.offset")
+        )
+        model_root = np.ascontiguousarray(out.root, np.float64)
         rotations, out_root = np.empty((*np.shape(out.rotations)[:2], 4)), np.empty_like(root)
         knobs = (float(self.fps), HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES)  # type: ignore[attr-defined]
         fade_step(
             np.ascontiguousarray(frames.rotations, np.float64), root,
-            np.ascontiguousarray(out.rotations, np.float64), np.ascontiguousarray(out.root, np.float64),
-            w1, fade, hint, state["novelty.prev_y"], state["novelty.started"], posed, self.novelty.arrays, knobs,
-            rotations, out_root,
+            np.ascontiguousarray(out.rotations, np.float64), model_root, w1, fade, hint,
+            state["novelty.prev_in"], state["novelty.prev_model"], offset, state["novelty.started"], posed,
+            self.novelty.arrays, knobs, rotations, out_root,
         )  # fmt: skip
-        own = {"novelty.w1": w1, "novelty.fade": fade, "novelty.hint": hint, "novelty.prev_y": root[:, 1].copy()}
-        own["novelty.started"] = posed
+        own = {"novelty.w1": w1, "novelty.fade": fade, "novelty.hint": hint, "novelty.offset": offset}
+        own |= {"novelty.prev_in": root.copy(), "novelty.prev_model": model_root.copy(), "novelty.started": posed}
         return replace(out, root=out_root, rotations=rotations, faded=fade.max(axis=1)), {**new, **own}
 
 
