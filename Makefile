@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-loaded test-all lint typecheck summary eval eval-final perf clean browser viewer-vendor servers image
+.PHONY: install serve test test-loaded test-all lint typecheck summary eval eval-final perf clean browser viewer-vendor servers image novelty
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -87,6 +87,13 @@ eval: install
 
 eval-final: install
 	$(BIN)/python -m models.eval --final
+
+# each method's unseen-content reference, from the clips it was trained on (models/motion/novelty.py)
+novelty: install
+	$(BIN)/python -m models.motion.novelty fit --method lti --datasets bandai-namco-2,bandai-namco-1 --styles normal
+	$(BIN)/python -m models.motion.novelty fit --method erd --datasets bandai-namco-2
+	$(BIN)/python -m models.motion.novelty fit --method lpn --datasets bandai-namco-1,bandai-namco-2 \
+		--contents walk,run,dash,walk-back,walk-left,walk-right,walk-turn-left,walk-turn-right
 
 clean:
 	rm -rf $(VENV) .cache .pytest_cache

@@ -66,6 +66,9 @@ class FrameBatch:
     # desired facing yaw (radians about +Y, 0 = facing +Z, as models.motion.features.facing_yaw),
     # gait (0 walk, 1 run), flag (1 = control given; a row with 0 lets the model follow the input frames)
     control: np.ndarray | None = None
+    # (B,) on outputs: how far each frame was faded toward its input because the input lay far from
+    # the model's training input (0 = the model's own output, 1 = the input; `models.motion.novelty`)
+    faded: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.root.shape[0]

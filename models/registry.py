@@ -1,7 +1,9 @@
 """Discovery of the trained models that ship with the project.
 
 Each method package exposes `load(weights_dir) -> StreamingModel` and a `WEIGHTS_SUBDIR`; a
-method whose weights are not committed yet is simply not offered."""
+method whose weights are not committed yet is simply not offered. Every shipped pipeline ends in
+the unseen-content fade (`models/motion/novelty_stage.py`) where `weights/novelty/` holds its
+fitted reference; a core is the method alone."""
 
 from __future__ import annotations
 
@@ -10,6 +12,8 @@ import logging
 from pathlib import Path
 
 from .interface import StreamingModel
+from .motion.novelty import NoveltyReference, reference_path
+from .motion.novelty_stage import with_novelty
 
 METHODS = ("lti", "erd", "lpn")
 log = logging.getLogger(__name__)
@@ -20,14 +24,26 @@ def load_models(weights_dir: Path, core_only: bool = False) -> dict[str, Streami
     stages after it (what the evaluation's core-alone rows score)."""
     models: dict[str, StreamingModel] = {}
     for method in METHODS:
-        try:
-            package = importlib.import_module(f"models.{method}")
-        except ModuleNotFoundError:
-            continue
-        loader = getattr(package, "load", None)
-        folder = Path(weights_dir) / method
-        if loader is None or not folder.is_dir():
-            continue
-        models[method] = loader(folder, core_only=True) if core_only else loader(folder)
-        log.info("loaded model %s with styles %s", method, models[method].styles())
+        model = load_model(weights_dir, method, core_only)
+        if model is not None:
+            models[method] = model
+            log.info("loaded model %s with styles %s", method, model.styles())
     return models
+
+
+def load_model(weights_dir: Path, method: str, core_only: bool = False, novelty: bool = True) -> StreamingModel | None:
+    """One committed method as `load_models` has it; None where it is not committed. `novelty`
+    False: the full pipeline without its last stage, the unseen-content fade (to compare)."""
+    try:
+        package = importlib.import_module(f"models.{method}")
+    except ModuleNotFoundError:
+        return None
+    loader = getattr(package, "load", None)
+    folder = Path(weights_dir) / method
+    if loader is None or not folder.is_dir():
+        return None
+    if core_only:
+        return loader(folder, core_only=True)
+    model = loader(folder)
+    reference = reference_path(weights_dir, method)
+    return with_novelty(model, NoveltyReference.load(reference)) if novelty and reference.is_file() else model

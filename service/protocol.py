@@ -290,8 +290,13 @@ def encode_binary(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0)
     return header + np.concatenate([root.ravel(), rot.ravel()]).astype("<f4").tobytes()
 
 
-def frame_message(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0) -> dict:
-    return {"type": "frame", "seq": seq, "root": root.tolist(), "rotations": rot.tolist(), "dropped": dropped}
+def frame_message(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0, faded: float | None = None) -> dict:
+    """A JSON frame reply; `faded` (0..1: how far the frame was faded toward the input as content
+    the model was not trained on, `models.motion.novelty`) where the pipeline has that stage."""
+    message = {"type": "frame", "seq": seq, "root": root.tolist(), "rotations": rot.tolist(), "dropped": dropped}
+    if faded is not None:
+        message["faded"] = round(float(faded), 3)
+    return message
 
 
 def close_reason(text: str) -> str:

@@ -32,6 +32,7 @@ from typing import Any, TypeVar
 import numpy as np
 from starlette.websockets import WebSocket, WebSocketDisconnect, WebSocketState
 
+from models.motion.novelty_stage import faded
 from models.motion.rate import output_delay_s
 
 from . import pipelines
@@ -531,7 +532,8 @@ class Connection(Socket):
         dropped = s.take_dropped()
         if s.encoding == "binary":
             return P.encode_binary(item.seq, out_root, out_rot, dropped)
-        return P.frame_message(item.seq, out_root, out_rot, dropped)
+        fade = faded(s.state)
+        return P.frame_message(item.seq, out_root, out_rot, dropped, None if fade is None else float(fade[0]))
 
     def replied(self, item: FrameItem) -> None:
         metrics = self.model_metrics

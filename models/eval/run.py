@@ -40,8 +40,16 @@ def pick_clips(
     return out
 
 
-def stylise(model: StreamingModel, motions: list[Motion], targets: list[int], chunk: int = 256) -> list[Motion]:
-    """Output of `model` for motions[i] toward style index targets[i] (None = all weights zero)."""
+def stylise(
+    model: StreamingModel,
+    motions: list[Motion],
+    targets: list[int],
+    chunk: int = 256,
+    fades: list[np.ndarray] | None = None,
+) -> list[Motion]:
+    """Output of `model` for motions[i] toward style index targets[i] (None = all weights zero).
+    `fades`, where given, receives each clip's (F,) per-frame fade toward the input
+    (`FrameBatch.faded`; zeros from a model without the stage)."""
     T = max(m.num_frames for m in motions)
     n_styles = len(model.styles())
     out: list[Motion] = []
@@ -56,15 +64,19 @@ def stylise(model: StreamingModel, motions: list[Motion], targets: list[int], ch
             if k is not None:
                 weights[b, k] = 1.0
         state = model.init_state(B)
-        roots, rots = np.empty_like(root), np.empty_like(rot)
+        roots, rots, faded = np.empty_like(root), np.empty_like(rot), np.zeros((B, T))
         for t in range(T):
             frame, state = model.step_batch(state, FrameBatch(root[:, t], rot[:, t]), weights)
             roots[:, t], rots[:, t] = frame.root, frame.rotations
+            if frame.faded is not None:
+                faded[:, t] = frame.faded
         for b, m in enumerate(part):
             n = m.num_frames
             trans = m.translations.copy()
             trans[:, 1] = roots[b, :n]
             out.append(replace(m, rotations=rots[b, :n], translations=trans))
+            if fades is not None:
+                fades.append(faded[b, :n])
     return out
 
 
@@ -118,23 +130,37 @@ def score(
     }
 
 
-def stylise_toward(model: StreamingModel | None, inputs: list[Motion], styles: list[str]) -> dict[str, list[Motion]]:
+def stylise_toward(
+    model: StreamingModel | None,
+    inputs: list[Motion],
+    styles: list[str],
+    fades: dict[str, list[np.ndarray]] | None = None,
+) -> dict[str, list[Motion]]:
     """Every input toward every style in one batch of sessions: style -> outputs (None: the
-    inputs themselves, the identity row)."""
+    inputs themselves, the identity row). `fades`, where given, receives style -> each output's
+    per-frame fade (`stylise`)."""
     if model is None:
+        if fades is not None:
+            fades.update({s: [np.zeros(m.num_frames) for m in inputs] for s in styles})
         return {s: inputs for s in styles}
     order = [model.styles().index(s) for s in styles]
-    flat = stylise(model, [m for _ in styles for m in inputs], [k for k in order for _ in inputs])
+    flat_fades: list[np.ndarray] = []
+    flat = stylise(model, [m for _ in styles for m in inputs], [k for k in order for _ in inputs], fades=flat_fades)
+    if fades is not None:
+        fades.update({s: flat_fades[i * len(inputs) : (i + 1) * len(inputs)] for i, s in enumerate(styles)})
     return {s: flat[i * len(inputs) : (i + 1) * len(inputs)] for i, s in enumerate(styles)}
 
 
 def run_after_history(
-    model: StreamingModel, inputs: list[Motion], styles: list[str]
+    model: StreamingModel, inputs: list[Motion], styles: list[str], fades: dict[str, list[np.ndarray]] | None = None
 ) -> tuple[list[Motion], dict[str, list[Motion]]]:
     """Running sessions (`history.py`): every input streamed after HISTORY_FRAMES of the inputs
     before it, toward every style. Returns the inputs as placed in their streams and, per style,
-    the outputs over the scored part only."""
+    the outputs over the scored part only (and their fades into `fades`, where given)."""
     runs = [with_history(inputs, i, HISTORY_FRAMES) for i in range(len(inputs))]
     placed = [whole.slice(start, whole.num_frames) for whole, start in runs]
-    outs = stylise_toward(model, [whole for whole, _ in runs], styles)
+    whole_fades: dict[str, list[np.ndarray]] = {}
+    outs = stylise_toward(model, [whole for whole, _ in runs], styles, whole_fades)
+    if fades is not None:
+        fades.update({s: [f[start:] for f, (_, start) in zip(whole_fades[s], runs)] for s in styles})
     return placed, {s: [o.slice(start, o.num_frames) for o, (_, start) in zip(outs[s], runs)] for s in styles}

@@ -17,10 +17,12 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from ..data import build_index, load_motions, select
 from ..interface import StreamingModel
+from ..motion.novelty import FADED
 from ..registry import load_models
 from ..settings import REPO_ROOT, get_settings
 from .features import clip_features
@@ -92,17 +94,18 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
     for source in sources:
         measured = [Input.of(m, ref) for m in source.motions]
         for variant, model in variants.items():
-            fresh = stylise_toward(model, source.motions, styles)
+            fades: dict[str, list[np.ndarray]] = {}
+            fresh = stylise_toward(model, source.motions, styles, fades)
             for s in styles:
-                rows.append(_row(variant, source, "fresh", s, fresh[s], measured, source.contents, judge, old, ref))
+                row = _row(variant, source, "fresh", s, fresh[s], measured, source.contents, judge, old, ref)
+                rows.append({**row, "faded": faded_share(fades[s])})
             if model is None:
                 continue
-            placed, running = run_after_history(model, source.motions, styles)
+            placed, running = run_after_history(model, source.motions, styles, fades)
             placed_measured = [Input.of(m, ref) for m in placed]
             for s in styles:
-                rows.append(
-                    _row(variant, source, "running", s, running[s], placed_measured, source.contents, judge, old, ref)
-                )
+                row = _row(variant, source, "running", s, running[s], placed_measured, source.contents, judge, old, ref)
+                rows.append({**row, "faded": faded_share(fades[s])})
     for r in rows:
         r["gates"] = gates(r, rows)
     results = {
@@ -167,6 +170,12 @@ def _row(
         row["content_acc"] = share(sum(g == c for g, c in zip(got, contents)), len(got))
         row["style_acc_old"] = share(sum(p == style for p in old.predict_style(feats)), len(feats))
     return row
+
+
+def faded_share(fades: list[np.ndarray]) -> dict:
+    """The frames a row's outputs faded toward their input (`FrameBatch.faded` over
+    `novelty.FADED`), with its 95 % interval."""
+    return share(int(sum(int(np.sum(f > FADED)) for f in fades)), int(sum(len(f) for f in fades)))
 
 
 def gates(row: dict, rows: list[dict]) -> dict:
@@ -306,9 +315,13 @@ def markdown(r: dict) -> str:
         f"{meta['skate_limit_cm_s']:.0f} cm/s (the real validation clips' p95, so real clips skate in 5 %). "
         "**path**: hips path length over the input's, each plus a leg length (median, and the worst clip); "
         "**drift**: how far the two paths end apart (median, cm).",
+        f"- **faded**: frames whose output faded more than {FADED:.0%} of the way toward the input because the input "
+        "lay far from the method's training input (`models/motion/novelty.py`; the largest body part's weight). "
+        "Not gated: it says how much of a source each method kept as it came instead of styling it.",
         "",
     ]
     lines += _gate_summary(r)
+    lines += _fade_summary(r)
     for source in ["real", *meta["sources"]]:
         lines += _source_table(r, source)
     lines += [
@@ -340,6 +353,26 @@ def _gate_summary(r: dict) -> list[str]:
     return lines + [""]
 
 
+def _fade_summary(r: dict) -> list[str]:
+    """Frames faded per variant and source, fresh sessions, over every style."""
+    sources = list(r["meta"]["sources"])
+    variants = list(dict.fromkeys(x["variant"] for x in r["rows"] if x["gates"]))
+    lines = [
+        "## Frames faded toward the input, per source (fresh sessions, every style)",
+        "",
+        "| variant | " + " | ".join(sources) + " |",
+        "|---|" + "---|" * len(sources),
+    ]
+    for v in variants:
+        cells = []
+        for src in sources:
+            rows = [x for x in r["rows"] if x["variant"] == v and x["source"] == src and x["session"] == "fresh"]
+            hits, n = sum(x["faded"]["hits"] for x in rows), sum(x["faded"]["n"] for x in rows)
+            cells.append(f"{100 * hits / n:.1f}%" if n else "–")
+        lines.append(f"| {v} | " + " | ".join(cells) + " |")
+    return lines + [""]
+
+
 def _source_table(r: dict, source: str) -> list[str]:
     rows = [x for x in r["rows"] if x["source"] == source]
     clips = rows[0]["clips"] if rows else 0
@@ -348,8 +381,8 @@ def _source_table(r: dict, source: str) -> list[str]:
         f"## {title}",
         "",
         "| variant | session | style | style read | content | plausible clips | pops | jitter | slide p95 | skate | "
-        "path | drift cm | read as |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "path | drift cm | faded | read as |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for x in rows:
         top = ", ".join(f"{k} {n}" for k, n in sorted(x["read_as"].items(), key=lambda kv: -kv[1])[:3])
@@ -359,9 +392,10 @@ def _source_table(r: dict, source: str) -> list[str]:
             else "–"
         )
         drift = f"{x['end_drift_median']:.0f}" if x["end_drift_median"] == x["end_drift_median"] else "–"
+        faded = f"{100 * x['faded']['share']:.1f}%" if "faded" in x else "–"
         lines.append(
             f"| {x['variant']} | {x['session']} | {x['style']} | {_cell(x, 'style')} | {_cell(x, 'content')} | "
             f"{_cell(x, 'plausible')} | {_cell(x, 'pops')} | {_cell(x, 'jitter')} | {_cell(x, 'slide')} | "
-            f"{100 * x['skate']:.1f}% | {path} | {drift} | {top} |"
+            f"{100 * x['skate']:.1f}% | {path} | {drift} | {faded} | {top} |"
         )
     return lines + [""]

@@ -1,0 +1,423 @@
+"""Unseen content kept: how far each input frame lies from anything a model was trained on, and
+the smooth fade of the model's output toward the input there.
+
+A style model carries only what its training input showed. Fed a crouch, a pick-up, a fall or (for
+a locomotion controller) a raised arm, it straightens the legs, walks on or drops the arm: the
+content is lost. So every model's output passes one stage fitted the same way for every model from
+that model's own TRAINING input frames (`fit`):
+
+- **What the body is doing**, per body part (the lower body with the hips, the trunk, each arm:
+  `body_parts`, from the skeleton's chains): where the part's joints are from the joint it hangs
+  from, on the model rig, in the frame of the hips' heading (where the character faces is never
+  what it does), and for the lower body the hips' height above the floor and their vertical
+  speed, all in leg lengths (per second). Positions rather than local rotations: a performer's
+  twists and carriage, and a retargeter's rest pose, change rotations on every joint a little,
+  and summed over a limb that was as far as a crouch is from a walk.
+- **Far from the training input**: the distance of a part's features to the nearest of
+  `CENTROIDS` training frames that cover the training frames (`cover`): a nearest neighbour
+  that is cheap per frame, and unlike one Gaussian it does not call the gap between a walk and a
+  wave "seen".
+- **Calibrated on VALIDATION clips** of the same selection: a part starts to fade at `START`
+  times its `QUANTILE` distance over their frames and is fully faded at `FULL_FADE` times it.
+  The margins are for other performers: on the evaluation's validation inputs from other
+  captures (Xia's walks), lower bodies lie within 1.15 times the quantile at p95, a crouch
+  beyond 2.2 times it. The `TRIM_CLIPS` share of validation clips whose far frames lie
+  farthest out is left out of the quantile first: a data set with one or two takes of a content
+  (dataset 1) holds out takes whose poses its training split never shows, and one such clip set
+  the whole threshold (a held-out kick doubled LTI's lower-body threshold, so a crouch did not
+  fade).
+- **Smoothly, causally**: the per-frame target passes two one-pole filters in a row (attack
+  `ATTACK_FRAMES`, release `RELEASE_FRAMES`, no look-ahead), so the weight and its rate change
+  without steps and a fade cannot pop the pose.
+- **Toward the input**: each joint's rotation slerps toward the input's by its part's weight; the
+  hips height moves toward the input's by the lower body's, and across the ground the hips move
+  by the method's step and the input's mixed by it (per frame compiled in `novelty_kernels.py`;
+  these numpy functions fit, report and are its reference). The model keeps stepping on the input
+  underneath, so its style comes back as the input returns to what it knows.
+
+`python -m models.motion.novelty fit --method NAME --datasets ... [--contents ...]` writes
+`models/weights/novelty/<NAME>.npz` (tens of kB; `make novelty` fits every method's);
+`report` prints fade rates on any clip selection.
+The streaming stage that applies it is `novelty_stage.py`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from .bn_skeleton import BN_JOINTS, HIPS, PRIMARY_CHILD, ROOT
+from .rotation_ball import split_heading
+from .skeleton import Skeleton, fk
+
+FOLDER = "novelty"  # under the weights folder: <method>.npz
+CENTROIDS = 512  # training frames kept per part (`cover`)
+QUANTILE = 99.5  # the validation distance the fade is measured in
+START = 1.25  # a part starts to fade at this many times that distance
+FULL_FADE = 2.0  # ... and is fully faded at this many times it
+ATTACK_FRAMES = 3.0  # time constant of each of the two smoothing poles while the fade rises (model frames)
+RELEASE_FRAMES = 8.0  # ... and while it falls back
+SPEED_WEIGHT = 0.25  # feature distance (leg lengths) per leg length/s of vertical hips speed
+HEIGHT_WEIGHT = 1.0  # ... and per leg length of hips height
+MAX_FIT_FRAMES = 60_000  # an even subsample of the training frames keeps a fit to seconds
+TRIM_CLIPS = 0.05  # validation clips left out of the threshold (by their own p99 distance)
+FADED = 0.5  # a frame counts as faded (reports, the evaluation) when its largest part weight exceeds this
+
+
+def body_parts(parents: np.ndarray, names: tuple[str, ...] = BN_JOINTS) -> list[np.ndarray]:
+    """Joint indices per body part: the lower body (the hips and every chain hanging off them but
+    the spine), the trunk (the spine's primary chain up to the head), then each other chain off the
+    trunk (the arms). The static root belongs to none."""
+    trunk, j = [], names[HIPS]
+    while j in PRIMARY_CHILD:
+        j = PRIMARY_CHILD[j]
+        trunk.append(names.index(j))
+    top = {}
+    for k in range(len(names)):
+        if k in (ROOT, HIPS) or k in trunk:
+            continue
+        a = k
+        while int(parents[a]) not in trunk and int(parents[a]) != HIPS:
+            a = int(parents[a])
+        top[k] = (int(parents[a]), a)
+    lower = [HIPS] + [k for k, (p, _) in top.items() if p == HIPS]
+    chains: dict[int, list[int]] = {}
+    for k, (p, a) in top.items():
+        if p != HIPS:
+            chains.setdefault(a, []).append(k)
+    return [np.array(lower), np.array(trunk)] + [np.array(v) for _, v in sorted(chains.items())]
+
+
+def hips_motion(hips_y: np.ndarray, fps: float, leg: float) -> np.ndarray:
+    """(T,) hips heights -> (T, 2) height and backward-difference vertical speed (0 at the first
+    frame) in leg lengths (per second): what the stage measures causally frame by frame."""
+    y = np.asarray(hips_y, np.float64) / leg
+    v = np.zeros_like(y)
+    v[1:] = np.diff(y) * fps
+    return np.stack([y, v], axis=-1)
+
+
+@dataclass(frozen=True)
+class NoveltyReference:
+    """The model rig (parents (J,), rest bone offsets (J, 3) and left leg length, model units) and
+    each joint's part (J,) (-1: none); per part p the covering training frames
+    `centres[starts[p]:starts[p+1]]` (padded to the widest part's features) and its validation
+    threshold (leg lengths)."""
+
+    parents: np.ndarray
+    bones: np.ndarray
+    part: np.ndarray
+    centres: np.ndarray
+    starts: np.ndarray
+    threshold: np.ndarray
+    leg: float
+
+    @property
+    def parts(self) -> int:
+        return len(self.threshold)
+
+    @property
+    def anchors(self) -> np.ndarray:
+        """(parts,) the joint each part's positions are taken from: the hips for the part that
+        holds them, else the parent of the part's first joint."""
+        out = np.empty(self.parts, np.int64)
+        for p in range(self.parts):
+            joints = np.flatnonzero(self.part == p)
+            out[p] = HIPS if HIPS in joints else int(self.parents[joints[0]])
+        return out
+
+    @functools.cached_property
+    def arrays(self) -> tuple:
+        """The reference as the compiled step takes it (`novelty_kernels.fade_step`)."""
+        c = np.ascontiguousarray
+        return (
+            c(self.parents, np.int64),
+            c(self.bones, np.float64),
+            c(self.part, np.int64),
+            self.anchors,
+            c(self.centres, np.float64),
+            c(self.starts, np.int64),
+            c(self.threshold, np.float64),
+            float(self.leg),
+        )
+
+    def features(self, rotations: np.ndarray, hips: np.ndarray) -> list[np.ndarray]:
+        """(N, J, 4) local rotations and (N, 2) `hips_motion` -> per part (N, D_p): where the
+        part's joints are from its anchor (the hips for the lower body and trunk, the joint an arm
+        hangs from), in leg lengths, in the frame of the hips' heading; the lower body's with the
+        hips' height and vertical speed."""
+        _, q = split_heading(rotations)
+        q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)
+        bones = np.broadcast_to(self.bones, (*q.shape[:-1], 3)).copy()
+        bones[:, [ROOT, HIPS]] = 0.0
+        pos = fk(q, bones, self.parents)[1] / self.leg
+        out = []
+        for p, anchor in enumerate(self.anchors):
+            joints = np.flatnonzero(self.part == p)
+            f = (pos[:, joints[joints != anchor]] - pos[:, anchor : anchor + 1]).reshape(len(pos), -1)
+            if p == 0:
+                f = np.concatenate([f, hips * (HEIGHT_WEIGHT, SPEED_WEIGHT)], axis=1)
+            out.append(f)
+        return out
+
+    def distances(self, rotations: np.ndarray, hips: np.ndarray) -> np.ndarray:
+        """(N, parts) distance of each part to its nearest covering training frame."""
+        feats = self.features(rotations, hips)
+        out = np.empty((len(rotations), self.parts))
+        for p, f in enumerate(feats):
+            c = self.centres[self.starts[p] : self.starts[p + 1], : f.shape[1]]
+            out[:, p] = np.sqrt(_nearest_sq(f, c))
+        return out
+
+    def target(self, distances: np.ndarray) -> np.ndarray:
+        """(N, parts) distances -> fade targets in [0, 1]: 0 up to START times the threshold, a
+        smoothstep to 1 at FULL_FADE times it."""
+        x = np.clip((distances / self.threshold - START) / (FULL_FADE - START), 0.0, 1.0)
+        return x * x * (3.0 - 2.0 * x)
+
+    def joint_weights(self, part_weights: np.ndarray) -> np.ndarray:
+        """(B, parts) -> (B, J) each joint's fade (0 for joints in no part)."""
+        w = np.zeros((len(part_weights), len(self.part)))
+        inside = self.part >= 0
+        w[:, inside] = part_weights[:, self.part[inside]]
+        return w
+
+    def clip_fades(self, rotations: np.ndarray, hips_y: np.ndarray, fps: float) -> np.ndarray:
+        """A whole clip (T, J, 4), (T,) at the model rate -> (T, parts) smoothed fade weights, as
+        the stage computes them frame by frame (for reports and tests)."""
+        target = self.target(self.distances(rotations, hips_motion(hips_y, fps, self.leg)))
+        w1 = w2 = np.zeros(self.parts)
+        out = np.empty_like(target)
+        for t in range(len(target)):
+            w1, w2 = smooth(w1, w2, target[t])
+            out[t] = w2
+        return out
+
+    @classmethod
+    def fit(
+        cls,
+        train: list[tuple[np.ndarray, np.ndarray]],
+        val: list[tuple[np.ndarray, np.ndarray]],
+        skeleton: Skeleton,
+        leg: float,
+        fps: float,
+        seed: int = 0,
+    ) -> NoveltyReference:
+        """From TRAINING clips [(rotations (T, J, 4), hips heights (T,))] at the model rate, with
+        the thresholds from VALIDATION clips of the same selection."""
+        parts = body_parts(skeleton.parents)
+        part = np.full(skeleton.num_joints, -1)
+        for p, joints in enumerate(parts):
+            part[joints] = p
+        rot, hips = _frames(train, fps, leg)
+        pick = np.linspace(0, len(rot) - 1, min(len(rot), MAX_FIT_FRAMES)).astype(int)
+        rot, hips = rot[pick], hips[pick]
+        rig = (np.asarray(skeleton.parents), np.asarray(skeleton.offsets, np.float64), part)
+        ref = cls(*rig, np.zeros((0, 1)), np.zeros(len(parts) + 1, int), np.ones(len(parts)), leg)
+        feats = ref.features(rot, hips)
+        width = max(f.shape[1] for f in feats)
+        rng = np.random.default_rng(seed)
+        centres = [np.pad(cover(f, CENTROIDS, rng), ((0, 0), (0, width - f.shape[1]))) for f in feats]
+        starts = np.concatenate([[0], np.cumsum([len(c) for c in centres])])
+        ref = cls(*rig, np.concatenate(centres), starts, np.ones(len(parts)), leg)
+        return replace(ref, threshold=calibrate(ref, val, fps))
+
+    def save(self, path: Path) -> Path:
+        np.savez_compressed(
+            path,
+            parents=self.parents,
+            bones=self.bones,
+            part=self.part,
+            centres=self.centres.astype(np.float32),
+            starts=self.starts,
+            threshold=self.threshold,
+            leg=self.leg,
+        )
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> NoveltyReference:
+        with np.load(path) as z:
+            return cls(
+                z["parents"].astype(np.int64),
+                np.ascontiguousarray(z["bones"], np.float64),
+                z["part"].astype(np.int64),
+                np.ascontiguousarray(z["centres"], np.float64),
+                z["starts"].astype(np.int64),
+                z["threshold"].astype(np.float64),
+                float(z["leg"]),
+            )
+
+
+def calibrate(ref: NoveltyReference, val: list[tuple[np.ndarray, np.ndarray]], fps: float) -> np.ndarray:
+    """(parts,) thresholds: per part, the QUANTILE distance over the frames of the validation
+    clips, less the TRIM_CLIPS share of clips whose own p99 distance is largest."""
+    per_clip = [ref.distances(np.asarray(r, np.float64), hips_motion(y, fps, ref.leg)) for r, y in val]
+    out = np.empty(ref.parts)
+    for p in range(ref.parts):
+        far = np.array([np.percentile(d[:, p], 99) for d in per_clip])
+        keep = np.argsort(far)[: len(far) - int(TRIM_CLIPS * len(far))]
+        out[p] = np.percentile(np.concatenate([per_clip[i][:, p] for i in keep]), QUANTILE)
+    return out
+
+
+def reference_path(weights_dir: Path, method: str) -> Path:
+    """Where a method's fitted reference lives: one shared folder, so no method's loader, which
+    reads every file in its own folder, meets it."""
+    return Path(weights_dir) / FOLDER / f"{method}.npz"
+
+
+def _frames(clips: list[tuple[np.ndarray, np.ndarray]], fps: float, leg: float) -> tuple[np.ndarray, np.ndarray]:
+    rot = np.concatenate([r for r, _ in clips]).astype(np.float64)
+    hips = np.concatenate([hips_motion(y, fps, leg) for _, y in clips])
+    return rot, hips
+
+
+def _nearest_sq(x: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(N, D), (K, D) -> (N,) squared distance of each row to its nearest centre. The product
+    goes through `rowwise.matmul_rows`, so a session's value is the same in a batch of any size."""
+    from ..rowwise import matmul_rows
+
+    d = (x * x).sum(1)[:, None] - 2.0 * matmul_rows(np.ascontiguousarray(x), np.ascontiguousarray(c.T))
+    return np.maximum(d + (c * c).sum(1)[None], 0.0).min(axis=1)
+
+
+def cover(x: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """(k, D) rows of x (N, D) that cover it: greedy farthest-point selection (Gonzalez's
+    k-centre), so every row lies within about the smallest possible radius of one of them. A
+    cover, not cluster means: the distance to it measures whether a pose was in the data at all,
+    where k-means centres sit where the data is dense and leave its rarer poses (a dataset-1 dash
+    among dataset-2 walks) as far from every centre as unseen ones."""
+    k = min(k, len(x))
+    chosen = [int(rng.integers(len(x)))]
+    d2 = np.sum((x - x[chosen[0]]) ** 2, axis=1)
+    for _ in range(1, k):
+        chosen.append(int(d2.argmax()))
+        d2 = np.minimum(d2, np.sum((x - x[chosen[-1]]) ** 2, axis=1))
+    return x[chosen].copy()
+
+
+def smooth(w1: np.ndarray, w2: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One frame of the fade smoother: two one-pole filters in a row, each with the attack time
+    constant while its input lies above it and the release one below. Returns (w1, w2); w2 is
+    the fade."""
+    a1 = np.where(target > w1, 1.0 / ATTACK_FRAMES, 1.0 / RELEASE_FRAMES)
+    w1 = w1 + a1 * (target - w1)
+    a2 = np.where(w1 > w2, 1.0 / ATTACK_FRAMES, 1.0 / RELEASE_FRAMES)
+    return w1, w2 + a2 * (w1 - w2)
+
+
+# --------------------------------------------------------------------------- fitting and reports
+
+
+def _clips(datasets: list[str], contents: list[str] | None, styles: list[str] | None, split: str):
+    from ..data import build_index, load_motions
+
+    clips = [c for c in build_index(datasets) if c.split == split]
+    clips = [c for c in clips if (contents is None or c.content in contents) and (styles is None or c.style in styles)]
+    return clips, load_motions(clips)
+
+
+def _as_model(motion) -> tuple[np.ndarray, np.ndarray]:
+    """A clip as the stage sees it: on the model rig (retargeted if another) at 30 fps."""
+    from .retarget import retarget
+
+    if tuple(motion.skeleton.names) != BN_JOINTS:
+        motion = retarget(motion)
+    return motion.rotations, motion.translations[:, HIPS, 1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m models.motion.novelty", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    for name in ("fit", "report"):
+        s = sub.add_parser(name)
+        s.add_argument("--method", required=True, help="the model whose reference is fitted or read (lti, erd, lpn)")
+        s.add_argument("--datasets", required=True, help="comma-separated datasets (its training input)")
+        s.add_argument("--contents", help="comma-separated contents (default: every one)")
+        s.add_argument("--styles", help="comma-separated input styles (default: every one)")
+    sub.choices["report"].add_argument("--split", default="val")
+    s = sub.add_parser("pickup", help="stream a walk that stops to pick something up, with and without the fade")
+    s.add_argument("--method", default="lti")
+    s.add_argument("--style", default="elderly")
+    s.add_argument("--out", type=Path, help="also write an oriented contact sheet (PNG) into this folder")
+    args = p.parse_args(argv)
+    if args.cmd == "pickup":
+        return _pickup(args.method, args.style, args.out)
+    from ..settings import get_settings
+
+    datasets = args.datasets.split(",")
+    contents = args.contents.split(",") if args.contents else None
+    styles = args.styles.split(",") if args.styles else None
+    path = reference_path(get_settings().weights_dir, args.method)
+    if args.cmd == "fit":
+        from .assets import bandai_namco_skeleton
+        from .features import left_leg_length
+
+        skeleton = bandai_namco_skeleton()
+        train = [_as_model(m) for m in _clips(datasets, contents, styles, "train")[1]]
+        val = [_as_model(m) for m in _clips(datasets, contents, styles, "val")[1]]
+        ref = NoveltyReference.fit(train, val, skeleton, left_leg_length(skeleton), 30.0)
+        path.parent.mkdir(exist_ok=True)
+        ref.save(path)
+        print(f"{path}: {len(train)} train clips, {len(val)} val clips, thresholds {np.round(ref.threshold, 3)}")
+        return 0
+    ref = NoveltyReference.load(path)
+    clips, motions = _clips(datasets, contents, styles, args.split)
+    by_content: dict[str, list[int]] = {}
+    for clip, m in zip(clips, motions):
+        rot, y = _as_model(m)
+        w = ref.clip_fades(rot, y, 30.0).max(axis=1)
+        print(f"{clip.name:50s} faded {np.mean(w > FADED):6.1%} of {len(w)} frames")
+        total = by_content.setdefault(clip.content, [0, 0])
+        total[0], total[1] = total[0] + int(np.sum(w > FADED)), total[1] + len(w)
+    for content, (hits, n) in sorted(by_content.items()):
+        print(f"{content:30s} faded {hits / n:6.1%} of {n} frames")
+    return 0
+
+
+PICKUP_BASE = ("xia", "neutral_walk_01_000")  # a validation input of the evaluation, never a test one
+
+
+def _pickup(method: str, style: str, out: Path | None) -> int:
+    """The pick-up clip through `method` toward `style`, with the fade and without it: the fade
+    and the lowest foot point against the input's, every 0.2 s; optionally a contact sheet."""
+    from ..data import build_index, load_motion, select
+    from ..eval.run import stylise_toward
+    from ..registry import load_model
+    from ..settings import get_settings
+    from .novelty_clip import pick_up
+    from .retarget import retarget
+
+    clip = select(build_index([PICKUP_BASE[0]]), name=PICKUP_BASE[1])[0]
+    made = pick_up(load_motion(clip), walk_s=1.0)
+    motion = retarget(made.motion)
+    weights = get_settings().weights_dir
+    fades: dict[str, list[np.ndarray]] = {}
+    faded = stylise_toward(load_model(weights, method), [motion], [style], fades)[style][0]
+    plain = stylise_toward(load_model(weights, method, novelty=False), [motion], [style])[style][0]
+    feet = [BN_JOINTS.index(f"{p}_{s}") for p in ("Foot", "Toes") for s in "LR"]
+    low = {k: m.global_positions()[:, feet, 1].min(axis=1) for k, m in (("in", motion), ("on", faded), ("off", plain))}
+    print(f"{PICKUP_BASE[1]} with a pick-up ({made.down[0]:.1f}-{made.down[1]:.1f} s down) through {method} -> {style}")
+    print(" time  fade  lowest foot - input's (cm): with fade, without")
+    for t in range(0, motion.num_frames, 6):
+        f = fades[style][0][t]
+        print(f"{t / 30:5.1f} {f:5.2f} {low['on'][t] - low['in'][t]:8.1f} {low['off'][t] - low['in'][t]:8.1f}")
+    if out is not None:
+        from .render import render_contact_sheet
+
+        lo, hi = int((made.crouch[0] - 0.3) * 30), int((made.crouch[1] + 0.9) * 30)
+        frames = [int(f) for f in np.linspace(lo, hi, 8).round()]
+        rows = [motion, faded, plain]
+        titles = ["input (Xia walk + pick-up)", f"{method} -> {style}, fade", f"{method} -> {style}, no fade"]
+        path = render_contact_sheet(rows, out / f"pickup_{method}_{style}.png", frames=frames, titles=titles, dpi=60)
+        print(path)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

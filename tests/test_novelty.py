@@ -1,0 +1,162 @@
+"""Unseen content is kept: every shipped model fades toward the input on a crouch it never saw
+(`models/motion/novelty.py`), comes back after, and leaves a neutral walk of its own data alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.data import load_motion, select
+from models.interface import FrameBatch, style_vector
+from models.motion.bn_skeleton import BN_JOINTS, HIPS, ROOT
+from models.motion.novelty import (
+    ATTACK_FRAMES,
+    FADED,
+    FULL_FADE,
+    HEIGHT_WEIGHT,
+    RELEASE_FRAMES,
+    SPEED_WEIGHT,
+    START,
+    NoveltyReference,
+    body_parts,
+    reference_path,
+    smooth,
+)
+from models.motion.novelty_clip import pick_up
+from models.motion.novelty_kernels import fade_step
+from models.motion.novelty_stage import KEYS, faded
+from models.motion.retarget import retarget
+from models.motion.rotations import quat_angle, quat_exp, quat_inv, quat_log, quat_mul
+from models.registry import METHODS, load_model
+from models.settings import get_settings
+
+WEIGHTS = get_settings().weights_dir
+
+
+@pytest.fixture(scope="module")
+def crouch(index):
+    """A Xia walk that stops to crouch and pick something up (on the model rig at 30 fps), the
+    seconds it is fully down, and when its legs are back in the walk's pose."""
+    made = pick_up(load_motion(select(index, dataset="xia", name="neutral_walk_01_000")[0]), walk_s=1.0)
+    return retarget(made.motion), made.down, made.crouch[1]
+
+
+def test_parts_cover_the_body_once():
+    from models.motion.assets import bandai_namco_skeleton
+
+    parts = body_parts(bandai_namco_skeleton().parents)
+    names = [[BN_JOINTS[j] for j in p] for p in parts]
+    joined = sorted(j for p in parts for j in p)
+    assert joined == [j for j in range(len(BN_JOINTS)) if j != ROOT]
+    assert names[0][0] == "Hips" and "Toes_L" in names[0] and "Toes_R" in names[0]
+    assert names[1] == ["Spine", "Chest", "Neck", "Head"]
+    assert sorted(len(p) for p in names[2:]) == [4, 4]  # one part per arm
+
+
+def test_the_fade_rises_and_falls_without_a_step():
+    w1 = w2 = np.zeros(1)
+    trace = []
+    for t in range(80):
+        w1, w2 = smooth(w1, w2, np.array([1.0 if 10 <= t < 40 else 0.0]))
+        trace.append(float(w2[0]))
+    w = np.array(trace)
+    assert w[:10].max() == 0.0 and w[30] > 0.95 and w[79] < 0.05
+    assert np.all(np.diff(w[10:40]) >= 0) and np.all(np.diff(w[40:]) <= 0)
+    assert np.abs(np.diff(w, 2)).max() < 0.15  # its rate changes by little each frame: no pop
+
+
+def _blend(out: np.ndarray, inp: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The numpy reference of the compiled blend: slerp along the shorter arc, by w (B, J)."""
+    rel = quat_mul(quat_inv(out), inp)
+    rel = np.where(rel[..., 3:] < 0.0, -rel, rel)
+    return np.where(w[..., None] > 0.0, quat_mul(out, quat_exp(w[..., None] * quat_log(rel))), out)
+
+
+def test_the_compiled_step_is_the_numpy_reference(crouch):
+    """`fade_step` frame by frame gives the fades `clip_fades` computes over the whole clip and
+    the numpy slerp and lerp toward the input; at fade 0 the output is the method's, exactly."""
+    motion = crouch[0]
+    ref = NoveltyReference.load(reference_path(WEIGHTS, "lti"))
+    rng = np.random.default_rng(0)
+    rot = motion.rotations.astype(np.float64)
+    root = motion.translations[:, HIPS].astype(np.float64)
+    method_rot = quat_mul(rot, quat_exp(0.3 * rng.normal(size=(1, rot.shape[1], 3))))  # a "style"
+    method_root = root + (5.0, -3.0, 2.0) + np.arange(len(root))[:, None] * (1.0, 0.0, 0.0)  # it walks on
+    want = ref.clip_fades(rot, root[:, 1], motion.fps)
+    w1, fade, hint = np.zeros((1, ref.parts)), np.zeros((1, ref.parts)), np.zeros((1, ref.parts), np.int64)
+    prev_in, prev_model, offset, started = np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1, bool)
+    knobs = (motion.fps, HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES)
+    ground = np.zeros(3)  # the reference's offset across the ground
+    for t in range(len(rot)):
+        out_rot, out_root = np.empty((1, rot.shape[1], 4)), np.empty((1, 3))
+        fade_step(
+            rot[t : t + 1], root[t : t + 1], method_rot[t : t + 1], method_root[t : t + 1], w1, fade, hint,
+            prev_in, prev_model, offset, started, np.ones(1, bool), ref.arrays, knobs, out_rot, out_root,
+        )  # fmt: skip
+        np.testing.assert_allclose(fade[0], want[t], atol=1e-9)
+        joint = ref.joint_weights(fade)
+        assert quat_angle(out_rot, _blend(method_rot[t : t + 1], rot[t : t + 1], joint)).max() < 1e-6
+        w = joint[0, HIPS]
+        if t > 0:
+            ground[[0, 2]] += w * ((root[t] - root[t - 1]) - (method_root[t] - method_root[t - 1]))[[0, 2]]
+        want_root = method_root[t] + ground
+        want_root[1] = method_root[t, 1] + w * (root[t, 1] - method_root[t, 1])
+        np.testing.assert_allclose(out_root[0], want_root, atol=1e-9)
+        if fade.max() == 0.0:
+            np.testing.assert_array_equal(out_rot, method_rot[t : t + 1])
+        prev_in, prev_model, started = root[t : t + 1].copy(), method_root[t : t + 1].copy(), np.ones(1, bool)
+    assert ground[0] < -10.0  # fully faded, the output stopped walking with the input
+    assert want.max() > 0.99  # the clip went through the whole fade
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_reference_fades_on_the_crouch_and_not_after(method, crouch):
+    motion, down, back = crouch
+    ref = NoveltyReference.load(reference_path(WEIGHTS, method))
+    lower = ref.clip_fades(motion.rotations, motion.translations[:, HIPS, 1], motion.fps)[:, 0]
+    t = np.arange(len(lower)) / motion.fps
+    assert lower[(t > down[0] + 0.3) & (t < down[1])].min() > FADED, method
+    assert lower[t > back + 0.8].max() < 0.1, method
+    assert lower[t < down[0] - 0.6].max() < 0.1, method
+
+
+@pytest.mark.parametrize("method", ("lti", "erd"))
+def test_a_neutral_walk_of_the_training_data_hardly_fades(method, bn_walk):
+    ref = NoveltyReference.load(reference_path(WEIGHTS, method))
+    w = ref.clip_fades(bn_walk.rotations, bn_walk.translations[:, HIPS, 1], bn_walk.fps).max(axis=1)
+    assert np.mean(w > FADED) < 0.02, method
+
+
+def test_the_shipped_model_keeps_the_crouch_and_its_style_after(crouch):
+    """Through the streaming interface: faded frames carry the input's legs and root, the frames
+    long after carry the style again, and the state survives an upgrade."""
+    motion, down, back = crouch
+    model = load_model(WEIGHTS, "lti")
+    weights = style_vector(model, {"elderly": 1.0})[None]
+    state = model.init_state(1)
+    assert set(KEYS) <= set(state)
+    assert model.upgrade_state(state) is state
+    legs = [BN_JOINTS.index(n) for n in ("UpperLeg_L", "LowerLeg_L", "UpperLeg_R", "LowerLeg_R")]
+    t_down = int((down[0] + down[1]) / 2 * motion.fps)
+    t_after = motion.num_frames - 1
+    for t in range(t_after + 1):
+        frame = FrameBatch(motion.translations[t : t + 1, HIPS], motion.rotations[t : t + 1])
+        out, state = model.step_batch(state, frame, weights)
+        if t == t_down:
+            assert out.faded[0] > 0.9 and faded(state)[0] == out.faded[0]
+            assert quat_angle(out.rotations[0, legs], motion.rotations[t, legs]).max() < np.radians(5)
+            assert abs(out.root[0, 1] - motion.translations[t, HIPS, 1]) < 2.0  # cm
+    assert out.faded[0] < 0.05
+    assert quat_angle(out.rotations[0, 1:], motion.rotations[t_after, 1:]).max() > np.radians(3)  # styled again
+
+
+def test_an_old_snapshot_gets_a_fresh_fade():
+    model = load_model(WEIGHTS, "lti")
+    old = {k: v for k, v in model.init_state(2).items() if k not in KEYS}
+    upgraded = model.upgrade_state(old)
+    assert set(KEYS) <= set(upgraded) and upgraded["novelty.fade"].shape == (2, model.novelty.parts)
+
+
+def test_the_core_has_no_fade():
+    core = load_model(WEIGHTS, "lti", core_only=True)
+    assert not any(k in core.init_state(1) for k in KEYS)
