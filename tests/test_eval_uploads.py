@@ -33,3 +33,17 @@ def test_coverage_is_zero_for_the_input_and_positive_for_a_real_clip_of_the_styl
 def test_a_style_is_held_out_only_where_no_style_was_trained_on_it():
     assert held_out_styles(Shipping(["active", "elderly"]), ("proud", "giant")) == ["proud", "giant"]
     assert held_out_styles(Shipping(["normal", "d1-happy", "elderly"]), ("happy", "proud")) == ["proud"]
+
+
+def test_the_report_lists_every_upload_row_and_says_which_pass():
+    from models.eval.sealed import _uploads_section
+
+    row = {"style": "giant", "method": "lpn", "variant": "tuned", "copy": 0.76, "share_of_copy": 0.25}
+    rows = [
+        {**row, "coverage": {D2: 0.12, D1: 0.25}, "clips": {D2: 2, D1: 2}, "passes": False},
+        {"style": "giant", "method": "erd", "variant": "refused", "copy": 0.76},
+    ]
+    text = "\n".join(_uploads_section(rows))
+    assert "| lpn | tuned | giant | 0.76 | 0.12 (2) | 0.25 (2) | 25% | no |" in text
+    assert "| erd | refused | giant | 0.76 |" in text
+    assert _uploads_section([]) == []

@@ -25,6 +25,7 @@ from ..interface import StreamingModel
 from ..motion.novelty import FADED
 from ..registry import load_models
 from ..settings import REPO_ROOT, get_settings
+from . import uploads
 from .features import clip_features
 from .intervals import share, share_table, shown
 from .judges import load_judges
@@ -110,6 +111,8 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
         r["gates"] = gates(r, rows)
     results = {
         "rows": rows,
+        # styles from one clip, held out of each method's training (issue 47); not in the quick run
+        "uploads": [] if quick else uploads.evaluate(full, split),
         "meta": {
             "split": split,
             "final": final,
@@ -324,6 +327,7 @@ def markdown(r: dict) -> str:
     lines += _fade_summary(r)
     for source in ["real", *meta["sources"]]:
         lines += _source_table(r, source)
+    lines += _uploads_section(r.get("uploads", []))
     lines += [
         "## Renders",
         "",
@@ -351,6 +355,25 @@ def _gate_summary(r: dict) -> list[str]:
                 cells.append(f"{sum(x['gates']['all'] for x in rows)} of {len(rows)}" if rows else "–")
             lines.append(f"| {v} | {session} | " + " | ".join(cells) + " |")
     return lines + [""]
+
+
+def _uploads_section(rows: list[dict]) -> list[str]:
+    if not rows:
+        return []
+    return [
+        "## Styles from one clip, held out of training",
+        "",
+        "One real dataset-1 walk of each style a method never trained on, uploaded as `POST /v1/styles` does "
+        "(`instant`: the style made from the clip at once; `tuned`: the fine-tuning job), with neutral walks of "
+        "both datasets streamed through it (`models/eval/uploads.py`). **coverage**: the share of the way from the "
+        "input to the style's other real walking clips (0: the input unchanged; 1: those clips), on the judge's "
+        "clip statistics; **copy**: what the uploaded clip itself covers from dataset 1's neutral walks. A row "
+        f"passes at ≥ {uploads.PASS_SHARE:.0%} of the copy's coverage, wherever the copy covers ≥ "
+        f"{uploads.CLEAR_COPY}. The style judge is not applied here yet: it was fitted on these clips.",
+        "",
+        *uploads.table(rows),
+        "",
+    ]
 
 
 def _fade_summary(r: dict) -> list[str]:
