@@ -20,7 +20,7 @@ distances. A copy of the uploaded clip gets a coverage too, from each dataset-1 
 most one clip can say about its style. A method passes a style when its outputs average at least
 70 % of the copy's, wherever the copy is clearly closer than normal (coverage >= 0.1).
 
-    python -m models.eval.uploads [--split val] [--methods lti,lpn] [--styles proud,giant]
+    python -m models.eval.uploads [--methods lti,lpn] [--styles proud,giant]   (validation inputs)
 """
 
 from __future__ import annotations
@@ -192,7 +192,7 @@ def main() -> None:
     args = parser.parse_args()
     methods = args.methods.split(",")
     models = {k: v for k, v in load_models(get_settings().weights_dir).items() if k in methods}
-    rows = evaluate(models, args.split, tuple(args.styles.split(",")))
+    rows = evaluate(models, "test" if args.final else "val", tuple(args.styles.split(",")))
     print("\n".join(table(rows)))
     if args.out:
         args.out.write_text(json.dumps(rows, indent=1))
