@@ -183,9 +183,7 @@ def main() -> None:
     from ..settings import get_settings
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument(
-        "--split", default="val", choices=["val", "test"], help="dataset-2 inputs (test: final runs only)"
-    )
+    parser.add_argument("--final", action="store_true", help="dataset-2 TEST inputs (what `make eval-final` scores)")
     parser.add_argument("--methods", default="lti,erd,lpn")
     parser.add_argument("--styles", default=",".join(HELD_OUT))
     parser.add_argument("--out", type=Path, help="also write the rows as JSON here")
