@@ -3,9 +3,11 @@
 `fine_tune(motion, name, model)` identifies a `StyleTranslator` for the style shown in one
 uploaded Bandai Namco clip (already retargeted if it came from a CMU skeleton):
 
-1. the neutral (`normal`) Bandai Namco dataset-2 training clips of the most similar content are
-   found by comparing clip descriptors (mean and spread of the matching features, and the root
-   speed), among clips whose length ratio the IMW warp can represent;
+1. the neutral (`normal`) Bandai Namco dataset-2 training clips of the same content and pace are
+   found by comparing what the clip does, measured from its motion (`content_descriptor`: root
+   speed, turning rate of the smoothed heading, step rate), among clips whose length ratio the IMW
+   warp can represent. Posture only breaks near-ties: an upload's posture is its style, so ranking
+   by it paired a slow, upright straight walk with turns and runs;
 2. each neutral clip is paired with the uploaded clip (both capped to `max_frames`) and aligned
    with the training code's IMW (`train.align`), exactly as offline training does;
 3. `train.identify` fits the per-joint systems on those few pairs. The uploaded clip is split in
@@ -33,6 +35,7 @@ FINETUNE = dict(
     max_frames=300,  # cap per clip (10 s at 30 fps): alignment cost grows with T * U
     holdout=0.25,  # share of the upload kept for the held-out evaluation (when long enough)
     min_train_frames=90,
+    pose_weight=0.02,  # weight of the posture distance (per feature) next to the content distance
 )
 
 
@@ -48,7 +51,8 @@ class NeutralClip:
     name: str
     frames: int
     feats: np.ndarray  # (F, 67) representation features (with the model's reference rotations)
-    descriptor: np.ndarray
+    descriptor: np.ndarray  # posture: mean and spread of the matching features
+    content: np.ndarray  # `content_descriptor`
 
 
 @dataclass
@@ -76,6 +80,33 @@ def _descriptor(feats: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndar
     return np.concatenate([m.mean(0), m.std(0), [speed.mean(), np.abs(feats[:, 2]).mean()]])
 
 
+def _box(x: np.ndarray, width: int) -> np.ndarray:
+    """Centred moving average with edge padding (same length as `x`)."""
+    padded = np.pad(x, (width // 2, width - 1 - width // 2), mode="edge")
+    return np.convolve(padded, np.full(width, 1.0 / width), mode="valid")
+
+
+def content_descriptor(feats: np.ndarray, fps: float = 30.0) -> np.ndarray:
+    """What a clip does, from its root alone, in log units so that one unit is a like-for-like
+    ratio whatever the style: (log speed, log turning rate, log step rate).
+
+    - speed: mean root ground speed (m/s);
+    - turning: mean heading change over 2 s windows (deg/s) of the yaw smoothed over 1 s, so the
+      pelvis' swing within a stride (a wide, slow gait swings it far) does not read as turning;
+    - step rate: dominant frequency (1-4 Hz) of the hips' height bobbing, one bob per step; the
+      bob's amplitude is left out, as it is the style's (a giant bobs as much as a run)."""
+    n, w = len(feats), max(int(round(fps)), 1)
+    speed = float(np.linalg.norm(feats[1:, :2], axis=1).mean()) * fps / 100.0 if n > 1 else 0.0
+    yaw = _box(np.cumsum(feats[:, 2]), w)
+    turning = float(np.degrees(np.abs(yaw[2 * w :] - yaw[: -2 * w]).mean()) / 2.0) if n > 2 * w else 0.0
+    bob = feats[:, 3] - _box(feats[:, 3], w)
+    spectrum = np.abs(np.fft.rfft(bob * np.hanning(n)))
+    freq = np.fft.rfftfreq(n, 1.0 / fps)
+    band = (freq > 1.0) & (freq < 4.0)
+    steps = float(freq[band][np.argmax(spectrum[band])]) if band.any() else 0.0
+    return np.log(np.array([speed + 0.1, turning + 1.0, steps + 0.5]))
+
+
 @lru_cache(maxsize=2)
 def neutral_bank(ref_key: bytes) -> NeutralBank:
     """Every neutral dataset-2 training clip, featurised once per process (a few seconds)."""
@@ -91,18 +122,35 @@ def neutral_bank(ref_key: bytes) -> NeutralBank:
     feats = {c.name: rep.motion_to_features(motions[c.name], ref) for c in clips}
     allf = np.concatenate(list(feats.values()))
     mean, std = allf.mean(0), np.maximum(allf.std(0), CONFIG["match_std_floor"])
-    out = [NeutralClip(c.name, c.frames, feats[c.name], _descriptor(feats[c.name], mean, std)) for c in clips]
+    cap = FINETUNE["max_frames"]
+    out = [
+        NeutralClip(
+            c.name,
+            c.frames,
+            feats[c.name],
+            _descriptor(feats[c.name], mean, std),
+            content_descriptor(feats[c.name][:cap]),
+        )
+        for c in clips
+    ]
     desc_std = np.maximum(np.std([c.descriptor for c in out], axis=0), 1e-3)
     return NeutralBank(out, mean, std, desc_std, motions)
 
 
 def nearest_neutral(bank: NeutralBank, feats: np.ndarray, k: int, frames: int) -> list[NeutralClip]:
-    """The k neutral clips whose content looks most like `feats`, among warpable lengths."""
+    """The k neutral clips doing the most alike (same path and pace, `content_descriptor`), among
+    warpable lengths; posture, weighted by `pose_weight`, orders clips that do the same."""
     s, ms = CONFIG["imw"]["s"], CONFIG["imw"]["max_step"]
     lo, hi = 1.0 / s * 1.15, ms / s / 1.15
     d = _descriptor(feats, bank.match_mean, bank.match_std)
+    content, w = content_descriptor(feats), FINETUNE["pose_weight"]
     cands = [c for c in bank.clips if lo <= frames / min(c.frames, FINETUNE["max_frames"]) <= hi]
-    cands.sort(key=lambda c: (float(np.sum(((c.descriptor - d) / bank.desc_std) ** 2)), c.name))
+
+    def distance(c: NeutralClip) -> float:
+        pose = float(np.mean(((c.descriptor - d) / bank.desc_std) ** 2))
+        return float(np.sum((c.content - content) ** 2)) + w * pose
+
+    cands.sort(key=lambda c: (distance(c), c.name))
     return cands[:k]
 
 

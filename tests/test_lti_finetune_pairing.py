@@ -1,0 +1,66 @@
+"""LTI fine-tuning pairs an upload with neutral clips doing the same (issue 47): a straight walk
+with straight walks of similar pace, read from the motion, never from the upload's labels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.lti import finetune as ft
+from models.lti import representation as rep
+from models.lti.model import WEIGHTS_DIR, LTIStyleModel
+
+FPS = 30.0
+
+
+def _walk_features(frames: int, speed_cm: float, turn_deg_s: float, sway_deg: float) -> np.ndarray:
+    """Synthetic (F, 67) features: forward steps, a steady turn, a pelvis swing of one stride per
+    second (two steps) and a hips bob at two steps per second."""
+    t = np.arange(frames) / FPS
+    f = np.zeros((frames, rep.FEATURE_DIM))
+    f[1:, 1] = speed_cm / FPS
+    swing = np.radians(sway_deg) * np.sin(2 * np.pi * 1.0 * t)
+    f[1:, 2] = np.radians(turn_deg_s) / FPS + np.diff(swing)
+    f[:, 3] = 90.0 + 2.0 * np.cos(2 * np.pi * 2.0 * t)
+    return f
+
+
+def test_content_descriptor_reads_path_not_pelvis_swing() -> None:
+    straight = np.exp(ft.content_descriptor(_walk_features(240, 110.0, 0.0, 15.0)))
+    turning = np.exp(ft.content_descriptor(_walk_features(240, 110.0, 25.0, 0.0)))
+    assert straight[0] - 0.1 == pytest.approx(1.1, rel=0.02)  # m/s
+    assert straight[1] - 1.0 < 1.0  # a wide pelvis swing is no turn
+    assert turning[1] - 1.0 == pytest.approx(25.0, rel=0.1)
+    assert straight[2] - 0.5 == pytest.approx(2.0, abs=0.15)  # steps per second
+
+
+@pytest.fixture(scope="module")
+def bank_and_ref():
+    if not ft.data_available():
+        pytest.skip("Bandai Namco dataset 2 not available")
+    translators = LTIStyleModel(weights_dir=WEIGHTS_DIR, raised_arms=False).translators
+    ref = next(iter(translators.values())).ref
+    return ft.neutral_bank(np.ascontiguousarray(ref, dtype=np.float64).tobytes()), ref
+
+
+def test_real_walk_upload_pairs_with_straight_walks_of_similar_pace(bank_and_ref) -> None:
+    from models.data import build_index, load_motions, select
+
+    bank, ref = bank_and_ref
+    contents = {c.name: c.content for c in select(build_index(["bandai-namco-2"]), dataset="bandai-namco-2")}
+    walks = {c.name: c for c in bank.clips if contents[c.name] == "walk"}
+    d1 = sorted(
+        (c for c in select(build_index(["bandai-namco-1"]), dataset="bandai-namco-1") if c.content == "walk"),
+        key=lambda c: c.name,
+    )
+    # a slow, upright walk and a fast, wide one: posture far from neutral either way
+    uploads = [c for c in d1 if c.style in ("proud", "giant")][::2]
+    assert len(uploads) == 2
+    for clip, motion in zip(uploads, load_motions(uploads)):
+        feats = rep.motion_to_features(motion.slice(0, 240), ref)
+        paired = ft.nearest_neutral(bank, feats, int(ft.FINETUNE["pairs"]), len(feats))
+        assert [contents[c.name] for c in paired] == ["walk"] * len(paired), clip.name
+        speed = float(np.exp(ft.content_descriptor(feats)[0])) - 0.1
+        gaps = sorted(abs(np.exp(c.content[0]) - 0.1 - speed) for c in walks.values())
+        for c in paired:  # at most 0.1 m/s further in pace than the k closest-paced straight walks
+            assert abs(np.exp(c.content[0]) - 0.1 - speed) <= gaps[len(paired) - 1] + 0.1, (clip.name, c.name)
