@@ -223,14 +223,10 @@ class Runtime:
         self.resuming.add(snap.session_id)  # the caller registers it, then `resumed`; or `resume_failed`
         try:  # and against another replica's resume of it at the same moment (a shared store)
             claimed = await self.snapshots.claim(token, self.replica_id)
-        except StoreUnavailable:
-            claimed = None
+        except StoreUnavailable:  # a store this replica cannot reach: its own snapshot still resumes here
+            claimed = True
         if not claimed:
             self.resuming.discard(snap.session_id)
-            if claimed is None:
-                raise P.ProtocolError(
-                    "store_unavailable", "the session store cannot be reached; try again", close_code=1013
-                )
             raise P.ProtocolError("session_in_use", "that session is being resumed on another replica")
         return snap
 
