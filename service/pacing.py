@@ -10,7 +10,7 @@ favour on a busy machine, so a neighbour's frame also waits for the CPU. Pausing
 what the slice ran keeps one crowd to about a quarter of the loop's time while others want it, and
 the crowd's own client pays the wait. (`clients.hostile_bench`'s crowd fill, 712-character ticks,
 neighbour p99 / quiet p99 in three alternating pairs on the shared 2-core machine: pause = slice
-2.38, 2.24, 2.31; pause = 3x slice 1.57, 2.00, 1.72, the crowd answering 25-29 ticks in 6 s
+2.38, 2.24, 2.31; pause = 3x slice 1.57, 2.00, 1.72, the crowd answering 24-29 ticks in 6 s
 instead of 36-54.)
 """
 

@@ -168,7 +168,7 @@ def test_a_closing_crowd_stores_only_what_its_caller_may_keep(models):
 
 
 def test_a_large_crowds_periodic_snapshots_come_in_parts_all_from_one_tick(models):
-    """600 characters stored every 2 ticks, built 256 at a time after the tick (the loop free
+    """600 characters stored every 2 ticks, built in parts after the tick (the loop free
     between parts): every one carries the same tick's `last_seq`, and one that left meanwhile
     is not brought back."""
     with live_server(models, idle_timeout_s=30, snapshot_every=2) as (base, app):
