@@ -51,9 +51,9 @@ class Troupe:
     `service.rows.Rows`: a tick, join or leave costs in proportion to the rows it touches, not
     to the troupe (a leave moves the last rows into the freed places: `row_of` follows)."""
 
-    def __init__(self, model: StreamingModel, fps: float) -> None:
+    def __init__(self, model: StreamingModel, fps: float, reserve: int = 0) -> None:
         self.model, self.ratio, self.lag = model, model.fps / fps, rate.output_lag(model.fps, fps)
-        self._rows = Rows()
+        self._rows = Rows(reserve)  # room for the caller's character cap: a join never copies the troupe
         num_joints = model.skeleton.num_joints
         self.names = list(model.styles())  # what the weight columns stand for
         empty = {
@@ -209,14 +209,6 @@ class Troupe:
 
     def rows(self, ids: Sequence[int]) -> np.ndarray:
         return np.array([self.row_of[i] for i in ids], np.int64)
-
-    def frozen(self) -> Troupe:
-        """A copy of every row as it stands (for `Crowd.frozen`): its own arrays, same rows."""
-        copy = Troupe.__new__(Troupe)
-        copy.model, copy.ratio, copy.names = self.model, self.ratio, list(self.names)
-        copy._rows = Rows.adopt({key: self._rows.view(key).copy() for key in self._rows.keys()})
-        copy.row_of = dict(self.row_of)
-        return copy
 
     def reset(self, rows: np.ndarray) -> None:
         """Recurrent state back to its start (`Session.reset`, per row)."""
@@ -407,8 +399,8 @@ class TickResult:
 class Crowd:
     """The characters of one crowd connection, by model (troupes) and rig (groups)."""
 
-    def __init__(self, fps: float) -> None:
-        self.fps = fps
+    def __init__(self, fps: float, reserve: int = 0) -> None:
+        self.fps, self.reserve = fps, reserve  # reserve: rows each troupe has room for from the start
         self.characters: dict[int, Character] = {}
         self.troupes: dict[str, Troupe] = {}
         self.groups: dict[tuple, RigGroup] = {}
@@ -430,7 +422,7 @@ class Crowd:
         for name, members in by_model.items():
             troupe = self.troupes.get(name)
             if troupe is None:
-                troupe = self.troupes[name] = Troupe(members[0].model, self.fps)
+                troupe = self.troupes[name] = Troupe(members[0].model, self.fps, self.reserve)
                 opened.append(name)
             troupe.add([j.spec.id for j in members], [j.weights for j in members], [j.resumed for j in members])
             for j in members:
@@ -462,16 +454,6 @@ class Crowd:
         self.groups = {k: g for k, g in self.groups.items() if (g.model, id(g)) in used}
         self._plan = None
         return emptied
-
-    def frozen(self) -> Crowd:
-        """This crowd as it stands now, for snapshots built later in parts (`snapshots` on the
-        copy): every troupe's per-row arrays copied once (numpy copies, a few ms for thousands of
-        characters), the characters as they are. The live troupes step on in place meanwhile."""
-        copy = Crowd(self.fps)
-        copy.characters = dict(self.characters)
-        copy.answered = self.answered
-        copy.troupes = {name: troupe.frozen() for name, troupe in self.troupes.items()}
-        return copy
 
     def snapshots(self, owner: str, last_seq: int | None, ids: Sequence[int] | None = None) -> list[Snapshot]:
         """Each character (or those in `ids`) as a session snapshot under its own resume token:

@@ -16,6 +16,7 @@ keys, and batchers, session counts and snapshots go by those keys.
 from __future__ import annotations
 
 import asyncio
+import secrets
 import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable
@@ -97,6 +98,7 @@ class Runtime:
         self._characters_of: Counter[str] = Counter()  # by caller (`Principal.key`), against its own cap
         self.crowd_members: set[str] = set()  # the session ids of those characters (resumes check it)
         self.resuming: set[str] = set()  # session ids claimed by a resume not yet registered
+        self.replica_id = secrets.token_hex(8)  # this process, in a shared store's resume claims
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
         self.rig_builds = RigBuilds()  # rigs parsed and built off the event loop, per caller
         self.draining = False
@@ -219,6 +221,13 @@ class Runtime:
         ):
             raise P.ProtocolError("session_in_use", "that session is still connected")
         self.resuming.add(snap.session_id)  # the caller registers it, then `resumed`; or `resume_failed`
+        try:  # and against another replica's resume of it at the same moment (a shared store)
+            claimed = await self.snapshots.claim(token, self.replica_id)
+        except StoreUnavailable:  # a store this replica cannot reach: its own snapshot still resumes here
+            claimed = True
+        if not claimed:
+            self.resuming.discard(snap.session_id)
+            raise P.ProtocolError("session_in_use", "that session is being resumed on another replica")
         return snap
 
     def resumed(self, session_id: str) -> None:

@@ -27,7 +27,13 @@ from .sessions import Snapshot
 log = logging.getLogger(__name__)
 
 KEY_PREFIX = "stylestream:snapshot:"
+CLAIM_PREFIX = "stylestream:resuming:"
 WRITE_CHUNK = 64  # snapshots per Redis pipeline (`RedisStore.write`)
+# how long a resume's claim on its token holds the token against other replicas' resumes: two
+# resumes at once on two replicas both opened (each replica's in-use check sees only its own);
+# it expires rather than being released, so a replica killed right after a resume delays a
+# resume elsewhere by at most this (the SDK retries `session_in_use`)
+CLAIM_S = 5.0
 
 
 class StoreUnavailable(RuntimeError):
@@ -43,6 +49,12 @@ class SessionStore(ABC):
     @abstractmethod
     async def get(self, token: str) -> Snapshot | None:
         """The snapshot for `token`, None if unknown or expired; StoreUnavailable on failure."""
+
+    async def claim(self, token: str, holder: str) -> bool:
+        """Take `token` for a resume by `holder` (a replica) for CLAIM_S; False if another replica
+        took it within that time. One process's own resumes are checked by its runtime: a store
+        only it uses has nothing to add."""
+        return True
 
     @abstractmethod
     async def write(self, puts: dict[str, Snapshot], deletes: list[str]) -> None:
@@ -110,6 +122,16 @@ class RedisStore(SessionStore):
         except (ValueError, TypeError, KeyError) as exc:  # damaged, or another program's value under our key
             log.warning("unreadable session snapshot under token %s…, taken as unknown: %s", token[:8], exc)
             return None
+
+    async def claim(self, token: str, holder: str) -> bool:
+        """`SET NX` of a claim key: of two replicas resuming one token at once, one gets it."""
+        from redis.exceptions import RedisError
+
+        try:
+            taken = await self.redis.set(CLAIM_PREFIX + token, holder, nx=True, px=int(CLAIM_S * 1000))
+            return bool(taken) or (await self.redis.get(CLAIM_PREFIX + token)) == holder.encode()
+        except (RedisError, OSError) as exc:
+            raise StoreUnavailable(f"session store {self.url}: {exc}") from exc
 
     async def write(self, puts: dict[str, Snapshot], deletes: list[str]) -> None:
         from redis.exceptions import RedisError
@@ -202,6 +224,9 @@ class SnapshotWriter:
         if entry is not None:
             return entry.snapshot
         return await self.store.get(token)
+
+    async def claim(self, token: str, holder: str) -> bool:
+        return await self.store.claim(token, holder)
 
     async def flush(self, timeout_s: float) -> bool:
         """Wait until everything queued so far is written; False if that took over `timeout_s`

@@ -171,7 +171,7 @@ def test_a_failing_session_processor_ends_the_session_with_a_typed_error(server,
 
 
 def test_a_large_join_goes_in_parts_and_every_character_answers(server, style):
-    """A join of 600 characters is added 256 at a time (other connections run between parts);
+    """A join of 600 characters is added in parts, paced (other connections run between parts);
     a tick of all of them is answered for each, on every part's rows."""
     base, _ = server
     with connect(ws_url(base), max_size=None) as ws:

@@ -168,7 +168,7 @@ def test_a_closing_crowd_stores_only_what_its_caller_may_keep(models):
 
 
 def test_a_large_crowds_periodic_snapshots_come_in_parts_all_from_one_tick(models):
-    """600 characters stored every 2 ticks, built 256 at a time after the tick (the loop free
+    """600 characters stored every 2 ticks, built in parts after the tick (the loop free
     between parts): every one carries the same tick's `last_seq`, and one that left meanwhile
     is not brought back."""
     with live_server(models, idle_timeout_s=30, snapshot_every=2) as (base, app):
@@ -201,3 +201,39 @@ def test_a_large_crowds_periodic_snapshots_come_in_parts_all_from_one_tick(model
             later = {min(first) + 2}  # the next period's tick
             wait_until(lambda: set(stored_seqs(tokens[:599])) == later, "the next period's snapshots", timeout=30)
             assert stored_seqs(tokens[599:]) == [None]  # left for good: not stored again
+
+
+async def _resume_on_each(bases: list[str], token: str) -> list[str]:
+    """`token` resumed as a session at the same moment on each server, both connections held
+    open until both are answered: each one's outcome."""
+    opening = json.dumps({"type": "start", "model": "lti", "resume_token": token})
+    async with websockets.connect(ws_url(bases[0])) as a, websockets.connect(ws_url(bases[1])) as b:
+        await asyncio.gather(a.send(opening), b.send(opening))
+        replies = [json.loads(r) for r in await asyncio.gather(*(asyncio.wait_for(ws.recv(), 30) for ws in (a, b)))]
+        return sorted("resumed" if r["type"] == "started" else r["code"] for r in replies)
+
+
+def test_two_replicas_on_one_redis_give_a_token_resumed_on_both_at_once_to_one(models, tmp_path):
+    """Two servers sharing a Redis store (two replicas): a token resumed on both at the same
+    moment opens on one of them; the other is told `session_in_use` (each server's own in-use
+    check saw nothing of the other's: both opened, and two sessions stepped one state)."""
+    require("redis-server")
+    with (
+        redis_server(tmp_path) as url,
+        live_server(models, idle_timeout_s=30, session_store=url) as (a, app_a),
+        live_server(models, idle_timeout_s=30, session_store=url) as (b, app_b),
+    ):
+        token = session_token(a, 3)
+        for _ in range(3):
+            for runtime in (app_a.state.runtime, app_b.state.runtime):
+                stored(runtime)
+            wait_until(lambda: not app_a.state.runtime.snapshots._pending, "the snapshot written to Redis")
+            assert asyncio.run(_resume_on_each([a, b], token)) == ["resumed", "session_in_use"]
+        for runtime in (app_a.state.runtime, app_b.state.runtime):
+            stored(runtime)
+        replies: list[dict] = []  # on either replica once the winner's claim has lapsed (CLAIM_S)
+        wait_until(
+            lambda: replies.append(resume_session(b, token)) or replies[-1].get("code") != "session_in_use",
+            "the winner's claim to lapse",
+        )
+        assert (replies[-1]["type"], replies[-1]["last_seq"]) == ("started", 2), replies[-1]

@@ -9,6 +9,7 @@ import threading
 from pathlib import Path
 
 from models.motion.assets import bandai_namco_skeleton
+from service import protocol as P
 from service.rig_builds import RigBuilds
 
 from .test_rig_limits import with_offsets
@@ -53,3 +54,25 @@ def test_a_rig_seen_before_is_answered_without_a_thread():
         assert await builds.adapter("b", None, RIG, bn) is first and builds.built == 1
 
     asyncio.run(scenario())
+
+
+def test_a_rig_refused_before_is_refused_again_without_a_thread():
+    """The same bad rig sent again (a start, a join, over and over) is not parsed again: its
+    typed error comes from the dict, each time a copy of its own."""
+    bad = with_offsets(RIG, r"Spine$", "1e308 0 0")
+
+    async def scenario() -> list[P.ProtocolError]:
+        builds = RigBuilds()
+        bn = bandai_namco_skeleton()
+        errors = []
+        for caller in ("a", "a", "b"):
+            try:
+                await builds.adapter(caller, None, bad, bn)
+            except P.ProtocolError as err:
+                errors.append(err)
+        assert builds.built == 1
+        return errors
+
+    errors = asyncio.run(scenario())
+    assert [e.code for e in errors] == ["bad_skeleton"] * 3 and "not finite" in errors[0].message
+    assert len({id(e) for e in errors}) == 3 and len({e.message for e in errors}) == 1
