@@ -362,7 +362,9 @@ class CrowdCore:
                 expired = [e["id"] for e in reply["errors"] if e["code"] == "unknown_resume_token"]
                 if expired:  # the store forgot them: they start over with their first settings
                     rejoined = yield from self._rejoin(expired)
-                    reply["characters"] += rejoined["characters"]
+                    offset = len(reply["rigs"])  # the rejoin's rig indices count in its own reply
+                    reply["characters"] += [{**c, "rig": c["rig"] + offset} for c in rejoined["characters"]]
+                    reply["rigs"] += rejoined["rigs"]
                     reply["errors"] = [e for e in reply["errors"] if e["id"] not in expired] + rejoined["errors"]
                 self.crowd_id = reply["crowd_id"]
                 back = {c["id"] for c in reply["characters"]}

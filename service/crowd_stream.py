@@ -178,6 +178,7 @@ class CrowdConnection(Socket):
             for i in part:  # a resume of these finds `session_in_use` until here, then the snapshot just queued
                 character = self.crowd.characters[i]
                 self.rt.crowd_members.discard(character.session_id)
+                self.rt.closing.discard(character.token)
                 if i not in kept:
                     self.rt.character_ended(self.who.id, character.token)
             for name in self.crowd.remove(part):
@@ -193,6 +194,8 @@ class CrowdConnection(Socket):
         self.log.info("crowd closed with %d characters", len(self.crowd))
         if self.rt.connections.get(self.id) is self:
             del self.rt.connections[self.id]
+        # until each is stored (or ended), a resume of its token is told to try again, not that it is unknown
+        self.rt.closing.update(c.token for c in self.crowd.characters.values())
         closing = asyncio.get_running_loop().create_task(self._close())
         _closing.add(closing)
         closing.add_done_callback(_closing.discard)
@@ -202,6 +205,7 @@ class CrowdConnection(Socket):
         try:
             await self.leave(list(self.crowd.characters), resumable=not self.ended)
         finally:
+            self.rt.closing.difference_update(c.token for c in self.crowd.characters.values())  # any left
             self.rt.crowd_closed()
         if large:  # its arrays went back to the heap: hand the pages to the system (off the loop)
             await in_background(release_freed_memory)

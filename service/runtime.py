@@ -98,6 +98,7 @@ class Runtime:
         self._characters_of: Counter[str] = Counter()  # by caller (`Principal.key`), against its own cap
         self.crowd_members: set[str] = set()  # the session ids of those characters (resumes check it)
         self.resuming: set[str] = set()  # session ids claimed by a resume not yet registered
+        self.closing: set[str] = set()  # resume tokens of crowd characters whose connection is being closed
         self.replica_id = secrets.token_hex(8)  # this process, in a shared store's resume claims
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
         self.rig_builds = RigBuilds()  # rigs parsed and built off the event loop, per caller
@@ -201,6 +202,8 @@ class Runtime:
         """The snapshot `token` names, if `who` may take it up here (a session's, or a crowd
         character's: either resumes as either); a snapshot another tenant opened is, to them, as
         unknown as an expired one."""
+        if token in self.closing:  # its closing crowd has not stored it yet: neither gone nor resumable
+            raise P.ProtocolError("session_in_use", "that session's connection is still closing; try again")
         try:
             snap = await self.snapshots.get(token)
         except StoreUnavailable:

@@ -266,6 +266,31 @@ def test_a_crowd_comes_back_by_itself_when_its_connection_drops(models, walks):
         assert np.array_equal(g, w), t
 
 
+def test_characters_the_store_forgot_start_over_after_a_drop(models, walks):
+    """The connection drops and the server no longer knows the characters' tokens: the reconnect
+    rejoins them fresh, and the next tick answers for both (each with its own rig's frame)."""
+    lti = models["lti"].styles()
+    chars = [Character(0, "lti", lti[2]), Character(1, "erd", models["erd"].styles()[1])]
+    with live_server(models, idle_timeout_s=30) as (base, _), Client(base, timeout=30) as client:
+        with client.crowd(chars, fps=FPS, reconnect_timeout=10) as crowd:
+            for t in range(4):
+                crowd.tick(
+                    [0, 1],
+                    np.stack([w.translations[t, 1] for w in walks[:2]]),
+                    np.stack([w.rotations[t] for w in walks[:2]]),
+                )
+            for i in (0, 1):
+                crowd.core.resume_tokens[i] = f"forgotten-{i}-" + "x" * 20  # as if they had expired
+            crowd.io.ws.close()
+            reply = crowd.tick(
+                [0, 1],
+                np.stack([w.translations[4, 1] for w in walks[:2]]),
+                np.stack([w.rotations[4] for w in walks[:2]]),
+            )
+            assert crowd.reconnects == 1 and crowd.last_reconnect.fresh == [0, 1]
+            assert all(np.isfinite(reply.frame(i)[1]).all() for i in (0, 1))
+
+
 def test_controller_ticks_drive_each_lpn_character_as_its_own_session(server, models):
     """Controller ticks (kind 3): LPN-FiLM characters in a crowd synthesise from the desired
     motion exactly as a session does from `control` messages; a character of a model that is no
