@@ -59,13 +59,15 @@ def cmd_translate(args) -> None:
 
 def cmd_bench(args) -> None:
     """Per-frame cost of `step_batch` at batch 1 and 256, with the threads capped (1 = as the
-    service runs): every stage on (as shipped), against the published core alone (`load(...,
+    service runs): every stage on (as the service loads it, the unseen-content fade last), the same
+    without the fade, against the published core alone (`load(...,
     core_only=True)`: the translators and the foot planter), and the foot lock off. The machines
     are shared and noisy, so the variants are timed interleaved, step by step, in one run, with
     the paper's one dense [[A, B], [C, D]] @ [x; u] product of the same batch in numpy as a
     floor; the medians' ratios are what compares across runs."""
     from models.data import build_index, load_motion, select
     from models.interface import FrameBatch
+    from models.registry import load_model
     from models.stepbench import capped_threads, stepper
 
     from . import load
@@ -73,12 +75,17 @@ def cmd_bench(args) -> None:
 
     clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
     motion = load_motion(clip)
+    folder = Path(args.weights)
+    shipped_model = load_model(folder.parent, "lti")  # the weights root, as the service reads it
+    assert shipped_model is not None, f"no LTI weights in {folder}"
     variants = {
-        "shipped": load(Path(args.weights)),
-        "core alone": load(Path(args.weights), core_only=True),
-        "foot lock off": LTIStyleModel(weights_dir=Path(args.weights), footlock=False),
+        "shipped": shipped_model,  # with the unseen-content fade, as the service loads it
+        "without the fade": load(folder),
+        "core alone": load(folder, core_only=True),
+        "foot lock off": LTIStyleModel(weights_dir=folder, footlock=False),
     }
-    shipped = variants["shipped"]
+    shipped = variants["without the fade"]
+    assert isinstance(shipped, LTIStyleModel)
     style = args.style or ("elderly" if "elderly" in shipped.styles() else shipped.styles()[0])
     tr = shipped.translators[style]
     M_T = np.ascontiguousarray(tr.M.T)
