@@ -154,11 +154,18 @@ def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, .
                         "coverage": {ds: float(np.mean(v)) for ds, v in cov.items()},
                         "clips": {ds: len(v) for ds, v in cov.items()},
                         "share_of_copy": share,
-                        "passes": bool(copy < CLEAR_COPY or share >= PASS_SHARE),
+                        "passes": None if copy < CLEAR_COPY else bool(share >= PASS_SHARE),  # None: not scorable
                         "make_seconds": round(seconds, 1),
                     }
                 )
     return rows
+
+
+def verdict(row: dict) -> str:
+    """yes / no, or why the row cannot be scored: a copy of the clip is not clearly closer than normal."""
+    if row["copy"] < CLEAR_COPY:
+        return "– (the clip itself is not closer)"
+    return "yes" if row["passes"] else "no"
 
 
 def table(rows: list[dict]) -> list[str]:
@@ -173,7 +180,7 @@ def table(rows: list[dict]) -> list[str]:
         c = r["coverage"]
         lines.append(
             f"| {r['method']} | {r['variant']} | {r['style']} | {r['copy']:.2f} | {c[D2]:.2f} ({r['clips'][D2]}) "
-            f"| {c[D1]:.2f} ({r['clips'][D1]}) | {r['share_of_copy']:.0%} | {'yes' if r['passes'] else 'no'} |"
+            f"| {c[D1]:.2f} ({r['clips'][D1]}) | {r['share_of_copy']:.0%} | {verdict(r)} |"
         )
     return lines
 
