@@ -19,12 +19,13 @@ METHODS = ("lti", "erd", "lpn")
 log = logging.getLogger(__name__)
 
 
-def load_models(weights_dir: Path, core_only: bool = False) -> dict[str, StreamingModel]:
+def load_models(weights_dir: Path, core_only: bool = False, novelty: bool = True) -> dict[str, StreamingModel]:
     """Every committed method; `core_only`: each one's published core alone, without the fitted
-    stages after it (what the evaluation's core-alone rows score)."""
+    stages after it (what the evaluation's core-alone rows score); `novelty` False: the shipped
+    pipelines without their last stage, the unseen-content fade."""
     models: dict[str, StreamingModel] = {}
     for method in METHODS:
-        model = load_model(weights_dir, method, core_only)
+        model = load_model(weights_dir, method, core_only, novelty)
         if model is not None:
             models[method] = model
             log.info("loaded model %s with styles %s", method, model.styles())

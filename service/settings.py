@@ -41,6 +41,12 @@ class ServiceSettings(Settings):
         description="Also serve each method's published core alone (a session's `pipeline: core`); "
         "measured cost: ~0.3 s of start-up and ~35 MB beside the shipped pipelines (python -m clients.pipeline_cost).",
     )
+    unseen_fade: bool = Field(
+        default=True,
+        description="End every shipped pipeline in the unseen-content fade (models/motion/novelty.py): input far from "
+        "what a method trained on keeps its content instead of being styled. Off: the style is applied to every frame "
+        "(it fades on much of other performers' captures: see docs/evaluation.md, 'faded').",
+    )
     batch_wait_ms: float = Field(
         default=1.0, ge=0, le=50, description="How long a batch waits for more sessions' frames."
     )

@@ -27,7 +27,7 @@ from models.motion.novelty_kernels import fade_step
 from models.motion.novelty_stage import KEYS, faded
 from models.motion.retarget import retarget
 from models.motion.rotations import quat_angle, quat_exp, quat_inv, quat_log, quat_mul
-from models.registry import METHODS, load_model
+from models.registry import METHODS, load_model, load_models
 from models.settings import get_settings
 
 WEIGHTS = get_settings().weights_dir
@@ -160,3 +160,13 @@ def test_an_old_snapshot_gets_a_fresh_fade():
 def test_the_core_has_no_fade():
     core = load_model(WEIGHTS, "lti", core_only=True)
     assert not any(k in core.init_state(1) for k in KEYS)
+
+
+def test_the_service_can_switch_the_fade_off():
+    """`STYLESTREAM_UNSEEN_FADE=false` loads the shipped pipelines without their last stage."""
+    from service.settings import ServiceSettings
+
+    assert ServiceSettings().unseen_fade and not ServiceSettings(unseen_fade=False).unseen_fade
+    shipped = load_models(WEIGHTS)["lti"].init_state(1)
+    without = load_models(WEIGHTS, novelty=False)["lti"].init_state(1)
+    assert all(k in shipped for k in KEYS) and not any(k in without for k in KEYS)
