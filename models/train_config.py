@@ -6,7 +6,11 @@ drifted: `--flag=false` set a bool to True)."""
 from __future__ import annotations
 
 from dataclasses import fields
-from typing import TypeVar
+from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
+
+if TYPE_CHECKING:
+    import torch
 
 T = TypeVar("T")
 
@@ -33,3 +37,17 @@ def parse_overrides(config: T, argv: list[str]) -> T:
         except ValueError:
             raise SystemExit(f"option {key!r} takes a {kind.__name__}, not {value!r}") from None
     return config
+
+
+def use_bf16(setting: str, device: torch.device) -> bool:
+    """A trainer's `bf16` setting: whether to autocast to bfloat16; "auto" where it is native
+    (CUDA; avx512_bf16 or AMX CPUs)."""
+    if setting != "auto":
+        return setting.lower() in ("1", "true", "yes", "on")
+    if device.type == "cuda":
+        return True
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return " avx512_bf16" in flags or " amx_bf16" in flags

@@ -26,8 +26,9 @@ def test_coverage_is_zero_for_the_input_and_positive_for_a_real_clip_of_the_styl
     upload, *others = load_motions(giant)
     neutral = load_motions([c for c in d1 if c.style == "normal" and c.content == "walk"])
     target = np.mean([ruler.z(m) for m in others], axis=0) - ruler.centre[D1]
-    assert all(ruler.coverage(n, n, D1, target) == 0.0 for n in neutral)
-    assert min(ruler.coverage(upload, n, D1, target) for n in neutral) > 0.3
+    starts = [ruler.z(n) for n in neutral]
+    assert all(ruler.coverage(z, z, D1, target) == 0.0 for z in starts)
+    assert min(ruler.coverage(ruler.z(upload), z, D1, target) for z in starts) > 0.3
 
 
 def test_a_style_is_held_out_only_where_no_style_was_trained_on_it():

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from ..runlog import start_run
 from ..settings import REPO_ROOT
-from ..train_config import parse_overrides
+from ..train_config import parse_overrides, use_bf16
 
 
 @dataclass
@@ -384,19 +384,6 @@ class Schedule:
 
     def factor(self, it: int) -> float:
         return self.decay_to + (1 - self.decay_to) * 0.5 * (1 + math.cos(math.pi * self.progress(it)))
-
-
-def use_bf16(setting: str, device: torch.device) -> bool:
-    """Whether to autocast to bfloat16: "auto" where it is native (CUDA; avx512_bf16 or AMX CPUs)."""
-    if setting != "auto":
-        return setting.lower() in ("1", "true", "yes", "on")
-    if device.type == "cuda":
-        return True
-    try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    return " avx512_bf16" in flags or " amx_bf16" in flags
 
 
 def rng_state(sampler_rng: np.random.Generator) -> dict:

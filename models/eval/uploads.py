@@ -61,11 +61,11 @@ class Ruler:
     def z(self, motion: Motion) -> np.ndarray:
         return clip_vector(motion) / self.scale
 
-    def coverage(self, out: Motion, start: Motion, dataset: str, target: np.ndarray) -> float:
-        """Share of the way from `start` (a neutral walk of `dataset`) to the style, `target` being
-        the style's displacement from dataset 1's normal."""
+    def coverage(self, out: np.ndarray, start: np.ndarray, dataset: str, target: np.ndarray) -> float:
+        """Share of the way from `start` (the `z` of a neutral walk of `dataset`) to the style for
+        an output whose `z` is `out`, `target` being the style's displacement from dataset 1's normal."""
         goal = self.centre[dataset] + target
-        return float(1.0 - np.linalg.norm(self.z(out) - goal) / np.linalg.norm(self.z(start) - goal))
+        return float(1.0 - np.linalg.norm(out - goal) / np.linalg.norm(start - goal))
 
 
 def fit_ruler(index) -> Ruler:
@@ -119,6 +119,7 @@ def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, .
     index = build_index([D1, D2])
     ruler = fit_ruler(index)
     inputs = neutral_inputs(index, split)
+    starts = {ds: [ruler.z(m) for m in motions] for ds, motions in inputs.items()}  # each input read once
     rows = []
     for style in styles:
         walks = [c for c in select(index, dataset=D1, style=style) if c.content in REFERENCE_CONTENTS]
@@ -126,7 +127,7 @@ def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, .
         reference = [c for c in walks if c.name != upload.name]
         clip, *others = load_motions([upload, *reference])
         target = np.mean([ruler.z(m) for m in others], axis=0) - ruler.centre[D1]
-        copy = float(np.mean([ruler.coverage(clip, n, D1, target) for n in inputs[D1]]))
+        copy = float(np.mean([ruler.coverage(ruler.z(clip), n, D1, target) for n in starts[D1]]))
         for method, model in models.items():
             if style not in held_out_styles(model, styles):
                 continue
@@ -139,8 +140,8 @@ def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, .
             for variant, styled in variants.items():
                 cov = {
                     ds: [
-                        ruler.coverage(out, start, ds, target)
-                        for out, start in zip(stylise_toward(styled, motions, ["upload"])["upload"], motions)
+                        ruler.coverage(ruler.z(out), start, ds, target)
+                        for out, start in zip(stylise_toward(styled, motions, ["upload"])["upload"], starts[ds])
                     ]
                     for ds, motions in inputs.items()
                 }

@@ -316,8 +316,8 @@ def pack(
         index[k, 2 : 2 + value.ndim] = value.shape
         sizes[kind[0]] += value.size
     flat: list[np.ndarray] = [np.empty(sizes[c], dtypes[c]) for c in "fib"]
-    for value, kind, (at, size) in zip(fields, kinds, index[:, :2]):
-        if copy:
+    if copy:
+        for value, kind, (at, size) in zip(fields, kinds, index[:, :2]):
             flat["fib".index(kind[0])][at : at + size] = value.ravel()
     return flat[0], flat[1], flat[2], index
 
