@@ -118,7 +118,7 @@ def test_a_bvh_upload_is_fine_tuned_followed_to_the_end_used_and_deleted(base, i
         assert err.value.status == 404
 
 
-def test_add_style_follows_every_job_and_reports_each_models_answer(base, index):
+def test_add_style_follows_every_job_and_reports_each_models_answer(base, index, bn_walk):
     """One call uploads to several models and follows every job to the end: Style-ERD's style is
     live when its upload returns, LTI's when its identification job ends."""
     clip = select(index, dataset="bandai-namco-1", style="proud", content="walk")[0]
@@ -134,6 +134,10 @@ def test_add_style_follows_every_job_and_reports_each_models_answer(base, index)
         assert last.keys() == {"lti", "erd"} and all(j.status == "done" for j in last.values())
         assert erd.error is None and erd.style is not None and erd.style.status == "ready"
         assert erd.live_s is not None and erd.done_s is not None and 0 < erd.live_s <= erd.done_s
+        root, rot = bn_walk.translations[:10, 1], bn_walk.rotations[:10]
+        with client.session(model="erd", style="sdk-proud") as session:  # the fitted branch streams
+            frames = [session.stylise(root[t], rot[t]) for t in range(10)]
+        assert all(np.isfinite(f.rotations).all() for f in frames)
         client.delete_style("lti.sdk-proud")
         client.delete_style("erd.sdk-proud")
 

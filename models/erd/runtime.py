@@ -10,6 +10,7 @@ State per session (every entry has the session axis first):
     h, c                       (B, 7, layers, H)        LSTM states of the 7 branches: the neutral
                                                         one, then one residual branch per target
                                                         style (in `styles()` order); network dtype
+    h.<name>, c.<name>         (B, layers, H)           the same for each uploaded style (`uploads.py`)
     prev_pos (B, 22, 3), prev_yaw (B,)                  previous input frame (causal velocities)
     gait_speed (B,)                                     the input's averaged Hips speed (`gait.py`)
     slow_in, slow_out (B, 22, 4)                        slowly following copies of the input's and
