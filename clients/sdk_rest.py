@@ -131,7 +131,7 @@ def add_style(
 ) -> Steps[dict[str, AddedStyle]]:
     """Upload one clip as style `name` to each of `model_names` (None: every model the server has),
     then follow every job at once, so each style's `live_s` is when it could first be streamed.
-    A model that refuses the clip (Style-ERD: `uploads_unsupported`) is an outcome, not a raise."""
+    A model that refuses the clip (a bad clip, no training data for a job) is an outcome, not a raise."""
     names = model_names if model_names is not None else [m.name for m in (yield from models())]
     t0 = time.monotonic()
     added: dict[str, AddedStyle] = {}

@@ -32,10 +32,10 @@ classes at the end of this module (the service checks `isinstance`, never probes
                     (a model with a style set of its own). LTI: a StyleTranslator identified from
                     the clip; LPN-FiLM: a FiLM vector from its fine-tuned generator.
     ClipStyles      also a style from a clip at once (LPN-FiLM: the FiLM generator's embedding of
-                    the clip), which a fine-tuning job may then replace.
+                    the clip; Style-ERD: the nearest trained branch with stages fitted from the
+                    clip), which a fine-tuning job may then replace.
 
-Style-ERD has neither: its styles are trained branches. The service calls every style change on
-the model-step worker thread, between steps.
+The service calls every style change on the model-step worker thread, between steps.
 """
 
 from __future__ import annotations

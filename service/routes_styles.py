@@ -154,7 +154,8 @@ async def upload_style(
     `fine_tune=true`, which starts the identification job (`GET /v1/jobs/{id}`), answered 202;
     an LPN-FiLM style is the clip's FiLM embedding, ready at once, answered 201, with
     `fine_tune=true` also a job that fine-tunes the FiLM generator on the clip and then
-    swaps in the tuned FiLM vector."""
+    swaps in the tuned FiLM vector. A Style-ERD style is ready at once too (the nearest trained
+    branch, stages fitted from the clip); its job fits a residual branch of its own."""
     body = await _read_limited(request, who.limits.upload_max_bytes)
     ctype = request.headers.get("content-type", "")
     kind: Upload

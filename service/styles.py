@@ -7,7 +7,7 @@ store knows nothing else of the methods. An uploaded clip (already on the model 
 own saved parameters, style.json, and job.json, the record of its fine-tuning job) and turned
 into a style:
 
-- a `ClipStyles` model (LPN-FiLM) makes one from the clip at once (`style_from_clip`, on a worker
+- a `ClipStyles` model (LPN-FiLM, Style-ERD) makes one from the clip at once (`style_from_clip`, on a worker
   thread beside the model's steps; only `install_style` runs between them); with
   `fine_tune` a job also fine-tunes (`fine_tune_style`) and, if that gives better parameters,
   swaps them in (`install_style`) and saves them, so a restart keeps them;

@@ -118,9 +118,9 @@ def test_a_bvh_upload_is_fine_tuned_followed_to_the_end_used_and_deleted(base, i
         assert err.value.status == 404
 
 
-def test_add_style_follows_every_job_and_reports_each_models_answer(base, index):
-    """One call uploads to several models: LTI's identification job is followed to the end, and
-    Style-ERD's refusal is its outcome, not a raise."""
+def test_add_style_follows_every_job_and_reports_each_models_answer(base, index, bn_walk):
+    """One call uploads to several models and follows every job to the end: Style-ERD's style is
+    live when its upload returns, LTI's when its identification job ends."""
     clip = select(index, dataset="bandai-namco-1", style="proud", content="walk")[0]
     seen: list[tuple[str, JobInfo]] = []
     with Client(base) as client:
@@ -130,9 +130,16 @@ def test_add_style_follows_every_job_and_reports_each_models_answer(base, index)
         lti, erd = added["lti"], added["erd"]
         assert lti.error is None and lti.style is not None and lti.style.status == "ready"
         assert lti.live_s is not None and lti.done_s is not None and 0 < lti.live_s <= lti.done_s
-        assert seen and {m for m, _ in seen} == {"lti"} and seen[-1][1].status == "done"
-        assert erd.style is None and isinstance(erd.error, ServerError) and erd.error.code == "uploads_unsupported"
+        last = dict(seen)  # each model's last report
+        assert last.keys() == {"lti", "erd"} and all(j.status == "done" for j in last.values())
+        assert erd.error is None and erd.style is not None and erd.style.status == "ready"
+        assert erd.live_s is not None and erd.done_s is not None and 0 < erd.live_s <= erd.done_s
+        root, rot = bn_walk.translations[:10, 1], bn_walk.rotations[:10]
+        with client.session(model="erd", style="sdk-proud") as session:  # the fitted branch streams
+            frames = [session.stylise(root[t], rot[t]) for t in range(10)]
+        assert all(np.isfinite(f.rotations).all() for f in frames)
         client.delete_style("lti.sdk-proud")
+        client.delete_style("erd.sdk-proud")
 
 
 def test_styles_add_on_the_command_line_says_when_each_style_went_live(base, index, capsys):
@@ -143,11 +150,15 @@ def test_styles_add_on_the_command_line_says_when_each_style_went_live(base, ind
         == 0
     )
     assert re.search(r"^lpn  lpn\.cli-proud: ready, live after \d+\.\d s$", capsys.readouterr().out, re.M)
-    assert cli_main(["styles", "add", str(clip.path), "--name", "cli-proud", "--model", "erd", *server]) == 1
-    assert "erd  refused: uploads_unsupported" in capsys.readouterr().out
+    assert (
+        cli_main(["styles", "add", str(clip.path), "--name", "cli-proud", "--model", "erd", "--no-fine-tune", *server])
+        == 0
+    )
+    assert re.search(r"^erd  erd\.cli-proud: ready, live after \d+\.\d s$", capsys.readouterr().out, re.M)
     assert cli_main(["styles", "list", "--model", "lpn", *server]) == 0
     assert re.search(r"^lpn\.cli-proud +uploaded +ready$", capsys.readouterr().out, re.M)
     assert cli_main(["styles", "rm", "lpn.cli-proud", *server]) == 0
+    assert cli_main(["styles", "rm", "erd.cli-proud", *server]) == 0
     with Client(base) as client:
         assert "lpn.cli-proud" not in {s.id for s in client.styles()}
 

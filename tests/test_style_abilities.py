@@ -20,8 +20,8 @@ def models():
 def test_each_method_declares_what_it_can_do_with_uploaded_clips(models):
     assert isinstance(models["lti"], UploadedStyles) and not isinstance(models["lti"], ClipStyles)
     assert isinstance(models["lpn"], ClipStyles)
-    assert not isinstance(models["erd"], UploadedStyles)  # its styles are trained branches
-    assert own_style_set(models["erd"]) is models["erd"]
+    assert isinstance(models["erd"], ClipStyles)  # a clip gives a branch, code and stages at once
+    assert own_style_set(models["erd"]) is not models["erd"]
     assert [m.controllable for m in (models["lti"], models["erd"], models["lpn"])] == [False, False, True]
 
 

@@ -5,6 +5,7 @@ the same way for every style:
     .venv/bin/python -m models.erd.rotation_prior runs   # the run priors alone
     .venv/bin/python -m models.erd.rotation_prior twists # the arms' twist range alone (`twist_range.py`)
     .venv/bin/python -m models.erd.rotation_prior hinges # the decoding's hinge joints (`models.motion.hinge`)
+    .venv/bin/python -m models.erd.rotation_prior sources # what uploads' stages carry from (`upload_stages.py`)
 
 1. **Twists and leaves** (`leaf_prior.npz`). The decoder is trusted only for where bones point
    (`models.motion.twist.transfer_twist`): a bone's twist about itself and the head, hands and
@@ -195,6 +196,10 @@ def main(argv: list[str]) -> None:
         real = real_rotations(runs=True)
         print(fit_leaf_prior(real).save(folder / RUN_LEAF_FILE))
         print(fit_output_prior(load(folder), real, runs=True).save(folder / RUN_OUTPUT_FILE))
+    if what in ("all", "sources"):
+        from .upload_stages import SOURCES_FILE, fit_sources
+
+        print(fit_sources(load(folder)).save(folder / SOURCES_FILE))
 
 
 if __name__ == "__main__":

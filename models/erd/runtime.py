@@ -10,6 +10,7 @@ State per session (every entry has the session axis first):
     h, c                       (B, 7, layers, H)        LSTM states of the 7 branches: the neutral
                                                         one, then one residual branch per target
                                                         style (in `styles()` order); network dtype
+    h.<name>, c.<name>         (B, layers, H)           the same for each uploaded style (`uploads.py`)
     prev_pos (B, 22, 3), prev_yaw (B,)                  previous input frame (causal velocities)
     gait_speed (B,)                                     the input's averaged Hips speed (`gait.py`)
     slow_in, slow_out (B, 22, 4)                        slowly following copies of the input's and
@@ -79,6 +80,7 @@ from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
 from .rotation_prior import PRIOR_FILES
 from .slow_carry import carry_slow
 from .twist_range import TWIST_FILE, TwistRange
+from .uploads import BuiltIn, ERDStyles, Upload
 
 WEIGHTS_FILE = "erd.npz"
 NEWER_KEYS = ("gait_speed", "slow_in", "slow_out")  # state entries snapshots from older replicas may lack
@@ -94,7 +96,7 @@ def _sigmoid_(a: np.ndarray) -> np.ndarray:
     return a
 
 
-class ERDModel:
+class ERDModel(ERDStyles):
     """Style-ERD behind the streaming interface. `dtype` is the network's arithmetic: float32 by
     default (the weights were trained in float32; float32 matrix products and gate
     nonlinearities run ~2x and ~4x faster than float64, which is what lets 256 batched sessions
@@ -147,7 +149,12 @@ class ERDModel:
             )
         self.branches = ("neutral",) + tuple(TARGET_STYLES)  # branch 0 is the neutral one, weight 1
         self._scratch = threading.local()  # per thread: LSTM buffers reused between steps (`_workspace`)
+        self._lock = threading.Lock()
+        self.weights_dir: Path | None = None  # where `load` read it (an upload's stage sources live there)
         self._prepare_weights()
+        self.built_in = BuiltIn(self.lstm_w, self.lstm_b, self.priors)
+        self.uploads: tuple[Upload, ...] = ()  # uploaded styles, after the trained ones (`uploads.py`)
+        self.codes: np.ndarray | None = None  # (styles, 6) the decoder's style code per style; None: one-hot
         self._compile_step()
 
     def _compile_step(self) -> None:
@@ -202,7 +209,7 @@ class ERDModel:
     # ------------------------------------------------------------------ interface
 
     def styles(self) -> list[str]:
-        return list(TARGET_STYLES)
+        return list(self.branches[1:])
 
     def contents(self) -> list[str]:
         return list(CONTENTS)
@@ -215,6 +222,7 @@ class ERDModel:
         h0 = np.concatenate([self.p["neutral_h0"][row][None], self.p["style_h0"]]).astype(self.dtype)  # (7, layers, H)
         c0 = np.concatenate([self.p["neutral_c0"][row][None], self.p["style_c0"]]).astype(self.dtype)
         state: State = {"h": np.repeat(h0[None], batch, 0), "c": np.repeat(c0[None], batch, 0)}
+        state.update(self._upload_states(batch))
         state.update(
             prev_pos=np.zeros((batch, 22, 3)),
             prev_yaw=np.zeros(batch),
@@ -234,10 +242,13 @@ class ERDModel:
         `lock_*` keys) it gets a fresh planter state, before the averaged gait speed an
         unmeasured one (its next frame's speed starts the average), before the slow copies
         unset ones (zeros: its next frame starts them); a current state is returned as it is."""
-        if all(k in state for k in (*FEET_STATE, *NEWER_KEYS)):
+        wanted = {key for u in self.uploads for key in (f"h.{u.name}", f"c.{u.name}")}
+        held = {k for k in state if k[:2] in ("h.", "c.")}
+        if held == wanted and all(k in state for k in (*FEET_STATE, *NEWER_KEYS)):
             return state
         batch = len(state["frame"])
-        old = {k: v for k, v in state.items() if not k.startswith("lock_")}
+        old = {k: v for k, v in state.items() if not k.startswith("lock_") and k not in held - wanted}
+        old = {**self._upload_states(batch), **old}  # a style added since starts at its initial state
         fresh = self.init_state(batch)  # what a new session starts these entries at
         for key in NEWER_KEYS:
             old.setdefault(key, fresh[key])
@@ -256,9 +267,9 @@ class ERDModel:
             raise ValueError(
                 f"frames must be root (B, 3) and rotations (B, {J}, 4), got {root.shape} and {rot_in.shape}"
             )
-        if w.shape != (B, len(TARGET_STYLES)):
-            raise ValueError(f"style_weights must be ({B}, {len(TARGET_STYLES)}), got {w.shape}")
-        lstm = (B, len(self.branches), self.Ln, self.H)
+        if w.shape != (B, len(self.branches) - 1):
+            raise ValueError(f"style_weights must be ({B}, {len(self.branches) - 1}), got {w.shape}")
+        lstm = (B, 1 + len(TARGET_STYLES), self.Ln, self.H)
         for key, shape in (
             ("h", lstm),
             ("c", lstm),
@@ -313,9 +324,8 @@ class ERDModel:
         """This thread's LSTM input (7, batch, 2H) and gate (7, batch, 4H) buffers, reused between
         steps while the batch fits: at batch 256 they are ~1.4 MB a layer, and fresh allocations
         that size cost hundreds of page faults per step."""
-        held = getattr(self._scratch, "held", None)
-        if held is None or held[0].shape[1] < batch:
-            K, H = len(self.branches), self.H
+        held, K, H = getattr(self._scratch, "held", None), len(self.branches), self.H
+        if held is None or held[0].shape[1] < batch or held[0].shape[0] != K:
             held = self._scratch.held = (
                 np.empty((K, batch, 2 * H), self.dtype),
                 np.empty((K, batch, 4 * H), self.dtype),
@@ -332,7 +342,7 @@ class ERDModel:
             np.maximum(h, 0.0, out=h)
             h = matmul_rows(h, W) + b
         z = h
-        hs, cs = state["h"].astype(dt, copy=False), state["c"].astype(dt, copy=False)  # (B, 7, layers, H)
+        hs, cs = (self._branch_states(state, key).astype(dt, copy=False) for key in "hc")  # (B, K, layers, H)
         new_h, new_c = np.empty_like(hs), np.empty_like(cs)
         K, one = len(self.branches), dt.type(1.0)
         inp = np.broadcast_to(z, (K, B, H))  # every branch reads the encoding
@@ -349,12 +359,31 @@ class ERDModel:
         weights[:, 0] = 1.0
         weights[:, 1:] = w
         latent = np.einsum("bk,kbh->bh", weights, inp)
-        h = np.concatenate([latent, weights[:, 1:]], -1)
+        code = weights[:, 1:] if self.codes is None else weights[:, 1:] @ self.codes  # uploads: their own code
+        h = np.concatenate([latent, code], -1)
         for i, (W, b) in enumerate(self.dec):
             h = matmul_rows(h, W) + b
             if i < 2:
                 np.maximum(h, 0.0, out=h)
-        return h, {"h": new_h, "c": new_c}
+        n = 1 + len(TARGET_STYLES)
+        new = {"h": new_h[:, :n], "c": new_c[:, :n]}
+        for i, u in enumerate(self.uploads):
+            new[f"h.{u.name}"], new[f"c.{u.name}"] = new_h[:, n + i], new_c[:, n + i]
+        return h, new
+
+    def _branch_states(self, state: State, key: str) -> np.ndarray:
+        """(B, K, layers, H) every branch's LSTM `key` ("h" or "c"): the trained ones', then each upload's."""
+        if not self.uploads:
+            return state[key]
+        return np.concatenate([state[key], *(state[f"{key}.{u.name}"][:, None] for u in self.uploads)], 1)
+
+    def _upload_states(self, batch: int) -> State:
+        """Fresh LSTM states of the uploaded styles' branches (their fitted initial states)."""
+        out: State = {}
+        for u in self.uploads:
+            out[f"h.{u.name}"] = np.repeat(u.h0[None].astype(self.dtype), batch, 0)
+            out[f"c.{u.name}"] = np.repeat(u.c0[None].astype(self.dtype), batch, 0)
+        return out
 
     # ------------------------------------------------------------------ offline helpers
 
@@ -428,7 +457,7 @@ def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, h
         priors, twists = dict.fromkeys(priors), None
     hinge_file = weights_dir / HINGE_FILE
     fitted = Hinges.load(hinge_file) if hinges and hinge_file.exists() else None
-    return ERDModel(
+    model = ERDModel(
         arrays,
         config["model"],
         skeleton,
@@ -441,6 +470,8 @@ def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, h
         hinges=fitted,
         **priors,
     )
+    model.weights_dir = weights_dir
+    return model
 
 
 def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skeleton | None = None) -> Path:

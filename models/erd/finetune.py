@@ -1,0 +1,205 @@
+"""Fitting an uploaded Style-ERD style's residual branch from its one clip (the upload's job).
+
+The clip has no neutral twin, so the branch is fitted on statistics, not frame pairs:
+
+1. **Pairing.** The TRAIN `normal` clips nearest the upload in what it does, measured on the
+   features both share (`descriptor`: mean forward and sideways Hips speed, mean turning rate, and
+   their spread), are its neutral counterparts; posture is the style and is not compared.
+2. **Fit.** A copy of the nearest trained style's branch (its LSTM, initial state and decoder
+   code) is trained so that the network, streaming windows of those neutral clips, puts out the
+   clip's joint position and velocity statistics (per joint and axis, facing frame: mean and
+   spread, each in the data's own scale), the rest of the network frozen. The last `HOLDOUT`
+   pairs are kept out of training: the branch is kept only if it brings them closer to the clip
+   than the starting copy does.
+3. **Stages.** The output prior carries from what the network makes; with a branch of its own,
+   what it makes toward the style is measured again (the fitted branch streaming
+   `rotation_prior`'s TRAIN neutral inputs, as for a trained style), and the stages are refitted.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from ..interface import Progress
+from ..motion.style_carry import tangent_stats
+from .dataset import cache_dir
+from .features import FPS, NB, POS, ROOTVEL, ROT, YAWRATE
+from .upload_stages import clip_rotations, fit_stages
+from .uploads import Upload
+
+PAIRS, HOLDOUT = 10, 2  # neutral clips paired with the upload, of which held back
+WINDOW, BATCH = 48, 12
+STEPS, LR, SEED = 150, 3e-3, 0
+SCALE_FLOOR = 0.05  # of a statistic's scale, as the style judge floors its standardisation
+SOURCE_CLIPS = 2  # `rotation_prior._neutral_inputs` clips per content the output prior's source is measured on
+
+
+def training_data_available() -> bool:
+    return (cache_dir() / "train.npz").exists()
+
+
+def descriptor(x: np.ndarray) -> np.ndarray:
+    """What a clip does, from its features (F, 216): mean and spread of its facing-frame Hips
+    speed (forward, sideways) and of its turning rate."""
+    v = np.concatenate([x[:, ROOTVEL][:, [0, 2]], x[:, YAWRATE : YAWRATE + 1]], 1)
+    return np.concatenate([v.mean(0), v.std(0)])
+
+
+def pair(split, x_clip: np.ndarray, k: int) -> list[np.ndarray]:
+    """Features of the `k` TRAIN `normal` clips whose descriptors lie nearest the clip's
+    (each descriptor entry in units of its spread over those clips), nearest first."""
+    neutral = np.flatnonzero(split.style == 0)
+    clips = [split.feats[split.starts[i] : split.starts[i] + split.lengths[i]] for i in neutral]
+    desc = np.stack([descriptor(c) for c in clips])
+    scale = np.maximum(desc.std(0), 1e-6)
+    order = np.argsort(np.linalg.norm((desc - descriptor(x_clip)) / scale, axis=1))
+    return [clips[i] for i in order if len(clips[i]) > WINDOW][:k]
+
+
+class Branch:
+    """The frozen network with one trainable branch, in torch."""
+
+    def __init__(self, model, start: Upload) -> None:
+        import torch
+
+        self.torch = torch
+        self.gen = model.torch_generator()
+        for p in self.gen.parameters():
+            p.requires_grad_(False)
+        self.lstm = torch.nn.LSTM(model.H, model.H, model.Ln, batch_first=True)
+        self.lstm.load_state_dict({k: torch.as_tensor(v, dtype=torch.float32) for k, v in start.lstm.items()})
+        self.h0 = torch.nn.Parameter(torch.as_tensor(start.h0, dtype=torch.float32).clone())
+        self.c0 = torch.nn.Parameter(torch.as_tensor(start.c0, dtype=torch.float32).clone())
+        self.code = torch.nn.Parameter(torch.as_tensor(start.code, dtype=torch.float32).clone())
+        self.offsets = torch.as_tensor(model.skeleton.offsets, dtype=torch.float32)
+        self.parents = model.skeleton.parents
+
+    def parameters(self) -> list:
+        return [*self.lstm.parameters(), self.h0, self.c0, self.code]
+
+    def positions(self, x):
+        """Output joint positions (B, T, 21, 3) in the facing frame and root velocity (B, T, 3)
+        for raw features `x` (B, T, 216), input labels unknown (as a session streams)."""
+        from .model import N_CONTENTS, N_STYLES, fk_local
+
+        torch, gen = self.torch, self.gen
+        B, T, _ = x.shape
+        z = gen.encoder(torch.cat([(x - gen.mean) / gen.std, x.new_zeros(B, T, N_STYLES + N_CONTENTS)], -1))
+        expand = lambda s: s[:, None].expand(-1, B, -1).contiguous()  # noqa: E731
+        neutral, _ = gen.neutral(z, (expand(gen.neutral_h0[N_CONTENTS]), expand(gen.neutral_c0[N_CONTENTS])))
+        own, _ = self.lstm(z, (expand(self.h0), expand(self.c0)))
+        y = gen.decoder(torch.cat([neutral + own, self.code.expand(B, T, -1)], -1))
+        rot = (x[..., ROT] + y[..., : 4 * NB]).reshape(B, T, NB, 4)
+        rot = rot / rot.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        height = x[..., POS][..., 1] + y[..., -1]
+        root_vel = x[..., ROOTVEL] + y[..., 4 * NB : 4 * NB + 3]
+        return fk_local(rot, height, self.offsets, self.parents), root_vel, rot
+
+    def upload(self, start: Upload) -> Upload:
+        lstm = {k: v.detach().numpy().copy() for k, v in self.lstm.state_dict().items()}
+        h0, c0, code = (p.detach().numpy().copy() for p in (self.h0, self.c0, self.code))
+        return Upload(start.name, start.nearest, lstm, h0, c0, code, start.stages, start.twists)
+
+
+def statistics(pos, root_vel, rot):
+    """Per joint and axis: mean and spread of positions, of velocities, of the root velocity, of
+    the local rotations' components and of each joint's angular speed (what a style judge reads)."""
+    torch = __import__("torch")
+    vel = (pos[:, 1:] - pos[:, :-1]) * FPS
+    dot = (rot[:, 1:] * rot[:, :-1]).sum(-1).abs().clamp(max=1.0)
+    speed = 2.0 * (1.0 - dot.pow(2) + 1e-8).sqrt() * FPS  # ~ the angle turned per second
+    parts = [pos.flatten(0, 1), vel.flatten(0, 1), root_vel.flatten(0, 1), rot.flatten(0, 1), speed.flatten(0, 1)]
+    return torch.cat([torch.cat([p.mean(0).flatten(), p.std(0).flatten()]) for p in parts])
+
+
+def real_statistics(x):
+    """`statistics` of real frames' features (B, T, 216)."""
+    B, T, _ = x.shape
+    return statistics(x[..., POS].reshape(B, T, NB, 3), x[..., ROOTVEL], x[..., ROT].reshape(B, T, NB, 4))
+
+
+def windows(clips: list[np.ndarray], rng: np.random.Generator, n: int) -> np.ndarray:
+    picks = rng.integers(len(clips), size=n)
+    return np.stack([clips[i][s : s + WINDOW] for i in picks for s in [rng.integers(len(clips[i]) - WINDOW + 1)]])
+
+
+def every_window(clips: list[np.ndarray]) -> np.ndarray:
+    return np.stack([c[s : s + WINDOW] for c in clips for s in range(0, len(c) - WINDOW + 1, WINDOW // 2)])
+
+
+def fine_tune(model, start: Upload, clip, progress: Progress) -> tuple[Upload | None, dict[str, Any]]:
+    """The branch fitted from `clip` (module docstring), and figures for the job's record; None
+    where the fitted branch did not bring the held-back neutral clips closer to the clip."""
+    import torch
+
+    from .dataset import load_split
+
+    t0 = time.perf_counter()
+    torch.manual_seed(SEED)
+    rng = np.random.default_rng(SEED)
+    x_clip, _ = model.maker.sequence(clip.translations[:, 1], clip.rotations)
+    progress(0.03, "pairing neutral clips of the same pace and turning")
+    neutral = pair(load_split("train"), x_clip, PAIRS)
+    train, held = neutral[:-HOLDOUT], neutral[-HOLDOUT:]
+    branch = Branch(model, start)
+    target = real_statistics(torch.as_tensor(x_clip[None], dtype=torch.float32))
+    each = torch.stack([real_statistics(torch.as_tensor(c[None], dtype=torch.float32)) for c in neutral])
+    scale = each.std(0).clamp_min(SCALE_FLOOR)  # how much one neutral clip's statistics vary from another's
+    held_x = torch.as_tensor(every_window(held), dtype=torch.float32)
+
+    def loss(x) -> Any:
+        return (((statistics(*branch.positions(x)) - target) / scale) ** 2).mean()
+
+    with torch.no_grad():
+        before = float(loss(held_x))
+    opt = torch.optim.Adam(branch.parameters(), lr=LR)
+    for step in range(STEPS):
+        x = torch.as_tensor(windows(train, rng, BATCH), dtype=torch.float32)
+        value = loss(x)
+        opt.zero_grad()
+        value.backward()
+        opt.step()
+        if step % 10 == 0:
+            progress(0.05 + 0.75 * step / STEPS, f"fitting the residual branch: loss {float(value.detach()):.3f}")
+    with torch.no_grad():
+        after = float(loss(held_x))
+    summary: dict[str, Any] = {"held_out_loss_start": round(before, 4), "held_out_loss_fitted": round(after, 4)}
+    summary["paired_clips"] = len(neutral)
+    if not after < before:
+        summary["seconds"] = round(time.perf_counter() - t0, 1)
+        return None, summary
+    tuned = branch.upload(start)
+    progress(0.82, "measuring what the fitted branch makes, for the output prior")
+    tuned = refit_stages(model, tuned, clip)
+    summary["seconds"] = round(time.perf_counter() - t0, 1)
+    progress(0.98, "installing the fitted branch")
+    return tuned, summary
+
+
+def refit_stages(model, tuned: Upload, clip) -> Upload:
+    """`tuned`'s stages fitted again, its output prior from what its own branch makes of TRAIN
+    neutral clips (its leaf prior in place, no output prior), as `rotation_prior.fit_output_prior`."""
+    from ..eval.run import stylise
+    from ..motion.rotation_ball import comparable
+    from .rotation_prior import _neutral_inputs
+
+    twin = model.with_own_styles()
+    twin.install_style("fit", tuned)
+    twin.output_prior = twin.run_leaf_prior = twin.run_output_prior = twin.twist_range = None
+    inputs = _neutral_inputs()[:: max(1, 4 // SOURCE_CLIPS)]
+    outs = stylise(twin, inputs, [len(twin.styles()) - 1] * len(inputs))
+    mean, cov, _ = tangent_stats(comparable(np.concatenate([o.rotations for o in outs])))
+    q, share = clip_rotations(model, clip)
+    stages, twists = fit_stages(
+        model.built_in.priors, model.sources, model.skeleton, q, share, _index(tuned.nearest), (mean, cov)
+    )
+    return Upload(tuned.name, tuned.nearest, tuned.lstm, tuned.h0, tuned.c0, tuned.code, stages, twists)
+
+
+def _index(style: str) -> int:
+    from .dataset import TARGET_STYLES
+
+    return TARGET_STYLES.index(style)

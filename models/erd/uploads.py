@@ -1,0 +1,249 @@
+"""Style-ERD's uploaded styles (`models.interface.ClipStyles`), mixed into `runtime.ERDModel`.
+
+A trained style is a residual LSTM branch, the decoder's one-hot style code, and its fitted
+stages. An uploaded one is the same three things, without retraining the network:
+
+- at once (`style_from_clip`, milliseconds): a copy of the branch and code of the trained style
+  nearest the clip (`upload_stages.nearest_style`), and every stage fitted from the clip
+  (`upload_stages.fit_stages`): the style streams as soon as it is installed;
+- by the fine-tuning job (`finetune.py`, seconds): the branch's weights, its initial state and
+  its decoder code fitted so that neutral TRAIN clips of the clip's pace and turning come out
+  with the clip's pose statistics, and the output prior refitted from what that branch makes.
+
+The branch joins the network's stacked branches (latent = neutral + sum_s w_s branch_s, as for
+a trained style); the decoder reads sum_s w_s code_s, the trained styles' codes one-hot, so a
+model without uploads computes exactly what it did. A copy of the model (`with_own_styles`)
+shares the weights and gets a style set of its own: installing or removing replaces the stacked
+arrays, never changes them in place.
+"""
+
+from __future__ import annotations
+
+import copy
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple, Self
+
+import numpy as np
+
+from ..interface import ClipStyles, FineTuned, Progress, StyleRejected
+from ..motion.skeleton import Motion, Skeleton
+from ..motion.style_carry import StyleCarry
+from .dataset import TARGET_STYLES
+from .twist_range import TwistRange
+from .upload_stages import KEYS, SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
+
+if TYPE_CHECKING:
+    from ..motion.hinge import Hinges
+
+STYLE_FILE = "erd_style.npz"
+MIN_FRAMES = 60  # 2 s: the stages' statistics need a few steps of the clip
+
+
+@dataclass
+class Upload:
+    """An uploaded style's parameters: its branch (PyTorch LSTM layout, `weight_ih_l0`, ...), the
+    branch's initial state (layers, H), its decoder code (6,), its stages (one style each)."""
+
+    name: str
+    nearest: str  # the trained style its branch and code started from
+    lstm: dict[str, np.ndarray]
+    h0: np.ndarray
+    c0: np.ndarray
+    code: np.ndarray
+    stages: dict[str, StyleCarry | None] = field(default_factory=dict)
+    twists: TwistRange | None = None
+
+    def renamed(self, name: str) -> Upload:
+        return Upload(name, self.nearest, self.lstm, self.h0, self.c0, self.code, self.stages, self.twists)
+
+    def save(self, path: Path) -> None:
+        arrays = {f"lstm.{k}": v for k, v in self.lstm.items()}
+        arrays |= {"h0": self.h0, "c0": self.c0, "code": self.code, "nearest": np.array(self.nearest)}
+        for key, carry in self.stages.items():
+            if carry is not None:
+                arrays |= {f"{key}.{f}": a for f, a in zip(("source", "mean", "map", "radius"), carry.arrays)}
+        if self.twists is not None:
+            arrays |= {"twist.mean": self.twists.mean, "twist.lo": self.twists.lo, "twist.hi": self.twists.hi}
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **arrays)  # type: ignore[arg-type]
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, name: str, path: Path, twist_joints: TwistRange | None) -> Upload:
+        with np.load(path) as z:
+            a = {k: z[k] for k in z.files}
+        stages: dict[str, StyleCarry | None] = {
+            key: StyleCarry(
+                *(np.ascontiguousarray(a[f"{key}.{f}"], np.float64) for f in ("source", "mean", "map", "radius"))
+            )
+            if f"{key}.source" in a
+            else None
+            for key in KEYS
+        }
+        twists = None
+        if twist_joints is not None and "twist.mean" in a:
+            twists = TwistRange(twist_joints.joints, twist_joints.axes, a["twist.mean"], a["twist.lo"], a["twist.hi"])
+        lstm = {k[5:]: v for k, v in a.items() if k.startswith("lstm.")}
+        return cls(name, str(a["nearest"]), lstm, a["h0"], a["c0"], a["code"], stages, twists)
+
+
+class BuiltIn(NamedTuple):
+    """The trained styles' stacked LSTM weights and stages, which uploads are appended to."""
+
+    lstm_w: list[np.ndarray]
+    lstm_b: list[np.ndarray]
+    priors: dict
+
+
+def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype) -> tuple[list, list]:
+    """A branch's LSTM as the step multiplies it (`ERDModel._prepare_weights`): per layer
+    [W_ih^T; W_hh^T] (2H, 4H) and the summed bias (1, 4H), the cell-input gate's doubled."""
+    scale = np.ones(4 * H)
+    scale[2 * H : 3 * H] = 2.0
+    w, b = [], []
+    for layer in range(layers):  # PyTorch's names, sorted: bias_hh, bias_ih, weight_hh, weight_ih
+        b_hh, b_ih, w_hh, w_ih = (lstm[k] for k in sorted(lstm) if k.split("_")[-1][1:] == str(layer))
+        w.append((np.concatenate([w_ih.T, w_hh.T]) * scale).astype(dtype))
+        b.append(((b_ih + b_hh) * scale)[None].astype(dtype))
+    return w, b
+
+
+class ERDStyles(ClipStyles[Upload]):
+    """What `ERDModel` adds to take uploaded styles."""
+
+    clip_style_note = "the nearest trained style's branch, stages fitted from the clip"
+    tuning_note = "fitting the style's residual branch"
+    _lock: threading.Lock
+    uploads: tuple[Upload, ...]
+    built_in: BuiltIn
+    weights_dir: Path | None
+    if TYPE_CHECKING:
+        p: dict[str, np.ndarray]
+        Ln: int
+        H: int
+        dtype: np.dtype
+        skeleton: Skeleton
+        hinges: Hinges | None
+        twist_range: TwistRange | None
+        lstm_w: list[np.ndarray]
+        lstm_b: list[np.ndarray]
+        branches: tuple[str, ...]
+        codes: np.ndarray | None
+
+    def with_own_styles(self) -> Self:
+        twin = copy.copy(self)
+        twin._lock = threading.Lock()
+        twin._scratch = threading.local()  # type: ignore[attr-defined]
+        return twin
+
+    @property
+    def sources(self) -> Sources:
+        """The trained styles' fit sources (`upload_stages.py`), read once."""
+        held = getattr(self, "_sources", None)
+        if held is None:
+            path = None if self.weights_dir is None else self.weights_dir / SOURCES_FILE
+            if path is None or not path.exists():
+                raise StyleRejected(
+                    "uploads_unavailable",
+                    f"this server's Style-ERD weights lack {SOURCES_FILE} "
+                    "(`python -m models.erd.rotation_prior sources`)",
+                    unavailable=True,
+                )
+            held = self._sources = Sources.load(path)
+        return held
+
+    def check_upload(self, frames: int, fine_tune: bool) -> None:
+        if frames < MIN_FRAMES:
+            raise StyleRejected("bad_length", f"the clip has {frames} frames at 30 fps; Style-ERD needs {MIN_FRAMES}")
+        self.sources  # noqa: B018  (raises where the server lacks them)
+        if fine_tune:
+            from .finetune import training_data_available
+
+            if not training_data_available():
+                raise StyleRejected(
+                    "training_data_unavailable",
+                    "fine-tuning a Style-ERD style needs the TRAIN feature cache (`python -m models.erd.dataset`); "
+                    "upload without fine_tune",
+                    unavailable=True,
+                )
+
+    def style_from_clip(self, clip: Motion, name: str = "") -> Upload:
+        """The nearest trained style's branch and code, every stage fitted from `clip`."""
+        if clip.skeleton.names != self.skeleton.names:
+            raise ValueError("a style clip must be on the model skeleton (Bandai Namco, 22 joints)")
+        if clip.num_frames < MIN_FRAMES:
+            raise ValueError(f"style clip too short: {clip.num_frames} frames, need at least {MIN_FRAMES}")
+        q, share = clip_rotations(self, clip)
+        leaf = self.built_in.priors["leaf_prior"]
+        means = self.sources.mean["leaf_prior"] if leaf is None else leaf.mean
+        s = nearest_style(means, q) if leaf is not None else 0
+        stages, twists = fit_stages(self.built_in.priors, self.sources, self.skeleton, q, share, s)
+        lstm = {
+            k.split(".", 2)[2]: self.p[k].astype(np.float32).copy() for k in self.p if k.startswith(f"branches.{s}.")
+        }
+        h0 = self.p["style_h0"][s].astype(np.float32)
+        c0 = self.p["style_c0"][s].astype(np.float32)
+        return Upload(name, TARGET_STYLES[s], lstm, h0, c0, np.eye(len(TARGET_STYLES))[s], stages, twists)
+
+    def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[Upload]:
+        from .finetune import fine_tune
+
+        progress(0.0, "fitting the clip's stages")
+        start = self.style_from_clip(clip, name)
+        tuned, summary = fine_tune(self, start, clip, progress)
+        if tuned is None:
+            return FineTuned(None, summary, f"{self.clip_style_note} (fitting a branch did not bring it closer)")
+        return FineTuned(tuned, summary, "a residual branch fitted from the clip, stages fitted from the clip")
+
+    def install_style(self, name: str, style: Upload) -> None:
+        with self._lock:
+            if name in TARGET_STYLES:
+                raise ValueError(f"{name!r} is a trained Style-ERD style")
+            kept = [u for u in self.uploads if u.name != name]
+            self._use(tuple(kept) + (style.renamed(name),))
+
+    def remove_style(self, name: str) -> None:
+        with self._lock:
+            if name not in [u.name for u in self.uploads]:
+                raise KeyError(f"unknown uploaded style {name!r}")
+            self._use(tuple(u for u in self.uploads if u.name != name))
+
+    def save_style(self, style: Upload, folder: Path) -> None:
+        style.save(folder / STYLE_FILE)
+
+    def has_saved_style(self, folder: Path) -> bool:
+        return (folder / STYLE_FILE).exists()
+
+    def load_style(self, name: str, folder: Path) -> Upload:
+        return Upload.load(name, folder / STYLE_FILE, self.built_in.priors["twist_range"])
+
+    def _use(self, uploads: tuple[Upload, ...]) -> None:
+        """Replace the stacked branches, codes and stages by the trained styles' and `uploads`'."""
+        dt, base = self.dtype, self.built_in
+        self.lstm_w, self.lstm_b = list(base.lstm_w), list(base.lstm_b)
+        for u in uploads:
+            w, b = runtime_layout(u.lstm, self.Ln, self.H, dt)
+            self.lstm_w = [np.concatenate([a, x[None]]) for a, x in zip(self.lstm_w, w)]
+            self.lstm_b = [np.concatenate([a, x[None]]) for a, x in zip(self.lstm_b, b)]
+        n = len(TARGET_STYLES)
+        self.codes = np.concatenate([np.eye(n), *(u.code[None] for u in uploads)]).astype(dt) if uploads else None
+        for key in KEYS:
+            carry = base.priors[key]
+            if carry is not None and uploads:
+                carry = StyleCarry.stack([carry, *(u.stages[key] for u in uploads)])  # type: ignore[list-item]
+            setattr(self, key, carry)
+        twists = base.priors["twist_range"]
+        if twists is not None and uploads:
+            ups = [u.twists for u in uploads]
+            twists = TwistRange(
+                twists.joints,
+                twists.axes,
+                np.concatenate([twists.mean, *(t.mean for t in ups)]),  # type: ignore[union-attr]
+                np.concatenate([twists.lo, *(t.lo for t in ups)]),  # type: ignore[union-attr]
+                np.concatenate([twists.hi, *(t.hi for t in ups)]),  # type: ignore[union-attr]
+            )
+        self.twist_range = twists
+        self.uploads = uploads
+        self.branches = self.branches[:1] + tuple(TARGET_STYLES) + tuple(u.name for u in uploads)
