@@ -36,8 +36,9 @@ that model's own TRAINING input frames (`fit`):
   `ATTACK_FRAMES`, release `RELEASE_FRAMES`, no look-ahead), so the weight and its rate change
   without steps and a fade cannot pop the pose.
 - **Toward the input**: each joint's rotation slerps toward the input's by its part's weight; the
-  hips height moves toward the input's by the lower body's, and across the ground the hips move
-  by the method's step and the input's mixed by it (per frame compiled in `novelty_kernels.py`;
+  hips height moves toward the input's by the lower body's (and rises where the blend would put
+  the lowest foot point below the input's: a partly bent leg under a partly lowered root sinks),
+  and across the ground the hips move by the method's step and the input's mixed by it (per frame compiled in `novelty_kernels.py`;
   these numpy functions fit, report and are its reference). The model keeps stepping on the input
   underneath, so its style comes back as the input returns to what it knows.
 
@@ -68,6 +69,7 @@ START = 1.25  # a part starts to fade at this many times that distance
 FULL_FADE = 2.0  # ... and is fully faded at this many times it
 ATTACK_FRAMES = 3.0  # time constant of each of the two smoothing poles while the fade rises (model frames)
 RELEASE_FRAMES = 8.0  # ... and while it falls back
+LIFT_FULL = 0.1  # lower-body weight (fade or first pole) from which the output's feet stay above the input's floor
 SPEED_WEIGHT = 0.25  # feature distance (leg lengths) per leg length/s of vertical hips speed
 HEIGHT_WEIGHT = 1.0  # ... and per leg length of hips height
 MAX_FIT_FRAMES = 60_000  # an even subsample of the training frames keeps a fit to seconds
@@ -164,7 +166,7 @@ class NoveltyReference:
         kind, chain_root = self.kinds
         table = np.ascontiguousarray(np.stack([self.parents, self.part, kind, chain_root]), np.int64)
         anchors_starts = np.concatenate([self.anchors, self.starts]).astype(np.int64)
-        knobs = (self.leg, fps, HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES)
+        knobs = (self.leg, fps, HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES, LIFT_FULL)
         floats = np.concatenate([self.threshold, knobs]).astype(np.float64)
         c = np.ascontiguousarray
         return table, anchors_starts, floats, c(self.bones, np.float64), c(self.centres, np.float64)

@@ -24,7 +24,7 @@ from .quaternion import qexp, qinv, qlog, qmul, qneg, qrot, qunit, row3, row4
 W1, FADE, HINT = 0, 1, 2  # times the part count
 PREV_IN, PREV_MODEL, OFFSET, STARTED = 0, 3, 6, 9  # after the 3 * parts entries
 # layout of the packed float knobs (`NoveltyReference.arrays`), after the parts' thresholds
-LEG, FPS, HEIGHT_W, SPEED_W, START_K, FULL_K, ATTACK_K, RELEASE_K = range(8)
+LEG, FPS, HEIGHT_W, SPEED_W, START_K, FULL_K, ATTACK_K, RELEASE_K, LIFT_K = range(9)
 # rows of the packed int table (J columns): parent, part, feature kind, chain root
 PARENT, PART, KIND, CHAIN_ROOT = range(4)
 KIND_POSITION, KIND_LEG_END = 1, 2  # a joint's features: its position from the anchor; a leg end's reach and height
@@ -41,6 +41,27 @@ def _heading_free(q):
     if n <= 1e-12:
         return q
     return qmul((0.0, -q[1] / n, 0.0, q[3] / n), q)
+
+
+@njit(cache=True, error_model="numpy")
+def _lowest_foot(rot, table, bones, grot, gpos):
+    """The lowest height, from the hips, of each leg's end and the joint above it (the toes and
+    the ankle) for local rotations rot (J, 4); grot, gpos (J, 4), (J, 3) are scratch."""
+    low = np.inf
+    for j in range(rot.shape[0]):
+        if j == ROOT:
+            grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = 0.0, 0.0, 0.0, 1.0
+            gpos[j, 0], gpos[j, 1], gpos[j, 2] = 0.0, 0.0, 0.0
+            continue
+        p = table[PARENT, j]
+        gp = row4(grot, p)
+        d = (0.0, 0.0, 0.0) if j == HIPS else qrot(gp, row3(bones, j))
+        gpos[j, 0], gpos[j, 1], gpos[j, 2] = gpos[p, 0] + d[0], gpos[p, 1] + d[1], gpos[p, 2] + d[2]
+        grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = qmul(gp, qunit(row4(rot, j)))
+    for j in range(rot.shape[0]):
+        if table[KIND, j] == KIND_LEG_END:
+            low = min(low, gpos[j, 1], gpos[table[PARENT, j], 1])
+    return low
 
 
 @njit(cache=True, error_model="numpy")
@@ -71,7 +92,10 @@ def fade_step(
     each row's fade `faded` (B,) (its largest part's): arrays the caller allocates, as a compiled
     function's own allocations cost more than the whole step at batch 1.
 
-    The root: its height moves toward the input's by the lower body's weight; across the ground
+    The root: its height moves toward the input's by the lower body's weight, and rises where
+    the output's lowest foot point would lie below the input's (by the full sink from `LIFT_K`
+    weight up, a smoothstep of it below, the weight being the lower body's fade or its first
+    pole: at weight 0 the method's output is untouched); across the ground
     it moves by the method's step and the input's mixed by that weight, so a fade never glides
     the character from the method's path to the input's (a planted foot would slide by the
     distance between them): the path it leaves behind stays as the steps made it."""
@@ -80,6 +104,7 @@ def fade_step(
     thr = floats[:P]
     leg, fps, height_w, speed_w = floats[P + LEG], floats[P + FPS], floats[P + HEIGHT_W], floats[P + SPEED_W]
     start, full, attack, release = floats[P + START_K], floats[P + FULL_K], floats[P + ATTACK_K], floats[P + RELEASE_K]
+    lift = floats[P + LIFT_K]
     new[:] = state
     faded[:] = 0.0
     grot, gpos = np.empty((J, 4)), np.empty((J, 3))
@@ -161,6 +186,16 @@ def fade_step(
                 s[r + OFFSET + c] += w * (step_in - (root_out[b, c] - s[r + PREV_MODEL + c]))
             out_root[b, c] = root_out[b, c] + s[r + OFFSET + c]
         out_root[b, 1] = root_out[b, 1] + w * (root_in[b, 1] - root_out[b, 1])
+        # a partly bent leg under a partly lowered root sinks, and so does a method that straightens
+        # the legs while the fade rises: the root rises to the input's floor, by the lower body's
+        # first smoothing pole (a few frames ahead of its fade) or its fade, whichever is larger
+        lw = max(w, s[W1 * P + table[PART, HIPS]])
+        if lw > 0.0:
+            x = min(lw / lift, 1.0)
+            sink = (root_in[b, 1] + _lowest_foot(rot_in[b], table, bones, grot, gpos)) - (
+                out_root[b, 1] + _lowest_foot(out_rot[b], table, bones, grot, gpos)
+            )
+            out_root[b, 1] += x * x * (3.0 - 2.0 * x) * max(sink, 0.0)
         for c in range(3):
             s[r + PREV_IN + c], s[r + PREV_MODEL + c] = root_in[b, c], root_out[b, c]
         s[r + STARTED] = 1.0 if posed else 0.0
