@@ -14,6 +14,7 @@ the core, and the core is what the method does by itself.
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,7 @@ KEY = "novelty.state"  # (B, `state_width`): each session's fade state, one row 
 KEYS = (KEY,)
 _CLASSES: dict[type, type] = {}
 _NO_CONTROL = np.zeros((0, 5))
+_fade_step: Callable[..., None] = fade_step  # mypy reads numba's Dispatcher call as taking fewer arguments
 
 
 def fresh_state(batch: int, parts: int) -> State:
@@ -73,22 +75,11 @@ class FadesUnseen:
         rotations, root, own, fade = (
             np.empty((B, out.rotations.shape[1], 4)),
             np.empty((B, 3)),
-            np.empty_like(old),
+            np.empty(old.shape),
             np.empty(B),
         )
-        fade_step(
-            frames.rotations,
-            frames.root,
-            out.rotations,
-            out.root,
-            control,
-            old,
-            *self.novelty_arrays,
-            rotations,
-            root,
-            own,
-            fade,
-        )
+        inputs = (frames.rotations, frames.root, out.rotations, out.root, control, old)
+        _fade_step(*inputs, *self.novelty_arrays, rotations, root, own, fade)
         # built, not `replace`d: at batch 1 dataclasses.replace costs as much as the whole kernel
         staged = FrameBatch(root=root, rotations=rotations, contacts=out.contacts, control=out.control, faded=fade)
         return staged, {**new, KEY: own}
