@@ -90,7 +90,7 @@ eval-final: install
 
 # each method's unseen-content reference, from the clips it was trained on (models/motion/novelty.py)
 novelty: install
-	$(BIN)/python -m models.motion.novelty fit --method lti --datasets bandai-namco-2,bandai-namco-1 --styles normal
+	$(BIN)/python -m models.motion.novelty fit --method lti --datasets bandai-namco-2 --styles normal
 	$(BIN)/python -m models.motion.novelty fit --method erd --datasets bandai-namco-2
 	$(BIN)/python -m models.motion.novelty fit --method lpn --datasets bandai-namco-1,bandai-namco-2 \
 		--contents walk,run,dash,walk-back,walk-left,walk-right,walk-turn-left,walk-turn-right

@@ -26,6 +26,7 @@ import numpy as np
 
 from models.interface import State, StreamingModel, stack_states, upgrade_state, weight_columns, weight_vector
 from models.motion import rate
+from models.motion.novelty_stage import faded
 
 from . import pipelines
 from . import protocol as P
@@ -399,8 +400,9 @@ class TickResult:
 class Crowd:
     """The characters of one crowd connection, by model (troupes) and rig (groups)."""
 
-    def __init__(self, fps: float, reserve: int = 0) -> None:
+    def __init__(self, fps: float, reserve: int = 0, faded: bool = False) -> None:
         self.fps, self.reserve = fps, reserve  # reserve: rows each troupe has room for from the start
+        self.faded = faded  # replies end in each character's `faded`
         self.characters: dict[int, Character] = {}
         self.troupes: dict[str, Troupe] = {}
         self.groups: dict[tuple, RigGroup] = {}
@@ -573,9 +575,21 @@ class Crowd:
             rows = np.concatenate([client_root, client_rot.reshape(n, -1)], 1)
             out[at[:, None] + np.arange(rows.shape[1])] = rows
             result.frames[part.group.model] = result.frames.get(part.group.model, 0) + n
-        result.reply = P.encode_tick(seq, plan.ids[ok], out, dropped)
+        result.reply = P.encode_tick(
+            seq, plan.ids[ok], out, dropped, self._fades(plan, inputs)[ok] if self.faded else None
+        )
         self.answered += 1
         return result
+
+    @staticmethod
+    def _fades(plan: Plan, inputs: list) -> np.ndarray:
+        """Each listed character's `faded` after this tick (0 where its pipeline has no fade)."""
+        out = np.zeros(len(plan.ids))
+        for part, (good, *_) in zip(plan.parts, inputs, strict=True):
+            fade = faded(part.troupe.state)
+            if fade is not None:
+                out[part.positions[good]] = fade[part.rows[good]]
+        return out
 
     @staticmethod
     def _frames(part: Part, payload: np.ndarray, seq: int, result: TickResult) -> tuple:

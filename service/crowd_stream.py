@@ -61,7 +61,7 @@ class CrowdConnection(Socket):
             await self.refuse(err)
             return False
         self.opened = True
-        self.crowd = Crowd(first.fps, reserve=self.who.limits.max_characters)
+        self.crowd = Crowd(first.fps, reserve=self.who.limits.max_characters, faded=first.faded)
         # each crowd's snapshots on a tick of its own (its id is random): crowds opened together
         # would otherwise all store every character on the same tick, stalling every stream at once
         self.ticks_since_snapshot = int(self.id, 16) % self.settings.snapshot_every

@@ -109,7 +109,8 @@ class Start(CharacterSpec):
     type: Literal["start"]
     version: int = PROTOCOL_VERSION
     fps: float = Field(default=30.0, gt=0, le=240)
-    encoding: Literal["json", "binary"] = "json"
+    # "binary-faded": binary replies that end in one more float32, the frame's `faded`
+    encoding: Literal["json", "binary", "binary-faded"] = "json"
     resume_token: str | None = None
     snapshot_acks: bool = False  # send {"type": "snapshot", "last_seq": n} once a snapshot is stored
 
@@ -140,6 +141,7 @@ class CrowdStart(_Message):
     version: int = PROTOCOL_VERSION
     fps: float = Field(default=30.0, gt=0, le=240)
     characters: CharacterList
+    faded: bool = Field(default=False, description="tick replies end in each listed character's `faded` (float32)")
 
     _supported = field_validator("version")(_supported_version)
 
@@ -285,9 +287,11 @@ def decode_binary(data: bytes, num_joints: int) -> tuple[int, np.ndarray, np.nda
     return seq, root, rot
 
 
-def encode_binary(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0) -> bytes:
+def encode_binary(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0, faded: float | None = None) -> bytes:
+    """A binary frame reply; `faded` (encoding "binary-faded") is one more float32 at its end."""
     header = BINARY_HEADER.pack(seq, KIND_FRAME, min(dropped, 0xFFFF))
-    return header + np.concatenate([root.ravel(), rot.ravel()]).astype("<f4").tobytes()
+    tail = () if faded is None else (np.array([faded]),)
+    return header + np.concatenate([root.ravel(), rot.ravel(), *tail]).astype("<f4").tobytes()
 
 
 def frame_message(seq: int, root: np.ndarray, rot: np.ndarray, dropped: int = 0, faded: float | None = None) -> dict:
@@ -351,6 +355,10 @@ def control_rows(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate([v, np.ones((len(v), 1))], 1), ok
 
 
-def encode_tick(seq: int, ids: np.ndarray, payload: np.ndarray, dropped: int = 0) -> bytes:
+def encode_tick(
+    seq: int, ids: np.ndarray, payload: np.ndarray, dropped: int = 0, faded: np.ndarray | None = None
+) -> bytes:
+    """A tick (reply); `faded` (a crowd opened with `faded`): one float32 per id after the frames."""
     header = TICK_HEADER.pack(seq, KIND_TICK, len(ids), min(dropped, 0xFFFFFFFF))
-    return header + ids.astype("<u4").tobytes() + payload.astype("<f4", copy=False).tobytes()
+    tail = b"" if faded is None else np.asarray(faded).astype("<f4").tobytes()
+    return header + ids.astype("<u4").tobytes() + payload.astype("<f4", copy=False).tobytes() + tail

@@ -45,7 +45,7 @@ class ServiceSettings(Settings):
         default=True,
         description="End every shipped pipeline in the unseen-content fade (models/motion/novelty.py): input far from "
         "what a method trained on keeps its content instead of being styled. Off: the style is applied to every frame "
-        "(it fades on much of other performers' captures: see docs/evaluation.md, 'faded').",
+        "(docs/evaluation.md, 'faded', says how often it fades on each source).",
     )
     batch_wait_ms: float = Field(
         default=1.0, ge=0, le=50, description="How long a batch waits for more sessions' frames."

@@ -418,7 +418,7 @@ class Connection(Socket):
         await self.send_json(started)
         self.rt.connections[s.id] = self
         direct = self.ws.scope.get("extensions", {}).get(DIRECT_FRAMES)
-        if isinstance(direct, GuardedWebSocket) and s.encoding == "binary":
+        if isinstance(direct, GuardedWebSocket) and s.encoding != "json":
             self.direct = direct
             direct.binary_sink = self.take_frame
         self.log = session_log(log, s.id, s.model.name)
@@ -533,7 +533,10 @@ class Connection(Socket):
         if s.encoding == "binary":
             return P.encode_binary(item.seq, out_root, out_rot, dropped)
         fade = faded(s.state)
-        return P.frame_message(item.seq, out_root, out_rot, dropped, None if fade is None else float(fade[0]))
+        value = None if fade is None else float(fade[0])
+        if s.encoding == "binary-faded":  # a core pipeline has no fade: it never fades
+            return P.encode_binary(item.seq, out_root, out_rot, dropped, 0.0 if value is None else value)
+        return P.frame_message(item.seq, out_root, out_rot, dropped, value)
 
     def replied(self, item: FrameItem) -> None:
         metrics = self.model_metrics

@@ -7,21 +7,27 @@ content is lost. So every model's output passes one stage fitted the same way fo
 that model's own TRAINING input frames (`fit`):
 
 - **What the body is doing**, per body part (the lower body with the hips, the trunk, each arm:
-  `body_parts`, from the skeleton's chains): where the part's joints are from the joint it hangs
-  from, on the model rig, in the frame of the hips' heading (where the character faces is never
-  what it does), and for the lower body the hips' height above the floor and their vertical
-  speed, all in leg lengths (per second). Positions rather than local rotations: a performer's
-  twists and carriage, and a retargeter's rest pose, change rotations on every joint a little,
-  and summed over a limb that was as far as a crouch is from a walk.
+  `body_parts`, from the skeleton's chains), from the end of each of its chains only
+  (`feature_kinds`), on the model rig, in the frame of the hips' heading (where the character
+  faces is never what it does), in leg lengths: the head's and each hand's position from the
+  joint the part hangs from; for each leg, how far its end reaches from the hip and how high it
+  is above the floor, with the hips' height and vertical speed. Positions rather than local
+  rotations: a performer's twists and carriage, and a retargeter's rest pose, change rotations on
+  every joint a little, and summed over a limb that was as far as a crouch is from a walk. Chain
+  ends rather than every joint, and a leg's reach and height rather than where its foot is: with
+  every joint's position, another performer's walks and runs (other strides, knees and spines)
+  lay as far from the training frames as a crouch did; a crouch, a kneel or a fall shortens the
+  legs and lowers the hips whoever performs it.
 - **Far from the training input**: the distance of a part's features to the nearest of
   `CENTROIDS` training frames that cover the training frames (`cover`): a nearest neighbour
   that is cheap per frame, and unlike one Gaussian it does not call the gap between a walk and a
   wave "seen".
 - **Calibrated on VALIDATION clips** of the same selection: a part starts to fade at `START`
-  times its `QUANTILE` distance over their frames and is fully faded at `FULL_FADE` times it.
-  The margins are for other performers: on the evaluation's validation inputs from other
-  captures (Xia's walks), lower bodies lie within 1.15 times the quantile at p95, a crouch
-  beyond 2.2 times it. The `TRIM_CLIPS` share of validation clips whose far frames lie
+  times its `QUANTILE` distance over their frames, or `FLOOR` leg lengths where that is more, and
+  is fully faded at `FULL_FADE` times it. The floor is for other performers: one performer's
+  validation clips lie within a few cm of its training frames (a trunk within 1 cm), and another
+  performer's neutral walk differs from them by more than that everywhere; a crouch lies beyond 3
+  times the floor (the evaluation's validation inputs, `make eval`). The `TRIM_CLIPS` share of validation clips whose far frames lie
   farthest out is left out of the quantile first: a data set with one or two takes of a content
   (dataset 1) holds out takes whose poses its training split never shows, and one such clip set
   the whole threshold (a held-out kick doubled LTI's lower-body threshold, so a crouch did not
@@ -30,8 +36,9 @@ that model's own TRAINING input frames (`fit`):
   `ATTACK_FRAMES`, release `RELEASE_FRAMES`, no look-ahead), so the weight and its rate change
   without steps and a fade cannot pop the pose.
 - **Toward the input**: each joint's rotation slerps toward the input's by its part's weight; the
-  hips height moves toward the input's by the lower body's, and across the ground the hips move
-  by the method's step and the input's mixed by it (per frame compiled in `novelty_kernels.py`;
+  hips height moves toward the input's by the lower body's (and rises where the blend would put
+  the lowest foot point below the input's: a partly bent leg under a partly lowered root sinks),
+  and across the ground the hips move by the method's step and the input's mixed by it (per frame compiled in `novelty_kernels.py`;
   these numpy functions fit, report and are its reference). The model keeps stepping on the input
   underneath, so its style comes back as the input returns to what it knows.
 
@@ -51,6 +58,7 @@ from pathlib import Path
 import numpy as np
 
 from .bn_skeleton import BN_JOINTS, HIPS, PRIMARY_CHILD, ROOT
+from .novelty_kernels import KIND_LEG_END, KIND_POSITION
 from .rotation_ball import split_heading
 from .skeleton import Skeleton, fk
 
@@ -61,10 +69,12 @@ START = 1.25  # a part starts to fade at this many times that distance
 FULL_FADE = 2.0  # ... and is fully faded at this many times it
 ATTACK_FRAMES = 3.0  # time constant of each of the two smoothing poles while the fade rises (model frames)
 RELEASE_FRAMES = 8.0  # ... and while it falls back
+LIFT_FULL = 0.1  # lower-body weight (fade or first pole) from which the output's feet stay above the input's floor
 SPEED_WEIGHT = 0.25  # feature distance (leg lengths) per leg length/s of vertical hips speed
 HEIGHT_WEIGHT = 1.0  # ... and per leg length of hips height
 MAX_FIT_FRAMES = 60_000  # an even subsample of the training frames keeps a fit to seconds
 TRIM_CLIPS = 0.05  # validation clips left out of the threshold (by their own p99 distance)
+FLOOR = 0.12  # leg lengths: the smallest threshold, how far another performer's locomotion lies
 FADED = 0.5  # a frame counts as faded (reports, the evaluation) when its largest part weight exceeds this
 
 
@@ -90,6 +100,25 @@ def body_parts(parents: np.ndarray, names: tuple[str, ...] = BN_JOINTS) -> list[
         if p != HIPS:
             chains.setdefault(a, []).append(k)
     return [np.array(lower), np.array(trunk)] + [np.array(v) for _, v in sorted(chains.items())]
+
+
+def feature_kinds(parents: np.ndarray, part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(J,) each joint's features (0 none, `KIND_POSITION`, `KIND_LEG_END`) and (J,) the first
+    joint of its chain: every chain end (a joint without children) gives features; in the part
+    that holds the hips (the legs) its reach and height, elsewhere its position."""
+    J = len(parents)
+    has_child = np.zeros(J, bool)
+    has_child[[int(p) for p in parents if p >= 0]] = True
+    kind, chain_root = np.zeros(J, np.int64), np.arange(J, dtype=np.int64)
+    for j in range(J):
+        if has_child[j] or part[j] < 0 or j == HIPS:
+            continue
+        kind[j] = KIND_LEG_END if part[j] == part[HIPS] else KIND_POSITION
+        k = j
+        while int(parents[k]) != HIPS and part[int(parents[k])] == part[j]:
+            k = int(parents[k])
+        chain_root[j] = k
+    return kind, chain_root
 
 
 def hips_motion(hips_y: np.ndarray, fps: float, leg: float) -> np.ndarray:
@@ -130,38 +159,44 @@ class NoveltyReference:
             out[p] = HIPS if HIPS in joints else int(self.parents[joints[0]])
         return out
 
-    @functools.cached_property
-    def arrays(self) -> tuple:
-        """The reference as the compiled step takes it (`novelty_kernels.fade_step`)."""
+    def arrays(self, fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The reference as the compiled step takes it for a model at `fps` (`novelty_kernels.
+        fade_step`, after its frames and state): the int table, the anchors and cover offsets,
+        the thresholds and knobs, the bones and the centres."""
+        kind, chain_root = self.kinds
+        table = np.ascontiguousarray(np.stack([self.parents, self.part, kind, chain_root]), np.int64)
+        anchors_starts = np.concatenate([self.anchors, self.starts]).astype(np.int64)
+        knobs = (self.leg, fps, HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES, LIFT_FULL)
+        floats = np.concatenate([self.threshold, knobs]).astype(np.float64)
         c = np.ascontiguousarray
-        return (
-            c(self.parents, np.int64),
-            c(self.bones, np.float64),
-            c(self.part, np.int64),
-            self.anchors,
-            c(self.centres, np.float64),
-            c(self.starts, np.int64),
-            c(self.threshold, np.float64),
-            float(self.leg),
-        )
+        return table, anchors_starts, floats, c(self.bones, np.float64), c(self.centres, np.float64)
+
+    @functools.cached_property
+    def kinds(self) -> tuple[np.ndarray, np.ndarray]:
+        """`feature_kinds` of the rig and its parts."""
+        return feature_kinds(self.parents, self.part)
 
     def features(self, rotations: np.ndarray, hips: np.ndarray) -> list[np.ndarray]:
-        """(N, J, 4) local rotations and (N, 2) `hips_motion` -> per part (N, D_p): where the
-        part's joints are from its anchor (the hips for the lower body and trunk, the joint an arm
-        hangs from), in leg lengths, in the frame of the hips' heading; the lower body's with the
-        hips' height and vertical speed."""
+        """(N, J, 4) local rotations and (N, 2) `hips_motion` -> per part (N, D_p), in leg lengths,
+        in the frame of the hips' heading: the part holding the hips starts with their weighted
+        height and vertical speed; then, in joint order, each position joint's place from the
+        part's anchor, each leg end's reach from its chain root and its height above the floor."""
         _, q = split_heading(rotations)
         q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)
         bones = np.broadcast_to(self.bones, (*q.shape[:-1], 3)).copy()
         bones[:, [ROOT, HIPS]] = 0.0
         pos = fk(q, bones, self.parents)[1] / self.leg
+        kind, chain_root = self.kinds
         out = []
         for p, anchor in enumerate(self.anchors):
-            joints = np.flatnonzero(self.part == p)
-            f = (pos[:, joints[joints != anchor]] - pos[:, anchor : anchor + 1]).reshape(len(pos), -1)
-            if p == 0:
-                f = np.concatenate([f, hips * (HEIGHT_WEIGHT, SPEED_WEIGHT)], axis=1)
-            out.append(f)
+            cols = [hips * (HEIGHT_WEIGHT, SPEED_WEIGHT)] if self.part[HIPS] == p else []
+            for j in np.flatnonzero(self.part == p):
+                if kind[j] == KIND_POSITION:
+                    cols.append(pos[:, j] - pos[:, anchor])
+                elif kind[j] == KIND_LEG_END:
+                    reach = np.linalg.norm(pos[:, j] - pos[:, chain_root[j]], axis=1)
+                    cols.append(np.stack([reach, hips[:, 0] + pos[:, j, 1] - pos[:, HIPS, 1]], axis=1))
+            out.append(np.concatenate(cols, axis=1))
         return out
 
     def distances(self, rotations: np.ndarray, hips: np.ndarray) -> np.ndarray:
@@ -255,14 +290,14 @@ class NoveltyReference:
 
 def calibrate(ref: NoveltyReference, val: list[tuple[np.ndarray, np.ndarray]], fps: float) -> np.ndarray:
     """(parts,) thresholds: per part, the QUANTILE distance over the frames of the validation
-    clips, less the TRIM_CLIPS share of clips whose own p99 distance is largest."""
+    clips, less the TRIM_CLIPS share of clips whose own p99 distance is largest; FLOOR at least."""
     per_clip = [ref.distances(np.asarray(r, np.float64), hips_motion(y, fps, ref.leg)) for r, y in val]
     out = np.empty(ref.parts)
     for p in range(ref.parts):
         far = np.array([np.percentile(d[:, p], 99) for d in per_clip])
         keep = np.argsort(far)[: len(far) - int(TRIM_CLIPS * len(far))]
         out[p] = np.percentile(np.concatenate([per_clip[i][:, p] for i in keep]), QUANTILE)
-    return out
+    return np.maximum(out, FLOOR)
 
 
 def reference_path(weights_dir: Path, method: str) -> Path:

@@ -1,10 +1,12 @@
 """The unseen-content fade's per-frame step, compiled (numba): features, nearest covering frame,
 fade target, smoothing and the blend toward the input, one pass per session row.
 
-In numpy (`NoveltyReference.distances`, `target`, `smooth`, `blend_rotations`, which fit and
-report with it and which the tests hold this to) one frame of one session is ~60 small array
-operations, about 4 ms: five times an LTI step. Each row is computed alone, so a session's output
-does not depend on the batch it is stepped in.
+In numpy (`NoveltyReference.distances`, `target`, `smooth`, which fit and report with it and which
+the tests hold this to) one frame of one session is ~60 small array operations, about 4 ms: five
+times an LTI step. Each row is computed alone, so a session's output does not depend on the batch
+it is stepped in. The whole step is one call with few arguments (the reference packed into four
+arrays, the session's fade state into one row) writing into outputs the caller allocates: at
+batch 1 the call's own overhead, not its arithmetic, is most of what the stage costs.
 """
 
 from __future__ import annotations
@@ -17,6 +19,20 @@ from numba import njit
 from .bn_skeleton import HIPS, ROOT
 from .quaternion import qexp, qinv, qlog, qmul, qneg, qrot, qunit, row3, row4
 
+# layout of one session's fade state row (`state_width`): per part w1, fade, hint, then the
+# previous input root, the previous method root, the output root's ground offset, started
+W1, FADE, HINT = 0, 1, 2  # times the part count
+PREV_IN, PREV_MODEL, OFFSET, STARTED = 0, 3, 6, 9  # after the 3 * parts entries
+# layout of the packed float knobs (`NoveltyReference.arrays`), after the parts' thresholds
+LEG, FPS, HEIGHT_W, SPEED_W, START_K, FULL_K, ATTACK_K, RELEASE_K, LIFT_K = range(9)
+# rows of the packed int table (J columns): parent, part, feature kind, chain root
+PARENT, PART, KIND, CHAIN_ROOT = range(4)
+KIND_POSITION, KIND_LEG_END = 1, 2  # a joint's features: its position from the anchor; a leg end's reach and height
+
+
+def state_width(parts: int) -> int:
+    return 3 * parts + 10
+
 
 @njit(cache=True, error_model="numpy")
 def _heading_free(q):
@@ -28,45 +44,75 @@ def _heading_free(q):
 
 
 @njit(cache=True, error_model="numpy")
+def _lowest_foot(rot, table, bones, grot, gpos):
+    """The lowest height, from the hips, of each leg's end and the joint above it (the toes and
+    the ankle) for local rotations rot (J, 4); grot, gpos (J, 4), (J, 3) are scratch."""
+    low = np.inf
+    for j in range(rot.shape[0]):
+        if j == ROOT:
+            grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = 0.0, 0.0, 0.0, 1.0
+            gpos[j, 0], gpos[j, 1], gpos[j, 2] = 0.0, 0.0, 0.0
+            continue
+        p = table[PARENT, j]
+        gp = row4(grot, p)
+        d = (0.0, 0.0, 0.0) if j == HIPS else qrot(gp, row3(bones, j))
+        gpos[j, 0], gpos[j, 1], gpos[j, 2] = gpos[p, 0] + d[0], gpos[p, 1] + d[1], gpos[p, 2] + d[2]
+        grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = qmul(gp, qunit(row4(rot, j)))
+    for j in range(rot.shape[0]):
+        if table[KIND, j] == KIND_LEG_END:
+            low = min(low, gpos[j, 1], gpos[table[PARENT, j], 1])
+    return low
+
+
+@njit(cache=True, error_model="numpy")
 def fade_step(
     rot_in,
     root_in,
     rot_out,
     root_out,
-    w1,
-    fade,
-    hint,
-    prev_in,
-    prev_model,
-    offset,
-    started,
-    posed,
-    ref,
-    knobs,
+    control,
+    state,
+    table,
+    anchors_starts,
+    floats,
+    bones,
+    centres,
     out_rot,
     out_root,
+    new,
+    faded,
 ):
     """One frame for B sessions. In: the input frames rot_in (B, J, 4), root_in (B, 3); the
-    method's output rot_out, root_out; the fade state w1, fade (B, P), hint (B, P) int (the
-    nearest covering frame last time, where the search starts), the previous input and method
-    roots prev_in, prev_model (B, 3), the output root's horizontal offset from the method's
-    offset (B, 3), started (B,) bool (prev_* hold a frame); posed (B,) bool (False: a
-    controller tick, nothing to keep). `ref` = (parents, bones,
-    part, anchor, centres, starts, threshold, leg) of the reference, `knobs` = (fps,
-    HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES). Writes
-    out_rot, out_root, and w1, fade, hint, offset in place.
+    method's output rot_out, root_out; control (B, 5) or (0, 5) (a row whose flag is set is a
+    controller tick with no pose to keep); state (B, `state_width`). The reference:
+    table (4, J) int (`PARENT`, `PART`, `KIND`, `CHAIN_ROOT`), anchors_starts (2P + 1,) int (each
+    part's anchor, then the offsets of its covering frames), floats (P + 8,) (the thresholds,
+    then `LEG` .. `RELEASE_K`), bones (J, 3), centres (K, D). Writes the output rotations
+    out_rot (B, J, 4), root out_root (B, 3), the new state `new` (state is left as it was) and
+    each row's fade `faded` (B,) (its largest part's): arrays the caller allocates, as a compiled
+    function's own allocations cost more than the whole step at batch 1.
 
-    The root: its height moves toward the input's by the lower body's weight; across the ground
+    The root: its height moves toward the input's by the lower body's weight, and rises where
+    the output's lowest foot point would lie below the input's (by the full sink from `LIFT_K`
+    weight up, a smoothstep of it below, the weight being the lower body's fade or its first
+    pole: at weight 0 the method's output is untouched); across the ground
     it moves by the method's step and the input's mixed by that weight, so a fade never glides
     the character from the method's path to the input's (a planted foot would slide by the
     distance between them): the path it leaves behind stays as the steps made it."""
-    parents, bones, part, anchor, centres, starts, threshold, leg = ref
-    fps, height_w, speed_w, start, full, attack, release = knobs
     B, J = rot_in.shape[0], rot_in.shape[1]
-    P = threshold.shape[0]
+    P = anchors_starts.shape[0] // 2
+    thr = floats[:P]
+    leg, fps, height_w, speed_w = floats[P + LEG], floats[P + FPS], floats[P + HEIGHT_W], floats[P + SPEED_W]
+    start, full, attack, release = floats[P + START_K], floats[P + FULL_K], floats[P + ATTACK_K], floats[P + RELEASE_K]
+    lift = floats[P + LIFT_K]
+    new[:] = state
+    faded[:] = 0.0
     grot, gpos = np.empty((J, 4)), np.empty((J, 3))
     feat = np.empty(centres.shape[1])
     for b in range(B):
+        s, r = new[b], 3 * P
+        started = s[r + STARTED] > 0.5
+        posed = control.shape[0] == 0 or control[b, 4] <= 0.5
         for j in range(J):
             if j == ROOT:
                 grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = 0.0, 0.0, 0.0, 1.0
@@ -75,46 +121,56 @@ def fade_step(
             q = qunit(row4(rot_in[b], j))
             if j == HIPS:
                 q = _heading_free(q)
-            p = parents[j]
+            p = table[PARENT, j]
             gp = row4(grot, p)
             d = (0.0, 0.0, 0.0) if j == HIPS else qrot(gp, row3(bones, j))
             gpos[j, 0], gpos[j, 1], gpos[j, 2] = gpos[p, 0] + d[0], gpos[p, 1] + d[1], gpos[p, 2] + d[2]
             grot[j, 0], grot[j, 1], grot[j, 2], grot[j, 3] = qmul(gp, q)
-        speed = (root_in[b, 1] - prev_in[b, 1]) * fps / leg if started[b] else 0.0
+        height = root_in[b, 1] / leg
+        speed = (root_in[b, 1] - s[r + PREV_IN + 1]) * fps / leg if started else 0.0
         for p in range(P):
-            a, n = anchor[p], 0
+            a, n = anchors_starts[p], 0
+            if table[PART, HIPS] == p:
+                feat[0], feat[1] = height_w * height, speed_w * speed
+                n = 2
             for j in range(J):
-                if part[j] == p and j != a:
+                if table[PART, j] != p:
+                    continue
+                if table[KIND, j] == KIND_POSITION:
                     for c in range(3):
-                        feat[n] = gpos[j, c] / leg - gpos[a, c] / leg
-                        n += 1
-            if p == 0:
-                feat[n] = height_w * (root_in[b, 1] / leg)
-                feat[n + 1] = speed_w * speed
-                n += 2
+                        feat[n + c] = (gpos[j, c] - gpos[a, c]) / leg
+                    n += 3
+                elif table[KIND, j] == KIND_LEG_END:
+                    k = table[CHAIN_ROOT, j]
+                    dx, dy, dz = gpos[j, 0] - gpos[k, 0], gpos[j, 1] - gpos[k, 1], gpos[j, 2] - gpos[k, 2]
+                    feat[n] = math.sqrt(dx * dx + dy * dy + dz * dz) / leg
+                    feat[n + 1] = height + (gpos[j, 1] - gpos[HIPS, 1]) / leg
+                    n += 2
             # nearest covering frame, from last frame's: once one lies inside the radius where the
             # fade starts the target is 0 whichever it is, so a seen pose costs a few centres
-            inside, best, count, first = (start * threshold[p]) ** 2, np.inf, starts[p + 1] - starts[p], hint[b, p]
+            lo, count = anchors_starts[P + p], anchors_starts[P + p + 1] - anchors_starts[P + p]
+            inside, best, first = (start * thr[p]) ** 2, np.inf, int(s[HINT * P + p])
             for m in range(count):
-                k = starts[p] + (first + m) % count
-                s = 0.0
+                k = lo + (first + m) % count
+                e2 = 0.0
                 for i in range(n):
                     e = feat[i] - centres[k, i]
-                    s += e * e
-                    if s >= best:
+                    e2 += e * e
+                    if e2 >= best:
                         break
-                if s < best:
-                    best, hint[b, p] = s, (k - starts[p])
+                if e2 < best:
+                    best, s[HINT * P + p] = e2, float(k - lo)
                     if best <= inside:
                         break
-            x = min(max((math.sqrt(best) / threshold[p] - start) / (full - start), 0.0), 1.0)
-            target = x * x * (3.0 - 2.0 * x) if posed[b] else 0.0
-            r1 = 1.0 / attack if target > w1[b, p] else 1.0 / release
-            w1[b, p] = w1[b, p] + r1 * (target - w1[b, p])
-            r2 = 1.0 / attack if w1[b, p] > fade[b, p] else 1.0 / release
-            fade[b, p] = fade[b, p] + r2 * (w1[b, p] - fade[b, p])
+            x = min(max((math.sqrt(best) / thr[p] - start) / (full - start), 0.0), 1.0)
+            target = x * x * (3.0 - 2.0 * x) if posed else 0.0
+            w1, w = s[W1 * P + p], s[FADE * P + p]
+            w1 += (1.0 / attack if target > w1 else 1.0 / release) * (target - w1)
+            w += (1.0 / attack if w1 > w else 1.0 / release) * (w1 - w)
+            s[W1 * P + p], s[FADE * P + p] = w1, w
+            faded[b] = max(faded[b], w)
         for j in range(J):
-            w = fade[b, part[j]] if part[j] >= 0 else 0.0
+            w = s[FADE * P + table[PART, j]] if table[PART, j] >= 0 else 0.0
             o = row4(rot_out[b], j)
             if w > 0.0:
                 rel = qmul(qinv(o), row4(rot_in[b], j))
@@ -123,9 +179,23 @@ def fade_step(
                 v = qlog(rel)
                 o = qmul(o, qexp((w * v[0], w * v[1], w * v[2])))
             out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = o
-        w = fade[b, part[HIPS]]
+        w = s[FADE * P + table[PART, HIPS]]
         for c in (0, 2):
-            if started[b] and w > 0.0:
-                offset[b, c] += w * ((root_in[b, c] - prev_in[b, c]) - (root_out[b, c] - prev_model[b, c]))
-            out_root[b, c] = root_out[b, c] + offset[b, c]
+            if started and w > 0.0:
+                step_in = root_in[b, c] - s[r + PREV_IN + c]
+                s[r + OFFSET + c] += w * (step_in - (root_out[b, c] - s[r + PREV_MODEL + c]))
+            out_root[b, c] = root_out[b, c] + s[r + OFFSET + c]
         out_root[b, 1] = root_out[b, 1] + w * (root_in[b, 1] - root_out[b, 1])
+        # a partly bent leg under a partly lowered root sinks, and so does a method that straightens
+        # the legs while the fade rises: the root rises to the input's floor, by the lower body's
+        # first smoothing pole (a few frames ahead of its fade) or its fade, whichever is larger
+        lw = max(w, s[W1 * P + table[PART, HIPS]])
+        if lw > 0.0:
+            x = min(lw / lift, 1.0)
+            sink = (root_in[b, 1] + _lowest_foot(rot_in[b], table, bones, grot, gpos)) - (
+                out_root[b, 1] + _lowest_foot(out_rot[b], table, bones, grot, gpos)
+            )
+            out_root[b, 1] += x * x * (3.0 - 2.0 * x) * max(sink, 0.0)
+        for c in range(3):
+            s[r + PREV_IN + c], s[r + PREV_MODEL + c] = root_in[b, c], root_out[b, c]
+        s[r + STARTED] = 1.0 if posed else 0.0

@@ -14,44 +14,34 @@ the core, and the core is what the method does by itself.
 from __future__ import annotations
 
 import copy
-from dataclasses import replace
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from ..interface import FrameBatch, State
-from .novelty import ATTACK_FRAMES, FULL_FADE, HEIGHT_WEIGHT, RELEASE_FRAMES, SPEED_WEIGHT, START, NoveltyReference
-from .novelty_kernels import fade_step
+from .novelty import NoveltyReference
+from .novelty_kernels import FADE, fade_step, state_width
 
-KEYS = (
-    "novelty.w1",
-    "novelty.fade",
-    "novelty.hint",
-    "novelty.prev_in",
-    "novelty.prev_model",
-    "novelty.offset",
-    "novelty.started",
-)
+KEY = "novelty.state"  # (B, `state_width`): each session's fade state, one row (`novelty_kernels`)
+KEYS = (KEY,)
 _CLASSES: dict[type, type] = {}
+_NO_CONTROL = np.zeros((0, 5))
+_fade_step: Callable[..., None] = fade_step  # mypy reads numba's Dispatcher call as taking fewer arguments
 
 
 def fresh_state(batch: int, parts: int) -> State:
-    return {
-        "novelty.w1": np.zeros((batch, parts)),
-        "novelty.fade": np.zeros((batch, parts)),
-        "novelty.hint": np.zeros((batch, parts), np.int64),
-        "novelty.prev_in": np.zeros((batch, 3)),
-        "novelty.prev_model": np.zeros((batch, 3)),
-        "novelty.offset": np.zeros((batch, 3)),
-        "novelty.started": np.zeros(batch, bool),
-    }
+    return {KEY: np.zeros((batch, state_width(parts)))}
 
 
 def faded(state: State) -> np.ndarray | None:
     """(B,) how far each session's latest frame was faded toward its input (the largest part's
     weight, 0..1); None for a model without the stage."""
-    fade = state.get("novelty.fade")
-    return None if fade is None else fade.max(axis=1)
+    own = state.get(KEY)
+    if own is None:
+        return None
+    parts = (own.shape[1] - state_width(0)) // 3
+    return own[:, FADE * parts : (FADE + 1) * parts].max(axis=1)
 
 
 class FadesUnseen:
@@ -59,42 +49,40 @@ class FadesUnseen:
     far from the method's training input (`novelty.py`), per body part, and comes back after."""
 
     novelty: NoveltyReference
+    novelty_arrays: tuple[np.ndarray, ...]  # `novelty.arrays` at the model's rate
 
     def init_state(self, batch: int, *args: Any, **kwargs: Any) -> State:
         inner = super().init_state(batch, *args, **kwargs)  # type: ignore[misc]
         return {**inner, **fresh_state(batch, self.novelty.parts)}
 
     def upgrade_state(self, state: State) -> State:
-        inner = {k: v for k, v in state.items() if k not in KEYS}
+        inner = {k: v for k, v in state.items() if k != KEY}
         upgrade = getattr(super(), "upgrade_state", None)
         upgraded = inner if upgrade is None else upgrade(inner)
-        own = {k: state[k] for k in KEYS if k in state}
-        if len(own) != len(KEYS) or own["novelty.fade"].shape[1] != self.novelty.parts:
-            own = fresh_state(len(next(iter(upgraded.values()))), self.novelty.parts)  # a snapshot from before
+        own = state.get(KEY)
+        if own is None or own.shape[1] != state_width(self.novelty.parts):
+            own = fresh_state(len(next(iter(upgraded.values()))), self.novelty.parts)[KEY]  # a snapshot from before
         elif upgraded is inner:
             return state
-        return {**upgraded, **own}
+        return {**upgraded, KEY: own}
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
-        # the whole state: a method may check it against its own `init_state`, which has these keys
+        # the whole state: a method may check it against its own `init_state`, which has this key
         out, new = super().step_batch(state, frames, style_weights)  # type: ignore[misc]
-        root = np.ascontiguousarray(frames.root, np.float64)
-        posed = np.ones(len(root), bool) if frames.control is None else frames.control[:, 4] <= 0.5
-        w1, fade, hint, offset = (
-            state[k].copy() for k in ("novelty.w1", "novelty.fade", "novelty.hint", "novelty.offset")
+        control = _NO_CONTROL if frames.control is None else frames.control
+        old = state[KEY]
+        B = len(old)
+        rotations, root, own, fade = (
+            np.empty((B, out.rotations.shape[1], 4)),
+            np.empty((B, 3)),
+            np.empty(old.shape),
+            np.empty(B),
         )
-        model_root = np.ascontiguousarray(out.root, np.float64)
-        rotations, out_root = np.empty((*np.shape(out.rotations)[:2], 4)), np.empty_like(root)
-        knobs = (float(self.fps), HEIGHT_WEIGHT, SPEED_WEIGHT, START, FULL_FADE, ATTACK_FRAMES, RELEASE_FRAMES)  # type: ignore[attr-defined]
-        fade_step(
-            np.ascontiguousarray(frames.rotations, np.float64), root,
-            np.ascontiguousarray(out.rotations, np.float64), model_root, w1, fade, hint,
-            state["novelty.prev_in"], state["novelty.prev_model"], offset, state["novelty.started"], posed,
-            self.novelty.arrays, knobs, rotations, out_root,
-        )  # fmt: skip
-        own = {"novelty.w1": w1, "novelty.fade": fade, "novelty.hint": hint, "novelty.offset": offset}
-        own |= {"novelty.prev_in": root.copy(), "novelty.prev_model": model_root.copy(), "novelty.started": posed}
-        return replace(out, root=out_root, rotations=rotations, faded=fade.max(axis=1)), {**new, **own}
+        inputs = (frames.rotations, frames.root, out.rotations, out.root, control, old)
+        _fade_step(*inputs, *self.novelty_arrays, rotations, root, own, fade)
+        # built, not `replace`d: at batch 1 dataclasses.replace costs as much as the whole kernel
+        staged = FrameBatch(root=root, rotations=rotations, contacts=out.contacts, control=out.control, faded=fade)
+        return staged, {**new, KEY: own}
 
 
 def with_novelty(model: Any, reference: NoveltyReference) -> Any:
@@ -110,4 +98,5 @@ def with_novelty(model: Any, reference: NoveltyReference) -> Any:
         staged_model = object.__new__(staged)
         staged_model.__dict__.update(model.__dict__)
     staged_model.novelty = reference
+    staged_model.novelty_arrays = reference.arrays(float(model.fps))
     return staged_model
