@@ -324,26 +324,3 @@ def local_phases(
         features=phase_features(phase, amplitude),
         contacts=feats.contacts,
     )
-
-
-# --------------------------------------------------------------------------- checks
-
-
-def touchdowns(contact: np.ndarray) -> np.ndarray:
-    """Frame indices where a (F,) contact signal switches from swing to planted."""
-    c = np.asarray(contact, dtype=bool)
-    return np.flatnonzero(~c[:-1] & c[1:]) + 1
-
-
-def step_frequency(contact: np.ndarray, fps: float) -> float:
-    """Cycle frequency (Hz) of one foot from its touchdown events: (n - 1) cycles between the first
-    and last touchdown. NaN with fewer than two touchdowns."""
-    t = touchdowns(contact)
-    if len(t) < 2:
-        return float("nan")
-    return (len(t) - 1) * fps / float(t[-1] - t[0])
-
-
-def circular_mean(angles: np.ndarray) -> float:
-    """Mean direction of angles (radians), in (-pi, pi]."""
-    return float(np.angle(np.exp(1j * np.asarray(angles)).mean()))
