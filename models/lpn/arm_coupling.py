@@ -33,7 +33,7 @@ import sys
 import numpy as np
 
 from ..eval.run import DATASET, INPUT_STYLE
-from ..motion.coupling import GAITS, Coupling, Link, couple, couple_numpy, write_coupling
+from ..motion.coupling import GAITS, Coupling, Link, couple, write_coupling
 from .carriage import SKIP_FRAMES, fitted_styles, locomotion
 
 ARM_COUPLING_FILE = "arm_coupling.npz"
@@ -63,14 +63,6 @@ def couple_rows(
     exactly as they were. Compiled (`models.motion.coupling.couple`)."""
     aligned = _aligned(table)
     return rotations if aligned is None else couple(rotations, weights, gait, joints, aligned)
-
-
-def couple_rows_numpy(
-    table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarray, joints: tuple[np.ndarray, np.ndarray]
-) -> np.ndarray:
-    """The numpy reference of `couple_rows`."""
-    aligned = _aligned(table)
-    return rotations if aligned is None else couple_numpy(rotations, weights, gait, joints, aligned)
 
 
 def fit(model, styles: list[str], dataset: str = DATASET) -> Coupling:

@@ -16,7 +16,7 @@ gait (walk, run), and mixed by a frame's gait share. What the model's joint does
 drivers stays. Links apply in order, a later link reading the joints an earlier one moved (the
 fit does the same). A style mix blends each link's corrections, as the priors do:
 q' = q exp(sum_s w_s log(q^-1 f_s(q))); rows that weigh no coupled style are left exactly as
-they were. `couple` is compiled (`coupling_kernels.py`); `couple_numpy` is its reference.
+they were. `couple` is compiled (`coupling_kernels.py`; the numpy reference is `tests/reference/coupling.py`).
 """
 
 from __future__ import annotations
@@ -200,29 +200,3 @@ def couple(
     out = np.array(rotations, np.float64)
     couple_batch(out, rows, w, share, *joints, aligned["mean"], aligned["walk"], aligned["run"])
     return out.astype(rotations.dtype)
-
-
-def couple_numpy(
-    rotations: np.ndarray,
-    weights: np.ndarray,
-    share: np.ndarray,
-    joints: tuple[np.ndarray, np.ndarray],
-    aligned: dict[str, np.ndarray],
-) -> np.ndarray:
-    """The numpy reference of `couple`."""
-    rows, w = _coupled(weights, aligned["on"])
-    if len(rows) == 0:
-        return rotations
-    w, r = w[rows], np.clip(np.asarray(share, np.float64)[rows], 0.0, 1.0)[:, None, None]
-    q = np.asarray(rotations[rows], np.float64)
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    for k, (t, ds) in enumerate(zip(*joints)):
-        correction = np.zeros((len(rows), 3))
-        for s in np.flatnonzero(w.any(axis=0)):
-            walk, run = aligned["walk"][s, k], aligned["run"][s, k]
-            styled = moved(q, aligned["mean"][s], t, ds, walk + r * (run - walk))
-            correction += w[:, s, None] * quat_log(quat_mul(quat_inv(q[:, t]), styled))
-        q[:, t] = quat_mul(q[:, t], quat_exp(correction))
-    out = np.array(rotations, copy=True)
-    out[np.ix_(rows, joints[0])] = q[:, joints[0]]
-    return out
