@@ -241,12 +241,6 @@ class _StyleSet(NamedTuple):
     constants: tuple  # the step's constant records, packed (`kernels.pack`)
 
 
-def carry_entry(carry: np.ndarray, key: str) -> np.ndarray:
-    """(B, *shape) view of one entry of a packed carry (`kernels.CARRY`)."""
-    at, shape, _ = kernels.SPANS[key]
-    return carry[:, at : at + int(np.prod(shape))].reshape(len(carry), *shape)
-
-
 class LTIStyleModel(LTIStyles):
     """Hsu et al. 2005 LTI style translation behind the project's streaming interface
     (`models/interface.py`); the input style is Bandai Namco `normal`.

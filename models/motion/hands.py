@@ -10,8 +10,8 @@ per frame: a frame's shares read that frame and the running averages.
 - **Sway:** each hand's horizontal speed against its shoulder, an exponential average over
   `SWAY_FRAMES`. On the validation inputs' raised frames a raise-up's has a median of 21-34 cm/s
   (p90 41-60), a wave's a median of 57-96 (p10 50-84): the wave share ramps over `WAVE_RAMP_CM_S`,
-  the still share falls over `STILL_RAMP_CM_S`.
-- **Rise:** its vertical speed, averaged alike; the level share falls over `LEVEL_RAMP_CM_S`.
+  and the level share falls with the rise (`LEVEL_RAMP_CM_S`).
+- **Rise:** its vertical speed, averaged alike.
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ from .skeleton import Skeleton
 
 RAISE_RAMP_CM = (-12.0, 0.0)
 WAVE_RAMP_CM_S = (40.0, 60.0)
-STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it, not above
 LEVEL_RAMP_CM_S = (30.0, 60.0)  # a hand rising or falling faster than this is raising or lowering, not waving
 SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it 1 / SWAY_FRAMES of the way to the new speed
 _HANDS = np.array([BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")])
@@ -171,20 +170,6 @@ def wave_share(swayed: np.ndarray) -> np.ndarray:
     """(..., 2) how much each hand waves: 0 up to `WAVE_RAMP_CM_S`, 1 from its end, linear between."""
     lo, hi = WAVE_RAMP_CM_S
     return np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
-
-
-def level_share(risen: np.ndarray) -> np.ndarray:
-    """(..., 2) how level each hand is held: 1 up to `LEVEL_RAMP_CM_S` of `rise`, 0 from its end.
-    A raise-up's hand also sways as it goes up (on the validation raise-ups the wave share
-    reached 0.7-1.0 for about 13 frames of the rise); at a level one it does not."""
-    lo, hi = LEVEL_RAMP_CM_S
-    return 1.0 - np.clip((np.asarray(risen, np.float64) - lo) / (hi - lo), 0.0, 1.0)
-
-
-def still_share(swayed: np.ndarray) -> np.ndarray:
-    """(..., 2) how still each hand is: 1 up to `STILL_RAMP_CM_S`, 0 from its end, linear between."""
-    lo, hi = STILL_RAMP_CM_S
-    return 1.0 - np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
 def raised_frames(motion, side: int | None = None) -> np.ndarray:

@@ -364,18 +364,6 @@ def rig(motion: Motion) -> tuple[Solid, ...]:
     return _RIGS[key]
 
 
-def part_frames(global_rotations: np.ndarray, joint: int, axes: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) world axes (columns x, y, z) of a part from world joint rotations (..., J, 4)."""
-    return quat_to_matrix(global_rotations[..., joint, :]) @ axes
-
-
-def world_axes(motion: Motion) -> dict[str, np.ndarray]:
-    """Per part (`head`, `hand_l`, `foot_r`, ...), its world axes over the motion (F, 3, 3):
-    column 0 is where the face looks / the fingers point / the toes point, column 1 up / the thumb."""
-    g_rot, _ = motion.global_transforms()
-    return {s.part: part_frames(g_rot, s.joint, s.axes) for s in rig(motion) if not s.mark}
-
-
 def solid_corners(global_rotations: np.ndarray, global_positions: np.ndarray, solids: tuple[Solid, ...]) -> np.ndarray:
     """(..., S, 8, 3) world corners of every solid from world rotations (..., J, 4) and positions (..., J, 3)."""
     joints = np.array([s.joint for s in solids], int)
