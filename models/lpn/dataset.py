@@ -243,7 +243,7 @@ def _build_split(
         groups[(c.dataset, c.style, c.content)].append(m)
     axes = {k: style_axes(v) for k, v in groups.items()}
     jobs = [(m, axes[(c.dataset, c.style, c.content)]) for c, m, _ in variants]
-    out = defaultdict(list)
+    out: defaultdict[str, list[Any]] = defaultdict(list)
     offset = 0
     for i, ((c, m, mirrored), fr) in enumerate(zip(variants, _frames_of_every_clip(jobs))):
         k = styles.index(style_name(c))
@@ -317,7 +317,7 @@ def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
         "val": [c for c in clips if c.split == "val" and style_name(c) in styles],
         "heldout": [c for c in clips if style_name(c) in cfg.held_out],
     }
-    meta = {"config": asdict(cfg), "styles": styles, "held_out": list(cfg.held_out)}
+    meta: dict[str, Any] = {"config": asdict(cfg), "styles": styles, "held_out": list(cfg.held_out)}
     for split, cl in parts.items():
         log(f"{split}: {len(cl)} clips")
         if not cl:
@@ -335,7 +335,8 @@ def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
         stats["G_scale"] = np.array(z["G"].std() + 1e-6, dtype=np.float32)
         f = z["feats"]
         stats["S_mean"], stats["S_std"] = f.mean(0), np.maximum(f.std(0), 1e-2 * f.std(0).mean() + 1e-6)
-    np.savez(out / "stats.npz", **{k: np.asarray(v, np.float32) for k, v in stats.items()})
+    as_float32: dict[str, Any] = {k: np.asarray(v, np.float32) for k, v in stats.items()}
+    np.savez(out / "stats.npz", **as_float32)
     meta["seconds"] = round(time.time() - t0, 1)
     (out / "meta.json").write_text(json.dumps(meta, indent=1))
     log(f"cache {out} built in {meta['seconds']} s")

@@ -34,6 +34,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -85,7 +86,9 @@ class OutputPrior:
         return rows
 
     def save(self, path: Path) -> Path:
-        arrays = dict(zip(CARRY_ROWS, self.carry.arrays)) | {f"run_{k}": a for k, a in zip(CARRY_ROWS, self.run.arrays)}
+        arrays: dict[str, Any] = dict(zip(CARRY_ROWS, self.carry.arrays)) | {
+            f"run_{k}": a for k, a in zip(CARRY_ROWS, self.run.arrays)
+        }
         np.savez(path, styles=np.array(self.styles), **arrays)
         return path
 

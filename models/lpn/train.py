@@ -560,9 +560,12 @@ def evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips
                 val_starts[k], min(cfg.val_rollouts, len(val_starts[k])), replace=False
             )
             idx = torch.from_numpy(pick).to(dev)[:, None] + torch.arange(K, device=dev)
+            X, G, Y = (torch.from_numpy(a).to(dev)[idx] for a in (val.X, val.G, val.Y))
             p, t = rollout(
                 net,
-                *(torch.from_numpy(a).to(dev)[idx] for a in (val.X, val.G, val.Y)),
+                X,
+                G,
+                Y,
                 film[None],
                 torch.ones(len(pick), dtype=torch.bool, device=dev),
             )
