@@ -50,7 +50,7 @@ def bench(args) -> None:
     import time
 
     from ..interface import FrameBatch
-    from ..stepbench import capped_threads, stepper
+    from ..stepbench import capped_threads, interleaved, stepper
 
     load_before = os.getloadavg()
     model = _model()
@@ -71,7 +71,7 @@ def bench(args) -> None:
         w[:, model.styles().index("elderly")] = 1.0
         steps = {"compiled": stepper(model, [frames], w, B), "floor": _products(model, B)}
         with capped_threads(args.threads):
-            times, cpu = _alternate(steps, args.steps if B == 1 else max(args.steps // 4, 20))
+            times, cpu = interleaved(steps, args.steps if B == 1 else max(args.steps // 4, 20), warmup=20)
         out[B] = {
             name: {
                 "median_ms": round(float(np.median(ts)) * 1e3, 3),
@@ -97,24 +97,6 @@ def _products(model, B: int):
             h @ W
 
     return step
-
-
-def _alternate(steps: dict, repeats: int, warmup: int = 20) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Wall and process CPU seconds of each of `steps` (name -> step(i), as `stepbench.stepper`) per
-    call, the steps called in turn, `repeats` times each after `warmup` untimed rounds. CPU time
-    leaves out the time the process waited for a core, most of the wall time on a busy machine."""
-    import time
-
-    for i in range(warmup):
-        for step in steps.values():
-            step(i)
-    wall, cpu = {name: np.empty(repeats) for name in steps}, {name: np.empty(repeats) for name in steps}
-    for i in range(repeats):
-        for name, step in steps.items():
-            c, t = time.process_time(), time.perf_counter()
-            step(warmup + i)
-            wall[name][i], cpu[name][i] = time.perf_counter() - t, time.process_time() - c
-    return wall, cpu
 
 
 def heldout(args) -> None:
