@@ -1,56 +1,30 @@
-"""Streaming LPN-FiLM: the project's `StreamingModel` interface as a character controller in
-float32, the per-session maths (control, trajectory blend, gating, FiLM, phase and root update,
-output pose) in numba kernels (`kernels.py`) and the expert products in BLAS (the plain numpy
-step the kernels are tested against is `tests/reference/lpn_step.py`). Per frame, the network
-reads the character's trajectory (past from its own history, future blended from the control and
-its own last prediction), its pose and its local phases, and predicts the next pose, root motion, phases and contacts.
+"""Streaming LPN-FiLM: the `StreamingModel` interface as a character controller in float32. The
+per-session maths (control, trajectory blend, gating, FiLM, phase and root update, output pose)
+is compiled (`kernels.py`); the three expert products stay BLAS. Per frame the network reads the
+character's trajectory (its own past, a future blended from the control and its last
+prediction), its pose and its local phases, and predicts the next pose, root motion, phases and
+contacts. The plain numpy step the kernels are tested against is `tests/reference/lpn_step.py`.
 
 Control (`FrameBatch.control`, (B, 5), optional; a row whose flag is 0 counts as not given):
-    [0] forward velocity, [1] side velocity (+ = to the character's left), m/s, both in the frame of
-        the desired facing (so "walk left" is side > 0 with the facing held);
-    [2] desired facing yaw, radians about +Y, 0 = facing world +Z, +pi/2 = facing +X (the convention
-        of `models.motion.features.facing_yaw`);
-    [3] gait, 0 = walk, 1 = run;
-    [4] flag, 1 = control given.
-Without control a session is driven by its input frames, causally: the input's Hips velocity
-(exponentially smoothed over CONTROL_SMOOTH_S), its facing yaw and a speed-based gait become the
-control, so the model is also "motion in, stylised locomotion out" like LTI and Style-ERD.
+    [0] forward and [1] side velocity (+ = left), m/s, in the frame of the desired facing;
+    [2] desired facing yaw about +Y, 0 = facing +Z (`models.motion.features.facing_yaw`);
+    [3] gait, 0 = walk, 1 = run;  [4] flag, 1 = control given.
+Without control the input frames drive the session causally: their smoothed Hips velocity,
+facing and speed-based gait become the control, so it also works as motion in, motion out.
 
-Styles are FiLM vectors: one per style (the mean of the FiLM generator over the style's training
-clips), mixed barycentrically by the style weights; weights summing below 1 give the rest to
-`normal`. A style can be added from a clip (`add_style_from_clip`) or removed while sessions run:
-the state holds no per-style entries, so no state upgrade is needed.
+Styles are FiLM vectors mixed barycentrically by the weights (a shortfall from 1 goes to
+`normal`); the state holds nothing per style, so styles come and go while sessions run. After
+the network, each fitted from the style's real clips the same way for every style: the arm
+carriage (`carriage.py`), the output prior (`output_prior.py`, walks and runs mixed by gait), the
+arm coupling (`arm_coupling.py`) and the rotation prior (`models.motion.rotation_ball`), which
+holds each joint inside the ball the style's real rotations fill. A style without real clips (an
+upload, or a FiLM vector set at run time) has no ball, since a borrowed one would pull it back
+toward another style. The stages touch the output only; the network's state keeps its own pose.
 
-Arm carriage (`carriage.npz` beside the weights, `carriage.py`): each built-in style's arm joints
-are turned by the offset that takes the network's mean arm pose to the real style's, before the
-rotation prior; the same file can pace the derived control by the style's real speed (not
-shipped). Then the output prior (`output_prior.npz`, `output_prior.py`)
-carries the upper body's and legs' rotations from the network's distribution to the real
-style's, fitted on walks and on runs apart and mixed by the gait. Then the arm coupling
-(`arm_coupling.npz`, `arm_coupling.py`) moves the forearms with the upper arms, shoulders and
-chest as the real style's do. All three are fitted the same way for every built-in style.
-
-Rotation prior (`rotation_prior.npz` beside the weights, `models.motion.rotation_ball`): each
-built-in style's output rotations are held, per joint, inside the ball its real TRAIN clips fill
-around their mean rotation (the network's spine, Hips and shoulders otherwise left the real
-style's p99 range in 14-72 % of frames, worst joint on validation clips). Mixed weights take the
-weighted mean of each style's clamped rotation (`rotation_ball_kernels.clamp_mixed`). An uploaded
-style, or one replacing a built-in's FiLM vector at run time (`set_style_film`), gets no clamp: it
-has no real data to fit a ball on, and a nearest built-in's ball would pull the new style back
-toward an old one. The built-in vectors tuned offline on the style's own TRAIN clips
-(`tune_builtin.py`, `tuned_film.npz`, applied by `read_weights`) are still the built-in styles,
-fitted on the very data the ball was, and keep their clamp. The ball is
-applied to the output only, before the feet are planted: the network's own state keeps its
-unclamped pose.
-
-State per session (session axis first): `frame`; the root trajectory history of the last 30
-frames + the current one (`hist_pos`, `hist_dir`, `hist_vel` world xz, `hist_gait`, `hist_phase`);
-the network's last future prediction (`fut_pos`, `fut_dir`, `fut_vel`, `fut_phase`, world); the
-current pose in its character frame (`pose`), `yaw`; the input tracker for derived control
-(`in_pos`, `in_vel`); and the foot planter's (`feet_*`, `models.motion.feet`).
-
-The step's geometry and the network's per-row maths are compiled (`kernels.py`, numba; the three
-big matrix products stay BLAS).
+State per session (session axis first): `frame`; the last 31 frames of root trajectory
+(`hist_*`); the network's last future prediction (`fut_*`, world); the pose in its character
+frame (`pose`), `yaw`; the input tracker for derived control (`in_*`); the foot planter's
+(`feet_*`, `models.motion.feet`).
 """
 
 from __future__ import annotations
