@@ -55,7 +55,7 @@ from ..settings import get_settings
 from . import features as lf
 from . import kernels
 from .arm_coupling import ARM_COUPLING_FILE, COUPLING_ROWS, couple_rows, table_rows
-from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, blend_pace, carry_arms
+from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, carry_arms
 from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
 from .style_table import StyleTable
 from .styles import LPNStyles
@@ -135,15 +135,15 @@ class LPNModel(LPNStyles):
 
     @property
     def carriage(self) -> Carriage | None:
-        """The built-in styles' pace and arm carriage (`carriage.py`); None: walk at the input's speed."""
+        """The built-in styles' arm carriage (`carriage.py`); None: the network's arms."""
         return self._carriage_fit
 
     @carriage.setter
     def carriage(self, carriage: Carriage | None) -> None:
         with self._lock:
             self._carriage_fit = carriage
-            pace, arms = carriage.rows(list(self._table.names)) if carriage is not None else (None, None)
-            self._table = self._table.measuring(pace=pace, arms=arms)
+            arms = carriage.rows(list(self._table.names)) if carriage is not None else None
+            self._table = self._table.measuring(arms=arms)
 
     @property
     def output_prior(self) -> OutputPrior | None:
@@ -216,7 +216,7 @@ class LPNModel(LPNStyles):
         film = np.asarray(film, np.float32)
         if film.shape != (4, self.H) or not np.all(np.isfinite(film)):
             raise ValueError(f"a FiLM vector must be finite with shape (4, {self.H}), got {film.shape}")
-        with self._lock:  # a vector not fitted on the style's own clips: no ball, pace or carriage
+        with self._lock:  # a vector not fitted on the style's own clips: no ball or carriage
             self._table = self._table.with_film(name, film.reshape(-1))
 
     def remove_style(self, name: str) -> None:
@@ -326,9 +326,7 @@ class LPNModel(LPNStyles):
         if len(fresh):
             self._start(s, fresh, root, rot_in, frames.control)
         control = self._control(s, frames, root, rot_in, fresh)
-        pace, arms, normal = table.get("pace"), table.get("arms"), table.index("normal")
-        if pace is not None and (pace != 1.0).any():
-            control = self._paced(control, frames.control, style_weights, pace)
+        arms, normal = table.get("arms"), table.index("normal")
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
         out_root, out_rot, contacts = self._advance(s, y, control)
@@ -343,17 +341,6 @@ class LPNModel(LPNStyles):
         out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
-
-    @staticmethod
-    def _paced(control: np.ndarray, given: np.ndarray | None, weights: np.ndarray, pace: np.ndarray) -> np.ndarray:
-        """The derived control's velocity at the styles' pace (`carriage.py`); its gait stays the
-        input's (re-deriving it from the paced speed turned elderly runs into walks the content
-        judge read as turns: validation locomotion content 77 -> 69 %); given rows as they are."""
-        derived = np.ones(len(control), bool) if given is None else np.asarray(given)[:, 4] <= 0.5
-        factor = blend_pace(pace, weights, control[:, 3]).astype(np.float32)
-        out = control.copy()
-        out[derived, :2] *= factor[derived, None]
-        return out
 
     def _untwist(self, rotations: np.ndarray) -> np.ndarray:
         """The pose with its joint positions, bones twisted as in the natural pose (the committed
@@ -622,7 +609,7 @@ def read_balls(weights_dir: Path) -> StyleBalls | None:
 
 
 def read_carriage(weights_dir: Path) -> Carriage | None:
-    """The built-in styles' pace and arm carriage beside the weights (`CARRIAGE_FILE`), or None."""
+    """The built-in styles' arm carriage beside the weights (`CARRIAGE_FILE`), or None."""
     path = Path(weights_dir) / CARRIAGE_FILE
     return Carriage.load(path) if path.exists() else None
 
@@ -641,7 +628,7 @@ def read_arm_coupling(weights_dir: Path) -> Coupling | None:
 
 def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
     """The committed model. `core_only`: the network alone (its built-in FiLM styles and the foot
-    planter), without the fitted stages after it (the rotation prior, the pace and arm carriage,
+    planter), without the fitted stages after it (the rotation prior, the arm carriage,
     the output prior and the arm coupling): the evaluation's core-alone row."""
     arrays, skeleton, config = read_weights(weights_dir)
     if core_only:
