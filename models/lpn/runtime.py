@@ -444,24 +444,7 @@ class LPNModel(LPNStyles):
         """Blend the future trajectory toward the control, then build X and G (`kernels.network_inputs`)."""
         B = control.shape[0]
         x, g = np.empty((B, lf.X_DIM), np.float32), np.empty((B, lf.G_DIM), np.float32)
-        kernels.network_inputs(
-            control,
-            s["yaw"],
-            s["hist_pos"],
-            s["hist_dir"],
-            s["hist_vel"],
-            s["hist_gait"],
-            s["hist_phase"],
-            s["fut_pos"],
-            s["fut_dir"],
-            s["fut_vel"],
-            s["fut_phase"],
-            s["pose"],
-            self.fps,
-            CONTROL_BIAS,
-            x,
-            g,
-        )
+        kernels.network_inputs(control, _track(s), self.fps, CONTROL_BIAS, x, g)
         return x, g
 
     def _network(self, x: np.ndarray, g: np.ndarray, film: np.ndarray) -> np.ndarray:
@@ -513,17 +496,7 @@ class LPNModel(LPNStyles):
         return kernels.advance(
             y,
             control,
-            s["yaw"],
-            s["hist_pos"],
-            s["hist_dir"],
-            s["hist_vel"],
-            s["hist_gait"],
-            s["hist_phase"],
-            s["fut_pos"],
-            s["fut_dir"],
-            s["fut_vel"],
-            s["fut_phase"],
-            s["pose"],
+            _track(s),
             self.parents,
             self.fps,
             STOP_SPEED,
@@ -600,6 +573,11 @@ class LPNModel(LPNStyles):
     def weight_vector(self, mix: dict[str, float]) -> np.ndarray:
         names = self.styles()
         return np.array([mix.get(n, 0.0) for n in names], np.float32)
+
+
+def _track(s: State) -> kernels.Track:
+    """The state's trajectory entries as the kernels' record (the same arrays, updated in place)."""
+    return kernels.Track(*(s[k] for k in kernels.Track._fields))
 
 
 def read_balls(weights_dir: Path) -> StyleBalls | None:
