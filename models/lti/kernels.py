@@ -38,7 +38,7 @@ from numba import njit
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet_kernels import plant_feet
-from ..motion.hands_kernels import hand_step
+from ..motion.hands_kernels import Hands, hand_step
 from ..motion.quaternion import qdot, qinv, qmul, quat_at, row4
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
@@ -193,19 +193,6 @@ class Ball(NamedTuple):
     mean: np.ndarray  # (S, 22, 4)
     radii: np.ndarray  # (S, 2, 22) inner, outer (radians; inf: no prior)
     cos_inner: np.ndarray  # (S, 22) cos(inner / 2), -1 without a prior: a rotation this close is left as it is
-
-
-class Hands(NamedTuple):
-    """The rig's arm chains for `hand_step` (`models.motion.hands.HandMeter`)."""
-
-    parents: np.ndarray  # (J,) int64
-    offsets: np.ndarray  # (J, 3)
-    chain: np.ndarray  # joints from the root to the hands and shoulders, parents first
-    hands: np.ndarray  # (2,) int64
-    shoulders: np.ndarray  # (2,) int64
-    fps: float
-    frames: float  # the sway's and rise's exponential average
-    above: float  # a hand higher than this over its shoulder is on its raise ramp
 
 
 class RaisedArm(NamedTuple):
@@ -734,9 +721,8 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
 
     # 2. the input's hands: how high, how they sway and rise
     hand_step(
-        frame.rotations, hands.parents, hands.offsets, hands.chain, hands.hands, hands.shoulders,
-        before.hand_prev, before.hand_sway, before.hand_rise, before.started, hands.fps, hands.frames,
-        hands.above, after.hand_prev, after.hand_sway, after.hand_rise,
+        frame.rotations, hands, before.hand_prev, before.hand_sway, before.hand_rise, before.started,
+        after.hand_prev, after.hand_sway, after.hand_rise,
     )  # fmt: skip
 
     # 3., 4. the arms of raised hands: a calm one carried, a waving one swung

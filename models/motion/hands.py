@@ -9,9 +9,8 @@ per frame: a frame's shares read that frame and the running averages.
   in about 1 % of frames) to the shoulder's height (Style-ERD's card chose it on validation).
 - **Sway:** each hand's horizontal speed against its shoulder, an exponential average over
   `SWAY_FRAMES`. On the validation inputs' raised frames a raise-up's has a median of 21-34 cm/s
-  (p90 41-60), a wave's a median of 57-96 (p10 50-84): the wave share ramps over `WAVE_RAMP_CM_S`,
-  and the level share falls with the rise (`LEVEL_RAMP_CM_S`).
-- **Rise:** its vertical speed, averaged alike.
+  (p90 41-60), a wave's a median of 57-96 (p10 50-84): the wave share ramps over `WAVE_RAMP_CM_S`.
+- **Rise:** its vertical speed, averaged alike; the level share falls over `LEVEL_RAMP_CM_S`.
 """
 
 from __future__ import annotations
@@ -75,28 +74,14 @@ class HandMeter:
         no previous frame unless `started`, nor while `prev` is all zeros (a state from before
         the meter); its averages start at 0. The last value lets a caller skip what only a
         raised hand needs (a walk's or a run's never is)."""
-        from .hands_kernels import hand_step
+        from .hands_kernels import Hands, hand_step
 
         q = np.ascontiguousarray(rotations, np.float64)
         out, swayed, risen = np.empty((len(q), 2, 3)), np.empty((len(q), 2)), np.empty((len(q), 2))
-        raised = hand_step(
-            q,
-            self.parents,
-            self.offsets,
-            self.chain,
-            self.hands,
-            self.shoulders,
-            np.ascontiguousarray(prev, np.float64),
-            np.ascontiguousarray(before, np.float64),
-            np.ascontiguousarray(rise_before, np.float64),
-            np.asarray(started, np.bool_),
-            float(fps),
-            SWAY_FRAMES,
-            RAISE_RAMP_CM[0],
-            out,
-            swayed,
-            risen,
-        )
+        arms = (self.parents, self.offsets, self.chain, self.hands, self.shoulders)
+        rig = Hands(*arms, float(fps), SWAY_FRAMES, RAISE_RAMP_CM[0])
+        prev, before, rise_before = (np.ascontiguousarray(a, np.float64) for a in (prev, before, rise_before))
+        raised = hand_step(q, rig, prev, before, rise_before, np.asarray(started, np.bool_), out, swayed, risen)
         return out, swayed, risen, bool(raised)
 
 
