@@ -165,28 +165,8 @@ class FootPlanter:
             "feet_floor": np.empty((B, 2, 2)),
         }
         s: dict[str, np.ndarray] = {k: np.ascontiguousarray(state[k], dtype) for k, (_, dtype) in STATE_SHAPES.items()}
-        feet_kernels.plant_feet(
-            root,
-            out_rot,
-            active,
-            hints,
-            s["feet_started"],
-            s["feet_root"],
-            s["feet_model_root"],
-            s["feet_rel"],
-            s["feet_contact"],
-            s["feet_point"],
-            s["feet_offset"],
-            s["feet_floor"],
-            new["feet_root"],
-            out_rot,
-            new["feet_contact"],
-            new["feet_rel"],
-            new["feet_point"],
-            new["feet_offset"],
-            new["feet_floor"],
-            *self._params,
-        )
+        before, after = (feet_kernels.Feet(*(d[k] for k in STATE_SHAPES)) for d in (s, new))
+        feet_kernels.plant_feet(root, out_rot, active, hints, before, after, out_rot, self._params)
         return new["feet_root"].copy(), out_rot, new["feet_contact"].copy(), new
 
     def clip(
