@@ -580,28 +580,15 @@ def _track(s: State) -> kernels.Track:
     return kernels.Track(*(s[k] for k in kernels.Track._fields))
 
 
+def _beside(weights_dir: Path, name: str, kind):
+    """The stage `kind` fitted into file `name` beside the weights (`kind.load`), or None."""
+    path = Path(weights_dir) / name
+    return kind.load(path) if path.exists() else None
+
+
 def read_balls(weights_dir: Path) -> StyleBalls | None:
     """The rotation prior beside the weights (`BALLS_FILE`), or None if there is none."""
-    path = Path(weights_dir) / BALLS_FILE
-    return StyleBalls.load(path) if path.exists() else None
-
-
-def read_carriage(weights_dir: Path) -> Carriage | None:
-    """The built-in styles' arm carriage beside the weights (`CARRIAGE_FILE`), or None."""
-    path = Path(weights_dir) / CARRIAGE_FILE
-    return Carriage.load(path) if path.exists() else None
-
-
-def read_output_prior(weights_dir: Path) -> OutputPrior | None:
-    """The built-in styles' output prior beside the weights (`OUTPUT_PRIOR_FILE`), or None."""
-    path = Path(weights_dir) / OUTPUT_PRIOR_FILE
-    return OutputPrior.load(path) if path.exists() else None
-
-
-def read_arm_coupling(weights_dir: Path) -> Coupling | None:
-    """The built-in styles' arm coupling beside the weights (`ARM_COUPLING_FILE`), or None."""
-    path = Path(weights_dir) / ARM_COUPLING_FILE
-    return Coupling.load(path) if path.exists() else None
+    return _beside(weights_dir, BALLS_FILE, StyleBalls)
 
 
 def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
@@ -616,7 +603,7 @@ def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
         skeleton,
         config,
         read_balls(weights_dir),
-        read_carriage(weights_dir),
-        read_output_prior(weights_dir),
-        read_arm_coupling(weights_dir),
+        _beside(weights_dir, CARRIAGE_FILE, Carriage),
+        _beside(weights_dir, OUTPUT_PRIOR_FILE, OutputPrior),
+        _beside(weights_dir, ARM_COUPLING_FILE, Coupling),
     )
