@@ -27,7 +27,6 @@ from . import features as lf
 STEP, PAST, FUTURE, SAMPLES = lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES  # trajectory sampling
 TRAJ_CH, TRAJ_OUT_CH = lf.TRAJ_CH, lf.TRAJ_OUT_CH  # position xz, direction xz, velocity xz (, gait)
 NUM_BONES = lf.NUM_BONES  # phase bones
-POSE_DIM = lf.NB * lf.POSE_CH  # body joints x (position, velocity, forward axis, up axis)
 # output layout: future trajectory, pose, root delta, phases, frequencies, contacts
 Y_TRAJ, Y_POSE, Y_DELTA = lf.TRAJ_OUT.start, lf.POSE_OUT.start, lf.DELTA_OUT.start
 Y_PHASE, Y_FREQ, Y_CONTACT = lf.PHASE_OUT.start, lf.FREQ_OUT.start, lf.CONTACT_OUT.start

@@ -66,7 +66,6 @@ if TYPE_CHECKING:
 
 BALLS_FILE = "rotation_prior.npz"  # per-style rotation balls (`models.lpn.rotation_prior`)
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
-PAST_IDX = np.arange(0, HIST, lf.STEP)  # history rows of the 7 past-and-current samples
 CONTROL_SMOOTH_S = 0.25  # input velocity smoothing for derived control
 RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
 CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias

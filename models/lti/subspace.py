@@ -34,7 +34,6 @@ class StateSpace:
     B: np.ndarray  # (n, m)
     C: np.ndarray  # (p, n)
     D: np.ndarray  # (p, m)
-    singular_values: np.ndarray | None = None
     raw_radius: float = 0.0  # spectral radius of A as identified, before `stabilize`
     n_stabilized: int = 0  # eigenvalues moved by `stabilize`
 
@@ -154,7 +153,7 @@ def subspace_id(
     raw = spectral_radius(A)
     A, changed = stabilize(A, max_radius)
     B, D = fit_bd(A, C, records, ridge, input_noise)
-    return StateSpace(A, B, C, D, sv, raw, changed)
+    return StateSpace(A, B, C, D, raw_radius=raw, n_stabilized=changed)
 
 
 def fit_bd(

@@ -17,7 +17,6 @@ from models.lpn.runtime import (
     CONTACT_THRESHOLD,
     CONTROL_BIAS,
     CONTROL_SMOOTH_S,
-    PAST_IDX,
     PHASE_BLEND,
     RUN_SPEED,
     STOP_PHASE_DAMP,
@@ -26,6 +25,8 @@ from models.lpn.runtime import (
     LPNModel,
 )
 from models.motion.features import wrap_angle
+
+PAST_IDX = np.arange(0, lf.PAST * lf.STEP + 1, lf.STEP)  # history rows of the 7 past-and-current samples
 
 
 def to_world_xz(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
