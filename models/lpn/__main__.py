@@ -2,7 +2,7 @@
 
 .venv/bin/python -m models.lpn train [--minutes 60] [--field=value ...]   # train.TrainConfig, then export
 .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
-.venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs numpy
+.venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs the expert products alone
 .venv/bin/python -m models.lpn heldout [--steps 300 --seed 0]          # new styles from a clip, 3 held-out styles
 .venv/bin/python -m models.lpn validate [WEIGHTS_DIR ...]              # streamed on the validation split (validate.py)
 """
