@@ -1,7 +1,7 @@
 """LPN-FiLM per-frame features: the layout of the network's input, gating input and output, and the
-pure functions that compute them from world-space joint data. One code path for the offline
-dataset (`dataset.py`, whole clips at once) and the streaming runtime (`runtime.py`, one frame of
-B sessions at once), so the two cannot drift apart.
+pure functions that compute them from world-space joint data for the offline dataset
+(`dataset.py`). The streaming step's compiled kernels (`kernels.py`) use the same formulas, held
+to these by the numpy reference step in `tests/reference/lpn_step.py`.
 
 Conventions (those of `models.motion.features`): Y up, units of the skeleton (cm for Bandai
 Namco), facing yaw in radians about +Y with 0 = facing +Z, facing direction (sin yaw, cos yaw) in
