@@ -1,31 +1,21 @@
 """Matrix products whose rows do not depend on the batch they are computed in.
 
-The service steps many sessions (and a crowd's characters) as one batch, and promises that a
-character's output is the same bit for bit whoever else is in the batch. A BLAS product does not
-keep that promise by itself: the library picks its kernels and its split of the rows by the number
-of rows, so row i of `X @ W` differs in the last bits between a batch of 1 and a batch of 64
-(measured here: up to 1e-5 on Style-ERD's and LPN-FiLM's layers, with numpy's OpenBLAS for almost
-every row count).
+The service steps many sessions as one batch and promises each character the same output bit for
+bit whoever else is in it. BLAS alone does not keep that promise: it picks kernels and row splits
+by the row count, so row i of `X @ W` differs in the last bits between batches of 1 and 64.
 
 Two ways keep it; which one is fixed per product shape (never per batch, which is the point):
 
-- **torch (MKL), rows padded to a multiple of `QUANTUM`.** Measured on this machine's MKL (AVX2):
-  with one thread every row count of 4 and up gives each row the same bits; with two threads the
-  counts that are multiples of 4 do. So padding to a multiple of 4 makes the row count stop
-  mattering, at full BLAS speed for large batches (LPN-FiLM at 256 rows: 49 us per row, against 72
-  for the blocks below and 41 for plain numpy).
-- **numpy in fixed 8-row blocks**: each 8-row BLAS call computes its rows alike wherever they
-  sit, so every row meets the same kernel whatever the batch. It costs BLAS's weaker amortisation
-  over 8-row calls, which matters only for large weights: products with fewer than
-  `TORCH_MIN_WEIGHTS` weights (all of Style-ERD's; LPN-FiLM's gating and style blend) take this
-  path, where torch's per-call overhead would cost more than it saves (Style-ERD at batch 1: 0.19-0.20
-  ms a step through torch, 0.16 in blocks; the break-even is near 64 rows, and at 1,000 rows torch
-  is 10-15 % faster: a crowd-sized batch would gain, single-character batches of a few rows lose).
+- **torch (MKL), rows padded to a multiple of `QUANTUM`**: with one thread every row count of 4
+  and up gives each row the same bits, with two threads the multiples of 4 do; full BLAS speed
+  for large batches.
+- **numpy in fixed 8-row blocks**: every row meets the same kernel whatever the batch, at the
+  cost of weaker amortisation. Products under `TORCH_MIN_WEIGHTS` weights take this path, where
+  torch's per-call overhead would cost more than it saves.
 
-A library, CPU or thread count where the first does not hold is caught by `_rows_agree` (row
-counts 4..max, rows at shifted positions) before any model output depends on it, and falls back
-to the second; `tests/test_rowwise.py` checks both and every model's step. LTI needs none of this
-(its kernels are per row).
+A library, CPU or thread count where the first does not hold is caught by `_rows_agree` before
+any output depends on it, and falls back to the second; `tests/test_rowwise.py` checks both and
+every model's step. LTI needs none of this (its kernels are per row).
 """
 
 from __future__ import annotations

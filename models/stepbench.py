@@ -1,5 +1,4 @@
-"""Per-frame step cost of a streaming model, shared by `python -m models.lti bench` and
-`python -m models.erd bench`.
+"""Per-frame step cost of a streaming model, shared by the `bench` commands of the three methods.
 
 The machines this runs on are shared (other jobs, a training run), and absolute timings drift by
 2x or more from one minute to the next. So every step is timed interleaved with a fixed
@@ -101,3 +100,19 @@ def time_steps(
         t2 = clock()
         steps[i], cpus[i], floors[i] = t1 - t0, c1 - c0, t2 - t1
     return StepTiming(batch, steps, cpus, floors)
+
+
+def interleaved(steps: dict, repeats: int, warmup: int = 10) -> tuple[dict, dict]:
+    """Wall and process CPU seconds of each step(i) of `steps` (name -> step), called in turn,
+    `repeats` times after `warmup` untimed rounds: the variants share the machine's drifting load."""
+    for i in range(warmup):
+        for step in steps.values():
+            step(i)
+    wall = {name: np.empty(repeats) for name in steps}
+    cpu = {name: np.empty(repeats) for name in steps}
+    for i in range(repeats):
+        for name, step in steps.items():
+            c0, t0 = time.process_time(), time.perf_counter()
+            step(warmup + i)
+            wall[name][i], cpu[name][i] = time.perf_counter() - t0, time.process_time() - c0
+    return wall, cpu

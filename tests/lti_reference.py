@@ -14,6 +14,15 @@ from pathlib import Path
 
 import numpy as np
 
+
+def carry_entry(carry: np.ndarray, key: str) -> np.ndarray:
+    """(B, *shape) view of one entry of a packed carry (`kernels.CARRY`)."""
+    from models.lti.kernels import SPANS
+
+    at, shape, _ = SPANS[key]
+    return carry[:, at : at + int(np.prod(shape))].reshape(len(carry), *shape)
+
+
 FIXTURE = Path(__file__).parent / "fixtures" / "lti_step_reference.npz"
 CLIPS = (("walk", 0), ("wave-both-hands", 0), ("raise-up-left-hand", 0), ("run", 0))
 FRAMES = 120
@@ -65,7 +74,6 @@ def unpacked(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     under its own key, with its own dtype; the styles' x as they are."""
     from models.lti.kernels import CARRY
     from models.lti.model import CARRY as KEY
-    from models.lti.model import carry_entry
     from models.motion.feet import STATE_SHAPES
 
     dtypes = {"started": bool, **{k: dtype for k, (_, dtype) in STATE_SHAPES.items()}}

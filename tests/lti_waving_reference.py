@@ -6,10 +6,18 @@ from __future__ import annotations
 import numpy as np
 
 from models.lti.waving_arm import ARM, GAIN, TRACK_FRAMES
-from models.motion.hands import RAISE_RAMP_CM, level_share, raise_share, wave_share
+from models.motion.hands import LEVEL_RAMP_CM_S, RAISE_RAMP_CM, raise_share, wave_share
 from models.motion.rotation_ball import clamp_rotations
 from models.motion.rotations import quat_inv, quat_mul
 from models.motion.style_carry import quat_exp, quat_log
+
+
+def level_share(risen: np.ndarray) -> np.ndarray:
+    """(..., 2) how level each hand is held: 1 up to `LEVEL_RAMP_CM_S` of `rise`, 0 from its end.
+    A raise-up's hand also sways as it goes up (on the validation raise-ups the wave share
+    reached 0.7-1.0 for about 13 frames of the rise); at a level one it does not."""
+    lo, hi = LEVEL_RAMP_CM_S
+    return 1.0 - np.clip((np.asarray(risen, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
 def shares(offsets: np.ndarray, swayed: np.ndarray, risen: np.ndarray, weights: np.ndarray) -> np.ndarray:

@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.motion.coupling import Coupling, couple, couple_numpy, deviations, link_indices, regression
+from models.motion.coupling import Coupling, couple, deviations, link_indices, regression
 from models.motion.rotations import quat_exp
+from tests.reference.coupling import couple_numpy
 
 NAMES = ("Hips", "Thigh", "Arm", "Forearm")
 LINKS = (("Arm", ("Hips", "Thigh")), ("Forearm", ("Arm",)))

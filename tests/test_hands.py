@@ -14,9 +14,16 @@ from models.motion.hands import (
     hand_offsets,
     hand_offsets_of,
     raised_frames,
-    still_share,
     wave_share,
 )
+
+STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it, not above
+
+
+def still_share(swayed: np.ndarray) -> np.ndarray:
+    """(..., 2) how still each hand is: 1 up to `STILL_RAMP_CM_S`, 0 from its end, linear between."""
+    lo, hi = STILL_RAMP_CM_S
+    return 1.0 - np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
 def _val(index, content: str):

@@ -120,8 +120,9 @@ def test_a_replaced_vector_gets_no_coupling_and_the_file_round_trips(model, tmp_
 
 def test_the_compiled_coupling_is_the_numpy_reference(model, walk):
     """Mixed weights, gait shares between walk and run, rows without a coupled style."""
-    from models.lpn.arm_coupling import couple_rows, couple_rows_numpy
+    from models.lpn.arm_coupling import couple_rows
     from models.motion.coupling import link_indices
+    from tests.reference.coupling import couple_rows_numpy
 
     rng = np.random.default_rng(0)
     rot = np.repeat(walk.rotations[:40], 2, axis=0).astype(np.float32)

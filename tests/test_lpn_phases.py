@@ -8,16 +8,29 @@ import pytest
 from models.data import build_index, load_motion, select
 from models.lpn.phases import (
     BONES,
-    circular_mean,
     fit_sinusoid,
     local_phases,
     phase_features,
     principal_axis,
-    step_frequency,
     style_axes,
 )
 
 FPS = 30.0
+
+
+def step_frequency(contact: np.ndarray, fps: float) -> float:
+    """Cycle frequency (Hz) of one foot from its touchdowns: (n - 1) cycles between the first and
+    last. NaN with fewer than two."""
+    c = np.asarray(contact, dtype=bool)
+    t = np.flatnonzero(~c[:-1] & c[1:]) + 1
+    if len(t) < 2:
+        return float("nan")
+    return (len(t) - 1) * fps / float(t[-1] - t[0])
+
+
+def circular_mean(angles: np.ndarray) -> float:
+    """Mean direction of angles (radians), in (-pi, pi]."""
+    return float(np.angle(np.exp(1j * np.asarray(angles)).mean()))
 
 
 def test_fit_recovers_synthetic_sinusoid():

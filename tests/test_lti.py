@@ -116,7 +116,7 @@ def test_stabilize_reflects_unstable_eigenvalues():
 # --------------------------------------------------------------------------- representation
 
 
-def test_representation_roundtrip_and_streaming_encoder():
+def test_representation_roundtrip():
     index, load_motion, select = _data()
     m = load_motion(select(index, style="normal", content="walk-turn-left", split="val")[0])
     ref = rep.mean_rotations(m.rotations)
@@ -127,9 +127,6 @@ def test_representation_roundtrip_and_streaming_encoder():
     root, rots = rep.features_to_sequence(f, m.translations[0, rep.HIPS, [0, 2]], float(yaw0), ref)
     np.testing.assert_allclose(root, m.translations[:, rep.HIPS], atol=1e-8)
     np.testing.assert_allclose(np.abs(np.sum(rots * m.rotations, -1)), 1.0, atol=1e-10)
-    enc = rep.FeatureEncoder(1, ref)
-    g = np.concatenate([enc(m.translations[t : t + 1, rep.HIPS], m.rotations[t : t + 1]) for t in range(m.num_frames)])
-    np.testing.assert_allclose(g, f, atol=1e-12)
 
 
 # --------------------------------------------------------------------------- streaming

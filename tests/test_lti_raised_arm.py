@@ -9,11 +9,11 @@ import pytest
 
 from models.interface import FrameBatch
 from models.lti import raised_arm
-from models.lti.model import CARRY, WEIGHTS_DIR, LTIStyleModel, carry_entry
+from models.lti.model import CARRY, WEIGHTS_DIR, LTIStyleModel
 from models.motion.hands import clip_sway, hand_offsets, raise_share
 from models.motion.rotations import quat_angle
 
-from .lti_reference import unpacked
+from .lti_reference import carry_entry, unpacked
 from .one_session import assert_lti_streams_as_offline, contents_read, stream, val_motions
 
 pytestmark = pytest.mark.skipif(not (WEIGHTS_DIR / raised_arm.FILE).exists(), reason="LTI raised arm not committed")

@@ -10,12 +10,12 @@ import pytest
 
 from models.interface import FrameBatch
 from models.lti import waving_arm
-from models.lti.model import CARRY, LTIStyleModel, carry_entry
+from models.lti.model import CARRY, LTIStyleModel
 from models.motion.hands import hand_offsets, raise_share
 from models.motion.rotations import quat_angle
 
 from . import lti_waving_reference as reference
-from .lti_reference import unpacked
+from .lti_reference import carry_entry, unpacked
 from .one_session import assert_lti_streams_as_offline, contents_read, stream, val_motions
 
 

@@ -18,8 +18,48 @@ from models.data import load_motions, select
 from models.eval.metrics import slide_summary
 from models.eval.plausibility import RotationReference
 from models.eval.run import LOCOMOTION, stylise
+from models.motion.features import body_joint
+from models.motion.rotations import quat_angle
+from models.motion.skeleton import Motion, Skeleton
 from models.registry import load_models
 from models.settings import get_settings
+
+
+def upper_body(skeleton: Skeleton) -> list[int]:
+    """The joints above the hips (spine, neck, head, arms): every descendant of the hips but the
+    legs, whose rotations also follow wherever the foot planter holds the feet."""
+    hips = body_joint(skeleton, "hips")
+    legs = {body_joint(skeleton, "hip_l"), body_joint(skeleton, "hip_r")}
+    out, stack = [], [c for c in skeleton.children(hips) if c not in legs]
+    while stack:
+        j = stack.pop()
+        out.append(j)
+        stack += skeleton.children(j)
+    return sorted(out)
+
+
+def lingering(fresh: list[Motion], running: list[Motion], seconds: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0)) -> dict:
+    """How long a session shows what came before it: at each time t into a clip, the median and
+    p90 over clips of the worst upper-body joint's angle (degrees) between the clip's output in a
+    running session and in a fresh one. 0 once the session has forgotten; a stateless method is 0
+    from the first frame. Clips shorter than t are left out at t (no entry when all are)."""
+    joints = upper_body(fresh[0].skeleton)
+    out = {}
+    for t in seconds:
+        k = round(t * fresh[0].fps)
+        angles = [
+            float(np.degrees(quat_angle(a.rotations[k, joints], b.rotations[k, joints])).max())
+            for a, b in zip(fresh, running)
+            if a.num_frames > k
+        ]
+        if angles:
+            out[f"{t:g}"] = {
+                "median": float(np.median(angles)),
+                "p90": float(np.percentile(angles, 90)),
+                "clips": len(angles),
+            }
+    return out
+
 
 DATASET = "bandai-namco-2"
 STYLES = ("active", "elderly", "exhausted", "feminine", "masculine", "youthful")
@@ -90,7 +130,7 @@ def test_rotations_and_planted_feet_stay_where_the_committed_weights_keep_them(m
     assert worst_pops <= POPS[method]
 
 
-# How long a session shows what came before (`models.eval.metrics.lingering`: the worst upper-body
+# How long a session shows what came before (`lingering`: the worst upper-body
 # joint's angle between a clip's output after 10 s of other clips and in a fresh session, p90):
 # (seconds into the clip, ceiling in degrees). LTI's modes decay within ~10 frames since session 16
 # (at 0.995 a raised arm stayed out through 5 s of walking: 13.5 degrees at 2 s); Style-ERD's LSTMs
@@ -101,7 +141,6 @@ FORGETS = {"lti": (2.0, 1.0), "erd": (4.0, 3.0)}
 
 @pytest.mark.parametrize("method", sorted(FORGETS))
 def test_a_session_forgets_a_gesture_while_it_walks_on(method, index, models):
-    from models.eval.metrics import lingering
     from models.eval.run import run_after_history
 
     model = models[method]

@@ -10,12 +10,24 @@ from PIL import Image
 
 from models.motion.assets import bandai_namco_pose, cmu_pose
 from models.motion.features import facing_yaw
-from models.motion.orientation import FACES, face_normals, find_parts, reference_rig, rig, solid_corners, world_axes
+from models.motion.orientation import FACES, face_normals, find_parts, reference_rig, rig, solid_corners
 from models.motion.render import joint_sides, render_contact_sheet, render_gif, up_axis, upright
 from models.motion.resample import resample
-from models.motion.rotations import quat_exp, quat_mul
+from models.motion.rotations import quat_exp, quat_mul, quat_to_matrix
 from models.motion.skeleton import Motion
 from tests.rigs import EXTRA_SPECS, SPECS, bn_positions, make_rig
+
+
+def part_frames(global_rotations: np.ndarray, joint: int, axes: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) world axes (columns x, y, z) of a part from world joint rotations (..., J, 4)."""
+    return quat_to_matrix(global_rotations[..., joint, :]) @ axes
+
+
+def world_axes(motion: Motion) -> dict[str, np.ndarray]:
+    """Per part (`head`, `hand_l`, `foot_r`, ...), its world axes over the motion (F, 3, 3):
+    column 0 is where the face looks / the fingers point / the toes point, column 1 up / the thumb."""
+    g_rot, _ = motion.global_transforms()
+    return {s.part: part_frames(g_rot, s.joint, s.axes) for s in rig(motion) if not s.mark}
 
 
 def _not_blank(img: Image.Image) -> None:

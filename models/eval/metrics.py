@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion.features import body_joint, left_leg_length
-from ..motion.rotations import quat_angle
-from ..motion.skeleton import Motion, Skeleton
+from ..motion.skeleton import Motion
 
 SKATE_SPEED = 0.2  # leg lengths per second of horizontal foot motion while in contact counts as skating
 CONTACT_MARGIN = 0.02  # leg lengths (1.7 cm on Bandai Namco) above a joint's floor level still counts as on the floor
@@ -110,40 +109,4 @@ def slide_summary(motions: list[Motion]) -> dict[str, float]:
         v = np.concatenate([p[part] for p in pooled])
         out[f"{part}_median"] = float(np.median(v)) if len(v) else 0.0
         out[f"{part}_p95"] = float(np.percentile(v, 95)) if len(v) else 0.0
-    return out
-
-
-def upper_body(skeleton: Skeleton) -> list[int]:
-    """The joints above the hips (spine, neck, head, arms): every descendant of the hips but the
-    legs, whose rotations also follow wherever the foot planter holds the feet."""
-    hips = body_joint(skeleton, "hips")
-    legs = {body_joint(skeleton, "hip_l"), body_joint(skeleton, "hip_r")}
-    out, stack = [], [c for c in skeleton.children(hips) if c not in legs]
-    while stack:
-        j = stack.pop()
-        out.append(j)
-        stack += skeleton.children(j)
-    return sorted(out)
-
-
-def lingering(fresh: list[Motion], running: list[Motion], seconds: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0)) -> dict:
-    """How long a session shows what came before it: at each time t into a clip, the median and
-    p90 over clips of the worst upper-body joint's angle (degrees) between the clip's output in a
-    running session and in a fresh one. 0 once the session has forgotten; a stateless method is 0
-    from the first frame. Clips shorter than t are left out at t (no entry when all are)."""
-    joints = upper_body(fresh[0].skeleton)
-    out = {}
-    for t in seconds:
-        k = round(t * fresh[0].fps)
-        angles = [
-            float(np.degrees(quat_angle(a.rotations[k, joints], b.rotations[k, joints])).max())
-            for a, b in zip(fresh, running)
-            if a.num_frames > k
-        ]
-        if angles:
-            out[f"{t:g}"] = {
-                "median": float(np.median(angles)),
-                "p90": float(np.percentile(angles, 90)),
-                "clips": len(angles),
-            }
     return out

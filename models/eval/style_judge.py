@@ -2,25 +2,19 @@
 speeds, and a multinomial logistic regression over them, trained on Bandai Namco datasets 1 and 2
 together.
 
-Why another judge: the conv-net judges (`judges.py`) were trained on dataset 2 alone and learned
-its recordings as much as its styles (on real dataset-1 clips sharing a style label they were right
-49 % and 31 % of the time). This one is built by a different recipe, so a model tuned against the
-old judges gets no free pass here: a linear read of summary statistics (posture, how much each
-joint moves, how fast), trained on both datasets, with the labels the two share mapped only where
-the data says they agree (`fit_style_judge`).
+Why another judge: the conv-net judges (`judges.py`), trained on dataset 2 alone, learned its
+recordings as much as its styles. This one uses a different recipe, so a model tuned against the
+old judges gets no free pass: a linear read of summary statistics, trained on both datasets, with
+shared labels mapped only where the data says they agree (`fit_style_judge`).
 
-What it reads: rotations and angular speeds only. Positions (hips height, hands and feet relative
-to the hips) carry the performer's bone lengths, which tell recordings apart rather than styles.
-Each clip is read against the centre of its own session and content (`StyleJudge.reference`), so
-the caller names both: the dataset the input came from and what it performs.
+It reads rotations and angular speeds only (positions carry the performer's bone lengths, which
+tell recordings apart), each clip against the centre of its own session and content
+(`StyleJudge.reference`), so the caller names the input's dataset and content.
 
-What it answers (`predict`): one of the labels the evaluation asks about (dataset 2's styles and
-the styles mapped onto them, `normal` among them) or `OTHER`, a style outside that set (dataset
-1's own styles: happy, giant, ...). A label shared by both datasets weighs each dataset the same
-in the fit, so it is learnt from both recordings and not from dataset 2's hundreds of takes alone;
-the dataset-1-only styles stay classes of their own in the fit (a linear read cannot draw one
-class round eleven different styles), and a clip reads as `OTHER` when their probabilities
-together beat every named label.
+`predict` answers one of the labels the evaluation asks about (dataset 2's styles and those mapped
+onto them) or `OTHER`. A shared label weighs each dataset the same in the fit; dataset-1-only
+styles stay classes of their own (one linear class cannot surround eleven styles), and a clip
+reads as `OTHER` when their probabilities together beat every named label.
 
 Inference is numpy only; `fit_linear` (scikit-learn) runs in `python -m models.eval.fit_style_judge`.
 """

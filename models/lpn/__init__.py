@@ -10,24 +10,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .phases import (
-    BONES,
-    LocalPhases,
-    SinusoidFit,
-    circular_mean,
-    contact_free_source,
-    contact_source,
-    fit_sinusoid,
-    local_phases,
-    lowpass,
-    phase_features,
-    principal_axis,
-    sliding_normalise,
-    step_frequency,
-    style_axes,
-    touchdowns,
-)
-
 WEIGHTS_SUBDIR = "lpn"
 
 
@@ -38,22 +20,4 @@ def load(weights_dir: Path, core_only: bool = False):
     return _load(Path(weights_dir), core_only=core_only)
 
 
-__all__ = [
-    "BONES",
-    "LocalPhases",
-    "SinusoidFit",
-    "WEIGHTS_SUBDIR",
-    "circular_mean",
-    "contact_free_source",
-    "contact_source",
-    "fit_sinusoid",
-    "load",
-    "local_phases",
-    "lowpass",
-    "phase_features",
-    "principal_axis",
-    "sliding_normalise",
-    "step_frequency",
-    "style_axes",
-    "touchdowns",
-]
+__all__ = ["WEIGHTS_SUBDIR", "load"]

@@ -1,10 +1,8 @@
 """LPN-FiLM command line.
 
-.venv/bin/python -m models.lpn phases-plot [--out out/lpn_phases.png] [--styles 2:normal,2:elderly,1:chimpira]
-.venv/bin/python -m models.lpn phases-stats [--style normal]       # step vs fitted frequency, L/R offsets
 .venv/bin/python -m models.lpn train [--minutes 60] [--field=value ...]   # train.TrainConfig, then export
 .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
-.venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs numpy
+.venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs the expert products alone
 .venv/bin/python -m models.lpn heldout [--steps 300 --seed 0]          # new styles from a clip, 3 held-out styles
 .venv/bin/python -m models.lpn validate [WEIGHTS_DIR ...]              # streamed on the validation split (validate.py)
 """
@@ -18,54 +16,6 @@ from pathlib import Path
 import numpy as np
 
 from ..settings import REPO_ROOT
-
-
-def _styles(spec: str) -> tuple[tuple[str, str], ...]:
-    out = []
-    for item in spec.split(","):
-        ds, style = item.split(":")
-        out.append((f"bandai-namco-{ds}", style))
-    return tuple(out)
-
-
-def phases_plot(args) -> None:
-    from .plots import DEFAULT_STYLES, phases_figure
-
-    styles = _styles(args.styles) if args.styles else DEFAULT_STYLES
-    out = Path(args.out)
-    print(
-        phases_figure(
-            out if out.is_absolute() else REPO_ROOT / out,
-            styles,
-            content=args.content,
-            bones=tuple(args.bones.split(",")),
-            seconds=args.seconds,
-        )
-    )
-
-
-def phases_stats(args) -> None:
-    """Per clip: step frequency from contact touchdowns vs the median fitted foot frequency, and the
-    circular mean of the left-right phase difference of feet and hands (pi = anti-phase)."""
-    from models.data import build_index, load_motion, select
-
-    from .phases import circular_mean, local_phases, step_frequency
-
-    index = build_index(["bandai-namco-1", "bandai-namco-2"])
-    rows = []
-    for clip in select(index, style=args.style, content=args.content, split=args.split):
-        lp = local_phases(load_motion(clip))
-        steps = [step_frequency(lp.contacts[:, s], lp.fps) for s in (0, 1)]
-        rows.append(
-            {
-                "clip": clip.name,
-                "step_hz": np.round(steps, 3).tolist(),
-                "fitted_hz": np.round(np.median(lp.frequency, axis=0), 3).tolist(),
-                "feet_lr_offset": round(abs(circular_mean(lp.phase[:, 2] - lp.phase[:, 3])), 3),
-                "hands_lr_offset": round(abs(circular_mean(lp.phase[:, 0] - lp.phase[:, 1])), 3),
-            }
-        )
-        print(json.dumps(rows[-1]))
 
 
 def train(args) -> None:
@@ -100,7 +50,7 @@ def bench(args) -> None:
     import time
 
     from ..interface import FrameBatch
-    from ..stepbench import capped_threads, stepper
+    from ..stepbench import capped_threads, interleaved, stepper
 
     load_before = os.getloadavg()
     model = _model()
@@ -121,7 +71,7 @@ def bench(args) -> None:
         w[:, model.styles().index("elderly")] = 1.0
         steps = {"compiled": stepper(model, [frames], w, B), "floor": _products(model, B)}
         with capped_threads(args.threads):
-            times, cpu = _alternate(steps, args.steps if B == 1 else max(args.steps // 4, 20))
+            times, cpu = interleaved(steps, args.steps if B == 1 else max(args.steps // 4, 20), warmup=20)
         out[B] = {
             name: {
                 "median_ms": round(float(np.median(ts)) * 1e3, 3),
@@ -149,24 +99,6 @@ def _products(model, B: int):
     return step
 
 
-def _alternate(steps: dict, repeats: int, warmup: int = 20) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Wall and process CPU seconds of each of `steps` (name -> step(i), as `stepbench.stepper`) per
-    call, the steps called in turn, `repeats` times each after `warmup` untimed rounds. CPU time
-    leaves out the time the process waited for a core, most of the wall time on a busy machine."""
-    import time
-
-    for i in range(warmup):
-        for step in steps.values():
-            step(i)
-    wall, cpu = {name: np.empty(repeats) for name in steps}, {name: np.empty(repeats) for name in steps}
-    for i in range(repeats):
-        for name, step in steps.items():
-            c, t = time.process_time(), time.perf_counter()
-            step(warmup + i)
-            wall[name][i], cpu[name][i] = time.perf_counter() - t, time.process_time() - c
-    return wall, cpu
-
-
 def heldout(args) -> None:
     import torch
 
@@ -189,18 +121,6 @@ def validate(args) -> None:
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m models.lpn")
     sub = p.add_subparsers(dest="cmd", required=True)
-    s = sub.add_parser("phases-plot", help="Figure-4 analogue: sources, fits, phases per style")
-    s.add_argument("--out", default="out/lpn_phases.png")
-    s.add_argument("--styles", default="", help="comma list of dataset:style, e.g. 2:normal,1:chimpira")
-    s.add_argument("--content", default="walk")
-    s.add_argument("--bones", default="Foot_L,Hand_L")
-    s.add_argument("--seconds", type=float, default=4.0)
-    s.set_defaults(fn=phases_plot)
-    s = sub.add_parser("phases-stats", help="step vs fitted frequency and L/R phase offsets per clip")
-    s.add_argument("--style", default="normal")
-    s.add_argument("--content", default="walk")
-    s.add_argument("--split", default="train")
-    s.set_defaults(fn=phases_stats)
     s = sub.add_parser("demo", help="scripted control sequence in each style: renders + skating/freezing numbers")
     s.add_argument("--seconds", type=float, default=60.0)
     s.add_argument("--styles", default="normal,active,elderly,exhausted,feminine,masculine,youthful")

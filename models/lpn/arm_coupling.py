@@ -3,27 +3,19 @@ they move together in the style's real clips (`ARM_COUPLING_FILE` beside the wei
 `python -m models.lpn.arm_coupling [STYLE ...]`, the same fit for every style; `runtime.LPNModel`
 applies it after the output prior and before the rotation balls).
 
-After the output prior (`output_prior.py`), LPN-FiLM's active walks swung their upper arms as the
-real active walks do (mean deviation 31.6 against 33.0 degrees) but did not pump their forearms:
-driven by the `normal` TRAIN walks, the forearm turned at 73 degrees/s where the real active
-forearm turns at 180, the hands' vertical speed varied half as much as the real ones' (std 81-94
-against 139-159 cm/s on the validation walks and turns), and the position judge read 2 of the 13
-validation locomotion inputs as exhausted. The output prior maps each joint on its own, so it can
-widen a forearm's spread but not put a pump in step with the swing the network keeps still. In
-the real active clips the forearm's deviation from its mean is, to R^2 0.81 and 0.74 on its two
-main axes, a linear function of the deviations of its upper arm, its shoulder and the chest
-(`LINKS`); in the network's output the same regression has other coefficients. The coupling
-swaps the network's for the real ones:
+The output prior maps each joint on its own: it can widen a forearm's spread but not make it pump
+in step with an upper-arm swing the network keeps still. In real clips a forearm's deviation from
+its mean is close to a linear function of its upper arm's, shoulder's and the chest's (`LINKS`);
+in the network's output the regression has other coefficients. The coupling swaps them:
 
     d_f' = d_f + (B_real - B_made)^T [d_u, d_s, d_c, 1]
 
-every d a joint's rotation vector away from the style's real mean (in the joint's own frame, as
-the output prior reads it), B fitted by least squares on the style's real TRAIN locomotion and on
-the network's output (its carriage and output prior in place, driven by the neutral TRAIN
-locomotion), on walks and on runs apart (`carriage.locomotion`) and mixed by the control's gait
-share, as the output prior is. What the network's forearm does apart from its drivers stays. A style mix blends the
-corrections as the output prior does (q' = q exp(sum_s w_s log(q^-1 f_s(q)))); a row that weighs
-no coupled style, and every joint but the forearms, is left exactly as it was.
+every d a rotation vector away from the style's real mean (in the joint's own frame), B fitted by
+least squares on the style's real TRAIN locomotion and on the network's output (carriage and
+output prior in place, driven by neutral TRAIN locomotion), on walks and runs apart and mixed by
+the gait share. What the forearm does apart from its drivers stays. A style mix blends the
+corrections (q' = q exp(sum_s w_s log(q^-1 f_s(q)))); rows that weigh no coupled style, and every
+joint but the forearms, are left exactly as they were.
 """
 
 from __future__ import annotations
@@ -33,7 +25,7 @@ import sys
 import numpy as np
 
 from ..eval.run import DATASET, INPUT_STYLE
-from ..motion.coupling import GAITS, Coupling, Link, couple, couple_numpy, write_coupling
+from ..motion.coupling import GAITS, Coupling, Link, couple, write_coupling
 from .carriage import SKIP_FRAMES, fitted_styles, locomotion
 
 ARM_COUPLING_FILE = "arm_coupling.npz"
@@ -63,14 +55,6 @@ def couple_rows(
     exactly as they were. Compiled (`models.motion.coupling.couple`)."""
     aligned = _aligned(table)
     return rotations if aligned is None else couple(rotations, weights, gait, joints, aligned)
-
-
-def couple_rows_numpy(
-    table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarray, joints: tuple[np.ndarray, np.ndarray]
-) -> np.ndarray:
-    """The numpy reference of `couple_rows`."""
-    aligned = _aligned(table)
-    return rotations if aligned is None else couple_numpy(rotations, weights, gait, joints, aligned)
 
 
 def fit(model, styles: list[str], dataset: str = DATASET) -> Coupling:

@@ -1,22 +1,13 @@
-"""A style's arm carriage, and optionally its pace, from its real TRAIN clips, fitted the same way
-for every style (`CARRIAGE_FILE` beside the weights, written by `python -m models.lpn.carriage
-[--paced]`; `runtime.LPNModel` applies it).
+"""A style's arm carriage from its real TRAIN clips, fitted the same way for every style
+(`CARRIAGE_FILE` beside the weights, written by `python -m models.lpn.carriage`;
+`runtime.LPNModel` applies it).
 
-LPN-FiLM's FiLM vectors alone barely move the arms' mean pose: driven by the validation
-locomotion inputs, its active walks were read as active by the rotation style judge in 8 % of
-clips and its exhausted ones in 0 %, where the real active walks carry the elbows ~30 degrees
-more bent. What a style's real clips measure can be put back:
-
-- **arm carriage** (shipped), per style and arm joint (Shoulder .. Hand, both sides): the rotation
-  that takes the network's mean local rotation (driven by the neutral TRAIN locomotion clips
-  toward the style) to the mean of the style's real TRAIN locomotion clips, applied to the output
-  in the parent's frame before the rotation prior; the network's state keeps its own pose.
-- **pace** (`--paced`, not shipped), per style and gait: the median Hips speed of the style's
-  TRAIN walks (runs) over the neutral style's. The derived control's velocity is multiplied by it
-  (blended by the style weights, between walk and run by the gait); a control the caller gives is
-  kept as it is. A character slower than the input it is driven by falls ever further behind
-  that input's root, which a game driving a character by its capsule cannot use, and slowed
-  walks were read as turns by the content judge. So it is off unless a deployment fits it.
+LPN-FiLM's FiLM vectors alone barely move the arms' mean pose, where real styles differ in it
+(the real active walks carry the elbows ~30 degrees more bent). Per style and arm joint (Shoulder
+.. Hand, both sides) the carriage is the rotation that takes the network's mean local rotation
+(driven by the neutral TRAIN locomotion toward the style) to the mean of the style's real TRAIN
+locomotion, applied to the output in the parent's frame before the rotation prior; the network's
+state keeps its own pose.
 
 Locomotion is measured, not read from labels: a style's walks and runs are its TRAIN clips split
 by their own median Hips speeds (`models.motion.gait_split`), standing clips (gestures) in neither.
@@ -45,30 +36,27 @@ SKIP_FRAMES = 30  # the network's first second settles from the input's first po
 
 @dataclass(frozen=True)
 class Carriage:
-    """Per style: pace (walk, run) and the arm joints' offset rotations (xyzw)."""
+    """Per style: the arm joints' offset rotations (xyzw)."""
 
     styles: tuple[str, ...]
-    pace: np.ndarray  # (S, 2) speed factors for walking and running
     arms: np.ndarray  # (S, len(ARM_JOINTS), 4) offsets, applied as offset * rotation
 
-    def rows(self, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
-        """(pace, arms) aligned with `names`; a style not fitted gets pace 1 and no offsets."""
-        pace = np.ones((len(names), 2))
+    def rows(self, names: list[str]) -> np.ndarray:
+        """The offsets aligned with `names`; a style not fitted gets none."""
         arms = np.tile((0.0, 0.0, 0.0, 1.0), (len(names), len(ARM_JOINTS), 1))
         for i, n in enumerate(names):
             if n in self.styles:
-                k = self.styles.index(n)
-                pace[i], arms[i] = self.pace[k], self.arms[k]
-        return pace, arms
+                arms[i] = self.arms[self.styles.index(n)]
+        return arms
 
     def save(self, path: Path) -> Path:
-        np.savez(path, styles=np.array(self.styles), pace=self.pace, arms=self.arms)
+        np.savez(path, styles=np.array(self.styles), arms=self.arms)
         return path
 
     @classmethod
     def load(cls, path: Path) -> Carriage:
         with np.load(path) as z:
-            return cls(tuple(str(s) for s in z["styles"]), z["pace"].astype(np.float64), z["arms"].astype(np.float64))
+            return cls(tuple(str(s) for s in z["styles"]), z["arms"].astype(np.float64))
 
 
 def _mix(values: np.ndarray, weights: np.ndarray, rest: np.ndarray) -> np.ndarray:
@@ -81,14 +69,6 @@ def _mix(values: np.ndarray, weights: np.ndarray, rest: np.ndarray) -> np.ndarra
     for k in np.flatnonzero(w.any(0)):
         mixed = mixed + w[:, k].reshape(-1, *extra) * values[k]
     return mixed
-
-
-def blend_pace(pace: np.ndarray, weights: np.ndarray, gait: np.ndarray) -> np.ndarray:
-    """(B,) speed factor: the weights' mix of the styles' (walk, run) paces, the shortfall of the
-    weights from 1 at pace 1 (`normal`), between walk and run by the gait (0 walk .. 1 run)."""
-    mixed = _mix(pace, weights, np.ones(2))
-    g = np.clip(gait, 0.0, 1.0)
-    return mixed[:, 0] + (mixed[:, 1] - mixed[:, 0]) * g
 
 
 def blend_arms(arms: np.ndarray, weights: np.ndarray, normal: int) -> np.ndarray:
@@ -106,16 +86,6 @@ def carry_arms(rotations: np.ndarray, offsets: np.ndarray, joints: np.ndarray) -
 
 
 # ---- fitting (offline) -----------------------------------------------------------------------
-
-
-def median_speed(clips: list) -> float:
-    """Median horizontal Hips speed (cm/s) over the frames of `clips` (Motions at 30 fps)."""
-    speeds = [
-        np.linalg.norm(np.diff(m.translations[:, 1][:, [0, 2]], axis=0), axis=1) * m.fps
-        for m in clips
-        if m.num_frames > 1
-    ]
-    return float(np.median(np.concatenate(speeds)))
 
 
 def locomotion(dataset: str) -> Callable[[str], dict[str, list]]:
@@ -163,21 +133,16 @@ def _offsets(
     return out
 
 
-def fit(model, styles: list[str], dataset: str = DATASET, frames: int = 300, paced: bool = False) -> Carriage:
-    """The arm offsets from the network (paced, with `paced`: each style's pace from its real
-    clips; otherwise pace 1) against the real clips. `model` itself is left as it was: the
-    network runs on a copy carrying the pace and no offsets."""
+def fit(model, styles: list[str], dataset: str = DATASET, frames: int = 300) -> Carriage:
+    """The arm offsets from the network against the real clips. `model` itself is left as it
+    was: the network runs on a copy without offsets."""
     clips = locomotion(dataset)
-    pace = np.ones((len(styles), 2))
-    if paced:
-        neutral = [median_speed(clips(INPUT_STYLE)[g]) for g in GAITS]
-        pace = np.array([[median_speed(clips(s)[g]) / n for g, n in zip(GAITS, neutral)] for s in styles])
     model = model.with_own_styles()
     model.output_prior = None  # fitted on top of the carriage (`output_prior.py`): refit it after
     model.arm_coupling = None  # and the arm coupling on top of that (`arm_coupling.py`)
-    model.carriage = Carriage(tuple(styles), pace, np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
+    model.carriage = Carriage(tuple(styles), np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
     inputs = [m.slice(0, frames) for m in every_gait(clips(INPUT_STYLE))]
-    return Carriage(tuple(styles), pace, _offsets(model, inputs, lambda s: every_gait(clips(s)), styles, ARM_JOINTS))
+    return Carriage(tuple(styles), _offsets(model, inputs, lambda s: every_gait(clips(s)), styles, ARM_JOINTS))
 
 
 def _degrees(offsets: np.ndarray) -> list[float]:
@@ -185,8 +150,8 @@ def _degrees(offsets: np.ndarray) -> list[float]:
 
 
 def main(argv: list[str]) -> None:
-    """`[STYLE ...] [--paced]` (default: every style with TRAIN clips in the dataset): fit pace and
-    arms. The output prior (`output_prior.py`) and the arm coupling (`arm_coupling.py`), fitted on
+    """`[STYLE ...]` (default: every style with TRAIN clips in the dataset): fit the arm
+    offsets. The output prior (`output_prior.py`) and the arm coupling (`arm_coupling.py`), fitted on
     top of the carriage, are then to be fitted again."""
     import json
     import time
@@ -198,15 +163,13 @@ def main(argv: list[str]) -> None:
     from .weights import CONFIG_FILE
 
     torch.set_num_threads(1)
-    paced = "--paced" in argv
-    argv = [a for a in argv if a != "--paced"]
     t0 = time.time()
     folder = get_settings().weights_dir / "lpn"
     styles = argv or fitted_styles(json.loads((folder / CONFIG_FILE).read_text())["styles"], DATASET)
-    carriage = fit(load(folder), styles, paced=paced)
+    carriage = fit(load(folder), styles)
     carriage.save(folder / CARRIAGE_FILE)
-    for s, p, a in zip(carriage.styles, carriage.pace, carriage.arms):
-        print(f"{s:10s} pace {dict(zip(GAITS, p.round(2).tolist()))}  arm offsets (deg) {_degrees(a)}")
+    for s, a in zip(carriage.styles, carriage.arms):
+        print(f"{s:10s} arm offsets (deg) {_degrees(a)}")
     print(f"wrote {folder / CARRIAGE_FILE} in {time.time() - t0:.0f} s")
 
 

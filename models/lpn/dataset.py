@@ -4,15 +4,12 @@
     .venv/bin/python -m models.lpn.dataset        # build (or reuse) the cache, ~2 min
 
 Data: dataset 1 (walk, run, dash, walk-back, walk-left, walk-right) and dataset 2 (walk,
-walk-turn-left, walk-turn-right, run), or, with `DataConfig.hundred_style_dir`, the locomotion takes of a
-100STYLE folder (`hundred_style.py`; its `Neutral` style becomes `normal`, no style held out unless
-listed). Style names: dataset 2 keeps its plain names (`normal`,
-`active`, `elderly`, `exhausted`, `feminine`, `masculine`, `youthful`: the service and the eval
-suite compare methods on them); every dataset-1 style is prefixed `d1-` (`d1-active`,
-`d1-normal`, ...): the two datasets were captured with different actors, so a shared name is not
-the same style. Three dataset-1 styles (`HELD_OUT`) never enter training; they are the
-new-style-from-clip experiment. Training takes are mirrored (left/right) as augmentation, which
-also balances turns and side steps.
+walk-turn-left, walk-turn-right, run), or, with `DataConfig.hundred_style_dir`, the locomotion
+takes of a 100STYLE folder (`hundred_style.py`; its `Neutral` becomes `normal`). Dataset 2 keeps
+its plain style names (the ones the service and the evaluation compare methods on); dataset-1
+styles are prefixed `d1-`, since the two were captured with different actors. Three dataset-1
+styles (`HELD_OUT`) never enter training: they test new styles from a clip. Training takes are
+mirrored as augmentation, which also balances turns and side steps.
 
 Gait is 1 for run and dash, 0 for walking contents. Local phases use the per-style-and-gait
 principal axes of the hands (`phases.style_axes`, mirrored takes included).
@@ -181,12 +178,10 @@ STYLE_FEATURE_BLOCK = 1024  # frames per block of `clip_style_features`
 def clip_style_features(motion: Motion) -> np.ndarray:
     """(F, STYLE_DIM) FiLM-generator features of a whole clip (what `clip_samples` stores as style_feats).
 
-    Worked out in blocks of frames, each with the frame before it for the backward differences:
-    every feature depends on its frame and the one before, so the numbers are the same as in one
-    go, but no numpy call spans a long clip. An uploaded clip's style is built on a (nice 19) thread
-    beside the service's event loop, which waits for the GIL for the whole of any one call: over 20
-    builds from a 9,000-frame clip the loop was late by a median 1.6 ms in one go, 1.1 ms in blocks
-    (its idle floor ~0.9; both had rare 3-5 ms outliers; `out/s14/stylehold.py`, scratch)."""
+    Worked out in blocks of frames, each with the frame before it for the backward differences, so
+    the numbers are those of one go but no numpy call spans a long clip: an uploaded clip's style is
+    built on a thread beside the service's event loop, which waits for the GIL for the whole of any
+    one call."""
     F = motion.num_frames
     if F <= STYLE_FEATURE_BLOCK:
         return _style_features_in_one_go(motion)
@@ -243,7 +238,7 @@ def _build_split(
         groups[(c.dataset, c.style, c.content)].append(m)
     axes = {k: style_axes(v) for k, v in groups.items()}
     jobs = [(m, axes[(c.dataset, c.style, c.content)]) for c, m, _ in variants]
-    out = defaultdict(list)
+    out: defaultdict[str, list[Any]] = defaultdict(list)
     offset = 0
     for i, ((c, m, mirrored), fr) in enumerate(zip(variants, _frames_of_every_clip(jobs))):
         k = styles.index(style_name(c))
@@ -317,7 +312,7 @@ def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
         "val": [c for c in clips if c.split == "val" and style_name(c) in styles],
         "heldout": [c for c in clips if style_name(c) in cfg.held_out],
     }
-    meta = {"config": asdict(cfg), "styles": styles, "held_out": list(cfg.held_out)}
+    meta: dict[str, Any] = {"config": asdict(cfg), "styles": styles, "held_out": list(cfg.held_out)}
     for split, cl in parts.items():
         log(f"{split}: {len(cl)} clips")
         if not cl:
@@ -335,7 +330,8 @@ def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
         stats["G_scale"] = np.array(z["G"].std() + 1e-6, dtype=np.float32)
         f = z["feats"]
         stats["S_mean"], stats["S_std"] = f.mean(0), np.maximum(f.std(0), 1e-2 * f.std(0).mean() + 1e-6)
-    np.savez(out / "stats.npz", **{k: np.asarray(v, np.float32) for k, v in stats.items()})
+    as_float32: dict[str, Any] = {k: np.asarray(v, np.float32) for k, v in stats.items()}
+    np.savez(out / "stats.npz", **as_float32)
     meta["seconds"] = round(time.time() - t0, 1)
     (out / "meta.json").write_text(json.dumps(meta, indent=1))
     log(f"cache {out} built in {meta['seconds']} s")

@@ -1,7 +1,7 @@
 """LPN-FiLM per-frame features: the layout of the network's input, gating input and output, and the
-pure functions that compute them from world-space joint data. One code path for the offline
-dataset (`dataset.py`, whole clips at once) and the streaming runtime (`runtime.py`, one frame of
-B sessions at once), so the two cannot drift apart.
+pure functions that compute them from world-space joint data for the offline dataset
+(`dataset.py`). The streaming step's compiled kernels (`kernels.py`) use the same formulas, held
+to these by the numpy reference step in `tests/reference/lpn_step.py`.
 
 Conventions (those of `models.motion.features`): Y up, units of the skeleton (cm for Bandai
 Namco), facing yaw in radians about +Y with 0 = facing +Z, facing direction (sin yaw, cos yaw) in
@@ -68,21 +68,9 @@ def to_local_xz(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     return np.stack([c * x - s * z, s * x + c * z], axis=-1)
 
 
-def to_world_xz(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """Inverse of `to_local_xz`."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    x, z = v[..., 0], v[..., 1]
-    return np.stack([c * x + s * z, -s * x + c * z], axis=-1)
-
-
 def to_local(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     """World 3-D vectors (..., 3) into the character frame (yaw broadcast over the leading axes)."""
     xz = to_local_xz(v[..., [0, 2]], yaw)
-    return np.stack([xz[..., 0], v[..., 1], xz[..., 1]], axis=-1)
-
-
-def to_world(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    xz = to_world_xz(v[..., [0, 2]], yaw)
     return np.stack([xz[..., 0], v[..., 1], xz[..., 1]], axis=-1)
 
 
@@ -108,16 +96,6 @@ def pose_features(
         ],
         axis=-1,
     )
-
-
-def rotations_from_axes(forward: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) whose +Z column is `forward` and +Y column is `up`
-    (orthonormalised: forward is kept, up made perpendicular)."""
-    z = forward / np.sqrt(np.maximum((forward * forward).sum(-1, keepdims=True), 1e-18))
-    y = up - (up * z).sum(-1, keepdims=True) * z
-    y = y / np.sqrt(np.maximum((y * y).sum(-1, keepdims=True), 1e-18))
-    x = y[..., [1, 2, 0]] * z[..., [2, 0, 1]] - y[..., [2, 0, 1]] * z[..., [1, 2, 0]]  # y x z
-    return np.stack([x, y, z], axis=-1)
 
 
 def clip_frames(

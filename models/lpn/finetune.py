@@ -1,26 +1,20 @@
 """A new LPN-FiLM style from a clip, improved: fine-tune a copy of the FiLM generator on the clip
 itself with the motion network frozen.
 
-The instant style (`LPNModel.add_style_from_clip`) is the trained generator's embedding of the clip;
-for a style far from the training styles it can miss (the model card's `d1-proud`). Here the clip's
-own training samples (built exactly as `dataset.clip_samples` builds them: local phases, X, G, Y) go
-through a frozen copy of the network with FiLM = generator(clip windows), and only the generator
-learns, under the training objective (`train.training_loss`) and in the training regime: the
-frozen network keeps its dropout on. The motion network stays what every other style uses, so the
-result is still just a (4, H) FiLM vector that mixes with the others.
+The instant style (`LPNModel.add_style_from_clip`) is the trained generator's embedding of the
+clip, which can miss a style far from the training styles. Here the clip's own training samples
+(built as `dataset.clip_samples` builds them) go through a frozen copy of the network with
+FiLM = generator(clip windows), and only the generator learns, under the training objective
+(`train.training_loss`). The result is still a (4, H) FiLM vector that mixes with the others.
 
-Why dropout: without it the tuned vector fits the clip's frames as well (held-back loss) but is
-brittle when the model runs on its own output. Closed-loop distance to the real style
-(`python -m models.lpn heldout`, lower is better; untuned embedding of the fit part: giant 0.50,
-chimpira 0.50, proud 0.93): without dropout at 20 / 100 / 300 steps giant 0.85 / 0.97 / 0.39,
-chimpira 0.52 / 0.72 / 0.78, proud 1.14 / 0.75 / 0.63; with dropout, 300 steps seeds 0 and 1 and
-100 steps seed 1, giant 0.22-0.25, chimpira 0.33-0.41, proud 0.31-0.37.
+The frozen network keeps its dropout on, as in training: without it the tuned vector fits the
+clip's frames as well but is brittle when the model runs on its own output (the model card's
+held-out styles).
 
-Held-back check: the clip is split in time. With n samples (frame t predicts t + 1 .. t + 31), the
-last `1 - fit_share` of them are held back; fitting uses the samples whose targets all end before
-the first held-back one predicts (a 30-frame gap), and the generator sees only the fit part's frames.
-The loss on the held-back samples before and after says whether fine-tuning helped on motion it
-never saw.
+Held-back check: the clip is split in time. The last `1 - fit_share` of its samples are held
+back; fitting uses the samples whose targets all end before the first held-back one predicts (a
+30-frame gap), and the generator sees only the fit part's frames. The loss on the held-back
+samples before and after says whether fine-tuning helped on motion it never saw.
 """
 
 from __future__ import annotations

@@ -1,15 +1,11 @@
 """Compiled kernels (numba) for the LPN-FiLM streaming step: the per-session geometry around the
-network (control, trajectory blending, input assembly, phase update, output pose) and
-the network's small per-row maths (gating MLP, expert blend, layer norm, FiLM, ELU). The network's
-three big matrix products stay in numpy (BLAS).
+network (control, trajectory blending, input assembly, phase update, output pose) and the
+network's small per-row maths (gating MLP, expert blend, layer norm, FiLM, ELU). The network's
+three big matrix products stay in numpy (BLAS); the feet are planted by `models.motion.feet`.
 
 Why compiled: the vectorised numpy step (`tests/reference/lpn_step.py`, which the tests compare
-with) makes ~780 Python-level calls per frame, most of them small numpy calls of 1-5 us at batch
-1, plus scipy's `Rotation.from_matrix`, which orthogonalises every float32 matrix by an SVD: ~2.8
-ms a step at batch 1 against ~0.3 ms of matrix products, ~56 ms at batch 256. Here each session is
-a loop over scalars: a few microseconds per session for everything but the three expert products.
-The foot lock is not here: the runtime calls the LTI model's compiled one
-(`models.lti.kernels.foot_lock`).
+with) makes hundreds of small numpy calls per frame, milliseconds a step at batch 1 against a
+fraction of that for the matrix products. Here each session is a loop over scalars.
 
 The formulas are those of `features.py`; arithmetic is float64 inside a kernel, the state and the
 outputs stay float32. Conventions: quaternions scalar-last, Y up, yaw about +Y with 0 = facing +Z,
@@ -19,6 +15,7 @@ horizontal vectors as (x, z).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -30,10 +27,27 @@ from . import features as lf
 STEP, PAST, FUTURE, SAMPLES = lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES  # trajectory sampling
 TRAJ_CH, TRAJ_OUT_CH = lf.TRAJ_CH, lf.TRAJ_OUT_CH  # position xz, direction xz, velocity xz (, gait)
 NUM_BONES = lf.NUM_BONES  # phase bones
-POSE_DIM = lf.NB * lf.POSE_CH  # body joints x (position, velocity, forward axis, up axis)
 # output layout: future trajectory, pose, root delta, phases, frequencies, contacts
 Y_TRAJ, Y_POSE, Y_DELTA = lf.TRAJ_OUT.start, lf.POSE_OUT.start, lf.DELTA_OUT.start
 Y_PHASE, Y_FREQ, Y_CONTACT = lf.PHASE_OUT.start, lf.FREQ_OUT.start, lf.CONTACT_OUT.start
+
+
+class Track(NamedTuple):
+    """B sessions' trajectory, phases and pose: the state entries of the same names, which the
+    kernels below read and update in place."""
+
+    yaw: np.ndarray  # (B,)
+    hist_pos: np.ndarray  # (B, H, 2) world xz, the last row the current frame
+    hist_dir: np.ndarray  # (B, H, 2)
+    hist_vel: np.ndarray  # (B, H, 2)
+    hist_gait: np.ndarray  # (B, H)
+    hist_phase: np.ndarray  # (B, H, NUM_BONES, 2)
+    fut_pos: np.ndarray  # (B, FUTURE, 2) the network's last future prediction, world
+    fut_dir: np.ndarray  # (B, FUTURE, 2)
+    fut_vel: np.ndarray  # (B, FUTURE, 2)
+    fut_phase: np.ndarray  # (B, FUTURE, NUM_BONES, 2)
+    pose: np.ndarray  # (B, NB, POSE_CH) in its character frame
+
 
 # --------------------------------------------------------------------------- small maths on scalars and tuples
 
@@ -132,24 +146,7 @@ def control_rows(
 
 
 @njit(cache=True, error_model="numpy")
-def network_inputs(
-    control,
-    yaw,
-    hist_pos,
-    hist_dir,
-    hist_vel,
-    hist_gait,
-    hist_phase,
-    fut_pos,
-    fut_dir,
-    fut_vel,
-    fut_phase,
-    pose,
-    fps,
-    bias,
-    x,
-    g,
-):
+def network_inputs(control, track, fps, bias, x, g):
     """The network's input x (B, 343) and gating input g (B, 104) of B sessions (layout in
     features.py). First the future trajectory (fut_pos, fut_dir, fut_vel, world, updated in place)
     is blended toward the control (forward, side, yaw, gait): sample k of 6 by
@@ -157,6 +154,7 @@ def network_inputs(
     and the facing turned k/6 of the way to the wanted yaw. Past samples are every STEP-th row of
     the history (the last row is the current frame); all samples go into the current character
     frame."""
+    yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel, fut_phase, pose = track
     B, H = hist_pos.shape[0], hist_pos.shape[1]
     for b in range(B):
         yw = float(yaw[b])
@@ -297,28 +295,7 @@ def output_layer(hw, alpha, bias, y_mean, y_std):
 
 
 @njit(cache=True, error_model="numpy")
-def advance(
-    y,
-    control,
-    yaw,
-    hist_pos,
-    hist_dir,
-    hist_vel,
-    hist_gait,
-    hist_phase,
-    fut_pos,
-    fut_dir,
-    fut_vel,
-    fut_phase,
-    pose,
-    parents,
-    fps,
-    stop_speed,
-    root_hold,
-    phase_damp,
-    phase_blend,
-    contact_threshold,
-):
+def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, phase_blend, contact_threshold):
     """Apply the network output y (B, 353) to B sessions and build their output frame.
 
     State, in place: the root moves by the predicted displacement (in the current character
@@ -332,6 +309,7 @@ def advance(
     Returns the Hips translation (B, 3), local rotations (B, J, 4) from the predicted
     forward/up axes of each joint (joint 0, the static joint_Root, is the identity) and foot
     contacts (B, 2)."""
+    yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel, fut_phase, pose = track
     B, H, J = y.shape[0], hist_pos.shape[1], parents.shape[0]
     out_root = np.empty((B, 3), np.float32)
     out_rot = np.empty((B, J, 4), np.float32)

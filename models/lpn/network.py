@@ -88,6 +88,15 @@ class FiLMGenerator(nn.Module):
 
 
 class LPN(nn.Module):
+    # buffers (`register_buffer` below), typed for mypy
+    X_mean: torch.Tensor
+    X_std: torch.Tensor
+    Y_mean: torch.Tensor
+    Y_std: torch.Tensor
+    S_mean: torch.Tensor
+    S_std: torch.Tensor
+    G_scale: torch.Tensor
+
     def __init__(self, cfg: LPNConfig, stats: dict[str, np.ndarray] | None = None):
         super().__init__()
         self.cfg = cfg

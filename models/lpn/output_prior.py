@@ -3,30 +3,20 @@ style to that style's real rotations, fitted the same way for every style (`OUTP
 beside the weights, written by `python -m models.lpn.output_prior [STYLE ...]`;
 `runtime.LPNModel` applies it).
 
-The arm carriage (`carriage.py`) moves each joint's mean; what the rotation judge also reads is
-how the arms and spine swing about it. Driven by the validation locomotion inputs, LPN-FiLM's
-active walks had the real style's mean arm pose after the carriage but not its pumping swing, and
-were read as masculine by the rotation judge. Style-ERD's output prior
-(`models/motion/style_carry.py`) maps each joint's deviations from the network's mean with the
-linear optimal-transport map between the network's and the real style's Gaussians of them, then
-clamps into the style's real p98 radius: a typical frame of the network lands as a typical frame
-of the style, with the style's spread in each direction. Here it carries `CARRIED` (the spine,
-neck, head and arms, `carriage.UPPER_BODY`; the legs are the foot planter's: carried as well, the
-validation planted feet of exhausted slid past twice the real clips'), from the network with its
-carriage in place, driven by the neutral TRAIN locomotion clips, to the style's real TRAIN
-locomotion; applied after the carriage and before the rotation balls.
+The arm carriage (`carriage.py`) moves each joint's mean; the style also lies in how the arms and
+spine swing about it. As Style-ERD's prior does (`models/motion/style_carry.py`), each joint's
+deviations from the network's mean are mapped by the linear optimal-transport map between the
+network's and the real style's Gaussians, then clamped into the style's real p98 radius: a typical
+frame of the network lands as a typical frame of the style. It carries `CARRIED` (spine, neck,
+head and arms; the legs are left to the foot planter), fitted from the network with its carriage
+in place, driven by neutral TRAIN locomotion, to the style's real TRAIN locomotion.
 
-Each style's prior is fitted twice: on its walks and on its runs (`carriage.locomotion`: each
-style's clips split by its own speeds), and a frame takes the two mixed by the control's gait
-share (0 walking, 1 running). Fitted over walks and runs at once, the target is their pooled
-mean, which neither has: toward active the validation walks' forearms stayed 16-18 degrees from
-the mean of the real active walks (runs bend the elbows more), 7 with the split.
+Each style's prior is fitted on its walks and on its runs apart (`carriage.locomotion`) and a
+frame mixes the two by its gait share: pooled, the target would be a mean neither gait has.
 
-The network hardly moves some joints along some axis (a neck twist, an elbow's side bend): taken
-at face value, the map stretched those to the style's spread with gains in the hundreds,
-magnifying the network's arithmetic noise (its products run in bfloat16 on some CPUs). The fit
-takes the network's spread as at least `SOURCE_FLOOR_DEG` along every axis: at 2 degrees, the
-validation jitter toward feminine and youthful rose past 1.5 times the input's.
+The network hardly moves some joints along some axis (a neck twist, an elbow's side bend); taken
+at face value the map would stretch that arithmetic noise by gains in the hundreds, so the fit
+takes the network's spread as at least `SOURCE_FLOOR_DEG` along every axis.
 """
 
 from __future__ import annotations
@@ -34,6 +24,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -85,7 +76,9 @@ class OutputPrior:
         return rows
 
     def save(self, path: Path) -> Path:
-        arrays = dict(zip(CARRY_ROWS, self.carry.arrays)) | {f"run_{k}": a for k, a in zip(CARRY_ROWS, self.run.arrays)}
+        arrays: dict[str, Any] = dict(zip(CARRY_ROWS, self.carry.arrays)) | {
+            f"run_{k}": a for k, a in zip(CARRY_ROWS, self.run.arrays)
+        }
         np.savez(path, styles=np.array(self.styles), **arrays)
         return path
 

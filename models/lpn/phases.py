@@ -1,32 +1,23 @@
 """Local motion phases (Starke et al. 2020; Mason, Starke & Komura 2022, section "Local phases").
 
-One phase per bone (both hands and both feet) instead of one global gait phase: a stylised walk
-moves its limbs with their own rhythm (a swinging arm, a dragging foot), and a per-bone phase lets
-the gating network pick experts for that rhythm. Pipeline per bone, all offline (training data):
+One phase per bone (both hands and both feet) instead of one gait phase: a stylised walk moves its
+limbs with their own rhythm, and a per-bone phase lets the gating network pick experts for it.
+Per bone, offline (training data):
 
-1. a 1-D *source* signal:
-   - feet: the binary contact signal (height + speed thresholds, `models.motion.features.foot_contacts`);
-   - any bone, contact-free (hands): its position in the character (facing) frame, centred and
-     projected on its first principal component, the component's sign chosen so it points along
-     the forward axis (+Z) -- so "hand in front of the body" is always the positive half-wave;
-2. normalised in a centred one-second window (mean 0, std 1), so slow drifts and the overall range
-   of the bone's movement do not bias the fit;
-3. Butterworth low-pass, applied forward-backward (`scipy.signal.filtfilt`, zero phase): phases are
-   computed offline, and a causal `lfilter` would delay every phase by the filter's group delay;
-4. per frame, a*sin(f*t - s) + b is fitted on a centred sliding window by linear least squares for
-   every frequency of a grid (the sinusoid is linear in a, s, b once f is fixed), the best frequency
-   refined by a parabola through the residuals; all frames and frequencies at once with numpy.
-   The fit window is 1.5 s: with 1 s (less than one walk cycle) a square-ish contact wave is fit
-   equally well by many frequencies and f wanders within each step (std 0.10 Hz vs 0.02 Hz).
-   This replaces the authors' small genetic optimiser: it is deterministic, fast (~ms per clip)
-   and exact on a clean sinusoid;
-5. phase phi = (f*t - s) mod 2pi at the window's centre; the 2-D phase feature is
-   A * (sin phi, cos phi) with A = fitted amplitude * mean bone speed in the window (leg lengths / s):
-   the amplitude scaling makes the feature vanish when the bone does not move (standing still),
-   where the normalised source is noise and its phase meaningless.
+1. a 1-D *source*: for feet the binary contact signal (`models.motion.features.foot_contacts`);
+   for any bone, contact-free (hands), its position in the facing frame projected on its first
+   principal component, signed to point forward (+Z);
+2. normalised in a centred one-second window, so drifts and the bone's range do not bias the fit;
+3. zero-phase Butterworth low-pass (`filtfilt`: offline, so no group delay);
+4. per frame, a*sin(f*t - s) + b fitted on a centred 1.5 s window by linear least squares for
+   every frequency of a grid, the best refined by a parabola through the residuals. Shorter than
+   a walk cycle, a square-ish contact wave fits many frequencies. This replaces the authors'
+   genetic optimiser: deterministic, fast and exact on a clean sinusoid;
+5. phase phi = (f*t - s) mod 2pi at the window's centre; the feature is A * (sin phi, cos phi),
+   A = fitted amplitude * mean bone speed, so it vanishes when the bone stands still and its
+   phase is noise.
 
-Conventions: frequencies are in Hz (cycles per second, f/2pi in the formula above), times in
-seconds, frame t at time t/fps. Shapes: F frames, B = 4 bones in the order of `BONES`.
+Frequencies in Hz, times in seconds, frame t at t/fps. Shapes: F frames, B = 4 bones (`BONES`).
 """
 
 from __future__ import annotations
@@ -324,26 +315,3 @@ def local_phases(
         features=phase_features(phase, amplitude),
         contacts=feats.contacts,
     )
-
-
-# --------------------------------------------------------------------------- checks
-
-
-def touchdowns(contact: np.ndarray) -> np.ndarray:
-    """Frame indices where a (F,) contact signal switches from swing to planted."""
-    c = np.asarray(contact, dtype=bool)
-    return np.flatnonzero(~c[:-1] & c[1:]) + 1
-
-
-def step_frequency(contact: np.ndarray, fps: float) -> float:
-    """Cycle frequency (Hz) of one foot from its touchdown events: (n - 1) cycles between the first
-    and last touchdown. NaN with fewer than two touchdowns."""
-    t = touchdowns(contact)
-    if len(t) < 2:
-        return float("nan")
-    return (len(t) - 1) * fps / float(t[-1] - t[0])
-
-
-def circular_mean(angles: np.ndarray) -> float:
-    """Mean direction of angles (radians), in (-pi, pi]."""
-    return float(np.angle(np.exp(1j * np.asarray(angles)).mean()))

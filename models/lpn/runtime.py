@@ -1,56 +1,30 @@
-"""Streaming LPN-FiLM: the project's `StreamingModel` interface as a character controller in
-float32, the per-session maths (control, trajectory blend, gating, FiLM, phase and root update,
-output pose) in numba kernels (`kernels.py`) and the expert products in BLAS (the plain numpy
-step the kernels are tested against is `tests/reference/lpn_step.py`). Per frame, the network
-reads the character's trajectory (past from its own history, future blended from the control and
-its own last prediction), its pose and its local phases, and predicts the next pose, root motion, phases and contacts.
+"""Streaming LPN-FiLM: the `StreamingModel` interface as a character controller in float32. The
+per-session maths (control, trajectory blend, gating, FiLM, phase and root update, output pose)
+is compiled (`kernels.py`); the three expert products stay BLAS. Per frame the network reads the
+character's trajectory (its own past, a future blended from the control and its last
+prediction), its pose and its local phases, and predicts the next pose, root motion, phases and
+contacts. The plain numpy step the kernels are tested against is `tests/reference/lpn_step.py`.
 
 Control (`FrameBatch.control`, (B, 5), optional; a row whose flag is 0 counts as not given):
-    [0] forward velocity, [1] side velocity (+ = to the character's left), m/s, both in the frame of
-        the desired facing (so "walk left" is side > 0 with the facing held);
-    [2] desired facing yaw, radians about +Y, 0 = facing world +Z, +pi/2 = facing +X (the convention
-        of `models.motion.features.facing_yaw`);
-    [3] gait, 0 = walk, 1 = run;
-    [4] flag, 1 = control given.
-Without control a session is driven by its input frames, causally: the input's Hips velocity
-(exponentially smoothed over CONTROL_SMOOTH_S), its facing yaw and a speed-based gait become the
-control, so the model is also "motion in, stylised locomotion out" like LTI and Style-ERD.
+    [0] forward and [1] side velocity (+ = left), m/s, in the frame of the desired facing;
+    [2] desired facing yaw about +Y, 0 = facing +Z (`models.motion.features.facing_yaw`);
+    [3] gait, 0 = walk, 1 = run;  [4] flag, 1 = control given.
+Without control the input frames drive the session causally: their smoothed Hips velocity,
+facing and speed-based gait become the control, so it also works as motion in, motion out.
 
-Styles are FiLM vectors: one per style (the mean of the FiLM generator over the style's training
-clips), mixed barycentrically by the style weights; weights summing below 1 give the rest to
-`normal`. A style can be added from a clip (`add_style_from_clip`) or removed while sessions run:
-the state holds no per-style entries, so no state upgrade is needed.
+Styles are FiLM vectors mixed barycentrically by the weights (a shortfall from 1 goes to
+`normal`); the state holds nothing per style, so styles come and go while sessions run. After
+the network, each fitted from the style's real clips the same way for every style: the arm
+carriage (`carriage.py`), the output prior (`output_prior.py`, walks and runs mixed by gait), the
+arm coupling (`arm_coupling.py`) and the rotation prior (`models.motion.rotation_ball`), which
+holds each joint inside the ball the style's real rotations fill. A style without real clips (an
+upload, or a FiLM vector set at run time) has no ball, since a borrowed one would pull it back
+toward another style. The stages touch the output only; the network's state keeps its own pose.
 
-Arm carriage (`carriage.npz` beside the weights, `carriage.py`): each built-in style's arm joints
-are turned by the offset that takes the network's mean arm pose to the real style's, before the
-rotation prior; the same file can pace the derived control by the style's real speed (not
-shipped). Then the output prior (`output_prior.npz`, `output_prior.py`)
-carries the upper body's and legs' rotations from the network's distribution to the real
-style's, fitted on walks and on runs apart and mixed by the gait. Then the arm coupling
-(`arm_coupling.npz`, `arm_coupling.py`) moves the forearms with the upper arms, shoulders and
-chest as the real style's do. All three are fitted the same way for every built-in style.
-
-Rotation prior (`rotation_prior.npz` beside the weights, `models.motion.rotation_ball`): each
-built-in style's output rotations are held, per joint, inside the ball its real TRAIN clips fill
-around their mean rotation (the network's spine, Hips and shoulders otherwise left the real
-style's p99 range in 14-72 % of frames, worst joint on validation clips). Mixed weights take the
-weighted mean of each style's clamped rotation (`rotation_ball_kernels.clamp_mixed`). An uploaded
-style, or one replacing a built-in's FiLM vector at run time (`set_style_film`), gets no clamp: it
-has no real data to fit a ball on, and a nearest built-in's ball would pull the new style back
-toward an old one. The built-in vectors tuned offline on the style's own TRAIN clips
-(`tune_builtin.py`, `tuned_film.npz`, applied by `read_weights`) are still the built-in styles,
-fitted on the very data the ball was, and keep their clamp. The ball is
-applied to the output only, before the feet are planted: the network's own state keeps its
-unclamped pose.
-
-State per session (session axis first): `frame`; the root trajectory history of the last 30
-frames + the current one (`hist_pos`, `hist_dir`, `hist_vel` world xz, `hist_gait`, `hist_phase`);
-the network's last future prediction (`fut_pos`, `fut_dir`, `fut_vel`, `fut_phase`, world); the
-current pose in its character frame (`pose`), `yaw`; the input tracker for derived control
-(`in_pos`, `in_vel`); and the foot planter's (`feet_*`, `models.motion.feet`).
-
-The step's geometry and the network's per-row maths are compiled (`kernels.py`, numba; the three
-big matrix products stay BLAS).
+State per session (session axis first): `frame`; the last 31 frames of root trajectory
+(`hist_*`); the network's last future prediction (`fut_*`, world); the pose in its character
+frame (`pose`), `yaw`; the input tracker for derived control (`in_*`); the foot planter's
+(`feet_*`, `models.motion.feet`).
 """
 
 from __future__ import annotations
@@ -81,7 +55,7 @@ from ..settings import get_settings
 from . import features as lf
 from . import kernels
 from .arm_coupling import ARM_COUPLING_FILE, COUPLING_ROWS, couple_rows, table_rows
-from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, blend_pace, carry_arms
+from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, carry_arms
 from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
 from .style_table import StyleTable
 from .styles import LPNStyles
@@ -92,7 +66,6 @@ if TYPE_CHECKING:
 
 BALLS_FILE = "rotation_prior.npz"  # per-style rotation balls (`models.lpn.rotation_prior`)
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
-PAST_IDX = np.arange(0, HIST, lf.STEP)  # history rows of the 7 past-and-current samples
 CONTROL_SMOOTH_S = 0.25  # input velocity smoothing for derived control
 RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
 CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias
@@ -161,15 +134,15 @@ class LPNModel(LPNStyles):
 
     @property
     def carriage(self) -> Carriage | None:
-        """The built-in styles' pace and arm carriage (`carriage.py`); None: walk at the input's speed."""
+        """The built-in styles' arm carriage (`carriage.py`); None: the network's arms."""
         return self._carriage_fit
 
     @carriage.setter
     def carriage(self, carriage: Carriage | None) -> None:
         with self._lock:
             self._carriage_fit = carriage
-            pace, arms = carriage.rows(list(self._table.names)) if carriage is not None else (None, None)
-            self._table = self._table.measuring(pace=pace, arms=arms)
+            arms = carriage.rows(list(self._table.names)) if carriage is not None else None
+            self._table = self._table.measuring(arms=arms)
 
     @property
     def output_prior(self) -> OutputPrior | None:
@@ -242,7 +215,7 @@ class LPNModel(LPNStyles):
         film = np.asarray(film, np.float32)
         if film.shape != (4, self.H) or not np.all(np.isfinite(film)):
             raise ValueError(f"a FiLM vector must be finite with shape (4, {self.H}), got {film.shape}")
-        with self._lock:  # a vector not fitted on the style's own clips: no ball, pace or carriage
+        with self._lock:  # a vector not fitted on the style's own clips: no ball or carriage
             self._table = self._table.with_film(name, film.reshape(-1))
 
     def remove_style(self, name: str) -> None:
@@ -352,9 +325,7 @@ class LPNModel(LPNStyles):
         if len(fresh):
             self._start(s, fresh, root, rot_in, frames.control)
         control = self._control(s, frames, root, rot_in, fresh)
-        pace, arms, normal = table.get("pace"), table.get("arms"), table.index("normal")
-        if pace is not None and (pace != 1.0).any():
-            control = self._paced(control, frames.control, style_weights, pace)
+        arms, normal = table.get("arms"), table.index("normal")
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
         out_root, out_rot, contacts = self._advance(s, y, control)
@@ -369,17 +340,6 @@ class LPNModel(LPNStyles):
         out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
-
-    @staticmethod
-    def _paced(control: np.ndarray, given: np.ndarray | None, weights: np.ndarray, pace: np.ndarray) -> np.ndarray:
-        """The derived control's velocity at the styles' pace (`carriage.py`); its gait stays the
-        input's (re-deriving it from the paced speed turned elderly runs into walks the content
-        judge read as turns: validation locomotion content 77 -> 69 %); given rows as they are."""
-        derived = np.ones(len(control), bool) if given is None else np.asarray(given)[:, 4] <= 0.5
-        factor = blend_pace(pace, weights, control[:, 3]).astype(np.float32)
-        out = control.copy()
-        out[derived, :2] *= factor[derived, None]
-        return out
 
     def _untwist(self, rotations: np.ndarray) -> np.ndarray:
         """The pose with its joint positions, bones twisted as in the natural pose (the committed
@@ -483,24 +443,7 @@ class LPNModel(LPNStyles):
         """Blend the future trajectory toward the control, then build X and G (`kernels.network_inputs`)."""
         B = control.shape[0]
         x, g = np.empty((B, lf.X_DIM), np.float32), np.empty((B, lf.G_DIM), np.float32)
-        kernels.network_inputs(
-            control,
-            s["yaw"],
-            s["hist_pos"],
-            s["hist_dir"],
-            s["hist_vel"],
-            s["hist_gait"],
-            s["hist_phase"],
-            s["fut_pos"],
-            s["fut_dir"],
-            s["fut_vel"],
-            s["fut_phase"],
-            s["pose"],
-            self.fps,
-            CONTROL_BIAS,
-            x,
-            g,
-        )
+        kernels.network_inputs(control, _track(s), self.fps, CONTROL_BIAS, x, g)
         return x, g
 
     def _network(self, x: np.ndarray, g: np.ndarray, film: np.ndarray) -> np.ndarray:
@@ -552,17 +495,7 @@ class LPNModel(LPNStyles):
         return kernels.advance(
             y,
             control,
-            s["yaw"],
-            s["hist_pos"],
-            s["hist_dir"],
-            s["hist_vel"],
-            s["hist_gait"],
-            s["hist_phase"],
-            s["fut_pos"],
-            s["fut_dir"],
-            s["fut_vel"],
-            s["fut_phase"],
-            s["pose"],
+            _track(s),
             self.parents,
             self.fps,
             STOP_SPEED,
@@ -641,33 +574,25 @@ class LPNModel(LPNStyles):
         return np.array([mix.get(n, 0.0) for n in names], np.float32)
 
 
+def _track(s: State) -> kernels.Track:
+    """The state's trajectory entries as the kernels' record (the same arrays, updated in place)."""
+    return kernels.Track(*(s[k] for k in kernels.Track._fields))
+
+
+def _beside(weights_dir: Path, name: str, kind):
+    """The stage `kind` fitted into file `name` beside the weights (`kind.load`), or None."""
+    path = Path(weights_dir) / name
+    return kind.load(path) if path.exists() else None
+
+
 def read_balls(weights_dir: Path) -> StyleBalls | None:
     """The rotation prior beside the weights (`BALLS_FILE`), or None if there is none."""
-    path = Path(weights_dir) / BALLS_FILE
-    return StyleBalls.load(path) if path.exists() else None
-
-
-def read_carriage(weights_dir: Path) -> Carriage | None:
-    """The built-in styles' pace and arm carriage beside the weights (`CARRIAGE_FILE`), or None."""
-    path = Path(weights_dir) / CARRIAGE_FILE
-    return Carriage.load(path) if path.exists() else None
-
-
-def read_output_prior(weights_dir: Path) -> OutputPrior | None:
-    """The built-in styles' output prior beside the weights (`OUTPUT_PRIOR_FILE`), or None."""
-    path = Path(weights_dir) / OUTPUT_PRIOR_FILE
-    return OutputPrior.load(path) if path.exists() else None
-
-
-def read_arm_coupling(weights_dir: Path) -> Coupling | None:
-    """The built-in styles' arm coupling beside the weights (`ARM_COUPLING_FILE`), or None."""
-    path = Path(weights_dir) / ARM_COUPLING_FILE
-    return Coupling.load(path) if path.exists() else None
+    return _beside(weights_dir, BALLS_FILE, StyleBalls)
 
 
 def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
     """The committed model. `core_only`: the network alone (its built-in FiLM styles and the foot
-    planter), without the fitted stages after it (the rotation prior, the pace and arm carriage,
+    planter), without the fitted stages after it (the rotation prior, the arm carriage,
     the output prior and the arm coupling): the evaluation's core-alone row."""
     arrays, skeleton, config = read_weights(weights_dir)
     if core_only:
@@ -677,7 +602,7 @@ def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
         skeleton,
         config,
         read_balls(weights_dir),
-        read_carriage(weights_dir),
-        read_output_prior(weights_dir),
-        read_arm_coupling(weights_dir),
+        _beside(weights_dir, CARRIAGE_FILE, Carriage),
+        _beside(weights_dir, OUTPUT_PRIOR_FILE, OutputPrior),
+        _beside(weights_dir, ARM_COUPLING_FILE, Coupling),
     )

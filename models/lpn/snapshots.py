@@ -1,16 +1,12 @@
 """Choose an LPN-FiLM snapshot by what it does closed-loop, not by its one-frame loss.
 
 Streams dataset-2 VALIDATION neutral clips (never the test split) through each candidate's core
-alone (network + foot planter, `load(..., core_only=True)`) toward every dataset-2 style and
-prints, per style: the sealed evaluation's style judge accuracy (`eval/style_judge.py`) over all
-clips and over the locomotion ones alone ("walking": the others are gestures standing still, which
-the judge reads as `elderly` unless the network's standing posture carries the style), the
-content judge's accuracy (`eval/judges.py`, as the sealed evaluation's content gate), the pace
-(median over the locomotion clips of the output's hip travel over the input's) and the FiLM generator's live
-units: over 120-frame windows of that style's real validation clips, the share of the second
-convolution's outputs above the ELU floor (pre-activation > FLOOR, where the ELU's slope is still
-above 5 %; a unit below it passes the same value for every clip and gets no gradient), and the
-share above zero.
+alone (`load(..., core_only=True)`) toward every dataset-2 style and prints, per style: the
+sealed evaluation's style judge accuracy over all clips and over the locomotion ones alone
+(standing gestures carry style only through posture), the content judge's accuracy, the pace
+(`validate.pace`) and the FiLM generator's live units: the share of the second convolution's
+outputs above the ELU floor (`FLOOR`, below which a unit passes the same value for every clip
+and gets no gradient) over windows of the style's real validation clips, and the share above zero.
 
     .venv/bin/python -m models.lpn.snapshots models/weights/lpn .data/lpn/run_loop/ckpt_003000.pt
     .venv/bin/python -m models.lpn.snapshots --clips=20 --frames=150 --tuned=false CANDIDATE ...

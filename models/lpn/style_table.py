@@ -4,8 +4,8 @@ A step reads the FiLM vectors, the rotation balls (`rotation_prior.py`) and the 
 (`carriage.py`) of one and the same style set, so the table is replaced whole when a style is
 added, given a new FiLM vector or removed, never edited in place: a step that took the table
 before the change finishes on the old one. Rows measured on a built-in style's real clips (its
-ball, its pace and arm carriage) describe that style only: a style added at run time, or a
-built-in given another FiLM vector, gets the plain row (no clamp, the input's pace, no offset).
+ball, its arm carriage) describe that style only: a style added at run time, or a built-in
+given another FiLM vector, gets the plain row (no clamp, no offset).
 """
 
 from __future__ import annotations
@@ -24,7 +24,6 @@ def _identity(shape: tuple[int, ...]) -> np.ndarray:
 PLAIN: dict[str, Callable[[tuple[int, ...]], np.ndarray]] = {
     "ball_mean": _identity,  # (J, 4) the ball's centre: any, with an infinite radius
     "ball_radii": lambda shape: np.full(shape, np.inf),  # (2, J): no clamp
-    "pace": np.ones,  # (2,) walk / run speed factors: the input's
     "arms": _identity,  # (A, 4) arm offsets: none
     # the output prior (`output_prior.py`): source and style means (J, 4), maps (J, 3, 3), radii (J,), on (): off
     "prior_source": _identity,

@@ -1,21 +1,19 @@
-"""Train LPN-FiLM on Bandai Namco locomotion (nanoGPT style: the config is the dataclass below;
-override any field on the command line as --field=value).
+"""Train LPN-FiLM on Bandai Namco locomotion (the config is the dataclass below; override any
+field on the command line as --field=value).
 
     .venv/bin/python -m models.lpn train --minutes=60                     # then exports models/weights/lpn
     .venv/bin/python -m models.lpn.train --resume --minutes=60 --no_export # continue run_dir/ckpt.pt
     .venv/bin/python -m models.lpn.train --export=.data/lpn/run/ckpt.pt
 
-Every step is a minibatch of one style (cycling through the styles in a shuffled order); the
-FiLM parameters come from the generator run on a random 120-frame window of that style's training
-clips, so the generator learns to embed a clip and the motion network to obey it. A minibatch is
-`batch // rollout` rollouts of `rollout` consecutive frames (`rollout.py`): a share of them (rising
-from `closed_from` to `closed_to`) feed the network its own previous output, as the runtime does,
-so it learns to carry itself rather than only to continue recorded frames. Loss: MSE on the
-normalised output plus the bone-length loss on the predicted pose, over every rollout frame. AdamW
-with a cosine learning rate over the training time (`Schedule`, counted across resumed sessions);
-validation every `eval_every` steps: one-frame loss (trained styles with their mean FiLM, held-out
-styles with the FiLM of their own clips vs. of `normal`) and the closed-loop loss `val_loop`.
-Choose a snapshot by streaming validation clips (`python -m models.lpn.snapshots`), not by loss.
+Each step is a minibatch of one style (styles cycled in a shuffled order), its FiLM from the
+generator run on a random 120-frame window of the style's training clips, so the generator learns
+to embed a clip and the motion network to obey it. A minibatch is `batch // rollout` rollouts of
+`rollout` consecutive frames (`rollout.py`); a share of them (rising from `closed_from` to
+`closed_to`) feed the network its own previous output, as the runtime does. Loss: MSE on the
+normalised output plus the bone-length loss, over every rollout frame. AdamW with a cosine
+learning rate over the training time (`Schedule`, counted across resumed sessions); validation
+every `eval_every` steps (one-frame and closed-loop losses). Choose a snapshot by streaming
+validation clips (`python -m models.lpn.snapshots`), not by loss.
 """
 
 from __future__ import annotations
@@ -560,9 +558,12 @@ def evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips
                 val_starts[k], min(cfg.val_rollouts, len(val_starts[k])), replace=False
             )
             idx = torch.from_numpy(pick).to(dev)[:, None] + torch.arange(K, device=dev)
+            X, G, Y = (torch.from_numpy(a).to(dev)[idx] for a in (val.X, val.G, val.Y))
             p, t = rollout(
                 net,
-                *(torch.from_numpy(a).to(dev)[idx] for a in (val.X, val.G, val.Y)),
+                X,
+                G,
+                Y,
                 film[None],
                 torch.ones(len(pick), dtype=torch.bool, device=dev),
             )

@@ -4,28 +4,18 @@ network frozen: the generator's mean vector is an average embedding the network 
     nice -n 10 .venv/bin/python -m models.lpn.tune_builtin            # writes models/weights/lpn/tuned_film.npz
     nice -n 10 .venv/bin/python -m models.lpn.tune_builtin --save=false --steps=200
 
-A built-in style's vector is the FiLM generator's mean over its training clips (`weights.export_weights`),
-an average embedding that the network, trained on one random window per minibatch, was never fitted
-to. Here each style's (4, H) vector itself is the only parameter: training samples of the style
-(Bandai Namco dataset 2, the locomotion contents LPN-FiLM trains on, mirrored as in training)
-through the frozen network under the training loss (`train.training_loss`) with the network's
-dropout on (`finetune.py` explains why: without it a tuned vector is brittle in closed loop).
+Each style's (4, H) vector is the only parameter: the style's training samples (dataset 2's
+locomotion, mirrored as in training) go through the frozen network under the training loss
+(`train.training_loss`), dropout on (`finetune.py` says why).
 
-Selection uses VALIDATION clips of the same style only: one run per learning rate in `lrs` and
-length in `steps` (Adam, cosine decay to zero, so a run ends settled rather than at a noisy dip),
-each scored by the loss on all the validation clips' samples (dropout off) at its end; the vector
-kept is the lowest-scoring run's, and only if it is below the committed vector's. Never the eval
-judges, never test clips.
-
-A vector that lowers the loss must also keep the streamed output rotation-plausible: LPN-FiLM,
-with its rotation prior, steered by VALIDATION normal walks and runs (`GUARD_CLIPS`, the clips
-`tests/test_quality_gates.py` holds it to) toward the style, must keep every joint within the real
-TRAIN data's p99 in at least `models.eval.run.GATE_WITHIN` of frames, as the exported vector
-does; otherwise the exported vector stays (a tuned vector can make the foot planter, which re-poses
-the legs after the prior, turn a foot past the real range on runs). Runs end settled rather than
-at the lowest point of a curve, whose dips are as deep as its jitter. The result goes to
-`TUNED_FILE` beside the weights (`weights.read_weights` applies it; a few KB instead of rewriting `lpn.npz`)
-and the run appended to config.json's `tuned_film` (`runs`; `styles` keeps each style's latest record).
+Selection uses the style's VALIDATION clips only, never the eval judges or test clips: one run
+per learning rate in `lrs` and length in `steps` (Adam, cosine decay to zero, so a run ends
+settled rather than at a noisy dip), scored by the validation loss (dropout off); the best run's
+vector is kept only if it beats the committed one and keeps the streamed output
+rotation-plausible: driven by `GUARD_CLIPS` toward the style, every joint within the real TRAIN
+p99 in at least `models.eval.run.GATE_WITHIN` of frames, as the exported vector does. The result
+goes to `TUNED_FILE` beside the weights (`weights.read_weights` applies it) and the run is
+appended to config.json's `tuned_film`.
 """
 
 from __future__ import annotations

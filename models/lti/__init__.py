@@ -9,8 +9,6 @@ CLI: `python -m models.lti {train, translate, bench, render}`.
 from pathlib import Path
 
 from .model import WEIGHTS_DIR, LTIStyleModel, StyleTranslator
-from .subspace import StateSpace, stabilize, subspace_id
-from .warping import dtw, imw
 
 
 def load(weights_dir: Path = WEIGHTS_DIR, core_only: bool = False) -> LTIStyleModel:
@@ -32,14 +30,4 @@ def load(weights_dir: Path = WEIGHTS_DIR, core_only: bool = False) -> LTIStyleMo
     return LTIStyleModel(translators, weights_dir=weights_dir, raised_arms=False, waving_arms=False)
 
 
-__all__ = [
-    "WEIGHTS_DIR",
-    "LTIStyleModel",
-    "StyleTranslator",
-    "StateSpace",
-    "stabilize",
-    "subspace_id",
-    "dtw",
-    "imw",
-    "load",
-]
+__all__ = ["WEIGHTS_DIR", "LTIStyleModel", "StyleTranslator", "load"]

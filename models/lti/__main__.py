@@ -68,7 +68,7 @@ def cmd_bench(args) -> None:
     from models.data import build_index, load_motion, select
     from models.interface import FrameBatch
     from models.registry import load_model
-    from models.stepbench import capped_threads, stepper
+    from models.stepbench import capped_threads, interleaved, stepper
 
     from . import load
     from .model import LTIStyleModel
@@ -121,21 +121,6 @@ def cmd_bench(args) -> None:
 
 def _floor(zin: np.ndarray, M_T: np.ndarray, i: int) -> None:
     np.matmul(zin, M_T)
-
-
-def interleaved(steps: dict, repeats: int, warmup: int = 10) -> tuple[dict, dict]:
-    """Wall and process CPU seconds of each step(i) of `steps`, called in turn, `repeats` times."""
-    for i in range(warmup):
-        for step in steps.values():
-            step(i)
-    wall = {name: np.empty(repeats) for name in steps}
-    cpu = {name: np.empty(repeats) for name in steps}
-    for i in range(repeats):
-        for name, step in steps.items():
-            c0, t0 = time.process_time(), time.perf_counter()
-            step(warmup + i)
-            wall[name][i], cpu[name][i] = time.perf_counter() - t0, time.process_time() - c0
-    return wall, cpu
 
 
 def cmd_render(args) -> None:

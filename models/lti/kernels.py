@@ -37,8 +37,8 @@ from numba import njit
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
-from ..motion.feet_kernels import plant_feet
-from ..motion.hands_kernels import hand_step
+from ..motion.feet_kernels import Feet, plant_feet
+from ..motion.hands_kernels import Hands, hand_step
 from ..motion.quaternion import qdot, qinv, qmul, quat_at, row4
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
@@ -83,20 +83,6 @@ class Session(NamedTuple):
     wave_in_mean: np.ndarray  # (B, 2, K, 4) the input's arm joints' running mean (`waving_arm.py`)
     wave_out_mean: np.ndarray  # (B, 2, K, 4) the output's
     x: np.ndarray  # (B, n) the LTI states of the styles in use side by side (`Frame.x_at`)
-
-
-class Feet(NamedTuple):
-    """The foot planter's state (`models.motion.feet.STATE_SHAPES`, in its order): views of the
-    packed carry, its flags and held points as floats."""
-
-    started: np.ndarray  # (B,)
-    root: np.ndarray  # (B, 3) the planted root
-    model_root: np.ndarray  # (B, 3) the translator's
-    rel: np.ndarray  # (B, 2, 2, 3) each leg's ankle and toe from the root
-    contact: np.ndarray  # (B, 2) planted legs
-    point: np.ndarray  # (B, 2) held point (0 ankle, 1 toe)
-    offset: np.ndarray  # (B, 2, 3) the legs' IK offsets
-    floor: np.ndarray  # (B, 2, 2) each leg's ankle and toe floor
 
 
 # A session's carry (`Session` less x, then `Feet`) packed in one float64 row: the model's state
@@ -193,19 +179,6 @@ class Ball(NamedTuple):
     mean: np.ndarray  # (S, 22, 4)
     radii: np.ndarray  # (S, 2, 22) inner, outer (radians; inf: no prior)
     cos_inner: np.ndarray  # (S, 22) cos(inner / 2), -1 without a prior: a rotation this close is left as it is
-
-
-class Hands(NamedTuple):
-    """The rig's arm chains for `hand_step` (`models.motion.hands.HandMeter`)."""
-
-    parents: np.ndarray  # (J,) int64
-    offsets: np.ndarray  # (J, 3)
-    chain: np.ndarray  # joints from the root to the hands and shoulders, parents first
-    hands: np.ndarray  # (2,) int64
-    shoulders: np.ndarray  # (2,) int64
-    fps: float
-    frames: float  # the sway's and rise's exponential average
-    above: float  # a hand higher than this over its shoulder is on its raise ramp
 
 
 class RaisedArm(NamedTuple):
@@ -734,9 +707,8 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
 
     # 2. the input's hands: how high, how they sway and rise
     hand_step(
-        frame.rotations, hands.parents, hands.offsets, hands.chain, hands.hands, hands.shoulders,
-        before.hand_prev, before.hand_sway, before.hand_rise, before.started, hands.fps, hands.frames,
-        hands.above, after.hand_prev, after.hand_sway, after.hand_rise,
+        frame.rotations, hands, before.hand_prev, before.hand_sway, before.hand_rise, before.started,
+        after.hand_prev, after.hand_sway, after.hand_rise,
     )  # fmt: skip
 
     # 3., 4. the arms of raised hands: a calm one carried, a waving one swung
@@ -770,12 +742,12 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
         for leg in range(2):
             work.point[b, leg] = int(feet_before.point[b, leg])
     feet_after.model_root[:] = work.root  # the translator's root, which the planter remembers
-    plant_feet(
-        work.root, out.rotations, work.active, work.contacts, feet_before.started, feet_before.root,
-        feet_before.model_root, feet_before.rel, feet_before.contact, work.point, feet_before.offset,
-        feet_before.floor, feet_after.root, out.rotations, feet_after.contact, feet_after.rel, feet_after.point,
-        feet_after.offset, feet_after.floor, *planter,
+    # the planter indexes with its held points: the integer copy, not the carry's float view
+    before = Feet(
+        feet_before.started, feet_before.root, feet_before.model_root, feet_before.rel, feet_before.contact,
+        work.point, feet_before.offset, feet_before.floor,
     )  # fmt: skip
+    plant_feet(work.root, out.rotations, work.active, work.contacts, before, feet_after, out.rotations, planter)
     out.root[:] = feet_after.root
     for b in range(B):
         for leg in range(2):

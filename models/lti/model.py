@@ -1,34 +1,26 @@
 """Trained LTI style translators and the streaming interface the service calls.
 
 One `StyleTranslator` per output style holds the block-diagonal LTI system (all per-joint
-systems combined), the per-DOF normalisation, the training range of the input (for the erf
-blend) and the footplant classifier. Every frame, per session:
+systems combined), the per-DOF normalisation, the input's training range (for the erf blend)
+and the footplant classifier. Every frame, per session:
 
     u = (features(frame) - in_mean) / in_std          (features: representation.py)
-    [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint: a sparse product)
+    [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint)
     out = y * out_std + out_mean
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
-    pose = inverse representation(out); rotation prior (`train.style_prior`); contacts from the state
-    then the stages after the translator, each measured on the input and fitted per style the same
-    way: a raised, calm hand's arm (raised_arm.py), a waving hand's swing (waving_arm.py), the
-    planted feet
+    pose = inverse representation(out); rotation prior (`train.style_prior`); contacts
+    then the stages, each measured on the input and fitted per style the same way: a raised,
+    calm hand's arm (raised_arm.py), a waving hand's swing (waving_arm.py), the planted feet
 
-Heading: the model's own yaw change drifts slowly for some styles (exhausted: ~0.05 deg/frame
-on a straight validation walk, a full circle in ~4 minutes of streaming), so by default the output
-takes the input's yaw change (`keep_heading=True`); speed, posture and timing stay translated.
-
-The feet are planted (on by default, `footlock`) by `models.motion.feet.FootPlanter`, shared by
-every method, keeping the translated root path: the translated legs take shorter strides than the
-root displacement implies, and a held foot catching up in its swing lengthens them. The footplant
-classifier's contacts are the planter's hints; `FrameBatch.contacts` are the planted legs, or the
-classifier's contacts when the feet are not planted.
+Heading: the translated yaw drifts slowly for some styles, so by default the output takes the
+input's yaw change (`keep_heading=True`); speed, posture and timing stay translated. The feet are
+planted (`footlock`) by `models.motion.feet.FootPlanter`, shared by every method, with the
+classifier's contacts as hints; `FrameBatch.contacts` are the planted legs, or the classifier's.
 
 The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and stage
-(`kernels.step`) on a few arrays; the offline path (`StyleTranslator.translate_motion`) stays
-numpy over whole clips, and the tests check that the two agree frame for frame.
-
-The log-time-warp output (last output DOF) is only used offline (`translate_motion(...,
-timewarp=True)`); online it is ignored, since honouring it would break synchrony.
+(`kernels.step`); the offline path (`StyleTranslator.translate_motion`) stays numpy over whole
+clips, and the tests check that the two agree frame for frame. The log-time-warp output (last
+DOF) is used offline only (`timewarp=True`): online it would break synchrony.
 """
 
 from __future__ import annotations
@@ -239,12 +231,6 @@ class _StyleSet(NamedTuple):
     ball: kernels.Ball  # the styles' rotation priors
     arm: kernels.RaisedArm  # the styles' raised-arm carries stacked
     constants: tuple  # the step's constant records, packed (`kernels.pack`)
-
-
-def carry_entry(carry: np.ndarray, key: str) -> np.ndarray:
-    """(B, *shape) view of one entry of a packed carry (`kernels.CARRY`)."""
-    at, shape, _ = kernels.SPANS[key]
-    return carry[:, at : at + int(np.prod(shape))].reshape(len(carry), *shape)
 
 
 class LTIStyleModel(LTIStyles):

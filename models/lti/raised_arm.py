@@ -2,21 +2,18 @@
 
     .venv/bin/python -m models.lti.raised_arm      # fit every style -> models/weights/lti/raised_arm.npz
 
-Why: the translators are linear maps identified over every content, walks most of all, and an
-arm raised above the shoulder lies far from where they were fitted: the translated hand does not
-rise as the style's does, and the content judge then reads a raise-up as a wave (model card).
+Why: the translators are linear maps identified over every content, walks most of all; an arm
+raised above the shoulder lies far from where they were fitted, and the hand does not rise as
+the style's does.
 
-What: per output style, a `StyleCarry` (`models.motion.style_carry`) from the rotations the
-translator makes of the neutral TRAIN clips to the style's real TRAIN clips, both on the frames
-where a hand is raised and calm (`models.motion.hands.calm_frames`: the hand's height over its
-shoulder and its sway, measured on the motion; no content label picks the clips), fitted for
-each side apart (each arm's joints, Shoulder to Hand, from its own side's fit), with its gains
-capped at 1 (`StyleCarry.damping`: with the full gains the carry magnified the raised hand's
-sway). While the input's hand is raised and calm (raise share times one minus the wave share:
-what `waving_arm.py` leaves), that arm is mixed toward the carried one by the share, inside the
-compiled step (`kernels.carry_raised_arms`). A style without a fit is left as the translator made
-it; an uploaded style gets the same fit from its clip (`fit_upload`), where the
-clip shows a raised, calm hand.
+What: per output style and side, a `StyleCarry` (`models.motion.style_carry`) from the rotations
+the translator makes of the neutral TRAIN clips to the style's real TRAIN clips, both on the
+frames where that hand is raised and calm (`models.motion.hands.calm_frames`, measured on the
+motion, not read from a content label), its gains capped at 1 (`StyleCarry.damping`) so the
+hand's sway is not magnified. While the input's hand is raised and calm (what `waving_arm.py`
+leaves), that arm is mixed toward the carried one by the share, in the compiled step
+(`kernels.carry_raised_arms`). An uploaded style gets the same fit from its clip (`fit_upload`)
+where the clip shows a raised, calm hand.
 """
 
 from __future__ import annotations

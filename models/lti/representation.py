@@ -1,4 +1,4 @@
-"""Hsu et al. 2005 motion representation, offline (whole clip) and streaming (one frame at a time).
+"""Hsu et al. 2005 motion representation of whole clips (the compiled step streams it, `kernels.py`).
 
 Per frame of the Bandai Namco skeleton (22 joints, `joint_Root` static at 0, `Hips` at 1):
 
@@ -20,10 +20,8 @@ the Hips rotation: the hips' left direction is the Hips-local -Y axis (UpperLeg_
 points along -Y in the Hips frame of this skeleton) and forward = cross(left, up), so yaw 0 means
 facing +Z. Splitting q_hips = q_yaw(yaw) * q_tilt is exact, so the representation inverts exactly.
 
-Quaternion helpers here are small vectorised numpy functions (scalar-last, like the rest of the
-project) because scipy's Rotation has ~10 us of per-call overhead, too much for a per-frame step.
-The offline path (`motion_to_features`) and the streaming path (`FeatureEncoder`) share these
-helpers, so they agree to floating-point round-off.
+The exponential map here is plain numpy (not scipy's), written as the compiled step's, so the
+offline and streaming paths agree to round-off.
 """
 
 from __future__ import annotations
@@ -36,7 +34,6 @@ from models.motion.rotations import wrap_angle
 ROOT_DIMS = 7
 BODY_JOINTS = tuple(range(2, NUM_JOINTS))  # joints carried as expmaps
 FEATURE_DIM = ROOT_DIMS + 3 * len(BODY_JOINTS)  # 67
-HIPS_LEFT_LOCAL = np.array([0.0, -1.0, 0.0])
 
 
 # --------------------------------------------------------------------------- quaternions
@@ -188,30 +185,3 @@ def _left(ref: np.ndarray) -> np.ndarray:
 
 def _left_inv(ref: np.ndarray) -> np.ndarray:
     return _cached(ref)[1]
-
-
-# --------------------------------------------------------------------------- streaming
-
-
-class FeatureEncoder:
-    """Streaming `sequence_features` for a batch of sessions: keeps the previous yaw and ground
-    position per session (constant memory, no look-ahead)."""
-
-    def __init__(self, batch: int, ref: np.ndarray = IDENTITY_REF):
-        self.ref = ref
-        self.prev_yaw = np.zeros(batch)
-        self.prev_ground = np.zeros((batch, 2))
-        self.started = np.zeros(batch, bool)
-
-    def __call__(self, root: np.ndarray, rotations: np.ndarray) -> np.ndarray:
-        yaw, ground, static = pose_features(root, rotations, self.ref)
-        fresh = ~self.started
-        if fresh.any():
-            self.prev_yaw = np.where(fresh, yaw, self.prev_yaw)
-            self.prev_ground = np.where(fresh[:, None], ground, self.prev_ground)
-            self.started[:] = True
-        delta = np.empty((len(yaw), 3))
-        delta[:, :2] = rotate_y(ground - self.prev_ground, -self.prev_yaw)
-        delta[:, 2] = wrap_angle(yaw - self.prev_yaw)
-        self.prev_yaw, self.prev_ground = yaw, ground
-        return np.concatenate([delta, static], axis=-1)

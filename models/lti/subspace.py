@@ -1,34 +1,23 @@
 """Subspace identification of discrete LTI systems  x[t+1] = A x[t] + B u[t],  y[t] = C x[t] + D u[t].
 
-Why not a PyPI package. `nfoursid` (1.0.2) is a readable N4SID built on pandas DataFrames for a
-single experiment: it takes one contiguous input/output record (our training data are hundreds
-of separate clip pairs, each starting from rest), pulls pandas in, and its Kalman-filter focus
-adds nothing here. `sippy-unipi` (SIPPY) offers N4SID/MOESP/CVA, but is a large package built
-around single records as well, with its own dependency pins (control/slycot/casadi in various
-releases) and no multi-record API. Both would also leave the B/D estimate with a one-step
-prediction criterion, while a streaming model starting from x0 = 0 is best served by fitting
-B and D for simulation from x0 = 0. So this is a compact numpy/scipy implementation:
+Not a PyPI package: `nfoursid` and SIPPY take one contiguous record (the training data are
+hundreds of clip pairs, each from rest), bring heavy dependencies, and fit B/D for one-step
+prediction, while a streaming model starting from x0 = 0 wants B and D fitted for simulation.
 
-1. PO-MOESP (Verhaegen 1994), an N4SID-family subspace method: block-Hankel matrices of
-   past inputs/outputs and future inputs/outputs, stacked over every record (columns from
-   different records never mix), an LQ factorisation (computed as the Cholesky factor of the
-   Hankel Gram matrix, which is a single BLAS product over all columns), and an SVD of the
-   part of the future outputs explained by the past, orthogonal to the future inputs. Its left
-   singular vectors span the extended observability matrix.
+1. PO-MOESP (Verhaegen 1994): block-Hankel matrices of past and future inputs/outputs stacked
+   over every record (columns of different records never mix), an LQ factorisation (the
+   Cholesky factor of the Hankel Gram matrix: one BLAS product), and an SVD of the part of the
+   future outputs explained by the past, orthogonal to the future inputs; its left singular
+   vectors span the extended observability matrix.
 2. The order n is read off the singular values (`choose_order`).
-3. C is the first block row of the observability matrix, A follows from its shift invariance
-   (least squares).
-4. A is made stable: eigenvalues with modulus >= `max_radius` are reflected into the unit
-   circle (lambda -> 1/conj(lambda), same frequency, decay instead of growth) and then capped at
-   `max_radius`; A is rebuilt from the modified eigen-decomposition (kept real).
-5. B and D are the linear least-squares fit of the simulated output from x0 = 0 to the data,
-   over all records (the output is linear in B and D once A and C are fixed); the normal
-   equations are accumulated record by record. Inputs may be given an assumed noise level
-   (`input_noise`): the fit then minimises the expected error as if those inputs carried white
-   noise of that standard deviation, which adds the noise's output energy, sigma_j^2 times the
-   squared H2 norm of input j's channel (||d_j||^2 + b_j^T W_o b_j, W_o the observability
-   Gramian), to the objective: a ridge shaped by the system, so many correlated inputs cannot
-   buy a small fit error with large cancelling gains that a live stream's noise would excite.
+3. C is its first block row; A follows from its shift invariance (least squares).
+4. A is made stable: eigenvalues of modulus >= `max_radius` are reflected into the unit circle
+   (same frequency, decay instead of growth), then capped at `max_radius` (A kept real).
+5. B and D: least squares of the output simulated from x0 = 0, accumulated record by record.
+   An assumed input noise level (`input_noise`) adds that noise's expected output energy
+   (sigma_j^2 (||d_j||^2 + b_j^T W_o b_j), W_o the observability Gramian) to the objective: a
+   ridge shaped by the system, so correlated inputs cannot buy a small fit error with large
+   cancelling gains that a live stream's noise would excite.
 """
 
 from __future__ import annotations
@@ -45,7 +34,6 @@ class StateSpace:
     B: np.ndarray  # (n, m)
     C: np.ndarray  # (p, n)
     D: np.ndarray  # (p, m)
-    singular_values: np.ndarray | None = None
     raw_radius: float = 0.0  # spectral radius of A as identified, before `stabilize`
     n_stabilized: int = 0  # eigenvalues moved by `stabilize`
 
@@ -165,7 +153,7 @@ def subspace_id(
     raw = spectral_radius(A)
     A, changed = stabilize(A, max_radius)
     B, D = fit_bd(A, C, records, ridge, input_noise)
-    return StateSpace(A, B, C, D, sv, raw, changed)
+    return StateSpace(A, B, C, D, raw_radius=raw, n_stabilized=changed)
 
 
 def fit_bd(

@@ -41,10 +41,9 @@ CONFIG: dict[str, Any] = dict(
     # were often worse than the identity baseline (MODEL_CARD.md)
     styles=None,
     contents=None,  # None: every content; or e.g. ["walk", "walk-turn-left", "walk-turn-right"]
-    align="imw",  # "imw" or "dtw" (plain DTW, the quick first increment)
-    # max_step 9: output slopes up to 3 output frames per input frame. With 6 (slope <= 2) most
-    # elderly raise-ups (~2.5x slower than the neutral ones) had no partner and were skipped
-    # (elderly raise-up-both-hands: 2 of 31 paired), so the elderly arms were learnt from waves
+    align="imw",  # "imw" or "dtw" (plain DTW, a baseline)
+    # max_step 9: output slopes up to 3 output frames per input frame, enough for the slowest
+    # styles' gestures (~2.5x slower than the neutral ones) to find a partner
     imw=dict(s=3, max_step=9, lam=1000.0, mu=1.0, max_iter=8, tol=1e-4),
     match_std_floor=0.05,  # rad / cm, for the matching features only
     norm_std_floor=1e-2,
@@ -52,24 +51,19 @@ CONFIG: dict[str, Any] = dict(
     energy=0.99,  # singular-value energy kept when no clear gap
     max_order_root=16,
     max_order_joint=8,
-    # spectral radius cap for A: every mode's time constant under ~10 frames. At 0.995 (~200 frames)
-    # a session kept what came before for seconds (an arm raised in a gesture stayed out through the
-    # next 5 s of walking: worst joint 13.5 degrees from a fresh session's output at 2 s, p90 over the
-    # validation clips), which the 2-5 s training clips, each from x = 0, never showed; at 0.9 it is
-    # 0.2 degrees at 2 s, and the held-out joint error is lower for five of six styles (MODEL_CARD.md)
+    # spectral radius cap for A: every mode's time constant under ~10 frames. Slower modes keep a
+    # gesture for seconds after it ends, which the 2-5 s training clips, each from x = 0, never
+    # show (MODEL_CARD.md)
     max_radius=0.9,
     # joints whose rotations a joint's system also reads (its outputs stay its own): {joint:
     # [other joints]}; empty = one joint per system, as the paper. The spine, head and arms read
     # the root, both UpperLegs and the rest of the upper body; the legs read the root, both legs
     # and both UpperArms. Without it a raise-up's spine, head and free arm cannot differ from a
-    # wave's (the UpperArm angle maps alike for both), nor the arms swing with the stride
-    # (validation content: feminine 50 -> 72 %, youthful 67 -> 87 %; MODEL_CARD.md).
+    # wave's, nor the arms swing with the stride (MODEL_CARD.md).
     context=CONTEXT,
     # ... fitted as if those inputs carried noise of this std (normalised units; subspace.fit_bd):
-    # a plain least-squares fit of 37-49 correlated inputs bought its error with large cancelling
-    # gains that multiplied a live stream's noise ~9x (0.017 -> 0.14 degrees median for 1e-4
-    # quaternion noise); at 0.3 it is 1.4x the one-joint systems'. Chosen from 0.1 / 0.3 / 1.0
-    # on the validation clips (MODEL_CARD.md)
+    # a plain least-squares fit of dozens of correlated inputs buys its error with large
+    # cancelling gains that multiply a live stream's noise. Chosen on validation (MODEL_CARD.md)
     context_noise=0.3,
     # rotation prior (`style_prior`): radii from the output style's TRAIN clips
     prior_inner_q=97.0,

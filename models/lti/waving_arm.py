@@ -2,22 +2,16 @@
 
 Why: the translators damp a wave's swing. They are linear maps identified over every content,
 walks most of all, and fitted as if their inputs were noisy (`train.py`, `context_noise`), which
-shrinks their gains; a wave's arm lies far from where they were fitted. On the validation waves
-the translated hand swung 4-9 cm from side to side toward elderly where the input's swung 17-35 cm
-and the real elderly waves' 15-26 cm (a third of the real swing), and the content judge read
-waves toward masculine as raise-ups (model card).
+shrinks their gains; a wave's arm lies far from where they were fitted.
 
 What: each arm's UpperArm and LowerArm rotation is read as a running mean (an exponential average
-over `TRACK_FRAMES`, started afresh each time the hand comes up onto its raise ramp) and the
-rotation from it. While the input's hand is raised, waving and level (`models.motion.hands`:
-raise share x wave share x level share; a raise-up's hand sways too, but as it goes up), the
-output joint is turned from the output's own running mean by `GAIN` times the input's rotation
-from its running mean, mixed in by the share, and then held inside each
-target style's rotation ball (`models.motion.rotation_ball`, the translators' priors), so the
-swing never leaves what the style's real data shows. The translated pose (where the arm is held)
-is the model's; the swing (how it moves about that pose) is the input's. A raised hand that holds
-still is `raised_arm.py`'s; a hand below its raise ramp is left as the translator made it.
-
+over `TRACK_FRAMES`, restarted each time the hand comes up) and the rotation from it. While the
+input's hand is raised, waving and level (`models.motion.hands`: raise x wave x level shares),
+the output joint is turned from its own running mean by `GAIN` times the input's rotation from
+its running mean, mixed in by the share, then held inside the target style's rotation ball
+(`models.motion.rotation_ball`), so the swing never leaves what the style's real data shows. The
+pose where the arm is held is the model's; the swing about it is the input's. A raised hand that
+holds still is `raised_arm.py`'s; a hand below its raise ramp is left as the translator made it.
 `GAIN`, the joints and `TRACK_FRAMES` were chosen on the validation clips (model card).
 """
 

@@ -66,25 +66,8 @@ def _held(q, j, weights, b, total, prior_mean, prior_radii):
 
 
 @njit(cache=True, error_model="numpy")
-def swing_arms(
-    b,
-    arm,
-    rot_in,
-    rot_out,
-    weights,
-    started,
-    prev_offsets,
-    offsets,
-    swayed,
-    risen,
-    in_mean,
-    out_mean,
-    prior_mean,
-    prior_radii,
-    swing,
-    new_in_mean,
-    new_out_mean,
-):
+def swing_arms(b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
+               prior_mean, prior_radii, swing, new_in_mean, new_out_mean):  # fmt: skip
     """Session b, each side: the running means of the arm's joints (in_mean, out_mean (B, 2, K,
     4): the input's and the output's) brought up to this frame into new_in_mean, new_out_mean
     (they start afresh at a session's first frame, when the hand was below its raise ramp the

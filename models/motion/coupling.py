@@ -1,22 +1,20 @@
 """Couple joints the way a style's real clips move them together: a joint's rotation moved with
 the joints it follows (its drivers) by the style's real linear relation instead of the model's.
 
-The output priors (`style_carry.py`) map each joint on its own: they can widen or narrow a
-joint's spread along its axes, but they cannot put a motion in step with another joint's where
-the model keeps it still (LPN-FiLM's active forearms did not pump with the swing of the upper
-arms), nor turn a swing onto another axis. In a style's real clips a joint's deviation from its
-mean is often close to a linear function of its drivers' (the forearm of the upper arm,
-shoulder and chest; a running upper arm of the thighs). Per link, target t following drivers u:
+The output priors (`style_carry.py`) map each joint on its own, so they cannot put a motion in
+step with another joint's where the model keeps it still, nor turn a swing onto another axis. In
+real clips a joint's deviation from its mean is often close to a linear function of its
+drivers'. Per link, target t following drivers u:
 
     d_t' = d_t + (B_real - B_made)^T [d_u, 1]
 
 every d a rotation vector away from the style's real mean (in the joint's own frame), B fitted
 by least squares on the style's real TRAIN clips and on the model's output toward the style, per
-gait (walk, run), and mixed by a frame's gait share. What the model's joint does apart from its
-drivers stays. Links apply in order, a later link reading the joints an earlier one moved (the
-fit does the same). A style mix blends each link's corrections, as the priors do:
-q' = q exp(sum_s w_s log(q^-1 f_s(q))); rows that weigh no coupled style are left exactly as
-they were. `couple` is compiled (`coupling_kernels.py`); `couple_numpy` is its reference.
+gait (walk, run), and mixed by a frame's gait share. Links apply in order, a later one reading
+the joints an earlier one moved (as the fit does). A style mix blends each link's corrections as
+the priors do (q' = q exp(sum_s w_s log(q^-1 f_s(q)))); rows that weigh no coupled style are left
+exactly as they were. `couple` is compiled (`coupling_kernels.py`; numpy reference:
+`tests/reference/coupling.py`).
 """
 
 from __future__ import annotations
@@ -200,29 +198,3 @@ def couple(
     out = np.array(rotations, np.float64)
     couple_batch(out, rows, w, share, *joints, aligned["mean"], aligned["walk"], aligned["run"])
     return out.astype(rotations.dtype)
-
-
-def couple_numpy(
-    rotations: np.ndarray,
-    weights: np.ndarray,
-    share: np.ndarray,
-    joints: tuple[np.ndarray, np.ndarray],
-    aligned: dict[str, np.ndarray],
-) -> np.ndarray:
-    """The numpy reference of `couple`."""
-    rows, w = _coupled(weights, aligned["on"])
-    if len(rows) == 0:
-        return rotations
-    w, r = w[rows], np.clip(np.asarray(share, np.float64)[rows], 0.0, 1.0)[:, None, None]
-    q = np.asarray(rotations[rows], np.float64)
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    for k, (t, ds) in enumerate(zip(*joints)):
-        correction = np.zeros((len(rows), 3))
-        for s in np.flatnonzero(w.any(axis=0)):
-            walk, run = aligned["walk"][s, k], aligned["run"][s, k]
-            styled = moved(q, aligned["mean"][s], t, ds, walk + r * (run - walk))
-            correction += w[:, s, None] * quat_log(quat_mul(quat_inv(q[:, t]), styled))
-        q[:, t] = quat_mul(q[:, t], quat_exp(correction))
-    out = np.array(rotations, copy=True)
-    out[np.ix_(rows, joints[0])] = q[:, joints[0]]
-    return out

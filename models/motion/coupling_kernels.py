@@ -1,4 +1,4 @@
-"""`coupling.couple` compiled (numba): the numpy reference's formulas (`coupling.couple_numpy`)
+"""`coupling.couple` compiled (numba): the numpy reference's formulas (`tests/reference/coupling.py`)
 as per-row, per-link loops. The numpy version cost ~0.3 ms a step at batch 1 (a sixth of
 LPN-FiLM's whole step); this is a few microseconds of arithmetic per session."""
 

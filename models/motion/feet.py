@@ -1,39 +1,29 @@
 """Planted feet for every method: the root travels by the feet on the ground, the legs hold them.
 
 Why: a style model changes how the legs move and how fast the root travels, and nothing makes the
-two agree. LTI's translated strides came out shorter than its translated root motion, so planted
-toes slid 5-10 cm/s at the median where real ones move well under 1 cm/s; Style-ERD's and
-LPN-FiLM's ankle-only locks let the toe pivot and drag. On a skinned character a sliding planted
-foot is the first thing a viewer sees. The fix is the one a real body uses: while a foot is on the
-ground, the body moves relative to it, not the other way round.
+two agree, so planted feet slide; on a skinned character that is the first thing a viewer sees.
+A real body does the opposite: while a foot is on the ground, the body moves relative to it.
 
 Per frame, causal (no look-ahead), on the model rig:
-1. **Root.** By default (`follow=0`) the root keeps the model's path and the legs do the work
-   (3.): a held foot stays behind and catches up in its swing, which lengthens a too-short stride.
-   A leash stops the legs from stretching too far: as a hold grows past a quarter of `max_offset`
-   the root gives way, moving opposite to the held points' motion relative to it (all of it at
-   `max_offset`), as a body moves over a planted foot. (LTI's elderly run: its legs shuffle while
-   its root keeps the input run's 240 cm/s; planted, it runs at 150 cm/s, real elderly runs 133.)
-   `follow` > 0 always moves the root with the feet by that share. No foot planted (a run's flight,
-   a jump): the model's root motion. Heights are always the model's.
+1. **Root.** By default (`follow=0`) the root keeps the model's path and the legs do the work:
+   a held foot stays behind and catches up in its swing. A leash stops the legs stretching too
+   far: past a quarter of `max_offset` the root gives way, moving against the held points'
+   motion (all of it at `max_offset`), as a body moves over a planted foot. `follow` > 0 always
+   moves the root with the feet by that share. With no foot planted, and for heights, the
+   model's root.
 2. **Contact.** A foot is planted when its toe or ankle is within `margin` of that point's floor
-   height and it touches down slower than `onset_speed`, or slower than the root along its path
-   (pushing back, as a stance foot does however much the animation slides it), or the model says it
-   is down (`hints`). The held point is the toe whenever the toe is down (push-off pivots about the
-   toe), else the ankle (heel strike). Each point's floor starts
-   at the rig's and follows the point down at once and up by `floor_rise` per second: a network's
-   feet float or sink by a few centimetres (Style-ERD's toes stand anywhere from 1 to 7 cm).
-3. **Hold.** While planted, a horizontal offset collects the opposite of the held point's remaining
-   motion (two planted feet that disagree, a pivot) and two-bone leg IK moves the ankle by it, the
-   foot's world orientation kept, so the toe moves with it. Released, or held farther than
-   `max_offset` from where the animation has it, the offset fades by `decay` per frame. The last
-   `soft` cm of a leg's reach are eased (soft IK): an exact IK snaps the knee straight while a hold
-   stretches the leg and pops it bent on release (knee bend acceleration up to 42 deg/frame^2 on a
-   skating walk, 18 in the real walk; 14 eased).
+   and it touches down slower than `onset_speed` or than the root along its path, or the model
+   says it is down (`hints`). The held point is the toe whenever it is down (push-off pivots
+   about it), else the ankle. Each point's floor follows it down at once and up by `floor_rise`
+   per second, since a network's feet float or sink by a few centimetres.
+3. **Hold.** While planted, a horizontal offset collects the opposite of the held point's
+   remaining motion and two-bone leg IK moves the ankle by it, keeping the foot's orientation.
+   Released, or held farther than `max_offset`, the offset fades by `decay` per frame. The last
+   `soft` cm of a leg's reach are eased (soft IK), so the knee neither snaps straight under a
+   hold nor pops bent on release.
 
-The work is one compiled pass over the sessions (`feet_kernels.plant_feet`, a few microseconds per
-session); the state is plain arrays under `feet_*` keys, so it joins a model's state, snapshots
-and resumes with it.
+One compiled pass over the sessions (`feet_kernels.plant_feet`); the state is plain arrays under
+`feet_*` keys, so it joins a model's state, snapshots and resumes with it.
 """
 
 from __future__ import annotations
@@ -175,28 +165,8 @@ class FootPlanter:
             "feet_floor": np.empty((B, 2, 2)),
         }
         s: dict[str, np.ndarray] = {k: np.ascontiguousarray(state[k], dtype) for k, (_, dtype) in STATE_SHAPES.items()}
-        feet_kernels.plant_feet(
-            root,
-            out_rot,
-            active,
-            hints,
-            s["feet_started"],
-            s["feet_root"],
-            s["feet_model_root"],
-            s["feet_rel"],
-            s["feet_contact"],
-            s["feet_point"],
-            s["feet_offset"],
-            s["feet_floor"],
-            new["feet_root"],
-            out_rot,
-            new["feet_contact"],
-            new["feet_rel"],
-            new["feet_point"],
-            new["feet_offset"],
-            new["feet_floor"],
-            *self._params,
-        )
+        before, after = (feet_kernels.Feet(*(d[k] for k in STATE_SHAPES)) for d in (s, new))
+        feet_kernels.plant_feet(root, out_rot, active, hints, before, after, out_rot, self._params)
         return new["feet_root"].copy(), out_rot, new["feet_contact"].copy(), new
 
     def clip(

@@ -6,10 +6,25 @@ Quaternions are 4-tuples (x, y, z, w), the project's scalar-last order; everythi
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
+import numpy as np
 from numba import njit
 
 from .quaternion import add3, axis_angle, between, cross, dot3, qinv, qmul, qrot, row3, row4, sub3
+
+
+class Feet(NamedTuple):
+    """The foot planter's state (`feet.STATE_SHAPES`, in its order), B sessions."""
+
+    started: np.ndarray  # (B,)
+    root: np.ndarray  # (B, 3) the planted root
+    model_root: np.ndarray  # (B, 3) the model's
+    rel: np.ndarray  # (B, 2, 2, 3) each leg's ankle and toe from the root
+    contact: np.ndarray  # (B, 2) planted legs
+    point: np.ndarray  # (B, 2) held point (0 ankle, 1 toe)
+    offset: np.ndarray  # (B, 2, 3) the legs' IK offsets
+    floor: np.ndarray  # (B, 2, 2) each leg's ankle and toe floor
 
 
 @njit(cache=True, error_model="numpy")
@@ -93,46 +108,18 @@ def leg_points(rot, hips, chain, offsets, out):
 
 
 @njit(cache=True, error_model="numpy")
-def plant_feet(
-    root,
-    rot,
-    active,
-    hints,
-    started,
-    prev_root,
-    prev_model_root,
-    prev_rel,
-    prev_contact,
-    prev_point,
-    prev_offset,
-    prev_floor,
-    out_root,
-    out_rot,
-    contacts,
-    rel,
-    point,
-    offset,
-    floor,
-    hips,
-    chains,
-    offsets,
-    floors,
-    margin,
-    floor_rise,
-    onset_speed,
-    max_offset,
-    decay,
-    follow,
-    soft,
-    fps,
-):
+def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
     """One frame of `feet.FootPlanter` for B sessions (see there for what and why). Reads the
     model's frame (root (B, 3), rot (B, J, 4)), which sessions to plant (active (B,)), the model's
-    own idea of which feet are down (hints (B, 2), may plant a fast foot) and the
-    planter's state (started ... prev_floor); writes the planted frame (out_root, out_rot: a copy
-    of rot the caller made) and the new state (contacts, rel, point, offset, floor; out_root is the
-    next prev_root, root the next prev_model_root). An inactive session gets its frame back as it is,
-    nothing planted, while its state keeps up (so planting resumes without a jump)."""
+    own idea of which feet are down (hints (B, 2), may plant a fast foot) and the planter's state
+    `before` (a `Feet`, its held points integers); writes the planted frame (after.root, out_rot: a
+    copy of rot the caller made) and the rest of the new state `after` but `started` and
+    `model_root` (the caller's: root is the next model root). `planter`: `FootPlanter`'s
+    parameters. An inactive session gets its frame back as it is, nothing planted, while its state
+    keeps up (so planting resumes without a jump)."""
+    started, prev_root, prev_model_root, prev_rel, prev_contact, prev_point, prev_offset, prev_floor = before
+    _, out_root, _, rel, contacts, point, offset, floor = after
+    hips, chains, offsets, floors, margin, floor_rise, onset_speed, max_offset, decay, follow, soft, fps = planter
     for b in range(root.shape[0]):
         for leg in range(2):
             leg_points(rot[b], hips, chains[leg], offsets, rel[b, leg])

@@ -9,8 +9,7 @@ per frame: a frame's shares read that frame and the running averages.
   in about 1 % of frames) to the shoulder's height (Style-ERD's card chose it on validation).
 - **Sway:** each hand's horizontal speed against its shoulder, an exponential average over
   `SWAY_FRAMES`. On the validation inputs' raised frames a raise-up's has a median of 21-34 cm/s
-  (p90 41-60), a wave's a median of 57-96 (p10 50-84): the wave share ramps over `WAVE_RAMP_CM_S`,
-  the still share falls over `STILL_RAMP_CM_S`.
+  (p90 41-60), a wave's a median of 57-96 (p10 50-84): the wave share ramps over `WAVE_RAMP_CM_S`.
 - **Rise:** its vertical speed, averaged alike; the level share falls over `LEVEL_RAMP_CM_S`.
 """
 
@@ -24,7 +23,6 @@ from .skeleton import Skeleton
 
 RAISE_RAMP_CM = (-12.0, 0.0)
 WAVE_RAMP_CM_S = (40.0, 60.0)
-STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it, not above
 LEVEL_RAMP_CM_S = (30.0, 60.0)  # a hand rising or falling faster than this is raising or lowering, not waving
 SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it 1 / SWAY_FRAMES of the way to the new speed
 _HANDS = np.array([BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")])
@@ -76,28 +74,14 @@ class HandMeter:
         no previous frame unless `started`, nor while `prev` is all zeros (a state from before
         the meter); its averages start at 0. The last value lets a caller skip what only a
         raised hand needs (a walk's or a run's never is)."""
-        from .hands_kernels import hand_step
+        from .hands_kernels import Hands, hand_step
 
         q = np.ascontiguousarray(rotations, np.float64)
         out, swayed, risen = np.empty((len(q), 2, 3)), np.empty((len(q), 2)), np.empty((len(q), 2))
-        raised = hand_step(
-            q,
-            self.parents,
-            self.offsets,
-            self.chain,
-            self.hands,
-            self.shoulders,
-            np.ascontiguousarray(prev, np.float64),
-            np.ascontiguousarray(before, np.float64),
-            np.ascontiguousarray(rise_before, np.float64),
-            np.asarray(started, np.bool_),
-            float(fps),
-            SWAY_FRAMES,
-            RAISE_RAMP_CM[0],
-            out,
-            swayed,
-            risen,
-        )
+        arms = (self.parents, self.offsets, self.chain, self.hands, self.shoulders)
+        rig = Hands(*arms, float(fps), SWAY_FRAMES, RAISE_RAMP_CM[0])
+        prev, before, rise_before = (np.ascontiguousarray(a, np.float64) for a in (prev, before, rise_before))
+        raised = hand_step(q, rig, prev, before, rise_before, np.asarray(started, np.bool_), out, swayed, risen)
         return out, swayed, risen, bool(raised)
 
 
@@ -171,20 +155,6 @@ def wave_share(swayed: np.ndarray) -> np.ndarray:
     """(..., 2) how much each hand waves: 0 up to `WAVE_RAMP_CM_S`, 1 from its end, linear between."""
     lo, hi = WAVE_RAMP_CM_S
     return np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
-
-
-def level_share(risen: np.ndarray) -> np.ndarray:
-    """(..., 2) how level each hand is held: 1 up to `LEVEL_RAMP_CM_S` of `rise`, 0 from its end.
-    A raise-up's hand also sways as it goes up (on the validation raise-ups the wave share
-    reached 0.7-1.0 for about 13 frames of the rise); at a level one it does not."""
-    lo, hi = LEVEL_RAMP_CM_S
-    return 1.0 - np.clip((np.asarray(risen, np.float64) - lo) / (hi - lo), 0.0, 1.0)
-
-
-def still_share(swayed: np.ndarray) -> np.ndarray:
-    """(..., 2) how still each hand is: 1 up to `STILL_RAMP_CM_S`, 0 from its end, linear between."""
-    lo, hi = STILL_RAMP_CM_S
-    return 1.0 - np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
 def raised_frames(motion, side: int | None = None) -> np.ndarray:

@@ -5,6 +5,7 @@ LTI's whole step); this is a few microseconds."""
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -12,32 +13,29 @@ from numba import njit
 from .quaternion import qmul, qrot, quat_at, qunit, row3, row4
 
 
+class Hands(NamedTuple):
+    """A rig's arm chains and the meter's settings (`hands.HandMeter`)."""
+
+    parents: np.ndarray  # (J,) int64
+    offsets: np.ndarray  # (J, 3)
+    chain: np.ndarray  # joints from the root to the hands and shoulders, parents first
+    hands: np.ndarray  # (2,) int64
+    shoulders: np.ndarray  # (2,) int64
+    fps: float
+    frames: float  # the sway's and rise's exponential average
+    above: float  # a hand higher than this over its shoulder is on its raise ramp
+
+
 @njit(cache=True, error_model="numpy")
-def hand_step(
-    rot,
-    parents,
-    offsets,
-    chain,
-    hands,
-    shoulders,
-    prev,
-    before,
-    rise_before,
-    started,
-    fps,
-    frames,
-    above,
-    out,
-    swayed,
-    risen,
-):
+def hand_step(rot, rig, prev, before, rise_before, started, out, swayed, risen):
     """Per row b of local rotations rot (B, J, 4): each hand's offset from its shoulder (out
-    (B, 2, 3)) by forward kinematics over `chain` (joint indices, parents first; the chain's root
-    at the origin), and its sway and rise after this frame (swayed, risen (B, 2): the horizontal
+    (B, 2, 3)) by forward kinematics over the `rig`'s chain (a `Hands`; the chain's root at the
+    origin), and its sway and rise after this frame (swayed, risen (B, 2): the horizontal
     and the vertical speed) from the averages before (`before`, `rise_before`) and the previous
     frame's offsets `prev`, averaged over `frames`. A row has no previous frame (its averages
     are 0) unless `started`, or when `prev` is all zeros (a hand is never at its shoulder: a state
     from before the meter). Returns whether any hand is higher than `above` over its shoulder."""
+    parents, offsets, chain, hands, shoulders, fps, frames, above = rig
     J = rot.shape[1]
     g = np.empty((J, 4))
     p = np.empty((J, 3))

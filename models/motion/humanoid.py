@@ -39,23 +39,9 @@ from .skeleton import Motion, Skeleton, skeleton_from_bvh
 
 SIDED_PARTS = ("clavicle", "upperarm", "lowerarm", "hand", "upperleg", "lowerleg", "foot", "toes")
 ARM, LEG = SIDED_PARTS[:4], SIDED_PARTS[4:]
-ROLES = (
-    "hips",
-    "spine1",
-    "spine2",
-    "spine3",
-    "spine4",
-    "neck",
-    "head",
-    *(f"{p}_{s}" for s in "lr" for p in SIDED_PARTS),
-)
-REQUIRED = (
-    "hips",
-    "spine1",
-    "head",
-    *(f"{p}_{s}" for s in "lr" for p in ("upperarm", "lowerarm", "hand", "upperleg", "lowerleg", "foot")),
-)
 SPINE = ("spine1", "spine2", "spine3", "spine4")
+ROLES = ("hips", *SPINE, "neck", "head", *(f"{p}_{s}" for s in "lr" for p in SIDED_PARTS))
+REQUIRED = ("hips", "spine1", "head", *(f"{p}_{s}" for s in "lr" for p in SIDED_PARTS[1:-1]))
 
 # BN joint -> the role of the client joint at the same body position
 BN_ROLES = {

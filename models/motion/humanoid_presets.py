@@ -175,10 +175,10 @@ def _build(preset: Preset, prefix: str) -> Skeleton:
     return Skeleton(tuple(names), parent_index, offsets, np.full((len(names), 3), np.nan))
 
 
-def _limbs(*names: str) -> dict[str, str]:
-    return dict(
-        zip(("clavicle_x", "upperarm_x", "lowerarm_x", "hand_x", "upperleg_x", "lowerleg_x", "foot_x", "toes_x"), names)
-    )
+def _limbs(names: str) -> dict[str, str]:
+    """The sided roles' names, given as one space-separated row from the clavicle to the toes."""
+    roles = ("clavicle_x", "upperarm_x", "lowerarm_x", "hand_x", "upperleg_x", "lowerleg_x", "foot_x", "toes_x")
+    return dict(zip(roles, names.split(), strict=True))
 
 
 PRESETS: dict[str, Preset] = {
@@ -190,14 +190,7 @@ PRESETS: dict[str, Preset] = {
                 "hips": "Hips",
                 "head": "Head",
                 **_limbs(
-                    "{Side}Shoulder",
-                    "{Side}Arm",
-                    "{Side}ForeArm",
-                    "{Side}Hand",
-                    "{Side}UpLeg",
-                    "{Side}Leg",
-                    "{Side}Foot",
-                    "{Side}ToeBase",
+                    "{Side}Shoulder {Side}Arm {Side}ForeArm {Side}Hand {Side}UpLeg {Side}Leg {Side}Foot {Side}ToeBase"
                 ),
             },
             spine=("Spine", "Spine1", "Spine2"),
@@ -212,16 +205,7 @@ PRESETS: dict[str, Preset] = {
             {
                 "hips": "pelvis",
                 "head": "head",
-                **_limbs(
-                    "clavicle_{s}",
-                    "upperarm_{s}",
-                    "lowerarm_{s}",
-                    "hand_{s}",
-                    "thigh_{s}",
-                    "calf_{s}",
-                    "foot_{s}",
-                    "ball_{s}",
-                ),
+                **_limbs("clavicle_{s} upperarm_{s} lowerarm_{s} hand_{s} thigh_{s} calf_{s} foot_{s} ball_{s}"),
             },
             spine=("spine_01", "spine_02", "spine_03"),
             necks=("neck_01",),
@@ -242,16 +226,7 @@ PRESETS: dict[str, Preset] = {
             {
                 "hips": "pelvis",
                 "head": "head",
-                **_limbs(
-                    "clavicle_{s}",
-                    "upperarm_{s}",
-                    "lowerarm_{s}",
-                    "hand_{s}",
-                    "thigh_{s}",
-                    "calf_{s}",
-                    "foot_{s}",
-                    "ball_{s}",
-                ),
+                **_limbs("clavicle_{s} upperarm_{s} lowerarm_{s} hand_{s} thigh_{s} calf_{s} foot_{s} ball_{s}"),
             },
             spine=("spine_01", "spine_02", "spine_03", "spine_04", "spine_05"),
             necks=("neck_01", "neck_02"),
@@ -275,14 +250,7 @@ PRESETS: dict[str, Preset] = {
                 "hips": "Hips",
                 "head": "Head",
                 **_limbs(
-                    "{Side}Shoulder",
-                    "{Side}UpperArm",
-                    "{Side}LowerArm",
-                    "{Side}Hand",
-                    "{Side}UpperLeg",
-                    "{Side}LowerLeg",
-                    "{Side}Foot",
-                    "{Side}Toes",
+                    "{Side}Shoulder {Side}UpperArm {Side}LowerArm {Side}Hand {Side}UpperLeg {Side}LowerLeg {Side}Foot {Side}Toes"
                 ),
             },
             spine=("Spine", "Chest", "UpperChest"),
@@ -298,14 +266,7 @@ PRESETS: dict[str, Preset] = {
                 "hips": "hips",
                 "head": "head",
                 **_limbs(
-                    "{side}Shoulder",
-                    "{side}UpperArm",
-                    "{side}LowerArm",
-                    "{side}Hand",
-                    "{side}UpperLeg",
-                    "{side}LowerLeg",
-                    "{side}Foot",
-                    "{side}Toes",
+                    "{side}Shoulder {side}UpperArm {side}LowerArm {side}Hand {side}UpperLeg {side}LowerLeg {side}Foot {side}Toes"
                 ),
             },
             spine=("spine", "chest", "upperChest"),
@@ -318,14 +279,7 @@ PRESETS: dict[str, Preset] = {
                 "hips": "pelvis",
                 "head": "head",
                 **_limbs(
-                    "{side}_collar",
-                    "{side}_shoulder",
-                    "{side}_elbow",
-                    "{side}_wrist",
-                    "{side}_hip",
-                    "{side}_knee",
-                    "{side}_ankle",
-                    "{side}_foot",
+                    "{side}_collar {side}_shoulder {side}_elbow {side}_wrist {side}_hip {side}_knee {side}_ankle {side}_foot"
                 ),
             },
             spine=("spine1", "spine2", "spine3"),
@@ -339,14 +293,7 @@ PRESETS: dict[str, Preset] = {
                 "hips": "pelvis",
                 "head": "head",
                 **_limbs(
-                    "{side}_collar",
-                    "{side}_shoulder",
-                    "{side}_elbow",
-                    "{side}_wrist",
-                    "{side}_hip",
-                    "{side}_knee",
-                    "{side}_ankle",
-                    "{side}_foot",
+                    "{side}_collar {side}_shoulder {side}_elbow {side}_wrist {side}_hip {side}_knee {side}_ankle {side}_foot"
                 ),
             },
             spine=("spine1", "spine2", "spine3"),
@@ -361,14 +308,7 @@ PRESETS: dict[str, Preset] = {
                 "hips": "Hips",
                 "head": "Head",
                 **_limbs(
-                    "{Side}Shoulder",
-                    "{Side}Arm",
-                    "{Side}ForeArm",
-                    "{Side}Hand",
-                    "{Side}UpLeg",
-                    "{Side}Leg",
-                    "{Side}Foot",
-                    "{Side}ToeBase",
+                    "{Side}Shoulder {Side}Arm {Side}ForeArm {Side}Hand {Side}UpLeg {Side}Leg {Side}Foot {Side}ToeBase"
                 ),
             },
             spine=("Spine", "Spine1", "Spine2"),

@@ -1,24 +1,20 @@
 """Which way the head, hands and feet face: oriented solids for renders, from joint rotations.
 
-A stick figure shows joint positions only, so a head turned backwards, a wrist twisted about the
-forearm or a foot rolled about its own axis (none of which moves a joint) is invisible. The renders
-(`render.py` with matplotlib, the browser viewer with three.js) therefore draw the head with a nose,
-each hand as a flat palm with a thumb stub and each foot as a heel-to-toe wedge plus a toe block,
-posed by the joints' *world rotations*: at frame t a part's world axes are R_world(t) @ A, where A,
-the part's axes in its joint's local frame, is fixed per skeleton.
+A stick figure shows joint positions only, so a head turned backwards or a wrist twisted about
+the forearm (neither moves a joint) is invisible. The renders (`render.py`, and the browser
+viewer) draw the head with a nose, each hand as a palm with a thumb stub and each foot as a
+heel-to-toe wedge plus a toe block, posed by the joints' *world rotations*: at frame t a part's
+world axes are R_world(t) @ A, A the part's axes in its joint's frame, fixed per skeleton.
 
-A is calibrated once per skeleton from a reference pose in which the character stands facing the
-way `features.facing_yaw` says: the committed one-frame assets for the Bandai Namco and CMU rigs
-(their zero poses mean nothing: the BN body lies along world X), borrowed by any skeleton with the
-same joint chains and bone directions (Xia's CMU variant); for any other skeleton (Mixamo, UE,
-SMPL, ... whose parts `humanoid.match_roles` names), the motion's own first frame, so there a
-rotation already present at frame 0 does not show. Never per motion on a known rig: a model that
-turns the head from frame 0 would look right.
+A is calibrated once per skeleton from a reference pose facing the way `features.facing_yaw`
+says: the committed one-frame assets for the Bandai Namco and CMU rigs (their zero poses mean
+nothing), borrowed by any skeleton with the same chains and bone directions; for any other rig
+(whose parts `humanoid.match_roles` names), the motion's first frame. Never per motion on a known
+rig: a model that turns the head from frame 0 would look right.
 
-Part frames (columns of A, all right-handed, z = x × y):
+Part frames (columns of A, right-handed, z = x × y):
   head       x face forward (the nose), y up
-  hand       x along the hand (wrist to fingers), y toward the thumb; z is the left palm's normal
-             and the right hand's back (in the reference pose the thumbs point forward)
+  hand       x wrist to fingers, y toward the thumb (z: the left palm's normal, the right's back)
   foot, toe  x forward (ankle to toe, level in the reference pose), y up (the top face)
 """
 
@@ -362,18 +358,6 @@ def rig(motion: Motion) -> tuple[Solid, ...]:
             return build_solids(sk, part_axes(motion))
         _RIGS[key] = build_solids(sk, _asset_axes(which))
     return _RIGS[key]
-
-
-def part_frames(global_rotations: np.ndarray, joint: int, axes: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) world axes (columns x, y, z) of a part from world joint rotations (..., J, 4)."""
-    return quat_to_matrix(global_rotations[..., joint, :]) @ axes
-
-
-def world_axes(motion: Motion) -> dict[str, np.ndarray]:
-    """Per part (`head`, `hand_l`, `foot_r`, ...), its world axes over the motion (F, 3, 3):
-    column 0 is where the face looks / the fingers point / the toes point, column 1 up / the thumb."""
-    g_rot, _ = motion.global_transforms()
-    return {s.part: part_frames(g_rot, s.joint, s.axes) for s in rig(motion) if not s.mark}
 
 
 def solid_corners(global_rotations: np.ndarray, global_positions: np.ndarray, solids: tuple[Solid, ...]) -> np.ndarray:

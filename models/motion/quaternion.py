@@ -73,11 +73,6 @@ def sub3(a, b):
 
 
 @njit(cache=True, error_model="numpy")
-def scale3(a, k):
-    return (k * a[0], k * a[1], k * a[2])
-
-
-@njit(cache=True, error_model="numpy")
 def qrot(q, v):
     """Rotate vector v by unit quaternion q (two cross products, no matrix)."""
     xyz = (q[0], q[1], q[2])

@@ -1,39 +1,30 @@
 """Retargeting humanoid motions (any rig `humanoid` matches: CMU and Xia files, Mixamo, Unreal,
 Unity/VRM, SMPL, BVH exports, ...) onto the Bandai Namco (BN) skeleton.
 
-The BN skeleton has no T-pose: its bone offsets lie along each joint's local X and the pose with
-all rotations zero is meaningless (legs point up the spine). So the mapping is built from bone
-*directions*, never from either skeleton's rest pose:
+The BN skeleton has no T-pose (its all-zero pose points the legs up the spine), so the mapping
+is built from bone *directions*, never from either skeleton's rest pose:
 
-1. `humanoid.match_roles` names the client joint of each body role (hips, spine, chest, neck,
-   head, clavicles, arms, hands, legs, feet, toes); both CMU namings are presets of it
-   (`humanoid.CMU_TO_BN`). `humanoid.bn_segments` gives, per BN bone, the client segment (between two
-   role joints, through any joints in between) whose direction it takes.
+1. `humanoid.match_roles` names the client joint of each body role; `humanoid.bn_segments`
+   gives, per BN bone, the client segment (between two role joints) whose direction it takes.
 2. Hips and Chest have several children: their global rotation is a two-vector frame of the
-   client joint positions (the bone up the spine and the left-right vector between the legs /
-   upper arms), so the spine bone and the hip / shoulder line follow the client exactly. The
-   hips' side vector is the client's rest-pose hip line carried by its hips joint
-   (`retarget_stream._rest_side`), so hip joints between the hips and the thighs (Xia's animated
-   LHipJoint) do not turn BN's whole pelvis.
-3. Every other joint with a segment (`TwistPlan`, parents first): start from the BN parent's
-   new global rotation times the joint's local rotation in the natural BN pose (`Rig.pose`), then
-   apply the smallest swing that carries the BN bone onto the segment direction. The bone
-   points exactly where the client's segment points, and the twist about it follows the BN parent
-   and the natural pose, never the client joint's own twist (which puts e.g. CMU knees 30 standard
-   deviations outside BN's range for the LTI model). Limb roots (UpperLeg, UpperArm) instead take
-   the twist that lays BN's hinge axis (the natural knee / elbow bend axis) along the normal of the
-   client's limb plane, so knees and elbows bend about BN's hinge axis. The normal keeps its own
-   sign, cross(upper bone, lower bone), which is the bend's side for a flexed limb whatever the
-   twist; a near-straight limb, whose plane is noise, blends to BN's natural twist
-   (`HINGE_FALLBACK`). The Spine takes half of the Chest's twist about it (`TWIST_SHARE`), as
-   Unity's humanoid spreads a twist over a chain. Leaves (Head, Hands, Toes) keep the natural
-   local rotation: they move no joint, and BN data holds them nearly fixed.
-4. Hips translation is scaled by the leg-length ratio (BN thigh + shin / client thigh + shin,
-   which also converts units) and shifted vertically so that the toe on the ground sits at the
-   toe height the BN data shows (~4.2 cm; see `contact_height`). The source is first resampled to
-   the target fps (default 30).
+   client's joint positions (the bone up the spine and the line between the legs / upper arms).
+   The hips' side vector is the client's rest hip line carried by its hips joint
+   (`retarget_stream._rest_side`), so hip joints between hips and thighs do not turn the pelvis.
+3. Every other joint with a segment (`TwistPlan`, parents first): the BN parent's new global
+   rotation times the joint's local rotation in the natural BN pose, then the smallest swing that
+   carries the BN bone onto the segment. The twist about the bone follows the BN parent and the
+   natural pose, never the client joint's own twist (which can sit far outside BN's range).
+   Limb roots (UpperLeg, UpperArm) instead take the twist that lays BN's hinge axis along the
+   normal of the client's limb plane, cross(upper bone, lower bone), so knees and elbows bend
+   about BN's hinge; a near-straight limb, whose plane is noise, blends to the natural twist
+   (`HINGE_FALLBACK`). The Spine takes a share of the Chest's twist (`TWIST_SHARE`), as Unity's
+   humanoid spreads a twist over a chain. Leaves (Head, Hands, Toes) keep the natural local
+   rotation: they move no joint, and BN data holds them nearly fixed.
+4. The Hips translation is scaled by the leg-length ratio (which also converts units) and shifted
+   so the toe on the ground sits at the toe height BN data shows (`contact_height`). The source
+   is first resampled to the target fps (default 30).
 
-Everything is pure numpy/scipy; `default_rig()` comes from a committed one-frame BN asset.
+Pure numpy/scipy; `default_rig()` comes from a committed one-frame BN asset.
 """
 
 from __future__ import annotations

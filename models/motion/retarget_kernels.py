@@ -16,6 +16,8 @@ client's needed joints in depth order (`retarget_stream._Tree`), slot -1 meaning
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -219,6 +221,42 @@ def _bn_lowest(gb, drop_par, drop_off, drop_ref):
     return low
 
 
+class Rig(NamedTuple):
+    """What the kernels read of a rig (`FrameRetargeter._kernel_plan`): slots are the client's
+    needed joints in depth order; `_bn_globals`, `to_model` and `to_source` say what each means."""
+
+    src_order: np.ndarray  # (Ns,) client joint of each slot
+    src_par_s: np.ndarray  # (Ns,) its parent's slot (-1: a root)
+    fixed_par_s: np.ndarray  # the chain above the client's hips: parent slots ...
+    fixed_off: np.ndarray  # ... and offsets (`_hips_terms`)
+    translated_par_s: int  # slot of the translated joint's parent (-1: none)
+    vec_par_s: np.ndarray  # segment terms: parent slot of each ...
+    vec_off: np.ndarray  # ... and its offset
+    vec_nz: np.ndarray  # (E, 2) (segment vector, term) entries ...
+    vec_w: np.ndarray  # ... and their weights
+    axes: np.ndarray  # (3, 3) the client's world to BN's
+    num_plain: int  # segment vectors that are bone directions (then two per lateral joint, then foot points)
+    m_tgt_t: np.ndarray  # two-vector joints (Hips, Chest): target frame transposed ...
+    lateral_j: np.ndarray  # ... and BN joint
+    step_i: np.ndarray  # (S, 6) per other joint: kind, joint, parent, segment, limb plane segment, split child
+    step_nat: np.ndarray  # its natural local rotation
+    step_b: np.ndarray  # its bone direction
+    step_k: np.ndarray  # its natural hinge axis
+    step_m_loc_t: np.ndarray  # its frame from the limb plane
+    step_split_nat: np.ndarray  # its split child's natural rotation
+    bn_parents: np.ndarray  # (22,)
+    bn_fixed_q: np.ndarray  # (22, 4) local rotations kept as they are (w < 0: computed)
+    bn_order: np.ndarray  # BN joints, parents first
+    delta_j: np.ndarray  # BN joints whose change some client joint takes
+    anc_bn_s: np.ndarray  # per slot, that BN joint (22: none)
+    mapped_j: np.ndarray  # mapped client joints ...
+    mapped_s: np.ndarray  # ... their slots ...
+    mapped_par_s: np.ndarray  # ... and their parents' slots (-1: a mapped root)
+    drop_par: np.ndarray  # foot points: parent chains ...
+    drop_off: np.ndarray  # ... offsets ...
+    drop_ref: np.ndarray  # ... and reference heights (`FrameRetargeter._drop`)
+
+
 # --------------------------------------------------------------------------- per-frame steps
 # Scratch arrays come from the callers (allocated once per call, not per frame): w33 (3, 3, 3), w3 (3, 3).
 
@@ -249,77 +287,55 @@ def _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t):
 
 
 @njit(cache=True, error_model="numpy")
-def _bn_globals(
-    gs,
-    vec_par_s,
-    vec_off,
-    vec_nz,
-    vec_w,
-    axes,
-    num_plain,
-    m_tgt_t,
-    lateral_j,
-    step_i,
-    step_nat,
-    step_b,
-    step_k,
-    step_m_loc_t,
-    step_split_nat,
-    bn_parents,
-    gb,
-    terms,
-    raw,
-    vec,
-    w33,
-    w3,
-):
+def _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3):
     """BN world rotations gb (22, 3, 3) from the client's slot rotations gs
     (the reference's `_bn_globals` then `bn_globals`). The segment vectors are
     sums of vec_w[e] * gs[vec_par_s[t]] @ vec_off[t] over the entries e = (v, t) of vec_nz (the
     nonzero entries of `FrameRetargeter._vec_coef`); scratch: terms (T, 3), raw and vec (V, 3)."""
-    for t in range(vec_off.shape[0]):
-        _mv(gs[vec_par_s[t]], vec_off[t], terms[t])
-    same_axes = axes[0, 0] == 1.0 and axes[1, 1] == 1.0 and axes[2, 2] == 1.0  # the client's world is BN's
+    for t in range(rig.vec_off.shape[0]):
+        _mv(gs[rig.vec_par_s[t]], rig.vec_off[t], terms[t])
+    same_axes = rig.axes[0, 0] == 1.0 and rig.axes[1, 1] == 1.0 and rig.axes[2, 2] == 1.0  # the client's world is BN's
     acc = vec if same_axes else raw
     acc[:, :] = 0.0
-    for e in range(vec_nz.shape[0]):
-        v, t, w = vec_nz[e, 0], vec_nz[e, 1], vec_w[e]
+    for e in range(rig.vec_nz.shape[0]):
+        v, t, w = rig.vec_nz[e, 0], rig.vec_nz[e, 1], rig.vec_w[e]
         for r in range(3):
             acc[v, r] += w * terms[t, r]
     if not same_axes:
         for v in range(raw.shape[0]):
-            _mv(axes, raw[v], vec[v])  # in BN's world
-    for v in range(num_plain):  # bone directions
+            _mv(rig.axes, raw[v], vec[v])  # in BN's world
+    for v in range(rig.num_plain):  # bone directions
         n = 1.0 / np.sqrt(vec[v, 0] * vec[v, 0] + vec[v, 1] * vec[v, 1] + vec[v, 2] * vec[v, 2])
         for r in range(3):
             vec[v, r] *= n
 
     m, base, sw = w33[0], w33[1], w33[2]
     bone, nat = w3[0], w3[1]
-    for j in range(bn_parents.shape[0]):
-        if bn_parents[j] < 0:
+    for j in range(rig.bn_parents.shape[0]):
+        if rig.bn_parents[j] < 0:
             _eye(gb[j])  # joint_Root
-    for i in range(lateral_j.shape[0]):  # two-vector joints (Hips, Chest)
-        a, b = num_plain + 2 * i, num_plain + 2 * i + 1
+    for i in range(rig.lateral_j.shape[0]):  # two-vector joints (Hips, Chest)
+        a, b = rig.num_plain + 2 * i, rig.num_plain + 2 * i + 1
         _frame(vec[a, 0], vec[a, 1], vec[a, 2], vec[b, 0], vec[b, 1], vec[b, 2], m)
-        _mm(m, m_tgt_t[i], gb[lateral_j[i]])
+        _mm(m, rig.m_tgt_t[i], gb[rig.lateral_j[i]])
+    step_i = rig.step_i
     for s in range(step_i.shape[0]):  # every other joint, parents first
         kind, j, p, col, col_c = step_i[s, 0], step_i[s, 1], step_i[s, 2], step_i[s, 3], step_i[s, 4]
         if kind == KIND_LEAF:
-            _mm(gb[p], step_nat[s], gb[j])
+            _mm(gb[p], rig.step_nat[s], gb[j])
             continue
-        _mm(gb[p], step_nat[s], base)  # natural local rotation under the BN parent
-        _mv(base, step_b[s], bone)
+        _mm(gb[p], rig.step_nat[s], base)  # natural local rotation under the BN parent
+        _mv(base, rig.step_b[s], bone)
         d = vec[col]
         _swing(bone, d, sw)
         if kind != KIND_LIMB:
             _mm(sw, base, gb[j])
             if step_i[s, 5] >= 0:  # take a share of the two-vector child's twist about the bone
-                _split_twist(gb[j], gb[step_i[s, 5]], step_split_nat[s], step_b[s], m, base, sw)
+                _split_twist(gb[j], gb[step_i[s, 5]], rig.step_split_nat[s], rig.step_b[s], m, base, sw)
         else:
             # the natural hinge axis, swung: sw @ base @ k (scalar indexing, no views)
             for r in range(3):
-                bone[r] = base[r, 0] * step_k[s, 0] + base[r, 1] * step_k[s, 1] + base[r, 2] * step_k[s, 2]
+                bone[r] = base[r, 0] * rig.step_k[s, 0] + base[r, 1] * rig.step_k[s, 1] + base[r, 2] * rig.step_k[s, 2]
             for r in range(3):
                 nat[r] = sw[r, 0] * bone[0] + sw[r, 1] * bone[1] + sw[r, 2] * bone[2]
             lo = vec[col_c]
@@ -334,7 +350,7 @@ def _bn_globals(
                 w * n2 + HINGE_FALLBACK_SQ * nat[2],
                 m,
             )
-            _mm(m, step_m_loc_t[s], gb[j])
+            _mm(m, rig.step_m_loc_t[s], gb[j])
 
 
 # The rig's arrays travel packed in two buffers, ints and floats, each with its offsets (a part i is
@@ -403,222 +419,114 @@ def _part33(buf, at, i):
 
 
 @njit(cache=True, error_model="numpy")
-def _to_model(
-    root,
-    rot,
-    src_order,
-    src_par_s,
-    fixed_par_s,
-    fixed_off,
-    translated_par_s,
-    scale,
-    vertical_offset,
-    vec_par_s,
-    vec_off,
-    vec_nz,
-    vec_w,
-    axes,
-    num_plain,
-    m_tgt_t,
-    lateral_j,
-    step_i,
-    step_nat,
-    step_b,
-    step_k,
-    step_m_loc_t,
-    step_split_nat,
-    bn_parents,
-    bn_fixed_q,
-    drop_par,
-    drop_off,
-    drop_ref,
-    hips_out,
-    rot_out,
-):
+def _to_model(root, rot, rig, scale, vertical_offset, hips_out, rot_out):
     """Client frames (root (B, 3), local quaternions (B, Js, 4)) -> BN Hips translations
     hips_out (B, 3) and BN local quaternions rot_out (B, 22, 4) (`FrameRetargeter.to_model`); `to_model` unpacks the rig's arrays for it."""
-    nb, base = bn_parents.shape[0], num_plain + 2 * lateral_j.shape[0]
-    nv = base + drop_par.shape[0]
-    gs = np.empty((src_order.shape[0], 3, 3))
+    nb, base = rig.bn_parents.shape[0], rig.num_plain + 2 * rig.lateral_j.shape[0]
+    nv = base + rig.drop_par.shape[0]
+    gs = np.empty((rig.src_order.shape[0], 3, 3))
     gb = np.empty((nb, 3, 3))
-    terms, raw, vec = np.empty((vec_off.shape[0], 3)), np.empty((nv, 3)), np.empty((nv, 3))
+    terms, raw, vec = np.empty((rig.vec_off.shape[0], 3)), np.empty((nv, 3)), np.empty((nv, 3))
     w33, w3 = np.empty((3, 3, 3)), np.empty((3, 3))
     m, gp = np.empty((3, 3)), np.empty((3, 3))
     c, t, h = np.empty(3), np.empty(3), np.empty(3)
     for f in range(root.shape[0]):
-        _source_fk(rot[f], src_order, src_par_s, gs, m)
-        _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t)
+        _source_fk(rot[f], rig.src_order, rig.src_par_s, gs, m)
+        _hips_terms(gs, rig.fixed_par_s, rig.fixed_off, rig.translated_par_s, c, gp, t)
         _mv(gp, root[f], t)
         for r in range(3):
             t[r] += c[r]
-        _mv(axes, t, h)
+        _mv(rig.axes, t, h)
         for r in range(3):
             hips_out[f, r] = h[r] * scale
         hips_out[f, 1] += vertical_offset
-        _bn_globals(
-            gs,
-            vec_par_s,
-            vec_off,
-            vec_nz,
-            vec_w,
-            axes,
-            num_plain,
-            m_tgt_t,
-            lateral_j,
-            step_i,
-            step_nat,
-            step_b,
-            step_k,
-            step_m_loc_t,
-            step_split_nat,
-            bn_parents,
-            gb,
-            terms,
-            raw,
-            vec,
-            w33,
-            w3,
-        )
+        _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3)
         low = np.inf  # the client's lowest foot point below its hips (`FrameRetargeter._drop`)
         for v in range(base, nv):
-            low = min(low, vec[v, 1] - drop_ref[0, v - base])
-        hips_out[f, 1] += max(scale * low - _bn_lowest(gb, drop_par, drop_off, drop_ref), 0.0)
+            low = min(low, vec[v, 1] - rig.drop_ref[0, v - base])
+        hips_out[f, 1] += max(scale * low - _bn_lowest(gb, rig.drop_par, rig.drop_off, rig.drop_ref), 0.0)
         for j in range(nb):
-            if bn_fixed_q[j, 3] >= 0.0:  # a leaf (or the static root): its natural local rotation
+            if rig.bn_fixed_q[j, 3] >= 0.0:  # a leaf (or the static root): its natural local rotation
                 for r in range(4):
-                    rot_out[f, j, r] = bn_fixed_q[j, r]
+                    rot_out[f, j, r] = rig.bn_fixed_q[j, r]
             else:
-                _local_of(gb, bn_parents[j], j, m, rot_out[f, j])
+                _local_of(gb, rig.bn_parents[j], j, m, rot_out[f, j])
 
 
 @njit(cache=True, error_model="numpy")
-def _to_source(
-    root_bn,
-    rot_bn,
-    src_rot,
-    src_order,
-    src_par_s,
-    fixed_par_s,
-    fixed_off,
-    translated_par_s,
-    scale,
-    vertical_offset,
-    vec_par_s,
-    vec_off,
-    vec_nz,
-    vec_w,
-    axes,
-    num_plain,
-    m_tgt_t,
-    lateral_j,
-    step_i,
-    step_nat,
-    step_b,
-    step_k,
-    step_m_loc_t,
-    step_split_nat,
-    bn_parents,
-    bn_order,
-    delta_j,
-    anc_bn_s,
-    mapped_j,
-    mapped_s,
-    mapped_par_s,
-    drop_par,
-    drop_off,
-    drop_ref,
-    root_out,
-    rot_out,
-):
+def _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, root_out, rot_out):
     """BN frames (Hips translations (B, 3), local quaternions (B, 22, 4)) and the client's own
     rotations (B, Js, 4) -> client root translations root_out (B, 3) and local quaternions
-    rot_out (B, Js, 4) (`FrameRetargeter.to_source`). `delta_j`: the BN joints whose change some
-    client joint takes; `anc_bn_s`: that BN joint per slot (22: none, no change); `mapped_par_s`
+    rot_out (B, Js, 4) (`FrameRetargeter.to_source`). `rig.delta_j`: the BN joints whose change some
+    client joint takes; `rig.anc_bn_s`: that BN joint per slot (22: none, no change); `rig.mapped_par_s`
     -1: a mapped root joint. `to_source` unpacks the rig's arrays for it."""
-    nb, ns, base = bn_parents.shape[0], src_order.shape[0], num_plain + 2 * lateral_j.shape[0]
-    nv = base + drop_par.shape[0]
+    nb, ns, base = rig.bn_parents.shape[0], rig.src_order.shape[0], rig.num_plain + 2 * rig.lateral_j.shape[0]
+    nv = base + rig.drop_par.shape[0]
     gs = np.empty((ns, 3, 3))
     gbc = np.empty((nb, 3, 3))
     gbn = np.empty((nb, 3, 3))
     delta = np.empty((nb + 1, 3, 3))  # delta[nb]: identity, for joints with no mapped ancestor
     g_new = np.empty((ns, 3, 3))
-    terms, raw, vec = np.empty((vec_off.shape[0], 3)), np.empty((nv, 3)), np.empty((nv, 3))
+    terms, raw, vec = np.empty((rig.vec_off.shape[0], 3)), np.empty((nv, 3)), np.empty((nv, 3))
     w33, w3 = np.empty((3, 3, 3)), np.empty((3, 3))
     m, m2, gp = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     c, h, t = np.empty(3), np.empty(3), np.empty(3)
     _eye(delta[nb])
-    same_axes = axes[0, 0] == 1.0 and axes[1, 1] == 1.0 and axes[2, 2] == 1.0  # the client's world is BN's
-    drop_e = 0  # vec_nz lists its entries row by row: the foot points' rows come last
-    while drop_e < vec_nz.shape[0] and vec_nz[drop_e, 0] < base:
+    same_axes = rig.axes[0, 0] == 1.0 and rig.axes[1, 1] == 1.0 and rig.axes[2, 2] == 1.0  # the client's world is BN's
+    drop_e = 0  # rig.vec_nz lists its entries row by row: the foot points' rows come last
+    while drop_e < rig.vec_nz.shape[0] and rig.vec_nz[drop_e, 0] < base:
         drop_e += 1
     for f in range(root_bn.shape[0]):
-        for s in range(bn_order.shape[0]):  # BN world rotations of the given frame, parents first
-            j = bn_order[s]
-            _world_of(gbn, bn_parents[j], j, rot_bn[f, j], m)
-        _source_fk(src_rot[f], src_order, src_par_s, gs, m)
-        _bn_globals(
-            gs,
-            vec_par_s,
-            vec_off,
-            vec_nz,
-            vec_w,
-            axes,
-            num_plain,
-            m_tgt_t,
-            lateral_j,
-            step_i,
-            step_nat,
-            step_b,
-            step_k,
-            step_m_loc_t,
-            step_split_nat,
-            bn_parents,
-            gbc,
-            terms,
-            raw,
-            vec,
-            w33,
-            w3,
-        )
-        for i in range(delta_j.shape[0]):  # the change of each BN joint used, in the client's world
-            j = delta_j[i]
+        for s in range(rig.bn_order.shape[0]):  # BN world rotations of the given frame, parents first
+            j = rig.bn_order[s]
+            _world_of(gbn, rig.bn_parents[j], j, rot_bn[f, j], m)
+        _source_fk(src_rot[f], rig.src_order, rig.src_par_s, gs, m)
+        _bn_globals(gs, rig, gbc, terms, raw, vec, w33, w3)
+        for i in range(rig.delta_j.shape[0]):  # the change of each BN joint used, in the client's world
+            j = rig.delta_j[i]
             if same_axes:
                 _mmt(gbn[j], gbc[j], delta[j])
             else:
                 _mmt(gbn[j], gbc[j], m)
-                _mtm(axes, m, m2)
-                _mm(m2, axes, delta[j])
+                _mtm(rig.axes, m, m2)
+                _mm(m2, rig.axes, delta[j])
         for s in range(ns):
-            _mm(delta[anc_bn_s[s]], gs[s], g_new[s])
+            _mm(delta[rig.anc_bn_s[s]], gs[s], g_new[s])
         rot_out[f] = src_rot[f]  # unmapped joints keep the client's local rotations
-        for i in range(mapped_j.shape[0]):
-            _local_of(g_new, mapped_par_s[i], mapped_s[i], m, rot_out[f, mapped_j[i]])
+        for i in range(rig.mapped_j.shape[0]):
+            _local_of(g_new, rig.mapped_par_s[i], rig.mapped_s[i], m, rot_out[f, rig.mapped_j[i]])
         for v in range(base, nv):  # hips -> foot points of the new client pose (`FrameRetargeter._drop`)
             raw[v, 0], raw[v, 1], raw[v, 2] = 0.0, 0.0, 0.0
-        for e in range(drop_e, vec_nz.shape[0]):
-            v = vec_nz[e, 0]
+        for e in range(drop_e, rig.vec_nz.shape[0]):
+            v = rig.vec_nz[e, 0]
             if v >= base:
-                tt, w, par = vec_nz[e, 1], vec_w[e], vec_par_s[vec_nz[e, 1]]
+                tt, w, par = rig.vec_nz[e, 1], rig.vec_w[e], rig.vec_par_s[rig.vec_nz[e, 1]]
                 for r in range(3):
                     raw[v, r] += w * (
-                        g_new[par, r, 0] * vec_off[tt, 0]
-                        + g_new[par, r, 1] * vec_off[tt, 1]
-                        + g_new[par, r, 2] * vec_off[tt, 2]
+                        g_new[par, r, 0] * rig.vec_off[tt, 0]
+                        + g_new[par, r, 1] * rig.vec_off[tt, 1]
+                        + g_new[par, r, 2] * rig.vec_off[tt, 2]
                     )
         low = np.inf
         for v in range(base, nv):
             low = min(
-                low, axes[1, 0] * raw[v, 0] + axes[1, 1] * raw[v, 1] + axes[1, 2] * raw[v, 2] - drop_ref[0, v - base]
+                low,
+                rig.axes[1, 0] * raw[v, 0]
+                + rig.axes[1, 1] * raw[v, 1]
+                + rig.axes[1, 2] * raw[v, 2]
+                - rig.drop_ref[0, v - base],
             )
-        drop = max(scale * low - _bn_lowest(gbn, drop_par, drop_off, drop_ref), 0.0)
+        drop = max(scale * low - _bn_lowest(gbn, rig.drop_par, rig.drop_off, rig.drop_ref), 0.0)
         t[0], t[1], t[2] = (
             root_bn[f, 0] / scale,
             (root_bn[f, 1] - vertical_offset - drop) / scale,
             root_bn[f, 2] / scale,
         )
-        for r in range(3):  # axes.T @ t: the client's world
-            h[r] = axes[0, r] * t[0] + axes[1, r] * t[1] + axes[2, r] * t[2]
-        _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t)  # the chain above the hips is unchanged
+        for r in range(3):  # rig.axes.T @ t: the client's world
+            h[r] = rig.axes[0, r] * t[0] + rig.axes[1, r] * t[1] + rig.axes[2, r] * t[2]
+        _hips_terms(
+            gs, rig.fixed_par_s, rig.fixed_off, rig.translated_par_s, c, gp, t
+        )  # the chain above the hips is unchanged
         for r in range(3):
             h[r] -= c[r]
         for r in range(3):
@@ -626,18 +534,14 @@ def _to_source(
 
 
 @njit(cache=True, error_model="numpy")
-def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, hips_out, rot_out):
-    """`_to_model` with the rig's arrays packed (`pack`, `INT_PARTS`, `FLOAT_PARTS`)."""
-    _to_model(
-        root,
-        rot,
+def _rig(ints, int_at, floats, float_at):
+    """The rig's arrays as a `Rig`, views of the packed buffers (`pack`, `INT_PARTS`, `FLOAT_PARTS`)."""
+    return Rig(
         _part(ints, int_at, 0),
         _part(ints, int_at, 1),
         _part(ints, int_at, 2),
         _part3(floats, float_at, 0),
         ints[int_at[3]],
-        scale,
-        vertical_offset,
         _part(ints, int_at, 4),
         _part3(floats, float_at, 1),
         _part(ints, int_at, 5).reshape(-1, 2),
@@ -654,43 +558,6 @@ def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, 
         _part33(floats, float_at, 10),
         _part(ints, int_at, 9),
         _part(floats, float_at, 9).reshape(-1, 4),
-        _part(ints, int_at, 16).reshape(-1, 4),
-        _part(floats, float_at, 11).reshape(-1, 4, 3),
-        _part(floats, float_at, 12).reshape(2, -1),
-        hips_out,
-        rot_out,
-    )
-
-
-@njit(cache=True, error_model="numpy")
-def to_source(root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, vertical_offset, root_out, rot_out):
-    """`_to_source` with the rig's arrays packed (`pack`, `INT_PARTS`, `FLOAT_PARTS`)."""
-    _to_source(
-        root_bn,
-        rot_bn,
-        src_rot,
-        _part(ints, int_at, 0),
-        _part(ints, int_at, 1),
-        _part(ints, int_at, 2),
-        _part3(floats, float_at, 0),
-        ints[int_at[3]],
-        scale,
-        vertical_offset,
-        _part(ints, int_at, 4),
-        _part3(floats, float_at, 1),
-        _part(ints, int_at, 5).reshape(-1, 2),
-        _part(floats, float_at, 2),
-        _part33(floats, float_at, 3)[0],
-        ints[int_at[6]],
-        _part33(floats, float_at, 4),
-        _part(ints, int_at, 7),
-        _part(ints, int_at, 8).reshape(-1, 6),
-        _part33(floats, float_at, 5),
-        _part3(floats, float_at, 6),
-        _part3(floats, float_at, 7),
-        _part33(floats, float_at, 8),
-        _part33(floats, float_at, 10),
-        _part(ints, int_at, 9),
         _part(ints, int_at, 10),
         _part(ints, int_at, 11),
         _part(ints, int_at, 12),
@@ -700,6 +567,17 @@ def to_source(root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, v
         _part(ints, int_at, 16).reshape(-1, 4),
         _part(floats, float_at, 11).reshape(-1, 4, 3),
         _part(floats, float_at, 12).reshape(2, -1),
-        root_out,
-        rot_out,
     )
+
+
+@njit(cache=True, error_model="numpy")
+def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, hips_out, rot_out):
+    """`_to_model` with the rig's arrays packed (`pack`)."""
+    _to_model(root, rot, _rig(ints, int_at, floats, float_at), scale, vertical_offset, hips_out, rot_out)
+
+
+@njit(cache=True, error_model="numpy")
+def to_source(root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, vertical_offset, root_out, rot_out):
+    """`_to_source` with the rig's arrays packed (`pack`)."""
+    rig = _rig(ints, int_at, floats, float_at)
+    _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, root_out, rot_out)

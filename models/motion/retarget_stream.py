@@ -1,41 +1,30 @@
 """Causal, per-frame retargeting between a client's humanoid rig and the Bandai Namco (BN) model skeleton.
 
-`retarget.retarget` works on whole clips: it resamples and shifts the root vertically by a
-percentile of the clip's toe heights, both of which look at the whole clip. A live stream has one
-frame at a time, so `FrameRetargeter` does the per-frame mapping with everything else fixed up
-front, for any rig `humanoid` matches (the CMU skeletons are two of its presets):
+`retarget.retarget` works on whole clips (it resamples, and places the root by a percentile of
+the clip's toe heights). A live stream has one frame at a time, so `FrameRetargeter` fixes
+everything else up front, for any rig `humanoid` matches:
 
 * BN bones are laid along the client's *segments* between the joints of matching roles
-  (`humanoid.bn_segments`), read from each frame's own world rotations and the rig's bone
-  offsets, never from its rest pose; `retarget.TwistPlan` turns them into BN rotations (twists
-  from the BN parent, the limb plane and BN's natural pose);
+  (`humanoid.bn_segments`), read from each frame's world rotations and the rig's bone offsets,
+  never from its rest pose; `retarget.TwistPlan` turns them into BN rotations;
 * the client's world is brought to BN's (Y up, right-handed) by `HumanoidRig.axes`, a rotation or
   a reflection: directions are multiplied by it, rotations conjugated;
 * the Hips translation is the client's hips position scaled by the leg-length ratio, plus one
-  constant height (`vertical_offset`) that puts the client's toes at its floor where BN's toes are
-  at BN's: both skeletons are posed in BN's natural standing pose (the client through
-  `to_source`, so its rest pose does not matter) and their hips-above-toes heights compared.
+  constant height (`vertical_offset`) that puts the client's toes at its floor where BN's are at
+  BN's, both skeletons compared in BN's natural standing pose.
 
-`to_source` is the inverse, a (stylised) BN frame back onto the client's rig. Every BN joint j
-(but `joint_Root`) gives a "delta" D_j = G_bn_new[j] G_bn_client[j]^-1, the change of its global
-rotation from the BN pose the client's own frame maps to (`to_model` of `source_rotations`) to
-the one given. Each client joint k gets G_new[k] = D_{j(k)} G_client[k], j(k) the BN joint of
-k's nearest mapped ancestor-or-self (none: no change). So
+`to_source` is the inverse, a (stylised) BN frame back onto the client's rig. Each BN joint j
+gives a delta D_j = G_bn_new[j] G_bn_client[j]^-1, the change of its global rotation from the BN
+pose the client's own frame maps to; each client joint k gets G_new[k] = D_{j(k)} G_client[k],
+j(k) the BN joint of k's nearest mapped ancestor-or-self (none: no change). So a mapped joint's
+segment points where the new BN bone points, with the client's own twist turned by BN's change;
+unmapped joints (twist bones, fingers, extra spine joints, props) keep their local rotations and
+ride along; joints above the hips keep theirs. `to_source(*to_model(root, rot), rot) == (root, rot)`
+up to float rounding.
 
-* a mapped joint is turned by the change of its BN joint: `to_model` lays the BN bone exactly
-  along the client's segment, so after the turn the segment points where the new BN bone points;
-  the twist about it is the client's own, turned by BN's change of twist;
-* unmapped joints (twist bones, fingers, extra spine or neck joints, props) keep the client's
-  local rotations, so they ride along with their chain's change: a segment with joints inside it
-  turns as one rigid piece;
-* joints above the hips (a static root, Unreal's `root`) keep theirs and take no change;
-
-and `to_source(*to_model(root, rot), rot) == (root, rot)` up to float rounding.
-
-`to_model` and `to_source` run compiled kernels (`retarget_kernels`, numba), one frame at a time on
-scalars: a few microseconds a character at batch 1 as well as batched. The same mapping in numpy,
-on rotation matrices batched over frames and over the joints of one tree depth, is the reference
-the kernels are tested equal to (`tests/reference/retarget.py`).
+Both run compiled kernels (`retarget_kernels`), one frame at a time on scalars. The same mapping
+in numpy, batched over frames and over the joints of one tree depth, is the reference the
+kernels are tested equal to (`tests/reference/retarget.py`).
 """
 
 from __future__ import annotations

@@ -1,27 +1,22 @@
 """Rotation ball: every joint's output rotation stays inside the ball that real data of the output
-style fills around that joint's mean rotation. Used by LTI (`models.lti.train.style_prior`) and LPN-FiLM
-(`models.lpn.runtime`); the per-frame compiled form is `rotation_ball_kernels.py`.
+style fills around that joint's mean rotation. Used by LTI (`models.lti.train.style_prior`) and
+LPN-FiLM (`models.lpn.runtime`); the per-frame compiled form is `rotation_ball_kernels.py`.
 
-Why: a model's output can carry a joint past anything the style shows (LTI is linear in the
-exponential map, so a deep bend near the edge of the data is carried further; LPN-FiLM's spine and
-shoulders drift out of the style's range). What a skinned character shows is the rotation itself,
-so the output is held to the region real data of the style occupies: per joint, the angle d to the
-style's mean rotation is kept as it is up to an inner radius and then saturates smoothly (tanh)
-toward an outer radius it never passes:
+Why: a model's output can carry a joint past anything the style shows, and a skinned character
+shows the rotation itself. Per joint, the angle d to the style's mean rotation is kept up to an
+inner radius and then saturates smoothly toward an outer radius it never passes:
 
     d' = d                                                  d <= inner
     d' = inner + (outer - inner) tanh((d - inner) / (outer - inner))   d > inner
 
-along the same geodesic from the mean (the direction of the rotation away from the mean is kept,
-only its distance shrinks). The map is continuous with a continuous first derivative, so a
+along the same geodesic from the mean. The map has a continuous first derivative, so a
 trajectory crossing the inner radius does not kink, and it is the identity inside.
 
-The Hips rotation carries the heading, which is arbitrary: it is compared without its twist about
-world up (q = t * c with t the twist of q about +Y, as `models.eval.plausibility` does), so the
-ball is the same whatever way the character faces; the twist is put back after clamping.
+The Hips rotation carries the arbitrary heading, so it is compared without its twist about world
+up (as `models.eval.plausibility` does) and the twist is put back after clamping.
 
 Radii are quantiles of real angles (`fit_prior`): inner = `inner_q`, outer = `outer_q` minus a
-`margin`. `StyleBalls` holds one ball per style (saved as a small npz beside a model's weights).
+`margin`. `StyleBalls` holds one ball per style (a small npz beside a model's weights).
 """
 
 from __future__ import annotations

@@ -2,11 +2,10 @@
 shows, without the freedom a position-trained model never learned.
 
 A model trained on joint positions decides where every bone *points*, but not how a bone is
-turned about itself, nor how a leaf joint (head, hands, toes: no child to move) is turned: those
-rotations move no joint, so no position loss constrains them and the network leaves them wherever
-its weights happen to put them (Style-ERD wrung wrists by 60-140 degrees and turned necks by 90).
+turned about itself, nor how a leaf joint (head, hands, toes) is turned: those rotations move no
+joint, so no position loss constrains them and they land wherever the weights put them.
 
-`transfer_twist(skeleton, source, pose)` re-expresses `pose` with the *fewest* rotation changes
+`transfer_twist(skeleton, source, pose)` re-expresses `pose` with the fewest rotation changes
 from `source` (the input frame) that reproduce `pose`'s joint positions exactly:
 
 - a joint with one child bone gets the smallest swing that lays its bone along `pose`'s bone,
@@ -14,14 +13,12 @@ from `source` (the input frame) that reproduce `pose`'s joint positions exactly:
 - a joint with several child bones (hips, chest) is fixed by them already: `pose`'s rotation;
 - a leaf keeps `source`'s local rotation.
 
-With `hinges` (`hinge.py`, fitted from real rotations), the parent of a hinge joint (an upper
-arm, a thigh) takes instead the twist that lays its child's bone in the hinge plane, so the elbow
-or knee bends as a hinge while keeping `source`'s own twist; that moves no joint either.
+With `hinges` (`hinge.py`), the parent of a hinge joint (upper arm, thigh) instead takes the
+twist that lays its child's bone in the hinge plane, so the elbow or knee bends as a hinge.
 
-By induction from the root every joint lands where `pose` puts it, in one pass over the joints
-(parents first): `transfer_twist` is the compiled step the streaming models call,
-`transfer_twist_t` the differentiable torch one training uses (the numpy reference is
-`tests/reference/twist.py`).
+One pass over the joints, parents first: `transfer_twist` is the compiled step the streaming
+models call, `transfer_twist_t` the differentiable torch one training uses (the numpy reference
+is `tests/reference/twist.py`).
 """
 
 from __future__ import annotations

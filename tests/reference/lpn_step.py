@@ -17,7 +17,6 @@ from models.lpn.runtime import (
     CONTACT_THRESHOLD,
     CONTROL_BIAS,
     CONTROL_SMOOTH_S,
-    PAST_IDX,
     PHASE_BLEND,
     RUN_SPEED,
     STOP_PHASE_DAMP,
@@ -26,6 +25,30 @@ from models.lpn.runtime import (
     LPNModel,
 )
 from models.motion.features import wrap_angle
+
+PAST_IDX = np.arange(0, lf.PAST * lf.STEP + 1, lf.STEP)  # history rows of the 7 past-and-current samples
+
+
+def to_world_xz(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Inverse of `features.to_local_xz`."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    x, z = v[..., 0], v[..., 1]
+    return np.stack([c * x + s * z, -s * x + c * z], axis=-1)
+
+
+def to_world(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    xz = to_world_xz(v[..., [0, 2]], yaw)
+    return np.stack([xz[..., 0], v[..., 1], xz[..., 1]], axis=-1)
+
+
+def rotations_from_axes(forward: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) whose +Z column is `forward` and +Y column is `up`
+    (orthonormalised: forward is kept, up made perpendicular)."""
+    z = forward / np.sqrt(np.maximum((forward * forward).sum(-1, keepdims=True), 1e-18))
+    y = up - (up * z).sum(-1, keepdims=True) * z
+    y = y / np.sqrt(np.maximum((y * y).sum(-1, keepdims=True), 1e-18))
+    x = y[..., [1, 2, 0]] * z[..., [2, 0, 1]] - y[..., [2, 0, 1]] * z[..., [1, 2, 0]]  # y x z
+    return np.stack([x, y, z], axis=-1)
 
 
 def _elu(x: np.ndarray) -> np.ndarray:
@@ -76,7 +99,7 @@ class NumpyLPNModel(LPNModel):
         B = control.shape[0]
         yaw, pos = s["yaw"], s["hist_pos"][:, -1]
         want_yaw = control[:, 2]
-        want_vel = lf.to_world_xz(np.stack([control[:, 1], control[:, 0]], -1), want_yaw)
+        want_vel = to_world_xz(np.stack([control[:, 1], control[:, 0]], -1), want_yaw)
         k = np.arange(1, lf.FUTURE + 1, dtype=np.float32)
         tau = (k * lf.STEP / self.fps)[None, :, None]
         beta = (1.0 - (1.0 - k / lf.FUTURE) ** CONTROL_BIAS)[None, :, None]
@@ -128,7 +151,7 @@ class NumpyLPNModel(LPNModel):
         yaw, pos = s["yaw"], s["hist_pos"][:, -1]
         delta = y[:, lf.DELTA_OUT]
         still = np.clip(1.0 - np.hypot(control[:, 0], control[:, 1]) / STOP_SPEED, 0.0, 1.0)
-        new_pos = pos + lf.to_world_xz(delta[:, :2] * (1.0 - STOP_ROOT_HOLD * still)[:, None], yaw)
+        new_pos = pos + to_world_xz(delta[:, :2] * (1.0 - STOP_ROOT_HOLD * still)[:, None], yaw)
         new_yaw = wrap_angle(yaw + delta[:, 2]).astype(np.float32)
         vel = (new_pos - pos) * self.fps
         # phases: the current phase advanced by the predicted frequency, blended with the predicted one
@@ -153,15 +176,15 @@ class NumpyLPNModel(LPNModel):
         push("hist_phase", next_phase)
         traj = y[:, lf.TRAJ_OUT].reshape(B, lf.FUTURE, lf.TRAJ_OUT_CH)
         ny = new_yaw[:, None]
-        s["fut_pos"] = (new_pos[:, None] + lf.to_world_xz(traj[..., 0:2], ny)).astype(np.float32)
-        s["fut_dir"] = _normalise(lf.to_world_xz(traj[..., 2:4], ny)).astype(np.float32)
-        s["fut_vel"] = lf.to_world_xz(traj[..., 4:6], ny).astype(np.float32)
+        s["fut_pos"] = (new_pos[:, None] + to_world_xz(traj[..., 0:2], ny)).astype(np.float32)
+        s["fut_dir"] = _normalise(to_world_xz(traj[..., 2:4], ny)).astype(np.float32)
+        s["fut_vel"] = to_world_xz(traj[..., 4:6], ny).astype(np.float32)
         s["fut_phase"] = (ph[:, 1:] * damp[:, None]).astype(np.float32)
         pose = y[:, lf.POSE_OUT].reshape(B, lf.NB, lf.POSE_CH)
         s["pose"] = pose.astype(np.float32)
         s["yaw"] = new_yaw
         # output frame: world rotations from the forward/up axes, then local rotations
-        g_char = lf.rotations_from_axes(pose[..., 6:9], pose[..., 9:12])  # (B, NB, 3, 3) character frame
+        g_char = rotations_from_axes(pose[..., 6:9], pose[..., 9:12])  # (B, NB, 3, 3) character frame
         R_yaw = np.zeros((B, 3, 3), np.float32)
         cy, sy = np.cos(new_yaw), np.sin(new_yaw)
         R_yaw[:, 0, 0], R_yaw[:, 0, 2], R_yaw[:, 1, 1], R_yaw[:, 2, 0], R_yaw[:, 2, 2] = cy, sy, 1.0, -sy, cy
@@ -172,7 +195,7 @@ class NumpyLPNModel(LPNModel):
         local = np.swapaxes(g_world[:, parents], -1, -2) @ g_world
         local[:, 0] = np.eye(3)
         hips = pose[:, 0, :3]
-        out_root = np.stack([new_pos[:, 0], hips[:, 1], new_pos[:, 1]], -1) + lf.to_world(
+        out_root = np.stack([new_pos[:, 0], hips[:, 1], new_pos[:, 1]], -1) + to_world(
             np.stack([hips[:, 0], 0 * hips[:, 1], hips[:, 2]], -1), new_yaw
         )
         contacts = y[:, lf.CONTACT_OUT] > CONTACT_THRESHOLD
