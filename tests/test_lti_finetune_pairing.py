@@ -64,3 +64,21 @@ def test_real_walk_upload_pairs_with_straight_walks_of_similar_pace(bank_and_ref
         gaps = sorted(abs(np.exp(c.content[0]) - 0.1 - speed) for c in walks.values())
         for c in paired:  # at most 0.1 m/s further in pace than the k closest-paced straight walks
             assert abs(np.exp(c.content[0]) - 0.1 - speed) <= gaps[len(paired) - 1] + 0.1, (clip.name, c.name)
+
+
+def _neutral(frames: int, steps_per_s: float) -> ft.NeutralClip:
+    content = np.log(np.array([1.2, 1.0, steps_per_s + 0.5]))
+    return ft.NeutralClip("n", frames, np.zeros((frames, rep.FEATURE_DIM)), np.zeros(4), content)
+
+
+def test_a_neutral_clip_is_cut_to_the_uploads_step_count() -> None:
+    """Paired uncut, a slow-stepping upload's few steps are aligned to more neutral steps and the
+    translator learns to shuffle: the neutral clip is cut to as many steps, within the warp's range."""
+    lo, hi = ft._warpable()
+    clip = _neutral(300, 1.8)
+    assert ft.step_matched(clip, 240, 1.2, 300) == 160  # 8 steps at 1.2/s -> 8 steps at 1.8/s
+    assert ft.step_matched(clip, 240, 1.2, 300, match=False) == 300
+    assert ft.step_matched(clip, 120, 3.6, 300) == 240
+    assert ft.step_matched(clip, 240, 0.2, 300) >= 240 / hi  # no shorter than the warp can stretch
+    assert ft.step_matched(_neutral(100, 1.8), 120, 3.6, 300) == 100  # no longer than the clip
+    assert lo <= 240 / ft.step_matched(clip, 240, 1.2, 300) <= hi
