@@ -82,3 +82,29 @@ def test_a_neutral_clip_is_cut_to_the_uploads_step_count() -> None:
     assert ft.step_matched(clip, 240, 0.2, 300) >= 240 / hi  # no shorter than the warp can stretch
     assert ft.step_matched(_neutral(100, 1.8), 120, 3.6, 300) == 100  # no longer than the clip
     assert lo <= 240 / ft.step_matched(clip, 240, 1.2, 300) <= hi
+
+
+def test_an_upload_gets_a_rotation_prior_from_its_clip_and_no_backward_hinge(bank_and_ref, tmp_path) -> None:
+    """An uploaded style gets the stages a built-in one has, fitted from its clip: its rotation
+    ball (kept when saved) and, from the model, the hinge floors; its output on a validation walk
+    bends no knee or elbow backward past the least real bend."""
+    from models.data import build_index, load_motion, select
+    from models.lti.model import StyleTranslator
+    from models.motion.hinge import kernel_floor
+    from models.motion.rotations import quat_log, swing_twist
+
+    _, ref = bank_and_ref
+    index = build_index(["bandai-namco-1", "bandai-namco-2"])
+    giant = sorted((c for c in select(index, dataset="bandai-namco-1", style="giant") if c.content == "walk"), key=str)
+    tr = ft.fine_tune(load_motion(giant[0]), "giant", ref).translator
+    assert tr.prior_mean is not None and tr.prior_radii is not None and np.isfinite(tr.prior_radii[:, 1:]).all()
+    tr.save(tmp_path / "t.npz")
+    np.testing.assert_array_equal(StyleTranslator.load(tmp_path / "t.npz").prior_radii, tr.prior_radii)
+    model = LTIStyleModel(weights_dir=WEIGHTS_DIR)
+    model.install_style("upload", tr)
+    assert tr.hinges is model.hinges is not None
+    walk = load_motion(select(index, dataset="bandai-namco-2", style="normal", content="walk", split="val")[0])
+    out = tr.translate_motion(walk)[0].rotations
+    bone, hinge, floor = kernel_floor(model.skeleton, model.hinges)
+    for j in model.hinges.joints:
+        assert (quat_log(swing_twist(out[:, j], bone[j])[0]) @ hinge[j]).min() >= floor[j] - 1e-9

@@ -16,7 +16,11 @@ uploaded Bandai Namco clip (already retargeted if it came from a CMU skeleton):
    walked at 0.4 m/s where real giant walks go at 1.0-1.1);
 3. `train.identify` fits the per-joint systems on those few pairs. The uploaded clip is split in
    time when long enough: the last `holdout` share is aligned to a neutral clip but kept out of
-   identification, and `train.evaluate` on it gives held-out numbers for the job record.
+   identification, and `train.evaluate` on it gives held-out numbers for the job record;
+4. the style's rotation prior (`train.style_prior`) is fitted from the uploaded clip's frames, as a
+   built-in style's is from its TRAIN clips: the output is held in the region the style's real
+   poses fill (on inputs outside the translator's training range, which it passes through, this is
+   what carries the style).
 
 The service adds the result to its live model with `LTIStyleModel.add_style`.
 """
@@ -30,6 +34,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from models.motion.rotation_ball import fit_prior
+
 from . import representation as rep
 from .model import StyleTranslator
 from .train import CONFIG, PairData, align, evaluate, identify, match_features, pair_from_warp
@@ -41,6 +47,7 @@ FINETUNE = dict(
     min_train_frames=90,
     pose_weight=0.02,  # weight of the posture distance (per feature) next to the content distance
     match_steps=True,  # cut each neutral clip to the upload's step count (`step_matched`)
+    prior=True,  # the rotation ball (`train.style_prior`) fitted from the uploaded clip
 )
 
 
@@ -230,6 +237,10 @@ def fine_tune(
         report(0.1 + 0.7 * (i + 1) / steps, f"aligned {c.name}")
     # no cross-joint context: ~1,500 frames of one upload cannot identify systems with 36 inputs
     tr, _ = identify(data, name, ref, {**CONFIG, "context": None})
+    if opts["prior"]:  # the style's rotation ball from its real frames (4. above)
+        tr.prior_mean, tr.prior_radii = fit_prior(
+            motion.rotations, CONFIG["prior_inner_q"], CONFIG["prior_outer_q"], CONFIG["prior_margin_deg"]
+        )
     tr.meta = {
         "fine_tuned": True,
         "neutral_clips": [c.name for c in train_neutrals],
