@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from models.data import load_motions, select
+from models.eval.style_judge import clip_statistics
 from models.eval.uploads import D1, D2, REFERENCE_CONTENTS, fit_ruler, held_out_styles
 
 
@@ -21,7 +22,8 @@ class Shipping:
 def test_coverage_is_zero_for_the_input_and_positive_for_a_real_clip_of_the_style(index):
     d1 = [c for c in select(index, dataset=D1) if c.content in REFERENCE_CONTENTS and c.style in ("normal", "giant")]
     d2 = [c for c in select(index, dataset=D2, split="train", style="normal") if c.content == "walk"][:4]
-    ruler = fit_ruler(d1 + d2)
+    stats = {c.key: clip_statistics(m) for c, m in zip(d1 + d2, load_motions(d1 + d2))}
+    ruler = fit_ruler(d1 + d2, stats)
     giant = sorted((c for c in d1 if c.style == "giant"), key=lambda c: c.name)
     upload, *others = load_motions(giant)
     neutral = load_motions([c for c in d1 if c.style == "normal" and c.content == "walk"])
@@ -41,10 +43,22 @@ def test_the_report_lists_every_upload_row_and_says_which_pass():
 
     row = {"style": "giant", "method": "lpn", "variant": "tuned", "copy": 0.76, "share_of_copy": 0.25}
     rows = [
-        {**row, "coverage": {D2: 0.12, D1: 0.25}, "clips": {D2: 2, D1: 2}, "passes": False},
+        {
+            **row,
+            "coverage": {D2: 0.12, D1: 0.25},
+            "clips": {D2: 2, D1: 2},
+            "passes": False,
+            "judged": 0.75,
+            "judged_by_source": {D2: 1.0, D1: 0.5},
+            "judge_passes": False,
+            "copy_judged": True,
+            "least_bend": -0.04,
+        },
         {"style": "giant", "method": "erd", "variant": "refused", "copy": 0.76},
     ]
     text = "\n".join(_uploads_section(rows))
-    assert "| lpn | tuned | giant | 0.76 | 0.12 (2) | 0.25 (2) | 25% | no |" in text
+    assert (
+        "| lpn | tuned | giant | 0.76 | 0.12 (2) | 0.25 (2) | 25% | no | 75% (100% / 50%) | no | yes | -0.0 |" in text
+    )
     assert "| erd | refused | giant | 0.76 |" in text
     assert _uploads_section([]) == []

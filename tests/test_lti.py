@@ -176,6 +176,8 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
     features (displacement, yaw change, height), body rotations blended by sign-aligned
     normalised quaternion averaging (each style's held inside its rotation prior first), the path
     integrated from the input's first frame."""
+    from models.motion.hinge import kernel_floor
+    from models.motion.hinge_kernels import floor_bends
     from models.motion.rotation_ball import clamp_rotations
     from models.motion.rotations import quat_mul
 
@@ -192,7 +194,10 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
             out, xs = tr.translate_features(rep.motion_to_features(motion, tr.ref))
             root_feats += w[s] * out[:, :4]
             body = rep.static_to_rotations(out[:, 4 : rep.FEATURE_DIM], np.zeros(F), tr.ref)
-            parts.append((w[s], clamp_rotations(body, tr.prior_mean, tr.prior_radii)))  # each style's prior
+            body = clamp_rotations(body, tr.prior_mean, tr.prior_radii)  # each style's prior
+            if model.hinges is not None:  # then its hinge joints held at their floor
+                body = floor_bends(body, *kernel_floor(motion.skeleton, model.hinges))
+            parts.append((w[s], body))
             votes += w[s] * tr.footplant.predict(xs)
     base = max(parts, key=lambda p: p[0])[1]
     acc = sum(wp * np.where(np.sum(q * base, -1, keepdims=True) < 0, -q, q) for wp, q in parts)

@@ -64,3 +64,47 @@ def test_real_walk_upload_pairs_with_straight_walks_of_similar_pace(bank_and_ref
         gaps = sorted(abs(np.exp(c.content[0]) - 0.1 - speed) for c in walks.values())
         for c in paired:  # at most 0.1 m/s further in pace than the k closest-paced straight walks
             assert abs(np.exp(c.content[0]) - 0.1 - speed) <= gaps[len(paired) - 1] + 0.1, (clip.name, c.name)
+
+
+def _neutral(frames: int, steps_per_s: float) -> ft.NeutralClip:
+    content = np.log(np.array([1.2, 1.0, steps_per_s + 0.5]))
+    return ft.NeutralClip("n", frames, np.zeros((frames, rep.FEATURE_DIM)), np.zeros(4), content)
+
+
+def test_a_neutral_clip_is_cut_to_the_uploads_step_count() -> None:
+    """Paired uncut, a slow-stepping upload's few steps are aligned to more neutral steps and the
+    translator learns to shuffle: the neutral clip is cut to as many steps, within the warp's range."""
+    lo, hi = ft._warpable()
+    clip = _neutral(300, 1.8)
+    assert ft.step_matched(clip, 240, 1.2, 300) == 160  # 8 steps at 1.2/s -> 8 steps at 1.8/s
+    assert ft.step_matched(clip, 240, 1.2, 300, match=False) == 300
+    assert ft.step_matched(clip, 120, 3.6, 300) == 240
+    assert ft.step_matched(clip, 240, 0.2, 300) >= 240 / hi  # no shorter than the warp can stretch
+    assert ft.step_matched(_neutral(100, 1.8), 120, 3.6, 300) == 100  # no longer than the clip
+    assert lo <= 240 / ft.step_matched(clip, 240, 1.2, 300) <= hi
+
+
+def test_an_upload_gets_a_rotation_prior_from_its_clip_and_no_backward_hinge(bank_and_ref, tmp_path) -> None:
+    """An uploaded style gets the stages a built-in one has, fitted from its clip: its rotation
+    ball (kept when saved) and, from the model, the hinge floors; its output on a validation walk
+    bends no knee or elbow backward past the least real bend."""
+    from models.data import build_index, load_motion, select
+    from models.lti.model import StyleTranslator
+    from models.motion.hinge import kernel_floor
+    from models.motion.rotations import quat_log, swing_twist
+
+    _, ref = bank_and_ref
+    index = build_index(["bandai-namco-1", "bandai-namco-2"])
+    giant = sorted((c for c in select(index, dataset="bandai-namco-1", style="giant") if c.content == "walk"), key=str)
+    tr = ft.fine_tune(load_motion(giant[0]), "giant", ref).translator
+    assert tr.prior_mean is not None and tr.prior_radii is not None and np.isfinite(tr.prior_radii[:, 1:]).all()
+    tr.save(tmp_path / "t.npz")
+    np.testing.assert_array_equal(StyleTranslator.load(tmp_path / "t.npz").prior_radii, tr.prior_radii)
+    model = LTIStyleModel(weights_dir=WEIGHTS_DIR)
+    model.install_style("upload", tr)
+    assert tr.hinges is model.hinges is not None
+    walk = load_motion(select(index, dataset="bandai-namco-2", style="normal", content="walk", split="val")[0])
+    out = tr.translate_motion(walk)[0].rotations
+    bone, hinge, floor = kernel_floor(model.skeleton, model.hinges)
+    for j in model.hinges.joints:
+        assert (quat_log(swing_twist(out[:, j], bone[j])[0]) @ hinge[j]).min() >= floor[j] - 1e-9

@@ -369,7 +369,10 @@ def _uploads_section(rows: list[dict]) -> list[str]:
         "input to the style's other real walking clips (0: the input unchanged; 1: those clips), on the judge's "
         "clip statistics; **copy**: what the uploaded clip itself covers from dataset 1's neutral walks. A row "
         f"passes at ≥ {uploads.PASS_SHARE:.0%} of the copy's coverage, wherever the copy covers ≥ "
-        f"{uploads.CLEAR_COPY}. The style judge is not applied here yet: it was fitted on these clips.",
+        f"{uploads.CLEAR_COPY}. **judge read**: the share of outputs that the evaluation's style judge, fitted again "
+        "without the uploaded clip, reads as the style (passes at "
+        f"≥ {uploads.JUDGE_PASS:.0%}); **copy read**: whether it reads the uploaded clip itself so; **least bend**: "
+        "the least knee or elbow bend less the least real one (°; below 0 a limb bends backward).",
         "",
         *uploads.table(rows),
         "",

@@ -20,6 +20,19 @@ distances. A copy of the uploaded clip gets a coverage too, from each dataset-1 
 most one clip can say about its style. A method passes a style when its outputs average at least
 70 % of the copy's, wherever the copy is clearly closer than normal (coverage >= 0.1).
 
+Beside the coverage, two reads of each output:
+
+- **the judge's**: the evaluation's style judge (`style_judge.py`) fitted again for each style by
+  the same recipe (`fit_style_judge.fit`, the shipped judge's label mapping and regularisation),
+  without the uploaded clip: every dataset-1 TRAIN and VALIDATION clip of a content more than one
+  style performs, and dataset 2's TRAIN walks (its styles as classes; its other contents add cost,
+  not walks). An output is recognised when its single likeliest label is the style's; the style
+  passes at `JUDGE_PASS` of its outputs. The uploaded clip itself, read by the same judge that
+  never saw it, says how far one clip reads as its style at all.
+- **the hinges'**: the least bend of every knee and elbow about its hinge axis, less the least
+  bend real clips show (`models.motion.hinge`, fitted from the real walks the ruler reads), in
+  degrees: below zero, a limb bends backward further than any real one.
+
     python -m models.eval.uploads [--methods lti,lpn] [--styles proud,giant]   (validation inputs)
 """
 
@@ -28,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,20 +49,53 @@ import numpy as np
 
 from ..data import build_index, load_motions, select
 from ..interface import ClipStyles, StreamingModel, UploadedStyles
+from ..motion.hinge import Hinges, fit_hinges
+from ..motion.rotations import quat_log, swing_twist
 from ..motion.skeleton import Motion
+from ..motion.twist import bone_axes
+from .fit_style_judge import fit, shared_contents
 from .run import stylise_toward
-from .style_judge import SCALE_FLOOR, clip_statistics
+from .style_judge import SCALE_FLOOR, StyleJudge, clip_statistics, d1_label, load_style_judge
 
 D1, D2 = "bandai-namco-1", "bandai-namco-2"
 HELD_OUT = ("happy", "sad", "angry", "proud", "not-confident", "musical", "giant", "chimpira")
 REFERENCE_CONTENTS = ("walk", "walk-left", "walk-right")  # the style's other walking clips
 PASS_SHARE, CLEAR_COPY = 0.7, 0.1
 FINE_TUNE_STEPS = 300  # the service's default (`lpn_fine_tune_steps`)
+JUDGE_PASS = 0.8  # share of a style's outputs its judge must recognise (issue 47)
+JUDGE_C = 0.01  # the shipped judge's regularisation, chosen by its cross-validation (docs/eval/style_judge.md)
 
 
 def clip_vector(motion: Motion) -> np.ndarray:
     """The clip's statistics averaged over its windows: what the coverage compares."""
     return clip_statistics(motion).mean(0)
+
+
+def judge_clips(index) -> list:
+    """What each style's judge is fitted on (before its uploaded clip is left out): dataset 1's
+    TRAIN and VALIDATION clips of shared contents, dataset 2's TRAIN walks."""
+    d1 = [c for c in select(index, dataset=D1) if c.split in ("train", "val")]
+    keep = shared_contents(d1)
+    return [c for c in d1 if c.content in keep] + [
+        c for c in select(index, dataset=D2, split="train") if c.content == "walk"
+    ]
+
+
+def style_judge_without(clips: list, stats: dict[str, np.ndarray], upload, mapping: dict[str, str]) -> StyleJudge:
+    """The evaluation's judge, fitted again on `clips` without the uploaded one."""
+    label = lambda c: c.style if c.dataset == D2 else mapping.get(c.style, d1_label(c.style))  # noqa: E731
+    return fit([c for c in clips if c.key != upload.key], stats, label, JUDGE_C, mapping)
+
+
+def least_bend(motion: Motion, hinges: Hinges) -> float:
+    """The least bend of any hinge joint about its hinge axis, less its real floor (degrees)."""
+    axes = bone_axes(motion.skeleton)
+    q = motion.rotations / np.linalg.norm(motion.rotations, axis=-1, keepdims=True)
+    assert hinges.floor is not None
+    return min(
+        float(np.degrees((quat_log(swing_twist(q[:, j], axes[j])[0]) @ h).min() - f))
+        for j, h, f in zip(hinges.joints, hinges.axes, hinges.floor)
+    )
 
 
 @dataclass
@@ -68,17 +115,35 @@ class Ruler:
         return float(1.0 - np.linalg.norm(out - goal) / np.linalg.norm(start - goal))
 
 
-def fit_ruler(index) -> Ruler:
-    """Scale over every real dataset-1 walk and dataset-2 TRAIN walk; centres from each dataset's neutral walks."""
-    d1 = [c for c in select(index, dataset=D1) if c.content in REFERENCE_CONTENTS]
-    d2 = [c for c in select(index, dataset=D2, split="train") if c.content == "walk"]
-    vectors = {c.name: clip_vector(m) for c, m in zip(d1 + d2, load_motions(d1 + d2))}
+def fit_ruler(index, stats: dict[str, np.ndarray]) -> Ruler:
+    """Scale over every real dataset-1 walk and dataset-2 TRAIN walk; centres from each dataset's
+    neutral walks. `stats`: their `clip_statistics` by clip key."""
+    d1, d2 = ruler_clips(index)
+    vectors = {c.key: stats[c.key].mean(0) for c in d1 + d2}
     scale = np.maximum(np.std(np.stack(list(vectors.values())), axis=0), SCALE_FLOOR)
     centre = {
-        ds: np.mean([vectors[c.name] / scale for c in clips if c.style == "normal"], axis=0)
+        ds: np.mean([vectors[c.key] / scale for c in clips if c.style == "normal"], axis=0)
         for ds, clips in ((D1, d1), (D2, d2))
     }
     return Ruler(scale, centre)
+
+
+def ruler_clips(index) -> tuple[list, list]:
+    """Every real dataset-1 walk (`REFERENCE_CONTENTS`) and dataset-2 TRAIN walk."""
+    d1 = [c for c in select(index, dataset=D1) if c.content in REFERENCE_CONTENTS]
+    return d1, [c for c in select(index, dataset=D2, split="train") if c.content == "walk"]
+
+
+def real_statistics(index) -> tuple[dict[str, np.ndarray], Hinges]:
+    """`clip_statistics` of every clip the ruler and the judges read, by key (each clip read once),
+    and the hinge joints of the ruler's real walks."""
+    d1, d2 = ruler_clips(index)
+    clips = list({c.key: c for c in d1 + d2 + judge_clips(index)}.values())
+    motions = load_motions(clips)
+    stats = {c.key: clip_statistics(m) for c, m in zip(clips, motions)}
+    walks = {c.key for c in d1 + d2}
+    rotations = np.concatenate([m.rotations for c, m in zip(clips, motions) if c.key in walks])
+    return stats, fit_hinges(motions[0].skeleton, rotations)
 
 
 def held_out_styles(model: StreamingModel, styles: tuple[str, ...]) -> list[str]:
@@ -117,9 +182,11 @@ def neutral_inputs(index, split: str) -> dict[str, list[Motion]]:
 
 def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, ...] = HELD_OUT) -> list[dict]:
     index = build_index([D1, D2])
-    ruler = fit_ruler(index)
+    stats, hinges = real_statistics(index)
+    ruler = fit_ruler(index, stats)
     inputs = neutral_inputs(index, split)
     starts = {ds: [ruler.z(m) for m in motions] for ds, motions in inputs.items()}  # each input read once
+    fitted_on, mapping = judge_clips(index), load_style_judge().mapping
     rows = []
     for style in styles:
         walks = [c for c in select(index, dataset=D1, style=style) if c.content in REFERENCE_CONTENTS]
@@ -128,6 +195,8 @@ def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, .
         clip, *others = load_motions([upload, *reference])
         target = np.mean([ruler.z(m) for m in others], axis=0) - ruler.centre[D1]
         copy = float(np.mean([ruler.coverage(ruler.z(clip), n, D1, target) for n in starts[D1]]))
+        judge, wanted = style_judge_without(fitted_on, stats, upload, mapping), mapping.get(style, d1_label(style))
+        copy_read = judge.read_own(stats[upload.key], D1, upload.content)
         for method, model in models.items():
             if style not in held_out_styles(model, styles):
                 continue
@@ -138,13 +207,12 @@ def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, .
                 rows.append({"style": style, "method": method, "variant": "refused", "copy": copy})
                 continue
             for variant, styled in variants.items():
+                outs = {ds: stylise_toward(styled, motions, ["upload"])["upload"] for ds, motions in inputs.items()}
                 cov = {
-                    ds: [
-                        ruler.coverage(ruler.z(out), start, ds, target)
-                        for out, start in zip(stylise_toward(styled, motions, ["upload"])["upload"], starts[ds])
-                    ]
-                    for ds, motions in inputs.items()
+                    ds: [ruler.coverage(ruler.z(o), n, ds, target) for o, n in zip(outs[ds], starts[ds])] for ds in outs
                 }
+                reads = {ds: [judge.read_own(clip_statistics(o), ds, "walk") for o in outs[ds]] for ds in outs}
+                judged = float(np.mean([r == wanted for ds in reads for r in reads[ds]]))
                 share = float(np.mean([np.mean(v) for v in cov.values()]) / copy) if copy > 0 else float("nan")
                 rows.append(
                     {
@@ -157,6 +225,12 @@ def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, .
                         "share_of_copy": share,
                         "passes": None if copy < CLEAR_COPY else bool(share >= PASS_SHARE),  # None: not scorable
                         "make_seconds": round(seconds, 1),
+                        "judged": judged,
+                        "judged_by_source": {ds: float(np.mean([r == wanted for r in v])) for ds, v in reads.items()},
+                        "judge_reads": {ds: dict(Counter(v).most_common()) for ds, v in reads.items()},
+                        "judge_passes": bool(judged >= JUDGE_PASS),
+                        "copy_judged": copy_read == wanted,
+                        "least_bend": min(least_bend(o, hinges) for ds in outs for o in outs[ds]),
                     }
                 )
     return rows
@@ -171,17 +245,20 @@ def verdict(row: dict) -> str:
 
 def table(rows: list[dict]) -> list[str]:
     lines = [
-        "| method | way | style | copy | coverage D2 | coverage D1 | share of copy | passes |",
-        "|---|---|---|---|---|---|---|---|",
+        "| method | way | style | copy | coverage D2 | coverage D1 | share of copy | passes "
+        "| judge read (D2 / D1) | judge passes | copy read | least bend (°) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if r["variant"] == "refused":
-            lines.append(f"| {r['method']} | refused | {r['style']} | {r['copy']:.2f} | | | | no |")
+            lines.append(f"| {r['method']} | refused | {r['style']} | {r['copy']:.2f} | | | | no | | no | | |")
             continue
         c = r["coverage"]
         lines.append(
             f"| {r['method']} | {r['variant']} | {r['style']} | {r['copy']:.2f} | {c[D2]:.2f} ({r['clips'][D2]}) "
-            f"| {c[D1]:.2f} ({r['clips'][D1]}) | {r['share_of_copy']:.0%} | {verdict(r)} |"
+            f"| {c[D1]:.2f} ({r['clips'][D1]}) | {r['share_of_copy']:.0%} | {verdict(r)} | {r['judged']:.0%} "
+            f"({r['judged_by_source'][D2]:.0%} / {r['judged_by_source'][D1]:.0%}) "
+            f"| {'yes' if r['judge_passes'] else 'no'} | {'yes' if r['copy_judged'] else 'no'} | {r['least_bend']:+.1f} |"
         )
     return lines
 

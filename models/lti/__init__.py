@@ -15,19 +15,20 @@ def load(weights_dir: Path = WEIGHTS_DIR, core_only: bool = False) -> LTIStyleMo
     """The committed translators as one streaming model (the service's registry calls this).
     `core_only`: the published system alone (the identified LTI translators, their blend toward
     the input outside the training range, and the foot planter), without the fitted stages after
-    it (the rotation prior, the raised and waving arms): the evaluation's core-alone row."""
+    it (the rotation prior, the hinge floors, the raised and waving arms): the evaluation's core-alone row."""
     if not core_only:
         return LTIStyleModel(weights_dir=weights_dir)
     from dataclasses import replace
 
+    from ..motion.hinge import HINGE_FILE
     from .raised_arm import FILE as ARMS_FILE
 
     translators = {}
     for path in sorted(Path(weights_dir).glob("*.npz")):
-        if path.name != ARMS_FILE:
+        if path.name not in (ARMS_FILE, HINGE_FILE):
             t = replace(StyleTranslator.load(path), prior_mean=None, prior_radii=None)
             translators[t.style] = t
-    return LTIStyleModel(translators, weights_dir=weights_dir, raised_arms=False, waving_arms=False)
+    return LTIStyleModel(translators, weights_dir=weights_dir, raised_arms=False, waving_arms=False, hinges=False)
 
 
 __all__ = ["WEIGHTS_DIR", "LTIStyleModel", "StyleTranslator", "load"]

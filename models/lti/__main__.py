@@ -1,6 +1,7 @@
-"""CLI: python -m models.lti {train, translate, bench, render}.
+"""CLI: python -m models.lti {train, hinges, translate, bench, render}.
 
 python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
+python -m models.lti hinges   (the hinge joints and their floors -> models/weights/lti/hinges.npz)
 python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
 python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2] [--weights DIR]
 python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
@@ -34,6 +35,19 @@ def cmd_train(args) -> None:
 
     report = train(args.styles, cfg, Path(args.out) if args.out else WEIGHTS_DIR)
     print(f"trained {len(report)} styles in {time.time() - t0:.1f} s")
+
+
+def cmd_hinges(args) -> None:
+    """Hinge joints and their least real bend from every dataset-2 TRAIN clip (the data LTI is
+    identified on), every style: one floor for built-in and uploaded styles alike."""
+    from models.data import build_index, load_motions, select
+    from models.motion.assets import bandai_namco_skeleton
+    from models.motion.hinge import HINGE_FILE, fit_hinges
+
+    clips = select(build_index(["bandai-namco-2"]), dataset="bandai-namco-2", split="train")
+    rotations = np.concatenate([m.rotations for m in load_motions(clips)])
+    hinges = fit_hinges(bandai_namco_skeleton(), rotations)
+    print(hinges.save(Path(args.out) / HINGE_FILE), "floors (deg)", np.degrees(np.asarray(hinges.floor)).round(2))
 
 
 def cmd_translate(args) -> None:
@@ -157,6 +171,9 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--contents", nargs="*")
     t.add_argument("--out")
     t.set_defaults(func=cmd_train)
+    h = sub.add_parser("hinges")
+    h.add_argument("--out", default=str(WEIGHTS_DIR_DEFAULT))
+    h.set_defaults(func=cmd_hinges)
     r = sub.add_parser("translate")
     r.add_argument("input")
     r.add_argument("--style", required=True)

@@ -8,11 +8,19 @@ uploaded Bandai Namco clip (already retargeted if it came from a CMU skeleton):
    speed, turning rate of the smoothed heading, step rate), among clips whose length ratio the IMW
    warp can represent. Posture only breaks near-ties: an upload's posture is its style, so ranking
    by it paired a slow, upright straight walk with turns and runs;
-2. each neutral clip is paired with the uploaded clip (both capped to `max_frames`) and aligned
-   with the training code's IMW (`train.align`), exactly as offline training does;
+2. each neutral clip is cut to as many steps as the upload takes (`step_matched`) and paired with
+   the uploaded clip (capped to `max_frames`), then aligned with the training code's IMW
+   (`train.align`), exactly as offline training does. Uncut, a neutral clip of the upload's length
+   holds more steps than a slow, long-striding style takes in it, the alignment matches several
+   neutral steps to one of the upload's, and the translator learns to shuffle (an uploaded giant
+   walked at 0.4 m/s where real giant walks go at 1.0-1.1);
 3. `train.identify` fits the per-joint systems on those few pairs. The uploaded clip is split in
    time when long enough: the last `holdout` share is aligned to a neutral clip but kept out of
-   identification, and `train.evaluate` on it gives held-out numbers for the job record.
+   identification, and `train.evaluate` on it gives held-out numbers for the job record;
+4. the style's rotation prior (`train.style_prior`) is fitted from the uploaded clip's frames, as a
+   built-in style's is from its TRAIN clips: the output is held in the region the style's real
+   poses fill (on inputs outside the translator's training range, which it passes through, this is
+   what carries the style).
 
 The service adds the result to its live model with `LTIStyleModel.add_style`.
 """
@@ -26,6 +34,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from models.motion.rotation_ball import fit_prior
+
 from . import representation as rep
 from .model import StyleTranslator
 from .train import CONFIG, PairData, align, evaluate, identify, match_features, pair_from_warp
@@ -36,6 +46,8 @@ FINETUNE = dict(
     holdout=0.25,  # share of the upload kept for the held-out evaluation (when long enough)
     min_train_frames=90,
     pose_weight=0.02,  # weight of the posture distance (per feature) next to the content distance
+    match_steps=True,  # cut each neutral clip to the upload's step count (`step_matched`)
+    prior=True,  # the rotation ball (`train.style_prior`) fitted from the uploaded clip
 )
 
 
@@ -137,14 +149,38 @@ def neutral_bank(ref_key: bytes) -> NeutralBank:
     return NeutralBank(out, mean, std, desc_std, motions)
 
 
-def nearest_neutral(bank: NeutralBank, feats: np.ndarray, k: int, frames: int) -> list[NeutralClip]:
-    """The k neutral clips doing the most alike (same path and pace, `content_descriptor`), among
-    warpable lengths; posture, weighted by `pose_weight`, orders clips that do the same."""
+def _warpable() -> tuple[float, float]:
+    """The range of length ratios (upload / neutral) the IMW warp can represent, with a margin."""
     s, ms = CONFIG["imw"]["s"], CONFIG["imw"]["max_step"]
-    lo, hi = 1.0 / s * 1.15, ms / s / 1.15
+    return 1.0 / s * 1.15, ms / s / 1.15
+
+
+def steps_per_second(content: np.ndarray) -> float:
+    """The step rate a `content_descriptor` holds."""
+    return float(np.exp(content[2])) - 0.5
+
+
+def step_matched(clip: NeutralClip, frames: int, rate: float, cap: int, match: bool = True) -> int:
+    """How many frames of the neutral `clip` to pair with `frames` of an upload stepping at `rate`
+    per second: as many as hold the same number of steps at the clip's own step rate, within the
+    clip (capped to `cap`) and the lengths the warp can represent (`match` False: all of it)."""
+    whole = min(clip.frames, cap)
+    own = steps_per_second(clip.content)
+    if not match or rate <= 0.0 or own <= 0.0:
+        return whole
+    lo, hi = _warpable()
+    return int(min(whole, max(frames / hi, min(frames / lo, round(frames * rate / own)))))
+
+
+def nearest_neutral(bank: NeutralBank, feats: np.ndarray, k: int, frames: int, match: bool = True) -> list[NeutralClip]:
+    """The k neutral clips doing the most alike (same path and pace, `content_descriptor`), among
+    warpable lengths (of the clip cut to the upload's steps, `step_matched`); posture, weighted by
+    `pose_weight`, orders clips that do the same."""
+    lo, hi = _warpable()
     d = _descriptor(feats, bank.match_mean, bank.match_std)
     content, w = content_descriptor(feats), FINETUNE["pose_weight"]
-    cands = [c for c in bank.clips if lo <= frames / min(c.frames, FINETUNE["max_frames"]) <= hi]
+    rate, cap = steps_per_second(content), int(FINETUNE["max_frames"])
+    cands = [c for c in bank.clips if lo <= frames / step_matched(c, frames, rate, cap, match) <= hi]
 
     def distance(c: NeutralClip) -> float:
         pose = float(np.mean(((c.descriptor - d) / bank.desc_std) ** 2))
@@ -186,7 +222,9 @@ def fine_tune(
     train_part = motion.slice(0, min(n - n_hold, cap))
     hold_part = motion.slice(n - n_hold, n) if n_hold else None
     feats = rep.motion_to_features(train_part, ref)
-    neutrals = nearest_neutral(bank, feats, opts["pairs"] + (1 if hold_part is not None else 0), train_part.num_frames)
+    k, match = opts["pairs"] + (1 if hold_part is not None else 0), bool(opts["match_steps"])
+    neutrals = nearest_neutral(bank, feats, k, train_part.num_frames, match)
+    rate = steps_per_second(content_descriptor(feats))
     if not neutrals:
         raise FineTuneError("no neutral clip of comparable length to pair the upload with")
     report(0.1, f"pairing with {', '.join(c.name for c in neutrals[: opts['pairs']])}")
@@ -194,12 +232,15 @@ def fine_tune(
     train_neutrals = neutrals[: opts["pairs"]]
     steps = len(train_neutrals) + (1 if hold_part is not None else 0) + 1
     for i, c in enumerate(train_neutrals):
-        mi = bank.motions[c.name]
-        mi = mi.slice(0, min(mi.num_frames, cap))
+        mi = bank.motions[c.name].slice(0, step_matched(c, train_part.num_frames, rate, cap, match))
         data.append(pair_from_motions(mi, train_part, bank.match_mean, bank.match_std, ref))
         report(0.1 + 0.7 * (i + 1) / steps, f"aligned {c.name}")
     # no cross-joint context: ~1,500 frames of one upload cannot identify systems with 36 inputs
     tr, _ = identify(data, name, ref, {**CONFIG, "context": None})
+    if opts["prior"]:  # the style's rotation ball from its real frames (4. above)
+        tr.prior_mean, tr.prior_radii = fit_prior(
+            motion.rotations, CONFIG["prior_inner_q"], CONFIG["prior_outer_q"], CONFIG["prior_margin_deg"]
+        )
     tr.meta = {
         "fine_tuned": True,
         "neutral_clips": [c.name for c in train_neutrals],
@@ -210,8 +251,8 @@ def fine_tune(
     if hold_part is not None:
         c = neutrals[-1] if len(neutrals) > len(train_neutrals) else neutrals[0]
         mi = bank.motions[c.name]
-        ratio = hold_part.num_frames
-        mi = mi.slice(0, min(mi.num_frames, max(ratio, 2)))
+        n = step_matched(c, hold_part.num_frames, rate, cap) if match else hold_part.num_frames
+        mi = mi.slice(0, min(mi.num_frames, max(n, 2)))
         try:
             heldout = evaluate(tr, [pair_from_motions(mi, hold_part, bank.match_mean, bank.match_std, ref)])
         except Exception as exc:  # noqa: BLE001 - the evaluation is informative only

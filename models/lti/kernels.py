@@ -11,6 +11,9 @@ The step reads top to bottom (`step`):
 4. `waving_kernels.swing_arms`: a waving hand's arm takes the input's swing (`waving_arm.py`);
 5. the feet planted (`models.motion.feet_kernels.plant_feet`).
 
+Each style's hinge joints (knees, elbows) are held at their least real bend in step 1
+(`models.motion.hinge_kernels.floor_bend`), after its rotation ball.
+
 Why compiled, and in one call: the arithmetic of a frame is a few thousand multiply-adds, which
 numpy spreads over ~1,000 calls of a microsecond each, and each call from Python into a kernel
 costs a few microseconds more of argument checks. Geometry is a loop on scalars and 4-tuples
@@ -39,7 +42,8 @@ from ..motion.bn_skeleton import HIPS, NUM_JOINTS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
-from ..motion.quaternion import qdot, qinv, qmul, quat_at, row4
+from ..motion.hinge_kernels import floor_bend
+from ..motion.quaternion import qdot, qinv, qmul, quat_at, row3, row4
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
 from .waving_arm import MEAN_SHAPE
@@ -181,6 +185,14 @@ class Ball(NamedTuple):
     cos_inner: np.ndarray  # (S, 22) cos(inner / 2), -1 without a prior: a rotation this close is left as it is
 
 
+class Bends(NamedTuple):
+    """The rig's hinge joints held at their least real bend (`models.motion.hinge.kernel_floor`)."""
+
+    bone: np.ndarray  # (22, 3) each joint's bone axis
+    hinge: np.ndarray  # (22, 3) its hinge axis (real bends positive)
+    floor: np.ndarray  # (22,) its least real bend (radians; -inf: not held)
+
+
 class RaisedArm(NamedTuple):
     """The styles' raised-arm carries (`raised_arm.py`), stacked: style s uses carry row[s]
     (-1: none)."""
@@ -263,6 +275,7 @@ CONSTANT_SCHEMAS = (
     "i2 f1 f1 f1 f0 f0",  # WavingArm
     "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
     "b0 b0 b0 b0 b0",  # Switches
+    "f2 f2 f1",  # Bends
 )
 WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2"
 
@@ -331,7 +344,7 @@ def _s4(p, k):
 @njit(cache=True, error_model="numpy")
 def unpack_constants(p):
     """The step's constant records from `pack([systems, footplant, ball, hands, arm, waving,
-    planter, switches])`: views, in `CONSTANT_SCHEMAS`' order."""
+    planter, switches, bends])`: views, in `CONSTANT_SCHEMAS`' order."""
     sys = Systems(
         _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _f(p, 5).reshape(_s2(p, 5)), _f(p, 6).reshape(_s2(p, 6)),
         _f(p, 7).reshape(_s2(p, 7)), _f(p, 8).reshape(_s2(p, 8)), _f(p, 9).reshape(_s2(p, 9)),
@@ -357,7 +370,8 @@ def unpack_constants(p):
         _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0],
     )  # fmt: skip
     on = Switches(_b(p, 57)[0], _b(p, 58)[0], _b(p, 59)[0], _b(p, 60)[0], _b(p, 61)[0])
-    return sys, fp, ball, hands, arm, waving, planter, on
+    bends = Bends(_f(p, 62).reshape(_s2(p, 62)), _f(p, 63).reshape(_s2(p, 63)), _f(p, 64))
+    return sys, fp, ball, hands, arm, waving, planter, on, bends
 
 
 @njit(cache=True, error_model="numpy")
@@ -510,10 +524,10 @@ def inside(q, mean, cos_inner):
 
 
 @njit(cache=True, error_model="numpy")
-def style_outputs(sys, ball, s, w, z, feats, c, blend_w, x_out, keep_heading, root_feats, quats, out):
+def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_heading, root_feats, quats, out):
     """Style s's result for one session from column c of z = M [x; u]: the new state into x_out,
     w * (root displacement, yaw change, height) added to root_feats, the body rotations (22, 4),
-    each held in the style's ball, into quats. out: scratch (67,)."""
+    each held in the style's ball and the hinges at their floor, into quats. out: scratch (67,)."""
     n = x_out.shape[0]
     for i in range(n):
         x_out[i] = z[i, c]
@@ -530,11 +544,13 @@ def style_outputs(sys, ball, s, w, z, feats, c, blend_w, x_out, keep_heading, ro
         q = qmul(quat_at(sys.ref, s, j), rotvec_to_quat((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
         if j == HIPS or not inside(q, quat_at(ball.mean, s, j), ball.cos_inner[s, j]):
             q = clamp_joint(q, quat_at(ball.mean, s, j), ball.radii[s, 0, j], ball.radii[s, 1, j], j == HIPS)
+        if bends.floor[j] > -math.inf:
+            q = floor_bend(q, row3(bends.bone, j), row3(bends.hinge, j), bends.floor[j])
         quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q
 
 
 @njit(cache=True, error_model="numpy")
-def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
+def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_rot):
     """The published translator (see model.LTIStyleModel for the state and the style mixing):
     the translated root into work.root, the body into out_rot, the footplant classifier's
     contacts into work.contacts, the input and output paths and the LTI states into `after`.
@@ -596,7 +612,7 @@ def translate(frame, before, after, sys, fp, ball, switches, work, out_rot):
                 w = weights[b, s]
                 x_out = after.x[b, a:e]
                 style_outputs(
-                    sys, ball, s, w, z, feats, c, work.blend_w[c], x_out, switches.keep_heading, root_feats[b],
+                    sys, ball, bends, s, w, z, feats, c, work.blend_w[c], x_out, switches.keep_heading, root_feats[b],
                     work.quats[b, s], work.out,
                 )  # fmt: skip
                 if fp.fitted[s]:
@@ -698,12 +714,12 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
     frame, out = Frame(*frame), Output(*out)
     before, feet_before = unpack(carry, x)
     after, feet_after = unpack(new_carry, new_x)
-    sys, fp, ball, hands, arm, waving, planter, on = unpack_constants(constants)
+    sys, fp, ball, hands, arm, waving, planter, on, bends = unpack_constants(constants)
     work = unpack_work(work)
     B = frame.root.shape[0]
 
     # 1. the translator
-    translate(frame, before, after, sys, fp, ball, on, work, out.rotations)
+    translate(frame, before, after, sys, fp, ball, bends, on, work, out.rotations)
 
     # 2. the input's hands: how high, how they sway and rise
     hand_step(

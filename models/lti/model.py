@@ -8,7 +8,8 @@ and the footplant classifier. Every frame, per session:
     [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint)
     out = y * out_std + out_mean
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
-    pose = inverse representation(out); rotation prior (`train.style_prior`); contacts
+    pose = inverse representation(out); rotation prior (`train.style_prior`); hinge joints held at
+    their least real bend (`models.motion.hinge_kernels`, `hinges.npz`); contacts
     then the stages, each measured on the input and fitted per style the same way: a raised,
     calm hand's arm (raised_arm.py), a waving hand's swing (waving_arm.py), the planted feet
 
@@ -37,6 +38,8 @@ from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import model_rig_planter
 from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter, clip_sway, hand_offsets_of
+from models.motion.hinge import HINGE_FILE, Hinges, kernel_floor
+from models.motion.hinge_kernels import floor_bends
 from models.motion.rotation_ball import clamp_rotations
 from models.motion.style_carry import StyleCarry
 
@@ -77,6 +80,7 @@ class StyleTranslator:
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
     raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`)
     waving_arm: bool = True  # a waving hand's arm takes the input's swing (`waving_arm.py`); not stored
+    hinges: Hinges | None = None  # the rig's hinge joints held at their floor (the model's); not stored
 
     def __post_init__(self) -> None:
         n = self.A.shape[0]
@@ -132,6 +136,8 @@ class StyleTranslator:
         )
         if self.prior_mean is not None and self.prior_radii is not None:
             rots = clamp_rotations(rots, self.prior_mean, self.prior_radii)
+        if self.hinges is not None:
+            rots = floor_bends(rots, *kernel_floor(motion.skeleton, self.hinges))
         if self.raised_arm is not None or self.waving_arm:
             offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
             swayed = clip_sway(offsets, motion.fps)
@@ -267,12 +273,15 @@ class LTIStyleModel(LTIStyles):
         skeleton=None,
         raised_arms: bool = True,
         waving_arms: bool = True,
+        hinges: bool = True,
     ):
+        hinge_file = Path(weights_dir) / HINGE_FILE
+        self.hinges = Hinges.load(hinge_file) if hinges and hinge_file.exists() else None
         if translators is None:
             translators = {}
             arms = raised_arm.load(Path(weights_dir)) if raised_arms else {}
             for path in sorted(Path(weights_dir).glob("*.npz")):
-                if path.name == raised_arm.FILE:
+                if path.name in (raised_arm.FILE, HINGE_FILE):
                     continue
                 t = StyleTranslator.load(path)
                 t.raised_arm = arms.get(t.style, t.raised_arm) if raised_arms else None
@@ -283,6 +292,7 @@ class LTIStyleModel(LTIStyles):
         for tr in translators.values():
             tr.keep_heading = keep_heading
             tr.waving_arm = waving_arms
+            tr.hinges = self.hinges
         self.waving_arms = waving_arms
         self.raised_arms = raised_arms
         self.keep_heading = keep_heading
@@ -323,7 +333,8 @@ class LTIStyleModel(LTIStyles):
             h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
         )
         switches = (self.blend, self.keep_heading, self.raised_arms, self.waving_arms, self.footlock)
-        records = [systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params, switches]
+        bends = kernels.Bends(*kernel_floor(self.skeleton, self.hinges))
+        records = [systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params, switches, bends]
         x_keys = [f"x.{s}" for s in styles]
         self._set = _StyleSet(
             styles,
@@ -345,6 +356,7 @@ class LTIStyleModel(LTIStyles):
             raise ValueError(f"style {tr.style!r} already exists")
         tr.keep_heading = self.keep_heading
         tr.waving_arm = self.waving_arms
+        tr.hinges = self.hinges
         self.translators = {**self.translators, tr.style: tr}
         self._set_styles(self._styles + [tr.style])
 

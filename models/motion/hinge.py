@@ -11,8 +11,10 @@ not, and the forearm swings sideways off its hinge, a pose no real arm takes.
 a joint whose swing (its rotation without the twist about its own bone) turns about one
 direction only, whose parent has this joint as its only child. On Bandai Namco's data that is
 each elbow and knee, and their swings turn about one axis exactly. It stores, per hinge joint,
-the hinge axis (signed so that the real bends are positive) and the parent's real twist
-interval (the parent's twist is what the re-twist changes).
+the hinge axis (signed so that the real bends are positive), the parent's real twist
+interval (the parent's twist is what the re-twist changes) and the least real bend, the
+`floor`: a real knee or elbow never bends backward past it (`hinge_kernels.floor_bend`
+holds a model's output there).
 
 `twist_kernels.hinge_twist` is the angle to turn the parent about its own bone so that the
 child's bone lies in the hinge plane, bent the way real joints bend, kept inside the parent's real
@@ -57,25 +59,21 @@ class Hinges:
     lo: np.ndarray  # (K, 2)
     hi: np.ndarray  # (K, 2)
     fade: float = float(np.radians(FADE_DEGREES))
+    floor: np.ndarray | None = None  # (K,) the least real bend about the hinge axis (radians)
 
     def save(self, path: Path) -> Path:
-        np.savez(
-            path,
-            joints=self.joints,
-            axes=self.axes,
-            bend=self.bend,
-            mean=self.mean,
-            lo=self.lo,
-            hi=self.hi,
-            fade=self.fade,
-        )
+        arrays = {k: getattr(self, k) for k in ("joints", "axes", "bend", "mean", "lo", "hi")}
+        if self.floor is not None:
+            arrays["floor"] = self.floor
+        np.savez(path, fade=np.float64(self.fade), **arrays)
         return path
 
     @classmethod
     def load(cls, path: Path) -> Hinges:
         with np.load(path) as z:
             arrays = {k: np.asarray(z[k], np.float64) for k in ("axes", "bend", "mean", "lo", "hi")}
-            return cls(np.asarray(z["joints"], np.int64), fade=float(z["fade"]), **arrays)
+            floor = np.asarray(z["floor"], np.float64) if "floor" in z else None
+            return cls(np.asarray(z["joints"], np.int64), fade=float(z["fade"]), floor=floor, **arrays)
 
 
 def _single_bone_parent(skeleton: Skeleton, j: int) -> bool:
@@ -92,7 +90,7 @@ def fit_hinges(skeleton: Skeleton, rotations: np.ndarray, share: float = HINGE_S
     q = np.asarray(rotations, np.float64)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     axes = bone_axes(skeleton)
-    joints, hinge, bend, mean, lo, hi = [], [], [], [], [], []
+    joints, hinge, bend, mean, lo, hi, floor = [], [], [], [], [], [], []
     for j in range(skeleton.num_joints):
         if not skeleton.children(j) or not _single_bone_parent(skeleton, j):
             continue
@@ -112,10 +110,25 @@ def fit_hinges(skeleton: Skeleton, rotations: np.ndarray, share: float = HINGE_S
         mean.append(m)
         lo.append(np.percentile(twist, TWIST_PERCENTILES[0], axis=0))
         hi.append(np.percentile(twist, TWIST_PERCENTILES[1], axis=0))
+        floor.append(float((v @ h).min()))
     as3 = lambda a: np.array(a).reshape(-1, 3)  # noqa: E731
     as2 = lambda a: np.array(a).reshape(-1, 2)  # noqa: E731
     means = np.array(mean).reshape(-1, 2, 4)
-    return Hinges(np.array(joints, np.int64), as3(hinge), as3(bend), means, as2(lo), as2(hi))
+    return Hinges(
+        np.array(joints, np.int64), as3(hinge), as3(bend), means, as2(lo), as2(hi), floor=np.array(floor, np.float64)
+    )
+
+
+def kernel_floor(skeleton: Skeleton, hinges: Hinges | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per joint (J), as `hinge_kernels.floor_bend` takes them: its bone axis, its hinge axis
+    and its floor (-inf: not a hinge, or fitted without floors: nothing is held)."""
+    from .twist import bone_axes  # twist imports this module
+
+    J = skeleton.num_joints
+    hinge, floor = np.zeros((J, 3)), np.full(J, -np.inf)
+    if hinges is not None and hinges.floor is not None:
+        hinge[hinges.joints], floor[hinges.joints] = hinges.axes, hinges.floor
+    return np.ascontiguousarray(bone_axes(skeleton), np.float64), hinge, floor
 
 
 def kernel_hinges(skeleton: Skeleton, hinges: Hinges | None) -> KernelHinges:

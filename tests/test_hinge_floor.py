@@ -1,0 +1,78 @@
+"""Hinge joints held at their least real bend (`models.motion.hinge_kernels`): a backward bend
+is raised to the floor and nothing else of the rotation changes; the LTI model holds every
+style's output there, built-in or uploaded."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from models.motion.assets import bandai_namco_skeleton
+from models.motion.hinge import HINGE_FILE, Hinges, kernel_floor
+from models.motion.hinge_kernels import floor_bends
+from models.motion.rotations import quat_exp, quat_log, quat_mul, swing_twist, twist_angle
+
+
+def _hinges() -> Hinges:
+    from models.lti import WEIGHTS_DIR
+
+    path = WEIGHTS_DIR / HINGE_FILE
+    if not path.exists():
+        pytest.skip("LTI hinges not committed")
+    return Hinges.load(path)
+
+
+def _bend(q: np.ndarray, bone: np.ndarray, hinge: np.ndarray) -> np.ndarray:
+    return quat_log(swing_twist(q, bone)[0]) @ hinge
+
+
+def test_floors_are_fitted_for_knees_and_elbows():
+    sk, h = bandai_namco_skeleton(), _hinges()
+    assert sorted(sk.names[j] for j in h.joints) == ["LowerArm_L", "LowerArm_R", "LowerLeg_L", "LowerLeg_R"]
+    assert h.floor is not None and (np.abs(np.degrees(h.floor)) < 2.0).all()
+
+
+def test_a_backward_bend_is_raised_to_the_floor_and_the_rest_kept():
+    sk, h = bandai_namco_skeleton(), _hinges()
+    bone, hinge, floor = kernel_floor(sk, h)
+    rng = np.random.default_rng(0)
+    F = 50
+    rots = np.tile([0.0, 0.0, 0.0, 1.0], (F, sk.num_joints, 1))
+    bends = np.radians(rng.uniform(-40.0, 90.0, F))
+    for j in h.joints:
+        off = np.cross(hinge[j], bone[j])  # a small swing off the hinge axis, and a twist
+        swing = quat_exp(bends[:, None] * hinge[j] + np.radians(3.0) * off)
+        twist = quat_exp(np.radians(rng.uniform(-20.0, 20.0, F))[:, None] * bone[j])
+        rots[:, j] = quat_mul(swing, twist)
+    out = floor_bends(rots.copy(), bone, hinge, floor)
+    for j in h.joints:
+        got, was = _bend(out[:, j], bone[j], hinge[j]), _bend(rots[:, j], bone[j], hinge[j])
+        np.testing.assert_allclose(got, np.maximum(was, floor[j]), atol=1e-9)
+        np.testing.assert_allclose(twist_angle(out[:, j], bone[j]), twist_angle(rots[:, j], bone[j]), atol=1e-9)
+        off = np.cross(hinge[j], bone[j])
+        np.testing.assert_allclose(
+            quat_log(swing_twist(out[:, j], bone[j])[0]) @ off,
+            quat_log(swing_twist(rots[:, j], bone[j])[0]) @ off,
+            atol=1e-9,
+        )
+    others = [k for k in range(sk.num_joints) if k not in set(h.joints.tolist())]
+    assert np.array_equal(out[:, others], rots[:, others])
+
+
+def test_lti_outputs_never_bend_a_hinge_backward(index):
+    """On a validation walk a translated elbow bends backward (youthful's, by ~4 degrees) without
+    the floors; with them no style's hinge goes below its floor (the offline path, which the step
+    equals: `test_lti`)."""
+    from models.data import load_motion, select
+    from models.lti import LTIStyleModel
+
+    m = load_motion(select(index, dataset="bandai-namco-2", style="normal", content="walk", split="val")[0])
+    bone, hinge, floor = kernel_floor(bandai_namco_skeleton(), _hinges())
+
+    def least(model: LTIStyleModel) -> float:
+        """The least bend below its floor over every style's output and hinge (radians)."""
+        outs = [tr.translate_motion(m, footlock=False)[0].rotations for tr in model.translators.values()]
+        return min(float((_bend(o[:, j], bone[j], hinge[j]) - floor[j]).min()) for o in outs for j in _hinges().joints)
+
+    assert least(LTIStyleModel(footlock=False, hinges=False)) < -np.radians(2.0)
+    assert least(LTIStyleModel(footlock=False)) >= -1e-9
