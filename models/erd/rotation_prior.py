@@ -46,8 +46,7 @@ import numpy as np
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
 from ..motion.gait_split import running, split_by_gait
-from ..motion.rotation_ball import comparable, split_heading
-from ..motion.rotations import quat_mul
+from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry
 
 LEAF_FILE = "leaf_prior.npz"
@@ -92,15 +91,6 @@ def real_rotations(runs: bool = False) -> list[np.ndarray]:
         q[..., 3] = 1.0
         q[:, 1:] = body
         out.append(q)
-    return out
-
-
-def carry_output_numpy(prior: StyleCarry, rot: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The numpy reference of the output prior on rotations (B, J, 4), the Hips carried without
-    their heading: what `prior(rot, weights, hips=HIPS)` computes compiled."""
-    heading, free = split_heading(rot)
-    out = prior.apply_numpy(free, weights)
-    out[:, HIPS] = quat_mul(heading, out[:, HIPS])
     return out
 
 

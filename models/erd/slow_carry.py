@@ -63,9 +63,15 @@ def carry_slow(
     the weight and the Hips, whose fast part holds its turning, pass it as it is), then
     `other`'s clamp; the joints `other` only clamps are carried whole (the same to round-off
     where the slow copy is inside the range). Without priors, q as it is. One compiled pass
-    (`style_carry_kernels.carry_slow_batch`); `carry_slow_numpy` is the reference."""
-    if other is None:
-        return carry_slow_numpy(other, run, q, slow, weights, share, hips)
+    (`style_carry_kernels.carry_slow_batch`); `tests/reference/erd_carry.py` is the reference."""
+    if other is None:  # no range to clamp into: a run prior's carry, the fast part as it is
+        new = follow(slow, q)
+        if run is None:
+            return q, new
+        q = np.asarray(q, np.float64)
+        fast = quat_mul(quat_inv(new), q / np.linalg.norm(q, axis=-1, keepdims=True))
+        fast = np.where(fast[..., 3:] < 0.0, -fast, fast)
+        return quat_mul(carry_by_gait(other, run, new, weights, share, hips=hips), fast), new
     w = np.asarray(weights, np.float64)
     r = np.zeros(len(w)) if run is None else np.asarray(share, np.float64)
     bounds = other.bounds.arrays  # the run prior is followed by it, and every output kept in it
@@ -73,37 +79,6 @@ def carry_slow(
     return kernels.carry_slow(
         q, slow, SLOW_WEIGHT, w, r, other.arrays, then, bounds, bounds, other.damping, other.clamps_only, hips
     )
-
-
-def carry_slow_numpy(
-    other: StyleCarry | None,
-    run: StyleCarry | None,
-    q: np.ndarray,
-    slow: np.ndarray,
-    weights: np.ndarray,
-    share: np.ndarray,
-    hips: int = -1,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The numpy reference of `carry_slow` (the carry itself by `gait.carry_by_gait`)."""
-    new = follow(slow, q)
-    if other is None and run is None:
-        return q, new
-    w = np.asarray(weights, np.float64)
-    carried = carry_by_gait(other, run, new, w, share, hips=hips)
-    q = np.asarray(q, np.float64)
-    fast = quat_mul(quat_inv(new), q / np.linalg.norm(q, axis=-1, keepdims=True))
-    fast = np.where(fast[..., 3:] < 0.0, -fast, fast)
-    if other is None:  # a run prior alone (no range to clamp into): the fast part as it is
-        return quat_mul(carried, fast), new
-    g = np.einsum("bs,sjik->bjik", w, other.damping)
-    g += np.maximum(1.0 - w.sum(1), 0.0)[:, None, None, None] * np.eye(3)
-    if hips >= 0:
-        g[:, hips] = np.eye(3)
-    fast = np.concatenate([np.einsum("bjik,bjk->bji", g, fast[..., :3]), fast[..., 3:]], axis=-1)
-    out = other.bounds(quat_mul(carried, fast / np.linalg.norm(fast, axis=-1, keepdims=True)), w, hips=hips)
-    plain = other.clamps_only  # nothing to carry slowly: carried whole
-    out[:, plain] = carry_by_gait(other, run, q, w, share, hips=hips)[:, plain]
-    return out, new
 
 
 def clip_carry_slow(

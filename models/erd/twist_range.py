@@ -69,24 +69,9 @@ class TwistRange:
     def __call__(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """(B, J, 4) rotations with each arm joint's twist moved into the styles' real intervals
         by the weights (B, S): t + sum_s w_s (clip(t_s, lo_s, hi_s) - t_s), t_s its twist against
-        style s's mean. Compiled (`kernels.twist_clamp_batch`); `apply_numpy` is the reference."""
+        style s's mean. Compiled (`kernels.twist_clamp_batch`); `tests/reference/erd_carry.py` is the reference."""
         from .kernels import twist_clamp_batch
 
         q = np.ascontiguousarray(q, np.float64)
         w = np.ascontiguousarray(weights, np.float64)
         return twist_clamp_batch(q, w, self.joints, self.axes, self.mean, self.lo, self.hi, np.empty_like(q))
-
-    def apply_numpy(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """The numpy reference of `__call__`."""
-        w = np.asarray(weights, np.float64)
-        rows = np.flatnonzero(w.any(axis=1))
-        if len(rows) == 0:
-            return q
-        arms = np.asarray(q, np.float64)[rows][:, self.joints]  # (R, K, 4)
-        t = twist_angle(quat_mul(quat_inv(self.mean)[None], arms[:, None]), self.axes)  # (R, S, K)
-        delta = np.einsum("rs,rsk->rk", w[rows], np.clip(t, self.lo, self.hi) - t)
-        half = 0.5 * delta[..., None]
-        turn = np.concatenate([np.sin(half) * self.axes, np.cos(half)], axis=-1)  # about each bone
-        out = np.array(q, np.float64)
-        out[np.ix_(rows, self.joints)] = quat_mul(arms, turn)
-        return out

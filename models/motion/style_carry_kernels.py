@@ -1,5 +1,5 @@
 """`style_carry.StyleCarry` compiled (numba) for the per-frame step: the same formulas as the numpy
-reference (`StyleCarry.apply_numpy`), as per-row, per-joint loops. Vectorised numpy took ~40
+reference (`tests/reference/erd_carry.py`), as per-row, per-joint loops. Vectorised numpy took ~40
 small calls per prior and frame (~0.16 ms each at batch 1, 3-4 ms at batch 256); this is
 ~1 us of arithmetic per session.
 
@@ -108,7 +108,7 @@ def _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius):
 def carry_batch(q, w, source, mean, lin, radius, hips, out):
     """out (B, J, 4) = q (B, J, 4) carried toward the styles of weights w (B, S). Joint `hips`
     (-1: none) is carried without its heading, its twist about world up (+Y), which is put back
-    after (`rotation_prior.carry_output_numpy` is the numpy reference). A row with one style at
+    after (`tests/reference/erd_carry.py` is the numpy reference). A row with one style at
     weight 1 (no mix, no intensity) takes f_s(q) itself, in q's hemisphere: the blend
     q exp(log(q^-1 f_s(q))) is the same rotation, and skipping its log and exp halves the
     kernel's cost for such rows."""
