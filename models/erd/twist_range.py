@@ -1,19 +1,10 @@
 """Keep Style-ERD's arm twists inside the twists the real data shows.
 
-A bone's twist about itself moves no joint, yet a skinned arm shows it. Style-ERD's bones take
-the input's twists carried by the leaf prior, and then the output prior maps whole rotations
-with gains up to 2; each scales a twist with the rest. On the validation clips the p95 of how far
-the arms' twist (relative to the style's real mean) went past the real p0.5..p99.5 interval was
-13.2 degrees toward masculine (UpperArm_L), 16.4 toward youthful (LowerArm_L) and 9.8 toward
-elderly (LowerArm_R), against 0.0 for real clips (both priors add to it). The angle clamps of
-the priors bound a rotation's distance from the style's mean, not its twist: a small swing
-leaves room for a large twist.
-
-So after the priors each arm joint's twist about its bone, relative to the style's real mean, is
-clamped into the style's real TRAIN p1..p99 twist interval (inside the evaluation's p0.5..p99.5,
-as the priors' p98 angle clamps sit inside its p99). The swing, which places the joints, is kept:
-a twist correction is a rotation about the bone's own axis, applied on the right. Style mixes
-blend the corrections by their weights; a row with no style weight is left as it is.
+A bone's twist moves no joint, yet a skinned arm shows it, and the priors' gains scale twists
+with the rest while their angle clamps bound only the distance from the style's mean. So after
+the priors each arm joint's twist about its bone, relative to the style's real mean, is clamped
+into the style's real TRAIN p1..p99 interval; the swing, which places the joints, is kept.
+Style mixes blend the corrections by their weights; a row with no style weight is left alone.
 """
 
 from __future__ import annotations
