@@ -62,11 +62,9 @@ def run_share(speed: np.ndarray) -> np.ndarray:
 
 
 def eased_in(share: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """(B,) the run share at each row's `frame` (frames the session saw before this one), faded
-    in over its first `START_FRAMES`. A session's first frame counts as standing (no speed yet),
-    so a stream that starts mid-run took the run priors whole on its second frame: the head
-    toward feminine turned by 15-23 degrees in that one frame on the validation runs, against
-    0.2-1.5 without run priors; eased in over 5 frames, by 3.3-4.3."""
+    """(B,) the run share at each row's `frame` (frames the session saw before this one), faded in
+    over its first `START_FRAMES`: a stream that starts mid-run counts its first frame as standing,
+    and taking the run priors whole on its second frame turned the head in one frame."""
     return np.asarray(share, np.float64) * np.minimum(np.asarray(frame, np.float64) / START_FRAMES, 1.0)
 
 

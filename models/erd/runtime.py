@@ -73,10 +73,9 @@ NEWER_KEYS = ("gait_speed", "slow_in", "slow_out")  # state entries snapshots fr
 
 
 def _sigmoid_(a: np.ndarray) -> np.ndarray:
-    """Logistic sigmoid of a float array, in place, by torch's vectorised (SLEEF) kernel: numpy's
-    float32 tanh/exp are not vectorised on AVX2 machines and took a third of a batched step.
-    (Only the sigmoid: torch.tanh with 2 intra-op threads took ~8 ms per call on tiny arrays
-    here, so tanh(x) is taken as 2 sigmoid(2x) - 1.)"""
+    """Logistic sigmoid of a float array, in place, by torch's vectorised kernel: numpy's float32
+    tanh/exp are not vectorised on AVX2 (a third of a batched step), and torch.tanh was slow on tiny
+    arrays, so tanh(x) is taken as 2 sigmoid(2x) - 1."""
     t = torch.from_numpy(a)
     torch.sigmoid(t, out=t)
     return a

@@ -1,11 +1,8 @@
-"""`style_carry.StyleCarry` compiled (numba) for the per-frame step: the same formulas as the numpy
-reference (`tests/reference/erd_carry.py`), as per-row, per-joint loops. Vectorised numpy took ~40
-small calls per prior and frame (~0.16 ms each at batch 1, 3-4 ms at batch 256); this is
-~1 us of arithmetic per session.
-
-`_toward` and `_carry_joint` are inlined by numba (`inline="always"`): out of line, each call
-passes its four arrays as numba's array structs, dozens of words per joint, a quarter to a half of
-the kernel's time. Inlining the small helpers too buys nothing and triples the first compile.
+"""`style_carry.StyleCarry` compiled (numba) for the per-frame step: the formulas of the numpy
+reference (`tests/reference/erd_carry.py`) as per-row, per-joint loops, ~1 us per session
+instead of ~40 small numpy calls per prior and frame. `_toward` and `_carry_joint` are inlined
+(`inline="always"`): out of line, passing their arrays as numba structs cost a quarter to a half
+of the kernel's time; inlining the small helpers too buys nothing and triples the first compile.
 """
 
 from __future__ import annotations
