@@ -199,13 +199,6 @@ class NoveltyReference:
         x = np.clip((distances / self.threshold - START) / (FULL_FADE - START), 0.0, 1.0)
         return x * x * (3.0 - 2.0 * x)
 
-    def joint_weights(self, part_weights: np.ndarray) -> np.ndarray:
-        """(B, parts) -> (B, J) each joint's fade (0 for joints in no part)."""
-        w = np.zeros((len(part_weights), len(self.part)))
-        inside = self.part >= 0
-        w[:, inside] = part_weights[:, self.part[inside]]
-        return w
-
     def clip_fades(self, rotations: np.ndarray, hips_y: np.ndarray, fps: float) -> np.ndarray:
         """A whole clip (T, J, 4), (T,) at the model rate -> (T, parts) smoothed fade weights, as
         the stage computes them frame by frame (for reports and tests)."""
