@@ -10,11 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.erd.slow_carry import carry_slow, carry_slow_numpy, clip_carry_slow
+from models.erd.slow_carry import carry_slow, clip_carry_slow
 from models.interface import FrameBatch
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
 from .clips import streamed_rotations
+from .reference import erd_carry
 from .reference.style_carry import mixed_with
 
 REPO = Path(__file__).resolve().parents[1]
@@ -123,16 +124,15 @@ def test_a_batch_carries_each_row_as_alone(model, neutral):
     for b in range(5):
         assert np.all(_apart(batch[b], prior(rot[b : b + 1], w[b : b + 1])[0]) < 1e-12)
     # the compiled step is the numpy reference, the Hips' heading removal included
-    assert np.all(_apart(batch, prior.apply_numpy(rot, w)) < 1e-9)
+    assert np.all(_apart(batch, erd_carry.apply(prior, rot, w)) < 1e-9)
     # and keeps each quaternion on its input's side (a stream's quaternions never flip sign),
     # plain styles (rows 0 and 3, taken without the blend's round trip) as well as the rest
     assert np.all(np.sum(batch * rot, axis=-1) > 0)
     if model.output_prior is not None:
-        from models.erd.rotation_prior import carry_output_numpy
         from models.motion.bn_skeleton import HIPS
 
         compiled = model.output_prior(rot, w, hips=HIPS)
-        assert np.all(_apart(compiled, carry_output_numpy(model.output_prior, rot, w)) < 1e-9)
+        assert np.all(_apart(compiled, erd_carry.carry_output(model.output_prior, rot, w)) < 1e-9)
 
 
 def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
@@ -357,7 +357,7 @@ def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
 
 @pytest.mark.parametrize("mix", ["one style", "a mix at part intensity"])
 def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
-    """`carry_slow` (one compiled pass) against `carry_slow_numpy` (follow, `carry_by_gait`, the
+    """`carry_slow` (one compiled pass) against its numpy reference (follow, `carry_by_gait`, the
     fast part and the clamp, each in numpy), both stages, with the run priors part-shared."""
     from models.motion.bn_skeleton import HIPS
 
@@ -373,7 +373,7 @@ def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
         (model.output_prior, model.run_output_prior, HIPS),
     ):
         got, got_slow = carry_slow(other, run, q, slow, w, share, hips=hips)
-        want, want_slow = carry_slow_numpy(other, run, q, slow, w, share, hips=hips)
+        want, want_slow = erd_carry.carry_slow(other, run, q, slow, w, share, hips=hips)
         assert np.all(_apart(got_slow, want_slow) < 1e-12)
         assert np.all(_apart(got, want) < 1e-9)
 
@@ -436,5 +436,5 @@ def test_the_compiled_twist_range_is_its_numpy_reference(model):
     w = np.zeros((40, len(model.styles())))
     w[:20, 4] = 1.0  # one style
     w[20:30, 1], w[20:30, 3] = 0.6, 0.3  # a mix below full weight; the last 10 rows: no style
-    got, want = model.twist_range(q, w), model.twist_range.apply_numpy(q, w)
+    got, want = model.twist_range(q, w), erd_carry.twist_clamp(model.twist_range, q, w)
     assert _apart(got, want).max() < 1e-9

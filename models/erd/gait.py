@@ -1,23 +1,12 @@
 """Running or not, frame by frame from the input alone: which of Style-ERD's rotation priors a
 frame gets (`rotation_prior.py`).
 
-The priors map what the network makes toward a style onto the style's real rotations, one
-Gaussian per joint. Fitted over every content at once, runs (a tenth of the frames, with the
-widest arm and leg swings) were carried toward where walks and gestures sit: on the VALIDATION
-split's runs the rotation judge read 0 of 4 runs toward active, feminine or youthful as their
-style, and the position judge 0 of 4 toward exhausted. Runs
-therefore get priors fitted on runs alone (`*_prior_run.npz`), every other frame keeps the
-all-content priors, and a frame's share of the run priors ramps with the input's horizontal
-Hips speed over `RUN_RAMP_CM_S`: from the TRAIN `normal` walks' p99 (1.70 m/s; walk turns 1.61)
-to the TRAIN `normal` runs' p5 (2.11 m/s). Gestures stand (under 0.1 m/s). Causal: the speed is
-the step from the previous input frame; a session's first frame counts as standing, and a session
-eases into the run priors over its first sixth of a second (`eased_in`).
-
-The speed is averaged over about a running step (`SPEED_SMOOTHING`: an exponential average as
-long as a 10-frame window, a third of a second): a run's Hips speed swings by +-40 cm/s within
-each step, and frame by frame the share swung between 0 and 1 within three frames (validation
-runs at 2.0-2.5 m/s), switching the arms and head between the two priors; those frames' rotations
-turned up to 5-8x faster than the real runs'.
+Priors fitted over every content carried runs toward walks and gestures, so runs get priors
+fitted on runs alone (`*_prior_run.npz`). A frame's share of them ramps with the input's
+horizontal Hips speed over `RUN_RAMP_CM_S` (from the TRAIN neutral walks' p99 to the runs' p5).
+Causal: the speed is the step from the previous input frame, averaged over about a running step
+(`SPEED_SMOOTHING`; frame by frame a run's speed swing flipped the arms between priors); a
+session's first frame counts as standing, and it eases into the run priors (`eased_in`).
 """
 
 from __future__ import annotations
@@ -73,11 +62,9 @@ def run_share(speed: np.ndarray) -> np.ndarray:
 
 
 def eased_in(share: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """(B,) the run share at each row's `frame` (frames the session saw before this one), faded
-    in over its first `START_FRAMES`. A session's first frame counts as standing (no speed yet),
-    so a stream that starts mid-run took the run priors whole on its second frame: the head
-    toward feminine turned by 15-23 degrees in that one frame on the validation runs, against
-    0.2-1.5 without run priors; eased in over 5 frames, by 3.3-4.3."""
+    """(B,) the run share at each row's `frame` (frames the session saw before this one), faded in
+    over its first `START_FRAMES`: a stream that starts mid-run counts its first frame as standing,
+    and taking the run priors whole on its second frame turned the head in one frame."""
     return np.asarray(share, np.float64) * np.minimum(np.asarray(frame, np.float64) / START_FRAMES, 1.0)
 
 
@@ -89,15 +76,10 @@ def carry_by_gait(
     share: np.ndarray,
     hips: int = -1,
 ) -> np.ndarray:
-    """Rotations (B, J, 4) carried by the all-content prior `other` and by the `run` prior
-    followed by a clamp into `other`'s range (the style's real range over every content:
-    carried alone, the arms of validation runs toward feminine left it in 10 % of frames,
-    against 0 % with the clamp), mixed by each row's share (`StyleCarry.mixed_with`). A row at
-    share 0 gets exactly what `other` alone gives it (and a batch with no share at all is
-    `other`'s alone), one at share 1 the run prior's carry within `other`'s range; between,
-    the corrections are mixed in the tangent space at the input, in one compiled pass. Either
-    prior may be None (without a run prior, `other` takes every row at full weight). Row by
-    row: a row's result never depends on the others in the batch."""
+    """Rotations (B, J, 4) carried by the all-content prior `other` and by the `run` prior followed
+    by a clamp into `other`'s range, mixed by each row's share in one compiled pass
+    (`StyleCarry.mixed_with`): share 0 is exactly `other` alone. Either prior may be None (without
+    a run prior, `other` takes every row). A row's result never depends on the others."""
     w = np.asarray(weights, np.float64)
     r = np.asarray(share, np.float64)
     if run is None or not (r > 0.0).any():

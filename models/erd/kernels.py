@@ -1,11 +1,7 @@
 """Compiled kernels (numba) for Style-ERD's per-frame geometry: forward kinematics, the causal
-input features and the output pose; and the LSTM cell's elementwise passes around the network's
-products, which stay BLAS calls (`models.rowwise`).
-
-Why compiled: these steps are per-joint loops over 22 joints; as vectorised numpy they took
-~100 small numpy calls per frame (the forward kinematics alone a Python loop over the joints),
-~0.5 ms at batch 1, against ~1 us of arithmetic per session here. The formulas are those of
-`features.py` (documented there) and of `models.motion.features`, which the tests compare with.
+input features and the output pose, and the LSTM cell's elementwise passes around the network's
+BLAS products (`models.rowwise`). Per-joint loops as numpy calls cost ~100 calls per frame. The
+formulas are those of `features.py` and `models.motion.features`, which the tests compare with.
 """
 
 from __future__ import annotations

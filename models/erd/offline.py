@@ -1,18 +1,7 @@
-"""Whole-clip (offline) Style-ERD: run the torch generator over a clip from the learned initial
-states and turn its output back into a world-space `Motion`. The streaming model (runtime.py)
-does the same per frame; tests check they agree.
-
-Output root: the output Hips path integrates the predicted facing-frame root velocity (x, z),
-turned by the INPUT's facing yaw, starting from the input's first root position; the height is
-the predicted Hips height. So the path keeps the input's shape and direction while the speed may
-change with the style. The output Hips rotation is the input's facing yaw times the predicted
-yaw-free Hips rotation. As in the streaming model, the bones keep the input's twists and the
-leaves its rotations (`models.motion.twist.transfer_twist`; elbows and knees as hinges where
-`hinges` is given), carried to the target style and the
-output carried to the style's real rotations when the rotation prior is given (`rotation_prior.py`;
-run priors for the frames the input runs in, `gait.py`; the slow part carried, the fast part on
-top, `slow_carry.py`). Then the feet are planted frame by frame as in the streaming model
-(`models.motion.feet`; `foot_lock=False` gives the network's output alone).
+"""Whole-clip (offline) Style-ERD: the torch generator over a clip from the learned initial
+states, its output turned back into a world-space `Motion` with the same root path, decoding,
+rotation priors (`slow_carry.py`, `gait.py`) and foot planting as the streaming model
+(runtime.py; the tests check they agree). `foot_lock=False` gives the network's output alone.
 """
 
 from __future__ import annotations

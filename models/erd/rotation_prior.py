@@ -1,5 +1,5 @@
-"""The rotation prior of the streaming Style-ERD, fitted from real TRAIN clips (`carry.StyleCarry`),
-the same way for every style:
+"""The rotation priors of the streaming Style-ERD, fitted from real TRAIN clips
+(`models.motion.style_carry.StyleCarry`) the same way for every style:
 
     .venv/bin/python -m models.erd.rotation_prior        # all -> models/weights/erd/*_prior*.npz
     .venv/bin/python -m models.erd.rotation_prior runs   # the run priors alone
@@ -7,33 +7,18 @@ the same way for every style:
     .venv/bin/python -m models.erd.rotation_prior hinges # the decoding's hinge joints (`models.motion.hinge`)
     .venv/bin/python -m models.erd.rotation_prior sources # what uploads' stages carry from (`upload_stages.py`)
 
-1. **Twists and leaves** (`leaf_prior.npz`). The decoder is trusted only for where bones point
-   (`models.motion.twist.transfer_twist`): a bone's twist about itself and the head, hands and
-   toes move no joint, so the position-trained network never learned them. Copied from the
-   neutral input they stayed neutral on every output (the rotation judge recognised 9-29 % of
-   the styles, and neutral hands left the style's real range in 15-20 % of frames). So the
-   input's rotations are first carried from the real neutral distribution to the real target
-   style's, and the twists and leaves are taken from that.
-2. **The output** (`output_prior.npz`). The network's own bone directions, trained against a
-   discriminator on positions, are recognisable to a position judge, but their rotations are not
-   the style's: shoulders and spine too square or too still, arm swings with the wrong spread.
-   The output rotations (after 1.) are carried from the distribution the network produces toward
-   each style (measured by running it over TRAIN neutral clips) to the style's real one, and
-   clamped into the style's real range. This moves joints: the foot planter runs after it. The
-   legs are only clamped: the planter re-poses them anyway, and carrying their rotations as
-   well made the content judge read straight walks as turns.
-3. **Runs** (`leaf_prior_run.npz`, `output_prior_run.npz`): both fitted again on running frames
-   alone, for the frames where the input runs (`gait.py`). Which clips run is measured, for the
-   real clips and the neutral inputs alike, by each style's own split of its clips' median Hips
-   speeds (`models.motion.gait_split`: a fixed speed cannot tell elderly runs from active
-   walks), whatever the clip's label. Fitted over every
-   frame, the priors carried runs toward walks and gestures. The run output prior's source takes
-   the arms as the stream makes them (the leaf prior in place) and the rest with the input's own
-   twists and leaves, and it carries the legs too: only clamped, the runs' legs stayed the
-   network's near-neutral stride.
-The Root is left alone by both, the Hips by the leaf prior (the decoder's legs and spine fix
-them). The output prior reads the Hips without their heading (their twist about world up, as the
-eval suite compares them) and only clamps them: the rest of the body hangs from them.
+1. **Leaves** (`leaf_prior.npz`): the position-trained network never learned bone twists or the
+   head, hands and toes, so those come from the input, first carried from the real neutral
+   distribution to the real target style's.
+2. **Output** (`output_prior.npz`): the network's rotations, carried from what it produces toward
+   each style (streamed over TRAIN neutral clips) to the style's real distribution and clamped
+   into its range. The legs are only clamped (the foot planter re-poses them; carried, they
+   turned straight walks).
+3. **Runs** (`*_prior_run.npz`): both fitted again on running clips alone (each style's own
+   speed split, `models.motion.gait_split`), for frames where the input runs (`gait.py`); the run
+   output prior carries the legs too.
+The Root is left alone, the Hips by the leaf prior; the output prior reads the Hips without
+their heading and only clamps them.
 """
 
 from __future__ import annotations
@@ -46,8 +31,7 @@ import numpy as np
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
 from ..motion.gait_split import running, split_by_gait
-from ..motion.rotation_ball import comparable, split_heading
-from ..motion.rotations import quat_mul
+from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry
 
 LEAF_FILE = "leaf_prior.npz"
@@ -95,15 +79,6 @@ def real_rotations(runs: bool = False) -> list[np.ndarray]:
     return out
 
 
-def carry_output_numpy(prior: StyleCarry, rot: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The numpy reference of the output prior on rotations (B, J, 4), the Hips carried without
-    their heading: what `prior(rot, weights, hips=HIPS)` computes compiled."""
-    heading, free = split_heading(rot)
-    out = prior.apply_numpy(free, weights)
-    out[:, HIPS] = quat_mul(heading, out[:, HIPS])
-    return out
-
-
 def fit_leaf_prior(real: list[np.ndarray]) -> StyleCarry:
     """Real neutral -> real target style, for each target style."""
     return StyleCarry.fit([real[0]] * (len(real) - 1), real[1:], FIXED)
@@ -131,11 +106,10 @@ def _running_inputs() -> list:
 
 def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> StyleCarry:
     """The model's outputs (its leaf prior in place, no output prior) over TRAIN neutral clips
-    toward each style -> the real style. With `runs`: TRAIN neutral clips that run
-    (`_running_inputs`), against the real runs in `real`, the legs carried as well, not only
-    clamped (module docstring); the arms (`RUN_ARMS`) as the stream makes them, the leaf prior in
-    place, every other joint with the input's own twists and leaves: taken with the leaf prior
-    too, the head jumped by 6-7 degrees in a frame as a stream started mid-run."""
+    toward each style -> the real style. With `runs`: TRAIN neutral clips that run, against the
+    real runs, the legs carried too; the arms (`RUN_ARMS`) as the stream makes them and every other
+    joint with the input's own twists and leaves (with the leaf prior, heads jumped as a stream
+    started mid-run)."""
     if runs:
         inputs = _running_inputs()
         produced = network_rotations(model, inputs, leaf_prior=False)

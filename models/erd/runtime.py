@@ -22,37 +22,23 @@ State per session (every entry has the session axis first):
 Every residual branch advances every frame (whatever its weight), so switching or mixing styles
 never meets a stale state; the output uses latent = neutral + sum_s w_s * branch_s.
 
-Output root: the predicted facing-frame root velocity is integrated from the input's first root
-position, turned by the input's facing yaw (the path keeps the input's shape and direction; the
-speed follows the style); the height is predicted.
+Output root: the predicted facing-frame root velocity, integrated from the input's first root
+position and turned by the input's facing yaw (the path keeps the input's shape, the speed
+follows the style); the height is predicted.
 
-Twists and leaves: the decoder's rotations are trusted only where they move joints. Its positions
-are kept exactly, but each bone's twist about itself and the head, hands and toes take the
-input's rotations (`models.motion.twist.transfer_twist`): trained on positions, the network had
-left those free and wrung wrists by 60-140 degrees and turned necks by 90. Elbows and knees are
-hinges (`models.motion.hinge`, fitted once from TRAIN rotations of every style, `hinges.npz`):
-the upper arm and thigh take the twist that lays the forearm and shin in their hinge plane
-instead of the input's, or the forearm swung up to 28 degrees (p95) off its hinge. This is part
-of decoding the network's pose (the trainer decodes the same way), not a stage. The input's
-rotations are first carried from the neutral style's real distribution to the target style's,
-so the head and wrists take the style's attitude inside its real range instead of the neutral
-input's; then the output's rotations are carried from what the network produces to the style's
-real distribution and clamped into its real range (`rotation_prior.py`: `leaf_prior.npz`,
-`output_prior.npz` beside the weights). Frames where the input runs take priors fitted on runs
-alone (`*_prior_run.npz`), chosen by the input's Hips speed (`gait.py`). Each
-prior carries only a slowly following copy of the rotations; their frame-to-frame rest passes
-unscaled, so the priors' gains do not shake the head and arms (`slow_carry.py`). Last, the arms'
-twists about their bones are kept inside the style's real interval (`twist_range.py`: the
-priors scaled them up to 17 degrees past anything real).
+Decoding (as the trainer decodes, not a stage): the decoder's positions are kept, but each
+bone's twist and the head, hands and toes, which move no joint and so were never learned, take
+the input's rotations (`models.motion.twist.transfer_twist`); elbows and knees keep their hinge
+plane (`models.motion.hinge`, `hinges.npz`).
 
-Planted feet: the network knows nothing of the floor, so its planted feet slid (20 % of flat-foot
-frames over the eval suite's inputs, 40 % toward `active`, against 3 % for the inputs). The
-shared planter (`models.motion.feet.FootPlanter`, as for every method) holds a toe or ankle on
-the ground where it touched down by two-bone leg IK; the root keeps its path. The output keeps
-the input's timing, so the input's own contacts (feature columns `CONTACT`: ankle or toe low and
-slow, causal) are its hints: a foot the input has down plants however fast the network slides it.
-An ankle-only lock let toes pivot and drag (planted toes 2-7x real). The output's `contacts` are
-the planted legs.
+Stages, each fitted from data the same way for every style: the input's rotations are carried
+from the neutral style's real distribution to the target's, and the output's from what the
+network produces to the target's real one, clamped into its range (`rotation_prior.py`), with
+run-fitted priors where the input runs (`gait.py`); each prior carries only a slowly following
+copy so its gains do not shake the limbs (`slow_carry.py`); the arms' twists are kept inside
+the style's real interval (`twist_range.py`). Last, the shared foot planter
+(`models.motion.feet.FootPlanter`) holds the feet the input has down (feature columns
+`CONTACT`), toe and ankle, by two-bone leg IK; the output's `contacts` are the planted legs.
 """
 
 from __future__ import annotations
@@ -87,10 +73,9 @@ NEWER_KEYS = ("gait_speed", "slow_in", "slow_out")  # state entries snapshots fr
 
 
 def _sigmoid_(a: np.ndarray) -> np.ndarray:
-    """Logistic sigmoid of a float array, in place, by torch's vectorised (SLEEF) kernel: numpy's
-    float32 tanh/exp are not vectorised on AVX2 machines and took a third of a batched step.
-    (Only the sigmoid: torch.tanh with 2 intra-op threads took ~8 ms per call on tiny arrays
-    here, so tanh(x) is taken as 2 sigmoid(2x) - 1.)"""
+    """Logistic sigmoid of a float array, in place, by torch's vectorised kernel: numpy's float32
+    tanh/exp are not vectorised on AVX2 (a third of a batched step), and torch.tanh was slow on tiny
+    arrays, so tanh(x) is taken as 2 sigmoid(2x) - 1."""
     t = torch.from_numpy(a)
     torch.sigmoid(t, out=t)
     return a
@@ -168,15 +153,12 @@ class ERDModel(ERDStyles):
             self.twist_range(rest, np.ones_like(none))
 
     def _prepare_weights(self) -> None:
-        """Everything constant, once, in the network's dtype and in the layout the step multiplies:
-        the input normalisation stays a float64 subtraction (features reach ~1e3, the weights
-        ~1e-2), the label one-hots become row lookups (index -1 = unknown = a zero row), and the
-        seven LSTM branches (neutral + six styles) are stacked, input and hidden weights together,
-        so each layer is one batched product. Every matrix is stored row-major: the 8-row block
-        products run 2-13 % faster on it than on the transposed views (1,000 rows, one thread), and
-        a torch product would otherwise copy a transposed one on every call. The cell-input gate's
-        rows are doubled so one sigmoid over all four gates serves it too: tanh(x) = 2 sigmoid(2x) - 1
-        (doubling is exact)."""
+        """Everything constant, once, in the network's dtype and the layout the step multiplies: the
+        input normalisation stays a float64 subtraction (features reach ~1e3, weights ~1e-2), label
+        one-hots become row lookups (-1 = unknown = a zero row), and the seven LSTM branches are stacked,
+        input and hidden weights together, one batched product per layer. Matrices are row-major (faster
+        block products, no copies of transposed views). The cell-input gate's rows are doubled so one
+        sigmoid serves all four gates: tanh(x) = 2 sigmoid(2x) - 1 (doubling is exact)."""
         p, dt, H = self.p, self.dtype, self.H
         n_in = len(self.mean)
         w0, b0 = p["encoder.0.weight"].T, p["encoder.0.bias"]

@@ -1,19 +1,10 @@
 """Keep Style-ERD's arm twists inside the twists the real data shows.
 
-A bone's twist about itself moves no joint, yet a skinned arm shows it. Style-ERD's bones take
-the input's twists carried by the leaf prior, and then the output prior maps whole rotations
-with gains up to 2; each scales a twist with the rest. On the validation clips the p95 of how far
-the arms' twist (relative to the style's real mean) went past the real p0.5..p99.5 interval was
-13.2 degrees toward masculine (UpperArm_L), 16.4 toward youthful (LowerArm_L) and 9.8 toward
-elderly (LowerArm_R), against 0.0 for real clips (both priors add to it). The angle clamps of
-the priors bound a rotation's distance from the style's mean, not its twist: a small swing
-leaves room for a large twist.
-
-So after the priors each arm joint's twist about its bone, relative to the style's real mean, is
-clamped into the style's real TRAIN p1..p99 twist interval (inside the evaluation's p0.5..p99.5,
-as the priors' p98 angle clamps sit inside its p99). The swing, which places the joints, is kept:
-a twist correction is a rotation about the bone's own axis, applied on the right. Style mixes
-blend the corrections by their weights; a row with no style weight is left as it is.
+A bone's twist moves no joint, yet a skinned arm shows it, and the priors' gains scale twists
+with the rest while their angle clamps bound only the distance from the style's mean. So after
+the priors each arm joint's twist about its bone, relative to the style's real mean, is clamped
+into the style's real TRAIN p1..p99 interval; the swing, which places the joints, is kept.
+Style mixes blend the corrections by their weights; a row with no style weight is left alone.
 """
 
 from __future__ import annotations
@@ -69,24 +60,9 @@ class TwistRange:
     def __call__(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """(B, J, 4) rotations with each arm joint's twist moved into the styles' real intervals
         by the weights (B, S): t + sum_s w_s (clip(t_s, lo_s, hi_s) - t_s), t_s its twist against
-        style s's mean. Compiled (`kernels.twist_clamp_batch`); `apply_numpy` is the reference."""
+        style s's mean. Compiled (`kernels.twist_clamp_batch`); `tests/reference/erd_carry.py` is the reference."""
         from .kernels import twist_clamp_batch
 
         q = np.ascontiguousarray(q, np.float64)
         w = np.ascontiguousarray(weights, np.float64)
         return twist_clamp_batch(q, w, self.joints, self.axes, self.mean, self.lo, self.hi, np.empty_like(q))
-
-    def apply_numpy(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """The numpy reference of `__call__`."""
-        w = np.asarray(weights, np.float64)
-        rows = np.flatnonzero(w.any(axis=1))
-        if len(rows) == 0:
-            return q
-        arms = np.asarray(q, np.float64)[rows][:, self.joints]  # (R, K, 4)
-        t = twist_angle(quat_mul(quat_inv(self.mean)[None], arms[:, None]), self.axes)  # (R, S, K)
-        delta = np.einsum("rs,rsk->rk", w[rows], np.clip(t, self.lo, self.hi) - t)
-        half = 0.5 * delta[..., None]
-        turn = np.concatenate([np.sin(half) * self.axes, np.cos(half)], axis=-1)  # about each bone
-        out = np.array(q, np.float64)
-        out[np.ix_(rows, self.joints)] = quat_mul(arms, turn)
-        return out

@@ -2,22 +2,17 @@
 style puts it?
 
 Positions miss what a skinned character shows: a leaf joint's rotation (head, hands, toes) and a
-twist about a bone move no joint, so a model can wring a wrist by 130 degrees and still score well
-on every position metric. Here each body joint's local rotation is compared with the real data of
-the style, per joint:
+twist about a bone move no joint. Per body joint, against the style's real data:
 
-- **distance**: angle to the real data's mean rotation of that joint; a frame is *plausible* when
-  it is no farther than the real data's own p99 distance;
-- **twist**: the part of the rotation relative to that mean that turns the bone about itself
-  (swing-twist split about the bone's axis), against the real p0.5..p99.5 interval;
-- **pops**: how fast the rotation's turning changes from frame to frame (the angle of the second
-  difference, degrees per frame per frame), against the real p99.9 of that joint: a one-frame
-  flick of the torso or a wrist that no pose metric sees.
+- **distance**: angle to the real mean rotation; a frame is *plausible* within the real p99;
+- **twist**: the rotation's turn about the bone relative to that mean (swing-twist split),
+  against the real p0.5..p99.5 interval;
+- **pops**: the angle of the rotation's second difference (degrees per frame per frame), against
+  the joint's real p99.9: a one-frame flick that no pose metric sees.
 
-The Hips rotation holds the character's heading, which is arbitrary, so it is compared with its
-heading removed (its swing away from world up). The reference (`RotationReference`) is built from
-the TRAIN split, so the scored test clips never shaped it; real validation clips of the style
-score about 99 % plausible, which is what the test gate (95 %) is measured against.
+The Hips rotation holds the arbitrary heading, so it is compared with its heading removed. The
+reference (`RotationReference`) is built from the TRAIN split; real validation clips of a style
+score about 99 % plausible, against which the test gate (95 %) is set.
 """
 
 from __future__ import annotations

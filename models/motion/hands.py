@@ -5,11 +5,9 @@ raised hand that holds still is a raise-up, one that sways at a level height is 
 per frame: a frame's shares read that frame and the running averages.
 
 - **Raise share:** each hand's height above its own shoulder (the UpperArm joint) on a ramp over
-  `RAISE_RAMP_CM`: from the TRAIN `normal` runs' p99 (-12 cm; a running arm's swing reaches past it
-  in about 1 % of frames) to the shoulder's height (Style-ERD's card chose it on validation).
+  `RAISE_RAMP_CM`, from the TRAIN `normal` runs' p99 to the shoulder's height.
 - **Sway:** each hand's horizontal speed against its shoulder, an exponential average over
-  `SWAY_FRAMES`. On the validation inputs' raised frames a raise-up's has a median of 21-34 cm/s
-  (p90 41-60), a wave's a median of 57-96 (p10 50-84): the wave share ramps over `WAVE_RAMP_CM_S`.
+  `SWAY_FRAMES`; the wave share ramps over `WAVE_RAMP_CM_S`, between raise-ups' and waves' speeds.
 - **Rise:** its vertical speed, averaged alike; the level share falls over `LEVEL_RAMP_CM_S`.
 """
 

@@ -1,30 +1,22 @@
 """Hinge joints, fitted from real rotations, and the parent twist that keeps them hinges.
 
-A model that decides where bones point (`twist.transfer_twist`) leaves each bone's twist about
-itself free: it takes the twist from another pose (the input frame). For an upper arm that is
-not enough. The elbow is a hinge: the forearm can only swing about one axis of the upper arm's
-frame, so the upper arm's twist must place that axis square to the plane of the three joints
-(shoulder, elbow, wrist) that the model's positions give. With the input's twist it usually does
-not, and the forearm swings sideways off its hinge, a pose no real arm takes.
+A model that decides where bones point (`twist.transfer_twist`) takes each bone's twist from
+another pose. An elbow or knee is a hinge, so the parent's twist must place the hinge axis square
+to the plane of the three joints the model's positions give; with the input's twist it usually
+does not, and the forearm swings sideways off its hinge, a pose no real arm takes.
 
-`fit_hinges` finds the hinge joints from real local rotations, the same way for every joint:
-a joint whose swing (its rotation without the twist about its own bone) turns about one
-direction only, whose parent has this joint as its only child. On Bandai Namco's data that is
-each elbow and knee, and their swings turn about one axis exactly. It stores, per hinge joint,
-the hinge axis (signed so that the real bends are positive), the parent's real twist
-interval (the parent's twist is what the re-twist changes) and the least real bend, the
-`floor`: a real knee or elbow never bends backward past it (`hinge_kernels.floor_bend`
-holds a model's output there).
+`fit_hinges` finds the hinge joints from real local rotations, the same way for every joint: a
+joint whose swing turns about one direction only and that is its parent's only child (on Bandai
+Namco's data, each elbow and knee). Per hinge it stores the axis (signed so real bends are
+positive), the parent's real twist interval and the least real bend, the `floor`: a real knee or
+elbow never bends backward past it (`hinge_kernels.floor_bend` holds a model's output there).
 
-`twist_kernels.hinge_twist` is the angle to turn the parent about its own bone so that the
-child's bone lies in the hinge plane, bent the way real joints bend, kept inside the parent's real
-twist interval. Turning a parent about its own bone moves no joint; `transfer_twist` then lays the
-child's bone along the model's direction with the smallest swing, which in the hinge plane is a
-turn about the hinge axis: the joint bends as a hinge. The child turns back about its own bone by
-as much of the parent's turn as its real twist interval allows, as a forearm pronates, so the
-hand below keeps facing where the source has it. With the limb nearly straight the plane is
-ill-defined, so the turn fades out below `fade` radians of bend; where the model bends the joint
-backward, the parent would turn by half a turn, so the turn fades out from a quarter turn on.
+`twist_kernels.hinge_twist` is the turn of the parent about its own bone (which moves no joint)
+that lays the child's bone in the hinge plane, bent the way real joints bend, within the parent's
+real twist interval; `transfer_twist` then bends the child about the hinge axis. The child turns
+back by as much of that turn as its own twist interval allows, as a forearm pronates, so the hand
+keeps facing where the source has it. The turn fades out below `fade` radians of bend (the plane
+is ill-defined) and from a quarter turn on (a joint bent backward).
 """
 
 from __future__ import annotations

@@ -1,51 +1,36 @@
 """Unseen content kept: how far each input frame lies from anything a model was trained on, and
 the smooth fade of the model's output toward the input there.
 
-A style model carries only what its training input showed. Fed a crouch, a pick-up, a fall or (for
-a locomotion controller) a raised arm, it straightens the legs, walks on or drops the arm: the
-content is lost. So every model's output passes one stage fitted the same way for every model from
-that model's own TRAINING input frames (`fit`):
+A style model carries only what its training input showed: fed a crouch, a pick-up or a fall it
+straightens the legs or walks on, and the content is lost. So every model's output passes one
+stage fitted the same way for every model from that model's own TRAINING input frames (`fit`):
 
-- **What the body is doing**, per body part (the lower body with the hips, the trunk, each arm:
-  `body_parts`, from the skeleton's chains), from the end of each of its chains only
-  (`feature_kinds`), on the model rig, in the frame of the hips' heading (where the character
-  faces is never what it does), in leg lengths: the head's and each hand's position from the
-  joint the part hangs from; for each leg, how far its end reaches from the hip and how high it
-  is above the floor, with the hips' height and vertical speed. Positions rather than local
-  rotations: a performer's twists and carriage, and a retargeter's rest pose, change rotations on
-  every joint a little, and summed over a limb that was as far as a crouch is from a walk. Chain
-  ends rather than every joint, and a leg's reach and height rather than where its foot is: with
-  every joint's position, another performer's walks and runs (other strides, knees and spines)
-  lay as far from the training frames as a crouch did; a crouch, a kneel or a fall shortens the
-  legs and lowers the hips whoever performs it.
-- **Far from the training input**: the distance of a part's features to the nearest of
-  `CENTROIDS` training frames that cover the training frames (`cover`): a nearest neighbour
-  that is cheap per frame, and unlike one Gaussian it does not call the gap between a walk and a
-  wave "seen".
+- **What the body is doing**, per body part (`body_parts`: the lower body with the hips, the
+  trunk, each arm), from the end of each of its chains only (`feature_kinds`), on the model rig,
+  in the hips' heading frame, in leg lengths: the head's and each hand's position from the joint
+  the part hangs from; each leg's reach from the hip and height above the floor, with the hips'
+  height and vertical speed. Positions of chain ends rather than rotations or every joint:
+  another performer's twists, strides and spine (or a retargeter's rest pose) then stay close,
+  while a crouch, a kneel or a fall shortens the legs and lowers the hips whoever performs it.
+- **Far from the training input**: the distance to the nearest of `CENTROIDS` training frames
+  that cover the training frames (`cover`): cheap per frame, and unlike one Gaussian it does not
+  call the gap between a walk and a wave "seen".
 - **Calibrated on VALIDATION clips** of the same selection: a part starts to fade at `START`
-  times its `QUANTILE` distance over their frames, or `FLOOR` leg lengths where that is more, and
-  is fully faded at `FULL_FADE` times it. The floor is for other performers: one performer's
-  validation clips lie within a few cm of its training frames (a trunk within 1 cm), and another
-  performer's neutral walk differs from them by more than that everywhere; a crouch lies beyond 3
-  times the floor (the evaluation's validation inputs, `make eval`). The `TRIM_CLIPS` share of validation clips whose far frames lie
-  farthest out is left out of the quantile first: a data set with one or two takes of a content
-  (dataset 1) holds out takes whose poses its training split never shows, and one such clip set
-  the whole threshold (a held-out kick doubled LTI's lower-body threshold, so a crouch did not
-  fade).
+  times its `QUANTILE` distance over their frames, or `FLOOR` leg lengths where that is more (for
+  other performers), and is fully faded at `FULL_FADE` times it. The `TRIM_CLIPS` share of
+  validation clips lying farthest out is left out first: a held-out take whose poses the
+  training split never shows would otherwise set the whole threshold.
 - **Smoothly, causally**: the per-frame target passes two one-pole filters in a row (attack
-  `ATTACK_FRAMES`, release `RELEASE_FRAMES`, no look-ahead), so the weight and its rate change
-  without steps and a fade cannot pop the pose.
+  `ATTACK_FRAMES`, release `RELEASE_FRAMES`, no look-ahead), so a fade cannot pop the pose.
 - **Toward the input**: each joint's rotation slerps toward the input's by its part's weight; the
-  hips height moves toward the input's by the lower body's (and rises where the blend would put
-  the lowest foot point below the input's: a partly bent leg under a partly lowered root sinks),
-  and across the ground the hips move by the method's step and the input's mixed by it (per frame compiled in `novelty_kernels.py`;
-  these numpy functions fit, report and are its reference). The model keeps stepping on the input
-  underneath, so its style comes back as the input returns to what it knows.
+  hips height by the lower body's (raised where a partly bent leg would sink the lowest foot
+  point below the input's), and the hips' ground motion mixes the method's step and the input's
+  (compiled per frame in `novelty_kernels.py`; these numpy functions fit, report and are its
+  reference). The model keeps stepping underneath, so its style returns with known content.
 
 `python -m models.motion.novelty fit --method NAME --datasets ... [--contents ...]` writes
-`models/weights/novelty/<NAME>.npz` (tens of kB; `make novelty` fits every method's);
-`report` prints fade rates on any clip selection.
-The streaming stage that applies it is `novelty_stage.py`.
+`models/weights/novelty/<NAME>.npz` (`make novelty` fits every method's); `report` prints fade
+rates on any clip selection. The streaming stage that applies it is `novelty_stage.py`.
 """
 
 from __future__ import annotations
@@ -213,13 +198,6 @@ class NoveltyReference:
         smoothstep to 1 at FULL_FADE times it."""
         x = np.clip((distances / self.threshold - START) / (FULL_FADE - START), 0.0, 1.0)
         return x * x * (3.0 - 2.0 * x)
-
-    def joint_weights(self, part_weights: np.ndarray) -> np.ndarray:
-        """(B, parts) -> (B, J) each joint's fade (0 for joints in no part)."""
-        w = np.zeros((len(part_weights), len(self.part)))
-        inside = self.part >= 0
-        w[:, inside] = part_weights[:, self.part[inside]]
-        return w
 
     def clip_fades(self, rotations: np.ndarray, hips_y: np.ndarray, fps: float) -> np.ndarray:
         """A whole clip (T, J, 4), (T,) at the model rate -> (T, parts) smoothed fade weights, as

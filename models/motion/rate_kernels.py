@@ -1,12 +1,8 @@
-"""Compiled per-frame interpolation for `rate.py` (numba).
-
-Why: in numpy the parabola through three outputs is ~40 array operations a call: ~0.3 ms for one
-session's frame and ~54 ms (CPU) for a crowd tick of 2,000 characters, over a 60 fps frame's
-16.7 ms. Here one pass over rows and joints, and the parabola through the quaternions themselves,
-normalised (no transcendental function; it differs from one in each joint's tangent space by well
-under a degree at a model frame's rotations): ~2 us a session's frame, ~0.7 ms CPU a
-2,000-character tick. Row by row, so a row's result does not depend on the other rows (a crowd's
-character equals the same session alone, bit for bit).
+"""Compiled per-frame interpolation for `rate.py` (numba): in numpy the parabola through three
+outputs is ~40 array operations a call, too slow for a crowd tick within a 60 fps frame. Here one
+pass over rows and joints, the parabola through the quaternions themselves, normalised (no
+transcendental function; well under a degree from the tangent-space one). Row by row, so a
+crowd's character equals the same session alone, bit for bit.
 """
 
 from __future__ import annotations

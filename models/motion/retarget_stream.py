@@ -1,30 +1,24 @@
 """Causal, per-frame retargeting between a client's humanoid rig and the Bandai Namco (BN) model skeleton.
 
-`retarget.retarget` works on whole clips (it resamples, and places the root by a percentile of
-the clip's toe heights). A live stream has one frame at a time, so `FrameRetargeter` fixes
-everything else up front, for any rig `humanoid` matches:
+`retarget.retarget` works on whole clips; a live stream has one frame at a time, so
+`FrameRetargeter` fixes everything else up front, for any rig `humanoid` matches:
 
-* BN bones are laid along the client's *segments* between the joints of matching roles
+* BN bones are laid along the client's *segments* between joints of matching roles
   (`humanoid.bn_segments`), read from each frame's world rotations and the rig's bone offsets,
-  never from its rest pose; `retarget.TwistPlan` turns them into BN rotations;
+  never its rest pose; `retarget.TwistPlan` turns them into BN rotations;
 * the client's world is brought to BN's (Y up, right-handed) by `HumanoidRig.axes`, a rotation or
   a reflection: directions are multiplied by it, rotations conjugated;
 * the Hips translation is the client's hips position scaled by the leg-length ratio, plus one
-  constant height (`vertical_offset`) that puts the client's toes at its floor where BN's are at
-  BN's, both skeletons compared in BN's natural standing pose.
+  constant height (`vertical_offset`) that puts the client's toes at its floor where BN's are.
 
-`to_source` is the inverse, a (stylised) BN frame back onto the client's rig. Each BN joint j
-gives a delta D_j = G_bn_new[j] G_bn_client[j]^-1, the change of its global rotation from the BN
-pose the client's own frame maps to; each client joint k gets G_new[k] = D_{j(k)} G_client[k],
-j(k) the BN joint of k's nearest mapped ancestor-or-self (none: no change). So a mapped joint's
-segment points where the new BN bone points, with the client's own twist turned by BN's change;
-unmapped joints (twist bones, fingers, extra spine joints, props) keep their local rotations and
-ride along; joints above the hips keep theirs. `to_source(*to_model(root, rot), rot) == (root, rot)`
-up to float rounding.
+`to_source` is the inverse, a (stylised) BN frame back onto the client's rig: each client joint k
+gets G_new[k] = D_j G_client[k], D_j = G_bn_new[j] G_bn_client[j]^-1 the change of the global
+rotation of j, the BN joint of k's nearest mapped ancestor-or-self (none: no change). Unmapped
+joints (twist bones, fingers, props) keep their local rotations and ride along.
+`to_source(*to_model(root, rot), rot) == (root, rot)` up to float rounding.
 
-Both run compiled kernels (`retarget_kernels`), one frame at a time on scalars. The same mapping
-in numpy, batched over frames and over the joints of one tree depth, is the reference the
-kernels are tested equal to (`tests/reference/retarget.py`).
+Both run compiled kernels (`retarget_kernels`), one frame at a time; the batched numpy mapping
+they are tested equal to is `tests/reference/retarget.py`.
 """
 
 from __future__ import annotations

@@ -137,7 +137,7 @@ class StyleCarry:
 
     def __call__(self, q: np.ndarray, weights: np.ndarray, hips: int = -1) -> np.ndarray:
         """(B, J, 4) rotations (B, J, 4) carried toward the styles of weights (B, S), compiled
-        (`style_carry_kernels.py`; `apply_numpy` is the reference). Joint `hips` (if >= 0) is carried
+        (`style_carry_kernels.py`; `tests/reference/erd_carry.py` is the reference). Joint `hips` (if >= 0) is carried
         without its heading (its twist about world up), which is put back after."""
         from .style_carry_kernels import carry
 
@@ -178,22 +178,6 @@ class StyleCarry:
         from .style_carry_kernels import carry_pair
 
         return carry_pair(q, weights, share, self.arrays, then_b.arrays, then_c.arrays, hips)
-
-    def apply_numpy(self, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
-        """The numpy reference of `__call__`. Only the (row, style) pairs with a weight are
-        computed, so a batch of single styles costs one carry per row."""
-        q = np.asarray(q, np.float64)
-        q = q / np.linalg.norm(q, axis=-1, keepdims=True)  # the data's quaternions are unit to ~1e-7
-        w = np.asarray(weights, np.float64)
-        rows, styles = np.nonzero(w)
-        if len(rows) == 0:
-            return q.copy()
-        correction = np.zeros(q.shape[:-1] + (3,))
-        for s in np.unique(styles):
-            r = rows[styles == s]
-            fs = self.style(q[r], int(s))
-            np.add.at(correction, r, w[r, s][:, None, None] * quat_log(quat_mul(quat_inv(q[r]), fs)))
-        return quat_mul(q, quat_exp(correction))
 
     def save(self, path: Path) -> Path:
         np.savez(path, source=self.source, mean=self.mean, map=self.map, radius=self.radius)

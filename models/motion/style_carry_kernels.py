@@ -1,11 +1,8 @@
-"""`style_carry.StyleCarry` compiled (numba) for the per-frame step: the same formulas as the numpy
-reference (`StyleCarry.apply_numpy`), as per-row, per-joint loops. Vectorised numpy took ~40
-small calls per prior and frame (~0.16 ms each at batch 1, 3-4 ms at batch 256); this is
-~1 us of arithmetic per session.
-
-`_toward` and `_carry_joint` are inlined by numba (`inline="always"`): out of line, each call
-passes its four arrays as numba's array structs, dozens of words per joint, a quarter to a half of
-the kernel's time. Inlining the small helpers too buys nothing and triples the first compile.
+"""`style_carry.StyleCarry` compiled (numba) for the per-frame step: the formulas of the numpy
+reference (`tests/reference/erd_carry.py`) as per-row, per-joint loops, ~1 us per session
+instead of ~40 small numpy calls per prior and frame. `_toward` and `_carry_joint` are inlined
+(`inline="always"`): out of line, passing their arrays as numba structs cost a quarter to a half
+of the kernel's time; inlining the small helpers too buys nothing and triples the first compile.
 """
 
 from __future__ import annotations
@@ -108,7 +105,7 @@ def _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius):
 def carry_batch(q, w, source, mean, lin, radius, hips, out):
     """out (B, J, 4) = q (B, J, 4) carried toward the styles of weights w (B, S). Joint `hips`
     (-1: none) is carried without its heading, its twist about world up (+Y), which is put back
-    after (`rotation_prior.carry_output_numpy` is the numpy reference). A row with one style at
+    after (`tests/reference/erd_carry.py` is the numpy reference). A row with one style at
     weight 1 (no mix, no intensity) takes f_s(q) itself, in q's hemisphere: the blend
     q exp(log(q^-1 f_s(q))) is the same rotation, and skipping its log and exp halves the
     kernel's cost for such rows."""
