@@ -96,6 +96,7 @@ class StyledFrame:
     rotations: np.ndarray  # (J, 4)
     dropped: int  # frames the server dropped before this one (backpressure)
     notices: tuple[ServerError, ...] = ()  # e.g. `style_deleted`, sent before this frame's reply
+    faded: float = 0.0  # how far the frame faded toward the input (unseen content); 0 for a core pipeline
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ def start_message(settings: StartSettings, resume_token: str | None) -> str:
         "type": "start",
         "model": settings.model,
         "fps": settings.fps,
-        "encoding": "binary",
+        "encoding": "binary-faded",  # binary replies that end in the frame's `faded`
         "intensity": settings.intensity,
     }
     if settings.pipeline != "full":
@@ -101,9 +101,12 @@ def pack(seq: int, root: np.ndarray, rotations: np.ndarray) -> bytes:
 
 
 def unpack(data: bytes, joints: int) -> StyledFrame:
+    """A `binary-faded` frame reply: root, rotations, then `faded` (absent from a plain `binary` one)."""
     seq, _, dropped = HEADER.unpack_from(data)
     values = np.frombuffer(data, "<f4", offset=HEADER.size).astype(np.float64)
-    return StyledFrame(seq, values[:3], values[3:].reshape(joints, 4), dropped)
+    end = 3 + 4 * joints
+    faded = float(values[end]) if len(values) > end else 0.0
+    return StyledFrame(seq, values[:3], values[3:end].reshape(joints, 4), dropped, faded=faded)
 
 
 def json_frame(message: dict[str, Any]) -> StyledFrame:
@@ -113,6 +116,7 @@ def json_frame(message: dict[str, Any]) -> StyledFrame:
         np.asarray(message["root"], np.float32).astype(np.float64),
         np.asarray(message["rotations"], np.float32).astype(np.float64),
         message.get("dropped", 0),
+        faded=float(message.get("faded", 0.0)),
     )
 
 

@@ -94,3 +94,15 @@ def test_a_crowd_opened_with_faded_gets_each_characters(server, clips):
     got = np.array(got)
     np.testing.assert_allclose(got[:, 0], wanted, atol=1e-3)  # the crouching character's, as in its session
     assert got[:, 1].max() < 0.05  # the walking one's
+
+
+def test_the_sdk_says_how_far_each_frame_faded(server, clips):
+    from clients.sdk import Client
+
+    crouch, _ = clips
+    wanted = np.array([r["faded"] for r in _session(server, crouch, "json")])
+    with Client(server).session("lti", "elderly") as session:
+        got = np.array(
+            [session.stylise(crouch.translations[t, HIPS], crouch.rotations[t]).faded for t in range(len(wanted))]
+        )
+    np.testing.assert_allclose(got, wanted, atol=1e-3)
