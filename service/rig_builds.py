@@ -30,6 +30,8 @@ import json
 import multiprocessing
 import os
 import signal
+import threading
+import time
 from collections import Counter, OrderedDict
 from collections.abc import Awaitable, Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -47,6 +49,7 @@ PER_CALLER = 1  # one caller's rig builds at once
 PROCESSES = 2  # children for every caller's builds together
 TIMEOUT_S = 30.0  # a build capped by `rig_check` takes well under a second; a child silent this long is killed
 REFUSED_KEPT = 256  # typed refusals remembered (digests: a 200 kB header costs 16 bytes here)
+WATCH_S = 1.0  # how often a child looks for the server (`_exit_with`)
 CLOSE_INTERNAL = 1011
 T = TypeVar("T")
 Runner = Callable[..., Awaitable[Any]]
@@ -66,9 +69,26 @@ class WorkerFailed(P.ProtocolError):
 # ---- the child ---------------------------------------------------------------------------------
 
 
-def _child_start(where: Placement) -> None:
-    """A child's start: the background's priority and CPUs (the streams' core stays theirs)."""
+def _child_start(where: Placement, server: int | None = None) -> None:
+    """A child's start: the background's priority and CPUs (the streams' core stays theirs), and
+    a watch on the server (`_exit_with`)."""
     enter_background(where)
+    if server is not None:
+        threading.Thread(target=_exit_with, args=(server,), name="server-watch", daemon=True).start()
+
+
+def _exit_with(server: int) -> None:
+    """End this child once the server process is gone. A child the executor did not stop (the
+    server killed, or exiting before its executor's thread ran) waits on its call queue for ever,
+    and holds the fork server open with it: without this, every such server left both behind."""
+    while True:
+        time.sleep(WATCH_S)
+        try:
+            os.kill(server, 0)
+        except ProcessLookupError:
+            os._exit(0)
+        except PermissionError:  # another user's process now has its id: the server is gone too
+            os._exit(0)
 
 
 def _call(fn: Callable[..., Any], args: tuple, kwargs: dict) -> tuple[str, Any]:
@@ -104,7 +124,7 @@ class RigWorkers:
                 self.processes,
                 mp_context=multiprocessing.get_context("forkserver"),
                 initializer=_child_start,
-                initargs=(background_placement(),),
+                initargs=(background_placement(), os.getpid()),
             )
         return self._pool
 

@@ -7,9 +7,13 @@ from __future__ import annotations
 import asyncio
 import operator
 import os
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
+
+import pytest
 
 from models.motion.assets import bandai_namco_skeleton
 from service import protocol as P
@@ -118,3 +122,35 @@ def test_a_child_that_does_not_answer_is_killed_and_its_build_fails_typed():
             workers.close()
 
     asyncio.run(scenario())
+
+
+SERVER = """
+import asyncio, os, sys, time
+from service.rig_builds import RigWorkers
+workers = RigWorkers(processes=1)
+print(asyncio.run(workers.run(os.getpid)), flush=True)
+time.sleep(600)
+"""
+
+
+def _gone(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].split()[0] in ("Z", "X")
+    except (FileNotFoundError, ProcessLookupError):
+        return True
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+def test_a_child_ends_when_its_server_is_killed():
+    """A server killed outright never stops its executor: its children must not outlive it."""
+    server = subprocess.Popen([sys.executable, "-c", SERVER], stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(server.stdout.readline())  # type: ignore[union-attr]
+        assert not _gone(child)
+    finally:
+        server.kill()
+        server.wait()
+    deadline = time.monotonic() + 60
+    while not _gone(child):
+        assert time.monotonic() < deadline, f"child {child} outlived its server"
+        time.sleep(0.1)
