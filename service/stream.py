@@ -248,8 +248,8 @@ class Socket:
             self.processor.add_done_callback(self._processor_done)
             handled = 0
             while not self.closing:
+                asked, began = time.perf_counter(), 0.0  # began: when the message was in hand
                 try:
-                    asked = time.perf_counter()
                     data = await self.receive()
                     began = time.perf_counter()
                     if data is None:
@@ -265,14 +265,16 @@ class Socket:
                         self.on_binary(data)
                     elif not await self.on_text_or_refresh(data):
                         break
-                    await self.share.spend(min(began - asked, READ_CHARGE_S) + time.perf_counter() - began)
                 except P.ProtocolError as err:
+                    began = began or time.perf_counter()  # refused by the read itself, after its wait
                     await self.send_error(err)
                     if err.fatal:
                         if err.close_code == CLOSE_FLOODING:  # its reconnects are refused for a while
                             get_limiter(self.ws).flooded(self.who)
                         await self.close(err.close_code, err.message)
                         break
+                # a refused message (its error told) costs as one taken: a flood of bad frames too
+                await self.share.spend(min(began - asked, READ_CHARGE_S) + time.perf_counter() - began)
         except WebSocketDisconnect:
             self.stopping = True
         finally:
