@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 
 SLICE_S = 0.001  # about one batch of a crowd part: what a neighbour's frame may wait behind
 PAUSE_PER_SLICE = 3.0  # pause / slice: one crowd takes at most ~1/4 of the loop while paced
@@ -38,3 +39,43 @@ class Pacer:
             self.pauses += 1
             await asyncio.sleep(min(PAUSE_PER_SLICE * ran, MAX_PAUSE_S))
             self._since = time.perf_counter()
+
+
+class LoopShare:
+    """One connection's share of the event loop for handling its messages: what handling them
+    took is spent from a budget that refills at `share` of the wall clock, up to `burst_s`; once
+    it is spent, the connection's receiver pauses until the budget is back. A client sending at
+    any real-time rate (a frame takes ~0.1 ms to handle) never waits; a flood of messages gets
+    `share` of the loop (as `Pacer` gives a crowd), and the rest waits in its own socket buffers
+    (the transport stops reading: the flooder's sends block) instead of in front of every other
+    connection's frames."""
+
+    def __init__(
+        self,
+        share: float = 1.0 / (1.0 + PAUSE_PER_SLICE),
+        burst_s: float = 4 * SLICE_S,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        self.share, self.burst_s, self.clock = share, burst_s, clock
+        self.left = burst_s
+        self.at = clock()
+        self.pauses = 0
+
+    @property
+    def limited(self) -> bool:
+        return 0.0 < self.share < 1.0
+
+    def charge(self, seconds: float) -> None:
+        """Spend `seconds` of handling (the connection's other task: its replies) without pausing
+        here: the receiver pauses for it at its next message."""
+        now = self.clock()
+        self.left = min(self.burst_s, self.left + (now - self.at) * self.share) - seconds
+        self.at = now
+
+    async def spend(self, seconds: float) -> None:
+        """Spend `seconds` of the receiver's handling, and pause while the budget is spent."""
+        self.charge(seconds)
+        if self.left < 0 and self.limited:
+            self.pauses += 1
+            await asyncio.sleep(min(-self.left / self.share, MAX_PAUSE_S))
+            self.charge(0.0)  # what the pause refilled

@@ -20,8 +20,10 @@ from models.motion import bvh as bvhio
 from models.motion.humanoid import PRESET_NAMES, HumanoidRig, RigError, in_model_world, preset_rig
 
 from . import rig_check
+from .api import ApiError, error_responses
 from .deps import get_limiter, get_runtime, require_token
 from .limits import Principal
+from .rig_builds import WorkerFailed
 from .runtime import Runtime
 from .skeletons import checked_build, rig_from_header
 
@@ -129,6 +131,7 @@ def _preview(body: SkeletonCheck, rig: HumanoidRig) -> bytes:
     summary="Check a rig and see how it maps to the model skeleton",
     tags=["skeletons"],
     responses={
+        **error_responses(503, notes={503: "`server_busy`: the rig's worker process was lost; try again."}),
         422: {
             "model": RigProblem,
             "description": "The rig cannot be mapped (`code` says why, `missing` lists the body roles "
@@ -149,8 +152,8 @@ async def check_skeleton(
 ) -> Response:
     """The mapping a session with these rig fields would use, or why it cannot be mapped; a PNG
     preview of the mapped rig with `preview=true` (costs PREVIEW_COST requests of the caller's
-    rate). Either runs on a background thread within the caller's rig-build gate
-    (`service.rig_builds`), never on the event loop."""
+    rate). Either runs in a child process within the caller's rig-build gate
+    (`service.rig_builds`), never on the event loop; a child lost meanwhile is a 503."""
     if preview:  # the request itself was counted once already
         get_limiter(request).check_request(who, PREVIEW_COST - 1)
     try:
@@ -159,4 +162,6 @@ async def check_skeleton(
             return Response(await rt.rig_builds.run(who.key, _preview, body, rig), media_type="image/png")
     except RigError as err:
         return JSONResponse({"code": err.code, "message": err.message, "missing": list(err.missing)}, status_code=422)
+    except WorkerFailed as err:
+        raise ApiError(503, "server_busy", err.message, {"Retry-After": "1"}) from None
     return JSONResponse(rig.report())

@@ -101,7 +101,7 @@ class Runtime:
         self.closing: set[str] = set()  # resume tokens of crowd characters whose connection is being closed
         self.replica_id = secrets.token_hex(8)  # this process, in a shared store's resume claims
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
-        self.rig_builds = RigBuilds()  # rigs parsed and built off the event loop, per caller
+        self.rig_builds = RigBuilds()  # rigs parsed and built in child processes, per caller
         self.draining = False
 
     async def start(self) -> None:
@@ -119,6 +119,7 @@ class Runtime:
         # what a drain could not save is retried this long (the drain's budget ends here too)
         await self.snapshots.stop(timeout_s=min(2.0, 0.1 * self.settings.drain_timeout_s))
         self.model_thread.shutdown()
+        self.rig_builds.close()
 
     async def drain(self, timeout_s: float) -> None:
         """Refuse new sessions, stop every session after its current frame, save its snapshot,

@@ -127,6 +127,14 @@ class ServiceSettings(Settings):
         description="Per connection: WebSocket messages per second (bursts of a second's worth); beyond it "
         "they are dropped with a typed error, and a second's worth more closes the connection.",
     )
+    connection_loop_share: float = Field(
+        default=0.25,
+        ge=0,
+        le=1,
+        description="Per connection: the share of the event loop its messages may take to handle (parsing "
+        "them, answering its frames) while it sends faster than they are handled; past it its receiver pauses "
+        "and the rest waits in its socket. A real-time stream takes ~1 %. 0 or 1: no limit.",
+    )
     max_controls_per_s: float = Field(
         default=20.0,
         gt=0,

@@ -114,6 +114,8 @@ class Retarget(_OneFrame):
     """Any other humanoid: per-frame retargeting onto the model skeleton and back. The client's
     joint order may differ from the rig's internal parents-first order (`order`)."""
 
+    rig_key: tuple | None = None  # its canonical rig (`_rig_key`), once built through the cache
+
     def __init__(self, rig: HumanoidRig, joint_names: list[str] | None = None) -> None:
         self.rig = rig
         self.retargeter = FrameRetargeter(rig)
@@ -180,6 +182,8 @@ _cache_lock = threading.Lock()  # builds run on worker threads
 
 
 def _remember(cache: OrderedDict, key: tuple, value: Any) -> Any:
+    if cache is _BY_RIG:
+        value.rig_key = key
     with _cache_lock:
         cache[key] = value
         cache.move_to_end(key)
@@ -289,13 +293,19 @@ def _adapter(
     return _remember(_BY_RIG, key, checked_build(preset_rig(skeleton, joints=joints, **options), joints))
 
 
+def _text_key(
+    skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None, options: dict
+) -> tuple:
+    return (skeleton, bvh_header, tuple(model_skeleton.names), json.dumps([joints, options], sort_keys=True))
+
+
 def adapter_for(
     skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None = None, **options
 ) -> SkeletonAdapter:
     """The adapter for a start message's rig; raises `ProtocolError` (fatal, typed) for a rig
     that cannot be mapped, before anything is set up. Synchronous and up to a few hundred ms for
     a large rig: a connection calls `rig_builds.RigBuilds.adapter`, which runs it off the event loop."""
-    text_key = (skeleton, bvh_header, tuple(model_skeleton.names), json.dumps([joints, options], sort_keys=True))
+    text_key = _text_key(skeleton, bvh_header, model_skeleton, joints, options)
     cached = _recall(_BY_TEXT, text_key)
     if cached is not None:
         return cached
@@ -306,11 +316,29 @@ def adapter_for(
     return _remember(_BY_TEXT, text_key, adapter)
 
 
+def adopt(
+    adapter: SkeletonAdapter,
+    skeleton: str | None,
+    bvh_header: str | None,
+    model_skeleton: Skeleton,
+    joints: list[str] | None = None,
+    **options,
+) -> SkeletonAdapter:
+    """An adapter `adapter_for` built elsewhere (a child process, `service.rig_builds`) for these
+    fields, remembered here as if built here: the one already built for the same rig in another
+    spelling is kept and answered instead, so many characters on one rig share one adapter."""
+    key = getattr(adapter, "rig_key", None)
+    if key is not None:
+        adapter = _recall(_BY_RIG, key) or _remember(_BY_RIG, key, adapter)
+    text_key = _text_key(skeleton, bvh_header, model_skeleton, joints, options)
+    return _remember(_BY_TEXT, text_key, adapter)
+
+
 def cached_adapter(
     skeleton: str | None, bvh_header: str | None, model_skeleton: Skeleton, joints: list[str] | None = None, **options
 ) -> SkeletonAdapter | None:
     """The adapter `adapter_for` gave for exactly these fields before, if it still has it."""
-    text_key = (skeleton, bvh_header, tuple(model_skeleton.names), json.dumps([joints, options], sort_keys=True))
+    text_key = _text_key(skeleton, bvh_header, model_skeleton, joints, options)
     return _recall(_BY_TEXT, text_key)
 
 

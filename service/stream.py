@@ -41,6 +41,7 @@ from .deps import get_limiter
 from .limits import CLOSE_FLOODING, MessageRate, Principal
 from .logs import session_log
 from .metrics import ModelMetrics
+from .pacing import LoopShare
 from .runtime import Runtime
 from .sessions import ControlItem, FrameItem, Session, Snapshot
 from .skeletons import SkeletonAdapter
@@ -52,6 +53,9 @@ CLOSE_NORMAL, CLOSE_INTERNAL, CLOSE_RESTART = 1000, 1011, 1012
 CLOSE_UNAUTHORIZED, CLOSE_IDLE = 4401, 4408
 T = TypeVar("T")
 YIELD_EVERY = 8  # messages handled back to back before the receiver lets other connections run
+# What reading a message costs at most against the connection's `LoopShare`: one already queued is
+# read in ~30-60 us; a longer read was mostly waiting for the client, which costs the loop nothing
+READ_CHARGE_S = 0.0002
 
 
 class Socket:
@@ -77,6 +81,7 @@ class Socket:
         self.control_rate = MessageRate(
             self.settings.max_controls_per_s, self.settings.max_controls_per_s, "style and reset messages"
         )
+        self.share = LoopShare(self.settings.connection_loop_share)  # a flood gets its share of the loop
         self.log: logging.Logger | logging.LoggerAdapter = log  # once open: its id and model on every line
         self._failing: asyncio.Task | None = None  # ending the connection after its processor failed
 
@@ -243,14 +248,17 @@ class Socket:
             self.processor.add_done_callback(self._processor_done)
             handled = 0
             while not self.closing:
+                asked, began = time.perf_counter(), 0.0  # began: when the message was in hand
                 try:
                     data = await self.receive()
+                    began = time.perf_counter()
                     if data is None:
                         self.stopping = True
                         break
                     handled += 1
                     if handled % YIELD_EVERY == 0:  # what one read queued must not hold the loop from everyone else
                         await asyncio.sleep(0)
+                        began = time.perf_counter()
                     if not self.rate.admit(time.monotonic()):
                         continue
                     if isinstance(data, bytes):
@@ -258,12 +266,15 @@ class Socket:
                     elif not await self.on_text_or_refresh(data):
                         break
                 except P.ProtocolError as err:
+                    began = began or time.perf_counter()  # refused by the read itself, after its wait
                     await self.send_error(err)
                     if err.fatal:
                         if err.close_code == CLOSE_FLOODING:  # its reconnects are refused for a while
                             get_limiter(self.ws).flooded(self.who)
                         await self.close(err.close_code, err.message)
                         break
+                # a refused message (its error told) costs as one taken: a flood of bad frames too
+                await self.share.spend(min(began - asked, READ_CHARGE_S) + time.perf_counter() - began)
         except WebSocketDisconnect:
             self.stopping = True
         finally:
@@ -501,7 +512,9 @@ class Connection(Socket):
                 if not await self.control(item.message):
                     return
                 continue
+            began = time.perf_counter()
             root, rot = self.adapter.to_model(item.root, item.rotations)
+            self.share.charge(time.perf_counter() - began)  # the receiver pauses for it (`LoopShare`)
             if gone := s.drop_deleted(s.model.styles()):
                 await self.send_error(style_deleted(gone, item.seq))
             try:
@@ -514,12 +527,14 @@ class Connection(Socket):
                 self.log.exception("model step failed")
                 await self.send_error(step_failed(item.seq))
                 continue
+            began = time.perf_counter()
             reply = self.reply(item)
             if isinstance(reply, bytes):
                 await self.send_bytes(reply)
             else:
                 await self.send_json(reply)
             self.replied(item)
+            self.share.charge(time.perf_counter() - began)
 
     def reply(self, item: FrameItem) -> bytes | dict:
         """The answer to a stepped frame, in the session's encoding; the session now stands at

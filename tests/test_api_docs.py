@@ -56,7 +56,7 @@ ROUTES: dict[tuple[str, str], set[int]] = {
     ("delete", "/v1/styles/{style_id}"): {204, 401, 404, 409, 422, 429, 503},
     ("get", "/v1/jobs/{job_id}"): {200, 401, 404, 422, 429, 503},
     ("get", "/v1/demo/clip"): {200},
-    ("post", "/v1/skeletons"): {200, 401, 422, 429},
+    ("post", "/v1/skeletons"): {200, 401, 422, 429, 503},
 }
 ASYNCAPI = yaml.safe_load(ASYNCAPI_FILE.read_text())
 SCHEMAS = ASYNCAPI["components"]["schemas"]
