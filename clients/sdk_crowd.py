@@ -105,6 +105,7 @@ class CrowdFrames:
     payload: np.ndarray  # float32: each character's root (3) then rotations (J x 4), end to end
     starts: np.ndarray  # (n,) where each character's frame begins in `payload`
     sizes: np.ndarray  # (n,) floats in each character's frame
+    faded: np.ndarray  # (n,) how far each frame faded toward its input (unseen content); 0 for a core pipeline
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -154,7 +155,7 @@ class CrowdCore:
     # ---- membership ---------------------------------------------------------------------
     def open(self) -> Steps[dict[str, Any]]:
         yield Connect(self.url, self.timeout, self.headers)
-        message = {"type": "crowd", "fps": self.fps, "characters": [c.message() for c in self.opening]}
+        message = {"type": "crowd", "fps": self.fps, "faded": True, "characters": [c.message() for c in self.opening]}
         yield Send(json.dumps(message))
         reply = yield from self._text_reply("crowd_started")
         self.crowd_id = reply["crowd_id"]
@@ -354,7 +355,11 @@ class CrowdCore:
                     Character.resuming(i, c.model, self.resume_tokens[i]) if i in self.resume_tokens else c
                     for i, c in self.members.items()
                 ]
-                yield Send(json.dumps({"type": "crowd", "fps": self.fps, "characters": [c.message() for c in chars]}))
+                yield Send(
+                    json.dumps(
+                        {"type": "crowd", "fps": self.fps, "faded": True, "characters": [c.message() for c in chars]}
+                    )
+                )
                 reply = yield from self._text_reply("crowd_started")
                 busy = [e for e in reply["errors"] if e["code"] in RETRY_CODES]
                 if busy:  # e.g. the server has not yet noticed the old connection go: try again shortly
@@ -418,8 +423,10 @@ class CrowdCore:
             sizes = np.array([self.frame_floats[int(i)] for i in ids], np.int64)
             self._layout = (bytes(ids_raw), np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64), sizes)
         _, starts, sizes = self._layout
-        payload = np.frombuffer(data, "<f4", offset=TICK_HEADER.size + 4 * count)
-        return CrowdFrames(seq, ids, dropped, payload, starts, sizes)
+        floats = np.frombuffer(data, "<f4", offset=TICK_HEADER.size + 4 * count)
+        end = int(sizes.sum())  # the frames, then (a crowd opened with `faded`) one float per character
+        faded = floats[end : end + count] if len(floats) > end else np.zeros(count, np.float32)
+        return CrowdFrames(seq, ids, dropped, floats[:end], starts, sizes, faded)
 
     # ---- text replies -------------------------------------------------------------------
     def _text_reply(self, kind: str) -> Steps[dict[str, Any]]:

@@ -106,3 +106,20 @@ def test_the_sdk_says_how_far_each_frame_faded(server, clips):
             [session.stylise(crouch.translations[t, HIPS], crouch.rotations[t]).faded for t in range(len(wanted))]
         )
     np.testing.assert_allclose(got, wanted, atol=1e-3)
+
+
+def test_an_sdk_crowd_says_how_far_each_characters_frame_faded(server, clips):
+    from clients.sdk import Character, Client
+
+    crouch, walk = clips
+    wanted = np.array([r["faded"] for r in _session(server, crouch, "json")])
+    got = []
+    with Client(server).crowd([Character(7, "lti", "elderly"), Character(3, "lti", "elderly")]) as crowd:
+        for t in range(crouch.num_frames):
+            roots = np.stack([crouch.translations[t, HIPS], walk.translations[t, HIPS]])
+            frames = crowd.tick([7, 3], roots, np.stack([crouch.rotations[t], walk.rotations[t]]))
+            assert len(frames.payload) == 2 * FLOATS  # the flags are not part of any frame
+            got.append(frames.faded)
+    got = np.array(got)
+    np.testing.assert_allclose(got[:, 0], wanted, atol=1e-3)  # the crouching character's, as in its session
+    assert got[:, 1].max() < 0.05  # the walking one's
