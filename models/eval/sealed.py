@@ -338,23 +338,30 @@ def markdown(r: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _gate_summary(r: dict) -> list[str]:
+def _per_source(r: dict, title: str, sessions: tuple[str, ...], cell) -> list[str]:
+    """A variant x source table of `cell(rows)` over the rows of each session (a session column
+    when there are several)."""
     sources = list(r["meta"]["sources"])
     variants = list(dict.fromkeys(x["variant"] for x in r["rows"] if x["gates"]))
-    lines = [
-        "## Rows passing every gate (of the styles), per source",
-        "",
-        "| variant | session | " + " | ".join(sources) + " |",
-        "|---|---|" + "---|" * len(sources),
-    ]
+    by = "session | " if len(sessions) > 1 else ""
+    lines = [title, "", f"| variant | {by}" + " | ".join(sources) + " |", "|---|" + "---|" * (len(sources) + bool(by))]
     for v in variants:
-        for session in ("fresh", "running"):
+        for session in sessions:
             cells = []
             for src in sources:
-                rows = [x for x in r["rows"] if x["variant"] == v and x["source"] == src and x["session"] == session]
-                cells.append(f"{sum(x['gates']['all'] for x in rows)} of {len(rows)}" if rows else "–")
-            lines.append(f"| {v} | {session} | " + " | ".join(cells) + " |")
+                rows = [x for x in r["rows"] if (x["variant"], x["source"], x["session"]) == (v, src, session)]
+                cells.append(cell(rows) if rows else "–")
+            lines.append(f"| {v} | " + (f"{session} | " if by else "") + " | ".join(cells) + " |")
     return lines + [""]
+
+
+def _gate_summary(r: dict) -> list[str]:
+    return _per_source(
+        r,
+        "## Rows passing every gate (of the styles), per source",
+        ("fresh", "running"),
+        lambda rows: f"{sum(x['gates']['all'] for x in rows)} of {len(rows)}",
+    )
 
 
 def _uploads_section(rows: list[dict]) -> list[str]:
@@ -381,22 +388,14 @@ def _uploads_section(rows: list[dict]) -> list[str]:
 
 def _fade_summary(r: dict) -> list[str]:
     """Frames faded per variant and source, fresh sessions, over every style."""
-    sources = list(r["meta"]["sources"])
-    variants = list(dict.fromkeys(x["variant"] for x in r["rows"] if x["gates"]))
-    lines = [
-        "## Frames faded toward the input, per source (fresh sessions, every style)",
-        "",
-        "| variant | " + " | ".join(sources) + " |",
-        "|---|" + "---|" * len(sources),
-    ]
-    for v in variants:
-        cells = []
-        for src in sources:
-            rows = [x for x in r["rows"] if x["variant"] == v and x["source"] == src and x["session"] == "fresh"]
-            hits, n = sum(x["faded"]["hits"] for x in rows), sum(x["faded"]["n"] for x in rows)
-            cells.append(f"{100 * hits / n:.1f}%" if n else "–")
-        lines.append(f"| {v} | " + " | ".join(cells) + " |")
-    return lines + [""]
+
+    def share(rows: list[dict]) -> str:
+        hits, n = sum(x["faded"]["hits"] for x in rows), sum(x["faded"]["n"] for x in rows)
+        return f"{100 * hits / n:.1f}%" if n else "–"
+
+    return _per_source(
+        r, "## Frames faded toward the input, per source (fresh sessions, every style)", ("fresh",), share
+    )
 
 
 def _source_table(r: dict, source: str) -> list[str]:
