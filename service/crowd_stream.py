@@ -134,6 +134,7 @@ class CrowdConnection(Socket):
         for j in joining:
             character = self.crowd.characters[j.spec.id]
             self.rt.crowd_members.add(character.session_id)
+            self.rt.crowd_tokens.add(character.token)
             if j.resumed is not None:
                 self.rt.character_resumed(self.who.id, character.token)
         rigs = list({id(j.adapter): j.adapter for j in joining}.values())
@@ -178,6 +179,7 @@ class CrowdConnection(Socket):
             for i in part:  # a resume of these finds `session_in_use` until here, then the snapshot just queued
                 character = self.crowd.characters[i]
                 self.rt.crowd_members.discard(character.session_id)
+                self.rt.crowd_tokens.discard(character.token)
                 self.rt.closing.discard(character.token)
                 if i not in kept:
                     self.rt.character_ended(self.who.id, character.token)
@@ -205,7 +207,9 @@ class CrowdConnection(Socket):
         try:
             await self.leave(list(self.crowd.characters), resumable=not self.ended)
         finally:
-            self.rt.closing.difference_update(c.token for c in self.crowd.characters.values())  # any left
+            left = [c.token for c in self.crowd.characters.values()]  # any a failed leave left behind
+            self.rt.closing.difference_update(left)
+            self.rt.crowd_tokens.difference_update(left)
             self.rt.crowd_closed()
         if large:  # its arrays went back to the heap: hand the pages to the system (off the loop)
             await in_background(release_freed_memory)

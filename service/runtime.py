@@ -99,6 +99,7 @@ class Runtime:
         self.crowd_members: set[str] = set()  # the session ids of those characters (resumes check it)
         self.resuming: set[str] = set()  # session ids claimed by a resume not yet registered
         self.closing: set[str] = set()  # resume tokens of crowd characters whose connection is being closed
+        self.crowd_tokens: set[str] = set()  # resume tokens of the crowd characters connected now
         self.replica_id = secrets.token_hex(8)  # this process, in a shared store's resume claims
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
         self.rig_builds = RigBuilds()  # rigs parsed and built in child processes, per caller
@@ -205,6 +206,8 @@ class Runtime:
         unknown as an expired one."""
         if token in self.closing:  # its closing crowd has not stored it yet: neither gone nor resumable
             raise P.ProtocolError("session_in_use", "that session's connection is still closing; try again")
+        if token in self.crowd_tokens:  # its crowd's dropped connection is not noticed yet: nothing stored
+            raise P.ProtocolError("session_in_use", "that session is still connected")
         try:
             snap = await self.snapshots.get(token)
         except StoreUnavailable:

@@ -360,3 +360,23 @@ def test_a_crowd_character_resumes_as_a_session_and_a_session_as_a_crowd_charact
                 ]
         assert np.array_equal(np.array(alone, np.float32), np.array(want[:8]))
         assert np.array_equal(np.array(got), np.array(want[8:12]))
+
+
+def test_a_connected_characters_token_is_in_use_not_unknown(models):
+    """A reconnect can reach the server before it notices the old connection is gone, when nothing
+    of the character is stored yet: its token is still in use (the client tries again), not
+    unknown (the client would start the character over)."""
+    with live_server(models, idle_timeout_s=30) as (base, _):
+        with connect(ws_url(base)) as first, connect(ws_url(base)) as second:
+            first.send(json.dumps({"type": "crowd", "characters": [{"id": 0, "model": "lti", "style": "elderly"}]}))
+            token = json.loads(first.recv(timeout=30))["characters"][0]["resume_token"]
+            second.send(
+                json.dumps(
+                    {
+                        "type": "crowd",
+                        "characters": [{"id": 0, "model": "lti", "style": "elderly", "resume_token": token}],
+                    }
+                )
+            )
+            reply = json.loads(second.recv(timeout=30))
+            assert [e["code"] for e in reply["errors"]] == ["session_in_use"]
