@@ -124,25 +124,25 @@ def fit_styles(model, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
     frames keeps the translator's arm, and a style with neither side gets None."""
     from ..eval.run import stylise
 
-    styles = list(real)
+    targets = {s: [_real_frames(real[s], side) for side in (0, 1)] for s in real}
+    styles = [s for s in real if any(len(t) >= MIN_CALM_FRAMES for t in targets[s])]
+    if not styles:  # no raised, calm hand anywhere (most uploads): nothing to stylise or fit
+        return dict.fromkeys(real)
     rows = [model.styles().index(s) for s in styles]
     outs = stylise(model, [m for _ in styles for m in inputs], [k for k in rows for _ in inputs])
     n = len(inputs)
     made = [comparable(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]])) for k in range(len(styles))]
     clamped = (HIPS,) + tuple(BN_JOINTS.index(j) for j in LEG_JOINTS)
     chosen = [np.concatenate([calm_frames(m, side) for m in inputs]) for side in (0, 1)]
-    carries: dict[str, StyleCarry | None] = {}
+    carries: dict[str, StyleCarry | None] = dict.fromkeys(real)
     for k, style in enumerate(styles):
         sides, fitted = [], []
         for side in (0, 1):
-            target = _real_frames(real[style], side)
+            target = targets[style][side]
             fitted.append(len(target) >= MIN_CALM_FRAMES)
             kept = (ROOT,) if fitted[-1] else (ROOT, *_ARM[side])  # an unfitted arm is left as it is
             target = target if fitted[-1] else made[k][:1]
             sides.append(StyleCarry.fit([made[k][chosen[side]]], [target], kept, clamp_only=clamped))
-        if not any(fitted):
-            carries[style] = None
-            continue
         both = sides[0].with_maps_of(sides[1], [0], list(_ARM[1]))
         carries[style] = StyleCarry(both.source, both.mean, np.ascontiguousarray(both.damping), both.radius)
     return carries

@@ -58,7 +58,7 @@ class LTIStyles(UploadedStyles["StyleTranslator"]):
 
         ref = next(iter(self.translators.values())).ref  # the reference rotations every translator shares
         res = fine_tune(clip, name, ref, progress)
-        progress(0.9, "fitting the raised arm")  # as for a built-in style, from the style's clip
+        progress(0.96, "fitting the raised arm")  # as for a built-in style, from the style's clip
         res.translator.raised_arm = fit_upload(res.translator, clip, ref)
         summary = {
             "seconds": round(res.seconds, 2),
