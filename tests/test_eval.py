@@ -8,7 +8,7 @@ import pytest
 from models.data import build_index, load_motions, select
 from models.eval import clip_features, load_judges
 from models.eval.judges import weights_dir
-from models.eval.metrics import foot_skating, frechet_distance, path_deviation
+from models.eval.metrics import foot_skating, path_deviation
 
 pytestmark = pytest.mark.skipif(not (weights_dir() / "judges.pt").exists(), reason="no eval judges committed")
 
@@ -55,10 +55,6 @@ def test_metric_sanity(judges, test_clips):
     from dataclasses import replace
 
     assert path_deviation(m, replace(m, translations=shifted)) == pytest.approx(15.0, rel=0.05)
-    rng = np.random.default_rng(0)
-    a = rng.normal(size=(500, 4))
-    assert frechet_distance(a, a) == pytest.approx(0.0, abs=1e-6)
-    assert frechet_distance(a, a + 2.0) == pytest.approx(16.0, rel=1e-3)
     s = foot_skating(m)
     assert 0.0 <= s["skate_ratio"] <= 1.0 and s["contact_frames"] > 0
     slid = m.translations.copy()
@@ -66,8 +62,6 @@ def test_metric_sanity(judges, test_clips):
     glide = foot_skating(replace(m, translations=slid))
     assert glide["contact_frames"] == s["contact_frames"]  # same heights, same contacts
     assert glide["skate_ratio"] > 0.9 > 0.5 > s["skate_ratio"]
-    lat = judges.latents([clip_features(x) for x in motions])
-    assert lat.shape[1] == judges.dae.enc[-1].out_features and np.isfinite(lat).all()
 
 
 def test_a_one_frame_flick_of_the_head_is_a_pop():

@@ -3,12 +3,14 @@ generator from a live one, and the validation inputs must come from the validati
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
 from models.lpn import features as lf
 from models.lpn.network import LPN, LPNConfig
-from models.lpn.snapshots import Options, live_units, validation_inputs
+from models.lpn.snapshots import Options, live_units, pace, validation_inputs
 
 
 def test_a_generator_driven_below_the_elu_floor_has_no_live_units():
@@ -28,3 +30,12 @@ def test_inputs_are_validation_neutral_clips_over_every_content():
     inputs, contents = validation_inputs(Options(clips=10, frames=30))
     assert len(inputs) == 10 and len(set(contents)) == 10
     assert all(m.num_frames <= 30 for m in inputs)
+
+
+def test_pace_is_one_for_the_input_itself_and_zero_for_a_motion_that_stays_put(bn_walk):
+    walk = bn_walk.slice(0, 90)
+    trans = walk.translations.copy()
+    trans[:, 1] = trans[0, 1]  # the hips never leave their first position
+    stays_put = replace(walk, translations=trans)
+    assert pace([walk], [walk]) == 1.0
+    assert pace([stays_put], [walk]) == 0.0

@@ -1,15 +1,9 @@
-"""`stylestream data fetch`: make the mocap data ready to use, once, with a progress line.
+"""`stylestream data fetch`: check each dataset's archive against the data folder's SHA256SUMS
+and unpack it into the cache, once (running it again does nothing).
 
-For each dataset, its archive in the data folder (`STYLESTREAM_DATA_DIR`, or `--data-dir`) is
-checked against the folder's SHA256SUMS and unpacked into the cache (`archives.dataset_dir`).
-A dataset already unpacked from the same archive bytes, or kept unpacked in the data folder
-itself, is left as it is, so running it again does nothing.
-
-With `--from URL` (a mirror holding the archives, e.g. an internal file server), an archive the
-data folder lacks is first downloaded from `URL/<archive>`. The download must match the SHA-256
-this code knows for that archive (`KNOWN_SHA256`: the archives the committed models were trained
-and evaluated on), so a mirror cannot hand out other bytes; it is written beside its final name
-and renamed into place only once checked, and its sum is added to the folder's SHA256SUMS.
+With `--from URL` a missing archive is downloaded from `URL/<archive>` first; it must match the
+SHA-256 this code knows (`KNOWN_SHA256`), so a mirror cannot hand out other bytes, and it is
+renamed into place only once checked.
 """
 
 from __future__ import annotations

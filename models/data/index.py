@@ -1,11 +1,7 @@
-"""Dataset index: one `Clip` per BVH file, labelled from the files' own labels, and a
-deterministic train/validation/test split that keeps every take whole.
-
-Each file is one take, so splitting by file keeps takes whole. Within every
-(dataset, style, content) group the takes are ordered by a hash of their name; about 10% go to
-validation and 10% to test, so both splits see every style and content that has enough takes.
-Groups too small for that (most of dataset 1 has one take each) are assigned per take by the
-same hash (80/10/10). Nothing depends on file-system order or on random state.
+"""Dataset index: one `Clip` per BVH file (one take), labelled from the files' own labels, and a
+deterministic train/validation/test split by a hash of the take name within every (dataset,
+style, content) group (about 10 % each to validation and test; 80/10/10 per take for groups too
+small). Nothing depends on file-system order or random state.
 """
 
 from __future__ import annotations

@@ -1,11 +1,6 @@
-"""A smaller copy of a dataset's archive: the same layout, only the takes of some contents.
-
-A training machine that cannot reach `../shared` gets its data as a carried folder of at most
-tens of MB (the GPU lease carries 64 MiB); Bandai Namco dataset 2 is 79 MB, its locomotion takes
-about a third of that. The copy keeps every non-take file (cfg/ labels, LICENSE, README) and,
-for each kept take, its BVH and label JSON, so `build_index` on the copy lists exactly the
-original's clips of those contents with the same train/validation/test split (splits are drawn
-within each dataset x style x content group, and groups are kept whole).
+"""A smaller copy of a dataset's archive (same layout, only some contents' takes), for a machine
+that gets its data as a carried folder: `build_index` on it lists the original's clips of those
+contents with the same splits (groups are kept whole).
 
     python -m models.data subset --dataset bandai-namco-2 --content walk,run --out .data/carry/data   # .data/ is git-ignored
 """

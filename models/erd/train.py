@@ -1,29 +1,21 @@
-"""Train Style-ERD on Bandai Namco dataset 2 (CPU-friendly, nanoGPT style: the config is the
-dataclass below; override any field on the command line as --field=value).
+"""Train Style-ERD on Bandai Namco dataset 2, nanoGPT style: the config is the dataclass below,
+any field overridable on the command line as --field=value.
 
     .venv/bin/python -m models.erd.train --minutes=50
     .venv/bin/python -m models.erd.train --resume --minutes=30           # continue run_dir/ckpt.pt
     .venv/bin/python -m models.erd.train --export=.data/erd/run/ckpt.pt   # write models/weights/erd
     sh models/erd/gpu_run.sh                                             # on a lent GPU (device)
 
-A checkpoint (run_dir/ckpt.pt, every `ckpt_every` steps) holds the networks, optimisers, the
-learning-rate schedule (a cosine over training time counted across sessions, or over steps with
-`schedule_iters`), every random generator and the step, so `--resume` continues where it stopped.
-
-Stages: (1) a content classifier with instance normalisation on real windows (for the
-perceptual loss), (2) the generator + FT-Att discriminator: reconstruction (quaternion angle,
-FK position, velocity) with target style = input style, LSGAN (real 1, fake -1, generator 0)
-with R1 on real samples, perceptual loss against the input's classifier features. Neutral
-clips get a random target style, styled clips the neutral target. Input labels are dropped at
-random so that unlabelled streams work. Optional terms on the streamed rotations (what the
-streaming model outputs: the decoder's bone directions with the input's twists, elbows and knees
-as hinges fitted from the training rotations, `dataset.split_hinges`): `w_prior`
-(the target style's range), `w_hinge` (hinge joints off their hinge), `w_adv_rot` (a second
-discriminator); `w_teacher` anchors a fine-tune's transfer to the generator it started from.
+First a content classifier (for the perceptual loss), then the generator against an FT-Att
+discriminator (LSGAN with R1): reconstruction toward the input's own style, transfer of neutral
+windows to a random style and of styled ones to neutral, input labels dropped at random so that
+unlabelled streams work. The optional `w_*` terms act on the rotations the streaming model
+outputs (`streamed_rotations`). A checkpoint holds everything `--resume` needs to continue exactly.
 """
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import random
@@ -31,15 +23,22 @@ import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from ..motion.rotations import quat_angle, quat_mean
+from ..motion.rotations_torch import quat_apply_t, quat_to_matrix_t
+from ..motion.twist import bone_axes, transfer_twist_t
 from ..runlog import start_run
 from ..settings import REPO_ROOT
 from ..train_config import parse_overrides, use_bf16
+from .dataset import TARGET_STYLES, split_hinges
+from .features import NB, POS, ROOTVEL, ROT, VEL
+from .model import ContentClassifier, ERDConfig, FTAttDiscriminator, Generator, fk_local, window_motion
 
 
 @dataclass
@@ -47,9 +46,7 @@ class TrainConfig:
     seed: int = 1234
     threads: int = 1  # the machine is shared; a GPU lease may take more
     device: str = "cpu"  # "cuda" on a GPU lease (`gpu_run.sh`); "auto" takes a GPU where there is one
-    # bfloat16 autocast of the networks: "auto" where it is native (CUDA; a CPU with avx512_bf16 or
-    # AMX), else "true" / "false". Measured on CPU in MODEL_CARD before it is left on there
-    bf16: str = "false"
+    bf16: str = "false"  # bfloat16 autocast: true, false, or "auto" where the hardware has it natively
     resume: bool = False  # continue run_dir/ckpt.pt (its settings, then these overrides) if it exists
     data: str = ""  # a packed training set (`carry.py`) instead of the cache, e.g. on a GPU lease
     schedule_minutes: float = 0.0  # training time the cosine spans, across resumed sessions (0: `minutes`)
@@ -67,23 +64,14 @@ class TrainConfig:
     w_adv: float = 1.0
     w_per: float = 0.1
     w_r1: float = 10.0
-    # rotations: the streaming model outputs the decoder's pose with the input's twists and leaf
-    # rotations (models.motion.twist); on transferred windows `w_prior` penalises a joint of that
-    # pose leaving the target style's real range (angle to the style's mean beyond its p95)
+    # terms on the rotations the streaming model outputs (`streamed_rotations`): a joint beyond the
+    # target style's real p95 range, a hinge joint off its hinge, a second discriminator over them
     w_prior: float = 0.0
-    # stage 4: twists and leaves from the input carried to the target style by this prior
-    # (`rotation_prior.py`, e.g. models/weights/erd/leaf_prior.npz; empty = the input's), and a second
-    # FT-Att discriminator over the streamed rotations (6-D per joint and their frame differences)
-    leaf_prior: str = ""
-    # hinge joints (fitted from the training rotations, `models.motion.hinge`): the streamed
-    # rotations decode them as hinges (`hinge_decode`, as the runtime does); `w_hinge` penalises
-    # what stays off the hinge (a straight limb, a parent twist at its real limit)
-    hinge_decode: bool = True
     w_hinge: float = 0.0
-    # fine-tuning: keep the transferred positions and velocities near those of the generator the
-    # run started from (a frozen copy), so a rotation loss moves only what it must, not the style
-    w_teacher: float = 0.0
     w_adv_rot: float = 0.0
+    w_teacher: float = 0.0  # keep the transfer near the starting generator's, so only rotations move
+    leaf_prior: str = ""  # twists and leaves carried to the target style (`rotation_prior.py`); "": the input's
+    hinge_decode: bool = True  # the streamed rotations decode hinge joints as hinges, as the runtime does
     snapshot_every: int = 0  # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest)
     d_warmup: int = 0  # iterations that train only the discriminator first (a new one, with --init_weights)
     p_drop_style: float = 0.3
@@ -110,13 +98,7 @@ def parse_args(argv: list[str]) -> TrainConfig:
     return parse_overrides(TrainConfig(), argv)
 
 
-# --------------------------------------------------------------------------- pieces
-
-
 def build(cfg: TrainConfig, stats: dict[str, np.ndarray]):
-    from .features import POS, ROOTVEL, VEL
-    from .model import ContentClassifier, ERDConfig, FTAttDiscriminator, Generator
-
     mcfg = ERDConfig(
         latent=cfg.latent,
         enc_hidden=cfg.enc_hidden,
@@ -138,8 +120,6 @@ class RotationDiscriminator(torch.nn.Module):
 
     def __init__(self, mcfg, frames: int):
         super().__init__()
-        from .model import FTAttDiscriminator
-
         self.net = FTAttDiscriminator(mcfg, 21 * 12, frames, {})
 
     def forward(self, view: torch.Tensor, style: torch.Tensor, content: torch.Tensor) -> torch.Tensor:
@@ -148,29 +128,19 @@ class RotationDiscriminator(torch.nn.Module):
 
 class Losses:
     def __init__(self, skeleton, scale):
-        from .model import fk_local
-
         self.offsets = torch.as_tensor(skeleton.offsets, dtype=torch.float32)
         self.parents = skeleton.parents
-        self.fk_local = fk_local
         self.scale = scale
 
     def real_view(self, x):
-        from .features import NB, POS, ROOTVEL, ROT
-        from .model import window_motion
-
         B, T, _ = x.shape
         return window_motion(x[..., POS].reshape(B, T, NB, 3), x[..., ROOTVEL], x[..., ROT].reshape(B, T, NB, 4))
 
     def fake_view(self, out):
-        from .model import window_motion
-
-        pos = self.fk_local(out["rot"], out["height"], self.offsets, self.parents)
+        pos = fk_local(out["rot"], out["height"], self.offsets, self.parents)
         return window_motion(pos, out["root_vel"], out["rot"])
 
     def recon(self, out, view, real, x):
-        from .features import NB, ROT
-
         B, T, _ = x.shape
         q_real = x[..., ROT].reshape(B, T, NB, 4)
         dot = (out["rot"] * q_real).sum(-1)
@@ -183,9 +153,6 @@ class Losses:
 def style_rotation_prior(split) -> tuple[torch.Tensor, torch.Tensor]:
     """Per style (7) and body joint (21): the mean of the real training rotations (feature
     quaternions: Hips without its yaw, hemisphere-aligned) and the p95 angle to it (radians)."""
-    from ..motion.rotations import quat_angle, quat_mean
-    from .features import NB, ROT
-
     frame_style = np.repeat(split.style, split.lengths)
     means, p95s = [], []
     for s in range(int(split.style.max()) + 1):
@@ -205,8 +172,6 @@ def streamed_rotations(
     bone directions with the twists and leaf rotations of `source` (B, T, 21, 4; default the
     input's), and with `hinges` (`models.motion.hinge.Hinges`) its elbows and knees as hinges,
     as `ERDModel` does."""
-    from ..motion.twist import transfer_twist_t
-
     root = torch.zeros(rot.shape[:2] + (1, 4), dtype=rot.dtype, device=rot.device)
     root[..., 3] = 1.0
     full = lambda q: torch.cat([root, q], dim=-2)  # noqa: E731  (joint_Root, static)
@@ -230,8 +195,6 @@ def leaf_source(prior, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def rotation_view(rot: torch.Tensor) -> torch.Tensor:
     """(B, T-1, 21*12) the rotation discriminator's view of rotations (B, T, 21, 4): 6-D per
     joint (as the eval suite's rotation judge reads them) and their frame-to-frame differences."""
-    from ..motion.rotations_torch import quat_to_matrix_t
-
     m = quat_to_matrix_t(rot)
     six = torch.cat([m[..., :, 0], m[..., :, 1]], -1).flatten(2)
     return torch.cat([six[:, 1:], six[:, 1:] - six[:, :-1]], -1)
@@ -249,8 +212,6 @@ def prior_loss(rot: torch.Tensor, target: torch.Tensor, prior: tuple[torch.Tenso
 def target_probs(spec: str) -> torch.Tensor:
     """Sampling probabilities of the 6 target styles for neutral windows; uniform unless `spec`
     ("style=factor,...") boosts styles that come out weak."""
-    from .dataset import TARGET_STYLES
-
     w = torch.ones(len(TARGET_STYLES))
     for item in filter(None, spec.split(",")):
         name, _, factor = item.partition("=")
@@ -265,10 +226,7 @@ def one_hot_targets(style: torch.Tensor) -> torch.Tensor:
     return F.one_hot(style.clamp_min(1) - 1, 6).float() * (style > 0).float()[:, None]
 
 
-# --------------------------------------------------------------------------- stages
-
-
-def train_classifier(cfg, clf, losses, train_s, val_s, log, device=torch.device("cpu")):
+def train_classifier(cfg, clf, losses, train_s, val: dict[str, torch.Tensor], log, device: torch.device) -> float:
     opt = torch.optim.Adam(clf.parameters(), lr=1e-3)
     bar = tqdm(total=cfg.clf_iters, desc="classifier", mininterval=5, file=sys.stderr)
     for it in range(cfg.clf_iters):
@@ -283,9 +241,8 @@ def train_classifier(cfg, clf, losses, train_s, val_s, log, device=torch.device(
             bar.set_postfix(loss=f"{loss.item():.3f}")
     clf.eval()
     with torch.no_grad():
-        v = to_device(val_s.fixed(2), device)
-        logits, _ = clf(clf.prepare(losses.real_view(v["x"])))
-        acc = (logits.argmax(-1) == v["content"]).float().mean().item()
+        logits, _ = clf(clf.prepare(losses.real_view(val["x"])))
+        acc = (logits.argmax(-1) == val["content"]).float().mean().item()
     log(f"content classifier: val window accuracy {acc:.3f}")
     for p in clf.parameters():
         p.requires_grad_(False)
@@ -329,8 +286,6 @@ def validate(gen, disc, clf, losses, v, hinges=None, skeleton=None, decode=None)
 
 
 def real_rot(x):
-    from .features import NB, ROT
-
     return x[..., ROT].reshape(x.shape[0], x.shape[1], NB, 4)
 
 
@@ -357,9 +312,6 @@ def hinge_loss(rot: torch.Tensor, hinges, skeleton) -> torch.Tensor:
     """Mean squared sine of the angle by which each hinge joint's bone (rotations (B, T, 21, 4),
     `hinges` a `models.motion.hinge.Hinges`) leaves the plane normal to its hinge axis: zero
     exactly when the joint turns as a hinge."""
-    from ..motion.rotations_torch import quat_apply_t
-    from ..motion.twist import bone_axes
-
     if len(hinges.joints) == 0:
         return rot.new_zeros(())
     as_t = lambda a: torch.as_tensor(a, dtype=rot.dtype, device=rot.device)  # noqa: E731
@@ -407,307 +359,307 @@ def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str,
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
 
-def main(argv: list[str]) -> None:
+WEIGHTED = ("rot", "pos", "vel", "adv", "per", "prior", "hinge", "teacher", "adv_rot")  # cfg.w_<term>
+
+
+def load_config(argv: list[str]) -> tuple[TrainConfig, dict | None]:
+    """The command line's config, or with `--resume` the run's own config and checkpoint, then the
+    command line's overrides."""
     cfg = parse_args(argv)
+    path = Path(cfg.run_dir) / "ckpt.pt"
+    if not cfg.resume or not path.exists():
+        return cfg, None
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    cfg = parse_overrides(TrainConfig(**ck["train_config"]), argv)
+    cfg.resume = True
+    return cfg, ck
+
+
+@dataclass
+class Data:
+    """Training and validation windows, the skeleton and the clips rendered along the way."""
+
+    stats: dict[str, np.ndarray]
+    train: Any  # dataset.WindowSampler
+    val: dict[str, torch.Tensor]  # fixed validation windows
+    skeleton: Any
+    maker: Any  # features.FeatureMaker
+    render_motions: list
+
+    @staticmethod
+    def load(cfg: TrainConfig, device: torch.device) -> Data:
+        from ..motion.assets import bandai_namco_skeleton
+        from .dataset import WindowSampler, load_split, load_stats
+        from .features import FeatureMaker
+
+        if cfg.data:  # a packed training set (`carry.py`): no cache, no raw mocap
+            from .carry import unpack
+
+            splits, stats = unpack(Path(cfg.data))
+            train_split, val_split = splits["train"], splits["val"]
+        else:
+            stats = load_stats()
+            train_split, val_split = load_split("train"), load_split("val")
+        train = WindowSampler(train_split, cfg.window, cfg.p_neutral, seed=cfg.seed)
+        val = WindowSampler(val_split, cfg.window, cfg.p_neutral, seed=cfg.seed + 1)
+        skeleton = bandai_namco_skeleton()
+        motions = []
+        if cfg.render_every and not cfg.data:
+            from ..data import build_index, load_motions, select
+
+            index = build_index(["bandai-namco-2"])
+            pick = [select(index, split="val", style="normal", content=(c,))[:1] for c in ("walk", "wave-right-hand")]
+            clips = pick[0] + pick[1]
+            motions = [(c.name, m) for c, m in zip(clips, load_motions(clips))]
+        vfixed = to_device(val.fixed(2), device)
+        return Data(stats, train, vfixed, skeleton, FeatureMaker(skeleton, stats["ref"]), motions)
+
+
+class Run:
+    """The networks, optimisers and training state of a run: what a checkpoint holds."""
+
+    def __init__(self, cfg: TrainConfig, ck: dict | None, data: Data, device: torch.device, log) -> None:
+        """New networks (built in a fixed order, so runs repeat), restored from `ck` or
+        initialised as `cfg` says; the content classifier trained when it is new."""
+        self.cfg, self.it = cfg, 0
+        self.history: list[dict] = []
+        self.mcfg, gen, disc, clf, scale = build(cfg, data.stats)
+        self.gen, self.disc, self.clf = gen, disc, clf
+        self.losses = Losses(data.skeleton, {k: v.to(device) for k, v in scale.items()})
+        self.losses.offsets = self.losses.offsets.to(device)
+        n_g, n_d = (sum(p.numel() for p in net.parameters()) for net in (gen, disc))
+        log(f"generator {n_g} params, discriminator {n_d}, classifier {sum(p.numel() for p in clf.parameters())}")
+        self.clf_acc = None
+        if ck is not None:  # resume: every network, the classifier its run trained
+            gen.load_state_dict(ck["generator"])
+            disc.load_state_dict(ck["discriminator"])
+            clf.load_state_dict(torch.load(Path(cfg.run_dir) / "classifier.pt", map_location="cpu"))
+            self.clf_acc = ck["classifier_val_acc"]
+        elif cfg.init_weights:  # fine-tune the committed generator; discriminator and classifier anew
+            from .runtime import load as load_exported
+
+            gen.load_state_dict(load_exported(Path(cfg.init_weights)).torch_generator().state_dict())
+            log(f"generator initialised from {cfg.init_weights}")
+        if ck is None and cfg.init_from:  # fine-tune: same networks, the classifier its run trained
+            init = torch.load(cfg.init_from, map_location="cpu", weights_only=False)
+            gen.load_state_dict(init["generator"])
+            disc.load_state_dict(init["discriminator"])
+            clf.load_state_dict(torch.load(Path(cfg.init_from).with_name("classifier.pt"), map_location="cpu"))
+            self.clf_acc = init["classifier_val_acc"]
+            log(f"initialised from {cfg.init_from} (iteration {init['iter']})")
+        self.teacher = None
+        if cfg.w_teacher:  # the generator as it starts (or as the resumed run started)
+            self.teacher = copy.deepcopy(gen)
+            if ck is not None and ck.get("teacher") is not None:
+                self.teacher.load_state_dict(ck["teacher"])
+            self.teacher.eval().requires_grad_(False).to(device)
+        gen.to(device)
+        disc.to(device)
+        clf.to(device)
+        if self.clf_acc is None:
+            self.clf_acc = train_classifier(cfg, clf, self.losses, data.train, data.val, log, device)
+        clf.eval().requires_grad_(False)
+        torch.save(clf.state_dict(), Path(cfg.run_dir) / "classifier.pt")
+        self.p_target = target_probs(cfg.target_weights)
+        mean, p95 = style_rotation_prior(data.train.s)
+        self.prior = (mean.to(device), p95.to(device))
+        self.hinges = split_hinges(data.train.s, data.skeleton)
+        self.decode = self.hinges if cfg.hinge_decode else None  # as the runtime decodes them
+        log(f"hinge joints {[data.skeleton.names[j] for j in self.hinges.joints]}, decoded: {cfg.hinge_decode}")
+        self.leaf_prior = None
+        if cfg.leaf_prior:
+            from ..motion.style_carry import StyleCarry
+
+            self.leaf_prior = StyleCarry.load(Path(cfg.leaf_prior))
+            log(f"twists and leaves carried by {cfg.leaf_prior}")
+        self.disc_rot = RotationDiscriminator(self.mcfg, cfg.window - 1).to(device) if cfg.w_adv_rot else None
+        adam = lambda net: torch.optim.Adam(net.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999))  # noqa: E731
+        self.opt_dr = adam(self.disc_rot) if self.disc_rot else None
+        self.opt_g = torch.optim.Adam(gen.parameters(), lr=cfg.lr_g, betas=(0.5, 0.999))
+        self.opt_d = adam(disc)
+        if cfg.schedule_iters:
+            self.schedule = Schedule(cfg.lr_decay_to, float(cfg.schedule_iters), by_steps=True)
+        else:
+            self.schedule = Schedule(cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
+        if ck is not None:
+            self.restore(ck, data)
+
+    def restore(self, ck: dict, data: Data) -> None:
+        """Optimisers, schedule, random generators and step of a resumed run."""
+        self.opt_g.load_state_dict(ck["opt_g"])
+        self.opt_d.load_state_dict(ck["opt_d"])
+        if self.disc_rot is not None and self.opt_dr is not None and ck.get("disc_rot") is not None:
+            self.disc_rot.load_state_dict(ck["disc_rot"])
+            self.opt_dr.load_state_dict(ck["opt_dr"])
+        cfg = self.cfg
+        total = self.schedule.total if (cfg.schedule_minutes or cfg.schedule_iters) else ck["schedule"]["total"]
+        self.schedule = Schedule(**{**ck["schedule"], "total": total})
+        set_rng_state(data.train.rng, ck["rng"])
+        self.it, self.history = ck["iter"], ck["history"]
+
+    def validate(self, data: Data) -> dict[str, float]:
+        return validate(self.gen, self.disc, self.clf, self.losses, data.val, self.hinges, data.skeleton, self.decode)
+
+    def checkpoint(self, path: Path, it: int, data: Data, resumable: bool = True) -> None:
+        """A checkpoint; a resumable one also holds what `--resume` needs (optimisers, RNG)."""
+        train = None
+        if resumable:
+            train = {
+                "opt_g": self.opt_g.state_dict(),
+                "opt_d": self.opt_d.state_dict(),
+                "disc_rot": None if self.disc_rot is None else self.disc_rot.state_dict(),
+                "opt_dr": None if self.opt_dr is None else self.opt_dr.state_dict(),
+                "schedule": asdict(self.schedule),
+                "rng": rng_state(data.train.rng),
+                "teacher": None if self.teacher is None else {k: v.cpu() for k, v in self.teacher.state_dict().items()},
+            }
+        seconds = self.schedule.elapsed_s
+        save(path, self.gen, self.disc, self.mcfg, self.cfg, data.stats, it, seconds, self.history, self.clf_acc, train)
+
+
+def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor], it: int, autocast) -> dict:
+    """One generator and discriminator update on batch `b`; returns the loss terms."""
+    gen, disc, clf, losses, device = run.gen, run.disc, run.clf, run.losses, b["x"].device
+    x, style, content = b["x"], b["style"], b["content"]
+    B = len(x)
+    # neutral windows go to a random style, styled ones to neutral; input labels dropped at random
+    target = torch.where(
+        style == 0, 1 + torch.multinomial(run.p_target, B, replacement=True).to(device), torch.zeros_like(style)
+    )
+    s_in = torch.where(torch.rand(B).to(device) < cfg.p_drop_style, torch.full_like(style, -1), style)
+    c_in = torch.where(torch.rand(B).to(device) < cfg.p_drop_content, torch.full_like(content, -1), content)
+    real = losses.real_view(x)
+
+    # generator: reconstruction (target = input style) and transfer in one batched pass
+    with autocast:
+        outs = gen.forward_multi(x, s_in, c_in, [one_hot_targets(style), one_hot_targets(target)])
+    out = {k: torch.cat([outs[0][k], outs[1][k]]).float() for k in outs[0]}
+    view = losses.fake_view(out)
+    fake_view = {k: v[B:] for k, v in view.items()}
+    t: dict[str, torch.Tensor] = {}
+    t["rot"], t["pos"], t["vel"] = losses.recon(
+        {k: v[:B] for k, v in out.items()}, {k: v[:B] for k, v in view.items()}, real, x
+    )
+    with autocast:
+        t["adv"] = disc(disc.prepare(fake_view), target, content).float().pow(2).mean()
+        _, f_fake = clf(clf.prepare(fake_view))
+        with torch.no_grad():
+            _, f_real = clf(clf.prepare(real))
+    t["per"] = torch.zeros((), device=device)
+    for a, b_ in zip(f_fake, f_real):
+        t["per"] = t["per"] + F.mse_loss(a.float(), b_.float())
+    streamed = None
+    if cfg.w_prior or cfg.w_hinge or run.disc_rot is not None:
+        source = leaf_source(run.leaf_prior, x, target) if run.leaf_prior is not None else None
+        streamed = streamed_rotations(data.skeleton, out["rot"][B:], x, source, run.decode)
+    zero = torch.zeros((), device=device)
+    t["teacher"] = zero
+    if run.teacher is not None:  # keep the transfer near the generator the run started from
+        with torch.no_grad(), autocast:
+            t_out = run.teacher(x, s_in, c_in, one_hot_targets(target))
+        t_view = losses.fake_view({k: v.float() for k, v in t_out.items()})
+        t["teacher"] = sum(((fake_view[k] - t_view[k]) / losses.scale[k]).pow(2).mean() for k in ("pos", "vel"))
+    t["prior"] = prior_loss(streamed, target, run.prior) if cfg.w_prior and streamed is not None else zero
+    t["hinge"] = hinge_loss(streamed, run.hinges, data.skeleton) if cfg.w_hinge and streamed is not None else zero
+    t["adv_rot"] = zero
+    if run.disc_rot is not None and streamed is not None:
+        t["adv_rot"] = run.disc_rot(rotation_view(streamed), target, content).pow(2).mean()
+    loss_g = sum(getattr(cfg, f"w_{k}") * t[k] for k in WEIGHTED)
+    if it >= cfg.d_warmup:
+        run.opt_g.zero_grad()
+        loss_g.backward()
+        run.opt_g.step()
+
+    # discriminator: LSGAN with R1 on real windows (the gradient penalty in float32)
+    real_in = disc.prepare(real).detach().requires_grad_(True)
+    d_real = disc(real_in, style, content)
+    (grad,) = torch.autograd.grad(d_real.sum(), real_in, create_graph=True)
+    r1 = grad.pow(2).sum((1, 2)).mean()
+    with autocast:
+        d_fake = disc(disc.prepare({k: v.detach() for k, v in fake_view.items()}), target, content).float()
+    t["d"] = (d_real - 1).pow(2).mean() + (d_fake + 1).pow(2).mean() + cfg.w_r1 * r1
+    run.opt_d.zero_grad()
+    t["d"].backward()
+    run.opt_d.step()
+    if run.disc_rot is not None and run.opt_dr is not None and streamed is not None:  # the same on rotations
+        rv = rotation_view(real_rot(x)).detach().requires_grad_(True)
+        dr_real = run.disc_rot(rv, style, content)
+        (grad,) = torch.autograd.grad(dr_real.sum(), rv, create_graph=True)
+        dr_fake = run.disc_rot(rotation_view(streamed.detach()), target, content)
+        r1 = grad.pow(2).sum((1, 2)).mean()
+        loss_dr = (dr_real - 1).pow(2).mean() + (dr_fake + 1).pow(2).mean() + cfg.w_r1 * r1
+        run.opt_dr.zero_grad()
+        loss_dr.backward()
+        run.opt_dr.step()
+    return {k: float(v) for k, v in t.items()}
+
+
+def main(argv: list[str]) -> None:
+    cfg, ck = load_config(argv)
     if cfg.export:
         from .runtime import export_weights
 
         print(export_weights(Path(cfg.export)))
         return
-    resume = Path(cfg.run_dir) / "ckpt.pt" if cfg.resume else None
-    ck = None
-    if resume is not None and resume.exists():
-        ck = torch.load(resume, map_location="cpu", weights_only=False)
-        cfg = parse_overrides(TrainConfig(**ck["train_config"]), argv)  # the run's settings, then today's overrides
-        cfg.resume = True
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
     device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
     bf16 = use_bf16(cfg.bf16, device)
-    from ..motion.assets import bandai_namco_skeleton
-    from .dataset import WindowSampler, load_split, load_stats
-    from .features import FeatureMaker
-
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
     log = start_run(run_dir, out_dir)
-
     t_start = time.time()
-    if cfg.data:  # a packed training set (`carry.py`): no cache, no raw mocap
-        from .carry import unpack
-
-        splits, stats = unpack(Path(cfg.data))
-        train_split, val_split = splits["train"], splits["val"]
-    else:
-        stats = load_stats()
-        train_split, val_split = load_split("train"), load_split("val")
-    train_s = WindowSampler(train_split, cfg.window, cfg.p_neutral, seed=cfg.seed)
-    val_s = WindowSampler(val_split, cfg.window, cfg.p_neutral, seed=cfg.seed + 1)
-    vfixed = to_device(val_s.fixed(2), device)
-    skeleton = bandai_namco_skeleton()
-    maker = FeatureMaker(skeleton, stats["ref"])
-    render_motions = []
-    if cfg.render_every and not cfg.data:
-        from ..data import build_index, load_motions, select
-
-        index = build_index(["bandai-namco-2"])
-        render_clips = (
-            select(index, split="val", style="normal", content=("walk",))[:1]
-            + select(index, split="val", style="normal", content=("wave-right-hand",))[:1]
-        )
-        render_motions = [(c.name, m) for c, m in zip(render_clips, load_motions(render_clips))]
-    mcfg, gen, disc, clf, scale = build(cfg, stats)
-    scale = {k: v.to(device) for k, v in scale.items()}
-    losses = Losses(skeleton, scale)
-    losses.offsets = losses.offsets.to(device)
-    n_g = sum(p.numel() for p in gen.parameters())
-    n_d = sum(p.numel() for p in disc.parameters())
-    log(f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {bf16}; resumed from {resume if ck else None}")
-    log(f"generator {n_g} params, discriminator {n_d}, classifier {sum(p.numel() for p in clf.parameters())}")
-
-    if ck is not None:  # resume: every network, the classifier its run trained
-        gen.load_state_dict(ck["generator"])
-        disc.load_state_dict(ck["discriminator"])
-        clf.load_state_dict(torch.load(run_dir / "classifier.pt", map_location="cpu"))
-        clf_acc = ck["classifier_val_acc"]
-    else:
-        if cfg.init_weights:  # fine-tune the committed generator; discriminator and classifier anew
-            from .runtime import load as load_exported
-
-            gen.load_state_dict(load_exported(Path(cfg.init_weights)).torch_generator().state_dict())
-            log(f"generator initialised from {cfg.init_weights}")
-        if cfg.init_from:  # fine-tune: same networks, the classifier its run trained
-            init = torch.load(cfg.init_from, map_location="cpu", weights_only=False)
-            gen.load_state_dict(init["generator"])
-            disc.load_state_dict(init["discriminator"])
-            clf.load_state_dict(torch.load(Path(cfg.init_from).with_name("classifier.pt"), map_location="cpu"))
-            clf_acc = init["classifier_val_acc"]
-            log(f"initialised from {cfg.init_from} (iteration {init['iter']})")
-    teacher = None
-    if cfg.w_teacher:  # the generator as it starts (or as the resumed run started)
-        import copy
-
-        teacher = copy.deepcopy(gen)
-        if ck is not None and ck.get("teacher") is not None:
-            teacher.load_state_dict(ck["teacher"])
-        teacher.eval().requires_grad_(False).to(device)
-    gen.to(device)
-    disc.to(device)
-    clf.to(device)
-    if ck is None and not cfg.init_from:
-        clf_acc = train_classifier(cfg, clf, losses, train_s, val_s, log, device)
-    clf.eval().requires_grad_(False)
-    torch.save(clf.state_dict(), run_dir / "classifier.pt")
-    p_target = target_probs(cfg.target_weights)
-    prior_mean, prior_p95 = style_rotation_prior(train_s.s)
-    prior = (prior_mean.to(device), prior_p95.to(device))
-    from .dataset import split_hinges
-
-    hinges = split_hinges(train_s.s, skeleton)
-    decode = hinges if cfg.hinge_decode else None
-    log(f"hinge joints {[skeleton.names[j] for j in hinges.joints]}, decoded as hinges: {cfg.hinge_decode}")
-    leaf_prior = None
-    if cfg.leaf_prior:
-        from ..motion.style_carry import StyleCarry
-
-        leaf_prior = StyleCarry.load(Path(cfg.leaf_prior))
-        log(f"twists and leaves carried by {cfg.leaf_prior}")
-    disc_rot = RotationDiscriminator(mcfg, cfg.window - 1).to(device) if cfg.w_adv_rot else None
-    opt_dr = torch.optim.Adam(disc_rot.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999)) if disc_rot else None
-    opt_g = torch.optim.Adam(gen.parameters(), lr=cfg.lr_g, betas=(0.5, 0.999))
-    opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999))
-    if cfg.schedule_iters:
-        schedule = Schedule(cfg.lr_decay_to, float(cfg.schedule_iters), by_steps=True)
-    else:
-        schedule = Schedule(cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
-    history: list[dict] = []
-    it = 0
-    if ck is not None:
-        opt_g.load_state_dict(ck["opt_g"])
-        opt_d.load_state_dict(ck["opt_d"])
-        if disc_rot is not None and opt_dr is not None and ck.get("disc_rot") is not None:
-            disc_rot.load_state_dict(ck["disc_rot"])
-            opt_dr.load_state_dict(ck["opt_dr"])
-        total = schedule.total if (cfg.schedule_minutes or cfg.schedule_iters) else ck["schedule"]["total"]
-        schedule = Schedule(**{**ck["schedule"], "total": total})
-        set_rng_state(train_s.rng, ck["rng"])
-        it, history = ck["iter"], ck["history"]
+    data = Data.load(cfg, device)
+    run = Run(cfg, ck, data, device, log)
+    log(f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {bf16}; resumed: {ck is not None}")
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
-
-    def checkpoint(path: Path) -> None:
-        save(
-            path,
-            gen,
-            disc,
-            mcfg,
-            cfg,
-            stats,
-            it,
-            schedule.elapsed_s,
-            history,
-            clf_acc,
-            train={
-                "opt_g": opt_g.state_dict(),
-                "opt_d": opt_d.state_dict(),
-                "disc_rot": None if disc_rot is None else disc_rot.state_dict(),
-                "opt_dr": None if opt_dr is None else opt_dr.state_dict(),
-                "schedule": asdict(schedule),
-                "rng": rng_state(train_s.rng),
-                "teacher": None if teacher is None else {k: v.cpu() for k, v in teacher.state_dict().items()},
-            },
-        )
-
-    t0, budget, first_it, seconds0 = time.time(), cfg.minutes * 60, it, schedule.elapsed_s
+    sched, it = run.schedule, run.it
+    t0, first_it, seconds0 = time.time(), it, sched.elapsed_s
     bar = tqdm(total=cfg.max_iters, initial=it, desc="style-erd", mininterval=10, file=sys.stderr)
     last = time.time()
-    while it < cfg.max_iters and time.time() - t0 < budget and schedule.progress(it) < 1.0:
-        factor = schedule.factor(it)
-        for opt, base in ((opt_g, cfg.lr_g), (opt_d, cfg.lr_d), (opt_dr, cfg.lr_d)):
-            if opt is None:
-                continue
-            for group in opt.param_groups:
+    while it < cfg.max_iters and time.time() - t0 < cfg.minutes * 60 and sched.progress(it) < 1.0:
+        factor = sched.factor(it)
+        for opt, base in ((run.opt_g, cfg.lr_g), (run.opt_d, cfg.lr_d), (run.opt_dr, cfg.lr_d)):
+            for group in opt.param_groups if opt is not None else ():
                 group["lr"] = base * factor
-        b = to_device(train_s.sample(cfg.batch), device)
-        x, style, content = b["x"], b["style"], b["content"]
-        B = len(x)
-        target = torch.where(
-            style == 0,
-            1 + torch.multinomial(p_target, B, replacement=True).to(device),
-            torch.zeros_like(style),
-        )
-        s_in = torch.where(torch.rand(B).to(device) < cfg.p_drop_style, torch.full_like(style, -1), style)
-        c_in = torch.where(torch.rand(B).to(device) < cfg.p_drop_content, torch.full_like(content, -1), content)
-        real = losses.real_view(x)
-
-        # ---- generator (reconstruction and transfer in one batched pass)
-        with autocast:
-            outs = gen.forward_multi(x, s_in, c_in, [one_hot_targets(style), one_hot_targets(target)])
-        out = {k: torch.cat([outs[0][k], outs[1][k]]).float() for k in outs[0]}
-        view = losses.fake_view(out)
-        rec = {k: v[:B] for k, v in out.items()}
-        rec_view = {k: v[:B] for k, v in view.items()}
-        fake_view = {k: v[B:] for k, v in view.items()}
-        l_rot, l_pos, l_vel = losses.recon(rec, rec_view, real, x)
-        with autocast:
-            l_adv = disc(disc.prepare(fake_view), target, content).float().pow(2).mean()
-            _, f_fake = clf(clf.prepare(fake_view))
-            with torch.no_grad():
-                _, f_real = clf(clf.prepare(real))
-        l_per = torch.zeros((), device=device)
-        for a, b_ in zip(f_fake, f_real):
-            l_per = l_per + F.mse_loss(a.float(), b_.float())
-        streamed = None
-        if cfg.w_prior or cfg.w_hinge or disc_rot is not None:
-            source = leaf_source(leaf_prior, x, target) if leaf_prior is not None else None
-            streamed = streamed_rotations(skeleton, out["rot"][B:], x, source, decode)
-        zero = torch.zeros((), device=device)
-        l_teacher = zero
-        if teacher is not None:
-            with torch.no_grad(), autocast:
-                t_out = teacher(x, s_in, c_in, one_hot_targets(target))
-            t_view = losses.fake_view({k: v.float() for k, v in t_out.items()})
-            l_teacher = sum(((fake_view[k] - t_view[k]) / scale[k]).pow(2).mean() for k in ("pos", "vel"))
-        l_prior = prior_loss(streamed, target, prior) if cfg.w_prior and streamed is not None else zero
-        l_hinge = hinge_loss(streamed, hinges, skeleton) if cfg.w_hinge and streamed is not None else zero
-        l_adv_rot = (
-            disc_rot(rotation_view(streamed), target, content).pow(2).mean()
-            if disc_rot is not None and streamed is not None
-            else zero
-        )
-        loss_g = (
-            cfg.w_rot * l_rot
-            + cfg.w_pos * l_pos
-            + cfg.w_vel * l_vel
-            + cfg.w_adv * l_adv
-            + cfg.w_per * l_per
-            + cfg.w_prior * l_prior
-            + cfg.w_hinge * l_hinge
-            + cfg.w_teacher * l_teacher
-            + cfg.w_adv_rot * l_adv_rot
-        )
-        if it >= cfg.d_warmup:
-            opt_g.zero_grad()
-            loss_g.backward()
-            opt_g.step()
-
-        # ---- discriminator (LSGAN, R1 on real; the gradient penalty in float32)
-        real_in = disc.prepare(real).detach().requires_grad_(True)
-        d_real = disc(real_in, style, content)
-        (grad,) = torch.autograd.grad(d_real.sum(), real_in, create_graph=True)
-        r1 = grad.pow(2).sum((1, 2)).mean()
-        with autocast:
-            d_fake = disc(disc.prepare({k: v.detach() for k, v in fake_view.items()}), target, content).float()
-        loss_d = (d_real - 1).pow(2).mean() + (d_fake + 1).pow(2).mean() + cfg.w_r1 * r1
-        opt_d.zero_grad()
-        loss_d.backward()
-        opt_d.step()
-        if disc_rot is not None and opt_dr is not None and streamed is not None:  # the same on real rotations
-            rv = rotation_view(real_rot(x)).detach().requires_grad_(True)
-            dr_real = disc_rot(rv, style, content)
-            (grad,) = torch.autograd.grad(dr_real.sum(), rv, create_graph=True)
-            dr_fake = disc_rot(rotation_view(streamed.detach()), target, content)
-            loss_dr = (
-                (dr_real - 1).pow(2).mean() + (dr_fake + 1).pow(2).mean() + cfg.w_r1 * grad.pow(2).sum((1, 2)).mean()
-            )
-            opt_dr.zero_grad()
-            loss_dr.backward()
-            opt_dr.step()
-
+        terms = train_step(cfg, run, data, to_device(data.train.sample(cfg.batch), device), it, autocast)
         it += 1
         now = time.time()
-        schedule.elapsed_s += now - last
+        sched.elapsed_s += now - last
         last = now
         bar.update(1)
         if it % 50 == 0:
-            bar.set_postfix(
-                rot=f"{l_rot.item():.4f}",
-                pos=f"{l_pos.item():.4f}",
-                adv=f"{l_adv.item():.3f}",
-                hinge=f"{l_hinge.item():.4f}",
-                teacher=f"{float(l_teacher):.4f}",
-                prior=f"{l_prior.item():.4f}",
-                per=f"{l_per.item():.3f}",
-                d=f"{loss_d.item():.3f}",
-            )
+            bar.set_postfix({k: f"{v:.4f}" for k, v in terms.items()})
         if it % cfg.eval_every == 0:
-            v = validate(gen, disc, clf, losses, vfixed, hinges, skeleton, decode)
+            v = run.validate(data)
             v.update(
                 iter=it,
-                minutes=round(schedule.elapsed_s / 60, 2),
-                it_per_s=round((it - first_it) / max(schedule.elapsed_s - seconds0, 1e-9), 2),
+                minutes=round(sched.elapsed_s / 60, 2),
+                it_per_s=round((it - first_it) / max(sched.elapsed_s - seconds0, 1e-9), 2),
                 lr_factor=round(factor, 4),
-                train_rot=l_rot.item(),
-                train_pos=l_pos.item(),
-                train_adv=l_adv.item(),
-                train_per=l_per.item(),
-                train_d=loss_d.item(),
-                train_prior=l_prior.item(),
-                train_hinge=l_hinge.item(),
-                train_teacher=float(l_teacher),
-                train_adv_rot=l_adv_rot.item(),
+                **{f"train_{k}": val for k, val in terms.items()},
             )
-            history.append(v)
+            run.history.append(v)
             log("val " + " ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}" for k, val in v.items()))
             last = time.time()  # validation is not training time
         if it % cfg.ckpt_every == 0:
-            checkpoint(run_dir / "ckpt.pt")
+            run.checkpoint(run_dir / "ckpt.pt", it, data)
         if cfg.snapshot_every and it % cfg.snapshot_every == 0:
-            save(run_dir / f"ckpt_{it:06d}.pt", gen, disc, mcfg, cfg, stats, it, schedule.elapsed_s, history, clf_acc)
-        if render_motions and it % cfg.render_every == 0:
-            render(gen, maker, out_dir, f"it{it:06d}", render_motions)
+            run.checkpoint(run_dir / f"ckpt_{it:06d}.pt", it, data, resumable=False)
+        if data.render_motions and it % cfg.render_every == 0:
+            render(run.gen, data.maker, out_dir, f"it{it:06d}", data.render_motions)
     bar.close()
-    v = validate(gen, disc, clf, losses, vfixed, hinges, skeleton, decode)
-    v.update(iter=it, minutes=round(schedule.elapsed_s / 60, 2))
-    history.append(v)
+    v = run.validate(data)
+    v.update(iter=it, minutes=round(sched.elapsed_s / 60, 2))
+    run.history.append(v)
     log("final val " + " ".join(f"{k}={val:.4g}" for k, val in v.items()))
-    checkpoint(run_dir / "ckpt.pt")
-    if render_motions:
-        render(gen, maker, out_dir, "final", render_motions)
-    trained = schedule.elapsed_s - seconds0
+    run.checkpoint(run_dir / "ckpt.pt", it, data)
+    if data.render_motions:
+        render(run.gen, data.maker, out_dir, "final", data.render_motions)
     log(
-        f"done: {it} iterations ({(it - first_it) / max(trained, 1e-9):.2f} it/s this session), "
-        f"{schedule.elapsed_s / 60:.1f} min of training in all, this session {(time.time() - t_start) / 60:.1f} min"
+        f"done: {it} iterations ({(it - first_it) / max(sched.elapsed_s - seconds0, 1e-9):.2f} it/s this session), "
+        f"{sched.elapsed_s / 60:.1f} min of training in all, this session {(time.time() - t_start) / 60:.1f} min"
     )
 
 

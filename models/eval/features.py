@@ -50,21 +50,3 @@ def windows(x: np.ndarray, length: int, stride: int) -> np.ndarray:
     if starts[-1] != len(x) - length:
         starts.append(len(x) - length)
     return np.stack([x[s : s + length] for s in starts])
-
-
-ROTATION_FEATURE_DIM = NUM_BODY_JOINTS * 6 * 2
-
-
-def rotation_features(motion: Motion) -> np.ndarray:
-    """(F, ROTATION_FEATURE_DIM) float32 for the second style judge, which sees what a skinned
-    character shows rather than where its joints are: every body joint's local rotation (the
-    Hips without its heading) as the 6-D first two matrix columns, and their backward differences
-    per frame (causal)."""
-    from ..motion.rotations import matrix_to_6d, quat_to_matrix
-    from .plausibility import body_joints, comparable_rotations
-
-    rot = comparable_rotations(motion)[:, body_joints(motion.skeleton)]
-    six = matrix_to_6d(quat_to_matrix(rot)).reshape(len(rot), -1)
-    delta = np.zeros_like(six)
-    delta[1:] = six[1:] - six[:-1]
-    return np.concatenate([six, delta], axis=1).astype(np.float32)

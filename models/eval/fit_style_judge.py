@@ -1,21 +1,13 @@
-"""`python -m models.eval.fit_style_judge`: fit the sealed evaluation's style judge
-(`style_judge.py`) and write its report.
+"""`python -m models.eval.fit_style_judge`: fit the sealed evaluation's style judge and report.
 
-1. **Which labels the datasets share.** A judge fitted on dataset 2's TRAIN clips reads every
-   dataset-1 TRAIN and VALIDATION clip; a dataset-1 style is given its dataset-2 namesake
-   (`NAMESAKES`: the two label files' words for the same thing) only if at least `AGREEMENT` of
-   its clips read as it. Every other dataset-1 style stays a label of its own (`d1-<style>`),
-   which the judge answers as `other`.
-2. **The regularisation** is chosen by 5-fold cross-validation over dataset 1's TRAIN and
-   VALIDATION clips (dataset 1 has one take per style and content, so its validation split alone
-   is 18 clips), the takes of one style and content held out together, repeated over `REPEATS`
-   fold draws, each fold fitted with dataset 2's TRAIN clips.
-3. **The judge** is fitted on the TRAIN clips of both datasets and scored on the held-out clips
-   of each: validation, and dataset 1's cross-validation reads (takes never seen; the data names
-   no performers, so none can be held out).
+1. A dataset-1 style takes its dataset-2 namesake's label only if at least `AGREEMENT` of its
+   clips read as it under a dataset-2 judge; others stay labels of their own (read as `other`).
+2. The regularisation is chosen by 5-fold cross-validation over dataset 1, one style and
+   content held out together.
+3. The judge is fitted on both datasets' TRAIN clips and scored on held-out clips.
 
-The test split is never loaded here: `make eval-final` reads it once, so nothing below can be
-chosen by it. Writes models/weights/eval/style_judge.npz and docs/eval/style_judge.md (+ .json).
+The test split is never loaded here. Writes models/weights/eval/style_judge.npz and
+docs/eval/style_judge.md (+ .json).
 """
 
 from __future__ import annotations

@@ -1,12 +1,6 @@
-"""Running sessions: a scored clip streamed after seconds of other motion, as a live session is.
-
-The main table starts a fresh session for every clip, so it scores the first five seconds of a
-session, while a user mostly watches one that has been running for minutes: by then the LTI
-systems' slow modes, the LSTMs' hidden states and the controller's phases carry what came before,
-not the state a session starts in. `with_history` builds that input for one clip: the clips
-before it in the list (cyclic), each turned and moved to continue where the previous one ended
-and joined to it by a short eased transition, then the clip itself, unchanged but for where it
-stands and which way it faces. Pure functions on `Motion`s.
+"""Running sessions: a scored clip streamed after other motion, as in a live session, where slow
+modes, hidden states and phases carry what came before. `with_history` precedes a clip by the
+clips before it (cyclic), each continuing where the last ended through a short eased transition.
 """
 
 from __future__ import annotations

@@ -1,5 +1,4 @@
-"""The evaluation judges: style and content classifiers and the FMD autoencoder, their
-weights file, and the clip-level scoring helpers."""
+"""The conv-net style and content judges, their weights file and clip-level scoring."""
 
 from __future__ import annotations
 
@@ -16,9 +15,6 @@ from .features import FEATURE_DIM, windows
 
 CLF_WINDOW = 32  # ~1.07 s at 30 fps
 CLF_STRIDE = 8
-DAE_WINDOW = 24
-DAE_STRIDE = 4
-LATENT = 32
 WEIGHTS_FILE = "judges.pt"
 
 
@@ -49,40 +45,6 @@ class Classifier(nn.Module):
         return self.net(x.transpose(1, 2))
 
 
-class DenoisingAE(nn.Module):
-    """24-frame windows -> LATENT-dim code -> reconstruction; the code is the FMD feature."""
-
-    def __init__(self, in_dim: int = FEATURE_DIM, window: int = DAE_WINDOW, latent: int = LATENT, width: int = 96):
-        super().__init__()
-        self.in_dim, self.window = in_dim, window
-        self.enc = nn.Sequential(
-            nn.Conv1d(in_dim, width, 3, padding=1),
-            nn.ReLU(),
-            nn.Conv1d(width, width, 4, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Conv1d(width, 32, 4, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Flatten(),
-            nn.Linear(32 * (window // 4), latent),
-        )
-        self.dec = nn.Sequential(
-            nn.Linear(latent, 32 * (window // 4)),
-            nn.ReLU(),
-            nn.Unflatten(1, (32, window // 4)),
-            nn.ConvTranspose1d(32, width, 4, stride=2, padding=1),
-            nn.ReLU(),
-            nn.ConvTranspose1d(width, width, 4, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Conv1d(width, in_dim, 3, padding=1),
-        )
-
-    def encode(self, x: torch.Tensor) -> torch.Tensor:
-        return self.enc(x.transpose(1, 2))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.dec(self.encode(x)).transpose(1, 2)
-
-
 @torch.no_grad()
 def clip_logprobs(clf: Classifier, norm: Callable[[np.ndarray], torch.Tensor], feats: list[np.ndarray]) -> np.ndarray:
     """Per clip: mean log-probability over its sliding 1 s windows -> (N, classes)."""
@@ -104,7 +66,6 @@ class Judges:
     contents: list[str]
     style_clf: Classifier
     content_clf: Classifier
-    dae: DenoisingAE
     meta: dict = field(default_factory=dict)
 
     def norm(self, x: np.ndarray) -> torch.Tensor:
@@ -122,12 +83,6 @@ class Judges:
     def predict_content(self, feats: list[np.ndarray]) -> list[str]:
         return [self.contents[i] for i in self.content_logprobs(feats).argmax(-1)]
 
-    @torch.no_grad()
-    def latents(self, feats: list[np.ndarray]) -> np.ndarray:
-        """DAE codes of every 24-frame window (stride 4) of every clip -> (N, LATENT)."""
-        wins = np.concatenate([windows(f, DAE_WINDOW, DAE_STRIDE) for f in feats])
-        return self.dae.encode(self.norm(wins)).numpy().astype(np.float64)
-
     def save(self, folder: Path) -> Path:
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / WEIGHTS_FILE
@@ -140,73 +95,18 @@ class Judges:
                 "contents": self.contents,
                 "style_clf": half(self.style_clf),
                 "content_clf": half(self.content_clf),
-                "dae": half(self.dae),
                 "meta": self.meta,
             },
             path,
         )
         return path
-
-
-ROTATION_JUDGE_FILE = "rotation_judge.pt"
-
-
-@dataclass
-class RotationJudge:
-    """The second style judge: the same classifier over `features.rotation_features` (local
-    rotations, no positions), trained on the same real TRAIN clips, so a method that gets the
-    positions of a style right with implausible rotations is not recognised by it."""
-
-    mean: np.ndarray
-    std: np.ndarray
-    styles: list[str]
-    clf: Classifier
-    meta: dict = field(default_factory=dict)
-
-    def norm(self, x: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor((x - self.mean) / self.std, dtype=torch.float32)
-
-    def style_logprobs(self, feats: list[np.ndarray]) -> np.ndarray:
-        return clip_logprobs(self.clf, self.norm, feats)
-
-    def predict_style(self, feats: list[np.ndarray]) -> list[str]:
-        return [self.styles[i] for i in self.style_logprobs(feats).argmax(-1)]
-
-    def save(self, folder: Path) -> Path:
-        folder.mkdir(parents=True, exist_ok=True)
-        path = folder / ROTATION_JUDGE_FILE
-        torch.save(
-            {
-                "mean": self.mean,
-                "std": self.std,
-                "styles": self.styles,
-                "clf": {k: v.half() for k, v in self.clf.state_dict().items()},
-                "meta": self.meta,
-            },
-            path,
-        )
-        return path
-
-
-def load_rotation_judge(folder: Path | None = None) -> RotationJudge:
-    folder = Path(folder) if folder is not None else weights_dir()
-    z = torch.load(folder / ROTATION_JUDGE_FILE, weights_only=False)
-    clf = Classifier(len(z["styles"]), in_dim=len(z["mean"]))
-    clf.load_state_dict({k: v.float() for k, v in z["clf"].items()})
-    return RotationJudge(
-        np.asarray(z["mean"], np.float32),
-        np.asarray(z["std"], np.float32),
-        list(z["styles"]),
-        clf.eval(),
-        z.get("meta", {}),
-    )
 
 
 def load_judges(folder: Path | None = None) -> Judges:
     folder = Path(folder) if folder is not None else weights_dir()
     z = torch.load(folder / WEIGHTS_FILE, weights_only=False)
-    style_clf, content_clf, dae = Classifier(len(z["styles"])), Classifier(len(z["contents"])), DenoisingAE()
-    for net, key in ((style_clf, "style_clf"), (content_clf, "content_clf"), (dae, "dae")):
+    style_clf, content_clf = Classifier(len(z["styles"])), Classifier(len(z["contents"]))
+    for net, key in ((style_clf, "style_clf"), (content_clf, "content_clf")):
         net.load_state_dict({k: v.float() for k, v in z[key].items()})
         net.eval()
     return Judges(
@@ -216,6 +116,5 @@ def load_judges(folder: Path | None = None) -> Judges:
         list(z["contents"]),
         style_clf,
         content_clf,
-        dae,
         z.get("meta", {}),
     )

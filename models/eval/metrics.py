@@ -13,26 +13,10 @@ CONTACT_MARGIN = 0.02  # leg lengths (1.7 cm on Bandai Namco) above a joint's fl
 FLOOR_PERCENTILE = 5.0  # a joint's floor level: this percentile of its height over the clip
 
 
-def frechet_distance(a: np.ndarray, b: np.ndarray) -> float:
-    """Fréchet distance between Gaussians fitted to samples a (N, D) and b (M, D)."""
-    mu1, mu2 = a.mean(0), b.mean(0)
-    s1, s2 = np.cov(a, rowvar=False), np.cov(b, rowvar=False)
-    # tr sqrt(s1 s2) = sum sqrt(eig(sqrt(s1) s2 sqrt(s1))), all symmetric PSD
-    w, v = np.linalg.eigh(s1)
-    r1 = (v * np.sqrt(np.clip(w, 0, None))) @ v.T
-    cross = np.sqrt(np.clip(np.linalg.eigvalsh(r1 @ s2 @ r1), 0, None)).sum()
-    return float(((mu1 - mu2) ** 2).sum() + np.trace(s1) + np.trace(s2) - 2 * cross)
-
-
 def flat_foot_contacts(motion: Motion, positions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(F, 2) contacts and (F, 2) horizontal foot speeds (units/s, the slower of ankle and toe; 0 at
-    frame 0), left then right. Contact = a flat foot on the floor: ankle and toe both within
-    CONTACT_MARGIN leg lengths of their own floor level (each joint's FLOOR_PERCENTILE height over
-    the clip, so a whole-clip float or sink does not matter).
-
-    Why flat-foot: a height test on either joint alone also catches the swing foot, which passes
-    only 1-3 cm above its standing height in real walks, so real Bandai Namco walks scored 40 %
-    "skating" under it and the metric could not tell a sliding foot from a stepping one."""
+    """(F, 2) contacts and horizontal foot speeds (the slower of ankle and toe), left then right.
+    Contact = a flat foot: ankle and toe both near their own floor level. Either joint alone
+    also catches the swing foot, which passes only 1-3 cm above the floor in real walks."""
     sk = motion.skeleton
     pos = motion.global_positions() if positions is None else positions
     leg = left_leg_length(sk)
@@ -82,12 +66,8 @@ PLANT_HEIGHT = 0.03  # leg lengths (2.5 cm on Bandai Namco) above a joint's floo
 
 
 def planted_slide(motion: Motion, positions: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """Horizontal speeds (units/s) of each toe and each ankle over the frames in which that joint
-    is planted: within PLANT_HEIGHT leg lengths of its own floor level (FLOOR_PERCENTILE height
-    over the clip). {"toe": (N,), "ankle": (M,)}, both feet pooled.
-
-    Unlike `foot_skating` this needs no flat foot: a toe that slides while the heel is up (the
-    push-off a skinned foot shows most) counts too."""
+    """Horizontal speeds {"toe": (N,), "ankle": (M,)} of each joint over the frames it is near its
+    own floor, both feet pooled: no flat foot needed, so a toe sliding at push-off counts."""
     sk = motion.skeleton
     pos = motion.global_positions() if positions is None else positions
     limit = PLANT_HEIGHT * left_leg_length(sk)

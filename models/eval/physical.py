@@ -1,22 +1,12 @@
 """What a viewer sees go wrong, measured so that no clamp or lock in a model enforces it.
 
-- **plausible clip**: every body joint's local rotation lies near some real frame of the style in
-  ≥ 95 % of the clip's frames, "near" calibrated so that 95 % of held-out real clips are
-  (`RotationSupport`). Near a real *frame*, not inside a ball about the style's mean rotation:
-  the models hold their rotations in such balls (fitted on TRAIN clips), so a ball test passes
-  by construction, while a pose between two real ones, or a wave's arm that a ball keeps but no
-  real clip makes, is caught here;
-- **pops**: the worst joint's share of frames whose rotation acceleration passes the p99.9 of
-  real clips of every style (a flick is a flick whatever the style), beside the real rows';
-- **jitter**: per joint, the clip's p99 rotation acceleration over the larger of its input's and
-  the real style's, the worst joint (1 or less: nothing added that neither the input nor the
-  style has; per joint, because the planted feet's accelerations dominate a pool over joints);
-- **slide**: the p95 horizontal speed of a planted foot (ankle and toe both on the floor,
-  `metrics.flat_foot_contacts`; the median a foot lock pins to 0 says nothing), and the
-  **skating** share: planted-foot frames faster than `skate_limit`, calibrated on real clips as
-  their p95 (real clips skate in 5 % of planted frames by construction);
-- **path**: the hips' path length over the input's (each plus one leg length, so a standing
-  input's few centimetres of sway do not make a ratio), and how far apart the two paths end.
+- plausible clip: each body joint near some real frame of the style (not inside a ball about
+  the mean, which the models' own balls pass by construction) in >= 95 % of frames;
+- pops: the worst joint's share of frames past the p99.9 real rotation acceleration;
+- jitter: per joint, the p99 rotation acceleration over the larger of the input's and the
+  style's, the worst joint;
+- slide: p95 horizontal speed of a planted foot, and the share of planted frames over the real p95;
+- path: the hips' path length over the input's, and how far apart the two paths end.
 """
 
 from __future__ import annotations
@@ -48,12 +38,9 @@ def _log_about(q: np.ndarray, mean: np.ndarray) -> np.ndarray:
 
 
 class RotationSupport:
-    """Per style and body joint: a search tree over real TRAIN frames' local rotations, and radii
-    calibrated on held-out real VALIDATION clips. Each joint's radius is a common multiple of the
-    p99 of the held-out frames' distances, the multiple at which `REAL_CLIPS_PASSING` of the
-    held-out clips have every joint within in `PLAUSIBLE_FRAMES` of their frames (a plausible
-    clip is one as close to real data as real clips are), and never under `MIN_RADIUS_DEG`. A real take's hands or head sit where no
-    other take's do for a whole clip, so a per-frame radius alone fails most real clips."""
+    """Per style and body joint: a search tree over real TRAIN frames' rotations, and radii set so
+    that `REAL_CLIPS_PASSING` of held-out real clips are plausible (a common multiple of the
+    held-out p99 distances, never under `MIN_RADIUS_DEG`): plausible means as close as real."""
 
     def __init__(self, train: dict[str, list[Motion]], held: dict[str, list[Motion]]):
         sk = next(iter(train.values()))[0].skeleton

@@ -1,18 +1,10 @@
-"""Rotation plausibility: does every joint's *local rotation* lie where real data of the target
-style puts it?
+"""Rotation plausibility: does every joint's local rotation lie where real data of the style puts
+it? Positions miss a leaf's rotation and a twist about a bone, which a skinned character shows.
 
-Positions miss what a skinned character shows: a leaf joint's rotation (head, hands, toes) and a
-twist about a bone move no joint. Per body joint, against the style's real data:
-
-- **distance**: angle to the real mean rotation; a frame is *plausible* within the real p99;
-- **twist**: the rotation's turn about the bone relative to that mean (swing-twist split),
-  against the real p0.5..p99.5 interval;
-- **pops**: the angle of the rotation's second difference (degrees per frame per frame), against
-  the joint's real p99.9: a one-frame flick that no pose metric sees.
-
-The Hips rotation holds the arbitrary heading, so it is compared with its heading removed. The
-reference (`RotationReference`) is built from the TRAIN split; real validation clips of a style
-score about 99 % plausible, against which the test gate (95 %) is set.
+Per body joint, against the style's TRAIN data: the angle to the real mean (plausible within the
+real p99), the twist about the bone against the real p0.5..p99.5, and pops (the second
+difference's angle against the real p99.9). The Hips is compared without its heading. Real
+validation clips score about 99 % plausible; the gate is 95 %.
 """
 
 from __future__ import annotations
@@ -100,11 +92,8 @@ class RotationReference:
         return {"pops_max": float(share[worst]), "pops_joint": self.joints[worst], "pops_largest_deg": float(acc.max())}
 
     def plausibility(self, style: str, motions: list[Motion]) -> dict:
-        """Per joint over all frames of `motions`: `within` = share of frames no farther from the
-        style's mean rotation than the real p99; `excess_deg` = median angle beyond the p99 of the
-        frames outside it; `twist_outside` = share of frames whose twist leaves the real
-        p0.5..p99.5 interval, `twist_beyond_p95_deg` the p95 over frames of how far past it (0
-        inside); `median_deg` = median angle to the mean. Plus the worst joints."""
+        """Per joint over all frames of `motions`: the share `within` the real p99 of the style's
+        mean, the angle and twist beyond the real range, the median angle; plus the worst joints."""
         dist, twist = self.deviation(style, self.rotations(motions))
         beyond = dist - self.p99[style]
         within = (beyond <= 0).mean(axis=0)

@@ -1,5 +1,4 @@
-"""Streaming clips through a method as the evaluation does, and the dataset-2 scores the fitted
-stages are chosen by on validation (`score`, with the conv-net judges).
+"""Streaming clips through a method as the evaluation does.
 
 Every method is reached only through the streaming interface (`models/interface.py`). Clips run
 as one batch of sessions per method (all clips x all target styles), padded by holding the last
@@ -15,11 +14,7 @@ import numpy as np
 from ..data import build_index, select
 from ..interface import FrameBatch, StreamingModel
 from ..motion.skeleton import Motion
-from .features import clip_features, rotation_features
 from .history import with_history
-from .judges import Judges, RotationJudge
-from .metrics import foot_skating, frechet_distance, path_deviation, slide_summary
-from .plausibility import RotationReference
 
 DATASET = "bandai-namco-2"
 INPUT_STYLE = "normal"
@@ -78,56 +73,6 @@ def stylise(
             if fades is not None:
                 fades.append(faded[b, :n])
     return out
-
-
-def score(
-    judges: Judges,
-    rot_judge: RotationJudge,
-    rot_ref: RotationReference,
-    outputs: list[Motion],
-    inputs: list[Motion],
-    style: str,
-    contents: list[str],
-    real_latents: np.ndarray,
-    feats: list[np.ndarray] | None = None,
-    names: list[str] | None = None,
-) -> dict:
-    """`feats`: the outputs' `clip_features`, where the caller has them already; `names`: the
-    inputs' clip names, to list which clips each judge misses and what it reads them as."""
-    feats = feats if feats is not None else [clip_features(m) for m in outputs]
-    ps, pc = judges.predict_style(feats), judges.predict_content(feats)
-    ps_rot = rot_judge.predict_style([rotation_features(m) for m in outputs])
-    names = names if names is not None else [str(i) for i in range(len(outputs))]
-    misses = lambda got, want: {n: g for n, g, w in zip(names, got, want) if g != w}  # noqa: E731
-    skate = [foot_skating(m) for m in outputs]
-    frames = sum(s["contact_frames"] for s in skate)
-    plaus = rot_ref.plausibility(style, outputs)
-    return {
-        "clips": len(outputs),
-        "style_acc": float(np.mean([p == style for p in ps])),
-        "style_acc_rot": float(np.mean([p == style for p in ps_rot])),
-        "rot_within_min": plaus["min_within"],
-        "rot_worst_joint": plaus["worst_joint"],
-        "rot_within_mean": plaus["mean_within"],
-        "twist_outside_max": plaus["max_twist_outside"],
-        "twist_worst_joint": plaus["worst_twist_joint"],
-        "twist_beyond_deg": plaus["max_twist_beyond_deg"],
-        "twist_farthest_joint": plaus["farthest_twist_joint"],
-        **rot_ref.pops(style, outputs),
-        "rot_per_joint": {k: round(v["within"], 4) for k, v in plaus["per_joint"].items()},
-        **{f"slide_{k}": v for k, v in slide_summary(outputs).items()},
-        "content_acc": float(np.mean([p == c for p, c in zip(pc, contents)])),
-        "fmd": frechet_distance(judges.latents(feats), real_latents),
-        "skate_ratio": float(sum(s["skate_ratio"] * s["contact_frames"] for s in skate) / max(frames, 1)),
-        "contact_speed": float(sum(s["contact_speed"] * s["contact_frames"] for s in skate) / max(frames, 1)),
-        "path_dev_cm": float(np.mean([path_deviation(i, o) for i, o in zip(inputs, outputs)])),
-        "predicted_styles": {s: ps.count(s) for s in sorted(set(ps))},
-        "misses": {
-            "style": misses(ps, [style] * len(ps)),
-            "style_rot": misses(ps_rot, [style] * len(ps_rot)),
-            "content": misses(pc, contents),
-        },
-    }
 
 
 def stylise_toward(

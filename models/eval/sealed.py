@@ -1,11 +1,9 @@
 """The sealed evaluation: every method, its published core alone, the input unchanged and real
-clips, on every input source, in fresh and running sessions, by a style judge of its own recipe
-and physical metrics that no clamp or lock in a model enforces.
+clips, on every source, fresh and running, by judges and physical metrics no model enforces.
 
-`make eval` scores the VALIDATION inputs (`sources.py`): every choice is made there. `make
-eval-final` scores the sealed test inputs once a change is finished, writes docs/evaluation.md
-and appends a line to docs/eval/final_runs.md, so the report says how often the test inputs have
-been looked at. Every model is reached only through the streaming interface.
+`make eval` scores the VALIDATION inputs (every choice is made there); `make eval-final` scores
+the sealed test inputs once, writes docs/evaluation.md and logs the run in
+docs/eval/final_runs.md. Models are reached only through the streaming interface.
 """
 
 from __future__ import annotations

@@ -1,17 +1,10 @@
 """The inputs the evaluation streams, one set per source, and which split each run may see.
 
-A user's motion comes from their own capture and performer, so every run scores four sources:
-Bandai Namco dataset 2 (the data the models learned), dataset 1 (another session of the same rig),
-and CMU and Xia captures (other rigs at 120 fps, through the retargeter at the models' 30 fps).
-Every neutral clip of a source is scored at full length, with no cap per content.
-
-Sealing: `make eval` (split "val") sees only what no final run needs; `make eval-final` (split
-"test") scores what no choice ever saw. Dataset 1 has one take of most contents, so its split's
-two or three neutral clips are too few: its TRAIN neutral clips (which LTI and Style-ERD never
-trained on; LPN-FiLM trained on its locomotion takes) are the validation inputs, and its
-validation and test neutral clips the sealed ones. Every Xia clip is scored, its index split's
-three held-out clips by the final run alone and the other six by validation; CMU's four clips are
-scored only by the final run.
+Four sources, since a user's motion comes from their own capture and performer: Bandai Namco
+dataset 2 (the models' data), dataset 1 (another session), CMU and Xia (other rigs at 120 fps,
+retargeted). Every neutral clip is scored at full length. `make eval` (split "val") sees only what
+no final run needs. Dataset 1 has one take of most contents, so its TRAIN neutral clips are its
+validation inputs and its val and test clips the sealed ones; CMU is scored by the final run only.
 """
 
 from __future__ import annotations

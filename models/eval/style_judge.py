@@ -1,22 +1,11 @@
-"""The style judge of the sealed evaluation: per-window statistics of local rotations and angular
-speeds, and a multinomial logistic regression over them, trained on Bandai Namco datasets 1 and 2
-together.
+"""The sealed evaluation's style judge: per-window statistics of local rotations and angular
+speeds, read by a multinomial logistic regression trained on Bandai Namco datasets 1 and 2.
 
-Why another judge: the conv-net judges (`judges.py`), trained on dataset 2 alone, learned its
-recordings as much as its styles. This one uses a different recipe, so a model tuned against the
-old judges gets no free pass: a linear read of summary statistics, trained on both datasets, with
-shared labels mapped only where the data says they agree (`fit_style_judge`).
-
-It reads rotations and angular speeds only (positions carry the performer's bone lengths, which
-tell recordings apart), each clip against the centre of its own session and content
-(`StyleJudge.reference`), so the caller names the input's dataset and content.
-
-`predict` answers one of the labels the evaluation asks about (dataset 2's styles and those mapped
-onto them) or `OTHER`. A shared label weighs each dataset the same in the fit; dataset-1-only
-styles stay classes of their own (one linear class cannot surround eleven styles), and a clip
-reads as `OTHER` when their probabilities together beat every named label.
-
-Inference is numpy only; `fit_linear` (scikit-learn) runs in `python -m models.eval.fit_style_judge`.
+A different recipe from the conv-net judges (`judges.py`, which learned dataset 2's recordings as
+much as its styles), so a model tuned against those gets no free pass. No positions (bone lengths
+tell performers apart); each clip is read against the centre of its own session and content, so
+the caller names both. `predict` answers a label the evaluation asks about or `OTHER`. Inference
+is numpy; the fit (scikit-learn) is `python -m models.eval.fit_style_judge`.
 """
 
 from __future__ import annotations
@@ -72,15 +61,9 @@ def clip_statistics(motion: Motion) -> np.ndarray:
 
 @dataclass
 class StyleJudge:
-    """A fitted judge: per-(dataset, content) centres, standardisation, the linear read, its
-    labels (dataset-1-only styles carry `OWN_PREFIX`) and the dataset-1 label mapping it was
-    trained with (dataset-1 style -> the label it was given).
-
-    Why centres: dataset 1 has one take of each style and content, so a read of raw statistics
-    learns what a content and a recording session look like as much as the style. Every clip's
-    statistics are read relative to the mean, over styles, of its own session's TRAIN clips of the
-    same content (`reference`), so what is left is how this performance departs from the average
-    one. The evaluation knows both: the input's source and content, which an output must keep."""
+    """A fitted judge: per-(dataset, content) centres, standardisation, the linear read, its labels
+    and the dataset-1 label mapping. Statistics are read relative to the centre of the clip's own
+    session and content, so the read learns the style, not the recording or the content."""
 
     mean: np.ndarray
     scale: np.ndarray
@@ -180,11 +163,9 @@ def d1_label(style: str) -> str:
 
 
 def fit_linear(stats: list[np.ndarray], labels: list[str], groups: list[str], c: float, seed: int = 0):
-    """Standardise the pooled windows and fit a multinomial logistic regression. Every window of a
-    clip carries the clip's label; each clip weighs the same whatever its length; each label
-    weighs the same, and within a label each group (dataset) weighs the same: dataset 1 has ten
-    clips a style where dataset 2 has hundreds, and a shared label fitted on their pool learns
-    dataset 2's recording (then dataset 1's clips of it read as some dataset-1-only style)."""
+    """Standardise the pooled windows and fit a multinomial logistic regression in which each
+    clip, each label and within a label each dataset weighs the same: pooled, a shared label
+    would learn dataset 2's recording (hundreds of clips a style against ten)."""
     from sklearn.linear_model import LogisticRegression
 
     x = np.concatenate(stats)

@@ -2,7 +2,6 @@
 reference accuracy on real validation and TEST clips.
 
     .venv/bin/python -m models.eval.train [--iters 3000]     # a few minutes on 1 CPU core
-    .venv/bin/python -m models.eval.train --rotation-judge   # only the second style judge (local rotations)
 """
 
 from __future__ import annotations
@@ -18,16 +17,16 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..data import build_index, load_motions, select
-from .features import clip_features, pad_to, rotation_features
-from .judges import CLF_WINDOW, DAE_WINDOW, Classifier, DenoisingAE, Judges, RotationJudge, weights_dir
+from .features import clip_features, pad_to
+from .judges import CLF_WINDOW, Classifier, Judges, weights_dir
 
 DATASET = "bandai-namco-2"
 
 
-def load_split(split: str, features=clip_features) -> tuple[list[np.ndarray], list[str], list[str]]:
+def load_split(split: str) -> tuple[list[np.ndarray], list[str], list[str]]:
     clips = select(build_index([DATASET]), split=split)
     motions = load_motions(clips)
-    return [features(m) for m in motions], [c.style for c in clips], [c.content for c in clips]
+    return [clip_features(m) for m in motions], [c.style for c in clips], [c.content for c in clips]
 
 
 class Sampler:
@@ -76,26 +75,6 @@ def train_classifier(norm: Norm, feats, labels, n_classes: int, iters: int, seed
     return clf.eval()
 
 
-def train_dae(norm: Norm, feats, iters: int, seed: int) -> DenoisingAE:
-    torch.manual_seed(seed)
-    dae = DenoisingAE()
-    opt = torch.optim.AdamW(dae.parameters(), lr=1e-3, weight_decay=1e-4)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, iters)
-    sampler = Sampler(feats, [0] * len(feats), DAE_WINDOW, seed)
-    dae.train()
-    for _ in tqdm(range(iters), desc="dae", mininterval=5):
-        batch, _ = sampler.sample(128)
-        x = norm(batch)
-        noisy = x + 0.2 * torch.randn_like(x)
-        noisy = noisy * (torch.rand(x.shape[0], 1, x.shape[2]) > 0.1)  # drop 10% of feature channels
-        loss = F.mse_loss(dae(noisy), x)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-    return dae.eval()
-
-
 def accuracy(judges: Judges, feats, styles, contents) -> dict:
     ps, pc = judges.predict_style(feats), judges.predict_content(feats)
     per_style = {s: float(np.mean([p == t for p, t in zip(ps, styles) if t == s])) for s in judges.styles}
@@ -107,15 +86,7 @@ def accuracy(judges: Judges, feats, styles, contents) -> dict:
     }
 
 
-@torch.no_grad()
-def dae_error(judges: Judges, feats) -> float:
-    from .features import windows
-
-    w = judges.norm(np.concatenate([windows(f, DAE_WINDOW, 12) for f in feats]))
-    return float(F.mse_loss(judges.dae(w), w))
-
-
-def main(iters: int = 3000, dae_iters: int = 3000) -> dict:
+def main(iters: int = 3000) -> dict:
     torch.set_num_threads(1)
     t0 = time.time()
     feats, styles, contents = load_split("train")
@@ -130,12 +101,11 @@ def main(iters: int = 3000, dae_iters: int = 3000) -> dict:
     content_clf = train_classifier(
         norm, feats, [content_names.index(c) for c in contents], len(content_names), iters, 2, "content"
     )
-    judges = Judges(mean, std, style_names, content_names, style_clf, content_clf, train_dae(norm, feats, dae_iters, 3))
-    report: dict = {"train_clips": len(feats), "iters": iters, "dae_iters": dae_iters}
+    judges = Judges(mean, std, style_names, content_names, style_clf, content_clf)
+    report: dict = {"train_clips": len(feats), "iters": iters}
     for split in ("val", "test"):
         f, s, c = load_split(split)
         report[split] = accuracy(judges, f, s, c)
-        report[split]["dae_mse"] = dae_error(judges, f)
     report["train_seconds"] = round(time.time() - t0, 1)
     judges.meta = report
     path = judges.save(weights_dir())
@@ -145,41 +115,7 @@ def main(iters: int = 3000, dae_iters: int = 3000) -> dict:
     return report
 
 
-def main_rotation(iters: int = 1500) -> dict:
-    """Train the second style judge (local rotations) on the TRAIN split; report val and test."""
-    torch.set_num_threads(1)
-    t0 = time.time()
-    feats, styles, _ = load_split("train", rotation_features)
-    names = sorted(set(styles))
-    frames = np.concatenate(feats)
-    std = frames.std(0)
-    mean, std = frames.mean(0), np.maximum(std, 1e-2 * std.max() + 1e-6)
-    clf = train_classifier(
-        normaliser(mean, std), feats, [names.index(s) for s in styles], len(names), iters, 4, "rotation style"
-    )
-    judge = RotationJudge(mean, std, names, clf)
-    report: dict = {"train_clips": len(feats), "iters": iters, "features": "rotation_features"}
-    for split in ("val", "test"):
-        f, s, _ = load_split(split, rotation_features)
-        report[split] = {
-            "clips": len(f),
-            "style_acc": float(np.mean([p == t for p, t in zip(judge.predict_style(f), s)])),
-        }
-    report["train_seconds"] = round(time.time() - t0, 1)
-    judge.meta = report
-    path = judge.save(weights_dir())
-    print(json.dumps(report, indent=1))
-    print(f"saved {path} ({path.stat().st_size / 1024:.0f} KiB)")
-    return report
-
-
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--iters", type=int, default=1500)
-    ap.add_argument("--dae-iters", type=int, default=2000)
-    ap.add_argument("--rotation-judge", action="store_true", help="train only the second (rotation) style judge")
-    a = ap.parse_args()
-    if a.rotation_judge:
-        main_rotation(a.iters)
-    else:
-        main(a.iters, a.dae_iters)
+    main(ap.parse_args().iters)

@@ -4,7 +4,6 @@
 .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
 .venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs the expert products alone
 .venv/bin/python -m models.lpn heldout [--steps 300 --seed 0]          # new styles from a clip, 3 held-out styles
-.venv/bin/python -m models.lpn validate [WEIGHTS_DIR ...]              # streamed on the validation split (validate.py)
 """
 
 from __future__ import annotations
@@ -42,10 +41,8 @@ def demo(args) -> None:
 
 
 def bench(args) -> None:
-    """Step time at batch 1 and 256, control-driven, after a warm-up: the compiled step and the
-    floor (the network's three expert products alone), called in turn so the shared machine's
-    drifting load hits both alike. BLAS and torch threads are capped as the service caps them (1). Also the first step's
-    wall time (numba loads its cache, or compiles) and the load average."""
+    """Step time at batch 1 and 256 against the floor (the expert products alone), called in turn
+    so a shared machine's drifting load hits both alike; one thread, as the service runs."""
     import os
     import time
 
@@ -111,13 +108,6 @@ def heldout(args) -> None:
     print(json.dumps(evaluate(_model(), REPO_ROOT / "out" / "lpn", fine_tune_config=cfg), indent=1))
 
 
-def validate(args) -> None:
-    from ..settings import get_settings
-    from .validate import main as validate_main
-
-    validate_main([Path(d) for d in args.weights] or [get_settings().weights_dir / "lpn"], args.frames)
-
-
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m models.lpn")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -141,12 +131,6 @@ def main(argv: list[str] | None = None) -> None:
         "--no-dropout", dest="dropout", action="store_false", help="fine-tune with the network's dropout off"
     )
     s.set_defaults(fn=heldout)
-    s = sub.add_parser(
-        "validate", help="candidate weights streamed on the VALIDATION locomotion inputs: judges, rotations, pace"
-    )
-    s.add_argument("weights", nargs="*", help="weights folders (an export: lpn.npz, config.json, ...)")
-    s.add_argument("--frames", type=int, default=150)
-    s.set_defaults(fn=validate)
     s = sub.add_parser("train", help="train LPN-FiLM (options of train.TrainConfig as --field=value)")
     s.add_argument("--minutes", type=float, default=60.0)
     s.set_defaults(fn=train)

@@ -1,21 +1,10 @@
 """LPN-FiLM's arm coupling: a style's forearms moved with its upper arms, shoulders and chest as
-they move together in the style's real clips (`ARM_COUPLING_FILE` beside the weights, written by
-`python -m models.lpn.arm_coupling [STYLE ...]`, the same fit for every style; `runtime.LPNModel`
-applies it after the output prior and before the rotation balls).
+they move together in its real clips (`python -m models.lpn.arm_coupling [STYLE ...]` writes
+`ARM_COUPLING_FILE`, the same fit for every style; applied after the output prior).
 
-The output prior maps each joint on its own: it can widen a forearm's spread but not make it pump
-in step with an upper-arm swing the network keeps still. In real clips a forearm's deviation from
-its mean is close to a linear function of its upper arm's, shoulder's and the chest's (`LINKS`);
-in the network's output the regression has other coefficients. The coupling swaps them:
-
-    d_f' = d_f + (B_real - B_made)^T [d_u, d_s, d_c, 1]
-
-every d a rotation vector away from the style's real mean (in the joint's own frame), B fitted by
-least squares on the style's real TRAIN locomotion and on the network's output (carriage and
-output prior in place, driven by neutral TRAIN locomotion), on walks and runs apart and mixed by
-the gait share. What the forearm does apart from its drivers stays. A style mix blends the
-corrections (q' = q exp(sum_s w_s log(q^-1 f_s(q)))); rows that weigh no coupled style, and every
-joint but the forearms, are left exactly as they were.
+The output prior maps each joint on its own, so it cannot make a forearm pump in step with an
+upper-arm swing. The linear relation of a forearm to its drivers (`LINKS`) in real clips replaces
+the network's (`models.motion.coupling`), fitted per gait and mixed by gait share.
 """
 
 from __future__ import annotations

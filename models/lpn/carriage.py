@@ -1,16 +1,10 @@
-"""A style's arm carriage from its real TRAIN clips, fitted the same way for every style
-(`CARRIAGE_FILE` beside the weights, written by `python -m models.lpn.carriage`;
-`runtime.LPNModel` applies it).
+"""A style's arm carriage from its real TRAIN clips, the same fit for every style (`python -m
+models.lpn.carriage` writes `CARRIAGE_FILE`).
 
-LPN-FiLM's FiLM vectors alone barely move the arms' mean pose, where real styles differ in it
-(the real active walks carry the elbows ~30 degrees more bent). Per style and arm joint (Shoulder
-.. Hand, both sides) the carriage is the rotation that takes the network's mean local rotation
-(driven by the neutral TRAIN locomotion toward the style) to the mean of the style's real TRAIN
-locomotion, applied to the output in the parent's frame before the rotation prior; the network's
-state keeps its own pose.
-
-Locomotion is measured, not read from labels: a style's walks and runs are its TRAIN clips split
-by their own median Hips speeds (`models.motion.gait_split`), standing clips (gestures) in neither.
+FiLM vectors alone barely move the arms' mean pose, where real styles differ in it. Per style
+and arm joint the carriage is the rotation from the network's mean local rotation (driven by
+neutral TRAIN locomotion) to the style's real mean, walks and runs apart (split by measured
+speed, `models.motion.gait_split`). It changes the output; the network's state keeps its pose.
 """
 
 from __future__ import annotations

@@ -1,18 +1,13 @@
-"""The LPN training set packed small enough to travel with a device run, and unpacked there.
+"""The LPN training set packed small enough to travel with a device run (64 MiB in all, against
+0.8 GB of cache), and unpacked there.
 
-A device machine gets the working tree and its carried paths (64 MiB in all), none of the raw
-mocap, and the cache (`dataset.py`) is 0.8 GB for the train split. But a sample is only a gather
-over its clip's frames (`dataset.samples_from_frames`) and a mirrored take the reflection of its
-take, so the pack keeps, per frame of each unmirrored take, the pose features at 8 bits per
-channel, the root ground position and yaw as float32, and for the take and its mirror image the
-local phases, frequencies (8 bits) and contacts (a mirror image's phases are fitted on their own,
-not reflected). Unpacking rebuilds the mirror image by reflection (`mirror_frames`) and every
-sample as the cache build does; the normalisation statistics travel as they are.
+A sample is a gather over its clip's frames and a mirrored take the reflection of its take, so
+the pack keeps per unmirrored frame the pose features at 8 bits, root position and yaw, and for
+the take and its mirror image the phases, frequencies and contacts (a mirror's phases are fitted
+on their own). Unpacking rebuilds every sample as the cache build does.
 
     .venv/bin/python -m models.lpn.carry pack .data/carry/lpn.npz     # ~33 MB, from the cache
     .venv/bin/python -m models.lpn.carry check .data/carry/lpn.npz    # unpacked vs the cache
-
-`models/lpn/gpu_run.sh` trains on a lent GPU from it.
 """
 
 from __future__ import annotations

@@ -1,18 +1,12 @@
-"""LPN-FiLM training data: Bandai Namco locomotion as per-frame (X, G, Y) samples (layout in
-`features.py`), cached as float32 arrays under `.data/lpn/<config hash>/`.
+"""LPN-FiLM training data: Bandai Namco locomotion as per-frame (X, G, Y) samples (`features.py`),
+cached as float32 arrays under `.data/lpn/<config hash>/`.
 
     .venv/bin/python -m models.lpn.dataset        # build (or reuse) the cache, ~2 min
 
-Data: dataset 1 (walk, run, dash, walk-back, walk-left, walk-right) and dataset 2 (walk,
-walk-turn-left, walk-turn-right, run), or, with `DataConfig.hundred_style_dir`, the locomotion
-takes of a 100STYLE folder (`hundred_style.py`; its `Neutral` becomes `normal`). Dataset 2 keeps
-its plain style names (the ones the service and the evaluation compare methods on); dataset-1
-styles are prefixed `d1-`, since the two were captured with different actors. Three dataset-1
-styles (`HELD_OUT`) never enter training: they test new styles from a clip. Training takes are
-mirrored as augmentation, which also balances turns and side steps.
-
-Gait is 1 for run and dash, 0 for walking contents. Local phases use the per-style-and-gait
-principal axes of the hands (`phases.style_axes`, mirrored takes included).
+Dataset 2 keeps its plain style names (those the service and evaluation use); dataset-1 styles
+are prefixed `d1-` (other actors), three of them (`HELD_OUT`) kept out to test styles from a clip.
+Takes are mirrored as augmentation. Gait is 1 for run and dash; local phases use per-style-and-gait
+hand axes (`phases.style_axes`).
 """
 
 from __future__ import annotations
@@ -176,12 +170,9 @@ STYLE_FEATURE_BLOCK = 1024  # frames per block of `clip_style_features`
 
 
 def clip_style_features(motion: Motion) -> np.ndarray:
-    """(F, STYLE_DIM) FiLM-generator features of a whole clip (what `clip_samples` stores as style_feats).
-
-    Worked out in blocks of frames, each with the frame before it for the backward differences, so
-    the numbers are those of one go but no numpy call spans a long clip: an uploaded clip's style is
-    built on a thread beside the service's event loop, which waits for the GIL for the whole of any
-    one call."""
+    """(F, STYLE_DIM) FiLM-generator features of a whole clip. Computed in blocks (each with the
+    frame before it), the same numbers as in one go, so no numpy call holds the GIL for long
+    beside the service's event loop."""
     F = motion.num_frames
     if F <= STYLE_FEATURE_BLOCK:
         return _style_features_in_one_go(motion)

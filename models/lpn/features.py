@@ -1,15 +1,10 @@
-"""LPN-FiLM per-frame features: the layout of the network's input, gating input and output, and the
-pure functions that compute them from world-space joint data for the offline dataset
-(`dataset.py`). The streaming step's compiled kernels (`kernels.py`) use the same formulas, held
-to these by the numpy reference step in `tests/reference/lpn_step.py`.
+"""LPN-FiLM per-frame features: the layout of the network's input, gating input and output, and
+the functions that compute them for the offline dataset. The compiled streaming kernels use the
+same formulas, held to these by `tests/reference/lpn_step.py`.
 
-Conventions (those of `models.motion.features`): Y up, units of the skeleton (cm for Bandai
-Namco), facing yaw in radians about +Y with 0 = facing +Z, facing direction (sin yaw, cos yaw) in
-the ground plane (x, z). The *character frame* at frame t has its origin at the Hips projected on
-the ground and its +Z axis along the facing direction. Horizontal vectors are stored as (x, z).
-
-Trajectory samples (the paper's 13 samples over [-1 s, +1 s] at 60 fps become every 5th frame
-over +-30 frames at 30 fps): offsets -30, -25, ..., +30 frames.
+Conventions of `models.motion.features`: Y up, skeleton units (cm), yaw about +Y with 0 = +Z,
+horizontal vectors as (x, z). The character frame at t sits at the Hips on the ground, +Z along
+the facing. Trajectory samples every 5th frame over +-30 frames (the paper's 13 at 30 fps).
 
 Network input X (343):
     [0:91)     trajectory, 13 samples x (position xz, direction xz, velocity xz, gait), char. frame t

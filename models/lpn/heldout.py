@@ -1,14 +1,7 @@
-"""New styles from a clip, measured on the three dataset-1 styles kept out of training.
-
-For each held-out style: `add_style_from_clip` on one of its real clips (the generator's
-embedding, nothing trained), and the vector of a copy of the generator fine-tuned on that clip
-with the network frozen (`finetune.py`, which also reports the loss on the clip's held-back last
-fifth before and after). The model is then driven by one dataset-1 `normal` walk in the new
-style, in the fine-tuned one and in `normal`. The evaluation's judges know only dataset 2's
-styles, so the measure is plain: the distance between motion statistics (per-feature mean and
-std of the generator's clip features, in training-std units) of the output and of the style's
-real walks. The new style works when its output is closer to the real style than `normal`'s,
-and fine-tuning helps when it is closer still.
+"""New styles from a clip, measured on the three dataset-1 styles kept out of training: the
+generator's embedding of one clip and a vector fine-tuned on it, each driving a dataset-1 walk,
+against `normal`, by the distance of motion statistics to the style's real walks (the judges know
+only dataset 2's styles).
 
     .venv/bin/python -m models.lpn heldout      # prints JSON, renders out/lpn/lpn_heldout_*.png (~2 min)
 """

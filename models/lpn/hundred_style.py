@@ -1,12 +1,6 @@
 """Loader for the 100STYLE layout (Mason, Starke & Komura 2022), so users who have the data can
-train LPN-FiLM on it: `{root}/{Style}/{Style}_{Gait}.bvh` plus `{root}/Frame_Cuts.csv` with one
-row per style (`STYLE_NAME`, then `{GAIT}_START`, `{GAIT}_STOP` frame numbers or `N/A`).
-
-Takes are cut to their frame range (inclusive, in the file's own frames: 60 fps in 100STYLE),
-then brought to the model's skeleton and rate: a Bandai Namco skeleton is only resampled, any
-other is retargeted with `models.motion.retarget` (100STYLE's joint names are the CMU "bvh11"
-variant it knows). `clips(root)` gives `Clip` records the LPN dataset builder takes like Bandai
-Namco ones (dataset "100style", split by a hash of the take name, 80/10/10).
+train LPN-FiLM on it: `{root}/{Style}/{Style}_{Gait}.bvh` and `{root}/Frame_Cuts.csv`. Takes are
+cut to their frame range, then resampled or retargeted to the model's skeleton and rate.
 """
 
 from __future__ import annotations

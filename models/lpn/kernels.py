@@ -1,15 +1,7 @@
 """Compiled kernels (numba) for the LPN-FiLM streaming step: the per-session geometry around the
-network (control, trajectory blending, input assembly, phase update, output pose) and the
-network's small per-row maths (gating MLP, expert blend, layer norm, FiLM, ELU). The network's
-three big matrix products stay in numpy (BLAS); the feet are planted by `models.motion.feet`.
-
-Why compiled: the vectorised numpy step (`tests/reference/lpn_step.py`, which the tests compare
-with) makes hundreds of small numpy calls per frame, milliseconds a step at batch 1 against a
-fraction of that for the matrix products. Here each session is a loop over scalars.
-
-The formulas are those of `features.py`; arithmetic is float64 inside a kernel, the state and the
-outputs stay float32. Conventions: quaternions scalar-last, Y up, yaw about +Y with 0 = facing +Z,
-horizontal vectors as (x, z).
+network and its small per-row maths. The vectorised numpy step (`tests/reference/lpn_step.py`)
+makes hundreds of small calls per frame; here each session is a loop over scalars. The three big
+matrix products stay BLAS. Formulas of `features.py`; float64 inside, float32 state and outputs.
 """
 
 from __future__ import annotations
@@ -113,11 +105,9 @@ def facing_yaw(gpos, facing):
 def control_rows(
     control, given, root, rotations, frame, in_pos, in_vel, parents, offsets, facing, fps, smooth, run_speed
 ):
-    """(B, 4) control (forward, side in cm/s, yaw, gait) of B sessions: the given rows (m/s in
-    `control`) as they are; the others derived from the input frames -- the input Hips velocity
-    (exponentially smoothed by the factor `smooth` per frame) in the input's facing frame, its
-    facing yaw, run above `run_speed`. Advances the input tracker in_pos, in_vel (B, 2) in place
-    for every session, so a session can switch between the two modes smoothly."""
+    """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others from
+    the input's smoothed Hips velocity in its facing frame, its yaw, run above `run_speed`. The
+    input tracker advances for every session, so a session can switch modes smoothly."""
     B, J = rotations.shape[0], rotations.shape[1]
     out = np.empty((B, 4), np.float32)
     grot, gpos = np.empty((J, 4)), np.empty((J, 3))
@@ -147,13 +137,9 @@ def control_rows(
 
 @njit(cache=True, error_model="numpy")
 def network_inputs(control, track, fps, bias, x, g):
-    """The network's input x (B, 343) and gating input g (B, 104) of B sessions (layout in
-    features.py). First the future trajectory (fut_pos, fut_dir, fut_vel, world, updated in place)
-    is blended toward the control (forward, side, yaw, gait): sample k of 6 by
-    1 - (1 - k/6)^bias, toward the current position moved by the wanted velocity for its time
-    and the facing turned k/6 of the way to the wanted yaw. Past samples are every STEP-th row of
-    the history (the last row is the current frame); all samples go into the current character
-    frame."""
+    """The network's input x (B, 343) and gating input g (B, 104) of B sessions. The future
+    trajectory (updated in place) is first blended toward the control, sample k of 6 by
+    1 - (1 - k/6)^bias; past samples are every STEP-th history row; all in the character frame."""
     yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel, fut_phase, pose = track
     B, H = hist_pos.shape[0], hist_pos.shape[1]
     for b in range(B):
@@ -296,19 +282,10 @@ def output_layer(hw, alpha, bias, y_mean, y_std):
 
 @njit(cache=True, error_model="numpy")
 def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, phase_blend, contact_threshold):
-    """Apply the network output y (B, 353) to B sessions and build their output frame.
-
-    State, in place: the root moves by the predicted displacement (in the current character
-    frame) and turns by the predicted yaw change; the history rows shift by one and take the new
-    position, direction, velocity, gait and phases; the future trajectory, the pose and the yaw
-    become the predicted ones. Phases: the current phase advanced by the predicted frequency,
-    blended with the predicted phase (share phase_blend) at the predicted amplitude. Stopping:
-    below stop_speed of wanted speed the share `still` in [0, 1] damps the phases (factor
-    1 - still (1 - phase_damp)) and holds back root_hold x still of the root displacement.
-
-    Returns the Hips translation (B, 3), local rotations (B, J, 4) from the predicted
-    forward/up axes of each joint (joint 0, the static joint_Root, is the identity) and foot
-    contacts (B, 2)."""
+    """Apply the network output y (B, 353) to B sessions' state in place (root, history, future,
+    pose, yaw, phases) and return their Hips translation (B, 3), local rotations (B, J, 4) and
+    contacts (B, 2). Phases advance by the predicted frequency, blended with the predicted phase;
+    below `stop_speed` the phases are damped and part of the root motion is held back."""
     yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel, fut_phase, pose = track
     B, H, J = y.shape[0], hist_pos.shape[1], parents.shape[0]
     out_root = np.empty((B, 3), np.float32)

@@ -1,17 +1,13 @@
-"""LPN-FiLM network (torch): a mixture-of-experts motion network gated by local phases, with
-feature-wise (FiLM) style modulation from a clip encoder (Mason, Starke & Komura 2022, Fig. 2).
+"""LPN-FiLM network (torch): a mixture-of-experts motion network gated by local phases, with FiLM
+style modulation from a clip encoder (Mason, Starke & Komura 2022, Fig. 2).
 
-- Gating network: phase features (G_DIM) -> 32 -> 32 -> E, ELU, softmax: the expert blend.
-- Motion network: X -> H -> H -> Y; every layer's weights are the gate-weighted blend of E expert
-  weight sets (computed as a blend of the experts' outputs, which is the same linear map and
-  cheaper for a batch); both hidden layers: layer norm, then FiLM (h * (1 + gamma) + beta), then ELU;
-  dropout on each layer's input.
-- FiLM generator: two 1-D convolutions over a style clip (filters, kernel 25, ELU, max-pool 2),
-  mean over time, one dense layer to the four H-vectors (gamma1, beta1, gamma2, beta2). Its last
-  layer starts at zero, so an untrained generator is the identity modulation.
+- Gating: phase features -> 32 -> 32 -> E, ELU, softmax: the expert blend.
+- Motion: X -> H -> H -> Y, each layer the gate-weighted blend of E experts' outputs; hidden
+  layers: layer norm, FiLM (h * (1 + gamma) + beta), ELU; dropout on each layer's input.
+- FiLM generator: two 1-D convolutions over a style clip, mean over time, a dense layer to
+  (gamma1, beta1, gamma2, beta2); its last layer starts at zero (identity modulation).
 
-Inputs and outputs are normalised by the training statistics held as buffers (`normalise_*`),
-so a checkpoint is self-contained.
+The normalisation statistics are buffers, so a checkpoint is self-contained.
 """
 
 from __future__ import annotations

@@ -1,22 +1,12 @@
 """LPN-FiLM's output prior: the body's rotations carried from what the network makes toward a
-style to that style's real rotations, fitted the same way for every style (`OUTPUT_PRIOR_FILE`
-beside the weights, written by `python -m models.lpn.output_prior [STYLE ...]`;
-`runtime.LPNModel` applies it).
+style to that style's real rotations (`python -m models.lpn.output_prior [STYLE ...]` writes
+`OUTPUT_PRIOR_FILE`; the same fit for every style).
 
-The arm carriage (`carriage.py`) moves each joint's mean; the style also lies in how the arms and
-spine swing about it. As Style-ERD's prior does (`models/motion/style_carry.py`), each joint's
-deviations from the network's mean are mapped by the linear optimal-transport map between the
-network's and the real style's Gaussians, then clamped into the style's real p98 radius: a typical
-frame of the network lands as a typical frame of the style. It carries `CARRIED` (spine, neck,
-head and arms; the legs are left to the foot planter), fitted from the network with its carriage
-in place, driven by neutral TRAIN locomotion, to the style's real TRAIN locomotion.
-
-Each style's prior is fitted on its walks and on its runs apart (`carriage.locomotion`) and a
-frame mixes the two by its gait share: pooled, the target would be a mean neither gait has.
-
-The network hardly moves some joints along some axis (a neck twist, an elbow's side bend); taken
-at face value the map would stretch that arithmetic noise by gains in the hundreds, so the fit
-takes the network's spread as at least `SOURCE_FLOOR_DEG` along every axis.
+The carriage moves each joint's mean; the style also lies in how arms and spine swing about it.
+As Style-ERD's prior (`models/motion/style_carry.py`), each joint's deviations are mapped by the
+linear optimal-transport map between the network's and the real style's Gaussians, then clamped
+into the real p98 radius; walks and runs are fitted apart and mixed by gait share. The network's
+spread is floored at `SOURCE_FLOOR_DEG` per axis, else near-still axes get gains in the hundreds.
 """
 
 from __future__ import annotations

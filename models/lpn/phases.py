@@ -1,23 +1,12 @@
-"""Local motion phases (Starke et al. 2020; Mason, Starke & Komura 2022, section "Local phases").
+"""Local motion phases (Starke et al. 2020; Mason, Starke & Komura 2022): one phase per bone
+(hands and feet), so the gating can follow a stylised walk's limbs in their own rhythm.
 
-One phase per bone (both hands and both feet) instead of one gait phase: a stylised walk moves its
-limbs with their own rhythm, and a per-bone phase lets the gating network pick experts for it.
-Per bone, offline (training data):
-
-1. a 1-D *source*: for feet the binary contact signal (`models.motion.features.foot_contacts`);
-   for any bone, contact-free (hands), its position in the facing frame projected on its first
-   principal component, signed to point forward (+Z);
-2. normalised in a centred one-second window, so drifts and the bone's range do not bias the fit;
-3. zero-phase Butterworth low-pass (`filtfilt`: offline, so no group delay);
-4. per frame, a*sin(f*t - s) + b fitted on a centred 1.5 s window by linear least squares for
-   every frequency of a grid, the best refined by a parabola through the residuals. Shorter than
-   a walk cycle, a square-ish contact wave fits many frequencies. This replaces the authors'
-   genetic optimiser: deterministic, fast and exact on a clean sinusoid;
-5. phase phi = (f*t - s) mod 2pi at the window's centre; the feature is A * (sin phi, cos phi),
-   A = fitted amplitude * mean bone speed, so it vanishes when the bone stands still and its
-   phase is noise.
-
-Frequencies in Hz, times in seconds, frame t at t/fps. Shapes: F frames, B = 4 bones (`BONES`).
+Per bone, offline: a 1-D source (feet: contacts; hands: position on its first principal axis,
+signed forward), normalised in a centred 1 s window, zero-phase low-passed; then per frame
+a*sin(f*t - s) + b fitted on a centred 1.5 s window by least squares over a grid of frequencies,
+refined by a parabola (deterministic, in place of the authors' genetic optimiser). The feature is
+A * (sin phi, cos phi) with A the fitted amplitude times the bone's mean speed, so it vanishes when
+the bone stands still. Frequencies in Hz, times in seconds; B = 4 bones (`BONES`).
 """
 
 from __future__ import annotations

@@ -1,25 +1,11 @@
 """Closed-loop training: K-frame rollouts in which the network reads back its own output, as the
-runtime (`runtime.py`, `kernels.py`) makes it do, instead of the recorded next frame.
+runtime makes it do, instead of the recorded next frame.
 
-Teacher forcing alone trains a controller that never sees its own mistakes, and the better it fits
-one frame ahead the worse it carries itself (MODEL_CARD). Here a rollout starts on a recorded
-frame; from its second frame on the network's input is built from its previous prediction:
-
-- the pose: the predicted pose, as the runtime feeds it back;
-- the root: the network's own track, moved by its predicted root delta and yaw change;
-- the trajectory: past samples from that track (recorded frames before the rollout's start),
-  future samples the network's own predicted future blended toward the recording by the runtime's
-  rule (sample k of 6 by 1 - (1 - k/6)^2), with the recording moved along with the network's root
-  (the control says where to go from where the character is, and which way to face);
-- the phases: the current phase advanced by the predicted frequency and blended with the
-  predicted phase at its amplitude (the runtime's `advance`), the future phases predicted, the past
-  ones the rollout's own.
-
-Every step is scored against the recorded next frame. Gradients flow through the whole rollout
-unless `detach` (then each step learns only from where the previous step left it).
-
-Horizontal vectors are (x, z); yaw about +Y, 0 = +Z (`features.py`). "World" is the recorded
-character frame of the rollout's first frame.
+Teacher forcing alone trains a controller that never sees its own mistakes. A rollout starts on a
+recorded frame; from then on the pose, root track, trajectory (the predicted future blended toward
+the recording moved with the network's root, by the runtime's rule) and phases come from the
+network's previous prediction. Every step is scored against the recorded next frame; gradients
+flow through the whole rollout unless `detach`. "World" is the rollout's first character frame.
 """
 
 from __future__ import annotations

@@ -1,12 +1,7 @@
-"""Fit LPN-FiLM's rotation prior (`runtime.BALLS_FILE`): one ball per built-in style
-(`models.motion.rotation_ball`) from every TRAIN-split clip of the style, all contents:
+"""Fit LPN-FiLM's rotation prior (`runtime.BALLS_FILE`): one ball per built-in style from all its
+TRAIN clips, every content, since LPN-FiLM is scored on every input.
 
     .venv/bin/python -m models.lpn.rotation_prior [inner_q outer_q margin_deg]
-
-Dataset-2 styles (`normal`, `active`, ...) from dataset 2, `d1-*` styles from dataset 1 (the two
-datasets' actors differ, `dataset.style_name`). All contents, as the evaluation's rotation
-reference and LTI's prior: the ball is about which poses the style shows, and LPN-FiLM is scored
-on every input. The quantiles were chosen on validation clips (`MODEL_CARD.md`).
 """
 
 from __future__ import annotations

@@ -1,30 +1,17 @@
-"""Streaming LPN-FiLM: the `StreamingModel` interface as a character controller in float32. The
-per-session maths (control, trajectory blend, gating, FiLM, phase and root update, output pose)
-is compiled (`kernels.py`); the three expert products stay BLAS. Per frame the network reads the
-character's trajectory (its own past, a future blended from the control and its last
-prediction), its pose and its local phases, and predicts the next pose, root motion, phases and
-contacts. The plain numpy step the kernels are tested against is `tests/reference/lpn_step.py`.
+"""Streaming LPN-FiLM as a character controller (the `StreamingModel` interface, float32).
 
-Control (`FrameBatch.control`, (B, 5), optional; a row whose flag is 0 counts as not given):
-    [0] forward and [1] side velocity (+ = left), m/s, in the frame of the desired facing;
-    [2] desired facing yaw about +Y, 0 = facing +Z (`models.motion.features.facing_yaw`);
-    [3] gait, 0 = walk, 1 = run;  [4] flag, 1 = control given.
-Without control the input frames drive the session causally: their smoothed Hips velocity,
-facing and speed-based gait become the control, so it also works as motion in, motion out.
+Per frame the network reads the character's trajectory (its own past, and a future blended from
+the control and its last prediction), its pose and local phases, and predicts the next pose, root
+motion, phases and contacts. The per-session maths is compiled (`kernels.py`); the expert products
+stay BLAS; `tests/reference/lpn_step.py` is the numpy step the kernels are tested against.
+Without control (`FrameBatch.control`) the input frames' smoothed Hips velocity, facing and speed
+become the control, so it also runs motion in, motion out.
 
-Styles are FiLM vectors mixed barycentrically by the weights (a shortfall from 1 goes to
-`normal`); the state holds nothing per style, so styles come and go while sessions run. After
-the network, each fitted from the style's real clips the same way for every style: the arm
-carriage (`carriage.py`), the output prior (`output_prior.py`, walks and runs mixed by gait), the
-arm coupling (`arm_coupling.py`) and the rotation prior (`models.motion.rotation_ball`), which
-holds each joint inside the ball the style's real rotations fill. A style without real clips (an
-upload, or a FiLM vector set at run time) has no ball, since a borrowed one would pull it back
-toward another style. The stages touch the output only; the network's state keeps its own pose.
-
-State per session (session axis first): `frame`; the last 31 frames of root trajectory
-(`hist_*`); the network's last future prediction (`fut_*`, world); the pose in its character
-frame (`pose`), `yaw`; the input tracker for derived control (`in_*`); the foot planter's
-(`feet_*`, `models.motion.feet`).
+Styles are FiLM vectors mixed by the weights (the shortfall from 1 goes to `normal`); the state
+holds nothing per style. After the network come the stages fitted from each style's real clips:
+arm carriage, output prior, arm coupling and rotation balls. They change the output only; the
+network's state keeps its own pose. A style without real clips gets no ball: a borrowed one would
+pull it toward another style.
 """
 
 from __future__ import annotations
@@ -70,9 +57,7 @@ CONTROL_SMOOTH_S = 0.25  # input velocity smoothing for derived control
 RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
 CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias
 PHASE_BLEND = 0.5  # next phase = blend of (current advanced by the predicted frequency) and the predicted phase
-CONTACT_THRESHOLD = (
-    0.35  # predicted contact (regressed 0/1) above which a foot counts as planted (0.5: skate 0.46 -> 0.44)
-)
+CONTACT_THRESHOLD = 0.35  # predicted contact (regressed 0/1) above which a foot counts as planted
 STOP_SPEED = 30.0  # cm/s: below this wanted speed the phases are damped (standing)
 STOP_PHASE_DAMP = 0.6  # per-frame phase factor when the wanted speed is 0
 STOP_ROOT_HOLD = 0.9  # share of the predicted root translation held back when the wanted speed is 0
@@ -199,9 +184,8 @@ class LPNModel(LPNStyles):
             return self.generator().style_film(windows).mean(0).numpy()
 
     def style_from_clip(self, motion: Motion) -> np.ndarray:
-        """A new style's FiLM vector (4, H), usable at once: the FiLM generator's embedding of
-        `motion` (a clip of the style, any length >= 1 s, on the Bandai Namco skeleton at 30 fps;
-        longer is better). `add_style_from_clip(name, motion)` installs it under `name`."""
+        """A new style's FiLM vector (4, H): the generator's embedding of a clip of it (>= 1 s on
+        the model skeleton at 30 fps; longer is better)."""
         if motion.skeleton.names != self.skeleton.names:
             raise ValueError("a style clip must be on the model skeleton (Bandai Namco, 22 joints)")
         if motion.num_frames < self.fps:
@@ -209,9 +193,8 @@ class LPNModel(LPNStyles):
         return self.clip_film(motion).reshape(4, self.H)
 
     def set_style_film(self, name: str, film: np.ndarray) -> None:
-        """Make `name` the style with FiLM vector `film` (4, H): a fine-tuned vector
-        (`finetune.py`) replacing a style's clip embedding, or a persisted one restored without
-        re-embedding. Adds the style if it does not exist. Running sessions see it from their next step."""
+        """Set (or add) style `name` with FiLM vector `film` (4, H): a fine-tuned or persisted one.
+        Running sessions see it from their next step."""
         film = np.asarray(film, np.float32)
         if film.shape != (4, self.H) or not np.all(np.isfinite(film)):
             raise ValueError(f"a FiLM vector must be finite with shape (4, {self.H}), got {film.shape}")
@@ -276,11 +259,9 @@ class LPNModel(LPNStyles):
     def _start(
         self, state: State, rows: np.ndarray, root: np.ndarray, rotations: np.ndarray, control: np.ndarray | None
     ) -> None:
-        """Fresh sessions start standing in the input's first pose (as a clip's samples before its
-        first frame repeat it in training). A session whose first frame carries control starts from
-        the model's standing pose instead (a controller client sends no real pose: the service sends
-        the identity rest pose, which on this skeleton is not a human posture), at the input's
-        ground position, facing the control's yaw."""
+        """Fresh sessions stand in the input's first pose, as training clips start. One whose first
+        frame carries control stands in the model's rest pose facing the control's yaw instead: a
+        controller client sends no real pose."""
         root, rotations = root[rows].copy(), rotations[rows].copy()
         if control is not None:
             given = np.flatnonzero(np.asarray(control)[rows, 4] > 0.5)
@@ -342,15 +323,12 @@ class LPNModel(LPNStyles):
         return FrameBatch(out_root, out_rot, contacts), s
 
     def _untwist(self, rotations: np.ndarray) -> np.ndarray:
-        """The pose with its joint positions, bones twisted as in the natural pose (the committed
-        one-frame asset): the network sometimes turns a bone about itself by ~180 degrees and its
-        child back (exhausted: Spine -176, Chest -177 degrees), which moves no joint but wrings a
-        skinned body. Leaves and limb roots keep the network's rotations (`OWN_ROTATIONS`); the
-        spine and chest share their composite turn evenly (`twist.split_evenly`)."""
+        """The same joint positions with each bone's twist taken from the natural pose: the network
+        sometimes turns a bone ~180 degrees about itself and its child back, which moves no joint
+        but wrings a skinned body. Leaves and limb roots keep the network's rotations."""
         source = np.broadcast_to(self._natural_pose, rotations.shape)
         out = transfer_twist(self.skeleton, source, rotations, OWN_ROTATIONS)
-        # the flip's frames in between bend the spine and chest against each other (the chest
-        # joint dropped 8 cm for a frame): the pair is re-split from its composite, which is smooth
+        # around such a flip spine and chest bend against each other: re-split their smooth composite
         spine, chest = self._torso
         natural = self._natural_pose
         out[:, spine], out[:, chest] = split_evenly(out[:, spine], out[:, chest], natural[spine], natural[chest])
@@ -384,8 +362,8 @@ class LPNModel(LPNStyles):
     def _control(
         self, s: State, frames: FrameBatch, root: np.ndarray, rot_in: np.ndarray, fresh: np.ndarray
     ) -> np.ndarray:
-        """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others derived
-        from the input frames (`kernels.control_rows`, which also advances the input tracker)."""
+        """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others
+        derived from the input frames (advancing the input tracker)."""
         B = root.shape[0]
         self._check_step(s, root, rot_in, frames.control)
         if frames.control is None:
@@ -447,9 +425,8 @@ class LPNModel(LPNStyles):
         return x, g
 
     def _network(self, x: np.ndarray, g: np.ndarray, film: np.ndarray) -> np.ndarray:
-        """Denormalised output (B, Y_DIM); the same maths as `network.LPN.forward` in eval mode. Each
-        expert layer is one BLAS product (all experts' outputs side by side); the blend by the
-        gating, layer norm, FiLM and ELU are per-row kernels."""
+        """Denormalised output (B, Y_DIM), as `network.LPN.forward` in eval mode: one BLAS product
+        per expert layer (all experts side by side), the rest per-row kernels."""
         x, g = np.ascontiguousarray(x, np.float32), np.ascontiguousarray(g, np.float32)
         film = np.ascontiguousarray(film, np.float32)
         (w0, b0), (w1, b1), (w2, b2) = self.gating
@@ -464,8 +441,8 @@ class LPNModel(LPNStyles):
         return kernels.output_layer(p3(h2), alpha, bias3, self.y_mean, self.y_std)
 
     def in_float32(self) -> LPNModel:
-        """This model (weights and styles shared) with its expert products always in float32: the
-        arithmetic the numpy reference step (`tests/reference/lpn_step.py`) is compared with."""
+        """This model (weights and styles shared) with float32 expert products, as the numpy
+        reference step computes them."""
         twin = copy.copy(self)
         twin.bfloat16 = False
         twin.__dict__.pop("_products", None)
@@ -473,9 +450,8 @@ class LPNModel(LPNStyles):
 
     @cached_property
     def _products(self) -> list[Callable[[np.ndarray], np.ndarray]]:
-        """The three expert products: bfloat16 where this machine does them natively with rows
-        independent of the batch (`rowwise.Bfloat16Product`, setting `bfloat16_products`), else
-        the float32 row product."""
+        """The expert products: bfloat16 where this machine does them natively with rows independent
+        of the batch (`rowwise.Bfloat16Product`), else float32."""
         fast = get_settings().bfloat16_products and self.bfloat16
         out: list[Callable[[np.ndarray], np.ndarray]] = []
         for W, _, _ in self.layers:
@@ -484,14 +460,10 @@ class LPNModel(LPNStyles):
         return out
 
     def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Apply the prediction: move the root, shift the history, store pose/phases/future; returns
-        the output Hips translation, local rotations and contacts (`kernels.advance`).
-
-        Stopping: the training clips hardly ever stand still after moving, so on its own the network
-        keeps stepping when asked to stop. While the wanted speed is below STOP_SPEED the phases
-        (current and future) are damped toward zero each frame, the amplitude the network learned
-        for standing at the start of a take, so its experts for standing take over, and most of the
-        predicted root translation is held back (alone, each leaves a 30-60 cm/s shuffle)."""
+        """Apply the prediction (root, history, pose, phases, future); returns the output Hips
+        translation, local rotations and contacts. The training clips hardly ever stop after
+        moving, so below STOP_SPEED the phases are damped toward the standing amplitude and most
+        of the root translation is held back; either alone leaves a shuffle."""
         return kernels.advance(
             y,
             control,
@@ -525,10 +497,8 @@ class LPNModel(LPNStyles):
     def _plant(
         self, s: State, root: np.ndarray, rotations: np.ndarray, predicted: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The frame with its feet planted by the shared planter (`models.motion.feet`), whose
-        state it updates in `s`; the controller's own root path is kept, the network's predicted
-        contacts are the hints. The planted legs (a toe or ankle held on the ground) are the
-        output's contacts."""
+        """The frame with its feet planted (`models.motion.feet`, state updated in `s`), the
+        network's contacts as hints; the planted legs are the output's contacts."""
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: s[k] for k in FEET_STATE}, root, rotations, hints=predicted
         )
@@ -540,9 +510,8 @@ class LPNModel(LPNStyles):
     def run(
         self, motion: Motion | None, weights: np.ndarray, control: np.ndarray | None = None, frames: int | None = None
     ) -> tuple[Motion, np.ndarray]:
-        """Drive one session through step_batch (batch 1): by a motion's frames (derived control), by a
-        control sequence (T, 5) starting from `motion`'s first pose (or the model's rest pose), or both.
-        `weights` is (S,) or per frame (T, S). Returns the output Motion and contacts (T, 2)."""
+        """One session through step_batch, driven by a motion's frames, or by control (T, 5) from
+        `motion`'s first pose (or the rest pose). `weights` (S,) or (T, S). Returns motion, contacts."""
         from dataclasses import replace
 
         first = motion if motion is not None else self.rest_motion()
@@ -591,9 +560,8 @@ def read_balls(weights_dir: Path) -> StyleBalls | None:
 
 
 def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
-    """The committed model. `core_only`: the network alone (its built-in FiLM styles and the foot
-    planter), without the fitted stages after it (the rotation prior, the arm carriage,
-    the output prior and the arm coupling): the evaluation's core-alone row."""
+    """The committed model; `core_only`: the network and foot planter without the fitted stages
+    (the evaluation's core-alone row)."""
     arrays, skeleton, config = read_weights(weights_dir)
     if core_only:
         return LPNModel(arrays, skeleton, config)

@@ -1,18 +1,13 @@
 """Choose an LPN-FiLM snapshot by what it does closed-loop, not by its one-frame loss.
 
-Streams dataset-2 VALIDATION neutral clips (never the test split) through each candidate's core
-alone (`load(..., core_only=True)`) toward every dataset-2 style and prints, per style: the
-sealed evaluation's style judge accuracy over all clips and over the locomotion ones alone
-(standing gestures carry style only through posture), the content judge's accuracy, the pace
-(`validate.pace`) and the FiLM generator's live units: the share of the second convolution's
-outputs above the ELU floor (`FLOOR`, below which a unit passes the same value for every clip
-and gets no gradient) over windows of the style's real validation clips, and the share above zero.
+Streams dataset-2 VALIDATION neutral clips through each candidate's core toward every style and
+prints per style the judges' accuracies, the pace and the FiLM generator's live units (the share
+of its second convolution's outputs above the ELU floor `FLOOR`, where a unit still gets gradient).
 
     .venv/bin/python -m models.lpn.snapshots models/weights/lpn .data/lpn/run_loop/ckpt_003000.pt
     .venv/bin/python -m models.lpn.snapshots --clips=20 --frames=150 --tuned=false CANDIDATE ...
 
-A candidate is a weights folder (its tuned vectors applied, as shipped) or a training checkpoint
-(exported to a scratch folder first: style vectors = the generator's mean over training clips).
+A candidate is a weights folder or a training checkpoint (exported to a scratch folder first).
 """
 
 from __future__ import annotations
@@ -34,10 +29,22 @@ from ..eval.style_judge import load_style_judge
 from ..motion.skeleton import Motion
 from .dataset import D2, D2_STYLES, clip_style_features
 from .train import tile_clip
-from .validate import pace
 
 FLOOR = float(np.log(0.05))  # ELU'(h) = e^h: below this a unit is flat (slope < 5 %)
 WINDOW = 120
+
+
+def hips_travel(motion: Motion) -> float:
+    """Horizontal distance between the hips' first and last positions."""
+    hips = motion.skeleton.names.index("Hips")
+    path = motion.global_transforms()[1][:, hips]
+    return float(np.linalg.norm((path[-1] - path[0])[[0, 2]]))
+
+
+def pace(outputs: list[Motion], inputs: list[Motion]) -> float:
+    """Median over clips of the output's hip travel over its input's: judge-free, 1 keeps up with
+    the input, below 1 lags it."""
+    return float(np.median([hips_travel(o) / max(hips_travel(i), 1e-6) for o, i in zip(outputs, inputs)]))
 
 
 @dataclass

@@ -1,11 +1,7 @@
-"""What LPN-FiLM keeps per style: one row per style, in one immutable table.
-
-A step reads the FiLM vectors, the rotation balls (`rotation_prior.py`) and the carriage
-(`carriage.py`) of one and the same style set, so the table is replaced whole when a style is
-added, given a new FiLM vector or removed, never edited in place: a step that took the table
-before the change finishes on the old one. Rows measured on a built-in style's real clips (its
-ball, its arm carriage) describe that style only: a style added at run time, or a built-in
-given another FiLM vector, gets the plain row (no clamp, no offset).
+"""What LPN-FiLM keeps per style: one row per style in one immutable table, replaced whole on
+every change, so a step reads FiLM vectors, balls and carriage of one and the same style set.
+Rows measured on a style's real clips describe that style only: a style added at run time, or
+given another FiLM vector, gets the plain row.
 """
 
 from __future__ import annotations

@@ -1,11 +1,6 @@
-"""LPN-FiLM's uploaded styles (`models.interface.ClipStyles`), mixed into `LPNModel`.
-
-An LPN-FiLM style is a FiLM vector (4, H). A clip gives one at once: the FiLM generator's
-embedding of it (`LPNModel.add_style_from_clip`), nothing saved but the clip. A fine-tuning job
-(`finetune.py`) tunes a copy of the generator on the clip and, if that lowers the loss on the
-clip's held-back frames, its vector replaces the embedding and is saved as `film.npz`.
-A copy of the model shares the weights and gets a style set of its own: its style table
-(`style_table.py`) is replaced, never changed in place, under the copy's own lock.
+"""LPN-FiLM's uploaded styles (`models.interface.ClipStyles`), mixed into `LPNModel`: a clip
+gives a FiLM vector at once (the generator's embedding); a fine-tuning job may replace it and
+saves it as `film.npz`. A copy of the model shares the weights and owns its style table.
 """
 
 from __future__ import annotations

@@ -1,19 +1,14 @@
-"""Train LPN-FiLM on Bandai Namco locomotion (the config is the dataclass below; override any
-field on the command line as --field=value).
+"""Train LPN-FiLM on Bandai Namco locomotion, nanoGPT style: the config is the dataclass below,
+any field overridable on the command line as --field=value.
 
     .venv/bin/python -m models.lpn train --minutes=60                     # then exports models/weights/lpn
     .venv/bin/python -m models.lpn.train --resume --minutes=60 --no_export # continue run_dir/ckpt.pt
     .venv/bin/python -m models.lpn.train --export=.data/lpn/run/ckpt.pt
 
-Each step is a minibatch of one style (styles cycled in a shuffled order), its FiLM from the
-generator run on a random 120-frame window of the style's training clips, so the generator learns
-to embed a clip and the motion network to obey it. A minibatch is `batch // rollout` rollouts of
-`rollout` consecutive frames (`rollout.py`); a share of them (rising from `closed_from` to
-`closed_to`) feed the network its own previous output, as the runtime does. Loss: MSE on the
-normalised output plus the bone-length loss, over every rollout frame. AdamW with a cosine
-learning rate over the training time (`Schedule`, counted across resumed sessions); validation
-every `eval_every` steps (one-frame and closed-loop losses). Choose a snapshot by streaming
-validation clips (`python -m models.lpn.snapshots`), not by loss.
+Each step trains one style (cycled in a shuffled order) with its FiLM from the generator on a
+random window of the style's clips, so the generator learns to embed a clip and the network to
+obey it. A share of the rollouts feed the network its own output (`rollout.py`), as the runtime
+does. Choose a snapshot by streaming validation clips (`models.lpn.snapshots`), not by loss.
 """
 
 from __future__ import annotations
@@ -161,27 +156,14 @@ def style_films(net, clips: StyleClips, styles: list[int], limit: int | None = N
 
 @torch.no_grad()
 def validate(
-    net,
-    val,
-    films: dict[int, torch.Tensor],
-    heldout,
-    held_clips: StyleClips,
-    normal_film: torch.Tensor,
-    n: int,
-    parents,
-    lengths,
+    net, val, films: dict[int, torch.Tensor], heldout, held_clips, normal_film: torch.Tensor, n: int, parents, lengths
 ) -> dict[str, float]:
+    """One-frame losses on `n` validation samples per style, per output group; with held-out
+    styles, their loss under a FiLM of their own clips against under `normal`'s."""
     from .network import bone_length_loss
 
     net.eval()
-    groups = {
-        "traj": lf.TRAJ_OUT,
-        "pose": lf.POSE_OUT,
-        "delta": lf.DELTA_OUT,
-        "phase": lf.PHASE_OUT,
-        "contact": lf.CONTACT_OUT,
-    }
-
+    groups = dict(traj=lf.TRAJ_OUT, pose=lf.POSE_OUT, delta=lf.DELTA_OUT, phase=lf.PHASE_OUT, contact=lf.CONTACT_OUT)
     device = net.X_mean.device
 
     def run(split, idx, film):
@@ -287,19 +269,7 @@ def set_rng_state(rng: np.random.Generator, state: dict) -> None:
 
 
 def save(
-    path: Path,
-    net,
-    mcfg,
-    cfg,
-    styles,
-    it,
-    seconds,
-    history,
-    opt=None,
-    schedule=None,
-    rng=None,
-    order=None,
-    half: bool = False,
+    path: Path, net, mcfg, cfg, styles, it, seconds, history, opt=None, schedule=None, rng=None, order=None, half=False
 ) -> None:
     """A checkpoint that `--resume` continues exactly: network, optimiser, schedule, RNG, step
     (a snapshot: the network alone, in float16 with `half`; loading converts it back)."""
@@ -452,8 +422,7 @@ def main(argv: list[str]) -> None:
     rollouts = max(cfg.batch // K, 1)
     t0, budget, seconds0, first_it = time.time(), cfg.minutes * 60, schedule.elapsed_s, it
 
-    def snapshot() -> None:
-        """A kept snapshot of the network at this step (`cfg.snapshot_every`), to pick by streaming."""
+    def snapshot() -> None:  # kept every `snapshot_every` steps, to be chosen by streaming
         save(
             run_dir / f"ckpt_{it:06d}.pt",
             net,
@@ -497,7 +466,7 @@ def main(argv: list[str]) -> None:
         if it % 50 == 0:
             bar.set_postfix(mse=f"{mse.item():.4f}", bone=f"{bone.item():.5f}", closed=f"{closed.float().mean():.2f}")
         if it % cfg.eval_every == 0:
-            v = evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths, rng)
+            v = evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths)
             v.update(
                 iter=it,
                 minutes=round(schedule.elapsed_s / 60, 2),
@@ -519,7 +488,7 @@ def main(argv: list[str]) -> None:
         if schedule.progress() >= 1.0:
             break
     bar.close()
-    v = evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths, rng)
+    v = evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths)
     v.update(iter=it, minutes=round(schedule.elapsed_s / 60, 2))
     history.append(v)
     log("final val " + " ".join(f"{a}={b:.4g}" for a, b in v.items()))
@@ -538,7 +507,7 @@ def main(argv: list[str]) -> None:
         render_progress(run_dir, out_dir, "final", log)
 
 
-def evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths, rng) -> dict:
+def evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths) -> dict:
     """One-frame validation (`validate`) and the closed-loop loss: `val_rollouts` rollouts per
     style of `rollout` frames on validation clips, every one feeding back the network's output."""
     from .rollout import rollout
@@ -559,14 +528,7 @@ def evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips
             )
             idx = torch.from_numpy(pick).to(dev)[:, None] + torch.arange(K, device=dev)
             X, G, Y = (torch.from_numpy(a).to(dev)[idx] for a in (val.X, val.G, val.Y))
-            p, t = rollout(
-                net,
-                X,
-                G,
-                Y,
-                film[None],
-                torch.ones(len(pick), dtype=torch.bool, device=dev),
-            )
+            p, t = rollout(net, X, G, Y, film[None], torch.ones(len(pick), dtype=torch.bool, device=dev))
             errs.append(((p - t) ** 2).mean().item())
     net.train()
     v["val_loop"] = float(np.mean(errs)) if errs else float("nan")

@@ -1,21 +1,11 @@
-"""Fine-tune the built-in dataset-2 styles' FiLM vectors on their own TRAIN clips, the motion
-network frozen: the generator's mean vector is an average embedding the network was never fitted to.
+"""Fine-tune the built-in styles' FiLM vectors on their own TRAIN clips, the network frozen: the
+generator's mean vector is an average embedding the network was never fitted to.
 
     nice -n 10 .venv/bin/python -m models.lpn.tune_builtin            # writes models/weights/lpn/tuned_film.npz
     nice -n 10 .venv/bin/python -m models.lpn.tune_builtin --save=false --steps=200
 
-Each style's (4, H) vector is the only parameter: the style's training samples (dataset 2's
-locomotion, mirrored as in training) go through the frozen network under the training loss
-(`train.training_loss`), dropout on (`finetune.py` says why).
-
-Selection uses the style's VALIDATION clips only, never the eval judges or test clips: one run
-per learning rate in `lrs` and length in `steps` (Adam, cosine decay to zero, so a run ends
-settled rather than at a noisy dip), scored by the validation loss (dropout off); the best run's
-vector is kept only if it beats the committed one and keeps the streamed output
-rotation-plausible: driven by `GUARD_CLIPS` toward the style, every joint within the real TRAIN
-p99 in at least `models.eval.run.GATE_WITHIN` of frames, as the exported vector does. The result
-goes to `TUNED_FILE` beside the weights (`weights.read_weights` applies it) and the run is
-appended to config.json's `tuned_film`.
+Runs over `lrs` x `steps` are scored on the style's VALIDATION loss only; the best vector is kept
+if it beats the committed one and keeps the streamed output rotation-plausible (`GUARD_CLIPS`).
 """
 
 from __future__ import annotations
@@ -270,13 +260,8 @@ def save(weights_dir: Path, results: list[StyleResult], cfg: TuneConfig, seconds
 
 
 def _record_runs(old: dict) -> dict:
-    """config.json's `tuned_film` as a list of runs and the latest record per style; a record
-    written before runs were kept (one run's command at the top) becomes that run."""
-    runs = list(old.get("runs", []))
-    styles = dict(old.get("styles", {}))
-    if "command" in old:
-        runs.append({k: old[k] for k in ("command", "config", "seconds") if k in old})
-        styles = {s: {"command": old["command"]} | r for s, r in styles.items()}
+    """config.json's `tuned_film`: the list of runs and the latest record per style."""
+    runs, styles = list(old.get("runs", [])), dict(old.get("styles", {}))
     selection = "validation-split clips of the same style (one-frame loss); never test clips or judges"
     return {"selection": selection, "runs": runs, "styles": styles}
 

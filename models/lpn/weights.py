@@ -1,12 +1,7 @@
-"""LPN-FiLM weights on disk: `models/weights/lpn/lpn.npz` (network parameters as float16,
-normalisation as float32, per-style FiLM vectors, the Bandai Namco skeleton) + `config.json`, and
-optionally `tuned_film.npz`: built-in styles' FiLM vectors fine-tuned on their own clips with the
-network frozen (`tune_builtin.py`), which replace those styles' exported vectors when read. They
-are still the built-in styles (same data, so they keep their rotation prior); kept apart so a
-tuning run rewrites a few KB, not the 8 MB network.
-
-float16 halves the size (the H=256 network is 4.7 M parameters, ~9 MB); the runtime computes
-in float32, so the only loss is the rounding of the weights themselves (relative 5e-4)."""
+"""LPN-FiLM weights on disk: `lpn.npz` (float16 parameters, float32 normalisation, per-style FiLM
+vectors, the skeleton) and `config.json`, plus `tuned_film.npz` (`tune_builtin.py`), which
+replaces the built-in styles' vectors when read and is kept apart so a tuning run rewrites a few
+KB. The runtime computes in float32; float16 storage costs only the weights' rounding."""
 
 from __future__ import annotations
 

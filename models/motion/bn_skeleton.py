@@ -43,10 +43,8 @@ BODY = np.array([j for j in range(NUM_JOINTS) if j != ROOT])  # the joints that 
 
 
 def missing_joints(names: Sequence[str], wanted: Sequence[str] = BN_JOINTS) -> list[str]:
-    """The joints of `wanted` (the model skeleton's) that a rig's `names` lack, in their order.
-    None missing: the rig carries every model joint by name, in any order and with any extra
-    joints, which is what streaming and uploads take as the model's own rig (mapped by name, no
-    retargeting); a caller that needs the exact order compares the names themselves."""
+    """The joints of `wanted` that a rig's `names` lack, in order. None missing: the rig is taken as
+    the model's own (mapped by name, any order, extra joints allowed; no retargeting)."""
     have = set(names)
     return [n for n in wanted if n not in have]
 

@@ -1,13 +1,6 @@
-"""BVH reading and writing.
-
-The hierarchy is parsed line by line (it is a few hundred lines); the MOTION block, which is
-~99% of a file, is parsed in one vectorised call. Any channel count and order per joint is kept
-as written, so a write -> read round trip reproduces the file's numbers to their printed
-precision. Errors name the file and the line, never surface as a numpy traceback.
-
-No PyPI BVH package was used: the maintained ones (bvhio, bvh, pymo) either parse the motion
-block value by value in Python (minutes for the Bandai Namco sets), drop channel order, or have
-no writer; this module is ~200 lines and owns its error messages.
+"""BVH reading and writing. The MOTION block (~99 % of a file) is parsed in one vectorised call;
+channel order is kept, so a round trip reproduces the file's numbers; errors name file and line.
+(The PyPI BVH packages parse value by value, drop channel order, or cannot write.)
 """
 
 from __future__ import annotations

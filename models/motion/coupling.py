@@ -1,20 +1,11 @@
-"""Couple joints the way a style's real clips move them together: a joint's rotation moved with
-the joints it follows (its drivers) by the style's real linear relation instead of the model's.
+"""Couple joints the way a style's real clips move them together: a joint moved with the joints
+it follows by the style's real linear relation instead of the model's.
 
-The output priors (`style_carry.py`) map each joint on its own, so they cannot put a motion in
-step with another joint's where the model keeps it still, nor turn a swing onto another axis. In
-real clips a joint's deviation from its mean is often close to a linear function of its
-drivers'. Per link, target t following drivers u:
-
-    d_t' = d_t + (B_real - B_made)^T [d_u, 1]
-
-every d a rotation vector away from the style's real mean (in the joint's own frame), B fitted
-by least squares on the style's real TRAIN clips and on the model's output toward the style, per
-gait (walk, run), and mixed by a frame's gait share. Links apply in order, a later one reading
-the joints an earlier one moved (as the fit does). A style mix blends each link's corrections as
-the priors do (q' = q exp(sum_s w_s log(q^-1 f_s(q)))); rows that weigh no coupled style are left
-exactly as they were. `couple` is compiled (`coupling_kernels.py`; numpy reference:
-`tests/reference/coupling.py`).
+Per-joint priors cannot put a motion in step with another joint's. Per link, target t following
+drivers u:  d_t' = d_t + (B_real - B_made)^T [d_u, 1], each d a rotation vector from the style's
+real mean, B fitted by least squares on real clips and on the model's output, per gait. Links
+apply in order; style mixes blend corrections as the priors do; rows that weigh no coupled style
+are unchanged. Compiled in `coupling_kernels.py` (numpy reference: `tests/reference/coupling.py`).
 """
 
 from __future__ import annotations

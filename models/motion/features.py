@@ -1,13 +1,8 @@
-"""Causal per-frame motion features, usable on a live stream.
+"""Causal per-frame motion features, usable on a live stream: every feature at frame t depends
+only on frames <= t (backward differences; facing from the current pose alone).
 
-Every feature at frame t depends only on frames <= t: velocities are backward differences
-(zero on the first frame), the facing direction comes from the current pose alone. The
-authors of Style-ERD took forward differences and smoothed the facing with a centred Gaussian;
-both look into the future and are avoided here.
-
-Conventions: Y is up; the facing frame of a pose has its origin at the root (Hips) projected on
-the ground and its +Z axis along the body's forward direction, forward = left x up with
-"left" measured from the right hip/shoulder to the left one.
+Conventions: Y up; the facing frame sits at the Hips on the ground with +Z along forward =
+left x up, "left" from the right hip/shoulder to the left one.
 """
 
 from __future__ import annotations

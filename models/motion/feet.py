@@ -1,29 +1,17 @@
 """Planted feet for every method: the root travels by the feet on the ground, the legs hold them.
 
-Why: a style model changes how the legs move and how fast the root travels, and nothing makes the
-two agree, so planted feet slide; on a skinned character that is the first thing a viewer sees.
-A real body does the opposite: while a foot is on the ground, the body moves relative to it.
+A style model changes how the legs move and how fast the root travels, and nothing makes the two
+agree, so planted feet slide. Per frame, causally, on the model rig:
+1. Root: keeps the model's path (`follow=0`) while the legs do the work; past a quarter of
+   `max_offset` a leash lets the root give way against the held points' motion.
+2. Contact: a toe or ankle within `margin` of its floor touching down slowly enough, or the
+   model's `hints`. The toe is held whenever it is down, else the ankle. Each floor follows its
+   point down at once and up by `floor_rise` per second (networks' feet float or sink).
+3. Hold: an offset collects the opposite of the held point's motion and two-bone IK moves the
+   ankle by it; released, it fades by `decay` per frame. Soft IK eases the last `soft` cm of reach.
 
-Per frame, causal (no look-ahead), on the model rig:
-1. **Root.** By default (`follow=0`) the root keeps the model's path and the legs do the work:
-   a held foot stays behind and catches up in its swing. A leash stops the legs stretching too
-   far: past a quarter of `max_offset` the root gives way, moving against the held points'
-   motion (all of it at `max_offset`), as a body moves over a planted foot. `follow` > 0 always
-   moves the root with the feet by that share. With no foot planted, and for heights, the
-   model's root.
-2. **Contact.** A foot is planted when its toe or ankle is within `margin` of that point's floor
-   and it touches down slower than `onset_speed` or than the root along its path, or the model
-   says it is down (`hints`). The held point is the toe whenever it is down (push-off pivots
-   about it), else the ankle. Each point's floor follows it down at once and up by `floor_rise`
-   per second, since a network's feet float or sink by a few centimetres.
-3. **Hold.** While planted, a horizontal offset collects the opposite of the held point's
-   remaining motion and two-bone leg IK moves the ankle by it, keeping the foot's orientation.
-   Released, or held farther than `max_offset`, the offset fades by `decay` per frame. The last
-   `soft` cm of a leg's reach are eased (soft IK), so the knee neither snaps straight under a
-   hold nor pops bent on release.
-
-One compiled pass over the sessions (`feet_kernels.plant_feet`); the state is plain arrays under
-`feet_*` keys, so it joins a model's state, snapshots and resumes with it.
+One compiled pass (`feet_kernels.plant_feet`); the state is plain `feet_*` arrays, so it joins a
+model's state, snapshots and resumes with it.
 """
 
 from __future__ import annotations

@@ -1,12 +1,7 @@
-"""Which of a style's clips run, measured from the clips themselves: a stage fitted on walks and on
-runs apart needs each style's runs without a content label, so an uploaded style gets the split
-its built-in peers get.
-
-A fixed speed cannot do it: the real elderly runs of Bandai Namco dataset 2 have a median Hips
-speed of 1.43 m/s, slower than the active walks' p90 (1.84 m/s). Each style's own clips can: its
-moving clips' median speeds fall in two groups (walks and turns, runs), split where the
-within-group variance is least (`run_threshold`, Otsu's split in one dimension). Where the faster
-group is not `SEPARATION` times as fast as the slower one, the clips hold one gait and none runs.
+"""Which of a style's clips run, measured from the clips, so an uploaded style gets the split its
+built-in peers get. No fixed speed works (elderly runs are slower than active walks): a style's
+moving clips' median speeds are split where the within-group variance is least (Otsu in 1-D),
+and where the faster group is not `SEPARATION` times as fast the style holds one gait.
 """
 
 from __future__ import annotations

@@ -1,14 +1,7 @@
-"""What a hand does, measured on the Bandai Namco rig: how far it is raised and how it moves.
-
-LTI (`models/lti/raised_arm.py`, `waving_arm.py`) switches a raised arm's treatment by these: a
-raised hand that holds still is a raise-up, one that sways at a level height is a wave. Causal,
-per frame: a frame's shares read that frame and the running averages.
-
-- **Raise share:** each hand's height above its own shoulder (the UpperArm joint) on a ramp over
-  `RAISE_RAMP_CM`, from the TRAIN `normal` runs' p99 to the shoulder's height.
-- **Sway:** each hand's horizontal speed against its shoulder, an exponential average over
-  `SWAY_FRAMES`; the wave share ramps over `WAVE_RAMP_CM_S`, between raise-ups' and waves' speeds.
-- **Rise:** its vertical speed, averaged alike; the level share falls over `LEVEL_RAMP_CM_S`.
+"""What a hand does, measured causally on the Bandai Namco rig: how far it is raised above its
+shoulder (on a ramp of `RAISE_RAMP_CM`), how fast it sways horizontally (`SWAY_FRAMES` average,
+`WAVE_RAMP_CM_S`) and how fast it rises (`LEVEL_RAMP_CM_S`). LTI tells a raise-up (a raised hand
+held still) from a wave (swaying at a level height) by these.
 """
 
 from __future__ import annotations

@@ -1,22 +1,12 @@
 """Hinge joints, fitted from real rotations, and the parent twist that keeps them hinges.
 
-A model that decides where bones point (`twist.transfer_twist`) takes each bone's twist from
-another pose. An elbow or knee is a hinge, so the parent's twist must place the hinge axis square
-to the plane of the three joints the model's positions give; with the input's twist it usually
-does not, and the forearm swings sideways off its hinge, a pose no real arm takes.
-
-`fit_hinges` finds the hinge joints from real local rotations, the same way for every joint: a
-joint whose swing turns about one direction only and that is its parent's only child (on Bandai
-Namco's data, each elbow and knee). Per hinge it stores the axis (signed so real bends are
-positive), the parent's real twist interval and the least real bend, the `floor`: a real knee or
-elbow never bends backward past it (`hinge_kernels.floor_bend` holds a model's output there).
-
-`twist_kernels.hinge_twist` is the turn of the parent about its own bone (which moves no joint)
-that lays the child's bone in the hinge plane, bent the way real joints bend, within the parent's
-real twist interval; `transfer_twist` then bends the child about the hinge axis. The child turns
-back by as much of that turn as its own twist interval allows, as a forearm pronates, so the hand
-keeps facing where the source has it. The turn fades out below `fade` radians of bend (the plane
-is ill-defined) and from a quarter turn on (a joint bent backward).
+A model that decides where bones point takes each bone's twist from another pose, so an elbow or
+knee may swing sideways off its hinge, a pose no real limb takes. `fit_hinges` finds, the same
+way for every joint, a parent's only child whose swing turns about one direction only, and stores
+its axis (real bends positive), the parent's real twist interval and the least real bend (the
+`floor`). `twist_kernels.hinge_twist` turns the parent about its bone so the child's bone lies in
+the hinge plane; the child turns back within its own twist interval, as a forearm pronates. The
+turn fades below `fade` radians of bend and from a quarter turn on.
 """
 
 from __future__ import annotations

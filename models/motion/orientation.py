@@ -1,16 +1,10 @@
 """Which way the head, hands and feet face: oriented solids for renders, from joint rotations.
 
-A stick figure shows joint positions only, so a head turned backwards or a wrist twisted about
-the forearm (neither moves a joint) is invisible. The renders (`render.py`, and the browser
-viewer) draw the head with a nose, each hand as a palm with a thumb stub and each foot as a
-heel-to-toe wedge plus a toe block, posed by the joints' *world rotations*: at frame t a part's
-world axes are R_world(t) @ A, A the part's axes in its joint's frame, fixed per skeleton.
-
-A is calibrated once per skeleton from a reference pose facing the way `features.facing_yaw`
-says: the committed one-frame assets for the Bandai Namco and CMU rigs (their zero poses mean
-nothing), borrowed by any skeleton with the same chains and bone directions; for any other rig
-(whose parts `humanoid.match_roles` names), the motion's first frame. Never per motion on a known
-rig: a model that turns the head from frame 0 would look right.
+A stick figure hides a head turned backwards or a twisted wrist (neither moves a joint). The
+renders draw a nose, palms with thumbs and foot wedges posed by world rotations: a part's axes at
+frame t are R_world(t) @ A, with A calibrated once per skeleton from a reference pose (the
+committed assets for known rigs; a matched rig's first frame otherwise). Never per motion on a
+known rig: a model that turns the head from frame 0 would look right.
 
 Part frames (columns of A, right-handed, z = x × y):
   head       x face forward (the nose), y up

@@ -1,10 +1,6 @@
-"""The one home of quaternion maths inside compiled kernels (numba), on 4-tuples.
-
-Quaternions are (x, y, z, w), scalar-last like the rest of the project; vectors are 3-tuples;
-everything is float64. Kernels import these instead of repeating them: tuples keep the maths
-readable (`qmul(qinv(a), b)`) and numba inlines them, so they cost nothing over hand-written code.
-Importing them from another file is safe for numba's on-disk cache because `models/numba_cache.py`
-keys the cache folder by every kernel source.
+"""The one home of quaternion maths inside compiled kernels (numba), on 4-tuples: (x, y, z, w),
+scalar-last, float64. Tuples read well (`qmul(qinv(a), b)`) and numba inlines them for free;
+`models/numba_cache.py` keys the cache by every kernel source, so importing them is cache-safe.
 Array-level numpy maths lives in `rotations.py`.
 """
 

@@ -1,23 +1,15 @@
-"""Serving a stream at its own frame rate while the model steps at its own (30 fps).
+"""Serving a stream at its own frame rate while the model steps at 30 fps.
 
-Sample-and-hold (one model step per model period, the frames between holding its pose) updates
-a 120 fps stream's pose every 4th frame, and planted feet glide, then snap. Here, causally:
+Sample-and-hold updates a 120 fps stream's pose every 4th frame, and planted feet glide, then
+snap. Instead the model steps at its own times on the input interpolated there, and each input
+frame gets the model's output `delay` earlier on the parabola through the three latest outputs
+(a straight line would turn at each output: rotation acceleration spikes). The delay is the least
+that keeps that instant between the two latest steps: (b - 1) / b model frames for
+model_fps / fps = a / b in lowest terms, one model frame when the ratio is not a small fraction.
 
-- the model steps at its own times T_j = j / model_fps, each on the input pose at T_j,
-  interpolated from the two input frames around it (the second one has just arrived);
-- each input frame at time t gets the model's output at t - delay, root and pose at that one
-  instant, on the parabola through the three latest model outputs (each joint's through its
-  quaternions, normalised). A straight line would turn at each output, which shows as rotation
-  acceleration spikes; the parabola still passes through every output, so nothing is smoothed away.
-
-The delay is the least that keeps that instant between the two latest model steps for every
-frame: (b - 1) / b model frames, where model_fps / fps = a / b in lowest terms (0 at 30 fps,
-1/2 at 60, 3/4 at 120 and 24); one model frame when the ratio is not a small fraction.
-
-Everything is row-batched, one row per stream (a session, or each of a crowd's characters), with
-the same arithmetic bit for bit. A stream's rate state is its `clock` (how far its latest input
-frame lies past its latest model step, in model frames; < 0 before its first frame), its latest
-input frame and its `HISTORY` latest model outputs.
+Row-batched, one row per stream, the same arithmetic bit for bit. A stream's state is its `clock`
+(its latest input frame past its latest model step, in model frames; < 0 before the first), its
+latest input frame and its `HISTORY` latest model outputs.
 """
 
 from __future__ import annotations

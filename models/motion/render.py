@@ -1,13 +1,9 @@
 """Renders of motions with matplotlib (Agg): PNG contact sheets and animated GIFs.
 
-Limbs are flat ribbons between FK world positions; the head, hands and feet are shaded solids posed by
-the joints' world rotations (`orientation.py`), so a head turned backwards or a wrist twisted
-about the forearm, which move no joint, show: the head has a black nose wedge where the face
-looks, each hand a black thumb stub and a darker palm, each foot a light top face. World Y up is
-the vertical axis, with a ground grid at height 0 and a camera that follows the root. Left limbs
-are red, right limbs blue, the spine black. Works for any skeleton (Bandai Namco in cm, CMU in its
-own units): sizes are taken from the motion itself. A humanoid whose up axis is Z (Blender, Unreal,
-many capture exports) is drawn standing in its own up axis (`upright`), not lying on its back.
+Limbs are ribbons between FK positions; head, hands and feet are solids posed by world rotations
+(`orientation.py`), so a head turned backwards or a twisted wrist shows. Left limbs red, right
+blue; the camera follows the root. Sizes come from the motion, so any skeleton works, and a Z-up
+humanoid is drawn standing (`upright`).
 """
 
 from __future__ import annotations

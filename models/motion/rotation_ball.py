@@ -1,22 +1,11 @@
-"""Rotation ball: every joint's output rotation stays inside the ball that real data of the output
-style fills around that joint's mean rotation. Used by LTI (`models.lti.train.style_prior`) and
-LPN-FiLM (`models.lpn.runtime`); the per-frame compiled form is `rotation_ball_kernels.py`.
+"""Rotation ball: each joint's output rotation stays inside the ball that real data of the style
+fills around the joint's mean rotation, since a skinned character shows the rotation itself.
 
-Why: a model's output can carry a joint past anything the style shows, and a skinned character
-shows the rotation itself. Per joint, the angle d to the style's mean rotation is kept up to an
-inner radius and then saturates smoothly toward an outer radius it never passes:
-
-    d' = d                                                  d <= inner
-    d' = inner + (outer - inner) tanh((d - inner) / (outer - inner))   d > inner
-
-along the same geodesic from the mean. The map has a continuous first derivative, so a
-trajectory crossing the inner radius does not kink, and it is the identity inside.
-
-The Hips rotation carries the arbitrary heading, so it is compared without its twist about world
-up (as `models.eval.plausibility` does) and the twist is put back after clamping.
-
-Radii are quantiles of real angles (`fit_prior`): inner = `inner_q`, outer = `outer_q` minus a
-`margin`. `StyleBalls` holds one ball per style (a small npz beside a model's weights).
+The angle d to the mean is kept up to `inner`, then saturates smoothly toward `outer`:
+    d' = inner + (outer - inner) tanh((d - inner) / (outer - inner))   for d > inner
+(continuous first derivative, so a crossing does not kink). The Hips is compared without its
+heading twist, put back after. Radii are quantiles of real angles (`fit_prior`); `StyleBalls`
+holds one ball per style. Compiled per frame in `rotation_ball_kernels.py`.
 """
 
 from __future__ import annotations

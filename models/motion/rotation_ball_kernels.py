@@ -44,11 +44,9 @@ def clamp_joint(q, mean, inner, outer, hips):
 
 @njit(cache=True, error_model="numpy")
 def clamp_mixed(rotations, weights, rest_style, mean, radii, out):
-    """Frames (B, J, 4) under style weights (B, S) -> out (B, J, 4): per joint, the weighted mean
-    of the rotation held in each active style's ball (`clamp_joint`), the weights' shortfall from
-    1 given to `rest_style` (negative weights count as 0; signs aligned to the heaviest style's
-    result, the first on ties). One style at weight 1: exactly its ball. The result moves continuously with the
-    weights, so a style fade does not jump between balls. Joint 0 is copied."""
+    """Frames (B, J, 4) under style weights (B, S) -> out: per joint the weighted mean of the
+    rotation held in each style's ball (shortfall to `rest_style`), continuous in the weights so a
+    style fade does not jump between balls; one style at weight 1 is exactly its ball."""
     B, S = weights.shape
     J = rotations.shape[1]
     for b in range(B):

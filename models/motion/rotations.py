@@ -1,12 +1,8 @@
-"""Rotation conversions on arrays of any leading shape.
+"""Rotation conversions on arrays of any leading shape (numpy, via scipy).
 
-Convention everywhere in the project: quaternions are scalar-last (x, y, z, w), as in
-`scipy.spatial.transform.Rotation`; matrices act on column vectors; Euler angles follow BVH,
-i.e. intrinsic rotations in channel order ("ZXY" means R = Rz @ Rx @ Ry).
-
-The numpy side delegates to scipy. The differentiable torch twins used in training losses and
-forward kinematics live in `rotations_torch`, so that what only needs numpy (the service's
-upload decoding child among it) never imports torch.
+Quaternions are scalar-last (x, y, z, w); matrices act on column vectors; Euler angles follow
+BVH (intrinsic, in channel order: "ZXY" is Rz @ Rx @ Ry). Torch twins for training live in
+`rotations_torch`, so numpy-only code never imports torch.
 """
 
 from __future__ import annotations

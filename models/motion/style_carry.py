@@ -1,18 +1,14 @@
-"""Carry local rotations from one distribution to a style's real one, per joint: the rotation
-priors Style-ERD's streaming output passes through (`models/erd/rotation_prior.py` fits them)
-and LPN-FiLM's output prior (`models/lpn/output_prior.py`).
+"""Carry local rotations from one distribution to a style's real one, per joint: Style-ERD's
+rotation priors and LPN-FiLM's output prior.
 
-Per target style s and joint j, a rotation q is read as its deviation from a source mean,
-d = log(src_s^-1 q) (a rotation vector in the joint's own frame, so a twist about the bone stays
-a twist about the bone), mapped by the linear optimal-transport map between the source's and
-the style's Gaussians of such deviations, and kept inside the style's real p98 angle from its
-mean (a radial clamp in the tangent space):
+Per style s and joint j, q's deviation d = log(src_s^-1 q) from the source mean (a rotation vector
+in the joint's frame, so a twist stays a twist) is mapped by the linear optimal-transport map
+between the source's and the style's Gaussians and clamped into the style's real p98 radius:
 
     f_s(q) = m_s exp(clamp_r_s(M_s d)),   M_s = C^-1/2 (C^1/2 C_s C^1/2)^1/2 C^-1/2
 
-so a typical source frame lands as a typical style frame, with the style's spread in each
-direction, and never farther from the style's mean than real frames go. A style mix (or an
-intensity) blends the corrections: q' = q exp(sum_s w_s log(q^-1 f_s(q))); zero weights give q.
+so a typical source frame lands as a typical style frame. A style mix blends the corrections:
+q' = q exp(sum_s w_s log(q^-1 f_s(q))); zero weights give q.
 """
 
 from __future__ import annotations

@@ -1,24 +1,14 @@
-"""Keep a pose's positions, take its twists from another pose: the rotations a skinned character
-shows, without the freedom a position-trained model never learned.
+"""Keep a pose's positions, take its twists from another pose.
 
-A model trained on joint positions decides where every bone *points*, but not how a bone is
-turned about itself, nor how a leaf joint (head, hands, toes) is turned: those rotations move no
-joint, so no position loss constrains them and they land wherever the weights put them.
+A model trained on joint positions decides where every bone points, but not how a bone or a leaf
+(head, hands, toes) is turned about itself: no position loss constrains that. `transfer_twist`
+re-expresses `pose` with the fewest rotation changes from `source` (the input frame) that keep
+its joint positions: a one-child joint gets the smallest swing onto `pose`'s bone, a multi-child
+joint takes `pose`'s rotation, a leaf keeps `source`'s. With `hinges` (`hinge.py`) a hinge's
+parent takes the twist that lays the child bone in the hinge plane.
 
-`transfer_twist(skeleton, source, pose)` re-expresses `pose` with the fewest rotation changes
-from `source` (the input frame) that reproduce `pose`'s joint positions exactly:
-
-- a joint with one child bone gets the smallest swing that lays its bone along `pose`'s bone,
-  starting from `source`'s local rotation under the new parent, so its twist is `source`'s;
-- a joint with several child bones (hips, chest) is fixed by them already: `pose`'s rotation;
-- a leaf keeps `source`'s local rotation.
-
-With `hinges` (`hinge.py`), the parent of a hinge joint (upper arm, thigh) instead takes the
-twist that lays its child's bone in the hinge plane, so the elbow or knee bends as a hinge.
-
-One pass over the joints, parents first: `transfer_twist` is the compiled step the streaming
-models call, `transfer_twist_t` the differentiable torch one training uses (the numpy reference
-is `tests/reference/twist.py`).
+`transfer_twist` is the compiled step the streaming models call, `transfer_twist_t` the torch one
+training differentiates (numpy reference: `tests/reference/twist.py`).
 """
 
 from __future__ import annotations
@@ -75,10 +65,7 @@ def transfer_twist(
     hinges: Hinges | None = None,
 ) -> np.ndarray:
     """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
-    rotations (see the module docstring), compiled (`twist_kernels.py`, ~1 us per frame).
-    `source` and `pose` are (..., J, 4) local rotations on `skeleton`; joints named in `keep` take
-    `pose`'s local rotation as it is (their bone still lands where `pose` puts it); the parents
-    of `hinges`' joints take the twist that keeps them hinges."""
+    rotations (module docstring); joints named in `keep` take `pose`'s rotation as it is."""
     kinds, parents, axes, keep_mask = _kernel_plan(skeleton, keep)
     hinge_child, bend, mean, limits, fade = kernel_hinges(skeleton, hinges)
     J = skeleton.num_joints
@@ -208,13 +195,8 @@ def split_evenly(
     parent: np.ndarray, child: np.ndarray, rest_parent: np.ndarray, rest_child: np.ndarray, share: float = 0.5
 ):
     """A two-joint chain's local rotations (..., 4) re-split so the parent takes `share` of the
-    chain's turn away from its rest pose and the child the rest: the composite parent * child
-    (where the child's children go, and how they are turned) is kept exactly.
-
-    Why: a network that predicts each joint alone can turn the spine by ~180 degrees about itself
-    and the chest back, which cancel; over the frames in between the pair passes through bends
-    that do not cancel (LPN-FiLM: the chest joint dropped 8 cm for a frame while the composite
-    moved 2 degrees). Split from the composite, the pair is as smooth as the composite is."""
+    chain's turn from its rest pose, the composite kept exactly: a pair predicted joint by joint
+    can flip against each other, and split from the composite it is as smooth as the composite."""
     composite = quat_mul(parent, child)
     turn = quat_mul(composite, quat_inv(quat_mul(rest_parent, rest_child)))
     new_parent = quat_mul(quat_exp(share * quat_log(turn)), rest_parent)
