@@ -45,6 +45,7 @@ def take_rows(state: State, rows: np.ndarray) -> State:
 
 
 STATE = "state:"  # the model state's keys, among a troupe's per-row arrays
+NO_HINGES = np.zeros((0, 4, 4))  # the hinge state passed to an adapter that keeps none
 
 
 class Troupe:
@@ -566,9 +567,11 @@ class Crowd:
                 good, root, rot = self._frames(part, payload, seq, result)
                 rows_control = None
             ok[part.positions[~good]] = False
-            hinges = part.troupe.hinges[part.rows[good]]  # the retargeter's state, these rows' (a copy)
-            model_root, model_rot = part.group.adapter.to_model_rows(root, rot, hinges) if len(root) else (root, rot)
-            part.troupe.hinges[part.rows[good]] = hinges
+            adapter = part.group.adapter
+            hinges = part.troupe.hinges[part.rows[good]] if adapter.keeps_state else NO_HINGES  # a copy
+            model_root, model_rot = adapter.to_model_rows(root, rot, hinges) if len(root) else (root, rot)
+            if adapter.keeps_state:
+                part.troupe.hinges[part.rows[good]] = hinges
             inputs.append((good, rot, model_root, model_rot, rows_control, hinges))
         outputs = await self._step(plan, inputs, step, result)
         out = np.empty(int(plan.sizes[ok].sum()), "<f4")

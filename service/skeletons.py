@@ -42,6 +42,7 @@ class SkeletonAdapter(Protocol):
     and `from_model` reads for the same input frames."""
 
     joint_names: list[str]
+    keeps_state: bool  # whether `hinges` is used (else any array, e.g. an empty one, will do)
 
     @property
     def num_joints(self) -> int: ...
@@ -87,6 +88,8 @@ class _OneFrame:
 class Reorder(_OneFrame):
     """Identity or a joint reordering between a client's joint order and the model's."""
 
+    keeps_state = False
+
     def __init__(self, joint_names: list[str], model_skeleton: Skeleton) -> None:
         self.joint_names = list(joint_names)
         self.to_model_index = np.array([joint_names.index(n) for n in model_skeleton.names])
@@ -127,6 +130,7 @@ class Retarget(_OneFrame):
     joint order may differ from the rig's internal parents-first order (`order`)."""
 
     rig_key: tuple | None = None  # its canonical rig (`_rig_key`), once built through the cache
+    keeps_state = True
 
     def __init__(self, rig: HumanoidRig, joint_names: list[str] | None = None) -> None:
         self.rig = rig

@@ -124,3 +124,41 @@ def test_a_resumed_session_continues_the_hinge_state_exactly(lti, index):
     old = json.loads(first.snapshot().to_json())
     del old["retarget"]  # as stored before the state existed
     assert not Session.restore(Snapshot.from_json(json.dumps(old)), lti, queue_size=8).hinges.any()
+
+
+def test_retargeted_crowd_characters_each_keep_their_own_hinge_state(lti, index):
+    """Two CMU characters in one crowd, at different places in a walk, and a third joining later:
+    each reply equals that character's own session's, bit for bit (each crowd row carries its own
+    hinge state, as a session does)."""
+    from clients.sdk import Character, Client
+
+    from .live_server import live_server
+    from .rigs import as_bvh_file
+
+    header, motion = as_bvh_file(load_motion(select(index, dataset="cmu", name="131_02")[0]).slice(0, 240))
+    starts, ticks = (0, 90, 200), 16
+    model = {"lti": lti}
+
+    def alone(start: int, first: int) -> list[np.ndarray]:
+        with Client(base, timeout=30) as client, client.session(model="lti", style="elderly", bvh_header=header) as s:
+            return [
+                s.stylise(motion.translations[start + t, 0], motion.rotations[start + t]).rotations
+                for t in range(first, ticks)
+            ]
+
+    with live_server(model, idle_timeout_s=30, max_characters=8, token_max_characters=8) as (base, _app):
+        got: dict[int, list[np.ndarray]] = {0: [], 1: [], 2: []}
+        chars = [Character(i, "lti", "elderly", bvh_header=header) for i in range(2)]
+        with Client(base, timeout=30) as client, client.crowd(chars) as crowd:
+            for t in range(ticks):
+                if t == 5:
+                    crowd.join([Character(2, "lti", "elderly", bvh_header=header)])
+                ids = [0, 1, 2] if t >= 5 else [0, 1]
+                frames = [starts[i] + t for i in ids]
+                out = crowd.tick(ids, motion.translations[frames, 0], motion.rotations[frames])
+                for i in ids:
+                    got[i].append(out.frame(i)[1].copy())
+            assert crowd.errors == []
+        for i in range(3):
+            want = alone(starts[i], 5 if i == 2 else 0)
+            assert np.array_equal(np.array(got[i]), np.array(want, np.float32)), i
