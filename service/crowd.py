@@ -32,7 +32,7 @@ from . import pipelines
 from . import protocol as P
 from .frame_check import check_rows
 from .rows import Rows
-from .sessions import Held, Snapshot
+from .sessions import Held, Snapshot, restored_hinges
 from .skeletons import SkeletonAdapter
 
 FAIR_ROWS = 64  # a troupe's rows per batcher request (`Troupe.step`): ~2-3 ms of an LTI step
@@ -45,6 +45,7 @@ def take_rows(state: State, rows: np.ndarray) -> State:
 
 
 STATE = "state:"  # the model state's keys, among a troupe's per-row arrays
+NO_HINGES = np.zeros((0, 4, 4))  # the hinge state passed to an adapter that keeps none
 
 
 class Troupe:
@@ -67,6 +68,7 @@ class Troupe:
             "weights": np.zeros((0, len(self.names))),
             "target": np.zeros((0, len(self.names))),
             "left": np.zeros(0, np.int64),  # transition frames left
+            "hinges": np.zeros((0, 4, 4)),  # the retargeter's stream state (`Session.hinges`)
         }
         self._rows.append(empty)
         self.row_of: dict[int, int] = {}
@@ -105,6 +107,7 @@ class Troupe:
     held_input_root = property(lambda self: self._rows.view("held_input_root"))
     held_input_rot = property(lambda self: self._rows.view("held_input_rot"))
     left = property(lambda self: self._rows.view("left"))
+    hinges = property(lambda self: self._rows.view("hinges"))
 
     @property
     def weights(self) -> np.ndarray:
@@ -145,12 +148,14 @@ class Troupe:
             fresh = upgrade_state(self.model, fresh)
         vectors = np.stack([weight_vector(self.names, w) for w in weights]).reshape(k, len(self.names))
         target, clock, left = vectors.copy(), np.full(k, -1.0), np.zeros(k, np.int64)
+        hinges = np.zeros((k, 4, 4))
         held = {name: np.zeros((k, *getattr(self, array).shape[1:])) for array, name in HELD_ARRAYS.items()}
         for r, snap in enumerate(snaps):
             if snap is None:
                 continue
             vectors[r], target[r] = weight_vector(self.names, snap.weights), weight_vector(self.names, snap.target)
             left[r] = snap.transition_left
+            hinges[r] = restored_hinges(snap)[0]
             if (restored := Held.restore(snap.held)) is not None:  # else: the rate starts afresh (`Held.restore`)
                 clock[r] = snap.clock
                 for name, value in restored._asdict().items():
@@ -164,6 +169,7 @@ class Troupe:
                 "weights": vectors,
                 "target": target,
                 "left": left,
+                "hinges": hinges,
                 **{STATE + key: value for key, value in fresh.items()},
             }
         )
@@ -182,6 +188,7 @@ class Troupe:
         per_row = zip(*(list(state[key][rows][:, None]) for key in keys), strict=True)
         held = {field_name: getattr(self, name)[rows] for name, field_name in HELD_ARRAYS.items()}
         clock, left = self.clock[rows].tolist(), self.left[rows].tolist()
+        hinges = self.hinges[rows][:, None]  # each row's (1, 4, 4), a view of this copy
         weights, target = self.weights[rows].tolist(), self.target[rows].tolist()
         names = self.names
         out = []
@@ -194,6 +201,7 @@ class Troupe:
                     "weights": dict(zip(names, weights[k], strict=True)),
                     "target": dict(zip(names, target[k], strict=True)),
                     "transition_left": left[k],
+                    "retarget": {"hinges": hinges[k]},
                 }
             )
         return out
@@ -551,7 +559,7 @@ class Crowd:
             )
         result = TickResult(b"")
         ok = np.ones(len(plan.ids), bool)
-        inputs = []  # per part: (rows ok, client rotations, model root, model rotations, controller rows)
+        inputs = []  # per part: (rows ok, client rotations, model root, model rotations, controller rows, hinges)
         for part in plan.parts:
             if control:
                 good, root, rot, rows_control = self._controls(part, payload, seq, result)
@@ -559,17 +567,21 @@ class Crowd:
                 good, root, rot = self._frames(part, payload, seq, result)
                 rows_control = None
             ok[part.positions[~good]] = False
-            model_root, model_rot = part.group.adapter.to_model_rows(root, rot) if len(root) else (root, rot)
-            inputs.append((good, rot, model_root, model_rot, rows_control))
+            adapter = part.group.adapter
+            hinges = part.troupe.hinges[part.rows[good]] if adapter.keeps_state else NO_HINGES  # a copy
+            model_root, model_rot = adapter.to_model_rows(root, rot, hinges) if len(root) else (root, rot)
+            if adapter.keeps_state:
+                part.troupe.hinges[part.rows[good]] = hinges
+            inputs.append((good, rot, model_root, model_rot, rows_control, hinges))
         outputs = await self._step(plan, inputs, step, result)
         out = np.empty(int(plan.sizes[ok].sum()), "<f4")
         starts = np.concatenate([[0], np.cumsum(plan.sizes[ok])[:-1]])
         place = np.full(len(plan.ids), -1, np.int64)
         place[ok] = starts
-        for part, (good, rot, _, _, _), (out_root, out_rot) in zip(plan.parts, inputs, outputs, strict=True):
+        for part, (good, rot, _, _, _, hinges), (out_root, out_rot) in zip(plan.parts, inputs, outputs, strict=True):
             if not len(out_root):
                 continue
-            client_root, client_rot = part.group.adapter.from_model_rows(out_root, out_rot, rot)
+            client_root, client_rot = part.group.adapter.from_model_rows(out_root, out_rot, rot, hinges)
             at = place[part.positions[good]]
             n = len(at)
             rows = np.concatenate([client_root, client_rot.reshape(n, -1)], 1)

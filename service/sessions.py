@@ -25,6 +25,7 @@ import numpy as np
 
 from models.interface import State, StreamingModel
 from models.motion import rate
+from models.motion.retarget_stream import FrameRetargeter
 
 from . import pipelines
 from .protocol import End, ProtocolError, Reset, SetStyle
@@ -90,6 +91,9 @@ class Snapshot:
     )  # the start message's rig options (joints, joint_map, units, up, handedness)
     owner: str = ""  # the tenant that opened it (`limits.Principal.tenant`): only it may resume
     pipeline: str = "full"  # `model`'s pipeline (`service.pipelines`); a snapshot saved before pipelines: full
+    # the retargeter's stream state ({"hinges": (1, 4, 4)}, `FrameRetargeter.init_state`); empty in a
+    # snapshot saved before it had one, whose session then learns its client's hinges afresh
+    retarget: dict[str, np.ndarray] = field(default_factory=dict)
 
     def to_bytes(self) -> bytes:
         """`SNAPSHOT_MAGIC`, one line of JSON (the other fields, and each array's name, dtype and
@@ -140,19 +144,20 @@ class Snapshot:
                 "held": encode_state(self.held),
                 "state": encode_state(self.state),
                 "last_output": encode_state(self.last_output),
+                "retarget": encode_state(self.retarget),
             }
         )
 
     @classmethod
     def from_json(cls, text: str | bytes) -> Snapshot:
         data = json.loads(text)
-        for name in ("held", "state", "last_output"):
+        for name in ARRAY_FIELDS:
             data[name] = decode_state(data.get(name) or {})
         return cls(**data)
 
 
 SNAPSHOT_MAGIC = b"stylestream-snapshot/2\n"
-ARRAY_FIELDS = ("held", "state", "last_output")  # a snapshot's fields that are {name: array}
+ARRAY_FIELDS = ("held", "state", "last_output", "retarget")  # a snapshot's fields that are {name: array}
 
 
 def encode_state(state: State) -> dict[str, dict]:
@@ -200,6 +205,9 @@ class Session:
     clock: float = -1.0  # the latest frame's lead on the latest model step, in model frames; < 0 before any
     held: Held | None = None  # None until the first model step
     last_output: dict[str, np.ndarray] = field(default_factory=dict)  # the reply to `last_seq`
+    # the retargeter's state for this stream (`FrameRetargeter.to_model`; a model-skeleton client
+    # leaves it as it is); a reset keeps it: it learns the client's rig, not the motion
+    hinges: np.ndarray = field(default_factory=FrameRetargeter.init_state)
     frames_since_snapshot: int = 0
     queue_size: int = 8
     pending: deque[FrameItem | ControlItem] = field(default_factory=deque)
@@ -349,6 +357,7 @@ class Session:
             last_output=dict(self.last_output),
             rig=dict(self.rig),
             owner=self.owner,
+            retarget={"hinges": self.hinges.copy()},
         )
 
     @classmethod
@@ -373,4 +382,11 @@ class Session:
             rig=dict(snap.rig),
             owner=snap.owner,
             caller=caller,
+            hinges=restored_hinges(snap),
         )
+
+
+def restored_hinges(snap: Snapshot) -> np.ndarray:
+    """A snapshot's retarget state (1, 4, 4), fresh for one saved before there was one."""
+    hinges = snap.retarget.get("hinges")
+    return FrameRetargeter.init_state() if hinges is None else np.array(hinges, np.float64).reshape(1, 4, 4)

@@ -8,7 +8,9 @@ their order) or sends a BVH header inline (`bvh_header`), plus optional `joint_m
 - any other humanoid (`models.motion.humanoid`: Mixamo, Unreal, Unity/VRM, SMPL, CMU, BVH
   exports, or anything whose names or `joint_map` give the body roles) is retargeted frame by
   frame on the way in and back onto the client's own rig on the way out
-  (`models.motion.retarget_stream`), causally and with no per-session state.
+  (`models.motion.retarget_stream`), causally; the one thing it carries from frame to frame is
+  the stream's hinge state, which the caller keeps (a session's `hinges`, a crowd row's) and
+  passes to both directions (`FrameRetargeter.to_model`, `to_source`).
 A rig that cannot be mapped is refused with a typed error naming what is missing; nothing of it
 is applied.
 """
@@ -35,19 +37,26 @@ from .protocol import ProtocolError
 class SkeletonAdapter(Protocol):
     """A client's rig <-> the model skeleton. The `_rows` forms take many frames at once, one row
     each ((n, 3) roots, (n, J, 4) rotations: a crowd's characters of one rig); row by row they
-    give exactly what the one-frame forms give."""
+    give exactly what the one-frame forms give. `hinges`: the streams' retarget state, (n, 4, 4)
+    (one-frame forms: (1, 4, 4); `FrameRetargeter.init_state`), which `to_model` updates in place
+    and `from_model` reads for the same input frames."""
 
     joint_names: list[str]
+    keeps_state: bool  # whether `hinges` is used (else any array, e.g. an empty one, will do)
 
     @property
     def num_joints(self) -> int: ...
-    def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
-    def from_model(
-        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+    def to_model(
+        self, root: np.ndarray, rotations: np.ndarray, hinges: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]: ...
-    def to_model_rows(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+    def from_model(
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray, hinges: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]: ...
+    def to_model_rows(
+        self, root: np.ndarray, rotations: np.ndarray, hinges: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]: ...
     def from_model_rows(
-        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray, hinges: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]: ...
     def report(self) -> dict: ...
 
@@ -55,27 +64,31 @@ class SkeletonAdapter(Protocol):
 class _OneFrame:
     """The one-frame forms, as rows of one."""
 
-    def to_model_rows(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def to_model_rows(
+        self, root: np.ndarray, rotations: np.ndarray, hinges: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
     def from_model_rows(
-        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray, hinges: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
-    def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        out_root, out_rot = self.to_model_rows(root[None], rotations[None])
+    def to_model(self, root: np.ndarray, rotations: np.ndarray, hinges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        out_root, out_rot = self.to_model_rows(root[None], rotations[None], hinges)
         return out_root[0], out_rot[0]
 
     def from_model(
-        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray, hinges: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        out_root, out_rot = self.from_model_rows(root[None], rotations[None], input_rotations[None])
+        out_root, out_rot = self.from_model_rows(root[None], rotations[None], input_rotations[None], hinges)
         return out_root[0], out_rot[0]
 
 
 class Reorder(_OneFrame):
     """Identity or a joint reordering between a client's joint order and the model's."""
+
+    keeps_state = False
 
     def __init__(self, joint_names: list[str], model_skeleton: Skeleton) -> None:
         self.joint_names = list(joint_names)
@@ -87,11 +100,13 @@ class Reorder(_OneFrame):
     def num_joints(self) -> int:
         return len(self.joint_names)
 
-    def to_model_rows(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def to_model_rows(
+        self, root: np.ndarray, rotations: np.ndarray, hinges: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         return root, rotations if self.identity else rotations[:, self.to_model_index]
 
     def from_model_rows(
-        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray, hinges: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         if self.identity:
             return root, rotations
@@ -115,6 +130,7 @@ class Retarget(_OneFrame):
     joint order may differ from the rig's internal parents-first order (`order`)."""
 
     rig_key: tuple | None = None  # its canonical rig (`_rig_key`), once built through the cache
+    keeps_state = True
 
     def __init__(self, rig: HumanoidRig, joint_names: list[str] | None = None) -> None:
         self.rig = rig
@@ -127,14 +143,16 @@ class Retarget(_OneFrame):
     def num_joints(self) -> int:
         return len(self.joint_names)
 
-    def to_model_rows(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return self.retargeter.to_model(root, rotations if self.order is None else rotations[:, self.order])
+    def to_model_rows(
+        self, root: np.ndarray, rotations: np.ndarray, hinges: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        return self.retargeter.to_model(root, rotations if self.order is None else rotations[:, self.order], hinges)
 
     def from_model_rows(
-        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray
+        self, root: np.ndarray, rotations: np.ndarray, input_rotations: np.ndarray, hinges: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         inp = input_rotations if self.order is None else input_rotations[:, self.order]
-        out_root, out_rot = self.retargeter.to_source(root, rotations, inp)
+        out_root, out_rot = self.retargeter.to_source(root, rotations, inp, hinges)
         if self.order is None:
             return out_root, out_rot
         back = np.empty_like(out_rot)

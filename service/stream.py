@@ -513,7 +513,7 @@ class Connection(Socket):
                     return
                 continue
             began = time.perf_counter()
-            root, rot = self.adapter.to_model(item.root, item.rotations)
+            root, rot = self.adapter.to_model(item.root, item.rotations, s.hinges)
             self.share.charge(time.perf_counter() - began)  # the receiver pauses for it (`LoopShare`)
             if gone := s.drop_deleted(s.model.styles()):
                 await self.send_error(style_deleted(gone, item.seq))
@@ -542,7 +542,7 @@ class Connection(Socket):
         s = self.session
         out_root, out_rot = s.held_output()
         s.last_seq = item.seq
-        out_root, out_rot = self.adapter.from_model(out_root, out_rot, item.rotations)
+        out_root, out_rot = self.adapter.from_model(out_root, out_rot, item.rotations, s.hinges)
         s.last_output = {"root": out_root, "rotations": out_rot}
         dropped = s.take_dropped()
         if s.encoding == "binary":
@@ -589,7 +589,7 @@ class Connection(Socket):
         self.model_metrics.direct_frames.inc()
         item = FrameItem(seq, root, rot, time.perf_counter())
         try:
-            model_root, model_rot = self.adapter.to_model(root, rot)
+            model_root, model_rot = self.adapter.to_model(root, rot, s.hinges)
             self._step_directly(item, model_root, model_rot, deque(s.model_inputs(model_root, model_rot)))
         except Exception:  # noqa: BLE001 - as in `process`: it costs this frame, not the session
             self._direct_failed(item)

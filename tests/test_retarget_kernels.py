@@ -10,7 +10,7 @@ import pytest
 
 from models.motion import retarget_kernels
 from models.motion.humanoid import humanoid_rig, preset_rig
-from models.motion.retarget import HINGE_FALLBACK, TWIST_SHARE
+from models.motion.retarget import HINGE_FALLBACK, HINGE_PRIOR, TWIST_SHARE
 from models.motion.retarget_stream import FrameRetargeter
 
 from .reference import retarget as reference
@@ -43,18 +43,24 @@ def _same(fr: FrameRetargeter, root: np.ndarray, rot: np.ndarray, new_hips: np.n
         np.testing.assert_allclose(back_root / unit, ref_root / unit, atol=1e-9)
         assert _qdiff(back_rot, ref_rot) < 1e-9
         assert np.abs(back_rot - ref_rot).max() < 1e-6
-    for f in (0, len(root) // 2, len(root) - 1):  # batch 1, as the service calls it
-        h1, b1 = fr.to_model(root[f], rot[f])
+    for f in (0, len(root) // 2, len(root) - 1):  # batch 1 with the stream's state, as the service calls it
+        state = fr.init_state()
+        fr.to_model(root[:f], rot[:f], state)
+        ref_state = state.copy()
+        h1, b1 = fr.to_model(root[f], rot[f], state)
         np.testing.assert_allclose(h1[0], hips[f], rtol=0, atol=1e-9 * unit)
         np.testing.assert_allclose(b1[0], bn[f], atol=1e-12)
-        r1, q1 = fr.to_source(new_hips[f], new_rot[f], rot[f])
-        r2, q2 = reference.to_source(fr, new_hips[f][None], new_rot[f][None], rot[f][None])
+        reference.to_model(fr, root[f], rot[f], ref_state)
+        np.testing.assert_allclose(state, ref_state, rtol=1e-9, atol=1e-12)
+        r1, q1 = fr.to_source(new_hips[f], new_rot[f], rot[f], state)
+        r2, q2 = reference.to_source(fr, new_hips[f][None], new_rot[f][None], rot[f][None], ref_state)
         np.testing.assert_allclose(r1 / unit, r2 / unit, atol=1e-9)
         assert _qdiff(q1, q2) < 1e-9
 
 
 def test_kernel_constants_are_the_numpy_paths():
     assert retarget_kernels.HINGE_FALLBACK_SQ == HINGE_FALLBACK**2
+    assert retarget_kernels.HINGE_PRIOR == HINGE_PRIOR
     assert retarget_kernels.TWIST_SHARE == TWIST_SHARE
 
 

@@ -130,30 +130,49 @@ def test_to_source_points_bones_where_bn_does(walks, rig, variant):
 
 @pytest.mark.parametrize("variant", list(WALKS))
 def test_batch_equals_per_frame_and_is_causal(walks, variant):
+    """A clip's frames at once equal the same frames one at a time with the stream's state
+    carried (as the service calls it), both ways; several streams' frames in one call equal
+    each stream's own; and no frame's output depends on a later frame."""
     motion, fr = walks[variant]
     root, rot = motion.translations[:, 0], motion.rotations
     hips, bn = fr.to_model(root, rot)
     back_root, back_rot = fr.to_source(hips, bn, rot)
-    for t in (0, 17, motion.num_frames - 1):
-        h1, b1 = fr.to_model(root[t], rot[t][None])  # a single frame, (3,) root accepted
+    state = fr.init_state()
+    for t in range(motion.num_frames):
+        h1, b1 = fr.to_model(root[t], rot[t][None], state)  # a single frame, (3,) root accepted
         np.testing.assert_allclose(h1[0], hips[t], atol=1e-12)
         np.testing.assert_allclose(b1[0], bn[t], atol=1e-12)
-        r1, s1 = fr.to_source(hips[t : t + 1], bn[t : t + 1], rot[t : t + 1])
+        r1, s1 = fr.to_source(hips[t : t + 1], bn[t : t + 1], rot[t : t + 1], state)
         np.testing.assert_allclose(r1[0], back_root[t], atol=1e-12)
         np.testing.assert_allclose(s1[0], back_rot[t], atol=1e-12)
-    # causality: scrambling every other frame leaves frame t's output as it was
+    # three streams at once (rows: streams), each at its own place in the walk
+    starts, states = np.array([0, 40, 90]), fr.init_state(3)
+    alone = [fr.to_model(root[s : s + 30], rot[s : s + 30]) for s in starts]
+    for k in range(30):
+        h3, b3 = fr.to_model(root[starts + k], rot[starts + k], states)
+        for i in range(3):
+            np.testing.assert_allclose(h3[i], alone[i][0][k], atol=1e-12)
+            np.testing.assert_allclose(b3[i], alone[i][1][k], atol=1e-12)
+    # causality: scrambling every later frame leaves frame t's output as it was
     rng = np.random.default_rng(1)
     t = 60
-    other = np.r_[0:t, t + 1 : motion.num_frames]
     rot2, root2 = rot.copy(), root.copy()
-    rot2[other] = rng.normal(size=rot2[other].shape)
-    root2[other] += rng.normal(size=root2[other].shape) * 10
+    rot2[t + 1 :] = rng.normal(size=rot2[t + 1 :].shape)
+    root2[t + 1 :] += rng.normal(size=root2[t + 1 :].shape) * 10
     h2, b2 = fr.to_model(root2, rot2)
     np.testing.assert_allclose(h2[t], hips[t], atol=1e-12)
     np.testing.assert_allclose(b2[t], bn[t], atol=1e-12)
     r2, s2 = fr.to_source(h2, b2, rot2)
     np.testing.assert_allclose(r2[t], back_root[t], atol=1e-12)
     np.testing.assert_allclose(s2[t], back_rot[t], atol=1e-12)
+
+
+def test_a_bad_state_is_refused(walks):
+    motion, fr = walks["cmu"]
+    with pytest.raises(ValueError, match="hinge state"):
+        fr.to_model(motion.translations[:2, 0], motion.rotations[:2], np.zeros((2, 4, 3)))
+    with pytest.raises(ValueError, match="in place"):
+        fr.to_model(motion.translations[:2, 0], motion.rotations[:2], np.asfortranarray(fr.init_state(2)))
 
 
 def test_cmu_skeleton():

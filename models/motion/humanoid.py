@@ -696,14 +696,15 @@ def _bench(argv: list[str]) -> int:
         for b in args.batch or [1, 16, 256]:
             rot = rng.normal(size=(b, j, 4)) * 0.1 + [0, 0, 0, 1]
             root = rng.normal(size=(b, 3))
-            hips, bn = fr.to_model(root, rot)
-            fr.to_source(hips, bn, rot)
+            state = fr.init_state(b)  # one stream per character
+            hips, bn = fr.to_model(root, rot, state)
+            fr.to_source(hips, bn, rot, state)
             t0 = time.perf_counter()
             for _ in range(args.repeat):
-                hips, bn = fr.to_model(root, rot)
+                hips, bn = fr.to_model(root, rot, state)
             t1 = time.perf_counter()
             for _ in range(args.repeat):
-                fr.to_source(hips, bn, rot)
+                fr.to_source(hips, bn, rot, state)
             t2 = time.perf_counter()
             a, c = (t1 - t0) / args.repeat / b * 1e6, (t2 - t1) / args.repeat / b * 1e6
             print(f"{preset:>8} {j:>6} {b:>6} {a:>17.1f} {c:>18.1f} {a + c:>8.1f}")

@@ -16,8 +16,10 @@ is built from bone *directions*, never from either skeleton's rest pose:
    natural pose, never the client joint's own twist (which can sit far outside BN's range).
    Limb roots (UpperLeg, UpperArm) instead take the twist that lays BN's hinge axis along the
    normal of the client's limb plane, cross(upper bone, lower bone), so knees and elbows bend
-   about BN's hinge; a near-straight limb, whose plane is noise, blends to the natural twist
-   (`HINGE_FALLBACK`). The Spine takes a share of the Chest's twist (`TWIST_SHARE`), as Unity's
+   about BN's hinge; a near-straight limb, whose plane is noise, blends to a fallback axis
+   (`HINGE_FALLBACK`): halfway between BN's natural hinge axis and the client's own hinge axis,
+   learned per stream from its bent frames (`HINGE_PRIOR`; `retarget_stream.FrameRetargeter`
+   keeps it as the stream's state). The Spine takes a share of the Chest's twist (`TWIST_SHARE`), as Unity's
    humanoid spreads a twist over a chain. Leaves (Head, Hands, Toes) keep the natural local
    rotation: they move no joint, and BN data holds them nearly fixed.
 4. The Hips translation is scaled by the leg-length ratio (which also converts units) and shifted
@@ -101,15 +103,27 @@ _HINGES = {
     "UpperArm_L": "LowerArm_L",
     "UpperArm_R": "LowerArm_R",
 }
-# How much a near-straight limb falls back to the natural twist: the hinge axis aims along
-# |n| n + HINGE_FALLBACK^2 natural, n = cross(upper bone, lower bone), |n| the sine of the bend. The
-# limb plane decides once the bend is well above ~17 degrees; a straighter limb turns smoothly to
-# the natural twist. The axis passes through zero (a half-turn flip) only for a limb bent ~17
-# degrees against its natural bend, e.g. a knee hyperextended that far. An axis weighted by
-# (n . natural) instead flips whenever the plane crosses a quarter turn from the natural twist
-# (CMU's right arm) or a hyperextended knee straightens (Xia's thighs); values smaller than 0.3
-# jitter where the plane and the natural twist disagree (Xia legs 1.3-2.5x at 0.2; `retarget_check`).
-HINGE_FALLBACK = 0.3
+# How much a near-straight limb falls back to its fallback axis: the hinge axis aims along
+# |n| n + HINGE_FALLBACK^2 fallback, n = cross(upper bone, lower bone), |n| the sine of the bend.
+# The limb plane decides once the bend is well above ~35 degrees; a straighter limb turns smoothly
+# to the fallback. An axis weighted by (n . fallback) instead flips whenever the plane crosses a
+# quarter turn from the fallback (CMU's right arm) or a hyperextended knee straightens (Xia's
+# thighs). The fallback is the unit mean of BN's natural hinge axis, which swings with the limb's
+# direction, and the client's own hinge axis, fixed in the frame of the client joint that carries
+# the hinge child and learned per stream: the natural axis at the stream's first frame
+# (`HINGE_PRIOR`), plus each frame's limb-plane normal weighted by sin^2 of its bend (a
+# near-straight limb's plane is noise). With the natural axis alone a straightening limb's twist
+# turned within a few frames where the two disagree (the Xia punch's arms 1.7-1.9x the source's
+# p99 rotation acceleration, Xia legs at 120 fps 1.35-1.6x; `retarget_check`); with the client's
+# axis alone, BN's arm twist takes the client's upper arm twist (Xia jump's arms 1.3-1.8x). With
+# the mean, worst 1.18 at 0.6 and 1.22 at 0.5. A stronger fallback holds moderately bent knees
+# off their limb plane: the Xia walk's mean LTI blend weight rises from 0.80 (0.3, natural axis)
+# to 0.92 (tests/test_retarget.py).
+HINGE_FALLBACK = 0.6
+# The weight of the stream's first natural axis in its learned hinge axis, against sin^2 of the bend
+# per frame: a stream that never bends a limb (the Xia punch's legs) keeps that axis turning with
+# its client joint, so BN's twist follows the client's; one that does soon outweighs it.
+HINGE_PRIOR = 1.0
 
 
 # The share of the chest's twist about the spine bone (relative to the natural pose) that BN's Spine
@@ -136,8 +150,8 @@ class TwistPlan:
       that carries the bone onto the given direction (twist about the bone follows the parent);
     * limb (UpperLeg, UpperArm): bone onto the given direction, twist such that the BN hinge axis
       (in the limb joint's frame, from the natural pose's bend) is the normal of the client's limb
-      plane (upper and lower bone directions), or the natural twist when the limb is near
-      straight;
+      plane (upper and lower bone directions), or the fallback axis (`HINGE_FALLBACK`) when the
+      limb is near straight;
     * leaf (Head, Hand, Toes, and Foot when the client has no toes): the natural local rotation
       under the new BN parent.
     """
@@ -180,6 +194,7 @@ class TwistPlan:
                 if kind == "limb":
                     hinge = [_HINGES[n] for n in names]
                     g["dir_c"] = np.array([col[h] for h in hinge])
+                    g["h"] = np.array([list(_HINGES).index(n) for n in names])  # the hinge's row in a stream's state
                     # the natural bend's axis in the limb joint's frame: cross(upper bone, lower bone)
                     k = np.stack([_unit(np.cross(off(h), nat[sk.index(h)] @ off(PRIMARY_CHILD[h]))) for h in hinge])
                     g["k"] = k

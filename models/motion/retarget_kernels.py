@@ -22,7 +22,8 @@ import numpy as np
 from numba import njit
 
 KIND_LEAF, KIND_SWING, KIND_LIMB = 0, 1, 2
-HINGE_FALLBACK_SQ = 0.3**2  # retarget.HINGE_FALLBACK squared (checked by the tests against the numpy path)
+HINGE_FALLBACK_SQ = 0.6**2  # retarget.HINGE_FALLBACK squared (checked by the tests against the numpy path)
+HINGE_PRIOR = 1.0  # retarget.HINGE_PRIOR (checked likewise)
 TWIST_SHARE = 0.5  # retarget.TWIST_SHARE (checked likewise)
 
 # --------------------------------------------------------------------------- 3x3 helpers
@@ -238,7 +239,8 @@ class Rig(NamedTuple):
     num_plain: int  # segment vectors that are bone directions (then two per lateral joint, then foot points)
     m_tgt_t: np.ndarray  # two-vector joints (Hips, Chest): target frame transposed ...
     lateral_j: np.ndarray  # ... and BN joint
-    step_i: np.ndarray  # (S, 6) per other joint: kind, joint, parent, segment, limb plane segment, split child
+    step_i: np.ndarray  # (S, 8) per other joint: kind, joint, parent, segment, limb plane segment, split child,
+    # and for a limb the client slot whose frame holds its hinge axis and the hinge's row in the state
     step_nat: np.ndarray  # its natural local rotation
     step_b: np.ndarray  # its bone direction
     step_k: np.ndarray  # its natural hinge axis
@@ -286,12 +288,49 @@ def _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t):
         gp[:, :] = gs[translated_par_s]
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _hinge_fallback(g, axes, hinge, fold, n0, n1, n2, nat):
+    """nat = the unit mean of BN's natural hinge axis nat and the client's hinge axis (both BN
+    world; `retarget.HINGE_FALLBACK`). hinge (4,): the client's axis, unnormalised, in the frame g
+    (client world) of the client joint that carries the hinge child: the stream's first natural
+    axis times `HINGE_PRIOR`, plus sin^2(bend) * n over its frames, n = cross(upper bone, lower
+    bone); then the sum of the weights (0: a fresh stream). When `fold`, this frame's n (BN world)
+    is added first. In g's frame the axis is the client's whatever its rest pose; `axes` (client
+    world -> BN world) is a rotation or a reflection: vectors map by it, back by its transpose."""
+    if fold:
+        s2 = n0 * n0 + n1 * n1 + n2 * n2
+        p = 0.0
+        if hinge[3] == 0.0:  # a fresh stream: the natural axis as it stands now, carried by g from here on
+            p = HINGE_PRIOR
+        v0, v1, v2 = s2 * n0 + p * nat[0], s2 * n1 + p * nat[1], s2 * n2 + p * nat[2]
+        a0 = axes[0, 0] * v0 + axes[1, 0] * v1 + axes[2, 0] * v2  # axes.T @ v: the client's world
+        a1 = axes[0, 1] * v0 + axes[1, 1] * v1 + axes[2, 1] * v2
+        a2 = axes[0, 2] * v0 + axes[1, 2] * v1 + axes[2, 2] * v2
+        for r in range(3):  # g.T @ (axes.T @ v)
+            hinge[r] += g[0, r] * a0 + g[1, r] * a1 + g[2, r] * a2
+        hinge[3] += s2 + p
+    k = np.sqrt(hinge[0] * hinge[0] + hinge[1] * hinge[1] + hinge[2] * hinge[2])
+    if k == 0.0:  # nothing learned (`to_source` on a fresh state)
+        return
+    a0 = (g[0, 0] * hinge[0] + g[0, 1] * hinge[1] + g[0, 2] * hinge[2]) / k  # g @ hinge: the client's world
+    a1 = (g[1, 0] * hinge[0] + g[1, 1] * hinge[1] + g[1, 2] * hinge[2]) / k
+    a2 = (g[2, 0] * hinge[0] + g[2, 1] * hinge[1] + g[2, 2] * hinge[2]) / k
+    m0 = nat[0] + axes[0, 0] * a0 + axes[0, 1] * a1 + axes[0, 2] * a2
+    m1 = nat[1] + axes[1, 0] * a0 + axes[1, 1] * a1 + axes[1, 2] * a2
+    m2 = nat[2] + axes[2, 0] * a0 + axes[2, 1] * a1 + axes[2, 2] * a2
+    m = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    if m > 1e-9:  # else (the two exactly opposed): the natural axis
+        nat[0], nat[1], nat[2] = m0 / m, m1 / m, m2 / m
+
+
 @njit(cache=True, error_model="numpy")
-def _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3):
+def _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3, hinges, fold):
     """BN world rotations gb (22, 3, 3) from the client's slot rotations gs
     (the reference's `_bn_globals` then `bn_globals`). The segment vectors are
     sums of vec_w[e] * gs[vec_par_s[t]] @ vec_off[t] over the entries e = (v, t) of vec_nz (the
-    nonzero entries of `FrameRetargeter._vec_coef`); scratch: terms (T, 3), raw and vec (V, 3)."""
+    nonzero entries of `FrameRetargeter._vec_coef`); scratch: terms (T, 3), raw and vec (V, 3).
+    hinges (H, 4): the stream's learned hinge axes (`_hinge_fallback`), this frame folded in
+    first when `fold`."""
     for t in range(rig.vec_off.shape[0]):
         _mv(gs[rig.vec_par_s[t]], rig.vec_off[t], terms[t])
     same_axes = rig.axes[0, 0] == 1.0 and rig.axes[1, 1] == 1.0 and rig.axes[2, 2] == 1.0  # the client's world is BN's
@@ -341,6 +380,7 @@ def _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3):
             lo = vec[col_c]
             n0, n1, n2 = d[1] * lo[2] - d[2] * lo[1], d[2] * lo[0] - d[0] * lo[2], d[0] * lo[1] - d[1] * lo[0]
             w = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)  # the plane's normal weighs its sine: |n| n
+            _hinge_fallback(gs[step_i[s, 6]], rig.axes, hinges[step_i[s, 7]], fold, n0, n1, n2, nat)
             _frame(
                 d[0],
                 d[1],
@@ -419,9 +459,11 @@ def _part33(buf, at, i):
 
 
 @njit(cache=True, error_model="numpy")
-def _to_model(root, rot, rig, scale, vertical_offset, hips_out, rot_out):
+def _to_model(root, rot, rig, scale, vertical_offset, hinges, hips_out, rot_out):
     """Client frames (root (B, 3), local quaternions (B, Js, 4)) -> BN Hips translations
-    hips_out (B, 3) and BN local quaternions rot_out (B, 22, 4) (`FrameRetargeter.to_model`); `to_model` unpacks the rig's arrays for it."""
+    hips_out (B, 3) and BN local quaternions rot_out (B, 22, 4) (`FrameRetargeter.to_model`); `to_model` unpacks the rig's arrays for it.
+    hinges (B or 1, H, 4): each row's stream state (one: every row is the next frame of that
+    stream), each frame folded in."""
     nb, base = rig.bn_parents.shape[0], rig.num_plain + 2 * rig.lateral_j.shape[0]
     nv = base + rig.drop_par.shape[0]
     gs = np.empty((rig.src_order.shape[0], 3, 3))
@@ -440,7 +482,7 @@ def _to_model(root, rot, rig, scale, vertical_offset, hips_out, rot_out):
         for r in range(3):
             hips_out[f, r] = h[r] * scale
         hips_out[f, 1] += vertical_offset
-        _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3)
+        _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3, hinges[f if hinges.shape[0] > 1 else 0], True)
         low = np.inf  # the client's lowest foot point below its hips (`FrameRetargeter._drop`)
         for v in range(base, nv):
             low = min(low, vec[v, 1] - rig.drop_ref[0, v - base])
@@ -454,12 +496,14 @@ def _to_model(root, rot, rig, scale, vertical_offset, hips_out, rot_out):
 
 
 @njit(cache=True, error_model="numpy")
-def _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, root_out, rot_out):
+def _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, hinges, fold, root_out, rot_out):
     """BN frames (Hips translations (B, 3), local quaternions (B, 22, 4)) and the client's own
     rotations (B, Js, 4) -> client root translations root_out (B, 3) and local quaternions
     rot_out (B, Js, 4) (`FrameRetargeter.to_source`). `rig.delta_j`: the BN joints whose change some
     client joint takes; `rig.anc_bn_s`: that BN joint per slot (22: none, no change); `rig.mapped_par_s`
-    -1: a mapped root joint. `to_source` unpacks the rig's arrays for it."""
+    -1: a mapped root joint. hinges (B or 1, H, 4): as `_to_model`'s, each frame folded in only
+    when `fold` (else: the state `_to_model` left for the same client frame). `to_source` unpacks
+    the rig's arrays for it."""
     nb, ns, base = rig.bn_parents.shape[0], rig.src_order.shape[0], rig.num_plain + 2 * rig.lateral_j.shape[0]
     nv = base + rig.drop_par.shape[0]
     gs = np.empty((ns, 3, 3))
@@ -481,7 +525,7 @@ def _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, root_out, 
             j = rig.bn_order[s]
             _world_of(gbn, rig.bn_parents[j], j, rot_bn[f, j], m)
         _source_fk(src_rot[f], rig.src_order, rig.src_par_s, gs, m)
-        _bn_globals(gs, rig, gbc, terms, raw, vec, w33, w3)
+        _bn_globals(gs, rig, gbc, terms, raw, vec, w33, w3, hinges[f if hinges.shape[0] > 1 else 0], fold)
         for i in range(rig.delta_j.shape[0]):  # the change of each BN joint used, in the client's world
             j = rig.delta_j[i]
             if same_axes:
@@ -550,7 +594,7 @@ def _rig(ints, int_at, floats, float_at):
         ints[int_at[6]],
         _part33(floats, float_at, 4),
         _part(ints, int_at, 7),
-        _part(ints, int_at, 8).reshape(-1, 6),
+        _part(ints, int_at, 8).reshape(-1, 8),
         _part33(floats, float_at, 5),
         _part3(floats, float_at, 6),
         _part3(floats, float_at, 7),
@@ -571,13 +615,15 @@ def _rig(ints, int_at, floats, float_at):
 
 
 @njit(cache=True, error_model="numpy")
-def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, hips_out, rot_out):
+def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, hinges, hips_out, rot_out):
     """`_to_model` with the rig's arrays packed (`pack`)."""
-    _to_model(root, rot, _rig(ints, int_at, floats, float_at), scale, vertical_offset, hips_out, rot_out)
+    _to_model(root, rot, _rig(ints, int_at, floats, float_at), scale, vertical_offset, hinges, hips_out, rot_out)
 
 
 @njit(cache=True, error_model="numpy")
-def to_source(root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, vertical_offset, root_out, rot_out):
+def to_source(
+    root_bn, rot_bn, src_rot, ints, int_at, floats, float_at, scale, vertical_offset, hinges, fold, root_out, rot_out
+):
     """`_to_source` with the rig's arrays packed (`pack`)."""
     rig = _rig(ints, int_at, floats, float_at)
-    _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, root_out, rot_out)
+    _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, hinges, fold, root_out, rot_out)

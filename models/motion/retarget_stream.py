@@ -28,7 +28,7 @@ import numpy as np
 from . import retarget_kernels as kernels
 from .bn_skeleton import BN_JOINTS, PRIMARY_CHILD
 from .humanoid import BN_ROLES, HumanoidRig, bn_joints_of, bn_segments, humanoid_rig, leg_length
-from .retarget import _LATERAL, Rig, TwistPlan, _frame, default_rig
+from .retarget import _HINGES, _LATERAL, Rig, TwistPlan, _frame, default_rig
 from .rotations import matrix_to_quat as mat_to_quat
 from .skeleton import Skeleton, fk
 
@@ -98,11 +98,20 @@ def _rest_side(skeleton: Skeleton, a: int, b: int) -> np.ndarray:
 # --------------------------------------------------------------------------- the retargeter
 
 
+# A stream's hinge state, per BN limb joint (`retarget._HINGES`, in its order): the client's hinge
+# axis summed over the stream's frames, weighted (3), and the weights' sum (1) (`retarget_kernels._hinge_fallback`).
+HINGE_STATE = (len(_HINGES), 4)
+
+
 class FrameRetargeter:
     """Per-frame client rig <-> BN retargeting for one client rig.
 
-    Stateless after construction: the output for a frame depends on that frame only, and every
-    method is vectorised over a leading batch axis B (frames or sessions).
+    Fixed after construction; the one thing a stream carries from frame to frame is its hinge
+    state (`init_state`, `HINGE_STATE`): per limb, the client's hinge axis as its bent frames show
+    it (`retarget.HINGE_FALLBACK`), which a near-straight limb falls back toward. It lives in the
+    client joint's frame, so the same motion on another rest pose learns the same axis. The caller
+    keeps it: one row per stream (session, crowd character). Without one, the rows given are the
+    successive frames of one fresh stream (a clip).
 
     `source`: a matched `HumanoidRig`, or a skeleton to match by its names. `source_floor`: the
     height along the client's up axis (client units) at which its toe joints touch the ground;
@@ -199,12 +208,24 @@ class FrameRetargeter:
         self._mapped_nonroot = np.array([k for k in self._mapped if src.parents[k] >= 0], dtype=int)
         self._mapped_root = np.array([k for k in self._mapped if src.parents[k] < 0], dtype=int)
         chain_par = [int(self._src_parents[k]) for k in above if self._src_parents[k] >= 0]
+        # per BN limb joint, the client joint whose frame holds its hinge axis: the hinge child's parent
+        hinge_of = {
+            sk.index(n): int(src.parents[roles[BN_ROLES[c]]]) for n, c in _HINGES.items() if BN_ROLES[c] in roles
+        }
         needed = np.unique(
             np.concatenate(
-                [vec_par, self._mapped, self._src_parents[self._mapped_nonroot], chain_par, [self._hips]]
+                [
+                    vec_par,
+                    self._mapped,
+                    self._src_parents[self._mapped_nonroot],
+                    chain_par,
+                    [self._hips],
+                    list(hinge_of.values()),
+                ]
             ).astype(int)
         )
         tree = self._src_tree = _Tree(src.parents, needed)  # client world rotations live in tree slots
+        self._hinge_slot = {j: int(tree.pos[k]) for j, k in hinge_of.items()}
         self._vec_par_s = tree.pos[vec_par]
         self._anc_bn_s = anc[tree.order]
         self._mapped_s = tree.pos[self._mapped_nonroot]
@@ -276,11 +297,22 @@ class FrameRetargeter:
 
     # ----------------------------------------------------------------------- API
 
-    def to_model(self, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    @staticmethod
+    def init_state(streams: int = 1) -> np.ndarray:
+        """(streams, *HINGE_STATE): fresh streams' hinge state (no hinge axis learned yet). The
+        same shape for every rig, so rows of different rigs stack."""
+        return np.zeros((streams, *HINGE_STATE))
+
+    def to_model(
+        self, root: np.ndarray, rotations: np.ndarray, state: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Client frame(s) -> BN frame(s).
 
         root (B, 3): the translation of the client's translated joint (`HumanoidRig.translated`:
         the hips, or the root above them); rotations (B, Js, 4): client local quaternions (xyzw).
+        state: None (the rows are successive frames of a fresh stream), (B, *HINGE_STATE) (row b
+        is the next frame of stream b) or (1, *HINGE_STATE) (the rows are that stream's next
+        frames); each frame is folded into it, in place, before it is used.
         Returns (Hips translation (B, 3), BN local rotations (B, 22, 4), w >= 0). Every other BN
         translation is the BN skeleton's offset.
 
@@ -288,18 +320,26 @@ class FrameRetargeter:
         root = np.ascontiguousarray(root, dtype=np.float64).reshape(-1, 3)
         b = root.shape[0]
         rotations = self._client_rotations(rotations, b)
+        hinges = self._state(state, b)
         hips, out = np.empty((b, 3)), np.empty((b, self._bn_parents.shape[0], 4))
-        kernels.to_model(root, rotations, *self._k_plan, self.scale, self.vertical_offset, hips, out)
+        kernels.to_model(root, rotations, *self._k_plan, self.scale, self.vertical_offset, hinges, hips, out)
         return hips, out
 
     def to_source(
-        self, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray
+        self,
+        root_bn: np.ndarray,
+        rotations_bn: np.ndarray,
+        source_rotations: np.ndarray,
+        state: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """BN frame(s) -> client frame(s) on the client's rig.
 
         root_bn (B, 3): BN Hips translation; rotations_bn (B, 22, 4): BN local quaternions;
         source_rotations (B, Js, 4): the client's own local rotations for the same frame(s)
         (unmapped joints keep these; they also fix the twist the BN change is applied to).
+        state: None (the rows are successive frames of a fresh stream: the state is learned
+        again from `source_rotations`, as `to_model` learned it), or the state `to_model` left
+        after these same client frames (read, not changed), shaped as there.
         Returns (client root translation (B, 3), client local rotations (B, Js, 4)).
 
         Compiled (`retarget_kernels.to_source`)."""
@@ -308,13 +348,34 @@ class FrameRetargeter:
         nb = self._bn_parents.shape[0]
         rotations_bn = np.ascontiguousarray(rotations_bn, dtype=np.float64).reshape(b, nb, 4)
         source_rotations = self._client_rotations(source_rotations, b)
+        hinges = self._state(state, b)
         root, out = np.empty((b, 3)), np.empty_like(source_rotations)
         kernels.to_source(
-            root_bn, rotations_bn, source_rotations, *self._k_plan, self.scale, self.vertical_offset, root, out
+            root_bn,
+            rotations_bn,
+            source_rotations,
+            *self._k_plan,
+            self.scale,
+            self.vertical_offset,
+            hinges,
+            state is None,
+            root,
+            out,
         )
         return root, out
 
     # ----------------------------------------------------------------------- compiled kernels
+
+    def _state(self, state: np.ndarray | None, b: int) -> np.ndarray:
+        if state is None:
+            return self.init_state()
+        if state.shape not in ((b, *HINGE_STATE), (1, *HINGE_STATE)) or state.dtype != np.float64:
+            raise ValueError(
+                f"expected a float64 hinge state of shape ({b} or 1, 4, 4), got {state.dtype} {state.shape}"
+            )
+        if not state.flags.c_contiguous or not state.flags.writeable:
+            raise ValueError("the hinge state is updated in place: pass a writeable C-contiguous array")
+        return state
 
     def _client_rotations(self, rotations: np.ndarray, b: int) -> np.ndarray:
         j = self.source.num_joints
@@ -343,6 +404,8 @@ class FrameRetargeter:
                         g["dir"][i] if "dir" in g else -1,
                         g["dir_c"][i] if limb else -1,
                         split[0],
+                        self._hinge_slot[j] if limb else -1,
+                        g["h"][i] if limb else -1,
                     )
                 )
                 split_nat.append(split[1])

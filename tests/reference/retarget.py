@@ -4,9 +4,11 @@ tested against (`tests/test_retarget_kernels.py`)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
-from models.motion.retarget import HINGE_FALLBACK, TWIST_SHARE, TwistPlan, _frame, _unit
+from models.motion.retarget import HINGE_FALLBACK, HINGE_PRIOR, TWIST_SHARE, TwistPlan, _frame, _unit
 from models.motion.retarget_stream import FrameRetargeter, _Tree
 from models.motion.rotations import matrix_to_quat as mat_to_quat
 from models.motion.rotations import quat_to_matrix as quat_to_mat
@@ -46,9 +48,14 @@ def _swing_mats(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return m
 
 
-def bn_globals(plan: TwistPlan, dirs: np.ndarray, lateral: np.ndarray) -> np.ndarray:
+Fallback = Callable[[int, int, np.ndarray, np.ndarray], np.ndarray]
+
+
+def bn_globals(plan: TwistPlan, dirs: np.ndarray, lateral: np.ndarray, fallback: Fallback | None = None) -> np.ndarray:
     """BN world rotation matrices (B, J, 3, 3) from unit bone directions `dirs` (B, K, 3),
-    columns as `segments`, and the two-vector joints' world rotations `lateral` (B, 2, 3, 3)."""
+    columns as `segments`, and the two-vector joints' world rotations `lateral` (B, 2, 3, 3).
+    `fallback(joint, hinge row, normal (B, 3), natural axis (B, 3))`: a limb's fallback axis
+    (`_hinge_fallback`); None: the natural axis."""
     b = dirs.shape[0]
     gb = np.empty((b, plan.num_joints, 3, 3))
     gb[:] = np.eye(3)  # joint_Root
@@ -65,6 +72,9 @@ def bn_globals(plan: TwistPlan, dirs: np.ndarray, lateral: np.ndarray) -> np.nda
             lower = dirs[:, g["dir_c"]]
             natural = (rot @ g["k"][..., None])[..., 0]
             normal = np.cross(d, lower)  # its sign is the bend's: cross(upper, lower) for a flexed limb
+            if fallback is not None:
+                for i, (j, h) in enumerate(zip(g["j"], g["h"], strict=True)):
+                    natural[:, i] = fallback(int(j), int(h), normal[:, i], natural[:, i])
             axis = np.linalg.norm(normal, axis=-1, keepdims=True) * normal + HINGE_FALLBACK**2 * natural
             rot = _frame(d, axis) @ g["m_loc_t"]
         if "split" in g:  # take a share of the two-vector child's twist about the bone
@@ -110,14 +120,42 @@ def _drop(fr: FrameRetargeter, vec: np.ndarray, gb: np.ndarray) -> np.ndarray:
     return np.maximum(client - (bn - fr._drop_ref[1]).min(axis=1), 0.0)
 
 
-def _bn_globals(fr: FrameRetargeter, gs: np.ndarray, vec: np.ndarray | None = None) -> np.ndarray:
+def _hinge_fallback(fr: FrameRetargeter, gs: np.ndarray, hinges: np.ndarray, fold: bool) -> Fallback:
+    """The kernels' `_hinge_fallback` over frames: hinges (B, H, 4) one stream per row, or (1, H, 4)
+    one stream whose successive frames the rows are (running sums over them); updated in place
+    when `fold`."""
+
+    def fallback(j: int, h: int, normal: np.ndarray, natural: np.ndarray) -> np.ndarray:
+        g = fr._axes @ gs[:, fr._hinge_slot[j]]  # the client joint's frame in BN's world (B, 3, 3)
+        acc = np.broadcast_to(hinges[:, h], (len(normal), 4)).copy()
+        if fold:
+            s2 = np.sum(normal * normal, axis=-1, keepdims=True)
+            v = s2 * normal
+            fresh = hinges[:, h, 3] == 0.0
+            v[: len(fresh)][fresh] += HINGE_PRIOR * natural[: len(fresh)][fresh]  # seeds its stream's first frame
+            step = np.concatenate([(np.swapaxes(g, -1, -2) @ v[..., None])[..., 0], s2], axis=-1)
+            step[: len(fresh), 3] += np.where(fresh, HINGE_PRIOR, 0.0)
+            acc = hinges[:, h] + (np.cumsum(step, axis=0) if len(hinges) == 1 else step)
+            hinges[:, h] = acc[-1] if len(hinges) == 1 else acc
+        k = np.linalg.norm(acc[:, :3], axis=-1, keepdims=True)
+        client = (g @ (acc[:, :3] / np.where(k > 0, k, 1.0))[..., None])[..., 0]
+        mix = natural + client
+        m = np.linalg.norm(mix, axis=-1, keepdims=True)
+        return np.where((k > 0) & (m > 1e-9), mix / np.where(m > 1e-9, m, 1.0), natural)
+
+    return fallback
+
+
+def _bn_globals(
+    fr: FrameRetargeter, gs: np.ndarray, vec: np.ndarray | None = None, fallback: Fallback | None = None
+) -> np.ndarray:
     """BN world rotation matrices (B, 22, 3, 3) from client world rotation matrices (tree slots)."""
     b = gs.shape[0]
     vec = _vectors(fr, gs) if vec is None else vec
     k = fr._num_plain
     dirs = vec[:, :k] / np.sqrt(np.sum(vec[:, :k] ** 2, axis=-1, keepdims=True))
     lat = vec[:, k : fr._drop_rows.start].reshape(b, -1, 2, 3)
-    return bn_globals(fr._plan, dirs, _frame(lat[:, :, 0], lat[:, :, 1]) @ fr._m_tgt_t)
+    return bn_globals(fr._plan, dirs, _frame(lat[:, :, 0], lat[:, :, 1]) @ fr._m_tgt_t, fallback)
 
 
 def _source_globals(fr: FrameRetargeter, rotations: np.ndarray) -> np.ndarray:
@@ -132,20 +170,23 @@ def _hips_terms(fr: FrameRetargeter, gs: np.ndarray) -> tuple[np.ndarray, np.nda
     return c, g[:, fr._translated_par_s]
 
 
-def to_model(fr: FrameRetargeter, root: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def to_model(
+    fr: FrameRetargeter, root: np.ndarray, rotations: np.ndarray, state: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """`to_model` in numpy (batched over frames and tree depths): the reference the compiled
     kernel is tested against.
 
     root (B, 3): the translation of the client's translated joint (`HumanoidRig.translated`:
     the hips, or the root above them); rotations (B, Js, 4): client local quaternions (xyzw).
     Returns (Hips translation (B, 3), BN local rotations (B, 22, 4), w >= 0). Every other BN
-    translation is the BN skeleton's offset."""
+    translation is the BN skeleton's offset. state: as `FrameRetargeter.to_model`'s."""
     root = np.asarray(root, dtype=np.float64).reshape(-1, 3)
     gs = _source_globals(fr, np.asarray(rotations, dtype=np.float64).reshape(root.shape[0], -1, 4))
     c, gp = _hips_terms(fr, gs)
     hips = ((c + (gp @ root[..., None])[..., 0]) @ fr._axes.T) * fr.scale
     vec = _vectors(fr, gs)
-    gb = _bn_globals(fr, gs, vec)
+    hinges = fr.init_state() if state is None else state
+    gb = _bn_globals(fr, gs, vec, _hinge_fallback(fr, gs, hinges, True))
     hips[:, 1] += fr.vertical_offset + _drop(fr, vec, gb)
     local = gb.copy()
     local[:, 1:] = np.swapaxes(gb[:, fr._bn_parents[1:]], -1, -2) @ gb[:, 1:]
@@ -153,20 +194,26 @@ def to_model(fr: FrameRetargeter, root: np.ndarray, rotations: np.ndarray) -> tu
 
 
 def to_source(
-    fr: FrameRetargeter, root_bn: np.ndarray, rotations_bn: np.ndarray, source_rotations: np.ndarray
+    fr: FrameRetargeter,
+    root_bn: np.ndarray,
+    rotations_bn: np.ndarray,
+    source_rotations: np.ndarray,
+    state: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """`to_source` in numpy: the reference the compiled kernel is tested against.
 
     root_bn (B, 3): BN Hips translation; rotations_bn (B, 22, 4): BN local quaternions;
     source_rotations (B, Js, 4): the client's own local rotations for the same frame(s)
     (unmapped joints keep these; they also fix the twist the BN change is applied to).
+    state: as `FrameRetargeter.to_source`'s.
     Returns (client root translation (B, 3), client local rotations (B, Js, 4))."""
     root_bn = np.asarray(root_bn, dtype=np.float64).reshape(-1, 3)
     b = root_bn.shape[0]
     source_rotations = np.asarray(source_rotations, dtype=np.float64).reshape(b, -1, 4)
     gbn = tree_fk(fr._bn_tree, quat_to_mat(np.asarray(rotations_bn, dtype=np.float64).reshape(b, -1, 4)))
     gsc = _source_globals(fr, source_rotations)
-    gbc = _bn_globals(fr, gsc)
+    hinges = fr.init_state() if state is None else state
+    gbc = _bn_globals(fr, gsc, fallback=_hinge_fallback(fr, gsc, hinges, state is None))
     delta = gbn[:, fr._bn_unorder] @ np.swapaxes(gbc, -1, -2)  # (B, 22, 3, 3), BN joint order, BN world
     delta = fr._axes.T @ delta @ fr._axes  # the same change in the client's world
     delta = np.concatenate([delta, np.broadcast_to(np.eye(3), (b, 1, 3, 3))], axis=1)
