@@ -17,7 +17,8 @@ Styles are FiLM vectors mixed barycentrically by the weights (a shortfall from 1
 the network, each fitted from the style's real clips the same way for every style: the arm
 carriage (`carriage.py`), the output prior (`output_prior.py`, walks and runs mixed by gait), the
 arm coupling (`arm_coupling.py`) and the rotation prior (`models.motion.rotation_ball`), which
-holds each joint inside the ball the style's real rotations fill. A style without real clips (an
+holds each joint inside the ball the style's real rotations fill; last, knees and elbows are held
+at their least real bend for every style, uploads too (`models.motion.hinge_floor`). A style without real clips (an
 upload, or a FiLM vector set at run time) has no ball, since a borrowed one would pull it back
 toward another style. The stages touch the output only; the network's state keeps its own pose.
 
@@ -44,6 +45,7 @@ from ..motion.coupling import Coupling, link_indices
 from ..motion.features import body_joint
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter
+from ..motion.hinge_floor import HingeFloor
 from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.rotation_ball import StyleBalls
 from ..motion.rotation_ball_kernels import clamp_mixed
@@ -96,6 +98,7 @@ class LPNModel(LPNStyles):
         carriage: Carriage | None = None,
         output_prior: OutputPrior | None = None,
         arm_coupling: Coupling | None = None,
+        hinge_floor: HingeFloor | None = None,
     ):
         self.config = config
         self.skeleton = skeleton
@@ -124,6 +127,7 @@ class LPNModel(LPNStyles):
         self.carriage = carriage
         self.output_prior = output_prior
         self.arm_coupling = arm_coupling
+        self.hinge_floor = hinge_floor  # knees and elbows held at their least real bend (None: not held)
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
         self.parents = sk.parents
@@ -337,6 +341,8 @@ class LPNModel(LPNStyles):
         ball_mean, ball_radii = table.get("ball_mean"), table.get("ball_radii")
         if ball_mean is not None and ball_radii is not None:
             out_rot = self._hold(out_rot, style_weights, normal, (ball_mean, ball_radii))
+        if self.hinge_floor is not None:
+            out_rot = self.hinge_floor(out_rot).astype(np.float32)
         out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
@@ -593,7 +599,7 @@ def read_balls(weights_dir: Path) -> StyleBalls | None:
 def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
     """The committed model. `core_only`: the network alone (its built-in FiLM styles and the foot
     planter), without the fitted stages after it (the rotation prior, the arm carriage,
-    the output prior and the arm coupling): the evaluation's core-alone row."""
+    the output prior, the arm coupling and the hinge floor): the evaluation's core-alone row."""
     arrays, skeleton, config = read_weights(weights_dir)
     if core_only:
         return LPNModel(arrays, skeleton, config)
@@ -605,4 +611,5 @@ def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
         _beside(weights_dir, CARRIAGE_FILE, Carriage),
         _beside(weights_dir, OUTPUT_PRIOR_FILE, OutputPrior),
         _beside(weights_dir, ARM_COUPLING_FILE, Coupling),
+        HingeFloor.load(skeleton, weights_dir),
     )
