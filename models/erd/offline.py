@@ -82,10 +82,10 @@ def stylise(
     source = clip_carry_slow(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots, hinges=hinges)
     rots = clip_carry_slow(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)
-    if twist_range is not None:
-        rots = twist_range(rots, w_frames)
     if hinge_floor is not None:
         rots = hinge_floor(rots)
+    if twist_range is not None:
+        rots = twist_range(rots, w_frames)
     if foot_lock:
         root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()

@@ -35,9 +35,10 @@ Stages, each fitted from data the same way for every style: the input's rotation
 from the neutral style's real distribution to the target's, and the output's from what the
 network produces to the target's real one, clamped into its range (`rotation_prior.py`), with
 run-fitted priors where the input runs (`gait.py`); each prior carries only a slowly following
-copy so its gains do not shake the limbs (`slow_carry.py`); the arms' twists are kept inside
-the style's real interval (`twist_range.py`); knees and elbows are held at their least real bend
-(`models.motion.hinge_floor`, `hinge_floor.npz`). Last, the shared foot planter
+copy so its gains do not shake the limbs (`slow_carry.py`); knees and elbows are held at their
+least real bend (`models.motion.hinge_floor`, `hinge_floor.npz`); the arms' twists are kept
+inside the style's real interval (`twist_range.py`, which turns bones about themselves only, so
+the bends stay). Last, the shared foot planter
 (`models.motion.feet.FootPlanter`) holds the feet the input has down (feature columns
 `CONTACT`), toe and ankle, by two-bone leg IK; the output's `contacts` are the planted legs.
 """
@@ -285,10 +286,10 @@ class ERDModel(ERDStyles):
         out_rot, slow_out = carry_slow(
             self.output_prior, self.run_output_prior, out_rot, state["slow_out"], w, share, hips=HIPS
         )
+        if self.hinge_floor is not None:  # before the twist range: it turns bones about themselves only
+            out_rot = self.hinge_floor(out_rot)
         if self.twist_range is not None:
             out_rot = self.twist_range(out_rot, w)
-        if self.hinge_floor is not None:
-            out_rot = self.hinge_floor(out_rot)
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
         )
