@@ -121,8 +121,39 @@ def test_upload_stages_refit_from_the_stored_sources_reproduce_the_trained_ones(
             np.testing.assert_allclose(fitted[0], committed[s], atol=1e-5)
 
 
+def test_the_job_pairs_neutral_clips_from_the_mocap_without_the_feature_cache(model, clips, tmp_path, monkeypatch):
+    """A fresh server has no TRAIN feature cache: the job's neutral clips are computed from the
+    mocap, the nearest in what they do first, and no cache is built for them."""
+    from models.erd import dataset, finetune
+
+    monkeypatch.setattr(dataset, "cache_dir", lambda: tmp_path)
+    neutral = finetune.neutral_clips(model.maker)
+    x_clip, _ = model.maker.sequence(clips[0].translations[:, 1], clips[0].rotations)
+    paired = finetune.pair(neutral, x_clip, finetune.PAIRS)
+    assert len(paired) == finetune.PAIRS and all(len(c) > finetune.WINDOW for c in paired)
+    gaps = [np.linalg.norm(finetune.descriptor(c) - finetune.descriptor(x_clip)) for c in neutral]
+    assert np.linalg.norm(finetune.descriptor(paired[0]) - finetune.descriptor(x_clip)) < np.median(gaps)
+    assert not any(tmp_path.iterdir())
+
+
+def test_without_the_mocap_a_fine_tuning_upload_is_refused_typed(model, tmp_path, monkeypatch):
+    from models.interface import StyleRejected
+    from models.settings import Settings
+
+    monkeypatch.setattr("models.settings.get_settings", lambda: Settings(data_dir=tmp_path, cache_dir=tmp_path))
+    model.check_upload(300, fine_tune=False)  # the instant style needs no data
+    with pytest.raises(StyleRejected) as refused:
+        model.check_upload(300, fine_tune=True)
+    assert refused.value.code == "training_data_unavailable"
+
+
 @pytest.mark.slow
-def test_the_job_fits_a_branch_that_brings_held_out_neutral_clips_closer(model, clips):
+def test_the_job_fits_a_branch_that_brings_held_out_neutral_clips_closer(model, clips, tmp_path, monkeypatch):
+    """The job tunes on neutral clips from the mocap alone: the feature cache folder is empty, as
+    on a fresh server."""
+    from models.erd import dataset
+
+    monkeypatch.setattr(dataset, "cache_dir", lambda: tmp_path)
     clip, walk = clips
     seen: list[float] = []
     tuned = model.fine_tune_style("up", clip, lambda fraction, message: seen.append(fraction), 0)
@@ -131,3 +162,4 @@ def test_the_job_fits_a_branch_that_brings_held_out_neutral_clips_closer(model, 
     mine = model.with_own_styles()
     mine.install_style("up", tuned.style)
     assert np.all(np.isfinite(stream(mine, walk.slice(0, 30), style_vector(mine, {"up": 1.0}))))
+    assert not any(tmp_path.iterdir())  # no feature cache was built for it

@@ -76,3 +76,38 @@ def test_lti_outputs_never_bend_a_hinge_backward(index):
 
     assert least(LTIStyleModel(footlock=False, hinges=False)) < -np.radians(2.0)
     assert least(LTIStyleModel(footlock=False)) >= -1e-9
+
+
+@pytest.mark.parametrize("method", ["erd", "lpn"])
+def test_an_uploaded_style_never_bends_a_hinge_backward_in_erd_or_lpn(method, index):
+    """A dataset-1 `happy` walk uploaded to Style-ERD or LPN-FiLM (the instant style) bends a knee
+    or elbow backward by several degrees without the stage; the full pipeline holds every hinge
+    at its floor to the end (after the foot planter and the unseen-content fade), the core has no
+    stage."""
+    from models.data import load_motions, select
+    from models.eval.run import stylise_toward
+    from models.motion.hinge_floor import FLOOR_FILE
+    from models.registry import load_model
+    from models.settings import get_settings
+
+    weights = get_settings().weights_dir
+    if not (weights / method / FLOOR_FILE).exists():
+        pytest.skip(f"{method} hinge floor not committed")
+    happy = sorted(select(index, dataset="bandai-namco-1", style="happy", content="walk"), key=lambda c: c.name)[0]
+    walk = select(index, dataset="bandai-namco-2", style="normal", content="walk", split="val")[0]
+    clip, neutral = load_motions([happy, walk])
+    model = load_model(weights, method)
+    assert model is not None and model.hinge_floor is not None  # type: ignore[attr-defined]
+    assert load_model(weights, method, core_only=True).hinge_floor is None  # type: ignore[union-attr]
+    own = model.with_own_styles()  # type: ignore[attr-defined]
+    own.install_style("upload", own.style_from_clip(clip))
+    h = own.hinge_floor.hinges
+    bone, hinge, floor = kernel_floor(bandai_namco_skeleton(), h)
+
+    def least() -> float:
+        out = stylise_toward(own, [neutral.slice(0, 150)], ["upload"])["upload"][0].rotations
+        return min(float(np.degrees(_bend(out[:, j], bone[j], hinge[j]) - floor[j]).min()) for j in h.joints)
+
+    assert least() >= -0.05
+    own.hinge_floor = None
+    assert least() < -2.0

@@ -2,8 +2,9 @@
 
 The clip has no neutral twin, so the branch is fitted on statistics, not frame pairs:
 
-1. **Pairing.** The TRAIN `normal` clips nearest the upload in what it does, measured on the
-   features both share (`descriptor`: mean forward and sideways Hips speed, mean turning rate, and
+1. **Pairing.** The dataset-2 TRAIN `normal` clips nearest the upload in what it does (their
+   features computed from the mocap here, ~3 s, rather than read from the 266 MB TRAIN feature
+   cache a fresh server lacks), measured on the features both share (`descriptor`: mean forward and sideways Hips speed, mean turning rate, and
    their spread), are its neutral counterparts; posture is the style and is not compared.
 2. **Fit.** A copy of the nearest trained style's branch (its LSTM, initial state and decoder
    code) is trained so that the network, streaming windows of those neutral clips, puts out the
@@ -25,7 +26,7 @@ import numpy as np
 
 from ..interface import Progress
 from ..motion.style_carry import tangent_stats
-from .dataset import cache_dir
+from .dataset import DATASET, STYLES
 from .features import FPS, NB, POS, ROOTVEL, ROT, YAWRATE
 from .upload_stages import clip_rotations, fit_stages
 from .uploads import Upload
@@ -37,8 +38,22 @@ SCALE_FLOOR = 0.05  # of a statistic's scale, as the style judge floors its stan
 SOURCE_CLIPS = 2  # `rotation_prior._neutral_inputs` clips per content the output prior's source is measured on
 
 
-def training_data_available() -> bool:
-    return (cache_dir() / "train.npz").exists()
+def data_available() -> bool:
+    """Whether dataset 2's mocap is reachable (its archive or unpacked folder; a cheap check)."""
+    from ..data.archives import DATASETS
+    from ..settings import get_settings
+
+    folder, spec = get_settings().data_dir, DATASETS[DATASET]
+    return (folder / spec.archive).exists() or (folder / spec.bvh_dir).is_dir()
+
+
+def neutral_clips(maker) -> list[np.ndarray]:
+    """Features (F, 216) of every dataset-2 TRAIN `normal` clip, by `maker` (the model's), from
+    the mocap (unpacked on first use)."""
+    from ..data import build_index, load_motions, select
+
+    clips = select(build_index([DATASET]), dataset=DATASET, split="train", style=STYLES[0])
+    return [maker.sequence(m.translations[:, 1], m.rotations)[0].astype(np.float32) for m in load_motions(clips)]
 
 
 def descriptor(x: np.ndarray) -> np.ndarray:
@@ -48,11 +63,9 @@ def descriptor(x: np.ndarray) -> np.ndarray:
     return np.concatenate([v.mean(0), v.std(0)])
 
 
-def pair(split, x_clip: np.ndarray, k: int) -> list[np.ndarray]:
-    """Features of the `k` TRAIN `normal` clips whose descriptors lie nearest the clip's
-    (each descriptor entry in units of its spread over those clips), nearest first."""
-    neutral = np.flatnonzero(split.style == 0)
-    clips = [split.feats[split.starts[i] : split.starts[i] + split.lengths[i]] for i in neutral]
+def pair(clips: list[np.ndarray], x_clip: np.ndarray, k: int) -> list[np.ndarray]:
+    """The `k` neutral clips (features) longer than a window whose descriptors lie nearest the
+    clip's (each descriptor entry in units of its spread over `clips`), nearest first."""
     desc = np.stack([descriptor(c) for c in clips])
     scale = np.maximum(desc.std(0), 1e-6)
     order = np.argsort(np.linalg.norm((desc - descriptor(x_clip)) / scale, axis=1))
@@ -135,14 +148,12 @@ def fine_tune(model, start: Upload, clip, progress: Progress) -> tuple[Upload | 
     where the fitted branch did not bring the held-back neutral clips closer to the clip."""
     import torch
 
-    from .dataset import load_split
-
     t0 = time.perf_counter()
     torch.manual_seed(SEED)
     rng = np.random.default_rng(SEED)
     x_clip, _ = model.maker.sequence(clip.translations[:, 1], clip.rotations)
     progress(0.03, "pairing neutral clips of the same pace and turning")
-    neutral = pair(load_split("train"), x_clip, PAIRS)
+    neutral = pair(neutral_clips(model.maker), x_clip, PAIRS)
     train, held = neutral[:-HOLDOUT], neutral[-HOLDOUT:]
     branch = Branch(model, start)
     target = real_statistics(torch.as_tensor(x_clip[None], dtype=torch.float32))

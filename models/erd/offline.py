@@ -16,6 +16,7 @@ from models.motion.rotations import quat_mul, yaw_quat
 from ..motion.bn_skeleton import HIPS
 from ..motion.feet import model_rig_planter
 from ..motion.hinge import Hinges
+from ..motion.hinge_floor import HingeFloor
 from ..motion.skeleton import Motion
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
@@ -58,6 +59,7 @@ def stylise(
     run_output_prior: StyleCarry | None = None,
     twist_range: TwistRange | None = None,
     hinges: Hinges | None = None,
+    hinge_floor: HingeFloor | None = None,
 ) -> Motion:
     """The clip stylised with target weights (6,) or per frame (T, 6); the streaming model's
     rotation prior (`leaf_prior`, `output_prior`, and their run versions for the frames the input
@@ -80,6 +82,8 @@ def stylise(
     source = clip_carry_slow(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
     rots = transfer_twist(motion.skeleton, source, rots, hinges=hinges)
     rots = clip_carry_slow(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)
+    if hinge_floor is not None:
+        rots = hinge_floor(rots)
     if twist_range is not None:
         rots = twist_range(rots, w_frames)
     if foot_lock:

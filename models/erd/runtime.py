@@ -35,8 +35,10 @@ Stages, each fitted from data the same way for every style: the input's rotation
 from the neutral style's real distribution to the target's, and the output's from what the
 network produces to the target's real one, clamped into its range (`rotation_prior.py`), with
 run-fitted priors where the input runs (`gait.py`); each prior carries only a slowly following
-copy so its gains do not shake the limbs (`slow_carry.py`); the arms' twists are kept inside
-the style's real interval (`twist_range.py`). Last, the shared foot planter
+copy so its gains do not shake the limbs (`slow_carry.py`); knees and elbows are held at their
+least real bend (`models.motion.hinge_floor`, `hinge_floor.npz`); the arms' twists are kept
+inside the style's real interval (`twist_range.py`, which turns bones about themselves only, so
+the bends stay). Last, the shared foot planter
 (`models.motion.feet.FootPlanter`) holds the feet the input has down (feature columns
 `CONTACT`), toe and ankle, by two-bone leg IK; the output's `contacts` are the planted legs.
 """
@@ -55,6 +57,7 @@ from ..motion.bn_skeleton import HIPS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
 from ..motion.hinge import HINGE_FILE, Hinges
+from ..motion.hinge_floor import HingeFloor
 from ..motion.skeleton import Skeleton
 from ..motion.style_carry import StyleCarry
 from ..motion.twist import transfer_twist
@@ -108,6 +111,7 @@ class ERDModel(ERDStyles):
         run_output_prior: StyleCarry | None = None,
         twist_range: TwistRange | None = None,
         hinges: Hinges | None = None,
+        hinge_floor: HingeFloor | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
@@ -123,6 +127,7 @@ class ERDModel(ERDStyles):
         self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
         self.twist_range = twist_range  # the arms' twists kept in the style's real interval (`twist_range.py`)
         self.hinges = hinges  # elbows and knees decoded as hinges (`models.motion.hinge`; None: the input's twists)
+        self.hinge_floor = hinge_floor  # elbows and knees held at their least real bend (None: not held)
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
@@ -281,6 +286,8 @@ class ERDModel(ERDStyles):
         out_rot, slow_out = carry_slow(
             self.output_prior, self.run_output_prior, out_rot, state["slow_out"], w, share, hips=HIPS
         )
+        if self.hinge_floor is not None:  # before the twist range: it turns bones about themselves only
+            out_rot = self.hinge_floor(out_rot)
         if self.twist_range is not None:
             out_rot = self.twist_range(out_rot, w)
         planted_root, planted_rot, contacts, feet = self.planter(
@@ -388,11 +395,12 @@ class ERDModel(ERDStyles):
     @property
     def priors(self) -> dict[str, StyleCarry | TwistRange | Hinges | None]:
         """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), the twist
-        range and the hinges, as the whole-clip path (`offline.stylise`) takes them."""
+        range, the hinges and their floor, as the whole-clip path (`offline.stylise`) takes them."""
         return {
             **{key: getattr(self, key) for key in PRIOR_FILES},
             "twist_range": self.twist_range,
             "hinges": self.hinges,
+            "hinge_floor": self.hinge_floor,
         }
 
     def stylise_stream(self, motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None):
@@ -416,8 +424,8 @@ class ERDModel(ERDStyles):
 
 def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, hinges: bool = True) -> ERDModel:
     """The committed model; `dtype` = the network's arithmetic (np.float64: the reference).
-    `core_only`: the network without the fitted stages after it (every rotation prior and the
-    twist range; the decoding, twist transfer and hinges, and the foot planter stay): the
+    `core_only`: the network without the fitted stages after it (every rotation prior, the
+    twist range and the hinge floor; the decoding, twist transfer and hinges, and the foot planter stay): the
     evaluation's core-alone row. `hinges=False` decodes without the hinges (for comparison)."""
     weights_dir = Path(weights_dir)
     config = json.loads((weights_dir / "config.json").read_text())
@@ -435,6 +443,7 @@ def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, h
         for key, name in PRIOR_FILES.items()
     }
     twists = TwistRange.load(weights_dir / TWIST_FILE) if (weights_dir / TWIST_FILE).exists() else None
+    floor = None if core_only else HingeFloor.load(skeleton, weights_dir)
     if core_only:
         priors, twists = dict.fromkeys(priors), None
     hinge_file = weights_dir / HINGE_FILE
@@ -450,6 +459,7 @@ def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, h
         dtype=dtype,
         twist_range=twists,
         hinges=fitted,
+        hinge_floor=floor,
         **priors,
     )
     model.weights_dir = weights_dir

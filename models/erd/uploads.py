@@ -159,13 +159,13 @@ class ERDStyles(ClipStyles[Upload]):
             raise StyleRejected("bad_length", f"the clip has {frames} frames at 30 fps; Style-ERD needs {MIN_FRAMES}")
         self.sources  # noqa: B018  (raises where the server lacks them)
         if fine_tune:
-            from .finetune import training_data_available
+            from .finetune import data_available
 
-            if not training_data_available():
+            if not data_available():
                 raise StyleRejected(
                     "training_data_unavailable",
-                    "fine-tuning a Style-ERD style needs the TRAIN feature cache (`python -m models.erd.dataset`); "
-                    "upload without fine_tune",
+                    "fine-tuning a Style-ERD style pairs the clip with dataset 2's neutral clips, which this "
+                    "server does not have (STYLESTREAM_DATA_DIR); upload without fine_tune",
                     unavailable=True,
                 )
 

@@ -9,9 +9,10 @@ become the control, so it also runs motion in, motion out.
 
 Styles are FiLM vectors mixed by the weights (the shortfall from 1 goes to `normal`); the state
 holds nothing per style. After the network come the stages fitted from each style's real clips:
-arm carriage, output prior, arm coupling and rotation balls. They change the output only; the
-network's state keeps its own pose. A style without real clips gets no ball: a borrowed one would
-pull it toward another style.
+arm carriage, output prior, arm coupling, rotation balls and the hinge floor (knees and elbows at
+their least real bend, uploads too). They change the output only; the network's state keeps its
+own pose. A style without real clips gets no ball: a borrowed one would pull it toward another
+style.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from ..motion.coupling import Coupling, link_indices
 from ..motion.features import body_joint
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter
+from ..motion.hinge_floor import HingeFloor
 from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.rotation_ball import StyleBalls
 from ..motion.rotation_ball_kernels import clamp_mixed
@@ -81,6 +83,7 @@ class LPNModel(LPNStyles):
         carriage: Carriage | None = None,
         output_prior: OutputPrior | None = None,
         arm_coupling: Coupling | None = None,
+        hinge_floor: HingeFloor | None = None,
     ):
         self.config = config
         self.skeleton = skeleton
@@ -109,6 +112,7 @@ class LPNModel(LPNStyles):
         self.carriage = carriage
         self.output_prior = output_prior
         self.arm_coupling = arm_coupling
+        self.hinge_floor = hinge_floor  # knees and elbows held at their least real bend (None: not held)
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
         self.parents = sk.parents
@@ -318,6 +322,8 @@ class LPNModel(LPNStyles):
         ball_mean, ball_radii = table.get("ball_mean"), table.get("ball_radii")
         if ball_mean is not None and ball_radii is not None:
             out_rot = self._hold(out_rot, style_weights, normal, (ball_mean, ball_radii))
+        if self.hinge_floor is not None:
+            out_rot = self.hinge_floor(out_rot).astype(np.float32)
         out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
@@ -573,4 +579,5 @@ def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
         _beside(weights_dir, CARRIAGE_FILE, Carriage),
         _beside(weights_dir, OUTPUT_PRIOR_FILE, OutputPrior),
         _beside(weights_dir, ARM_COUPLING_FILE, Coupling),
+        HingeFloor.load(skeleton, weights_dir),
     )

@@ -1,0 +1,70 @@
+"""Knees and elbows held at their least real bend: a stage after a method's network.
+
+Why: a network that decides rotations (Style-ERD, LPN-FiLM) straightens a knee or an elbow past
+straight for a few frames where the style pulls the limb far (an upload's knee bent back by
+22 degrees), a pose no real limb takes. Real knees and elbows of every style never bend backward
+past their floor (`hinge.Hinges.floor`), so the stage holds each output's bend about the hinge
+axis there (`hinge_kernels.floor_bends`), keeping its twist and its swing off the hinge. It is
+fitted once per rig from real rotations of every dataset-2 TRAIN clip, every style, as LTI's
+(`python -m models.lti hinges`), and runs after all the other stages for every style alike,
+built-in or uploaded, so an upload needs nothing fitted for it.
+
+    python -m models.motion.hinge_floor erd lpn   # -> models/weights/<method>/hinge_floor.npz
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .hinge import Hinges, fit_hinges, kernel_floor
+from .hinge_kernels import floor_bends
+from .skeleton import Skeleton
+
+FLOOR_FILE = "hinge_floor.npz"
+DATASET = "bandai-namco-2"  # the rig's real rotations the floor is fitted from, every style
+
+
+class HingeFloor:
+    """The stage: per joint its bone axis, hinge axis and floor, as `floor_bends` takes them."""
+
+    def __init__(self, skeleton: Skeleton, hinges: Hinges) -> None:
+        if hinges.floor is None:
+            raise ValueError("hinges fitted without floors")
+        self.hinges = hinges
+        self.arrays = kernel_floor(skeleton, hinges)
+
+    def __call__(self, rotations: np.ndarray) -> np.ndarray:
+        """(..., J, 4) local rotations -> a float64 copy with every hinge held at its floor."""
+        q = np.array(rotations, np.float64).reshape(-1, *rotations.shape[-2:])
+        return floor_bends(q, *self.arrays).reshape(rotations.shape)
+
+    @classmethod
+    def load(cls, skeleton: Skeleton, folder: Path) -> HingeFloor | None:
+        """The stage beside a method's weights, or None where it was not fitted."""
+        path = Path(folder) / FLOOR_FILE
+        return cls(skeleton, Hinges.load(path)) if path.exists() else None
+
+
+def fit_floor(skeleton: Skeleton) -> Hinges:
+    """The rig's hinge joints and floors from every dataset-2 TRAIN clip, every style."""
+    from ..data import build_index, load_motions, select
+
+    clips = select(build_index([DATASET]), dataset=DATASET, split="train")
+    return fit_hinges(skeleton, np.concatenate([m.rotations for m in load_motions(clips)]))
+
+
+def main(methods: list[str]) -> None:
+    from ..settings import get_settings
+    from .assets import bandai_namco_skeleton
+
+    hinges = fit_floor(bandai_namco_skeleton())
+    print("floors (deg)", np.degrees(np.asarray(hinges.floor)).round(2))
+    for method in methods:
+        print(hinges.save(get_settings().weights_dir / method / FLOOR_FILE))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
