@@ -78,7 +78,6 @@ class TrainConfig:
     out_dir: str = str(REPO_ROOT / "out" / "lpn")
     resume: bool = False  # continue run_dir/ckpt.pt (its settings, then these overrides) if it exists
     data: str = ""  # a packed training set (`carry.py`) instead of the cache, e.g. on a GPU lease
-    hundred_style_dir: str = ""  # train on a 100STYLE folder (hundred_style.py) instead of Bandai Namco
     export: str = ""  # path of a checkpoint to export to models/weights/lpn instead of training
     init_from: str = ""  # continue from this checkpoint's network (same data and sizes); a fresh optimiser
     # start from a weights folder's network (gating, experts, normalisation) with a fresh generator,
@@ -352,15 +351,14 @@ def main(argv: list[str]) -> None:
     device = torch.device(auto if cfg.device == "auto" else cfg.device)
     rng = np.random.default_rng(cfg.seed)
     from ..motion.assets import bandai_namco_pose
-    from .dataset import load_meta, load_split, load_stats
+    from .dataset import DataConfig, load_meta, load_split, load_stats
     from .network import LPN, LPNConfig
     from .rollout import rollout, rollout_starts
-    from .weights import data_config
 
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
     log = start_run(run_dir, out_dir)
 
-    data = data_config(asdict(cfg))
+    data = DataConfig()
     if cfg.data:  # a packed training set (`carry.py`): no cache, no raw data needed
         from .carry import unpack
 
