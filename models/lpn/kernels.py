@@ -41,6 +41,35 @@ class Track(NamedTuple):
     pose: np.ndarray  # (B, NB, POSE_CH) in its character frame
 
 
+class Tracker(NamedTuple):
+    """B sessions' input tracker: the state entries of the same names, updated in place."""
+
+    frame: np.ndarray  # (B,) frames stepped so far
+    in_pos: np.ndarray  # (B, 2) the input's last Hips xz
+    in_vel: np.ndarray  # (B, 2) its smoothed Hips velocity
+
+
+class Body(NamedTuple):
+    """The model's skeleton and frame rate."""
+
+    parents: np.ndarray  # (J,)
+    offsets: np.ndarray  # (J, 3)
+    facing: np.ndarray  # (4,) left and right hip and shoulder joints (`facing_yaw`)
+    fps: float
+
+
+class Rules(NamedTuple):
+    """The runtime's constants around the network (`runtime.py` says what each is for)."""
+
+    smooth: float  # per-frame smoothing of the input's velocity
+    run_speed: float
+    stop_speed: float
+    root_hold: float
+    phase_damp: float
+    phase_blend: float
+    contact_threshold: float
+
+
 # --------------------------------------------------------------------------- small maths on scalars and tuples
 
 
@@ -102,12 +131,13 @@ def facing_yaw(gpos, facing):
 
 
 @njit(cache=True, error_model="numpy")
-def control_rows(
-    control, given, root, rotations, frame, in_pos, in_vel, parents, offsets, facing, fps, smooth, run_speed
-):
+def control_rows(control, given, root, rotations, tracker, body, rules):
     """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others from
     the input's smoothed Hips velocity in its facing frame, its yaw, run above `run_speed`. The
     input tracker advances for every session, so a session can switch modes smoothly."""
+    frame, in_pos, in_vel = tracker
+    parents, offsets, facing, fps = body
+    smooth, run_speed = rules.smooth, rules.run_speed
     B, J = rotations.shape[0], rotations.shape[1]
     out = np.empty((B, 4), np.float32)
     grot, gpos = np.empty((J, 4)), np.empty((J, 3))
@@ -202,9 +232,11 @@ def elu_dense(h, w, b, out):
 
 
 @njit(cache=True, error_model="numpy")
-def gating(g, scale, w0, b0, w1, b1, w2, b2):
-    """Expert blend (B, E): softmax of the gating MLP (two ELU layers) on the phase features
-    g / scale. Weights as (in, out), so each row of a product is a sum of contiguous rows."""
+def gating(g, scale, layers):
+    """Expert blend (B, E): softmax of the gating MLP (two ELU layers, `layers` its three (weight,
+    bias)) on the phase features g / scale. Weights as (in, out), so each row of a product is a sum
+    of contiguous rows."""
+    (w0, b0), (w1, b1), (w2, b2) = layers
     B = g.shape[0]
     n0, n1, E = w0.shape[1], w1.shape[1], w2.shape[1]
     alpha = np.empty((B, E), np.float32)
@@ -281,12 +313,13 @@ def output_layer(hw, alpha, bias, y_mean, y_std):
 
 
 @njit(cache=True, error_model="numpy")
-def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, phase_blend, contact_threshold):
+def advance(y, control, track, body, rules):
     """Apply the network output y (B, 353) to B sessions' state in place (root, history, future,
     pose, yaw, phases) and return their Hips translation (B, 3), local rotations (B, J, 4) and
     contacts (B, 2). Phases advance by the predicted frequency, blended with the predicted phase;
     below `stop_speed` the phases are damped and part of the root motion is held back."""
     yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel, fut_phase, pose = track
+    parents, fps = body.parents, body.fps
     B, H, J = y.shape[0], hist_pos.shape[1], parents.shape[0]
     out_root = np.empty((B, 3), np.float32)
     out_rot = np.empty((B, J, 4), np.float32)
@@ -298,13 +331,13 @@ def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, 
         yw = float(yaw[b])
         c, s = math.cos(yw), math.sin(yw)
         px, pz = hist_pos[b, H - 1, 0], hist_pos[b, H - 1, 1]
-        still = min(max(1.0 - math.hypot(control[b, 0], control[b, 1]) / stop_speed, 0.0), 1.0)
-        keep = 1.0 - root_hold * still
+        still = min(max(1.0 - math.hypot(control[b, 0], control[b, 1]) / rules.stop_speed, 0.0), 1.0)
+        keep = 1.0 - rules.root_hold * still
         dx, dz = to_world(y[b, Y_DELTA] * keep, y[b, Y_DELTA + 1] * keep, c, s)
         nx, nz = np.float32(px + dx), np.float32(pz + dz)
         new_yaw = np.float32(wrap(yw + y[b, Y_DELTA + 2]))
         nc, ns = math.cos(new_yaw), math.sin(new_yaw)
-        damp = 1.0 - still * (1.0 - phase_damp)
+        damp = 1.0 - still * (1.0 - rules.phase_damp)
         # history: shift by one row, the new frame last
         for r in range(H - 1):
             for i in range(2):
@@ -327,8 +360,8 @@ def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, 
             # features are A (sin phi, cos phi): phi + d turns (s, c) into (s cos d + c sin d, c cos d - s sin d)
             adv_s = cur_s * math.cos(d) + cur_c * math.sin(d)
             adv_c = cur_c * math.cos(d) - cur_s * math.sin(d)
-            bs = (1.0 - phase_blend) * adv_s + phase_blend * pred_s
-            bc = (1.0 - phase_blend) * adv_c + phase_blend * pred_c
+            bs = (1.0 - rules.phase_blend) * adv_s + rules.phase_blend * pred_s
+            bc = (1.0 - rules.phase_blend) * adv_c + rules.phase_blend * pred_c
             scale = math.sqrt(pred_s * pred_s + pred_c * pred_c) / math.sqrt(max(bs * bs + bc * bc, 1e-16)) * damp
             hist_phase[b, H - 1, bone, 0], hist_phase[b, H - 1, bone, 1] = bs * scale, bc * scale
         hist_pos[b, H - 1, 0], hist_pos[b, H - 1, 1] = nx, nz
@@ -381,6 +414,6 @@ def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, 
         # Hips: the predicted offset from the ground root (character frame), into the world
         hx, hz = to_world(y[b, Y_POSE], y[b, Y_POSE + 2], nc, ns)
         out_root[b, 0], out_root[b, 1], out_root[b, 2] = nx + hx, y[b, Y_POSE + 1], nz + hz
-        contacts[b, 0] = y[b, Y_CONTACT] > contact_threshold
-        contacts[b, 1] = y[b, Y_CONTACT + 1] > contact_threshold
+        contacts[b, 0] = y[b, Y_CONTACT] > rules.contact_threshold
+        contacts[b, 1] = y[b, Y_CONTACT + 1] > rules.contact_threshold
     return out_root, out_rot, contacts
