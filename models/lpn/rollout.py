@@ -5,7 +5,7 @@ Teacher forcing alone trains a controller that never sees its own mistakes. A ro
 recorded frame; from then on the pose, root track, trajectory (the predicted future blended toward
 the recording moved with the network's root, by the runtime's rule) and phases come from the
 network's previous prediction. Every step is scored against the recorded next frame; gradients
-flow through the whole rollout unless `detach`. "World" is the rollout's first character frame.
+flow through the whole rollout. "World" is the rollout's first character frame.
 """
 
 from __future__ import annotations
@@ -61,14 +61,10 @@ def rollout(
     Y: torch.Tensor,
     film: torch.Tensor,
     closed: torch.Tensor,
-    detach: bool = False,
-    noise: torch.Tensor | None = None,
-    noise_phases: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Run K steps on B recorded windows X (B, K, X_DIM), G (B, K, G_DIM), Y (B, K, Y_DIM).
 
     `closed` (B,) bool: which rollouts feed back the network's output (the others are teacher forced).
-    `noise` (X_DIM,): optional std of Gaussian noise on the normalised input (`pose_noise`).
     Returns the normalised predictions (B, K, Y_DIM) and the normalised targets."""
     B, K = X.shape[:2]
     dev = X.device
@@ -97,16 +93,9 @@ def rollout(
             phase_net.append(torch.where(cl > 0, ph, g_rec.view(B, lf.SAMPLES, PHASE)[:, lf.PAST]))
             x = torch.where(cl > 0, x_own, x_rec)
             g = torch.where(cl > 0, g_own, g_rec)
-        xn, gn = net.normalise_x(x), net.normalise_g(g)
-        if noise is not None:
-            xn = xn + noise * torch.randn_like(xn)
-            if noise_phases:
-                gn = gn + noise_phases * torch.randn_like(gn)
-        pred = net(xn, gn, film)
+        pred = net(net.normalise_x(x), net.normalise_g(g), film)
         preds.append(pred)
         prev = net.denormalise_y(pred.float())
-        if detach:
-            prev = prev.detach()
     return torch.stack(preds, 1), net.normalise_y(Y)
 
 
