@@ -18,7 +18,7 @@ from . import features as lf
 
 STEP, PAST, FUTURE, SAMPLES = lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES  # trajectory sampling
 TRAJ_CH, TRAJ_OUT_CH = lf.TRAJ_CH, lf.TRAJ_OUT_CH  # position xz, direction xz, velocity xz (, gait)
-NUM_BONES = lf.NUM_BONES  # phase bones
+NUM_BONES, POSE_CH = lf.NUM_BONES, lf.POSE_CH  # phase bones, pose channels per body joint
 # output layout: future trajectory, pose, root delta, phases, frequencies, contacts
 Y_TRAJ, Y_POSE, Y_DELTA = lf.TRAJ_OUT.start, lf.POSE_OUT.start, lf.DELTA_OUT.start
 Y_PHASE, Y_FREQ, Y_CONTACT = lf.PHASE_OUT.start, lf.FREQ_OUT.start, lf.CONTACT_OUT.start
@@ -313,6 +313,58 @@ def output_layer(hw, alpha, bias, y_mean, y_std):
 
 
 @njit(cache=True, error_model="numpy")
+def _shift_history(track, b):
+    """Session b's history rows moved up by one (the last row is then free for the new frame)."""
+    hist_pos, hist_dir, hist_vel = track.hist_pos, track.hist_dir, track.hist_vel
+    hist_gait, hist_phase = track.hist_gait, track.hist_phase
+    for r in range(hist_pos.shape[1] - 1):
+        for i in range(2):
+            hist_pos[b, r, i], hist_dir[b, r, i], hist_vel[b, r, i] = (
+                hist_pos[b, r + 1, i],
+                hist_dir[b, r + 1, i],
+                hist_vel[b, r + 1, i],
+            )
+        hist_gait[b, r] = hist_gait[b, r + 1]
+        for bone in range(NUM_BONES):
+            hist_phase[b, r, bone, 0], hist_phase[b, r, bone, 1] = (
+                hist_phase[b, r + 1, bone, 0],
+                hist_phase[b, r + 1, bone, 1],
+            )
+
+
+@njit(cache=True, error_model="numpy")
+def _local_rotations(y, parents, nc, ns, R, local, out):
+    """Local rotations (J, 4) into `out` from one output row y: each body joint's world frame from
+    its predicted forward (+Z) and up (+Y) axes, turned by the new yaw (cosine nc, sine ns), then
+    parent^T child as a quaternion; joint 0 stays the identity. R (J, 3, 3), local (3, 3): scratch."""
+    for r in range(3):
+        for col in range(3):
+            R[0, r, col] = 1.0 if r == col else 0.0
+    for j in range(1, parents.shape[0]):
+        o = Y_POSE + (j - 1) * POSE_CH
+        fx, fy, fz = y[o + 6], y[o + 7], y[o + 8]
+        n = math.sqrt(max(fx * fx + fy * fy + fz * fz, 1e-18))
+        zx, zy, zz = fx / n, fy / n, fz / n
+        ux, uy, uz = y[o + 9], y[o + 10], y[o + 11]
+        along = ux * zx + uy * zy + uz * zz
+        ux, uy, uz = ux - along * zx, uy - along * zy, uz - along * zz
+        n = math.sqrt(max(ux * ux + uy * uy + uz * uz, 1e-18))
+        ux, uy, uz = ux / n, uy / n, uz / n
+        xx, xy, xz = uy * zz - uz * zy, uz * zx - ux * zz, ux * zy - uy * zx  # up x forward
+        # columns (x, y, z) in the character frame, then turned about +Y by the new yaw
+        R[j, 0, 0], R[j, 1, 0], R[j, 2, 0] = nc * xx + ns * xz, xy, -ns * xx + nc * xz
+        R[j, 0, 1], R[j, 1, 1], R[j, 2, 1] = nc * ux + ns * uz, uy, -ns * ux + nc * uz
+        R[j, 0, 2], R[j, 1, 2], R[j, 2, 2] = nc * zx + ns * zz, zy, -ns * zx + nc * zz
+    out[0, 0], out[0, 1], out[0, 2], out[0, 3] = 0.0, 0.0, 0.0, 1.0
+    for j in range(1, parents.shape[0]):
+        p = max(parents[j], 0)
+        for r in range(3):
+            for col in range(3):
+                local[r, col] = R[p, 0, r] * R[j, 0, col] + R[p, 1, r] * R[j, 1, col] + R[p, 2, r] * R[j, 2, col]
+        out[j, 0], out[j, 1], out[j, 2], out[j, 3] = matrix_quat(local)
+
+
+@njit(cache=True, error_model="numpy")
 def advance(y, control, track, body, rules):
     """Apply the network output y (B, 353) to B sessions' state in place (root, history, future,
     pose, yaw, phases) and return their Hips translation (B, 3), local rotations (B, J, 4) and
@@ -338,20 +390,7 @@ def advance(y, control, track, body, rules):
         new_yaw = np.float32(wrap(yw + y[b, Y_DELTA + 2]))
         nc, ns = math.cos(new_yaw), math.sin(new_yaw)
         damp = 1.0 - still * (1.0 - rules.phase_damp)
-        # history: shift by one row, the new frame last
-        for r in range(H - 1):
-            for i in range(2):
-                hist_pos[b, r, i], hist_dir[b, r, i], hist_vel[b, r, i] = (
-                    hist_pos[b, r + 1, i],
-                    hist_dir[b, r + 1, i],
-                    hist_vel[b, r + 1, i],
-                )
-            hist_gait[b, r] = hist_gait[b, r + 1]
-            for bone in range(NUM_BONES):
-                hist_phase[b, r, bone, 0], hist_phase[b, r, bone, 1] = (
-                    hist_phase[b, r + 1, bone, 0],
-                    hist_phase[b, r + 1, bone, 1],
-                )
+        _shift_history(track, b)  # the new frame goes last
         # phases: advanced by the predicted frequency, blended with the predicted, at its amplitude
         for bone in range(NUM_BONES):
             cur_s, cur_c = hist_phase[b, H - 2, bone, 0], hist_phase[b, H - 2, bone, 1]
@@ -384,33 +423,7 @@ def advance(y, control, track, body, rules):
             for ch in range(pose.shape[2]):
                 pose[b, j, ch] = y[b, Y_POSE + j * pose.shape[2] + ch]
         yaw[b] = new_yaw
-        # world rotations: each body joint's frame from its forward (+Z) and up (+Y) axes, turned by the yaw
-        for r in range(3):
-            for col in range(3):
-                R[0, r, col] = 1.0 if r == col else 0.0
-        for j in range(1, J):
-            o = Y_POSE + (j - 1) * pose.shape[2]
-            fx, fy, fz = y[b, o + 6], y[b, o + 7], y[b, o + 8]
-            n = math.sqrt(max(fx * fx + fy * fy + fz * fz, 1e-18))
-            zx, zy, zz = fx / n, fy / n, fz / n
-            ux, uy, uz = y[b, o + 9], y[b, o + 10], y[b, o + 11]
-            along = ux * zx + uy * zy + uz * zz
-            ux, uy, uz = ux - along * zx, uy - along * zy, uz - along * zz
-            n = math.sqrt(max(ux * ux + uy * uy + uz * uz, 1e-18))
-            ux, uy, uz = ux / n, uy / n, uz / n
-            xx, xy, xz = uy * zz - uz * zy, uz * zx - ux * zz, ux * zy - uy * zx  # up x forward
-            # columns (x, y, z) in the character frame, then turned about +Y by the new yaw
-            R[j, 0, 0], R[j, 1, 0], R[j, 2, 0] = nc * xx + ns * xz, xy, -ns * xx + nc * xz
-            R[j, 0, 1], R[j, 1, 1], R[j, 2, 1] = nc * ux + ns * uz, uy, -ns * ux + nc * uz
-            R[j, 0, 2], R[j, 1, 2], R[j, 2, 2] = nc * zx + ns * zz, zy, -ns * zx + nc * zz
-        # local rotations: parent^T child, as quaternions; joint 0 stays the identity
-        out_rot[b, 0, 0], out_rot[b, 0, 1], out_rot[b, 0, 2], out_rot[b, 0, 3] = 0.0, 0.0, 0.0, 1.0
-        for j in range(1, J):
-            p = max(parents[j], 0)
-            for r in range(3):
-                for col in range(3):
-                    local[r, col] = R[p, 0, r] * R[j, 0, col] + R[p, 1, r] * R[j, 1, col] + R[p, 2, r] * R[j, 2, col]
-            out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = matrix_quat(local)
+        _local_rotations(y[b], parents, nc, ns, R, local, out_rot[b])
         # Hips: the predicted offset from the ground root (character frame), into the world
         hx, hz = to_world(y[b, Y_POSE], y[b, Y_POSE + 2], nc, ns)
         out_root[b, 0], out_root[b, 1], out_root[b, 2] = nx + hx, y[b, Y_POSE + 1], nz + hz
