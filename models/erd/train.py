@@ -35,7 +35,7 @@ from ..motion.rotations_torch import quat_apply_t, quat_to_matrix_t
 from ..motion.twist import bone_axes, transfer_twist_t
 from ..runlog import start_run
 from ..settings import REPO_ROOT
-from ..train_config import parse_overrides, use_bf16
+from ..train_config import parse_overrides, seeded_device, use_bf16
 from .dataset import TARGET_STYLES, split_hinges
 from .features import NB, POS, ROOTVEL, ROT, VEL
 from .model import ContentClassifier, ERDConfig, FTAttDiscriminator, Generator, fk_local, window_motion
@@ -613,11 +613,7 @@ def main(argv: list[str]) -> None:
 
         print(export_weights(Path(cfg.export)))
         return
-    torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    random.seed(cfg.seed)
-    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
+    device = seeded_device(cfg.threads, cfg.seed, cfg.device)
     bf16 = use_bf16(cfg.bf16, device)
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
     log = start_run(run_dir, out_dir)

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from ..runlog import start_run
 from ..settings import REPO_ROOT
-from ..train_config import parse_overrides, use_bf16
+from ..train_config import parse_overrides, seeded_device, use_bf16
 from . import features as lf
 from .weights import NORMALISATION
 
@@ -486,10 +486,7 @@ def main(argv: list[str]) -> None:
 
         print(export_weights(Path(cfg.export)))
         return
-    torch.set_num_threads(cfg.threads)
-    random.seed(cfg.seed)
-    torch.manual_seed(cfg.seed)
-    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
+    device = seeded_device(cfg.threads, cfg.seed, cfg.device)
     rng = np.random.default_rng(cfg.seed)
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
     log = start_run(run_dir, out_dir)
