@@ -51,3 +51,18 @@ def use_bf16(setting: str, device: torch.device) -> bool:
     except OSError:
         return False
     return " avx512_bf16" in flags or " amx_bf16" in flags
+
+
+def seeded_device(threads: int, seed: int, device: str) -> torch.device:
+    """A run's start: its thread count, every random generator seeded (Python's, numpy's global,
+    torch's), and its device ("auto": a GPU where there is one)."""
+    import random
+
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(threads)
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+    return torch.device(("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device)

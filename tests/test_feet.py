@@ -126,10 +126,11 @@ def test_two_bone_ik_reaches_its_target_and_keeps_the_foot_turned_as_it_was(bn_w
         hip = m.translations[t : t + 1, HIPS] + quat_apply(rots[:, HIPS], sk.offsets[up][None])
         new = rots.copy()
         row = lambda a: tuple(np.asarray(a, np.float64)[0])  # noqa: E731
+        leg = (row(rots[:, up]), row(rots[:, low]), row(rots[:, foot]))
+        bones = (tuple(sk.offsets[low]), tuple(sk.offsets[foot]))
         new[0, up], new[0, low], new[0, foot] = feet_kernels.two_bone_ik(
-            row(rots[:, HIPS]), row(rots[:, up]), row(rots[:, low]), row(rots[:, foot]), row(hip),
-            tuple(sk.offsets[low]), tuple(sk.offsets[foot]), row(target), 0.0,
-        )  # fmt: skip
+            row(rots[:, HIPS]), leg, row(hip), bones, row(target), 0.0
+        )
         g_new, p_new = fk(new, m.translations[t : t + 1], sk.parents)
         np.testing.assert_allclose(p_new[:, foot], target, atol=1e-3)  # cm
         assert abs(abs(np.sum(g_old[0, foot] * g_new[0, foot])) - 1) < 1e-9

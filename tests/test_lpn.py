@@ -291,17 +291,6 @@ def test_a_normalised_film_generator_keeps_telling_clips_apart_when_its_units_dr
     assert (films[True][0] - films[True][1]).abs().max() > 0.1
 
 
-def test_pose_noise_falls_on_the_fed_back_pose_and_never_on_the_control():
-    from models.lpn import features as lf
-    from models.lpn.train import TrainConfig, pose_noise_scale
-
-    scale = pose_noise_scale(TrainConfig(pose_noise=0.2)).numpy()
-    assert (scale[lf.TRAJ_IN] == 0).all() and np.allclose(scale[lf.POSE_IN], 0.2)
-    per_joint = pose_noise_scale(TrainConfig(pose_noise=0.2, noise_velocities=False)).numpy()[lf.POSE_IN]
-    per_joint = per_joint.reshape(lf.NB, lf.POSE_CH)
-    assert (per_joint[:, 3:6] == 0).all() and np.allclose(np.delete(per_joint, [3, 4, 5], axis=1), 0.2)
-
-
 def test_the_torso_turns_as_smoothly_as_real_walks(model, bn_walk):
     """The network can turn the spine ~180 degrees about itself and the chest back over a few
     frames; in between the pair bent against each other (the chest joint dropped 8 cm for one

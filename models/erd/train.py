@@ -35,7 +35,7 @@ from ..motion.rotations_torch import quat_apply_t, quat_to_matrix_t
 from ..motion.twist import bone_axes, transfer_twist_t
 from ..runlog import start_run
 from ..settings import REPO_ROOT
-from ..train_config import parse_overrides, use_bf16
+from ..train_config import parse_overrides, seeded_device, use_bf16
 from .dataset import TARGET_STYLES, split_hinges
 from .features import NB, POS, ROOTVEL, ROT, VEL
 from .model import ContentClassifier, ERDConfig, FTAttDiscriminator, Generator, fk_local, window_motion
@@ -502,19 +502,31 @@ class Run:
 
     def checkpoint(self, path: Path, it: int, data: Data, resumable: bool = True) -> None:
         """A checkpoint; a resumable one also holds what `--resume` needs (optimisers, RNG)."""
-        train = None
+        state = {
+            "generator": {k: v.detach().cpu() for k, v in self.gen.state_dict().items()},
+            "discriminator": {k: v.detach().cpu() for k, v in self.disc.state_dict().items()},
+            "model_config": asdict(self.mcfg),
+            "train_config": asdict(self.cfg),
+            "ref": data.stats["ref"],
+            "iter": it,
+            "seconds": self.schedule.elapsed_s,
+            "history": self.history,
+            "classifier_val_acc": self.clf_acc,
+            "argv": sys.argv,
+        }
         if resumable:
-            train = {
-                "opt_g": self.opt_g.state_dict(),
-                "opt_d": self.opt_d.state_dict(),
-                "disc_rot": None if self.disc_rot is None else self.disc_rot.state_dict(),
-                "opt_dr": None if self.opt_dr is None else self.opt_dr.state_dict(),
-                "schedule": asdict(self.schedule),
-                "rng": rng_state(data.train.rng),
-                "teacher": None if self.teacher is None else {k: v.cpu() for k, v in self.teacher.state_dict().items()},
-            }
-        seconds = self.schedule.elapsed_s
-        save(path, self.gen, self.disc, self.mcfg, self.cfg, data.stats, it, seconds, self.history, self.clf_acc, train)
+            state.update(
+                opt_g=self.opt_g.state_dict(),
+                opt_d=self.opt_d.state_dict(),
+                disc_rot=None if self.disc_rot is None else self.disc_rot.state_dict(),
+                opt_dr=None if self.opt_dr is None else self.opt_dr.state_dict(),
+                schedule=asdict(self.schedule),
+                rng=rng_state(data.train.rng),
+                teacher=None if self.teacher is None else {k: v.cpu() for k, v in self.teacher.state_dict().items()},
+            )
+        tmp = path.with_suffix(".tmp")
+        torch.save(state, tmp)
+        tmp.replace(path)
 
 
 def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor], it: int, autocast) -> dict:
@@ -601,11 +613,7 @@ def main(argv: list[str]) -> None:
 
         print(export_weights(Path(cfg.export)))
         return
-    torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    random.seed(cfg.seed)
-    device = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if cfg.device == "auto" else cfg.device)
+    device = seeded_device(cfg.threads, cfg.seed, cfg.device)
     bf16 = use_bf16(cfg.bf16, device)
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
     log = start_run(run_dir, out_dir)
@@ -661,28 +669,6 @@ def main(argv: list[str]) -> None:
         f"done: {it} iterations ({(it - first_it) / max(sched.elapsed_s - seconds0, 1e-9):.2f} it/s this session), "
         f"{sched.elapsed_s / 60:.1f} min of training in all, this session {(time.time() - t_start) / 60:.1f} min"
     )
-
-
-def save(path, gen, disc, mcfg, cfg, stats, it, seconds, history, clf_acc, train: dict | None = None) -> None:
-    """A checkpoint; with `train` (optimisers, schedule, RNG) one that `--resume` continues."""
-    tmp = path.with_suffix(".tmp")
-    torch.save(
-        {
-            "generator": {k: v.detach().cpu() for k, v in gen.state_dict().items()},
-            "discriminator": {k: v.detach().cpu() for k, v in disc.state_dict().items()},
-            "model_config": asdict(mcfg),
-            "train_config": asdict(cfg),
-            "ref": stats["ref"],
-            "iter": it,
-            "seconds": seconds,
-            "history": history,
-            "classifier_val_acc": clf_acc,
-            "argv": sys.argv,
-            **(train or {}),
-        },
-        tmp,
-    )
-    tmp.replace(path)
 
 
 if __name__ == "__main__":

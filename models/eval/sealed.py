@@ -14,6 +14,7 @@ import platform
 import subprocess
 import time
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -43,6 +44,14 @@ GATE_CONTENT = 0.90  # dataset 2 only: the content judge knows its ten contents
 FINAL_RUNS = "docs/eval/final_runs.md"
 
 
+class Judges(NamedTuple):
+    """What scores a row: the style judge, the older style and content judges, the real reference."""
+
+    style: Any  # style_judge.StyleJudge
+    old: Any  # judges.Judges
+    ref: Reference
+
+
 def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] | None = None, out: Path | None = None):
     """Score everything; write the report (docs/ for a final run, else out/)."""
     torch.set_num_threads(1)
@@ -54,11 +63,7 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
         else REPO_ROOT / ("docs" if final else "out/eval-quick" if quick else "out/eval-val")
     )
     judge, old = load_style_judge(), load_judges()
-    weights = get_settings().weights_dir
-    full = load_models(weights)
-    core = load_models(weights, core_only=True)
-    if methods is not None:
-        full, core = {k: v for k, v in full.items() if k in methods}, {k: v for k, v in core.items() if k in methods}
+    full, variants = _variants(methods)
     index = build_index([D2])
     d2_styles = {c.style for c in index}  # the styles scored: every method's, with dataset-2 clips
     styles = [
@@ -66,45 +71,12 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
     ]
     if quick:
         styles = styles[:2]
-    # the reference: TRAIN frames for the rotation support, VALIDATION clips for every radius and
-    # limit (a validation run keeps the odd ones for its real rows; a final run's are the test clips)
-    val = {s: load_motions(select(index, split="val", style=s)) for s in styles}
-    train = {s: load_motions(select(index, split="train", style=s)) for s in styles}
-    ref = Reference.fit(train, val if final else {s: v[0::2] for s, v in val.items()})
-    if final:
-        real = {s: load_motions(select(index, split="test", style=s)) for s in styles}
-    else:
-        real = {s: v[1::2] for s, v in val.items()}
-    if quick:
-        real = {s: v[:4] for s, v in real.items()}
-    # what each real clip performs: the style judge reads a clip against its session's content
-    real_contents = {s: [c.content for c in select(index, split=split, style=s)] for s in styles}
-    if not final:
-        real_contents = {s: v[1::2] for s, v in real_contents.items()}
-    real_contents = {s: v[: len(real[s])] for s, v in real_contents.items()}
+    ref, real, real_contents = _real_clips(index, styles, final, quick)
+    judges = Judges(judge, old, ref)
     sources = input_sources(split, quick=quick)
-    variants: dict[str, StreamingModel | None] = {"identity": None}
-    for name in full:
-        variants[name], variants[f"{name} core"] = full[name], core[name]
-
-    rows: list[dict] = []
-    for s in styles:
-        rows.append(_row("real", None, "fresh", s, real[s], None, real_contents[s], judge, old, ref))
+    rows = [_row("real", None, "fresh", s, real[s], None, real_contents[s], judges) for s in styles]
     for source in sources:
-        measured = [Input.of(m, ref) for m in source.motions]
-        for variant, model in variants.items():
-            fades: dict[str, list[np.ndarray]] = {}
-            fresh = stylise_toward(model, source.motions, styles, fades)
-            for s in styles:
-                row = _row(variant, source, "fresh", s, fresh[s], measured, source.contents, judge, old, ref)
-                rows.append({**row, "faded": faded_share(fades[s])})
-            if model is None:
-                continue
-            placed, running = run_after_history(model, source.motions, styles, fades)
-            placed_measured = [Input.of(m, ref) for m in placed]
-            for s in styles:
-                row = _row(variant, source, "running", s, running[s], placed_measured, source.contents, judge, old, ref)
-                rows.append({**row, "faded": faded_share(fades[s])})
+        rows += _source_rows(source, variants, styles, judges)
     for r in rows:
         r["gates"] = gates(r, rows)
     results = {
@@ -135,6 +107,65 @@ def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] 
     return results
 
 
+def _variants(
+    methods: tuple[str, ...] | None,
+) -> tuple[dict[str, StreamingModel], dict[str, StreamingModel | None]]:
+    """(every committed method, or those of `methods`; the variants scored: the input unchanged
+    (None), then each method and its published core alone)."""
+    weights = get_settings().weights_dir
+    full = load_models(weights)
+    core = load_models(weights, core_only=True)
+    if methods is not None:
+        full, core = {k: v for k, v in full.items() if k in methods}, {k: v for k, v in core.items() if k in methods}
+    variants: dict[str, StreamingModel | None] = {"identity": None}
+    for name in full:
+        variants[name], variants[f"{name} core"] = full[name], core[name]
+    return full, variants
+
+
+def _real_clips(index, styles: list[str], final: bool, quick: bool) -> tuple[Reference, dict, dict]:
+    """(the reference, the real clips of each style, the content of each). The reference: TRAIN
+    frames for the rotation support, VALIDATION clips for every radius and limit (a validation
+    run keeps the odd ones for its real rows; a final run's are the test clips)."""
+    split = "test" if final else "val"
+    val = {s: load_motions(select(index, split="val", style=s)) for s in styles}
+    train = {s: load_motions(select(index, split="train", style=s)) for s in styles}
+    ref = Reference.fit(train, val if final else {s: v[0::2] for s, v in val.items()})
+    if final:
+        real = {s: load_motions(select(index, split="test", style=s)) for s in styles}
+    else:
+        real = {s: v[1::2] for s, v in val.items()}
+    if quick:
+        real = {s: v[:4] for s, v in real.items()}
+    # what each real clip performs: the style judge reads a clip against its session's content
+    contents = {s: [c.content for c in select(index, split=split, style=s)] for s in styles}
+    if not final:
+        contents = {s: v[1::2] for s, v in contents.items()}
+    return ref, real, {s: v[: len(real[s])] for s, v in contents.items()}
+
+
+def _source_rows(
+    source: Source, variants: dict[str, StreamingModel | None], styles: list[str], judges: Judges
+) -> list[dict]:
+    """Every variant's rows on one source: fresh sessions, then (for a model) running ones."""
+    rows = []
+    measured = [Input.of(m, judges.ref) for m in source.motions]
+    for variant, model in variants.items():
+        fades: dict[str, list[np.ndarray]] = {}
+        fresh = stylise_toward(model, source.motions, styles, fades)
+        for s in styles:
+            row = _row(variant, source, "fresh", s, fresh[s], measured, source.contents, judges)
+            rows.append({**row, "faded": faded_share(fades[s])})
+        if model is None:
+            continue
+        placed, running = run_after_history(model, source.motions, styles, fades)
+        placed_measured = [Input.of(m, judges.ref) for m in placed]
+        for s in styles:
+            row = _row(variant, source, "running", s, running[s], placed_measured, source.contents, judges)
+            rows.append({**row, "faded": faded_share(fades[s])})
+    return rows
+
+
 def _row(
     variant,
     source: Source | None,
@@ -143,13 +174,12 @@ def _row(
     outs,
     inputs: list[Input] | None,
     contents,
-    judge,
-    old,
-    ref: Reference,
+    judges: Judges,
 ) -> dict:
     """One row: a variant's outputs toward `style` from one source's inputs (measured once by
     the caller; None for real clips)."""
-    read = judge.predict(outs, D2 if source is None else source.dataset, contents)
+    ref = judges.ref
+    read = judges.style.predict(outs, D2 if source is None else source.dataset, contents)
     phys: list[ClipPhysics] = [
         measure(ref, style, o, None if inputs is None else inputs[i]) for i, o in enumerate(outs)
     ]
@@ -167,9 +197,9 @@ def _row(
     }
     if source is not None and source.dataset == D2:
         feats = [clip_features(m) for m in outs]
-        got = old.predict_content(feats)
+        got = judges.old.predict_content(feats)
         row["content_acc"] = share(sum(g == c for g, c in zip(got, contents)), len(got))
-        row["style_acc_old"] = share(sum(p == style for p in old.predict_style(feats)), len(feats))
+        row["style_acc_old"] = share(sum(p == style for p in judges.old.predict_style(feats)), len(feats))
     return row
 
 

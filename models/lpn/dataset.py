@@ -35,7 +35,7 @@ CACHE_VERSION = 1
 D1, D2 = "bandai-namco-1", "bandai-namco-2"
 D1_CONTENTS = ("walk", "run", "dash", "walk-back", "walk-left", "walk-right")
 D2_CONTENTS = ("walk", "walk-turn-left", "walk-turn-right", "run")
-RUNNING = ("run", "dash", "run-back", "run-side")
+RUNNING = ("run", "dash")
 D2_STYLES = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful")
 HELD_OUT = ("d1-giant", "d1-chimpira", "d1-proud")
 
@@ -46,15 +46,11 @@ class DataConfig:
     d2_contents: tuple[str, ...] = D2_CONTENTS
     held_out: tuple[str, ...] = HELD_OUT
     mirror_train: bool = True
-    hundred_style_dir: str = ""  # train on a 100STYLE folder instead of Bandai Namco
     offsets: tuple[int, ...] = tuple(int(o) for o in lf.OFFSETS)
     version: int = CACHE_VERSION
 
     def key(self) -> str:
-        fields = asdict(self)
-        if not fields["hundred_style_dir"]:  # Bandai Namco caches keep the key they had before the option existed
-            del fields["hundred_style_dir"]
-        return hashlib.sha1(json.dumps(fields, sort_keys=True).encode()).hexdigest()[:10]
+        return hashlib.sha1(json.dumps(asdict(self), sort_keys=True).encode()).hexdigest()[:10]
 
 
 def style_name(clip: Clip) -> str:
@@ -66,22 +62,12 @@ def gait_of(content: str) -> float:
 
 
 def locomotion_clips(cfg: DataConfig = DataConfig()) -> list[Clip]:
-    if cfg.hundred_style_dir:
-        from .hundred_style import clips
-
-        return clips(Path(cfg.hundred_style_dir))
     index = build_index([D1, D2])
     return select(index, dataset=D1, content=cfg.d1_contents) + select(index, dataset=D2, content=cfg.d2_contents)
 
 
 def all_styles(cfg: DataConfig = DataConfig()) -> list[str]:
-    """Trained styles: the dataset-2 styles first (normal at 0), then dataset 1's minus the held-out ones
-    (100STYLE: normal, then the others)."""
-    if cfg.hundred_style_dir:
-        names = {c.style for c in locomotion_clips(cfg)} - set(cfg.held_out)
-        if "normal" not in names:
-            raise ValueError(f"{cfg.hundred_style_dir}: no Neutral style, the base style of LPN-FiLM")
-        return ["normal"] + sorted(names - {"normal"})
+    """Trained styles: the dataset-2 styles first (normal at 0), then dataset 1's minus the held-out ones."""
     d1 = sorted({style_name(c) for c in locomotion_clips(cfg) if c.dataset == D1} - set(cfg.held_out))
     return list(D2_STYLES) + d1
 
@@ -283,14 +269,6 @@ def _frames_of_every_clip(jobs: Sequence[tuple[Motion, Any]]) -> Iterator[ClipFr
         yield from pool.map(_clip_frames_job, jobs, chunksize=8)
 
 
-def _load(clips: list[Clip]) -> list[Motion]:
-    if clips and clips[0].dataset != D1 and clips[0].dataset != D2:
-        from .hundred_style import load_clip
-
-        return [load_clip(c) for c in clips]
-    return load_motions(clips)
-
-
 def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
     out = cache_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
@@ -309,7 +287,7 @@ def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
         if not cl:
             meta[split] = {"clips": 0, "samples": 0}
             continue
-        arrays = _build_split(cl, _load(cl), everything, cfg.mirror_train and split == "train", log)
+        arrays = _build_split(cl, load_motions(cl), everything, cfg.mirror_train and split == "train", log)
         np.savez(out / f"{split}.npz", **arrays)
         meta[split] = {"clips": len(arrays["names"]), "samples": int(len(arrays["X"]))}
     with np.load(out / "train.npz") as z:

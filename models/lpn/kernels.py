@@ -18,7 +18,7 @@ from . import features as lf
 
 STEP, PAST, FUTURE, SAMPLES = lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES  # trajectory sampling
 TRAJ_CH, TRAJ_OUT_CH = lf.TRAJ_CH, lf.TRAJ_OUT_CH  # position xz, direction xz, velocity xz (, gait)
-NUM_BONES = lf.NUM_BONES  # phase bones
+NUM_BONES, POSE_CH = lf.NUM_BONES, lf.POSE_CH  # phase bones, pose channels per body joint
 # output layout: future trajectory, pose, root delta, phases, frequencies, contacts
 Y_TRAJ, Y_POSE, Y_DELTA = lf.TRAJ_OUT.start, lf.POSE_OUT.start, lf.DELTA_OUT.start
 Y_PHASE, Y_FREQ, Y_CONTACT = lf.PHASE_OUT.start, lf.FREQ_OUT.start, lf.CONTACT_OUT.start
@@ -39,6 +39,35 @@ class Track(NamedTuple):
     fut_vel: np.ndarray  # (B, FUTURE, 2)
     fut_phase: np.ndarray  # (B, FUTURE, NUM_BONES, 2)
     pose: np.ndarray  # (B, NB, POSE_CH) in its character frame
+
+
+class Tracker(NamedTuple):
+    """B sessions' input tracker: the state entries of the same names, updated in place."""
+
+    frame: np.ndarray  # (B,) frames stepped so far
+    in_pos: np.ndarray  # (B, 2) the input's last Hips xz
+    in_vel: np.ndarray  # (B, 2) its smoothed Hips velocity
+
+
+class Body(NamedTuple):
+    """The model's skeleton and frame rate."""
+
+    parents: np.ndarray  # (J,)
+    offsets: np.ndarray  # (J, 3)
+    facing: np.ndarray  # (4,) left and right hip and shoulder joints (`facing_yaw`)
+    fps: float
+
+
+class Rules(NamedTuple):
+    """The runtime's constants around the network (`runtime.py` says what each is for)."""
+
+    smooth: float  # per-frame smoothing of the input's velocity
+    run_speed: float
+    stop_speed: float
+    root_hold: float
+    phase_damp: float
+    phase_blend: float
+    contact_threshold: float
 
 
 # --------------------------------------------------------------------------- small maths on scalars and tuples
@@ -102,12 +131,13 @@ def facing_yaw(gpos, facing):
 
 
 @njit(cache=True, error_model="numpy")
-def control_rows(
-    control, given, root, rotations, frame, in_pos, in_vel, parents, offsets, facing, fps, smooth, run_speed
-):
+def control_rows(control, given, root, rotations, tracker, body, rules):
     """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others from
     the input's smoothed Hips velocity in its facing frame, its yaw, run above `run_speed`. The
     input tracker advances for every session, so a session can switch modes smoothly."""
+    frame, in_pos, in_vel = tracker
+    parents, offsets, facing, fps = body
+    smooth, run_speed = rules.smooth, rules.run_speed
     B, J = rotations.shape[0], rotations.shape[1]
     out = np.empty((B, 4), np.float32)
     grot, gpos = np.empty((J, 4)), np.empty((J, 3))
@@ -202,9 +232,11 @@ def elu_dense(h, w, b, out):
 
 
 @njit(cache=True, error_model="numpy")
-def gating(g, scale, w0, b0, w1, b1, w2, b2):
-    """Expert blend (B, E): softmax of the gating MLP (two ELU layers) on the phase features
-    g / scale. Weights as (in, out), so each row of a product is a sum of contiguous rows."""
+def gating(g, scale, layers):
+    """Expert blend (B, E): softmax of the gating MLP (two ELU layers, `layers` its three (weight,
+    bias)) on the phase features g / scale. Weights as (in, out), so each row of a product is a sum
+    of contiguous rows."""
+    (w0, b0), (w1, b1), (w2, b2) = layers
     B = g.shape[0]
     n0, n1, E = w0.shape[1], w1.shape[1], w2.shape[1]
     alpha = np.empty((B, E), np.float32)
@@ -281,12 +313,65 @@ def output_layer(hw, alpha, bias, y_mean, y_std):
 
 
 @njit(cache=True, error_model="numpy")
-def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, phase_blend, contact_threshold):
+def _shift_history(track, b):
+    """Session b's history rows moved up by one (the last row is then free for the new frame)."""
+    hist_pos, hist_dir, hist_vel = track.hist_pos, track.hist_dir, track.hist_vel
+    hist_gait, hist_phase = track.hist_gait, track.hist_phase
+    for r in range(hist_pos.shape[1] - 1):
+        for i in range(2):
+            hist_pos[b, r, i], hist_dir[b, r, i], hist_vel[b, r, i] = (
+                hist_pos[b, r + 1, i],
+                hist_dir[b, r + 1, i],
+                hist_vel[b, r + 1, i],
+            )
+        hist_gait[b, r] = hist_gait[b, r + 1]
+        for bone in range(NUM_BONES):
+            hist_phase[b, r, bone, 0], hist_phase[b, r, bone, 1] = (
+                hist_phase[b, r + 1, bone, 0],
+                hist_phase[b, r + 1, bone, 1],
+            )
+
+
+@njit(cache=True, error_model="numpy")
+def _local_rotations(y, parents, nc, ns, R, local, out):
+    """Local rotations (J, 4) into `out` from one output row y: each body joint's world frame from
+    its predicted forward (+Z) and up (+Y) axes, turned by the new yaw (cosine nc, sine ns), then
+    parent^T child as a quaternion; joint 0 stays the identity. R (J, 3, 3), local (3, 3): scratch."""
+    for r in range(3):
+        for col in range(3):
+            R[0, r, col] = 1.0 if r == col else 0.0
+    for j in range(1, parents.shape[0]):
+        o = Y_POSE + (j - 1) * POSE_CH
+        fx, fy, fz = y[o + 6], y[o + 7], y[o + 8]
+        n = math.sqrt(max(fx * fx + fy * fy + fz * fz, 1e-18))
+        zx, zy, zz = fx / n, fy / n, fz / n
+        ux, uy, uz = y[o + 9], y[o + 10], y[o + 11]
+        along = ux * zx + uy * zy + uz * zz
+        ux, uy, uz = ux - along * zx, uy - along * zy, uz - along * zz
+        n = math.sqrt(max(ux * ux + uy * uy + uz * uz, 1e-18))
+        ux, uy, uz = ux / n, uy / n, uz / n
+        xx, xy, xz = uy * zz - uz * zy, uz * zx - ux * zz, ux * zy - uy * zx  # up x forward
+        # columns (x, y, z) in the character frame, then turned about +Y by the new yaw
+        R[j, 0, 0], R[j, 1, 0], R[j, 2, 0] = nc * xx + ns * xz, xy, -ns * xx + nc * xz
+        R[j, 0, 1], R[j, 1, 1], R[j, 2, 1] = nc * ux + ns * uz, uy, -ns * ux + nc * uz
+        R[j, 0, 2], R[j, 1, 2], R[j, 2, 2] = nc * zx + ns * zz, zy, -ns * zx + nc * zz
+    out[0, 0], out[0, 1], out[0, 2], out[0, 3] = 0.0, 0.0, 0.0, 1.0
+    for j in range(1, parents.shape[0]):
+        p = max(parents[j], 0)
+        for r in range(3):
+            for col in range(3):
+                local[r, col] = R[p, 0, r] * R[j, 0, col] + R[p, 1, r] * R[j, 1, col] + R[p, 2, r] * R[j, 2, col]
+        out[j, 0], out[j, 1], out[j, 2], out[j, 3] = matrix_quat(local)
+
+
+@njit(cache=True, error_model="numpy")
+def advance(y, control, track, body, rules):
     """Apply the network output y (B, 353) to B sessions' state in place (root, history, future,
     pose, yaw, phases) and return their Hips translation (B, 3), local rotations (B, J, 4) and
     contacts (B, 2). Phases advance by the predicted frequency, blended with the predicted phase;
     below `stop_speed` the phases are damped and part of the root motion is held back."""
     yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel, fut_phase, pose = track
+    parents, fps = body.parents, body.fps
     B, H, J = y.shape[0], hist_pos.shape[1], parents.shape[0]
     out_root = np.empty((B, 3), np.float32)
     out_rot = np.empty((B, J, 4), np.float32)
@@ -298,27 +383,14 @@ def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, 
         yw = float(yaw[b])
         c, s = math.cos(yw), math.sin(yw)
         px, pz = hist_pos[b, H - 1, 0], hist_pos[b, H - 1, 1]
-        still = min(max(1.0 - math.hypot(control[b, 0], control[b, 1]) / stop_speed, 0.0), 1.0)
-        keep = 1.0 - root_hold * still
+        still = min(max(1.0 - math.hypot(control[b, 0], control[b, 1]) / rules.stop_speed, 0.0), 1.0)
+        keep = 1.0 - rules.root_hold * still
         dx, dz = to_world(y[b, Y_DELTA] * keep, y[b, Y_DELTA + 1] * keep, c, s)
         nx, nz = np.float32(px + dx), np.float32(pz + dz)
         new_yaw = np.float32(wrap(yw + y[b, Y_DELTA + 2]))
         nc, ns = math.cos(new_yaw), math.sin(new_yaw)
-        damp = 1.0 - still * (1.0 - phase_damp)
-        # history: shift by one row, the new frame last
-        for r in range(H - 1):
-            for i in range(2):
-                hist_pos[b, r, i], hist_dir[b, r, i], hist_vel[b, r, i] = (
-                    hist_pos[b, r + 1, i],
-                    hist_dir[b, r + 1, i],
-                    hist_vel[b, r + 1, i],
-                )
-            hist_gait[b, r] = hist_gait[b, r + 1]
-            for bone in range(NUM_BONES):
-                hist_phase[b, r, bone, 0], hist_phase[b, r, bone, 1] = (
-                    hist_phase[b, r + 1, bone, 0],
-                    hist_phase[b, r + 1, bone, 1],
-                )
+        damp = 1.0 - still * (1.0 - rules.phase_damp)
+        _shift_history(track, b)  # the new frame goes last
         # phases: advanced by the predicted frequency, blended with the predicted, at its amplitude
         for bone in range(NUM_BONES):
             cur_s, cur_c = hist_phase[b, H - 2, bone, 0], hist_phase[b, H - 2, bone, 1]
@@ -327,8 +399,8 @@ def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, 
             # features are A (sin phi, cos phi): phi + d turns (s, c) into (s cos d + c sin d, c cos d - s sin d)
             adv_s = cur_s * math.cos(d) + cur_c * math.sin(d)
             adv_c = cur_c * math.cos(d) - cur_s * math.sin(d)
-            bs = (1.0 - phase_blend) * adv_s + phase_blend * pred_s
-            bc = (1.0 - phase_blend) * adv_c + phase_blend * pred_c
+            bs = (1.0 - rules.phase_blend) * adv_s + rules.phase_blend * pred_s
+            bc = (1.0 - rules.phase_blend) * adv_c + rules.phase_blend * pred_c
             scale = math.sqrt(pred_s * pred_s + pred_c * pred_c) / math.sqrt(max(bs * bs + bc * bc, 1e-16)) * damp
             hist_phase[b, H - 1, bone, 0], hist_phase[b, H - 1, bone, 1] = bs * scale, bc * scale
         hist_pos[b, H - 1, 0], hist_pos[b, H - 1, 1] = nx, nz
@@ -351,36 +423,10 @@ def advance(y, control, track, parents, fps, stop_speed, root_hold, phase_damp, 
             for ch in range(pose.shape[2]):
                 pose[b, j, ch] = y[b, Y_POSE + j * pose.shape[2] + ch]
         yaw[b] = new_yaw
-        # world rotations: each body joint's frame from its forward (+Z) and up (+Y) axes, turned by the yaw
-        for r in range(3):
-            for col in range(3):
-                R[0, r, col] = 1.0 if r == col else 0.0
-        for j in range(1, J):
-            o = Y_POSE + (j - 1) * pose.shape[2]
-            fx, fy, fz = y[b, o + 6], y[b, o + 7], y[b, o + 8]
-            n = math.sqrt(max(fx * fx + fy * fy + fz * fz, 1e-18))
-            zx, zy, zz = fx / n, fy / n, fz / n
-            ux, uy, uz = y[b, o + 9], y[b, o + 10], y[b, o + 11]
-            along = ux * zx + uy * zy + uz * zz
-            ux, uy, uz = ux - along * zx, uy - along * zy, uz - along * zz
-            n = math.sqrt(max(ux * ux + uy * uy + uz * uz, 1e-18))
-            ux, uy, uz = ux / n, uy / n, uz / n
-            xx, xy, xz = uy * zz - uz * zy, uz * zx - ux * zz, ux * zy - uy * zx  # up x forward
-            # columns (x, y, z) in the character frame, then turned about +Y by the new yaw
-            R[j, 0, 0], R[j, 1, 0], R[j, 2, 0] = nc * xx + ns * xz, xy, -ns * xx + nc * xz
-            R[j, 0, 1], R[j, 1, 1], R[j, 2, 1] = nc * ux + ns * uz, uy, -ns * ux + nc * uz
-            R[j, 0, 2], R[j, 1, 2], R[j, 2, 2] = nc * zx + ns * zz, zy, -ns * zx + nc * zz
-        # local rotations: parent^T child, as quaternions; joint 0 stays the identity
-        out_rot[b, 0, 0], out_rot[b, 0, 1], out_rot[b, 0, 2], out_rot[b, 0, 3] = 0.0, 0.0, 0.0, 1.0
-        for j in range(1, J):
-            p = max(parents[j], 0)
-            for r in range(3):
-                for col in range(3):
-                    local[r, col] = R[p, 0, r] * R[j, 0, col] + R[p, 1, r] * R[j, 1, col] + R[p, 2, r] * R[j, 2, col]
-            out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = matrix_quat(local)
+        _local_rotations(y[b], parents, nc, ns, R, local, out_rot[b])
         # Hips: the predicted offset from the ground root (character frame), into the world
         hx, hz = to_world(y[b, Y_POSE], y[b, Y_POSE + 2], nc, ns)
         out_root[b, 0], out_root[b, 1], out_root[b, 2] = nx + hx, y[b, Y_POSE + 1], nz + hz
-        contacts[b, 0] = y[b, Y_CONTACT] > contact_threshold
-        contacts[b, 1] = y[b, Y_CONTACT + 1] > contact_threshold
+        contacts[b, 0] = y[b, Y_CONTACT] > rules.contact_threshold
+        contacts[b, 1] = y[b, Y_CONTACT + 1] > rules.contact_threshold
     return out_root, out_rot, contacts

@@ -5,10 +5,12 @@ Teacher forcing alone trains a controller that never sees its own mistakes. A ro
 recorded frame; from then on the pose, root track, trajectory (the predicted future blended toward
 the recording moved with the network's root, by the runtime's rule) and phases come from the
 network's previous prediction. Every step is scored against the recorded next frame; gradients
-flow through the whole rollout unless `detach`. "World" is the rollout's first character frame.
+flow through the whole rollout. "World" is the rollout's first character frame.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -61,18 +63,13 @@ def rollout(
     Y: torch.Tensor,
     film: torch.Tensor,
     closed: torch.Tensor,
-    detach: bool = False,
-    noise: torch.Tensor | None = None,
-    noise_phases: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Run K steps on B recorded windows X (B, K, X_DIM), G (B, K, G_DIM), Y (B, K, Y_DIM).
 
     `closed` (B,) bool: which rollouts feed back the network's output (the others are teacher forced).
-    `noise` (X_DIM,): optional std of Gaussian noise on the normalised input (`pose_noise`).
     Returns the normalised predictions (B, K, Y_DIM) and the normalised targets."""
     B, K = X.shape[:2]
     dev = X.device
-    fps = lf.FPS
     beta = control_weights(dev)
     cl = closed.view(B, 1).float()
     # the recording's root track in world (the first frame's character frame), from its root deltas
@@ -83,36 +80,41 @@ def rollout(
         yaw_rec.append(yaw_rec[k] + d[:, k, 2])
     o_net, yaw_net = [o_rec[0]], [yaw_rec[0]]  # the network's own track, frame by frame
     phase_net = [G[:, 0].view(B, lf.SAMPLES, PHASE)[:, lf.PAST]]  # its current phase, frame by frame
+    tracks = Tracks(o_rec, yaw_rec, o_net, yaw_net, phase_net)
     preds, prev = [], None
     for k in range(K):
         x_rec, g_rec = X[:, k], G[:, k]
         if prev is None:
             x, g = x_rec, g_rec
         else:
-            x_own, g_own, o, yw, ph = _own_inputs(
-                prev, x_rec, g_rec, k, o_rec, yaw_rec, o_net, yaw_net, phase_net, beta, fps
-            )
+            x_own, g_own, o, yw, ph = _own_inputs(prev, x_rec, g_rec, k, tracks, beta)
             o_net.append(torch.where(cl > 0, o, o_rec[k]))
             yaw_net.append(torch.where(closed, yw, yaw_rec[k]))
             phase_net.append(torch.where(cl > 0, ph, g_rec.view(B, lf.SAMPLES, PHASE)[:, lf.PAST]))
             x = torch.where(cl > 0, x_own, x_rec)
             g = torch.where(cl > 0, g_own, g_rec)
-        xn, gn = net.normalise_x(x), net.normalise_g(g)
-        if noise is not None:
-            xn = xn + noise * torch.randn_like(xn)
-            if noise_phases:
-                gn = gn + noise_phases * torch.randn_like(gn)
-        pred = net(xn, gn, film)
+        pred = net(net.normalise_x(x), net.normalise_g(g), film)
         preds.append(pred)
         prev = net.denormalise_y(pred.float())
-        if detach:
-            prev = prev.detach()
     return torch.stack(preds, 1), net.normalise_y(Y)
 
 
-def _own_inputs(y, x_rec, g_rec, k, o_rec, yaw_rec, o_net, yaw_net, phase_net, beta, fps):
+class Tracks(NamedTuple):
+    """A rollout's root tracks in world, one entry a frame: the recording's, from its root deltas,
+    and the network's own so far (with its current phase)."""
+
+    rec_pos: list[torch.Tensor]  # (B, 2) each
+    rec_yaw: list[torch.Tensor]  # (B,)
+    pos: list[torch.Tensor]
+    yaw: list[torch.Tensor]
+    phase: list[torch.Tensor]  # (B, PHASE)
+
+
+def _own_inputs(y, x_rec, g_rec, k: int, tracks: Tracks, beta: torch.Tensor):
     """The input of step k built from the previous step's (denormalised) output y, and the
     network's new root position, yaw and current phase."""
+    o_rec, yaw_rec, o_net, yaw_net, phase_net = tracks
+    fps = lf.FPS
     B = y.shape[0]
     delta = y[:, lf.DELTA_OUT]
     o = o_net[k - 1] + to_world(delta[:, :2], yaw_net[k - 1])

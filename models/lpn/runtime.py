@@ -91,7 +91,7 @@ class LPNModel(LPNStyles):
         self.E = config["model"]["experts"]
         self.H = config["model"]["hidden"]
         a = arrays
-        self.gating = [(a[f"gating.{i}.weight"].T.copy(), a[f"gating.{i}.bias"]) for i in (0, 2, 4)]
+        self.gating = tuple((a[f"gating.{i}.weight"].T.copy(), a[f"gating.{i}.bias"]) for i in (0, 2, 4))
         self.layers = []
         for name in ("l1", "l2", "l3"):
             W = a[f"{name}.weight"]  # (E, in, out)
@@ -377,26 +377,20 @@ class LPNModel(LPNStyles):
         else:
             control = np.ascontiguousarray(frames.control, np.float32)
             given = control[:, 4] > 0.5
-        smooth = 1.0 - np.exp(-1.0 / (self.fps * CONTROL_SMOOTH_S))
-        return kernels.control_rows(
-            control,
-            given,
-            np.ascontiguousarray(root),
-            np.ascontiguousarray(rot_in),
-            s["frame"],
-            s["in_pos"],
-            s["in_vel"],
-            self.parents,
-            self.offsets,
-            self._facing_joints,
-            self.fps,
-            smooth,
-            RUN_SPEED,
-        )
+        tracker = kernels.Tracker(*(s[k] for k in kernels.Tracker._fields))
+        root, rot_in = np.ascontiguousarray(root), np.ascontiguousarray(rot_in)
+        return kernels.control_rows(control, given, root, rot_in, tracker, self._body, self._rules)
 
     @cached_property
-    def _facing_joints(self) -> np.ndarray:
-        return np.array(self.facing_joints, np.int64)
+    def _body(self) -> kernels.Body:
+        return kernels.Body(self.parents, self.offsets, np.array(self.facing_joints, np.int64), self.fps)
+
+    @cached_property
+    def _rules(self) -> kernels.Rules:
+        smooth = 1.0 - np.exp(-1.0 / (self.fps * CONTROL_SMOOTH_S))
+        return kernels.Rules(
+            smooth, RUN_SPEED, STOP_SPEED, STOP_ROOT_HOLD, STOP_PHASE_DAMP, PHASE_BLEND, CONTACT_THRESHOLD
+        )
 
     @cached_property
     def _state_layout(self) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
@@ -435,8 +429,7 @@ class LPNModel(LPNStyles):
         per expert layer (all experts side by side), the rest per-row kernels."""
         x, g = np.ascontiguousarray(x, np.float32), np.ascontiguousarray(g, np.float32)
         film = np.ascontiguousarray(film, np.float32)
-        (w0, b0), (w1, b1), (w2, b2) = self.gating
-        alpha = kernels.gating(g, self.g_scale, w0, b0, w1, b1, w2, b2)
+        alpha = kernels.gating(g, self.g_scale, self.gating)
         h = (x - self.x_mean) / self.x_std
         (W1, bias1, n1), (W2, bias2, n2), (W3, bias3, _) = self.layers
         p1, p2, p3 = self._products
@@ -470,18 +463,7 @@ class LPNModel(LPNStyles):
         translation, local rotations and contacts. The training clips hardly ever stop after
         moving, so below STOP_SPEED the phases are damped toward the standing amplitude and most
         of the root translation is held back; either alone leaves a shuffle."""
-        return kernels.advance(
-            y,
-            control,
-            _track(s),
-            self.parents,
-            self.fps,
-            STOP_SPEED,
-            STOP_ROOT_HOLD,
-            STOP_PHASE_DAMP,
-            PHASE_BLEND,
-            CONTACT_THRESHOLD,
-        )
+        return kernels.advance(y, control, _track(s), self._body, self._rules)
 
     # ------------------------------------------------------------------ kinematics
 

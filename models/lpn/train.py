@@ -18,8 +18,9 @@ import math
 import random
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -27,7 +28,7 @@ from tqdm import tqdm
 
 from ..runlog import start_run
 from ..settings import REPO_ROOT
-from ..train_config import parse_overrides, use_bf16
+from ..train_config import parse_overrides, seeded_device, use_bf16
 from . import features as lf
 from .weights import NORMALISATION
 
@@ -44,20 +45,14 @@ class TrainConfig:
     hidden: int = 256  # 512 (the paper) runs at 1400 samples/s on 2 cores and exceeds 12 MB in float16; see MODEL_CARD
     dropout: float = 0.3
     film_norm: bool = True  # LPNConfig.film_norm: keeps the FiLM generator's units from saturating
-    # closed-loop training (`rollout.py`): frames per rollout (1 = teacher forcing), the share of
-    # rollouts fed back the network's own output from `closed_from` to `closed_to` over the first
-    # `closed_ramp` of the schedule, and whether gradients stop at each fed-back output
+    # closed-loop training (`rollout.py`): frames per rollout (1 = teacher forcing) and the share of
+    # rollouts fed back the network's own output, from `closed_from` to `closed_to` over the first
+    # `closed_ramp` of the schedule
     rollout: int = 8
     closed_from: float = 0.25
     closed_to: float = 1.0
     closed_ramp: float = 0.3
-    detach: bool = False
     val_rollouts: int = 32  # per style, for the closed-loop validation loss
-    # std of Gaussian noise on the normalised input pose (the pose the runtime feeds back from the
-    # network's own last output) and phases (0 = none)
-    pose_noise: float = 0.0
-    noise_velocities: bool = True  # with pose_noise: also on the joints' velocities (False: positions and axes only)
-    noise_phases: bool = True  # with pose_noise: also on the phases
     minutes: float = 60.0  # this session's wall-clock budget
     schedule_minutes: float = 0.0  # training time the cosine spans, across resumed sessions (0: `minutes`)
     max_iters: int = 1_000_000
@@ -65,7 +60,6 @@ class TrainConfig:
     lr_decay_to: float = 0.05  # cosine to this fraction of lr over the schedule
     weight_decay: float = 1e-4
     w_bone: float = 1.0
-    film_windows: int = 1  # windows per step whose FiLM parameters are averaged
     film_eval_windows: int = 4  # windows per style for the style means during validation (the export uses 32)
     eval_every: int = 500
     eval_samples: int = 256  # per style
@@ -78,7 +72,6 @@ class TrainConfig:
     out_dir: str = str(REPO_ROOT / "out" / "lpn")
     resume: bool = False  # continue run_dir/ckpt.pt (its settings, then these overrides) if it exists
     data: str = ""  # a packed training set (`carry.py`) instead of the cache, e.g. on a GPU lease
-    hundred_style_dir: str = ""  # train on a 100STYLE folder (hundred_style.py) instead of Bandai Namco
     export: str = ""  # path of a checkpoint to export to models/weights/lpn instead of training
     init_from: str = ""  # continue from this checkpoint's network (same data and sizes); a fresh optimiser
     # start from a weights folder's network (gating, experts, normalisation) with a fresh generator,
@@ -155,9 +148,7 @@ def style_films(net, clips: StyleClips, styles: list[int], limit: int | None = N
 
 
 @torch.no_grad()
-def validate(
-    net, val, films: dict[int, torch.Tensor], heldout, held_clips, normal_film: torch.Tensor, n: int, parents, lengths
-) -> dict[str, float]:
+def validate(net, data: Data, films: dict[int, torch.Tensor], n: int) -> dict[str, float]:
     """One-frame losses on `n` validation samples per style, per output group; with held-out
     styles, their loss under a FiLM of their own clips against under `normal`'s."""
     from .network import bone_length_loss
@@ -175,26 +166,26 @@ def validate(
 
     stats: dict[str, list] = {"val": [], "bone": [], **{g: [] for g in groups}}
     for k, film in films.items():
-        idx = np.flatnonzero(val.style == k)
+        idx = np.flatnonzero(data.val.style == k)
         if len(idx) == 0:
             continue
         idx = idx[np.linspace(0, len(idx) - 1, min(n, len(idx))).astype(int)]
-        err, p = run(val, idx, film)
+        err, p = run(data.val, idx, film)
         stats["val"].append(err.mean().item())
-        stats["bone"].append(bone_length_loss(p, parents, lengths).item())
+        stats["bone"].append(bone_length_loss(p, data.parents, data.lengths).item())
         for g, sl in groups.items():
             stats[g].append(err[:, sl].mean().item())
     out = {k: float(np.mean(v)) for k, v in stats.items()}
-    if heldout is None:
+    if data.heldout is None or data.held_clips is None:
         net.train()
         return out
     own, neutral = [], []
-    for k in held_clips.by_style:
-        idx = np.flatnonzero(heldout.style == k)
+    for k in data.held_clips.by_style:
+        idx = np.flatnonzero(data.heldout.style == k)
         idx = idx[np.linspace(0, len(idx) - 1, min(n, len(idx))).astype(int)]
-        film = net.style_film(torch.from_numpy(held_clips.all_windows(k, limit=8)).to(device)).mean(0)
-        own.append(run(heldout, idx, film)[0].mean().item())
-        neutral.append(run(heldout, idx, normal_film)[0].mean().item())
+        film = net.style_film(torch.from_numpy(data.held_clips.all_windows(k, limit=8)).to(device)).mean(0)
+        own.append(run(data.heldout, idx, film)[0].mean().item())
+        neutral.append(run(data.heldout, idx, films[data.styles.index("normal")])[0].mean().item())
     out["heldout_clip_film"], out["heldout_normal_film"] = float(np.mean(own)), float(np.mean(neutral))
     net.train()
     return out
@@ -211,17 +202,6 @@ def training_loss(
     mse = (pred - target).pow(2).mean()
     bone = bone_length_loss(net.denormalise_y(pred), parents, lengths)
     return mse + w_bone * bone, mse, bone
-
-
-def pose_noise_scale(cfg: TrainConfig) -> torch.Tensor:
-    """(X_DIM,) standard deviation of the noise on each normalised input: `pose_noise` on the pose
-    block (without the velocity channels unless `noise_velocities`), 0 on the trajectory (the control)."""
-    scale = torch.zeros(lf.X_DIM)
-    pose = torch.full((lf.NB, lf.POSE_CH), cfg.pose_noise)
-    if not cfg.noise_velocities:
-        pose[:, 3:6] = 0.0  # position, velocity, forward axis, up axis (features.pose_features)
-    scale[lf.POSE_IN] = pose.flatten()
-    return scale
 
 
 def body_bones(skeleton) -> tuple[np.ndarray, np.ndarray]:
@@ -268,35 +248,6 @@ def set_rng_state(rng: np.random.Generator, state: dict) -> None:
     random.setstate(state["python"])
 
 
-def save(
-    path: Path, net, mcfg, cfg, styles, it, seconds, history, opt=None, schedule=None, rng=None, order=None, half=False
-) -> None:
-    """A checkpoint that `--resume` continues exactly: network, optimiser, schedule, RNG, step
-    (a snapshot: the network alone, in float16 with `half`; loading converts it back)."""
-    tmp = path.with_suffix(".tmp")
-    model = {k: v.detach().cpu() for k, v in net.state_dict().items()}
-    if half:
-        model = {k: v.half() if v.is_floating_point() and k not in NORMALISATION else v for k, v in model.items()}
-    torch.save(
-        {
-            "model": model,
-            "model_config": asdict(mcfg),
-            "train_config": asdict(cfg),
-            "styles": styles,
-            "iter": it,
-            "seconds": seconds,
-            "history": history,
-            "argv": sys.argv,
-            "optimizer": None if opt is None else opt.state_dict(),
-            "schedule": None if schedule is None else asdict(schedule),
-            "rng": None if rng is None else rng_state(rng),
-            "order": None if order is None else [int(k) for k in order],  # styles left in this cycle
-        },
-        tmp,
-    )
-    tmp.replace(path)
-
-
 def warm_start(net, weights_dir: Path, styles: list[str]) -> torch.Tensor:
     """Load a weights folder's gating, motion network and normalisation into `net` (the FiLM
     generator stays fresh: the committed one is dead, `film_norm` gives a new one that is not);
@@ -330,209 +281,269 @@ def fit_generator(net, clips: StyleClips, targets: torch.Tensor, steps: int, log
             log(f"generator fit {step + 1}/{steps}: mse {loss.item():.4f}")
 
 
-# --------------------------------------------------------------------------- main
+# --------------------------------------------------------------------------- a run
+
+
+def load_config(argv: list[str]) -> tuple[TrainConfig, dict | None]:
+    """The command line's config, or with `--resume` the run's own config and checkpoint, then the
+    command line's overrides (a checkpoint's options this trainer no longer has are dropped)."""
+    cfg = parse_args(argv)
+    path = Path(cfg.run_dir) / "ckpt.pt"
+    if not cfg.resume or not path.exists():
+        return cfg, None
+    ck = torch.load(path, map_location="cpu", weights_only=False)
+    known = {f.name for f in fields(TrainConfig)}
+    saved = TrainConfig(**{k: v for k, v in ck["train_config"].items() if k in known})
+    return parse_overrides(saved, argv), ck
+
+
+@dataclass
+class Data:
+    """The samples (a packed training set's or the cache's), windows of each style's clips for
+    the FiLM generator, where rollouts may start, and the body's bones for the bone loss."""
+
+    styles: list[str]
+    stats: dict[str, np.ndarray]
+    train: Any  # dataset.Split
+    val: Any
+    heldout: Any  # None: no held-out styles (or a packed set)
+    train_clips: StyleClips
+    held_clips: StyleClips | None
+    starts: dict[int, np.ndarray]  # per style, the train samples a rollout may start at
+    val_starts: dict[int, np.ndarray]
+    XGY: tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # the train samples on the device
+    parents: np.ndarray
+    lengths: torch.Tensor
+
+    @staticmethod
+    def load(cfg: TrainConfig, device: torch.device, rng: np.random.Generator) -> Data:
+        from ..motion.assets import bandai_namco_pose
+        from .dataset import DataConfig, load_meta, load_split, load_stats
+        from .rollout import rollout_starts
+
+        if cfg.data:  # a packed training set (`carry.py`): no cache, no raw data needed
+            from .carry import unpack
+
+            meta, train, val, stats = unpack(Path(cfg.data))
+            heldout = None
+        else:
+            meta = load_meta(DataConfig())
+            train, val = load_split("train", DataConfig()), load_split("val", DataConfig())
+            heldout = load_split("heldout", DataConfig()) if meta["heldout"]["clips"] else None
+            stats = load_stats(DataConfig())
+        parents, lengths = body_bones(bandai_namco_pose().skeleton)
+        K = max(cfg.rollout, 1)
+        return Data(
+            meta["styles"],
+            stats,
+            train,
+            val,
+            heldout,
+            StyleClips(train, 120, rng),
+            None if heldout is None else StyleClips(heldout, 120, rng),
+            rollout_starts(train.clip, train.style, K),
+            rollout_starts(val.clip, val.style, K),
+            (
+                torch.from_numpy(train.X).to(device),
+                torch.from_numpy(train.G).to(device),
+                torch.from_numpy(train.Y).to(device),
+            ),
+            parents,
+            torch.as_tensor(lengths, dtype=torch.float32, device=device),
+        )
+
+
+class Run:
+    """The network, optimiser, schedule and random state of a run, and how far it got: what a
+    checkpoint holds."""
+
+    def __init__(self, cfg: TrainConfig, ck: dict | None, data: Data, device: torch.device, rng, log) -> None:
+        """A new network, restored from `ck`, or started from `init_from` or `warm_from` (its
+        generator first fitted to that folder's style vectors)."""
+        from .network import LPN, LPNConfig
+
+        self.cfg, self.rng, self.styles = cfg, rng, data.styles
+        self.mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout, film_norm=cfg.film_norm)
+        self.net = LPN(self.mcfg, data.stats)
+        warm_films = None
+        if ck is not None:
+            self.net.load_state_dict(ck["model"])
+        elif cfg.init_from:
+            init = torch.load(cfg.init_from, map_location="cpu", weights_only=False)
+            if init["styles"] != self.styles:
+                raise SystemExit(f"{cfg.init_from} was trained on other styles: {init['styles']}")
+            self.net.load_state_dict(init["model"])
+        elif cfg.warm_from:
+            warm_films = warm_start(self.net, Path(cfg.warm_from), self.styles)
+        self.net.to(device)
+        log(
+            f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {use_bf16(cfg.bf16, device)}; resumed {ck is not None}"
+        )
+        log(
+            f"data: train {len(data.train.X)} samples / {len(data.train.names)} clips, val {len(data.val.X)}, "
+            f"heldout {0 if data.heldout is None else len(data.heldout.X)}; "
+            f"{len(self.styles)} styles; parameters {sum(p.numel() for p in self.net.parameters())}"
+        )
+        if warm_films is not None and cfg.film_fit_steps:
+            fit_generator(self.net, data.train_clips, warm_films, cfg.film_fit_steps, log)
+        self.opt = torch.optim.AdamW(self.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        self.schedule = Schedule(cfg.lr, cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
+        self.history: list[dict] = []
+        self.it = 0
+        self.order: list[int] = []  # the styles left in this cycle, popped one per step
+        if ck is not None:
+            self.opt.load_state_dict(ck["optimizer"])
+            total_s = self.schedule.total_s if cfg.schedule_minutes else ck["schedule"]["total_s"]
+            self.schedule = Schedule(**{**ck["schedule"], "total_s": total_s})
+            set_rng_state(rng, ck["rng"])
+            self.it, self.history, self.order = ck["iter"], ck["history"], ck.get("order") or []
+
+    def evaluate(self, data: Data) -> dict:
+        """One-frame validation (`validate`) and the closed-loop loss: `val_rollouts` rollouts per
+        style of `rollout` frames on validation clips, every one feeding back the network's output."""
+        from .rollout import rollout
+
+        cfg, net = self.cfg, self.net
+        films = style_films(net, data.train_clips, list(range(len(self.styles))), limit=cfg.film_eval_windows)
+        v = validate(net, data, films, cfg.eval_samples)
+        K, dev = max(cfg.rollout, 1), net.X_mean.device
+        net.eval()
+        errs = []
+        with torch.no_grad():
+            for k, film in films.items():
+                starts = data.val_starts.get(k, ())
+                if len(starts) == 0:
+                    continue
+                pick = np.random.default_rng(k).choice(starts, min(cfg.val_rollouts, len(starts)), replace=False)
+                idx = torch.from_numpy(pick).to(dev)[:, None] + torch.arange(K, device=dev)
+                X, G, Y = (torch.from_numpy(a).to(dev)[idx] for a in (data.val.X, data.val.G, data.val.Y))
+                p, t = rollout(net, X, G, Y, film[None], torch.ones(len(pick), dtype=torch.bool, device=dev))
+                errs.append(((p - t) ** 2).mean().item())
+        net.train()
+        v["val_loop"] = float(np.mean(errs)) if errs else float("nan")
+        return v
+
+    def checkpoint(self, path: Path, resumable: bool = True) -> None:
+        """What `--resume` continues exactly: network, optimiser, schedule, RNG, step; not
+        `resumable`: a snapshot, the network alone (float16 with `snapshot_half`; loading converts
+        it back), to be chosen by streaming."""
+        model = {k: v.detach().cpu() for k, v in self.net.state_dict().items()}
+        if not resumable and self.cfg.snapshot_half:
+            model = {k: v.half() if v.is_floating_point() and k not in NORMALISATION else v for k, v in model.items()}
+        state = {
+            "model": model,
+            "model_config": asdict(self.mcfg),
+            "train_config": asdict(self.cfg),
+            "styles": self.styles,
+            "iter": self.it,
+            "seconds": self.schedule.elapsed_s,
+            "history": self.history,
+            "argv": sys.argv,
+            "optimizer": self.opt.state_dict() if resumable else None,
+            "schedule": asdict(self.schedule) if resumable else None,
+            "rng": rng_state(self.rng) if resumable else None,
+            "order": [int(k) for k in self.order] if resumable else None,  # styles left in this cycle
+        }
+        tmp = path.with_suffix(".tmp")
+        torch.save(state, tmp)
+        tmp.replace(path)
+
+
+def train_step(cfg: TrainConfig, run: Run, data: Data, autocast) -> dict[str, float]:
+    """One step on one style (cycled in a shuffled order): its FiLM from the generator on a window
+    of its clips, rollouts from random starts, a share of them closed-loop."""
+    from .rollout import rollout
+
+    rng, net, sched = run.rng, run.net, run.schedule
+    lr = sched.rate()
+    for group in run.opt.param_groups:
+        group["lr"] = lr
+    if not run.order:
+        run.order = list(rng.permutation(len(run.styles)))
+    k = int(run.order.pop())
+    K = max(cfg.rollout, 1)
+    rollouts = max(cfg.batch // K, 1)
+    dev = data.lengths.device
+    idx = torch.from_numpy(rng.choice(data.starts[k], rollouts)).to(dev)[:, None] + torch.arange(K, device=dev)
+    window = torch.from_numpy(data.train_clips.window(k)[None]).to(dev)
+    closed = torch.from_numpy(rng.random(rollouts) < closed_share(cfg, sched.progress())).to(dev)
+    X, G, Y = data.XGY
+    with autocast:
+        film = net.style_film(window).mean(0, keepdim=True)
+        pred, target = rollout(net, X[idx], G[idx], Y[idx], film, closed)
+    pred = pred.float().reshape(-1, pred.shape[-1])
+    loss, mse, bone = training_loss(net, pred, target.reshape(pred.shape), data.parents, data.lengths, cfg.w_bone)
+    run.opt.zero_grad(set_to_none=True)
+    loss.backward()
+    run.opt.step()
+    return {"mse": mse.item(), "bone": bone.item(), "closed": closed.float().mean().item(), "lr": lr}
 
 
 def main(argv: list[str]) -> None:
-    cfg = parse_args(argv)
+    cfg, ck = load_config(argv)
     if cfg.export:
         from .weights import export_weights
 
         print(export_weights(Path(cfg.export)))
         return
-    resume = Path(cfg.run_dir) / "ckpt.pt" if cfg.resume else None
-    ck = None
-    if resume is not None and resume.exists():
-        ck = torch.load(resume, map_location="cpu", weights_only=False)
-        cfg = parse_overrides(TrainConfig(**ck["train_config"]), argv)  # the run's settings, then today's overrides
-    torch.set_num_threads(cfg.threads)
-    random.seed(cfg.seed)
-    torch.manual_seed(cfg.seed)
-    auto = "cuda" if torch.cuda.is_available() else "cpu"
-    device = torch.device(auto if cfg.device == "auto" else cfg.device)
+    device = seeded_device(cfg.threads, cfg.seed, cfg.device)
     rng = np.random.default_rng(cfg.seed)
-    from ..motion.assets import bandai_namco_pose
-    from .dataset import load_meta, load_split, load_stats
-    from .network import LPN, LPNConfig
-    from .rollout import rollout, rollout_starts
-    from .weights import data_config
-
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
     log = start_run(run_dir, out_dir)
-
-    data = data_config(asdict(cfg))
-    if cfg.data:  # a packed training set (`carry.py`): no cache, no raw data needed
-        from .carry import unpack
-
-        meta, train, val, stats = unpack(Path(cfg.data))
-        heldout = None
-    else:
-        meta = load_meta(data)
-        train, val = load_split("train", data), load_split("val", data)
-        heldout = load_split("heldout", data) if meta["heldout"]["clips"] else None
-        stats = load_stats(data)
-    styles = meta["styles"]
-    skeleton = bandai_namco_pose().skeleton
-    parents, lengths_np = body_bones(skeleton)
-    lengths = torch.as_tensor(lengths_np, dtype=torch.float32, device=device)
-    mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout, film_norm=cfg.film_norm)
-    net = LPN(mcfg, stats)
-    train_clips = StyleClips(train, 120, rng)
-    held_clips = None if heldout is None else StyleClips(heldout, 120, rng)
-    warm_films = None
-    if ck is not None:
-        net.load_state_dict(ck["model"])
-    elif cfg.init_from:
-        init = torch.load(cfg.init_from, map_location="cpu", weights_only=False)
-        if init["styles"] != styles:
-            raise SystemExit(f"{cfg.init_from} was trained on other styles: {init['styles']}")
-        net.load_state_dict(init["model"])
-    elif cfg.warm_from:
-        warm_films = warm_start(net, Path(cfg.warm_from), styles)
-    net.to(device)
-    log(
-        f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {use_bf16(cfg.bf16, device)}; "
-        f"resumed from {resume if ck else None}"
-    )
-    log(
-        f"data: train {len(train.X)} samples / {len(train.names)} clips, val {len(val.X)}, "
-        f"heldout {0 if heldout is None else len(heldout.X)}; "
-        f"{len(styles)} styles; parameters {sum(p.numel() for p in net.parameters())}"
-    )
-    if warm_films is not None and cfg.film_fit_steps:
-        fit_generator(net, train_clips, warm_films, cfg.film_fit_steps, log)
-    K = max(cfg.rollout, 1)
-    starts = rollout_starts(train.clip, train.style, K)
-    val_starts = rollout_starts(val.clip, val.style, K)
-    X, G, Y = (torch.from_numpy(a).to(device) for a in (train.X, train.G, train.Y))
-    noise_scale = pose_noise_scale(cfg).to(device) if cfg.pose_noise else None
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    schedule = Schedule(cfg.lr, cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
-    history: list[dict] = []
-    it = 0
-    order: list[int] = []  # the styles left in this cycle, popped one per step
-    if ck is not None:
-        opt.load_state_dict(ck["optimizer"])
-        schedule = Schedule(
-            **{**ck["schedule"], "total_s": schedule.total_s if cfg.schedule_minutes else ck["schedule"]["total_s"]}
-        )
-        set_rng_state(rng, ck["rng"])
-        it, history, order = ck["iter"], ck["history"], ck.get("order") or []
+    data = Data.load(cfg, device, rng)
+    run = Run(cfg, ck, data, device, rng, log)
     autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16(cfg.bf16, device))
-    rollouts = max(cfg.batch // K, 1)
-    t0, budget, seconds0, first_it = time.time(), cfg.minutes * 60, schedule.elapsed_s, it
-
-    def snapshot() -> None:  # kept every `snapshot_every` steps, to be chosen by streaming
-        save(
-            run_dir / f"ckpt_{it:06d}.pt",
-            net,
-            mcfg,
-            cfg,
-            styles,
-            it,
-            schedule.elapsed_s,
-            history,
-            half=cfg.snapshot_half,
-        )
-
-    bar = tqdm(total=cfg.max_iters, initial=it, desc="lpn", mininterval=10, file=sys.stderr)
+    sched, per_step = run.schedule, max(cfg.batch // max(cfg.rollout, 1), 1) * max(cfg.rollout, 1)
+    t0, first_it, seconds0 = time.time(), run.it, sched.elapsed_s
+    bar = tqdm(total=cfg.max_iters, initial=run.it, desc="lpn", mininterval=10, file=sys.stderr)
     last = time.time()
-    while it < cfg.max_iters and time.time() - t0 < budget:
-        lr = schedule.rate()
-        for group in opt.param_groups:
-            group["lr"] = lr
-        if not order:
-            order = list(rng.permutation(len(styles)))
-        k = int(order.pop())
-        first = torch.from_numpy(rng.choice(starts[k], rollouts)).to(device)
-        idx = first[:, None] + torch.arange(K, device=device)
-        windows = torch.from_numpy(np.stack([train_clips.window(k) for _ in range(cfg.film_windows)])).to(device)
-        closed = torch.from_numpy(rng.random(rollouts) < closed_share(cfg, schedule.progress())).to(device)
-        with autocast:
-            film = net.style_film(windows).mean(0, keepdim=True)
-            pred, target = rollout(
-                net, X[idx], G[idx], Y[idx], film, closed, cfg.detach, noise_scale, cfg.pose_noise * cfg.noise_phases
-            )
-        pred = pred.float().reshape(-1, pred.shape[-1])
-        loss, mse, bone = training_loss(net, pred, target.reshape(pred.shape), parents, lengths, cfg.w_bone)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        it += 1
+    while run.it < cfg.max_iters and time.time() - t0 < cfg.minutes * 60:
+        terms = train_step(cfg, run, data, autocast)
+        run.it += 1
         now = time.time()
-        schedule.elapsed_s += now - last
+        sched.elapsed_s += now - last
         last = now
         bar.update(1)
-        if it % 50 == 0:
-            bar.set_postfix(mse=f"{mse.item():.4f}", bone=f"{bone.item():.5f}", closed=f"{closed.float().mean():.2f}")
-        if it % cfg.eval_every == 0:
-            v = evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths)
+        if run.it % 50 == 0:
+            bar.set_postfix(mse=f"{terms['mse']:.4f}", bone=f"{terms['bone']:.5f}", closed=f"{terms['closed']:.2f}")
+        if run.it % cfg.eval_every == 0:
+            v = run.evaluate(data)
             v.update(
-                iter=it,
-                minutes=round(schedule.elapsed_s / 60, 2),
-                samples_per_s=round((it - first_it) * rollouts * K / max(schedule.elapsed_s - seconds0, 1e-9), 1),
-                train_mse=mse.item(),
-                train_bone=bone.item(),
-                lr=lr,
-                closed=closed_share(cfg, schedule.progress()),
+                iter=run.it,
+                minutes=round(sched.elapsed_s / 60, 2),
+                samples_per_s=round((run.it - first_it) * per_step / max(sched.elapsed_s - seconds0, 1e-9), 1),
+                train_mse=terms["mse"],
+                train_bone=terms["bone"],
+                lr=terms["lr"],
+                closed=closed_share(cfg, sched.progress()),
             )
-            history.append(v)
+            run.history.append(v)
             log("val " + " ".join(f"{a}={b:.4g}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()))
             last = time.time()  # validation is not training time
-        if it % cfg.ckpt_every == 0:
-            save(
-                run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng, order
-            )
-        if cfg.snapshot_every and it % cfg.snapshot_every == 0:
-            snapshot()
-        if schedule.progress() >= 1.0:
+        if run.it % cfg.ckpt_every == 0:
+            run.checkpoint(run_dir / "ckpt.pt")
+        if cfg.snapshot_every and run.it % cfg.snapshot_every == 0:
+            run.checkpoint(run_dir / f"ckpt_{run.it:06d}.pt", resumable=False)
+        if sched.progress() >= 1.0:
             break
     bar.close()
-    v = evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths)
-    v.update(iter=it, minutes=round(schedule.elapsed_s / 60, 2))
-    history.append(v)
+    v = run.evaluate(data)
+    v.update(iter=run.it, minutes=round(sched.elapsed_s / 60, 2))
+    run.history.append(v)
     log("final val " + " ".join(f"{a}={b:.4g}" for a, b in v.items()))
-    save(run_dir / "ckpt.pt", net, mcfg, cfg, styles, it, schedule.elapsed_s, history, opt, schedule, rng, order)
+    run.checkpoint(run_dir / "ckpt.pt")
     if cfg.snapshot_every:
-        snapshot()
-    trained = schedule.elapsed_s - seconds0
+        run.checkpoint(run_dir / f"ckpt_{run.it:06d}.pt", resumable=False)
+    trained = sched.elapsed_s - seconds0
     log(
-        f"done: {it} iterations, {schedule.elapsed_s / 60:.1f} min of training; this session "
-        f"{(it - first_it) * rollouts * K / max(trained, 1e-9):.0f} samples/s"
+        f"done: {run.it} iterations, {sched.elapsed_s / 60:.1f} min of training; this session "
+        f"{(run.it - first_it) * per_step / max(trained, 1e-9):.0f} samples/s"
     )
     if not cfg.no_export:
         from .weights import export_weights
 
         log(f"exported to {export_weights(run_dir / 'ckpt.pt')}")
         render_progress(run_dir, out_dir, "final", log)
-
-
-def evaluate(net, cfg, styles, train_clips, val, val_starts, heldout, held_clips, parents, lengths) -> dict:
-    """One-frame validation (`validate`) and the closed-loop loss: `val_rollouts` rollouts per
-    style of `rollout` frames on validation clips, every one feeding back the network's output."""
-    from .rollout import rollout
-
-    films = style_films(net, train_clips, list(range(len(styles))), limit=cfg.film_eval_windows)
-    v = validate(
-        net, val, films, heldout, held_clips, films[styles.index("normal")], cfg.eval_samples, parents, lengths
-    )
-    K, dev = max(cfg.rollout, 1), net.X_mean.device
-    net.eval()
-    errs = []
-    with torch.no_grad():
-        for k, film in films.items():
-            if len(val_starts.get(k, ())) == 0:
-                continue
-            pick = np.random.default_rng(k).choice(
-                val_starts[k], min(cfg.val_rollouts, len(val_starts[k])), replace=False
-            )
-            idx = torch.from_numpy(pick).to(dev)[:, None] + torch.arange(K, device=dev)
-            X, G, Y = (torch.from_numpy(a).to(dev)[idx] for a in (val.X, val.G, val.Y))
-            p, t = rollout(net, X, G, Y, film[None], torch.ones(len(pick), dtype=torch.bool, device=dev))
-            errs.append(((p - t) ** 2).mean().item())
-    net.train()
-    v["val_loop"] = float(np.mean(errs)) if errs else float("nan")
-    return v
 
 
 def render_progress(run_dir: Path, out_dir: Path, tag: str, log) -> None:

@@ -27,7 +27,7 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = 
 
     from ..motion.assets import bandai_namco_pose
     from ..settings import REPO_ROOT
-    from .dataset import load_meta, load_split
+    from .dataset import DataConfig, load_meta, load_split
     from .network import LPN, LPNConfig
     from .train import StyleClips, style_films
 
@@ -37,8 +37,7 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = 
     net = LPN(LPNConfig(**ck["model_config"]))
     net.load_state_dict(ck["model"])
     styles = ck["styles"]
-    data = data_config(ck["train_config"])
-    clips = StyleClips(load_split("train", data), 120, np.random.default_rng(0))
+    clips = StyleClips(load_split("train", DataConfig()), 120, np.random.default_rng(0))
     films = style_films(net, clips, list(range(len(styles))), limit=windows)
     skeleton = bandai_namco_pose().skeleton
     arrays = {k: v.numpy().astype(np.float32 if k in NORMALISATION else np.float16) for k, v in ck["model"].items()}
@@ -53,7 +52,7 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = 
         skeleton_end_sites=skeleton.end_sites,
     )
     hist = ck.get("history", [])
-    meta = load_meta(data)
+    meta = load_meta(DataConfig())
     config = {
         "model": ck["model_config"],
         "styles": styles,
@@ -67,14 +66,6 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = 
     }
     (out_dir / CONFIG_FILE).write_text(json.dumps(config, indent=1))
     return out_dir
-
-
-def data_config(train_config: dict):
-    """The dataset configuration a run trained on (Bandai Namco, or a 100STYLE folder with nothing held out)."""
-    from .dataset import DataConfig
-
-    folder = train_config.get("hundred_style_dir", "")
-    return DataConfig(hundred_style_dir=folder, held_out=()) if folder else DataConfig()
 
 
 def read_weights(weights_dir: Path, tuned: bool = True) -> tuple[dict[str, np.ndarray], Skeleton, dict]:

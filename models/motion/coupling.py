@@ -187,5 +187,5 @@ def couple(
         return rotations
     share = np.clip(np.asarray(share, np.float64), 0.0, 1.0)
     out = np.array(rotations, np.float64)
-    couple_batch(out, rows, w, share, *joints, aligned["mean"], aligned["walk"], aligned["run"])
+    couple_batch(out, rows, w, share, joints, (aligned["mean"], aligned["walk"], aligned["run"]))
     return out.astype(rotations.dtype)

@@ -17,10 +17,13 @@ def _away(m, q):
 
 
 @njit(cache=True, error_model="numpy")
-def couple_batch(q, rows, w, share, targets, drivers, mean, walk, run):
+def couple_batch(q, rows, w, share, joints, gains):
     """In place on q (B, J, 4) float64, rows `rows` only, links in order: each link's target
     turned by sum_s w_s log(q^-1 f_s(q)), f_s its style-s rotation moved by the gains mixed by the
-    row's gait share. mean (S, J, 4); walk, run (S, L, 3D + 1, 3); drivers padded with -1."""
+    row's gait share. joints: (targets (L,), drivers (L, D) padded with -1); gains: (mean
+    (S, J, 4), walk, run (S, L, 3D + 1, 3))."""
+    targets, drivers = joints
+    mean, walk, run = gains
     L, D = drivers.shape
     x = np.empty(3 * D + 1)
     x[3 * D] = 1.0

@@ -60,13 +60,16 @@ def soft_reach(d, d0, reach, soft):
 
 
 @njit(cache=True, error_model="numpy")
-def two_bone_ik(gh, r_up, r_low, r_foot, a, off_low, off_foot, target, soft):
-    """Analytic two-bone IK for one leg. gh: world rotation of the parent (Hips); r_*: local
-    rotations of UpperLeg, LowerLeg, Foot; a: world hip-joint position; off_*: bone offsets.
-    Returns new local (r_up, r_low, r_foot) putting the ankle at `target` (as close as the bone
-    lengths allow; within `soft` of full reach, eased by `soft_reach`) with the foot's world
-    orientation unchanged: bend thigh and knee about the leg plane's normal to get the hip-ankle
-    distance right, then swing the leg onto the target."""
+def two_bone_ik(gh, leg, a, bones, target, soft):
+    """Analytic two-bone IK for one leg. gh: world rotation of the parent (Hips); leg: local
+    rotations (r_up, r_low, r_foot) of UpperLeg, LowerLeg, Foot; a: world hip-joint position;
+    bones: offsets (off_low, off_foot) of LowerLeg and Foot. Returns new local (r_up, r_low,
+    r_foot) putting the ankle at `target` (as close as the bone lengths allow; within `soft` of
+    full reach, eased by `soft_reach`) with the foot's world orientation unchanged: bend thigh and
+    knee about the leg plane's normal to get the hip-ankle distance right, then swing the leg
+    onto the target."""
+    r_up, r_low, r_foot = leg
+    off_low, off_foot = bones
     ga = qmul(gh, r_up)
     gb = qmul(ga, r_low)
     gf = qmul(gb, r_foot)
@@ -187,16 +190,8 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
             gh = row4(out_rot[b], hips)
             hip = add3((ox, root[b, 1], oz), qrot(gh, row3(offsets, up)))
             ankle = (ox + rel[b, leg, 0, 0] + ex, root[b, 1] + rel[b, leg, 0, 1], oz + rel[b, leg, 0, 2] + ez)
-            r_up, r_low, r_foot = two_bone_ik(
-                gh,
-                row4(out_rot[b], up),
-                row4(out_rot[b], low),
-                row4(out_rot[b], ft),
-                hip,
-                row3(offsets, low),
-                row3(offsets, ft),
-                ankle,
-                soft,
-            )
+            leg_rot = (row4(out_rot[b], up), row4(out_rot[b], low), row4(out_rot[b], ft))
+            bones = (row3(offsets, low), row3(offsets, ft))
+            r_up, r_low, r_foot = two_bone_ik(gh, leg_rot, hip, bones, ankle, soft)
             for i in range(4):
                 out_rot[b, up, i], out_rot[b, low, i], out_rot[b, ft, i] = r_up[i], r_low[i], r_foot[i]

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -21,7 +22,6 @@ from .rotations import quat_inv, quat_log, quat_mean, quat_mul, swing_twist, twi
 from .skeleton import Skeleton
 
 HINGE_FILE = "hinges.npz"
-KernelHinges = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]
 HINGE_SHARE = 0.999  # share of a joint's real swing (squared angle) about one axis that makes it a hinge
 TWIST_PERCENTILES = (0.5, 99.5)  # the parent's real twist interval the re-twist stays in
 FADE_DEGREES = 35.0  # below this bend the hinge plane is ill-defined: the re-twist fades to none
@@ -113,6 +113,16 @@ def kernel_floor(skeleton: Skeleton, hinges: Hinges | None) -> tuple[np.ndarray,
     return np.ascontiguousarray(bone_axes(skeleton), np.float64), hinge, floor
 
 
+class KernelHinges(NamedTuple):
+    """The hinges per joint (J), as `twist_kernels` takes them (`kernel_hinges`)."""
+
+    child: np.ndarray  # (J,) int64 the hinge child a joint re-twists for (-1: none)
+    bend: np.ndarray  # (J, 3) that child's bend direction in the joint's frame
+    mean: np.ndarray  # (J, 4) real mean rotation of parents and hinge joints
+    limits: np.ndarray  # (J, 2) their twist interval about it
+    fade: float  # radians of bend below which the re-twist fades to none
+
+
 def kernel_hinges(skeleton: Skeleton, hinges: Hinges | None) -> KernelHinges:
     """Per joint (J), as `twist_kernels` takes them: the hinge child it re-twists for (-1: none),
     that child's bend direction in the joint's frame, and for parents and hinge joints the real
@@ -128,10 +138,10 @@ def _kernel_hinges(parents: tuple[int, ...], hinges: Hinges | None) -> KernelHin
     mean = np.tile([0.0, 0.0, 0.0, 1.0], (J, 1))
     limits = np.tile([-np.pi, np.pi], (J, 1))
     if hinges is None:
-        return child, bend, mean, limits, 0.0
+        return KernelHinges(child, bend, mean, limits, 0.0)
     for k, j in enumerate(hinges.joints):
         p = parents[j]
         child[p], bend[p] = j, hinges.bend[k]
         mean[[p, j]] = hinges.mean[k]
         limits[[p, j]] = np.stack([hinges.lo[k], hinges.hi[k]], axis=-1)
-    return child, bend, mean, limits, hinges.fade
+    return KernelHinges(child, bend, mean, limits, hinges.fade)

@@ -23,7 +23,7 @@ from .bn_skeleton import body_joints
 from .hinge import Hinges, kernel_hinges
 from .rotations import quat_exp, quat_inv, quat_log, quat_mul
 from .skeleton import Skeleton
-from .twist_kernels import BONE, FRAME, LEAF, ROOT, transfer_twist_batch
+from .twist_kernels import BONE, FRAME, LEAF, ROOT, TwistPlan, transfer_twist_batch
 
 if TYPE_CHECKING:
     import torch
@@ -66,33 +66,31 @@ def transfer_twist(
 ) -> np.ndarray:
     """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
     rotations (module docstring); joints named in `keep` take `pose`'s rotation as it is."""
-    kinds, parents, axes, keep_mask = _kernel_plan(skeleton, keep)
-    hinge_child, bend, mean, limits, fade = kernel_hinges(skeleton, hinges)
     J = skeleton.num_joints
     shape = np.broadcast_shapes(np.shape(source), np.shape(pose))
     src = np.ascontiguousarray(np.broadcast_to(source, shape), dtype=np.float64).reshape(-1, J, 4)
     pos = np.ascontiguousarray(np.broadcast_to(pose, shape), dtype=np.float64).reshape(-1, J, 4)
     out = np.empty_like(pos)
-    transfer_twist_batch(kinds, parents, axes, keep_mask, hinge_child, bend, mean, limits, fade, src, pos, out)
+    transfer_twist_batch(_kernel_plan(skeleton, keep), kernel_hinges(skeleton, hinges), src, pos, out)
     return out.reshape(shape)
 
 
-def _kernel_plan(skeleton: Skeleton, keep: tuple[str, ...]) -> tuple[np.ndarray, ...]:
+def _kernel_plan(skeleton: Skeleton, keep: tuple[str, ...]) -> TwistPlan:
     """The plan as the kernel takes it, built once per skeleton and `keep` (the streaming steps
-    call this every frame): kinds (J,), parents (J,), bone axes (J, 3), keep mask (J,)."""
+    call this every frame)."""
     return _kernel_plan_cached(skeleton.names, tuple(map(int, skeleton.parents)), skeleton.offsets.tobytes(), keep)
 
 
 @lru_cache(maxsize=16)
 def _kernel_plan_cached(
     names: tuple[str, ...], parents: tuple[int, ...], offsets: bytes, keep: tuple[str, ...]
-) -> tuple[np.ndarray, ...]:
+) -> TwistPlan:
     plan = _plan_cached(names, parents, offsets)
     code = {"root": ROOT, "frame": FRAME, "bone": BONE, "leaf": LEAF}
     kinds = np.array([code[k] for _, _, k, _ in plan], dtype=np.int64)
     parent_index = np.array(parents, dtype=np.int64)
     axes = np.array([a if a is not None else (1.0, 0.0, 0.0) for _, _, _, a in plan], dtype=np.float64)
-    return kinds, parent_index, axes, np.array([n in keep for n in names])
+    return TwistPlan(kinds, parent_index, axes, np.array([n in keep for n in names]))
 
 
 def transfer_twist_t(

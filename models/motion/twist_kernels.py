@@ -8,6 +8,7 @@ over the joints does the same arithmetic on scalars (~1 us per frame).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -15,6 +16,15 @@ from numba import njit
 from .quaternion import axis_angle, between, cross, dot3, qinv, qmul, qrot, qunit, row3, row4, wrap
 
 ROOT, FRAME, BONE, LEAF = 0, 1, 2, 3  # joint kinds, as `twist._plan` names them
+
+
+class TwistPlan(NamedTuple):
+    """A skeleton's plan as the kernel takes it (`twist._kernel_plan`)."""
+
+    kinds: np.ndarray  # (J,) int64, ROOT ... LEAF
+    parents: np.ndarray  # (J,) int64
+    axes: np.ndarray  # (J, 3) bone axis in each joint's frame
+    keep: np.ndarray  # (J,) bool: the joints that take the pose's rotation as it is
 
 
 @njit(cache=True, error_model="numpy")
@@ -49,11 +59,11 @@ def hinge_weight(tau, across, fade):
 
 
 @njit(cache=True)
-def transfer_twist_batch(kinds, parents, axes, keep, hinge_child, bend, mean, limits, fade, source, pose, out):
-    """`twist.transfer_twist` for (B, J, 4) float64 `source` and `pose` into `out`; the plan as
-    arrays: kinds (J,) int64, parents (J,) int64, axes (J, 3), keep (J,) bool; the hinges as
-    `hinge.kernel_hinges` gives them: hinge_child (J,) int64 (-1: none), bend (J, 3), mean (J, 4),
-    limits (J, 2), fade (radians)."""
+def transfer_twist_batch(plan, hinges, source, pose, out):
+    """`twist.transfer_twist` for (B, J, 4) float64 `source` and `pose` into `out`; the plan a
+    `TwistPlan`, the hinges a `hinge.KernelHinges`."""
+    kinds, parents, axes, keep = plan
+    hinge_child, bend, mean, limits, fade = hinges
     J = kinds.shape[0]
     g_pose = np.empty((J, 4))
     g_new = np.empty((J, 4))
