@@ -380,3 +380,24 @@ def test_a_connected_characters_token_is_in_use_not_unknown(models):
             )
             reply = json.loads(second.recv(timeout=30))
             assert [e["code"] for e in reply["errors"]] == ["session_in_use"]
+
+
+def test_a_crowd_is_not_a_batchmate_that_sessions_frames_wait_for(models):
+    """A session's frame waits (`batch_wait_ms`) only for other sessions' frames to batch with:
+    a crowd, idle or ticking, never makes it wait for a part that is not coming
+    (`service.batcher`). The batcher's count of requests to wait for stays the sessions' while
+    a crowd of the same model opens, joins and leaves."""
+    with live_server(models, idle_timeout_s=30) as (base, app):
+        batcher = app.state.runtime.batchers["lti"]
+        with Client(base, timeout=30) as client, client.session(model="lti", style="elderly", fps=FPS):
+            assert batcher.open_sessions() == 1
+            with connect(ws_url(base)) as ws:
+                ws.send(json.dumps({"type": "crowd", "characters": [{"id": 0, "model": "lti", "style": "elderly"}]}))
+                assert json.loads(ws.recv(timeout=30))["characters"][0]["id"] == 0
+                ws.send(json.dumps({"type": "join", "characters": [{"id": 1, "model": "lti", "style": "elderly"}]}))
+                assert json.loads(ws.recv(timeout=30))["type"] == "joined"
+                assert batcher.open_sessions() == 1
+                ws.send(json.dumps({"type": "leave", "characters": [0, 1]}))
+                assert json.loads(ws.recv(timeout=30))["type"] == "left"
+                assert batcher.open_sessions() == 1
+        wait_until(lambda: batcher.open_sessions() == 0, "the session closed", timeout=30)
