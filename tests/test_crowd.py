@@ -401,3 +401,29 @@ def test_a_crowd_is_not_a_batchmate_that_sessions_frames_wait_for(models):
                 assert json.loads(ws.recv(timeout=30))["type"] == "left"
                 assert batcher.open_sessions() == 1
         wait_until(lambda: batcher.open_sessions() == 0, "the session closed", timeout=30)
+
+
+def test_a_client_waiting_for_a_slow_join_is_not_idle(models):
+    """A join whose rigs take longer to build than the idle timeout (a busy server) is answered:
+    the client waits for the server then, it is not idle. Its idle time runs from the reply."""
+    from models.motion.assets import ASSETS
+
+    idle = 1.0
+    header = (ASSETS / "cmu.bvh").read_text().split("MOTION")[0] + "MOTION\n"
+    with live_server(models, idle_timeout_s=idle) as (base, app):
+        builds = app.state.runtime.rig_builds
+        build = builds._runner
+
+        async def slow(fn, *args, **kwargs):  # noqa: ANN001, ANN202 - a build held past the idle timeout
+            await asyncio.sleep(2.5 * idle)
+            return await build(fn, *args, **kwargs)
+
+        builds._runner = slow
+        with connect(ws_url(base)) as ws:
+            ws.send(json.dumps({"type": "crowd", "characters": [{"id": 0, "model": "lti", "style": "elderly"}]}))
+            assert json.loads(ws.recv(timeout=30))["type"] == "crowd_started"
+            joining = {"id": 1, "model": "lti", "style": "elderly", "bvh_header": header}
+            ws.send(json.dumps({"type": "join", "characters": [joining]}))
+            joined = json.loads(ws.recv(timeout=60))
+            assert joined["type"] == "joined" and [c["id"] for c in joined["characters"]] == [1], joined
+            assert json.loads(ws.recv(timeout=30))["code"] == "idle_timeout"  # and then, told nothing, idle
