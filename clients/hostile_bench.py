@@ -292,6 +292,9 @@ def crowd_rigs(url: str, seconds: float) -> Counter:
             k += 45
             ws.send(json.dumps({"type": "join", "characters": chars}))
             joined = _reply(ws, 120)
+            if not isinstance(joined, dict) or joined.get("type") != "joined":  # a typed error: counted, then over
+                seen[f"join answered {joined.get('code') if isinstance(joined, dict) else 'binary'}"] += 1
+                break
             seen["joined"] += len(joined["characters"])
             seen.update(e["code"] for e in joined["errors"])
             ws.send(json.dumps({"type": "leave", "characters": [c["id"] for c in chars]}))

@@ -4,15 +4,29 @@ A request is one session's frame, or all of one crowd connection's characters of
 (`service.crowd`): rows that go into the batch together and come back as slices. Each
 connection has at most one request in flight (its processor awaits the reply before taking the
 next), so a batch never holds two frames of one character. The batcher waits at most `wait_s`
-after the first request for others to join, or until every open connection of the model has one
+after the first request for others to join, or until every open session of the model has one
 in, then runs the step and scatters the results back (one future per request, nothing else per
 request or row: no queue, no task, no timer).
+
+The wait counts sessions only, never crowds. A crowd's part is already a batch of its own, and
+it comes when its client ticks and its pacer lets it (`service.pacing`), not every frame period:
+counted as one more request to wait for, an idle or paced crowd made every session's frame wait
+the whole `wait_s` for nothing. (hostile_bench's `crowd rigs`, a crowd of one idle character
+beside 45-rig joins, on the loaded shared 2-core machine: the neighbour's server-side time per
+frame, median, 2.31-2.73 ms with the crowd counted, 1.07-1.25 ms without; its round-trip median
+3.1-4.2 ms against 1.8-2.0 ms.) A crowd part that is pending when a batch forms still goes in it.
 
 Where the step runs: model steps and style changes share one worker thread (`ModelThread`), so
 a style change never runs in the middle of a step. A step predicted to take less than
 `inline_max_s` runs right on the event loop when that thread is idle: the compiled step kernels
 hold the GIL, so handing a short step to the thread only adds two thread switches and a wait for
-the GIL; a long one goes to the thread, which lets the event loop in between kernels. (Compiling
+the GIL; a long one goes to the thread, which lets the event loop in between kernels. A batch with
+a crowd's part in it always goes to the thread, however short: a 64-row part is 2-6 ms of LTI
+step on the loaded 2-core machine, and on the loop every connection waited for all of it, ~12 %
+of a neighbour's frames batched into it too (hostile_bench's crowd fill, 712-character ticks,
+two alternating pairs of two rounds on the loaded machine: the neighbour's round-trip median
+2.6-3.4 ms inline, 1.9-2.2 ms on the thread, 1.6-2.0 ms in the quiet periods; the crowd answered
+19-28 ticks in 6 s instead of 27-32: it pays for the thread hops). (Compiling
 the kernels with `nogil=True`, so the loop could run beside them, was measured worse on the 2-core
 machine: Style-ERD crowds of 10 x 100, alternated with the kernels holding the GIL, p99 16.4-20.6
 against 15.6-17.8 ms: the loop, the step's Python glue and the load test's clients then fight for
@@ -247,15 +261,19 @@ class Batcher:
         self._pending_rows -= rows
         return batch
 
-    def _inline(self, size: int) -> bool:
-        return self.thread.idle and self.step_s.get(size.bit_length(), 0.0) <= self.inline_max_s
+    def _inline(self, batch: list[StepRequest]) -> bool:
+        """Step `batch` on the event loop: only sessions' frames (one row each; a crowd's part
+        always goes to the thread, module doc), the thread idle, the step predicted short."""
+        if any(r.rows > 1 for r in batch) or not self.thread.idle:
+            return False
+        return self.step_s.get(len(batch).bit_length(), 0.0) <= self.inline_max_s
 
     async def _run(self) -> None:
         while True:
             batch = await self._gather()
             t0 = time.perf_counter()
             try:
-                if self._inline(sum(r.rows for r in batch)):
+                if self._inline(batch):
                     results = run_step(self.model, batch)
                 else:
                     results = await self.loop.run_in_executor(self.thread.executor, run_step, self.model, batch)

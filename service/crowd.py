@@ -422,18 +422,15 @@ class Crowd:
         return len(self.characters)
 
     # ---- membership -------------------------------------------------------------------
-    def add(self, joining: Sequence[Joining]) -> list[str]:
-        """Add characters (ids not in the crowd yet), each troupe's in one go; returns the models
-        that had no character here before."""
+    def add(self, joining: Sequence[Joining]) -> None:
+        """Add characters (ids not in the crowd yet), each troupe's in one go."""
         by_model: dict[str, list[Joining]] = {}
         for j in joining:
             by_model.setdefault(j.model.name, []).append(j)
-        opened = []
         for name, members in by_model.items():
             troupe = self.troupes.get(name)
             if troupe is None:
                 troupe = self.troupes[name] = Troupe(members[0].model, self.fps, self.reserve)
-                opened.append(name)
             troupe.add([j.spec.id for j in members], [j.weights for j in members], [j.resumed for j in members])
             for j in members:
                 group = self.groups.setdefault((name, *j.rig_key), RigGroup(name, j.adapter))
@@ -445,25 +442,21 @@ class Crowd:
                 character.joined_at = self.answered
                 self.characters[j.spec.id] = character
         self._plan = None
-        return opened
 
-    def remove(self, ids: Sequence[int]) -> list[str]:
-        """Drop these characters; returns the models left with no character here."""
+    def remove(self, ids: Sequence[int]) -> None:
+        """Drop these characters."""
         by_model: dict[str, list[int]] = {}
         for i in ids:
             character = self.characters.pop(i)
             by_model.setdefault(character.group.model, []).append(i)
-        emptied = []
         for name, gone in by_model.items():
             troupe = self.troupes[name]
             troupe.remove(gone)
             if not len(troupe):
                 del self.troupes[name]
-                emptied.append(name)
         used = {(c.group.model, id(c.group)) for c in self.characters.values()}
         self.groups = {k: g for k, g in self.groups.items() if (g.model, id(g)) in used}
         self._plan = None
-        return emptied
 
     def snapshots(self, owner: str, last_seq: int | None, ids: Sequence[int] | None = None) -> list[Snapshot]:
         """Each character (or those in `ids`) as a session snapshot under its own resume token:

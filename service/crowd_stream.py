@@ -129,8 +129,7 @@ class CrowdConnection(Socket):
             joining = []
         for start in range(0, len(joining), PART):  # a large join lets other connections run between parts
             await pacer.pace()
-            for name in self.crowd.add(joining[start : start + PART]):
-                self.rt.crowd_model_opened(name)
+            self.crowd.add(joining[start : start + PART])
         for j in joining:
             character = self.crowd.characters[j.spec.id]
             self.rt.crowd_members.add(character.session_id)
@@ -183,8 +182,7 @@ class CrowdConnection(Socket):
                 self.rt.closing.discard(character.token)
                 if i not in kept:
                     self.rt.character_ended(self.who.id, character.token)
-            for name in self.crowd.remove(part):
-                self.rt.crowd_model_closed(name)
+            self.crowd.remove(part)
             self.rt.remove_characters(self.who, len(part))
         return present
 

@@ -144,7 +144,8 @@ class Runtime:
 
     # ---- sessions -------------------------------------------------------------
     def open_sessions(self, model: str) -> int:
-        """Open sessions of `model`; read by its batcher once per batch, so kept as a count."""
+        """Open sessions of `model` (crowds are not counted: `service.batcher`); read by its batcher
+        once per batch, so kept as a count."""
         return self._open_per_model[model]
 
     def _counter(self, model: str) -> Callable[[], int]:
@@ -311,14 +312,6 @@ class Runtime:
         self._characters_of[who.key] -= count
         if self._characters_of[who.key] <= 0:
             del self._characters_of[who.key]
-
-    def crowd_model_opened(self, model: str) -> None:
-        """A crowd's characters of `model` go through its batcher as one request per tick: one
-        more request for a full batch to wait for."""
-        self._open_per_model[model] += 1
-
-    def crowd_model_closed(self, model: str) -> None:
-        self._open_per_model[model] -= 1
 
     def check_style(self, who: Principal, name: str, names: Iterable[str]) -> None:
         """`check_visible` for the pipeline keyed `name`; and a core offers its method's built-in

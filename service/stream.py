@@ -74,6 +74,7 @@ class Socket:
         self.stopping = False  # stop after the current item (client gone, or draining)
         self.processor: asyncio.Task | None = None
         self.heard = time.monotonic()  # when the client's last message came (the idle timeout)
+        self.worked = self.heard  # when the processor last finished its work in hand (the idle timeout)
         self.receiving = False  # the receiver waits for a message, with none in hand
         self.parked = False  # the processor waits for work, with none in hand
         self.direct_busy = False  # a frame taken by the direct path is not yet answered (`Connection`)
@@ -141,17 +142,25 @@ class Socket:
                 await self.ws.close(code, P.close_reason(reason))
 
     # ---- receiving ----------------------------------------------------------------
+    @property
+    def working(self) -> bool:
+        """The processor has an item of the client's in hand (a join's rig builds can take
+        seconds on a busy server): the client waits for us, it is not idle."""
+        return self.processor is not None and not self.parked and not self.processor.done()
+
     async def receive(self) -> str | bytes | None:
         idle = self.settings.idle_timeout_s
         while True:
             self.receiving = True
             try:
-                async with asyncio.timeout(self.heard + idle - time.monotonic()):  # a timer, not wait_for's task
+                # idle from the client's last message or the end of the work it asked for, if later
+                left = idle if self.working else max(self.heard, self.worked) + idle - time.monotonic()
+                async with asyncio.timeout(left):  # a timer, not wait_for's task
                     message = await self.ws.receive()
                 break
             except TimeoutError:
-                if time.monotonic() - self.heard < idle:  # frames came by the direct path meanwhile
-                    continue
+                if self.working or time.monotonic() - max(self.heard, self.worked) < idle:
+                    continue  # still at its work, or frames came by the direct path meanwhile
                 await self.send_error(P.ProtocolError("idle_timeout", f"no message for {idle:g} s"))
                 await self.close(CLOSE_IDLE, "idle timeout")
                 return None
@@ -203,6 +212,7 @@ class Socket:
 
     async def _park(self) -> None:
         self.parked = True
+        self.worked = time.monotonic()
         self.wakeup.clear()
         try:
             await self.wakeup.wait()

@@ -380,3 +380,50 @@ def test_a_connected_characters_token_is_in_use_not_unknown(models):
             )
             reply = json.loads(second.recv(timeout=30))
             assert [e["code"] for e in reply["errors"]] == ["session_in_use"]
+
+
+def test_a_crowd_is_not_a_batchmate_that_sessions_frames_wait_for(models):
+    """A session's frame waits (`batch_wait_ms`) only for other sessions' frames to batch with:
+    a crowd, idle or ticking, never makes it wait for a part that is not coming
+    (`service.batcher`). The batcher's count of requests to wait for stays the sessions' while
+    a crowd of the same model opens, joins and leaves."""
+    with live_server(models, idle_timeout_s=30) as (base, app):
+        batcher = app.state.runtime.batchers["lti"]
+        with Client(base, timeout=30) as client, client.session(model="lti", style="elderly", fps=FPS):
+            assert batcher.open_sessions() == 1
+            with connect(ws_url(base)) as ws:
+                ws.send(json.dumps({"type": "crowd", "characters": [{"id": 0, "model": "lti", "style": "elderly"}]}))
+                assert json.loads(ws.recv(timeout=30))["characters"][0]["id"] == 0
+                ws.send(json.dumps({"type": "join", "characters": [{"id": 1, "model": "lti", "style": "elderly"}]}))
+                assert json.loads(ws.recv(timeout=30))["type"] == "joined"
+                assert batcher.open_sessions() == 1
+                ws.send(json.dumps({"type": "leave", "characters": [0, 1]}))
+                assert json.loads(ws.recv(timeout=30))["type"] == "left"
+                assert batcher.open_sessions() == 1
+        wait_until(lambda: batcher.open_sessions() == 0, "the session closed", timeout=30)
+
+
+def test_a_client_waiting_for_a_slow_join_is_not_idle(models):
+    """A join whose rigs take longer to build than the idle timeout (a busy server) is answered:
+    the client waits for the server then, it is not idle. Its idle time runs from the reply."""
+    from models.motion.assets import ASSETS
+
+    idle = 1.0
+    header = (ASSETS / "cmu.bvh").read_text().split("MOTION")[0] + "MOTION\n"
+    with live_server(models, idle_timeout_s=idle) as (base, app):
+        builds = app.state.runtime.rig_builds
+        build = builds._runner
+
+        async def slow(fn, *args, **kwargs):  # noqa: ANN001, ANN202 - a build held past the idle timeout
+            await asyncio.sleep(2.5 * idle)
+            return await build(fn, *args, **kwargs)
+
+        builds._runner = slow
+        with connect(ws_url(base)) as ws:
+            ws.send(json.dumps({"type": "crowd", "characters": [{"id": 0, "model": "lti", "style": "elderly"}]}))
+            assert json.loads(ws.recv(timeout=30))["type"] == "crowd_started"
+            joining = {"id": 1, "model": "lti", "style": "elderly", "bvh_header": header}
+            ws.send(json.dumps({"type": "join", "characters": [joining]}))
+            joined = json.loads(ws.recv(timeout=60))
+            assert joined["type"] == "joined" and [c["id"] for c in joined["characters"]] == [1], joined
+            assert json.loads(ws.recv(timeout=30))["code"] == "idle_timeout"  # and then, told nothing, idle
