@@ -27,7 +27,7 @@ from .bn_skeleton import PRIMARY_CHILD, missing_joints
 from .humanoid import HumanoidRig
 from .resample import resample
 from .rotations import quat_canonical
-from .skeleton import Motion, Skeleton, fk
+from .skeleton import Motion, Skeleton, depths, fk
 
 # Joints with several children: (left child, right child) fixing the twist of the up vector.
 # The client side takes the vector between its upper legs / upper arms (CMU collars sit on the
@@ -134,9 +134,7 @@ class TwistPlan:
                 return "leaf"
             return "limb" if n in _HINGES and _HINGES[n] in col else "swing"
 
-        depth = np.zeros(sk.num_joints, int)
-        for j, p in enumerate(sk.parents):
-            depth[j] = depth[p] + 1 if p >= 0 else 0
+        depth = depths(sk.parents)
         self.groups: list[dict] = []
         for d in range(1, int(depth.max()) + 1):
             level = [sk.names[j] for j in range(sk.num_joints) if depth[j] == d and sk.names[j] not in _LATERAL]

@@ -21,7 +21,7 @@ from .bn_skeleton import BN_JOINTS, PRIMARY_CHILD
 from .humanoid import BN_ROLES, HumanoidRig, bn_joints_of, bn_segments, humanoid_rig, leg_length
 from .retarget import _HINGES, _LATERAL, Rig, TwistPlan, _frame, default_rig
 from .rotations import matrix_to_quat as mat_to_quat
-from .skeleton import Skeleton, fk
+from .skeleton import Skeleton, depths, fk
 
 
 class _Tree:
@@ -31,9 +31,7 @@ class _Tree:
     def __init__(self, parents: np.ndarray, needed: np.ndarray | None = None):
         parents = np.asarray(parents)
         n = len(parents)
-        depth = np.zeros(n, int)
-        for j, p in enumerate(parents):
-            depth[j] = depth[p] + 1 if p >= 0 else 0
+        depth = depths(parents)
         keep = np.ones(n, bool)
         if needed is not None:  # the needed joints and their ancestors
             keep[:] = False
@@ -48,7 +46,6 @@ class _Tree:
             (int(np.searchsorted(d, k)), int(np.searchsorted(d, k, "right")), self.pos[parents[self.order[d == k]]])
             for k in range(1, int(d.max(initial=0)) + 1)
         ]
-        self.roots = int(np.searchsorted(d, 0, "right"))
 
 
 def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
@@ -120,7 +117,6 @@ class FrameRetargeter:
             raise ValueError("expected Hips to have a parent (joint_Root) in BN")
         self._axes = hr.axes  # client world -> BN world
         self._bn_tree = _Tree(sk.parents)
-        self._bn_unorder = self._bn_tree.pos  # slot -> joint order
         self._src_parents = np.asarray(src.parents)
         self._bn_parents = np.asarray(sk.parents)
         self._bn_hips = sk.index("Hips")
@@ -148,7 +144,6 @@ class FrameRetargeter:
         points = [(f"{p}_{x}", f"{b}_{x.upper()}") for p, b in (("toes", "Toes"), ("foot", "Foot")) for x in "lr"]
         points = [(r, b) for r, b in points if r in roles]
         terms += [self._segment_terms(src, roles["hips"], roles[r]) for r, _ in points]
-        self._drop_rows = slice(len(terms) - len(points), len(terms))
         chains = []  # per BN foot point, (parent joint, offset) of each joint from the Hips down to it
         for _, b in points:
             chain, j = [], sk.index(b)
