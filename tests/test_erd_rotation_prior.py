@@ -55,7 +55,7 @@ def _onehot(model, style: str, scale: float = 1.0) -> np.ndarray:
 
 
 def test_log_and_exp_invert_each_other():
-    from models.motion.style_carry import quat_exp, quat_log
+    from models.motion.rotations import quat_exp, quat_log
 
     rng = np.random.default_rng(0)
     q = rng.normal(size=(500, 4))
