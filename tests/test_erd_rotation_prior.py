@@ -387,25 +387,6 @@ def test_a_raise_up_streamed_equals_the_whole_clip(model, neutral):
     np.testing.assert_allclose(model.stylise_stream(motion, w).rotations, whole.rotations, atol=2e-4)
 
 
-@pytest.mark.parametrize("mix", ["one style", "a mix", "none"])
-def test_compiled_clamp_is_the_range_as_bounds_carries_it(model, neutral, mix):
-    """`StyleCarry.clamped` (the raised-hand fade's clamp) skips joints already inside a lone
-    style's range; it gives what the range carried as a prior (`bounds`) gives, inside or out."""
-    from models.motion.bn_skeleton import HIPS
-
-    rng = np.random.default_rng(3)
-    q = np.concatenate([m.rotations[::6] for m in neutral])
-    q = np.concatenate([q, rng.normal(size=q.shape)])  # real poses, most inside, and random ones, most out
-    w = {
-        "one style": _onehot(model, "elderly"),
-        "a mix": _onehot(model, "elderly", 0.6) + _onehot(model, "feminine", 0.3),
-    }
-    w = np.tile(w.get(mix, np.zeros(len(model.styles()))), (len(q), 1))
-    prior = model.output_prior
-    got, want = prior.clamped(q, w, hips=HIPS), prior.bounds(q, w, hips=HIPS)
-    assert _apart(got, want).max() < 1e-9
-
-
 def test_the_arms_twist_inside_the_styles_real_interval(model, neutral):
     """`twist_range.py`: streamed toward a style, every arm joint's twist about its bone (against
     the style's real mean) lies in the style's real TRAIN p1..p99 interval; with no style weight

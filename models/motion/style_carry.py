@@ -98,14 +98,6 @@ class StyleCarry:
             self.mean, self.mean, np.ascontiguousarray(np.broadcast_to(np.eye(3), self.map.shape)), self.radius
         )
 
-    def clamped(self, q: np.ndarray, weights: np.ndarray, hips: int = -1) -> np.ndarray:
-        """(B, J, 4) rotations kept in the styles' real ranges (`bounds`, weights (B, S)), not
-        carried: what `bounds(q, weights, hips)` gives, compiled so that a row with one style
-        skips the joints already inside (`style_carry_kernels.clamp_batch`)."""
-        from .style_carry_kernels import clamp
-
-        return clamp(q, weights, self.bounds.arrays, hips)
-
     @functools.cached_property
     def damping(self) -> np.ndarray:
         """(S, J, 3, 3) each map with its gains capped at 1 (the map is symmetric: the capped
