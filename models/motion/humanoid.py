@@ -334,19 +334,13 @@ def match_roles(
     names = _lookup(skeleton)
     unknown_joints = [j for j in (joint_map or {}) if j.lower() not in names]
     unknown_roles = [r for r in (joint_map or {}).values() if r is not None and r not in ROLES]
-    if unknown_joints or unknown_roles:
-        raise RigError(
-            "bad_joint_map",
-            "; ".join(
-                ([f"joint_map names joints the skeleton lacks: {', '.join(unknown_joints)}"] if unknown_joints else [])
-                + (
-                    [f"joint_map names unknown roles: {', '.join(unknown_roles)} (roles: {', '.join(ROLES)})"]
-                    if unknown_roles
-                    else []
-                )
-            ),
-            tuple(unknown_joints + unknown_roles),
-        )
+    problems = []
+    if unknown_joints:
+        problems.append(f"joint_map names joints the skeleton lacks: {', '.join(unknown_joints)}")
+    if unknown_roles:
+        problems.append(f"joint_map names unknown roles: {', '.join(unknown_roles)} (roles: {', '.join(ROLES)})")
+    if problems:
+        raise RigError("bad_joint_map", "; ".join(problems), tuple(unknown_joints + unknown_roles))
     for joint, role in (joint_map or {}).items():
         j = names[joint.lower()]
         if role is None:
