@@ -564,9 +564,8 @@ def _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, hinges, fo
         )
         for r in range(3):  # rig.axes.T @ t: the client's world
             h[r] = rig.axes[0, r] * t[0] + rig.axes[1, r] * t[1] + rig.axes[2, r] * t[2]
-        _hips_terms(
-            gs, rig.fixed_par_s, rig.fixed_off, rig.translated_par_s, c, gp, t
-        )  # the chain above the hips is unchanged
+        # the chain above the hips is unchanged
+        _hips_terms(gs, rig.fixed_par_s, rig.fixed_off, rig.translated_par_s, c, gp, t)
         for r in range(3):
             h[r] -= c[r]
         for r in range(3):
