@@ -165,9 +165,8 @@ def style_vector(model: StreamingModel, mix: dict[str, float], intensity: float 
 
 # --------------------------------------------------------------------------- optional abilities
 
-S = TypeVar(
-    "S"
-)  # a method's own style parameters, opaque to the service (LTI: a StyleTranslator, LPN-FiLM: a FiLM vector)
+# a method's own style parameters, opaque to the service (LTI: a StyleTranslator, LPN-FiLM: a FiLM vector)
+S = TypeVar("S")
 Progress = Callable[[float, str], None]  # (fraction done, what is happening); it raises to stop the work
 
 

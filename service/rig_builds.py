@@ -6,8 +6,16 @@ the event loop every other stream waited (45 new rigs per join: the neighbour's 
 background thread it still held the GIL, handing it to the loop only at the switch interval, so
 a neighbour's round trip, which needs the GIL several times, took 2-3x its quiet p99 whenever
 new rigs were built (hostile_bench `crowd rigs`, `big rigs`). So the build runs in a child
-process (`RigWorkers`: forked from the server's fork server, kept for the next build, at the
-background's priority and CPUs), and the loop only unpickles the built adapter (~30 kB, ~0.2 ms).
+process (`RigWorkers`: forked from the server's fork server, kept for the next build, on the
+background's CPUs), and the loop only unpickles the built adapter (~30 kB, ~0.2 ms).
+
+The children run at `SCHED_IDLE`: at nice 10 a build still took the CPU the event loop was
+waiting for often enough to double a neighbour's p99 (crowd rigs: run-queue wait p99 2.0 ms vs
+0.3 ms quiet). An idle child runs only on a CPU with nothing else runnable, so on a machine that
+is never idle it would never run, and an unprivileged process cannot leave `SCHED_IDLE` again: a
+call an idle child has not answered within IDLE_WAIT_S is also sent to a child at the
+background's niceness (the first answer wins), and the calls of the next IDLE_BACKOFF_S go there
+straight away, so a busy machine pays that wait once per back-off, not once per rig.
 
 Each caller (`Principal.key`) has at most PER_CALLER builds running; its further ones wait their
 turn on its own gate, so one tenant's stream of new rigs queues behind itself, not in front of
@@ -47,6 +55,8 @@ from .skeletons import SkeletonAdapter, adapter_for, adopt, cached_adapter
 
 PER_CALLER = 1  # one caller's rig builds at once
 PROCESSES = 2  # children for every caller's builds together
+IDLE_WAIT_S = 0.5  # a build an idle child has not answered by then runs at the background's niceness too
+IDLE_BACKOFF_S = 5.0  # after which the builds that follow skip the idle children for this long
 TIMEOUT_S = 30.0  # a build capped by `rig_check` takes well under a second; a child silent this long is killed
 REFUSED_KEPT = 256  # typed refusals remembered (digests: a 200 kB header costs 16 bytes here)
 WATCH_S = 1.0  # how often a child looks for the server (`_exit_with`)
@@ -69,10 +79,14 @@ class WorkerFailed(P.ProtocolError):
 # ---- the child ---------------------------------------------------------------------------------
 
 
-def _child_start(where: Placement, server: int | None = None) -> None:
-    """A child's start: the background's priority and CPUs (the streams' core stays theirs), and
-    a watch on the server (`_exit_with`)."""
+def _child_start(where: Placement, server: int | None = None, idle: bool = False) -> None:
+    """A child's start: the background's priority and CPUs (the streams' core stays theirs), or
+    `SCHED_IDLE` (runs only when a CPU has nothing else to run), and a watch on the server
+    (`_exit_with`)."""
     enter_background(where)
+    if idle:
+        with contextlib.suppress(OSError, AttributeError):  # not Linux
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     if server is not None:
         threading.Thread(target=_exit_with, args=(server,), name="server-watch", daemon=True).start()
 
@@ -111,50 +125,87 @@ def _answer(status: str, payload: Any) -> Any:
 
 
 class RigWorkers:
-    """Runs functions of rig work in `processes` child processes (module doc)."""
+    """Runs functions of rig work in child processes (module doc): first in `processes` children
+    at `SCHED_IDLE`, then, for a call still unanswered after `idle_wait_s`, in as many at the
+    background's niceness as well, the first answer winning."""
 
-    def __init__(self, processes: int = PROCESSES, timeout_s: float = TIMEOUT_S) -> None:
-        self.processes, self.timeout_s = processes, timeout_s
-        self._pool: ProcessPoolExecutor | None = None
-        self.failures = 0  # children lost (died or killed past the time limit)
+    def __init__(self, processes: int = PROCESSES, timeout_s: float = TIMEOUT_S, idle_wait_s: float = IDLE_WAIT_S):
+        self.processes, self.timeout_s, self.idle_wait_s = processes, timeout_s, idle_wait_s
+        self._pools: dict[bool, ProcessPoolExecutor] = {}  # by `idle`
+        self.failures = 0  # calls failed by a lost child (died, or killed past the time limit)
+        self.promoted = 0  # calls the idle children had not answered within `idle_wait_s`
+        self._idle_starved_until = 0.0  # calls skip the idle children until then (`IDLE_BACKOFF_S`)
 
-    def _executor(self) -> ProcessPoolExecutor:
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(
+    def _executor(self, idle: bool) -> ProcessPoolExecutor:
+        if (pool := self._pools.get(idle)) is None:
+            pool = self._pools[idle] = ProcessPoolExecutor(
                 self.processes,
                 mp_context=multiprocessing.get_context("forkserver"),
                 initializer=_child_start,
-                initargs=(background_placement(), os.getpid()),
+                initargs=(background_placement(), os.getpid(), idle),
             )
-        return self._pool
+        return pool
+
+    async def _submit(self, idle: bool, call: tuple) -> tuple[ProcessPoolExecutor, asyncio.Future]:
+        pool = self._executor(idle)
+        try:
+            # submitting may start a child: a fork server round trip, kept off the event loop
+            future = await in_background(pool.submit, _call, *call)
+        except RuntimeError:  # broken by a child lost since, or shut down by another build
+            self._lost(pool)
+            pool = self._executor(idle)
+            future = await in_background(pool.submit, _call, *call)
+        return pool, asyncio.wrap_future(future)
 
     async def run(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         """`fn(*args, **kwargs)` (picklable, as its result) in a child; its `ProtocolError` and
-        `RigError` are raised here; a child lost meanwhile raises `WorkerFailed`."""
-        pool = self._executor()
+        `RigError` are raised here; a child at normal priority lost meanwhile raises
+        `WorkerFailed` (an idle child lost only sends the call on to one)."""
+        call = (fn, args, kwargs)
+        deadline = time.monotonic() + self.timeout_s
+        idle = time.monotonic() >= self._idle_starved_until
+        pool, future = await self._submit(idle, call)
+        running = {pool: future}  # each pool holding this call, and its future there
+        normal_sent = not idle
         try:
-            # submitting may start a child: a fork server round trip, kept off the event loop
-            future = await in_background(pool.submit, _call, fn, args, kwargs)
-        except RuntimeError:  # shut down meanwhile by another build that lost its child
-            pool = self._executor()
-            future = await in_background(pool.submit, _call, fn, args, kwargs)
-        try:
-            status, payload = await asyncio.wait_for(asyncio.wrap_future(future), self.timeout_s)
-        except BrokenProcessPool:
-            self._lost(pool)
-            raise WorkerFailed("its worker process died") from None
-        except TimeoutError:
-            self._lost(pool, kill=True)
-            raise WorkerFailed(f"no answer within {self.timeout_s:g} s") from None
-        return _answer(status, payload)
+            while True:
+                wait_s = deadline - time.monotonic()
+                if not normal_sent:
+                    wait_s = min(wait_s, self.idle_wait_s)
+                done, _ = await asyncio.wait(
+                    running.values(), timeout=max(wait_s, 0), return_when=asyncio.FIRST_COMPLETED
+                )
+                for pool, future in list(running.items()):
+                    if future in done:
+                        del running[pool]
+                        if not isinstance(future.exception(), BrokenProcessPool):
+                            return _answer(*future.result())
+                        self._lost(pool)
+                if time.monotonic() >= deadline:
+                    for pool in running:
+                        self._lost(pool, kill=True)
+                    self.failures += 1
+                    raise WorkerFailed(f"no answer within {self.timeout_s:g} s")
+                if not normal_sent:  # the idle child has not answered in time, or died
+                    if running:
+                        self.promoted += 1
+                        self._idle_starved_until = time.monotonic() + IDLE_BACKOFF_S
+                    pool, future = await self._submit(False, call)
+                    running[pool], normal_sent = future, True
+                elif not running:
+                    self.failures += 1
+                    raise WorkerFailed("its worker process died")
+        finally:
+            for future in running.values():  # the slower copy: dropped if it has not started
+                future.cancel()
 
     def _lost(self, pool: ProcessPoolExecutor, kill: bool = False) -> None:
         """Forget a pool that lost a child (the next build starts a fresh one); `kill`: its
         children first (one of them is stuck)."""
-        if self._pool is not pool:
+        idle = next((key for key, kept in self._pools.items() if kept is pool), None)
+        if idle is None:
             return  # another build already replaced it
-        self._pool = None
-        self.failures += 1
+        del self._pools[idle]
         if kill:
             for pid in list(getattr(pool, "_processes", None) or {}):  # the executor's own children
                 with contextlib.suppress(OSError):
@@ -162,9 +213,9 @@ class RigWorkers:
         pool.shutdown(wait=False, cancel_futures=True)
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
-            self._pool = None
+        for pool in self._pools.values():
+            pool.shutdown(wait=False, cancel_futures=True)
+        self._pools.clear()
 
 
 class RigBuilds:

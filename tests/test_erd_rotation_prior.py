@@ -55,7 +55,7 @@ def _onehot(model, style: str, scale: float = 1.0) -> np.ndarray:
 
 
 def test_log_and_exp_invert_each_other():
-    from models.motion.style_carry import quat_exp, quat_log
+    from models.motion.rotations import quat_exp, quat_log
 
     rng = np.random.default_rng(0)
     q = rng.normal(size=(500, 4))
@@ -385,25 +385,6 @@ def test_a_raise_up_streamed_equals_the_whole_clip(model, neutral):
     motion, w = neutral[2], _onehot(model, "elderly")
     whole = stylise(model.torch_generator(), model.maker, motion, w, **model.priors)
     np.testing.assert_allclose(model.stylise_stream(motion, w).rotations, whole.rotations, atol=2e-4)
-
-
-@pytest.mark.parametrize("mix", ["one style", "a mix", "none"])
-def test_compiled_clamp_is_the_range_as_bounds_carries_it(model, neutral, mix):
-    """`StyleCarry.clamped` (the raised-hand fade's clamp) skips joints already inside a lone
-    style's range; it gives what the range carried as a prior (`bounds`) gives, inside or out."""
-    from models.motion.bn_skeleton import HIPS
-
-    rng = np.random.default_rng(3)
-    q = np.concatenate([m.rotations[::6] for m in neutral])
-    q = np.concatenate([q, rng.normal(size=q.shape)])  # real poses, most inside, and random ones, most out
-    w = {
-        "one style": _onehot(model, "elderly"),
-        "a mix": _onehot(model, "elderly", 0.6) + _onehot(model, "feminine", 0.3),
-    }
-    w = np.tile(w.get(mix, np.zeros(len(model.styles()))), (len(q), 1))
-    prior = model.output_prior
-    got, want = prior.clamped(q, w, hips=HIPS), prior.bounds(q, w, hips=HIPS)
-    assert _apart(got, want).max() < 1e-9
 
 
 def test_the_arms_twist_inside_the_styles_real_interval(model, neutral):

@@ -8,7 +8,7 @@ import pytest
 from models.data import build_index, load_motions, select
 from models.eval import clip_features, load_judges
 from models.eval.judges import weights_dir
-from models.eval.metrics import foot_skating, path_deviation
+from models.eval.metrics import foot_skating
 
 pytestmark = pytest.mark.skipif(not (weights_dir() / "judges.pt").exists(), reason="no eval judges committed")
 
@@ -49,12 +49,8 @@ def test_own_style_is_recognised(judges, test_clips):
 def test_metric_sanity(judges, test_clips):
     _, motions = test_clips
     m = motions[0]
-    assert path_deviation(m, m) == pytest.approx(0.0, abs=1e-9)
-    shifted = m.translations.copy()
-    shifted[:, 1, 0] += np.linspace(0, 30, m.num_frames)  # drift 0 -> 30 cm sideways
     from dataclasses import replace
 
-    assert path_deviation(m, replace(m, translations=shifted)) == pytest.approx(15.0, rel=0.05)
     s = foot_skating(m)
     assert 0.0 <= s["skate_ratio"] <= 1.0 and s["contact_frames"] > 0
     slid = m.translations.copy()

@@ -14,13 +14,13 @@ from websockets.sync.client import connect
 
 from models.data import load_motion, select
 from models.motion.bn_skeleton import HIPS
-from models.motion.novelty_clip import pick_up
 from models.motion.retarget import retarget
 from models.registry import load_model
 from models.settings import get_settings
 from service import protocol as P
 
 from .live_server import live_server, ws_url
+from .pick_up import pick_up
 
 FLOATS = 3 + 4 * 22  # a Bandai Namco frame
 

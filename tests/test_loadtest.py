@@ -37,7 +37,8 @@ def test_every_frame_of_every_session_gets_its_reply(server, phase):
     # a loaded machine may answer some ticks with a drop count instead of a frame; none goes unanswered
     assert result.received + result.dropped == result.sent and result.lost == 0
     assert result.client_processes == 2 and result.phase == phase
-    assert np.isfinite(latency).all() and (latency > 0).all()
+    answered = np.isfinite(latency)  # a dropped frame has no latency
+    assert answered.sum() == result.received and (latency[answered] > 0).all()
     assert 0 < result.p50_ms <= result.p99_ms <= result.max_ms
     assert result.client_cpu_s > 0
 

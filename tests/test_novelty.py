@@ -17,7 +17,6 @@ from models.motion.novelty import (
     reference_path,
     smooth,
 )
-from models.motion.novelty_clip import pick_up
 from models.motion.novelty_kernels import KIND_LEG_END, W1, fade_step
 from models.motion.novelty_stage import KEY, KEYS, faded, fresh_state
 from models.motion.retarget import retarget
@@ -25,6 +24,8 @@ from models.motion.rotations import quat_angle, quat_exp, quat_inv, quat_log, qu
 from models.motion.skeleton import fk
 from models.registry import METHODS, load_model, load_models
 from models.settings import get_settings
+
+from .pick_up import pick_up
 
 WEIGHTS = get_settings().weights_dir
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import operator
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -154,3 +155,45 @@ def test_a_child_ends_when_its_server_is_killed():
     while not _gone(child):
         assert time.monotonic() < deadline, f"child {child} outlived its server"
         time.sleep(0.1)
+
+
+IDLE_CHILD = """
+import os
+from service.background import background_placement
+from service.rig_builds import _child_start
+_child_start(background_placement(), idle=True)
+print(os.sched_getscheduler(0) == os.SCHED_IDLE)
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="Linux scheduling classes")
+def test_an_idle_child_runs_only_on_a_cpu_with_nothing_else_to_do():
+    """So a build takes no CPU time from a streaming thread."""
+    assert (
+        subprocess.run([sys.executable, "-c", IDLE_CHILD], capture_output=True, text=True, check=True).stdout
+        == "True\n"
+    )
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="Linux scheduling classes")
+def test_a_build_its_idle_child_never_runs_is_answered_by_a_normal_one_and_the_next_goes_there_at_once():
+    """On a machine never idle, an idle child would never run: past `idle_wait_s` the same call
+    goes to a child at the background's niceness (here the idle child is stopped outright), and
+    the builds right after skip the idle children."""
+
+    async def scenario() -> None:
+        workers = RigWorkers(processes=1, idle_wait_s=0.2)
+        idle_pool = workers._executor(idle=True)
+        idle_pool.submit(int)  # starts its child
+        stopped = list(idle_pool._processes)
+        for pid in stopped:
+            os.kill(pid, signal.SIGSTOP)
+        try:
+            assert await workers.run(os.sched_getscheduler, 0) != os.SCHED_IDLE and workers.promoted == 1
+            assert await workers.run(operator.add, 2, 3) == 5 and workers.promoted == 1  # not sent to the idle child
+        finally:
+            for pid in stopped:
+                os.kill(pid, signal.SIGCONT)
+            workers.close()
+
+    asyncio.run(scenario())

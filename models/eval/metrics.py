@@ -1,5 +1,5 @@
-"""Metrics on motions: FMD (Fréchet distance of judge-autoencoder latents), foot skating, root-path
-deviation. Recognition accuracies live in `judges.Judges`."""
+"""Foot-contact metrics on motions: flat-foot skating and planted-joint slide. Recognition
+accuracies live in `judges.Judges`."""
 
 from __future__ import annotations
 
@@ -52,16 +52,6 @@ def foot_skating(motion: Motion, positions: np.ndarray | None = None) -> dict:
     }
 
 
-def path_deviation(source: Motion, output: Motion) -> float:
-    """Mean horizontal distance between the input's and the output's root (Hips) paths after
-    aligning both starts, over the common frames (units of the skeleton, cm for Bandai Namco)."""
-    hips = body_joint(source.skeleton, "hips")
-    n = min(source.num_frames, output.num_frames)
-    a = source.global_positions()[:n, hips][:, [0, 2]]
-    b = output.global_positions()[:n, hips][:, [0, 2]]
-    return float(np.linalg.norm((a - a[0]) - (b - b[0]), axis=-1).mean())
-
-
 PLANT_HEIGHT = 0.03  # leg lengths (2.5 cm on Bandai Namco) above a joint's floor level: that joint is planted
 
 
@@ -79,14 +69,3 @@ def planted_slide(motion: Motion, positions: np.ndarray | None = None) -> dict[s
             speed = np.linalg.norm(np.diff(p[:, [0, 2]], axis=0), axis=-1) * motion.fps
             out[part].append(speed[planted])
     return {k: np.concatenate(v) for k, v in out.items()}
-
-
-def slide_summary(motions: list[Motion]) -> dict[str, float]:
-    """Median and p95 planted toe and ankle speed (units/s, cm/s on Bandai Namco) over clips."""
-    pooled = [planted_slide(m) for m in motions]
-    out = {}
-    for part in ("toe", "ankle"):
-        v = np.concatenate([p[part] for p in pooled])
-        out[f"{part}_median"] = float(np.median(v)) if len(v) else 0.0
-        out[f"{part}_p95"] = float(np.percentile(v, 95)) if len(v) else 0.0
-    return out

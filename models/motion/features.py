@@ -87,7 +87,6 @@ def backward_diff(x: np.ndarray, fps: float) -> np.ndarray:
 
 @dataclass
 class Features:
-    root_position: np.ndarray  # (F, 3) root on the ground plane (y = 0), world
     yaw: np.ndarray  # (F,) facing yaw, radians
     local_positions: np.ndarray  # (F, J, 3) joint positions in the facing frame
     root_velocity: np.ndarray  # (F, 3) root velocity in the facing frame (units/s), y = vertical
@@ -124,7 +123,6 @@ def compute_features(motion: Motion) -> Features:
     yaw_rate = np.zeros_like(yaw)
     yaw_rate[1:] = wrap_angle(np.diff(yaw)) * motion.fps
     return Features(
-        root_position=root,
         yaw=yaw,
         local_positions=local,
         root_velocity=np.einsum("fab,fb->fa", to_local, world_root_vel),

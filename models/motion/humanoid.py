@@ -35,7 +35,7 @@ from . import bvh as bvhio
 from .bn_skeleton import BN_JOINTS
 from .humanoid_presets import PRESETS, preset_skeleton
 from .rotations import matrix_to_quat, quat_to_matrix
-from .skeleton import Motion, Skeleton, skeleton_from_bvh
+from .skeleton import Motion, Skeleton, depths, skeleton_from_bvh
 
 SIDED_PARTS = ("clavicle", "upperarm", "lowerarm", "hand", "upperleg", "lowerleg", "foot", "toes")
 ARM, LEG = SIDED_PARTS[:4], SIDED_PARTS[4:]
@@ -174,13 +174,6 @@ def split_name(name: str) -> tuple[str | None, str]:
     return side, "".join(t for t in tokens if t not in ("c",) or len(tokens) == 1)
 
 
-def _depths(parents: np.ndarray) -> np.ndarray:
-    depth = np.zeros(len(parents), int)
-    for j, p in enumerate(parents):
-        depth[j] = depth[p] + 1 if p >= 0 else 0
-    return depth
-
-
 def is_ancestor(parents: np.ndarray, a: int, b: int) -> bool:
     """a is b or one of b's ancestors."""
     while b >= 0:
@@ -251,7 +244,7 @@ def _assign_chain(
 
 
 def _from_aliases(skeleton: Skeleton, fixed: dict[str, int], excluded: set[int]) -> dict[str, int]:
-    parents, depth = skeleton.parents, _depths(skeleton.parents)
+    parents, depth = skeleton.parents, depths(skeleton.parents)
     split = [split_name(n) for n in skeleton.names]
     free = [j for j in range(skeleton.num_joints) if j not in excluded and j not in fixed.values()]
     roles = dict(fixed)
@@ -341,19 +334,13 @@ def match_roles(
     names = _lookup(skeleton)
     unknown_joints = [j for j in (joint_map or {}) if j.lower() not in names]
     unknown_roles = [r for r in (joint_map or {}).values() if r is not None and r not in ROLES]
-    if unknown_joints or unknown_roles:
-        raise RigError(
-            "bad_joint_map",
-            "; ".join(
-                ([f"joint_map names joints the skeleton lacks: {', '.join(unknown_joints)}"] if unknown_joints else [])
-                + (
-                    [f"joint_map names unknown roles: {', '.join(unknown_roles)} (roles: {', '.join(ROLES)})"]
-                    if unknown_roles
-                    else []
-                )
-            ),
-            tuple(unknown_joints + unknown_roles),
-        )
+    problems = []
+    if unknown_joints:
+        problems.append(f"joint_map names joints the skeleton lacks: {', '.join(unknown_joints)}")
+    if unknown_roles:
+        problems.append(f"joint_map names unknown roles: {', '.join(unknown_roles)} (roles: {', '.join(ROLES)})")
+    if problems:
+        raise RigError("bad_joint_map", "; ".join(problems), tuple(unknown_joints + unknown_roles))
     for joint, role in (joint_map or {}).items():
         j = names[joint.lower()]
         if role is None:

@@ -354,13 +354,7 @@ def main(argv: list[str] | None = None) -> int:
         s.add_argument("--contents", help="comma-separated contents (default: every one)")
         s.add_argument("--styles", help="comma-separated input styles (default: every one)")
     sub.choices["report"].add_argument("--split", default="val")
-    s = sub.add_parser("pickup", help="stream a walk that stops to pick something up, with and without the fade")
-    s.add_argument("--method", default="lti")
-    s.add_argument("--style", default="elderly")
-    s.add_argument("--out", type=Path, help="also write an oriented contact sheet (PNG) into this folder")
     args = p.parse_args(argv)
-    if args.cmd == "pickup":
-        return _pickup(args.method, args.style, args.out)
     from ..settings import get_settings
 
     datasets = args.datasets.split(",")
@@ -390,45 +384,6 @@ def main(argv: list[str] | None = None) -> int:
         total[0], total[1] = total[0] + int(np.sum(w > FADED)), total[1] + len(w)
     for content, (hits, n) in sorted(by_content.items()):
         print(f"{content:30s} faded {hits / n:6.1%} of {n} frames")
-    return 0
-
-
-PICKUP_BASE = ("xia", "neutral_walk_01_000")  # a validation input of the evaluation, never a test one
-
-
-def _pickup(method: str, style: str, out: Path | None) -> int:
-    """The pick-up clip through `method` toward `style`, with the fade and without it: the fade
-    and the lowest foot point against the input's, every 0.2 s; optionally a contact sheet."""
-    from ..data import build_index, load_motion, select
-    from ..eval.run import stylise_toward
-    from ..registry import load_model
-    from ..settings import get_settings
-    from .novelty_clip import pick_up
-    from .retarget import retarget
-
-    clip = select(build_index([PICKUP_BASE[0]]), name=PICKUP_BASE[1])[0]
-    made = pick_up(load_motion(clip), walk_s=1.0)
-    motion = retarget(made.motion)
-    weights = get_settings().weights_dir
-    fades: dict[str, list[np.ndarray]] = {}
-    faded = stylise_toward(load_model(weights, method), [motion], [style], fades)[style][0]
-    plain = stylise_toward(load_model(weights, method, novelty=False), [motion], [style])[style][0]
-    feet = [BN_JOINTS.index(f"{p}_{s}") for p in ("Foot", "Toes") for s in "LR"]
-    low = {k: m.global_positions()[:, feet, 1].min(axis=1) for k, m in (("in", motion), ("on", faded), ("off", plain))}
-    print(f"{PICKUP_BASE[1]} with a pick-up ({made.down[0]:.1f}-{made.down[1]:.1f} s down) through {method} -> {style}")
-    print(" time  fade  lowest foot - input's (cm): with fade, without")
-    for t in range(0, motion.num_frames, 6):
-        f = fades[style][0][t]
-        print(f"{t / 30:5.1f} {f:5.2f} {low['on'][t] - low['in'][t]:8.1f} {low['off'][t] - low['in'][t]:8.1f}")
-    if out is not None:
-        from .render import render_contact_sheet
-
-        lo, hi = int((made.crouch[0] - 0.3) * 30), int((made.crouch[1] + 0.9) * 30)
-        frames = [int(f) for f in np.linspace(lo, hi, 8).round()]
-        rows = [motion, faded, plain]
-        titles = ["input (Xia walk + pick-up)", f"{method} -> {style}, fade", f"{method} -> {style}, no fade"]
-        path = render_contact_sheet(rows, out / f"pickup_{method}_{style}.png", frames=frames, titles=titles, dpi=60)
-        print(path)
     return 0
 
 

@@ -1,32 +1,18 @@
-"""Retargeting humanoid motions (any rig `humanoid` matches: CMU and Xia files, Mixamo, Unreal,
-Unity/VRM, SMPL, BVH exports, ...) onto the Bandai Namco (BN) skeleton.
+"""Retargeting humanoid motions (any rig `humanoid` matches) onto the Bandai Namco (BN) skeleton.
 
-The BN skeleton has no T-pose (its all-zero pose points the legs up the spine), so the mapping
-is built from bone *directions*, never from either skeleton's rest pose:
+BN's all-zero pose is no T-pose (it points the legs up the spine), so the mapping is built from
+bone *directions*, never from either rest pose:
 
-1. `humanoid.match_roles` names the client joint of each body role; `humanoid.bn_segments`
-   gives, per BN bone, the client segment (between two role joints) whose direction it takes.
-2. Hips and Chest have several children: their global rotation is a two-vector frame of the
-   client's joint positions (the bone up the spine and the line between the legs / upper arms).
-   The hips' side vector is the client's rest hip line carried by its hips joint
-   (`retarget_stream._rest_side`), so hip joints between hips and thighs do not turn the pelvis.
-3. Every other joint with a segment (`TwistPlan`, parents first): the BN parent's new global
-   rotation times the joint's local rotation in the natural BN pose, then the smallest swing that
-   carries the BN bone onto the segment. The twist about the bone follows the BN parent and the
-   natural pose, never the client joint's own twist (which can sit far outside BN's range).
-   Limb roots (UpperLeg, UpperArm) instead take the twist that lays BN's hinge axis along the
-   normal of the client's limb plane, cross(upper bone, lower bone), so knees and elbows bend
-   about BN's hinge; a near-straight limb, whose plane is noise, blends to a fallback axis
-   (`HINGE_FALLBACK`): halfway between BN's natural hinge axis and the client's own hinge axis,
-   learned per stream from its bent frames (`HINGE_PRIOR`; `retarget_stream.FrameRetargeter`
-   keeps it as the stream's state). The Spine takes a share of the Chest's twist (`TWIST_SHARE`), as Unity's
-   humanoid spreads a twist over a chain. Leaves (Head, Hands, Toes) keep the natural local
-   rotation: they move no joint, and BN data holds them nearly fixed.
-4. The Hips translation is scaled by the leg-length ratio (which also converts units) and shifted
-   so the toe on the ground sits at the toe height BN data shows (`contact_height`). The source
-   is first resampled to the target fps (default 30).
-
-Pure numpy/scipy; `default_rig()` comes from a committed one-frame BN asset.
+1. Each BN bone takes the direction of a client segment between two role joints
+   (`humanoid.match_roles`, `humanoid.bn_segments`).
+2. Hips and Chest get two-vector frames: the bone up the spine and the line between the legs /
+   upper arms (the hips' line as the client's rest pose holds it, `retarget_stream._rest_side`).
+3. Every other joint (`TwistPlan`): its natural BN local rotation under the new BN parent, swung
+   onto its segment; the twist follows the parent, never the client's own twist. Limb roots take
+   the twist that lays BN's hinge axis along the client's limb plane (`HINGE_FALLBACK` when the
+   limb is near straight). Leaves keep the natural local rotation.
+4. The Hips translation is scaled by the leg-length ratio and shifted so the toes on the ground
+   sit at BN's toe height (`contact_height`).
 """
 
 from __future__ import annotations
@@ -41,7 +27,7 @@ from .bn_skeleton import PRIMARY_CHILD, missing_joints
 from .humanoid import HumanoidRig
 from .resample import resample
 from .rotations import quat_canonical
-from .skeleton import Motion, Skeleton, fk
+from .skeleton import Motion, Skeleton, depths, fk
 
 # Joints with several children: (left child, right child) fixing the twist of the up vector.
 # The client side takes the vector between its upper legs / upper arms (CMU collars sit on the
@@ -103,33 +89,20 @@ _HINGES = {
     "UpperArm_L": "LowerArm_L",
     "UpperArm_R": "LowerArm_R",
 }
-# How much a near-straight limb falls back to its fallback axis: the hinge axis aims along
-# |n| n + HINGE_FALLBACK^2 fallback, n = cross(upper bone, lower bone), |n| the sine of the bend.
-# The limb plane decides once the bend is well above ~35 degrees; a straighter limb turns smoothly
-# to the fallback. An axis weighted by (n . fallback) instead flips whenever the plane crosses a
-# quarter turn from the fallback (CMU's right arm) or a hyperextended knee straightens (Xia's
-# thighs). The fallback is the unit mean of BN's natural hinge axis, which swings with the limb's
-# direction, and the client's own hinge axis, fixed in the frame of the client joint that carries
-# the hinge child and learned per stream: the natural axis at the stream's first frame
-# (`HINGE_PRIOR`), plus each frame's limb-plane normal weighted by sin^2 of its bend (a
-# near-straight limb's plane is noise). With the natural axis alone a straightening limb's twist
-# turned within a few frames where the two disagree (the Xia punch's arms 1.7-1.9x the source's
-# p99 rotation acceleration, Xia legs at 120 fps 1.35-1.6x; `retarget_check`); with the client's
-# axis alone, BN's arm twist takes the client's upper arm twist (Xia jump's arms 1.3-1.8x). With
-# the mean, worst 1.18 at 0.6 and 1.22 at 0.5. A stronger fallback holds moderately bent knees
-# off their limb plane: the Xia walk's mean LTI blend weight rises from 0.80 (0.3, natural axis)
-# to 0.92 (tests/test_retarget.py).
+# How much a near-straight limb falls back: the hinge axis aims along |n| n + HINGE_FALLBACK^2 f,
+# n = cross(upper bone, lower bone) (|n| the sine of the bend), so the limb plane decides once
+# the limb is well bent and a straighter limb turns smoothly to f. An axis weighted by (n . f)
+# would flip as the plane crosses a quarter turn from f. f is the unit mean of BN's natural hinge
+# axis and the client's own hinge axis, learned per stream in the frame of the joint carrying the
+# hinge child: each frame's n weighted by sin^2 of its bend (a straight limb's plane is noise).
 HINGE_FALLBACK = 0.6
-# The weight of the stream's first natural axis in its learned hinge axis, against sin^2 of the bend
-# per frame: a stream that never bends a limb (the Xia punch's legs) keeps that axis turning with
-# its client joint, so BN's twist follows the client's; one that does soon outweighs it.
+# The weight of the stream's first natural axis in the learned axis, against sin^2 of each bend:
+# a stream that never bends a limb keeps BN's twist following the client's.
 HINGE_PRIOR = 1.0
 
 
-# The share of the chest's twist about the spine bone (relative to the natural pose) that BN's Spine
-# takes, as Unity's humanoid spreads a twist over the joints of a chain: with none, a client's
-# whole spine twist lands in BN's Chest, whose rotation then jitters 1.8x the client's worst spine
-# joint (Xia runs; retarget_check).
+# The share of the chest's twist about the spine bone that BN's Spine takes, as Unity's humanoid
+# spreads a twist over a chain: without it the whole spine twist lands in BN's Chest and jitters.
 TWIST_SHARE = 0.5
 
 
@@ -138,22 +111,11 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 class TwistPlan:
-    """BN global rotations from client bone directions, batched over frames.
-
-    `segments` lists the BN joints (other than the two-vector joints Hips and Chest) whose bone
-    direction the caller gives, in the order of the columns of `dirs`; BN joints not listed are
-    leaves. Joints are processed depth by depth (parents first); within a depth, joints of one
-    kind share each numpy call. Kinds:
-
-    * lateral (Hips, Chest): two-vector frames, computed by the caller and passed in;
-    * swing: BN parent's world rotation times the natural local rotation, then the smallest swing
-      that carries the bone onto the given direction (twist about the bone follows the parent);
-    * limb (UpperLeg, UpperArm): bone onto the given direction, twist such that the BN hinge axis
-      (in the limb joint's frame, from the natural pose's bend) is the normal of the client's limb
-      plane (upper and lower bone directions), or the fallback axis (`HINGE_FALLBACK`) when the
-      limb is near straight;
-    * leaf (Head, Hand, Toes, and Foot when the client has no toes): the natural local rotation
-      under the new BN parent.
+    """How BN's global rotations follow from client bone directions (module docstring, step 3):
+    the joints depth by depth, parents first, grouped by kind ("swing", "limb", "leaf"; Hips
+    and Chest are the caller's two-vector frames). `segments` lists the BN joints whose bone
+    direction the caller gives, in the order of its columns; the others are leaves.
+    `retarget_stream.FrameRetargeter` compiles the groups into `retarget_kernels`' plan.
     """
 
     def __init__(self, rig: Rig, segments: tuple[str, ...]):
@@ -172,9 +134,7 @@ class TwistPlan:
                 return "leaf"
             return "limb" if n in _HINGES and _HINGES[n] in col else "swing"
 
-        depth = np.zeros(sk.num_joints, int)
-        for j, p in enumerate(sk.parents):
-            depth[j] = depth[p] + 1 if p >= 0 else 0
+        depth = depths(sk.parents)
         self.groups: list[dict] = []
         for d in range(1, int(depth.max()) + 1):
             level = [sk.names[j] for j in range(sk.num_joints) if depth[j] == d and sk.names[j] not in _LATERAL]

@@ -10,13 +10,14 @@ same body segment as BN's local rotation). "back": a styled BN frame (the retarg
 constant local offsets, as a model's output differs from its input) mapped back onto the
 client's rig, the same measure per client joint.
 
-    python -m models.motion.retarget_check [--fps 30 120] [--bench]
+    python -m models.motion.retarget_check [--fps 30 120] [--joints]
+
+(`python -m models.motion.humanoid bench` times the retargeter.)
 """
 
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
@@ -151,28 +152,10 @@ def _clips() -> list[tuple[str, Motion]]:
     return [(f"{c.dataset}/{c.name}", load_motion(c)) for c in build_index(["cmu", "xia"])]
 
 
-def _bench(motion: Motion, fr: FrameRetargeter, frames: int = 300) -> tuple[float, float]:
-    """Microseconds per frame at batch 1, (to_model, to_source), best of 3."""
-    root, rot = motion.translations[:frames, fr.humanoid.translated], motion.rotations[:frames]
-    hips, bn = fr.to_model(root, rot)
-    best = [np.inf, np.inf]
-    for _ in range(3):
-        t = time.perf_counter()
-        for f in range(len(root)):
-            fr.to_model(root[f : f + 1], rot[f : f + 1])
-        best[0] = min(best[0], (time.perf_counter() - t) / len(root))
-        t = time.perf_counter()
-        for f in range(len(root)):
-            fr.to_source(hips[f : f + 1], bn[f : f + 1], rot[f : f + 1])
-        best[1] = min(best[1], (time.perf_counter() - t) / len(root))
-    return best[0] * 1e6, best[1] * 1e6
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--fps", type=float, nargs="+", default=[30.0, 120.0])
     ap.add_argument("--joints", action="store_true", help="print every joint, not only the groups")
-    ap.add_argument("--bench", action="store_true", help="time to_model / to_source per frame")
     args = ap.parse_args(argv)
     names = joint_names()
     worst = 0.0
@@ -187,9 +170,6 @@ def main(argv: list[str] | None = None) -> int:
             if args.joints:
                 for i, n in enumerate(names):
                     print(f"    {n:12s} src {j['src'][i]:7.2f}  bn {j['bn'][i]:7.2f}  back {j['back'][i]:7.2f}")
-        if args.bench:
-            m, s = _bench(motion, fr)
-            print(f"    bench: to_model {m:.1f} us/frame, to_source {s:.1f} us/frame (batch 1)")
     print(f"worst group ratio {worst:.2f} (bound {BOUND})")
     return 0 if worst <= BOUND else 1
 

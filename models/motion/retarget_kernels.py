@@ -1,14 +1,10 @@
 """Compiled kernels (numba) for `retarget_stream.FrameRetargeter`: one frame at a time on scalars.
 
-The numpy reference (`tests/reference/retarget.py`) batches 3x3 matrix products over frames and over the joints of one tree
-depth; at batch 1 that is a few hundred numpy calls of a few microseconds each (~2 ms a frame
-both ways), batched it is bound by numpy's small-matrix `matmul` (~70 us a character). Here a
-frame is a loop over the joints on 3x3 scratch arrays, a few microseconds a character at batch 1
-as well as batched. The maths is the reference's, step for step (see `retarget_stream` for what
-each step means); results equal it to float round-off.
-
-Everything the kernels need of a rig is precomputed by `FrameRetargeter._kernel_plan` into plain
-arrays, packed into one int and one float buffer (`pack`).
+A frame is a loop over the joints on 3x3 scratch arrays, a few microseconds a character at batch
+1 as well as batched (the batched numpy reference, `tests/reference/retarget.py`, spends ~2 ms a
+frame at batch 1 in small numpy calls). The maths is the reference's, step for step; results
+equal it to float round-off. `FrameRetargeter._kernel_plan` precomputes what the kernels need of
+a rig into plain arrays, packed into one int and one float buffer (`pack`).
 
 Conventions: quaternions (x, y, z, w); rotation matrices act on column vectors; slots are the
 client's needed joints in depth order (`retarget_stream._Tree`), slot -1 meaning "identity".
@@ -568,9 +564,8 @@ def _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, hinges, fo
         )
         for r in range(3):  # rig.axes.T @ t: the client's world
             h[r] = rig.axes[0, r] * t[0] + rig.axes[1, r] * t[1] + rig.axes[2, r] * t[2]
-        _hips_terms(
-            gs, rig.fixed_par_s, rig.fixed_off, rig.translated_par_s, c, gp, t
-        )  # the chain above the hips is unchanged
+        # the chain above the hips is unchanged
+        _hips_terms(gs, rig.fixed_par_s, rig.fixed_off, rig.translated_par_s, c, gp, t)
         for r in range(3):
             h[r] -= c[r]
         for r in range(3):

@@ -1,24 +1,15 @@
-"""Causal, per-frame retargeting between a client's humanoid rig and the Bandai Namco (BN) model skeleton.
+"""Causal, per-frame retargeting between a client's humanoid rig and the Bandai Namco (BN) skeleton.
 
-`retarget.retarget` works on whole clips; a live stream has one frame at a time, so
-`FrameRetargeter` fixes everything else up front, for any rig `humanoid` matches:
+`FrameRetargeter` fixes everything but the frame up front (the mapping: `retarget`). The client's
+world is brought to BN's (Y up, right-handed) by `HumanoidRig.axes`, a rotation or a reflection;
+the Hips translation is the client's hips position scaled by the leg-length ratio, plus a
+constant height (`vertical_offset`) that puts the client's toes at its floor where BN's are.
 
-* BN bones are laid along the client's *segments* between joints of matching roles
-  (`humanoid.bn_segments`), read from each frame's world rotations and the rig's bone offsets,
-  never its rest pose; `retarget.TwistPlan` turns them into BN rotations;
-* the client's world is brought to BN's (Y up, right-handed) by `HumanoidRig.axes`, a rotation or
-  a reflection: directions are multiplied by it, rotations conjugated;
-* the Hips translation is the client's hips position scaled by the leg-length ratio, plus one
-  constant height (`vertical_offset`) that puts the client's toes at its floor where BN's are.
-
-`to_source` is the inverse, a (stylised) BN frame back onto the client's rig: each client joint k
-gets G_new[k] = D_j G_client[k], D_j = G_bn_new[j] G_bn_client[j]^-1 the change of the global
-rotation of j, the BN joint of k's nearest mapped ancestor-or-self (none: no change). Unmapped
-joints (twist bones, fingers, props) keep their local rotations and ride along.
-`to_source(*to_model(root, rot), rot) == (root, rot)` up to float rounding.
-
-Both run compiled kernels (`retarget_kernels`), one frame at a time; the batched numpy mapping
-they are tested equal to is `tests/reference/retarget.py`.
+`to_source` maps a (stylised) BN frame back: each client joint k gets G_new[k] = D_j G_client[k],
+D_j the change of the global rotation of j, the BN joint of k's nearest mapped ancestor-or-self.
+Unmapped joints (twist bones, fingers, props) keep their local rotations.
+`to_source(*to_model(root, rot), rot) == (root, rot)` up to float rounding. Both run compiled
+kernels (`retarget_kernels`); `tests/reference/retarget.py` is the numpy mapping they equal.
 """
 
 from __future__ import annotations
@@ -30,7 +21,7 @@ from .bn_skeleton import BN_JOINTS, PRIMARY_CHILD
 from .humanoid import BN_ROLES, HumanoidRig, bn_joints_of, bn_segments, humanoid_rig, leg_length
 from .retarget import _HINGES, _LATERAL, Rig, TwistPlan, _frame, default_rig
 from .rotations import matrix_to_quat as mat_to_quat
-from .skeleton import Skeleton, fk
+from .skeleton import Skeleton, depths, fk
 
 
 class _Tree:
@@ -40,9 +31,7 @@ class _Tree:
     def __init__(self, parents: np.ndarray, needed: np.ndarray | None = None):
         parents = np.asarray(parents)
         n = len(parents)
-        depth = np.zeros(n, int)
-        for j, p in enumerate(parents):
-            depth[j] = depth[p] + 1 if p >= 0 else 0
+        depth = depths(parents)
         keep = np.ones(n, bool)
         if needed is not None:  # the needed joints and their ancestors
             keep[:] = False
@@ -57,7 +46,6 @@ class _Tree:
             (int(np.searchsorted(d, k)), int(np.searchsorted(d, k, "right")), self.pos[parents[self.order[d == k]]])
             for k in range(1, int(d.max(initial=0)) + 1)
         ]
-        self.roots = int(np.searchsorted(d, 0, "right"))
 
 
 def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
@@ -78,20 +66,15 @@ def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
 
 
 # Two-vector joints whose side vector is the client's rest-pose line carried by the joint's own
-# rotation (`_rest_side`) instead of the line read per frame. Not the Chest: Xia's collars sit
-# forward of their rest pose, and the chest turned with the rest line left the LTI model's training
-# range on the Xia walk (blend weight 0.80 -> 0.85); the spine's twist share (`retarget.TWIST_SHARE`)
-# takes the chest's jitter down instead.
+# rotation (`_rest_side`) instead of the line read per frame. Not the Chest: collars that sit
+# forward of their rest pose would turn it (the spine's `retarget.TWIST_SHARE` steadies it instead).
 _REST_SIDE = ("Hips",)
 
 
 def _rest_side(skeleton: Skeleton, a: int, b: int) -> np.ndarray:
-    """pos[b] - pos[a] in the rest pose (every local rotation identity, so also in any joint's
-    frame). Carried by the hips' own rotation it is the side vector of BN's Hips frame: the
-    client's hip line as its pelvis holds it. The line between the upper legs read per frame also
-    carries joints between the hips and the thighs (Xia's animated LHipJoint), whose motion turned
-    BN's whole pelvis (p99 rotation acceleration up to 1.4x the source's hips on Xia clips). With
-    no such joints (CMU files, the made rigs) both are the same vector."""
+    """pos[b] - pos[a] in the rest pose (so also in any joint's frame). Carried by the hips' own
+    rotation it is the client's hip line as its pelvis holds it: joints animated between the
+    hips and the thighs (Xia's LHipJoint) then do not turn BN's pelvis."""
     return sum((s * skeleton.offsets[k] for k, s in _path_terms(skeleton, a, b)), np.zeros(3))
 
 
@@ -134,7 +117,6 @@ class FrameRetargeter:
             raise ValueError("expected Hips to have a parent (joint_Root) in BN")
         self._axes = hr.axes  # client world -> BN world
         self._bn_tree = _Tree(sk.parents)
-        self._bn_unorder = self._bn_tree.pos  # slot -> joint order
         self._src_parents = np.asarray(src.parents)
         self._bn_parents = np.asarray(sk.parents)
         self._bn_hips = sk.index("Hips")
@@ -162,7 +144,6 @@ class FrameRetargeter:
         points = [(f"{p}_{x}", f"{b}_{x.upper()}") for p, b in (("toes", "Toes"), ("foot", "Foot")) for x in "lr"]
         points = [(r, b) for r, b in points if r in roles]
         terms += [self._segment_terms(src, roles["hips"], roles[r]) for r, _ in points]
-        self._drop_rows = slice(len(terms) - len(points), len(terms))
         chains = []  # per BN foot point, (parent joint, offset) of each joint from the Hips down to it
         for _, b in points:
             chain, j = [], sk.index(b)

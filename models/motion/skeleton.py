@@ -86,6 +86,14 @@ class Motion:
         return replace(self, rotations=self.rotations[start:stop], translations=self.translations[start:stop])
 
 
+def depths(parents: np.ndarray) -> np.ndarray:
+    """(J,) each joint's depth in the tree (roots 0), for parents-first joints."""
+    depth = np.zeros(len(parents), int)
+    for j, p in enumerate(parents):
+        depth[j] = depth[p] + 1 if p >= 0 else 0
+    return depth
+
+
 def fk(rotations: np.ndarray, translations: np.ndarray, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Forward kinematics: local (..., J, 4)/(..., J, 3) -> world rotations and positions.
     Quaternions are normalised first (cached clips store them as float32)."""

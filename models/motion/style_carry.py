@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .rotations import quat_exp, quat_inv, quat_log, quat_mean, quat_mul
+from .rotations import quat_inv, quat_log, quat_mean, quat_mul
 
 CLAMP_PERCENTILE = 98.0
 MAX_SAMPLES = 60_000  # an even subsample per style keeps a fit to seconds
@@ -98,14 +98,6 @@ class StyleCarry:
             self.mean, self.mean, np.ascontiguousarray(np.broadcast_to(np.eye(3), self.map.shape)), self.radius
         )
 
-    def clamped(self, q: np.ndarray, weights: np.ndarray, hips: int = -1) -> np.ndarray:
-        """(B, J, 4) rotations kept in the styles' real ranges (`bounds`, weights (B, S)), not
-        carried: what `bounds(q, weights, hips)` gives, compiled so that a row with one style
-        skips the joints already inside (`style_carry_kernels.clamp_batch`)."""
-        from .style_carry_kernels import clamp
-
-        return clamp(q, weights, self.bounds.arrays, hips)
-
     @functools.cached_property
     def damping(self) -> np.ndarray:
         """(S, J, 3, 3) each map with its gains capped at 1 (the map is symmetric: the capped
@@ -122,14 +114,6 @@ class StyleCarry:
         eye = np.all(np.abs(self.map - np.eye(3)) == 0.0, axis=(-1, -2))
         same = np.all(self.source == self.mean, axis=-1)
         return np.all(eye & same, axis=0)
-
-    def style(self, q: np.ndarray, s: int) -> np.ndarray:
-        """f_s(q) for rotations (N, J, 4) toward style s."""
-        d = quat_log(quat_mul(quat_inv(self.source[s])[None], q))
-        d = np.einsum("jik,njk->nji", self.map[s], d)
-        norm = np.linalg.norm(d, axis=-1)
-        d = d * np.minimum(1.0, self.radius[s] / np.maximum(norm, 1e-12))[..., None]
-        return quat_mul(self.mean[s][None], quat_exp(d))
 
     def __call__(self, q: np.ndarray, weights: np.ndarray, hips: int = -1) -> np.ndarray:
         """(B, J, 4) rotations (B, J, 4) carried toward the styles of weights (B, S), compiled

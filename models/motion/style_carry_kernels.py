@@ -210,35 +210,6 @@ def _cos_half(radius):
 
 
 @njit(cache=True, error_model="numpy")
-def clamp_batch(q, w, clamp, hips, out):
-    """out (B, J, 4) = q kept in the range `clamp` (source, mean, lin, radius of
-    `StyleCarry.bounds`) of the styles of w (B, S): what `carry_batch` gives with that range,
-    but a row with one style leaves a joint already inside its radius as it is (most are) instead
-    of carrying it by the identity. Joint `hips` without its heading, as in `carry_batch`."""
-    cos_half = _cos_half(clamp[3])
-    mean = clamp[1]
-    for row in range(q.shape[0]):
-        lone = _lone(w, row)
-        for j in range(q.shape[1]):
-            qx, qy, qz, qw, hy, hw = _unit(q, row, j, hips)
-            if lone >= 0:
-                d = mean[lone, j, 0] * qx + mean[lone, j, 1] * qy + mean[lone, j, 2] * qz + mean[lone, j, 3] * qw
-                if abs(d) >= cos_half[lone, j]:
-                    _store(out, row, j, hips, hy, hw, qx, qy, qz, qw)
-                    continue
-            ox, oy, oz, ow = _clamped(qx, qy, qz, qw, row, j, w, lone, clamp)
-            _store(out, row, j, hips, hy, hw, ox, oy, oz, ow)
-    return out
-
-
-def clamp(q: np.ndarray, w: np.ndarray, bounds: tuple, hips: int = -1) -> np.ndarray:
-    """`clamp_batch` on any (B, J, 4) rotations and (B, S) weights; `bounds`: the range's
-    (source, mean, lin, radius)."""
-    q = np.ascontiguousarray(q, np.float64)
-    return clamp_batch(q, np.ascontiguousarray(w, np.float64), bounds, hips, np.empty_like(q))
-
-
-@njit(cache=True, error_model="numpy")
 def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hips, out, new_slow):
     """The slow part of q carried, its fast part on top (`models/erd/slow_carry.py`), in one
     pass. Per row and joint:

@@ -13,6 +13,8 @@ from models.motion.rotation_ball import split_heading
 from models.motion.rotations import quat_exp, quat_inv, quat_log, quat_mul, twist_angle
 from models.motion.style_carry import StyleCarry
 
+from .style_carry import style
+
 
 def apply(carry: StyleCarry, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """`carry(q, weights)` in numpy. Only the (row, style) pairs with a weight are computed, so a
@@ -26,7 +28,7 @@ def apply(carry: StyleCarry, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
     correction = np.zeros(q.shape[:-1] + (3,))
     for s in np.unique(styles):
         r = rows[styles == s]
-        fs = carry.style(q[r], int(s))
+        fs = style(carry, q[r], int(s))
         np.add.at(correction, r, w[r, s][:, None, None] * quat_log(quat_mul(quat_inv(q[r]), fs)))
     return quat_mul(q, quat_exp(correction))
 

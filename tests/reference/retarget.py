@@ -114,7 +114,7 @@ def _drop(fr: FrameRetargeter, vec: np.ndarray, gb: np.ndarray) -> np.ndarray:
     sinks: a client's toe pressed into its floor (CMU 131_02's, by 5 cm) does not pull BN's
     under, and a sitting client's BN feet may float as before. `vec` from `_vectors`, `gb`
     BN world rotations (B, 22, 3, 3)."""
-    client = fr.scale * (vec[:, fr._drop_rows, 1] - fr._drop_ref[0]).min(axis=1)
+    client = fr.scale * (vec[:, vec.shape[1] - len(fr._drop_kind) :, 1] - fr._drop_ref[0]).min(axis=1)
     gbp = np.concatenate([gb, np.zeros_like(gb[:, :1])], axis=1)  # parent -1 (padding): a zero matrix
     bn = np.sum((gbp[:, fr._drop_par] @ fr._drop_off[..., None])[..., 1, 0], axis=-1)
     return np.maximum(client - (bn - fr._drop_ref[1]).min(axis=1), 0.0)
@@ -154,7 +154,7 @@ def _bn_globals(
     vec = _vectors(fr, gs) if vec is None else vec
     k = fr._num_plain
     dirs = vec[:, :k] / np.sqrt(np.sum(vec[:, :k] ** 2, axis=-1, keepdims=True))
-    lat = vec[:, k : fr._drop_rows.start].reshape(b, -1, 2, 3)
+    lat = vec[:, k : vec.shape[1] - len(fr._drop_kind)].reshape(b, -1, 2, 3)
     return bn_globals(fr._plan, dirs, _frame(lat[:, :, 0], lat[:, :, 1]) @ fr._m_tgt_t, fallback)
 
 
@@ -214,7 +214,7 @@ def to_source(
     gsc = _source_globals(fr, source_rotations)
     hinges = fr.init_state() if state is None else state
     gbc = _bn_globals(fr, gsc, fallback=_hinge_fallback(fr, gsc, hinges, state is None))
-    delta = gbn[:, fr._bn_unorder] @ np.swapaxes(gbc, -1, -2)  # (B, 22, 3, 3), BN joint order, BN world
+    delta = gbn[:, fr._bn_tree.pos] @ np.swapaxes(gbc, -1, -2)  # (B, 22, 3, 3), BN joint order, BN world
     delta = fr._axes.T @ delta @ fr._axes  # the same change in the client's world
     delta = np.concatenate([delta, np.broadcast_to(np.eye(3), (b, 1, 3, 3))], axis=1)
     g_new = delta[:, fr._anc_bn_s] @ gsc  # every client joint turns with its mapped ancestor's BN joint
@@ -226,7 +226,7 @@ def to_source(
     if len(fr._mapped_root):
         out[:, fr._mapped_root] = mat_to_quat(g_new[:, fr._mapped_root_s])
     hips = root_bn.copy()
-    hips[:, 1] -= fr.vertical_offset + _drop(fr, _vectors(fr, g_new), gbn[:, fr._bn_unorder])
+    hips[:, 1] -= fr.vertical_offset + _drop(fr, _vectors(fr, g_new), gbn[:, fr._bn_tree.pos])
     hips = (hips / fr.scale) @ fr._axes  # client world (axes are orthogonal: inverse = transpose)
     c, gp = _hips_terms(fr, gsc)  # the chain above the hips is unchanged
     return (np.swapaxes(gp, -1, -2) @ (hips - c)[..., None])[..., 0], out

@@ -1,6 +1,6 @@
 """A walk that stops to crouch and pick something up, then walks on: content none of the models
 was trained on (their data walks, runs, waves and raises its arms), made from a real capture on
-any rig `humanoid` matches. The tests and the fade report stream it.
+any rig `humanoid` matches, for the unseen-content fade's tests.
 
 The base clip walks to a frame where both feet are down, holds there while the legs blend into a
 crouch (thighs forward, knees bent, ankles flexed, the spine bent forward) and back out, then walks
@@ -13,9 +13,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .humanoid import humanoid_rig
-from .rotations import quat_exp, quat_mul
-from .skeleton import Motion
+from models.motion.humanoid import humanoid_rig
+from models.motion.rotations import quat_exp, quat_mul
+from models.motion.skeleton import Motion
 
 # degrees about the rig's lateral axis, from its rest pose: the retargeting tests' crouch, deeper at the hip
 THIGH, KNEE, ANKLE, SPINE = 80.0, 120.0, -50.0, 35.0
@@ -61,7 +61,7 @@ def pick_up(base: Motion, walk_s: float = 2.0, ramp_s: float = 0.6, hold_s: floa
 
 
 def _slerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
-    from .rotations import quat_inv, quat_log
+    from models.motion.rotations import quat_inv, quat_log
 
     rel = quat_mul(quat_inv(a), b)
     rel = np.where(rel[..., 3:] < 0, -rel, rel)
