@@ -10,7 +10,7 @@ import pytest
 
 from models.lti import WEIGHTS_DIR, LTIStyleModel, load
 
-from .lti_reference import FIXTURE, inputs, stream
+from .lti_reference import FIXTURE, inputs, recorded_model, stream
 
 
 @pytest.fixture(scope="module")
@@ -21,8 +21,7 @@ def reference(index):
 
 
 def _recorded() -> LTIStyleModel:
-    """The model the reference was recorded with: every stage on, no hinge floors."""
-    return LTIStyleModel(weights_dir=WEIGHTS_DIR, hinges=False)
+    return recorded_model()
 
 
 def test_the_step_equals_the_recorded_reference(reference):
