@@ -43,11 +43,11 @@ from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
-from ..motion.quaternion import qdot, qinv, qmul, quat_at, row3, row4
+from ..motion.quaternion import qdot, qinv, qmul, quat_at, row3, row4, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
 from .waving_arm import MEAN_SHAPE
-from .waving_kernels import WavingArm, swing_arms
+from .waving_kernels import WavingArm, ramp, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
 CHUNK = 32  # sessions whose LTI step is computed together: their inputs and outputs (~50 kB) stay in cache
@@ -424,17 +424,6 @@ def rotate_y(x, z, yaw):
     """Ground-plane vector (x, z) turned by yaw about +Y."""
     c, s = math.cos(yaw), math.sin(yaw)
     return c * x + s * z, -s * x + c * z
-
-
-@njit(cache=True, error_model="numpy")
-def wrap(a):
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-@njit(cache=True, error_model="numpy")
-def ramp(x, lo, hi):
-    """0 up to lo, 1 from hi, linear between (`models.motion.hands` shares)."""
-    return min(max((x - lo) / (hi - lo), 0.0), 1.0)
 
 
 @njit(cache=True, error_model="numpy")

@@ -44,7 +44,8 @@ def _toward(mean, q, fresh, frames):
 
 
 @njit(cache=True, error_model="numpy")
-def _ramp(x, lo, hi):
+def ramp(x, lo, hi):
+    """0 up to lo, 1 from hi, linear between (`models.motion.hands` shares)."""
     return min(max((x - lo) / (hi - lo), 0.0), 1.0)
 
 
@@ -94,9 +95,9 @@ def swing_arms(b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets,
             for c in range(4):
                 new_in_mean[b, side, k, c] = mi[c]
                 new_out_mean[b, side, k, c] = mo[c]
-        share = _ramp(offsets[b, side, 1], arm.raise_ramp[0], arm.raise_ramp[1])
-        share *= _ramp(swayed[b, side], arm.wave_ramp[0], arm.wave_ramp[1])
-        share *= (1.0 - _ramp(risen[b, side], arm.level_ramp[0], arm.level_ramp[1])) * min(total, 1.0)
+        share = ramp(offsets[b, side, 1], arm.raise_ramp[0], arm.raise_ramp[1])
+        share *= ramp(swayed[b, side], arm.wave_ramp[0], arm.wave_ramp[1])
+        share *= (1.0 - ramp(risen[b, side], arm.level_ramp[0], arm.level_ramp[1])) * min(total, 1.0)
         if not swing or share <= 0.0:
             continue
         for k in range(K):
