@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.data.archives import is_available
 from models.lti import finetune as ft
 from models.lti import representation as rep
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel
@@ -36,7 +37,7 @@ def test_content_descriptor_reads_path_not_pelvis_swing() -> None:
 
 @pytest.fixture(scope="module")
 def bank_and_ref():
-    if not ft.data_available():
+    if not is_available("bandai-namco-2"):
         pytest.skip("Bandai Namco dataset 2 not available")
     translators = LTIStyleModel(weights_dir=WEIGHTS_DIR, raised_arms=False).translators
     ref = next(iter(translators.values())).ref

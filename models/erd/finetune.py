@@ -38,15 +38,6 @@ SCALE_FLOOR = 0.05  # of a statistic's scale, as the style judge floors its stan
 SOURCE_CLIPS = 2  # `rotation_prior._neutral_inputs` clips per content the output prior's source is measured on
 
 
-def data_available() -> bool:
-    """Whether dataset 2's mocap is reachable (its archive or unpacked folder; a cheap check)."""
-    from ..data.archives import DATASETS
-    from ..settings import get_settings
-
-    folder, spec = get_settings().data_dir, DATASETS[DATASET]
-    return (folder / spec.archive).exists() or (folder / spec.bvh_dir).is_dir()
-
-
 def neutral_clips(maker) -> list[np.ndarray]:
     """Features (F, 216) of every dataset-2 TRAIN `normal` clip, by `maker` (the model's), from
     the mocap (unpacked on first use)."""

@@ -27,10 +27,11 @@ from typing import TYPE_CHECKING, NamedTuple, Self
 
 import numpy as np
 
+from ..data.archives import is_available
 from ..interface import ClipStyles, FineTuned, Progress, StyleRejected
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.style_carry import StyleCarry
-from .dataset import TARGET_STYLES
+from .dataset import DATASET, TARGET_STYLES
 from .twist_range import TwistRange
 from .upload_stages import KEYS, SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
 
@@ -159,9 +160,7 @@ class ERDStyles(ClipStyles[Upload]):
             raise StyleRejected("bad_length", f"the clip has {frames} frames at 30 fps; Style-ERD needs {MIN_FRAMES}")
         self.sources  # noqa: B018  (raises where the server lacks them)
         if fine_tune:
-            from .finetune import data_available
-
-            if not data_available():
+            if not is_available(DATASET):
                 raise StyleRejected(
                     "training_data_unavailable",
                     "fine-tuning a Style-ERD style pairs the clip with dataset 2's neutral clips, which this "

@@ -76,16 +76,6 @@ class NeutralBank:
     motions: dict = field(default_factory=dict)
 
 
-def data_available() -> bool:
-    """Whether the Bandai Namco dataset-2 archive or unpacked folder is reachable (cheap check)."""
-    from models.data.archives import DATASETS
-    from models.settings import get_settings
-
-    s = get_settings()
-    spec = DATASETS["bandai-namco-2"]
-    return (s.data_dir / spec.archive).exists() or (s.data_dir / spec.bvh_dir).is_dir()
-
-
 def _descriptor(feats: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
     m = match_features(feats, mean, std)
     speed = np.linalg.norm(feats[:, :2], axis=1)
