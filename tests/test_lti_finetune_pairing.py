@@ -75,7 +75,7 @@ def _neutral(frames: int, steps_per_s: float) -> ft.NeutralClip:
 def test_a_neutral_clip_is_cut_to_the_uploads_step_count() -> None:
     """Paired uncut, a slow-stepping upload's few steps are aligned to more neutral steps and the
     translator learns to shuffle: the neutral clip is cut to as many steps, within the warp's range."""
-    lo, hi = ft._warpable()
+    lo, hi = ft.warpable()
     clip = _neutral(300, 1.8)
     assert ft.step_matched(clip, 240, 1.2, 300) == 160  # 8 steps at 1.2/s -> 8 steps at 1.8/s
     assert ft.step_matched(clip, 240, 1.2, 300, match=False) == 300
