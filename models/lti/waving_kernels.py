@@ -50,6 +50,21 @@ def ramp(x, lo, hi):
 
 
 @njit(cache=True, error_model="numpy")
+def nlerp(a, t, share):
+    """(1 - share) a + share t, normalised, with t taken on a's hemisphere."""
+    if qdot(t, a) < 0.0:
+        t = qneg(t)
+    return qunit(
+        (
+            (1.0 - share) * a[0] + share * t[0],
+            (1.0 - share) * a[1] + share * t[1],
+            (1.0 - share) * a[2] + share * t[2],
+            (1.0 - share) * a[3] + share * t[3],
+        )
+    )
+
+
+@njit(cache=True, error_model="numpy")
 def _held(q, j, weights, b, total, prior_mean, prior_radii):
     """q held in each style's ball at joint j, blended by session b's weights (`kernels.translate`
     does the same with every joint)."""
@@ -105,17 +120,7 @@ def swing_arms(b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets,
             a = quat_at(rot_out, b, j)
             v = qlog(qmul(qinv(quat_at(new_in_mean[b], side, k)), quat_at(rot_in, b, j)))
             t = qmul(quat_at(new_out_mean[b], side, k), qexp((arm.gain * v[0], arm.gain * v[1], arm.gain * v[2])))
-            if qdot(t, a) < 0.0:
-                t = qneg(t)
-            q = qunit(
-                (
-                    (1.0 - share) * a[0] + share * t[0],
-                    (1.0 - share) * a[1] + share * t[1],
-                    (1.0 - share) * a[2] + share * t[2],
-                    (1.0 - share) * a[3] + share * t[3],
-                )
-            )
-            q = _held(q, j, weights, b, total, prior_mean, prior_radii)
+            q = _held(nlerp(a, t, share), j, weights, b, total, prior_mean, prior_radii)
             for c in range(4):
                 rot_out[b, j, c] = q[c]
 
