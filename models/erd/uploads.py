@@ -98,11 +98,16 @@ class BuiltIn(NamedTuple):
     priors: dict
 
 
+def branch_weights(params: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    """One LSTM branch's parameters under their PyTorch names (`weight_ih_l0`, ...)."""
+    return {k[len(prefix) :]: v for k, v in params.items() if k.startswith(prefix)}
+
+
 def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype) -> tuple[list, list]:
     """A branch's LSTM as the step multiplies it (`ERDModel._prepare_weights`): per layer
     [W_ih^T; W_hh^T] (2H, 4H) and the summed bias (1, 4H), the cell-input gate's doubled."""
     scale = np.ones(4 * H)
-    scale[2 * H : 3 * H] = 2.0
+    scale[2 * H : 3 * H] = 2.0  # gates i, f, g, o (PyTorch order): g is the tanh one
     w, b = [], []
     for layer in range(layers):  # PyTorch's names, sorted: bias_hh, bias_ih, weight_hh, weight_ih
         b_hh, b_ih, w_hh, w_ih = (lstm[k] for k in sorted(lstm) if k.split("_")[-1][1:] == str(layer))
@@ -179,9 +184,7 @@ class ERDStyles(ClipStyles[Upload]):
         means = self.sources.mean["leaf_prior"] if leaf is None else leaf.mean
         s = nearest_style(means, q) if leaf is not None else 0
         stages, twists = fit_stages(self.built_in.priors, self.sources, self.skeleton, q, share, s)
-        lstm = {
-            k.split(".", 2)[2]: self.p[k].astype(np.float32).copy() for k in self.p if k.startswith(f"branches.{s}.")
-        }
+        lstm = {k: v.astype(np.float32) for k, v in branch_weights(self.p, f"branches.{s}.").items()}
         h0 = self.p["style_h0"][s].astype(np.float32)
         c0 = self.p["style_c0"][s].astype(np.float32)
         return Upload(name, TARGET_STYLES[s], lstm, h0, c0, np.eye(len(TARGET_STYLES))[s], stages, twists)
