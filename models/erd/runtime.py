@@ -386,7 +386,7 @@ class ERDModel(ERDStyles):
     @property
     def priors(self) -> dict[str, StyleCarry | TwistRange | Hinges | None]:
         """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), the twist
-        range, the hinges and their floor, as the whole-clip path (`offline.stylise`) takes them."""
+        range, the hinges and their floor, as the uploads and the whole-clip reference take them."""
         return {
             **{key: getattr(self, key) for key in PRIOR_FILES},
             "twist_range": self.twist_range,
