@@ -95,6 +95,21 @@ def test_feet_in_the_air_are_left_alone(bn_walk):
     np.testing.assert_allclose(root[0], high)
 
 
+def test_a_foot_on_the_floor_at_the_first_frame_stays_there_when_the_next_pops(bn_walk):
+    """A session starts standing: a model whose second frame jumps the body 4 cm (120 cm/s, too
+    fast to count as a touch-down) keeps the feet that stood on the floor in the first frame."""
+    planter = model_rig_planter(bn_walk.fps)
+    root = np.repeat(bn_walk.translations[:1, HIPS], 2, axis=0)
+    root[1, 0] += 4.0
+    rot = np.repeat(bn_walk.rotations[:1], 2, axis=0)
+    out_root, out_rot, contacts = _plant(planter, root[None], rot[None])
+    assert contacts[0, 0].any() and (contacts[0, 0] == contacts[0, 1]).all()
+    toes = [bn_walk.skeleton.index(n) for n in ("Toes_L", "Toes_R")]
+    pos = _with(bn_walk.slice(0, 2), out_root[0], out_rot[0]).global_positions()[:, toes]
+    moved = np.linalg.norm((pos[1] - pos[0])[:, [0, 2]], axis=-1)
+    assert (moved[contacts[0, 0]] < 0.5).all() and (moved[~contacts[0, 0]] > 3.5).all()
+
+
 def test_sessions_are_planted_independently(bn_walk):
     planter = model_rig_planter(bn_walk.fps)
     roots = np.stack([_skating(bn_walk, 1.3), bn_walk.translations[:, HIPS], _skating(bn_walk, 0.7)])

@@ -68,6 +68,9 @@ class Rules(NamedTuple):
     phase_damp: float
     phase_blend: float
     contact_threshold: float
+    catch_up: float  # seconds on at which derived control meets the input's path (0: it never slows for it)
+    crawl_speed: float  # input speeds (cm/s) from which derived control is slowed fully ...
+    walk_speed: float  # ... to those from which it is not
 
 
 # --------------------------------------------------------------------------- small maths on scalars and tuples
@@ -131,13 +134,20 @@ def facing_yaw(gpos, facing):
 
 
 @njit(cache=True, error_model="numpy")
-def control_rows(control, given, root, rotations, tracker, body, rules):
+def control_rows(control, given, root, rotations, tracker, here, body, rules):
     """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others from
     the input's smoothed Hips velocity in its facing frame, its yaw, run above `run_speed`. The
-    input tracker advances for every session, so a session can switch modes smoothly."""
+    input tracker advances for every session, so a session can switch modes smoothly.
+
+    Where the input is slower than the network's training walks (below `rules.walk_speed`, fully
+    below `rules.crawl_speed`), a derived velocity is also slowed (never reversed, never sped up)
+    by how far the character is ahead of the input along it, as if to meet the input's path
+    `rules.catch_up` seconds on: there the network walks at its own, faster pace, the two paths
+    part for good, and its stop-go strides glide the landing foot along the floor. A character
+    behind (a style's own slower pace) is left to its pace. Gait follows the input's own speed."""
     frame, in_pos, in_vel = tracker
     parents, offsets, facing, fps = body
-    smooth, run_speed = rules.smooth, rules.run_speed
+    smooth, run_speed, catch_up = rules.smooth, rules.run_speed, rules.catch_up
     B, J = rotations.shape[0], rotations.shape[1]
     out = np.empty((B, 4), np.float32)
     grot, gpos = np.empty((J, 4)), np.empty((J, 3))
@@ -159,9 +169,20 @@ def control_rows(control, given, root, rotations, tracker, body, rules):
             continue
         world_pose(root[b], rotations[b], parents, offsets, grot, gpos)
         yaw = facing_yaw(gpos, facing)
-        lx, lz = to_local(in_vel[b, 0], in_vel[b, 1], math.cos(yaw), math.sin(yaw))
-        out[b, 0], out[b, 1], out[b, 2] = lz, lx, yaw
+        c, s = math.cos(yaw), math.sin(yaw)
+        lx, lz = to_local(in_vel[b, 0], in_vel[b, 1], c, s)
         out[b, 3] = 1.0 if math.sqrt(lx * lx + lz * lz) > run_speed else 0.0
+        if catch_up > 0.0:
+            wx = in_vel[b, 0] + (x - here[b, 0]) / catch_up
+            wz = in_vel[b, 1] + (z - here[b, 1]) / catch_up
+            along = wx * in_vel[b, 0] + wz * in_vel[b, 1]
+            n2 = in_vel[b, 0] * in_vel[b, 0] + in_vel[b, 1] * in_vel[b, 1]
+            k = min(max(along / max(n2, 1e-9), 0.0), 1.0)
+            # only below the training walks' speeds: faster, the network keeps the input's pace (or its style's)
+            slow = min(max((rules.walk_speed - math.sqrt(n2)) / (rules.walk_speed - rules.crawl_speed), 0.0), 1.0)
+            k = 1.0 - slow * (1.0 - k)
+            lx, lz = to_local(k * in_vel[b, 0], k * in_vel[b, 1], c, s)
+        out[b, 0], out[b, 1], out[b, 2] = lz, lx, yaw
     return out
 
 

@@ -4,8 +4,9 @@ Per frame the network reads the character's trajectory (its own past, and a futu
 the control and its last prediction), its pose and local phases, and predicts the next pose, root
 motion, phases and contacts. The per-session maths is compiled (`kernels.py`); the expert products
 stay BLAS; `tests/reference/lpn_step.py` is the numpy step the kernels are tested against.
-Without control (`FrameBatch.control`) the input frames' smoothed Hips velocity, facing and speed
-become the control, so it also runs motion in, motion out.
+Without control (`FrameBatch.control`) the input frames' smoothed Hips velocity (slowed where the
+character is ahead of the input's path), facing and speed become the control, so it also runs
+motion in, motion out.
 
 Styles are FiLM vectors mixed by the weights (the shortfall from 1 goes to `normal`); the state
 holds nothing per style. After the network come the stages fitted from each style's real clips:
@@ -60,6 +61,10 @@ RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
 CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias
 PHASE_BLEND = 0.5  # next phase = blend of (current advanced by the predicted frequency) and the predicted phase
 CONTACT_THRESHOLD = 0.35  # predicted contact (regressed 0/1) above which a foot counts as planted
+CATCH_UP_S = 3.0  # s: derived control slows to meet the input's path this far on (validation: 1 s, 3 s)
+# 1st and 5th percentile of the dataset-2 TRAIN walks' Hips speed smoothed as the control's (cm/s):
+# below these the network has not learned to walk, and derived control is slowed to keep to the path
+CRAWL_SPEED, WALK_SPEED = 63.0, 73.0
 STOP_SPEED = 30.0  # cm/s: below this wanted speed the phases are damped (standing)
 STOP_PHASE_DAMP = 0.6  # per-frame phase factor when the wanted speed is 0
 STOP_ROOT_HOLD = 0.9  # share of the predicted root translation held back when the wanted speed is 0
@@ -379,7 +384,8 @@ class LPNModel(LPNStyles):
             given = control[:, 4] > 0.5
         tracker = kernels.Tracker(*(s[k] for k in kernels.Tracker._fields))
         root, rot_in = np.ascontiguousarray(root), np.ascontiguousarray(rot_in)
-        return kernels.control_rows(control, given, root, rot_in, tracker, self._body, self._rules)
+        here = np.ascontiguousarray(s["hist_pos"][:, -1])
+        return kernels.control_rows(control, given, root, rot_in, tracker, here, self._body, self._rules)
 
     @cached_property
     def _body(self) -> kernels.Body:
@@ -389,7 +395,16 @@ class LPNModel(LPNStyles):
     def _rules(self) -> kernels.Rules:
         smooth = 1.0 - np.exp(-1.0 / (self.fps * CONTROL_SMOOTH_S))
         return kernels.Rules(
-            smooth, RUN_SPEED, STOP_SPEED, STOP_ROOT_HOLD, STOP_PHASE_DAMP, PHASE_BLEND, CONTACT_THRESHOLD
+            smooth,
+            RUN_SPEED,
+            STOP_SPEED,
+            STOP_ROOT_HOLD,
+            STOP_PHASE_DAMP,
+            PHASE_BLEND,
+            CONTACT_THRESHOLD,
+            CATCH_UP_S,
+            CRAWL_SPEED,
+            WALK_SPEED,
         )
 
     @cached_property

@@ -162,7 +162,9 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
             mz = oz + rel[b, leg, k, 2] - (prev_root[b, 2] + prev_rel[b, leg, k, 2])
             ex, ez = prev_offset[b, leg, 0], prev_offset[b, leg, 2]
             planted = False
-            if started[b] and (low_toe or low_ankle):
+            if not started[b]:
+                planted = low_toe or low_ankle  # a session starts standing: a foot on the floor stays there
+            elif low_toe or low_ankle:
                 if prev_contact[b, leg]:
                     planted = True
                     ex, ez = ex - mx, ez - mz  # hold: undo the point's motion

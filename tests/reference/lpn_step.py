@@ -14,14 +14,17 @@ from scipy.spatial.transform import Rotation
 from models.interface import FrameBatch, State
 from models.lpn import features as lf
 from models.lpn.runtime import (
+    CATCH_UP_S,
     CONTACT_THRESHOLD,
     CONTROL_BIAS,
     CONTROL_SMOOTH_S,
+    CRAWL_SPEED,
     PHASE_BLEND,
     RUN_SPEED,
     STOP_PHASE_DAMP,
     STOP_ROOT_HOLD,
     STOP_SPEED,
+    WALK_SPEED,
     LPNModel,
 )
 from models.motion.features import wrap_angle
@@ -89,8 +92,15 @@ class NumpyLPNModel(LPNModel):
         if len(derive):
             _, gpos = self._fk(root[derive], rot_in[derive])
             yaw = self._facing(gpos)
-            local = lf.to_local_xz(s["in_vel"][derive], yaw)
-            speed = np.linalg.norm(local, axis=-1)
+            vel = s["in_vel"][derive].astype(np.float64)
+            speed = np.linalg.norm(lf.to_local_xz(vel, yaw), axis=-1)
+            # slowed by how far the character is ahead along the input's velocity (CATCH_UP_S on)
+            wanted = vel + (xz[derive] - s["hist_pos"][derive, -1]) / CATCH_UP_S
+            share = (wanted * vel).sum(-1) / np.maximum((vel * vel).sum(-1), 1e-9)
+            # ... where the input is slower than the training walks (CRAWL_SPEED .. WALK_SPEED)
+            slow = np.clip((WALK_SPEED - np.linalg.norm(vel, axis=-1)) / (WALK_SPEED - CRAWL_SPEED), 0.0, 1.0)
+            share = 1.0 - slow * (1.0 - np.clip(share, 0.0, 1.0))
+            local = lf.to_local_xz(share[:, None] * vel, yaw)
             out[derive] = np.stack([local[:, 1], local[:, 0], yaw, (speed > RUN_SPEED).astype(np.float32)], axis=1)
         return out
 
