@@ -88,7 +88,8 @@ def test_features_match_foundation(model, walks):
 
 def test_stream_equals_whole_window(model, walks):
     from models.erd.dataset import CONTENTS
-    from models.erd.offline import stylise
+
+    from .reference.erd_offline import stylise
 
     motion = walks[0].slice(0, 40)
     w = _onehot(model, "elderly")

@@ -10,12 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.erd.slow_carry import carry_slow, clip_carry_slow
+from models.erd.slow_carry import carry_slow
 from models.interface import FrameBatch
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
 from .clips import streamed_rotations
 from .reference import erd_carry
+from .reference.erd_offline import clip_carry_slow
 from .reference.style_carry import mixed_with
 
 REPO = Path(__file__).resolve().parents[1]
@@ -379,8 +380,9 @@ def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
 
 
 def test_a_raise_up_streamed_equals_the_whole_clip(model, neutral):
-    """The offline path (`offline.stylise`) carries a raise-up frame by frame as the stream does."""
-    from models.erd.offline import stylise
+    """The whole-clip stages (`tests/reference/erd_offline.py`) carry a raise-up frame by frame as
+    the stream does."""
+    from .reference.erd_offline import stylise
 
     motion, w = neutral[2], _onehot(model, "elderly")
     whole = stylise(model.torch_generator(), model.maker, motion, w, **model.priors)

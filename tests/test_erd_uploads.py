@@ -140,7 +140,9 @@ def test_without_the_mocap_a_fine_tuning_upload_is_refused_typed(model, tmp_path
     from models.interface import StyleRejected
     from models.settings import Settings
 
-    monkeypatch.setattr("models.settings.get_settings", lambda: Settings(data_dir=tmp_path, cache_dir=tmp_path))
+    empty = Settings(data_dir=tmp_path, cache_dir=tmp_path)
+    monkeypatch.setattr("models.settings.get_settings", lambda: empty)
+    monkeypatch.setattr("models.data.archives.get_settings", lambda: empty)
     model.check_upload(300, fine_tune=False)  # the instant style needs no data
     with pytest.raises(StyleRejected) as refused:
         model.check_upload(300, fine_tune=True)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from models.data.archives import is_available
 from models.lti import finetune as ft
 from models.lti import representation as rep
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel
@@ -36,7 +37,7 @@ def test_content_descriptor_reads_path_not_pelvis_swing() -> None:
 
 @pytest.fixture(scope="module")
 def bank_and_ref():
-    if not ft.data_available():
+    if not is_available("bandai-namco-2"):
         pytest.skip("Bandai Namco dataset 2 not available")
     translators = LTIStyleModel(weights_dir=WEIGHTS_DIR, raised_arms=False).translators
     ref = next(iter(translators.values())).ref
@@ -74,7 +75,7 @@ def _neutral(frames: int, steps_per_s: float) -> ft.NeutralClip:
 def test_a_neutral_clip_is_cut_to_the_uploads_step_count() -> None:
     """Paired uncut, a slow-stepping upload's few steps are aligned to more neutral steps and the
     translator learns to shuffle: the neutral clip is cut to as many steps, within the warp's range."""
-    lo, hi = ft._warpable()
+    lo, hi = ft.warpable()
     clip = _neutral(300, 1.8)
     assert ft.step_matched(clip, 240, 1.2, 300) == 160  # 8 steps at 1.2/s -> 8 steps at 1.8/s
     assert ft.step_matched(clip, 240, 1.2, 300, match=False) == 300

@@ -145,6 +145,12 @@ def dataset_dir(name: str, settings: Settings | None = None, progress: Progress 
     return unpack_root / spec.bvh_dir
 
 
+def is_available(name: str, settings: Settings | None = None) -> bool:
+    """Whether the dataset's archive or its unpacked folder is in the data folder (a cheap check)."""
+    data_dir, spec = Path((settings or get_settings()).data_dir), DATASETS[name]
+    return (data_dir / spec.archive).exists() or (data_dir / spec.bvh_dir).is_dir()
+
+
 def is_unpacked(name: str, settings: Settings | None = None) -> bool:
     """Whether the dataset's archive has been unpacked into the cache (from these archive bytes)."""
     settings = settings or get_settings()

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..interface import Progress
 from ..motion.style_carry import tangent_stats
-from .dataset import DATASET, STYLES
+from .dataset import DATASET, STYLES, TARGET_STYLES
 from .features import FPS, NB, POS, ROOTVEL, ROT, YAWRATE
 from .upload_stages import clip_rotations, fit_stages
 from .uploads import Upload
@@ -36,15 +36,6 @@ WINDOW, BATCH = 48, 12
 STEPS, LR, SEED = 150, 3e-3, 0
 SCALE_FLOOR = 0.05  # of a statistic's scale, as the style judge floors its standardisation
 SOURCE_CLIPS = 2  # `rotation_prior._neutral_inputs` clips per content the output prior's source is measured on
-
-
-def data_available() -> bool:
-    """Whether dataset 2's mocap is reachable (its archive or unpacked folder; a cheap check)."""
-    from ..data.archives import DATASETS
-    from ..settings import get_settings
-
-    folder, spec = get_settings().data_dir, DATASETS[DATASET]
-    return (folder / spec.archive).exists() or (folder / spec.bvh_dir).is_dir()
 
 
 def neutral_clips(maker) -> list[np.ndarray]:
@@ -205,12 +196,6 @@ def refit_stages(model, tuned: Upload, clip) -> Upload:
     mean, cov, _ = tangent_stats(comparable(np.concatenate([o.rotations for o in outs])))
     q, share = clip_rotations(model, clip)
     stages, twists = fit_stages(
-        model.built_in.priors, model.sources, model.skeleton, q, share, _index(tuned.nearest), (mean, cov)
+        model.built_in.priors, model.sources, model.skeleton, q, share, TARGET_STYLES.index(tuned.nearest), (mean, cov)
     )
     return Upload(tuned.name, tuned.nearest, tuned.lstm, tuned.h0, tuned.c0, tuned.code, stages, twists)
-
-
-def _index(style: str) -> int:
-    from .dataset import TARGET_STYLES
-
-    return TARGET_STYLES.index(style)

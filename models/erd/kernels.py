@@ -72,11 +72,7 @@ def features(rotations, pos, prev_pos, prev_yaw, has_prev, ref, facing, feet, le
             else:
                 v = (0.0, 0.0, 0.0)
             out[f, vel_at + i], out[f, vel_at + i + 1], out[f, vel_at + i + 2] = v
-        out[f, root_at], out[f, root_at + 1], out[f, root_at + 2] = (
-            out[f, vel_at],
-            out[f, vel_at + 1],
-            out[f, vel_at + 2],
-        )
+        out[f, root_at : root_at + 3] = out[f, vel_at : vel_at + 3]  # the Hips' velocity
         out[f, root_at + 3] = wrap(yaw - prev_yaw[f]) * fps if moving else 0.0
         # contacts: ankle or toe low and slow (thresholds scale with the leg length)
         for k in range(2):
@@ -194,7 +190,7 @@ def twist_clamp_batch(q, w, joints, axes, mean, lo, hi, out):
         for k in range(joints.shape[0]):
             j = joints[k]
             ax, ay, az = axes[k, 0], axes[k, 1], axes[k, 2]
-            qj = (q[b, j, 0], q[b, j, 1], q[b, j, 2], q[b, j, 3])
+            qj = quat_at(q, b, j)
             delta = 0.0
             for s in range(w.shape[1]):
                 ws = w[b, s]

@@ -69,7 +69,7 @@ from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
 from .rotation_prior import PRIOR_FILES
 from .slow_carry import carry_slow
 from .twist_range import TWIST_FILE, TwistRange
-from .uploads import BuiltIn, ERDStyles, Upload
+from .uploads import BuiltIn, ERDStyles, Upload, branch_weights, runtime_layout
 
 WEIGHTS_FILE = "erd.npz"
 NEWER_KEYS = ("gait_speed", "slow_in", "slow_out")  # state entries snapshots from older replicas may lack
@@ -178,20 +178,11 @@ class ERDModel(ERDStyles):
         self.dec = [
             (np.ascontiguousarray(p[f"decoder.{i}.weight"].T, dt), p[f"decoder.{i}.bias"].astype(dt)) for i in (0, 2, 4)
         ]
-        scale = np.ones(4 * H)
-        scale[2 * H : 3 * H] = 2.0  # gates i, f, g, o (PyTorch order): g is the tanh one
-        names = ["neutral"] + [f"branches.{k}" for k in range(len(TARGET_STYLES))]
         # per layer, per branch: [input; hidden] @ [W_ih^T; W_hh^T] as one (2H, 4H) matrix: (7, 2H, 4H)
-        self.lstm_w = [
-            np.stack(
-                [np.concatenate([p[f"{n}.weight_ih_l{l}"].T, p[f"{n}.weight_hh_l{l}"].T]) * scale for n in names]
-            ).astype(dt)
-            for l in range(self.Ln)
-        ]
-        self.lstm_b = [
-            np.stack([(p[f"{n}.bias_ih_l{l}"] + p[f"{n}.bias_hh_l{l}"]) * scale for n in names])[:, None].astype(dt)
-            for l in range(self.Ln)
-        ]  # (7, 1, 4H)
+        prefixes = ["neutral."] + [f"branches.{k}." for k in range(len(TARGET_STYLES))]
+        layouts = [runtime_layout(branch_weights(p, n), self.Ln, H, np.float64) for n in prefixes]
+        self.lstm_w = [np.stack([w[l] for w, _ in layouts]).astype(dt) for l in range(self.Ln)]
+        self.lstm_b = [np.stack([b[l] for _, b in layouts]).astype(dt) for l in range(self.Ln)]  # (7, 1, 4H)
 
     # ------------------------------------------------------------------ interface
 
@@ -395,7 +386,7 @@ class ERDModel(ERDStyles):
     @property
     def priors(self) -> dict[str, StyleCarry | TwistRange | Hinges | None]:
         """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), the twist
-        range, the hinges and their floor, as the whole-clip path (`offline.stylise`) takes them."""
+        range, the hinges and their floor, as the uploads and the whole-clip reference take them."""
         return {
             **{key: getattr(self, key) for key in PRIOR_FILES},
             "twist_range": self.twist_range,

@@ -67,18 +67,3 @@ def carry_slow(
     return kernels.carry_slow(
         q, slow, SLOW_WEIGHT, w, r, other.arrays, then, bounds, bounds, other.damping, other.clamps_only, hips
     )
-
-
-def clip_carry_slow(
-    other: StyleCarry | None,
-    run: StyleCarry | None,
-    q: np.ndarray,
-    weights: np.ndarray,
-    share: np.ndarray,
-    hips: int = -1,
-) -> np.ndarray:
-    """`carry_slow` over every frame (T, J, 4) of a clip, as a stream sees it (offline)."""
-    before = np.zeros_like(np.asarray(q, np.float64))  # each frame's slow copy before it
-    for t in range(1, len(q)):
-        before[t] = follow(before[t - 1 : t], q[t - 1 : t])[0]
-    return carry_slow(other, run, q, before, weights, share, hips)[0]

@@ -27,10 +27,11 @@ from typing import TYPE_CHECKING, NamedTuple, Self
 
 import numpy as np
 
+from ..data.archives import is_available
 from ..interface import ClipStyles, FineTuned, Progress, StyleRejected
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.style_carry import StyleCarry
-from .dataset import TARGET_STYLES
+from .dataset import DATASET, TARGET_STYLES
 from .twist_range import TwistRange
 from .upload_stages import KEYS, SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
 
@@ -97,11 +98,16 @@ class BuiltIn(NamedTuple):
     priors: dict
 
 
+def branch_weights(params: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
+    """One LSTM branch's parameters under their PyTorch names (`weight_ih_l0`, ...)."""
+    return {k[len(prefix) :]: v for k, v in params.items() if k.startswith(prefix)}
+
+
 def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype) -> tuple[list, list]:
     """A branch's LSTM as the step multiplies it (`ERDModel._prepare_weights`): per layer
     [W_ih^T; W_hh^T] (2H, 4H) and the summed bias (1, 4H), the cell-input gate's doubled."""
     scale = np.ones(4 * H)
-    scale[2 * H : 3 * H] = 2.0
+    scale[2 * H : 3 * H] = 2.0  # gates i, f, g, o (PyTorch order): g is the tanh one
     w, b = [], []
     for layer in range(layers):  # PyTorch's names, sorted: bias_hh, bias_ih, weight_hh, weight_ih
         b_hh, b_ih, w_hh, w_ih = (lstm[k] for k in sorted(lstm) if k.split("_")[-1][1:] == str(layer))
@@ -159,9 +165,7 @@ class ERDStyles(ClipStyles[Upload]):
             raise StyleRejected("bad_length", f"the clip has {frames} frames at 30 fps; Style-ERD needs {MIN_FRAMES}")
         self.sources  # noqa: B018  (raises where the server lacks them)
         if fine_tune:
-            from .finetune import data_available
-
-            if not data_available():
+            if not is_available(DATASET):
                 raise StyleRejected(
                     "training_data_unavailable",
                     "fine-tuning a Style-ERD style pairs the clip with dataset 2's neutral clips, which this "
@@ -180,9 +184,7 @@ class ERDStyles(ClipStyles[Upload]):
         means = self.sources.mean["leaf_prior"] if leaf is None else leaf.mean
         s = nearest_style(means, q) if leaf is not None else 0
         stages, twists = fit_stages(self.built_in.priors, self.sources, self.skeleton, q, share, s)
-        lstm = {
-            k.split(".", 2)[2]: self.p[k].astype(np.float32).copy() for k in self.p if k.startswith(f"branches.{s}.")
-        }
+        lstm = {k: v.astype(np.float32) for k, v in branch_weights(self.p, f"branches.{s}.").items()}
         h0 = self.p["style_h0"][s].astype(np.float32)
         c0 = self.p["style_c0"][s].astype(np.float32)
         return Upload(name, TARGET_STYLES[s], lstm, h0, c0, np.eye(len(TARGET_STYLES))[s], stages, twists)

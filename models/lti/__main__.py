@@ -17,9 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-WEIGHTS_DIR_DEFAULT = (
-    Path(__file__).resolve().parents[1] / "weights" / "lti"
-)  # = model.WEIGHTS_DIR, without importing it
+# model.WEIGHTS_DIR, without importing the model
+WEIGHTS_DIR_DEFAULT = Path(__file__).resolve().parents[1] / "weights" / "lti"
 
 
 def cmd_train(args) -> None:

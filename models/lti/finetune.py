@@ -6,14 +6,11 @@ uploaded Bandai Namco clip (already retargeted if it came from a CMU skeleton):
 1. the neutral (`normal`) Bandai Namco dataset-2 training clips of the same content and pace are
    found by comparing what the clip does, measured from its motion (`content_descriptor`: root
    speed, turning rate of the smoothed heading, step rate), among clips whose length ratio the IMW
-   warp can represent. Posture only breaks near-ties: an upload's posture is its style, so ranking
-   by it paired a slow, upright straight walk with turns and runs;
+   warp can represent. Posture only breaks near-ties: an upload's posture is its style;
 2. each neutral clip is cut to as many steps as the upload takes (`step_matched`) and paired with
    the uploaded clip (capped to `max_frames`), then aligned with the training code's IMW
-   (`train.align`), exactly as offline training does. Uncut, a neutral clip of the upload's length
-   holds more steps than a slow, long-striding style takes in it, the alignment matches several
-   neutral steps to one of the upload's, and the translator learns to shuffle (an uploaded giant
-   walked at 0.4 m/s where real giant walks go at 1.0-1.1);
+   (`train.align`), exactly as offline training does. Uncut, a slow style's clip would be matched
+   several neutral steps to one of its own, and the translator would learn to shuffle;
 3. `train.identify` fits the per-joint systems on those few pairs. The uploaded clip is split in
    time when long enough: the last `holdout` share is aligned to a neutral clip but kept out of
    identification, and `train.evaluate` on it gives held-out numbers for the job record;
@@ -38,7 +35,7 @@ from models.motion.rotation_ball import fit_prior
 
 from . import representation as rep
 from .model import StyleTranslator
-from .train import CONFIG, PairData, align, evaluate, identify, match_features, pair_from_warp
+from .train import CONFIG, PairData, align, evaluate, identify, match_features, pair_from_warp, warpable
 
 FINETUNE = dict(
     pairs=5,  # neutral clips paired with the upload
@@ -74,16 +71,6 @@ class NeutralBank:
     match_std: np.ndarray
     desc_std: np.ndarray
     motions: dict = field(default_factory=dict)
-
-
-def data_available() -> bool:
-    """Whether the Bandai Namco dataset-2 archive or unpacked folder is reachable (cheap check)."""
-    from models.data.archives import DATASETS
-    from models.settings import get_settings
-
-    s = get_settings()
-    spec = DATASETS["bandai-namco-2"]
-    return (s.data_dir / spec.archive).exists() or (s.data_dir / spec.bvh_dir).is_dir()
 
 
 def _descriptor(feats: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
@@ -149,12 +136,6 @@ def neutral_bank(ref_key: bytes) -> NeutralBank:
     return NeutralBank(out, mean, std, desc_std, motions)
 
 
-def _warpable() -> tuple[float, float]:
-    """The range of length ratios (upload / neutral) the IMW warp can represent, with a margin."""
-    s, ms = CONFIG["imw"]["s"], CONFIG["imw"]["max_step"]
-    return 1.0 / s * 1.15, ms / s / 1.15
-
-
 def steps_per_second(content: np.ndarray) -> float:
     """The step rate a `content_descriptor` holds."""
     return float(np.exp(content[2])) - 0.5
@@ -168,7 +149,7 @@ def step_matched(clip: NeutralClip, frames: int, rate: float, cap: int, match: b
     own = steps_per_second(clip.content)
     if not match or rate <= 0.0 or own <= 0.0:
         return whole
-    lo, hi = _warpable()
+    lo, hi = warpable()
     return int(min(whole, max(frames / hi, min(frames / lo, round(frames * rate / own)))))
 
 
@@ -176,7 +157,7 @@ def nearest_neutral(bank: NeutralBank, feats: np.ndarray, k: int, frames: int, m
     """The k neutral clips doing the most alike (same path and pace, `content_descriptor`), among
     warpable lengths (of the clip cut to the upload's steps, `step_matched`); posture, weighted by
     `pose_weight`, orders clips that do the same."""
-    lo, hi = _warpable()
+    lo, hi = warpable()
     d = _descriptor(feats, bank.match_mean, bank.match_std)
     content, w = content_descriptor(feats), FINETUNE["pose_weight"]
     rate, cap = steps_per_second(content), int(FINETUNE["max_frames"])

@@ -43,11 +43,11 @@ from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
-from ..motion.quaternion import qdot, qinv, qmul, quat_at, row3, row4
+from ..motion.quaternion import qdot, qinv, qmul, quat_at, row3, row4, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
 from .waving_arm import MEAN_SHAPE
-from .waving_kernels import WavingArm, swing_arms
+from .waving_kernels import WavingArm, nlerp, ramp, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
 CHUNK = 32  # sessions whose LTI step is computed together: their inputs and outputs (~50 kB) stay in cache
@@ -427,17 +427,6 @@ def rotate_y(x, z, yaw):
 
 
 @njit(cache=True, error_model="numpy")
-def wrap(a):
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-@njit(cache=True, error_model="numpy")
-def ramp(x, lo, hi):
-    """0 up to lo, 1 from hi, linear between (`models.motion.hands` shares)."""
-    return min(max((x - lo) / (hi - lo), 0.0), 1.0)
-
-
-@njit(cache=True, error_model="numpy")
 def add_signed(acc, w, q, ref):
     """acc + w * q, with q's sign flipped when it points away from ref (q and -q are one rotation)."""
     sign = -w if q[0] * ref[0] + q[1] * ref[1] + q[2] * ref[2] + q[3] * ref[3] < 0.0 else w
@@ -689,18 +678,8 @@ def carry_raised_arms(b, arm, weights, offsets, swayed, out_rot, work):
         if not share > 0.0:
             continue
         for j in arm.joints[side]:
-            a, t = quat_at(out_rot, b, j), quat_at(work.carried, 0, j)
-            if a[0] * t[0] + a[1] * t[1] + a[2] * t[2] + a[3] * t[3] < 0.0:
-                t = (-t[0], -t[1], -t[2], -t[3])
-            mixed = (
-                (1.0 - share) * a[0] + share * t[0],
-                (1.0 - share) * a[1] + share * t[1],
-                (1.0 - share) * a[2] + share * t[2],
-                (1.0 - share) * a[3] + share * t[3],
-            )
-            norm = math.sqrt(mixed[0] ** 2 + mixed[1] ** 2 + mixed[2] ** 2 + mixed[3] ** 2)
-            for i in range(4):
-                out_rot[b, j, i] = mixed[i] / norm
+            q = nlerp(quat_at(out_rot, b, j), quat_at(work.carried, 0, j), share)
+            out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = q
 
 
 # --------------------------------------------------------------------------- the step

@@ -51,6 +51,7 @@ from .styles import LTIStyles
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
+STORED = ("in_mean", "in_std", "out_mean", "out_std", "in_lo", "in_hi", "orders", "ref")  # saved as they are
 COMPACT_FROM = 16  # sessions in a step from which only the styles in use are copied (`_side_by_side`)
 
 
@@ -173,19 +174,9 @@ class StyleTranslator:
         np.savez_compressed(
             path,
             style=np.array(self.style),
-            A=self.A.astype(np.float32),
-            B=self.B.astype(np.float32),
-            C=self.C.astype(np.float32),
-            D=self.D.astype(np.float32),
-            in_mean=self.in_mean,
-            in_std=self.in_std,
-            out_mean=self.out_mean,
-            out_std=self.out_std,
-            in_lo=self.in_lo,
-            in_hi=self.in_hi,
-            orders=self.orders,
+            **{k: getattr(self, k).astype(np.float32) for k in "ABCD"},
+            **{k: getattr(self, k) for k in STORED},
             k=np.array([self.k_p, self.k_c]),
-            ref=self.ref,
             meta=np.array(repr(self.meta)),
             **extra,
         )
@@ -194,25 +185,18 @@ class StyleTranslator:
     def load(cls, path: Path) -> StyleTranslator:
         with np.load(path) as z:
             fp = FootplantClassifier.from_arrays(z) if "fp_w" in z else None
-            A, B, C, D = (z[k].astype(np.float64) for k in ("A", "B", "C", "D"))
+            A, B, C, D = (z[k].astype(np.float64) for k in "ABCD")
             return cls(
                 str(z["style"]),
                 A,
                 B,
                 C,
                 D,
-                z["in_mean"],
-                z["in_std"],
-                z["out_mean"],
-                z["out_std"],
-                z["in_lo"],
-                z["in_hi"],
-                z["orders"],
-                float(z["k"][0]),
-                float(z["k"][1]),
-                fp,
-                {"source": str(path)},
-                z["ref"],
+                **{k: z[k] for k in STORED},
+                k_p=float(z["k"][0]),
+                k_c=float(z["k"][1]),
+                footplant=fp,
+                meta={"source": str(path)},
                 prior_mean=z["prior_mean"] if "prior_mean" in z else None,
                 prior_radii=z["prior_radii"] if "prior_radii" in z else None,
                 raised_arm=StyleCarry(*(z[k] for k in ARM_KEYS)) if ARM_KEYS[0] in z else None,

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from models.motion.bn_skeleton import HIPS, NUM_JOINTS
-from models.motion.rotations import wrap_angle
+from models.motion.rotations import quat_inv, wrap_angle
 
 ROOT_DIMS = 7
 BODY_JOINTS = tuple(range(2, NUM_JOINTS))  # joints carried as expmaps
@@ -44,10 +44,6 @@ def left_matrix(p: np.ndarray) -> np.ndarray:
     x, y, z, w = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     rows = [[w, -z, y, x], [z, w, -x, y], [-y, x, w, z], [-x, -y, -z, w]]
     return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
-
-
-def qinv(q: np.ndarray) -> np.ndarray:
-    return q * np.array([-1.0, -1.0, -1.0, 1.0])
 
 
 IDENTITY_REF = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (NUM_JOINTS, 1))
@@ -174,7 +170,7 @@ def _cached(ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     key = id(ref)
     hit = _LEFT_CACHE.get(key)
     if hit is None or hit[0] is not ref:
-        hit = (ref, left_matrix(ref[1:]), left_matrix(qinv(ref[1:])))
+        hit = (ref, left_matrix(ref[1:]), left_matrix(quat_inv(ref[1:])))
         _LEFT_CACHE[key] = hit
     return hit[1], hit[2]
 

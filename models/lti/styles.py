@@ -13,6 +13,7 @@ import copy
 from pathlib import Path
 from typing import TYPE_CHECKING, Self
 
+from models.data.archives import is_available
 from models.interface import FineTuned, Progress, StyleRejected, UploadedStyles
 from models.motion.skeleton import Motion
 
@@ -35,15 +36,13 @@ class LTIStyles(UploadedStyles["StyleTranslator"]):
         return copy.copy(self)
 
     def check_upload(self, frames: int, fine_tune: bool) -> None:
-        from .finetune import data_available  # the training code, loaded when a style is uploaded
-
         if not fine_tune:
             raise StyleRejected(
                 "fine_tune_required",
                 "an LTI style is a translator identified from the clip: upload "
                 "with fine_tune=true to start the identification job (the clip alone is not a style)",
             )
-        if not data_available():
+        if not is_available("bandai-namco-2"):
             raise StyleRejected(
                 "training_data_unavailable",
                 "fine-tuning needs the training data (Bandai Namco neutral "

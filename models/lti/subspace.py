@@ -41,19 +41,6 @@ class StateSpace:
     def order(self) -> int:
         return self.A.shape[0]
 
-    def simulate(self, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
-        return simulate(self.A, self.B, self.C, self.D, u, x0)
-
-
-def simulate(A, B, C, D, u: np.ndarray, x0: np.ndarray | None = None) -> np.ndarray:
-    n = A.shape[0]
-    x = np.zeros(n) if x0 is None else np.asarray(x0, float)
-    y = np.empty((len(u), C.shape[0]))
-    for t in range(len(u)):
-        y[t] = C @ x + D @ u[t]
-        x = A @ x + B @ u[t]
-    return y
-
 
 def spectral_radius(A: np.ndarray) -> float:
     return float(np.max(np.abs(np.linalg.eigvals(A)))) if A.size else 0.0

@@ -109,6 +109,12 @@ def dataset_of(model_style: str) -> tuple[str, str]:
     return "bandai-namco-2", model_style
 
 
+def warpable(cfg=CONFIG) -> tuple[float, float]:
+    """The range of length ratios (output / input) the IMW warp can represent, with a margin."""
+    s, ms = cfg["imw"]["s"], cfg["imw"]["max_step"]
+    return 1.0 / s * 1.15, ms / s / 1.15
+
+
 def make_pairs(index, style: str, split: str, cfg=CONFIG) -> list[tuple]:
     """Each output-style clip is paired with the input-style clip of the same content and split
     whose length is closest (ties: least used, then name), within the warp's slope limits.
@@ -117,8 +123,7 @@ def make_pairs(index, style: str, split: str, cfg=CONFIG) -> list[tuple]:
     from models.data import select
 
     dataset, label = dataset_of(style)
-    s, ms = cfg["imw"]["s"], cfg["imw"]["max_step"]
-    lo, hi = 1.0 / s * 1.15, ms / s / 1.15
+    lo, hi = warpable(cfg)
     pairs: list[tuple] = []
     used: dict[str, int] = {}
     in_split = split if dataset == "bandai-namco-2" else ("train", "val", "test")

@@ -177,16 +177,3 @@ def resample_pose(root: np.ndarray, rotations: np.ndarray, times: np.ndarray) ->
     q = q0 * (1 - f)[:, None, None] + sign * q1 * f[:, None, None]
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
     return r, q
-
-
-__all__ = [
-    "WarpResult",
-    "imw",
-    "dtw",
-    "dtw_warp",
-    "time_warp_dp",
-    "space_warp",
-    "objective",
-    "upsample",
-    "resample_pose",
-]

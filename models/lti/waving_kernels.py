@@ -44,8 +44,24 @@ def _toward(mean, q, fresh, frames):
 
 
 @njit(cache=True, error_model="numpy")
-def _ramp(x, lo, hi):
+def ramp(x, lo, hi):
+    """0 up to lo, 1 from hi, linear between (`models.motion.hands` shares)."""
     return min(max((x - lo) / (hi - lo), 0.0), 1.0)
+
+
+@njit(cache=True, error_model="numpy")
+def nlerp(a, t, share):
+    """(1 - share) a + share t, normalised, with t taken on a's hemisphere."""
+    if qdot(t, a) < 0.0:
+        t = qneg(t)
+    return qunit(
+        (
+            (1.0 - share) * a[0] + share * t[0],
+            (1.0 - share) * a[1] + share * t[1],
+            (1.0 - share) * a[2] + share * t[2],
+            (1.0 - share) * a[3] + share * t[3],
+        )
+    )
 
 
 @njit(cache=True, error_model="numpy")
@@ -94,9 +110,9 @@ def swing_arms(b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets,
             for c in range(4):
                 new_in_mean[b, side, k, c] = mi[c]
                 new_out_mean[b, side, k, c] = mo[c]
-        share = _ramp(offsets[b, side, 1], arm.raise_ramp[0], arm.raise_ramp[1])
-        share *= _ramp(swayed[b, side], arm.wave_ramp[0], arm.wave_ramp[1])
-        share *= (1.0 - _ramp(risen[b, side], arm.level_ramp[0], arm.level_ramp[1])) * min(total, 1.0)
+        share = ramp(offsets[b, side, 1], arm.raise_ramp[0], arm.raise_ramp[1])
+        share *= ramp(swayed[b, side], arm.wave_ramp[0], arm.wave_ramp[1])
+        share *= (1.0 - ramp(risen[b, side], arm.level_ramp[0], arm.level_ramp[1])) * min(total, 1.0)
         if not swing or share <= 0.0:
             continue
         for k in range(K):
@@ -104,17 +120,7 @@ def swing_arms(b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets,
             a = quat_at(rot_out, b, j)
             v = qlog(qmul(qinv(quat_at(new_in_mean[b], side, k)), quat_at(rot_in, b, j)))
             t = qmul(quat_at(new_out_mean[b], side, k), qexp((arm.gain * v[0], arm.gain * v[1], arm.gain * v[2])))
-            if qdot(t, a) < 0.0:
-                t = qneg(t)
-            q = qunit(
-                (
-                    (1.0 - share) * a[0] + share * t[0],
-                    (1.0 - share) * a[1] + share * t[1],
-                    (1.0 - share) * a[2] + share * t[2],
-                    (1.0 - share) * a[3] + share * t[3],
-                )
-            )
-            q = _held(q, j, weights, b, total, prior_mean, prior_radii)
+            q = _held(nlerp(a, t, share), j, weights, b, total, prior_mean, prior_radii)
             for c in range(4):
                 rot_out[b, j, c] = q[c]
 
