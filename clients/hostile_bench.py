@@ -611,6 +611,9 @@ def main() -> None:
         healthy.join(timeout=60)
         prober.stop.set()
         prober.join(timeout=30)
+        builds = re.findall(
+            r'^stylestream_rig_builds_total\{child="(\w+)"\} ([0-9.e+]+)$', httpx.get(f"{base}/metrics").text, re.M
+        )
     p99 = {k: float(np.percentile(np.array(v) * 1000, 99)) for k, v in healthy.rtts.items()}
     print(f"healthy session errors: {healthy.error or 'none'}; bystander BVH {len(big) / 2**20:.1f} MiB")
     print("/healthz every 100 ms throughout: " + ", ".join(f"{k}: {v}" for k, v in prober.answers.items()))
@@ -634,6 +637,7 @@ def main() -> None:
         for name in args.phases:
             ratios = [p99.get(label, np.nan) / p99.get(q, np.nan) for n, q, label, *_ in runs if n == name]
             print(f"{name:20} p99/quiet over {len(ratios)} runs: median {np.median(ratios):.2f}, max {max(ratios):.2f}")
+    print("rigs built, by the child that answered: " + (", ".join(f"{k} {float(v):.0f}" for k, v in builds) or "none"))
     print(f"cores: {os.cpu_count()}")
 
 

@@ -104,6 +104,13 @@ class Metrics:
             buckets=LATENCY_BUCKETS,
             registry=self.registry,
         )
+        self.rig_builds = Counter(
+            "stylestream_rig_builds_total",
+            "Rigs built in a child process, by the child that answered (idle: SCHED_IDLE; normal: "
+            "the background's niceness, after the idle one starved)",
+            ["child"],
+            registry=self.registry,
+        )
         self.resumes = Counter(
             "stylestream_sessions_resumed_total", "Sessions resumed from a snapshot", registry=self.registry
         )

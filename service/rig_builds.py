@@ -129,8 +129,15 @@ class RigWorkers:
     at `SCHED_IDLE`, then, for a call still unanswered after `idle_wait_s`, in as many at the
     background's niceness as well, the first answer winning."""
 
-    def __init__(self, processes: int = PROCESSES, timeout_s: float = TIMEOUT_S, idle_wait_s: float = IDLE_WAIT_S):
+    def __init__(
+        self,
+        processes: int = PROCESSES,
+        timeout_s: float = TIMEOUT_S,
+        idle_wait_s: float = IDLE_WAIT_S,
+        answered: Callable[[bool], None] | None = None,
+    ):
         self.processes, self.timeout_s, self.idle_wait_s = processes, timeout_s, idle_wait_s
+        self.answered = answered  # told, for each call answered, whether an idle child answered it
         self._pools: dict[bool, ProcessPoolExecutor] = {}  # by `idle`
         self.failures = 0  # calls failed by a lost child (died, or killed past the time limit)
         self.promoted = 0  # calls the idle children had not answered within `idle_wait_s`
@@ -179,6 +186,8 @@ class RigWorkers:
                     if future in done:
                         del running[pool]
                         if not isinstance(future.exception(), BrokenProcessPool):
+                            if self.answered is not None:
+                                self.answered(self._pools.get(True) is pool)
                             return _answer(*future.result())
                         self._lost(pool)
                 if time.monotonic() >= deadline:
@@ -222,9 +231,11 @@ class RigBuilds:
     """Per-caller gates for rig work in child processes (one per runtime, on its loop).
     `runner` runs one unit of that work: `RigWorkers.run` by default."""
 
-    def __init__(self, per_caller: int = PER_CALLER, runner: Runner | None = None) -> None:
+    def __init__(
+        self, per_caller: int = PER_CALLER, runner: Runner | None = None, answered: Callable[[bool], None] | None = None
+    ) -> None:
         self.per_caller = per_caller
-        self.workers = RigWorkers()
+        self.workers = RigWorkers(answered=answered)
         self._runner: Runner = runner or self.workers.run
         self._gates: dict[str, asyncio.Semaphore] = {}
         self._users: Counter[str] = Counter()

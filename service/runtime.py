@@ -102,7 +102,10 @@ class Runtime:
         self.crowd_tokens: set[str] = set()  # resume tokens of the crowd characters connected now
         self.replica_id = secrets.token_hex(8)  # this process, in a shared store's resume claims
         self.snapshots = SnapshotWriter(create_store(settings.session_store, settings.resume_ttl_s), self.metrics)
-        self.rig_builds = RigBuilds()  # rigs parsed and built in child processes, per caller
+        # rigs parsed and built in child processes, per caller
+        self.rig_builds = RigBuilds(
+            answered=lambda idle: self.metrics.rig_builds.labels("idle" if idle else "normal").inc()
+        )
         self.draining = False
 
     async def start(self) -> None:

@@ -182,7 +182,8 @@ def test_a_build_its_idle_child_never_runs_is_answered_by_a_normal_one_and_the_n
     the builds right after skip the idle children."""
 
     async def scenario() -> None:
-        workers = RigWorkers(processes=1, idle_wait_s=0.2)
+        answers: list[bool] = []
+        workers = RigWorkers(processes=1, idle_wait_s=0.2, answered=answers.append)
         idle_pool = workers._executor(idle=True)
         idle_pool.submit(int)  # starts its child
         stopped = list(idle_pool._processes)
@@ -191,6 +192,7 @@ def test_a_build_its_idle_child_never_runs_is_answered_by_a_normal_one_and_the_n
         try:
             assert await workers.run(os.sched_getscheduler, 0) != os.SCHED_IDLE and workers.promoted == 1
             assert await workers.run(operator.add, 2, 3) == 5 and workers.promoted == 1  # not sent to the idle child
+            assert answers == [False, False]  # what /metrics counts as `normal`
         finally:
             for pid in stopped:
                 os.kill(pid, signal.SIGCONT)
