@@ -15,7 +15,8 @@ waiting for often enough to double a neighbour's p99 (crowd rigs: run-queue wait
 is never idle it would never run, and an unprivileged process cannot leave `SCHED_IDLE` again: a
 call an idle child has not answered within IDLE_WAIT_S is also sent to a child at the
 background's niceness (the first answer wins), and the calls of the next IDLE_BACKOFF_S go there
-straight away, so a busy machine pays that wait once per back-off, not once per rig.
+straight away, so a busy machine pays that wait once per back-off, not once per rig. Those
+normal children go again once an idle one answers after the back-off.
 
 Each caller (`Principal.key`) has at most PER_CALLER builds running; its further ones wait their
 turn on its own gate, so one tenant's stream of new rigs queues behind itself, not in front of
@@ -186,8 +187,11 @@ class RigWorkers:
                     if future in done:
                         del running[pool]
                         if not isinstance(future.exception(), BrokenProcessPool):
+                            idle_answered = self._pools.get(True) is pool
+                            if idle_answered and time.monotonic() >= self._idle_starved_until:
+                                self._retire_normal()
                             if self.answered is not None:
-                                self.answered(self._pools.get(True) is pool)
+                                self.answered(idle_answered)
                             return _answer(*future.result())
                         self._lost(pool)
                 if time.monotonic() >= deadline:
@@ -207,6 +211,13 @@ class RigWorkers:
         finally:
             for future in running.values():  # the slower copy: dropped if it has not started
                 future.cancel()
+
+    def _retire_normal(self) -> None:
+        """The idle children answer again: the normal ones (120-250 MB each) go once the calls they
+        hold are done (`shutdown` without waiting or cancelling), and the next starved call starts
+        fresh ones."""
+        if (pool := self._pools.pop(False, None)) is not None:
+            pool.shutdown(wait=False)
 
     def _lost(self, pool: ProcessPoolExecutor, kill: bool = False) -> None:
         """Forget a pool that lost a child (the next build starts a fresh one); `kill`: its

@@ -193,9 +193,26 @@ def test_a_build_its_idle_child_never_runs_is_answered_by_a_normal_one_and_the_n
             assert await workers.run(os.sched_getscheduler, 0) != os.SCHED_IDLE and workers.promoted == 1
             assert await workers.run(operator.add, 2, 3) == 5 and workers.promoted == 1  # not sent to the idle child
             assert answers == [False, False]  # what /metrics counts as `normal`
+            assert False in workers._pools  # kept while the idle children starve
         finally:
             for pid in stopped:
                 os.kill(pid, signal.SIGCONT)
+            workers.close()
+
+    asyncio.run(scenario())
+
+
+def test_the_normal_children_go_once_an_idle_one_answers_again():
+    """They are only the fallback for a starved idle child: kept, they would hold their memory
+    (120-250 MB each) for good."""
+
+    async def scenario() -> None:
+        workers = RigWorkers(processes=1, idle_wait_s=30.0)
+        workers._executor(idle=False).submit(int).result()
+        try:
+            assert await workers.run(operator.add, 1, 2) == 3 and workers.promoted == 0
+            assert False not in workers._pools and True in workers._pools
+        finally:
             workers.close()
 
     asyncio.run(scenario())
