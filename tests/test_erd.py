@@ -95,19 +95,11 @@ def test_stream_equals_whole_window(model, walks):
     w = _onehot(model, "elderly")
     streamed = model.stylise_stream(motion, w, content="walk", input_style="normal")
     gen = model.torch_generator()
-    whole = stylise(
-        gen,
-        model.maker,
-        motion,
-        w,
-        style_in=0,
-        content=CONTENTS.index("walk"),
-        **model.priors,
-    )
+    whole = stylise(gen, model.maker, motion, w, model.stages, style_in=0, content=CONTENTS.index("walk"))
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
     np.testing.assert_allclose(streamed.translations, whole.translations, atol=2e-2)  # cm; float32 torch
     streamed = model.stylise_stream(motion, w)  # unlabelled
-    whole = stylise(gen, model.maker, motion, w, **model.priors)
+    whole = stylise(gen, model.maker, motion, w, model.stages)
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
 
 

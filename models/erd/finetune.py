@@ -190,12 +190,12 @@ def refit_stages(model, tuned: Upload, clip) -> Upload:
 
     twin = model.with_own_styles()
     twin.install_style("fit", tuned)
-    twin.output_prior = twin.run_leaf_prior = twin.run_output_prior = twin.twist_range = None
+    twin.stages = twin.stages.without("output_prior", "run_leaf_prior", "run_output_prior", "twist_range")
     inputs = _neutral_inputs()[:: max(1, 4 // SOURCE_CLIPS)]
     outs = stylise(twin, inputs, [len(twin.styles()) - 1] * len(inputs))
     mean, cov, _ = tangent_stats(comparable(np.concatenate([o.rotations for o in outs])))
     q, share = clip_rotations(model, clip)
     stages, twists = fit_stages(
-        model.built_in.priors, model.sources, model.skeleton, q, share, TARGET_STYLES.index(tuned.nearest), (mean, cov)
+        model.built_in.stages, model.sources, model.skeleton, q, share, TARGET_STYLES.index(tuned.nearest), (mean, cov)
     )
     return Upload(tuned.name, tuned.nearest, tuned.lstm, tuned.h0, tuned.c0, tuned.code, stages, twists)

@@ -36,7 +36,7 @@ from .twist_range import TwistRange
 from .upload_stages import KEYS, SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
 
 if TYPE_CHECKING:
-    from ..motion.hinge import Hinges
+    from .stages import ErdStages
 
 STYLE_FILE = "erd_style.npz"
 MIN_FRAMES = 60  # 2 s: the stages' statistics need a few steps of the clip
@@ -95,7 +95,7 @@ class BuiltIn(NamedTuple):
 
     lstm_w: list[np.ndarray]
     lstm_b: list[np.ndarray]
-    priors: dict
+    stages: ErdStages
 
 
 def branch_weights(params: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
@@ -131,8 +131,7 @@ class ERDStyles(ClipStyles[Upload]):
         H: int
         dtype: np.dtype
         skeleton: Skeleton
-        hinges: Hinges | None
-        twist_range: TwistRange | None
+        stages: ErdStages
         lstm_w: list[np.ndarray]
         lstm_b: list[np.ndarray]
         branches: tuple[str, ...]
@@ -180,10 +179,9 @@ class ERDStyles(ClipStyles[Upload]):
         if clip.num_frames < MIN_FRAMES:
             raise ValueError(f"style clip too short: {clip.num_frames} frames, need at least {MIN_FRAMES}")
         q, share = clip_rotations(self, clip)
-        leaf = self.built_in.priors["leaf_prior"]
-        means = self.sources.mean["leaf_prior"] if leaf is None else leaf.mean
-        s = nearest_style(means, q) if leaf is not None else 0
-        stages, twists = fit_stages(self.built_in.priors, self.sources, self.skeleton, q, share, s)
+        leaf = self.built_in.stages.leaf_prior
+        s = nearest_style(leaf.mean, q) if leaf is not None else 0
+        stages, twists = fit_stages(self.built_in.stages, self.sources, self.skeleton, q, share, s)
         lstm = {k: v.astype(np.float32) for k, v in branch_weights(self.p, f"branches.{s}.").items()}
         h0 = self.p["style_h0"][s].astype(np.float32)
         c0 = self.p["style_c0"][s].astype(np.float32)
@@ -219,7 +217,7 @@ class ERDStyles(ClipStyles[Upload]):
         return (folder / STYLE_FILE).exists()
 
     def load_style(self, name: str, folder: Path) -> Upload:
-        return Upload.load(name, folder / STYLE_FILE, self.built_in.priors["twist_range"])
+        return Upload.load(name, folder / STYLE_FILE, self.built_in.stages.twist_range)
 
     def _use(self, uploads: tuple[Upload, ...]) -> None:
         """Replace the stacked branches, codes and stages by the trained styles' and `uploads`'."""
@@ -231,21 +229,6 @@ class ERDStyles(ClipStyles[Upload]):
             self.lstm_b = [np.concatenate([a, x[None]]) for a, x in zip(self.lstm_b, b)]
         n = len(TARGET_STYLES)
         self.codes = np.concatenate([np.eye(n), *(u.code[None] for u in uploads)]).astype(dt) if uploads else None
-        for key in KEYS:
-            carry = base.priors[key]
-            if carry is not None and uploads:
-                carry = StyleCarry.stack([carry, *(u.stages[key] for u in uploads)])  # type: ignore[list-item]
-            setattr(self, key, carry)
-        twists = base.priors["twist_range"]
-        if twists is not None and uploads:
-            ups = [u.twists for u in uploads]
-            twists = TwistRange(
-                twists.joints,
-                twists.axes,
-                np.concatenate([twists.mean, *(t.mean for t in ups)]),  # type: ignore[union-attr]
-                np.concatenate([twists.lo, *(t.lo for t in ups)]),  # type: ignore[union-attr]
-                np.concatenate([twists.hi, *(t.hi for t in ups)]),  # type: ignore[union-attr]
-            )
-        self.twist_range = twists
+        self.stages = base.stages.stacked(uploads)
         self.uploads = uploads
         self.branches = self.branches[:1] + tuple(TARGET_STYLES) + tuple(u.name for u in uploads)

@@ -10,10 +10,8 @@ from models.erd.gait import clip_smoothed_speed, eased_in, run_share
 from models.erd.model import Generator
 from models.erd.offline import network_clip, with_root
 from models.erd.slow_carry import carry_slow, follow
-from models.erd.twist_range import TwistRange
+from models.erd.stages import ErdStages
 from models.motion.bn_skeleton import HIPS
-from models.motion.hinge import Hinges
-from models.motion.hinge_floor import HingeFloor
 from models.motion.skeleton import Motion
 from models.motion.style_carry import StyleCarry
 from models.motion.twist import transfer_twist
@@ -39,28 +37,23 @@ def stylise(
     maker: FeatureMaker,
     motion: Motion,
     weights: np.ndarray,
+    stages: ErdStages,
     style_in: int = -1,
     content: int = -1,
-    leaf_prior: StyleCarry | None = None,
-    output_prior: StyleCarry | None = None,
-    run_leaf_prior: StyleCarry | None = None,
-    run_output_prior: StyleCarry | None = None,
-    twist_range: TwistRange | None = None,
-    hinges: Hinges | None = None,
-    hinge_floor: HingeFloor | None = None,
 ) -> Motion:
-    """The clip stylised as the stream does it (`ERDModel.priors` as the keywords): the rotation
-    priors (and their run versions for the frames the input runs in), the hinges, their floor,
-    the twist range and the planted feet."""
+    """The clip stylised as the stream does it (`ErdStages` in its order, each over the whole
+    clip): the rotation priors (and their run versions for the frames the input runs in), the
+    hinges, their floor, the twist range and the planted feet."""
+    s = stages
     x, root, rots = network_clip(gen, maker, motion, weights, style_in, content)
     w_frames = np.broadcast_to(np.asarray(weights, np.float64), (len(rots), np.shape(weights)[-1]))
     pos = maker.positions(motion.translations[:, 1], motion.rotations)
     share = eased_in(run_share(clip_smoothed_speed(pos, FPS)), np.arange(len(pos)))
-    source = clip_carry_slow(leaf_prior, run_leaf_prior, motion.rotations, w_frames, share)
-    rots = transfer_twist(motion.skeleton, source, rots, hinges=hinges)
-    rots = clip_carry_slow(output_prior, run_output_prior, rots, w_frames, share, hips=HIPS)
-    if hinge_floor is not None:
-        rots = hinge_floor(rots)
-    if twist_range is not None:
-        rots = twist_range(rots, w_frames)
+    source = clip_carry_slow(s.leaf_prior, s.run_leaf_prior, motion.rotations, w_frames, share)
+    rots = transfer_twist(motion.skeleton, source, rots, hinges=s.hinges)
+    rots = clip_carry_slow(s.output_prior, s.run_output_prior, rots, w_frames, share, hips=HIPS)
+    if s.hinge_floor is not None:
+        rots = s.hinge_floor(rots)
+    if s.twist_range is not None:
+        rots = s.twist_range(rots, w_frames)
     return with_root(motion, x, root, rots)
