@@ -184,7 +184,7 @@ def twist_clamp_batch(q, w, joints, axes, mean, lo, hi, out):
     """out = q with each listed joint's twist about its bone (`axes`, (K, 3)), measured against
     each weighted style's mean (`mean` (S, K, 4)), moved into [lo, hi] (S, K) by the weights
     (B, S): t + sum_s w_s (clip(t_s) - t_s), applied as a turn about the bone on the right
-    (`twist_range.TwistRange.__call__` is the numpy reference). Rows with no weight are copied."""
+    (`tests/reference/erd_carry.py` is the numpy reference). Rows with no weight are copied."""
     out[:] = q
     for b in range(q.shape[0]):
         for k in range(joints.shape[0]):
