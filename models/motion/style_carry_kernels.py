@@ -9,6 +9,7 @@ nothing and triples the first compile.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -214,8 +215,21 @@ def _gained(p, row, j, w, lone, rest, gain):
     return qscale(g, 1.0 / math.sqrt(qdot(g, g)))
 
 
+class SlowPriors(NamedTuple):
+    """What `carry_slow_batch` carries by: carry `a`, or `b` then `c` by the row's run share, each
+    (source, mean, lin, radius); the range `clamp` keeps every output in; the fast part's gains
+    (S, J, 3, 3); the joints carried whole (J,) bool."""
+
+    a: tuple
+    b: tuple
+    c: tuple
+    clamp: tuple
+    gain: np.ndarray
+    plain: np.ndarray
+
+
 @njit(cache=True, error_model="numpy")
-def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hips, out, new_slow):
+def carry_slow_batch(q, slow, weight, w, share, priors, hips, out, new_slow):
     """The slow part of q carried, its fast part on top (`models/erd/slow_carry.py`), in one
     pass. Per row and joint:
 
@@ -223,9 +237,9 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
         p = s^-1 q, the fast part, in its short hemisphere
         o = carry(s) (G p_xyz, p_w) / |.|, then o clamped into `clamp`'s range
 
-    carry: `a` and `b`-then-`c` mixed by the row's share, as `carry_pair_batch`; G: the gains
-    (S, J, 3, 3) mixed by the row's weights w (B, S), the rest of the weight at 1 (joint `hips`:
-    1, its fast part holds its turning); to first order in the fast part's angle
+    carry (`priors`, a `SlowPriors`): `a` and `b`-then-`c` mixed by the row's share, as
+    `carry_pair_batch`; G: the gains mixed by the row's weights w (B, S), the rest of the
+    weight at 1 (joint `hips`: 1, its fast part holds its turning); to first order in the fast part's angle
     (G p_xyz, p_w) / |.| is exp(G log p), without a log or an exp. `clamp`: a range alone
     (`StyleCarry.bounds`); a row with one style skips its arithmetic for a joint already inside
     (the clamp leaves it as it is). Joint `hips` is carried and clamped without its heading, as
@@ -233,6 +247,7 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
     the same either way) is carried whole, as `carry_pair_batch` would. Writes `out` and the new
     slow copies `new_slow`."""
     S, J = w.shape[1], q.shape[1]
+    a, b, c, clamp, gain, plain = priors
     cos_half = _cos_half(clamp[3])
     mean = clamp[1]
     for row in range(q.shape[0]):
@@ -291,14 +306,12 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
 
 
 def carry_slow(
-    q: np.ndarray, slow: np.ndarray, weight: float, w: np.ndarray, share: np.ndarray, a: tuple, b: tuple, c: tuple,
-    clamp: tuple, gain: np.ndarray, plain: np.ndarray, hips: int = -1,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    q: np.ndarray, slow: np.ndarray, weight: float, w: np.ndarray, share: np.ndarray, priors: SlowPriors, hips: int = -1
+) -> tuple[np.ndarray, np.ndarray]:
     """`carry_slow_batch` on any (B, J, 4) rotations and slow copies, (B, S) weights and (B,)
-    shares; a, b, c, clamp: (source, mean, lin, radius) of each carry. Returns (out, new slow
-    copies)."""
+    shares. Returns (out, new slow copies)."""
     q = np.ascontiguousarray(q, np.float64)
     w, share = np.ascontiguousarray(w, np.float64), np.ascontiguousarray(share, np.float64)
     slow = np.ascontiguousarray(slow, np.float64)
     out, new_slow = np.empty_like(q), np.empty_like(q)
-    return carry_slow_batch(q, slow, float(weight), w, share, a, b, c, clamp, gain, plain, hips, out, new_slow)
+    return carry_slow_batch(q, slow, float(weight), w, share, priors, hips, out, new_slow)
