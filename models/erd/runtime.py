@@ -125,6 +125,8 @@ class ERDModel(ERDStyles):
         self.built_in = BuiltIn(self.lstm_w, self.lstm_b, self.stages)
         self.uploads: tuple[Upload, ...] = ()  # uploaded styles, after the trained ones (`uploads.py`)
         self.codes: np.ndarray | None = None  # (styles, 6) the decoder's style code per style; None: one-hot
+        own = self.init_state(1).items()  # the entries the step checks (the planter checks its own)
+        self._state_shapes = {k: v.shape[1:] for k, v in own if k not in FEET_STATE}
         self._compile_step()
 
     def _compile_step(self) -> None:
@@ -227,22 +229,9 @@ class ERDModel(ERDStyles):
             )
         if w.shape != (B, len(self.branches) - 1):
             raise ValueError(f"style_weights must be ({B}, {len(self.branches) - 1}), got {w.shape}")
-        lstm = (B, 1 + len(TARGET_STYLES), self.Ln, self.H)
-        for key, shape in (
-            ("h", lstm),
-            ("c", lstm),
-            ("prev_pos", (B, J, 3)),
-            ("prev_yaw", (B,)),
-            ("gait_speed", (B,)),
-            ("slow_in", (B, J, 4)),
-            ("slow_out", (B, J, 4)),
-            ("out_root", (B, 3)),
-            ("frame", (B,)),
-            ("style_in", (B,)),
-            ("content", (B,)),
-        ):
-            if state[key].shape != shape:
-                raise ValueError(f"state[{key!r}] must be {shape}, got {state[key].shape}")
+        for key, shape in self._state_shapes.items():
+            if state[key].shape != (B, *shape):
+                raise ValueError(f"state[{key!r}] must be {(B, *shape)}, got {state[key].shape}")
         has_prev = state["frame"] > 0
         pos = self.maker.positions(root, rot_in)
         x, yaw = self.maker.features(rot_in, pos, state["prev_pos"], state["prev_yaw"], has_prev)
