@@ -58,13 +58,13 @@ class ErdStages:
         if not uploads:
             return self
         carries: dict[str, Any] = {
-            key: StyleCarry.stack([carry, *(u.stages[key] for u in uploads)])  # type: ignore[list-item]
+            key: StyleCarry.stack([carry, *(getattr(u.stages, key) for u in uploads)])
             for key in PRIOR_FILES
             if (carry := getattr(self, key)) is not None
         }
         twists = self.twist_range
         if twists is not None:
-            ups = [u.twists for u in uploads]
+            ups = [u.stages.twist_range for u in uploads]
             twists = TwistRange(
                 twists.joints,
                 twists.axes,

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
@@ -35,10 +35,8 @@ from ..motion.style_carry import StyleCarry, gaussian_map, tangent_stats
 from .features import NB, ROT
 from .gait import clip_smoothed_speed, run_share
 from .rotation_prior import FIXED, PRIOR_FILES
+from .stages import ErdStages
 from .twist_range import TwistRange
-
-if TYPE_CHECKING:
-    from .stages import ErdStages
 
 SOURCES_FILE = "upload_sources.npz"
 KEYS = tuple(PRIOR_FILES)  # the priors an upload fits
@@ -112,14 +110,14 @@ def nearest_style(style_means: np.ndarray, q: np.ndarray) -> int:
 
 def fit_stages(
     built_in: ErdStages, sources: Sources, skeleton, q: np.ndarray, share: np.ndarray, nearest: int, output_source=None
-) -> tuple[dict[str, StyleCarry | None], TwistRange | None]:
+) -> ErdStages:
     """An upload's priors and twist range from its clip's rotations `q` and run shares (module
     docstring); `output_source` (mean, cov) replaces the nearest style's network source (a job
     that fitted the style's own branch measured its own). `built_in`: the trained styles' stages
     (a missing one stays missing)."""
     legs = tuple(skeleton.index(n) for n in LEG_JOINTS)
     runs = q[share > 0.5]
-    out: dict[str, StyleCarry | None] = dict.fromkeys(KEYS)
+    out: dict[str, Any] = {}  # the fitted priors, by field
     if built_in.leaf_prior is not None:
         out["leaf_prior"] = carry_to(sources.of("leaf_prior", nearest), q, FIXED)
     if built_in.output_prior is not None:
@@ -133,8 +131,8 @@ def fit_stages(
             out[key] = carry_to(sources.of(key, nearest), real, FIXED if clamped is None else (0,), clamped or ())
         else:
             out[key] = one_style(carry, nearest)
-    fitted = None if built_in.twist_range is None else TwistRange.fit(skeleton, [q])
-    return out, fitted
+    twists = None if built_in.twist_range is None else TwistRange.fit(skeleton, [q])
+    return ErdStages(twist_range=twists, **out)
 
 
 def fit_sources(model) -> Sources:
