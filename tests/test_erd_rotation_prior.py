@@ -16,7 +16,6 @@ from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
 from .clips import streamed_rotations
 from .reference import erd_carry
-from .reference.erd_offline import clip_carry_slow
 from .reference.style_carry import mixed_with
 
 REPO = Path(__file__).resolve().parents[1]
@@ -165,7 +164,7 @@ def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
                 runs[tag].append(out)
     finally:
         model.stages = saved
-    source = clip_carry_slow(saved.leaf_prior, None, motion.rotations[:30], np.tile(w, (30, 1)), np.zeros(30))
+    source = erd_carry.clip_carry_slow(saved.leaf_prior, None, motion.rotations[:30], np.tile(w, (30, 1)), np.zeros(30))
     for t in range(30):
         src = source[t : t + 1]
         assert np.all(_apart(runs["leaf"][t].rotations[0, leaves], src[0, leaves]) < 1e-7)
@@ -381,12 +380,12 @@ def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
 
 
 def test_a_raise_up_streamed_equals_the_whole_clip(model, neutral):
-    """The whole-clip stages (`tests/reference/erd_offline.py`) carry a raise-up frame by frame as
-    the stream does."""
-    from .reference.erd_offline import stylise
+    """The whole-clip path (`models/erd/offline.py`: the torch network over the clip, then the
+    stages) carries a raise-up as the stream does."""
+    from models.erd.offline import stylise
 
     motion, w = neutral[2], _onehot(model, "elderly")
-    whole = stylise(model.torch_generator(), model.maker, motion, w, model.stages)
+    whole = stylise(model.torch_generator(), model.maker, motion, w, stages=model.stages)
     np.testing.assert_allclose(model.stylise_stream(motion, w).rotations, whole.rotations, atol=2e-4)
 
 

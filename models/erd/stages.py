@@ -1,6 +1,7 @@
 """The fitted stages after Style-ERD's network, as one record: what `runtime.load` reads beside
-the weights, what the step runs, what uploads stack theirs onto and what the whole-clip
-reference (`tests/reference/erd_offline.py`) runs over a clip. A stage left None is off."""
+the weights, what the stream's step and the whole-clip path (`offline.py`) run frame by frame,
+and what an upload fits (`upload_stages.py`) and stacks onto the trained styles'. A stage left
+None is off."""
 
 from __future__ import annotations
 
