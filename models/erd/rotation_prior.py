@@ -110,16 +110,20 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     real runs, the legs carried too; the arms (`RUN_ARMS`) as the stream makes them and every other
     joint with the input's own twists and leaves (with the leaf prior, heads jumped as a stream
     started mid-run)."""
-    if runs:
-        inputs = _running_inputs()
-        produced = network_rotations(model, inputs, leaf_prior=False)
-        arms = [model.skeleton.index(n) for n in RUN_ARMS]
-        for own, leafed in zip(produced, network_rotations(model, inputs)):
-            own[:, arms] = leafed[:, arms]
-    else:
-        produced = network_rotations(model, _neutral_inputs())
+    produced = run_network_rotations(model) if runs else network_rotations(model, _neutral_inputs())
     clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEG_JOINTS))
     return StyleCarry.fit(produced, [comparable(q) for q in real[1:]], (0,), clamp_only=clamped)
+
+
+def run_network_rotations(model) -> list[np.ndarray]:
+    """`network_rotations` of TRAIN neutral clips that run: the arms (`RUN_ARMS`) as the stream
+    makes them, every other joint with the input's own twists and leaves (no leaf prior)."""
+    inputs = _running_inputs()
+    produced = network_rotations(model, inputs, leaf_prior=False)
+    arms = [model.skeleton.index(n) for n in RUN_ARMS]
+    for own, leafed in zip(produced, network_rotations(model, inputs)):
+        own[:, arms] = leafed[:, arms]
+    return produced
 
 
 def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.ndarray]:

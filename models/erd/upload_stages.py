@@ -137,7 +137,7 @@ def fit_stages(
 
 def fit_sources(model) -> Sources:
     """The sources every trained style's priors were fitted from (`rotation_prior.py`), as Gaussians."""
-    from .rotation_prior import RUN_ARMS, _neutral_inputs, _running_inputs, network_rotations, real_rotations
+    from .rotation_prior import _neutral_inputs, network_rotations, real_rotations, run_network_rotations
 
     def stats(qs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         fitted = [tangent_stats(q) for q in qs]
@@ -147,10 +147,5 @@ def fit_sources(model) -> Sources:
     mean["leaf_prior"], cov["leaf_prior"] = stats([real_rotations()[0]])
     mean["run_leaf_prior"], cov["run_leaf_prior"] = stats([real_rotations(runs=True)[0]])
     mean["output_prior"], cov["output_prior"] = stats(network_rotations(model, _neutral_inputs()))
-    inputs = _running_inputs()
-    produced = network_rotations(model, inputs, leaf_prior=False)
-    arms = [model.skeleton.index(n) for n in RUN_ARMS]
-    for own, leafed in zip(produced, network_rotations(model, inputs)):
-        own[:, arms] = leafed[:, arms]
-    mean["run_output_prior"], cov["run_output_prior"] = stats(produced)
+    mean["run_output_prior"], cov["run_output_prior"] = stats(run_network_rotations(model))
     return Sources(mean, cov)
