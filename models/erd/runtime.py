@@ -28,19 +28,14 @@ follows the style); the height is predicted.
 
 Decoding (as the trainer decodes, not a stage): the decoder's positions are kept, but each
 bone's twist and the head, hands and toes, which move no joint and so were never learned, take
-the input's rotations (`models.motion.twist.transfer_twist`); elbows and knees keep their hinge
-plane (`models.motion.hinge`, `hinges.npz`).
+the input's rotations, or the leaf prior's carry of them (`models.motion.twist.transfer_twist`);
+elbows and knees keep their hinge plane (`models.motion.hinge`, `hinges.npz`).
 
-Stages, each fitted from data the same way for every style: the input's rotations are carried
-from the neutral style's real distribution to the target's, and the output's from what the
-network produces to the target's real one, clamped into its range (`rotation_prior.py`), with
-run-fitted priors where the input runs (`gait.py`); each prior carries only a slowly following
-copy so its gains do not shake the limbs (`slow_carry.py`); knees and elbows are held at their
-least real bend (`models.motion.hinge_floor`, `hinge_floor.npz`); the arms' twists are kept
-inside the style's real interval (`twist_range.py`, which turns bones about themselves only, so
-the bends stay). Last, the shared foot planter
-(`models.motion.feet.FootPlanter`) holds the feet the input has down (feature columns
-`CONTACT`), toe and ankle, by two-bone leg IK; the output's `contacts` are the planted legs.
+Then the fitted stages (`stages.ErdStages`, in the order they run; the model card's table says
+what each does and how it is fitted from real clips, the same way for every style), and last the
+shared foot planter (`models.motion.feet.FootPlanter`), which holds the feet the input has down
+(feature columns `CONTACT`), toe and ankle, by two-bone leg IK; the output's `contacts` are the
+planted legs.
 """
 
 from __future__ import annotations

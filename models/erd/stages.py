@@ -27,7 +27,8 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class ErdStages:
-    """In the order the step runs them (`runtime.py`'s module docstring says why each)."""
+    """In the order the step runs them (the model card's table says what each does and how it is
+    fitted)."""
 
     leaf_prior: StyleCarry | None = None  # the input's twists and leaves carried to the style (`rotation_prior.py`)
     run_leaf_prior: StyleCarry | None = None  # the same fitted on runs, for frames the input runs in (`gait.py`)
