@@ -11,7 +11,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from models.interface import FrameBatch, StreamingModel, split_state, stack_states  # noqa: E402 (after the torch check)
-from models.motion.skeleton import Motion, fk  # noqa: E402
+from models.motion.skeleton import fk  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "models" / "weights" / "erd"
@@ -209,31 +209,18 @@ def test_bad_shapes_are_clear_errors(model):
         model.step_batch(state, FrameBatch(np.zeros((1, 3)), rest), w[:, :4])
 
 
-def _toe_slide(motion: Motion) -> np.ndarray:
-    """Horizontal speeds (cm/s) of both toes over the frames each is within 3 % of a leg (2.5 cm)
-    of its floor level (the clip's p5 height): no flat foot needed, so a toe sliding at push-off
-    counts."""
-    from models.motion.features import left_leg_length
-
-    pos, limit = motion.global_positions(), 0.03 * left_leg_length(motion.skeleton)
-    out = []
-    for name in ("Toes_L", "Toes_R"):
-        p = pos[:, motion.skeleton.index(name)]
-        planted = p[1:, 1] < np.percentile(p[:, 1], 5.0) + limit
-        out.append(np.linalg.norm(np.diff(p[:, [0, 2]], axis=0), axis=-1)[planted] * motion.fps)
-    return np.concatenate(out)
-
-
 def test_planted_feet_stay_put(model, walks):
     """The network alone slides its planted toes at walking speed (it knows nothing of the floor);
     the output holds them, and a leg it reports planted keeps its held toe or ankle in place."""
     from models.erd.offline import stylise
 
+    from .reference.foot_slide import planted_slide
+
     motion = walks[0].slice(0, 150)
     w = _onehot(model, "active")
     gen = model.torch_generator()
-    free = np.median(_toe_slide(stylise(gen, model.maker, motion, w, foot_lock=False)))
-    planted = np.median(_toe_slide(stylise(gen, model.maker, motion, w)))
+    free = np.median(planted_slide(stylise(gen, model.maker, motion, w, foot_lock=False))["toe"])
+    planted = np.median(planted_slide(stylise(gen, model.maker, motion, w))["toe"])
     assert free > 20.0 and planted < 1.0, (free, planted)  # cm/s
     state, points, held = model.init_state(1), [], []
     sk = model.skeleton
