@@ -263,7 +263,8 @@ class Batcher:
         # sessions' frames first (module doc); whole requests up to `max_batch` rows (a crowd's
         # rows stay together; at least one request)
         frames = [r for r in self._pending if r.session_frame]
-        batch, rows = [], 0
+        batch: list[StepRequest] = []
+        rows = 0
         for request in frames or self._pending:
             if batch and rows + request.rows > self.max_batch:
                 break
