@@ -65,3 +65,16 @@ def test_sessions_frames_are_stepped_before_a_pending_crowd_part_and_apart_from_
 
     asyncio.run(main())
     assert ran == [([1, 1], True), ([64], False)]
+
+
+def test_a_crowd_part_holds_as_many_rows_as_step_within_the_slice():
+    """Parts sized by the model's measured step times: a slow model's parts are small, a fast
+    one's grow by doubling while a size class steps in half the slice."""
+    batcher = Batcher(SimpleNamespace(name="m"), ModelThread(), Metrics(), max_batch=256)
+    assert batcher.part_rows(0.001) == batcher_module.PART_ROWS_START  # nothing measured yet
+    batcher.step_s = {1: 0.0002, 4: 0.0009, 6: 0.004}  # 1 row, 8-15 rows, 32-63 rows
+    assert batcher.part_rows(0.001) == 15
+    batcher.step_s[4] = 0.0004  # 8-15 rows in under half the slice: try 16-31
+    assert batcher.part_rows(0.001) == 31
+    batcher.step_s = {9: 0.0001}
+    assert batcher.part_rows(0.001) == 256  # never more than a batch
