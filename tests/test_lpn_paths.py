@@ -52,17 +52,18 @@ def test_a_session_served_at_120_fps_starts_with_its_feet_planted(lpn_model, cap
     assert slide_out <= 2.0 * slide_in
 
 
-def test_derived_control_slows_a_character_ahead_of_a_slow_input(lpn_model):
-    """Below the training walks' speeds derived control is the input's velocity slowed by how far
-    the character is ahead along it (to meet the input's path CATCH_UP_S on): 40 cm ahead of an
-    input walking 0.3 m/s it is asked for 0.3 - 0.4 / CATCH_UP_S m/s (a sideways offset does not
-    matter), 1.5 m ahead to stand (never to walk back); behind, or on the path, for the input's
-    own 0.3 m/s. An input at walking speed keeps its velocity however far ahead the character
-    is (a style may walk faster), and a client's control is left alone."""
+def test_derived_control_slows_a_character_that_walked_farther_than_a_slow_input(lpn_model):
+    """Below the training walks' speeds derived control is the input's velocity slowed by the
+    character's lead, how much farther it walked than the input (made up CATCH_UP_S on): 40 cm
+    ahead of an input walking 0.3 m/s it is asked for 0.3 - 0.4 / CATCH_UP_S m/s, 1.5 m ahead to
+    stand (never to walk back); behind, or level, for the input's own 0.3 m/s, and a shortfall
+    fades. A step longer than the input's adds to the lead. An input at walking speed keeps its
+    velocity whatever the lead (a style may walk faster), and a client's control is left alone."""
     from models.lpn.runtime import CATCH_UP_S, WALK_SPEED
 
     model = lpn_model
-    speeds = np.array([30.0, 30.0, 30.0, 30.0, WALK_SPEED + 10.0, 30.0], np.float32)
+    speeds = np.array([30.0, 30.0, 30.0, 30.0, 30.0, WALK_SPEED + 10.0, 30.0], np.float32)
+    lead = np.array([40.0, 150.0, -40.0, 0.0, 0.0, 40.0, 40.0], np.float32)
     B = len(speeds)
     state = model.init_state(B)
     rest = model.rest_motion()
@@ -70,21 +71,45 @@ def test_derived_control_slows_a_character_ahead_of_a_slow_input(lpn_model):
     rot = np.repeat(rest.rotations[:1], B, axis=0).astype(np.float32)
     yaw = model._facing(model._fk(root, rot)[1])[0]
     forward = np.array([np.sin(yaw), np.cos(yaw)], np.float32)  # world (x, z) of the character's +Z
-    side = np.array([forward[1], -forward[0]], np.float32)  # its +X
-    tracker = kernels.Tracker(state["frame"] + 5, state["in_pos"], state["in_vel"])
+    tracker = kernels.Tracker(state["frame"] + 5, state["in_pos"], state["in_vel"], lead.copy())
     tracker.in_vel[:] = speeds[:, None] * forward  # the input walks on at these speeds, this frame too
     tracker.in_pos[:] = root[:, [0, 2]] - speeds[:, None] * forward / model.fps
-    ahead = np.array(
-        [40.0 * forward + 20.0 * side, 150.0 * forward, -40.0 * forward, 0 * forward, 40.0 * forward, 0 * forward]
-    )
-    here = (root[:, [0, 2]] + ahead).astype(np.float32)
+    walked = (speeds / model.fps).astype(np.float32)  # the character's last step as long as the input's ...
+    walked[4] += 1.0  # ... but one, a centimetre longer
     given = np.arange(B) == B - 1
     control = np.zeros((B, 5), np.float32)
     control[-1] = [1.0, 0.0, yaw, 0.0, 1.0]
-    out = kernels.control_rows(control, given, root, rot, tracker, here, model._body, model._rules)
-    want = [[30.0 - 40.0 / CATCH_UP_S, 0.0], [0.0, 0.0], [30.0, 0.0], [30.0, 0.0], [WALK_SPEED + 10.0, 0.0]]
+    out = kernels.control_rows(control, given, root, rot, tracker, walked, model._body, model._rules)
+    want = [[30.0 - 40.0 / CATCH_UP_S, 0.0], [0.0, 0.0], [30.0, 0.0], [30.0, 0.0]]
+    want += [[30.0 - 1.0 / CATCH_UP_S, 0.0], [WALK_SPEED + 10.0, 0.0]]
     np.testing.assert_allclose(out[:-1, :2], want, atol=0.5)
     np.testing.assert_allclose(out[-1], [100.0, 0.0, yaw, 0.0], atol=1e-4)
+    fade = np.exp(-1.0 / (model.fps * CATCH_UP_S))
+    np.testing.assert_allclose(tracker.lead, [40.0, 150.0, -40.0 * fade, 0.0, 1.0, 40.0, 0.0], atol=1e-3)
+
+
+def test_a_character_that_lagged_a_reversing_input_follows_it_back(lpn_model):
+    """The input side-steps one way at a walk for 5 s, where the character falls behind, then
+    slowly back. Behind it in position is ahead along the way back, yet the character walked no
+    farther than the input: it follows at the input's pace (once it stood still for the whole
+    way back, 0.14 of the input's path; in running sessions, after a long history, whole clips)."""
+    model, fps = lpn_model, lpn_model.fps
+    rest = model.rest_motion()
+    yaw = model._facing(model._fk(rest.translations[:1, HIPS], rest.rotations[:1])[1])[0]
+    side = np.array([np.cos(yaw), -np.sin(yaw)])  # world (x, z) of the character's +X
+    T = int(5 * fps)
+    vel = np.concatenate([np.full(T, 90.0), np.full(T, -40.0)])[:, None] * side  # cm/s
+    xz = rest.translations[0, HIPS, [0, 2]] + np.cumsum(vel, axis=0) / fps
+    styles = ("elderly", "feminine")
+    state, w = model.init_state(len(styles)), np.stack([model.weight_vector({s: 1.0}) for s in styles])
+    path = np.zeros((2 * T, len(styles), 2))
+    for t in range(2 * T):
+        root = np.repeat(rest.translations[:1, HIPS], len(styles), axis=0)
+        root[:, [0, 2]] = xz[t]
+        out, state = model.step_batch(state, FrameBatch(root, np.repeat(rest.rotations[:1], len(styles), 0)), w)
+        path[t] = out.root[:, [0, 2]]
+    back = np.linalg.norm(np.diff(path[T:], axis=0), axis=-1).sum(0)
+    assert (back >= 0.8 * 40.0 * (T - 1) / fps).all(), back
 
 
 def test_without_control_it_stays_near_the_input_path(lpn_model, captures):

@@ -47,6 +47,7 @@ class Tracker(NamedTuple):
     frame: np.ndarray  # (B,) frames stepped so far
     in_pos: np.ndarray  # (B, 2) the input's last Hips xz
     in_vel: np.ndarray  # (B, 2) its smoothed Hips velocity
+    lead: np.ndarray  # (B,) cm the character has walked beyond the input while the input was slow
 
 
 class Body(NamedTuple):
@@ -68,7 +69,7 @@ class Rules(NamedTuple):
     phase_damp: float
     phase_blend: float
     contact_threshold: float
-    catch_up: float  # seconds on at which derived control meets the input's path (0: it never slows for it)
+    catch_up: float  # seconds over which derived control makes up the character's lead (0: it never slows for it)
     crawl_speed: float  # input speeds (cm/s) from which derived control is slowed fully ...
     walk_speed: float  # ... to those from which it is not
 
@@ -134,20 +135,22 @@ def facing_yaw(gpos, facing):
 
 
 @njit(cache=True, error_model="numpy")
-def control_rows(control, given, root, rotations, tracker, here, body, rules):
+def control_rows(control, given, root, rotations, tracker, walked, body, rules):
     """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others from
     the input's smoothed Hips velocity in its facing frame, its yaw, run above `run_speed`. The
     input tracker advances for every session, so a session can switch modes smoothly.
 
     Where the input is slower than the network's training walks (below `rules.walk_speed`, fully
-    below `rules.crawl_speed`), a derived velocity is also slowed (never reversed, never sped up)
-    by how far the character is ahead of the input along it, as if to meet the input's path
-    `rules.catch_up` seconds on: there the network walks at its own, faster pace, the two paths
-    part for good, and its stop-go strides glide the landing foot along the floor. A character
-    behind (a style's own slower pace) is left to its pace. Gait follows the input's own speed."""
-    frame, in_pos, in_vel = tracker
+    below `rules.crawl_speed`), the network walks at its own, faster pace and its stop-go strides
+    glide the landing foot. There a derived velocity is slowed (never reversed or sped up) by the
+    character's lead, how much farther it walked there (`walked`: its last step) than the input,
+    to make it up `rules.catch_up` s on. Distances, not positions: a character that lagged a
+    reversing input is not ahead of it. A shortfall fades over `catch_up` s. Gait follows the
+    input's own speed."""
+    frame, in_pos, in_vel, lead = tracker
     parents, offsets, facing, fps = body
     smooth, run_speed, catch_up = rules.smooth, rules.run_speed, rules.catch_up
+    forget = math.exp(-1.0 / (fps * catch_up)) if catch_up > 0.0 else 0.0
     B, J = rotations.shape[0], rotations.shape[1]
     out = np.empty((B, 4), np.float32)
     grot, gpos = np.empty((J, 4)), np.empty((J, 3))
@@ -166,21 +169,20 @@ def control_rows(control, given, root, rotations, tracker, here, body, rules):
                 control[b, 2],
                 control[b, 3],
             )
+            lead[b] = 0.0  # a client's control owes the input nothing
             continue
         world_pose(root[b], rotations[b], parents, offsets, grot, gpos)
         yaw = facing_yaw(gpos, facing)
         c, s = math.cos(yaw), math.sin(yaw)
+        speed = math.sqrt(in_vel[b, 0] * in_vel[b, 0] + in_vel[b, 1] * in_vel[b, 1])
         lx, lz = to_local(in_vel[b, 0], in_vel[b, 1], c, s)
-        out[b, 3] = 1.0 if math.sqrt(lx * lx + lz * lz) > run_speed else 0.0
+        out[b, 3] = 1.0 if speed > run_speed else 0.0
         if catch_up > 0.0:
-            wx = in_vel[b, 0] + (x - here[b, 0]) / catch_up
-            wz = in_vel[b, 1] + (z - here[b, 1]) / catch_up
-            along = wx * in_vel[b, 0] + wz * in_vel[b, 1]
-            n2 = in_vel[b, 0] * in_vel[b, 0] + in_vel[b, 1] * in_vel[b, 1]
-            k = min(max(along / max(n2, 1e-9), 0.0), 1.0)
             # only below the training walks' speeds: faster, the network keeps the input's pace (or its style's)
-            slow = min(max((rules.walk_speed - math.sqrt(n2)) / (rules.walk_speed - rules.crawl_speed), 0.0), 1.0)
-            k = 1.0 - slow * (1.0 - k)
+            slow = min(max((rules.walk_speed - speed) / (rules.walk_speed - rules.crawl_speed), 0.0), 1.0)
+            ahead = lead[b] + slow * (walked[b] - math.sqrt(vx * vx + vz * vz) / fps)
+            lead[b] = ahead if ahead > 0.0 else ahead * forget
+            k = 1.0 - slow * min(max(lead[b] / (catch_up * max(speed, 1e-9)), 0.0), 1.0)
             lx, lz = to_local(k * in_vel[b, 0], k * in_vel[b, 1], c, s)
         out[b, 0], out[b, 1], out[b, 2] = lz, lx, yaw
     return out

@@ -5,8 +5,8 @@ the control and its last prediction), its pose and local phases, and predicts th
 motion, phases and contacts. The per-session maths is compiled (`kernels.py`); the expert products
 stay BLAS; `tests/reference/lpn_step.py` is the numpy step the kernels are tested against.
 Without control (`FrameBatch.control`) the input frames' smoothed Hips velocity (slowed where the
-character is ahead of the input's path), facing and speed become the control, so it also runs
-motion in, motion out.
+character has walked farther than a slow input), facing and speed become the control, so it also
+runs motion in, motion out.
 
 Styles are FiLM vectors mixed by the weights (the shortfall from 1 goes to `normal`); the state
 holds nothing per style. After the network come the stages fitted from each style's real clips:
@@ -61,7 +61,7 @@ RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
 CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias
 PHASE_BLEND = 0.5  # next phase = blend of (current advanced by the predicted frequency) and the predicted phase
 CONTACT_THRESHOLD = 0.35  # predicted contact (regressed 0/1) above which a foot counts as planted
-CATCH_UP_S = 3.0  # s: derived control slows to meet the input's path this far on (validation: 1 s, 3 s)
+CATCH_UP_S = 3.0  # s: a lead is made up this far on, a shortfall fades as fast (validation: 1, 3 s; fade 1-10 s alike)
 # 1st and 5th percentile of the dataset-2 TRAIN walks' Hips speed smoothed as the control's (cm/s):
 # below these the network has not learned to walk, and derived control is slowed to keep to the path
 CRAWL_SPEED, WALK_SPEED = 63.0, 73.0
@@ -262,6 +262,7 @@ class LPNModel(LPNStyles):
             "yaw": z(),
             "in_pos": z(2),
             "in_vel": z(2),
+            "lead": z(),
             **self.planter.init_state(B),
         }
 
@@ -294,7 +295,7 @@ class LPNModel(LPNStyles):
         state["hist_dir"][rows] = d[:, None]
         state["fut_pos"][rows] = xz[:, None]
         state["fut_dir"][rows] = d[:, None]
-        for key in ("hist_vel", "hist_gait", "hist_phase", "fut_vel", "fut_phase", "in_vel"):
+        for key in ("hist_vel", "hist_gait", "hist_phase", "fut_vel", "fut_phase", "in_vel", "lead"):
             state[key][rows] = 0.0
         state["in_pos"][rows] = xz
         for key, value in self.planter.init_state(len(rows)).items():
@@ -384,8 +385,8 @@ class LPNModel(LPNStyles):
             given = control[:, 4] > 0.5
         tracker = kernels.Tracker(*(s[k] for k in kernels.Tracker._fields))
         root, rot_in = np.ascontiguousarray(root), np.ascontiguousarray(rot_in)
-        here = np.ascontiguousarray(s["hist_pos"][:, -1])
-        return kernels.control_rows(control, given, root, rot_in, tracker, here, self._body, self._rules)
+        walked = np.linalg.norm(s["hist_pos"][:, -1] - s["hist_pos"][:, -2], axis=-1)  # the character's last step
+        return kernels.control_rows(control, given, root, rot_in, tracker, walked, self._body, self._rules)
 
     @cached_property
     def _body(self) -> kernels.Body:

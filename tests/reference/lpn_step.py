@@ -85,21 +85,24 @@ class NumpyLPNModel(LPNModel):
         derive = np.flatnonzero(~given)
         # the input tracker advances every frame so a session can switch between modes smoothly
         xz = root[:, [0, 2]]
-        vel = np.where((s["frame"] > 0)[:, None], (xz - s["in_pos"]) * self.fps, 0.0)
+        step = np.where((s["frame"] > 0)[:, None], xz - s["in_pos"], 0.0)
         a = 1.0 - np.exp(-1.0 / (self.fps * CONTROL_SMOOTH_S))
-        s["in_vel"] = (s["in_vel"] + a * (vel - s["in_vel"])).astype(np.float32)
+        s["in_vel"] = (s["in_vel"] + a * (step * self.fps - s["in_vel"])).astype(np.float32)
         s["in_pos"] = xz.astype(np.float32)
+        s["lead"] = np.where(given, 0.0, s["lead"]).astype(np.float32)
         if len(derive):
             _, gpos = self._fk(root[derive], rot_in[derive])
             yaw = self._facing(gpos)
             vel = s["in_vel"][derive].astype(np.float64)
             speed = np.linalg.norm(lf.to_local_xz(vel, yaw), axis=-1)
-            # slowed by how far the character is ahead along the input's velocity (CATCH_UP_S on)
-            wanted = vel + (xz[derive] - s["hist_pos"][derive, -1]) / CATCH_UP_S
-            share = (wanted * vel).sum(-1) / np.maximum((vel * vel).sum(-1), 1e-9)
-            # ... where the input is slower than the training walks (CRAWL_SPEED .. WALK_SPEED)
+            # where the input is slower than the training walks (CRAWL_SPEED .. WALK_SPEED), slowed by
+            # how much farther the character walked than the input (its lead, made up CATCH_UP_S on)
             slow = np.clip((WALK_SPEED - np.linalg.norm(vel, axis=-1)) / (WALK_SPEED - CRAWL_SPEED), 0.0, 1.0)
-            share = 1.0 - slow * (1.0 - np.clip(share, 0.0, 1.0))
+            walked = np.linalg.norm(s["hist_pos"][derive, -1] - s["hist_pos"][derive, -2], axis=-1)
+            lead = s["lead"][derive] + slow * (walked - np.linalg.norm(step[derive], axis=-1))
+            lead = np.where(lead > 0.0, lead, lead * np.exp(-1.0 / (self.fps * CATCH_UP_S)))  # shortfalls fade
+            s["lead"][derive] = lead
+            share = 1.0 - slow * np.clip(lead / (CATCH_UP_S * np.maximum(np.linalg.norm(vel, axis=-1), 1e-9)), 0.0, 1.0)
             local = lf.to_local_xz(share[:, None] * vel, yaw)
             out[derive] = np.stack([local[:, 1], local[:, 0], yaw, (speed > RUN_SPEED).astype(np.float32)], axis=1)
         return out
