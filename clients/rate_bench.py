@@ -1,6 +1,6 @@
 """Every frame rate, measured: real captures streamed through a session at 30, 60 and 120 fps.
 
-    python -m clients.rate_bench [--models lti erd lpn] [--styles elderly feminine] [--seconds 8]
+    python -m clients.rate_bench [--models lti erd lpn] [--styles elderly feminine] [--seconds 8] [--gifs DIR]
 
 Per source (a CMU, a Xia and a Bandai Namco walk), rate, model and style it prints the rotation
 jitter ratio (p99 rotation acceleration, output / input), the planted-foot slide (p95, leg
@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -143,11 +144,25 @@ class Row:
         return self.slide_out / self.slide_real if self.slide_real > 0 else math.inf
 
 
-def measure(source: str, motion: Motion, model: StreamingModel, style: str, own: Motion, held: bool = False) -> Row:
+def measure(
+    source: str,
+    motion: Motion,
+    model: StreamingModel,
+    style: str,
+    own: Motion,
+    held: bool = False,
+    gifs: Path | None = None,
+    gif_seconds: float = 2.0,
+) -> Row:
     """One row: `motion` (model rig, its rate) through a session; `own`: the model's own output
-    at 30 fps on the same input."""
+    at 30 fps on the same input. With `gifs`, the input and output as a GIF at the input's rate
+    (a held pose or a snapping foot shows between consecutive frames)."""
     root, rot = motion.translations[:, HIPS], motion.rotations
     out_root, out_rot = (serve_held if held else serve)(model, style, root, rot, motion.fps)
+    if gifs is not None:
+        write_gif(
+            gifs / f"{source}_{motion.fps:.0f}fps_{model.name}_{style}.gif", motion, out_root, out_rot, gif_seconds
+        )
     own_rot = resample(own, motion.fps).rotations[: len(out_rot)]
     stated = output_lag(model.fps, motion.fps) * motion.fps / model.fps
     return Row(
@@ -165,6 +180,15 @@ def measure(source: str, motion: Motion, model: StreamingModel, style: str, own:
     )
 
 
+def write_gif(path: Path, motion: Motion, out_root: np.ndarray, out_rot: np.ndarray, seconds: float) -> None:
+    from models.motion.render import render_gif
+
+    translations = motion.translations.copy()
+    translations[:, HIPS] = out_root
+    out = Motion(motion.skeleton, out_rot, translations, motion.fps, motion.euler_orders)
+    render_gif([motion, out], path, fps=motion.fps, seconds=seconds, titles=["input", path.stem], dpi=80)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--models", nargs="+", default=["lti", "erd", "lpn"])
@@ -173,6 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rates", nargs="+", type=float, default=list(RATES))
     p.add_argument("--seconds", type=float, default=8.0)
     p.add_argument("--hold", action="store_true", help="measure sample-and-hold (as served before) instead")
+    p.add_argument("--gifs", type=Path, help="also write oriented GIFs, input beside output, at the input's rate")
+    p.add_argument("--gif-seconds", type=float, default=2.0)
     args = p.parse_args(argv)
     from models.registry import load_models
     from models.settings import get_settings
@@ -193,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
                 own_root, own_rot = serve(model, style, base.translations[:, HIPS], base.rotations, model.fps)
                 own = Motion(base.skeleton, own_rot, base.translations, model.fps, base.euler_orders)
                 for fps in args.rates:
-                    r = measure(source, at_rate(inputs[source], fps), model, style, own, args.hold)
+                    motion = at_rate(inputs[source], fps)
+                    r = measure(source, motion, model, style, own, args.hold, args.gifs, args.gif_seconds)
                     r.slide_real = reals[style]
                     print(
                         f"{r.source:13} {r.fps:4.0f} {r.model:5} {r.style:9} {r.jitter_in:10.0f} {r.jitter_out:10.0f}"

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -68,7 +69,7 @@ def _rows_agree(lead: tuple[int, ...], w_shape: tuple[int, ...], dtype: np.dtype
     return _rows_independent(lambda a: _torch_rows(a, w), x, CHECKED_ROWS[:-1])
 
 
-def _rows_independent(product, x: np.ndarray, counts: tuple[int, ...]) -> bool:
+def _rows_independent(product: Callable[[np.ndarray], np.ndarray], x: np.ndarray, counts: tuple[int, ...]) -> bool:
     """Whether `product` gives the first rows of `x` the same bits in batches of every size in
     `counts` as in one of max(CHECKED_ROWS) rows, and rows at a shifted place in a batch too."""
     full = product(x[..., : max(CHECKED_ROWS), :])

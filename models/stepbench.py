@@ -15,8 +15,12 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .interface import StreamingModel
 
 
 @contextmanager
@@ -72,7 +76,7 @@ class StepTiming:
         )
 
 
-def stepper(model, frames: Sequence, weights: np.ndarray, batch: int) -> Callable[[int], None]:
+def stepper(model: StreamingModel, frames: Sequence, weights: np.ndarray, batch: int) -> Callable[[int], None]:
     """step(i) advances `batch` fresh sessions of `model` by frames[i % len(frames)]."""
     state = model.init_state(batch)
 

@@ -14,7 +14,10 @@ counted as one more request to wait for, an idle or paced crowd made every sessi
 the whole `wait_s` for nothing. (hostile_bench's `crowd rigs`, a crowd of one idle character
 beside 45-rig joins, on the loaded shared 2-core machine: the neighbour's server-side time per
 frame, median, 2.31-2.73 ms with the crowd counted, 1.07-1.25 ms without; its round-trip median
-3.1-4.2 ms against 1.8-2.0 ms.) A crowd part that is pending when a batch forms still goes in it.
+3.1-4.2 ms against 1.8-2.0 ms.) And sessions' frames go first: when a batch forms, the pending
+sessions' frames make it alone, and a crowd's part waits for the next one. In one batch with a
+part, a session's frame waited for the part's many rows (a 64-row LTI part is 2-6 ms on the
+loaded machine, a frame alone ~1 ms); a crowd's part waits at most one session step.
 
 Where the step runs: model steps and style changes share one worker thread (`ModelThread`), so
 a style change never runs in the middle of a step. A step predicted to take less than
@@ -62,6 +65,7 @@ from models.interface import (
 from .metrics import Metrics
 
 T = TypeVar("T")
+PART_ROWS_START = 8  # a crowd's part before any step of the model was measured (`Batcher.part_rows`)
 
 
 @dataclass
@@ -80,6 +84,11 @@ class StepRequest:
     @property
     def rows(self) -> int:
         return len(self.root)
+
+    @property
+    def session_frame(self) -> bool:
+        """One session's frame (its weights a dict), not a crowd's part."""
+        return isinstance(self.weights, dict)
 
     def weights_over(self, names: list[str]) -> np.ndarray:
         """(n, len(names)) weights over the model's styles at step time: a style deleted since the
@@ -252,14 +261,33 @@ class Batcher:
         if len(self._pending) < full and self._pending_rows < self.max_batch and self.wait_s > 0:
             await self._wait_for(full, self.wait_s)
         self._want = 1
-        # whole requests up to `max_batch` rows (a crowd's rows stay together; at least one request)
-        taken, rows = 0, 0
-        while taken < len(self._pending) and (taken == 0 or rows + self._pending[taken].rows <= self.max_batch):
-            rows += self._pending[taken].rows
-            taken += 1
-        batch, self._pending = self._pending[:taken], self._pending[taken:]
+        # sessions' frames first (module doc); whole requests up to `max_batch` rows (a crowd's
+        # rows stay together; at least one request)
+        frames = [r for r in self._pending if r.session_frame]
+        batch: list[StepRequest] = []
+        rows = 0
+        for request in frames or self._pending:
+            if batch and rows + request.rows > self.max_batch:
+                break
+            batch.append(request)
+            rows += request.rows
+        taken = {id(r) for r in batch}
+        self._pending = [r for r in self._pending if id(r) not in taken]
         self._pending_rows -= rows
         return batch
+
+    def part_rows(self, seconds: float) -> int:
+        """The most rows of a crowd's request that step within `seconds`, from the measured step
+        times: a session's frame that comes while a part steps waits for all of it, holding the
+        GIL in compiled kernels (LTI: 64 rows 1-2 ms; Style-ERD 64 rows ~10 ms on the loaded 2-core
+        machine). A size class whose step took at most half of `seconds` lets the next one be tried
+        (twice the rows take at most twice the time: a step's cost is sublinear in its rows)."""
+        rows = PART_ROWS_START
+        for size_class, took in self.step_s.items():
+            if took <= seconds:
+                top = 2**size_class - 1
+                rows = max(rows, 2 * top + 1 if took <= seconds / 2 else top)
+        return min(rows, self.max_batch)
 
     def _inline(self, batch: list[StepRequest]) -> bool:
         """Step `batch` on the event loop: only sessions' frames (one row each; a crowd's part

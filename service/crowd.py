@@ -21,6 +21,7 @@ import secrets
 import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -35,9 +36,16 @@ from .rows import Rows
 from .sessions import Held, Snapshot, restored_hinges
 from .skeletons import SkeletonAdapter
 
-FAIR_ROWS = 64  # a troupe's rows per batcher request (`Troupe.step`): ~2-3 ms of an LTI step
 # (state, root, rotations, weights over names, names, controller rows or None) -> the batcher's step
 StepRows = Callable[[State, np.ndarray, np.ndarray, np.ndarray, list[str], np.ndarray | None], Awaitable[tuple]]
+
+
+class CrowdStep(NamedTuple):
+    """A model's batcher entry for a crowd, and the most rows one request of it may hold
+    (`Batcher.part_rows`: what a session's frame may wait behind)."""
+
+    step_rows: StepRows
+    part_rows: int
 
 
 def take_rows(state: State, rows: np.ndarray) -> State:
@@ -277,7 +285,7 @@ class Troupe:
 
     async def step(
         self,
-        step_rows: StepRows,
+        step: CrowdStep,
         rows: np.ndarray,
         root: np.ndarray,
         rot: np.ndarray,
@@ -286,10 +294,10 @@ class Troupe:
         """The model steps each row owes for this frame (rate adaptation), holding the outputs;
         `control`: the rows' controller input (`FrameBatch.control`), for a controller tick.
 
-        At most FAIR_ROWS rows go to the batcher at a time, one part after the other: a session's
-        frame that comes meanwhile joins the next part's batch instead of waiting behind the
-        whole troupe (a 712-row LTI step held the model thread ~20 ms; the neighbour's frames
-        waited that long on every tick). Rows are independent in every model's step
+        At most `step.part_rows` rows go to the batcher at a time, one part after the other: a
+        session's frame that comes meanwhile is stepped before the next part instead of waiting
+        behind the whole troupe (a 712-row LTI step held the model thread ~20 ms; the neighbour's
+        frames waited that long on every tick). Rows are independent in every model's step
         (tests/test_rowwise.py), so the replies are the same whatever the parts."""
         first = rows[self.clock[rows] < 0]
         steps, inputs = self.model_inputs(rows, root, rot)
@@ -298,11 +306,11 @@ class Troupe:
             sel = rows if due.all() else rows[due]
             sel_control = control if control is None or due.all() else control[due]
             weights = self.advance_style(sel)
-            for start in range(0, len(sel), FAIR_ROWS):
-                part = slice(start, start + FAIR_ROWS)
+            for start in range(0, len(sel), step.part_rows):
+                part = slice(start, start + step.part_rows)
                 some = sel[part]
                 whole = len(some) == len(self) and np.array_equal(some, np.arange(len(self)))
-                out_root, out_rot, new_state = await step_rows(
+                out_root, out_rot, new_state = await step.step_rows(
                     self.state if whole else take_rows(self.state, some),
                     sel_root[part],
                     sel_rot[part],
@@ -533,7 +541,7 @@ class Crowd:
         seq: int,
         ids_raw: bytes,
         payload: np.ndarray,
-        step: Callable[[str], StepRows],
+        step: Callable[[str], CrowdStep],
         dropped: int = 0,
         control: bool = False,
     ) -> TickResult:
@@ -645,7 +653,7 @@ class Crowd:
         return good, np.zeros((m, 3)), rest, rows[good]
 
     async def _step(
-        self, plan: Plan, inputs: list, step: Callable[[str], StepRows], result: TickResult
+        self, plan: Plan, inputs: list, step: Callable[[str], CrowdStep], result: TickResult
     ) -> list[tuple[np.ndarray, np.ndarray]]:
         """Each troupe's characters of this tick as one batcher request (all troupes at once)."""
         by_troupe: dict[str, list[int]] = {}

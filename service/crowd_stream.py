@@ -23,10 +23,10 @@ from collections import deque
 from . import pipelines
 from . import protocol as P
 from .background import in_background
-from .crowd import Crowd, Joining, StepRows
+from .crowd import Crowd, CrowdStep, Joining
 from .logs import session_log
 from .memory import release_freed_memory
-from .pacing import Pacer
+from .pacing import SLICE_S, Pacer
 from .skeletons import SkeletonAdapter
 from .stream import CLOSE_NORMAL, CLOSE_RESTART, Socket, delay_ms, log
 
@@ -242,20 +242,21 @@ class CrowdConnection(Socket):
         return not isinstance(message, P.End)
 
     # ---- processing ---------------------------------------------------------------------
-    def _step_for(self, model: str) -> StepRows:
+    def _step_for(self, model: str) -> CrowdStep:
         """The batcher's entry for this crowd's parts of `model`, paced: before each part, once
         the crowd's work has run its slice, it pauses (`Pacer`). Back to back, a crowd's ticks kept
         the event loop busy without a break: a session's frame, a few loop passes to answer,
         waited behind a part at each, and the loop's thread, never asleep, lost the scheduler's
         favour on a busy machine (a neighbour's median round trip 1.5 -> 7-11 ms under a
-        712-character tick stream)."""
+        712-character tick stream). Each part is as many rows as the model steps in a slice
+        (`Batcher.part_rows`)."""
         batcher = self.rt.batchers[model]
 
         async def step(state, root, rot, weights, names, control):  # noqa: ANN001, ANN202 - StepRows
             await self.pacer.pace()
             return await batcher.step_rows(state, root, rot, weights, control, names)
 
-        return step
+        return CrowdStep(step, batcher.part_rows(SLICE_S))
 
     async def process(self) -> None:
         while (item := await self.next_work(self.pending)) is not None:

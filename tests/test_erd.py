@@ -88,26 +88,17 @@ def test_features_match_foundation(model, walks):
 
 def test_stream_equals_whole_window(model, walks):
     from models.erd.dataset import CONTENTS
-
-    from .reference.erd_offline import stylise
+    from models.erd.offline import stylise
 
     motion = walks[0].slice(0, 40)
     w = _onehot(model, "elderly")
     streamed = model.stylise_stream(motion, w, content="walk", input_style="normal")
     gen = model.torch_generator()
-    whole = stylise(
-        gen,
-        model.maker,
-        motion,
-        w,
-        style_in=0,
-        content=CONTENTS.index("walk"),
-        **model.priors,
-    )
+    whole = stylise(gen, model.maker, motion, w, style_in=0, content=CONTENTS.index("walk"), stages=model.stages)
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
     np.testing.assert_allclose(streamed.translations, whole.translations, atol=2e-2)  # cm; float32 torch
     streamed = model.stylise_stream(motion, w)  # unlabelled
-    whole = stylise(gen, model.maker, motion, w, **model.priors)
+    whole = stylise(gen, model.maker, motion, w, stages=model.stages)
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
 
 
@@ -222,7 +213,8 @@ def test_planted_feet_stay_put(model, walks):
     """The network alone slides its planted toes at walking speed (it knows nothing of the floor);
     the output holds them, and a leg it reports planted keeps its held toe or ankle in place."""
     from models.erd.offline import stylise
-    from models.eval.metrics import planted_slide
+
+    from .reference.foot_slide import planted_slide
 
     motion = walks[0].slice(0, 150)
     w = _onehot(model, "active")

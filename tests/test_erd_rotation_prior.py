@@ -16,7 +16,6 @@ from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
 from .clips import streamed_rotations
 from .reference import erd_carry
-from .reference.erd_offline import clip_carry_slow
 from .reference.style_carry import mixed_with
 
 REPO = Path(__file__).resolve().parents[1]
@@ -69,7 +68,7 @@ def _carry(model, which: str, rot: np.ndarray, w: np.ndarray) -> np.ndarray:
     """The prior as the step applies it: the output prior reads the Hips without their heading."""
     from models.motion.bn_skeleton import HIPS
 
-    prior = getattr(model, which)
+    prior = getattr(model.stages, which)
     return prior(rot, w, hips=HIPS) if which == "output_prior" else prior(rot, w)
 
 
@@ -83,7 +82,7 @@ def _compared(which: str, rot: np.ndarray) -> np.ndarray:
 def test_no_style_changes_nothing_and_a_style_stays_in_its_real_range(model, neutral, which):
     from models.motion.rotation_ball import split_heading
 
-    prior = getattr(model, which)
+    prior = getattr(model.stages, which)
     if prior is None:
         pytest.skip(f"no {which} committed")
     rot = np.concatenate([m.rotations for m in neutral])
@@ -117,7 +116,7 @@ def test_no_style_changes_nothing_and_a_style_stays_in_its_real_range(model, neu
 def test_a_batch_carries_each_row_as_alone(model, neutral):
     """Rows with different styles, mixes and no style in one batch: each as if alone, and as
     the numpy reference computes it."""
-    prior = model.output_prior or model.leaf_prior
+    prior = model.stages.output_prior or model.stages.leaf_prior
     rot = neutral[0].rotations[:5]
     w = np.zeros((5, 6))
     w[0, 1], w[1, 3], w[2, [0, 4]], w[3, 5] = 1.0, 1.5, 0.5, 1.0
@@ -129,11 +128,11 @@ def test_a_batch_carries_each_row_as_alone(model, neutral):
     # and keeps each quaternion on its input's side (a stream's quaternions never flip sign),
     # plain styles (rows 0 and 3, taken without the blend's round trip) as well as the rest
     assert np.all(np.sum(batch * rot, axis=-1) > 0)
-    if model.output_prior is not None:
+    if model.stages.output_prior is not None:
         from models.motion.bn_skeleton import HIPS
 
-        compiled = model.output_prior(rot, w, hips=HIPS)
-        assert np.all(_apart(compiled, erd_carry.carry_output(model.output_prior, rot, w)) < 1e-9)
+        compiled = model.stages.output_prior(rot, w, hips=HIPS)
+        assert np.all(_apart(compiled, erd_carry.carry_output(model.stages.output_prior, rot, w)) < 1e-9)
 
 
 def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
@@ -147,7 +146,7 @@ def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
     motion = neutral[1]
     w = _onehot(model, "feminine")
     leaves = [model.skeleton.index(n) for n in ("Head", "Hand_L", "Hand_R")]
-    priors = model.leaf_prior, model.output_prior, model.twist_range
+    saved = model.stages
 
     def joints(o):
         tr = np.broadcast_to(model.skeleton.offsets, (1, model.skeleton.num_joints, 3)).copy()
@@ -155,18 +154,17 @@ def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
         return fk(o.rotations, tr, model.skeleton.parents)[1][0]
 
     try:
-        model.output_prior = model.twist_range = None
         runs = {}
-        for tag, leaf in (("bare", None), ("leaf", priors[0])):
-            model.leaf_prior = leaf
+        for tag, off in (("bare", ("leaf_prior",)), ("leaf", ())):
+            model.stages = saved.without("output_prior", "twist_range", *off)
             state, runs[tag] = model.init_state(1), []
             for t in range(30):
                 frame = FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1])
                 out, state = model.step_batch(state, frame, w[None])
                 runs[tag].append(out)
     finally:
-        model.leaf_prior, model.output_prior, model.twist_range = priors
-    source = clip_carry_slow(priors[0], None, motion.rotations[:30], np.tile(w, (30, 1)), np.zeros(30))
+        model.stages = saved
+    source = erd_carry.clip_carry_slow(saved.leaf_prior, None, motion.rotations[:30], np.tile(w, (30, 1)), np.zeros(30))
     for t in range(30):
         src = source[t : t + 1]
         assert np.all(_apart(runs["leaf"][t].rotations[0, leaves], src[0, leaves]) < 1e-7)
@@ -175,7 +173,7 @@ def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
 
 @pytest.mark.parametrize("which", ["leaf_prior", "output_prior"])
 def test_committed_prior_is_well_formed(model, which):
-    prior = getattr(model, which)
+    prior = getattr(model.stages, which)
     if prior is None:
         pytest.skip(f"no {which} committed")
     S, J = len(model.styles()), model.skeleton.num_joints
@@ -204,7 +202,7 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     from models.erd.features import FPS
     from models.erd.gait import clip_smoothed_speed, run_share
 
-    if model.run_output_prior is None:
+    if model.stages.run_output_prior is None:
         pytest.skip("no run priors committed")
 
     def share_of(motion):
@@ -215,13 +213,13 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     walk = neutral[0]
     assert share_of(walk).max() == 0.0
     w = _onehot(model, "feminine")
-    priors = model.run_leaf_prior, model.run_output_prior
+    saved = model.stages
     with_runs = {"run": streamed_rotations(model, run, w), "walk": streamed_rotations(model, walk, w)}
     try:
-        model.run_leaf_prior = model.run_output_prior = None
+        model.stages = saved.without("run_leaf_prior", "run_output_prior")
         without = {"run": streamed_rotations(model, run, w), "walk": streamed_rotations(model, walk, w)}
     finally:
-        model.run_leaf_prior, model.run_output_prior = priors
+        model.stages = saved
     np.testing.assert_array_equal(with_runs["walk"], without["walk"])
     moved = np.degrees(quat_angle(with_runs["run"][20:], without["run"][20:]))
     assert np.median(moved.max(axis=-1)) > 2.0  # the run priors do change a run
@@ -233,7 +231,7 @@ def test_a_stream_that_starts_mid_run_eases_into_the_run_priors(model, run):
     between its first and second frame (toward feminine), and are whole once it is under way."""
     from models.erd.gait import START_FRAMES, eased_in
 
-    if model.run_output_prior is None:
+    if model.stages.run_output_prior is None:
         pytest.skip("no run priors committed")
     head = model.skeleton.index("Head")
     out = streamed_rotations(model, run.slice(0, 2 * START_FRAMES), _onehot(model, "feminine"))
@@ -267,13 +265,15 @@ def test_run_frames_stay_inside_the_styles_whole_real_range(model, run):
     from models.motion.bn_skeleton import HIPS
     from models.motion.rotation_ball import comparable
 
-    if model.run_output_prior is None:
+    if model.stages.run_output_prior is None:
         pytest.skip("no run priors committed")
     rot = run.rotations[:40]
     for k, style in enumerate(model.styles()):
         w = np.tile(_onehot(model, style), (len(rot), 1))
-        out = carry_by_gait(model.output_prior, model.run_output_prior, rot, w, np.ones(len(rot)), hips=HIPS)
-        bounds = model.output_prior
+        out = carry_by_gait(
+            model.stages.output_prior, model.stages.run_output_prior, rot, w, np.ones(len(rot)), hips=HIPS
+        )
+        bounds = model.stages.output_prior
         angle = quat_angle(quat_mul(quat_inv(bounds.mean[k])[None], comparable(out)), np.array([0.0, 0, 0, 1]))
         assert np.all(angle <= bounds.radius[k][None] + 1e-6), style
 
@@ -301,13 +301,13 @@ def test_the_gait_mix_compiled_is_its_numpy_reference(model, run):
     """`StyleCarry.mixed_with`: the all-content prior and the clamped run prior mixed by each
     row's share in one compiled pass, as the numpy reference computes it; share 0 is the
     all-content prior alone, exactly."""
-    if model.run_output_prior is None:
+    if model.stages.run_output_prior is None:
         pytest.skip("no run priors committed")
     rot = run.rotations[:20]
     w = np.zeros((20, 6))
     w[:10, 2], w[10:, [1, 4]] = 1.0, 0.5  # plain rows and mixed rows
     share = np.tile([0.0, 0.3, 1.0, 0.7], 5)
-    other, ran = model.leaf_prior, model.run_leaf_prior
+    other, ran = model.stages.leaf_prior, model.stages.run_leaf_prior
     compiled = other.mixed_with(ran, other.bounds, rot, w, share)
     assert np.all(_apart(compiled, mixed_with(other, ran, other.bounds, rot, w, share)) < 1e-9)
     walking = share == 0.0
@@ -322,9 +322,9 @@ def test_a_held_pose_is_carried_as_the_prior_carries_it(model, neutral):
     q = neutral[0].rotations[:8]
     w = np.tile(_onehot(model, "feminine"), (len(q), 1))
     share = np.zeros(len(q))
-    slowly, slow = carry_slow(model.output_prior, None, q, q, w, share, hips=HIPS)
+    slowly, slow = carry_slow(model.stages.output_prior, None, q, q, w, share, hips=HIPS)
     assert np.all(_apart(slow, q) < 1e-12)
-    assert np.all(_apart(slowly, carry_by_gait(model.output_prior, None, q, w, share, hips=HIPS)) < 1e-9)
+    assert np.all(_apart(slowly, carry_by_gait(model.stages.output_prior, None, q, w, share, hips=HIPS)) < 1e-9)
 
 
 def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
@@ -338,7 +338,7 @@ def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
     from models.motion.rotations import quat_exp
 
     head = model.skeleton.index("Head")
-    prior, w = model.output_prior, _onehot(model, "feminine")[None]
+    prior, w = model.stages.output_prior, _onehot(model, "feminine")[None]
     gains, axes = np.linalg.eigh(prior.map[model.styles().index("feminine"), head])
     assert gains[-1] > 1.2
     pose = neutral[0].rotations[:1]
@@ -370,8 +370,8 @@ def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
     slow = np.roll(q, 1, axis=0) + 0.05 * rng.normal(size=q.shape)
     slow[::7] = 0.0  # unset rows start at q
     for other, run, hips in (
-        (model.leaf_prior, model.run_leaf_prior, -1),
-        (model.output_prior, model.run_output_prior, HIPS),
+        (model.stages.leaf_prior, model.stages.run_leaf_prior, -1),
+        (model.stages.output_prior, model.stages.run_output_prior, HIPS),
     ):
         got, got_slow = carry_slow(other, run, q, slow, w, share, hips=hips)
         want, want_slow = erd_carry.carry_slow(other, run, q, slow, w, share, hips=hips)
@@ -380,12 +380,12 @@ def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
 
 
 def test_a_raise_up_streamed_equals_the_whole_clip(model, neutral):
-    """The whole-clip stages (`tests/reference/erd_offline.py`) carry a raise-up frame by frame as
-    the stream does."""
-    from .reference.erd_offline import stylise
+    """The whole-clip path (`models/erd/offline.py`: the torch network over the clip, then the
+    stages) carries a raise-up as the stream does."""
+    from models.erd.offline import stylise
 
     motion, w = neutral[2], _onehot(model, "elderly")
-    whole = stylise(model.torch_generator(), model.maker, motion, w, **model.priors)
+    whole = stylise(model.torch_generator(), model.maker, motion, w, stages=model.stages)
     np.testing.assert_allclose(model.stylise_stream(motion, w).rotations, whole.rotations, atol=2e-4)
 
 
@@ -397,10 +397,10 @@ def test_the_arms_twist_inside_the_styles_real_interval(model, neutral):
 
     from models.motion.rotations import twist_angle
 
-    ranges = model.twist_range
+    ranges = model.stages.twist_range
     assert ranges is not None
     without = copy.copy(model)
-    without.twist_range = None
+    without.stages = model.stages.without("twist_range")
     for style in ("masculine", "youthful"):
         k = model.styles().index(style)
         arms = np.concatenate([streamed_rotations(model, m, _onehot(model, style)) for m in neutral])[:, ranges.joints]
@@ -419,5 +419,5 @@ def test_the_compiled_twist_range_is_its_numpy_reference(model):
     w = np.zeros((40, len(model.styles())))
     w[:20, 4] = 1.0  # one style
     w[20:30, 1], w[20:30, 3] = 0.6, 0.3  # a mix below full weight; the last 10 rows: no style
-    got, want = model.twist_range(q, w), erd_carry.twist_clamp(model.twist_range, q, w)
+    got, want = model.stages.twist_range(q, w), erd_carry.twist_clamp(model.stages.twist_range, q, w)
     assert _apart(got, want).max() < 1e-9

@@ -6,12 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.eval.metrics import planted_slide
 from models.motion import feet_kernels
 from models.motion.bn_skeleton import HIPS
 from models.motion.feet import STATE_SHAPES, model_rig_planter
 from models.motion.rotations import quat_apply
 from models.motion.skeleton import fk
+
+from .reference.foot_slide import planted_slide
 
 
 def _plant(planter, roots: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -109,3 +109,29 @@ def test_an_upload_gets_a_rotation_prior_from_its_clip_and_no_backward_hinge(ban
     bone, hinge, floor = kernel_floor(model.skeleton, model.hinges)
     for j in model.hinges.joints:
         assert (quat_log(swing_twist(out[:, j], bone[j])[0]) @ hinge[j]).min() >= floor[j] - 1e-9
+
+
+def test_upload_pairs_are_warped_at_a_steady_rate(bank_and_ref) -> None:
+    """The job's alignment advances the uploaded clip at a steady rate: uncharged, IMW's cheapest
+    warp held the clip still for frames and then jumped (a quarter to over half of the frames at
+    the least slope), and the training targets lost the motion between the held poses."""
+    from models.data import SPLITS, build_index, load_motion, select
+
+    bank, ref = bank_and_ref
+    index = build_index(["bandai-namco-1", "bandai-namco-2"])
+    clips = [
+        sorted((c for c in select(index, dataset=d, style=s) if c.content == "walk" and c.split in splits), key=str)[0]
+        for d, s, splits in (("bandai-namco-1", "happy", SPLITS), ("bandai-namco-2", "elderly", ("train",)))
+    ]
+    lo = 1.0 / ft.CONFIG["imw"]["s"]
+    for clip in clips:
+        motion = load_motion(clip).slice(0, 240)
+        feats = rep.motion_to_features(motion, ref)
+        neutral = ft.nearest_neutral(bank, feats, 1, len(feats))[0]
+        cut = ft.step_matched(neutral, len(feats), ft.steps_per_second(ft.content_descriptor(feats)), 300)
+        pair = ft.pair_from_motions(
+            bank.motions[neutral.name].slice(0, cut), motion, bank.match_mean, bank.match_std, ref, ft.pairing_config()
+        )
+        slope = np.diff(pair.warp)
+        assert np.mean(slope <= lo + 1e-9) < 0.2, clip.name
+        assert np.mean(np.abs(np.diff(slope))) < 0.2, clip.name

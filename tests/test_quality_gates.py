@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from models.data import load_motions, select
-from models.eval.metrics import planted_slide
 from models.eval.plausibility import RotationReference
 from models.eval.run import LOCOMOTION, stylise
 from models.motion.features import body_joint
@@ -23,6 +22,8 @@ from models.motion.rotations import quat_angle
 from models.motion.skeleton import Motion, Skeleton
 from models.registry import load_models
 from models.settings import get_settings
+
+from .reference.foot_slide import planted_slide
 
 
 def toe_slide(motions: list[Motion]) -> float:

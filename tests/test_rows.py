@@ -70,16 +70,16 @@ def test_a_partial_tick_join_and_leave_touch_only_their_rows(lti):
     assert sorted(troupe.row_of) == [i for i in range(102) if i not in (0, 50)]
 
 
-def test_a_large_troupe_steps_in_parts_that_give_the_whole_steps_replies(lti, monkeypatch):
-    """A troupe's step goes to the batcher FAIR_ROWS rows at a time, one part after the other (a
-    neighbour's frame joins the next part's batch rather than waiting for the whole troupe),
+def test_a_large_troupe_steps_in_parts_that_give_the_whole_steps_replies(lti):
+    """A troupe's step goes to the batcher `part_rows` rows at a time, one part after the other (a
+    neighbour's frame is stepped before the next part rather than after the whole troupe),
     and the outputs and states are those of one whole step, to round-off: LTI's dense product
     runs over the sessions of a style a chunk at a time, and BLAS may round a chunk of 11
     differently from one of 32."""
     import asyncio
 
     from models.interface import FrameBatch
-    from service import crowd as crowd_module
+    from service.crowd import CrowdStep
 
     rng = np.random.default_rng(1)
     n = 300
@@ -93,13 +93,12 @@ def test_a_large_troupe_steps_in_parts_that_give_the_whole_steps_replies(lti, mo
         out, new = lti.step_batch(state, FrameBatch(r, q), weights)
         return out.root, out.rotations, new
 
-    def run(fair_rows: int):
-        monkeypatch.setattr(crowd_module, "FAIR_ROWS", fair_rows)
+    def run(part_rows: int):
         troupe = Troupe(lti, 30.0)
         troupe.add(list(range(n)), [{lti.styles()[i % 3]: 1.0} for i in range(n)])
         rows = troupe.rows(list(range(n)))
         for _ in range(3):
-            asyncio.run(troupe.step(step_rows, rows, root, rot))
+            asyncio.run(troupe.step(CrowdStep(step_rows, part_rows), rows, root, rot))
         return troupe.held_rot.copy(), {k: v.copy() for k, v in troupe.state.items()}
 
     whole_rot, whole_state = run(10_000)

@@ -1,12 +1,14 @@
 """Mocap datasets: archives, index and splits, cached loading. `python -m models.data summary`."""
 
+from typing import Any
+
 from .archives import DATASETS, DataError, DatasetSpec, dataset_dir
 from .index import SPLITS, Clip, build_index, select
 
 _LOADER = ("load_motion", "load_motions", "warm_cache")
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     """The loader's functions, imported when first used: the loader needs torch (through the
     skeleton), which `stylestream data fetch` and `summary` do not, so they start in a moment."""
     if name in _LOADER:

@@ -19,8 +19,9 @@ import numpy as np
 import torch
 
 from ..data import build_index, load_motions, select
+from ..motion.rotations import quat_mean
 from ..settings import get_settings
-from .features import CONTACT, FeatureMaker, mean_rotations
+from .features import CONTACT, FeatureMaker
 
 DATASET = "bandai-namco-2"
 STYLES = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful")  # 0 = neutral
@@ -65,7 +66,7 @@ def build_cache(out: Path | None = None) -> Path:
     sk = motions["train"][0].skeleton
     sample = np.concatenate([m.rotations[::4] for m in motions["train"]])
     sample = sample / np.linalg.norm(sample, axis=-1, keepdims=True)
-    ref = mean_rotations(sample)
+    ref = quat_mean(sample)
     maker = FeatureMaker(sk, ref)
     meta = {"version": CACHE_VERSION, "styles": STYLES, "contents": CONTENTS}
     for split, clips in splits.items():

@@ -100,15 +100,3 @@ class FeatureMaker:
 
 def _f64(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a, dtype=np.float64)
-
-
-def mean_rotations(rotations: np.ndarray) -> np.ndarray:
-    """Per-joint average rotation (J, 4) of (N, J, 4) samples: the dominant eigenvector of sum q q^T
-    (sign-invariant), with w >= 0."""
-    out = np.zeros((rotations.shape[1], 4))
-    for j in range(rotations.shape[1]):
-        q = rotations[:, j]
-        vals, vecs = np.linalg.eigh(q.T @ q)
-        v = vecs[:, -1]
-        out[j] = v if v[3] >= 0 else -v
-    return out

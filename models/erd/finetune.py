@@ -20,6 +20,7 @@ The clip has no neutral twin, so the branch is fitted on statistics, not frame p
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -105,7 +106,7 @@ class Branch:
     def upload(self, start: Upload) -> Upload:
         lstm = {k: v.detach().numpy().copy() for k, v in self.lstm.state_dict().items()}
         h0, c0, code = (p.detach().numpy().copy() for p in (self.h0, self.c0, self.code))
-        return Upload(start.name, start.nearest, lstm, h0, c0, code, start.stages, start.twists)
+        return replace(start, lstm=lstm, h0=h0, c0=c0, code=code)
 
 
 def statistics(pos, root_vel, rot):
@@ -190,12 +191,12 @@ def refit_stages(model, tuned: Upload, clip) -> Upload:
 
     twin = model.with_own_styles()
     twin.install_style("fit", tuned)
-    twin.output_prior = twin.run_leaf_prior = twin.run_output_prior = twin.twist_range = None
+    twin.stages = twin.stages.without("output_prior", "run_leaf_prior", "run_output_prior", "twist_range")
     inputs = _neutral_inputs()[:: max(1, 4 // SOURCE_CLIPS)]
     outs = stylise(twin, inputs, [len(twin.styles()) - 1] * len(inputs))
     mean, cov, _ = tangent_stats(comparable(np.concatenate([o.rotations for o in outs])))
     q, share = clip_rotations(model, clip)
-    stages, twists = fit_stages(
-        model.built_in.priors, model.sources, model.skeleton, q, share, TARGET_STYLES.index(tuned.nearest), (mean, cov)
+    stages = fit_stages(
+        model.built_in.stages, model.sources, model.skeleton, q, share, TARGET_STYLES.index(tuned.nearest), (mean, cov)
     )
-    return Upload(tuned.name, tuned.nearest, tuned.lstm, tuned.h0, tuned.c0, tuned.code, stages, twists)
+    return replace(tuned, stages=stages)

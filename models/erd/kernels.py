@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS
-from ..motion.quaternion import qinv, qmul, quat_at, qunit, wrap
+from ..motion.quaternion import axis_angle, dot3, qdot, qinv, qmul, quat_at, qunit, row3, wrap
 
 # --------------------------------------------------------------------------- small helpers
 
@@ -111,7 +111,7 @@ def output_pose(x, y, yaw, has_prev, prev_root, root, rot_in, fps):
                 x[b, 4 * k + 2] + y[b, 4 * k + 2],
                 x[b, 4 * k + 3] + y[b, 4 * k + 3],
             )
-            norm = max(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-6)
+            norm = max(math.sqrt(qdot(q, q)), 1e-6)
             q = (q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm)
             if k == 0:
                 half = 0.5 * yaw[b]
@@ -184,12 +184,12 @@ def twist_clamp_batch(q, w, joints, axes, mean, lo, hi, out):
     """out = q with each listed joint's twist about its bone (`axes`, (K, 3)), measured against
     each weighted style's mean (`mean` (S, K, 4)), moved into [lo, hi] (S, K) by the weights
     (B, S): t + sum_s w_s (clip(t_s) - t_s), applied as a turn about the bone on the right
-    (`twist_range.TwistRange.__call__` is the numpy reference). Rows with no weight are copied."""
+    (`tests/reference/erd_carry.py` is the numpy reference). Rows with no weight are copied."""
     out[:] = q
     for b in range(q.shape[0]):
         for k in range(joints.shape[0]):
             j = joints[k]
-            ax, ay, az = axes[k, 0], axes[k, 1], axes[k, 2]
+            axis = row3(axes, k)
             qj = quat_at(q, b, j)
             delta = 0.0
             for s in range(w.shape[1]):
@@ -197,10 +197,9 @@ def twist_clamp_batch(q, w, joints, axes, mean, lo, hi, out):
                 if ws == 0.0:
                     continue
                 d = qmul(qinv(quat_at(mean, s, k)), qj)
-                t = wrap(2.0 * math.atan2(d[0] * ax + d[1] * ay + d[2] * az, d[3]))
+                t = wrap(2.0 * math.atan2(dot3(d, axis), d[3]))
                 delta += ws * (min(max(t, lo[s, k]), hi[s, k]) - t)
             if delta != 0.0:
-                sn, cs = math.sin(0.5 * delta), math.cos(0.5 * delta)
-                o = qmul(qj, (sn * ax, sn * ay, sn * az, cs))
+                o = qmul(qj, axis_angle(axis, delta))
                 out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = o
     return out

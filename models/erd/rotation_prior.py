@@ -38,7 +38,7 @@ LEAF_FILE = "leaf_prior.npz"
 OUTPUT_FILE = "output_prior.npz"
 RUN_LEAF_FILE = "leaf_prior_run.npz"
 RUN_OUTPUT_FILE = "output_prior_run.npz"
-PRIOR_FILES = {  # `runtime.ERDModel`'s prior attributes and their files beside the weights
+PRIOR_FILES = {  # `stages.ErdStages`' prior fields and their files beside the weights
     "leaf_prior": LEAF_FILE,
     "output_prior": OUTPUT_FILE,
     "run_leaf_prior": RUN_LEAF_FILE,
@@ -110,16 +110,20 @@ def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> Style
     real runs, the legs carried too; the arms (`RUN_ARMS`) as the stream makes them and every other
     joint with the input's own twists and leaves (with the leaf prior, heads jumped as a stream
     started mid-run)."""
-    if runs:
-        inputs = _running_inputs()
-        produced = network_rotations(model, inputs, leaf_prior=False)
-        arms = [model.skeleton.index(n) for n in RUN_ARMS]
-        for own, leafed in zip(produced, network_rotations(model, inputs)):
-            own[:, arms] = leafed[:, arms]
-    else:
-        produced = network_rotations(model, _neutral_inputs())
+    produced = run_network_rotations(model) if runs else network_rotations(model, _neutral_inputs())
     clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEG_JOINTS))
     return StyleCarry.fit(produced, [comparable(q) for q in real[1:]], (0,), clamp_only=clamped)
+
+
+def run_network_rotations(model) -> list[np.ndarray]:
+    """`network_rotations` of TRAIN neutral clips that run: the arms (`RUN_ARMS`) as the stream
+    makes them, every other joint with the input's own twists and leaves (no leaf prior)."""
+    inputs = _running_inputs()
+    produced = network_rotations(model, inputs, leaf_prior=False)
+    arms = [model.skeleton.index(n) for n in RUN_ARMS]
+    for own, leafed in zip(produced, network_rotations(model, inputs)):
+        own[:, arms] = leafed[:, arms]
+    return produced
 
 
 def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.ndarray]:
@@ -128,15 +132,14 @@ def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.n
     no output priors or twist range (what the output priors carry from)."""
     from ..eval.run import stylise
 
-    saved = model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range
-    if not leaf_prior:
-        model.leaf_prior = None
-    model.output_prior = model.run_leaf_prior = model.run_output_prior = model.twist_range = None
+    saved = model.stages
+    off = ("output_prior", "run_leaf_prior", "run_output_prior", "twist_range")
+    model.stages = saved.without(*off) if leaf_prior else saved.without("leaf_prior", *off)
     try:
         styles = model.styles()
         outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
     finally:
-        model.leaf_prior, model.output_prior, model.run_leaf_prior, model.run_output_prior, model.twist_range = saved
+        model.stages = saved
     n = len(inputs)
     return [comparable(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]])) for k in range(len(styles))]
 

@@ -28,19 +28,14 @@ follows the style); the height is predicted.
 
 Decoding (as the trainer decodes, not a stage): the decoder's positions are kept, but each
 bone's twist and the head, hands and toes, which move no joint and so were never learned, take
-the input's rotations (`models.motion.twist.transfer_twist`); elbows and knees keep their hinge
-plane (`models.motion.hinge`, `hinges.npz`).
+the input's rotations, or the leaf prior's carry of them (`models.motion.twist.transfer_twist`);
+elbows and knees keep their hinge plane (`models.motion.hinge`, `hinges.npz`).
 
-Stages, each fitted from data the same way for every style: the input's rotations are carried
-from the neutral style's real distribution to the target's, and the output's from what the
-network produces to the target's real one, clamped into its range (`rotation_prior.py`), with
-run-fitted priors where the input runs (`gait.py`); each prior carries only a slowly following
-copy so its gains do not shake the limbs (`slow_carry.py`); knees and elbows are held at their
-least real bend (`models.motion.hinge_floor`, `hinge_floor.npz`); the arms' twists are kept
-inside the style's real interval (`twist_range.py`, which turns bones about themselves only, so
-the bends stay). Last, the shared foot planter
-(`models.motion.feet.FootPlanter`) holds the feet the input has down (feature columns
-`CONTACT`), toe and ankle, by two-bone leg IK; the output's `contacts` are the planted legs.
+Then the fitted stages (`stages.ErdStages`, in the order they run; the model card's table says
+what each does and how it is fitted from real clips, the same way for every style), and last the
+shared foot planter (`models.motion.feet.FootPlanter`), which holds the feet the input has down
+(feature columns `CONTACT`), toe and ankle, by two-bone leg IK; the output's `contacts` are the
+planted legs.
 """
 
 from __future__ import annotations
@@ -53,22 +48,15 @@ import numpy as np
 import torch
 
 from ..interface import FrameBatch, State
-from ..motion.bn_skeleton import HIPS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
-from ..motion.hinge import HINGE_FILE, Hinges
-from ..motion.hinge_floor import HingeFloor
 from ..motion.skeleton import Skeleton
-from ..motion.style_carry import StyleCarry
-from ..motion.twist import transfer_twist
 from ..rowwise import matmul_rows
 from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
 from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
-from .rotation_prior import PRIOR_FILES
-from .slow_carry import carry_slow
-from .twist_range import TWIST_FILE, TwistRange
+from .stages import ErdStages
 from .uploads import BuiltIn, ERDStyles, Upload, branch_weights, runtime_layout
 
 WEIGHTS_FILE = "erd.npz"
@@ -105,13 +93,7 @@ class ERDModel(ERDStyles):
         ref: np.ndarray,
         meta: dict | None = None,
         dtype: type = np.float32,
-        leaf_prior: StyleCarry | None = None,
-        output_prior: StyleCarry | None = None,
-        run_leaf_prior: StyleCarry | None = None,
-        run_output_prior: StyleCarry | None = None,
-        twist_range: TwistRange | None = None,
-        hinges: Hinges | None = None,
-        hinge_floor: HingeFloor | None = None,
+        stages: ErdStages | None = None,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
@@ -120,14 +102,7 @@ class ERDModel(ERDStyles):
         self.dtype = np.dtype(dtype)
         self.mean, self.std = np.asarray(mean, np.float64), np.asarray(std, np.float64)
         self.ref = np.asarray(ref, np.float64)
-        # the rotation prior (`rotation_prior.py`): twists and leaves from the input carried to the
-        # target style (None: the input's), and the output carried to the style's real rotations
-        self.leaf_prior, self.output_prior = leaf_prior, output_prior
-        # the same two fitted on runs alone, for frames the input runs in (`gait.py`)
-        self.run_leaf_prior, self.run_output_prior = run_leaf_prior, run_output_prior
-        self.twist_range = twist_range  # the arms' twists kept in the style's real interval (`twist_range.py`)
-        self.hinges = hinges  # elbows and knees decoded as hinges (`models.motion.hinge`; None: the input's twists)
-        self.hinge_floor = hinge_floor  # elbows and knees held at their least real bend (None: not held)
+        self.stages = stages or ErdStages()  # the fitted stages after the network (`stages.py`)
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
@@ -142,9 +117,11 @@ class ERDModel(ERDStyles):
         self._lock = threading.Lock()
         self.weights_dir: Path | None = None  # where `load` read it (an upload's stage sources live there)
         self._prepare_weights()
-        self.built_in = BuiltIn(self.lstm_w, self.lstm_b, self.priors)
+        self.built_in = BuiltIn(self.lstm_w, self.lstm_b, self.stages)
         self.uploads: tuple[Upload, ...] = ()  # uploaded styles, after the trained ones (`uploads.py`)
         self.codes: np.ndarray | None = None  # (styles, 6) the decoder's style code per style; None: one-hot
+        own = self.init_state(1).items()  # the entries the step checks (the planter checks its own)
+        self._state_shapes = {k: v.shape[1:] for k, v in own if k not in FEET_STATE}
         self._compile_step()
 
     def _compile_step(self) -> None:
@@ -154,8 +131,8 @@ class ERDModel(ERDStyles):
         rest[..., 3] = 1.0
         none = np.zeros((1, len(TARGET_STYLES)))
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), none)
-        if self.twist_range is not None:  # its kernel, with a style weight so that all of it runs
-            self.twist_range(rest, np.ones_like(none))
+        if self.stages.twist_range is not None:  # its kernel, with a style weight so that all of it runs
+            self.stages.twist_range(rest, np.ones_like(none))
 
     def _prepare_weights(self) -> None:
         """Everything constant, once, in the network's dtype and the layout the step multiplies: the
@@ -247,22 +224,9 @@ class ERDModel(ERDStyles):
             )
         if w.shape != (B, len(self.branches) - 1):
             raise ValueError(f"style_weights must be ({B}, {len(self.branches) - 1}), got {w.shape}")
-        lstm = (B, 1 + len(TARGET_STYLES), self.Ln, self.H)
-        for key, shape in (
-            ("h", lstm),
-            ("c", lstm),
-            ("prev_pos", (B, J, 3)),
-            ("prev_yaw", (B,)),
-            ("gait_speed", (B,)),
-            ("slow_in", (B, J, 4)),
-            ("slow_out", (B, J, 4)),
-            ("out_root", (B, 3)),
-            ("frame", (B,)),
-            ("style_in", (B,)),
-            ("content", (B,)),
-        ):
-            if state[key].shape != shape:
-                raise ValueError(f"state[{key!r}] must be {shape}, got {state[key].shape}")
+        for key, shape in self._state_shapes.items():
+            if state[key].shape != (B, *shape):
+                raise ValueError(f"state[{key!r}] must be {(B, *shape)}, got {state[key].shape}")
         has_prev = state["frame"] > 0
         pos = self.maker.positions(root, rot_in)
         x, yaw = self.maker.features(rot_in, pos, state["prev_pos"], state["prev_yaw"], has_prev)
@@ -272,15 +236,9 @@ class ERDModel(ERDStyles):
         )
         gait_speed = smoothed_speed(state["gait_speed"], hips_speed(pos, state["prev_pos"], has_prev, FPS), has_prev)
         share = eased_in(run_share(gait_speed), state["frame"])
-        source, slow_in = carry_slow(self.leaf_prior, self.run_leaf_prior, rot_in, state["slow_in"], w, share)
-        out_rot = transfer_twist(self.skeleton, source, out_rot, hinges=self.hinges)
-        out_rot, slow_out = carry_slow(
-            self.output_prior, self.run_output_prior, out_rot, state["slow_out"], w, share, hips=HIPS
+        out_rot, slow_in, slow_out = self.stages(
+            self.skeleton, rot_in, out_rot, state["slow_in"], state["slow_out"], w, share
         )
-        if self.hinge_floor is not None:  # before the twist range: it turns bones about themselves only
-            out_rot = self.hinge_floor(out_rot)
-        if self.twist_range is not None:
-            out_rot = self.twist_range(out_rot, w)
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
         )
@@ -383,17 +341,6 @@ class ERDModel(ERDStyles):
         gen.load_state_dict(state)
         return gen.eval()
 
-    @property
-    def priors(self) -> dict[str, StyleCarry | TwistRange | Hinges | None]:
-        """The rotation priors in use, by attribute (`rotation_prior.PRIOR_FILES`), the twist
-        range, the hinges and their floor, as the uploads and the whole-clip reference take them."""
-        return {
-            **{key: getattr(self, key) for key in PRIOR_FILES},
-            "twist_range": self.twist_range,
-            "hinges": self.hinges,
-            "hinge_floor": self.hinge_floor,
-        }
-
     def stylise_stream(self, motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None):
         """Run a whole Motion through step_batch frame by frame (batch 1); returns a Motion."""
         from dataclasses import replace
@@ -429,30 +376,8 @@ def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, h
         arrays.pop("skeleton_end_sites"),
     )
     mean, std, ref = arrays.pop("norm_mean"), arrays.pop("norm_std"), arrays.pop("ref")
-    priors = {  # the rotation prior (`rotation_prior.py`), where fitted
-        key: StyleCarry.load(weights_dir / name) if (weights_dir / name).exists() else None
-        for key, name in PRIOR_FILES.items()
-    }
-    twists = TwistRange.load(weights_dir / TWIST_FILE) if (weights_dir / TWIST_FILE).exists() else None
-    floor = None if core_only else HingeFloor.load(skeleton, weights_dir)
-    if core_only:
-        priors, twists = dict.fromkeys(priors), None
-    hinge_file = weights_dir / HINGE_FILE
-    fitted = Hinges.load(hinge_file) if hinges and hinge_file.exists() else None
-    model = ERDModel(
-        arrays,
-        config["model"],
-        skeleton,
-        mean,
-        std,
-        ref,
-        meta=config,
-        dtype=dtype,
-        twist_range=twists,
-        hinges=fitted,
-        hinge_floor=floor,
-        **priors,
-    )
+    stages = ErdStages.load(weights_dir, skeleton, core_only, hinges)
+    model = ERDModel(arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype, stages=stages)
     model.weights_dir = weights_dir
     return model
 
@@ -498,6 +423,7 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skele
         "licence": "CC BY-NC 4.0 (inherited from Bandai Namco dataset 2)",
     }
     (out_dir / "config.json").write_text(json.dumps(config, indent=1))
+    from ..motion.hinge import HINGE_FILE
     from .dataset import load_split, split_hinges
 
     split_hinges(load_split("train"), skeleton).save(out_dir / HINGE_FILE)

@@ -64,6 +64,5 @@ def carry_slow(
     r = np.zeros(len(w)) if run is None else np.asarray(share, np.float64)
     bounds = other.bounds.arrays  # the run prior is followed by it, and every output kept in it
     then = other.arrays if run is None else run.arrays
-    return kernels.carry_slow(
-        q, slow, SLOW_WEIGHT, w, r, other.arrays, then, bounds, bounds, other.damping, other.clamps_only, hips
-    )
+    priors = kernels.SlowPriors(other.arrays, then, bounds, bounds, other.damping, other.clamps_only)
+    return kernels.carry_slow(q, slow, SLOW_WEIGHT, w, r, priors, hips)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -33,11 +34,12 @@ from ..motion.rotations import quat_mean
 from ..motion.style_carry import StyleCarry, gaussian_map, tangent_stats
 from .features import NB, ROT
 from .gait import clip_smoothed_speed, run_share
-from .rotation_prior import FIXED
+from .rotation_prior import FIXED, PRIOR_FILES
+from .stages import ErdStages
 from .twist_range import TwistRange
 
 SOURCES_FILE = "upload_sources.npz"
-KEYS = ("leaf_prior", "output_prior", "run_leaf_prior", "run_output_prior")
+KEYS = tuple(PRIOR_FILES)  # the priors an upload fits
 MIN_RUN_FRAMES = 60  # running frames a clip needs to fit its own run priors (2 s)
 
 
@@ -107,35 +109,35 @@ def nearest_style(style_means: np.ndarray, q: np.ndarray) -> int:
 
 
 def fit_stages(
-    built_in: dict, sources: Sources, skeleton, q: np.ndarray, share: np.ndarray, nearest: int, output_source=None
-) -> tuple[dict[str, StyleCarry | None], TwistRange | None]:
+    built_in: ErdStages, sources: Sources, skeleton, q: np.ndarray, share: np.ndarray, nearest: int, output_source=None
+) -> ErdStages:
     """An upload's priors and twist range from its clip's rotations `q` and run shares (module
     docstring); `output_source` (mean, cov) replaces the nearest style's network source (a job
     that fitted the style's own branch measured its own). `built_in`: the trained styles' stages
     (a missing one stays missing)."""
     legs = tuple(skeleton.index(n) for n in LEG_JOINTS)
     runs = q[share > 0.5]
-    out: dict[str, StyleCarry | None] = dict.fromkeys(KEYS)
-    if built_in["leaf_prior"] is not None:
+    out: dict[str, Any] = {}  # the fitted priors, by field
+    if built_in.leaf_prior is not None:
         out["leaf_prior"] = carry_to(sources.of("leaf_prior", nearest), q, FIXED)
-    if built_in["output_prior"] is not None:
+    if built_in.output_prior is not None:
         src = output_source or sources.of("output_prior", nearest)
         out["output_prior"] = carry_to(src, comparable(q), (0,), (HIPS,) + legs)
     for key, real, clamped in (("run_leaf_prior", runs, None), ("run_output_prior", comparable(runs), (HIPS,))):
-        if built_in[key] is None:
+        carry = getattr(built_in, key)
+        if carry is None:
             continue
         if len(runs) >= MIN_RUN_FRAMES:
             out[key] = carry_to(sources.of(key, nearest), real, FIXED if clamped is None else (0,), clamped or ())
         else:
-            out[key] = one_style(built_in[key], nearest)
-    twists = built_in["twist_range"]
-    fitted = None if twists is None else TwistRange.fit(skeleton, [q])
-    return out, fitted
+            out[key] = one_style(carry, nearest)
+    twists = None if built_in.twist_range is None else TwistRange.fit(skeleton, [q])
+    return ErdStages(twist_range=twists, **out)
 
 
 def fit_sources(model) -> Sources:
     """The sources every trained style's priors were fitted from (`rotation_prior.py`), as Gaussians."""
-    from .rotation_prior import RUN_ARMS, _neutral_inputs, _running_inputs, network_rotations, real_rotations
+    from .rotation_prior import _neutral_inputs, network_rotations, real_rotations, run_network_rotations
 
     def stats(qs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         fitted = [tangent_stats(q) for q in qs]
@@ -145,10 +147,5 @@ def fit_sources(model) -> Sources:
     mean["leaf_prior"], cov["leaf_prior"] = stats([real_rotations()[0]])
     mean["run_leaf_prior"], cov["run_leaf_prior"] = stats([real_rotations(runs=True)[0]])
     mean["output_prior"], cov["output_prior"] = stats(network_rotations(model, _neutral_inputs()))
-    inputs = _running_inputs()
-    produced = network_rotations(model, inputs, leaf_prior=False)
-    arms = [model.skeleton.index(n) for n in RUN_ARMS]
-    for own, leafed in zip(produced, network_rotations(model, inputs)):
-        own[:, arms] = leafed[:, arms]
-    mean["run_output_prior"], cov["run_output_prior"] = stats(produced)
+    mean["run_output_prior"], cov["run_output_prior"] = stats(run_network_rotations(model))
     return Sources(mean, cov)

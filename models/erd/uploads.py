@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import copy
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, NamedTuple, Self
+from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 import numpy as np
 
@@ -32,11 +32,9 @@ from ..interface import ClipStyles, FineTuned, Progress, StyleRejected
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.style_carry import StyleCarry
 from .dataset import DATASET, TARGET_STYLES
+from .stages import ErdStages
 from .twist_range import TwistRange
 from .upload_stages import KEYS, SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
-
-if TYPE_CHECKING:
-    from ..motion.hinge import Hinges
 
 STYLE_FILE = "erd_style.npz"
 MIN_FRAMES = 60  # 2 s: the stages' statistics need a few steps of the clip
@@ -45,7 +43,8 @@ MIN_FRAMES = 60  # 2 s: the stages' statistics need a few steps of the clip
 @dataclass
 class Upload:
     """An uploaded style's parameters: its branch (PyTorch LSTM layout, `weight_ih_l0`, ...), the
-    branch's initial state (layers, H), its decoder code (6,), its stages (one style each)."""
+    branch's initial state (layers, H), its decoder code (6,), its fitted stages (one style each:
+    the priors and the twist range)."""
 
     name: str
     nearest: str  # the trained style its branch and code started from
@@ -53,20 +52,16 @@ class Upload:
     h0: np.ndarray
     c0: np.ndarray
     code: np.ndarray
-    stages: dict[str, StyleCarry | None] = field(default_factory=dict)
-    twists: TwistRange | None = None
-
-    def renamed(self, name: str) -> Upload:
-        return Upload(name, self.nearest, self.lstm, self.h0, self.c0, self.code, self.stages, self.twists)
+    stages: ErdStages = field(default_factory=ErdStages)
 
     def save(self, path: Path) -> None:
         arrays = {f"lstm.{k}": v for k, v in self.lstm.items()}
         arrays |= {"h0": self.h0, "c0": self.c0, "code": self.code, "nearest": np.array(self.nearest)}
-        for key, carry in self.stages.items():
-            if carry is not None:
+        for key in KEYS:
+            if (carry := getattr(self.stages, key)) is not None:
                 arrays |= {f"{key}.{f}": a for f, a in zip(("source", "mean", "map", "radius"), carry.arrays)}
-        if self.twists is not None:
-            arrays |= {"twist.mean": self.twists.mean, "twist.lo": self.twists.lo, "twist.hi": self.twists.hi}
+        if (twists := self.stages.twist_range) is not None:
+            arrays |= {"twist.mean": twists.mean, "twist.lo": twists.lo, "twist.hi": twists.hi}
         tmp = path.with_suffix(".tmp.npz")
         np.savez(tmp, **arrays)  # type: ignore[arg-type]
         tmp.replace(path)
@@ -75,19 +70,18 @@ class Upload:
     def load(cls, name: str, path: Path, twist_joints: TwistRange | None) -> Upload:
         with np.load(path) as z:
             a = {k: z[k] for k in z.files}
-        stages: dict[str, StyleCarry | None] = {
+        priors: dict[str, Any] = {
             key: StyleCarry(
                 *(np.ascontiguousarray(a[f"{key}.{f}"], np.float64) for f in ("source", "mean", "map", "radius"))
             )
-            if f"{key}.source" in a
-            else None
             for key in KEYS
+            if f"{key}.source" in a
         }
         twists = None
         if twist_joints is not None and "twist.mean" in a:
             twists = TwistRange(twist_joints.joints, twist_joints.axes, a["twist.mean"], a["twist.lo"], a["twist.hi"])
         lstm = {k[5:]: v for k, v in a.items() if k.startswith("lstm.")}
-        return cls(name, str(a["nearest"]), lstm, a["h0"], a["c0"], a["code"], stages, twists)
+        return cls(name, str(a["nearest"]), lstm, a["h0"], a["c0"], a["code"], ErdStages(twist_range=twists, **priors))
 
 
 class BuiltIn(NamedTuple):
@@ -95,7 +89,7 @@ class BuiltIn(NamedTuple):
 
     lstm_w: list[np.ndarray]
     lstm_b: list[np.ndarray]
-    priors: dict
+    stages: ErdStages
 
 
 def branch_weights(params: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
@@ -131,8 +125,7 @@ class ERDStyles(ClipStyles[Upload]):
         H: int
         dtype: np.dtype
         skeleton: Skeleton
-        hinges: Hinges | None
-        twist_range: TwistRange | None
+        stages: ErdStages
         lstm_w: list[np.ndarray]
         lstm_b: list[np.ndarray]
         branches: tuple[str, ...]
@@ -180,14 +173,13 @@ class ERDStyles(ClipStyles[Upload]):
         if clip.num_frames < MIN_FRAMES:
             raise ValueError(f"style clip too short: {clip.num_frames} frames, need at least {MIN_FRAMES}")
         q, share = clip_rotations(self, clip)
-        leaf = self.built_in.priors["leaf_prior"]
-        means = self.sources.mean["leaf_prior"] if leaf is None else leaf.mean
-        s = nearest_style(means, q) if leaf is not None else 0
-        stages, twists = fit_stages(self.built_in.priors, self.sources, self.skeleton, q, share, s)
+        leaf = self.built_in.stages.leaf_prior
+        s = nearest_style(leaf.mean, q) if leaf is not None else 0
+        stages = fit_stages(self.built_in.stages, self.sources, self.skeleton, q, share, s)
         lstm = {k: v.astype(np.float32) for k, v in branch_weights(self.p, f"branches.{s}.").items()}
         h0 = self.p["style_h0"][s].astype(np.float32)
         c0 = self.p["style_c0"][s].astype(np.float32)
-        return Upload(name, TARGET_STYLES[s], lstm, h0, c0, np.eye(len(TARGET_STYLES))[s], stages, twists)
+        return Upload(name, TARGET_STYLES[s], lstm, h0, c0, np.eye(len(TARGET_STYLES))[s], stages)
 
     def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[Upload]:
         from .finetune import fine_tune
@@ -204,7 +196,7 @@ class ERDStyles(ClipStyles[Upload]):
             if name in TARGET_STYLES:
                 raise ValueError(f"{name!r} is a trained Style-ERD style")
             kept = [u for u in self.uploads if u.name != name]
-            self._use(tuple(kept) + (style.renamed(name),))
+            self._use(tuple(kept) + (replace(style, name=name),))
 
     def remove_style(self, name: str) -> None:
         with self._lock:
@@ -219,7 +211,7 @@ class ERDStyles(ClipStyles[Upload]):
         return (folder / STYLE_FILE).exists()
 
     def load_style(self, name: str, folder: Path) -> Upload:
-        return Upload.load(name, folder / STYLE_FILE, self.built_in.priors["twist_range"])
+        return Upload.load(name, folder / STYLE_FILE, self.built_in.stages.twist_range)
 
     def _use(self, uploads: tuple[Upload, ...]) -> None:
         """Replace the stacked branches, codes and stages by the trained styles' and `uploads`'."""
@@ -231,21 +223,6 @@ class ERDStyles(ClipStyles[Upload]):
             self.lstm_b = [np.concatenate([a, x[None]]) for a, x in zip(self.lstm_b, b)]
         n = len(TARGET_STYLES)
         self.codes = np.concatenate([np.eye(n), *(u.code[None] for u in uploads)]).astype(dt) if uploads else None
-        for key in KEYS:
-            carry = base.priors[key]
-            if carry is not None and uploads:
-                carry = StyleCarry.stack([carry, *(u.stages[key] for u in uploads)])  # type: ignore[list-item]
-            setattr(self, key, carry)
-        twists = base.priors["twist_range"]
-        if twists is not None and uploads:
-            ups = [u.twists for u in uploads]
-            twists = TwistRange(
-                twists.joints,
-                twists.axes,
-                np.concatenate([twists.mean, *(t.mean for t in ups)]),  # type: ignore[union-attr]
-                np.concatenate([twists.lo, *(t.lo for t in ups)]),  # type: ignore[union-attr]
-                np.concatenate([twists.hi, *(t.hi for t in ups)]),  # type: ignore[union-attr]
-            )
-        self.twist_range = twists
+        self.stages = base.stages.stacked(uploads)
         self.uploads = uploads
         self.branches = self.branches[:1] + tuple(TARGET_STYLES) + tuple(u.name for u in uploads)

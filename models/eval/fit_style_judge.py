@@ -16,10 +16,11 @@ import argparse
 import json
 import time
 from collections import Counter
+from collections.abc import Callable
 
 import numpy as np
 
-from ..data import build_index, load_motions, select
+from ..data import Clip, build_index, load_motions, select
 from ..settings import REPO_ROOT
 from .intervals import share, shown
 from .style_judge import OTHER, StyleJudge, centres_of, clip_statistics, d1_label, fit_linear, judges_file
@@ -41,7 +42,7 @@ FOLDS = 5
 REPEATS = 5  # fold draws: with ten clips a style one draw moves the score by several clips
 
 
-def shared_contents(clips) -> set[str]:
+def shared_contents(clips: list[Clip]) -> set[str]:
     """Contents performed in more than one style: a content only one style has (dataset 1's
     dances, punches, calls in `normal` alone) would teach the judge the content, not the style."""
     styles: dict[str, set[str]] = {}
@@ -50,7 +51,7 @@ def shared_contents(clips) -> set[str]:
     return {k for k, v in styles.items() if len(v) > 1}
 
 
-def folds(clips, draw: int) -> np.ndarray:
+def folds(clips: list[Clip], draw: int) -> np.ndarray:
     """Each clip's fold in cross-validation draw `draw`: every take of one style and content falls
     in the same fold, so a judge is never scored on a take whose twin (dataset 1 has two of some
     walks) it was fitted on."""
@@ -59,7 +60,7 @@ def folds(clips, draw: int) -> np.ndarray:
     return np.array([fold[(c.style, c.content)] for c in clips])
 
 
-def load_clips() -> tuple[list, dict[str, np.ndarray]]:
+def load_clips() -> tuple[list[Clip], dict[str, np.ndarray]]:
     index = [c for c in build_index([D1, D2]) if c.split != "test"]
     keep = {d: shared_contents(select(index, dataset=d)) for d in (D1, D2)}
     clips = [c for c in index if c.content in keep[c.dataset]]
@@ -71,7 +72,14 @@ def load_clips() -> tuple[list, dict[str, np.ndarray]]:
     return clips, stats
 
 
-def fit(clips, stats, label, c: float, mapping: dict[str, str], centred_on=None) -> StyleJudge:
+def fit(
+    clips: list[Clip],
+    stats: dict[str, np.ndarray],
+    label: Callable[[Clip], str],
+    c: float,
+    mapping: dict[str, str],
+    centred_on: list[Clip] | None = None,
+) -> StyleJudge:
     """A judge fitted on `clips`, its centres taken from `centred_on` (default: the same clips)."""
     ref = clips if centred_on is None else centred_on
     centres = centres_of(
@@ -112,7 +120,7 @@ def main() -> None:
     label = lambda c: c.style if c.dataset == D2 else mapping.get(c.style, d1_label(c.style))  # noqa: E731
     truth = lambda c: c.style if c.dataset == D2 else mapping.get(c.style, OTHER)  # noqa: E731
 
-    def reads(judge: StyleJudge, cs) -> list[tuple[str, str, str, str]]:
+    def reads(judge: StyleJudge, cs: list[Clip]) -> list[tuple[str, str, str, str]]:
         return [
             (
                 truth(c),
@@ -186,7 +194,7 @@ def main() -> None:
     print(f"mapping {mapping}  C {best}  {report['seconds']} s")
 
 
-def _by(rows, key) -> dict[str, dict]:
+def _by(rows: list, key: Callable[[Clip], str]) -> dict[str, dict]:
     """Reads grouped by `key`: how many, how many right, and what they read as."""
     out: dict[str, dict] = {}
     for c, (t, r, _, own) in rows:
@@ -198,7 +206,7 @@ def _by(rows, key) -> dict[str, dict]:
     return {k: {**v, "read": dict(v["read"]), "read_own": dict(v["read_own"])} for k, v in sorted(out.items())}
 
 
-def markdown(r: dict, confusion: Counter, d1) -> str:
+def markdown(r: dict, confusion: Counter, d1: list[Clip]) -> str:
     d2_labels = sorted({read for _, read in confusion})
     d1_styles = sorted({c.style for c in d1})
     lines = [

@@ -11,7 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..data import build_index, select
+from ..data import Clip, build_index, select
 from ..interface import FrameBatch, StreamingModel
 from ..motion.skeleton import Motion
 from .history import with_history
@@ -26,7 +26,7 @@ HISTORY_FRAMES = 300  # running sessions: each clip after 10 s of the clips befo
 
 def pick_clips(
     per_content: int, contents: tuple[str, ...] | None = None, style: str = INPUT_STYLE, split: str = "test"
-):
+) -> list[Clip]:
     clips = select(build_index([DATASET]), split=split, style=style)
     out = []
     for content in sorted({c.content for c in clips}):

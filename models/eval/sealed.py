@@ -13,15 +13,17 @@ import json
 import platform
 import subprocess
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
-from ..data import build_index, load_motions, select
+from ..data import Clip, build_index, load_motions, select
 from ..interface import StreamingModel
 from ..motion.novelty import FADED
+from ..motion.skeleton import Motion
 from ..registry import load_models
 from ..settings import REPO_ROOT, get_settings
 from . import uploads
@@ -52,7 +54,9 @@ class Judges(NamedTuple):
     ref: Reference
 
 
-def evaluate(final: bool = False, quick: bool = False, methods: tuple[str, ...] | None = None, out: Path | None = None):
+def evaluate(
+    final: bool = False, quick: bool = False, methods: tuple[str, ...] | None = None, out: Path | None = None
+) -> dict:
     """Score everything; write the report (docs/ for a final run, else out/)."""
     torch.set_num_threads(1)
     t0 = time.time()
@@ -123,7 +127,7 @@ def _variants(
     return full, variants
 
 
-def _real_clips(index, styles: list[str], final: bool, quick: bool) -> tuple[Reference, dict, dict]:
+def _real_clips(index: list[Clip], styles: list[str], final: bool, quick: bool) -> tuple[Reference, dict, dict]:
     """(the reference, the real clips of each style, the content of each). The reference: TRAIN
     frames for the rotation support, VALIDATION clips for every radius and limit (a validation
     run keeps the odd ones for its real rows; a final run's are the test clips)."""
@@ -167,13 +171,13 @@ def _source_rows(
 
 
 def _row(
-    variant,
+    variant: str,
     source: Source | None,
-    session,
-    style,
-    outs,
+    session: str,
+    style: str,
+    outs: list[Motion],
     inputs: list[Input] | None,
-    contents,
+    contents: list[str],
     judges: Judges,
 ) -> dict:
     """One row: a variant's outputs toward `style` from one source's inputs (measured once by
@@ -366,7 +370,7 @@ def markdown(r: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _per_source(r: dict, title: str, sessions: tuple[str, ...], cell) -> list[str]:
+def _per_source(r: dict, title: str, sessions: tuple[str, ...], cell: Callable[[list[dict]], str]) -> list[str]:
     """A variant x source table of `cell(rows)` over the rows of each session (a session column
     when there are several)."""
     sources = list(r["meta"]["sources"])

@@ -148,7 +148,9 @@ class StyleJudge:
         )
 
 
-def centres_of(stats: list[np.ndarray], sessions: list[str], contents: list[str], styles: list[str]):
+def centres_of(
+    stats: list[np.ndarray], sessions: list[str], contents: list[str], styles: list[str]
+) -> dict[str, np.ndarray]:
     """ "dataset/content" -> the mean over styles of the mean over that style's clips of their
     window statistics: every style counts once, however many takes it has."""
     groups: dict[str, dict[str, list[np.ndarray]]] = {}
@@ -162,7 +164,9 @@ def d1_label(style: str) -> str:
     return f"{OWN_PREFIX}{style}"
 
 
-def fit_linear(stats: list[np.ndarray], labels: list[str], groups: list[str], c: float, seed: int = 0):
+def fit_linear(
+    stats: list[np.ndarray], labels: list[str], groups: list[str], c: float, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """Standardise the pooled windows and fit a multinomial logistic regression in which each
     clip, each label and within a label each dataset weighs the same: pooled, a shared label
     would learn dataset 2's recording (hundreds of clips a style against ten)."""

@@ -56,7 +56,9 @@ def normaliser(mean: np.ndarray, std: np.ndarray) -> Norm:
     return lambda x: torch.as_tensor((x - mean) / std, dtype=torch.float32)
 
 
-def train_classifier(norm: Norm, feats, labels, n_classes: int, iters: int, seed: int, desc: str) -> Classifier:
+def train_classifier(
+    norm: Norm, feats: list[np.ndarray], labels: list[int], n_classes: int, iters: int, seed: int, desc: str
+) -> Classifier:
     torch.manual_seed(seed)
     clf = Classifier(n_classes, in_dim=feats[0].shape[1])
     opt = torch.optim.AdamW(clf.parameters(), lr=2e-3, weight_decay=1e-2)
@@ -75,7 +77,7 @@ def train_classifier(norm: Norm, feats, labels, n_classes: int, iters: int, seed
     return clf.eval()
 
 
-def accuracy(judges: Judges, feats, styles, contents) -> dict:
+def accuracy(judges: Judges, feats: list[np.ndarray], styles: list[str], contents: list[str]) -> dict:
     ps, pc = judges.predict_style(feats), judges.predict_content(feats)
     per_style = {s: float(np.mean([p == t for p, t in zip(ps, styles) if t == s])) for s in judges.styles}
     return {

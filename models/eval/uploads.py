@@ -47,7 +47,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import build_index, load_motions, select
+from ..data import Clip, build_index, load_motions, select
 from ..interface import ClipStyles, StreamingModel, UploadedStyles
 from ..motion.hinge import Hinges, fit_hinges
 from ..motion.rotations import quat_log, swing_twist
@@ -71,7 +71,7 @@ def clip_vector(motion: Motion) -> np.ndarray:
     return clip_statistics(motion).mean(0)
 
 
-def judge_clips(index) -> list:
+def judge_clips(index: list[Clip]) -> list[Clip]:
     """What each style's judge is fitted on (before its uploaded clip is left out): dataset 1's
     TRAIN and VALIDATION clips of shared contents, dataset 2's TRAIN walks."""
     d1 = [c for c in select(index, dataset=D1) if c.split in ("train", "val")]
@@ -81,7 +81,9 @@ def judge_clips(index) -> list:
     ]
 
 
-def style_judge_without(clips: list, stats: dict[str, np.ndarray], upload, mapping: dict[str, str]) -> StyleJudge:
+def style_judge_without(
+    clips: list[Clip], stats: dict[str, np.ndarray], upload: Clip, mapping: dict[str, str]
+) -> StyleJudge:
     """The evaluation's judge, fitted again on `clips` without the uploaded one."""
     label = lambda c: c.style if c.dataset == D2 else mapping.get(c.style, d1_label(c.style))  # noqa: E731
     return fit([c for c in clips if c.key != upload.key], stats, label, JUDGE_C, mapping)
@@ -115,7 +117,7 @@ class Ruler:
         return float(1.0 - np.linalg.norm(out - goal) / np.linalg.norm(start - goal))
 
 
-def fit_ruler(index, stats: dict[str, np.ndarray]) -> Ruler:
+def fit_ruler(index: list[Clip], stats: dict[str, np.ndarray]) -> Ruler:
     """Scale over every real dataset-1 walk and dataset-2 TRAIN walk; centres from each dataset's
     neutral walks. `stats`: their `clip_statistics` by clip key."""
     d1, d2 = ruler_clips(index)
@@ -128,13 +130,13 @@ def fit_ruler(index, stats: dict[str, np.ndarray]) -> Ruler:
     return Ruler(scale, centre)
 
 
-def ruler_clips(index) -> tuple[list, list]:
+def ruler_clips(index: list[Clip]) -> tuple[list[Clip], list[Clip]]:
     """Every real dataset-1 walk (`REFERENCE_CONTENTS`) and dataset-2 TRAIN walk."""
     d1 = [c for c in select(index, dataset=D1) if c.content in REFERENCE_CONTENTS]
     return d1, [c for c in select(index, dataset=D2, split="train") if c.content == "walk"]
 
 
-def real_statistics(index) -> tuple[dict[str, np.ndarray], Hinges]:
+def real_statistics(index: list[Clip]) -> tuple[dict[str, np.ndarray], Hinges]:
     """`clip_statistics` of every clip the ruler and the judges read, by key (each clip read once),
     and the hinge joints of the ruler's real walks."""
     d1, d2 = ruler_clips(index)
@@ -172,7 +174,7 @@ def upload_variants(model: StreamingModel, clip: Motion) -> dict[str, StreamingM
     return out
 
 
-def neutral_inputs(index, split: str) -> dict[str, list[Motion]]:
+def neutral_inputs(index: list[Clip], split: str) -> dict[str, list[Motion]]:
     """Neutral straight walks of both datasets: dataset 2's of `split`, and every dataset-1 one
     (all in its train split, and no dataset-1 style the rows measure is neutral)."""
     d2 = [c for c in select(index, dataset=D2, split=split, style="normal") if c.content == "walk"]

@@ -45,6 +45,7 @@ FINETUNE = dict(
     pose_weight=0.02,  # weight of the posture distance (per feature) next to the content distance
     match_steps=True,  # cut each neutral clip to the upload's step count (`step_matched`)
     prior=True,  # the rotation ball (`train.style_prior`) fitted from the uploaded clip
+    rate_weight=0.1,  # IMW's charge on a warp's departures from a steady rate (`warping.imw`)
 )
 
 
@@ -174,6 +175,12 @@ def nearest_neutral(bank: NeutralBank, feats: np.ndarray, k: int, frames: int, m
 # --------------------------------------------------------------------------- pairs
 
 
+def pairing_config(opts: dict = FINETUNE) -> dict:
+    """The training configuration the job aligns its pairs with: offline training's, with IMW's
+    charge on unsteady warps (`rate_weight`)."""
+    return {**CONFIG, "imw": {**CONFIG["imw"], "rate_weight": opts["rate_weight"]}}
+
+
 def pair_from_motions(mi, mo, match_mean, match_std, ref, cfg=CONFIG) -> PairData:
     """`train.pair_data` on in-memory motions (no clip keys, no cache)."""
     return pair_from_warp(mi, mo, align(mi, mo, match_mean, match_std, cfg["align"], ref, cfg), ref)
@@ -210,11 +217,12 @@ def fine_tune(
         raise FineTuneError("no neutral clip of comparable length to pair the upload with")
     report(0.1, f"pairing with {', '.join(c.name for c in neutrals[: opts['pairs']])}")
     data = []
+    cfg = pairing_config(opts)
     train_neutrals = neutrals[: opts["pairs"]]
     steps = len(train_neutrals) + (1 if hold_part is not None else 0) + 1
     for i, c in enumerate(train_neutrals):
         mi = bank.motions[c.name].slice(0, step_matched(c, train_part.num_frames, rate, cap, match))
-        data.append(pair_from_motions(mi, train_part, bank.match_mean, bank.match_std, ref))
+        data.append(pair_from_motions(mi, train_part, bank.match_mean, bank.match_std, ref, cfg))
         report(0.1 + 0.7 * (i + 1) / steps, f"aligned {c.name}")
     # no cross-joint context: ~1,500 frames of one upload cannot identify systems with 36 inputs
     tr, _ = identify(data, name, ref, {**CONFIG, "context": None})
@@ -235,7 +243,7 @@ def fine_tune(
         n = step_matched(c, hold_part.num_frames, rate, cap) if match else hold_part.num_frames
         mi = mi.slice(0, min(mi.num_frames, max(n, 2)))
         try:
-            heldout = evaluate(tr, [pair_from_motions(mi, hold_part, bank.match_mean, bank.match_std, ref)])
+            heldout = evaluate(tr, [pair_from_motions(mi, hold_part, bank.match_mean, bank.match_std, ref, cfg)])
         except Exception as exc:  # noqa: BLE001 - the evaluation is informative only
             heldout = {"error": str(exc)}
     report(0.95, "done identifying")

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..motion.bn_skeleton import BN_JOINTS, HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
-from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, raise_share, wave_share
+from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, calm_sides, raise_share, wave_share
 from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry
 from .kernels import RaisedArm
@@ -128,12 +128,17 @@ def fit_styles(model, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
     styles = [s for s in real if any(len(t) >= MIN_CALM_FRAMES for t in targets[s])]
     if not styles:  # no raised, calm hand anywhere (most uploads): nothing to stylise or fit
         return dict.fromkeys(real)
+    # an input with no raised, calm hand adds no frame to any fit, only stylising time; the
+    # first stays, its first frame standing in below for a side without a target
+    calm = [calm_sides(m) for m in inputs]
+    kept_inputs = [k for k, c in enumerate(calm) if k == 0 or c.any()]
+    inputs = [inputs[k] for k in kept_inputs]
     rows = [model.styles().index(s) for s in styles]
     outs = stylise(model, [m for _ in styles for m in inputs], [k for k in rows for _ in inputs])
     n = len(inputs)
     made = [comparable(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]])) for k in range(len(styles))]
     clamped = (HIPS,) + tuple(BN_JOINTS.index(j) for j in LEG_JOINTS)
-    chosen = [np.concatenate([calm_frames(m, side) for m in inputs]) for side in (0, 1)]
+    chosen = [np.concatenate([calm[k][:, side] for k in kept_inputs]) for side in (0, 1)]
     carries: dict[str, StyleCarry | None] = dict.fromkeys(real)
     for k, style in enumerate(styles):
         sides, fitted = [], []

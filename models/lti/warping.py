@@ -46,18 +46,20 @@ def upsample(y: np.ndarray, s: int) -> np.ndarray:
     return y[i0] * (1 - f) + y[np.minimum(i0 + 1, u - 1)] * f
 
 
-def time_warp_dp(cost: np.ndarray, max_step: int) -> tuple[np.ndarray, float]:
+def time_warp_dp(cost: np.ndarray, max_step: int, step_cost: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """Minimum-cost monotone path through `cost` (T, K) from (0, 0) to (T-1, K-1) where each row
-    advances 1..max_step columns. Returns (column per row, total cost)."""
+    advances 1..max_step columns, advancing k columns costing `step_cost[k - 1]` more (none by
+    default). Returns (column per row, total cost)."""
     T, K = cost.shape
     acc = np.full((T, K), np.inf)
     back = np.zeros((T, K), np.int8)
     acc[0, 0] = cost[0, 0]
+    extra = np.zeros(max_step) if step_cost is None else step_cost
     for t in range(1, T):
         prev = acc[t - 1]
         cands = np.full((max_step, K), np.inf)
         for k in range(1, max_step + 1):
-            cands[k - 1, k:] = prev[:-k]
+            cands[k - 1, k:] = prev[:-k] + extra[k - 1]
         best = np.argmin(cands, axis=0)
         acc[t] = cost[t] + cands[best, np.arange(K)]
         back[t] = best + 1
@@ -104,10 +106,22 @@ def imw(
     mu: float = 0.1,
     max_iter: int = 10,
     tol: float = 1e-4,
+    rate_weight: float = 0.0,
 ) -> WarpResult:
-    """Iterative motion warping of output features y (U, D) onto input features x (T, D)."""
+    """Iterative motion warping of output features y (U, D) onto input features x (T, D).
+    `rate_weight` > 0 charges every input frame rate_weight * D * (its slope's departure from
+    the average slope U / T, in output frames per input frame) squared: with no charge the
+    cheapest warp may hold the output still for frames and then jump, a staircase that keeps
+    the poses and loses the motion between them."""
     T, D = x.shape
     yu = upsample(y, s)
+    ks = np.arange(1, max_step + 1)
+    mean_step = (len(yu) - 1) / max(T - 1, 1)
+    step_cost = rate_weight * D * ((ks - mean_step) / s) ** 2 if rate_weight > 0 else None
+
+    def charged(p: np.ndarray) -> float:  # the warp's rate charge, part of E when there is one
+        return 0.0 if step_cost is None else float(step_cost[np.diff(p) - 1].sum())
+
     a, b = np.ones((T, D)), np.zeros((T, D))
     history: list[float] = []
     path = np.zeros(T, np.int64)
@@ -115,15 +129,15 @@ def imw(
         # time stage: cost[t, k] = |x_t - b_t - a_t * yu_k|^2
         xb = x - b
         cost = np.sum(xb * xb, axis=1)[:, None] - 2.0 * (xb * a) @ yu.T + (a * a) @ (yu * yu).T
-        new_path, _ = time_warp_dp(np.maximum(cost, 0.0), max_step)
-        e_time = objective(x, yu[new_path], a, b, lam, mu)
+        new_path, _ = time_warp_dp(np.maximum(cost, 0.0), max_step, step_cost)
+        e_time = objective(x, yu[new_path], a, b, lam, mu) + charged(new_path)
         if history and e_time > history[-1]:  # cannot happen (DP is exact); guard round-off
             break
         path = new_path
         history.append(e_time)
         # space stage
         a2, b2 = space_warp(x, yu[path], lam, mu)
-        e_space = objective(x, yu[path], a2, b2, lam, mu)
+        e_space = objective(x, yu[path], a2, b2, lam, mu) + charged(path)
         if e_space <= history[-1]:
             a, b = a2, b2
             history.append(e_space)

@@ -155,8 +155,14 @@ def raised_frames(motion, side: int | None = None) -> np.ndarray:
     return raise_share(heights.max(-1) if side is None else heights[:, side]) > 0.5
 
 
+def calm_sides(motion) -> np.ndarray:
+    """(T, 2) bool: the frames of a Bandai Namco `Motion` with each hand (left, right) raised (as
+    `raised_frames`) and not waving (its wave share, from the clip's sway, under a half). Both
+    sides from one pass of forward kinematics, which is most of the cost."""
+    offsets = hand_offsets(motion.global_positions())
+    return (raise_share(offsets[..., 1]) > 0.5) & (wave_share(clip_sway(offsets, motion.fps)) < 0.5)
+
+
 def calm_frames(motion, side: int) -> np.ndarray:
-    """(T,) bool: the frames of a Bandai Namco `Motion` with the `side` hand raised (`raised_frames`)
-    and not waving (its wave share, from the clip's sway, under a half)."""
-    swayed = clip_sway(hand_offsets(motion.global_positions()), motion.fps)[:, side]
-    return raised_frames(motion, side) & (wave_share(swayed) < 0.5)
+    """(T,) bool: `calm_sides` of the `side` hand (0: the left, 1: the right)."""
+    return calm_sides(motion)[:, side]

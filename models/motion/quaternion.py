@@ -38,6 +38,12 @@ def qunit(q):
 
 
 @njit(cache=True, error_model="numpy")
+def qscale(q, k):
+    """k q, each component scaled (a unit q from k = 1 / |q|, an nlerp's terms)."""
+    return (k * q[0], k * q[1], k * q[2], k * q[3])
+
+
+@njit(cache=True, error_model="numpy")
 def qdot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]
 

@@ -11,7 +11,7 @@ import math
 from numba import njit
 
 from .bn_skeleton import HIPS
-from .quaternion import qinv, qmul, qneg, quat_at, qunit
+from .quaternion import dot3, qdot, qinv, qmul, qneg, quat_at, qunit
 
 
 @njit(cache=True, error_model="numpy")
@@ -29,7 +29,7 @@ def clamp_joint(q, mean, inner, outer, hips):
     rel = qmul(qinv(mean), c)
     if rel[3] < 0.0:
         rel = qneg(rel)
-    s = math.sqrt(rel[0] * rel[0] + rel[1] * rel[1] + rel[2] * rel[2])
+    s = math.sqrt(dot3(rel, rel))
     d = 2.0 * math.atan2(s, rel[3])
     if not d > inner:
         return q
@@ -70,10 +70,10 @@ def clamp_mixed(rotations, weights, rest_style, mean, radii, out):
                 if w <= 0.0:
                     continue
                 p = ref if s == base else clamp_joint(q, quat_at(mean, s, j), radii[s, 0, j], radii[s, 1, j], j == HIPS)
-                if p[0] * ref[0] + p[1] * ref[1] + p[2] * ref[2] + p[3] * ref[3] < 0.0:
+                if qdot(p, ref) < 0.0:
                     w = -w
                 acc = (acc[0] + w * p[0], acc[1] + w * p[1], acc[2] + w * p[2], acc[3] + w * p[3])
-            n = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
+            n = math.sqrt(qdot(acc, acc))
             if n < 1e-12:
                 acc, n = ref, 1.0
             for c in range(4):

@@ -1,39 +1,44 @@
 """`style_carry.StyleCarry` compiled (numba) for the per-frame step: the formulas of the numpy
-reference (`tests/reference/erd_carry.py`) as per-row, per-joint loops, ~1 us per session
-instead of ~40 small numpy calls per prior and frame. `_toward` and `_carry_joint` are inlined
-(`inline="always"`): out of line, passing their arrays as numba structs cost a quarter to a half
-of the kernel's time; inlining the small helpers too buys nothing and triples the first compile.
+reference (`tests/reference/erd_carry.py`) as per-row, per-joint loops on 4-tuple quaternions
+(`quaternion.py`), ~1 us per session instead of ~40 small numpy calls per prior and frame.
+`_toward` and `_carry_joint` are inlined (`inline="always"`): out of line, passing their arrays as
+numba structs cost a quarter to a half of the kernel's time; inlining the small helpers too buys
+nothing and triples the first compile.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from .quaternion import qexp, qinv, qlog, qmul, quat_at
+from .quaternion import qdot, qexp, qinv, qlog, qmul, qneg, qscale, quat_at
+
+
+@njit(cache=True, error_model="numpy")
+def _mat3(m, s, j, v):
+    """m[s, j] (3, 3) times the vector part of v."""
+    return (
+        m[s, j, 0, 0] * v[0] + m[s, j, 0, 1] * v[1] + m[s, j, 0, 2] * v[2],
+        m[s, j, 1, 0] * v[0] + m[s, j, 1, 1] * v[1] + m[s, j, 1, 2] * v[2],
+        m[s, j, 2, 0] * v[0] + m[s, j, 2, 1] * v[1] + m[s, j, 2, 2] * v[2],
+    )
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius):
-    """f_s(q) = mean exp(clamp(M log(src^-1 q))) for joint j and style s."""
-    lx, ly, lz = qlog(qmul(qinv(quat_at(source, s, j)), (qx, qy, qz, qw)))
-    dx = lin[s, j, 0, 0] * lx + lin[s, j, 0, 1] * ly + lin[s, j, 0, 2] * lz
-    dy = lin[s, j, 1, 0] * lx + lin[s, j, 1, 1] * ly + lin[s, j, 1, 2] * lz
-    dz = lin[s, j, 2, 0] * lx + lin[s, j, 2, 1] * ly + lin[s, j, 2, 2] * lz
+def _toward(q, s, j, carry):
+    """f_s(q) = mean exp(clamp(M log(src^-1 q))) for joint j and style s of `carry` (source,
+    mean, lin, radius)."""
+    source, mean, lin, radius = carry
+    dx, dy, dz = _mat3(lin, s, j, qlog(qmul(qinv(quat_at(source, s, j)), q)))
     dn = math.sqrt(dx * dx + dy * dy + dz * dz)
     r = radius[s, j]
     if dn > r:
         k = r / dn
         dx, dy, dz = k * dx, k * dy, k * dz
     return qmul(quat_at(mean, s, j), qexp((dx, dy, dz)))
-
-
-@njit(cache=True, error_model="numpy")
-def _correction(qx, qy, qz, qw, fx, fy, fz, fw):
-    """log(q^-1 f): the rotation vector taking q to f."""
-    return qlog(qmul(qinv((qx, qy, qz, qw)), (fx, fy, fz, fw)))
 
 
 @njit(cache=True, error_model="numpy")
@@ -47,58 +52,47 @@ def _lone(w, b):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _headless(qx, qy, qz, qw, is_hips):
-    """Unit q without its heading when it is the Hips (heading = (0, hy, 0, hw)): (q', hy, hw)."""
+def _headless(q, is_hips):
+    """Unit q without its heading when it is the Hips: (q', heading), the heading (0, hy, 0, hw)
+    its twist about world up (the identity for other joints); qmul(heading, q') is q."""
     hy, hw = 0.0, 1.0
     if is_hips:
-        hn = math.sqrt(qy * qy + qw * qw)
+        hn = math.sqrt(q[1] * q[1] + q[3] * q[3])
         if hn > 1e-9:
-            hy, hw = qy / hn, qw / hn
-        qx, qy, qz, qw = qmul((0.0, -hy, 0.0, hw), (qx, qy, qz, qw))
-    return qx, qy, qz, qw, hy, hw
+            hy, hw = q[1] / hn, q[3] / hn
+        q = qmul((0.0, -hy, 0.0, hw), q)
+    return q, (0.0, hy, 0.0, hw)
 
 
 @njit(cache=True, error_model="numpy")
-def _unit(q, b, j, hips):
-    """q[b, j] normalised, and for joint `hips` without its heading (its twist about world up):
-    (qx, qy, qz, qw, hy, hw), the heading being (0, hy, 0, hw) (identity for other joints)."""
-    n = math.sqrt(q[b, j, 0] ** 2 + q[b, j, 1] ** 2 + q[b, j, 2] ** 2 + q[b, j, 3] ** 2)
-    return _headless(q[b, j, 0] / n, q[b, j, 1] / n, q[b, j, 2] / n, q[b, j, 3] / n, j == hips)
-
-
-@njit(cache=True, error_model="numpy")
-def _store(out, b, j, hips, hy, hw, ox, oy, oz, ow):
-    """out[b, j] = o, with the heading `_unit` took off joint `hips` put back."""
-    if j == hips:
-        ox, oy, oz, ow = qmul((0.0, hy, 0.0, hw), (ox, oy, oz, ow))
-    out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = ox, oy, oz, ow
-
-
-@njit(cache=True, error_model="numpy")
-def _same_side(qx, qy, qz, qw, ox, oy, oz, ow):
+def _same_side(q, o):
     """o in q's hemisphere (the same rotation): a stream's quaternions never flip sign."""
-    if ox * qx + oy * qy + oz * qz + ow * qw < 0.0:
-        return -ox, -oy, -oz, -ow
-    return ox, oy, oz, ow
+    return qneg(o) if qdot(o, q) < 0.0 else o
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius):
+def _carry_joint(q, b, j, w, lone, carry):
     """Unit quaternion q of row b, joint j carried toward the styles of w[b] (`carry_batch`)."""
     if lone >= 0:
-        fx, fy, fz, fw = _toward(qx, qy, qz, qw, lone, j, source, mean, lin, radius)
-        return _same_side(qx, qy, qz, qw, fx, fy, fz, fw)
+        return _same_side(q, _toward(q, lone, j, carry))
     cx = cy = cz = 0.0
     for s in range(w.shape[1]):
         ws = w[b, s]
         if ws == 0.0:
             continue
-        fx, fy, fz, fw = _toward(qx, qy, qz, qw, s, j, source, mean, lin, radius)
-        lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)  # weighted
+        lx, ly, lz = qlog(qmul(qinv(q), _toward(q, s, j, carry)))  # weighted
         cx += ws * lx
         cy += ws * ly
         cz += ws * lz
-    return qmul((qx, qy, qz, qw), qexp((cx, cy, cz)))
+    return qmul(q, qexp((cx, cy, cz)))
+
+
+@njit(cache=True, error_model="numpy")
+def _unit(q, b, j):
+    """q[b, j] normalised."""
+    u = quat_at(q, b, j)
+    n = math.sqrt(qdot(u, u))
+    return (u[0] / n, u[1] / n, u[2] / n, u[3] / n)
 
 
 @njit(cache=True, error_model="numpy")
@@ -112,9 +106,9 @@ def carry_batch(q, w, source, mean, lin, radius, hips, out):
     for b in range(q.shape[0]):
         lone = _lone(w, b)
         for j in range(q.shape[1]):
-            qx, qy, qz, qw, hy, hw = _unit(q, b, j, hips)
-            ox, oy, oz, ow = _carry_joint(qx, qy, qz, qw, b, j, w, lone, source, mean, lin, radius)
-            _store(out, b, j, hips, hy, hw, ox, oy, oz, ow)
+            u, heading = _headless(_unit(q, b, j), j == hips)
+            o = _carry_joint(u, b, j, w, lone, (source, mean, lin, radius))
+            out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = qmul(heading, o) if j == hips else o
     return out
 
 
@@ -126,31 +120,26 @@ def carry(q: np.ndarray, w: np.ndarray, source, mean, lin, radius, hips: int = -
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _pair_joint(qx, qy, qz, qw, row, j, w, lone, r, a, b, c):
+def _pair_joint(q, row, j, w, lone, r, a, b, c):
     """Unit quaternion q of row `row`, joint j carried by `a` and by `b` then `c`, mixed by the
     row's share r (`carry_pair_batch`)."""
     if r == 0.0:
-        return _carry_joint(qx, qy, qz, qw, row, j, w, lone, a[0], a[1], a[2], a[3])
+        return _carry_joint(q, row, j, w, lone, a)
     if lone >= 0 and r == 1.0:
-        bx, by, bz, bw = _toward(qx, qy, qz, qw, lone, j, b[0], b[1], b[2], b[3])
-        fx, fy, fz, fw = _toward(bx, by, bz, bw, lone, j, c[0], c[1], c[2], c[3])
-        return _same_side(qx, qy, qz, qw, fx, fy, fz, fw)
+        return _same_side(q, _toward(_toward(q, lone, j, b), lone, j, c))
     cx = cy = cz = 0.0
     for s in range(w.shape[1]):
         ws = w[row, s]
         if ws == 0.0:
             continue
         if r < 1.0:
-            fx, fy, fz, fw = _toward(qx, qy, qz, qw, s, j, a[0], a[1], a[2], a[3])
-            lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)
+            lx, ly, lz = qlog(qmul(qinv(q), _toward(q, s, j, a)))
             k = ws * (1.0 - r)
             cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
-        bx, by, bz, bw = _toward(qx, qy, qz, qw, s, j, b[0], b[1], b[2], b[3])
-        fx, fy, fz, fw = _toward(bx, by, bz, bw, s, j, c[0], c[1], c[2], c[3])
-        lx, ly, lz = _correction(qx, qy, qz, qw, fx, fy, fz, fw)
+        lx, ly, lz = qlog(qmul(qinv(q), _toward(_toward(q, s, j, b), s, j, c)))
         k = ws * r
         cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
-    return qmul((qx, qy, qz, qw), qexp((cx, cy, cz)))
+    return qmul(q, qexp((cx, cy, cz)))
 
 
 @njit(cache=True, error_model="numpy")
@@ -167,9 +156,9 @@ def carry_pair_batch(q, w, share, a, b, c, hips, out):
     for row in range(q.shape[0]):
         lone = _lone(w, row)
         for j in range(q.shape[1]):
-            qx, qy, qz, qw, hy, hw = _unit(q, row, j, hips)
-            ox, oy, oz, ow = _pair_joint(qx, qy, qz, qw, row, j, w, lone, share[row], a, b, c)
-            _store(out, row, j, hips, hy, hw, ox, oy, oz, ow)
+            u, heading = _headless(_unit(q, row, j), j == hips)
+            o = _pair_joint(u, row, j, w, lone, share[row], a, b, c)
+            out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = qmul(heading, o) if j == hips else o
     return out
 
 
@@ -185,18 +174,18 @@ def carry_pair(
 
 
 @njit(cache=True, error_model="numpy")
-def _paired(qx, qy, qz, qw, row, j, w, lone, r, a, b, c):
+def _paired(q, row, j, w, lone, r, a, b, c):
     """`_pair_joint` out of line, for the rows with a share (runs): inlined beside the plain
     carry it made `carry_slow_batch` twice as slow for every row."""
-    return _pair_joint(qx, qy, qz, qw, row, j, w, lone, r, a, b, c)
+    return _pair_joint(q, row, j, w, lone, r, a, b, c)
 
 
 @njit(cache=True, error_model="numpy")
-def _clamped(qx, qy, qz, qw, row, j, w, lone, clamp):
+def _clamped(q, row, j, w, lone, clamp):
     """q kept in the range of `clamp` (source, mean, lin, radius of `StyleCarry.bounds`), as
     `carry_batch` keeps it; out of line (most joints are inside and skip it), so the caller's
     loop stays small."""
-    return _carry_joint(qx, qy, qz, qw, row, j, w, lone, clamp[0], clamp[1], clamp[2], clamp[3])
+    return _carry_joint(q, row, j, w, lone, clamp)
 
 
 @njit(cache=True, error_model="numpy")
@@ -210,7 +199,37 @@ def _cos_half(radius):
 
 
 @njit(cache=True, error_model="numpy")
-def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hips, out, new_slow):
+def _gained(p, row, j, w, lone, rest, gain):
+    """The fast part p's vector part through the gains mixed by the row's weights, the rest of
+    the weight at 1, renormalised (~ exp(G log p) to first order in p's angle)."""
+    if lone >= 0:
+        gx, gy, gz = _mat3(gain, lone, j, p)
+    else:
+        gx, gy, gz = rest * p[0], rest * p[1], rest * p[2]
+        for s in range(w.shape[1]):
+            ws = w[row, s]
+            if ws != 0.0:
+                tx, ty, tz = _mat3(gain, s, j, p)
+                gx, gy, gz = gx + ws * tx, gy + ws * ty, gz + ws * tz
+    g = (gx, gy, gz, p[3])
+    return qscale(g, 1.0 / math.sqrt(qdot(g, g)))
+
+
+class SlowPriors(NamedTuple):
+    """What `carry_slow_batch` carries by: carry `a`, or `b` then `c` by the row's run share, each
+    (source, mean, lin, radius); the range `clamp` keeps every output in; the fast part's gains
+    (S, J, 3, 3); the joints carried whole (J,) bool."""
+
+    a: tuple
+    b: tuple
+    c: tuple
+    clamp: tuple
+    gain: np.ndarray
+    plain: np.ndarray
+
+
+@njit(cache=True, error_model="numpy")
+def carry_slow_batch(q, slow, weight, w, share, priors, hips, out, new_slow):
     """The slow part of q carried, its fast part on top (`models/erd/slow_carry.py`), in one
     pass. Per row and joint:
 
@@ -218,9 +237,9 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
         p = s^-1 q, the fast part, in its short hemisphere
         o = carry(s) (G p_xyz, p_w) / |.|, then o clamped into `clamp`'s range
 
-    carry: `a` and `b`-then-`c` mixed by the row's share, as `carry_pair_batch`; G: the gains
-    (S, J, 3, 3) mixed by the row's weights w (B, S), the rest of the weight at 1 (joint `hips`:
-    1, its fast part holds its turning); to first order in the fast part's angle
+    carry (`priors`, a `SlowPriors`): `a` and `b`-then-`c` mixed by the row's share, as
+    `carry_pair_batch`; G: the gains mixed by the row's weights w (B, S), the rest of the
+    weight at 1 (joint `hips`: 1, its fast part holds its turning); to first order in the fast part's angle
     (G p_xyz, p_w) / |.| is exp(G log p), without a log or an exp. `clamp`: a range alone
     (`StyleCarry.bounds`); a row with one style skips its arithmetic for a joint already inside
     (the clamp leaves it as it is). Joint `hips` is carried and clamped without its heading, as
@@ -228,6 +247,7 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
     the same either way) is carried whole, as `carry_pair_batch` would. Writes `out` and the new
     slow copies `new_slow`."""
     S, J = w.shape[1], q.shape[1]
+    a, b, c, clamp, gain, plain = priors
     cos_half = _cos_half(clamp[3])
     mean = clamp[1]
     for row in range(q.shape[0]):
@@ -243,86 +263,55 @@ def carry_slow_batch(q, slow, weight, w, share, a, b, c, clamp, gain, plain, hip
                 if slow[row, j, ch] != 0.0:
                     unset = False
         for j in range(J):
-            k = 1.0 / math.sqrt(q[row, j, 0] ** 2 + q[row, j, 1] ** 2 + q[row, j, 2] ** 2 + q[row, j, 3] ** 2)
-            ux, uy, uz, uw = k * q[row, j, 0], k * q[row, j, 1], k * q[row, j, 2], k * q[row, j, 3]
-            sx, sy, sz, sw = ux, uy, uz, uw
+            u = quat_at(q, row, j)
+            u = qscale(u, 1.0 / math.sqrt(qdot(u, u)))
+            sl = u
             if not unset:
+                before = quat_at(slow, row, j)
                 k0 = 1.0 - weight
-                if slow[row, j, 0] * ux + slow[row, j, 1] * uy + slow[row, j, 2] * uz + slow[row, j, 3] * uw < 0.0:
+                if qdot(before, u) < 0.0:
                     k0 = -k0
-                sx = k0 * slow[row, j, 0] + weight * ux
-                sy = k0 * slow[row, j, 1] + weight * uy
-                sz = k0 * slow[row, j, 2] + weight * uz
-                sw = k0 * slow[row, j, 3] + weight * uw
-                k = 1.0 / max(math.sqrt(sx * sx + sy * sy + sz * sz + sw * sw), 1e-12)
-                sx, sy, sz, sw = k * sx, k * sy, k * sz, k * sw
-            new_slow[row, j, 0], new_slow[row, j, 1], new_slow[row, j, 2], new_slow[row, j, 3] = sx, sy, sz, sw
+                sl = qscale(before, k0)
+                sl = (sl[0] + weight * u[0], sl[1] + weight * u[1], sl[2] + weight * u[2], sl[3] + weight * u[3])
+                sl = qscale(sl, 1.0 / max(math.sqrt(qdot(sl, sl)), 1e-12))
+            new_slow[row, j, 0], new_slow[row, j, 1], new_slow[row, j, 2], new_slow[row, j, 3] = sl
             is_hips = j == hips
             # the carry is written out for both cases below: one inlined helper for the two makes
             # the pass ~40 % slower (numba's inlining)
             if plain[j]:
-                hx, hy_, hz, hw_, hy, hw = _headless(ux, uy, uz, uw, is_hips)
-                if r == 0.0:
-                    cx, cy, cz, cw = _carry_joint(hx, hy_, hz, hw_, row, j, w, lone, a[0], a[1], a[2], a[3])
-                else:
-                    cx, cy, cz, cw = _paired(hx, hy_, hz, hw_, row, j, w, lone, r, a, b, c)
-                if is_hips:
-                    cx, cy, cz, cw = qmul((0.0, hy, 0.0, hw), (cx, cy, cz, cw))
-                out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = cx, cy, cz, cw
+                h, heading = _headless(u, is_hips)
+                o = _carry_joint(h, row, j, w, lone, a) if r == 0.0 else _paired(h, row, j, w, lone, r, a, b, c)
+                out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = qmul(heading, o) if is_hips else o
                 continue
             # the slow copy, carried
-            hx, hy_, hz, hw_, hy, hw = _headless(sx, sy, sz, sw, is_hips)
-            if r == 0.0:
-                cx, cy, cz, cw = _carry_joint(hx, hy_, hz, hw_, row, j, w, lone, a[0], a[1], a[2], a[3])
-            else:
-                cx, cy, cz, cw = _paired(hx, hy_, hz, hw_, row, j, w, lone, r, a, b, c)
+            h, heading = _headless(sl, is_hips)
+            o = _carry_joint(h, row, j, w, lone, a) if r == 0.0 else _paired(h, row, j, w, lone, r, a, b, c)
             if is_hips:
-                cx, cy, cz, cw = qmul((0.0, hy, 0.0, hw), (cx, cy, cz, cw))
+                o = qmul(heading, o)
             # the fast part on top
-            px, py, pz, pw = qmul(qinv((sx, sy, sz, sw)), (ux, uy, uz, uw))
-            if pw < 0.0:
-                px, py, pz, pw = -px, -py, -pz, -pw
+            p = qmul(qinv(sl), u)
+            if p[3] < 0.0:
+                p = qneg(p)
             if not is_hips:
-                if lone >= 0:
-                    g = gain[lone, j]
-                    gx = g[0, 0] * px + g[0, 1] * py + g[0, 2] * pz
-                    gy = g[1, 0] * px + g[1, 1] * py + g[1, 2] * pz
-                    gz = g[2, 0] * px + g[2, 1] * py + g[2, 2] * pz
-                else:
-                    gx, gy, gz = rest * px, rest * py, rest * pz
-                    for s in range(S):
-                        ws = w[row, s]
-                        if ws != 0.0:
-                            gx += ws * (gain[s, j, 0, 0] * px + gain[s, j, 0, 1] * py + gain[s, j, 0, 2] * pz)
-                            gy += ws * (gain[s, j, 1, 0] * px + gain[s, j, 1, 1] * py + gain[s, j, 1, 2] * pz)
-                            gz += ws * (gain[s, j, 2, 0] * px + gain[s, j, 2, 1] * py + gain[s, j, 2, 2] * pz)
-                k = 1.0 / math.sqrt(gx * gx + gy * gy + gz * gz + pw * pw)
-                px, py, pz, pw = k * gx, k * gy, k * gz, k * pw
-            ox, oy, oz, ow = qmul((cx, cy, cz, cw), (px, py, pz, pw))
+                p = _gained(p, row, j, w, lone, rest, gain)
+            o = qmul(o, p)
             # the clamp
-            k = 1.0 / math.sqrt(ox * ox + oy * oy + oz * oz + ow * ow)
-            qx, qy, qz, qw, hy, hw = _headless(k * ox, k * oy, k * oz, k * ow, is_hips)
-            if lone >= 0:
-                d = mean[lone, j, 0] * qx + mean[lone, j, 1] * qy + mean[lone, j, 2] * qz + mean[lone, j, 3] * qw
-                if abs(d) >= cos_half[lone, j]:
-                    out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = ox, oy, oz, ow
-                    continue
-            qx, qy, qz, qw = _clamped(qx, qy, qz, qw, row, j, w, lone, clamp)
-            if is_hips:
-                qx, qy, qz, qw = qmul((0.0, hy, 0.0, hw), (qx, qy, qz, qw))
-            out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = qx, qy, qz, qw
+            h, heading = _headless(qscale(o, 1.0 / math.sqrt(qdot(o, o))), is_hips)
+            if lone >= 0 and abs(qdot(quat_at(mean, lone, j), h)) >= cos_half[lone, j]:
+                out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = o
+                continue
+            h = _clamped(h, row, j, w, lone, clamp)
+            out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = qmul(heading, h) if is_hips else h
     return out, new_slow
 
 
 def carry_slow(
-    q: np.ndarray, slow: np.ndarray, weight: float, w: np.ndarray, share: np.ndarray, a: tuple, b: tuple, c: tuple,
-    clamp: tuple, gain: np.ndarray, plain: np.ndarray, hips: int = -1,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    q: np.ndarray, slow: np.ndarray, weight: float, w: np.ndarray, share: np.ndarray, priors: SlowPriors, hips: int = -1
+) -> tuple[np.ndarray, np.ndarray]:
     """`carry_slow_batch` on any (B, J, 4) rotations and slow copies, (B, S) weights and (B,)
-    shares; a, b, c, clamp: (source, mean, lin, radius) of each carry. Returns (out, new slow
-    copies)."""
+    shares. Returns (out, new slow copies)."""
     q = np.ascontiguousarray(q, np.float64)
     w, share = np.ascontiguousarray(w, np.float64), np.ascontiguousarray(share, np.float64)
     slow = np.ascontiguousarray(slow, np.float64)
     out, new_slow = np.empty_like(q), np.empty_like(q)
-    return carry_slow_batch(q, slow, float(weight), w, share, a, b, c, clamp, gain, plain, hips, out, new_slow)
+    return carry_slow_batch(q, slow, float(weight), w, share, priors, hips, out, new_slow)

@@ -31,7 +31,7 @@ class TwistPlan(NamedTuple):
 def clamped_twist(local, axis, turn, lo, hi):
     """The part of `turn` (radians about `axis`) that keeps the twist of `local` (a local rotation
     relative to its real mean) inside [lo, hi], or where it already is when outside."""
-    twist = wrap(2.0 * math.atan2(local[0] * axis[0] + local[1] * axis[1] + local[2] * axis[2], local[3]))
+    twist = wrap(2.0 * math.atan2(dot3(local, axis), local[3]))
     return min(max(twist + turn, min(lo, twist)), max(hi, twist)) - twist
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from models.erd.gait import carry_by_gait
+from models.erd.slow_carry import carry_slow as compiled_carry_slow
 from models.erd.slow_carry import follow
 from models.erd.twist_range import TwistRange
 from models.motion.bn_skeleton import HIPS
@@ -86,3 +87,19 @@ def twist_clamp(twists: TwistRange, q: np.ndarray, weights: np.ndarray) -> np.nd
     out = np.array(q, np.float64)
     out[np.ix_(rows, twists.joints)] = quat_mul(arms, turn)
     return out
+
+
+def clip_carry_slow(
+    other: StyleCarry | None,
+    run: StyleCarry | None,
+    q: np.ndarray,
+    weights: np.ndarray,
+    share: np.ndarray,
+    hips: int = -1,
+) -> np.ndarray:
+    """The compiled `carry_slow` over every frame (T, J, 4) of a clip, each frame's slow copy
+    followed in numpy, as a stream sees it."""
+    before = np.zeros_like(np.asarray(q, np.float64))  # each frame's slow copy before it
+    for t in range(1, len(q)):
+        before[t] = follow(before[t - 1 : t], q[t - 1 : t])[0]
+    return compiled_carry_slow(other, run, q, before, weights, share, hips)[0]
