@@ -133,7 +133,7 @@ def test_a_state_from_before_the_planter_is_brought_up_to_date(bn_walk):
 
 def test_two_bone_ik_reaches_its_target_and_keeps_the_foot_turned_as_it_was(bn_walk):
     sk, m = bn_walk.skeleton, bn_walk
-    up, low, foot = (sk.index(n) for n in ("UpperLeg_L", "LowerLeg_L", "Foot_L"))
+    up, low, foot, toe = (sk.index(n) for n in ("UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L"))
     rng = np.random.default_rng(4)
     for t in (10, 50, 90):
         rots = m.rotations[t : t + 1]
@@ -143,13 +143,39 @@ def test_two_bone_ik_reaches_its_target_and_keeps_the_foot_turned_as_it_was(bn_w
         new = rots.copy()
         row = lambda a: tuple(np.asarray(a, np.float64)[0])  # noqa: E731
         leg = (row(rots[:, up]), row(rots[:, low]), row(rots[:, foot]))
-        bones = (tuple(sk.offsets[low]), tuple(sk.offsets[foot]))
+        bones = (tuple(sk.offsets[low]), tuple(sk.offsets[foot]), tuple(sk.offsets[toe]))
         new[0, up], new[0, low], new[0, foot] = feet_kernels.two_bone_ik(
             row(rots[:, HIPS]), leg, row(hip), bones, row(target), 0.0
         )
         g_new, p_new = fk(new, m.translations[t : t + 1], sk.parents)
         np.testing.assert_allclose(p_new[:, foot], target, atol=1e-3)  # cm
         assert abs(abs(np.sum(g_old[0, foot] * g_new[0, foot])) - 1) < 1e-9
+
+
+@pytest.mark.parametrize("side", ["L", "R"])
+def test_two_bone_ik_bends_a_straight_knee_about_its_hinge(bn_walk, side):
+    """A straight leg (the hinge floor holds knees at BN's least real bend, straight) has no bend
+    plane of its own: the IK bends it toward the toes, near BN's knee hinge (the knee's local y,
+    real bends positive, `weights/lti/hinges.npz`; off it by the foot's turn out, here < 9 deg),
+    not about a bone offset's stray millimetre (0.24 rad off the hinge) or backwards."""
+    sk, m, t = bn_walk.skeleton, bn_walk, 40
+    up, low, foot, toe = (sk.index(f"{n}_{side}") for n in ("UpperLeg", "LowerLeg", "Foot", "Toes"))
+    rots = m.rotations[t : t + 1].copy()
+    rots[:, low] = (0.0, 0.0, 0.0, 1.0)  # straight
+    _, p = fk(rots, m.translations[t : t + 1], sk.parents)
+    hip = p[0, up]
+    target = p[0, foot] + 2.0 * (hip - p[0, foot]) / np.linalg.norm(hip - p[0, foot])  # 2 cm nearer the hip
+    row = lambda a: tuple(np.asarray(a, np.float64)[0])  # noqa: E731
+    leg = (row(rots[:, up]), row(rots[:, low]), row(rots[:, foot]))
+    bones = (tuple(sk.offsets[low]), tuple(sk.offsets[foot]), tuple(sk.offsets[toe]))
+    new = rots.copy()
+    new[0, up], new[0, low], new[0, foot] = feet_kernels.two_bone_ik(
+        row(rots[:, HIPS]), leg, tuple(hip), bones, tuple(target), 0.0
+    )
+    np.testing.assert_allclose(fk(new, m.translations[t : t + 1], sk.parents)[1][0, foot], target, atol=1e-3)
+    x, y, z, w = new[0, low]
+    bend = 2.0 * np.arctan2(y, w)  # about the hinge: a 2 cm shorter leg needs ~0.45 rad
+    assert bend > 0.3 and np.hypot(x, z) < 0.15 * abs(np.sin(bend / 2))
 
 
 def test_an_inactive_session_gets_its_frame_back_as_it_is(bn_walk):

@@ -176,12 +176,13 @@ def _made(walk, name):
 @pytest.mark.parametrize("name", list(SPECS))
 def test_made_rig_maps_as_the_bn_rig_does(walk, bn_mapper, name):
     """Whatever the names, rest pose, extra joints, units and up axis, the BN frame is the one the
-    BN walk itself maps to (ue5 and vrm put their neck / chest elsewhere on the spine: within 2 deg)."""
+    BN walk itself maps to (ue5 and vrm put their neck / chest elsewhere on the spine: within 2 deg;
+    the Hips within 0.01 cm: the root rises for feet laid by hinge-true limbs, `FrameRetargeter._drop`)."""
     spec, motion, fr = _made(walk, name)
     hips, rot = fr.to_model(motion.translations[:, fr.humanoid.translated], motion.rotations)
     ref_hips, ref_rot = bn_mapper.to_model(walk.translations[:, 1], walk.rotations)
     assert fr.scale == pytest.approx(1.0 / spec.unit, rel=1e-6)
-    np.testing.assert_allclose(hips, ref_hips, atol=1e-6)
+    np.testing.assert_allclose(hips, ref_hips, atol=1e-2)
     limit = 2.0 if name in ("ue5",) else 1e-3  # the BN data are float32-rounded quaternions
     assert angle_deg(rot, ref_rot).max() < limit
 
@@ -225,7 +226,8 @@ def test_round_trip_and_a_new_pose_on_made_rigs(walk, bn_mapper, name):
     leg = 80.0
     assert np.median(err) / leg < 0.03 and err.max() / leg < 0.06, (np.median(err), err.max())
     # and the hips, so the feet, land where BN's are: the made rig's own floor is BN's floor here
-    np.testing.assert_allclose(got[:, motion.skeleton.index(spec.rename["Hips"])], want[:, 1], atol=1e-6)
+    # (within 0.01 cm: the root rises for feet laid by hinge-true limbs, `FrameRetargeter._drop`)
+    np.testing.assert_allclose(got[:, motion.skeleton.index(spec.rename["Hips"])], want[:, 1], atol=1e-2)
 
 
 def test_made_rig_fixture_motion_positions_are_the_bn_walks(walk):

@@ -105,7 +105,9 @@ def test_round_trip_reproduces_the_source(walks, variant):
 @pytest.mark.parametrize("variant", list(WALKS))
 def test_to_source_points_bones_where_bn_does(walks, rig, variant):
     """A BN pose that is not the client's (here: the walk 40 frames later) comes back with every
-    matched source bone along its BN bone, the client's frame only filling in unmapped joints."""
+    matched source bone along its BN bone, the client's frame only filling in unmapped joints. The
+    limbs' bones come back within the tilt that lays BN's hinge child into its hinge plane
+    (`retarget` module docstring): a client's limb turns as BN's does, so a round trip is exact."""
     motion, fr = walks[variant]
     root, rot = motion.translations[:, 0], motion.rotations
     hips, bn = fr.to_model(root, rot)
@@ -120,7 +122,8 @@ def test_to_source_points_bones_where_bn_does(walks, rig, variant):
         s = src_pos[:, sk.index(smap[b])] - src_pos[:, sk.index(smap[a])]
         t = bn_pos[:, bsk.index(b)] - bn_pos[:, bsk.index(a)]
         cos = np.sum(s * t, -1) / np.linalg.norm(s, axis=-1) / np.linalg.norm(t, axis=-1)
-        assert np.degrees(np.arccos(cos.clip(-1, 1))).max() < 1e-4, (a, b)
+        limb = a.split("_")[0] in ("UpperArm", "LowerArm", "UpperLeg", "LowerLeg")
+        assert np.degrees(np.arccos(cos.clip(-1, 1))).max() < (5.0 if limb else 1e-4), (a, b)
     # and the hips: same place after scaling, but for the height the root rises by for the feet
     # (`FrameRetargeter._drop`), which the client's new pose sets on the way back
     want = motion.global_positions()[40:, 0]

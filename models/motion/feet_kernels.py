@@ -59,33 +59,54 @@ def soft_reach(d, d0, reach, soft):
     return start + room * (1.0 - math.exp(-(d - start) / room))
 
 
+# The bend plane of a near-straight leg: its knee's own plane, hip-knee x hip-ankle (unit
+# vectors, so of length the sine of the angle at the hip), plus this much of the plane through
+# the hip-ankle line and the toes. A straight knee has no plane of its own (the cross product is
+# round-off, or a bone offset's stray millimetre), and bending it about that turned the knee
+# sideways, 0.24 rad off its hinge in one frame; a knee bends toward the toes. Squared weight, as
+# `retarget.HINGE_FALLBACK`: the knee's own plane decides from ~4 degrees at the hip on.
+POLE_WEIGHT = 0.07**2
+
+
 @njit(cache=True, error_model="numpy")
 def two_bone_ik(gh, leg, a, bones, target, soft):
     """Analytic two-bone IK for one leg. gh: world rotation of the parent (Hips); leg: local
     rotations (r_up, r_low, r_foot) of UpperLeg, LowerLeg, Foot; a: world hip-joint position;
-    bones: offsets (off_low, off_foot) of LowerLeg and Foot. Returns new local (r_up, r_low,
-    r_foot) putting the ankle at `target` (as close as the bone lengths allow; within `soft` of
-    full reach, eased by `soft_reach`) with the foot's world orientation unchanged: bend thigh and
-    knee about the leg plane's normal to get the hip-ankle distance right, then swing the leg
-    onto the target."""
+    bones: offsets (off_low, off_foot, off_toe) of LowerLeg, Foot and Toe. Returns new local
+    (r_up, r_low, r_foot) putting the ankle at `target` (as close as the bone lengths allow;
+    within `soft` of full reach, eased by `soft_reach`) with the foot's world orientation
+    unchanged: bend thigh and knee about the leg plane's normal (`POLE_WEIGHT`) to get the
+    hip-ankle distance right, then swing the leg onto the target."""
     r_up, r_low, r_foot = leg
-    off_low, off_foot = bones
+    off_low, off_foot, off_toe = bones
     ga = qmul(gh, r_up)
     gb = qmul(ga, r_low)
     gf = qmul(gb, r_foot)
-    b = add3(a, qrot(ga, off_low))
-    c = add3(b, qrot(gb, off_foot))
     lab, lcb = math.sqrt(dot3(off_low, off_low)), math.sqrt(dot3(off_foot, off_foot))
     at = sub3(target, a)
-    ac = sub3(c, a)
+    ac = sub3(add3(add3(a, qrot(ga, off_low)), qrot(gb, off_foot)), a)
     lat = max(soft_reach(math.sqrt(dot3(at, at)), math.sqrt(dot3(ac, ac)), lab + lcb - 1e-3, soft), 1e-3)
-    ac_ab_0 = math.acos(_cos(ac, sub3(b, a)))
-    ba_bc_0 = math.acos(_cos(sub3(a, b), sub3(c, b)))
     ac_ab_1 = math.acos(min(max((lcb * lcb - lab * lab - lat * lat) / (-2.0 * lab * lat), -1.0), 1.0))
     ba_bc_1 = math.acos(min(max((lat * lat - lab * lab - lcb * lcb) / (-2.0 * lab * lcb), -1.0), 1.0))
-    axis = cross(ac, sub3(b, a))
-    ga2 = qmul(axis_angle(_nrm(axis), ac_ab_1 - ac_ab_0), ga)
-    gb2 = qmul(axis_angle(_nrm(axis), ba_bc_1 - ba_bc_0), qmul(ga2, r_low))
+    toe = qrot(gf, off_toe)
+    # twice: a bend about an axis off the leg's plane (the toes' share) misses the distance by
+    # ~3e-4 cm; the second starts from the plane the first made, and a held point stays put
+    for _ in range(2):
+        b = add3(a, qrot(ga, off_low))
+        c = add3(b, qrot(gb, off_foot))
+        ac = sub3(c, a)
+        ac_ab_0 = math.acos(_cos(ac, sub3(b, a)))
+        ba_bc_0 = math.acos(_cos(sub3(a, b), sub3(c, b)))
+        own = cross(_nrm(ac), _nrm(sub3(b, a)))
+        toes = _nrm(cross(_nrm(ac), _nrm(toe)))
+        w = math.sqrt(dot3(own, own))
+        axis = _nrm(
+            (w * own[0] + POLE_WEIGHT * toes[0], w * own[1] + POLE_WEIGHT * toes[1], w * own[2] + POLE_WEIGHT * toes[2])
+        )
+        ga2 = qmul(axis_angle(axis, ac_ab_1 - ac_ab_0), ga)
+        gb = qmul(axis_angle(axis, ba_bc_1 - ba_bc_0), qmul(ga2, qmul(qinv(ga), gb)))
+        ga = ga2
+    gb2 = gb
     b2 = add3(a, qrot(ga2, off_low))
     c2 = add3(b2, qrot(gb2, off_foot))
     w2 = between(_nrm(sub3(c2, a)), _nrm(at))
@@ -193,7 +214,7 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
             hip = add3((ox, root[b, 1], oz), qrot(gh, row3(offsets, up)))
             ankle = (ox + rel[b, leg, 0, 0] + ex, root[b, 1] + rel[b, leg, 0, 1], oz + rel[b, leg, 0, 2] + ez)
             leg_rot = (row4(out_rot[b], up), row4(out_rot[b], low), row4(out_rot[b], ft))
-            bones = (row3(offsets, low), row3(offsets, ft))
+            bones = (row3(offsets, low), row3(offsets, ft), row3(offsets, chain[3]))
             r_up, r_low, r_foot = two_bone_ik(gh, leg_rot, hip, bones, ankle, soft)
             for i in range(4):
                 out_rot[b, up, i], out_rot[b, low, i], out_rot[b, ft, i] = r_up[i], r_low[i], r_foot[i]

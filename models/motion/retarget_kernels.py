@@ -253,6 +253,7 @@ class Rig(NamedTuple):
     drop_par: np.ndarray  # foot points: parent chains ...
     drop_off: np.ndarray  # ... offsets ...
     drop_ref: np.ndarray  # ... and reference heights (`FrameRetargeter._drop`)
+    step_reach: np.ndarray  # (S,) a limb's lower bone length over its upper (`_hinged`)
 
 
 # --------------------------------------------------------------------------- per-frame steps
@@ -387,6 +388,36 @@ def _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3, hinges, fold):
                 m,
             )
             _mm(m, rig.step_m_loc_t[s], gb[j])
+            _hinged(gb[j], m, d, vec[col_c], rig.step_reach[s], bone, nat, sw, base)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _hinged(g, frame, d, lo, reach, a, b, sw, m):
+    """A limb whose root g (3, 3) was just framed (`frame`: columns upper bone d, hinge axis, their
+    cross) with its lower bone `lo` (unit, updated in place) laid into the hinge plane, so that the
+    hinge child bends about its hinge axis alone, and g turned so that the limb's end, d + reach
+    lo (reach: lower bone length over upper), keeps its direction (`retarget` module docstring).
+    Scratch a, b (3,), sw, m (3, 3)."""
+    t = lo[0] * frame[0, 1] + lo[1] * frame[1, 1] + lo[2] * frame[2, 1]
+    p0, p1, p2 = lo[0] - t * frame[0, 1], lo[1] - t * frame[1, 1], lo[2] - t * frame[2, 1]
+    n = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    if n < 1e-6:  # the lower bone along the hinge axis: no plane to lay it in
+        return
+    p0, p1, p2 = p0 / n, p1 / n, p2 / n
+    a[0], a[1], a[2] = d[0] + reach * p0, d[1] + reach * p1, d[2] + reach * p2
+    for r in range(3):
+        b[r] = d[r] + reach * lo[r]
+    na, nb = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]), np.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
+    if na < 1e-9 or nb < 1e-9:  # a limb folded onto itself: its end has no direction
+        return
+    for r in range(3):
+        a[r] /= na
+        b[r] /= nb
+    _swing(a, b, sw)
+    _mm(sw, g, m)
+    g[:, :] = m
+    for r in range(3):
+        lo[r] = sw[r, 0] * p0 + sw[r, 1] * p1 + sw[r, 2] * p2
 
 
 # The rig's arrays travel packed in two buffers, ints and floats, each with its offsets (a part i is
@@ -425,6 +456,7 @@ FLOAT_PARTS = (
     "step_split_nat",
     "drop_off",
     "drop_ref",
+    "step_reach",
 )
 
 
@@ -606,6 +638,7 @@ def _rig(ints, int_at, floats, float_at):
         _part(ints, int_at, 16).reshape(-1, 4),
         _part(floats, float_at, 11).reshape(-1, 4, 3),
         _part(floats, float_at, 12).reshape(2, -1),
+        _part(floats, float_at, 13),
     )
 
 

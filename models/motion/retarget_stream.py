@@ -371,7 +371,7 @@ class FrameRetargeter:
         par_s = np.full(len(tree.order), -1)
         for a, b, par in tree.levels:
             par_s[a:b] = par
-        steps, nat, bone, hinge, m_loc_t, split_nat = [], [], [], [], [], []
+        steps, nat, bone, hinge, m_loc_t, split_nat, reach = [], [], [], [], [], [], []
         kinds = {"leaf": kernels.KIND_LEAF, "swing": kernels.KIND_SWING, "limb": kernels.KIND_LIMB}
         for g in plan.groups:  # TwistPlan's groups, one joint a step
             for i, (j, p) in enumerate(zip(g["j"], g["p"])):
@@ -394,6 +394,7 @@ class FrameRetargeter:
                 bone.append(g["b"][i] if "b" in g else np.zeros(3))
                 hinge.append(g["k"][i] if limb else np.zeros(3))
                 m_loc_t.append(g["m_loc_t"][i] if limb else np.eye(3))
+                reach.append(g["reach"][i] if limb else 0.0)
         nz = np.argwhere(self._vec_coef != 0)  # (v, t) entries, row by row
         bn_count = self._bn_parents.shape[0]
         ints = {
@@ -429,6 +430,7 @@ class FrameRetargeter:
             "drop_off": self._drop_off,
             "drop_ref": self._drop_ref,
             "step_split_nat": split_nat,
+            "step_reach": reach,
         }
         self._k_plan = (
             *kernels.pack(ints, kernels.INT_PARTS, np.int64),

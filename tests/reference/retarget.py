@@ -57,6 +57,7 @@ def bn_globals(plan: TwistPlan, dirs: np.ndarray, lateral: np.ndarray, fallback:
     `fallback(joint, hinge row, normal (B, 3), natural axis (B, 3))`: a limb's fallback axis
     (`_hinge_fallback`); None: the natural axis."""
     b = dirs.shape[0]
+    dirs = dirs.copy()  # a limb's lower bone is laid into its hinge plane below
     gb = np.empty((b, plan.num_joints, 3, 3))
     gb[:] = np.eye(3)  # joint_Root
     gb[:, plan.lateral] = lateral
@@ -76,7 +77,16 @@ def bn_globals(plan: TwistPlan, dirs: np.ndarray, lateral: np.ndarray, fallback:
                 for i, (j, h) in enumerate(zip(g["j"], g["h"], strict=True)):
                     natural[:, i] = fallback(int(j), int(h), normal[:, i], natural[:, i])
             axis = np.linalg.norm(normal, axis=-1, keepdims=True) * normal + HINGE_FALLBACK**2 * natural
-            rot = _frame(d, axis) @ g["m_loc_t"]
+            frame = _frame(d, axis)
+            rot = frame @ g["m_loc_t"]
+            # the hinge child bends about the hinge axis alone; the limb turns to keep its end's direction
+            hinge = frame[..., :, 1]
+            laid = lower - np.sum(lower * hinge, axis=-1, keepdims=True) * hinge
+            laid = laid / np.linalg.norm(laid, axis=-1, keepdims=True)
+            reach = g["reach"][:, None]
+            turn = _swing_mats(_unit(d + reach * laid), _unit(d + reach * lower))
+            rot = turn @ rot
+            dirs[:, g["dir_c"]] = (turn @ laid[..., None])[..., 0]
         if "split" in g:  # take a share of the two-vector child's twist about the bone
             c, nat_c = g["split"]
             axis = g["b"][0]
