@@ -121,7 +121,11 @@ def test_knees_bend_forward_and_body_upright(walks, rig, name):
         hip, knee, ankle = (pos[:, sk.index(f"{j}_{side}")] for j in ("UpperLeg", "LowerLeg", "Foot"))
         thigh, shin = knee - hip, ankle - knee
         bend = np.degrees(
-            np.arccos(np.sum(thigh * shin, -1) / np.linalg.norm(thigh, axis=-1) / np.linalg.norm(shin, axis=-1))
+            np.arccos(
+                np.clip(
+                    np.sum(thigh * shin, -1) / np.linalg.norm(thigh, axis=-1) / np.linalg.norm(shin, axis=-1), -1, 1
+                )
+            )
         )
         bent = bend > 25.0
         assert bent.any()
