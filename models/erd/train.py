@@ -10,7 +10,8 @@ First a content classifier (for the perceptual loss), then the generator against
 discriminator (LSGAN with R1): reconstruction toward the input's own style, transfer of neutral
 windows to a random style and of styled ones to neutral, input labels dropped at random so that
 unlabelled streams work. The optional `w_*` terms act on the rotations the streaming model
-outputs (`streamed_rotations`). A checkpoint holds everything `--resume` needs to continue exactly.
+outputs (`streamed_rotations`); `w_distill` pulls the decoder's rotations toward the shipped
+pipeline's (`distill.py`). A checkpoint holds everything `--resume` needs to continue exactly.
 """
 
 from __future__ import annotations
