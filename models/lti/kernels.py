@@ -7,7 +7,7 @@ The step reads top to bottom (`step`):
    path integrated. Each style's rotations are held in its rotation ball (`train.style_prior`).
 2. the input's hands measured (`models.motion.hands_kernels.hand_step`);
 3. `carry_raised_arms`: a raised hand that holds still, its arm carried toward the style's
-   (`raised_arm.py`);
+   (`raised_arm.py`) by a share eased over time (`raised_shares`);
 4. `waving_kernels.swing_arms`: a waving hand's arm takes the input's swing (`waving_arm.py`);
 5. the feet planted (`models.motion.feet_kernels.plant_feet`).
 
@@ -50,6 +50,7 @@ from .waving_arm import MEAN_SHAPE
 from .waving_kernels import WavingArm, nlerp, ramp, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
+SHARE_FLOOR = 1e-3  # an eased raised-arm share below this is 0 (`raised_shares`)
 CHUNK = 32  # sessions whose LTI step is computed together: their inputs and outputs (~50 kB) stay in cache
 
 # --------------------------------------------------------------------------- records
@@ -81,6 +82,8 @@ class Session(NamedTuple):
     in_ground: np.ndarray  # (B, 2) and its ground position
     out_yaw: np.ndarray  # (B,) the output's heading
     out_ground: np.ndarray  # (B, 2) and its ground position
+    blend: np.ndarray  # (B, 3) the erf blend weight's eased history: set (1.0) or not, its fast and slow follower
+    raise_share: np.ndarray  # (B, 2, 2) each side's raised-arm share eased (`ease`): its fast and slow follower
     hand_prev: np.ndarray  # (B, 2, 3) the input's hands from their shoulders, the frame before
     hand_sway: np.ndarray  # (B, 2) their horizontal speed, averaged
     hand_rise: np.ndarray  # (B, 2) their vertical speed, averaged
@@ -97,6 +100,8 @@ CARRY = {
     "in_ground": (2,),
     "out_yaw": (),
     "out_ground": (2,),
+    "blend": (3,),
+    "raise_share": (2, 2),
     "hand_prev": (2, 3),
     "hand_sway": (2,),
     "hand_rise": (2,),
@@ -133,11 +138,12 @@ def unpack(carry, x):
     """The `Session` (with the LTI states x) and `Feet` records of a packed carry: views."""
     session = Session(
         _view(carry, _S[0]), _view(carry, _S[1]), _view(carry, _S[2]), _view(carry, _S[3]), _view(carry, _S[4]),
-        _view(carry, _S[5]), _view(carry, _S[6]), _view(carry, _S[7]), _view(carry, _S[8]), _view(carry, _S[9]), x,
+        _view(carry, _S[5]), _view(carry, _S[6]), _view(carry, _S[7]), _view(carry, _S[8]), _view(carry, _S[9]),
+        _view(carry, _S[10]), _view(carry, _S[11]), x,
     )  # fmt: skip
     feet = Feet(
-        _view(carry, _S[10]), _view(carry, _S[11]), _view(carry, _S[12]), _view(carry, _S[13]),
-        _view(carry, _S[14]), _view(carry, _S[15]), _view(carry, _S[16]), _view(carry, _S[17]),
+        _view(carry, _S[12]), _view(carry, _S[13]), _view(carry, _S[14]), _view(carry, _S[15]),
+        _view(carry, _S[16]), _view(carry, _S[17]), _view(carry, _S[18]), _view(carry, _S[19]),
     )  # fmt: skip
     return session, feet
 
@@ -163,6 +169,7 @@ class Systems(NamedTuple):
     out_std: np.ndarray  # (S, 68)
     k: np.ndarray  # (S, 2) erf blend k_p, k_c
     ref: np.ndarray  # (S, 22, 4) per-joint reference rotations
+    keep: float  # per frame, the share of the blend weight's eased history kept (`ease`)
 
 
 class Footplant(NamedTuple):
@@ -205,6 +212,7 @@ class RaisedArm(NamedTuple):
     joints: np.ndarray  # (2, K) int64: each side's arm, Shoulder to Hand
     raise_ramp: np.ndarray  # (2,) cm: the hand's height over its shoulder, raise share 0 -> 1
     wave_ramp: np.ndarray  # (2,) cm/s: its sway, wave share 0 -> 1
+    keep: float  # per frame, the share of the eased share's history kept (`raised_shares`)
 
 
 class Switches(NamedTuple):
@@ -221,7 +229,7 @@ class Work(NamedTuple):
     """Scratch for up to B sessions, kept between steps (fresh ~2 MB at batch 256 cost more in
     page faults than the step's arithmetic); flat buffers take each style's (rows, m) shape."""
 
-    session: np.ndarray  # (B, 16): yaw, yaw-free hips, root displacement and yaw change, the input's share, ...
+    session: np.ndarray  # (B, 18): yaw, yaw-free hips, root displacement and yaw change, the input's share, ...
     quats: np.ndarray  # (B, S, 22, 4) each style's body rotations
     rows: np.ndarray  # (B,) int64: the sessions using a style
     blend_w: np.ndarray  # (CHUNK,) of a chunk of the sessions using a style
@@ -243,7 +251,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
     styles = len(systems.x_off) - 1
     n, k = int(np.diff(systems.x_off).max()), min(batch, CHUNK)
     work = Work(
-        np.empty((batch, 16)),
+        np.empty((batch, 18)),
         np.empty((batch, styles, NUM_JOINTS, 4)),
         np.empty(batch, np.int64),
         np.empty(k),
@@ -267,13 +275,13 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
 # Each record's fields as the kernel reads them: f float64, i int64, b bool; 0 a scalar, else the
 # number of dimensions. `pack` checks records against these, `unpack_constants` and `unpack_work` rebuild them in the kernel.
 CONSTANT_SCHEMAS = (
-    "i1 i1 i1 i1 f1 f2 f2 f2 f2 f2 f2 f2 f2 f3",  # Systems
+    "i1 i1 i1 i1 f1 f2 f2 f2 f2 f2 f2 f2 f2 f3 f0",  # Systems
     "f2 f3 f3 f3 b1 f3",  # Footplant
     "f3 f3 f2",  # Ball
     "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
-    "f3 f3 f4 f2 i1 i2 f1 f1",  # RaisedArm
+    "f3 f3 f4 f2 i1 i2 f1 f1 f0",  # RaisedArm
     "i2 f1 f1 f1 f0 f0",  # WavingArm
-    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
+    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
     "b0 b0 b0 b0 b0",  # Switches
     "f2 f2 f1",  # Bends
 )
@@ -349,28 +357,30 @@ def unpack_constants(p):
         _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _f(p, 5).reshape(_s2(p, 5)), _f(p, 6).reshape(_s2(p, 6)),
         _f(p, 7).reshape(_s2(p, 7)), _f(p, 8).reshape(_s2(p, 8)), _f(p, 9).reshape(_s2(p, 9)),
         _f(p, 10).reshape(_s2(p, 10)), _f(p, 11).reshape(_s2(p, 11)), _f(p, 12).reshape(_s2(p, 12)),
-        _f(p, 13).reshape(_s3(p, 13)),
+        _f(p, 13).reshape(_s3(p, 13)), _f(p, 14)[0],
     )  # fmt: skip
     fp = Footplant(
-        _f(p, 14).reshape(_s2(p, 14)), _f(p, 15).reshape(_s3(p, 15)), _f(p, 16).reshape(_s3(p, 16)),
-        _f(p, 17).reshape(_s3(p, 17)), _b(p, 18), _f(p, 19).reshape(_s3(p, 19)),
+        _f(p, 15).reshape(_s2(p, 15)), _f(p, 16).reshape(_s3(p, 16)), _f(p, 17).reshape(_s3(p, 17)),
+        _f(p, 18).reshape(_s3(p, 18)), _b(p, 19), _f(p, 20).reshape(_s3(p, 20)),
     )  # fmt: skip
-    ball = Ball(_f(p, 20).reshape(_s3(p, 20)), _f(p, 21).reshape(_s3(p, 21)), _f(p, 22).reshape(_s2(p, 22)))
+    ball = Ball(_f(p, 21).reshape(_s3(p, 21)), _f(p, 22).reshape(_s3(p, 22)), _f(p, 23).reshape(_s2(p, 23)))
     hands = Hands(
-        _i(p, 23), _f(p, 24).reshape(_s2(p, 24)), _i(p, 25), _i(p, 26), _i(p, 27), _f(p, 28)[0], _f(p, 29)[0],
-        _f(p, 30)[0],
+        _i(p, 24), _f(p, 25).reshape(_s2(p, 25)), _i(p, 26), _i(p, 27), _i(p, 28), _f(p, 29)[0], _f(p, 30)[0],
+        _f(p, 31)[0],
     )  # fmt: skip
     arm = RaisedArm(
-        _f(p, 31).reshape(_s3(p, 31)), _f(p, 32).reshape(_s3(p, 32)), _f(p, 33).reshape(_s4(p, 33)),
-        _f(p, 34).reshape(_s2(p, 34)), _i(p, 35), _i(p, 36).reshape(_s2(p, 36)), _f(p, 37), _f(p, 38),
+        _f(p, 32).reshape(_s3(p, 32)), _f(p, 33).reshape(_s3(p, 33)), _f(p, 34).reshape(_s4(p, 34)),
+        _f(p, 35).reshape(_s2(p, 35)), _i(p, 36), _i(p, 37).reshape(_s2(p, 37)), _f(p, 38), _f(p, 39),
+        _f(p, 40)[0],
     )  # fmt: skip
-    waving = WavingArm(_i(p, 39).reshape(_s2(p, 39)), _f(p, 40), _f(p, 41), _f(p, 42), _f(p, 43)[0], _f(p, 44)[0])
+    waving = WavingArm(_i(p, 41).reshape(_s2(p, 41)), _f(p, 42), _f(p, 43), _f(p, 44), _f(p, 45)[0], _f(p, 46)[0])
     planter = (
-        _i(p, 45)[0], _i(p, 46).reshape(_s2(p, 46)), _f(p, 47).reshape(_s2(p, 47)), _f(p, 48), _f(p, 49)[0],
-        _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0],
+        _i(p, 47)[0], _i(p, 48).reshape(_s2(p, 48)), _f(p, 49).reshape(_s2(p, 49)), _f(p, 50), _f(p, 51)[0],
+        _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0], _f(p, 57)[0], _f(p, 58)[0],
+        _f(p, 59)[0],
     )  # fmt: skip
-    on = Switches(_b(p, 57)[0], _b(p, 58)[0], _b(p, 59)[0], _b(p, 60)[0], _b(p, 61)[0])
-    bends = Bends(_f(p, 62).reshape(_s2(p, 62)), _f(p, 63).reshape(_s2(p, 63)), _f(p, 64))
+    on = Switches(_b(p, 60)[0], _b(p, 61)[0], _b(p, 62)[0], _b(p, 63)[0], _b(p, 64)[0])
+    bends = Bends(_f(p, 65).reshape(_s2(p, 65)), _f(p, 66).reshape(_s2(p, 66)), _f(p, 67))
     return sys, fp, ball, hands, arm, waving, planter, on, bends
 
 
@@ -482,6 +492,32 @@ def style_inputs(sys, s, root_y, rotations, tilt, delta, x, blend, xin, u, feats
 
 
 @njit(cache=True, error_model="numpy")
+def ease(raw, history, keep):
+    """A weight eased over time: two one-pole followers in series (fast, then slow) of its raw
+    value, keeping `keep` of their history per frame; history (set, fast, slow), unset (a
+    session's first frame): the followers start at `raw`. Returns (fast, slow); the slow one is
+    applied. Why: the erf blend weight and the raised-arm shares are steep functions of the input
+    (a DOF a fraction of its spread past the training range moves the blend by ~0.4 in a frame; a
+    hand swung up in a jump crosses the raise ramp in a frame or two), and the output moves
+    between two poses with them, a rotation acceleration of the gap times the weight's second
+    difference, which the slow follower keeps small."""
+    fast, slow = (history[1], history[2]) if history[0] != 0.0 else (raw, raw)
+    fast = keep * fast + (1.0 - keep) * raw
+    return fast, keep * slow + (1.0 - keep) * fast
+
+
+def eased(raw: np.ndarray, keep: float) -> np.ndarray:
+    """(F,) a quantity eased frame by frame as the stream does (`ease`), for the offline path: two one-pole
+    followers in series, both starting at its first value."""
+    out = np.empty(len(raw))
+    fast = slow = float(raw[0]) if len(raw) else 0.0
+    for t, r in enumerate(raw):
+        fast = keep * fast + (1.0 - keep) * r
+        out[t] = slow = keep * slow + (1.0 - keep) * fast
+    return out
+
+
+@njit(cache=True, error_model="numpy")
 def system_product(sys, s, xin, u, z):
     """z = M_s [xin; u] for the m sessions in the columns (rows of z: the state, then the
     outputs; not the log time warp): the dense input columns [B; D] u, then the sparse state
@@ -550,13 +586,13 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
     B, S = frame.weights.shape
     weights, per = frame.weights, work.session
     yaws, tilts, deltas, rests = per[:, 0], per[:, 1:5], per[:, 5:8], per[:, 8]
-    totals, root_feats, votes = per[:, 9], per[:, 10:14], per[:, 14:16]
+    totals, root_feats, votes, eased = per[:, 9], per[:, 10:14], per[:, 14:16], per[:, 16:18]
     for b in range(B):
         for i in range(after.x.shape[1]):
             after.x[b, i] = 0.0  # a style at weight 0 rests at its initial state x = 0
         work.contacts[b, 0], work.contacts[b, 1] = False, False
         yaw, tilt = split_hips(quat_at(frame.rotations, b, HIPS))
-        yaws[b], votes[b, 0], votes[b, 1] = yaw, 0.0, 0.0
+        yaws[b], votes[b, 0], votes[b, 1], eased[b, 0], eased[b, 1] = yaw, 0.0, 0.0, 0.0, 0.0
         tilts[b, 0], tilts[b, 1], tilts[b, 2], tilts[b, 3] = tilt
         gx, gz = frame.root[b, 0], frame.root[b, 2]
         started = before.started[b]
@@ -591,10 +627,15 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
             feats = work.feats[: FEATURE_DIM * k].reshape((FEATURE_DIM, k))
             for c in range(k):
                 b = work.rows[lo + c]
-                work.blend_w[c] = style_inputs(
+                raw = style_inputs(
                     sys, s, frame.root[b, 1], frame.rotations[b], row4(tilts, b), deltas[b], before.x[b, a:e],
                     switches.blend, xin, u, feats, c,
                 )  # fmt: skip
+                # each style eases its own weight from the session's history, which takes the
+                # styles' followers in their shares (one style: exactly its own)
+                fast, work.blend_w[c] = ease(raw, before.blend[b], sys.keep)
+                eased[b, 0] += weights[b, s] * fast
+                eased[b, 1] += weights[b, s] * work.blend_w[c]
             system_product(sys, s, xin, u, z)
             for c in range(k):
                 b = work.rows[lo + c]
@@ -643,7 +684,13 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
         work.root[b, 0], work.root[b, 1], work.root[b, 2] = after.out_ground[b, 0], rf[3], after.out_ground[b, 1]
         after.started[b] = True
         after.in_yaw[b], after.in_ground[b, 0], after.in_ground[b, 1] = yaw, gx, gz
+        after.blend[b, 0], after.blend[b, 1], after.blend[b, 2] = 0.0, 0.0, 0.0  # no style: starts again
         if totals[b] > 0.0:
+            after.blend[b, 0], after.blend[b, 1], after.blend[b, 2] = (
+                1.0,
+                eased[b, 0] / totals[b],
+                eased[b, 1] / totals[b],
+            )
             limit = 0.5 * max(totals[b], 1e-12)
             work.contacts[b, 0], work.contacts[b, 1] = votes[b, 0] > limit, votes[b, 1] > limit
 
@@ -658,9 +705,26 @@ def calm_share(arm, height, sway):
 
 
 @njit(cache=True, error_model="numpy")
-def carry_raised_arms(b, arm, weights, offsets, swayed, out_rot, work):
+def raised_shares(b, arm, on, raised, weights, offsets, swayed, fresh, before, after):
+    """Session b's share of each side's raised arm (`raised_arm.shares`: the hand's raise share
+    times one minus its wave share), eased over time (`ease`, from `before` (2, 2) into `after`):
+    a hand swung up in a jump or a punch crosses the raise ramp in a frame or two. Below
+    `SHARE_FLOOR` an eased share is 0 (it decays toward 0 and would never reach it)."""
+    carried = False
+    if on and raised:
+        for s in range(weights.shape[1]):
+            carried = carried or (arm.row[s] >= 0 and weights[b, s] > 0.0)
+    for side in range(2):
+        raw = calm_share(arm, offsets[b, side, 1], swayed[b, side]) if carried else 0.0
+        after[side, 0], after[side, 1] = ease(raw, (0.0 if fresh else 1.0, before[side, 0], before[side, 1]), arm.keep)
+    left, right = after[0, 1], after[1, 1]
+    return (left if left >= SHARE_FLOOR else 0.0), (right if right >= SHARE_FLOOR else 0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def carry_raised_arms(b, arm, weights, left, right, out_rot, work):
     """Session b's arms mixed toward the styles' raised arms (`raised_arm.carried`): each side
-    by its share, the hand's raise share times one minus its wave share (`raised_arm.shares`)."""
+    by its share (`raised_shares`)."""
     total = 0.0
     for s in range(weights.shape[1]):
         k = arm.row[s]
@@ -668,9 +732,6 @@ def carry_raised_arms(b, arm, weights, offsets, swayed, out_rot, work):
             work.carry_w[0, k] = weights[b, s]
             total += weights[b, s]
     if not total > 0.0:
-        return
-    left, right = calm_share(arm, offsets[b, 0, 1], swayed[b, 0]), calm_share(arm, offsets[b, 1, 1], swayed[b, 1])
-    if not (left > 0.0 or right > 0.0):
         return
     carry_batch(out_rot[b : b + 1], work.carry_w, arm.source, arm.mean, arm.map, arm.radius, HIPS, work.carried)
     for side in range(2):
@@ -711,11 +772,15 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
         raised = False
         for side in range(2):
             raised = raised or after.hand_prev[b, side, 1] > hands.above
+        left, right = raised_shares(
+            b, arm, on.raised_arm, raised, frame.weights, after.hand_prev, after.hand_sway, not before.started[b],
+            before.raise_share[b], after.raise_share[b],
+        )  # fmt: skip
+        if left > 0.0 or right > 0.0:
+            carry_raised_arms(b, arm, frame.weights, left, right, out.rotations, work)
         if not raised:  # a walk's or a run's hands never are: the running means wait
             new_carry[b, WAVE_AT:FEET_AT] = carry[b, WAVE_AT:FEET_AT]
             continue
-        if on.raised_arm and arm.source.shape[0] > 0:
-            carry_raised_arms(b, arm, frame.weights, after.hand_prev, after.hand_sway, out.rotations, work)
         swing_arms(
             b, waving, frame.rotations, out.rotations, frame.weights, before.started, before.hand_prev,
             after.hand_prev, after.hand_sway, after.hand_rise, before.wave_in_mean, before.wave_out_mean,
@@ -752,8 +817,9 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
 # --------------------------------------------------------------------------- packing
 
 
-def pack_styles(translators: list) -> tuple[Systems, Footplant, Ball]:
-    """The records of `StyleTranslator`s (in style order); done once per style-set change."""
+def pack_styles(translators: list, keep: float) -> tuple[Systems, Footplant, Ball]:
+    """The records of `StyleTranslator`s (in style order), their blend weights eased by `keep`
+    (`ease`); done once per style-set change."""
     from scipy import sparse
 
     x_off, row_off, indptr, indices, data, inputs = [0], [0], [], [], [], []
@@ -795,6 +861,7 @@ def pack_styles(translators: list) -> tuple[Systems, Footplant, Ball]:
         f64([tr.out_std for tr in translators]),
         f64([(tr.k_p, tr.k_c) for tr in translators]),
         f64([tr.ref for tr in translators]),
+        float(keep),
     )
     footplant = Footplant(
         np.ascontiguousarray(np.concatenate(fp_w).T, dtype=np.float64),

@@ -7,7 +7,8 @@ and the footplant classifier. Every frame, per session:
     u = (features(frame) - in_mean) / in_std          (features: representation.py)
     [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint)
     out = y * out_std + out_mean
-    out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
+    out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend,
+                                                                          eased over time: `kernels.ease`)
     pose = inverse representation(out); rotation prior (`train.style_prior`); hinge joints held at
     their least real bend (`models.motion.hinge_kernels`, `hinges.npz`); contacts
     then the stages, each measured on the input and fitted per style the same way: a raised,
@@ -16,7 +17,7 @@ and the footplant classifier. Every frame, per session:
 Heading: the translated yaw drifts slowly for some styles, so by default the output takes the
 input's yaw change (`keep_heading=True`); speed, posture and timing stay translated. The feet are
 planted (`footlock`) by `models.motion.feet.FootPlanter`, shared by every method, with the
-classifier's contacts as hints; `FrameBatch.contacts` are the planted legs, or the classifier's.
+classifier's contacts as hints for feet slower than `HINT_SPEED`; `FrameBatch.contacts` are the planted legs, or the classifier's.
 
 The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and stage
 (`kernels.step`); the offline path (`StyleTranslator.translate_motion`) stays numpy over whole
@@ -52,6 +53,8 @@ CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
 STORED = ("in_mean", "in_std", "out_mean", "out_std", "in_lo", "in_hi", "orders", "ref")  # saved as they are
+EASE_S = 0.1  # time constant of each of the two followers easing the erf blend and raised-arm shares (`kernels.ease`)
+HINT_SPEED = 120.0  # cm/s: a foot the footplant classifier calls planted plants when slower (`FootPlanter.hint_speed`)
 COMPACT_FROM = 16  # sessions in a step from which only the styles in use are copied (`_side_by_side`)
 
 
@@ -99,7 +102,7 @@ class StyleTranslator:
     def _finish(self, feats: np.ndarray, u: np.ndarray, y: np.ndarray, blend: bool) -> np.ndarray:
         out = y * self.out_std + self.out_mean  # a new array
         if blend:
-            w = self.blend_weight(u)[..., None]
+            w = kernels.eased(self.blend_weight(u), ease_keep(LTIStyleModel.fps))[:, None]
             out[..., : rep.FEATURE_DIM] = (1 - w) * out[..., : rep.FEATURE_DIM] + w * feats
             out[..., rep.FEATURE_DIM :] *= 1 - w
         if self.keep_heading:
@@ -143,14 +146,14 @@ class StyleTranslator:
             offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
             swayed = clip_sway(offsets, motion.fps)
         if self.raised_arm is not None:
-            share = raised_arm.shares(offsets, swayed)
+            share = raised_arm.eased_shares(raised_arm.shares(offsets, swayed), ease_keep(LTIStyleModel.fps))
             rots = raised_arm.carried(self.raised_arm, rots, np.ones((len(rots), 1)), share)
         if self.waving_arm:
             mean, radii = self.ball()
             rots = waving_arm.clip(rots, motion.rotations, offsets, swayed, motion.fps, mean[None], radii[None])
         contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
         if footlock:
-            root, rots, contacts = model_rig_planter(motion.fps).clip(root, rots, hints=contacts)
+            root, rots, contacts = model_rig_planter(motion.fps, hint_speed=HINT_SPEED).clip(root, rots, hints=contacts)
         if timewarp:
             from .warping import resample_pose
 
@@ -201,6 +204,11 @@ class StyleTranslator:
                 prior_radii=z["prior_radii"] if "prior_radii" in z else None,
                 raised_arm=StyleCarry(*(z[k] for k in ARM_KEYS)) if ARM_KEYS[0] in z else None,
             )
+
+
+def ease_keep(fps: float) -> float:
+    """Per frame at `fps`, the share of an eased quantity's history kept (`EASE_S`)."""
+    return float(np.exp(-1.0 / (fps * EASE_S)))
 
 
 class _Scratch(NamedTuple):
@@ -283,7 +291,7 @@ class LTIStyleModel(LTIStyles):
         self.blend = blend
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
-        self.planter = model_rig_planter(self.fps)
+        self.planter = model_rig_planter(self.fps, hint_speed=HINT_SPEED)
         self._hands = HandMeter(self.skeleton)  # the input's hands, for the raised arm (`raised_arm.py`)
         self._scratch = threading.local()  # per thread: step scratch reused between steps (`_workspace`)
         self._set_styles(sorted(translators))
@@ -310,8 +318,8 @@ class LTIStyleModel(LTIStyles):
     def _set_styles(self, styles: list[str]) -> None:
         """Everything the step needs per style set, computed here once (the state keys, the
         kernel's records) and replaced whole, so a reader sees one consistent set."""
-        systems, footplant, ball = kernels.pack_styles([self.translators[s] for s in styles])
-        arm = raised_arm.settings([self.translators[s].raised_arm for s in styles])
+        systems, footplant, ball = kernels.pack_styles([self.translators[s] for s in styles], ease_keep(self.fps))
+        arm = raised_arm.settings([self.translators[s].raised_arm for s in styles], ease_keep(self.fps))
         h = self._hands
         hands = kernels.Hands(
             h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
