@@ -20,8 +20,11 @@ costs a few microseconds more of argument checks. Geometry is a loop on scalars 
 (`models.motion.quaternion`).
 
 The LTI product [x'; y] = [[A, B], [C, D]] [x; u] is split: the state columns [A; C] are block
-diagonal per joint (~5 % non-zero, a sparse product), the input columns [B; D] are more than half
-full (a dense product, `np.dot`). Both run on all the sessions using a style at once.
+diagonal per joint (~5 % non-zero, a sparse product); in the input columns [B; D] the rows fall in
+a few groups that read the same inputs (a joint's system reads its context: the root's 7, the
+upper body's 49, a leg's 37 of the 67), so each group is a dense product (`np.dot`) of its
+inputs alone, ~40 % fewer multiply-adds than the whole. Both run on all the sessions using a
+style at once; z's rows are kept in group order (`Systems.pos`).
 
 Records (NamedTuples of arrays), one per concern, travel in a few flat buffers: a session's carry
 (`CARRY`, the model's state), the constant records and the scratch (`pack`); each array passed
@@ -43,6 +46,7 @@ from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
+from ..motion.novelty_kernels import fade_step
 from ..motion.quaternion import qdot, qinv, qmul, quat_at, row3, row4, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
@@ -51,6 +55,7 @@ from .waving_kernels import WavingArm, nlerp, ramp, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
 SHARE_FLOOR = 1e-3  # an eased raised-arm share below this is 0 (`raised_shares`)
+GROUP_MIN_SAVING = 500  # multiply-adds a group of rows must save to get its own product (a call costs ~that)
 CHUNK = 32  # sessions whose LTI step is computed together: their inputs and outputs (~50 kB) stay in cache
 
 # --------------------------------------------------------------------------- records
@@ -152,15 +157,20 @@ class Systems(NamedTuple):
     """Every style's translator, concatenated over the model's styles in order, so the kernel
     takes a fixed set of arrays whatever the style set is. Style s has x_off[s+1] - x_off[s]
     state entries (`Footplant.w`'s columns x_off[s]...) and rows row_off[s]:row_off[s+1] of
-    M_s = [[A, B], [C, D]]: its state columns [A; C] in CSR (columns local to the style), its
-    input columns [B; D] dense."""
+    M_s = [[A, B], [C, D]], held in group order (`input_groups`): its state columns [A; C] in
+    CSC (columns x_off[s]..., rows local to the style), its input columns [B; D] as one dense
+    block per group of rows over the inputs they read, stored transposed (inputs, rows)."""
 
     x_off: np.ndarray  # (S + 1,) int64
     row_off: np.ndarray  # (S + 1,) int64
-    indptr: np.ndarray  # (rows + 1,) int64, into indices/data
-    indices: np.ndarray  # (nnz,) int32
+    indptr: np.ndarray  # (N + 1,) int64: each state column's entries in indices/data
+    indices: np.ndarray  # (nnz,) int32: their rows, in group order
     data: np.ndarray  # (nnz,)
-    inputs: np.ndarray  # (rows, 67) [B; D]
+    pos: np.ndarray  # (rows,) int64: where each row of M_s (row_off[s] + r) sits in the group order
+    group_off: np.ndarray  # (S + 1,) int64: style s's groups, group_off[s]...
+    groups: np.ndarray  # (G, 5) int64: a group's rows (first, end) in group order, its inputs (at, count) in `cols`, its block's start in `blocks`
+    cols: np.ndarray  # (C,) int64: each group's inputs
+    blocks: np.ndarray  # (sum of rows x inputs,) each group's [B; D] rows over its inputs, transposed, C order
     in_mean: np.ndarray  # (S, 67)
     in_std: np.ndarray  # (S, 67)
     in_lo: np.ndarray  # (S, 67) training range of the normalised input (erf blend)
@@ -244,6 +254,9 @@ class Work(NamedTuple):
     carry_w: np.ndarray  # (1, C) one session's raised-arm carry weights
     carried: np.ndarray  # (1, J, 4) its carried rotations
     point: np.ndarray  # (B, 2) int64: the planter's held points, as it indexes with them
+    group_u: np.ndarray  # flat: the normalised features a group of rows reads, (inputs, k)
+    staged_root: np.ndarray  # (B, 3) the step's root before the unseen-content fade (`step_fading`)
+    staged_rotations: np.ndarray  # (B, J, 4) and its rotations
 
 
 def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ...]:
@@ -266,6 +279,9 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
         np.empty((1, carries)),
         np.empty((1, NUM_JOINTS, 4)),
         np.empty((batch, 2), np.int64),
+        np.empty(FEATURE_DIM * k),
+        np.empty((batch, 3)),
+        np.empty((batch, NUM_JOINTS, 4)),
     )
     return pack([work], [WORK_SCHEMA], copy=False)
 
@@ -275,7 +291,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
 # Each record's fields as the kernel reads them: f float64, i int64, b bool; 0 a scalar, else the
 # number of dimensions. `pack` checks records against these, `unpack_constants` and `unpack_work` rebuild them in the kernel.
 CONSTANT_SCHEMAS = (
-    "i1 i1 i1 i1 f1 f2 f2 f2 f2 f2 f2 f2 f2 f3 f0",  # Systems
+    "i1 i1 i1 i1 f1 i1 i1 i2 i1 f1 f2 f2 f2 f2 f2 f2 f2 f3 f0",  # Systems
     "f2 f3 f3 f3 b1 f3",  # Footplant
     "f3 f3 f2",  # Ball
     "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
@@ -285,7 +301,7 @@ CONSTANT_SCHEMAS = (
     "b0 b0 b0 b0 b0",  # Switches
     "f2 f2 f1",  # Bends
 )
-WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2"
+WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f2 f3"
 
 
 def pack(
@@ -354,33 +370,34 @@ def unpack_constants(p):
     """The step's constant records from `pack([systems, footplant, ball, hands, arm, waving,
     planter, switches, bends])`: views, in `CONSTANT_SCHEMAS`' order."""
     sys = Systems(
-        _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _f(p, 5).reshape(_s2(p, 5)), _f(p, 6).reshape(_s2(p, 6)),
-        _f(p, 7).reshape(_s2(p, 7)), _f(p, 8).reshape(_s2(p, 8)), _f(p, 9).reshape(_s2(p, 9)),
-        _f(p, 10).reshape(_s2(p, 10)), _f(p, 11).reshape(_s2(p, 11)), _f(p, 12).reshape(_s2(p, 12)),
-        _f(p, 13).reshape(_s3(p, 13)), _f(p, 14)[0],
+        _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _i(p, 5), _i(p, 6), _i(p, 7).reshape(_s2(p, 7)), _i(p, 8),
+        _f(p, 9), _f(p, 10).reshape(_s2(p, 10)),
+        _f(p, 11).reshape(_s2(p, 11)), _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s2(p, 13)),
+        _f(p, 14).reshape(_s2(p, 14)), _f(p, 15).reshape(_s2(p, 15)), _f(p, 16).reshape(_s2(p, 16)),
+        _f(p, 17).reshape(_s3(p, 17)), _f(p, 18)[0],
     )  # fmt: skip
     fp = Footplant(
-        _f(p, 15).reshape(_s2(p, 15)), _f(p, 16).reshape(_s3(p, 16)), _f(p, 17).reshape(_s3(p, 17)),
-        _f(p, 18).reshape(_s3(p, 18)), _b(p, 19), _f(p, 20).reshape(_s3(p, 20)),
+        _f(p, 19).reshape(_s2(p, 19)), _f(p, 20).reshape(_s3(p, 20)), _f(p, 21).reshape(_s3(p, 21)),
+        _f(p, 22).reshape(_s3(p, 22)), _b(p, 23), _f(p, 24).reshape(_s3(p, 24)),
     )  # fmt: skip
-    ball = Ball(_f(p, 21).reshape(_s3(p, 21)), _f(p, 22).reshape(_s3(p, 22)), _f(p, 23).reshape(_s2(p, 23)))
+    ball = Ball(_f(p, 25).reshape(_s3(p, 25)), _f(p, 26).reshape(_s3(p, 26)), _f(p, 27).reshape(_s2(p, 27)))
     hands = Hands(
-        _i(p, 24), _f(p, 25).reshape(_s2(p, 25)), _i(p, 26), _i(p, 27), _i(p, 28), _f(p, 29)[0], _f(p, 30)[0],
-        _f(p, 31)[0],
+        _i(p, 28), _f(p, 29).reshape(_s2(p, 29)), _i(p, 30), _i(p, 31), _i(p, 32), _f(p, 33)[0], _f(p, 34)[0],
+        _f(p, 35)[0],
     )  # fmt: skip
     arm = RaisedArm(
-        _f(p, 32).reshape(_s3(p, 32)), _f(p, 33).reshape(_s3(p, 33)), _f(p, 34).reshape(_s4(p, 34)),
-        _f(p, 35).reshape(_s2(p, 35)), _i(p, 36), _i(p, 37).reshape(_s2(p, 37)), _f(p, 38), _f(p, 39),
-        _f(p, 40)[0],
+        _f(p, 36).reshape(_s3(p, 36)), _f(p, 37).reshape(_s3(p, 37)), _f(p, 38).reshape(_s4(p, 38)),
+        _f(p, 39).reshape(_s2(p, 39)), _i(p, 40), _i(p, 41).reshape(_s2(p, 41)), _f(p, 42), _f(p, 43),
+        _f(p, 44)[0],
     )  # fmt: skip
-    waving = WavingArm(_i(p, 41).reshape(_s2(p, 41)), _f(p, 42), _f(p, 43), _f(p, 44), _f(p, 45)[0], _f(p, 46)[0])
+    waving = WavingArm(_i(p, 45).reshape(_s2(p, 45)), _f(p, 46), _f(p, 47), _f(p, 48), _f(p, 49)[0], _f(p, 50)[0])
     planter = (
-        _i(p, 47)[0], _i(p, 48).reshape(_s2(p, 48)), _f(p, 49).reshape(_s2(p, 49)), _f(p, 50), _f(p, 51)[0],
-        _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0], _f(p, 57)[0], _f(p, 58)[0],
-        _f(p, 59)[0],
+        _i(p, 51)[0], _i(p, 52).reshape(_s2(p, 52)), _f(p, 53).reshape(_s2(p, 53)), _f(p, 54), _f(p, 55)[0],
+        _f(p, 56)[0], _f(p, 57)[0], _f(p, 58)[0], _f(p, 59)[0], _f(p, 60)[0], _f(p, 61)[0], _f(p, 62)[0],
+        _f(p, 63)[0],
     )  # fmt: skip
-    on = Switches(_b(p, 60)[0], _b(p, 61)[0], _b(p, 62)[0], _b(p, 63)[0], _b(p, 64)[0])
-    bends = Bends(_f(p, 65).reshape(_s2(p, 65)), _f(p, 66).reshape(_s2(p, 66)), _f(p, 67))
+    on = Switches(_b(p, 64)[0], _b(p, 65)[0], _b(p, 66)[0], _b(p, 67)[0], _b(p, 68)[0])
+    bends = Bends(_f(p, 69).reshape(_s2(p, 69)), _f(p, 70).reshape(_s2(p, 70)), _f(p, 71))
     return sys, fp, ball, hands, arm, waving, planter, on, bends
 
 
@@ -390,7 +407,8 @@ def unpack_work(p):
     return Work(
         _f(p, 0).reshape(_s2(p, 0)), _f(p, 1).reshape(_s4(p, 1)), _i(p, 2), _f(p, 3), _f(p, 4), _f(p, 5), _f(p, 6),
         _f(p, 7), _f(p, 8), _f(p, 9).reshape(_s2(p, 9)), _b(p, 10).reshape(_s2(p, 10)), _b(p, 11),
-        _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s3(p, 13)), _i(p, 14).reshape(_s2(p, 14)),
+        _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s3(p, 13)), _i(p, 14).reshape(_s2(p, 14)), _f(p, 15),
+        _f(p, 16).reshape(_s2(p, 16)), _f(p, 17).reshape(_s3(p, 17)),
     )  # fmt: skip
 
 
@@ -518,27 +536,39 @@ def eased(raw: np.ndarray, keep: float) -> np.ndarray:
 
 
 @njit(cache=True, error_model="numpy")
-def system_product(sys, s, xin, u, z):
-    """z = M_s [xin; u] for the m sessions in the columns (rows of z: the state, then the
-    outputs; not the log time warp): the dense input columns [B; D] u, then the sparse state
-    columns [A; C] xin added (one session: a sum per row; several: each matrix entry applied to
-    all of them, a loop the compiler vectorises)."""
-    r0, m = sys.row_off[s], xin.shape[1]
-    if m == 1:  # a matrix-vector product (BLAS gemv): ~2.5x faster than gemm on one column
-        np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u.reshape(u.shape[0]), z.reshape(z.shape[0]))
-    else:
-        np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u, z)
-    for r in range(z.shape[0]):
+def system_product(sys, s, xin, u, z, group_u):
+    """z = M_s [xin; u] for the m sessions in the columns (rows of z: M_s's in group order, see
+    `Systems`; not the log time warp): each group's dense block times the inputs it reads, then
+    the sparse state columns [A; C] xin added, column by column. One session: the block's
+    columns scaled and added (the inner loop runs down a column, so it vectorises: ~3x faster
+    than BLAS gemv on these few hundred rows); several: a BLAS product per group, and each
+    sparse entry applied to all of them (a loop the compiler vectorises). group_u: scratch."""
+    m = xin.shape[1]
+    for g in range(sys.group_off[s], sys.group_off[s + 1]):
+        first, end, at, count, block = sys.groups[g]
+        rows = z[first:end]
         if m == 1:
-            acc = z[r, 0]
-            for p in range(sys.indptr[r0 + r], sys.indptr[r0 + r + 1]):
-                acc += sys.data[p] * xin[sys.indices[p], 0]
-            z[r, 0] = acc
+            rows[:] = 0.0
+            for i in range(count):
+                ui, k = u[sys.cols[at + i], 0], block + i * (end - first)
+                for r in range(end - first):
+                    rows[r, 0] += sys.blocks[k + r] * ui
             continue
-        for p in range(sys.indptr[r0 + r], sys.indptr[r0 + r + 1]):
-            coef, col = sys.data[p], sys.indices[p]
+        if count == 0:  # rows that read no input
+            rows[:] = 0.0
+            continue
+        ug = group_u[: count * m].reshape((count, m))
+        for i in range(count):
             for c in range(m):
-                z[r, c] += coef * xin[col, c]
+                ug[i, c] = u[sys.cols[at + i], c]
+        weights = sys.blocks[block : block + (end - first) * count].reshape((count, end - first))
+        np.dot(weights.T, ug, rows)
+    a = sys.x_off[s]
+    for j in range(xin.shape[0]):
+        for p in range(sys.indptr[a + j], sys.indptr[a + j + 1]):
+            r, coef = sys.indices[p], sys.data[p]
+            for c in range(m):
+                z[r, c] += coef * xin[j, c]
 
 
 @njit(cache=True, error_model="numpy")
@@ -553,11 +583,11 @@ def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_head
     """Style s's result for one session from column c of z = M [x; u]: the new state into x_out,
     w * (root displacement, yaw change, height) added to root_feats, the body rotations (22, 4),
     each held in the style's ball and the hinges at their floor, into quats. out: scratch (67,)."""
-    n = x_out.shape[0]
+    n, pos = x_out.shape[0], sys.pos[sys.row_off[s] : sys.row_off[s + 1]]
     for i in range(n):
-        x_out[i] = z[i, c]
+        x_out[i] = z[pos[i], c]
     for d in range(FEATURE_DIM):  # the log time warp (last output) is not used online
-        y = z[n + d, c] * sys.out_std[s, d] + sys.out_mean[s, d]
+        y = z[pos[n + d], c] * sys.out_std[s, d] + sys.out_mean[s, d]
         out[d] = (1.0 - blend_w) * y + blend_w * feats[d, c]
     if keep_heading:
         out[2] = feats[2, c]
@@ -636,7 +666,7 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
                 fast, work.blend_w[c] = ease(raw, before.blend[b], sys.keep)
                 eased[b, 0] += weights[b, s] * fast
                 eased[b, 1] += weights[b, s] * work.blend_w[c]
-            system_product(sys, s, xin, u, z)
+            system_product(sys, s, xin, u, z, work.group_u)
             for c in range(k):
                 b = work.rows[lo + c]
                 w = weights[b, s]
@@ -751,11 +781,32 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
     """One frame for every session: reads `frame`, the packed carry (B, CARRY_WIDTH) and the LTI
     states x side by side; writes `out`, new_carry and new_x. `constants` and `work` are packed
     records (`pack`; `planter` is `FootPlanter`'s parameters)."""
-    frame, out = Frame(*frame), Output(*out)
+    stages(Frame(*frame), x, new_x, carry, new_carry, Output(*out), constants, unpack_work(work))
+
+
+@njit(cache=True, error_model="numpy")
+def step_fading(frame, x, new_x, carry, new_carry, out, constants, work, fade):
+    """`step`, then the unseen-content fade (`models.motion.novelty_stage`, the shipped
+    pipeline's last stage) in the same call: at batch 1 a second compiled call, its arguments
+    and its outputs cost more than the fade's arithmetic. fade: (control (B, 5) or (0, 5), the
+    fade state (B, W), the reference's five arrays (`NoveltyReference.arrays`), the new fade
+    state (B, W), each row's fade (B,)), as `novelty_kernels.fade_step` takes them."""
+    frame, out, work = Frame(*frame), Output(*out), unpack_work(work)
+    staged = Output(work.staged_root, work.staged_rotations, out.contacts)
+    stages(frame, x, new_x, carry, new_carry, staged, constants, work)
+    control, old, table, anchors_starts, floats, bones, centres, new, faded = fade
+    fade_step(
+        frame.rotations, frame.root, staged.rotations, staged.root, control, old, table, anchors_starts, floats,
+        bones, centres, out.rotations, out.root, new, faded,
+    )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def stages(frame, x, new_x, carry, new_carry, out, constants, work):
+    """`step` on its records (`frame`, `out`: `Frame`, `Output`; `work` unpacked)."""
     before, feet_before = unpack(carry, x)
     after, feet_after = unpack(new_carry, new_x)
     sys, fp, ball, hands, arm, waving, planter, on, bends = unpack_constants(constants)
-    work = unpack_work(work)
     B = frame.root.shape[0]
 
     # 1. the translator
@@ -817,22 +868,58 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
 # --------------------------------------------------------------------------- packing
 
 
+def input_groups(inputs: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
+    """The rows of a system's input columns [B; D] (rows, 67) grouped by the inputs they read:
+    (the row order, groups first to last; per group its rows (first, end) in that order and the
+    inputs it reads). Groups too small to pay for their own product (`GROUP_MIN_SAVING`) join
+    the group reading all the inputs."""
+    reads = inputs != 0.0
+    keys: dict[bytes, list[int]] = {}
+    for r, row in enumerate(reads):
+        keys.setdefault(np.packbits(row).tobytes(), []).append(r)
+    full = np.ones(inputs.shape[1], bool)
+    merged: dict[bytes, list[int]] = {}
+    for key, rows in keys.items():
+        read = reads[rows[0]]
+        saving = len(rows) * (inputs.shape[1] - read.sum())
+        if read.any() and saving < GROUP_MIN_SAVING:
+            key, read = np.packbits(full).tobytes(), full
+        merged.setdefault(key, []).extend(rows)
+    order: list[int] = []
+    spans = []
+    for key, rows in merged.items():
+        read = np.flatnonzero(np.unpackbits(np.frombuffer(key, np.uint8))[: inputs.shape[1]])
+        spans.append((len(order), len(order) + len(rows), read))
+        order += sorted(rows)
+    return np.array(order, np.int64), spans
+
+
 def pack_styles(translators: list, keep: float) -> tuple[Systems, Footplant, Ball]:
     """The records of `StyleTranslator`s (in style order), their blend weights eased by `keep`
     (`ease`); done once per style-set change."""
     from scipy import sparse
 
-    x_off, row_off, indptr, indices, data, inputs = [0], [0], [], [], [], []
+    x_off, row_off, indptr, indices, data = [0], [0], [], [], []
+    pos, group_off, groups = [], [0], []
+    cols: list[np.ndarray] = []
+    blocks: list[np.ndarray] = []
     fp_w, fp_mean, fp_var, fp_prior, fitted, ball_mean, ball_radii = [], [], [], [], [], [], []
     nnz = 0
     for tr in translators:
         M = tr.M[: tr.n + FEATURE_DIM]  # not the log time warp, which is not used online
-        states = sparse.csr_matrix(M[:, : tr.n])
+        order, spans = input_groups(M[:, tr.n :])
+        M = M[order]
+        states = sparse.csc_matrix(M[:, : tr.n])
         indptr.append(states.indptr[:-1] + nnz)
         indices.append(states.indices)
         data.append(states.data)
-        inputs.append(M[:, tr.n :])
         nnz += states.nnz
+        pos.append(np.argsort(order))
+        for first, end, read in spans:
+            groups.append((first, end, sum(len(c) for c in cols), len(read), sum(len(b) for b in blocks)))
+            cols.append(read)
+            blocks.append(M[first:end, tr.n + read].T.ravel())
+        group_off.append(len(groups))
         x_off.append(x_off[-1] + tr.n)
         row_off.append(row_off[-1] + M.shape[0])
         f = tr.footplant
@@ -852,7 +939,11 @@ def pack_styles(translators: list, keep: float) -> tuple[Systems, Footplant, Bal
         np.concatenate(indptr).astype(np.int64),
         np.concatenate(indices).astype(np.int32),
         np.concatenate(data).astype(np.float64),
-        np.ascontiguousarray(np.concatenate(inputs), dtype=np.float64),
+        np.concatenate(pos).astype(np.int64),
+        np.array(group_off, np.int64),
+        np.array(groups, np.int64).reshape(-1, 5),
+        np.concatenate(cols).astype(np.int64),
+        np.concatenate(blocks).astype(np.float64),
         f64([tr.in_mean for tr in translators]),
         f64([tr.in_std for tr in translators]),
         f64([tr.in_lo for tr in translators]),
