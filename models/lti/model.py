@@ -53,7 +53,8 @@ CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
 STORED = ("in_mean", "in_std", "out_mean", "out_std", "in_lo", "in_hi", "orders", "ref")  # saved as they are
-EASE_S = 0.1  # time constant of each of the two followers easing the erf blend and raised-arm shares (`kernels.ease`)
+EASE_S = 0.1  # time constant of each of the two followers easing the erf blend weight (`kernels.ease`)
+RAISE_EASE_S = 0.05  # and the raised-arm shares: at 0.1 s a raise-up's arm came late enough to cost content reads
 HINT_SPEED = 120.0  # cm/s: a foot the footplant classifier calls planted plants when slower (`FootPlanter.hint_speed`)
 _NO_CONTROL = np.zeros((0, 5))  # the fade's control rows when a frame carries none
 COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, finds the styles in use (`_side_by_side`)
@@ -147,7 +148,9 @@ class StyleTranslator:
             offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
             swayed = clip_sway(offsets, motion.fps)
         if self.raised_arm is not None:
-            share = raised_arm.eased_shares(raised_arm.shares(offsets, swayed), ease_keep(LTIStyleModel.fps))
+            share = raised_arm.eased_shares(
+                raised_arm.shares(offsets, swayed), ease_keep(LTIStyleModel.fps, RAISE_EASE_S)
+            )
             rots = raised_arm.carried(self.raised_arm, rots, np.ones((len(rots), 1)), share)
         if self.waving_arm:
             mean, radii = self.ball()
@@ -207,9 +210,9 @@ class StyleTranslator:
             )
 
 
-def ease_keep(fps: float) -> float:
-    """Per frame at `fps`, the share of an eased quantity's history kept (`EASE_S`)."""
-    return float(np.exp(-1.0 / (fps * EASE_S)))
+def ease_keep(fps: float, seconds: float = EASE_S) -> float:
+    """Per frame at `fps`, the share of an eased quantity's history kept (time constant `seconds`)."""
+    return float(np.exp(-1.0 / (fps * seconds)))
 
 
 class _Scratch(NamedTuple):
@@ -320,7 +323,7 @@ class LTIStyleModel(LTIStyles):
         """Everything the step needs per style set, computed here once (the state keys, the
         kernel's records) and replaced whole, so a reader sees one consistent set."""
         systems, footplant, ball = kernels.pack_styles([self.translators[s] for s in styles], ease_keep(self.fps))
-        arm = raised_arm.settings([self.translators[s].raised_arm for s in styles], ease_keep(self.fps))
+        arm = raised_arm.settings([self.translators[s].raised_arm for s in styles], ease_keep(self.fps, RAISE_EASE_S))
         h = self._hands
         hands = kernels.Hands(
             h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
