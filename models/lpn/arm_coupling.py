@@ -14,36 +14,12 @@ import sys
 import numpy as np
 
 from ..eval.run import DATASET, INPUT_STYLE
-from ..motion.coupling import GAITS, Coupling, Link, couple, write_coupling
+from ..motion.coupling import Coupling, Link, write_coupling
 from .carriage import SKIP_FRAMES, fitted_styles, locomotion
 
 ARM_COUPLING_FILE = "arm_coupling.npz"
 LINKS: tuple[Link, ...] = tuple((f"LowerArm_{s}", (f"UpperArm_{s}", f"Shoulder_{s}", "Chest")) for s in "LR")
-ROW_KEYS = ("mean", *GAITS, "on")  # `Coupling.aligned`'s arrays
-COUPLING_ROWS = tuple(f"couple_{k}" for k in ROW_KEYS)  # its style-table rows
 FIT_FRAMES = 300
-
-
-def table_rows(coupling: Coupling, names: list[str]) -> dict[str, np.ndarray]:
-    """The style table's rows aligned with `names` (a style without a coupling: identity means,
-    zero gains, off)."""
-    return {f"couple_{k}": v for k, v in coupling.aligned(names).items()}
-
-
-def _aligned(table) -> dict[str, np.ndarray] | None:
-    rows = {k: table.get(f"couple_{k}") for k in ROW_KEYS}
-    return None if rows["on"] is None else rows
-
-
-def couple_rows(
-    table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarray, joints: tuple[np.ndarray, np.ndarray]
-) -> np.ndarray:
-    """The rotations (B, J, 4) with the forearms of the rows that weigh a coupled style moved with
-    their drivers (`table`: a `StyleTable` with the coupling's rows; `joints`: `link_indices` of
-    the coupling's links), walking and running gains mixed by each row's gait share (B,). Other rows and joints
-    exactly as they were. Compiled (`models.motion.coupling.couple`)."""
-    aligned = _aligned(table)
-    return rotations if aligned is None else couple(rotations, weights, gait, joints, aligned)
 
 
 def fit(model, styles: list[str], dataset: str = DATASET) -> Coupling:
@@ -53,7 +29,7 @@ def fit(model, styles: list[str], dataset: str = DATASET) -> Coupling:
 
     clips = locomotion(dataset)
     model = model.with_own_styles()
-    model.arm_coupling = None
+    model.stages = model.stages.without("arm_coupling")
 
     def real(style: str, gait: str) -> list[np.ndarray]:
         return [m.rotations for m in clips(style)[gait]]

@@ -11,16 +11,19 @@ from __future__ import annotations
 
 import functools
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..eval.run import DATASET, INPUT_STYLE
+from ..interface import State
 from ..motion.coupling import GAITS
 from ..motion.gait_split import split_by_gait
 from ..motion.rotations import quat_inv, quat_mean, quat_mul
+from ..motion.skeleton import Skeleton
+from ..stages import Rows, StageFrame, Stateless
 
 CARRIAGE_FILE = "carriage.npz"
 ARM_JOINTS = ("Shoulder_L", "UpperArm_L", "LowerArm_L", "Hand_L", "Shoulder_R", "UpperArm_R", "LowerArm_R", "Hand_R")
@@ -29,19 +32,23 @@ SKIP_FRAMES = 30  # the network's first second settles from the input's first po
 
 
 @dataclass(frozen=True)
-class Carriage:
-    """Per style: the arm joints' offset rotations (xyzw)."""
+class Carriage(Stateless):
+    """The stage: per style, the arm joints' offset rotations (xyzw)."""
 
     styles: tuple[str, ...]
     arms: np.ndarray  # (S, len(ARM_JOINTS), 4) offsets, applied as offset * rotation
 
-    def rows(self, names: list[str]) -> np.ndarray:
-        """The offsets aligned with `names`; a style not fitted gets none."""
-        arms = np.tile((0.0, 0.0, 0.0, 1.0), (len(names), len(ARM_JOINTS), 1))
-        for i, n in enumerate(names):
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        """The offsets aligned with `styles` (a style not fitted gets none) and the arm joints."""
+        arms = np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1))
+        for i, n in enumerate(styles):
             if n in self.styles:
                 arms[i] = self.arms[self.styles.index(n)]
-        return arms
+        return {"arms": arms, "joints": np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)}
+
+    def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
+        offsets = blend_arms(rows["arms"], frame.weights, frame.base)
+        return carry_arms(frame.rotations, offsets, rows["joints"]), state
 
     def save(self, path: Path) -> Path:
         np.savez(path, styles=np.array(self.styles), arms=self.arms)
@@ -132,9 +139,9 @@ def fit(model, styles: list[str], dataset: str = DATASET, frames: int = 300) -> 
     was: the network runs on a copy without offsets."""
     clips = locomotion(dataset)
     model = model.with_own_styles()
-    model.output_prior = None  # fitted on top of the carriage (`output_prior.py`): refit it after
-    model.arm_coupling = None  # and the arm coupling on top of that (`arm_coupling.py`)
-    model.carriage = Carriage(tuple(styles), np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
+    # the output prior and the arm coupling are fitted on top of the carriage: refit them after
+    identity = Carriage(tuple(styles), np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
+    model.stages = model.stages.replace(carriage=identity, output_prior=None, arm_coupling=None)
     inputs = [m.slice(0, frames) for m in every_gait(clips(INPUT_STYLE))]
     return Carriage(tuple(styles), _offsets(model, inputs, lambda s: every_gait(clips(s)), styles, ARM_JOINTS))
 

@@ -1,4 +1,4 @@
-"""Fit LPN-FiLM's rotation prior (`runtime.BALLS_FILE`): one ball per built-in style from all its
+"""Fit LPN-FiLM's rotation prior (`BALLS_FILE`): one ball per built-in style from all its
 TRAIN clips, every content, since LPN-FiLM is scored on every input.
 
     .venv/bin/python -m models.lpn.rotation_prior [inner_q outer_q margin_deg]
@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from ..motion.rotation_ball import StyleBalls
-from .runtime import BALLS_FILE
 
+BALLS_FILE = "rotation_prior.npz"
 INNER_Q, OUTER_Q, MARGIN_DEG = 97.0, 99.0, 1.0
 
 

@@ -204,7 +204,8 @@ def rotation_guard(weights_dir: Path, results: list[StyleResult]) -> None:
     from ..data import build_index, load_motions, select
     from ..eval.plausibility import RotationReference
     from ..eval.run import DATASET, pick_clips, stylise
-    from .runtime import LPNModel, read_balls
+    from ..stages import Pipeline
+    from .runtime import STAGES, LPNModel
 
     todo = [r for r in results if r.improved]
     if not todo:
@@ -214,13 +215,15 @@ def rotation_guard(weights_dir: Path, results: list[StyleResult]) -> None:
     index = build_index([DATASET])
     ref = RotationReference({r.style: load_motions(select(index, split="train", style=r.style)) for r in todo})
     arrays, skeleton, config = read_weights(weights_dir, tuned=False)
-    model = LPNModel(arrays, skeleton, config, read_balls(weights_dir))
+    stages = Pipeline.load(STAGES, weights_dir, skeleton)
+    balls = stages.without("carriage", "output_prior", "arm_coupling", "hinge_floor")  # the rotation balls alone
+    model = LPNModel(arrays, skeleton, config, balls)
     for r in todo:
         k = model.styles().index(r.style)
         before = ref.plausibility(r.style, stylise(model, inputs, [k] * len(inputs)))
         films = arrays["style_film"].copy()
         films[k] = r.film  # in the built-in's own row, as `read_weights` puts it: its ball stays
-        twin = LPNModel({**arrays, "style_film": films}, skeleton, config, read_balls(weights_dir))
+        twin = LPNModel({**arrays, "style_film": films}, skeleton, config, balls)
         after = ref.plausibility(r.style, stylise(twin, inputs, [k] * len(inputs)))
         r.within, r.worst_joint = (before["min_within"], after["min_within"]), after["worst_joint"]
 

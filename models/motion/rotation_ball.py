@@ -10,13 +10,18 @@ holds one ball per style. Compiled per frame in `rotation_ball_kernels.py`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..interface import State
+from ..stages import Rows, StageFrame, Stateless
 from .bn_skeleton import HIPS
+from .rotation_ball_kernels import clamp_mixed
 from .rotations import quat_inv, quat_mul
+from .skeleton import Skeleton
 
 NO_PRIOR = np.inf  # radius of a joint (or a style) without a prior: nothing is clamped
 
@@ -108,7 +113,7 @@ def clamp_rotations(rotations: np.ndarray, mean: np.ndarray, radii: np.ndarray) 
 
 
 @dataclass(frozen=True)
-class StyleBalls:
+class StyleBalls(Stateless):
     """One ball per named style: `mean` (S, J, 4), `radii` (S, 2, J) inner / outer (radians), and
     how they were fitted (`fit`: quantiles, margin, data), saved beside a model's weights."""
 
@@ -130,7 +135,7 @@ class StyleBalls:
             {"inner_q": inner_q, "outer_q": outer_q, "margin_deg": margin_deg, "data": data},
         )
 
-    def for_styles(self, names: list[str] | tuple[str, ...], joints: int) -> tuple[np.ndarray, np.ndarray]:
+    def for_styles(self, names: Sequence[str | None], joints: int) -> tuple[np.ndarray, np.ndarray]:
         """(mean (S, J, 4), radii (S, 2, J)) aligned with `names`; a name without a ball gets
         infinite radii (nothing clamped)."""
         mean = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (len(names), joints, 1))
@@ -140,6 +145,19 @@ class StyleBalls:
                 i = self.styles.index(name)
                 mean[k], radii[k] = self.mean[i], self.radii[i]
         return mean, radii
+
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        """As a stage (`models.stages`): `for_styles` as `mean` and `radii`."""
+        mean, radii = self.for_styles(styles, skeleton.num_joints)
+        return {"mean": mean, "radii": radii}
+
+    def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
+        """The rotations held inside the balls of the frame's styles (`clamp_mixed`)."""
+        rotations = frame.rotations
+        out = np.empty(rotations.shape, np.float64)
+        weights = np.ascontiguousarray(frame.weights, np.float64)
+        clamp_mixed(np.ascontiguousarray(rotations, np.float64), weights, frame.base, rows["mean"], rows["radii"], out)
+        return out.astype(rotations.dtype), state
 
     def save(self, path: Path) -> Path:
         import json
