@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import math
-import random
 import sys
 import time
 from dataclasses import asdict, dataclass, fields
@@ -28,7 +27,7 @@ from tqdm import tqdm
 
 from ..runlog import start_run
 from ..settings import REPO_ROOT
-from ..train_config import parse_overrides, seeded_device, use_bf16
+from ..train_config import parse_overrides, rng_state, seeded_device, set_rng_state, use_bf16
 from . import features as lf
 from .weights import NORMALISATION
 
@@ -236,16 +235,6 @@ def closed_share(cfg: TrainConfig, progress: float) -> float:
     `closed_to` over the first `closed_ramp` of the schedule (scheduled sampling)."""
     ramp = min(progress / cfg.closed_ramp, 1.0) if cfg.closed_ramp > 0 else 1.0
     return cfg.closed_from + (cfg.closed_to - cfg.closed_from) * ramp
-
-
-def rng_state(rng: np.random.Generator) -> dict:
-    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(), "python": random.getstate()}
-
-
-def set_rng_state(rng: np.random.Generator, state: dict) -> None:
-    rng.bit_generator.state = state["numpy"]
-    torch.set_rng_state(state["torch"])
-    random.setstate(state["python"])
 
 
 def warm_start(net, weights_dir: Path, styles: list[str]) -> torch.Tensor:

@@ -20,7 +20,7 @@ from ..interface import State
 from ..stages import Rows, StageFrame, Stateless
 from .bn_skeleton import HIPS
 from .rotation_ball_kernels import clamp_mixed
-from .rotations import quat_inv, quat_mul
+from .rotations import quat_angle, quat_inv, quat_mul
 from .skeleton import Skeleton
 
 NO_PRIOR = np.inf  # radius of a joint (or a style) without a prior: nothing is clamped
@@ -52,10 +52,6 @@ def comparable(rotations: np.ndarray) -> np.ndarray:
     return split_heading(rotations)[1]
 
 
-def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return 2.0 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
-
-
 def mean_rotation(q: np.ndarray) -> np.ndarray:
     """(N, 4) -> (4,) sign-blind mean (principal eigenvector of sum q q^T), w >= 0."""
     _, vecs = np.linalg.eigh(q.T @ q)
@@ -76,7 +72,7 @@ def fit_prior(
     radii = np.full((2, joints), NO_PRIOR)
     for j in range(1, joints):
         mean[j] = mean_rotation(c[:, j])
-        d = _angle(c[:, j], mean[j])
+        d = quat_angle(c[:, j], mean[j])
         outer = max(np.percentile(d, outer_q) - np.radians(margin_deg), 1e-3)
         radii[:, j] = min(np.percentile(d, inner_q), outer), outer
     return mean, radii
