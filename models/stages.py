@@ -4,7 +4,7 @@ A stage changes a frame's local rotations after the core (or after the stage bef
 fitted from real clips the same way for every style, and reads per style only the arrays that fit
 gave it (`rows`, aligned with the model's style list): a style it was not fitted for (an upload, a
 style given another style vector) gets a row that leaves the frame as it is. A method declares
-its stages in order (`StageSpec`: name, file beside the weights, the command that fits it);
+its stages in order (`StageSpec`: name, file beside the weights, how it is read and fitted);
 `Pipeline` loads and runs them and switches any of them off (`without`). The streaming step and
 the offline path (sessions stepped frame by frame) run the same `Pipeline`.
 """
@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -48,6 +48,10 @@ class Stage(Protocol):
         """The frame's new rotations (same shape and dtype) and the new state."""
         ...
 
+    def save(self, path: Path) -> Path:
+        """The fitted stage into its file (`StageSpec.load` reads it back)."""
+        ...
+
 
 class Stateless:
     """A stage that keeps nothing between frames."""
@@ -59,12 +63,13 @@ class Stateless:
 @dataclass(frozen=True)
 class StageSpec:
     """One stage a method declares: its name (the switch), the file it is fitted into beside the
-    weights, how that file is read, and the module whose `python -m` fits it from real clips."""
+    weights, how that file is read, and its fit from real clips: `fit(model, styles)` on the model
+    with the stages before it in place, for `styles` (None: every style the fit applies to)."""
 
     name: str
     file: str
     load: Callable[[Path, Skeleton], Stage]
-    fit: str
+    fit: Callable[[Any, list[str] | None], Stage]
 
 
 @dataclass(frozen=True)

@@ -124,7 +124,7 @@ def test_runs_take_their_own_prior_and_walks_the_walk_prior(model, walk, run, st
 
 
 def test_a_refit_of_some_styles_keeps_the_others_and_an_older_file_has_one_prior(model, tmp_path):
-    """`python -m models.lpn.output_prior active` refits active alone (`with_styles_of`); a file
+    """`python -m models.lpn fit --stages output_prior active` refits active alone (`with_styles_of`); a file
     written before the run prior existed loads with each style's one prior for both gaits."""
     from models.motion.style_carry import StyleCarry
 

@@ -3,8 +3,8 @@ its file, runs in the declared order, keeps its own state apart, and can be swit
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,6 +36,10 @@ class Counter:
         shift = frame.weights @ rows["offset"]
         return frame.rotations + shift[:, None, None], {"frames": state["frames"] + 1}
 
+    def save(self, path: Path) -> Path:
+        path.write_text(repr(self.offsets))
+        return path
+
 
 def test_a_pipeline_runs_its_stages_in_order_each_on_its_own_state(bn_skeleton):
     pipe = Pipeline((("a", Counter({"x": 1.0})), ("b", None), ("c", Counter({"y": 10.0}))))
@@ -58,7 +62,7 @@ def test_a_pipeline_runs_its_stages_in_order_each_on_its_own_state(bn_skeleton):
         _ = pipe.d
 
 
-def test_lpn_declares_each_stage_with_its_fit_command_and_loads_every_committed_one(bn_skeleton):
+def test_lpn_declares_each_stage_with_its_fit_and_loads_every_committed_one(bn_skeleton):
     from models.lpn.runtime import STAGES
     from models.settings import get_settings
 
@@ -66,13 +70,42 @@ def test_lpn_declares_each_stage_with_its_fit_command_and_loads_every_committed_
     full = Pipeline.load(STAGES, folder, bn_skeleton)
     core = Pipeline.load(STAGES, folder, bn_skeleton, core_only=True)
     for spec in STAGES:
-        fitter = importlib.import_module(spec.fit)
-        assert callable(fitter.main), spec.fit
+        assert callable(spec.fit), spec.name
         stage = getattr(full, spec.name)
         assert (stage is not None) == (folder / spec.file).exists(), spec.name
         assert stage is None or isinstance(stage, Stage), spec.name
         assert getattr(core, spec.name) is None
     assert [k for k, _ in full.stages] == [s.name for s in STAGES]
+
+
+def test_the_lpn_fit_command_refits_one_stage_for_one_style_and_keeps_the_others(tmp_path, monkeypatch):
+    """`python -m models.lpn fit --stages arm_coupling active` on a copy of the weights: the
+    file keeps every other style's rows bit for bit, active's are refitted, and it loads back."""
+    import shutil
+
+    from models.lpn.__main__ import main
+    from models.lpn.runtime import STAGES
+    from models.settings import get_settings
+
+    folder = get_settings().weights_dir / "lpn"
+    spec = next(s for s in STAGES if s.name == "arm_coupling")
+    if not (folder / spec.file).exists():
+        pytest.skip("no LPN-FiLM arm coupling committed")
+    shutil.copytree(folder, tmp_path / "lpn")
+    monkeypatch.setenv("STYLESTREAM_WEIGHTS_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    try:
+        main(["fit", "--stages", "arm_coupling", "active"])
+    finally:
+        get_settings.cache_clear()
+    skeleton = bandai_namco_skeleton()
+    before, after = spec.load(folder / spec.file, skeleton), spec.load(tmp_path / "lpn" / spec.file, skeleton)
+    assert sorted(after.styles) == sorted(before.styles)
+    for style in before.styles:
+        if style != "active":
+            k, j = before.styles.index(style), after.styles.index(style)
+            np.testing.assert_array_equal(after.walk[j], before.walk[k])
+    assert np.isfinite(after.walk).all()
 
 
 def test_lpn_each_stage_switched_off_changes_the_styled_output_and_the_core_has_none(lpn_model, bn_walk):

@@ -1,5 +1,5 @@
 """LPN-FiLM's arm coupling: a style's forearms moved with its upper arms, shoulders and chest as
-they move together in its real clips (`python -m models.lpn.arm_coupling [STYLE ...]` writes
+they move together in its real clips (`python -m models.lpn fit --stages arm_coupling` writes
 `ARM_COUPLING_FILE`, the same fit for every style; applied after the output prior).
 
 The output prior maps each joint on its own, so it cannot make a forearm pump in step with an
@@ -9,24 +9,29 @@ the network's (`models.motion.coupling`), fitted per gait and mixed by gait shar
 
 from __future__ import annotations
 
-import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..eval.run import DATASET, INPUT_STYLE
-from ..motion.coupling import Coupling, Link, write_coupling
+from ..motion.coupling import Coupling, Link
 from .carriage import SKIP_FRAMES, fitted_styles, locomotion
+
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
 ARM_COUPLING_FILE = "arm_coupling.npz"
 LINKS: tuple[Link, ...] = tuple((f"LowerArm_{s}", (f"UpperArm_{s}", f"Shoulder_{s}", "Chest")) for s in "LR")
 FIT_FRAMES = 300
 
 
-def fit(model, styles: list[str], dataset: str = DATASET) -> Coupling:
-    """The coupling of `styles` from `model` (its carriage and output prior in place, no coupling),
-    on walks and on runs apart (`carriage.locomotion`)."""
+def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET) -> Coupling:
+    """The coupling of `styles` (default: every style with TRAIN clips in `dataset`) from `model`
+    (its carriage and output prior in place, no coupling), on walks and on runs apart
+    (`carriage.locomotion`)."""
     from ..eval.run import stylise
 
+    styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()
     model.stages = model.stages.without("arm_coupling")
@@ -39,27 +44,3 @@ def fit(model, styles: list[str], dataset: str = DATASET) -> Coupling:
         return [o.rotations[SKIP_FRAMES:] for o in stylise(model, inputs, [model.styles().index(style)] * len(inputs))]
 
     return Coupling.fit(styles, LINKS, model.skeleton.names, real, made)
-
-
-def main(argv: list[str]) -> None:
-    """`STYLE ...` (default: every style with TRAIN clips in the dataset): refits those, keeping
-    the file's other styles."""
-    import time
-
-    import torch
-
-    from ..settings import get_settings
-    from .runtime import load
-
-    torch.set_num_threads(1)
-    t0 = time.time()
-    folder = get_settings().weights_dir / "lpn"
-    path = folder / ARM_COUPLING_FILE
-    model = load(folder)
-    styles = argv or fitted_styles(model.styles(), DATASET)
-    coupling = write_coupling(fit(model, styles), path, keep_others=bool(argv))
-    print(f"wrote {path} for {', '.join(coupling.styles)} in {time.time() - t0:.0f} s")
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])

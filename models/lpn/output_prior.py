@@ -1,5 +1,5 @@
 """LPN-FiLM's output prior: the body's rotations carried from what the network makes toward a
-style to that style's real rotations (`python -m models.lpn.output_prior [STYLE ...]` writes
+style to that style's real rotations (`python -m models.lpn fit --stages output_prior` writes
 `OUTPUT_PRIOR_FILE`; the same fit for every style).
 
 The carriage moves each joint's mean; the style also lies in how arms and spine swing about it.
@@ -11,11 +11,10 @@ spread is floored at `SOURCE_FLOOR_DEG` per axis, else near-still axes get gains
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -26,6 +25,9 @@ from ..motion.skeleton import Skeleton
 from ..motion.style_carry import StyleCarry
 from ..stages import Rows, StageFrame, Stateless
 from .carriage import SKIP_FRAMES, UPPER_BODY, fitted_styles, locomotion
+
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
 OUTPUT_PRIOR_FILE = "output_prior.npz"
 CARRIED = UPPER_BODY  # the joints every style's prior carries (module doc)
@@ -126,11 +128,13 @@ class OutputPrior(Stateless):
         return OutputPrior(styles, merged(self.carry, other.carry), merged(self.run, other.run))
 
 
-def fit(model, styles: list[str], dataset: str = DATASET) -> OutputPrior:
-    """The prior of `styles` from `model` (its carriage in place, no output prior): each style's
-    `CARRIED` joints, the rest left alone, fitted on its walks and on its runs apart."""
+def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET) -> OutputPrior:
+    """The prior of `styles` (default: every style with TRAIN clips in `dataset`) from `model` (its
+    carriage in place, no output prior): each style's `CARRIED` joints, the rest left alone, fitted
+    on its walks and on its runs apart."""
     from ..eval.run import stylise
 
+    styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()
     model.stages = model.stages.without("output_prior", "arm_coupling")  # the coupling is fitted on top
@@ -148,28 +152,3 @@ def fit(model, styles: list[str], dataset: str = DATASET) -> OutputPrior:
     walks = [fitted(s, walking) for s in styles]
     runs = [fitted(s, running) for s in styles]
     return OutputPrior(tuple(styles), StyleCarry.stack(walks), StyleCarry.stack(runs))
-
-
-def main(argv: list[str]) -> None:
-    """`STYLE ...` (default: every style with TRAIN clips in the dataset): refits those, keeping
-    the file's other styles as they are (a refit is machine-dependent beyond round-off: the
-    model card)."""
-    import time
-
-    import torch
-
-    from ..settings import get_settings
-    from .runtime import load
-
-    torch.set_num_threads(1)
-    t0 = time.time()
-    folder = get_settings().weights_dir / "lpn"
-    model = load(folder)
-    prior = fit(model, argv or fitted_styles(model.styles(), DATASET))
-    if argv and (folder / OUTPUT_PRIOR_FILE).exists():
-        prior = OutputPrior.load(folder / OUTPUT_PRIOR_FILE).with_styles_of(prior)
-    print(f"wrote {prior.save(folder / OUTPUT_PRIOR_FILE)} for {', '.join(prior.styles)} in {time.time() - t0:.0f} s")
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])

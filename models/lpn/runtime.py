@@ -19,7 +19,6 @@ toward another style. The foot planter closes every step, the core's alone too.
 
 from __future__ import annotations
 
-import copy
 import threading
 from collections.abc import Callable
 from functools import cached_property, partial
@@ -35,7 +34,7 @@ from ..motion.features import body_joint
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter
 from ..motion.hinge import Hinges
-from ..motion.hinge_floor import FLOOR_FILE, HingeFloor
+from ..motion.hinge_floor import FLOOR_FILE, HingeFloor, fit_floor
 from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.rotation_ball import StyleBalls
 from ..motion.rotations import quat_mul, yaw_quat
@@ -44,8 +43,8 @@ from ..motion.twist import split_evenly, transfer_twist
 from ..rowwise import Bfloat16Product, matmul_rows
 from ..settings import get_settings
 from ..stages import Pipeline, StageFrame, StageSpec
+from . import arm_coupling, carriage, kernels, output_prior, rotation_prior
 from . import features as lf
-from . import kernels
 from .arm_coupling import ARM_COUPLING_FILE
 from .carriage import CARRIAGE_FILE, Carriage
 from .output_prior import OUTPUT_PRIOR_FILE, OutputPrior
@@ -57,15 +56,18 @@ from .weights import read_weights
 if TYPE_CHECKING:
     from .network import LPN
 
-# The stages after the core, in the order the step runs them; each is fitted from real clips by
-# `python -m <module>` into its file beside the weights, and a session or a fit may switch any off
+# The stages after the core, in the order the step runs them; each is fitted from real clips into
+# its file beside the weights (`python -m models.lpn fit`), and a session or a fit may switch any off
 STAGES = (
-    StageSpec("carriage", CARRIAGE_FILE, lambda path, _: Carriage.load(path), "models.lpn.carriage"),
-    StageSpec("output_prior", OUTPUT_PRIOR_FILE, lambda path, _: OutputPrior.load(path), "models.lpn.output_prior"),
-    StageSpec("arm_coupling", ARM_COUPLING_FILE, lambda path, _: Coupling.load(path), "models.lpn.arm_coupling"),
-    StageSpec("rotation_balls", BALLS_FILE, lambda path, _: StyleBalls.load(path), "models.lpn.rotation_prior"),
+    StageSpec("carriage", CARRIAGE_FILE, lambda path, _: Carriage.load(path), carriage.fit),
+    StageSpec("output_prior", OUTPUT_PRIOR_FILE, lambda path, _: OutputPrior.load(path), output_prior.fit),
+    StageSpec("arm_coupling", ARM_COUPLING_FILE, lambda path, _: Coupling.load(path), arm_coupling.fit),
+    StageSpec("rotation_balls", BALLS_FILE, lambda path, _: StyleBalls.load(path), rotation_prior.fit),
     StageSpec(
-        "hinge_floor", FLOOR_FILE, lambda path, sk: HingeFloor(sk, Hinges.load(path)), "models.motion.hinge_floor"
+        "hinge_floor",
+        FLOOR_FILE,
+        lambda path, sk: HingeFloor(sk, Hinges.load(path)),
+        lambda model, _: HingeFloor(model.skeleton, fit_floor(model.skeleton)),
     ),
 )
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
@@ -151,27 +153,23 @@ class LPNModel(LPNStyles):
         table = self._table
         return table.films[table.index(name)].reshape(4, self.H).copy()
 
-    def clip_film(self, motion: Motion) -> np.ndarray:
-        """FiLM vector (4, H) of a clip: the generator on windows of it (tiled if short), averaged."""
+    def style_from_clip(self, motion: Motion) -> np.ndarray:
+        """A new style's FiLM vector (4, H): the generator on 4 s windows of a clip of it (tiled if
+        short; >= 1 s on the model skeleton at 30 fps, longer is better), averaged."""
         import torch
 
         from .dataset import clip_style_features
         from .train import tile_clip
 
-        feats = tile_clip(clip_style_features(motion), 120)
-        starts = range(0, len(feats) - 120 + 1, 60)
-        windows = torch.from_numpy(np.stack([feats[s : s + 120] for s in starts]).astype(np.float32))
-        with torch.no_grad():
-            return self.generator().style_film(windows).mean(0).numpy()
-
-    def style_from_clip(self, motion: Motion) -> np.ndarray:
-        """A new style's FiLM vector (4, H): the generator's embedding of a clip of it (>= 1 s on
-        the model skeleton at 30 fps; longer is better)."""
         if motion.skeleton.names != self.skeleton.names:
             raise ValueError("a style clip must be on the model skeleton (Bandai Namco, 22 joints)")
         if motion.num_frames < self.fps:
             raise ValueError(f"style clip too short: {motion.num_frames} frames, need at least {int(self.fps)}")
-        return self.clip_film(motion).reshape(4, self.H)
+        feats = tile_clip(clip_style_features(motion), 120)
+        starts = range(0, len(feats) - 120 + 1, 60)
+        windows = torch.from_numpy(np.stack([feats[s : s + 120] for s in starts]).astype(np.float32))
+        with torch.no_grad():
+            return self.generator().style_film(windows).mean(0).numpy().reshape(4, self.H)
 
     def set_style_film(self, name: str, film: np.ndarray) -> None:
         """Set (or add) style `name` with FiLM vector `film` (4, H): a fine-tuned or persisted one.
@@ -190,7 +188,7 @@ class LPNModel(LPNStyles):
                 raise KeyError(f"unknown style {name!r}")
             self._table = self._table.without(name)
 
-    def generator(self):
+    def generator(self) -> LPN:
         """The torch network (for the FiLM generator; built on first use)."""
         if self._generator is None:
             import torch
@@ -403,14 +401,6 @@ class LPNModel(LPNStyles):
         h2 = np.empty((len(x), n2), np.float32)
         kernels.hidden_layer(p2(h1), alpha, bias2, film, 1, h2)
         return kernels.output_layer(p3(h2), alpha, bias3, self.y_mean, self.y_std)
-
-    def in_float32(self) -> LPNModel:
-        """This model (weights and styles shared) with float32 expert products, as the numpy
-        reference step computes them."""
-        twin = copy.copy(self)
-        twin.bfloat16 = False
-        twin.__dict__.pop("_products", None)
-        return twin
 
     @cached_property
     def _products(self) -> list[Callable[[np.ndarray], np.ndarray]]:

@@ -50,6 +50,9 @@ class HingeFloor(Stateless):
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
         return self(frame.rotations).astype(frame.rotations.dtype), state
 
+    def save(self, path: Path) -> Path:
+        return self.hinges.save(path)
+
     @classmethod
     def load(cls, skeleton: Skeleton, folder: Path) -> HingeFloor | None:
         """The stage beside a method's weights, or None where it was not fitted."""

@@ -155,6 +155,12 @@ class StyleBalls(Stateless):
         clamp_mixed(np.ascontiguousarray(rotations, np.float64), weights, frame.base, rows["mean"], rows["radii"], out)
         return out.astype(rotations.dtype), state
 
+    def with_styles_of(self, other: StyleBalls) -> StyleBalls:
+        """These balls with `other`'s styles added or replacing these (a refit of some styles)."""
+        keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
+        mean, radii = (np.concatenate([a[keep], b]) for a, b in ((self.mean, other.mean), (self.radii, other.radii)))
+        return StyleBalls(tuple(self.styles[k] for k in keep) + other.styles, mean, radii, other.fit)
+
     def save(self, path: Path) -> Path:
         import json
 
