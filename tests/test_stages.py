@@ -34,7 +34,8 @@ class Counter:
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
         shift = frame.weights @ rows["offset"]
-        return frame.rotations + shift[:, None, None], {"frames": state["frames"] + 1}
+        moved = (frame.rotations + shift[:, None, None]).astype(frame.rotations.dtype)
+        return moved, {"frames": state["frames"] + 1}
 
     def save(self, path: Path) -> Path:
         path.write_text(repr(self.offsets))
@@ -125,3 +126,19 @@ def test_lpn_each_stage_switched_off_changes_the_styled_output_and_the_core_has_
     bare.stages = bare.stages.without(*names)
     core = LPNModel(lpn_model.p, lpn_model.skeleton, lpn_model.config)
     np.testing.assert_array_equal(bare.run(walk, w)[0].rotations, core.run(walk, w)[0].rotations)
+
+
+def test_lpn_keeps_a_stateful_stages_state_in_the_session_state(lpn_model, bn_walk):
+    """A stage's state lives in the session's state under "stage/key", starts fresh with the
+    session and advances every step."""
+    from models.interface import FrameBatch
+
+    twin = lpn_model.with_own_styles()
+    twin.stages = twin.stages.replace(hinge_floor=Counter({}))
+    state = twin.init_state(2)
+    assert state["hinge_floor/frames"].tolist() == [0, 0]
+    w = np.zeros((2, len(twin.styles())), np.float32)
+    for t in range(3):
+        root, rot = (np.repeat(a[t : t + 1], 2, 0) for a in (bn_walk.translations[:, 1], bn_walk.rotations))
+        _, state = twin.step_batch(state, FrameBatch(root, rot), w)
+    assert state["hinge_floor/frames"].tolist() == [3, 3]

@@ -234,6 +234,7 @@ class LPNModel(LPNStyles):
             "in_vel": z(2),
             "lead": z(),
             **self.planter.init_state(B),
+            **self.stages.init_state(B),  # keys "stage/name"
         }
 
     def _start(
@@ -268,7 +269,7 @@ class LPNModel(LPNStyles):
         for key in ("hist_vel", "hist_gait", "hist_phase", "fut_vel", "fut_phase", "in_vel", "lead"):
             state[key][rows] = 0.0
         state["in_pos"][rows] = xz
-        for key, value in self.planter.init_state(len(rows)).items():
+        for key, value in {**self.planter.init_state(len(rows)), **self.stages.init_state(len(rows))}.items():
             state[key][rows] = value
 
     # ------------------------------------------------------------------ step
@@ -291,7 +292,8 @@ class LPNModel(LPNStyles):
         out_root, out_rot, contacts = self._advance(s, y, control)
         out_rot = self._untwist(out_rot)
         frame = StageFrame(out_rot, style_weights, control[:, 3], table.index("normal"))
-        out_rot, _ = table.stages.step_batch({}, frame, table.rows)  # every stage is stateless
+        out_rot, staged = table.stages.step_batch({k: v for k, v in s.items() if "/" in k}, frame, table.rows)
+        s.update(staged)
         out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
