@@ -15,7 +15,7 @@ import numpy as np
 
 from ..eval.run import DATASET, INPUT_STYLE
 from ..motion.coupling import Coupling, Link
-from .carriage import SKIP_FRAMES, fitted_styles, locomotion
+from .carriage import fitted_styles, locomotion, made
 
 if TYPE_CHECKING:
     from .runtime import LPNModel
@@ -29,8 +29,6 @@ def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET
     """The coupling of `styles` (default: every style with TRAIN clips in `dataset`) from `model`
     (its carriage and output prior in place, no coupling), on walks and on runs apart
     (`carriage.locomotion`)."""
-    from ..eval.run import stylise
-
     styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()
@@ -39,8 +37,7 @@ def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET
     def real(style: str, gait: str) -> list[np.ndarray]:
         return [m.rotations for m in clips(style)[gait]]
 
-    def made(style: str, gait: str) -> list[np.ndarray]:
-        inputs = [m.slice(0, FIT_FRAMES) for m in clips(INPUT_STYLE)[gait]]
-        return [o.rotations[SKIP_FRAMES:] for o in stylise(model, inputs, [model.styles().index(style)] * len(inputs))]
+    def output(style: str, gait: str) -> list[np.ndarray]:
+        return made(model, style, [m.slice(0, FIT_FRAMES) for m in clips(INPUT_STYLE)[gait]])
 
-    return Coupling.fit(styles, LINKS, model.skeleton.names, real, made)
+    return Coupling.fit(styles, LINKS, model.skeleton.names, real, output)

@@ -22,7 +22,7 @@ from ..interface import State
 from ..motion.coupling import GAITS
 from ..motion.gait_split import split_by_gait
 from ..motion.rotations import quat_inv, quat_mean, quat_mul
-from ..motion.skeleton import Skeleton
+from ..motion.skeleton import Motion, Skeleton
 from ..stages import Rows, StageFrame, Stateless
 
 if TYPE_CHECKING:
@@ -126,21 +126,27 @@ def fitted_styles(names: list[str], dataset: str) -> list[str]:
     return [n for n in names if n in have]
 
 
+def made(model: LPNModel, style: str, inputs: list[Motion]) -> list[np.ndarray]:
+    """`model`'s local rotations toward `style` for each input, the first second skipped: what
+    every stage is fitted on, against the style's real clips."""
+    from ..eval.run import stylise
+
+    return [o.rotations[SKIP_FRAMES:] for o in stylise(model, inputs, [model.styles().index(style)] * len(inputs))]
+
+
 def _offsets(
     model: LPNModel, inputs: list, real: Callable[[str], list], styles: list[str], joints: tuple[str, ...]
 ) -> np.ndarray:
     """(len(styles), len(joints), 4): per style, the rotation taking the mean local rotation of
-    `model`'s output (driven by `inputs`, the first second skipped) to the mean of `real(style)`."""
-    from ..eval.run import stylise
+    `model`'s output (`made` on `inputs`) to the mean of `real(style)`."""
     from ..motion.rotation_ball import comparable
 
     index = [model.skeleton.names.index(j) for j in joints]
     out = np.empty((len(styles), len(joints), 4))
     for k, s in enumerate(styles):
-        outs = stylise(model, inputs, [model.styles().index(s)] * len(inputs))
-        made = quat_mean(comparable(np.concatenate([o.rotations[SKIP_FRAMES:] for o in outs]))[:, index], axis=0)
+        output = quat_mean(comparable(np.concatenate(made(model, s, inputs)))[:, index], axis=0)
         mean = quat_mean(comparable(np.concatenate([m.rotations for m in real(s)]))[:, index], axis=0)
-        out[k] = quat_mul(mean, quat_inv(made))
+        out[k] = quat_mul(mean, quat_inv(output))
     return out
 
 

@@ -24,7 +24,7 @@ from ..motion.coupling import GAITS
 from ..motion.skeleton import Skeleton
 from ..motion.style_carry import StyleCarry
 from ..stages import Rows, StageFrame, Stateless
-from .carriage import SKIP_FRAMES, UPPER_BODY, fitted_styles, locomotion
+from .carriage import UPPER_BODY, fitted_styles, locomotion, made
 
 if TYPE_CHECKING:
     from .runtime import LPNModel
@@ -132,8 +132,6 @@ def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET
     """The prior of `styles` (default: every style with TRAIN clips in `dataset`) from `model` (its
     carriage in place, no output prior): each style's `CARRIED` joints, the rest left alone, fitted
     on its walks and on its runs apart."""
-    from ..eval.run import stylise
-
     styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()
@@ -143,8 +141,7 @@ def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET
 
     def fitted(style: str, gait: str) -> StyleCarry:
         inputs = [m.slice(0, FIT_FRAMES) for m in clips(INPUT_STYLE)[gait]]
-        outs = stylise(model, inputs, [model.styles().index(style)] * len(inputs))
-        source = np.concatenate([o.rotations[SKIP_FRAMES:] for o in outs]).astype(np.float64)
+        source = np.concatenate(made(model, style, inputs)).astype(np.float64)
         target = np.concatenate([m.rotations for m in clips(style)[gait]]).astype(np.float64)
         return StyleCarry.fit([source], [target], fixed, source_floor=np.radians(SOURCE_FLOOR_DEG))
 
