@@ -11,27 +11,32 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..settings import REPO_ROOT
 
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
-def train(args) -> None:
+
+def train(args: argparse.Namespace) -> None:
     from .train import main as train_main
 
     train_main([f"--minutes={args.minutes}", *args.options])
 
 
-def _model():
+def _model() -> LPNModel:
     from ..settings import get_settings
     from . import load
 
     return load(get_settings().weights_dir / "lpn")
 
 
-def demo(args) -> None:
+def demo(args: argparse.Namespace) -> None:
     from .demo import render_demo
 
     out = Path(args.out)
@@ -41,7 +46,7 @@ def demo(args) -> None:
     print(png.with_suffix(".json").read_text())
 
 
-def bench(args) -> None:
+def bench(args: argparse.Namespace) -> None:
     """Step time at batch 1 and 256 against the floor (the expert products alone), called in turn
     so a shared machine's drifting load hits both alike; one thread, as the service runs."""
     import os
@@ -85,7 +90,7 @@ def bench(args) -> None:
     print(json.dumps(out, indent=1))
 
 
-def _products(model, B: int):
+def _products(model: LPNModel, B: int) -> Callable[[int], None]:
     """step(i) doing only the network's three expert products for B sessions (BLAS, float32)."""
     rng = np.random.default_rng(0)
     inputs = [rng.standard_normal((B, W.shape[0])).astype(np.float32) for W, _, _ in model.layers]
@@ -97,7 +102,7 @@ def _products(model, B: int):
     return step
 
 
-def fit(args) -> None:
+def fit(args: argparse.Namespace) -> None:
     """Refit the declared stages (`runtime.STAGES`, default all) in their order, each from real
     clips on the committed model with the stages before it; named styles only: the file keeps its
     other styles. The stages after a refitted one were fitted on top of it: refit them too."""
@@ -123,7 +128,7 @@ def fit(args) -> None:
         print(f"{spec.name}: wrote {stage.save(path)} in {time.time() - t0:.0f} s")
 
 
-def heldout(args) -> None:
+def heldout(args: argparse.Namespace) -> None:
     import torch
 
     from .finetune import FineTuneConfig
