@@ -142,3 +142,24 @@ def test_lpn_keeps_a_stateful_stages_state_in_the_session_state(lpn_model, bn_wa
         root, rot = (np.repeat(a[t : t + 1], 2, 0) for a in (bn_walk.translations[:, 1], bn_walk.rotations))
         _, state = twin.step_batch(state, FrameBatch(root, rot), w)
     assert state["hinge_floor/frames"].tolist() == [3, 3]
+
+
+def test_a_setting_switches_an_lpn_stage_off_at_load(monkeypatch):
+    """`STYLESTREAM_STAGES_OFF='["lpn.carriage"]'`: the loaded model runs without its carriage, the
+    other stages on; a stage LPN-FiLM does not declare is an error."""
+    from models.lpn import load
+    from models.settings import get_settings
+
+    folder = get_settings().weights_dir / "lpn"
+    monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lpn.carriage", "erd.leaf_prior"]')
+    get_settings.cache_clear()
+    try:
+        model = load(folder)
+        assert model.stages.carriage is None and model.stages.output_prior is not None
+        monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lpn.no_such_stage"]')
+        get_settings.cache_clear()
+        with pytest.raises(KeyError):
+            load(folder)
+    finally:
+        monkeypatch.delenv("STYLESTREAM_STAGES_OFF")
+        get_settings.cache_clear()

@@ -497,4 +497,6 @@ def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
     """The committed model; `core_only`: the published core alone, the network and foot planter
     without the stages after it (the evaluation's core-alone row, a session's `pipeline: core`)."""
     arrays, skeleton, config = read_weights(weights_dir)
-    return LPNModel(arrays, skeleton, config, Pipeline.load(STAGES, Path(weights_dir), skeleton, core_only))
+    off = [name.removeprefix("lpn.") for name in get_settings().stages_off if name.startswith("lpn.")]
+    stages = Pipeline.load(STAGES, Path(weights_dir), skeleton, core_only).without(*off)  # `Settings.stages_off`
+    return LPNModel(arrays, skeleton, config, stages)
