@@ -167,15 +167,6 @@ class Coupling(Stateless):
         )
 
 
-def write_coupling(coupling: Coupling, path: Path, keep_others: bool) -> Coupling:
-    """`coupling` saved at `path`; with `keep_others`, merged into the file's styles first (a refit
-    of some styles keeps the others). Returns what was written."""
-    if keep_others and path.exists():
-        coupling = Coupling.load(path).with_styles_of(coupling)
-    coupling.save(path)
-    return coupling
-
-
 def _coupled(weights: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(the rows that weigh a coupled style, every row's weights on coupled styles (B, S))."""
     w = np.asarray(weights, np.float64) * np.asarray(on, np.float64)[None]
