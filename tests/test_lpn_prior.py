@@ -52,7 +52,8 @@ def test_mixed_weights_blend_each_styles_clamp(model, walk):
     mean of each style's clamped rotation, the shortfall from 1 going to `normal`."""
     q = walk.rotations.astype(np.float64)
     q /= np.linalg.norm(q, axis=-1, keepdims=True)  # stored in float32: arccos would magnify that
-    mean, radii = model.stages.rotation_balls.for_styles(model.styles(), 22)
+    rows = model.stages.rotation_balls.rows(model.styles(), model.skeleton)
+    mean, radii = rows["mean"], rows["radii"]
     e, x, n = (model.styles().index(s) for s in ("elderly", "exhausted", "normal"))
     w = np.zeros((len(q), len(model.styles())))
     w[:, e] = 1.0

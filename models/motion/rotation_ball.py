@@ -131,20 +131,15 @@ class StyleBalls(Stateless):
             {"inner_q": inner_q, "outer_q": outer_q, "margin_deg": margin_deg, "data": data},
         )
 
-    def for_styles(self, names: Sequence[str | None], joints: int) -> tuple[np.ndarray, np.ndarray]:
-        """(mean (S, J, 4), radii (S, 2, J)) aligned with `names`; a name without a ball gets
-        infinite radii (nothing clamped)."""
-        mean = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (len(names), joints, 1))
-        radii = np.full((len(names), 2, joints), NO_PRIOR)
-        for k, name in enumerate(names):
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        """As a stage (`models.stages`): `mean` (S, J, 4) and `radii` (S, 2, J) aligned with
+        `styles`; a style without a ball gets infinite radii (nothing clamped)."""
+        mean = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (len(styles), skeleton.num_joints, 1))
+        radii = np.full((len(styles), 2, skeleton.num_joints), NO_PRIOR)
+        for k, name in enumerate(styles):
             if name in self.styles:
                 i = self.styles.index(name)
                 mean[k], radii[k] = self.mean[i], self.radii[i]
-        return mean, radii
-
-    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
-        """As a stage (`models.stages`): `for_styles` as `mean` and `radii`."""
-        mean, radii = self.for_styles(styles, skeleton.num_joints)
         return {"mean": mean, "radii": radii}
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
