@@ -53,6 +53,15 @@ class Stage(Protocol):
         ...
 
 
+def style_rows(
+    fitted: Sequence[str], styles: Sequence[str | None], **arrays: tuple[np.ndarray, np.ndarray | float]
+) -> dict[str, np.ndarray]:
+    """`Stage.rows` from arrays fitted for the styles `fitted`: per key (one row per fitted style,
+    the row that changes nothing), rows aligned with `styles` (a style not fitted, or None: the latter)."""
+    at = [fitted.index(s) if s in fitted else None for s in styles]
+    return {k: np.stack([plain if i is None else values[i] for i in at]) for k, (values, plain) in arrays.items()}
+
+
 class Stateless:
     """A stage that keeps nothing between frames."""
 

@@ -23,7 +23,7 @@ from ..motion.coupling import GAITS
 from ..motion.gait_split import split_by_gait
 from ..motion.rotations import quat_inv, quat_mean, quat_mul
 from ..motion.skeleton import Motion, Skeleton
-from ..stages import Rows, StageFrame, Stateless
+from ..stages import Rows, StageFrame, Stateless, style_rows
 
 if TYPE_CHECKING:
     from .runtime import LPNModel
@@ -43,11 +43,8 @@ class Carriage(Stateless):
 
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
         """The offsets aligned with `styles` (a style not fitted gets none) and the arm joints."""
-        arms = np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1))
-        for i, n in enumerate(styles):
-            if n in self.styles:
-                arms[i] = self.arms[self.styles.index(n)]
-        return {"arms": arms, "joints": np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)}
+        rows = style_rows(self.styles, styles, arms=(self.arms, np.tile((0.0, 0.0, 0.0, 1.0), (len(ARM_JOINTS), 1))))
+        return {**rows, "joints": np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)}
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
         offsets = blend_arms(rows["arms"], frame.weights, frame.base)

@@ -23,7 +23,7 @@ from ..interface import State
 from ..motion.coupling import GAITS
 from ..motion.skeleton import Skeleton
 from ..motion.style_carry import StyleCarry
-from ..stages import Rows, StageFrame, Stateless
+from ..stages import Rows, StageFrame, Stateless, style_rows
 from .carriage import UPPER_BODY, fitted_styles, locomotion, made
 
 if TYPE_CHECKING:
@@ -48,22 +48,19 @@ class OutputPrior(Stateless):
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
         """The walk and run carries' arrays (`run_` before the run's keys) aligned with `styles`,
         and `on` (S,); a style without a prior gets identity maps, infinite radii and `on` 0."""
-        J, S = skeleton.num_joints, len(styles)
-        plain = {
-            "source": np.tile((0.0, 0.0, 0.0, 1.0), (S, J, 1)),
-            "mean": np.tile((0.0, 0.0, 0.0, 1.0), (S, J, 1)),
-            "map": np.broadcast_to(np.eye(3), (S, J, 3, 3)).copy(),
-            "radius": np.full((S, J), np.inf),
+        J, identity = skeleton.num_joints, np.array((0.0, 0.0, 0.0, 1.0))
+        plain = (
+            np.tile(identity, (J, 1)),
+            np.tile(identity, (J, 1)),
+            np.tile(np.eye(3), (J, 1, 1)),
+            np.full(J, np.inf),
+        )
+        arrays = {
+            f"{prefix}{k}": (a, p)
+            for prefix, c in (("", self.carry), ("run_", self.run))
+            for k, a, p in zip(CARRY_ROWS, c.arrays, plain)
         }
-        rows = {**plain, **{f"run_{k}": v.copy() for k, v in plain.items()}, "on": np.zeros(S)}
-        for i, name in enumerate(styles):
-            if name in self.styles:
-                k = self.styles.index(name)
-                for prefix, carry in (("", self.carry), ("run_", self.run)):
-                    for key, array in zip(CARRY_ROWS, carry.arrays):
-                        rows[f"{prefix}{key}"][i] = array[k]
-                rows["on"][i] = 1.0
-        return rows
+        return style_rows(self.styles, styles, on=(np.ones(len(self.styles)), 0.0), **arrays)
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
         """The rotations of the rows that weigh a style with a prior carried by it, the walk and run

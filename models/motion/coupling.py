@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..interface import State
-from ..stages import Rows, StageFrame, Stateless
+from ..stages import Rows, StageFrame, Stateless, style_rows
 from .rotations import quat_exp, quat_inv, quat_log, quat_mean, quat_mul
 from .skeleton import Skeleton
 
@@ -85,23 +85,15 @@ class Coupling(Stateless):
     def aligned(self, names: Sequence[str | None]) -> dict[str, np.ndarray]:
         """`mean`, `walk`, `run` and `on` (S',) with rows aligned with the style list `names`: a
         style without a coupling gets identity means, zero gains and `on` 0."""
-        S, (J, L, G) = len(names), (self.mean.shape[1], len(self.links), self.walk.shape[2])
-        out = {
-            "mean": np.broadcast_to(np.array((0.0, 0.0, 0.0, 1.0)), (S, J, 4)).copy(),
-            "walk": np.zeros((S, L, G, 3)),
-            "run": np.zeros((S, L, G, 3)),
-            "on": np.zeros(S),
-        }
-        for i, name in enumerate(names):
-            if name in self.styles:
-                k = self.styles.index(name)
-                out["mean"][i], out["walk"][i], out["run"][i], out["on"][i] = (
-                    self.mean[k],
-                    self.walk[k],
-                    self.run[k],
-                    1.0,
-                )
-        return out
+        identity, zero = np.tile((0.0, 0.0, 0.0, 1.0), (self.mean.shape[1], 1)), np.zeros(self.walk.shape[1:])
+        return style_rows(
+            self.styles,
+            names,
+            mean=(self.mean, identity),
+            walk=(self.walk, zero),
+            run=(self.run, zero),
+            on=(np.ones(len(self.styles)), 0.0),
+        )
 
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
         """`aligned` and the links' joints on `skeleton` (`targets`, `drivers`: `link_indices`)."""

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..interface import State
-from ..stages import Rows, StageFrame, Stateless
+from ..stages import Rows, StageFrame, Stateless, style_rows
 from .bn_skeleton import HIPS
 from .rotation_ball_kernels import clamp_mixed
 from .rotations import quat_angle, quat_inv, quat_mul
@@ -134,13 +134,9 @@ class StyleBalls(Stateless):
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
         """As a stage (`models.stages`): `mean` (S, J, 4) and `radii` (S, 2, J) aligned with
         `styles`; a style without a ball gets infinite radii (nothing clamped)."""
-        mean = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (len(styles), skeleton.num_joints, 1))
-        radii = np.full((len(styles), 2, skeleton.num_joints), NO_PRIOR)
-        for k, name in enumerate(styles):
-            if name in self.styles:
-                i = self.styles.index(name)
-                mean[k], radii[k] = self.mean[i], self.radii[i]
-        return {"mean": mean, "radii": radii}
+        J = skeleton.num_joints
+        plain = (np.tile((0.0, 0.0, 0.0, 1.0), (J, 1)), np.full((2, J), NO_PRIOR))
+        return style_rows(self.styles, styles, mean=(self.mean, plain[0]), radii=(self.radii, plain[1]))
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
         """The rotations held inside the balls of the frame's styles (`clamp_mixed`)."""
