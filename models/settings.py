@@ -24,6 +24,12 @@ class Settings(BaseSettings):
         description="Git-ignored folder for unpacked archives and parsed-array caches.",
     )
     weights_dir: Path = Field(default=REPO_ROOT / "models" / "weights", description="Committed model weights.")
+    stages_off: list[str] = Field(
+        default_factory=list,
+        description="Stages after a method's core to switch off, as `method.stage` (JSON list, e.g. "
+        '`["lpn.carriage"]`; the names a method declares: `models.lpn.runtime.STAGES`). For comparisons, or to '
+        "serve a method without a stage; a name the method does not declare is an error at load.",
+    )
     bfloat16_products: bool = Field(
         default=True,
         description="LPN-FiLM's expert products in bfloat16 (float32 sums) where this CPU multiplies bfloat16 "

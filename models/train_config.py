@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
 if TYPE_CHECKING:
+    import numpy as np
     import torch
 
 T = TypeVar("T")
@@ -66,3 +67,28 @@ def seeded_device(threads: int, seed: int, device: str) -> torch.device:
     np.random.seed(seed)
     random.seed(seed)
     return torch.device(("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device)
+
+
+def rng_state(rng: np.random.Generator) -> dict:
+    """Every random generator a run draws from (`rng`, torch's CPU and CUDA ones, Python's): what a
+    checkpoint holds so that a resumed run continues exactly."""
+    import random
+
+    import torch
+
+    cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None
+    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(), "cuda": cuda, "python": random.getstate()}
+
+
+def set_rng_state(rng: np.random.Generator, state: dict) -> None:
+    """`rng_state`'s generators back (a checkpoint without CUDA's, or resumed without a GPU, keeps
+    CUDA's as they are; `sampler`: an older name of `rng`'s state)."""
+    import random
+
+    import torch
+
+    rng.bit_generator.state = state["numpy"] if "numpy" in state else state["sampler"]
+    torch.set_rng_state(state["torch"])
+    if state.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+    random.setstate(state["python"])

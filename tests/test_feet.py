@@ -190,3 +190,21 @@ def test_an_inactive_session_gets_its_frame_back_as_it_is(bn_walk):
         np.testing.assert_array_equal(root[0], skating_root[t])
         np.testing.assert_array_equal(rot[0], bn_walk.rotations[t])
         assert not contacts.any()
+
+
+@pytest.mark.parametrize("hint_speed, plants", [(np.inf, True), (150.0, True), (100.0, False)])
+def test_a_hinted_foot_plants_only_below_the_hint_speed(bn_walk, hint_speed, plants):
+    """A foot touching down while it travels 4 cm in a frame (120 cm/s, with the root: no push
+    back, too fast for an unhinted touch-down) plants on the model's hint only below `hint_speed`."""
+    planter = model_rig_planter(bn_walk.fps, hint_speed=hint_speed)
+    root = np.repeat(bn_walk.translations[:1, HIPS], 2, axis=0)
+    root[0, 1] += 60.0  # in the air, then down 4 cm further on
+    root[1, 0] += 4.0
+    rot = np.repeat(bn_walk.rotations[:1], 2, axis=0)
+    state = planter.init_state(1)
+    hints = np.ones((1, 2), bool)
+    contacts = []
+    for t in range(2):
+        _, _, c, state = planter(state, root[t : t + 1], rot[t : t + 1], hints=hints)
+        contacts.append(c[0])
+    assert not contacts[0].any() and contacts[1].any() == plants

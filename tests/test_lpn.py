@@ -49,10 +49,12 @@ def test_loads_through_the_registry_with_the_target_styles(model):
 
 
 def test_numpy_network_equals_the_trained_torch_network(model, clips):
+    from tests.reference.lpn_step import in_float32
+
     samples = clip_samples(clips["walk"], gait=0.0)
     x, g = samples.X[::7][:16], samples.G[::7][:16]
     film = model.blend_films(np.tile(model.weight_vector({"elderly": 0.7, "active": 0.3}), (len(x), 1)))
-    ours = model.in_float32()._network(x, g, film)
+    ours = in_float32(model)._network(x, g, film)
     net = model.generator()
     with torch.no_grad():
         theirs = net.denormalise_y(
@@ -197,11 +199,14 @@ def test_compiled_step_gives_the_numpy_steps_outputs(model, reference, clips):
             for mix in ({"elderly": 1.0}, {"active": 1.0}, {"feminine": 0.5, "exhausted": 0.3}, {"normal": 1.0})
         ]
     )
-    model = model.in_float32()  # the reference multiplies in float32 (bfloat16 products: tests/test_rowwise.py)
+    from tests.reference.lpn_step import in_float32
+
+    model = in_float32(model)  # the reference multiplies in float32
     # the arm coupling moves a forearm by up to ~10x its drivers' deviations, round-off included: it
     # has its own compiled-vs-numpy test (test_lpn_arm_coupling.py); here the step before it
     model, reference = model.with_own_styles(), reference.with_own_styles()
-    model.arm_coupling = reference.arm_coupling = None
+    model.stages = model.stages.without("arm_coupling")
+    reference.stages = reference.stages.without("arm_coupling")
     states = {m: m.init_state(4) for m in (model, reference)}
     worst = {"root_cm": 0.0, "quaternion": 0.0, "state": 0.0}
     roots, held, released, bent = [], [], [], []

@@ -16,7 +16,7 @@ from models.motion.style_carry import quat_log
 
 @pytest.fixture(scope="module")
 def model(lpn_model):
-    if lpn_model.arm_coupling is None:
+    if lpn_model.stages.arm_coupling is None:
         pytest.skip("no LPN-FiLM arm coupling committed")
     return lpn_model
 
@@ -24,7 +24,7 @@ def model(lpn_model):
 @pytest.fixture(scope="module")
 def bare(model):
     twin = model.with_own_styles()
-    twin.arm_coupling = None
+    twin.stages = twin.stages.without("arm_coupling")
     return twin
 
 
@@ -45,7 +45,9 @@ def _turn_speed(rotations: np.ndarray) -> float:
 
 @pytest.mark.parametrize("style", ["active", "elderly", "feminine"])
 def test_every_style_is_coupled_and_only_its_forearms_move(model, bare, walk, style):
-    assert {"active", "elderly", "exhausted", "feminine", "masculine", "youthful"} <= set(model.arm_coupling.styles)
+    assert {"active", "elderly", "exhausted", "feminine", "masculine", "youthful"} <= set(
+        model.stages.arm_coupling.styles
+    )
     w = model.weight_vector({style: 1.0})
     coupled, plain = model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations
     forearms = _forearms(model)
@@ -91,9 +93,11 @@ def test_a_run_takes_the_run_gains_and_a_walk_the_walk_gains(model, walk, index)
     from models.data import load_motions, select
 
     run = load_motions([select(index, dataset="bandai-namco-2", split="val", style="normal", content="run")[0]])[0]
-    c = model.arm_coupling
+    c = model.stages.arm_coupling
     once = model.with_own_styles()
-    once.arm_coupling = Coupling(c.styles, c.links, c.mean, c.walk, c.walk)  # walk gains for both gaits
+    once.stages = once.stages.replace(
+        arm_coupling=Coupling(c.styles, c.links, c.mean, c.walk, c.walk)
+    )  # walk gains, both gaits
     w = model.weight_vector({"active": 1.0})
     np.testing.assert_array_equal(model.run(walk, w)[0].rotations, once.run(walk, w)[0].rotations)
     forearms = _forearms(model)
@@ -104,9 +108,9 @@ def test_a_run_takes_the_run_gains_and_a_walk_the_walk_gains(model, walk, index)
 def test_a_replaced_vector_gets_no_coupling_and_the_file_round_trips(model, tmp_path):
     twin = model.with_own_styles()
     twin.set_style_film("active", twin.film_of("exhausted"))
-    assert twin.style_table.get("couple_on")[twin.styles().index("active")] == 0.0
-    assert model.style_table.get("couple_on")[model.styles().index("active")] == 1.0
-    c = model.arm_coupling
+    assert twin.style_table.rows["arm_coupling"]["on"][twin.styles().index("active")] == 0.0
+    assert model.style_table.rows["arm_coupling"]["on"][model.styles().index("active")] == 1.0
+    c = model.stages.arm_coupling
     back = Coupling.load(c.save(tmp_path / "coupling.npz"))
     assert back.styles == c.styles and back.links == c.links == LINKS
     for field in ("mean", "walk", "run"):
@@ -120,9 +124,9 @@ def test_a_replaced_vector_gets_no_coupling_and_the_file_round_trips(model, tmp_
 
 def test_the_compiled_coupling_is_the_numpy_reference(model, walk):
     """Mixed weights, gait shares between walk and run, rows without a coupled style."""
-    from models.lpn.arm_coupling import couple_rows
     from models.motion.coupling import link_indices
-    from tests.reference.coupling import couple_rows_numpy
+    from models.stages import StageFrame
+    from tests.reference.coupling import couple_numpy
 
     rng = np.random.default_rng(0)
     rot = np.repeat(walk.rotations[:40], 2, axis=0).astype(np.float32)
@@ -132,8 +136,12 @@ def test_the_compiled_coupling_is_the_numpy_reference(model, walk):
     w[:, active] = rng.choice([0.0, 0.3, 1.0, 1.4], len(rot))
     w[:, elderly] = rng.choice([0.0, 0.7], len(rot))
     gait = rng.choice([0.0, 0.4, 1.0], len(rot))
-    joints, table = link_indices(LINKS, model.skeleton.names), model.style_table
-    compiled, reference = couple_rows(table, rot, w, gait, joints), couple_rows_numpy(table, rot, w, gait, joints)
+    joints, rows = link_indices(LINKS, model.skeleton.names), model.style_table.rows["arm_coupling"]
+    frame = StageFrame(rot, w, gait, model.styles().index("normal"))
+    compiled, reference = (
+        model.stages.arm_coupling.step_batch({}, frame, rows)[0],
+        couple_numpy(rot, w, gait, joints, rows),
+    )
     assert compiled.dtype == rot.dtype
     bare = (w[:, active] == 0) & (w[:, elderly] == 0)
     np.testing.assert_array_equal(compiled[bare], rot[bare])

@@ -23,7 +23,7 @@ def walk(bn_walk):
 
 
 def test_the_shipped_carriage_holds_arm_offsets(model):
-    c = model.carriage
+    c = model.stages.carriage
     every = {"normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful"}
     assert c is not None and every <= set(c.styles)
     assert quat_angle(c.arms[c.styles.index("active")], np.array([0.0, 0, 0, 1])).max() > np.radians(20)
@@ -35,7 +35,9 @@ def test_the_arm_carriage_brings_the_arms_toward_the_real_style(model, walk):
     joints = [model.skeleton.names.index(j) for j in ARM_JOINTS]
     mean = quat_mean(comparable(np.concatenate([m.rotations for m in real]))[:, joints], axis=0)
     plain = model.with_own_styles()
-    plain.carriage = Carriage(model.carriage.styles, np.tile((0.0, 0, 0, 1), (7, 8, 1)))
+    plain.stages = plain.stages.replace(
+        carriage=Carriage(model.stages.carriage.styles, np.tile((0.0, 0, 0, 1), (7, 8, 1)))
+    )
     apart = {}
     for name, m in (("carried", model), ("bare", plain)):
         out = m.run(walk, m.weight_vector({"feminine": 1.0}))[0]
@@ -59,13 +61,13 @@ def test_uploaded_and_replaced_styles_get_no_carriage(model, walk):
     twin = model.with_own_styles()
     twin.set_style_film("mine", twin.film_of("active"))
     twin.set_style_film("active", twin.film_of("active"))  # a built-in's vector replaced: no longer its walks
-    arms = twin.style_table.get("arms")
+    arms = twin.style_table.rows["carriage"]["arms"]
     for name in ("mine", "active"):
         assert np.allclose(arms[twin.styles().index(name)], (0, 0, 0, 1))
     k = model.styles().index("active")
-    assert not np.allclose(model.style_table.get("arms")[k], (0, 0, 0, 1))  # the original keeps it
+    assert not np.allclose(model.style_table.rows["carriage"]["arms"][k], (0, 0, 0, 1))  # the original keeps it
     twin.remove_style("mine")
-    assert len(twin.style_table.get("arms")) == len(twin.styles())
+    assert len(twin.style_table.rows["carriage"]["arms"]) == len(twin.styles())
     out, _ = twin.run(walk, twin.weight_vector({"elderly": 1.0}))
     assert np.isfinite(out.rotations).all()
 

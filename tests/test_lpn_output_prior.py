@@ -15,7 +15,7 @@ from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
 @pytest.fixture(scope="module")
 def model(lpn_model):
-    if lpn_model.output_prior is None:
+    if lpn_model.stages.output_prior is None:
         pytest.skip("no LPN-FiLM output prior committed")
     return lpn_model
 
@@ -27,15 +27,15 @@ def walk(bn_walk):
 
 def _without(model):
     bare = model.with_own_styles()
-    bare.output_prior = None
+    bare.stages = bare.stages.without("output_prior")
     return bare
 
 
 def test_every_style_carries_the_same_joints(model):
     """Every fitted style, walking and running, carries `CARRIED` and nothing else: the legs and Hips never."""
     names = model.skeleton.names
-    for carry in (model.output_prior.carry, model.output_prior.run):
-        for k, style in enumerate(model.output_prior.styles):
+    for carry in (model.stages.output_prior.carry, model.stages.output_prior.run):
+        for k, style in enumerate(model.stages.output_prior.styles):
             carried = {names[j] for j in np.flatnonzero(carry.radius[k] < np.pi)}
             assert carried == set(CARRIED), style
     assert not set(LEG_JOINTS) & set(CARRIED) and set(UPPER_BODY) == set(CARRIED)
@@ -43,7 +43,9 @@ def test_every_style_carries_the_same_joints(model):
 
 def test_every_dataset_2_style_has_a_prior_and_only_the_carried_joints_move(model, walk):
     bare = _without(model)
-    assert {"active", "elderly", "exhausted", "feminine", "masculine", "youthful"} <= set(model.output_prior.styles)
+    assert {"active", "elderly", "exhausted", "feminine", "masculine", "youthful"} <= set(
+        model.stages.output_prior.styles
+    )
     for style in ("elderly", "feminine"):
         w = model.weight_vector({style: 1.0})
         carried, plain = model.run(walk, w)[0].rotations, bare.run(walk, w)[0].rotations
@@ -54,8 +56,8 @@ def test_every_dataset_2_style_has_a_prior_and_only_the_carried_joints_move(mode
 
 
 def test_carried_joints_stay_inside_the_styles_real_range(model, walk):
-    prior = model.output_prior.carry
-    k = model.output_prior.styles.index("active")
+    prior = model.stages.output_prior.carry
+    k = model.stages.output_prior.styles.index("active")
     out = model.run(walk, model.weight_vector({"active": 1.0}))[0].rotations.astype(np.float64)
     for name in UPPER_BODY:
         j = model.skeleton.names.index(name)
@@ -81,12 +83,12 @@ def test_a_mixed_batch_steps_each_row_as_alone(model, walk):
 def test_a_replaced_vector_gets_no_prior_and_the_file_round_trips(model, tmp_path):
     twin = model.with_own_styles()
     twin.set_style_film("active", twin.film_of("exhausted"))
-    assert twin.style_table.get("prior_on")[twin.styles().index("active")] == 0.0
-    assert model.style_table.get("prior_on")[model.styles().index("active")] == 1.0
-    back = OutputPrior.load(model.output_prior.save(tmp_path / "prior.npz"))
-    assert back.styles == model.output_prior.styles
-    np.testing.assert_array_equal(back.carry.map, model.output_prior.carry.map)
-    np.testing.assert_array_equal(back.run.map, model.output_prior.run.map)
+    assert twin.style_table.rows["output_prior"]["on"][twin.styles().index("active")] == 0.0
+    assert model.style_table.rows["output_prior"]["on"][model.styles().index("active")] == 1.0
+    back = OutputPrior.load(model.stages.output_prior.save(tmp_path / "prior.npz"))
+    assert back.styles == model.stages.output_prior.styles
+    np.testing.assert_array_equal(back.carry.map, model.stages.output_prior.carry.map)
+    np.testing.assert_array_equal(back.run.map, model.stages.output_prior.run.map)
 
 
 @pytest.fixture(scope="module")
@@ -102,8 +104,8 @@ def _table_without_run_prior(model):
     from models.lpn.output_prior import OutputPrior
 
     bare = model.with_own_styles()
-    prior = model.output_prior
-    bare.output_prior = OutputPrior(prior.styles, prior.carry, prior.carry)
+    prior = model.stages.output_prior
+    bare.stages = bare.stages.replace(output_prior=OutputPrior(prior.styles, prior.carry, prior.carry))
     return bare
 
 
@@ -122,11 +124,11 @@ def test_runs_take_their_own_prior_and_walks_the_walk_prior(model, walk, run, st
 
 
 def test_a_refit_of_some_styles_keeps_the_others_and_an_older_file_has_one_prior(model, tmp_path):
-    """`python -m models.lpn.output_prior active` refits active alone (`with_styles_of`); a file
+    """`python -m models.lpn fit --stages output_prior active` refits active alone (`with_styles_of`); a file
     written before the run prior existed loads with each style's one prior for both gaits."""
     from models.motion.style_carry import StyleCarry
 
-    prior = model.output_prior
+    prior = model.stages.output_prior
     c = prior.carry
     path = tmp_path / "old.npz"
     np.savez(path, styles=np.array(prior.styles), source=c.source, mean=c.mean, map=c.map, radius=c.radius)

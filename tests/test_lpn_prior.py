@@ -27,8 +27,8 @@ def walk(bn_walk):
 def _beyond(model, motion, style: str) -> np.ndarray:
     """(T, J) angle past the style's outer radius (radians, <= 0 inside) of each joint the foot
     planter does not re-pose (it runs after the prior and moves only the legs)."""
-    k = model.balls.styles.index(style)
-    mean, radii = model.balls.mean[k], model.balls.radii[k]
+    k = model.stages.rotation_balls.styles.index(style)
+    mean, radii = model.stages.rotation_balls.mean[k], model.stages.rotation_balls.radii[k]
     keep = [j for j in range(1, 22) if model.skeleton.names[j] not in sum(LEGS, ())]
     angle = quat_angle(comparable(motion.rotations.astype(np.float64)), mean)
     return (angle - radii[1])[:, keep]
@@ -52,7 +52,8 @@ def test_mixed_weights_blend_each_styles_clamp(model, walk):
     mean of each style's clamped rotation, the shortfall from 1 going to `normal`."""
     q = walk.rotations.astype(np.float64)
     q /= np.linalg.norm(q, axis=-1, keepdims=True)  # stored in float32: arccos would magnify that
-    mean, radii = model.balls.for_styles(model.styles(), 22)
+    rows = model.stages.rotation_balls.rows(model.styles(), model.skeleton)
+    mean, radii = rows["mean"], rows["radii"]
     e, x, n = (model.styles().index(s) for s in ("elderly", "exhausted", "normal"))
     w = np.zeros((len(q), len(model.styles())))
     w[:, e] = 1.0
@@ -72,14 +73,18 @@ def test_uploaded_styles_are_not_clamped(model, walk):
     twin = model.with_own_styles()
     twin.set_style_film("mine", twin.film_of("elderly"))
     twin.set_style_film("elderly", twin.film_of("elderly"))  # a built-in's vector replaced: no longer its data
-    radii = twin.style_table.get("ball_radii")
+    radii = twin.style_table.rows["rotation_balls"]["radii"]
     for name in ("mine", "elderly"):
         assert np.isinf(radii[twin.styles().index(name)]).all()
     assert np.isfinite(radii[twin.styles().index("exhausted"), :, 1:]).all()
-    original = model.style_table.get("ball_radii")[model.styles().index("elderly")]
+    original = model.style_table.rows["rotation_balls"]["radii"][model.styles().index("elderly")]
     assert np.isfinite(original[:, 1:]).all()  # the original keeps it
     twin.remove_style("mine")
-    assert len(twin.style_table.get("ball_mean")) == len(twin.style_table.get("ball_radii")) == len(twin.styles())
+    assert (
+        len(twin.style_table.rows["rotation_balls"]["mean"])
+        == len(twin.style_table.rows["rotation_balls"]["radii"])
+        == len(twin.styles())
+    )
     out, _ = twin.run(walk, twin.weight_vector({"elderly": 1.0}))
     assert np.isfinite(out.rotations).all()
 
@@ -98,4 +103,4 @@ def test_tuned_builtin_styles_keep_their_prior(model):
         k = model.styles().index(name)
         assert np.array_equal(model.film_of(name), film)
         assert not np.array_equal(exported["style_film"][k], film)
-        assert np.isfinite(model.style_table.get("ball_radii")[k, :, 1:]).all(), name
+        assert np.isfinite(model.style_table.rows["rotation_balls"]["radii"][k, :, 1:]).all(), name

@@ -361,6 +361,24 @@ def test_erf_blend_zero_inside_and_one_far_outside():
     np.testing.assert_allclose(out[0, : rep.FEATURE_DIM], feats[0], rtol=1e-6)
 
 
+def test_the_blend_eases_toward_the_input_when_it_leaves_the_training_range():
+    """An input that leaves the training range in one frame (raw weight 0 -> 1) is blended toward
+    over a few frames, with a small second difference (no rotation jolt), and reaches it."""
+    from models.lti.model import ease_keep
+
+    tr = _toy_translator()
+    feats = np.zeros((60, rep.FEATURE_DIM))
+    feats[10:, 5] = 60.0  # far outside from frame 10 on
+    u = (feats - tr.in_mean) / tr.in_std
+    raw = tr.blend_weight(u)
+    assert raw[:10].max() == 0.0 and raw[10:].min() > 0.999999
+    out, _ = tr.translate_features(feats)
+    w = out[:, 5] / 60.0  # toy: the translation is 0, so the output is w * the input
+    assert w[:10].max() == 0.0 and 0.0 < w[10] < 0.1
+    assert np.abs(np.diff(w, 2)).max() < 2 * (1.0 - ease_keep(LTIStyleModel.fps)) ** 2
+    assert w[10 + int(LTIStyleModel.fps)] > 0.99
+
+
 def test_footplant_classifier_separates_classes():
     rng = np.random.default_rng(3)
     x = rng.standard_normal((400, 5))

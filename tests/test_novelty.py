@@ -252,3 +252,34 @@ def test_the_service_can_switch_the_fade_off():
     shipped = load_models(WEIGHTS)["lti"].init_state(1)
     without = load_models(WEIGHTS, novelty=False)["lti"].init_state(1)
     assert all(k in shipped for k in KEYS) and not any(k in without for k in KEYS)
+
+
+def test_lti_fading_inside_its_step_is_the_stage(crouch):
+    """LTI runs the fade inside its own compiled step (`step_batch_fading`): through the crouch,
+    for a style and a mix with an intensity below 1, it gives what the stage gives after LTI's
+    plain step, to the bit."""
+    from models.lti import LTIStyleModel
+    from models.motion.novelty_stage import with_novelty
+
+    motion, _, _ = crouch
+    fused = load_model(WEIGHTS, "lti")
+
+    class Separate(LTIStyleModel):
+        step_batch_fading = None  # the stage's own path: the method's step, then `fade_step`
+
+    plain = object.__new__(Separate)
+    plain.__dict__.update(fused.__dict__)
+    separate = with_novelty(plain, fused.novelty)
+    weights = np.stack([style_vector(fused, {"elderly": 1.0}), style_vector(fused, {"feminine": 0.5, "active": 0.3})])
+    states = [fused.init_state(2), separate.init_state(2)]
+    seen = 0.0
+    for t in range(motion.num_frames):
+        frame = FrameBatch(
+            np.repeat(motion.translations[t : t + 1, HIPS], 2, 0), np.repeat(motion.rotations[t : t + 1], 2, 0)
+        )
+        (a, states[0]), (b, states[1]) = (m.step_batch(s, frame, weights) for m, s in zip((fused, separate), states))
+        for got, want in ((a.rotations, b.rotations), (a.root, b.root), (a.faded, b.faded), (a.contacts, b.contacts)):
+            np.testing.assert_array_equal(got, want)
+        seen = max(seen, float(a.faded.max()))
+    assert states[0].keys() == states[1].keys() and all(np.array_equal(states[0][k], states[1][k]) for k in states[0])
+    assert seen > 0.9  # the crouch faded

@@ -1,4 +1,5 @@
-"""The trainers' one command-line parser: `--name=value` typed by the config's defaults."""
+"""The trainers' shared helpers: one command-line parser (`--name=value` typed by the config's
+defaults) and the random state a checkpoint holds."""
 
 from __future__ import annotations
 
@@ -48,3 +49,25 @@ def test_every_trainer_parses_the_same_way(parse):
             assert getattr(parse([f"--{key.replace('_', '-')}={value + 1}"]), key) == value + 1
     with pytest.raises(SystemExit, match="unknown option"):
         parse(["--no-such-option=1"])
+
+
+def test_a_checkpoints_random_state_replays_every_generator_exactly():
+    """`rng_state` then `set_rng_state`: numpy's generator, torch's and Python's draw again what
+    they drew after the checkpoint (a resumed run continues exactly); an older checkpoint naming
+    the numpy state `sampler` restores too."""
+    import random
+
+    import numpy as np
+    import torch
+
+    from models.train_config import rng_state, set_rng_state
+
+    rng = np.random.default_rng(3)
+    state = rng_state(rng)
+    draws = lambda: (rng.random(3).tolist(), torch.rand(3).tolist(), random.random())  # noqa: E731
+    first = draws()
+    set_rng_state(rng, state)
+    assert draws() == first
+    older = {("sampler" if k == "numpy" else k): v for k, v in state.items()}
+    set_rng_state(rng, older)
+    assert draws() == first

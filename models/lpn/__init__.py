@@ -9,11 +9,15 @@ scripted control demo (`demo`); `python -m models.lpn --help`."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
 WEIGHTS_SUBDIR = "lpn"
 
 
-def load(weights_dir: Path, core_only: bool = False):
+def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
     """The committed model; `core_only`: the published core alone (`runtime.load`)."""
     from .runtime import load as _load
 

@@ -1,6 +1,7 @@
 """LPN-FiLM command line.
 
 .venv/bin/python -m models.lpn train [--minutes 60] [--field=value ...]   # train.TrainConfig, then export
+.venv/bin/python -m models.lpn fit [STYLE ...] [--stages carriage,...]    # refit the stages after the network
 .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly]  # scripted control, out/lpn/
 .venv/bin/python -m models.lpn bench [--steps 300] [--threads 1]       # step time, batch 1 and 256, vs the expert products alone
 .venv/bin/python -m models.lpn heldout [--steps 300 --seed 0]          # new styles from a clip, 3 held-out styles
@@ -10,27 +11,32 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..settings import REPO_ROOT
 
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
-def train(args) -> None:
+
+def train(args: argparse.Namespace) -> None:
     from .train import main as train_main
 
     train_main([f"--minutes={args.minutes}", *args.options])
 
 
-def _model():
+def _model() -> LPNModel:
     from ..settings import get_settings
     from . import load
 
     return load(get_settings().weights_dir / "lpn")
 
 
-def demo(args) -> None:
+def demo(args: argparse.Namespace) -> None:
     from .demo import render_demo
 
     out = Path(args.out)
@@ -40,7 +46,7 @@ def demo(args) -> None:
     print(png.with_suffix(".json").read_text())
 
 
-def bench(args) -> None:
+def bench(args: argparse.Namespace) -> None:
     """Step time at batch 1 and 256 against the floor (the expert products alone), called in turn
     so a shared machine's drifting load hits both alike; one thread, as the service runs."""
     import os
@@ -84,7 +90,7 @@ def bench(args) -> None:
     print(json.dumps(out, indent=1))
 
 
-def _products(model, B: int):
+def _products(model: LPNModel, B: int) -> Callable[[int], None]:
     """step(i) doing only the network's three expert products for B sessions (BLAS, float32)."""
     rng = np.random.default_rng(0)
     inputs = [rng.standard_normal((B, W.shape[0])).astype(np.float32) for W, _, _ in model.layers]
@@ -96,7 +102,33 @@ def _products(model, B: int):
     return step
 
 
-def heldout(args) -> None:
+def fit(args: argparse.Namespace) -> None:
+    """Refit the declared stages (`runtime.STAGES`, default all) in their order, each from real
+    clips on the committed model with the stages before it; named styles only: the file keeps its
+    other styles. The stages after a refitted one were fitted on top of it: refit them too."""
+    import time
+
+    import torch
+
+    from ..settings import get_settings
+    from .runtime import STAGES, load
+
+    torch.set_num_threads(1)
+    folder = get_settings().weights_dir / "lpn"
+    names = args.stages.split(",") if args.stages else [s.name for s in STAGES]
+    unknown = set(names) - {s.name for s in STAGES}
+    if unknown:
+        raise SystemExit(f"unknown stages {sorted(unknown)}; declared: {[s.name for s in STAGES]}")
+    for spec in (s for s in STAGES if s.name in names):
+        t0, path = time.time(), folder / spec.file
+        model = load(folder)
+        stage = spec.fit(model, args.styles or None)
+        if args.styles and path.exists() and hasattr(stage, "with_styles_of"):
+            stage = spec.load(path, model.skeleton).with_styles_of(stage)  # type: ignore[attr-defined]
+        print(f"{spec.name}: wrote {stage.save(path)} in {time.time() - t0:.0f} s")
+
+
+def heldout(args: argparse.Namespace) -> None:
     import torch
 
     from .finetune import FineTuneConfig
@@ -131,6 +163,10 @@ def main(argv: list[str] | None = None) -> None:
         "--no-dropout", dest="dropout", action="store_false", help="fine-tune with the network's dropout off"
     )
     s.set_defaults(fn=heldout)
+    s = sub.add_parser("fit", help="refit the stages after the network from real clips (runtime.STAGES, in order)")
+    s.add_argument("styles", nargs="*", help="only these styles (default: every style each stage fits)")
+    s.add_argument("--stages", default="", help="comma-separated stage names (default: all)")
+    s.set_defaults(fn=fit)
     s = sub.add_parser("train", help="train LPN-FiLM (options of train.TrainConfig as --field=value)")
     s.add_argument("--minutes", type=float, default=60.0)
     s.set_defaults(fn=train)

@@ -1,5 +1,5 @@
 """LPN-FiLM's arm coupling: a style's forearms moved with its upper arms, shoulders and chest as
-they move together in its real clips (`python -m models.lpn.arm_coupling [STYLE ...]` writes
+they move together in its real clips (`python -m models.lpn fit --stages arm_coupling` writes
 `ARM_COUPLING_FILE`, the same fit for every style; applied after the output prior).
 
 The output prior maps each joint on its own, so it cannot make a forearm pump in step with an
@@ -9,81 +9,35 @@ the network's (`models.motion.coupling`), fitted per gait and mixed by gait shar
 
 from __future__ import annotations
 
-import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..eval.run import DATASET, INPUT_STYLE
-from ..motion.coupling import GAITS, Coupling, Link, couple, write_coupling
-from .carriage import SKIP_FRAMES, fitted_styles, locomotion
+from ..motion.coupling import Coupling, Link
+from .carriage import fitted_styles, locomotion, made
+
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
 ARM_COUPLING_FILE = "arm_coupling.npz"
 LINKS: tuple[Link, ...] = tuple((f"LowerArm_{s}", (f"UpperArm_{s}", f"Shoulder_{s}", "Chest")) for s in "LR")
-ROW_KEYS = ("mean", *GAITS, "on")  # `Coupling.aligned`'s arrays
-COUPLING_ROWS = tuple(f"couple_{k}" for k in ROW_KEYS)  # its style-table rows
 FIT_FRAMES = 300
 
 
-def table_rows(coupling: Coupling, names: list[str]) -> dict[str, np.ndarray]:
-    """The style table's rows aligned with `names` (a style without a coupling: identity means,
-    zero gains, off)."""
-    return {f"couple_{k}": v for k, v in coupling.aligned(names).items()}
-
-
-def _aligned(table) -> dict[str, np.ndarray] | None:
-    rows = {k: table.get(f"couple_{k}") for k in ROW_KEYS}
-    return None if rows["on"] is None else rows
-
-
-def couple_rows(
-    table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarray, joints: tuple[np.ndarray, np.ndarray]
-) -> np.ndarray:
-    """The rotations (B, J, 4) with the forearms of the rows that weigh a coupled style moved with
-    their drivers (`table`: a `StyleTable` with the coupling's rows; `joints`: `link_indices` of
-    the coupling's links), walking and running gains mixed by each row's gait share (B,). Other rows and joints
-    exactly as they were. Compiled (`models.motion.coupling.couple`)."""
-    aligned = _aligned(table)
-    return rotations if aligned is None else couple(rotations, weights, gait, joints, aligned)
-
-
-def fit(model, styles: list[str], dataset: str = DATASET) -> Coupling:
-    """The coupling of `styles` from `model` (its carriage and output prior in place, no coupling),
-    on walks and on runs apart (`carriage.locomotion`)."""
-    from ..eval.run import stylise
-
+def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET) -> Coupling:
+    """The coupling of `styles` (default: every style with TRAIN clips in `dataset`) from `model`
+    (its carriage and output prior in place, no coupling), on walks and on runs apart
+    (`carriage.locomotion`)."""
+    styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()
-    model.arm_coupling = None
+    model.stages = model.stages.without("arm_coupling")
 
     def real(style: str, gait: str) -> list[np.ndarray]:
         return [m.rotations for m in clips(style)[gait]]
 
-    def made(style: str, gait: str) -> list[np.ndarray]:
-        inputs = [m.slice(0, FIT_FRAMES) for m in clips(INPUT_STYLE)[gait]]
-        return [o.rotations[SKIP_FRAMES:] for o in stylise(model, inputs, [model.styles().index(style)] * len(inputs))]
+    def output(style: str, gait: str) -> list[np.ndarray]:
+        return made(model, style, [m.slice(0, FIT_FRAMES) for m in clips(INPUT_STYLE)[gait]])
 
-    return Coupling.fit(styles, LINKS, model.skeleton.names, real, made)
-
-
-def main(argv: list[str]) -> None:
-    """`STYLE ...` (default: every style with TRAIN clips in the dataset): refits those, keeping
-    the file's other styles."""
-    import time
-
-    import torch
-
-    from ..settings import get_settings
-    from .runtime import load
-
-    torch.set_num_threads(1)
-    t0 = time.time()
-    folder = get_settings().weights_dir / "lpn"
-    path = folder / ARM_COUPLING_FILE
-    model = load(folder)
-    styles = argv or fitted_styles(model.styles(), DATASET)
-    coupling = write_coupling(fit(model, styles), path, keep_others=bool(argv))
-    print(f"wrote {path} for {', '.join(coupling.styles)} in {time.time() - t0:.0f} s")
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])
+    return Coupling.fit(styles, LINKS, model.skeleton.names, real, output)

@@ -1,5 +1,5 @@
 """A style's arm carriage from its real TRAIN clips, the same fit for every style (`python -m
-models.lpn.carriage` writes `CARRIAGE_FILE`).
+models.lpn fit --stages carriage` writes `CARRIAGE_FILE`).
 
 FiLM vectors alone barely move the arms' mean pose, where real styles differ in it. Per style
 and arm joint the carriage is the rotation from the network's mean local rotation (driven by
@@ -10,17 +10,23 @@ speed, `models.motion.gait_split`). It changes the output; the network's state k
 from __future__ import annotations
 
 import functools
-import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..eval.run import DATASET, INPUT_STYLE
+from ..interface import State
 from ..motion.coupling import GAITS
 from ..motion.gait_split import split_by_gait
 from ..motion.rotations import quat_inv, quat_mean, quat_mul
+from ..motion.skeleton import Motion, Skeleton
+from ..stages import Rows, StageFrame, Stateless, style_rows
+
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
 CARRIAGE_FILE = "carriage.npz"
 ARM_JOINTS = ("Shoulder_L", "UpperArm_L", "LowerArm_L", "Hand_L", "Shoulder_R", "UpperArm_R", "LowerArm_R", "Hand_R")
@@ -29,19 +35,27 @@ SKIP_FRAMES = 30  # the network's first second settles from the input's first po
 
 
 @dataclass(frozen=True)
-class Carriage:
-    """Per style: the arm joints' offset rotations (xyzw)."""
+class Carriage(Stateless):
+    """The stage: per style, the arm joints' offset rotations (xyzw)."""
 
     styles: tuple[str, ...]
     arms: np.ndarray  # (S, len(ARM_JOINTS), 4) offsets, applied as offset * rotation
 
-    def rows(self, names: list[str]) -> np.ndarray:
-        """The offsets aligned with `names`; a style not fitted gets none."""
-        arms = np.tile((0.0, 0.0, 0.0, 1.0), (len(names), len(ARM_JOINTS), 1))
-        for i, n in enumerate(names):
-            if n in self.styles:
-                arms[i] = self.arms[self.styles.index(n)]
-        return arms
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        """The offsets aligned with `styles` (a style not fitted gets none) and the arm joints."""
+        rows = style_rows(self.styles, styles, arms=(self.arms, np.tile((0.0, 0.0, 0.0, 1.0), (len(ARM_JOINTS), 1))))
+        return {**rows, "joints": np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)}
+
+    def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
+        offsets = blend_arms(rows["arms"], frame.weights, frame.base)
+        return carry_arms(frame.rotations, offsets, rows["joints"]), state
+
+    def with_styles_of(self, other: Carriage) -> Carriage:
+        """This carriage with `other`'s styles added or replacing this one's (a refit of some styles)."""
+        keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
+        return Carriage(
+            tuple(self.styles[k] for k in keep) + other.styles, np.concatenate([self.arms[keep], other.arms])
+        )
 
     def save(self, path: Path) -> Path:
         np.savez(path, styles=np.array(self.styles), arms=self.arms)
@@ -109,63 +123,39 @@ def fitted_styles(names: list[str], dataset: str) -> list[str]:
     return [n for n in names if n in have]
 
 
+def made(model: LPNModel, style: str, inputs: list[Motion]) -> list[np.ndarray]:
+    """`model`'s local rotations toward `style` for each input, the first second skipped: what
+    every stage is fitted on, against the style's real clips."""
+    from ..eval.run import stylise
+
+    return [o.rotations[SKIP_FRAMES:] for o in stylise(model, inputs, [model.styles().index(style)] * len(inputs))]
+
+
 def _offsets(
-    model, inputs: list, real: Callable[[str], list], styles: list[str], joints: tuple[str, ...]
+    model: LPNModel, inputs: list, real: Callable[[str], list], styles: list[str], joints: tuple[str, ...]
 ) -> np.ndarray:
     """(len(styles), len(joints), 4): per style, the rotation taking the mean local rotation of
-    `model`'s output (driven by `inputs`, the first second skipped) to the mean of `real(style)`."""
-    from ..eval.run import stylise
+    `model`'s output (`made` on `inputs`) to the mean of `real(style)`."""
     from ..motion.rotation_ball import comparable
 
     index = [model.skeleton.names.index(j) for j in joints]
     out = np.empty((len(styles), len(joints), 4))
     for k, s in enumerate(styles):
-        outs = stylise(model, inputs, [model.styles().index(s)] * len(inputs))
-        made = quat_mean(comparable(np.concatenate([o.rotations[SKIP_FRAMES:] for o in outs]))[:, index], axis=0)
+        output = quat_mean(comparable(np.concatenate(made(model, s, inputs)))[:, index], axis=0)
         mean = quat_mean(comparable(np.concatenate([m.rotations for m in real(s)]))[:, index], axis=0)
-        out[k] = quat_mul(mean, quat_inv(made))
+        out[k] = quat_mul(mean, quat_inv(output))
     return out
 
 
-def fit(model, styles: list[str], dataset: str = DATASET, frames: int = 300) -> Carriage:
-    """The arm offsets from the network against the real clips. `model` itself is left as it
-    was: the network runs on a copy without offsets."""
+def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET, frames: int = 300) -> Carriage:
+    """The arm offsets of `styles` (default: every style with TRAIN clips in `dataset`) from the
+    network against the real clips. `model` itself is left as it was: the network runs on a copy
+    without offsets."""
+    styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()
-    model.output_prior = None  # fitted on top of the carriage (`output_prior.py`): refit it after
-    model.arm_coupling = None  # and the arm coupling on top of that (`arm_coupling.py`)
-    model.carriage = Carriage(tuple(styles), np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
+    # the output prior and the arm coupling are fitted on top of the carriage: refit them after
+    identity = Carriage(tuple(styles), np.tile((0.0, 0.0, 0.0, 1.0), (len(styles), len(ARM_JOINTS), 1)))
+    model.stages = model.stages.replace(carriage=identity, output_prior=None, arm_coupling=None)
     inputs = [m.slice(0, frames) for m in every_gait(clips(INPUT_STYLE))]
     return Carriage(tuple(styles), _offsets(model, inputs, lambda s: every_gait(clips(s)), styles, ARM_JOINTS))
-
-
-def _degrees(offsets: np.ndarray) -> list[float]:
-    return np.round(np.degrees(2 * np.arccos(np.clip(np.abs(offsets[:, 3]), 0.0, 1.0))), 1).tolist()
-
-
-def main(argv: list[str]) -> None:
-    """`[STYLE ...]` (default: every style with TRAIN clips in the dataset): fit the arm
-    offsets. The output prior (`output_prior.py`) and the arm coupling (`arm_coupling.py`), fitted on
-    top of the carriage, are then to be fitted again."""
-    import json
-    import time
-
-    import torch
-
-    from ..settings import get_settings
-    from .runtime import load
-    from .weights import CONFIG_FILE
-
-    torch.set_num_threads(1)
-    t0 = time.time()
-    folder = get_settings().weights_dir / "lpn"
-    styles = argv or fitted_styles(json.loads((folder / CONFIG_FILE).read_text())["styles"], DATASET)
-    carriage = fit(load(folder), styles)
-    carriage.save(folder / CARRIAGE_FILE)
-    for s, a in zip(carriage.styles, carriage.arms):
-        print(f"{s:10s} arm offsets (deg) {_degrees(a)}")
-    print(f"wrote {folder / CARRIAGE_FILE} in {time.time() - t0:.0f} s")
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])

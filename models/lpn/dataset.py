@@ -16,7 +16,7 @@ import json
 import os
 import time
 from collections import defaultdict
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -29,7 +29,7 @@ from ..motion.features import mirror, wrap_angle
 from ..motion.skeleton import Motion
 from ..settings import get_settings
 from . import features as lf
-from .phases import local_phases, style_axes
+from .phases import Axes, local_phases, style_axes
 
 CACHE_VERSION = 1
 D1, D2 = "bandai-namco-1", "bandai-namco-2"
@@ -96,7 +96,7 @@ class ClipFrames:
     contacts: np.ndarray  # (F, 2) 0/1
 
 
-def clip_frames(motion: Motion, axes=None) -> ClipFrames:
+def clip_frames(motion: Motion, axes: Axes | None = None) -> ClipFrames:
     grot, gpos = motion.global_transforms()
     w = lf.clip_frames(grot, gpos, motion.skeleton, motion.fps)
     yaw, root, vel = w["yaw"], w["root"], w["vel"]
@@ -105,7 +105,7 @@ def clip_frames(motion: Motion, axes=None) -> ClipFrames:
     return ClipFrames(pose, root[:, [0, 2]], yaw, lp.features, lp.frequency, lp.contacts.astype(float))
 
 
-def clip_samples(motion: Motion, gait: float, axes=None) -> ClipSamples:
+def clip_samples(motion: Motion, gait: float, axes: Axes | None = None) -> ClipSamples:
     """Every frame t with a full future (t + 1 + 30 inside the clip) as one sample; past samples
     before the clip start repeat its first frame, as a stream's history does."""
     return samples_from_frames(clip_frames(motion, axes), gait, motion.fps)
@@ -199,7 +199,12 @@ def cache_dir(cfg: DataConfig = DataConfig()) -> Path:
 
 
 def _build_split(
-    clips: list[Clip], motions: list[Motion], styles: list[str], mirror_too: bool, log, frames_only: bool = False
+    clips: list[Clip],
+    motions: list[Motion],
+    styles: list[str],
+    mirror_too: bool,
+    log: Callable[[str], None],
+    frames_only: bool = False,
 ) -> dict:
     """The split's arrays as the cache stores them; `frames_only`: each variant's `ClipFrames`
     instead of its samples, with the names, styles and gaits (what `carry.pack` keeps)."""
@@ -269,7 +274,7 @@ def _frames_of_every_clip(jobs: Sequence[tuple[Motion, Any]]) -> Iterator[ClipFr
         yield from pool.map(_clip_frames_job, jobs, chunksize=8)
 
 
-def build_cache(cfg: DataConfig = DataConfig(), log=print) -> Path:
+def build_cache(cfg: DataConfig = DataConfig(), log: Callable[[str], None] = print) -> Path:
     out = cache_dir(cfg)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()

@@ -7,11 +7,17 @@ skating (the eval suite's metric) and no freezing (the root keeps moving when it
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..motion.skeleton import Motion
 from ..settings import get_settings
+
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
 TARGETS = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful")
 # (fraction of the sequence, forward m/s, side m/s, facing yaw at the segment's end (radians), gait)
@@ -41,7 +47,9 @@ def control_script(seconds: float = 60.0, fps: float = 30.0) -> tuple[np.ndarray
     return np.concatenate(rows).astype(np.float32), segments
 
 
-def drive(model, styles, seconds: float = 60.0):
+def drive(
+    model: LPNModel, styles: Sequence[str], seconds: float = 60.0
+) -> tuple[list[Motion], np.ndarray, list[tuple[str, int, int]]]:
     """([output Motion per style], contacts (S, T, 2), segments) of the scripted control, every style
     one session of the same batch (one step_batch call per frame)."""
     from dataclasses import replace
@@ -66,7 +74,7 @@ def drive(model, styles, seconds: float = 60.0):
     return motions, cons, segments
 
 
-def demo_metrics(motion, segments) -> dict:
+def demo_metrics(motion: Motion, segments: list[tuple[str, int, int]]) -> dict:
     """Foot skating over the whole run, root speed (m/s, Hips on the ground plane) per segment, and
     the longest stretch (s) the root stays within 2 cm while the control asks for motion."""
     from ..eval.metrics import foot_skating
@@ -74,7 +82,7 @@ def demo_metrics(motion, segments) -> dict:
     hips = motion.global_positions()[:, 1][:, [0, 2]]
     speed = np.zeros(len(hips))
     speed[1:] = np.linalg.norm(np.diff(hips, axis=0), axis=-1) * motion.fps / 100.0
-    out = {"skating": foot_skating(motion), "segments": {}}
+    out: dict[str, Any] = {"skating": foot_skating(motion), "segments": {}}
     frozen = 0
     for name, a, b in segments:
         out["segments"][name] = round(float(speed[a:b].mean()), 3)
@@ -91,9 +99,9 @@ def render_demo(
     out_dir: Path,
     tag: str = "demo",
     seconds: float = 60.0,
-    styles=TARGETS,
+    styles: Sequence[str] = TARGETS,
     gif: bool = True,
-    model=None,
+    model: LPNModel | None = None,
     gif_fps: float = 5.0,
 ) -> Path:
     """Contact sheet PNG (+ GIF) of the scripted control in each style, metrics as JSON; returns the PNG path."""

@@ -9,17 +9,22 @@ only dataset 2's styles).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..data import build_index, load_motion, select
+from ..motion.skeleton import Motion
 from .dataset import D1, HELD_OUT, clip_style_features
 from .finetune import FineTuneConfig, fine_tune
+
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
 CONTENTS = ("walk",)
 
 
-def motion_stats(motion, S_std: np.ndarray, skip: int = 30) -> np.ndarray:
+def motion_stats(motion: Motion, S_std: np.ndarray, skip: int = 30) -> np.ndarray:
     """Mean and std over frames of the clip features, in units of the training std (first second
     skipped: a stream starts standing)."""
     f = clip_style_features(motion)[skip:] / S_std
@@ -27,7 +32,7 @@ def motion_stats(motion, S_std: np.ndarray, skip: int = 30) -> np.ndarray:
 
 
 def evaluate(
-    model, out_dir: Path | None = None, frames: int = 240, fine_tune_config: FineTuneConfig = FineTuneConfig()
+    model: LPNModel, out_dir: Path | None = None, frames: int = 240, fine_tune_config: FineTuneConfig = FineTuneConfig()
 ) -> dict:
     index = build_index([D1])
     S_std = model.p["S_std"]
@@ -41,7 +46,7 @@ def evaluate(
         real = [load_motion(c) for c in clips]
         reference = np.mean([motion_stats(m, S_std) for m in real], axis=0)
 
-        def distance(motion, reference: np.ndarray = reference) -> float:
+        def distance(motion: Motion, reference: np.ndarray = reference) -> float:
             return round(float(np.linalg.norm(motion_stats(motion, S_std) - reference) / np.sqrt(reference.size)), 3)
 
         tuned_name = f"{name}-fine-tuned"

@@ -1,5 +1,5 @@
 """LPN-FiLM's output prior: the body's rotations carried from what the network makes toward a
-style to that style's real rotations (`python -m models.lpn.output_prior [STYLE ...]` writes
+style to that style's real rotations (`python -m models.lpn fit --stages output_prior` writes
 `OUTPUT_PRIOR_FILE`; the same fit for every style).
 
 The carriage moves each joint's mean; the style also lies in how arms and spine swing about it.
@@ -11,59 +11,90 @@ spread is floored at `SOURCE_FLOOR_DEG` per axis, else near-still axes get gains
 
 from __future__ import annotations
 
-import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..eval.run import DATASET, INPUT_STYLE
+from ..interface import State
 from ..motion.coupling import GAITS
+from ..motion.skeleton import Skeleton
 from ..motion.style_carry import StyleCarry
-from .carriage import SKIP_FRAMES, UPPER_BODY, fitted_styles, locomotion
+from ..stages import Rows, StageFrame, Stateless, style_rows
+from .carriage import UPPER_BODY, fitted_styles, locomotion, made
+
+if TYPE_CHECKING:
+    from .runtime import LPNModel
 
 OUTPUT_PRIOR_FILE = "output_prior.npz"
 CARRIED = UPPER_BODY  # the joints every style's prior carries (module doc)
 SOURCE_FLOOR_DEG = 4.0  # the network's least spread along any axis, as the fit takes it (module doc)
-CARRY_ROWS = ("source", "mean", "map", "radius")  # a carry's arrays, as the style table's rows name them
-PRIOR_ROWS = (  # its style-table rows: the walk prior, the run prior, on
-    *(f"prior_{k}" for k in CARRY_ROWS),
-    *(f"prior_run_{k}" for k in CARRY_ROWS),
-    "prior_on",
-)
+CARRY_ROWS = ("source", "mean", "map", "radius")  # a carry's arrays, as its rows name them
 FIT_FRAMES = 300
 
 
 @dataclass(frozen=True)
-class OutputPrior:
-    """Per fitted style: `carry`'s rows (source mean, style mean, map, clamp radius per joint) for
-    walking frames and `run`'s for running ones (the same rows for a style fitted once)."""
+class OutputPrior(Stateless):
+    """The stage: per fitted style, `carry`'s rows (source mean, style mean, map, clamp radius per
+    joint) for walking frames and `run`'s for running ones (the same rows for a style fitted once)."""
 
     styles: tuple[str, ...]
     carry: StyleCarry
     run: StyleCarry
 
-    def rows(self, names: list[str], num_joints: int) -> dict[str, np.ndarray]:
-        """The style table's rows aligned with `names` (`style_table.PLAIN` for a style without one)."""
-        from .style_table import PLAIN
-
-        shapes = {
-            "source": (num_joints, 4),
-            "mean": (num_joints, 4),
-            "map": (num_joints, 3, 3),
-            "radius": (num_joints,),
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        """The walk and run carries' arrays (`run_` before the run's keys) aligned with `styles`,
+        and `on` (S,); a style without a prior gets identity maps, infinite radii and `on` 0."""
+        J, identity = skeleton.num_joints, np.array((0.0, 0.0, 0.0, 1.0))
+        plain = (
+            np.tile(identity, (J, 1)),
+            np.tile(identity, (J, 1)),
+            np.tile(np.eye(3), (J, 1, 1)),
+            np.full(J, np.inf),
+        )
+        arrays = {
+            f"{prefix}{k}": (a, p)
+            for prefix, c in (("", self.carry), ("run_", self.run))
+            for k, a, p in zip(CARRY_ROWS, c.arrays, plain)
         }
-        rows = {key: PLAIN[key]((len(names), *shapes[key.rsplit("_", 1)[1]])) for key in PRIOR_ROWS[:-1]}
-        rows["prior_on"] = PLAIN["prior_on"]((len(names),))
-        for i, name in enumerate(names):
-            if name in self.styles:
-                k = self.styles.index(name)
-                for field_, carry in (("prior", self.carry), ("prior_run", self.run)):
-                    for key, array in zip(CARRY_ROWS, carry.arrays):
-                        rows[f"{field_}_{key}"][i] = array[k]
-                rows["prior_on"][i] = 1.0
-        return rows
+        return style_rows(self.styles, styles, on=(np.ones(len(self.styles)), 0.0), **arrays)
+
+    def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
+        """The rotations of the rows that weigh a style with a prior carried by it, the walk and run
+        priors mixed by each row's gait share (`StyleCarry.mixed_with`; a walking row takes the walk
+        prior alone, exactly); other rows exactly as they were."""
+        rotations = frame.rotations
+        w = np.asarray(frame.weights, np.float64) * rows["on"][None]
+        batch = np.flatnonzero(w.any(axis=1))
+        if len(batch) == 0:
+            return rotations, state
+        walk = StyleCarry(*(rows[k] for k in CARRY_ROWS))
+        q, w = np.asarray(rotations[batch], np.float64), w[batch]
+        # a run share only where a row weighs a style whose run prior is its own: a row of styles
+        # fitted once is carried exactly as by one prior
+        split = (rows["run_map"] != rows["map"]).any(axis=(1, 2, 3))
+        share = np.clip(np.asarray(frame.gait, np.float64)[batch], 0.0, 1.0) * (w[:, split] > 0.0).any(axis=1)
+        walking, running = share == 0.0, share == 1.0
+        between = ~walking & ~running
+        carried = np.empty_like(q)
+        if walking.any():  # exactly what the walk prior alone gives
+            carried[walking] = walk(q[walking], w[walking])
+        if not walking.all():
+            run = StyleCarry(*(rows[f"run_{k}"] for k in CARRY_ROWS))
+            if running.any():  # the mix at share 1 (to round-off), in one carry instead of two
+                carried[running] = run(q[running], w[running])
+            if between.any():
+                carried[between] = walk.mixed_with(run, run.bounds, q[between], w[between], share[between])
+        carried = carried.astype(rotations.dtype)
+        # the joints the fit left fixed (radius pi for every style: Hips, legs) keep their own bits;
+        # taken from the carry they would be renormalised in float64, a float32 ulp off
+        joints = np.flatnonzero((rows["radius"] < np.pi).any(axis=0))
+        out = np.array(rotations, copy=True)
+        out[np.ix_(batch, joints)] = carried[:, joints]
+        return out, state
 
     def save(self, path: Path) -> Path:
         arrays: dict[str, Any] = dict(zip(CARRY_ROWS, self.carry.arrays)) | {
@@ -94,59 +125,20 @@ class OutputPrior:
         return OutputPrior(styles, merged(self.carry, other.carry), merged(self.run, other.run))
 
 
-def carry_rows(table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarray) -> np.ndarray:
-    """The rotations (B, J, 4) of the rows that weigh a style with an output prior carried by it
-    (`table`: a `StyleTable` with the prior's rows), the walk and run priors mixed by each row's
-    gait share (B,) (`StyleCarry.mixed_with`; a walking row takes the walk prior alone, exactly);
-    other rows exactly as they were."""
-    on = table.get("prior_on")
-    if on is None:
-        return rotations
-    w = np.asarray(weights, np.float64) * on[None]
-    rows = np.flatnonzero(w.any(axis=1))
-    if len(rows) == 0:
-        return rotations
-    walk = StyleCarry(*(table.get(f"prior_{k}") for k in CARRY_ROWS))
-    q, w = np.asarray(rotations[rows], np.float64), w[rows]
-    # a run share only where a row weighs a style whose run prior is its own: a row of styles
-    # fitted once (an older file) is carried exactly as by one prior
-    split = (table.get("prior_run_map") != table.get("prior_map")).any(axis=(1, 2, 3))
-    share = np.clip(np.asarray(gait, np.float64)[rows], 0.0, 1.0) * (w[:, split] > 0.0).any(axis=1)
-    walking, running = share == 0.0, share == 1.0
-    between = ~walking & ~running
-    carried = np.empty_like(q)
-    if walking.any():  # exactly what the walk prior alone gives
-        carried[walking] = walk(q[walking], w[walking])
-    if not walking.all():
-        run = StyleCarry(*(table.get(f"prior_run_{k}") for k in CARRY_ROWS))
-        if running.any():  # the mix at share 1 (to round-off), in one carry instead of two
-            carried[running] = run(q[running], w[running])
-        if between.any():
-            carried[between] = walk.mixed_with(run, run.bounds, q[between], w[between], share[between])
-    carried = carried.astype(rotations.dtype)
-    # the joints the fit left fixed (radius pi for every style: Hips, legs) keep their own bits;
-    # taken from the carry they would be renormalised in float64, a float32 ulp off
-    joints = np.flatnonzero((table.get("prior_radius") < np.pi).any(axis=0))
-    out = np.array(rotations, copy=True)
-    out[np.ix_(rows, joints)] = carried[:, joints]
-    return out
-
-
-def fit(model, styles: list[str], dataset: str = DATASET) -> OutputPrior:
-    """The prior of `styles` from `model` (its carriage in place, no output prior): each style's
-    `CARRIED` joints, the rest left alone, fitted on its walks and on its runs apart."""
-    from ..eval.run import stylise
-
+def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET) -> OutputPrior:
+    """The prior of `styles` (default: every style with TRAIN clips in `dataset`) from `model` (its
+    carriage in place, no output prior): each style's `CARRIED` joints, the rest left alone, fitted
+    on its walks and on its runs apart."""
+    styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()
-    model.output_prior = model.arm_coupling = None  # the coupling is fitted on top of the prior
+    model.stages = model.stages.without("output_prior", "arm_coupling")  # the coupling is fitted on top
     names = model.skeleton.names
     fixed = tuple(j for j, n in enumerate(names) if n not in CARRIED)
 
     def fitted(style: str, gait: str) -> StyleCarry:
         inputs = [m.slice(0, FIT_FRAMES) for m in clips(INPUT_STYLE)[gait]]
-        outs = stylise(model, inputs, [model.styles().index(style)] * len(inputs))
-        source = np.concatenate([o.rotations[SKIP_FRAMES:] for o in outs]).astype(np.float64)
+        source = np.concatenate(made(model, style, inputs)).astype(np.float64)
         target = np.concatenate([m.rotations for m in clips(style)[gait]]).astype(np.float64)
         return StyleCarry.fit([source], [target], fixed, source_floor=np.radians(SOURCE_FLOOR_DEG))
 
@@ -154,28 +146,3 @@ def fit(model, styles: list[str], dataset: str = DATASET) -> OutputPrior:
     walks = [fitted(s, walking) for s in styles]
     runs = [fitted(s, running) for s in styles]
     return OutputPrior(tuple(styles), StyleCarry.stack(walks), StyleCarry.stack(runs))
-
-
-def main(argv: list[str]) -> None:
-    """`STYLE ...` (default: every style with TRAIN clips in the dataset): refits those, keeping
-    the file's other styles as they are (a refit is machine-dependent beyond round-off: the
-    model card)."""
-    import time
-
-    import torch
-
-    from ..settings import get_settings
-    from .runtime import load
-
-    torch.set_num_threads(1)
-    t0 = time.time()
-    folder = get_settings().weights_dir / "lpn"
-    model = load(folder)
-    prior = fit(model, argv or fitted_styles(model.styles(), DATASET))
-    if argv and (folder / OUTPUT_PRIOR_FILE).exists():
-        prior = OutputPrior.load(folder / OUTPUT_PRIOR_FILE).with_styles_of(prior)
-    print(f"wrote {prior.save(folder / OUTPUT_PRIOR_FILE)} for {', '.join(prior.styles)} in {time.time() - t0:.0f} s")
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])

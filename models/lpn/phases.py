@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import uniform_filter1d
-from scipy.signal import butter, filtfilt, lfilter
+from scipy.signal import butter, filtfilt
 
 from ..motion.features import backward_diff, compute_features, left_leg_length
 from ..motion.skeleton import Motion
@@ -90,16 +90,11 @@ def sliding_normalise(
     return (x - mean) / std
 
 
-def lowpass(
-    x: np.ndarray, fps: float, cutoff_hz: float = CUTOFF_HZ, order: int = 2, causal: bool = False
-) -> np.ndarray:
-    """Butterworth low-pass along axis 0. Offline (default) it runs forward-backward (`filtfilt`,
-    zero phase, effective order 2*order): a one-way filter would shift every phase late by its group
-    delay. `causal=True` is the streaming variant (`lfilter`) for reference."""
+def lowpass(x: np.ndarray, fps: float, cutoff_hz: float = CUTOFF_HZ, order: int = 2) -> np.ndarray:
+    """Butterworth low-pass along axis 0, forward-backward (`filtfilt`, zero phase, effective order
+    2*order): a one-way filter would shift every phase late by its group delay."""
     b, a = butter(order, cutoff_hz, btype="low", fs=fps)
     x = np.asarray(x, dtype=float)
-    if causal:
-        return lfilter(b, a, x, axis=0)
     padlen = min(3 * max(len(a), len(b)), x.shape[0] - 1)
     return filtfilt(b, a, x, axis=0, padlen=padlen)
 

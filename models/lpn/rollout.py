@@ -10,13 +10,16 @@ flow through the whole rollout. "World" is the rollout's first character frame.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
 
 from . import features as lf
 from .runtime import CONTROL_BIAS, PHASE_BLEND
+
+if TYPE_CHECKING:
+    from .network import LPN
 
 SAMPLE = lf.TRAJ_CH  # pos xz, dir xz, vel xz, gait
 PHASE = lf.NUM_BONES * 2
@@ -44,7 +47,7 @@ def rollout_starts(clip: np.ndarray, style: np.ndarray, frames: int) -> dict[int
     return {int(k): np.flatnonzero(ok & (style == k)) for k in np.unique(style)}
 
 
-def control_weights(device) -> torch.Tensor:
+def control_weights(device: torch.device) -> torch.Tensor:
     """(6, 1) share of the recording in each future sample (the runtime's control blend)."""
     k = torch.arange(1, lf.FUTURE + 1, dtype=torch.float32, device=device) / lf.FUTURE
     return (1.0 - (1.0 - k) ** CONTROL_BIAS)[:, None]
@@ -57,7 +60,7 @@ def _samples(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
 
 
 def rollout(
-    net,
+    net: LPN,
     X: torch.Tensor,
     G: torch.Tensor,
     Y: torch.Tensor,
@@ -110,7 +113,9 @@ class Tracks(NamedTuple):
     phase: list[torch.Tensor]  # (B, PHASE)
 
 
-def _own_inputs(y, x_rec, g_rec, k: int, tracks: Tracks, beta: torch.Tensor):
+def _own_inputs(
+    y: torch.Tensor, x_rec: torch.Tensor, g_rec: torch.Tensor, k: int, tracks: Tracks, beta: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The input of step k built from the previous step's (denormalised) output y, and the
     network's new root position, yaw and current phase."""
     o_rec, yaw_rec, o_net, yaw_net, phase_net = tracks

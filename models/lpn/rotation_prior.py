@@ -1,19 +1,19 @@
-"""Fit LPN-FiLM's rotation prior (`runtime.BALLS_FILE`): one ball per built-in style from all its
-TRAIN clips, every content, since LPN-FiLM is scored on every input.
-
-    .venv/bin/python -m models.lpn.rotation_prior [inner_q outer_q margin_deg]
-"""
+"""LPN-FiLM's rotation prior (`BALLS_FILE`, `python -m models.lpn fit --stages rotation_balls`):
+one ball per built-in style from all its TRAIN clips, every content, since LPN-FiLM is scored on
+every input."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..motion.rotation_ball import StyleBalls
-from .runtime import BALLS_FILE
 
+if TYPE_CHECKING:
+    from .runtime import LPNModel
+
+BALLS_FILE = "rotation_prior.npz"
 INNER_Q, OUTER_Q, MARGIN_DEG = 97.0, 99.0, 1.0
 
 
@@ -32,24 +32,13 @@ def train_rotations(styles: list[str]) -> dict[str, np.ndarray]:
     return out
 
 
-def fit(styles: list[str], inner_q: float = INNER_Q, outer_q: float = OUTER_Q, margin_deg: float = MARGIN_DEG):
-    return StyleBalls.fit_styles(
-        train_rotations(styles), inner_q, outer_q, margin_deg, "Bandai Namco TRAIN split, all contents"
-    )
-
-
-def main(argv: list[str]) -> None:
-    import json
-
-    from ..settings import get_settings
-    from .weights import CONFIG_FILE
-
-    folder = get_settings().weights_dir / "lpn"
-    q = [float(a) for a in argv[:3]] if argv else [INNER_Q, OUTER_Q, MARGIN_DEG]
-    styles = json.loads((folder / CONFIG_FILE).read_text())["styles"]
-    balls = fit(styles, *q)
-    print(balls.save(Path(folder) / BALLS_FILE), balls.styles, balls.fit)
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])
+def fit(
+    model: LPNModel,
+    styles: list[str] | None = None,
+    inner_q: float = INNER_Q,
+    outer_q: float = OUTER_Q,
+    margin: float = MARGIN_DEG,
+) -> StyleBalls:
+    """The balls of `styles` (default: every style of `model`; those without TRAIN clips get none)."""
+    rotations = train_rotations(styles or model.styles())
+    return StyleBalls.fit_styles(rotations, inner_q, outer_q, margin, "Bandai Namco TRAIN split, all contents")

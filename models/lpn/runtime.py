@@ -9,16 +9,16 @@ character has walked farther than a slow input), facing and speed become the con
 runs motion in, motion out.
 
 Styles are FiLM vectors mixed by the weights (the shortfall from 1 goes to `normal`); the state
-holds nothing per style. After the network come the stages fitted from each style's real clips:
+holds nothing per style. The published core (the network, its bones untwisted) is followed by the
+declared pipeline `STAGES` (`models.stages`), each stage fitted from every style's real clips:
 arm carriage, output prior, arm coupling, rotation balls and the hinge floor (knees and elbows at
 their least real bend, uploads too). They change the output only; the network's state keeps its
-own pose. A style without real clips gets no ball: a borrowed one would pull it toward another
-style.
+own pose. A style without real clips gets rows that change nothing: a borrowed one would pull it
+toward another style. The foot planter closes every step, the core's alone too.
 """
 
 from __future__ import annotations
 
-import copy
 import threading
 from collections.abc import Callable
 from functools import cached_property, partial
@@ -29,24 +29,26 @@ import numpy as np
 
 from ..interface import FrameBatch, State
 from ..motion.assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR
-from ..motion.coupling import Coupling, link_indices
+from ..motion.coupling import Coupling
 from ..motion.features import body_joint
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter
-from ..motion.hinge_floor import HingeFloor
+from ..motion.hinge import Hinges
+from ..motion.hinge_floor import FLOOR_FILE, HingeFloor, fit_floor
 from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.rotation_ball import StyleBalls
-from ..motion.rotation_ball_kernels import clamp_mixed
 from ..motion.rotations import quat_mul, yaw_quat
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import split_evenly, transfer_twist
 from ..rowwise import Bfloat16Product, matmul_rows
 from ..settings import get_settings
+from ..stages import Pipeline, StageFrame, StageSpec
+from . import arm_coupling, carriage, kernels, output_prior, rotation_prior
 from . import features as lf
-from . import kernels
-from .arm_coupling import ARM_COUPLING_FILE, COUPLING_ROWS, couple_rows, table_rows
-from .carriage import ARM_JOINTS, CARRIAGE_FILE, Carriage, blend_arms, carry_arms
-from .output_prior import OUTPUT_PRIOR_FILE, PRIOR_ROWS, OutputPrior, carry_rows
+from .arm_coupling import ARM_COUPLING_FILE
+from .carriage import CARRIAGE_FILE, Carriage
+from .output_prior import OUTPUT_PRIOR_FILE, OutputPrior
+from .rotation_prior import BALLS_FILE
 from .style_table import StyleTable
 from .styles import LPNStyles
 from .weights import read_weights
@@ -54,7 +56,20 @@ from .weights import read_weights
 if TYPE_CHECKING:
     from .network import LPN
 
-BALLS_FILE = "rotation_prior.npz"  # per-style rotation balls (`models.lpn.rotation_prior`)
+# The stages after the core, in the order the step runs them; each is fitted from real clips into
+# its file beside the weights (`python -m models.lpn fit`), and a session or a fit may switch any off
+STAGES = (
+    StageSpec("carriage", CARRIAGE_FILE, lambda path, _: Carriage.load(path), carriage.fit),
+    StageSpec("output_prior", OUTPUT_PRIOR_FILE, lambda path, _: OutputPrior.load(path), output_prior.fit),
+    StageSpec("arm_coupling", ARM_COUPLING_FILE, lambda path, _: Coupling.load(path), arm_coupling.fit),
+    StageSpec("rotation_balls", BALLS_FILE, lambda path, _: StyleBalls.load(path), rotation_prior.fit),
+    StageSpec(
+        "hinge_floor",
+        FLOOR_FILE,
+        lambda path, sk: HingeFloor(sk, Hinges.load(path)),
+        lambda model, _: HingeFloor(model.skeleton, fit_floor(model.skeleton)),
+    ),
+)
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
 CONTROL_SMOOTH_S = 0.25  # input velocity smoothing for derived control
 RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
@@ -84,11 +99,7 @@ class LPNModel(LPNStyles):
         arrays: dict[str, np.ndarray],
         skeleton: Skeleton,
         config: dict,
-        balls: StyleBalls | None = None,
-        carriage: Carriage | None = None,
-        output_prior: OutputPrior | None = None,
-        arm_coupling: Coupling | None = None,
-        hinge_floor: HingeFloor | None = None,
+        stages: Pipeline | None = None,
     ):
         self.config = config
         self.skeleton = skeleton
@@ -107,17 +118,10 @@ class LPNModel(LPNStyles):
         self.g_scale = float(a["G_scale"])
         self._lock = threading.Lock()
         styles = tuple(config["styles"])
-        self._table = StyleTable(styles, a["style_film"].reshape(len(styles), 4 * self.H))  # replaced under the lock
+        films = a["style_film"].reshape(len(styles), 4 * self.H)
+        stages = stages if stages is not None else Pipeline.load(STAGES, Path(), skeleton, core_only=True)
+        self._table = StyleTable(styles, films, (True,) * len(styles), skeleton, stages)  # replaced under the lock
         self._generator: LPN | None = None  # the FiLM generator, built on first use
-        self.balls = balls
-        if balls is not None:
-            mean, radii = balls.for_styles(list(styles), skeleton.num_joints)
-            self._table = self._table.measuring(ball_mean=mean, ball_radii=radii)
-        self._arm_joints = np.array([skeleton.names.index(j) for j in ARM_JOINTS], np.int64)
-        self.carriage = carriage
-        self.output_prior = output_prior
-        self.arm_coupling = arm_coupling
-        self.hinge_floor = hinge_floor  # knees and elbows held at their least real bend (None: not held)
         sk = skeleton
         self.offsets = sk.offsets.astype(np.float32)
         self.parents = sk.parents
@@ -127,44 +131,14 @@ class LPNModel(LPNStyles):
     # ------------------------------------------------------------------ styles
 
     @property
-    def carriage(self) -> Carriage | None:
-        """The built-in styles' arm carriage (`carriage.py`); None: the network's arms."""
-        return self._carriage_fit
+    def stages(self) -> Pipeline:
+        """The stages after the network (`STAGES`; a stage None is off)."""
+        return self._table.stages
 
-    @carriage.setter
-    def carriage(self, carriage: Carriage | None) -> None:
+    @stages.setter
+    def stages(self, stages: Pipeline) -> None:
         with self._lock:
-            self._carriage_fit = carriage
-            arms = carriage.rows(list(self._table.names)) if carriage is not None else None
-            self._table = self._table.measuring(arms=arms)
-
-    @property
-    def output_prior(self) -> OutputPrior | None:
-        """The built-in styles' output prior (`output_prior.py`); None: no upper-body carry."""
-        return self._output_prior_fit
-
-    @output_prior.setter
-    def output_prior(self, prior: OutputPrior | None) -> None:
-        with self._lock:
-            self._output_prior_fit = prior
-            names = list(self._table.names)
-            rows = prior.rows(names, self.skeleton.num_joints) if prior is not None else dict.fromkeys(PRIOR_ROWS)
-            self._table = self._table.measuring(**rows)
-
-    @property
-    def arm_coupling(self) -> Coupling | None:
-        """The built-in styles' arm coupling (`arm_coupling.py`); None: forearms as carried."""
-        return self._arm_coupling_fit
-
-    @arm_coupling.setter
-    def arm_coupling(self, coupling: Coupling | None) -> None:
-        with self._lock:
-            self._arm_coupling_fit = coupling
-            # the joints of the links the file was fitted for (none without one: nothing is coupled)
-            self._coupled_joints = link_indices(coupling.links if coupling is not None else (), self.skeleton.names)
-            names = list(self._table.names)
-            rows = table_rows(coupling, names) if coupling is not None else dict.fromkeys(COUPLING_ROWS)
-            self._table = self._table.measuring(**rows)
+            self._table = self._table.with_stages(stages)
 
     @property
     def style_table(self) -> StyleTable:
@@ -179,27 +153,23 @@ class LPNModel(LPNStyles):
         table = self._table
         return table.films[table.index(name)].reshape(4, self.H).copy()
 
-    def clip_film(self, motion: Motion) -> np.ndarray:
-        """FiLM vector (4, H) of a clip: the generator on windows of it (tiled if short), averaged."""
+    def style_from_clip(self, motion: Motion) -> np.ndarray:
+        """A new style's FiLM vector (4, H): the generator on 4 s windows of a clip of it (tiled if
+        short; >= 1 s on the model skeleton at 30 fps, longer is better), averaged."""
         import torch
 
         from .dataset import clip_style_features
         from .train import tile_clip
 
-        feats = tile_clip(clip_style_features(motion), 120)
-        starts = range(0, len(feats) - 120 + 1, 60)
-        windows = torch.from_numpy(np.stack([feats[s : s + 120] for s in starts]).astype(np.float32))
-        with torch.no_grad():
-            return self.generator().style_film(windows).mean(0).numpy()
-
-    def style_from_clip(self, motion: Motion) -> np.ndarray:
-        """A new style's FiLM vector (4, H): the generator's embedding of a clip of it (>= 1 s on
-        the model skeleton at 30 fps; longer is better)."""
         if motion.skeleton.names != self.skeleton.names:
             raise ValueError("a style clip must be on the model skeleton (Bandai Namco, 22 joints)")
         if motion.num_frames < self.fps:
             raise ValueError(f"style clip too short: {motion.num_frames} frames, need at least {int(self.fps)}")
-        return self.clip_film(motion).reshape(4, self.H)
+        feats = tile_clip(clip_style_features(motion), 120)
+        starts = range(0, len(feats) - 120 + 1, 60)
+        windows = torch.from_numpy(np.stack([feats[s : s + 120] for s in starts]).astype(np.float32))
+        with torch.no_grad():
+            return self.generator().style_film(windows).mean(0).numpy().reshape(4, self.H)
 
     def set_style_film(self, name: str, film: np.ndarray) -> None:
         """Set (or add) style `name` with FiLM vector `film` (4, H): a fine-tuned or persisted one.
@@ -207,7 +177,7 @@ class LPNModel(LPNStyles):
         film = np.asarray(film, np.float32)
         if film.shape != (4, self.H) or not np.all(np.isfinite(film)):
             raise ValueError(f"a FiLM vector must be finite with shape (4, {self.H}), got {film.shape}")
-        with self._lock:  # a vector not fitted on the style's own clips: no ball or carriage
+        with self._lock:  # a vector not fitted on the style's own clips: stage rows that change nothing
             self._table = self._table.with_film(name, film.reshape(-1))
 
     def remove_style(self, name: str) -> None:
@@ -218,7 +188,7 @@ class LPNModel(LPNStyles):
                 raise KeyError(f"unknown style {name!r}")
             self._table = self._table.without(name)
 
-    def generator(self):
+    def generator(self) -> LPN:
         """The torch network (for the FiLM generator; built on first use)."""
         if self._generator is None:
             import torch
@@ -264,6 +234,7 @@ class LPNModel(LPNStyles):
             "in_vel": z(2),
             "lead": z(),
             **self.planter.init_state(B),
+            **self.stages.init_state(B),  # keys "stage/name"
         }
 
     def _start(
@@ -298,7 +269,7 @@ class LPNModel(LPNStyles):
         for key in ("hist_vel", "hist_gait", "hist_phase", "fut_vel", "fut_phase", "in_vel", "lead"):
             state[key][rows] = 0.0
         state["in_pos"][rows] = xz
-        for key, value in self.planter.init_state(len(rows)).items():
+        for key, value in {**self.planter.init_state(len(rows)), **self.stages.init_state(len(rows))}.items():
             state[key][rows] = value
 
     # ------------------------------------------------------------------ step
@@ -307,7 +278,7 @@ class LPNModel(LPNStyles):
         root = np.asarray(frames.root, np.float32)
         rot_in = np.asarray(frames.rotations, np.float32)
         B = root.shape[0]
-        table = self._table  # one snapshot of the style set: the FiLM rows, balls and carriage agree
+        table = self._table  # one snapshot of the style set: the FiLM vectors, stages and their rows agree
         film = self._blend(table, style_weights)
         if film.shape[0] != B:
             raise ValueError(f"style_weights has {film.shape[0]} rows for {B} frames")
@@ -316,20 +287,13 @@ class LPNModel(LPNStyles):
         if len(fresh):
             self._start(s, fresh, root, rot_in, frames.control)
         control = self._control(s, frames, root, rot_in, fresh)
-        arms, normal = table.get("arms"), table.index("normal")
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
         out_root, out_rot, contacts = self._advance(s, y, control)
         out_rot = self._untwist(out_rot)
-        if arms is not None:
-            out_rot = carry_arms(out_rot, blend_arms(arms, style_weights, normal), self._arm_joints)
-        out_rot = carry_rows(table, out_rot, style_weights, control[:, 3])
-        out_rot = couple_rows(table, out_rot, style_weights, control[:, 3], self._coupled_joints)
-        ball_mean, ball_radii = table.get("ball_mean"), table.get("ball_radii")
-        if ball_mean is not None and ball_radii is not None:
-            out_rot = self._hold(out_rot, style_weights, normal, (ball_mean, ball_radii))
-        if self.hinge_floor is not None:
-            out_rot = self.hinge_floor(out_rot).astype(np.float32)
+        frame = StageFrame(out_rot, style_weights, control[:, 3], table.index("normal"))
+        out_rot, staged = table.stages.step_batch({k: v for k, v in s.items() if "/" in k}, frame, table.rows)
+        s.update(staged)
         out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
         return FrameBatch(out_root, out_rot, contacts), s
@@ -349,21 +313,6 @@ class LPNModel(LPNStyles):
     @cached_property
     def _torso(self) -> tuple[int, int]:
         return self.skeleton.index("Spine"), self.skeleton.index("Chest")
-
-    def _hold(
-        self, rotations: np.ndarray, weights: np.ndarray, normal: int, ball: tuple[np.ndarray, np.ndarray]
-    ) -> np.ndarray:
-        """The output rotations held inside the styles' rotation balls (module docstring)."""
-        out = np.empty(rotations.shape, np.float64)
-        clamp_mixed(
-            np.ascontiguousarray(rotations, np.float64),
-            np.ascontiguousarray(weights, np.float64),
-            normal,
-            ball[0],
-            ball[1],
-            out,
-        )
-        return out.astype(rotations.dtype)
 
     @cached_property
     def _natural_pose(self) -> np.ndarray:
@@ -455,14 +404,6 @@ class LPNModel(LPNStyles):
         kernels.hidden_layer(p2(h1), alpha, bias2, film, 1, h2)
         return kernels.output_layer(p3(h2), alpha, bias3, self.y_mean, self.y_std)
 
-    def in_float32(self) -> LPNModel:
-        """This model (weights and styles shared) with float32 expert products, as the numpy
-        reference step computes them."""
-        twin = copy.copy(self)
-        twin.bfloat16 = False
-        twin.__dict__.pop("_products", None)
-        return twin
-
     @cached_property
     def _products(self) -> list[Callable[[np.ndarray], np.ndarray]]:
         """The expert products: bfloat16 where this machine does them natively with rows independent
@@ -552,30 +493,10 @@ def _track(s: State) -> kernels.Track:
     return kernels.Track(*(s[k] for k in kernels.Track._fields))
 
 
-def _beside(weights_dir: Path, name: str, kind):
-    """The stage `kind` fitted into file `name` beside the weights (`kind.load`), or None."""
-    path = Path(weights_dir) / name
-    return kind.load(path) if path.exists() else None
-
-
-def read_balls(weights_dir: Path) -> StyleBalls | None:
-    """The rotation prior beside the weights (`BALLS_FILE`), or None if there is none."""
-    return _beside(weights_dir, BALLS_FILE, StyleBalls)
-
-
 def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
-    """The committed model; `core_only`: the network and foot planter without the fitted stages
-    (the evaluation's core-alone row)."""
+    """The committed model; `core_only`: the published core alone, the network and foot planter
+    without the stages after it (the evaluation's core-alone row, a session's `pipeline: core`)."""
     arrays, skeleton, config = read_weights(weights_dir)
-    if core_only:
-        return LPNModel(arrays, skeleton, config)
-    return LPNModel(
-        arrays,
-        skeleton,
-        config,
-        read_balls(weights_dir),
-        _beside(weights_dir, CARRIAGE_FILE, Carriage),
-        _beside(weights_dir, OUTPUT_PRIOR_FILE, OutputPrior),
-        _beside(weights_dir, ARM_COUPLING_FILE, Coupling),
-        HingeFloor.load(skeleton, weights_dir),
-    )
+    off = [name.removeprefix("lpn.") for name in get_settings().stages_off if name.startswith("lpn.")]
+    stages = Pipeline.load(STAGES, Path(weights_dir), skeleton, core_only).without(*off)  # `Settings.stages_off`
+    return LPNModel(arrays, skeleton, config, stages)

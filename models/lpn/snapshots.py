@@ -16,6 +16,7 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -23,12 +24,16 @@ import torch.nn.functional as F
 
 from ..data import build_index, load_motions, select
 from ..eval.features import clip_features
-from ..eval.judges import load_judges
+from ..eval.judges import Judges, load_judges
 from ..eval.run import LOCOMOTION, stylise_toward
-from ..eval.style_judge import load_style_judge
+from ..eval.style_judge import StyleJudge, load_style_judge
 from ..motion.skeleton import Motion
 from .dataset import D2, D2_STYLES, clip_style_features
 from .train import tile_clip
+
+if TYPE_CHECKING:
+    from .network import LPN
+    from .runtime import LPNModel
 
 FLOOR = float(np.log(0.05))  # ELU'(h) = e^h: below this a unit is flat (slope < 5 %)
 WINDOW = 120
@@ -88,7 +93,7 @@ def style_windows(styles: tuple[str, ...]) -> dict[str, np.ndarray]:
 
 
 @torch.no_grad()
-def live_units(net, windows: np.ndarray) -> tuple[float, float]:
+def live_units(net: LPN, windows: np.ndarray) -> tuple[float, float]:
     """(share above the ELU floor, share above zero) of the second convolution's pre-activations."""
     g = net.film
     h = g._act(g.conv1(net.normalise_clip(torch.from_numpy(windows)).transpose(1, 2)))
@@ -98,9 +103,9 @@ def live_units(net, windows: np.ndarray) -> tuple[float, float]:
     return float((h > FLOOR).float().mean()), float((h > 0).float().mean())
 
 
-def load_candidate(path: Path, scratch: Path, tuned: bool = True):
+def load_candidate(path: Path, scratch: Path, tuned: bool = True) -> LPNModel:
     """The core alone of a weights folder or of a checkpoint (exported into `scratch`)."""
-    from .runtime import LPNModel
+    from .runtime import LPNModel  # noqa: F811
     from .weights import export_weights, read_weights
 
     if path.is_file():
@@ -110,13 +115,21 @@ def load_candidate(path: Path, scratch: Path, tuned: bool = True):
     return LPNModel(*read_weights(path, tuned=tuned))  # as `load(path, core_only=True)`
 
 
-def evaluate(model, inputs, contents, windows, opts: Options, judge, old) -> dict[str, dict]:
+def evaluate(
+    model: LPNModel,
+    inputs: list[Motion],
+    contents: list[str],
+    windows: dict[str, np.ndarray],
+    opts: Options,
+    judge: StyleJudge,
+    old: Judges,
+) -> dict[str, dict]:
     outs = stylise_toward(model, inputs, list(opts.styles))
     net = model.generator()
     walks = [c in LOCOMOTION for c in contents]  # pace means something only where the input travels
     rows = {}
     for s in opts.styles:
-        read = judge.predict(outs[s])
+        read = judge.predict(outs[s], D2, contents)
         got = old.predict_content([clip_features(m) for m in outs[s]])
         live, positive = live_units(net, windows[s])
         rows[s] = {

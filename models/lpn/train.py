@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import json
 import math
-import random
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -28,9 +28,16 @@ from tqdm import tqdm
 
 from ..runlog import start_run
 from ..settings import REPO_ROOT
-from ..train_config import parse_overrides, seeded_device, use_bf16
+from ..train_config import parse_overrides, rng_state, seeded_device, set_rng_state, use_bf16
 from . import features as lf
 from .weights import NORMALISATION
+
+if TYPE_CHECKING:
+    from ..motion.skeleton import Skeleton
+    from .dataset import Split
+    from .network import LPN
+
+Log = Callable[[str], None]
 
 
 @dataclass
@@ -92,7 +99,7 @@ class StyleClips:
     """Random fixed-length windows of one split's clip features per style (short clips of a style are
     concatenated until long enough), for the FiLM generator."""
 
-    def __init__(self, split, frames: int, rng: np.random.Generator):
+    def __init__(self, split: Split, frames: int, rng: np.random.Generator) -> None:
         self.s, self.frames, self.rng = split, frames, rng
         self.by_style: dict[int, np.ndarray] = {}
         for k in np.unique(split.clip_style):
@@ -133,7 +140,7 @@ def tile_clip(feats: np.ndarray, frames: int) -> np.ndarray:
 
 
 @torch.no_grad()
-def style_films(net, clips: StyleClips, styles: list[int], limit: int | None = None) -> dict[int, torch.Tensor]:
+def style_films(net: LPN, clips: StyleClips, styles: list[int], limit: int | None = None) -> dict[int, torch.Tensor]:
     """Mean FiLM parameters (4, H) of each style over windows of all its clips (or `limit` of them)."""
     net.eval()
     out = {}
@@ -148,7 +155,7 @@ def style_films(net, clips: StyleClips, styles: list[int], limit: int | None = N
 
 
 @torch.no_grad()
-def validate(net, data: Data, films: dict[int, torch.Tensor], n: int) -> dict[str, float]:
+def validate(net: LPN, data: Data, films: dict[int, torch.Tensor], n: int) -> dict[str, float]:
     """One-frame losses on `n` validation samples per style, per output group; with held-out
     styles, their loss under a FiLM of their own clips against under `normal`'s."""
     from .network import bone_length_loss
@@ -157,7 +164,7 @@ def validate(net, data: Data, films: dict[int, torch.Tensor], n: int) -> dict[st
     groups = dict(traj=lf.TRAJ_OUT, pose=lf.POSE_OUT, delta=lf.DELTA_OUT, phase=lf.PHASE_OUT, contact=lf.CONTACT_OUT)
     device = net.X_mean.device
 
-    def run(split, idx, film):
+    def run(split: Split, idx: np.ndarray, film: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = net.normalise_x(torch.from_numpy(split.X[idx]).to(device))
         g = net.normalise_g(torch.from_numpy(split.G[idx]).to(device))
         y = net.normalise_y(torch.from_numpy(split.Y[idx]).to(device))
@@ -192,7 +199,7 @@ def validate(net, data: Data, films: dict[int, torch.Tensor], n: int) -> dict[st
 
 
 def training_loss(
-    net, pred: torch.Tensor, target: torch.Tensor, parents: np.ndarray, lengths: torch.Tensor, w_bone: float
+    net: LPN, pred: torch.Tensor, target: torch.Tensor, parents: np.ndarray, lengths: torch.Tensor, w_bone: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The training objective (loss, mse, bone): MSE on the normalised output plus `w_bone` times the
     bone-length loss on the denormalised pose. One function, so FiLM fine-tuning (`finetune.py`)
@@ -204,7 +211,7 @@ def training_loss(
     return mse + w_bone * bone, mse, bone
 
 
-def body_bones(skeleton) -> tuple[np.ndarray, np.ndarray]:
+def body_bones(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray]:
     """Parents of the body joints as body indices (-1 for Hips) and rest bone lengths (NB,)."""
     parents = np.array([int(skeleton.parents[j]) - 1 for j in lf.BODY])
     lengths = np.linalg.norm(skeleton.offsets[lf.BODY], axis=-1)
@@ -238,17 +245,7 @@ def closed_share(cfg: TrainConfig, progress: float) -> float:
     return cfg.closed_from + (cfg.closed_to - cfg.closed_from) * ramp
 
 
-def rng_state(rng: np.random.Generator) -> dict:
-    return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(), "python": random.getstate()}
-
-
-def set_rng_state(rng: np.random.Generator, state: dict) -> None:
-    rng.bit_generator.state = state["numpy"]
-    torch.set_rng_state(state["torch"])
-    random.setstate(state["python"])
-
-
-def warm_start(net, weights_dir: Path, styles: list[str]) -> torch.Tensor:
+def warm_start(net: LPN, weights_dir: Path, styles: list[str]) -> torch.Tensor:
     """Load a weights folder's gating, motion network and normalisation into `net` (the FiLM
     generator stays fresh: the committed one is dead, `film_norm` gives a new one that is not);
     returns that folder's per-style FiLM vectors (S, 4, H), the new generator's first target."""
@@ -263,7 +260,7 @@ def warm_start(net, weights_dir: Path, styles: list[str]) -> torch.Tensor:
     return torch.as_tensor(arrays["style_film"]).view(len(styles), 4, -1)
 
 
-def fit_generator(net, clips: StyleClips, targets: torch.Tensor, steps: int, log, batch: int = 8) -> None:
+def fit_generator(net: LPN, clips: StyleClips, targets: torch.Tensor, steps: int, log: Log, batch: int = 8) -> None:
     """Regress the generator's output on windows of each style onto that style's vector, so a
     warm-started network starts from the styles it had (its motion network reads those vectors)."""
     dev = net.X_mean.device
@@ -357,7 +354,9 @@ class Run:
     """The network, optimiser, schedule and random state of a run, and how far it got: what a
     checkpoint holds."""
 
-    def __init__(self, cfg: TrainConfig, ck: dict | None, data: Data, device: torch.device, rng, log) -> None:
+    def __init__(
+        self, cfg: TrainConfig, ck: dict | None, data: Data, device: torch.device, rng: np.random.Generator, log: Log
+    ) -> None:
         """A new network, restored from `ck`, or started from `init_from` or `warm_from` (its
         generator first fitted to that folder's style vectors)."""
         from .network import LPN, LPNConfig
@@ -449,7 +448,7 @@ class Run:
         tmp.replace(path)
 
 
-def train_step(cfg: TrainConfig, run: Run, data: Data, autocast) -> dict[str, float]:
+def train_step(cfg: TrainConfig, run: Run, data: Data, autocast: torch.autocast) -> dict[str, float]:
     """One step on one style (cycled in a shuffled order): its FiLM from the generator on a window
     of its clips, rollouts from random starts, a share of them closed-loop."""
     from .rollout import rollout
@@ -546,7 +545,7 @@ def main(argv: list[str]) -> None:
         render_progress(run_dir, out_dir, "final", log)
 
 
-def render_progress(run_dir: Path, out_dir: Path, tag: str, log) -> None:
+def render_progress(run_dir: Path, out_dir: Path, tag: str, log: Log) -> None:
     """Validation render: the exported model driven by a short scripted control sequence."""
     try:
         from .demo import render_demo

@@ -16,6 +16,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -26,6 +27,9 @@ from ..settings import REPO_ROOT, get_settings
 from ..train_config import parse_overrides
 from .carriage import fitted_styles
 from .weights import CONFIG_FILE, TUNED_FILE, read_weights
+
+if TYPE_CHECKING:
+    from .network import LPN
 
 GUARD_CLIPS = (("walk", "run"), 2, 90)  # validation normal clips per content, frames: the rotation guard's inputs
 
@@ -99,7 +103,7 @@ class StyleResult:
         }
 
 
-def style_samples(style: str, split: str, net) -> Samples:
+def style_samples(style: str, split: str, net: LPN) -> Samples:
     """The style's dataset-2 locomotion clips of `split` as training samples (train mirrored, as
     `dataset.build_cache` builds them), cached under the cache folder."""
     from ..data import build_index, load_motions, select
@@ -120,7 +124,7 @@ def style_samples(style: str, split: str, net) -> Samples:
         )
 
 
-def frozen_network(weights_dir: Path):
+def frozen_network(weights_dir: Path) -> tuple[LPN, dict[str, np.ndarray], dict]:
     """The torch network of the committed weights (the built-in vectors as exported, without a
     previous tuning), every parameter frozen."""
     from .network import LPN, LPNConfig
@@ -134,7 +138,7 @@ def frozen_network(weights_dir: Path):
     return net.eval(), {s: films[i] for i, s in enumerate(config["styles"])}, config
 
 
-def tune_style(net, film0: np.ndarray, train: Samples, val: Samples, cfg: TuneConfig, bar: tqdm) -> StyleResult:
+def tune_style(net: LPN, film0: np.ndarray, train: Samples, val: Samples, cfg: TuneConfig, bar: tqdm) -> StyleResult:
     from ..motion.assets import bandai_namco_pose
     from .train import body_bones, training_loss
 
@@ -204,7 +208,8 @@ def rotation_guard(weights_dir: Path, results: list[StyleResult]) -> None:
     from ..data import build_index, load_motions, select
     from ..eval.plausibility import RotationReference
     from ..eval.run import DATASET, pick_clips, stylise
-    from .runtime import LPNModel, read_balls
+    from ..stages import Pipeline
+    from .runtime import STAGES, LPNModel
 
     todo = [r for r in results if r.improved]
     if not todo:
@@ -214,13 +219,15 @@ def rotation_guard(weights_dir: Path, results: list[StyleResult]) -> None:
     index = build_index([DATASET])
     ref = RotationReference({r.style: load_motions(select(index, split="train", style=r.style)) for r in todo})
     arrays, skeleton, config = read_weights(weights_dir, tuned=False)
-    model = LPNModel(arrays, skeleton, config, read_balls(weights_dir))
+    stages = Pipeline.load(STAGES, weights_dir, skeleton)
+    balls = stages.without("carriage", "output_prior", "arm_coupling", "hinge_floor")  # the rotation balls alone
+    model = LPNModel(arrays, skeleton, config, balls)
     for r in todo:
         k = model.styles().index(r.style)
         before = ref.plausibility(r.style, stylise(model, inputs, [k] * len(inputs)))
         films = arrays["style_film"].copy()
         films[k] = r.film  # in the built-in's own row, as `read_weights` puts it: its ball stays
-        twin = LPNModel({**arrays, "style_film": films}, skeleton, config, read_balls(weights_dir))
+        twin = LPNModel({**arrays, "style_film": films}, skeleton, config, balls)
         after = ref.plausibility(r.style, stylise(twin, inputs, [k] * len(inputs)))
         r.within, r.worst_joint = (before["min_within"], after["min_within"]), after["worst_joint"]
 

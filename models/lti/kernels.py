@@ -7,7 +7,7 @@ The step reads top to bottom (`step`):
    path integrated. Each style's rotations are held in its rotation ball (`train.style_prior`).
 2. the input's hands measured (`models.motion.hands_kernels.hand_step`);
 3. `carry_raised_arms`: a raised hand that holds still, its arm carried toward the style's
-   (`raised_arm.py`);
+   (`raised_arm.py`) by a share eased over time (`raised_shares`);
 4. `waving_kernels.swing_arms`: a waving hand's arm takes the input's swing (`waving_arm.py`);
 5. the feet planted (`models.motion.feet_kernels.plant_feet`).
 
@@ -20,8 +20,11 @@ costs a few microseconds more of argument checks. Geometry is a loop on scalars 
 (`models.motion.quaternion`).
 
 The LTI product [x'; y] = [[A, B], [C, D]] [x; u] is split: the state columns [A; C] are block
-diagonal per joint (~5 % non-zero, a sparse product), the input columns [B; D] are more than half
-full (a dense product, `np.dot`). Both run on all the sessions using a style at once.
+diagonal per joint (~5 % non-zero, a sparse product); in the input columns [B; D] the rows fall in
+a few groups that read the same inputs (a joint's system reads its context: the root's 7, the
+upper body's 49, a leg's 37 of the 67), so each group is a dense product (`np.dot`) of its
+inputs alone, ~40 % fewer multiply-adds than the whole. Both run on all the sessions using a
+style at once; z's rows are kept in group order (`Systems.pos`).
 
 Records (NamedTuples of arrays), one per concern, travel in a few flat buffers: a session's carry
 (`CARRY`, the model's state), the constant records and the scratch (`pack`); each array passed
@@ -43,6 +46,7 @@ from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
+from ..motion.novelty_kernels import fade_step
 from ..motion.quaternion import qdot, qinv, qmul, quat_at, row3, row4, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
@@ -50,6 +54,8 @@ from .waving_arm import MEAN_SHAPE
 from .waving_kernels import WavingArm, nlerp, ramp, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
+SHARE_FLOOR = 1e-3  # an eased raised-arm share below this is 0 (`raised_shares`)
+GROUP_MIN_SAVING = 500  # multiply-adds a group of rows must save to get its own product (a call costs ~that)
 CHUNK = 32  # sessions whose LTI step is computed together: their inputs and outputs (~50 kB) stay in cache
 
 # --------------------------------------------------------------------------- records
@@ -81,6 +87,8 @@ class Session(NamedTuple):
     in_ground: np.ndarray  # (B, 2) and its ground position
     out_yaw: np.ndarray  # (B,) the output's heading
     out_ground: np.ndarray  # (B, 2) and its ground position
+    blend: np.ndarray  # (B, 3) the erf blend weight's eased history: set (1.0) or not, its fast and slow follower
+    raise_share: np.ndarray  # (B, 2, 2) each side's raised-arm share eased (`ease`): its fast and slow follower
     hand_prev: np.ndarray  # (B, 2, 3) the input's hands from their shoulders, the frame before
     hand_sway: np.ndarray  # (B, 2) their horizontal speed, averaged
     hand_rise: np.ndarray  # (B, 2) their vertical speed, averaged
@@ -97,6 +105,8 @@ CARRY = {
     "in_ground": (2,),
     "out_yaw": (),
     "out_ground": (2,),
+    "blend": (3,),
+    "raise_share": (2, 2),
     "hand_prev": (2, 3),
     "hand_sway": (2,),
     "hand_rise": (2,),
@@ -133,11 +143,12 @@ def unpack(carry, x):
     """The `Session` (with the LTI states x) and `Feet` records of a packed carry: views."""
     session = Session(
         _view(carry, _S[0]), _view(carry, _S[1]), _view(carry, _S[2]), _view(carry, _S[3]), _view(carry, _S[4]),
-        _view(carry, _S[5]), _view(carry, _S[6]), _view(carry, _S[7]), _view(carry, _S[8]), _view(carry, _S[9]), x,
+        _view(carry, _S[5]), _view(carry, _S[6]), _view(carry, _S[7]), _view(carry, _S[8]), _view(carry, _S[9]),
+        _view(carry, _S[10]), _view(carry, _S[11]), x,
     )  # fmt: skip
     feet = Feet(
-        _view(carry, _S[10]), _view(carry, _S[11]), _view(carry, _S[12]), _view(carry, _S[13]),
-        _view(carry, _S[14]), _view(carry, _S[15]), _view(carry, _S[16]), _view(carry, _S[17]),
+        _view(carry, _S[12]), _view(carry, _S[13]), _view(carry, _S[14]), _view(carry, _S[15]),
+        _view(carry, _S[16]), _view(carry, _S[17]), _view(carry, _S[18]), _view(carry, _S[19]),
     )  # fmt: skip
     return session, feet
 
@@ -146,15 +157,20 @@ class Systems(NamedTuple):
     """Every style's translator, concatenated over the model's styles in order, so the kernel
     takes a fixed set of arrays whatever the style set is. Style s has x_off[s+1] - x_off[s]
     state entries (`Footplant.w`'s columns x_off[s]...) and rows row_off[s]:row_off[s+1] of
-    M_s = [[A, B], [C, D]]: its state columns [A; C] in CSR (columns local to the style), its
-    input columns [B; D] dense."""
+    M_s = [[A, B], [C, D]], held in group order (`input_groups`): its state columns [A; C] in
+    CSR (columns local to the style), its input columns [B; D] as one dense block per group of
+    rows over the inputs they read."""
 
     x_off: np.ndarray  # (S + 1,) int64
     row_off: np.ndarray  # (S + 1,) int64
-    indptr: np.ndarray  # (rows + 1,) int64, into indices/data
+    indptr: np.ndarray  # (rows + 1,) int64, into indices/data, rows in group order
     indices: np.ndarray  # (nnz,) int32
     data: np.ndarray  # (nnz,)
-    inputs: np.ndarray  # (rows, 67) [B; D]
+    pos: np.ndarray  # (rows,) int64: where each row of M_s (row_off[s] + r) sits in the group order
+    group_off: np.ndarray  # (S + 1,) int64: style s's groups, group_off[s]...
+    groups: np.ndarray  # (G, 5) int64: a group's rows (first, end) in group order, its inputs (at, count) in `cols`, its block's start in `blocks`
+    cols: np.ndarray  # (C,) int64: each group's inputs
+    blocks: np.ndarray  # (sum of rows x inputs,) each group's [B; D] rows over its inputs, C order
     in_mean: np.ndarray  # (S, 67)
     in_std: np.ndarray  # (S, 67)
     in_lo: np.ndarray  # (S, 67) training range of the normalised input (erf blend)
@@ -163,6 +179,7 @@ class Systems(NamedTuple):
     out_std: np.ndarray  # (S, 68)
     k: np.ndarray  # (S, 2) erf blend k_p, k_c
     ref: np.ndarray  # (S, 22, 4) per-joint reference rotations
+    keep: float  # per frame, the share of the blend weight's eased history kept (`ease`)
 
 
 class Footplant(NamedTuple):
@@ -205,6 +222,7 @@ class RaisedArm(NamedTuple):
     joints: np.ndarray  # (2, K) int64: each side's arm, Shoulder to Hand
     raise_ramp: np.ndarray  # (2,) cm: the hand's height over its shoulder, raise share 0 -> 1
     wave_ramp: np.ndarray  # (2,) cm/s: its sway, wave share 0 -> 1
+    keep: float  # per frame, the share of the eased share's history kept (`raised_shares`)
 
 
 class Switches(NamedTuple):
@@ -221,7 +239,7 @@ class Work(NamedTuple):
     """Scratch for up to B sessions, kept between steps (fresh ~2 MB at batch 256 cost more in
     page faults than the step's arithmetic); flat buffers take each style's (rows, m) shape."""
 
-    session: np.ndarray  # (B, 16): yaw, yaw-free hips, root displacement and yaw change, the input's share, ...
+    session: np.ndarray  # (B, 18): yaw, yaw-free hips, root displacement and yaw change, the input's share, ...
     quats: np.ndarray  # (B, S, 22, 4) each style's body rotations
     rows: np.ndarray  # (B,) int64: the sessions using a style
     blend_w: np.ndarray  # (CHUNK,) of a chunk of the sessions using a style
@@ -236,6 +254,9 @@ class Work(NamedTuple):
     carry_w: np.ndarray  # (1, C) one session's raised-arm carry weights
     carried: np.ndarray  # (1, J, 4) its carried rotations
     point: np.ndarray  # (B, 2) int64: the planter's held points, as it indexes with them
+    group_u: np.ndarray  # flat: the normalised features a group of rows reads, (inputs, k)
+    staged_root: np.ndarray  # (B, 3) the step's root before the unseen-content fade (`step_fading`)
+    staged_rotations: np.ndarray  # (B, J, 4) and its rotations
 
 
 def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ...]:
@@ -243,7 +264,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
     styles = len(systems.x_off) - 1
     n, k = int(np.diff(systems.x_off).max()), min(batch, CHUNK)
     work = Work(
-        np.empty((batch, 16)),
+        np.empty((batch, 18)),
         np.empty((batch, styles, NUM_JOINTS, 4)),
         np.empty(batch, np.int64),
         np.empty(k),
@@ -258,6 +279,9 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
         np.empty((1, carries)),
         np.empty((1, NUM_JOINTS, 4)),
         np.empty((batch, 2), np.int64),
+        np.empty(FEATURE_DIM * k),
+        np.empty((batch, 3)),
+        np.empty((batch, NUM_JOINTS, 4)),
     )
     return pack([work], [WORK_SCHEMA], copy=False)
 
@@ -267,17 +291,17 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
 # Each record's fields as the kernel reads them: f float64, i int64, b bool; 0 a scalar, else the
 # number of dimensions. `pack` checks records against these, `unpack_constants` and `unpack_work` rebuild them in the kernel.
 CONSTANT_SCHEMAS = (
-    "i1 i1 i1 i1 f1 f2 f2 f2 f2 f2 f2 f2 f2 f3",  # Systems
+    "i1 i1 i1 i1 f1 i1 i1 i2 i1 f1 f2 f2 f2 f2 f2 f2 f2 f3 f0",  # Systems
     "f2 f3 f3 f3 b1 f3",  # Footplant
     "f3 f3 f2",  # Ball
     "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
-    "f3 f3 f4 f2 i1 i2 f1 f1",  # RaisedArm
+    "f3 f3 f4 f2 i1 i2 f1 f1 f0",  # RaisedArm
     "i2 f1 f1 f1 f0 f0",  # WavingArm
-    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
+    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
     "b0 b0 b0 b0 b0",  # Switches
     "f2 f2 f1",  # Bends
 )
-WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2"
+WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f2 f3"
 
 
 def pack(
@@ -346,31 +370,34 @@ def unpack_constants(p):
     """The step's constant records from `pack([systems, footplant, ball, hands, arm, waving,
     planter, switches, bends])`: views, in `CONSTANT_SCHEMAS`' order."""
     sys = Systems(
-        _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _f(p, 5).reshape(_s2(p, 5)), _f(p, 6).reshape(_s2(p, 6)),
-        _f(p, 7).reshape(_s2(p, 7)), _f(p, 8).reshape(_s2(p, 8)), _f(p, 9).reshape(_s2(p, 9)),
-        _f(p, 10).reshape(_s2(p, 10)), _f(p, 11).reshape(_s2(p, 11)), _f(p, 12).reshape(_s2(p, 12)),
-        _f(p, 13).reshape(_s3(p, 13)),
+        _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _i(p, 5), _i(p, 6), _i(p, 7).reshape(_s2(p, 7)), _i(p, 8),
+        _f(p, 9), _f(p, 10).reshape(_s2(p, 10)),
+        _f(p, 11).reshape(_s2(p, 11)), _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s2(p, 13)),
+        _f(p, 14).reshape(_s2(p, 14)), _f(p, 15).reshape(_s2(p, 15)), _f(p, 16).reshape(_s2(p, 16)),
+        _f(p, 17).reshape(_s3(p, 17)), _f(p, 18)[0],
     )  # fmt: skip
     fp = Footplant(
-        _f(p, 14).reshape(_s2(p, 14)), _f(p, 15).reshape(_s3(p, 15)), _f(p, 16).reshape(_s3(p, 16)),
-        _f(p, 17).reshape(_s3(p, 17)), _b(p, 18), _f(p, 19).reshape(_s3(p, 19)),
+        _f(p, 19).reshape(_s2(p, 19)), _f(p, 20).reshape(_s3(p, 20)), _f(p, 21).reshape(_s3(p, 21)),
+        _f(p, 22).reshape(_s3(p, 22)), _b(p, 23), _f(p, 24).reshape(_s3(p, 24)),
     )  # fmt: skip
-    ball = Ball(_f(p, 20).reshape(_s3(p, 20)), _f(p, 21).reshape(_s3(p, 21)), _f(p, 22).reshape(_s2(p, 22)))
+    ball = Ball(_f(p, 25).reshape(_s3(p, 25)), _f(p, 26).reshape(_s3(p, 26)), _f(p, 27).reshape(_s2(p, 27)))
     hands = Hands(
-        _i(p, 23), _f(p, 24).reshape(_s2(p, 24)), _i(p, 25), _i(p, 26), _i(p, 27), _f(p, 28)[0], _f(p, 29)[0],
-        _f(p, 30)[0],
+        _i(p, 28), _f(p, 29).reshape(_s2(p, 29)), _i(p, 30), _i(p, 31), _i(p, 32), _f(p, 33)[0], _f(p, 34)[0],
+        _f(p, 35)[0],
     )  # fmt: skip
     arm = RaisedArm(
-        _f(p, 31).reshape(_s3(p, 31)), _f(p, 32).reshape(_s3(p, 32)), _f(p, 33).reshape(_s4(p, 33)),
-        _f(p, 34).reshape(_s2(p, 34)), _i(p, 35), _i(p, 36).reshape(_s2(p, 36)), _f(p, 37), _f(p, 38),
+        _f(p, 36).reshape(_s3(p, 36)), _f(p, 37).reshape(_s3(p, 37)), _f(p, 38).reshape(_s4(p, 38)),
+        _f(p, 39).reshape(_s2(p, 39)), _i(p, 40), _i(p, 41).reshape(_s2(p, 41)), _f(p, 42), _f(p, 43),
+        _f(p, 44)[0],
     )  # fmt: skip
-    waving = WavingArm(_i(p, 39).reshape(_s2(p, 39)), _f(p, 40), _f(p, 41), _f(p, 42), _f(p, 43)[0], _f(p, 44)[0])
+    waving = WavingArm(_i(p, 45).reshape(_s2(p, 45)), _f(p, 46), _f(p, 47), _f(p, 48), _f(p, 49)[0], _f(p, 50)[0])
     planter = (
-        _i(p, 45)[0], _i(p, 46).reshape(_s2(p, 46)), _f(p, 47).reshape(_s2(p, 47)), _f(p, 48), _f(p, 49)[0],
-        _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0],
+        _i(p, 51)[0], _i(p, 52).reshape(_s2(p, 52)), _f(p, 53).reshape(_s2(p, 53)), _f(p, 54), _f(p, 55)[0],
+        _f(p, 56)[0], _f(p, 57)[0], _f(p, 58)[0], _f(p, 59)[0], _f(p, 60)[0], _f(p, 61)[0], _f(p, 62)[0],
+        _f(p, 63)[0],
     )  # fmt: skip
-    on = Switches(_b(p, 57)[0], _b(p, 58)[0], _b(p, 59)[0], _b(p, 60)[0], _b(p, 61)[0])
-    bends = Bends(_f(p, 62).reshape(_s2(p, 62)), _f(p, 63).reshape(_s2(p, 63)), _f(p, 64))
+    on = Switches(_b(p, 64)[0], _b(p, 65)[0], _b(p, 66)[0], _b(p, 67)[0], _b(p, 68)[0])
+    bends = Bends(_f(p, 69).reshape(_s2(p, 69)), _f(p, 70).reshape(_s2(p, 70)), _f(p, 71))
     return sys, fp, ball, hands, arm, waving, planter, on, bends
 
 
@@ -380,7 +407,8 @@ def unpack_work(p):
     return Work(
         _f(p, 0).reshape(_s2(p, 0)), _f(p, 1).reshape(_s4(p, 1)), _i(p, 2), _f(p, 3), _f(p, 4), _f(p, 5), _f(p, 6),
         _f(p, 7), _f(p, 8), _f(p, 9).reshape(_s2(p, 9)), _b(p, 10).reshape(_s2(p, 10)), _b(p, 11),
-        _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s3(p, 13)), _i(p, 14).reshape(_s2(p, 14)),
+        _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s3(p, 13)), _i(p, 14).reshape(_s2(p, 14)), _f(p, 15),
+        _f(p, 16).reshape(_s2(p, 16)), _f(p, 17).reshape(_s3(p, 17)),
     )  # fmt: skip
 
 
@@ -482,16 +510,54 @@ def style_inputs(sys, s, root_y, rotations, tilt, delta, x, blend, xin, u, feats
 
 
 @njit(cache=True, error_model="numpy")
-def system_product(sys, s, xin, u, z):
-    """z = M_s [xin; u] for the m sessions in the columns (rows of z: the state, then the
-    outputs; not the log time warp): the dense input columns [B; D] u, then the sparse state
-    columns [A; C] xin added (one session: a sum per row; several: each matrix entry applied to
-    all of them, a loop the compiler vectorises)."""
+def ease(raw, history, keep):
+    """A weight eased over time: two one-pole followers in series (fast, then slow) of its raw
+    value, keeping `keep` of their history per frame; history (set, fast, slow), unset (a
+    session's first frame): the followers start at `raw`. Returns (fast, slow); the slow one is
+    applied. Why: the erf blend weight and the raised-arm shares are steep functions of the input
+    (a DOF a fraction of its spread past the training range moves the blend by ~0.4 in a frame; a
+    hand swung up in a jump crosses the raise ramp in a frame or two), and the output moves
+    between two poses with them, a rotation acceleration of the gap times the weight's second
+    difference, which the slow follower keeps small."""
+    fast, slow = (history[1], history[2]) if history[0] != 0.0 else (raw, raw)
+    fast = keep * fast + (1.0 - keep) * raw
+    return fast, keep * slow + (1.0 - keep) * fast
+
+
+def eased(raw: np.ndarray, keep: float) -> np.ndarray:
+    """(F,) a quantity eased frame by frame as the stream does (`ease`), for the offline path: two one-pole
+    followers in series, both starting at its first value."""
+    out = np.empty(len(raw))
+    fast = slow = float(raw[0]) if len(raw) else 0.0
+    for t, r in enumerate(raw):
+        fast = keep * fast + (1.0 - keep) * r
+        out[t] = slow = keep * slow + (1.0 - keep) * fast
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def system_product(sys, s, xin, u, z, group_u):
+    """z = M_s [xin; u] for the m sessions in the columns (rows of z: M_s's in group order, see
+    `Systems`; not the log time warp): each group's dense block times the inputs it reads (one
+    session: a matrix-vector product, BLAS gemv, ~2.5x faster than gemm on one column), then the
+    sparse state columns [A; C] xin added (one session: a sum per row; several: each matrix
+    entry applied to all of them, a loop the compiler vectorises). group_u: scratch."""
     r0, m = sys.row_off[s], xin.shape[1]
-    if m == 1:  # a matrix-vector product (BLAS gemv): ~2.5x faster than gemm on one column
-        np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u.reshape(u.shape[0]), z.reshape(z.shape[0]))
-    else:
-        np.dot(sys.inputs[r0 : sys.row_off[s + 1]], u, z)
+    for g in range(sys.group_off[s], sys.group_off[s + 1]):
+        first, end, at, count, block = sys.groups[g]
+        rows = z[first:end]
+        if count == 0:  # rows that read no input
+            rows[:] = 0.0
+            continue
+        ug = group_u[: count * m].reshape((count, m))
+        for i in range(count):
+            for c in range(m):
+                ug[i, c] = u[sys.cols[at + i], c]
+        weights = sys.blocks[block : block + (end - first) * count].reshape((end - first, count))
+        if m == 1:
+            np.dot(weights, ug.reshape(count), rows.reshape(end - first))
+        else:
+            np.dot(weights, ug, rows)
     for r in range(z.shape[0]):
         if m == 1:
             acc = z[r, 0]
@@ -517,11 +583,11 @@ def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_head
     """Style s's result for one session from column c of z = M [x; u]: the new state into x_out,
     w * (root displacement, yaw change, height) added to root_feats, the body rotations (22, 4),
     each held in the style's ball and the hinges at their floor, into quats. out: scratch (67,)."""
-    n = x_out.shape[0]
+    n, pos = x_out.shape[0], sys.pos[sys.row_off[s] : sys.row_off[s + 1]]
     for i in range(n):
-        x_out[i] = z[i, c]
+        x_out[i] = z[pos[i], c]
     for d in range(FEATURE_DIM):  # the log time warp (last output) is not used online
-        y = z[n + d, c] * sys.out_std[s, d] + sys.out_mean[s, d]
+        y = z[pos[n + d], c] * sys.out_std[s, d] + sys.out_mean[s, d]
         out[d] = (1.0 - blend_w) * y + blend_w * feats[d, c]
     if keep_heading:
         out[2] = feats[2, c]
@@ -550,13 +616,13 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
     B, S = frame.weights.shape
     weights, per = frame.weights, work.session
     yaws, tilts, deltas, rests = per[:, 0], per[:, 1:5], per[:, 5:8], per[:, 8]
-    totals, root_feats, votes = per[:, 9], per[:, 10:14], per[:, 14:16]
+    totals, root_feats, votes, eased = per[:, 9], per[:, 10:14], per[:, 14:16], per[:, 16:18]
     for b in range(B):
         for i in range(after.x.shape[1]):
             after.x[b, i] = 0.0  # a style at weight 0 rests at its initial state x = 0
         work.contacts[b, 0], work.contacts[b, 1] = False, False
         yaw, tilt = split_hips(quat_at(frame.rotations, b, HIPS))
-        yaws[b], votes[b, 0], votes[b, 1] = yaw, 0.0, 0.0
+        yaws[b], votes[b, 0], votes[b, 1], eased[b, 0], eased[b, 1] = yaw, 0.0, 0.0, 0.0, 0.0
         tilts[b, 0], tilts[b, 1], tilts[b, 2], tilts[b, 3] = tilt
         gx, gz = frame.root[b, 0], frame.root[b, 2]
         started = before.started[b]
@@ -591,11 +657,16 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
             feats = work.feats[: FEATURE_DIM * k].reshape((FEATURE_DIM, k))
             for c in range(k):
                 b = work.rows[lo + c]
-                work.blend_w[c] = style_inputs(
+                raw = style_inputs(
                     sys, s, frame.root[b, 1], frame.rotations[b], row4(tilts, b), deltas[b], before.x[b, a:e],
                     switches.blend, xin, u, feats, c,
                 )  # fmt: skip
-            system_product(sys, s, xin, u, z)
+                # each style eases its own weight from the session's history, which takes the
+                # styles' followers in their shares (one style: exactly its own)
+                fast, work.blend_w[c] = ease(raw, before.blend[b], sys.keep)
+                eased[b, 0] += weights[b, s] * fast
+                eased[b, 1] += weights[b, s] * work.blend_w[c]
+            system_product(sys, s, xin, u, z, work.group_u)
             for c in range(k):
                 b = work.rows[lo + c]
                 w = weights[b, s]
@@ -643,7 +714,13 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
         work.root[b, 0], work.root[b, 1], work.root[b, 2] = after.out_ground[b, 0], rf[3], after.out_ground[b, 1]
         after.started[b] = True
         after.in_yaw[b], after.in_ground[b, 0], after.in_ground[b, 1] = yaw, gx, gz
+        after.blend[b, 0], after.blend[b, 1], after.blend[b, 2] = 0.0, 0.0, 0.0  # no style: starts again
         if totals[b] > 0.0:
+            after.blend[b, 0], after.blend[b, 1], after.blend[b, 2] = (
+                1.0,
+                eased[b, 0] / totals[b],
+                eased[b, 1] / totals[b],
+            )
             limit = 0.5 * max(totals[b], 1e-12)
             work.contacts[b, 0], work.contacts[b, 1] = votes[b, 0] > limit, votes[b, 1] > limit
 
@@ -658,9 +735,26 @@ def calm_share(arm, height, sway):
 
 
 @njit(cache=True, error_model="numpy")
-def carry_raised_arms(b, arm, weights, offsets, swayed, out_rot, work):
+def raised_shares(b, arm, on, raised, weights, offsets, swayed, fresh, before, after):
+    """Session b's share of each side's raised arm (`raised_arm.shares`: the hand's raise share
+    times one minus its wave share), eased over time (`ease`, from `before` (2, 2) into `after`):
+    a hand swung up in a jump or a punch crosses the raise ramp in a frame or two. Below
+    `SHARE_FLOOR` an eased share is 0 (it decays toward 0 and would never reach it)."""
+    carried = False
+    if on and raised:
+        for s in range(weights.shape[1]):
+            carried = carried or (arm.row[s] >= 0 and weights[b, s] > 0.0)
+    for side in range(2):
+        raw = calm_share(arm, offsets[b, side, 1], swayed[b, side]) if carried else 0.0
+        after[side, 0], after[side, 1] = ease(raw, (0.0 if fresh else 1.0, before[side, 0], before[side, 1]), arm.keep)
+    left, right = after[0, 1], after[1, 1]
+    return (left if left >= SHARE_FLOOR else 0.0), (right if right >= SHARE_FLOOR else 0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def carry_raised_arms(b, arm, weights, left, right, out_rot, work):
     """Session b's arms mixed toward the styles' raised arms (`raised_arm.carried`): each side
-    by its share, the hand's raise share times one minus its wave share (`raised_arm.shares`)."""
+    by its share (`raised_shares`)."""
     total = 0.0
     for s in range(weights.shape[1]):
         k = arm.row[s]
@@ -668,9 +762,6 @@ def carry_raised_arms(b, arm, weights, offsets, swayed, out_rot, work):
             work.carry_w[0, k] = weights[b, s]
             total += weights[b, s]
     if not total > 0.0:
-        return
-    left, right = calm_share(arm, offsets[b, 0, 1], swayed[b, 0]), calm_share(arm, offsets[b, 1, 1], swayed[b, 1])
-    if not (left > 0.0 or right > 0.0):
         return
     carry_batch(out_rot[b : b + 1], work.carry_w, arm.source, arm.mean, arm.map, arm.radius, HIPS, work.carried)
     for side in range(2):
@@ -690,11 +781,32 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
     """One frame for every session: reads `frame`, the packed carry (B, CARRY_WIDTH) and the LTI
     states x side by side; writes `out`, new_carry and new_x. `constants` and `work` are packed
     records (`pack`; `planter` is `FootPlanter`'s parameters)."""
-    frame, out = Frame(*frame), Output(*out)
+    stages(Frame(*frame), x, new_x, carry, new_carry, Output(*out), constants, unpack_work(work))
+
+
+@njit(cache=True, error_model="numpy")
+def step_fading(frame, x, new_x, carry, new_carry, out, constants, work, fade):
+    """`step`, then the unseen-content fade (`models.motion.novelty_stage`, the shipped
+    pipeline's last stage) in the same call: at batch 1 a second compiled call, its arguments
+    and its outputs cost more than the fade's arithmetic. fade: (control (B, 5) or (0, 5), the
+    fade state (B, W), the reference's five arrays (`NoveltyReference.arrays`), the new fade
+    state (B, W), each row's fade (B,)), as `novelty_kernels.fade_step` takes them."""
+    frame, out, work = Frame(*frame), Output(*out), unpack_work(work)
+    staged = Output(work.staged_root, work.staged_rotations, out.contacts)
+    stages(frame, x, new_x, carry, new_carry, staged, constants, work)
+    control, old, table, anchors_starts, floats, bones, centres, new, faded = fade
+    fade_step(
+        frame.rotations, frame.root, staged.rotations, staged.root, control, old, table, anchors_starts, floats,
+        bones, centres, out.rotations, out.root, new, faded,
+    )  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy")
+def stages(frame, x, new_x, carry, new_carry, out, constants, work):
+    """`step` on its records (`frame`, `out`: `Frame`, `Output`; `work` unpacked)."""
     before, feet_before = unpack(carry, x)
     after, feet_after = unpack(new_carry, new_x)
     sys, fp, ball, hands, arm, waving, planter, on, bends = unpack_constants(constants)
-    work = unpack_work(work)
     B = frame.root.shape[0]
 
     # 1. the translator
@@ -711,11 +823,15 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
         raised = False
         for side in range(2):
             raised = raised or after.hand_prev[b, side, 1] > hands.above
+        left, right = raised_shares(
+            b, arm, on.raised_arm, raised, frame.weights, after.hand_prev, after.hand_sway, not before.started[b],
+            before.raise_share[b], after.raise_share[b],
+        )  # fmt: skip
+        if left > 0.0 or right > 0.0:
+            carry_raised_arms(b, arm, frame.weights, left, right, out.rotations, work)
         if not raised:  # a walk's or a run's hands never are: the running means wait
             new_carry[b, WAVE_AT:FEET_AT] = carry[b, WAVE_AT:FEET_AT]
             continue
-        if on.raised_arm and arm.source.shape[0] > 0:
-            carry_raised_arms(b, arm, frame.weights, after.hand_prev, after.hand_sway, out.rotations, work)
         swing_arms(
             b, waving, frame.rotations, out.rotations, frame.weights, before.started, before.hand_prev,
             after.hand_prev, after.hand_sway, after.hand_rise, before.wave_in_mean, before.wave_out_mean,
@@ -752,21 +868,58 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
 # --------------------------------------------------------------------------- packing
 
 
-def pack_styles(translators: list) -> tuple[Systems, Footplant, Ball]:
-    """The records of `StyleTranslator`s (in style order); done once per style-set change."""
+def input_groups(inputs: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
+    """The rows of a system's input columns [B; D] (rows, 67) grouped by the inputs they read:
+    (the row order, groups first to last; per group its rows (first, end) in that order and the
+    inputs it reads). Groups too small to pay for their own product (`GROUP_MIN_SAVING`) join
+    the group reading all the inputs."""
+    reads = inputs != 0.0
+    keys: dict[bytes, list[int]] = {}
+    for r, row in enumerate(reads):
+        keys.setdefault(np.packbits(row).tobytes(), []).append(r)
+    full = np.ones(inputs.shape[1], bool)
+    merged: dict[bytes, list[int]] = {}
+    for key, rows in keys.items():
+        read = reads[rows[0]]
+        saving = len(rows) * (inputs.shape[1] - read.sum())
+        if read.any() and saving < GROUP_MIN_SAVING:
+            key, read = np.packbits(full).tobytes(), full
+        merged.setdefault(key, []).extend(rows)
+    order: list[int] = []
+    spans = []
+    for key, rows in merged.items():
+        read = np.flatnonzero(np.unpackbits(np.frombuffer(key, np.uint8))[: inputs.shape[1]])
+        spans.append((len(order), len(order) + len(rows), read))
+        order += sorted(rows)
+    return np.array(order, np.int64), spans
+
+
+def pack_styles(translators: list, keep: float) -> tuple[Systems, Footplant, Ball]:
+    """The records of `StyleTranslator`s (in style order), their blend weights eased by `keep`
+    (`ease`); done once per style-set change."""
     from scipy import sparse
 
-    x_off, row_off, indptr, indices, data, inputs = [0], [0], [], [], [], []
+    x_off, row_off, indptr, indices, data = [0], [0], [], [], []
+    pos, group_off, groups = [], [0], []
+    cols: list[np.ndarray] = []
+    blocks: list[np.ndarray] = []
     fp_w, fp_mean, fp_var, fp_prior, fitted, ball_mean, ball_radii = [], [], [], [], [], [], []
     nnz = 0
     for tr in translators:
         M = tr.M[: tr.n + FEATURE_DIM]  # not the log time warp, which is not used online
+        order, spans = input_groups(M[:, tr.n :])
+        M = M[order]
         states = sparse.csr_matrix(M[:, : tr.n])
         indptr.append(states.indptr[:-1] + nnz)
         indices.append(states.indices)
         data.append(states.data)
-        inputs.append(M[:, tr.n :])
         nnz += states.nnz
+        pos.append(np.argsort(order))
+        for first, end, read in spans:
+            groups.append((first, end, sum(len(c) for c in cols), len(read), sum(len(b) for b in blocks)))
+            cols.append(read)
+            blocks.append(M[first:end, tr.n + read].ravel())
+        group_off.append(len(groups))
         x_off.append(x_off[-1] + tr.n)
         row_off.append(row_off[-1] + M.shape[0])
         f = tr.footplant
@@ -786,7 +939,11 @@ def pack_styles(translators: list) -> tuple[Systems, Footplant, Ball]:
         np.concatenate(indptr).astype(np.int64),
         np.concatenate(indices).astype(np.int32),
         np.concatenate(data).astype(np.float64),
-        np.ascontiguousarray(np.concatenate(inputs), dtype=np.float64),
+        np.concatenate(pos).astype(np.int64),
+        np.array(group_off, np.int64),
+        np.array(groups, np.int64).reshape(-1, 5),
+        np.concatenate(cols).astype(np.int64),
+        np.concatenate(blocks).astype(np.float64),
         f64([tr.in_mean for tr in translators]),
         f64([tr.in_std for tr in translators]),
         f64([tr.in_lo for tr in translators]),
@@ -795,6 +952,7 @@ def pack_styles(translators: list) -> tuple[Systems, Footplant, Ball]:
         f64([tr.out_std for tr in translators]),
         f64([(tr.k_p, tr.k_c) for tr in translators]),
         f64([tr.ref for tr in translators]),
+        float(keep),
     )
     footplant = Footplant(
         np.ascontiguousarray(np.concatenate(fp_w).T, dtype=np.float64),

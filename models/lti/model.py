@@ -7,7 +7,8 @@ and the footplant classifier. Every frame, per session:
     u = (features(frame) - in_mean) / in_std          (features: representation.py)
     [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint)
     out = y * out_std + out_mean
-    out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend)
+    out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend,
+                                                                          eased over time: `kernels.ease`)
     pose = inverse representation(out); rotation prior (`train.style_prior`); hinge joints held at
     their least real bend (`models.motion.hinge_kernels`, `hinges.npz`); contacts
     then the stages, each measured on the input and fitted per style the same way: a raised,
@@ -16,7 +17,7 @@ and the footplant classifier. Every frame, per session:
 Heading: the translated yaw drifts slowly for some styles, so by default the output takes the
 input's yaw change (`keep_heading=True`); speed, posture and timing stay translated. The feet are
 planted (`footlock`) by `models.motion.feet.FootPlanter`, shared by every method, with the
-classifier's contacts as hints; `FrameBatch.contacts` are the planted legs, or the classifier's.
+classifier's contacts as hints for feet slower than `HINT_SPEED`; `FrameBatch.contacts` are the planted legs, or the classifier's.
 
 The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and stage
 (`kernels.step`); the offline path (`StyleTranslator.translate_motion`) stays numpy over whole
@@ -52,7 +53,11 @@ CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI 
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
 STORED = ("in_mean", "in_std", "out_mean", "out_std", "in_lo", "in_hi", "orders", "ref")  # saved as they are
-COMPACT_FROM = 16  # sessions in a step from which only the styles in use are copied (`_side_by_side`)
+EASE_S = 0.1  # time constant of each of the two followers easing the erf blend weight (`kernels.ease`)
+RAISE_EASE_S = 0.05  # and the raised-arm shares: at 0.1 s a raise-up's arm came late enough to cost content reads
+HINT_SPEED = 120.0  # cm/s: a foot the footplant classifier calls planted plants when slower (`FootPlanter.hint_speed`)
+_NO_CONTROL = np.zeros((0, 5))  # the fade's control rows when a frame carries none
+COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, finds the styles in use (`_side_by_side`)
 
 
 @dataclass
@@ -99,7 +104,7 @@ class StyleTranslator:
     def _finish(self, feats: np.ndarray, u: np.ndarray, y: np.ndarray, blend: bool) -> np.ndarray:
         out = y * self.out_std + self.out_mean  # a new array
         if blend:
-            w = self.blend_weight(u)[..., None]
+            w = kernels.eased(self.blend_weight(u), ease_keep(LTIStyleModel.fps))[:, None]
             out[..., : rep.FEATURE_DIM] = (1 - w) * out[..., : rep.FEATURE_DIM] + w * feats
             out[..., rep.FEATURE_DIM :] *= 1 - w
         if self.keep_heading:
@@ -143,14 +148,16 @@ class StyleTranslator:
             offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
             swayed = clip_sway(offsets, motion.fps)
         if self.raised_arm is not None:
-            share = raised_arm.shares(offsets, swayed)
+            share = raised_arm.eased_shares(
+                raised_arm.shares(offsets, swayed), ease_keep(LTIStyleModel.fps, RAISE_EASE_S)
+            )
             rots = raised_arm.carried(self.raised_arm, rots, np.ones((len(rots), 1)), share)
         if self.waving_arm:
             mean, radii = self.ball()
             rots = waving_arm.clip(rots, motion.rotations, offsets, swayed, motion.fps, mean[None], radii[None])
         contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
         if footlock:
-            root, rots, contacts = model_rig_planter(motion.fps).clip(root, rots, hints=contacts)
+            root, rots, contacts = model_rig_planter(motion.fps, hint_speed=HINT_SPEED).clip(root, rots, hints=contacts)
         if timewarp:
             from .warping import resample_pose
 
@@ -203,14 +210,19 @@ class StyleTranslator:
             )
 
 
+def ease_keep(fps: float, seconds: float = EASE_S) -> float:
+    """Per frame at `fps`, the share of an eased quantity's history kept (time constant `seconds`)."""
+    return float(np.exp(-1.0 / (fps * seconds)))
+
+
 class _Scratch(NamedTuple):
     systems: kernels.Systems  # the style set it was made for
     batch: int
     x: np.ndarray  # (B * N,) room for the styles' LTI states side by side
     work: tuple  # `kernels.Work`, packed
     x_shapes: list[tuple[int, ...]]  # each style's LTI state's
-    x_off: np.ndarray  # (S,) int64: where each style's state starts when all sit side by side
-    zeros: np.ndarray  # (B * max n,) read-only: the LTI state of every style no session of a step uses
+    alone: list[np.ndarray]  # per style s, (S,) int64: where each style's state sits when s's is the only one
+    rest: dict[str, np.ndarray]  # each style's LTI state key -> (B, n) read-only zeros: a style no session uses
 
 
 class _StyleSet(NamedTuple):
@@ -283,7 +295,7 @@ class LTIStyleModel(LTIStyles):
         self.blend = blend
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
-        self.planter = model_rig_planter(self.fps)
+        self.planter = model_rig_planter(self.fps, hint_speed=HINT_SPEED)
         self._hands = HandMeter(self.skeleton)  # the input's hands, for the raised arm (`raised_arm.py`)
         self._scratch = threading.local()  # per thread: step scratch reused between steps (`_workspace`)
         self._set_styles(sorted(translators))
@@ -310,8 +322,8 @@ class LTIStyleModel(LTIStyles):
     def _set_styles(self, styles: list[str]) -> None:
         """Everything the step needs per style set, computed here once (the state keys, the
         kernel's records) and replaced whole, so a reader sees one consistent set."""
-        systems, footplant, ball = kernels.pack_styles([self.translators[s] for s in styles])
-        arm = raised_arm.settings([self.translators[s].raised_arm for s in styles])
+        systems, footplant, ball = kernels.pack_styles([self.translators[s] for s in styles], ease_keep(self.fps))
+        arm = raised_arm.settings([self.translators[s].raised_arm for s in styles], ease_keep(self.fps, RAISE_EASE_S))
         h = self._hands
         hands = kernels.Hands(
             h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
@@ -389,36 +401,43 @@ class LTIStyleModel(LTIStyles):
         held = getattr(self._scratch, "held", None)
         if held is None or held.systems is not self._set.systems or held.batch != batch:
             systems = self._set.systems
+            widths = np.diff(systems.x_off).tolist()
+            zeros = np.zeros(batch * max(widths))
+            zeros.flags.writeable = False
+            alone = [np.full(len(widths), -1, np.int64) for _ in widths]
+            for s, at in enumerate(alone):
+                at[s] = 0
             held = _Scratch(
                 systems,
                 batch,
                 np.empty(batch * int(systems.x_off[-1])),
                 kernels.new_work(batch, systems, len(self._set.arm.source)),
-                [(batch, int(b - a)) for a, b in zip(systems.x_off[:-1], systems.x_off[1:])],
-                np.ascontiguousarray(systems.x_off[:-1], np.int64),
-                np.zeros(batch * int(np.diff(systems.x_off).max())),
+                [(batch, n) for n in widths],
+                alone,
+                {key: zeros[: batch * n].reshape(batch, n) for key, n in zip(self._set.x_keys, widths)},
             )
-            held.zeros.flags.writeable = False
             self._scratch.held = held
         return held
 
     @staticmethod
-    def _side_by_side(xs: list[np.ndarray], w: np.ndarray, held: _Scratch) -> tuple[np.ndarray, np.ndarray]:
-        """The styles' LTI states side by side for the kernel, and where each sits (`kernels.Frame`).
-        A small batch takes them all (a few numpy calls); from `COMPACT_FROM` sessions on, only
-        the styles in use (with six styles at batch 256 the rest is ~2 MB copied for nothing), and
-        one style's own array when it is the only one."""
-        B = len(w)
-        if B < COMPACT_FROM:
-            return np.concatenate(xs, axis=1), held.x_off
-        used = np.flatnonzero((w > 0.0).any(axis=0))
-        x_at, width = np.full(len(xs), -1, np.int64), 0
+    def _in_use(w: np.ndarray) -> list[int]:
+        """The styles some session's weight (B, S) uses."""
+        if len(w) < COMPACT_FROM:  # a few sessions: a Python scan of the weights beats numpy's calls
+            return [s for s, column in enumerate(w.T.tolist()) if max(column, default=0.0) > 0.0]
+        return [s for s, top in enumerate(w.max(axis=0).tolist()) if top > 0.0]
+
+    @staticmethod
+    def _side_by_side(xs: list[np.ndarray], used: list[int], held: _Scratch) -> tuple[np.ndarray, np.ndarray]:
+        """The LTI states of the styles in `used` side by side for the kernel, and where each sits
+        (`kernels.Frame`; -1: not in use). One style's own array when it is the only one (a
+        session streams one style most of the time), else a copy of those in use (with six
+        styles at batch 256 the rest is ~2 MB copied for nothing)."""
         if len(used) == 1 and xs[used[0]].flags.c_contiguous and xs[used[0]].dtype == np.float64:
-            x_at[used[0]] = 0
-            return xs[used[0]], x_at
+            return xs[used[0]], held.alone[used[0]]
+        x_at, width = np.full(len(xs), -1, np.int64), 0
         for s in used:
             x_at[s], width = width, width + xs[s].shape[1]
-        x = held.x[: B * width].reshape(B, width)
+        x = held.x[: held.batch * width].reshape(held.batch, width)
         for s in used:
             x[:, x_at[s] : x_at[s] + xs[s].shape[1]] = xs[s]
         return x, x_at
@@ -426,10 +445,21 @@ class LTIStyleModel(LTIStyles):
     def step_batch(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray):
         """One frame for every session: one compiled call (`kernels.step`) on the packed carry
         and the styles' LTI states laid side by side."""
+        return self._step(state, frames, style_weights, None)
+
+    def step_batch_fading(
+        self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray, key: str, reference: tuple
+    ):
+        """`step_batch` followed by the unseen-content fade (`models.motion.novelty_stage`, which
+        calls this), both in one compiled call (`kernels.step_fading`): the fade's state is
+        `state[key]`, its reference `reference` (`NoveltyReference.arrays`)."""
+        return self._step(state, frames, style_weights, (key, reference))
+
+    def _step(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray, fading):
         root = np.ascontiguousarray(frames.root, dtype=np.float64)
         rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
         w = np.ascontiguousarray(style_weights, dtype=np.float64)
-        styles, x_keys, *_, constants = self._set
+        styles, x_keys, constants = self._set.styles, self._set.x_keys, self._set.constants
         B = len(root)
         # the kernel trusts every shape (no bounds checks): anything else is a clear error here
         if root.shape != (B, 3) or rotations.shape != (B, rep.NUM_JOINTS, 4):
@@ -449,13 +479,26 @@ class LTIStyleModel(LTIStyles):
                 f"state must hold {CARRY} ({B}, {kernels.CARRY_WIDTH}) and each style's x for this style set: "
                 "bring an older state to it with upgrade_state(state)"
             )
-        x, x_at = self._side_by_side(xs, w, held)
-        new_x, new_carry = np.empty_like(x), np.empty_like(carry)
+        used = self._in_use(w)
+        x, x_at = self._side_by_side(xs, used, held)
+        new_x, new_carry = np.empty(x.shape), np.empty(carry.shape)
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
         frame, outputs = (root, rotations, w, x_at), (out.root, out.rotations, out.contacts)
-        kernels.step(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work))
-        new = {CARRY: new_carry}
-        for key, at, x_old in zip(x_keys, x_at.tolist(), xs):
-            n_s = x_old.shape[1]
-            new[key] = new_x[:, at : at + n_s] if at >= 0 else held.zeros[: B * n_s].reshape(B, n_s)
+        new = {**held.rest, CARRY: new_carry}  # a style no session uses rests at x = 0
+        if fading is None:
+            kernels.step(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work))
+        else:
+            key, reference = fading
+            control = _NO_CONTROL if frames.control is None else np.ascontiguousarray(frames.control, np.float64)
+            old = state[key]
+            if old.shape[0] != B:
+                raise ValueError(f"state[{key!r}] must hold {B} rows, got {old.shape}")
+            new[key], out.faded = np.empty(old.shape), np.empty(B)
+            fade = (control, old, *reference, new[key], out.faded)
+            kernels.step_fading(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work, fade))
+        if len(used) == 1:
+            new[x_keys[used[0]]] = new_x
+        else:
+            for s in used:
+                new[x_keys[s]] = new_x[:, x_at[s] : x_at[s] + xs[s].shape[1]]
         return out, new

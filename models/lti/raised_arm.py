@@ -28,7 +28,7 @@ from ..motion.feet import LEG_JOINTS
 from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, calm_sides, raise_share, wave_share
 from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry
-from .kernels import RaisedArm
+from .kernels import SHARE_FLOOR, RaisedArm, eased
 
 FILE = "raised_arm.npz"
 ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")
@@ -41,6 +41,13 @@ def shares(offsets: np.ndarray, swayed: np.ndarray) -> np.ndarray:
     """(B, 2) how far each arm is moved: its hand's raise share times one minus its wave share,
     from the input's `hand_offsets` (B, 2, 3) and sway (B, 2)."""
     return raise_share(np.asarray(offsets)[..., 1]) * (1.0 - wave_share(swayed))
+
+
+def eased_shares(share: np.ndarray, keep: float) -> np.ndarray:
+    """(F, 2) one session's `shares` eased frame by frame as the stream does
+    (`kernels.raised_shares`), 0 below `SHARE_FLOOR`."""
+    out = np.stack([eased(side, keep) for side in np.asarray(share, np.float64).T], axis=1)
+    return np.where(out >= SHARE_FLOOR, out, 0.0)
 
 
 def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share: np.ndarray) -> np.ndarray:
@@ -63,9 +70,9 @@ def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share
     return out
 
 
-def settings(carries: list[StyleCarry | None]) -> RaisedArm:
+def settings(carries: list[StyleCarry | None], keep: float) -> RaisedArm:
     """The record the compiled step takes (`kernels.RaisedArm`) for the styles' carries, in style
-    order (None: a style without one)."""
+    order (None: a style without one), their shares eased by `keep` (`eased_shares`)."""
     fitted = [c for c in carries if c is not None]
     none = (np.zeros((0, NUM_JOINTS, *shape)) for shape in ((4,), (4,), (3, 3), ()))  # no style has one
     both = StyleCarry.stack(fitted) if fitted else StyleCarry(*none)
@@ -83,6 +90,7 @@ def settings(carries: list[StyleCarry | None]) -> RaisedArm:
         np.ascontiguousarray(_ARM, np.int64),
         np.array(RAISE_RAMP_CM, np.float64),
         np.array(WAVE_RAMP_CM_S, np.float64),
+        float(keep),
     )
 
 

@@ -10,13 +10,16 @@ are unchanged. Compiled in `coupling_kernels.py` (numpy reference: `tests/refere
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ..interface import State
+from ..stages import Rows, StageFrame, Stateless, style_rows
 from .rotations import quat_exp, quat_inv, quat_log, quat_mean, quat_mul
+from .skeleton import Skeleton
 
 Link = tuple[str, tuple[str, ...]]  # a joint and the joints it follows
 GAITS = ("walk", "run")
@@ -68,8 +71,8 @@ def moved(q: np.ndarray, mean: np.ndarray, target: int, drivers: np.ndarray, gai
 
 
 @dataclass(frozen=True)
-class Coupling:
-    """Per coupled style (S): its real mean rotation of every joint (S, J, 4) and, per link (L),
+class Coupling(Stateless):
+    """The stage (`models.stages`): per coupled style (S): its real mean rotation of every joint (S, J, 4) and, per link (L),
     the regressions' difference, real minus made, for walking and running frames
     (S, L, 3D + 1, 3; zero rows for a link's padded drivers)."""
 
@@ -79,26 +82,27 @@ class Coupling:
     walk: np.ndarray
     run: np.ndarray
 
-    def aligned(self, names: Sequence[str]) -> dict[str, np.ndarray]:
+    def aligned(self, names: Sequence[str | None]) -> dict[str, np.ndarray]:
         """`mean`, `walk`, `run` and `on` (S',) with rows aligned with the style list `names`: a
         style without a coupling gets identity means, zero gains and `on` 0."""
-        S, (J, L, G) = len(names), (self.mean.shape[1], len(self.links), self.walk.shape[2])
-        out = {
-            "mean": np.broadcast_to(np.array((0.0, 0.0, 0.0, 1.0)), (S, J, 4)).copy(),
-            "walk": np.zeros((S, L, G, 3)),
-            "run": np.zeros((S, L, G, 3)),
-            "on": np.zeros(S),
-        }
-        for i, name in enumerate(names):
-            if name in self.styles:
-                k = self.styles.index(name)
-                out["mean"][i], out["walk"][i], out["run"][i], out["on"][i] = (
-                    self.mean[k],
-                    self.walk[k],
-                    self.run[k],
-                    1.0,
-                )
-        return out
+        identity, zero = np.tile((0.0, 0.0, 0.0, 1.0), (self.mean.shape[1], 1)), np.zeros(self.walk.shape[1:])
+        return style_rows(
+            self.styles,
+            names,
+            mean=(self.mean, identity),
+            walk=(self.walk, zero),
+            run=(self.run, zero),
+            on=(np.ones(len(self.styles)), 0.0),
+        )
+
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        """`aligned` and the links' joints on `skeleton` (`targets`, `drivers`: `link_indices`)."""
+        targets, drivers = link_indices(self.links, skeleton.names)
+        return {**self.aligned(styles), "targets": targets, "drivers": drivers}
+
+    def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
+        """The forearms of the rows that weigh a coupled style moved with their drivers (`couple`)."""
+        return couple(frame.rotations, frame.weights, frame.gait, (rows["targets"], rows["drivers"]), rows), state
 
     def save(self, path: Path) -> Path:
         links = np.array([f"{t}:{','.join(ds)}" for t, ds in self.links])
@@ -155,15 +159,6 @@ class Coupling:
         )
 
 
-def write_coupling(coupling: Coupling, path: Path, keep_others: bool) -> Coupling:
-    """`coupling` saved at `path`; with `keep_others`, merged into the file's styles first (a refit
-    of some styles keeps the others). Returns what was written."""
-    if keep_others and path.exists():
-        coupling = Coupling.load(path).with_styles_of(coupling)
-    coupling.save(path)
-    return coupling
-
-
 def _coupled(weights: np.ndarray, on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(the rows that weigh a coupled style, every row's weights on coupled styles (B, S))."""
     w = np.asarray(weights, np.float64) * np.asarray(on, np.float64)[None]
@@ -175,7 +170,7 @@ def couple(
     weights: np.ndarray,
     share: np.ndarray,
     joints: tuple[np.ndarray, np.ndarray],
-    aligned: dict[str, np.ndarray],
+    aligned: Mapping[str, np.ndarray],
 ) -> np.ndarray:
     """Rotations (B, J, 4) with each link's target moved toward the styles of weights (B, S) by
     `aligned` (`Coupling.aligned` for those styles), walking and running gains mixed by each

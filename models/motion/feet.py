@@ -16,6 +16,7 @@ model's state, snapshots and resumes with it.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -60,6 +61,7 @@ class FootPlanter:
     decay: float = 0.7  # per frame, of a released foot's offset
     follow: float = 0.0  # share of the root motion taken from the planted feet (0: the path is the model's)
     soft: float = 5.0  # the last this much of a leg's reach is eased (feet_kernels.soft_reach): no knee pops
+    hint_speed: float = math.inf  # a hinted foot faster than this over the ground does not plant
     _params: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -79,6 +81,7 @@ class FootPlanter:
                 float(self.follow),
                 float(self.soft),
                 float(self.fps),
+                float(self.hint_speed),
             ),
         )
 

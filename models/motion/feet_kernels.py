@@ -143,7 +143,9 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
     keeps up (so planting resumes without a jump)."""
     started, prev_root, prev_model_root, prev_rel, prev_contact, prev_point, prev_offset, prev_floor = before
     _, out_root, _, rel, contacts, point, offset, floor = after
-    hips, chains, offsets, floors, margin, floor_rise, onset_speed, max_offset, decay, follow, soft, fps = planter
+    hips, chains, offsets, floors, margin, floor_rise, onset_speed, max_offset, decay, follow, soft, fps, hint_speed = (
+        planter
+    )
     for b in range(root.shape[0]):
         for leg in range(2):
             leg_points(rot[b], hips, chains[leg], offsets, rel[b, leg])
@@ -190,8 +192,7 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
                     planted = True
                     ex, ez = ex - mx, ez - mz  # hold: undo the point's motion
                 elif (
-                    hints[b, leg]
-                    or math.sqrt(mx * mx + mz * mz) * fps < onset_speed
+                    math.sqrt(mx * mx + mz * mz) * fps < (hint_speed if hints[b, leg] else onset_speed)
                     or mx * (ox - prev_root[b, 0]) + mz * (oz - prev_root[b, 2])
                     < (ox - prev_root[b, 0]) ** 2 + (oz - prev_root[b, 2]) ** 2
                 ):

@@ -10,11 +10,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .skeleton import Motion
+
 MOVING_CM_S = 40.0  # a clip whose median Hips speed is under this stands (gestures): no gait
 SEPARATION = 1.5  # the faster group's mean speed over the slower's, for two gaits
 
 
-def clip_speed(motion) -> float:
+def clip_speed(motion: Motion) -> float:
     """Median horizontal Hips speed (cm/s) of a `Motion` (joint 1 is the Hips on every rig here)."""
     step = np.diff(np.asarray(motion.translations, np.float64)[:, 1][:, [0, 2]], axis=0)
     return float(np.median(np.linalg.norm(step, axis=1)) * motion.fps) if len(step) else 0.0

@@ -6,11 +6,13 @@ held still) from a wave (swaying at a level height) by these.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from .bn_skeleton import BN_JOINTS
 from .rotations import quat_apply, quat_mul
-from .skeleton import Skeleton
+from .skeleton import Motion, Skeleton
 
 RAISE_RAMP_CM = (-12.0, 0.0)
 WAVE_RAMP_CM_S = (40.0, 60.0)
@@ -125,7 +127,7 @@ def rise(
     return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
 
 
-def _over_clip(average, offsets: np.ndarray, fps: float) -> np.ndarray:
+def _over_clip(average: Callable[..., np.ndarray], offsets: np.ndarray, fps: float) -> np.ndarray:
     out = np.zeros((len(offsets), 2))
     for t in range(1, len(offsets)):
         out[t] = average(out[t - 1 : t], offsets[t : t + 1], offsets[t - 1 : t], np.ones(1, bool), fps)[0]
@@ -148,14 +150,14 @@ def wave_share(swayed: np.ndarray) -> np.ndarray:
     return np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
-def raised_frames(motion, side: int | None = None) -> np.ndarray:
+def raised_frames(motion: Motion, side: int | None = None) -> np.ndarray:
     """(T,) bool: the frames of a Bandai Namco `Motion` with a hand (`side` 0: the left, 1: the
     right; None: either) at its shoulder or above (more than half way up `RAISE_RAMP_CM`)."""
     heights = side_heights(motion.global_positions())
     return raise_share(heights.max(-1) if side is None else heights[:, side]) > 0.5
 
 
-def calm_sides(motion) -> np.ndarray:
+def calm_sides(motion: Motion) -> np.ndarray:
     """(T, 2) bool: the frames of a Bandai Namco `Motion` with each hand (left, right) raised (as
     `raised_frames`) and not waving (its wave share, from the clip's sway, under a half). Both
     sides from one pass of forward kinematics, which is most of the cost."""
@@ -163,6 +165,6 @@ def calm_sides(motion) -> np.ndarray:
     return (raise_share(offsets[..., 1]) > 0.5) & (wave_share(clip_sway(offsets, motion.fps)) < 0.5)
 
 
-def calm_frames(motion, side: int) -> np.ndarray:
+def calm_frames(motion: Motion, side: int) -> np.ndarray:
     """(T,) bool: `calm_sides` of the `side` hand (0: the left, 1: the right)."""
     return calm_sides(motion)[:, side]

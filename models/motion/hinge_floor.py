@@ -15,10 +15,13 @@ built-in or uploaded, so an upload needs nothing fitted for it.
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from ..interface import State
+from ..stages import Rows, StageFrame, Stateless
 from .hinge import Hinges, fit_hinges, kernel_floor
 from .hinge_kernels import floor_bends
 from .skeleton import Skeleton
@@ -27,7 +30,7 @@ FLOOR_FILE = "hinge_floor.npz"
 DATASET = "bandai-namco-2"  # the rig's real rotations the floor is fitted from, every style
 
 
-class HingeFloor:
+class HingeFloor(Stateless):
     """The stage: per joint its bone axis, hinge axis and floor, as `floor_bends` takes them."""
 
     def __init__(self, skeleton: Skeleton, hinges: Hinges) -> None:
@@ -40,6 +43,15 @@ class HingeFloor:
         """(..., J, 4) local rotations -> a float64 copy with every hinge held at its floor."""
         q = np.array(rotations, np.float64).reshape(-1, *rotations.shape[-2:])
         return floor_bends(q, *self.arrays).reshape(rotations.shape)
+
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        return {}  # the same floor for every style
+
+    def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
+        return self(frame.rotations).astype(frame.rotations.dtype), state
+
+    def save(self, path: Path) -> Path:
+        return self.hinges.save(path)
 
     @classmethod
     def load(cls, skeleton: Skeleton, folder: Path) -> HingeFloor | None:

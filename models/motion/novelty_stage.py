@@ -2,7 +2,8 @@
 (`models/registry.py` adds it to each method with a fitted reference in `weights/novelty/`).
 
 The stage is the method itself with `FadesUnseen` put in front of its class (`with_novelty`), not
-a wrapper: the model keeps every ability the service tests with `isinstance` (uploaded styles),
+a wrapper (a method with `step_batch_fading` runs the same `fade_step` inside its own compiled
+step): the model keeps every ability the service tests with `isinstance` (uploaded styles),
 `with_own_styles` copies keep the stage, and the service, crowds, the offline path and the
 evaluation all step it through the one `step_batch` they already call. Its state rides in the
 session state under `KEYS` (so snapshots, resumes and batching carry it like any other); the
@@ -67,6 +68,9 @@ class FadesUnseen:
         return {**upgraded, KEY: own}
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
+        fused = getattr(super(), "step_batch_fading", None)
+        if fused is not None:  # the method runs the fade inside its own compiled step
+            return fused(state, frames, style_weights, KEY, self.novelty_arrays)
         # the whole state: a method may check it against its own `init_state`, which has this key
         out, new = super().step_batch(state, frames, style_weights)  # type: ignore[misc]
         control = _NO_CONTROL if frames.control is None else frames.control

@@ -15,7 +15,7 @@ Part frames (columns of A, right-handed, z = x × y):
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import cache
 
@@ -291,7 +291,7 @@ def build_solids(skeleton: Skeleton, axes: dict[str, tuple[str, np.ndarray]]) ->
     return tuple(out)
 
 
-def _chains(skeleton: Skeleton, joints) -> list[int]:
+def _chains(skeleton: Skeleton, joints: Iterable[int]) -> list[int]:
     """The joints and all their ancestors."""
     out: set[int] = set()
     for j in joints:

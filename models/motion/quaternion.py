@@ -150,3 +150,27 @@ def row3(a, j):
 def wrap(a):
     """Angle a wrapped into [-pi, pi)."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True, error_model="numpy")
+def matrix_quat(m):
+    """Unit quaternion of a 3x3 rotation matrix (Markley 2008, as scipy's `Rotation.from_matrix`:
+    built on the largest of the diagonal terms and the trace, so that component is positive)."""
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    best, k = m[0, 0], 0
+    if m[1, 1] > best:
+        best, k = m[1, 1], 1
+    if m[2, 2] > best:
+        best, k = m[2, 2], 2
+    if tr > best:
+        k = 3
+    if k == 0:
+        q = (1.0 - tr + 2.0 * m[0, 0], m[1, 0] + m[0, 1], m[2, 0] + m[0, 2], m[2, 1] - m[1, 2])
+    elif k == 1:
+        q = (m[1, 0] + m[0, 1], 1.0 - tr + 2.0 * m[1, 1], m[2, 1] + m[1, 2], m[0, 2] - m[2, 0])
+    elif k == 2:
+        q = (m[2, 0] + m[0, 2], m[2, 1] + m[1, 2], 1.0 - tr + 2.0 * m[2, 2], m[1, 0] - m[0, 1])
+    else:
+        q = (m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], 1.0 + tr)
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)

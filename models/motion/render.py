@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -129,8 +130,13 @@ class _Panel:
     """One 3D axes showing one skeleton; `show(frame)` poses the figure and moves camera and grid."""
 
     def __init__(
-        self, ax, motion: Motion, transforms: tuple[np.ndarray, np.ndarray], view: tuple[float, float], title: str = ""
-    ):
+        self,
+        ax: Any,
+        motion: Motion,
+        transforms: tuple[np.ndarray, np.ndarray],
+        view: tuple[float, float],
+        title: str = "",
+    ) -> None:
         self.ax, self.root = ax, _root_index(motion.skeleton)
         self.body = _body(motion.skeleton)
         self.rotations, self.positions = transforms

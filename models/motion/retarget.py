@@ -3,8 +3,12 @@
 BN's all-zero pose is no T-pose (it points the legs up the spine), so the mapping is built from
 bone *directions*, never from either rest pose:
 
-1. Each BN bone takes the direction of a client segment between two role joints
-   (`humanoid.match_roles`, `humanoid.bn_segments`).
+1. Each BN limb bone takes the direction of a client segment between two role joints
+   (`humanoid.match_roles`, `humanoid.bn_segments`); each trunk bone the client's hips-head
+   chain between BN's shares of its length (`retarget_stream.trunk_bones`), and each clavicle
+   the direction BN's neutral data give it for the upper arm's (`retarget_clavicle`): rigs place
+   spine, neck and collar joints differently, and copied joint by joint a CMU or Xia neutral
+   walk's clavicles and neck lay far outside BN's neutral range.
 2. Hips and Chest get two-vector frames: the bone up the spine and the line between the legs /
    upper arms (the hips' line as the client's rest pose holds it, `retarget_stream._rest_side`).
 3. Every other joint (`TwistPlan`): its natural BN local rotation under the new BN parent, swung
@@ -32,6 +36,7 @@ from scipy.spatial.transform import Rotation
 from .bn_skeleton import PRIMARY_CHILD, missing_joints
 from .humanoid import HumanoidRig
 from .resample import resample
+from .retarget_clavicle import CLAVICLE_FROM_ARM
 from .rotations import quat_canonical
 from .skeleton import Motion, Skeleton, depths, fk
 
@@ -107,6 +112,11 @@ HINGE_FALLBACK = 0.6
 HINGE_PRIOR = 1.0
 
 
+# BN clavicles: laid by the upper arm's direction in the chest's frame, as BN's neutral data
+# relate them (`retarget_clavicle`), not by the client's collar segment.
+_CLAVICLES = tuple(CLAVICLE_FROM_ARM)
+
+
 # The share of the chest's twist about the spine bone that BN's Spine takes, as Unity's humanoid
 # spreads a twist over a chain: without it the whole spine twist lands in BN's Chest and jitters.
 TWIST_SHARE = 0.5
@@ -118,7 +128,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 class TwistPlan:
     """How BN's global rotations follow from client bone directions (module docstring, step 3):
-    the joints depth by depth, parents first, grouped by kind ("swing", "limb", "leaf"; Hips
+    the joints depth by depth, parents first, grouped by kind ("swing", "clavicle", "limb", "leaf"; Hips
     and Chest are the caller's two-vector frames). `segments` lists the BN joints whose bone
     direction the caller gives, in the order of its columns; the others are leaves.
     `retarget_stream.FrameRetargeter` compiles the groups into `retarget_kernels`' plan.
@@ -138,25 +148,30 @@ class TwistPlan:
         def kind_of(n: str) -> str:
             if n not in col:
                 return "leaf"
-            return "limb" if n in _HINGES and _HINGES[n] in col else "swing"
+            if n in _HINGES and _HINGES[n] in col:
+                return "limb"
+            return "clavicle" if n in _CLAVICLES else "swing"
 
         depth = depths(sk.parents)
         self.groups: list[dict] = []
         for d in range(1, int(depth.max()) + 1):
             level = [sk.names[j] for j in range(sk.num_joints) if depth[j] == d and sk.names[j] not in _LATERAL]
-            for kind in ("swing", "limb", "leaf"):
+            for kind in ("swing", "clavicle", "limb", "leaf"):
                 names = [n for n in level if kind_of(n) == kind]
                 if not names:
                     continue
                 js = np.array([sk.index(n) for n in names])
                 g = {"kind": kind, "j": js, "p": sk.parents[js], "nat": nat[js]}
-                if kind in ("swing", "limb"):
+                if kind in ("swing", "clavicle", "limb"):
                     g["b"] = np.stack([_unit(off(PRIMARY_CHILD[n])) for n in names])
                     g["dir"] = np.array([col[n] for n in names])
                 if kind == "swing" and any(PRIMARY_CHILD[n] in _LATERAL for n in names):
                     (n,) = names  # the spine: one joint under Hips, the Chest above it
                     c = sk.index(PRIMARY_CHILD[n])
                     g["split"] = (c, nat[c])
+                if kind == "clavicle":  # read the upper arm's direction: (A | c) maps it (`retarget_clavicle`)
+                    g["dir"] = np.array([col[PRIMARY_CHILD[n]] for n in names])
+                    g["ac"] = np.array([CLAVICLE_FROM_ARM[n] for n in names], dtype=float)
                 if kind == "limb":
                     hinge = [_HINGES[n] for n in names]
                     g["dir_c"] = np.array([col[h] for h in hinge])

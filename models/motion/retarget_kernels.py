@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-KIND_LEAF, KIND_SWING, KIND_LIMB = 0, 1, 2
+KIND_LEAF, KIND_SWING, KIND_LIMB, KIND_CLAVICLE = 0, 1, 2, 3
 HINGE_FALLBACK_SQ = 0.6**2  # retarget.HINGE_FALLBACK squared (checked by the tests against the numpy path)
 HINGE_PRIOR = 1.0  # retarget.HINGE_PRIOR (checked likewise)
 TWIST_SHARE = 0.5  # retarget.TWIST_SHARE (checked likewise)
@@ -363,6 +363,9 @@ def _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3, hinges, fold):
         _mm(gb[p], rig.step_nat[s], base)  # natural local rotation under the BN parent
         _mv(base, rig.step_b[s], bone)
         d = vec[col]
+        if kind == KIND_CLAVICLE:  # d is the upper arm's direction; A and c ride in the limb slots
+            _clavicle(gb[p], d, rig.step_m_loc_t[s], rig.step_k[s], w3[2])
+            d = w3[2]
         _swing(bone, d, sw)
         if kind != KIND_LIMB:
             _mm(sw, base, gb[j])
@@ -389,6 +392,21 @@ def _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3, hinges, fold):
             )
             _mm(m, rig.step_m_loc_t[s], gb[j])
             _hinged(gb[j], m, d, vec[col_c], rig.step_reach[s], bone, nat, sw, base)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _clavicle(g, u, a, c, out):
+    """out = the unit clavicle bone (world) for the unit upper arm u (world) under the chest g:
+    g (A g.T u + c), normalised (`retarget_clavicle`)."""
+    v0 = g[0, 0] * u[0] + g[1, 0] * u[1] + g[2, 0] * u[2]  # g.T u
+    v1 = g[0, 1] * u[0] + g[1, 1] * u[1] + g[2, 1] * u[2]
+    v2 = g[0, 2] * u[0] + g[1, 2] * u[1] + g[2, 2] * u[2]
+    w0 = a[0, 0] * v0 + a[0, 1] * v1 + a[0, 2] * v2 + c[0]
+    w1 = a[1, 0] * v0 + a[1, 1] * v1 + a[1, 2] * v2 + c[1]
+    w2 = a[2, 0] * v0 + a[2, 1] * v1 + a[2, 2] * v2 + c[2]
+    n = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    for r in range(3):
+        out[r] = (g[r, 0] * w0 + g[r, 1] * w1 + g[r, 2] * w2) / n
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -65,6 +65,41 @@ def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
     return [(k, s) for k, s in terms if np.linalg.norm(skeleton.offsets[k]) > 1e-9]
 
 
+def _chain(skeleton: Skeleton, a: int, b: int) -> list[int]:
+    """The joints below ancestor a down to b (b included), top first: the bones of the path."""
+    out = []
+    while b != a:
+        out.append(b)
+        b = int(skeleton.parents[b])
+    return out[::-1]
+
+
+def _along(skeleton: Skeleton, chain: list[int], share: float) -> np.ndarray:
+    """(len(chain),) weights w with sum w_k G[parent k] offset[k] the point `share` of the way
+    along the chain's length from its top (the bones in line, as between a rig's joints)."""
+    lengths = np.array([np.linalg.norm(skeleton.offsets[k]) for k in chain])
+    start = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
+    reach = share * lengths.sum()
+    return np.clip((reach - start) / np.where(lengths > 0, lengths, 1.0), 0.0, 1.0) * (lengths > 1e-9)
+
+
+def trunk_bones(src: Skeleton, roles: dict[str, int], bn: Skeleton) -> dict[str, list[tuple[int, float]]]:
+    """BN trunk joint (Hips, Spine, Chest, Neck) -> the client vector its bone takes, as (client
+    joint k, weight w): sum w G[parent k] offset[k]. Each BN trunk joint sits at its share of the
+    hips-head length along the client's hips-head chain (Unity's humanoid spreads a spine over
+    its joints by length likewise): rigs place their spine and neck joints differently (CMU's
+    upper spine joint is BN's chest, its lower neck BN's upper chest), and a BN bone given the
+    client segment between joints of the same role alone took the client's neck lean as its chest's."""
+    chain = _chain(src, roles["hips"], roles["head"])
+    names = ["Hips"]
+    while names[-1] != "Head":
+        names.append(PRIMARY_CHILD[names[-1]])
+    lengths = np.array([np.linalg.norm(bn.offsets[bn.index(n)]) for n in names[1:]])
+    share = np.concatenate([[0.0], np.cumsum(lengths)]) / lengths.sum()
+    points = [_along(src, chain, f) for f in share]
+    return {n: list(zip(chain, points[i + 1] - points[i])) for i, n in enumerate(names[:-1])}
+
+
 # Two-vector joints whose side vector is the client's rest-pose line carried by the joint's own
 # rotation (`_rest_side`) instead of the line read per frame. Not the Chest: collars that sit
 # forward of their rest pose would turn it (the spine's `retarget.TWIST_SHARE` steadies it instead).
@@ -123,17 +158,24 @@ class FrameRetargeter:
         self._hips = roles["hips"]
 
         # Vectors read from each frame: the BN bones' segments, then (up, side) per two-vector joint.
-        # A segment is a signed sum of G[parent k] offset[k] (`_path_terms`); a side is the rest
+        # A segment is a weighted sum of G[parent k] offset[k] (`_path_terms`; the trunk's
+        # `trunk_bones`); a side is the rest
         # pose's side vector carried by the joint's own rotation (`_rest_side`). Terms are keyed
         # (parent joint, offset) pairs: `vec_par` and `vec_off` below.
         segs = bn_segments(roles)
         plain = tuple(n for n in BN_JOINTS if n in segs and n not in _LATERAL)
-        terms = [self._segment_terms(src, roles[a], roles[b]) for a, b in (segs[n] for n in plain)]
+        trunk = trunk_bones(src, roles, sk)  # the trunk by length
+        bone: dict[str, list[tuple[object, int, np.ndarray, float]]] = {
+            n: [(k, int(src.parents[k]), src.offsets[k], w) for k, w in t if w != 0.0] for n, t in trunk.items()
+        }
+        terms = [
+            bone[n] if n in bone else self._segment_terms(src, roles[segs[n][0]], roles[segs[n][1]]) for n in plain
+        ]
         m_tgt = []
         for name, (tl, tr) in _LATERAL.items():
             side = (BN_ROLES[tr].replace("clavicle", "upperarm"), BN_ROLES[tl].replace("clavicle", "upperarm"))
             anchor = roles[segs[name][0]]
-            terms += [self._segment_terms(src, roles[segs[name][0]], roles[segs[name][1]])]
+            terms += [bone[name]]
             if name in _REST_SIDE:
                 terms += [[(("side", name), anchor, _rest_side(src, roles[side[0]], roles[side[1]]), 1.0)]]
             else:
@@ -372,7 +414,12 @@ class FrameRetargeter:
         for a, b, par in tree.levels:
             par_s[a:b] = par
         steps, nat, bone, hinge, m_loc_t, split_nat, reach = [], [], [], [], [], [], []
-        kinds = {"leaf": kernels.KIND_LEAF, "swing": kernels.KIND_SWING, "limb": kernels.KIND_LIMB}
+        kinds = {
+            "leaf": kernels.KIND_LEAF,
+            "swing": kernels.KIND_SWING,
+            "limb": kernels.KIND_LIMB,
+            "clavicle": kernels.KIND_CLAVICLE,
+        }
         for g in plan.groups:  # TwistPlan's groups, one joint a step
             for i, (j, p) in enumerate(zip(g["j"], g["p"])):
                 limb = g["kind"] == "limb"
@@ -392,8 +439,9 @@ class FrameRetargeter:
                 split_nat.append(split[1])
                 nat.append(g["nat"][i])
                 bone.append(g["b"][i] if "b" in g else np.zeros(3))
-                hinge.append(g["k"][i] if limb else np.zeros(3))
-                m_loc_t.append(g["m_loc_t"][i] if limb else np.eye(3))
+                clavicle = g["kind"] == "clavicle"  # its limb slots hold (A | c) (`retarget_clavicle`)
+                hinge.append(g["k"][i] if limb else g["ac"][i][:, 3] if clavicle else np.zeros(3))
+                m_loc_t.append(g["m_loc_t"][i] if limb else g["ac"][i][:, :3] if clavicle else np.eye(3))
                 reach.append(g["reach"][i] if limb else 0.0)
         nz = np.argwhere(self._vec_coef != 0)  # (v, t) entries, row by row
         bn_count = self._bn_parents.shape[0]

@@ -10,13 +10,18 @@ holds one ball per style. Compiled per frame in `rotation_ball_kernels.py`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..interface import State
+from ..stages import Rows, StageFrame, Stateless, style_rows
 from .bn_skeleton import HIPS
-from .rotations import quat_inv, quat_mul
+from .rotation_ball_kernels import clamp_mixed
+from .rotations import quat_angle, quat_inv, quat_mul
+from .skeleton import Skeleton
 
 NO_PRIOR = np.inf  # radius of a joint (or a style) without a prior: nothing is clamped
 
@@ -47,10 +52,6 @@ def comparable(rotations: np.ndarray) -> np.ndarray:
     return split_heading(rotations)[1]
 
 
-def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return 2.0 * np.arccos(np.clip(np.abs(np.sum(a * b, axis=-1)), 0.0, 1.0))
-
-
 def mean_rotation(q: np.ndarray) -> np.ndarray:
     """(N, 4) -> (4,) sign-blind mean (principal eigenvector of sum q q^T), w >= 0."""
     _, vecs = np.linalg.eigh(q.T @ q)
@@ -71,7 +72,7 @@ def fit_prior(
     radii = np.full((2, joints), NO_PRIOR)
     for j in range(1, joints):
         mean[j] = mean_rotation(c[:, j])
-        d = _angle(c[:, j], mean[j])
+        d = quat_angle(c[:, j], mean[j])
         outer = max(np.percentile(d, outer_q) - np.radians(margin_deg), 1e-3)
         radii[:, j] = min(np.percentile(d, inner_q), outer), outer
     return mean, radii
@@ -108,7 +109,7 @@ def clamp_rotations(rotations: np.ndarray, mean: np.ndarray, radii: np.ndarray) 
 
 
 @dataclass(frozen=True)
-class StyleBalls:
+class StyleBalls(Stateless):
     """One ball per named style: `mean` (S, J, 4), `radii` (S, 2, J) inner / outer (radians), and
     how they were fitted (`fit`: quantiles, margin, data), saved beside a model's weights."""
 
@@ -130,16 +131,26 @@ class StyleBalls:
             {"inner_q": inner_q, "outer_q": outer_q, "margin_deg": margin_deg, "data": data},
         )
 
-    def for_styles(self, names: list[str] | tuple[str, ...], joints: int) -> tuple[np.ndarray, np.ndarray]:
-        """(mean (S, J, 4), radii (S, 2, J)) aligned with `names`; a name without a ball gets
-        infinite radii (nothing clamped)."""
-        mean = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (len(names), joints, 1))
-        radii = np.full((len(names), 2, joints), NO_PRIOR)
-        for k, name in enumerate(names):
-            if name in self.styles:
-                i = self.styles.index(name)
-                mean[k], radii[k] = self.mean[i], self.radii[i]
-        return mean, radii
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        """As a stage (`models.stages`): `mean` (S, J, 4) and `radii` (S, 2, J) aligned with
+        `styles`; a style without a ball gets infinite radii (nothing clamped)."""
+        J = skeleton.num_joints
+        plain = (np.tile((0.0, 0.0, 0.0, 1.0), (J, 1)), np.full((2, J), NO_PRIOR))
+        return style_rows(self.styles, styles, mean=(self.mean, plain[0]), radii=(self.radii, plain[1]))
+
+    def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
+        """The rotations held inside the balls of the frame's styles (`clamp_mixed`)."""
+        rotations = frame.rotations
+        out = np.empty(rotations.shape, np.float64)
+        weights = np.ascontiguousarray(frame.weights, np.float64)
+        clamp_mixed(np.ascontiguousarray(rotations, np.float64), weights, frame.base, rows["mean"], rows["radii"], out)
+        return out.astype(rotations.dtype), state
+
+    def with_styles_of(self, other: StyleBalls) -> StyleBalls:
+        """These balls with `other`'s styles added or replacing these (a refit of some styles)."""
+        keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
+        mean, radii = (np.concatenate([a[keep], b]) for a, b in ((self.mean, other.mean), (self.radii, other.radii)))
+        return StyleBalls(tuple(self.styles[k] for k in keep) + other.styles, mean, radii, other.fit)
 
     def save(self, path: Path) -> Path:
         import json

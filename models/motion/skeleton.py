@@ -9,6 +9,7 @@ without position channels simply repeat their offset.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -211,5 +212,5 @@ def to_bvh(motion: Motion, template: bvhio.BvhFile | None = None) -> bvhio.BvhFi
     return bvhio.BvhFile(joints, 1.0 / motion.fps, data)
 
 
-def load(path) -> Motion:
+def load(path: str | Path) -> Motion:
     return from_bvh(bvhio.read(path))

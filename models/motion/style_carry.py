@@ -14,6 +14,7 @@ q' = q exp(sum_s w_s log(q^-1 f_s(q))); zero weights give q.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -128,7 +129,7 @@ class StyleCarry:
         """(source, mean, map, radius), as the compiled kernels take a carry."""
         return self.source, self.mean, self.map, self.radius
 
-    def with_maps_of(self, other: StyleCarry, styles, joints) -> StyleCarry:
+    def with_maps_of(self, other: StyleCarry, styles: Sequence[int], joints: Sequence[int]) -> StyleCarry:
         """This carry with the maps of `styles` x `joints` (index lists) taken from `other`, fitted
         apart on other frames (each joint's map is fitted on its own, so they combine)."""
         arrays = [np.array(a) for a in self.arrays]

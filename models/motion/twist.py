@@ -14,6 +14,7 @@ training differentiates (numpy reference: `tests/reference/twist.py`).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from functools import lru_cache
 from typing import TYPE_CHECKING
 
@@ -146,7 +147,14 @@ def transfer_twist_t(
     return torch.stack(out, dim=-2)
 
 
-def _hinge_twist_t(g, g_child, axis, child_axis, bend, fade: float):
+def _hinge_twist_t(
+    g: torch.Tensor,
+    g_child: torch.Tensor,
+    axis: torch.Tensor,
+    child_axis: torch.Tensor,
+    bend: torch.Tensor,
+    fade: float,
+) -> torch.Tensor:
     """`twist_kernels.hinge_twist` in torch, before the twist interval (`_clamped_twist_t`)."""
     import torch
 
@@ -163,7 +171,9 @@ def _hinge_twist_t(g, g_child, axis, child_axis, bend, fade: float):
     return tau * weight
 
 
-def _clamped_twist_t(rel, axis, turn, limits):
+def _clamped_twist_t(
+    rel: torch.Tensor, axis: torch.Tensor, turn: torch.Tensor, limits: Sequence[float]
+) -> torch.Tensor:
     """`twist_kernels.clamped_twist` in torch."""
     import torch
 
@@ -173,7 +183,7 @@ def _clamped_twist_t(rel, axis, turn, limits):
     return torch.minimum(torch.maximum(twist + turn, twist.clamp(max=lo)), twist.clamp(min=hi)) - twist
 
 
-def _turn_t(axis, angle):
+def _turn_t(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     """Unit quaternions turning by `angle` about unit `axis` (torch)."""
     import torch
 
@@ -191,7 +201,7 @@ def _rotation_between_t(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 def split_evenly(
     parent: np.ndarray, child: np.ndarray, rest_parent: np.ndarray, rest_child: np.ndarray, share: float = 0.5
-):
+) -> tuple[np.ndarray, np.ndarray]:
     """A two-joint chain's local rotations (..., 4) re-split so the parent takes `share` of the
     chain's turn from its rest pose, the composite kept exactly: a pair predicted joint by joint
     can flip against each other, and split from the composite it is as smooth as the composite."""

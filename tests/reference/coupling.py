@@ -1,11 +1,10 @@
-"""`coupling.couple` and `arm_coupling.couple_rows` in numpy: the references their compiled kernels
+"""`coupling.couple` in numpy: the reference its compiled kernels
 (`models/motion/coupling_kernels.py`) are tested against."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from models.lpn.arm_coupling import _aligned
 from models.motion.coupling import _coupled, moved
 from models.motion.rotations import quat_exp, quat_inv, quat_log, quat_mul
 
@@ -34,11 +33,3 @@ def couple_numpy(
     out = np.array(rotations, copy=True)
     out[np.ix_(rows, joints[0])] = q[:, joints[0]]
     return out
-
-
-def couple_rows_numpy(
-    table, rotations: np.ndarray, weights: np.ndarray, gait: np.ndarray, joints: tuple[np.ndarray, np.ndarray]
-) -> np.ndarray:
-    """`arm_coupling.couple_rows`."""
-    aligned = _aligned(table)
-    return rotations if aligned is None else couple_numpy(rotations, weights, gait, joints, aligned)

@@ -231,3 +231,12 @@ def numpy_twin(model: LPNModel) -> NumpyLPNModel:
     twin = copy.copy(model)
     twin.__class__ = NumpyLPNModel
     return twin
+
+
+def in_float32(model: LPNModel) -> LPNModel:
+    """`model` (weights and styles shared) with float32 expert products, as the numpy step
+    computes them (bfloat16 products: tests/test_rowwise.py)."""
+    twin = copy.copy(model)
+    twin.bfloat16 = False
+    twin.__dict__.pop("_products", None)
+    return twin

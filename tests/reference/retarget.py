@@ -68,6 +68,9 @@ def bn_globals(plan: TwistPlan, dirs: np.ndarray, lateral: np.ndarray, fallback:
             continue
         base = gp @ g["nat"]  # natural local rotation under the BN parent
         d = dirs[:, g["dir"]]
+        if g["kind"] == "clavicle":  # d is the upper arm's direction, mapped in the chest's frame
+            local = (np.swapaxes(gp, -1, -2) @ d[..., None])[..., 0]
+            d = _unit((gp @ (np.einsum("kij,bkj->bki", g["ac"][..., :3], local) + g["ac"][..., 3])[..., None])[..., 0])
         rot = _swing_mats((base @ g["b"][..., None])[..., 0], d) @ base
         if g["kind"] == "limb":
             lower = dirs[:, g["dir_c"]]

@@ -1,0 +1,85 @@
+"""BN's clavicles from its upper arms: the shoulder girdle the models were trained on, whatever
+rig a motion comes from.
+
+Rigs hang their collars from different places (CMU and Xia from the spine, below the shoulders;
+BN beside the neck), so a client's collar segment says little about where BN's short clavicle
+points: copied, a CMU or Xia neutral walk's clavicles sat 7-38 degrees from BN's neutral walks
+(whose clavicles spread 2-3 degrees), and LTI, whose input range they left, passed the whole
+input through. In BN's own neutral data the clavicle follows the upper arm (raised arms lift it),
+so `retarget` lays it by that relation instead: per side, the clavicle's direction in the chest's
+frame is A u + c normalised, u the upper arm's direction in the chest's frame, fitted by least
+squares on data set 2's neutral training clips (`fit`). The client's own collar motion is not
+lost: on the way back it keeps its rotation plus the model's change to BN's clavicle.
+
+    python -m models.motion.retarget_clavicle   # refit and print `CLAVICLE_FROM_ARM`
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .rotations import quat_to_matrix
+from .skeleton import Motion
+
+# Per BN clavicle: (A | c) (3, 4), its direction in the chest's frame ~ A u + c (`fit`).
+CLAVICLE_FROM_ARM = {
+    "Shoulder_L": (
+        (0.133, -0.054, -0.017, 0.159),
+        (-0.094, 0.141, 0.024, -0.426),
+        (-0.057, 0.06, 0.026, 0.88),
+    ),
+    "Shoulder_R": (
+        (0.145, -0.071, 0.017, 0.051),
+        (-0.055, 0.152, 0.063, -0.365),
+        (0.022, -0.053, -0.008, -0.919),
+    ),
+}
+
+
+def arm_and_clavicle(motion: Motion, clavicle: str) -> tuple[np.ndarray, np.ndarray]:
+    """(u, d) (F, 3) each: a BN motion's upper-arm and clavicle bone directions in the frame of
+    the joint the clavicle hangs from, unit."""
+    sk = motion.skeleton
+    local = quat_to_matrix(motion.rotations)
+    world = local.copy()
+    for j, p in enumerate(sk.parents):
+        if p >= 0:
+            world[:, j] = world[:, p] @ local[:, j]
+    arm = sk.index(clavicle.replace("Shoulder", "UpperArm"))
+    chest = int(sk.parents[sk.index(clavicle)])
+    child = [j for j in range(sk.num_joints) if sk.parents[j] == arm][0]
+    out = []
+    for j, bone in ((arm, child), (sk.index(clavicle), arm)):
+        v = np.einsum("fji,fj->fi", world[:, chest], world[:, j] @ sk.offsets[bone])
+        out.append(v / np.linalg.norm(v, axis=-1, keepdims=True))
+    return out[0], out[1]
+
+
+def fit(motions: list[Motion]) -> dict[str, np.ndarray]:
+    """Per BN clavicle, (A | c) (3, 4) by least squares over the motions' frames."""
+    out = {}
+    for name in CLAVICLE_FROM_ARM:
+        pairs = [arm_and_clavicle(m, name) for m in motions]
+        u = np.concatenate([p[0] for p in pairs])
+        d = np.concatenate([p[1] for p in pairs])
+        w, *_ = np.linalg.lstsq(np.c_[u, np.ones(len(u))], d, rcond=None)
+        out[name] = w.T
+    return out
+
+
+def predict(ac: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """(F, 3) unit clavicle directions from (F, 3) upper-arm directions (chest frame)."""
+    d = u @ np.asarray(ac)[:, :3].T + np.asarray(ac)[:, 3]
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def training_motions() -> list[Motion]:
+    """What `CLAVICLE_FROM_ARM` is fitted on: data set 2's neutral training clips."""
+    from ..data import build_index, load_motions
+
+    return load_motions([c for c in build_index(["bandai-namco-2"]) if c.split == "train" and c.style == "normal"])
+
+
+if __name__ == "__main__":
+    for name, w in fit(training_motions()).items():
+        print(name, np.round(w, 3).tolist())

@@ -1,0 +1,133 @@
+"""The shape every method shares: its published core, then a declared pipeline of general stages.
+
+A stage changes a frame's local rotations after the core (or after the stage before it). It is
+fitted from real clips the same way for every style, and reads per style only the arrays that fit
+gave it (`rows`, aligned with the model's style list): a style it was not fitted for (an upload, a
+style given another style vector) gets a row that leaves the frame as it is. A method declares
+its stages in order (`StageSpec`: name, file beside the weights, how it is read and fitted);
+`Pipeline` loads and runs them and switches any of them off (`without`). The streaming step and
+the offline path (sessions stepped frame by frame) run the same `Pipeline`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, NamedTuple, Protocol, runtime_checkable
+
+import numpy as np
+
+from .interface import State
+from .motion.skeleton import Skeleton
+
+Rows = Mapping[str, np.ndarray]
+
+
+class StageFrame(NamedTuple):
+    """One frame of B sessions as a stage sees it."""
+
+    rotations: np.ndarray  # (B, J, 4) local rotations from the core or the stage before
+    weights: np.ndarray  # (B, S) style weights over the model's styles
+    gait: np.ndarray  # (B,) run share: 0 walking, 1 running
+    base: int  # the style the weights' shortfall from 1 goes to
+
+
+@runtime_checkable
+class Stage(Protocol):
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        """The arrays the step reads: per style ones aligned with `styles` (None or a style it was
+        not fitted for: a row that changes nothing), and any the stage needs on `skeleton`."""
+        ...
+
+    def init_state(self, batch: int) -> State:
+        """What the stage keeps per session between frames (keys without the session axis)."""
+        ...
+
+    def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
+        """The frame's new rotations (same shape and dtype) and the new state."""
+        ...
+
+    def save(self, path: Path) -> Path:
+        """The fitted stage into its file (`StageSpec.load` reads it back)."""
+        ...
+
+
+def style_rows(
+    fitted: Sequence[str], styles: Sequence[str | None], **arrays: tuple[np.ndarray, np.ndarray | float]
+) -> dict[str, np.ndarray]:
+    """`Stage.rows` from arrays fitted for the styles `fitted`: per key (one row per fitted style,
+    the row that changes nothing), rows aligned with `styles` (a style not fitted, or None: the latter)."""
+    at = [fitted.index(s) if s in fitted else None for s in styles]
+    return {k: np.stack([plain if i is None else values[i] for i in at]) for k, (values, plain) in arrays.items()}
+
+
+class Stateless:
+    """A stage that keeps nothing between frames."""
+
+    def init_state(self, batch: int) -> State:
+        return {}
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One stage a method declares: its name (the switch), the file it is fitted into beside the
+    weights, how that file is read, and its fit from real clips: `fit(model, styles)` on the model
+    with the stages before it in place, for `styles` (None: every style the fit applies to)."""
+
+    name: str
+    file: str
+    load: Callable[[Path, Skeleton], Stage]
+    fit: Callable[[Any, list[str] | None], Stage]
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """A method's declared stages in the order they run; a stage left None is off."""
+
+    stages: tuple[tuple[str, Stage | None], ...] = ()
+
+    @classmethod
+    def load(cls, specs: Sequence[StageSpec], folder: Path, skeleton: Skeleton, core_only: bool = False) -> Pipeline:
+        """The stages fitted beside the weights in `folder` (a file missing: that stage off);
+        `core_only`: every stage off, the published core alone."""
+        on = lambda s: not core_only and (folder / s.file).exists()  # noqa: E731
+        return cls(tuple((s.name, s.load(folder / s.file, skeleton) if on(s) else None) for s in specs))
+
+    def __getattr__(self, name: str) -> Stage | None:
+        for key, stage in self.__dict__.get("stages", ()):  # not `self.stages`: unpickling asks first
+            if key == name:
+                return stage
+        raise AttributeError(f"no stage {name!r}: the pipeline declares {[k for k, _ in self.stages]}")
+
+    def replace(self, **stages: Stage | None) -> Pipeline:
+        """These stages replaced (None: off), the rest as they are."""
+        unknown = set(stages) - {k for k, _ in self.stages}
+        if unknown:
+            raise KeyError(f"undeclared stages {sorted(unknown)}")
+        return Pipeline(tuple((k, stages.get(k, s)) for k, s in self.stages))
+
+    def without(self, *names: str) -> Pipeline:
+        """These stages off, the rest as they are."""
+        return self.replace(**dict.fromkeys(names))
+
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, dict[str, np.ndarray]]:
+        """Per stage that is on, its `Stage.rows`."""
+        return {k: s.rows(styles, skeleton) for k, s in self.stages if s is not None}
+
+    def init_state(self, batch: int) -> State:
+        return {f"{k}/{key}": v for k, s in self.stages if s is not None for key, v in s.init_state(batch).items()}
+
+    def step_batch(
+        self, state: State, frame: StageFrame, rows: Mapping[str, Rows]
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The frame through every stage that is on; `rows`: `self.rows(...)` for the frame's styles."""
+        out: dict[str, np.ndarray] = {}
+        for k, s in self.stages:
+            if s is None:
+                continue
+            own = {key[len(k) + 1 :]: v for key, v in state.items() if key.startswith(f"{k}/")}
+            rotations, own = s.step_batch(own, frame, rows[k])
+            frame = frame._replace(rotations=rotations)
+            out.update({f"{k}/{key}": v for key, v in own.items()})
+        return frame.rotations, out
