@@ -155,6 +155,7 @@ class WindowSampler:
         idx = starts[:, None] + np.arange(self.window)[None]
         return {
             "x": self.feats[torch.from_numpy(idx)],
+            "idx": torch.from_numpy(idx),  # the frames' rows in the split
             "style": torch.from_numpy(self.s.style[clips]),
             "content": torch.from_numpy(self.s.content[clips]),
         }

@@ -5,6 +5,7 @@ None is off."""
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -37,6 +38,9 @@ class ErdStages:
     run_output_prior: StyleCarry | None = None
     hinge_floor: HingeFloor | None = None  # elbows and knees held at their least real bend
     twist_range: TwistRange | None = None  # the arms' twists kept in the style's real interval (`twist_range.py`)
+    # the decoding's twists and leaves without a leaf prior: the network's own (a network trained
+    # on them, `train.py --network_twists`) or the input's (one trained on positions only)
+    network_twists: bool = False
 
     @classmethod
     def load(cls, folder: Path, skeleton: Skeleton, core_only: bool = False, hinges: bool = True) -> ErdStages:
@@ -44,15 +48,19 @@ class ErdStages:
         are part of the decoding; `hinges=False`: without them (for comparison)."""
         hinge_file = folder / HINGE_FILE
         decode = Hinges.load(hinge_file) if hinges and hinge_file.exists() else None
+        config = folder / "config.json"
+        own = config.exists() and json.loads(config.read_text()).get("train_config", {}).get("network_twists", False)
         if core_only:
-            return cls(hinges=decode)
+            return cls(hinges=decode, network_twists=own)
         priors = {key: StyleCarry.load(folder / name) for key, name in PRIOR_FILES.items() if (folder / name).exists()}
         twists = TwistRange.load(folder / TWIST_FILE) if (folder / TWIST_FILE).exists() else None
-        return cls(hinges=decode, hinge_floor=HingeFloor.load(skeleton, folder), twist_range=twists, **priors)
+        floor = HingeFloor.load(skeleton, folder)
+        return cls(hinges=decode, hinge_floor=floor, twist_range=twists, network_twists=own, **priors)
 
     def without(self, *names: str) -> ErdStages:
         """These stages off, the rest as they are."""
-        return replace(self, **dict.fromkeys(names))
+        off: dict[str, Any] = dict.fromkeys(names)
+        return replace(self, **off)
 
     def stacked(self, uploads: tuple[Upload, ...]) -> ErdStages:
         """The trained styles' stages with each upload's appended as one more style (a stage the
@@ -90,6 +98,8 @@ class ErdStages:
         (B, J, 4), the slow copies before the frame, the style weights (B, S) and run shares (B,)
         -> the output rotations and the new slow copies (`slow_carry.py`)."""
         source, slow_in = carry_slow(self.leaf_prior, self.run_leaf_prior, rot_in, slow_in, weights, share)
+        if self.network_twists and self.leaf_prior is None:
+            source = decoded
         out = transfer_twist(skeleton, source, decoded, hinges=self.hinges)
         out, slow_out = carry_slow(self.output_prior, self.run_output_prior, out, slow_out, weights, share, hips=HIPS)
         if self.hinge_floor is not None:  # before the twist range: it turns bones about themselves only

@@ -10,7 +10,8 @@ First a content classifier (for the perceptual loss), then the generator against
 discriminator (LSGAN with R1): reconstruction toward the input's own style, transfer of neutral
 windows to a random style and of styled ones to neutral, input labels dropped at random so that
 unlabelled streams work. The optional `w_*` terms act on the rotations the streaming model
-outputs (`streamed_rotations`). A checkpoint holds everything `--resume` needs to continue exactly.
+outputs (`streamed_rotations`); `w_distill` pulls the decoder's rotations toward the shipped
+pipeline's (`distill.py`). A checkpoint holds everything `--resume` needs to continue exactly.
 """
 
 from __future__ import annotations
@@ -70,7 +71,10 @@ class TrainConfig:
     w_hinge: float = 0.0
     w_adv_rot: float = 0.0
     w_teacher: float = 0.0  # keep the transfer near the starting generator's, so only rotations move
-    leaf_prior: str = ""  # twists and leaves carried to the target style (`rotation_prior.py`); "": the input's
+    leaf_prior: str = ""  # twists and leaves carried to the target style (`rotation_prior.py`); "": see network_twists
+    network_twists: bool = False  # the decoding takes twists and leaves from the decoder, not the input
+    distill: str = ""  # the shipped pipeline's rotations of TRAIN neutral clips (`distill.py`)
+    w_distill: float = 0.0  # transfers of neutral windows toward those rotations (the style in the core)
     hinge_decode: bool = True  # the streamed rotations decode hinge joints as hinges, as the runtime does
     snapshot_every: int = 0  # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest)
     d_warmup: int = 0  # iterations that train only the discriminator first (a new one, with --init_weights)
@@ -207,6 +211,13 @@ def prior_loss(rot: torch.Tensor, target: torch.Tensor, prior: tuple[torch.Tenso
     cos = (rot * mean).sum(-1).abs() / rot.norm(dim=-1).clamp_min(1e-8)
     angle = 2 * torch.acos(cos.clamp(max=1 - 1e-6))
     return torch.relu(angle - p95).pow(2).mean()
+
+
+def distill_loss(rot: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
+    """Mean 4 sin^2(angle / 2) (~ squared angle) between decoder rotations and the teacher's (the
+    same shape; either hemisphere)."""
+    dot = (rot * teacher.float()).sum(-1) / rot.norm(dim=-1).clamp_min(1e-8)
+    return (4 * (1 - dot.pow(2))).mean()
 
 
 def target_probs(spec: str) -> torch.Tensor:
@@ -359,7 +370,7 @@ def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str,
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
 
-WEIGHTED = ("rot", "pos", "vel", "adv", "per", "prior", "hinge", "teacher", "adv_rot")  # cfg.w_<term>
+WEIGHTED = ("rot", "pos", "vel", "adv", "per", "prior", "hinge", "teacher", "adv_rot", "distill")  # cfg.w_<term>
 
 
 def load_config(argv: list[str]) -> tuple[TrainConfig, dict | None]:
@@ -472,6 +483,14 @@ class Run:
 
             self.leaf_prior = StyleCarry.load(Path(cfg.leaf_prior))
             log(f"twists and leaves carried by {cfg.leaf_prior}")
+        self.distill = None
+        if cfg.distill:  # frame row of the TRAIN cache -> its targets' row (-1: none)
+            with np.load(cfg.distill) as z:
+                self.distill = torch.as_tensor(z["targets"]).to(device)
+                self.distill_row = torch.full((len(data.train.s.feats),), -1, dtype=torch.long)
+                self.distill_row[torch.as_tensor(z["frames"])] = torch.arange(len(z["frames"]))
+            self.distill_row = self.distill_row.to(device)
+            log(f"distilling toward {cfg.distill} ({len(self.distill)} frames)")
         self.disc_rot = RotationDiscriminator(self.mcfg, cfg.window - 1).to(device) if cfg.w_adv_rot else None
         adam = lambda net: torch.optim.Adam(net.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999))  # noqa: E731
         self.opt_dr = adam(self.disc_rot) if self.disc_rot else None
@@ -563,6 +582,8 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
     streamed = None
     if cfg.w_prior or cfg.w_hinge or run.disc_rot is not None:
         source = leaf_source(run.leaf_prior, x, target) if run.leaf_prior is not None else None
+        if source is None and cfg.network_twists:
+            source = out["rot"][B:]
         streamed = streamed_rotations(data.skeleton, out["rot"][B:], x, source, run.decode)
     zero = torch.zeros((), device=device)
     t["teacher"] = zero
@@ -571,6 +592,12 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
             t_out = run.teacher(x, s_in, c_in, one_hot_targets(target))
         t_view = losses.fake_view({k: v.float() for k, v in t_out.items()})
         t["teacher"] = sum(((fake_view[k] - t_view[k]) / losses.scale[k]).pow(2).mean() for k in ("pos", "vel"))
+    t["distill"] = zero
+    if run.distill is not None:  # neutral windows whose every frame has a target
+        rows = run.distill_row[b["idx"]]
+        use = (target > 0) & (rows >= 0).all(1)
+        if use.any():
+            t["distill"] = distill_loss(out["rot"][B:][use], run.distill[rows[use], (target[use] - 1)[:, None]])
     t["prior"] = prior_loss(streamed, target, run.prior) if cfg.w_prior and streamed is not None else zero
     t["hinge"] = hinge_loss(streamed, run.hinges, data.skeleton) if cfg.w_hinge and streamed is not None else zero
     t["adv_rot"] = zero
@@ -603,7 +630,7 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
         run.opt_dr.zero_grad()
         loss_dr.backward()
         run.opt_dr.step()
-    return {k: float(v) for k, v in t.items()}
+    return {k: float(v.detach()) for k, v in t.items()}
 
 
 def main(argv: list[str]) -> None:

@@ -1,0 +1,98 @@
+"""Distillation targets: what the shipped pipeline (network and its fitted stages) outputs for
+every TRAIN neutral clip toward each target style, so that a network can be trained to carry the
+style in its own rotations (`train.py --distill=...`). The stages are fitted from each style's
+real clips the same way for every style, so the targets name no style either.
+
+    .venv/bin/python -m models.erd.distill .data/erd/distill.npz [models/weights/erd]
+
+The file holds `frames` (rows of the TRAIN feature cache, `dataset.py`) and `targets` (frames, 6,
+21, 4) float16: per target style, the body joints' local rotations in the features' frame (the
+Hips without the input's facing yaw), as the decoder outputs them.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..motion.rotations import quat_inv, quat_mul, yaw_quat
+from ..motion.skeleton import Motion
+from .dataset import DATASET, TARGET_STYLES, Split, load_split
+from .features import BODY, FPS
+from .gait import clip_smoothed_speed, eased_in, run_share
+from .offline import to_world
+
+
+@torch.no_grad()
+def teacher_rotations(model, motion: Motion) -> np.ndarray:
+    """(6, T, 21, 4) the shipped pipeline's rotations of `motion` toward each target style, the
+    stages run frame by frame as the stream runs them (the six styles as one batch)."""
+    gen, maker, sk = model.torch_generator().eval(), model.maker, motion.skeleton
+    root_in = motion.translations[:, 1]
+    x, yaw = maker.sequence(root_in, motion.rotations)
+    S, T, J = len(TARGET_STYLES), len(x), sk.num_joints
+    eye = torch.eye(S)
+    xt = torch.as_tensor(x, dtype=torch.float32)[None].expand(S, -1, -1)
+    out = gen(xt, torch.full((S,), -1), torch.full((S,), -1), eye)
+    rots = np.stack(
+        [
+            to_world(
+                out["rot"][s].double().numpy(),
+                out["root_vel"][s].double().numpy(),
+                out["height"][s].double().numpy(),
+                yaw,
+                root_in[0],
+            )[1]
+            for s in range(S)
+        ]
+    )
+    share = eased_in(run_share(clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS)), np.arange(T))
+    w = eye.double().numpy()
+    slow_in = slow_out = np.zeros((S, J, 4))
+    for t in range(T):
+        rot_in = np.repeat(motion.rotations[t : t + 1], S, axis=0)
+        rots[:, t], slow_in, slow_out = model.stages(sk, rot_in, rots[:, t], slow_in, slow_out, w, np.full(S, share[t]))
+    body = rots[:, :, BODY]
+    body[:, :, 0] = quat_mul(quat_inv(yaw_quat(yaw))[None], rots[:, :, 1])  # the Hips without the facing yaw
+    return body
+
+
+def split_targets(model, split: Split, load: Callable[[str], Motion]) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of `split`'s neutral clips (each loaded by name with `load`) and their targets
+    (rows, 6, 21, 4) float16."""
+    frames, targets = [], []
+    t0 = time.time()
+    for i, c in enumerate(np.flatnonzero(split.style == 0)):
+        motion = load(split.names[c])
+        if len(motion.rotations) != split.lengths[c]:
+            raise ValueError(f"{split.names[c]}: {len(motion.rotations)} frames, the split has {split.lengths[c]}")
+        targets.append(teacher_rotations(model, motion).transpose(1, 0, 2, 3).astype(np.float16))
+        frames.append(split.starts[c] + np.arange(split.lengths[c]))
+        if i % 50 == 0:
+            print(f"{i} clips, {time.time() - t0:.0f} s", flush=True)
+    return np.concatenate(frames), np.concatenate(targets)
+
+
+def build(out: Path, weights: Path) -> Path:
+    """The targets of the TRAIN cache's neutral clips, written to `out`."""
+    from ..data import build_index, load_motion, select
+    from .runtime import load
+
+    by_name = {c.name: c for c in select(build_index([DATASET]), split="train", style="normal")}
+    frames, targets = split_targets(load(weights), load_split("train"), lambda name: load_motion(by_name[name]))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(out, frames=frames, targets=targets)
+    return out
+
+
+if __name__ == "__main__":
+    from ..settings import get_settings
+
+    torch.set_num_threads(1)
+    weights = Path(sys.argv[2]) if len(sys.argv) > 2 else get_settings().weights_dir / "erd"
+    print(build(Path(sys.argv[1]), weights))
