@@ -208,3 +208,24 @@ def test_a_hinted_foot_plants_only_below_the_hint_speed(bn_walk, hint_speed, pla
         _, _, c, state = planter(state, root[t : t + 1], rot[t : t + 1], hints=hints)
         contacts.append(c[0])
     assert not contacts[0].any() and contacts[1].any() == plants
+
+
+@pytest.mark.parametrize("hinted", [True, False])
+def test_a_hinted_foot_pulls_a_floor_left_low_up(bn_walk, hinted):
+    """A frame sunk 20 cm leaves the floors low (they creep back up by `floor_rise`). Standing
+    back up with the model's hint pulls them to `HINT_FLOOR_RISE` below the feet at once, so the
+    feet, 8 cm lower the next frame, plant (the root drifts 1 cm a frame); unhinted, they are
+    still far above the old floor and do not."""
+    planter = model_rig_planter(bn_walk.fps)
+    root = np.repeat(bn_walk.translations[:1, HIPS], 4, axis=0)
+    root[1, 1] -= 20.0
+    root[3, 1] -= 8.0
+    root[:, 0] += np.arange(4.0)
+    rot = np.repeat(bn_walk.rotations[:1], 4, axis=0)
+    state = planter.init_state(1)
+    hints = np.full((1, 2), hinted)
+    contacts = []
+    for t in range(4):
+        _, _, c, state = planter(state, root[t : t + 1], rot[t : t + 1], hints=hints)
+        contacts.append(c[0])
+    assert not contacts[2].any() and contacts[3].all() == hinted

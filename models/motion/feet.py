@@ -6,7 +6,8 @@ agree, so planted feet slide. Per frame, causally, on the model rig:
    `max_offset` a leash lets the root give way against the held points' motion.
 2. Contact: a toe or ankle within `margin` of its floor touching down slowly enough, or the
    model's `hints`. The toe is held whenever it is down, else the ankle. Each floor follows its
-   point down at once and up by `floor_rise` per second (networks' feet float or sink).
+   point down at once and up by `floor_rise` per second (networks' feet float or sink); a hinted
+   foot lifts it at once to `feet_kernels.HINT_FLOOR_RISE` below it (the hint says the ground is near).
 3. Hold: an offset collects the opposite of the held point's motion and two-bone IK moves the
    ankle by it; released, it fades by `decay` per frame. Soft IK eases the last `soft` cm of reach.
 

@@ -131,6 +131,14 @@ def leg_points(rot, hips, chain, offsets, out):
             out[k - 2, 0], out[k - 2, 1], out[k - 2, 2] = p
 
 
+# A hinted foot lifts its floor at once to at most this far (cm) below it. A floor left low by a
+# sunk foot or an earlier clip in the session otherwise creeps up by `floor_rise` for seconds,
+# holding no hinted foot meanwhile (the skating of retargeted inputs after other motion); a
+# hint on a foot higher still is taken for a lifted foot, and holding it bends the leg away
+# from the style's poses.
+HINT_FLOOR_RISE = 10.0
+
+
 @njit(cache=True, error_model="numpy")
 def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
     """One frame of `feet.FootPlanter` for B sessions (see there for what and why). Reads the
@@ -173,9 +181,13 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
         out_root[b, 0], out_root[b, 1], out_root[b, 2] = ox, root[b, 1], oz
         # per leg: which point is on the ground, and how far the leg must move to keep it there
         for leg in range(2):
-            for k in range(2):  # ankle, toe: its floor follows it down at once and up slowly
+            for k in range(2):  # ankle, toe: its floor follows it down at once and up slowly, or
+                # (`HINT_FLOOR_RISE`) at once toward it where the model calls the foot down
+                height = root[b, 1] + rel[b, leg, k, 1]
                 rise = prev_floor[b, leg, k] + floor_rise / fps if started[b] else floors[k]
-                floor[b, leg, k] = min(root[b, 1] + rel[b, leg, k, 1], rise)
+                if hints[b, leg] and started[b]:
+                    rise = max(rise, height - HINT_FLOOR_RISE)
+                floor[b, leg, k] = min(height, rise)
             low_ankle = root[b, 1] + rel[b, leg, 0, 1] < floor[b, leg, 0] + margin
             low_toe = root[b, 1] + rel[b, leg, 1, 1] < floor[b, leg, 1] + margin
             k = 1 if low_toe else 0
