@@ -15,12 +15,15 @@ from models.motion.skeleton import fk
 from .reference.foot_slide import planted_slide
 
 
-def _plant(planter, roots: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Step a batch of clips (B, F, 3), (B, F, J, 4) through `planter` frame by frame."""
+def _plant(
+    planter, roots: np.ndarray, rotations: np.ndarray, hints: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Step a batch of clips (B, F, 3), (B, F, J, 4) through `planter` frame by frame, with the
+    model's contact `hints` (B, 2) on every frame if given."""
     state = planter.init_state(len(roots))
     out_root, out_rot, contacts = np.empty_like(roots), np.empty_like(rotations), np.empty(roots.shape[:2] + (2,), bool)
     for t in range(roots.shape[1]):
-        out_root[:, t], out_rot[:, t], contacts[:, t], state = planter(state, roots[:, t], rotations[:, t])
+        out_root[:, t], out_rot[:, t], contacts[:, t], state = planter(state, roots[:, t], rotations[:, t], hints=hints)
     return out_root, out_rot, contacts
 
 
@@ -201,12 +204,7 @@ def test_a_hinted_foot_plants_only_below_the_hint_speed(bn_walk, hint_speed, pla
     root[0, 1] += 60.0  # in the air, then down 4 cm further on
     root[1, 0] += 4.0
     rot = np.repeat(bn_walk.rotations[:1], 2, axis=0)
-    state = planter.init_state(1)
-    hints = np.ones((1, 2), bool)
-    contacts = []
-    for t in range(2):
-        _, _, c, state = planter(state, root[t : t + 1], rot[t : t + 1], hints=hints)
-        contacts.append(c[0])
+    contacts = _plant(planter, root[None], rot[None], hints=np.ones((1, 2), bool))[2][0]
     assert not contacts[0].any() and contacts[1].any() == plants
 
 
@@ -222,10 +220,5 @@ def test_a_hinted_foot_pulls_a_floor_left_low_up(bn_walk, hinted):
     root[3, 1] -= 8.0
     root[:, 0] += np.arange(4.0)
     rot = np.repeat(bn_walk.rotations[:1], 4, axis=0)
-    state = planter.init_state(1)
-    hints = np.full((1, 2), hinted)
-    contacts = []
-    for t in range(4):
-        _, _, c, state = planter(state, root[t : t + 1], rot[t : t + 1], hints=hints)
-        contacts.append(c[0])
+    contacts = _plant(planter, root[None], rot[None], hints=np.full((1, 2), hinted))[2][0]
     assert not contacts[2].any() and contacts[3].all() == hinted
