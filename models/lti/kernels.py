@@ -528,10 +528,10 @@ def eased(raw: np.ndarray, keep: float) -> np.ndarray:
     """(F,) a quantity eased frame by frame as the stream does (`ease`), for the offline path: two one-pole
     followers in series, both starting at its first value."""
     out = np.empty(len(raw))
-    fast = slow = float(raw[0]) if len(raw) else 0.0
+    history = (0.0, 0.0, 0.0)
     for t, r in enumerate(raw):
-        fast = keep * fast + (1.0 - keep) * r
-        out[t] = slow = keep * slow + (1.0 - keep) * fast
+        fast, out[t] = ease(float(r), history, keep)
+        history = (1.0, fast, out[t])
     return out
 
 
