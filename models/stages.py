@@ -138,10 +138,10 @@ class Pipeline:
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """The frame through every stage that is on; `rows`: `self.rows(...)` for the frame's styles."""
         out: dict[str, np.ndarray] = {}
-        rotations = frame.rotations
+        rotations, weights, gait, base = frame
         for k, s, keys in self._on:
             rotations, own = s.step_batch({key: state[full] for full, key in keys}, frame, rows[k])
-            frame = frame._replace(rotations=rotations)
+            frame = StageFrame(rotations, weights, gait, base)  # not `_replace`: ~1 us a call
             for full, key in keys:
                 out[full] = own[key]
         return rotations, out

@@ -53,9 +53,10 @@ import torch
 from ..interface import FrameBatch, State
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
-from ..motion.hinge import HINGE_FILE, Hinges
+from ..motion.hinge import HINGE_FILE, Hinges, kernel_hinges
 from ..motion.skeleton import Skeleton
-from ..motion.twist import transfer_twist
+from ..motion.twist import _kernel_plan
+from ..motion.twist_kernels import transfer_twist_batch
 from ..rowwise import matmul_rows
 from ..settings import get_settings
 from ..stages import Pipeline, Rows, StageFrame
@@ -72,12 +73,13 @@ RENAMED = {"slow_in": "leaf_prior/slow", "slow_out": "output_prior/slow"}  # sta
 
 class Plan(NamedTuple):
     """The stages as one step reads them, replaced whole: the pipeline, its part on the input and
-    after the decoding, and their rows for the model's styles."""
+    after the decoding, their rows for the model's styles, and whether the leaf prior is off."""
 
     stages: Pipeline
     on_input: Pipeline
     on_output: Pipeline
     rows: Mapping[str, Rows]
+    leafless: bool
 
 
 def _sigmoid_(a: np.ndarray) -> np.ndarray:
@@ -125,6 +127,7 @@ class ERDModel(ERDStyles):
         # without a leaf prior: the network's own (a network trained on them, `train.py
         # --network_twists`) or the input's (one trained on positions only)
         self.hinges, self.network_twists = hinges, network_twists
+        self._decoding = (_kernel_plan(skeleton, ()), kernel_hinges(skeleton, hinges))  # `transfer_twist`'s, once
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
@@ -154,7 +157,7 @@ class ERDModel(ERDStyles):
     def stages(self, stages: Pipeline) -> None:
         on_input, on_output = stages.split(ON_INPUT)
         rows = stages.rows(self.styles(), self.skeleton)
-        self._plan = Plan(stages, on_input, on_output, rows)
+        self._plan = Plan(stages, on_input, on_output, rows, stages.leaf_prior is None)
         own = self.init_state(1).items()  # the entries the step checks (the planter checks its own)
         self._state_shapes = {k: v.shape[1:] for k, v in own if k not in FEET_STATE}
 
@@ -292,12 +295,13 @@ class ERDModel(ERDStyles):
         the decoding (module docstring) and the stages, on the input's rotations `rot_in`, the
         style weights (B, S) and run shares (B,); returns the stages' new state entries too."""
         plan = self._plan
-        frame = StageFrame(rot_in, weights, share, -1)
-        source, staged = plan.on_input.step_batch(state, frame, plan.rows)
-        if self.network_twists and plan.on_input.leaf_prior is None:
+        source, staged = plan.on_input.step_batch(state, StageFrame(rot_in, weights, share, -1), plan.rows)
+        if self.network_twists and plan.leafless:
             source = decoded
-        out = transfer_twist(self.skeleton, source, decoded, hinges=self.hinges)
-        out, after = plan.on_output.step_batch(state, frame._replace(rotations=out), plan.rows)
+        source, decoded = (np.ascontiguousarray(a, np.float64) for a in (source, decoded))
+        out = np.empty_like(decoded)  # `transfer_twist`, its constants made once
+        transfer_twist_batch(*self._decoding, source, decoded, out)
+        out, after = plan.on_output.step_batch(state, StageFrame(out, weights, share, -1), plan.rows)
         staged.update(after)
         return out, staged
 

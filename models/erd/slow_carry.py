@@ -82,10 +82,11 @@ class SlowPrior:
         `tests/reference/erd_carry.py` is its numpy reference)."""
         w = np.asarray(frame.weights, np.float64)
         share = np.zeros(len(w)) if self.run is None else np.asarray(frame.gait, np.float64)
-        walk = tuple(rows[k] for k in CARRY_ROWS)
-        run = tuple(rows[f"run_{k}"] for k in CARRY_ROWS)
-        bounds = (rows["mean"], rows["mean"], rows["bounds"], rows["radius"])
-        priors = kernels.SlowPriors(walk, run, bounds, bounds, rows["gain"], rows["plain"])
+        r = rows  # read out one by one: the step runs at batch 1 too, where a generator costs a microsecond
+        bounds = (r["mean"], r["mean"], r["bounds"], r["radius"])
+        walk = (r["source"], r["mean"], r["map"], r["radius"])
+        run = (r["run_source"], r["run_mean"], r["run_map"], r["run_radius"])
+        priors = kernels.SlowPriors(walk, run, bounds, bounds, r["gain"], r["plain"])
         out, slow = kernels.carry_slow(frame.rotations, state["slow"], SLOW_WEIGHT, w, share, priors, self.hips)
         return out, {"slow": slow}
 

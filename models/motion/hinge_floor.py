@@ -45,7 +45,7 @@ class HingeFloor(Stateless):
         return {}  # the same floor for every style
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
-        return self(frame.rotations).astype(frame.rotations.dtype), state
+        return self(frame.rotations).astype(frame.rotations.dtype, copy=False), state
 
     def save(self, path: Path) -> Path:
         return self.hinges.save(path)
