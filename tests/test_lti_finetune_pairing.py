@@ -39,7 +39,7 @@ def test_content_descriptor_reads_path_not_pelvis_swing() -> None:
 def bank_and_ref():
     if not is_available("bandai-namco-2"):
         pytest.skip("Bandai Namco dataset 2 not available")
-    translators = LTIStyleModel(weights_dir=WEIGHTS_DIR, raised_arms=False).translators
+    translators = LTIStyleModel(weights_dir=WEIGHTS_DIR, off=("raised_arm",)).translators
     ref = next(iter(translators.values())).ref
     return ft.neutral_bank(np.ascontiguousarray(ref, dtype=np.float64).tobytes()), ref
 

@@ -21,7 +21,7 @@ pytestmark = pytest.mark.skipif(not (WEIGHTS_DIR / raised_arm.FILE).exists(), re
 
 @pytest.fixture(scope="module")
 def models() -> tuple[LTIStyleModel, LTIStyleModel]:
-    return LTIStyleModel(), LTIStyleModel(raised_arms=False)
+    return LTIStyleModel(), LTIStyleModel(off=("raised_arm",))
 
 
 def test_only_the_raised_calm_arm_moves_and_only_while_it_is_up(models, index):

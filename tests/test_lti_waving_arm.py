@@ -21,7 +21,7 @@ from .one_session import assert_lti_streams_as_offline, contents_read, stream, v
 
 @pytest.fixture(scope="module")
 def models() -> tuple[LTIStyleModel, LTIStyleModel]:
-    return LTIStyleModel(), LTIStyleModel(waving_arms=False)
+    return LTIStyleModel(), LTIStyleModel(off=("waving_arm",))
 
 
 def _swing(motion, side: int) -> float:

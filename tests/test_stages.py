@@ -226,3 +226,27 @@ def test_the_erd_fit_command_refits_one_stage_for_one_style_and_keeps_the_others
         np.testing.assert_array_equal(getattr(after, name)[k], getattr(before, name)[k])
         others = [j for j in range(len(before.styles)) if j != k]
         np.testing.assert_array_equal(getattr(after, name)[others], getattr(before, name)[::-1][others])
+
+
+def test_lti_declares_its_stages_and_each_switches_off_in_both_paths(monkeypatch):
+    """LTI's stages (`models.lti.STAGES`) are on by default, all off for the core alone, and
+    `STYLESTREAM_STAGES_OFF` switches one off at load; a translator of a model without the
+    rotation prior or the raised arm has none either, so the offline path runs what the stream runs."""
+    from models.lti import STAGES, load
+    from models.settings import get_settings
+
+    assert load().stages == STAGES and load(core_only=True).stages == ()
+    monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lti.rotation_prior", "lti.raised_arm", "erd.leaf_prior"]')
+    get_settings.cache_clear()
+    try:
+        model = load()
+        assert model.stages == ("hinge_floor", "waving_arm") and not model.raised_arms
+        assert all(t.prior_mean is None and t.raised_arm is None for t in model.translators.values())
+        assert load(core_only=True).hinges is None
+        monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lti.no_such_stage"]')
+        get_settings.cache_clear()
+        with pytest.raises(KeyError):
+            load()
+    finally:
+        monkeypatch.delenv("STYLESTREAM_STAGES_OFF")
+        get_settings.cache_clear()

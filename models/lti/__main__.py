@@ -39,13 +39,11 @@ def cmd_train(args) -> None:
 def cmd_hinges(args) -> None:
     """Hinge joints and their least real bend from every dataset-2 TRAIN clip (the data LTI is
     identified on), every style: one floor for built-in and uploaded styles alike."""
-    from models.data import build_index, load_motions, select
     from models.motion.assets import bandai_namco_skeleton
-    from models.motion.hinge import HINGE_FILE, fit_hinges
+    from models.motion.hinge import HINGE_FILE
+    from models.motion.hinge_floor import fit_floor
 
-    clips = select(build_index(["bandai-namco-2"]), dataset="bandai-namco-2", split="train")
-    rotations = np.concatenate([m.rotations for m in load_motions(clips)])
-    hinges = fit_hinges(bandai_namco_skeleton(), rotations)
+    hinges = fit_floor(bandai_namco_skeleton())
     print(hinges.save(Path(args.out) / HINGE_FILE), "floors (deg)", np.degrees(np.asarray(hinges.floor)).round(2))
 
 

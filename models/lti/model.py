@@ -28,7 +28,8 @@ DOF) is used offline only (`timewarp=True`): online it would break synchrony.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass, field
+from collections.abc import Collection
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -49,6 +50,13 @@ from . import representation as rep
 from .footplant import FootplantClassifier
 from .styles import LTIStyles
 
+# The stages after the identified systems, in the order the compiled step runs them (`kernels.step`),
+# each fitted from real clips the same way for every style: the rotation prior (`train.style_prior`,
+# in each translator's file), the hinge floor (`python -m models.lti hinges`), the raised arm
+# (`raised_arm.py`) and the waving arm (`waving_arm.py`, nothing fitted). Any can be switched off
+# (`LTIStyleModel(off=...)`, `Settings.stages_off` as `lti.<name>`); the offline path
+# (`StyleTranslator.translate_motion`) runs the ones its model has on.
+STAGES = ("rotation_prior", "hinge_floor", "raised_arm", "waving_arm")
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
@@ -267,31 +275,27 @@ class LTIStyleModel(LTIStyles):
         footlock: bool = True,
         keep_heading: bool = True,
         skeleton=None,
-        raised_arms: bool = True,
-        waving_arms: bool = True,
-        hinges: bool = True,
+        off: Collection[str] = (),
     ):
+        if set(off) - set(STAGES):
+            raise KeyError(f"undeclared stages {sorted(set(off) - set(STAGES))}: LTI declares {list(STAGES)}")
+        self.stages = tuple(s for s in STAGES if s not in off)  # the stages that are on
+        self.raised_arms, self.waving_arms = "raised_arm" in self.stages, "waving_arm" in self.stages
         hinge_file = Path(weights_dir) / HINGE_FILE
-        self.hinges = Hinges.load(hinge_file) if hinges and hinge_file.exists() else None
+        self.hinges = Hinges.load(hinge_file) if "hinge_floor" in self.stages and hinge_file.exists() else None
         if translators is None:
             translators = {}
-            arms = raised_arm.load(Path(weights_dir)) if raised_arms else {}
+            arms = raised_arm.load(Path(weights_dir)) if self.raised_arms else {}
             for path in sorted(Path(weights_dir).glob("*.npz")):
                 if path.name in (raised_arm.FILE, HINGE_FILE):
                     continue
                 t = StyleTranslator.load(path)
-                t.raised_arm = arms.get(t.style, t.raised_arm) if raised_arms else None
+                t.raised_arm = arms.get(t.style, t.raised_arm)
                 translators[t.style] = t
         if not translators:
             raise FileNotFoundError(f"no LTI weights (*.npz) in {weights_dir}")
-        self.translators = dict(translators)
-        for tr in translators.values():
-            tr.keep_heading = keep_heading
-            tr.waving_arm = waving_arms
-            tr.hinges = self.hinges
-        self.waving_arms = waving_arms
-        self.raised_arms = raised_arms
         self.keep_heading = keep_heading
+        self.translators = {name: self._staged(tr) for name, tr in translators.items()}
         self.blend = blend
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
@@ -300,6 +304,15 @@ class LTIStyleModel(LTIStyles):
         self._scratch = threading.local()  # per thread: step scratch reused between steps (`_workspace`)
         self._set_styles(sorted(translators))
         self._compile_step()
+
+    def _staged(self, tr: StyleTranslator) -> StyleTranslator:
+        """`tr` with this model's stages: those that are off, off (a copy, then); `tr` itself else."""
+        if "rotation_prior" not in self.stages and tr.prior_mean is not None:
+            tr = replace(tr, prior_mean=None, prior_radii=None)
+        if not self.raised_arms and tr.raised_arm is not None:
+            tr = replace(tr, raised_arm=None)
+        tr.keep_heading, tr.waving_arm, tr.hinges = self.keep_heading, self.waving_arms, self.hinges
+        return tr
 
     def _compile_step(self) -> None:
         """One step of one session on the rest pose: numba compiles the step, every stage of it
@@ -350,9 +363,7 @@ class LTIStyleModel(LTIStyles):
         """Append the style of `tr` (a new name) to `styles()`; running sessions are unaffected."""
         if tr.style in self.translators:
             raise ValueError(f"style {tr.style!r} already exists")
-        tr.keep_heading = self.keep_heading
-        tr.waving_arm = self.waving_arms
-        tr.hinges = self.hinges
+        tr = self._staged(tr)
         self.translators = {**self.translators, tr.style: tr}
         self._set_styles(self._styles + [tr.style])
 

@@ -170,7 +170,7 @@ def fit_upload(translator, clip, ref: np.ndarray) -> StyleCarry | None:
 
     bank = neutral_bank(np.ascontiguousarray(ref, dtype=np.float64).tobytes())
     inputs = [m.slice(0, FIT_FRAMES) for m in bank.motions.values()]
-    model = LTIStyleModel({translator.style: translator}, raised_arms=False)
+    model = LTIStyleModel({translator.style: translator}, off=("raised_arm",))
     return fit_styles(model, {translator.style: [clip]}, inputs)[translator.style]
 
 
@@ -188,7 +188,7 @@ def main(argv: list[str]) -> None:
     from .model import WEIGHTS_DIR, LTIStyleModel
 
     folder = Path(argv[0]) if argv else WEIGHTS_DIR
-    model = LTIStyleModel(weights_dir=folder, raised_arms=False)
+    model = LTIStyleModel(weights_dir=folder, off=("raised_arm",))
     carries = fit(model)
     print(save({s: c for s, c in carries.items() if c is not None}, folder))
 
