@@ -20,6 +20,7 @@ from models.lti.subspace import (
 from models.lti.warping import imw, time_warp_dp
 from models.motion.rotations import yaw_quat
 
+from .reference.lti_offline import offline as reference_offline
 from .reference.lti_subspace import simulate
 
 
@@ -140,7 +141,7 @@ def test_streaming_equals_offline(footlock, keep_heading):
     index, load_motion, select = _data()
     m = load_motion(select(index, style="normal", content="walk", split="val")[0])
     tr = model.translators["elderly"]
-    offline, contacts = tr.translate_motion(m, timewarp=False, footlock=footlock)
+    offline, contacts = reference_offline(tr, m, footlock=footlock)
     state, w = model.init_state(1), _one_hot(model, "elderly", 1)
     for t in range(m.num_frames):
         out, state = model.step_batch(state, FrameBatch(m.translations[t : t + 1, rep.HIPS], m.rotations[t : t + 1]), w)
@@ -394,7 +395,7 @@ def test_offline_timewarp_follows_predicted_rate():
     tr = model.translators["elderly"]
     out, _ = tr.translate_features(rep.motion_to_features(m, tr.ref))
     expected = 1 + np.exp(out[1:, rep.FEATURE_DIM]).sum()
-    warped, contacts = tr.translate_motion(m, timewarp=True)
+    warped, contacts = model.translate(m, "elderly", timewarp=True)
     assert abs(warped.num_frames - expected) <= 1.0
     assert len(contacts) == warped.num_frames
     np.testing.assert_allclose(np.linalg.norm(warped.rotations, axis=-1), 1.0, atol=1e-9)

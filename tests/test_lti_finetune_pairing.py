@@ -105,7 +105,7 @@ def test_an_upload_gets_a_rotation_prior_from_its_clip_and_no_backward_hinge(ban
     model.install_style("upload", tr)
     assert tr.hinges is model.hinges is not None
     walk = load_motion(select(index, dataset="bandai-namco-2", style="normal", content="walk", split="val")[0])
-    out = tr.translate_motion(walk)[0].rotations
+    out = model.translate(walk, "upload")[0].rotations
     bone, hinge, floor = kernel_floor(model.skeleton, model.hinges)
     for j in model.hinges.joints:
         assert (quat_log(swing_twist(out[:, j], bone[j])[0]) @ hinge[j]).min() >= floor[j] - 1e-9

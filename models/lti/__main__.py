@@ -53,14 +53,10 @@ def cmd_translate(args) -> None:
 
     from .model import LTIStyleModel
 
-    model = LTIStyleModel()
+    model = LTIStyleModel(blend=not args.no_blend, footlock=not args.no_footlock, keep_heading=not args.model_heading)
     src = bvhio.read(args.input)
     motion = from_bvh(src)
-    tr = model.translators[args.style]
-    tr.keep_heading = not args.model_heading
-    out, contacts = tr.translate_motion(
-        motion, timewarp=args.timewarp, blend=not args.no_blend, footlock=not args.no_footlock
-    )
+    out, contacts = model.translate(motion, args.style, timewarp=args.timewarp)
     bvhio.write(to_bvh(out, src), args.output)
     print(
         f"{args.input} -> {args.output}: {motion.num_frames} -> {out.num_frames} frames, style {args.style}, "
@@ -146,9 +142,8 @@ def cmd_render(args) -> None:
     motion = load_motion(clip)
     out_dir = Path(args.out)
     for style in args.styles or model.styles():
-        tr = model.translators[style]
-        online, _ = tr.translate_motion(motion)
-        warped, _ = tr.translate_motion(motion, timewarp=True)
+        online, _ = model.translate(motion, style)
+        warped, _ = model.translate(motion, style, timewarp=True)
         ms, titles = [motion, online, warped], [f"input {clip.name}", f"{style} (online)", f"{style} (time-warped)"]
         png = render_contact_sheet(ms, out_dir / f"lti_{style}_{args.content}.png", frames=8, titles=titles)
         print(f"wrote {png}")

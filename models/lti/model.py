@@ -20,9 +20,9 @@ planted (`footlock`) by `models.motion.feet.FootPlanter`, shared by every method
 classifier's contacts as hints for feet slower than `HINT_SPEED`; `FrameBatch.contacts` are the planted legs, or the classifier's.
 
 The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and stage
-(`kernels.step`); the offline path (`StyleTranslator.translate_motion`) stays numpy over whole
-clips, and the tests check that the two agree frame for frame. The log-time-warp output (last
-DOF) is used offline only (`timewarp=True`): online it would break synchrony.
+(`kernels.step`); the offline path (`LTIStyleModel.translate`) streams a whole clip through it,
+and takes the log-time-warp output (last DOF) where asked (`timewarp=True`): online it would break
+synchrony. `tests/reference/lti_offline.py` is the numpy reference the step is tested against.
 """
 
 from __future__ import annotations
@@ -39,10 +39,8 @@ from scipy.special import erf
 from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import model_rig_planter
-from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter, clip_sway, hand_offsets_of
+from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter
 from models.motion.hinge import HINGE_FILE, Hinges, kernel_floor
-from models.motion.hinge_kernels import floor_bends
-from models.motion.rotation_ball import clamp_rotations
 from models.motion.style_carry import StyleCarry
 
 from . import kernels, raised_arm, waving_arm
@@ -55,7 +53,7 @@ from .styles import LTIStyles
 # in each translator's file), the hinge floor (`python -m models.lti hinges`), the raised arm
 # (`raised_arm.py`) and the waving arm (`waving_arm.py`, nothing fitted). Any can be switched off
 # (`LTIStyleModel(off=...)`, `Settings.stages_off` as `lti.<name>`); the offline path
-# (`StyleTranslator.translate_motion`) runs the ones its model has on.
+# (`LTIStyleModel.translate`) runs the stream's.
 STAGES = ("rotation_prior", "hinge_floor", "raised_arm", "waving_arm")
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
@@ -137,46 +135,6 @@ class StyleTranslator:
         mean = self.prior_mean if self.prior_mean is not None else np.tile([0.0, 0.0, 0.0, 1.0], (rep.NUM_JOINTS, 1))
         radii = self.prior_radii if self.prior_radii is not None else np.full((2, rep.NUM_JOINTS), np.inf)
         return mean, radii
-
-    def translate_motion(self, motion, timewarp: bool = False, blend: bool = True, footlock: bool = True):
-        """Offline translation of a whole `Motion` (BN skeleton). Returns (Motion, contacts (F', 2))."""
-        from dataclasses import replace
-
-        feats = rep.motion_to_features(motion, self.ref)
-        out, xs = self.translate_features(feats, blend)
-        yaw0, _ = rep.split_hips(motion.rotations[0, rep.HIPS])
-        root, rots = rep.features_to_sequence(
-            out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), self.ref
-        )
-        if self.prior_mean is not None and self.prior_radii is not None:
-            rots = clamp_rotations(rots, self.prior_mean, self.prior_radii)
-        if self.hinges is not None:
-            rots = floor_bends(rots, *kernel_floor(motion.skeleton, self.hinges))
-        if self.raised_arm is not None or self.waving_arm:
-            offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
-            swayed = clip_sway(offsets, motion.fps)
-        if self.raised_arm is not None:
-            share = raised_arm.eased_shares(
-                raised_arm.shares(offsets, swayed), ease_keep(LTIStyleModel.fps, RAISE_EASE_S)
-            )
-            rots = raised_arm.carried(self.raised_arm, rots, np.ones((len(rots), 1)), share)
-        if self.waving_arm:
-            mean, radii = self.ball()
-            rots = waving_arm.clip(rots, motion.rotations, offsets, swayed, motion.fps, mean[None], radii[None])
-        contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
-        if footlock:
-            root, rots, contacts = model_rig_planter(motion.fps, hint_speed=HINT_SPEED).clip(root, rots, hints=contacts)
-        if timewarp:
-            from .warping import resample_pose
-
-            rate = np.exp(out[:, rep.FEATURE_DIM])  # output frames per input frame
-            clock = np.concatenate([[0.0], np.cumsum(rate[1:])])  # output time of each input frame
-            times = np.interp(np.arange(0.0, clock[-1] + 1e-9), clock, np.arange(len(clock)))
-            root, rots = resample_pose(root, rots, times)
-            contacts = contacts[np.clip(np.round(times).astype(int), 0, len(contacts) - 1)]
-        translations = np.broadcast_to(motion.translations[:1], (len(root),) + motion.translations.shape[1:]).copy()
-        translations[:, rep.HIPS] = root
-        return replace(motion, rotations=rots, translations=translations), contacts
 
     # ---------------------------------------------------------------- persistence
 
@@ -452,6 +410,34 @@ class LTIStyleModel(LTIStyles):
         for s in used:
             x[:, x_at[s] : x_at[s] + xs[s].shape[1]] = xs[s]
         return x, x_at
+
+    def translate(self, motion, style: str, timewarp: bool = False):
+        """Offline: a whole `Motion` (BN skeleton) streamed toward `style` by this model's step and
+        stages; with `timewarp`, resampled by the translator's log-time-warp output (which would
+        break a stream's synchrony). Returns (Motion, contacts (F', 2))."""
+        from dataclasses import replace as with_pose
+
+        from .warping import resample_pose
+
+        w = np.zeros((1, len(self._styles)))
+        w[0, self._styles.index(style)] = 1.0
+        state, root, rots = self.init_state(1), np.empty((motion.num_frames, 3)), np.empty(motion.rotations.shape)
+        contacts = np.empty((motion.num_frames, 2), bool)
+        for t in range(motion.num_frames):
+            frame = FrameBatch(motion.translations[t : t + 1, rep.HIPS], motion.rotations[t : t + 1])
+            out, state = self.step_batch(state, frame, w)
+            root[t], rots[t], contacts[t] = out.root[0], out.rotations[0], out.contacts[0]
+        if timewarp:
+            tr = self.translators[style]
+            out_feats, _ = tr.translate_features(rep.motion_to_features(motion, tr.ref), self.blend)
+            rate = np.exp(out_feats[:, rep.FEATURE_DIM])  # output frames per input frame
+            clock = np.concatenate([[0.0], np.cumsum(rate[1:])])  # output time of each input frame
+            times = np.interp(np.arange(0.0, clock[-1] + 1e-9), clock, np.arange(len(clock)))
+            root, rots = resample_pose(root, rots, times)
+            contacts = contacts[np.clip(np.round(times).astype(int), 0, len(contacts) - 1)]
+        translations = np.broadcast_to(motion.translations[:1], (len(root),) + motion.translations.shape[1:]).copy()
+        translations[:, rep.HIPS] = root
+        return with_pose(motion, rotations=rots, translations=translations), contacts
 
     def step_batch(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray):
         """One frame for every session: one compiled call (`kernels.step`) on the packed carry

@@ -25,10 +25,10 @@ import numpy as np
 
 from ..motion.bn_skeleton import BN_JOINTS, HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
-from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, calm_sides, raise_share, wave_share
+from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, calm_sides
 from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry
-from .kernels import SHARE_FLOOR, RaisedArm, eased
+from .kernels import RaisedArm
 
 FILE = "raised_arm.npz"
 ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")
@@ -37,42 +37,9 @@ MIN_CALM_FRAMES = 15  # a side whose real clips hold fewer raised, calm frames i
 _ARM = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in ARM_JOINTS]) for side in "LR"]
 
 
-def shares(offsets: np.ndarray, swayed: np.ndarray) -> np.ndarray:
-    """(B, 2) how far each arm is moved: its hand's raise share times one minus its wave share,
-    from the input's `hand_offsets` (B, 2, 3) and sway (B, 2)."""
-    return raise_share(np.asarray(offsets)[..., 1]) * (1.0 - wave_share(swayed))
-
-
-def eased_shares(share: np.ndarray, keep: float) -> np.ndarray:
-    """(F, 2) one session's `shares` eased frame by frame as the stream does
-    (`kernels.raised_shares`), 0 below `SHARE_FLOOR`."""
-    out = np.stack([eased(side, keep) for side in np.asarray(share, np.float64).T], axis=1)
-    return np.where(out >= SHARE_FLOOR, out, 0.0)
-
-
-def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share: np.ndarray) -> np.ndarray:
-    """(B, J, 4) `rotations` with each side's arm moved toward what `carry` makes of it (style
-    weights (B, S)) by that side's `share` (B, 2): a normalised blend of the quaternions. Rows
-    at share 0 are returned as they are."""
-    if not np.any(share > 0.0):
-        return rotations
-    out = np.array(rotations, np.float64)
-    for side, joints in enumerate(_ARM):
-        rows = np.flatnonzero(share[:, side] > 0.0)
-        if rows.size == 0:
-            continue
-        a = out[np.ix_(rows, joints)]
-        b = carry(out[rows], weights[rows], hips=HIPS)[:, joints]
-        b = np.where(np.sum(a * b, axis=-1, keepdims=True) < 0.0, -b, b)
-        s = share[rows, side][:, None, None]
-        mixed = (1.0 - s) * a + s * b
-        out[np.ix_(rows, joints)] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
-    return out
-
-
 def settings(carries: list[StyleCarry | None], keep: float) -> RaisedArm:
     """The record the compiled step takes (`kernels.RaisedArm`) for the styles' carries, in style
-    order (None: a style without one), their shares eased by `keep` (`eased_shares`)."""
+    order (None: a style without one), their shares eased by `keep`."""
     fitted = [c for c in carries if c is not None]
     none = (np.zeros((0, NUM_JOINTS, *shape)) for shape in ((4,), (4,), (3, 3), ()))  # no style has one
     both = StyleCarry.stack(fitted) if fitted else StyleCarry(*none)
