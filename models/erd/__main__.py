@@ -9,22 +9,27 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..interface import FrameBatch
 from ..settings import REPO_ROOT, get_settings
 
+if TYPE_CHECKING:
+    from .runtime import ERDModel
+
 HINGES, SOURCES = "hinges", "upload_sources"  # `fit`'s steps besides the stages: the decoding's, uploads'
 
 
-def _model():
+def _model() -> ERDModel:
     from . import load
 
     return load(get_settings().weights_dir / "erd")
 
 
-def render(args) -> None:
+def render(args: argparse.Namespace) -> None:
     from ..data import build_index, load_motions, select
     from ..motion.render import render_contact_sheet, render_gif
 
@@ -72,7 +77,7 @@ def render(args) -> None:
         )
 
 
-def bench(args) -> None:
+def bench(args: argparse.Namespace) -> None:
     """Per-frame cost of `step_batch` at batch 1 and 256 with the threads capped (1 = as the
     service runs), for the network in float32 (served) and float64 (the reference). Floor: the
     network's matrix products alone in numpy (see models/stepbench.py)."""
@@ -105,7 +110,7 @@ def bench(args) -> None:
         print(json.dumps(results, indent=1))
 
 
-def fit(args) -> None:
+def fit(args: argparse.Namespace) -> None:
     """Refit, in this order, the decoding's hinges (`HINGES`), the declared stages
     (`stages.STAGES`) and what an upload's stages carry from (`SOURCES`), or the ones named in
     `--stages`; each from real clips on the committed model as it is then (a fit switches off the
@@ -146,7 +151,7 @@ def fit(args) -> None:
         print(f"{name}: wrote {path} in {time.time() - t0:.0f} s", flush=True)
 
 
-def _matmul_floor(model, B: int):
+def _matmul_floor(model: ERDModel, B: int) -> Callable[[], None]:
     """The network's matrix products for B sessions and nothing else: encoder, every LSTM
     branch's input and hidden products, decoder, in the model's dtype."""
     dt, H, K = model.dtype, model.H, len(model.branches)

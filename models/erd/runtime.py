@@ -45,7 +45,7 @@ import json
 import threading
 from collections.abc import Mapping
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -54,7 +54,7 @@ from ..interface import FrameBatch, State
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
 from ..motion.hinge import HINGE_FILE, Hinges, kernel_hinges
-from ..motion.skeleton import Skeleton
+from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import _kernel_plan
 from ..motion.twist_kernels import transfer_twist_batch
 from ..rowwise import matmul_rows
@@ -66,6 +66,9 @@ from .features import CONTACT, FPS, FeatureMaker
 from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
 from .stages import ON_INPUT, STAGES
 from .uploads import BuiltIn, ERDStyles, Upload, branch_weights, runtime_layout
+
+if TYPE_CHECKING:
+    from .model import Generator
 
 WEIGHTS_FILE = "erd.npz"
 RENAMED = {"slow_in": "leaf_prior/slow", "slow_out": "output_prior/slow"}  # state keys of older replicas
@@ -374,7 +377,7 @@ class ERDModel(ERDStyles):
 
     # ------------------------------------------------------------------ offline helpers
 
-    def torch_generator(self):
+    def torch_generator(self) -> Generator:
         """The same weights as a torch `Generator` (for whole-clip runs and tests)."""
         import torch
 
@@ -390,7 +393,9 @@ class ERDModel(ERDStyles):
         gen.load_state_dict(state)
         return gen.eval()
 
-    def stylise_stream(self, motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None):
+    def stylise_stream(
+        self, motion: Motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None
+    ) -> Motion:
         """Run a whole Motion through step_batch frame by frame (batch 1); returns a Motion."""
         from dataclasses import replace
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -30,7 +31,7 @@ from ..motion.bn_skeleton import HIPS
 from ..motion.feet import LEG_JOINTS
 from ..motion.rotation_ball import comparable
 from ..motion.rotations import quat_mean
-from ..motion.skeleton import Skeleton
+from ..motion.skeleton import Motion, Skeleton
 from ..motion.style_carry import StyleCarry, gaussian_map, tangent_stats
 from ..stages import Pipeline
 from .features import NB, ROT
@@ -38,6 +39,10 @@ from .gait import clip_smoothed_speed, run_share
 from .rotation_prior import FIXED
 from .slow_carry import SlowPrior
 from .twist_range import TwistRange
+
+if TYPE_CHECKING:
+    from .runtime import ERDModel
+    from .uploads import ERDStyles
 
 SOURCES_FILE = "upload_sources.npz"
 KEYS = ("leaf_prior", "output_prior", "run_leaf_prior", "run_output_prior")  # the priors' sources, by name
@@ -70,7 +75,10 @@ class Sources:
 
 
 def carry_to(
-    source: tuple[np.ndarray, np.ndarray], target: np.ndarray, fixed: tuple[int, ...] = (), clamp_only=()
+    source: tuple[np.ndarray, np.ndarray],
+    target: np.ndarray,
+    fixed: tuple[int, ...] = (),
+    clamp_only: tuple[int, ...] = (),
 ) -> StyleCarry:
     """A one-style carry from a source Gaussian (mean (J, 4), cov (J, 3, 3)) to real rotations
     (N, J, 4): what `StyleCarry.fit` gives from the frames the source was measured on."""
@@ -90,7 +98,7 @@ def one_style(carry: StyleCarry, style: int) -> StyleCarry:
     return StyleCarry(*(np.ascontiguousarray(a[style : style + 1]) for a in carry.arrays))
 
 
-def clip_rotations(model, clip) -> tuple[np.ndarray, np.ndarray]:
+def clip_rotations(model: ERDStyles, clip: Motion) -> tuple[np.ndarray, np.ndarray]:
     """The clip's local rotations (N, 22, 4) as the priors read real frames (the feature cache's:
     Hips without the facing yaw, joint_Root the identity), and each frame's run share (N,)."""
     root = clip.translations[:, 1]
@@ -143,7 +151,7 @@ def fit_stages(
     return out
 
 
-def fit_sources(model) -> Sources:
+def fit_sources(model: ERDModel) -> Sources:
     """The sources every trained style's priors were fitted from (`rotation_prior.py`), as Gaussians."""
     from .rotation_prior import _neutral_inputs, network_rotations, real_rotations, run_network_rotations
 

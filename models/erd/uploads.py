@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from ..data.archives import is_available
 from ..interface import ClipStyles, FineTuned, Progress, StyleRejected
@@ -34,6 +35,7 @@ from ..motion.skeleton import Motion, Skeleton
 from ..motion.style_carry import StyleCarry
 from ..stages import Pipeline
 from .dataset import DATASET, TARGET_STYLES
+from .features import FeatureMaker
 from .slow_carry import SlowPrior
 from .stages import stacked
 from .twist_range import TwistRange
@@ -107,7 +109,7 @@ def branch_weights(params: dict[str, np.ndarray], prefix: str) -> dict[str, np.n
     return {k[len(prefix) :]: v for k, v in params.items() if k.startswith(prefix)}
 
 
-def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype) -> tuple[list, list]:
+def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype: DTypeLike) -> tuple[list, list]:
     """A branch's LSTM as the step multiplies it (`ERDModel._prepare_weights`): per layer
     [W_ih^T; W_hh^T] (2H, 4H) and the summed bias (1, 4H), the cell-input gate's doubled."""
     scale = np.ones(4 * H)
@@ -131,6 +133,8 @@ class ERDStyles(ClipStyles[Upload]):
     weights_dir: Path | None
     if TYPE_CHECKING:
         p: dict[str, np.ndarray]
+        maker: FeatureMaker
+        fps: float
         Ln: int
         H: int
         dtype: np.dtype

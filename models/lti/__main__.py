@@ -21,7 +21,7 @@ import numpy as np
 WEIGHTS_DIR_DEFAULT = Path(__file__).resolve().parents[1] / "weights" / "lti"
 
 
-def cmd_train(args) -> None:
+def cmd_train(args: argparse.Namespace) -> None:
     from .train import CONFIG, train
 
     cfg = dict(CONFIG)
@@ -36,7 +36,7 @@ def cmd_train(args) -> None:
     print(f"trained {len(report)} styles in {time.time() - t0:.1f} s")
 
 
-def cmd_hinges(args) -> None:
+def cmd_hinges(args: argparse.Namespace) -> None:
     """Hinge joints and their least real bend from every dataset-2 TRAIN clip (the data LTI is
     identified on), every style: one floor for built-in and uploaded styles alike."""
     from models.motion.assets import bandai_namco_skeleton
@@ -47,7 +47,7 @@ def cmd_hinges(args) -> None:
     print(hinges.save(Path(args.out) / HINGE_FILE), "floors (deg)", np.degrees(np.asarray(hinges.floor)).round(2))
 
 
-def cmd_translate(args) -> None:
+def cmd_translate(args: argparse.Namespace) -> None:
     from models.motion import bvh as bvhio
     from models.motion.skeleton import from_bvh, to_bvh
 
@@ -64,7 +64,7 @@ def cmd_translate(args) -> None:
     )
 
 
-def cmd_bench(args) -> None:
+def cmd_bench(args: argparse.Namespace) -> None:
     """Per-frame cost of `step_batch` at batch 1 and 256, with the threads capped (1 = as the
     service runs): every stage on (as the service loads it, the unseen-content fade last), the same
     without the fade, against the published core alone (`load(...,
@@ -130,7 +130,7 @@ def _floor(zin: np.ndarray, M_T: np.ndarray, i: int) -> None:
     np.matmul(zin, M_T)
 
 
-def cmd_render(args) -> None:
+def cmd_render(args: argparse.Namespace) -> None:
     """Input vs translated output of a validation neutral walk: contact sheet PNG + GIF per style."""
     from models.data import build_index, load_motion, select
     from models.motion.render import render_contact_sheet, render_gif

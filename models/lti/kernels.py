@@ -593,7 +593,7 @@ def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_head
         out[2] = feats[2, c]
     for d in range(4):
         root_feats[d] += w * out[d]
-    # body rotations (representation.static_to_rotations with yaw 0)
+    # body rotations (`tests/reference/lti_offline.static_to_rotations` with yaw 0)
     quats[0, 0], quats[0, 1], quats[0, 2], quats[0, 3] = 0.0, 0.0, 0.0, 1.0
     for j in range(1, NUM_JOINTS):
         q = qmul(quat_at(sys.ref, s, j), rotvec_to_quat((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))

@@ -41,6 +41,7 @@ from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import model_rig_planter
 from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter
 from models.motion.hinge import HINGE_FILE, Hinges, kernel_floor
+from models.motion.skeleton import Motion, Skeleton
 from models.motion.style_carry import StyleCarry
 
 from . import kernels, raised_arm, waving_arm
@@ -232,9 +233,9 @@ class LTIStyleModel(LTIStyles):
         blend: bool = True,
         footlock: bool = True,
         keep_heading: bool = True,
-        skeleton=None,
+        skeleton: Skeleton | None = None,
         off: Collection[str] = (),
-    ):
+    ) -> None:
         if set(off) - set(STAGES):
             raise KeyError(f"undeclared stages {sorted(set(off) - set(STAGES))}: LTI declares {list(STAGES)}")
         self.stages = tuple(s for s in STAGES if s not in off)  # the stages that are on
@@ -411,7 +412,7 @@ class LTIStyleModel(LTIStyles):
             x[:, x_at[s] : x_at[s] + xs[s].shape[1]] = xs[s]
         return x, x_at
 
-    def translate(self, motion, style: str, timewarp: bool = False):
+    def translate(self, motion: Motion, style: str, timewarp: bool = False) -> tuple[Motion, np.ndarray]:
         """Offline: a whole `Motion` (BN skeleton) streamed toward `style` by this model's step and
         stages; with `timewarp`, resampled by the translator's log-time-warp output (which would
         break a stream's synchrony). Returns (Motion, contacts (F', 2))."""
@@ -426,6 +427,7 @@ class LTIStyleModel(LTIStyles):
         for t in range(motion.num_frames):
             frame = FrameBatch(motion.translations[t : t + 1, rep.HIPS], motion.rotations[t : t + 1])
             out, state = self.step_batch(state, frame, w)
+            assert out.contacts is not None  # the step always reports them
             root[t], rots[t], contacts[t] = out.root[0], out.rotations[0], out.contacts[0]
         if timewarp:
             tr = self.translators[style]
@@ -439,20 +441,28 @@ class LTIStyleModel(LTIStyles):
         translations[:, rep.HIPS] = root
         return with_pose(motion, rotations=rots, translations=translations), contacts
 
-    def step_batch(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray):
+    def step_batch(
+        self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray
+    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
         """One frame for every session: one compiled call (`kernels.step`) on the packed carry
         and the styles' LTI states laid side by side."""
         return self._step(state, frames, style_weights, None)
 
     def step_batch_fading(
         self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray, key: str, reference: tuple
-    ):
+    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
         """`step_batch` followed by the unseen-content fade (`models.motion.novelty_stage`, which
         calls this), both in one compiled call (`kernels.step_fading`): the fade's state is
         `state[key]`, its reference `reference` (`NoveltyReference.arrays`)."""
         return self._step(state, frames, style_weights, (key, reference))
 
-    def _step(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray, fading):
+    def _step(
+        self,
+        state: dict[str, np.ndarray],
+        frames: FrameBatch,
+        style_weights: np.ndarray,
+        fading: tuple[str, tuple] | None,
+    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
         root = np.ascontiguousarray(frames.root, dtype=np.float64)
         rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
         w = np.ascontiguousarray(style_weights, dtype=np.float64)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,6 +30,10 @@ from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, calm_side
 from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry
 from .kernels import RaisedArm
+
+if TYPE_CHECKING:
+    from ..motion.skeleton import Motion
+    from .model import LTIStyleModel, StyleTranslator
 
 FILE = "raised_arm.npz"
 ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")
@@ -79,7 +84,7 @@ def save(carries: dict[str, StyleCarry], folder: Path) -> Path:
     return path
 
 
-def fit(model) -> dict[str, StyleCarry | None]:
+def fit(model: LTIStyleModel) -> dict[str, StyleCarry | None]:
     """Per style of the `LTIStyleModel` (its raised arms off): the carry described above, from
     all the style's TRAIN clips."""
     from ..data import build_index, load_motions, select
@@ -91,7 +96,7 @@ def fit(model) -> dict[str, StyleCarry | None]:
     return fit_styles(model, real, inputs)
 
 
-def fit_styles(model, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
+def fit_styles(model: LTIStyleModel, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
     """Per style of `model` (its raised arms off) with real clips in `real` ({style: [Motion]}):
     the carry from what the translator makes of the neutral `inputs` (BN `Motion`s) to the real
     clips, each side on its calm raised frames. The same for a built-in style (its TRAIN clips)
@@ -128,7 +133,7 @@ def fit_styles(model, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
     return carries
 
 
-def fit_upload(translator, clip, ref: np.ndarray) -> StyleCarry | None:
+def fit_upload(translator: StyleTranslator, clip: Motion, ref: np.ndarray) -> StyleCarry | None:
     """The carry of an uploaded style (`styles.LTIStyles.fine_tune_style`): `fit_styles` with the
     neutral TRAIN clips fine-tuning already holds (`finetune.neutral_bank`) and the uploaded clip
     as the style's real clips. None when the clip holds no raised, calm hand."""

@@ -96,13 +96,45 @@ def waving_clip(out_rots, in_rots, offsets, swayed, fps: float, means, radii) ->
     return out
 
 
+def features_to_sequence(
+    features: np.ndarray, start_ground: np.ndarray, start_yaw: float, ref: np.ndarray = rep.IDENTITY_REF
+) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of `sequence_features`: (F, 67) -> root (F, 3), rotations (F, 22, 4).
+
+    The path is integrated from the given start: frame 0 sits at `start_ground`/`start_yaw`
+    and frame t adds the displacement of frame t in the facing of frame t-1."""
+    f = len(features)
+    dyaw = features[:, 2].copy()
+    dyaw[0] = 0.0
+    yaw = start_yaw + np.cumsum(dyaw)
+    step = np.zeros((f, 2))
+    if f > 1:
+        step[1:] = rep.rotate_y(features[1:, :2], yaw[:-1])
+    ground = np.asarray(start_ground, float) + np.cumsum(step, axis=0)
+    root = np.stack([ground[:, 0], features[:, 3], ground[:, 1]], axis=-1)
+    return root, static_to_rotations(features[:, 4:], yaw, ref)
+
+
+def static_to_rotations(static_rot: np.ndarray, yaw: np.ndarray, ref: np.ndarray = rep.IDENTITY_REF) -> np.ndarray:
+    """(..., 63) tilt + body expmaps and yaw -> (..., 22, 4) local rotations."""
+    lead = static_rot.shape[:-1]
+    out = np.empty(lead + (rep.NUM_JOINTS, 4))
+    out[..., 0, :] = (0.0, 0.0, 0.0, 1.0)
+    out[..., 1:, :] = (rep._cached(ref)[0] @ rep.rotvec_to_quat(static_rot.reshape(*lead, 21, 3))[..., None])[..., 0]
+    c, s = np.cos(0.5 * yaw)[..., None], np.sin(0.5 * yaw)[..., None]
+    t = out[..., rep.HIPS, :]
+    # yaw_quat(yaw) * t, written out: (c*x + s*z, c*y + s*w, c*z - s*x, c*w - s*y)
+    out[..., rep.HIPS, :] = c * t + s * t[..., [2, 3, 0, 1]] * np.array([1.0, 1.0, -1.0, -1.0])
+    return out
+
+
 def offline(tr: StyleTranslator, motion, blend: bool = True, footlock: bool = True):
     """A whole `Motion` (BN skeleton) translated by `tr` and its stages in numpy, the stages its
     model has on (`LTIStyleModel._staged`). Returns (Motion, contacts (F, 2))."""
     feats = rep.motion_to_features(motion, tr.ref)
     out, xs = tr.translate_features(feats, blend)
     yaw0, _ = rep.split_hips(motion.rotations[0, rep.HIPS])
-    root, rots = rep.features_to_sequence(
+    root, rots = features_to_sequence(
         out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), tr.ref
     )
     if tr.prior_mean is not None and tr.prior_radii is not None:
