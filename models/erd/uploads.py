@@ -161,7 +161,7 @@ class ERDStyles(ClipStyles[Upload]):
                 raise StyleRejected(
                     "uploads_unavailable",
                     f"this server's Style-ERD weights lack {SOURCES_FILE} "
-                    "(`python -m models.erd.rotation_prior sources`)",
+                    "(`python -m models.erd fit --stages upload_sources`)",
                     unavailable=True,
                 )
             held = self._sources = Sources.load(path)
