@@ -35,7 +35,7 @@ def assert_lti_streams_as_offline(model, motion, style: str) -> None:
     numpy reference of the whole clip (`reference/lti_offline.py`: the same carries, in the same order)."""
     from .reference.lti_offline import offline
 
-    offline, _ = offline(model.translators[style], motion)
+    offline, _ = offline(model, style, motion)
     rots, roots = stream(model, motion, style)
     np.testing.assert_allclose(roots, offline.translations[:, HIPS], atol=1e-8)
     np.testing.assert_allclose(rots, offline.rotations, atol=1e-10)

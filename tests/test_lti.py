@@ -141,8 +141,7 @@ def test_streaming_equals_offline(footlock, keep_heading):
     model = LTIStyleModel(footlock=footlock, keep_heading=keep_heading)
     index, load_motion, select = _data()
     m = load_motion(select(index, style="normal", content="walk", split="val")[0])
-    tr = model.translators["elderly"]
-    offline, contacts = reference_offline(tr, m, footlock=footlock)
+    offline, contacts = reference_offline(model, "elderly", m, footlock=footlock)
     state, w = model.init_state(1), _one_hot(model, "elderly", 1)
     for t in range(m.num_frames):
         out, state = model.step_batch(state, FrameBatch(m.translations[t : t + 1, rep.HIPS], m.rotations[t : t + 1]), w)

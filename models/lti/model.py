@@ -92,8 +92,6 @@ class StyleTranslator:
     )
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
     raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`)
-    waving_arm: bool = True  # a waving hand's arm takes the input's swing (`waving_arm.py`); not stored
-    hinges: Hinges | None = None  # the rig's hinge joints held at their floor (the model's); not stored
 
     def __post_init__(self) -> None:
         n = self.A.shape[0]
@@ -265,12 +263,12 @@ class LTIStyleModel(LTIStyles):
         self._compile_step()
 
     def _staged(self, tr: StyleTranslator) -> StyleTranslator:
-        """`tr` with this model's stages: those that are off, off (a copy, then); `tr` itself else."""
+        """`tr` with this model's heading and without its stages that are off (a copy, then)."""
         if "rotation_prior" not in self.stages and tr.prior_mean is not None:
             tr = replace(tr, prior_mean=None, prior_radii=None)
         if not self.raised_arms and tr.raised_arm is not None:
             tr = replace(tr, raised_arm=None)
-        tr.keep_heading, tr.waving_arm, tr.hinges = self.keep_heading, self.waving_arms, self.hinges
+        tr.keep_heading = self.keep_heading
         return tr
 
     def _compile_step(self) -> None:

@@ -11,7 +11,7 @@ from numba import njit
 from models.lti import raised_arm
 from models.lti import representation as rep
 from models.lti.kernels import SHARE_FLOOR, eased
-from models.lti.model import HINT_SPEED, RAISE_EASE_S, LTIStyleModel, StyleTranslator, ease_keep
+from models.lti.model import HINT_SPEED, RAISE_EASE_S, LTIStyleModel, ease_keep
 from models.lti.waving_arm import MEAN_SHAPE, settings
 from models.lti.waving_kernels import WavingArm, swing_arms
 from models.motion.bn_skeleton import HIPS
@@ -128,25 +128,26 @@ def static_to_rotations(static_rot: np.ndarray, yaw: np.ndarray, ref: np.ndarray
     return out
 
 
-def offline(tr: StyleTranslator, motion, blend: bool = True, footlock: bool = True):
-    """A whole `Motion` (BN skeleton) translated by `tr` and its stages in numpy, the stages its
-    model has on (`LTIStyleModel._staged`). Returns (Motion, contacts (F, 2))."""
+def offline(model: LTIStyleModel, style: str, motion, footlock: bool = True):
+    """A whole `Motion` (BN skeleton) translated toward `style` by `model`'s translator and the
+    stages it has on, in numpy. Returns (Motion, contacts (F, 2))."""
+    tr = model.translators[style]
     feats = rep.motion_to_features(motion, tr.ref)
-    out, xs = tr.translate_features(feats, blend)
+    out, xs = tr.translate_features(feats, model.blend)
     yaw0, _ = rep.split_hips(motion.rotations[0, rep.HIPS])
     root, rots = features_to_sequence(
         out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), tr.ref
     )
     if tr.prior_mean is not None and tr.prior_radii is not None:
         rots = clamp_rotations(rots, tr.prior_mean, tr.prior_radii)
-    if tr.hinges is not None:
-        rots = floor_bends(rots, *kernel_floor(motion.skeleton, tr.hinges))
+    if model.hinges is not None:
+        rots = floor_bends(rots, *kernel_floor(motion.skeleton, model.hinges))
     offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
     swayed = clip_sway(offsets, motion.fps)
     if tr.raised_arm is not None:
         share = eased_shares(shares(offsets, swayed), ease_keep(LTIStyleModel.fps, RAISE_EASE_S))
         rots = carried(tr.raised_arm, rots, np.ones((len(rots), 1)), share)
-    if tr.waving_arm:
+    if model.waving_arms:
         mean, radii = tr.ball()
         rots = waving_clip(rots, motion.rotations, offsets, swayed, motion.fps, mean[None], radii[None])
     contacts = tr.footplant.predict(xs) if tr.footplant is not None else np.zeros((len(out), 2), bool)
