@@ -593,7 +593,7 @@ def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_head
         out[2] = feats[2, c]
     for d in range(4):
         root_feats[d] += w * out[d]
-    # body rotations (representation.static_to_rotations with yaw 0)
+    # body rotations (`tests/reference/lti_offline.static_to_rotations` with yaw 0)
     quats[0, 0], quats[0, 1], quats[0, 2], quats[0, 3] = 0.0, 0.0, 0.0, 1.0
     for j in range(1, NUM_JOINTS):
         q = qmul(quat_at(sys.ref, s, j), rotvec_to_quat((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
@@ -736,7 +736,7 @@ def calm_share(arm, height, sway):
 
 @njit(cache=True, error_model="numpy")
 def raised_shares(b, arm, on, raised, weights, offsets, swayed, fresh, before, after):
-    """Session b's share of each side's raised arm (`raised_arm.shares`: the hand's raise share
+    """Session b's share of each side's raised arm (the hand's raise share
     times one minus its wave share), eased over time (`ease`, from `before` (2, 2) into `after`):
     a hand swung up in a jump or a punch crosses the raise ramp in a frame or two. Below
     `SHARE_FLOOR` an eased share is 0 (it decays toward 0 and would never reach it)."""
@@ -753,7 +753,7 @@ def raised_shares(b, arm, on, raised, weights, offsets, swayed, fresh, before, a
 
 @njit(cache=True, error_model="numpy")
 def carry_raised_arms(b, arm, weights, left, right, out_rot, work):
-    """Session b's arms mixed toward the styles' raised arms (`raised_arm.carried`): each side
+    """Session b's arms mixed toward the styles' raised arms (`tests/reference/lti_offline.py`'s `carried`): each side
     by its share (`raised_shares`)."""
     total = 0.0
     for s in range(weights.shape[1]):

@@ -123,15 +123,3 @@ def swing_arms(b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets,
             q = _held(nlerp(a, t, share), j, weights, b, total, prior_mean, prior_radii)
             for c in range(4):
                 rot_out[b, j, c] = q[c]
-
-
-@njit(cache=True, error_model="numpy")
-def swing_batch(arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
-                prior_mean, prior_radii, swing, new_in_mean, new_out_mean):  # fmt: skip
-    """`swing_arms` for every session (the offline path, `waving_arm.clip`); `arm` a plain tuple."""
-    arm = WavingArm(*arm)
-    for b in range(rot_in.shape[0]):
-        swing_arms(
-            b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
-            prior_mean, prior_radii, swing, new_in_mean, new_out_mean,
-        )  # fmt: skip
