@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS
-from ..motion.quaternion import axis_angle, dot3, qdot, qinv, qmul, quat_at, qunit, qyaw, row3, wrap
+from ..motion.quaternion import axis_angle, dot3, qdot, qinv, qmul, qneg, quat_at, qunit, qyaw, row3, row4, wrap
 
 # --------------------------------------------------------------------------- small helpers
 
@@ -51,8 +51,8 @@ def features(rotations, pos, prev_pos, prev_yaw, has_prev, ref, facing, feet, le
             q = qunit(quat_at(rotations, f, b + 1))
             if b == 0:
                 q = qmul(unyaw, q)
-            if q[0] * ref[b, 0] + q[1] * ref[b, 1] + q[2] * ref[b, 2] + q[3] * ref[b, 3] < 0.0:
-                q = (-q[0], -q[1], -q[2], -q[3])
+            if qdot(q, row4(ref, b)) < 0.0:
+                q = qneg(q)
             out[f, 4 * b], out[f, 4 * b + 1], out[f, 4 * b + 2], out[f, 4 * b + 3] = q
         # positions in the facing frame (origin: Hips on the ground), velocities (backward difference)
         gx, gz = pos[f, HIPS, 0], pos[f, HIPS, 2]

@@ -47,7 +47,7 @@ from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
 from ..motion.novelty_kernels import fade_step
-from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qyaw, row3, row4, wrap
+from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qunit, qyaw, row3, row4, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
 from .waving_arm import MEAN_SHAPE
@@ -434,7 +434,7 @@ def rotate_y(x, z, yaw):
 @njit(cache=True, error_model="numpy")
 def add_signed(acc, w, q, ref):
     """acc + w * q, with q's sign flipped when it points away from ref (q and -q are one rotation)."""
-    sign = -w if q[0] * ref[0] + q[1] * ref[1] + q[2] * ref[2] + q[3] * ref[3] < 0.0 else w
+    sign = -w if qdot(q, ref) < 0.0 else w
     return (acc[0] + sign * q[0], acc[1] + sign * q[1], acc[2] + sign * q[2], acc[3] + sign * q[3])
 
 
@@ -674,8 +674,7 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
             for s in range(S):
                 if weights[b, s] > 0.0:
                     acc = add_signed(acc, weights[b, s], quat_at(quats, s, j), q_base)
-            norm = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
-            q = (acc[0] / norm, acc[1] / norm, acc[2] / norm, acc[3] / norm)
+            q = qunit(acc)
             if j == HIPS:
                 q = qmul(qyaw(yaw if fresh else before.out_yaw[b] + rf[2]), q)
             out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = q
