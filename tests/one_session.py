@@ -32,8 +32,10 @@ def stream(model, motion, style: str) -> tuple[np.ndarray, np.ndarray]:
 
 def assert_lti_streams_as_offline(model, motion, style: str) -> None:
     """An `LTIStyleModel`'s stream, frame by frame, equals its translator's offline
-    `translate_motion` of the whole clip (the same carries, in the same order)."""
-    offline, _ = model.translators[style].translate_motion(motion)
+    numpy reference of the whole clip (`reference/lti_offline.py`: the same carries, in the same order)."""
+    from .reference.lti_offline import offline
+
+    offline, _ = offline(model, style, motion)
     rots, roots = stream(model, motion, style)
     np.testing.assert_allclose(roots, offline.translations[:, HIPS], atol=1e-8)
     np.testing.assert_allclose(rots, offline.rotations, atol=1e-10)

@@ -94,11 +94,11 @@ def test_stream_equals_whole_window(model, walks):
     w = _onehot(model, "elderly")
     streamed = model.stylise_stream(motion, w, content="walk", input_style="normal")
     gen = model.torch_generator()
-    whole = stylise(gen, model.maker, motion, w, style_in=0, content=CONTENTS.index("walk"), stages=model.stages)
+    whole = stylise(gen, model.maker, motion, w, style_in=0, content=CONTENTS.index("walk"), model=model)
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
     np.testing.assert_allclose(streamed.translations, whole.translations, atol=2e-2)  # cm; float32 torch
     streamed = model.stylise_stream(motion, w)  # unlabelled
-    whole = stylise(gen, model.maker, motion, w, stages=model.stages)
+    whole = stylise(gen, model.maker, motion, w, model=model)
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
 
 
@@ -281,17 +281,30 @@ def test_a_state_saved_before_the_averaged_gait_speed_still_steps(model, walks):
 
 
 def test_a_state_saved_before_the_slow_copies_still_steps(model, walks):
-    """Snapshots from a replica before `slow_in` / `slow_out` (`slow_carry.py`): unset copies
+    """Snapshots from a replica before the priors' slow copies (`slow_carry.py`): unset copies
     (zeros) that start again from the next frame, the rest of the state kept."""
     motion, w, state = _five_frames_in(model, walks[0])
     frame = FrameBatch(motion.translations[5:6, 1], motion.rotations[5:6])
-    old = {k: v for k, v in state.items() if not k.startswith("slow_")}
+    slow = ("leaf_prior/slow", "output_prior/slow")
+    old = {k: v for k, v in state.items() if k not in slow}
     up = model.upgrade_state(old)
-    assert not up["slow_in"].any() and not up["slow_out"].any()
+    assert not up[slow[0]].any() and not up[slow[1]].any()
     assert all(np.array_equal(up[k], v) for k, v in old.items())
     _, after = model.step_batch(up, frame, w)
     np.testing.assert_allclose(
-        after["slow_in"][0],
+        after[slow[0]][0],
         motion.rotations[5] / np.linalg.norm(motion.rotations[5], axis=-1, keepdims=True),
         atol=1e-12,
     )
+
+
+def test_a_state_from_before_the_stage_pipeline_keeps_its_slow_copies(model, walks):
+    """Snapshots from a replica that kept the slow copies as `slow_in` / `slow_out` step on as the
+    state they are."""
+    motion, w, state = _five_frames_in(model, walks[0])
+    frame = FrameBatch(motion.translations[5:6, 1], motion.rotations[5:6])
+    old = {k: v for k, v in state.items() if "/" not in k}
+    old.update(slow_in=state["leaf_prior/slow"], slow_out=state["output_prior/slow"])
+    want, _ = model.step_batch(state, frame, w)
+    got, _ = model.step_batch(model.upgrade_state(old), frame, w)
+    np.testing.assert_array_equal(got.rotations, want.rotations)

@@ -4,7 +4,6 @@ is decoded with them."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,6 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from models.erd.dataset import STYLES, TARGET_STYLES  # noqa: E402 (after the torch check)
-from models.erd.stages import ErdStages  # noqa: E402
 from models.motion.rotations import quat_angle  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,7 +49,7 @@ def test_targets_are_the_shipped_pipelines_rotations(model, clips):
     gen = model.torch_generator().eval()
     for s in (1, 4):
         w = np.eye(len(TARGET_STYLES))[s]
-        want = stylise(gen, model.maker, motion, w, foot_lock=False, stages=model.stages).rotations
+        want = stylise(gen, model.maker, motion, w, foot_lock=False, model=model).rotations
         assert np.degrees(quat_angle(got[s][:, 1:], want[:, 2:])).max() < 1e-3  # below the Hips
         assert np.degrees(quat_angle(got[s][:, 0], want[:, 1])).mean() > 1e-3  # the Hips lose their heading
 
@@ -65,10 +63,14 @@ def test_network_twists_decode_the_decoders_leaves(model, clips):
     decoded = transfer_twist(motion.skeleton, rot_in, rot_in)  # then turned: every joint off the input
     decoded = decoded * np.array([1.0, 1.0, 1.0, 3.0])
     decoded /= np.linalg.norm(decoded, axis=-1, keepdims=True)
-    core = replace(ErdStages.load(WEIGHTS, model.skeleton, core_only=True), network_twists=False)
-    args = (np.zeros((1, 22, 4)), np.zeros((1, 22, 4)), np.ones((1, 6)) / 6, np.zeros(1))
-    inputs = core(model.skeleton, rot_in, decoded, *args)[0]
-    own = replace(core, network_twists=True)(model.skeleton, rot_in, decoded, *args)[0]
+    from models.erd.runtime import load
+
+    core = load(WEIGHTS, core_only=True)
+    args = (core.stages.init_state(1), rot_in, decoded, np.ones((1, 6)) / 6, np.zeros(1))
+    core.network_twists = False
+    inputs = core.stage_batch(*args)[0]
+    core.network_twists = True
+    own = core.stage_batch(*args)[0]
     hand = model.skeleton.index("Hand_L")
     assert quat_angle(inputs[0, hand], rot_in[0, hand]) < 1e-9
     assert quat_angle(own[0, hand], decoded[0, hand]) < 1e-9

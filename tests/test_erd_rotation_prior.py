@@ -5,17 +5,19 @@ when no style is asked for."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from models.erd.slow_carry import carry_slow
 from models.interface import FrameBatch
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
 
 from .clips import streamed_rotations
 from .reference import erd_carry
+from .reference.erd_carry import carry_by_gait
+from .reference.erd_carry import compiled_carry_slow as carry_slow
 from .reference.style_carry import mixed_with
 
 REPO = Path(__file__).resolve().parents[1]
@@ -48,6 +50,12 @@ def _apart(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.minimum(np.linalg.norm(a - b, axis=-1), np.linalg.norm(a + b, axis=-1))
 
 
+def _prior(model, which: str):
+    """A committed prior's carry (`StyleCarry`) by name, `run_` before it: the stage's run prior."""
+    stage = getattr(model.stages, which.removeprefix("run_"))
+    return None if stage is None else stage.run if which.startswith("run_") else stage.carry
+
+
 def _onehot(model, style: str, scale: float = 1.0) -> np.ndarray:
     w = np.zeros(len(model.styles()))
     w[model.styles().index(style)] = scale
@@ -68,7 +76,7 @@ def _carry(model, which: str, rot: np.ndarray, w: np.ndarray) -> np.ndarray:
     """The prior as the step applies it: the output prior reads the Hips without their heading."""
     from models.motion.bn_skeleton import HIPS
 
-    prior = getattr(model.stages, which)
+    prior = _prior(model, which)
     return prior(rot, w, hips=HIPS) if which == "output_prior" else prior(rot, w)
 
 
@@ -82,7 +90,7 @@ def _compared(which: str, rot: np.ndarray) -> np.ndarray:
 def test_no_style_changes_nothing_and_a_style_stays_in_its_real_range(model, neutral, which):
     from models.motion.rotation_ball import split_heading
 
-    prior = getattr(model.stages, which)
+    prior = _prior(model, which)
     if prior is None:
         pytest.skip(f"no {which} committed")
     rot = np.concatenate([m.rotations for m in neutral])
@@ -116,7 +124,7 @@ def test_no_style_changes_nothing_and_a_style_stays_in_its_real_range(model, neu
 def test_a_batch_carries_each_row_as_alone(model, neutral):
     """Rows with different styles, mixes and no style in one batch: each as if alone, and as
     the numpy reference computes it."""
-    prior = model.stages.output_prior or model.stages.leaf_prior
+    prior = _prior(model, "output_prior") or _prior(model, "leaf_prior")
     rot = neutral[0].rotations[:5]
     w = np.zeros((5, 6))
     w[0, 1], w[1, 3], w[2, [0, 4]], w[3, 5] = 1.0, 1.5, 0.5, 1.0
@@ -128,11 +136,11 @@ def test_a_batch_carries_each_row_as_alone(model, neutral):
     # and keeps each quaternion on its input's side (a stream's quaternions never flip sign),
     # plain styles (rows 0 and 3, taken without the blend's round trip) as well as the rest
     assert np.all(np.sum(batch * rot, axis=-1) > 0)
-    if model.stages.output_prior is not None:
+    if _prior(model, "output_prior") is not None:
         from models.motion.bn_skeleton import HIPS
 
-        compiled = model.stages.output_prior(rot, w, hips=HIPS)
-        assert np.all(_apart(compiled, erd_carry.carry_output(model.stages.output_prior, rot, w)) < 1e-9)
+        compiled = _prior(model, "output_prior")(rot, w, hips=HIPS)
+        assert np.all(_apart(compiled, erd_carry.carry_output(_prior(model, "output_prior"), rot, w)) < 1e-9)
 
 
 def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
@@ -164,7 +172,9 @@ def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
                 runs[tag].append(out)
     finally:
         model.stages = saved
-    source = erd_carry.clip_carry_slow(saved.leaf_prior, None, motion.rotations[:30], np.tile(w, (30, 1)), np.zeros(30))
+    source = erd_carry.clip_carry_slow(
+        saved.leaf_prior.carry, None, motion.rotations[:30], np.tile(w, (30, 1)), np.zeros(30)
+    )
     for t in range(30):
         src = source[t : t + 1]
         assert np.all(_apart(runs["leaf"][t].rotations[0, leaves], src[0, leaves]) < 1e-7)
@@ -173,7 +183,7 @@ def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
 
 @pytest.mark.parametrize("which", ["leaf_prior", "output_prior"])
 def test_committed_prior_is_well_formed(model, which):
-    prior = getattr(model.stages, which)
+    prior = _prior(model, which)
     if prior is None:
         pytest.skip(f"no {which} committed")
     S, J = len(model.styles()), model.skeleton.num_joints
@@ -202,7 +212,7 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     from models.erd.features import FPS
     from models.erd.gait import clip_smoothed_speed, run_share
 
-    if model.stages.run_output_prior is None:
+    if _prior(model, "run_output_prior") is None:
         pytest.skip("no run priors committed")
 
     def share_of(motion):
@@ -216,7 +226,8 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     saved = model.stages
     with_runs = {"run": streamed_rotations(model, run, w), "walk": streamed_rotations(model, walk, w)}
     try:
-        model.stages = saved.without("run_leaf_prior", "run_output_prior")
+        walking = {k: replace(getattr(saved, k), run=None) for k in ("leaf_prior", "output_prior")}
+        model.stages = saved.replace(**walking)
         without = {"run": streamed_rotations(model, run, w), "walk": streamed_rotations(model, walk, w)}
     finally:
         model.stages = saved
@@ -231,7 +242,7 @@ def test_a_stream_that_starts_mid_run_eases_into_the_run_priors(model, run):
     between its first and second frame (toward feminine), and are whole once it is under way."""
     from models.erd.gait import START_FRAMES, eased_in
 
-    if model.stages.run_output_prior is None:
+    if _prior(model, "run_output_prior") is None:
         pytest.skip("no run priors committed")
     head = model.skeleton.index("Head")
     out = streamed_rotations(model, run.slice(0, 2 * START_FRAMES), _onehot(model, "feminine"))
@@ -261,19 +272,18 @@ def test_a_runs_share_of_the_run_priors_does_not_swing_within_its_steps(model, r
 def test_run_frames_stay_inside_the_styles_whole_real_range(model, run):
     """The run priors carry toward the style's real runs, then clamp into the range the
     all-content prior keeps every frame in: no running row leaves it."""
-    from models.erd.gait import carry_by_gait
     from models.motion.bn_skeleton import HIPS
     from models.motion.rotation_ball import comparable
 
-    if model.stages.run_output_prior is None:
+    if _prior(model, "run_output_prior") is None:
         pytest.skip("no run priors committed")
     rot = run.rotations[:40]
     for k, style in enumerate(model.styles()):
         w = np.tile(_onehot(model, style), (len(rot), 1))
         out = carry_by_gait(
-            model.stages.output_prior, model.stages.run_output_prior, rot, w, np.ones(len(rot)), hips=HIPS
+            _prior(model, "output_prior"), _prior(model, "run_output_prior"), rot, w, np.ones(len(rot)), hips=HIPS
         )
-        bounds = model.stages.output_prior
+        bounds = _prior(model, "output_prior")
         angle = quat_angle(quat_mul(quat_inv(bounds.mean[k])[None], comparable(out)), np.array([0.0, 0, 0, 1]))
         assert np.all(angle <= bounds.radius[k][None] + 1e-6), style
 
@@ -301,13 +311,13 @@ def test_the_gait_mix_compiled_is_its_numpy_reference(model, run):
     """`StyleCarry.mixed_with`: the all-content prior and the clamped run prior mixed by each
     row's share in one compiled pass, as the numpy reference computes it; share 0 is the
     all-content prior alone, exactly."""
-    if model.stages.run_output_prior is None:
+    if _prior(model, "run_output_prior") is None:
         pytest.skip("no run priors committed")
     rot = run.rotations[:20]
     w = np.zeros((20, 6))
     w[:10, 2], w[10:, [1, 4]] = 1.0, 0.5  # plain rows and mixed rows
     share = np.tile([0.0, 0.3, 1.0, 0.7], 5)
-    other, ran = model.stages.leaf_prior, model.stages.run_leaf_prior
+    other, ran = _prior(model, "leaf_prior"), _prior(model, "run_leaf_prior")
     compiled = other.mixed_with(ran, other.bounds, rot, w, share)
     assert np.all(_apart(compiled, mixed_with(other, ran, other.bounds, rot, w, share)) < 1e-9)
     walking = share == 0.0
@@ -316,15 +326,14 @@ def test_the_gait_mix_compiled_is_its_numpy_reference(model, run):
 
 def test_a_held_pose_is_carried_as_the_prior_carries_it(model, neutral):
     """Slow part = the pose itself: the output prior's carry, unchanged by `slow_carry`."""
-    from models.erd.gait import carry_by_gait
     from models.motion.bn_skeleton import HIPS
 
     q = neutral[0].rotations[:8]
     w = np.tile(_onehot(model, "feminine"), (len(q), 1))
     share = np.zeros(len(q))
-    slowly, slow = carry_slow(model.stages.output_prior, None, q, q, w, share, hips=HIPS)
+    slowly, slow = carry_slow(_prior(model, "output_prior"), None, q, q, w, share, hips=HIPS)
     assert np.all(_apart(slow, q) < 1e-12)
-    assert np.all(_apart(slowly, carry_by_gait(model.stages.output_prior, None, q, w, share, hips=HIPS)) < 1e-9)
+    assert np.all(_apart(slowly, carry_by_gait(_prior(model, "output_prior"), None, q, w, share, hips=HIPS)) < 1e-9)
 
 
 def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
@@ -332,13 +341,12 @@ def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
     the prior's gain g toward feminine (above 1 on the head); carried slowly, only the slow copy's
     share of it (SLOW_WEIGHT) is carried with the gain, the rest passes at most as it came:
     about SLOW_WEIGHT g + (1 - SLOW_WEIGHT) times the flick instead of g times."""
-    from models.erd.gait import carry_by_gait
     from models.erd.slow_carry import SLOW_WEIGHT
     from models.motion.bn_skeleton import HIPS
     from models.motion.rotations import quat_exp
 
     head = model.skeleton.index("Head")
-    prior, w = model.stages.output_prior, _onehot(model, "feminine")[None]
+    prior, w = _prior(model, "output_prior"), _onehot(model, "feminine")[None]
     gains, axes = np.linalg.eigh(prior.map[model.styles().index("feminine"), head])
     assert gains[-1] > 1.2
     pose = neutral[0].rotations[:1]
@@ -370,8 +378,8 @@ def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
     slow = np.roll(q, 1, axis=0) + 0.05 * rng.normal(size=q.shape)
     slow[::7] = 0.0  # unset rows start at q
     for other, run, hips in (
-        (model.stages.leaf_prior, model.stages.run_leaf_prior, -1),
-        (model.stages.output_prior, model.stages.run_output_prior, HIPS),
+        (_prior(model, "leaf_prior"), _prior(model, "run_leaf_prior"), -1),
+        (_prior(model, "output_prior"), _prior(model, "run_output_prior"), HIPS),
     ):
         got, got_slow = carry_slow(other, run, q, slow, w, share, hips=hips)
         want, want_slow = erd_carry.carry_slow(other, run, q, slow, w, share, hips=hips)
@@ -385,7 +393,7 @@ def test_a_raise_up_streamed_equals_the_whole_clip(model, neutral):
     from models.erd.offline import stylise
 
     motion, w = neutral[2], _onehot(model, "elderly")
-    whole = stylise(model.torch_generator(), model.maker, motion, w, stages=model.stages)
+    whole = stylise(model.torch_generator(), model.maker, motion, w, model=model)
     np.testing.assert_allclose(model.stylise_stream(motion, w).rotations, whole.rotations, atol=2e-4)
 
 
@@ -419,5 +427,6 @@ def test_the_compiled_twist_range_is_its_numpy_reference(model):
     w = np.zeros((40, len(model.styles())))
     w[:20, 4] = 1.0  # one style
     w[20:30, 1], w[20:30, 3] = 0.6, 0.3  # a mix below full weight; the last 10 rows: no style
-    got, want = model.stages.twist_range(q, w), erd_carry.twist_clamp(model.stages.twist_range, q, w)
+    ranges = model.stages.twist_range
+    got, want = erd_carry.twist_stage(ranges, q, w), erd_carry.twist_clamp(ranges, q, w)
     assert _apart(got, want).max() < 1e-9

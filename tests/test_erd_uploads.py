@@ -117,7 +117,7 @@ def test_upload_stages_refit_from_the_stored_sources_reproduce_the_trained_ones(
     real = real_rotations()
     for s in (0, 3):
         refit = carry_to(model.sources.of("leaf_prior", s), real[s + 1], FIXED)
-        for fitted, committed in zip(refit.arrays, model.built_in.stages.leaf_prior.arrays):
+        for fitted, committed in zip(refit.arrays, model.built_in.stages.leaf_prior.carry.arrays):
             np.testing.assert_allclose(fitted[0], committed[s], atol=1e-5)
 
 

@@ -9,13 +9,11 @@ from models.motion.hands import (
     RAISE_RAMP_CM,
     HandMeter,
     calm_frames,
-    clip_rise,
     clip_sway,
     hand_offsets,
-    hand_offsets_of,
-    raised_frames,
     wave_share,
 )
+from tests.reference.hands import clip_rise, hand_offsets_of, raised_frames
 
 STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it, not above
 

@@ -8,10 +8,11 @@ import pytest
 
 from models.lpn.runtime import LPNModel
 from models.motion.feet import LEGS
-from models.motion.rotation_ball import clamp_rotations, comparable
+from models.motion.rotation_ball import comparable
 from models.motion.rotation_ball_kernels import clamp_mixed
 from models.motion.rotations import quat_angle
 from models.settings import get_settings
+from tests.reference.rotation_ball import clamp_rotations
 
 
 @pytest.fixture(scope="module")

@@ -20,6 +20,8 @@ from models.lti.subspace import (
 from models.lti.warping import imw, time_warp_dp
 from models.motion.rotations import yaw_quat
 
+from .reference.lti_offline import features_to_sequence, static_to_rotations
+from .reference.lti_offline import offline as reference_offline
 from .reference.lti_subspace import simulate
 
 
@@ -125,7 +127,7 @@ def test_representation_roundtrip():
     # relative to the reference no joint comes near the expmap's wrap-around at pi
     assert np.linalg.norm(f[:, 4:].reshape(len(f), 21, 3), axis=-1).max() < 2.5
     yaw0, _ = rep.split_hips(m.rotations[0, rep.HIPS])
-    root, rots = rep.features_to_sequence(f, m.translations[0, rep.HIPS, [0, 2]], float(yaw0), ref)
+    root, rots = features_to_sequence(f, m.translations[0, rep.HIPS, [0, 2]], float(yaw0), ref)
     np.testing.assert_allclose(root, m.translations[:, rep.HIPS], atol=1e-8)
     np.testing.assert_allclose(np.abs(np.sum(rots * m.rotations, -1)), 1.0, atol=1e-10)
 
@@ -139,8 +141,7 @@ def test_streaming_equals_offline(footlock, keep_heading):
     model = LTIStyleModel(footlock=footlock, keep_heading=keep_heading)
     index, load_motion, select = _data()
     m = load_motion(select(index, style="normal", content="walk", split="val")[0])
-    tr = model.translators["elderly"]
-    offline, contacts = tr.translate_motion(m, timewarp=False, footlock=footlock)
+    offline, contacts = reference_offline(model, "elderly", m, footlock=footlock)
     state, w = model.init_state(1), _one_hot(model, "elderly", 1)
     for t in range(m.num_frames):
         out, state = model.step_batch(state, FrameBatch(m.translations[t : t + 1, rep.HIPS], m.rotations[t : t + 1]), w)
@@ -179,8 +180,8 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
     integrated from the input's first frame."""
     from models.motion.hinge import kernel_floor
     from models.motion.hinge_kernels import floor_bends
-    from models.motion.rotation_ball import clamp_rotations
     from models.motion.rotations import quat_mul
+    from tests.reference.rotation_ball import clamp_rotations
 
     root, rots, F = motion.translations[:, rep.HIPS], motion.rotations, motion.num_frames
     yaw, tilt = rep.split_hips(rots[:, rep.HIPS])
@@ -194,7 +195,7 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
             tr = model.translators[style]
             out, xs = tr.translate_features(rep.motion_to_features(motion, tr.ref))
             root_feats += w[s] * out[:, :4]
-            body = rep.static_to_rotations(out[:, 4 : rep.FEATURE_DIM], np.zeros(F), tr.ref)
+            body = static_to_rotations(out[:, 4 : rep.FEATURE_DIM], np.zeros(F), tr.ref)
             body = clamp_rotations(body, tr.prior_mean, tr.prior_radii)  # each style's prior
             if model.hinges is not None:  # then its hinge joints held at their floor
                 body = floor_bends(body, *kernel_floor(motion.skeleton, model.hinges))
@@ -394,7 +395,7 @@ def test_offline_timewarp_follows_predicted_rate():
     tr = model.translators["elderly"]
     out, _ = tr.translate_features(rep.motion_to_features(m, tr.ref))
     expected = 1 + np.exp(out[1:, rep.FEATURE_DIM]).sum()
-    warped, contacts = tr.translate_motion(m, timewarp=True)
+    warped, contacts = model.translate(m, "elderly", timewarp=True)
     assert abs(warped.num_frames - expected) <= 1.0
     assert len(contacts) == warped.num_frames
     np.testing.assert_allclose(np.linalg.norm(warped.rotations, axis=-1), 1.0, atol=1e-9)

@@ -9,9 +9,10 @@ import pytest
 from models.eval.plausibility import RotationReference
 from models.lti.model import WEIGHTS_DIR, LTIStyleModel
 from models.lti.representation import HIPS
-from models.motion.rotation_ball import clamp_rotations, comparable, fit_prior, saturate
+from models.motion.rotation_ball import comparable, fit_prior
 from models.motion.rotation_ball_kernels import clamp_joint
 from models.motion.rotations import quat_angle, quat_mul, yaw_quat
+from tests.reference.rotation_ball import clamp_rotations, saturate
 
 
 @pytest.fixture(scope="module")

@@ -15,13 +15,14 @@ from models.motion.rotations import quat_angle
 
 from .lti_reference import carry_entry, unpacked
 from .one_session import assert_lti_streams_as_offline, contents_read, stream, val_motions
+from .reference.lti_offline import shares
 
 pytestmark = pytest.mark.skipif(not (WEIGHTS_DIR / raised_arm.FILE).exists(), reason="LTI raised arm not committed")
 
 
 @pytest.fixture(scope="module")
 def models() -> tuple[LTIStyleModel, LTIStyleModel]:
-    return LTIStyleModel(), LTIStyleModel(raised_arms=False)
+    return LTIStyleModel(), LTIStyleModel(off=("raised_arm",))
 
 
 def test_only_the_raised_calm_arm_moves_and_only_while_it_is_up(models, index):
@@ -30,7 +31,7 @@ def test_only_the_raised_calm_arm_moves_and_only_while_it_is_up(models, index):
     on, off = models
     motion = val_motions(index, "raise-up-left-hand")[0]
     pos = motion.global_positions()
-    share = raised_arm.shares(hand_offsets(pos), clip_sway(hand_offsets(pos), motion.fps))
+    share = shares(hand_offsets(pos), clip_sway(hand_offsets(pos), motion.fps))
     got, before = stream(on, motion, "youthful")[0], stream(off, motion, "youthful")[0]
     moved = np.degrees(quat_angle(got, before))
     arm = [on.skeleton.index(f"{j}_L") for j in raised_arm.ARM_JOINTS]
@@ -43,7 +44,7 @@ def test_only_the_raised_calm_arm_moves_and_only_while_it_is_up(models, index):
 
 
 def test_a_raise_up_streamed_equals_the_offline_path(models, index):
-    """`StyleTranslator.translate_motion` carries the raised arm as the stream does, frame by frame."""
+    """The numpy reference (`reference/lti_offline.py`) carries the raised arm as the stream does, frame by frame."""
     on, _ = models
     assert_lti_streams_as_offline(on, val_motions(index, "raise-up-right-hand")[0], "feminine")
 

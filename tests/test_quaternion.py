@@ -44,3 +44,17 @@ def test_between_carries_u_onto_v_including_opposite_directions():
         assert np.allclose(Q.qrot(q, tuple(a)), b)
         opposite = Q.between(tuple(a), tuple(-a))
         assert np.allclose(Q.qrot(opposite, tuple(a)), -a)
+
+
+def test_yaw_turns_about_up_and_nlerp_takes_the_shorter_arc():
+    for yaw in RNG.uniform(-np.pi, np.pi, 20):
+        expect = Rotation.from_rotvec([0.0, yaw, 0.0]).as_quat()
+        assert np.allclose(Q.qyaw(yaw), expect)
+    a, b = _random_quats(20), _random_quats(20)
+    for p, q in zip(a, b):
+        # t and -t are one rotation: nlerp blends toward whichever lies on a's hemisphere
+        for t in (q, -q):
+            mid = np.array(Q.nlerp(tuple(p), tuple(t), 0.5))
+            near = q if np.dot(p, q) >= 0.0 else -q
+            assert np.allclose(mid, (p + near) / np.linalg.norm(p + near))
+        assert np.allclose(Q.nlerp(tuple(p), tuple(q), 0.0), p)

@@ -20,6 +20,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 STAGE_MODULES = (
+    "models/erd/stages.py",
     "models/erd/rotation_prior.py",
     "models/erd/slow_carry.py",
     "models/erd/twist_range.py",

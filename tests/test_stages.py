@@ -163,3 +163,90 @@ def test_a_setting_switches_an_lpn_stage_off_at_load(monkeypatch):
     finally:
         monkeypatch.delenv("STYLESTREAM_STAGES_OFF")
         get_settings.cache_clear()
+
+
+def test_erd_declares_each_stage_with_its_fit_and_a_setting_switches_one_off(bn_skeleton, monkeypatch):
+    """Style-ERD's stages load from their committed files in the declared order, the core has
+    none, and `STYLESTREAM_STAGES_OFF='["erd.leaf_prior"]'` loads the model without its leaf prior."""
+    from models.erd import load
+    from models.erd.stages import STAGES
+    from models.settings import get_settings
+
+    folder = get_settings().weights_dir / "erd"
+    full = Pipeline.load(STAGES, folder, bn_skeleton)
+    assert [k for k, _ in full.stages] == [s.name for s in STAGES]
+    for spec in STAGES:
+        assert callable(spec.fit), spec.name
+        stage = getattr(full, spec.name)
+        assert (stage is not None) == (folder / spec.file).exists(), spec.name
+        assert stage is None or isinstance(stage, Stage), spec.name
+    assert all(s is None for _, s in load(folder, core_only=True).stages.stages)
+    monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["erd.leaf_prior", "lpn.carriage"]')
+    get_settings.cache_clear()
+    try:
+        model = load(folder)
+        assert model.stages.leaf_prior is None and model.stages.output_prior is not None
+        assert not any(k.startswith("leaf_prior/") for k in model.init_state(1))
+        monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["erd.no_such_stage"]')
+        get_settings.cache_clear()
+        with pytest.raises(KeyError):
+            load(folder)
+    finally:
+        monkeypatch.delenv("STYLESTREAM_STAGES_OFF")
+        get_settings.cache_clear()
+
+
+def test_the_erd_fit_command_refits_one_stage_for_one_style_and_keeps_the_others(tmp_path, monkeypatch):
+    """`python -m models.erd fit --stages twist_range active` on a copy of the weights: the file
+    keeps every other style's rows bit for bit, active's are refitted from its real frames."""
+    import shutil
+
+    from models.erd.__main__ import main
+    from models.erd.dataset import cache_dir
+    from models.erd.stages import STAGES
+    from models.settings import get_settings
+
+    if not (cache_dir() / "train.npz").exists():
+        pytest.skip("Style-ERD feature cache not built")
+    folder = get_settings().weights_dir / "erd"
+    spec = next(s for s in STAGES if s.name == "twist_range")
+    shutil.copytree(folder, tmp_path / "erd")
+    with np.load(folder / spec.file) as z:  # another style's rows, to see the refit replace them
+        np.savez(tmp_path / "erd" / spec.file, **{k: z[k][::-1] if k in ("mean", "lo", "hi") else z[k] for k in z})
+    monkeypatch.setenv("STYLESTREAM_WEIGHTS_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    try:
+        main(["fit", "--stages", "twist_range", "active"])
+    finally:
+        get_settings.cache_clear()
+    skeleton = bandai_namco_skeleton()
+    before, after = spec.load(folder / spec.file, skeleton), spec.load(tmp_path / "erd" / spec.file, skeleton)
+    k = before.styles.index("active")
+    for name in ("mean", "lo", "hi"):
+        np.testing.assert_array_equal(getattr(after, name)[k], getattr(before, name)[k])
+        others = [j for j in range(len(before.styles)) if j != k]
+        np.testing.assert_array_equal(getattr(after, name)[others], getattr(before, name)[::-1][others])
+
+
+def test_lti_declares_its_stages_and_each_switches_off_in_both_paths(monkeypatch):
+    """LTI's stages (`models.lti.STAGES`) are on by default, all off for the core alone, and
+    `STYLESTREAM_STAGES_OFF` switches one off at load; a translator of a model without the
+    rotation prior or the raised arm has none either, so the offline path runs what the stream runs."""
+    from models.lti import STAGES, load
+    from models.settings import get_settings
+
+    assert load().stages == STAGES and load(core_only=True).stages == ()
+    monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lti.rotation_prior", "lti.raised_arm", "erd.leaf_prior"]')
+    get_settings.cache_clear()
+    try:
+        model = load()
+        assert model.stages == ("hinge_floor", "waving_arm") and not model.raised_arms
+        assert all(t.prior_mean is None and t.raised_arm is None for t in model.translators.values())
+        assert load(core_only=True).hinges is None
+        monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lti.no_such_stage"]')
+        get_settings.cache_clear()
+        with pytest.raises(KeyError):
+            load()
+    finally:
+        monkeypatch.delenv("STYLESTREAM_STAGES_OFF")
+        get_settings.cache_clear()

@@ -5,11 +5,15 @@ the streaming model (runtime.ERDModel) that the service's registry offers as met
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .runtime import ERDModel
 
 WEIGHTS_SUBDIR = "erd"
 
 
-def load(weights_dir: Path, core_only: bool = False):
+def load(weights_dir: Path, core_only: bool = False) -> ERDModel:
     """The committed model; `core_only`: the published core alone (`runtime.load`)."""
     from .runtime import load as _load
 

@@ -1,5 +1,6 @@
 """Style-ERD command line.
 
+.venv/bin/python -m models.erd fit [STYLE ...] [--stages leaf_prior,...]            # refit the decoding's hinges and the stages
 .venv/bin/python -m models.erd render [--styles elderly,exhausted] [--content walk]   # out/erd/*.png|gif
 .venv/bin/python -m models.erd bench [--threads 1 2] [--json]                       # step time, batch 1 and 256
 """
@@ -8,20 +9,27 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..interface import FrameBatch
 from ..settings import REPO_ROOT, get_settings
 
+if TYPE_CHECKING:
+    from .runtime import ERDModel
 
-def _model():
+HINGES, SOURCES = "hinges", "upload_sources"  # `fit`'s steps besides the stages: the decoding's, uploads'
+
+
+def _model() -> ERDModel:
     from . import load
 
     return load(get_settings().weights_dir / "erd")
 
 
-def render(args) -> None:
+def render(args: argparse.Namespace) -> None:
     from ..data import build_index, load_motions, select
     from ..motion.render import render_contact_sheet, render_gif
 
@@ -69,7 +77,7 @@ def render(args) -> None:
         )
 
 
-def bench(args) -> None:
+def bench(args: argparse.Namespace) -> None:
     """Per-frame cost of `step_batch` at batch 1 and 256 with the threads capped (1 = as the
     service runs), for the network in float32 (served) and float64 (the reference). Floor: the
     network's matrix products alone in numpy (see models/stepbench.py)."""
@@ -102,7 +110,48 @@ def bench(args) -> None:
         print(json.dumps(results, indent=1))
 
 
-def _matmul_floor(model, B: int):
+def fit(args: argparse.Namespace) -> None:
+    """Refit, in this order, the decoding's hinges (`HINGES`), the declared stages
+    (`stages.STAGES`) and what an upload's stages carry from (`SOURCES`), or the ones named in
+    `--stages`; each from real clips on the committed model as it is then (a fit switches off the
+    stages it must not see). Named styles only: a stage's file keeps its other styles. A stage
+    fitted on the output of one refitted before it must be refitted too (the default does all)."""
+    import time
+
+    import torch
+
+    from .runtime import load
+    from .stages import STAGES
+
+    torch.set_num_threads(1)
+    folder = get_settings().weights_dir / "erd"
+    fits = [HINGES, *(s.name for s in STAGES), SOURCES]
+    names = args.stages.split(",") if args.stages else fits
+    if set(names) - set(fits):
+        raise SystemExit(f"unknown stages {sorted(set(names) - set(fits))}; declared: {fits}")
+    for name in (n for n in fits if n in names):
+        t0 = time.time()
+        if name == HINGES:
+            from ..motion.assets import bandai_namco_skeleton
+            from ..motion.hinge import HINGE_FILE
+            from .dataset import load_split, split_hinges
+
+            path = split_hinges(load_split("train"), bandai_namco_skeleton()).save(folder / HINGE_FILE)
+        elif name == SOURCES:
+            from .upload_stages import SOURCES_FILE, fit_sources
+
+            path = fit_sources(load(folder)).save(folder / SOURCES_FILE)
+        else:
+            spec = next(s for s in STAGES if s.name == name)
+            model = load(folder)
+            stage = spec.fit(model, args.styles or None)
+            if args.styles and (folder / spec.file).exists() and hasattr(stage, "with_styles_of"):
+                stage = spec.load(folder / spec.file, model.skeleton).with_styles_of(stage)  # type: ignore[attr-defined]
+            path = stage.save(folder / spec.file)
+        print(f"{name}: wrote {path} in {time.time() - t0:.0f} s", flush=True)
+
+
+def _matmul_floor(model: ERDModel, B: int) -> Callable[[], None]:
     """The network's matrix products for B sessions and nothing else: encoder, every LSTM
     branch's input and hidden products, decoder, in the model's dtype."""
     dt, H, K = model.dtype, model.H, len(model.branches)
@@ -124,9 +173,12 @@ def _matmul_floor(model, B: int):
     return floor
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(prog="python -m models.erd")
     sub = ap.add_subparsers(dest="cmd", required=True)
+    f = sub.add_parser("fit", help="refit the decoding's hinges, the stages after the network and the upload sources")
+    f.add_argument("styles", nargs="*", help="only these styles (default: every style each stage fits)")
+    f.add_argument("--stages", default="", help="comma-separated names (default: all, in order)")
     r = sub.add_parser("render")
     r.add_argument("--styles", default="elderly,exhausted")
     r.add_argument("--content", default="walk")
@@ -146,8 +198,8 @@ def main() -> None:
         "--threads", type=int, nargs="+", default=[1, 2], help="BLAS/torch thread caps to run with (service: 1)"
     )
     b.add_argument("--json", action="store_true", help="also print the numbers as JSON")
-    args = ap.parse_args()
-    {"render": render, "bench": bench}[args.cmd](args)
+    args = ap.parse_args(argv)
+    {"fit": fit, "render": render, "bench": bench}[args.cmd](args)
 
 
 if __name__ == "__main__":

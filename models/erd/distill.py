@@ -32,10 +32,10 @@ from .offline import to_world
 def teacher_rotations(model, motion: Motion) -> np.ndarray:
     """(6, T, 21, 4) the shipped pipeline's rotations of `motion` toward each target style, the
     stages run frame by frame as the stream runs them (the six styles as one batch)."""
-    gen, maker, sk = model.torch_generator().eval(), model.maker, motion.skeleton
+    gen, maker = model.torch_generator().eval(), model.maker
     root_in = motion.translations[:, 1]
     x, yaw = maker.sequence(root_in, motion.rotations)
-    S, T, J = len(TARGET_STYLES), len(x), sk.num_joints
+    S, T = len(TARGET_STYLES), len(x)
     eye = torch.eye(S)
     xt = torch.as_tensor(x, dtype=torch.float32)[None].expand(S, -1, -1)
     out = gen(xt, torch.full((S,), -1), torch.full((S,), -1), eye)
@@ -53,10 +53,10 @@ def teacher_rotations(model, motion: Motion) -> np.ndarray:
     )
     share = eased_in(run_share(clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS)), np.arange(T))
     w = eye.double().numpy()
-    slow_in = slow_out = np.zeros((S, J, 4))
+    state = model.stages.init_state(S)
     for t in range(T):
         rot_in = np.repeat(motion.rotations[t : t + 1], S, axis=0)
-        rots[:, t], slow_in, slow_out = model.stages(sk, rot_in, rots[:, t], slow_in, slow_out, w, np.full(S, share[t]))
+        rots[:, t], state = model.stage_batch(state, rot_in, rots[:, t], w, np.full(S, share[t]))
     body = rots[:, :, BODY]
     body[:, :, 0] = quat_mul(quat_inv(yaw_quat(yaw))[None], rots[:, :, 1])  # the Hips without the facing yaw
     return body

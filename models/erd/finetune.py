@@ -184,17 +184,14 @@ def fine_tune(model, start: Upload, clip, progress: Progress) -> tuple[Upload | 
 
 def refit_stages(model, tuned: Upload, clip) -> Upload:
     """`tuned`'s stages fitted again, its output prior from what its own branch makes of TRAIN
-    neutral clips (its leaf prior in place, no output prior), as `rotation_prior.fit_output_prior`."""
-    from ..eval.run import stylise
-    from ..motion.rotation_ball import comparable
-    from .rotation_prior import _neutral_inputs
+    neutral clips (its leaf prior in place, no output prior), as `rotation_prior.fit_output`."""
+    from .rotation_prior import _neutral_inputs, network_rotations
 
     twin = model.with_own_styles()
     twin.install_style("fit", tuned)
-    twin.stages = twin.stages.without("output_prior", "run_leaf_prior", "run_output_prior", "twist_range")
     inputs = _neutral_inputs()[:: max(1, 4 // SOURCE_CLIPS)]
-    outs = stylise(twin, inputs, [len(twin.styles()) - 1] * len(inputs))
-    mean, cov, _ = tangent_stats(comparable(np.concatenate([o.rotations for o in outs])))
+    made = network_rotations(twin, inputs, styles=["fit"])[0]  # its leaf prior in place, no output prior
+    mean, cov, _ = tangent_stats(made)
     q, share = clip_rotations(model, clip)
     stages = fit_stages(
         model.built_in.stages, model.sources, model.skeleton, q, share, TARGET_STYLES.index(tuned.nearest), (mean, cov)

@@ -14,7 +14,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion.bn_skeleton import HIPS
-from ..motion.style_carry import StyleCarry
 
 RUN_RAMP_CM_S = (170.0, 210.0)
 START_FRAMES = 5  # a session eases into the run priors over its first frames (`eased_in`; 10 cost a validation row)
@@ -66,24 +65,3 @@ def eased_in(share: np.ndarray, frame: np.ndarray) -> np.ndarray:
     over its first `START_FRAMES`: a stream that starts mid-run counts its first frame as standing,
     and taking the run priors whole on its second frame turned the head in one frame."""
     return np.asarray(share, np.float64) * np.minimum(np.asarray(frame, np.float64) / START_FRAMES, 1.0)
-
-
-def carry_by_gait(
-    other: StyleCarry | None,
-    run: StyleCarry | None,
-    q: np.ndarray,
-    weights: np.ndarray,
-    share: np.ndarray,
-    hips: int = -1,
-) -> np.ndarray:
-    """Rotations (B, J, 4) carried by the all-content prior `other` and by the `run` prior followed
-    by a clamp into `other`'s range, mixed by each row's share in one compiled pass
-    (`StyleCarry.mixed_with`): share 0 is exactly `other` alone. Either prior may be None (without
-    a run prior, `other` takes every row). A row's result never depends on the others."""
-    w = np.asarray(weights, np.float64)
-    r = np.asarray(share, np.float64)
-    if run is None or not (r > 0.0).any():
-        return q if other is None else other(q, w, hips=hips)
-    if other is None:
-        return run(q, w * r[:, None], hips=hips)
-    return other.mixed_with(run, other.bounds, q, w, r, hips=hips)

@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS
-from ..motion.quaternion import axis_angle, dot3, qdot, qinv, qmul, quat_at, qunit, row3, wrap
+from ..motion.quaternion import axis_angle, dot3, qdot, qinv, qmul, qneg, quat_at, qunit, qyaw, row3, row4, wrap
 
 # --------------------------------------------------------------------------- small helpers
 
@@ -46,14 +46,13 @@ def features(rotations, pos, prev_pos, prev_yaw, has_prev, ref, facing, feet, le
         yaws[f] = yaw
         moving = has_prev[f]
         # rotations: unit, Hips without its yaw, each in the hemisphere of its reference
-        half = -0.5 * yaw
-        unyaw = (0.0, math.sin(half), 0.0, math.cos(half))
+        unyaw = qyaw(-yaw)
         for b in range(nb):
             q = qunit(quat_at(rotations, f, b + 1))
             if b == 0:
                 q = qmul(unyaw, q)
-            if q[0] * ref[b, 0] + q[1] * ref[b, 1] + q[2] * ref[b, 2] + q[3] * ref[b, 3] < 0.0:
-                q = (-q[0], -q[1], -q[2], -q[3])
+            if qdot(q, row4(ref, b)) < 0.0:
+                q = qneg(q)
             out[f, 4 * b], out[f, 4 * b + 1], out[f, 4 * b + 2], out[f, 4 * b + 3] = q
         # positions in the facing frame (origin: Hips on the ground), velocities (backward difference)
         gx, gz = pos[f, HIPS, 0], pos[f, HIPS, 2]
@@ -114,8 +113,7 @@ def output_pose(x, y, yaw, has_prev, prev_root, root, rot_in, fps):
             norm = max(math.sqrt(qdot(q, q)), 1e-6)
             q = (q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm)
             if k == 0:
-                half = 0.5 * yaw[b]
-                q = qmul((0.0, math.sin(half), 0.0, math.cos(half)), q)
+                q = qmul(qyaw(yaw[b]), q)
             out_rot[b, k + 1, 0], out_rot[b, k + 1, 1], out_rot[b, k + 1, 2], out_rot[b, k + 1, 3] = q
         v = 10 * nb  # root velocity features; network: 4 * nb rotation offsets, then 3 velocity, then height
         step = turn_y(x[b, v] + y[b, 4 * nb], x[b, v + 1] + y[b, 4 * nb + 1], x[b, v + 2] + y[b, 4 * nb + 2], yaw[b])

@@ -1,11 +1,5 @@
-"""The rotation priors of the streaming Style-ERD, fitted from real TRAIN clips
-(`models.motion.style_carry.StyleCarry`) the same way for every style:
-
-    .venv/bin/python -m models.erd.rotation_prior        # all -> models/weights/erd/*_prior*.npz
-    .venv/bin/python -m models.erd.rotation_prior runs   # the run priors alone
-    .venv/bin/python -m models.erd.rotation_prior twists # the arms' twist range alone (`twist_range.py`)
-    .venv/bin/python -m models.erd.rotation_prior hinges # the decoding's hinge joints (`models.motion.hinge`)
-    .venv/bin/python -m models.erd.rotation_prior sources # what uploads' stages carry from (`upload_stages.py`)
+"""The fits of Style-ERD's rotation priors (`slow_carry.SlowPrior`, `models.motion.style_carry`)
+from real TRAIN clips, the same way for every style (`python -m models.erd fit`):
 
 1. **Leaves** (`leaf_prior.npz`): the position-trained network never learned bone twists or the
    head, hands and toes, so those come from the input, first carried from the real neutral
@@ -23,8 +17,9 @@ their heading and only clamps them.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -33,22 +28,16 @@ from ..motion.feet import LEG_JOINTS
 from ..motion.gait_split import running, split_by_gait
 from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry
+from .dataset import STYLES, TARGET_STYLES
+from .slow_carry import SlowPrior
 
-LEAF_FILE = "leaf_prior.npz"
+LEAF_FILE = "leaf_prior.npz"  # each with its run prior beside it (`slow_carry.run_file`)
 OUTPUT_FILE = "output_prior.npz"
-RUN_LEAF_FILE = "leaf_prior_run.npz"
-RUN_OUTPUT_FILE = "output_prior_run.npz"
-PRIOR_FILES = {  # `stages.ErdStages`' prior fields and their files beside the weights
-    "leaf_prior": LEAF_FILE,
-    "output_prior": OUTPUT_FILE,
-    "run_leaf_prior": RUN_LEAF_FILE,
-    "run_output_prior": RUN_OUTPUT_FILE,
-}
 FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 FIT_CLIPS_PER_CONTENT = 4
 RUN_FIT_CLIPS = 12  # TRAIN neutral clips that run, for the run output prior
 FIT_FRAMES = 240
-RUN_ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))  # `fit_output_prior`
+RUN_ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))  # `fit_output`
 
 
 def real_rotations(runs: bool = False) -> list[np.ndarray]:
@@ -56,7 +45,7 @@ def real_rotations(runs: bool = False) -> list[np.ndarray]:
     (with `runs`: of the clips that run, by the style's own split of its clips' median Hips
     speeds, `models.motion.gait_split`), from the feature cache (`dataset.py`; joint_Root static,
     left at the identity)."""
-    from .dataset import STYLES, load_split
+    from .dataset import load_split
     from .features import NB, ROOTVEL, ROT
 
     split = load_split("train")
@@ -79,9 +68,15 @@ def real_rotations(runs: bool = False) -> list[np.ndarray]:
     return out
 
 
-def fit_leaf_prior(real: list[np.ndarray]) -> StyleCarry:
-    """Real neutral -> real target style, for each target style."""
-    return StyleCarry.fit([real[0]] * (len(real) - 1), real[1:], FIXED)
+def fit_leaf(model: Any, styles: list[str] | None = None) -> SlowPrior:
+    """Real neutral -> each of `styles`' (default: every target style) real frames, and the same on
+    runs alone."""
+    styles = styles or list(TARGET_STYLES)
+
+    def fitted(real: list[np.ndarray]) -> StyleCarry:
+        return StyleCarry.fit([real[0]] * len(styles), [real[STYLES.index(s)] for s in styles], FIXED)
+
+    return SlowPrior(tuple(styles), fitted(real_rotations()), fitted(real_rotations(runs=True)))
 
 
 def _neutral_inputs() -> list:
@@ -104,80 +99,52 @@ def _running_inputs() -> list:
     return [m.slice(0, FIT_FRAMES) for m in runs[:RUN_FIT_CLIPS]]
 
 
-def fit_output_prior(model, real: list[np.ndarray], runs: bool = False) -> StyleCarry:
+def fit_output(model: Any, styles: list[str] | None = None) -> SlowPrior:
     """The model's outputs (its leaf prior in place, no output prior) over TRAIN neutral clips
-    toward each style -> the real style. With `runs`: TRAIN neutral clips that run, against the
-    real runs, the legs carried too; the arms (`RUN_ARMS`) as the stream makes them and every other
-    joint with the input's own twists and leaves (with the leaf prior, heads jumped as a stream
-    started mid-run)."""
-    produced = run_network_rotations(model) if runs else network_rotations(model, _neutral_inputs())
-    clamped = (HIPS,) + (() if runs else tuple(model.skeleton.index(n) for n in LEG_JOINTS))
-    return StyleCarry.fit(produced, [comparable(q) for q in real[1:]], (0,), clamp_only=clamped)
+    toward each of `styles` (default: every target style) -> the real style, the legs only
+    clamped. The run prior: TRAIN neutral clips that run, against the real runs, the legs carried
+    too; the arms (`RUN_ARMS`) as the stream makes them and every other joint with the input's own
+    twists and leaves (with the leaf prior, heads jumped as a stream started mid-run)."""
+    styles = styles or list(TARGET_STYLES)
+    legs = tuple(model.skeleton.index(n) for n in LEG_JOINTS)
+
+    def fitted(produced: list[np.ndarray], real: list[np.ndarray], clamped: tuple[int, ...]) -> StyleCarry:
+        targets = [comparable(real[STYLES.index(s)]) for s in styles]
+        return StyleCarry.fit(produced, targets, (0,), clamp_only=clamped)
+
+    walk = fitted(network_rotations(model, _neutral_inputs(), styles=styles), real_rotations(), (HIPS,) + legs)
+    run = fitted(run_network_rotations(model, styles), real_rotations(runs=True), (HIPS,))
+    return SlowPrior(tuple(styles), walk, run, HIPS)
 
 
-def run_network_rotations(model) -> list[np.ndarray]:
+def run_network_rotations(model: Any, styles: Sequence[str] | None = None) -> list[np.ndarray]:
     """`network_rotations` of TRAIN neutral clips that run: the arms (`RUN_ARMS`) as the stream
     makes them, every other joint with the input's own twists and leaves (no leaf prior)."""
     inputs = _running_inputs()
-    produced = network_rotations(model, inputs, leaf_prior=False)
+    produced = network_rotations(model, inputs, leaf_prior=False, styles=styles)
     arms = [model.skeleton.index(n) for n in RUN_ARMS]
-    for own, leafed in zip(produced, network_rotations(model, inputs)):
+    for own, leafed in zip(produced, network_rotations(model, inputs, styles=styles)):
         own[:, arms] = leafed[:, arms]
     return produced
 
 
-def network_rotations(model, inputs: list, leaf_prior: bool = True) -> list[np.ndarray]:
-    """Per target style: the rotations (N, J, 4, the Hips without their heading) of every frame
-    of `inputs` streamed toward it by the network, with its leaf prior where `leaf_prior`, and
-    no output priors or twist range (what the output priors carry from)."""
+def network_rotations(
+    model: Any, inputs: list, leaf_prior: bool = True, styles: Sequence[str] | None = None
+) -> list[np.ndarray]:
+    """Per style of `styles` (default: the model's): the rotations (N, J, 4, the Hips without
+    their heading) of every frame of `inputs` streamed toward it by the network, with its leaf
+    prior (not its run prior) where `leaf_prior`, and no output prior or twist range (what the
+    output priors carry from)."""
     from ..eval.run import stylise
 
     saved = model.stages
-    off = ("output_prior", "run_leaf_prior", "run_output_prior", "twist_range")
-    model.stages = saved.without(*off) if leaf_prior else saved.without("leaf_prior", *off)
+    leaf = saved.leaf_prior
+    leaf = replace(leaf, run=None) if leaf_prior and isinstance(leaf, SlowPrior) else None
+    model.stages = saved.replace(leaf_prior=leaf, output_prior=None, twist_range=None)
     try:
-        styles = model.styles()
-        outs = stylise(model, [m for _ in styles for m in inputs], [k for k in range(len(styles)) for _ in inputs])
+        ks = [model.styles().index(s) for s in styles or model.styles()]
+        outs = stylise(model, [m for _ in ks for m in inputs], [k for k in ks for _ in inputs])
     finally:
         model.stages = saved
     n = len(inputs)
-    return [comparable(np.concatenate([o.rotations for o in outs[k * n : (k + 1) * n]])) for k in range(len(styles))]
-
-
-def main(argv: list[str]) -> None:
-    import torch
-
-    from ..settings import get_settings
-    from .runtime import load
-
-    torch.set_num_threads(1)
-    what = argv[0] if argv else "all"  # the hinges first: the output priors carry from the decoded pose
-    folder = Path(argv[1]) if len(argv) > 1 else get_settings().weights_dir / "erd"
-    if what in ("all", "hinges"):
-        from ..motion.assets import bandai_namco_skeleton
-        from ..motion.hinge import HINGE_FILE
-        from .dataset import load_split, split_hinges
-
-        print(split_hinges(load_split("train"), bandai_namco_skeleton()).save(folder / HINGE_FILE))
-    if what in ("all", "leaves", "output"):
-        real = real_rotations()
-        if what in ("all", "leaves"):
-            print(fit_leaf_prior(real).save(folder / LEAF_FILE))
-        if what in ("all", "output"):
-            print(fit_output_prior(load(folder), real).save(folder / OUTPUT_FILE))
-    if what in ("all", "twists"):
-        from .twist_range import TWIST_FILE, TwistRange
-
-        print(TwistRange.fit(load(folder).skeleton, real_rotations()[1:]).save(folder / TWIST_FILE))
-    if what in ("all", "runs"):
-        real = real_rotations(runs=True)
-        print(fit_leaf_prior(real).save(folder / RUN_LEAF_FILE))
-        print(fit_output_prior(load(folder), real, runs=True).save(folder / RUN_OUTPUT_FILE))
-    if what in ("all", "sources"):
-        from .upload_stages import SOURCES_FILE, fit_sources
-
-        print(fit_sources(load(folder)).save(folder / SOURCES_FILE))
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])
+    return [comparable(np.concatenate([o.rotations for o in outs[i * n : (i + 1) * n]])) for i in range(len(ks))]

@@ -13,8 +13,8 @@ State per session (every entry has the session axis first):
     h.<name>, c.<name>         (B, layers, H)           the same for each uploaded style (`uploads.py`)
     prev_pos (B, 22, 3), prev_yaw (B,)                  previous input frame (causal velocities)
     gait_speed (B,)                                     the input's averaged Hips speed (`gait.py`)
-    slow_in, slow_out (B, 22, 4)                        slowly following copies of the input's and
-                                                        the output's rotations (`slow_carry.py`)
+    <stage>/<key>                                       the stages' (`stages.STAGES`): the priors'
+                                                        slowly following copies (`slow_carry.py`)
     out_root (B, 3)                                     last output Hips translation
     frame (B,)                                          frames seen
     style_in (B,), content (B,)                         input labels, -1 = unknown (the default)
@@ -31,9 +31,10 @@ bone's twist and the head, hands and toes, which move no joint and so were never
 the input's rotations, or the leaf prior's carry of them (`models.motion.twist.transfer_twist`);
 elbows and knees keep their hinge plane (`models.motion.hinge`, `hinges.npz`).
 
-Then the fitted stages (`stages.ErdStages`, in the order they run; the model card's table says
-what each does and how it is fitted from real clips, the same way for every style), and last the
-shared foot planter (`models.motion.feet.FootPlanter`), which holds the feet the input has down
+Then the declared stages (`stages.STAGES`, a `models.stages.Pipeline`: the leaf prior on the
+input, before the decoding reads it, the others after; the model card's table says what each does
+and how it is fitted from real clips, the same way for every style), and last the shared foot
+planter (`models.motion.feet.FootPlanter`), which holds the feet the input has down
 (feature columns `CONTACT`), toe and ankle, by two-bone leg IK; the output's `contacts` are the
 planted legs.
 """
@@ -42,7 +43,9 @@ from __future__ import annotations
 
 import json
 import threading
+from collections.abc import Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -50,17 +53,36 @@ import torch
 from ..interface import FrameBatch, State
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import model_rig_planter
-from ..motion.skeleton import Skeleton
+from ..motion.hinge import HINGE_FILE, Hinges, kernel_hinges
+from ..motion.skeleton import Motion, Skeleton
+from ..motion.twist import _kernel_plan
+from ..motion.twist_kernels import transfer_twist_batch
 from ..rowwise import matmul_rows
+from ..settings import get_settings
+from ..stages import Pipeline, Rows, StageFrame
 from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
 from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
-from .stages import ErdStages
+from .stages import ON_INPUT, STAGES
 from .uploads import BuiltIn, ERDStyles, Upload, branch_weights, runtime_layout
 
+if TYPE_CHECKING:
+    from .model import Generator
+
 WEIGHTS_FILE = "erd.npz"
-NEWER_KEYS = ("gait_speed", "slow_in", "slow_out")  # state entries snapshots from older replicas may lack
+RENAMED = {"slow_in": "leaf_prior/slow", "slow_out": "output_prior/slow"}  # state keys of older replicas
+
+
+class Plan(NamedTuple):
+    """The stages as one step reads them, replaced whole: the pipeline, its part on the input and
+    after the decoding, their rows for the model's styles, and whether the leaf prior is off."""
+
+    stages: Pipeline
+    on_input: Pipeline
+    on_output: Pipeline
+    rows: Mapping[str, Rows]
+    leafless: bool
 
 
 def _sigmoid_(a: np.ndarray) -> np.ndarray:
@@ -93,7 +115,9 @@ class ERDModel(ERDStyles):
         ref: np.ndarray,
         meta: dict | None = None,
         dtype: type = np.float32,
-        stages: ErdStages | None = None,
+        stages: Pipeline | None = None,
+        hinges: Hinges | None = None,
+        network_twists: bool = False,
     ):
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
@@ -102,7 +126,11 @@ class ERDModel(ERDStyles):
         self.dtype = np.dtype(dtype)
         self.mean, self.std = np.asarray(mean, np.float64), np.asarray(std, np.float64)
         self.ref = np.asarray(ref, np.float64)
-        self.stages = stages or ErdStages()  # the fitted stages after the network (`stages.py`)
+        # the decoding: elbows and knees as hinges (`models.motion.hinge`); the twists and leaves
+        # without a leaf prior: the network's own (a network trained on them, `train.py
+        # --network_twists`) or the input's (one trained on positions only)
+        self.hinges, self.network_twists = hinges, network_twists
+        self._decoding = (_kernel_plan(skeleton, ()), kernel_hinges(skeleton, hinges))  # `transfer_twist`'s, once
         self.maker = FeatureMaker(skeleton, self.ref)
         self.planter = model_rig_planter(FPS)
         self.H = config["latent"]
@@ -117,22 +145,32 @@ class ERDModel(ERDStyles):
         self._lock = threading.Lock()
         self.weights_dir: Path | None = None  # where `load` read it (an upload's stage sources live there)
         self._prepare_weights()
-        self.built_in = BuiltIn(self.lstm_w, self.lstm_b, self.stages)
         self.uploads: tuple[Upload, ...] = ()  # uploaded styles, after the trained ones (`uploads.py`)
         self.codes: np.ndarray | None = None  # (styles, 6) the decoder's style code per style; None: one-hot
+        self.stages = stages or Pipeline.load(STAGES, Path(), skeleton, core_only=True)
+        self.built_in = BuiltIn(self.lstm_w, self.lstm_b, self.stages)
+        self._compile_step()
+
+    @property
+    def stages(self) -> Pipeline:
+        """The stages after the network (`stages.STAGES`; a stage None is off)."""
+        return self._plan.stages
+
+    @stages.setter
+    def stages(self, stages: Pipeline) -> None:
+        on_input, on_output = stages.split(ON_INPUT)
+        rows = stages.rows(self.styles(), self.skeleton)
+        self._plan = Plan(stages, on_input, on_output, rows, stages.leaf_prior is None)
         own = self.init_state(1).items()  # the entries the step checks (the planter checks its own)
         self._state_shapes = {k: v.shape[1:] for k, v in own if k not in FEET_STATE}
-        self._compile_step()
 
     def _compile_step(self) -> None:
         """One step of one session on the rest pose: numba compiles the kernels (or loads them
         from its cache) here, when the model loads, instead of on a live session's first frame."""
         rest = np.zeros((1, 22, 4))
         rest[..., 3] = 1.0
-        none = np.zeros((1, len(TARGET_STYLES)))
-        self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), none)
-        if self.stages.twist_range is not None:  # its kernel, with a style weight so that all of it runs
-            self.stages.twist_range(rest, np.ones_like(none))
+        for weights in (np.zeros((1, len(TARGET_STYLES))), np.eye(len(TARGET_STYLES))[:1]):  # with a style: all of it
+            self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), weights)
 
     def _prepare_weights(self) -> None:
         """Everything constant, once, in the network's dtype and the layout the step multiplies: the
@@ -182,30 +220,30 @@ class ERDModel(ERDStyles):
             prev_pos=np.zeros((batch, 22, 3)),
             prev_yaw=np.zeros(batch),
             gait_speed=np.full(batch, UNMEASURED),
-            slow_in=np.zeros((batch, 22, 4)),
-            slow_out=np.zeros((batch, 22, 4)),
             out_root=np.zeros((batch, 3)),
             frame=np.zeros(batch, dtype=np.int64),
             style_in=np.full(batch, si, dtype=np.int64),
             content=np.full(batch, ci, dtype=np.int64),
         )
+        state.update(self.stages.init_state(batch))
         state.update(self.planter.init_state(batch))
         return state
 
     def upgrade_state(self, state: State) -> State:
-        """A state saved by an older replica: before the foot planter (with or without the old
-        `lock_*` keys) it gets a fresh planter state, before the averaged gait speed an
-        unmeasured one (its next frame's speed starts the average), before the slow copies
-        unset ones (zeros: its next frame starts them); a current state is returned as it is."""
+        """A state saved by an older replica or another stage set: before the foot planter (with
+        or without the old `lock_*` keys) it gets a fresh planter state, an entry it lacks a fresh
+        one (the averaged gait speed unmeasured, its next frame's speed starts the average; a
+        stage's slow copies unset, zeros: its next frame starts them), the slow copies under their
+        old names their stages' keys; a current state is returned as it is."""
         wanted = {key for u in self.uploads for key in (f"h.{u.name}", f"c.{u.name}")}
         held = {k for k in state if k[:2] in ("h.", "c.")}
-        if held == wanted and all(k in state for k in (*FEET_STATE, *NEWER_KEYS)):
+        if held == wanted and all(k in state for k in (*FEET_STATE, *self._state_shapes)):
             return state
         batch = len(state["frame"])
-        old = {k: v for k, v in state.items() if not k.startswith("lock_") and k not in held - wanted}
+        old = {RENAMED.get(k, k): v for k, v in state.items() if not k.startswith("lock_") and k not in held - wanted}
         old = {**self._upload_states(batch), **old}  # a style added since starts at its initial state
         fresh = self.init_state(batch)  # what a new session starts these entries at
-        for key in NEWER_KEYS:
+        for key in self._state_shapes:
             old.setdefault(key, fresh[key])
         if all(k in old for k in FEET_STATE):
             return old
@@ -236,9 +274,7 @@ class ERDModel(ERDStyles):
         )
         gait_speed = smoothed_speed(state["gait_speed"], hips_speed(pos, state["prev_pos"], has_prev, FPS), has_prev)
         share = eased_in(run_share(gait_speed), state["frame"])
-        out_rot, slow_in, slow_out = self.stages(
-            self.skeleton, rot_in, out_rot, state["slow_in"], state["slow_out"], w, share
-        )
+        out_rot, staged = self.stage_batch(state, rot_in, out_rot, w, share)
         planted_root, planted_rot, contacts, feet = self.planter(
             {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
         )
@@ -246,15 +282,31 @@ class ERDModel(ERDStyles):
             prev_pos=pos,
             prev_yaw=yaw,
             gait_speed=gait_speed,
-            slow_in=slow_in,
-            slow_out=slow_out,
             out_root=out_root,
             frame=state["frame"] + 1,
             style_in=state["style_in"].copy(),
             content=state["content"].copy(),
+            **staged,
             **feet,
         )
         return FrameBatch(planted_root, planted_rot, contacts), new
+
+    def stage_batch(
+        self, state: State, rot_in: np.ndarray, decoded: np.ndarray, weights: np.ndarray, share: np.ndarray
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """One frame of B sessions from the network's decoded rotations (B, J, 4) to the output's:
+        the decoding (module docstring) and the stages, on the input's rotations `rot_in`, the
+        style weights (B, S) and run shares (B,); returns the stages' new state entries too."""
+        plan = self._plan
+        source, staged = plan.on_input.step_batch(state, StageFrame(rot_in, weights, share, -1), plan.rows)
+        if self.network_twists and plan.leafless:
+            source = decoded
+        source, decoded = (np.ascontiguousarray(a, np.float64) for a in (source, decoded))
+        out = np.empty_like(decoded)  # `transfer_twist`, its constants made once
+        transfer_twist_batch(*self._decoding, source, decoded, out)
+        out, after = plan.on_output.step_batch(state, StageFrame(out, weights, share, -1), plan.rows)
+        staged.update(after)
+        return out, staged
 
     # ------------------------------------------------------------------ network
 
@@ -325,7 +377,7 @@ class ERDModel(ERDStyles):
 
     # ------------------------------------------------------------------ offline helpers
 
-    def torch_generator(self):
+    def torch_generator(self) -> Generator:
         """The same weights as a torch `Generator` (for whole-clip runs and tests)."""
         import torch
 
@@ -341,7 +393,9 @@ class ERDModel(ERDStyles):
         gen.load_state_dict(state)
         return gen.eval()
 
-    def stylise_stream(self, motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None):
+    def stylise_stream(
+        self, motion: Motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None
+    ) -> Motion:
         """Run a whole Motion through step_batch frame by frame (batch 1); returns a Motion."""
         from dataclasses import replace
 
@@ -362,9 +416,10 @@ class ERDModel(ERDStyles):
 
 def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, hinges: bool = True) -> ERDModel:
     """The committed model; `dtype` = the network's arithmetic (np.float64: the reference).
-    `core_only`: the network without the fitted stages after it (every rotation prior, the
-    twist range and the hinge floor; the decoding, twist transfer and hinges, and the foot planter stay): the
-    evaluation's core-alone row. `hinges=False` decodes without the hinges (for comparison)."""
+    `core_only`: the network without the stages after it (`stages.STAGES`; the decoding, twist
+    transfer and hinges, and the foot planter stay): the evaluation's core-alone row. A stage
+    named in `Settings.stages_off` as `erd.<name>` is off. `hinges=False` decodes without the
+    hinges (for comparison)."""
     weights_dir = Path(weights_dir)
     config = json.loads((weights_dir / "config.json").read_text())
     with np.load(weights_dir / WEIGHTS_FILE) as z:
@@ -376,8 +431,13 @@ def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, h
         arrays.pop("skeleton_end_sites"),
     )
     mean, std, ref = arrays.pop("norm_mean"), arrays.pop("norm_std"), arrays.pop("ref")
-    stages = ErdStages.load(weights_dir, skeleton, core_only, hinges)
-    model = ERDModel(arrays, config["model"], skeleton, mean, std, ref, meta=config, dtype=dtype, stages=stages)
+    off = [name.removeprefix("erd.") for name in get_settings().stages_off if name.startswith("erd.")]
+    stages = Pipeline.load(STAGES, weights_dir, skeleton, core_only).without(*off)
+    decode = Hinges.load(weights_dir / HINGE_FILE) if hinges and (weights_dir / HINGE_FILE).exists() else None
+    own = config.get("train_config", {}).get("network_twists", False)
+    model = ERDModel(
+        arrays, config["model"], skeleton, mean, std, ref, config, dtype, stages, hinges=decode, network_twists=own
+    )
     model.weights_dir = weights_dir
     return model
 
@@ -423,7 +483,6 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skele
         "licence": "CC BY-NC 4.0 (inherited from Bandai Namco dataset 2)",
     }
     (out_dir / "config.json").write_text(json.dumps(config, indent=1))
-    from ..motion.hinge import HINGE_FILE
     from .dataset import load_split, split_hinges
 
     split_hinges(load_split("train"), skeleton).save(out_dir / HINGE_FILE)

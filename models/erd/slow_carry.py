@@ -1,4 +1,4 @@
-"""Carry only the slow part of each rotation through Style-ERD's rotation priors.
+"""Style-ERD's rotation priors as a stage: each carries only the slow part of each rotation.
 
 A prior's gains above 1 would scale every frame-to-frame wobble with the pose (the head turned
 faster than anything real), so each prior maps a copy of the rotation that follows it slowly,
@@ -10,59 +10,106 @@ and the fast part rides on top, never magnified:
 
 G is the prior's map with its gains capped at 1 (`StyleCarry.damping`); `bounds`, the prior's
 clamp, keeps the sum inside the style's real range. A held pose is carried as before; joints a
-prior only clamps are carried whole. `SLOW_WEIGHT` was chosen on validation clips (model card).
+prior only clamps are carried whole. A prior fitted again on runs alone takes over by the frame's
+run share (`gait.py`), clamped into the all-content prior's range. `SLOW_WEIGHT` was chosen on
+validation clips (model card).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
 import numpy as np
 
+from ..interface import State
 from ..motion import style_carry_kernels as kernels
-from ..motion.rotations import quat_inv, quat_mul
+from ..motion.skeleton import Skeleton
 from ..motion.style_carry import StyleCarry
-from .gait import carry_by_gait
+from ..stages import Rows, StageFrame, style_rows
+from .dataset import TARGET_STYLES
 
 SLOW_WEIGHT = 0.5  # the newest frame's weight in the slow copy (a ~3-frame exponential average)
+CARRY_ROWS = ("source", "mean", "map", "radius")  # a carry's arrays, as its rows name them
 
 
-def follow(slow: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(B, J, 4) the slow copy after this frame's rotations `q`: an exponential average by
-    normalised lerp on the shorter arc. A row of zeros (a session's first frame, or a snapshot
-    from before this state existed) starts at `q`. (The step computes it inside `carry_slow`.)"""
-    slow, q = np.asarray(slow, np.float64), np.asarray(q, np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    aligned = np.where(np.sum(slow * q, axis=-1, keepdims=True) < 0.0, -slow, slow)
-    mixed = (1.0 - SLOW_WEIGHT) * aligned + SLOW_WEIGHT * q
-    mixed /= np.maximum(np.linalg.norm(mixed, axis=-1, keepdims=True), 1e-12)
-    unset = ~np.any(slow != 0.0, axis=(-1, -2))
-    return np.where(unset[..., None, None], q, mixed)
+def run_file(path: Path) -> Path:
+    """Where the run prior of the prior in `path` is kept."""
+    return path.with_name(f"{path.stem}_run{path.suffix}")
 
 
-def carry_slow(
-    other: StyleCarry | None,
-    run: StyleCarry | None,
-    q: np.ndarray,
-    slow: np.ndarray,
-    weights: np.ndarray,
-    share: np.ndarray,
-    hips: int = -1,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(the rotations q (B, J, 4) carried, the new slow copies): `gait.carry_by_gait` of the new
-    slow copy, the fast part on top through `other`'s gain-capped maps (the Hips' and the unweighted
-    share pass as they are), then `other`'s clamp; joints `other` only clamps are carried whole.
-    Without priors, q as it is. Compiled (`style_carry_kernels.carry_slow_batch`); the reference is
-    `tests/reference/erd_carry.py`."""
-    if other is None:  # no range to clamp into: a run prior's carry, the fast part as it is
-        new = follow(slow, q)
-        if run is None:
-            return q, new
-        q = np.asarray(q, np.float64)
-        fast = quat_mul(quat_inv(new), q / np.linalg.norm(q, axis=-1, keepdims=True))
-        fast = np.where(fast[..., 3:] < 0.0, -fast, fast)
-        return quat_mul(carry_by_gait(other, run, new, weights, share, hips=hips), fast), new
-    w = np.asarray(weights, np.float64)
-    r = np.zeros(len(w)) if run is None else np.asarray(share, np.float64)
-    bounds = other.bounds.arrays  # the run prior is followed by it, and every output kept in it
-    then = other.arrays if run is None else run.arrays
-    priors = kernels.SlowPriors(other.arrays, then, bounds, bounds, other.damping, other.clamps_only)
-    return kernels.carry_slow(q, slow, SLOW_WEIGHT, w, r, priors, hips)
+def merged(carry: StyleCarry, at: Sequence[int], other: StyleCarry) -> StyleCarry:
+    """`carry` with its styles `at` (indices) replaced by `other`'s, in turn."""
+    arrays = [np.array(a) for a in carry.arrays]
+    for a, b in zip(arrays, other.arrays):
+        a[list(at)] = b
+    return StyleCarry(*arrays)
+
+
+@dataclass(frozen=True)
+class SlowPrior:
+    """The stage: per fitted style (`styles`), `carry` for every frame and `run` (None: none)
+    for the frames the input runs in; joint `hips` (>= 0) is carried without its heading."""
+
+    styles: tuple[str, ...]
+    carry: StyleCarry
+    run: StyleCarry | None = None
+    hips: int = -1
+
+    def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
+        """Both carries' arrays (`run_` before the run's keys; without a run prior the carry's),
+        the fast part's gains, the clamp's maps and the joints carried whole, aligned with
+        `styles`; a style not fitted gets identity maps and infinite radii."""
+        J, identity, eye = skeleton.num_joints, np.array((0.0, 0.0, 0.0, 1.0)), np.eye(3)
+        plain = (np.tile(identity, (J, 1)), np.tile(identity, (J, 1)), np.tile(eye, (J, 1, 1)), np.full(J, np.inf))
+        run = self.run or self.carry
+        arrays = {
+            f"{prefix}{k}": (a, p)
+            for prefix, c in (("", self.carry), ("run_", run))
+            for k, a, p in zip(CARRY_ROWS, c.arrays, plain)
+        }
+        rows = style_rows(self.styles, styles, gain=(self.carry.damping, plain[2]), **arrays)
+        aligned = StyleCarry(*(rows[k] for k in CARRY_ROWS))
+        return rows | {"bounds": aligned.bounds.map, "plain": aligned.clamps_only}
+
+    def init_state(self, batch: int) -> State:
+        """The slow copy (zeros: unset, the session's next frame starts it)."""
+        return {"slow": np.zeros((batch, self.carry.mean.shape[1], 4))}
+
+    def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
+        """The frame carried (module docstring) in one compiled pass (`style_carry_kernels.carry_slow_batch`;
+        `tests/reference/erd_carry.py` is its numpy reference)."""
+        w = np.asarray(frame.weights, np.float64)
+        share = np.zeros(len(w)) if self.run is None else np.asarray(frame.gait, np.float64)
+        r = rows  # read out one by one: the step runs at batch 1 too, where a generator costs a microsecond
+        bounds = (r["mean"], r["mean"], r["bounds"], r["radius"])
+        walk = (r["source"], r["mean"], r["map"], r["radius"])
+        run = (r["run_source"], r["run_mean"], r["run_map"], r["run_radius"])
+        priors = kernels.SlowPriors(walk, run, bounds, bounds, r["gain"], r["plain"])
+        out, slow = kernels.carry_slow(frame.rotations, state["slow"], SLOW_WEIGHT, w, share, priors, self.hips)
+        return out, {"slow": slow}
+
+    def save(self, path: Path) -> Path:
+        self.carry.save(path)
+        if self.run is not None:
+            self.run.save(run_file(path))
+        return path
+
+    @classmethod
+    def load(cls, path: Path, hips: int = -1) -> SlowPrior:
+        """The prior in `path` (fitted for every target style), its run prior beside it if there."""
+        run = run_file(path)
+        return cls(TARGET_STYLES, StyleCarry.load(path), StyleCarry.load(run) if run.exists() else None, hips)
+
+    def stacked(self, others: Sequence[tuple[str, SlowPrior]]) -> SlowPrior:
+        """This prior with each of `others` (name, one style's prior) as one more style."""
+        carry = StyleCarry.stack([self.carry, *(o.carry for _, o in others)])
+        run = None if self.run is None else StyleCarry.stack([self.run, *(o.run or o.carry for _, o in others)])
+        return replace(self, styles=self.styles + tuple(n for n, _ in others), carry=carry, run=run)
+
+    def with_styles_of(self, other: SlowPrior) -> SlowPrior:
+        """This prior with `other`'s styles refitted (a refit of some styles)."""
+        at = [self.styles.index(s) for s in other.styles]
+        run = None if self.run is None or other.run is None else merged(self.run, at, other.run)
+        return replace(self, carry=merged(self.carry, at, other.carry), run=run)

@@ -4,7 +4,7 @@ fits them for a trained style from its TRAIN clips.
 Each stage maps a source distribution onto the style's real one (`models.motion.style_carry`).
 For a trained style both come from data at fit time; for an upload the target is its clip and the
 sources are what every trained style's fit started from, kept beside the weights as Gaussians
-(`upload_sources.npz`, written by `python -m models.erd.rotation_prior sources`):
+(`upload_sources.npz`, written by `python -m models.erd fit --stages upload_sources`):
 
 - leaf prior: real TRAIN `normal` frames -> the clip's frames;
 - output prior: what the network makes of TRAIN neutral clips toward the style -> the clip's
@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,15 +31,21 @@ from ..motion.bn_skeleton import HIPS
 from ..motion.feet import LEG_JOINTS
 from ..motion.rotation_ball import comparable
 from ..motion.rotations import quat_mean
+from ..motion.skeleton import Motion, Skeleton
 from ..motion.style_carry import StyleCarry, gaussian_map, tangent_stats
+from ..stages import Pipeline
 from .features import NB, ROT
 from .gait import clip_smoothed_speed, run_share
-from .rotation_prior import FIXED, PRIOR_FILES
-from .stages import ErdStages
+from .rotation_prior import FIXED
+from .slow_carry import SlowPrior
 from .twist_range import TwistRange
 
+if TYPE_CHECKING:
+    from .runtime import ERDModel
+    from .uploads import ERDStyles
+
 SOURCES_FILE = "upload_sources.npz"
-KEYS = tuple(PRIOR_FILES)  # the priors an upload fits
+KEYS = ("leaf_prior", "output_prior", "run_leaf_prior", "run_output_prior")  # the priors' sources, by name
 MIN_RUN_FRAMES = 60  # running frames a clip needs to fit its own run priors (2 s)
 
 
@@ -69,7 +75,10 @@ class Sources:
 
 
 def carry_to(
-    source: tuple[np.ndarray, np.ndarray], target: np.ndarray, fixed: tuple[int, ...] = (), clamp_only=()
+    source: tuple[np.ndarray, np.ndarray],
+    target: np.ndarray,
+    fixed: tuple[int, ...] = (),
+    clamp_only: tuple[int, ...] = (),
 ) -> StyleCarry:
     """A one-style carry from a source Gaussian (mean (J, 4), cov (J, 3, 3)) to real rotations
     (N, J, 4): what `StyleCarry.fit` gives from the frames the source was measured on."""
@@ -89,7 +98,7 @@ def one_style(carry: StyleCarry, style: int) -> StyleCarry:
     return StyleCarry(*(np.ascontiguousarray(a[style : style + 1]) for a in carry.arrays))
 
 
-def clip_rotations(model, clip) -> tuple[np.ndarray, np.ndarray]:
+def clip_rotations(model: ERDStyles, clip: Motion) -> tuple[np.ndarray, np.ndarray]:
     """The clip's local rotations (N, 22, 4) as the priors read real frames (the feature cache's:
     Hips without the facing yaw, joint_Root the identity), and each frame's run share (N,)."""
     root = clip.translations[:, 1]
@@ -109,33 +118,40 @@ def nearest_style(style_means: np.ndarray, q: np.ndarray) -> int:
 
 
 def fit_stages(
-    built_in: ErdStages, sources: Sources, skeleton, q: np.ndarray, share: np.ndarray, nearest: int, output_source=None
-) -> ErdStages:
-    """An upload's priors and twist range from its clip's rotations `q` and run shares (module
-    docstring); `output_source` (mean, cov) replaces the nearest style's network source (a job
-    that fitted the style's own branch measured its own). `built_in`: the trained styles' stages
-    (a missing one stays missing)."""
+    built_in: Pipeline,
+    sources: Sources,
+    skeleton: Skeleton,
+    q: np.ndarray,
+    share: np.ndarray,
+    nearest: int,
+    output_source: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict[str, SlowPrior | TwistRange]:
+    """An upload's priors and twist range, by stage name, from its clip's rotations `q` and run
+    shares (module docstring); `output_source` (mean, cov) replaces the nearest style's network
+    source (a job that fitted the style's own branch measured its own). `built_in`: the trained
+    styles' stages (one that is off stays off)."""
     legs = tuple(skeleton.index(n) for n in LEG_JOINTS)
     runs = q[share > 0.5]
-    out: dict[str, Any] = {}  # the fitted priors, by field
-    if built_in.leaf_prior is not None:
-        out["leaf_prior"] = carry_to(sources.of("leaf_prior", nearest), q, FIXED)
-    if built_in.output_prior is not None:
-        src = output_source or sources.of("output_prior", nearest)
-        out["output_prior"] = carry_to(src, comparable(q), (0,), (HIPS,) + legs)
-    for key, real, clamped in (("run_leaf_prior", runs, None), ("run_output_prior", comparable(runs), (HIPS,))):
-        carry = getattr(built_in, key)
-        if carry is None:
+    out: dict[str, SlowPrior | TwistRange] = {}
+    for key, real, walk_src, fixed, clamped, run_clamped in (
+        ("leaf_prior", q, sources.of("leaf_prior", nearest), FIXED, (), ()),
+        ("output_prior", comparable(q), output_source, (0,), (HIPS,) + legs, (HIPS,)),
+    ):
+        stage = getattr(built_in, key)
+        if not isinstance(stage, SlowPrior):
             continue
-        if len(runs) >= MIN_RUN_FRAMES:
-            out[key] = carry_to(sources.of(key, nearest), real, FIXED if clamped is None else (0,), clamped or ())
-        else:
-            out[key] = one_style(carry, nearest)
-    twists = None if built_in.twist_range is None else TwistRange.fit(skeleton, [q])
-    return ErdStages(twist_range=twists, **out)
+        walk = carry_to(walk_src or sources.of(key, nearest), real, fixed, clamped)
+        run = None if stage.run is None else one_style(stage.run, nearest)
+        if run is not None and len(runs) >= MIN_RUN_FRAMES:
+            run_real = runs if key == "leaf_prior" else comparable(runs)
+            run = carry_to(sources.of(f"run_{key}", nearest), run_real, fixed, run_clamped)
+        out[key] = SlowPrior(("",), walk, run, stage.hips)
+    if built_in.twist_range is not None:
+        out["twist_range"] = TwistRange.fit(skeleton, [q], ("",))
+    return out
 
 
-def fit_sources(model) -> Sources:
+def fit_sources(model: ERDModel) -> Sources:
     """The sources every trained style's priors were fitted from (`rotation_prior.py`), as Gaussians."""
     from .rotation_prior import _neutral_inputs, network_rotations, real_rotations, run_network_rotations
 

@@ -26,25 +26,31 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 import numpy as np
+from numpy.typing import DTypeLike
 
 from ..data.archives import is_available
 from ..interface import ClipStyles, FineTuned, Progress, StyleRejected
+from ..motion.bn_skeleton import HIPS
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.style_carry import StyleCarry
+from ..stages import Pipeline
 from .dataset import DATASET, TARGET_STYLES
-from .stages import ErdStages
+from .features import FeatureMaker
+from .slow_carry import SlowPrior
+from .stages import stacked
 from .twist_range import TwistRange
-from .upload_stages import KEYS, SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
+from .upload_stages import SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
 
 STYLE_FILE = "erd_style.npz"
+CARRY_FIELDS = ("source", "mean", "map", "radius")  # a carry's arrays, as an upload's file names them
 MIN_FRAMES = 60  # 2 s: the stages' statistics need a few steps of the clip
 
 
 @dataclass
 class Upload:
     """An uploaded style's parameters: its branch (PyTorch LSTM layout, `weight_ih_l0`, ...), the
-    branch's initial state (layers, H), its decoder code (6,), its fitted stages (one style each:
-    the priors and the twist range)."""
+    branch's initial state (layers, H), its decoder code (6,), its fitted stages by name (one
+    style each: the priors and the twist range)."""
 
     name: str
     nearest: str  # the trained style its branch and code started from
@@ -52,16 +58,18 @@ class Upload:
     h0: np.ndarray
     c0: np.ndarray
     code: np.ndarray
-    stages: ErdStages = field(default_factory=ErdStages)
+    stages: dict[str, SlowPrior | TwistRange] = field(default_factory=dict)
 
     def save(self, path: Path) -> None:
         arrays = {f"lstm.{k}": v for k, v in self.lstm.items()}
         arrays |= {"h0": self.h0, "c0": self.c0, "code": self.code, "nearest": np.array(self.nearest)}
-        for key in KEYS:
-            if (carry := getattr(self.stages, key)) is not None:
-                arrays |= {f"{key}.{f}": a for f, a in zip(("source", "mean", "map", "radius"), carry.arrays)}
-        if (twists := self.stages.twist_range) is not None:
-            arrays |= {"twist.mean": twists.mean, "twist.lo": twists.lo, "twist.hi": twists.hi}
+        for key, stage in self.stages.items():
+            if isinstance(stage, SlowPrior):
+                for name, carry in ((key, stage.carry), (f"run_{key}", stage.run)):
+                    if carry is not None:
+                        arrays |= {f"{name}.{f}": a for f, a in zip(CARRY_FIELDS, carry.arrays)}
+            else:
+                arrays |= {"twist.mean": stage.mean, "twist.lo": stage.lo, "twist.hi": stage.hi}
         tmp = path.with_suffix(".tmp.npz")
         np.savez(tmp, **arrays)  # type: ignore[arg-type]
         tmp.replace(path)
@@ -70,18 +78,22 @@ class Upload:
     def load(cls, name: str, path: Path, twist_joints: TwistRange | None) -> Upload:
         with np.load(path) as z:
             a = {k: z[k] for k in z.files}
-        priors: dict[str, Any] = {
-            key: StyleCarry(
-                *(np.ascontiguousarray(a[f"{key}.{f}"], np.float64) for f in ("source", "mean", "map", "radius"))
-            )
-            for key in KEYS
-            if f"{key}.source" in a
-        }
-        twists = None
+
+        def carry(key: str) -> StyleCarry | None:
+            if f"{key}.source" not in a:
+                return None
+            return StyleCarry(*(np.ascontiguousarray(a[f"{key}.{f}"], np.float64) for f in CARRY_FIELDS))
+
+        stages: dict[str, Any] = {}
+        for key, hips in (("leaf_prior", -1), ("output_prior", HIPS)):
+            if (walk := carry(key)) is not None:
+                stages[key] = SlowPrior((name,), walk, carry(f"run_{key}"), hips)
         if twist_joints is not None and "twist.mean" in a:
-            twists = TwistRange(twist_joints.joints, twist_joints.axes, a["twist.mean"], a["twist.lo"], a["twist.hi"])
+            stages["twist_range"] = TwistRange(
+                twist_joints.joints, twist_joints.axes, a["twist.mean"], a["twist.lo"], a["twist.hi"], (name,)
+            )
         lstm = {k[5:]: v for k, v in a.items() if k.startswith("lstm.")}
-        return cls(name, str(a["nearest"]), lstm, a["h0"], a["c0"], a["code"], ErdStages(twist_range=twists, **priors))
+        return cls(name, str(a["nearest"]), lstm, a["h0"], a["c0"], a["code"], stages)
 
 
 class BuiltIn(NamedTuple):
@@ -89,7 +101,7 @@ class BuiltIn(NamedTuple):
 
     lstm_w: list[np.ndarray]
     lstm_b: list[np.ndarray]
-    stages: ErdStages
+    stages: Pipeline
 
 
 def branch_weights(params: dict[str, np.ndarray], prefix: str) -> dict[str, np.ndarray]:
@@ -97,7 +109,7 @@ def branch_weights(params: dict[str, np.ndarray], prefix: str) -> dict[str, np.n
     return {k[len(prefix) :]: v for k, v in params.items() if k.startswith(prefix)}
 
 
-def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype) -> tuple[list, list]:
+def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype: DTypeLike) -> tuple[list, list]:
     """A branch's LSTM as the step multiplies it (`ERDModel._prepare_weights`): per layer
     [W_ih^T; W_hh^T] (2H, 4H) and the summed bias (1, 4H), the cell-input gate's doubled."""
     scale = np.ones(4 * H)
@@ -121,11 +133,13 @@ class ERDStyles(ClipStyles[Upload]):
     weights_dir: Path | None
     if TYPE_CHECKING:
         p: dict[str, np.ndarray]
+        maker: FeatureMaker
+        fps: float
         Ln: int
         H: int
         dtype: np.dtype
         skeleton: Skeleton
-        stages: ErdStages
+        stages: Pipeline
         lstm_w: list[np.ndarray]
         lstm_b: list[np.ndarray]
         branches: tuple[str, ...]
@@ -147,7 +161,7 @@ class ERDStyles(ClipStyles[Upload]):
                 raise StyleRejected(
                     "uploads_unavailable",
                     f"this server's Style-ERD weights lack {SOURCES_FILE} "
-                    "(`python -m models.erd.rotation_prior sources`)",
+                    "(`python -m models.erd fit --stages upload_sources`)",
                     unavailable=True,
                 )
             held = self._sources = Sources.load(path)
@@ -174,7 +188,7 @@ class ERDStyles(ClipStyles[Upload]):
             raise ValueError(f"style clip too short: {clip.num_frames} frames, need at least {MIN_FRAMES}")
         q, share = clip_rotations(self, clip)
         leaf = self.built_in.stages.leaf_prior
-        s = nearest_style(leaf.mean, q) if leaf is not None else 0
+        s = nearest_style(leaf.carry.mean, q) if isinstance(leaf, SlowPrior) else 0
         stages = fit_stages(self.built_in.stages, self.sources, self.skeleton, q, share, s)
         lstm = {k: v.astype(np.float32) for k, v in branch_weights(self.p, f"branches.{s}.").items()}
         h0 = self.p["style_h0"][s].astype(np.float32)
@@ -211,7 +225,8 @@ class ERDStyles(ClipStyles[Upload]):
         return (folder / STYLE_FILE).exists()
 
     def load_style(self, name: str, folder: Path) -> Upload:
-        return Upload.load(name, folder / STYLE_FILE, self.built_in.stages.twist_range)
+        twists = self.built_in.stages.twist_range
+        return Upload.load(name, folder / STYLE_FILE, twists if isinstance(twists, TwistRange) else None)
 
     def _use(self, uploads: tuple[Upload, ...]) -> None:
         """Replace the stacked branches, codes and stages by the trained styles' and `uploads`'."""
@@ -223,6 +238,6 @@ class ERDStyles(ClipStyles[Upload]):
             self.lstm_b = [np.concatenate([a, x[None]]) for a, x in zip(self.lstm_b, b)]
         n = len(TARGET_STYLES)
         self.codes = np.concatenate([np.eye(n), *(u.code[None] for u in uploads)]).astype(dt) if uploads else None
-        self.stages = base.stages.stacked(uploads)
         self.uploads = uploads
         self.branches = self.branches[:1] + tuple(TARGET_STYLES) + tuple(u.name for u in uploads)
+        self.stages = stacked(base.stages, [(u.name, u.stages) for u in uploads])

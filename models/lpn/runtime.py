@@ -28,13 +28,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..interface import FrameBatch, State
+from ..motion import hinge_floor
 from ..motion.assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR
 from ..motion.coupling import Coupling
 from ..motion.features import body_joint
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter
-from ..motion.hinge import Hinges
-from ..motion.hinge_floor import FLOOR_FILE, HingeFloor, fit_floor
 from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.rotation_ball import StyleBalls
 from ..motion.rotations import quat_mul, yaw_quat
@@ -63,12 +62,7 @@ STAGES = (
     StageSpec("output_prior", OUTPUT_PRIOR_FILE, lambda path, _: OutputPrior.load(path), output_prior.fit),
     StageSpec("arm_coupling", ARM_COUPLING_FILE, lambda path, _: Coupling.load(path), arm_coupling.fit),
     StageSpec("rotation_balls", BALLS_FILE, lambda path, _: StyleBalls.load(path), rotation_prior.fit),
-    StageSpec(
-        "hinge_floor",
-        FLOOR_FILE,
-        lambda path, sk: HingeFloor(sk, Hinges.load(path)),
-        lambda model, _: HingeFloor(model.skeleton, fit_floor(model.skeleton)),
-    ),
+    hinge_floor.STAGE,
 )
 HIST = lf.PAST * lf.STEP + 1  # 31 frames of history, the last one is the current frame
 CONTROL_SMOOTH_S = 0.25  # input velocity smoothing for derived control

@@ -21,7 +21,7 @@ import numpy as np
 WEIGHTS_DIR_DEFAULT = Path(__file__).resolve().parents[1] / "weights" / "lti"
 
 
-def cmd_train(args) -> None:
+def cmd_train(args: argparse.Namespace) -> None:
     from .train import CONFIG, train
 
     cfg = dict(CONFIG)
@@ -36,33 +36,27 @@ def cmd_train(args) -> None:
     print(f"trained {len(report)} styles in {time.time() - t0:.1f} s")
 
 
-def cmd_hinges(args) -> None:
+def cmd_hinges(args: argparse.Namespace) -> None:
     """Hinge joints and their least real bend from every dataset-2 TRAIN clip (the data LTI is
     identified on), every style: one floor for built-in and uploaded styles alike."""
-    from models.data import build_index, load_motions, select
     from models.motion.assets import bandai_namco_skeleton
-    from models.motion.hinge import HINGE_FILE, fit_hinges
+    from models.motion.hinge import HINGE_FILE
+    from models.motion.hinge_floor import fit_floor
 
-    clips = select(build_index(["bandai-namco-2"]), dataset="bandai-namco-2", split="train")
-    rotations = np.concatenate([m.rotations for m in load_motions(clips)])
-    hinges = fit_hinges(bandai_namco_skeleton(), rotations)
+    hinges = fit_floor(bandai_namco_skeleton())
     print(hinges.save(Path(args.out) / HINGE_FILE), "floors (deg)", np.degrees(np.asarray(hinges.floor)).round(2))
 
 
-def cmd_translate(args) -> None:
+def cmd_translate(args: argparse.Namespace) -> None:
     from models.motion import bvh as bvhio
     from models.motion.skeleton import from_bvh, to_bvh
 
     from .model import LTIStyleModel
 
-    model = LTIStyleModel()
+    model = LTIStyleModel(blend=not args.no_blend, footlock=not args.no_footlock, keep_heading=not args.model_heading)
     src = bvhio.read(args.input)
     motion = from_bvh(src)
-    tr = model.translators[args.style]
-    tr.keep_heading = not args.model_heading
-    out, contacts = tr.translate_motion(
-        motion, timewarp=args.timewarp, blend=not args.no_blend, footlock=not args.no_footlock
-    )
+    out, contacts = model.translate(motion, args.style, timewarp=args.timewarp)
     bvhio.write(to_bvh(out, src), args.output)
     print(
         f"{args.input} -> {args.output}: {motion.num_frames} -> {out.num_frames} frames, style {args.style}, "
@@ -70,7 +64,7 @@ def cmd_translate(args) -> None:
     )
 
 
-def cmd_bench(args) -> None:
+def cmd_bench(args: argparse.Namespace) -> None:
     """Per-frame cost of `step_batch` at batch 1 and 256, with the threads capped (1 = as the
     service runs): every stage on (as the service loads it, the unseen-content fade last), the same
     without the fade, against the published core alone (`load(...,
@@ -136,7 +130,7 @@ def _floor(zin: np.ndarray, M_T: np.ndarray, i: int) -> None:
     np.matmul(zin, M_T)
 
 
-def cmd_render(args) -> None:
+def cmd_render(args: argparse.Namespace) -> None:
     """Input vs translated output of a validation neutral walk: contact sheet PNG + GIF per style."""
     from models.data import build_index, load_motion, select
     from models.motion.render import render_contact_sheet, render_gif
@@ -148,9 +142,8 @@ def cmd_render(args) -> None:
     motion = load_motion(clip)
     out_dir = Path(args.out)
     for style in args.styles or model.styles():
-        tr = model.translators[style]
-        online, _ = tr.translate_motion(motion)
-        warped, _ = tr.translate_motion(motion, timewarp=True)
+        online, _ = model.translate(motion, style)
+        warped, _ = model.translate(motion, style, timewarp=True)
         ms, titles = [motion, online, warped], [f"input {clip.name}", f"{style} (online)", f"{style} (time-warped)"]
         png = render_contact_sheet(ms, out_dir / f"lti_{style}_{args.content}.png", frames=8, titles=titles)
         print(f"wrote {png}")

@@ -32,6 +32,7 @@ from functools import lru_cache
 import numpy as np
 
 from models.motion.rotation_ball import fit_prior
+from models.motion.skeleton import Motion
 
 from . import representation as rep
 from .model import StyleTranslator
@@ -181,7 +182,9 @@ def pairing_config(opts: dict = FINETUNE) -> dict:
     return {**CONFIG, "imw": {**CONFIG["imw"], "rate_weight": opts["rate_weight"]}}
 
 
-def pair_from_motions(mi, mo, match_mean, match_std, ref, cfg=CONFIG) -> PairData:
+def pair_from_motions(
+    mi: Motion, mo: Motion, match_mean: np.ndarray, match_std: np.ndarray, ref: np.ndarray, cfg: dict = CONFIG
+) -> PairData:
     """`train.pair_data` on in-memory motions (no clip keys, no cache)."""
     return pair_from_warp(mi, mo, align(mi, mo, match_mean, match_std, cfg["align"], ref, cfg), ref)
 
@@ -196,7 +199,11 @@ class FineTuneResult:
 
 
 def fine_tune(
-    motion, name: str, ref: np.ndarray, progress: Callable[[float, str], None] | None = None, opts: dict | None = None
+    motion: Motion,
+    name: str,
+    ref: np.ndarray,
+    progress: Callable[[float, str], None] | None = None,
+    opts: dict | None = None,
 ) -> FineTuneResult:
     """Identify a translator for the style of `motion` (BN skeleton, 30 fps) named `name`."""
     opts = {**FINETUNE, **(opts or {})}

@@ -47,11 +47,11 @@ from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
 from ..motion.novelty_kernels import fade_step
-from ..motion.quaternion import qdot, qinv, qmul, quat_at, row3, row4, wrap
+from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qunit, qyaw, row3, row4, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
 from .waving_arm import MEAN_SHAPE
-from .waving_kernels import WavingArm, nlerp, ramp, swing_arms
+from .waving_kernels import WavingArm, ramp, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
 SHARE_FLOOR = 1e-3  # an eased raised-arm share below this is 0 (`raised_shares`)
@@ -416,35 +416,12 @@ def unpack_work(p):
 
 
 @njit(cache=True, error_model="numpy")
-def quat_to_rotvec(q):
-    """Exponential map, angle in [0, pi] (the w >= 0 branch); see representation.quat_to_rotvec."""
-    w = abs(q[3])
-    sign = 1.0 if q[3] + 1e-300 >= 0.0 else -1.0
-    v = (q[0] * sign, q[1] * sign, q[2] * sign)
-    s = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-    scale = 2.0 * math.atan2(s, w) / s if s > 1e-8 else 2.0 / max(w, 1e-12)
-    return (v[0] * scale, v[1] * scale, v[2] * scale)
-
-
-@njit(cache=True, error_model="numpy")
-def rotvec_to_quat(r):
-    angle = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
-    scale = 0.5 - angle * angle / 48.0 if angle < 1e-8 else math.sin(0.5 * angle) / angle
-    return (r[0] * scale, r[1] * scale, r[2] * scale, math.cos(0.5 * angle))
-
-
-@njit(cache=True, error_model="numpy")
 def split_hips(q):
     """q_hips = qyaw(yaw) * tilt -> (yaw, tilt); see representation.split_hips."""
     x, y, z, w = q
     yaw = math.atan2(2.0 * (y * z + w * x), -2.0 * (x * y - w * z))
     c, s = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
     return yaw, (c * x - s * z, c * y - s * w, c * z + s * x, c * w + s * y)
-
-
-@njit(cache=True, error_model="numpy")
-def qyaw(yaw):
-    return (0.0, math.sin(0.5 * yaw), 0.0, math.cos(0.5 * yaw))
 
 
 @njit(cache=True, error_model="numpy")
@@ -457,7 +434,7 @@ def rotate_y(x, z, yaw):
 @njit(cache=True, error_model="numpy")
 def add_signed(acc, w, q, ref):
     """acc + w * q, with q's sign flipped when it points away from ref (q and -q are one rotation)."""
-    sign = -w if q[0] * ref[0] + q[1] * ref[1] + q[2] * ref[2] + q[3] * ref[3] < 0.0 else w
+    sign = -w if qdot(q, ref) < 0.0 else w
     return (acc[0] + sign * q[0], acc[1] + sign * q[1], acc[2] + sign * q[2], acc[3] + sign * q[3])
 
 
@@ -494,7 +471,7 @@ def style_inputs(sys, s, root_y, rotations, tilt, delta, x, blend, xin, u, feats
     feats[0, c], feats[1, c], feats[2, c], feats[3, c] = delta[0], delta[1], delta[2], root_y
     for j in range(1, NUM_JOINTS):
         q = tilt if j == HIPS else row4(rotations, j)
-        r = quat_to_rotvec(qmul(qinv(quat_at(sys.ref, s, j)), q))
+        r = qlog(qmul(qinv(quat_at(sys.ref, s, j)), q))
         feats[3 * j + 1, c], feats[3 * j + 2, c], feats[3 * j + 3, c] = r
     for i in range(x.shape[0]):
         xin[i, c] = x[i]
@@ -593,10 +570,10 @@ def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_head
         out[2] = feats[2, c]
     for d in range(4):
         root_feats[d] += w * out[d]
-    # body rotations (representation.static_to_rotations with yaw 0)
+    # body rotations (`tests/reference/lti_offline.static_to_rotations` with yaw 0)
     quats[0, 0], quats[0, 1], quats[0, 2], quats[0, 3] = 0.0, 0.0, 0.0, 1.0
     for j in range(1, NUM_JOINTS):
-        q = qmul(quat_at(sys.ref, s, j), rotvec_to_quat((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
+        q = qmul(quat_at(sys.ref, s, j), qexp((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
         if j == HIPS or not inside(q, quat_at(ball.mean, s, j), ball.cos_inner[s, j]):
             q = clamp_joint(q, quat_at(ball.mean, s, j), ball.radii[s, 0, j], ball.radii[s, 1, j], j == HIPS)
         if bends.floor[j] > -math.inf:
@@ -697,8 +674,7 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
             for s in range(S):
                 if weights[b, s] > 0.0:
                     acc = add_signed(acc, weights[b, s], quat_at(quats, s, j), q_base)
-            norm = math.sqrt(acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2] + acc[3] * acc[3])
-            q = (acc[0] / norm, acc[1] / norm, acc[2] / norm, acc[3] / norm)
+            q = qunit(acc)
             if j == HIPS:
                 q = qmul(qyaw(yaw if fresh else before.out_yaw[b] + rf[2]), q)
             out_rot[b, j, 0], out_rot[b, j, 1], out_rot[b, j, 2], out_rot[b, j, 3] = q
@@ -736,7 +712,7 @@ def calm_share(arm, height, sway):
 
 @njit(cache=True, error_model="numpy")
 def raised_shares(b, arm, on, raised, weights, offsets, swayed, fresh, before, after):
-    """Session b's share of each side's raised arm (`raised_arm.shares`: the hand's raise share
+    """Session b's share of each side's raised arm (the hand's raise share
     times one minus its wave share), eased over time (`ease`, from `before` (2, 2) into `after`):
     a hand swung up in a jump or a punch crosses the raise ramp in a frame or two. Below
     `SHARE_FLOOR` an eased share is 0 (it decays toward 0 and would never reach it)."""
@@ -753,7 +729,7 @@ def raised_shares(b, arm, on, raised, weights, offsets, swayed, fresh, before, a
 
 @njit(cache=True, error_model="numpy")
 def carry_raised_arms(b, arm, weights, left, right, out_rot, work):
-    """Session b's arms mixed toward the styles' raised arms (`raised_arm.carried`): each side
+    """Session b's arms mixed toward the styles' raised arms (`tests/reference/lti_offline.py`'s `carried`): each side
     by its share (`raised_shares`)."""
     total = 0.0
     for s in range(weights.shape[1]):

@@ -20,15 +20,16 @@ planted (`footlock`) by `models.motion.feet.FootPlanter`, shared by every method
 classifier's contacts as hints for feet slower than `HINT_SPEED`; `FrameBatch.contacts` are the planted legs, or the classifier's.
 
 The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and stage
-(`kernels.step`); the offline path (`StyleTranslator.translate_motion`) stays numpy over whole
-clips, and the tests check that the two agree frame for frame. The log-time-warp output (last
-DOF) is used offline only (`timewarp=True`): online it would break synchrony.
+(`kernels.step`); the offline path (`LTIStyleModel.translate`) streams a whole clip through it,
+and takes the log-time-warp output (last DOF) where asked (`timewarp=True`): online it would break
+synchrony. `tests/reference/lti_offline.py` is the numpy reference the step is tested against.
 """
 
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass, field
+from collections.abc import Collection
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -38,10 +39,9 @@ from scipy.special import erf
 from models.interface import FrameBatch
 from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import model_rig_planter
-from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter, clip_sway, hand_offsets_of
+from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter
 from models.motion.hinge import HINGE_FILE, Hinges, kernel_floor
-from models.motion.hinge_kernels import floor_bends
-from models.motion.rotation_ball import clamp_rotations
+from models.motion.skeleton import Motion, Skeleton
 from models.motion.style_carry import StyleCarry
 
 from . import kernels, raised_arm, waving_arm
@@ -49,6 +49,13 @@ from . import representation as rep
 from .footplant import FootplantClassifier
 from .styles import LTIStyles
 
+# The stages after the identified systems, in the order the compiled step runs them (`kernels.step`),
+# each fitted from real clips the same way for every style: the rotation prior (`train.style_prior`,
+# in each translator's file), the hinge floor (`python -m models.lti hinges`), the raised arm
+# (`raised_arm.py`) and the waving arm (`waving_arm.py`, nothing fitted). Any can be switched off
+# (`LTIStyleModel(off=...)`, `Settings.stages_off` as `lti.<name>`); the offline path
+# (`LTIStyleModel.translate`) runs the stream's.
+STAGES = ("rotation_prior", "hinge_floor", "raised_arm", "waving_arm")
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
@@ -85,8 +92,6 @@ class StyleTranslator:
     )
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
     raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`)
-    waving_arm: bool = True  # a waving hand's arm takes the input's swing (`waving_arm.py`); not stored
-    hinges: Hinges | None = None  # the rig's hinge joints held at their floor (the model's); not stored
 
     def __post_init__(self) -> None:
         n = self.A.shape[0]
@@ -129,46 +134,6 @@ class StyleTranslator:
         mean = self.prior_mean if self.prior_mean is not None else np.tile([0.0, 0.0, 0.0, 1.0], (rep.NUM_JOINTS, 1))
         radii = self.prior_radii if self.prior_radii is not None else np.full((2, rep.NUM_JOINTS), np.inf)
         return mean, radii
-
-    def translate_motion(self, motion, timewarp: bool = False, blend: bool = True, footlock: bool = True):
-        """Offline translation of a whole `Motion` (BN skeleton). Returns (Motion, contacts (F', 2))."""
-        from dataclasses import replace
-
-        feats = rep.motion_to_features(motion, self.ref)
-        out, xs = self.translate_features(feats, blend)
-        yaw0, _ = rep.split_hips(motion.rotations[0, rep.HIPS])
-        root, rots = rep.features_to_sequence(
-            out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), self.ref
-        )
-        if self.prior_mean is not None and self.prior_radii is not None:
-            rots = clamp_rotations(rots, self.prior_mean, self.prior_radii)
-        if self.hinges is not None:
-            rots = floor_bends(rots, *kernel_floor(motion.skeleton, self.hinges))
-        if self.raised_arm is not None or self.waving_arm:
-            offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
-            swayed = clip_sway(offsets, motion.fps)
-        if self.raised_arm is not None:
-            share = raised_arm.eased_shares(
-                raised_arm.shares(offsets, swayed), ease_keep(LTIStyleModel.fps, RAISE_EASE_S)
-            )
-            rots = raised_arm.carried(self.raised_arm, rots, np.ones((len(rots), 1)), share)
-        if self.waving_arm:
-            mean, radii = self.ball()
-            rots = waving_arm.clip(rots, motion.rotations, offsets, swayed, motion.fps, mean[None], radii[None])
-        contacts = self.footplant.predict(xs) if self.footplant is not None else np.zeros((len(out), 2), bool)
-        if footlock:
-            root, rots, contacts = model_rig_planter(motion.fps, hint_speed=HINT_SPEED).clip(root, rots, hints=contacts)
-        if timewarp:
-            from .warping import resample_pose
-
-            rate = np.exp(out[:, rep.FEATURE_DIM])  # output frames per input frame
-            clock = np.concatenate([[0.0], np.cumsum(rate[1:])])  # output time of each input frame
-            times = np.interp(np.arange(0.0, clock[-1] + 1e-9), clock, np.arange(len(clock)))
-            root, rots = resample_pose(root, rots, times)
-            contacts = contacts[np.clip(np.round(times).astype(int), 0, len(contacts) - 1)]
-        translations = np.broadcast_to(motion.translations[:1], (len(root),) + motion.translations.shape[1:]).copy()
-        translations[:, rep.HIPS] = root
-        return replace(motion, rotations=rots, translations=translations), contacts
 
     # ---------------------------------------------------------------- persistence
 
@@ -266,32 +231,28 @@ class LTIStyleModel(LTIStyles):
         blend: bool = True,
         footlock: bool = True,
         keep_heading: bool = True,
-        skeleton=None,
-        raised_arms: bool = True,
-        waving_arms: bool = True,
-        hinges: bool = True,
-    ):
+        skeleton: Skeleton | None = None,
+        off: Collection[str] = (),
+    ) -> None:
+        if set(off) - set(STAGES):
+            raise KeyError(f"undeclared stages {sorted(set(off) - set(STAGES))}: LTI declares {list(STAGES)}")
+        self.stages = tuple(s for s in STAGES if s not in off)  # the stages that are on
+        self.raised_arms, self.waving_arms = "raised_arm" in self.stages, "waving_arm" in self.stages
         hinge_file = Path(weights_dir) / HINGE_FILE
-        self.hinges = Hinges.load(hinge_file) if hinges and hinge_file.exists() else None
+        self.hinges = Hinges.load(hinge_file) if "hinge_floor" in self.stages and hinge_file.exists() else None
         if translators is None:
             translators = {}
-            arms = raised_arm.load(Path(weights_dir)) if raised_arms else {}
+            arms = raised_arm.load(Path(weights_dir)) if self.raised_arms else {}
             for path in sorted(Path(weights_dir).glob("*.npz")):
                 if path.name in (raised_arm.FILE, HINGE_FILE):
                     continue
                 t = StyleTranslator.load(path)
-                t.raised_arm = arms.get(t.style, t.raised_arm) if raised_arms else None
+                t.raised_arm = arms.get(t.style, t.raised_arm)
                 translators[t.style] = t
         if not translators:
             raise FileNotFoundError(f"no LTI weights (*.npz) in {weights_dir}")
-        self.translators = dict(translators)
-        for tr in translators.values():
-            tr.keep_heading = keep_heading
-            tr.waving_arm = waving_arms
-            tr.hinges = self.hinges
-        self.waving_arms = waving_arms
-        self.raised_arms = raised_arms
         self.keep_heading = keep_heading
+        self.translators = {name: self._staged(tr) for name, tr in translators.items()}
         self.blend = blend
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
@@ -300,6 +261,15 @@ class LTIStyleModel(LTIStyles):
         self._scratch = threading.local()  # per thread: step scratch reused between steps (`_workspace`)
         self._set_styles(sorted(translators))
         self._compile_step()
+
+    def _staged(self, tr: StyleTranslator) -> StyleTranslator:
+        """`tr` with this model's heading and without its stages that are off (a copy, then)."""
+        if "rotation_prior" not in self.stages and tr.prior_mean is not None:
+            tr = replace(tr, prior_mean=None, prior_radii=None)
+        if not self.raised_arms and tr.raised_arm is not None:
+            tr = replace(tr, raised_arm=None)
+        tr.keep_heading = self.keep_heading
+        return tr
 
     def _compile_step(self) -> None:
         """One step of one session on the rest pose: numba compiles the step, every stage of it
@@ -350,9 +320,7 @@ class LTIStyleModel(LTIStyles):
         """Append the style of `tr` (a new name) to `styles()`; running sessions are unaffected."""
         if tr.style in self.translators:
             raise ValueError(f"style {tr.style!r} already exists")
-        tr.keep_heading = self.keep_heading
-        tr.waving_arm = self.waving_arms
-        tr.hinges = self.hinges
+        tr = self._staged(tr)
         self.translators = {**self.translators, tr.style: tr}
         self._set_styles(self._styles + [tr.style])
 
@@ -442,20 +410,57 @@ class LTIStyleModel(LTIStyles):
             x[:, x_at[s] : x_at[s] + xs[s].shape[1]] = xs[s]
         return x, x_at
 
-    def step_batch(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray):
+    def translate(self, motion: Motion, style: str, timewarp: bool = False) -> tuple[Motion, np.ndarray]:
+        """Offline: a whole `Motion` (BN skeleton) streamed toward `style` by this model's step and
+        stages; with `timewarp`, resampled by the translator's log-time-warp output (which would
+        break a stream's synchrony). Returns (Motion, contacts (F', 2))."""
+        from dataclasses import replace as with_pose
+
+        from .warping import resample_pose
+
+        w = np.zeros((1, len(self._styles)))
+        w[0, self._styles.index(style)] = 1.0
+        state, root, rots = self.init_state(1), np.empty((motion.num_frames, 3)), np.empty(motion.rotations.shape)
+        contacts = np.empty((motion.num_frames, 2), bool)
+        for t in range(motion.num_frames):
+            frame = FrameBatch(motion.translations[t : t + 1, rep.HIPS], motion.rotations[t : t + 1])
+            out, state = self.step_batch(state, frame, w)
+            assert out.contacts is not None  # the step always reports them
+            root[t], rots[t], contacts[t] = out.root[0], out.rotations[0], out.contacts[0]
+        if timewarp:
+            tr = self.translators[style]
+            out_feats, _ = tr.translate_features(rep.motion_to_features(motion, tr.ref), self.blend)
+            rate = np.exp(out_feats[:, rep.FEATURE_DIM])  # output frames per input frame
+            clock = np.concatenate([[0.0], np.cumsum(rate[1:])])  # output time of each input frame
+            times = np.interp(np.arange(0.0, clock[-1] + 1e-9), clock, np.arange(len(clock)))
+            root, rots = resample_pose(root, rots, times)
+            contacts = contacts[np.clip(np.round(times).astype(int), 0, len(contacts) - 1)]
+        translations = np.broadcast_to(motion.translations[:1], (len(root),) + motion.translations.shape[1:]).copy()
+        translations[:, rep.HIPS] = root
+        return with_pose(motion, rotations=rots, translations=translations), contacts
+
+    def step_batch(
+        self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray
+    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
         """One frame for every session: one compiled call (`kernels.step`) on the packed carry
         and the styles' LTI states laid side by side."""
         return self._step(state, frames, style_weights, None)
 
     def step_batch_fading(
         self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray, key: str, reference: tuple
-    ):
+    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
         """`step_batch` followed by the unseen-content fade (`models.motion.novelty_stage`, which
         calls this), both in one compiled call (`kernels.step_fading`): the fade's state is
         `state[key]`, its reference `reference` (`NoveltyReference.arrays`)."""
         return self._step(state, frames, style_weights, (key, reference))
 
-    def _step(self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray, fading):
+    def _step(
+        self,
+        state: dict[str, np.ndarray],
+        frames: FrameBatch,
+        style_weights: np.ndarray,
+        fading: tuple[str, tuple] | None,
+    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
         root = np.ascontiguousarray(frames.root, dtype=np.float64)
         rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
         w = np.ascontiguousarray(style_weights, dtype=np.float64)

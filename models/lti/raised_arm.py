@@ -20,15 +20,20 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..motion.bn_skeleton import BN_JOINTS, HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
-from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, calm_sides, raise_share, wave_share
+from ..motion.hands import RAISE_RAMP_CM, WAVE_RAMP_CM_S, calm_frames, calm_sides
 from ..motion.rotation_ball import comparable
 from ..motion.style_carry import StyleCarry
-from .kernels import SHARE_FLOOR, RaisedArm, eased
+from .kernels import RaisedArm
+
+if TYPE_CHECKING:
+    from ..motion.skeleton import Motion
+    from .model import LTIStyleModel, StyleTranslator
 
 FILE = "raised_arm.npz"
 ARM_JOINTS = ("Shoulder", "UpperArm", "LowerArm", "Hand")
@@ -37,42 +42,9 @@ MIN_CALM_FRAMES = 15  # a side whose real clips hold fewer raised, calm frames i
 _ARM = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in ARM_JOINTS]) for side in "LR"]
 
 
-def shares(offsets: np.ndarray, swayed: np.ndarray) -> np.ndarray:
-    """(B, 2) how far each arm is moved: its hand's raise share times one minus its wave share,
-    from the input's `hand_offsets` (B, 2, 3) and sway (B, 2)."""
-    return raise_share(np.asarray(offsets)[..., 1]) * (1.0 - wave_share(swayed))
-
-
-def eased_shares(share: np.ndarray, keep: float) -> np.ndarray:
-    """(F, 2) one session's `shares` eased frame by frame as the stream does
-    (`kernels.raised_shares`), 0 below `SHARE_FLOOR`."""
-    out = np.stack([eased(side, keep) for side in np.asarray(share, np.float64).T], axis=1)
-    return np.where(out >= SHARE_FLOOR, out, 0.0)
-
-
-def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share: np.ndarray) -> np.ndarray:
-    """(B, J, 4) `rotations` with each side's arm moved toward what `carry` makes of it (style
-    weights (B, S)) by that side's `share` (B, 2): a normalised blend of the quaternions. Rows
-    at share 0 are returned as they are."""
-    if not np.any(share > 0.0):
-        return rotations
-    out = np.array(rotations, np.float64)
-    for side, joints in enumerate(_ARM):
-        rows = np.flatnonzero(share[:, side] > 0.0)
-        if rows.size == 0:
-            continue
-        a = out[np.ix_(rows, joints)]
-        b = carry(out[rows], weights[rows], hips=HIPS)[:, joints]
-        b = np.where(np.sum(a * b, axis=-1, keepdims=True) < 0.0, -b, b)
-        s = share[rows, side][:, None, None]
-        mixed = (1.0 - s) * a + s * b
-        out[np.ix_(rows, joints)] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
-    return out
-
-
 def settings(carries: list[StyleCarry | None], keep: float) -> RaisedArm:
     """The record the compiled step takes (`kernels.RaisedArm`) for the styles' carries, in style
-    order (None: a style without one), their shares eased by `keep` (`eased_shares`)."""
+    order (None: a style without one), their shares eased by `keep`."""
     fitted = [c for c in carries if c is not None]
     none = (np.zeros((0, NUM_JOINTS, *shape)) for shape in ((4,), (4,), (3, 3), ()))  # no style has one
     both = StyleCarry.stack(fitted) if fitted else StyleCarry(*none)
@@ -112,7 +84,7 @@ def save(carries: dict[str, StyleCarry], folder: Path) -> Path:
     return path
 
 
-def fit(model) -> dict[str, StyleCarry | None]:
+def fit(model: LTIStyleModel) -> dict[str, StyleCarry | None]:
     """Per style of the `LTIStyleModel` (its raised arms off): the carry described above, from
     all the style's TRAIN clips."""
     from ..data import build_index, load_motions, select
@@ -124,7 +96,7 @@ def fit(model) -> dict[str, StyleCarry | None]:
     return fit_styles(model, real, inputs)
 
 
-def fit_styles(model, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
+def fit_styles(model: LTIStyleModel, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
     """Per style of `model` (its raised arms off) with real clips in `real` ({style: [Motion]}):
     the carry from what the translator makes of the neutral `inputs` (BN `Motion`s) to the real
     clips, each side on its calm raised frames. The same for a built-in style (its TRAIN clips)
@@ -161,7 +133,7 @@ def fit_styles(model, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
     return carries
 
 
-def fit_upload(translator, clip, ref: np.ndarray) -> StyleCarry | None:
+def fit_upload(translator: StyleTranslator, clip: Motion, ref: np.ndarray) -> StyleCarry | None:
     """The carry of an uploaded style (`styles.LTIStyles.fine_tune_style`): `fit_styles` with the
     neutral TRAIN clips fine-tuning already holds (`finetune.neutral_bank`) and the uploaded clip
     as the style's real clips. None when the clip holds no raised, calm hand."""
@@ -170,7 +142,7 @@ def fit_upload(translator, clip, ref: np.ndarray) -> StyleCarry | None:
 
     bank = neutral_bank(np.ascontiguousarray(ref, dtype=np.float64).tobytes())
     inputs = [m.slice(0, FIT_FRAMES) for m in bank.motions.values()]
-    model = LTIStyleModel({translator.style: translator}, raised_arms=False)
+    model = LTIStyleModel({translator.style: translator}, off=("raised_arm",))
     return fit_styles(model, {translator.style: [clip]}, inputs)[translator.style]
 
 
@@ -188,7 +160,7 @@ def main(argv: list[str]) -> None:
     from .model import WEIGHTS_DIR, LTIStyleModel
 
     folder = Path(argv[0]) if argv else WEIGHTS_DIR
-    model = LTIStyleModel(weights_dir=folder, raised_arms=False)
+    model = LTIStyleModel(weights_dir=folder, off=("raised_arm",))
     carries = fit(model)
     print(save({s: c for s, c in carries.items() if c is not None}, folder))
 

@@ -20,16 +20,21 @@ the Hips rotation: the hips' left direction is the Hips-local -Y axis (UpperLeg_
 points along -Y in the Hips frame of this skeleton) and forward = cross(left, up), so yaw 0 means
 facing +Z. Splitting q_hips = q_yaw(yaw) * q_tilt is exact, so the representation inverts exactly.
 
-The exponential map here is plain numpy (not scipy's), written as the compiled step's, so the
-offline and streaming paths agree to round-off.
+The exponential map here is plain numpy (not scipy's), the compiled step's (`quaternion.qlog`,
+`qexp`) written on arrays, so the offline and streaming paths agree to round-off.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from models.motion.bn_skeleton import HIPS, NUM_JOINTS
 from models.motion.rotations import quat_inv, wrap_angle
+
+if TYPE_CHECKING:
+    from models.motion.skeleton import Motion
 
 ROOT_DIMS = 7
 BODY_JOINTS = tuple(range(2, NUM_JOINTS))  # joints carried as expmaps
@@ -127,40 +132,8 @@ def sequence_features(root: np.ndarray, rotations: np.ndarray, ref: np.ndarray =
     return np.concatenate([delta, static], axis=-1)
 
 
-def motion_to_features(motion, ref: np.ndarray = IDENTITY_REF) -> np.ndarray:
+def motion_to_features(motion: Motion, ref: np.ndarray = IDENTITY_REF) -> np.ndarray:
     return sequence_features(motion.translations[:, HIPS], motion.rotations, ref)
-
-
-def features_to_sequence(
-    features: np.ndarray, start_ground: np.ndarray, start_yaw: float, ref: np.ndarray = IDENTITY_REF
-) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of `sequence_features`: (F, 67) -> root (F, 3), rotations (F, 22, 4).
-
-    The path is integrated from the given start: frame 0 sits at `start_ground`/`start_yaw`
-    and frame t adds the displacement of frame t in the facing of frame t-1."""
-    f = len(features)
-    dyaw = features[:, 2].copy()
-    dyaw[0] = 0.0
-    yaw = start_yaw + np.cumsum(dyaw)
-    step = np.zeros((f, 2))
-    if f > 1:
-        step[1:] = rotate_y(features[1:, :2], yaw[:-1])
-    ground = np.asarray(start_ground, float) + np.cumsum(step, axis=0)
-    root = np.stack([ground[:, 0], features[:, 3], ground[:, 1]], axis=-1)
-    return root, static_to_rotations(features[:, 4:], yaw, ref)
-
-
-def static_to_rotations(static_rot: np.ndarray, yaw: np.ndarray, ref: np.ndarray = IDENTITY_REF) -> np.ndarray:
-    """(..., 63) tilt + body expmaps and yaw -> (..., 22, 4) local rotations."""
-    lead = static_rot.shape[:-1]
-    out = np.empty(lead + (NUM_JOINTS, 4))
-    out[..., 0, :] = (0.0, 0.0, 0.0, 1.0)
-    out[..., 1:, :] = (_left(ref) @ rotvec_to_quat(static_rot.reshape(*lead, 21, 3))[..., None])[..., 0]
-    c, s = np.cos(0.5 * yaw)[..., None], np.sin(0.5 * yaw)[..., None]
-    t = out[..., HIPS, :]
-    # yaw_quat(yaw) * t, written out: (c*x + s*z, c*y + s*w, c*z - s*x, c*w - s*y)
-    out[..., HIPS, :] = c * t + s * t[..., [2, 3, 0, 1]] * np.array([1.0, 1.0, -1.0, -1.0])
-    return out
 
 
 _LEFT_CACHE: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
@@ -173,10 +146,6 @@ def _cached(ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         hit = (ref, left_matrix(ref[1:]), left_matrix(quat_inv(ref[1:])))
         _LEFT_CACHE[key] = hit
     return hit[1], hit[2]
-
-
-def _left(ref: np.ndarray) -> np.ndarray:
-    return _cached(ref)[0]
 
 
 def _left_inv(ref: np.ndarray) -> np.ndarray:

@@ -144,7 +144,11 @@ def subspace_id(
 
 
 def fit_bd(
-    A: np.ndarray, C: np.ndarray, records, ridge: float = 1e-6, input_noise: np.ndarray | None = None
+    A: np.ndarray,
+    C: np.ndarray,
+    records: list[tuple[np.ndarray, np.ndarray]],
+    ridge: float = 1e-6,
+    input_noise: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares B, D for simulation from x0 = 0 with A, C fixed; with `input_noise` (m,), the
     expected squared error were each input j to carry white noise of standard deviation

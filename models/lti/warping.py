@@ -90,7 +90,7 @@ def space_warp(x: np.ndarray, yw: np.ndarray, lam: float, mu: float) -> tuple[np
     return sol[0].T, sol[1].T
 
 
-def objective(x, yw, a, b, lam, mu) -> float:
+def objective(x: np.ndarray, yw: np.ndarray, a: np.ndarray, b: np.ndarray, lam: float, mu: float) -> float:
     data = np.sum((x - a * yw - b) ** 2)
     smooth = lam * (np.sum(np.diff(a, axis=0) ** 2) + np.sum(np.diff(b, axis=0) ** 2))
     reg = mu * (np.sum((a - 1) ** 2) + np.sum(b**2))

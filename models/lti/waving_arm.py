@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion.bn_skeleton import BN_JOINTS
-from ..motion.hands import LEVEL_RAMP_CM_S, RAISE_RAMP_CM, WAVE_RAMP_CM_S, clip_rise
-from .waving_kernels import WavingArm, swing_batch
+from ..motion.hands import LEVEL_RAMP_CM_S, RAISE_RAMP_CM, WAVE_RAMP_CM_S
+from .waving_kernels import WavingArm
 
 JOINTS = ("UpperArm", "LowerArm")
 TRACK_FRAMES = 15.0  # the running mean's exponential average: each frame moves it 1 / TRACK_FRAMES of the way
@@ -40,41 +40,3 @@ def settings() -> WavingArm:
         TRACK_FRAMES,
         GAIN,
     )
-
-
-def step(*arrays: np.ndarray, swing: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One frame for every row (`waving_kernels.swing_arms`) from `arrays`: the input's and the
-    output's rotations (B, J, 4), the style weights (B, S), whether each row has started, the
-    input's `hand_offsets` before and now (B, 2, 3), its sway and rise (B, 2), the running means
-    before (B, 2, 2, 4) and the styles' balls (means (S, J, 4), radii (S, 2, J)). Returns the
-    output rotations with the waving arms swung (a copy) and the running means after this frame."""
-    out = np.array(arrays[1], np.float64, copy=True)
-    new_in, new_out = np.empty((len(out), *MEAN_SHAPE)), np.empty((len(out), *MEAN_SHAPE))
-    inputs = (arrays[0], out, *arrays[2:])
-    args = (tuple(settings()), *(np.ascontiguousarray(a, np.float64) for a in inputs), swing, new_in, new_out)
-    swing_batch(*args)
-    return out, new_in, new_out
-
-
-def clip(
-    out_rots: np.ndarray,
-    in_rots: np.ndarray,
-    offsets: np.ndarray,
-    swayed: np.ndarray,
-    fps: float,
-    means: np.ndarray,
-    radii: np.ndarray,
-) -> np.ndarray:
-    """(T, J, 4) a whole clip's output rotations of one style (balls means (1, J, 4), radii
-    (1, 2, J)) with its waving arms swung, frame by frame as a stream does (`step`), from the
-    input's rotations, `hand_offsets` (T, 2, 3) and their `clip_sway` (T, 2)."""
-    out = np.array(out_rots, np.float64, copy=True)
-    risen = clip_rise(offsets, fps)
-    in_mean, out_mean = np.zeros((1, *MEAN_SHAPE)), np.zeros((1, *MEAN_SHAPE))
-    one = np.ones((1, 1))
-    for t in range(len(out)):
-        now, prev = slice(t, t + 1), slice(max(t - 1, 0), max(t, 1))
-        rows = (in_rots[now], out[now], one, np.array([t > 0]), offsets[prev], offsets[now], swayed[now], risen[now])
-        frame, in_mean, out_mean = step(*rows, in_mean, out_mean, means, radii)
-        out[t] = frame[0]
-    return out

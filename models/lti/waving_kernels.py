@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from ..motion.quaternion import qdot, qexp, qinv, qlog, qmul, qneg, quat_at, qunit
+from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, qneg, quat_at, qunit
 from ..motion.rotation_ball_kernels import clamp_joint
 
 
@@ -47,21 +47,6 @@ def _toward(mean, q, fresh, frames):
 def ramp(x, lo, hi):
     """0 up to lo, 1 from hi, linear between (`models.motion.hands` shares)."""
     return min(max((x - lo) / (hi - lo), 0.0), 1.0)
-
-
-@njit(cache=True, error_model="numpy")
-def nlerp(a, t, share):
-    """(1 - share) a + share t, normalised, with t taken on a's hemisphere."""
-    if qdot(t, a) < 0.0:
-        t = qneg(t)
-    return qunit(
-        (
-            (1.0 - share) * a[0] + share * t[0],
-            (1.0 - share) * a[1] + share * t[1],
-            (1.0 - share) * a[2] + share * t[2],
-            (1.0 - share) * a[3] + share * t[3],
-        )
-    )
 
 
 @njit(cache=True, error_model="numpy")
@@ -123,15 +108,3 @@ def swing_arms(b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets,
             q = _held(nlerp(a, t, share), j, weights, b, total, prior_mean, prior_radii)
             for c in range(4):
                 rot_out[b, j, c] = q[c]
-
-
-@njit(cache=True, error_model="numpy")
-def swing_batch(arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
-                prior_mean, prior_radii, swing, new_in_mean, new_out_mean):  # fmt: skip
-    """`swing_arms` for every session (the offline path, `waving_arm.clip`); `arm` a plain tuple."""
-    arm = WavingArm(*arm)
-    for b in range(rot_in.shape[0]):
-        swing_arms(
-            b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
-            prior_mean, prior_radii, swing, new_in_mean, new_out_mean,
-        )  # fmt: skip

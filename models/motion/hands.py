@@ -11,7 +11,6 @@ from collections.abc import Callable
 import numpy as np
 
 from .bn_skeleton import BN_JOINTS
-from .rotations import quat_apply, quat_mul
 from .skeleton import Motion, Skeleton
 
 RAISE_RAMP_CM = (-12.0, 0.0)
@@ -45,7 +44,7 @@ def _arm_chain(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class HandMeter:
     """`hand_offsets` from local rotations alone and the sway's step, compiled
     (`hands_kernels.hand_step`): forward kinematics over the arm chains of `skeleton` only (a
-    translation moves both ends alike), set up once per skeleton (numpy: `hand_offsets_of`, `sway`)."""
+    translation moves both ends alike), set up once per skeleton (numpy: `tests/reference/hands.py`, `sway`)."""
 
     def __init__(self, skeleton: Skeleton) -> None:
         self.chain, self.hands, self.shoulders = _arm_chain(skeleton)
@@ -76,29 +75,6 @@ class HandMeter:
         prev, before, rise_before = (np.ascontiguousarray(a, np.float64) for a in (prev, before, rise_before))
         raised = hand_step(q, rig, prev, before, rise_before, np.asarray(started, np.bool_), out, swayed, risen)
         return out, swayed, risen, bool(raised)
-
-
-def hand_offsets_of(rotations: np.ndarray, skeleton: Skeleton) -> np.ndarray:
-    """(B, 2, 3) `hand_offsets` from local rotations (B, J, 4) alone (numpy forward kinematics
-    over the arm chains; the reference of `hand_step`)."""
-    chain, hands, shoulders = _arm_chain(skeleton)
-    q = np.asarray(rotations, np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    g_rot: dict[int, np.ndarray] = {}
-    g_pos: dict[int, np.ndarray] = {}
-    for j in chain:
-        p = int(skeleton.parents[j])
-        if p < 0:
-            g_rot[j], g_pos[j] = q[:, j], np.zeros((len(q), 3))
-        else:
-            g_rot[j] = quat_mul(g_rot[p], q[:, j])
-            g_pos[j] = g_pos[p] + quat_apply(g_rot[p], np.broadcast_to(skeleton.offsets[j], (len(q), 3)))
-    return np.stack([g_pos[h] - g_pos[s] for h, s in zip(hands, shoulders)], axis=1)
-
-
-def side_heights(pos: np.ndarray) -> np.ndarray:
-    """(..., 2) each hand's height (cm) above its own shoulder (left, right), from world joint positions (..., J, 3)."""
-    return hand_offsets(pos)[..., 1]
 
 
 def raise_share(height: np.ndarray) -> np.ndarray:
@@ -139,27 +115,15 @@ def clip_sway(offsets: np.ndarray, fps: float) -> np.ndarray:
     return _over_clip(sway, offsets, fps)
 
 
-def clip_rise(offsets: np.ndarray, fps: float) -> np.ndarray:
-    """(T, 2) `rise` over every frame of a clip's `hand_offsets` (T, 2, 3), as a stream sees it."""
-    return _over_clip(rise, offsets, fps)
-
-
 def wave_share(swayed: np.ndarray) -> np.ndarray:
     """(..., 2) how much each hand waves: 0 up to `WAVE_RAMP_CM_S`, 1 from its end, linear between."""
     lo, hi = WAVE_RAMP_CM_S
     return np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
-def raised_frames(motion: Motion, side: int | None = None) -> np.ndarray:
-    """(T,) bool: the frames of a Bandai Namco `Motion` with a hand (`side` 0: the left, 1: the
-    right; None: either) at its shoulder or above (more than half way up `RAISE_RAMP_CM`)."""
-    heights = side_heights(motion.global_positions())
-    return raise_share(heights.max(-1) if side is None else heights[:, side]) > 0.5
-
-
 def calm_sides(motion: Motion) -> np.ndarray:
-    """(T, 2) bool: the frames of a Bandai Namco `Motion` with each hand (left, right) raised (as
-    `raised_frames`) and not waving (its wave share, from the clip's sway, under a half). Both
+    """(T, 2) bool: the frames of a Bandai Namco `Motion` with each hand (left, right) at its
+    shoulder or above (more than half way up `RAISE_RAMP_CM`) and not waving (its wave share, from the clip's sway, under a half). Both
     sides from one pass of forward kinematics, which is most of the cost."""
     offsets = hand_offsets(motion.global_positions())
     return (raise_share(offsets[..., 1]) > 0.5) & (wave_share(clip_sway(offsets, motion.fps)) < 0.5)

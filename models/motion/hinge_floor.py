@@ -8,20 +8,17 @@ axis there (`hinge_kernels.floor_bends`), keeping its twist and its swing off th
 fitted once per rig from real rotations of every dataset-2 TRAIN clip, every style, as LTI's
 (`python -m models.lti hinges`), and runs after all the other stages for every style alike,
 built-in or uploaded, so an upload needs nothing fitted for it.
-
-    python -m models.motion.hinge_floor erd lpn   # -> models/weights/<method>/hinge_floor.npz
 """
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ..interface import State
-from ..stages import Rows, StageFrame, Stateless
+from ..stages import Rows, StageFrame, StageSpec, Stateless
 from .hinge import Hinges, fit_hinges, kernel_floor
 from .hinge_kernels import floor_bends
 from .skeleton import Skeleton
@@ -48,16 +45,10 @@ class HingeFloor(Stateless):
         return {}  # the same floor for every style
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
-        return self(frame.rotations).astype(frame.rotations.dtype), state
+        return self(frame.rotations).astype(frame.rotations.dtype, copy=False), state
 
     def save(self, path: Path) -> Path:
         return self.hinges.save(path)
-
-    @classmethod
-    def load(cls, skeleton: Skeleton, folder: Path) -> HingeFloor | None:
-        """The stage beside a method's weights, or None where it was not fitted."""
-        path = Path(folder) / FLOOR_FILE
-        return cls(skeleton, Hinges.load(path)) if path.exists() else None
 
 
 def fit_floor(skeleton: Skeleton) -> Hinges:
@@ -68,15 +59,10 @@ def fit_floor(skeleton: Skeleton) -> Hinges:
     return fit_hinges(skeleton, np.concatenate([m.rotations for m in load_motions(clips)]))
 
 
-def main(methods: list[str]) -> None:
-    from ..settings import get_settings
-    from .assets import bandai_namco_skeleton
-
-    hinges = fit_floor(bandai_namco_skeleton())
-    print("floors (deg)", np.degrees(np.asarray(hinges.floor)).round(2))
-    for method in methods:
-        print(hinges.save(get_settings().weights_dir / method / FLOOR_FILE))
-
-
-if __name__ == "__main__":
-    main(sys.argv[1:])
+# the stage as a method declares it (`models.stages.StageSpec`): `python -m models.<method> fit`
+STAGE = StageSpec(
+    "hinge_floor",
+    FLOOR_FILE,
+    lambda path, skeleton: HingeFloor(skeleton, Hinges.load(path)),
+    lambda model, _: HingeFloor(model.skeleton, fit_floor(model.skeleton)),
+)

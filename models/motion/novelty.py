@@ -39,13 +39,17 @@ import argparse
 import functools
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .bn_skeleton import BN_JOINTS, HIPS, PRIMARY_CHILD, ROOT
 from .novelty_kernels import KIND_LEG_END, KIND_POSITION
 from .rotation_ball import split_heading
-from .skeleton import Skeleton, fk
+from .skeleton import Motion, Skeleton, fk
+
+if TYPE_CHECKING:
+    from ..data import Clip
 
 FOLDER = "novelty"  # under the weights folder: <method>.npz
 CENTROIDS = 512  # training frames kept per part (`cover`)
@@ -327,7 +331,9 @@ def smooth(w1: np.ndarray, w2: np.ndarray, target: np.ndarray) -> tuple[np.ndarr
 # --------------------------------------------------------------------------- fitting and reports
 
 
-def _clips(datasets: list[str], contents: list[str] | None, styles: list[str] | None, split: str):
+def _clips(
+    datasets: list[str], contents: list[str] | None, styles: list[str] | None, split: str
+) -> tuple[list[Clip], list[Motion]]:
     from ..data import build_index, load_motions
 
     clips = [c for c in build_index(datasets) if c.split == split]
@@ -335,7 +341,7 @@ def _clips(datasets: list[str], contents: list[str] | None, styles: list[str] | 
     return clips, load_motions(clips)
 
 
-def _as_model(motion) -> tuple[np.ndarray, np.ndarray]:
+def _as_model(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
     """A clip as the stage sees it: on the model rig (retargeted if another) at 30 fps."""
     from .retarget import retarget
 

@@ -107,6 +107,27 @@ def qexp(v):
 
 
 @njit(cache=True, error_model="numpy")
+def qyaw(yaw):
+    """Unit quaternion turning by `yaw` radians about +Y (up)."""
+    return (0.0, math.sin(0.5 * yaw), 0.0, math.cos(0.5 * yaw))
+
+
+@njit(cache=True, error_model="numpy")
+def nlerp(a, t, share):
+    """(1 - share) a + share t, normalised, with t taken on a's hemisphere."""
+    if qdot(t, a) < 0.0:
+        t = qneg(t)
+    return qunit(
+        (
+            (1.0 - share) * a[0] + share * t[0],
+            (1.0 - share) * a[1] + share * t[1],
+            (1.0 - share) * a[2] + share * t[2],
+            (1.0 - share) * a[3] + share * t[3],
+        )
+    )
+
+
+@njit(cache=True, error_model="numpy")
 def axis_angle(axis, angle):
     """Unit quaternion turning by `angle` radians about the unit vector `axis`."""
     s = math.sin(0.5 * angle)

@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .quaternion import quat_at, qunit
+from .quaternion import qdot, qneg, quat_at, qunit
 
 
 @njit(cache=True)
@@ -68,11 +68,10 @@ def blend_rows(root0, rot0, root1, rot1, w, out_root, out_rot):
         for c in range(3):
             out_root[i, c] = root0[i, c] + t * (root1[i, c] - root0[i, c])
         for j in range(num_joints):
-            ax, ay, az, aw = qunit(quat_at(rot0, i, j))
-            bx, by, bz, bw = qunit(quat_at(rot1, i, j))
-            dot = ax * bx + ay * by + az * bz + aw * bw
+            a, b = qunit(quat_at(rot0, i, j)), qunit(quat_at(rot1, i, j))
+            dot = qdot(a, b)
             if dot < 0.0:
-                bx, by, bz, bw, dot = -bx, -by, -bz, -bw, -dot
+                b, dot = qneg(b), -dot
             dot = min(dot, 1.0)
             theta = math.acos(dot)
             s = math.sin(theta)
@@ -80,9 +79,8 @@ def blend_rows(root0, rot0, root1, rot1, w, out_root, out_rot):
                 w0, w1 = 1.0 - t, t
             else:
                 w0, w1 = math.sin((1.0 - t) * theta) / s, math.sin(t * theta) / s
-            qx, qy, qz, qw = w0 * ax + w1 * bx, w0 * ay + w1 * by, w0 * az + w1 * bz, w0 * aw + w1 * bw
-            m = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-            out_rot[i, j, 0], out_rot[i, j, 1], out_rot[i, j, 2], out_rot[i, j, 3] = qx / m, qy / m, qz / m, qw / m
+            q = qunit((w0 * a[0] + w1 * b[0], w0 * a[1] + w1 * b[1], w0 * a[2] + w1 * b[2], w0 * a[3] + w1 * b[3]))
+            out_rot[i, j, 0], out_rot[i, j, 1], out_rot[i, j, 2], out_rot[i, j, 3] = q
 
 
 def warm() -> None:

@@ -78,36 +78,6 @@ def fit_prior(
     return mean, radii
 
 
-def saturate(d: np.ndarray, inner: np.ndarray, outer: np.ndarray) -> np.ndarray:
-    """The clamped distance d' (see the module docstring); `inner`/`outer` broadcast with d."""
-    with np.errstate(invalid="ignore"):  # inf radii (no prior): d stays
-        span = np.maximum(outer - inner, 1e-12)
-        soft = inner + span * np.tanh((d - inner) / span)
-    return np.where(d > inner, np.minimum(soft, outer), d)
-
-
-def clamp_rotations(rotations: np.ndarray, mean: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """(..., J, 4) local rotations (the Hips with or without its heading) held inside the ball
-    (`fit_prior`); a rotation inside the inner radius is returned unchanged."""
-    q = np.array(rotations, float, copy=True)
-    q /= np.linalg.norm(q, axis=-1, keepdims=True)
-    twist = up_twist(q[..., HIPS, :])
-    q[..., HIPS, :] = quat_mul(quat_inv(twist), q[..., HIPS, :])
-    rel = quat_mul(quat_inv(mean), q)  # rotation from the mean, taken with w >= 0 (the short way)
-    rel = np.where(rel[..., 3:] < 0, -rel, rel)
-    s = np.linalg.norm(rel[..., :3], axis=-1)
-    d = 2.0 * np.arctan2(s, rel[..., 3])
-    new_d = saturate(d, radii[0], radii[1])
-    moved = new_d < d
-    axis = rel[..., :3] / np.maximum(s, 1e-300)[..., None]
-    half = 0.5 * new_d[..., None]
-    clamped = quat_mul(mean, np.concatenate([axis * np.sin(half), np.cos(half)], axis=-1))
-    q = np.where(moved[..., None], clamped, q)
-    q[..., HIPS, :] = quat_mul(twist, q[..., HIPS, :])
-    # rotations that were not moved are returned exactly as given (same sign, no round trip)
-    return np.where(moved[..., None], q, rotations)
-
-
 @dataclass(frozen=True)
 class StyleBalls(Stateless):
     """One ball per named style: `mean` (S, J, 4), `radii` (S, 2, J) inner / outer (radians), and

@@ -1,7 +1,7 @@
 """Compiled rotation ball (`rotation_ball.py`) for streaming steps: one joint of one frame on
 4-tuples (`clamp_joint`, used inside LTI's step kernel), and a whole batch of frames under mixed
-style weights (`clamp_mixed`, LPN-FiLM). Float64; equal to `rotation_ball.clamp_rotations` to
-round-off (tests).
+style weights (`clamp_mixed`, LPN-FiLM). Float64; equal to the numpy reference
+(`tests/reference/rotation_ball.py`) to round-off.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from .quaternion import dot3, qdot, qinv, qmul, qneg, quat_at, qunit
 
 @njit(cache=True, error_model="numpy")
 def clamp_joint(q, mean, inner, outer, hips):
-    """rotation_ball.clamp_rotations for one joint: q held within the style's ball around `mean`
+    """The rotation ball for one joint: q held within the style's ball around `mean`
     (the Hips compared without their twist about up, which is put back)."""
     twist = (0.0, 0.0, 0.0, 1.0)
     if hips:

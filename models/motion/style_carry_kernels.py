@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from .quaternion import qdot, qexp, qinv, qlog, qmul, qneg, qscale, quat_at
+from .quaternion import qdot, qexp, qinv, qlog, qmul, qneg, qscale, quat_at, qunit
 
 
 @njit(cache=True, error_model="numpy")
@@ -88,14 +88,6 @@ def _carry_joint(q, b, j, w, lone, carry):
 
 
 @njit(cache=True, error_model="numpy")
-def _unit(q, b, j):
-    """q[b, j] normalised."""
-    u = quat_at(q, b, j)
-    n = math.sqrt(qdot(u, u))
-    return (u[0] / n, u[1] / n, u[2] / n, u[3] / n)
-
-
-@njit(cache=True, error_model="numpy")
 def carry_batch(q, w, source, mean, lin, radius, hips, out):
     """out (B, J, 4) = q (B, J, 4) carried toward the styles of weights w (B, S). Joint `hips`
     (-1: none) is carried without its heading, its twist about world up (+Y), which is put back
@@ -106,7 +98,7 @@ def carry_batch(q, w, source, mean, lin, radius, hips, out):
     for b in range(q.shape[0]):
         lone = _lone(w, b)
         for j in range(q.shape[1]):
-            u, heading = _headless(_unit(q, b, j), j == hips)
+            u, heading = _headless(qunit(quat_at(q, b, j)), j == hips)
             o = _carry_joint(u, b, j, w, lone, (source, mean, lin, radius))
             out[b, j, 0], out[b, j, 1], out[b, j, 2], out[b, j, 3] = qmul(heading, o) if j == hips else o
     return out
@@ -156,7 +148,7 @@ def carry_pair_batch(q, w, share, a, b, c, hips, out):
     for row in range(q.shape[0]):
         lone = _lone(w, row)
         for j in range(q.shape[1]):
-            u, heading = _headless(_unit(q, row, j), j == hips)
+            u, heading = _headless(qunit(quat_at(q, row, j)), j == hips)
             o = _pair_joint(u, row, j, w, lone, share[row], a, b, c)
             out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = qmul(heading, o) if j == hips else o
     return out

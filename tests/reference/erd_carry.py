@@ -5,16 +5,37 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.erd.gait import carry_by_gait
-from models.erd.slow_carry import carry_slow as compiled_carry_slow
-from models.erd.slow_carry import follow
+from models.erd.slow_carry import SLOW_WEIGHT, SlowPrior
 from models.erd.twist_range import TwistRange
+from models.motion.assets import bandai_namco_skeleton
 from models.motion.bn_skeleton import HIPS
 from models.motion.rotation_ball import split_heading
 from models.motion.rotations import quat_exp, quat_inv, quat_log, quat_mul, twist_angle
 from models.motion.style_carry import StyleCarry
+from models.stages import StageFrame
 
 from .style_carry import style
+
+
+def carry_by_gait(
+    other: StyleCarry | None,
+    run: StyleCarry | None,
+    q: np.ndarray,
+    weights: np.ndarray,
+    share: np.ndarray,
+    hips: int = -1,
+) -> np.ndarray:
+    """Rotations (B, J, 4) carried by the all-content prior `other` and by the `run` prior followed
+    by a clamp into `other`'s range, mixed by each row's share in one compiled pass
+    (`StyleCarry.mixed_with`): share 0 is exactly `other` alone. Either prior may be None (without
+    a run prior, `other` takes every row). A row's result never depends on the others."""
+    w = np.asarray(weights, np.float64)
+    r = np.asarray(share, np.float64)
+    if run is None or not (r > 0.0).any():
+        return q if other is None else other(q, w, hips=hips)
+    if other is None:
+        return run(q, w * r[:, None], hips=hips)
+    return other.mixed_with(run, other.bounds, q, w, r, hips=hips)
 
 
 def apply(carry: StyleCarry, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -42,6 +63,41 @@ def carry_output(prior: StyleCarry, rot: np.ndarray, weights: np.ndarray) -> np.
     return out
 
 
+def follow(slow: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(B, J, 4) the slow copy after this frame's rotations `q`: an exponential average by
+    normalised lerp on the shorter arc. A row of zeros (a session's first frame) starts at `q`."""
+    slow, q = np.asarray(slow, np.float64), np.asarray(q, np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    aligned = np.where(np.sum(slow * q, axis=-1, keepdims=True) < 0.0, -slow, slow)
+    mixed = (1.0 - SLOW_WEIGHT) * aligned + SLOW_WEIGHT * q
+    mixed /= np.maximum(np.linalg.norm(mixed, axis=-1, keepdims=True), 1e-12)
+    unset = ~np.any(slow != 0.0, axis=(-1, -2))
+    return np.where(unset[..., None, None], q, mixed)
+
+
+def compiled_carry_slow(
+    other: StyleCarry,
+    run: StyleCarry | None,
+    q: np.ndarray,
+    slow: np.ndarray,
+    weights: np.ndarray,
+    share: np.ndarray,
+    hips: int = -1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The compiled stage (`SlowPrior`) of these carries: the rotations carried and the new slow copies."""
+    stage = SlowPrior(tuple(f"s{k}" for k in range(len(other.mean))), other, run, hips)
+    rows = stage.rows(stage.styles, bandai_namco_skeleton())
+    frame = StageFrame(np.asarray(q, np.float64), np.asarray(weights, np.float64), np.asarray(share, np.float64), -1)
+    out, state = stage.step_batch({"slow": np.asarray(slow, np.float64)}, frame, rows)
+    return out, state["slow"]
+
+
+def twist_stage(twists: TwistRange, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The compiled stage (`TwistRange`) on rotations q and weights."""
+    frame = StageFrame(np.asarray(q, np.float64), np.asarray(weights, np.float64), np.zeros(len(q)), -1)
+    return twists.step_batch({}, frame, twists.rows(twists.styles, bandai_namco_skeleton()))[0]
+
+
 def carry_slow(
     other: StyleCarry | None,
     run: StyleCarry | None,
@@ -51,7 +107,7 @@ def carry_slow(
     share: np.ndarray,
     hips: int = -1,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """`models.erd.slow_carry.carry_slow` in numpy (the carry itself by `gait.carry_by_gait`)."""
+    """`compiled_carry_slow` in numpy (the carry itself by `gait.carry_by_gait`)."""
     new = follow(slow, q)
     if other is None and run is None:
         return q, new
@@ -74,7 +130,7 @@ def carry_slow(
 
 
 def twist_clamp(twists: TwistRange, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """`twists(q, weights)` in numpy."""
+    """`twist_stage(twists, q, weights)` in numpy."""
     w = np.asarray(weights, np.float64)
     rows = np.flatnonzero(w.any(axis=1))
     if len(rows) == 0:

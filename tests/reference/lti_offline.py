@@ -1,0 +1,160 @@
+"""LTI's stages over a whole clip in numpy (and the waving arm's compiled per-row pass): the
+reference the compiled stream (`models.lti.kernels.step`) is tested against, frame for frame."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numba import njit
+
+from models.lti import raised_arm
+from models.lti import representation as rep
+from models.lti.kernels import SHARE_FLOOR, eased
+from models.lti.model import HINT_SPEED, RAISE_EASE_S, LTIStyleModel, ease_keep
+from models.lti.waving_arm import MEAN_SHAPE, settings
+from models.lti.waving_kernels import WavingArm, swing_arms
+from models.motion.bn_skeleton import HIPS
+from models.motion.feet import model_rig_planter
+from models.motion.hands import clip_sway, raise_share, wave_share
+from models.motion.hinge import kernel_floor
+from models.motion.hinge_kernels import floor_bends
+from models.motion.style_carry import StyleCarry
+
+from .hands import clip_rise, hand_offsets_of
+from .rotation_ball import clamp_rotations
+
+
+@njit(error_model="numpy")
+def swing_batch(arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
+                prior_mean, prior_radii, swing, new_in_mean, new_out_mean):  # fmt: skip
+    """`swing_arms` for every session; `arm` a plain tuple."""
+    arm = WavingArm(*arm)
+    for b in range(rot_in.shape[0]):
+        swing_arms(
+            b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
+            prior_mean, prior_radii, swing, new_in_mean, new_out_mean,
+        )  # fmt: skip
+
+
+def shares(offsets: np.ndarray, swayed: np.ndarray) -> np.ndarray:
+    """(B, 2) how far each arm is moved: its hand's raise share times one minus its wave share,
+    from the input's `hand_offsets` (B, 2, 3) and sway (B, 2)."""
+    return raise_share(np.asarray(offsets)[..., 1]) * (1.0 - wave_share(swayed))
+
+
+def eased_shares(share: np.ndarray, keep: float) -> np.ndarray:
+    """(F, 2) one session's `shares` eased frame by frame as the stream does
+    (`kernels.raised_shares`), 0 below `SHARE_FLOOR`."""
+    out = np.stack([eased(side, keep) for side in np.asarray(share, np.float64).T], axis=1)
+    return np.where(out >= SHARE_FLOOR, out, 0.0)
+
+
+def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """(B, J, 4) `rotations` with each side's arm moved toward what `carry` makes of it (style
+    weights (B, S)) by that side's `share` (B, 2): a normalised blend of the quaternions."""
+    if not np.any(share > 0.0):
+        return rotations
+    out = np.array(rotations, np.float64)
+    for side, joints in enumerate(raised_arm._ARM):
+        rows = np.flatnonzero(share[:, side] > 0.0)
+        if rows.size == 0:
+            continue
+        a = out[np.ix_(rows, joints)]
+        b = carry(out[rows], weights[rows], hips=HIPS)[:, joints]
+        b = np.where(np.sum(a * b, axis=-1, keepdims=True) < 0.0, -b, b)
+        s = share[rows, side][:, None, None]
+        mixed = (1.0 - s) * a + s * b
+        out[np.ix_(rows, joints)] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
+    return out
+
+
+def waving_step(*arrays: np.ndarray, swing: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One frame for every row (`waving_kernels.swing_arms`) from `arrays`: the input's and the
+    output's rotations (B, J, 4), the style weights (B, S), whether each row has started, the
+    input's `hand_offsets` before and now (B, 2, 3), its sway and rise (B, 2), the running means
+    before (B, 2, 2, 4) and the styles' balls (means (S, J, 4), radii (S, 2, J)). Returns the
+    output rotations with the waving arms swung (a copy) and the running means after this frame."""
+    out = np.array(arrays[1], np.float64, copy=True)
+    new_in, new_out = np.empty((len(out), *MEAN_SHAPE)), np.empty((len(out), *MEAN_SHAPE))
+    inputs = (arrays[0], out, *arrays[2:])
+    args = (tuple(settings()), *(np.ascontiguousarray(a, np.float64) for a in inputs), swing, new_in, new_out)
+    swing_batch(*args)
+    return out, new_in, new_out
+
+
+def waving_clip(out_rots, in_rots, offsets, swayed, fps: float, means, radii) -> np.ndarray:
+    """(T, J, 4) a whole clip's output rotations of one style (balls means (1, J, 4), radii
+    (1, 2, J)) with its waving arms swung, frame by frame as a stream does (`waving_step`)."""
+    out = np.array(out_rots, np.float64, copy=True)
+    risen = clip_rise(offsets, fps)
+    in_mean, out_mean = np.zeros((1, *MEAN_SHAPE)), np.zeros((1, *MEAN_SHAPE))
+    one = np.ones((1, 1))
+    for t in range(len(out)):
+        now, prev = slice(t, t + 1), slice(max(t - 1, 0), max(t, 1))
+        rows = (in_rots[now], out[now], one, np.array([t > 0]), offsets[prev], offsets[now], swayed[now], risen[now])
+        frame, in_mean, out_mean = waving_step(*rows, in_mean, out_mean, means, radii)
+        out[t] = frame[0]
+    return out
+
+
+def features_to_sequence(
+    features: np.ndarray, start_ground: np.ndarray, start_yaw: float, ref: np.ndarray = rep.IDENTITY_REF
+) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of `sequence_features`: (F, 67) -> root (F, 3), rotations (F, 22, 4).
+
+    The path is integrated from the given start: frame 0 sits at `start_ground`/`start_yaw`
+    and frame t adds the displacement of frame t in the facing of frame t-1."""
+    f = len(features)
+    dyaw = features[:, 2].copy()
+    dyaw[0] = 0.0
+    yaw = start_yaw + np.cumsum(dyaw)
+    step = np.zeros((f, 2))
+    if f > 1:
+        step[1:] = rep.rotate_y(features[1:, :2], yaw[:-1])
+    ground = np.asarray(start_ground, float) + np.cumsum(step, axis=0)
+    root = np.stack([ground[:, 0], features[:, 3], ground[:, 1]], axis=-1)
+    return root, static_to_rotations(features[:, 4:], yaw, ref)
+
+
+def static_to_rotations(static_rot: np.ndarray, yaw: np.ndarray, ref: np.ndarray = rep.IDENTITY_REF) -> np.ndarray:
+    """(..., 63) tilt + body expmaps and yaw -> (..., 22, 4) local rotations."""
+    lead = static_rot.shape[:-1]
+    out = np.empty(lead + (rep.NUM_JOINTS, 4))
+    out[..., 0, :] = (0.0, 0.0, 0.0, 1.0)
+    out[..., 1:, :] = (rep._cached(ref)[0] @ rep.rotvec_to_quat(static_rot.reshape(*lead, 21, 3))[..., None])[..., 0]
+    c, s = np.cos(0.5 * yaw)[..., None], np.sin(0.5 * yaw)[..., None]
+    t = out[..., rep.HIPS, :]
+    # yaw_quat(yaw) * t, written out: (c*x + s*z, c*y + s*w, c*z - s*x, c*w - s*y)
+    out[..., rep.HIPS, :] = c * t + s * t[..., [2, 3, 0, 1]] * np.array([1.0, 1.0, -1.0, -1.0])
+    return out
+
+
+def offline(model: LTIStyleModel, style: str, motion, footlock: bool = True):
+    """A whole `Motion` (BN skeleton) translated toward `style` by `model`'s translator and the
+    stages it has on, in numpy. Returns (Motion, contacts (F, 2))."""
+    tr = model.translators[style]
+    feats = rep.motion_to_features(motion, tr.ref)
+    out, xs = tr.translate_features(feats, model.blend)
+    yaw0, _ = rep.split_hips(motion.rotations[0, rep.HIPS])
+    root, rots = features_to_sequence(
+        out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), tr.ref
+    )
+    if tr.prior_mean is not None and tr.prior_radii is not None:
+        rots = clamp_rotations(rots, tr.prior_mean, tr.prior_radii)
+    if model.hinges is not None:
+        rots = floor_bends(rots, *kernel_floor(motion.skeleton, model.hinges))
+    offsets = hand_offsets_of(motion.rotations, motion.skeleton)  # as the stream measures them
+    swayed = clip_sway(offsets, motion.fps)
+    if tr.raised_arm is not None:
+        share = eased_shares(shares(offsets, swayed), ease_keep(LTIStyleModel.fps, RAISE_EASE_S))
+        rots = carried(tr.raised_arm, rots, np.ones((len(rots), 1)), share)
+    if model.waving_arms:
+        mean, radii = tr.ball()
+        rots = waving_clip(rots, motion.rotations, offsets, swayed, motion.fps, mean[None], radii[None])
+    contacts = tr.footplant.predict(xs) if tr.footplant is not None else np.zeros((len(out), 2), bool)
+    if footlock:
+        root, rots, contacts = model_rig_planter(motion.fps, hint_speed=HINT_SPEED).clip(root, rots, hints=contacts)
+    translations = np.broadcast_to(motion.translations[:1], (len(root),) + motion.translations.shape[1:]).copy()
+    translations[:, rep.HIPS] = root
+    return replace(motion, rotations=rots, translations=translations), contacts
