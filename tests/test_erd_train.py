@@ -97,3 +97,16 @@ def test_a_resumed_run_ends_where_an_uninterrupted_one_does(packed, tmp_path):
             assert torch.allclose(v, resumed[net][k], atol=1e-6), (net, k)
     a, b = whole["opt_g"]["state"], resumed["opt_g"]["state"]
     assert all(torch.allclose(a[i]["exp_avg"], b[i]["exp_avg"], atol=1e-7) for i in a)
+
+
+def test_a_run_measures_the_smoothness_term_on_augmented_windows(packed, tmp_path):
+    from models.erd.train import main
+    from models.settings import REPO_ROOT
+
+    run = tmp_path / "run"
+    args = [f"--data={packed}", f"--run_dir={run}", f"--out_dir={run / 'out'}", "--clf_iters=2", "--batch=16"]
+    args += ["--eval_every=2", "--render_every=0", f"--init_weights={REPO_ROOT / 'models' / 'weights' / 'erd'}"]
+    main([*args, "--max_iters=2", "--p_aug=1", "--w_smooth=1", "--w_teacher=1", "--teacher_vel=false"])
+    history = torch.load(run / "ckpt.pt", weights_only=False)["history"]
+    # the trained network reacts to turned and shaken inputs: the terms are measured and trained on
+    assert history[0]["train_smooth"] > 0 and history[0]["train_teacher"] > 0 and history[0]["train_rot"] > 1e-3

@@ -11,7 +11,10 @@ discriminator (LSGAN with R1): reconstruction toward the input's own style, tran
 windows to a random style and of styled ones to neutral, input labels dropped at random so that
 unlabelled streams work. The optional `w_*` terms act on the rotations the streaming model
 outputs (`streamed_rotations`); `w_distill` pulls the decoder's rotations toward the shipped
-pipeline's (`distill.py`). A checkpoint holds everything `--resume` needs to continue exactly.
+pipeline's (`distill.py`); `w_smooth` penalises streamed rotation acceleration beyond the input's
+and the style's own, and `p_aug` feeds windows turned, shaken and sped up as another performer's
+capture retargeted to the rig would be (`augment_input`), so that the network neither adds jitter
+nor amplifies the input's. A checkpoint holds everything `--resume` needs to continue exactly.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from ..motion.rotations import quat_angle, quat_mean
-from ..motion.rotations_torch import quat_apply_t, quat_to_matrix_t
+from ..motion.rotations_torch import quat_apply_t, quat_mul_t, quat_to_matrix_t
 from ..motion.twist import bone_axes, transfer_twist_t
 from ..runlog import start_run
 from ..settings import REPO_ROOT
@@ -76,6 +79,17 @@ class TrainConfig:
     distill: str = ""  # the shipped pipeline's rotations of TRAIN neutral clips (`distill.py`)
     w_distill: float = 0.0  # transfers of neutral windows toward those rotations (the style in the core)
     hinge_decode: bool = True  # the streamed rotations decode hinge joints as hinges, as the runtime does
+    # other performers and recordings: a share of windows gets constant per-joint rotation offsets
+    # (up to aug_deg, aug_deg_arms on clavicles and upper arms), a root speed scale, per-frame rotation
+    # noise and feature noise, positions and velocities re-derived (`augment_input`)
+    p_aug: float = 0.0
+    aug_deg: float = 12.0
+    aug_deg_arms: float = 40.0
+    aug_scale: float = 0.15  # root speed scaled by 1 +- up to this
+    aug_noise_deg: float = 0.3  # per-frame rotation noise (std, degrees)
+    aug_feat_noise: float = 0.05  # per-frame noise on position and velocity features (in feature std)
+    w_smooth: float = 0.0  # streamed rotation acceleration beyond the input's and the style's (`smooth_loss`)
+    teacher_vel: bool = True  # the teacher term also holds velocities (off: positions only)
     snapshot_every: int = 0  # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest)
     d_warmup: int = 0  # iterations that train only the discriminator first (a new one, with --init_weights)
     p_drop_style: float = 0.3
@@ -211,6 +225,92 @@ def prior_loss(rot: torch.Tensor, target: torch.Tensor, prior: tuple[torch.Tenso
     cos = (rot * mean).sum(-1).abs() / rot.norm(dim=-1).clamp_min(1e-8)
     angle = 2 * torch.acos(cos.clamp(max=1 - 1e-6))
     return torch.relu(angle - p95).pow(2).mean()
+
+
+def rotation_accel_t(q: torch.Tensor) -> torch.Tensor:
+    """(B, T - 2, J) angle (radians) of the change of each joint's frame-to-frame turn, for
+    rotations (B, T, J, 4): the eval's rotation acceleration (small-angle turns, differentiable)."""
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    conj = torch.cat([-q[..., :3], q[..., 3:]], -1)
+    d = quat_mul_t(conj[:, :-1], q[:, 1:])
+    turn = 2 * d[..., :3] * torch.where(d[..., 3:] < 0, -1.0, 1.0)
+    return (turn[:, 1:] - turn[:, :-1]).pow(2).sum(-1).add(1e-12).sqrt()
+
+
+def style_accel_p99(split) -> torch.Tensor:
+    """(7, 21) per style and body joint, the p99 rotation acceleration (radians per frame^2) of
+    the real training clips (within clips)."""
+    q = torch.as_tensor(split.feats[:, ROT].reshape(-1, NB, 4))
+    out = torch.zeros(int(split.style.max()) + 1, NB)
+    for s in range(len(out)):
+        acc = [
+            rotation_accel_t(q[a : a + n][None])[0]
+            for a, n, st in zip(split.starts, split.lengths, split.style)
+            if st == s and n > 2
+        ]
+        out[s] = torch.quantile(torch.cat(acc)[::3], 0.99, dim=0)
+    return out
+
+
+def smooth_loss(out: torch.Tensor, inp: torch.Tensor, target: torch.Tensor, p99: torch.Tensor) -> torch.Tensor:
+    """Mean squared acceleration (degrees per frame^2) by which streamed rotations `out` (B, T, 21,
+    4) turn beyond both the input's (B, T, 21, 4) largest in the window and the target style's (B,)
+    real p99 (`p99`, (7, 21)), per joint: jitter the network adds is penalised, the input's and
+    the style's own motion is not."""
+    ref = torch.maximum(rotation_accel_t(inp).amax(1, keepdim=True), p99[target][:, None])
+    return torch.rad2deg(torch.relu(rotation_accel_t(out) - ref)).pow(2).mean()
+
+
+def random_turns(max_deg: torch.Tensor) -> torch.Tensor:
+    """(..., 4) rotations about uniformly random axes by angles uniform in [0, max_deg] (...)."""
+    axis = torch.randn(max_deg.shape + (3,), device=max_deg.device)
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    half = torch.deg2rad(max_deg * torch.rand_like(max_deg)) / 2
+    return torch.cat([axis * half.sin()[..., None], half.cos()[..., None]], -1)
+
+
+def augment_input(
+    x: torch.Tensor, cfg: TrainConfig, offsets: torch.Tensor, parents, names, std: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Windows x (B, T, 216) as another performer or recording, retargeted to the model's rig,
+    might give them: (the network's input, the reconstruction target). In a share `cfg.p_aug` of
+    windows every body joint is turned by a constant random rotation (clavicles and upper arms,
+    where rigs and performers differ most, by more) and shaken per frame; positions and
+    velocities follow by forward kinematics, so the features stay one body on the rig; the root
+    speed is scaled (another stride). The input alone also gets noise on its position and
+    velocity features (`cfg.aug_feat_noise` of their normalisation `std`, (216,))."""
+    B, T, _ = x.shape
+    dev = x.device
+    pick = torch.rand(B, device=dev) < cfg.p_aug
+    if not pick.any():
+        return x, x
+    xs = x[pick]
+    b = len(xs)
+    arms = torch.tensor([("Shoulder" in n or "UpperArm" in n) for n in names[1:]], device=dev)
+    max_deg = torch.where(arms, float(cfg.aug_deg_arms), float(cfg.aug_deg)).expand(b, 1, NB)
+    turn = random_turns(max_deg.contiguous())
+    noise = torch.randn(b, T, NB, 3, device=dev) * math.radians(cfg.aug_noise_deg) / 2
+    shake = torch.cat([noise, torch.ones(b, T, NB, 1, device=dev)], -1)
+    q = real_rot(xs)
+    q2 = quat_mul_t(quat_mul_t(q, turn.expand(b, T, NB, 4)), shake)
+    q2 = q2 / q2.norm(dim=-1, keepdim=True)
+    q2 = torch.where((q2 * q).sum(-1, keepdim=True) < 0, -q2, q2)  # the features' hemisphere
+    height = xs[..., POS][..., 1]
+    delta = fk_local(q2, height, offsets, parents) - fk_local(q, height, offsets, parents)  # (b, T, 21, 3)
+    dvel = torch.cat([delta[:, 1:2] - delta[:, :1], delta[:, 1:] - delta[:, :-1]], 1) * 30.0
+    speed = cfg.aug_scale * (2 * torch.rand(b, 1, 1, device=dev) - 1)
+    root = xs[..., ROOTVEL]
+    tgt = xs.clone()
+    tgt[..., ROT] = q2.flatten(2)
+    tgt[..., POS] = xs[..., POS] + delta.flatten(2)
+    tgt[..., VEL] = xs[..., VEL] + dvel.flatten(2) + (speed * root).repeat(1, 1, NB)
+    tgt[..., ROOTVEL] = root * (1 + speed)
+    inp = tgt.clone()
+    for part in (POS, VEL):
+        inp[..., part] = inp[..., part] + cfg.aug_feat_noise * std[part] * torch.randn_like(inp[..., part])
+    x_in, x_tgt = x.clone(), x.clone()
+    x_in[pick], x_tgt[pick] = inp, tgt
+    return x_in, x_tgt
 
 
 def distill_loss(rot: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
@@ -370,7 +470,19 @@ def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str,
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
 
-WEIGHTED = ("rot", "pos", "vel", "adv", "per", "prior", "hinge", "teacher", "adv_rot", "distill")  # cfg.w_<term>
+WEIGHTED = (
+    "rot",
+    "pos",
+    "vel",
+    "adv",
+    "per",
+    "prior",
+    "hinge",
+    "teacher",
+    "adv_rot",
+    "distill",
+    "smooth",
+)  # cfg.w_<term>
 
 
 def load_config(argv: list[str]) -> tuple[TrainConfig, dict | None]:
@@ -474,6 +586,7 @@ class Run:
         self.p_target = target_probs(cfg.target_weights)
         mean, p95 = style_rotation_prior(data.train.s)
         self.prior = (mean.to(device), p95.to(device))
+        self.accel_p99 = style_accel_p99(data.train.s).to(device) if cfg.w_smooth else None
         self.hinges = split_hinges(data.train.s, data.skeleton)
         self.decode = self.hinges if cfg.hinge_decode else None  # as the runtime decodes them
         log(f"hinge joints {[data.skeleton.names[j] for j in self.hinges.joints]}, decoded: {cfg.hinge_decode}")
@@ -553,6 +666,9 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
     gen, disc, clf, losses, device = run.gen, run.disc, run.clf, run.losses, b["x"].device
     x, style, content = b["x"], b["style"], b["content"]
     B = len(x)
+    x_in = x
+    if cfg.p_aug:  # another performer's or recording's window: read, reconstructed, and real to the discriminator
+        x_in, x = augment_input(x, cfg, losses.offsets, losses.parents, data.skeleton.names, run.gen.std)
     # neutral windows go to a random style, styled ones to neutral; input labels dropped at random
     target = torch.where(
         style == 0, 1 + torch.multinomial(run.p_target, B, replacement=True).to(device), torch.zeros_like(style)
@@ -563,7 +679,7 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
 
     # generator: reconstruction (target = input style) and transfer in one batched pass
     with autocast:
-        outs = gen.forward_multi(x, s_in, c_in, [one_hot_targets(style), one_hot_targets(target)])
+        outs = gen.forward_multi(x_in, s_in, c_in, [one_hot_targets(style), one_hot_targets(target)])
     out = {k: torch.cat([outs[0][k], outs[1][k]]).float() for k in outs[0]}
     view = losses.fake_view(out)
     fake_view = {k: v[B:] for k, v in view.items()}
@@ -580,7 +696,7 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
     for a, b_ in zip(f_fake, f_real):
         t["per"] = t["per"] + F.mse_loss(a.float(), b_.float())
     streamed = None
-    if cfg.w_prior or cfg.w_hinge or run.disc_rot is not None:
+    if cfg.w_prior or cfg.w_hinge or cfg.w_smooth or run.disc_rot is not None:
         source = leaf_source(run.leaf_prior, x, target) if run.leaf_prior is not None else None
         if source is None and cfg.network_twists:
             source = out["rot"][B:]
@@ -589,9 +705,10 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
     t["teacher"] = zero
     if run.teacher is not None:  # keep the transfer near the generator the run started from
         with torch.no_grad(), autocast:
-            t_out = run.teacher(x, s_in, c_in, one_hot_targets(target))
+            t_out = run.teacher(x_in, s_in, c_in, one_hot_targets(target))
         t_view = losses.fake_view({k: v.float() for k, v in t_out.items()})
-        t["teacher"] = sum(((fake_view[k] - t_view[k]) / losses.scale[k]).pow(2).mean() for k in ("pos", "vel"))
+        keys = ("pos", "vel") if cfg.teacher_vel else ("pos",)
+        t["teacher"] = sum(((fake_view[k] - t_view[k]) / losses.scale[k]).pow(2).mean() for k in keys)
     t["distill"] = zero
     if run.distill is not None:  # neutral windows whose every frame has a target
         rows = run.distill_row[b["idx"]]
@@ -600,6 +717,9 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
             t["distill"] = distill_loss(out["rot"][B:][use], run.distill[rows[use], (target[use] - 1)[:, None]])
     t["prior"] = prior_loss(streamed, target, run.prior) if cfg.w_prior and streamed is not None else zero
     t["hinge"] = hinge_loss(streamed, run.hinges, data.skeleton) if cfg.w_hinge and streamed is not None else zero
+    t["smooth"] = zero
+    if cfg.w_smooth and streamed is not None and run.accel_p99 is not None:
+        t["smooth"] = smooth_loss(streamed, real_rot(x), target, run.accel_p99)
     t["adv_rot"] = zero
     if run.disc_rot is not None and streamed is not None:
         t["adv_rot"] = run.disc_rot(rotation_view(streamed), target, content).pow(2).mean()
