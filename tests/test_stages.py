@@ -3,7 +3,8 @@ its file, runs in the declared order, keeps its own state apart, and can be swit
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,21 @@ from models.stages import Pipeline, Rows, Stage, StageFrame
 @pytest.fixture(scope="module")
 def bn_skeleton() -> Skeleton:
     return bandai_namco_skeleton()
+
+
+@contextmanager
+def setting(monkeypatch: pytest.MonkeyPatch, name: str, value: str) -> Iterator[None]:
+    """The settings read with the environment variable `name` set to `value` (the cached
+    settings dropped on the way in and out, so a load inside sees it and one after does not)."""
+    from models.settings import get_settings
+
+    monkeypatch.setenv(name, value)
+    get_settings.cache_clear()
+    try:
+        yield
+    finally:
+        monkeypatch.delenv(name, raising=False)
+        get_settings.cache_clear()
 
 
 class Counter:
@@ -93,12 +109,8 @@ def test_the_lpn_fit_command_refits_one_stage_for_one_style_and_keeps_the_others
     if not (folder / spec.file).exists():
         pytest.skip("no LPN-FiLM arm coupling committed")
     shutil.copytree(folder, tmp_path / "lpn")
-    monkeypatch.setenv("STYLESTREAM_WEIGHTS_DIR", str(tmp_path))
-    get_settings.cache_clear()
-    try:
+    with setting(monkeypatch, "STYLESTREAM_WEIGHTS_DIR", str(tmp_path)):
         main(["fit", "--stages", "arm_coupling", "active"])
-    finally:
-        get_settings.cache_clear()
     skeleton = bandai_namco_skeleton()
     before, after = spec.load(folder / spec.file, skeleton), spec.load(tmp_path / "lpn" / spec.file, skeleton)
     assert sorted(after.styles) == sorted(before.styles)
@@ -151,18 +163,11 @@ def test_a_setting_switches_an_lpn_stage_off_at_load(monkeypatch):
     from models.settings import get_settings
 
     folder = get_settings().weights_dir / "lpn"
-    monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lpn.carriage", "erd.leaf_prior"]')
-    get_settings.cache_clear()
-    try:
+    with setting(monkeypatch, "STYLESTREAM_STAGES_OFF", '["lpn.carriage", "erd.leaf_prior"]'):
         model = load(folder)
         assert model.stages.carriage is None and model.stages.output_prior is not None
-        monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lpn.no_such_stage"]')
-        get_settings.cache_clear()
-        with pytest.raises(KeyError):
-            load(folder)
-    finally:
-        monkeypatch.delenv("STYLESTREAM_STAGES_OFF")
-        get_settings.cache_clear()
+    with setting(monkeypatch, "STYLESTREAM_STAGES_OFF", '["lpn.no_such_stage"]'), pytest.raises(KeyError):
+        load(folder)
 
 
 def test_erd_declares_each_stage_with_its_fit_and_a_setting_switches_one_off(bn_skeleton, monkeypatch):
@@ -181,19 +186,12 @@ def test_erd_declares_each_stage_with_its_fit_and_a_setting_switches_one_off(bn_
         assert (stage is not None) == (folder / spec.file).exists(), spec.name
         assert stage is None or isinstance(stage, Stage), spec.name
     assert all(s is None for _, s in load(folder, core_only=True).stages.stages)
-    monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["erd.leaf_prior", "lpn.carriage"]')
-    get_settings.cache_clear()
-    try:
+    with setting(monkeypatch, "STYLESTREAM_STAGES_OFF", '["erd.leaf_prior", "lpn.carriage"]'):
         model = load(folder)
         assert model.stages.leaf_prior is None and model.stages.output_prior is not None
         assert not any(k.startswith("leaf_prior/") for k in model.init_state(1))
-        monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["erd.no_such_stage"]')
-        get_settings.cache_clear()
-        with pytest.raises(KeyError):
-            load(folder)
-    finally:
-        monkeypatch.delenv("STYLESTREAM_STAGES_OFF")
-        get_settings.cache_clear()
+    with setting(monkeypatch, "STYLESTREAM_STAGES_OFF", '["erd.no_such_stage"]'), pytest.raises(KeyError):
+        load(folder)
 
 
 def test_the_erd_fit_command_refits_one_stage_for_one_style_and_keeps_the_others(tmp_path, monkeypatch):
@@ -213,12 +211,8 @@ def test_the_erd_fit_command_refits_one_stage_for_one_style_and_keeps_the_others
     shutil.copytree(folder, tmp_path / "erd")
     with np.load(folder / spec.file) as z:  # another style's rows, to see the refit replace them
         np.savez(tmp_path / "erd" / spec.file, **{k: z[k][::-1] if k in ("mean", "lo", "hi") else z[k] for k in z})
-    monkeypatch.setenv("STYLESTREAM_WEIGHTS_DIR", str(tmp_path))
-    get_settings.cache_clear()
-    try:
+    with setting(monkeypatch, "STYLESTREAM_WEIGHTS_DIR", str(tmp_path)):
         main(["fit", "--stages", "twist_range", "active"])
-    finally:
-        get_settings.cache_clear()
     skeleton = bandai_namco_skeleton()
     before, after = spec.load(folder / spec.file, skeleton), spec.load(tmp_path / "erd" / spec.file, skeleton)
     k = before.styles.index("active")
@@ -233,20 +227,12 @@ def test_lti_declares_its_stages_and_each_switches_off_in_both_paths(monkeypatch
     `STYLESTREAM_STAGES_OFF` switches one off at load; a translator of a model without the
     rotation prior or the raised arm has none either, so the offline path runs what the stream runs."""
     from models.lti import STAGES, load
-    from models.settings import get_settings
 
     assert load().stages == STAGES and load(core_only=True).stages == ()
-    monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lti.rotation_prior", "lti.raised_arm", "erd.leaf_prior"]')
-    get_settings.cache_clear()
-    try:
+    with setting(monkeypatch, "STYLESTREAM_STAGES_OFF", '["lti.rotation_prior", "lti.raised_arm", "erd.leaf_prior"]'):
         model = load()
         assert model.stages == ("hinge_floor", "waving_arm") and not model.raised_arms
         assert all(t.prior_mean is None and t.raised_arm is None for t in model.translators.values())
         assert load(core_only=True).hinges is None
-        monkeypatch.setenv("STYLESTREAM_STAGES_OFF", '["lti.no_such_stage"]')
-        get_settings.cache_clear()
-        with pytest.raises(KeyError):
-            load()
-    finally:
-        monkeypatch.delenv("STYLESTREAM_STAGES_OFF")
-        get_settings.cache_clear()
+    with setting(monkeypatch, "STYLESTREAM_STAGES_OFF", '["lti.no_such_stage"]'), pytest.raises(KeyError):
+        load()
