@@ -60,7 +60,8 @@ class SlowPrior:
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
         """Both carries' arrays (`run_` before the run's keys; without a run prior the carry's),
         the fast part's gains, the clamp's maps and the joints carried whole, aligned with
-        `styles`; a style not fitted gets identity maps and infinite radii."""
+        `styles`; a style not fitted gets identity maps and infinite radii. `plain` (S, J): the
+        joints each style only clamps (`StyleCarry.clamps_only`, per style)."""
         J, identity, eye = skeleton.num_joints, np.array((0.0, 0.0, 0.0, 1.0)), np.eye(3)
         plain = (np.tile(identity, (J, 1)), np.tile(identity, (J, 1)), np.tile(eye, (J, 1, 1)), np.full(J, np.inf))
         run = self.run or self.carry
@@ -71,7 +72,8 @@ class SlowPrior:
         }
         rows = style_rows(self.styles, styles, gain=(self.carry.damping, plain[2]), **arrays)
         aligned = StyleCarry(*(rows[k] for k in CARRY_ROWS))
-        return rows | {"bounds": aligned.bounds.map, "plain": aligned.clamps_only}
+        whole = np.all(aligned.map == eye, axis=(-1, -2)) & np.all(aligned.source == aligned.mean, axis=-1)
+        return rows | {"bounds": aligned.bounds.map, "plain": whole}
 
     def init_state(self, batch: int) -> State:
         """The slow copy (zeros: unset, the session's next frame starts it)."""
