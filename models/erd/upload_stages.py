@@ -190,8 +190,8 @@ def paired_sources(model: ERDModel) -> dict[str, np.ndarray]:
 
     clips = sorted(select(build_index([DATASET]), split="train", style=STYLES[0]), key=lambda c: c.name)
     inputs = [m.slice(0, SOURCE_FRAMES) for m in load_motions(clips)]
-    twin = model.network_only("neutral", neutral_branch(model, {}))
-    outs = stylise(twin, inputs, [twin.styles().index("neutral")] * len(inputs))
+    twin = model.network_only("reconstruction", neutral_branch(model, {}))
+    outs = stylise(twin, inputs, [twin.styles().index("reconstruction")] * len(inputs))
     fitted = [tangent_stats(comparable(o.rotations)) for o in outs]
     descs = [descriptor(model.maker.sequence(m.translations[:, 1], m.rotations)[0]) for m in inputs]
     return {
