@@ -73,7 +73,7 @@ def test_the_prior_carries_from_neutral_clips_of_the_uploads_pace(model, clips):
 
     styled, _ = clips
     x, _ = model.maker.sequence(styled[0].translations[:, 1], styled[0].rotations)
-    paired = model.sources.paired["descriptor"]
+    paired = model.sources.descriptor
     gap = np.linalg.norm((paired - descriptor(x)) / paired.std(0), axis=1)
     near = np.argsort(gap)[:PAIRS]
     assert gap[near].max() < np.median(gap)

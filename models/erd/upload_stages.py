@@ -12,9 +12,6 @@ by `python -m models.erd fit --stages upload_sources`). Every joint but the Hips
 is carried, the legs too: with no branch nothing else gives them the style. The source's spread
 is floored (`SOURCE_FLOOR_DEG`) so an axis the network hardly moves along is not stretched to
 the clip's spread. The twist range is the clip's p1-p99 arm twists (`twist_range.py`).
-
-The same file keeps the Gaussians every trained style's priors were fitted from
-(`rotation_prior.py`), from which a trained style's priors are reproduced.
 """
 
 from __future__ import annotations
@@ -40,8 +37,7 @@ if TYPE_CHECKING:
     from .uploads import ERDStyles
 
 SOURCES_FILE = "upload_sources.npz"
-KEYS = ("leaf_prior", "output_prior", "run_leaf_prior", "run_output_prior")  # the trained priors' sources
-PAIRED = ("mean", "cov", "frames", "descriptor")  # per neutral clip: its output Gaussian, size and what it does
+FIELDS = ("mean", "cov", "frames", "descriptor")  # per neutral clip: its output Gaussian, size and what it does
 PAIRS = 8  # neutral clips an upload's source is pooled from (chosen on validation, model card)
 SOURCE_FLOOR_DEG = 10.0  # the spread the source is taken to have at least (chosen on validation)
 SOURCE_FRAMES = 240  # of each neutral clip, as `rotation_prior.FIT_FRAMES`
@@ -49,41 +45,31 @@ SOURCE_FRAMES = 240  # of each neutral clip, as `rotation_prior.FIT_FRAMES`
 
 @dataclass(frozen=True)
 class Sources:
-    """Per trained prior: the Gaussian its fits carried from, mean (S or 1, J, 4) and covariance
-    (S or 1, J, 3, 3) of tangent deviations. `paired`: per TRAIN neutral clip, what the network's
-    neutral reconstruction makes of it (`PAIRED`: mean (C, J, 4), covariance (C, J, 3, 3),
-    frames (C,), `descriptor` (C, 6)), which an upload's source is pooled from."""
+    """Per TRAIN neutral clip, what the network's neutral reconstruction makes of it: mean
+    (C, J, 4) and covariance (C, J, 3, 3) of tangent deviations, frames (C,), and what the clip
+    does (`descriptor`, (C, 6)); an upload's source is pooled from the clips like it."""
 
-    mean: dict[str, np.ndarray]
-    cov: dict[str, np.ndarray]
-    paired: dict[str, np.ndarray]
+    mean: np.ndarray
+    cov: np.ndarray
+    frames: np.ndarray
+    descriptor: np.ndarray
 
     def save(self, path: Path) -> Path:
-        arrays = {f"{k}.mean": v for k, v in self.mean.items()} | {f"{k}.cov": v for k, v in self.cov.items()}
-        arrays |= {f"paired.{k}": v for k, v in self.paired.items()}
-        np.savez(path, **arrays)  # type: ignore[arg-type]
+        np.savez(path, **{k: getattr(self, k) for k in FIELDS})
         return path
 
     @classmethod
     def load(cls, path: Path) -> Sources:
         with np.load(path) as z:
-            paired = {k: z[f"paired.{k}"] for k in PAIRED}
-            return cls({k: z[f"{k}.mean"] for k in KEYS}, {k: z[f"{k}.cov"] for k in KEYS}, paired)
-
-    def of(self, key: str, style: int) -> tuple[np.ndarray, np.ndarray]:
-        """The source Gaussian of prior `key` for trained style `style`."""
-        mean, cov = self.mean[key], self.cov[key]
-        i = 0 if len(mean) == 1 else style
-        return mean[i], cov[i]
+            return cls(*(z[k] for k in FIELDS))
 
     def nearest(self, x: np.ndarray, k: int = PAIRS) -> tuple[np.ndarray, np.ndarray]:
         """The network's output Gaussian (mean (J, 4), covariance (J, 3, 3)) over the `k` neutral
         clips nearest in what they do to a clip of features `x` (F, 216), each `descriptor`
         entry in units of its spread over the neutral clips."""
-        desc = self.paired["descriptor"]
-        scale = np.maximum(desc.std(0), 1e-6)
-        near = np.argsort(np.linalg.norm((desc - descriptor(x)) / scale, axis=1))[:k]
-        return pooled(self.paired["mean"][near], self.paired["cov"][near], self.paired["frames"][near])
+        scale = np.maximum(self.descriptor.std(0), 1e-6)
+        near = np.argsort(np.linalg.norm((self.descriptor - descriptor(x)) / scale, axis=1))[:k]
+        return pooled(self.mean[near], self.cov[near], self.frames[near])
 
 
 def descriptor(x: np.ndarray) -> np.ndarray:
@@ -163,26 +149,9 @@ def fit_stages(
 
 
 def fit_sources(model: ERDModel) -> Sources:
-    """The sources every trained style's priors were fitted from (`rotation_prior.py`), and what
-    the network's neutral reconstruction makes of every TRAIN neutral clip, as Gaussians."""
-    from .rotation_prior import _neutral_inputs, network_rotations, real_rotations, run_network_rotations
-
-    def stats(qs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        fitted = [tangent_stats(q) for q in qs]
-        return np.stack([f[0] for f in fitted]), np.stack([f[1] for f in fitted])
-
-    mean, cov = {}, {}
-    mean["leaf_prior"], cov["leaf_prior"] = stats([real_rotations()[0]])
-    mean["run_leaf_prior"], cov["run_leaf_prior"] = stats([real_rotations(runs=True)[0]])
-    mean["output_prior"], cov["output_prior"] = stats(network_rotations(model, _neutral_inputs()))
-    mean["run_output_prior"], cov["run_output_prior"] = stats(run_network_rotations(model))
-    return Sources(mean, cov, paired_sources(model))
-
-
-def paired_sources(model: ERDModel) -> dict[str, np.ndarray]:
-    """`Sources.paired`: every TRAIN neutral clip's first `SOURCE_FRAMES` streamed through the
-    network's neutral reconstruction (no leaf prior, no output prior: what an upload's prior
-    carries from), as a Gaussian, with the clip's `descriptor`."""
+    """`Sources`: every TRAIN neutral clip's first `SOURCE_FRAMES` streamed through the network's
+    neutral reconstruction (no leaf prior, no output prior: what an upload's prior carries from),
+    as a Gaussian, with the clip's `descriptor`."""
     from ..data import build_index, load_motions, select
     from ..eval.run import stylise
     from .dataset import DATASET, STYLES
@@ -193,10 +162,9 @@ def paired_sources(model: ERDModel) -> dict[str, np.ndarray]:
     twin = model.network_only("reconstruction", neutral_branch(model, {}))
     outs = stylise(twin, inputs, [twin.styles().index("reconstruction")] * len(inputs))
     fitted = [tangent_stats(comparable(o.rotations)) for o in outs]
-    descs = [descriptor(model.maker.sequence(m.translations[:, 1], m.rotations)[0]) for m in inputs]
-    return {
-        "mean": np.stack([f[0] for f in fitted]),
-        "cov": np.stack([f[1] for f in fitted]),
-        "frames": np.array([m.num_frames for m in inputs], np.float64),
-        "descriptor": np.stack(descs),
-    }
+    return Sources(
+        np.stack([f[0] for f in fitted]),
+        np.stack([f[1] for f in fitted]),
+        np.array([m.num_frames for m in inputs], np.float64),
+        np.stack([descriptor(model.maker.sequence(m.translations[:, 1], m.rotations)[0]) for m in inputs]),
+    )
