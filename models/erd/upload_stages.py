@@ -11,7 +11,9 @@ and turning), each clip's output Gaussian kept beside the weights (`upload_sourc
 by `python -m models.erd fit --stages upload_sources`). Every joint but the Hips (clamped only)
 is carried, the legs too: with no branch nothing else gives them the style. The source's spread
 is floored (`SOURCE_FLOOR_DEG`) so an axis the network hardly moves along is not stretched to
-the clip's spread. The twist range is the clip's p1-p99 arm twists (`twist_range.py`).
+the clip's spread; the fast part's gains, capped at 1 anyway, take the map without the floor
+(floored, they damped the frame-to-frame motion a lively style needs). The twist range is the
+clip's p1-p99 arm twists (`twist_range.py`).
 """
 
 from __future__ import annotations
@@ -142,7 +144,8 @@ def fit_stages(
     stage = built_in.output_prior
     if isinstance(stage, SlowPrior):
         carry = carry_to(source, comparable(q), (0,), (HIPS,), np.radians(SOURCE_FLOOR_DEG))
-        out["output_prior"] = SlowPrior(("",), carry, None, stage.hips)
+        fast = carry_to(source, comparable(q), (0,), (HIPS,)).damping  # the fast part's gains, unfloored
+        out["output_prior"] = SlowPrior(("",), carry, None, stage.hips, fast)
     if built_in.twist_range is not None:
         out["twist_range"] = TwistRange.fit(skeleton, [q], ("",))
     return out

@@ -69,6 +69,8 @@ class Upload:
                 for name, carry in ((key, stage.carry), (f"run_{key}", stage.run)):
                     if carry is not None:
                         arrays |= {f"{name}.{f}": a for f, a in zip(CARRY_FIELDS, carry.arrays)}
+                if stage.fast is not None:
+                    arrays[f"{key}.fast"] = stage.fast
             else:
                 arrays |= {"twist.mean": stage.mean, "twist.lo": stage.lo, "twist.hi": stage.hi}
         tmp = path.with_suffix(".tmp.npz")
@@ -88,7 +90,8 @@ class Upload:
         stages: dict[str, Any] = {}
         for key, hips in (("leaf_prior", -1), ("output_prior", HIPS)):
             if (walk := carry(key)) is not None:
-                stages[key] = SlowPrior((name,), walk, carry(f"run_{key}"), hips)
+                fast = a.get(f"{key}.fast")
+                stages[key] = SlowPrior((name,), walk, carry(f"run_{key}"), hips, fast)
         if twist_joints is not None and "twist.mean" in a:
             stages["twist_range"] = TwistRange(
                 twist_joints.joints, twist_joints.axes, a["twist.mean"], a["twist.lo"], a["twist.hi"], (name,)
