@@ -410,9 +410,9 @@ def _uploads_section(rows: list[dict]) -> list[str]:
         "(`instant`: the style made from the clip at once; `tuned`: the fine-tuning job), with neutral walks of "
         "both datasets streamed through it (`models/eval/uploads.py`). **coverage**: the share of the way from the "
         "input to the style's other real walking clips (0: the input unchanged; 1: those clips), on the judge's "
-        "clip statistics; **copy**: what the uploaded clip itself covers from dataset 1's neutral walks. A row "
-        f"passes at ≥ {uploads.PASS_SHARE:.0%} of the copy's coverage, wherever the copy covers ≥ "
-        f"{uploads.CLEAR_COPY}. **judge read**: the share of outputs that the evaluation's style judge, fitted again "
+        "clip statistics; **copy**: what the uploaded clip itself covers from the same neutral walks, per dataset. A "
+        f"row passes at ≥ {uploads.PASS_SHARE:.0%} of the copy's coverage on every dataset where the copy covers ≥ "
+        f"{uploads.CLEAR_COPY} (a share in brackets is not scored). **judge read**: the share of outputs that the evaluation's style judge, fitted again "
         "without the uploaded clip, reads as the style (passes at "
         f"≥ {uploads.JUDGE_PASS:.0%}); **copy read**: whether it reads the uploaded clip itself so; **least bend**: "
         "the least knee or elbow bend less the least real one (°; below 0 a limb bends backward).",
