@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.motion.bn_skeleton import PRIMARY_CHILD
+from models.motion.retarget import default_rig
 from models.motion.rotations import matrix_to_quat, quat_to_matrix
 from models.motion.skeleton import Motion, Skeleton
 
@@ -403,6 +404,8 @@ def mirrored(motion: Motion, reflection: np.ndarray) -> Motion:
 
 
 # T-pose bone directions (Y up, facing +Z, left = +X) of each BN joint's main bone
+# a T-pose stands on flat feet: BN's ankle-toe bone falls by its flat-foot pitch (`retarget.flat_foot_pitch`)
+_FOOT = (0.0, -float(np.sin(default_rig().foot_pitch or 0.0)), float(np.cos(default_rig().foot_pitch or 0.0)))
 _TPOSE = {
     "Hips": (0, 1, 0),
     "Spine": (0, 1, 0),
@@ -416,10 +419,10 @@ _TPOSE = {
     "LowerArm_R": (-1, 0, 0),
     "UpperLeg_L": (0, -1, 0),
     "LowerLeg_L": (0, -1, 0),
-    "Foot_L": (0, -0.5, 1),
+    "Foot_L": _FOOT,
     "UpperLeg_R": (0, -1, 0),
     "LowerLeg_R": (0, -1, 0),
-    "Foot_R": (0, -0.5, 1),
+    "Foot_R": _FOOT,
 }
 
 

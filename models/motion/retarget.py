@@ -21,6 +21,8 @@ bone *directions*, never from either rest pose:
    limb turned so that its end keeps the client's direction (Unreal's pole-vector IK). Copied
    off-axis, the bend reached 0.08 rad on a Xia walk, eight standard deviations outside what the
    models were trained on.
+   The foot bone takes the client's ankle-toe segment turned by the two rigs' flat-foot pitches
+   where the client's rest pose stands (`retarget_stream._sole_terms`).
 4. The Hips translation is scaled by the leg-length ratio and shifted so the toes on the ground
    sit at BN's toe height (`contact_height`).
 """
@@ -54,6 +56,7 @@ class Rig:
     pose: np.ndarray  # (J, 4) local rotations of a natural (standing or walking) pose
     floor: float  # toe height on the ground in the target's data (`contact_height`, target units)
     euler_orders: tuple[str, ...] = ()  # per joint, for writing BVH like the target's files
+    foot_pitch: float | None = None  # the ankle-toe bones' fall (radians) on a flat foot (`flat_foot_pitch`)
 
     @classmethod
     def from_motion(cls, motion: Motion, frame: int = 0) -> Rig:
@@ -61,9 +64,19 @@ class Rig:
         missing = missing_joints(sk.names)
         if missing:
             raise ValueError(f"not a Bandai Namco skeleton (missing {', '.join(missing)})")
-        toes = [sk.index("Toes_L"), sk.index("Toes_R")]
-        floor = contact_height(motion.global_positions()[:, toes, 1])
-        return cls(sk, np.array(motion.rotations[frame], dtype=float), floor, tuple(motion.euler_orders))
+        pos = motion.global_positions()
+        toes, ankles = [sk.index("Toes_L"), sk.index("Toes_R")], [sk.index("Foot_L"), sk.index("Foot_R")]
+        floor = contact_height(pos[:, toes, 1])
+        pitch = flat_foot_pitch(sk, contact_height(pos[:, ankles, 1]), floor)
+        return cls(sk, np.array(motion.rotations[frame], dtype=float), floor, tuple(motion.euler_orders), pitch)
+
+
+def flat_foot_pitch(skeleton: Skeleton, ankle_floor: float, toe_floor: float) -> float:
+    """How far (radians below level) a BN skeleton's ankle-toe bones fall on a flat foot: the
+    ankle and toe joints at their heights on the ground. Rigs place these joints differently above
+    the sole (BN's bone falls 40 degrees, CMU's and Xia's about 10): `retarget_stream._sole_terms`."""
+    length = np.mean([np.linalg.norm(skeleton.offsets[skeleton.index(f"Toes_{s}")]) for s in "LR"])
+    return float(np.arcsin(np.clip((ankle_floor - toe_floor) / length, -1.0, 1.0)))
 
 
 def contact_height(toe_heights: np.ndarray, percentile: float = 5.0) -> float:
@@ -76,12 +89,11 @@ def contact_height(toe_heights: np.ndarray, percentile: float = 5.0) -> float:
 def default_rig() -> Rig:
     """The BN rig from the committed asset (first frame of Bandai Namco data set 2's first normal
     walk, and that clip's toe floor), so retargeting needs no data at serving time."""
-    from .assets import BANDAI_NAMCO_TOE_FLOOR, bandai_namco_pose
+    from .assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR, bandai_namco_pose
 
-    pose = bandai_namco_pose()
-    return Rig(
-        pose.skeleton, np.array(pose.rotations[0], dtype=float), BANDAI_NAMCO_TOE_FLOOR, tuple(pose.euler_orders)
-    )
+    pose, toe = bandai_namco_pose(), BANDAI_NAMCO_TOE_FLOOR
+    pitch = flat_foot_pitch(pose.skeleton, BANDAI_NAMCO_ANKLE_FLOOR, toe)
+    return Rig(pose.skeleton, np.array(pose.rotations[0], dtype=float), toe, tuple(pose.euler_orders), pitch)
 
 
 def _frame(primary: np.ndarray, lateral: np.ndarray) -> np.ndarray:

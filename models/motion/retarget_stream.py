@@ -15,6 +15,7 @@ kernels (`retarget_kernels`); `tests/reference/retarget.py` is the numpy mapping
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from . import retarget_kernels as kernels
 from .bn_skeleton import BN_JOINTS, PRIMARY_CHILD
@@ -113,6 +114,47 @@ def _rest_side(skeleton: Skeleton, a: int, b: int) -> np.ndarray:
     return sum((s * skeleton.offsets[k] for k, s in _path_terms(skeleton, a, b)), np.zeros(3))
 
 
+# A rest pose stands (a T-pose or A-pose) when each leg hangs within STANDING_LEG of straight down
+# and the two feet mirror each other, soles within STANDING_FEET of the same fall (a captured
+# first frame mid-step does not): then its feet are flat on the ground (`_sole_terms`).
+STANDING_LEG, STANDING_FEET = np.radians(30.0), np.radians(3.0)
+
+
+def _sole_terms(hr: HumanoidRig, rig: Rig) -> dict[str, list[tuple[object, int, np.ndarray, float]]]:
+    """BN foot -> the client vector its bone takes (terms as `_segment_terms`'), where the client's
+    rest pose stands: its ankle-toe segment, turned in its ankle's frame about the foot's lateral
+    axis by BN's flat-foot pitch (`Rig.foot_pitch`) less the rest pose's. Why: rigs place the ankle
+    and toe joints at different heights above the sole, so a copied direction held BN's toes 30
+    degrees up off a flat CMU or Xia foot, its ankle 4 cm low: far outside BN's data, and the
+    models' feet skated. Unity's humanoid likewise maps a foot against each rig's reference pose.
+    A rest pose that does not stand (BN's own, legs up the spine) says nothing of a flat foot."""
+    src, roles = hr.skeleton, hr.roles
+    up = hr.axes.T @ np.array([0.0, 1.0, 0.0])  # the client's up
+    if rig.foot_pitch is None or not all(f"toes_{s}" in roles for s in "lr"):
+        return {}
+    legs = [_rest_side(src, roles[f"upperleg_{s}"], roles[f"foot_{s}"]) for s in "lr"]
+    soles = [_rest_side(src, roles[f"foot_{s}"], roles[f"toes_{s}"]) for s in "lr"]
+    sides = [np.cross(sole, -up) for sole in soles]
+    pitch = [np.arcsin(np.clip(-sole @ up / np.linalg.norm(sole), -1.0, 1.0)) for sole in soles]
+    if (
+        any(-leg @ up < np.cos(STANDING_LEG) * np.linalg.norm(leg) for leg in legs)
+        or any(np.linalg.norm(side) < 1e-3 * np.linalg.norm(sole) for side, sole in zip(sides, soles))
+        or abs(pitch[0] - pitch[1]) > STANDING_FEET
+    ):
+        return {}
+    return {
+        f"Foot_{s.upper()}": [
+            (
+                ("sole", s),
+                roles[f"foot_{s}"],
+                Rotation.from_rotvec(side / np.linalg.norm(side) * (rig.foot_pitch - p)).apply(sole),
+                1.0,
+            )
+        ]
+        for s, side, sole, p in zip("lr", sides, soles, pitch)
+    }
+
+
 # --------------------------------------------------------------------------- the retargeter
 
 
@@ -168,6 +210,7 @@ class FrameRetargeter:
         bone: dict[str, list[tuple[object, int, np.ndarray, float]]] = {
             n: [(k, int(src.parents[k]), src.offsets[k], w) for k, w in t if w != 0.0] for n, t in trunk.items()
         }
+        bone.update(_sole_terms(hr, rig))
         terms = [
             bone[n] if n in bone else self._segment_terms(src, roles[segs[n][0]], roles[segs[n][1]]) for n in plain
         ]
