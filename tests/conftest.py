@@ -7,6 +7,8 @@ or the code under test first reaches for a dataset); on CI the data is there and
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pytest
@@ -54,6 +56,37 @@ def lpn_model() -> LPNModel:
     from models.lpn import load  # its compiled kernels, only for the tests that use it
 
     return load(get_settings().weights_dir / "lpn")
+
+
+@pytest.fixture(scope="session")
+def erd_cache(index, tmp_path_factory) -> Path:
+    """A Style-ERD feature cache (`models/erd/dataset.py`) of a few TRAIN clips of every style, two
+    walks, two runs and a gesture each, for the tests of what is fitted from the cache: the whole
+    one (every clip of dataset 2) takes minutes to build, and only training needs it. A test points
+    `dataset.cache_dir` at it (`small_erd_cache`)."""
+    from models.erd.dataset import DATASET, STYLES, build_cache
+
+    def few(style: str, content: str, n: int) -> list[Clip]:
+        chosen = select(index, dataset=DATASET, split="train", style=style, content=content)
+        return sorted(chosen, key=lambda c: c.name)[:n]
+
+    train = [
+        c
+        for s in STYLES
+        for content, n in (("walk", 2), ("run", 2), ("wave-both-hands", 1))
+        for c in few(s, content, n)
+    ]
+    return build_cache(tmp_path_factory.mktemp("erd-cache"), {"train": train})
+
+
+@pytest.fixture(scope="module")
+def small_erd_cache(erd_cache) -> Iterator[Path]:
+    """`erd_cache` as the Style-ERD feature cache for a test module."""
+    from models.erd import dataset
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(dataset, "cache_dir", lambda: erd_cache)
+        yield erd_cache
 
 
 @pytest.fixture(scope="session")

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..data import build_index, load_motions, select
+from ..data import Clip, build_index, load_motions, select
 from ..motion.rotations import quat_mean
 from ..settings import get_settings
 from .features import CONTACT, FeatureMaker
@@ -56,12 +56,16 @@ class Split:
     names: list[str]
 
 
-def build_cache(out: Path | None = None) -> Path:
+def build_cache(out: Path | None = None, clips: dict[str, list[Clip]] | None = None) -> Path:
+    """The cache of every clip of `DATASET`, or of `clips` (split -> clips, with a train split:
+    its normalisation; e.g. a few for a test, where the whole cache takes minutes to build)."""
     out = out or cache_dir()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    index = build_index([DATASET])
-    splits = {s: select(index, split=s) for s in ("train", "val", "test")}
+    if clips is None:
+        index = build_index([DATASET])
+        clips = {s: select(index, split=s) for s in ("train", "val", "test")}
+    splits = clips
     motions = {s: load_motions(c) for s, c in splits.items()}
     sk = motions["train"][0].skeleton
     sample = np.concatenate([m.rotations[::4] for m in motions["train"]])
