@@ -6,6 +6,7 @@ or the code under test first reaches for a dataset); on CI the data is there and
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,6 +21,27 @@ from models.settings import get_settings
 
 if TYPE_CHECKING:
     from models.lpn.runtime import LPNModel
+
+
+def _one_ssl_context_per_setting() -> None:
+    """httpx builds an SSL context, reading every CA certificate, for each client it makes: one
+    per `httpx.get` and per poll of a starting server (`wait_ready`), thousands in the suite at
+    30-50 ms of CPU each, for URLs that are all plain http on loopback. In the tests' processes
+    each set of arguments gets one, shared (clients and threads may share a context)."""
+    from httpx._transports import default
+
+    made = functools.lru_cache(maxsize=None)(default.create_ssl_context)
+
+    def shared(verify=True, cert=None, trust_env=True):  # noqa: ANN001, ANN202 (httpx's own signature)
+        try:
+            return made(verify, cert, trust_env)
+        except TypeError:  # an argument that cannot be a cache key
+            return made.__wrapped__(verify, cert, trust_env)
+
+    default.create_ssl_context = shared
+
+
+_one_ssl_context_per_setting()
 
 
 def pytest_configure(config: pytest.Config) -> None:
