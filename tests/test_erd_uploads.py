@@ -105,22 +105,6 @@ def test_a_saved_upload_loads_back_the_same(model, clips, tmp_path):
     np.testing.assert_array_equal(stream(a, walk.slice(0, 30), w), stream(b, walk.slice(0, 30), w))
 
 
-def test_upload_stages_refit_from_the_stored_sources_reproduce_the_trained_ones(model):
-    """What an upload's stages carry from is what the trained styles' were fitted from: refitting a
-    trained style from `upload_sources.npz` and its real frames gives its committed priors."""
-    from models.erd.dataset import cache_dir
-    from models.erd.rotation_prior import FIXED, real_rotations
-    from models.erd.upload_stages import carry_to
-
-    if not (cache_dir() / "train.npz").exists():
-        pytest.skip("Style-ERD feature cache not built")
-    real = real_rotations()
-    for s in (0, 3):
-        refit = carry_to(model.sources.of("leaf_prior", s), real[s + 1], FIXED)
-        for fitted, committed in zip(refit.arrays, model.built_in.stages.leaf_prior.carry.arrays):
-            np.testing.assert_allclose(fitted[0], committed[s], atol=1e-5)
-
-
 def test_the_job_pairs_neutral_clips_from_the_mocap_without_the_feature_cache(model, clips, tmp_path, monkeypatch):
     """A fresh server has no TRAIN feature cache: the job's neutral clips are computed from the
     mocap, the nearest in what they do first, and no cache is built for them."""

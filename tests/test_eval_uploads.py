@@ -8,7 +8,7 @@ import numpy as np
 
 from models.data import load_motions, select
 from models.eval.style_judge import clip_statistics
-from models.eval.uploads import D1, D2, REFERENCE_CONTENTS, fit_ruler, held_out_styles
+from models.eval.uploads import D1, D2, REFERENCE_CONTENTS, fit_ruler, held_out_styles, passes
 
 
 class Shipping:
@@ -41,10 +41,11 @@ def test_a_style_is_held_out_only_where_no_style_was_trained_on_it():
 def test_the_report_lists_every_upload_row_and_says_which_pass():
     from models.eval.sealed import _uploads_section
 
-    row = {"style": "giant", "method": "lpn", "variant": "tuned", "copy": 0.76, "share_of_copy": 0.25}
+    row = {"style": "giant", "method": "lpn", "variant": "tuned", "copy": {D2: 0.05, D1: 0.76}}
     rows = [
         {
             **row,
+            "share_of_copy": {D2: 2.4, D1: 0.33},
             "coverage": {D2: 0.12, D1: 0.25},
             "clips": {D2: 2, D1: 2},
             "passes": False,
@@ -54,11 +55,20 @@ def test_the_report_lists_every_upload_row_and_says_which_pass():
             "copy_judged": True,
             "least_bend": -0.04,
         },
-        {"style": "giant", "method": "erd", "variant": "refused", "copy": 0.76},
+        {"style": "giant", "method": "erd", "variant": "refused", "copy": {D2: 0.05, D1: 0.76}},
     ]
     text = "\n".join(_uploads_section(rows))
     assert (
-        "| lpn | tuned | giant | 0.76 | 0.12 (2) | 0.25 (2) | 25% | no | 75% (100% / 50%) | no | yes | -0.0 |" in text
+        "| lpn | tuned | giant | 0.05 / 0.76 | 0.12 (2) | 0.25 (2) | (240%) / 33% | no | 75% (100% / 50%) | no | yes "
+        "| -0.0 |" in text
     )
-    assert "| erd | refused | giant | 0.76 |" in text
+    assert "| erd | refused | giant | 0.05 / 0.76 |" in text
     assert _uploads_section([]) == []
+
+
+def test_an_upload_is_held_to_its_copy_only_where_the_copy_says_something_from_those_inputs():
+    copy = {D2: 0.05, D1: 0.5}  # from dataset 2's neutral walks the clip itself is barely closer
+    assert passes({D2: -3.0, D1: 0.8}, copy) is True
+    assert passes({D2: 9.0, D1: 0.6}, copy) is False
+    assert passes({D2: 0.6, D1: 0.9}, {D2: 0.2, D1: 0.5}) is False
+    assert passes({D2: 0.0, D1: 0.0}, {D2: 0.0, D1: 0.05}) is None

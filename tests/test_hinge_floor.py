@@ -80,9 +80,9 @@ def test_lti_outputs_never_bend_a_hinge_backward(index):
 
 @pytest.mark.parametrize("method", ["erd", "lpn"])
 def test_an_uploaded_style_never_bends_a_hinge_backward_in_erd_or_lpn(method, index):
-    """A dataset-1 `happy` walk uploaded to Style-ERD or LPN-FiLM (the instant style) bends a knee
-    or elbow backward by several degrees without the stage; the full pipeline holds every hinge
-    at its floor to the end (after the foot planter and the unseen-content fade), the core has no
+    """A dataset-1 `happy` walk uploaded to LPN-FiLM (the instant style) bends a knee or elbow
+    backward by several degrees without the stage (to Style-ERD: not even without it); the full
+    pipeline holds every hinge at its floor to the end (after the foot planter and the unseen-content fade), the core has no
     stage."""
     from models.data import load_motions, select
     from models.eval.run import stylise_toward
@@ -112,4 +112,7 @@ def test_an_uploaded_style_never_bends_a_hinge_backward_in_erd_or_lpn(method, in
     # the toes, a few degrees off the hinge axis, which reads as hundredths of a degree past it
     assert least() >= -0.1
     own.stages = own.stages.without("hinge_floor")
-    assert least() < -2.0
+    if method == "erd":  # its instant style has no branch of its own: no hinge bends back even so
+        assert least() >= -0.1
+    else:
+        assert least() < -2.0

@@ -12,9 +12,11 @@ import pytest
 from models.data import build_index, load_motions, select
 from models.eval import sealed
 from models.eval.intervals import share, wilson
-from models.eval.physical import Input, Reference, measure
+from models.eval.metrics import SKATE_SPEED
+from models.eval.physical import Input, Reference, measure, planted_speeds, worst_slide
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import OTHER, load_style_judge
+from models.motion.features import left_leg_length
 from models.motion.rotations import quat_exp, quat_mul
 
 
@@ -92,7 +94,8 @@ def walk():
 def test_a_shaking_head_is_jitter_and_a_dragged_foot_is_slide(walk):
     index = build_index([D2])
     train = load_motions(select(index, split="train", style="normal", content="walk")[:8])
-    ref = Reference.fit({"normal": train}, {"normal": load_motions(select(index, split="val", style="normal"))[1::4]})
+    val = select(index, split="val", style="normal")[1::4]
+    ref = Reference.fit({"normal": train}, {"normal": load_motions(val)}, {"normal": [c.content for c in val]})
     same = measure(ref, "normal", walk, Input.of(walk, ref))
     assert same.jitter <= 1.0 and same.path_ratio == pytest.approx(1.0) and same.end_drift < 1e-9
     rot = walk.rotations.copy()
@@ -105,6 +108,15 @@ def test_a_shaking_head_is_jitter_and_a_dragged_foot_is_slide(walk):
     trans[:, walk.skeleton.index("Hips"), 0] += np.arange(walk.num_frames) * 3.0  # the whole body glides 90 cm/s
     glide = measure(ref, "normal", replace(walk, translations=trans), Input.of(walk, ref))
     assert np.percentile(glide.foot_speeds, 95) > np.percentile(same.foot_speeds, 95) + 50
+    assert worst_slide([glide], ["walk"], "normal", ref)[0] > 2.0 >= worst_slide([same], ["walk"], "normal", ref)[0]
+
+
+def test_a_real_walk_plants_its_feet_and_a_passing_swing_foot_is_not_planted(walk):
+    """Real feet do not slide: the swing foot passing a centimetre or two above the floor, and
+    touchdown's last fall onto it, are not read as a planted foot moving."""
+    speeds = planted_speeds(walk)
+    assert len(speeds) > 0.3 * 2 * walk.num_frames  # each foot stands flat about a third of a walk
+    assert np.percentile(speeds, 95) < SKATE_SPEED * left_leg_length(walk.skeleton)
 
 
 def test_a_quick_validation_run_scores_every_source_and_records_no_final_run(tmp_path, monkeypatch):

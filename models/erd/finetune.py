@@ -13,8 +13,8 @@ The clip has no neutral twin, so the branch is fitted on statistics, not frame p
    pairs are kept out of training: the branch is kept only if it brings them closer to the clip
    than the starting copy does.
 3. **Stages.** The output prior carries from what the network makes; with a branch of its own,
-   what it makes toward the style is measured again (the fitted branch streaming
-   `rotation_prior`'s TRAIN neutral inputs, as for a trained style), and the stages are refitted.
+   what it makes is measured again (the fitted branch streaming the paired neutral clips, no
+   leaf prior, as `upload_stages` measured the neutral reconstruction), and the stages refitted.
 """
 
 from __future__ import annotations
@@ -26,42 +26,48 @@ from typing import Any
 import numpy as np
 
 from ..interface import Progress
+from ..motion.skeleton import Motion
 from ..motion.style_carry import tangent_stats
-from .dataset import DATASET, STYLES, TARGET_STYLES
-from .features import FPS, NB, POS, ROOTVEL, ROT, YAWRATE
-from .upload_stages import clip_rotations, fit_stages
+from .dataset import DATASET, STYLES
+from .features import FPS, NB, POS, ROOTVEL, ROT
+from .upload_stages import SOURCE_FRAMES, clip_rotations, descriptor, fit_stages
 from .uploads import Upload
 
 PAIRS, HOLDOUT = 10, 2  # neutral clips paired with the upload, of which held back
 WINDOW, BATCH = 48, 12
 STEPS, LR, SEED = 150, 3e-3, 0
 SCALE_FLOOR = 0.05  # of a statistic's scale, as the style judge floors its standardisation
-SOURCE_CLIPS = 2  # `rotation_prior._neutral_inputs` clips per content the output prior's source is measured on
+
+
+def neutral_motions() -> list[Motion]:
+    """Every dataset-2 TRAIN `normal` clip, from the mocap (unpacked on first use)."""
+    from ..data import build_index, load_motions, select
+
+    return load_motions(select(build_index([DATASET]), dataset=DATASET, split="train", style=STYLES[0]))
+
+
+def features(maker, motions: list[Motion]) -> list[np.ndarray]:
+    """Features (F, 216) of each clip, by `maker` (the model's)."""
+    return [maker.sequence(m.translations[:, 1], m.rotations)[0].astype(np.float32) for m in motions]
 
 
 def neutral_clips(maker) -> list[np.ndarray]:
-    """Features (F, 216) of every dataset-2 TRAIN `normal` clip, by `maker` (the model's), from
-    the mocap (unpacked on first use)."""
-    from ..data import build_index, load_motions, select
-
-    clips = select(build_index([DATASET]), dataset=DATASET, split="train", style=STYLES[0])
-    return [maker.sequence(m.translations[:, 1], m.rotations)[0].astype(np.float32) for m in load_motions(clips)]
+    """`features` of every dataset-2 TRAIN `normal` clip, computed from the mocap."""
+    return features(maker, neutral_motions())
 
 
-def descriptor(x: np.ndarray) -> np.ndarray:
-    """What a clip does, from its features (F, 216): mean and spread of its facing-frame Hips
-    speed (forward, sideways) and of its turning rate."""
-    v = np.concatenate([x[:, ROOTVEL][:, [0, 2]], x[:, YAWRATE : YAWRATE + 1]], 1)
-    return np.concatenate([v.mean(0), v.std(0)])
-
-
-def pair(clips: list[np.ndarray], x_clip: np.ndarray, k: int) -> list[np.ndarray]:
-    """The `k` neutral clips (features) longer than a window whose descriptors lie nearest the
-    clip's (each descriptor entry in units of its spread over `clips`), nearest first."""
+def pair_order(clips: list[np.ndarray], x_clip: np.ndarray, k: int) -> list[int]:
+    """The indices of the `k` neutral clips (features) longer than a window whose descriptors lie
+    nearest the clip's (each descriptor entry in units of its spread over `clips`), nearest first."""
     desc = np.stack([descriptor(c) for c in clips])
     scale = np.maximum(desc.std(0), 1e-6)
     order = np.argsort(np.linalg.norm((desc - descriptor(x_clip)) / scale, axis=1))
-    return [clips[i] for i in order if len(clips[i]) > WINDOW][:k]
+    return [int(i) for i in order if len(clips[i]) > WINDOW][:k]
+
+
+def pair(clips: list[np.ndarray], x_clip: np.ndarray, k: int) -> list[np.ndarray]:
+    """`pair_order`'s clips."""
+    return [clips[i] for i in pair_order(clips, x_clip, k)]
 
 
 class Branch:
@@ -145,7 +151,10 @@ def fine_tune(model, start: Upload, clip, progress: Progress) -> tuple[Upload | 
     rng = np.random.default_rng(SEED)
     x_clip, _ = model.maker.sequence(clip.translations[:, 1], clip.rotations)
     progress(0.03, "pairing neutral clips of the same pace and turning")
-    neutral = pair(neutral_clips(model.maker), x_clip, PAIRS)
+    motions = neutral_motions()
+    feats = features(model.maker, motions)
+    order = pair_order(feats, x_clip, PAIRS)
+    neutral = [feats[i] for i in order]
     train, held = neutral[:-HOLDOUT], neutral[-HOLDOUT:]
     branch = Branch(model, start)
     target = real_statistics(torch.as_tensor(x_clip[None], dtype=torch.float32))
@@ -176,24 +185,22 @@ def fine_tune(model, start: Upload, clip, progress: Progress) -> tuple[Upload | 
         return None, summary
     tuned = branch.upload(start)
     progress(0.82, "measuring what the fitted branch makes, for the output prior")
-    tuned = refit_stages(model, tuned, clip)
+    tuned = refit_stages(model, tuned, clip, [motions[i] for i in order])
     summary["seconds"] = round(time.perf_counter() - t0, 1)
     progress(0.98, "installing the fitted branch")
     return tuned, summary
 
 
-def refit_stages(model, tuned: Upload, clip) -> Upload:
-    """`tuned`'s stages fitted again, its output prior from what its own branch makes of TRAIN
-    neutral clips (its leaf prior in place, no output prior), as `rotation_prior.fit_output`."""
-    from .rotation_prior import _neutral_inputs, network_rotations
+def refit_stages(model, tuned: Upload, clip, paired: list[Motion]) -> Upload:
+    """`tuned`'s stages fitted again, its output prior from what its own branch makes of the
+    `paired` neutral clips (no leaf prior, no output prior), as `upload_stages` measured the
+    neutral reconstruction."""
+    from ..eval.run import stylise
+    from ..motion.rotation_ball import comparable
 
-    twin = model.with_own_styles()
-    twin.install_style("fit", tuned)
-    inputs = _neutral_inputs()[:: max(1, 4 // SOURCE_CLIPS)]
-    made = network_rotations(twin, inputs, styles=["fit"])[0]  # its leaf prior in place, no output prior
-    mean, cov, _ = tangent_stats(made)
-    q, share = clip_rotations(model, clip)
-    stages = fit_stages(
-        model.built_in.stages, model.sources, model.skeleton, q, share, TARGET_STYLES.index(tuned.nearest), (mean, cov)
-    )
-    return replace(tuned, stages=stages)
+    twin = model.network_only("fit", tuned)
+    inputs = [m.slice(0, SOURCE_FRAMES) for m in paired]
+    made = stylise(twin, inputs, [twin.styles().index("fit")] * len(inputs))
+    mean, cov, _ = tangent_stats(comparable(np.concatenate([o.rotations for o in made])))
+    q, _ = clip_rotations(model, clip)
+    return replace(tuned, stages=fit_stages(model.built_in.stages, model.skeleton, q, (mean, cov)))

@@ -50,17 +50,26 @@ def merged(carry: StyleCarry, at: Sequence[int], other: StyleCarry) -> StyleCarr
 @dataclass(frozen=True)
 class SlowPrior:
     """The stage: per fitted style (`styles`), `carry` for every frame and `run` (None: none)
-    for the frames the input runs in; joint `hips` (>= 0) is carried without its heading."""
+    for the frames the input runs in; joint `hips` (>= 0) is carried without its heading. `fast`
+    (S, J, 3, 3): the fast part's gains where they are not `carry`'s own capped at 1 (an upload's
+    carry floors its source's spread, which guards the slow map, not the fast part)."""
 
     styles: tuple[str, ...]
     carry: StyleCarry
     run: StyleCarry | None = None
     hips: int = -1
+    fast: np.ndarray | None = None
+
+    @property
+    def gains(self) -> np.ndarray:
+        """(S, J, 3, 3) the fast part's gains."""
+        return self.carry.damping if self.fast is None else self.fast
 
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
         """Both carries' arrays (`run_` before the run's keys; without a run prior the carry's),
         the fast part's gains, the clamp's maps and the joints carried whole, aligned with
-        `styles`; a style not fitted gets identity maps and infinite radii."""
+        `styles`; a style not fitted gets identity maps and infinite radii. `plain` (S, J): the
+        joints each style only clamps (`StyleCarry.clamps_only`, per style)."""
         J, identity, eye = skeleton.num_joints, np.array((0.0, 0.0, 0.0, 1.0)), np.eye(3)
         plain = (np.tile(identity, (J, 1)), np.tile(identity, (J, 1)), np.tile(eye, (J, 1, 1)), np.full(J, np.inf))
         run = self.run or self.carry
@@ -69,9 +78,10 @@ class SlowPrior:
             for prefix, c in (("", self.carry), ("run_", run))
             for k, a, p in zip(CARRY_ROWS, c.arrays, plain)
         }
-        rows = style_rows(self.styles, styles, gain=(self.carry.damping, plain[2]), **arrays)
+        rows = style_rows(self.styles, styles, gain=(self.gains, plain[2]), **arrays)
         aligned = StyleCarry(*(rows[k] for k in CARRY_ROWS))
-        return rows | {"bounds": aligned.bounds.map, "plain": aligned.clamps_only}
+        whole = np.all(aligned.map == eye, axis=(-1, -2)) & np.all(aligned.source == aligned.mean, axis=-1)
+        return rows | {"bounds": aligned.bounds.map, "plain": whole}
 
     def init_state(self, batch: int) -> State:
         """The slow copy (zeros: unset, the session's next frame starts it)."""
@@ -106,10 +116,15 @@ class SlowPrior:
         """This prior with each of `others` (name, one style's prior) as one more style."""
         carry = StyleCarry.stack([self.carry, *(o.carry for _, o in others)])
         run = None if self.run is None else StyleCarry.stack([self.run, *(o.run or o.carry for _, o in others)])
-        return replace(self, styles=self.styles + tuple(n for n, _ in others), carry=carry, run=run)
+        fast = (
+            None
+            if self.fast is None and all(o.fast is None for _, o in others)
+            else np.concatenate([self.gains, *(o.gains for _, o in others)])
+        )
+        return replace(self, styles=self.styles + tuple(n for n, _ in others), carry=carry, run=run, fast=fast)
 
     def with_styles_of(self, other: SlowPrior) -> SlowPrior:
         """This prior with `other`'s styles refitted (a refit of some styles)."""
         at = [self.styles.index(s) for s in other.styles]
         run = None if self.run is None or other.run is None else merged(self.run, at, other.run)
-        return replace(self, carry=merged(self.carry, at, other.carry), run=run)
+        return replace(self, carry=merged(self.carry, at, other.carry), run=run, fast=None)

@@ -1,22 +1,19 @@
-"""The fitted stages of an uploaded Style-ERD style, from its one clip, the way `rotation_prior.py`
-fits them for a trained style from its TRAIN clips.
+"""The fitted stages of an uploaded Style-ERD style, from its one clip.
 
-Each stage maps a source distribution onto the style's real one (`models.motion.style_carry`).
-For a trained style both come from data at fit time; for an upload the target is its clip and the
-sources are what every trained style's fit started from, kept beside the weights as Gaussians
-(`upload_sources.npz`, written by `python -m models.erd fit --stages upload_sources`):
-
-- leaf prior: real TRAIN `normal` frames -> the clip's frames;
-- output prior: what the network makes of TRAIN neutral clips toward the style -> the clip's
-  frames, the legs and Hips only clamped (an upload streams through its nearest trained style's
-  branch until its job has fitted one of its own, so the source is that style's);
-- run priors: the same on the clip's running frames (`gait.py`'s speed ramp) where it has enough
-  of them; one clip seldom both walks and runs, so otherwise the nearest trained style's;
-- twist range: the clip's p1-p99 arm twists (`twist_range.py`).
-
-Which trained style is nearest is measured on the clip: the smallest sum over joints of squared
-angles between the clip's mean local rotations and each trained style's real ones (the leaf
-prior's style means).
+An upload streams through the network's neutral reconstruction (no style branch: a trained
+style's branch pushed the output toward that style, away from the clip's) until its job has
+fitted a branch of its own, and one output prior carries what the network makes of the input
+(its own twists and leaves, no leaf prior) to the clip's frames (`models.motion.style_carry`).
+The prior must carry from what the network makes *of the same content and pace*: a source
+measured over every content (arms raised, waves) shifted and shrank a walk, so the source is
+pooled from the neutral TRAIN clips nearest the clip in what it does (`descriptor`: Hips speed
+and turning), each clip's output Gaussian kept beside the weights (`upload_sources.npz`, written
+by `python -m models.erd fit --stages upload_sources`). Every joint but the Hips (clamped only)
+is carried, the legs too: with no branch nothing else gives them the style. The source's spread
+is floored (`SOURCE_FLOOR_DEG`) so an axis the network hardly moves along is not stretched to
+the clip's spread; the fast part's gains, capped at 1 anyway, take the map without the floor
+(floored, they damped the frame-to-frame motion a lively style needs). The twist range is the
+clip's p1-p99 arm twists (`twist_range.py`).
 """
 
 from __future__ import annotations
@@ -28,15 +25,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..motion.bn_skeleton import HIPS
-from ..motion.feet import LEG_JOINTS
 from ..motion.rotation_ball import comparable
-from ..motion.rotations import quat_mean
+from ..motion.rotations import quat_inv, quat_log, quat_mean, quat_mul
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.style_carry import StyleCarry, gaussian_map, tangent_stats
 from ..stages import Pipeline
-from .features import NB, ROT
-from .gait import clip_smoothed_speed, run_share
-from .rotation_prior import FIXED
+from .features import NB, ROOTVEL, ROT, YAWRATE
 from .slow_carry import SlowPrior
 from .twist_range import TwistRange
 
@@ -45,33 +39,59 @@ if TYPE_CHECKING:
     from .uploads import ERDStyles
 
 SOURCES_FILE = "upload_sources.npz"
-KEYS = ("leaf_prior", "output_prior", "run_leaf_prior", "run_output_prior")  # the priors' sources, by name
-MIN_RUN_FRAMES = 60  # running frames a clip needs to fit its own run priors (2 s)
+FIELDS = ("mean", "cov", "frames", "descriptor")  # per neutral clip: its output Gaussian, size and what it does
+PAIRS = 8  # neutral clips an upload's source is pooled from (chosen on validation, model card)
+SOURCE_FLOOR_DEG = 10.0  # the spread the source is taken to have at least (chosen on validation)
+SOURCE_FRAMES = 240  # of each neutral clip, as `rotation_prior.FIT_FRAMES`
 
 
 @dataclass(frozen=True)
 class Sources:
-    """Per prior: the Gaussian its fits carry from, mean (S or 1, J, 4) and covariance (S or 1, J, 3, 3)
-    of tangent deviations; the leaf priors' (real neutral) are the same for every style."""
+    """Per TRAIN neutral clip, what the network's neutral reconstruction makes of it: mean
+    (C, J, 4) and covariance (C, J, 3, 3) of tangent deviations, frames (C,), and what the clip
+    does (`descriptor`, (C, 6)); an upload's source is pooled from the clips like it."""
 
-    mean: dict[str, np.ndarray]
-    cov: dict[str, np.ndarray]
+    mean: np.ndarray
+    cov: np.ndarray
+    frames: np.ndarray
+    descriptor: np.ndarray
 
     def save(self, path: Path) -> Path:
-        arrays = {f"{k}.mean": v for k, v in self.mean.items()} | {f"{k}.cov": v for k, v in self.cov.items()}
-        np.savez(path, **arrays)  # type: ignore[arg-type]
+        np.savez(path, **{k: getattr(self, k) for k in FIELDS})
         return path
 
     @classmethod
     def load(cls, path: Path) -> Sources:
         with np.load(path) as z:
-            return cls({k: z[f"{k}.mean"] for k in KEYS}, {k: z[f"{k}.cov"] for k in KEYS})
+            return cls(*(z[k] for k in FIELDS))
 
-    def of(self, key: str, style: int) -> tuple[np.ndarray, np.ndarray]:
-        """The source Gaussian of prior `key` for trained style `style`."""
-        mean, cov = self.mean[key], self.cov[key]
-        i = 0 if len(mean) == 1 else style
-        return mean[i], cov[i]
+    def nearest(self, x: np.ndarray, k: int = PAIRS) -> tuple[np.ndarray, np.ndarray]:
+        """The network's output Gaussian (mean (J, 4), covariance (J, 3, 3)) over the `k` neutral
+        clips nearest in what they do to a clip of features `x` (F, 216), each `descriptor`
+        entry in units of its spread over the neutral clips."""
+        scale = np.maximum(self.descriptor.std(0), 1e-6)
+        near = np.argsort(np.linalg.norm((self.descriptor - descriptor(x)) / scale, axis=1))[:k]
+        return pooled(self.mean[near], self.cov[near], self.frames[near])
+
+
+def descriptor(x: np.ndarray) -> np.ndarray:
+    """What a clip does, from its features (F, 216): mean and spread of its facing-frame Hips
+    speed (forward, sideways) and of its turning rate."""
+    v = np.concatenate([x[:, ROOTVEL][:, [0, 2]], x[:, YAWRATE : YAWRATE + 1]], 1)
+    return np.concatenate([v.mean(0), v.std(0)])
+
+
+def pooled(means: np.ndarray, covs: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One Gaussian per joint from clips' (means (C, J, 4), covs (C, J, 3, 3), frames (C,)): the
+    frame-weighted mean rotation and the covariance about it (each clip's spread plus its mean's
+    offset)."""
+    w = frames / frames.sum()
+    signs = np.sign(np.sum(means * means[:1], axis=-1, keepdims=True))  # one hemisphere
+    m = np.einsum("c,cjk->jk", w, means * np.where(signs == 0, 1.0, signs))
+    m = m / np.linalg.norm(m, axis=-1, keepdims=True)
+    d = quat_log(quat_mul(quat_inv(m)[None], means))  # (C, J, 3)
+    cov = np.einsum("c,cjik->jik", w, covs + d[..., :, None] * d[..., None, :])
+    return m, cov
 
 
 def carry_to(
@@ -79,12 +99,14 @@ def carry_to(
     target: np.ndarray,
     fixed: tuple[int, ...] = (),
     clamp_only: tuple[int, ...] = (),
+    floor: float = 0.0,
 ) -> StyleCarry:
     """A one-style carry from a source Gaussian (mean (J, 4), cov (J, 3, 3)) to real rotations
-    (N, J, 4): what `StyleCarry.fit` gives from the frames the source was measured on."""
+    (N, J, 4): what `StyleCarry.fit` gives from the frames the source was measured on (`floor`:
+    its `source_floor`, radians)."""
     mean, cov, radius = tangent_stats(target)
     src_mean = np.array(source[0], np.float64)
-    lin = gaussian_map(np.asarray(source[1], np.float64), cov)
+    lin = gaussian_map(np.asarray(source[1], np.float64) + floor**2 * np.eye(3), cov)
     clamp_, fixed_ = list(clamp_only), list(fixed)
     src_mean[clamp_] = mean[clamp_]
     lin[clamp_] = np.eye(3)
@@ -94,74 +116,58 @@ def carry_to(
     return StyleCarry(*(np.ascontiguousarray(a[None]) for a in (src_mean, mean, lin, radius)))
 
 
-def one_style(carry: StyleCarry, style: int) -> StyleCarry:
-    return StyleCarry(*(np.ascontiguousarray(a[style : style + 1]) for a in carry.arrays))
-
-
 def clip_rotations(model: ERDStyles, clip: Motion) -> tuple[np.ndarray, np.ndarray]:
     """The clip's local rotations (N, 22, 4) as the priors read real frames (the feature cache's:
-    Hips without the facing yaw, joint_Root the identity), and each frame's run share (N,)."""
-    root = clip.translations[:, 1]
-    x, _ = model.maker.sequence(root, clip.rotations)
+    Hips without the facing yaw, joint_Root the identity), and its features (N, 216)."""
+    x, _ = model.maker.sequence(clip.translations[:, 1], clip.rotations)
     q = np.zeros((len(x), NB + 1, 4))
     q[..., 3] = 1.0
     q[:, 1:] = x[:, ROT].reshape(-1, NB, 4)
-    share = run_share(clip_smoothed_speed(model.maker.positions(root, clip.rotations), model.fps))
-    return q / np.linalg.norm(q, axis=-1, keepdims=True), share
+    return q / np.linalg.norm(q, axis=-1, keepdims=True), x
 
 
 def nearest_style(style_means: np.ndarray, q: np.ndarray) -> int:
-    """The trained style whose real mean rotations (S, J, 4) lie nearest the clip's (`q` (N, J, 4))."""
+    """The trained style whose real mean rotations (S, J, 4) lie nearest the clip's (`q` (N, J, 4)):
+    the smallest sum over joints of squared angles between mean local rotations."""
     m = quat_mean(q, axis=0)
     angle = 2.0 * np.arccos(np.clip(np.abs(np.sum(style_means * m[None], axis=-1)), 0.0, 1.0))
     return int(np.argmin(np.sum(angle**2, axis=1)))
 
 
 def fit_stages(
-    built_in: Pipeline,
-    sources: Sources,
-    skeleton: Skeleton,
-    q: np.ndarray,
-    share: np.ndarray,
-    nearest: int,
-    output_source: tuple[np.ndarray, np.ndarray] | None = None,
+    built_in: Pipeline, skeleton: Skeleton, q: np.ndarray, source: tuple[np.ndarray, np.ndarray]
 ) -> dict[str, SlowPrior | TwistRange]:
-    """An upload's priors and twist range, by stage name, from its clip's rotations `q` and run
-    shares (module docstring); `output_source` (mean, cov) replaces the nearest style's network
-    source (a job that fitted the style's own branch measured its own). `built_in`: the trained
-    styles' stages (one that is off stays off)."""
-    legs = tuple(skeleton.index(n) for n in LEG_JOINTS)
-    runs = q[share > 0.5]
+    """An upload's output prior and twist range, by stage name, from its clip's rotations `q` and
+    the Gaussian (mean, cov) of what its network makes of neutral clips like it (module
+    docstring). `built_in`: the trained styles' stages (one that is off stays off)."""
     out: dict[str, SlowPrior | TwistRange] = {}
-    for key, real, walk_src, fixed, clamped, run_clamped in (
-        ("leaf_prior", q, sources.of("leaf_prior", nearest), FIXED, (), ()),
-        ("output_prior", comparable(q), output_source, (0,), (HIPS,) + legs, (HIPS,)),
-    ):
-        stage = getattr(built_in, key)
-        if not isinstance(stage, SlowPrior):
-            continue
-        walk = carry_to(walk_src or sources.of(key, nearest), real, fixed, clamped)
-        run = None if stage.run is None else one_style(stage.run, nearest)
-        if run is not None and len(runs) >= MIN_RUN_FRAMES:
-            run_real = runs if key == "leaf_prior" else comparable(runs)
-            run = carry_to(sources.of(f"run_{key}", nearest), run_real, fixed, run_clamped)
-        out[key] = SlowPrior(("",), walk, run, stage.hips)
+    stage = built_in.output_prior
+    if isinstance(stage, SlowPrior):
+        carry = carry_to(source, comparable(q), (0,), (HIPS,), np.radians(SOURCE_FLOOR_DEG))
+        fast = carry_to(source, comparable(q), (0,), (HIPS,)).damping  # the fast part's gains, unfloored
+        out["output_prior"] = SlowPrior(("",), carry, None, stage.hips, fast)
     if built_in.twist_range is not None:
         out["twist_range"] = TwistRange.fit(skeleton, [q], ("",))
     return out
 
 
 def fit_sources(model: ERDModel) -> Sources:
-    """The sources every trained style's priors were fitted from (`rotation_prior.py`), as Gaussians."""
-    from .rotation_prior import _neutral_inputs, network_rotations, real_rotations, run_network_rotations
+    """`Sources`: every TRAIN neutral clip's first `SOURCE_FRAMES` streamed through the network's
+    neutral reconstruction (no leaf prior, no output prior: what an upload's prior carries from),
+    as a Gaussian, with the clip's `descriptor`."""
+    from ..data import build_index, load_motions, select
+    from ..eval.run import stylise
+    from .dataset import DATASET, STYLES
+    from .uploads import neutral_branch
 
-    def stats(qs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        fitted = [tangent_stats(q) for q in qs]
-        return np.stack([f[0] for f in fitted]), np.stack([f[1] for f in fitted])
-
-    mean, cov = {}, {}
-    mean["leaf_prior"], cov["leaf_prior"] = stats([real_rotations()[0]])
-    mean["run_leaf_prior"], cov["run_leaf_prior"] = stats([real_rotations(runs=True)[0]])
-    mean["output_prior"], cov["output_prior"] = stats(network_rotations(model, _neutral_inputs()))
-    mean["run_output_prior"], cov["run_output_prior"] = stats(run_network_rotations(model))
-    return Sources(mean, cov)
+    clips = sorted(select(build_index([DATASET]), split="train", style=STYLES[0]), key=lambda c: c.name)
+    inputs = [m.slice(0, SOURCE_FRAMES) for m in load_motions(clips)]
+    twin = model.network_only("reconstruction", neutral_branch(model, {}))
+    outs = stylise(twin, inputs, [twin.styles().index("reconstruction")] * len(inputs))
+    fitted = [tangent_stats(comparable(o.rotations)) for o in outs]
+    return Sources(
+        np.stack([f[0] for f in fitted]),
+        np.stack([f[1] for f in fitted]),
+        np.array([m.num_frames for m in inputs], np.float64),
+        np.stack([descriptor(model.maker.sequence(m.translations[:, 1], m.rotations)[0]) for m in inputs]),
+    )

@@ -3,12 +3,13 @@
 A trained style is a residual LSTM branch, the decoder's one-hot style code, and its fitted
 stages. An uploaded one is the same three things, without retraining the network:
 
-- at once (`style_from_clip`, milliseconds): a copy of the branch and code of the trained style
-  nearest the clip (`upload_stages.nearest_style`), and every stage fitted from the clip
+- at once (`style_from_clip`, milliseconds): no branch of its own yet (the network's neutral
+  reconstruction: a zero branch and code) and an output prior fitted from the clip
   (`upload_stages.fit_stages`): the style streams as soon as it is installed;
-- by the fine-tuning job (`finetune.py`, seconds): the branch's weights, its initial state and
-  its decoder code fitted so that neutral TRAIN clips of the clip's pace and turning come out
-  with the clip's pose statistics, and the output prior refitted from what that branch makes.
+- by the fine-tuning job (`finetune.py`, seconds): a copy of the nearest trained style's branch
+  (`upload_stages.nearest_style`), its weights, initial state and decoder code fitted so that
+  neutral TRAIN clips of the clip's pace and turning come out with the clip's pose statistics,
+  and the output prior refitted from what that branch makes.
 
 The branch joins the network's stacked branches (latent = neutral + sum_s w_s branch_s, as for
 a trained style); the decoder reads sum_s w_s code_s, the trained styles' codes one-hot, so a
@@ -53,7 +54,7 @@ class Upload:
     style each: the priors and the twist range)."""
 
     name: str
-    nearest: str  # the trained style its branch and code started from
+    nearest: str  # the trained style its branch and code started from ("": none, the zero branch)
     lstm: dict[str, np.ndarray]
     h0: np.ndarray
     c0: np.ndarray
@@ -68,6 +69,8 @@ class Upload:
                 for name, carry in ((key, stage.carry), (f"run_{key}", stage.run)):
                     if carry is not None:
                         arrays |= {f"{name}.{f}": a for f, a in zip(CARRY_FIELDS, carry.arrays)}
+                if stage.fast is not None:
+                    arrays[f"{key}.fast"] = stage.fast
             else:
                 arrays |= {"twist.mean": stage.mean, "twist.lo": stage.lo, "twist.hi": stage.hi}
         tmp = path.with_suffix(".tmp.npz")
@@ -87,7 +90,8 @@ class Upload:
         stages: dict[str, Any] = {}
         for key, hips in (("leaf_prior", -1), ("output_prior", HIPS)):
             if (walk := carry(key)) is not None:
-                stages[key] = SlowPrior((name,), walk, carry(f"run_{key}"), hips)
+                fast = a.get(f"{key}.fast")
+                stages[key] = SlowPrior((name,), walk, carry(f"run_{key}"), hips, fast)
         if twist_joints is not None and "twist.mean" in a:
             stages["twist_range"] = TwistRange(
                 twist_joints.joints, twist_joints.axes, a["twist.mean"], a["twist.lo"], a["twist.hi"], (name,)
@@ -109,6 +113,14 @@ def branch_weights(params: dict[str, np.ndarray], prefix: str) -> dict[str, np.n
     return {k[len(prefix) :]: v for k, v in params.items() if k.startswith(prefix)}
 
 
+def neutral_branch(model: Any, stages: dict[str, SlowPrior | TwistRange]) -> Upload:
+    """A style with no branch of its own: zero LSTM weights, state and decoder code make the
+    branch add exactly nothing, so the network gives its neutral reconstruction."""
+    lstm = {k: np.zeros(v.shape, np.float32) for k, v in branch_weights(model.p, "branches.0.").items()}
+    h0, c0 = (np.zeros(model.p[k][0].shape, np.float32) for k in ("style_h0", "style_c0"))
+    return Upload("", "", lstm, h0, c0, np.zeros(len(TARGET_STYLES)), stages)
+
+
 def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype: DTypeLike) -> tuple[list, list]:
     """A branch's LSTM as the step multiplies it (`ERDModel._prepare_weights`): per layer
     [W_ih^T; W_hh^T] (2H, 4H) and the summed bias (1, 4H), the cell-input gate's doubled."""
@@ -125,7 +137,7 @@ def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype: DTyp
 class ERDStyles(ClipStyles[Upload]):
     """What `ERDModel` adds to take uploaded styles."""
 
-    clip_style_note = "the nearest trained style's branch, stages fitted from the clip"
+    clip_style_note = "the network's neutral reconstruction, an output prior fitted from the clip"
     tuning_note = "fitting the style's residual branch"
     _lock: threading.Lock
     uploads: tuple[Upload, ...]
@@ -181,29 +193,48 @@ class ERDStyles(ClipStyles[Upload]):
                 )
 
     def style_from_clip(self, clip: Motion, name: str = "") -> Upload:
-        """The nearest trained style's branch and code, every stage fitted from `clip`."""
+        """The network's neutral reconstruction, its output prior carried to `clip` from what
+        the network makes of neutral clips of the clip's pace and turning."""
+        q, x = clip_rotations(self, self._checked(clip))
+        stages = fit_stages(self.built_in.stages, self.skeleton, q, self.sources.nearest(x))
+        return replace(neutral_branch(self, stages), name=name)
+
+    def nearest_branch(self, clip: Motion, name: str = "") -> Upload:
+        """A copy of the branch and code of the trained style nearest `clip` (the job's start),
+        with the instant style's stages."""
+        instant = self.style_from_clip(clip, name)
+        q, _ = clip_rotations(self, clip)
+        leaf = self.built_in.stages.leaf_prior
+        s = nearest_style(leaf.carry.mean, q) if isinstance(leaf, SlowPrior) else 0
+        lstm = {k: v.astype(np.float32) for k, v in branch_weights(self.p, f"branches.{s}.").items()}
+        h0, c0 = (self.p[k][s].astype(np.float32) for k in ("style_h0", "style_c0"))
+        return replace(instant, nearest=TARGET_STYLES[s], lstm=lstm, h0=h0, c0=c0, code=np.eye(len(TARGET_STYLES))[s])
+
+    def _checked(self, clip: Motion) -> Motion:
         if clip.skeleton.names != self.skeleton.names:
             raise ValueError("a style clip must be on the model skeleton (Bandai Namco, 22 joints)")
         if clip.num_frames < MIN_FRAMES:
             raise ValueError(f"style clip too short: {clip.num_frames} frames, need at least {MIN_FRAMES}")
-        q, share = clip_rotations(self, clip)
-        leaf = self.built_in.stages.leaf_prior
-        s = nearest_style(leaf.carry.mean, q) if isinstance(leaf, SlowPrior) else 0
-        stages = fit_stages(self.built_in.stages, self.sources, self.skeleton, q, share, s)
-        lstm = {k: v.astype(np.float32) for k, v in branch_weights(self.p, f"branches.{s}.").items()}
-        h0 = self.p["style_h0"][s].astype(np.float32)
-        c0 = self.p["style_c0"][s].astype(np.float32)
-        return Upload(name, TARGET_STYLES[s], lstm, h0, c0, np.eye(len(TARGET_STYLES))[s], stages)
+        return clip
 
     def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[Upload]:
         from .finetune import fine_tune
 
         progress(0.0, "fitting the clip's stages")
-        start = self.style_from_clip(clip, name)
+        start = self.nearest_branch(clip, name)
         tuned, summary = fine_tune(self, start, clip, progress)
         if tuned is None:
             return FineTuned(None, summary, f"{self.clip_style_note} (fitting a branch did not bring it closer)")
         return FineTuned(tuned, summary, "a residual branch fitted from the clip, stages fitted from the clip")
+
+    def network_only(self, name: str, style: Upload) -> Self:
+        """A copy with `style` installed as `name` and no priors or twist range (the hinge floor
+        kept): what an upload's output prior carries from."""
+        twin = self.with_own_styles()
+        bare = twin.built_in.stages.replace(leaf_prior=None, output_prior=None, twist_range=None)
+        twin.built_in = twin.built_in._replace(stages=bare)
+        twin.install_style(name, replace(style, stages={}))
+        return twin
 
     def install_style(self, name: str, style: Upload) -> None:
         with self._lock:

@@ -11,26 +11,44 @@ from ..motion.skeleton import Motion
 SKATE_SPEED = 0.2  # leg lengths per second of horizontal foot motion while in contact counts as skating
 CONTACT_MARGIN = 0.02  # leg lengths (1.7 cm on Bandai Namco) above a joint's floor level still counts as on the floor
 FLOOR_PERCENTILE = 5.0  # a joint's floor level: this percentile of its height over the clip
+# a foot must stay flat this long to count as planted: the swing foot passes as low as a planted
+# one for a frame or two, and counting those frames read every real walk as sliding
+MIN_PLANT_SECONDS = 0.1
+
+
+def lasting(flags: np.ndarray, frames: int) -> np.ndarray:
+    """(F,) `flags` kept only where they hold for at least `frames` frames in a row."""
+    edges = np.diff(np.concatenate([[0], flags.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    out = np.zeros(len(flags), dtype=bool)
+    for a, b in zip(starts, ends):
+        if b - a >= frames:
+            out[a:b] = True
+    return out
 
 
 def flat_foot_contacts(motion: Motion, positions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(F, 2) contacts and horizontal foot speeds (the slower of ankle and toe), left then right.
-    Contact = a flat foot: ankle and toe both near their own floor level. Either joint alone
+    Contact = a planted flat foot: ankle and toe both near their own floor level for at least
+    MIN_PLANT_SECONDS, on this frame and the one before (a speed is measured between two frames,
+    so touchdown's last fall onto the floor is not read as sliding on it). Either joint alone
     also catches the swing foot, which passes only 1-3 cm above the floor in real walks."""
     sk = motion.skeleton
     pos = motion.global_positions() if positions is None else positions
     leg = left_leg_length(sk)
+    frames = max(2, round(MIN_PLANT_SECONDS * motion.fps))
     contacts, speeds = [], []
     for side in ("l", "r"):
-        planted = np.ones(len(pos), dtype=bool)
+        flat = np.ones(len(pos), dtype=bool)
         v = []
         for part in ("ankle", "toe"):
             p = pos[:, body_joint(sk, f"{part}_{side}")]
-            planted &= p[:, 1] < np.percentile(p[:, 1], FLOOR_PERCENTILE) + CONTACT_MARGIN * leg
+            flat &= p[:, 1] < np.percentile(p[:, 1], FLOOR_PERCENTILE) + CONTACT_MARGIN * leg
             s = np.zeros(len(p))
             s[1:] = np.linalg.norm(np.diff(p[:, [0, 2]], axis=0), axis=-1) * motion.fps
             v.append(s)
-        contacts.append(planted)
+        flat = lasting(flat, frames)
+        contacts.append(flat & np.concatenate([[False], flat[:-1]]))
         speeds.append(np.minimum(*v))
     return np.stack(contacts, -1), np.stack(speeds, -1)
 

@@ -5,7 +5,10 @@
 - pops: the worst joint's share of frames past the p99.9 real rotation acceleration;
 - jitter: per joint, the p99 rotation acceleration over the larger of the input's and the
   style's, the worst joint;
-- slide: p95 horizontal speed of a planted foot, and the share of planted frames over the real p95;
+- slide: per content, the p95 horizontal speed of a planted foot over the larger of the real
+  style's on that content and the input's own (a shuffling style drags its feet for real, and
+  a capture's own slide is not the model's), the worst content; beside it the pooled p95 and the
+  share of planted frames over the real p95;
 - path: the hips' path length over the input's, and how far apart the two paths end.
 """
 
@@ -29,6 +32,9 @@ REAL_CLIPS_PASSING = 0.95  # the share of held-out real clips the radius is cali
 # degree away, and a hinge joint (knee, toes, clavicle) turns about one axis only in the data, so
 # without a floor a model's half-degree off the hinge, which no viewer sees, would fail a clip
 MIN_RADIUS_DEG = 5.0
+# the least slide a content's reference allows, in leg lengths per second (2.6 cm/s on Bandai
+# Namco): real standing clips creep 0.4-2.4 cm/s, which no viewer sees
+SLIDE_FLOOR = 0.03
 
 
 def _log_about(q: np.ndarray, mean: np.ndarray) -> np.ndarray:
@@ -79,24 +85,37 @@ class RotationSupport:
 class Reference:
     """Everything a row is measured against: the rotation support per style (TRAIN frames, radii
     from VALIDATION clips), and from the VALIDATION clips the pop limit (all styles), each style's
-    p99 acceleration and the skating limit."""
+    p99 acceleration, the skating limit and each style's planted-foot p95 per content."""
 
     support: RotationSupport
     pop_limit: np.ndarray  # (J,) degrees per frame per frame
     style_p99: dict[str, np.ndarray]  # style -> (J,)
     skate_limit: float  # units/s
+    slide: dict[str, dict[str, float]]  # style -> content -> p95 planted-foot speed, units/s
+    slide_floor: float  # units/s
 
     @classmethod
-    def fit(cls, train: dict[str, list[Motion]], real: dict[str, list[Motion]]) -> Reference:
+    def fit(
+        cls, train: dict[str, list[Motion]], real: dict[str, list[Motion]], contents: dict[str, list[str]]
+    ) -> Reference:
         support = RotationSupport(train, real)
         acc = {s: np.concatenate([rotation_acceleration(m, support.joint_index) for m in ms]) for s, ms in real.items()}
-        speeds = np.concatenate([planted_speeds(m) for ms in real.values() for m in ms])
+        feet = {s: [planted_speeds(m) for m in ms] for s, ms in real.items()}
+        slide = {s: _p95_by_content(feet[s], contents[s]) for s in real}
         return cls(
             support,
             np.percentile(np.concatenate(list(acc.values())), 99.9, axis=0),
             {s: np.percentile(a, 99, axis=0) for s, a in acc.items()},
-            float(np.percentile(speeds, 95)),
+            float(np.percentile(np.concatenate([f for fs in feet.values() for f in fs]), 95)),
+            slide,
+            SLIDE_FLOOR * left_leg_length(next(iter(real.values()))[0].skeleton),
         )
+
+
+def _p95_by_content(speeds: list[np.ndarray], contents: list[str]) -> dict[str, float]:
+    """Pooled p95 of clips' planted-foot speeds per content (contents with no planted frame left out)."""
+    pooled = {c: np.concatenate([s for s, k in zip(speeds, contents) if k == c]) for c in set(contents)}
+    return {c: float(np.percentile(v, 95)) for c, v in pooled.items() if len(v)}
 
 
 def planted_speeds(motion: Motion) -> np.ndarray:
@@ -113,6 +132,7 @@ class ClipPhysics:
     acc: np.ndarray  # (F - 2, J) rotation acceleration, degrees per frame per frame
     jitter: float
     foot_speeds: np.ndarray  # planted-foot speeds, units/s
+    input_speeds: np.ndarray | None  # the input's planted-foot speeds, units/s
     path_ratio: float
     end_drift: float  # units (cm on the model rig)
 
@@ -129,11 +149,13 @@ class Input:
     p99_acc: np.ndarray  # (J,) degrees per frame per frame
     hips_xz: np.ndarray  # (F, 2)
     leg: float  # units
+    foot_speeds: np.ndarray  # planted-foot speeds, units/s
 
     @classmethod
     def of(cls, motion: Motion, ref: Reference) -> Input:
         acc = rotation_acceleration(motion, ref.support.joint_index)
-        return cls(np.percentile(acc, 99, axis=0), _hips_xz(motion), left_leg_length(motion.skeleton))
+        leg = left_leg_length(motion.skeleton)
+        return cls(np.percentile(acc, 99, axis=0), _hips_xz(motion), leg, planted_speeds(motion))
 
 
 def measure(ref: Reference, style: str, out: Motion, inp: Input | None) -> ClipPhysics:
@@ -142,7 +164,8 @@ def measure(ref: Reference, style: str, out: Motion, inp: Input | None) -> ClipP
     if inp is not None and out.num_frames > 3:
         jitter = float((np.percentile(acc, 99, axis=0) / np.maximum(inp.p99_acc, ref.style_p99[style])).max())
         path_ratio, drift = _paths(inp, _hips_xz(out))
-    return ClipPhysics(ref.support.within(style, out), acc, jitter, planted_speeds(out), path_ratio, drift)
+    speeds = None if inp is None else inp.foot_speeds
+    return ClipPhysics(ref.support.within(style, out), acc, jitter, planted_speeds(out), speeds, path_ratio, drift)
 
 
 def _hips_xz(motion: Motion) -> np.ndarray:
@@ -157,8 +180,27 @@ def _paths(inp: Input, b: np.ndarray) -> tuple[float, float]:
     return (length(b) + inp.leg) / (length(a) + inp.leg), drift
 
 
-def summarise(clips: list[ClipPhysics], ref: Reference) -> dict:
-    """A row's physical columns over its clips."""
+def worst_slide(clips: list[ClipPhysics], contents: list[str], style: str, ref: Reference) -> tuple[float, str]:
+    """(the largest per-content slide ratio, its content): each content's pooled planted-foot p95
+    over the larger of the real style's on that content, the input's own on the same clips and
+    SLIDE_FLOOR. A content no real clip of the style performs is held to the input alone."""
+    worst, where = 0.0, ""
+    for content in sorted(set(contents)):
+        group = [c for c, k in zip(clips, contents) if k == content]
+        out = np.concatenate([c.foot_speeds for c in group])
+        if not len(out):
+            continue
+        limit = max(ref.slide_floor, ref.slide[style].get(content, 0.0))
+        given = [c.input_speeds for c in group if c.input_speeds is not None]
+        if given and len(inp := np.concatenate(given)):
+            limit = max(limit, float(np.percentile(inp, 95)))
+        if (ratio := float(np.percentile(out, 95)) / limit) > worst:
+            worst, where = ratio, content
+    return worst, where
+
+
+def summarise(clips: list[ClipPhysics], ref: Reference, contents: list[str], style: str) -> dict:
+    """A row's physical columns over its clips (`contents`: what each clip performs)."""
     joints = ref.support.joints
     acc = np.concatenate([c.acc for c in clips if len(c.acc)])
     pops = (acc > ref.pop_limit).mean(axis=0) if len(acc) else np.zeros(len(joints))
@@ -166,6 +208,7 @@ def summarise(clips: list[ClipPhysics], ref: Reference) -> dict:
     finite = lambda xs: [x for x in xs if np.isfinite(x)]  # noqa: E731
     jit, ratio, drift = (finite([getattr(c, k) for c in clips]) for k in ("jitter", "path_ratio", "end_drift"))
     worst = min(clips, key=lambda c: c.within.min())
+    slide_ratio, slide_content = worst_slide(clips, contents, style, ref)
     return {
         "plausible_hits": sum(c.plausible for c in clips),
         "worst_within": float(worst.within.min()),
@@ -175,6 +218,8 @@ def summarise(clips: list[ClipPhysics], ref: Reference) -> dict:
         "jitter_median": float(np.median(jit)) if jit else float("nan"),
         "jitter_p90": float(np.percentile(jit, 90)) if jit else float("nan"),
         "slide_p95": float(np.percentile(feet, 95)) if len(feet) else 0.0,
+        "slide_ratio": slide_ratio,
+        "slide_content": slide_content,
         "skate": float((feet > ref.skate_limit).mean()) if len(feet) else 0.0,
         "path_ratio_median": float(np.median(ratio)) if ratio else float("nan"),
         "path_ratio_worst": float(max(ratio, key=lambda r: abs(np.log(r)))) if ratio else float("nan"),

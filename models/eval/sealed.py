@@ -39,7 +39,7 @@ from .style_judge import load_style_judge
 GATE_PLAUSIBLE = 0.95  # share of clips plausible on every joint
 GATE_POPS = 2.0  # pops at most this times real clips'
 GATE_JITTER = 1.5  # p90 over clips of the jitter ratio
-GATE_SLIDE = 2.0  # planted-foot p95 at most this times real clips'
+GATE_SLIDE = 2.0  # each content's planted-foot p95 at most this times the real style's or the input's
 GATE_STYLE = {D2: 0.90}  # style read right on the new judge; other sources:
 GATE_STYLE_OTHER = 0.75
 GATE_CONTENT = 0.90  # dataset 2 only: the content judge knows its ten contents
@@ -134,7 +134,9 @@ def _real_clips(index: list[Clip], styles: list[str], final: bool, quick: bool) 
     split = "test" if final else "val"
     val = {s: load_motions(select(index, split="val", style=s)) for s in styles}
     train = {s: load_motions(select(index, split="train", style=s)) for s in styles}
-    ref = Reference.fit(train, val if final else {s: v[0::2] for s, v in val.items()})
+    val_contents = {s: [c.content for c in select(index, split="val", style=s)] for s in styles}
+    halve = (lambda v: v) if final else (lambda v: v[0::2])  # noqa: E731
+    ref = Reference.fit(train, {s: halve(v) for s, v in val.items()}, {s: halve(v) for s, v in val_contents.items()})
     if final:
         real = {s: load_motions(select(index, split="test", style=s)) for s in styles}
     else:
@@ -197,7 +199,7 @@ def _row(
         "style_acc": share(sum(r == style for r in read), len(read)),
         "read_as": {k: read.count(k) for k in sorted(set(read))},
         "plausible": share(sum(p.plausible for p in phys), len(phys)),
-        **summarise(phys, ref),
+        **summarise(phys, ref, contents, style),
     }
     if source is not None and source.dataset == D2:
         feats = [clip_features(m) for m in outs]
@@ -223,7 +225,7 @@ def gates(row: dict, rows: list[dict]) -> dict:
         "plausible": row["plausible"]["share"] >= GATE_PLAUSIBLE,
         "pops": row["pops"] <= GATE_POPS * max(real["pops"], 1e-3),
         "jitter": row["jitter_p90"] <= GATE_JITTER,
-        "slide": row["slide_p95"] <= GATE_SLIDE * real["slide_p95"],
+        "slide": row["slide_ratio"] <= GATE_SLIDE,
         "style": row["style_acc"]["share"] >= need,
     }
     if "content_acc" in row:
@@ -285,7 +287,7 @@ def _cell(row: dict, key: str) -> str:
         "jitter": lambda: (
             "–" if row["jitter_p90"] != row["jitter_p90"] else f"{row['jitter_median']:.2f} / {row['jitter_p90']:.2f}"
         ),
-        "slide": lambda: f"{row['slide_p95']:.0f}",
+        "slide": lambda: f"{row['slide_ratio']:.1f}× ({row['slide_content'] or '–'}); {row['slide_p95']:.0f}",
     }[key]()
     return mark + value
 
@@ -345,8 +347,10 @@ def markdown(r: dict) -> str:
         "- **pops**: the worst joint's share of frames past the p99.9 rotation acceleration of real clips of every "
         "style (VALIDATION clips; gate ≤ 2× the real row). **jitter**: per clip and joint, p99 rotation acceleration over the larger "
         "of the input's and the real style's, the worst joint; median / p90 over clips (gate p90 "
-        f"≤ {GATE_JITTER}). **slide p95**: a foot's horizontal speed while planted flat "
-        "(ankle and toe on the floor), cm/s (gate ≤ 2× real). **skate**: planted-foot frames faster than "
+        f"≤ {GATE_JITTER}). **slide**: a foot's horizontal speed while planted flat (ankle and toe on the floor for "
+        "at least 0.1 s, measured between two such frames); per content, the p95 over the larger of the real "
+        "style's p95 on that content (VALIDATION clips), the input's own on the same clips and 2.6 cm/s, the worst "
+        f"content (gate ≤ {GATE_SLIDE}×); then the row's pooled p95 in cm/s. **skate**: planted-foot frames faster than "
         f"{meta['skate_limit_cm_s']:.0f} cm/s (the real validation clips' p95, so real clips skate in 5 %). "
         "**path**: hips path length over the input's, each plus a leg length (median, and the worst clip); "
         "**drift**: how far the two paths end apart (median, cm).",
@@ -406,9 +410,9 @@ def _uploads_section(rows: list[dict]) -> list[str]:
         "(`instant`: the style made from the clip at once; `tuned`: the fine-tuning job), with neutral walks of "
         "both datasets streamed through it (`models/eval/uploads.py`). **coverage**: the share of the way from the "
         "input to the style's other real walking clips (0: the input unchanged; 1: those clips), on the judge's "
-        "clip statistics; **copy**: what the uploaded clip itself covers from dataset 1's neutral walks. A row "
-        f"passes at ≥ {uploads.PASS_SHARE:.0%} of the copy's coverage, wherever the copy covers ≥ "
-        f"{uploads.CLEAR_COPY}. **judge read**: the share of outputs that the evaluation's style judge, fitted again "
+        "clip statistics; **copy**: what the uploaded clip itself covers from the same neutral walks, per dataset. A "
+        f"row passes at ≥ {uploads.PASS_SHARE:.0%} of the copy's coverage on every dataset where the copy covers ≥ "
+        f"{uploads.CLEAR_COPY} (a share in brackets is not scored). **judge read**: the share of outputs that the evaluation's style judge, fitted again "
         "without the uploaded clip, reads as the style (passes at "
         f"≥ {uploads.JUDGE_PASS:.0%}); **copy read**: whether it reads the uploaded clip itself so; **least bend**: "
         "the least knee or elbow bend less the least real one (°; below 0 a limb bends backward).",
@@ -437,7 +441,7 @@ def _source_table(r: dict, source: str) -> list[str]:
     lines = [
         f"## {title}",
         "",
-        "| variant | session | style | style read | content | plausible clips | pops | jitter | slide p95 | skate | "
+        "| variant | session | style | style read | content | plausible clips | pops | jitter | slide | skate | "
         "path | drift cm | faded | read as |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]

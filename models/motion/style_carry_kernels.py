@@ -210,7 +210,7 @@ def _gained(p, row, j, w, lone, rest, gain):
 class SlowPriors(NamedTuple):
     """What `carry_slow_batch` carries by: carry `a`, or `b` then `c` by the row's run share, each
     (source, mean, lin, radius); the range `clamp` keeps every output in; the fast part's gains
-    (S, J, 3, 3); the joints carried whole (J,) bool."""
+    (S, J, 3, 3); per style, the joints it carries whole (S, J) bool."""
 
     a: tuple
     b: tuple
@@ -235,9 +235,10 @@ def carry_slow_batch(q, slow, weight, w, share, priors, hips, out, new_slow):
     (G p_xyz, p_w) / |.| is exp(G log p), without a log or an exp. `clamp`: a range alone
     (`StyleCarry.bounds`); a row with one style skips its arithmetic for a joint already inside
     (the clamp leaves it as it is). Joint `hips` is carried and clamped without its heading, as
-    in `carry_batch`. A joint marked `plain` (J,) bool (one `a` leaves as it is, only clamps:
-    the same either way) is carried whole, as `carry_pair_batch` would. Writes `out` and the new
-    slow copies `new_slow`."""
+    in `carry_batch`. A joint that every style the row weighs marks `plain` (S, J) bool (one `a`
+    leaves as it is, only clamps: the same either way) is carried whole, as `carry_pair_batch`
+    would; per style, so a style that carries the joint leaves the rows that do not weigh it as
+    they were. Writes `out` and the new slow copies `new_slow`."""
     S, J = w.shape[1], q.shape[1]
     a, b, c, clamp, gain, plain = priors
     cos_half = _cos_half(clamp[3])
@@ -270,7 +271,11 @@ def carry_slow_batch(q, slow, weight, w, share, priors, hips, out, new_slow):
             is_hips = j == hips
             # the carry is written out for both cases below: one inlined helper for the two makes
             # the pass ~40 % slower (numba's inlining)
-            if plain[j]:
+            whole = True
+            for s in range(S):
+                if w[row, s] != 0.0 and not plain[s, j]:
+                    whole = False
+            if whole:
                 h, heading = _headless(u, is_hips)
                 o = _carry_joint(h, row, j, w, lone, a) if r == 0.0 else _paired(h, row, j, w, lone, r, a, b, c)
                 out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = qmul(heading, o) if is_hips else o
