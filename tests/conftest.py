@@ -6,7 +6,10 @@ or the code under test first reaches for a dataset); on CI the data is there and
 
 from __future__ import annotations
 
+import functools
 import os
+from collections.abc import Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pytest
@@ -18,6 +21,27 @@ from models.settings import get_settings
 
 if TYPE_CHECKING:
     from models.lpn.runtime import LPNModel
+
+
+def _one_ssl_context_per_setting() -> None:
+    """httpx builds an SSL context, reading every CA certificate, for each client it makes: one
+    per `httpx.get` and per poll of a starting server (`wait_ready`), thousands in the suite at
+    30-50 ms of CPU each, for URLs that are all plain http on loopback. In the tests' processes
+    each set of arguments gets one, shared (clients and threads may share a context)."""
+    from httpx._transports import default
+
+    made = functools.lru_cache(maxsize=None)(default.create_ssl_context)
+
+    def shared(verify=True, cert=None, trust_env=True):  # noqa: ANN001, ANN202 (httpx's own signature)
+        try:
+            return made(verify, cert, trust_env)
+        except TypeError:  # an argument that cannot be a cache key
+            return made.__wrapped__(verify, cert, trust_env)
+
+    default.create_ssl_context = shared
+
+
+_one_ssl_context_per_setting()
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -54,6 +78,37 @@ def lpn_model() -> LPNModel:
     from models.lpn import load  # its compiled kernels, only for the tests that use it
 
     return load(get_settings().weights_dir / "lpn")
+
+
+@pytest.fixture(scope="session")
+def erd_cache(index, tmp_path_factory) -> Path:
+    """A Style-ERD feature cache (`models/erd/dataset.py`) of a few TRAIN clips of every style, two
+    walks, two runs and a gesture each, for the tests of what is fitted from the cache: the whole
+    one (every clip of dataset 2) takes minutes to build, and only training needs it. A test points
+    `dataset.cache_dir` at it (`small_erd_cache`)."""
+    from models.erd.dataset import DATASET, STYLES, build_cache
+
+    def few(style: str, content: str, n: int) -> list[Clip]:
+        chosen = select(index, dataset=DATASET, split="train", style=style, content=content)
+        return sorted(chosen, key=lambda c: c.name)[:n]
+
+    train = [
+        c
+        for s in STYLES
+        for content, n in (("walk", 2), ("run", 2), ("wave-both-hands", 1))
+        for c in few(s, content, n)
+    ]
+    return build_cache(tmp_path_factory.mktemp("erd-cache"), {"train": train})
+
+
+@pytest.fixture(scope="module")
+def small_erd_cache(erd_cache) -> Iterator[Path]:
+    """`erd_cache` as the Style-ERD feature cache for a test module."""
+    from models.erd import dataset
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(dataset, "cache_dir", lambda: erd_cache)
+        yield erd_cache
 
 
 @pytest.fixture(scope="session")

@@ -77,7 +77,7 @@ def test_network_twists_decode_the_decoders_leaves(model, clips):
     assert quat_angle(own[0, hand], rot_in[0, hand]) > 0.01
 
 
-def test_a_run_measures_the_distillation_term(model, clips, tmp_path):
+def test_a_run_measures_the_distillation_term(model, clips, small_erd_cache, tmp_path):
     from models.data import load_motion
     from models.erd.carry import pack, unpack
     from models.erd.distill import split_targets

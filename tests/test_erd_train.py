@@ -15,17 +15,13 @@ from models.erd.dataset import STYLES, load_stats  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def clips():
-    """One validation walk per style (every style present, so the per-style priors exist)."""
-    try:
-        from models.data import build_index, select
+def clips(small_erd_cache):
+    """One validation walk per style (every style present, so the per-style priors exist); the
+    pack's normalisation comes from the test feature cache."""
+    from models.data import build_index, select
 
-        index = build_index(["bandai-namco-2"])
-        chosen = [select(index, split="val", style=s, content="walk")[0] for s in STYLES]
-        load_stats()
-    except Exception as exc:  # dataset not unpacked on this machine
-        pytest.skip(f"Bandai Namco dataset 2 unavailable: {exc}")
-    return chosen
+    index = build_index(["bandai-namco-2"])
+    return [select(index, split="val", style=s, content="walk")[0] for s in STYLES]
 
 
 @pytest.fixture(scope="module")

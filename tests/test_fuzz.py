@@ -321,30 +321,14 @@ def bad_other_json(draw) -> Case:
     if kind in ("reset", "end"):
         return case(kind, {"type": kind, **draw(extra_keys({"type"}))}, "bad_message")
     if kind == "start":
-        broken = draw(
-            st.sampled_from(
-                [
-                    {"type": "start"},  # no model
-                    {"type": "start", "model": draw(not_str.filter(lambda v: v is not None)), "style": "elderly"},
-                    {
-                        "type": "start",
-                        "model": "lti",
-                        "style": "elderly",
-                        "version": draw(not_int | st.integers().filter(lambda v: v != 1)),
-                    },
-                    {
-                        "type": "start",
-                        "model": "lti",
-                        "style": "elderly",
-                        "fps": draw(non_finite | st.floats(max_value=0) | st.floats(min_value=240.001)),
-                    },
-                    {
-                        "type": "start",
-                        "model": "lti",
-                        "style": "elderly",
-                        "encoding": draw(json_value.filter(lambda v: v not in ("json", "binary"))),
-                    },
-                ]
+        lti = {"type": "start", "model": "lti", "style": "elderly"}
+        broken = draw(  # one_of draws the values of the branch it picks only
+            st.one_of(
+                st.just({"type": "start"}),  # no model
+                not_str.filter(lambda v: v is not None).map(lambda m: {**lti, "model": m}),
+                (not_int | st.integers().filter(lambda v: v != 1)).map(lambda v: {**lti, "version": v}),
+                (non_finite | st.floats(max_value=0) | st.floats(min_value=240.001)).map(lambda v: {**lti, "fps": v}),
+                json_value.filter(lambda v: v not in ("json", "binary")).map(lambda v: {**lti, "encoding": v}),
             )
         )
         return case("start", broken, "bad_message")
@@ -472,23 +456,21 @@ def opening_case(draw, in_use_token: str) -> Case:
             "wrong_order", draw(st.sampled_from([frame, b""]) | st.binary(max_size=400)), "expected_start", close=1008
         )
     if kind == "bad_start":
-        defect = draw(st.sampled_from(["model", "style", "mix", "neither", "skeleton", "intensity"]))
-        message = {
-            "model": {**START, "model": draw(st.text(max_size=12).filter(lambda m: m not in ("lti", "erd")))},
-            "style": {**START, "style": draw(unknown_name)},
-            "mix": {**START, "mix": {"elderly": 1.0}},
-            "neither": without(START, "style"),
-            "skeleton": {
-                **START,
-                "skeleton": draw(json_value.filter(lambda v: v not in ("bandai-namco", "cmu", None))),
-            },
-            "intensity": {
-                **START,
-                "intensity": draw(non_finite | st.floats(min_value=2.0000001) | st.floats(max_value=-1e-9)),
-            },
-        }[defect]
-        code = {"model": "unknown_model", "style": "unknown_style", "mix": "bad_style", "neither": "bad_style"}.get(
-            defect, "bad_message"
+        message, code = draw(  # one_of draws the values of the branch it picks only
+            st.one_of(
+                st.text(max_size=12)
+                .filter(lambda m: m not in ("lti", "erd"))
+                .map(lambda m: ({**START, "model": m}, "unknown_model")),
+                unknown_name.map(lambda s: ({**START, "style": s}, "unknown_style")),
+                st.just(({**START, "mix": {"elderly": 1.0}}, "bad_style")),
+                st.just((without(START, "style"), "bad_style")),
+                json_value.filter(lambda v: v not in ("bandai-namco", "cmu", None)).map(
+                    lambda v: ({**START, "skeleton": v}, "bad_message")
+                ),
+                (non_finite | st.floats(min_value=2.0000001) | st.floats(max_value=-1e-9)).map(
+                    lambda v: ({**START, "intensity": v}, "bad_message")
+                ),
+            )
         )
         return case("bad_start", message, code, close=1008)
     if kind == "bad_bvh_header":

@@ -23,6 +23,7 @@ from .waiting import wait_until
 
 WALK = [((1.3, 0.0), 0.0, "walk")] * 30
 STEPS = 20  # fine-tune steps (the service default is 300)
+POLL_S = 0.1  # between polls of a job or a style: under the REST limit, 20 requests a second a client
 
 
 @pytest.fixture(scope="module")
@@ -72,12 +73,20 @@ def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip,
         assert reply.status_code == 201, reply.text
         job = reply.json()["job"]["id"]
         wait_until(
-            lambda: httpx.get(f"{a}/v1/jobs/{job}").json()["status"] in ("done", "failed"), "job did not end", 120
+            lambda: httpx.get(f"{a}/v1/jobs/{job}").json()["status"] in ("done", "failed"),
+            "job did not end",
+            120,
+            POLL_S,
         )
         assert httpx.get(f"{a}/v1/jobs/{job}").json()["status"] == "done"
         tuned_a = httpx.get(f"{a}/v1/styles/lpn.tuned").json()
         assert tuned_a["fine_tune"]["installed"], tuned_a
-        wait_until(lambda: httpx.get(f"{b}/v1/styles/lpn.tuned").json().get("fine_tune"), "b kept the untuned style")
+        wait_until(
+            lambda: httpx.get(f"{b}/v1/styles/lpn.tuned").json().get("fine_tune"),
+            "b kept the untuned style",
+            10,
+            POLL_S,
+        )
         np.testing.assert_allclose(drive(b, "tuned"), drive(a, "tuned"), atol=1e-5)
 
         # an LTI style identified by a job on b is taken in by a once the job is done
@@ -97,6 +106,7 @@ def test_replicas_sharing_a_styles_folder_see_each_others_uploads(chimpira_clip,
             ),
             "LTI job did not end",
             120,
+            POLL_S,
         )
         assert seen_on_a[-1] == httpx.get(f"{b}/v1/jobs/{job}").json()  # the finished record, as b has it
         assert seen_on_a[-1]["status"] == "done" and seen_on_a[-1]["result"]["state_dim"] > 0

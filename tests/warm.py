@@ -12,7 +12,6 @@ parallel processes (on two cores about 25 s), the workers and servers load the c
 
 from __future__ import annotations
 
-import importlib
 import subprocess
 import sys
 from pathlib import Path
@@ -21,8 +20,9 @@ PARTS = ("erd", "lpn", "lti", "service", "data")
 
 
 def warm(part: str) -> None:
-    """Compile (or load) one part's kernels, or unpack the archives (`data`): a model is loaded
-    and stepped once, as the server's start (and the image build) warms it."""
+    """Compile (or load) one part's kernels, or unpack the archives (`data`): a model is loaded as
+    served (`models.registry`, its unseen-content fade included) and stepped once, as the server's
+    start (and the image build) warms it."""
     if part == "data":
         from models.data import build_index
 
@@ -36,10 +36,13 @@ def warm(part: str) -> None:
         rate_kernels.warm()
         skeletons.warm()
         return
+    from models.registry import load_model
     from models.settings import get_settings
     from service.runtime import warm_up
 
-    warm_up(importlib.import_module(f"models.{part}").load(get_settings().weights_dir / part))
+    model = load_model(get_settings().weights_dir, part)  # as served: the unseen-content fade last
+    assert model is not None, part
+    warm_up(model)
 
 
 def warm_all() -> None:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..data import build_index, load_motions, select
+from ..data import Clip, build_index, load_motions, select
 from ..motion.rotations import quat_mean
 from ..settings import get_settings
 from .features import CONTACT, FeatureMaker
@@ -56,20 +56,23 @@ class Split:
     names: list[str]
 
 
-def build_cache(out: Path | None = None) -> Path:
+def build_cache(out: Path | None = None, clips: dict[str, list[Clip]] | None = None) -> Path:
+    """The cache of every clip of `DATASET`, or of `clips` (split -> clips, with a train split:
+    its normalisation; e.g. a few for a test, where the whole cache takes minutes to build)."""
     out = out or cache_dir()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
-    index = build_index([DATASET])
-    splits = {s: select(index, split=s) for s in ("train", "val", "test")}
-    motions = {s: load_motions(c) for s, c in splits.items()}
+    if clips is None:
+        index = build_index([DATASET])
+        clips = {s: select(index, split=s) for s in ("train", "val", "test")}
+    motions = {s: load_motions(c) for s, c in clips.items()}
     sk = motions["train"][0].skeleton
     sample = np.concatenate([m.rotations[::4] for m in motions["train"]])
     sample = sample / np.linalg.norm(sample, axis=-1, keepdims=True)
     ref = quat_mean(sample)
     maker = FeatureMaker(sk, ref)
     meta = {"version": CACHE_VERSION, "styles": STYLES, "contents": CONTENTS}
-    for split, clips in splits.items():
+    for split, chosen in clips.items():
         feats, starts, lengths = [], [], []
         offset = 0
         for motion in motions[split]:
@@ -83,11 +86,11 @@ def build_cache(out: Path | None = None) -> Path:
             feats=np.concatenate(feats),
             starts=np.array(starts),
             lengths=np.array(lengths),
-            style=np.array([STYLES.index(c.style) for c in clips]),
-            content=np.array([CONTENTS.index(c.content) for c in clips]),
-            names=np.array([c.name for c in clips]),
+            style=np.array([STYLES.index(c.style) for c in chosen]),
+            content=np.array([CONTENTS.index(c.content) for c in chosen]),
+            names=np.array([c.name for c in chosen]),
         )
-        meta[split] = len(clips)
+        meta[split] = len(chosen)
     train = np.load(out / "train.npz")["feats"]
     mean, std = train.mean(0), train.std(0)
     std = np.maximum(std, 1e-2 * std.mean())
