@@ -95,7 +95,8 @@ def test_a_shaking_head_is_jitter_and_a_dragged_foot_is_slide(walk):
     index = build_index([D2])
     train = load_motions(select(index, split="train", style="normal", content="walk")[:8])
     val = select(index, split="val", style="normal")[1::4]
-    ref = Reference.fit({"normal": train}, {"normal": load_motions(val)}, {"normal": [c.content for c in val]})
+    contents = {"normal": [c.content for c in val]}
+    ref = Reference.fit({"normal": train}, {"normal": load_motions(val)}, {"normal": ["walk"] * len(train)}, contents)
     same = measure(ref, "normal", walk, Input.of(walk, ref))
     assert same.jitter <= 1.0 and same.path_ratio == pytest.approx(1.0) and same.end_drift < 1e-9
     rot = walk.rotations.copy()

@@ -91,17 +91,27 @@ class Reference:
     pop_limit: np.ndarray  # (J,) degrees per frame per frame
     style_p99: dict[str, np.ndarray]  # style -> (J,)
     skate_limit: float  # units/s
-    slide: dict[str, dict[str, float]]  # style -> content -> p95 planted-foot speed, units/s
+    slide: dict[str, dict[str, float]]  # style -> content -> p95 planted-foot speed (TRAIN and VALIDATION), units/s
     slide_floor: float  # units/s
 
     @classmethod
     def fit(
-        cls, train: dict[str, list[Motion]], real: dict[str, list[Motion]], contents: dict[str, list[str]]
+        cls,
+        train: dict[str, list[Motion]],
+        real: dict[str, list[Motion]],
+        train_contents: dict[str, list[str]],
+        real_contents: dict[str, list[str]],
     ) -> Reference:
+        """`train`, `real`: TRAIN and VALIDATION clips per style, and what each performs. The slide
+        per content pools both: real takes of a content differ (some elderly walks shuffle, others
+        do not), and validation holds two or three takes of each."""
         support = RotationSupport(train, real)
         acc = {s: np.concatenate([rotation_acceleration(m, support.joint_index) for m in ms]) for s, ms in real.items()}
         feet = {s: [planted_speeds(m) for m in ms] for s, ms in real.items()}
-        slide = {s: _p95_by_content(feet[s], contents[s]) for s in real}
+        slide = {
+            s: _p95_by_content(feet[s] + [planted_speeds(m) for m in train[s]], real_contents[s] + train_contents[s])
+            for s in real
+        }
         return cls(
             support,
             np.percentile(np.concatenate(list(acc.values())), 99.9, axis=0),

@@ -136,7 +136,10 @@ def _real_clips(index: list[Clip], styles: list[str], final: bool, quick: bool) 
     train = {s: load_motions(select(index, split="train", style=s)) for s in styles}
     val_contents = {s: [c.content for c in select(index, split="val", style=s)] for s in styles}
     halve = (lambda v: v) if final else (lambda v: v[0::2])  # noqa: E731
-    ref = Reference.fit(train, {s: halve(v) for s, v in val.items()}, {s: halve(v) for s, v in val_contents.items()})
+    train_contents = {s: [c.content for c in select(index, split="train", style=s)] for s in styles}
+    ref = Reference.fit(
+        train, {s: halve(v) for s, v in val.items()}, train_contents, {s: halve(v) for s, v in val_contents.items()}
+    )
     if final:
         real = {s: load_motions(select(index, split="test", style=s)) for s in styles}
     else:
@@ -349,7 +352,7 @@ def markdown(r: dict) -> str:
         "of the input's and the real style's, the worst joint; median / p90 over clips (gate p90 "
         f"≤ {GATE_JITTER}). **slide**: a foot's horizontal speed while planted flat (ankle and toe on the floor for "
         "at least 0.1 s, measured between two such frames); per content, the p95 over the larger of the real "
-        "style's p95 on that content (VALIDATION clips), the input's own on the same clips and 2.6 cm/s, the worst "
+        "style's p95 on that content (TRAIN and VALIDATION clips), the input's own on the same clips and 2.6 cm/s, the worst "
         f"content (gate ≤ {GATE_SLIDE}×); then the row's pooled p95 in cm/s. **skate**: planted-foot frames faster than "
         f"{meta['skate_limit_cm_s']:.0f} cm/s (the real validation clips' p95, so real clips skate in 5 %). "
         "**path**: hips path length over the input's, each plus a leg length (median, and the worst clip); "
