@@ -194,17 +194,13 @@ def worst_slide(clips: list[ClipPhysics], contents: list[str], style: str, ref: 
     """(the largest per-content slide ratio, its content): each content's pooled planted-foot p95
     over the larger of the real style's on that content, the input's own on the same clips and
     SLIDE_FLOOR. A content no real clip of the style performs is held to the input alone."""
+    out = _p95_by_content([c.foot_speeds for c in clips], contents)
+    given = [c.input_speeds for c in clips if c.input_speeds is not None]
+    inputs = _p95_by_content(given, contents) if len(given) == len(clips) else {}  # none for real clips
     worst, where = 0.0, ""
-    for content in sorted(set(contents)):
-        group = [c for c, k in zip(clips, contents) if k == content]
-        out = np.concatenate([c.foot_speeds for c in group])
-        if not len(out):
-            continue
-        limit = max(ref.slide_floor, ref.slide[style].get(content, 0.0))
-        given = [c.input_speeds for c in group if c.input_speeds is not None]
-        if given and len(inp := np.concatenate(given)):
-            limit = max(limit, float(np.percentile(inp, 95)))
-        if (ratio := float(np.percentile(out, 95)) / limit) > worst:
+    for content in sorted(out):
+        limit = max(ref.slide_floor, ref.slide[style].get(content, 0.0), inputs.get(content, 0.0))
+        if (ratio := out[content] / limit) > worst:
             worst, where = ratio, content
     return worst, where
 
