@@ -20,6 +20,7 @@ from models.motion.skeleton import Motion
 from models.settings import get_settings
 
 if TYPE_CHECKING:
+    from models.erd.runtime import ERDModel
     from models.lpn.runtime import LPNModel
 
 
@@ -78,6 +79,15 @@ def lpn_model() -> LPNModel:
     from models.lpn import load  # its compiled kernels, only for the tests that use it
 
     return load(get_settings().weights_dir / "lpn")
+
+
+@pytest.fixture(scope="session")
+def erd_model() -> ERDModel:
+    """The committed Style-ERD model, loaded once: a test that adds or removes styles does it on a
+    copy (`with_own_styles`)."""
+    from models.erd.runtime import load
+
+    return load(get_settings().weights_dir / "erd")
 
 
 @pytest.fixture(scope="session")

@@ -4,8 +4,6 @@ were, saved and loaded again; the job's fitted branch (`finetune.py`, slow)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -15,15 +13,10 @@ from models.interface import FrameBatch, style_vector  # noqa: E402
 from models.motion.rotation_ball import comparable  # noqa: E402
 from models.motion.rotations import quat_angle, quat_mean  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-WEIGHTS = REPO / "models" / "weights" / "erd"
 
-
-@pytest.fixture(scope="module")
-def model():
-    from models.erd.runtime import load
-
-    return load(WEIGHTS)
+@pytest.fixture
+def model(erd_model):
+    return erd_model
 
 
 @pytest.fixture(scope="module")

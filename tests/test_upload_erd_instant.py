@@ -6,8 +6,6 @@ of neutral clips like the upload."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -16,15 +14,10 @@ pytest.importorskip("torch")
 from models.motion.rotations import quat_exp  # noqa: E402
 from models.motion.style_carry import tangent_stats  # noqa: E402
 
-REPO = Path(__file__).resolve().parents[1]
-WEIGHTS = REPO / "models" / "weights" / "erd"
 
-
-@pytest.fixture(scope="module")
-def model():
-    from models.erd.runtime import load
-
-    return load(WEIGHTS)
+@pytest.fixture
+def model(erd_model):
+    return erd_model
 
 
 @pytest.fixture(scope="module")
