@@ -113,11 +113,6 @@ def stack_states(states: list[State]) -> State:
     return {key: np.concatenate([s[key] for s in states]) for key in states[0]}
 
 
-def split_state(state: State) -> list[State]:
-    n = len(next(iter(state.values())))
-    return [{key: value[i : i + 1] for key, value in state.items()} for i in range(n)]
-
-
 def upgrade_state(model: StreamingModel, state: State) -> State:
     """`model.upgrade_state(state)` where the model has one (a changeable style set), else `state`."""
     upgrade = getattr(model, "upgrade_state", None)

@@ -10,13 +10,19 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from models.interface import FrameBatch, StreamingModel, split_state, stack_states  # noqa: E402 (after the torch check)
+from models.interface import FrameBatch, State, StreamingModel, stack_states  # noqa: E402 (after the torch check)
 from models.motion.skeleton import fk  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "models" / "weights" / "erd"
 
 pytestmark = pytest.mark.skipif(not (WEIGHTS / "erd.npz").exists(), reason="Style-ERD weights not committed")
+
+
+def split_state(state: State) -> list[State]:
+    """One state per session: the inverse of `stack_states`."""
+    n = len(next(iter(state.values())))
+    return [{key: value[i : i + 1] for key, value in state.items()} for i in range(n)]
 
 
 @pytest.fixture(scope="module")

@@ -104,9 +104,9 @@ def test_the_job_pairs_neutral_clips_from_the_mocap_without_the_feature_cache(mo
     from models.erd import dataset, finetune
 
     monkeypatch.setattr(dataset, "cache_dir", lambda: tmp_path)
-    neutral = finetune.neutral_clips(model.maker)
+    neutral = finetune.features(model.maker, finetune.neutral_motions())
     x_clip, _ = model.maker.sequence(clips[0].translations[:, 1], clips[0].rotations)
-    paired = finetune.pair(neutral, x_clip, finetune.PAIRS)
+    paired = [neutral[i] for i in finetune.pair_order(neutral, x_clip, finetune.PAIRS)]
     assert len(paired) == finetune.PAIRS and all(len(c) > finetune.WINDOW for c in paired)
     gaps = [np.linalg.norm(finetune.descriptor(c) - finetune.descriptor(x_clip)) for c in neutral]
     assert np.linalg.norm(finetune.descriptor(paired[0]) - finetune.descriptor(x_clip)) < np.median(gaps)

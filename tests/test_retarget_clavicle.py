@@ -5,7 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.motion.retarget_clavicle import CLAVICLE_FROM_ARM, arm_and_clavicle, fit, predict, training_motions
+from models.motion.retarget_clavicle import CLAVICLE_FROM_ARM, arm_and_clavicle, fit, training_motions
+
+
+def predict(ac: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """(F, 3) unit clavicle directions from (F, 3) upper-arm directions (chest frame), in numpy
+    (the retargeting kernels apply the relation inside the chest's frame)."""
+    d = u @ np.asarray(ac)[:, :3].T + np.asarray(ac)[:, 3]
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
 def test_committed_relation_is_the_fit_on_bn_neutral_data():

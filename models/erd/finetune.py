@@ -51,11 +51,6 @@ def features(maker, motions: list[Motion]) -> list[np.ndarray]:
     return [maker.sequence(m.translations[:, 1], m.rotations)[0].astype(np.float32) for m in motions]
 
 
-def neutral_clips(maker) -> list[np.ndarray]:
-    """`features` of every dataset-2 TRAIN `normal` clip, computed from the mocap."""
-    return features(maker, neutral_motions())
-
-
 def pair_order(clips: list[np.ndarray], x_clip: np.ndarray, k: int) -> list[int]:
     """The indices of the `k` neutral clips (features) longer than a window whose descriptors lie
     nearest the clip's (each descriptor entry in units of its spread over `clips`), nearest first."""
@@ -63,11 +58,6 @@ def pair_order(clips: list[np.ndarray], x_clip: np.ndarray, k: int) -> list[int]
     scale = np.maximum(desc.std(0), 1e-6)
     order = np.argsort(np.linalg.norm((desc - descriptor(x_clip)) / scale, axis=1))
     return [int(i) for i in order if len(clips[i]) > WINDOW][:k]
-
-
-def pair(clips: list[np.ndarray], x_clip: np.ndarray, k: int) -> list[np.ndarray]:
-    """`pair_order`'s clips."""
-    return [clips[i] for i in pair_order(clips, x_clip, k)]
 
 
 class Branch:

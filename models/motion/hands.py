@@ -94,15 +94,6 @@ def sway(
     return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
 
 
-def rise(
-    before: np.ndarray, offsets: np.ndarray, prev_offsets: np.ndarray, has_prev: np.ndarray, fps: float
-) -> np.ndarray:
-    """(B, 2) each hand's averaged vertical speed (cm/s, up or down) against its shoulder after
-    this frame, as `sway` averages the horizontal one."""
-    speed = np.abs(np.asarray(offsets)[..., 1] - np.asarray(prev_offsets)[..., 1]) * fps
-    return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
-
-
 def _over_clip(average: Callable[..., np.ndarray], offsets: np.ndarray, fps: float) -> np.ndarray:
     out = np.zeros((len(offsets), 2))
     for t in range(1, len(offsets)):

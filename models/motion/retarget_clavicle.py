@@ -67,12 +67,6 @@ def fit(motions: list[Motion]) -> dict[str, np.ndarray]:
     return out
 
 
-def predict(ac: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """(F, 3) unit clavicle directions from (F, 3) upper-arm directions (chest frame)."""
-    d = u @ np.asarray(ac)[:, :3].T + np.asarray(ac)[:, 3]
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-
 def training_motions() -> list[Motion]:
     """What `CLAVICLE_FROM_ARM` is fitted on: data set 2's neutral training clips."""
     from ..data import build_index, load_motions

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.motion.hands import _arm_chain, _over_clip, hand_offsets, raise_share, rise
+from models.motion.hands import SWAY_FRAMES, _arm_chain, _over_clip, hand_offsets, raise_share
 from models.motion.rotations import quat_apply, quat_mul
 from models.motion.skeleton import Motion, Skeleton
 
@@ -26,6 +26,15 @@ def hand_offsets_of(rotations: np.ndarray, skeleton: Skeleton) -> np.ndarray:
             g_rot[j] = quat_mul(g_rot[p], q[:, j])
             g_pos[j] = g_pos[p] + quat_apply(g_rot[p], np.broadcast_to(skeleton.offsets[j], (len(q), 3)))
     return np.stack([g_pos[h] - g_pos[s] for h, s in zip(hands, shoulders)], axis=1)
+
+
+def rise(
+    before: np.ndarray, offsets: np.ndarray, prev_offsets: np.ndarray, has_prev: np.ndarray, fps: float
+) -> np.ndarray:
+    """(B, 2) each hand's averaged vertical speed (cm/s, up or down) against its shoulder after
+    this frame, as `hands.sway` averages the horizontal one (the reference of `hand_step`'s rise)."""
+    speed = np.abs(np.asarray(offsets)[..., 1] - np.asarray(prev_offsets)[..., 1]) * fps
+    return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
 
 
 def clip_rise(offsets: np.ndarray, fps: float) -> np.ndarray:
