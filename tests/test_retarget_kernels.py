@@ -8,9 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.motion import retarget_kernels
 from models.motion.humanoid import humanoid_rig, preset_rig
-from models.motion.retarget import HINGE_FALLBACK, HINGE_PRIOR, TWIST_SHARE
 from models.motion.retarget_stream import FrameRetargeter
 
 from .reference import retarget as reference
@@ -56,12 +54,6 @@ def _same(fr: FrameRetargeter, root: np.ndarray, rot: np.ndarray, new_hips: np.n
         r2, q2 = reference.to_source(fr, new_hips[f][None], new_rot[f][None], rot[f][None], ref_state)
         np.testing.assert_allclose(r1 / unit, r2 / unit, atol=1e-9)
         assert _qdiff(q1, q2) < 1e-9
-
-
-def test_kernel_constants_are_the_numpy_paths():
-    assert retarget_kernels.HINGE_FALLBACK_SQ == HINGE_FALLBACK**2
-    assert retarget_kernels.HINGE_PRIOR == HINGE_PRIOR
-    assert retarget_kernels.TWIST_SHARE == TWIST_SHARE
 
 
 @pytest.fixture(scope="module")

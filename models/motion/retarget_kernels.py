@@ -17,10 +17,10 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from .retarget import HINGE_FALLBACK, HINGE_PRIOR, TWIST_SHARE
+
 KIND_LEAF, KIND_SWING, KIND_LIMB, KIND_CLAVICLE = 0, 1, 2, 3
-HINGE_FALLBACK_SQ = 0.6**2  # retarget.HINGE_FALLBACK squared (checked by the tests against the numpy path)
-HINGE_PRIOR = 1.0  # retarget.HINGE_PRIOR (checked likewise)
-TWIST_SHARE = 0.5  # retarget.TWIST_SHARE (checked likewise)
+HINGE_FALLBACK_SQ = HINGE_FALLBACK**2
 
 # --------------------------------------------------------------------------- 3x3 helpers
 # Inlined: called on views of bigger arrays, a call each costs the view's reference counting
