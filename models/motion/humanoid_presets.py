@@ -175,24 +175,31 @@ def _build(preset: Preset, prefix: str) -> Skeleton:
     return Skeleton(tuple(names), parent_index, offsets, np.full((len(names), 3), np.nan))
 
 
-def _limbs(names: str) -> dict[str, str]:
-    """The sided roles' names, given as one space-separated row from the clavicle to the toes."""
-    roles = ("clavicle_x", "upperarm_x", "lowerarm_x", "hand_x", "upperleg_x", "lowerleg_x", "foot_x", "toes_x")
-    return dict(zip(roles, names.split(), strict=True))
+def _roles(hips: str, head: str, limbs: str) -> dict[str, str]:
+    """`Preset.roles`: the hips, the head and the sided roles' names, given as one space-separated
+    row from the clavicle to the toes."""
+    sided = ("clavicle_x", "upperarm_x", "lowerarm_x", "hand_x", "upperleg_x", "lowerleg_x", "foot_x", "toes_x")
+    return {"hips": hips, "head": head, **dict(zip(sided, limbs.split(), strict=True))}
 
+
+_MIXAMO_ROLES = _roles(
+    "Hips", "Head", "{Side}Shoulder {Side}Arm {Side}ForeArm {Side}Hand {Side}UpLeg {Side}Leg {Side}Foot {Side}ToeBase"
+)
+_UE_ROLES = _roles(
+    "pelvis", "head", "clavicle_{s} upperarm_{s} lowerarm_{s} hand_{s} thigh_{s} calf_{s} foot_{s} ball_{s}"
+)
+_SMPL_ROLES = _roles(
+    "pelvis",
+    "head",
+    "{side}_collar {side}_shoulder {side}_elbow {side}_wrist {side}_hip {side}_knee {side}_ankle {side}_foot",
+)
 
 PRESETS: dict[str, Preset] = {
     p.name: p
     for p in (
         Preset(
             "mixamo",
-            {
-                "hips": "Hips",
-                "head": "Head",
-                **_limbs(
-                    "{Side}Shoulder {Side}Arm {Side}ForeArm {Side}Hand {Side}UpLeg {Side}Leg {Side}Foot {Side}ToeBase"
-                ),
-            },
+            _MIXAMO_ROLES,
             spine=("Spine", "Spine1", "Spine2"),
             necks=("Neck",),
             finger="{Side}Hand{Finger}{i}",
@@ -202,11 +209,7 @@ PRESETS: dict[str, Preset] = {
         ),
         Preset(
             "ue4",
-            {
-                "hips": "pelvis",
-                "head": "head",
-                **_limbs("clavicle_{s} upperarm_{s} lowerarm_{s} hand_{s} thigh_{s} calf_{s} foot_{s} ball_{s}"),
-            },
+            _UE_ROLES,
             spine=("spine_01", "spine_02", "spine_03"),
             necks=("neck_01",),
             root="root",
@@ -223,11 +226,7 @@ PRESETS: dict[str, Preset] = {
         ),
         Preset(
             "ue5",
-            {
-                "hips": "pelvis",
-                "head": "head",
-                **_limbs("clavicle_{s} upperarm_{s} lowerarm_{s} hand_{s} thigh_{s} calf_{s} foot_{s} ball_{s}"),
-            },
+            _UE_ROLES,
             spine=("spine_01", "spine_02", "spine_03", "spine_04", "spine_05"),
             necks=("neck_01", "neck_02"),
             root="root",
@@ -246,13 +245,11 @@ PRESETS: dict[str, Preset] = {
         ),
         Preset(
             "unity",
-            {
-                "hips": "Hips",
-                "head": "Head",
-                **_limbs(
-                    "{Side}Shoulder {Side}UpperArm {Side}LowerArm {Side}Hand {Side}UpperLeg {Side}LowerLeg {Side}Foot {Side}Toes"
-                ),
-            },
+            _roles(
+                "Hips",
+                "Head",
+                "{Side}Shoulder {Side}UpperArm {Side}LowerArm {Side}Hand {Side}UpperLeg {Side}LowerLeg {Side}Foot {Side}Toes",
+            ),
             spine=("Spine", "Chest", "UpperChest"),
             necks=("Neck",),
             finger="{Side}{Finger}{i}",
@@ -262,26 +259,18 @@ PRESETS: dict[str, Preset] = {
         ),
         Preset(
             "vrm",
-            {
-                "hips": "hips",
-                "head": "head",
-                **_limbs(
-                    "{side}Shoulder {side}UpperArm {side}LowerArm {side}Hand {side}UpperLeg {side}LowerLeg {side}Foot {side}Toes"
-                ),
-            },
+            _roles(
+                "hips",
+                "head",
+                "{side}Shoulder {side}UpperArm {side}LowerArm {side}Hand {side}UpperLeg {side}LowerLeg {side}Foot {side}Toes",
+            ),
             spine=("spine", "chest", "upperChest"),
             necks=("neck",),
             description="VRM humanoid bone names (lowerCamelCase); T-pose",
         ),
         Preset(
             "smpl",
-            {
-                "hips": "pelvis",
-                "head": "head",
-                **_limbs(
-                    "{side}_collar {side}_shoulder {side}_elbow {side}_wrist {side}_hip {side}_knee {side}_ankle {side}_foot"
-                ),
-            },
+            _SMPL_ROLES,
             spine=("spine1", "spine2", "spine3"),
             necks=("neck",),
             extras=(("{side}_hand", "{side}_wrist", "", 0.8),),
@@ -289,13 +278,7 @@ PRESETS: dict[str, Preset] = {
         ),
         Preset(
             "smplx",
-            {
-                "hips": "pelvis",
-                "head": "head",
-                **_limbs(
-                    "{side}_collar {side}_shoulder {side}_elbow {side}_wrist {side}_hip {side}_knee {side}_ankle {side}_foot"
-                ),
-            },
+            _SMPL_ROLES,
             spine=("spine1", "spine2", "spine3"),
             necks=("neck",),
             finger="{side}_{finger}{i}",
@@ -304,13 +287,7 @@ PRESETS: dict[str, Preset] = {
         ),
         Preset(
             "bvh",
-            {
-                "hips": "Hips",
-                "head": "Head",
-                **_limbs(
-                    "{Side}Shoulder {Side}Arm {Side}ForeArm {Side}Hand {Side}UpLeg {Side}Leg {Side}Foot {Side}ToeBase"
-                ),
-            },
+            _MIXAMO_ROLES,
             spine=("Spine", "Spine1", "Spine2"),
             necks=("Neck",),
             description="common BVH exports (MotionBuilder-style names: Hips, Spine, LeftArm, LeftUpLeg, ...); T-pose",
