@@ -73,20 +73,6 @@ class FrameBatch:
     def __len__(self) -> int:
         return self.root.shape[0]
 
-    def take(self, i: int) -> FrameBatch:
-        control = None if self.control is None else self.control[i : i + 1]
-        return FrameBatch(self.root[i : i + 1], self.rotations[i : i + 1], control=control)
-
-    @staticmethod
-    def concat(frames: list[FrameBatch]) -> FrameBatch:
-        """Frames of many sessions as one batch; rows without control get a zero (not given) control row."""
-        control = None
-        if any(f.control is not None for f in frames):
-            control = np.concatenate([f.control if f.control is not None else np.zeros((len(f), 5)) for f in frames])
-        return FrameBatch(
-            np.concatenate([f.root for f in frames]), np.concatenate([f.rotations for f in frames]), control=control
-        )
-
 
 @runtime_checkable
 class StreamingModel(Protocol):

@@ -1,6 +1,6 @@
 """What several tests share: a clip as the `frames` of a JSON style upload, an LPN-FiLM
 controller session driven through a list of control ticks, a clip streamed through a model one
-frame at a time, and the angle between rotations."""
+frame at a time, frames of a batch split and joined, and the angle between rotations."""
 
 from __future__ import annotations
 
@@ -33,6 +33,22 @@ def streamed_rotations(model, motion: Motion, weights: np.ndarray) -> np.ndarray
         o, state = model.step_batch(state, frame, weights[None])
         out.append(o.rotations[0])
     return np.stack(out)
+
+
+def frame_row(frames: FrameBatch, i: int) -> FrameBatch:
+    """Session i's frame of a batch, as a batch of one."""
+    control = None if frames.control is None else frames.control[i : i + 1]
+    return FrameBatch(frames.root[i : i + 1], frames.rotations[i : i + 1], control=control)
+
+
+def concat_frames(frames: list[FrameBatch]) -> FrameBatch:
+    """Frames of many sessions as one batch; rows without control get a zero (not given) control row."""
+    control = None
+    if any(f.control is not None for f in frames):
+        control = np.concatenate([f.control if f.control is not None else np.zeros((len(f), 5)) for f in frames])
+    return FrameBatch(
+        np.concatenate([f.root for f in frames]), np.concatenate([f.rotations for f in frames]), control=control
+    )
 
 
 def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:

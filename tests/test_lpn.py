@@ -12,6 +12,7 @@ from models.interface import FrameBatch, StreamingModel
 from models.lpn.dataset import clip_samples
 from models.registry import load_models
 from models.settings import get_settings
+from tests.clips import concat_frames
 
 TARGETS = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful")
 
@@ -75,7 +76,7 @@ def test_step_never_reads_future_frames(model, clips):
     outs = []
     for t in range(30):
         second = a if t <= 20 else b
-        frames = FrameBatch.concat([_frames(a, t), _frames(second, t)])
+        frames = concat_frames([_frames(a, t), _frames(second, t)])
         out, state = model.step_batch(state, frames, w)
         outs.append(out)
     for t in range(21):
@@ -89,7 +90,7 @@ def test_sessions_in_a_batch_are_independent(model, clips):
     w = np.stack([model.weight_vector({"elderly": 1.0}), model.weight_vector({"active": 1.0})])
     both, alone = model.init_state(2), [model.init_state(1), model.init_state(1)]
     for t in range(12):
-        out, both = model.step_batch(both, FrameBatch.concat([_frames(walk, t), _frames(run, t)]), w)
+        out, both = model.step_batch(both, concat_frames([_frames(walk, t), _frames(run, t)]), w)
         for i, m in enumerate((walk, run)):
             single, alone[i] = model.step_batch(alone[i], _frames(m, t), w[i : i + 1])
             np.testing.assert_allclose(out.root[i], single.root[0], atol=1e-3)
@@ -211,7 +212,7 @@ def test_compiled_step_gives_the_numpy_steps_outputs(model, reference, clips):
     worst = {"root_cm": 0.0, "quaternion": 0.0, "state": 0.0}
     roots, held, released, bent = [], [], [], []
     for t in range(T):
-        frames = FrameBatch.concat(
+        frames = concat_frames(
             [
                 _frames(walk, 0, ahead[t : t + 1]),
                 _frames(walk, 0, side[t : t + 1]),

@@ -13,6 +13,7 @@ from models.interface import FrameBatch, weight_vector
 from models.registry import load_models
 from models.rowwise import matmul_rows
 from models.settings import get_settings
+from tests.clips import frame_row
 
 # the layer shapes the models multiply by: Style-ERD's encoder, LSTM and decoder, LPN-FiLM's experts
 SHAPES = [(216, 128), (128, 32), (64, 128), (38, 128), (128, 88), (19, 1024), (343, 2048), (256, 2824)]
@@ -70,7 +71,7 @@ def test_every_model_steps_a_row_as_it_steps_it_alone(models, name):
         frames = FrameBatch(np.stack([c.translations[t, 1] for c in clips]), np.stack([c.rotations[t] for c in clips]))
         out, together = model.step_batch(together, frames, weights)
         for i in range(len(clips)):
-            single, alone[i] = model.step_batch(alone[i], frames.take(i), weights[i : i + 1])
+            single, alone[i] = model.step_batch(alone[i], frame_row(frames, i), weights[i : i + 1])
             assert np.array_equal(single.rotations[0], out.rotations[i]), (t, i)
             assert np.array_equal(single.root[0], out.root[i]), (t, i)
 
