@@ -12,7 +12,7 @@ import pytest
 from models.data import build_index, load_motions, select
 from models.eval import sealed
 from models.eval.intervals import share, wilson
-from models.eval.metrics import SKATE_SPEED
+from models.eval.metrics import SKATE_SPEED, SKID_SPEED, touchdown_speeds
 from models.eval.physical import Input, Reference, measure, planted_speeds, worst_slide
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import OTHER, load_style_judge
@@ -118,6 +118,16 @@ def test_a_real_walk_plants_its_feet_and_a_passing_swing_foot_is_not_planted(wal
     speeds = planted_speeds(walk)
     assert len(speeds) > 0.3 * 2 * walk.num_frames  # each foot stands flat about a third of a walk
     assert np.percentile(speeds, 95) < SKATE_SPEED * left_leg_length(walk.skeleton)
+
+
+def test_a_real_walk_lands_at_rest_and_a_gliding_one_skids_into_every_print(walk):
+    leg = left_leg_length(walk.skeleton)
+    real = touchdown_speeds(walk) / leg
+    assert len(real) >= 4 and (real > SKID_SPEED).mean() <= 0.1
+    trans = walk.translations.copy()
+    trans[:, walk.skeleton.index("Hips"), 0] += np.arange(walk.num_frames) * 3.0  # 90 cm/s, about a leg length
+    glide = touchdown_speeds(replace(walk, translations=trans)) / leg
+    assert len(glide) >= 4 and (glide > SKID_SPEED).all()
 
 
 def test_a_quick_validation_run_scores_every_source_and_records_no_final_run(tmp_path, monkeypatch):

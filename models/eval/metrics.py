@@ -14,6 +14,9 @@ FLOOR_PERCENTILE = 5.0  # a joint's floor level: this percentile of its height o
 # a foot must stay flat this long to count as planted: the swing foot passes as low as a planted
 # one for a frame or two, and counting those frames read every real walk as sliding
 MIN_PLANT_SECONDS = 0.1
+# a foot that lands flat still moving faster than this (leg lengths per second, 50 cm/s on Bandai
+# Namco) skids into its print: real walks do so at 0-7 % of touchdowns
+SKID_SPEED = 0.6
 
 
 def lasting(flags: np.ndarray, frames: int) -> np.ndarray:
@@ -51,6 +54,20 @@ def flat_foot_contacts(motion: Motion, positions: np.ndarray | None = None) -> t
         contacts.append(flat & np.concatenate([[False], flat[:-1]]))
         speeds.append(np.minimum(*v))
     return np.stack(contacts, -1), np.stack(speeds, -1)
+
+
+def touchdown_speeds(motion: Motion, positions: np.ndarray | None = None) -> np.ndarray:
+    """(N,) horizontal speed (units/s) of each foot as it lands flat: the faster of a planted
+    stretch's first two frames (`flat_foot_contacts`). A real heel comes to rest before the sole
+    flattens; a foot that is still swinging forward when it flattens skids into its print, and
+    these frames are where a planted-foot p95 is made."""
+    contacts, speeds = flat_foot_contacts(motion, positions)
+    out = []
+    for k in range(contacts.shape[1]):
+        flat = contacts[:, k]
+        for a in np.flatnonzero(flat & ~np.concatenate([[False], flat[:-1]])):
+            out.append(speeds[a : a + 2, k].max())
+    return np.array(out)
 
 
 def foot_skating(motion: Motion, positions: np.ndarray | None = None) -> dict:

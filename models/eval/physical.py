@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from ..motion.features import body_joint, left_leg_length
 from ..motion.rotations import quat_inv, quat_log, quat_mean, quat_mul
 from ..motion.skeleton import Motion
-from .metrics import flat_foot_contacts
+from .metrics import SKID_SPEED, flat_foot_contacts, touchdown_speeds
 from .plausibility import body_joints, comparable_rotations, rotation_acceleration
 
 PLAUSIBLE_FRAMES = 0.95  # a joint is plausible in a clip when this share of its frames is
@@ -143,6 +143,7 @@ class ClipPhysics:
     jitter: float
     foot_speeds: np.ndarray  # planted-foot speeds, units/s
     input_speeds: np.ndarray | None  # the input's planted-foot speeds, units/s
+    landings: np.ndarray  # each touchdown's speed, leg lengths/s (`metrics.touchdown_speeds`)
     path_ratio: float
     end_drift: float  # units (cm on the model rig)
 
@@ -175,7 +176,16 @@ def measure(ref: Reference, style: str, out: Motion, inp: Input | None) -> ClipP
         jitter = float((np.percentile(acc, 99, axis=0) / np.maximum(inp.p99_acc, ref.style_p99[style])).max())
         path_ratio, drift = _paths(inp, _hips_xz(out))
     speeds = None if inp is None else inp.foot_speeds
-    return ClipPhysics(ref.support.within(style, out), acc, jitter, planted_speeds(out), speeds, path_ratio, drift)
+    return ClipPhysics(
+        ref.support.within(style, out),
+        acc,
+        jitter,
+        planted_speeds(out),
+        speeds,
+        touchdown_speeds(out) / left_leg_length(out.skeleton),
+        path_ratio,
+        drift,
+    )
 
 
 def _hips_xz(motion: Motion) -> np.ndarray:
@@ -211,6 +221,7 @@ def summarise(clips: list[ClipPhysics], ref: Reference, contents: list[str], sty
     acc = np.concatenate([c.acc for c in clips if len(c.acc)])
     pops = (acc > ref.pop_limit).mean(axis=0) if len(acc) else np.zeros(len(joints))
     feet = np.concatenate([c.foot_speeds for c in clips])
+    landings = np.concatenate([c.landings for c in clips])
     finite = lambda xs: [x for x in xs if np.isfinite(x)]  # noqa: E731
     jit, ratio, drift = (finite([getattr(c, k) for c in clips]) for k in ("jitter", "path_ratio", "end_drift"))
     worst = min(clips, key=lambda c: c.within.min())
@@ -227,6 +238,7 @@ def summarise(clips: list[ClipPhysics], ref: Reference, contents: list[str], sty
         "slide_ratio": slide_ratio,
         "slide_content": slide_content,
         "skate": float((feet > ref.skate_limit).mean()) if len(feet) else 0.0,
+        "skid": float((landings > SKID_SPEED).mean()) if len(landings) else 0.0,
         "path_ratio_median": float(np.median(ratio)) if ratio else float("nan"),
         "path_ratio_worst": float(max(ratio, key=lambda r: abs(np.log(r)))) if ratio else float("nan"),
         "end_drift_median": float(np.median(drift)) if drift else float("nan"),

@@ -30,6 +30,7 @@ from . import uploads
 from .features import clip_features
 from .intervals import share, share_table, shown
 from .judges import load_judges
+from .metrics import SKID_SPEED
 from .physical import ClipPhysics, Input, Reference, measure, summarise
 from .run import HISTORY_FRAMES, run_after_history, stylise_toward
 from .sources import D2, Source, input_sources
@@ -355,6 +356,9 @@ def markdown(r: dict) -> str:
         "style's p95 on that content (TRAIN and VALIDATION clips), the input's own on the same clips and 2.6 cm/s, the worst "
         f"content (gate ≤ {GATE_SLIDE}×); then the row's pooled p95 in cm/s. **skate**: planted-foot frames faster than "
         f"{meta['skate_limit_cm_s']:.0f} cm/s (the real validation clips' p95, so real clips skate in 5 %). "
+        f"**skid**: touchdowns where the foot lands flat still moving faster than {SKID_SPEED} leg lengths/s "
+        "(50 cm/s; real dataset-2 validation walks 0-7 %): a foot that flattens while it still swings "
+        "forward and skids into its print (not gated; most of a row's slide p95 is made there). "
         "**path**: hips path length over the input's, each plus a leg length (median, and the worst clip); "
         "**drift**: how far the two paths end apart (median, cm).",
         f"- **faded**: frames whose output faded more than {FADED:.0%} of the way toward the input because the input "
@@ -445,8 +449,8 @@ def _source_table(r: dict, source: str) -> list[str]:
         f"## {title}",
         "",
         "| variant | session | style | style read | content | plausible clips | pops | jitter | slide | skate | "
-        "path | drift cm | faded | read as |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "skid | path | drift cm | faded | read as |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for x in rows:
         top = ", ".join(f"{k} {n}" for k, n in sorted(x["read_as"].items(), key=lambda kv: -kv[1])[:3])
@@ -460,6 +464,6 @@ def _source_table(r: dict, source: str) -> list[str]:
         lines.append(
             f"| {x['variant']} | {x['session']} | {x['style']} | {_cell(x, 'style')} | {_cell(x, 'content')} | "
             f"{_cell(x, 'plausible')} | {_cell(x, 'pops')} | {_cell(x, 'jitter')} | {_cell(x, 'slide')} | "
-            f"{100 * x['skate']:.1f}% | {path} | {drift} | {faded} | {top} |"
+            f"{100 * x['skate']:.1f}% | {100 * x['skid']:.0f}% | {path} | {drift} | {faded} | {top} |"
         )
     return lines + [""]
