@@ -120,6 +120,26 @@ def test_a_real_walk_plants_its_feet_and_a_passing_swing_foot_is_not_planted(wal
     assert np.percentile(speeds, 95) < SKATE_SPEED * left_leg_length(walk.skeleton)
 
 
+def test_a_content_the_style_never_performed_may_stay_near_the_input_to_be_plausible():
+    """Raised hands have no real frame among walks and runs to be near; kept as they came they
+    are plausible, twisted off the input they are not."""
+    index = build_index([D2])
+    train = load_motions(select(index, split="train", style="normal", content="walk")[:4])
+    val = select(index, split="val", style="normal", content="run")[:2]
+    ref = Reference.fit(
+        {"normal": train}, {"normal": load_motions(val)}, {"normal": ["walk"] * 4}, {"normal": ["run"] * 2}
+    )
+    raise_up = load_motions(select(index, split="val", style="normal", content="raise-up-both-hands")[:1])[0]
+    inp = Input.of(raise_up, ref)
+    assert not measure(ref, "normal", raise_up, inp, "walk").plausible  # held to walks, the arms are not
+    assert measure(ref, "normal", raise_up, inp, "raise-up-both-hands").plausible
+    rot = raise_up.rotations.copy()
+    head = raise_up.skeleton.index("Head")
+    rot[:, head] = quat_mul(quat_exp(np.array([0.0, 0.0, 1.2])), rot[:, head])  # the head turned 70 degrees
+    twisted = measure(ref, "normal", replace(raise_up, rotations=rot), inp, "raise-up-both-hands")
+    assert twisted.within[ref.support.joints.index("Head")] < 0.5
+
+
 def test_a_real_walk_lands_at_rest_and_a_gliding_one_skids_into_every_print(walk):
     leg = left_leg_length(walk.skeleton)
     real = touchdown_speeds(walk) / leg

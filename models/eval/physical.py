@@ -75,10 +75,22 @@ class RotationSupport:
         x = _log_about(q, self.mean[style])
         return np.stack([tree.query(x[:, j])[0] for j, tree in enumerate(self.trees[style])], axis=1)
 
-    def within(self, style: str, motion: Motion) -> np.ndarray:
-        """(J,) share of the clip's frames whose joint rotation lies near a real one."""
-        q = comparable_rotations(motion)[:, self.joint_index]
-        return (self._distances(style, q) <= self.radius[style]).mean(axis=0)
+    def rotations(self, motion: Motion) -> np.ndarray:
+        """(F, J, 4) the clip's rotations of the joints this support judges."""
+        return comparable_rotations(motion)[:, self.joint_index]
+
+    def within(self, style: str, motion: Motion, kept: np.ndarray | None = None) -> np.ndarray:
+        """(J,) share of the clip's frames whose joint rotation lies near a real one; with `kept`
+        (the input's own rotations, `rotations`), a rotation as near the input's at that frame
+        counts too: the input is real motion, and a content the style never performed has no real
+        frame of the style to be near (kept as it came, it failed every joint)."""
+        q = self.rotations(motion)
+        dist = self._distances(style, q)
+        if kept is not None:
+            n = min(len(q), len(kept))
+            own = np.linalg.norm(quat_log(quat_mul(quat_inv(kept[:n]), q[:n])), axis=-1)
+            dist[:n] = np.minimum(dist[:n], own)
+        return (dist <= self.radius[style]).mean(axis=0)
 
 
 @dataclass
@@ -161,23 +173,29 @@ class Input:
     hips_xz: np.ndarray  # (F, 2)
     leg: float  # units
     foot_speeds: np.ndarray  # planted-foot speeds, units/s
+    rotations: np.ndarray  # (F, J, 4) the judged joints' rotations (`RotationSupport.rotations`)
 
     @classmethod
     def of(cls, motion: Motion, ref: Reference) -> Input:
         acc = rotation_acceleration(motion, ref.support.joint_index)
         leg = left_leg_length(motion.skeleton)
-        return cls(np.percentile(acc, 99, axis=0), _hips_xz(motion), leg, planted_speeds(motion))
+        rotations = ref.support.rotations(motion)
+        return cls(np.percentile(acc, 99, axis=0), _hips_xz(motion), leg, planted_speeds(motion), rotations)
 
 
-def measure(ref: Reference, style: str, out: Motion, inp: Input | None) -> ClipPhysics:
+def measure(ref: Reference, style: str, out: Motion, inp: Input | None, content: str = "") -> ClipPhysics:
+    """`content`: what the input performs; where no real clip of the style performs it (dataset
+    1's kicks, Xia's jumps), the output may also stay near the input's own rotations to be
+    plausible, as its slide is held to the input's (`worst_slide`)."""
     acc = rotation_acceleration(out, ref.support.joint_index)
     jitter, path_ratio, drift = float("nan"), float("nan"), float("nan")
     if inp is not None and out.num_frames > 3:
         jitter = float((np.percentile(acc, 99, axis=0) / np.maximum(inp.p99_acc, ref.style_p99[style])).max())
         path_ratio, drift = _paths(inp, _hips_xz(out))
     speeds = None if inp is None else inp.foot_speeds
+    kept = inp.rotations if inp is not None and content not in ref.slide.get(style, {}) else None
     return ClipPhysics(
-        ref.support.within(style, out),
+        ref.support.within(style, out, kept),
         acc,
         jitter,
         planted_speeds(out),
