@@ -156,6 +156,42 @@ def test_add_style_from_clip_gives_a_usable_style_and_remove_drops_it(lpn_model,
         model.remove_style("normal")
 
 
+def test_an_upload_gets_an_output_prior_fitted_from_its_clip(lpn_model, clips, tmp_path):
+    """The clip's style carries an output prior of its own: the upper body carried toward the
+    clip's rotations, every other joint left as it is, and the prior's rows on for the upload
+    alone; the same vector installed without it gets rows that change nothing. The prior moves
+    the stream's upper body toward the clip's mean pose."""
+    from models.lpn.output_prior import CARRIED
+    from models.lpn.styles import LPNUpload
+    from models.motion.rotations import quat_mean
+
+    model = lpn_model.with_own_styles()
+    giant = clips["giant"]
+    upload = model.style_from_clip(giant)
+    assert upload.prior is not None and upload.prior.map.shape[0] == 1
+    names = model.skeleton.names
+    carried = [j for j, n in enumerate(names) if n in CARRIED]
+    fixed = [j for j, n in enumerate(names) if n not in CARRIED]
+    assert np.all(upload.prior.radius[0, fixed] == np.pi) and np.all(upload.prior.radius[0, carried] < np.pi)
+    model.install_style("up", upload)
+    bare = model.with_own_styles()
+    bare.install_style("up", LPNUpload(upload.film))
+    rows = model.style_table.rows["output_prior"]["on"]
+    assert rows[model.styles().index("up")] == 1.0 and bare.style_table.rows["output_prior"]["on"][-1] == 0.0
+
+    def gap(m) -> float:
+        out = m.run(clips["walk"], m.weight_vector({"up": 1.0}))[0].rotations[30:, carried]
+        want = quat_mean(giant.rotations[:, carried], axis=0)
+        return float(np.mean(1.0 - np.abs(np.sum(quat_mean(out, axis=0) * want, axis=-1))))
+
+    assert gap(model) < gap(bare)
+    model.save_style(upload, tmp_path)  # a fine-tuned style is saved with its prior, and loads back whole
+    loaded = model.load_style("up", tmp_path)
+    assert loaded.prior is not None
+    for a, b in zip(loaded.prior.arrays, upload.prior.arrays):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_control_sessions_start_standing_whatever_pose_the_input_carries(model):
     """A controller client sends no pose (the service passes the identity rest pose): the session
     starts from the model's standing pose facing the control's yaw, and walks that way."""

@@ -14,13 +14,14 @@ declared pipeline `STAGES` (`models.stages`), each stage fitted from every style
 arm carriage, output prior, arm coupling, rotation balls and the hinge floor (knees and elbows at
 their least real bend, uploads too). They change the output only; the network's state keeps its
 own pose. A style without real clips gets rows that change nothing: a borrowed one would pull it
-toward another style. The foot planter closes every step, the core's alone too.
+toward another style; an upload gets an output prior fitted from its clip (`styles.py`). The foot planter closes every step, the core's alone too.
 """
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from dataclasses import replace
 from functools import cached_property, partial
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -38,6 +39,7 @@ from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.rotation_ball import StyleBalls
 from ..motion.rotations import quat_mul, yaw_quat
 from ..motion.skeleton import Motion, Skeleton
+from ..motion.style_carry import StyleCarry
 from ..motion.twist import split_evenly, transfer_twist
 from ..rowwise import Bfloat16Product, matmul_rows
 from ..settings import get_settings
@@ -147,7 +149,7 @@ class LPNModel(LPNStyles):
         table = self._table
         return table.films[table.index(name)].reshape(4, self.H).copy()
 
-    def style_from_clip(self, motion: Motion) -> np.ndarray:
+    def film_from_clip(self, motion: Motion) -> np.ndarray:
         """A new style's FiLM vector (4, H): the generator on 4 s windows of a clip of it (tiled if
         short; >= 1 s on the model skeleton at 30 fps, longer is better), averaged."""
         import torch
@@ -168,11 +170,24 @@ class LPNModel(LPNStyles):
     def set_style_film(self, name: str, film: np.ndarray) -> None:
         """Set (or add) style `name` with FiLM vector `film` (4, H): a fine-tuned or persisted one.
         Running sessions see it from their next step."""
+        self.set_style_upload(name, film, None)
+
+    def set_style_upload(self, name: str, film: np.ndarray, prior: StyleCarry | None) -> None:
+        """Set (or add) style `name` with FiLM vector `film` (4, H) and, where the output prior is on
+        and `prior` (one style's carry) is given, that prior as the style's own output-prior rows;
+        every other stage's rows for it change nothing (no other stage was fitted for it), nor do
+        the prior's without `prior`. Running sessions see it from their next step."""
         film = np.asarray(film, np.float32)
         if film.shape != (4, self.H) or not np.all(np.isfinite(film)):
             raise ValueError(f"a FiLM vector must be finite with shape (4, {self.H}), got {film.shape}")
-        with self._lock:  # a vector not fitted on the style's own clips: stage rows that change nothing
-            self._table = self._table.with_film(name, film.reshape(-1))
+        with self._lock:
+            table = self._table.with_film(name, film.reshape(-1))
+            stage = table.stages.output_prior
+            if prior is not None and isinstance(stage, OutputPrior):
+                stages = table.stages.replace(output_prior=stage.with_styles_of(OutputPrior((name,), prior, prior)))
+                k = table.index(name)
+                table = replace(table, stages=stages, fitted=tuple(f or i == k for i, f in enumerate(table.fitted)))
+            self._table = table
 
     def remove_style(self, name: str) -> None:
         if name == "normal":

@@ -1,37 +1,88 @@
 """LPN-FiLM's uploaded styles (`models.interface.ClipStyles`), mixed into `LPNModel`: a clip
 gives a FiLM vector at once (the generator's embedding); a fine-tuning job may replace it and
 saves it as `film.npz`. A copy of the model shares the weights and owns its style table.
+
+Each upload also gets an output prior (`output_prior.py`) fitted from its clip the way a built-in
+style's is from its TRAIN clips: from what the network (its carriage in place) makes toward the
+style to the style's real rotations, the same joints carried, the same source floor. The
+built-in fit streams neutral clips; the network reads its input only as control (trajectory,
+facing, pace), so the upload's source is the network's output for the clip's own trajectory:
+the content and pace of the clip itself, as Style-ERD's upload pools neutral clips near it in
+Hips speed and turning (`models/erd/upload_stages.py`). The source depends on the upload's FiLM
+vector, so it is streamed when the style is made (a fraction of a second), not stored.
 """
 
 from __future__ import annotations
 
 import copy
 import threading
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Self
+from typing import TYPE_CHECKING, Any, Self
 
 import numpy as np
 
 from models.interface import ClipStyles, FineTuned, Progress, StyleRejected
-from models.motion.skeleton import Motion
+from models.motion.skeleton import Motion, Skeleton
+from models.motion.style_carry import StyleCarry
+from models.stages import Pipeline
 
 if TYPE_CHECKING:
     from .network import LPN
 
 FILM_FILE = "film.npz"
+PRIOR_KEYS = ("prior_source", "prior_mean", "prior_map", "prior_radius")  # a saved upload's prior, if any
+MAKING = "upload being made"  # the style name a twin streams the clip toward to fit its prior
+PRIOR_MIN_FRAMES = 60  # a clip shorter than this (after the network's first second) gets no prior
 
 
-class LPNStyles(ClipStyles[np.ndarray]):
+@dataclass(frozen=True)
+class LPNUpload:
+    """An uploaded style: its FiLM vector (4, H) and its output prior (a one-style carry; None:
+    the stage is off, the clip too short, or a style saved with its vector alone)."""
+
+    film: np.ndarray
+    prior: StyleCarry | None = None
+
+
+class LPNStyles(ClipStyles[LPNUpload]):
     """What `LPNModel` adds to take uploaded styles; it relies on the model's `set_style_film`,
-    `generator` and its style lock."""
+    `set_style_upload`, `film_from_clip`, `generator`, `stages`, `skeleton` and its style lock."""
 
-    clip_style_note = "FiLM parameters from the clip"
+    clip_style_note = "FiLM parameters and output prior from the clip"
     tuning_note = "fine-tuning the FiLM generator"
     _lock: threading.Lock
+    skeleton: Skeleton
+    stages: Pipeline
     if TYPE_CHECKING:
 
         def set_style_film(self, name: str, film: np.ndarray) -> None: ...
+        def set_style_upload(self, name: str, film: np.ndarray, prior: StyleCarry | None) -> None: ...
+        def film_from_clip(self, motion: Motion) -> np.ndarray: ...
         def generator(self) -> LPN: ...
+
+    def style_from_clip(self, clip: Motion) -> LPNUpload:
+        """The clip's FiLM vector (`film_from_clip`) and the output prior fitted for it (`upload_prior`)."""
+        film = self.film_from_clip(clip)
+        return LPNUpload(film, self.upload_prior(clip, film))
+
+    def upload_prior(self, clip: Motion, film: np.ndarray) -> StyleCarry | None:
+        """The output prior of a style of FiLM vector `film` (4, H) from its clip (module doc):
+        `output_prior.fit`'s recipe (its first `FIT_FRAMES` streamed) with the network's output for
+        the clip's own trajectory as the source and the clip as the real style. Leaves this model
+        as it is; ~2 s for a 10 s clip on the shared 2-core machine."""
+        from .carriage import SKIP_FRAMES, made
+        from .output_prior import CARRIED, FIT_FRAMES, SOURCE_FLOOR_DEG
+
+        if self.stages.output_prior is None or clip.num_frames < SKIP_FRAMES + PRIOR_MIN_FRAMES:
+            return None
+        twin = self.with_own_styles()
+        twin.stages = twin.stages.without("output_prior", "arm_coupling")  # as the built-in fit runs it
+        twin.set_style_film(MAKING, film)
+        source = made(twin, MAKING, [clip.slice(0, FIT_FRAMES)])[0].astype(np.float64)  # type: ignore[arg-type]
+        fixed = tuple(j for j, n in enumerate(self.skeleton.names) if n not in CARRIED)
+        target = clip.rotations.astype(np.float64)
+        return StyleCarry.fit([source], [target], fixed, source_floor=np.radians(SOURCE_FLOOR_DEG))
 
     def with_own_styles(self) -> Self:
         twin = copy.copy(self)
@@ -49,9 +100,10 @@ class LPNStyles(ClipStyles[np.ndarray]):
                 "fine_tune",
             )
 
-    def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[np.ndarray]:
-        """The FiLM vector of a copy of the generator fine-tuned on `clip` for `steps` Adam steps;
-        None (the clip's embedding stays) unless it lowered the loss on the held-back frames."""
+    def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[LPNUpload]:
+        """The FiLM vector of a copy of the generator fine-tuned on `clip` for `steps` Adam steps,
+        with its output prior fitted again for it; None (the clip's style stays) unless it lowered
+        the loss on the held-back frames."""
         from .finetune import FineTuneConfig, fine_tune
 
         def report(fraction: float, loss: float) -> None:
@@ -59,25 +111,32 @@ class LPNStyles(ClipStyles[np.ndarray]):
 
         progress(0.0, "building the clip's training samples")
         res = fine_tune(self.generator(), clip, FineTuneConfig(steps=steps), report)
-        progress(0.97, "installing the fine-tuned FiLM vector" if res.improved else "keeping the clip's embedding")
         if res.improved:
-            return FineTuned(res.film, res.summary(), "fine-tuned FiLM generator")
+            progress(0.96, "fitting the output prior for the fine-tuned FiLM vector")
+            tuned = LPNUpload(res.film, self.upload_prior(clip, res.film))
+            progress(0.99, "installing the fine-tuned FiLM vector")
+            return FineTuned(tuned, res.summary(), "fine-tuned FiLM generator")
+        progress(0.97, "keeping the clip's embedding")
         return FineTuned(
             None,
             res.summary(),
             "FiLM parameters from the clip (fine-tuning did not lower the loss on the clip's held-back frames)",
         )
 
-    def install_style(self, name: str, style: np.ndarray) -> None:
-        self.set_style_film(name, style)
+    def install_style(self, name: str, style: LPNUpload) -> None:
+        self.set_style_upload(name, style.film, style.prior)
 
-    def save_style(self, style: np.ndarray, folder: Path) -> None:
-        np.savez(folder / "film.tmp.npz", film=style)
+    def save_style(self, style: LPNUpload, folder: Path) -> None:
+        arrays: dict[str, Any] = {"film": style.film}
+        if style.prior is not None:
+            arrays |= dict(zip(PRIOR_KEYS, style.prior.arrays))
+        np.savez(folder / "film.tmp.npz", **arrays)
         (folder / "film.tmp.npz").replace(folder / FILM_FILE)
 
     def has_saved_style(self, folder: Path) -> bool:
         return (folder / FILM_FILE).exists()
 
-    def load_style(self, name: str, folder: Path) -> np.ndarray:
+    def load_style(self, name: str, folder: Path) -> LPNUpload:
         with np.load(folder / FILM_FILE) as z:
-            return z["film"]
+            prior = StyleCarry(*(z[k] for k in PRIOR_KEYS)) if PRIOR_KEYS[0] in z else None
+            return LPNUpload(z["film"], prior)
