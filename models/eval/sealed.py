@@ -359,8 +359,10 @@ def markdown(r: dict) -> str:
         f"content (gate ≤ {GATE_SLIDE}×); then the row's pooled p95 in cm/s. **skate**: planted-foot frames faster than "
         f"{meta['skate_limit_cm_s']:.0f} cm/s (the real validation clips' p95, so real clips skate in 5 %). "
         f"**skid**: touchdowns where the foot lands flat still moving faster than {SKID_SPEED} leg lengths/s "
-        "(50 cm/s; real dataset-2 validation walks 0-7 %): a foot that flattens while it still swings "
-        "forward and skids into its print (not gated; most of a row's slide p95 is made there). "
+        "(50 cm/s): a foot that flattens while it still swings forward and skids into its print. Not gated; "
+        "compare the real row: real straight walks skid in 0-7 % of touchdowns, real elderly and exhausted clips "
+        "of every content in 22-30 % (a dragged foot is part of those styles), and most of a model row's slide "
+        "p95 is made there. "
         "**path**: hips path length over the input's, each plus a leg length (median, and the worst clip); "
         "**drift**: how far the two paths end apart (median, cm).",
         f"- **faded**: frames whose output faded more than {FADED:.0%} of the way toward the input because the input "
