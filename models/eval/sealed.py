@@ -360,9 +360,9 @@ def markdown(r: dict) -> str:
         f"{meta['skate_limit_cm_s']:.0f} cm/s (the real validation clips' p95, so real clips skate in 5 %). "
         f"**skid**: touchdowns where the foot lands flat still moving faster than {SKID_SPEED} leg lengths/s "
         "(50 cm/s): a foot that flattens while it still swings forward and skids into its print. Not gated; "
-        "compare the real row: real straight walks skid in 0-7 % of touchdowns, real elderly and exhausted clips "
-        "of every content in 22-30 % (a dragged foot is part of those styles), and most of a model row's slide "
-        "p95 is made there. "
+        "compare the real row: real neutral clips skid in 0-5 % of touchdowns; real elderly and exhausted clips in "
+        "22-30 %, nearly all on turns (44-68 % of a turn's touchdowns: the foot drags round), against 0-12 % on "
+        "their walks and runs. Most of a model row's slide p95 is made there. "
         "**path**: hips path length over the input's, each plus a leg length (median, and the worst clip); "
         "**drift**: how far the two paths end apart (median, cm).",
         f"- **faded**: frames whose output faded more than {FADED:.0%} of the way toward the input because the input "
