@@ -32,16 +32,15 @@ def _numba_folder_name(folder: str) -> str:
     return f"{os.path.basename(folder)}_{hashlib.sha1(folder.encode()).hexdigest()}"
 
 
-def _keyed_cache(repo: Path) -> Path | None:
-    """The checkout's cache folder for its current kernel sources, or None if it uses another."""
+def _keyed_cache(repo: Path) -> Path:
+    """The checkout's cache folder for its current kernel sources. Whatever NUMBA_CACHE_DIR says
+    (the tests' processes set it to this folder; a user's own folder is not keyed by the sources,
+    so it could hold a kernel built against an older helper), only this folder is staged."""
     spec = importlib.util.spec_from_file_location("_numba_cache", repo / "models" / "numba_cache.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
-    environ = dict(os.environ)
-    spec.loader.exec_module(module)  # its import-time `configure` sets NUMBA_CACHE_DIR here: undone
-    os.environ.clear()
-    os.environ.update(environ)
-    return module.cache_dir(environ, repo / "models")
+    spec.loader.exec_module(module)  # (its import-time `configure` only sets this process's env)
+    return module.cache_dir({}, repo / "models")
 
 
 def stage(dest: Path, repo: Path = REPO) -> int:
@@ -49,7 +48,7 @@ def stage(dest: Path, repo: Path = REPO) -> int:
     shutil.rmtree(dest, ignore_errors=True)
     dest.mkdir(parents=True)
     cache = _keyed_cache(repo)
-    if cache is None or not cache.is_dir():
+    if not cache.is_dir():
         return 0
     names: dict[str, Path] = {}
     for package in PACKAGES:
