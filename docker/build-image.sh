@@ -4,7 +4,8 @@
 #   bash docker/build-image.sh [extra build args...]     IMAGE=stylestream:dev to change the tag
 #
 # Stages the torch CPU wheel into the git-ignored docker/wheels/ first (hard link when on the same
-# filesystem), looked up in TORCH_WHEEL_DIRS (default: pip's find-links, then /opt/wheels). No
+# filesystem), looked up in TORCH_WHEEL_DIRS (default: pip's find-links, then /opt/wheels), and
+# the kernels numba compiled in this checkout into docker/numba-seed/ (docker/numba_seed.py). No
 # registry is needed: the base image must already be local (../shared/tools/container-base.sh).
 set -Eeuo pipefail
 cd "$(dirname "$0")/.."
@@ -28,6 +29,10 @@ fi
 compgen -G "docker/wheels/$WHEEL_GLOB" >/dev/null || {
   echo "build-image: no $WHEEL_GLOB in docker/wheels/ or in: ${dirs:-}" >&2
   echo "  put the torch 2.13.0 CPU wheel there (e.g. pip download from the PyTorch CPU index)" >&2; exit 1; }
+
+# numba's kernels as this checkout compiled them (docker/numba_seed.py): the image's warm-up loads
+# those whose source matches instead of compiling them (minutes on two cores); none staged is fine
+python3 docker/numba_seed.py stage docker/numba-seed || { rm -rf docker/numba-seed; mkdir -p docker/numba-seed; }
 
 # podman: docker format (OCI has no HEALTHCHECK), --pull=never (no registry is reachable)
 flags=(); [[ $(basename "$ENGINE") == podman ]] && flags=(--format docker --pull=never)

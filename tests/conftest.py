@@ -45,13 +45,38 @@ def _one_ssl_context_per_setting() -> None:
 _one_ssl_context_per_setting()
 
 
+# Test files handed to pytest-xdist's workers before all others: one whose module fixture takes
+# minutes (the image build) is the run's last test if it starts late, and has the other worker's
+# whole share of the suite to overlap with if it starts first.
+SCHEDULE_FIRST = ("test_container.py",)
+
+
+def _distributed(config: pytest.Config) -> bool:
+    return bool(os.environ.get("PYTEST_XDIST_WORKER") or getattr(config.option, "numprocesses", None))
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """With pytest-xdist (`make test`), the controller compiles the kernels and unpacks the data
-    once before the workers start, which would each do it (`tests/warm.py`)."""
+    once before the workers start, which would each do it (`tests/warm.py`). It hands out the test
+    files in the order `pytest_collection_modifyitems` leaves them, not re-sorted by size."""
     if not os.environ.get("PYTEST_XDIST_WORKER") and getattr(config.option, "numprocesses", None):
         from .warm import warm_all
 
+        config.option.loadscopereorder = False
         warm_all()
+
+
+@pytest.hookimpl(trylast=True)  # after `-m` has deselected
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under pytest-xdist, the files in `SCHEDULE_FIRST` first, then the others by descending test
+    count as xdist's own `--loadscope-reorder` sorts them (a stable sort: each file's tests keep
+    their order). Every worker collects the same order, as xdist requires."""
+    if not _distributed(config):
+        return
+    counts: dict[Path, int] = {}
+    for item in items:
+        counts[item.path] = counts.get(item.path, 0) + 1
+    items.sort(key=lambda item: (item.path.name not in SCHEDULE_FIRST, -counts[item.path]))
 
 
 @pytest.fixture(scope="session")

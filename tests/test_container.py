@@ -3,7 +3,9 @@ a real clip streamed through a WebSocket session, then `podman stop` (SIGTERM) w
 
 Podman and a registry-free python:3.11-slim come from ../shared/tools/container-base.sh (root and
 apt needed: otherwise the module is skipped, saying why). The first build on a machine installs
-torch and the dependencies (minutes); later builds reuse those layers (about a minute).
+torch and the dependencies (minutes); later builds reuse those layers (about a minute), and load
+the numba kernels this checkout compiled (`docker/numba_seed.py`; under pytest-xdist the controller
+compiles them all first, `tests/warm.py`) instead of compiling them again.
 """
 
 from __future__ import annotations
