@@ -16,6 +16,7 @@ from models.eval.metrics import SKATE_SPEED, SKID_SPEED, touchdown_speeds
 from models.eval.physical import Input, Reference, measure, planted_speeds, worst_slide
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import OTHER, load_style_judge
+from models.eval.touchdown import landings, reach
 from models.motion.features import left_leg_length
 from models.motion.rotations import quat_exp, quat_mul
 
@@ -148,6 +149,15 @@ def test_a_real_walk_lands_at_rest_and_a_gliding_one_skids_into_every_print(walk
     trans[:, walk.skeleton.index("Hips"), 0] += np.arange(walk.num_frames) * 3.0  # 90 cm/s, about a leg length
     glide = touchdown_speeds(replace(walk, translations=trans)) / leg
     assert len(glide) >= 4 and (glide > SKID_SPEED).all()
+
+
+def test_a_real_foot_lands_moving_back_under_the_body_after_reaching_forward(walk):
+    hips = walk.global_positions()[:, walk.skeleton.index("Hips")][:, [0, 2]]
+    speed = np.linalg.norm(hips[-1] - hips[0]) / (walk.num_frames / walk.fps)
+    ground, relative = landings(walk)
+    assert len(relative) >= 4 and np.median(ground) < 0.2 * speed
+    assert -1.5 * speed < np.median(relative) < -0.5 * speed  # the hips pass over the planted foot
+    assert reach(walk) > 5.0  # the ankle ahead of the knee before heel strike
 
 
 def test_a_quick_validation_run_scores_every_source_and_records_no_final_run(tmp_path, monkeypatch):

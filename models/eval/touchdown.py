@@ -1,0 +1,96 @@
+"""`python -m models.eval.touchdown [--methods lti erd lpn] [--styles ...]`: why feet skid as they land.
+
+The skid column (`metrics.touchdown_speeds`) says how often a foot lands flat while still moving;
+this says why, on dataset 2's neutral VALIDATION walks toward each style (each method's core alone,
+as `models.registry` serves it), beside the real style's validation walks:
+- **relative speed**: at each touchdown, the ankle's speed relative to the hips along the hips'
+  travel (cm/s; the median). A real foot lands as it moves back under the body (about minus the
+  walking speed); a foot still swinging forward (> 0) lands flat at the swing's forward end and skids.
+- **reach**: the shank's forward tilt at its most forward (the clip's p95 of its world pitch, degrees,
+  + = ankle ahead of the knee): the stride's reach before heel strike.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from ..data import build_index, load_motions, select
+from ..motion.features import body_joint, left_leg_length
+from ..motion.skeleton import Motion
+from ..registry import METHODS, load_model
+from ..settings import get_settings
+from .metrics import SKID_SPEED, flat_foot_contacts
+from .run import DATASET, INPUT_STYLE, stylise_toward
+
+STYLES = ("active", "elderly", "exhausted", "feminine", "masculine", "youthful")
+
+
+def _travel(motion: Motion, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F, 2) hips ground positions and (F, 2) unit travel directions (the hips' smoothed velocity)."""
+    hips = pos[:, body_joint(motion.skeleton, "hips"), :][:, [0, 2]]
+    v = np.gradient(hips, axis=0)
+    v = np.apply_along_axis(lambda x: np.convolve(x, np.ones(9) / 9, mode="same"), 0, v)
+    return hips, v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
+
+
+def landings(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
+    """Per touchdown (first planted frame of each foot's planted stretch): the foot's speed over the
+    ground and the ankle's speed relative to the hips along their travel, both in cm/s (units/s)."""
+    pos = motion.global_positions()
+    contacts, speeds = flat_foot_contacts(motion, pos)
+    hips, direction = _travel(motion, pos)
+    ground, relative = [], []
+    for k, side in enumerate("lr"):
+        ankle = pos[:, body_joint(motion.skeleton, f"ankle_{side}"), :][:, [0, 2]]
+        rel = np.gradient(ankle - hips, axis=0) * motion.fps
+        flat = contacts[:, k]
+        for a in np.flatnonzero(flat & ~np.concatenate([[False], flat[:-1]])):
+            ground.append(speeds[a : a + 2, k].max())
+            relative.append(float(rel[a] @ direction[a]))
+    return np.array(ground), np.array(relative)
+
+
+def reach(motion: Motion) -> float:
+    """p95 over the clip of the left shank's forward tilt along the hips' travel (degrees)."""
+    pos = motion.global_positions()
+    _, direction = _travel(motion, pos)
+    names = motion.skeleton.names
+    shank = pos[:, names.index("Foot_L")] - pos[:, names.index("LowerLeg_L")]
+    forward = np.einsum("fi,fi->f", shank[:, [0, 2]], direction)
+    return float(np.percentile(np.degrees(np.arctan2(forward, -shank[:, 1])), 95))
+
+
+def summary(motions: list[Motion]) -> str:
+    ground, relative = (np.concatenate(x) for x in zip(*(landings(m) for m in motions)))
+    leg = left_leg_length(motions[0].skeleton)
+    skid = float(np.mean(ground > SKID_SPEED * leg)) if len(ground) else 0.0
+    return (
+        f"skid {100 * skid:3.0f}% of {len(ground):3d} | relative speed {np.median(relative):+6.0f} cm/s | "
+        f"reach {np.mean([reach(m) for m in motions]):+5.1f} deg"
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(prog="python -m models.eval.touchdown", description=__doc__)
+    ap.add_argument("--methods", nargs="*", default=list(METHODS))
+    ap.add_argument("--styles", nargs="*", default=list(STYLES))
+    args = ap.parse_args()
+    index = build_index([DATASET])
+    walks = lambda style: load_motions(select(index, split="val", style=style, content="walk"))  # noqa: E731
+    inputs = walks(INPUT_STYLE)
+    print(f"{'input':22s} {summary(inputs)}")
+    for style in args.styles:
+        print(f"{'real ' + style:22s} {summary(walks(style))}")
+    for method in args.methods:
+        model = load_model(get_settings().weights_dir, method, core_only=True)
+        if model is None:
+            continue
+        outs = stylise_toward(model, inputs, args.styles)
+        for style in args.styles:
+            print(f"{method + ' core ' + style:22s} {summary(outs[style])}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
