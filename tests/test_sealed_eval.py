@@ -12,7 +12,7 @@ import pytest
 from models.data import build_index, load_motions, select
 from models.eval import sealed
 from models.eval.intervals import share, wilson
-from models.eval.metrics import SKATE_SPEED, SKID_SPEED, touchdown_speeds
+from models.eval.metrics import SKATE_SPEED, SKID_SPEED, flat_foot_contacts, touchdown_speeds
 from models.eval.physical import Input, Reference, measure, planted_speeds, worst_slide
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import OTHER, load_style_judge
@@ -143,11 +143,11 @@ def test_a_content_the_style_never_performed_may_stay_near_the_input_to_be_plaus
 
 def test_a_real_walk_lands_at_rest_and_a_gliding_one_skids_into_every_print(walk):
     leg = left_leg_length(walk.skeleton)
-    real = touchdown_speeds(walk) / leg
+    real = touchdown_speeds(*flat_foot_contacts(walk)) / leg
     assert len(real) >= 4 and (real > SKID_SPEED).mean() <= 0.1
     trans = walk.translations.copy()
     trans[:, walk.skeleton.index("Hips"), 0] += np.arange(walk.num_frames) * 3.0  # 90 cm/s, about a leg length
-    glide = touchdown_speeds(replace(walk, translations=trans)) / leg
+    glide = touchdown_speeds(*flat_foot_contacts(replace(walk, translations=trans))) / leg
     assert len(glide) >= 4 and (glide > SKID_SPEED).all()
 
 

@@ -56,18 +56,20 @@ def flat_foot_contacts(motion: Motion, positions: np.ndarray | None = None) -> t
     return np.stack(contacts, -1), np.stack(speeds, -1)
 
 
-def touchdown_speeds(motion: Motion, positions: np.ndarray | None = None) -> np.ndarray:
+def touchdowns(contacts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(feet, frames) of each planted stretch's first frame in `contacts` (`flat_foot_contacts`),
+    foot by foot."""
+    starts = contacts & ~np.concatenate([np.zeros_like(contacts[:1]), contacts[:-1]])
+    feet, frames = np.nonzero(starts.T)
+    return feet, frames
+
+
+def touchdown_speeds(contacts: np.ndarray, speeds: np.ndarray) -> np.ndarray:
     """(N,) horizontal speed (units/s) of each foot as it lands flat: the faster of a planted
-    stretch's first two frames (`flat_foot_contacts`). A real heel comes to rest before the sole
-    flattens; a foot that is still swinging forward when it flattens skids into its print, and
-    these frames are where a planted-foot p95 is made."""
-    contacts, speeds = flat_foot_contacts(motion, positions)
-    out = []
-    for k in range(contacts.shape[1]):
-        flat = contacts[:, k]
-        for a in np.flatnonzero(flat & ~np.concatenate([[False], flat[:-1]])):
-            out.append(speeds[a : a + 2, k].max())
-    return np.array(out)
+    stretch's first two frames (`flat_foot_contacts`' contacts and speeds). A real heel comes to
+    rest before the sole flattens; a foot that is still swinging forward when it flattens skids
+    into its print, and these frames are where a planted-foot p95 is made."""
+    return np.array([speeds[a : a + 2, k].max() for k, a in zip(*touchdowns(contacts))])
 
 
 def foot_skating(motion: Motion, positions: np.ndarray | None = None) -> dict:

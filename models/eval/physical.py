@@ -142,7 +142,10 @@ def _p95_by_content(speeds: list[np.ndarray], contents: list[str]) -> dict[str, 
 
 def planted_speeds(motion: Motion) -> np.ndarray:
     """Horizontal speeds (units/s) of the feet over the frames each is planted flat."""
-    contacts, speeds = flat_foot_contacts(motion)
+    return _planted(*flat_foot_contacts(motion))
+
+
+def _planted(contacts: np.ndarray, speeds: np.ndarray) -> np.ndarray:
     return speeds[1:][contacts[1:]]
 
 
@@ -188,26 +191,29 @@ def measure(ref: Reference, style: str, out: Motion, inp: Input | None, content:
     1's kicks, Xia's jumps), the output may also stay near the input's own rotations to be
     plausible, as its slide is held to the input's (`worst_slide`)."""
     acc = rotation_acceleration(out, ref.support.joint_index)
+    pos = out.global_positions()
+    contacts, foot_speeds = flat_foot_contacts(out, pos)
     jitter, path_ratio, drift = float("nan"), float("nan"), float("nan")
     if inp is not None and out.num_frames > 3:
         jitter = float((np.percentile(acc, 99, axis=0) / np.maximum(inp.p99_acc, ref.style_p99[style])).max())
-        path_ratio, drift = _paths(inp, _hips_xz(out))
+        path_ratio, drift = _paths(inp, _hips_xz(out, pos))
     speeds = None if inp is None else inp.foot_speeds
     kept = inp.rotations if inp is not None and content not in ref.slide.get(style, {}) else None
     return ClipPhysics(
         ref.support.within(style, out, kept),
         acc,
         jitter,
-        planted_speeds(out),
+        _planted(contacts, foot_speeds),
         speeds,
-        touchdown_speeds(out) / left_leg_length(out.skeleton),
+        touchdown_speeds(contacts, foot_speeds) / left_leg_length(out.skeleton),
         path_ratio,
         drift,
     )
 
 
-def _hips_xz(motion: Motion) -> np.ndarray:
-    return motion.global_positions()[:, body_joint(motion.skeleton, "hips")][:, [0, 2]]
+def _hips_xz(motion: Motion, positions: np.ndarray | None = None) -> np.ndarray:
+    pos = motion.global_positions() if positions is None else positions
+    return pos[:, body_joint(motion.skeleton, "hips")][:, [0, 2]]
 
 
 def _paths(inp: Input, b: np.ndarray) -> tuple[float, float]:

@@ -21,7 +21,7 @@ from ..motion.features import body_joint, left_leg_length
 from ..motion.skeleton import Motion
 from ..registry import METHODS, load_model
 from ..settings import get_settings
-from .metrics import SKID_SPEED, flat_foot_contacts
+from .metrics import SKID_SPEED, flat_foot_contacts, touchdown_speeds, touchdowns
 from .run import DATASET, INPUT_STYLE, stylise_toward
 
 STYLES = ("active", "elderly", "exhausted", "feminine", "masculine", "youthful")
@@ -35,26 +35,23 @@ def _travel(motion: Motion, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return hips, v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-9)
 
 
-def landings(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
-    """Per touchdown (first planted frame of each foot's planted stretch): the foot's speed over the
-    ground and the ankle's speed relative to the hips along their travel, both in cm/s (units/s)."""
-    pos = motion.global_positions()
+def landings(motion: Motion, positions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per touchdown (`metrics.touchdowns`): the foot's speed over the ground
+    (`metrics.touchdown_speeds`) and the ankle's speed relative to the hips along their travel,
+    both in cm/s (units/s)."""
+    pos = motion.global_positions() if positions is None else positions
     contacts, speeds = flat_foot_contacts(motion, pos)
     hips, direction = _travel(motion, pos)
-    ground, relative = [], []
-    for k, side in enumerate("lr"):
-        ankle = pos[:, body_joint(motion.skeleton, f"ankle_{side}"), :][:, [0, 2]]
-        rel = np.gradient(ankle - hips, axis=0) * motion.fps
-        flat = contacts[:, k]
-        for a in np.flatnonzero(flat & ~np.concatenate([[False], flat[:-1]])):
-            ground.append(speeds[a : a + 2, k].max())
-            relative.append(float(rel[a] @ direction[a]))
-    return np.array(ground), np.array(relative)
+    ankles = pos[:, [body_joint(motion.skeleton, f"ankle_{side}") for side in "lr"]][..., [0, 2]]
+    rel = np.gradient(ankles - hips[:, None], axis=0) * motion.fps  # (F, 2 feet, 2)
+    feet, frames = touchdowns(contacts)
+    relative = np.einsum("ni,ni->n", rel[frames, feet], direction[frames])
+    return touchdown_speeds(contacts, speeds), relative
 
 
-def reach(motion: Motion) -> float:
+def reach(motion: Motion, positions: np.ndarray | None = None) -> float:
     """p95 over the clip of the left shank's forward tilt along the hips' travel (degrees)."""
-    pos = motion.global_positions()
+    pos = motion.global_positions() if positions is None else positions
     _, direction = _travel(motion, pos)
     names = motion.skeleton.names
     shank = pos[:, names.index("Foot_L")] - pos[:, names.index("LowerLeg_L")]
@@ -63,12 +60,13 @@ def reach(motion: Motion) -> float:
 
 
 def summary(motions: list[Motion]) -> str:
-    ground, relative = (np.concatenate(x) for x in zip(*(landings(m) for m in motions)))
+    positions = [m.global_positions() for m in motions]
+    ground, relative = (np.concatenate(x) for x in zip(*(landings(m, p) for m, p in zip(motions, positions))))
     leg = left_leg_length(motions[0].skeleton)
     skid = float(np.mean(ground > SKID_SPEED * leg)) if len(ground) else 0.0
     return (
         f"skid {100 * skid:3.0f}% of {len(ground):3d} | relative speed {np.median(relative):+6.0f} cm/s | "
-        f"reach {np.mean([reach(m) for m in motions]):+5.1f} deg"
+        f"reach {np.mean([reach(m, p) for m, p in zip(motions, positions)]):+5.1f} deg"
     )
 
 
