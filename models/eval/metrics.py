@@ -56,6 +56,11 @@ def flat_foot_contacts(motion: Motion, positions: np.ndarray | None = None) -> t
     return np.stack(contacts, -1), np.stack(speeds, -1)
 
 
+def planted(contacts: np.ndarray, speeds: np.ndarray) -> np.ndarray:
+    """The speeds (`flat_foot_contacts`) over the frames each foot is planted, feet pooled."""
+    return speeds[1:][contacts[1:]]
+
+
 def touchdowns(contacts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(feet, frames) of each planted stretch's first frame in `contacts` (`flat_foot_contacts`),
     foot by foot."""

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from ..motion.features import body_joint, left_leg_length
 from ..motion.rotations import quat_inv, quat_log, quat_mean, quat_mul
 from ..motion.skeleton import Motion
-from .metrics import SKID_SPEED, flat_foot_contacts, touchdown_speeds
+from .metrics import SKID_SPEED, flat_foot_contacts, planted, touchdown_speeds
 from .plausibility import body_joints, comparable_rotations, rotation_acceleration
 
 PLAUSIBLE_FRAMES = 0.95  # a joint is plausible in a clip when this share of its frames is
@@ -142,11 +142,7 @@ def _p95_by_content(speeds: list[np.ndarray], contents: list[str]) -> dict[str, 
 
 def planted_speeds(motion: Motion) -> np.ndarray:
     """Horizontal speeds (units/s) of the feet over the frames each is planted flat."""
-    return _planted(*flat_foot_contacts(motion))
-
-
-def _planted(contacts: np.ndarray, speeds: np.ndarray) -> np.ndarray:
-    return speeds[1:][contacts[1:]]
+    return planted(*flat_foot_contacts(motion))
 
 
 @dataclass
@@ -203,7 +199,7 @@ def measure(ref: Reference, style: str, out: Motion, inp: Input | None, content:
         ref.support.within(style, out, kept),
         acc,
         jitter,
-        _planted(contacts, foot_speeds),
+        planted(contacts, foot_speeds),
         speeds,
         touchdown_speeds(contacts, foot_speeds) / left_leg_length(out.skeleton),
         path_ratio,

@@ -68,12 +68,11 @@ def planted_slide_p95(motion: Motion, root_joint: int, root: np.ndarray, rotatio
     """p95 horizontal speed (leg lengths/s) of flat planted feet (`models.eval.metrics.
     flat_foot_contacts`: ankle and toe both on the floor; the slower of the two) of `motion`'s
     skeleton posed by `root` (the `root_joint` translation) and `rotations`."""
-    from ..eval.metrics import flat_foot_contacts
+    from ..eval.metrics import flat_foot_contacts, planted
     from .features import left_leg_length
 
     translations = motion.translations[: len(root)].copy()
     translations[:, root_joint] = root
     posed = replace(motion, rotations=np.asarray(rotations, float), translations=translations)
-    contacts, speeds = flat_foot_contacts(posed)
-    planted = speeds[1:][contacts[1:]]
-    return float(np.percentile(planted, 95)) / left_leg_length(motion.skeleton) if len(planted) else 0.0
+    speeds = planted(*flat_foot_contacts(posed))
+    return float(np.percentile(speeds, 95)) / left_leg_length(motion.skeleton) if len(speeds) else 0.0
