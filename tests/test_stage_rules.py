@@ -38,8 +38,6 @@ STAGE_MODULES = (
     "models/lti/kernels.py",
     "models/lti/footplant.py",
     "models/lti/raised_arm.py",
-    "models/lti/waving_arm.py",
-    "models/lti/waving_kernels.py",
 )
 SIDE_WORDS = {"l", "r", "left", "right"}
 SIDE_SUFFIXES = {"_l": "_r", "_r": "_l"}

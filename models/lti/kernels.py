@@ -8,8 +8,7 @@ The step reads top to bottom (`step`):
 2. the input's hands measured (`models.motion.hands_kernels.hand_step`);
 3. `carry_raised_arms`: a raised hand that holds still, its arm carried toward the style's
    (`raised_arm.py`) by a share eased over time (`raised_shares`);
-4. `waving_kernels.swing_arms`: a waving hand's arm takes the input's swing (`waving_arm.py`);
-5. the feet planted (`models.motion.feet_kernels.plant_feet`).
+4. the feet planted (`models.motion.feet_kernels.plant_feet`).
 
 Each style's hinge joints (knees, elbows) are held at their least real bend in step 1
 (`models.motion.hinge_kernels.floor_bend`), after its rotation ball.
@@ -50,8 +49,6 @@ from ..motion.novelty_kernels import fade_step
 from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qunit, qyaw, row3, row4, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
-from .waving_arm import MEAN_SHAPE
-from .waving_kernels import WavingArm, ramp, swing_arms
 
 FEATURE_DIM = 67  # root displacement (2), yaw change, height, 21 expmaps
 SHARE_FLOOR = 1e-3  # an eased raised-arm share below this is 0 (`raised_shares`)
@@ -92,8 +89,6 @@ class Session(NamedTuple):
     hand_prev: np.ndarray  # (B, 2, 3) the input's hands from their shoulders, the frame before
     hand_sway: np.ndarray  # (B, 2) their horizontal speed, averaged
     hand_rise: np.ndarray  # (B, 2) their vertical speed, averaged
-    wave_in_mean: np.ndarray  # (B, 2, K, 4) the input's arm joints' running mean (`waving_arm.py`)
-    wave_out_mean: np.ndarray  # (B, 2, K, 4) the output's
     x: np.ndarray  # (B, n) the LTI states of the styles in use side by side (`Frame.x_at`)
 
 
@@ -110,8 +105,6 @@ CARRY = {
     "hand_prev": (2, 3),
     "hand_sway": (2,),
     "hand_rise": (2,),
-    "wave_in_mean": MEAN_SHAPE,
-    "wave_out_mean": MEAN_SHAPE,
     **{key: shape for key, (shape, _) in FEET_STATE.items()},
 }
 
@@ -128,7 +121,7 @@ def _layout() -> tuple[dict[str, tuple], int]:
 
 SPANS, CARRY_WIDTH = _layout()
 _S = tuple(SPANS.values())  # as the kernels read it (numba takes a global tuple as a constant)
-WAVE_AT, FEET_AT = SPANS["wave_in_mean"][0], SPANS["feet_started"][0]  # the running means, the planter
+FEET_AT = SPANS["feet_started"][0]  # the planter's state
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -143,12 +136,11 @@ def unpack(carry, x):
     """The `Session` (with the LTI states x) and `Feet` records of a packed carry: views."""
     session = Session(
         _view(carry, _S[0]), _view(carry, _S[1]), _view(carry, _S[2]), _view(carry, _S[3]), _view(carry, _S[4]),
-        _view(carry, _S[5]), _view(carry, _S[6]), _view(carry, _S[7]), _view(carry, _S[8]), _view(carry, _S[9]),
-        _view(carry, _S[10]), _view(carry, _S[11]), x,
+        _view(carry, _S[5]), _view(carry, _S[6]), _view(carry, _S[7]), _view(carry, _S[8]), _view(carry, _S[9]), x,
     )  # fmt: skip
     feet = Feet(
-        _view(carry, _S[12]), _view(carry, _S[13]), _view(carry, _S[14]), _view(carry, _S[15]),
-        _view(carry, _S[16]), _view(carry, _S[17]), _view(carry, _S[18]), _view(carry, _S[19]),
+        _view(carry, _S[10]), _view(carry, _S[11]), _view(carry, _S[12]), _view(carry, _S[13]),
+        _view(carry, _S[14]), _view(carry, _S[15]), _view(carry, _S[16]), _view(carry, _S[17]),
     )  # fmt: skip
     return session, feet
 
@@ -231,7 +223,6 @@ class Switches(NamedTuple):
     blend: bool  # toward the input outside the training range (erf)
     keep_heading: bool  # the output's yaw change is the input's
     raised_arm: bool
-    waving_arm: bool
     footlock: bool
 
 
@@ -296,9 +287,8 @@ CONSTANT_SCHEMAS = (
     "f3 f3 f2",  # Ball
     "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
     "f3 f3 f4 f2 i1 i2 f1 f1 f0",  # RaisedArm
-    "i2 f1 f1 f1 f0 f0",  # WavingArm
     "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
-    "b0 b0 b0 b0 b0",  # Switches
+    "b0 b0 b0 b0",  # Switches
     "f2 f2 f1",  # Bends
 )
 WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f2 f3"
@@ -367,8 +357,8 @@ def _s4(p, k):
 
 @njit(cache=True, error_model="numpy")
 def unpack_constants(p):
-    """The step's constant records from `pack([systems, footplant, ball, hands, arm, waving,
-    planter, switches, bends])`: views, in `CONSTANT_SCHEMAS`' order."""
+    """The step's constant records from `pack([systems, footplant, ball, hands, arm, planter,
+    switches, bends])`: views, in `CONSTANT_SCHEMAS`' order."""
     sys = Systems(
         _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _i(p, 5), _i(p, 6), _i(p, 7).reshape(_s2(p, 7)), _i(p, 8),
         _f(p, 9), _f(p, 10).reshape(_s2(p, 10)),
@@ -390,15 +380,14 @@ def unpack_constants(p):
         _f(p, 39).reshape(_s2(p, 39)), _i(p, 40), _i(p, 41).reshape(_s2(p, 41)), _f(p, 42), _f(p, 43),
         _f(p, 44)[0],
     )  # fmt: skip
-    waving = WavingArm(_i(p, 45).reshape(_s2(p, 45)), _f(p, 46), _f(p, 47), _f(p, 48), _f(p, 49)[0], _f(p, 50)[0])
     planter = (
-        _i(p, 51)[0], _i(p, 52).reshape(_s2(p, 52)), _f(p, 53).reshape(_s2(p, 53)), _f(p, 54), _f(p, 55)[0],
-        _f(p, 56)[0], _f(p, 57)[0], _f(p, 58)[0], _f(p, 59)[0], _f(p, 60)[0], _f(p, 61)[0], _f(p, 62)[0],
-        _f(p, 63)[0],
+        _i(p, 45)[0], _i(p, 46).reshape(_s2(p, 46)), _f(p, 47).reshape(_s2(p, 47)), _f(p, 48), _f(p, 49)[0],
+        _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0],
+        _f(p, 57)[0],
     )  # fmt: skip
-    on = Switches(_b(p, 64)[0], _b(p, 65)[0], _b(p, 66)[0], _b(p, 67)[0], _b(p, 68)[0])
-    bends = Bends(_f(p, 69).reshape(_s2(p, 69)), _f(p, 70).reshape(_s2(p, 70)), _f(p, 71))
-    return sys, fp, ball, hands, arm, waving, planter, on, bends
+    on = Switches(_b(p, 58)[0], _b(p, 59)[0], _b(p, 60)[0], _b(p, 61)[0])
+    bends = Bends(_f(p, 62).reshape(_s2(p, 62)), _f(p, 63).reshape(_s2(p, 63)), _f(p, 64))
+    return sys, fp, ball, hands, arm, planter, on, bends
 
 
 @njit(cache=True, error_model="numpy")
@@ -704,6 +693,12 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
 # --------------------------------------------------------------------------- 3. the raised arm
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def ramp(x, lo, hi):
+    """0 up to lo, 1 from hi, linear between (`models.motion.hands` shares)."""
+    return min(max((x - lo) / (hi - lo), 0.0), 1.0)
+
+
 @njit(cache=True, error_model="numpy")
 def calm_share(arm, height, sway):
     """How far a hand is raised and calm: its raise share times one minus its wave share."""
@@ -782,7 +777,7 @@ def stages(frame, x, new_x, carry, new_carry, out, constants, work):
     """`step` on its records (`frame`, `out`: `Frame`, `Output`; `work` unpacked)."""
     before, feet_before = unpack(carry, x)
     after, feet_after = unpack(new_carry, new_x)
-    sys, fp, ball, hands, arm, waving, planter, on, bends = unpack_constants(constants)
+    sys, fp, ball, hands, arm, planter, on, bends = unpack_constants(constants)
     B = frame.root.shape[0]
 
     # 1. the translator
@@ -794,7 +789,7 @@ def stages(frame, x, new_x, carry, new_carry, out, constants, work):
         after.hand_prev, after.hand_sway, after.hand_rise,
     )  # fmt: skip
 
-    # 3., 4. the arms of raised hands: a calm one carried, a waving one swung
+    # 3. the arms of raised hands that hold still, carried
     for b in range(B):
         raised = False
         for side in range(2):
@@ -805,16 +800,8 @@ def stages(frame, x, new_x, carry, new_carry, out, constants, work):
         )  # fmt: skip
         if left > 0.0 or right > 0.0:
             carry_raised_arms(b, arm, frame.weights, left, right, out.rotations, work)
-        if not raised:  # a walk's or a run's hands never are: the running means wait
-            new_carry[b, WAVE_AT:FEET_AT] = carry[b, WAVE_AT:FEET_AT]
-            continue
-        swing_arms(
-            b, waving, frame.rotations, out.rotations, frame.weights, before.started, before.hand_prev,
-            after.hand_prev, after.hand_sway, after.hand_rise, before.wave_in_mean, before.wave_out_mean,
-            ball.mean, ball.radii, on.waving_arm, after.wave_in_mean, after.wave_out_mean,
-        )  # fmt: skip
 
-    # 5. the feet planted
+    # 4. the feet planted
     if not on.footlock:  # the planter's state waits
         new_carry[:, FEET_AT:] = carry[:, FEET_AT:]
         out.root[:] = work.root

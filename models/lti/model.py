@@ -12,7 +12,7 @@ and the footplant classifier. Every frame, per session:
     pose = inverse representation(out); rotation prior (`train.style_prior`); hinge joints held at
     their least real bend (`models.motion.hinge_kernels`, `hinges.npz`); contacts
     then the stages, each measured on the input and fitted per style the same way: a raised,
-    calm hand's arm (raised_arm.py), a waving hand's swing (waving_arm.py), the planted feet
+    calm hand's arm (raised_arm.py), the planted feet
 
 Heading: the translated yaw drifts slowly for some styles, so by default the output takes the
 input's yaw change (`keep_heading=True`); speed, posture and timing stay translated. The feet are
@@ -44,18 +44,18 @@ from models.motion.hinge import HINGE_FILE, Hinges, kernel_floor
 from models.motion.skeleton import Motion, Skeleton
 from models.motion.style_carry import StyleCarry
 
-from . import kernels, raised_arm, waving_arm
+from . import kernels, raised_arm
 from . import representation as rep
 from .footplant import FootplantClassifier
 from .styles import LTIStyles
 
 # The stages after the identified systems, in the order the compiled step runs them (`kernels.step`),
 # each fitted from real clips the same way for every style: the rotation prior (`train.style_prior`,
-# in each translator's file), the hinge floor (`python -m models.lti hinges`), the raised arm
-# (`raised_arm.py`) and the waving arm (`waving_arm.py`, nothing fitted). Any can be switched off
+# in each translator's file), the hinge floor (`python -m models.lti hinges`) and the raised arm
+# (`raised_arm.py`). Any can be switched off
 # (`LTIStyleModel(off=...)`, `Settings.stages_off` as `lti.<name>`); the offline path
 # (`LTIStyleModel.translate`) runs the stream's.
-STAGES = ("rotation_prior", "hinge_floor", "raised_arm", "waving_arm")
+STAGES = ("rotation_prior", "hinge_floor", "raised_arm")
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
@@ -237,7 +237,7 @@ class LTIStyleModel(LTIStyles):
         if set(off) - set(STAGES):
             raise KeyError(f"undeclared stages {sorted(set(off) - set(STAGES))}: LTI declares {list(STAGES)}")
         self.stages = tuple(s for s in STAGES if s not in off)  # the stages that are on
-        self.raised_arms, self.waving_arms = "raised_arm" in self.stages, "waving_arm" in self.stages
+        self.raised_arms = "raised_arm" in self.stages
         hinge_file = Path(weights_dir) / HINGE_FILE
         self.hinges = Hinges.load(hinge_file) if "hinge_floor" in self.stages and hinge_file.exists() else None
         if translators is None:
@@ -298,9 +298,9 @@ class LTIStyleModel(LTIStyles):
         hands = kernels.Hands(
             h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
         )
-        switches = (self.blend, self.keep_heading, self.raised_arms, self.waving_arms, self.footlock)
+        switches = (self.blend, self.keep_heading, self.raised_arms, self.footlock)
         bends = kernels.Bends(*kernel_floor(self.skeleton, self.hinges))
-        records = [systems, footplant, ball, hands, arm, waving_arm.settings(), self.planter._params, switches, bends]
+        records = [systems, footplant, ball, hands, arm, self.planter._params, switches, bends]
         x_keys = [f"x.{s}" for s in styles]
         self._set = _StyleSet(
             styles,

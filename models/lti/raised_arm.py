@@ -10,8 +10,8 @@ What: per output style and side, a `StyleCarry` (`models.motion.style_carry`) fr
 the translator makes of the neutral TRAIN clips to the style's real TRAIN clips, both on the
 frames where that hand is raised and calm (`models.motion.hands.calm_frames`, measured on the
 motion, not read from a content label), its gains capped at 1 (`StyleCarry.damping`) so the
-hand's sway is not magnified. While the input's hand is raised and calm (what `waving_arm.py`
-leaves), that arm is mixed toward the carried one by the share, in the compiled step
+hand's sway is not magnified. While the input's hand is raised and calm (not waving), that arm
+is mixed toward the carried one by the share, in the compiled step
 (`kernels.carry_raised_arms`). An uploaded style gets the same fit from its clip (`fit_upload`)
 where the clip shows a raised, calm hand.
 """

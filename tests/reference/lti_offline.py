@@ -1,19 +1,16 @@
-"""LTI's stages over a whole clip in numpy (and the waving arm's compiled per-row pass): the
-reference the compiled stream (`models.lti.kernels.step`) is tested against, frame for frame."""
+"""LTI's stages over a whole clip in numpy: the reference the compiled stream
+(`models.lti.kernels.step`) is tested against, frame for frame."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
 import numpy as np
-from numba import njit
 
 from models.lti import raised_arm
 from models.lti import representation as rep
 from models.lti.kernels import SHARE_FLOOR, eased
 from models.lti.model import HINT_SPEED, RAISE_EASE_S, LTIStyleModel, ease_keep
-from models.lti.waving_arm import MEAN_SHAPE, settings
-from models.lti.waving_kernels import WavingArm, swing_arms
 from models.motion.bn_skeleton import HIPS
 from models.motion.feet import model_rig_planter
 from models.motion.hands import clip_sway, raise_share, wave_share
@@ -21,20 +18,8 @@ from models.motion.hinge import kernel_floor
 from models.motion.hinge_kernels import floor_bends
 from models.motion.style_carry import StyleCarry
 
-from .hands import clip_rise, hand_offsets_of
+from .hands import hand_offsets_of
 from .rotation_ball import clamp_rotations
-
-
-@njit(error_model="numpy")
-def swing_batch(arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
-                prior_mean, prior_radii, swing, new_in_mean, new_out_mean):  # fmt: skip
-    """`swing_arms` for every session; `arm` a plain tuple."""
-    arm = WavingArm(*arm)
-    for b in range(rot_in.shape[0]):
-        swing_arms(
-            b, arm, rot_in, rot_out, weights, started, prev_offsets, offsets, swayed, risen, in_mean, out_mean,
-            prior_mean, prior_radii, swing, new_in_mean, new_out_mean,
-        )  # fmt: skip
 
 
 def shares(offsets: np.ndarray, swayed: np.ndarray) -> np.ndarray:
@@ -66,35 +51,6 @@ def carried(carry: StyleCarry, rotations: np.ndarray, weights: np.ndarray, share
         s = share[rows, side][:, None, None]
         mixed = (1.0 - s) * a + s * b
         out[np.ix_(rows, joints)] = mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
-    return out
-
-
-def waving_step(*arrays: np.ndarray, swing: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One frame for every row (`waving_kernels.swing_arms`) from `arrays`: the input's and the
-    output's rotations (B, J, 4), the style weights (B, S), whether each row has started, the
-    input's `hand_offsets` before and now (B, 2, 3), its sway and rise (B, 2), the running means
-    before (B, 2, 2, 4) and the styles' balls (means (S, J, 4), radii (S, 2, J)). Returns the
-    output rotations with the waving arms swung (a copy) and the running means after this frame."""
-    out = np.array(arrays[1], np.float64, copy=True)
-    new_in, new_out = np.empty((len(out), *MEAN_SHAPE)), np.empty((len(out), *MEAN_SHAPE))
-    inputs = (arrays[0], out, *arrays[2:])
-    args = (tuple(settings()), *(np.ascontiguousarray(a, np.float64) for a in inputs), swing, new_in, new_out)
-    swing_batch(*args)
-    return out, new_in, new_out
-
-
-def waving_clip(out_rots, in_rots, offsets, swayed, fps: float, means, radii) -> np.ndarray:
-    """(T, J, 4) a whole clip's output rotations of one style (balls means (1, J, 4), radii
-    (1, 2, J)) with its waving arms swung, frame by frame as a stream does (`waving_step`)."""
-    out = np.array(out_rots, np.float64, copy=True)
-    risen = clip_rise(offsets, fps)
-    in_mean, out_mean = np.zeros((1, *MEAN_SHAPE)), np.zeros((1, *MEAN_SHAPE))
-    one = np.ones((1, 1))
-    for t in range(len(out)):
-        now, prev = slice(t, t + 1), slice(max(t - 1, 0), max(t, 1))
-        rows = (in_rots[now], out[now], one, np.array([t > 0]), offsets[prev], offsets[now], swayed[now], risen[now])
-        frame, in_mean, out_mean = waving_step(*rows, in_mean, out_mean, means, radii)
-        out[t] = frame[0]
     return out
 
 
@@ -149,9 +105,6 @@ def offline(model: LTIStyleModel, style: str, motion, footlock: bool = True):
     if tr.raised_arm is not None:
         share = eased_shares(shares(offsets, swayed), ease_keep(LTIStyleModel.fps, RAISE_EASE_S))
         rots = carried(tr.raised_arm, rots, np.ones((len(rots), 1)), share)
-    if model.waving_arms:
-        mean, radii = tr.ball()
-        rots = waving_clip(rots, motion.rotations, offsets, swayed, motion.fps, mean[None], radii[None])
     contacts = tr.footplant.predict(xs) if tr.footplant is not None else np.zeros((len(out), 2), bool)
     if footlock:
         root, rots, contacts = model_rig_planter(motion.fps, hint_speed=HINT_SPEED).clip(root, rots, hints=contacts)
