@@ -10,9 +10,8 @@ import numpy as np
 from models.lti import raised_arm
 from models.lti import representation as rep
 from models.lti.kernels import SHARE_FLOOR, eased
-from models.lti.model import HINT_SPEED, RAISE_EASE_S, LTIStyleModel, ease_keep
+from models.lti.model import RAISE_EASE_S, LTIStyleModel, ease_keep
 from models.motion.bn_skeleton import HIPS
-from models.motion.feet import model_rig_planter
 from models.motion.hands import clip_sway, raise_share, wave_share
 from models.motion.hinge import kernel_floor
 from models.motion.hinge_kernels import floor_bends
@@ -107,7 +106,7 @@ def offline(model: LTIStyleModel, style: str, motion, footlock: bool = True):
         rots = carried(tr.raised_arm, rots, np.ones((len(rots), 1)), share)
     contacts = tr.footplant.predict(xs) if tr.footplant is not None else np.zeros((len(out), 2), bool)
     if footlock:
-        root, rots, contacts = model_rig_planter(motion.fps, hint_speed=HINT_SPEED).clip(root, rots, hints=contacts)
+        root, rots, contacts = model.planter.clip(root, rots, hints=contacts)
     translations = np.broadcast_to(motion.translations[:1], (len(root),) + motion.translations.shape[1:]).copy()
     translations[:, rep.HIPS] = root
     return replace(motion, rotations=rots, translations=translations), contacts
