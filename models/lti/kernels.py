@@ -46,7 +46,7 @@ from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
 from ..motion.novelty_kernels import fade_step
-from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qunit, qyaw, row3, row4, wrap
+from ..motion.quaternion import dot3, nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qunit, qyaw, row3, row4, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
 
@@ -131,7 +131,7 @@ def _view(carry, span):
     return np.lib.stride_tricks.as_strided(carry.ravel()[at:], (carry.shape[0],) + shape, (carry.strides[0],) + strides)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def unpack(carry, x):
     """The `Session` (with the LTI states x) and `Feet` records of a packed carry: views."""
     session = Session(
@@ -248,6 +248,7 @@ class Work(NamedTuple):
     group_u: np.ndarray  # flat: the normalised features a group of rows reads, (inputs, k)
     staged_root: np.ndarray  # (B, 3) the step's root before the unseen-content fade (`step_fading`)
     staged_rotations: np.ndarray  # (B, J, 4) and its rotations
+    proj: np.ndarray  # flat: the footplant discriminants of a chunk of the sessions using a style, (2, k)
 
 
 def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ...]:
@@ -273,6 +274,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
         np.empty(FEATURE_DIM * k),
         np.empty((batch, 3)),
         np.empty((batch, NUM_JOINTS, 4)),
+        np.empty(2 * k),
     )
     return pack([work], [WORK_SCHEMA], copy=False)
 
@@ -291,7 +293,7 @@ CONSTANT_SCHEMAS = (
     "b0 b0 b0 b0",  # Switches
     "f2 f2 f1",  # Bends
 )
-WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f2 f3"
+WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f2 f3 f1"
 
 
 def pack(
@@ -355,7 +357,7 @@ def _s4(p, k):
     return (p[3][k, 2], p[3][k, 3], p[3][k, 4], p[3][k, 5])
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def unpack_constants(p):
     """The step's constant records from `pack([systems, footplant, ball, hands, arm, planter,
     switches, bends])`: views, in `CONSTANT_SCHEMAS`' order."""
@@ -390,14 +392,14 @@ def unpack_constants(p):
     return sys, fp, ball, hands, arm, planter, on, bends
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def unpack_work(p):
     """The `Work` record from `pack([work])`: views."""
     return Work(
         _f(p, 0).reshape(_s2(p, 0)), _f(p, 1).reshape(_s4(p, 1)), _i(p, 2), _f(p, 3), _f(p, 4), _f(p, 5), _f(p, 6),
         _f(p, 7), _f(p, 8), _f(p, 9).reshape(_s2(p, 9)), _b(p, 10).reshape(_s2(p, 10)), _b(p, 11),
         _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s3(p, 13)), _i(p, 14).reshape(_s2(p, 14)), _f(p, 15),
-        _f(p, 16).reshape(_s2(p, 16)), _f(p, 17).reshape(_s3(p, 17)),
+        _f(p, 16).reshape(_s2(p, 16)), _f(p, 17).reshape(_s3(p, 17)), _f(p, 18),
     )  # fmt: skip
 
 
@@ -431,20 +433,33 @@ def add_signed(acc, w, q, ref):
 
 
 @njit(cache=True, error_model="numpy")
-def planted(x, fp, s, a):
-    """Footplant class of each foot: the more likely Gaussian class (free, planted) of style s's
-    state x (columns a... of the side-by-side states) projected on the foot's discriminant
-    (FootplantClassifier.predict). Both projections in one pass: two independent sums."""
-    left, right = 0.0, 0.0
-    for i in range(x.shape[0]):
-        left += x[i] * fp.w[0, a + i]
-        right += x[i] * fp.w[1, a + i]
-    return _likelier(left, fp, s, 0), _likelier(right, fp, s, 1)
+def project(z, pos, fp, a, proj):
+    """Each foot's footplant discriminant (`FootplantClassifier.predict`) of the new states of a
+    chunk's k sessions (rows pos[:n] of z (rows, k); columns a... of fp.w) into proj (2, k):
+    loops over the sessions, which the compiler vectorises (one session: two sums); each sum in
+    state order, as the classifier's."""
+    k = proj.shape[1]
+    if k == 1:
+        left, right = 0.0, 0.0
+        for i in range(pos.shape[0]):
+            state = z[pos[i], 0]
+            left += state * fp.w[0, a + i]
+            right += state * fp.w[1, a + i]
+        proj[0, 0], proj[1, 0] = left, right
+        return
+    for c in range(k):
+        proj[0, c], proj[1, c] = 0.0, 0.0
+    for i in range(pos.shape[0]):
+        row, left, right = pos[i], fp.w[0, a + i], fp.w[1, a + i]
+        for c in range(k):
+            proj[0, c] += z[row, c] * left
+            proj[1, c] += z[row, c] * right
 
 
 @njit(cache=True, error_model="numpy")
 def _likelier(proj, fp, s, foot):
-    """Whether the planted class is the likelier one for this projection (`planted`)."""
+    """Whether the planted class is the likelier one for this projection (`project`): the more
+    likely Gaussian class (free, planted) of style s's discriminant."""
     mean, var, log_prior = fp.mean[s, foot], fp.var[s, foot], fp.log_prior[s, foot]
     log_var = fp.log_var[s, foot]
     ll_free = -0.5 * (proj - mean[0]) ** 2 / var[0] - 0.5 * log_var[0] + log_prior[0]
@@ -453,10 +468,9 @@ def _likelier(proj, fp, s, foot):
 
 
 @njit(cache=True, error_model="numpy")
-def style_inputs(sys, s, root_y, rotations, tilt, delta, x, blend, xin, u, feats, c):
-    """One session's input to style s's system into column c of xin (its state x), u (the
-    normalised features; representation.pose_features / sequence_features) and feats (the raw
-    features). Returns the erf generalisation blend weight."""
+def style_inputs(sys, s, root_y, rotations, tilt, delta, x, xin, feats, c):
+    """One session's input to style s's system into column c of xin (its state x) and feats (the
+    raw features; representation.pose_features / sequence_features); `normalise` takes them on."""
     feats[0, c], feats[1, c], feats[2, c], feats[3, c] = delta[0], delta[1], delta[2], root_y
     for j in range(1, NUM_JOINTS):
         q = tilt if j == HIPS else row4(rotations, j)
@@ -464,15 +478,40 @@ def style_inputs(sys, s, root_y, rotations, tilt, delta, x, blend, xin, u, feats
         feats[3 * j + 1, c], feats[3 * j + 2, c], feats[3 * j + 3, c] = r
     for i in range(x.shape[0]):
         xin[i, c] = x[i]
-    blend_w = 0.0
-    for d in range(FEATURE_DIM):
-        ud = (feats[d, c] - sys.in_mean[s, d]) / sys.in_std[s, d]
-        u[d, c] = ud
-        if blend:  # max over DOFs of erf(max(0, dist - k_p) / k_c)
+
+
+@njit(cache=True, error_model="numpy")
+def normalise(sys, s, feats, u, blend, raw):
+    """The raw features of a chunk's k sessions (feats (67, k)) normalised for style s into u,
+    and each session's erf generalisation blend weight into raw (k,): max over DOFs of
+    erf(max(0, dist - k_p) / k_c), found as erf of the largest distance (erf increases), one
+    erf a session. Loops over the sessions, which the compiler vectorises (divisions included);
+    one session (batch 1) takes the same arithmetic without them, which would cost more than it."""
+    k = raw.shape[0]
+    if k == 1:
+        top = 0.0
+        for d in range(FEATURE_DIM):
+            ud = (feats[d, 0] - sys.in_mean[s, d]) / sys.in_std[s, d]
+            u[d, 0] = ud
             beyond = max(ud - sys.in_hi[s, d], sys.in_lo[s, d] - ud) - sys.k[s, 0]
-            if beyond > 0.0:  # erf(0) = 0 inside the training range: most DOFs, most frames
-                blend_w = max(blend_w, math.erf(beyond / sys.k[s, 1]))
-    return blend_w
+            if blend and beyond > top:
+                top = beyond
+        raw[0] = math.erf(top / sys.k[s, 1]) if top > 0.0 else 0.0
+        return
+    for c in range(k):
+        raw[c] = 0.0  # first the largest distance past k_p
+    for d in range(FEATURE_DIM):
+        mean, std = sys.in_mean[s, d], sys.in_std[s, d]
+        for c in range(k):
+            u[d, c] = (feats[d, c] - mean) / std
+        if blend:
+            hi, lo, k_p = sys.in_hi[s, d], sys.in_lo[s, d], sys.k[s, 0]
+            for c in range(k):
+                beyond = max(u[d, c] - hi, lo - u[d, c]) - k_p
+                if beyond > raw[c]:
+                    raw[c] = beyond
+    for c in range(k):  # erf(0) = 0 inside the training range: most sessions, most frames
+        raw[c] = math.erf(raw[c] / sys.k[s, 1]) if raw[c] > 0.0 else 0.0
 
 
 @njit(cache=True, error_model="numpy")
@@ -506,8 +545,8 @@ def system_product(sys, s, xin, u, z, group_u):
     """z = M_s [xin; u] for the m sessions in the columns (rows of z: M_s's in group order, see
     `Systems`; not the log time warp): each group's dense block times the inputs it reads (one
     session: a matrix-vector product, BLAS gemv, ~2.5x faster than gemm on one column), then the
-    sparse state columns [A; C] xin added (one session: a sum per row; several: each matrix
-    entry applied to all of them, a loop the compiler vectorises). group_u: scratch."""
+    sparse state columns [A; C] xin added (one session: a sum per row; several: the entries
+    applied to all of them two at a time, a loop the compiler vectorises). group_u: scratch."""
     r0, m = sys.row_off[s], xin.shape[1]
     for g in range(sys.group_off[s], sys.group_off[s + 1]):
         first, end, at, count, block = sys.groups[g]
@@ -525,16 +564,25 @@ def system_product(sys, s, xin, u, z, group_u):
         else:
             np.dot(weights, ug, rows)
     for r in range(z.shape[0]):
+        first, end = sys.indptr[r0 + r], sys.indptr[r0 + r + 1]
         if m == 1:
             acc = z[r, 0]
-            for p in range(sys.indptr[r0 + r], sys.indptr[r0 + r + 1]):
+            for p in range(first, end):
                 acc += sys.data[p] * xin[sys.indices[p], 0]
             z[r, 0] = acc
             continue
-        for p in range(sys.indptr[r0 + r], sys.indptr[r0 + r + 1]):
-            coef, col = sys.data[p], sys.indices[p]
+        # two entries a pass over the row: half the stores to z, which the loads of x and of the
+        # matrix can wait on (their addresses alike modulo 4 kB, by chance: up to 2x the time)
+        row = z[r]
+        for p in range(first, end - 1, 2):
+            a, states_a = sys.data[p], xin[sys.indices[p]]
+            b, states_b = sys.data[p + 1], xin[sys.indices[p + 1]]
             for c in range(m):
-                z[r, c] += coef * xin[col, c]
+                row[c] += a * states_a[c] + b * states_b[c]
+        if (end - first) % 2:
+            a, states_a = sys.data[end - 1], xin[sys.indices[end - 1]]
+            for c in range(m):
+                row[c] += a * states_a[c]
 
 
 @njit(cache=True, error_model="numpy")
@@ -542,6 +590,24 @@ def inside(q, mean, cos_inner):
     """Whether unit q lies within the ball's inner radius of `mean`, where `clamp_joint` leaves it
     as it is: cos(angle / 2) >= cos(inner / 2), without the arc tangent."""
     return abs(qdot(mean, q)) >= cos_inner
+
+
+@njit(cache=True, error_model="numpy")
+def _bent_past(q, bone, hinge, floor):
+    """Whether `floor_bend` keeps q as it is, found without its arc tangent (most of its cost;
+    a knee or an elbow bent forward, most frames, needs none): the swing's bend about the hinge
+    is its axis's component along the hinge times angle / sin(angle / 2), which is at least 2,
+    so a component at least floor / 2 (and not negative) is at the floor or past it."""
+    along = dot3((q[0], q[1], q[2]), bone)
+    norm = math.sqrt(along * along + q[3] * q[3])
+    if not norm > 1e-9:
+        return False
+    t = (along * bone[0] / norm, along * bone[1] / norm, along * bone[2] / norm, q[3] / norm)
+    swing = qmul(q, qinv(t))
+    d = dot3((swing[0], swing[1], swing[2]), hinge)
+    if swing[3] < 0.0:
+        d = -d
+    return d >= 0.0 and 2.0 * d >= floor
 
 
 @njit(cache=True, error_model="numpy")
@@ -565,8 +631,9 @@ def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_head
         q = qmul(quat_at(sys.ref, s, j), qexp((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
         if j == HIPS or not inside(q, quat_at(ball.mean, s, j), ball.cos_inner[s, j]):
             q = clamp_joint(q, quat_at(ball.mean, s, j), ball.radii[s, 0, j], ball.radii[s, 1, j], j == HIPS)
-        if bends.floor[j] > -math.inf:
-            q = floor_bend(q, row3(bends.bone, j), row3(bends.hinge, j), bends.floor[j])
+        bone, hinge, floor = row3(bends.bone, j), row3(bends.hinge, j), bends.floor[j]
+        if floor > -math.inf and not _bent_past(q, bone, hinge, floor):
+            q = floor_bend(q, bone, hinge, floor)
         quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q
 
 
@@ -623,16 +690,22 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
             feats = work.feats[: FEATURE_DIM * k].reshape((FEATURE_DIM, k))
             for c in range(k):
                 b = work.rows[lo + c]
-                raw = style_inputs(
-                    sys, s, frame.root[b, 1], frame.rotations[b], row4(tilts, b), deltas[b], before.x[b, a:e],
-                    switches.blend, xin, u, feats, c,
+                style_inputs(
+                    sys, s, frame.root[b, 1], frame.rotations[b], row4(tilts, b), deltas[b], before.x[b, a:e], xin,
+                    feats, c,
                 )  # fmt: skip
+            normalise(sys, s, feats, u, switches.blend, work.blend_w[:k])
+            for c in range(k):
+                b = work.rows[lo + c]
                 # each style eases its own weight from the session's history, which takes the
                 # styles' followers in their shares (one style: exactly its own)
-                fast, work.blend_w[c] = ease(raw, before.blend[b], sys.keep)
+                fast, work.blend_w[c] = ease(work.blend_w[c], before.blend[b], sys.keep)
                 eased[b, 0] += weights[b, s] * fast
                 eased[b, 1] += weights[b, s] * work.blend_w[c]
             system_product(sys, s, xin, u, z, work.group_u)
+            proj = work.proj[: 2 * k].reshape((2, k))
+            if fp.fitted[s]:
+                project(z, sys.pos[sys.row_off[s] : sys.row_off[s] + e - a], fp, sys.x_off[s], proj)
             for c in range(k):
                 b = work.rows[lo + c]
                 w = weights[b, s]
@@ -642,9 +715,8 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
                     work.quats[b, s], work.out,
                 )  # fmt: skip
                 if fp.fitted[s]:
-                    left, right = planted(x_out, fp, s, sys.x_off[s])
-                    votes[b, 0] += w * left
-                    votes[b, 1] += w * right
+                    votes[b, 0] += w * _likelier(proj[0, c], fp, s, 0)
+                    votes[b, 1] += w * _likelier(proj[1, c], fp, s, 1)
     for b in range(B):
         fresh = not before.started[b]
         yaw, rest, rf, quats = yaws[b], rests[b], root_feats[b], work.quats[b]

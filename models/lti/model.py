@@ -395,8 +395,10 @@ class LTIStyleModel(LTIStyles):
     @staticmethod
     def _in_use(w: np.ndarray) -> list[int]:
         """The styles some session's weight (B, S) uses."""
+        if len(w) == 1:  # one session's weights, one list
+            return [s for s, top in enumerate(w.tolist()[0]) if top > 0.0]
         if len(w) < COMPACT_FROM:  # a few sessions: a Python scan of the weights beats numpy's calls
-            return [s for s, column in enumerate(w.T.tolist()) if max(column, default=0.0) > 0.0]
+            return [s for s, column in enumerate(w.T.tolist()) if column and max(column) > 0.0]
         return [s for s, top in enumerate(w.max(axis=0).tolist()) if top > 0.0]
 
     @staticmethod
