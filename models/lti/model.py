@@ -64,9 +64,8 @@ EASE_S = 0.1  # time constant of each of the two followers easing the erf blend 
 RAISE_EASE_S = 0.05  # and the raised-arm shares: at 0.1 s a raise-up's arm came late enough to cost content reads
 HINT_SPEED = 120.0  # cm/s: a foot the footplant classifier calls planted plants when slower (`FootPlanter.hint_speed`)
 # cm: a hold that needs the leg moved further from the translator's lets the foot go
-# (`FootPlanter.max_offset`, 15 for the networks). Longer holds turned the translated thighs out
-# of the style's real frames: on validation, plausible dataset-2 clips 67-93 % at 15 cm, 87-100 %
-# at 8, with jitter p90 1.08-1.77 -> 0.92-1.35 and the slide unchanged (5 cm: more slide, no gain).
+# (`FootPlanter.max_offset`; 15 for the networks). Longer holds turn the translated thighs out of
+# the style's real frames (docs/eval/ablation.md); shorter ones let more feet slide.
 HOLD_CM = 8.0
 _NO_CONTROL = np.zeros((0, 5))  # the fade's control rows when a frame carries none
 COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, finds the styles in use (`_side_by_side`)
