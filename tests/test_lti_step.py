@@ -82,6 +82,31 @@ def test_a_snapshot_from_before_the_packed_carry_resumes_exactly(reference):
         assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.root, b.root)
 
 
+def test_a_snapshot_saved_with_the_waving_arm_resumes_exactly(reference):
+    """A state saved while the carry still held the waving arm's running means (before the feet)
+    is brought to the current carry by `upgrade_state` and steps on as the state it was saved from."""
+    from models.interface import FrameBatch
+    from models.lti.kernels import FEET_AT
+    from models.lti.model import WAVE_MEANS
+
+    from .lti_reference import weights
+
+    (root, rot), _ = reference
+    model = load()
+    w = weights(model.styles())
+    state = model.init_state(root.shape[1])
+    for t in range(40):
+        _, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
+    means = np.random.default_rng(0).normal(size=(root.shape[1], WAVE_MEANS))
+    old = {**state, "carry": np.insert(state["carry"], [FEET_AT] * WAVE_MEANS, means, axis=1)}
+    assert model.upgrade_state(state) is state
+    resumed = model.upgrade_state(old)
+    for t in range(40, 60):
+        a, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
+        b, resumed = model.step_batch(resumed, FrameBatch(root[t], rot[t]), w)
+        assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.root, b.root)
+
+
 def test_a_large_batch_of_one_style_gives_the_same(reference, monkeypatch):
     """From `COMPACT_FROM` sessions of one style on, the step reads that style's state array as it
     is and hands the other styles one shared (read-only) zero state: the reference's first

@@ -68,6 +68,7 @@ HINT_SPEED = 120.0  # cm/s: a foot the footplant classifier calls planted plants
 # the style's real frames (docs/eval/ablation.md); shorter ones let more feet slide.
 HOLD_CM = 8.0
 _NO_CONTROL = np.zeros((0, 5))  # the fade's control rows when a frame carries none
+WAVE_MEANS = 32  # carry columns of the removed waving arm's running means (input and output, 2 sides x 2 joints x 4)
 COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, finds the styles in use (`_side_by_side`)
 
 
@@ -341,13 +342,19 @@ class LTIStyleModel(LTIStyles):
         """`state` on the current style set: added styles at x = 0, removed ones dropped (see
         `models.interface`); `state` itself when it already is (one key-set comparison). A state
         from before the carry was packed (its entries under their own keys; those it lacks,
-        from before a stage, start again) is packed."""
-        if state.keys() == self._set.state_keys and all(
-            state[f"x.{s}"].shape[1] == self.translators[s].n for s in self._styles
+        from before a stage, start again) is packed; one saved with the removed waving arm's
+        running means loses them, so a session resumed across a rolling upgrade goes on."""
+        if (
+            state.keys() == self._set.state_keys
+            and state[CARRY].shape[1] == kernels.CARRY_WIDTH
+            and all(state[f"x.{s}"].shape[1] == self.translators[s].n for s in self._styles)
         ):
             return state
         batch = len(next(iter(state.values())))
         carry = state.get(CARRY)
+        if carry is not None and carry.shape[1] == kernels.CARRY_WIDTH + WAVE_MEANS:
+            # saved while a waving arm's running means sat just before the feet: they go
+            carry = np.delete(carry, np.s_[kernels.FEET_AT : kernels.FEET_AT + WAVE_MEANS], axis=1)
         if carry is None:
             carry = np.zeros((batch, kernels.CARRY_WIDTH))
             for key in kernels.CARRY:
