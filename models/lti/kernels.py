@@ -46,7 +46,7 @@ from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
 from ..motion.novelty_kernels import fade_step
-from ..motion.quaternion import dot3, nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qunit, qyaw, row3, row4, wrap
+from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qunit, qyaw, row3, row4, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
 
@@ -593,24 +593,6 @@ def inside(q, mean, cos_inner):
 
 
 @njit(cache=True, error_model="numpy")
-def _bent_past(q, bone, hinge, floor):
-    """Whether `floor_bend` keeps q as it is, found without its arc tangent (most of its cost;
-    a knee or an elbow bent forward, most frames, needs none): the swing's bend about the hinge
-    is its axis's component along the hinge times angle / sin(angle / 2), which is at least 2,
-    so a component at least floor / 2 (and not negative) is at the floor or past it."""
-    along = dot3((q[0], q[1], q[2]), bone)
-    norm = math.sqrt(along * along + q[3] * q[3])
-    if not norm > 1e-9:
-        return False
-    t = (along * bone[0] / norm, along * bone[1] / norm, along * bone[2] / norm, q[3] / norm)
-    swing = qmul(q, qinv(t))
-    d = dot3((swing[0], swing[1], swing[2]), hinge)
-    if swing[3] < 0.0:
-        d = -d
-    return d >= 0.0 and 2.0 * d >= floor
-
-
-@njit(cache=True, error_model="numpy")
 def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_heading, root_feats, quats, out):
     """Style s's result for one session from column c of z = M [x; u]: the new state into x_out,
     w * (root displacement, yaw change, height) added to root_feats, the body rotations (22, 4),
@@ -631,9 +613,8 @@ def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_head
         q = qmul(quat_at(sys.ref, s, j), qexp((out[3 * j + 1], out[3 * j + 2], out[3 * j + 3])))
         if j == HIPS or not inside(q, quat_at(ball.mean, s, j), ball.cos_inner[s, j]):
             q = clamp_joint(q, quat_at(ball.mean, s, j), ball.radii[s, 0, j], ball.radii[s, 1, j], j == HIPS)
-        bone, hinge, floor = row3(bends.bone, j), row3(bends.hinge, j), bends.floor[j]
-        if floor > -math.inf and not _bent_past(q, bone, hinge, floor):
-            q = floor_bend(q, bone, hinge, floor)
+        if bends.floor[j] > -math.inf:
+            q = floor_bend(q, row3(bends.bone, j), row3(bends.hinge, j), bends.floor[j])
         quats[j, 0], quats[j, 1], quats[j, 2], quats[j, 3] = q
 
 

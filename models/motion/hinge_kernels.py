@@ -26,7 +26,16 @@ def floor_bend(q, bone, hinge, floor):
     twist = (0.0, 0.0, 0.0, 1.0)  # a half turn off the bone has no twist part
     if norm > 1e-9:
         twist = (along * bone[0] / norm, along * bone[1] / norm, along * bone[2] / norm, q[3] / norm)
-    v = qlog(qmul(q, qinv(twist)))
+    swing = qmul(q, qinv(twist))
+    # the bend is the swing axis's part along the hinge times angle / sin(angle / 2) (`qlog`),
+    # which is at least 2: a part at least floor / 2 (and not negative) is at the floor or past
+    # it, found without the arc tangent (most frames: a knee or an elbow bent forward)
+    d = dot3((swing[0], swing[1], swing[2]), hinge)
+    if swing[3] < 0.0:
+        d = -d
+    if d >= 0.0 and 2.0 * d >= floor:
+        return q
+    v = qlog(swing)
     b = dot3(v, hinge)
     if not b < floor:
         return q
