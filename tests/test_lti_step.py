@@ -60,34 +60,10 @@ def test_a_large_batch_gives_the_same(reference, monkeypatch):
         np.testing.assert_allclose(got["root"][:, rows], want["root"], atol=1e-8)
 
 
-def test_a_snapshot_from_before_the_packed_carry_resumes_exactly(reference):
-    """A session's state saved before the carry was packed (every entry under its own key, flags
-    as bools) is packed by `upgrade_state` and steps on exactly as the state it was saved from."""
+def _resumes_exactly(reference, saved) -> None:
+    """Sessions streamed 40 frames, their state turned by `saved(model, state)` into what an older
+    step would have stored and brought back by `upgrade_state`, step on exactly as the state they left."""
     from models.interface import FrameBatch
-
-    from .lti_reference import unpacked, weights
-
-    (root, rot), _ = reference
-    model = load()
-    w = weights(model.styles())
-    state = model.init_state(root.shape[1])
-    for t in range(40):
-        _, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
-    old = unpacked(state)
-    assert "carry" not in old and old["feet_point"].dtype == np.int64
-    resumed = model.upgrade_state(old)
-    for t in range(40, 60):
-        a, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
-        b, resumed = model.step_batch(resumed, FrameBatch(root[t], rot[t]), w)
-        assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.root, b.root)
-
-
-def test_a_snapshot_saved_with_the_waving_arm_resumes_exactly(reference):
-    """A state saved while the carry still held the waving arm's running means (before the feet)
-    is brought to the current carry by `upgrade_state` and steps on as the state it was saved from."""
-    from models.interface import FrameBatch
-    from models.lti.kernels import FEET_AT
-    from models.lti.model import WAVE_MEANS
 
     from .lti_reference import weights
 
@@ -97,14 +73,39 @@ def test_a_snapshot_saved_with_the_waving_arm_resumes_exactly(reference):
     state = model.init_state(root.shape[1])
     for t in range(40):
         _, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
-    means = np.random.default_rng(0).normal(size=(root.shape[1], WAVE_MEANS))
-    old = {**state, "carry": np.insert(state["carry"], [FEET_AT] * WAVE_MEANS, means, axis=1)}
-    assert model.upgrade_state(state) is state
-    resumed = model.upgrade_state(old)
+    resumed = model.upgrade_state(saved(model, state))
     for t in range(40, 60):
         a, state = model.step_batch(state, FrameBatch(root[t], rot[t]), w)
         b, resumed = model.step_batch(resumed, FrameBatch(root[t], rot[t]), w)
         assert np.array_equal(a.rotations, b.rotations) and np.array_equal(a.root, b.root)
+
+
+def test_a_snapshot_from_before_the_packed_carry_resumes_exactly(reference):
+    """A session's state saved before the carry was packed (every entry under its own key, flags
+    as bools) is packed by `upgrade_state` and steps on exactly as the state it was saved from."""
+    from .lti_reference import unpacked
+
+    def saved(model, state):
+        old = unpacked(state)
+        assert "carry" not in old and old["feet_point"].dtype == np.int64
+        return old
+
+    _resumes_exactly(reference, saved)
+
+
+def test_a_snapshot_saved_with_the_waving_arm_resumes_exactly(reference):
+    """A state saved while the carry still held the waving arm's running means (before the feet)
+    is brought to the current carry by `upgrade_state` and steps on as the state it was saved from;
+    a current state comes back as it is."""
+    from models.lti.kernels import FEET_AT
+    from models.lti.model import WAVE_MEANS
+
+    def saved(model, state):
+        assert model.upgrade_state(state) is state
+        means = np.random.default_rng(0).normal(size=(len(state["carry"]), WAVE_MEANS))
+        return {**state, "carry": np.insert(state["carry"], [FEET_AT] * WAVE_MEANS, means, axis=1)}
+
+    _resumes_exactly(reference, saved)
 
 
 def test_a_large_batch_of_one_style_gives_the_same(reference, monkeypatch):
