@@ -45,7 +45,8 @@ GATE_STYLE = {D2: 0.90}  # style read right on the new judge; other sources:
 GATE_STYLE_OTHER = 0.75
 GATE_CONTENT = 0.90  # dataset 2 only: the content judge knows its ten contents
 FINAL_RUNS = "docs/eval/final_runs.md"
-REPORT = Path(__file__).with_name("report.md")  # the report's fixed prose; `markdown` fills in its braces
+# the report's fixed prose, its braces filled in by `markdown`
+REPORT, UPLOADS_REPORT = (Path(__file__).with_name("templates") / name for name in ("evaluation.md", "uploads.md"))
 
 
 class Judges(NamedTuple):
@@ -368,18 +369,9 @@ def _uploads_section(rows: list[dict]) -> list[str]:
     if not rows:
         return []
     return [
-        "## Styles from one clip, held out of training",
-        "",
-        "One real dataset-1 walk of each style a method never trained on, uploaded as `POST /v1/styles` does "
-        "(`instant`: the style made from the clip at once; `tuned`: the fine-tuning job), with neutral walks of "
-        "both datasets streamed through it (`models/eval/uploads.py`). **coverage**: the share of the way from the "
-        "input to the style's other real walking clips (0: the input unchanged; 1: those clips), on the judge's "
-        "clip statistics; **copy**: what the uploaded clip itself covers from the same neutral walks, per dataset. A "
-        f"row passes at ≥ {uploads.PASS_SHARE:.0%} of the copy's coverage on every dataset where the copy covers ≥ "
-        f"{uploads.CLEAR_COPY} (a share in brackets is not scored). **judge read**: the share of outputs that the evaluation's style judge, fitted again "
-        "without the uploaded clip, reads as the style (passes at "
-        f"≥ {uploads.JUDGE_PASS:.0%}); **copy read**: whether it reads the uploaded clip itself so; **least bend**: "
-        "the least knee or elbow bend less the least real one (°; below 0 a limb bends backward).",
+        UPLOADS_REPORT.read_text()
+        .format(pass_share=uploads.PASS_SHARE, clear_copy=uploads.CLEAR_COPY, judge_pass=uploads.JUDGE_PASS)
+        .rstrip("\n"),
         "",
         *uploads.table(rows),
         "",
