@@ -69,7 +69,7 @@ class SlowPrior:
         """Both carries' arrays (`run_` before the run's keys; without a run prior the carry's),
         the fast part's gains, the clamp's maps and the joints carried whole, aligned with
         `styles`; a style not fitted gets identity maps and infinite radii. `plain` (S, J): the
-        joints each style only clamps (`StyleCarry.clamps_only`, per style)."""
+        joints each style only clamps (its map the identity, its source its mean)."""
         J, identity, eye = skeleton.num_joints, np.array((0.0, 0.0, 0.0, 1.0)), np.eye(3)
         plain = (np.tile(identity, (J, 1)), np.tile(identity, (J, 1)), np.tile(eye, (J, 1, 1)), np.full(J, np.inf))
         run = self.run or self.carry

@@ -108,14 +108,6 @@ class StyleCarry:
         vals, vecs = np.linalg.eigh(self.map)
         return (vecs * np.minimum(vals, 1.0)[..., None, :]) @ np.swapaxes(vecs, -1, -2)
 
-    @functools.cached_property
-    def clamps_only(self) -> np.ndarray:
-        """(J,) bool: the joints this carry only clamps for every style (its map the identity
-        and its source the style's mean: the legs of a clamp-only fit, fixed joints)."""
-        eye = np.all(np.abs(self.map - np.eye(3)) == 0.0, axis=(-1, -2))
-        same = np.all(self.source == self.mean, axis=-1)
-        return np.all(eye & same, axis=0)
-
     def __call__(self, q: np.ndarray, weights: np.ndarray, hips: int = -1) -> np.ndarray:
         """(B, J, 4) rotations (B, J, 4) carried toward the styles of weights (B, S), compiled
         (`style_carry_kernels.py`; `tests/reference/erd_carry.py` is the reference). Joint `hips` (if >= 0) is carried
