@@ -162,10 +162,6 @@ def main() -> None:
         "dataset-1 cross-validation": draws[0],
     }
     cv_rows = [(c, g[c.key]) for g in oof[best] for c in seen]
-    by_style = {
-        "dataset-1 CV (all draws)": _by(cv_rows, lambda c: c.style),
-        "dataset-2 val": _by(list(zip(part(d2, "val"), d2_val)), lambda c: c.style),
-    }
     report = {
         "mapping": mapping,
         "confusion_d1_by_d2_judge": {f"{t} -> {r}": v for (t, r), v in sorted(confusion.items())},
@@ -175,9 +171,9 @@ def main() -> None:
         "labels": judge.labels,
         "held_out": held,
         "d1_cv_draws": [d["accuracy"] for d in draws],
-        "d1_cv_by_style": by_style["dataset-1 CV (all draws)"],
+        "d1_cv_by_style": _by(cv_rows, lambda c: c.style),
         "d1_cv_by_content": _by(cv_rows, lambda c: c.content),
-        "d2_val_by_style": by_style["dataset-2 val"],
+        "d2_val_by_style": _by(list(zip(part(d2, "val"), d2_val)), lambda c: c.style),
         "train_clips": {"dataset-1": len(part(d1, "train")), "dataset-2": len(part(d2, "train"))},
         "seconds": round(time.time() - t0, 1),
     }
@@ -187,13 +183,7 @@ def main() -> None:
     (out / "style_judge.md").write_text(markdown(report, confusion, d1))
     for name, v in held.items():
         print(f"{name:28s} {shown(v['accuracy'])}  own labels {shown(v['own_labels'])}")
-    for k, d in enumerate(draws):
-        print(f"dataset-1 cross-validation, fold draw {k}: {shown(d['accuracy'])}")
-    mean_cv = np.mean([d["accuracy"]["share"] for d in draws])
-    print(f"dataset-1 cross-validation, mean of {len(draws)} draws: {100 * mean_cv:.1f}% of {len(seen)} clips")
-    for name, rows in by_style.items():
-        print(name + ": " + ", ".join(f"{k} {v['hits']}/{v['clips']}" for k, v in rows.items()))
-    print(f"mapping {mapping}  C {best}  {report['seconds']} s")
+    print(f"mapping {mapping}  C {best}  {report['seconds']} s; the rest in {out / 'style_judge.md'}")
 
 
 def _by(rows: list, key: Callable[[Clip], str]) -> dict[str, dict]:
