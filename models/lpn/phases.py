@@ -214,12 +214,12 @@ class LocalPhases:
 Axes = dict[str, tuple[np.ndarray, np.ndarray]]
 
 
-def style_axes(motions: list[Motion], bones: tuple[str, ...] = BONES) -> Axes:
+def style_axes(motions: list[Motion]) -> Axes:
     """Per-style-and-gait centring: centre and principal axis of each contact-free bone over all
     frames of `motions` (clips of one style and gait), in the facing frame, in leg lengths."""
     out: Axes = {}
     feats = [(compute_features(m).local_positions, m.skeleton) for m in motions]
-    for bone in bones:
+    for bone in BONES:
         if bone in FOOT_SIDE:
             continue
         pts = np.concatenate([lp[:, sk.index(bone)] / left_leg_length(sk) for lp, sk in feats])
@@ -227,21 +227,11 @@ def style_axes(motions: list[Motion], bones: tuple[str, ...] = BONES) -> Axes:
     return out
 
 
-def local_phases(
-    motion: Motion,
-    axes: Axes | None = None,
-    bones: tuple[str, ...] = BONES,
-    contact_bones: tuple[str, ...] = ("Foot_L", "Foot_R"),
-    *,
-    normalise_window_s: float = NORMALISE_WINDOW_S,
-    fit_window_s: float = FIT_WINDOW_S,
-    cutoff_hz: float = CUTOFF_HZ,
-    freq_range: tuple[float, float] = FREQ_RANGE_HZ,
-) -> LocalPhases:
-    """Local phases of `bones` for one clip.
+def local_phases(motion: Motion, axes: Axes | None = None) -> LocalPhases:
+    """Local phases of `BONES` for one clip.
 
-    Bones in `contact_bones` use the contact source (Foot_L/Foot_R columns of the contacts), the
-    others the contact-free source. `axes` (from `style_axes`) gives per-style-and-gait centres and
+    The feet use the contact source (their columns of the contacts), the hands the contact-free
+    source. `axes` (from `style_axes`) gives per-style-and-gait centres and
     axes; without it each clip is centred on itself (per-clip centring)."""
     fps = motion.fps
     feats = compute_features(motion)
@@ -249,23 +239,23 @@ def local_phases(
     leg = left_leg_length(sk)
     local = feats.local_positions / leg  # leg lengths: skeleton-independent amplitudes
     sources = []
-    for bone in bones:
-        if bone in contact_bones:  # the most reliable rhythm of a foot: a square wave of its stride
+    for bone in BONES:
+        if bone in FOOT_SIDE:  # the most reliable rhythm of a foot: a square wave of its stride
             sources.append(feats.contacts[:, FOOT_SIDE[bone]].astype(float))
         else:
             centre, axis = (axes or {}).get(bone, (None, None))
             sources.append(contact_free_source(local[:, sk.index(bone)], centre, axis))
     source = np.stack(sources, axis=1)
-    signal = lowpass(sliding_normalise(source, fps, normalise_window_s), fps, cutoff_hz)
-    fits = [fit_sinusoid(signal[:, i], fps, fit_window_s, freq_range) for i in range(len(bones))]
-    idx = [sk.index(b) for b in bones]
+    signal = lowpass(sliding_normalise(source, fps), fps)
+    fits = [fit_sinusoid(signal[:, i], fps) for i in range(len(BONES))]
+    idx = [sk.index(b) for b in BONES]
     speed = np.linalg.norm(backward_diff(local[:, idx], fps), axis=-1)  # (F, B), facing frame
-    size = max(int(round(fit_window_s * fps)) | 1, 3)
+    size = max(int(round(FIT_WINDOW_S * fps)) | 1, 3)
     speed = uniform_filter1d(speed, size, axis=0, mode="nearest")
     phase = np.stack([f.phase for f in fits], axis=1)
     amplitude = np.stack([f.amplitude for f in fits], axis=1) * speed
     return LocalPhases(
-        bones=tuple(bones),
+        bones=BONES,
         fps=fps,
         frequency=np.stack([f.frequency for f in fits], axis=1),
         phase=phase,
