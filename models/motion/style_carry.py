@@ -14,7 +14,7 @@ q' = q exp(sum_s w_s log(q^-1 f_s(q))); zero weights give q.
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +23,7 @@ import numpy as np
 from .rotations import quat_inv, quat_log, quat_mean, quat_mul
 
 CLAMP_PERCENTILE = 98.0
+FIELDS = ("source", "mean", "map", "radius")  # a carry's arrays, as files and stages' rows name them
 MAX_SAMPLES = 60_000  # an even subsample per style keeps a fit to seconds
 
 
@@ -133,7 +134,7 @@ class StyleCarry:
     def stack(cls, carries: list[StyleCarry]) -> StyleCarry:
         """One carry holding each of `carries`' styles in turn (fitted apart, e.g. each with its
         own fixed joints)."""
-        return cls(*(np.concatenate([getattr(c, f) for c in carries]) for f in ("source", "mean", "map", "radius")))
+        return cls(*(np.concatenate([getattr(c, f) for c in carries]) for f in FIELDS))
 
     def mixed_with(
         self,
@@ -152,6 +153,15 @@ class StyleCarry:
 
         return carry_pair(q, weights, share, self.arrays, then_b.arrays, then_c.arrays, hips)
 
+    def named(self, prefix: str = "") -> dict[str, np.ndarray]:
+        """Its arrays under `prefix` + each of `FIELDS`, as a file holds them (`read` reads them back)."""
+        return {prefix + k: a for k, a in zip(FIELDS, self.arrays)}
+
+    @classmethod
+    def read(cls, arrays: Mapping[str, np.ndarray], prefix: str = "") -> StyleCarry:
+        """The carry `named(prefix)` wrote into `arrays` (an open .npz or its dict)."""
+        return cls(*(np.ascontiguousarray(arrays[prefix + k], np.float64) for k in FIELDS))
+
     def save(self, path: Path) -> Path:
         np.savez(path, source=self.source, mean=self.mean, map=self.map, radius=self.radius)
         return path
@@ -159,5 +169,12 @@ class StyleCarry:
     @classmethod
     def load(cls, path: Path) -> StyleCarry:
         with np.load(path) as z:
-            arrays = [np.ascontiguousarray(z[k], np.float64) for k in ("source", "mean", "map", "radius")]
-        return cls(*arrays)
+            return cls.read(z)
+
+
+def carry_rows(carries: Mapping[str, StyleCarry], joints: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """`stages.style_rows`'s arrays of `carries` (by key prefix): each one's arrays under prefix +
+    each of `FIELDS`, beside the row that changes nothing (identity means and maps, infinite radii)."""
+    identity = np.tile((0.0, 0.0, 0.0, 1.0), (joints, 1))
+    plain = (identity, identity, np.tile(np.eye(3), (joints, 1, 1)), np.full(joints, np.inf))
+    return {p + k: (a, row) for p, c in carries.items() for k, a, row in zip(FIELDS, c.arrays, plain)}
