@@ -324,7 +324,12 @@ def markdown(r: dict) -> str:
         fixed.rstrip("\n"),
         "",
     ]
-    lines += _gate_summary(r)
+    lines += _per_source(
+        r,
+        "## Rows passing every gate (of the styles), per source",
+        ("fresh", "running"),
+        lambda rows: f"{sum(x['gates']['all'] for x in rows)} of {len(rows)}",
+    )
     lines += _fade_summary(r)
     for source in ["real", *meta["sources"]]:
         lines += _source_table(r, source)
@@ -354,15 +359,6 @@ def _per_source(r: dict, title: str, sessions: tuple[str, ...], cell: Callable[[
                 cells.append(cell(rows) if rows else "–")
             lines.append(f"| {v} | " + (f"{session} | " if by else "") + " | ".join(cells) + " |")
     return lines + [""]
-
-
-def _gate_summary(r: dict) -> list[str]:
-    return _per_source(
-        r,
-        "## Rows passing every gate (of the styles), per source",
-        ("fresh", "running"),
-        lambda rows: f"{sum(x['gates']['all'] for x in rows)} of {len(rows)}",
-    )
 
 
 def _uploads_section(rows: list[dict]) -> list[str]:
