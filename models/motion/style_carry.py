@@ -82,15 +82,7 @@ class StyleCarry:
         mean = np.stack([t[0] for t in tgt])
         c_from = np.stack([s[1] for s in src]) + source_floor**2 * np.eye(3)
         lin = gaussian_map(c_from, np.stack([t[1] for t in tgt]))
-        radius = np.stack([t[2] for t in tgt])
-        clamp_ = list(clamp_only)
-        source[:, clamp_] = mean[:, clamp_]
-        lin[:, clamp_] = np.eye(3)
-        fixed_ = list(fixed)
-        source[:, fixed_] = mean[:, fixed_] = (0.0, 0.0, 0.0, 1.0)
-        lin[:, fixed_] = np.eye(3)
-        radius[:, fixed_] = np.pi
-        return cls(source, mean, lin, radius)
+        return pinned(source, mean, lin, np.stack([t[2] for t in tgt]), fixed, clamp_only)
 
     @functools.cached_property
     def bounds(self) -> StyleCarry:
@@ -170,6 +162,26 @@ class StyleCarry:
     def load(cls, path: Path) -> StyleCarry:
         with np.load(path) as z:
             return cls.read(z)
+
+
+def pinned(
+    source: np.ndarray,
+    mean: np.ndarray,
+    lin: np.ndarray,
+    radius: np.ndarray,
+    fixed: Sequence[int],
+    clamp: Sequence[int],
+) -> StyleCarry:
+    """The carry of these arrays (style axis first; changed in place) with the joints `clamp` only
+    clamped into each style's range (source mean = style mean, identity map) and the joints
+    `fixed` left as they are (identity means and maps, radius pi)."""
+    clamp_, fixed_ = list(clamp), list(fixed)
+    source[:, clamp_] = mean[:, clamp_]
+    lin[:, clamp_] = np.eye(3)
+    source[:, fixed_] = mean[:, fixed_] = (0.0, 0.0, 0.0, 1.0)
+    lin[:, fixed_] = np.eye(3)
+    radius[:, fixed_] = np.pi
+    return StyleCarry(source, mean, lin, radius)
 
 
 def carry_rows(carries: Mapping[str, StyleCarry], joints: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
