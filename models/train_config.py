@@ -1,7 +1,6 @@
 """Command-line overrides for the trainers' config dataclasses, nanoGPT style: every field of the
 config at the top of a train script can be set as `--name=value` (dashes or underscores), typed by
-its default. One parser for every trainer, so they accept the same syntax (Style-ERD's copy had
-drifted: `--flag=false` set a bool to True)."""
+its default. One parser for every trainer, so they accept the same syntax."""
 
 from __future__ import annotations
 

@@ -73,8 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     p_subset.add_argument("--content", default="", help="comma-separated contents to keep (default: all)")
     p_subset.add_argument("--out", type=Path, required=True, help="folder for the archive and its SHA256SUMS")
     p_subset.add_argument("--preset", type=int, default=6, choices=range(10), help="xz level (default 6)")
-    t0 = time.perf_counter()
     args = parser.parse_args(argv)
+    t0 = time.perf_counter()
     if args.command == "subset":
         from .subset import write_subset
 
@@ -88,7 +88,6 @@ def main(argv: list[str] | None = None) -> int:
             settings = settings.model_copy(update={"data_dir": args.data_dir})
         fetch(args.dataset, settings, args.source)
         return 0
-    t0 = time.perf_counter()
     clips = build_index(args.dataset)
     if args.command == "summary":
         print(format_summary(clips))

@@ -163,7 +163,7 @@ class WindowSampler:
             "content": torch.from_numpy(self.s.content[clips]),
         }
 
-    def fixed(self, n_per_clip: int = 2, stride: int | None = None) -> dict[str, torch.Tensor]:
+    def fixed(self, n_per_clip: int = 2) -> dict[str, torch.Tensor]:
         """Deterministic windows (for validation): up to n_per_clip evenly spaced windows per clip."""
         idx, clips = [], []
         for c in np.concatenate([self.neutral, self.styled]):

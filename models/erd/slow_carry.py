@@ -26,12 +26,11 @@ import numpy as np
 from ..interface import State
 from ..motion import style_carry_kernels as kernels
 from ..motion.skeleton import Skeleton
-from ..motion.style_carry import StyleCarry
+from ..motion.style_carry import FIELDS, StyleCarry, carry_rows
 from ..stages import Rows, StageFrame, style_rows
 from .dataset import TARGET_STYLES
 
 SLOW_WEIGHT = 0.5  # the newest frame's weight in the slow copy (a ~3-frame exponential average)
-CARRY_ROWS = ("source", "mean", "map", "radius")  # a carry's arrays, as its rows name them
 
 
 def run_file(path: Path) -> Path:
@@ -69,17 +68,11 @@ class SlowPrior:
         """Both carries' arrays (`run_` before the run's keys; without a run prior the carry's),
         the fast part's gains, the clamp's maps and the joints carried whole, aligned with
         `styles`; a style not fitted gets identity maps and infinite radii. `plain` (S, J): the
-        joints each style only clamps (`StyleCarry.clamps_only`, per style)."""
-        J, identity, eye = skeleton.num_joints, np.array((0.0, 0.0, 0.0, 1.0)), np.eye(3)
-        plain = (np.tile(identity, (J, 1)), np.tile(identity, (J, 1)), np.tile(eye, (J, 1, 1)), np.full(J, np.inf))
-        run = self.run or self.carry
-        arrays = {
-            f"{prefix}{k}": (a, p)
-            for prefix, c in (("", self.carry), ("run_", run))
-            for k, a, p in zip(CARRY_ROWS, c.arrays, plain)
-        }
-        rows = style_rows(self.styles, styles, gain=(self.gains, plain[2]), **arrays)
-        aligned = StyleCarry(*(rows[k] for k in CARRY_ROWS))
+        joints each style only clamps (its map the identity, its source its mean)."""
+        J, eye = skeleton.num_joints, np.eye(3)
+        arrays = carry_rows({"": self.carry, "run_": self.run or self.carry}, J)
+        rows = style_rows(self.styles, styles, gain=(self.gains, np.tile(eye, (J, 1, 1))), **arrays)
+        aligned = StyleCarry(*(rows[k] for k in FIELDS))
         whole = np.all(aligned.map == eye, axis=(-1, -2)) & np.all(aligned.source == aligned.mean, axis=-1)
         return rows | {"bounds": aligned.bounds.map, "plain": whole}
 

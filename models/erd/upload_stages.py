@@ -26,9 +26,9 @@ import numpy as np
 
 from ..motion.bn_skeleton import HIPS
 from ..motion.rotation_ball import comparable
-from ..motion.rotations import quat_inv, quat_log, quat_mean, quat_mul
+from ..motion.rotations import quat_angle, quat_inv, quat_log, quat_mean, quat_mul
 from ..motion.skeleton import Motion, Skeleton
-from ..motion.style_carry import StyleCarry, gaussian_map, tangent_stats
+from ..motion.style_carry import StyleCarry, gaussian_map, pinned, tangent_stats
 from ..stages import Pipeline
 from .features import NB, ROOTVEL, ROT, YAWRATE
 from .slow_carry import SlowPrior
@@ -105,15 +105,9 @@ def carry_to(
     (N, J, 4): what `StyleCarry.fit` gives from the frames the source was measured on (`floor`:
     its `source_floor`, radians)."""
     mean, cov, radius = tangent_stats(target)
-    src_mean = np.array(source[0], np.float64)
     lin = gaussian_map(np.asarray(source[1], np.float64) + floor**2 * np.eye(3), cov)
-    clamp_, fixed_ = list(clamp_only), list(fixed)
-    src_mean[clamp_] = mean[clamp_]
-    lin[clamp_] = np.eye(3)
-    src_mean[fixed_] = mean[fixed_] = (0.0, 0.0, 0.0, 1.0)
-    lin[fixed_] = np.eye(3)
-    radius[fixed_] = np.pi
-    return StyleCarry(*(np.ascontiguousarray(a[None]) for a in (src_mean, mean, lin, radius)))
+    src_mean = np.array(source[0], np.float64)
+    return pinned(src_mean[None], mean[None], lin[None], radius[None], fixed, clamp_only)
 
 
 def clip_rotations(model: ERDStyles, clip: Motion) -> tuple[np.ndarray, np.ndarray]:
@@ -129,8 +123,7 @@ def clip_rotations(model: ERDStyles, clip: Motion) -> tuple[np.ndarray, np.ndarr
 def nearest_style(style_means: np.ndarray, q: np.ndarray) -> int:
     """The trained style whose real mean rotations (S, J, 4) lie nearest the clip's (`q` (N, J, 4)):
     the smallest sum over joints of squared angles between mean local rotations."""
-    m = quat_mean(q, axis=0)
-    angle = 2.0 * np.arccos(np.clip(np.abs(np.sum(style_means * m[None], axis=-1)), 0.0, 1.0))
+    angle = quat_angle(style_means, quat_mean(q, axis=0)[None])
     return int(np.argmin(np.sum(angle**2, axis=1)))
 
 

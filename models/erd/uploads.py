@@ -43,7 +43,6 @@ from .twist_range import TwistRange
 from .upload_stages import SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
 
 STYLE_FILE = "erd_style.npz"
-CARRY_FIELDS = ("source", "mean", "map", "radius")  # a carry's arrays, as an upload's file names them
 MIN_FRAMES = 60  # 2 s: the stages' statistics need a few steps of the clip
 
 
@@ -68,7 +67,7 @@ class Upload:
             if isinstance(stage, SlowPrior):
                 for name, carry in ((key, stage.carry), (f"run_{key}", stage.run)):
                     if carry is not None:
-                        arrays |= {f"{name}.{f}": a for f, a in zip(CARRY_FIELDS, carry.arrays)}
+                        arrays |= carry.named(f"{name}.")
                 if stage.fast is not None:
                     arrays[f"{key}.fast"] = stage.fast
             else:
@@ -83,9 +82,7 @@ class Upload:
             a = {k: z[k] for k in z.files}
 
         def carry(key: str) -> StyleCarry | None:
-            if f"{key}.source" not in a:
-                return None
-            return StyleCarry(*(np.ascontiguousarray(a[f"{key}.{f}"], np.float64) for f in CARRY_FIELDS))
+            return StyleCarry.read(a, f"{key}.") if f"{key}.source" in a else None
 
         stages: dict[str, Any] = {}
         for key, hips in (("leaf_prior", -1), ("output_prior", HIPS)):

@@ -17,6 +17,7 @@ import json
 import time
 from collections import Counter
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -40,6 +41,7 @@ AGREEMENT = 0.5  # share of a dataset-1 style's clips a dataset-2 judge must rea
 C_GRID = (0.003, 0.01, 0.03, 0.1, 0.3)
 FOLDS = 5
 REPEATS = 5  # fold draws: with ten clips a style one draw moves the score by several clips
+TEMPLATE = Path(__file__).with_name("templates") / "style_judge.md"  # the report's fixed prose
 
 
 def shared_contents(clips: list[Clip]) -> set[str]:
@@ -160,10 +162,6 @@ def main() -> None:
         "dataset-1 cross-validation": draws[0],
     }
     cv_rows = [(c, g[c.key]) for g in oof[best] for c in seen]
-    by_style = {
-        "dataset-1 CV (all draws)": _by(cv_rows, lambda c: c.style),
-        "dataset-2 val": _by(list(zip(part(d2, "val"), d2_val)), lambda c: c.style),
-    }
     report = {
         "mapping": mapping,
         "confusion_d1_by_d2_judge": {f"{t} -> {r}": v for (t, r), v in sorted(confusion.items())},
@@ -173,9 +171,9 @@ def main() -> None:
         "labels": judge.labels,
         "held_out": held,
         "d1_cv_draws": [d["accuracy"] for d in draws],
-        "d1_cv_by_style": by_style["dataset-1 CV (all draws)"],
+        "d1_cv_by_style": _by(cv_rows, lambda c: c.style),
         "d1_cv_by_content": _by(cv_rows, lambda c: c.content),
-        "d2_val_by_style": by_style["dataset-2 val"],
+        "d2_val_by_style": _by(list(zip(part(d2, "val"), d2_val)), lambda c: c.style),
         "train_clips": {"dataset-1": len(part(d1, "train")), "dataset-2": len(part(d2, "train"))},
         "seconds": round(time.time() - t0, 1),
     }
@@ -185,13 +183,7 @@ def main() -> None:
     (out / "style_judge.md").write_text(markdown(report, confusion, d1))
     for name, v in held.items():
         print(f"{name:28s} {shown(v['accuracy'])}  own labels {shown(v['own_labels'])}")
-    for k, d in enumerate(draws):
-        print(f"dataset-1 cross-validation, fold draw {k}: {shown(d['accuracy'])}")
-    mean_cv = np.mean([d["accuracy"]["share"] for d in draws])
-    print(f"dataset-1 cross-validation, mean of {len(draws)} draws: {100 * mean_cv:.1f}% of {len(seen)} clips")
-    for name, rows in by_style.items():
-        print(name + ": " + ", ".join(f"{k} {v['hits']}/{v['clips']}" for k, v in rows.items()))
-    print(f"mapping {mapping}  C {best}  {report['seconds']} s")
+    print(f"mapping {mapping}  C {best}  {report['seconds']} s; the rest in {out / 'style_judge.md'}")
 
 
 def _by(rows: list, key: Callable[[Clip], str]) -> dict[str, dict]:
@@ -212,36 +204,16 @@ def markdown(r: dict, confusion: Counter, d1: list[Clip]) -> str:
     lines = [
         "# The style judge: held-out accuracy on real clips",
         "",
-        "Made by `python -m models.eval.fit_style_judge` (`models/eval/style_judge.py`); "
-        f"ran in {r['seconds']:.0f} s. Recipe: mean and standard deviation over 2-s windows of every body joint's "
-        "local rotation (6-D, the Hips without heading) and its angular speed (no positions: they carry the "
-        "performer's bone lengths), each clip's read relative to the centre of its own session and content (the "
-        "mean over styles of that dataset's TRAIN clips of the content: one take per style and content in dataset 1 "
-        "would otherwise teach the session and the content as much as the style); a multinomial logistic "
-        "regression over the windows, a clip read by its mean "
-        "log-probability; trained on the TRAIN clips of Bandai Namco datasets 1 and 2 "
-        f"({r['train_clips']['dataset-1']} and {r['train_clips']['dataset-2']} clips), every label weighing the "
-        "same and, within a label both datasets share, each dataset weighing the same. "
-        f"C = {r['c']}, chosen by 5-fold cross-validation over dataset 1's TRAIN and VALIDATION clips, {REPEATS} fold draws "
-        "(clips read right per draw: "
-        + "; ".join(f"{c}: {'/'.join(map(str, h))} of {r['cv_clips']}" for c, h in r["c_grid_cv"].items())
-        + "). Contents only one style performs are left out. The data names no performers, so takes are held "
-        "out (every take of a style and content in the same fold), not performers.",
-        "",
-        "**What it answers.** The evaluation asks whether an output reads as a dataset-2 style. The judge "
-        "answers one of dataset 2's labels (`normal` among them; a dataset-1 style mapped onto its namesake "
-        "counts as it) or `other`: a dataset-1 style no dataset-2 label agrees with. The dataset-1-only styles "
-        "are classes of their own in the fit and read as `other` when their probabilities together beat every "
-        "named label. *accuracy* below is that read; *own labels* is the stricter read that must also name "
-        "which dataset-1 style (15 of them, about ten clips each, one take per content).",
-        "",
-        "**What it needs.** Each clip's session (the dataset its input came from) and content, which the "
-        "evaluation knows for every input. A pair without TRAIN clips takes the content's centre over the "
-        "sessions that have it, else the session's mean centre, else the mean of all: a session the judge has no "
-        "clips of (Xia, CMU) is then read with its recording left in, so its rows say less than the Bandai "
-        "Namco ones.",
-        "",
-        "## Held-out accuracy (share of clips; count; 95 % Wilson interval)",
+        TEMPLATE.read_text()
+        .format(
+            seconds=r["seconds"],
+            train_d1=r["train_clips"]["dataset-1"],
+            train_d2=r["train_clips"]["dataset-2"],
+            c=r["c"],
+            repeats=REPEATS,
+            grid="; ".join(f"{c}: {'/'.join(map(str, h))} of {r['cv_clips']}" for c, h in r["c_grid_cv"].items()),
+        )
+        .rstrip("\n"),
         "",
         "| clips | accuracy | own labels |",
         "|---|---|---|",

@@ -21,14 +21,10 @@ def render_footprints(
     motions: Sequence[Motion],
     path: str | Path,
     titles: Sequence[str] | None = None,
-    panel_size: float = 3.2,
-    dpi: int = 90,
 ) -> Path:
     """One top-down panel per motion (x right, z up, equal axes); returns the PNG path."""
     titles = list(titles) if titles is not None else [""] * len(motions)
-    fig, axes = plt.subplots(
-        1, len(motions), figsize=(panel_size * len(motions), panel_size + 0.4), dpi=dpi, squeeze=False
-    )
+    fig, axes = plt.subplots(1, len(motions), figsize=(3.2 * len(motions), 3.6), dpi=90, squeeze=False)
     for ax, motion, title in zip(axes[0], motions, titles):
         pos = motion.global_positions()
         contacts, speeds = flat_foot_contacts(motion, pos)

@@ -74,14 +74,11 @@ class Judges:
     def style_logprobs(self, feats: list[np.ndarray]) -> np.ndarray:
         return clip_logprobs(self.style_clf, self.norm, feats)
 
-    def content_logprobs(self, feats: list[np.ndarray]) -> np.ndarray:
-        return clip_logprobs(self.content_clf, self.norm, feats)
-
     def predict_style(self, feats: list[np.ndarray]) -> list[str]:
         return [self.styles[i] for i in self.style_logprobs(feats).argmax(-1)]
 
     def predict_content(self, feats: list[np.ndarray]) -> list[str]:
-        return [self.contents[i] for i in self.content_logprobs(feats).argmax(-1)]
+        return [self.contents[i] for i in clip_logprobs(self.content_clf, self.norm, feats).argmax(-1)]
 
     def save(self, folder: Path) -> Path:
         folder.mkdir(parents=True, exist_ok=True)

@@ -45,6 +45,8 @@ GATE_STYLE = {D2: 0.90}  # style read right on the new judge; other sources:
 GATE_STYLE_OTHER = 0.75
 GATE_CONTENT = 0.90  # dataset 2 only: the content judge knows its ten contents
 FINAL_RUNS = "docs/eval/final_runs.md"
+# the report's fixed prose, its braces filled in by `markdown`
+REPORT, UPLOADS_REPORT = (Path(__file__).with_name("templates") / name for name in ("evaluation.md", "uploads.md"))
 
 
 class Judges(NamedTuple):
@@ -300,6 +302,17 @@ def markdown(r: dict) -> str:
     meta = r["meta"]
     final = meta["final"]
     runs = final_runs()
+    fixed = REPORT.read_text().format(
+        history_s=meta["history_frames"] // 30,
+        judge_table="\n".join(share_table("real clips", {k: v["accuracy"] for k, v in meta["judge"].items()})),
+        gate_style_other=GATE_STYLE_OTHER,
+        gate_content=GATE_CONTENT,
+        gate_jitter=GATE_JITTER,
+        gate_slide=GATE_SLIDE,
+        skate_limit=meta["skate_limit_cm_s"],
+        skid_speed=SKID_SPEED,
+        faded=FADED,
+    )
     lines = [
         "# Evaluation" + ("" if final else " on the VALIDATION inputs (where choices are made)"),
         "",
@@ -308,69 +321,15 @@ def markdown(r: dict) -> str:
         f"on {meta['machine']}. Raw numbers: [`eval/results.json`](eval/results.json). "
         + (f"**Final runs so far: {len(runs)}** ([list](eval/final_runs.md))." if final else ""),
         "",
-        "## Protocol",
-        "",
-        "- Every choice is made on the validation inputs (`make eval`). `make eval-final` scores the sealed test "
-        "inputs once a change is finished and appends a line to `docs/eval/final_runs.md`; it is never run to "
-        "choose between changes.",
-        "- Inputs (`models/eval/sources.py`), every neutral clip at full length, no cap per content: Bandai Namco "
-        "dataset 2 (the models' own data), dataset 1 (another recording session of the same rig), CMU and Xia "
-        "(other rigs at 120 fps, through the retargeter at 30 fps). Validation: dataset 2's val split, dataset 1's "
-        "TRAIN neutral clips (LTI and Style-ERD never trained on dataset 1; LPN-FiLM trained on its locomotion), "
-        "Xia's six TRAIN-split clips. Final: dataset 2's test split, dataset 1's val and test neutral clips, Xia's "
-        "three held-out clips and every CMU clip. No input is scored by both runs.",
-        "- Rows: each method as shipped, its **core** alone (the published network or system and the foot planter, "
-        "no fitted stage after it), the input unchanged (**identity**) and **real** clips of the target style "
-        "(dataset 2: the odd VALIDATION clips of the style in `make eval`, every TEST clip in `make eval-final`; "
-        "never a clip the reference was fitted on).",
-        f"- **Running** sessions: each clip streamed after {meta['history_frames'] // 30} s of the clips before it "
-        "(`history.py`); only the clip is scored.",
-        "",
-        "## The style judge first",
-        "",
-        "A new judge built by another recipe than the models were tuned against (`models/eval/style_judge.py`, "
-        "[its report](eval/style_judge.md)): per-window statistics of local rotations and angular speeds, read "
-        "against the mean of the input's own session and content, a linear read, trained on datasets 1 and 2 with "
-        "the labels they share mapped where the data agrees; it answers a dataset-2 style or `other`. Held-out "
-        "real clips it reads right (95 % interval):",
+        fixed.rstrip("\n"),
         "",
     ]
-    lines += share_table("real clips", {k: v["accuracy"] for k, v in meta["judge"].items()})
-    lines += [
-        "",
-        "## Metrics and gates",
-        "",
-        "- **style**: outputs the judge reads as the target style (count, 95 % interval). Gate ≥ 90 % on dataset 2, "
-        f"≥ {GATE_STYLE_OTHER:.0%} on the other sources. **content** (dataset 2 only): the conv-net content "
-        f"judge reads the input's content, gate ≥ {GATE_CONTENT:.0%}.",
-        "- **plausible clips**: clips whose every body joint lies near a real TRAIN frame of the style in ≥ 95 % of "
-        'frames, "near" (never under 5°) calibrated on VALIDATION clips of the style (the even ones in `make eval`) so that 95 % of '
-        "them pass (gate: ≥ 95 % "
-        "of clips); the worst clip's worst joint. Near a real frame, not inside a ball about the mean: the models "
-        "hold their rotations in such balls, so a ball test would pass by construction. A content no real clip of the "
-        "style performs (dataset 1's kicks, Xia's jumps) has no real frame of the style to be near: there a rotation "
-        "as near the input's own at that frame counts too (the input is real motion), as its slide is held to the input's.",
-        "- **pops**: the worst joint's share of frames past the p99.9 rotation acceleration of real clips of every "
-        "style (VALIDATION clips; gate ≤ 2× the real row). **jitter**: per clip and joint, p99 rotation acceleration over the larger "
-        "of the input's and the real style's, the worst joint; median / p90 over clips (gate p90 "
-        f"≤ {GATE_JITTER}). **slide**: a foot's horizontal speed while planted flat (ankle and toe on the floor for "
-        "at least 0.1 s, measured between two such frames); per content, the p95 over the larger of the real "
-        "style's p95 on that content (TRAIN and VALIDATION clips), the input's own on the same clips and 2.6 cm/s, the worst "
-        f"content (gate ≤ {GATE_SLIDE}×); then the row's pooled p95 in cm/s. **skate**: planted-foot frames faster than "
-        f"{meta['skate_limit_cm_s']:.0f} cm/s (the real validation clips' p95, so real clips skate in 5 %). "
-        f"**skid**: touchdowns where the foot lands flat still moving faster than {SKID_SPEED} leg lengths/s "
-        "(50 cm/s): a foot that flattens while it still swings forward and skids into its print. Not gated; "
-        "compare the real row: real neutral clips skid in 0-5 % of touchdowns; real elderly and exhausted clips in "
-        "22-30 %, nearly all on turns (44-68 % of a turn's touchdowns: the foot drags round), against 0-12 % on "
-        "their walks and runs. Most of a model row's slide p95 is made there. "
-        "**path**: hips path length over the input's, each plus a leg length (median, and the worst clip); "
-        "**drift**: how far the two paths end apart (median, cm).",
-        f"- **faded**: frames whose output faded more than {FADED:.0%} of the way toward the input because the input "
-        "lay far from the method's training input (`models/motion/novelty.py`; the largest body part's weight). "
-        "Not gated: it says how much of a source each method kept as it came instead of styling it.",
-        "",
-    ]
-    lines += _gate_summary(r)
+    lines += _per_source(
+        r,
+        "## Rows passing every gate (of the styles), per source",
+        ("fresh", "running"),
+        lambda rows: f"{sum(x['gates']['all'] for x in rows)} of {len(rows)}",
+    )
     lines += _fade_summary(r)
     for source in ["real", *meta["sources"]]:
         lines += _source_table(r, source)
@@ -402,31 +361,13 @@ def _per_source(r: dict, title: str, sessions: tuple[str, ...], cell: Callable[[
     return lines + [""]
 
 
-def _gate_summary(r: dict) -> list[str]:
-    return _per_source(
-        r,
-        "## Rows passing every gate (of the styles), per source",
-        ("fresh", "running"),
-        lambda rows: f"{sum(x['gates']['all'] for x in rows)} of {len(rows)}",
-    )
-
-
 def _uploads_section(rows: list[dict]) -> list[str]:
     if not rows:
         return []
     return [
-        "## Styles from one clip, held out of training",
-        "",
-        "One real dataset-1 walk of each style a method never trained on, uploaded as `POST /v1/styles` does "
-        "(`instant`: the style made from the clip at once; `tuned`: the fine-tuning job), with neutral walks of "
-        "both datasets streamed through it (`models/eval/uploads.py`). **coverage**: the share of the way from the "
-        "input to the style's other real walking clips (0: the input unchanged; 1: those clips), on the judge's "
-        "clip statistics; **copy**: what the uploaded clip itself covers from the same neutral walks, per dataset. A "
-        f"row passes at ≥ {uploads.PASS_SHARE:.0%} of the copy's coverage on every dataset where the copy covers ≥ "
-        f"{uploads.CLEAR_COPY} (a share in brackets is not scored). **judge read**: the share of outputs that the evaluation's style judge, fitted again "
-        "without the uploaded clip, reads as the style (passes at "
-        f"≥ {uploads.JUDGE_PASS:.0%}); **copy read**: whether it reads the uploaded clip itself so; **least bend**: "
-        "the least knee or elbow bend less the least real one (°; below 0 a limb bends backward).",
+        UPLOADS_REPORT.read_text()
+        .format(pass_share=uploads.PASS_SHARE, clear_copy=uploads.CLEAR_COPY, judge_pass=uploads.JUDGE_PASS)
+        .rstrip("\n"),
         "",
         *uploads.table(rows),
         "",

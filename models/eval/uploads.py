@@ -68,11 +68,6 @@ JUDGE_PASS = 0.8  # share of a style's outputs its judge must recognise (issue 4
 JUDGE_C = 0.01  # the shipped judge's regularisation, chosen by its cross-validation (docs/eval/style_judge.md)
 
 
-def clip_vector(motion: Motion) -> np.ndarray:
-    """The clip's statistics averaged over its windows: what the coverage compares."""
-    return clip_statistics(motion).mean(0)
-
-
 def judge_clips(index: list[Clip]) -> list[Clip]:
     """What each style's judge is fitted on (before its uploaded clip is left out): dataset 1's
     TRAIN and VALIDATION clips of shared contents, dataset 2's TRAIN walks."""
@@ -110,7 +105,8 @@ class Ruler:
     centre: dict[str, np.ndarray]
 
     def z(self, motion: Motion) -> np.ndarray:
-        return clip_vector(motion) / self.scale
+        """The clip's statistics averaged over its windows, standardised: what the coverage compares."""
+        return clip_statistics(motion).mean(0) / self.scale
 
     def coverage(self, out: np.ndarray, start: np.ndarray, dataset: str, target: np.ndarray) -> float:
         """Share of the way from `start` (the `z` of a neutral walk of `dataset`) to the style for

@@ -47,24 +47,15 @@ def demo(args: argparse.Namespace) -> None:
 
 
 def bench(args: argparse.Namespace) -> None:
-    """Step time at batch 1 and 256 against the floor (the expert products alone), called in turn
-    so a shared machine's drifting load hits both alike; one thread, as the service runs."""
-    import os
-    import time
-
+    """Step time at batch 1 and 256 against the floor (the expert products alone), each step timed
+    beside a floor call (`models/stepbench.py`); one thread, as the service runs."""
     from ..interface import FrameBatch
-    from ..stepbench import capped_threads, interleaved, stepper
+    from ..stepbench import capped_threads, stepper, time_steps
 
-    load_before = os.getloadavg()
     model = _model()
     first = model.rest_motion()
-    t = time.perf_counter()
-    model.step_batch(
-        model.init_state(1),
-        FrameBatch(first.translations[:1, 1], first.rotations[:1]),
-        np.zeros((1, len(model.styles())), np.float32),
-    )
-    out: dict = {"first_step_s": round(time.perf_counter() - t, 3), "blas_threads": args.threads}
+    print(f"LPN-FiLM step_batch under control, style elderly, {args.threads} BLAS/torch thread(s)")
+    results = []
     for B in (1, 256):
         control = np.tile(np.array([[1.2, 0.0, 0.0, 0.0, 1.0]], np.float32), (B, 1))
         frames = FrameBatch(
@@ -72,34 +63,24 @@ def bench(args: argparse.Namespace) -> None:
         )
         w = np.zeros((B, len(model.styles())), np.float32)
         w[:, model.styles().index("elderly")] = 1.0
-        steps = {"compiled": stepper(model, [frames], w, B), "floor": _products(model, B)}
+        step, repeats = stepper(model, [frames], w, B), args.steps if B == 1 else max(args.steps // 4, 20)
         with capped_threads(args.threads):
-            times, cpu = interleaved(steps, args.steps if B == 1 else max(args.steps // 4, 20), warmup=20)
-        out[B] = {
-            name: {
-                "median_ms": round(float(np.median(ts)) * 1e3, 3),
-                "p99_ms": round(float(np.percentile(ts, 99)) * 1e3, 3),
-                "frames_per_s": round(B / float(np.median(ts))),
-                "cpu_median_ms": round(float(np.median(cpu[name])) * 1e3, 3),
-            }
-            for name, ts in times.items()
-        }
-        median = {name: float(np.median(ts)) for name, ts in times.items()}
-        out[B]["compiled_over_floor"] = round(median["compiled"] / median["floor"], 2)
-    out["load_average_1min"] = {"start": round(load_before[0], 2), "end": round(os.getloadavg()[0], 2)}
-    print(json.dumps(out, indent=1))
+            timing = time_steps(B, step, _products(model, B), repeats, warmup=20)
+        print(timing.line())
+        results.append(timing.as_dict())
+    print(json.dumps(results, indent=1))
 
 
-def _products(model: LPNModel, B: int) -> Callable[[int], None]:
-    """step(i) doing only the network's three expert products for B sessions (BLAS, float32)."""
+def _products(model: LPNModel, B: int) -> Callable[[], None]:
+    """The network's three expert products for B sessions and nothing else (BLAS, float32)."""
     rng = np.random.default_rng(0)
     inputs = [rng.standard_normal((B, W.shape[0])).astype(np.float32) for W, _, _ in model.layers]
 
-    def step(i: int) -> None:
+    def floor() -> None:
         for h, (W, _, _) in zip(inputs, model.layers):
             h @ W
 
-    return step
+    return floor
 
 
 def fit(args: argparse.Namespace) -> None:

@@ -101,8 +101,6 @@ def render_demo(
     seconds: float = 60.0,
     styles: Sequence[str] = TARGETS,
     gif: bool = True,
-    model: LPNModel | None = None,
-    gif_fps: float = 5.0,
 ) -> Path:
     """Contact sheet PNG (+ GIF) of the scripted control in each style, metrics as JSON; returns the PNG path."""
     import json
@@ -111,7 +109,7 @@ def render_demo(
     from ..motion.render import render_contact_sheet, render_gif
     from . import load
 
-    model = model or load(get_settings().weights_dir / "lpn")
+    model = load(get_settings().weights_dir / "lpn")
     motions, _, segments = drive(model, styles, seconds)
     report = {style: demo_metrics(motion, segments) for style, motion in zip(styles, motions)}
     out_dir = Path(out_dir)
@@ -120,9 +118,7 @@ def render_demo(
     png = render_contact_sheet(motions, out_dir / f"lpn_{tag}.png", frames=frames, titles=list(styles))
     render_footprints(motions, out_dir / f"lpn_{tag}_footprints.png", titles=list(styles))
     if gif:
-        render_gif(
-            motions, out_dir / f"lpn_{tag}.gif", seconds=seconds, fps=gif_fps, titles=list(styles), panel_size=2.2
-        )
+        render_gif(motions, out_dir / f"lpn_{tag}.gif", seconds=seconds, fps=5.0, titles=list(styles), panel_size=2.2)
     (out_dir / f"lpn_{tag}.json").write_text(
         json.dumps({"segments": segments, "metrics": report}, indent=1, default=str)
     )

@@ -22,7 +22,7 @@ from ..eval.run import DATASET, INPUT_STYLE
 from ..interface import State
 from ..motion.coupling import GAITS
 from ..motion.skeleton import Skeleton
-from ..motion.style_carry import StyleCarry
+from ..motion.style_carry import FIELDS, StyleCarry, carry_rows
 from ..stages import Rows, StageFrame, Stateless, style_rows
 from .carriage import UPPER_BODY, fitted_styles, locomotion, made
 
@@ -32,7 +32,6 @@ if TYPE_CHECKING:
 OUTPUT_PRIOR_FILE = "output_prior.npz"
 CARRIED = UPPER_BODY  # the joints every style's prior carries (module doc)
 SOURCE_FLOOR_DEG = 4.0  # the network's least spread along any axis, as the fit takes it (module doc)
-CARRY_ROWS = ("source", "mean", "map", "radius")  # a carry's arrays, as its rows name them
 FIT_FRAMES = 300
 
 
@@ -48,18 +47,7 @@ class OutputPrior(Stateless):
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
         """The walk and run carries' arrays (`run_` before the run's keys) aligned with `styles`,
         and `on` (S,); a style without a prior gets identity maps, infinite radii and `on` 0."""
-        J, identity = skeleton.num_joints, np.array((0.0, 0.0, 0.0, 1.0))
-        plain = (
-            np.tile(identity, (J, 1)),
-            np.tile(identity, (J, 1)),
-            np.tile(np.eye(3), (J, 1, 1)),
-            np.full(J, np.inf),
-        )
-        arrays = {
-            f"{prefix}{k}": (a, p)
-            for prefix, c in (("", self.carry), ("run_", self.run))
-            for k, a, p in zip(CARRY_ROWS, c.arrays, plain)
-        }
+        arrays = carry_rows({"": self.carry, "run_": self.run}, skeleton.num_joints)
         return style_rows(self.styles, styles, on=(np.ones(len(self.styles)), 0.0), **arrays)
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
@@ -71,7 +59,7 @@ class OutputPrior(Stateless):
         batch = np.flatnonzero(w.any(axis=1))
         if len(batch) == 0:
             return rotations, state
-        walk = StyleCarry(*(rows[k] for k in CARRY_ROWS))
+        walk = StyleCarry(*(rows[k] for k in FIELDS))
         q, w = np.asarray(rotations[batch], np.float64), w[batch]
         # a run share only where a row weighs a style whose run prior is its own: a row of styles
         # fitted once is carried exactly as by one prior
@@ -83,7 +71,7 @@ class OutputPrior(Stateless):
         if walking.any():  # exactly what the walk prior alone gives
             carried[walking] = walk(q[walking], w[walking])
         if not walking.all():
-            run = StyleCarry(*(rows[f"run_{k}"] for k in CARRY_ROWS))
+            run = StyleCarry(*(rows[f"run_{k}"] for k in FIELDS))
             if running.any():  # the mix at share 1 (to round-off), in one carry instead of two
                 carried[running] = run(q[running], w[running])
             if between.any():
@@ -97,21 +85,15 @@ class OutputPrior(Stateless):
         return out, state
 
     def save(self, path: Path) -> Path:
-        arrays: dict[str, Any] = dict(zip(CARRY_ROWS, self.carry.arrays)) | {
-            f"run_{k}": a for k, a in zip(CARRY_ROWS, self.run.arrays)
-        }
-        np.savez(path, styles=np.array(self.styles), **arrays)
+        arrays: dict[str, Any] = {"styles": np.array(self.styles), **self.carry.named(), **self.run.named("run_")}
+        np.savez(path, **arrays)
         return path
 
     @classmethod
     def load(cls, path: Path) -> OutputPrior:
         with np.load(path) as z:
-            walk = StyleCarry(*(np.ascontiguousarray(z[k], np.float64) for k in CARRY_ROWS))
-            run = (
-                StyleCarry(*(np.ascontiguousarray(z[f"run_{k}"], np.float64) for k in CARRY_ROWS))
-                if "run_map" in z
-                else walk
-            )
+            walk = StyleCarry.read(z)
+            run = StyleCarry.read(z, "run_") if "run_map" in z else walk
             return cls(tuple(str(s) for s in z["styles"]), walk, run)
 
     def with_styles_of(self, other: OutputPrior) -> OutputPrior:

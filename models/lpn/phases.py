@@ -26,21 +26,12 @@ FOOT_SIDE = {"Foot_L": 0, "Foot_R": 1}  # column of `foot_contacts`
 NORMALISE_WINDOW_S = 1.0
 FIT_WINDOW_S = 1.5  # ~1.3 walk cycles: a 1 s window (< one cycle) lets f wander 0.4-1.3 Hz within a step
 CUTOFF_HZ = 3.0
-FREQ_RANGE_HZ = (
-    0.4,
-    4.0,
-)  # slowest elderly steps ~0.6 Hz per foot, dash ~2 Hz; upper bound = the paper's max frequency
+# slowest elderly steps ~0.6 Hz per foot, dash ~2 Hz; upper bound = the paper's max frequency
+FREQ_RANGE_HZ = (0.4, 4.0)
 FREQ_STEP_HZ = 0.02
 
 
 # --------------------------------------------------------------------------- sources
-
-
-def contact_source(contacts: np.ndarray) -> np.ndarray:
-    """Contact-based source: the (F,) or (F, k) boolean contacts as 0/1 floats (1 = planted).
-
-    Contacts are the most reliable rhythm of a foot: a square wave whose period is the stride."""
-    return np.asarray(contacts, dtype=float)
 
 
 def principal_axis(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +102,6 @@ class SinusoidFit:
     frequency: np.ndarray  # Hz
     phase: np.ndarray  # radians in [0, 2pi)
     offset: np.ndarray  # b
-    residual: np.ndarray  # RMS fit error in the window
 
     def value(self) -> np.ndarray:
         """The fitted sinusoid evaluated at each frame's own time (its window's centre)."""
@@ -188,7 +178,7 @@ def fit_sinusoid(
     curv = r0 - 2 * r1 + r2
     shift = np.where(curv > 1e-12, 0.5 * (r0 - r2) / np.where(curv > 1e-12, curv, 1.0), 0.0)
     f = freqs[k] + np.clip(shift, -1.0, 1.0) * freq_step
-    coef, rss_f = _solve(_basis(2 * np.pi * f, tau), y, mask, ridge)  # (F, 3)
+    coef, _ = _solve(_basis(2 * np.pi * f, tau), y, mask, ridge)  # (F, 3)
     alpha, beta, b = coef[:, 0], coef[:, 1], coef[:, 2]
     # alpha sin(w tau) + beta cos(w tau) = a sin(w tau + theta), a cos theta = alpha, a sin theta = beta
     return SinusoidFit(
@@ -196,7 +186,6 @@ def fit_sinusoid(
         frequency=f,
         phase=np.mod(np.arctan2(beta, alpha), 2 * np.pi),
         offset=b,
-        residual=np.sqrt(rss_f / mask.sum(axis=1)),
     )
 
 
@@ -215,31 +204,22 @@ class LocalPhases:
 
     bones: tuple[str, ...]
     fps: float
-    source: np.ndarray  # (F, B) raw source: contacts (feet), PCA projection in leg lengths (hands)
-    signal: np.ndarray  # (F, B) normalised and low-passed source, the signal that was fitted
-    fit_amplitude: np.ndarray  # (F, B) a of the fit (normalised units)
-    offset: np.ndarray  # (F, B) b of the fit
     frequency: np.ndarray  # (F, B) Hz
     phase: np.ndarray  # (F, B) radians in [0, 2pi)
-    speed: np.ndarray  # (F, B) window-mean bone speed in the facing frame, leg lengths / s
-    amplitude: np.ndarray  # (F, B) fit_amplitude * speed: the radius of the phase feature
+    amplitude: np.ndarray  # (F, B) the fit's amplitude times the bone's window-mean speed (leg lengths / s)
     features: np.ndarray  # (F, B, 2) amplitude * (sin phase, cos phase)
     contacts: np.ndarray  # (F, 2) bool, left and right foot
-
-    def fitted(self) -> np.ndarray:
-        """(F, B) fitted sinusoid value at each frame, comparable with `signal`."""
-        return self.fit_amplitude * np.sin(self.phase) + self.offset
 
 
 Axes = dict[str, tuple[np.ndarray, np.ndarray]]
 
 
-def style_axes(motions: list[Motion], bones: tuple[str, ...] = BONES) -> Axes:
+def style_axes(motions: list[Motion]) -> Axes:
     """Per-style-and-gait centring: centre and principal axis of each contact-free bone over all
     frames of `motions` (clips of one style and gait), in the facing frame, in leg lengths."""
     out: Axes = {}
     feats = [(compute_features(m).local_positions, m.skeleton) for m in motions]
-    for bone in bones:
+    for bone in BONES:
         if bone in FOOT_SIDE:
             continue
         pts = np.concatenate([lp[:, sk.index(bone)] / left_leg_length(sk) for lp, sk in feats])
@@ -247,21 +227,11 @@ def style_axes(motions: list[Motion], bones: tuple[str, ...] = BONES) -> Axes:
     return out
 
 
-def local_phases(
-    motion: Motion,
-    axes: Axes | None = None,
-    bones: tuple[str, ...] = BONES,
-    contact_bones: tuple[str, ...] = ("Foot_L", "Foot_R"),
-    *,
-    normalise_window_s: float = NORMALISE_WINDOW_S,
-    fit_window_s: float = FIT_WINDOW_S,
-    cutoff_hz: float = CUTOFF_HZ,
-    freq_range: tuple[float, float] = FREQ_RANGE_HZ,
-) -> LocalPhases:
-    """Local phases of `bones` for one clip.
+def local_phases(motion: Motion, axes: Axes | None = None) -> LocalPhases:
+    """Local phases of `BONES` for one clip.
 
-    Bones in `contact_bones` use the contact source (Foot_L/Foot_R columns of the contacts), the
-    others the contact-free source. `axes` (from `style_axes`) gives per-style-and-gait centres and
+    The feet use the contact source (their columns of the contacts), the hands the contact-free
+    source. `axes` (from `style_axes`) gives per-style-and-gait centres and
     axes; without it each clip is centred on itself (per-clip centring)."""
     fps = motion.fps
     feats = compute_features(motion)
@@ -269,32 +239,26 @@ def local_phases(
     leg = left_leg_length(sk)
     local = feats.local_positions / leg  # leg lengths: skeleton-independent amplitudes
     sources = []
-    for bone in bones:
-        if bone in contact_bones:
-            sources.append(contact_source(feats.contacts[:, FOOT_SIDE[bone]]))
+    for bone in BONES:
+        if bone in FOOT_SIDE:  # the most reliable rhythm of a foot: a square wave of its stride
+            sources.append(feats.contacts[:, FOOT_SIDE[bone]].astype(float))
         else:
             centre, axis = (axes or {}).get(bone, (None, None))
             sources.append(contact_free_source(local[:, sk.index(bone)], centre, axis))
     source = np.stack(sources, axis=1)
-    signal = lowpass(sliding_normalise(source, fps, normalise_window_s), fps, cutoff_hz)
-    fits = [fit_sinusoid(signal[:, i], fps, fit_window_s, freq_range) for i in range(len(bones))]
-    idx = [sk.index(b) for b in bones]
+    signal = lowpass(sliding_normalise(source, fps), fps)
+    fits = [fit_sinusoid(signal[:, i], fps) for i in range(len(BONES))]
+    idx = [sk.index(b) for b in BONES]
     speed = np.linalg.norm(backward_diff(local[:, idx], fps), axis=-1)  # (F, B), facing frame
-    size = max(int(round(fit_window_s * fps)) | 1, 3)
+    size = max(int(round(FIT_WINDOW_S * fps)) | 1, 3)
     speed = uniform_filter1d(speed, size, axis=0, mode="nearest")
-    fit_amp = np.stack([f.amplitude for f in fits], axis=1)
     phase = np.stack([f.phase for f in fits], axis=1)
-    amplitude = fit_amp * speed
+    amplitude = np.stack([f.amplitude for f in fits], axis=1) * speed
     return LocalPhases(
-        bones=tuple(bones),
+        bones=BONES,
         fps=fps,
-        source=source,
-        signal=signal,
-        fit_amplitude=fit_amp,
-        offset=np.stack([f.offset for f in fits], axis=1),
         frequency=np.stack([f.frequency for f in fits], axis=1),
         phase=phase,
-        speed=speed,
         amplitude=amplitude,
         features=phase_features(phase, amplitude),
         contacts=feats.contacts,

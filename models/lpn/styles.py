@@ -31,7 +31,6 @@ if TYPE_CHECKING:
     from .network import LPN
 
 FILM_FILE = "film.npz"
-PRIOR_KEYS = ("prior_source", "prior_mean", "prior_map", "prior_radius")  # a saved upload's prior, if any
 MAKING = "upload being made"  # the style name a twin streams the clip toward to fit its prior
 PRIOR_MIN_FRAMES = 60  # a clip shorter than this (after the network's first second) gets no prior
 
@@ -129,7 +128,7 @@ class LPNStyles(ClipStyles[LPNUpload]):
     def save_style(self, style: LPNUpload, folder: Path) -> None:
         arrays: dict[str, Any] = {"film": style.film}
         if style.prior is not None:
-            arrays |= dict(zip(PRIOR_KEYS, style.prior.arrays))
+            arrays |= style.prior.named("prior_")  # a saved upload's prior, if any
         np.savez(folder / "film.tmp.npz", **arrays)
         (folder / "film.tmp.npz").replace(folder / FILM_FILE)
 
@@ -138,5 +137,5 @@ class LPNStyles(ClipStyles[LPNUpload]):
 
     def load_style(self, name: str, folder: Path) -> LPNUpload:
         with np.load(folder / FILM_FILE) as z:
-            prior = StyleCarry(*(z[k] for k in PRIOR_KEYS)) if PRIOR_KEYS[0] in z else None
+            prior = StyleCarry.read(z, "prior_") if "prior_source" in z else None
             return LPNUpload(z["film"], prior)

@@ -64,53 +64,24 @@ BN_ROLES = {
     },
 }
 
-# BN joint -> CMU joint at the same body position, for the two CMU naming variants.
-_CGSPEED = {
-    "Hips": "Hips",
-    "Spine": "Spine",
-    "Chest": "Spine1",
-    "Neck": "Neck1",
-    "Head": "Head",
-    "Shoulder_L": "LeftShoulder",
-    "UpperArm_L": "LeftArm",
-    "LowerArm_L": "LeftForeArm",
-    "Hand_L": "LeftHand",
-    "Shoulder_R": "RightShoulder",
-    "UpperArm_R": "RightArm",
-    "LowerArm_R": "RightForeArm",
-    "Hand_R": "RightHand",
-    "UpperLeg_L": "LeftUpLeg",
-    "LowerLeg_L": "LeftLeg",
-    "Foot_L": "LeftFoot",
-    "Toes_L": "LeftToeBase",
-    "UpperLeg_R": "RightUpLeg",
-    "LowerLeg_R": "RightLeg",
-    "Foot_R": "RightFoot",
-    "Toes_R": "RightToeBase",
-}
-_BVH11 = {
-    "Hips": "Hips",
-    "Spine": "Chest",
-    "Chest": "Chest2",
-    "Neck": "Neck",
-    "Head": "Head",
-    "Shoulder_L": "LeftCollar",
-    "UpperArm_L": "LeftShoulder",
-    "LowerArm_L": "LeftElbow",
-    "Hand_L": "LeftWrist",
-    "Shoulder_R": "RightCollar",
-    "UpperArm_R": "RightShoulder",
-    "LowerArm_R": "RightElbow",
-    "Hand_R": "RightWrist",
-    "UpperLeg_L": "LeftHip",
-    "LowerLeg_L": "LeftKnee",
-    "Foot_L": "LeftAnkle",
-    "Toes_L": "LeftToe",
-    "UpperLeg_R": "RightHip",
-    "LowerLeg_R": "RightKnee",
-    "Foot_R": "RightAnkle",
-    "Toes_R": "RightToe",
-}
+# BN joint (after joint_Root, in BN order) -> CMU joint at the same body position, for the two CMU
+# naming variants.
+_CGSPEED = dict(
+    zip(
+        BN_JOINTS[1:],
+        "Hips Spine Spine1 Neck1 Head LeftShoulder LeftArm LeftForeArm LeftHand RightShoulder RightArm RightForeArm "
+        "RightHand LeftUpLeg LeftLeg LeftFoot LeftToeBase RightUpLeg RightLeg RightFoot RightToeBase".split(),
+        strict=True,
+    )
+)
+_BVH11 = dict(
+    zip(
+        BN_JOINTS[1:],
+        "Hips Chest Chest2 Neck Head LeftCollar LeftShoulder LeftElbow LeftWrist RightCollar RightShoulder RightElbow "
+        "RightWrist LeftHip LeftKnee LeftAnkle LeftToe RightHip RightKnee RightAnkle RightToe".split(),
+        strict=True,
+    )
+)
 CMU_TO_BN = {"cmu": _CGSPEED, "cmu-bvh11": _BVH11}  # by `rig_kind`: Xia uses the first, 100STYLE the second
 
 

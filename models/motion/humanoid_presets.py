@@ -85,9 +85,9 @@ class Preset:
             out["neck"] = self.necks[-1]
         return out
 
-    def skeleton(self, prefix: str = "") -> Skeleton:
+    def skeleton(self) -> Skeleton:
         """The reference hierarchy (BVH convention, every rotation zero = the rest pose)."""
-        return _build(self, prefix)
+        return _build(self)
 
 
 def _template_points(a_pose: bool) -> dict[str, np.ndarray]:
@@ -108,15 +108,15 @@ def _template_points(a_pose: bool) -> dict[str, np.ndarray]:
     return pts
 
 
-def _build(preset: Preset, prefix: str) -> Skeleton:
+def _build(preset: Preset) -> Skeleton:
     pts = _template_points(preset.a_pose)
     names: list[str] = []
     parents: list[int] = []
     where: list[np.ndarray] = []
 
     def add(name: str, parent: str | None, pos: np.ndarray) -> None:
-        names.append(prefix + name)
-        parents.append(names.index(prefix + parent) if parent is not None else -1)
+        names.append(name)
+        parents.append(names.index(parent) if parent is not None else -1)
         where.append(np.asarray(pos, dtype=float))
 
     roles = preset.role_names()
@@ -164,10 +164,10 @@ def _build(preset: Preset, prefix: str) -> Skeleton:
                 parent = roles[role]
         for name, par, toward, frac in preset.extras:
             name, par = preset.sided(name, side), preset.sided(par, side)
-            if prefix + par not in names or prefix + name in names:
+            if par not in names or name in names:
                 continue
-            a = where[names.index(prefix + par)]
-            b = where[names.index(prefix + preset.sided(toward, side))] if toward else a + np.array([0.0, 10.0, 0.0])
+            a = where[names.index(par)]
+            b = where[names.index(preset.sided(toward, side))] if toward else a + np.array([0.0, 10.0, 0.0])
             add(name, par, a + frac * (b - a))
     pos = np.stack(where)
     parent_index = np.array(parents)
@@ -297,5 +297,5 @@ PRESETS: dict[str, Preset] = {
 
 
 @cache
-def preset_skeleton(name: str, prefix: str = "") -> Skeleton:
-    return PRESETS[name].skeleton(prefix)
+def preset_skeleton(name: str) -> Skeleton:
+    return PRESETS[name].skeleton()

@@ -59,15 +59,9 @@ def _first(names: tuple[str, ...], ok: Callable[[int, str], bool]) -> int | None
     return next((j for j, n in enumerate(names) if ok(j, n)), None)
 
 
-# humanoid role -> part drawn as a solid
+# humanoid role -> part drawn as a solid (the roles' names, but `toe` for `toes`)
 _ROLE_PARTS = {
-    "head": "head",
-    "hand_l": "hand_l",
-    "hand_r": "hand_r",
-    "foot_l": "foot_l",
-    "foot_r": "foot_r",
-    "toes_l": "toe_l",
-    "toes_r": "toe_r",
+    r: r.replace("toes", "toe") for r in ("head", "hand_l", "hand_r", "foot_l", "foot_r", "toes_l", "toes_r")
 }
 
 

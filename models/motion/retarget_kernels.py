@@ -19,7 +19,8 @@ from numba import njit
 
 from .retarget import HINGE_FALLBACK, HINGE_PRIOR, TWIST_SHARE
 
-KIND_LEAF, KIND_SWING, KIND_LIMB, KIND_CLAVICLE = 0, 1, 2, 3
+KINDS = ("leaf", "swing", "limb", "clavicle")  # a `TwistPlan` group's kind -> its number here, its index
+KIND_LEAF, KIND_SWING, KIND_LIMB, KIND_CLAVICLE = range(len(KINDS))
 HINGE_FALLBACK_SQ = HINGE_FALLBACK**2
 
 # --------------------------------------------------------------------------- 3x3 helpers

@@ -457,19 +457,13 @@ class FrameRetargeter:
         for a, b, par in tree.levels:
             par_s[a:b] = par
         steps, nat, bone, hinge, m_loc_t, split_nat, reach = [], [], [], [], [], [], []
-        kinds = {
-            "leaf": kernels.KIND_LEAF,
-            "swing": kernels.KIND_SWING,
-            "limb": kernels.KIND_LIMB,
-            "clavicle": kernels.KIND_CLAVICLE,
-        }
         for g in plan.groups:  # TwistPlan's groups, one joint a step
             for i, (j, p) in enumerate(zip(g["j"], g["p"])):
                 limb = g["kind"] == "limb"
                 split = g.get("split", (-1, np.eye(3)))
                 steps.append(
                     (
-                        kinds[g["kind"]],
+                        kernels.KINDS.index(g["kind"]),
                         j,
                         p,
                         g["dir"][i] if "dir" in g else -1,

@@ -14,7 +14,7 @@ q' = q exp(sum_s w_s log(q^-1 f_s(q))); zero weights give q.
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +23,7 @@ import numpy as np
 from .rotations import quat_inv, quat_log, quat_mean, quat_mul
 
 CLAMP_PERCENTILE = 98.0
+FIELDS = ("source", "mean", "map", "radius")  # a carry's arrays, as files and stages' rows name them
 MAX_SAMPLES = 60_000  # an even subsample per style keeps a fit to seconds
 
 
@@ -81,15 +82,7 @@ class StyleCarry:
         mean = np.stack([t[0] for t in tgt])
         c_from = np.stack([s[1] for s in src]) + source_floor**2 * np.eye(3)
         lin = gaussian_map(c_from, np.stack([t[1] for t in tgt]))
-        radius = np.stack([t[2] for t in tgt])
-        clamp_ = list(clamp_only)
-        source[:, clamp_] = mean[:, clamp_]
-        lin[:, clamp_] = np.eye(3)
-        fixed_ = list(fixed)
-        source[:, fixed_] = mean[:, fixed_] = (0.0, 0.0, 0.0, 1.0)
-        lin[:, fixed_] = np.eye(3)
-        radius[:, fixed_] = np.pi
-        return cls(source, mean, lin, radius)
+        return pinned(source, mean, lin, np.stack([t[2] for t in tgt]), fixed, clamp_only)
 
     @functools.cached_property
     def bounds(self) -> StyleCarry:
@@ -107,14 +100,6 @@ class StyleCarry:
         `models/erd/slow_carry.py`)."""
         vals, vecs = np.linalg.eigh(self.map)
         return (vecs * np.minimum(vals, 1.0)[..., None, :]) @ np.swapaxes(vecs, -1, -2)
-
-    @functools.cached_property
-    def clamps_only(self) -> np.ndarray:
-        """(J,) bool: the joints this carry only clamps for every style (its map the identity
-        and its source the style's mean: the legs of a clamp-only fit, fixed joints)."""
-        eye = np.all(np.abs(self.map - np.eye(3)) == 0.0, axis=(-1, -2))
-        same = np.all(self.source == self.mean, axis=-1)
-        return np.all(eye & same, axis=0)
 
     def __call__(self, q: np.ndarray, weights: np.ndarray, hips: int = -1) -> np.ndarray:
         """(B, J, 4) rotations (B, J, 4) carried toward the styles of weights (B, S), compiled
@@ -141,7 +126,7 @@ class StyleCarry:
     def stack(cls, carries: list[StyleCarry]) -> StyleCarry:
         """One carry holding each of `carries`' styles in turn (fitted apart, e.g. each with its
         own fixed joints)."""
-        return cls(*(np.concatenate([getattr(c, f) for c in carries]) for f in ("source", "mean", "map", "radius")))
+        return cls(*(np.concatenate([getattr(c, f) for c in carries]) for f in FIELDS))
 
     def mixed_with(
         self,
@@ -160,6 +145,15 @@ class StyleCarry:
 
         return carry_pair(q, weights, share, self.arrays, then_b.arrays, then_c.arrays, hips)
 
+    def named(self, prefix: str = "") -> dict[str, np.ndarray]:
+        """Its arrays under `prefix` + each of `FIELDS`, as a file holds them (`read` reads them back)."""
+        return {prefix + k: a for k, a in zip(FIELDS, self.arrays)}
+
+    @classmethod
+    def read(cls, arrays: Mapping[str, np.ndarray], prefix: str = "") -> StyleCarry:
+        """The carry `named(prefix)` wrote into `arrays` (an open .npz or its dict)."""
+        return cls(*(np.ascontiguousarray(arrays[prefix + k], np.float64) for k in FIELDS))
+
     def save(self, path: Path) -> Path:
         np.savez(path, source=self.source, mean=self.mean, map=self.map, radius=self.radius)
         return path
@@ -167,5 +161,32 @@ class StyleCarry:
     @classmethod
     def load(cls, path: Path) -> StyleCarry:
         with np.load(path) as z:
-            arrays = [np.ascontiguousarray(z[k], np.float64) for k in ("source", "mean", "map", "radius")]
-        return cls(*arrays)
+            return cls.read(z)
+
+
+def pinned(
+    source: np.ndarray,
+    mean: np.ndarray,
+    lin: np.ndarray,
+    radius: np.ndarray,
+    fixed: Sequence[int],
+    clamp: Sequence[int],
+) -> StyleCarry:
+    """The carry of these arrays (style axis first; changed in place) with the joints `clamp` only
+    clamped into each style's range (source mean = style mean, identity map) and the joints
+    `fixed` left as they are (identity means and maps, radius pi)."""
+    clamp_, fixed_ = list(clamp), list(fixed)
+    source[:, clamp_] = mean[:, clamp_]
+    lin[:, clamp_] = np.eye(3)
+    source[:, fixed_] = mean[:, fixed_] = (0.0, 0.0, 0.0, 1.0)
+    lin[:, fixed_] = np.eye(3)
+    radius[:, fixed_] = np.pi
+    return StyleCarry(source, mean, lin, radius)
+
+
+def carry_rows(carries: Mapping[str, StyleCarry], joints: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """`stages.style_rows`'s arrays of `carries` (by key prefix): each one's arrays under prefix +
+    each of `FIELDS`, beside the row that changes nothing (identity means and maps, infinite radii)."""
+    identity = np.tile((0.0, 0.0, 0.0, 1.0), (joints, 1))
+    plain = (identity, identity, np.tile(np.eye(3), (joints, 1, 1)), np.full(joints, np.inf))
+    return {p + k: (a, row) for p, c in carries.items() for k, a, row in zip(FIELDS, c.arrays, plain)}
