@@ -117,7 +117,7 @@ def test_a_large_batch_of_one_style_gives_the_same(reference, monkeypatch):
     (root, rot), want = reference
     copies = 20
     monkeypatch.setattr(lti_reference, "MIXES", lti_reference.MIXES[:1] * copies)
-    model = load()
+    model = _recorded()
     got = stream(model, np.repeat(root[:, :1], copies, 1), np.repeat(rot[:, :1], copies, 1))
     for k in range(copies):
         np.testing.assert_allclose(got["rotations"][:, k], want["rotations"][:, 0], atol=1e-9)

@@ -11,8 +11,8 @@ runs motion in, motion out.
 Styles are FiLM vectors mixed by the weights (the shortfall from 1 goes to `normal`); the state
 holds nothing per style. The published core (the network, its bones untwisted) is followed by the
 declared pipeline `STAGES` (`models.stages`), each stage fitted from every style's real clips:
-arm carriage, output prior, arm coupling, rotation balls and the hinge floor (knees and elbows at
-their least real bend, uploads too). They change the output only; the network's state keeps its
+arm carriage, output prior, arm coupling, rotation balls and the hinge floor (knees and elbows on
+their hinge at no less than their least real bend, uploads too). They change the output only; the network's state keeps its
 own pose. A style without real clips gets rows that change nothing: a borrowed one would pull it
 toward another style; an upload gets an output prior fitted from its clip (`styles.py`). The foot planter closes every step, the core's alone too.
 """

@@ -10,7 +10,8 @@ The step reads top to bottom (`step`):
    (`raised_arm.py`) by a share eased over time (`raised_shares`);
 4. the feet planted (`models.motion.feet_kernels.plant_feet`).
 
-Each style's hinge joints (knees, elbows) are held at their least real bend in step 1
+Each style's hinge joints (knees, elbows) are kept on their hinge at no less than their least
+real bend in step 1
 (`models.motion.hinge_kernels.floor_bend`), after its rotation ball.
 
 Why compiled, and in one call: the arithmetic of a frame is a few thousand multiply-adds, which
@@ -195,7 +196,7 @@ class Ball(NamedTuple):
 
 
 class Bends(NamedTuple):
-    """The rig's hinge joints held at their least real bend (`models.motion.hinge.kernel_floor`)."""
+    """The rig's hinge joints kept on their hinge at no less than their least real bend (`models.motion.hinge.kernel_floor`)."""
 
     bone: np.ndarray  # (22, 3) each joint's bone axis
     hinge: np.ndarray  # (22, 3) its hinge axis (real bends positive)

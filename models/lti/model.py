@@ -9,8 +9,8 @@ and the footplant classifier. Every frame, per session:
     out = y * out_std + out_mean
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend,
                                                                           eased over time: `kernels.ease`)
-    pose = inverse representation(out); rotation prior (`train.style_prior`); hinge joints held at
-    their least real bend (`models.motion.hinge_kernels`, `hinges.npz`); contacts
+    pose = inverse representation(out); rotation prior (`train.style_prior`); hinge joints kept on
+    their hinge at no less than their least real bend (`models.motion.hinge_kernels`, `hinges.npz`); contacts
     then the stages, each measured on the input and fitted per style the same way: a raised,
     calm hand's arm (raised_arm.py), the planted feet
 
