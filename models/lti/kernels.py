@@ -196,7 +196,8 @@ class Ball(NamedTuple):
 
 
 class Bends(NamedTuple):
-    """The rig's hinge joints kept on their hinge at no less than their least real bend (`models.motion.hinge.kernel_floor`)."""
+    """The rig's hinge joints kept on their hinge at no less than their least real bend
+    (`models.motion.hinge.kernel_floor`)."""
 
     bone: np.ndarray  # (22, 3) each joint's bone axis
     hinge: np.ndarray  # (22, 3) its hinge axis (real bends positive)
