@@ -292,32 +292,6 @@ def test_trained_models_are_stable_and_listed():
         assert spectral_radius(tr.A) < 1.0
 
 
-def test_the_legs_get_back_the_spread_least_squares_shrinks():
-    """`variance_gain`: a fit's predictions spread less than the real aligned frames; afterwards each
-    leg joint's predictions spread as the real ones do, about the same mean, every other output
-    as it was."""
-    from models.lti import train
-
-    index, _, _ = _data()
-    ref = train.reference_rotations(index)
-    mean, std = train.matching_stats(index, ref)
-    walks = [p for p in train.make_pairs(index, "elderly", "val") if p[1].content == "walk"][:3]
-    data = [train.pair_data(a, b, mean, std, ref) for a, b in walks]
-    tr, _ = train.identify(data, "toy", ref, {**train.CONFIG, "context": None, "variance_joints": ()})
-    joints = train.CONFIG["variance_joints"]
-    out = train.variance_gain(tr, data, joints)
-    before = np.concatenate([tr.translate_features(d.u, blend=False)[0] for d in data])
-    after = np.concatenate([out.translate_features(d.u, blend=False)[0] for d in data])
-    real = np.concatenate([d.y for d in data])
-    for j in joints:
-        k = train.joint_dofs(j)
-        assert before[:, k].var(0).sum() < real[:, k].var(0).sum()
-        np.testing.assert_allclose(after[:, k].var(0).sum(), real[:, k].var(0).sum(), rtol=1e-9)
-        np.testing.assert_allclose(after[:, k].mean(0), before[:, k].mean(0), atol=1e-9)
-    legs = np.concatenate([train.joint_dofs(j) for j in joints])
-    np.testing.assert_array_equal(np.delete(after, legs, axis=1), np.delete(before, legs, axis=1))
-
-
 # --------------------------------------------------------------------------- IMW
 
 

@@ -11,7 +11,7 @@ import hashlib
 import json
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -71,11 +71,6 @@ CONFIG: dict[str, Any] = dict(
     prior_margin_deg=1.0,
     k_p=1.0,  # erf blend: tolerance (std) outside the training range before blending starts
     k_c=2.0,  # erf blend: softness (std)
-    # joints whose outputs get their real spread back (`variance_gain`): least squares shrinks each
-    # prediction toward its mean by the fit's correlation (legs 0.8-0.9), so the translated legs
-    # stride short of the root's travel and planted feet skid; the arms keep the shrunk fit, which
-    # stays nearer the style's real poses (chosen on validation, MODEL_CARD.md)
-    variance_joints=_LEGS,
     seed=0,
 )
 
@@ -288,27 +283,9 @@ def identify(
         cfg["k_c"],
         ref=ref,
     )
-    tr = variance_gain(tr, data, cfg.get("variance_joints", ()))
     states = np.concatenate([tr.translate_features(d.u, blend=False)[1] for d in data])
     tr.footplant = FootplantClassifier.fit(states, np.concatenate([d.contacts for d in data]))
     return tr, systems
-
-
-def variance_gain(tr: StyleTranslator, data: list[PairData], joints: tuple[int, ...]) -> StyleTranslator:
-    """`tr` whose outputs of `joints` spread about the training prediction's mean as the real
-    style's do: per joint one gain, the ratio of total spreads of its rotation vector (real aligned
-    frames over predicted), so the direction of each departure is kept ("global variance"
-    compensation of least squares' shrinkage; the gain folds into `out_mean` and `out_std`)."""
-    if not joints:
-        return tr
-    pred = np.concatenate([tr.translate_features(d.u, blend=False)[0] for d in data])
-    real = np.concatenate([d.y for d in data])
-    gain = np.ones(pred.shape[1])
-    for j in joints:
-        k = joint_dofs(j)
-        gain[k] = np.sqrt(real[:, k].var(0).sum() / max(pred[:, k].var(0).sum(), 1e-12))
-    pivot = pred.mean(0)
-    return replace(tr, out_mean=pivot + gain * (tr.out_mean - pivot), out_std=tr.out_std * gain)
 
 
 def style_prior(index, style: str, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
