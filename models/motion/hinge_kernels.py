@@ -16,22 +16,33 @@ import math
 
 from numba import njit
 
-from .quaternion import dot3, qexp, qinv, qlog, qmul
+from .quaternion import dot3, qinv, qmul
 
 
 @njit(cache=True, error_model="numpy")
 def floor_bend(q, bone, hinge, floor):
     """Unit q (a joint's local rotation, 4-tuple) with its swing (off `bone`, q = swing * twist)
-    replaced by its bend about `hinge`, raised to `floor` where it is below; the twist kept."""
+    replaced by the nearest rotation about `hinge`, its bend raised to `floor` where it is below;
+    the twist kept."""
     along = dot3((q[0], q[1], q[2]), bone)
     norm = math.sqrt(along * along + q[3] * q[3])
     twist = (0.0, 0.0, 0.0, 1.0)  # a half turn off the bone has no twist part
     if norm > 1e-9:
         twist = (along * bone[0] / norm, along * bone[1] / norm, along * bone[2] / norm, q[3] / norm)
     swing = qmul(q, qinv(twist))
-    v = qlog(swing)  # the bend: the swing's rotation vector along the hinge axis
-    b = max(dot3(v, hinge), floor)
-    return qmul(qexp((b * hinge[0], b * hinge[1], b * hinge[2])), twist)
+    # the nearest rotation about the hinge: the swing's parts along the hinge axis and along the
+    # identity, renormalised (no trigonometry); its bend 2 atan2(a, w) is at least 2 a for a >= 0,
+    # so most frames (a knee or an elbow bent forward) are found at or past the floor without it
+    a = dot3((swing[0], swing[1], swing[2]), hinge)
+    w = swing[3]
+    if w < 0.0:
+        a, w = -a, -w
+    n = math.sqrt(a * a + w * w)
+    if n > 1e-12 and ((a >= 0.0 and 2.0 * a >= floor) or 2.0 * math.atan2(a, w) >= floor):
+        a, w = a / n, w / n
+    else:
+        a, w = math.sin(0.5 * floor), math.cos(0.5 * floor)
+    return qmul((a * hinge[0], a * hinge[1], a * hinge[2], w), twist)
 
 
 @njit(cache=True, error_model="numpy")
