@@ -11,8 +11,7 @@ The step reads top to bottom (`step`):
 4. the feet planted (`models.motion.feet_kernels.plant_feet`).
 
 Each style's hinge joints (knees, elbows) are kept on their hinge at no less than their least
-real bend in step 1
-(`models.motion.hinge_kernels.floor_bend`), after its rotation ball.
+real bend in step 1 (`models.motion.hinge_kernels.floor_bend`), after its rotation ball.
 
 Why compiled, and in one call: the arithmetic of a frame is a few thousand multiply-adds, which
 numpy spreads over ~1,000 calls of a microsecond each, and each call from Python into a kernel
