@@ -16,7 +16,7 @@ from models.eval.metrics import SKATE_SPEED, SKID_SPEED, flat_foot_contacts, tou
 from models.eval.physical import Input, Reference, measure, planted_speeds, worst_slide
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import OTHER, load_style_judge
-from models.eval.touchdown import landings, reach
+from tools.touchdown import landings, reach
 from models.motion.features import left_leg_length
 from models.motion.rotations import quat_exp, quat_mul
 
