@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 
 from ..settings import get_settings
+from ..stages import refit
 
 HINGES, SOURCES = "hinges", "upload_sources"  # `fit`'s steps besides the stages: the decoding's, uploads'
 
@@ -44,12 +45,7 @@ def fit(args: argparse.Namespace) -> None:
 
             path = fit_sources(load(folder)).save(folder / SOURCES_FILE)
         else:
-            spec = next(s for s in STAGES if s.name == name)
-            model = load(folder)
-            stage = spec.fit(model, args.styles or None)
-            if args.styles and (folder / spec.file).exists() and hasattr(stage, "with_styles_of"):
-                stage = spec.load(folder / spec.file, model.skeleton).with_styles_of(stage)  # type: ignore[attr-defined]
-            path = stage.save(folder / spec.file)
+            path = refit(next(s for s in STAGES if s.name == name), load(folder), folder, args.styles or None)
         print(f"{name}: wrote {path} in {time.time() - t0:.0f} s", flush=True)
 
 

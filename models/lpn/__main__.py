@@ -24,6 +24,7 @@ def fit(args: argparse.Namespace) -> None:
     import torch
 
     from ..settings import get_settings
+    from ..stages import refit
     from .runtime import STAGES, load
 
     torch.set_num_threads(1)
@@ -33,12 +34,8 @@ def fit(args: argparse.Namespace) -> None:
     if unknown:
         raise SystemExit(f"unknown stages {sorted(unknown)}; declared: {[s.name for s in STAGES]}")
     for spec in (s for s in STAGES if s.name in names):
-        t0, path = time.time(), folder / spec.file
-        model = load(folder)
-        stage = spec.fit(model, args.styles or None)
-        if args.styles and path.exists() and hasattr(stage, "with_styles_of"):
-            stage = spec.load(path, model.skeleton).with_styles_of(stage)  # type: ignore[attr-defined]
-        print(f"{spec.name}: wrote {stage.save(path)} in {time.time() - t0:.0f} s")
+        t0, path = time.time(), refit(spec, load(folder), folder, args.styles or None)
+        print(f"{spec.name}: wrote {path} in {time.time() - t0:.0f} s")
 
 
 def main(argv: list[str] | None = None) -> None:
