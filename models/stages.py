@@ -81,6 +81,16 @@ class StageSpec:
     fit: Callable[[Any, list[str] | None], Stage]
 
 
+def refit(spec: StageSpec, model: Any, folder: Path, styles: list[str] | None) -> Path:
+    """Fit `spec` on `model` for `styles` (None: all) into its file in `folder`; with named styles
+    the file keeps its other styles (where the stage can merge: `with_styles_of`)."""
+    path = folder / spec.file
+    stage = spec.fit(model, styles)
+    if styles and path.exists() and hasattr(stage, "with_styles_of"):
+        stage = spec.load(path, model.skeleton).with_styles_of(stage)  # type: ignore[attr-defined]
+    return stage.save(path)
+
+
 @dataclass(frozen=True)
 class Pipeline:
     """A method's declared stages in the order they run; a stage left None is off."""

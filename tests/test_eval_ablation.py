@@ -1,4 +1,4 @@
-"""The stage ablation (`models.eval.ablation`) reports, per row, what switching a stage off changes."""
+"""The stage ablation (`tools.ablation`) reports, per row, what switching a stage off changes."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import copy
 import json
 from pathlib import Path
 
-from models.eval.ablation import changes, declared_stages, method_rows, table
+from tools.ablation import changes, declared_stages, method_rows, table
 
 RESULTS = Path(__file__).resolve().parents[1] / "docs" / "eval" / "results.json"
 

@@ -1,4 +1,4 @@
-"""Snapshot selection (`models/lpn/snapshots.py`): the live-unit share must tell a dead FiLM
+"""Snapshot selection (`tools/lpn_snapshots.py`): the live-unit share must tell a dead FiLM
 generator from a live one, and the validation inputs must come from the validation split."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import torch
 
 from models.lpn import features as lf
 from models.lpn.network import LPN, LPNConfig
-from models.lpn.snapshots import Options, live_units, pace, validation_inputs
+from tools.lpn_snapshots import Options, live_units, pace, validation_inputs
 
 
 def test_a_generator_driven_below_the_elu_floor_has_no_live_units():

@@ -13,9 +13,9 @@ import pytest
 
 from models.data import load_motion, select
 from models.motion.humanoid import humanoid_rig
-from models.motion.retarget_check import BOUND, clip_jitter, group_ratios, rotation_acceleration
 from models.motion.retarget_stream import FrameRetargeter
 from models.motion.rotations import quat_exp, quat_mul
+from tools.retarget_check import BOUND, clip_jitter, group_ratios, rotation_acceleration
 
 from .rigs import SPECS, make_rig
 

@@ -16,9 +16,9 @@ from models.eval.metrics import SKATE_SPEED, SKID_SPEED, flat_foot_contacts, tou
 from models.eval.physical import Input, Reference, measure, planted_speeds, worst_slide
 from models.eval.sources import D1, D2, SEEN_BY, input_sources
 from models.eval.style_judge import OTHER, load_style_judge
-from models.eval.touchdown import landings, reach
 from models.motion.features import left_leg_length
 from models.motion.rotations import quat_exp, quat_mul
+from tools.touchdown import landings, reach
 
 
 def test_no_input_of_a_validation_run_is_scored_by_the_final_one():

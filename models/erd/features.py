@@ -40,13 +40,6 @@ FEATURE_DIM = 10 * NB + 6  # 216
 FPS = 30.0
 
 
-def rotate_y(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """Rotate vectors (..., 3) about +Y by yaw (...,) (broadcast over extra vector axes via [..., None])."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([c * x + s * z, y, -s * x + c * z], axis=-1)
-
-
 class FeatureMaker:
     """Causal features for a batch of independent streams (or all frames of one clip at once).
     The per-joint loops run compiled (`kernels.py`): the same code for the live stream, the

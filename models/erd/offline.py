@@ -13,10 +13,10 @@ import numpy as np
 import torch
 
 from ..motion.feet import model_rig_planter
-from ..motion.rotations import quat_mul, yaw_quat
+from ..motion.rotations import quat_mul, rotate_y, yaw_quat
 from ..motion.skeleton import Motion
 from ..motion.twist import transfer_twist
-from .features import BODY, CONTACT, FPS, FeatureMaker, rotate_y
+from .features import BODY, CONTACT, FPS, FeatureMaker
 from .gait import clip_smoothed_speed, eased_in, run_share
 from .model import Generator
 

@@ -338,7 +338,7 @@ def markdown(r: dict) -> str:
         "## Renders",
         "",
         "Oriented contact sheets of a CMU, a Xia and a dataset-1 input through every method and core "
-        "(`python -m models.eval.renders`): [docs/eval/renders/](eval/renders/).",
+        "(`python -m tools.renders`): [docs/eval/renders/](eval/renders/).",
         "",
     ]
     return "\n".join(lines) + "\n"

@@ -3,8 +3,8 @@ phases and feature-wise (FiLM) style modulation, trained on Bandai Namco locomot
 
 `load(weights_dir)` returns the streaming model (runtime.LPNModel) that the service's registry
 offers as method "lpn". Pieces: local phases (`phases`), per-frame features (`features`), data
-(`dataset`), network (`network`), training (`train`), weights on disk (`weights`), runtime,
-scripted control demo (`demo`); `python -m models.lpn --help`."""
+(`dataset`), network (`network`), training (`train`), weights on disk (`weights`), runtime;
+`python -m models.lpn --help`."""
 
 from __future__ import annotations
 

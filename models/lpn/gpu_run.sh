@@ -4,7 +4,7 @@
 # .data/carry/lpn.npz`, and the wheels its image lacks, `sh models/carry_wheels.sh`), none of the
 # mocap. It trains for $MINUTES (default 8) from the committed network (`--warm_from`, as the CPU
 # run), and sends back the last six float16 snapshots and the log in $OUT, to be chosen with
-# `python -m models.lpn.snapshots` and exported with `python -m models.lpn.train --export=...`.
+# `python -m tools.lpn_snapshots` and exported with `python -m models.lpn.train --export=...`.
 # Extra arguments go to models.lpn.train (e.g. --lr=3e-4).
 set -e
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .data/carry/whl/*.whl

@@ -8,7 +8,7 @@ any field overridable on the command line as --field=value.
 Each step trains one style (cycled in a shuffled order) with its FiLM from the generator on a
 random window of the style's clips, so the generator learns to embed a clip and the network to
 obey it. A share of the rollouts feed the network its own output (`rollout.py`), as the runtime
-does. Choose a snapshot by streaming validation clips (`models.lpn.snapshots`), not by loss.
+does. Choose a snapshot by streaming validation clips (`tools.lpn_snapshots`), not by loss.
 """
 
 from __future__ import annotations
@@ -548,7 +548,7 @@ def main(argv: list[str]) -> None:
 def render_progress(run_dir: Path, out_dir: Path, tag: str, log: Log) -> None:
     """Validation render: the exported model driven by a short scripted control sequence."""
     try:
-        from .demo import render_demo
+        from tools.lpn_demo import render_demo
 
         log(f"render {render_demo(out_dir, tag=tag, seconds=12.0, styles=('normal', 'elderly'))}")
     except Exception as exc:  # a render must never stop a training run

@@ -3,7 +3,7 @@
 Streaming (the project interface, `models/interface.py`): `load(weights_dir)` -> `LTIStyleModel`
 with `styles()`, `init_state(batch)`, `step_batch(state, FrameBatch, style_weights)`.
 Offline: `model.translate(motion, style, timewarp=...)`.
-CLI: `python -m models.lti {train, translate, bench, render}`.
+CLI: `python -m models.lti {train, hinges, translate}`.
 """
 
 from pathlib import Path

@@ -1,10 +1,8 @@
-"""CLI: python -m models.lti {train, hinges, translate, bench, render}.
+"""CLI: python -m models.lti {train, hinges, translate}.
 
 python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
 python -m models.lti hinges   (the hinge joints and their floors -> models/weights/lti/hinges.npz)
 python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
-python -m models.lti bench [--style elderly] [--frames 2000] [--threads 1 2] [--weights DIR]
-python -m models.lti render [--styles elderly exhausted] [--content walk]   (PNG + GIF under out/)
 """
 
 from __future__ import annotations
@@ -12,7 +10,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -64,94 +61,6 @@ def cmd_translate(args: argparse.Namespace) -> None:
     )
 
 
-def cmd_bench(args: argparse.Namespace) -> None:
-    """Per-frame cost of `step_batch` at batch 1 and 256, with the threads capped (1 = as the
-    service runs): every stage on (as the service loads it, the unseen-content fade last), the same
-    without the fade, against the published core alone (`load(...,
-    core_only=True)`: the translators and the foot planter), and the foot lock off. The machines
-    are shared and noisy, so the variants are timed interleaved, step by step, in one run, with
-    the paper's one dense [[A, B], [C, D]] @ [x; u] product of the same batch in numpy as a
-    floor; the medians' ratios are what compares across runs."""
-    from models.data import build_index, load_motion, select
-    from models.interface import FrameBatch
-    from models.registry import load_model
-    from models.stepbench import capped_threads, interleaved, stepper
-
-    from . import load
-    from .model import LTIStyleModel
-
-    clip = select(build_index(["bandai-namco-2"]), style="normal", content="walk", split="val")[0]
-    motion = load_motion(clip)
-    folder = Path(args.weights)
-    shipped_model = load_model(folder.parent, "lti")  # the weights root, as the service reads it
-    assert shipped_model is not None, f"no LTI weights in {folder}"
-    variants = {
-        "shipped": shipped_model,  # with the unseen-content fade, as the service loads it
-        "without the fade": load(folder),
-        "core alone": load(folder, core_only=True),
-        "foot lock off": LTIStyleModel(weights_dir=folder, footlock=False),
-    }
-    shipped = variants["without the fade"]
-    assert isinstance(shipped, LTIStyleModel)
-    style = args.style or ("elderly" if "elderly" in shipped.styles() else shipped.styles()[0])
-    tr = shipped.translators[style]
-    M_T = np.ascontiguousarray(tr.M.T)
-    for threads in args.threads:
-        print(
-            f"LTI step_batch, style {style} (state dim {tr.n}), input {clip.name}, {threads} BLAS/torch thread(s); "
-            "medians of interleaved steps, process CPU time in brackets"
-        )
-        for batch in (1, 256):
-            frames = [
-                FrameBatch(
-                    np.repeat(motion.translations[k : k + 1, 1], batch, 0),
-                    np.repeat(motion.rotations[k : k + 1], batch, 0),
-                )
-                for k in range(motion.num_frames)
-            ]
-            weights = np.zeros((batch, len(shipped.styles())))
-            weights[:, shipped.styles().index(style)] = 1.0
-            zin = np.random.default_rng(0).standard_normal((batch, M_T.shape[0]))
-            steps = {name: stepper(model, frames, weights, batch) for name, model in variants.items()}
-            steps["floor (dense product)"] = partial(_floor, zin, M_T)
-            repeats = args.frames if batch == 1 else max(args.frames // 8, 100)
-            with capped_threads(threads):
-                wall, cpu = interleaved(steps, repeats)
-            base = np.median(wall["core alone"])
-            for name in steps:
-                w, c = np.median(wall[name]) * 1e6, np.median(cpu[name]) * 1e6
-                print(
-                    f"  batch {batch:4d} {name:22s}: {w:8.1f} us/step ({w / batch:6.2f} us/frame) "
-                    f"[CPU {c:8.1f}], x{np.median(wall[name]) / base:5.2f} the core alone"
-                )
-
-
-def _floor(zin: np.ndarray, M_T: np.ndarray, i: int) -> None:
-    np.matmul(zin, M_T)
-
-
-def cmd_render(args: argparse.Namespace) -> None:
-    """Input vs translated output of a validation neutral walk: contact sheet PNG + GIF per style."""
-    from models.data import build_index, load_motion, select
-    from models.motion.render import render_contact_sheet, render_gif
-
-    from .model import LTIStyleModel
-
-    model = LTIStyleModel()
-    clip = select(build_index(["bandai-namco-2"]), style="normal", content=args.content, split="val")[0]
-    motion = load_motion(clip)
-    out_dir = Path(args.out)
-    for style in args.styles or model.styles():
-        online, _ = model.translate(motion, style)
-        warped, _ = model.translate(motion, style, timewarp=True)
-        ms, titles = [motion, online, warped], [f"input {clip.name}", f"{style} (online)", f"{style} (time-warped)"]
-        png = render_contact_sheet(ms, out_dir / f"lti_{style}_{args.content}.png", frames=8, titles=titles)
-        print(f"wrote {png}")
-        if not args.no_gif:
-            gif = render_gif(ms, out_dir / f"lti_{style}_{args.content}.gif", titles=titles, seconds=args.seconds)
-            print(f"wrote {gif}")
-
-
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(
         prog="python -m models.lti", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -177,21 +86,6 @@ def main(argv: list[str] | None = None) -> None:
         "--model-heading", action="store_true", help="use the model's yaw change (may drift) instead of the input's"
     )
     r.set_defaults(func=cmd_translate)
-    b = sub.add_parser("bench")
-    b.add_argument("--style")
-    b.add_argument("--frames", type=int, default=2000)
-    b.add_argument("--weights", default=str(WEIGHTS_DIR_DEFAULT), help="folder of translator .npz files")
-    b.add_argument(
-        "--threads", type=int, nargs="+", default=[1, 2], help="BLAS/torch thread caps to run with (service: 1)"
-    )
-    b.set_defaults(func=cmd_bench)
-    v = sub.add_parser("render")
-    v.add_argument("--styles", nargs="*")
-    v.add_argument("--content", default="walk")
-    v.add_argument("--out", default="out")
-    v.add_argument("--seconds", type=float, default=6.0)
-    v.add_argument("--no-gif", action="store_true")
-    v.set_defaults(func=cmd_render)
     args = p.parse_args(argv)
     args.func(args)
 

@@ -58,7 +58,7 @@ from .styles import LTIStyles
 STAGES = ("rotation_prior", "hinge_floor", "raised_arm")
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
-ARM_KEYS = ("arm_source", "arm_mean", "arm_map", "arm_radius")  # a translator file's raised-arm carry
+ARM_PREFIX = "arm_"  # key prefix of a translator file's raised-arm carry (`StyleCarry.named`)
 STORED = ("in_mean", "in_std", "out_mean", "out_std", "in_lo", "in_hi", "orders", "ref")  # saved as they are
 EASE_S = 0.1  # time constant of each of the two followers easing the erf blend weight (`kernels.ease`)
 RAISE_EASE_S = 0.05  # and the raised-arm shares: at 0.1 s a raise-up's arm came late enough to cost content reads
@@ -147,7 +147,7 @@ class StyleTranslator:
         if self.prior_mean is not None and self.prior_radii is not None:
             extra.update(prior_mean=self.prior_mean, prior_radii=self.prior_radii)
         if self.raised_arm is not None:  # an uploaded style's (the built-in ones share raised_arm.FILE)
-            extra.update(zip(ARM_KEYS, self.raised_arm.arrays))
+            extra.update(self.raised_arm.named(ARM_PREFIX))
         np.savez_compressed(
             path,
             style=np.array(self.style),
@@ -176,7 +176,7 @@ class StyleTranslator:
                 meta={"source": str(path)},
                 prior_mean=z["prior_mean"] if "prior_mean" in z else None,
                 prior_radii=z["prior_radii"] if "prior_radii" in z else None,
-                raised_arm=StyleCarry(*(z[k] for k in ARM_KEYS)) if ARM_KEYS[0] in z else None,
+                raised_arm=StyleCarry.read(z, ARM_PREFIX) if f"{ARM_PREFIX}source" in z else None,
             )
 
 

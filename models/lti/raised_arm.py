@@ -72,9 +72,8 @@ def load(folder: Path) -> dict[str, StyleCarry]:
     if not path.exists():
         return {}
     with np.load(path) as z:
-        styles = [str(s) for s in z["styles"]]
-        arrays = [np.ascontiguousarray(z[k], np.float64) for k in ("source", "mean", "map", "radius")]
-    return {s: StyleCarry(*(a[k : k + 1] for a in arrays)) for k, s in enumerate(styles)}
+        styles, both = [str(s) for s in z["styles"]], StyleCarry.read(z)
+    return {s: StyleCarry(*(a[k : k + 1] for a in both.arrays)) for k, s in enumerate(styles)}
 
 
 def save(carries: dict[str, StyleCarry], folder: Path) -> Path:

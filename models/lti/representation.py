@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from models.motion.bn_skeleton import HIPS, NUM_JOINTS
-from models.motion.rotations import quat_inv, wrap_angle
+from models.motion.rotations import quat_inv, rotate_y, wrap_angle
 
 if TYPE_CHECKING:
     from models.motion.skeleton import Motion
@@ -97,13 +97,6 @@ def split_hips(q_hips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     c, s = np.cos(0.5 * yaw)[..., None], np.sin(0.5 * yaw)[..., None]
     # yaw_quat(-yaw) * q, written out: (c*x - s*z, c*y - s*w, c*z + s*x, c*w + s*y)
     return yaw, c * q_hips + s * q_hips[..., [2, 3, 0, 1]] * np.array([-1.0, -1.0, 1.0, 1.0])
-
-
-def rotate_y(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """Rotate ground-plane vectors (..., 2) [x, z] by yaw about +Y."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    x, z = v[..., 0], v[..., 1]
-    return np.stack([c * x + s * z, -s * x + c * z], axis=-1)
 
 
 # --------------------------------------------------------------------------- offline

@@ -1,6 +1,6 @@
 """What a hand does, measured causally on the Bandai Namco rig: how far it is raised above its
 shoulder (on a ramp of `RAISE_RAMP_CM`), how fast it sways horizontally (`SWAY_FRAMES` average,
-`WAVE_RAMP_CM_S`) and how fast it rises (`LEVEL_RAMP_CM_S`). LTI tells a raise-up (a raised hand
+`WAVE_RAMP_CM_S`) and how fast it rises (the same average). LTI tells a raise-up (a raised hand
 held still) from a wave (swaying at a level height) by these.
 """
 
@@ -15,7 +15,6 @@ from .skeleton import Motion, Skeleton
 
 RAISE_RAMP_CM = (-12.0, 0.0)
 WAVE_RAMP_CM_S = (40.0, 60.0)
-LEVEL_RAMP_CM_S = (30.0, 60.0)  # a hand rising or falling faster than this is raising or lowering, not waving
 SWAY_FRAMES = 10.0  # the sway's exponential average: each frame moves it 1 / SWAY_FRAMES of the way to the new speed
 _HANDS = np.array([BN_JOINTS.index("Hand_L"), BN_JOINTS.index("Hand_R")])
 _SHOULDERS = np.array([BN_JOINTS.index("UpperArm_L"), BN_JOINTS.index("UpperArm_R")])

@@ -26,7 +26,6 @@ retargeter, `retarget_stream.FrameRetargeter`, then works from the bone directio
 from __future__ import annotations
 
 import re
-import sys
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -628,48 +627,3 @@ def in_model_world(motion: Motion, rig: HumanoidRig) -> Motion:
     sk = motion.skeleton
     skeleton = Skeleton(sk.names, sk.parents, sk.offsets @ a.T * cm, sk.end_sites @ a.T * cm)
     return Motion(skeleton, matrix_to_quat(local), motion.translations @ a.T * cm, motion.fps, motion.euler_orders)
-
-
-# --------------------------------------------------------------------------- bench
-
-
-def _bench(argv: list[str]) -> int:
-    """Per-frame cost of the mapping both ways, batched (python -m models.motion.humanoid bench)."""
-    import argparse
-    import time
-
-    from .humanoid import preset_rig as rig_of  # the package's module, not this __main__ copy
-    from .retarget_stream import FrameRetargeter
-
-    p = argparse.ArgumentParser(prog="python -m models.motion.humanoid bench")
-    p.add_argument("--preset", action="append", help="presets to time (default: ue5, mixamo, cmu)")
-    p.add_argument("--batch", type=int, action="append", help="characters per call (default 1, 16, 256)")
-    p.add_argument("--repeat", type=int, default=20)
-    args = p.parse_args(argv)
-    rng = np.random.default_rng(0)
-    print(f"{'preset':>8} {'joints':>6} {'batch':>6} {'to_model us/char':>17} {'to_source us/char':>18} {'both':>8}")
-    for preset in args.preset or ["ue5", "mixamo", "cmu"]:
-        fr = FrameRetargeter(rig_of(preset))
-        j = fr.source.num_joints
-        for b in args.batch or [1, 16, 256]:
-            rot = rng.normal(size=(b, j, 4)) * 0.1 + [0, 0, 0, 1]
-            root = rng.normal(size=(b, 3))
-            state = fr.init_state(b)  # one stream per character
-            hips, bn = fr.to_model(root, rot, state)
-            fr.to_source(hips, bn, rot, state)
-            t0 = time.perf_counter()
-            for _ in range(args.repeat):
-                hips, bn = fr.to_model(root, rot, state)
-            t1 = time.perf_counter()
-            for _ in range(args.repeat):
-                fr.to_source(hips, bn, rot, state)
-            t2 = time.perf_counter()
-            a, c = (t1 - t0) / args.repeat / b * 1e6, (t2 - t1) / args.repeat / b * 1e6
-            print(f"{preset:>8} {j:>6} {b:>6} {a:>17.1f} {c:>18.1f} {a + c:>8.1f}")
-    return 0
-
-
-if __name__ == "__main__":
-    if sys.argv[1:2] != ["bench"]:
-        sys.exit("usage: python -m models.motion.humanoid bench [--preset NAME] [--batch N]")
-    sys.exit(_bench(sys.argv[2:]))

@@ -168,6 +168,14 @@ def yaw_quat(yaw: np.ndarray) -> np.ndarray:
     return np.stack([z, np.sin(h), z, np.cos(h)], axis=-1)
 
 
+def rotate_y(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """Vectors (..., 3), or ground-plane ones (..., 2) [x, z], rotated about +Y by yaw (...,)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    x, z = v[..., 0], v[..., -1]
+    xz = [c * x + s * z, -s * x + c * z]
+    return np.stack(xz if v.shape[-1] == 2 else [xz[0], v[..., 1], xz[1]], axis=-1)
+
+
 def wrap_angle(a: np.ndarray) -> np.ndarray:
     """Angles (radians) wrapped into [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi

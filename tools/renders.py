@@ -1,4 +1,4 @@
-"""`python -m models.eval.renders [--style S ...] [--out DIR]`: oriented contact sheets of inputs
+"""`python -m tools.renders [--style S ...] [--out DIR]`: oriented contact sheets of inputs
 from other sources (a CMU capture, a Xia walk, a dataset-1 neutral clip) through every method,
 as a user would look at them: the head, hands and feet are solids that show where they face
 (`models/motion/render.py`), so a twisted wrist or a turned head shows where no metric looks.
@@ -11,12 +11,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..data import build_index, load_motion, select
-from ..motion.render import render_contact_sheet
-from ..motion.retarget import retarget
-from ..registry import load_models
-from ..settings import REPO_ROOT, get_settings
-from .run import stylise_toward
+from models.data import build_index, load_motion, select
+from models.eval.run import stylise_toward
+from models.motion.render import render_contact_sheet
+from models.motion.retarget import retarget
+from models.registry import load_models
+from models.settings import REPO_ROOT, get_settings
 
 # (dataset, clip): other sources than the models' training data, none of them a test input
 INPUTS = (("cmu", "131_02"), ("xia", "neutral_walk_01_000"), ("bandai-namco-1", "dataset-1_walk_normal_001"))
@@ -24,7 +24,7 @@ SECONDS = 4.0
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(prog="python -m models.eval.renders", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m tools.renders", description=__doc__)
     ap.add_argument("--style", nargs="+", default=["elderly", "feminine"])
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "docs" / "eval" / "renders")
     a = ap.parse_args()

@@ -1,4 +1,4 @@
-"""`python -m models.eval.ablation [--methods lti erd lpn] [--out DIR]`: does each stage earn its place?
+"""`python -m tools.ablation [--methods lti erd lpn] [--out DIR]`: does each stage earn its place?
 
 Every stage after a method's core is fitted from data and can be switched off
 (`Settings.stages_off`). This scores the VALIDATION inputs (never the test split) with the
@@ -75,13 +75,13 @@ def table(stage: str, delta: dict[Key, dict[str, float]]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(prog="python -m models.eval.ablation", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m tools.ablation", description=__doc__)
     ap.add_argument("--methods", nargs="+", default=["lti", "erd", "lpn"])
     ap.add_argument("--out", type=Path, default=Path("out/ablation"))
     a = ap.parse_args()
     for method in a.methods:
         base = method_rows(json.loads(evaluate(method, (), a.out / method / "shipped").read_text()), method)
-        report = [f"# {method}: each stage switched off, validation (`python -m models.eval.ablation`)\n"]
+        report = [f"# {method}: each stage switched off, validation (`python -m tools.ablation`)\n"]
         for stage in declared_stages(method):
             path = evaluate(method, (stage,), a.out / method / stage)
             report.append(table(stage, changes(base, method_rows(json.loads(path.read_text()), method))))

@@ -1,4 +1,4 @@
-"""`python -m models.eval.touchdown [--methods lti erd lpn] [--styles ...]`: why feet skid as they land.
+"""`python -m tools.touchdown [--methods lti erd lpn] [--styles ...]`: why feet skid as they land.
 
 The skid column (`metrics.touchdown_speeds`) says how often a foot lands flat while still moving;
 this says why, on dataset 2's neutral VALIDATION walks toward each style (each method's core alone,
@@ -16,13 +16,13 @@ import argparse
 
 import numpy as np
 
-from ..data import build_index, load_motions, select
-from ..motion.features import body_joint, left_leg_length
-from ..motion.skeleton import Motion
-from ..registry import METHODS, load_model
-from ..settings import get_settings
-from .metrics import SKID_SPEED, flat_foot_contacts, touchdown_speeds, touchdowns
-from .run import DATASET, INPUT_STYLE, stylise_toward
+from models.data import build_index, load_motions, select
+from models.eval.metrics import SKID_SPEED, flat_foot_contacts, touchdown_speeds, touchdowns
+from models.eval.run import DATASET, INPUT_STYLE, stylise_toward
+from models.motion.features import body_joint, left_leg_length
+from models.motion.skeleton import Motion
+from models.registry import METHODS, load_model
+from models.settings import get_settings
 
 STYLES = ("active", "elderly", "exhausted", "feminine", "masculine", "youthful")
 
@@ -71,7 +71,7 @@ def summary(motions: list[Motion]) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(prog="python -m models.eval.touchdown", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m tools.touchdown", description=__doc__)
     ap.add_argument("--methods", nargs="*", default=list(METHODS))
     ap.add_argument("--styles", nargs="*", default=list(STYLES))
     args = ap.parse_args()

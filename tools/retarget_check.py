@@ -10,9 +10,9 @@ same body segment as BN's local rotation). "back": a styled BN frame (the retarg
 constant local offsets, as a model's output differs from its input) mapped back onto the
 client's rig, the same measure per client joint.
 
-    python -m models.motion.retarget_check [--fps 30 120] [--joints]
+    python -m tools.retarget_check [--fps 30 120] [--joints]
 
-(`python -m models.motion.humanoid bench` times the retargeter.)
+(`python -m tools.bench retarget` times the retargeter.)
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ import argparse
 
 import numpy as np
 
-from .humanoid import bn_joints_of, bn_segments
-from .resample import resample
-from .retarget_stream import FrameRetargeter, _path_terms
-from .rotations import matrix_to_quat, quat_exp, quat_inv, quat_log, quat_mul, quat_to_matrix
-from .skeleton import Motion
+from models.motion.humanoid import bn_joints_of, bn_segments
+from models.motion.resample import resample
+from models.motion.retarget_stream import FrameRetargeter, _path_terms
+from models.motion.rotations import matrix_to_quat, quat_exp, quat_inv, quat_log, quat_mul, quat_to_matrix
+from models.motion.skeleton import Motion
 
 # Joint groups the acceptance compares (BN names); leaves the retargeter holds still are left out.
 GROUPS = {
@@ -147,7 +147,7 @@ def group_ratios(jitter: dict[str, np.ndarray], key: str = "bn") -> dict[str, fl
 
 
 def _clips() -> list[tuple[str, Motion]]:
-    from ..data import build_index, load_motion
+    from models.data import build_index, load_motion
 
     return [(f"{c.dataset}/{c.name}", load_motion(c)) for c in build_index(["cmu", "xia"])]
 

@@ -4,8 +4,8 @@ Streams dataset-2 VALIDATION neutral clips through each candidate's core toward 
 prints per style the judges' accuracies, the pace and the FiLM generator's live units (the share
 of its second convolution's outputs above the ELU floor `FLOOR`, where a unit still gets gradient).
 
-    .venv/bin/python -m models.lpn.snapshots models/weights/lpn .data/lpn/run_loop/ckpt_003000.pt
-    .venv/bin/python -m models.lpn.snapshots --clips=20 --frames=150 --tuned=false CANDIDATE ...
+    .venv/bin/python -m tools.lpn_snapshots models/weights/lpn .data/lpn/run_loop/ckpt_003000.pt
+    .venv/bin/python -m tools.lpn_snapshots --clips=20 --frames=150 --tuned=false CANDIDATE ...
 
 A candidate is a weights folder or a training checkpoint (exported to a scratch folder first).
 """
@@ -22,18 +22,18 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..data import build_index, load_motions, select
-from ..eval.features import clip_features
-from ..eval.judges import Judges, load_judges
-from ..eval.run import LOCOMOTION, stylise_toward
-from ..eval.style_judge import StyleJudge, load_style_judge
-from ..motion.skeleton import Motion
-from .dataset import D2, D2_STYLES, clip_style_features
-from .train import tile_clip
+from models.data import build_index, load_motions, select
+from models.eval.features import clip_features
+from models.eval.judges import Judges, load_judges
+from models.eval.run import LOCOMOTION, stylise_toward
+from models.eval.style_judge import StyleJudge, load_style_judge
+from models.lpn.dataset import D2, D2_STYLES, clip_style_features
+from models.lpn.train import tile_clip
+from models.motion.skeleton import Motion
 
 if TYPE_CHECKING:
-    from .network import LPN
-    from .runtime import LPNModel
+    from models.lpn.network import LPN
+    from models.lpn.runtime import LPNModel
 
 FLOOR = float(np.log(0.05))  # ELU'(h) = e^h: below this a unit is flat (slope < 5 %)
 WINDOW = 120
@@ -105,8 +105,8 @@ def live_units(net: LPN, windows: np.ndarray) -> tuple[float, float]:
 
 def load_candidate(path: Path, scratch: Path, tuned: bool = True) -> LPNModel:
     """The core alone of a weights folder or of a checkpoint (exported into `scratch`)."""
-    from .runtime import LPNModel  # noqa: F811
-    from .weights import export_weights, read_weights
+    from models.lpn.runtime import LPNModel  # noqa: F811
+    from models.lpn.weights import export_weights, read_weights
 
     if path.is_file():
         folder = scratch / path.stem
@@ -145,7 +145,7 @@ def evaluate(
 
 
 def main(argv: list[str]) -> None:
-    from ..train_config import parse_overrides
+    from models.train_config import parse_overrides
 
     opts = parse_overrides(Options(), [a for a in argv if a.startswith("--")])
     paths = [Path(a) for a in argv if not a.startswith("--")] or [Path("models/weights/lpn")]

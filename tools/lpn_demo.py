@@ -1,23 +1,35 @@
 """The scripted control demo: LPN-FiLM driven by a fixed control sequence (walk forward, turn,
 stop, run, walk back, side step, walk on) in each style, with the checks the issue asks for: foot
-skating (the eval suite's metric) and no freezing (the root keeps moving when it is asked to).
+skating (the eval suite's metric) and no freezing (the root keeps moving when it is asked to),
+and a top-down footprint plot per style: each foot's ankle path with its flat-foot contact frames
+coloured by foot speed (a planted foot a tight cluster of green dots, a sliding one a red streak).
 
-    .venv/bin/python -m models.lpn demo [--seconds 60] [--styles normal,elderly,...]
+    .venv/bin/python -m tools.lpn_demo [--seconds 60] [--styles normal,elderly,...]   # -> out/lpn/
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+import matplotlib
 import numpy as np
 
-from ..motion.skeleton import Motion
-from ..settings import get_settings
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 
-if TYPE_CHECKING:
-    from .runtime import LPNModel
+from models.eval.metrics import SKATE_SPEED, flat_foot_contacts, foot_skating  # noqa: E402
+from models.interface import FrameBatch  # noqa: E402
+from models.lpn import load  # noqa: E402
+from models.lpn.runtime import LPNModel  # noqa: E402
+from models.motion.features import body_joint, left_leg_length  # noqa: E402
+from models.motion.render import render_contact_sheet, render_gif  # noqa: E402
+from models.motion.skeleton import Motion  # noqa: E402
+from models.settings import REPO_ROOT, get_settings  # noqa: E402
 
 TARGETS = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful")
 # (fraction of the sequence, forward m/s, side m/s, facing yaw at the segment's end (radians), gait)
@@ -52,10 +64,6 @@ def drive(
 ) -> tuple[list[Motion], np.ndarray, list[tuple[str, int, int]]]:
     """([output Motion per style], contacts (S, T, 2), segments) of the scripted control, every style
     one session of the same batch (one step_batch call per frame)."""
-    from dataclasses import replace
-
-    from ..interface import FrameBatch
-
     control, segments = control_script(seconds, model.fps)
     first = model.rest_motion()
     S, T = len(styles), len(control)
@@ -77,8 +85,6 @@ def drive(
 def demo_metrics(motion: Motion, segments: list[tuple[str, int, int]]) -> dict:
     """Foot skating over the whole run, root speed (m/s, Hips on the ground plane) per segment, and
     the longest stretch (s) the root stays within 2 cm while the control asks for motion."""
-    from ..eval.metrics import foot_skating
-
     hips = motion.global_positions()[:, 1][:, [0, 2]]
     speed = np.zeros(len(hips))
     speed[1:] = np.linalg.norm(np.diff(hips, axis=0), axis=-1) * motion.fps / 100.0
@@ -103,12 +109,6 @@ def render_demo(
     gif: bool = True,
 ) -> Path:
     """Contact sheet PNG (+ GIF) of the scripted control in each style, metrics as JSON; returns the PNG path."""
-    import json
-
-    from ..eval.footprints import render_footprints
-    from ..motion.render import render_contact_sheet, render_gif
-    from . import load
-
     model = load(get_settings().weights_dir / "lpn")
     motions, _, segments = drive(model, styles, seconds)
     report = {style: demo_metrics(motion, segments) for style, motion in zip(styles, motions)}
@@ -123,3 +123,48 @@ def render_demo(
         json.dumps({"segments": segments, "metrics": report}, indent=1, default=str)
     )
     return png
+
+
+def render_footprints(motions: Sequence[Motion], path: str | Path, titles: Sequence[str] | None = None) -> Path:
+    """One top-down panel per motion (x right, z up, equal axes); returns the PNG path."""
+    titles = list(titles) if titles is not None else [""] * len(motions)
+    fig, axes = plt.subplots(1, len(motions), figsize=(3.2 * len(motions), 3.6), dpi=90, squeeze=False)
+    for ax, motion, title in zip(axes[0], motions, titles):
+        pos = motion.global_positions()
+        contacts, speeds = flat_foot_contacts(motion, pos)
+        limit = SKATE_SPEED * left_leg_length(motion.skeleton)
+        for k, side in enumerate("lr"):
+            ankle = pos[:, body_joint(motion.skeleton, f"ankle_{side}")]
+            ax.plot(ankle[:, 0], ankle[:, 2], lw=0.4, color="0.7")
+            on = contacts[:, k]
+            ax.scatter(
+                ankle[on, 0], ankle[on, 2], s=4, c=speeds[on, k], cmap="RdYlGn_r", vmin=0, vmax=2 * limit, linewidths=0
+            )
+        skate = foot_skating(motion, pos)["skate_ratio"]
+        ax.set_title(f"{title}\nskate {skate:.0%} (red = over {limit:.0f}/s)", fontsize=7)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=5)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(prog="python -m tools.lpn_demo", description=__doc__)
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--styles", default=",".join(TARGETS))
+    ap.add_argument("--tag", default="demo")
+    ap.add_argument("--out", type=Path, default=Path("out/lpn"))
+    ap.add_argument("--no-gif", dest="gif", action="store_false")
+    a = ap.parse_args()
+    out = a.out if a.out.is_absolute() else REPO_ROOT / a.out
+    png = render_demo(out, tag=a.tag, seconds=a.seconds, styles=tuple(a.styles.split(",")), gif=a.gif)
+    print(png)
+    print(png.with_suffix(".json").read_text())
+
+
+if __name__ == "__main__":
+    main()

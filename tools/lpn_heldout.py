@@ -3,23 +3,26 @@ generator's embedding of one clip and a vector fine-tuned on it, each driving a 
 against `normal`, by the distance of motion statistics to the style's real walks (the judges know
 only dataset 2's styles).
 
-    .venv/bin/python -m models.lpn heldout      # prints JSON, renders out/lpn/lpn_heldout_*.png (~2 min)
+    .venv/bin/python -m tools.lpn_heldout [--steps 300 --seed 0]   # JSON, out/lpn/lpn_heldout_*.png (~2 min)
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
-from ..data import build_index, load_motion, select
-from ..motion.skeleton import Motion
-from .dataset import D1, HELD_OUT, clip_style_features
-from .finetune import FineTuneConfig, fine_tune
-
-if TYPE_CHECKING:
-    from .runtime import LPNModel
+from models.data import build_index, load_motion, select
+from models.lpn import load
+from models.lpn.dataset import D1, HELD_OUT, clip_style_features
+from models.lpn.finetune import FineTuneConfig, fine_tune
+from models.lpn.runtime import LPNModel
+from models.motion.render import render_contact_sheet
+from models.motion.skeleton import Motion
+from models.settings import REPO_ROOT, get_settings
 
 CONTENTS = ("walk",)
 
@@ -70,8 +73,6 @@ def evaluate(
         }
         renders.append((name, real[0], styled, fine_tuned, neutral))
     if out_dir is not None:
-        from ..motion.render import render_contact_sheet
-
         for name, *motions in renders:
             render_contact_sheet(
                 motions,
@@ -80,3 +81,22 @@ def evaluate(
                 titles=[f"real {name}", f"{name} from clip", f"{name} fine-tuned", "normal"],
             )
     return results
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(prog="python -m tools.lpn_heldout", description=__doc__)
+    ap.add_argument("--steps", type=int, help="fine-tune steps (default: FineTuneConfig's)")
+    ap.add_argument("--seed", type=int, help="fine-tune seed (default: FineTuneConfig's)")
+    ap.add_argument(
+        "--no-dropout", dest="dropout", action="store_false", help="fine-tune with the network's dropout off"
+    )
+    a = ap.parse_args()
+    torch.set_num_threads(1)  # as the service's fine-tune job runs
+    given = {k: v for k, v in (("steps", a.steps), ("seed", a.seed)) if v is not None}
+    cfg = FineTuneConfig(**given, dropout=a.dropout)
+    model = load(get_settings().weights_dir / "lpn")
+    print(json.dumps(evaluate(model, REPO_ROOT / "out" / "lpn", fine_tune_config=cfg), indent=1))
+
+
+if __name__ == "__main__":
+    main()
