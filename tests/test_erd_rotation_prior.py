@@ -486,3 +486,24 @@ def test_the_output_prior_takes_the_carry_that_brings_frames_nearest_the_real_on
     np.testing.assert_allclose(mixed.source[0, 1], carry.mean[0, 1])
     np.testing.assert_allclose(mixed.map[1, 1], carry.map[1, 1])
     np.testing.assert_allclose(mixed.map[2, 1], np.eye(3))
+
+
+def test_a_partial_carry_goes_its_share_of_the_way_inside_the_same_range():
+    from models.erd.rotation_prior import partial
+    from models.motion.style_carry import StyleCarry
+
+    real, produced = _frames(_ring(720)), _frames(0.5 * _ring(500) + [0.1, 0.05, 0.0])
+    carry = StyleCarry.fit([produced], [real], (0,))
+    assert partial(carry, 1.0) is carry
+    half = partial(carry, 0.5)
+    np.testing.assert_allclose(half.map, 0.5 * (np.eye(3) + carry.map))
+    np.testing.assert_array_equal(half.mean, carry.mean)  # the clamp holds the style's own range
+    np.testing.assert_array_equal(half.radius, carry.radius)
+    np.testing.assert_array_equal(half.source[:, 0], carry.source[:, 0])  # joint_Root: nothing to carry
+    np.testing.assert_array_equal(half.map[:, 0], carry.map[:, 0])
+    # the network's mean lands half way to the style's
+    src = carry.source[:, None, :, :][0]
+    w = np.ones((1, 1))
+    whole, halfway = carry(src, w)[0, 1], half(src, w)[0, 1]
+    np.testing.assert_allclose(quat_angle(src[0, 1], halfway), 0.5 * quat_angle(src[0, 1], whole), rtol=1e-6)
+    np.testing.assert_allclose(quat_angle(whole, halfway), 0.5 * quat_angle(src[0, 1], whole), rtol=1e-6)

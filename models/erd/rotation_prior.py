@@ -30,7 +30,7 @@ from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
 from ..motion.gait_split import running, split_by_gait
 from ..motion.rotation_ball import comparable
-from ..motion.rotations import quat_inv, quat_log, quat_mul
+from ..motion.rotations import quat_exp, quat_inv, quat_log, quat_mul
 from ..motion.style_carry import StyleCarry
 from .dataset import STYLES, TARGET_STYLES
 from .slow_carry import SlowPrior
@@ -44,6 +44,9 @@ FIT_FRAMES = 240
 SUPPORT_FRAMES = 40_000  # real frames per style `nearest_real` measures against (evenly spread)
 NEAR_PERCENTILE = 95.0  # of the distances to the nearest real frame `output_carry` compares
 NEAR_MARGIN_DEG = 1.0  # how much nearer a lesser carry must bring them to replace the whole (validation)
+# the share of the way from the network's rotations to the style's each carry goes: on validation
+# 0.5 and 0.75 made more clips plausible and read fewer as their style (docs/eval/ablation.md)
+CARRY_SHARE = 1.0
 RUN_ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))  # `fit_output`
 
 
@@ -132,7 +135,7 @@ def output_carry(produced: list[np.ndarray], targets: list[np.ndarray], clamped:
     those: the whole carry also carries what a session streamed long from its start lost of its
     style, which frames of fresh sessions cannot show."""
     carry = StyleCarry.fit(produced, targets, (0,), clamp_only=clamped)
-    kinds = (carry, mean_shift(carry), carry.bounds)
+    kinds = (partial(carry, CARRY_SHARE), partial(mean_shift(carry), CARRY_SHARE), carry.bounds)
     far = np.stack([near_percentile(k, produced, targets) for k in kinds])  # (3, S, J)
     far[0] -= np.radians(NEAR_MARGIN_DEG)
     return chosen(kinds, np.argmin(far, axis=0))
@@ -143,6 +146,21 @@ def mean_shift(carry: StyleCarry) -> StyleCarry:
     style's (identity maps), then clamped."""
     same = np.ascontiguousarray(np.broadcast_to(np.eye(3), carry.map.shape))
     return StyleCarry(carry.source, carry.mean, same, carry.radius)
+
+
+def partial(carry: StyleCarry, share: float) -> StyleCarry:
+    """`carry` taken `share` of the way: the map (1 - share) I + share M, and the source mean
+    carried `share` of the way to the style's mean (the source moved back by what the map makes
+    of that landing's offset), so the clamp still holds the style's own range. An entry with
+    nothing to carry (its source the style's mean, only clamped) is kept exactly."""
+    if share == 1.0:
+        return carry
+    still = np.all(carry.source == carry.mean, axis=-1, keepdims=True)
+    lin = np.where(still[..., None], carry.map, (1.0 - share) * np.eye(3) + share * carry.map)
+    to = quat_mul(carry.source, quat_exp(share * quat_log(quat_mul(quat_inv(carry.source), carry.mean))))
+    back = np.linalg.solve(lin, quat_log(quat_mul(quat_inv(carry.mean), to))[..., None])[..., 0]
+    source = np.where(still, carry.source, quat_mul(carry.source, quat_exp(-back)))
+    return StyleCarry(np.ascontiguousarray(source), carry.mean, np.ascontiguousarray(lin), carry.radius)
 
 
 def chosen(kinds: Sequence[StyleCarry], choice: np.ndarray) -> StyleCarry:
