@@ -338,21 +338,24 @@ def test_a_held_pose_is_carried_as_the_prior_carries_it(model, neutral):
 
 
 def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
-    """A held pose whose head flicks 20 degrees for one frame: carried whole, the flick grows by
-    the prior's gain g toward feminine (above 1 on the head); carried slowly, only the slow copy's
-    share of it (SLOW_WEIGHT) is carried with the gain, the rest passes at most as it came:
-    about SLOW_WEIGHT g + (1 - SLOW_WEIGHT) times the flick instead of g times."""
+    """A held pose whose head flicks 8 degrees for one frame: carried whole, the flick grows by
+    the prior's gain g toward the style whose head gain is largest (above 1); carried slowly,
+    only the slow copy's share of it (SLOW_WEIGHT) is carried with the gain, the rest passes at
+    most as it came: about SLOW_WEIGHT g + (1 - SLOW_WEIGHT) times the flick instead of g times."""
     from models.erd.slow_carry import SLOW_WEIGHT
     from models.motion.bn_skeleton import HIPS
     from models.motion.rotations import quat_exp
 
+    FLICK = 8.0  # degrees, times the gain still inside the style's head range (no clamp in the way)
     head = model.skeleton.index("Head")
-    prior, w = _prior(model, "output_prior"), _onehot(model, "feminine")[None]
-    gains, axes = np.linalg.eigh(prior.map[model.styles().index("feminine"), head])
+    prior = _prior(model, "output_prior")
+    all_gains, all_axes = np.linalg.eigh(prior.map[:, head])
+    style = int(np.argmax(all_gains[:, -1]))
+    gains, axes, w = all_gains[style], all_axes[style], _onehot(model, model.styles()[style])[None]
     assert gains[-1] > 1.2
     pose = neutral[0].rotations[:1]
     flicked = pose.copy()  # about the axis the map stretches most
-    flicked[:, head] = quat_mul(pose[:, head], quat_exp(np.radians(20.0) * axes[:, -1]))
+    flicked[:, head] = quat_mul(pose[:, head], quat_exp(np.radians(FLICK) * axes[:, -1]))
     frames = [pose] * 10 + [flicked] + [pose] * 3
     slow, whole, slowly = np.zeros_like(pose), [], []
     for q in frames:
@@ -360,9 +363,9 @@ def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
         out, slow = carry_slow(prior, None, q, slow, w, np.zeros(1), hips=HIPS)
         slowly.append(out[0, head])
     jump = lambda out: np.degrees(quat_angle(out[9], out[10]))  # noqa: E731
-    assert jump(whole) > 1.2 * 20.0
+    assert jump(whole) > 1.2 * FLICK
     # within a degree: rotations compose, they do not add
-    assert jump(slowly) <= SLOW_WEIGHT * jump(whole) + (1.0 - SLOW_WEIGHT) * 20.0 + 1.0, (jump(whole), jump(slowly))
+    assert jump(slowly) <= SLOW_WEIGHT * jump(whole) + (1.0 - SLOW_WEIGHT) * FLICK + 1.0, (jump(whole), jump(slowly))
 
 
 @pytest.mark.parametrize("mix", ["one style", "a mix at part intensity"])
@@ -431,3 +434,76 @@ def test_the_compiled_twist_range_is_its_numpy_reference(model):
     ranges = model.stages.twist_range
     got, want = erd_carry.twist_stage(ranges, q, w), erd_carry.twist_clamp(ranges, q, w)
     assert _apart(got, want).max() < 1e-9
+
+
+def _frames(v: np.ndarray) -> np.ndarray:
+    """(N, 2, 4): joint 0 the identity, joint 1 the rotations of rotation vectors `v` (N, 3)."""
+    from models.motion.rotations import quat_exp
+
+    q = np.zeros((len(v), 2, 4))
+    q[:, 0, 3] = 1.0
+    q[:, 1] = quat_exp(v)
+    return q
+
+
+def _ring(n: int, radius: float = 0.3, turn: float = 2 * np.pi) -> np.ndarray:
+    """(n, 3) rotation vectors on an arc (`turn` radians) of a ring about the identity."""
+    t = np.linspace(0.0, turn, n, endpoint=False)
+    return np.stack([radius * np.cos(t), radius * np.sin(t), np.zeros(n)], axis=1)
+
+
+def test_the_output_prior_takes_the_carry_that_brings_frames_nearest_the_real_ones():
+    from models.erd.rotation_prior import chosen, mean_shift, near_percentile, output_carry
+    from models.motion.style_carry import StyleCarry
+
+    rng = np.random.default_rng(0)
+    line = np.zeros((400, 3))
+    line[:, 0] = np.linspace(-0.3, 0.3, 400)
+    # real frames: a ring and a cross through its centre, supports no Gaussian fills
+    real = _frames(np.concatenate([_ring(720), line, line[:, [1, 0, 2]]]))
+    # half the ring: on the real frames though its Gaussian is not theirs (the map's stretch
+    # moves them off): only clamped
+    half = _ring(500, turn=np.pi)
+    # one bar of the cross, a little noise across it, turned aside: the mean's shift brings it
+    # back, the map would stretch the noise across the gap
+    bar = line + [0.0, 0.0, 0.15] + rng.normal(0.0, [0.0, 0.005, 0.0], (400, 3))
+    # the ring shrunk about a shifted centre: only the whole carry brings it back
+    small = _ring(500, 0.15) + [0.1, 0.0, 0.0]
+    produced = [_frames(v) for v in (half, bar, small)]
+    fitted = output_carry(produced, [real] * 3, ())
+    carry = StyleCarry.fit(produced, [real] * 3, (0,))
+    kinds = (carry, mean_shift(carry), carry.bounds)
+    far = [near_percentile(k, produced, [real] * 3)[:, 1] for k in kinds]
+    assert np.argmin(far, axis=0).tolist() == [2, 1, 0]
+    np.testing.assert_array_equal(fitted.map[0, 1], np.eye(3))  # only clamped
+    np.testing.assert_allclose(fitted.source[0, 1], fitted.mean[0, 1])
+    np.testing.assert_array_equal(fitted.map[1, 1], np.eye(3))  # shifted, not stretched
+    np.testing.assert_allclose(fitted.source[1, 1], carry.source[1, 1])
+    np.testing.assert_allclose(fitted.map[2, 1], carry.map[2, 1])  # the whole carry
+    np.testing.assert_allclose(fitted.radius, carry.radius)
+    # `chosen` takes each entry from its own kind
+    mixed = chosen(kinds, np.array([[0, 2], [1, 0], [2, 1]]))
+    np.testing.assert_allclose(mixed.source[0, 1], carry.mean[0, 1])
+    np.testing.assert_allclose(mixed.map[1, 1], carry.map[1, 1])
+    np.testing.assert_allclose(mixed.map[2, 1], np.eye(3))
+
+
+def test_a_partial_carry_goes_its_share_of_the_way_inside_the_same_range():
+    from models.erd.rotation_prior import partial
+    from models.motion.style_carry import StyleCarry
+
+    real, produced = _frames(_ring(720)), _frames(0.5 * _ring(500) + [0.1, 0.05, 0.0])
+    carry = StyleCarry.fit([produced], [real], (0,))
+    assert partial(carry, 1.0) is carry
+    half = partial(carry, 0.5)
+    np.testing.assert_allclose(half.map, 0.5 * (np.eye(3) + carry.map))
+    np.testing.assert_array_equal(half.mean, carry.mean)  # the clamp holds the style's own range
+    np.testing.assert_array_equal(half.radius, carry.radius)
+    np.testing.assert_array_equal(half.source[:, 0], carry.source[:, 0])  # joint_Root: nothing to carry
+    np.testing.assert_array_equal(half.map[:, 0], carry.map[:, 0])
+    # the network's mean lands half way to the style's
+    src = carry.source[:, None, :, :][0]
+    w = np.ones((1, 1))
+    whole, halfway = carry(src, w)[0, 1], half(src, w)[0, 1]
+    np.testing.assert_allclose(quat_angle(src[0, 1], halfway), 0.5 * quat_angle(src[0, 1], whole), rtol=1e-6)
+    np.testing.assert_allclose(quat_angle(whole, halfway), 0.5 * quat_angle(src[0, 1], whole), rtol=1e-6)

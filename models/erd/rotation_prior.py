@@ -7,7 +7,10 @@ from real TRAIN clips, the same way for every style (`python -m models.erd fit`)
 2. **Output** (`output_prior.npz`): the network's rotations, carried from what it produces toward
    each style (streamed over TRAIN neutral clips) to the style's real distribution and clamped
    into its range. The legs are only clamped (the foot planter re-poses them; carried, they
-   turned straight walks).
+   turned straight walks). Every other joint of a style is carried whole, by its mean's shift
+   alone or only clamped, whichever brings the network's frames nearest the style's real frames
+   (`output_carry`): since the network was distilled its own rotations often lie on the real
+   ones already, and a Gaussian map's stretch moved them off (the head, for every style).
 3. **Runs** (`*_prior_run.npz`): both fitted again on running clips alone (each style's own
    speed split, `models.motion.gait_split`), for frames where the input runs (`gait.py`); the run
    output prior carries the legs too.
@@ -27,6 +30,7 @@ from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEG_JOINTS
 from ..motion.gait_split import running, split_by_gait
 from ..motion.rotation_ball import comparable
+from ..motion.rotations import quat_exp, quat_inv, quat_log, quat_mul
 from ..motion.style_carry import StyleCarry
 from .dataset import STYLES, TARGET_STYLES
 from .slow_carry import SlowPrior
@@ -37,6 +41,12 @@ FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 FIT_CLIPS_PER_CONTENT = 4
 RUN_FIT_CLIPS = 12  # TRAIN neutral clips that run, for the run output prior
 FIT_FRAMES = 240
+SUPPORT_FRAMES = 40_000  # real frames per style `nearest_real` measures against (evenly spread)
+NEAR_PERCENTILE = 95.0  # of the distances to the nearest real frame `output_carry` compares
+NEAR_MARGIN_DEG = 1.0  # how much nearer a lesser carry must bring them to replace the whole (validation)
+# the share of the way from the network's rotations to the style's each carry goes: on validation
+# 0.5 and 0.75 made more clips plausible and read fewer as their style (docs/eval/ablation.md)
+CARRY_SHARE = 1.0
 RUN_ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))  # `fit_output`
 
 
@@ -110,11 +120,80 @@ def fit_output(model: Any, styles: list[str] | None = None) -> SlowPrior:
 
     def fitted(produced: list[np.ndarray], real: list[np.ndarray], clamped: tuple[int, ...]) -> StyleCarry:
         targets = [comparable(real[STYLES.index(s)]) for s in styles]
-        return StyleCarry.fit(produced, targets, (0,), clamp_only=clamped)
+        return output_carry(produced, targets, clamped)
 
     walk = fitted(network_rotations(model, _neutral_inputs(), styles=styles), real_rotations(), (HIPS,) + legs)
     run = fitted(run_network_rotations(model, styles), real_rotations(runs=True), (HIPS,))
     return SlowPrior(tuple(styles), walk, run, HIPS)
+
+
+def output_carry(produced: list[np.ndarray], targets: list[np.ndarray], clamped: tuple[int, ...]) -> StyleCarry:
+    """Per style, the carry of the network's rotations `produced` (N, J, 4) to the real `targets`
+    (N', J, 4), joint_Root left alone and the joints `clamped` only clamped; every other joint
+    takes the whole carry unless its mean shift alone or the clamp alone brings the network's
+    frames nearer the real ones (`near_percentile`) by `NEAR_MARGIN_DEG`, then the nearer of
+    those: the whole carry also carries what a session streamed long from its start lost of its
+    style, which frames of fresh sessions cannot show."""
+    carry = StyleCarry.fit(produced, targets, (0,), clamp_only=clamped)
+    kinds = (partial(carry, CARRY_SHARE), partial(mean_shift(carry), CARRY_SHARE), carry.bounds)
+    far = np.stack([near_percentile(k, produced, targets) for k in kinds])  # (3, S, J)
+    far[0] -= np.radians(NEAR_MARGIN_DEG)
+    return chosen(kinds, np.argmin(far, axis=0))
+
+
+def mean_shift(carry: StyleCarry) -> StyleCarry:
+    """`carry` without its spread: each rotation turned by the move from the source mean to the
+    style's (identity maps), then clamped."""
+    same = np.ascontiguousarray(np.broadcast_to(np.eye(3), carry.map.shape))
+    return StyleCarry(carry.source, carry.mean, same, carry.radius)
+
+
+def partial(carry: StyleCarry, share: float) -> StyleCarry:
+    """`carry` taken `share` of the way: the map (1 - share) I + share M, and the source mean
+    carried `share` of the way to the style's mean (the source moved back by what the map makes
+    of that landing's offset), so the clamp still holds the style's own range. An entry with
+    nothing to carry (its source the style's mean, only clamped) is kept exactly."""
+    if share == 1.0:
+        return carry
+    still = np.all(carry.source == carry.mean, axis=-1, keepdims=True)
+    lin = np.where(still[..., None], carry.map, (1.0 - share) * np.eye(3) + share * carry.map)
+    to = quat_mul(carry.source, quat_exp(share * quat_log(quat_mul(quat_inv(carry.source), carry.mean))))
+    back = np.linalg.solve(lin, quat_log(quat_mul(quat_inv(carry.mean), to))[..., None])[..., 0]
+    source = np.where(still, carry.source, quat_mul(carry.source, quat_exp(-back)))
+    return StyleCarry(np.ascontiguousarray(source), carry.mean, np.ascontiguousarray(lin), carry.radius)
+
+
+def chosen(kinds: Sequence[StyleCarry], choice: np.ndarray) -> StyleCarry:
+    """One carry whose (style, joint) entries come from `kinds[choice[s, j]]` (carries that share
+    their style means and radii)."""
+    source = np.take_along_axis(np.stack([k.source for k in kinds]), choice[None, ..., None], 0)[0]
+    lin = np.take_along_axis(np.stack([k.map for k in kinds]), choice[None, ..., None, None], 0)[0]
+    return StyleCarry(source, np.array(kinds[0].mean), lin, np.array(kinds[0].radius))
+
+
+def nearest_real(real: np.ndarray, mean: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(N, J) distance (the rotation vector about `mean` (J, 4), as the evaluation's rotation
+    support measures it) from each rotation of `q` (N, J, 4) to the nearest of `real` (M, J, 4),
+    evenly subsampled to `SUPPORT_FRAMES`."""
+    from scipy.spatial import cKDTree
+
+    real = real[np.linspace(0, len(real) - 1, min(len(real), SUPPORT_FRAMES)).astype(int)]
+    pts = quat_log(quat_mul(quat_inv(mean)[None], real))
+    x = quat_log(quat_mul(quat_inv(mean)[None], q))
+    return np.stack([cKDTree(pts[:, j]).query(x[:, j])[0] for j in range(q.shape[1])], axis=1)
+
+
+def near_percentile(carry: StyleCarry, produced: list[np.ndarray], targets: list[np.ndarray]) -> np.ndarray:
+    """(S, J) the `NEAR_PERCENTILE` distance from style s's carried frames of `produced[s]` to the
+    nearest of its real frames `targets[s]`: the same test for every style and joint (a
+    distribution's mean and spread can match the style's while its frames lie off the real ones,
+    which a per-joint Gaussian map cannot see)."""
+    out = np.zeros(carry.mean.shape[:2])
+    for s, (q, real) in enumerate(zip(produced, targets)):
+        w = np.zeros((len(q), len(produced)))
+        w[:, s] = 1.0
+        out[s] = np.percentile(nearest_real(real, carry.mean[s], carry(q, w)), NEAR_PERCENTILE, axis=0)
+    return out
 
 
 def run_network_rotations(model: Any, styles: Sequence[str] | None = None) -> list[np.ndarray]:
@@ -133,14 +212,14 @@ def network_rotations(
 ) -> list[np.ndarray]:
     """Per style of `styles` (default: the model's): the rotations (N, J, 4, the Hips without
     their heading) of every frame of `inputs` streamed toward it by the network, with its leaf
-    prior (not its run prior) where `leaf_prior`, and no output prior or twist range (what the
-    output priors carry from)."""
+    prior (not its run prior) where `leaf_prior`, and none of the stages from the output prior on
+    (what the output priors carry from)."""
     from ..eval.run import stylise
 
     saved = model.stages
     leaf = saved.leaf_prior
     leaf = replace(leaf, run=None) if leaf_prior and isinstance(leaf, SlowPrior) else None
-    model.stages = saved.replace(leaf_prior=leaf, output_prior=None, twist_range=None)
+    model.stages = saved.replace(leaf_prior=leaf, output_prior=None, hinge_floor=None, twist_range=None)
     try:
         ks = [model.styles().index(s) for s in styles or model.styles()]
         outs = stylise(model, [m for _ in ks for m in inputs], [k for k in ks for _ in inputs])

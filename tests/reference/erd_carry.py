@@ -124,17 +124,18 @@ def carry_slow(
         g[:, hips] = np.eye(3)
     fast = np.concatenate([np.einsum("bjik,bjk->bji", g, fast[..., :3]), fast[..., 3:]], axis=-1)
     out = other.bounds(quat_mul(carried, fast / np.linalg.norm(fast, axis=-1, keepdims=True)), w, hips=hips)
-    plain = clamps_only(other)  # nothing to carry slowly: carried whole
-    out[:, plain] = carry_by_gait(other, run, q, w, share, hips=hips)[:, plain]
+    # nothing to carry slowly where every style the row weighs only clamps the joint: carried whole
+    whole = ~np.any((w[:, :, None] != 0.0) & ~clamps_only(other)[None], axis=1)
+    out[whole] = carry_by_gait(other, run, q, w, share, hips=hips)[whole]
     return out, new
 
 
 def clamps_only(carry: StyleCarry) -> np.ndarray:
-    """(J,) bool: the joints `carry` only clamps for every style (its map the identity and its
-    source the style's mean: the legs of a clamp-only fit, fixed joints)."""
+    """(S, J) bool: the joints `carry` only clamps, per style (its map the identity and its
+    source the style's mean: the legs of a clamp-only fit, fixed joints, a joint the carry would
+    move off the style's real frames)."""
     eye = np.all(np.abs(carry.map - np.eye(3)) == 0.0, axis=(-1, -2))
-    same = np.all(carry.source == carry.mean, axis=-1)
-    return np.all(eye & same, axis=0)
+    return eye & np.all(carry.source == carry.mean, axis=-1)
 
 
 def twist_clamp(twists: TwistRange, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
