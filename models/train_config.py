@@ -19,8 +19,12 @@ TRUE, FALSE = ("1", "true", "yes", "on", ""), ("0", "false", "no", "off")
 
 def parse_overrides(config: T, argv: list[str]) -> T:
     """`config` (a dataclass instance, changed in place and returned) with `--name=value` applied.
-    A bare `--flag` sets a bool field. Unknown names and bad values end the program with one line."""
+    A bare `--flag` sets a bool field. Unknown names and bad values end the program with one line;
+    `-h` or `--help` prints the program's docstring and every option with its default, and ends it."""
     known = {f.name for f in fields(config)}  # type: ignore[arg-type]
+    if any(arg in ("-h", "--help") for arg in argv):
+        print(usage(config))
+        raise SystemExit(0)
     for arg in argv:
         key, _, value = arg.lstrip("-").partition("=")
         key = key.replace("-", "_")
@@ -37,6 +41,15 @@ def parse_overrides(config: T, argv: list[str]) -> T:
         except ValueError:
             raise SystemExit(f"option {key!r} takes a {kind.__name__}, not {value!r}") from None
     return config
+
+
+def usage(config: object) -> str:
+    """The running program's docstring, then each option of `config` as `--name=default`."""
+    import sys
+
+    doc = (getattr(sys.modules.get("__main__"), "__doc__", None) or "").strip()
+    options = "\n".join(f"  --{f.name}={getattr(config, f.name)}" for f in fields(config))  # type: ignore[arg-type]
+    return f"{doc}\n\noptions (--name=value):\n{options}".lstrip()
 
 
 def use_bf16(setting: str, device: torch.device) -> bool:

@@ -39,6 +39,15 @@ def test_bad_options_end_the_program_with_one_line(argv, says):
         parse_overrides(Config(), argv)
 
 
+@pytest.mark.parametrize("flag", ["-h", "--help"])
+def test_help_lists_every_option_with_its_default_and_ends_the_program(flag, capsys):
+    with pytest.raises(SystemExit) as ended:
+        parse_overrides(Config(), ["--steps=3", flag])
+    said = capsys.readouterr().out
+    assert ended.value.code == 0
+    assert "--steps=10" in said and "--lr=0.001" in said and "--name=run" in said and "--compile=True" in said
+
+
 @pytest.mark.parametrize("parse", [erd_args, lpn_args])
 def test_every_trainer_parses_the_same_way(parse):
     defaults = vars(parse([]))

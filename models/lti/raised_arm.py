@@ -158,6 +158,9 @@ def _real_frames(motions: list, side: int) -> np.ndarray:
 def main(argv: list[str]) -> None:
     from .model import WEIGHTS_DIR, LTIStyleModel
 
+    if argv and argv[0] in ("-h", "--help"):
+        print(__doc__)
+        return
     folder = Path(argv[0]) if argv else WEIGHTS_DIR
     model = LTIStyleModel(weights_dir=folder, off=("raised_arm",))
     carries = fit(model)
