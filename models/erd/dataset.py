@@ -180,5 +180,8 @@ class WindowSampler:
 
 
 if __name__ == "__main__":
+    import argparse
+
+    argparse.ArgumentParser(prog="python -m models.erd.dataset", description=__doc__.split("\n\n")[0]).parse_args()
     path = build_cache()
     print(path, (path / "meta.json").read_text())

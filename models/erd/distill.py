@@ -90,9 +90,18 @@ def build(out: Path, weights: Path) -> Path:
     return out
 
 
-if __name__ == "__main__":
+def main(argv: list[str]) -> None:
+    import argparse
+
     from ..settings import get_settings
 
+    parser = argparse.ArgumentParser(prog="python -m models.erd.distill", description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", type=Path, help="the .npz to write (e.g. .data/erd/distill.npz)")
+    parser.add_argument("weights", type=Path, nargs="?", default=get_settings().weights_dir / "erd")
+    args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    weights = Path(sys.argv[2]) if len(sys.argv) > 2 else get_settings().weights_dir / "erd"
-    print(build(Path(sys.argv[1]), weights))
+    print(build(args.out, args.weights))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

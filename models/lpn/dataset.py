@@ -345,4 +345,7 @@ def load_meta(cfg: DataConfig = DataConfig()) -> dict:
 
 
 if __name__ == "__main__":
+    import argparse
+
+    argparse.ArgumentParser(prog="python -m models.lpn.dataset", description=__doc__.split("\n\n")[0]).parse_args()
     build_cache()
