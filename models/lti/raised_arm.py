@@ -156,12 +156,13 @@ def _real_frames(motions: list, side: int) -> np.ndarray:
 
 
 def main(argv: list[str]) -> None:
+    import argparse
+
     from .model import WEIGHTS_DIR, LTIStyleModel
 
-    if argv and argv[0] in ("-h", "--help"):
-        print(__doc__)
-        return
-    folder = Path(argv[0]) if argv else WEIGHTS_DIR
+    parser = argparse.ArgumentParser(prog="python -m models.lti.raised_arm", description=__doc__.split("\n\n")[0])
+    parser.add_argument("folder", type=Path, nargs="?", default=WEIGHTS_DIR, help="the LTI weights to fit and write")
+    folder = parser.parse_args(argv).folder
     model = LTIStyleModel(weights_dir=folder, off=("raised_arm",))
     carries = fit(model)
     print(save({s: c for s, c in carries.items() if c is not None}, folder))
