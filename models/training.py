@@ -61,12 +61,19 @@ def usage(config: object) -> str:
     return f"{doc}\n\noptions (--name=value):\n{options}".lstrip()
 
 
-class RunConfig(Protocol):
-    run_dir: str
-    resume: bool
+class TrainConfig(Protocol):
+    """The fields of a trainer's config that this file reads."""
+
+    run_dir: str  # checkpoints and log
+    resume: bool  # continue run_dir/ckpt.pt
+    minutes: float  # this session's wall-clock budget
+    max_iters: int  # steps in all
+    eval_every: int
+    ckpt_every: int  # run_dir/ckpt.pt, what --resume continues
+    snapshot_every: int  # also keep ckpt_<iter>.pt, not resumable (0: only the latest)
 
 
-C = TypeVar("C", bound=RunConfig)
+C = TypeVar("C", bound=TrainConfig)
 
 
 def resume_config(default: C, argv: list[str]) -> tuple[C, dict | None]:
@@ -203,39 +210,27 @@ class Run(Protocol):
     def checkpoint(self, path: Path, resumable: bool = True) -> None: ...
 
 
-@dataclass
-class Budget:
-    """This session's `minutes`, `max_iters` steps in all, and how often to validate and save."""
-
-    minutes: float
-    max_iters: int
-    eval_every: int
-    ckpt_every: int
-    snapshot_every: int = 0  # also keep ckpt_<iter>.pt, not resumable (0: only the latest)
-
-
 def train(
     run: Run,
-    budget: Budget,
+    cfg: TrainConfig,
     optimizers: Sequence[tuple[torch.optim.Optimizer | None, float]],
-    run_dir: Path,
     log: Log,
     desc: str,
     every: Sequence[tuple[int, Callable[[int], None]]] = (),
 ) -> float:
-    """Step `run` until the budget or the schedule ends, each optimiser's learning rate its base
-    rate times the schedule's factor; validate (not counted as training time), save
-    `run_dir/ckpt.pt` and snapshots, and call each `every` (period, action(it)) along the way;
-    then validate and save once more. Returns this session's steps per second of training."""
-    sched = run.schedule
+    """Step `run` until `cfg`'s budget or the schedule ends, each optimiser's learning rate its
+    base rate times the schedule's factor; validate (not counted as training time), save
+    checkpoints and snapshots, and call each `every` (period, action(it)) along the way; then
+    validate and save once more. Returns this session's steps per second of training."""
+    sched, run_dir = run.schedule, Path(cfg.run_dir)
     t0, first_it, seconds0 = time.time(), run.it, sched.elapsed_s
 
     def steps_per_s() -> float:
         return (run.it - first_it) / max(sched.elapsed_s - seconds0, 1e-9)
 
-    bar = tqdm(total=budget.max_iters, initial=run.it, desc=desc, mininterval=10, file=sys.stderr)
+    bar = tqdm(total=cfg.max_iters, initial=run.it, desc=desc, mininterval=10, file=sys.stderr)
     last = time.time()
-    while run.it < budget.max_iters and time.time() - t0 < budget.minutes * 60 and sched.progress(run.it) < 1.0:
+    while run.it < cfg.max_iters and time.time() - t0 < cfg.minutes * 60 and sched.progress(run.it) < 1.0:
         factor = sched.factor(run.it)
         for opt, base in optimizers:
             for group in opt.param_groups if opt is not None else ():
@@ -248,15 +243,15 @@ def train(
         bar.update(1)
         if run.it % 50 == 0:
             bar.set_postfix(run.postfix(terms))
-        if run.it % budget.eval_every == 0:
+        if run.it % cfg.eval_every == 0:
             v = run.validate()
             v.update(iter=run.it, minutes=round(sched.elapsed_s / 60, 2), **run.report(terms, factor, steps_per_s()))
             run.history.append(v)
             log("val " + " ".join(f"{k}={x:.4g}" if isinstance(x, float) else f"{k}={x}" for k, x in v.items()))
             last = time.time()
-        if run.it % budget.ckpt_every == 0:
+        if run.it % cfg.ckpt_every == 0:
             run.checkpoint(run_dir / "ckpt.pt")
-        if budget.snapshot_every and run.it % budget.snapshot_every == 0:
+        if cfg.snapshot_every and run.it % cfg.snapshot_every == 0:
             run.checkpoint(run_dir / f"ckpt_{run.it:06d}.pt", resumable=False)
         for period, action in every:
             if period and run.it % period == 0:

@@ -736,13 +736,12 @@ def main(argv: list[str]) -> None:
     data = Data.load(cfg, device)
     run = Run(cfg, ck, data, device, log)
     log(f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {bf16}; resumed: {ck is not None}")
-    budget = training.Budget(cfg.minutes, cfg.max_iters, cfg.eval_every, cfg.ckpt_every, cfg.snapshot_every)
 
     def render_at(it: int) -> None:
         render(run.gen, data.maker, out_dir, f"it{it:06d}", data.render_motions)
 
     every = [(cfg.render_every, render_at)] if data.render_motions else []
-    steps_per_s = training.train(run, budget, run.optimizers, run_dir, log, "style-erd", every)
+    steps_per_s = training.train(run, cfg, run.optimizers, log, "style-erd", every)
     if data.render_motions:
         render(run.gen, data.maker, out_dir, "final", data.render_motions)
     log(

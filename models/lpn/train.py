@@ -478,8 +478,7 @@ def main(argv: list[str]) -> None:
     log = training.start_run(run_dir, out_dir)
     data = Data.load(cfg, device, rng)
     run = Run(cfg, ck, data, device, rng, log)
-    budget = training.Budget(cfg.minutes, cfg.max_iters, cfg.eval_every, cfg.ckpt_every, cfg.snapshot_every)
-    steps_per_s = training.train(run, budget, [(run.opt, cfg.lr)], run_dir, log, "lpn")
+    steps_per_s = training.train(run, cfg, [(run.opt, cfg.lr)], log, "lpn")
     if cfg.snapshot_every:
         run.checkpoint(run_dir / f"ckpt_{run.it:06d}.pt", resumable=False)
     log(
