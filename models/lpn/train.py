@@ -336,7 +336,8 @@ class Run:
         from .network import LPN, LPNConfig
 
         self.cfg, self.rng, self.styles, self.data = cfg, rng, data.styles, data
-        self.autocast = training.autocast(device, training.use_bf16(cfg.bf16, device))
+        bf16 = training.use_bf16(cfg.bf16, device)
+        self.autocast = training.autocast(device, bf16)
         self.mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout, film_norm=cfg.film_norm)
         self.net = LPN(self.mcfg, data.stats)
         warm_films = None
@@ -350,9 +351,7 @@ class Run:
         elif cfg.warm_from:
             warm_films = warm_start(self.net, Path(cfg.warm_from), self.styles)
         self.net.to(device)
-        log(
-            f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {training.use_bf16(cfg.bf16, device)}; resumed {ck is not None}"
-        )
+        log(f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {bf16}; resumed {ck is not None}")
         log(
             f"data: train {len(data.train.X)} samples / {len(data.train.names)} clips, val {len(data.val.X)}, "
             f"heldout {0 if data.heldout is None else len(data.heldout.X)}; "
