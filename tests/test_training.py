@@ -1,5 +1,5 @@
-"""The trainers' shared helpers: one command-line parser (`--name=value` typed by the config's
-defaults) and the random state a checkpoint holds."""
+"""The trainers' shared pieces (`models/training.py`): one command-line parser (`--name=value`
+typed by the config's defaults), the random state and the schedule a checkpoint holds."""
 
 from __future__ import annotations
 
