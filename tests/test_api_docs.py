@@ -139,24 +139,27 @@ def check_reply(doc: dict, method: str, path: str, reply: httpx.Response, status
 
 def test_real_replies_are_documented_with_their_bodies(server, openapi, index):
     doc, ok, slow = openapi, {"Authorization": f"Bearer {TOKEN}"}, {"Authorization": f"Bearer {SLOW}"}
+    # a fresh clone's server compiles kernels on first use (a rig's adapter, an upload's fit), and
+    # a loaded machine stretches that past httpx's 5 s default: wait on the reply, not a clock
+    http = httpx.Client(timeout=UPLOAD_TIMEOUT_S)
     styles = f"{server}/v1/styles"
-    check_reply(doc, "get", "/healthz", httpx.get(f"{server}/healthz"), 200)
-    check_reply(doc, "get", "/readyz", httpx.get(f"{server}/readyz"), 200)
-    check_reply(doc, "get", "/v1/models", httpx.get(f"{server}/v1/models"), 401, "unauthorized")
-    check_reply(doc, "get", "/v1/models", httpx.get(f"{server}/v1/models", headers=ok), 200)
-    check_reply(doc, "get", "/v1/styles", httpx.get(styles, headers=slow), 200)
-    limited = httpx.get(styles, headers=slow)
+    check_reply(doc, "get", "/healthz", http.get(f"{server}/healthz"), 200)
+    check_reply(doc, "get", "/readyz", http.get(f"{server}/readyz"), 200)
+    check_reply(doc, "get", "/v1/models", http.get(f"{server}/v1/models"), 401, "unauthorized")
+    check_reply(doc, "get", "/v1/models", http.get(f"{server}/v1/models", headers=ok), 200)
+    check_reply(doc, "get", "/v1/styles", http.get(styles, headers=slow), 200)
+    limited = http.get(styles, headers=slow)
     check_reply(doc, "get", "/v1/styles", limited, 429, "rate_limited")
     assert int(limited.headers["retry-after"]) >= 1
-    check_reply(doc, "get", "/v1/styles/{style_id}", httpx.get(f"{styles}/lti.elderly", headers=ok), 200)
-    check_reply(doc, "get", "/v1/styles/{style_id}", httpx.get(f"{styles}/lti.nope", headers=ok), 404, "unknown_style")
-    trained = httpx.delete(f"{styles}/lti.elderly", headers=ok)
+    check_reply(doc, "get", "/v1/styles/{style_id}", http.get(f"{styles}/lti.elderly", headers=ok), 200)
+    check_reply(doc, "get", "/v1/styles/{style_id}", http.get(f"{styles}/lti.nope", headers=ok), 404, "unknown_style")
+    trained = http.delete(f"{styles}/lti.elderly", headers=ok)
     check_reply(doc, "delete", "/v1/styles/{style_id}", trained, 409, "trained_style")
-    check_reply(doc, "get", "/v1/jobs/{job_id}", httpx.get(f"{server}/v1/jobs/nope", headers=ok), 404, "unknown_job")
+    check_reply(doc, "get", "/v1/jobs/{job_id}", http.get(f"{server}/v1/jobs/nope", headers=ok), 404, "unknown_job")
 
-    text = httpx.post(styles, content=b"walk", headers={**ok, "Content-Type": "text/plain"})
+    text = http.post(styles, content=b"walk", headers={**ok, "Content-Type": "text/plain"})
     check_reply(doc, "post", "/v1/styles", text, 415, "unsupported_media_type")
-    big = httpx.post(styles, content=b"x" * (UPLOAD_LIMIT + 1), headers={**ok, "Content-Type": "application/json"})
+    big = http.post(styles, content=b"x" * (UPLOAD_LIMIT + 1), headers={**ok, "Content-Type": "application/json"})
     check_reply(doc, "post", "/v1/styles", big, 413, "too_large")
     walk = frames_json(
         load_motion(select(index, dataset="bandai-namco-2", style="normal", content="walk", split="val")[0]).slice(
@@ -164,27 +167,28 @@ def test_real_replies_are_documented_with_their_bodies(server, openapi, index):
         )
     )
     body = {"name": "Bad Name", "model": "lpn", "frames": walk, "fps": 30}
-    named = httpx.post(styles, json=body, headers=ok, timeout=UPLOAD_TIMEOUT_S)
+    named = http.post(styles, json=body, headers=ok)
     check_reply(doc, "post", "/v1/styles", named, 422, "bad_name")
-    maybe = httpx.post(f"{styles}?fine_tune=maybe", json=body, headers=ok)  # FastAPI's own validation
+    maybe = http.post(f"{styles}?fine_tune=maybe", json=body, headers=ok)  # FastAPI's own validation
     check_reply(doc, "post", "/v1/styles", maybe, 422, "bad_request")
     assert "fine_tune" in maybe.json()["message"]
-    made = httpx.post(styles, json={**body, "name": "docs-walk"}, headers=ok, timeout=UPLOAD_TIMEOUT_S)
+    made = http.post(styles, json={**body, "name": "docs-walk"}, headers=ok)
     check_reply(doc, "post", "/v1/styles", made, 201)
     assert made.json()["style"]["status"] == "ready"
-    again = httpx.post(styles, json={**body, "name": "docs-walk"}, headers=ok, timeout=UPLOAD_TIMEOUT_S)
+    again = http.post(styles, json={**body, "name": "docs-walk"}, headers=ok)
     check_reply(doc, "post", "/v1/styles", again, 409, "style_exists")
-    gone = httpx.delete(f"{styles}/lpn.docs-walk", headers=ok)
+    gone = http.delete(f"{styles}/lpn.docs-walk", headers=ok)
     check_reply(doc, "delete", "/v1/styles/{style_id}", gone, 204)
 
     rigs = f"{server}/v1/skeletons"
-    check_reply(doc, "post", "/v1/skeletons", httpx.post(rigs, json={"skeleton": "ue5"}, headers=ok), 200)
-    check_reply(doc, "post", "/v1/skeletons", httpx.post(rigs, json={"skeleton": "ue5"}), 401, "unauthorized")
-    neither = httpx.post(rigs, json={}, headers=ok)
+    check_reply(doc, "post", "/v1/skeletons", http.post(rigs, json={"skeleton": "ue5"}, headers=ok), 200)
+    check_reply(doc, "post", "/v1/skeletons", http.post(rigs, json={"skeleton": "ue5"}), 401, "unauthorized")
+    neither = http.post(rigs, json={}, headers=ok)
     check_reply(doc, "post", "/v1/skeletons", neither, 422, "bad_request")
-    extra = httpx.post(rigs, json={"skeleton": "ue5", "colour": "red"}, headers=ok)
+    extra = http.post(rigs, json={"skeleton": "ue5", "colour": "red"}, headers=ok)
     check_reply(doc, "post", "/v1/skeletons", extra, 422, "bad_request")
     assert "colour" in extra.json()["message"]
+    http.close()
 
 
 def test_a_server_that_is_not_up_answers_503_as_documented(models):
