@@ -12,6 +12,7 @@ import logging
 from pathlib import Path
 
 from .interface import StreamingModel
+from .motion import calibration
 from .motion.novelty import NoveltyReference, reference_path
 from .motion.novelty_stage import with_novelty
 
@@ -47,4 +48,7 @@ def load_model(weights_dir: Path, method: str, core_only: bool = False, novelty:
         return loader(folder, core_only=True)
     model = loader(folder)
     reference = reference_path(weights_dir, method)
-    return with_novelty(model, NoveltyReference.load(reference)) if novelty and reference.is_file() else model
+    if novelty and reference.is_file():
+        model = with_novelty(model, NoveltyReference.load(reference))
+    twists = calibration.reference_path(weights_dir, method)
+    return calibration.with_calibration(model, calibration.TwistReference.load(twists)) if twists.is_file() else model
