@@ -95,17 +95,18 @@ def test_features_match_foundation(model, walks):
 
 def test_stream_equals_whole_window(model, walks):
     from models.erd.dataset import CONTENTS
-    from models.erd.offline import stylise
+
+    from .reference.erd_offline import stylise
 
     motion = walks[0].slice(0, 40)
     w = _onehot(model, "elderly")
     streamed = model.stylise_stream(motion, w, content="walk", input_style="normal")
     gen = model.torch_generator()
-    whole = stylise(gen, model.maker, motion, w, style_in=0, content=CONTENTS.index("walk"), model=model)
+    whole = stylise(gen, model, motion, w, style_in=0, content=CONTENTS.index("walk"))
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
     np.testing.assert_allclose(streamed.translations, whole.translations, atol=2e-2)  # cm; float32 torch
     streamed = model.stylise_stream(motion, w)  # unlabelled
-    whole = stylise(gen, model.maker, motion, w, model=model)
+    whole = stylise(gen, model, motion, w)
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
 
 

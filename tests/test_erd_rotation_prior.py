@@ -393,11 +393,11 @@ def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
 
 def test_a_raise_up_streamed_equals_the_whole_clip(model, neutral):
     """The whole-clip path (`models/erd/offline.py`: the torch network over the clip, then the
-    stages) carries a raise-up as the stream does."""
-    from models.erd.offline import stylise
+    stages, `tests/reference/erd_offline.py`) carries a raise-up as the stream does."""
+    from .reference.erd_offline import stylise
 
     motion, w = neutral[2], _onehot(model, "elderly")
-    whole = stylise(model.torch_generator(), model.maker, motion, w, model=model)
+    whole = stylise(model.torch_generator(), model, motion, w)
     np.testing.assert_allclose(model.stylise_stream(motion, w).rotations, whole.rotations, atol=2e-4)
 
 

@@ -39,7 +39,7 @@ def _is_dataclass(node: ast.ClassDef) -> bool:
 def known_options(folder: Path) -> frozenset[str]:
     """Option names the modules of `folder` accept: string literals such as "--minutes" or
     "--runs=" (argparse and hand-read argv), and the fields of its dataclasses, which
-    `models.train_config.parse_overrides` takes as `--field=value`."""
+    `models.training.parse_overrides` takes as `--field=value`."""
     names: set[str] = set()
     for path in folder.glob("*.py"):
         for node in ast.walk(ast.parse(path.read_text())):

@@ -145,7 +145,7 @@ def evaluate(
 
 
 def main(argv: list[str]) -> None:
-    from models.train_config import parse_overrides
+    from models.training import parse_overrides
 
     opts = parse_overrides(Options(), [a for a in argv if a.startswith("--")])
     paths = [Path(a) for a in argv if not a.startswith("--")] or [Path("models/weights/lpn")]

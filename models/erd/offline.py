@@ -1,13 +1,12 @@
 """Whole-clip (offline) Style-ERD: the torch generator over a clip from the learned initial
-states, its output turned back into a world-space `Motion` with the same decoding, stages, root
-path and foot planting as the streaming model (runtime.py), for the trainer's renders and the
-tests that check the two agree. `foot_lock=False`: the feet as they come.
+states, its output turned back into a world-space `Motion` with the streaming model's root path
+(runtime.py), the input's twists and leaves and its feet planted, for the trainer's renders.
+`foot_lock=False`: the feet as they come.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -17,11 +16,7 @@ from ..motion.rotations import quat_mul, rotate_y, yaw_quat
 from ..motion.skeleton import Motion
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker
-from .gait import clip_smoothed_speed, eased_in, run_share
 from .model import Generator
-
-if TYPE_CHECKING:
-    from .runtime import ERDModel
 
 
 def to_world(
@@ -79,21 +74,7 @@ def stylise(
     style_in: int = -1,
     content: int = -1,
     foot_lock: bool = True,
-    model: ERDModel | None = None,
 ) -> Motion:
-    """The clip stylised by the network, then decoded and staged frame by frame as `model`'s
-    stream does (`ERDModel.stage_batch`), the run shares measured over the clip
-    (`gait.clip_smoothed_speed`); without `model`, the input's twists and leaves, no stages."""
+    """The clip stylised by the network with the input's twists and leaves, no stages."""
     x, root, rots = network_clip(gen, maker, motion, weights, style_in, content)
-    if model is None:
-        return with_root(motion, x, root, transfer_twist(motion.skeleton, motion.rotations, rots), foot_lock)
-    T = len(rots)
-    w = np.broadcast_to(np.asarray(weights, np.float64), (T, np.shape(weights)[-1]))
-    pos = maker.positions(motion.translations[:, 1], motion.rotations)
-    share = eased_in(run_share(clip_smoothed_speed(pos, FPS)), np.arange(T))
-    state = model.stages.init_state(1)
-    for t in range(T):
-        frame = slice(t, t + 1)
-        out, state = model.stage_batch(state, motion.rotations[frame], rots[frame], w[frame], share[frame])
-        rots[t] = out[0]
-    return with_root(motion, x, root, rots, foot_lock)
+    return with_root(motion, x, root, transfer_twist(motion.skeleton, motion.rotations, rots), foot_lock)

@@ -22,7 +22,6 @@ from __future__ import annotations
 import copy
 import json
 import math
-import random
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -34,12 +33,11 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from .. import training
 from ..motion.rotations import quat_angle, quat_mean
 from ..motion.rotations_torch import quat_apply_t, quat_mul_t, quat_to_matrix_t
 from ..motion.twist import bone_axes, transfer_twist_t
-from ..runlog import start_run
 from ..settings import REPO_ROOT
-from ..train_config import parse_overrides, seeded_device, use_bf16
 from .dataset import TARGET_STYLES, split_hinges
 from .features import NB, POS, ROOTVEL, ROT, VEL
 from .model import ContentClassifier, ERDConfig, FTAttDiscriminator, Generator, fk_local, window_motion
@@ -113,7 +111,7 @@ class TrainConfig:
 
 
 def parse_args(argv: list[str]) -> TrainConfig:
-    return parse_overrides(TrainConfig(), argv)
+    return training.parse_overrides(TrainConfig(), argv)
 
 
 def build(cfg: TrainConfig, stats: dict[str, np.ndarray]):
@@ -431,41 +429,6 @@ def hinge_loss(rot: torch.Tensor, hinges, skeleton) -> torch.Tensor:
     return (quat_apply_t(q, bone.expand(q.shape[:-1] + (3,))) * hinge).sum(-1).pow(2).mean()
 
 
-@dataclass
-class Schedule:
-    """Cosine learning-rate factor (from 1 to `decay_to`) over `total` seconds of training counted
-    across resumed sessions, or over `total` steps when `by_steps` (reproducible)."""
-
-    decay_to: float
-    total: float
-    by_steps: bool = False
-    elapsed_s: float = 0.0
-
-    def progress(self, it: int) -> float:
-        done = it if self.by_steps else self.elapsed_s
-        return min(done / max(self.total, 1e-9), 1.0)
-
-    def factor(self, it: int) -> float:
-        return self.decay_to + (1 - self.decay_to) * 0.5 * (1 + math.cos(math.pi * self.progress(it)))
-
-
-def rng_state(sampler_rng: np.random.Generator) -> dict:
-    return {
-        "sampler": sampler_rng.bit_generator.state,
-        "torch": torch.get_rng_state(),
-        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None,
-        "python": random.getstate(),
-    }
-
-
-def set_rng_state(sampler_rng: np.random.Generator, state: dict) -> None:
-    sampler_rng.bit_generator.state = state["sampler"]
-    torch.set_rng_state(state["torch"])
-    if state.get("cuda") is not None and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-    random.setstate(state["python"])
-
-
 def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
@@ -486,16 +449,7 @@ WEIGHTED = (
 
 
 def load_config(argv: list[str]) -> tuple[TrainConfig, dict | None]:
-    """The command line's config, or with `--resume` the run's own config and checkpoint, then the
-    command line's overrides."""
-    cfg = parse_args(argv)
-    path = Path(cfg.run_dir) / "ckpt.pt"
-    if not cfg.resume or not path.exists():
-        return cfg, None
-    ck = torch.load(path, map_location="cpu", weights_only=False)
-    cfg = parse_overrides(TrainConfig(**ck["train_config"]), argv)
-    cfg.resume = True
-    return cfg, ck
+    return training.resume_config(TrainConfig(), argv)
 
 
 @dataclass
@@ -544,7 +498,8 @@ class Run:
     def __init__(self, cfg: TrainConfig, ck: dict | None, data: Data, device: torch.device, log) -> None:
         """New networks (built in a fixed order, so runs repeat), restored from `ck` or
         initialised as `cfg` says; the content classifier trained when it is new."""
-        self.cfg, self.it = cfg, 0
+        self.cfg, self.data, self.device, self.it = cfg, data, device, 0
+        self.autocast = training.autocast(device, training.use_bf16(cfg.bf16, device))
         self.history: list[dict] = []
         self.mcfg, gen, disc, clf, scale = build(cfg, data.stats)
         self.gen, self.disc, self.clf = gen, disc, clf
@@ -610,11 +565,12 @@ class Run:
         self.opt_g = torch.optim.Adam(gen.parameters(), lr=cfg.lr_g, betas=(0.5, 0.999))
         self.opt_d = adam(disc)
         if cfg.schedule_iters:
-            self.schedule = Schedule(cfg.lr_decay_to, float(cfg.schedule_iters), by_steps=True)
+            self.schedule = training.Schedule(cfg.lr_decay_to, float(cfg.schedule_iters), by_steps=True)
         else:
-            self.schedule = Schedule(cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
+            self.schedule = training.Schedule(cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
         if ck is not None:
             self.restore(ck, data)
+        self.optimizers = [(self.opt_g, cfg.lr_g), (self.opt_d, cfg.lr_d), (self.opt_dr, cfg.lr_d)]
 
     def restore(self, ck: dict, data: Data) -> None:
         """Optimisers, schedule, random generators and step of a resumed run."""
@@ -624,16 +580,30 @@ class Run:
             self.disc_rot.load_state_dict(ck["disc_rot"])
             self.opt_dr.load_state_dict(ck["opt_dr"])
         cfg = self.cfg
-        total = self.schedule.total if (cfg.schedule_minutes or cfg.schedule_iters) else ck["schedule"]["total"]
-        self.schedule = Schedule(**{**ck["schedule"], "total": total})
-        set_rng_state(data.train.rng, ck["rng"])
+        total = self.schedule.total if (cfg.schedule_minutes or cfg.schedule_iters) else None
+        self.schedule = training.Schedule.resumed(ck["schedule"], total)
+        training.set_rng_state(data.train.rng, ck["rng"])
         self.it, self.history = ck["iter"], ck["history"]
 
-    def validate(self, data: Data) -> dict[str, float]:
+    def step(self) -> dict[str, float]:
+        batch = to_device(self.data.train.sample(self.cfg.batch), self.device)
+        return train_step(self.cfg, self, self.data, batch, self.it, self.autocast)
+
+    def validate(self) -> dict[str, float]:
+        data = self.data
         return validate(self.gen, self.disc, self.clf, self.losses, data.val, self.hinges, data.skeleton, self.decode)
 
-    def checkpoint(self, path: Path, it: int, data: Data, resumable: bool = True) -> None:
+    def report(self, terms: dict[str, float], factor: float, steps_per_s: float) -> dict:
+        return dict(
+            it_per_s=round(steps_per_s, 2), lr_factor=round(factor, 4), **{f"train_{k}": v for k, v in terms.items()}
+        )
+
+    def postfix(self, terms: dict[str, float]) -> dict[str, str]:
+        return {k: f"{v:.4f}" for k, v in terms.items()}
+
+    def checkpoint(self, path: Path, resumable: bool = True) -> None:
         """A checkpoint; a resumable one also holds what `--resume` needs (optimisers, RNG)."""
+        data, it = self.data, self.it
         state = {
             "generator": {k: v.detach().cpu() for k, v in self.gen.state_dict().items()},
             "discriminator": {k: v.detach().cpu() for k, v in self.disc.state_dict().items()},
@@ -653,12 +623,10 @@ class Run:
                 disc_rot=None if self.disc_rot is None else self.disc_rot.state_dict(),
                 opt_dr=None if self.opt_dr is None else self.opt_dr.state_dict(),
                 schedule=asdict(self.schedule),
-                rng=rng_state(data.train.rng),
+                rng=training.rng_state(data.train.rng),
                 teacher=None if self.teacher is None else {k: v.cpu() for k, v in self.teacher.state_dict().items()},
             )
-        tmp = path.with_suffix(".tmp")
-        torch.save(state, tmp)
-        tmp.replace(path)
+        training.save_checkpoint(state, path)
 
 
 def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor], it: int, autocast) -> dict:
@@ -760,61 +728,25 @@ def main(argv: list[str]) -> None:
 
         print(export_weights(Path(cfg.export)))
         return
-    device = seeded_device(cfg.threads, cfg.seed, cfg.device)
-    bf16 = use_bf16(cfg.bf16, device)
+    device = training.seeded_device(cfg.threads, cfg.seed, cfg.device)
+    bf16 = training.use_bf16(cfg.bf16, device)
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
-    log = start_run(run_dir, out_dir)
+    log = training.start_run(run_dir, out_dir)
     t_start = time.time()
     data = Data.load(cfg, device)
     run = Run(cfg, ck, data, device, log)
     log(f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {bf16}; resumed: {ck is not None}")
-    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=bf16)
-    sched, it = run.schedule, run.it
-    t0, first_it, seconds0 = time.time(), it, sched.elapsed_s
-    bar = tqdm(total=cfg.max_iters, initial=it, desc="style-erd", mininterval=10, file=sys.stderr)
-    last = time.time()
-    while it < cfg.max_iters and time.time() - t0 < cfg.minutes * 60 and sched.progress(it) < 1.0:
-        factor = sched.factor(it)
-        for opt, base in ((run.opt_g, cfg.lr_g), (run.opt_d, cfg.lr_d), (run.opt_dr, cfg.lr_d)):
-            for group in opt.param_groups if opt is not None else ():
-                group["lr"] = base * factor
-        terms = train_step(cfg, run, data, to_device(data.train.sample(cfg.batch), device), it, autocast)
-        it += 1
-        now = time.time()
-        sched.elapsed_s += now - last
-        last = now
-        bar.update(1)
-        if it % 50 == 0:
-            bar.set_postfix({k: f"{v:.4f}" for k, v in terms.items()})
-        if it % cfg.eval_every == 0:
-            v = run.validate(data)
-            v.update(
-                iter=it,
-                minutes=round(sched.elapsed_s / 60, 2),
-                it_per_s=round((it - first_it) / max(sched.elapsed_s - seconds0, 1e-9), 2),
-                lr_factor=round(factor, 4),
-                **{f"train_{k}": val for k, val in terms.items()},
-            )
-            run.history.append(v)
-            log("val " + " ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}" for k, val in v.items()))
-            last = time.time()  # validation is not training time
-        if it % cfg.ckpt_every == 0:
-            run.checkpoint(run_dir / "ckpt.pt", it, data)
-        if cfg.snapshot_every and it % cfg.snapshot_every == 0:
-            run.checkpoint(run_dir / f"ckpt_{it:06d}.pt", it, data, resumable=False)
-        if data.render_motions and it % cfg.render_every == 0:
-            render(run.gen, data.maker, out_dir, f"it{it:06d}", data.render_motions)
-    bar.close()
-    v = run.validate(data)
-    v.update(iter=it, minutes=round(sched.elapsed_s / 60, 2))
-    run.history.append(v)
-    log("final val " + " ".join(f"{k}={val:.4g}" for k, val in v.items()))
-    run.checkpoint(run_dir / "ckpt.pt", it, data)
+
+    def render_at(it: int) -> None:
+        render(run.gen, data.maker, out_dir, f"it{it:06d}", data.render_motions)
+
+    every = [(cfg.render_every, render_at)] if data.render_motions else []
+    steps_per_s = training.train(run, cfg, run.optimizers, log, "style-erd", every)
     if data.render_motions:
         render(run.gen, data.maker, out_dir, "final", data.render_motions)
     log(
-        f"done: {it} iterations ({(it - first_it) / max(sched.elapsed_s - seconds0, 1e-9):.2f} it/s this session), "
-        f"{sched.elapsed_s / 60:.1f} min of training in all, this session {(time.time() - t_start) / 60:.1f} min"
+        f"done: {run.it} iterations ({steps_per_s:.2f} it/s this session), "
+        f"{run.schedule.elapsed_s / 60:.1f} min of training in all, this session {(time.time() - t_start) / 60:.1f} min"
     )
 
 

@@ -16,19 +16,16 @@ from __future__ import annotations
 import json
 import math
 import sys
-import time
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
-from ..runlog import start_run
+from .. import training
 from ..settings import REPO_ROOT
-from ..train_config import parse_overrides, rng_state, seeded_device, set_rng_state, use_bf16
+from ..training import Log
 from . import features as lf
 from .weights import NORMALISATION
 
@@ -36,8 +33,6 @@ if TYPE_CHECKING:
     from ..motion.skeleton import Skeleton
     from .dataset import Split
     from .network import LPN
-
-Log = Callable[[str], None]
 
 
 @dataclass
@@ -89,7 +84,7 @@ class TrainConfig:
 
 
 def parse_args(argv: list[str]) -> TrainConfig:
-    return parse_overrides(TrainConfig(), argv)
+    return training.parse_overrides(TrainConfig(), argv)
 
 
 # --------------------------------------------------------------------------- sampling
@@ -218,24 +213,12 @@ def body_bones(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray]:
     return parents, lengths
 
 
-# --------------------------------------------------------------------------- state that resumes
+# --------------------------------------------------------------------------- scheduled sampling, warm start
 
 
-@dataclass
-class Schedule:
-    """Cosine learning rate over `total_s` seconds of training, counted across resumed sessions
-    (a wall-clock budget, so a contended CPU and a GPU lease both end where they were told)."""
-
-    lr: float
-    decay_to: float
-    total_s: float
-    elapsed_s: float = 0.0
-
-    def progress(self) -> float:
-        return min(self.elapsed_s / max(self.total_s, 1e-9), 1.0)
-
-    def rate(self) -> float:
-        return self.lr * (self.decay_to + (1 - self.decay_to) * 0.5 * (1 + math.cos(math.pi * self.progress())))
+def samples_per_step(cfg: TrainConfig) -> int:
+    """Frames a step trains on: `batch // rollout` rollouts of `rollout` frames."""
+    return max(cfg.batch // max(cfg.rollout, 1), 1) * max(cfg.rollout, 1)
 
 
 def closed_share(cfg: TrainConfig, progress: float) -> float:
@@ -282,16 +265,7 @@ def fit_generator(net: LPN, clips: StyleClips, targets: torch.Tensor, steps: int
 
 
 def load_config(argv: list[str]) -> tuple[TrainConfig, dict | None]:
-    """The command line's config, or with `--resume` the run's own config and checkpoint, then the
-    command line's overrides (a checkpoint's options this trainer no longer has are dropped)."""
-    cfg = parse_args(argv)
-    path = Path(cfg.run_dir) / "ckpt.pt"
-    if not cfg.resume or not path.exists():
-        return cfg, None
-    ck = torch.load(path, map_location="cpu", weights_only=False)
-    known = {f.name for f in fields(TrainConfig)}
-    saved = TrainConfig(**{k: v for k, v in ck["train_config"].items() if k in known})
-    return parse_overrides(saved, argv), ck
+    return training.resume_config(TrainConfig(), argv)
 
 
 @dataclass
@@ -361,7 +335,9 @@ class Run:
         generator first fitted to that folder's style vectors)."""
         from .network import LPN, LPNConfig
 
-        self.cfg, self.rng, self.styles = cfg, rng, data.styles
+        self.cfg, self.rng, self.styles, self.data = cfg, rng, data.styles, data
+        bf16 = training.use_bf16(cfg.bf16, device)
+        self.autocast = training.autocast(device, bf16)
         self.mcfg = LPNConfig(hidden=cfg.hidden, dropout=cfg.dropout, film_norm=cfg.film_norm)
         self.net = LPN(self.mcfg, data.stats)
         warm_films = None
@@ -375,9 +351,7 @@ class Run:
         elif cfg.warm_from:
             warm_films = warm_start(self.net, Path(cfg.warm_from), self.styles)
         self.net.to(device)
-        log(
-            f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {use_bf16(cfg.bf16, device)}; resumed {ck is not None}"
-        )
+        log(f"config {json.dumps(asdict(cfg))}; device {device}, bfloat16 {bf16}; resumed {ck is not None}")
         log(
             f"data: train {len(data.train.X)} samples / {len(data.train.names)} clips, val {len(data.val.X)}, "
             f"heldout {0 if data.heldout is None else len(data.heldout.X)}; "
@@ -386,23 +360,39 @@ class Run:
         if warm_films is not None and cfg.film_fit_steps:
             fit_generator(self.net, data.train_clips, warm_films, cfg.film_fit_steps, log)
         self.opt = torch.optim.AdamW(self.net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-        self.schedule = Schedule(cfg.lr, cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
+        self.schedule = training.Schedule(cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
         self.history: list[dict] = []
         self.it = 0
         self.order: list[int] = []  # the styles left in this cycle, popped one per step
         if ck is not None:
             self.opt.load_state_dict(ck["optimizer"])
-            total_s = self.schedule.total_s if cfg.schedule_minutes else ck["schedule"]["total_s"]
-            self.schedule = Schedule(**{**ck["schedule"], "total_s": total_s})
-            set_rng_state(rng, ck["rng"])
+            self.schedule = training.Schedule.resumed(
+                ck["schedule"], self.schedule.total if cfg.schedule_minutes else None
+            )
+            training.set_rng_state(rng, ck["rng"])
             self.it, self.history, self.order = ck["iter"], ck["history"], ck.get("order") or []
 
-    def evaluate(self, data: Data) -> dict:
+    def step(self) -> dict[str, float]:
+        return train_step(self.cfg, self, self.data, self.autocast)
+
+    def report(self, terms: dict[str, float], factor: float, steps_per_s: float) -> dict:
+        return dict(
+            samples_per_s=round(steps_per_s * samples_per_step(self.cfg), 1),
+            train_mse=terms["mse"],
+            train_bone=terms["bone"],
+            lr=terms["lr"],
+            closed=closed_share(self.cfg, self.schedule.progress(self.it)),
+        )
+
+    def postfix(self, terms: dict[str, float]) -> dict[str, str]:
+        return dict(mse=f"{terms['mse']:.4f}", bone=f"{terms['bone']:.5f}", closed=f"{terms['closed']:.2f}")
+
+    def validate(self) -> dict:
         """One-frame validation (`validate`) and the closed-loop loss: `val_rollouts` rollouts per
         style of `rollout` frames on validation clips, every one feeding back the network's output."""
         from .rollout import rollout
 
-        cfg, net = self.cfg, self.net
+        cfg, net, data = self.cfg, self.net, self.data
         films = style_films(net, data.train_clips, list(range(len(self.styles))), limit=cfg.film_eval_windows)
         v = validate(net, data, films, cfg.eval_samples)
         K, dev = max(cfg.rollout, 1), net.X_mean.device
@@ -440,12 +430,10 @@ class Run:
             "argv": sys.argv,
             "optimizer": self.opt.state_dict() if resumable else None,
             "schedule": asdict(self.schedule) if resumable else None,
-            "rng": rng_state(self.rng) if resumable else None,
+            "rng": training.rng_state(self.rng) if resumable else None,
             "order": [int(k) for k in self.order] if resumable else None,  # styles left in this cycle
         }
-        tmp = path.with_suffix(".tmp")
-        torch.save(state, tmp)
-        tmp.replace(path)
+        training.save_checkpoint(state, path)
 
 
 def train_step(cfg: TrainConfig, run: Run, data: Data, autocast: torch.autocast) -> dict[str, float]:
@@ -453,10 +441,7 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, autocast: torch.autocast)
     of its clips, rollouts from random starts, a share of them closed-loop."""
     from .rollout import rollout
 
-    rng, net, sched = run.rng, run.net, run.schedule
-    lr = sched.rate()
-    for group in run.opt.param_groups:
-        group["lr"] = lr
+    rng, net = run.rng, run.net
     if not run.order:
         run.order = list(rng.permutation(len(run.styles)))
     k = int(run.order.pop())
@@ -465,7 +450,7 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, autocast: torch.autocast)
     dev = data.lengths.device
     idx = torch.from_numpy(rng.choice(data.starts[k], rollouts)).to(dev)[:, None] + torch.arange(K, device=dev)
     window = torch.from_numpy(data.train_clips.window(k)[None]).to(dev)
-    closed = torch.from_numpy(rng.random(rollouts) < closed_share(cfg, sched.progress())).to(dev)
+    closed = torch.from_numpy(rng.random(rollouts) < closed_share(cfg, run.schedule.progress(run.it))).to(dev)
     X, G, Y = data.XGY
     with autocast:
         film = net.style_film(window).mean(0, keepdim=True)
@@ -475,6 +460,7 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, autocast: torch.autocast)
     run.opt.zero_grad(set_to_none=True)
     loss.backward()
     run.opt.step()
+    lr = run.opt.param_groups[0]["lr"]
     return {"mse": mse.item(), "bone": bone.item(), "closed": closed.float().mean().item(), "lr": lr}
 
 
@@ -485,58 +471,18 @@ def main(argv: list[str]) -> None:
 
         print(export_weights(Path(cfg.export)))
         return
-    device = seeded_device(cfg.threads, cfg.seed, cfg.device)
+    device = training.seeded_device(cfg.threads, cfg.seed, cfg.device)
     rng = np.random.default_rng(cfg.seed)
     run_dir, out_dir = Path(cfg.run_dir), Path(cfg.out_dir)
-    log = start_run(run_dir, out_dir)
+    log = training.start_run(run_dir, out_dir)
     data = Data.load(cfg, device, rng)
     run = Run(cfg, ck, data, device, rng, log)
-    autocast = torch.autocast(device.type, dtype=torch.bfloat16, enabled=use_bf16(cfg.bf16, device))
-    sched, per_step = run.schedule, max(cfg.batch // max(cfg.rollout, 1), 1) * max(cfg.rollout, 1)
-    t0, first_it, seconds0 = time.time(), run.it, sched.elapsed_s
-    bar = tqdm(total=cfg.max_iters, initial=run.it, desc="lpn", mininterval=10, file=sys.stderr)
-    last = time.time()
-    while run.it < cfg.max_iters and time.time() - t0 < cfg.minutes * 60:
-        terms = train_step(cfg, run, data, autocast)
-        run.it += 1
-        now = time.time()
-        sched.elapsed_s += now - last
-        last = now
-        bar.update(1)
-        if run.it % 50 == 0:
-            bar.set_postfix(mse=f"{terms['mse']:.4f}", bone=f"{terms['bone']:.5f}", closed=f"{terms['closed']:.2f}")
-        if run.it % cfg.eval_every == 0:
-            v = run.evaluate(data)
-            v.update(
-                iter=run.it,
-                minutes=round(sched.elapsed_s / 60, 2),
-                samples_per_s=round((run.it - first_it) * per_step / max(sched.elapsed_s - seconds0, 1e-9), 1),
-                train_mse=terms["mse"],
-                train_bone=terms["bone"],
-                lr=terms["lr"],
-                closed=closed_share(cfg, sched.progress()),
-            )
-            run.history.append(v)
-            log("val " + " ".join(f"{a}={b:.4g}" if isinstance(b, float) else f"{a}={b}" for a, b in v.items()))
-            last = time.time()  # validation is not training time
-        if run.it % cfg.ckpt_every == 0:
-            run.checkpoint(run_dir / "ckpt.pt")
-        if cfg.snapshot_every and run.it % cfg.snapshot_every == 0:
-            run.checkpoint(run_dir / f"ckpt_{run.it:06d}.pt", resumable=False)
-        if sched.progress() >= 1.0:
-            break
-    bar.close()
-    v = run.evaluate(data)
-    v.update(iter=run.it, minutes=round(sched.elapsed_s / 60, 2))
-    run.history.append(v)
-    log("final val " + " ".join(f"{a}={b:.4g}" for a, b in v.items()))
-    run.checkpoint(run_dir / "ckpt.pt")
+    steps_per_s = training.train(run, cfg, [(run.opt, cfg.lr)], log, "lpn")
     if cfg.snapshot_every:
         run.checkpoint(run_dir / f"ckpt_{run.it:06d}.pt", resumable=False)
-    trained = sched.elapsed_s - seconds0
     log(
-        f"done: {run.it} iterations, {sched.elapsed_s / 60:.1f} min of training; this session "
-        f"{(run.it - first_it) * per_step / max(trained, 1e-9):.0f} samples/s"
+        f"done: {run.it} iterations, {run.schedule.elapsed_s / 60:.1f} min of training; this session "
+        f"{steps_per_s * samples_per_step(cfg):.0f} samples/s"
     )
     if not cfg.no_export:
         from .weights import export_weights

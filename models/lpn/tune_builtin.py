@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from ..eval.run import DATASET, INPUT_STYLE
 from ..settings import REPO_ROOT, get_settings
-from ..train_config import parse_overrides
+from ..training import parse_overrides
 from .carriage import fitted_styles
 from .weights import CONFIG_FILE, TUNED_FILE, read_weights
 

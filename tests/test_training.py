@@ -1,5 +1,5 @@
-"""The trainers' shared helpers: one command-line parser (`--name=value` typed by the config's
-defaults) and the random state a checkpoint holds."""
+"""The trainers' shared pieces (`models/training.py`): one command-line parser (`--name=value`
+typed by the config's defaults), the random state and the schedule a checkpoint holds."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from models.erd.train import parse_args as erd_args
 from models.lpn.train import parse_args as lpn_args
-from models.train_config import parse_overrides
+from models.training import parse_overrides
 
 
 @dataclass
@@ -69,7 +69,7 @@ def test_a_checkpoints_random_state_replays_every_generator_exactly():
     import numpy as np
     import torch
 
-    from models.train_config import rng_state, set_rng_state
+    from models.training import rng_state, set_rng_state
 
     rng = np.random.default_rng(3)
     state = rng_state(rng)
@@ -80,3 +80,17 @@ def test_a_checkpoints_random_state_replays_every_generator_exactly():
     older = {("sampler" if k == "numpy" else k): v for k, v in state.items()}
     set_rng_state(rng, older)
     assert draws() == first
+
+
+def test_a_schedule_resumes_from_either_trainers_checkpoints():
+    """A checkpoint's schedule keeps its span unless the session sets one; LPN's older checkpoints
+    (a learning rate and `total_s` in the schedule) resume as the same cosine."""
+    from dataclasses import asdict
+
+    from models.training import Schedule
+
+    older = Schedule.resumed({"lr": 7e-4, "decay_to": 0.05, "total_s": 600.0, "elapsed_s": 120.0}, None)
+    assert older == Schedule(0.05, 600.0, by_steps=False, elapsed_s=120.0)
+    assert Schedule.resumed(asdict(older), 900.0).total == 900.0
+    steps = Schedule(0.2, 20.0, by_steps=True, elapsed_s=5.0)
+    assert steps.factor(0) == 1.0 and steps.factor(20) == pytest.approx(0.2) and steps.progress(10) == 0.5
