@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 HOST ?= 127.0.0.1
 PORT ?= 8000
 
-.PHONY: install serve test test-loaded test-all lint typecheck summary eval eval-final perf clean browser viewer-vendor servers image novelty
+.PHONY: install serve test test-loaded test-all lint typecheck summary eval eval-final perf clean browser viewer-vendor servers image novelty calibration
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -95,6 +95,11 @@ novelty: install
 	$(BIN)/python -m models.motion.novelty fit --method erd --datasets bandai-namco-2
 	$(BIN)/python -m models.motion.novelty fit --method lpn --datasets bandai-namco-1,bandai-namco-2 \
 		--contents walk,run,dash,walk-back,walk-left,walk-right,walk-turn-left,walk-turn-right
+
+# each method's posture range, from the neutral clips its sessions stand in for (models/motion/calibration.py);
+# shipped for Style-ERD only: on validation LTI's one passing running row lost a clip (docs/eval/ablation.md)
+calibration: install
+	$(BIN)/python -m models.motion.calibration fit --method erd --datasets bandai-namco-2 --styles normal
 
 clean:
 	rm -rf $(VENV) .cache .pytest_cache

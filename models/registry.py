@@ -1,9 +1,10 @@
 """Discovery of the trained models that ship with the project.
 
 Each method package exposes `load(weights_dir) -> StreamingModel` and a `WEIGHTS_SUBDIR`; a
-method whose weights are not committed yet is simply not offered. Every shipped pipeline ends in
-the unseen-content fade (`models/motion/novelty_stage.py`) where `weights/novelty/` holds its
-fitted reference; a core is the method alone."""
+method whose weights are not committed yet is simply not offered. A shipped pipeline begins
+with the posture calibration (`models/motion/calibration.py`) where `weights/calibration/` holds
+its fitted range, and ends in the unseen-content fade (`models/motion/novelty_stage.py`) where
+`weights/novelty/` holds its fitted reference; a core is the method alone."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ import logging
 from pathlib import Path
 
 from .interface import StreamingModel
+from .motion.calibration import PostureRange, with_calibration
+from .motion.calibration import reference_path as posture_path
 from .motion.novelty import NoveltyReference, reference_path
 from .motion.novelty_stage import with_novelty
 
@@ -19,22 +22,28 @@ METHODS = ("lti", "erd", "lpn")
 log = logging.getLogger(__name__)
 
 
-def load_models(weights_dir: Path, core_only: bool = False, novelty: bool = True) -> dict[str, StreamingModel]:
+def load_models(
+    weights_dir: Path, core_only: bool = False, novelty: bool = True, calibration: bool = True
+) -> dict[str, StreamingModel]:
     """Every committed method; `core_only`: each one's published core alone, without the fitted
-    stages after it (what the evaluation's core-alone rows score); `novelty` False: the shipped
-    pipelines without their last stage, the unseen-content fade."""
+    stages around it (what the evaluation's core-alone rows score); `novelty` False: the shipped
+    pipelines without their last stage, the unseen-content fade; `calibration` False: without
+    their first, the posture calibration."""
     models: dict[str, StreamingModel] = {}
     for method in METHODS:
-        model = load_model(weights_dir, method, core_only, novelty)
+        model = load_model(weights_dir, method, core_only, novelty, calibration)
         if model is not None:
             models[method] = model
             log.info("loaded model %s with styles %s", method, model.styles())
     return models
 
 
-def load_model(weights_dir: Path, method: str, core_only: bool = False, novelty: bool = True) -> StreamingModel | None:
+def load_model(
+    weights_dir: Path, method: str, core_only: bool = False, novelty: bool = True, calibration: bool = True
+) -> StreamingModel | None:
     """One committed method as `load_models` has it; None where it is not committed. `novelty`
-    False: the full pipeline without its last stage, the unseen-content fade (to compare)."""
+    False: the full pipeline without its last stage, the unseen-content fade; `calibration`
+    False: without its first, the posture calibration (to compare)."""
     try:
         package = importlib.import_module(f"models.{method}")
     except ModuleNotFoundError:
@@ -47,4 +56,7 @@ def load_model(weights_dir: Path, method: str, core_only: bool = False, novelty:
         return loader(folder, core_only=True)
     model = loader(folder)
     reference = reference_path(weights_dir, method)
-    return with_novelty(model, NoveltyReference.load(reference)) if novelty and reference.is_file() else model
+    if novelty and reference.is_file():
+        model = with_novelty(model, NoveltyReference.load(reference))
+    posture = posture_path(weights_dir, method)
+    return with_calibration(model, PostureRange.load(posture)) if calibration and posture.is_file() else model

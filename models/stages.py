@@ -11,6 +11,7 @@ the offline path (sessions stepped frame by frame) run the same `Pipeline`.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -155,3 +156,22 @@ class Pipeline:
             for full, key in keys:
                 out[full] = own[key]
         return rotations, out
+
+
+_IN_FRONT: dict[tuple[type, type], type] = {}
+
+
+def put_in_front(model: Any, mixin: type) -> Any:
+    """A copy of `model` whose class has `mixin` in front of its own (one class per pair, kept):
+    a stage that wraps the whole step (the unseen-content fade, the twist calibration) without
+    wrapping the object, so `isinstance` checks, `with_own_styles` copies and every caller of
+    `step_batch` see the method as it was. The copy shares the model's attributes (weights)."""
+    cls: type = type(model)
+    if isinstance(model, mixin):
+        return copy.copy(model)
+    staged = _IN_FRONT.get((cls, mixin))
+    if staged is None:
+        staged = _IN_FRONT[(cls, mixin)] = type(cls.__name__, (mixin, cls), {"__module__": cls.__module__})
+    out = object.__new__(staged)
+    out.__dict__.update(model.__dict__)
+    return out

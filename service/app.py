@@ -57,7 +57,13 @@ def create_app(
         # matrix products, taking the core the event loop needs (measured: ~35% less server CPU
         # at 32 LTI sessions with one thread)
         threadpool_limits(settings.blas_threads, user_api="blas")
-        given = models if models is not None else load_models(settings.weights_dir, novelty=settings.unseen_fade)
+        given = (
+            models
+            if models is not None
+            else load_models(
+                settings.weights_dir, novelty=settings.unseen_fade, calibration=settings.posture_calibration
+            )
+        )
         cores: dict[str, StreamingModel] = {}
         if settings.core_pipelines:
             cores = (core_models or {}) if models is not None else load_models(settings.weights_dir, core_only=True)

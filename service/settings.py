@@ -47,6 +47,12 @@ class ServiceSettings(Settings):
         "what a method trained on keeps its content instead of being styled. Off: the style is applied to every frame "
         "(docs/evaluation.md, 'faded', says how often it fades on each source).",
     )
+    posture_calibration: bool = Field(
+        default=True,
+        description="Begin every shipped pipeline with the posture calibration (models/motion/calibration.py): a "
+        "session whose first 1.5 s hold a joint outside the range of the model's own clips (another performer, "
+        "another solve) has it turned into range before the model and back after. Off: frames reach the model as sent.",
+    )
     batch_wait_ms: float = Field(
         default=1.0, ge=0, le=50, description="How long a batch waits for more sessions' frames."
     )

@@ -14,19 +14,18 @@ the core, and the core is what the method does by itself.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from ..interface import FrameBatch, State
+from ..stages import put_in_front
 from .novelty import NoveltyReference
 from .novelty_kernels import FADE, fade_step, state_width
 
 KEY = "novelty.state"  # (B, `state_width`): each session's fade state, one row (`novelty_kernels`)
 KEYS = (KEY,)
-_CLASSES: dict[type, type] = {}
 _NO_CONTROL = np.zeros((0, 5))
 _fade_step: Callable[..., None] = fade_step  # mypy reads numba's Dispatcher call as taking fewer arguments
 
@@ -90,17 +89,8 @@ class FadesUnseen:
 
 
 def with_novelty(model: Any, reference: NoveltyReference) -> Any:
-    """`model` with the fade as its last stage: an instance of its class with `FadesUnseen` in
-    front, holding the same attributes (what `copy.copy` does; the weights are shared)."""
-    cls: type = type(model)
-    if isinstance(model, FadesUnseen):
-        staged_model = copy.copy(model)
-    else:
-        staged = _CLASSES.get(cls)
-        if staged is None:
-            staged = _CLASSES[cls] = type(cls.__name__, (FadesUnseen, cls), {"__module__": cls.__module__})
-        staged_model = object.__new__(staged)
-        staged_model.__dict__.update(model.__dict__)
+    """`model` with the fade as its last stage (`stages.put_in_front`)."""
+    staged_model = put_in_front(model, FadesUnseen)
     staged_model.novelty = reference
     staged_model.novelty_arrays = reference.arrays(float(model.fps))
     return staged_model

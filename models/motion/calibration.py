@@ -1,0 +1,184 @@
+"""Another performer's posture into the model's range: a calibration in front of a method,
+measured online per session, and undone on its output.
+
+Performers and mocap solves hold a body differently. Bandai Namco's two recording sessions share
+one skeleton and a neutral walk looks alike in both, yet dataset 1's clavicles sit about 20
+degrees from any dataset-2 clip's mean. A model reads such input as unseen: LTI's generalisation
+blend (out-of-range input handed back) fires on every dataset-1 frame for the shoulders alone,
+so no style reaches them; off, its coupled upper-body systems extrapolate into jitter.
+
+So, per session, this stage measures each joint's mean local rotation over the session's first
+`WINDOW_S` seconds and, where that mean lies outside the range of the means of the model's own
+neutral TRAIN clips (`PostureRange.fit`, the `RANGE` percentiles of their rotation vectors about
+the mean of means), turns the joint by the least rotation that brings it inside, ramped in over
+`RAMP_S`. A mean already in range is not turned, so the model's own performer passes unchanged.
+The model styles the calibrated frame, and its output is turned back by the same rotations: the
+client gets its own posture with the style's change on top, and content the mean holds (a hand
+held up through the window) is kept. The turns stop moving after the window, so what the body
+does later (a crouch, a wave) is not taken for the performer's posture.
+
+`python -m models.motion.calibration fit --method NAME --datasets ... --styles normal` writes
+`models/weights/calibration/<NAME>.npz`; `report` prints the turns measured on any clips.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..interface import FrameBatch, State
+from ..stages import put_in_front
+from .bn_skeleton import BN_JOINTS
+from .calibration_kernels import APPLIED, PER_JOINT, calibrate_in, calibrate_out, state_width
+from .rotations import quat_inv, quat_log, quat_mean, quat_mul
+
+FOLDER = "calibration"  # under the weights folder: <method>.npz
+WINDOW_S = 1.5  # seconds of each session's start whose mean rotations set its turns
+RAMP_S = 0.5  # ... which then come in over this long
+RANGE = (1.0, 99.0)  # percentiles of the model's clips' means that bound a session's mean
+KEY = "calibration.state"  # (B, `state_width`) in the session state
+
+
+def reference_path(weights_dir: Path, method: str) -> Path:
+    return Path(weights_dir) / FOLDER / f"{method}.npz"
+
+
+@dataclass(frozen=True)
+class PostureRange:
+    """Per joint, the model's own mean local rotation and the range of its clips' means about it."""
+
+    reference: np.ndarray  # (J, 4)
+    lo: np.ndarray  # (J, 3) rotation vector about the reference, radians
+    hi: np.ndarray  # (J, 3)
+
+    @classmethod
+    def fit(cls, clips: list[np.ndarray]) -> PostureRange:
+        """From clips' local rotations (F, J, 4) on the model rig: the mean of their means, and the
+        `RANGE` percentiles of each clip's mean about it."""
+        means = np.stack([quat_mean(r / np.linalg.norm(r, axis=-1, keepdims=True), axis=0) for r in clips])
+        reference = quat_mean(means, axis=0)
+        about = quat_log(quat_mul(quat_inv(reference)[None], means))
+        lo, hi = np.percentile(about, RANGE, axis=0)
+        return cls(reference, lo, hi)
+
+    def save(self, path: Path) -> Path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, reference=self.reference, lo=self.lo, hi=self.hi)
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> PostureRange:
+        with np.load(path) as z:
+            return cls(z["reference"], z["lo"], z["hi"])
+
+    def init_state(self, batch: int) -> np.ndarray:
+        return np.zeros((batch, state_width(len(self.reference))))
+
+    def calibrate(self, rotations: np.ndarray, state: np.ndarray, fps: float) -> np.ndarray:
+        """One frame of B sessions (B, J, 4) turned into the model's range; advances state."""
+        out = np.empty(rotations.shape)
+        calibrate_in(
+            rotations.astype(np.float64), self.reference, self.lo, self.hi, WINDOW_S * fps, RAMP_S * fps, state, out
+        )
+        return out
+
+    def restore(self, rotations: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """A model's output frame (B, J, 4) turned back onto each session's own posture."""
+        out = np.empty(rotations.shape)
+        calibrate_out(rotations.astype(np.float64), state, out)
+        return out
+
+    def clip(self, rotations: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
+        """A whole clip (F, J, 4) through one session: its calibrated frames and the turns
+        (F, J, 4) applied at each."""
+        state = self.init_state(1)
+        J = len(self.reference)
+        frames, turns = [], []
+        for frame in rotations:
+            frames.append(self.calibrate(frame[None], state, fps)[0])
+            turns.append(state[0, : PER_JOINT * J].reshape(J, PER_JOINT)[:, APPLIED : APPLIED + 4].copy())
+        return np.stack(frames), np.stack(turns)
+
+    def settled_turns(self, rotations: np.ndarray, fps: float) -> np.ndarray:
+        """(J,) radians each joint of a clip's session is turned once its turns are in."""
+        last = self.clip(rotations[: int((WINDOW_S + RAMP_S) * fps) + 1], fps)[1][-1]
+        w = np.where(np.abs(last).sum(-1) > 0, np.abs(last[:, 3]), 1.0)
+        return 2 * np.arccos(np.clip(w, 0.0, 1.0))
+
+
+class CalibratesPosture:
+    """Put in front of a method's class (`with_calibration`): its sessions' input is turned into
+    the model's posture range and its output turned back."""
+
+    calibration: PostureRange
+
+    def init_state(self, batch: int, *args: Any, **kwargs: Any) -> State:
+        inner = super().init_state(batch, *args, **kwargs)  # type: ignore[misc]
+        return {**inner, KEY: self.calibration.init_state(batch)}
+
+    def upgrade_state(self, state: State) -> State:
+        inner = {k: v for k, v in state.items() if k != KEY}
+        upgrade = getattr(super(), "upgrade_state", None)
+        upgraded = inner if upgrade is None else upgrade(inner)
+        own = state.get(KEY)
+        if own is None or own.shape[1] != state_width(len(self.calibration.reference)):
+            own = self.calibration.init_state(len(next(iter(upgraded.values()))))  # a snapshot from before
+        elif upgraded is inner:
+            return state
+        return {**upgraded, KEY: own}
+
+    def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
+        own = state[KEY].copy()
+        fps = float(self.fps)  # type: ignore[attr-defined]
+        turned = self.calibration.calibrate(frames.rotations, own, fps)
+        calibrated = FrameBatch(frames.root, turned, frames.contacts, frames.control, frames.faded)
+        out, new = super().step_batch(state, calibrated, style_weights)  # type: ignore[misc]
+        restored = FrameBatch(
+            out.root, self.calibration.restore(out.rotations, own), out.contacts, out.control, out.faded
+        )
+        return restored, {**new, KEY: own}
+
+
+def with_calibration(model: Any, reference: PostureRange) -> Any:
+    """`model` with the posture calibration in front of everything it does."""
+    staged = put_in_front(model, CalibratesPosture)
+    staged.calibration = reference
+    return staged
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .novelty import _as_model, _clips
+
+    p = argparse.ArgumentParser(prog="python -m models.motion.calibration", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    for name in ("fit", "report"):
+        s = sub.add_parser(name)
+        s.add_argument("--method", required=True, help="the model whose reference is fitted or read (lti, erd, lpn)")
+        s.add_argument("--datasets", required=True, help="comma-separated datasets")
+        s.add_argument("--styles", help="comma-separated input styles (default: every one)")
+    sub.choices["report"].add_argument("--split", default="val")
+    args = p.parse_args(argv)
+    from ..settings import get_settings
+
+    styles = args.styles.split(",") if args.styles else None
+    path = reference_path(get_settings().weights_dir, args.method)
+    if args.cmd == "fit":
+        train = [_as_model(m)[0] for m in _clips(args.datasets.split(","), None, styles, "train")[1]]
+        PostureRange.fit(train).save(path)
+        print(f"{path}: {len(train)} train clips")
+        return 0
+    ref = PostureRange.load(path)
+    clips, motions = _clips(args.datasets.split(","), None, styles, args.split)
+    for clip, m in zip(clips, motions):
+        deg = np.degrees(ref.settled_turns(_as_model(m)[0], 30.0))
+        top = np.argsort(deg)[::-1][:3]
+        print(f"{clip.name:50s} " + "  ".join(f"{BN_JOINTS[j]} {deg[j]:5.1f}" for j in top))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
