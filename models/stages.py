@@ -172,6 +172,6 @@ def put_in_front(model: Any, mixin: type) -> Any:
     staged = _IN_FRONT.get((cls, mixin))
     if staged is None:
         staged = _IN_FRONT[(cls, mixin)] = type(cls.__name__, (mixin, cls), {"__module__": cls.__module__})
-    out = object.__new__(staged)
+    out: Any = object.__new__(staged)
     out.__dict__.update(model.__dict__)
     return out
