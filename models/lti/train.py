@@ -65,6 +65,11 @@ CONFIG: dict[str, Any] = dict(
     # a plain least-squares fit of dozens of correlated inputs buys its error with large
     # cancelling gains that multiply a live stream's noise. Chosen on validation (MODEL_CARD.md)
     context_noise=0.3,
+    # ... and every rotation input (its own joint's too) as if it carried this much noise in
+    # radians (0.57 degrees, the least spread `norm_std_floor` grants a DOF): a DOF that barely
+    # moves in the training inputs (a knee's twist and sideways bend, 0.05-0.4 degrees) otherwise
+    # takes gains of tens from it into the knee bend, and a stream's noise on it jerks the leg
+    rotation_noise=1e-2,
     # rotation prior (`style_prior`): radii from the output style's TRAIN clips
     prior_inner_q=97.0,
     prior_outer_q=99.0,
@@ -74,6 +79,7 @@ CONFIG: dict[str, Any] = dict(
     seed=0,
 )
 
+ROTATION_DOFS = rep.ROOT_DIMS - 3  # features from here on are rotations (the hips' tilt, then the joints)
 GROUP_NAMES = ("root",) + tuple(f"joint{j}" for j in rep.BODY_JOINTS)
 
 
@@ -224,6 +230,18 @@ def matching_stats(index, ref, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------- identification
 
 
+def input_noise(ii: np.ndarray, oo: np.ndarray, in_std: np.ndarray, cfg=CONFIG) -> np.ndarray:
+    """Normalised noise std each input `ii` of one system (outputs `oo`) is fitted as if it
+    carried (`subspace.fit_bd`): other joints' (context) `context_noise`, a joint's own none,
+    both with every rotation DOF's `rotation_noise` (radians, over its spread) added in
+    quadrature. Why the second: normalisation makes a DOF with almost no spread in training as
+    loud as any other, and a plain fit of its round-off-sized wiggle multiplies a stream's
+    real noise on it many times over."""
+    context = np.where(np.isin(ii, oo), 0.0, cfg.get("context_noise", 0.0))
+    rotation = np.where(ii >= ROTATION_DOFS, cfg.get("rotation_noise", 0.0) / in_std[ii], 0.0)
+    return np.sqrt(context**2 + rotation**2)
+
+
 def identify(
     data: list[PairData], style: str, ref: np.ndarray, cfg=CONFIG, progress=None
 ) -> tuple[StyleTranslator, list[StateSpace]]:
@@ -236,8 +254,7 @@ def identify(
     for g, (ii, oo) in enumerate(groups(cfg)):
         sub = [(u[:, ii], y[:, oo]) for u, y in recs]
         max_order = cfg["max_order_root"] if g == 0 else cfg["max_order_joint"]
-        # a joint's own rotation is fitted as given; other joints' (context) as if noisy
-        noise = np.where(np.isin(ii, oo), 0.0, cfg.get("context_noise", 0.0))
+        noise = input_noise(ii, oo, in_std, cfg)
         systems.append(
             subspace_id(
                 sub,
