@@ -12,6 +12,8 @@ So, per session, this stage measures each joint's mean local rotation over the s
 neutral TRAIN clips (`PostureRange.fit`, the `RANGE` percentiles of their rotation vectors about
 the mean of means), turns the joint by the least rotation that brings it inside, ramped in over
 `RAMP_S`. A mean already in range is not turned, so the model's own performer passes unchanged.
+The joints the foot planter holds (the legs) are never turned: turned back after the planter,
+they would unpin the feet it planted (a stance's legs lie far out of a walk's range and slid).
 The model styles the calibrated frame, and its output is turned back by the same rotations: the
 client gets its own posture with the style's change on top, and content the mean holds (a hand
 held up through the window) is kept. The turns stop moving after the window, so what the body
@@ -33,6 +35,7 @@ import numpy as np
 from ..interface import FrameBatch, State
 from ..stages import put_in_front
 from .bn_skeleton import BN_JOINTS
+from .feet import LEG_JOINTS
 from .calibration_kernels import APPLIED, PER_JOINT, calibrate_in, calibrate_out, state_width
 from .rotations import quat_inv, quat_log, quat_mean, quat_mul
 
@@ -63,6 +66,8 @@ class PostureRange:
         reference = quat_mean(means, axis=0)
         about = quat_log(quat_mul(quat_inv(reference)[None], means))
         lo, hi = np.percentile(about, RANGE, axis=0)
+        held = [BN_JOINTS.index(n) for n in LEG_JOINTS]  # unbounded: never turned
+        lo[held], hi[held] = -np.inf, np.inf
         return cls(reference, lo, hi)
 
     def save(self, path: Path) -> Path:
