@@ -35,8 +35,8 @@ import numpy as np
 from ..interface import FrameBatch, State
 from ..stages import put_in_front
 from .bn_skeleton import BN_JOINTS
-from .feet import LEG_JOINTS
 from .calibration_kernels import APPLIED, PER_JOINT, calibrate_in, calibrate_out, state_width
+from .feet import LEG_JOINTS
 from .rotations import quat_inv, quat_log, quat_mean, quat_mul
 
 FOLDER = "calibration"  # under the weights folder: <method>.npz
