@@ -161,6 +161,22 @@ class Pipeline:
 _IN_FRONT: dict[tuple[type, type], type] = {}
 
 
+def upgrade_with_own(
+    state: State, key: str, width: int, fresh: Callable[[int], np.ndarray], upgrade: Callable[[State], State] | None
+) -> State:
+    """A stage put in front's `upgrade_state`: the method's own entries upgraded by `upgrade` (the
+    method's, None: kept), the stage's row under `key` kept if `width` wide, else started afresh
+    (`fresh(batch)`: a snapshot from before the stage); `state` itself when nothing changes."""
+    inner = {k: v for k, v in state.items() if k != key}
+    upgraded = inner if upgrade is None else upgrade(inner)
+    own = state.get(key)
+    if own is None or own.shape[1] != width:
+        own = fresh(len(next(iter(upgraded.values()))))
+    elif upgraded is inner:
+        return state
+    return {**upgraded, key: own}
+
+
 def put_in_front(model: Any, mixin: type) -> Any:
     """A copy of `model` whose class has `mixin` in front of its own (one class per pair, kept):
     a stage that wraps the whole step (the unseen-content fade, the twist calibration) without

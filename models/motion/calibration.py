@@ -25,7 +25,6 @@ does later (a crouch, a wave) is not taken for the performer's posture.
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from ..interface import FrameBatch, State
-from ..stages import put_in_front
+from ..stages import put_in_front, upgrade_with_own
 from .bn_skeleton import BN_JOINTS
 from .calibration_kernels import APPLIED, PER_JOINT, calibrate_in, calibrate_out, state_width
 from .feet import LEG_JOINTS
@@ -126,15 +125,9 @@ class CalibratesPosture:
         return {**inner, KEY: self.calibration.init_state(batch)}
 
     def upgrade_state(self, state: State) -> State:
-        inner = {k: v for k, v in state.items() if k != KEY}
+        width = state_width(len(self.calibration.reference))
         upgrade = getattr(super(), "upgrade_state", None)
-        upgraded = inner if upgrade is None else upgrade(inner)
-        own = state.get(KEY)
-        if own is None or own.shape[1] != state_width(len(self.calibration.reference)):
-            own = self.calibration.init_state(len(next(iter(upgraded.values()))))  # a snapshot from before
-        elif upgraded is inner:
-            return state
-        return {**upgraded, KEY: own}
+        return upgrade_with_own(state, KEY, width, self.calibration.init_state, upgrade)
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
         own = state[KEY].copy()
@@ -156,30 +149,23 @@ def with_calibration(model: Any, reference: PostureRange) -> Any:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .novelty import _as_model, _clips
-
-    p = argparse.ArgumentParser(prog="python -m models.motion.calibration", description=__doc__.split("\n\n")[0])
-    sub = p.add_subparsers(dest="cmd", required=True)
-    for name in ("fit", "report"):
-        s = sub.add_parser(name)
-        s.add_argument("--method", required=True, help="the model whose reference is fitted or read (lti, erd, lpn)")
-        s.add_argument("--datasets", required=True, help="comma-separated datasets")
-        s.add_argument("--styles", help="comma-separated input styles (default: every one)")
-    sub.choices["report"].add_argument("--split", default="val")
-    args = p.parse_args(argv)
     from ..settings import get_settings
+    from .novelty import clips_of, fit_or_report, on_model_rig
 
+    args = fit_or_report("python -m models.motion.calibration", __doc__, argv)
+    datasets = args.datasets.split(",")
+    contents = args.contents.split(",") if args.contents else None
     styles = args.styles.split(",") if args.styles else None
     path = reference_path(get_settings().weights_dir, args.method)
     if args.cmd == "fit":
-        train = [_as_model(m)[0] for m in _clips(args.datasets.split(","), None, styles, "train")[1]]
+        train = [on_model_rig(m)[0] for m in clips_of(datasets, contents, styles, "train")[1]]
         PostureRange.fit(train).save(path)
         print(f"{path}: {len(train)} train clips")
         return 0
     ref = PostureRange.load(path)
-    clips, motions = _clips(args.datasets.split(","), None, styles, args.split)
+    clips, motions = clips_of(datasets, contents, styles, args.split)
     for clip, m in zip(clips, motions):
-        deg = np.degrees(ref.settled_turns(_as_model(m)[0], 30.0))
+        deg = np.degrees(ref.settled_turns(on_model_rig(m)[0], 30.0))
         top = np.argsort(deg)[::-1][:3]
         print(f"{clip.name:50s} " + "  ".join(f"{BN_JOINTS[j]} {deg[j]:5.1f}" for j in top))
     return 0

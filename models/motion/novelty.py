@@ -331,7 +331,7 @@ def smooth(w1: np.ndarray, w2: np.ndarray, target: np.ndarray) -> tuple[np.ndarr
 # --------------------------------------------------------------------------- fitting and reports
 
 
-def _clips(
+def clips_of(
     datasets: list[str], contents: list[str] | None, styles: list[str] | None, split: str
 ) -> tuple[list[Clip], list[Motion]]:
     from ..data import build_index, load_motions
@@ -341,7 +341,7 @@ def _clips(
     return clips, load_motions(clips)
 
 
-def _as_model(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
+def on_model_rig(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
     """A clip as the stage sees it: on the model rig (retargeted if another) at 30 fps."""
     from .retarget import retarget
 
@@ -350,8 +350,11 @@ def _as_model(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
     return motion.rotations, motion.translations[:, HIPS, 1]
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m models.motion.novelty", description=__doc__.split("\n\n")[0])
+def fit_or_report(prog: str, doc: str, argv: list[str] | None) -> argparse.Namespace:
+    """The command line a per-method reference fitted from clips has (the unseen-content fade's,
+    the posture calibration's): `fit` or `report` on `--method`, `--datasets`, `--contents`,
+    `--styles`, and the report's `--split`."""
+    p = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     for name in ("fit", "report"):
         s = sub.add_parser(name)
@@ -360,7 +363,11 @@ def main(argv: list[str] | None = None) -> int:
         s.add_argument("--contents", help="comma-separated contents (default: every one)")
         s.add_argument("--styles", help="comma-separated input styles (default: every one)")
     sub.choices["report"].add_argument("--split", default="val")
-    args = p.parse_args(argv)
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = fit_or_report("python -m models.motion.novelty", __doc__, argv)
     from ..settings import get_settings
 
     datasets = args.datasets.split(",")
@@ -372,18 +379,18 @@ def main(argv: list[str] | None = None) -> int:
         from .features import left_leg_length
 
         skeleton = bandai_namco_skeleton()
-        train = [_as_model(m) for m in _clips(datasets, contents, styles, "train")[1]]
-        val = [_as_model(m) for m in _clips(datasets, contents, styles, "val")[1]]
+        train = [on_model_rig(m) for m in clips_of(datasets, contents, styles, "train")[1]]
+        val = [on_model_rig(m) for m in clips_of(datasets, contents, styles, "val")[1]]
         ref = NoveltyReference.fit(train, val, skeleton, left_leg_length(skeleton), 30.0)
         path.parent.mkdir(exist_ok=True)
         ref.save(path)
         print(f"{path}: {len(train)} train clips, {len(val)} val clips, thresholds {np.round(ref.threshold, 3)}")
         return 0
     ref = NoveltyReference.load(path)
-    clips, motions = _clips(datasets, contents, styles, args.split)
+    clips, motions = clips_of(datasets, contents, styles, args.split)
     by_content: dict[str, list[int]] = {}
     for clip, m in zip(clips, motions):
-        rot, y = _as_model(m)
+        rot, y = on_model_rig(m)
         w = ref.clip_fades(rot, y, 30.0).max(axis=1)
         print(f"{clip.name:50s} faded {np.mean(w > FADED):6.1%} of {len(w)} frames")
         total = by_content.setdefault(clip.content, [0, 0])

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..interface import FrameBatch, State
-from ..stages import put_in_front
+from ..stages import put_in_front, upgrade_with_own
 from .novelty import NoveltyReference
 from .novelty_kernels import FADE, fade_step, state_width
 
@@ -56,15 +56,9 @@ class FadesUnseen:
         return {**inner, **fresh_state(batch, self.novelty.parts)}
 
     def upgrade_state(self, state: State) -> State:
-        inner = {k: v for k, v in state.items() if k != KEY}
-        upgrade = getattr(super(), "upgrade_state", None)
-        upgraded = inner if upgrade is None else upgrade(inner)
-        own = state.get(KEY)
-        if own is None or own.shape[1] != state_width(self.novelty.parts):
-            own = fresh_state(len(next(iter(upgraded.values()))), self.novelty.parts)[KEY]  # a snapshot from before
-        elif upgraded is inner:
-            return state
-        return {**upgraded, KEY: own}
+        parts = self.novelty.parts
+        fresh = lambda batch: fresh_state(batch, parts)[KEY]  # noqa: E731
+        return upgrade_with_own(state, KEY, state_width(parts), fresh, getattr(super(), "upgrade_state", None))
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
         fused = getattr(super(), "step_batch_fading", None)
