@@ -18,6 +18,7 @@ from models.data import load_motion, select
 
 from .clips import frames_json
 from .cluster import nginx, redis_server, replicas, require
+from .waiting import wait_until
 
 FRAMES = 150  # 5 s at 30 fps
 KILL_AFTER = 47  # replies received before the kill: snapshots at frames 29 (acknowledged) and 59 (not yet)
@@ -77,6 +78,8 @@ def test_a_session_survives_a_replica_kill_with_one_reconnect_and_unchanged_outp
     lb, *servers = cluster
     root, rot = bn_walk.translations[:FRAMES, 1], bn_walk.rotations[:FRAMES]
     want, _, _ = stream(lb, root, rot)
+    # the first session's close may still be in flight: the killer finds the holder by its gauge
+    wait_until(lambda: all(s.metric("stylestream_active_sessions") == 0 for s in servers), "first session closed", 30)
 
     killer = HolderKiller(servers, KILL_AFTER)
     got, times, reconnects = stream(lb, root, rot, on_reply=killer)
