@@ -14,6 +14,9 @@ the mean of means), turns the joint by the least rotation that brings it inside,
 `RAMP_S`. A mean already in range is not turned, so the model's own performer passes unchanged.
 The joints the foot planter holds (the legs) are never turned: turned back after the planter,
 they would unpin the feet it planted (a stance's legs lie far out of a walk's range and slid).
+Nor are the hinge joints (`hinge.fit_hinges` on the same clips: elbows, knees): a turn off the
+hinge axis, turned back after the model held the hinge at its floor, carried a dataset-1 elbow
+4 degrees past it (bent backwards).
 The model styles the calibrated frame, and its output is turned back by the same rotations: the
 client gets its own posture with the style's change on top, and content the mean holds (a hand
 held up through the window) is kept. The turns stop moving after the window, so what the body
@@ -36,7 +39,9 @@ from ..stages import put_in_front, upgrade_with_own
 from .bn_skeleton import BN_JOINTS
 from .calibration_kernels import APPLIED, PER_JOINT, calibrate_in, calibrate_out, state_width
 from .feet import LEG_JOINTS
+from .hinge import fit_hinges
 from .rotations import quat_inv, quat_log, quat_mean, quat_mul
+from .skeleton import Skeleton
 
 FOLDER = "calibration"  # under the weights folder: <method>.npz
 WINDOW_S = 1.5  # seconds of each session's start whose mean rotations set its turns
@@ -58,14 +63,16 @@ class PostureRange:
     hi: np.ndarray  # (J, 3)
 
     @classmethod
-    def fit(cls, clips: list[np.ndarray]) -> PostureRange:
-        """From clips' local rotations (F, J, 4) on the model rig: the mean of their means, and the
-        `RANGE` percentiles of each clip's mean about it."""
+    def fit(cls, clips: list[np.ndarray], skeleton: Skeleton) -> PostureRange:
+        """From clips' local rotations (F, J, 4) on the model rig `skeleton`: the mean of their
+        means, and the `RANGE` percentiles of each clip's mean about it; the legs and the hinge
+        joints unbounded (never turned)."""
         means = np.stack([quat_mean(r / np.linalg.norm(r, axis=-1, keepdims=True), axis=0) for r in clips])
         reference = quat_mean(means, axis=0)
         about = quat_log(quat_mul(quat_inv(reference)[None], means))
         lo, hi = np.percentile(about, RANGE, axis=0)
-        held = [BN_JOINTS.index(n) for n in LEG_JOINTS]  # unbounded: never turned
+        hinges = fit_hinges(skeleton, np.concatenate(clips)).joints
+        held = sorted({BN_JOINTS.index(n) for n in LEG_JOINTS} | {int(j) for j in hinges})
         lo[held], hi[held] = -np.inf, np.inf
         return cls(reference, lo, hi)
 
@@ -158,8 +165,10 @@ def main(argv: list[str] | None = None) -> int:
     styles = args.styles.split(",") if args.styles else None
     path = reference_path(get_settings().weights_dir, args.method)
     if args.cmd == "fit":
+        from .assets import bandai_namco_skeleton
+
         train = [on_model_rig(m)[0] for m in clips_of(datasets, contents, styles, "train")[1]]
-        PostureRange.fit(train).save(path)
+        PostureRange.fit(train, bandai_namco_skeleton()).save(path)
         print(f"{path}: {len(train)} train clips")
         return 0
     ref = PostureRange.load(path)
