@@ -83,11 +83,12 @@ def unpacked(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def recorded_model():
-    """The model the reference is recorded with: every stage on, no hinge floors (they came
-    after the reference; `test_lti`'s offline mix checks them)."""
+    """The model the reference is recorded with: every stage on but the hinge floors and the
+    input's saturation (they came after the reference; `test_lti`'s offline mix and
+    `test_lti_saturation` check them against the numpy reference)."""
     from models.lti import WEIGHTS_DIR, LTIStyleModel
 
-    return LTIStyleModel(weights_dir=WEIGHTS_DIR, off=("hinge_floor",))
+    return LTIStyleModel(weights_dir=WEIGHTS_DIR, off=("hinge_floor", "saturation"))
 
 
 def main() -> None:
