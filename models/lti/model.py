@@ -53,11 +53,12 @@ from .styles import LTIStyles
 # each fitted from real clips the same way for every style: the input saturated into each
 # system's training range (`kernels.saturate`, the ranges in each translator's file; off, the
 # paper's erf blend hands the input back instead), the rotation prior (`train.style_prior`, in
-# each translator's file), the hinge floor (`python -m models.lti hinges`) and the raised arm
-# (`raised_arm.py`). Any can be switched off
+# each translator's file), the hinge floor (`python -m models.lti hinges`), the raised arm
+# (`raised_arm.py`) and, in the foot planter, the root giving way to held feet (`GIVE_CM`). Any
+# can be switched off
 # (`LTIStyleModel(off=...)`, `Settings.stages_off` as `lti.<name>`); the offline path
 # (`LTIStyleModel.translate`) runs the stream's.
-STAGES = ("saturation", "rotation_prior", "hinge_floor", "raised_arm")
+STAGES = ("saturation", "rotation_prior", "hinge_floor", "raised_arm", "root_give")
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_PREFIX = "arm_"  # key prefix of a translator file's raised-arm carry (`StyleCarry.named`)
@@ -69,6 +70,13 @@ HINT_SPEED = 120.0  # cm/s: a foot the footplant classifier calls planted plants
 # (`FootPlanter.max_offset`; 15 for the networks). Longer holds turn the translated thighs out of
 # the style's real frames (docs/eval/ablation.md); shorter ones let more feet slide.
 HOLD_CM = 8.0
+# cm, cm/s (the `root_give` stage): past GIVE_CM a held foot's hold moves the root instead, at
+# most GIVE_SPEED (`FootPlanter.give`, `give_speed`). LTI's joints, each its own system, slide a
+# planted foot under a body that does not follow; let go at HOLD_CM, such a foot snapped back
+# over the ground (on other performers' walks, where the saturated input no longer hands the
+# legs back). Both chosen on validation (docs/eval/ablation.md).
+GIVE_CM = 5.0
+GIVE_SPEED = 30.0
 _NO_CONTROL = np.zeros((0, 5))  # the fade's control rows when a frame carries none
 WAVE_MEANS = 32  # carry columns of the removed waving arm's running means (input and output, 2 sides x 2 joints x 4)
 COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, finds the styles in use (`_side_by_side`)
@@ -277,7 +285,13 @@ class LTIStyleModel(LTIStyles):
         self.blend = blend and not self.saturate  # saturated, nothing is out of range to blend
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
-        self.planter = model_rig_planter(self.fps, hint_speed=HINT_SPEED, max_offset=HOLD_CM)
+        self.planter = model_rig_planter(
+            self.fps,
+            hint_speed=HINT_SPEED,
+            max_offset=HOLD_CM,
+            give=GIVE_CM if "root_give" in self.stages else 0.0,
+            give_speed=GIVE_SPEED,
+        )
         self._hands = HandMeter(self.skeleton)  # the input's hands, for the raised arm (`raised_arm.py`)
         self._scratch = threading.local()  # per thread: step scratch reused between steps (`_workspace`)
         self._set_styles(sorted(translators))
