@@ -83,11 +83,12 @@ def unpacked(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 
 def recorded_model():
-    """The model the reference is recorded with: every stage on, no hinge floors (they came
-    after the reference; `test_lti`'s offline mix checks them)."""
+    """The model the reference is recorded with: every stage on but the hinge floors, the
+    input's saturation and the root giving way (they came after the reference; `test_lti`'s
+    offline mix, `test_lti_saturation` and `test_feet` check them)."""
     from models.lti import WEIGHTS_DIR, LTIStyleModel
 
-    return LTIStyleModel(weights_dir=WEIGHTS_DIR, off=("hinge_floor",))
+    return LTIStyleModel(weights_dir=WEIGHTS_DIR, off=("hinge_floor", "saturation", "root_give"))
 
 
 def main() -> None:

@@ -222,3 +222,84 @@ def test_a_hinted_foot_pulls_a_floor_left_low_up(bn_walk, hinted):
     rot = np.repeat(bn_walk.rotations[:1], 4, axis=0)
     contacts = _plant(planter, root[None], rot[None], hints=np.full((1, 2), hinted))[2][0]
     assert not contacts[2].any() and contacts[3].all() == hinted
+
+
+def _held_offsets(planter, roots: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One clip through `planter`: (planted roots (F, 3), planted legs (F, 2), each leg's
+    horizontal IK offset (F, 2))."""
+    state = planter.init_state(1)
+    out_root, contacts, offsets = np.empty_like(roots), np.empty((len(roots), 2), bool), np.empty((len(roots), 2))
+    for t in range(len(roots)):
+        r, _, c, state = planter(state, roots[t : t + 1], rotations[t : t + 1])
+        out_root[t], contacts[t] = r[0], c[0]
+        offsets[t] = np.linalg.norm(state["feet_offset"][0][:, [0, 2]], axis=-1)
+    return out_root, contacts, offsets
+
+
+def test_a_root_that_stands_still_under_striding_legs_gives_way_instead_of_the_holds(bn_walk):
+    """The walk's legs over a root that does not travel: every planted foot slides back at walking
+    speed. Without `give` holds let go at `max_offset` and snap (the feet plant a fifth of the
+    time, sliding); with it the root takes what a hold would need past `give`, so the feet plant
+    as in the walk, no hold grows past `give`, and the root travels by the strides."""
+    still = _skating(bn_walk, 0.0)  # bobs as walked, travels nowhere
+    path = lambda r: np.linalg.norm(np.diff(r[:, [0, 2]], axis=0), axis=-1).sum()  # noqa: E731
+    _, c0, _ = _held_offsets(model_rig_planter(bn_walk.fps, max_offset=8.0), still, bn_walk.rotations)
+    root, contacts, offsets = _held_offsets(
+        model_rig_planter(bn_walk.fps, max_offset=8.0, give=7.0), still, bn_walk.rotations
+    )
+    _, real, _ = _held_offsets(
+        model_rig_planter(bn_walk.fps, max_offset=8.0), bn_walk.translations[:, HIPS], bn_walk.rotations
+    )
+    assert c0.mean() < 0.4 < contacts.mean()
+    assert abs(contacts.mean() - real.mean()) < 0.05
+    assert offsets[contacts].max() <= 7.0 + 1e-6
+    assert 0.7 * path(bn_walk.translations[:, HIPS]) < path(root) < 1.1 * path(bn_walk.translations[:, HIPS])
+
+
+def test_give_off_leaves_the_planter_as_it_was(bn_walk):
+    """`give` 0 (the networks' planters) changes nothing: the same frames bit for bit as a planter
+    without the setting."""
+    skating = _skating(bn_walk, 1.3)[None]
+    a = _plant(model_rig_planter(bn_walk.fps), skating, bn_walk.rotations[None])
+    b = _plant(model_rig_planter(bn_walk.fps, give=0.0), skating, bn_walk.rotations[None])
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_the_root_move_for_two_held_feet_is_the_shortest_into_both_discs():
+    """`feet_kernels._least_in_discs`: in both discs, the same with the feet swapped (no side is
+    preferred), and no longer than any point of a fine grid over both discs."""
+    rng = np.random.default_rng(5)
+    r = 7.0
+    for _ in range(200):
+        a = rng.uniform(-12, 12, 2)
+        b = a + rng.uniform(-1, 1, 2) * rng.uniform(0.0, 2 * r / np.sqrt(2))
+        if np.linalg.norm(a - b) > 2 * r:
+            continue
+        g = np.array(feet_kernels._least_in_discs(a[0], a[1], b[0], b[1], r))
+        h = np.array(feet_kernels._least_in_discs(b[0], b[1], a[0], a[1], r))
+        np.testing.assert_allclose(g, h, atol=1e-9)
+        assert np.linalg.norm(g - a) <= r + 1e-6 and np.linalg.norm(g - b) <= r + 1e-6
+        xs = np.stack(np.meshgrid(np.linspace(-20, 20, 161), np.linspace(-20, 20, 161)), -1).reshape(-1, 2)
+        inside = (np.linalg.norm(xs - a, axis=1) <= r) & (np.linalg.norm(xs - b, axis=1) <= r)
+        if inside.any():
+            assert np.linalg.norm(g) <= np.linalg.norm(xs[inside], axis=1).min() + 1e-6
+
+
+def test_the_root_gives_way_no_faster_than_give_speed(bn_walk):
+    """`give_speed` bounds the root's move off its path: at 0 the planter is the one without
+    `give`, frame for frame; at 30 cm/s the still root travels part of the strides' way (the
+    holds take the rest, up to `max_offset`, and let go past it)."""
+    still = _skating(bn_walk, 0.0)[None]
+    path = lambda r: np.linalg.norm(np.diff(r[:, [0, 2]], axis=0), axis=-1).sum()  # noqa: E731
+    none = _plant(model_rig_planter(bn_walk.fps, max_offset=8.0), still, bn_walk.rotations[None])
+    stopped = _plant(
+        model_rig_planter(bn_walk.fps, max_offset=8.0, give=5.0, give_speed=0.0), still, bn_walk.rotations[None]
+    )
+    for x, y in zip(none, stopped, strict=True):
+        np.testing.assert_array_equal(x, y)
+    slow = _plant(
+        model_rig_planter(bn_walk.fps, max_offset=8.0, give=5.0, give_speed=30.0), still, bn_walk.rotations[None]
+    )
+    free = _plant(model_rig_planter(bn_walk.fps, max_offset=8.0, give=5.0), still, bn_walk.rotations[None])
+    assert path(none[0][0]) < path(slow[0][0]) < path(free[0][0])

@@ -193,7 +193,7 @@ def _offline_mix(model: LTIStyleModel, motion, w: np.ndarray):
     for s, style in enumerate(model.styles()):
         if w[s] > 0:
             tr = model.translators[style]
-            out, xs = tr.translate_features(rep.motion_to_features(motion, tr.ref))
+            out, xs = tr.translate_features(rep.motion_to_features(motion, tr.ref), model.blend, model.saturate)
             root_feats += w[s] * out[:, :4]
             body = static_to_rotations(out[:, 4 : rep.FEATURE_DIM], np.zeros(F), tr.ref)
             body = clamp_rotations(body, tr.prior_mean, tr.prior_radii)  # each style's prior

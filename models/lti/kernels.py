@@ -225,6 +225,7 @@ class Switches(NamedTuple):
     keep_heading: bool  # the output's yaw change is the input's
     raised_arm: bool
     footlock: bool
+    saturate: bool  # the systems read the input saturated into its training range (`saturate`)
 
 
 class Work(NamedTuple):
@@ -290,8 +291,8 @@ CONSTANT_SCHEMAS = (
     "f3 f3 f2",  # Ball
     "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
     "f3 f3 f4 f2 i1 i2 f1 f1 f0",  # RaisedArm
-    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
-    "b0 b0 b0 b0",  # Switches
+    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
+    "b0 b0 b0 b0 b0",  # Switches
     "f2 f2 f1",  # Bends
 )
 WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f2 f3 f1"
@@ -386,10 +387,10 @@ def unpack_constants(p):
     planter = (
         _i(p, 45)[0], _i(p, 46).reshape(_s2(p, 46)), _f(p, 47).reshape(_s2(p, 47)), _f(p, 48), _f(p, 49)[0],
         _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0],
-        _f(p, 57)[0],
+        _f(p, 57)[0], _f(p, 58)[0], _f(p, 59)[0],
     )  # fmt: skip
-    on = Switches(_b(p, 58)[0], _b(p, 59)[0], _b(p, 60)[0], _b(p, 61)[0])
-    bends = Bends(_f(p, 62).reshape(_s2(p, 62)), _f(p, 63).reshape(_s2(p, 63)), _f(p, 64))
+    on = Switches(_b(p, 60)[0], _b(p, 61)[0], _b(p, 62)[0], _b(p, 63)[0], _b(p, 64)[0])
+    bends = Bends(_f(p, 65).reshape(_s2(p, 65)), _f(p, 66).reshape(_s2(p, 66)), _f(p, 67))
     return sys, fp, ball, hands, arm, planter, on, bends
 
 
@@ -516,6 +517,25 @@ def normalise(sys, s, feats, u, blend, raw):
 
 
 @njit(cache=True, error_model="numpy")
+def saturate(sys, s, u):
+    """The normalised features of a chunk's sessions (u (67, k)) saturated into style s's training
+    range: within it unchanged, past it hi + k_p tanh((u - hi) / k_p) (and below lo alike), so the
+    systems never extrapolate and the input's excess passes through on the output
+    (`style_outputs`). Why: the erf blend hands the whole body back to the input when any one DOF
+    leaves the range, which another performer's posture does on every frame (dataset 1's
+    clavicles); saturated, only that DOF's excess is handed back, smooth in the input."""
+    k_p = sys.k[s, 0]
+    for d in range(FEATURE_DIM):
+        hi, lo = sys.in_hi[s, d], sys.in_lo[s, d]
+        for c in range(u.shape[1]):
+            x = u[d, c]
+            if x > hi:
+                u[d, c] = hi + k_p * math.tanh((x - hi) / k_p)
+            elif x < lo:
+                u[d, c] = lo - k_p * math.tanh((lo - x) / k_p)
+
+
+@njit(cache=True, error_model="numpy")
 def ease(raw, history, keep):
     """A weight eased over time: two one-pole followers in series (fast, then slow) of its raw
     value, keeping `keep` of their history per frame; history (set, fast, slow), unset (a
@@ -594,15 +614,17 @@ def inside(q, mean, cos_inner):
 
 
 @njit(cache=True, error_model="numpy")
-def style_outputs(sys, ball, bends, s, w, z, feats, c, blend_w, x_out, keep_heading, root_feats, quats, out):
+def style_outputs(sys, ball, bends, s, w, z, feats, u, c, blend_w, x_out, keep_heading, root_feats, quats, out):
     """Style s's result for one session from column c of z = M [x; u]: the new state into x_out,
+    plus the input's excess over what the systems read (`saturate`; none when u is unsaturated),
     w * (root displacement, yaw change, height) added to root_feats, the body rotations (22, 4),
     each held in the style's ball and the hinges at their floor, into quats. out: scratch (67,)."""
     n, pos = x_out.shape[0], sys.pos[sys.row_off[s] : sys.row_off[s + 1]]
     for i in range(n):
         x_out[i] = z[pos[i], c]
     for d in range(FEATURE_DIM):  # the log time warp (last output) is not used online
-        y = z[pos[n + d], c] * sys.out_std[s, d] + sys.out_mean[s, d]
+        excess = feats[d, c] - (u[d, c] * sys.in_std[s, d] + sys.in_mean[s, d])
+        y = z[pos[n + d], c] * sys.out_std[s, d] + sys.out_mean[s, d] + excess
         out[d] = (1.0 - blend_w) * y + blend_w * feats[d, c]
     if keep_heading:
         out[2] = feats[2, c]
@@ -677,6 +699,8 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
                     feats, c,
                 )  # fmt: skip
             normalise(sys, s, feats, u, switches.blend, work.blend_w[:k])
+            if switches.saturate:
+                saturate(sys, s, u)
             for c in range(k):
                 b = work.rows[lo + c]
                 # each style eases its own weight from the session's history, which takes the
@@ -693,7 +717,7 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
                 w = weights[b, s]
                 x_out = after.x[b, a:e]
                 style_outputs(
-                    sys, ball, bends, s, w, z, feats, c, work.blend_w[c], x_out, switches.keep_heading, root_feats[b],
+                    sys, ball, bends, s, w, z, feats, u, c, work.blend_w[c], x_out, switches.keep_heading, root_feats[b],
                     work.quats[b, s], work.out,
                 )  # fmt: skip
                 if fp.fitted[s]:

@@ -49,13 +49,16 @@ from . import representation as rep
 from .footplant import FootplantClassifier
 from .styles import LTIStyles
 
-# The stages after the identified systems, in the order the compiled step runs them (`kernels.step`),
-# each fitted from real clips the same way for every style: the rotation prior (`train.style_prior`,
-# in each translator's file), the hinge floor (`python -m models.lti hinges`) and the raised arm
-# (`raised_arm.py`). Any can be switched off
+# The stages around the identified systems, in the order the compiled step runs them (`kernels.step`),
+# each fitted from real clips the same way for every style: the input saturated into each
+# system's training range (`kernels.saturate`, the ranges in each translator's file; off, the
+# paper's erf blend hands the input back instead), the rotation prior (`train.style_prior`, in
+# each translator's file), the hinge floor (`python -m models.lti hinges`), the raised arm
+# (`raised_arm.py`) and, in the foot planter, the root giving way to held feet (`GIVE_CM`). Any
+# can be switched off
 # (`LTIStyleModel(off=...)`, `Settings.stages_off` as `lti.<name>`); the offline path
 # (`LTIStyleModel.translate`) runs the stream's.
-STAGES = ("rotation_prior", "hinge_floor", "raised_arm")
+STAGES = ("saturation", "rotation_prior", "hinge_floor", "raised_arm", "root_give")
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_PREFIX = "arm_"  # key prefix of a translator file's raised-arm carry (`StyleCarry.named`)
@@ -67,6 +70,13 @@ HINT_SPEED = 120.0  # cm/s: a foot the footplant classifier calls planted plants
 # (`FootPlanter.max_offset`; 15 for the networks). Longer holds turn the translated thighs out of
 # the style's real frames (docs/eval/ablation.md); shorter ones let more feet slide.
 HOLD_CM = 8.0
+# cm, cm/s (the `root_give` stage): past GIVE_CM a held foot's hold moves the root instead, at
+# most GIVE_SPEED (`FootPlanter.give`, `give_speed`). LTI's joints, each its own system, slide a
+# planted foot under a body that does not follow; let go at HOLD_CM, such a foot snapped back
+# over the ground (on other performers' walks, where the saturated input no longer hands the
+# legs back). Both chosen on validation (docs/eval/ablation.md).
+GIVE_CM = 5.0
+GIVE_SPEED = 30.0
 _NO_CONTROL = np.zeros((0, 5))  # the fade's control rows when a frame carries none
 WAVE_MEANS = 32  # carry columns of the removed waving arm's running means (input and output, 2 sides x 2 joints x 4)
 COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, finds the styles in use (`_side_by_side`)
@@ -111,8 +121,17 @@ class StyleTranslator:
         dist = np.maximum(np.maximum(u - self.in_hi, self.in_lo - u), 0.0)
         return erf(np.maximum(dist - self.k_p, 0.0) / self.k_c).max(axis=-1)
 
-    def _finish(self, feats: np.ndarray, u: np.ndarray, y: np.ndarray, blend: bool) -> np.ndarray:
+    def saturated(self, u: np.ndarray) -> np.ndarray:
+        """(..., 67) normalised input saturated into the training range (`kernels.saturate`)."""
+        hi = self.in_hi + self.k_p * np.tanh(np.maximum(u - self.in_hi, 0.0) / self.k_p)
+        lo = self.in_lo - self.k_p * np.tanh(np.maximum(self.in_lo - u, 0.0) / self.k_p)
+        return np.where(u > self.in_hi, hi, np.where(u < self.in_lo, lo, u))
+
+    def _finish(self, feats: np.ndarray, u: np.ndarray, y: np.ndarray, blend: bool, read: np.ndarray) -> np.ndarray:
+        """The output features from the systems' y; `read`: the normalised input the systems read
+        (`u` saturated or not), whose excess over it passes through."""
         out = y * self.out_std + self.out_mean  # a new array
+        out[..., : rep.FEATURE_DIM] += (u - read) * self.in_std
         if blend:
             w = kernels.eased(self.blend_weight(u), ease_keep(LTIStyleModel.fps))[:, None]
             out[..., : rep.FEATURE_DIM] = (1 - w) * out[..., : rep.FEATURE_DIM] + w * feats
@@ -121,17 +140,21 @@ class StyleTranslator:
             out[..., 2] = feats[..., 2]
         return out
 
-    def translate_features(self, feats: np.ndarray, blend: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        """Offline: (F, 67) input features -> ((F, 68) output features, (F, n) states after each frame)."""
+    def translate_features(
+        self, feats: np.ndarray, blend: bool = True, saturate: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Offline: (F, 67) input features -> ((F, 68) output features, (F, n) states after each
+        frame); `saturate`: the systems read the input saturated into range, not blended back."""
         u = (feats - self.in_mean) / self.in_std
+        read = self.saturated(u) if saturate else u
         x = np.zeros(self.n)
         ys = np.empty((len(u), self.M.shape[0] - self.n))
         xs = np.empty((len(u), self.n))
         for t in range(len(u)):
-            z = self.M @ np.concatenate([x, u[t]])
+            z = self.M @ np.concatenate([x, read[t]])
             x, ys[t] = z[: self.n], z[self.n :]
             xs[t] = x
-        return self._finish(feats, u, ys, blend), xs
+        return self._finish(feats, u, ys, blend and not saturate, read), xs
 
     def ball(self) -> tuple[np.ndarray, np.ndarray]:
         """(mean (22, 4), radii (2, 22)): this style's rotation prior as the compiled step reads it
@@ -258,10 +281,17 @@ class LTIStyleModel(LTIStyles):
             raise FileNotFoundError(f"no LTI weights (*.npz) in {weights_dir}")
         self.keep_heading = keep_heading
         self.translators = {name: self._staged(tr) for name, tr in translators.items()}
-        self.blend = blend
+        self.saturate = "saturation" in self.stages
+        self.blend = blend and not self.saturate  # saturated, nothing is out of range to blend
         self.footlock = footlock
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
-        self.planter = model_rig_planter(self.fps, hint_speed=HINT_SPEED, max_offset=HOLD_CM)
+        self.planter = model_rig_planter(
+            self.fps,
+            hint_speed=HINT_SPEED,
+            max_offset=HOLD_CM,
+            give=GIVE_CM if "root_give" in self.stages else 0.0,
+            give_speed=GIVE_SPEED,
+        )
         self._hands = HandMeter(self.skeleton)  # the input's hands, for the raised arm (`raised_arm.py`)
         self._scratch = threading.local()  # per thread: step scratch reused between steps (`_workspace`)
         self._set_styles(sorted(translators))
@@ -303,7 +333,7 @@ class LTIStyleModel(LTIStyles):
         hands = kernels.Hands(
             h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
         )
-        switches = (self.blend, self.keep_heading, self.raised_arms, self.footlock)
+        switches = (self.blend, self.keep_heading, self.raised_arms, self.footlock, self.saturate)
         bends = kernels.Bends(*kernel_floor(self.skeleton, self.hinges))
         records = [systems, footplant, ball, hands, arm, self.planter._params, switches, bends]
         x_keys = [f"x.{s}" for s in styles]
@@ -442,7 +472,7 @@ class LTIStyleModel(LTIStyles):
             root[t], rots[t], contacts[t] = out.root[0], out.rotations[0], out.contacts[0]
         if timewarp:
             tr = self.translators[style]
-            out_feats, _ = tr.translate_features(rep.motion_to_features(motion, tr.ref), self.blend)
+            out_feats, _ = tr.translate_features(rep.motion_to_features(motion, tr.ref), self.blend, self.saturate)
             rate = np.exp(out_feats[:, rep.FEATURE_DIM])  # output frames per input frame
             clock = np.concatenate([[0.0], np.cumsum(rate[1:])])  # output time of each input frame
             times = np.interp(np.arange(0.0, clock[-1] + 1e-9), clock, np.arange(len(clock)))

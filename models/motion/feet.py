@@ -3,7 +3,12 @@
 A style model changes how the legs move and how fast the root travels, and nothing makes the two
 agree, so planted feet slide. Per frame, causally, on the model rig:
 1. Root: keeps the model's path (`follow=0`) while the legs do the work; past a quarter of
-   `max_offset` a leash lets the root give way against the held points' motion.
+   `max_offset` a leash lets the root give way against the held points' motion. With `give`,
+   the root also takes, on the frame, whatever a held foot still on the ground would need past
+   `give` (the shortest move that keeps every such hold within it; two held feet the animation
+   spreads further apart: the one it moves less), at most `give_speed`, the holds taking the rest
+   up to `max_offset`: a hold no longer lets go and snaps back because the animation's foot slid
+   under a body that did not follow (Kovar et al. 2002: the root adjusted, then the legs' IK).
 2. Contact: a toe or ankle within `margin` of its floor touching down slowly enough, or the
    model's `hints`. The toe is held whenever it is down, else the ankle. Each floor follows its
    point down at once and up by `floor_rise` per second (networks' feet float or sink); a hinted
@@ -63,6 +68,8 @@ class FootPlanter:
     follow: float = 0.0  # share of the root motion taken from the planted feet (0: the path is the model's)
     soft: float = 5.0  # the last this much of a leg's reach is eased (feet_kernels.soft_reach): no knee pops
     hint_speed: float = math.inf  # a hinted foot faster than this over the ground does not plant
+    give: float = 0.0  # past this the root, not the leg, takes a held foot's hold (0: never; below max_offset)
+    give_speed: float = math.inf  # per second: the most the root moves off its path for `give`
     _params: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -83,6 +90,8 @@ class FootPlanter:
                 float(self.soft),
                 float(self.fps),
                 float(self.hint_speed),
+                float(self.give),
+                float(self.give_speed),
             ),
         )
 

@@ -140,6 +140,76 @@ HINT_FLOOR_RISE = 10.0
 
 
 @njit(cache=True, error_model="numpy")
+def _into_disc(x, z, cx, cz, r):
+    """The point of the disc of radius r about (cx, cz) nearest (x, z)."""
+    ex, ez = x - cx, z - cz
+    d = math.sqrt(ex * ex + ez * ez)
+    if d <= r:
+        return x, z
+    return cx + ex * r / d, cz + ez * r / d
+
+
+@njit(cache=True, error_model="numpy")
+def _in_disc(x, z, cx, cz, r):
+    return (x - cx) ** 2 + (z - cz) ** 2 <= r * r * (1.0 + 1e-9) + 1e-12
+
+
+@njit(cache=True, error_model="numpy")
+def _least_in_discs(ax, az, bx, bz, r):
+    """The shortest (x, z) in both discs of radius r about a and b, which meet: none, a
+    projection onto one disc that lies in the other, or a point where the circles cross."""
+    best, bx_, bz_ = math.inf, 0.0, 0.0
+    for cx, cz in ((0.0, 0.0), _into_disc(0.0, 0.0, ax, az, r), _into_disc(0.0, 0.0, bx, bz, r)):
+        if _in_disc(cx, cz, ax, az, r) and _in_disc(cx, cz, bx, bz, r) and cx * cx + cz * cz < best:
+            best, bx_, bz_ = cx * cx + cz * cz, cx, cz
+    if best < math.inf:
+        return bx_, bz_
+    dx, dz = bx - ax, bz - az
+    d = max(math.sqrt(dx * dx + dz * dz), 1e-12)
+    h = math.sqrt(max(r * r - 0.25 * d * d, 0.0))
+    mx, mz = 0.5 * (ax + bx), 0.5 * (az + bz)
+    for sign in (-1.0, 1.0):
+        cx, cz = mx - sign * h * dz / d, mz + sign * h * dx / d
+        if cx * cx + cz * cz < best:
+            best, bx_, bz_ = cx * cx + cz * cz, cx, cz
+    return bx_, bz_
+
+
+@njit(cache=True, error_model="numpy")
+def root_gives(b, ox, oz, height, rel, floor, margin, before, give):
+    """How far (x, z) session b's root at (ox, oz) moves so that no held leg still on the ground
+    needs its ankle moved more than `give` from the animation (Kovar et al. 2002: the root takes
+    what the legs cannot). Each such leg's offset after this frame would be its last less its
+    point's motion, and the root's move lessens each alike: the shortest move into every disc of
+    radius `give` about them. Two legs whose discs do not meet (the animation spreads feet both
+    held): the one the animation moves less this frame is served, the other lets go. Why: a leg
+    held further bends out of the style's poses, and let go its foot snaps back over the ground."""
+    _, prev_root, _, prev_rel, prev_contact, prev_point, prev_offset, _ = before
+    n, ax, az, a_moved, bx, bz, b_moved = 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    for leg in range(2):
+        if not prev_contact[b, leg]:
+            continue
+        k = prev_point[b, leg]
+        if height + rel[b, leg, k, 1] >= floor[b, leg, k] + margin:
+            continue  # lifting: the hold ends this frame anyway
+        mx = ox + rel[b, leg, k, 0] - prev_root[b, 0] - prev_rel[b, leg, k, 0]
+        mz = oz + rel[b, leg, k, 2] - prev_root[b, 2] - prev_rel[b, leg, k, 2]
+        px, pz = prev_offset[b, leg, 0] - mx, prev_offset[b, leg, 2] - mz
+        if n == 0:
+            ax, az, a_moved = px, pz, mx * mx + mz * mz
+        else:
+            bx, bz, b_moved = px, pz, mx * mx + mz * mz
+        n += 1
+    if n == 0:
+        return 0.0, 0.0
+    if n == 2 and (ax - bx) ** 2 + (az - bz) ** 2 <= 4.0 * give * give:
+        return _least_in_discs(ax, az, bx, bz, give)
+    if n == 2 and b_moved < a_moved:
+        ax, az = bx, bz
+    return _into_disc(0.0, 0.0, ax, az, give)
+
+
+@njit(cache=True, error_model="numpy")
 def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
     """One frame of `feet.FootPlanter` for B sessions (see there for what and why). Reads the
     model's frame (root (B, 3), rot (B, J, 4)), which sessions to plant (active (B,)), the model's
@@ -151,12 +221,21 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
     keeps up (so planting resumes without a jump)."""
     started, prev_root, prev_model_root, prev_rel, prev_contact, prev_point, prev_offset, prev_floor = before
     _, out_root, _, rel, contacts, point, offset, floor = after
-    hips, chains, offsets, floors, margin, floor_rise, onset_speed, max_offset, decay, follow, soft, fps, hint_speed = (
-        planter
-    )
+    (
+        hips, chains, offsets, floors, margin, floor_rise, onset_speed, max_offset, decay, follow, soft, fps, hint_speed,
+        give, give_speed,
+    ) = planter  # fmt: skip
     for b in range(root.shape[0]):
         for leg in range(2):
             leg_points(rot[b], hips, chains[leg], offsets, rel[b, leg])
+        for leg in range(2):
+            for k in range(2):  # ankle, toe: its floor follows it down at once and up slowly, or
+                # (`HINT_FLOOR_RISE`) at once toward it where the model calls the foot down
+                height = root[b, 1] + rel[b, leg, k, 1]
+                rise = prev_floor[b, leg, k] + floor_rise / fps if started[b] else floors[k]
+                if hints[b, leg] and started[b]:
+                    rise = max(rise, height - HINT_FLOOR_RISE)
+                floor[b, leg, k] = min(height, rise)
         # the root: the model's motion, or (by `follow`, or the leash) the held points' of planted legs
         ox, oz = root[b, 0], root[b, 2]
         if started[b]:
@@ -176,18 +255,19 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
                 dx = f * fx / n + (1.0 - f) * dx
                 dz = f * fz / n + (1.0 - f) * dz
             ox, oz = prev_root[b, 0] + dx, prev_root[b, 2] + dz
+            if give > 0.0:
+                # the root takes what held feet would need past `give`, at most `give_speed`: the
+                # path eases off the model's; the rest the holds take, up to `max_offset`
+                gx, gz = root_gives(b, ox, oz, root[b, 1], rel, floor, margin, before, give)
+                gn = math.sqrt(gx * gx + gz * gz)
+                if gn > give_speed / fps:
+                    gx, gz = gx * give_speed / fps / gn, gz * give_speed / fps / gn
+                ox, oz = ox + gx, oz + gz
         if not active[b]:
             ox, oz = root[b, 0], root[b, 2]
         out_root[b, 0], out_root[b, 1], out_root[b, 2] = ox, root[b, 1], oz
         # per leg: which point is on the ground, and how far the leg must move to keep it there
         for leg in range(2):
-            for k in range(2):  # ankle, toe: its floor follows it down at once and up slowly, or
-                # (`HINT_FLOOR_RISE`) at once toward it where the model calls the foot down
-                height = root[b, 1] + rel[b, leg, k, 1]
-                rise = prev_floor[b, leg, k] + floor_rise / fps if started[b] else floors[k]
-                if hints[b, leg] and started[b]:
-                    rise = max(rise, height - HINT_FLOOR_RISE)
-                floor[b, leg, k] = min(height, rise)
             low_ankle = root[b, 1] + rel[b, leg, 0, 1] < floor[b, leg, 0] + margin
             low_toe = root[b, 1] + rel[b, leg, 1, 1] < floor[b, leg, 1] + margin
             k = 1 if low_toe else 0

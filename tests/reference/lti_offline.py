@@ -90,7 +90,7 @@ def offline(model: LTIStyleModel, style: str, motion, footlock: bool = True):
     stages it has on, in numpy. Returns (Motion, contacts (F, 2))."""
     tr = model.translators[style]
     feats = rep.motion_to_features(motion, tr.ref)
-    out, xs = tr.translate_features(feats, model.blend)
+    out, xs = tr.translate_features(feats, model.blend, model.saturate)
     yaw0, _ = rep.split_hips(motion.rotations[0, rep.HIPS])
     root, rots = features_to_sequence(
         out[:, : rep.FEATURE_DIM], motion.translations[0, rep.HIPS, [0, 2]], float(yaw0), tr.ref
