@@ -5,8 +5,10 @@ systems combined), the per-DOF normalisation, the input's training range (for th
 and the footplant classifier. Every frame, per session:
 
     u = (features(frame) - in_mean) / in_std          (features: representation.py)
-    [x'; y] = M [x; u]     with M = [[A, B], [C, D]]   (block-diagonal per joint)
-    out = y * out_std + out_mean
+    v = u saturated into the training range           (`saturation`: hi + k_p tanh((u - hi) / k_p) past it)
+    [x'; y] = M [x; v]     with M = [[A, B], [C, D]]   (block-diagonal per joint)
+    out = y * out_std + out_mean + (u - v) in_std     (the input's excess passes through)
+    or, the stage off (the paper's core), v = u and
     out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend,
                                                                           eased over time: `kernels.ease`)
     pose = inverse representation(out); rotation prior (`train.style_prior`); hinge joints kept on
@@ -17,7 +19,8 @@ and the footplant classifier. Every frame, per session:
 Heading: the translated yaw drifts slowly for some styles, so by default the output takes the
 input's yaw change (`keep_heading=True`); speed, posture and timing stay translated. The feet are
 planted (`footlock`) by `models.motion.feet.FootPlanter`, shared by every method, with the
-classifier's contacts as hints for feet slower than `HINT_SPEED`; `FrameBatch.contacts` are the planted legs, or the classifier's.
+classifier's contacts as hints for feet slower than `HINT_SPEED`, the root giving way past
+`GIVE_CM` (`root_give`); `FrameBatch.contacts` are the planted legs, or the classifier's.
 
 The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and stage
 (`kernels.step`); the offline path (`LTIStyleModel.translate`) streams a whole clip through it,

@@ -157,22 +157,19 @@ def with_calibration(model: Any, reference: PostureRange) -> Any:
 
 def main(argv: list[str] | None = None) -> int:
     from ..settings import get_settings
-    from .novelty import clips_of, fit_or_report, on_model_rig
+    from .novelty import fit_or_report, on_model_rig, selected
 
     args = fit_or_report("python -m models.motion.calibration", __doc__, argv)
-    datasets = args.datasets.split(",")
-    contents = args.contents.split(",") if args.contents else None
-    styles = args.styles.split(",") if args.styles else None
     path = reference_path(get_settings().weights_dir, args.method)
     if args.cmd == "fit":
         from .assets import bandai_namco_skeleton
 
-        train = [on_model_rig(m)[0] for m in clips_of(datasets, contents, styles, "train")[1]]
+        train = [on_model_rig(m)[0] for m in selected(args, "train")[1]]
         PostureRange.fit(train, bandai_namco_skeleton()).save(path)
         print(f"{path}: {len(train)} train clips")
         return 0
     ref = PostureRange.load(path)
-    clips, motions = clips_of(datasets, contents, styles, args.split)
+    clips, motions = selected(args, args.split)
     for clip, m in zip(clips, motions):
         deg = np.degrees(ref.settled_turns(on_model_rig(m)[0], 30.0))
         top = np.argsort(deg)[::-1][:3]

@@ -158,12 +158,12 @@ def _in_disc(x, z, cx, cz, r):
 def _least_in_discs(ax, az, bx, bz, r):
     """The shortest (x, z) in both discs of radius r about a and b, which meet: none, a
     projection onto one disc that lies in the other, or a point where the circles cross."""
-    best, bx_, bz_ = math.inf, 0.0, 0.0
+    best, best_x, best_z = math.inf, 0.0, 0.0
     for cx, cz in ((0.0, 0.0), _into_disc(0.0, 0.0, ax, az, r), _into_disc(0.0, 0.0, bx, bz, r)):
         if _in_disc(cx, cz, ax, az, r) and _in_disc(cx, cz, bx, bz, r) and cx * cx + cz * cz < best:
-            best, bx_, bz_ = cx * cx + cz * cz, cx, cz
+            best, best_x, best_z = cx * cx + cz * cz, cx, cz
     if best < math.inf:
-        return bx_, bz_
+        return best_x, best_z
     dx, dz = bx - ax, bz - az
     d = max(math.sqrt(dx * dx + dz * dz), 1e-12)
     h = math.sqrt(max(r * r - 0.25 * d * d, 0.0))
@@ -171,8 +171,8 @@ def _least_in_discs(ax, az, bx, bz, r):
     for sign in (-1.0, 1.0):
         cx, cz = mx - sign * h * dz / d, mz + sign * h * dx / d
         if cx * cx + cz * cz < best:
-            best, bx_, bz_ = cx * cx + cz * cz, cx, cz
-    return bx_, bz_
+            best, best_x, best_z = cx * cx + cz * cz, cx, cz
+    return best_x, best_z
 
 
 @njit(cache=True, error_model="numpy")

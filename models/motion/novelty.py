@@ -341,6 +341,12 @@ def clips_of(
     return clips, load_motions(clips)
 
 
+def selected(args: argparse.Namespace, split: str) -> tuple[list[Clip], list[Motion]]:
+    """The clips of `split` that `fit_or_report`'s `--datasets`, `--contents` and `--styles` name."""
+    listed = lambda value: value.split(",") if value else None  # noqa: E731
+    return clips_of(args.datasets.split(","), listed(args.contents), listed(args.styles), split)
+
+
 def on_model_rig(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
     """A clip as the stage sees it: on the model rig (retargeted if another) at 30 fps."""
     from .retarget import retarget
@@ -370,24 +376,21 @@ def main(argv: list[str] | None = None) -> int:
     args = fit_or_report("python -m models.motion.novelty", __doc__, argv)
     from ..settings import get_settings
 
-    datasets = args.datasets.split(",")
-    contents = args.contents.split(",") if args.contents else None
-    styles = args.styles.split(",") if args.styles else None
     path = reference_path(get_settings().weights_dir, args.method)
     if args.cmd == "fit":
         from .assets import bandai_namco_skeleton
         from .features import left_leg_length
 
         skeleton = bandai_namco_skeleton()
-        train = [on_model_rig(m) for m in clips_of(datasets, contents, styles, "train")[1]]
-        val = [on_model_rig(m) for m in clips_of(datasets, contents, styles, "val")[1]]
+        train = [on_model_rig(m) for m in selected(args, "train")[1]]
+        val = [on_model_rig(m) for m in selected(args, "val")[1]]
         ref = NoveltyReference.fit(train, val, skeleton, left_leg_length(skeleton), 30.0)
         path.parent.mkdir(exist_ok=True)
         ref.save(path)
         print(f"{path}: {len(train)} train clips, {len(val)} val clips, thresholds {np.round(ref.threshold, 3)}")
         return 0
     ref = NoveltyReference.load(path)
-    clips, motions = clips_of(datasets, contents, styles, args.split)
+    clips, motions = selected(args, args.split)
     by_content: dict[str, list[int]] = {}
     for clip, m in zip(clips, motions):
         rot, y = on_model_rig(m)
