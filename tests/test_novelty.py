@@ -211,7 +211,9 @@ def test_a_neutral_walk_of_the_training_data_hardly_fades(method, bn_walk):
 
 def test_the_shipped_model_keeps_the_crouch_and_its_style_after(crouch):
     """Through the streaming interface: faded frames carry the input's legs and root, the frames
-    long after carry the style again, and the state survives an upgrade."""
+    long after carry the style again, and the state survives an upgrade. The feet are planted
+    after the fade, so a held foot may turn the legs a few degrees off the input's: it stays
+    where it stood instead of sliding to where the input's leg would put it."""
     motion, down, back = crouch
     model = load_model(WEIGHTS, "lti")
     weights = style_vector(model, {"elderly": 1.0})[None]
@@ -226,7 +228,7 @@ def test_the_shipped_model_keeps_the_crouch_and_its_style_after(crouch):
         out, state = model.step_batch(state, frame, weights)
         if t == t_down:
             assert out.faded[0] > 0.9 and faded(state)[0] == out.faded[0]
-            assert quat_angle(out.rotations[0, legs], motion.rotations[t, legs]).max() < np.radians(5)
+            assert quat_angle(out.rotations[0, legs], motion.rotations[t, legs]).max() < np.radians(10)
             assert abs(out.root[0, 1] - motion.translations[t, HIPS, 1]) < 2.0  # cm
     assert out.faded[0] < 0.05
     assert quat_angle(out.rotations[0, 1:], motion.rotations[t_after, 1:]).max() > np.radians(3)  # styled again
@@ -255,31 +257,28 @@ def test_the_service_can_switch_the_fade_off():
 
 
 def test_lti_fading_inside_its_step_is_the_stage(crouch):
-    """LTI runs the fade inside its own compiled step (`step_batch_fading`): through the crouch,
-    for a style and a mix with an intensity below 1, it gives what the stage gives after LTI's
-    plain step, to the bit."""
+    """LTI runs the fade inside its own compiled step (`step_batch_fading`), before its feet are
+    planted: through the crouch, for a style and a mix with an intensity below 1, it gives what
+    the stage gives after LTI's step without the planter, planted after, to the bit."""
     from models.lti import LTIStyleModel
     from models.motion.novelty_stage import with_novelty
 
     motion, _, _ = crouch
     fused = load_model(WEIGHTS, "lti")
-
-    class Separate(LTIStyleModel):
-        step_batch_fading = None  # the stage's own path: the method's step, then `fade_step`
-
-    plain = object.__new__(Separate)
-    plain.__dict__.update(fused.__dict__)
-    separate = with_novelty(plain, fused.novelty)
+    separate = with_novelty(LTIStyleModel(footlock=False), fused.novelty)
+    planter = fused.planter
     weights = np.stack([style_vector(fused, {"elderly": 1.0}), style_vector(fused, {"feminine": 0.5, "active": 0.3})])
-    states = [fused.init_state(2), separate.init_state(2)]
+    state, separate_state, feet = fused.init_state(2), separate.init_state(2), planter.init_state(2)
     seen = 0.0
     for t in range(motion.num_frames):
         frame = FrameBatch(
             np.repeat(motion.translations[t : t + 1, HIPS], 2, 0), np.repeat(motion.rotations[t : t + 1], 2, 0)
         )
-        (a, states[0]), (b, states[1]) = (m.step_batch(s, frame, weights) for m, s in zip((fused, separate), states))
-        for got, want in ((a.rotations, b.rotations), (a.root, b.root), (a.faded, b.faded), (a.contacts, b.contacts)):
+        a, state = fused.step_batch(state, frame, weights)
+        b, separate_state = separate.step_batch(separate_state, frame, weights)
+        root, rotations, contacts, feet = planter(feet, b.root, b.rotations, hints=b.contacts)
+        for got, want in ((a.rotations, rotations), (a.root, root), (a.faded, b.faded), (a.contacts, contacts)):
             np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(state[KEY], separate_state[KEY])
         seen = max(seen, float(a.faded.max()))
-    assert states[0].keys() == states[1].keys() and all(np.array_equal(states[0][k], states[1][k]) for k in states[0])
     assert seen > 0.9  # the crouch faded

@@ -52,7 +52,7 @@ import torch
 
 from ..interface import FrameBatch, State
 from ..motion.feet import STATE_SHAPES as FEET_STATE
-from ..motion.feet import model_rig_planter
+from ..motion.feet import model_rig_planter, plant_frame
 from ..motion.hinge import HINGE_FILE, Hinges, kernel_hinges
 from ..motion.skeleton import Motion, Skeleton
 from ..motion.twist import _kernel_plan
@@ -250,6 +250,13 @@ class ERDModel(ERDStyles):
         return self.planter.upgrade_state(old, batch)
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
+        out, new = self.step_unplanted(state, frames, style_weights)
+        planted, feet = plant_frame(self.planter, out, state)
+        return planted, {**new, **feet}
+
+    def step_unplanted(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
+        """`step_batch` up to the feet: the frame (its contacts the network's, the planter's
+        hints) and the new state but the planter's entries (`feet.plant_frame` plants it)."""
         root = np.ascontiguousarray(frames.root, np.float64)
         rot_in = np.ascontiguousarray(frames.rotations, np.float64)
         w = np.asarray(style_weights, np.float64)
@@ -275,9 +282,6 @@ class ERDModel(ERDStyles):
         gait_speed = smoothed_speed(state["gait_speed"], hips_speed(pos, state["prev_pos"], has_prev, FPS), has_prev)
         share = eased_in(run_share(gait_speed), state["frame"])
         out_rot, staged = self.stage_batch(state, rot_in, out_rot, w, share)
-        planted_root, planted_rot, contacts, feet = self.planter(
-            {k: state[k] for k in FEET_STATE}, out_root, out_rot, hints=x[:, CONTACT] > 0.5
-        )
         new.update(
             prev_pos=pos,
             prev_yaw=yaw,
@@ -287,9 +291,8 @@ class ERDModel(ERDStyles):
             style_in=state["style_in"].copy(),
             content=state["content"].copy(),
             **staged,
-            **feet,
         )
-        return FrameBatch(planted_root, planted_rot, contacts), new
+        return FrameBatch(out_root, out_rot, x[:, CONTACT] > 0.5), new
 
     def stage_batch(
         self, state: State, rot_in: np.ndarray, decoded: np.ndarray, weights: np.ndarray, share: np.ndarray

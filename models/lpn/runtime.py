@@ -33,8 +33,7 @@ from ..motion import hinge_floor
 from ..motion.assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR
 from ..motion.coupling import Coupling
 from ..motion.features import body_joint
-from ..motion.feet import STATE_SHAPES as FEET_STATE
-from ..motion.feet import FootPlanter
+from ..motion.feet import FootPlanter, plant_frame
 from ..motion.kinematics_kernels import forward_kinematics
 from ..motion.rotation_ball import StyleBalls
 from ..motion.rotations import quat_mul, yaw_quat
@@ -284,6 +283,14 @@ class LPNModel(LPNStyles):
     # ------------------------------------------------------------------ step
 
     def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
+        out, s = self.step_unplanted(state, frames, style_weights)
+        planted, feet = plant_frame(self.planter, out, s)
+        s.update(feet)
+        return planted, s
+
+    def step_unplanted(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
+        """`step_batch` up to the feet: the frame (its contacts the network's, the planter's
+        hints) and the new state, the planter's entries as they were (`feet.plant_frame`)."""
         root = np.asarray(frames.root, np.float32)
         rot_in = np.asarray(frames.rotations, np.float32)
         B = root.shape[0]
@@ -303,9 +310,8 @@ class LPNModel(LPNStyles):
         frame = StageFrame(out_rot, style_weights, control[:, 3], table.index("normal"))
         out_rot, staged = table.stages.step_batch({k: v for k, v in s.items() if "/" in k}, frame, table.rows)
         s.update(staged)
-        out_root, out_rot, contacts = self._plant(s, out_root, out_rot, contacts)
         s["frame"] = s["frame"] + 1
-        return FrameBatch(out_root, out_rot, contacts), s
+        return FrameBatch(out_root.astype(np.float32, copy=False), out_rot.astype(np.float32, copy=False), contacts), s
 
     def _untwist(self, rotations: np.ndarray) -> np.ndarray:
         """The same joint positions with each bone's twist taken from the natural pose: the network
@@ -447,17 +453,6 @@ class LPNModel(LPNStyles):
         hl, hr, sl, sr = (positions[:, j] for j in self.facing_joints)
         left = hl - hr + sl - sr
         return np.arctan2(-left[:, 2], left[:, 0]).astype(np.float32)  # forward = left x up = (-lz, 0, lx)
-
-    def _plant(
-        self, s: State, root: np.ndarray, rotations: np.ndarray, predicted: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The frame with its feet planted (`models.motion.feet`, state updated in `s`), the
-        network's contacts as hints; the planted legs are the output's contacts."""
-        planted_root, planted_rot, contacts, feet = self.planter(
-            {k: s[k] for k in FEET_STATE}, root, rotations, hints=predicted
-        )
-        s.update(feet)
-        return planted_root.astype(np.float32), planted_rot.astype(np.float32), contacts
 
     # ------------------------------------------------------------------ offline helpers
 

@@ -830,32 +830,42 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
     """One frame for every session: reads `frame`, the packed carry (B, CARRY_WIDTH) and the LTI
     states x side by side; writes `out`, new_carry and new_x. `constants` and `work` are packed
     records (`pack`; `planter` is `FootPlanter`'s parameters)."""
-    stages(Frame(*frame), x, new_x, carry, new_carry, Output(*out), constants, unpack_work(work))
+    frame, out, work, constants = Frame(*frame), Output(*out), unpack_work(work), unpack_constants(constants)
+    style(frame, x, new_x, carry, new_carry, out, constants, work)
+    plant(frame, x, new_x, carry, new_carry, out, constants, work)
 
 
 @njit(cache=True, error_model="numpy")
 def step_fading(frame, x, new_x, carry, new_carry, out, constants, work, fade):
-    """`step`, then the unseen-content fade (`models.motion.novelty_stage`, the shipped
-    pipeline's last stage) in the same call: at batch 1 a second compiled call, its arguments
-    and its outputs cost more than the fade's arithmetic. fade: (control (B, 5) or (0, 5), the
-    fade state (B, W), the reference's five arrays (`NoveltyReference.arrays`), the new fade
-    state (B, W), each row's fade (B,)), as `novelty_kernels.fade_step` takes them."""
+    """`step` with the unseen-content fade (`models.motion.novelty_stage`) in the same call (at
+    batch 1 a second compiled call, its arguments and its outputs cost more than the fade's
+    arithmetic), run before the feet are planted: the fade turns the legs toward the input's,
+    and planted after it a held foot stays where it is while the fade rises or falls (planted
+    before it, a foot slid by the fade's change of the leg, up to 2 m/s on dataset 1's dances).
+    fade: (control (B, 5) or (0, 5), the fade state (B, W), the reference's five arrays
+    (`NoveltyReference.arrays`), the new fade state (B, W), each row's fade (B,)), as
+    `novelty_kernels.fade_step` takes them."""
     frame, out, work = Frame(*frame), Output(*out), unpack_work(work)
-    staged = Output(work.staged_root, work.staged_rotations, out.contacts)
-    stages(frame, x, new_x, carry, new_carry, staged, constants, work)
+    constants = unpack_constants(constants)
+    styled = Output(work.staged_root, work.staged_rotations, out.contacts)
+    style(frame, x, new_x, carry, new_carry, styled, constants, work)
     control, old, table, anchors_starts, floats, bones, centres, new, faded = fade
     fade_step(
-        frame.rotations, frame.root, staged.rotations, staged.root, control, old, table, anchors_starts, floats,
+        frame.rotations, frame.root, styled.rotations, work.root, control, old, table, anchors_starts, floats,
         bones, centres, out.rotations, out.root, new, faded,
     )  # fmt: skip
+    work.root[:] = out.root
+    plant(frame, x, new_x, carry, new_carry, out, constants, work)
 
 
 @njit(cache=True, error_model="numpy")
-def stages(frame, x, new_x, carry, new_carry, out, constants, work):
-    """`step` on its records (`frame`, `out`: `Frame`, `Output`; `work` unpacked)."""
-    before, feet_before = unpack(carry, x)
-    after, feet_after = unpack(new_carry, new_x)
-    sys, fp, ball, hands, arm, planter, on, bends = unpack_constants(constants)
+def style(frame, x, new_x, carry, new_carry, out, constants, work):
+    """`step`'s stages up to the feet, on its records (`frame`, `out`: `Frame`, `Output`;
+    `constants`, `work` unpacked): the body into out.rotations, the translated root into
+    work.root, the footplant classifier's contacts into work.contacts."""
+    before, _ = unpack(carry, x)
+    after, _ = unpack(new_carry, new_x)
+    sys, fp, ball, hands, arm, planter, on, bends = constants
     B = frame.root.shape[0]
 
     # 1. the translator
@@ -879,7 +889,15 @@ def stages(frame, x, new_x, carry, new_carry, out, constants, work):
         if left > 0.0 or right > 0.0:
             carry_raised_arms(b, arm, frame.weights, left, right, out.rotations, work)
 
-    # 4. the feet planted
+
+@njit(cache=True, error_model="numpy")
+def plant(frame, x, new_x, carry, new_carry, out, constants, work):
+    """`step`'s last stage: the feet of the body in out.rotations, on the root in work.root,
+    planted (`models.motion.feet`), the classifier's contacts in work.contacts as hints."""
+    _, feet_before = unpack(carry, x)
+    _, feet_after = unpack(new_carry, new_x)
+    on, planter = constants[6], constants[5]
+    B = frame.root.shape[0]
     if not on.footlock:  # the planter's state waits
         new_carry[:, FEET_AT:] = carry[:, FEET_AT:]
         out.root[:] = work.root

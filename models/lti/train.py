@@ -50,6 +50,14 @@ CONFIG: dict[str, Any] = dict(
     horizon=10,  # block rows of the subspace method
     energy=0.99,  # singular-value energy kept when no clear gap
     max_order_root=16,
+    # True: the root's ground travel (displacement, yaw change; and the log time warp) is its own
+    # system reading only the input's travel, the hips' height and tilt a second one reading all
+    # seven root features. Dataset 2's pelvis tilts with its pace, so one root system walks
+    # another performer who stands in place off at 10-45 cm/s; split, that stops, but on
+    # validation the feet slid no less and a slow CMU walk's held feet snapped
+    # (docs/eval/ablation.md; the legs' context read `joint_Root`, 0, the travel, not the Hips).
+    # False (shipped): the paper's one root system
+    split_root=False,
     max_order_joint=8,
     # spectral radius cap for A: every mode's time constant under ~10 frames. Slower modes keep a
     # gesture for seconds after it ends, which the 2-5 s training clips, each from x = 0, never
@@ -80,12 +88,14 @@ CONFIG: dict[str, Any] = dict(
 )
 
 ROTATION_DOFS = rep.ROOT_DIMS - 3  # features from here on are rotations (the hips' tilt, then the joints)
-GROUP_NAMES = ("root",) + tuple(f"joint{j}" for j in rep.BODY_JOINTS)
+GROUND_DOFS = np.arange(3)  # the root's ground displacement (x, z) and yaw change
 
 
 def joint_dofs(j: int) -> np.ndarray:
     """Feature indices of body joint j (2..21) in the representation; the Hips (1) is the root's
-    7 features (ground displacement, yaw change, height, tilt)."""
+    7 features (ground displacement, yaw change, height, tilt), `joint_Root` (0) its ground travel."""
+    if j == 0:
+        return GROUND_DOFS
     if j == rep.HIPS:
         return np.arange(rep.ROOT_DIMS)
     k = j - rep.BODY_JOINTS[0]
@@ -93,11 +103,17 @@ def joint_dofs(j: int) -> np.ndarray:
 
 
 def groups(cfg=None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(input DOF indices, output DOF indices) of each per-joint system; the root system also
-    drives the log time-warp output. `cfg["context"]` (joints -> extra input joints) lets a
-    joint's system also read other joints' rotations (its outputs stay its own)."""
-    context = {int(k): v for k, v in ((cfg or CONFIG).get("context") or {}).items()}  # JSON keys are strings
-    out = [(np.arange(rep.ROOT_DIMS), np.r_[np.arange(rep.ROOT_DIMS), rep.FEATURE_DIM])]
+    """(input DOF indices, output DOF indices) of each per-joint system, the root's first (it
+    also drives the log time-warp output; `cfg["split_root"]`: its ground travel alone, then the
+    hips' height and tilt). `cfg["context"]` (joints -> extra input joints) lets a joint's system
+    also read other joints' rotations (its outputs stay its own)."""
+    cfg = cfg or CONFIG
+    context = {int(k): v for k, v in (cfg.get("context") or {}).items()}  # JSON keys are strings
+    root = np.arange(rep.ROOT_DIMS)
+    if cfg.get("split_root", False):
+        out = [(GROUND_DOFS, np.r_[GROUND_DOFS, rep.FEATURE_DIM]), (root, root[len(GROUND_DOFS) :])]
+    else:
+        out = [(root, np.r_[root, rep.FEATURE_DIM])]
     for j in rep.BODY_JOINTS:
         own = joint_dofs(j)
         extra = [joint_dofs(c) for c in context.get(j, ()) if c != j]
@@ -266,7 +282,7 @@ def identify(
             )
         )
         if progress is not None:
-            progress.set_postfix_str(f"{style} {GROUP_NAMES[g]} n={systems[-1].order}")
+            progress.set_postfix_str(f"{style} system {g} n={systems[-1].order}")
             progress.update(1)
     n = sum(s.order for s in systems)
     A, B = np.zeros((n, n)), np.zeros((n, rep.FEATURE_DIM))

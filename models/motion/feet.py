@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..interface import FrameBatch, State
 from . import feet_kernels
 from .assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR, bandai_namco_skeleton
 from .skeleton import Skeleton
@@ -191,3 +192,15 @@ def model_rig_planter(fps: float, **settings: float) -> FootPlanter:
     return FootPlanter.for_skeleton(
         bandai_namco_skeleton(), (BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR), fps, LEGS, **settings
     )
+
+
+def plant_frame(planter: FootPlanter, frame: FrameBatch, before: State) -> tuple[FrameBatch, State]:
+    """A method's last stage: `frame`'s feet planted by `planter`, its contacts the hints, the
+    planter's state read from `before`. Returns the planted frame (the planted legs its contacts,
+    arrays of the frame's dtype) and the planter's new state entries. Methods step through it
+    (`step_unplanted` then this) so a stage can go between them (the unseen-content fade)."""
+    root, rotations, contacts, feet = planter(
+        {k: before[k] for k in STATE_SHAPES}, frame.root, frame.rotations, hints=frame.contacts
+    )
+    dtype = np.asarray(frame.root).dtype
+    return FrameBatch(root.astype(dtype, copy=False), rotations.astype(dtype, copy=False), contacts), feet

@@ -1,5 +1,7 @@
-"""The unseen-content fade as the last stage of every method's shipped pipeline
-(`models/registry.py` adds it to each method with a fitted reference in `weights/novelty/`).
+"""The unseen-content fade, the shipped pipeline's last stage before the feet are planted
+(`models/registry.py` adds it to each method with a fitted reference in `weights/novelty/`): a
+method that plants feet steps as `step_unplanted`, then the fade, then `feet.plant_frame`, so a
+held foot stays put while the fade turns the leg (LTI does the same inside its compiled step).
 
 The stage is the method itself with `FadesUnseen` put in front of its class (`with_novelty`), not
 a wrapper (a method with `step_batch_fading` runs the same `fade_step` inside its own compiled
@@ -21,6 +23,7 @@ import numpy as np
 
 from ..interface import FrameBatch, State
 from ..stages import put_in_front, upgrade_with_own
+from .feet import plant_frame
 from .novelty import NoveltyReference
 from .novelty_kernels import FADE, fade_step, state_width
 
@@ -64,8 +67,19 @@ class FadesUnseen:
         fused = getattr(super(), "step_batch_fading", None)
         if fused is not None:  # the method runs the fade inside its own compiled step
             return fused(state, frames, style_weights, KEY, self.novelty_arrays)
-        # the whole state: a method may check it against its own `init_state`, which has this key
-        out, new = super().step_batch(state, frames, style_weights)  # type: ignore[misc]
+        unplanted = getattr(super(), "step_unplanted", None)
+        if unplanted is None:  # a method without planted feet: the fade is its last stage
+            out, new = super().step_batch(state, frames, style_weights)  # type: ignore[misc]
+            return self._fade(state, frames, out, new)
+        # before the feet are planted: a held foot stays where it stood while the fade turns the
+        # leg toward the input's (faded after planting, such a foot slid with the fade)
+        out, new = unplanted(state, frames, style_weights)
+        faded_frame, new = self._fade(state, frames, out, new)
+        planted, feet = plant_frame(self.planter, faded_frame, state)  # type: ignore[attr-defined]
+        return replace_frame(planted, faded=faded_frame.faded), {**new, **feet}
+
+    def _fade(self, state: State, frames: FrameBatch, out: FrameBatch, new: State) -> tuple[FrameBatch, State]:
+        """`out` (the method's frame for `frames`) faded toward the input; `new` with the fade's state."""
         control = _NO_CONTROL if frames.control is None else frames.control
         old = state[KEY]
         B = len(old)
@@ -80,6 +94,11 @@ class FadesUnseen:
         # built, not `replace`d: at batch 1 dataclasses.replace costs as much as the whole kernel
         staged = FrameBatch(root=root, rotations=rotations, contacts=out.contacts, control=out.control, faded=fade)
         return staged, {**new, KEY: own}
+
+
+def replace_frame(frame: FrameBatch, faded: np.ndarray | None) -> FrameBatch:
+    """`frame` with its `faded` set (built, not `dataclasses.replace`d: see `_fade`)."""
+    return FrameBatch(frame.root, frame.rotations, frame.contacts, frame.control, faded)
 
 
 def with_novelty(model: Any, reference: NoveltyReference) -> Any:
