@@ -64,7 +64,7 @@ def _stylise(args: argparse.Namespace) -> int:
 
     from models.motion import bvh
     from models.motion.render import render_contact_sheet, render_gif
-    from models.motion.skeleton import from_bvh, to_bvh
+    from models.motion.skeleton import from_bvh, to_bvh, travel_on
 
     from .sdk import Client
 
@@ -87,6 +87,9 @@ def _stylise(args: argparse.Namespace) -> int:
         # the joint whose translation frames carry: the server says (`rig.root_joint`; BN animates
         # Hips under a static root, other rigs their hips or their root)
         root_joint = session.joints.index(session.info.get("rig", {}).get("root_joint", session.joints[0]))
+        # a file that moves a joint above it (a travelling root joint over the hips) sends that
+        # travel on the root joint: frames carry one translation
+        motion = travel_on(motion, root_joint)
         t0 = time.perf_counter()
         for t in tqdm(range(motion.num_frames), desc=f"{args.model}/{args.style}", unit="frame"):
             if period:

@@ -14,7 +14,7 @@ from models.motion.bn_skeleton import missing_joints
 from models.motion.humanoid import RigError, rig_from_bvh, rig_kind
 from models.motion.resample import resample
 from models.motion.retarget import retarget
-from models.motion.skeleton import Motion, Skeleton, from_bvh
+from models.motion.skeleton import Motion, Skeleton, from_bvh, travel_on
 
 from .api import ApiError, StyleUpload
 
@@ -76,6 +76,7 @@ def motion_from_bvh(text: str, skeleton: Skeleton, parsed: bvhio.BvhFile | None 
     if not missing_joints(src.names, skeleton.names):
         idx = [src.index(n) for n in skeleton.names]
         hips = src.index("Hips")
+        motion = travel_on(motion, hips)  # travel a root joint above the hips carries, on the hips
         return clip_on_skeleton(
             skeleton, motion.translations[:, hips], motion.rotations[:, idx], motion.fps
         ), "bandai-namco"

@@ -17,9 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from ..motion import bvh as bvhio
-from ..motion.skeleton import Motion, Skeleton, from_bvh, skeleton_from_bvh
+from ..motion.skeleton import Motion, Skeleton, from_bvh, skeleton_from_bvh, travel_on
 from ..settings import Settings, get_settings
 from .index import Clip
+
+HIPS = "Hips"  # the joint whose translation is the body's travel, on the rigs that name it
 
 CACHE_VERSION = 2  # bump when the stored arrays change meaning
 
@@ -62,16 +64,19 @@ def _skeleton(header: str) -> tuple[Skeleton, tuple[str, ...]]:
 
 
 def load_motion(clip: Clip, settings: Settings | None = None) -> Motion:
-    """The clip as a Motion (float64 arrays from float32 storage), parsing it on a cache miss."""
+    """The clip as a Motion (float64 arrays from float32 storage), parsing it on a cache miss; a
+    clip whose travel sits on a joint above its `Hips` (4 of dataset 1's neutral clips move
+    `joint_Root`) gets it on the hips (`skeleton.travel_on`), where every reader takes it."""
     settings = settings or get_settings()
     cache = _cache_path(clip, settings)
     if not _is_fresh(clip, cache):
         _parse_to_cache(clip.path, cache)
     with np.load(cache) as z:
         skeleton, orders = _skeleton(str(z["header"]))
-        return Motion(
+        motion = Motion(
             skeleton, z["rotations"].astype(np.float64), z["translations"].astype(np.float64), float(z["fps"]), orders
         )
+    return travel_on(motion, skeleton.index(HIPS)) if HIPS in skeleton.names else motion
 
 
 def warm_cache(clips: list[Clip], settings: Settings | None = None, workers: int | None = None) -> int:

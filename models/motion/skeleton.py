@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import bvh as bvhio
-from .rotations import euler_to_quat, quat_apply, quat_canonical, quat_mul, quat_to_euler
+from .rotations import euler_to_quat, quat_apply, quat_canonical, quat_inv, quat_mul, quat_to_euler
 
 if TYPE_CHECKING:
     import torch
@@ -85,6 +85,32 @@ class Motion:
 
     def slice(self, start: int, stop: int) -> Motion:
         return replace(self, rotations=self.rotations[start:stop], translations=self.translations[start:stop])
+
+
+def travel_on(motion: Motion, joint: int) -> Motion:
+    """`motion` with every motion of `joint`'s ancestors moved into `joint` (the same world
+    pose): the ancestors held at their first frame. Why: a capture may carry its travel on a
+    root joint above the hips (4 of dataset 1's neutral clips do, on `joint_Root`), and the
+    models read the hips' translation as the body's travel; unfolded, they saw a walk in place
+    and the travel came back unplanted under the feet."""
+    chain = []
+    a = int(motion.skeleton.parents[joint])
+    while a >= 0:
+        chain.append(a)
+        a = int(motion.skeleton.parents[a])
+    held = lambda a: np.array_equal(a[:, chain], np.broadcast_to(a[:1, chain], a[:, chain].shape))  # noqa: E731
+    if not chain or not motion.num_frames or (held(motion.rotations) and held(motion.translations)):
+        return motion  # nothing above the joint moves
+    rotations, translations = motion.rotations.copy(), motion.translations.copy()
+    rotations[:, chain] = motion.rotations[:1, chain]
+    translations[:, chain] = motion.translations[:1, chain]
+    g_rot, g_pos = motion.global_transforms()
+    held_rot, held_pos = fk(rotations, translations, motion.skeleton.parents)
+    parent = int(motion.skeleton.parents[joint])
+    inv = quat_inv(held_rot[:, parent])
+    rotations[:, joint] = quat_canonical(quat_mul(inv, g_rot[:, joint]))
+    translations[:, joint] = quat_apply(inv, g_pos[:, joint] - held_pos[:, parent])
+    return replace(motion, rotations=rotations, translations=translations)
 
 
 def depths(parents: np.ndarray) -> np.ndarray:
