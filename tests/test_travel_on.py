@@ -59,3 +59,18 @@ def test_an_uploaded_bvh_keeps_its_travel(walk_on_root):
     motion, rig = motion_from_bvh(Path(clip.path).read_text(), bandai_namco_skeleton())
     assert rig == "bandai-namco"
     assert np.ptp(motion.translations[:, HIPS, 2]) > 150.0
+
+
+def test_a_rig_whose_root_joint_travels_keeps_its_travel_through_the_retargeter(walk_on_root):
+    """Root and hips both with position channels, the travel on the root (as game rigs export root
+    motion): retargeted, the model rig's hips travel as the file's do."""
+    from models.motion.humanoid import rig_from_bvh
+    from models.motion.retarget import retarget
+
+    clip, raw = walk_on_root
+    rig = rig_from_bvh(Path(clip.path).read_text())  # frames carry the hips (they have position channels)
+    assert raw.skeleton.names[rig.translated] == "Hips"
+    out = retarget(raw, fps=raw.fps, source=rig)
+    travel = np.ptp(raw.global_positions()[:, HIPS, 2])
+    assert travel > 150.0
+    assert np.ptp(out.translations[:, HIPS, 2]) == pytest.approx(travel, rel=0.05)

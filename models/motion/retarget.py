@@ -40,7 +40,7 @@ from .humanoid import HumanoidRig
 from .resample import resample
 from .retarget_clavicle import CLAVICLE_FROM_ARM
 from .rotations import quat_canonical
-from .skeleton import Motion, Skeleton, depths, fk
+from .skeleton import Motion, Skeleton, depths, fk, travel_on
 
 # Joints with several children: (left child, right child) fixing the twist of the up vector.
 # The client side takes the vector between its upper legs / upper arms (CMU collars sit on the
@@ -215,8 +215,9 @@ def retarget(
     from .retarget_stream import FrameRetargeter
 
     rig = default_rig() if target is None else target if isinstance(target, Rig) else Rig.from_motion(target)
-    src = resample(motion, fps)
     fr = FrameRetargeter(source if source is not None else motion.skeleton, rig)
+    # the rig's frames carry one translation: any travel on joints above it moves onto it
+    src = travel_on(resample(motion, fps), fr.humanoid.translated)
     sk, n = rig.skeleton, src.num_frames
     trans = np.broadcast_to(sk.offsets, (n, sk.num_joints, 3)).copy()
     if not n:
