@@ -282,3 +282,35 @@ def test_lti_fading_inside_its_step_is_the_stage(crouch):
         np.testing.assert_array_equal(state[KEY], separate_state[KEY])
         seen = max(seen, float(a.faded.max()))
     assert seen > 0.9  # the crouch faded
+
+
+@pytest.mark.parametrize("method, before_feet", [("erd", True), ("lpn", False)])
+def test_each_method_fades_where_it_declares_before_or_after_its_feet(crouch, method, before_feet):
+    """Through the crouch: Style-ERD's fade runs between its step and its planted feet, LPN-FiLM's
+    after its whole step (`fade_before_feet`, chosen on validation): each equals that order
+    composed by hand, to the bit, and the two orders differ once the fade rises."""
+    from models.motion.feet import plant_frame
+    from models.motion.novelty_stage import FadesUnseen
+
+    motion, _, _ = crouch
+    model = load_model(WEIGHTS, method, calibration=False)
+    assert getattr(model, "fade_before_feet", True) is before_feet
+    weights = style_vector(model, {"elderly": 1.0})[None]
+    state, mine = model.init_state(1), model.init_state(1)
+    differs = False
+    for t in range(motion.num_frames):
+        frame = FrameBatch(motion.translations[t : t + 1, HIPS], motion.rotations[t : t + 1])
+        got, state = model.step_batch(state, frame, weights)
+        out, new = super(FadesUnseen, model).step_unplanted(mine, frame, weights)  # the method's own
+        if before_feet:
+            faded_frame, new = model._fade(mine, frame, out, new)
+            want, feet = plant_frame(model.planter, faded_frame, mine)
+        else:
+            planted, feet = plant_frame(model.planter, out, mine)
+            want, new = model._fade(mine, frame, planted, new)
+            other, _ = plant_frame(model.planter, model._fade(mine, frame, out, dict(new))[0], mine)
+            differs = differs or not np.array_equal(other.rotations, want.rotations)
+        mine = {**new, **feet}
+        np.testing.assert_array_equal(got.rotations, want.rotations)
+        np.testing.assert_array_equal(got.root, want.root)
+    assert before_feet or differs

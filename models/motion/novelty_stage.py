@@ -1,7 +1,8 @@
 """The unseen-content fade, the shipped pipeline's last stage before the feet are planted
 (`models/registry.py` adds it to each method with a fitted reference in `weights/novelty/`): a
 method that plants feet steps as `step_unplanted`, then the fade, then `feet.plant_frame`, so a
-held foot stays put while the fade turns the leg (LTI does the same inside its compiled step).
+held foot stays put while the fade turns the leg (LTI does the same inside its compiled step);
+one whose `fade_before_feet` is False is faded after its whole step.
 
 The stage is the method itself with `FadesUnseen` put in front of its class (`with_novelty`), not
 a wrapper (a method with `step_batch_fading` runs the same `fade_step` inside its own compiled
@@ -67,8 +68,11 @@ class FadesUnseen:
         fused = getattr(super(), "step_batch_fading", None)
         if fused is not None:  # the method runs the fade inside its own compiled step
             return fused(state, frames, style_weights, KEY, self.novelty_arrays)
-        unplanted = getattr(super(), "step_unplanted", None)
-        if unplanted is None:  # a method without planted feet: the fade is its last stage
+        # a method whose `fade_before_feet` is False plants its feet first (chosen on validation
+        # like any stage setting: LPN-FiLM, docs/eval/ablation.md)
+        before_feet = getattr(super(), "fade_before_feet", True)
+        unplanted = getattr(super(), "step_unplanted", None) if before_feet else None
+        if unplanted is None:  # a method without planted feet, or that plants them first: the fade is last
             out, new = super().step_batch(state, frames, style_weights)  # type: ignore[misc]
             return self._fade(state, frames, out, new)
         # before the feet are planted: a held foot stays where it stood while the fade turns the
