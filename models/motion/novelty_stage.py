@@ -80,7 +80,7 @@ class FadesUnseen:
         out, new = unplanted(state, frames, style_weights)
         faded_frame, new = self._fade(state, frames, out, new)
         planted, feet = plant_frame(self.planter, faded_frame, state)  # type: ignore[attr-defined]
-        return replace_frame(planted, faded=faded_frame.faded), {**new, **feet}
+        return _with_faded(planted, faded_frame.faded), {**new, **feet}
 
     def _fade(self, state: State, frames: FrameBatch, out: FrameBatch, new: State) -> tuple[FrameBatch, State]:
         """`out` (the method's frame for `frames`) faded toward the input; `new` with the fade's state."""
@@ -100,13 +100,14 @@ class FadesUnseen:
         return staged, {**new, KEY: own}
 
 
-def replace_frame(frame: FrameBatch, faded: np.ndarray | None) -> FrameBatch:
+def _with_faded(frame: FrameBatch, faded: np.ndarray | None) -> FrameBatch:
     """`frame` with its `faded` set (built, not `dataclasses.replace`d: see `_fade`)."""
     return FrameBatch(frame.root, frame.rotations, frame.contacts, frame.control, faded)
 
 
 def with_novelty(model: Any, reference: NoveltyReference) -> Any:
-    """`model` with the fade as its last stage (`stages.put_in_front`)."""
+    """`model` with the fade as its last stage, before its feet where it plants them
+    (`fade_before_feet`; `stages.put_in_front`)."""
     staged_model = put_in_front(model, FadesUnseen)
     staged_model.novelty = reference
     staged_model.novelty_arrays = reference.arrays(float(model.fps))
