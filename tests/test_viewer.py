@@ -25,7 +25,7 @@ import pytest
 from PIL import Image
 
 from clients.loadtest import free_port
-from models.data import select
+from models.data import build_index, select
 from models.motion.assets import bandai_namco_skeleton
 from models.registry import load_models
 from models.settings import get_settings
@@ -536,6 +536,13 @@ def test_viewer_maths_match_the_python_motion_core(server, tmp_path):
                 return c.root.map((r, i) => k.fk(c, r, c.rotations[i])); }})()""")
             py_pos = load(assets / name).global_positions()
             assert np.allclose(js_pos, py_pos, atol=1e-3), f"{name}: max {np.abs(np.array(js_pos) - py_pos).max()}"
+        # a file whose travel sits on its root joint above the hips (dataset 1's walk 002): the reader
+        # puts it on the hips, whose translation the page streams, and the body stays where it was
+        walk = next(c for c in build_index(["bandai-namco-1"]) if c.name == "dataset-1_walk_normal_002")
+        read = page.js(f"""(async () => {{ {kin} const c = k.parseBVH({json.dumps(Path(walk.path).read_text())});
+            return {{root: c.root, pos: c.root.map((r, i) => k.fk(c, r, c.rotations[i]))}}; }})()""")
+        assert np.ptp(np.array(read["root"])[:, 2]) > 150.0
+        assert np.allclose(np.array(read["pos"])[:, 1:], load(walk.path).global_positions()[:, 1:], atol=1e-3)
         js_pos = np.array(
             page.js(f"""(async () => {{ {kin} const c = k.clipFromDemo(await (await fetch('/v1/demo/clip')).json());
             return c.root.map((r, i) => k.fk(c, r, c.rotations[i])); }})()""")

@@ -176,22 +176,38 @@ export function parseBVH(text, rigs = []) {
   if (!joints.length || !data.length) throw new Error("empty BVH");
   let rootJoint = channels.findIndex((c, j) => j > 0 && c.includes("Xposition"));
   if (rootJoint < 0) rootJoint = 0;
+  const above = [];  // the joints above the root joint, top first
+  for (let a = parents[rootJoint]; a >= 0; a = parents[a]) above.unshift(a);
   const root = [], rotations = [];
+  let held = null;  // the joints above: the first frame's rotations at their rest offsets (as `fk` places them)
   for (const row of data) {
-    let col = 0, rt = null;
+    let col = 0;
+    const pos = [];
     const rots = joints.map((_, j) => {
       let q = [0, 0, 0, 1];
-      const pos = offsets[j].slice();
+      pos[j] = offsets[j].slice();
       for (const ch of channels[j]) {
         const v = row[col++];
-        if (ch.endsWith("position")) pos["XYZ".indexOf(ch[0])] = v;
+        if (ch.endsWith("position")) pos[j]["XYZ".indexOf(ch[0])] = v;
         else q = qmul(q, qaxis(ch[0], v));
       }
-      if (j === rootJoint) rt = pos;
       return q;
     });
-    if (rt.some((v) => !Number.isFinite(v))) throw new Error(`frame ${root.length}: not a number`);
-    root.push(rt); rotations.push(rots);
+    if (pos[rootJoint].some((v) => !Number.isFinite(v))) throw new Error(`frame ${root.length}: not a number`);
+    // travel carried by joints above the root joint goes onto it, those held (as
+    // models.motion.skeleton.travel_on): frames carry the root joint's translation only
+    const chain = (at) => above.reduce(([r, t], a) => {
+      const o = qrot(r, at[a]);
+      return [qmul(r, qnorm(rots[a])), [t[0] + o[0], t[1] + o[1], t[2] + o[2]]];
+    }, [[0, 0, 0, 1], [0, 0, 0]]);
+    const [gr, gp] = chain(pos);
+    if (!held) { const [r, t] = chain(offsets); held = { rots: above.map((a) => rots[a]), gr: r, gp: t }; }
+    const o = qrot(gr, pos[rootJoint]), world = [gp[0] + o[0], gp[1] + o[1], gp[2] + o[2]];
+    const back = [-held.gr[0], -held.gr[1], -held.gr[2], held.gr[3]];
+    above.forEach((a, i) => { rots[a] = held.rots[i]; });
+    rots[rootJoint] = qmul(back, qmul(gr, rots[rootJoint]));
+    root.push(qrot(back, [world[0] - held.gp[0], world[1] - held.gp[1], world[2] - held.gp[2]]));
+    rotations.push(rots);
   }
   const fps = dt > 0 ? Math.round(100 / dt) / 100 : 30;
   return finishClip({ name: "uploaded BVH", joints, parents, offsets, rootJoint, fps, root, rotations,
