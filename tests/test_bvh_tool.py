@@ -100,3 +100,18 @@ def test_user_errors_end_in_one_line_and_status_2(server, walk_bvh, tmp_path, ca
     err = capsys.readouterr().err.strip()
     assert err.startswith("stylestream stylise: error:") and expected in err
     assert "Traceback" not in err and len(err.splitlines()) == 1
+
+
+def test_a_file_travelling_on_its_root_joint_is_styled_with_its_travel(server, index, tmp_path):
+    """Dataset 1's walk 002 carries its travel on `joint_Root`, the hips still under it: the tool
+    sends that travel on the hips, so the model steps with it. Sent as the file has it, the model
+    saw a walk in place and the written file's root joint carried the body over planted feet."""
+    from models.eval.metrics import flat_foot_contacts
+
+    clip = next(
+        c for c in select(index, dataset="bandai-namco-1", style="normal") if c.name == "dataset-1_walk_normal_002"
+    )
+    out = tmp_path / "out.bvh"
+    assert main(["stylise", str(clip.path), "--url", server, "--style", "elderly", "-o", str(out)]) == 0
+    flat, speed = flat_foot_contacts(from_bvh(bvh.read(out)))
+    assert flat.sum() >= 5 and np.percentile(speed[flat], 95) < 40.0  # cm/s (read in place: 158)
