@@ -831,8 +831,9 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
     states x side by side; writes `out`, new_carry and new_x. `constants` and `work` are packed
     records (`pack`; `planter` is `FootPlanter`'s parameters)."""
     frame, out, work, constants = Frame(*frame), Output(*out), unpack_work(work), unpack_constants(constants)
-    style(frame, x, new_x, carry, new_carry, out, constants, work)
-    plant(frame, x, new_x, carry, new_carry, out, constants, work)
+    (before, feet_before), (after, feet_after) = unpack(carry, x), unpack(new_carry, new_x)
+    style(frame, before, after, out, constants, work)
+    plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work)
 
 
 @njit(cache=True, error_model="numpy")
@@ -845,26 +846,25 @@ def step_fading(frame, x, new_x, carry, new_carry, out, constants, work, fade):
     fade: (control (B, 5) or (0, 5), the fade state (B, W), the reference's five arrays
     (`NoveltyReference.arrays`), the new fade state (B, W), each row's fade (B,)), as
     `novelty_kernels.fade_step` takes them."""
-    frame, out, work = Frame(*frame), Output(*out), unpack_work(work)
-    constants = unpack_constants(constants)
+    frame, out, work, constants = Frame(*frame), Output(*out), unpack_work(work), unpack_constants(constants)
+    (before, feet_before), (after, feet_after) = unpack(carry, x), unpack(new_carry, new_x)
     styled = Output(work.staged_root, work.staged_rotations, out.contacts)
-    style(frame, x, new_x, carry, new_carry, styled, constants, work)
+    style(frame, before, after, styled, constants, work)
     control, old, table, anchors_starts, floats, bones, centres, new, faded = fade
     fade_step(
         frame.rotations, frame.root, styled.rotations, work.root, control, old, table, anchors_starts, floats,
         bones, centres, out.rotations, out.root, new, faded,
     )  # fmt: skip
     work.root[:] = out.root
-    plant(frame, x, new_x, carry, new_carry, out, constants, work)
+    plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work)
 
 
-@njit(cache=True, error_model="numpy")
-def style(frame, x, new_x, carry, new_carry, out, constants, work):
-    """`step`'s stages up to the feet, on its records (`frame`, `out`: `Frame`, `Output`;
-    `constants`, `work` unpacked): the body into out.rotations, the translated root into
-    work.root, the footplant classifier's contacts into work.contacts."""
-    before, _ = unpack(carry, x)
-    after, _ = unpack(new_carry, new_x)
+@njit(cache=True, error_model="numpy", inline="always")
+def style(frame, before, after, out, constants, work):
+    """`step`'s stages up to the feet, on its records (`frame`, `out`: `Frame`, `Output`; the
+    session state `before` and `after` this frame, `constants` and `work` unpacked): the body
+    into out.rotations, the translated root into work.root, the footplant classifier's contacts
+    into work.contacts."""
     sys, fp, ball, hands, arm, planter, on, bends = constants
     B = frame.root.shape[0]
 
@@ -890,12 +890,11 @@ def style(frame, x, new_x, carry, new_carry, out, constants, work):
             carry_raised_arms(b, arm, frame.weights, left, right, out.rotations, work)
 
 
-@njit(cache=True, error_model="numpy")
-def plant(frame, x, new_x, carry, new_carry, out, constants, work):
+@njit(cache=True, error_model="numpy", inline="always")
+def plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work):
     """`step`'s last stage: the feet of the body in out.rotations, on the root in work.root,
-    planted (`models.motion.feet`), the classifier's contacts in work.contacts as hints."""
-    _, feet_before = unpack(carry, x)
-    _, feet_after = unpack(new_carry, new_x)
+    planted (`models.motion.feet`), the classifier's contacts in work.contacts as hints; the
+    planter's state `feet_before` and `feet_after` this frame (views into the carries)."""
     on, planter = constants[6], constants[5]
     B = frame.root.shape[0]
     if not on.footlock:  # the planter's state waits
