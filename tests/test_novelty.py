@@ -210,10 +210,10 @@ def test_a_neutral_walk_of_the_training_data_hardly_fades(method, bn_walk):
 
 
 def test_the_shipped_model_keeps_the_crouch_and_its_style_after(crouch):
-    """Through the streaming interface: faded frames carry the input's legs and root, the frames
-    long after carry the style again, and the state survives an upgrade. The feet are planted
-    after the fade, so a held foot may turn the legs a few degrees off the input's: it stays
-    where it stood instead of sliding to where the input's leg would put it."""
+    """Through the streaming interface: faded frames carry the input's legs and root height, the
+    frames long after carry the style again, and the state survives an upgrade. The feet are
+    planted after the fade, so a held foot may turn the legs a few degrees off the input's: it
+    stays where it stood instead of sliding to where the input's leg would put it."""
     motion, down, back = crouch
     model = load_model(WEIGHTS, "lti")
     weights = style_vector(model, {"elderly": 1.0})[None]
@@ -265,7 +265,11 @@ def test_lti_fading_inside_its_step_is_the_stage(crouch):
 
     motion, _, _ = crouch
     fused = load_model(WEIGHTS, "lti")
-    separate = with_novelty(LTIStyleModel(footlock=False), fused.novelty)
+
+    class Separate(LTIStyleModel):
+        step_batch_fading = None  # the stage's own fade (`fade_step` called from Python)
+
+    separate = with_novelty(Separate(footlock=False), fused.novelty)
     planter = fused.planter
     weights = np.stack([style_vector(fused, {"elderly": 1.0}), style_vector(fused, {"feminine": 0.5, "active": 0.3})])
     state, separate_state, feet = fused.init_state(2), separate.init_state(2), planter.init_state(2)

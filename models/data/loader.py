@@ -21,7 +21,7 @@ from ..motion.skeleton import Motion, Skeleton, from_bvh, skeleton_from_bvh, tra
 from ..settings import Settings, get_settings
 from .index import Clip
 
-HIPS = "Hips"  # the joint whose translation is the body's travel, on the rigs that name it
+HIPS_NAME = "Hips"  # the joint whose translation is the body's travel, on the rigs that name it
 
 CACHE_VERSION = 2  # bump when the stored arrays change meaning
 
@@ -76,7 +76,7 @@ def load_motion(clip: Clip, settings: Settings | None = None) -> Motion:
         motion = Motion(
             skeleton, z["rotations"].astype(np.float64), z["translations"].astype(np.float64), float(z["fps"]), orders
         )
-    return travel_on(motion, skeleton.index(HIPS)) if HIPS in skeleton.names else motion
+    return travel_on(motion, skeleton.index(HIPS_NAME)) if HIPS_NAME in skeleton.names else motion
 
 
 def warm_cache(clips: list[Clip], settings: Settings | None = None, workers: int | None = None) -> int:

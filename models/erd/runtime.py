@@ -256,7 +256,8 @@ class ERDModel(ERDStyles):
 
     def step_unplanted(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
         """`step_batch` up to the feet: the frame (its contacts the network's, the planter's
-        hints) and the new state but the planter's entries (`feet.plant_frame` plants it)."""
+        hints) and the new state without the planter's entries, which it reads from `state`
+        (`feet.plant_frame` plants the frame)."""
         root = np.ascontiguousarray(frames.root, np.float64)
         rot_in = np.ascontiguousarray(frames.rotations, np.float64)
         w = np.asarray(style_weights, np.float64)

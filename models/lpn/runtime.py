@@ -295,7 +295,8 @@ class LPNModel(LPNStyles):
 
     def step_unplanted(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
         """`step_batch` up to the feet: the frame (its contacts the network's, the planter's
-        hints) and the new state, the planter's entries as they were (`feet.plant_frame`)."""
+        hints) and the new state, with the planter's entries as it reads them (reset on a
+        session's first frame; `feet.plant_frame` plants the frame)."""
         root = np.asarray(frames.root, np.float32)
         rot_in = np.asarray(frames.rotations, np.float32)
         B = root.shape[0]

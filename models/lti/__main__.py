@@ -46,13 +46,14 @@ def cmd_hinges(args: argparse.Namespace) -> None:
 
 def cmd_translate(args: argparse.Namespace) -> None:
     from models.motion import bvh as bvhio
-    from models.motion.skeleton import from_bvh, to_bvh
+    from models.motion.skeleton import from_bvh, to_bvh, travel_on
 
     from .model import LTIStyleModel
 
     model = LTIStyleModel(blend=not args.no_blend, footlock=not args.no_footlock, keep_heading=not args.model_heading)
     src = bvhio.read(args.input)
     motion = from_bvh(src)
+    motion = travel_on(motion, motion.skeleton.index("Hips"))  # the translator reads the travel on the hips
     out, contacts = model.translate(motion, args.style, timewarp=args.timewarp)
     bvhio.write(to_bvh(out, src), args.output)
     print(

@@ -895,7 +895,7 @@ def plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work
     """`step`'s last stage: the feet of the body in out.rotations, on the root in work.root,
     planted (`models.motion.feet`), the classifier's contacts in work.contacts as hints; the
     planter's state `feet_before` and `feet_after` this frame (views into the carries)."""
-    on, planter = constants[6], constants[5]
+    _, _, _, _, _, planter, on, _ = constants
     B = frame.root.shape[0]
     if not on.footlock:  # the planter's state waits
         new_carry[:, FEET_AT:] = carry[:, FEET_AT:]
@@ -910,7 +910,7 @@ def plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work
         feet_after.started[b] = 1.0
         for leg in range(2):
             work.point[b, leg] = int(feet_before.point[b, leg])
-    feet_after.model_root[:] = work.root  # the translator's root, which the planter remembers
+    feet_after.model_root[:] = work.root  # the root it plants on (translated, faded), which it remembers
     # the planter indexes with its held points: the integer copy, not the carry's float view
     before = Feet(
         feet_before.started, feet_before.root, feet_before.model_root, feet_before.rel, feet_before.contact,

@@ -495,8 +495,8 @@ class LTIStyleModel(LTIStyles):
     def step_batch_fading(
         self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray, key: str, reference: tuple
     ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
-        """`step_batch` followed by the unseen-content fade (`models.motion.novelty_stage`, which
-        calls this), both in one compiled call (`kernels.step_fading`): the fade's state is
+        """`step_batch` with the unseen-content fade (`models.motion.novelty_stage`, which calls
+        this) between the translator and the feet, in one compiled call (`kernels.step_fading`): the fade's state is
         `state[key]`, its reference `reference` (`NoveltyReference.arrays`)."""
         return self._step(state, frames, style_weights, (key, reference))
 

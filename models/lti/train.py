@@ -92,8 +92,9 @@ GROUND_DOFS = np.arange(3)  # the root's ground displacement (x, z) and yaw chan
 
 
 def joint_dofs(j: int) -> np.ndarray:
-    """Feature indices of body joint j (2..21) in the representation; the Hips (1) is the root's
-    7 features (ground displacement, yaw change, height, tilt), `joint_Root` (0) its ground travel."""
+    """Feature indices of joint j in the representation: a body joint's (2..21) three; the Hips'
+    (1) the root's 7 features (ground displacement, yaw change, height, tilt); `joint_Root`'s (0)
+    the ground travel alone (a context that reads the travel, not the pelvis's posture)."""
     if j == 0:
         return GROUND_DOFS
     if j == rep.HIPS:

@@ -79,7 +79,9 @@ class FadesUnseen:
         # leg toward the input's (faded after planting, such a foot slid with the fade)
         out, new = unplanted(state, frames, style_weights)
         faded_frame, new = self._fade(state, frames, out, new)
-        planted, feet = plant_frame(self.planter, faded_frame, state)  # type: ignore[attr-defined]
+        # the planter reads its entries from the method's new state where it set them (a session's
+        # first frame resets them), else as they were
+        planted, feet = plant_frame(self.planter, faded_frame, {**state, **new})  # type: ignore[attr-defined]
         return _with_faded(planted, faded_frame.faded), {**new, **feet}
 
     def _fade(self, state: State, frames: FrameBatch, out: FrameBatch, new: State) -> tuple[FrameBatch, State]:

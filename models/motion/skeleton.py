@@ -88,22 +88,33 @@ class Motion:
 
 
 def travel_on(motion: Motion, joint: int) -> Motion:
-    """`motion` with every motion of `joint`'s ancestors moved into `joint` (the same world
-    pose): the ancestors held at their first frame. Why: a capture may carry its travel on a
-    root joint above the hips (4 of dataset 1's neutral clips do, on `joint_Root`), and the
-    models read the hips' translation as the body's travel; unfolded, they saw a walk in place
-    and the travel came back unplanted under the feet."""
+    """`motion` with every motion of `joint`'s ancestors moved into it (the same world pose): the
+    ancestors held at their first frame's rotation and their rest offset, where readers that
+    take one translation per frame (the service, the viewer, `clip_on_skeleton`) put them. Why:
+    a capture may carry its travel on a root joint above the hips (4 of dataset 1's neutral
+    clips do, on `joint_Root`), and the models read the hips' translation as the body's travel;
+    unfolded, they saw a walk in place and the travel came back unplanted under the feet."""
     chain = []
-    a = int(motion.skeleton.parents[joint])
-    while a >= 0:
-        chain.append(a)
-        a = int(motion.skeleton.parents[a])
-    held = lambda a: np.array_equal(a[:, chain], np.broadcast_to(a[:1, chain], a[:, chain].shape))  # noqa: E731
-    if not chain or not motion.num_frames or (held(motion.rotations) and held(motion.translations)):
-        return motion  # nothing above the joint moves
+    up = int(motion.skeleton.parents[joint])
+    while up >= 0:
+        chain.append(up)
+        up = int(motion.skeleton.parents[up])
+    rest = np.asarray(motion.skeleton.offsets, np.float64)[chain]
+    if (
+        not chain
+        or not motion.num_frames
+        or (
+            np.array_equal(
+                motion.rotations[:, chain],
+                np.broadcast_to(motion.rotations[:1, chain], (motion.num_frames, len(chain), 4)),
+            )
+            and np.array_equal(motion.translations[:, chain], np.broadcast_to(rest, (motion.num_frames, len(chain), 3)))
+        )
+    ):
+        return motion  # nothing above the joint moves or sits off its rest offset
     rotations, translations = motion.rotations.copy(), motion.translations.copy()
     rotations[:, chain] = motion.rotations[:1, chain]
-    translations[:, chain] = motion.translations[:1, chain]
+    translations[:, chain] = rest
     g_rot, g_pos = motion.global_transforms()
     held_rot, held_pos = fk(rotations, translations, motion.skeleton.parents)
     parent = int(motion.skeleton.parents[joint])
