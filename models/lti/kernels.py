@@ -248,8 +248,7 @@ class Work(NamedTuple):
     carried: np.ndarray  # (1, J, 4) its carried rotations
     point: np.ndarray  # (B, 2) int64: the planter's held points, as it indexes with them
     group_u: np.ndarray  # flat: the normalised features a group of rows reads, (inputs, k)
-    staged_root: np.ndarray  # (B, 3) the step's root before the unseen-content fade (`step_fading`)
-    staged_rotations: np.ndarray  # (B, J, 4) and its rotations
+    styled_rotations: np.ndarray  # (B, J, 4) the body before the unseen-content fade (`step_fading`)
     proj: np.ndarray  # flat: the footplant discriminants of a chunk of the sessions using a style, (2, k)
 
 
@@ -274,7 +273,6 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
         np.empty((1, NUM_JOINTS, 4)),
         np.empty((batch, 2), np.int64),
         np.empty(FEATURE_DIM * k),
-        np.empty((batch, 3)),
         np.empty((batch, NUM_JOINTS, 4)),
         np.empty(2 * k),
     )
@@ -295,7 +293,7 @@ CONSTANT_SCHEMAS = (
     "b0 b0 b0 b0 b0",  # Switches
     "f2 f2 f1",  # Bends
 )
-WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f2 f3 f1"
+WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f3 f1"
 
 
 def pack(
@@ -401,7 +399,7 @@ def unpack_work(p):
         _f(p, 0).reshape(_s2(p, 0)), _f(p, 1).reshape(_s4(p, 1)), _i(p, 2), _f(p, 3), _f(p, 4), _f(p, 5), _f(p, 6),
         _f(p, 7), _f(p, 8), _f(p, 9).reshape(_s2(p, 9)), _b(p, 10).reshape(_s2(p, 10)), _b(p, 11),
         _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s3(p, 13)), _i(p, 14).reshape(_s2(p, 14)), _f(p, 15),
-        _f(p, 16).reshape(_s2(p, 16)), _f(p, 17).reshape(_s3(p, 17)), _f(p, 18),
+        _f(p, 16).reshape(_s3(p, 16)), _f(p, 17),
     )  # fmt: skip
 
 
@@ -848,7 +846,7 @@ def step_fading(frame, x, new_x, carry, new_carry, out, constants, work, fade):
     `novelty_kernels.fade_step` takes them."""
     frame, out, work, constants = Frame(*frame), Output(*out), unpack_work(work), unpack_constants(constants)
     (before, feet_before), (after, feet_after) = unpack(carry, x), unpack(new_carry, new_x)
-    styled = Output(work.staged_root, work.staged_rotations, out.contacts)
+    styled = Output(out.root, work.styled_rotations, out.contacts)  # `style` leaves its root alone
     style(frame, before, after, styled, constants, work)
     control, old, table, anchors_starts, floats, bones, centres, new, faded = fade
     fade_step(

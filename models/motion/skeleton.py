@@ -100,18 +100,9 @@ def travel_on(motion: Motion, joint: int) -> Motion:
         chain.append(up)
         up = int(motion.skeleton.parents[up])
     rest = np.asarray(motion.skeleton.offsets, np.float64)[chain]
-    if (
-        not chain
-        or not motion.num_frames
-        or (
-            np.array_equal(
-                motion.rotations[:, chain],
-                np.broadcast_to(motion.rotations[:1, chain], (motion.num_frames, len(chain), 4)),
-            )
-            and np.array_equal(motion.translations[:, chain], np.broadcast_to(rest, (motion.num_frames, len(chain), 3)))
-        )
-    ):
-        return motion  # nothing above the joint moves or sits off its rest offset
+    above_rot, above_pos = motion.rotations[:, chain], motion.translations[:, chain]
+    if not motion.num_frames or ((above_rot == above_rot[:1]).all() and (above_pos == rest).all()):
+        return motion  # nothing above the joint moves or sits off its rest offset (or nothing is above)
     rotations, translations = motion.rotations.copy(), motion.translations.copy()
     rotations[:, chain] = motion.rotations[:1, chain]
     translations[:, chain] = rest
