@@ -224,13 +224,16 @@ def test_a_hinted_foot_pulls_a_floor_left_low_up(bn_walk, hinted):
     assert not contacts[2].any() and contacts[3].all() == hinted
 
 
-def _held_offsets(planter, roots: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One clip through `planter`: (planted roots (F, 3), planted legs (F, 2), each leg's
-    horizontal IK offset (F, 2))."""
+def _held_offsets(
+    planter, roots: np.ndarray, rotations: np.ndarray, hints: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One clip through `planter` (with the model's contact `hints` (F, 2) if given): (planted
+    roots (F, 3), planted legs (F, 2), each leg's horizontal IK offset (F, 2))."""
     state = planter.init_state(1)
     out_root, contacts, offsets = np.empty_like(roots), np.empty((len(roots), 2), bool), np.empty((len(roots), 2))
     for t in range(len(roots)):
-        r, _, c, state = planter(state, roots[t : t + 1], rotations[t : t + 1])
+        h = None if hints is None else hints[t : t + 1]
+        r, _, c, state = planter(state, roots[t : t + 1], rotations[t : t + 1], hints=h)
         out_root[t], contacts[t] = r[0], c[0]
         offsets[t] = np.linalg.norm(state["feet_offset"][0][:, [0, 2]], axis=-1)
     return out_root, contacts, offsets
@@ -284,6 +287,44 @@ def test_the_root_move_for_two_held_feet_is_the_shortest_into_both_discs():
         inside = (np.linalg.norm(xs - a, axis=1) <= r) & (np.linalg.norm(xs - b, axis=1) <= r)
         if inside.any():
             assert np.linalg.norm(g) <= np.linalg.norm(xs[inside], axis=1).min() + 1e-6
+
+
+def test_a_foot_the_model_calls_down_is_held_to_hint_offset(bn_walk):
+    """The walk's legs over a still root, the model's hints calling each foot down whenever the
+    real walk plants it: unhinted, a hold lets go past `max_offset`; hinted, past `hint_offset`
+    only, so the feet stay held longer. Without hints `hint_offset` changes nothing."""
+    still = _skating(bn_walk, 0.0)
+    _, real, _ = _held_offsets(model_rig_planter(bn_walk.fps), bn_walk.translations[:, HIPS], bn_walk.rotations)
+    plain = model_rig_planter(bn_walk.fps, max_offset=8.0)
+    longer = model_rig_planter(bn_walk.fps, max_offset=8.0, hint_offset=16.0)
+    _, c8, o8 = _held_offsets(plain, still, bn_walk.rotations, hints=real)
+    _, c16, o16 = _held_offsets(longer, still, bn_walk.rotations, hints=real)
+    assert o8[c8].max() <= 8.0 + 1e-6 < o16[c16].max() <= 16.0 + 1e-6
+    assert c16.mean() > c8.mean()
+    for x, y in zip(_held_offsets(plain, still, bn_walk.rotations), _held_offsets(longer, still, bn_walk.rotations)):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_the_root_move_for_two_held_feet_does_not_jump_as_their_discs_part():
+    """`feet_kernels.into_both_discs` either side of the discs touching (centres 2r apart) gives
+    nearly the same move, at any share; parted further, the foot given the whole share keeps its
+    hold within r, and the move changes little with the share."""
+    rng = np.random.default_rng(7)
+    r = 5.0
+    for _ in range(200):
+        a = rng.uniform(-12, 12, 2)
+        u = rng.normal(size=2)
+        u /= np.linalg.norm(u)
+        share = rng.uniform()
+        inside, outside = (
+            np.array(feet_kernels.into_both_discs(a[0], a[1], *(a + d * u), r, share))
+            for d in (2 * r - 1e-7, 2 * r + 1e-7)
+        )
+        np.testing.assert_allclose(inside, outside, atol=1e-3)
+        b = a + 3 * r * u
+        assert np.linalg.norm(np.array(feet_kernels.into_both_discs(a[0], a[1], b[0], b[1], r, 0.0)) - a) <= r + 1e-9
+        near = (np.array(feet_kernels.into_both_discs(a[0], a[1], b[0], b[1], r, s)) for s in (share, share + 1e-7))
+        np.testing.assert_allclose(*near, atol=1e-5)
 
 
 def test_the_root_gives_way_no_faster_than_give_speed(bn_walk):

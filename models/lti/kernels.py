@@ -289,7 +289,7 @@ CONSTANT_SCHEMAS = (
     "f3 f3 f2",  # Ball
     "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
     "f3 f3 f4 f2 i1 i2 f1 f1 f0",  # RaisedArm
-    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
+    "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
     "b0 b0 b0 b0 b0",  # Switches
     "f2 f2 f1",  # Bends
 )
@@ -385,10 +385,10 @@ def unpack_constants(p):
     planter = (
         _i(p, 45)[0], _i(p, 46).reshape(_s2(p, 46)), _f(p, 47).reshape(_s2(p, 47)), _f(p, 48), _f(p, 49)[0],
         _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0],
-        _f(p, 57)[0], _f(p, 58)[0], _f(p, 59)[0],
+        _f(p, 57)[0], _f(p, 58)[0], _f(p, 59)[0], _f(p, 60)[0],
     )  # fmt: skip
-    on = Switches(_b(p, 60)[0], _b(p, 61)[0], _b(p, 62)[0], _b(p, 63)[0], _b(p, 64)[0])
-    bends = Bends(_f(p, 65).reshape(_s2(p, 65)), _f(p, 66).reshape(_s2(p, 66)), _f(p, 67))
+    on = Switches(_b(p, 61)[0], _b(p, 62)[0], _b(p, 63)[0], _b(p, 64)[0], _b(p, 65)[0])
+    bends = Bends(_f(p, 66).reshape(_s2(p, 66)), _f(p, 67).reshape(_s2(p, 67)), _f(p, 68))
     return sys, fp, ball, hands, arm, planter, on, bends
 
 

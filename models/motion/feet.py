@@ -6,15 +6,17 @@ agree, so planted feet slide. Per frame, causally, on the model rig:
    `max_offset` a leash lets the root give way against the held points' motion. With `give`,
    the root also takes, on the frame, whatever a held foot still on the ground would need past
    `give` (the shortest move that keeps every such hold within it; two held feet the animation
-   spreads further apart: the one it moves less), at most `give_speed`, the holds taking the rest
-   up to `max_offset`: a hold no longer lets go and snaps back because the animation's foot slid
-   under a body that did not follow (Kovar et al. 2002: the root adjusted, then the legs' IK).
+   spreads further apart: the one it moves less, the other as near as that allows), at most
+   `give_speed`, the holds taking the rest up to `max_offset`: a hold no longer lets go and snaps
+   back because the animation's foot slid under a body that did not follow (Kovar et al. 2002:
+   the root adjusted, then the legs' IK).
 2. Contact: a toe or ankle within `margin` of its floor touching down slowly enough, or the
    model's `hints`. The toe is held whenever it is down, else the ankle. Each floor follows its
    point down at once and up by `floor_rise` per second (networks' feet float or sink); a hinted
    foot lifts it at once to `feet_kernels.HINT_FLOOR_RISE` below it (the hint says the ground is near).
 3. Hold: an offset collects the opposite of the held point's motion and two-bone IK moves the
-   ankle by it; released, it fades by `decay` per frame. Soft IK eases the last `soft` cm of reach.
+   ankle by it, up to `max_offset` (`hint_offset` while the model's hints call the foot down);
+   released, it fades by `decay` per frame. Soft IK eases the last `soft` cm of reach.
 
 One compiled pass (`feet_kernels.plant_feet`); the state is plain `feet_*` arrays, so it joins a
 model's state, snapshots and resumes with it.
@@ -71,6 +73,9 @@ class FootPlanter:
     hint_speed: float = math.inf  # a hinted foot faster than this over the ground does not plant
     give: float = 0.0  # past this the root, not the leg, takes a held foot's hold (0: never; below max_offset)
     give_speed: float = math.inf  # per second: the most the root moves off its path for `give`
+    # a held foot the hints call down lets go only this far from the animation (None:
+    # `max_offset`): where the model or its input says the foot is planted, the leg is held further
+    hint_offset: float | None = None
     _params: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -93,6 +98,7 @@ class FootPlanter:
                 float(self.hint_speed),
                 float(self.give),
                 float(self.give_speed),
+                float(self.max_offset if self.hint_offset is None else self.hint_offset),
             ),
         )
 

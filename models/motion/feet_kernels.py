@@ -175,15 +175,20 @@ def _least_in_discs(ax, az, bx, bz, r):
     return best_x, best_z
 
 
+# cm: two held feet the animation spreads apart, one moved this much more on the frame than the
+# other: the root serves that other alone (`root_gives`); moved alike, both share (no jump as
+# they swap)
+SERVE_CM = 1.0
+
+
 @njit(cache=True, error_model="numpy")
 def root_gives(b, ox, oz, height, rel, floor, margin, before, give):
     """How far (x, z) session b's root at (ox, oz) moves so that no held leg still on the ground
     needs its ankle moved more than `give` from the animation (Kovar et al. 2002: the root takes
     what the legs cannot). Each such leg's offset after this frame would be its last less its
     point's motion, and the root's move lessens each alike: the shortest move into every disc of
-    radius `give` about them. Two legs whose discs do not meet (the animation spreads feet both
-    held): the one the animation moves less this frame is served, the other lets go. Why: a leg
-    held further bends out of the style's poses, and let go its foot snaps back over the ground."""
+    radius `give` about them (`into_both_discs` for two). Why: a leg held further bends out of
+    the style's poses, and let go its foot snaps back over the ground."""
     _, prev_root, _, prev_rel, prev_contact, prev_point, prev_offset, _ = before
     n, ax, az, a_moved, bx, bz, b_moved = 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for leg in range(2):
@@ -202,11 +207,29 @@ def root_gives(b, ox, oz, height, rel, floor, margin, before, give):
         n += 1
     if n == 0:
         return 0.0, 0.0
-    if n == 2 and (ax - bx) ** 2 + (az - bz) ** 2 <= 4.0 * give * give:
-        return _least_in_discs(ax, az, bx, bz, give)
-    if n == 2 and b_moved < a_moved:
-        ax, az = bx, bz
-    return _into_disc(0.0, 0.0, ax, az, give)
+    if n == 1:
+        return _into_disc(0.0, 0.0, ax, az, give)
+    # the foot the animation moved less is served: all of it once the other moved SERVE_CM more
+    share = min(max(0.5 + (math.sqrt(a_moved) - math.sqrt(b_moved)) / (2.0 * SERVE_CM), 0.0), 1.0)
+    return into_both_discs(ax, az, bx, bz, give, share)
+
+
+@njit(cache=True, error_model="numpy")
+def into_both_discs(ax, az, bx, bz, r, share):
+    """The root's move for two held feet (`root_gives`): the shortest (x, z) in both discs of
+    radius r about a and b where they meet. Else (the animation spreads the feet) a point between
+    a's disc's point nearest b and b's nearest a, `share` of the way to b's (`root_gives` serves
+    the foot the animation moved less: its hold stays within r, the other's grows as little as
+    that allows). Continuous as the discs part (both give their one shared point) and in `share`.
+    Why: serving one foot at its disc's point nearest no move jumped as the discs parted or the
+    feet swapped, and a round-off difference in LTI's stream moved its root 1-2 cm on a frame."""
+    dx, dz = bx - ax, bz - az
+    d2 = dx * dx + dz * dz
+    if d2 <= 4.0 * r * r:
+        return _least_in_discs(ax, az, bx, bz, r)
+    d = math.sqrt(d2)
+    ux, uz = dx / d, dz / d
+    return ax + r * ux + share * (d - 2.0 * r) * ux, az + r * uz + share * (d - 2.0 * r) * uz
 
 
 @njit(cache=True, error_model="numpy")
@@ -223,7 +246,7 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
     _, out_root, _, rel, contacts, point, offset, floor = after
     (
         hips, chains, offsets, floors, margin, floor_rise, onset_speed, max_offset, decay, follow, soft, fps, hint_speed,
-        give, give_speed,
+        give, give_speed, hint_offset,
     ) = planter  # fmt: skip
     for b in range(root.shape[0]):
         for leg in range(2):
@@ -291,7 +314,7 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
                     # touch-down (slow, or slower than the root along its path, i.e. pushing back):
                     # hold from here on, carrying any offset still fading
                     planted = True
-            if planted and math.sqrt(ex * ex + ez * ez) > max_offset:
+            if planted and math.sqrt(ex * ex + ez * ez) > (hint_offset if hints[b, leg] else max_offset):
                 planted = False  # the animation has walked away from the hold: let the foot go
             if not active[b]:
                 planted, ex, ez = False, 0.0, 0.0
