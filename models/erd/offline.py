@@ -11,12 +11,12 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from ..motion.feet import model_rig_planter
 from ..motion.rotations import quat_mul, rotate_y, yaw_quat
 from ..motion.skeleton import Motion
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker
 from .model import Generator
+from .runtime import planter
 
 
 def to_world(
@@ -60,7 +60,7 @@ def with_root(motion: Motion, x: np.ndarray, root: np.ndarray, rots: np.ndarray,
     """`motion` with these Hips translations and rotations, the feet the input has down (features
     `x`) planted first where `foot_lock`."""
     if foot_lock:
-        root, rots, _ = model_rig_planter(FPS).clip(root, rots, hints=x[:, CONTACT] > 0.5)
+        root, rots, _ = planter().clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()
     trans[:, 1] = root
     return replace(motion, rotations=rots, translations=trans)

@@ -73,6 +73,11 @@ HINT_SPEED = 120.0  # cm/s: a foot the footplant classifier calls planted plants
 # (`FootPlanter.max_offset`; 15 for the networks). Longer holds turn the translated thighs out of
 # the style's real frames (docs/eval/ablation.md); shorter ones let more feet slide.
 HOLD_CM = 8.0
+# cm: ... but a foot the footplant classifier calls planted (the paper's footplant constraint)
+# is held to this (`FootPlanter.hint_offset`): the translated foot often lands still moving,
+# and let go at HOLD_CM it skidded forward in 3-4 cm steps. Chosen on validation among 12, 16
+# and 24 (docs/eval/ablation.md).
+HINT_HOLD_CM = 12.0
 # cm, cm/s (the `root_give` stage): past GIVE_CM a held foot's hold moves the root instead, at
 # most GIVE_SPEED (`FootPlanter.give`, `give_speed`). LTI's joints, each its own system, slide a
 # planted foot under a body that does not follow; let go at HOLD_CM, such a foot snapped back
@@ -292,6 +297,7 @@ class LTIStyleModel(LTIStyles):
             self.fps,
             hint_speed=HINT_SPEED,
             max_offset=HOLD_CM,
+            hint_offset=HINT_HOLD_CM,
             give=GIVE_CM if "root_give" in self.stages else 0.0,
             give_speed=GIVE_SPEED,
         )
