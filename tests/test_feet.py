@@ -291,8 +291,9 @@ def test_the_root_move_for_two_held_feet_is_the_shortest_into_both_discs():
 
 def test_a_foot_the_model_calls_down_is_held_to_hint_offset(bn_walk):
     """The walk's legs over a still root, the model's hints calling each foot down whenever the
-    real walk plants it: unhinted, a hold lets go past `max_offset`; hinted, past `hint_offset`
-    only, so the feet stay held longer. Without hints `hint_offset` changes nothing."""
+    real walk plants it: without `hint_offset` a hold lets go past `max_offset`; with it the
+    hinted holds are kept (two feet pulled apart grow up to it), so the feet stay held longer.
+    Without hints `hint_offset` changes nothing."""
     still = _skating(bn_walk, 0.0)
     _, real, _ = _held_offsets(model_rig_planter(bn_walk.fps), bn_walk.translations[:, HIPS], bn_walk.rotations)
     plain = model_rig_planter(bn_walk.fps, max_offset=8.0)
@@ -307,8 +308,8 @@ def test_a_foot_the_model_calls_down_is_held_to_hint_offset(bn_walk):
 
 def test_the_root_move_for_two_held_feet_does_not_jump_as_their_discs_part():
     """`feet_kernels.into_both_discs` either side of the discs touching (centres 2r apart) gives
-    nearly the same move, at any share; parted further, the foot given the whole share keeps its
-    hold within r, and the move changes little with the share."""
+    nearly the same move, at any share; parted further, at share 0 foot a keeps its hold within r,
+    and the move changes little with the share."""
     rng = np.random.default_rng(7)
     r = 5.0
     for _ in range(200):
@@ -325,6 +326,18 @@ def test_the_root_move_for_two_held_feet_does_not_jump_as_their_discs_part():
         assert np.linalg.norm(np.array(feet_kernels.into_both_discs(a[0], a[1], b[0], b[1], r, 0.0)) - a) <= r + 1e-9
         near = (np.array(feet_kernels.into_both_discs(a[0], a[1], b[0], b[1], r, s)) for s in (share, share + 1e-7))
         np.testing.assert_allclose(*near, atol=1e-5)
+
+
+def test_of_two_held_feet_the_one_the_animation_moved_less_is_served():
+    """`feet_kernels.served_share`: the slower foot gets the root's move (its hold stays within
+    r), both share while they move alike, and the width is a speed (the same at any rate)."""
+    r, a, b = 5.0, np.array([-6.0, 0.0]), np.array([6.0, 0.0])
+    for fps in (30.0, 120.0):
+        fast = 2.0 * feet_kernels.SERVE_SPEED / fps  # cm this frame: twice the width
+        for a_moved, b_moved, served in ((0.0, fast, a), (fast, 0.0, b)):
+            move = np.array(feet_kernels.into_both_discs(*a, *b, r, feet_kernels.served_share(a_moved, b_moved, fps)))
+            assert np.linalg.norm(move - served) <= r + 1e-9
+        assert feet_kernels.served_share(fast, fast, fps) == 0.5
 
 
 def test_the_root_gives_way_no_faster_than_give_speed(bn_walk):

@@ -16,7 +16,7 @@ from ..motion.skeleton import Motion
 from ..motion.twist import transfer_twist
 from .features import BODY, CONTACT, FPS, FeatureMaker
 from .model import Generator
-from .runtime import planter
+from .runtime import foot_planter
 
 
 def to_world(
@@ -60,7 +60,7 @@ def with_root(motion: Motion, x: np.ndarray, root: np.ndarray, rots: np.ndarray,
     """`motion` with these Hips translations and rotations, the feet the input has down (features
     `x`) planted first where `foot_lock`."""
     if foot_lock:
-        root, rots, _ = planter().clip(root, rots, hints=x[:, CONTACT] > 0.5)
+        root, rots, _ = foot_planter().clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()
     trans[:, 1] = root
     return replace(motion, rotations=rots, translations=trans)

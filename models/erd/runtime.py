@@ -71,15 +71,15 @@ if TYPE_CHECKING:
     from .model import Generator
 
 WEIGHTS_FILE = "erd.npz"
-# cm: a held foot the input has down (the hints) lets go this far from the network's leg, not at
-# the planter's 15 (`FootPlanter.hint_offset`): the network's feet often still move where the
-# input's are down, and let go they snapped forward over the floor (other performers' walks).
+# cm: a held foot the input has down (the hints) lets go this far from the network's leg
+# (`FootPlanter.hint_offset`), not at `max_offset`'s 15: the network's feet often still move where
+# the input's are down, and let go they snapped forward over the floor (other performers' walks).
 # Chosen on validation among 22.5 and 30 (docs/eval/ablation.md).
 HINT_HOLD_CM = 22.5
 RENAMED = {"slow_in": "leaf_prior/slow", "slow_out": "output_prior/slow"}  # state keys of older replicas
 
 
-def planter() -> FootPlanter:
+def foot_planter() -> FootPlanter:
     """Style-ERD's foot planter, the stream's and the offline path's."""
     return model_rig_planter(FPS, hint_offset=HINT_HOLD_CM)
 
@@ -142,7 +142,7 @@ class ERDModel(ERDStyles):
         self.hinges, self.network_twists = hinges, network_twists
         self._decoding = (_kernel_plan(skeleton, ()), kernel_hinges(skeleton, hinges))  # `transfer_twist`'s, once
         self.maker = FeatureMaker(skeleton, self.ref)
-        self.planter = planter()
+        self.planter = foot_planter()
         self.H = config["latent"]
         self.Ln, self.Ls = config["neutral_layers"], config["style_layers"]
         if self.Ln != self.Ls:

@@ -76,7 +76,7 @@ HOLD_CM = 8.0
 # cm: ... but a foot the footplant classifier calls planted (the paper's footplant constraint)
 # is held to this (`FootPlanter.hint_offset`): the translated foot often lands still moving,
 # and let go at HOLD_CM it skidded forward in 3-4 cm steps. Chosen on validation among 12, 16
-# and 24 (docs/eval/ablation.md).
+# and 24 with the earlier two-feet move (docs/eval/ablation.md).
 HINT_HOLD_CM = 12.0
 # cm, cm/s (the `root_give` stage): past GIVE_CM a held foot's hold moves the root instead, at
 # most GIVE_SPEED (`FootPlanter.give`, `give_speed`). LTI's joints, each its own system, slide a

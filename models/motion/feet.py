@@ -7,7 +7,7 @@ agree, so planted feet slide. Per frame, causally, on the model rig:
    the root also takes, on the frame, whatever a held foot still on the ground would need past
    `give` (the shortest move that keeps every such hold within it; two held feet the animation
    spreads further apart: the one it moves less, the other as near as that allows), at most
-   `give_speed`, the holds taking the rest up to `max_offset`: a hold no longer lets go and snaps
+   `give_speed`, the holds taking the rest up to their let-go: a hold no longer lets go and snaps
    back because the animation's foot slid under a body that did not follow (Kovar et al. 2002:
    the root adjusted, then the legs' IK).
 2. Contact: a toe or ankle within `margin` of its floor touching down slowly enough, or the
@@ -15,8 +15,9 @@ agree, so planted feet slide. Per frame, causally, on the model rig:
    point down at once and up by `floor_rise` per second (networks' feet float or sink); a hinted
    foot lifts it at once to `feet_kernels.HINT_FLOOR_RISE` below it (the hint says the ground is near).
 3. Hold: an offset collects the opposite of the held point's motion and two-bone IK moves the
-   ankle by it, up to `max_offset` (`hint_offset` while the model's hints call the foot down);
-   released, it fades by `decay` per frame. Soft IK eases the last `soft` cm of reach.
+   ankle by it; past `max_offset` it lets go, unless the hints call the foot down: then it is
+   kept (the leash has the root follow one held foot; two the animation pulls apart grow up to
+   `hint_offset`). Released, it fades by `decay` per frame. Soft IK eases the last `soft` cm of reach.
 
 One compiled pass (`feet_kernels.plant_feet`); the state is plain `feet_*` arrays, so it joins a
 model's state, snapshots and resumes with it.
@@ -66,7 +67,7 @@ class FootPlanter:
     margin: float = 3.0  # above a point's floor height it is off the ground
     floor_rise: float = 3.0  # per second: how fast a point's floor follows it up
     onset_speed: float = 60.0  # a foot faster than this over the ground does not plant
-    max_offset: float = 15.0  # a hold this far from the animation lets go
+    max_offset: float = 15.0  # a hold this far from the animation lets go (without a hint)
     decay: float = 0.7  # per frame, of a released foot's offset
     follow: float = 0.0  # share of the root motion taken from the planted feet (0: the path is the model's)
     soft: float = 5.0  # the last this much of a leg's reach is eased (feet_kernels.soft_reach): no knee pops
@@ -74,7 +75,7 @@ class FootPlanter:
     give: float = 0.0  # past this the root, not the leg, takes a held foot's hold (0: never; below max_offset)
     give_speed: float = math.inf  # per second: the most the root moves off its path for `give`
     # a held foot the hints call down lets go only this far from the animation (None:
-    # `max_offset`): where the model or its input says the foot is planted, the leg is held further
+    # `max_offset`): where the model or its input says the foot is planted, it is kept
     hint_offset: float | None = None
     _params: tuple = field(init=False, repr=False, compare=False)
 

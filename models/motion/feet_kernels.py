@@ -175,14 +175,21 @@ def _least_in_discs(ax, az, bx, bz, r):
     return best_x, best_z
 
 
-# cm: two held feet the animation spreads apart, one moved this much more on the frame than the
-# other: the root serves that other alone (`root_gives`); moved alike, both share (no jump as
-# they swap)
-SERVE_CM = 1.0
+# cm/s: two held feet the animation spreads apart, one moving this much faster than the other:
+# the root serves the slower alone (`served_share`); moving alike, both share, so the move does
+# not jump as they swap. A width, not tuned (1 cm a frame at 30 fps)
+SERVE_SPEED = 30.0
 
 
 @njit(cache=True, error_model="numpy")
-def root_gives(b, ox, oz, height, rel, floor, margin, before, give):
+def served_share(a_moved, b_moved, fps):
+    """`into_both_discs`' share for two held feet that the animation moved a_moved and b_moved
+    (cm) this frame: 0 serves a, 1 serves b, the slower foot served."""
+    return min(max(0.5 + (a_moved - b_moved) * fps / (2.0 * SERVE_SPEED), 0.0), 1.0)
+
+
+@njit(cache=True, error_model="numpy")
+def root_gives(b, ox, oz, height, rel, floor, margin, before, give, fps):
     """How far (x, z) session b's root at (ox, oz) moves so that no held leg still on the ground
     needs its ankle moved more than `give` from the animation (Kovar et al. 2002: the root takes
     what the legs cannot). Each such leg's offset after this frame would be its last less its
@@ -209,9 +216,7 @@ def root_gives(b, ox, oz, height, rel, floor, margin, before, give):
         return 0.0, 0.0
     if n == 1:
         return _into_disc(0.0, 0.0, ax, az, give)
-    # the foot the animation moved less is served: all of it once the other moved SERVE_CM more
-    share = min(max(0.5 + (math.sqrt(a_moved) - math.sqrt(b_moved)) / (2.0 * SERVE_CM), 0.0), 1.0)
-    return into_both_discs(ax, az, bx, bz, give, share)
+    return into_both_discs(ax, az, bx, bz, give, served_share(math.sqrt(a_moved), math.sqrt(b_moved), fps))
 
 
 @njit(cache=True, error_model="numpy")
@@ -221,8 +226,8 @@ def into_both_discs(ax, az, bx, bz, r, share):
     a's disc's point nearest b and b's nearest a, `share` of the way to b's (`root_gives` serves
     the foot the animation moved less: its hold stays within r, the other's grows as little as
     that allows). Continuous as the discs part (both give their one shared point) and in `share`.
-    Why: serving one foot at its disc's point nearest no move jumped as the discs parted or the
-    feet swapped, and a round-off difference in LTI's stream moved its root 1-2 cm on a frame."""
+    Why: a move that jumps as the discs part or the feet swap shakes the root, and makes two
+    computations of one stream that differ by round-off differ by centimetres."""
     dx, dz = bx - ax, bz - az
     d2 = dx * dx + dz * dz
     if d2 <= 4.0 * r * r:
@@ -273,15 +278,16 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
                     held = max(held, math.sqrt(prev_offset[b, leg, 0] ** 2 + prev_offset[b, leg, 2] ** 2))
             if n > 0:
                 # the leash: a hold past a quarter of max_offset makes the root give way, all of it at
-                # max_offset, so a leg is not stretched past it (the growth per frame shrinks as it nears)
+                # max_offset (the growth per frame shrinks as it nears): past it one held foot no
+                # longer grows (the root follows it), two the animation pulls apart up to hint_offset
                 f = max(follow, min(max((held / max_offset - 0.25) / 0.75, 0.0), 1.0))
                 dx = f * fx / n + (1.0 - f) * dx
                 dz = f * fz / n + (1.0 - f) * dz
             ox, oz = prev_root[b, 0] + dx, prev_root[b, 2] + dz
             if give > 0.0:
                 # the root takes what held feet would need past `give`, at most `give_speed`: the
-                # path eases off the model's; the rest the holds take, up to `max_offset`
-                gx, gz = root_gives(b, ox, oz, root[b, 1], rel, floor, margin, before, give)
+                # path eases off the model's; the rest the holds take, up to their let-go
+                gx, gz = root_gives(b, ox, oz, root[b, 1], rel, floor, margin, before, give, fps)
                 gn = math.sqrt(gx * gx + gz * gz)
                 if gn > give_speed / fps:
                     gx, gz = gx * give_speed / fps / gn, gz * give_speed / fps / gn
