@@ -76,12 +76,17 @@ WEIGHTS_FILE = "erd.npz"
 # the input's are down, and let go they snapped forward over the floor (other performers' walks).
 # Chosen on validation among 22.5 and 30 (docs/eval/ablation.md).
 HINT_HOLD_CM = 22.5
+# cm, cm/s: past GIVE_CM a held foot's hold moves the root instead, at most GIVE_SPEED
+# (`FootPlanter.give`, `give_speed`): LTI's values, not tuned here. On validation the legs held
+# less far turned less (dataset-2 elderly jitter 2.27 -> 1.78) and running content rose for
+# three styles (docs/eval/ablation.md).
+GIVE_CM, GIVE_SPEED = 5.0, 30.0
 RENAMED = {"slow_in": "leaf_prior/slow", "slow_out": "output_prior/slow"}  # state keys of older replicas
 
 
 def foot_planter() -> FootPlanter:
     """Style-ERD's foot planter, the stream's and the offline path's."""
-    return model_rig_planter(FPS, hint_offset=HINT_HOLD_CM)
+    return model_rig_planter(FPS, hint_offset=HINT_HOLD_CM, give=GIVE_CM, give_speed=GIVE_SPEED)
 
 
 class Plan(NamedTuple):
