@@ -245,6 +245,27 @@ def test_zero_style_weights_pass_the_input_through():
         assert not out.contacts.any()
 
 
+def test_a_held_pose_comes_out_held_from_its_first_frame():
+    """Each system starts at the state its first input would settle it in, as a session starts
+    and as a style is weighted in: a pose held still comes out still, not swung in from the
+    mean pose over the first frames. (The legs are left out: a root system reads a standing
+    pose as a slow pace, and the planter's leg IK follows the root it moves,
+    `test_lti_standing.py`.)"""
+    model = _model()
+    index, load_motion, select = _data()
+    m = load_motion(select(index, style="normal", content="walk", split="val")[0])
+    held = FrameBatch(m.translations[20:21, rep.HIPS], m.rotations[20:21])
+    body = [j for j, name in enumerate(m.skeleton.names) if not any(k in name for k in ("Leg", "Foot", "Toe"))]
+    for style in model.styles():
+        state, rotations = model.init_state(1), []
+        for t in range(12):  # the style weighted in on the 4th frame
+            out, state = model.step_batch(state, held, _one_hot(model, style, 1) * (t >= 3))
+            rotations.append(out.rotations[0, body])
+        styled = np.array(rotations[3:])
+        assert np.abs(np.abs(np.sum(styled * styled[0], -1)) - 1.0).max() < 1e-9, style
+        assert np.abs(np.abs(np.sum(styled[0] * rotations[0], -1)) - 1.0).max() > 1e-6, style  # it is styled
+
+
 def test_step_leaves_its_input_state_unchanged():
     model = _model()
     index, load_motion, select = _data()

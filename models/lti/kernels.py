@@ -172,6 +172,7 @@ class Systems(NamedTuple):
     k: np.ndarray  # (S, 2) erf blend k_p, k_c
     ref: np.ndarray  # (S, 22, 4) per-joint reference rotations
     keep: float  # per frame, the share of the blend weight's eased history kept (`ease`)
+    steady: np.ndarray  # (x_off[S], 67) rows x_off[s]:x_off[s+1]: style s's (I - A)^-1 B (`start_state`)
 
 
 class Footplant(NamedTuple):
@@ -284,7 +285,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
 # Each record's fields as the kernel reads them: f float64, i int64, b bool; 0 a scalar, else the
 # number of dimensions. `pack` checks records against these, `unpack_constants` and `unpack_work` rebuild them in the kernel.
 CONSTANT_SCHEMAS = (
-    "i1 i1 i1 i1 f1 i1 i1 i2 i1 f1 f2 f2 f2 f2 f2 f2 f2 f3 f0",  # Systems
+    "i1 i1 i1 i1 f1 i1 i1 i2 i1 f1 f2 f2 f2 f2 f2 f2 f2 f3 f0 f2",  # Systems
     "f2 f3 f3 f3 b1 f3",  # Footplant
     "f3 f3 f2",  # Ball
     "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
@@ -366,29 +367,29 @@ def unpack_constants(p):
         _f(p, 9), _f(p, 10).reshape(_s2(p, 10)),
         _f(p, 11).reshape(_s2(p, 11)), _f(p, 12).reshape(_s2(p, 12)), _f(p, 13).reshape(_s2(p, 13)),
         _f(p, 14).reshape(_s2(p, 14)), _f(p, 15).reshape(_s2(p, 15)), _f(p, 16).reshape(_s2(p, 16)),
-        _f(p, 17).reshape(_s3(p, 17)), _f(p, 18)[0],
+        _f(p, 17).reshape(_s3(p, 17)), _f(p, 18)[0], _f(p, 19).reshape(_s2(p, 19)),
     )  # fmt: skip
     fp = Footplant(
-        _f(p, 19).reshape(_s2(p, 19)), _f(p, 20).reshape(_s3(p, 20)), _f(p, 21).reshape(_s3(p, 21)),
-        _f(p, 22).reshape(_s3(p, 22)), _b(p, 23), _f(p, 24).reshape(_s3(p, 24)),
+        _f(p, 20).reshape(_s2(p, 20)), _f(p, 21).reshape(_s3(p, 21)), _f(p, 22).reshape(_s3(p, 22)),
+        _f(p, 23).reshape(_s3(p, 23)), _b(p, 24), _f(p, 25).reshape(_s3(p, 25)),
     )  # fmt: skip
-    ball = Ball(_f(p, 25).reshape(_s3(p, 25)), _f(p, 26).reshape(_s3(p, 26)), _f(p, 27).reshape(_s2(p, 27)))
+    ball = Ball(_f(p, 26).reshape(_s3(p, 26)), _f(p, 27).reshape(_s3(p, 27)), _f(p, 28).reshape(_s2(p, 28)))
     hands = Hands(
-        _i(p, 28), _f(p, 29).reshape(_s2(p, 29)), _i(p, 30), _i(p, 31), _i(p, 32), _f(p, 33)[0], _f(p, 34)[0],
-        _f(p, 35)[0],
+        _i(p, 29), _f(p, 30).reshape(_s2(p, 30)), _i(p, 31), _i(p, 32), _i(p, 33), _f(p, 34)[0], _f(p, 35)[0],
+        _f(p, 36)[0],
     )  # fmt: skip
     arm = RaisedArm(
-        _f(p, 36).reshape(_s3(p, 36)), _f(p, 37).reshape(_s3(p, 37)), _f(p, 38).reshape(_s4(p, 38)),
-        _f(p, 39).reshape(_s2(p, 39)), _i(p, 40), _i(p, 41).reshape(_s2(p, 41)), _f(p, 42), _f(p, 43),
-        _f(p, 44)[0],
+        _f(p, 37).reshape(_s3(p, 37)), _f(p, 38).reshape(_s3(p, 38)), _f(p, 39).reshape(_s4(p, 39)),
+        _f(p, 40).reshape(_s2(p, 40)), _i(p, 41), _i(p, 42).reshape(_s2(p, 42)), _f(p, 43), _f(p, 44),
+        _f(p, 45)[0],
     )  # fmt: skip
     planter = (
-        _i(p, 45)[0], _i(p, 46).reshape(_s2(p, 46)), _f(p, 47).reshape(_s2(p, 47)), _f(p, 48), _f(p, 49)[0],
-        _f(p, 50)[0], _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0],
-        _f(p, 57)[0], _f(p, 58)[0], _f(p, 59)[0], _f(p, 60)[0],
+        _i(p, 46)[0], _i(p, 47).reshape(_s2(p, 47)), _f(p, 48).reshape(_s2(p, 48)), _f(p, 49), _f(p, 50)[0],
+        _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0], _f(p, 57)[0],
+        _f(p, 58)[0], _f(p, 59)[0], _f(p, 60)[0], _f(p, 61)[0],
     )  # fmt: skip
-    on = Switches(_b(p, 61)[0], _b(p, 62)[0], _b(p, 63)[0], _b(p, 64)[0], _b(p, 65)[0])
-    bends = Bends(_f(p, 66).reshape(_s2(p, 66)), _f(p, 67).reshape(_s2(p, 67)), _f(p, 68))
+    on = Switches(_b(p, 62)[0], _b(p, 63)[0], _b(p, 64)[0], _b(p, 65)[0], _b(p, 66)[0])
+    bends = Bends(_f(p, 67).reshape(_s2(p, 67)), _f(p, 68).reshape(_s2(p, 68)), _f(p, 69))
     return sys, fp, ball, hands, arm, planter, on, bends
 
 
@@ -531,6 +532,28 @@ def saturate(sys, s, u):
                 u[d, c] = hi + k_p * math.tanh((x - hi) / k_p)
             elif x < lo:
                 u[d, c] = lo - k_p * math.tanh((lo - x) / k_p)
+
+
+@njit(cache=True, error_model="numpy")
+def unset(x):
+    """Whether a style's LTI state is unset: exactly zero, as a session starts and as the step
+    leaves a style at weight 0 (a running system's state is never exactly zero)."""
+    for i in range(x.shape[0]):
+        if x[i] != 0.0:
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def start_state(sys, s, u, xin, c):
+    """Column c of xin := the state style s's systems settle in on column c of u held constant
+    (`StyleTranslator.steady_gain`): a session, or a style newly weighted in it, starts there."""
+    gain = sys.steady[sys.x_off[s] : sys.x_off[s + 1]]
+    for i in range(gain.shape[0]):
+        acc = 0.0
+        for d in range(FEATURE_DIM):
+            acc += gain[i, d] * u[d, c]
+        xin[i, c] = acc
 
 
 @njit(cache=True, error_model="numpy")
@@ -699,6 +722,9 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
             normalise(sys, s, feats, u, switches.blend, work.blend_w[:k])
             if switches.saturate:
                 saturate(sys, s, u)
+            for c in range(k):
+                if unset(before.x[work.rows[lo + c], a:e]):
+                    start_state(sys, s, u, xin, c)
             for c in range(k):
                 b = work.rows[lo + c]
                 # each style eases its own weight from the session's history, which takes the
@@ -1009,6 +1035,7 @@ def pack_styles(translators: list, keep: float) -> tuple[Systems, Footplant, Bal
         f64([(tr.k_p, tr.k_c) for tr in translators]),
         f64([tr.ref for tr in translators]),
         float(keep),
+        np.ascontiguousarray(np.concatenate([tr.steady_gain() for tr in translators]), dtype=np.float64),
     )
     footplant = Footplant(
         np.ascontiguousarray(np.concatenate(fp_w).T, dtype=np.float64),
