@@ -30,7 +30,9 @@ from ..motion.style_carry import FIELDS, StyleCarry, carry_rows
 from ..stages import Rows, StageFrame, style_rows
 from .dataset import TARGET_STYLES
 
-SLOW_WEIGHT = 0.5  # the newest frame's weight in the slow copy (a ~3-frame exponential average)
+# the newest frame's weight in the slow copy (an exponential average ~4 frames behind): chosen on
+# validation among 0.5, 0.3, 0.2 and 0.1 (docs/eval/ablation.md)
+SLOW_WEIGHT = 0.2
 
 
 def run_file(path: Path) -> Path:
