@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..motion.rotation_ball import fit_prior
-from ..motion.rotations import quat_angle
+from ..motion.rotations import quat_angle, quat_exp
 from . import representation as rep
 from .footplant import FootplantClassifier, contact_labels
 from .model import WEIGHTS_DIR, StyleTranslator
@@ -340,8 +340,8 @@ def style_prior(index, style: str, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
 
 def _angle_error_deg(fa: np.ndarray, fb: np.ndarray) -> float:
     """Mean geodesic angle between the body-joint rotations of two feature arrays."""
-    qa = rep.rotvec_to_quat(fa[:, 7:67].reshape(-1, 20, 3))
-    qb = rep.rotvec_to_quat(fb[:, 7:67].reshape(-1, 20, 3))
+    qa = quat_exp(fa[:, 7:67].reshape(-1, 20, 3))
+    qb = quat_exp(fb[:, 7:67].reshape(-1, 20, 3))
     return float(np.degrees(quat_angle(qa, qb)).mean())
 
 
