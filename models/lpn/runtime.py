@@ -89,9 +89,8 @@ class LPNModel(LPNStyles):
     fps = lf.FPS
     bfloat16 = True  # expert products may run in bfloat16 (`_products`); False: always float32
     # the unseen-content fade after the planted feet, not before (`novelty_stage`): planted after
-    # it, held feet turned the faded legs off the input's and the network's (validation, Xia:
-    # plausible clips 83/100/67/67 -> 67/83/50/50 % toward active, exhausted, masculine,
-    # youthful) and slid no less
+    # it, held feet turned the faded legs off the input's and the network's and slid no less
+    # (validation: docs/eval/ablation.md)
     fade_before_feet = False
 
     def __init__(
