@@ -412,18 +412,7 @@ def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str,
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
 
-WEIGHTED = (
-    "rot",
-    "pos",
-    "vel",
-    "adv",
-    "per",
-    "prior",
-    "hinge",
-    "teacher",
-    "distill",
-    "smooth",
-)  # cfg.w_<term>
+WEIGHTED = ("rot", "pos", "vel", "adv", "per", "prior", "hinge", "teacher", "distill", "smooth")  # cfg.w_<term>
 
 
 def load_config(argv: list[str]) -> tuple[TrainConfig, dict | None]:
