@@ -1,7 +1,7 @@
 """Discovery of the trained models that ship with the project.
 
-Each method package exposes `load(weights_dir) -> StreamingModel` and a `WEIGHTS_SUBDIR`; a
-method whose weights are not committed yet is simply not offered. A shipped pipeline begins
+Each method package exposes `load(weights_dir) -> StreamingModel`, its weights in `weights/<method>/`;
+a method whose weights are not committed yet is simply not offered. A shipped pipeline begins
 with the posture calibration (`models/motion/calibration.py`) where `weights/calibration/` holds
 its fitted range, and ends in the unseen-content fade (`models/motion/novelty_stage.py`) where
 `weights/novelty/` holds its fitted reference; a core is the method alone."""

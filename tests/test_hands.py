@@ -7,12 +7,14 @@ import numpy as np
 
 from models.motion.hands import (
     RAISE_RAMP_CM,
+    SWAY_FRAMES,
     HandMeter,
     calm_frames,
     clip_sway,
     hand_offsets,
     wave_share,
 )
+from models.motion.hands_kernels import Hands, hand_step
 from tests.reference.hands import clip_rise, hand_offsets_of, raised_frames
 
 STILL_RAMP_CM_S = (25.0, 45.0)  # a hand is still below it, not above
@@ -22,6 +24,29 @@ def still_share(swayed: np.ndarray) -> np.ndarray:
     """(..., 2) how still each hand is: 1 up to `STILL_RAMP_CM_S`, 0 from its end, linear between."""
     lo, hi = STILL_RAMP_CM_S
     return 1.0 - np.clip((np.asarray(swayed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
+
+
+def meter_step(
+    meter: HandMeter,
+    rotations: np.ndarray,
+    prev: np.ndarray,
+    before: np.ndarray,
+    rise_before: np.ndarray,
+    started: np.ndarray,
+    fps: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """((B, 2, 3) each hand's offset from its shoulder, (B, 2) its sway and (B, 2) its rise
+    after this frame, whether any hand is on its raise ramp) from local rotations (B, J, 4),
+    the previous frame's offsets `prev` and the averages `before` and `rise_before`, by the
+    compiled meter as the LTI step runs it. A row has no previous frame unless `started`, nor
+    while `prev` is all zeros (a state from before the meter); its averages start at 0."""
+    q = np.ascontiguousarray(rotations, np.float64)
+    out, swayed, risen = np.empty((len(q), 2, 3)), np.empty((len(q), 2)), np.empty((len(q), 2))
+    arms = (meter.parents, meter.offsets, meter.chain, meter.hands, meter.shoulders)
+    rig = Hands(*arms, float(fps), SWAY_FRAMES, RAISE_RAMP_CM[0])
+    prev, before, rise_before = (np.ascontiguousarray(a, np.float64) for a in (prev, before, rise_before))
+    raised = hand_step(q, rig, prev, before, rise_before, np.asarray(started, np.bool_), out, swayed, risen)
+    return out, swayed, risen, bool(raised)
 
 
 def _val(index, content: str):
@@ -38,8 +63,8 @@ def test_the_compiled_meter_measures_what_the_positions_give(index):
     prev, swayed, risen = np.zeros((1, 2, 3)), np.zeros((1, 2)), np.zeros((1, 2))
     offsets, sways, rises, raised = [], [], [], []
     for t in range(motion.num_frames):
-        prev, swayed, risen, up = meter.step(
-            motion.rotations[t : t + 1], prev, swayed, risen, np.array([t > 0]), motion.fps
+        prev, swayed, risen, up = meter_step(
+            meter, motion.rotations[t : t + 1], prev, swayed, risen, np.array([t > 0]), motion.fps
         )
         offsets.append(prev[0])
         sways.append(swayed[0])
@@ -61,7 +86,9 @@ def test_a_state_from_before_the_meter_starts_its_sway_at_zero(index):
     motion = _val(index, "wave-right-hand")
     meter = HandMeter(motion.skeleton)
     seven = np.full((1, 2), 7.0)
-    _, swayed, risen, _ = meter.step(motion.rotations[:1], np.zeros((1, 2, 3)), seven, seven, np.array([True]), 30.0)
+    _, swayed, risen, _ = meter_step(
+        meter, motion.rotations[:1], np.zeros((1, 2, 3)), seven, seven, np.array([True]), 30.0
+    )
     np.testing.assert_array_equal(swayed, 0.0)
     np.testing.assert_array_equal(risen, 0.0)
 

@@ -13,6 +13,7 @@ from models.lpn.dataset import clip_samples
 from models.registry import load_models
 from models.settings import get_settings
 from tests.clips import concat_frames
+from tests.lpn_films import blend_films, film_of, style_table
 
 TARGETS = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful")
 
@@ -54,7 +55,7 @@ def test_numpy_network_equals_the_trained_torch_network(model, clips):
 
     samples = clip_samples(clips["walk"], gait=0.0)
     x, g = samples.X[::7][:16], samples.G[::7][:16]
-    film = model.blend_films(np.tile(model.weight_vector({"elderly": 0.7, "active": 0.3}), (len(x), 1)))
+    film = blend_films(model, np.tile(model.weight_vector({"elderly": 0.7, "active": 0.3}), (len(x), 1)))
     ours = in_float32(model)._network(x, g, film)
     net = model.generator()
     with torch.no_grad():
@@ -118,13 +119,13 @@ def test_without_control_it_follows_the_input_path(model, clips):
 
 
 def test_style_weights_blend_film_vectors_and_lean_to_normal(model):
-    e, a, n = (model.film_of(s) for s in ("elderly", "active", "normal"))
-    mix = model.blend_films(model.weight_vector({"elderly": 0.5, "active": 0.5})[None])[0]
+    e, a, n = (film_of(model, s) for s in ("elderly", "active", "normal"))
+    mix = blend_films(model, model.weight_vector({"elderly": 0.5, "active": 0.5})[None])[0]
     np.testing.assert_allclose(mix, 0.5 * (e + a), atol=1e-5)
-    half = model.blend_films(model.weight_vector({"elderly": 0.5})[None])[0]
+    half = blend_films(model, model.weight_vector({"elderly": 0.5})[None])[0]
     np.testing.assert_allclose(half, 0.5 * (e + n), atol=1e-5)
     with pytest.raises(ValueError):
-        model.blend_films(np.ones((1, 3)))
+        blend_films(model, np.ones((1, 3)))
 
 
 def test_styles_change_the_motion(model, clips):
@@ -141,8 +142,8 @@ def test_add_style_from_clip_gives_a_usable_style_and_remove_drops_it(lpn_model,
     model.add_style_from_clip("giant-from-clip", clips["giant"])
     try:
         assert model.styles()[-1] == "giant-from-clip"
-        film = model.film_of("giant-from-clip")
-        assert np.isfinite(film).all() and not np.allclose(film, model.film_of("normal"), atol=1e-3)
+        film = film_of(model, "giant-from-clip")
+        assert np.isfinite(film).all() and not np.allclose(film, film_of(model, "normal"), atol=1e-3)
         state = model.init_state(1)
         w = model.weight_vector({"giant-from-clip": 1.0})[None]
         out, state = model.step_batch(state, _frames(clips["walk"], 0), w)
@@ -176,8 +177,8 @@ def test_an_upload_gets_an_output_prior_fitted_from_its_clip(lpn_model, clips, t
     model.install_style("up", upload)
     bare = model.with_own_styles()
     bare.install_style("up", LPNUpload(upload.film))
-    rows = model.style_table.rows["output_prior"]["on"]
-    assert rows[model.styles().index("up")] == 1.0 and bare.style_table.rows["output_prior"]["on"][-1] == 0.0
+    rows = style_table(model).rows["output_prior"]["on"]
+    assert rows[model.styles().index("up")] == 1.0 and style_table(bare).rows["output_prior"]["on"][-1] == 0.0
 
     def gap(m) -> float:
         out = m.run(clips["walk"], m.weight_vector({"up": 1.0}))[0].rotations[30:, carried]

@@ -12,6 +12,7 @@ from models.lpn.arm_coupling import LINKS
 from models.motion.coupling import Coupling
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
 from models.motion.style_carry import quat_log
+from tests.lpn_films import film_of, style_table
 
 
 @pytest.fixture(scope="module")
@@ -107,9 +108,9 @@ def test_a_run_takes_the_run_gains_and_a_walk_the_walk_gains(model, walk, index)
 
 def test_a_replaced_vector_gets_no_coupling_and_the_file_round_trips(model, tmp_path):
     twin = model.with_own_styles()
-    twin.set_style_film("active", twin.film_of("exhausted"))
-    assert twin.style_table.rows["arm_coupling"]["on"][twin.styles().index("active")] == 0.0
-    assert model.style_table.rows["arm_coupling"]["on"][model.styles().index("active")] == 1.0
+    twin.set_style_film("active", film_of(twin, "exhausted"))
+    assert style_table(twin).rows["arm_coupling"]["on"][twin.styles().index("active")] == 0.0
+    assert style_table(model).rows["arm_coupling"]["on"][model.styles().index("active")] == 1.0
     c = model.stages.arm_coupling
     back = Coupling.load(c.save(tmp_path / "coupling.npz"))
     assert back.styles == c.styles and back.links == c.links == LINKS
@@ -136,7 +137,7 @@ def test_the_compiled_coupling_is_the_numpy_reference(model, walk):
     w[:, active] = rng.choice([0.0, 0.3, 1.0, 1.4], len(rot))
     w[:, elderly] = rng.choice([0.0, 0.7], len(rot))
     gait = rng.choice([0.0, 0.4, 1.0], len(rot))
-    joints, rows = link_indices(LINKS, model.skeleton.names), model.style_table.rows["arm_coupling"]
+    joints, rows = link_indices(LINKS, model.skeleton.names), style_table(model).rows["arm_coupling"]
     frame = StageFrame(rot, w, gait, model.styles().index("normal"))
     compiled, reference = (
         model.stages.arm_coupling.step_batch({}, frame, rows)[0],

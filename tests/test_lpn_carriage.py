@@ -10,6 +10,7 @@ from models.data import build_index, load_motions, select
 from models.lpn.carriage import ARM_JOINTS, Carriage, blend_arms
 from models.motion.rotation_ball import comparable
 from models.motion.rotations import quat_angle, quat_mean
+from tests.lpn_films import film_of, style_table
 
 
 @pytest.fixture(scope="module")
@@ -59,15 +60,15 @@ def test_mixed_weights_blend_the_carriage_with_the_rest_to_normal():
 
 def test_uploaded_and_replaced_styles_get_no_carriage(model, walk):
     twin = model.with_own_styles()
-    twin.set_style_film("mine", twin.film_of("active"))
-    twin.set_style_film("active", twin.film_of("active"))  # a built-in's vector replaced: no longer its walks
-    arms = twin.style_table.rows["carriage"]["arms"]
+    twin.set_style_film("mine", film_of(twin, "active"))
+    twin.set_style_film("active", film_of(twin, "active"))  # a built-in's vector replaced: no longer its walks
+    arms = style_table(twin).rows["carriage"]["arms"]
     for name in ("mine", "active"):
         assert np.allclose(arms[twin.styles().index(name)], (0, 0, 0, 1))
     k = model.styles().index("active")
-    assert not np.allclose(model.style_table.rows["carriage"]["arms"][k], (0, 0, 0, 1))  # the original keeps it
+    assert not np.allclose(style_table(model).rows["carriage"]["arms"][k], (0, 0, 0, 1))  # the original keeps it
     twin.remove_style("mine")
-    assert len(twin.style_table.rows["carriage"]["arms"]) == len(twin.styles())
+    assert len(style_table(twin).rows["carriage"]["arms"]) == len(twin.styles())
     out, _ = twin.run(walk, twin.weight_vector({"elderly": 1.0}))
     assert np.isfinite(out.rotations).all()
 

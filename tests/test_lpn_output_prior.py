@@ -11,6 +11,7 @@ from models.lpn.carriage import UPPER_BODY
 from models.lpn.output_prior import CARRIED, OutputPrior
 from models.motion.feet import LEG_JOINTS
 from models.motion.rotations import quat_angle, quat_inv, quat_mul
+from tests.lpn_films import film_of, style_table
 
 
 @pytest.fixture(scope="module")
@@ -82,9 +83,9 @@ def test_a_mixed_batch_steps_each_row_as_alone(model, walk):
 
 def test_a_replaced_vector_gets_no_prior_and_the_file_round_trips(model, tmp_path):
     twin = model.with_own_styles()
-    twin.set_style_film("active", twin.film_of("exhausted"))
-    assert twin.style_table.rows["output_prior"]["on"][twin.styles().index("active")] == 0.0
-    assert model.style_table.rows["output_prior"]["on"][model.styles().index("active")] == 1.0
+    twin.set_style_film("active", film_of(twin, "exhausted"))
+    assert style_table(twin).rows["output_prior"]["on"][twin.styles().index("active")] == 0.0
+    assert style_table(model).rows["output_prior"]["on"][model.styles().index("active")] == 1.0
     back = OutputPrior.load(model.stages.output_prior.save(tmp_path / "prior.npz"))
     assert back.styles == model.stages.output_prior.styles
     np.testing.assert_array_equal(back.carry.map, model.stages.output_prior.carry.map)

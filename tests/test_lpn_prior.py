@@ -12,6 +12,7 @@ from models.motion.rotation_ball import comparable
 from models.motion.rotation_ball_kernels import clamp_mixed
 from models.motion.rotations import quat_angle
 from models.settings import get_settings
+from tests.lpn_films import film_of, style_table
 from tests.reference.rotation_ball import clamp_rotations
 
 
@@ -72,18 +73,18 @@ def test_mixed_weights_blend_each_styles_clamp(model, walk):
 
 def test_uploaded_styles_are_not_clamped(model, walk):
     twin = model.with_own_styles()
-    twin.set_style_film("mine", twin.film_of("elderly"))
-    twin.set_style_film("elderly", twin.film_of("elderly"))  # a built-in's vector replaced: no longer its data
-    radii = twin.style_table.rows["rotation_balls"]["radii"]
+    twin.set_style_film("mine", film_of(twin, "elderly"))
+    twin.set_style_film("elderly", film_of(twin, "elderly"))  # a built-in's vector replaced: no longer its data
+    radii = style_table(twin).rows["rotation_balls"]["radii"]
     for name in ("mine", "elderly"):
         assert np.isinf(radii[twin.styles().index(name)]).all()
     assert np.isfinite(radii[twin.styles().index("exhausted"), :, 1:]).all()
-    original = model.style_table.rows["rotation_balls"]["radii"][model.styles().index("elderly")]
+    original = style_table(model).rows["rotation_balls"]["radii"][model.styles().index("elderly")]
     assert np.isfinite(original[:, 1:]).all()  # the original keeps it
     twin.remove_style("mine")
     assert (
-        len(twin.style_table.rows["rotation_balls"]["mean"])
-        == len(twin.style_table.rows["rotation_balls"]["radii"])
+        len(style_table(twin).rows["rotation_balls"]["mean"])
+        == len(style_table(twin).rows["rotation_balls"]["radii"])
         == len(twin.styles())
     )
     out, _ = twin.run(walk, twin.weight_vector({"elderly": 1.0}))
@@ -102,6 +103,6 @@ def test_tuned_builtin_styles_keep_their_prior(model):
     exported, _, _ = read_weights(folder, tuned=False)
     for name, film in tuned.items():
         k = model.styles().index(name)
-        assert np.array_equal(model.film_of(name), film)
+        assert np.array_equal(film_of(model, name), film)
         assert not np.array_equal(exported["style_film"][k], film)
-        assert np.isfinite(model.style_table.rows["rotation_balls"]["radii"][k, :, 1:]).all(), name
+        assert np.isfinite(style_table(model).rows["rotation_balls"]["radii"][k, :, 1:]).all(), name

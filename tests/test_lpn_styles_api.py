@@ -20,6 +20,7 @@ from models.settings import get_settings
 
 from .clips import drive_lpn, frames_json
 from .live_server import UPLOAD_TIMEOUT_S, live_server
+from .lpn_films import film_of
 from .waiting import wait_until
 
 MODEL = load_models(get_settings().weights_dir)["lpn"]
@@ -136,7 +137,7 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
         assert reply.status_code == 201, reply.text  # the style exists at once; the job improves it later
         style, job = reply.json()["style"], reply.json()["job"]
         assert style["status"] == "ready" and style["job_id"] == job["id"] and job["kind"] == "fine_tune"
-        instant = served.film_of("tuned-giant")
+        instant = film_of(served, "tuned-giant")
 
         streamer = Streamer(base, "tuned-giant")
         streamer.start()
@@ -159,7 +160,7 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
         assert result["installed"] and result["steps"] == STEPS
         assert result["heldout_loss_after"] < result["heldout_loss_before"]
 
-        tuned = served.film_of("tuned-giant")
+        tuned = film_of(served, "tuned-giant")
         assert np.abs(tuned - instant).max() > 1e-3
         with np.load(tmp_path / "lpn" / "tuned-giant" / "film.npz") as z:
             np.testing.assert_array_equal(z["film"], tuned)
@@ -175,7 +176,7 @@ def test_fine_tune_job_swaps_in_a_tuned_film_while_a_session_on_the_style_stream
         base,
         app,
     ):  # restarted: the tuned vector, not re-embedded
-        np.testing.assert_array_equal(app.state.runtime.models["lpn"].film_of("tuned-giant"), tuned)
+        np.testing.assert_array_equal(film_of(app.state.runtime.models["lpn"], "tuned-giant"), tuned)
         assert httpx.get(f"{base}/v1/styles/lpn.tuned-giant").json()["fine_tune"] == result
         assert httpx.delete(f"{base}/v1/styles/lpn.tuned-giant").status_code == 204
 

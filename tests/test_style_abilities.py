@@ -11,6 +11,7 @@ from models.interface import ClipStyles, StyleRejected, UploadedStyles, own_styl
 from models.lpn.styles import LPNUpload
 from models.registry import load_models
 from models.settings import get_settings
+from tests.lpn_films import film_of
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +31,7 @@ def test_a_copy_has_a_style_set_of_its_own(models):
     lpn = models["lpn"]
     before = lpn.styles()
     mine = own_style_set(lpn)
-    mine.install_style("zz-own", LPNUpload(lpn.film_of("elderly")))
+    mine.install_style("zz-own", LPNUpload(film_of(lpn, "elderly")))
     mine.remove_style("giant" if "giant" in before else before[-1])
     assert lpn.styles() == before and "zz-own" in mine.styles()
     assert mine.p is lpn.p  # the weights are shared, not copied
@@ -45,7 +46,7 @@ def test_a_copy_has_a_style_set_of_its_own(models):
 def test_a_saved_style_loads_back_the_same(models, tmp_path):
     lpn, lti = models["lpn"], models["lti"]
     assert not lpn.has_saved_style(tmp_path) and not lti.has_saved_style(tmp_path)
-    film = lpn.film_of("elderly")
+    film = film_of(lpn, "elderly")
     lpn.save_style(LPNUpload(film), tmp_path)
     np.testing.assert_array_equal(lpn.load_style("mine", tmp_path).film, film)
     lti.save_style(lti.translators["elderly"], tmp_path)

@@ -10,8 +10,6 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from .runtime import ERDModel
 
-WEIGHTS_SUBDIR = "erd"
-
 
 def load(weights_dir: Path, core_only: bool = False) -> ERDModel:
     """The committed model; `core_only`: the published core alone (`runtime.load`)."""

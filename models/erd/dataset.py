@@ -26,17 +26,10 @@ from .features import CONTACT, FeatureMaker
 DATASET = "bandai-namco-2"
 STYLES = ("normal", "active", "elderly", "exhausted", "feminine", "masculine", "youthful")  # 0 = neutral
 TARGET_STYLES = STYLES[1:]  # one residual branch each
-CONTENTS = (
-    "walk",
-    "walk-turn-left",
-    "walk-turn-right",
-    "run",
-    "raise-up-both-hands",
-    "raise-up-left-hand",
-    "raise-up-right-hand",
-    "wave-both-hands",
-    "wave-left-hand",
-    "wave-right-hand",
+CONTENTS = (  # locomotion, raised hands, waves
+    ("walk", "walk-turn-left", "walk-turn-right", "run")
+    + ("raise-up-both-hands", "raise-up-left-hand", "raise-up-right-hand")
+    + ("wave-both-hands", "wave-left-hand", "wave-right-hand")
 )
 WINDOW = 24
 CACHE_VERSION = 1

@@ -78,8 +78,7 @@ WEIGHTS_FILE = "erd.npz"
 HINT_HOLD_CM = 22.5
 # cm, cm/s: past GIVE_CM a held foot's hold moves the root instead, at most GIVE_SPEED
 # (`FootPlanter.give`, `give_speed`): LTI's values, not tuned here. On validation the legs held
-# less far turned less (dataset-2 elderly jitter 2.27 -> 1.78) and running content rose for
-# three styles (docs/eval/ablation.md).
+# less far turned less and running content rose for three styles (docs/eval/ablation.md).
 GIVE_CM, GIVE_SPEED = 5.0, 30.0
 RENAMED = {"slow_in": "leaf_prior/slow", "slow_out": "output_prior/slow"}  # state keys of older replicas
 

@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from .. import training
 from ..motion.rotations import quat_angle, quat_mean
-from ..motion.rotations_torch import quat_apply_t, quat_mul_t, quat_to_matrix_t
+from ..motion.rotations_torch import quat_apply_t, quat_mul_t
 from ..motion.twist import bone_axes, transfer_twist_t
 from ..settings import REPO_ROOT
 from .dataset import TARGET_STYLES, split_hinges
@@ -67,10 +67,9 @@ class TrainConfig:
     w_per: float = 0.1
     w_r1: float = 10.0
     # terms on the rotations the streaming model outputs (`streamed_rotations`): a joint beyond the
-    # target style's real p95 range, a hinge joint off its hinge, a second discriminator over them
+    # target style's real p95 range, a hinge joint off its hinge
     w_prior: float = 0.0
     w_hinge: float = 0.0
-    w_adv_rot: float = 0.0
     w_teacher: float = 0.0  # keep the transfer near the starting generator's, so only rotations move
     leaf_prior: str = ""  # twists and leaves carried to the target style (`rotation_prior.py`); "": see network_twists
     network_twists: bool = False  # the decoding takes twists and leaves from the decoder, not the input
@@ -128,18 +127,6 @@ def build(cfg: TrainConfig, stats: dict[str, np.ndarray]):
     disc = FTAttDiscriminator(mcfg, 63 + 66, cfg.window - 1, scale)
     clf = ContentClassifier(mcfg, 84 + 63 + 66, scale)
     return mcfg, gen, disc, clf, scale
-
-
-class RotationDiscriminator(torch.nn.Module):
-    """The FT-Att discriminator over `rotation_view` (the generator's swings with the leaf
-    prior's twists and leaves), so that a style's rotations, not only its positions, are judged."""
-
-    def __init__(self, mcfg, frames: int):
-        super().__init__()
-        self.net = FTAttDiscriminator(mcfg, 21 * 12, frames, {})
-
-    def forward(self, view: torch.Tensor, style: torch.Tensor, content: torch.Tensor) -> torch.Tensor:
-        return self.net(view.transpose(1, 2), style, content)
 
 
 class Losses:
@@ -206,14 +193,6 @@ def leaf_source(prior, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     w = np.repeat(one_hot_targets(target).double().numpy(), T, axis=0)
     src = prior(full, w)[:, 1:]
     return torch.as_tensor(src.reshape(B, T, 21, 4), dtype=x.dtype)
-
-
-def rotation_view(rot: torch.Tensor) -> torch.Tensor:
-    """(B, T-1, 21*12) the rotation discriminator's view of rotations (B, T, 21, 4): 6-D per
-    joint (as the eval suite's rotation judge reads them) and their frame-to-frame differences."""
-    m = quat_to_matrix_t(rot)
-    six = torch.cat([m[..., :, 0], m[..., :, 1]], -1).flatten(2)
-    return torch.cat([six[:, 1:], six[:, 1:] - six[:, :-1]], -1)
 
 
 def prior_loss(rot: torch.Tensor, target: torch.Tensor, prior: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -433,19 +412,7 @@ def to_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str,
     return {k: v.to(device, non_blocking=True) for k, v in batch.items()}
 
 
-WEIGHTED = (
-    "rot",
-    "pos",
-    "vel",
-    "adv",
-    "per",
-    "prior",
-    "hinge",
-    "teacher",
-    "adv_rot",
-    "distill",
-    "smooth",
-)  # cfg.w_<term>
+WEIGHTED = ("rot", "pos", "vel", "adv", "per", "prior", "hinge", "teacher", "distill", "smooth")  # cfg.w_<term>
 
 
 def load_config(argv: list[str]) -> tuple[TrainConfig, dict | None]:
@@ -559,26 +526,20 @@ class Run:
                 self.distill_row[torch.as_tensor(z["frames"])] = torch.arange(len(z["frames"]))
             self.distill_row = self.distill_row.to(device)
             log(f"distilling toward {cfg.distill} ({len(self.distill)} frames)")
-        self.disc_rot = RotationDiscriminator(self.mcfg, cfg.window - 1).to(device) if cfg.w_adv_rot else None
-        adam = lambda net: torch.optim.Adam(net.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999))  # noqa: E731
-        self.opt_dr = adam(self.disc_rot) if self.disc_rot else None
         self.opt_g = torch.optim.Adam(gen.parameters(), lr=cfg.lr_g, betas=(0.5, 0.999))
-        self.opt_d = adam(disc)
+        self.opt_d = torch.optim.Adam(disc.parameters(), lr=cfg.lr_d, betas=(0.5, 0.999))
         if cfg.schedule_iters:
             self.schedule = training.Schedule(cfg.lr_decay_to, float(cfg.schedule_iters), by_steps=True)
         else:
             self.schedule = training.Schedule(cfg.lr_decay_to, 60 * (cfg.schedule_minutes or cfg.minutes))
         if ck is not None:
             self.restore(ck, data)
-        self.optimizers = [(self.opt_g, cfg.lr_g), (self.opt_d, cfg.lr_d), (self.opt_dr, cfg.lr_d)]
+        self.optimizers = [(self.opt_g, cfg.lr_g), (self.opt_d, cfg.lr_d)]
 
     def restore(self, ck: dict, data: Data) -> None:
         """Optimisers, schedule, random generators and step of a resumed run."""
         self.opt_g.load_state_dict(ck["opt_g"])
         self.opt_d.load_state_dict(ck["opt_d"])
-        if self.disc_rot is not None and self.opt_dr is not None and ck.get("disc_rot") is not None:
-            self.disc_rot.load_state_dict(ck["disc_rot"])
-            self.opt_dr.load_state_dict(ck["opt_dr"])
         cfg = self.cfg
         total = self.schedule.total if (cfg.schedule_minutes or cfg.schedule_iters) else None
         self.schedule = training.Schedule.resumed(ck["schedule"], total)
@@ -620,8 +581,6 @@ class Run:
             state.update(
                 opt_g=self.opt_g.state_dict(),
                 opt_d=self.opt_d.state_dict(),
-                disc_rot=None if self.disc_rot is None else self.disc_rot.state_dict(),
-                opt_dr=None if self.opt_dr is None else self.opt_dr.state_dict(),
                 schedule=asdict(self.schedule),
                 rng=training.rng_state(data.train.rng),
                 teacher=None if self.teacher is None else {k: v.cpu() for k, v in self.teacher.state_dict().items()},
@@ -664,7 +623,7 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
     for a, b_ in zip(f_fake, f_real):
         t["per"] = t["per"] + F.mse_loss(a.float(), b_.float())
     streamed = None
-    if cfg.w_prior or cfg.w_hinge or cfg.w_smooth or run.disc_rot is not None:
+    if cfg.w_prior or cfg.w_hinge or cfg.w_smooth:
         source = leaf_source(run.leaf_prior, x, target) if run.leaf_prior is not None else None
         if source is None and cfg.network_twists:
             source = out["rot"][B:]
@@ -688,9 +647,6 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
     t["smooth"] = zero
     if cfg.w_smooth and streamed is not None and run.accel_p99 is not None:
         t["smooth"] = smooth_loss(streamed, real_rot(x), target, run.accel_p99)
-    t["adv_rot"] = zero
-    if run.disc_rot is not None and streamed is not None:
-        t["adv_rot"] = run.disc_rot(rotation_view(streamed), target, content).pow(2).mean()
     loss_g = sum(getattr(cfg, f"w_{k}") * t[k] for k in WEIGHTED)
     if it >= cfg.d_warmup:
         run.opt_g.zero_grad()
@@ -708,16 +664,6 @@ def train_step(cfg: TrainConfig, run: Run, data: Data, b: dict[str, torch.Tensor
     run.opt_d.zero_grad()
     t["d"].backward()
     run.opt_d.step()
-    if run.disc_rot is not None and run.opt_dr is not None and streamed is not None:  # the same on rotations
-        rv = rotation_view(real_rot(x)).detach().requires_grad_(True)
-        dr_real = run.disc_rot(rv, style, content)
-        (grad,) = torch.autograd.grad(dr_real.sum(), rv, create_graph=True)
-        dr_fake = run.disc_rot(rotation_view(streamed.detach()), target, content)
-        r1 = grad.pow(2).sum((1, 2)).mean()
-        loss_dr = (dr_real - 1).pow(2).mean() + (dr_fake + 1).pow(2).mean() + cfg.w_r1 * r1
-        run.opt_dr.zero_grad()
-        loss_dr.backward()
-        run.opt_dr.step()
     return {k: float(v.detach()) for k, v in t.items()}
 
 

@@ -14,8 +14,6 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from .runtime import LPNModel
 
-WEIGHTS_SUBDIR = "lpn"
-
 
 def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
     """The committed model; `core_only`: the published core alone (`runtime.load`)."""
@@ -24,4 +22,4 @@ def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
     return _load(Path(weights_dir), core_only=core_only)
 
 
-__all__ = ["WEIGHTS_SUBDIR", "load"]
+__all__ = ["load"]

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..data import Clip, build_index, load_motions, select
 from ..motion.features import mirror, wrap_angle
+from ..motion.rotations import rotate_y
 from ..motion.skeleton import Motion
 from ..settings import get_settings
 from . import features as lf
@@ -130,16 +131,16 @@ def samples_from_frames(fr: ClipFrames, gait: float, fps: float = lf.FPS) -> Cli
     G = feats[idx].reshape(len(t), -1)
     t1 = t + 1
     fidx = t1[:, None] + lf.OFFSETS[None, lf.PAST + 1 :]
-    y1 = yaw[t1][:, None]
+    y1 = -yaw[t1][:, None]  # into the next frame's character frame
     traj = np.concatenate(
         [
-            lf.to_local_xz(xz[fidx] - xz[t1][:, None], y1),
-            lf.to_local_xz(dirs[fidx], y1),
-            lf.to_local_xz(root_vel[fidx], y1),
+            rotate_y(xz[fidx] - xz[t1][:, None], y1),
+            rotate_y(dirs[fidx], y1),
+            rotate_y(root_vel[fidx], y1),
         ],
         axis=-1,
     ).reshape(len(t), -1)
-    delta = np.concatenate([lf.to_local_xz(xz[t1] - xz[t], yaw[t]), wrap_angle(yaw[t1] - yaw[t])[:, None]], axis=1)
+    delta = np.concatenate([rotate_y(xz[t1] - xz[t], -yaw[t]), wrap_angle(yaw[t1] - yaw[t])[:, None]], axis=1)
     phases = feats[t1[:, None] + lf.OFFSETS[None, lf.PAST :]].reshape(len(t), -1)
     Y = np.concatenate(
         [traj, pose[t1].reshape(len(t), -1), delta, phases, fr.frequency[t1], fr.contacts[t1].astype(float)], axis=1

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..motion.bn_skeleton import BODY, HIPS
 from ..motion.features import facing_yaw, wrap_angle
-from ..motion.rotations import quat_to_matrix
+from ..motion.rotations import quat_to_matrix, rotate_y
 from ..motion.skeleton import Skeleton
 
 FPS = 30.0
@@ -56,19 +56,6 @@ Y_DIM = CONTACT_OUT.stop  # 353
 STYLE_DIM = NB * 6 + 3  # FiLM-generator clip features per frame: positions, velocities, root velocity xz, yaw rate
 
 
-def to_local_xz(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """World horizontal vectors (..., 2) as (x, z) into the character frame of facing `yaw` (...)."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    x, z = v[..., 0], v[..., 1]
-    return np.stack([c * x - s * z, s * x + c * z], axis=-1)
-
-
-def to_local(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """World 3-D vectors (..., 3) into the character frame (yaw broadcast over the leading axes)."""
-    xz = to_local_xz(v[..., [0, 2]], yaw)
-    return np.stack([xz[..., 0], v[..., 1], xz[..., 1]], axis=-1)
-
-
 def direction(yaw: np.ndarray) -> np.ndarray:
     """(..., 2) facing direction (x, z) of a yaw."""
     return np.stack([np.sin(yaw), np.cos(yaw)], axis=-1)
@@ -80,14 +67,14 @@ def pose_features(
     """(..., NB, 12) pose features of the body joints in the character frame given world joint
     positions/velocities (..., 22, 3), world rotations (..., 22, 4), the ground root (..., 3) and yaw (...).
     The rotation is encoded by its forward (local +Z) and up (local +Y) axes: continuous, unlike quaternions."""
-    y = yaw[..., None]
+    y = -yaw[..., None]  # into the character frame
     mats = quat_to_matrix(global_rot[..., BODY, :])
     return np.concatenate(
         [
-            to_local(positions[..., BODY, :] - root[..., None, :], y),
-            to_local(velocities[..., BODY, :], y),
-            to_local(mats[..., :, 2], y),
-            to_local(mats[..., :, 1], y),
+            rotate_y(positions[..., BODY, :] - root[..., None, :], y),
+            rotate_y(velocities[..., BODY, :], y),
+            rotate_y(mats[..., :, 2], y),
+            rotate_y(mats[..., :, 1], y),
         ],
         axis=-1,
     )
@@ -112,7 +99,7 @@ def style_features(pose: np.ndarray, root_vel: np.ndarray, yaw: np.ndarray, fps:
     F = pose.shape[0]
     yaw_rate = np.zeros(F)
     yaw_rate[1:] = wrap_angle(np.diff(yaw)) * fps
-    return np.concatenate([pose[:, :, :6].reshape(F, -1), to_local_xz(root_vel, yaw), yaw_rate[:, None]], axis=1)
+    return np.concatenate([pose[:, :, :6].reshape(F, -1), rotate_y(root_vel, -yaw), yaw_rate[:, None]], axis=1)
 
 
 def trajectory_input(
@@ -120,8 +107,8 @@ def trajectory_input(
 ) -> np.ndarray:
     """(..., 91) trajectory input from world samples pos/dirs/vel (..., 13, 2), gait (..., 13), relative
     to the character frame at `origin` (..., 2) with `yaw` (...)."""
-    y = yaw[..., None]
-    p = to_local_xz(pos - origin[..., None, :], y)
-    d = to_local_xz(dirs, y)
-    v = to_local_xz(vel, y)
+    y = -yaw[..., None]  # into the character frame
+    p = rotate_y(pos - origin[..., None, :], y)
+    d = rotate_y(dirs, y)
+    v = rotate_y(vel, y)
     return np.concatenate([p, d, v, gait[..., None]], axis=-1).reshape(*pos.shape[:-2], SAMPLES * TRAJ_CH)

@@ -89,9 +89,8 @@ class LPNModel(LPNStyles):
     fps = lf.FPS
     bfloat16 = True  # expert products may run in bfloat16 (`_products`); False: always float32
     # the unseen-content fade after the planted feet, not before (`novelty_stage`): planted after
-    # it, held feet turned the faded legs off the input's and the network's (validation, Xia:
-    # plausible clips 83/100/67/67 -> 67/83/50/50 % toward active, exhausted, masculine,
-    # youthful) and slid no less
+    # it, held feet turned the faded legs off the input's and the network's and slid no less
+    # (validation: docs/eval/ablation.md)
     fade_before_feet = False
 
     def __init__(
@@ -140,18 +139,8 @@ class LPNModel(LPNStyles):
         with self._lock:
             self._table = self._table.with_stages(stages)
 
-    @property
-    def style_table(self) -> StyleTable:
-        """Every style's FiLM vector and measured rows (`style_table.py`), as one snapshot."""
-        return self._table
-
     def styles(self) -> list[str]:
         return list(self._table.names)
-
-    def film_of(self, name: str) -> np.ndarray:
-        """The (4, H) FiLM vector of a style."""
-        table = self._table
-        return table.films[table.index(name)].reshape(4, self.H).copy()
 
     def film_from_clip(self, motion: Motion) -> np.ndarray:
         """A new style's FiLM vector (4, H): the generator on 4 s windows of a clip of it (tiled if
@@ -214,11 +203,8 @@ class LPNModel(LPNStyles):
             self._generator = net.eval()
         return self._generator
 
-    def blend_films(self, weights: np.ndarray) -> np.ndarray:
-        """(B, S) style weights -> (B, 4, H) FiLM; the weights' shortfall from 1 goes to `normal`."""
-        return self._blend(self._table, weights)
-
     def _blend(self, table: StyleTable, weights: np.ndarray) -> np.ndarray:
+        """(B, S) style weights -> (B, 4, H) FiLM; the weights' shortfall from 1 goes to `normal`."""
         w = np.asarray(weights, np.float32)
         if w.ndim != 2 or w.shape[1] != len(table.names):
             raise ValueError(f"style_weights must be (B, {len(table.names)}), got {w.shape}")

@@ -1,6 +1,6 @@
 """CLI: python -m models.lti {train, hinges, translate}.
 
-python -m models.lti train [--styles elderly exhausted] [--align imw|dtw] [--contents walk ...]
+python -m models.lti train [--styles elderly exhausted] [--contents walk ...]
 python -m models.lti hinges   (the hinge joints and their floors -> models/weights/lti/hinges.npz)
 python -m models.lti translate in.bvh --style elderly -o out.bvh [--timewarp] [--no-blend] [--no-footlock] [--model-heading]
 """
@@ -22,8 +22,6 @@ def cmd_train(args: argparse.Namespace) -> None:
     from .train import CONFIG, train
 
     cfg = dict(CONFIG)
-    if args.align:
-        cfg["align"] = args.align
     if args.contents:
         cfg["contents"] = args.contents
     t0 = time.time()
@@ -69,7 +67,6 @@ def main(argv: list[str] | None = None) -> None:
     sub = p.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train")
     t.add_argument("--styles", nargs="*")
-    t.add_argument("--align", choices=["imw", "dtw"])
     t.add_argument("--contents", nargs="*")
     t.add_argument("--out")
     t.set_defaults(func=cmd_train)

@@ -186,7 +186,7 @@ def pair_from_motions(
     mi: Motion, mo: Motion, match_mean: np.ndarray, match_std: np.ndarray, ref: np.ndarray, cfg: dict = CONFIG
 ) -> PairData:
     """`train.pair_data` on in-memory motions (no clip keys, no cache)."""
-    return pair_from_warp(mi, mo, align(mi, mo, match_mean, match_std, cfg["align"], ref, cfg), ref)
+    return pair_from_warp(mi, mo, align(mi, mo, match_mean, match_std, ref, cfg), ref)
 
 
 @dataclass

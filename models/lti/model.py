@@ -334,11 +334,6 @@ class LTIStyleModel(LTIStyles):
     def styles(self) -> list[str]:
         return list(self._styles)
 
-    @property
-    def state_dim(self) -> int:
-        """Total LTI state size over all styles."""
-        return sum(self.translators[s].n for s in self._styles)
-
     # ---------------------------------------------------------------- style set
 
     def _set_styles(self, styles: list[str]) -> None:

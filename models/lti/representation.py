@@ -20,8 +20,8 @@ the Hips rotation: the hips' left direction is the Hips-local -Y axis (UpperLeg_
 points along -Y in the Hips frame of this skeleton) and forward = cross(left, up), so yaw 0 means
 facing +Z. Splitting q_hips = q_yaw(yaw) * q_tilt is exact, so the representation inverts exactly.
 
-The exponential map here is plain numpy (not scipy's), the compiled step's (`quaternion.qlog`,
-`qexp`) written on arrays, so the offline and streaming paths agree to round-off.
+The exponential map here (`quat_to_rotvec`) is plain numpy (not scipy's), the compiled step's
+`quaternion.qlog` written on arrays, so the offline and streaming paths agree to round-off.
 """
 
 from __future__ import annotations
@@ -74,13 +74,6 @@ def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
     # angle / sin(angle / 2) -> 2 / w as s -> 0
     scale = np.divide(2.0 * np.arctan2(s, w), s, out=2.0 / np.maximum(w, 1e-12), where=s > 1e-8)
     return v * scale
-
-
-def rotvec_to_quat(r: np.ndarray) -> np.ndarray:
-    angle = np.sqrt(np.sum(r * r, axis=-1, keepdims=True))
-    small = angle < 1e-8
-    scale = np.where(small, 0.5 - angle**2 / 48.0, np.sin(0.5 * angle) / np.where(small, 1.0, angle))
-    return np.concatenate([r * scale, np.cos(0.5 * angle)], axis=-1)
 
 
 def hips_yaw(q_hips: np.ndarray) -> np.ndarray:

@@ -1,8 +1,8 @@
 """Training: pairs -> correspondence (IMW) -> representation -> per-joint subspace identification
 -> block-diagonal translator -> footplant classifier -> evaluation on held-out validation pairs.
 
-`python -m models.lti train [--styles elderly exhausted] [--align imw|dtw]`; everything else is
-in CONFIG below. Deterministic: pairing and alignment have no randomness, and numpy is seeded.
+`python -m models.lti train [--styles elderly exhausted]`; everything else is in CONFIG below.
+Deterministic: pairing and alignment have no randomness, and numpy is seeded.
 """
 
 from __future__ import annotations
@@ -19,12 +19,12 @@ import numpy as np
 from tqdm import tqdm
 
 from ..motion.rotation_ball import fit_prior
-from ..motion.rotations import quat_angle
+from ..motion.rotations import quat_angle, quat_exp
 from . import representation as rep
 from .footplant import FootplantClassifier, contact_labels
 from .model import WEIGHTS_DIR, StyleTranslator
 from .subspace import StateSpace, spectral_radius, subspace_id
-from .warping import dtw_warp, imw, resample_pose
+from .warping import imw, resample_pose
 
 _UPPER = (2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13)  # Spine .. Hand_R
 _LEGS = (14, 15, 16, 17, 18, 19, 20, 21)  # UpperLeg_L .. Toes_R
@@ -41,7 +41,7 @@ CONFIG: dict[str, Any] = dict(
     # were often worse than the identity baseline (MODEL_CARD.md)
     styles=None,
     contents=None,  # None: every content; or e.g. ["walk", "walk-turn-left", "walk-turn-right"]
-    align="imw",  # "imw" or "dtw" (plain DTW, a baseline)
+    align="imw",  # the alignment (`warping.imw`), recorded in the report and the alignment cache key
     # max_step 9: output slopes up to 3 output frames per input frame, enough for the slowest
     # styles' gestures (~2.5x slower than the neutral ones) to find a partner
     imw=dict(s=3, max_step=9, lam=1000.0, mu=1.0, max_iter=8, tol=1e-4),
@@ -195,11 +195,9 @@ def match_features(feats: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.n
     return (feats[:, 3:] - mean[3:]) / std[3:]
 
 
-def align(in_motion, out_motion, match_mean, match_std, method: str, ref, cfg=CONFIG):
+def align(in_motion, out_motion, match_mean, match_std, ref, cfg=CONFIG):
     x = match_features(rep.motion_to_features(in_motion, ref), match_mean, match_std)
     y = match_features(rep.motion_to_features(out_motion, ref), match_mean, match_std)
-    if method == "dtw":
-        return dtw_warp(x, y)
     return imw(x, y, **cfg["imw"]).warp
 
 
@@ -231,7 +229,7 @@ def pair_data(in_clip, out_clip, match_mean, match_std, ref, cfg=CONFIG) -> Pair
     if cache.exists():
         warp = np.load(cache)
     else:
-        warp = align(mi, mo, match_mean, match_std, cfg["align"], ref, cfg)
+        warp = align(mi, mo, match_mean, match_std, ref, cfg)
         np.save(cache, warp)
     return pair_from_warp(mi, mo, warp, ref)
 
@@ -342,8 +340,8 @@ def style_prior(index, style: str, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
 
 def _angle_error_deg(fa: np.ndarray, fb: np.ndarray) -> float:
     """Mean geodesic angle between the body-joint rotations of two feature arrays."""
-    qa = rep.rotvec_to_quat(fa[:, 7:67].reshape(-1, 20, 3))
-    qb = rep.rotvec_to_quat(fb[:, 7:67].reshape(-1, 20, 3))
+    qa = quat_exp(fa[:, 7:67].reshape(-1, 20, 3))
+    qb = quat_exp(fb[:, 7:67].reshape(-1, 20, 3))
     return float(np.degrees(quat_angle(qa, qb)).mean())
 
 

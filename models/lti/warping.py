@@ -16,8 +16,6 @@ by alternating two exact minimisations, so E never increases:
     (the normal equations), solved for all DOFs at once with scipy.sparse.
 It stops when E decreases by less than `tol` (relatively). The space warp is only a means to a
 better time warp: the training output is the output clip *time*-warped, keeping its style.
-
-`dtw` is the classical unconstrained DTW baseline (steps (1,0), (0,1), (1,1)) for the figure.
 """
 
 from __future__ import annotations
@@ -144,35 +142,6 @@ def imw(
         if len(history) >= 3 and history[-3] - history[-1] <= tol * abs(history[-3]):
             break
     return WarpResult(path / s, a, b, history)
-
-
-def dtw(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Classical DTW path [(i, j)] between x (T, D) and y (U, D), squared Euclidean cost."""
-    T, U = len(x), len(y)
-    cost = np.sum(x * x, 1)[:, None] - 2 * x @ y.T + np.sum(y * y, 1)[None]
-    acc = np.full((T + 1, U + 1), np.inf)
-    acc[0, 0] = 0.0
-    for i in range(1, T + 1):
-        row = acc[i]
-        diag = np.minimum(acc[i - 1, :-1], acc[i - 1, 1:])  # min(acc[i-1, j-1], acc[i-1, j])
-        for j in range(1, U + 1):
-            row[j] = cost[i - 1, j - 1] + min(diag[j - 1], row[j - 1])
-    i, j, path = T, U, []
-    while i > 0 and j > 0:
-        path.append((i - 1, j - 1))
-        k = np.argmin([acc[i - 1, j - 1], acc[i - 1, j], acc[i, j - 1]])
-        i, j = (i - 1, j - 1) if k == 0 else (i - 1, j) if k == 1 else (i, j - 1)
-    return np.array(path[::-1])
-
-
-def dtw_warp(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """DTW as a function input frame -> output frame (mean of the matched output frames)."""
-    path = dtw(x, y)
-    out = np.zeros(len(x))
-    cnt = np.zeros(len(x))
-    np.add.at(out, path[:, 0], path[:, 1])
-    np.add.at(cnt, path[:, 0], 1)
-    return out / cnt
 
 
 # --------------------------------------------------------------------------- resampling motions

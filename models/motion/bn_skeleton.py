@@ -12,29 +12,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-BN_JOINTS = (
-    "joint_Root",
-    "Hips",
-    "Spine",
-    "Chest",
-    "Neck",
-    "Head",
-    "Shoulder_L",
-    "UpperArm_L",
-    "LowerArm_L",
-    "Hand_L",
-    "Shoulder_R",
-    "UpperArm_R",
-    "LowerArm_R",
-    "Hand_R",
-    "UpperLeg_L",
-    "LowerLeg_L",
-    "Foot_L",
-    "Toes_L",
-    "UpperLeg_R",
-    "LowerLeg_R",
-    "Foot_R",
-    "Toes_R",
+BN_JOINTS = (  # the trunk and head, the arms, the legs
+    ("joint_Root", "Hips", "Spine", "Chest", "Neck", "Head")
+    + ("Shoulder_L", "UpperArm_L", "LowerArm_L", "Hand_L", "Shoulder_R", "UpperArm_R", "LowerArm_R", "Hand_R")
+    + ("UpperLeg_L", "LowerLeg_L", "Foot_L", "Toes_L", "UpperLeg_R", "LowerLeg_R", "Foot_R", "Toes_R")
 )
 NUM_JOINTS = len(BN_JOINTS)
 ROOT = BN_JOINTS.index("joint_Root")  # static at the origin, identity rotation

@@ -41,39 +41,14 @@ def _arm_chain(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 class HandMeter:
-    """`hand_offsets` from local rotations alone and the sway's step, compiled
-    (`hands_kernels.hand_step`): forward kinematics over the arm chains of `skeleton` only (a
+    """The arm chains of `skeleton` for the compiled meter (`hands_kernels.hand_step`): `hand_offsets`
+    from local rotations alone and the sway's step, by forward kinematics over those chains only (a
     translation moves both ends alike), set up once per skeleton (numpy: `tests/reference/hands.py`, `sway`)."""
 
     def __init__(self, skeleton: Skeleton) -> None:
         self.chain, self.hands, self.shoulders = _arm_chain(skeleton)
         self.parents = np.ascontiguousarray(skeleton.parents, np.int64)
         self.offsets = np.ascontiguousarray(skeleton.offsets, np.float64)
-
-    def step(
-        self,
-        rotations: np.ndarray,
-        prev: np.ndarray,
-        before: np.ndarray,
-        rise_before: np.ndarray,
-        started: np.ndarray,
-        fps: float,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
-        """((B, 2, 3) each hand's offset from its shoulder, (B, 2) its sway and (B, 2) its rise
-        after this frame, whether any hand is on its raise ramp) from local rotations (B, J, 4),
-        the previous frame's offsets `prev` and the averages `before` and `rise_before`. A row has
-        no previous frame unless `started`, nor while `prev` is all zeros (a state from before
-        the meter); its averages start at 0. The last value lets a caller skip what only a
-        raised hand needs (a walk's or a run's never is)."""
-        from .hands_kernels import Hands, hand_step
-
-        q = np.ascontiguousarray(rotations, np.float64)
-        out, swayed, risen = np.empty((len(q), 2, 3)), np.empty((len(q), 2)), np.empty((len(q), 2))
-        arms = (self.parents, self.offsets, self.chain, self.hands, self.shoulders)
-        rig = Hands(*arms, float(fps), SWAY_FRAMES, RAISE_RAMP_CM[0])
-        prev, before, rise_before = (np.ascontiguousarray(a, np.float64) for a in (prev, before, rise_before))
-        raised = hand_step(q, rig, prev, before, rise_before, np.asarray(started, np.bool_), out, swayed, risen)
-        return out, swayed, risen, bool(raised)
 
 
 def raise_share(height: np.ndarray) -> np.ndarray:

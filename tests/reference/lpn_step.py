@@ -28,12 +28,13 @@ from models.lpn.runtime import (
     LPNModel,
 )
 from models.motion.features import wrap_angle
+from models.motion.rotations import rotate_y
 
 PAST_IDX = np.arange(0, lf.PAST * lf.STEP + 1, lf.STEP)  # history rows of the 7 past-and-current samples
 
 
 def to_world_xz(v: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-    """Inverse of `features.to_local_xz`."""
+    """Ground-plane vectors (..., 2) [x, z] from the character frame of facing `yaw` to the world."""
     c, s = np.cos(yaw), np.sin(yaw)
     x, z = v[..., 0], v[..., 1]
     return np.stack([c * x + s * z, -s * x + c * z], axis=-1)
@@ -94,7 +95,7 @@ class NumpyLPNModel(LPNModel):
             _, gpos = self._fk(root[derive], rot_in[derive])
             yaw = self._facing(gpos)
             vel = s["in_vel"][derive].astype(np.float64)
-            speed = np.linalg.norm(lf.to_local_xz(vel, yaw), axis=-1)
+            speed = np.linalg.norm(rotate_y(vel, -yaw), axis=-1)
             # where the input is slower than the training walks (CRAWL_SPEED .. WALK_SPEED), slowed by
             # how much farther the character walked than the input (its lead, made up CATCH_UP_S on)
             slow = np.clip((WALK_SPEED - np.linalg.norm(vel, axis=-1)) / (WALK_SPEED - CRAWL_SPEED), 0.0, 1.0)
@@ -103,7 +104,7 @@ class NumpyLPNModel(LPNModel):
             lead = np.where(lead > 0.0, lead, lead * np.exp(-1.0 / (self.fps * CATCH_UP_S)))  # shortfalls fade
             s["lead"][derive] = lead
             share = 1.0 - slow * np.clip(lead / (CATCH_UP_S * np.maximum(np.linalg.norm(vel, axis=-1), 1e-9)), 0.0, 1.0)
-            local = lf.to_local_xz(share[:, None] * vel, yaw)
+            local = rotate_y(share[:, None] * vel, -yaw)
             out[derive] = np.stack([local[:, 1], local[:, 0], yaw, (speed > RUN_SPEED).astype(np.float32)], axis=1)
         return out
 

@@ -15,6 +15,7 @@ from models.motion.bn_skeleton import HIPS
 from models.motion.hands import clip_sway, raise_share, wave_share
 from models.motion.hinge import kernel_floor
 from models.motion.hinge_kernels import floor_bends
+from models.motion.rotations import quat_exp
 from models.motion.style_carry import StyleCarry
 
 from .hands import hand_offsets_of
@@ -77,7 +78,7 @@ def static_to_rotations(static_rot: np.ndarray, yaw: np.ndarray, ref: np.ndarray
     lead = static_rot.shape[:-1]
     out = np.empty(lead + (rep.NUM_JOINTS, 4))
     out[..., 0, :] = (0.0, 0.0, 0.0, 1.0)
-    out[..., 1:, :] = (rep._cached(ref)[0] @ rep.rotvec_to_quat(static_rot.reshape(*lead, 21, 3))[..., None])[..., 0]
+    out[..., 1:, :] = (rep._cached(ref)[0] @ quat_exp(static_rot.reshape(*lead, 21, 3))[..., None])[..., 0]
     c, s = np.cos(0.5 * yaw)[..., None], np.sin(0.5 * yaw)[..., None]
     t = out[..., rep.HIPS, :]
     # yaw_quat(yaw) * t, written out: (c*x + s*z, c*y + s*w, c*z - s*x, c*w - s*y)
