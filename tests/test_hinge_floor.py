@@ -94,8 +94,8 @@ def test_lti_outputs_never_bend_a_hinge_backward(index):
 
 @pytest.mark.parametrize("method", ["erd", "lpn"])
 def test_an_uploaded_style_never_bends_a_hinge_backward_in_erd_or_lpn(method, index):
-    """A dataset-1 `happy` walk uploaded to LPN-FiLM (the instant style) bends a knee or elbow
-    backward by several degrees without the stage (to Style-ERD: not even without it); the full
+    """A dataset-1 `happy` walk uploaded (the instant style) bends a knee or elbow backward without
+    the stage (LPN-FiLM by several degrees, Style-ERD by about one); the full
     pipeline holds every hinge at its floor to the end (after the foot planter and the unseen-content fade), the core has no
     stage."""
     from models.data import load_motions, select
@@ -126,7 +126,4 @@ def test_an_uploaded_style_never_bends_a_hinge_backward_in_erd_or_lpn(method, in
     # the toes, a few degrees off the hinge axis, which reads as hundredths of a degree past it
     assert least() >= -0.1
     own.stages = own.stages.without("hinge_floor")
-    if method == "erd":  # its instant style has no branch of its own: no hinge bends back even so
-        assert least() >= -0.1
-    else:
-        assert least() < -2.0
+    assert least() < -0.5

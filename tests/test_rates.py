@@ -160,21 +160,7 @@ def test_the_stream_adds_only_the_stated_delay_to_the_models_own_output(served, 
     assert abs(lag - rate.output_lag(30.0, fps) * fps / 30.0) < 0.75
 
 
-@pytest.mark.parametrize(
-    "fps",
-    [
-        30.0,
-        60.0,
-        pytest.param(
-            120.0,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="the stated 0.75 model frames plus the translator's own 0.32 toward elderly "
-                "(its upper body trails the input; toward other styles it leads): 1.07 model frames",
-            ),
-        ),
-    ],
-)
+@pytest.mark.parametrize("fps", [30.0, 60.0, 120.0])
 def test_the_output_keeps_the_inputs_timing_within_one_model_frame(served, fps):
     """Issue 45's figure: the output's joint rotations trail the input's by at most one model
     frame, the stated delay included. It measures the style's own timing too, once the model
@@ -182,7 +168,9 @@ def test_the_output_keeps_the_inputs_timing_within_one_model_frame(served, fps):
     from models.motion.rate_metrics import lag_frames
 
     motion, _, rot = served[fps]
-    assert lag_frames(motion.rotations[:, BODY], rot[:, BODY], max_lag=int(fps)) <= fps / 30.0
+    lag = lag_frames(motion.rotations[:, BODY], rot[:, BODY], max_lag=int(fps))
+    print(f"{fps:g} fps: {lag:.2f} frames behind")
+    assert lag <= fps / 30.0
 
 
 def test_sample_and_hold_fails_what_interpolation_passes(served):
