@@ -12,17 +12,7 @@ import numpy as np
 from numba import njit
 
 from ..motion.bn_skeleton import HIPS
-from ..motion.quaternion import axis_angle, dot3, qdot, qinv, qmul, qneg, quat_at, qunit, qyaw, row3, row4, wrap
-
-# --------------------------------------------------------------------------- small helpers
-
-
-@njit(cache=True, error_model="numpy")
-def turn_y(x, y, z, yaw):
-    """Vector (x, y, z) rotated by yaw about +Y."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return c * x + s * z, y, -s * x + c * z
-
+from ..motion.quaternion import axis_angle, dot3, qdot, qinv, qmul, qneg, quat_at, qunit, qyaw, row3, row4, turn_y, wrap
 
 # --------------------------------------------------------------------------- kernels
 
@@ -56,21 +46,18 @@ def features(rotations, pos, prev_pos, prev_yaw, has_prev, ref, facing, feet, le
             out[f, 4 * b], out[f, 4 * b + 1], out[f, 4 * b + 2], out[f, 4 * b + 3] = q
         # positions in the facing frame (origin: Hips on the ground), velocities (backward difference)
         gx, gz = pos[f, HIPS, 0], pos[f, HIPS, 2]
+        c, s = math.cos(-yaw), math.sin(-yaw)
         for j in range(1, J):
-            i = 3 * (j - 1)
-            out[f, pos_at + i], out[f, pos_at + i + 1], out[f, pos_at + i + 2] = turn_y(
-                pos[f, j, 0] - gx, pos[f, j, 1], pos[f, j, 2] - gz, -yaw
-            )
+            p, v = pos_at + 3 * (j - 1), vel_at + 3 * (j - 1)
+            out[f, p], out[f, p + 2] = turn_y(pos[f, j, 0] - gx, pos[f, j, 2] - gz, c, s)
+            out[f, p + 1] = pos[f, j, 1]
             if moving:
-                v = turn_y(
-                    (pos[f, j, 0] - prev_pos[f, j, 0]) * fps,
-                    (pos[f, j, 1] - prev_pos[f, j, 1]) * fps,
-                    (pos[f, j, 2] - prev_pos[f, j, 2]) * fps,
-                    -yaw,
+                out[f, v], out[f, v + 2] = turn_y(
+                    (pos[f, j, 0] - prev_pos[f, j, 0]) * fps, (pos[f, j, 2] - prev_pos[f, j, 2]) * fps, c, s
                 )
+                out[f, v + 1] = (pos[f, j, 1] - prev_pos[f, j, 1]) * fps
             else:
-                v = (0.0, 0.0, 0.0)
-            out[f, vel_at + i], out[f, vel_at + i + 1], out[f, vel_at + i + 2] = v
+                out[f, v], out[f, v + 1], out[f, v + 2] = 0.0, 0.0, 0.0
         out[f, root_at : root_at + 3] = out[f, vel_at : vel_at + 3]  # the Hips' velocity
         out[f, root_at + 3] = wrap(yaw - prev_yaw[f]) * fps if moving else 0.0
         # contacts: ankle or toe low and slow (thresholds scale with the leg length)
@@ -116,9 +103,11 @@ def output_pose(x, y, yaw, has_prev, prev_root, root, rot_in, fps):
                 q = qmul(qyaw(yaw[b]), q)
             out_rot[b, k + 1, 0], out_rot[b, k + 1, 1], out_rot[b, k + 1, 2], out_rot[b, k + 1, 3] = q
         v = 10 * nb  # root velocity features; network: 4 * nb rotation offsets, then 3 velocity, then height
-        step = turn_y(x[b, v] + y[b, 4 * nb], x[b, v + 1] + y[b, 4 * nb + 1], x[b, v + 2] + y[b, 4 * nb + 2], yaw[b])
-        for i in range(3):
-            out_root[b, i] = prev_root[b, i] + step[i] / fps if has_prev[b] else root[b, i]
+        sx, sz = turn_y(x[b, v] + y[b, 4 * nb], x[b, v + 2] + y[b, 4 * nb + 2], math.cos(yaw[b]), math.sin(yaw[b]))
+        if has_prev[b]:
+            out_root[b, 0], out_root[b, 2] = prev_root[b, 0] + sx / fps, prev_root[b, 2] + sz / fps
+        else:
+            out_root[b, 0], out_root[b, 2] = root[b, 0], root[b, 2]
         out_root[b, 1] = x[b, 4 * nb + 1] + y[b, 4 * nb + 3]  # Hips height: first position feature's y + offset
     return out_root, out_rot
 

@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit
 
 from ..motion.kinematics_kernels import world_pose
-from ..motion.quaternion import matrix_quat, wrap
+from ..motion.quaternion import matrix_quat, turn_y, wrap
 from . import features as lf
 
 STEP, PAST, FUTURE, SAMPLES = lf.STEP, lf.PAST, lf.FUTURE, lf.SAMPLES  # trajectory sampling
@@ -82,18 +82,6 @@ def elu(v):
     return v if v > 0.0 else math.expm1(v)
 
 
-@njit(cache=True, error_model="numpy")
-def to_local(x, z, c, s):
-    """World horizontal (x, z) into the character frame of a yaw with cosine c and sine s."""
-    return c * x - s * z, s * x + c * z
-
-
-@njit(cache=True, error_model="numpy")
-def to_world(x, z, c, s):
-    """Inverse of `to_local`."""
-    return c * x + s * z, -s * x + c * z
-
-
 # --------------------------------------------------------------------------- kinematics
 
 
@@ -149,9 +137,9 @@ def control_rows(control, given, root, rotations, tracker, walked, body, rules):
             continue
         world_pose(root[b], rotations[b], parents, offsets, grot, gpos)
         yaw = facing_yaw(gpos, facing)
-        c, s = math.cos(yaw), math.sin(yaw)
+        c, s = math.cos(yaw), math.sin(yaw)  # turn_y(.., c, -s): world -> character frame
         speed = math.sqrt(in_vel[b, 0] * in_vel[b, 0] + in_vel[b, 1] * in_vel[b, 1])
-        lx, lz = to_local(in_vel[b, 0], in_vel[b, 1], c, s)
+        lx, lz = turn_y(in_vel[b, 0], in_vel[b, 1], c, -s)
         out[b, 3] = 1.0 if speed > run_speed else 0.0
         if catch_up > 0.0:
             # only below the training walks' speeds: faster, the network keeps the input's pace (or its style's)
@@ -159,7 +147,7 @@ def control_rows(control, given, root, rotations, tracker, walked, body, rules):
             ahead = lead[b] + slow * (walked[b] - math.sqrt(vx * vx + vz * vz) / fps)
             lead[b] = ahead if ahead > 0.0 else ahead * forget
             k = 1.0 - slow * min(max(lead[b] / (catch_up * max(speed, 1e-9)), 0.0), 1.0)
-            lx, lz = to_local(k * in_vel[b, 0], k * in_vel[b, 1], c, s)
+            lx, lz = turn_y(k * in_vel[b, 0], k * in_vel[b, 1], c, -s)
         out[b, 0], out[b, 1], out[b, 2] = lz, lx, yaw
     return out
 
@@ -175,7 +163,7 @@ def network_inputs(control, track, fps, bias, x, g):
         yw = float(yaw[b])
         px, pz = hist_pos[b, H - 1, 0], hist_pos[b, H - 1, 1]
         want = control[b, 2]
-        wx, wz = to_world(control[b, 1], control[b, 0], math.cos(want), math.sin(want))  # (side, forward) -> world
+        wx, wz = turn_y(control[b, 1], control[b, 0], math.cos(want), math.sin(want))  # (side, forward) -> world
         turn = wrap(want - yw)
         for k in range(FUTURE):
             f = (k + 1) / FUTURE
@@ -190,7 +178,7 @@ def network_inputs(control, track, fps, bias, x, g):
             fut_dir[b, k, 0], fut_dir[b, k, 1] = dx / n, dz / n
             fut_vel[b, k, 0] += beta * (wx - fut_vel[b, k, 0])
             fut_vel[b, k, 1] += beta * (wz - fut_vel[b, k, 1])
-        c, s = math.cos(yw), math.sin(yw)
+        c, s = math.cos(yw), math.sin(yw)  # turn_y(.., c, -s): world -> character frame
         for i in range(SAMPLES):
             o = i * TRAJ_CH
             if i <= PAST:
@@ -199,9 +187,9 @@ def network_inputs(control, track, fps, bias, x, g):
             else:
                 k = i - PAST - 1
                 p, d, v, gait = fut_pos[b, k], fut_dir[b, k], fut_vel[b, k], control[b, 3]
-            x[b, o], x[b, o + 1] = to_local(p[0] - px, p[1] - pz, c, s)
-            x[b, o + 2], x[b, o + 3] = to_local(d[0], d[1], c, s)
-            x[b, o + 4], x[b, o + 5] = to_local(v[0], v[1], c, s)
+            x[b, o], x[b, o + 1] = turn_y(p[0] - px, p[1] - pz, c, -s)
+            x[b, o + 2], x[b, o + 3] = turn_y(d[0], d[1], c, -s)
+            x[b, o + 4], x[b, o + 5] = turn_y(v[0], v[1], c, -s)
             x[b, o + 6] = gait
         o = SAMPLES * TRAJ_CH
         for j in range(pose.shape[1]):
@@ -384,7 +372,7 @@ def advance(y, control, track, body, rules):
         px, pz = hist_pos[b, H - 1, 0], hist_pos[b, H - 1, 1]
         still = min(max(1.0 - math.hypot(control[b, 0], control[b, 1]) / rules.stop_speed, 0.0), 1.0)
         keep = 1.0 - rules.root_hold * still
-        dx, dz = to_world(y[b, Y_DELTA] * keep, y[b, Y_DELTA + 1] * keep, c, s)
+        dx, dz = turn_y(y[b, Y_DELTA] * keep, y[b, Y_DELTA + 1] * keep, c, s)
         nx, nz = np.float32(px + dx), np.float32(pz + dz)
         new_yaw = np.float32(wrap(yw + y[b, Y_DELTA + 2]))
         nc, ns = math.cos(new_yaw), math.sin(new_yaw)
@@ -409,12 +397,12 @@ def advance(y, control, track, body, rules):
         # the predicted future, from the new character frame into the world
         for k in range(FUTURE):
             o = Y_TRAJ + k * TRAJ_OUT_CH
-            fx, fz = to_world(y[b, o], y[b, o + 1], nc, ns)
+            fx, fz = turn_y(y[b, o], y[b, o + 1], nc, ns)
             fut_pos[b, k, 0], fut_pos[b, k, 1] = nx + fx, nz + fz
-            fx, fz = to_world(y[b, o + 2], y[b, o + 3], nc, ns)
+            fx, fz = turn_y(y[b, o + 2], y[b, o + 3], nc, ns)
             n = math.sqrt(max(fx * fx + fz * fz, 1e-16))
             fut_dir[b, k, 0], fut_dir[b, k, 1] = fx / n, fz / n
-            fut_vel[b, k, 0], fut_vel[b, k, 1] = to_world(y[b, o + 4], y[b, o + 5], nc, ns)
+            fut_vel[b, k, 0], fut_vel[b, k, 1] = turn_y(y[b, o + 4], y[b, o + 5], nc, ns)
             for bone in range(NUM_BONES):
                 for i in range(2):
                     fut_phase[b, k, bone, i] = y[b, Y_PHASE + 2 * NUM_BONES * (k + 1) + 2 * bone + i] * damp
@@ -424,7 +412,7 @@ def advance(y, control, track, body, rules):
         yaw[b] = new_yaw
         _local_rotations(y[b], parents, nc, ns, R, local, out_rot[b])
         # Hips: the predicted offset from the ground root (character frame), into the world
-        hx, hz = to_world(y[b, Y_POSE], y[b, Y_POSE + 2], nc, ns)
+        hx, hz = turn_y(y[b, Y_POSE], y[b, Y_POSE + 2], nc, ns)
         out_root[b, 0], out_root[b, 1], out_root[b, 2] = nx + hx, y[b, Y_POSE + 1], nz + hz
         contacts[b, 0] = y[b, Y_CONTACT] > rules.contact_threshold
         contacts[b, 1] = y[b, Y_CONTACT + 1] > rules.contact_threshold

@@ -46,7 +46,7 @@ from ..motion.feet_kernels import Feet, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
 from ..motion.novelty_kernels import fade_step
-from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qunit, qyaw, row3, row4, wrap
+from ..motion.quaternion import nlerp, qdot, qexp, qinv, qlog, qmul, quat_at, qunit, qyaw, row3, row4, turn_y, wrap
 from ..motion.rotation_ball_kernels import clamp_joint
 from ..motion.style_carry_kernels import carry_batch
 
@@ -417,13 +417,6 @@ def split_hips(q):
 
 
 @njit(cache=True, error_model="numpy")
-def rotate_y(x, z, yaw):
-    """Ground-plane vector (x, z) turned by yaw about +Y."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return c * x + s * z, -s * x + c * z
-
-
-@njit(cache=True, error_model="numpy")
 def add_signed(acc, w, q, ref):
     """acc + w * q, with q's sign flipped when it points away from ref (q and -q are one rotation)."""
     sign = -w if qdot(q, ref) < 0.0 else w
@@ -687,7 +680,7 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
         p_yaw = before.in_yaw[b] if started else yaw
         p_x = before.in_ground[b, 0] if started else gx
         p_z = before.in_ground[b, 1] if started else gz
-        dx, dz = rotate_y(gx - p_x, gz - p_z, -p_yaw)
+        dx, dz = turn_y(gx - p_x, gz - p_z, math.cos(-p_yaw), math.sin(-p_yaw))
         deltas[b, 0], deltas[b, 1], deltas[b, 2] = dx, dz, wrap(yaw - p_yaw)
         total = 0.0
         for s in range(S):
@@ -774,7 +767,7 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
         if fresh:
             after.out_yaw[b], after.out_ground[b, 0], after.out_ground[b, 1] = yaw, gx, gz
         else:
-            sx, sz = rotate_y(rf[0], rf[1], before.out_yaw[b])
+            sx, sz = turn_y(rf[0], rf[1], math.cos(before.out_yaw[b]), math.sin(before.out_yaw[b]))
             after.out_yaw[b] = before.out_yaw[b] + rf[2]
             after.out_ground[b, 0] = before.out_ground[b, 0] + sx
             after.out_ground[b, 1] = before.out_ground[b, 1] + sz

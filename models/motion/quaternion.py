@@ -113,6 +113,12 @@ def qyaw(yaw):
 
 
 @njit(cache=True, error_model="numpy")
+def turn_y(x, z, c, s):
+    """Ground-plane vector (x, z) turned about +Y by the yaw of cosine c and sine s; (c, -s) turns back."""
+    return c * x + s * z, -s * x + c * z
+
+
+@njit(cache=True, error_model="numpy")
 def nlerp(a, t, share):
     """(1 - share) a + share t, normalised, with t taken on a's hemisphere."""
     if qdot(t, a) < 0.0:
