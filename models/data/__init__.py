@@ -19,15 +19,6 @@ def __getattr__(name: str) -> Any:
 
 
 __all__ = [
-    "DATASETS",
-    "DataError",
-    "DatasetSpec",
-    "dataset_dir",
-    "SPLITS",
-    "Clip",
-    "build_index",
-    "select",
-    "load_motion",
-    "load_motions",
-    "warm_cache",
-]
+    "DATASETS", "DataError", "DatasetSpec", "dataset_dir", "SPLITS", "Clip", "build_index", "select", "load_motion",
+    "load_motions", "warm_cache",
+]  # fmt: skip

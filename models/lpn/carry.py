@@ -49,14 +49,7 @@ def _body_mirror() -> tuple[np.ndarray, np.ndarray]:
 def mirror_frames(fr: ClipFrames, phases: np.ndarray, frequency: np.ndarray, contacts: np.ndarray) -> ClipFrames:
     """The mirror image's frames: pose and root reflected (world X), with the given phases."""
     index, signs = _body_mirror()
-    return ClipFrames(
-        fr.pose[:, index] * signs,
-        fr.xz * np.array([-1.0, 1.0]),
-        -fr.yaw,
-        phases,
-        frequency,
-        contacts,
-    )
+    return ClipFrames(fr.pose[:, index] * signs, fr.xz * np.array([-1.0, 1.0]), -fr.yaw, phases, frequency, contacts)
 
 
 def _quantise(a: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

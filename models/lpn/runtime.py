@@ -352,17 +352,9 @@ class LPNModel(LPNStyles):
     def _rules(self) -> kernels.Rules:
         smooth = 1.0 - np.exp(-1.0 / (self.fps * CONTROL_SMOOTH_S))
         return kernels.Rules(
-            smooth,
-            RUN_SPEED,
-            STOP_SPEED,
-            STOP_ROOT_HOLD,
-            STOP_PHASE_DAMP,
-            PHASE_BLEND,
-            CONTACT_THRESHOLD,
-            CATCH_UP_S,
-            CRAWL_SPEED,
-            WALK_SPEED,
-        )
+            smooth, RUN_SPEED, STOP_SPEED, STOP_ROOT_HOLD, STOP_PHASE_DAMP, PHASE_BLEND, CONTACT_THRESHOLD, CATCH_UP_S,
+            CRAWL_SPEED, WALK_SPEED,
+        )  # fmt: skip
 
     @cached_property
     def _state_layout(self) -> dict[str, tuple[tuple[int, ...], np.dtype]]:

@@ -72,16 +72,8 @@ def _quat_to_mat(q, out):
     x, y, z, w = q[0], q[1], q[2], q[3]
     s = 2.0 / (x * x + y * y + z * z + w * w)  # 2 / |q|^2: the products of the unit quaternion, doubled
     xx, yy, zz, xy, xz, yz, wx, wy, wz = (
-        s * x * x,
-        s * y * y,
-        s * z * z,
-        s * x * y,
-        s * x * z,
-        s * y * z,
-        s * w * x,
-        s * w * y,
-        s * w * z,
-    )
+        s * x * x, s * y * y, s * z * z, s * x * y, s * x * z, s * y * z, s * w * x, s * w * y, s * w * z
+    )  # fmt: skip
     out[0, 0], out[0, 1], out[0, 2] = 1 - (yy + zz), xy - wz, xz + wy
     out[1, 0], out[1, 1], out[1, 2] = xy + wz, 1 - (xx + zz), yz - wx
     out[2, 0], out[2, 1], out[2, 2] = xz - wy, yz + wx, 1 - (xx + yy)
@@ -443,40 +435,13 @@ def _hinged(g, frame, d, lo, reach, a, b, sw, m):
 # buf[at[i]:at[i + 1]], reshaped): numba checks every argument's type on each call (~0.1 us an
 # array), which for the two dozen arrays a rig needs would be most of a batch-1 call.
 INT_PARTS = (
-    "src_order",
-    "src_par_s",
-    "fixed_par_s",
-    "translated_par_s",
-    "vec_par_s",
-    "vec_nz",
-    "num_plain",
-    "lateral_j",
-    "step_i",
-    "bn_parents",
-    "bn_order",
-    "delta_j",
-    "anc_bn_s",
-    "mapped_j",
-    "mapped_s",
-    "mapped_par_s",
-    "drop_par",
-)
+    "src_order", "src_par_s", "fixed_par_s", "translated_par_s", "vec_par_s", "vec_nz", "num_plain", "lateral_j",
+    "step_i", "bn_parents", "bn_order", "delta_j", "anc_bn_s", "mapped_j", "mapped_s", "mapped_par_s", "drop_par",
+)  # fmt: skip
 FLOAT_PARTS = (
-    "fixed_off",
-    "vec_off",
-    "vec_w",
-    "axes",
-    "m_tgt_t",
-    "step_nat",
-    "step_b",
-    "step_k",
-    "step_m_loc_t",
-    "bn_fixed_q",
-    "step_split_nat",
-    "drop_off",
-    "drop_ref",
-    "step_reach",
-)
+    "fixed_off", "vec_off", "vec_w", "axes", "m_tgt_t", "step_nat", "step_b", "step_k", "step_m_loc_t", "bn_fixed_q",
+    "step_split_nat", "drop_off", "drop_ref", "step_reach",
+)  # fmt: skip
 
 
 def pack(parts: dict, names: tuple[str, ...], dtype) -> tuple[np.ndarray, np.ndarray]:
