@@ -347,3 +347,33 @@ def test_the_torso_turns_as_smoothly_as_real_walks(model, bn_walk):
         q = model.run(walk, model.weight_vector({style: 1.0}))[0].rotations[:, torso].astype(np.float64)
         step = quat_log(quat_mul(quat_inv(q[:-1]), q[1:]))
         assert np.degrees(np.linalg.norm(np.diff(step, axis=0), axis=-1)).max() < 10.0, style
+
+
+def test_a_copy_whose_stages_change_checks_the_state_its_own_stages_make(model, clips):
+    """A copy (`with_own_styles`, as an upload's fit makes one) that switches a stage off steps
+    with the state its own stages make: the step's state check must not keep the layout the
+    model it was copied from had cached, or a stage with state could never be switched off."""
+    from dataclasses import dataclass
+
+    from models.lpn.output_prior import OutputPrior
+
+    @dataclass(frozen=True)
+    class Counting(OutputPrior):
+        """The output prior with a state of its own, as a stage that follows the motion has."""
+
+        def init_state(self, batch: int) -> dict[str, np.ndarray]:
+            return {"frames": np.zeros((batch, 1))}
+
+        def step_batch(self, state, frame, rows):
+            out, _ = super().step_batch(state, frame, rows)
+            return out, {"frames": state["frames"] + 1.0}
+
+    stateful = model.with_own_styles()
+    prior = stateful.stages.output_prior
+    stateful.stages = stateful.stages.replace(output_prior=Counting(prior.styles, prior.carry, prior.run))
+    w = stateful.weight_vector({"elderly": 1.0})[None]
+    _, state = stateful.step_batch(stateful.init_state(1), _frames(clips["walk"], 0), w)
+    assert state["output_prior/frames"][0, 0] == 1.0
+    twin = stateful.with_own_styles()
+    twin.stages = twin.stages.without("output_prior")
+    twin.step_batch(twin.init_state(1), _frames(clips["walk"], 0), w)

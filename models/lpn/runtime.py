@@ -138,6 +138,7 @@ class LPNModel(LPNStyles):
     def stages(self, stages: Pipeline) -> None:
         with self._lock:
             self._table = self._table.with_stages(stages)
+            self.__dict__.pop("_state_layout", None)  # the state the step checks is these stages'
 
     def styles(self) -> list[str]:
         return list(self._table.names)
