@@ -98,14 +98,17 @@ class Pipeline:
 
     stages: tuple[tuple[str, Stage | None], ...] = ()
     _on: tuple[tuple[str, Stage, tuple[tuple[str, str], ...]], ...] = field(init=False, repr=False, compare=False)
+    # the session state these stages keep: key ("stage/name") -> (shape without the session axis, dtype)
+    state_layout: dict[str, tuple[tuple[int, ...], np.dtype]] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # per stage that is on: its name and its state's keys, with the name and without (a step
         # hands each stage its own entries without searching the session's state)
-        on = tuple(
-            (k, s, tuple((f"{k}/{key}", key) for key in s.init_state(0))) for k, s in self.stages if s is not None
-        )
+        states = {k: s.init_state(0) for k, s in self.stages if s is not None}
+        on = tuple((k, s, tuple((f"{k}/{key}", key) for key in states[k])) for k, s in self.stages if s is not None)
         object.__setattr__(self, "_on", on)
+        layout = {f"{k}/{key}": (v.shape[1:], v.dtype) for k, state in states.items() for key, v in state.items()}
+        object.__setattr__(self, "state_layout", layout)
 
     @classmethod
     def load(cls, specs: Sequence[StageSpec], folder: Path, skeleton: Skeleton, core_only: bool = False) -> Pipeline:

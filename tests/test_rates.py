@@ -168,9 +168,9 @@ def test_the_output_keeps_the_inputs_timing_within_one_model_frame(served, fps):
     from models.motion.rate_metrics import lag_frames
 
     motion, _, rot = served[fps]
-    lag = lag_frames(motion.rotations[:, BODY], rot[:, BODY], max_lag=int(fps))
-    print(f"{fps:g} fps: {lag:.2f} frames behind")
-    assert lag <= fps / 30.0
+    # measured 0.26, 1.49 and 3.99 frames: at 120 fps the stated 0.75 model frames and LTI's own
+    # trailing toward elderly leave 0.01 frame to spare
+    assert lag_frames(motion.rotations[:, BODY], rot[:, BODY], max_lag=int(fps)) <= fps / 30.0
 
 
 def test_sample_and_hold_fails_what_interpolation_passes(served):

@@ -138,7 +138,6 @@ class LPNModel(LPNStyles):
     def stages(self, stages: Pipeline) -> None:
         with self._lock:
             self._table = self._table.with_stages(stages)
-            self.__dict__.pop("_state_layout", None)  # the state the step checks is these stages'
 
     def styles(self) -> list[str]:
         return list(self._table.names)
@@ -295,6 +294,7 @@ class LPNModel(LPNStyles):
         fresh = np.flatnonzero(s["frame"] == 0)
         if len(fresh):
             self._start(s, fresh, root, rot_in, frames.control)
+        self._check_step(s, root, rot_in, frames.control, table.stages)
         control = self._control(s, frames, root, rot_in, fresh)
         x, g = self._inputs(s, control)
         y = self._network(x, g, film)
@@ -334,7 +334,6 @@ class LPNModel(LPNStyles):
         """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others
         derived from the input frames (advancing the input tracker)."""
         B = root.shape[0]
-        self._check_step(s, root, rot_in, frames.control)
         if frames.control is None:
             control, given = np.zeros((B, 5), np.float32), np.zeros(B, bool)
         else:
@@ -358,12 +357,16 @@ class LPNModel(LPNStyles):
         )  # fmt: skip
 
     @cached_property
-    def _state_layout(self) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
-        """Per state entry: its shape without the session axis, and its dtype."""
-        return {k: (v.shape[1:], v.dtype) for k, v in self.init_state(0).items()}
+    def _own_layout(self) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+        """Per state entry but the stages' (`Pipeline.state_layout`, which a copy may switch): its
+        shape without the session axis, and its dtype."""
+        return {k: (v.shape[1:], v.dtype) for k, v in self.init_state(0).items() if "/" not in k}
 
-    def _check_step(self, s: State, root: np.ndarray, rot_in: np.ndarray, control: np.ndarray | None) -> None:
-        """The kernels trust every shape (no bounds checks): anything else is a clear error here."""
+    def _check_step(
+        self, s: State, root: np.ndarray, rot_in: np.ndarray, control: np.ndarray | None, stages: Pipeline
+    ) -> None:
+        """The kernels trust every shape (no bounds checks): anything else is a clear error here;
+        the stages' entries as the stages that step keep them."""
         B, J = root.shape[0], len(self.parents)
         if root.shape != (B, 3) or rot_in.shape != (B, J, 4):
             raise ValueError(
@@ -371,7 +374,7 @@ class LPNModel(LPNStyles):
             )
         if control is not None and np.shape(control) != (B, 5):
             raise ValueError(f"control must be ({B}, 5), got {np.shape(control)}")
-        for key, (shape, dtype) in self._state_layout.items():
+        for key, (shape, dtype) in {**self._own_layout, **stages.state_layout}.items():
             value = s.get(key)
             if not (
                 isinstance(value, np.ndarray)

@@ -670,7 +670,7 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
     totals, root_feats, votes, eased = per[:, 9], per[:, 10:14], per[:, 14:16], per[:, 16:18]
     for b in range(B):
         for i in range(after.x.shape[1]):
-            after.x[b, i] = 0.0  # a style at weight 0 rests at its initial state x = 0
+            after.x[b, i] = 0.0  # a style at weight 0 rests at x = 0, unset (`unset`, `start_state`)
         work.contacts[b, 0], work.contacts[b, 1] = False, False
         yaw, tilt = split_hips(quat_at(frame.rotations, b, HIPS))
         yaws[b], votes[b, 0], votes[b, 1], eased[b, 0], eased[b, 1] = yaw, 0.0, 0.0, 0.0, 0.0

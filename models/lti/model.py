@@ -249,7 +249,8 @@ class LTIStyleModel(LTIStyles):
     (`models/interface.py`); the input style is Bandai Namco `normal`.
 
     State per session (all arrays, session axis first): the LTI state of each style in its own
-    array `x.<style>` (a style whose weight is 0 is held at x = 0, its identified initial state),
+    array `x.<style>` (a style whose weight is 0 is held at x = 0, unset: weighted in, it starts at its
+    input's steady state, `kernels.start_state`),
     and `carry`, one float64 row of everything else (`kernels.CARRY`: the input's and the
     output's root transforms, the hands' measures, the running means, the foot planter's memory).
     A style weight vector w mixes the styles: the root displacement features are blended
@@ -544,7 +545,7 @@ class LTIStyleModel(LTIStyles):
         new_x, new_carry = np.empty(x.shape), np.empty(carry.shape)
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
         frame, outputs = (root, rotations, w, x_at), (out.root, out.rotations, out.contacts)
-        new = {**held.rest, CARRY: new_carry}  # a style no session uses rests at x = 0
+        new = {**held.rest, CARRY: new_carry}  # a style no session uses rests at x = 0 (unset)
         if fading is None:
             kernels.step(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work))
         else:
