@@ -18,6 +18,7 @@ from models.lti.subspace import (
     subspace_id,
 )
 from models.lti.warping import imw, time_warp_dp
+from models.motion.feet import LEG_JOINTS
 from models.motion.rotations import yaw_quat
 
 from .reference.lti_offline import features_to_sequence, static_to_rotations
@@ -255,7 +256,7 @@ def test_a_held_pose_comes_out_held_from_its_first_frame():
     index, load_motion, select = _data()
     m = load_motion(select(index, style="normal", content="walk", split="val")[0])
     held = FrameBatch(m.translations[20:21, rep.HIPS], m.rotations[20:21])
-    body = [j for j, name in enumerate(m.skeleton.names) if not any(k in name for k in ("Leg", "Foot", "Toe"))]
+    body = [j for j, name in enumerate(m.skeleton.names) if name not in LEG_JOINTS]
     for style in model.styles():
         state, rotations = model.init_state(1), []
         for t in range(12):  # the style weighted in on the 4th frame

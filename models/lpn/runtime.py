@@ -23,6 +23,7 @@ import threading
 from collections.abc import Callable
 from dataclasses import replace
 from functools import cached_property, partial
+from itertools import chain
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -374,7 +375,7 @@ class LPNModel(LPNStyles):
             )
         if control is not None and np.shape(control) != (B, 5):
             raise ValueError(f"control must be ({B}, 5), got {np.shape(control)}")
-        for key, (shape, dtype) in {**self._own_layout, **stages.state_layout}.items():
+        for key, (shape, dtype) in chain(self._own_layout.items(), stages.state_layout.items()):
             value = s.get(key)
             if not (
                 isinstance(value, np.ndarray)
