@@ -1,12 +1,10 @@
 """Where numba keeps its compiled kernels: a folder keyed by the kernel sources.
 
-numba's on-disk cache (`cache=True`) checks only the file that defines a kernel, not the files it
-calls into (numba #1833): a kernel calling `quaternion.qmul` would keep running an old `qmul` after
-an edit. So, unless the user set NUMBA_CACHE_DIR, the cache lives in `.cache/numba/<key>/` of the
-checkout, where the key hashes every kernel source under `models/` and every `models` module they
-import from at module level, directly or not (constants such as joint indices are frozen into
-compiled code too). Any edit there starts a fresh folder. `models/__init__.py` imports this
-module, so it runs before any kernel module is decorated.
+numba's cache (`cache=True`) checks only the file defining a kernel, not the files it calls into
+(numba #1833): an edited `quaternion.qmul` would go unseen. So, unless NUMBA_CACHE_DIR is set, the
+cache lives in `.cache/numba/<key>/`, the key hashing every kernel source under `models/` and every
+`models` module they import at module level (constants are frozen into compiled code too).
+`models/__init__.py` imports this module, so it runs before any kernel is decorated.
 """
 
 from __future__ import annotations
@@ -31,8 +29,7 @@ def _is_kernel(text: str) -> bool:
 
 
 def _imported_files(path: Path, tree: ast.Module, root: Path) -> set[Path]:
-    """The files under `root` that `path` imports from at module level (relative or `models.`
-    imports): where the globals a kernel reads come from."""
+    """The files under `root` that `path` imports from at module level: where a kernel's globals live."""
     found: set[Path] = set()
     for node in tree.body:
         if not isinstance(node, ast.ImportFrom):
@@ -53,8 +50,7 @@ def _imported_files(path: Path, tree: ast.Module, root: Path) -> set[Path]:
 
 
 def kernel_sources(root: Path = MODELS) -> list[Path]:
-    """Every file defining a kernel, and every file under `root` those files import from, directly
-    or not (a constant a kernel reads may be computed from another module's)."""
+    """Every file defining a kernel, and every file under `root` they import from, transitively."""
     todo = [path for path in root.rglob("*.py") if _is_kernel(path.read_text(encoding="utf-8"))]
     files: set[Path] = set()
     while todo:
@@ -66,7 +62,6 @@ def kernel_sources(root: Path = MODELS) -> list[Path]:
 
 
 def cache_key(root: Path = MODELS) -> str:
-    """A short hash of the kernel sources' paths and contents."""
     digest = hashlib.sha256()
     for path in kernel_sources(root):
         digest.update(path.relative_to(root).as_posix().encode())
@@ -77,16 +72,14 @@ def cache_key(root: Path = MODELS) -> str:
 
 
 def cache_dir(environ: Mapping[str, str], root: Path = MODELS) -> Path | None:
-    """The folder to use, or None to leave numba's own choice (the user's NUMBA_CACHE_DIR, or an
-    installed copy of the package with no checkout around it)."""
+    """The folder to use, or None for numba's own choice (NUMBA_CACHE_DIR set, or no checkout)."""
     if environ.get("NUMBA_CACHE_DIR") or not (root.parent / "pyproject.toml").is_file():
         return None
     return root.parent / ".cache" / "numba" / cache_key(root)
 
 
 def prune(folder: Path, now: float | None = None) -> None:
-    """Remove the other keyed folders beside `folder` that nothing was added to for `STALE_DAYS`:
-    every edit of a kernel source starts a new folder, and the old ones would pile up."""
+    """Remove sibling keyed folders untouched for `STALE_DAYS` (every kernel edit starts a new one)."""
     cutoff = (time.time() if now is None else now) - STALE_DAYS * 86400
     if not folder.parent.is_dir():
         return
@@ -96,8 +89,7 @@ def prune(folder: Path, now: float | None = None) -> None:
 
 
 def configure() -> None:
-    """Point numba at the keyed folder. numba reads NUMBA_CACHE_DIR when it is imported and its
-    cache locator reads `numba.config.CACHE_DIR` when a kernel is decorated, so both are set."""
+    """Point numba at the keyed folder (NUMBA_CACHE_DIR and `numba.config.CACHE_DIR`)."""
     folder = cache_dir(os.environ)
     if folder is None:
         return

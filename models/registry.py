@@ -1,10 +1,8 @@
 """Discovery of the trained models that ship with the project.
 
-Each method package exposes `load(weights_dir) -> StreamingModel`, its weights in `weights/<method>/`;
-a method whose weights are not committed yet is simply not offered. A shipped pipeline begins
-with the posture calibration (`models/motion/calibration.py`) where `weights/calibration/` holds
-its fitted range, and ends in the unseen-content fade (`models/motion/novelty_stage.py`) where
-`weights/novelty/` holds its fitted reference; a core is the method alone."""
+Each method package exposes `load(weights_dir) -> StreamingModel`; a method without committed
+weights is not offered. A shipped pipeline begins with the posture calibration and ends with the
+unseen-content fade where their fitted files exist; a core is the method alone."""
 
 from __future__ import annotations
 
@@ -25,10 +23,7 @@ log = logging.getLogger(__name__)
 def load_models(
     weights_dir: Path, core_only: bool = False, novelty: bool = True, calibration: bool = True
 ) -> dict[str, StreamingModel]:
-    """Every committed method; `core_only`: each one's published core alone, without the fitted
-    stages around it (what the evaluation's core-alone rows score); `novelty` False: the shipped
-    pipelines without their last stage, the unseen-content fade; `calibration` False: without
-    their first, the posture calibration."""
+    """Every committed method; `core_only`, `novelty`, `calibration` drop stages to compare."""
     models: dict[str, StreamingModel] = {}
     for method in METHODS:
         model = load_model(weights_dir, method, core_only, novelty, calibration)
@@ -41,9 +36,7 @@ def load_models(
 def load_model(
     weights_dir: Path, method: str, core_only: bool = False, novelty: bool = True, calibration: bool = True
 ) -> StreamingModel | None:
-    """One committed method as `load_models` has it; None where it is not committed. `novelty`
-    False: the full pipeline without its last stage, the unseen-content fade; `calibration`
-    False: without its first, the posture calibration (to compare)."""
+    """One committed method as `load_models` has it; None where it is not committed."""
     try:
         package = importlib.import_module(f"models.{method}")
     except ModuleNotFoundError:

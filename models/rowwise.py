@@ -1,21 +1,9 @@
 """Matrix products whose rows do not depend on the batch they are computed in.
 
-The service steps many sessions as one batch and promises each character the same output bit for
-bit whoever else is in it. BLAS alone does not keep that promise: it picks kernels and row splits
-by the row count, so row i of `X @ W` differs in the last bits between batches of 1 and 64.
-
-Two ways keep it; which one is fixed per product shape (never per batch, which is the point):
-
-- **torch (MKL), rows padded to a multiple of `QUANTUM`**: with one thread every row count of 4
-  and up gives each row the same bits, with two threads the multiples of 4 do; full BLAS speed
-  for large batches.
-- **numpy in fixed 8-row blocks**: every row meets the same kernel whatever the batch, at the
-  cost of weaker amortisation. Products under `TORCH_MIN_WEIGHTS` weights take this path, where
-  torch's per-call overhead would cost more than it saves.
-
-A library, CPU or thread count where the first does not hold is caught by `_rows_agree` before
-any output depends on it, and falls back to the second; `tests/test_rowwise.py` checks both and
-every model's step. LTI needs none of this (its kernels are per row).
+The service promises each session the same bits whoever shares its batch, but BLAS picks kernels
+by row count. Per product shape: torch (MKL) with rows padded to `QUANTUM` (full speed), or numpy
+in fixed 8-row blocks (small products, or where `_rows_agree` finds torch does not hold).
+LTI needs none of this (its kernels are per row).
 """
 
 from __future__ import annotations
@@ -39,17 +27,14 @@ _lock = threading.RLock()  # re-entered: the bfloat16 check times the float32 pr
 
 
 def matmul_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """`x @ w` for x (..., B, K) and w (..., K, N) (leading axes broadcast as `np.matmul`), each of
-    the B rows bit for bit what it would be in a batch of any other size."""
+    """`x @ w` (leading axes broadcast), each row bit for bit what it is in a batch of any size."""
     if w.shape[-2] * w.shape[-1] >= TORCH_MIN_WEIGHTS and torch_rows_hold(x.shape[:-2], w.shape, x.dtype):
         return _torch_rows(x, w)
     return _blocked_rows(x, w)
 
 
 def torch_rows_hold(lead: tuple[int, ...], w_shape: tuple[int, ...], dtype: np.dtype) -> bool:
-    """Whether the padded torch product keeps rows independent of the batch for this shape at the
-    current torch thread count (checked once per shape and thread count, on random data: which
-    kernel runs depends on the shapes, not the values)."""
+    """Whether the padded torch product keeps rows batch-independent here (checked once per shape)."""
     key = (tuple(lead), tuple(w_shape), np.dtype(dtype).str, torch.get_num_threads())
     verdict = _verdicts.get(key)
     if verdict is None:
@@ -70,8 +55,7 @@ def _rows_agree(lead: tuple[int, ...], w_shape: tuple[int, ...], dtype: np.dtype
 
 
 def _rows_independent(product: Callable[[np.ndarray], np.ndarray], x: np.ndarray, counts: tuple[int, ...]) -> bool:
-    """Whether `product` gives the first rows of `x` the same bits in batches of every size in
-    `counts` as in one of max(CHECKED_ROWS) rows, and rows at a shifted place in a batch too."""
+    """Whether `product` gives rows the same bits in every batch size of `counts`, and shifted."""
     full = product(x[..., : max(CHECKED_ROWS), :])
     for rows in counts:
         if not np.array_equal(product(x[..., :rows, :]), full[..., :rows, :]):
@@ -98,15 +82,9 @@ def _torch_rows(x: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 class Bfloat16Product:
-    """`x @ w` with x and w rounded to bfloat16 and summed in float32 (oneDNN), rows padded to
-    `QUANTUM` like the torch path above. Where the CPU multiplies bfloat16 natively (AVX512-BF16,
-    AMX) the expert layers of LPN-FiLM run ~4x faster than in float32 (0.4 % rounding of inputs and
-    weights; its model card has what that does to its output). `for_weights` returns one only where
-    this machine has native bfloat16 and keeps the rows independent of the batch.
-
-    The choice reads the CPU's features, never a timing: on a loaded machine a timed verdict flips
-    from process to process, so two replicas of one service would compute the same session
-    differently and a session resumed on the other one would not go on as it would have."""
+    """`x @ w` in bfloat16 summed in float32 (oneDNN), rows padded like the torch path: ~4x faster for
+    LPN-FiLM's experts where native (see its model card). Chosen by CPU features, never timing: a
+    timed verdict would differ between replicas, and a resumed session would not go on the same."""
 
     def __init__(self, w: np.ndarray) -> None:
         self.w = torch.from_numpy(np.ascontiguousarray(w, np.float32)).to(torch.bfloat16)
@@ -134,9 +112,7 @@ class Bfloat16Product:
 
 
 def native_bfloat16() -> bool:
-    """Whether this CPU multiplies bfloat16 in hardware (AVX512-BF16 or AMX tiles), as torch's
-    oneDNN sees it: there bfloat16 products ran 2.4-8x faster than float32 at 256 rows; emulated,
-    they are slower."""
+    """Whether this CPU has native bfloat16 (AVX512-BF16 or AMX) as oneDNN sees it; emulated is slower."""
     probes = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
     return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in probes)
 

@@ -1,12 +1,10 @@
 """The shape every method shares: its published core, then a declared pipeline of general stages.
 
-A stage changes a frame's local rotations after the core (or after the stage before it). It is
-fitted from real clips the same way for every style, and reads per style only the arrays that fit
-gave it (`rows`, aligned with the model's style list): a style it was not fitted for (an upload, a
-style given another style vector) gets a row that leaves the frame as it is. A method declares
-its stages in order (`StageSpec`: name, file beside the weights, how it is read and fitted);
-`Pipeline` loads and runs them and switches any of them off (`without`). The streaming step and
-the offline path (sessions stepped frame by frame) run the same `Pipeline`.
+A stage changes a frame's local rotations after the core. It is fitted from real clips the same
+way for every style and reads per style only the rows that fit gave it; a style it was not fitted
+for (an upload) gets a row that leaves the frame as it is. A method declares its stages in order
+(`StageSpec`); `Pipeline` loads, runs and switches them off (`without`), the same for the
+streaming step and the offline path.
 """
 
 from __future__ import annotations
@@ -37,8 +35,7 @@ class StageFrame(NamedTuple):
 @runtime_checkable
 class Stage(Protocol):
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
-        """The arrays the step reads: per style ones aligned with `styles` (None or a style it was
-        not fitted for: a row that changes nothing), and any the stage needs on `skeleton`."""
+        """The arrays the step reads, per style aligned with `styles` (unfitted: a no-op row)."""
         ...
 
     def init_state(self, batch: int) -> State:
@@ -57,24 +54,19 @@ class Stage(Protocol):
 def style_rows(
     fitted: Sequence[str], styles: Sequence[str | None], **arrays: tuple[np.ndarray, np.ndarray | float]
 ) -> dict[str, np.ndarray]:
-    """`Stage.rows` from arrays fitted for the styles `fitted`: per key (one row per fitted style,
-    the row that changes nothing), rows aligned with `styles` (a style not fitted, or None: the latter)."""
+    """`Stage.rows` from arrays fitted for `fitted` styles, aligned with `styles`."""
     at = [fitted.index(s) if s in fitted else None for s in styles]
     return {k: np.stack([plain if i is None else values[i] for i in at]) for k, (values, plain) in arrays.items()}
 
 
 class Stateless:
-    """A stage that keeps nothing between frames."""
-
     def init_state(self, batch: int) -> State:
         return {}
 
 
 @dataclass(frozen=True)
 class StageSpec:
-    """One stage a method declares: its name (the switch), the file it is fitted into beside the
-    weights, how that file is read, and its fit from real clips: `fit(model, styles)` on the model
-    with the stages before it in place, for `styles` (None: every style the fit applies to)."""
+    """One declared stage: name (the switch), file, reader, and `fit(model, styles)`."""
 
     name: str
     file: str
@@ -83,8 +75,7 @@ class StageSpec:
 
 
 def refit(spec: StageSpec, model: Any, folder: Path, styles: list[str] | None) -> Path:
-    """Fit `spec` on `model` for `styles` (None: all) into its file in `folder`; with named styles
-    the file keeps its other styles (where the stage can merge: `with_styles_of`)."""
+    """Fit `spec` for `styles` (None: all) into `folder`, keeping other styles where it can."""
     path = folder / spec.file
     stage = spec.fit(model, styles)
     if styles and path.exists() and hasattr(stage, "with_styles_of"):
@@ -102,8 +93,7 @@ class Pipeline:
     state_layout: dict[str, tuple[tuple[int, ...], np.dtype]] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        # per stage that is on: its name and its state's keys, with the name and without (a step
-        # hands each stage its own entries without searching the session's state)
+        # per stage that is on: its name and its state's keys, with and without the name
         states = {k: s.init_state(0) for k, s in self.stages if s is not None}
         on = tuple((k, s, tuple((f"{k}/{key}", key) for key in states[k])) for k, s in self.stages if s is not None)
         object.__setattr__(self, "_on", on)
@@ -112,8 +102,7 @@ class Pipeline:
 
     @classmethod
     def load(cls, specs: Sequence[StageSpec], folder: Path, skeleton: Skeleton, core_only: bool = False) -> Pipeline:
-        """The stages fitted beside the weights in `folder` (a file missing: that stage off);
-        `core_only`: every stage off, the published core alone."""
+        """The stages fitted in `folder` (a missing file: off); `core_only`: all off."""
         on = lambda s: not core_only and (folder / s.file).exists()  # noqa: E731
         return cls(tuple((s.name, s.load(folder / s.file, skeleton) if on(s) else None) for s in specs))
 
@@ -131,17 +120,14 @@ class Pipeline:
         return Pipeline(tuple((k, stages.get(k, s)) for k, s in self.stages))
 
     def without(self, *names: str) -> Pipeline:
-        """These stages off, the rest as they are."""
         return self.replace(**dict.fromkeys(names))
 
     def split(self, last: str) -> tuple[Pipeline, Pipeline]:
-        """The stages up to `last` and those after it: for a core that reads the first ones'
-        output in the middle of its step (Style-ERD decodes its twists from the carried input)."""
+        """The stages up to `last` and those after (Style-ERD's core reads the first ones' output)."""
         at = [k for k, _ in self.stages].index(last) + 1
         return Pipeline(self.stages[:at]), Pipeline(self.stages[at:])
 
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, dict[str, np.ndarray]]:
-        """Per stage that is on, its `Stage.rows`."""
         return {k: s.rows(styles, skeleton) for k, s in self.stages if s is not None}
 
     def init_state(self, batch: int) -> State:
@@ -167,9 +153,7 @@ _IN_FRONT: dict[tuple[type, type], type] = {}
 def upgrade_with_own(
     state: State, key: str, width: int, fresh: Callable[[int], np.ndarray], upgrade: Callable[[State], State] | None
 ) -> State:
-    """A stage put in front's `upgrade_state`: the method's own entries upgraded by `upgrade` (the
-    method's, None: kept), the stage's row under `key` kept if `width` wide, else started afresh
-    (`fresh(batch)`: a snapshot from before the stage); `state` itself when nothing changes."""
+    """A front stage's `upgrade_state`: the method's entries upgraded, its own row kept or fresh."""
     inner = {k: v for k, v in state.items() if k != key}
     upgraded = inner if upgrade is None else upgrade(inner)
     own = state.get(key)
@@ -181,10 +165,9 @@ def upgrade_with_own(
 
 
 def put_in_front(model: Any, mixin: type) -> Any:
-    """A copy of `model` whose class has `mixin` in front of its own (one class per pair, kept):
-    a stage that wraps the whole step (the unseen-content fade, the twist calibration) without
-    wrapping the object, so `isinstance` checks, `with_own_styles` copies and every caller of
-    `step_batch` see the method as it was. The copy shares the model's attributes (weights)."""
+    """A copy of `model` whose class has `mixin` in front (one class per pair, cached): a stage that
+    wraps the whole step without wrapping the object, so `isinstance`, `with_own_styles` and every
+    `step_batch` caller see the method as it was. The copy shares the model's weights."""
     cls: type = type(model)
     if isinstance(model, mixin):
         return copy.copy(model)

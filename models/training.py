@@ -1,8 +1,6 @@
-"""What the trainers (Style-ERD's `erd/train.py`, LPN-FiLM's `lpn/train.py`) share, nanoGPT style:
-each train script keeps its config dataclass and its step at the top; here are the command line
-(every config field as `--name=value`), the run's start (seeds, device, log), what a checkpoint
-holds to resume exactly, and the one loop: steps within a wall-clock budget under a cosine
-learning rate, validated and saved along the way."""
+"""What the trainers (`erd/train.py`, `lpn/train.py`) share, nanoGPT style: the command line
+(every config field as `--name=value`), the run's start, what a checkpoint holds to resume
+exactly, and the loop: steps within a wall-clock budget under a cosine learning rate."""
 
 from __future__ import annotations
 
@@ -28,10 +26,9 @@ TRUE, FALSE = ("1", "true", "yes", "on", ""), ("0", "false", "no", "off")
 
 
 def parse_overrides(config: T, argv: list[str]) -> T:
-    """`config` (a dataclass instance, changed in place and returned) with `--name=value` applied
-    (dashes or underscores, typed by the default). A bare `--flag` sets a bool field. Unknown
-    names and bad values end the program with one line; `-h` or `--help` prints the program's
-    docstring and every option with its default, and ends it."""
+    """`config` (changed in place) with `--name=value` applied (typed by the default; a bare `--flag`
+    sets a bool). Unknown names and bad values end the program with one line; `-h`/`--help` prints
+    the program's docstring and every option with its default."""
     known = {f.name for f in fields(config)}  # type: ignore[arg-type]
     if any(arg in ("-h", "--help") for arg in argv):
         print(usage(config))
@@ -77,8 +74,7 @@ C = TypeVar("C", bound=TrainConfig)
 
 
 def resume_config(default: C, argv: list[str]) -> tuple[C, dict | None]:
-    """The command line's config, or with `--resume` the run's own config and checkpoint, then the
-    command line's overrides (a checkpoint's options this trainer no longer has are dropped)."""
+    """The command line's config, or with `--resume` the run's own, then the command line's overrides."""
     cfg = parse_overrides(default, argv)
     path = Path(cfg.run_dir) / "ckpt.pt"
     if not cfg.resume or not path.exists():
@@ -93,8 +89,7 @@ def resume_config(default: C, argv: list[str]) -> tuple[C, dict | None]:
 
 
 def seeded_device(threads: int, seed: int, device: str) -> torch.device:
-    """A run's start: its thread count, every random generator seeded (Python's, numpy's global,
-    torch's), and its device ("auto": a GPU where there is one)."""
+    """A run's start: its threads, every random generator seeded, its device ("auto": a GPU if any)."""
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
     np.random.seed(seed)
@@ -103,8 +98,7 @@ def seeded_device(threads: int, seed: int, device: str) -> torch.device:
 
 
 def use_bf16(setting: str, device: torch.device) -> bool:
-    """A trainer's `bf16` setting: whether to autocast to bfloat16; "auto" where it is native
-    (CUDA; avx512_bf16 or AMX CPUs)."""
+    """Whether to autocast to bfloat16; "auto": where native (CUDA; avx512_bf16 or AMX CPUs)."""
     if setting != "auto":
         return setting.lower() in ("1", "true", "yes", "on")
     if device.type == "cuda":
@@ -121,8 +115,7 @@ def autocast(device: torch.device, bf16: bool) -> torch.autocast:
 
 
 def start_run(run_dir: Path, out_dir: Path) -> Log:
-    """Create the run (checkpoints, log) and output (renders) folders; return the logger: one line
-    per event, on stderr above the progress bar and appended to `run_dir/train.log`."""
+    """Create the run and output folders; the logger writes each line to stderr and `run_dir/train.log`."""
     run_dir.mkdir(parents=True, exist_ok=True)
     out_dir.mkdir(parents=True, exist_ok=True)
     logf = open(run_dir / "train.log", "a")  # noqa: SIM115 - open for the life of the run
@@ -140,15 +133,13 @@ def start_run(run_dir: Path, out_dir: Path) -> Log:
 
 
 def rng_state(rng: np.random.Generator) -> dict:
-    """Every random generator a run draws from (`rng`, torch's CPU and CUDA ones, Python's): what a
-    checkpoint holds so that a resumed run continues exactly."""
+    """Every random generator a run draws from, so a resumed run continues exactly."""
     cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None
     return {"numpy": rng.bit_generator.state, "torch": torch.get_rng_state(), "cuda": cuda, "python": random.getstate()}
 
 
 def set_rng_state(rng: np.random.Generator, state: dict) -> None:
-    """`rng_state`'s generators back (a checkpoint without CUDA's, or resumed without a GPU, keeps
-    CUDA's as they are; `sampler`: an older name of `rng`'s state)."""
+    """`rng_state`'s generators back (CUDA's kept where the checkpoint or machine lacks it)."""
     rng.bit_generator.state = state["numpy"] if "numpy" in state else state["sampler"]
     torch.set_rng_state(state["torch"])
     if state.get("cuda") is not None and torch.cuda.is_available():
@@ -158,9 +149,7 @@ def set_rng_state(rng: np.random.Generator, state: dict) -> None:
 
 @dataclass
 class Schedule:
-    """Cosine learning-rate factor (from 1 to `decay_to`) over `total` seconds of training counted
-    across resumed sessions (a wall-clock budget, so a contended CPU and a GPU lease both end where
-    they were told), or over `total` steps when `by_steps` (reproducible)."""
+    """Cosine learning-rate factor over `total` seconds across sessions, or steps when `by_steps`."""
 
     decay_to: float
     total: float
@@ -176,8 +165,7 @@ class Schedule:
 
     @staticmethod
     def resumed(saved: dict, total: float | None) -> Schedule:
-        """A checkpoint's schedule, over `total` where this session sets one (else the saved span);
-        LPN's older checkpoints name the span `total_s` and hold the learning rate."""
+        """A checkpoint's schedule, over `total` where given; older LPN checkpoints say `total_s`."""
         saved = {k: v for k, v in saved.items() if k != "lr"}
         if "total_s" in saved:
             saved["total"] = saved.pop("total_s")
@@ -195,9 +183,7 @@ def save_checkpoint(state: dict, path: Path) -> None:
 
 
 class Run(Protocol):
-    """A trainer's networks, optimisers and state, and how far it got: `step` makes one update
-    (the learning rates already set) and returns its loss terms; `report` adds to a validation
-    record its speed and training terms; `postfix`: the progress bar's figures."""
+    """A trainer's networks and state: `step` one update, `report` and `postfix` its figures."""
 
     it: int
     history: list[dict]
@@ -218,10 +204,7 @@ def train(
     desc: str,
     every: Sequence[tuple[int, Callable[[int], None]]] = (),
 ) -> float:
-    """Step `run` until `cfg`'s budget or the schedule ends, each optimiser's learning rate its
-    base rate times the schedule's factor; validate (not counted as training time), save
-    checkpoints and snapshots, and call each `every` (period, action(it)) along the way; then
-    validate and save once more. Returns this session's steps per second of training."""
+    """Step `run` until the budget or schedule ends; validate, checkpoint and call `every` along the way."""
     sched, run_dir = run.schedule, Path(cfg.run_dir)
     t0, first_it, seconds0 = time.time(), run.it, sched.elapsed_s
 

@@ -9,8 +9,7 @@ _LOADER = ("load_motion", "load_motions", "warm_cache")
 
 
 def __getattr__(name: str) -> Any:
-    """The loader's functions, imported when first used: the loader needs torch (through the
-    skeleton), which `stylestream data fetch` and `summary` do not, so they start in a moment."""
+    """The loader's functions, imported on first use: they need torch, which `data fetch` does not."""
     if name in _LOADER:
         from . import loader
 

@@ -1,10 +1,9 @@
 """Locating and unpacking the mocap archives.
 
-`../shared/data` (or `STYLESTREAM_DATA_DIR`) holds `.tar.xz` archives and a `SHA256SUMS`
-file. An archive is checked against its sum, then unpacked once into the git-ignored cache
-folder; a marker remembers which archive bytes it came from, so a changed archive is unpacked
-again (and every parsed-array cache built from it goes stale with the new file times).
-A data folder that already holds the unpacked dataset folder is used in place.
+`../shared/data` (or `STYLESTREAM_DATA_DIR`) holds `.tar.xz` archives and `SHA256SUMS`. An archive
+is checked, then unpacked once into the git-ignored cache; a marker records which archive bytes it
+came from, so a changed archive is unpacked again. A data folder holding the unpacked dataset
+folder is used in place.
 """
 
 from __future__ import annotations
@@ -28,9 +27,7 @@ class DataError(RuntimeError):
 
 
 class DataMissing(DataError):
-    """A dataset is neither in the data folder (as its archive) nor unpacked in place: this
-    machine has no copy, which is a fact about the machine, not a fault (tests that need the
-    data skip on it, `tests/conftest.py`)."""
+    """No archive nor unpacked folder here: a fact about the machine (tests needing it skip)."""
 
 
 # how far a long step has got: (bytes done, bytes in all)
@@ -119,8 +116,7 @@ def archive_file(name: str, settings: Settings | None = None) -> Path:
 
 
 def dataset_dir(name: str, settings: Settings | None = None, progress: Progress | None = None) -> Path:
-    """Folder holding the dataset's BVH files, unpacking the archive on first use (`progress`
-    hears how much of the archive has been read while it is unpacked)."""
+    """Folder holding the dataset's BVH files, unpacked on first use (`progress` hears how far)."""
     settings = settings or get_settings()
     spec = DATASETS[name]
     data_dir = Path(settings.data_dir)
@@ -180,8 +176,7 @@ def _unpacked_from(unpack_root: Path, ident: dict) -> bool:
 
 
 class _Counted(io.FileIO):
-    """An archive file that tells `progress` how far it has been read: the compressed bytes an
-    unpack has consumed, known at once (counting members first would decompress it twice)."""
+    """An archive file telling `progress` the compressed bytes read (counting members would decompress twice)."""
 
     def __init__(self, path: Path, progress: Progress) -> None:
         super().__init__(path, "rb")

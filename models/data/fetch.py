@@ -1,9 +1,6 @@
-"""`stylestream data fetch`: check each dataset's archive against the data folder's SHA256SUMS
-and unpack it into the cache, once (running it again does nothing).
-
-With `--from URL` a missing archive is downloaded from `URL/<archive>` first; it must match the
-SHA-256 this code knows (`KNOWN_SHA256`), so a mirror cannot hand out other bytes, and it is
-renamed into place only once checked.
+"""`stylestream data fetch`: check each dataset's archive against SHA256SUMS and unpack it into the
+cache, once. With `--from URL` a missing archive is downloaded from `URL/<archive>` first and
+must match `KNOWN_SHA256` (a mirror cannot hand out other bytes) before it is renamed into place.
 """
 
 from __future__ import annotations
@@ -50,8 +47,7 @@ class Fetched:
 
 
 class ProgressLine:
-    """One line per step, `label: 42% 33.1/79.2 MB`: redrawn in place on a terminal (at most
-    ten times a second), and written once, when the step ends, to a log or a pipe."""
+    """One line per step, `label: 42% 33.1/79.2 MB`: redrawn on a terminal, written once to a pipe."""
 
     def __init__(self, label: str, stream: TextIO | None = None) -> None:
         self.label, self.stream = label, stream or sys.stderr
@@ -111,8 +107,7 @@ def fetch(
     line: Callable[[str], ProgressLine] = ProgressLine,
     timeout: float = 60.0,
 ) -> list[Fetched]:
-    """Download (from `source`) what the data folder lacks and unpack every dataset of `names`
-    (default: all) that is not unpacked yet; what each one's state is now."""
+    """Download what the data folder lacks, unpack every dataset of `names` not yet unpacked."""
     data_dir = Path(settings.data_dir)
     names = names or list(DATASETS)
     absent = [

@@ -1,7 +1,6 @@
-"""Dataset index: one `Clip` per BVH file (one take), labelled from the files' own labels, and a
-deterministic train/validation/test split by a hash of the take name within every (dataset,
-style, content) group (about 10 % each to validation and test; 80/10/10 per take for groups too
-small). Nothing depends on file-system order or random state.
+"""Dataset index: one `Clip` per BVH take, labelled from the files' own labels, split
+train/validation/test (~80/10/10) by a hash of the take name within each (dataset, style,
+content) group: independent of file-system order and random state.
 """
 
 from __future__ import annotations

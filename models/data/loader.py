@@ -1,10 +1,7 @@
-"""Parsed-motion cache: each BVH is parsed once into a git-ignored .npz under the cache folder.
-
-An entry stores the hierarchy text, the frame time, the local rotations (quaternions) and
-translations as float32, and the source file's size and mtime; a changed file misses the cache
-and is parsed again. Cold parsing of many files uses a process pool (the machines have 2 cores).
-Hierarchies are parsed once per distinct header text, so loading thousands of cached clips of
-one skeleton costs little more than reading the arrays.
+"""Parsed-motion cache: each BVH is parsed once into a git-ignored .npz under the cache folder,
+keyed by the source file's size and mtime. Cold parsing uses a process pool; hierarchies are
+parsed once per distinct header text, so loading thousands of cached clips costs little more
+than reading the arrays.
 """
 
 from __future__ import annotations
@@ -64,9 +61,7 @@ def _skeleton(header: str) -> tuple[Skeleton, tuple[str, ...]]:
 
 
 def load_motion(clip: Clip, settings: Settings | None = None) -> Motion:
-    """The clip as a Motion (float64 arrays from float32 storage), parsing it on a cache miss; a
-    clip whose travel sits on a joint above its `Hips` (4 of dataset 1's neutral clips move
-    `joint_Root`) gets it on the hips (`skeleton.travel_on`), where every reader takes it."""
+    """The clip as a Motion, parsed on a cache miss; travel above the Hips moved onto them (`travel_on`)."""
     settings = settings or get_settings()
     cache = _cache_path(clip, settings)
     if not _is_fresh(clip, cache):

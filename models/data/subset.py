@@ -18,8 +18,7 @@ XzPreset = Literal[0, 1, 2, 3, 4, 5, 6, 7, 8, 9]
 
 
 def take_content(member: str) -> str | None:
-    """The content named in a Bandai Namco take's file name (`dataset-N_{content}_{style}_{take}`),
-    None for a file that is no take."""
+    """The content in a take's file name (`dataset-N_{content}_{style}_{take}`), None for no take."""
     name = Path(member).name
     if not name.startswith("dataset-") or not name.endswith((".bvh", ".json")):
         return None
@@ -30,9 +29,7 @@ def take_content(member: str) -> str | None:
 def write_subset(
     name: str, contents: tuple[str, ...], out_dir: Path, settings: Settings | None = None, preset: XzPreset = 6
 ) -> Path:
-    """Write `out_dir/<archive>` holding the dataset's takes of `contents` (all of them where
-    `contents` is empty) and append its sum to `out_dir/SHA256SUMS`. Returns the archive.
-    `preset`: xz's level (0 fast and ~1.5x larger, 6 its default)."""
+    """Write `out_dir/<archive>` with the takes of `contents` (all if empty), its sum into SHA256SUMS."""
     spec = DATASETS[name]
     if spec.skeleton != "bandai-namco":
         raise ValueError(f"{name}: subsets are made of Bandai Namco archives only (take names carry the content)")

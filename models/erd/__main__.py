@@ -14,11 +14,7 @@ HINGES, SOURCES = "hinges", "upload_sources"  # `fit`'s steps besides the stages
 
 
 def fit(args: argparse.Namespace) -> None:
-    """Refit, in this order, the decoding's hinges (`HINGES`), the declared stages
-    (`stages.STAGES`) and what an upload's stages carry from (`SOURCES`), or the ones named in
-    `--stages`; each from real clips on the committed model as it is then (a fit switches off the
-    stages it must not see). Named styles only: a stage's file keeps its other styles. A stage
-    fitted on the output of one refitted before it must be refitted too (the default does all)."""
+    """Refit the decoding's hinges, the stages and upload sources (or those in `--stages`), in order."""
     import time
 
     import torch

@@ -1,14 +1,8 @@
 """The Style-ERD training set packed small enough to travel with a device run, and unpacked there.
 
-A device machine gets the working tree and its carried paths, 64 MiB in all, and none of the raw
-mocap; the feature cache (`dataset.py`) is 300 MB. But a clip's features are a function of its
-local rotations and Hips translation (`FeatureMaker.sequence`), so the pack keeps only those: each
-joint's rotation relative to the cache's reference rotation (`ref`, the training mean), in the
-hemisphere w >= 0, as its three vector components in 16 bits (w is recovered; near the mean, where
-almost every frame is, that is exact to ~1e-4 rad; the Hips, which carries the heading and so
-turns anywhere, in float32), the Hips translation in float32, the clip
-labels and the cache's normalisation statistics as they are. Unpacking rebuilds every feature with
-the same compiled code the cache build runs.
+Features are a function of local rotations and Hips translation, so the pack keeps those (each
+rotation against the cache's reference, vector part in 16 bits, ~1e-4 rad; the Hips in float32),
+labels and normalisation; unpacking rebuilds the features with the cache build's code.
 
     .venv/bin/python -m models.erd.carry pack .data/carry/erd.npz     # ~45 MB, from the raw clips
     .venv/bin/python -m models.erd.carry check .data/carry/erd.npz    # unpacked vs the cache
@@ -33,8 +27,7 @@ SCALE = 32767.0
 
 
 def encode(rotations: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(F, J, 3) int16: each rotation relative to its joint's reference, w >= 0, vector part; and
-    (F, 4) float32 the Hips rotation as it is."""
+    """(F, J, 3) int16 vector parts relative to each reference (w >= 0), and the Hips (F, 4) float32."""
     q = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
     rel = quat_mul(quat_inv(ref)[None], q)
     rel = np.where(rel[..., 3:] < 0, -rel, rel)
@@ -53,8 +46,7 @@ def decode(packed: np.ndarray, hips: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def pack(out: Path, clips: dict | None = None) -> Path:
-    """Write the pack of the train and val splits (the clips the cache was built from, in its
-    order; or `clips`, split -> clips, e.g. a few for a test)."""
+    """Write the pack of the train and val splits (the cache's clips, or `clips` split -> clips)."""
     from ..data import build_index, load_motions, select
 
     stats = load_stats()
@@ -102,8 +94,7 @@ def unpack(path: Path) -> tuple[dict[str, Split], dict[str, np.ndarray]]:
 
 
 def check(path: Path) -> dict[str, float]:
-    """Largest difference, per feature block, between the unpacked features and the cache's
-    (in the features' standard deviations)."""
+    """Largest difference per feature block between unpacked and cached features (in their stds)."""
     from .features import CONTACT, POS, ROT, VEL
 
     splits, stats = unpack(path)

@@ -3,9 +3,8 @@ per-frame features (features.py), cached as compact float32 arrays under `.data/
 
     python -m models.erd.dataset          # build (or rebuild) the cache, ~1 min
 
-The cache holds, per split, every clip's features concatenated (frames, 216) with the clip
-starts/lengths and labels, plus the per-joint reference rotations and the training-split
-normalisation (mean/std per feature). Training samples 24-frame windows from it.
+Per split: features concatenated (frames, 216), clip starts, lengths and labels; plus the
+reference rotations and the TRAIN normalisation. Training samples 24-frame windows from it.
 """
 
 from __future__ import annotations
@@ -50,8 +49,7 @@ class Split:
 
 
 def build_cache(out: Path | None = None, clips: dict[str, list[Clip]] | None = None) -> Path:
-    """The cache of every clip of `DATASET`, or of `clips` (split -> clips, with a train split:
-    its normalisation; e.g. a few for a test, where the whole cache takes minutes to build)."""
+    """The cache of `DATASET`, or of `clips` (split -> clips, normalised by its train split)."""
     out = out or cache_dir()
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
@@ -106,8 +104,7 @@ HINGE_FIT_FRAMES = 60_000  # TRAIN frames (every style) the decoding's hinges ar
 
 
 def split_hinges(split: Split, skeleton):
-    """The hinge joints (`models.motion.hinge`) of a split's real rotations, every style: the
-    runtime's `hinges.npz` and the trainer's decoding come from this one fit."""
+    """Hinge joints of a split's real rotations: `hinges.npz` and the trainer decode with this fit."""
     from ..motion.hinge import fit_hinges
     from .features import NB, ROT
 
@@ -127,8 +124,7 @@ def load_stats(folder: Path | None = None) -> dict[str, np.ndarray]:
 
 
 class WindowSampler:
-    """Random 24-frame windows; neutral clips drawn with probability `p_neutral`, clips otherwise
-    uniformly (then a uniform start), so short and long takes count alike."""
+    """Random 24-frame windows: neutral with probability `p_neutral`, clips uniform otherwise."""
 
     def __init__(self, split: Split, window: int = WINDOW, p_neutral: float = 0.5, seed: int = 0):
         self.s = split

@@ -1,13 +1,11 @@
-"""Distillation targets: what the shipped pipeline (network and its fitted stages) outputs for
-every TRAIN neutral clip toward each target style, so that a network can be trained to carry the
-style in its own rotations (`train.py --distill=...`). The stages are fitted from each style's
-real clips the same way for every style, so the targets name no style either.
+"""Distillation targets: what the shipped pipeline (network and fitted stages) outputs for every
+TRAIN neutral clip toward each target style, so a network can learn to carry the style in its own
+rotations (`train.py --distill=...`).
 
     .venv/bin/python -m models.erd.distill .data/erd/distill.npz [models/weights/erd]
 
-The file holds `frames` (rows of the TRAIN feature cache, `dataset.py`) and `targets` (frames, 6,
-21, 4) float16: per target style, the body joints' local rotations in the features' frame (the
-Hips without the input's facing yaw), as the decoder outputs them.
+The file holds `frames` (rows of the TRAIN cache) and `targets` (frames, 6, 21, 4) float16: body
+rotations per target style as the decoder outputs them (the Hips without the facing yaw).
 """
 
 from __future__ import annotations
@@ -30,8 +28,7 @@ from .offline import to_world
 
 @torch.no_grad()
 def teacher_rotations(model, motion: Motion) -> np.ndarray:
-    """(6, T, 21, 4) the shipped pipeline's rotations of `motion` toward each target style, the
-    stages run frame by frame as the stream runs them (the six styles as one batch)."""
+    """(6, T, 21, 4) the pipeline's rotations of `motion` toward each style, streamed as one batch."""
     gen, maker = model.torch_generator().eval(), model.maker
     root_in = motion.translations[:, 1]
     x, yaw = maker.sequence(root_in, motion.rotations)
@@ -63,8 +60,7 @@ def teacher_rotations(model, motion: Motion) -> np.ndarray:
 
 
 def split_targets(model, split: Split, load: Callable[[str], Motion]) -> tuple[np.ndarray, np.ndarray]:
-    """The rows of `split`'s neutral clips (each loaded by name with `load`) and their targets
-    (rows, 6, 21, 4) float16."""
+    """The rows of `split`'s neutral clips and their targets (rows, 6, 21, 4) float16."""
     frames, targets = [], []
     t0 = time.time()
     for i, c in enumerate(np.flatnonzero(split.style == 0)):

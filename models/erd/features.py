@@ -1,22 +1,16 @@
 """Causal per-frame Style-ERD features, one code path for the offline cache and the live stream.
 
-Per frame of the Bandai Namco skeleton (22 joints, `joint_Root` static at 0, `Hips` at 1), with
-joints 1..21 ("body joints", 21 of them):
+Per frame of the Bandai Namco skeleton (22 joints, `joint_Root` static at 0, `Hips` at 1):
 
-  [0:84)     local rotations (quaternions, scalar-last) of joints 1..21; the Hips rotation has
-             the facing yaw removed; every quaternion is put in the hemisphere of a fixed per-joint
-             reference rotation (the training data's mean), which keeps the sign continuous in
-             time without looking at other frames (the BN upper legs sit near 180 degrees from
-             identity, where a plain w >= 0 rule flips)
+  [0:84)     local rotations (xyzw) of joints 1..21, the Hips without its facing yaw, each in the
+             hemisphere of its reference (the data's mean): continuous without other frames
   [84:147)   joint positions in the facing frame (origin = Hips projected on the ground)
   [147:210)  joint velocities (world, backward difference) expressed in the facing frame, cm/s
   [210:213)  root (Hips) velocity in the facing frame, cm/s
   [213]      yaw rate, rad/s
   [214:216)  foot contacts (left, right) as 0/1
 
-Everything at frame t uses frames t and t-1 only (velocities are backward differences, zero on a
-stream's first frame), exactly like `models.motion.features.compute_features`, which the tests
-use as the reference. The facing yaw comes from the hip and shoulder lines of the current pose.
+Frame t uses frames t and t-1 only, as `models.motion.features.compute_features`.
 """
 
 from __future__ import annotations
@@ -41,9 +35,7 @@ FPS = 30.0
 
 
 class FeatureMaker:
-    """Causal features for a batch of independent streams (or all frames of one clip at once).
-    The per-joint loops run compiled (`kernels.py`): the same code for the live stream, the
-    training cache and the offline clip."""
+    """Causal features for a batch of streams, or all frames of one clip, by compiled kernels."""
 
     def __init__(self, skeleton: Skeleton, ref: np.ndarray, fps: float = FPS):
         self.sk = skeleton
@@ -66,8 +58,7 @@ class FeatureMaker:
     def features(
         self, rotations: np.ndarray, pos: np.ndarray, prev_pos: np.ndarray, prev_yaw: np.ndarray, has_prev: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """(N, 216) features and (N,) yaw of N frames given each frame's previous positions/yaw
-        (ignored where has_prev is False)."""
+        """(N, 216) features and (N,) yaw given each frame's previous positions/yaw (where has_prev)."""
         return kernels.features(
             _f64(rotations),
             _f64(pos),

@@ -1,20 +1,9 @@
 """Fitting an uploaded Style-ERD style's residual branch from its one clip (the upload's job).
 
-The clip has no neutral twin, so the branch is fitted on statistics, not frame pairs:
-
-1. **Pairing.** The dataset-2 TRAIN `normal` clips nearest the upload in what it does (their
-   features computed from the mocap here, ~3 s, rather than read from the 266 MB TRAIN feature
-   cache a fresh server lacks), measured on the features both share (`descriptor`: mean forward and sideways Hips speed, mean turning rate, and
-   their spread), are its neutral counterparts; posture is the style and is not compared.
-2. **Fit.** A copy of the nearest trained style's branch (its LSTM, initial state and decoder
-   code) is trained so that the network, streaming windows of those neutral clips, puts out the
-   clip's joint position and velocity statistics (per joint and axis, facing frame: mean and
-   spread, each in the data's own scale), the rest of the network frozen. The last `HOLDOUT`
-   pairs are kept out of training: the branch is kept only if it brings them closer to the clip
-   than the starting copy does.
-3. **Stages.** The output prior carries from what the network makes; with a branch of its own,
-   what it makes is measured again (the fitted branch streaming the paired neutral clips, no
-   leaf prior, as `upload_stages` measured the neutral reconstruction), and the stages refitted.
+The clip has no neutral twin, so the branch is fitted on statistics: the nearest trained style's
+branch is trained (the rest frozen) so that streaming the dataset-2 TRAIN `normal` clips nearest
+the upload (`descriptor`: speed and turning) puts out the clip's position and velocity statistics.
+It is kept only if the `HOLDOUT` pairs come closer than with the copy; the stages are refitted.
 """
 
 from __future__ import annotations
@@ -52,8 +41,7 @@ def features(maker, motions: list[Motion]) -> list[np.ndarray]:
 
 
 def pair_order(clips: list[np.ndarray], x_clip: np.ndarray, k: int) -> list[int]:
-    """The indices of the `k` neutral clips (features) longer than a window whose descriptors lie
-    nearest the clip's (each descriptor entry in units of its spread over `clips`), nearest first."""
+    """The `k` neutral clips (longer than a window) with descriptors nearest the clip's, nearest first."""
     desc = np.stack([descriptor(c) for c in clips])
     scale = np.maximum(desc.std(0), 1e-6)
     order = np.argsort(np.linalg.norm((desc - descriptor(x_clip)) / scale, axis=1))
@@ -82,8 +70,7 @@ class Branch:
         return [*self.lstm.parameters(), self.h0, self.c0, self.code]
 
     def positions(self, x):
-        """Output joint positions (B, T, 21, 3) in the facing frame and root velocity (B, T, 3)
-        for raw features `x` (B, T, 216), input labels unknown (as a session streams)."""
+        """Joint positions (B, T, 21, 3), facing frame, and root velocity (B, T, 3) for features `x`."""
         from .model import N_CONTENTS, N_STYLES, fk_local
 
         torch, gen = self.torch, self.gen
@@ -106,8 +93,7 @@ class Branch:
 
 
 def statistics(pos, root_vel, rot):
-    """Per joint and axis: mean and spread of positions, of velocities, of the root velocity, of
-    the local rotations' components and of each joint's angular speed (what a style judge reads)."""
+    """Per joint and axis, mean and spread of positions, velocities, rotations and angular speeds."""
     torch = __import__("torch")
     vel = (pos[:, 1:] - pos[:, :-1]) * FPS
     dot = (rot[:, 1:] * rot[:, :-1]).sum(-1).abs().clamp(max=1.0)
@@ -132,8 +118,7 @@ def every_window(clips: list[np.ndarray]) -> np.ndarray:
 
 
 def fine_tune(model, start: Upload, clip, progress: Progress) -> tuple[Upload | None, dict[str, Any]]:
-    """The branch fitted from `clip` (module docstring), and figures for the job's record; None
-    where the fitted branch did not bring the held-back neutral clips closer to the clip."""
+    """The branch fitted from `clip` and the job's figures; None if the held-back clips came no closer."""
     import torch
 
     t0 = time.perf_counter()
@@ -182,9 +167,7 @@ def fine_tune(model, start: Upload, clip, progress: Progress) -> tuple[Upload | 
 
 
 def refit_stages(model, tuned: Upload, clip, paired: list[Motion]) -> Upload:
-    """`tuned`'s stages fitted again, its output prior from what its own branch makes of the
-    `paired` neutral clips (no leaf prior, no output prior), as `upload_stages` measured the
-    neutral reconstruction."""
+    """`tuned`'s stages refitted from what its own branch makes of the `paired` neutral clips."""
     from ..eval.run import stylise
     from ..motion.rotation_ball import comparable
 

@@ -1,7 +1,7 @@
 """Compiled kernels (numba) for Style-ERD's per-frame geometry: forward kinematics, the causal
-input features and the output pose, and the LSTM cell's elementwise passes around the network's
-BLAS products (`models.rowwise`). Per-joint loops as numpy calls cost ~100 calls per frame. The
-formulas are those of `features.py` and `models.motion.features`, which the tests compare with.
+input features and output pose, and the LSTM cell's elementwise passes around the BLAS products
+(~100 numpy calls per frame otherwise). Formulas of `features.py` and `models.motion.features`,
+which the tests compare with.
 """
 
 from __future__ import annotations
@@ -19,9 +19,7 @@ from ..motion.quaternion import axis_angle, dot3, qdot, qinv, qmul, qneg, quat_a
 
 @njit(cache=True, error_model="numpy")
 def features(rotations, pos, prev_pos, prev_yaw, has_prev, ref, facing, feet, leg, fps):
-    """Causal Style-ERD features (N, 216) and facing yaw (N,) of N frames (layout in features.py).
-    ref: (21, 4) reference rotations of the body joints 1..21; facing: joint indices of the left
-    and right hip and shoulder; feet: (2, 2) ankle and toe joint of the left and right foot."""
+    """Causal features (N, 216) and facing yaw (N,) of N frames (layout in features.py)."""
     n, J = rotations.shape[0], rotations.shape[1]
     nb = J - 1
     pos_at, vel_at, root_at = 4 * nb, 7 * nb, 10 * nb
@@ -79,10 +77,7 @@ def features(rotations, pos, prev_pos, prev_yaw, has_prev, ref, facing, feet, le
 
 @njit(cache=True, error_model="numpy")
 def output_pose(x, y, yaw, has_prev, prev_root, root, rot_in, fps):
-    """Network output -> pose. Rotations: input (canonical) quaternions + predicted offsets,
-    renormalised, the Hips turned back by the input's facing yaw; root: the predicted facing-frame
-    velocity turned by the yaw and integrated from the input's first root position, the height
-    predicted. x: (B, 216) features, y: (B, 4 * 21 + 4) network output. Returns (root (B, 3), rotations (B, 22, 4))."""
+    """Network output y (B, 88) -> (root (B, 3), rotations (B, 22, 4)): input plus offsets, as model.py."""
     B, J = rot_in.shape[0], rot_in.shape[1]
     nb = J - 1
     out_root = np.empty((B, 3))
@@ -113,17 +108,12 @@ def output_pose(x, y, yaw, has_prev, prev_root, root, rot_in, fps):
 
 
 # --------------------------------------------------------------------------- the LSTM cell around its products
-# The network's products stay BLAS calls (`models.rowwise`) and its sigmoids torch's; these do the
-# elementwise rest of a layer in one pass each, with the state's (B, branches, layers, H) layout read
-# and written in place of numpy's transposed copies and temporaries (~1 ms of a 1,000-row step). The
-# arithmetic is numpy's, operation for operation in the arrays' own dtype (2x as x + x, exact), so
-# the outputs are the same bits.
+# A layer's elementwise rest in place on the state's layout; numpy's arithmetic, so the same bits.
 
 
 @njit(cache=True, error_model="numpy")
 def lstm_inputs(inp, hs, layer, xin):
-    """xin (K, B, 2H) = [inp, hs[:, :, layer] per branch]: inp (K, B, H) (the encoding broadcast
-    over the branches for the first layer), hs the state's (B, K, layers, H)."""
+    """xin (K, B, 2H) = [inp, hs[:, :, layer] per branch]; hs: the state's (B, K, layers, H)."""
     K, B, H = inp.shape
     for k in range(K):
         for b in range(B):
@@ -135,9 +125,7 @@ def lstm_inputs(inp, hs, layer, xin):
 
 @njit(cache=True, error_model="numpy")
 def lstm_cell(s, cs, layer, one, new_c, twice_c):
-    """From the sigmoids s (K, B, 4H) of gates i, f, g, o (g's tanh as 2 sigmoid - 1): the new cell
-    c = f c_prev + i (2 s_g - 1) into new_c (B, K, layers, H) at `layer`, and 2c (K, B, H), whose
-    sigmoid gives tanh(c)."""
+    """c = f c_prev + i (2 s_g - 1) from gate sigmoids s into new_c, and 2c (sigmoid(2c) gives tanh)."""
     K, B, H = twice_c.shape
     for k in range(K):
         for b in range(B):
@@ -168,10 +156,7 @@ def lstm_hidden(s, sig_twice_c, layer, one, new_h, out):
 
 @njit(cache=True, error_model="numpy")
 def twist_clamp_batch(q, w, joints, axes, mean, lo, hi, out):
-    """out = q with each listed joint's twist about its bone (`axes`, (K, 3)), measured against
-    each weighted style's mean (`mean` (S, K, 4)), moved into [lo, hi] (S, K) by the weights
-    (B, S): t + sum_s w_s (clip(t_s) - t_s), applied as a turn about the bone on the right
-    (`tests/reference/erd_carry.py` is the numpy reference). Rows with no weight are copied."""
+    """Listed joints' twists moved into [lo, hi] by the weights: t + sum_s w_s (clip(t_s) - t_s)."""
     out[:] = q
     for b in range(q.shape[0]):
         for k in range(joints.shape[0]):

@@ -1,6 +1,5 @@
-"""Style-ERD networks (Tao et al. 2022), written for this project: generator (encoder MLP ->
-neutral LSTM + per-style residual LSTM branches -> decoder), the FT-Att discriminator and the
-instance-normalised content classifier used for the perceptual loss.
+"""Style-ERD networks (Tao et al. 2022), written for this project: generator, FT-Att discriminator
+and the instance-normalised content classifier of the perceptual loss.
 
 Generator, per frame t of a window (all causal; the LSTMs only carry the past):
     z_t    = Enc([x_t normalised, input-style one-hot (7, zeros = unknown), content one-hot (10, zeros = unknown)])
@@ -8,10 +7,8 @@ Generator, per frame t of a window (all causal; the LSTMs only carry the past):
     r_t^s  = LSTM_s(z_<=t; h0, c0 = learned per style s)                for the 6 target styles
     l_t    = n_t + sum_s w_s r_t^s                                      (w: style weight vector)
     y_t    = Dec([l_t, w])  -> rotation offsets (21 x 4), root velocity offset (3), Hips height offset (1)
-Output rotations are the input's (canonical) quaternions plus the predicted offset, renormalised
-per joint; root velocity and Hips height likewise are input + offset. This skip connection is our
-choice (not in the paper): it keeps content and timing for free so that a short CPU training budget
-goes into the style residual. Positions come from forward kinematics of the output rotations.
+Outputs are the input plus the offsets: our skip connection (not the paper's) keeps content and
+timing for free, so a short training budget goes into style.
 """
 
 from __future__ import annotations
@@ -77,8 +74,7 @@ class Generator(nn.Module):
     def forward(
         self, x: torch.Tensor, style_in: torch.Tensor, content: torch.Tensor, weights: torch.Tensor
     ) -> dict[str, torch.Tensor]:
-        """x (B, T, 216) raw features; style_in (B,) index into the 7 styles or -1 = unknown;
-        content (B,) index or -1 = unknown; weights (B, 6) or (B, T, 6) target-style weights."""
+        """x (B, T, 216) raw features; labels (B,) or -1 = unknown; weights (B, 6) or (B, T, 6)."""
         return self.forward_multi(x, style_in, content, [weights])[0]
 
     def forward_multi(self, x, style_in, content, weight_sets: list[torch.Tensor]) -> list[dict[str, torch.Tensor]]:
@@ -114,8 +110,7 @@ class Generator(nn.Module):
 
 
 def fk_local(rot: torch.Tensor, height: torch.Tensor, offsets: torch.Tensor, parents) -> torch.Tensor:
-    """Joint positions (..., 21, 3) in the facing frame from body rotations (..., 21, 4) (Hips
-    rotation relative to the facing frame) and Hips heights (...)."""
+    """Facing-frame joint positions (..., 21, 3) from body rotations (..., 21, 4) and Hips heights."""
     ident = torch.zeros(rot.shape[:-2] + (1, 4), dtype=rot.dtype, device=rot.device)
     ident[..., 3] = 1.0
     full = torch.cat([ident, rot], -2)
@@ -128,8 +123,7 @@ def fk_local(rot: torch.Tensor, height: torch.Tensor, offsets: torch.Tensor, par
 def window_motion(
     pos: torch.Tensor, root_vel: torch.Tensor, rot: torch.Tensor, fps: float = 30.0
 ) -> dict[str, torch.Tensor]:
-    """The discriminator's / classifier's view of a window: positions, in-window backward
-    velocities (frames 1..T-1) plus root velocity, rotations. pos (B,T,21,3)."""
+    """The discriminator's / classifier's view of a window: positions, velocities, rotations."""
     vel = (pos[:, 1:] - pos[:, :-1]) * fps
     return {
         "pos": pos[:, 1:].flatten(2),
@@ -143,8 +137,7 @@ def _conv(cin: int, cout: int, k: int) -> nn.Sequential:
 
 
 class FTAttDiscriminator(nn.Module):
-    """1-D temporal conv features (F x T); feature attention (F) and temporal attention (T) from
-    the style + content labels, combined by outer product and applied by Hadamard product, summed."""
+    """Temporal conv features (F x T) weighted by feature x temporal attention from the labels, summed."""
 
     def __init__(self, cfg: ERDConfig, in_dim: int, frames: int, scale: dict[str, torch.Tensor]):
         super().__init__()
@@ -171,8 +164,7 @@ class FTAttDiscriminator(nn.Module):
 
 
 class ContentClassifier(nn.Module):
-    """Temporal convs with instance normalisation (removes per-window style statistics) -> content logits.
-    Its intermediate activations are the perceptual features."""
+    """Temporal convs with instance norm -> content logits; its activations are the perceptual features."""
 
     def __init__(self, cfg: ERDConfig, in_dim: int, scale: dict[str, torch.Tensor]):
         super().__init__()

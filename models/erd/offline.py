@@ -1,7 +1,6 @@
-"""Whole-clip (offline) Style-ERD: the torch generator over a clip from the learned initial
-states, its output turned back into a world-space `Motion` with the streaming model's root path
-(runtime.py), the input's twists and leaves and its feet planted, for the trainer's renders.
-`foot_lock=False`: the feet as they come.
+"""Whole-clip (offline) Style-ERD for the trainer's renders: the torch generator over a clip, its
+output as a world `Motion` with the streaming model's root path, the input's twists and leaves
+and, unless `foot_lock=False`, its feet planted.
 """
 
 from __future__ import annotations
@@ -22,8 +21,7 @@ from .runtime import foot_planter
 def to_world(
     rot: np.ndarray, root_vel: np.ndarray, height: np.ndarray, yaw: np.ndarray, root0: np.ndarray, fps: float = FPS
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Model outputs of a clip (T,21,4), (T,3), (T,), input yaw (T,), input first root (3,) ->
-    Hips translations (T,3) and local rotations (T,22,4)."""
+    """A clip's outputs (T,21,4), (T,3), (T,), input yaw and first root -> Hips translations, rotations."""
     T = len(rot)
     step = rotate_y(root_vel, yaw) / fps
     step[0] = 0.0
@@ -40,8 +38,7 @@ def to_world(
 def network_clip(
     gen: Generator, maker: FeatureMaker, motion: Motion, weights: np.ndarray, style_in: int = -1, content: int = -1
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The generator over the clip with target weights (6,) or per frame (T, 6): the input's
-    features (T, 216), the output's Hips translations (T, 3) and local rotations (T, 22, 4)."""
+    """The generator over the clip toward weights (6,) or (T, 6): features, Hips translations, rotations."""
     root_in = motion.translations[:, 1]
     x, yaw = maker.sequence(root_in, motion.rotations)
     w = torch.as_tensor(np.asarray(weights, dtype=np.float32))[None]
@@ -57,8 +54,7 @@ def network_clip(
 
 
 def with_root(motion: Motion, x: np.ndarray, root: np.ndarray, rots: np.ndarray, foot_lock: bool = True) -> Motion:
-    """`motion` with these Hips translations and rotations, the feet the input has down (features
-    `x`) planted first where `foot_lock`."""
+    """`motion` with these Hips translations and rotations, feet planted first where `foot_lock`."""
     if foot_lock:
         root, rots, _ = foot_planter().clip(root, rots, hints=x[:, CONTACT] > 0.5)
     trans = motion.translations.copy()

@@ -2,20 +2,12 @@
 from real TRAIN clips, the same way for every style (`python -m models.erd fit`):
 
 1. **Leaves** (`leaf_prior.npz`): the position-trained network never learned bone twists or the
-   head, hands and toes, so those come from the input, first carried from the real neutral
-   distribution to the real target style's.
-2. **Output** (`output_prior.npz`): the network's rotations, carried from what it produces toward
-   each style (streamed over TRAIN neutral clips) to the style's real distribution and clamped
-   into its range. The legs are only clamped (the foot planter re-poses them; carried, they
-   turned straight walks). Every other joint of a style is carried whole, by its mean's shift
-   alone or only clamped, whichever brings the network's frames nearest the style's real frames
-   (`output_carry`): since the network was distilled its own rotations often lie on the real
-   ones already, and a Gaussian map's stretch moved them off (the head, for every style).
-3. **Runs** (`*_prior_run.npz`): both fitted again on running clips alone (each style's own
-   speed split, `models.motion.gait_split`), for frames where the input runs (`gait.py`); the run
-   output prior carries the legs too.
-The Root is left alone, the Hips by the leaf prior; the output prior reads the Hips without
-their heading and only clamps them.
+   head, hands and toes, so those come from the input, carried from real neutral to the style.
+2. **Output** (`output_prior.npz`): the network's rotations carried toward each style's real
+   distribution and clamped into its range; legs only clamped (the foot planter re-poses them).
+   Each other joint takes the whole carry, its mean shift or the clamp alone, whichever lands
+   nearest the real frames (`output_carry`).
+3. **Runs** (`*_prior_run.npz`): both fitted again on running clips, for frames that run.
 """
 
 from __future__ import annotations
@@ -44,17 +36,13 @@ FIT_FRAMES = 240
 SUPPORT_FRAMES = 40_000  # real frames per style `nearest_real` measures against (evenly spread)
 NEAR_PERCENTILE = 95.0  # of the distances to the nearest real frame `output_carry` compares
 NEAR_MARGIN_DEG = 1.0  # how much nearer a lesser carry must bring them to replace the whole (validation)
-# the share of the way from the network's rotations to the style's each carry goes: on validation
-# 0.5 and 0.75 made more clips plausible and read fewer as their style (docs/eval/ablation.md)
+# the share of the way to the style's rotations each carry goes (docs/eval/ablation.md)
 CARRY_SHARE = 1.0
 RUN_ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))  # `fit_output`
 
 
 def real_rotations(runs: bool = False) -> list[np.ndarray]:
-    """Per style (dataset order, neutral first): local rotations (N, 22, 4) of every TRAIN frame
-    (with `runs`: of the clips that run, by the style's own split of its clips' median Hips
-    speeds, `models.motion.gait_split`), from the feature cache (`dataset.py`; joint_Root static,
-    left at the identity)."""
+    """Per style (neutral first): rotations (N, 22, 4) of every TRAIN frame (with `runs`: running clips)."""
     from .dataset import load_split
     from .features import NB, ROOTVEL, ROT
 
@@ -79,8 +67,7 @@ def real_rotations(runs: bool = False) -> list[np.ndarray]:
 
 
 def fit_leaf(model: Any, styles: list[str] | None = None) -> SlowPrior:
-    """Real neutral -> each of `styles`' (default: every target style) real frames, and the same on
-    runs alone."""
+    """Real neutral -> each style's real frames, and the same on runs alone."""
     styles = styles or list(TARGET_STYLES)
 
     def fitted(real: list[np.ndarray]) -> StyleCarry:
@@ -98,8 +85,7 @@ def _neutral_inputs() -> list:
 
 
 def _running_inputs() -> list:
-    """The first `FIT_FRAMES` of the first `RUN_FIT_CLIPS` TRAIN neutral clips (by name) that run
-    (`models.motion.gait_split`)."""
+    """The first `FIT_FRAMES` of the first `RUN_FIT_CLIPS` TRAIN neutral clips that run."""
     from ..data import build_index, load_motions, select
     from ..eval.run import INPUT_STYLE
     from .dataset import DATASET
@@ -110,11 +96,7 @@ def _running_inputs() -> list:
 
 
 def fit_output(model: Any, styles: list[str] | None = None) -> SlowPrior:
-    """The model's outputs (its leaf prior in place, no output prior) over TRAIN neutral clips
-    toward each of `styles` (default: every target style) -> the real style, the legs only
-    clamped. The run prior: TRAIN neutral clips that run, against the real runs, the legs carried
-    too; the arms (`RUN_ARMS`) as the stream makes them and every other joint with the input's own
-    twists and leaves (with the leaf prior, heads jumped as a stream started mid-run)."""
+    """The model's outputs over TRAIN neutral clips -> each real style, legs only clamped; and on runs."""
     styles = styles or list(TARGET_STYLES)
     legs = tuple(model.skeleton.index(n) for n in LEG_JOINTS)
 
@@ -128,12 +110,7 @@ def fit_output(model: Any, styles: list[str] | None = None) -> SlowPrior:
 
 
 def output_carry(produced: list[np.ndarray], targets: list[np.ndarray], clamped: tuple[int, ...]) -> StyleCarry:
-    """Per style, the carry of the network's rotations `produced` (N, J, 4) to the real `targets`
-    (N', J, 4), joint_Root left alone and the joints `clamped` only clamped; every other joint
-    takes the whole carry unless its mean shift alone or the clamp alone brings the network's
-    frames nearer the real ones (`near_percentile`) by `NEAR_MARGIN_DEG`, then the nearer of
-    those: the whole carry also carries what a session streamed long from its start lost of its
-    style, which frames of fresh sessions cannot show."""
+    """Per style, the carry of `produced` to real `targets`: per joint whole, mean shift or clamp, the nearest."""
     carry = StyleCarry.fit(produced, targets, (0,), clamp_only=clamped)
     kinds = (partial(carry, CARRY_SHARE), partial(mean_shift(carry), CARRY_SHARE), carry.bounds)
     far = np.stack([near_percentile(k, produced, targets) for k in kinds])  # (3, S, J)
@@ -142,17 +119,13 @@ def output_carry(produced: list[np.ndarray], targets: list[np.ndarray], clamped:
 
 
 def mean_shift(carry: StyleCarry) -> StyleCarry:
-    """`carry` without its spread: each rotation turned by the move from the source mean to the
-    style's (identity maps), then clamped."""
+    """`carry` without its spread: a turn from the source mean to the style's, then clamped."""
     same = np.ascontiguousarray(np.broadcast_to(np.eye(3), carry.map.shape))
     return StyleCarry(carry.source, carry.mean, same, carry.radius)
 
 
 def partial(carry: StyleCarry, share: float) -> StyleCarry:
-    """`carry` taken `share` of the way: the map (1 - share) I + share M, and the source mean
-    carried `share` of the way to the style's mean (the source moved back by what the map makes
-    of that landing's offset), so the clamp still holds the style's own range. An entry with
-    nothing to carry (its source the style's mean, only clamped) is kept exactly."""
+    """`carry` taken `share` of the way, the clamp still on the style's range."""
     if share == 1.0:
         return carry
     still = np.all(carry.source == carry.mean, axis=-1, keepdims=True)
@@ -164,17 +137,14 @@ def partial(carry: StyleCarry, share: float) -> StyleCarry:
 
 
 def chosen(kinds: Sequence[StyleCarry], choice: np.ndarray) -> StyleCarry:
-    """One carry whose (style, joint) entries come from `kinds[choice[s, j]]` (carries that share
-    their style means and radii)."""
+    """One carry with (style, joint) entries from `kinds[choice[s, j]]` (same means and radii)."""
     source = np.take_along_axis(np.stack([k.source for k in kinds]), choice[None, ..., None], 0)[0]
     lin = np.take_along_axis(np.stack([k.map for k in kinds]), choice[None, ..., None, None], 0)[0]
     return StyleCarry(source, np.array(kinds[0].mean), lin, np.array(kinds[0].radius))
 
 
 def nearest_real(real: np.ndarray, mean: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """(N, J) distance (the rotation vector about `mean` (J, 4), as the evaluation's rotation
-    support measures it) from each rotation of `q` (N, J, 4) to the nearest of `real` (M, J, 4),
-    evenly subsampled to `SUPPORT_FRAMES`."""
+    """(N, J) rotation-vector distance about `mean` from each of `q` to the nearest of `real`."""
     from scipy.spatial import cKDTree
 
     real = real[np.linspace(0, len(real) - 1, min(len(real), SUPPORT_FRAMES)).astype(int)]
@@ -184,10 +154,7 @@ def nearest_real(real: np.ndarray, mean: np.ndarray, q: np.ndarray) -> np.ndarra
 
 
 def near_percentile(carry: StyleCarry, produced: list[np.ndarray], targets: list[np.ndarray]) -> np.ndarray:
-    """(S, J) the `NEAR_PERCENTILE` distance from style s's carried frames of `produced[s]` to the
-    nearest of its real frames `targets[s]`: the same test for every style and joint (a
-    distribution's mean and spread can match the style's while its frames lie off the real ones,
-    which a per-joint Gaussian map cannot see)."""
+    """(S, J) `NEAR_PERCENTILE` distance from the carried `produced[s]` to the nearest real frame."""
     out = np.zeros(carry.mean.shape[:2])
     for s, (q, real) in enumerate(zip(produced, targets)):
         w = np.zeros((len(q), len(produced)))
@@ -197,8 +164,7 @@ def near_percentile(carry: StyleCarry, produced: list[np.ndarray], targets: list
 
 
 def run_network_rotations(model: Any, styles: Sequence[str] | None = None) -> list[np.ndarray]:
-    """`network_rotations` of TRAIN neutral clips that run: the arms (`RUN_ARMS`) as the stream
-    makes them, every other joint with the input's own twists and leaves (no leaf prior)."""
+    """`network_rotations` of running neutral clips, arms as streamed, other joints the input's."""
     inputs = _running_inputs()
     produced = network_rotations(model, inputs, leaf_prior=False, styles=styles)
     arms = [model.skeleton.index(n) for n in RUN_ARMS]
@@ -210,10 +176,7 @@ def run_network_rotations(model: Any, styles: Sequence[str] | None = None) -> li
 def network_rotations(
     model: Any, inputs: list, leaf_prior: bool = True, styles: Sequence[str] | None = None
 ) -> list[np.ndarray]:
-    """Per style of `styles` (default: the model's): the rotations (N, J, 4, the Hips without
-    their heading) of every frame of `inputs` streamed toward it by the network, with its leaf
-    prior (not its run prior) where `leaf_prior`, and none of the stages from the output prior on
-    (what the output priors carry from)."""
+    """Per style: rotations (N, J, 4) of `inputs` as the network streams them, before the output prior."""
     from ..eval.run import stylise
 
     saved = model.stages

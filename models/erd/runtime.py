@@ -1,42 +1,21 @@
-"""Streaming Style-ERD: the project's `StreamingModel` interface. Per frame: features and
-output pose by compiled kernels (`kernels.py`, float64), the network in numpy (BLAS products,
-float32 by default; see `ERDModel`).
+"""Streaming Style-ERD: the project's `StreamingModel` interface. Features and output pose by
+compiled kernels (`kernels.py`, float64), the network in numpy (float32 by default; `ERDModel`).
 
-Weights live in `models/weights/erd/erd.npz` (generator parameters, normalisation, per-joint
-reference rotations, the Bandai Namco skeleton) + `config.json`; `export_weights` writes them
-from a training checkpoint.
-
-State per session (every entry has the session axis first):
-    h, c                       (B, 7, layers, H)        LSTM states of the 7 branches: the neutral
-                                                        one, then one residual branch per target
-                                                        style (in `styles()` order); network dtype
+State per session (session axis first):
+    h, c                       (B, 7, layers, H)        LSTM states: the neutral branch, then one
+                                                        residual branch per target style
     h.<name>, c.<name>         (B, layers, H)           the same for each uploaded style (`uploads.py`)
     prev_pos (B, 22, 3), prev_yaw (B,)                  previous input frame (causal velocities)
     gait_speed (B,)                                     the input's averaged Hips speed (`gait.py`)
-    <stage>/<key>                                       the stages' (`stages.STAGES`): the priors'
-                                                        slowly following copies (`slow_carry.py`)
-    out_root (B, 3)                                     last output Hips translation
-    frame (B,)                                          frames seen
+    <stage>/<key>                                       the stages' (`stages.STAGES`)
+    out_root (B, 3), frame (B,)                         last output Hips translation, frames seen
     style_in (B,), content (B,)                         input labels, -1 = unknown (the default)
     feet_*                                              the foot planter's (`models.motion.feet`)
-Every residual branch advances every frame (whatever its weight), so switching or mixing styles
-never meets a stale state; the output uses latent = neutral + sum_s w_s * branch_s.
+Every branch advances every frame, so switching styles never meets a stale state.
 
-Output root: the predicted facing-frame root velocity, integrated from the input's first root
-position and turned by the input's facing yaw (the path keeps the input's shape, the speed
-follows the style); the height is predicted.
-
-Decoding (as the trainer decodes, not a stage): the decoder's positions are kept, but each
-bone's twist and the head, hands and toes, which move no joint and so were never learned, take
-the input's rotations, or the leaf prior's carry of them (`models.motion.twist.transfer_twist`);
-elbows and knees keep their hinge plane (`models.motion.hinge`, `hinges.npz`).
-
-Then the declared stages (`stages.STAGES`, a `models.stages.Pipeline`: the leaf prior on the
-input, before the decoding reads it, the others after; the model card's table says what each does
-and how it is fitted from real clips, the same way for every style), and last the shared foot
-planter (`models.motion.feet.FootPlanter`), which holds the feet the input has down
-(feature columns `CONTACT`), toe and ankle, by two-bone leg IK; the output's `contacts` are the
-planted legs.
+Decoding keeps the decoder's positions; twists and leaves (head, hands, toes), never learned,
+take the input's rotations (or the leaf prior's carry); elbows and knees keep their hinge plane.
+Then the stages and the shared foot planter.
 """
 
 from __future__ import annotations
@@ -71,14 +50,9 @@ if TYPE_CHECKING:
     from .model import Generator
 
 WEIGHTS_FILE = "erd.npz"
-# cm: a held foot the input has down (the hints) lets go this far from the network's leg
-# (`FootPlanter.hint_offset`), not at `max_offset`'s 15: the network's feet often still move where
-# the input's are down, and let go they snapped forward over the floor (other performers' walks).
-# Chosen on validation among 22.5 and 30 (docs/eval/ablation.md).
+# cm: a foot the input has down is held this far from the network's leg (docs/eval/ablation.md)
 HINT_HOLD_CM = 22.5
-# cm, cm/s: past GIVE_CM a held foot's hold moves the root instead, at most GIVE_SPEED
-# (`FootPlanter.give`, `give_speed`): LTI's values, not tuned here. On validation the legs held
-# less far turned less and running content rose for three styles (docs/eval/ablation.md).
+# cm, cm/s: past GIVE_CM a hold moves the root instead, at most GIVE_SPEED (LTI's values)
 GIVE_CM, GIVE_SPEED = 5.0, 30.0
 RENAMED = {"slow_in": "leaf_prior/slow", "slow_out": "output_prior/slow"}  # state keys of older replicas
 
@@ -89,8 +63,7 @@ def foot_planter() -> FootPlanter:
 
 
 class Plan(NamedTuple):
-    """The stages as one step reads them, replaced whole: the pipeline, its part on the input and
-    after the decoding, their rows for the model's styles, and whether the leaf prior is off."""
+    """The stages as one step reads them, replaced whole."""
 
     stages: Pipeline
     on_input: Pipeline
@@ -100,9 +73,7 @@ class Plan(NamedTuple):
 
 
 def _sigmoid_(a: np.ndarray) -> np.ndarray:
-    """Logistic sigmoid of a float array, in place, by torch's vectorised kernel: numpy's float32
-    tanh/exp are not vectorised on AVX2 (a third of a batched step), and torch.tanh was slow on tiny
-    arrays, so tanh(x) is taken as 2 sigmoid(2x) - 1."""
+    """Logistic sigmoid in place by torch's vectorised kernel (numpy's float32 exp is not vectorised)."""
     t = torch.from_numpy(a)
     torch.sigmoid(t, out=t)
     return a
@@ -110,10 +81,8 @@ def _sigmoid_(a: np.ndarray) -> np.ndarray:
 
 class ERDModel(ERDStyles):
     """Style-ERD behind the streaming interface. `dtype` is the network's arithmetic: float32 by
-    default (the weights were trained in float32; float32 matrix products and gate
-    nonlinearities run ~2x and ~4x faster than float64, which is what lets 256 batched sessions
-    fit in a frame); the features and the output pose are always float64. float64 is the
-    reference the tests compare with (outputs differ by ~1e-4 degree per joint)."""
+    default (~2-4x faster, what lets 256 sessions fit in a frame); float64 is the tests' reference.
+    Features and output pose are always float64."""
 
     name = "erd"
     fps = FPS  # the model runs at 30 fps (Bandai Namco)
@@ -140,9 +109,7 @@ class ERDModel(ERDStyles):
         self.dtype = np.dtype(dtype)
         self.mean, self.std = np.asarray(mean, np.float64), np.asarray(std, np.float64)
         self.ref = np.asarray(ref, np.float64)
-        # the decoding: elbows and knees as hinges (`models.motion.hinge`); the twists and leaves
-        # without a leaf prior: the network's own (a network trained on them, `train.py
-        # --network_twists`) or the input's (one trained on positions only)
+        # the decoding: hinged limbs; without a leaf prior, twists from the network or the input
         self.hinges, self.network_twists = hinges, network_twists
         self._decoding = (_kernel_plan(skeleton, ()), kernel_hinges(skeleton, hinges))  # `transfer_twist`'s, once
         self.maker = FeatureMaker(skeleton, self.ref)
@@ -179,20 +146,16 @@ class ERDModel(ERDStyles):
         self._state_shapes = {k: v.shape[1:] for k, v in own if k not in FEET_STATE}
 
     def _compile_step(self) -> None:
-        """One step of one session on the rest pose: numba compiles the kernels (or loads them
-        from its cache) here, when the model loads, instead of on a live session's first frame."""
+        """One step on the rest pose, so numba compiles (or loads) the kernels when the model loads."""
         rest = np.zeros((1, 22, 4))
         rest[..., 3] = 1.0
         for weights in (np.zeros((1, len(TARGET_STYLES))), np.eye(len(TARGET_STYLES))[:1]):  # with a style: all of it
             self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), weights)
 
     def _prepare_weights(self) -> None:
-        """Everything constant, once, in the network's dtype and the layout the step multiplies: the
-        input normalisation stays a float64 subtraction (features reach ~1e3, weights ~1e-2), label
-        one-hots become row lookups (-1 = unknown = a zero row), and the seven LSTM branches are stacked,
-        input and hidden weights together, one batched product per layer. Matrices are row-major (faster
-        block products, no copies of transposed views). The cell-input gate's rows are doubled so one
-        sigmoid serves all four gates: tanh(x) = 2 sigmoid(2x) - 1 (doubling is exact)."""
+        """Constants in the network's dtype and layout, once: label one-hots become row lookups, the
+        seven LSTM branches are stacked ([input; hidden] weights, one batched product per layer), and
+        the cell gate's rows are doubled so one sigmoid serves all gates (tanh(x) = 2 sigmoid(2x) - 1)."""
         p, dt, H = self.p, self.dtype, self.H
         n_in = len(self.mean)
         w0, b0 = p["encoder.0.weight"].T, p["encoder.0.bias"]
@@ -244,11 +207,7 @@ class ERDModel(ERDStyles):
         return state
 
     def upgrade_state(self, state: State) -> State:
-        """A state saved by an older replica or another stage set: before the foot planter (with
-        or without the old `lock_*` keys) it gets a fresh planter state, an entry it lacks a fresh
-        one (the averaged gait speed unmeasured, its next frame's speed starts the average; a
-        stage's slow copies unset, zeros: its next frame starts them), the slow copies under their
-        old names their stages' keys; a current state is returned as it is."""
+        """An older replica's or stage set's state brought current; a current state as it is."""
         wanted = {key for u in self.uploads for key in (f"h.{u.name}", f"c.{u.name}")}
         held = {k for k in state if k[:2] in ("h.", "c.")}
         if held == wanted and all(k in state for k in (*FEET_STATE, *self._state_shapes)):
@@ -269,9 +228,7 @@ class ERDModel(ERDStyles):
         return planted, {**new, **feet}
 
     def step_unplanted(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
-        """`step_batch` up to the feet: the frame (its contacts the network's, the planter's
-        hints) and the new state without the planter's entries, which it reads from `state`
-        (`feet.plant_frame` plants the frame)."""
+        """`step_batch` up to the feet (`feet.plant_frame` plants the frame)."""
         root = np.ascontiguousarray(frames.root, np.float64)
         rot_in = np.ascontiguousarray(frames.rotations, np.float64)
         w = np.asarray(style_weights, np.float64)
@@ -312,9 +269,7 @@ class ERDModel(ERDStyles):
     def stage_batch(
         self, state: State, rot_in: np.ndarray, decoded: np.ndarray, weights: np.ndarray, share: np.ndarray
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """One frame of B sessions from the network's decoded rotations (B, J, 4) to the output's:
-        the decoding (module docstring) and the stages, on the input's rotations `rot_in`, the
-        style weights (B, S) and run shares (B,); returns the stages' new state entries too."""
+        """Network rotations (B, J, 4) through the decoding and the stages; also the stages' new state."""
         plan = self._plan
         source, staged = plan.on_input.step_batch(state, StageFrame(rot_in, weights, share, -1), plan.rows)
         if self.network_twists and plan.leafless:
@@ -329,9 +284,7 @@ class ERDModel(ERDStyles):
     # ------------------------------------------------------------------ network
 
     def _workspace(self, batch: int) -> tuple[np.ndarray, np.ndarray]:
-        """This thread's LSTM input (7, batch, 2H) and gate (7, batch, 4H) buffers, reused between
-        steps while the batch fits: at batch 256 they are ~1.4 MB a layer, and fresh allocations
-        that size cost hundreds of page faults per step."""
+        """This thread's LSTM buffers, reused while the batch fits (page faults otherwise)."""
         held, K, H = getattr(self._scratch, "held", None), len(self.branches), self.H
         if held is None or held[0].shape[1] < batch or held[0].shape[0] != K:
             held = self._scratch.held = (
@@ -341,8 +294,7 @@ class ERDModel(ERDStyles):
         return held[0][:, :batch], held[1][:, :batch]
 
     def _network(self, x: np.ndarray, state: State, w: np.ndarray) -> tuple[np.ndarray, State]:
-        """Encoder -> 7 stacked LSTM branches -> latent = neutral + sum_s w_s branch_s -> decoder.
-        Returns the decoder output (B, 88) and the new LSTM states."""
+        """Encoder -> 7 stacked LSTM branches -> neutral + sum_s w_s branch_s -> decoder: ((B, 88), states)."""
         dt, H, B = self.dtype, self.H, x.shape[0]
         h = matmul_rows(((x - self.mean) / self.std).astype(dt), self.enc_in)
         h += self.enc_labels[state["style_in"], state["content"]]
@@ -433,11 +385,7 @@ class ERDModel(ERDStyles):
 
 
 def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, hinges: bool = True) -> ERDModel:
-    """The committed model; `dtype` = the network's arithmetic (np.float64: the reference).
-    `core_only`: the network without the stages after it (`stages.STAGES`; the decoding, twist
-    transfer and hinges, and the foot planter stay): the evaluation's core-alone row. A stage
-    named in `Settings.stages_off` as `erd.<name>` is off. `hinges=False` decodes without the
-    hinges (for comparison)."""
+    """The committed model; `dtype`: the network's (np.float64: the reference); `core_only`: no stages."""
     weights_dir = Path(weights_dir)
     config = json.loads((weights_dir / "config.json").read_text())
     with np.load(weights_dir / WEIGHTS_FILE) as z:
@@ -461,8 +409,7 @@ def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, h
 
 
 def export_weights(ckpt_path: Path, out_dir: Path | None = None, skeleton: Skeleton | None = None) -> Path:
-    """Write models/weights/erd/{erd.npz, config.json, hinges.npz} from a training checkpoint (the
-    hinges fitted from the TRAIN split, as the trainer decodes with them)."""
+    """Write models/weights/erd/{erd.npz, config.json, hinges.npz} from a training checkpoint."""
     import torch
 
     from ..settings import REPO_ROOT

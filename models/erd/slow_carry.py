@@ -1,18 +1,13 @@
 """Style-ERD's rotation priors as a stage: each carries only the slow part of each rotation.
 
-A prior's gains above 1 would scale every frame-to-frame wobble with the pose (the head turned
-faster than anything real), so each prior maps a copy of the rotation that follows it slowly,
+Gains above 1 would scale every wobble with the pose, so a prior maps a slowly following copy
 and the fast part rides on top, never magnified:
 
     slow_t = nlerp(slow_{t-1}, q_t, SLOW_WEIGHT)          (slow_0 = q_0)
     p_t    = slow_t^-1 q_t                                (the fast part)
     out_t  = bounds(carry(slow_t) (G p_xyz, p_w) / |.|)    (~ carry(slow_t) exp(G log p_t))
 
-G is the prior's map with its gains capped at 1 (`StyleCarry.damping`); `bounds`, the prior's
-clamp, keeps the sum inside the style's real range. A held pose is carried as before; joints a
-prior only clamps are carried whole. A prior fitted again on runs alone takes over by the frame's
-run share (`gait.py`), clamped into the all-content prior's range. `SLOW_WEIGHT` was chosen on
-validation clips (model card).
+G: the map with gains capped at 1; run priors take over by run share (`gait.py`).
 """
 
 from __future__ import annotations
@@ -30,8 +25,7 @@ from ..motion.style_carry import FIELDS, StyleCarry, carry_rows
 from ..stages import Rows, StageFrame, style_rows
 from .dataset import TARGET_STYLES
 
-# the newest frame's weight in the slow copy (an exponential average ~4 frames behind): chosen on
-# validation among 0.5, 0.3, 0.2 and 0.1 (docs/eval/ablation.md)
+# the newest frame's weight in the slow copy (~4 frames behind; chosen on validation, docs/eval/ablation.md)
 SLOW_WEIGHT = 0.2
 
 
@@ -50,10 +44,9 @@ def merged(carry: StyleCarry, at: Sequence[int], other: StyleCarry) -> StyleCarr
 
 @dataclass(frozen=True)
 class SlowPrior:
-    """The stage: per fitted style (`styles`), `carry` for every frame and `run` (None: none)
-    for the frames the input runs in; joint `hips` (>= 0) is carried without its heading. `fast`
-    (S, J, 3, 3): the fast part's gains where they are not `carry`'s own capped at 1 (an upload's
-    carry floors its source's spread, which guards the slow map, not the fast part)."""
+    """The stage: per fitted style, `carry` for every frame and `run` (None: none) for running
+    frames; joint `hips` (>= 0) without its heading. `fast` (S, J, 3, 3): fast-part gains where not
+    `carry`'s own capped (an upload's source floor guards the slow map, not the fast part)."""
 
     styles: tuple[str, ...]
     carry: StyleCarry
@@ -67,10 +60,7 @@ class SlowPrior:
         return self.carry.damping if self.fast is None else self.fast
 
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
-        """Both carries' arrays (`run_` before the run's keys; without a run prior the carry's),
-        the fast part's gains, the clamp's maps and the joints carried whole, aligned with
-        `styles`; a style not fitted gets identity maps and infinite radii. `plain` (S, J): the
-        joints each style only clamps (its map the identity, its source its mean)."""
+        """Both carries' arrays (`run_` prefixed), fast gains, clamp and `plain` joints, aligned with `styles`."""
         J, eye = skeleton.num_joints, np.eye(3)
         arrays = carry_rows({"": self.carry, "run_": self.run or self.carry}, J)
         rows = style_rows(self.styles, styles, gain=(self.gains, np.tile(eye, (J, 1, 1))), **arrays)
@@ -83,8 +73,7 @@ class SlowPrior:
         return {"slow": np.zeros((batch, self.carry.mean.shape[1], 4))}
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
-        """The frame carried (module docstring) in one compiled pass (`style_carry_kernels.carry_slow_batch`;
-        `tests/reference/erd_carry.py` is its numpy reference)."""
+        """The frame carried in one compiled pass (`style_carry_kernels.carry_slow_batch`)."""
         w = np.asarray(frame.weights, np.float64)
         share = np.zeros(len(w)) if self.run is None else np.asarray(frame.gait, np.float64)
         r = rows  # read out one by one: the step runs at batch 1 too, where a generator costs a microsecond
@@ -119,7 +108,6 @@ class SlowPrior:
         return replace(self, styles=self.styles + tuple(n for n, _ in others), carry=carry, run=run, fast=fast)
 
     def with_styles_of(self, other: SlowPrior) -> SlowPrior:
-        """This prior with `other`'s styles refitted (a refit of some styles)."""
         at = [self.styles.index(s) for s in other.styles]
         run = None if self.run is None or other.run is None else merged(self.run, at, other.run)
         return replace(self, carry=merged(self.carry, at, other.carry), run=run, fast=None)

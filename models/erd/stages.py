@@ -1,10 +1,6 @@
-"""The stages after Style-ERD's network (`models.stages`), declared in the order the step runs
-them; the model card's table says what each does and how it is fitted from real clips, the same
-way for every style (`python -m models.erd fit`).
-
-The leaf prior carries the input's rotations, before the decoding takes its twists and leaves
-from them (`runtime.ERDModel.stage_batch`); the others change the decoded rotations. An upload
-fits its own (`upload_stages.py`), stacked after the trained styles' (`stacked`).
+"""The stages after Style-ERD's network (`models.stages`), in step order; the model card says what
+each does (`python -m models.erd fit`). The leaf prior carries the input's rotations before the
+decoding reads them; the others change the decoded rotations. Uploads stack their own (`stacked`).
 """
 
 from __future__ import annotations
@@ -30,8 +26,7 @@ ON_INPUT = "leaf_prior"  # the last stage that carries the input (the decoding r
 
 
 def stacked(stages: Pipeline, uploads: Sequence[tuple[str, Mapping[str, Stage]]]) -> Pipeline:
-    """The trained styles' stages with each upload's (name, its stages by name) as one more style;
-    an upload without one of them gets rows that change nothing there."""
+    """The trained styles' stages with each upload's as one more style."""
     out: dict[str, Any] = {}
     for key, stage in stages.stages:
         if isinstance(stage, (SlowPrior, TwistRange)):

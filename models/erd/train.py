@@ -6,15 +6,9 @@ any field overridable on the command line as --field=value.
     .venv/bin/python -m models.erd.train --export=.data/erd/run/ckpt.pt   # write models/weights/erd
     sh models/erd/gpu_run.sh                                             # on a lent GPU (device)
 
-First a content classifier (for the perceptual loss), then the generator against an FT-Att
-discriminator (LSGAN with R1): reconstruction toward the input's own style, transfer of neutral
-windows to a random style and of styled ones to neutral, input labels dropped at random so that
-unlabelled streams work. The optional `w_*` terms act on the rotations the streaming model
-outputs (`streamed_rotations`); `w_distill` pulls the decoder's rotations toward the shipped
-pipeline's (`distill.py`); `w_smooth` penalises streamed rotation acceleration beyond the input's
-and the style's own, and `p_aug` feeds windows turned, shaken and sped up as another performer's
-capture retargeted to the rig would be (`augment_input`), so that the network neither adds jitter
-nor amplifies the input's. A checkpoint holds everything `--resume` needs to continue exactly.
+A content classifier (perceptual loss), then the generator against an FT-Att discriminator
+(LSGAN, R1), labels dropped at random so unlabelled streams work. `w_*` terms act on the streamed
+rotations; `p_aug` shows windows as another performer's capture would (`augment_input`).
 """
 
 from __future__ import annotations
@@ -66,8 +60,7 @@ class TrainConfig:
     w_adv: float = 1.0
     w_per: float = 0.1
     w_r1: float = 10.0
-    # terms on the rotations the streaming model outputs (`streamed_rotations`): a joint beyond the
-    # target style's real p95 range, a hinge joint off its hinge
+    # terms on the streamed rotations: beyond the style's real p95 range, off the hinge
     w_prior: float = 0.0
     w_hinge: float = 0.0
     w_teacher: float = 0.0  # keep the transfer near the starting generator's, so only rotations move
@@ -76,9 +69,7 @@ class TrainConfig:
     distill: str = ""  # the shipped pipeline's rotations of TRAIN neutral clips (`distill.py`)
     w_distill: float = 0.0  # transfers of neutral windows toward those rotations (the style in the core)
     hinge_decode: bool = True  # the streamed rotations decode hinge joints as hinges, as the runtime does
-    # other performers and recordings: a share of windows gets constant per-joint rotation offsets
-    # (up to aug_deg, aug_deg_arms on clavicles and upper arms), a root speed scale, per-frame rotation
-    # noise and feature noise, positions and velocities re-derived (`augment_input`)
+    # another performer's capture (`augment_input`): share of windows, joint offsets (degrees; arms more)
     p_aug: float = 0.0
     aug_deg: float = 12.0
     aug_deg_arms: float = 40.0
@@ -154,8 +145,7 @@ class Losses:
 
 
 def style_rotation_prior(split) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per style (7) and body joint (21): the mean of the real training rotations (feature
-    quaternions: Hips without its yaw, hemisphere-aligned) and the p95 angle to it (radians)."""
+    """Per style (7) and body joint (21): real mean rotation and the p95 angle to it (radians)."""
     frame_style = np.repeat(split.style, split.lengths)
     means, p95s = [], []
     for s in range(int(split.style.max()) + 1):
@@ -171,10 +161,7 @@ def style_rotation_prior(split) -> tuple[torch.Tensor, torch.Tensor]:
 def streamed_rotations(
     skeleton, rot: torch.Tensor, x: torch.Tensor, source: torch.Tensor | None = None, hinges=None
 ) -> torch.Tensor:
-    """(B, T, 21, 4) the rotations the streaming model outputs for decoder rotations `rot`: its
-    bone directions with the twists and leaf rotations of `source` (B, T, 21, 4; default the
-    input's), and with `hinges` (`models.motion.hinge.Hinges`) its elbows and knees as hinges,
-    as `ERDModel` does."""
+    """(B, T, 21, 4) what the streaming model outputs for decoder rotations `rot` (`ERDModel`'s decoding)."""
     root = torch.zeros(rot.shape[:2] + (1, 4), dtype=rot.dtype, device=rot.device)
     root[..., 3] = 1.0
     full = lambda q: torch.cat([root, q], dim=-2)  # noqa: E731  (joint_Root, static)
@@ -183,8 +170,7 @@ def streamed_rotations(
 
 
 def leaf_source(prior, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """(B, T, 21, 4) the twist/leaf source the streaming model uses toward `target` (B,) (index
-    in the 7 styles): the input's rotations carried by the leaf prior (`rotation_prior.py`)."""
+    """(B, T, 21, 4) the input's rotations carried by the leaf prior toward `target` (B,)."""
     q = real_rot(x).double().numpy()
     B, T = q.shape[:2]
     full = np.zeros((B * T, 22, 4))
@@ -196,8 +182,7 @@ def leaf_source(prior, x: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def prior_loss(rot: torch.Tensor, target: torch.Tensor, prior: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
-    """Mean squared angle (radians) by which rotations (B, T, 21, 4) lie beyond the target
-    style's (B,) real p95 angle from its mean rotation, per joint."""
+    """Mean squared angle (radians) by which rotations lie beyond the target style's real p95."""
     mean, p95 = prior[0][target][:, None], prior[1][target][:, None]  # (B, 1, 21, 4), (B, 1, 21)
     cos = (rot * mean).sum(-1).abs() / rot.norm(dim=-1).clamp_min(1e-8)
     angle = 2 * torch.acos(cos.clamp(max=1 - 1e-6))
@@ -205,8 +190,7 @@ def prior_loss(rot: torch.Tensor, target: torch.Tensor, prior: tuple[torch.Tenso
 
 
 def rotation_accel_t(q: torch.Tensor) -> torch.Tensor:
-    """(B, T - 2, J) angle (radians) of the change of each joint's frame-to-frame turn, for
-    rotations (B, T, J, 4): the eval's rotation acceleration (small-angle turns, differentiable)."""
+    """(B, T - 2, J) the eval's rotation acceleration (radians) of (B, T, J, 4), differentiable."""
     q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     conj = torch.cat([-q[..., :3], q[..., 3:]], -1)
     d = quat_mul_t(conj[:, :-1], q[:, 1:])
@@ -215,8 +199,7 @@ def rotation_accel_t(q: torch.Tensor) -> torch.Tensor:
 
 
 def style_accel_p99(split) -> torch.Tensor:
-    """(7, 21) per style and body joint, the p99 rotation acceleration (radians per frame^2) of
-    the real training clips (within clips)."""
+    """(7, 21) per style and body joint, the p99 rotation acceleration of real training clips."""
     q = torch.as_tensor(split.feats[:, ROT].reshape(-1, NB, 4))
     out = torch.zeros(int(split.style.max()) + 1, NB)
     for s in range(len(out)):
@@ -230,10 +213,7 @@ def style_accel_p99(split) -> torch.Tensor:
 
 
 def smooth_loss(out: torch.Tensor, inp: torch.Tensor, target: torch.Tensor, p99: torch.Tensor) -> torch.Tensor:
-    """Mean squared acceleration (degrees per frame^2) by which streamed rotations `out` (B, T, 21,
-    4) turn beyond both the input's (B, T, 21, 4) largest in the window and the target style's (B,)
-    real p99 (`p99`, (7, 21)), per joint: jitter the network adds is penalised, the input's and
-    the style's own motion is not."""
+    """Mean squared acceleration beyond the input's and the style's p99: only added jitter costs."""
     ref = torch.maximum(rotation_accel_t(inp).amax(1, keepdim=True), p99[target][:, None])
     return torch.rad2deg(torch.relu(rotation_accel_t(out) - ref)).pow(2).mean()
 
@@ -249,13 +229,10 @@ def random_turns(max_deg: torch.Tensor) -> torch.Tensor:
 def augment_input(
     x: torch.Tensor, cfg: TrainConfig, offsets: torch.Tensor, parents, names, std: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Windows x (B, T, 216) as another performer or recording, retargeted to the model's rig,
-    might give them: (the network's input, the reconstruction target). In a share `cfg.p_aug` of
-    windows every body joint is turned by a constant random rotation (clavicles and upper arms,
-    where rigs and performers differ most, by more) and shaken per frame; positions and
-    velocities follow by forward kinematics, so the features stay one body on the rig; the root
-    speed is scaled (another stride). The input alone also gets noise on its position and
-    velocity features (`cfg.aug_feat_noise` of their normalisation `std`, (216,))."""
+    """Windows x (B, T, 216) as another performer or recording might give them: (network input,
+    reconstruction target). A share `cfg.p_aug` of windows get constant per-joint turns (more on
+    clavicles and upper arms, where rigs differ most), per-frame shake and a root speed scale, the
+    positions and velocities re-derived by FK; the input alone also gets feature noise."""
     B, T, _ = x.shape
     dev = x.device
     pick = torch.rand(B, device=dev) < cfg.p_aug
@@ -291,15 +268,13 @@ def augment_input(
 
 
 def distill_loss(rot: torch.Tensor, teacher: torch.Tensor) -> torch.Tensor:
-    """Mean 4 sin^2(angle / 2) (~ squared angle) between decoder rotations and the teacher's (the
-    same shape; either hemisphere)."""
+    """Mean 4 sin^2(angle / 2) (~ squared angle) to the teacher's rotations, either hemisphere."""
     dot = (rot * teacher.float()).sum(-1) / rot.norm(dim=-1).clamp_min(1e-8)
     return (4 * (1 - dot.pow(2))).mean()
 
 
 def target_probs(spec: str) -> torch.Tensor:
-    """Sampling probabilities of the 6 target styles for neutral windows; uniform unless `spec`
-    ("style=factor,...") boosts styles that come out weak."""
+    """Sampling probabilities of the 6 target styles; `spec` ("style=factor,...") boosts some."""
     w = torch.ones(len(TARGET_STYLES))
     for item in filter(None, spec.split(",")):
         name, _, factor = item.partition("=")
@@ -339,8 +314,7 @@ def train_classifier(cfg, clf, losses, train_s, val: dict[str, torch.Tensor], lo
 
 @torch.no_grad()
 def validate(gen, disc, clf, losses, v, hinges=None, skeleton=None, decode=None) -> dict[str, float]:
-    """Losses on fixed validation windows; with `hinges` and `skeleton`, how far the streamed
-    transfer (decoded with `decode`, the hinges or None) leaves the hinges."""
+    """Losses on fixed validation windows; with `hinges` and `skeleton`, the hinge error too."""
     gen.eval()
     x, style, content = v["x"], v["style"], v["content"]
     real = losses.real_view(x)
@@ -397,9 +371,7 @@ def render(gen, maker, out_dir: Path, tag: str, clips_motions) -> None:
 
 
 def hinge_loss(rot: torch.Tensor, hinges, skeleton) -> torch.Tensor:
-    """Mean squared sine of the angle by which each hinge joint's bone (rotations (B, T, 21, 4),
-    `hinges` a `models.motion.hinge.Hinges`) leaves the plane normal to its hinge axis: zero
-    exactly when the joint turns as a hinge."""
+    """Mean squared sine of each hinge joint's bone angle off the plane normal to its hinge axis."""
     if len(hinges.joints) == 0:
         return rot.new_zeros(())
     as_t = lambda a: torch.as_tensor(a, dtype=rot.dtype, device=rot.device)  # noqa: E731
@@ -463,8 +435,7 @@ class Run:
     """The networks, optimisers and training state of a run: what a checkpoint holds."""
 
     def __init__(self, cfg: TrainConfig, ck: dict | None, data: Data, device: torch.device, log) -> None:
-        """New networks (built in a fixed order, so runs repeat), restored from `ck` or
-        initialised as `cfg` says; the content classifier trained when it is new."""
+        """Networks built in a fixed order (runs repeat), restored from `ck` or initialised per `cfg`."""
         self.cfg, self.data, self.device, self.it = cfg, data, device, 0
         self.autocast = training.autocast(device, training.use_bf16(cfg.bf16, device))
         self.history: list[dict] = []

@@ -1,10 +1,8 @@
 """Keep Style-ERD's arm twists inside the twists the real data shows.
 
-A bone's twist moves no joint, yet a skinned arm shows it, and the priors' gains scale twists
-with the rest while their angle clamps bound only the distance from the style's mean. So after
-the priors each arm joint's twist about its bone, relative to the style's real mean, is clamped
-into the style's real TRAIN p1..p99 interval; the swing, which places the joints, is kept.
-Style mixes blend the corrections by their weights; a row with no style weight is left alone.
+A twist moves no joint, yet a skinned arm shows it, and the priors' clamps bound only the distance
+from the mean. So after the priors each arm joint's twist relative to the style's mean is clamped
+into its real TRAIN p1..p99 interval, blended by the style weights; the swing is kept.
 """
 
 from __future__ import annotations
@@ -30,8 +28,7 @@ PERCENTILES = (1.0, 99.0)
 
 @dataclass(frozen=True)
 class TwistRange(Stateless):
-    """The stage: per fitted style (`styles`) and arm joint, the real mean rotation and the twist
-    interval about the bone."""
+    """The stage: per fitted style and arm joint, the real mean rotation and twist interval."""
 
     joints: np.ndarray  # (K,) joint indices
     axes: np.ndarray  # (K, 3) each joint's bone axis in its own frame
@@ -70,9 +67,7 @@ class TwistRange(Stateless):
         return style_rows(self.styles, styles, mean=(self.mean, identity), lo=(self.lo, -np.inf), hi=(self.hi, np.inf))
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
-        """(B, J, 4) rotations with each arm joint's twist moved into the styles' real intervals
-        by the weights (B, S): t + sum_s w_s (clip(t_s, lo_s, hi_s) - t_s), t_s its twist against
-        style s's mean. Compiled (`kernels.twist_clamp_batch`); `tests/reference/erd_carry.py` is the reference."""
+        """Arm twists moved into the styles' intervals by the weights (`kernels.twist_clamp_batch`)."""
         from .kernels import twist_clamp_batch
 
         q = np.ascontiguousarray(frame.rotations, np.float64)
@@ -91,7 +86,6 @@ class TwistRange(Stateless):
         )
 
     def with_styles_of(self, other: TwistRange) -> TwistRange:
-        """This range with `other`'s styles refitted."""
         at = [self.styles.index(s) for s in other.styles]
         mean, lo, hi = self.mean.copy(), self.lo.copy(), self.hi.copy()
         mean[at], lo[at], hi[at] = other.mean, other.lo, other.hi

@@ -1,19 +1,10 @@
 """The fitted stages of an uploaded Style-ERD style, from its one clip.
 
-An upload streams through the network's neutral reconstruction (no style branch: a trained
-style's branch pushed the output toward that style, away from the clip's) until its job has
-fitted a branch of its own, and one output prior carries what the network makes of the input
-(its own twists and leaves, no leaf prior) to the clip's frames (`models.motion.style_carry`).
-The prior must carry from what the network makes *of the same content and pace*: a source
-measured over every content (arms raised, waves) shifted and shrank a walk, so the source is
-pooled from the neutral TRAIN clips nearest the clip in what it does (`descriptor`: Hips speed
-and turning), each clip's output Gaussian kept beside the weights (`upload_sources.npz`, written
-by `python -m models.erd fit --stages upload_sources`). Every joint but the Hips (clamped only)
-is carried, the legs too: with no branch nothing else gives them the style. The source's spread
-is floored (`SOURCE_FLOOR_DEG`) so an axis the network hardly moves along is not stretched to
-the clip's spread; the fast part's gains, capped at 1 anyway, take the map without the floor
-(floored, they damped the frame-to-frame motion a lively style needs). The twist range is the
-clip's p1-p99 arm twists (`twist_range.py`).
+Until its job fits a branch, an upload streams the neutral reconstruction with one output prior
+carrying what the network makes to the clip's frames. It must carry from the same content and
+pace, so the source is pooled from the neutral TRAIN clips nearest the clip (`descriptor`;
+`upload_sources.npz`, `python -m models.erd fit --stages upload_sources`). All joints but the Hips
+are carried; the source's spread is floored (`SOURCE_FLOOR_DEG`), not the fast part's gains.
 """
 
 from __future__ import annotations
@@ -47,9 +38,7 @@ SOURCE_FRAMES = 240  # of each neutral clip, as `rotation_prior.FIT_FRAMES`
 
 @dataclass(frozen=True)
 class Sources:
-    """Per TRAIN neutral clip, what the network's neutral reconstruction makes of it: mean
-    (C, J, 4) and covariance (C, J, 3, 3) of tangent deviations, frames (C,), and what the clip
-    does (`descriptor`, (C, 6)); an upload's source is pooled from the clips like it."""
+    """Per TRAIN neutral clip: the neutral reconstruction's Gaussian, frames and `descriptor`."""
 
     mean: np.ndarray
     cov: np.ndarray
@@ -66,25 +55,20 @@ class Sources:
             return cls(*(z[k] for k in FIELDS))
 
     def nearest(self, x: np.ndarray, k: int = PAIRS) -> tuple[np.ndarray, np.ndarray]:
-        """The network's output Gaussian (mean (J, 4), covariance (J, 3, 3)) over the `k` neutral
-        clips nearest in what they do to a clip of features `x` (F, 216), each `descriptor`
-        entry in units of its spread over the neutral clips."""
+        """The output Gaussian over the `k` neutral clips doing most alike `x` (F, 216)."""
         scale = np.maximum(self.descriptor.std(0), 1e-6)
         near = np.argsort(np.linalg.norm((self.descriptor - descriptor(x)) / scale, axis=1))[:k]
         return pooled(self.mean[near], self.cov[near], self.frames[near])
 
 
 def descriptor(x: np.ndarray) -> np.ndarray:
-    """What a clip does, from its features (F, 216): mean and spread of its facing-frame Hips
-    speed (forward, sideways) and of its turning rate."""
+    """Mean and spread of a clip's facing-frame Hips speed (forward, sideways) and turning rate."""
     v = np.concatenate([x[:, ROOTVEL][:, [0, 2]], x[:, YAWRATE : YAWRATE + 1]], 1)
     return np.concatenate([v.mean(0), v.std(0)])
 
 
 def pooled(means: np.ndarray, covs: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One Gaussian per joint from clips' (means (C, J, 4), covs (C, J, 3, 3), frames (C,)): the
-    frame-weighted mean rotation and the covariance about it (each clip's spread plus its mean's
-    offset)."""
+    """One Gaussian per joint from clips' Gaussians: frame-weighted mean, covariance about it."""
     w = frames / frames.sum()
     signs = np.sign(np.sum(means * means[:1], axis=-1, keepdims=True))  # one hemisphere
     m = np.einsum("c,cjk->jk", w, means * np.where(signs == 0, 1.0, signs))
@@ -101,9 +85,7 @@ def carry_to(
     clamp_only: tuple[int, ...] = (),
     floor: float = 0.0,
 ) -> StyleCarry:
-    """A one-style carry from a source Gaussian (mean (J, 4), cov (J, 3, 3)) to real rotations
-    (N, J, 4): what `StyleCarry.fit` gives from the frames the source was measured on (`floor`:
-    its `source_floor`, radians)."""
+    """A one-style carry from a source Gaussian to real rotations, as `StyleCarry.fit` would give."""
     mean, cov, radius = tangent_stats(target)
     lin = gaussian_map(np.asarray(source[1], np.float64) + floor**2 * np.eye(3), cov)
     src_mean = np.array(source[0], np.float64)
@@ -111,8 +93,7 @@ def carry_to(
 
 
 def clip_rotations(model: ERDStyles, clip: Motion) -> tuple[np.ndarray, np.ndarray]:
-    """The clip's local rotations (N, 22, 4) as the priors read real frames (the feature cache's:
-    Hips without the facing yaw, joint_Root the identity), and its features (N, 216)."""
+    """The clip's rotations (N, 22, 4) as the priors read real frames, and its features (N, 216)."""
     x, _ = model.maker.sequence(clip.translations[:, 1], clip.rotations)
     q = np.zeros((len(x), NB + 1, 4))
     q[..., 3] = 1.0
@@ -121,8 +102,7 @@ def clip_rotations(model: ERDStyles, clip: Motion) -> tuple[np.ndarray, np.ndarr
 
 
 def nearest_style(style_means: np.ndarray, q: np.ndarray) -> int:
-    """The trained style whose real mean rotations (S, J, 4) lie nearest the clip's (`q` (N, J, 4)):
-    the smallest sum over joints of squared angles between mean local rotations."""
+    """The trained style whose mean rotations (S, J, 4) lie nearest the clip's (sum of squared angles)."""
     angle = quat_angle(style_means, quat_mean(q, axis=0)[None])
     return int(np.argmin(np.sum(angle**2, axis=1)))
 
@@ -130,9 +110,7 @@ def nearest_style(style_means: np.ndarray, q: np.ndarray) -> int:
 def fit_stages(
     built_in: Pipeline, skeleton: Skeleton, q: np.ndarray, source: tuple[np.ndarray, np.ndarray]
 ) -> dict[str, SlowPrior | TwistRange]:
-    """An upload's output prior and twist range, by stage name, from its clip's rotations `q` and
-    the Gaussian (mean, cov) of what its network makes of neutral clips like it (module
-    docstring). `built_in`: the trained styles' stages (one that is off stays off)."""
+    """An upload's output prior and twist range by stage name (module docstring)."""
     out: dict[str, SlowPrior | TwistRange] = {}
     stage = built_in.output_prior
     if isinstance(stage, SlowPrior):
@@ -145,9 +123,7 @@ def fit_stages(
 
 
 def fit_sources(model: ERDModel) -> Sources:
-    """`Sources`: every TRAIN neutral clip's first `SOURCE_FRAMES` streamed through the network's
-    neutral reconstruction (no leaf prior, no output prior: what an upload's prior carries from),
-    as a Gaussian, with the clip's `descriptor`."""
+    """`Sources`: each TRAIN neutral clip's first `SOURCE_FRAMES` through the neutral reconstruction."""
     from ..data import build_index, load_motions, select
     from ..eval.run import stylise
     from .dataset import DATASET, STYLES

@@ -1,21 +1,10 @@
 """Style-ERD's uploaded styles (`models.interface.ClipStyles`), mixed into `runtime.ERDModel`.
 
-A trained style is a residual LSTM branch, the decoder's one-hot style code, and its fitted
-stages. An uploaded one is the same three things, without retraining the network:
-
-- at once (`style_from_clip`, milliseconds): no branch of its own yet (the network's neutral
-  reconstruction: a zero branch and code) and an output prior fitted from the clip
-  (`upload_stages.fit_stages`): the style streams as soon as it is installed;
-- by the fine-tuning job (`finetune.py`, seconds): a copy of the nearest trained style's branch
-  (`upload_stages.nearest_style`), its weights, initial state and decoder code fitted so that
-  neutral TRAIN clips of the clip's pace and turning come out with the clip's pose statistics,
-  and the output prior refitted from what that branch makes.
-
-The branch joins the network's stacked branches (latent = neutral + sum_s w_s branch_s, as for
-a trained style); the decoder reads sum_s w_s code_s, the trained styles' codes one-hot, so a
-model without uploads computes exactly what it did. A copy of the model (`with_own_styles`)
-shares the weights and gets a style set of its own: installing or removing replaces the stacked
-arrays, never changes them in place.
+A trained style is a residual LSTM branch, a one-hot decoder code and its stages; an upload is
+the same without retraining: at once a zero branch (the neutral reconstruction) and an output
+prior from the clip (`upload_stages`); after the job (`finetune.py`) the nearest style's branch
+fitted to the clip. A model without uploads computes exactly what it did; installing replaces
+the stacked arrays, never changes them in place.
 """
 
 from __future__ import annotations
@@ -48,9 +37,7 @@ MIN_FRAMES = 60  # 2 s: the stages' statistics need a few steps of the clip
 
 @dataclass
 class Upload:
-    """An uploaded style's parameters: its branch (PyTorch LSTM layout, `weight_ih_l0`, ...), the
-    branch's initial state (layers, H), its decoder code (6,), its fitted stages by name (one
-    style each: the priors and the twist range)."""
+    """An uploaded style: branch (PyTorch LSTM names), initial state, decoder code (6,), stages."""
 
     name: str
     nearest: str  # the trained style its branch and code started from ("": none, the zero branch)
@@ -111,16 +98,14 @@ def branch_weights(params: dict[str, np.ndarray], prefix: str) -> dict[str, np.n
 
 
 def neutral_branch(model: Any, stages: dict[str, SlowPrior | TwistRange]) -> Upload:
-    """A style with no branch of its own: zero LSTM weights, state and decoder code make the
-    branch add exactly nothing, so the network gives its neutral reconstruction."""
+    """A style with zero branch weights, state and code: the network's neutral reconstruction."""
     lstm = {k: np.zeros(v.shape, np.float32) for k, v in branch_weights(model.p, "branches.0.").items()}
     h0, c0 = (np.zeros(model.p[k][0].shape, np.float32) for k in ("style_h0", "style_c0"))
     return Upload("", "", lstm, h0, c0, np.zeros(len(TARGET_STYLES)), stages)
 
 
 def runtime_layout(lstm: dict[str, np.ndarray], layers: int, H: int, dtype: DTypeLike) -> tuple[list, list]:
-    """A branch's LSTM as the step multiplies it (`ERDModel._prepare_weights`): per layer
-    [W_ih^T; W_hh^T] (2H, 4H) and the summed bias (1, 4H), the cell-input gate's doubled."""
+    """A branch's LSTM as the step multiplies it (`ERDModel._prepare_weights`)."""
     scale = np.ones(4 * H)
     scale[2 * H : 3 * H] = 2.0  # gates i, f, g, o (PyTorch order): g is the tanh one
     w, b = [], []
@@ -190,15 +175,13 @@ class ERDStyles(ClipStyles[Upload]):
                 )
 
     def style_from_clip(self, clip: Motion, name: str = "") -> Upload:
-        """The network's neutral reconstruction, its output prior carried to `clip` from what
-        the network makes of neutral clips of the clip's pace and turning."""
+        """The neutral reconstruction with an output prior carried to `clip`."""
         q, x = clip_rotations(self, self._checked(clip))
         stages = fit_stages(self.built_in.stages, self.skeleton, q, self.sources.nearest(x))
         return replace(neutral_branch(self, stages), name=name)
 
     def nearest_branch(self, clip: Motion, name: str = "") -> Upload:
-        """A copy of the branch and code of the trained style nearest `clip` (the job's start),
-        with the instant style's stages."""
+        """The nearest trained style's branch and code (the job's start), with the instant stages."""
         instant = self.style_from_clip(clip, name)
         q, _ = clip_rotations(self, clip)
         leaf = self.built_in.stages.leaf_prior
@@ -225,8 +208,7 @@ class ERDStyles(ClipStyles[Upload]):
         return FineTuned(tuned, summary, "a residual branch fitted from the clip, stages fitted from the clip")
 
     def network_only(self, name: str, style: Upload) -> Self:
-        """A copy with `style` installed as `name` and no priors or twist range (the hinge floor
-        kept): what an upload's output prior carries from."""
+        """A copy with `style` as `name` and no priors or twist range: what an upload's prior carries from."""
         twin = self.with_own_styles()
         bare = twin.built_in.stages.replace(leaf_prior=None, output_prior=None, twist_range=None)
         twin.built_in = twin.built_in._replace(stages=bare)

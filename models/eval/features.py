@@ -1,7 +1,5 @@
-"""Per-frame judge features from a Motion: causal (frames <= t only), from the foundation's
-`compute_features`. Root-relative joint positions in the facing frame, joint velocities in the
-facing frame, root velocity and yaw rate. The world-origin `joint_Root` of the Bandai Namco rig is
-left out (its facing-frame position only says where the actor is in the room)."""
+"""Per-frame judge features (causal): root-relative joint positions and velocities in the facing
+frame, root velocity and yaw rate; BN's `joint_Root` left out (it says where the actor stands)."""
 
 from __future__ import annotations
 
@@ -43,8 +41,7 @@ def pad_to(x: np.ndarray, length: int) -> np.ndarray:
 
 
 def windows(x: np.ndarray, length: int, stride: int) -> np.ndarray:
-    """(N, length, D) sliding windows over a clip (padded by holding the last frame when short);
-    the last window is aligned to the clip's end so every frame is covered."""
+    """(N, length, D) sliding windows (padded when short), the last aligned to the clip's end."""
     x = pad_to(x, length)
     starts = list(range(0, len(x) - length + 1, stride))
     if starts[-1] != len(x) - length:

@@ -45,8 +45,7 @@ TEMPLATE = Path(__file__).with_name("templates") / "style_judge.md"  # the repor
 
 
 def shared_contents(clips: list[Clip]) -> set[str]:
-    """Contents performed in more than one style: a content only one style has (dataset 1's
-    dances, punches, calls in `normal` alone) would teach the judge the content, not the style."""
+    """Contents performed in more than one style: one style's content would teach the content."""
     styles: dict[str, set[str]] = {}
     for c in clips:
         styles.setdefault(c.content, set()).add(c.style)
@@ -54,9 +53,7 @@ def shared_contents(clips: list[Clip]) -> set[str]:
 
 
 def folds(clips: list[Clip], draw: int) -> np.ndarray:
-    """Each clip's fold in cross-validation draw `draw`: every take of one style and content falls
-    in the same fold, so a judge is never scored on a take whose twin (dataset 1 has two of some
-    walks) it was fitted on."""
+    """Each clip's fold in draw `draw`: every take of one style and content in the same fold."""
     groups = sorted({(c.style, c.content) for c in clips})
     fold = dict(zip(groups, np.random.default_rng(draw).permutation(len(groups)) % FOLDS))
     return np.array([fold[(c.style, c.content)] for c in clips])
@@ -93,8 +90,7 @@ def fit(
 
 
 def scores(reads: list[tuple[str, str, str, str]]) -> dict:
-    """Accuracy of (evaluation truth, read, own truth, own read) tuples: the read the evaluation
-    uses (named label or `other`) and the strict one (every dataset-1 style its own class)."""
+    """Accuracy of (truth, read, own truth, own read): named-or-`other` and strict."""
     return {
         "accuracy": share(sum(t == r for t, r, _, _ in reads), len(reads)),
         "own_labels": share(sum(t == r for _, _, t, r in reads), len(reads)),
@@ -133,8 +129,7 @@ def main() -> None:
             for c in cs
         ]
 
-    # 2. regularisation by cross-validation over dataset 1's TRAIN and VALIDATION clips, repeated
-    # over fold draws: with ten clips a style one draw moves the score by several clips
+    # 2. regularisation by cross-validation over dataset 1, repeated over fold draws (few clips a style)
     grid: dict[float, list[int]] = {}
     oof: dict[float, list[dict]] = {}
     for c in C_GRID:

@@ -26,8 +26,7 @@ def heading(motion: Motion, frame: int) -> float:
 
 
 def placed(motion: Motion, ground: np.ndarray, yaw: float) -> Motion:
-    """`motion` turned about +Y and moved on the ground so that its first frame stands at `ground`
-    (x, z of the hips) facing `yaw`; heights and every other joint's rotation are unchanged."""
+    """`motion` turned about +Y and moved so its first frame stands at `ground` facing `yaw`."""
     hips = _hips(motion)
     turn = yaw - heading(motion, 0)
     c, s = np.cos(turn), np.sin(turn)
@@ -41,8 +40,7 @@ def placed(motion: Motion, ground: np.ndarray, yaw: float) -> Motion:
 
 
 def transition(a: Motion, b: Motion, frames: int = TRANSITION_FRAMES) -> Motion:
-    """`frames` frames easing from `a`'s last pose to `b`'s first (normalised quaternion blend,
-    smoothstep in time; the hips translation moves along), both excluded."""
+    """`frames` frames easing from `a`'s last pose to `b`'s first (nlerp, smoothstep), both excluded."""
     t = np.arange(1, frames + 1) / (frames + 1)
     w = (t * t * (3.0 - 2.0 * t))[:, None, None]
     q0, q1 = a.rotations[-1], b.rotations[0]
@@ -60,9 +58,7 @@ def continued(a: Motion, b: Motion, frames: int = TRANSITION_FRAMES) -> tuple[Mo
 
 
 def with_history(clips: list[Motion], i: int, frames: int) -> tuple[Motion, int]:
-    """Clip `i` after at least `frames` frames of the clips before it in `clips` (cyclic: the
-    last ones come before the first), each continuing the previous. Returns the whole motion and
-    the frame at which clip `i` starts in it."""
+    """Clip `i` after `frames` frames of the clips before it (cyclic): (motion, clip `i`'s first frame)."""
     before: list[Motion] = []
     total, k = 0, i
     while total < frames:

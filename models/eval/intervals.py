@@ -9,8 +9,7 @@ Z95 = 1.959963984540054
 
 
 def wilson(hits: int, n: int, z: float = Z95) -> tuple[float, float]:
-    """The Wilson score interval of a binomial share: unlike the normal approximation it stays
-    inside [0, 1] and is honest at 0 or n hits and at the small counts a per-style row has."""
+    """The Wilson score interval: inside [0, 1] and honest at 0 or n hits and small counts."""
     if n == 0:
         return 0.0, 1.0
     p = hits / n

@@ -11,11 +11,9 @@ from ..motion.skeleton import Motion
 SKATE_SPEED = 0.2  # leg lengths per second of horizontal foot motion while in contact counts as skating
 CONTACT_MARGIN = 0.02  # leg lengths (1.7 cm on Bandai Namco) above a joint's floor level still counts as on the floor
 FLOOR_PERCENTILE = 5.0  # a joint's floor level: this percentile of its height over the clip
-# a foot must stay flat this long to count as planted: the swing foot passes as low as a planted
-# one for a frame or two, and counting those frames read every real walk as sliding
+# a foot must stay flat this long to count as planted: the swing foot passes as low for a frame or two
 MIN_PLANT_SECONDS = 0.1
-# a foot that lands flat still moving faster than this (leg lengths per second, 50 cm/s on Bandai
-# Namco) skids into its print: real walks do so at 0-7 % of touchdowns
+# leg lengths / s (50 cm/s on BN): a foot landing flat faster than this skids into its print
 SKID_SPEED = 0.6
 
 
@@ -31,11 +29,9 @@ def lasting(flags: np.ndarray, frames: int) -> np.ndarray:
 
 
 def flat_foot_contacts(motion: Motion, positions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(F, 2) contacts and horizontal foot speeds (the slower of ankle and toe), left then right.
-    Contact = a planted flat foot: ankle and toe both near their own floor level for at least
-    MIN_PLANT_SECONDS, on this frame and the one before (a speed is measured between two frames,
-    so touchdown's last fall onto the floor is not read as sliding on it). Either joint alone
-    also catches the swing foot, which passes only 1-3 cm above the floor in real walks."""
+    """(F, 2) contacts and horizontal foot speeds (the slower of ankle and toe). Contact: ankle and toe
+    both near their floor for at least MIN_PLANT_SECONDS, this frame and the one before (so the last
+    fall onto the floor is not sliding); either alone also catches the low swing foot."""
     sk = motion.skeleton
     pos = motion.global_positions() if positions is None else positions
     leg = left_leg_length(sk)
@@ -62,25 +58,19 @@ def planted(contacts: np.ndarray, speeds: np.ndarray) -> np.ndarray:
 
 
 def touchdowns(contacts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(feet, frames) of each planted stretch's first frame in `contacts` (`flat_foot_contacts`),
-    foot by foot."""
+    """(feet, frames) of each planted stretch's first frame, foot by foot."""
     starts = contacts & ~np.concatenate([np.zeros_like(contacts[:1]), contacts[:-1]])
     feet, frames = np.nonzero(starts.T)
     return feet, frames
 
 
 def touchdown_speeds(contacts: np.ndarray, speeds: np.ndarray) -> np.ndarray:
-    """(N,) horizontal speed (units/s) of each foot as it lands flat: the faster of a planted
-    stretch's first two frames (`flat_foot_contacts`' contacts and speeds). A real heel comes to
-    rest before the sole flattens; a foot that is still swinging forward when it flattens skids
-    into its print, and these frames are where a planted-foot p95 is made."""
+    """(N,) speed of each foot landing flat: the faster of a stretch's first two frames."""
     return np.array([speeds[a : a + 2, k].max() for k, a in zip(*touchdowns(contacts))])
 
 
 def foot_skating(motion: Motion, positions: np.ndarray | None = None) -> dict:
-    """Over the flat-foot contact frames (`flat_foot_contacts`): `skate_ratio` = share whose
-    horizontal foot speed exceeds SKATE_SPEED leg lengths/s, and `contact_speed` = mean horizontal
-    foot speed (units/s)."""
+    """Over flat-foot contacts: `skate_ratio` (share past SKATE_SPEED) and `contact_speed` (mean)."""
     contacts, speeds = flat_foot_contacts(motion, positions)
     contacts, speeds = contacts[1:], speeds[1:]
     n = int(contacts.sum())

@@ -1,14 +1,11 @@
 """What a viewer sees go wrong, measured so that no clamp or lock in a model enforces it.
 
-- plausible clip: each body joint near some real frame of the style (not inside a ball about
-  the mean, which the models' own balls pass by construction) in >= 95 % of frames;
+- plausible clip: each body joint near some real frame of the style (not inside a ball about the
+  mean, which the models' own balls pass by construction) in >= 95 % of frames;
 - pops: the worst joint's share of frames past the p99.9 real rotation acceleration;
-- jitter: per joint, the p99 rotation acceleration over the larger of the input's and the
-  style's, the worst joint;
-- slide: per content, the p95 horizontal speed of a planted foot over the larger of the real
-  style's on that content and the input's own (a shuffling style drags its feet for real, and
-  a capture's own slide is not the model's), the worst content; beside it the pooled p95 and the
-  share of planted frames over the real p95;
+- jitter: the worst joint's p99 rotation acceleration over the larger of the input's and style's;
+- slide: the worst content's p95 planted-foot speed over the larger of the real style's on that
+  content and the input's own (a shuffling style drags its feet for real);
 - path: the hips' path length over the input's, and how far apart the two paths end.
 """
 
@@ -28,25 +25,20 @@ from .plausibility import body_joints, comparable_rotations, rotation_accelerati
 PLAUSIBLE_FRAMES = 0.95  # a joint is plausible in a clip when this share of its frames is
 SUPPORT_FRAMES = 40_000  # real TRAIN frames per style in each joint's search tree (evenly spread)
 REAL_CLIPS_PASSING = 0.95  # the share of held-out real clips the radius is calibrated to pass
-# the least "near" means, in degrees: among 40k real frames the nearest is often a fraction of a
-# degree away, and a hinge joint (knee, toes, clavicle) turns about one axis only in the data, so
-# without a floor a model's half-degree off the hinge, which no viewer sees, would fail a clip
+# degrees, the least "near" means: an invisible half-degree off a real hinge must not fail a clip
 MIN_RADIUS_DEG = 5.0
-# the least slide a content's reference allows, in leg lengths per second (2.6 cm/s on Bandai
-# Namco): real standing clips creep 0.4-2.4 cm/s, which no viewer sees
+# leg lengths / s (2.6 cm/s on BN), the least slide allowed: real standing clips creep that much
 SLIDE_FLOOR = 0.03
 
 
 def _log_about(q: np.ndarray, mean: np.ndarray) -> np.ndarray:
-    """(F, J, 3) each rotation as a rotation vector from the joint's mean: three numbers a
-    KD-tree searches fast, close to the angle between rotations near the data."""
+    """(F, J, 3) rotation vectors from each joint's mean: fast for a KD-tree, ~angles near the data."""
     return quat_log(quat_mul(quat_inv(mean), q))
 
 
 class RotationSupport:
-    """Per style and body joint: a search tree over real TRAIN frames' rotations, and radii set so
-    that `REAL_CLIPS_PASSING` of held-out real clips are plausible (a common multiple of the
-    held-out p99 distances, never under `MIN_RADIUS_DEG`): plausible means as close as real."""
+    """Per style and joint: a search tree over real TRAIN rotations, with radii passing
+    `REAL_CLIPS_PASSING` of held-out real clips (at least `MIN_RADIUS_DEG`): as close as real."""
 
     def __init__(self, train: dict[str, list[Motion]], held: dict[str, list[Motion]]):
         sk = next(iter(train.values()))[0].skeleton
@@ -80,10 +72,8 @@ class RotationSupport:
         return comparable_rotations(motion)[:, self.joint_index]
 
     def within(self, style: str, motion: Motion, kept: np.ndarray | None = None) -> np.ndarray:
-        """(J,) share of the clip's frames whose joint rotation lies near a real one; with `kept`
-        (the input's own rotations, `rotations`), a rotation as near the input's at that frame
-        counts too: the input is real motion, and a content the style never performed has no real
-        frame of the style to be near (kept as it came, it failed every joint)."""
+        """(J,) share of frames whose joint rotation is near a real one; with `kept` (the input's own
+        rotations), near the input's counts too: a content the style never performed has no real frame."""
         q = self.rotations(motion)
         dist = self._distances(style, q)
         if kept is not None:
@@ -95,9 +85,7 @@ class RotationSupport:
 
 @dataclass
 class Reference:
-    """Everything a row is measured against: the rotation support per style (TRAIN frames, radii
-    from VALIDATION clips), and from the VALIDATION clips the pop limit (all styles), each style's
-    p99 acceleration, the skating limit and each style's planted-foot p95 per content."""
+    """What a row is measured against: rotation support, pop limit, p99 acceleration, slide p95."""
 
     support: RotationSupport
     pop_limit: np.ndarray  # (J,) degrees per frame per frame
@@ -114,9 +102,7 @@ class Reference:
         train_contents: dict[str, list[str]],
         real_contents: dict[str, list[str]],
     ) -> Reference:
-        """`train`, `real`: TRAIN and VALIDATION clips per style, and what each performs. The slide
-        per content pools both: real takes of a content differ (some elderly walks shuffle, others
-        do not), and validation holds two or three takes of each."""
+        """From TRAIN and VALIDATION clips per style; slides pool both (few takes per content)."""
         support = RotationSupport(train, real)
         acc = {s: np.concatenate([rotation_acceleration(m, support.joint_index) for m in ms]) for s, ms in real.items()}
         feet = {s: [planted_speeds(m) for m in ms] for s, ms in real.items()}
@@ -165,8 +151,7 @@ class ClipPhysics:
 
 @dataclass
 class Input:
-    """What the ratios need of an input clip, measured once for every style and variant that
-    streams it: each joint's p99 rotation acceleration and the hips' path on the ground."""
+    """An input clip's per-joint p99 rotation acceleration and hips path, measured once."""
 
     p99_acc: np.ndarray  # (J,) degrees per frame per frame
     hips_xz: np.ndarray  # (F, 2)
@@ -183,9 +168,7 @@ class Input:
 
 
 def measure(ref: Reference, style: str, out: Motion, inp: Input | None, content: str = "") -> ClipPhysics:
-    """`content`: what the input performs; where no real clip of the style performs it (dataset
-    1's kicks, Xia's jumps), the output may also stay near the input's own rotations to be
-    plausible, as its slide is held to the input's (`worst_slide`)."""
+    """`content`: what the input performs (near the input's own rotations counts where the style lacks it)."""
     acc = rotation_acceleration(out, ref.support.joint_index)
     pos = out.global_positions()
     contacts, foot_speeds = flat_foot_contacts(out, pos)
@@ -221,9 +204,8 @@ def _paths(inp: Input, b: np.ndarray) -> tuple[float, float]:
 
 
 def worst_slide(clips: list[ClipPhysics], contents: list[str], style: str, ref: Reference) -> tuple[float, str]:
-    """(the largest per-content slide ratio, its content): each content's pooled planted-foot p95
-    over the larger of the real style's on that content, the input's own on the same clips and
-    SLIDE_FLOOR. A content no real clip of the style performs is held to the input alone."""
+    """(largest per-content slide ratio, its content): pooled planted-foot p95 over the largest of
+    the real style's, the input's and SLIDE_FLOOR; a content the style never performs: the input's."""
     out = _p95_by_content([c.foot_speeds for c in clips], contents)
     given = [c.input_speeds for c in clips if c.input_speeds is not None]
     inputs = _p95_by_content(given, contents) if len(given) == len(clips) else {}  # none for real clips

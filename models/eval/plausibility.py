@@ -1,10 +1,9 @@
 """Rotation plausibility: does every joint's local rotation lie where real data of the style puts
 it? Positions miss a leaf's rotation and a twist about a bone, which a skinned character shows.
 
-Per body joint, against the style's TRAIN data: the angle to the real mean (plausible within the
-real p99), the twist about the bone against the real p0.5..p99.5, and pops (the second
-difference's angle against the real p99.9). The Hips is compared without its heading. Real
-validation clips score about 99 % plausible; the gate is 95 %.
+Per body joint, against the style's TRAIN data: the angle to the real mean (within the real p99),
+the twist about the bone (p0.5..p99.5), and pops (second difference past the real p99.9). The Hips
+is compared without its heading.
 """
 
 from __future__ import annotations
@@ -26,8 +25,7 @@ def body_joints(skeleton: Skeleton) -> np.ndarray:
 
 
 def comparable_rotations(motion: Motion) -> np.ndarray:
-    """(F, J, 4) local rotations with the body root's heading removed: the root joint's rotation
-    is its world rotation's swing away from world up (its twist about up is the heading)."""
+    """(F, J, 4) local rotations with the body root's heading (its twist about up) removed."""
     sk = motion.skeleton
     rot = motion.rotations / np.linalg.norm(motion.rotations, axis=-1, keepdims=True)
     root = int(body_joints(sk)[0])
@@ -39,17 +37,14 @@ def comparable_rotations(motion: Motion) -> np.ndarray:
 
 
 def rotation_acceleration(motion: Motion, joints: np.ndarray) -> np.ndarray:
-    """(F - 2, len(joints)) angle (degrees) of the change of each joint's frame-to-frame turn:
-    the second difference of its comparable local rotation."""
+    """(F - 2, len(joints)) degrees: each joint's second difference of comparable rotation."""
     q = comparable_rotations(motion)[:, joints].astype(np.float64)
     turn = quat_log(quat_mul(quat_inv(q[:-1]), q[1:]))
     return np.degrees(np.linalg.norm(np.diff(turn, axis=0), axis=-1))
 
 
 class RotationReference:
-    """Per style and body joint, from the real TRAIN-split clips of the style (all contents):
-    the mean local rotation, the p99 angle of real frames to it, the p0.5/p99.5 twist about the
-    bone of real frames relative to it, and the p99.9 of the rotation's acceleration."""
+    """Per style and joint, from TRAIN clips: mean, p99 angle, p0.5/p99.5 twist, p99.9 acceleration."""
 
     def __init__(self, train: dict[str, list[Motion]]):
         sk = next(iter(train.values()))[0].skeleton
@@ -77,30 +72,25 @@ class RotationReference:
         return np.concatenate([comparable_rotations(m)[:, self.joint_index] for m in motions])
 
     def deviation(self, style: str, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(F, J) angle of each rotation to the style's mean, and (F, J) signed twist about the
-        joint's bone of the difference from the mean (radians)."""
+        """(F, J) angle to the style's mean, and (F, J) signed twist about the bone from it (radians)."""
         mean = self.mean[style]
         return quat_angle(q, mean), twist_angle(quat_mul(quat_inv(mean), q), self.axes)
 
     def pops(self, style: str, motions: list[Motion]) -> dict:
-        """`pops_max`: the worst joint's share of frames whose rotation acceleration exceeds the
-        real p99.9 of that joint (real clips: about 0.001), `pops_joint` which, `pops_largest_deg`
-        the largest acceleration of any joint."""
+        """The worst joint's share of frames past the real p99.9 acceleration, which joint, the largest."""
         acc = np.concatenate([rotation_acceleration(m, self.joint_index) for m in motions])
         share = (acc > self.pop_limit[style]).mean(axis=0)
         worst = int(np.argmax(share))
         return {"pops_max": float(share[worst]), "pops_joint": self.joints[worst], "pops_largest_deg": float(acc.max())}
 
     def plausibility(self, style: str, motions: list[Motion]) -> dict:
-        """Per joint over all frames of `motions`: the share `within` the real p99 of the style's
-        mean, the angle and twist beyond the real range, the median angle; plus the worst joints."""
+        """Per joint: share within the real p99, excess angle and twist, median angle; the worst joints."""
         dist, twist = self.deviation(style, self.rotations(motions))
         beyond = dist - self.p99[style]
         within = (beyond <= 0).mean(axis=0)
         lo, hi = self.twist_range[style]
         twist_out = ((twist < lo) | (twist > hi)).mean(axis=0)
-        # how far (degrees) past the interval: the shins and toes barely twist in the real data
-        # (an interval of a degree or two), so a share alone reads a 1-degree toe roll as a fault
+        # degrees past the interval: shins and toes barely twist in real data, so a share alone misleads
         twist_beyond = np.degrees(np.percentile(np.maximum(np.maximum(lo - twist, twist - hi), 0.0), 95, axis=0))
         per_joint = {}
         for k, name in enumerate(self.joints):

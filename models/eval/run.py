@@ -1,9 +1,6 @@
-"""Streaming clips through a method as the evaluation does.
-
-Every method is reached only through the streaming interface (`models/interface.py`). Clips run
-as one batch of sessions per method (all clips x all target styles), padded by holding the last
-frame to a common length and truncated back to each clip's own length afterwards. The sealed
-evaluation that reports on every source is `sealed.py`."""
+"""Streaming clips through a method as the evaluation does: through the streaming interface only,
+one batch of sessions per method (all clips x all styles), padded by holding the last frame and
+truncated back after."""
 
 from __future__ import annotations
 
@@ -42,9 +39,7 @@ def stylise(
     chunk: int = 256,
     fades: list[np.ndarray] | None = None,
 ) -> list[Motion]:
-    """Output of `model` for motions[i] toward style index targets[i] (None = all weights zero).
-    `fades`, where given, receives each clip's (F,) per-frame fade toward the input
-    (`FrameBatch.faded`; zeros from a model without the stage)."""
+    """Output for motions[i] toward style targets[i] (None: no style); per-clip fades into `fades`."""
     T = max(m.num_frames for m in motions)
     n_styles = len(model.styles())
     out: list[Motion] = []
@@ -81,9 +76,7 @@ def stylise_toward(
     styles: list[str],
     fades: dict[str, list[np.ndarray]] | None = None,
 ) -> dict[str, list[Motion]]:
-    """Every input toward every style in one batch of sessions: style -> outputs (None: the
-    inputs themselves, the identity row). `fades`, where given, receives style -> each output's
-    per-frame fade (`stylise`)."""
+    """Every input toward every style in one batch: style -> outputs (None: the inputs)."""
     if model is None:
         if fades is not None:
             fades.update({s: [np.zeros(m.num_frames) for m in inputs] for s in styles})
@@ -99,9 +92,7 @@ def stylise_toward(
 def run_after_history(
     model: StreamingModel, inputs: list[Motion], styles: list[str], fades: dict[str, list[np.ndarray]] | None = None
 ) -> tuple[list[Motion], dict[str, list[Motion]]]:
-    """Running sessions (`history.py`): every input streamed after HISTORY_FRAMES of the inputs
-    before it, toward every style. Returns the inputs as placed in their streams and, per style,
-    the outputs over the scored part only (and their fades into `fades`, where given)."""
+    """Every input after HISTORY_FRAMES of the others, toward every style; outputs on the scored part."""
     runs = [with_history(inputs, i, HISTORY_FRAMES) for i in range(len(inputs))]
     placed = [whole.slice(start, whole.num_frames) for whole, start in runs]
     whole_fades: dict[str, list[np.ndarray]] = {}

@@ -117,8 +117,7 @@ def evaluate(
 def _variants(
     methods: tuple[str, ...] | None,
 ) -> tuple[dict[str, StreamingModel], dict[str, StreamingModel | None]]:
-    """(every committed method, or those of `methods`; the variants scored: the input unchanged
-    (None), then each method and its published core alone)."""
+    """(the methods, the variants scored: None (the input), then each method and its core)."""
     weights = get_settings().weights_dir
     full = load_models(weights)
     core = load_models(weights, core_only=True)
@@ -131,9 +130,7 @@ def _variants(
 
 
 def _real_clips(index: list[Clip], styles: list[str], final: bool, quick: bool) -> tuple[Reference, dict, dict]:
-    """(the reference, the real clips of each style, the content of each). The reference: TRAIN
-    frames for the rotation support, VALIDATION clips for every radius and limit (a validation
-    run keeps the odd ones for its real rows; a final run's are the test clips)."""
+    """(reference, real clips per style, contents); radii and limits from VALIDATION (final: test)."""
     split = "test" if final else "val"
     val = {s: load_motions(select(index, split="val", style=s)) for s in styles}
     train = {s: load_motions(select(index, split="train", style=s)) for s in styles}
@@ -188,8 +185,7 @@ def _row(
     contents: list[str],
     judges: Judges,
 ) -> dict:
-    """One row: a variant's outputs toward `style` from one source's inputs (measured once by
-    the caller; None for real clips)."""
+    """One row: a variant's outputs toward `style` from one source's inputs (None: real clips)."""
     ref = judges.ref
     read = judges.style.predict(outs, D2 if source is None else source.dataset, contents)
     phys: list[ClipPhysics] = [
@@ -216,8 +212,7 @@ def _row(
 
 
 def faded_share(fades: list[np.ndarray]) -> dict:
-    """The frames a row's outputs faded toward their input (`FrameBatch.faded` over
-    `novelty.FADED`), with its 95 % interval."""
+    """The share of frames faded past `novelty.FADED`, with its 95 % interval."""
     return share(int(sum(int(np.sum(f > FADED)) for f in fades)), int(sum(len(f) for f in fades)))
 
 
@@ -345,8 +340,7 @@ def markdown(r: dict) -> str:
 
 
 def _per_source(r: dict, title: str, sessions: tuple[str, ...], cell: Callable[[list[dict]], str]) -> list[str]:
-    """A variant x source table of `cell(rows)` over the rows of each session (a session column
-    when there are several)."""
+    """A variant x source table of `cell(rows)`, a column per session when there are several."""
     sources = list(r["meta"]["sources"])
     variants = list(dict.fromkeys(x["variant"] for x in r["rows"] if x["gates"]))
     by = "session | " if len(sessions) > 1 else ""

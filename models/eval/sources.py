@@ -1,10 +1,8 @@
 """The inputs the evaluation streams, one set per source, and which split each run may see.
 
-Four sources, since a user's motion comes from their own capture and performer: Bandai Namco
-dataset 2 (the models' data), dataset 1 (another session), CMU and Xia (other rigs at 120 fps,
-retargeted). Every neutral clip is scored at full length. `make eval` (split "val") sees only what
-no final run needs. Dataset 1 has one take of most contents, so its TRAIN neutral clips are its
-validation inputs and its val and test clips the sealed ones; CMU is scored by the final run only.
+Four sources: Bandai Namco dataset 2 (the models' data), dataset 1 (another session), CMU and Xia
+(other rigs, retargeted). `make eval` ("val") sees only what no final run needs: dataset 1's
+TRAIN neutral clips are its validation inputs; CMU is scored by the final run only.
 """
 
 from __future__ import annotations
@@ -40,8 +38,7 @@ class Source:
 
 
 def input_sources(split: str, quick: bool = False) -> list[Source]:
-    """Every source's inputs for an evaluation `split` ("val" or "test"); `quick`: two clips
-    of each, for the tests."""
+    """Every source's inputs for `split` ("val" or "test"); `quick`: two clips each, for the tests."""
     if split not in SEEN_BY:
         raise ValueError(f"split must be one of {sorted(SEEN_BY)}, not {split!r}")
     index = build_index()

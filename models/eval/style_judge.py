@@ -1,11 +1,9 @@
 """The sealed evaluation's style judge: per-window statistics of local rotations and angular
 speeds, read by a multinomial logistic regression trained on Bandai Namco datasets 1 and 2.
 
-A different recipe from the conv-net judges (`judges.py`, which learned dataset 2's recordings as
-much as its styles), so a model tuned against those gets no free pass. No positions (bone lengths
-tell performers apart); each clip is read against the centre of its own session and content, so
-the caller names both. `predict` answers a label the evaluation asks about or `OTHER`. Inference
-is numpy; the fit (scikit-learn) is `python -m models.eval.fit_style_judge`.
+A different recipe from the conv-net judges (`judges.py`), so a model tuned against those gets no
+free pass. No positions (bone lengths tell performers apart); each clip is read against the centre
+of its own session and content. Inference is numpy; the fit is `python -m models.eval.fit_style_judge`.
 """
 
 from __future__ import annotations
@@ -21,11 +19,7 @@ from .plausibility import body_joints, comparable_rotations
 
 WINDOW = 60  # frames (2 s at 30 fps): about two gait cycles
 STRIDE = 30
-# Standardisation floor and clip. A hinge joint (elbow, knee) turns about one axis in real data,
-# so some of its 6-D components barely vary there (std ~1e-3); a model's half-degree off the hinge
-# is then hundreds of standard deviations and alone decides the read. A degree-sized floor and a
-# clip on every standardised statistic keep the read on the style, not on a model's off-axis noise
-# (which the plausibility and pop metrics measure).
+# Standardisation floor and clip, so a model's half-degree off a hinge does not decide the read
 SCALE_FLOOR = 0.05
 Z_CLIP = 5.0
 FILE = "style_judge.npz"
@@ -34,8 +28,7 @@ OWN_PREFIX = "d1-"  # a dataset-1 style that no dataset-2 label agrees with
 
 
 def frame_descriptors(motion: Motion) -> np.ndarray:
-    """(F, 7 J) per-frame descriptors on the Bandai Namco rig: every body joint's local rotation
-    as 6-D (the Hips without its heading) and its angular speed (rad/s, backward difference)."""
+    """(F, 7 J) per frame: each body joint's rotation as 6-D (Hips without heading) and angular speed."""
     rot = comparable_rotations(motion)[:, body_joints(motion.skeleton)]
     six = matrix_to_6d(quat_to_matrix(rot)).reshape(len(rot), -1)
     speed = np.zeros(rot.shape[:2])
@@ -46,8 +39,7 @@ def frame_descriptors(motion: Motion) -> np.ndarray:
 
 
 def window_statistics(desc: np.ndarray, window: int = WINDOW, stride: int = STRIDE) -> np.ndarray:
-    """(N, 2 D) mean and standard deviation of the descriptors over each window (a clip shorter
-    than one window is one window)."""
+    """(N, 2 D) mean and std of the descriptors per window (a short clip is one window)."""
     n = len(desc)
     starts = list(range(0, max(n - window, 0) + 1, stride))
     if n > window and starts[-1] != n - window:
@@ -61,9 +53,7 @@ def clip_statistics(motion: Motion) -> np.ndarray:
 
 @dataclass
 class StyleJudge:
-    """A fitted judge: per-(dataset, content) centres, standardisation, the linear read, its labels
-    and the dataset-1 label mapping. Statistics are read relative to the centre of the clip's own
-    session and content, so the read learns the style, not the recording or the content."""
+    """A fitted judge: centres, standardisation, linear read, labels and the dataset-1 label mapping."""
 
     mean: np.ndarray
     scale: np.ndarray
@@ -74,8 +64,7 @@ class StyleJudge:
     centres: dict[str, np.ndarray]  # "dataset/content" -> (2 D,)
 
     def reference(self, dataset: str, content: str) -> np.ndarray:
-        """The centre of `content` in `dataset`; for a pair the TRAIN clips lack, the content's
-        centre over the sessions that have it, else the session's mean centre, else all of them."""
+        """The centre of `content` in `dataset`, falling back to the content's, the session's, or all."""
         if f"{dataset}/{content}" in self.centres:
             return self.centres[f"{dataset}/{content}"]
         for prefix in (None, dataset):
@@ -114,8 +103,7 @@ class StyleJudge:
         return self.labels[int(np.argmax(self.log_proba(stats, dataset, content)))]
 
     def predict(self, motions: list[Motion], dataset: str, contents: list[str]) -> list[str]:
-        """Each clip's read; `dataset` is the session the clips (or the inputs they were made
-        from) come from and `contents` what each performs."""
+        """Each clip's read; `dataset`: the session the (input) clips come from, `contents`: what each does."""
         if len(contents) != len(motions):
             raise ValueError(f"{len(motions)} clips but {len(contents)} contents")
         return [self.read(clip_statistics(m), dataset, c) for m, c in zip(motions, contents)]
@@ -151,8 +139,7 @@ class StyleJudge:
 def centres_of(
     stats: list[np.ndarray], sessions: list[str], contents: list[str], styles: list[str]
 ) -> dict[str, np.ndarray]:
-    """ "dataset/content" -> the mean over styles of the mean over that style's clips of their
-    window statistics: every style counts once, however many takes it has."""
+    """Per "dataset/content", the mean over styles of their clips' mean window statistics (each style once)."""
     groups: dict[str, dict[str, list[np.ndarray]]] = {}
     for s, d, c, st in zip(stats, sessions, contents, styles):
         groups.setdefault(f"{d}/{c}", {}).setdefault(st, []).append(s.mean(axis=0))
@@ -167,9 +154,7 @@ def d1_label(style: str) -> str:
 def fit_linear(
     stats: list[np.ndarray], labels: list[str], groups: list[str], c: float, seed: int = 0
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
-    """Standardise the pooled windows and fit a multinomial logistic regression in which each
-    clip, each label and within a label each dataset weighs the same: pooled, a shared label
-    would learn dataset 2's recording (hundreds of clips a style against ten)."""
+    """Standardise and fit a logistic regression weighting each clip, label and dataset alike."""
     from sklearn.linear_model import LogisticRegression
 
     x = np.concatenate(stats)

@@ -1,39 +1,15 @@
 """Styles from one clip, measured on styles the method never trained on (issue 47).
 
-For each dataset-1 style held out of a method's training (a style is held out when the method
-ships no style trained on it: LTI and Style-ERD train on dataset 2 alone, LPN-FiLM ships its
-dataset-1 styles as `d1-<style>`), one real walk of the style is uploaded the way `POST /v1/styles`
-does it (`fine_tune_style`, and for a `ClipStyles` model the instant `style_from_clip` too), and
-neutral walks of both datasets are streamed through it.
-
-How far the output moves toward the style is read as a *coverage*: on clip statistics of local
-rotations and angular speeds (the style judge's, averaged over the clip and standardised over real
-walks), the share of the way from the neutral walk it started from to the style's other real
-walking clips (other walk takes, walk-left, walk-right; never the uploaded clip):
+For each dataset-1 style a method ships no style for, one real walk is uploaded as `POST
+/v1/styles` does, and neutral walks of both datasets are streamed through it. The move toward
+the style is a *coverage* on the style judge's standardised clip statistics:
 
     coverage(out | in) = 1 - |z(out) - T| / |z(in) - T|,   T = c(in) + mean(z(others)) - c(dataset 1)
 
-where c is the mean of the neutral walks of a dataset, so the style's displacement from dataset
-1's normal is laid onto the input's own recording, as the judge reads each clip against its own
-session. The input unchanged is 0, the style's other clips 1; each clip's own noise is in both
-distances. A copy of the uploaded clip gets a coverage too, from the same neutral walks as the
-outputs, per dataset: the most one clip can say about its style from those inputs (the two
-datasets' neutral walks lie far apart, so a dataset-1 clip says less from dataset 2's). On each
-dataset where the copy is clearly closer than normal (coverage >= 0.1), a method's outputs must
-average at least 70 % of the copy's; it passes a style when they do on every such dataset.
-
-Beside the coverage, two reads of each output:
-
-- **the judge's**: the evaluation's style judge (`style_judge.py`) fitted again for each style by
-  the same recipe (`fit_style_judge.fit`, the shipped judge's label mapping and regularisation),
-  without the uploaded clip: every dataset-1 TRAIN and VALIDATION clip of a content more than one
-  style performs, and dataset 2's TRAIN walks (its styles as classes; its other contents add cost,
-  not walks). An output is recognised when its single likeliest label is the style's; the style
-  passes at `JUDGE_PASS` of its outputs. The uploaded clip itself, read by the same judge that
-  never saw it, says how far one clip reads as its style at all.
-- **the hinges'**: the least bend of every knee and elbow about its hinge axis, less the least
-  bend real clips show (`models.motion.hinge`, fitted from the real walks the ruler reads), in
-  degrees: below zero, a limb bends backward further than any real one.
+c the mean of a dataset's neutral walks, "others" the style's other real walks. A copy of the
+upload scores the most one clip can say; where it is clearly closer (>= `CLEAR_COPY`), outputs
+must reach `PASS_SHARE` of it. Beside it: a style judge refitted without the upload, and the
+least hinge bend against real clips.
 
     python -m models.eval.uploads [--methods lti,lpn] [--styles proud,giant]   (validation inputs)
 """
@@ -69,8 +45,7 @@ JUDGE_C = 0.01  # the shipped judge's regularisation, chosen by its cross-valida
 
 
 def judge_clips(index: list[Clip]) -> list[Clip]:
-    """What each style's judge is fitted on (before its uploaded clip is left out): dataset 1's
-    TRAIN and VALIDATION clips of shared contents, dataset 2's TRAIN walks."""
+    """Each style's judge's clips: dataset 1's TRAIN and VALIDATION shared contents, dataset 2's walks."""
     d1 = [c for c in select(index, dataset=D1) if c.split in ("train", "val")]
     keep = shared_contents(d1)
     return [c for c in d1 if c.content in keep] + [
@@ -109,15 +84,13 @@ class Ruler:
         return clip_statistics(motion).mean(0) / self.scale
 
     def coverage(self, out: np.ndarray, start: np.ndarray, dataset: str, target: np.ndarray) -> float:
-        """Share of the way from `start` (the `z` of a neutral walk of `dataset`) to the style for
-        an output whose `z` is `out`, `target` being the style's displacement from dataset 1's normal."""
+        """Share of the way from `start` to the style for an output `out` (see the module docstring)."""
         goal = self.centre[dataset] + target
         return float(1.0 - np.linalg.norm(out - goal) / np.linalg.norm(start - goal))
 
 
 def fit_ruler(index: list[Clip], stats: dict[str, np.ndarray]) -> Ruler:
-    """Scale over every real dataset-1 walk and dataset-2 TRAIN walk; centres from each dataset's
-    neutral walks. `stats`: their `clip_statistics` by clip key."""
+    """Scale over every real walk the ruler reads; centres from each dataset's neutral walks."""
     d1, d2 = ruler_clips(index)
     vectors = {c.key: stats[c.key].mean(0) for c in d1 + d2}
     scale = np.maximum(np.std(np.stack(list(vectors.values())), axis=0), SCALE_FLOOR)
@@ -135,8 +108,7 @@ def ruler_clips(index: list[Clip]) -> tuple[list[Clip], list[Clip]]:
 
 
 def real_statistics(index: list[Clip]) -> tuple[dict[str, np.ndarray], Hinges]:
-    """`clip_statistics` of every clip the ruler and the judges read, by key (each clip read once),
-    and the hinge joints of the ruler's real walks."""
+    """`clip_statistics` of every clip the ruler and judges read (each once), and the hinges."""
     d1, d2 = ruler_clips(index)
     clips = list({c.key: c for c in d1 + d2 + judge_clips(index)}.values())
     motions = load_motions(clips)
@@ -153,8 +125,7 @@ def held_out_styles(model: StreamingModel, styles: tuple[str, ...]) -> list[str]
 
 
 def upload_variants(model: StreamingModel, clip: Motion) -> dict[str, StreamingModel]:
-    """The model with the clip's style installed as `upload`, per way of making it: `tuned` (the
-    fine-tuning job) and, for a model that makes a style from a clip at once, `instant`."""
+    """The model with the clip's style installed as `upload`: `tuned`, and `instant` where it can."""
     out: dict[str, StreamingModel] = {}
     if not isinstance(model, UploadedStyles):
         return out
@@ -173,8 +144,7 @@ def upload_variants(model: StreamingModel, clip: Motion) -> dict[str, StreamingM
 
 
 def neutral_inputs(index: list[Clip], split: str) -> dict[str, list[Motion]]:
-    """Neutral straight walks of both datasets: dataset 2's of `split`, and every dataset-1 one
-    (all in its train split, and no dataset-1 style the rows measure is neutral)."""
+    """Neutral straight walks: dataset 2's of `split`, and every dataset-1 one."""
     d2 = [c for c in select(index, dataset=D2, split=split, style="normal") if c.content == "walk"]
     d1 = [c for c in select(index, dataset=D1, style="normal") if c.content == "walk"]
     return {D2: load_motions(d2), D1: load_motions(d1)}
@@ -238,14 +208,13 @@ def evaluate(models: dict[str, StreamingModel], split: str, styles: tuple[str, .
 
 
 def passes(share: dict[str, float], copy: dict[str, float]) -> bool | None:
-    """Whether the outputs reach PASS_SHARE of the copy's coverage on every dataset where the copy
-    is clearly closer than normal; None where it is on none (nothing can be scored)."""
+    """Whether outputs reach PASS_SHARE of the copy wherever it is clearly closer; None: nowhere."""
     scored = [ds for ds in share if copy[ds] >= CLEAR_COPY]
     return all(share[ds] >= PASS_SHARE for ds in scored) if scored else None
 
 
 def verdict(row: dict) -> str:
-    """yes / no, or why the row cannot be scored: a copy of the clip is not clearly closer than normal."""
+    """yes / no, or why the row cannot be scored."""
     if row["passes"] is None:
         return "– (the clip itself is not closer)"
     return "yes" if row["passes"] else "no"

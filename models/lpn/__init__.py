@@ -1,10 +1,6 @@
 """LPN-FiLM (Mason, Starke & Komura 2022): real-time style modelling of locomotion with local motion
-phases and feature-wise (FiLM) style modulation, trained on Bandai Namco locomotion.
-
-`load(weights_dir)` returns the streaming model (runtime.LPNModel) that the service's registry
-offers as method "lpn". Pieces: local phases (`phases`), per-frame features (`features`), data
-(`dataset`), network (`network`), training (`train`), weights on disk (`weights`), runtime;
-`python -m models.lpn --help`."""
+phases and FiLM style modulation, trained on Bandai Namco locomotion. `load(weights_dir)` returns
+the streaming model (runtime.LPNModel); `python -m models.lpn --help`."""
 
 from __future__ import annotations
 

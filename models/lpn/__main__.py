@@ -16,9 +16,7 @@ def train(args: argparse.Namespace) -> None:
 
 
 def fit(args: argparse.Namespace) -> None:
-    """Refit the declared stages (`runtime.STAGES`, default all) in their order, each from real
-    clips on the committed model with the stages before it; named styles only: the file keeps its
-    other styles. The stages after a refitted one were fitted on top of it: refit them too."""
+    """Refit the declared stages (default all) in order; stages after a refitted one need refitting too."""
     import time
 
     import torch

@@ -1,10 +1,7 @@
 """LPN-FiLM's arm coupling: a style's forearms moved with its upper arms, shoulders and chest as
-they move together in its real clips (`python -m models.lpn fit --stages arm_coupling` writes
-`ARM_COUPLING_FILE`, the same fit for every style; applied after the output prior).
-
-The output prior maps each joint on its own, so it cannot make a forearm pump in step with an
-upper-arm swing. The linear relation of a forearm to its drivers (`LINKS`) in real clips replaces
-the network's (`models.motion.coupling`), fitted per gait and mixed by gait share.
+in its real clips (`python -m models.lpn fit --stages arm_coupling` writes `ARM_COUPLING_FILE`).
+The output prior maps joints one by one, so it cannot put a forearm in step with an arm swing
+(`models.motion.coupling`, fitted per gait).
 """
 
 from __future__ import annotations
@@ -26,9 +23,7 @@ FIT_FRAMES = 300
 
 
 def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET) -> Coupling:
-    """The coupling of `styles` (default: every style with TRAIN clips in `dataset`) from `model`
-    (its carriage and output prior in place, no coupling), on walks and on runs apart
-    (`carriage.locomotion`)."""
+    """The coupling of `styles` (default: all with TRAIN clips), walks and runs apart."""
     styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()

@@ -1,10 +1,9 @@
 """A style's arm carriage from its real TRAIN clips, the same fit for every style (`python -m
 models.lpn fit --stages carriage` writes `CARRIAGE_FILE`).
 
-FiLM vectors alone barely move the arms' mean pose, where real styles differ in it. Per style
-and arm joint the carriage is the rotation from the network's mean local rotation (driven by
-neutral TRAIN locomotion) to the style's real mean, walks and runs apart (split by measured
-speed, `models.motion.gait_split`). It changes the output; the network's state keeps its pose.
+FiLM vectors alone barely move the arms' mean pose, where real styles differ in it: per style and
+arm joint, the rotation from the network's mean (on neutral locomotion) to the style's real mean,
+walks and runs apart (`models.motion.gait_split`).
 """
 
 from __future__ import annotations
@@ -51,7 +50,6 @@ class Carriage(Stateless):
         return carry_arms(frame.rotations, offsets, rows["joints"]), state
 
     def with_styles_of(self, other: Carriage) -> Carriage:
-        """This carriage with `other`'s styles added or replacing this one's (a refit of some styles)."""
         keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
         return Carriage(
             tuple(self.styles[k] for k in keep) + other.styles, np.concatenate([self.arms[keep], other.arms])
@@ -68,9 +66,7 @@ class Carriage(Stateless):
 
 
 def _mix(values: np.ndarray, weights: np.ndarray, rest: np.ndarray) -> np.ndarray:
-    """(B, ...) sum over styles of weight x value, plus the weights' shortfall from 1 times `rest`.
-    Accumulated style by style in index order over the styles some row uses: a row's sum is its
-    own nonzero terms in that order (the others add exact zeros), whatever else is in the batch."""
+    """(B, ...) sum of weight x value plus the shortfall times `rest`, in style order: batch-independent."""
     w = np.asarray(weights, np.float64)
     extra = (1,) * (values.ndim - 1)
     mixed = (1.0 - w.sum(1)).reshape(-1, *extra) * rest
@@ -80,8 +76,7 @@ def _mix(values: np.ndarray, weights: np.ndarray, rest: np.ndarray) -> np.ndarra
 
 
 def blend_arms(arms: np.ndarray, weights: np.ndarray, normal: int) -> np.ndarray:
-    """(B, A, 4) offsets: the weights' normalised mix of the styles' offsets (all within tens of
-    degrees of identity, one hemisphere), the shortfall from 1 given to `normal`."""
+    """(B, A, 4) the weights' normalised mix of the offsets (one hemisphere), shortfall to `normal`."""
     mixed = _mix(arms, weights, arms[normal])
     return mixed / np.linalg.norm(mixed, axis=-1, keepdims=True)
 
@@ -97,8 +92,7 @@ def carry_arms(rotations: np.ndarray, offsets: np.ndarray, joints: np.ndarray) -
 
 
 def locomotion(dataset: str) -> Callable[[str], dict[str, list]]:
-    """style -> that style's TRAIN clips of `dataset` by gait (`GAITS`: walking, running), as
-    Motions, split by the style's own clip speeds (`models.motion.gait_split`); loaded once."""
+    """style -> its TRAIN clips of `dataset` by gait (`GAITS`), split by its own speeds; loaded once."""
     from ..data import build_index, load_motions, select
 
     index = build_index([dataset])
@@ -111,12 +105,11 @@ def locomotion(dataset: str) -> Callable[[str], dict[str, list]]:
 
 
 def every_gait(clips: dict[str, list]) -> list:
-    """The walking and the running clips of one style (`locomotion`), in one list."""
     return [m for gait in GAITS for m in clips[gait]]
 
 
 def fitted_styles(names: list[str], dataset: str) -> list[str]:
-    """The styles of `names` that have TRAIN clips in `dataset`: what the fit commands fit by default."""
+    """The styles of `names` with TRAIN clips in `dataset`: what the fits fit by default."""
     from ..data import build_index, select
 
     have = {c.style for c in select(build_index([dataset]), split="train")}
@@ -124,8 +117,7 @@ def fitted_styles(names: list[str], dataset: str) -> list[str]:
 
 
 def made(model: LPNModel, style: str, inputs: list[Motion]) -> list[np.ndarray]:
-    """`model`'s local rotations toward `style` for each input, the first second skipped: what
-    every stage is fitted on, against the style's real clips."""
+    """`model`'s rotations toward `style` per input, the first second skipped: what stages are fitted on."""
     from ..eval.run import stylise
 
     return [o.rotations[SKIP_FRAMES:] for o in stylise(model, inputs, [model.styles().index(style)] * len(inputs))]
@@ -134,8 +126,7 @@ def made(model: LPNModel, style: str, inputs: list[Motion]) -> list[np.ndarray]:
 def _offsets(
     model: LPNModel, inputs: list, real: Callable[[str], list], styles: list[str], joints: tuple[str, ...]
 ) -> np.ndarray:
-    """(len(styles), len(joints), 4): per style, the rotation taking the mean local rotation of
-    `model`'s output (`made` on `inputs`) to the mean of `real(style)`."""
+    """(styles, joints, 4) per style, the rotation from the mean of `made` to the real mean."""
     from ..motion.rotation_ball import comparable
 
     index = [model.skeleton.names.index(j) for j in joints]
@@ -148,9 +139,7 @@ def _offsets(
 
 
 def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET, frames: int = 300) -> Carriage:
-    """The arm offsets of `styles` (default: every style with TRAIN clips in `dataset`) from the
-    network against the real clips. `model` itself is left as it was: the network runs on a copy
-    without offsets."""
+    """The arm offsets of `styles` (default: all with TRAIN clips); `model` is left as it was."""
     styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()

@@ -1,10 +1,9 @@
 """The LPN training set packed small enough to travel with a device run (64 MiB in all, against
 0.8 GB of cache), and unpacked there.
 
-A sample is a gather over its clip's frames and a mirrored take the reflection of its take, so
-the pack keeps per unmirrored frame the pose features at 8 bits, root position and yaw, and for
-the take and its mirror image the phases, frequencies and contacts (a mirror's phases are fitted
-on their own). Unpacking rebuilds every sample as the cache build does.
+Samples are gathers over frames, and mirrored takes reflections, so the pack keeps per unmirrored
+frame the pose features at 8 bits, root position and yaw, and for each take and its mirror the
+phases, frequencies and contacts. Unpacking rebuilds every sample as the cache build does.
 
     .venv/bin/python -m models.lpn.carry pack .data/carry/lpn.npz     # ~33 MB, from the cache
     .venv/bin/python -m models.lpn.carry check .data/carry/lpn.npz    # unpacked vs the cache
@@ -28,10 +27,7 @@ SPLITS = ("train", "val")
 
 
 def _body_mirror() -> tuple[np.ndarray, np.ndarray]:
-    """Index of each body joint's mirror joint (into BODY), and per body joint the sign its (x, y,
-    z) channels take in the mirror image: the world reflection for positions and velocities, the
-    joint's local reflection too for its forward (+Z) and up (+Y) axes (`motion.features.mirror`:
-    world R'_j = W R_mirror(j) S_j)."""
+    """Each body joint's mirror and the signs its channels take (`motion.features.mirror`)."""
     sk = bandai_namco_pose().skeleton
     m = sk.mirror_map()
     s = mirror_reflections(sk)
@@ -61,8 +57,7 @@ def _restore(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def pack(out: Path, cfg: DataConfig = DataConfig()) -> Path:
-    """Write the pack of the cache's train and val splits (every clip's frames rebuilt from the raw
-    takes, phases as the cache fitted them)."""
+    """Write the pack of the cache's train and val splits (frames rebuilt, phases as cached)."""
     from ..data import load_motions
     from .dataset import _build_split, all_styles, locomotion_clips, style_name
 
@@ -161,8 +156,7 @@ def _split(frames: list[ClipFrames], styles: list[int], gaits: list[float], name
 
 
 def check(path: Path, cfg: DataConfig = DataConfig()) -> dict[str, float]:
-    """Per split and array, the largest error of the unpacked samples against the cache, in the
-    cache's standard deviations (normalised as the network sees them)."""
+    """Per split and array, the largest error of the unpacked samples, in the cache's stds."""
     meta, train, val, stats = unpack(path)
     out = {}
     for name, got in (("train", train), ("val", val)):

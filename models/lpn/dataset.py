@@ -86,8 +86,7 @@ class ClipSamples:
 
 @dataclass
 class ClipFrames:
-    """A clip's per-frame quantities, from which every sample is a gather (`samples_from_frames`):
-    what a packed training set keeps (`carry.py`)."""
+    """A clip's per-frame quantities, of which every sample is a gather (what `carry.py` packs)."""
 
     pose: np.ndarray  # (F, NB, 12) pose features in the character frame
     xz: np.ndarray  # (F, 2) world ground position of the Hips
@@ -107,8 +106,7 @@ def clip_frames(motion: Motion, axes: Axes | None = None) -> ClipFrames:
 
 
 def clip_samples(motion: Motion, gait: float, axes: Axes | None = None) -> ClipSamples:
-    """Every frame t with a full future (t + 1 + 30 inside the clip) as one sample; past samples
-    before the clip start repeat its first frame, as a stream's history does."""
+    """Every frame with a full future as a sample; history before the clip repeats its first frame."""
     return samples_from_frames(clip_frames(motion, axes), gait, motion.fps)
 
 
@@ -157,9 +155,7 @@ STYLE_FEATURE_BLOCK = 1024  # frames per block of `clip_style_features`
 
 
 def clip_style_features(motion: Motion) -> np.ndarray:
-    """(F, STYLE_DIM) FiLM-generator features of a whole clip. Computed in blocks (each with the
-    frame before it), the same numbers as in one go, so no numpy call holds the GIL for long
-    beside the service's event loop."""
+    """(F, STYLE_DIM) generator features, in blocks so no numpy call holds the GIL for long."""
     F = motion.num_frames
     if F <= STYLE_FEATURE_BLOCK:
         return _style_features_in_one_go(motion)
@@ -207,8 +203,7 @@ def _build_split(
     log: Callable[[str], None],
     frames_only: bool = False,
 ) -> dict:
-    """The split's arrays as the cache stores them; `frames_only`: each variant's `ClipFrames`
-    instead of its samples, with the names, styles and gaits (what `carry.pack` keeps)."""
+    """The split's cached arrays; `frames_only`: each variant's `ClipFrames` instead (for `carry.pack`)."""
     shortest = lf.FUTURE * lf.STEP + 3  # one sample needs frame t, t + 1 and 30 frames after it
     kept = [(c, m) for c, m in zip(clips, motions) if m.num_frames >= shortest]
     if len(kept) < len(clips):
@@ -265,8 +260,7 @@ def _clip_frames_job(job: tuple[Motion, Any]) -> ClipFrames:
 
 
 def _frames_of_every_clip(jobs: Sequence[tuple[Motion, Any]]) -> Iterator[ClipFrames]:
-    """`clip_frames` of every job, in order, on every core: each clip is independent, and the
-    build is the first step of a GPU lease (16 cores there) as well as of a 2-core machine."""
+    """`clip_frames` of every job, in order, on every core (16 on a GPU lease, 2 here)."""
     workers = min(os.cpu_count() or 1, 16)
     if workers == 1 or len(jobs) < 8:
         yield from map(_clip_frames_job, jobs)

@@ -1,10 +1,9 @@
 """LPN-FiLM per-frame features: the layout of the network's input, gating input and output, and
-the functions that compute them for the offline dataset. The compiled streaming kernels use the
-same formulas, held to these by `tests/reference/lpn_step.py`.
+their offline computation; the compiled kernels use the same formulas (`tests/reference/lpn_step.py`).
 
-Conventions of `models.motion.features`: Y up, skeleton units (cm), yaw about +Y with 0 = +Z,
-horizontal vectors as (x, z). The character frame at t sits at the Hips on the ground, +Z along
-the facing. Trajectory samples every 5th frame over +-30 frames (the paper's 13 at 30 fps).
+Conventions of `models.motion.features` (Y up, cm, yaw about +Y with 0 = +Z, horizontal (x, z)).
+The character frame at t sits at the Hips on the ground, +Z along the facing. Trajectory samples
+every 5th frame over +-30 frames (the paper's 13 at 30 fps).
 
 Network input X (343):
     [0:91)     trajectory, 13 samples x (position xz, direction xz, velocity xz, gait), char. frame t
@@ -64,9 +63,7 @@ def direction(yaw: np.ndarray) -> np.ndarray:
 def pose_features(
     positions: np.ndarray, velocities: np.ndarray, global_rot: np.ndarray, root: np.ndarray, yaw: np.ndarray
 ) -> np.ndarray:
-    """(..., NB, 12) pose features of the body joints in the character frame given world joint
-    positions/velocities (..., 22, 3), world rotations (..., 22, 4), the ground root (..., 3) and yaw (...).
-    The rotation is encoded by its forward (local +Z) and up (local +Y) axes: continuous, unlike quaternions."""
+    """(..., NB, 12) body-joint features; rotations as forward (+Z) and up (+Y) axes (continuous)."""
     y = -yaw[..., None]  # into the character frame
     mats = quat_to_matrix(global_rot[..., BODY, :])
     return np.concatenate(
@@ -83,8 +80,7 @@ def pose_features(
 def clip_frames(
     global_rot: np.ndarray, positions: np.ndarray, skeleton: Skeleton, fps: float = FPS
 ) -> dict[str, np.ndarray]:
-    """Per-frame world quantities of a clip: ground root (F, 3), yaw (F,), joint velocities (F, 22, 3)
-    and root velocity (F, 2), all by backward differences (zero at frame 0), as a stream sees them."""
+    """A clip's ground root, yaw, joint and root velocities by backward differences, as a stream sees them."""
     yaw = facing_yaw(positions, skeleton)
     root = positions[:, HIPS] * np.array([1.0, 0.0, 1.0])
     vel = np.zeros_like(positions)
@@ -93,9 +89,7 @@ def clip_frames(
 
 
 def style_features(pose: np.ndarray, root_vel: np.ndarray, yaw: np.ndarray, fps: float = FPS) -> np.ndarray:
-    """(F, STYLE_DIM) clip features for the FiLM generator: body joint positions and velocities in
-    the character frame, root velocity in it and the yaw rate -- what a style *looks* like, without
-    the absolute path."""
+    """(F, STYLE_DIM) what a style *looks* like: positions, velocities, root velocity, yaw rate."""
     F = pose.shape[0]
     yaw_rate = np.zeros(F)
     yaw_rate[1:] = wrap_angle(np.diff(yaw)) * fps
@@ -105,8 +99,7 @@ def style_features(pose: np.ndarray, root_vel: np.ndarray, yaw: np.ndarray, fps:
 def trajectory_input(
     pos: np.ndarray, dirs: np.ndarray, vel: np.ndarray, gait: np.ndarray, origin: np.ndarray, yaw: np.ndarray
 ) -> np.ndarray:
-    """(..., 91) trajectory input from world samples pos/dirs/vel (..., 13, 2), gait (..., 13), relative
-    to the character frame at `origin` (..., 2) with `yaw` (...)."""
+    """(..., 91) trajectory input from world samples (..., 13, 2), relative to `origin` and `yaw`."""
     y = -yaw[..., None]  # into the character frame
     p = rotate_y(pos - origin[..., None, :], y)
     d = rotate_y(dirs, y)

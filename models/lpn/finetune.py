@@ -1,20 +1,13 @@
 """A new LPN-FiLM style from a clip, improved: fine-tune a copy of the FiLM generator on the clip
 itself with the motion network frozen.
 
-The instant style (`LPNModel.add_style_from_clip`) is the trained generator's embedding of the
-clip, which can miss a style far from the training styles. Here the clip's own training samples
-(built as `dataset.clip_samples` builds them) go through a frozen copy of the network with
-FiLM = generator(clip windows), and only the generator learns, under the training objective
-(`train.training_loss`). The result is still a (4, H) FiLM vector that mixes with the others.
+The instant style (`LPNModel.add_style_from_clip`) can miss a style far from the training styles.
+Here the clip's own training samples (`dataset.clip_samples`) go through a frozen network with
+FiLM = generator(clip windows), under the training objective; the result is still a (4, H) FiLM
+vector. Dropout stays on, as in training: without it the vector is brittle in closed loop.
 
-The frozen network keeps its dropout on, as in training: without it the tuned vector fits the
-clip's frames as well but is brittle when the model runs on its own output (the model card's
-held-out styles).
-
-Held-back check: the clip is split in time. The last `1 - fit_share` of its samples are held
-back; fitting uses the samples whose targets all end before the first held-back one predicts (a
-30-frame gap), and the generator sees only the fit part's frames. The loss on the held-back
-samples before and after says whether fine-tuning helped on motion it never saw.
+The clip is split in time: the last `1 - fit_share` of its samples are held back (after a
+30-frame gap), and their loss before and after says whether tuning helped on unseen motion.
 """
 
 from __future__ import annotations
@@ -86,7 +79,7 @@ class FineTuneResult:
 
 
 def min_frames(cfg: FineTuneConfig = FineTuneConfig()) -> int:
-    """Shortest clip (frames) that leaves `min_fit_samples` to fit and `min_heldout_samples` held back."""
+    """Shortest clip leaving `min_fit_samples` to fit and `min_heldout_samples` held back."""
     n = HORIZON + 1
     while _split(n, cfg)[0] < cfg.min_fit_samples or _split(n, cfg)[1] < cfg.min_heldout_samples:
         n += 1
@@ -100,21 +93,19 @@ def _split(n: int, cfg: FineTuneConfig) -> tuple[int, int]:
 
 
 def clip_gait(motion: Motion) -> float:
-    """1.0 (run) when the clip's median horizontal Hips speed is above RUN_SPEED, else 0.0 (walk)."""
+    """1.0 (run) when the clip's median Hips speed exceeds RUN_SPEED, else 0.0 (walk)."""
     hips = motion.translations[:, lf.HIPS][:, [0, 2]]
     speed = np.linalg.norm(np.diff(hips, axis=0), axis=-1) * motion.fps
     return float(np.median(speed) > RUN_SPEED) if len(speed) else 0.0
 
 
 def clip_training_samples(motion: Motion) -> ClipSamples:
-    """The clip's samples as training built them: gait from its speed, phase axes from the clip and
-    its mirror (training computed them per style and gait, mirrored takes included)."""
+    """The clip's samples as training built them (gait from its speed, phase axes from it and its mirror)."""
     return clip_samples(motion, clip_gait(motion), style_axes([motion, mirror(motion)]))
 
 
 def generator_windows(feats: np.ndarray, stride: int, limit: int) -> np.ndarray:
-    """CLIP_FRAMES windows of the clip's generator features (tiled if shorter) every `stride` frames,
-    at most `limit` of them, evenly spread."""
+    """At most `limit` CLIP_FRAMES windows of the generator features (tiled if short), every `stride`."""
     f = tile_clip(feats, CLIP_FRAMES)
     starts = np.arange(0, len(f) - CLIP_FRAMES + 1, stride)
     if len(starts) > limit:
@@ -125,9 +116,7 @@ def generator_windows(feats: np.ndarray, stride: int, limit: int) -> np.ndarray:
 def fine_tune(
     net: LPN, motion: Motion, cfg: FineTuneConfig = FineTuneConfig(), progress: Progress | None = None
 ) -> FineTuneResult:
-    """Fine-tune a copy of `net`'s FiLM generator on `motion` (model skeleton, model fps); `net` is
-    not changed. Deterministic for a given seed and torch thread count (dropout draws from torch's
-    global generator, seeded here and restored afterwards)."""
+    """Fine-tune a copy of `net`'s generator on `motion`; deterministic per seed and thread count."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(cfg.seed)
         return _fine_tune(net, motion, cfg, progress)

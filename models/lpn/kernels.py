@@ -1,7 +1,7 @@
 """Compiled kernels (numba) for the LPN-FiLM streaming step: the per-session geometry around the
-network and its small per-row maths. The vectorised numpy step (`tests/reference/lpn_step.py`)
-makes hundreds of small calls per frame; here each session is a loop over scalars. The three big
-matrix products stay BLAS. Formulas of `features.py`; float64 inside, float32 state and outputs.
+network and its per-row maths, as loops over scalars instead of the reference's hundreds of small
+numpy calls (`tests/reference/lpn_step.py`). The three big matrix products stay BLAS. Formulas of
+`features.py`; float64 inside, float32 state and outputs.
 """
 
 from __future__ import annotations
@@ -25,8 +25,7 @@ Y_PHASE, Y_FREQ, Y_CONTACT = lf.PHASE_OUT.start, lf.FREQ_OUT.start, lf.CONTACT_O
 
 
 class Track(NamedTuple):
-    """B sessions' trajectory, phases and pose: the state entries of the same names, which the
-    kernels below read and update in place."""
+    """B sessions' trajectory, phases and pose: state entries, read and updated in place."""
 
     yaw: np.ndarray  # (B,)
     hist_pos: np.ndarray  # (B, H, 2) world xz, the last row the current frame
@@ -51,8 +50,6 @@ class Tracker(NamedTuple):
 
 
 class Body(NamedTuple):
-    """The model's skeleton and frame rate."""
-
     parents: np.ndarray  # (J,)
     offsets: np.ndarray  # (J, 3)
     facing: np.ndarray  # (4,) left and right hip and shoulder joints (`facing_yaw`)
@@ -87,8 +84,7 @@ def elu(v):
 
 @njit(cache=True, error_model="numpy")
 def facing_yaw(gpos, facing):
-    """Facing yaw of world joint positions (J, 3): forward = left x up, left = the hip and the
-    shoulder lines (facing = joint indices of the left and right hip and shoulder)."""
+    """Facing yaw of world positions (J, 3): forward = left x up, left from the hip and shoulder lines."""
     hl, hr, sl, sr = facing[0], facing[1], facing[2], facing[3]
     left_x = gpos[hl, 0] - gpos[hr, 0] + gpos[sl, 0] - gpos[sr, 0]
     left_z = gpos[hl, 2] - gpos[hr, 2] + gpos[sl, 2] - gpos[sr, 2]
@@ -100,17 +96,9 @@ def facing_yaw(gpos, facing):
 
 @njit(cache=True, error_model="numpy")
 def control_rows(control, given, root, rotations, tracker, walked, body, rules):
-    """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others from
-    the input's smoothed Hips velocity in its facing frame, its yaw, run above `run_speed`. The
-    input tracker advances for every session, so a session can switch modes smoothly.
-
-    Where the input is slower than the network's training walks (below `rules.walk_speed`, fully
-    below `rules.crawl_speed`), the network walks at its own, faster pace and its stop-go strides
-    glide the landing foot. There a derived velocity is slowed (never reversed or sped up) by the
-    character's lead, how much farther it walked there (`walked`: its last step) than the input,
-    to make it up `rules.catch_up` s on. Distances, not positions: a character that lagged a
-    reversing input is not ahead of it. A shortfall fades over `catch_up` s. Gait follows the
-    input's own speed."""
+    """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, others from the input's
+    smoothed Hips velocity (the tracker advances for all, so modes switch smoothly). Below the training
+    walks' speeds the network outpaces the input, so a derived velocity is slowed by its lead."""
     frame, in_pos, in_vel, lead = tracker
     parents, offsets, facing, fps = body
     smooth, run_speed, catch_up = rules.smooth, rules.run_speed, rules.catch_up
@@ -154,9 +142,7 @@ def control_rows(control, given, root, rotations, tracker, walked, body, rules):
 
 @njit(cache=True, error_model="numpy")
 def network_inputs(control, track, fps, bias, x, g):
-    """The network's input x (B, 343) and gating input g (B, 104) of B sessions. The future
-    trajectory (updated in place) is first blended toward the control, sample k of 6 by
-    1 - (1 - k/6)^bias; past samples are every STEP-th history row; all in the character frame."""
+    """Network input x (B, 343) and gating input g (B, 104); the future (in place) blended toward control."""
     yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel, fut_phase, pose = track
     B, H = hist_pos.shape[0], hist_pos.shape[1]
     for b in range(B):
@@ -220,9 +206,7 @@ def elu_dense(h, w, b, out):
 
 @njit(cache=True, error_model="numpy")
 def gating(g, scale, layers):
-    """Expert blend (B, E): softmax of the gating MLP (two ELU layers, `layers` its three (weight,
-    bias)) on the phase features g / scale. Weights as (in, out), so each row of a product is a sum
-    of contiguous rows."""
+    """Expert blend (B, E): softmax of the gating MLP (two ELU layers) on g / scale."""
     (w0, b0), (w1, b1), (w2, b2) = layers
     B = g.shape[0]
     n0, n1, E = w0.shape[1], w1.shape[1], w2.shape[1]
@@ -251,8 +235,7 @@ def gating(g, scale, layers):
 
 @njit(cache=True, error_model="numpy")
 def blend_experts(hw, alpha, bias, b, out):
-    """out (n,) = sum_e alpha[b, e] (hw[b, e*n:(e+1)*n] + bias[e]): session b's output of an expert
-    layer from all experts' outputs hw (B, E*n) side by side."""
+    """out (n,) = sum_e alpha[b, e] (hw[b, e*n:(e+1)*n] + bias[e]): session b's expert layer."""
     E, n = bias.shape[0], bias.shape[1]
     for o in range(n):
         out[o] = 0.0
@@ -264,9 +247,7 @@ def blend_experts(hw, alpha, bias, b, out):
 
 @njit(cache=True, error_model="numpy")
 def hidden_layer(hw, alpha, bias, film, layer, out):
-    """A hidden layer's output (B, n) from its experts' outputs hw (B, E*n): blended by alpha,
-    layer norm (no affine, eps 1e-5), FiLM with (gamma, beta) = film[:, 2 layer], film[:, 2 layer + 1]
-    as h (1 + gamma) + beta, then ELU."""
+    """A hidden layer (B, n): experts blended, layer norm, FiLM h (1 + gamma) + beta, ELU."""
     B, n = hw.shape[0], bias.shape[1]
     h = np.empty(n)
     for b in range(B):
@@ -301,7 +282,7 @@ def output_layer(hw, alpha, bias, y_mean, y_std):
 
 @njit(cache=True, error_model="numpy")
 def _shift_history(track, b):
-    """Session b's history rows moved up by one (the last row is then free for the new frame)."""
+    """Session b's history rows moved up by one (the last row is then free)."""
     hist_pos, hist_dir, hist_vel = track.hist_pos, track.hist_dir, track.hist_vel
     hist_gait, hist_phase = track.hist_gait, track.hist_phase
     for r in range(hist_pos.shape[1] - 1):
@@ -321,9 +302,7 @@ def _shift_history(track, b):
 
 @njit(cache=True, error_model="numpy")
 def _local_rotations(y, parents, nc, ns, R, local, out):
-    """Local rotations (J, 4) into `out` from one output row y: each body joint's world frame from
-    its predicted forward (+Z) and up (+Y) axes, turned by the new yaw (cosine nc, sine ns), then
-    parent^T child as a quaternion; joint 0 stays the identity. R (J, 3, 3), local (3, 3): scratch."""
+    """Local rotations (J, 4) from an output row's predicted forward and up axes. R, local: scratch."""
     for r in range(3):
         for col in range(3):
             R[0, r, col] = 1.0 if r == col else 0.0
@@ -353,10 +332,7 @@ def _local_rotations(y, parents, nc, ns, R, local, out):
 
 @njit(cache=True, error_model="numpy")
 def advance(y, control, track, body, rules):
-    """Apply the network output y (B, 353) to B sessions' state in place (root, history, future,
-    pose, yaw, phases) and return their Hips translation (B, 3), local rotations (B, J, 4) and
-    contacts (B, 2). Phases advance by the predicted frequency, blended with the predicted phase;
-    below `stop_speed` the phases are damped and part of the root motion is held back."""
+    """Apply the output y (B, 353) in place; returns Hips translation, rotations and contacts."""
     yaw, hist_pos, hist_dir, hist_vel, hist_gait, hist_phase, fut_pos, fut_dir, fut_vel, fut_phase, pose = track
     parents, fps = body.parents, body.fps
     B, H, J = y.shape[0], hist_pos.shape[1], parents.shape[0]

@@ -36,11 +36,8 @@ class LPNConfig:
     filters: int = 256
     kernel: int = 25
     dropout: float = 0.3
-    # the generator's convolutions normalised over their filters at every frame before the ELU
-    # (no parameters): without it a unit whose input drifts negative saturates at -1 for every
-    # clip and stops learning; in the first 80-minute run 98.7 % of the second convolution's
-    # outputs sat below zero on real clips, and longer runs (batch 256, 6,000 steps) ended with
-    # all of them there, every style the same FiLM vector (MODEL_CARD, Training)
+    # the generator's convolutions normalised over their filters at every frame before the ELU (no
+    # parameters): else units drift negative, saturate and every style gets one FiLM vector (MODEL_CARD)
     film_norm: bool = False
 
 
@@ -156,9 +153,7 @@ class LPN(nn.Module):
 
 
 def bone_length_loss(y: torch.Tensor, parents: np.ndarray, lengths: torch.Tensor) -> torch.Tensor:
-    """Mean squared relative bone-length error of the predicted (denormalised) pose y (B, Y_DIM).
-    `parents`: parent of each body joint as an index into the body joints (-1 = none);
-    `lengths`: rest bone lengths (NB,)."""
+    """Mean squared relative bone-length error of the predicted pose y (B, Y_DIM)."""
     pos = y[:, lf.POSE_OUT].view(-1, lf.NB, lf.POSE_CH)[..., :3]
     child = np.flatnonzero(parents >= 0)
     d = (pos[:, child] - pos[:, parents[child]]).norm(dim=-1)

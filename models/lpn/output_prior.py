@@ -2,11 +2,10 @@
 style to that style's real rotations (`python -m models.lpn fit --stages output_prior` writes
 `OUTPUT_PRIOR_FILE`; the same fit for every style).
 
-The carriage moves each joint's mean; the style also lies in how arms and spine swing about it.
-As Style-ERD's prior (`models/motion/style_carry.py`), each joint's deviations are mapped by the
-linear optimal-transport map between the network's and the real style's Gaussians, then clamped
-into the real p98 radius; walks and runs are fitted apart and mixed by gait share. The network's
-spread is floored at `SOURCE_FLOOR_DEG` per axis, else near-still axes get gains in the hundreds.
+The carriage moves each joint's mean; a style also lies in how the arms and spine swing about it.
+As Style-ERD's prior (`models/motion/style_carry.py`): a Gaussian optimal-transport map, clamped
+into the real p98 radius; walks and runs apart, mixed by gait share. The network's spread is
+floored at `SOURCE_FLOOR_DEG`, else near-still axes get huge gains.
 """
 
 from __future__ import annotations
@@ -37,23 +36,19 @@ FIT_FRAMES = 300
 
 @dataclass(frozen=True)
 class OutputPrior(Stateless):
-    """The stage: per fitted style, `carry`'s rows (source mean, style mean, map, clamp radius per
-    joint) for walking frames and `run`'s for running ones (the same rows for a style fitted once)."""
+    """The stage: per fitted style, the walking carry's rows and the running one's."""
 
     styles: tuple[str, ...]
     carry: StyleCarry
     run: StyleCarry
 
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
-        """The walk and run carries' arrays (`run_` before the run's keys) aligned with `styles`,
-        and `on` (S,); a style without a prior gets identity maps, infinite radii and `on` 0."""
+        """The walk and run carries' arrays (`run_` prefixed) and `on` (S,), aligned with `styles`."""
         arrays = carry_rows({"": self.carry, "run_": self.run}, skeleton.num_joints)
         return style_rows(self.styles, styles, on=(np.ones(len(self.styles)), 0.0), **arrays)
 
     def step_batch(self, state: State, frame: StageFrame, rows: Rows) -> tuple[np.ndarray, State]:
-        """The rotations of the rows that weigh a style with a prior carried by it, the walk and run
-        priors mixed by each row's gait share (`StyleCarry.mixed_with`; a walking row takes the walk
-        prior alone, exactly); other rows exactly as they were."""
+        """Rows weighing a style with a prior carried, walk and run by gait share; others as they were."""
         rotations = frame.rotations
         w = np.asarray(frame.weights, np.float64) * rows["on"][None]
         batch = np.flatnonzero(w.any(axis=1))
@@ -61,8 +56,7 @@ class OutputPrior(Stateless):
             return rotations, state
         walk = StyleCarry(*(rows[k] for k in FIELDS))
         q, w = np.asarray(rotations[batch], np.float64), w[batch]
-        # a run share only where a row weighs a style whose run prior is its own: a row of styles
-        # fitted once is carried exactly as by one prior
+        # a run share only where a row weighs a style with its own run prior
         split = (rows["run_map"] != rows["map"]).any(axis=(1, 2, 3))
         share = np.clip(np.asarray(frame.gait, np.float64)[batch], 0.0, 1.0) * (w[:, split] > 0.0).any(axis=1)
         walking, running = share == 0.0, share == 1.0
@@ -77,8 +71,7 @@ class OutputPrior(Stateless):
             if between.any():
                 carried[between] = walk.mixed_with(run, run.bounds, q[between], w[between], share[between])
         carried = carried.astype(rotations.dtype)
-        # the joints the fit left fixed (radius pi for every style: Hips, legs) keep their own bits;
-        # taken from the carry they would be renormalised in float64, a float32 ulp off
+        # joints the fit left fixed (Hips, legs) keep their own bits (no float64 renormalisation)
         joints = np.flatnonzero((rows["radius"] < np.pi).any(axis=0))
         out = np.array(rotations, copy=True)
         out[np.ix_(batch, joints)] = carried[:, joints]
@@ -97,7 +90,6 @@ class OutputPrior(Stateless):
             return cls(tuple(str(s) for s in z["styles"]), walk, run)
 
     def with_styles_of(self, other: OutputPrior) -> OutputPrior:
-        """This prior with `other`'s styles added or replacing this one's (a refit of some styles)."""
         keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
         styles = tuple(self.styles[k] for k in keep) + other.styles
 
@@ -108,9 +100,7 @@ class OutputPrior(Stateless):
 
 
 def fit(model: LPNModel, styles: list[str] | None = None, dataset: str = DATASET) -> OutputPrior:
-    """The prior of `styles` (default: every style with TRAIN clips in `dataset`) from `model` (its
-    carriage in place, no output prior): each style's `CARRIED` joints, the rest left alone, fitted
-    on its walks and on its runs apart."""
+    """The prior of `styles` (default: all with TRAIN clips): `CARRIED` joints, walks and runs apart."""
     styles = styles or fitted_styles(model.styles(), dataset)
     clips = locomotion(dataset)
     model = model.with_own_styles()

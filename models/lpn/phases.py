@@ -1,12 +1,11 @@
 """Local motion phases (Starke et al. 2020; Mason, Starke & Komura 2022): one phase per bone
-(hands and feet), so the gating can follow a stylised walk's limbs in their own rhythm.
+(hands and feet), so the gating follows a stylised walk's limbs in their own rhythm.
 
-Per bone, offline: a 1-D source (feet: contacts; hands: position on its first principal axis,
-signed forward), normalised in a centred 1 s window, zero-phase low-passed; then per frame
-a*sin(f*t - s) + b fitted on a centred 1.5 s window by least squares over a grid of frequencies,
-refined by a parabola (deterministic, in place of the authors' genetic optimiser). The feature is
-A * (sin phi, cos phi) with A the fitted amplitude times the bone's mean speed, so it vanishes when
-the bone stands still. Frequencies in Hz, times in seconds; B = 4 bones (`BONES`).
+Per bone: a 1-D source (feet: contacts; hands: position on its first principal axis), normalised
+in a centred 1 s window and zero-phase low-passed; then per frame a*sin(f*t - s) + b fitted on a
+centred 1.5 s window over a grid of frequencies, refined by a parabola (deterministic, in place of
+the authors' genetic optimiser). The feature is A (sin phi, cos phi), A the amplitude times the
+bone's mean speed, so it vanishes when the bone stands still. Hz and seconds; B = 4 bones.
 """
 
 from __future__ import annotations
@@ -24,7 +23,7 @@ BONES: tuple[str, ...] = ("Hand_L", "Hand_R", "Foot_L", "Foot_R")
 FOOT_SIDE = {"Foot_L": 0, "Foot_R": 1}  # column of `foot_contacts`
 
 NORMALISE_WINDOW_S = 1.0
-FIT_WINDOW_S = 1.5  # ~1.3 walk cycles: a 1 s window (< one cycle) lets f wander 0.4-1.3 Hz within a step
+FIT_WINDOW_S = 1.5  # ~1.3 walk cycles: under one cycle, f wanders within a step
 CUTOFF_HZ = 3.0
 # slowest elderly steps ~0.6 Hz per foot, dash ~2 Hz; upper bound = the paper's max frequency
 FREQ_RANGE_HZ = (0.4, 4.0)
@@ -35,11 +34,7 @@ FREQ_STEP_HZ = 0.02
 
 
 def principal_axis(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(centre (3,), unit axis (3,)) of points (N, 3): their mean and first principal component,
-    signed so the axis points forward (+Z of the facing frame).
-
-    Pass the frames of one clip (per-clip centring) or of all clips of a style and gait
-    concatenated (the paper's per-style-and-gait centring, `style_axes`)."""
+    """(centre, unit axis) of points (N, 3): mean and first principal component, pointing forward."""
     p = np.asarray(positions, dtype=float).reshape(-1, 3)
     centre = p.mean(axis=0)
     _, _, vt = np.linalg.svd(p - centre, full_matrices=False)
@@ -52,8 +47,7 @@ def principal_axis(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def contact_free_source(
     positions: np.ndarray, centre: np.ndarray | None = None, axis: np.ndarray | None = None
 ) -> np.ndarray:
-    """Contact-free source of one bone: its facing-frame positions (F, 3) centred and projected on
-    the first principal component. Without `centre`/`axis` they are computed from this clip."""
+    """One bone's facing-frame positions (F, 3) centred and projected on the principal axis."""
     if centre is None or axis is None:
         c, a = principal_axis(positions)
         centre = c if centre is None else centre
@@ -67,11 +61,7 @@ def contact_free_source(
 def sliding_normalise(
     x: np.ndarray, fps: float, window_s: float = NORMALISE_WINDOW_S, floor: float = 0.05
 ) -> np.ndarray:
-    """Normalise along axis 0 to zero mean and unit std in a centred window of `window_s` seconds.
-
-    Removes slow drift (a hand creeping forward while turning) and makes the fit independent of the
-    bone's range of motion. The std is floored at `floor` x the signal's global std so a still
-    bone is not blown up into unit-variance noise (its amplitude is zeroed by the speed anyway)."""
+    """Zero mean, unit std over a centred window; std floored at `floor` x global (still bones)."""
     x = np.asarray(x, dtype=float)
     size = max(int(round(window_s * fps)) | 1, 3)
     mean = uniform_filter1d(x, size, axis=0, mode="nearest")
@@ -82,8 +72,7 @@ def sliding_normalise(
 
 
 def lowpass(x: np.ndarray, fps: float, cutoff_hz: float = CUTOFF_HZ, order: int = 2) -> np.ndarray:
-    """Butterworth low-pass along axis 0, forward-backward (`filtfilt`, zero phase, effective order
-    2*order): a one-way filter would shift every phase late by its group delay."""
+    """Butterworth low-pass, forward-backward (zero phase): a one-way filter delays every phase."""
     b, a = butter(order, cutoff_hz, btype="low", fs=fps)
     x = np.asarray(x, dtype=float)
     padlen = min(3 * max(len(a), len(b)), x.shape[0] - 1)
@@ -95,8 +84,7 @@ def lowpass(x: np.ndarray, fps: float, cutoff_hz: float = CUTOFF_HZ, order: int 
 
 @dataclass(frozen=True)
 class SinusoidFit:
-    """Per-frame fit of a*sin(2pi*frequency*t - s) + offset on the window centred at each frame,
-    expressed at the centre: phase = (2pi*frequency*t - s) mod 2pi. Arrays (F,)."""
+    """Per-frame fit of a*sin(2pi*frequency*t - s) + offset, phase at the window's centre. Arrays (F,)."""
 
     amplitude: np.ndarray  # a >= 0
     frequency: np.ndarray  # Hz
@@ -109,8 +97,7 @@ class SinusoidFit:
 
 
 def _window_stack(x: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
-    """(F, W) samples of the centred windows and their validity mask (zero-padded at the ends:
-    edge windows are truncated rather than reflected, which would invent a non-sinusoidal signal)."""
+    """(F, W) centred windows and their validity mask (zero-padded: reflection invents signal)."""
     F = x.shape[0]
     padded = np.concatenate([np.zeros(half), x, np.zeros(half)])
     idx = np.arange(F)[:, None] + np.arange(2 * half + 1)[None]
@@ -120,8 +107,7 @@ def _window_stack(x: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _solve(basis: np.ndarray, y: np.ndarray, mask: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
-    """Masked least squares per window. basis (..., W, 3) broadcast with y, mask (F, 1|K.., W).
-    Returns coefficients (..., 3) and the residual sum of squares (...)."""
+    """Masked least squares per window: coefficients (..., 3) and residual sum of squares (...)."""
     if basis.ndim == 4 and basis.shape[0] == 1:
         return _solve_shared(basis[0], y[:, 0], mask[:, 0], ridge)
     N = np.einsum("...w,...wi,...wj->...ij", mask, basis, basis) + ridge * np.eye(3)
@@ -132,8 +118,7 @@ def _solve(basis: np.ndarray, y: np.ndarray, mask: np.ndarray, ridge: float) -> 
 
 
 def _solve_shared(basis: np.ndarray, y: np.ndarray, mask: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
-    """`_solve` for one basis (K, W, 3) shared by every window (F, W): the sums over the window are
-    matrix products (F, W) @ (W, K*9), ~50x faster than the general broadcast einsum."""
+    """`_solve` for one basis shared by every window, as matrix products (~50x faster)."""
     K, W, _ = basis.shape
     outer = np.einsum("kwi,kwj->wkij", basis, basis).reshape(W, K * 9)
     N = (mask @ outer).reshape(-1, K, 3, 3) + ridge * np.eye(3)
@@ -157,12 +142,9 @@ def fit_sinusoid(
     freq_step: float = FREQ_STEP_HZ,
     ridge: float = 1e-6,
 ) -> SinusoidFit:
-    """Fit a*sin(2pi f t - s) + b on the centred window of every frame of a 1-D signal (F,).
-
-    For a fixed f the model is linear in (a cos s, -a sin s, b), so each (frame, f) is a 3x3
-    least-squares solve; the best f on the grid is refined by a parabola through its neighbours'
-    residuals and re-solved. Window time is measured from the centre frame, so the phase at the
-    centre is the angle of the (sin, cos) coefficients directly."""
+    """Fit a*sin(2pi f t - s) + b on the centred window of every frame of a signal (F,): linear in
+    (a cos s, -a sin s, b) for fixed f, so a 3x3 solve per (frame, f); the best grid f refined by a
+    parabola. Time is measured from the centre, so its phase is read off directly."""
     x = np.asarray(x, dtype=float)
     if x.ndim != 1:
         raise ValueError(f"fit_sinusoid takes a 1-D signal, got shape {x.shape}")
@@ -190,8 +172,7 @@ def fit_sinusoid(
 
 
 def phase_features(phase: np.ndarray, amplitude: np.ndarray) -> np.ndarray:
-    """2-D phase features A*(sin phi, cos phi), shape (..., 2): a point on a circle whose radius is
-    the amplitude, so a still bone sits at the origin and phase wrap-around is continuous."""
+    """(..., 2) A (sin phi, cos phi): a still bone sits at the origin; wrap-around is continuous."""
     return np.asarray(amplitude)[..., None] * np.stack([np.sin(phase), np.cos(phase)], axis=-1)
 
 
@@ -215,8 +196,7 @@ Axes = dict[str, tuple[np.ndarray, np.ndarray]]
 
 
 def style_axes(motions: list[Motion]) -> Axes:
-    """Per-style-and-gait centring: centre and principal axis of each contact-free bone over all
-    frames of `motions` (clips of one style and gait), in the facing frame, in leg lengths."""
+    """Per-style-and-gait centre and principal axis of each contact-free bone, facing frame, leg lengths."""
     out: Axes = {}
     feats = [(compute_features(m).local_positions, m.skeleton) for m in motions]
     for bone in BONES:
@@ -228,11 +208,7 @@ def style_axes(motions: list[Motion]) -> Axes:
 
 
 def local_phases(motion: Motion, axes: Axes | None = None) -> LocalPhases:
-    """Local phases of `BONES` for one clip.
-
-    The feet use the contact source (their columns of the contacts), the hands the contact-free
-    source. `axes` (from `style_axes`) gives per-style-and-gait centres and
-    axes; without it each clip is centred on itself (per-clip centring)."""
+    """Local phases of `BONES` for one clip; `axes` (`style_axes`) centres per style and gait."""
     fps = motion.fps
     feats = compute_features(motion)
     sk = motion.skeleton

@@ -1,11 +1,9 @@
 """Closed-loop training: K-frame rollouts in which the network reads back its own output, as the
-runtime makes it do, instead of the recorded next frame.
+runtime makes it do: teacher forcing alone never shows a controller its own mistakes.
 
-Teacher forcing alone trains a controller that never sees its own mistakes. A rollout starts on a
-recorded frame; from then on the pose, root track, trajectory (the predicted future blended toward
-the recording moved with the network's root, by the runtime's rule) and phases come from the
-network's previous prediction. Every step is scored against the recorded next frame; gradients
-flow through the whole rollout. "World" is the rollout's first character frame.
+A rollout starts on a recorded frame; then pose, root track, trajectory (the predicted future
+blended toward the recording, by the runtime's rule) and phases come from the network's previous
+prediction, each step scored against the recorded next frame. "World" is the first character frame.
 """
 
 from __future__ import annotations
@@ -26,7 +24,7 @@ PHASE = lf.NUM_BONES * 2
 
 
 def to_world(v: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
-    """(..., 2) vectors in the frame facing `yaw` (broadcast over the last axis of v) into the world."""
+    """(..., 2) vectors in the frame facing `yaw` into the world."""
     c, s = torch.cos(yaw)[..., None], torch.sin(yaw)[..., None]
     x, z = v[..., 0:1], v[..., 1:2]
     return torch.cat([c * x + s * z, -s * x + c * z], dim=-1)
@@ -39,8 +37,7 @@ def to_local(v: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
 
 
 def rollout_starts(clip: np.ndarray, style: np.ndarray, frames: int) -> dict[int, np.ndarray]:
-    """Per style, the sample indices that begin `frames` consecutive samples of one clip (a clip's
-    samples are stored as consecutive frames, `dataset.clip_samples`)."""
+    """Per style, sample indices beginning `frames` consecutive samples of one clip."""
     n = len(clip) - frames + 1
     ok = np.zeros(len(clip), bool)
     ok[:n] = clip[:n] == clip[frames - 1 :]
@@ -67,10 +64,7 @@ def rollout(
     film: torch.Tensor,
     closed: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Run K steps on B recorded windows X (B, K, X_DIM), G (B, K, G_DIM), Y (B, K, Y_DIM).
-
-    `closed` (B,) bool: which rollouts feed back the network's output (the others are teacher forced).
-    Returns the normalised predictions (B, K, Y_DIM) and the normalised targets."""
+    """K steps on B recorded windows; `closed` (B,): rollouts fed their own output. (predictions, targets)."""
     B, K = X.shape[:2]
     dev = X.device
     beta = control_weights(dev)
@@ -103,8 +97,7 @@ def rollout(
 
 
 class Tracks(NamedTuple):
-    """A rollout's root tracks in world, one entry a frame: the recording's, from its root deltas,
-    and the network's own so far (with its current phase)."""
+    """A rollout's root tracks in world per frame: the recording's and the network's (with its phase)."""
 
     rec_pos: list[torch.Tensor]  # (B, 2) each
     rec_yaw: list[torch.Tensor]  # (B,)
@@ -116,8 +109,7 @@ class Tracks(NamedTuple):
 def _own_inputs(
     y: torch.Tensor, x_rec: torch.Tensor, g_rec: torch.Tensor, k: int, tracks: Tracks, beta: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The input of step k built from the previous step's (denormalised) output y, and the
-    network's new root position, yaw and current phase."""
+    """Step k's input from the previous output y and the network's new root, yaw and phase."""
     o_rec, yaw_rec, o_net, yaw_net, phase_net = tracks
     fps = lf.FPS
     B = y.shape[0]

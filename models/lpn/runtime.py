@@ -1,20 +1,11 @@
 """Streaming LPN-FiLM as a character controller (the `StreamingModel` interface, float32).
 
-Per frame the network reads the character's trajectory (its own past, and a future blended from
-the control and its last prediction), its pose and local phases, and predicts the next pose, root
-motion, phases and contacts. The per-session maths is compiled (`kernels.py`); the expert products
-stay BLAS; `tests/reference/lpn_step.py` is the numpy step the kernels are tested against.
-Without control (`FrameBatch.control`) the input frames' smoothed Hips velocity (slowed where the
-character has walked farther than a slow input), facing and speed become the control, so it also
-runs motion in, motion out.
-
-Styles are FiLM vectors mixed by the weights (the shortfall from 1 goes to `normal`); the state
-holds nothing per style. The published core (the network, its bones untwisted) is followed by the
-declared pipeline `STAGES` (`models.stages`), each stage fitted from every style's real clips:
-arm carriage, output prior, arm coupling, rotation balls and the hinge floor (knees and elbows on
-their hinge at no less than their least real bend, uploads too). They change the output only; the network's state keeps its
-own pose. A style without real clips gets rows that change nothing: a borrowed one would pull it
-toward another style; an upload gets an output prior fitted from its clip (`styles.py`). The foot planter closes every step, the core's alone too.
+Per frame the network reads the trajectory (past, and a future blended from the control and its
+last prediction), pose and local phases, and predicts the next. Per-session maths is compiled
+(`kernels.py`; reference `tests/reference/lpn_step.py`). Without control, the input frames' Hips
+velocity, facing and speed become the control. Styles are FiLM vectors mixed by the weights
+(shortfall to `normal`). `STAGES` follow the core and change the output only, not the network's
+state; a style without real clips gets no-op rows. The foot planter closes every step.
 """
 
 from __future__ import annotations
@@ -57,8 +48,7 @@ from .weights import read_weights
 if TYPE_CHECKING:
     from .network import LPN
 
-# The stages after the core, in the order the step runs them; each is fitted from real clips into
-# its file beside the weights (`python -m models.lpn fit`), and a session or a fit may switch any off
+# The stages after the core, in step order, each fitted into its file (`python -m models.lpn fit`)
 STAGES = (
     StageSpec("carriage", CARRIAGE_FILE, lambda path, _: Carriage.load(path), carriage.fit),
     StageSpec("output_prior", OUTPUT_PRIOR_FILE, lambda path, _: OutputPrior.load(path), output_prior.fit),
@@ -72,15 +62,13 @@ RUN_SPEED = 220.0  # cm/s: derived gait switches to run above this input speed
 CONTROL_BIAS = 2.0  # future sample k blends toward the control by 1 - (1 - k/6)^bias
 PHASE_BLEND = 0.5  # next phase = blend of (current advanced by the predicted frequency) and the predicted phase
 CONTACT_THRESHOLD = 0.35  # predicted contact (regressed 0/1) above which a foot counts as planted
-CATCH_UP_S = 3.0  # s: a lead is made up this far on, a shortfall fades as fast (validation: 1, 3 s; fade 1-10 s alike)
-# 1st and 5th percentile of the dataset-2 TRAIN walks' Hips speed smoothed as the control's (cm/s):
-# below these the network has not learned to walk, and derived control is slowed to keep to the path
+CATCH_UP_S = 3.0  # s: a lead is made up this far on, a shortfall fades as fast (chosen on validation)
+# cm/s: 1st and 5th percentile of the TRAIN walks' smoothed Hips speed: below, the network cannot walk
 CRAWL_SPEED, WALK_SPEED = 63.0, 73.0
 STOP_SPEED = 30.0  # cm/s: below this wanted speed the phases are damped (standing)
 STOP_PHASE_DAMP = 0.6  # per-frame phase factor when the wanted speed is 0
 STOP_ROOT_HOLD = 0.9  # share of the predicted root translation held back when the wanted speed is 0
-# The network's own local rotations kept as they are by `_untwist`: leaves (plausible as trained) and
-# limb roots (their twist sets the plane the knee / elbow bends in)
+# Joints `_untwist` leaves alone: leaves, and limb roots (their twist sets the knee / elbow plane)
 OWN_ROTATIONS = ("Head", "Hand_L", "Hand_R", "Toes_L", "Toes_R", "UpperLeg_L", "UpperLeg_R", "UpperArm_L", "UpperArm_R")
 
 
@@ -89,9 +77,7 @@ class LPNModel(LPNStyles):
     controllable = True  # reads FrameBatch.control (the service's `control` message)
     fps = lf.FPS
     bfloat16 = True  # expert products may run in bfloat16 (`_products`); False: always float32
-    # the unseen-content fade after the planted feet, not before (`novelty_stage`): planted after
-    # it, held feet turned the faded legs off the input's and the network's and slid no less
-    # (validation: docs/eval/ablation.md)
+    # the unseen-content fade after the planted feet (`novelty_stage`; docs/eval/ablation.md)
     fade_before_feet = False
 
     def __init__(
@@ -144,8 +130,7 @@ class LPNModel(LPNStyles):
         return list(self._table.names)
 
     def film_from_clip(self, motion: Motion) -> np.ndarray:
-        """A new style's FiLM vector (4, H): the generator on 4 s windows of a clip of it (tiled if
-        short; >= 1 s on the model skeleton at 30 fps, longer is better), averaged."""
+        """A new style's FiLM vector (4, H): the generator over 4 s windows of the clip, averaged."""
         import torch
 
         from .dataset import clip_style_features
@@ -162,15 +147,11 @@ class LPNModel(LPNStyles):
             return self.generator().style_film(windows).mean(0).numpy().reshape(4, self.H)
 
     def set_style_film(self, name: str, film: np.ndarray) -> None:
-        """Set (or add) style `name` with FiLM vector `film` (4, H): a fine-tuned or persisted one.
-        Running sessions see it from their next step."""
+        """Set (or add) style `name` with FiLM vector `film` (4, H); sessions see it next step."""
         self.set_style_upload(name, film, None)
 
     def set_style_upload(self, name: str, film: np.ndarray, prior: StyleCarry | None) -> None:
-        """Set (or add) style `name` with FiLM vector `film` (4, H) and, where the output prior is on
-        and `prior` (one style's carry) is given, that prior as the style's own output-prior rows;
-        every other stage's rows for it change nothing (no other stage was fitted for it), nor do
-        the prior's without `prior`. Running sessions see it from their next step."""
+        """Set (or add) style `name` with `film` and its own output prior `prior`."""
         film = np.asarray(film, np.float32)
         if film.shape != (4, self.H) or not np.all(np.isfinite(film)):
             raise ValueError(f"a FiLM vector must be finite with shape (4, {self.H}), got {film.shape}")
@@ -240,9 +221,7 @@ class LPNModel(LPNStyles):
     def _start(
         self, state: State, rows: np.ndarray, root: np.ndarray, rotations: np.ndarray, control: np.ndarray | None
     ) -> None:
-        """Fresh sessions stand in the input's first pose, as training clips start. One whose first
-        frame carries control stands in the model's rest pose facing the control's yaw instead: a
-        controller client sends no real pose."""
+        """Fresh sessions stand in the input's first pose; with control, in the rest pose facing its yaw."""
         root, rotations = root[rows].copy(), rotations[rows].copy()
         if control is not None:
             given = np.flatnonzero(np.asarray(control)[rows, 4] > 0.5)
@@ -281,9 +260,7 @@ class LPNModel(LPNStyles):
         return planted, s
 
     def step_unplanted(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> tuple[FrameBatch, State]:
-        """`step_batch` up to the feet: the frame (its contacts the network's, the planter's
-        hints) and the new state, with the planter's entries as it reads them (reset on a
-        session's first frame; `feet.plant_frame` plants the frame)."""
+        """`step_batch` up to the feet (`feet.plant_frame` plants the frame)."""
         root = np.asarray(frames.root, np.float32)
         rot_in = np.asarray(frames.rotations, np.float32)
         B = root.shape[0]
@@ -308,9 +285,8 @@ class LPNModel(LPNStyles):
         return FrameBatch(out_root.astype(np.float32, copy=False), out_rot.astype(np.float32, copy=False), contacts), s
 
     def _untwist(self, rotations: np.ndarray) -> np.ndarray:
-        """The same joint positions with each bone's twist taken from the natural pose: the network
-        sometimes turns a bone ~180 degrees about itself and its child back, which moves no joint
-        but wrings a skinned body. Leaves and limb roots keep the network's rotations."""
+        """Each bone's twist from the natural pose: the network sometimes turns a bone ~180 degrees about
+        itself, which moves no joint but wrings a skinned body. Leaves and limb roots keep theirs."""
         source = np.broadcast_to(self._natural_pose, rotations.shape)
         out = transfer_twist(self.skeleton, source, rotations, OWN_ROTATIONS)
         # around such a flip spine and chest bend against each other: re-split their smooth composite
@@ -332,8 +308,7 @@ class LPNModel(LPNStyles):
     def _control(
         self, s: State, frames: FrameBatch, root: np.ndarray, rot_in: np.ndarray, fresh: np.ndarray
     ) -> np.ndarray:
-        """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, the others
-        derived from the input frames (advancing the input tracker)."""
+        """(B, 4) control (forward, side in cm/s, yaw, gait): given rows as they are, others derived."""
         B = root.shape[0]
         if frames.control is None:
             control, given = np.zeros((B, 5), np.float32), np.zeros(B, bool)
@@ -359,15 +334,13 @@ class LPNModel(LPNStyles):
 
     @cached_property
     def _own_layout(self) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
-        """Per state entry but the stages' (`Pipeline.state_layout`, which a copy may switch): its
-        shape without the session axis, and its dtype."""
+        """Per state entry but the stages': shape without the session axis, dtype."""
         return {k: (v.shape[1:], v.dtype) for k, v in self.init_state(0).items() if "/" not in k}
 
     def _check_step(
         self, s: State, root: np.ndarray, rot_in: np.ndarray, control: np.ndarray | None, stages: Pipeline
     ) -> None:
-        """The kernels trust every shape (no bounds checks): anything else is a clear error here;
-        the stages' entries as the stages that step keep them."""
+        """The kernels trust every shape (no bounds checks): anything else is a clear error here."""
         B, J = root.shape[0], len(self.parents)
         if root.shape != (B, 3) or rot_in.shape != (B, J, 4):
             raise ValueError(
@@ -394,8 +367,7 @@ class LPNModel(LPNStyles):
         return x, g
 
     def _network(self, x: np.ndarray, g: np.ndarray, film: np.ndarray) -> np.ndarray:
-        """Denormalised output (B, Y_DIM), as `network.LPN.forward` in eval mode: one BLAS product
-        per expert layer (all experts side by side), the rest per-row kernels."""
+        """Denormalised output (B, Y_DIM) as `LPN.forward` in eval mode: BLAS per expert layer."""
         x, g = np.ascontiguousarray(x, np.float32), np.ascontiguousarray(g, np.float32)
         film = np.ascontiguousarray(film, np.float32)
         alpha = kernels.gating(g, self.g_scale, self.gating)
@@ -410,8 +382,7 @@ class LPNModel(LPNStyles):
 
     @cached_property
     def _products(self) -> list[Callable[[np.ndarray], np.ndarray]]:
-        """The expert products: bfloat16 where this machine does them natively with rows independent
-        of the batch (`rowwise.Bfloat16Product`), else float32."""
+        """The expert products: bfloat16 where native with batch-independent rows, else float32."""
         fast = get_settings().bfloat16_products and self.bfloat16
         out: list[Callable[[np.ndarray], np.ndarray]] = []
         for W, _, _ in self.layers:
@@ -420,10 +391,8 @@ class LPNModel(LPNStyles):
         return out
 
     def _advance(self, s: State, y: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Apply the prediction (root, history, pose, phases, future); returns the output Hips
-        translation, local rotations and contacts. The training clips hardly ever stop after
-        moving, so below STOP_SPEED the phases are damped toward the standing amplitude and most
-        of the root translation is held back; either alone leaves a shuffle."""
+        """Apply the prediction; returns output Hips translation, rotations and contacts. Training clips
+        hardly ever stop, so below STOP_SPEED phases are damped and most root motion is held back."""
         return kernels.advance(y, control, _track(s), self._body, self._rules)
 
     # ------------------------------------------------------------------ kinematics
@@ -448,8 +417,7 @@ class LPNModel(LPNStyles):
     def run(
         self, motion: Motion | None, weights: np.ndarray, control: np.ndarray | None = None, frames: int | None = None
     ) -> tuple[Motion, np.ndarray]:
-        """One session through step_batch, driven by a motion's frames, or by control (T, 5) from
-        `motion`'s first pose (or the rest pose). `weights` (S,) or (T, S). Returns motion, contacts."""
+        """One session driven by `motion` or control (T, 5); `weights` (S,) or (T, S). (motion, contacts)."""
         from dataclasses import replace
 
         first = motion if motion is not None else self.rest_motion()
@@ -487,8 +455,7 @@ def _track(s: State) -> kernels.Track:
 
 
 def load(weights_dir: Path, core_only: bool = False) -> LPNModel:
-    """The committed model; `core_only`: the published core alone, the network and foot planter
-    without the stages after it (the evaluation's core-alone row, a session's `pipeline: core`)."""
+    """The committed model; `core_only`: the network and foot planter without the stages."""
     arrays, skeleton, config = read_weights(weights_dir)
     off = [name.removeprefix("lpn.") for name in get_settings().stages_off if name.startswith("lpn.")]
     stages = Pipeline.load(STAGES, Path(weights_dir), skeleton, core_only).without(*off)  # `Settings.stages_off`

@@ -1,15 +1,10 @@
-"""LPN-FiLM's uploaded styles (`models.interface.ClipStyles`), mixed into `LPNModel`: a clip
-gives a FiLM vector at once (the generator's embedding); a fine-tuning job may replace it and
-saves it as `film.npz`. A copy of the model shares the weights and owns its style table.
+"""LPN-FiLM's uploaded styles (`models.interface.ClipStyles`), mixed into `LPNModel`: a clip gives a
+FiLM vector at once (the generator's embedding); a fine-tuning job may replace it (`film.npz`).
 
-Each upload also gets an output prior (`output_prior.py`) fitted from its clip the way a built-in
-style's is from its TRAIN clips: from what the network (its carriage in place) makes toward the
-style to the style's real rotations, the same joints carried, the same source floor. The
-built-in fit streams neutral clips; the network reads its input only as control (trajectory,
-facing, pace), so the upload's source is the network's output for the clip's own trajectory:
-the content and pace of the clip itself, as Style-ERD's upload pools neutral clips near it in
-Hips speed and turning (`models/erd/upload_stages.py`). The source depends on the upload's FiLM
-vector, so it is streamed when the style is made (a fraction of a second), not stored.
+Each upload also gets an output prior fitted from its clip as a built-in style's is from its TRAIN
+clips. The network reads its input only as control, so the prior's source is the network's output
+for the clip's own trajectory (its content and pace); it depends on the FiLM vector, so it is
+streamed when the style is made, not stored.
 """
 
 from __future__ import annotations
@@ -37,16 +32,14 @@ PRIOR_MIN_FRAMES = 60  # a clip shorter than this (after the network's first sec
 
 @dataclass(frozen=True)
 class LPNUpload:
-    """An uploaded style: its FiLM vector (4, H) and its output prior (a one-style carry; None:
-    the stage is off, the clip too short, or a style saved with its vector alone)."""
+    """An uploaded style: FiLM vector (4, H) and output prior (one-style carry; None: none)."""
 
     film: np.ndarray
     prior: StyleCarry | None = None
 
 
 class LPNStyles(ClipStyles[LPNUpload]):
-    """What `LPNModel` adds to take uploaded styles; it relies on the model's `set_style_film`,
-    `set_style_upload`, `film_from_clip`, `generator`, `stages`, `skeleton` and its style lock."""
+    """What `LPNModel` adds to take uploaded styles."""
 
     clip_style_note = "FiLM parameters and output prior from the clip"
     tuning_note = "fine-tuning the FiLM generator"
@@ -66,10 +59,7 @@ class LPNStyles(ClipStyles[LPNUpload]):
         return LPNUpload(film, self.upload_prior(clip, film))
 
     def upload_prior(self, clip: Motion, film: np.ndarray) -> StyleCarry | None:
-        """The output prior of a style of FiLM vector `film` (4, H) from its clip (module doc):
-        `output_prior.fit`'s recipe (its first `FIT_FRAMES` streamed) with the network's output for
-        the clip's own trajectory as the source and the clip as the real style. Leaves this model
-        as it is; ~2 s for a 10 s clip on the shared 2-core machine."""
+        """The output prior for `film` from its clip, the network's output for its trajectory as source."""
         from .carriage import SKIP_FRAMES, made
         from .output_prior import CARRIED, FIT_FRAMES, SOURCE_FLOOR_DEG
 
@@ -100,9 +90,7 @@ class LPNStyles(ClipStyles[LPNUpload]):
             )
 
     def fine_tune_style(self, name: str, clip: Motion, progress: Progress, steps: int) -> FineTuned[LPNUpload]:
-        """The FiLM vector of a copy of the generator fine-tuned on `clip` for `steps` Adam steps,
-        with its output prior fitted again for it; None (the clip's style stays) unless it lowered
-        the loss on the held-back frames."""
+        """A generator tuned on `clip`, its prior refitted; None unless the held-back loss fell."""
         from .finetune import FineTuneConfig, fine_tune
 
         def report(fraction: float, loss: float) -> None:

@@ -5,10 +5,8 @@ any field overridable on the command line as --field=value.
     .venv/bin/python -m models.lpn.train --resume --minutes=60 --no_export # continue run_dir/ckpt.pt
     .venv/bin/python -m models.lpn.train --export=.data/lpn/run/ckpt.pt
 
-Each step trains one style (cycled in a shuffled order) with its FiLM from the generator on a
-random window of the style's clips, so the generator learns to embed a clip and the network to
-obey it. A share of the rollouts feed the network its own output (`rollout.py`), as the runtime
-does. Choose a snapshot by streaming validation clips (`tools.lpn_snapshots`), not by loss.
+Each step trains one style with its FiLM from a random window of its clips; a share of rollouts
+feed back the network's output (`rollout.py`). Choose snapshots by streaming (`tools.lpn_snapshots`).
 """
 
 from __future__ import annotations
@@ -40,16 +38,13 @@ class TrainConfig:
     seed: int = 1234
     threads: int = 1  # the machine is shared; a GPU lease may take more
     device: str = "cpu"  # "cuda" on a GPU lease (`make lpn-gpu`); "auto" takes a GPU where there is one
-    # bfloat16 autocast: "auto" where the hardware multiplies it natively (a CUDA device, a CPU with
-    # avx512_bf16 or AMX; measured in MODEL_CARD), else "true" / "false"
+    # bfloat16 autocast: "auto" where native (CUDA, avx512_bf16 or AMX; MODEL_CARD), "true" / "false"
     bf16: str = "auto"
     batch: int = 128  # frames per step: batch // rollout rollouts
-    hidden: int = 256  # 512 (the paper) runs at 1400 samples/s on 2 cores and exceeds 12 MB in float16; see MODEL_CARD
+    hidden: int = 256  # the paper's 512 is too slow and large here (MODEL_CARD)
     dropout: float = 0.3
     film_norm: bool = True  # LPNConfig.film_norm: keeps the FiLM generator's units from saturating
-    # closed-loop training (`rollout.py`): frames per rollout (1 = teacher forcing) and the share of
-    # rollouts fed back the network's own output, from `closed_from` to `closed_to` over the first
-    # `closed_ramp` of the schedule
+    # closed-loop training (`rollout.py`, `closed_share`): frames per rollout (1 = teacher forcing)
     rollout: int = 8
     closed_from: float = 0.25
     closed_to: float = 1.0
@@ -66,8 +61,7 @@ class TrainConfig:
     eval_every: int = 500
     eval_samples: int = 256  # per style
     ckpt_every: int = 200  # run_dir/ckpt.pt, what --resume continues
-    # also keep ckpt_<iter>.pt every so many iterations (0 = only the latest): the lowest validation
-    # loss is not the best closed-loop controller, so runs keep snapshots to be chosen by streaming
+    # also keep ckpt_<iter>.pt (0: only the latest): the lowest loss is not the best controller
     snapshot_every: int = 0
     snapshot_half: bool = False  # snapshots as float16 networks (9 MB: what a device run can send back)
     run_dir: str = str(REPO_ROOT / ".data" / "lpn" / "run")
@@ -76,8 +70,7 @@ class TrainConfig:
     data: str = ""  # a packed training set (`carry.py`) instead of the cache, e.g. on a GPU lease
     export: str = ""  # path of a checkpoint to export to models/weights/lpn instead of training
     init_from: str = ""  # continue from this checkpoint's network (same data and sizes); a fresh optimiser
-    # start from a weights folder's network (gating, experts, normalisation) with a fresh generator,
-    # first fitted for `film_fit_steps` to that folder's style vectors
+    # start from a weights folder's network with a fresh generator (`warm_start`, `fit_generator`)
     warm_from: str = ""
     film_fit_steps: int = 300
     no_export: bool = False
@@ -91,8 +84,7 @@ def parse_args(argv: list[str]) -> TrainConfig:
 
 
 class StyleClips:
-    """Random fixed-length windows of one split's clip features per style (short clips of a style are
-    concatenated until long enough), for the FiLM generator."""
+    """Random fixed-length windows of each style's clip features (short clips concatenated)."""
 
     def __init__(self, split: Split, frames: int, rng: np.random.Generator) -> None:
         self.s, self.frames, self.rng = split, frames, rng
@@ -114,8 +106,7 @@ class StyleClips:
         return seq[start : start + self.frames]
 
     def all_windows(self, style: int, stride: int = 60, limit: int | None = None) -> np.ndarray:
-        """Deterministic windows covering every clip of a style (short clips tiled): for per-style means.
-        `limit` keeps that many, evenly spread (validation during training; the export uses all)."""
+        """Deterministic windows over every clip of a style (tiled); `limit` of them, evenly spread."""
         out = []
         for c in self.by_style[style]:
             f = self.clip(int(c))
@@ -151,8 +142,7 @@ def style_films(net: LPN, clips: StyleClips, styles: list[int], limit: int | Non
 
 @torch.no_grad()
 def validate(net: LPN, data: Data, films: dict[int, torch.Tensor], n: int) -> dict[str, float]:
-    """One-frame losses on `n` validation samples per style, per output group; with held-out
-    styles, their loss under a FiLM of their own clips against under `normal`'s."""
+    """One-frame losses on `n` validation samples per style (held-out styles: own FiLM vs `normal`)."""
     from .network import bone_length_loss
 
     net.eval()
@@ -196,9 +186,7 @@ def validate(net: LPN, data: Data, films: dict[int, torch.Tensor], n: int) -> di
 def training_loss(
     net: LPN, pred: torch.Tensor, target: torch.Tensor, parents: np.ndarray, lengths: torch.Tensor, w_bone: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The training objective (loss, mse, bone): MSE on the normalised output plus `w_bone` times the
-    bone-length loss on the denormalised pose. One function, so FiLM fine-tuning (`finetune.py`)
-    optimises exactly what training did."""
+    """(loss, mse, bone): normalised MSE plus `w_bone` x bone loss; `finetune.py` optimises it too."""
     from .network import bone_length_loss
 
     mse = (pred - target).pow(2).mean()
@@ -217,21 +205,17 @@ def body_bones(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray]:
 
 
 def samples_per_step(cfg: TrainConfig) -> int:
-    """Frames a step trains on: `batch // rollout` rollouts of `rollout` frames."""
     return max(cfg.batch // max(cfg.rollout, 1), 1) * max(cfg.rollout, 1)
 
 
 def closed_share(cfg: TrainConfig, progress: float) -> float:
-    """Share of rollouts that feed back the network's own output: `closed_from` rising linearly to
-    `closed_to` over the first `closed_ramp` of the schedule (scheduled sampling)."""
+    """Share of closed-loop rollouts: `closed_from` rising to `closed_to` over `closed_ramp`."""
     ramp = min(progress / cfg.closed_ramp, 1.0) if cfg.closed_ramp > 0 else 1.0
     return cfg.closed_from + (cfg.closed_to - cfg.closed_from) * ramp
 
 
 def warm_start(net: LPN, weights_dir: Path, styles: list[str]) -> torch.Tensor:
-    """Load a weights folder's gating, motion network and normalisation into `net` (the FiLM
-    generator stays fresh: the committed one is dead, `film_norm` gives a new one that is not);
-    returns that folder's per-style FiLM vectors (S, 4, H), the new generator's first target."""
+    """Load a weights folder's network into `net`, fresh generator; returns its FiLM vectors (S, 4, H)."""
     from .weights import read_weights
 
     arrays, _, config = read_weights(weights_dir)
@@ -244,8 +228,7 @@ def warm_start(net: LPN, weights_dir: Path, styles: list[str]) -> torch.Tensor:
 
 
 def fit_generator(net: LPN, clips: StyleClips, targets: torch.Tensor, steps: int, log: Log, batch: int = 8) -> None:
-    """Regress the generator's output on windows of each style onto that style's vector, so a
-    warm-started network starts from the styles it had (its motion network reads those vectors)."""
+    """Regress the generator onto each style's vector, so a warm-started network keeps its styles."""
     dev = net.X_mean.device
     with torch.no_grad():  # the shared part in the bias at once, the per-style part learnt
         net.film.out.bias.copy_(targets.mean(0).reshape(-1).to(dev))
@@ -270,8 +253,7 @@ def load_config(argv: list[str]) -> tuple[TrainConfig, dict | None]:
 
 @dataclass
 class Data:
-    """The samples (a packed training set's or the cache's), windows of each style's clips for
-    the FiLM generator, where rollouts may start, and the body's bones for the bone loss."""
+    """The samples, windows of each style's clips, rollout starts, and the body's bones."""
 
     styles: list[str]
     stats: dict[str, np.ndarray]
@@ -325,14 +307,12 @@ class Data:
 
 
 class Run:
-    """The network, optimiser, schedule and random state of a run, and how far it got: what a
-    checkpoint holds."""
+    """The network, optimiser, schedule and RNG of a run: what a checkpoint holds."""
 
     def __init__(
         self, cfg: TrainConfig, ck: dict | None, data: Data, device: torch.device, rng: np.random.Generator, log: Log
     ) -> None:
-        """A new network, restored from `ck`, or started from `init_from` or `warm_from` (its
-        generator first fitted to that folder's style vectors)."""
+        """A new network, restored from `ck`, or started from `init_from` or `warm_from`."""
         from .network import LPN, LPNConfig
 
         self.cfg, self.rng, self.styles, self.data = cfg, rng, data.styles, data
@@ -388,8 +368,7 @@ class Run:
         return dict(mse=f"{terms['mse']:.4f}", bone=f"{terms['bone']:.5f}", closed=f"{terms['closed']:.2f}")
 
     def validate(self) -> dict:
-        """One-frame validation (`validate`) and the closed-loop loss: `val_rollouts` rollouts per
-        style of `rollout` frames on validation clips, every one feeding back the network's output."""
+        """One-frame validation and the closed-loop loss over `val_rollouts` rollouts per style."""
         from .rollout import rollout
 
         cfg, net, data = self.cfg, self.net, self.data
@@ -413,9 +392,7 @@ class Run:
         return v
 
     def checkpoint(self, path: Path, resumable: bool = True) -> None:
-        """What `--resume` continues exactly: network, optimiser, schedule, RNG, step; not
-        `resumable`: a snapshot, the network alone (float16 with `snapshot_half`; loading converts
-        it back), to be chosen by streaming."""
+        """What `--resume` continues exactly; not `resumable`: the network alone, a snapshot."""
         model = {k: v.detach().cpu() for k, v in self.net.state_dict().items()}
         if not resumable and self.cfg.snapshot_half:
             model = {k: v.half() if v.is_floating_point() and k not in NORMALISATION else v for k, v in model.items()}
@@ -437,8 +414,7 @@ class Run:
 
 
 def train_step(cfg: TrainConfig, run: Run, data: Data, autocast: torch.autocast) -> dict[str, float]:
-    """One step on one style (cycled in a shuffled order): its FiLM from the generator on a window
-    of its clips, rollouts from random starts, a share of them closed-loop."""
+    """One step on one style: its FiLM from a window of its clips, rollouts, some closed-loop."""
     from .rollout import rollout
 
     rng, net = run.rng, run.net

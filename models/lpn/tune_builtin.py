@@ -79,7 +79,7 @@ class StyleResult:
 
     @property
     def kept(self) -> bool:
-        """Replaces the exported vector: lower validation loss, and not rejected by the guard."""
+        """Replaces the exported vector: lower validation loss, not rejected by the guard."""
         from ..eval.run import GATE_WITHIN
 
         return self.improved and (self.within is None or self.within[1] >= min(GATE_WITHIN, self.within[0]))
@@ -104,8 +104,7 @@ class StyleResult:
 
 
 def style_samples(style: str, split: str, net: LPN) -> Samples:
-    """The style's dataset-2 locomotion clips of `split` as training samples (train mirrored, as
-    `dataset.build_cache` builds them), cached under the cache folder."""
+    """The style's dataset-2 locomotion clips of `split` as samples (train mirrored), cached."""
     from ..data import build_index, load_motions, select
     from .dataset import D2, D2_CONTENTS, _build_split
 
@@ -125,8 +124,7 @@ def style_samples(style: str, split: str, net: LPN) -> Samples:
 
 
 def frozen_network(weights_dir: Path) -> tuple[LPN, dict[str, np.ndarray], dict]:
-    """The torch network of the committed weights (the built-in vectors as exported, without a
-    previous tuning), every parameter frozen."""
+    """The committed weights' network (built-in vectors as exported), every parameter frozen."""
     from .network import LPN, LPNConfig
 
     arrays, _, config = read_weights(weights_dir, tuned=False)
@@ -202,9 +200,7 @@ def tune_style(net: LPN, film0: np.ndarray, train: Samples, val: Samples, cfg: T
 
 
 def rotation_guard(weights_dir: Path, results: list[StyleResult]) -> None:
-    """Fill each improved result's `within`: the worst joint's share of frames within the real p99
-    (`models.eval.plausibility`, TRAIN clips of the style) of the streamed model on GUARD_CLIPS,
-    with the exported and with the tuned vector."""
+    """Each improved result's `within` on GUARD_CLIPS, with the exported and the tuned vector."""
     from ..data import build_index, load_motions, select
     from ..eval.plausibility import RotationReference
     from ..eval.run import DATASET, pick_clips, stylise
@@ -233,10 +229,7 @@ def rotation_guard(weights_dir: Path, results: list[StyleResult]) -> None:
 
 
 def save(weights_dir: Path, results: list[StyleResult], cfg: TuneConfig, seconds: float) -> None:
-    """This run's styles into TUNED_FILE and config.json's `tuned_film` record: a style it kept
-    gets its new vector, one it tuned but did not keep goes back to the exported vector, and the
-    styles it did not tune keep what an earlier run gave them (tuning one style must not undo
-    the others)."""
+    """This run's styles into TUNED_FILE and config.json; untuned styles keep earlier runs' vectors."""
     tuned = {r.style for r in results}
     films: dict[str, np.ndarray] = {}
     path = weights_dir / TUNED_FILE

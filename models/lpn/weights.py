@@ -1,7 +1,6 @@
-"""LPN-FiLM weights on disk: `lpn.npz` (float16 parameters, float32 normalisation, per-style FiLM
-vectors, the skeleton) and `config.json`, plus `tuned_film.npz` (`tune_builtin.py`), which
-replaces the built-in styles' vectors when read and is kept apart so a tuning run rewrites a few
-KB. The runtime computes in float32; float16 storage costs only the weights' rounding."""
+"""LPN-FiLM weights on disk: `lpn.npz` (float16 parameters, float32 normalisation, FiLM vectors,
+skeleton), `config.json`, and `tuned_film.npz` (`tune_builtin.py`), kept apart so a tuning run
+rewrites a few KB. The runtime computes in float32."""
 
 from __future__ import annotations
 
@@ -21,8 +20,7 @@ LICENCE = "CC BY-NC 4.0 (inherited from the Bandai Namco Research Motion dataset
 
 
 def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = EXPORT_WINDOWS) -> Path:
-    """Write the weights folder from a training checkpoint, with the per-style mean FiLM vectors
-    computed by the checkpoint's generator over all training clips of each style."""
+    """Write the weights folder from a checkpoint, each style's FiLM vector its generator's mean."""
     import torch
 
     from ..motion.assets import bandai_namco_pose
@@ -69,8 +67,7 @@ def export_weights(ckpt_path: Path, out_dir: Path | None = None, windows: int = 
 
 
 def read_weights(weights_dir: Path, tuned: bool = True) -> tuple[dict[str, np.ndarray], Skeleton, dict]:
-    """(arrays as float32, skeleton, config) from a weights folder; with `tuned`, `style_film` holds
-    the tuned built-in vectors (TUNED_FILE) where there are any."""
+    """(arrays as float32, skeleton, config); with `tuned`, the tuned built-in vectors applied."""
     weights_dir = Path(weights_dir)
     config = json.loads((weights_dir / CONFIG_FILE).read_text())
     with np.load(weights_dir / WEIGHTS_FILE) as z:

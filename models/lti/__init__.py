@@ -12,10 +12,7 @@ from .model import STAGES, WEIGHTS_DIR, LTIStyleModel, StyleTranslator
 
 
 def load(weights_dir: Path = WEIGHTS_DIR, core_only: bool = False) -> LTIStyleModel:
-    """The committed translators as one streaming model (the service's registry calls this), the
-    stages named in `Settings.stages_off` as `lti.<name>` off. `core_only`: the published system
-    alone (the identified LTI translators, their blend toward the input outside the training range,
-    and the foot planter), every stage (`model.STAGES`) off: the evaluation's core-alone row."""
+    """The committed translators as one model; `core_only`: the published system alone."""
     from ..settings import get_settings
 
     off = STAGES if core_only else [n.removeprefix("lti.") for n in get_settings().stages_off if n.startswith("lti.")]

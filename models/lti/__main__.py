@@ -32,8 +32,7 @@ def cmd_train(args: argparse.Namespace) -> None:
 
 
 def cmd_hinges(args: argparse.Namespace) -> None:
-    """Hinge joints and their least real bend from every dataset-2 TRAIN clip (the data LTI is
-    identified on), every style: one floor for built-in and uploaded styles alike."""
+    """Hinge joints and floors from every dataset-2 TRAIN clip, one floor for all styles."""
     from models.motion.assets import bandai_namco_skeleton
     from models.motion.hinge import HINGE_FILE
     from models.motion.hinge_floor import fit_floor

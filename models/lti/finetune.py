@@ -1,25 +1,10 @@
-"""Fine-tuning a new LTI style from one uploaded clip.
+"""Fine-tuning a new LTI style from one uploaded clip (BN skeleton, already retargeted).
 
-`fine_tune(motion, name, model)` identifies a `StyleTranslator` for the style shown in one
-uploaded Bandai Namco clip (already retargeted if it came from a CMU skeleton):
-
-1. the neutral (`normal`) Bandai Namco dataset-2 training clips of the same content and pace are
-   found by comparing what the clip does, measured from its motion (`content_descriptor`: root
-   speed, turning rate of the smoothed heading, step rate), among clips whose length ratio the IMW
-   warp can represent. Posture only breaks near-ties: an upload's posture is its style;
-2. each neutral clip is cut to as many steps as the upload takes (`step_matched`) and paired with
-   the uploaded clip (capped to `max_frames`), then aligned with the training code's IMW
-   (`train.align`), exactly as offline training does. Uncut, a slow style's clip would be matched
-   several neutral steps to one of its own, and the translator would learn to shuffle;
-3. `train.identify` fits the per-joint systems on those few pairs. The uploaded clip is split in
-   time when long enough: the last `holdout` share is aligned to a neutral clip but kept out of
-   identification, and `train.evaluate` on it gives held-out numbers for the job record;
-4. the style's rotation prior (`train.style_prior`) is fitted from the uploaded clip's frames, as a
-   built-in style's is from its TRAIN clips: the output is held in the region the style's real
-   poses fill (on inputs outside the translator's training range, which it passes through, this is
-   what carries the style).
-
-The service adds the result to its live model with `LTIStyleModel.add_style`.
+Neutral dataset-2 TRAIN clips doing the same (`content_descriptor`) are cut to the upload's step
+count (`step_matched`; uncut, a slow style learns to shuffle), paired and IMW-aligned as offline
+training does; `train.identify` fits the systems, the last `holdout` share kept out for held-out
+numbers; the rotation prior comes from the upload's frames. The service adds the result with
+`LTIStyleModel.add_style`.
 """
 
 from __future__ import annotations
@@ -88,14 +73,7 @@ def _box(x: np.ndarray, width: int) -> np.ndarray:
 
 
 def content_descriptor(feats: np.ndarray, fps: float = 30.0) -> np.ndarray:
-    """What a clip does, from its root alone, in log units so that one unit is a like-for-like
-    ratio whatever the style: (log speed, log turning rate, log step rate).
-
-    - speed: mean root ground speed (m/s);
-    - turning: mean heading change over 2 s windows (deg/s) of the yaw smoothed over 1 s, so the
-      pelvis' swing within a stride (a wide, slow gait swings it far) does not read as turning;
-    - step rate: dominant frequency (1-4 Hz) of the hips' height bobbing, one bob per step; the
-      bob's amplitude is left out, as it is the style's (a giant bobs as much as a run)."""
+    """What a clip does, in log units (a like ratio whatever the style): speed, smoothed turning, step rate."""
     n, w = len(feats), max(int(round(fps)), 1)
     speed = float(np.linalg.norm(feats[1:, :2], axis=1).mean()) * fps / 100.0 if n > 1 else 0.0
     yaw = _box(np.cumsum(feats[:, 2]), w)
@@ -139,14 +117,11 @@ def neutral_bank(ref_key: bytes) -> NeutralBank:
 
 
 def steps_per_second(content: np.ndarray) -> float:
-    """The step rate a `content_descriptor` holds."""
     return float(np.exp(content[2])) - 0.5
 
 
 def step_matched(clip: NeutralClip, frames: int, rate: float, cap: int, match: bool = True) -> int:
-    """How many frames of the neutral `clip` to pair with `frames` of an upload stepping at `rate`
-    per second: as many as hold the same number of steps at the clip's own step rate, within the
-    clip (capped to `cap`) and the lengths the warp can represent (`match` False: all of it)."""
+    """Frames of neutral `clip` holding as many steps as `frames` of the upload, within `cap`."""
     whole = min(clip.frames, cap)
     own = steps_per_second(clip.content)
     if not match or rate <= 0.0 or own <= 0.0:
@@ -156,9 +131,7 @@ def step_matched(clip: NeutralClip, frames: int, rate: float, cap: int, match: b
 
 
 def nearest_neutral(bank: NeutralBank, feats: np.ndarray, k: int, frames: int, match: bool = True) -> list[NeutralClip]:
-    """The k neutral clips doing the most alike (same path and pace, `content_descriptor`), among
-    warpable lengths (of the clip cut to the upload's steps, `step_matched`); posture, weighted by
-    `pose_weight`, orders clips that do the same."""
+    """The k warpable neutral clips doing the most alike; posture (`pose_weight`) breaks ties."""
     lo, hi = warpable()
     d = _descriptor(feats, bank.match_mean, bank.match_std)
     content, w = content_descriptor(feats), FINETUNE["pose_weight"]
@@ -177,8 +150,7 @@ def nearest_neutral(bank: NeutralBank, feats: np.ndarray, k: int, frames: int, m
 
 
 def pairing_config(opts: dict = FINETUNE) -> dict:
-    """The training configuration the job aligns its pairs with: offline training's, with IMW's
-    charge on unsteady warps (`rate_weight`)."""
+    """Offline training's configuration, with IMW's charge on unsteady warps (`rate_weight`)."""
     return {**CONFIG, "imw": {**CONFIG["imw"], "rate_weight": opts["rate_weight"]}}
 
 

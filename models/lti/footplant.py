@@ -1,11 +1,7 @@
-"""Footplant annotation (Hsu et al. 2005, Sec. 5): a one-dimensional multiple discriminant
-analysis (two classes: Fisher's discriminant) of the LTI state per foot, with a Gaussian per
-class on the projection. Its contacts are the model's `FrameBatch.contacts` when the feet are
-not planted; planting itself (root, leg IK) is `models.motion.feet`, shared by every method.
-
-Labels for training come from the (time-warped) output examples: a foot (ankle joint) is planted
-when it is within `HEIGHT_MARGIN` cm of the clip's lowest ankle height and moves slower than
-`SPEED_LIMIT` cm/s on the ground plane.
+"""Footplant annotation (Hsu et al. 2005, Sec. 5): Fisher's discriminant of the LTI state per foot,
+with a Gaussian per class on the projection; its contacts are the planter's hints
+(`models.motion.feet`). Training labels: an ankle within `HEIGHT_MARGIN` cm of the clip's lowest
+and slower than `SPEED_LIMIT` cm/s on the ground.
 """
 
 from __future__ import annotations

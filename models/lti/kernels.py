@@ -1,33 +1,10 @@
 """LTI's streaming step, compiled (numba): one call per frame for every session.
 
-The step reads top to bottom (`step`):
-
-1. `translate`: the published translator. Per session, the input's features; per style, the
-   LTI systems of all the sessions using it; per session, the styles blended and the output
-   path integrated. Each style's rotations are held in its rotation ball (`train.style_prior`).
-2. the input's hands measured (`models.motion.hands_kernels.hand_step`);
-3. `carry_raised_arms`: a raised hand that holds still, its arm carried toward the style's
-   (`raised_arm.py`) by a share eased over time (`raised_shares`);
-4. the feet planted (`models.motion.feet_kernels.plant_feet`).
-
-Each style's hinge joints (knees, elbows) are kept on their hinge at no less than their least
-real bend in step 1 (`models.motion.hinge_kernels.floor_bend`), after its rotation ball.
-
-Why compiled, and in one call: the arithmetic of a frame is a few thousand multiply-adds, which
-numpy spreads over ~1,000 calls of a microsecond each, and each call from Python into a kernel
-costs a few microseconds more of argument checks. Geometry is a loop on scalars and 4-tuples
-(`models.motion.quaternion`).
-
-The LTI product [x'; y] = [[A, B], [C, D]] [x; u] is split: the state columns [A; C] are block
-diagonal per joint (~5 % non-zero, a sparse product); in the input columns [B; D] the rows fall in
-a few groups that read the same inputs (a joint's system reads its context: the root's 7, the
-upper body's 49, a leg's 37 of the 67), so each group is a dense product (`np.dot`) of its
-inputs alone, ~40 % fewer multiply-adds than the whole. Both run on all the sessions using a
-style at once; z's rows are kept in group order (`Systems.pos`).
-
-Records (NamedTuples of arrays), one per concern, travel in a few flat buffers: a session's carry
-(`CARRY`, the model's state), the constant records and the scratch (`pack`); each array passed
-into a compiled call costs ~70 ns, and the kernel rebuilds the records as views.
+`step` reads top to bottom: `translate` (the LTI systems of all a style's sessions at once, each
+style's rotation ball and hinge floor), the hands measured, `carry_raised_arms`, the feet planted.
+Compiled in one call because a frame's few thousand multiply-adds cost less than ~1,000 numpy
+calls. [A; C] is block diagonal (sparse); [B; D]'s rows fall in groups reading the same inputs,
+each a dense product (~40 % fewer multiply-adds). Records travel packed (`CARRY`, `pack`).
 
 Everything is float64; the results equal the numpy formulas (the offline path) to round-off.
 """
@@ -59,8 +36,6 @@ CHUNK = 32  # sessions whose LTI step is computed together: their inputs and out
 
 
 class Frame(NamedTuple):
-    """This frame of B sessions."""
-
     root: np.ndarray  # (B, 3) the input's Hips position
     rotations: np.ndarray  # (B, J, 4) its local rotations
     weights: np.ndarray  # (B, S) style weights
@@ -68,16 +43,13 @@ class Frame(NamedTuple):
 
 
 class Output(NamedTuple):
-    """The step's frame for B sessions."""
-
     root: np.ndarray  # (B, 3)
     rotations: np.ndarray  # (B, J, 4)
     contacts: np.ndarray  # (B, 2) bool: planted legs, or the footplant classifier's without the planter
 
 
 class Session(NamedTuple):
-    """What a session carries from one frame to the next besides the planter's `Feet`: views of
-    the packed carry (`CARRY`; flags as 0.0 / 1.0), and its LTI states."""
+    """Per-session state besides the planter's `Feet`: views of the packed carry (flags 0.0 / 1.0)."""
 
     started: np.ndarray  # (B,) a frame was seen
     in_yaw: np.ndarray  # (B,) the input's heading the frame before
@@ -92,8 +64,7 @@ class Session(NamedTuple):
     x: np.ndarray  # (B, n) the LTI states of the styles in use side by side (`Frame.x_at`)
 
 
-# A session's carry (`Session` less x, then `Feet`) packed in one float64 row: the model's state
-# is this array and the styles' LTI states, so a step passes and allocates a few arrays, not ~20.
+# A session's carry (`Session` less x, then `Feet`) packed in one float64 row: a few arrays a step, not ~20.
 CARRY = {
     "started": (),
     "in_yaw": (),
@@ -146,12 +117,7 @@ def unpack(carry, x):
 
 
 class Systems(NamedTuple):
-    """Every style's translator, concatenated over the model's styles in order, so the kernel
-    takes a fixed set of arrays whatever the style set is. Style s has x_off[s+1] - x_off[s]
-    state entries (`Footplant.w`'s columns x_off[s]...) and rows row_off[s]:row_off[s+1] of
-    M_s = [[A, B], [C, D]], held in group order (`input_groups`): its state columns [A; C] in
-    CSR (columns local to the style), its input columns [B; D] as one dense block per group of
-    rows over the inputs they read."""
+    """Every style's translator concatenated in style order (`x_off`, `row_off`), in group order."""
 
     x_off: np.ndarray  # (S + 1,) int64
     row_off: np.ndarray  # (S + 1,) int64
@@ -187,8 +153,7 @@ class Footplant(NamedTuple):
 
 
 class Ball(NamedTuple):
-    """Each style's rotation prior (`train.style_prior`): per joint, the real style's mean rotation and
-    the radii it is held within."""
+    """Each style's rotation prior (`train.style_prior`): per joint, mean rotation and radii."""
 
     mean: np.ndarray  # (S, 22, 4)
     radii: np.ndarray  # (S, 2, 22) inner, outer (radians; inf: no prior)
@@ -196,8 +161,7 @@ class Ball(NamedTuple):
 
 
 class Bends(NamedTuple):
-    """The rig's hinge joints kept on their hinge at no less than their least real bend
-    (`models.motion.hinge.kernel_floor`)."""
+    """Hinge joints held at no less than their least real bend (`models.motion.hinge.kernel_floor`)."""
 
     bone: np.ndarray  # (22, 3) each joint's bone axis
     hinge: np.ndarray  # (22, 3) its hinge axis (real bends positive)
@@ -205,8 +169,7 @@ class Bends(NamedTuple):
 
 
 class RaisedArm(NamedTuple):
-    """The styles' raised-arm carries (`raised_arm.py`), stacked: style s uses carry row[s]
-    (-1: none)."""
+    """The styles' raised-arm carries (`raised_arm.py`), stacked; style s uses row[s] (-1: none)."""
 
     source: np.ndarray  # (C, J, 4)
     mean: np.ndarray  # (C, J, 4)
@@ -230,8 +193,7 @@ class Switches(NamedTuple):
 
 
 class Work(NamedTuple):
-    """Scratch for up to B sessions, kept between steps (fresh ~2 MB at batch 256 cost more in
-    page faults than the step's arithmetic); flat buffers take each style's (rows, m) shape."""
+    """Scratch kept between steps (fresh buffers cost more in page faults than the arithmetic)."""
 
     session: np.ndarray  # (B, 18): yaw, yaw-free hips, root displacement and yaw change, the input's share, ...
     quats: np.ndarray  # (B, S, 22, 4) each style's body rotations
@@ -282,8 +244,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
 
 # --------------------------------------------------------------------------- records in flat buffers
 
-# Each record's fields as the kernel reads them: f float64, i int64, b bool; 0 a scalar, else the
-# number of dimensions. `pack` checks records against these, `unpack_constants` and `unpack_work` rebuild them in the kernel.
+# Each record's fields: f float64, i int64, b bool; 0 a scalar, else the number of dimensions.
 CONSTANT_SCHEMAS = (
     "i1 i1 i1 i1 f1 i1 i1 i2 i1 f1 f2 f2 f2 f2 f2 f2 f2 f3 f0 f2",  # Systems
     "f2 f3 f3 f3 b1 f3",  # Footplant
@@ -300,11 +261,7 @@ WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f3 f1"
 def pack(
     records: list[tuple], schemas: list[str], copy: bool = True
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every field of `records` (in order) in one float64, one int64 and one bool buffer, and an
-    index (fields, 6) int64 of each field's offset, size and shape: the kernel takes four arrays
-    for all of them (each array passed to a compiled call costs ~70 ns to unbox, more than the
-    step's arithmetic at batch 1 for ~70 arrays). Views into the buffers are the fields. `copy`
-    False: the buffers are left uninitialised (scratch: only the fields' shapes count)."""
+    """All fields of `records` in three buffers (float64, int64, bool) plus an index: four arrays to unbox."""
     kinds = [kind for schema in schemas for kind in schema.split()]
     fields = [np.asarray(v) for record in records for v in record]
     if len(fields) != len(kinds):
@@ -360,8 +317,7 @@ def _s4(p, k):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def unpack_constants(p):
-    """The step's constant records from `pack([systems, footplant, ball, hands, arm, planter,
-    switches, bends])`: views, in `CONSTANT_SCHEMAS`' order."""
+    """The step's constant records from `pack` (`CONSTANT_SCHEMAS`' order), as views."""
     sys = Systems(
         _i(p, 0), _i(p, 1), _i(p, 2), _i(p, 3), _f(p, 4), _i(p, 5), _i(p, 6), _i(p, 7).reshape(_s2(p, 7)), _i(p, 8),
         _f(p, 9), _f(p, 10).reshape(_s2(p, 10)),
@@ -428,10 +384,7 @@ def add_signed(acc, w, q, ref):
 
 @njit(cache=True, error_model="numpy")
 def project(z, pos, fp, a, proj):
-    """Each foot's footplant discriminant (`FootplantClassifier.predict`) of the new states of a
-    chunk's k sessions (rows pos[:n] of z (rows, k); columns a... of fp.w) into proj (2, k):
-    loops over the sessions, which the compiler vectorises (one session: two sums); each sum in
-    state order, as the classifier's."""
+    """Each foot's footplant discriminant of the chunk's new states into proj (2, k)."""
     k = proj.shape[1]
     if k == 1:
         left, right = 0.0, 0.0
@@ -452,8 +405,7 @@ def project(z, pos, fp, a, proj):
 
 @njit(cache=True, error_model="numpy")
 def _likelier(proj, fp, s, foot):
-    """Whether the planted class is the likelier one for this projection (`project`): the more
-    likely Gaussian class (free, planted) of style s's discriminant."""
+    """Whether planted is the likelier Gaussian class of style s's discriminant."""
     mean, var, log_prior = fp.mean[s, foot], fp.var[s, foot], fp.log_prior[s, foot]
     log_var = fp.log_var[s, foot]
     ll_free = -0.5 * (proj - mean[0]) ** 2 / var[0] - 0.5 * log_var[0] + log_prior[0]
@@ -463,8 +415,7 @@ def _likelier(proj, fp, s, foot):
 
 @njit(cache=True, error_model="numpy")
 def style_inputs(sys, s, root_y, rotations, tilt, delta, x, xin, feats, c):
-    """One session's input to style s's system into column c of xin (its state x) and feats (the
-    raw features; representation.pose_features / sequence_features); `normalise` takes them on."""
+    """One session's state and raw features (`representation`) for style s into column c."""
     feats[0, c], feats[1, c], feats[2, c], feats[3, c] = delta[0], delta[1], delta[2], root_y
     for j in range(1, NUM_JOINTS):
         q = tilt if j == HIPS else row4(rotations, j)
@@ -476,11 +427,7 @@ def style_inputs(sys, s, root_y, rotations, tilt, delta, x, xin, feats, c):
 
 @njit(cache=True, error_model="numpy")
 def normalise(sys, s, feats, u, blend, raw):
-    """The raw features of a chunk's k sessions (feats (67, k)) normalised for style s into u,
-    and each session's erf generalisation blend weight into raw (k,): max over DOFs of
-    erf(max(0, dist - k_p) / k_c), found as erf of the largest distance (erf increases), one
-    erf a session. Loops over the sessions, which the compiler vectorises (divisions included);
-    one session (batch 1) takes the same arithmetic without them, which would cost more than it."""
+    """Style s's normalised features into u, each session's erf blend weight into raw."""
     k = raw.shape[0]
     if k == 1:
         top = 0.0
@@ -510,12 +457,8 @@ def normalise(sys, s, feats, u, blend, raw):
 
 @njit(cache=True, error_model="numpy")
 def saturate(sys, s, u):
-    """The normalised features of a chunk's sessions (u (67, k)) saturated into style s's training
-    range: within it unchanged, past it hi + k_p tanh((u - hi) / k_p) (and below lo alike), so the
-    systems never extrapolate and the input's excess passes through on the output
-    (`style_outputs`). Why: the erf blend hands the whole body back to the input when any one DOF
-    leaves the range, which another performer's posture does on every frame (dataset 1's
-    clavicles); saturated, only that DOF's excess is handed back, smooth in the input."""
+    """u saturated into style s's training range (hi + k_p tanh((u - hi) / k_p)): the systems never
+    extrapolate, only the excess passes through (the erf blend hands back the whole body)."""
     k_p = sys.k[s, 0]
     for d in range(FEATURE_DIM):
         hi, lo = sys.in_hi[s, d], sys.in_lo[s, d]
@@ -529,8 +472,7 @@ def saturate(sys, s, u):
 
 @njit(cache=True, error_model="numpy")
 def unset(x):
-    """Whether a style's LTI state is unset: exactly zero, as a session starts and as the step
-    leaves a style at weight 0 (a running system's state is never exactly zero)."""
+    """Whether a style's state is exactly zero: unset (a running system's state never is)."""
     for i in range(x.shape[0]):
         if x[i] != 0.0:
             return False
@@ -539,8 +481,7 @@ def unset(x):
 
 @njit(cache=True, error_model="numpy")
 def start_state(sys, s, u, xin, c):
-    """Column c of xin := the state style s's systems settle in on column c of u held constant
-    (`StyleTranslator.steady_gain`): a session, or a style newly weighted in it, starts there."""
+    """Column c of xin := style s's steady state on u held constant: where a session starts."""
     gain = sys.steady[sys.x_off[s] : sys.x_off[s + 1]]
     for i in range(gain.shape[0]):
         acc = 0.0
@@ -551,22 +492,15 @@ def start_state(sys, s, u, xin, c):
 
 @njit(cache=True, error_model="numpy")
 def ease(raw, history, keep):
-    """A weight eased over time: two one-pole followers in series (fast, then slow) of its raw
-    value, keeping `keep` of their history per frame; history (set, fast, slow), unset (a
-    session's first frame): the followers start at `raw`. Returns (fast, slow); the slow one is
-    applied. Why: the erf blend weight and the raised-arm shares are steep functions of the input
-    (a DOF a fraction of its spread past the training range moves the blend by ~0.4 in a frame; a
-    hand swung up in a jump crosses the raise ramp in a frame or two), and the output moves
-    between two poses with them, a rotation acceleration of the gap times the weight's second
-    difference, which the slow follower keeps small."""
+    """A weight eased by two one-pole followers in series, keeping `keep` per frame; history (set, fast,
+    slow); returns (fast, slow), the slow one applied: a jumping weight would spike acceleration."""
     fast, slow = (history[1], history[2]) if history[0] != 0.0 else (raw, raw)
     fast = keep * fast + (1.0 - keep) * raw
     return fast, keep * slow + (1.0 - keep) * fast
 
 
 def eased(raw: np.ndarray, keep: float) -> np.ndarray:
-    """(F,) a quantity eased frame by frame as the stream does (`ease`), for the offline path: two one-pole
-    followers in series, both starting at its first value."""
+    """(F,) `ease` over a whole sequence, for the offline path."""
     out = np.empty(len(raw))
     history = (0.0, 0.0, 0.0)
     for t, r in enumerate(raw):
@@ -577,11 +511,7 @@ def eased(raw: np.ndarray, keep: float) -> np.ndarray:
 
 @njit(cache=True, error_model="numpy")
 def system_product(sys, s, xin, u, z, group_u):
-    """z = M_s [xin; u] for the m sessions in the columns (rows of z: M_s's in group order, see
-    `Systems`; not the log time warp): each group's dense block times the inputs it reads (one
-    session: a matrix-vector product, BLAS gemv, ~2.5x faster than gemm on one column), then the
-    sparse state columns [A; C] xin added (one session: a sum per row; several: the entries
-    applied to all of them two at a time, a loop the compiler vectorises). group_u: scratch."""
+    """z = M_s [xin; u] (rows in group order): dense [B; D] blocks, then the sparse [A; C] xin."""
     r0, m = sys.row_off[s], xin.shape[1]
     for g in range(sys.group_off[s], sys.group_off[s + 1]):
         first, end, at, count, block = sys.groups[g]
@@ -606,8 +536,7 @@ def system_product(sys, s, xin, u, z, group_u):
                 acc += sys.data[p] * xin[sys.indices[p], 0]
             z[r, 0] = acc
             continue
-        # two entries a pass over the row: half the stores to z, which the loads of x and of the
-        # matrix can wait on (their addresses alike modulo 4 kB, by chance: up to 2x the time)
+        # two entries a pass: half the stores to z (which can alias the loads modulo 4 kB)
         row = z[r]
         for p in range(first, end - 1, 2):
             a, states_a = sys.data[p], xin[sys.indices[p]]
@@ -622,17 +551,13 @@ def system_product(sys, s, xin, u, z, group_u):
 
 @njit(cache=True, error_model="numpy")
 def inside(q, mean, cos_inner):
-    """Whether unit q lies within the ball's inner radius of `mean`, where `clamp_joint` leaves it
-    as it is: cos(angle / 2) >= cos(inner / 2), without the arc tangent."""
+    """Whether unit q is within the inner radius of `mean` (cos(angle / 2) >= cos(inner / 2))."""
     return abs(qdot(mean, q)) >= cos_inner
 
 
 @njit(cache=True, error_model="numpy")
 def style_outputs(sys, ball, bends, s, w, z, feats, u, c, blend_w, x_out, keep_heading, root_feats, quats, out):
-    """Style s's result for one session from column c of z = M [x; u]: the new state into x_out,
-    plus the input's excess over what the systems read (`saturate`; none when u is unsaturated),
-    w * (root displacement, yaw change, height) added to root_feats, the body rotations (22, 4),
-    each held in the style's ball and the hinges at their floor, into quats. out: scratch (67,)."""
+    """Style s's result for one session from column c of z: state, root features, held rotations."""
     n, pos = x_out.shape[0], sys.pos[sys.row_off[s] : sys.row_off[s + 1]]
     for i in range(n):
         x_out[i] = z[pos[i], c]
@@ -657,13 +582,7 @@ def style_outputs(sys, ball, bends, s, w, z, feats, u, c, blend_w, x_out, keep_h
 
 @njit(cache=True, error_model="numpy")
 def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_rot):
-    """The published translator (see model.LTIStyleModel for the state and the style mixing):
-    the translated root into work.root, the body into out_rot, the footplant classifier's
-    contacts into work.contacts, the input and output paths and the LTI states into `after`.
-
-    Three passes: per session, the input's root transform and its share of the output; per
-    style, the LTI step of all sessions using it; per session, the blend of the styles and the
-    output path."""
+    """The published translator (model.LTIStyleModel): input roots per session, LTI steps per style, blends."""
     B, S = frame.weights.shape
     weights, per = frame.weights, work.session
     yaws, tilts, deltas, rests = per[:, 0], per[:, 1:5], per[:, 5:8], per[:, 8]
@@ -720,8 +639,7 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
                     start_state(sys, s, u, xin, c)
             for c in range(k):
                 b = work.rows[lo + c]
-                # each style eases its own weight from the session's history, which takes the
-                # styles' followers in their shares (one style: exactly its own)
+                # each style eases its own weight from the session's shared history
                 fast, work.blend_w[c] = ease(work.blend_w[c], before.blend[b], sys.keep)
                 eased[b, 0] += weights[b, s] * fast
                 eased[b, 1] += weights[b, s] * work.blend_w[c]
@@ -802,10 +720,7 @@ def calm_share(arm, height, sway):
 
 @njit(cache=True, error_model="numpy")
 def raised_shares(b, arm, on, raised, weights, offsets, swayed, fresh, before, after):
-    """Session b's share of each side's raised arm (the hand's raise share
-    times one minus its wave share), eased over time (`ease`, from `before` (2, 2) into `after`):
-    a hand swung up in a jump or a punch crosses the raise ramp in a frame or two. Below
-    `SHARE_FLOOR` an eased share is 0 (it decays toward 0 and would never reach it)."""
+    """Session b's eased share of each side's raised arm; 0 below `SHARE_FLOOR`."""
     carried = False
     if on and raised:
         for s in range(weights.shape[1]):
@@ -819,8 +734,7 @@ def raised_shares(b, arm, on, raised, weights, offsets, swayed, fresh, before, a
 
 @njit(cache=True, error_model="numpy")
 def carry_raised_arms(b, arm, weights, left, right, out_rot, work):
-    """Session b's arms mixed toward the styles' raised arms (`tests/reference/lti_offline.py`'s `carried`): each side
-    by its share (`raised_shares`)."""
+    """Session b's arms mixed toward the styles' raised arms, each side by its share."""
     total = 0.0
     for s in range(weights.shape[1]):
         k = arm.row[s]
@@ -844,9 +758,7 @@ def carry_raised_arms(b, arm, weights, left, right, out_rot, work):
 
 @njit(cache=True, error_model="numpy")
 def step(frame, x, new_x, carry, new_carry, out, constants, work):
-    """One frame for every session: reads `frame`, the packed carry (B, CARRY_WIDTH) and the LTI
-    states x side by side; writes `out`, new_carry and new_x. `constants` and `work` are packed
-    records (`pack`; `planter` is `FootPlanter`'s parameters)."""
+    """One frame for every session; `constants` and `work` packed (`pack`)."""
     frame, out, work, constants = Frame(*frame), Output(*out), unpack_work(work), unpack_constants(constants)
     (before, feet_before), (after, feet_after) = unpack(carry, x), unpack(new_carry, new_x)
     style(frame, before, after, out, constants, work)
@@ -855,14 +767,7 @@ def step(frame, x, new_x, carry, new_carry, out, constants, work):
 
 @njit(cache=True, error_model="numpy")
 def step_fading(frame, x, new_x, carry, new_carry, out, constants, work, fade):
-    """`step` with the unseen-content fade (`models.motion.novelty_stage`) in the same call (at
-    batch 1 a second compiled call, its arguments and its outputs cost more than the fade's
-    arithmetic), run before the feet are planted: the fade turns the legs toward the input's,
-    and planted after it a held foot stays where it is while the fade rises or falls (planted
-    before it, a foot slid by the fade's change of the leg, up to 2 m/s on dataset 1's dances).
-    fade: (control (B, 5) or (0, 5), the fade state (B, W), the reference's five arrays
-    (`NoveltyReference.arrays`), the new fade state (B, W), each row's fade (B,)), as
-    `novelty_kernels.fade_step` takes them."""
+    """`step` with the unseen-content fade in the same call, before the feet are planted."""
     frame, out, work, constants = Frame(*frame), Output(*out), unpack_work(work), unpack_constants(constants)
     (before, feet_before), (after, feet_after) = unpack(carry, x), unpack(new_carry, new_x)
     styled = Output(out.root, work.styled_rotations, out.contacts)  # `style` leaves its root alone
@@ -878,10 +783,7 @@ def step_fading(frame, x, new_x, carry, new_carry, out, constants, work, fade):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def style(frame, before, after, out, constants, work):
-    """`step`'s stages up to the feet, on its records (`frame`, `out`: `Frame`, `Output`; the
-    session state `before` and `after` this frame, `constants` and `work` unpacked): the body
-    into out.rotations, the translated root into work.root, the footplant classifier's contacts
-    into work.contacts."""
+    """`step`'s stages up to the feet."""
     sys, fp, ball, hands, arm, planter, on, bends = constants
     B = frame.root.shape[0]
 
@@ -909,9 +811,7 @@ def style(frame, before, after, out, constants, work):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work):
-    """`step`'s last stage: the feet of the body in out.rotations, on the root in work.root,
-    planted (`models.motion.feet`), the classifier's contacts in work.contacts as hints; the
-    planter's state `feet_before` and `feet_after` this frame (views into the carries)."""
+    """`step`'s last stage: the feet planted (`models.motion.feet`), the classifier's contacts as hints."""
     _, _, _, _, _, planter, on, _ = constants
     B = frame.root.shape[0]
     if not on.footlock:  # the planter's state waits
@@ -944,10 +844,7 @@ def plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work
 
 
 def input_groups(inputs: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int, np.ndarray]]]:
-    """The rows of a system's input columns [B; D] (rows, 67) grouped by the inputs they read:
-    (the row order, groups first to last; per group its rows (first, end) in that order and the
-    inputs it reads). Groups too small to pay for their own product (`GROUP_MIN_SAVING`) join
-    the group reading all the inputs."""
+    """Rows of [B; D] grouped by the inputs they read: (row order, per group (first, end, inputs))."""
     reads = inputs != 0.0
     keys: dict[bytes, list[int]] = {}
     for r, row in enumerate(reads):
@@ -970,8 +867,7 @@ def input_groups(inputs: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int, n
 
 
 def pack_styles(translators: list, keep: float) -> tuple[Systems, Footplant, Ball]:
-    """The records of `StyleTranslator`s (in style order), their blend weights eased by `keep`
-    (`ease`); done once per style-set change."""
+    """The records of `StyleTranslator`s, blend weights eased by `keep`; once per style-set change."""
     from scipy import sparse
 
     x_off, row_off, indptr, indices, data = [0], [0], [], [], []

@@ -1,31 +1,18 @@
 """Trained LTI style translators and the streaming interface the service calls.
 
-One `StyleTranslator` per output style holds the block-diagonal LTI system (all per-joint
-systems combined), the per-DOF normalisation, the input's training range (for the erf blend)
-and the footplant classifier. Every frame, per session:
+One `StyleTranslator` per output style: the block-diagonal LTI system, the per-DOF normalisation,
+the input's training range and the footplant classifier. Every frame, per session:
 
     u = (features(frame) - in_mean) / in_std          (features: representation.py)
     v = u saturated into the training range           (`saturation`: hi + k_p tanh((u - hi) / k_p) past it)
     [x'; y] = M [x; v]     with M = [[A, B], [C, D]]   (block-diagonal per joint)
     out = y * out_std + out_mean + (u - v) in_std     (the input's excess passes through)
     or, the stage off (the paper's core), v = u and
-    out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (generalisation blend,
-                                                                          eased over time: `kernels.ease`)
-    pose = inverse representation(out); rotation prior (`train.style_prior`); hinge joints kept on
-    their hinge at no less than their least real bend (`models.motion.hinge_kernels`, `hinges.npz`); contacts
-    then the stages, each measured on the input and fitted per style the same way: a raised,
-    calm hand's arm (raised_arm.py), the planted feet
+    out = (1 - w) out + w in,  w = max_d erf(max(0, dist_d - k_p) / k_c)   (eased: `kernels.ease`)
+    pose = inverse representation(out), then the rotation prior, hinge floor, raised arm, feet
 
-Heading: the translated yaw drifts slowly for some styles, so by default the output takes the
-input's yaw change (`keep_heading=True`); speed, posture and timing stay translated. The feet are
-planted (`footlock`) by `models.motion.feet.FootPlanter`, shared by every method, with the
-classifier's contacts as hints for feet slower than `HINT_SPEED`, the root giving way past
-`GIVE_CM` (`root_give`); `FrameBatch.contacts` are the planted legs, or the classifier's.
-
-The streaming step (`LTIStyleModel.step_batch`) is one compiled call for every session and stage
-(`kernels.step`); the offline path (`LTIStyleModel.translate`) streams a whole clip through it,
-and takes the log-time-warp output (last DOF) where asked (`timewarp=True`): online it would break
-synchrony. `tests/reference/lti_offline.py` is the numpy reference the step is tested against.
+The output keeps the input's yaw change (`keep_heading`: translated yaw drifts). `translate`
+streams a clip offline; `tests/reference/lti_offline.py` is the numpy reference.
 """
 
 from __future__ import annotations
@@ -52,37 +39,23 @@ from . import representation as rep
 from .footplant import FootplantClassifier
 from .styles import LTIStyles
 
-# The stages around the identified systems, in the order the compiled step runs them (`kernels.step`),
-# each fitted from real clips the same way for every style: the input saturated into each
-# system's training range (`kernels.saturate`, the ranges in each translator's file; off, the
-# paper's erf blend hands the input back instead), the rotation prior (`train.style_prior`, in
-# each translator's file), the hinge floor (`python -m models.lti hinges`), the raised arm
-# (`raised_arm.py`) and, in the foot planter, the root giving way to held feet (`GIVE_CM`). Any
-# can be switched off
-# (`LTIStyleModel(off=...)`, `Settings.stages_off` as `lti.<name>`); the offline path
-# (`LTIStyleModel.translate`) runs the stream's.
+# The stages around the systems, in step order; off via `LTIStyleModel(off=...)` or `lti.<name>`.
 STAGES = ("saturation", "rotation_prior", "hinge_floor", "raised_arm", "root_give")
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_PREFIX = "arm_"  # key prefix of a translator file's raised-arm carry (`StyleCarry.named`)
 STORED = ("in_mean", "in_std", "out_mean", "out_std", "in_lo", "in_hi", "orders", "ref")  # saved as they are
 EASE_S = 0.1  # time constant of each of the two followers easing the erf blend weight (`kernels.ease`)
-RAISE_EASE_S = 0.05  # and the raised-arm shares: at 0.1 s a raise-up's arm came late enough to cost content reads
+RAISE_EASE_S = 0.05  # and the raised-arm shares: quicker, so a raised arm is not late
 HINT_SPEED = 120.0  # cm/s: a foot the footplant classifier calls planted plants when slower (`FootPlanter.hint_speed`)
-# cm: a hold that needs the leg moved further from the translator's lets the foot go
-# (`FootPlanter.max_offset`; 15 for the networks). Longer holds turn the translated thighs out of
-# the style's real frames (docs/eval/ablation.md); shorter ones let more feet slide.
+# cm: a hold that needs the leg moved further lets the foot go (`FootPlanter.max_offset`); longer
+# holds turn the thighs out of the style, shorter ones let feet slide (docs/eval/ablation.md).
 HOLD_CM = 8.0
-# cm: ... but a foot the footplant classifier calls planted (the paper's footplant constraint)
-# is held to this (`FootPlanter.hint_offset`): the translated foot often lands still moving,
-# and let go at HOLD_CM it skidded forward in 3-4 cm steps. Chosen on validation among 12, 16
-# and 24 with the earlier two-feet move (docs/eval/ablation.md).
+# cm: ... but a foot the footplant classifier calls planted is held to this (`hint_offset`): the
+# translated foot often lands still moving (chosen on validation, docs/eval/ablation.md).
 HINT_HOLD_CM = 12.0
-# cm, cm/s (the `root_give` stage): past GIVE_CM a held foot's hold moves the root instead, at
-# most GIVE_SPEED (`FootPlanter.give`, `give_speed`). LTI's joints, each its own system, slide a
-# planted foot under a body that does not follow; let go at HOLD_CM, such a foot snapped back
-# over the ground (on other performers' walks, where the saturated input no longer hands the
-# legs back). Both chosen on validation (docs/eval/ablation.md).
+# cm, cm/s (`root_give`): past GIVE_CM a hold moves the root instead, at most GIVE_SPEED. LTI's
+# per-joint systems slide a planted foot under a body that does not follow (chosen on validation).
 GIVE_CM = 5.0
 GIVE_SPEED = 30.0
 _NO_CONTROL = np.zeros((0, 5))  # the fade's control rows when a frame carries none
@@ -124,16 +97,11 @@ class StyleTranslator:
     # ---------------------------------------------------------------- core
 
     def steady_gain(self) -> np.ndarray:
-        """(n, 67) G = (I - A)^-1 B: the state x = G u a constant input u would settle in. A
-        session starts each system there, on its first frame's input, and its output on that
-        input's own steady output: started from x = 0 (the mean input's), every joint swung from
-        the mean pose toward the input's over the first frames, an acceleration several times the
-        clip's own p99 on other performers' motion (the systems' poles lie within 0.9)."""
+        """(n, 67) G = (I - A)^-1 B: where sessions start (from 0 every joint swung in over the first frames)."""
         return np.linalg.solve(np.eye(self.n) - self.A, self.B)
 
     def blend_weight(self, u: np.ndarray) -> np.ndarray:
-        """(..., 67) normalised input -> (...,) erf blend weight: 0 within the training range
-        (plus k_p standard deviations), -> 1 far outside."""
+        """(..., 67) normalised input -> (...,) erf blend weight: 0 within range (+ k_p), -> 1 far outside."""
         dist = np.maximum(np.maximum(u - self.in_hi, self.in_lo - u), 0.0)
         return erf(np.maximum(dist - self.k_p, 0.0) / self.k_c).max(axis=-1)
 
@@ -144,8 +112,7 @@ class StyleTranslator:
         return np.where(u > self.in_hi, hi, np.where(u < self.in_lo, lo, u))
 
     def _finish(self, feats: np.ndarray, u: np.ndarray, y: np.ndarray, blend: bool, read: np.ndarray) -> np.ndarray:
-        """The output features from the systems' y; `read`: the normalised input the systems read
-        (`u` saturated or not), whose excess over it passes through."""
+        """The output features from y; the excess of `u` over what the systems `read` passes through."""
         out = y * self.out_std + self.out_mean  # a new array
         out[..., : rep.FEATURE_DIM] += (u - read) * self.in_std
         if blend:
@@ -159,8 +126,7 @@ class StyleTranslator:
     def translate_features(
         self, feats: np.ndarray, blend: bool = True, saturate: bool = False
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Offline: (F, 67) input features -> ((F, 68) output features, (F, n) states after each
-        frame); `saturate`: the systems read the input saturated into range, not blended back."""
+        """Offline: (F, 67) input features -> ((F, 68) output features, (F, n) states after each frame)."""
         u = (feats - self.in_mean) / self.in_std
         read = self.saturated(u) if saturate else u
         x = self.steady_gain() @ read[0] if len(read) else np.zeros(self.n)
@@ -173,8 +139,7 @@ class StyleTranslator:
         return self._finish(feats, u, ys, blend and not saturate, read), xs
 
     def ball(self) -> tuple[np.ndarray, np.ndarray]:
-        """(mean (22, 4), radii (2, 22)): this style's rotation prior as the compiled step reads it
-        (`kernels.pack_styles`); without a prior the radii are infinite and nothing is held."""
+        """(mean (22, 4), radii (2, 22)): the rotation prior for `kernels.pack_styles`; radii inf: none."""
         mean = self.prior_mean if self.prior_mean is not None else np.tile([0.0, 0.0, 0.0, 1.0], (rep.NUM_JOINTS, 1))
         radii = self.prior_radii if self.prior_radii is not None else np.full((2, rep.NUM_JOINTS), np.inf)
         return mean, radii
@@ -245,24 +210,12 @@ class _StyleSet(NamedTuple):
 
 
 class LTIStyleModel(LTIStyles):
-    """Hsu et al. 2005 LTI style translation behind the project's streaming interface
-    (`models/interface.py`); the input style is Bandai Namco `normal`.
+    """Hsu et al. 2005 LTI style translation behind `models/interface.py`; input style BN `normal`.
 
-    State per session (all arrays, session axis first): the LTI state of each style in its own
-    array `x.<style>` (a style whose weight is 0 is held at x = 0, unset: weighted in, it starts at its
-    input's steady state, `kernels.start_state`),
-    and `carry`, one float64 row of everything else (`kernels.CARRY`: the input's and the
-    output's root transforms, the hands' measures, the running means, the foot planter's memory).
-    A style weight vector w mixes the styles: the root displacement features are blended
-    linearly, joint rotations by normalised quaternion blending, and 1 - sum(w) of the input
-    passes through (intensity < 1). With a one-hot w this is exactly the paper's translator.
-
-    The style set can change while sessions run: `add_style(translator)` appends a style to
-    `styles()`, `remove_style(name)` drops one, and `upgrade_state` brings a state made before
-    (a live session's, a snapshot's) to the current set: a new style's `x.<style>` starts at 0, a
-    removed style's is dropped, nothing else changes. Both replace (never mutate) `translators`
-    and the style list, so readers on other threads see a consistent set and `copy.copy(model)`
-    is a model whose style set changes independently of this one.
+    State per session: each style's LTI state `x.<style>` (0 while unweighted; weighted in, it starts
+    at its input's steady state) and `carry` (`kernels.CARRY`). Weights mix the styles (root features
+    linearly, rotations by normalised quaternion blending, 1 - sum(w) of the input passing through);
+    one-hot w is the paper's translator. `add_style` / `remove_style` replace, never mutate.
     """
 
     name = "lti"
@@ -316,7 +269,7 @@ class LTIStyleModel(LTIStyles):
         self._compile_step()
 
     def _staged(self, tr: StyleTranslator) -> StyleTranslator:
-        """`tr` with this model's heading and without its stages that are off (a copy, then)."""
+        """`tr` (copied) with this model's heading and without its stages that are off."""
         if "rotation_prior" not in self.stages and tr.prior_mean is not None:
             tr = replace(tr, prior_mean=None, prior_radii=None)
         if not self.raised_arms and tr.raised_arm is not None:
@@ -325,9 +278,7 @@ class LTIStyleModel(LTIStyles):
         return tr
 
     def _compile_step(self) -> None:
-        """One step of one session on the rest pose: numba compiles the step, every stage of it
-        (or loads it from its cache) here, when the model loads, instead of on a live session's
-        first frame."""
+        """One step on the rest pose, so numba compiles (or loads) the step when the model loads."""
         rest = np.zeros((1, rep.NUM_JOINTS, 4))
         rest[..., 3] = 1.0
         self.step_batch(self.init_state(1), FrameBatch(np.zeros((1, 3)), rest), np.zeros((1, len(self._styles))))
@@ -338,8 +289,7 @@ class LTIStyleModel(LTIStyles):
     # ---------------------------------------------------------------- style set
 
     def _set_styles(self, styles: list[str]) -> None:
-        """Everything the step needs per style set, computed here once (the state keys, the
-        kernel's records) and replaced whole, so a reader sees one consistent set."""
+        """Everything the step needs per style set, replaced whole so readers see one consistent set."""
         systems, footplant, ball = kernels.pack_styles([self.translators[s] for s in styles], ease_keep(self.fps))
         arm = raised_arm.settings([self.translators[s].raised_arm for s in styles], ease_keep(self.fps, RAISE_EASE_S))
         h = self._hands
@@ -382,11 +332,7 @@ class LTIStyleModel(LTIStyles):
         self.translators = {k: v for k, v in self.translators.items() if k != style}
 
     def upgrade_state(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """`state` on the current style set: added styles at x = 0, removed ones dropped (see
-        `models.interface`); `state` itself when it already is (one key-set comparison). A state
-        from before the carry was packed (its entries under their own keys; those it lacks,
-        from before a stage, start again) is packed; one saved with the removed waving arm's
-        running means loses them, so a session resumed across a rolling upgrade goes on."""
+        """`state` on the current style set, older layouts converted; `state` itself when it already is."""
         if (
             state.keys() == self._set.state_keys
             and state[CARRY].shape[1] == kernels.CARRY_WIDTH
@@ -418,8 +364,7 @@ class LTIStyleModel(LTIStyles):
         }
 
     def _workspace(self, batch: int) -> _Scratch:
-        """This thread's scratch for steps of `batch` sessions, reused while the style set and the
-        batch stay: at batch 256 fresh ~4 MB per step cost more in page faults than the step."""
+        """This thread's step scratch, reused while the style set and batch stay (page faults otherwise)."""
         held = getattr(self._scratch, "held", None)
         if held is None or held.systems is not self._set.systems or held.batch != batch:
             systems = self._set.systems
@@ -443,7 +388,6 @@ class LTIStyleModel(LTIStyles):
 
     @staticmethod
     def _in_use(w: np.ndarray) -> list[int]:
-        """The styles some session's weight (B, S) uses."""
         if len(w) == 1:  # one session's weights, one list
             return [s for s, top in enumerate(w.tolist()[0]) if top > 0.0]
         if len(w) < COMPACT_FROM:  # a few sessions: a Python scan of the weights beats numpy's calls
@@ -452,10 +396,7 @@ class LTIStyleModel(LTIStyles):
 
     @staticmethod
     def _side_by_side(xs: list[np.ndarray], used: list[int], held: _Scratch) -> tuple[np.ndarray, np.ndarray]:
-        """The LTI states of the styles in `used` side by side for the kernel, and where each sits
-        (`kernels.Frame`; -1: not in use). One style's own array when it is the only one (a
-        session streams one style most of the time), else a copy of those in use (with six
-        styles at batch 256 the rest is ~2 MB copied for nothing)."""
+        """The states of the styles in `used` side by side, and where each sits (-1: not in use)."""
         if len(used) == 1 and xs[used[0]].flags.c_contiguous and xs[used[0]].dtype == np.float64:
             return xs[used[0]], held.alone[used[0]]
         x_at, width = np.full(len(xs), -1, np.int64), 0
@@ -467,9 +408,7 @@ class LTIStyleModel(LTIStyles):
         return x, x_at
 
     def translate(self, motion: Motion, style: str, timewarp: bool = False) -> tuple[Motion, np.ndarray]:
-        """Offline: a whole `Motion` (BN skeleton) streamed toward `style` by this model's step and
-        stages; with `timewarp`, resampled by the translator's log-time-warp output (which would
-        break a stream's synchrony). Returns (Motion, contacts (F', 2))."""
+        """Offline: a `Motion` streamed toward `style`; `timewarp`: resampled by the log time warp."""
         from dataclasses import replace as with_pose
 
         from .warping import resample_pose
@@ -498,16 +437,13 @@ class LTIStyleModel(LTIStyles):
     def step_batch(
         self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray
     ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
-        """One frame for every session: one compiled call (`kernels.step`) on the packed carry
-        and the styles' LTI states laid side by side."""
+        """One frame for every session, in one compiled call (`kernels.step`)."""
         return self._step(state, frames, style_weights, None)
 
     def step_batch_fading(
         self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray, key: str, reference: tuple
     ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
-        """`step_batch` with the unseen-content fade (`models.motion.novelty_stage`, which calls
-        this) between the translator and the feet, in one compiled call (`kernels.step_fading`): the fade's state is
-        `state[key]`, its reference `reference` (`NoveltyReference.arrays`)."""
+        """`step_batch` with the unseen-content fade before the feet (`kernels.step_fading`)."""
         return self._step(state, frames, style_weights, (key, reference))
 
     def _step(

@@ -2,18 +2,12 @@
 
     .venv/bin/python -m models.lti.raised_arm      # fit every style -> models/weights/lti/raised_arm.npz
 
-Why: the translators are linear maps identified over every content, walks most of all; an arm
-raised above the shoulder lies far from where they were fitted, and the hand does not rise as
-the style's does.
-
-What: per output style and side, a `StyleCarry` (`models.motion.style_carry`) from the rotations
-the translator makes of the neutral TRAIN clips to the style's real TRAIN clips, both on the
-frames where that hand is raised and calm (`models.motion.hands.calm_frames`, measured on the
-motion, not read from a content label), its gains capped at 1 (`StyleCarry.damping`) so the
-hand's sway is not magnified. While the input's hand is raised and calm (not waving), that arm
-is mixed toward the carried one by the share, in the compiled step
-(`kernels.carry_raised_arms`). An uploaded style gets the same fit from its clip (`fit_upload`)
-where the clip shows a raised, calm hand.
+The translators are linear maps fitted over every content, walks most of all; a raised arm lies
+far from that. Per style and side, a `StyleCarry` from the translator's rotations of neutral TRAIN
+clips to the style's real TRAIN clips, both on frames where that hand is raised and calm
+(`models.motion.hands.calm_frames`), gains capped at 1 so the sway is not magnified. While the
+input's hand is raised and calm, that arm is mixed toward the carried one (`kernels.carry_raised_arms`).
+Uploads get the same fit from their clip (`fit_upload`).
 """
 
 from __future__ import annotations
@@ -43,8 +37,7 @@ _ARM = [np.array([BN_JOINTS.index(f"{j}_{side}") for j in ARM_JOINTS]) for side 
 
 
 def settings(carries: list[StyleCarry | None], keep: float) -> RaisedArm:
-    """The record the compiled step takes (`kernels.RaisedArm`) for the styles' carries, in style
-    order (None: a style without one), their shares eased by `keep`."""
+    """The compiled step's `kernels.RaisedArm` for the styles' carries (None: none), eased by `keep`."""
     fitted = [c for c in carries if c is not None]
     none = (np.zeros((0, NUM_JOINTS, *shape)) for shape in ((4,), (4,), (3, 3), ()))  # no style has one
     both = StyleCarry.stack(fitted) if fitted else StyleCarry(*none)
@@ -84,8 +77,7 @@ def save(carries: dict[str, StyleCarry], folder: Path) -> Path:
 
 
 def fit(model: LTIStyleModel) -> dict[str, StyleCarry | None]:
-    """Per style of the `LTIStyleModel` (its raised arms off): the carry described above, from
-    all the style's TRAIN clips."""
+    """Per style of the model (raised arms off): the carry above, from all its TRAIN clips."""
     from ..data import build_index, load_motions, select
     from ..eval.run import DATASET, INPUT_STYLE
 
@@ -96,19 +88,14 @@ def fit(model: LTIStyleModel) -> dict[str, StyleCarry | None]:
 
 
 def fit_styles(model: LTIStyleModel, real: dict, inputs: list) -> dict[str, StyleCarry | None]:
-    """Per style of `model` (its raised arms off) with real clips in `real` ({style: [Motion]}):
-    the carry from what the translator makes of the neutral `inputs` (BN `Motion`s) to the real
-    clips, each side on its calm raised frames. The same for a built-in style (its TRAIN clips)
-    and an uploaded one (its clip): a side whose clips hold fewer than `MIN_CALM_FRAMES` such
-    frames keeps the translator's arm, and a style with neither side gets None."""
+    """Per style with real clips in `real`: the carry per side on calm raised frames (None: neither)."""
     from ..eval.run import stylise
 
     targets = {s: [_real_frames(real[s], side) for side in (0, 1)] for s in real}
     styles = [s for s in real if any(len(t) >= MIN_CALM_FRAMES for t in targets[s])]
     if not styles:  # no raised, calm hand anywhere (most uploads): nothing to stylise or fit
         return dict.fromkeys(real)
-    # an input with no raised, calm hand adds no frame to any fit, only stylising time; the
-    # first stays, its first frame standing in below for a side without a target
+    # inputs without a raised, calm hand add nothing; the first stays as a stand-in
     calm = [calm_sides(m) for m in inputs]
     kept_inputs = [k for k, c in enumerate(calm) if k == 0 or c.any()]
     inputs = [inputs[k] for k in kept_inputs]
@@ -133,9 +120,7 @@ def fit_styles(model: LTIStyleModel, real: dict, inputs: list) -> dict[str, Styl
 
 
 def fit_upload(translator: StyleTranslator, clip: Motion, ref: np.ndarray) -> StyleCarry | None:
-    """The carry of an uploaded style (`styles.LTIStyles.fine_tune_style`): `fit_styles` with the
-    neutral TRAIN clips fine-tuning already holds (`finetune.neutral_bank`) and the uploaded clip
-    as the style's real clips. None when the clip holds no raised, calm hand."""
+    """An uploaded style's carry from its clip; None without a raised, calm hand."""
     from .finetune import neutral_bank
     from .model import LTIStyleModel
 
@@ -146,8 +131,7 @@ def fit_upload(translator: StyleTranslator, clip: Motion, ref: np.ndarray) -> St
 
 
 def _real_frames(motions: list, side: int) -> np.ndarray:
-    """(N, J, 4) the `comparable` local rotations of the frames of `motions` with the `side`
-    hand raised and calm (joint_Root at the identity: static on this rig)."""
+    """(N, J, 4) `comparable` rotations of the frames with the `side` hand raised and calm."""
     if not motions:
         return np.zeros((0, NUM_JOINTS, 4))
     q = np.concatenate([m.rotations[calm_frames(m, side)] for m in motions]).astype(np.float64)

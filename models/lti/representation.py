@@ -9,19 +9,9 @@ Per frame of the Bandai Namco skeleton (22 joints, `joint_Root` static at 0, `Hi
   [4:7]   the Hips rotation with its yaw removed ("tilt"), exponential map
   [7:67]  local rotations of joints 2..21 (Spine ... Toes_R), exponential map
 
-Every rotation (the tilt and joints 2..21) is taken relative to a fixed per-joint reference
-rotation `ref` (22, 4) before the exponential map: q = ref_j * exp(r). Several BN joints sit near
-180 degrees from identity (UpperLeg ~175 deg, Shoulder ~110 deg), where the plain exponential map
-wraps around; relative to the data's mean rotation the angles stay far from pi. The reference is
-estimated from the training inputs (`mean_rotations`) and stored with the weights.
-
-The first frame of a clip has zero displacement and zero yaw change. The facing yaw is read off
-the Hips rotation: the hips' left direction is the Hips-local -Y axis (UpperLeg_L - UpperLeg_R
-points along -Y in the Hips frame of this skeleton) and forward = cross(left, up), so yaw 0 means
-facing +Z. Splitting q_hips = q_yaw(yaw) * q_tilt is exact, so the representation inverts exactly.
-
-The exponential map here (`quat_to_rotvec`) is plain numpy (not scipy's), the compiled step's
-`quaternion.qlog` written on arrays, so the offline and streaming paths agree to round-off.
+Rotations are relative to a per-joint reference `ref` (22, 4), q = ref_j * exp(r), since several BN
+joints sit near 180 degrees where exp wraps. Yaw 0 faces +Z; the split q_hips = q_yaw * q_tilt is
+exact, so the representation inverts exactly, and offline and streaming agree to round-off.
 """
 
 from __future__ import annotations
@@ -45,7 +35,7 @@ FEATURE_DIM = ROOT_DIMS + 3 * len(BODY_JOINTS)  # 67
 
 
 def left_matrix(p: np.ndarray) -> np.ndarray:
-    """(..., 4) -> (..., 4, 4) L with quat_mul(p, q) == L @ q (precomputed for constant left factors)."""
+    """(..., 4) -> (..., 4, 4) L with quat_mul(p, q) == L @ q."""
     x, y, z, w = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     rows = [[w, -z, y, x], [z, w, -x, y], [-y, x, w, z], [-x, -y, -z, w]]
     return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
@@ -55,8 +45,7 @@ IDENTITY_REF = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (NUM_JOINTS, 1))
 
 
 def mean_rotations(rotations: np.ndarray) -> np.ndarray:
-    """(F, 22, 4) local rotations -> (22, 4) per-joint mean (principal eigenvector of sum q q^T),
-    with the Hips entry taken over the yaw-free tilt."""
+    """(F, 22, 4) -> (22, 4) per-joint mean rotation, the Hips' over the yaw-free tilt."""
     q = rotations.copy()
     q[:, HIPS] = split_hips(q[:, HIPS])[1]
     ref = np.empty((NUM_JOINTS, 4))

@@ -1,10 +1,8 @@
 """The LTI model's uploaded styles (`models.interface.UploadedStyles`), mixed into `LTIStyleModel`.
 
-An LTI style is a `StyleTranslator`, so a clip becomes a style only by identifying one: a
-fine-tuning job (`finetune.py`) that pairs the clip with neutral training clips, which this
-server must have. The translator is saved as `translator.npz` in the style's folder. A copy of
-the model (`copy.copy`) has a style set of its own because `add_style` / `remove_style` replace
-the translator dict and the packed style set instead of changing them in place.
+A style is a `StyleTranslator`, so a clip becomes one only by identification: a fine-tuning job
+(`finetune.py`) pairing it with neutral training clips this server must have. It is saved as
+`translator.npz`; `add_style` / `remove_style` replace, never mutate, so copies stay apart.
 """
 
 from __future__ import annotations
@@ -24,8 +22,7 @@ TRANSLATOR_FILE = "translator.npz"
 
 
 class LTIStyles(UploadedStyles["StyleTranslator"]):
-    """What `LTIStyleModel` adds to take uploaded styles; it relies on the model's `translators`,
-    `add_style` and `remove_style`."""
+    """What `LTIStyleModel` adds to take uploaded styles."""
 
     translators: dict[str, StyleTranslator]
     if TYPE_CHECKING:

@@ -1,23 +1,11 @@
 """Subspace identification of discrete LTI systems  x[t+1] = A x[t] + B u[t],  y[t] = C x[t] + D u[t].
 
-Not a PyPI package: `nfoursid` and SIPPY take one contiguous record (the training data are
-hundreds of clip pairs, each from rest), bring heavy dependencies, and fit B/D for one-step
-prediction, while a streaming model starting from x0 = 0 wants B and D fitted for simulation.
-
-1. PO-MOESP (Verhaegen 1994): block-Hankel matrices of past and future inputs/outputs stacked
-   over every record (columns of different records never mix), an LQ factorisation (the
-   Cholesky factor of the Hankel Gram matrix: one BLAS product), and an SVD of the part of the
-   future outputs explained by the past, orthogonal to the future inputs; its left singular
-   vectors span the extended observability matrix.
-2. The order n is read off the singular values (`choose_order`).
-3. C is its first block row; A follows from its shift invariance (least squares).
-4. A is made stable: eigenvalues of modulus >= `max_radius` are reflected into the unit circle
-   (same frequency, decay instead of growth), then capped at `max_radius` (A kept real).
-5. B and D: least squares of the output simulated from x0 = 0, accumulated record by record.
-   An assumed input noise level (`input_noise`) adds that noise's expected output energy
-   (sigma_j^2 (||d_j||^2 + b_j^T W_o b_j), W_o the observability Gramian) to the objective: a
-   ridge shaped by the system, so correlated inputs cannot buy a small fit error with large
-   cancelling gains that a live stream's noise would excite.
+Not a PyPI package: `nfoursid` and SIPPY take one record (here: hundreds of clip pairs) and fit
+B/D for one-step prediction, not simulation from x0 = 0. PO-MOESP (Verhaegen 1994) over stacked
+block-Hankel matrices gives the observability matrix; C is its first block row, A follows by shift
+invariance and is made stable; B and D are least squares of the simulated output, plus the
+expected output energy of an assumed input noise (`noise_energy`): large cancelling gains on
+correlated inputs would amplify a live stream's noise.
 """
 
 from __future__ import annotations
@@ -47,8 +35,7 @@ def spectral_radius(A: np.ndarray) -> float:
 
 
 def stabilize(A: np.ndarray, max_radius: float = 0.995) -> tuple[np.ndarray, int]:
-    """Reflect eigenvalues outside the unit circle inside and cap the modulus at `max_radius`.
-    Returns (stable A, number of eigenvalues changed)."""
+    """Reflect eigenvalues inside the unit circle, cap at `max_radius`: (A, eigenvalues changed)."""
     if A.size == 0:
         return A, 0
     lam, V = np.linalg.eig(A)
@@ -70,8 +57,7 @@ def _hankel(x: np.ndarray, start: int, rows: int, cols: int) -> np.ndarray:
 
 
 def choose_order(sv: np.ndarray, max_order: int, energy: float = 0.99, gap: float = 1e3) -> int:
-    """Order from the singular values: an obvious gap (ratio > `gap`) wins, otherwise the
-    smallest n keeping `energy` of the squared singular values; capped at `max_order`."""
+    """Order at an obvious gap (> `gap`), else keeping `energy` of the squared values; <= `max_order`."""
     sv = np.asarray(sv, float)
     k = min(max_order, len(sv) - 1)
     if k <= 0 or sv[0] <= 0:
@@ -94,9 +80,7 @@ def subspace_id(
     ridge: float = 1e-6,
     input_noise: np.ndarray | None = None,
 ) -> StateSpace:
-    """Identify (A, B, C, D) from records of (u (T, m), y (T, p)). `horizon` is the number of
-    block rows i of the past and of the future Hankel matrices; `input_noise` (m,) is passed to
-    `fit_bd`."""
+    """Identify (A, B, C, D) from records (u (T, m), y (T, p)); `horizon`: Hankel block rows."""
     i = horizon
     m = records[0][0].shape[1]
     p = records[0][1].shape[1]
@@ -150,12 +134,9 @@ def fit_bd(
     ridge: float = 1e-6,
     input_noise: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares B, D for simulation from x0 = 0 with A, C fixed; with `input_noise` (m,), the
-    expected squared error were each input j to carry white noise of standard deviation
-    input_noise[j] (module docstring, step 5).
-
-    x_t = sum_j V_t^(j) b_j with V_{t+1}^(j) = A V_t^(j) + u_t[j] I, so y_t = sum_j C V_t^(j) b_j + D u_t;
-    unknowns ordered [vec(B^T) (j-major), vec(D) (row-major)]."""
+    """Least-squares B, D for simulation from x0 = 0 (A, C fixed), plus the expected error of white
+    noise input_noise[j] on each input. x_t = sum_j V_t^(j) b_j, V_{t+1}^(j) = A V_t^(j) + u_t[j] I;
+    unknowns [vec(B^T) (j-major), vec(D) (row-major)]."""
     n, p, m = A.shape[0], C.shape[0], records[0][0].shape[1]
     nb, nd = n * m, p * m
     G = np.zeros((nb + nd, nb + nd))
@@ -184,10 +165,7 @@ def fit_bd(
 
 
 def noise_energy(A: np.ndarray, C: np.ndarray, sigma: np.ndarray, frames: int) -> np.ndarray:
-    """The quadratic form, over fit_bd's unknowns, of the output energy that white input noise
-    (standard deviation sigma[j] on input j) adds over `frames` frames: for each input j,
-    frames * sigma_j^2 * (b_j^T W_o b_j + ||d_j||^2), where W_o = sum_k (A^k)^T C^T C A^k is the
-    observability Gramian (what the state, once pushed by b_j, puts out from then on)."""
+    """fit_bd's quadratic form: frames sigma_j^2 (b_j^T W_o b_j + ||d_j||^2), W_o the observability Gramian."""
     n, p, m = A.shape[0], C.shape[0], len(sigma)
     nb = n * m
     out = np.zeros((nb + p * m, nb + p * m))

@@ -36,47 +36,31 @@ CONTEXT = {
 CONFIG: dict[str, Any] = dict(
     datasets=["bandai-namco-2", "bandai-namco-1"],
     input_style="normal",
-    # None: every dataset-2 style besides the input's. Dataset 1 (one take per style and content,
-    # 1-8 training pairs) trains with `--styles bn1-<style>` but is not shipped: held-out errors
-    # were often worse than the identity baseline (MODEL_CARD.md)
+    # None: every dataset-2 style but the input's (`bn1-<style>` trains dataset 1's: MODEL_CARD.md)
     styles=None,
     contents=None,  # None: every content; or e.g. ["walk", "walk-turn-left", "walk-turn-right"]
     align="imw",  # the alignment (`warping.imw`), recorded in the report and the alignment cache key
-    # max_step 9: output slopes up to 3 output frames per input frame, enough for the slowest
-    # styles' gestures (~2.5x slower than the neutral ones) to find a partner
+    # max_step 9: slopes up to 3 output frames per input frame, for the slowest styles (~2.5x)
     imw=dict(s=3, max_step=9, lam=1000.0, mu=1.0, max_iter=8, tol=1e-4),
     match_std_floor=0.05,  # rad / cm, for the matching features only
     norm_std_floor=1e-2,
     horizon=10,  # block rows of the subspace method
     energy=0.99,  # singular-value energy kept when no clear gap
     max_order_root=16,
-    # True: the root's ground travel (displacement, yaw change; and the log time warp) is its own
-    # system reading only the input's travel, the hips' height and tilt a second one reading all
-    # seven root features. Dataset 2's pelvis tilts with its pace, so one root system walks
-    # another performer who stands in place off at 10-45 cm/s; split, that stops, but on
-    # validation the feet slid no less and a slow CMU walk's held feet snapped
-    # (docs/eval/ablation.md; the legs' context read `joint_Root`, 0, the travel, not the Hips).
-    # False (shipped): the paper's one root system
+    # True: the root's travel a system of its own; False: the paper's one (docs/eval/ablation.md)
     split_root=False,
     max_order_joint=8,
-    # spectral radius cap for A: every mode's time constant under ~10 frames. Slower modes keep a
-    # gesture for seconds after it ends, which the 2-5 s training clips, each from x = 0, never
-    # show (MODEL_CARD.md)
+    # spectral radius cap for A: slower modes hold a gesture for seconds (MODEL_CARD.md)
     max_radius=0.9,
-    # joints whose rotations a joint's system also reads (its outputs stay its own): {joint:
-    # [other joints]}; empty = one joint per system, as the paper. The spine, head and arms read
-    # the root, both UpperLegs and the rest of the upper body; the legs read the root, both legs
-    # and both UpperArms. Without it a raise-up's spine, head and free arm cannot differ from a
-    # wave's, nor the arms swing with the stride (MODEL_CARD.md).
+    # {joint: [other joints]} whose rotations a joint's system also reads; empty: the paper's one
+    # joint per system. Without it a raise-up's spine cannot differ from a wave's, nor the arms
+    # swing with the stride (MODEL_CARD.md).
     context=CONTEXT,
-    # ... fitted as if those inputs carried noise of this std (normalised units; subspace.fit_bd):
-    # a plain least-squares fit of dozens of correlated inputs buys its error with large
-    # cancelling gains that multiply a live stream's noise. Chosen on validation (MODEL_CARD.md)
+    # ... fitted as if those inputs carried noise of this std (normalised; subspace.fit_bd): a plain
+    # fit of many correlated inputs takes large cancelling gains that amplify a stream's noise
     context_noise=0.3,
-    # ... and every rotation input (its own joint's too) as if it carried this much noise in
-    # radians (0.57 degrees, the least spread `norm_std_floor` grants a DOF): a DOF that barely
-    # moves in the training inputs (a knee's twist and sideways bend, 0.05-0.4 degrees) otherwise
-    # takes gains of tens from it into the knee bend, and a stream's noise on it jerks the leg
+    # ... and every rotation input as if it carried this noise (radians): a DOF that barely moves
+    # in training (a knee's twist) otherwise takes large gains, and a stream's noise jerks the leg
     rotation_noise=1e-2,
     # rotation prior (`style_prior`): radii from the output style's TRAIN clips
     prior_inner_q=97.0,
@@ -92,9 +76,7 @@ GROUND_DOFS = np.arange(3)  # the root's ground displacement (x, z) and yaw chan
 
 
 def joint_dofs(j: int) -> np.ndarray:
-    """Feature indices of joint j in the representation: a body joint's (2..21) three; the Hips'
-    (1) the root's 7 features (ground displacement, yaw change, height, tilt); `joint_Root`'s (0)
-    the ground travel alone (a context that reads the travel, not the pelvis's posture)."""
+    """Feature indices of joint j: a body joint's three, the Hips' root 7, `joint_Root`'s travel."""
     if j == 0:
         return GROUND_DOFS
     if j == rep.HIPS:
@@ -104,10 +86,7 @@ def joint_dofs(j: int) -> np.ndarray:
 
 
 def groups(cfg=None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(input DOF indices, output DOF indices) of each per-joint system, the root's first (it
-    also drives the log time-warp output; `cfg["split_root"]`: its ground travel alone, then the
-    hips' height and tilt). `cfg["context"]` (joints -> extra input joints) lets a joint's system
-    also read other joints' rotations (its outputs stay its own)."""
+    """(input DOFs, output DOFs) of each per-joint system, the root's first (it drives the time warp)."""
     cfg = cfg or CONFIG
     context = {int(k): v for k, v in (cfg.get("context") or {}).items()}  # JSON keys are strings
     root = np.arange(rep.ROOT_DIMS)
@@ -139,10 +118,8 @@ def warpable(cfg=CONFIG) -> tuple[float, float]:
 
 
 def make_pairs(index, style: str, split: str, cfg=CONFIG) -> list[tuple]:
-    """Each output-style clip is paired with the input-style clip of the same content and split
-    whose length is closest (ties: least used, then name), within the warp's slope limits.
-    Dataset 1 has a single take per (style, content), so there the input clip may come from any
-    split (the output clip, the thing being predicted, is still held out)."""
+    """Each output clip paired with the same-content input clip closest in length within the warp's
+    limits (dataset 1, one take per pair: from any split)."""
     from models.data import select
 
     dataset, label = dataset_of(style)
@@ -202,8 +179,7 @@ def align(in_motion, out_motion, match_mean, match_std, ref, cfg=CONFIG):
 
 
 def pair_from_warp(mi, mo, warp: np.ndarray, ref) -> PairData:
-    """A training pair from an input motion, an output motion and the time warp aligning them:
-    output features resampled along the warp, plus the log differential warp and contact labels."""
+    """A training pair: output features resampled along the warp, the log differential warp, contacts."""
     from models.motion.skeleton import fk
 
     root, rots = resample_pose(mo.translations[:, rep.HIPS], mo.rotations, warp)
@@ -246,12 +222,8 @@ def matching_stats(index, ref, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
 
 
 def input_noise(ii: np.ndarray, oo: np.ndarray, in_std: np.ndarray, cfg=CONFIG) -> np.ndarray:
-    """Normalised noise std each input `ii` of one system (outputs `oo`) is fitted as if it
-    carried (`subspace.fit_bd`): other joints' (context) `context_noise`, a joint's own none,
-    both with every rotation DOF's `rotation_noise` (radians, over its spread) added in
-    quadrature. Why the second: normalisation makes a DOF with almost no spread in training as
-    loud as any other, and a plain fit of its round-off-sized wiggle multiplies a stream's
-    real noise on it many times over."""
+    """Normalised noise std each input of a system is fitted as carrying (`subspace.fit_bd`): a DOF
+    with almost no training spread is as loud as any other once normalised."""
     context = np.where(np.isin(ii, oo), 0.0, cfg.get("context_noise", 0.0))
     rotation = np.where(ii >= ROTATION_DOFS, cfg.get("rotation_noise", 0.0) / in_std[ii], 0.0)
     return np.sqrt(context**2 + rotation**2)
@@ -321,11 +293,8 @@ def identify(
 
 
 def style_prior(index, style: str, cfg=CONFIG) -> tuple[np.ndarray, np.ndarray]:
-    """The rotation prior of an output style (`models.motion.rotation_ball`): every joint's output is
-    held inside the ball the style's real data fills around its mean rotation, since a linear map
-    of the exponential map carries a raised arm or a deep knee bend past anything the style shows
-    (an elbow 15 degrees past any real elderly take). Radii from every TRAIN-split clip of the style, all
-    contents (paired or not: the prior is about what the style's poses are, not about pairs)."""
+    """The style's rotation prior from all its TRAIN clips: a linear map carries a raised arm or a bent
+    knee past anything the style shows."""
     from models.data import load_motions, select
 
     dataset, label = dataset_of(style)

@@ -1,21 +1,14 @@
 """Correspondence between an input-style clip and an output-style clip of the same content.
 
-`imw` is Hsu et al.'s iterative motion warping: it finds a time warp w (input frame t -> output
-time w(t), in output frames) and a per-DOF space warp (scale a_t, offset b_t) minimising
+`imw` is Hsu et al.'s iterative motion warping: a time warp w and a per-DOF space warp (scale a_t,
+offset b_t) minimising
 
     E = sum_t |x_t - a_t * y(w(t)) - b_t|^2
         + lam * sum_t (|a_{t+1} - a_t|^2 + |b_{t+1} - b_t|^2)     (first-difference smoothness)
         + mu  * sum_t (|a_t - 1|^2 + |b_t|^2)                     (keeps the warp near identity)
 
-by alternating two exact minimisations, so E never increases:
-  * time stage: dynamic programming over monotone warps of the output upsampled by `s` (linear
-    interpolation), each input frame advancing 1..`max_step` upsampled frames, i.e. a slope in
-    [1/s, max_step/s] output frames per input frame (no frame repeats more than s-1 substeps,
-    the "repetition limit"); the endpoints are matched; all DOFs share the warp;
-  * space stage: per DOF, the scale/offset sequence solves a sparse banded linear system
-    (the normal equations), solved for all DOFs at once with scipy.sparse.
-It stops when E decreases by less than `tol` (relatively). The space warp is only a means to a
-better time warp: the training output is the output clip *time*-warped, keeping its style.
+by alternating exact minimisations: time by dynamic programming over monotone warps (slopes in
+[1/s, max_step/s]), space by a sparse banded system per DOF. Training keeps only the time warp.
 """
 
 from __future__ import annotations
@@ -45,9 +38,7 @@ def upsample(y: np.ndarray, s: int) -> np.ndarray:
 
 
 def time_warp_dp(cost: np.ndarray, max_step: int, step_cost: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """Minimum-cost monotone path through `cost` (T, K) from (0, 0) to (T-1, K-1) where each row
-    advances 1..max_step columns, advancing k columns costing `step_cost[k - 1]` more (none by
-    default). Returns (column per row, total cost)."""
+    """Minimum-cost monotone path through `cost` (T, K), rows advancing 1..max_step columns."""
     T, K = cost.shape
     acc = np.full((T, K), np.inf)
     back = np.zeros((T, K), np.int8)
@@ -76,8 +67,7 @@ def _space_system(T: int, lam: float, mu: float) -> sp.csc_matrix:
 
 
 def space_warp(x: np.ndarray, yw: np.ndarray, lam: float, mu: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per-DOF smooth scale/offset: closed form via the (2T x 2T per DOF) normal equations,
-    block-diagonal over DOFs, solved in one sparse factorisation."""
+    """Per-DOF smooth scale/offset from the normal equations, in one sparse factorisation."""
     T, D = x.shape
     R = sp.kron(sp.eye(D), _space_system(T, lam, mu))
     y, xd = yw.T.ravel(), x.T.ravel()  # DOF-major
@@ -106,11 +96,7 @@ def imw(
     tol: float = 1e-4,
     rate_weight: float = 0.0,
 ) -> WarpResult:
-    """Iterative motion warping of output features y (U, D) onto input features x (T, D).
-    `rate_weight` > 0 charges every input frame rate_weight * D * (its slope's departure from
-    the average slope U / T, in output frames per input frame) squared: with no charge the
-    cheapest warp may hold the output still for frames and then jump, a staircase that keeps
-    the poses and loses the motion between them."""
+    """Warp output y (U, D) onto input x (T, D); `rate_weight` charges uneven slopes (else: staircases)."""
     T, D = x.shape
     yu = upsample(y, s)
     ks = np.arange(1, max_step + 1)

@@ -10,8 +10,7 @@ from .skeleton import Motion, Skeleton, load
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 
-# Toe height when a Bandai Namco foot is on the ground: 5th percentile of the lowest toe per frame
-# of dataset-2_walk_normal_001 (`retarget.contact_height`); tests/test_assets.py re-measures it.
+# A BN foot's toe height on the ground (`retarget.contact_height` of dataset-2_walk_normal_001)
 BANDAI_NAMCO_TOE_FLOOR = 4.248
 BANDAI_NAMCO_ANKLE_FLOOR = 11.739  # the same for the ankles (`feet.FootPlanter` holds either on the ground)
 

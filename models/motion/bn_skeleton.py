@@ -1,9 +1,7 @@
 """The models' skeleton: Bandai Namco's (BN) joints by name, and the indices the kernels need.
 
-Every model (LTI, Style-ERD, LPN-FiLM) runs on this skeleton in this joint order: the committed
-asset `assets/bandai_namco.bvh` (`assets.bandai_namco_skeleton`; tests/test_retarget.py checks
-that its names are `BN_JOINTS`). Joint indices are derived here from the names; numba kernels
-read them as module-level ints (compile-time constants), so they import them from here.
+Every model runs on this skeleton in this joint order (`assets/bandai_namco.bvh`). numba kernels
+read the indices as module-level ints (compile-time constants), so they import them from here.
 """
 
 from __future__ import annotations
@@ -24,21 +22,17 @@ BODY = np.array([j for j in range(NUM_JOINTS) if j != ROOT])  # the joints that 
 
 
 def missing_joints(names: Sequence[str], wanted: Sequence[str] = BN_JOINTS) -> list[str]:
-    """The joints of `wanted` that a rig's `names` lack, in order. None missing: the rig is taken as
-    the model's own (mapped by name, any order, extra joints allowed; no retargeting)."""
+    """The joints of `wanted` that `names` lack; none: the rig is the model's own (no retargeting)."""
     have = set(names)
     return [n for n in wanted if n not in have]
 
 
 def body_joints(names: Sequence[str]) -> list[int]:
-    """Indices of a skeleton's joints that carry the body: all but Bandai Namco's static root
-    (a joint of that name, at the origin with the identity rotation, carries nothing); every
-    joint of any other rig."""
+    """Indices of the joints carrying the body: all but BN's static root."""
     return [j for j, n in enumerate(names) if n != BN_JOINTS[ROOT]]
 
 
-# BN joint -> its main child, along the limb or up the spine: the bone the joint's rotation points
-# (the retargeter matches it; joints not listed are leaves).
+# BN joint -> its main child: the bone its rotation points (joints not listed are leaves).
 PRIMARY_CHILD = {
     "Hips": "Spine",
     "Spine": "Chest",

@@ -223,8 +223,7 @@ def _fmt_rows(motion: np.ndarray, decimals: int | None, precision: int) -> list[
 
 
 def dumps(bvh: BvhFile, precision: int = 6) -> str:
-    """Serialise to BVH text. Rows keep the decimals the file was read with (so a round trip
-    reproduces every printed number); otherwise `precision` significant digits."""
+    """Serialise to BVH text, keeping the decimals read (else `precision` significant digits)."""
     out = ["HIERARCHY"]
     children: dict[int, list[int]] = {}
     for idx, joint in enumerate(bvh.joints):

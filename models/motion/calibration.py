@@ -1,26 +1,10 @@
 """Another performer's posture into the model's range: a calibration in front of a method,
 measured online per session, and undone on its output.
 
-Performers and mocap solves hold a body differently. Bandai Namco's two recording sessions share
-one skeleton and a neutral walk looks alike in both, yet dataset 1's clavicles sit about 20
-degrees from any dataset-2 clip's mean. A model reads such input as unseen: LTI's generalisation
-blend (out-of-range input handed back) fires on every dataset-1 frame for the shoulders alone,
-so no style reaches them; off, its coupled upper-body systems extrapolate into jitter.
-
-So, per session, this stage measures each joint's mean local rotation over the session's first
-`WINDOW_S` seconds and, where that mean lies outside the range of the means of the model's own
-neutral TRAIN clips (`PostureRange.fit`, the `RANGE` percentiles of their rotation vectors about
-the mean of means), turns the joint by the least rotation that brings it inside, ramped in over
-`RAMP_S`. A mean already in range is not turned, so the model's own performer passes unchanged.
-The joints the foot planter holds (the legs) are never turned: turned back after the planter,
-they would unpin the feet it planted (a stance's legs lie far out of a walk's range and slid).
-Nor are the hinge joints (`hinge.fit_hinges` on the same clips: elbows, knees): a turn off the
-hinge axis, turned back after the model held the hinge at its floor, carried a dataset-1 elbow
-4 degrees past it (bent backwards).
-The model styles the calibrated frame, and its output is turned back by the same rotations: the
-client gets its own posture with the style's change on top, and content the mean holds (a hand
-held up through the window) is kept. The turns stop moving after the window, so what the body
-does later (a crouch, a wave) is not taken for the performer's posture.
+Performers hold a body differently, which a model reads as unseen input on every frame. Each
+joint's mean over a session's first `WINDOW_S` seconds, where outside the range of the model's own
+neutral TRAIN clips' means (`PostureRange.fit`), is turned inside (ramped over `RAMP_S`), and the
+output turned back. Legs and hinge joints are never turned; later frames do not change the turns.
 
 `python -m models.motion.calibration fit --method NAME --datasets ... --styles normal` writes
 `models/weights/calibration/<NAME>.npz`; `report` prints the turns measured on any clips.
@@ -64,9 +48,7 @@ class PostureRange:
 
     @classmethod
     def fit(cls, clips: list[np.ndarray], skeleton: Skeleton) -> PostureRange:
-        """From clips' local rotations (F, J, 4) on the model rig `skeleton`: the mean of their
-        means, and the `RANGE` percentiles of each clip's mean about it; the legs and the hinge
-        joints unbounded (never turned)."""
+        """From clips' rotations: the mean of means and the `RANGE` percentiles of clip means about it."""
         means = np.stack([quat_mean(r / np.linalg.norm(r, axis=-1, keepdims=True), axis=0) for r in clips])
         reference = quat_mean(means, axis=0)
         about = quat_log(quat_mul(quat_inv(reference)[None], means))
@@ -104,8 +86,7 @@ class PostureRange:
         return out
 
     def clip(self, rotations: np.ndarray, fps: float) -> tuple[np.ndarray, np.ndarray]:
-        """A whole clip (F, J, 4) through one session: its calibrated frames and the turns
-        (F, J, 4) applied at each."""
+        """A whole clip through one session: (calibrated frames, turns (F, J, 4))."""
         state = self.init_state(1)
         J = len(self.reference)
         frames, turns = [], []
@@ -122,8 +103,7 @@ class PostureRange:
 
 
 class CalibratesPosture:
-    """Put in front of a method's class (`with_calibration`): its sessions' input is turned into
-    the model's posture range and its output turned back."""
+    """Put in front of a method's class (`with_calibration`): input turned in, output turned back."""
 
     calibration: PostureRange
 

@@ -1,6 +1,5 @@
 """The posture calibration's per-frame steps, compiled (numba): one pass per session row, so a
-session's output does not depend on the batch it is stepped in (`calibration.py` explains the
-stage; the tests hold these to its properties on real clips)."""
+session's output does not depend on its batch (`calibration.py` explains the stage)."""
 
 from __future__ import annotations
 
@@ -9,9 +8,7 @@ from numba import njit
 from .bn_skeleton import HIPS
 from .quaternion import qdot, qexp, qinv, qlog, qmul, quat_at, qunit, row4
 
-# one session's state row (`state_width`): per joint the sign-aligned sum of its local rotations
-# (4), the turn it is to get (a rotation vector, 3) and the turn applied on the latest frame (4);
-# then the frames seen
+# one session's state row: per joint the rotation sum (4), target turn (3), latest turn (4); frames seen
 SUM, TARGET, APPLIED, PER_JOINT = 0, 4, 7, 11
 
 
@@ -21,12 +18,7 @@ def state_width(joints: int) -> int:
 
 @njit(cache=True, error_model="numpy")
 def calibrate_in(rot, reference, lo, hi, window, ramp, state, out):
-    """Each session's input frame rot (B, J, 4) into out with every joint below the hips turned
-    by its calibration; the session's state row (B, `state_width`) advances. The first `window`
-    frames are measured (their mean local rotation per joint); then each joint's turn is the one
-    that carries that mean to the nearest rotation whose rotation vector about `reference`
-    (J, 4) lies within [lo, hi] (J, 3): the range of the model's own clips' means. It ramps in
-    over `ramp` frames; a mean already in range is not turned."""
+    """Input frames turned into the model's range (measured over `window`, ramped over `ramp`)."""
     B, J = rot.shape[0], rot.shape[1]
     count = PER_JOINT * J
     for b in range(B):
@@ -78,8 +70,7 @@ def _set_targets(state, b, reference, lo, hi):
 
 @njit(cache=True, error_model="numpy")
 def calibrate_out(rot, state, out):
-    """A model's output frame rot (B, J, 4) turned back onto the session's own posture (the
-    inverse of `calibrate_in` with the turns of its latest frame) into out."""
+    """A model's output frame turned back onto the session's own posture (inverse of `calibrate_in`)."""
     B, J = rot.shape[0], rot.shape[1]
     for b in range(B):
         for j in range(J):

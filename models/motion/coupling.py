@@ -1,11 +1,10 @@
 """Couple joints the way a style's real clips move them together: a joint moved with the joints
 it follows by the style's real linear relation instead of the model's.
 
-Per-joint priors cannot put a motion in step with another joint's. Per link, target t following
-drivers u:  d_t' = d_t + (B_real - B_made)^T [d_u, 1], each d a rotation vector from the style's
-real mean, B fitted by least squares on real clips and on the model's output, per gait. Links
-apply in order; style mixes blend corrections as the priors do; rows that weigh no coupled style
-are unchanged. Compiled in `coupling_kernels.py` (numpy reference: `tests/reference/coupling.py`).
+Per link, target t following drivers u:  d_t' = d_t + (B_real - B_made)^T [d_u, 1], each d a
+rotation vector from the style's real mean, B fitted by least squares on real clips and on the
+model's output, per gait. Links apply in order; rows weighing no coupled style are unchanged.
+Compiled in `coupling_kernels.py` (numpy reference: `tests/reference/coupling.py`).
 """
 
 from __future__ import annotations
@@ -44,8 +43,7 @@ def deviations(q: np.ndarray, mean: np.ndarray) -> np.ndarray:
 
 
 def design(q: np.ndarray, mean: np.ndarray, drivers: np.ndarray) -> np.ndarray:
-    """(N, 3D + 1): the drivers' deviations in rotations (N, J, 4), flattened (zeros for padding),
-    and a constant."""
+    """(N, 3D + 1): the drivers' deviations, flattened (zeros for padding), and a constant."""
     used = drivers >= 0
     d = np.zeros((len(q), len(drivers), 3))
     d[:, used] = deviations(q[:, drivers[used]], mean[drivers[used]])
@@ -53,10 +51,7 @@ def design(q: np.ndarray, mean: np.ndarray, drivers: np.ndarray) -> np.ndarray:
 
 
 def regression(q: np.ndarray, mean: np.ndarray, target: int, drivers: np.ndarray) -> np.ndarray:
-    """(3D + 1, 3): the least-squares map from the drivers' deviations to the target's over the
-    frames of rotations (N, J, 4); zero rows for padded drivers. Directions of the drivers'
-    deviations under `RCOND` of the largest are left out: a network that keeps a driver's axis
-    still gave that axis gains of 1e4-1e6, which turned float32 round-off into visible turns."""
+    """(3D + 1, 3) least-squares map, directions under `RCOND` dropped (else huge gains on still axes)."""
     x = design(q, mean, drivers)
     used = np.concatenate([np.repeat(drivers >= 0, 3), [True]])
     out = np.zeros((x.shape[1], 3))
@@ -72,9 +67,7 @@ def moved(q: np.ndarray, mean: np.ndarray, target: int, drivers: np.ndarray, gai
 
 @dataclass(frozen=True)
 class Coupling(Stateless):
-    """The stage (`models.stages`): per coupled style (S): its real mean rotation of every joint (S, J, 4) and, per link (L),
-    the regressions' difference, real minus made, for walking and running frames
-    (S, L, 3D + 1, 3; zero rows for a link's padded drivers)."""
+    """The stage: per coupled style, real means (S, J, 4) and real minus made regressions per gait."""
 
     styles: tuple[str, ...]
     links: tuple[Link, ...]
@@ -83,8 +76,7 @@ class Coupling(Stateless):
     run: np.ndarray
 
     def aligned(self, names: Sequence[str | None]) -> dict[str, np.ndarray]:
-        """`mean`, `walk`, `run` and `on` (S',) with rows aligned with the style list `names`: a
-        style without a coupling gets identity means, zero gains and `on` 0."""
+        """`mean`, `walk`, `run` and `on` (S',) aligned with `names`; uncoupled styles change nothing."""
         identity, zero = np.tile((0.0, 0.0, 0.0, 1.0), (self.mean.shape[1], 1)), np.zeros(self.walk.shape[1:])
         return style_rows(
             self.styles,
@@ -117,7 +109,6 @@ class Coupling(Stateless):
             return cls(tuple(str(s) for s in z["styles"]), links, *arrays)
 
     def with_styles_of(self, other: Coupling) -> Coupling:
-        """This coupling with `other`'s styles added or replacing this one's (a refit of some styles)."""
         if other.links != self.links:
             raise ValueError("couplings of different links cannot be merged")
         keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
@@ -133,10 +124,7 @@ class Coupling(Stateless):
         real: Callable[[str, str], list[np.ndarray]],
         made: Callable[[str, str], list[np.ndarray]],
     ) -> Coupling:
-        """Per style, from its real rotations and the model's for each gait in `GAITS`,
-        `real(style, gait)` and `made(style, gait)` (lists of (F, J, 4)). The mean is the real
-        rotations' over both gaits; each link is fitted on the model's rotations with the links
-        before it applied."""
+        """Per style from `real` and `made` rotations per gait, each link with the ones before applied."""
         targets, drivers = link_indices(links, names)
         means: list[np.ndarray] = []
         gains: dict[str, list[np.ndarray]] = {g: [] for g in GAITS}
@@ -172,9 +160,7 @@ def couple(
     joints: tuple[np.ndarray, np.ndarray],
     aligned: Mapping[str, np.ndarray],
 ) -> np.ndarray:
-    """Rotations (B, J, 4) with each link's target moved toward the styles of weights (B, S) by
-    `aligned` (`Coupling.aligned` for those styles), walking and running gains mixed by each
-    row's gait share (B,); `joints`: `link_indices`. Compiled; the same dtype back."""
+    """Rotations (B, J, 4) coupled toward the styles of weights (B, S), gait-mixed; compiled."""
     from .coupling_kernels import couple_batch
 
     rows, w = _coupled(weights, aligned["on"])

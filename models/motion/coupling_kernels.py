@@ -1,6 +1,5 @@
-"""`coupling.couple` compiled (numba): the numpy reference's formulas (`tests/reference/coupling.py`)
-as per-row, per-link loops. The numpy version cost ~0.3 ms a step at batch 1 (a sixth of
-LPN-FiLM's whole step); this is a few microseconds of arithmetic per session."""
+"""`coupling.couple` compiled (numba): the reference's formulas (`tests/reference/coupling.py`) as
+per-row, per-link loops, microseconds instead of ~0.3 ms a step."""
 
 from __future__ import annotations
 
@@ -18,10 +17,7 @@ def _away(m, q):
 
 @njit(cache=True, error_model="numpy")
 def couple_batch(q, rows, w, share, joints, gains):
-    """In place on q (B, J, 4) float64, rows `rows` only, links in order: each link's target
-    turned by sum_s w_s log(q^-1 f_s(q)), f_s its style-s rotation moved by the gains mixed by the
-    row's gait share. joints: (targets (L,), drivers (L, D) padded with -1); gains: (mean
-    (S, J, 4), walk, run (S, L, 3D + 1, 3))."""
+    """`coupling.couple` in place on q's rows `rows`, links in order."""
     targets, drivers = joints
     mean, walk, run = gains
     L, D = drivers.shape

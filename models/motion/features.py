@@ -17,9 +17,8 @@ from .skeleton import Motion, Skeleton
 
 UP = np.array([0.0, 1.0, 0.0])
 
-# Candidate joint names per body part, first match wins: the BN joint, then its name in CMU's two
-# namings (`humanoid.CMU_TO_BN`: cgspeed, then bvh11). Order matters: in the bvh11 naming
-# "LeftShoulder" is the upper arm, in the cgspeed naming it is the collar.
+# Candidate joint names per body part, first match wins: BN's, then CMU's two namings (cgspeed,
+# then bvh11: order matters, "LeftShoulder" is the upper arm in one and the collar in the other).
 _PART_BN = {
     "hips": "Hips",
     "hip_l": "UpperLeg_L",
@@ -44,11 +43,7 @@ def body_joint(skeleton: Skeleton, part: str) -> int:
 
 
 def left_leg_length(skeleton: Skeleton) -> float:
-    """Left hip-to-ankle length at rest: the scale that makes thresholds skeleton-independent
-    (foot contacts here, the metrics' skating and planting limits, Style-ERD's and LPN-FiLM's
-    features, the render solids). The left leg only, as those thresholds and the trained models'
-    inputs were set with it; `humanoid.leg_length` (mean of both legs, any rig) is the scale
-    *between* rigs. They differ on captured rigs: CMU 14.649 (left) vs 14.796 (mean) units."""
+    """Left hip-to-ankle rest length: the scale of thresholds and features (between rigs: `humanoid.leg_length`)."""
     rest = skeleton.rest_positions()
     hip, knee_to_ankle = body_joint(skeleton, "hip_l"), body_joint(skeleton, "ankle_l")
     total, j = 0.0, knee_to_ankle
@@ -98,8 +93,7 @@ class Features:
 def foot_contacts(
     positions: np.ndarray, skeleton: Skeleton, fps: float, height: float = 0.12, speed: float = 0.5
 ) -> np.ndarray:
-    """(F, 2) contacts: a foot is planted when its ankle or toe is within `height` leg lengths
-    of the floor (y = 0) and moves slower than `speed` leg lengths per second."""
+    """(F, 2) contacts: ankle or toe within `height` leg lengths of y = 0, slower than `speed` per second."""
     leg = left_leg_length(skeleton)
     out = []
     for side in ("l", "r"):
@@ -139,12 +133,7 @@ WORLD_MIRROR = np.array([-1.0, 1.0, 1.0])  # reflect the world's X axis
 
 
 def mirror_reflections(skeleton: Skeleton) -> np.ndarray:
-    """Per joint, the diagonal reflection S_j (as a sign vector) relating its local frame to its
-    mirror joint's: child offsets satisfy offset[mirror(c)] = S_j * offset[c].
-
-    Rigs differ: the CMU rest pose is symmetric in world X, so S = diag(-1,1,1) everywhere; the
-    Bandai Namco rig mirrors limb frames "by behaviour" (S = -I) and its spine about local Y/Z.
-    Ambiguous joints (one child along the bone axis) keep their parent's reflection when it fits."""
+    """Per joint, the sign vector S_j with offset[mirror(c)] = S_j * offset[c] (CMU: -x, BN: -I on limbs)."""
     mirror = skeleton.mirror_map()
     scale = float(np.abs(skeleton.offsets).max())
     out = np.zeros((skeleton.num_joints, 3))
@@ -164,7 +153,7 @@ def mirror_reflections(skeleton: Skeleton) -> np.ndarray:
 
 
 def _same_direction(a: np.ndarray, b: np.ndarray, scale: float) -> bool:
-    """Bones match in direction (within ~10 degrees); captured skeletons differ in length side to side."""
+    """Bones match in direction (within ~10 degrees); lengths may differ side to side."""
     na, nb = np.linalg.norm(a), np.linalg.norm(b)
     if max(na, nb) < 1e-3 * scale:
         return True
@@ -172,11 +161,7 @@ def _same_direction(a: np.ndarray, b: np.ndarray, scale: float) -> bool:
 
 
 def mirror(motion: Motion) -> Motion:
-    """Left/right mirror image of a motion on the same skeleton (world X reflected).
-
-    On a symmetric skeleton (Bandai Namco) world positions satisfy mirrored[j] = M @ original[mirror(j)]
-    exactly; on a captured, slightly asymmetric one (CMU) bone directions are mirrored; local rotations are
-    R'_j = S_parent R_mirror(j) S_j, local translations t'_j = S_parent t_mirror(j)."""
+    """Left/right mirror image (world X reflected): R'_j = S_parent R_mirror(j) S_j, t'_j = S_parent t_mirror(j)."""
     sk = motion.skeleton
     m = sk.mirror_map()
     s = mirror_reflections(sk)

@@ -1,26 +1,13 @@
 """Planted feet for every method: the root travels by the feet on the ground, the legs hold them.
 
 A style model changes how the legs move and how fast the root travels, and nothing makes the two
-agree, so planted feet slide. Per frame, causally, on the model rig:
-1. Root: keeps the model's path (`follow=0`) while the legs do the work; past a quarter of
-   `max_offset` a leash lets the root give way against the held points' motion. With `give`,
-   the root also takes, on the frame, whatever a held foot still on the ground would need past
-   `give` (the shortest move that keeps every such hold within it; two held feet the animation
-   spreads further apart: the one it moves less, the other as near as that allows), at most
-   `give_speed`, the holds taking the rest up to their let-go: a hold no longer lets go and snaps
-   back because the animation's foot slid under a body that did not follow (Kovar et al. 2002:
-   the root adjusted, then the legs' IK).
-2. Contact: a toe or ankle within `margin` of its floor touching down slowly enough, or the
-   model's `hints`. The toe is held whenever it is down, else the ankle. Each floor follows its
-   point down at once and up by `floor_rise` per second (networks' feet float or sink); a hinted
-   foot lifts it at once to `feet_kernels.HINT_FLOOR_RISE` below it (the hint says the ground is near).
-3. Hold: an offset collects the opposite of the held point's motion and two-bone IK moves the
-   ankle by it; past `max_offset` it lets go, unless the hints call the foot down: then it is
-   kept (the leash has the root follow one held foot; two the animation pulls apart grow up to
-   `hint_offset`). Released, it fades by `decay` per frame. Soft IK eases the last `soft` cm of reach.
+agree, so planted feet slide. Per frame, causally: the root keeps the model's path, giving way
+past a quarter of `max_offset` (and, with `give`, taking what a hold needs past `give`: Kovar et
+al. 2002); a toe or ankle touching down slowly near its floor, or hinted by the model, is held by
+two-bone IK until its offset passes `max_offset` (hinted: `hint_offset`), then fades by `decay`.
+Floors follow each point down at once and up by `floor_rise` per second.
 
-One compiled pass (`feet_kernels.plant_feet`); the state is plain `feet_*` arrays, so it joins a
-model's state, snapshots and resumes with it.
+One compiled pass (`feet_kernels.plant_feet`); the state is plain `feet_*` arrays in the model's.
 """
 
 from __future__ import annotations
@@ -56,8 +43,7 @@ each leg's ankle and toe floor heights as the planter sees them."""
 
 @dataclass(frozen=True)
 class FootPlanter:
-    """Plants the feet of one rig (see the module docstring). Lengths in the rig's units (cm on
-    the Bandai Namco rig), speeds per second at `fps`."""
+    """Plants the feet of one rig (module docstring); lengths in rig units, speeds per second."""
 
     hips: int
     chains: np.ndarray  # (2, 4) int64: hip joint, knee, ankle, toe per leg
@@ -74,8 +60,7 @@ class FootPlanter:
     hint_speed: float = math.inf  # a hinted foot faster than this over the ground does not plant
     give: float = 0.0  # past this the root, not the leg, takes a held foot's hold (0: never; below max_offset)
     give_speed: float = math.inf  # per second: the most the root moves off its path for `give`
-    # a held foot the hints call down lets go only this far from the animation (None:
-    # `max_offset`): where the model or its input says the foot is planted, it is kept
+    # a held foot the hints call down lets go only this far (None: `max_offset`)
     hint_offset: float | None = None
     _params: tuple = field(init=False, repr=False, compare=False)
 
@@ -112,8 +97,7 @@ class FootPlanter:
         legs: tuple[tuple[str, ...], ...] = LEGS,
         **settings: float,
     ) -> FootPlanter:
-        """A planter for `skeleton`, whose root translation is its Hips position (the Hips are the
-        hip joints' parent). `floors`: ankle and toe height of a flat foot on the ground."""
+        """A planter for `skeleton`; `floors`: a flat foot's ankle and toe heights."""
         chains = np.array([[skeleton.index(n) for n in leg] for leg in legs], dtype=np.int64)
         hips = int(skeleton.parents[chains[0, 0]])
         if any(int(skeleton.parents[c[0]]) != hips for c in chains):
@@ -126,8 +110,7 @@ class FootPlanter:
         return {k: np.zeros((batch, *shape), dtype) for k, (shape, dtype) in STATE_SHAPES.items()}
 
     def upgrade_state(self, state: dict[str, np.ndarray], batch: int) -> dict[str, np.ndarray]:
-        """`state` with fresh planter keys where it has none (a snapshot from before the planter):
-        such a session plants from its next frame on."""
+        """`state` with fresh planter keys where it lacks them (it plants from the next frame)."""
         if all(k in state for k in STATE_SHAPES):
             return state
         return {**self.init_state(batch), **state}
@@ -140,11 +123,7 @@ class FootPlanter:
         active: np.ndarray | None = None,
         hints: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-        """The model's frame (root (B, 3), local rotations (B, J, 4)) with its feet planted:
-        (root, rotations, planted legs (B, 2) bool, the planter's new state). `state` is not changed.
-        Sessions with `active` False (B,) get their frame back as it is: a style at intensity 0
-        returns the input, planted or not. `hints` (B, 2): the model's own contacts; a hinted foot
-        on the ground plants however fast the animation moves it."""
+        """The frame with its feet planted: (root, rotations, planted legs (B, 2), new state)."""
         root = np.ascontiguousarray(root, np.float64)
         B = len(root)
         active = np.ones(B, bool) if active is None else np.ascontiguousarray(active, bool)
@@ -181,8 +160,7 @@ class FootPlanter:
     def clip(
         self, root: np.ndarray, rotations: np.ndarray, hints: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """A whole clip (F, 3), (F, J, 4) planted frame by frame as a stream would be (offline
-        paths use this to match the streaming step): (root, rotations, planted legs (F, 2))."""
+        """A whole clip planted frame by frame as a stream would be: (root, rotations, planted legs)."""
         state = self.init_state(1)
         out_root, out_rot = np.empty((len(root), 3)), np.empty((len(root), len(self.offsets), 4))
         contacts = np.empty((len(root), 2), bool)
@@ -202,10 +180,7 @@ def model_rig_planter(fps: float, **settings: float) -> FootPlanter:
 
 
 def plant_frame(planter: FootPlanter, frame: FrameBatch, before: State) -> tuple[FrameBatch, State]:
-    """A method's last stage: `frame`'s feet planted by `planter`, its contacts the hints, the
-    planter's state read from `before`. Returns the planted frame (the planted legs its contacts,
-    arrays of the frame's dtype) and the planter's new state entries. Methods step through it
-    (`step_unplanted` then this) so a stage can go between them (the unseen-content fade)."""
+    """A method's last stage, after `step_unplanted` (so the fade can go between): (frame, state)."""
     root, rotations, contacts, feet = planter(
         {k: before[k] for k in STATE_SHAPES}, frame.root, frame.rotations, hints=frame.contacts
     )

@@ -43,13 +43,8 @@ def _cos(u, v):
 
 @njit(cache=True, error_model="numpy")
 def soft_reach(d, d0, reach, soft):
-    """The hip-ankle distance a leg is given for a target `d` away (its pose has it `d0` away,
-    `reach` is the longest it can be): `d` itself up to `reach - soft` (or `d0`, if longer), then
-    eased toward `reach` without ever getting there. Why: near full extension the knee angle is
-    infinitely sensitive to the distance, so an exact IK snaps the knee straight while a hold
-    stretches the leg and pops it bent again on release (a 30 degree knee jump in one frame);
-    the eased distance keeps the knee's change per frame bounded, at the cost of the ankle
-    lagging the target by at most `soft`. soft = 0: exact."""
+    """The hip-ankle distance for a target `d` away: `d` up to `reach - soft`, then eased toward `reach`
+    (near full extension exact IK snaps the knee straight). soft = 0: exact."""
     start = max(reach - soft, d0)
     if soft <= 0.0 or d <= start:
         return min(d, reach)
@@ -59,24 +54,15 @@ def soft_reach(d, d0, reach, soft):
     return start + room * (1.0 - math.exp(-(d - start) / room))
 
 
-# The bend plane of a near-straight leg: its knee's own plane, hip-knee x hip-ankle (unit
-# vectors, so of length the sine of the angle at the hip), plus this much of the plane through
-# the hip-ankle line and the toes. A straight knee has no plane of its own (the cross product is
-# round-off, or a bone offset's stray millimetre), and bending it about that turned the knee
-# sideways, 0.24 rad off its hinge in one frame; a knee bends toward the toes. Squared weight, as
-# `retarget.HINGE_FALLBACK`: the knee's own plane decides from ~4 degrees at the hip on.
+# The bend plane of a near-straight leg: hip-knee x hip-ankle plus this much of the plane through
+# the hip-ankle line and the toes: a straight knee has no plane of its own, and a knee bends toward
+# the toes. Squared weight, as `retarget.HINGE_FALLBACK`.
 POLE_WEIGHT = 0.07**2
 
 
 @njit(cache=True, error_model="numpy")
 def two_bone_ik(gh, leg, a, bones, target, soft):
-    """Analytic two-bone IK for one leg. gh: world rotation of the parent (Hips); leg: local
-    rotations (r_up, r_low, r_foot) of UpperLeg, LowerLeg, Foot; a: world hip-joint position;
-    bones: offsets (off_low, off_foot, off_toe) of LowerLeg, Foot and Toe. Returns new local
-    (r_up, r_low, r_foot) putting the ankle at `target` (as close as the bone lengths allow;
-    within `soft` of full reach, eased by `soft_reach`) with the foot's world orientation
-    unchanged: bend thigh and knee about the leg plane's normal (`POLE_WEIGHT`) to get the
-    hip-ankle distance right, then swing the leg onto the target."""
+    """Analytic two-bone IK: the leg's local rotations putting the ankle at `target`, foot unturned."""
     r_up, r_low, r_foot = leg
     off_low, off_foot, off_toe = bones
     ga = qmul(gh, r_up)
@@ -89,8 +75,7 @@ def two_bone_ik(gh, leg, a, bones, target, soft):
     ac_ab_1 = math.acos(min(max((lcb * lcb - lab * lab - lat * lat) / (-2.0 * lab * lat), -1.0), 1.0))
     ba_bc_1 = math.acos(min(max((lat * lat - lab * lab - lcb * lcb) / (-2.0 * lab * lcb), -1.0), 1.0))
     toe = qrot(gf, off_toe)
-    # twice: a bend about an axis off the leg's plane (the toes' share) misses the distance by
-    # ~3e-4 cm; the second starts from the plane the first made, and a held point stays put
+    # twice: a bend off the leg's plane misses the distance slightly; the second pass fixes it
     for _ in range(2):
         b = add3(a, qrot(ga, off_low))
         c = add3(b, qrot(gb, off_foot))
@@ -120,8 +105,7 @@ def two_bone_ik(gh, leg, a, bones, target, soft):
 
 @njit(cache=True, error_model="numpy")
 def leg_points(rot, hips, chain, offsets, out):
-    """Ankle and toe of leg `chain` (UpperLeg, LowerLeg, Foot, Toe joint indices) relative to the
-    root, which sits at the Hips joint: rot (J, 4) local rotations; out (2, 3) <- ankle, toe."""
+    """Ankle and toe of leg `chain` relative to the root (at the Hips) into out (2, 3)."""
     g = row4(rot, hips)
     p = qrot(g, row3(offsets, chain[0]))
     for k in range(1, 4):
@@ -131,11 +115,8 @@ def leg_points(rot, hips, chain, offsets, out):
             out[k - 2, 0], out[k - 2, 1], out[k - 2, 2] = p
 
 
-# A hinted foot lifts its floor at once to at most this far (cm) below it. A floor left low by a
-# sunk foot or an earlier clip in the session otherwise creeps up by `floor_rise` for seconds,
-# holding no hinted foot meanwhile (the skating of retargeted inputs after other motion); a
-# hint on a foot higher still is taken for a lifted foot, and holding it bends the leg away
-# from the style's poses.
+# cm: a hinted foot lifts its floor at once to at most this far below it; a floor left low would
+# otherwise creep up for seconds, holding no foot meanwhile.
 HINT_FLOOR_RISE = 10.0
 
 
@@ -156,8 +137,7 @@ def _in_disc(x, z, cx, cz, r):
 
 @njit(cache=True, error_model="numpy")
 def _least_in_discs(ax, az, bx, bz, r):
-    """The shortest (x, z) in both discs of radius r about a and b, which meet: none, a
-    projection onto one disc that lies in the other, or a point where the circles cross."""
+    """The shortest (x, z) in both discs of radius r about a and b, which meet."""
     best, best_x, best_z = math.inf, 0.0, 0.0
     for cx, cz in ((0.0, 0.0), _into_disc(0.0, 0.0, ax, az, r), _into_disc(0.0, 0.0, bx, bz, r)):
         if _in_disc(cx, cz, ax, az, r) and _in_disc(cx, cz, bx, bz, r) and cx * cx + cz * cz < best:
@@ -175,27 +155,20 @@ def _least_in_discs(ax, az, bx, bz, r):
     return best_x, best_z
 
 
-# cm/s: two held feet the animation spreads apart, one moving this much faster than the other:
-# the root serves the slower alone (`served_share`); moving alike, both share, so the move does
-# not jump as they swap. A width, not tuned (1 cm a frame at 30 fps)
+# cm/s: two held feet spread apart, one this much faster: the root serves the slower alone
+# (`served_share`); moving alike, both share, so the move does not jump as they swap. Not tuned.
 SERVE_SPEED = 30.0
 
 
 @njit(cache=True, error_model="numpy")
 def served_share(a_moved, b_moved, fps):
-    """`into_both_discs`' share for two held feet that the animation moved a_moved and b_moved
-    (cm) this frame: 0 serves a, 1 serves b, the slower foot served."""
+    """`into_both_discs`' share for two held feet moved a_moved and b_moved: 0 serves a, 1 b."""
     return min(max(0.5 + (a_moved - b_moved) * fps / (2.0 * SERVE_SPEED), 0.0), 1.0)
 
 
 @njit(cache=True, error_model="numpy")
 def root_gives(b, ox, oz, height, rel, floor, margin, before, give, fps):
-    """How far (x, z) session b's root at (ox, oz) moves so that no held leg still on the ground
-    needs its ankle moved more than `give` from the animation (Kovar et al. 2002: the root takes
-    what the legs cannot). Each such leg's offset after this frame would be its last less its
-    point's motion, and the root's move lessens each alike: the shortest move into every disc of
-    radius `give` about them (`into_both_discs` for two). Why: a leg held further bends out of
-    the style's poses, and let go its foot snaps back over the ground."""
+    """Session b's root move so no held leg needs more than `give` (Kovar et al. 2002)."""
     _, prev_root, _, prev_rel, prev_contact, prev_point, prev_offset, _ = before
     n, ax, az, a_moved, bx, bz, b_moved = 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for leg in range(2):
@@ -221,13 +194,8 @@ def root_gives(b, ox, oz, height, rel, floor, margin, before, give, fps):
 
 @njit(cache=True, error_model="numpy")
 def into_both_discs(ax, az, bx, bz, r, share):
-    """The root's move for two held feet (`root_gives`): the shortest (x, z) in both discs of
-    radius r about a and b where they meet. Else (the animation spreads the feet) a point between
-    a's disc's point nearest b and b's nearest a, `share` of the way to b's (`root_gives` serves
-    the foot the animation moved less: its hold stays within r, the other's grows as little as
-    that allows). Continuous as the discs part (both give their one shared point) and in `share`.
-    Why: a move that jumps as the discs part or the feet swap shakes the root, and makes two
-    computations of one stream that differ by round-off differ by centimetres."""
+    """The root's move for two held feet: the shortest in both discs, else `share` of the way between
+    their nearest points; continuous, so the root does not shake."""
     dx, dz = bx - ax, bz - az
     d2 = dx * dx + dz * dz
     if d2 <= 4.0 * r * r:
@@ -239,14 +207,7 @@ def into_both_discs(ax, az, bx, bz, r, share):
 
 @njit(cache=True, error_model="numpy")
 def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
-    """One frame of `feet.FootPlanter` for B sessions (see there for what and why). Reads the
-    model's frame (root (B, 3), rot (B, J, 4)), which sessions to plant (active (B,)), the model's
-    own idea of which feet are down (hints (B, 2), may plant a fast foot) and the planter's state
-    `before` (a `Feet`, its held points integers); writes the planted frame (after.root, out_rot: a
-    copy of rot the caller made) and the rest of the new state `after` but `started` and
-    `model_root` (the caller's: root is the next model root). `planter`: `FootPlanter`'s
-    parameters. An inactive session gets its frame back as it is, nothing planted, while its state
-    keeps up (so planting resumes without a jump)."""
+    """One frame of `feet.FootPlanter` for B sessions; inactive sessions pass, their state keeping up."""
     started, prev_root, prev_model_root, prev_rel, prev_contact, prev_point, prev_offset, prev_floor = before
     _, out_root, _, rel, contacts, point, offset, floor = after
     (
@@ -277,16 +238,13 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
                     n += 1
                     held = max(held, math.sqrt(prev_offset[b, leg, 0] ** 2 + prev_offset[b, leg, 2] ** 2))
             if n > 0:
-                # the leash: a hold past a quarter of max_offset makes the root give way, all of it at
-                # max_offset (the growth per frame shrinks as it nears): past it one held foot no
-                # longer grows (the root follows it), two the animation pulls apart up to hint_offset
+                # the leash: past a quarter of max_offset the root gives way, all of it at max_offset
                 f = max(follow, min(max((held / max_offset - 0.25) / 0.75, 0.0), 1.0))
                 dx = f * fx / n + (1.0 - f) * dx
                 dz = f * fz / n + (1.0 - f) * dz
             ox, oz = prev_root[b, 0] + dx, prev_root[b, 2] + dz
             if give > 0.0:
-                # the root takes what held feet would need past `give`, at most `give_speed`: the
-                # path eases off the model's; the rest the holds take, up to their let-go
+                # the root takes what held feet would need past `give`, at most `give_speed`
                 gx, gz = root_gives(b, ox, oz, root[b, 1], rel, floor, margin, before, give, fps)
                 gn = math.sqrt(gx * gx + gz * gz)
                 if gn > give_speed / fps:
@@ -317,8 +275,7 @@ def plant_feet(root, rot, active, hints, before, after, out_rot, planter):
                     or mx * (ox - prev_root[b, 0]) + mz * (oz - prev_root[b, 2])
                     < (ox - prev_root[b, 0]) ** 2 + (oz - prev_root[b, 2]) ** 2
                 ):
-                    # touch-down (slow, or slower than the root along its path, i.e. pushing back):
-                    # hold from here on, carrying any offset still fading
+                    # touch-down (slow, or pushing back against the root's path): hold from here on
                     planted = True
             if planted and math.sqrt(ex * ex + ez * ez) > (hint_offset if hints[b, leg] else max_offset):
                 planted = False  # the animation has walked away from the hold: let the foot go

@@ -1,7 +1,6 @@
 """Which of a style's clips run, measured from the clips, so an uploaded style gets the split its
-built-in peers get. No fixed speed works (elderly runs are slower than active walks): a style's
-moving clips' median speeds are split where the within-group variance is least (Otsu in 1-D),
-and where the faster group is not `SEPARATION` times as fast the style holds one gait.
+built-in peers get. No fixed speed works (elderly runs are slower than active walks): the moving
+clips' median speeds are split by Otsu's method in 1-D, one gait unless `SEPARATION` apart.
 """
 
 from __future__ import annotations
@@ -23,9 +22,7 @@ def clip_speed(motion: Motion) -> float:
 
 
 def two_groups(values: Sequence[float], separation: float = SEPARATION) -> float:
-    """The value splitting `values` into the two groups that leave the least variance within them
-    (Otsu's split in one dimension): half way between the groups; infinite where there are fewer
-    than two values or the faster group's mean is less than `separation` times the slower's."""
+    """Otsu's 1-D split of `values`; infinite for one group or groups under `separation` apart."""
     v = np.sort(np.asarray(values, np.float64))
     if len(v) < 2:
         return float("inf")
@@ -38,8 +35,7 @@ def two_groups(values: Sequence[float], separation: float = SEPARATION) -> float
 
 
 def run_threshold(speeds: Sequence[float]) -> float:
-    """The median Hips speed (cm/s) above which a clip of these clips' style runs: `two_groups` of
-    the moving clips' speeds (`MOVING_CM_S` and over); infinite for one gait."""
+    """The median Hips speed above which this style's clips run; infinite for one gait."""
     return two_groups([s for s in speeds if s >= MOVING_CM_S])
 
 
@@ -49,8 +45,7 @@ def running(speeds: Sequence[float]) -> np.ndarray:
 
 
 def split_by_gait(motions: list) -> tuple[list, list]:
-    """(walking, running) clips of one style's `motions` by `run_threshold` of their own speeds;
-    standing clips (under `MOVING_CM_S`) in neither."""
+    """(walking, running) clips of one style; standing clips (under `MOVING_CM_S`) in neither."""
     speeds = [clip_speed(m) for m in motions]
     cut = run_threshold(speeds)
     walking = [m for m, s in zip(motions, speeds) if MOVING_CM_S <= s <= cut]

@@ -1,7 +1,6 @@
 """What a hand does, measured causally on the Bandai Namco rig: how far it is raised above its
-shoulder (on a ramp of `RAISE_RAMP_CM`), how fast it sways horizontally (`SWAY_FRAMES` average,
-`WAVE_RAMP_CM_S`) and how fast it rises (the same average). LTI tells a raise-up (a raised hand
-held still) from a wave (swaying at a level height) by these.
+shoulder (`RAISE_RAMP_CM`), and how fast it sways (`WAVE_RAMP_CM_S`) and rises. LTI tells a
+raise-up (raised, held still) from a wave (swaying at a level height) by these.
 """
 
 from __future__ import annotations
@@ -26,8 +25,7 @@ def hand_offsets(pos: np.ndarray) -> np.ndarray:
 
 
 def _arm_chain(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(the joints from the root to each hand and shoulder, parents first; the hands; the
-    shoulders), as indices into `skeleton`."""
+    """(joints from the root to each hand and shoulder, parents first; the hands; the shoulders)."""
     names = list(skeleton.names)
     hands = np.array([names.index(BN_JOINTS[h]) for h in _HANDS])
     shoulders = np.array([names.index(BN_JOINTS[s]) for s in _SHOULDERS])
@@ -41,9 +39,7 @@ def _arm_chain(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 class HandMeter:
-    """The arm chains of `skeleton` for the compiled meter (`hands_kernels.hand_step`): `hand_offsets`
-    from local rotations alone and the sway's step, by forward kinematics over those chains only (a
-    translation moves both ends alike), set up once per skeleton (numpy: `tests/reference/hands.py`, `sway`)."""
+    """The arm chains of `skeleton` for the compiled meter (`hands_kernels.hand_step`), set up once."""
 
     def __init__(self, skeleton: Skeleton) -> None:
         self.chain, self.hands, self.shoulders = _arm_chain(skeleton)
@@ -60,9 +56,7 @@ def raise_share(height: np.ndarray) -> np.ndarray:
 def sway(
     before: np.ndarray, offsets: np.ndarray, prev_offsets: np.ndarray, has_prev: np.ndarray, fps: float
 ) -> np.ndarray:
-    """(B, 2) each hand's averaged horizontal speed (cm/s) against its shoulder after this frame,
-    from the average before it (B, 2) and this and the previous input frame's `hand_offsets`
-    (B, 2, 3); a row without a previous frame starts at 0."""
+    """(B, 2) each hand's averaged horizontal speed (cm/s) against its shoulder."""
     step = np.asarray(offsets)[..., ::2] - np.asarray(prev_offsets)[..., ::2]  # x and z
     speed = np.linalg.norm(step, axis=-1) * fps
     return np.where(has_prev[:, None], before + (speed - before) / SWAY_FRAMES, 0.0)
@@ -87,9 +81,7 @@ def wave_share(swayed: np.ndarray) -> np.ndarray:
 
 
 def calm_sides(motion: Motion) -> np.ndarray:
-    """(T, 2) bool: the frames of a Bandai Namco `Motion` with each hand (left, right) at its
-    shoulder or above (more than half way up `RAISE_RAMP_CM`) and not waving (its wave share, from the clip's sway, under a half). Both
-    sides from one pass of forward kinematics, which is most of the cost."""
+    """(T, 2) bool: frames with each hand raised and not waving."""
     offsets = hand_offsets(motion.global_positions())
     return (raise_share(offsets[..., 1]) > 0.5) & (wave_share(clip_sway(offsets, motion.fps)) < 0.5)
 

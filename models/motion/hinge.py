@@ -1,12 +1,10 @@
 """Hinge joints, fitted from real rotations, and the parent twist that keeps them hinges.
 
-A model that decides where bones point takes each bone's twist from another pose, so an elbow or
-knee may swing sideways off its hinge, a pose no real limb takes. `fit_hinges` finds, the same
-way for every joint, a parent's only child whose swing turns about one direction only, and stores
-its axis (real bends positive), the parent's real twist interval and the least real bend (the
-`floor`). `twist_kernels.hinge_twist` turns the parent about its bone so the child's bone lies in
-the hinge plane; the child turns back within its own twist interval, as a forearm pronates. The
-turn fades below `fade` radians of bend and from a quarter turn on.
+A model that decides where bones point takes twists from another pose, so an elbow or knee may
+swing off its hinge. `fit_hinges` finds a parent's only child whose swing turns about one
+direction, storing its axis (real bends positive), the parent's real twist interval and the least
+real bend (`floor`). `twist_kernels.hinge_twist` turns the parent so the child's bone lies in the
+hinge plane; the turn fades below `fade` radians of bend and from a quarter turn on.
 """
 
 from __future__ import annotations
@@ -29,10 +27,7 @@ FADE_DEGREES = 35.0  # below this bend the hinge plane is ill-defined: the re-tw
 
 @dataclass(frozen=True, eq=False)  # hashed by identity: the kernel plan is cached per instance
 class Hinges:
-    """Per hinge joint: its index, its hinge axis in its rest frame (real bends positive), the
-    direction its bone bends toward (hinge x bone, made square to the parent's bone) in the
-    parent's frame; for its parent and itself, the real mean local rotation and the real twist
-    interval relative to it (radians, about each one's bone); `fade` in radians."""
+    """Per hinge joint: hinge axis, bend direction, real means and twist intervals, floor; `fade`."""
 
     joints: np.ndarray  # (K,) int
     axes: np.ndarray  # (K, 3)
@@ -102,8 +97,7 @@ def fit_hinges(skeleton: Skeleton, rotations: np.ndarray, share: float = HINGE_S
 
 
 def kernel_floor(skeleton: Skeleton, hinges: Hinges | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per joint (J), as `hinge_kernels.floor_bend` takes them: its bone axis, its hinge axis
-    and its floor (-inf: not a hinge, or fitted without floors: nothing is held)."""
+    """Per joint (J) for `hinge_kernels.floor_bend`: bone axis, hinge axis, floor (-inf: not held)."""
     from .twist import bone_axes  # twist imports this module
 
     J = skeleton.num_joints
@@ -124,9 +118,7 @@ class KernelHinges(NamedTuple):
 
 
 def kernel_hinges(skeleton: Skeleton, hinges: Hinges | None) -> KernelHinges:
-    """Per joint (J), as `twist_kernels` takes them: the hinge child it re-twists for (-1: none),
-    that child's bend direction in the joint's frame, and for parents and hinge joints the real
-    mean rotation (J, 4) and the twist interval about it (J, 2); and the fade. Cached per parents and `Hinges` instance: the streaming steps call it every frame."""
+    """Per joint (J) for `twist_kernels`, cached (the steps call it every frame)."""
     return _kernel_hinges(tuple(map(int, skeleton.parents)), hinges)
 
 

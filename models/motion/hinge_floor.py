@@ -1,15 +1,11 @@
 """Knees and elbows kept on their hinge at no less than their least real bend: a stage after a
 method's network.
 
-Why: a network that decides rotations (Style-ERD, LPN-FiLM) straightens a knee or an elbow past
-straight for a few frames where the style pulls the limb far (an upload's knee bent back by
-22 degrees), a pose no real limb takes. Real knees and elbows of every style never bend backward
-past their floor (`hinge.Hinges.floor`) nor swing off their hinge axis, so the stage turns each
-output's swing into its bend about the hinge axis, held at the floor (`hinge_kernels.floor_bends`),
-keeping its twist. It is
-fitted once per rig from real rotations of every dataset-2 TRAIN clip, every style, as LTI's
-(`python -m models.lti hinges`), and runs after all the other stages for every style alike,
-built-in or uploaded, so an upload needs nothing fitted for it.
+A network deciding rotations (Style-ERD, LPN-FiLM) bends a knee or elbow past straight for a few
+frames where a style pulls the limb far. Real limbs never do, so each output's swing becomes its
+bend about the hinge axis, held at the floor (`hinge_kernels.floor_bends`), twist kept. Fitted
+once per rig from every dataset-2 TRAIN clip (as `python -m models.lti hinges`), it runs for every
+style alike, uploads included.
 """
 
 from __future__ import annotations

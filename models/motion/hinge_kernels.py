@@ -1,13 +1,8 @@
-"""A hinge joint kept on its hinge at no less than its least real bend (`hinge.Hinges`), compiled
-(numba).
+"""A hinge joint kept on its hinge at no less than its least real bend (`hinge.Hinges`), compiled.
 
-Why: a model that is linear in rotations (LTI) carries a joint that straightens past straight
-into a backward bend (an elbow at -27 degrees, a knee flipping back), and turns a forearm sideways
-off the elbow's hinge (by up to 13 degrees on runs), poses no real limb takes. Real knees and
-elbows of every style turn about one axis only and never bend backward past their floor (both
-fitted from real rotations), so the output's swing becomes a bend about the hinge axis, held at
-the floor; its twist about the bone is kept. Offline (`floor_bends`) and per frame (`floor_bend`)
-are the same arithmetic.
+A model linear in rotations (LTI) bends a straightening elbow or knee backward and turns a forearm
+off its hinge. Real knees and elbows turn about one axis and never bend past their floor, so the
+output's swing becomes a bend about the hinge axis, held at the floor; its twist is kept.
 """
 
 from __future__ import annotations
@@ -21,18 +16,15 @@ from .quaternion import dot3, qinv, qmul
 
 @njit(cache=True, error_model="numpy")
 def floor_bend(q, bone, hinge, floor):
-    """Unit q (a joint's local rotation, 4-tuple) with its swing (off `bone`, q = swing * twist)
-    replaced by the nearest rotation about `hinge`, its bend raised to `floor` where it is below;
-    the twist kept."""
+    """Unit q's swing replaced by the nearest rotation about `hinge`, bent at least `floor`."""
     along = dot3((q[0], q[1], q[2]), bone)
     norm = math.sqrt(along * along + q[3] * q[3])
     twist = (0.0, 0.0, 0.0, 1.0)  # a half turn off the bone has no twist part
     if norm > 1e-9:
         twist = (along * bone[0] / norm, along * bone[1] / norm, along * bone[2] / norm, q[3] / norm)
     swing = qmul(q, qinv(twist))
-    # the nearest rotation about the hinge: the swing's parts along the hinge axis and along the
-    # identity, renormalised (no trigonometry); its bend 2 atan2(a, w) is at least 2 a for a >= 0,
-    # so most frames (a knee or an elbow bent forward) are found at or past the floor without it
+    # the nearest rotation about the hinge: the swing's hinge and identity parts, renormalised;
+    # its bend 2 atan2(a, w) >= 2 a, so most frames pass the floor test without trigonometry
     a = dot3((swing[0], swing[1], swing[2]), hinge)
     w = swing[3]
     if w < 0.0:
@@ -47,8 +39,7 @@ def floor_bend(q, bone, hinge, floor):
 
 @njit(cache=True, error_model="numpy")
 def floor_bends(rotations, bone, hinge, floor):
-    """(F, J, 4) local rotations, in place: every hinge joint (finite `floor[j]`) on its hinge, at
-    least at its floor."""
+    """(F, J, 4) rotations in place, each hinge joint (finite floor) on its hinge, at its floor."""
     for j in range(rotations.shape[1]):
         if not floor[j] > -math.inf:
             continue

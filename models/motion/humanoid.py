@@ -1,26 +1,11 @@
 """Any humanoid rig: which joint plays which body role, and how the rig sits in the world.
 
-The models run on the Bandai Namco (BN) skeleton; a client may bring any humanoid. This module
-knows rigs by their joint *names* and *hierarchy* only, never by their rest pose, so the same rig
-in T-pose, A-pose, its first frame or BN's meaningless zero pose maps the same way (the
-retargeter, `retarget_stream.FrameRetargeter`, then works from the bone directions of each frame).
-
-* Roles (`ROLES`): hips, up to four spine joints (bottom-up; the top one is the chest the
-  clavicles hang from), neck, head, and per side clavicle, upper/lower arm, hand, upper/lower
-  leg, foot, toes. Required: hips, one spine joint, head, arms from the upper arm to the hand
-  and legs from the upper leg to the foot.
-* Matching (`match_roles`): an explicit `joint_map` {joint: role} first; then an exact preset
-  table (`humanoid_presets.PRESETS`, the two CMU namings, BN) when the rig has all its required
-  names; otherwise aliases on the name with the side marker taken out (Left/Right, L/R, _l/_r,
-  .L/.R, left_/right_; any `prefix:` and a `mixamorig`, `Bip01` or VRoid `J_Bip_` prefix are
-  dropped), case-insensitively. Ambiguous names are resolved by their order along the limb
-  ("LeftShoulder" is the clavicle above "LeftArm" but the upper arm above "LeftElbow"; SMPL's
-  "left_foot" is the toes below "left_ankle").
-* Topology (`check_topology`): hips above the feet, hips above the head, the chest above both
-  hands, each limb in order. `RigError` names every missing role and every broken link at once.
-* World (`HumanoidRig`): up axis Y or Z (given, or read from a standing rest pose), handedness
-  (given), units (given, or read from the leg length), which joint's translation a frame's
-  `root` carries.
+Rigs are known by joint *names* and *hierarchy* only, never by rest pose, so T-pose, A-pose or
+BN's zero pose map alike. Roles (`ROLES`, `REQUIRED`): hips, up to four spine joints, neck, head,
+and per side clavicle to hand, upper leg to toes. `match_roles`: a `joint_map`, then an exact
+preset table, then aliases without side markers and prefixes, ambiguous names by their order
+along the limb. `check_topology` names every fault at once; `HumanoidRig` holds the world (up
+axis, handedness, units, the joint a frame's `root` moves).
 """
 
 from __future__ import annotations
@@ -63,8 +48,7 @@ BN_ROLES = {
     },
 }
 
-# BN joint (after joint_Root, in BN order) -> CMU joint at the same body position, for the two CMU
-# naming variants.
+# BN joint (after joint_Root) -> CMU joint at the same body position, for the two CMU namings.
 _CGSPEED = dict(
     zip(
         BN_JOINTS[1:],
@@ -120,8 +104,7 @@ TYPICAL_LEG_CM = 85.0  # thigh + shin of an adult, for reading units off a rig
 
 
 class RigError(ValueError):
-    """A rig that cannot be mapped; `code` is the protocol's error code, `missing` the roles (or
-    joints) at fault, all of them."""
+    """A rig that cannot be mapped; `code` is the protocol's error code, `missing` all roles at fault."""
 
     def __init__(self, code: str, message: str, missing: tuple[str, ...] = ()) -> None:
         super().__init__(message)
@@ -154,8 +137,7 @@ def is_ancestor(parents: np.ndarray, a: int, b: int) -> bool:
 
 
 def path_length(skeleton: Skeleton, a: int, b: int) -> float:
-    """Sum of bone lengths from ancestor a down to b (the segment's length in any pose when the
-    joints between are in line, e.g. twist bones)."""
+    """Sum of bone lengths from ancestor a down to b (its length in any pose if the joints are in line)."""
     total = 0.0
     while b != a and b >= 0:
         total += float(np.linalg.norm(skeleton.offsets[b]))
@@ -190,9 +172,7 @@ def _from_table(skeleton: Skeleton, excluded: set[int]) -> tuple[str | None, dic
 def _assign_chain(
     joints: list[int], candidates: list[set[str]], parts: tuple[str, ...], required: set[str]
 ) -> dict[str, int]:
-    """Roles `parts` (in body order) onto joints in depth order: each role at most once, roles in
-    order along the chain, as many required roles as possible, then optional ones, earliest
-    joints first (a small exhaustive DP; chains are short)."""
+    """Roles `parts` onto joints in order along the chain, required ones first (a small DP)."""
     best: dict[tuple[int, int], tuple[int, dict[str, int]]] = {}
 
     def solve(i: int, k: int) -> tuple[int, dict[str, int]]:
@@ -260,8 +240,7 @@ def _from_aliases(skeleton: Skeleton, fixed: dict[str, int], excluded: set[int])
 
 
 def _spine_chain(skeleton: Skeleton, roles: dict[str, int]) -> list[int]:
-    """Joints strictly between the hips and the neck (or head), bottom-up, that have length or
-    carry the arms: the spine, whatever its joints are called."""
+    """Joints strictly between the hips and the neck (or head), bottom-up, with length or arms."""
     hips = roles.get("hips")
     top = roles.get("neck", roles.get("head"))
     if hips is None or top is None or not is_ancestor(skeleton.parents, hips, top):
@@ -297,8 +276,7 @@ def _spine_chain(skeleton: Skeleton, roles: dict[str, int]) -> list[int]:
 def match_roles(
     skeleton: Skeleton, joint_map: dict[str, str | None] | None = None
 ) -> tuple[str | None, dict[str, int]]:
-    """(preset whose table matched or None, {role: joint index}). `joint_map` {joint: role or
-    None}: its roles are taken as given, a None takes the joint out of the matching."""
+    """(matched preset or None, {role: joint}); `joint_map` {joint: role or None} overrides."""
     fixed: dict[str, int] = {}
     excluded: set[int] = set()
     names = _lookup(skeleton)
@@ -339,11 +317,7 @@ def match_roles(
 
 
 def rig_kind(rig: Skeleton | HumanoidRig) -> str:
-    """What a skeleton is, by its joint names: the preset table `match_roles` matches
-    ('bandai-namco', the models' skeleton; 'cmu' and 'cmu-bvh11', CMU's two namings; 'mixamo',
-    'ue5', ...), else 'humanoid' (matched by aliases, or not at all: `humanoid_rig` says why).
-    A matched `HumanoidRig` answers from its match. The one classifier: the upload path and the
-    tests ask it."""
+    """A skeleton's preset by joint names ('bandai-namco', 'cmu', 'mixamo', ...), else 'humanoid'."""
     preset = rig.preset if isinstance(rig, HumanoidRig) else match_roles(rig)[0]
     return preset or "humanoid"
 
@@ -354,9 +328,7 @@ def chest_role(roles: dict[str, int] | set[str]) -> str:
 
 
 def bn_segments(roles: dict[str, int] | set[str]) -> dict[str, tuple[str, str]]:
-    """BN joint -> (role, role): the client segment whose direction the BN joint's bone takes.
-    Optional roles fall back to their neighbours (no neck: chest to head; no clavicle: chest to
-    upper arm; one spine joint: hips to chest); no toes leaves BN's foot without a segment."""
+    """BN joint -> (role, role): the client segment its bone follows (optional roles fall back)."""
     chest = chest_role(roles)
     lower_spine = "spine1" if chest != "spine1" else "hips"
     neck = "neck" if "neck" in roles else chest
@@ -389,8 +361,7 @@ def bn_joints_of(roles: dict[str, int]) -> dict[str, str]:
 
 
 def check_topology(skeleton: Skeleton, roles: dict[str, int]) -> None:
-    """Raise `RigError` naming every missing required role, or every link out of order and
-    every segment the mapping reads that has no length."""
+    """Raise `RigError` naming every missing role, link out of order and zero-length segment."""
     missing = [r for r in REQUIRED if r not in roles]
     if missing:
         raise RigError(
@@ -424,8 +395,7 @@ def check_topology(skeleton: Skeleton, roles: dict[str, int]) -> None:
 
 
 def axes_matrix(up: str, handedness: str) -> np.ndarray:
-    """Client world -> model world (Y up, right-handed). A reflection for left-handed clients;
-    rotations are conjugated by it (A R A^T), which keeps them proper."""
+    """Client world -> model world (Y up, right-handed); a reflection for left-handed clients."""
     table = {
         ("y", "right"): [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
         ("z", "right"): [[1, 0, 0], [0, 0, 1], [0, -1, 0]],
@@ -440,8 +410,7 @@ def axes_matrix(up: str, handedness: str) -> np.ndarray:
 
 
 def detect_up(skeleton: Skeleton, roles: dict[str, int]) -> str | None:
-    """'y' or 'z' when the rest pose stands (head above the feet along one axis), else None
-    (a rest pose such as BN's zero pose says nothing about up)."""
+    """'y' or 'z' when the rest pose stands (head above the feet), else None."""
     rest = skeleton.rest_positions()
     v = rest[roles["head"]] - 0.5 * (rest[roles["foot_l"]] + rest[roles["foot_r"]])
     n = np.linalg.norm(v)
@@ -454,18 +423,14 @@ def detect_up(skeleton: Skeleton, roles: dict[str, int]) -> str | None:
 
 
 def leg_length(skeleton: Skeleton, roles: dict[str, int] | None = None) -> float:
-    """Thigh + shin (mean of both legs), in the rig's units: pose-independent. The scale between
-    rigs (the retargeter's units and stride) and of a rig's `units`. `roles` default to
-    `match_roles` (any rig it matches: BN, both CMU namings, Mixamo, ...). Not the feature scale
-    `features.left_leg_length`, which takes the left leg only (see there why both exist)."""
+    """Thigh + shin, mean of both legs: the scale between rigs (`features.left_leg_length` says why)."""
     if roles is None:
         roles = match_roles(skeleton)[1]
     return 0.5 * sum(path_length(skeleton, roles[f"upperleg_{s}"], roles[f"foot_{s}"]) for s in "lr")
 
 
 def detect_units(leg: float) -> str | None:
-    """The unit (m, cm, mm) that makes the leg a plausible adult leg; None if none does (CMU
-    files use their own unit)."""
+    """The unit (m, cm, mm) making the leg a plausible adult's; None if none does (CMU's own unit)."""
     best = min(("m", "cm", "mm"), key=lambda u: abs(np.log(leg * UNITS_CM[u] / TYPICAL_LEG_CM)))
     return best if abs(np.log(leg * UNITS_CM[best] / TYPICAL_LEG_CM)) < np.log(2.5) else None
 
@@ -551,8 +516,7 @@ def humanoid_rig(
 
 
 def rig_from_bvh(text: str, source: str = "bvh_header", **options) -> HumanoidRig:
-    """A rig from BVH text (a HIERARCHY, with or without MOTION). Frames carry the translation of
-    the hips if the hips have position channels, else of the root."""
+    """A rig from BVH text; frames move the hips if they have position channels, else the root."""
     header = text.split("MOTION")[0] + "MOTION\nFrames: 0\nFrame Time: 0.0333333\n"
     try:
         parsed = bvhio.parse(header, source)
@@ -563,8 +527,7 @@ def rig_from_bvh(text: str, source: str = "bvh_header", **options) -> HumanoidRi
 
 
 def translated_joint(parsed: bvhio.BvhFile, skeleton: Skeleton, joint_map: dict | None = None) -> int | None:
-    """The hips if they have position channels (BN animates Hips under a static root), else None
-    (the root). Matching errors are left to `humanoid_rig`."""
+    """The hips if they have position channels (BN animates Hips under a static root), else None."""
     try:
         _, roles = match_roles(skeleton, joint_map)
     except RigError:
@@ -574,8 +537,7 @@ def translated_joint(parsed: bvhio.BvhFile, skeleton: Skeleton, joint_map: dict 
 
 
 def restrict(skeleton: Skeleton, joints: list[str]) -> Skeleton:
-    """The skeleton on a subset of its joints, in the given order (parents first): a dropped
-    joint's children hang from its nearest kept ancestor, at the same rest positions."""
+    """The skeleton on a subset of joints, children of dropped ones hung from the nearest kept one."""
     idx = [skeleton.index(n) for n in joints]
     keep = set(idx)
     rest = skeleton.rest_positions()
@@ -590,9 +552,7 @@ def restrict(skeleton: Skeleton, joints: list[str]) -> Skeleton:
 
 
 def preset_rig(preset: str, joints: list[str] | None = None, **options) -> HumanoidRig:
-    """A preset's reference hierarchy (`humanoid_presets`; BN and CMU: the committed skeletons),
-    restricted to the named `joints` when given. The rig keeps the preset's parents-first order
-    with the client's spelling of each name; a client's own order is a permutation by name."""
+    """A preset's reference hierarchy, restricted to `joints` (spelled as the client does)."""
     from .assets import bandai_namco_skeleton, cmu_skeleton
 
     if preset not in PRESET_NAMES:
@@ -618,9 +578,7 @@ def preset_rig(preset: str, joints: list[str] | None = None, **options) -> Human
 
 
 def in_model_world(motion: Motion, rig: HumanoidRig) -> Motion:
-    """The motion with its world turned into the model's (Y up, right-handed) and its units into
-    cm, for drawing next to model-skeleton motions: offsets and translations A t, every rotation
-    A R A^T (proper even when A reflects)."""
+    """The motion in the model's world (Y up, right-handed, cm), for drawing next to model motions."""
     a = rig.axes
     cm = UNITS_CM.get(rig.units or "", 1.0)
     local = a @ quat_to_matrix(motion.rotations) @ a.T

@@ -1,16 +1,12 @@
 """Naming tables of the humanoid rigs the service knows by name, and their reference hierarchies.
 
-Each preset is the public joint naming of one rig family, written out here from its documented
-names (no file of those projects is copied): which joint plays which body role (`Preset.roles`),
-plus the usual extra joints (root bones, end sites, twist bones, fingers) so that a client that
-names a preset can send those too. `Preset.skeleton()` builds a reference hierarchy in the BVH
-convention (every rotation zero = the preset's rest pose: T-pose, or A-pose for the Unreal
-mannequins) from one template body in cm; clients that name a preset and list its `joints` send
-rotations relative to that rest pose. Clients with their own proportions or rest pose send a BVH
-header instead; the name matching in `humanoid` does not need a preset at all.
+Each preset is one rig family's public joint naming, written from its documented names (no file
+of those projects is copied): role -> name (`Preset.roles`) plus the usual extra joints (roots,
+end sites, twist bones, fingers). `Preset.skeleton()` builds a reference hierarchy (every rotation
+zero = the preset's rest pose: T-pose, or A-pose for the Unreal mannequins) from one template
+body in cm. Clients with their own proportions send a BVH header instead.
 
-Roles are the ones of `humanoid.ROLES`; `{Side}`/`{side}`/`{S}`/`{s}` in a name stand for
-Left/left/L/l (Right/right/R/r).
+`{Side}`/`{side}`/`{S}`/`{s}` in a name stand for Left/left/L/l (Right/right/R/r).
 """
 
 from __future__ import annotations
@@ -49,8 +45,7 @@ SIDES = {
 
 @dataclass(frozen=True)
 class Preset:
-    """A rig family's naming: `roles` {role: name} (sided roles written once with side fields),
-    the spine and neck chains bottom-up, and extra joints (name, parent name, where)."""
+    """A rig family's naming: roles (sided ones once), spine and neck chains, extra joints."""
 
     name: str
     roles: dict[str, str]
@@ -176,8 +171,7 @@ def _build(preset: Preset) -> Skeleton:
 
 
 def _roles(hips: str, head: str, limbs: str) -> dict[str, str]:
-    """`Preset.roles`: the hips, the head and the sided roles' names, given as one space-separated
-    row from the clavicle to the toes."""
+    """`Preset.roles` from the hips, the head and one row of sided names, clavicle to toes."""
     sided = ("clavicle_x", "upperarm_x", "lowerarm_x", "hand_x", "upperleg_x", "lowerleg_x", "foot_x", "toes_x")
     return {"hips": hips, "head": head, **dict(zip(sided, limbs.split(), strict=True))}
 

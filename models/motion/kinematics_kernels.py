@@ -13,9 +13,7 @@ from .quaternion import qmul, qrot, qunit, row3, row4
 
 @njit(cache=True, error_model="numpy")
 def world_pose(root, rotations, parents, offsets, grot, gpos):
-    """Forward kinematics of one frame into grot (J, 4) and gpos (J, 3): Hips translation root (3,),
-    local rotations (J, 4) (normalised here, as `models.motion.skeleton.fk`); parents come first,
-    as in every BVH."""
+    """FK of one frame into grot (J, 4), gpos (J, 3) (rotations normalised, parents first)."""
     for j in range(rotations.shape[0]):
         q = qunit(row4(rotations, j))
         t = (root[0], root[1], root[2]) if j == HIPS else row3(offsets, j)

@@ -1,32 +1,12 @@
 """Unseen content kept: how far each input frame lies from anything a model was trained on, and
 the smooth fade of the model's output toward the input there.
 
-A style model carries only what its training input showed: fed a crouch, a pick-up or a fall it
-straightens the legs or walks on, and the content is lost. So every model's output passes one
-stage fitted the same way for every model from that model's own TRAINING input frames (`fit`):
-
-- **What the body is doing**, per body part (`body_parts`: the lower body with the hips, the
-  trunk, each arm), from the end of each of its chains only (`feature_kinds`), on the model rig,
-  in the hips' heading frame, in leg lengths: the head's and each hand's position from the joint
-  the part hangs from; each leg's reach from the hip and height above the floor, with the hips'
-  height and vertical speed. Positions of chain ends rather than rotations or every joint:
-  another performer's twists, strides and spine (or a retargeter's rest pose) then stay close,
-  while a crouch, a kneel or a fall shortens the legs and lowers the hips whoever performs it.
-- **Far from the training input**: the distance to the nearest of `CENTROIDS` training frames
-  that cover the training frames (`cover`): cheap per frame, and unlike one Gaussian it does not
-  call the gap between a walk and a wave "seen".
-- **Calibrated on VALIDATION clips** of the same selection: a part starts to fade at `START`
-  times its `QUANTILE` distance over their frames, or `FLOOR` leg lengths where that is more (for
-  other performers), and is fully faded at `FULL_FADE` times it. The `TRIM_CLIPS` share of
-  validation clips lying farthest out is left out first: a held-out take whose poses the
-  training split never shows would otherwise set the whole threshold.
-- **Smoothly, causally**: the per-frame target passes two one-pole filters in a row (attack
-  `ATTACK_FRAMES`, release `RELEASE_FRAMES`, no look-ahead), so a fade cannot pop the pose.
-- **Toward the input**: each joint's rotation slerps toward the input's by its part's weight; the
-  hips height by the lower body's (raised where a partly bent leg would sink the lowest foot
-  point below the input's), and the hips' ground motion mixes the method's step and the input's
-  (compiled per frame in `novelty_kernels.py`; these numpy functions fit, report and are its
-  reference). The model keeps stepping underneath, so its style returns with known content.
+A style model only carries what its training input showed (fed a crouch, it straightens the
+legs). Per body part, chain-end positions in the hips' heading frame (in leg lengths: a crouch
+lowers them whoever performs it) are compared to `CENTROIDS` frames covering the model's TRAINING
+input (`cover`), against thresholds from VALIDATION clips; the fade is smoothed causally and
+slerps each part toward the input (compiled in `novelty_kernels.py`; these functions fit, report
+and are its reference). The model keeps stepping underneath.
 
 `python -m models.motion.novelty fit --method NAME --datasets ... [--contents ...]` writes
 `models/weights/novelty/<NAME>.npz` (`make novelty` fits every method's); `report` prints fade
@@ -68,9 +48,7 @@ FADED = 0.5  # a frame counts as faded (reports, the evaluation) when its larges
 
 
 def body_parts(parents: np.ndarray, names: tuple[str, ...] = BN_JOINTS) -> list[np.ndarray]:
-    """Joint indices per body part: the lower body (the hips and every chain hanging off them but
-    the spine), the trunk (the spine's primary chain up to the head), then each other chain off the
-    trunk (the arms). The static root belongs to none."""
+    """Joint indices per part: lower body, trunk, then each other chain off the trunk (the arms)."""
     trunk, j = [], names[HIPS]
     while j in PRIMARY_CHILD:
         j = PRIMARY_CHILD[j]
@@ -92,9 +70,7 @@ def body_parts(parents: np.ndarray, names: tuple[str, ...] = BN_JOINTS) -> list[
 
 
 def feature_kinds(parents: np.ndarray, part: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(J,) each joint's features (0 none, `KIND_POSITION`, `KIND_LEG_END`) and (J,) the first
-    joint of its chain: every chain end (a joint without children) gives features; in the part
-    that holds the hips (the legs) its reach and height, elsewhere its position."""
+    """(J,) each joint's feature kind and (J,) its chain's first joint (`KIND_POSITION`, `KIND_LEG_END`)."""
     J = len(parents)
     has_child = np.zeros(J, bool)
     has_child[[int(p) for p in parents if p >= 0]] = True
@@ -111,8 +87,7 @@ def feature_kinds(parents: np.ndarray, part: np.ndarray) -> tuple[np.ndarray, np
 
 
 def hips_motion(hips_y: np.ndarray, fps: float, leg: float) -> np.ndarray:
-    """(T,) hips heights -> (T, 2) height and backward-difference vertical speed (0 at the first
-    frame) in leg lengths (per second): what the stage measures causally frame by frame."""
+    """(T,) hips heights -> (T, 2) height and causal vertical speed, in leg lengths (per second)."""
     y = np.asarray(hips_y, np.float64) / leg
     v = np.zeros_like(y)
     v[1:] = np.diff(y) * fps
@@ -121,10 +96,7 @@ def hips_motion(hips_y: np.ndarray, fps: float, leg: float) -> np.ndarray:
 
 @dataclass(frozen=True)
 class NoveltyReference:
-    """The model rig (parents (J,), rest bone offsets (J, 3) and left leg length, model units) and
-    each joint's part (J,) (-1: none); per part p the covering training frames
-    `centres[starts[p]:starts[p+1]]` (padded to the widest part's features) and its validation
-    threshold (leg lengths)."""
+    """The model rig, each joint's part, and per part its covering frames and threshold."""
 
     parents: np.ndarray
     bones: np.ndarray
@@ -140,8 +112,7 @@ class NoveltyReference:
 
     @property
     def anchors(self) -> np.ndarray:
-        """(parts,) the joint each part's positions are taken from: the hips for the part that
-        holds them, else the parent of the part's first joint."""
+        """(parts,) the joint each part's positions are taken from (the hips, or the part's parent)."""
         out = np.empty(self.parts, np.int64)
         for p in range(self.parts):
             joints = np.flatnonzero(self.part == p)
@@ -149,9 +120,7 @@ class NoveltyReference:
         return out
 
     def arrays(self, fps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The reference as the compiled step takes it for a model at `fps` (`novelty_kernels.
-        fade_step`, after its frames and state): the int table, the anchors and cover offsets,
-        the thresholds and knobs, the bones and the centres."""
+        """The reference as `novelty_kernels.fade_step` takes it for a model at `fps`."""
         kind, chain_root = self.kinds
         table = np.ascontiguousarray(np.stack([self.parents, self.part, kind, chain_root]), np.int64)
         anchors_starts = np.concatenate([self.anchors, self.starts]).astype(np.int64)
@@ -166,10 +135,7 @@ class NoveltyReference:
         return feature_kinds(self.parents, self.part)
 
     def features(self, rotations: np.ndarray, hips: np.ndarray) -> list[np.ndarray]:
-        """(N, J, 4) local rotations and (N, 2) `hips_motion` -> per part (N, D_p), in leg lengths,
-        in the frame of the hips' heading: the part holding the hips starts with their weighted
-        height and vertical speed; then, in joint order, each position joint's place from the
-        part's anchor, each leg end's reach from its chain root and its height above the floor."""
+        """Per part (N, D_p) features of rotations (N, J, 4) and `hips_motion` (N, 2) (`feature_kinds`)."""
         _, q = split_heading(rotations)
         q[:, ROOT] = (0.0, 0.0, 0.0, 1.0)
         bones = np.broadcast_to(self.bones, (*q.shape[:-1], 3)).copy()
@@ -198,14 +164,12 @@ class NoveltyReference:
         return out
 
     def target(self, distances: np.ndarray) -> np.ndarray:
-        """(N, parts) distances -> fade targets in [0, 1]: 0 up to START times the threshold, a
-        smoothstep to 1 at FULL_FADE times it."""
+        """(N, parts) distances -> fade targets: 0 up to START x threshold, smoothstep to 1 at FULL_FADE x."""
         x = np.clip((distances / self.threshold - START) / (FULL_FADE - START), 0.0, 1.0)
         return x * x * (3.0 - 2.0 * x)
 
     def clip_fades(self, rotations: np.ndarray, hips_y: np.ndarray, fps: float) -> np.ndarray:
-        """A whole clip (T, J, 4), (T,) at the model rate -> (T, parts) smoothed fade weights, as
-        the stage computes them frame by frame (for reports and tests)."""
+        """(T, J, 4), (T,) at the model rate -> (T, parts) smoothed fades, as the stage computes them."""
         target = self.target(self.distances(rotations, hips_motion(hips_y, fps, self.leg)))
         w1 = w2 = np.zeros(self.parts)
         out = np.empty_like(target)
@@ -224,8 +188,7 @@ class NoveltyReference:
         fps: float,
         seed: int = 0,
     ) -> NoveltyReference:
-        """From TRAINING clips [(rotations (T, J, 4), hips heights (T,))] at the model rate, with
-        the thresholds from VALIDATION clips of the same selection."""
+        """From TRAINING clips at the model rate, thresholds from VALIDATION clips."""
         parts = body_parts(skeleton.parents)
         part = np.full(skeleton.num_joints, -1)
         for p, joints in enumerate(parts):
@@ -271,8 +234,7 @@ class NoveltyReference:
 
 
 def calibrate(ref: NoveltyReference, val: list[tuple[np.ndarray, np.ndarray]], fps: float) -> np.ndarray:
-    """(parts,) thresholds: per part, the QUANTILE distance over the frames of the validation
-    clips, less the TRIM_CLIPS share of clips whose own p99 distance is largest; FLOOR at least."""
+    """(parts,) QUANTILE distances over validation frames, the farthest TRIM_CLIPS left out; FLOOR least."""
     per_clip = [ref.distances(np.asarray(r, np.float64), hips_motion(y, fps, ref.leg)) for r, y in val]
     out = np.empty(ref.parts)
     for p in range(ref.parts):
@@ -283,8 +245,7 @@ def calibrate(ref: NoveltyReference, val: list[tuple[np.ndarray, np.ndarray]], f
 
 
 def reference_path(weights_dir: Path, method: str) -> Path:
-    """Where a method's fitted reference lives: one shared folder, so no method's loader, which
-    reads every file in its own folder, meets it."""
+    """A shared folder, so no method's loader (which reads its whole folder) meets another's file."""
     return Path(weights_dir) / FOLDER / f"{method}.npz"
 
 
@@ -295,8 +256,7 @@ def _frames(clips: list[tuple[np.ndarray, np.ndarray]], fps: float, leg: float) 
 
 
 def _nearest_sq(x: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """(N, D), (K, D) -> (N,) squared distance of each row to its nearest centre. The product
-    goes through `rowwise.matmul_rows`, so a session's value is the same in a batch of any size."""
+    """(N,) squared distance to the nearest centre, batch-independent (`rowwise.matmul_rows`)."""
     from ..rowwise import matmul_rows
 
     d = (x * x).sum(1)[:, None] - 2.0 * matmul_rows(np.ascontiguousarray(x), np.ascontiguousarray(c.T))
@@ -304,11 +264,7 @@ def _nearest_sq(x: np.ndarray, c: np.ndarray) -> np.ndarray:
 
 
 def cover(x: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-    """(k, D) rows of x (N, D) that cover it: greedy farthest-point selection (Gonzalez's
-    k-centre), so every row lies within about the smallest possible radius of one of them. A
-    cover, not cluster means: the distance to it measures whether a pose was in the data at all,
-    where k-means centres sit where the data is dense and leave its rarer poses (a dataset-1 dash
-    among dataset-2 walks) as far from every centre as unseen ones."""
+    """(k, D) rows covering x (Gonzalez's k-centre): unlike k-means, rare poses stay covered."""
     k = min(k, len(x))
     chosen = [int(rng.integers(len(x)))]
     d2 = np.sum((x - x[chosen[0]]) ** 2, axis=1)
@@ -319,9 +275,7 @@ def cover(x: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def smooth(w1: np.ndarray, w2: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """One frame of the fade smoother: two one-pole filters in a row, each with the attack time
-    constant while its input lies above it and the release one below. Returns (w1, w2); w2 is
-    the fade."""
+    """One frame of the fade smoother (attack above, release below): (w1, w2), w2 the fade."""
     a1 = np.where(target > w1, 1.0 / ATTACK_FRAMES, 1.0 / RELEASE_FRAMES)
     w1 = w1 + a1 * (target - w1)
     a2 = np.where(w1 > w2, 1.0 / ATTACK_FRAMES, 1.0 / RELEASE_FRAMES)
@@ -357,9 +311,7 @@ def on_model_rig(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_or_report(prog: str, doc: str, argv: list[str] | None) -> argparse.Namespace:
-    """The command line a per-method reference fitted from clips has (the unseen-content fade's,
-    the posture calibration's): `fit` or `report` on `--method`, `--datasets`, `--contents`,
-    `--styles`, and the report's `--split`."""
+    """The `fit` / `report` command line of a per-method reference fitted from clips."""
     p = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     for name in ("fit", "report"):

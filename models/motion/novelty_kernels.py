@@ -1,12 +1,10 @@
 """The unseen-content fade's per-frame step, compiled (numba): features, nearest covering frame,
 fade target, smoothing and the blend toward the input, one pass per session row.
 
-In numpy (`NoveltyReference.distances`, `target`, `smooth`, which fit and report with it and which
-the tests hold this to) one frame of one session is ~60 small array operations, about 4 ms: five
-times an LTI step. Each row is computed alone, so a session's output does not depend on the batch
-it is stepped in. The whole step is one call with few arguments (the reference packed into four
-arrays, the session's fade state into one row) writing into outputs the caller allocates: at
-batch 1 the call's own overhead, not its arithmetic, is most of what the stage costs.
+In numpy (`NoveltyReference`, which the tests hold this to) one frame of one session is ~60
+small array operations, five times an LTI step. Rows are computed alone, so a session's output
+does not depend on its batch; one call with few, packed arguments, since at batch 1 the call's
+overhead is most of the stage's cost.
 """
 
 from __future__ import annotations
@@ -45,8 +43,7 @@ def _heading_free(q):
 
 @njit(cache=True, error_model="numpy")
 def _lowest_foot(rot, table, bones, grot, gpos):
-    """The lowest height, from the hips, of each leg's end and the joint above it (the toes and
-    the ankle) for local rotations rot (J, 4); grot, gpos (J, 4), (J, 3) are scratch."""
+    """The lowest height from the hips of each leg's toes and ankle; grot, gpos: scratch."""
     low = np.inf
     for j in range(rot.shape[0]):
         if j == ROOT:
@@ -82,23 +79,11 @@ def fade_step(
     new,
     faded,
 ):
-    """One frame for B sessions. In: the input frames rot_in (B, J, 4), root_in (B, 3); the
-    method's output rot_out, root_out; control (B, 5) or (0, 5) (a row whose flag is set is a
-    controller tick with no pose to keep); state (B, `state_width`). The reference:
-    table (4, J) int (`PARENT`, `PART`, `KIND`, `CHAIN_ROOT`), anchors_starts (2P + 1,) int (each
-    part's anchor, then the offsets of its covering frames), floats (P + 8,) (the thresholds,
-    then `LEG` .. `RELEASE_K`), bones (J, 3), centres (K, D). Writes the output rotations
-    out_rot (B, J, 4), root out_root (B, 3), the new state `new` (state is left as it was) and
-    each row's fade `faded` (B,) (its largest part's): arrays the caller allocates, as a compiled
-    function's own allocations cost more than the whole step at batch 1.
-
-    The root: its height moves toward the input's by the lower body's weight, and rises where
-    the output's lowest foot point would lie below the input's (by the full sink from `LIFT_K`
-    weight up, a smoothstep of it below, the weight being the lower body's fade or its first
-    pole: at weight 0 the method's output is untouched); across the ground
-    it moves by the method's step and the input's mixed by that weight, so a fade never glides
-    the character from the method's path to the input's (a planted foot would slide by the
-    distance between them): the path it leaves behind stays as the steps made it."""
+    """One frame for B sessions: the input (rot_in, root_in) and the method's output (rot_out, root_out),
+    control (a controller tick has no pose to keep), state and the packed reference; writes out_rot,
+    out_root, the new state `new` and fades `faded` into arrays the caller allocates. The root mixes
+    the method's step and the input's by the lower body's weight (a fade never glides between paths),
+    raised where the lowest foot would sink below the input's."""
     B, J = rot_in.shape[0], rot_in.shape[1]
     P = anchors_starts.shape[0] // 2
     thr = floats[:P]
@@ -146,8 +131,7 @@ def fade_step(
                     feat[n] = math.sqrt(dx * dx + dy * dy + dz * dz) / leg
                     feat[n + 1] = height + (gpos[j, 1] - gpos[HIPS, 1]) / leg
                     n += 2
-            # nearest covering frame, from last frame's: once one lies inside the radius where the
-            # fade starts the target is 0 whichever it is, so a seen pose costs a few centres
+            # nearest covering frame, from last frame's: any inside the start radius will do
             lo, count = anchors_starts[P + p], anchors_starts[P + p + 1] - anchors_starts[P + p]
             inside, best, first = (start * thr[p]) ** 2, np.inf, int(s[HINT * P + p])
             for m in range(count):
@@ -186,9 +170,7 @@ def fade_step(
                 s[r + OFFSET + c] += w * (step_in - (root_out[b, c] - s[r + PREV_MODEL + c]))
             out_root[b, c] = root_out[b, c] + s[r + OFFSET + c]
         out_root[b, 1] = root_out[b, 1] + w * (root_in[b, 1] - root_out[b, 1])
-        # a partly bent leg under a partly lowered root sinks, and so does a method that straightens
-        # the legs while the fade rises: the root rises to the input's floor, by the lower body's
-        # first smoothing pole (a few frames ahead of its fade) or its fade, whichever is larger
+        # a bent leg under a lowered root sinks: the root rises toward the input's floor
         lw = max(w, s[W1 * P + table[PART, HIPS]])
         if lw > 0.0:
             x = min(lw / lift, 1.0)

@@ -1,18 +1,12 @@
-"""The unseen-content fade, the shipped pipeline's last stage before the feet are planted
-(`models/registry.py` adds it to each method with a fitted reference in `weights/novelty/`): a
-method that plants feet steps as `step_unplanted`, then the fade, then `feet.plant_frame`, so a
-held foot stays put while the fade turns the leg (LTI does the same inside its compiled step);
-one whose `fade_before_feet` is False is faded after its whole step.
+"""The unseen-content fade, the pipeline's last stage before the feet are planted
+(`models/registry.py` adds it where `weights/novelty/` has a reference): a method steps
+`step_unplanted`, then the fade, then `feet.plant_frame`, so a held foot stays put while the fade
+turns the leg; one whose `fade_before_feet` is False is faded after its whole step.
 
-The stage is the method itself with `FadesUnseen` put in front of its class (`with_novelty`), not
-a wrapper (a method with `step_batch_fading` runs the same `fade_step` inside its own compiled
-step): the model keeps every ability the service tests with `isinstance` (uploaded styles),
-`with_own_styles` copies keep the stage, and the service, crowds, the offline path and the
-evaluation all step it through the one `step_batch` they already call. Its state rides in the
-session state under `KEYS` (so snapshots, resumes and batching carry it like any other); the
-method's own `upgrade_state` never sees those keys, its `step_batch` passes them by. A published
-core (`pipeline: core`) is the method alone: the fade is a fitted stage like the others after
-the core, and the core is what the method does by itself.
+The stage is `FadesUnseen` put in front of the method's class (`with_novelty`), not a wrapper, so
+`isinstance` checks, `with_own_styles` copies and every `step_batch` caller see the method as it
+was. Its state rides in the session state under `KEYS`. A published core (`pipeline: core`) is
+the method alone.
 """
 
 from __future__ import annotations
@@ -39,8 +33,7 @@ def fresh_state(batch: int, parts: int) -> State:
 
 
 def faded(state: State) -> np.ndarray | None:
-    """(B,) how far each session's latest frame was faded toward its input (the largest part's
-    weight, 0..1); None for a model without the stage."""
+    """(B,) how far each session's latest frame was faded (largest part), or None without the stage."""
     own = state.get(KEY)
     if own is None:
         return None
@@ -49,8 +42,7 @@ def faded(state: State) -> np.ndarray | None:
 
 
 class FadesUnseen:
-    """Put in front of a method's class: its output fades toward the input where the input lies
-    far from the method's training input (`novelty.py`), per body part, and comes back after."""
+    """Put in front of a method's class: its output fades toward the input where that is unseen."""
 
     novelty: NoveltyReference
     novelty_arrays: tuple[np.ndarray, ...]  # `novelty.arrays` at the model's rate
@@ -68,19 +60,16 @@ class FadesUnseen:
         fused = getattr(super(), "step_batch_fading", None)
         if fused is not None:  # the method runs the fade inside its own compiled step
             return fused(state, frames, style_weights, KEY, self.novelty_arrays)
-        # a method whose `fade_before_feet` is False plants its feet first (chosen on validation
-        # like any stage setting: LPN-FiLM, docs/eval/ablation.md)
+        # a method whose `fade_before_feet` is False plants its feet first (docs/eval/ablation.md)
         before_feet = getattr(super(), "fade_before_feet", True)
         unplanted = getattr(super(), "step_unplanted", None) if before_feet else None
         if unplanted is None:  # a method without planted feet, or that plants them first: the fade is last
             out, new = super().step_batch(state, frames, style_weights)  # type: ignore[misc]
             return self._fade(state, frames, out, new)
-        # before the feet are planted: a held foot stays where it stood while the fade turns the
-        # leg toward the input's (faded after planting, such a foot slid with the fade)
+        # before the feet are planted: a held foot stays put while the fade turns the leg
         out, new = unplanted(state, frames, style_weights)
         faded_frame, new = self._fade(state, frames, out, new)
-        # the planter reads its entries from the method's new state where it set them (a session's
-        # first frame resets them), else as they were
+        # the planter's entries: from the method's new state where it set them, else as they were
         planted, feet = plant_frame(self.planter, faded_frame, {**state, **new})  # type: ignore[attr-defined]
         return _with_faded(planted, faded_frame.faded), {**new, **feet}
 
@@ -108,8 +97,7 @@ def _with_faded(frame: FrameBatch, faded: np.ndarray | None) -> FrameBatch:
 
 
 def with_novelty(model: Any, reference: NoveltyReference) -> Any:
-    """`model` with the fade as its last stage, before its feet where it plants them
-    (`fade_before_feet`; `stages.put_in_front`)."""
+    """`model` with the fade as its last stage (before its feet where `fade_before_feet`)."""
     staged_model = put_in_front(model, FadesUnseen)
     staged_model.novelty = reference
     staged_model.novelty_arrays = reference.arrays(float(model.fps))

@@ -1,10 +1,8 @@
 """Which way the head, hands and feet face: oriented solids for renders, from joint rotations.
 
-A stick figure hides a head turned backwards or a twisted wrist (neither moves a joint). The
-renders draw a nose, palms with thumbs and foot wedges posed by world rotations: a part's axes at
-frame t are R_world(t) @ A, with A calibrated once per skeleton from a reference pose (the
-committed assets for known rigs; a matched rig's first frame otherwise). Never per motion on a
-known rig: a model that turns the head from frame 0 would look right.
+A stick figure hides a head turned backwards or a twisted wrist. A part's axes at frame t are
+R_world(t) @ A, A calibrated once per skeleton from a reference pose (never per motion on a known
+rig, or a head turned from frame 0 would look right).
 
 Part frames (columns of A, right-handed, z = x × y):
   head       x face forward (the nose), y up
@@ -41,9 +39,7 @@ FACES = np.array([[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2,
 
 
 def joint_sides(skeleton: Skeleton) -> np.ndarray:
-    """+1 for left joints, -1 for right joints, 0 for the centre line, from joint names: the side
-    marker `humanoid.split_name` finds (`Left…`, `_L`, `_l`, `.L`, `left_`, `mixamorig:Left…`), else
-    the older CMU spellings (`LHipJoint`, `lhand`)."""
+    """+1 left, -1 right, 0 centre line, by name (`humanoid.split_name`, else CMU's `LHipJoint`)."""
 
     def side(name: str) -> int:
         marker = split_name(name)[0]
@@ -66,11 +62,7 @@ _ROLE_PARTS = {
 
 
 def find_parts(skeleton: Skeleton) -> dict[str, int]:
-    """Joint of each part the skeleton has (`head`, `hand_l`, `foot_l`, `toe_l`, ...; missing parts
-    are left out), by name: the body roles of `humanoid.match_roles` (BN, both CMU namings, Mixamo,
-    UE, Unity/VRM, SMPL, ...), and for parts it leaves out, `features.body_joint` for ankles and
-    toes, else the first joint in hierarchy order named like the part (`Head`, `Hand_L`, `lhand`,
-    `*Wrist*`; fingers and thumbs never count as hands)."""
+    """Joint of each part (`head`, `hand_l`, ...) by role, `features.body_joint`, then by name."""
     _, roles = match_roles(skeleton)
     found = {part: roles[role] for role, part in _ROLE_PARTS.items() if role in roles}
     return found | {p: j for p, j in _parts_by_pattern(skeleton).items() if p not in found}
@@ -105,8 +97,7 @@ def _parts_by_pattern(skeleton: Skeleton) -> dict[str, int]:
 
 
 def _frame(x: np.ndarray, y_hint: np.ndarray, fallback: np.ndarray = UP) -> np.ndarray:
-    """(3, 3) right-handed axes: x along `x`, y along `y_hint` made perpendicular to x (or along
-    `fallback` when the hint is nearly parallel to x), z = x × y."""
+    """(3, 3) right-handed axes: x along `x`, y along `y_hint` made perpendicular (or `fallback`)."""
     x = x / np.linalg.norm(x)
     for hint in (y_hint, fallback):
         y = hint - (hint @ x) * x
@@ -123,9 +114,7 @@ def _level(v: np.ndarray, default: np.ndarray) -> np.ndarray:
 
 
 def body_forward(positions: np.ndarray, skeleton: Skeleton) -> np.ndarray:
-    """(3,) level unit vector the body in one pose (J, 3) faces: `features.facing_yaw`, else the
-    same rule (left hip and shoulder minus right, crossed with up) on `humanoid.match_roles`'s upper
-    legs and arms, else +Z."""
+    """(3,) level unit vector the pose (J, 3) faces (else +Z)."""
     try:
         yaw = float(facing_yaw(positions, skeleton))
     except KeyError:
@@ -144,10 +133,7 @@ def body_forward(positions: np.ndarray, skeleton: Skeleton) -> np.ndarray:
 
 
 def part_axes(reference: Motion, frame: int = 0) -> dict[str, tuple[str, np.ndarray]]:
-    """Calibration: part -> (joint name, (3, 3) part axes in the joint's local frame), from one pose
-    of `reference` whose body faces `body_forward`. The head looks where the body faces; the
-    thumbs point forward (square to the hand's axis, the forearm's continuation); the feet point to
-    their toes."""
+    """Calibration from one pose: part -> (joint name, (3, 3) axes in the joint's frame)."""
     sk = reference.skeleton
     g_rot, g_pos = reference.slice(frame, frame + 1).global_transforms()
     rot, pos = g_rot[0], g_pos[0]
@@ -188,13 +174,12 @@ class Solid:
 def _block(
     x: tuple[float, float], y_back: tuple[float, float], y_front: tuple[float, float], z: tuple[float, float]
 ) -> np.ndarray:
-    """(8, 3) corners of a box from x[0] to x[1] whose y extent goes from `y_back` (at x[0]) to
-    `y_front` (at x[1]): a box when they are equal, a wedge otherwise."""
+    """(8, 3) corners of a box (or a wedge, where `y_back` and `y_front` differ) along x."""
     return np.array([[x[ix], (y_back, y_front)[ix][iy], z[iz]] for ix in (0, 1) for iy in (0, 1) for iz in (0, 1)])
 
 
 def _size(skeleton: Skeleton) -> float:
-    """Left leg length (hip to ankle at rest), or half the rest pose's extent for skeletons without legs."""
+    """Left leg length at rest, or half the rest pose's extent without legs."""
     try:
         return left_leg_length(skeleton)
     except KeyError:
@@ -208,11 +193,7 @@ def _end_length(skeleton: Skeleton, joint: int) -> float:
 
 
 def build_solids(skeleton: Skeleton, axes: dict[str, tuple[str, np.ndarray]]) -> tuple[Solid, ...]:
-    """The blocks for a skeleton, from calibrated part axes (by joint name; parts whose joint the
-    skeleton lacks are left out), sized by its leg length L: a head 0.25 L tall with a nose
-    wedge, hands 0.2 L long with a thumb stub, feet from 0.07 L behind the ankle to the toe joint
-    plus a toe block. Where the rig says more (an End Site above the head or past the toes, the
-    toe joint's offset), its own numbers are used."""
+    """The blocks for a skeleton, sized by leg length or by its End Sites where it has them."""
     L = _size(skeleton)
     names = skeleton.names
     out: list[Solid] = []
@@ -296,9 +277,7 @@ def _chains(skeleton: Skeleton, joints: Iterable[int]) -> list[int]:
 
 
 def same_rig(reference: Skeleton, skeleton: Skeleton) -> bool:
-    """Whether `skeleton` can borrow `reference`'s calibration: every joint a solid hangs on and
-    all its ancestors exist under the same names, with the same parents and bones pointing the
-    same way in the parent's frame (the same rest-frame convention; lengths may differ)."""
+    """Whether `skeleton` can borrow `reference`'s calibration (same joints, parents, bone directions)."""
     scale = float(np.abs(reference.offsets).max()) or 1.0
     scale_b = float(np.abs(skeleton.offsets).max()) or 1.0
     for j in _chains(reference, find_parts(reference).values()):
@@ -324,7 +303,7 @@ def _asset_axes(which: str) -> dict[str, tuple[str, np.ndarray]]:
 
 
 def reference_rig(skeleton: Skeleton) -> str | None:
-    """Which committed reference pose (`bandai_namco`, `cmu`) calibrates this skeleton, if any."""
+    """The committed reference pose (`bandai_namco`, `cmu`) calibrating this skeleton, if any."""
     for which, pose in (("bandai_namco", bandai_namco_pose()), ("cmu", cmu_pose())):
         if same_rig(pose.skeleton, skeleton):
             return which
@@ -335,9 +314,7 @@ _RIGS: dict[tuple, tuple[Solid, ...]] = {}
 
 
 def rig(motion: Motion) -> tuple[Solid, ...]:
-    """The solids for a motion's skeleton, calibrated on its rig's committed reference pose and
-    cached per skeleton; for an unknown skeleton, calibrated on this motion's first frame (and not
-    cached, since that calibration belongs to the motion)."""
+    """The solids for a motion's skeleton, from its rig's reference pose (cached) or its first frame."""
     sk = motion.skeleton
     key = (sk.names, sk.parents.tobytes(), np.round(sk.offsets, 6).tobytes(), np.nan_to_num(sk.end_sites).tobytes())
     if key not in _RIGS:
@@ -364,8 +341,7 @@ def face_normals(corners: np.ndarray) -> np.ndarray:
 
 
 def solids_json(solids: tuple[Solid, ...]) -> list[dict]:
-    """The solids for the browser viewer: joint, part frame as a quaternion (xyzw) in the joint's
-    frame, corners in the part frame (corner k = (bit 2, bit 1, bit 0) as in `FACES`)."""
+    """The solids for the browser viewer: joint, part frame quaternion (xyzw), part-frame corners."""
     return [
         {
             "part": s.part,

@@ -1,7 +1,6 @@
-"""The one home of quaternion maths inside compiled kernels (numba), on 4-tuples: (x, y, z, w),
-scalar-last, float64. Tuples read well (`qmul(qinv(a), b)`) and numba inlines them for free;
-`models/numba_cache.py` keys the cache by every kernel source, so importing them is cache-safe.
-Array-level numpy maths lives in `rotations.py`.
+"""The one home of quaternion maths inside compiled kernels (numba), on 4-tuples (x, y, z, w),
+float64: tuples read well (`qmul(qinv(a), b)`) and numba inlines them. `models/numba_cache.py`
+keys the cache by every kernel source, so importing them is cache-safe. Array maths: `rotations.py`.
 """
 
 from __future__ import annotations
@@ -39,7 +38,7 @@ def qunit(q):
 
 @njit(cache=True, error_model="numpy")
 def qscale(q, k):
-    """k q, each component scaled (a unit q from k = 1 / |q|, an nlerp's terms)."""
+    """k q, each component scaled."""
     return (k * q[0], k * q[1], k * q[2], k * q[3])
 
 
@@ -142,8 +141,7 @@ def axis_angle(axis, angle):
 
 @njit(cache=True, error_model="numpy")
 def between(u, v):
-    """Shortest-arc unit quaternion carrying unit vector u onto unit vector v (about any axis
-    perpendicular to u when they are opposite)."""
+    """Shortest-arc unit quaternion carrying unit u onto unit v (any perpendicular axis if opposite)."""
     d = dot3(u, v)
     c = cross(u, v)
     q = (c[0], c[1], c[2], 1.0 + d)
@@ -181,8 +179,7 @@ def wrap(a):
 
 @njit(cache=True, error_model="numpy")
 def matrix_quat(m):
-    """Unit quaternion of a 3x3 rotation matrix (Markley 2008, as scipy's `Rotation.from_matrix`:
-    built on the largest of the diagonal terms and the trace, so that component is positive)."""
+    """Unit quaternion of a 3x3 rotation matrix (Markley 2008, as scipy's `Rotation.from_matrix`)."""
     tr = m[0, 0] + m[1, 1] + m[2, 2]
     best, k = m[0, 0], 0
     if m[1, 1] > best:

@@ -1,15 +1,13 @@
 """Serving a stream at its own frame rate while the model steps at 30 fps.
 
-Sample-and-hold updates a 120 fps stream's pose every 4th frame, and planted feet glide, then
-snap. Instead the model steps at its own times on the input interpolated there, and each input
-frame gets the model's output `delay` earlier on the parabola through the three latest outputs
-(a straight line would turn at each output: rotation acceleration spikes). The delay is the least
-that keeps that instant between the two latest steps: (b - 1) / b model frames for
-model_fps / fps = a / b in lowest terms, one model frame when the ratio is not a small fraction.
+Sample-and-hold would make planted feet glide, then snap. Instead the model steps at its own
+times on the input interpolated there, and each input frame gets the output `delay` earlier on the
+parabola through the three latest outputs (a line would spike rotation acceleration at each one).
+The delay is the least keeping that instant between the two latest steps: (b - 1) / b model frames
+for model_fps / fps = a / b in lowest terms, one model frame when the ratio is not small.
 
-Row-batched, one row per stream, the same arithmetic bit for bit. A stream's state is its `clock`
-(its latest input frame past its latest model step, in model frames; < 0 before the first), its
-latest input frame and its `HISTORY` latest model outputs.
+Row-batched, one row per stream. A stream's state is its `clock` (its latest input frame past its
+latest step, in model frames; < 0 before the first), latest input frame and `HISTORY` outputs.
 """
 
 from __future__ import annotations
@@ -34,15 +32,11 @@ def output_lag(model_fps: float, fps: float) -> float:
 
 
 def output_delay_s(model_fps: float, fps: float) -> float:
-    """`output_lag` in seconds."""
     return output_lag(model_fps, fps) / model_fps
 
 
 def steps_due(clock: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For one new input frame per row: (new clock, model steps due (n,), weights (n, max steps)).
-
-    `ratio` is model_fps / fps. Weight k of a row places its k-th step between the row's previous
-    input frame (0) and this one (1). A row's first frame (clock < 0) steps once, on itself."""
+    """Per row for one new input frame: (new clock, steps due, each step's place between the frames)."""
     first = clock < 0
     moved = np.where(first, 0.0, clock + ratio)
     steps = np.where(first, 1, np.floor(moved + EPS).astype(np.int64))
@@ -57,8 +51,7 @@ def steps_due(clock: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray, 
 def blend(
     root0: np.ndarray, rot0: np.ndarray, root1: np.ndarray, rot1: np.ndarray, w: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of (root, rotations) a fraction `w` (n,) of the way from pose 0 to pose 1: roots
-    lerped, each joint slerped; w == 1 gives pose 1 exactly and w == 0 pose 0 (copies)."""
+    """Rows of (root, rotations) `w` of the way from pose 0 to pose 1 (lerp, slerp; exact at 0 and 1)."""
     root1, rot1 = _f64(root1), _f64(rot1)
     out_root, out_rot = np.empty_like(root1), np.empty_like(rot1)
     blend_rows(_f64(root0), _f64(rot0), root1, rot1, _f64(w), out_root, out_rot)
@@ -66,8 +59,7 @@ def blend(
 
 
 def output_weight(clock: np.ndarray, lag: float) -> np.ndarray:
-    """Where each row's output instant (its input time less the delay) lies between its
-    second-latest model output (0) and its latest (1)."""
+    """Where each row's output instant lies between its second-latest (0) and latest (1) output."""
     return np.clip(clock - lag + 1.0, 0.0, 1.0)
 
 
@@ -77,11 +69,7 @@ def push(history: np.ndarray, latest: np.ndarray) -> np.ndarray:
 
 
 def interpolate(roots: np.ndarray, rotations: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows' (root, rotations) at `u` (n,) between their second-latest output (0) and latest (1)
-    on the parabola through their three latest (each joint's through its quaternions, the outer
-    two on the middle one's side, normalised): roots (n, 3, 3), rotations (n, 3, J, 4), oldest
-    first. u == 1 gives the latest output
-    exactly (every frame at 30 fps)."""
+    """Rows' (root, rotations) at `u` on the parabola through their three latest outputs (u == 1: latest)."""
     roots, rotations = _f64(roots), _f64(rotations)
     out_root, out_rot = np.empty_like(roots[:, 0]), np.empty_like(rotations[:, 0])
     interpolate_rows(roots, rotations, _f64(u), out_root, out_rot)

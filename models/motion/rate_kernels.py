@@ -1,8 +1,6 @@
-"""Compiled per-frame interpolation for `rate.py` (numba): in numpy the parabola through three
-outputs is ~40 array operations a call, too slow for a crowd tick within a 60 fps frame. Here one
-pass over rows and joints, the parabola through the quaternions themselves, normalised (no
-transcendental function; well under a degree from the tangent-space one). Row by row, so a
-crowd's character equals the same session alone, bit for bit.
+"""Compiled per-frame interpolation for `rate.py` (numba): numpy's ~40 operations a call are too
+slow for a crowd tick. The parabola runs through the quaternions themselves, normalised (within a
+degree of the tangent-space one); row by row, so a crowd's character equals the session alone.
 """
 
 from __future__ import annotations
@@ -17,9 +15,7 @@ from .quaternion import qdot, qneg, quat_at, qunit
 
 @njit(cache=True)
 def interpolate_rows(roots, rotations, u, out_root, out_rot):
-    """Rows' (root, rotations) at u between their second-latest (0) and latest (1) output, on the
-    parabola through their three latest: roots (n, 3, 3), rotations (n, 3, J, 4), oldest first.
-    u == 1 copies the latest output."""
+    """`rate.interpolate` into out_root, out_rot; u == 1 copies the latest output."""
     n, num_joints = rotations.shape[0], rotations.shape[2]
     for i in range(n):
         x = u[i]
@@ -52,8 +48,7 @@ def interpolate_rows(roots, rotations, u, out_root, out_rot):
 
 @njit(cache=True)
 def blend_rows(root0, rot0, root1, rot1, w, out_root, out_rot):
-    """Rows a fraction w of the way from pose 0 to pose 1: roots lerped, joints slerped the
-    shorter way; w == 1 copies pose 1 and w == 0 pose 0."""
+    """`rate.blend` into out_root, out_rot (slerp the shorter way)."""
     n, num_joints = rot1.shape[0], rot1.shape[1]
     for i in range(n):
         t = w[i]

@@ -1,9 +1,6 @@
 """How smoothly a stream is served at its own frame rate (`models.motion.rate`), output against
-input: rotation jitter, planted-foot slide and timing lag.
-
-Why these three: a held pose (sample-and-hold) shows as rotation acceleration spikes at each
-update and as planted feet that glide with the root, then snap; a smoothing filter would hide
-both but shows as lag. Each is measured on the output and on its input at the same rate.
+input: rotation jitter and planted-foot slide (sample-and-hold shows both), and timing lag (a
+smoothing filter shows that).
 """
 
 from __future__ import annotations
@@ -17,8 +14,7 @@ from .skeleton import Motion
 
 
 def rotation_acceleration(rotations: np.ndarray, fps: float) -> np.ndarray:
-    """(T - 2, J) angular acceleration of each joint's local rotation, rad/s^2: the change of
-    its per-frame rotation (as a rotation vector) from one frame to the next, times fps^2."""
+    """(T - 2, J) rad/s^2: the change of each joint's per-frame rotation vector, times fps^2."""
     q = np.asarray(rotations, float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     step = quat_log(quat_mul(quat_inv(q[:-1]), q[1:]))  # (T - 1, J, 3), shortest path
@@ -42,10 +38,7 @@ def _continuous(rotations: np.ndarray) -> np.ndarray:
 
 
 def lag_frames(reference: np.ndarray, delayed: np.ndarray, max_lag: int) -> float:
-    """The shift (frames; positive: `delayed` comes later) that best aligns two (T, J, 4)
-    rotation tracks: the peak of the cross-correlation of their mean-removed quaternion
-    components, summed over joints, placed between frames by the parabola through the peak and
-    its neighbours."""
+    """The shift (frames) best aligning two rotation tracks, by cross-correlation."""
     a, b = _continuous(reference), _continuous(delayed)
     n = min(len(a), len(b))
     a = (a[:n] - a[:n].mean(0)).reshape(n, -1)
@@ -65,9 +58,7 @@ def lag_frames(reference: np.ndarray, delayed: np.ndarray, max_lag: int) -> floa
 
 
 def planted_slide_p95(motion: Motion, root_joint: int, root: np.ndarray, rotations: np.ndarray) -> float:
-    """p95 horizontal speed (leg lengths/s) of flat planted feet (`models.eval.metrics.
-    flat_foot_contacts`: ankle and toe both on the floor; the slower of the two) of `motion`'s
-    skeleton posed by `root` (the `root_joint` translation) and `rotations`."""
+    """p95 speed (leg lengths/s) of flat planted feet of `motion`'s skeleton posed by `root`, `rotations`."""
     from ..eval.metrics import flat_foot_contacts, planted
     from .features import left_leg_length
 

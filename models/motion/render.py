@@ -62,8 +62,7 @@ def _as_list(motions: Motion | Sequence[Motion]) -> list[Motion]:
 
 
 def up_axis(motion: Motion) -> str:
-    """'y' or 'z': a humanoid's up axis as its rest pose says (`humanoid.detect_up`), else as its
-    frames say (the head above the feet, at the median over frames); 'y' for anything else."""
+    """'y' or 'z': up as the rest pose says (`humanoid.detect_up`), else as the frames do; default 'y'."""
     try:
         hr = humanoid_rig(motion.skeleton)
     except RigError:
@@ -77,9 +76,7 @@ def up_axis(motion: Motion) -> str:
 
 
 def upright(motion: Motion, up: str | None = None) -> Motion:
-    """The motion in a Y-up world, the way the renderer draws: a Z-up humanoid (`up`, or
-    `up_axis`) turned so that its up is Y (and read in cm, `humanoid.in_model_world`); anything
-    else as it is."""
+    """The motion in a Y-up world as the renderer draws it (a Z-up humanoid turned, in cm)."""
     up = up or up_axis(motion)
     if up == "y":
         return motion
@@ -91,9 +88,7 @@ def upright(motion: Motion, up: str | None = None) -> Motion:
 
 
 def face_tints(solids: Sequence[Solid]) -> np.ndarray:
-    """(S, 6, 3) unlit RGB of each solid's faces (`FACES` order x-, x+, y-, y+, z-, z+): side
-    colours, a light face front on the head, a dark palm (z+ on the left hand, z- on the right),
-    feet with a light top and a dark sole, so a part rolled about its own axis shows."""
+    """(S, 6, 3) face colours that show a part rolled about its own axis (light front, dark palm, sole)."""
     base = {1: to_rgb(LEFT), -1: to_rgb(RIGHT), 0: to_rgb(HEAD)}
     out = np.empty((len(solids), 6, 3))
     for i, s in enumerate(solids):
@@ -118,9 +113,7 @@ def eye_direction(view: tuple[float, float]) -> np.ndarray:
 
 
 def bone_ribbons(a: np.ndarray, b: np.ndarray, eye: np.ndarray, width: float) -> np.ndarray:
-    """(B, 4, 3) flat quads from joints `a` to `b` (B, 3), `width` wide and turned to face `eye`:
-    limbs drawn as polygons sort by depth together with the solids, so a far hand does not cover
-    a near leg (separate line artists would all be drawn above or below the solids)."""
+    """(B, 4, 3) flat quads from `a` to `b` facing `eye`, depth-sorted with the solids."""
     side = np.cross(b - a, eye)
     side *= 0.5 * width / np.maximum(np.linalg.norm(side, axis=-1, keepdims=True), 1e-12)
     return np.stack([a - side, a + side, b + side, b - side], axis=1)
@@ -176,8 +169,7 @@ class _Panel:
         return p[..., 0], -p[..., 2], p[..., 1]
 
     def _polygons(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
-        """Limb ribbons then solid faces at `frame`, as matplotlib quads (N, 4, 3), and their RGB
-        (solid faces lit from above the camera)."""
+        """Limb ribbons then solid faces at `frame` as quads (N, 4, 3), and their lit RGB."""
         pos = self.positions[frame]
         ribbons = bone_ribbons(pos[self.bones[:, 0]], pos[self.bones[:, 1]], self.eye, self.width)
         corners = solid_corners(self.rotations[frame], pos, self.solids) if self.solids else np.zeros((0, 8, 3))
@@ -229,10 +221,7 @@ def render_contact_sheet(
     columns: int = 6,
     up: str | None = None,
 ) -> Path:
-    """PNG of poses: `frames` is a count spread evenly over each motion, or explicit frame indices
-    (clipped to each motion's length). One motion: its poses in a grid `columns` wide. Several
-    motions: one row per motion, one column per frame. `up`: the motions' up axis ('y', 'z'; default:
-    read per motion, `up_axis`)."""
+    """PNG of poses: `frames` a count or indices; one motion in a grid, several one row each."""
     motions = [upright(m, up) for m in _as_list(motions)]
     titles = list(titles) if titles is not None else [""] * len(motions)
     n_frames = frames if isinstance(frames, int) else len(frames)
@@ -273,8 +262,7 @@ def render_gif(
     dpi: int = 60,
     up: str | None = None,
 ) -> Path:
-    """Animated GIF of the motions side by side, played at `fps` (<= source rate), at most
-    `seconds` long; shorter motions hold their last frame. `up` as in `render_contact_sheet`."""
+    """Animated GIF of the motions side by side at `fps`, at most `seconds` long."""
     motions = [upright(m, up) for m in _as_list(motions)]
     titles = list(titles) if titles is not None else [""] * len(motions)
     fps = min(fps, min(m.fps for m in motions))

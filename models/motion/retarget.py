@@ -1,30 +1,15 @@
 """Retargeting humanoid motions (any rig `humanoid` matches) onto the Bandai Namco (BN) skeleton.
 
-BN's all-zero pose is no T-pose (it points the legs up the spine), so the mapping is built from
-bone *directions*, never from either rest pose:
+BN's all-zero pose is no T-pose, so the mapping is built from bone *directions*, never rest poses:
 
-1. Each BN limb bone takes the direction of a client segment between two role joints
-   (`humanoid.match_roles`, `humanoid.bn_segments`); each trunk bone the client's hips-head
-   chain between BN's shares of its length (`retarget_stream.trunk_bones`), and each clavicle
-   the direction BN's neutral data give it for the upper arm's (`retarget_clavicle`): rigs place
-   spine, neck and collar joints differently, and copied joint by joint a CMU or Xia neutral
-   walk's clavicles and neck lay far outside BN's neutral range.
-2. Hips and Chest get two-vector frames: the bone up the spine and the line between the legs /
-   upper arms (the hips' line as the client's rest pose holds it, `retarget_stream._rest_side`).
-3. Every other joint (`TwistPlan`): its natural BN local rotation under the new BN parent, swung
-   onto its segment; the twist follows the parent, never the client's own twist. Limb roots take
-   the twist that lays BN's hinge axis along the client's limb plane (`HINGE_FALLBACK` when the
-   limb is near straight). Leaves keep the natural local rotation.
-   The hinge child (knee, elbow) bends about BN's hinge axis alone, as BN's own knees and elbows
-   do (their off-axis rotation in the data is under 0.01 rad): where the chosen axis is not the
-   client's limb plane (a fallback share), the lower bone is laid into BN's hinge plane and the
-   limb turned so that its end keeps the client's direction (Unreal's pole-vector IK). Copied
-   off-axis, the bend reached 0.08 rad on a Xia walk, eight standard deviations outside what the
-   models were trained on.
-   The foot bone takes the client's ankle-toe segment turned by the two rigs' flat-foot pitches
-   where the client's rest pose stands (`retarget_stream._sole_terms`).
-4. The Hips translation is scaled by the leg-length ratio and shifted so the toes on the ground
-   sit at BN's toe height (`contact_height`).
+1. Each BN limb bone takes a client segment's direction (`humanoid.bn_segments`); trunk bones
+   the hips-head chain by length (`retarget_stream.trunk_bones`); clavicles follow the upper arm
+   (`retarget_clavicle`): rigs place spine, neck and collar joints differently.
+2. Hips and Chest get two-vector frames (up the spine, across the legs / upper arms).
+3. Every other joint (`TwistPlan`): its natural BN rotation swung onto its segment, the twist
+   following the parent; limbs bend about BN's hinge axis alone, as in BN's data, turned so the
+   limb's end keeps the client's direction. Feet are pitched by the rigs' flat-foot pitches.
+4. The Hips translation is scaled by the leg-length ratio, toes put at BN's height (`contact_height`).
 """
 
 from __future__ import annotations
@@ -42,9 +27,8 @@ from .retarget_clavicle import CLAVICLE_FROM_ARM
 from .rotations import quat_canonical
 from .skeleton import Motion, Skeleton, depths, fk, travel_on
 
-# Joints with several children: (left child, right child) fixing the twist of the up vector.
-# The client side takes the vector between its upper legs / upper arms (CMU collars sit on the
-# spine, so the chest's left-right vector is taken between the shoulder joints).
+# Joints with several children: (left child, right child) fixing the twist of the up vector
+# (the client's upper legs / upper arms: CMU collars sit on the spine).
 _LATERAL = {"Hips": ("UpperLeg_L", "UpperLeg_R"), "Chest": ("Shoulder_L", "Shoulder_R")}
 
 
@@ -72,23 +56,19 @@ class Rig:
 
 
 def flat_foot_pitch(skeleton: Skeleton, ankle_floor: float, toe_floor: float) -> float:
-    """How far (radians below level) a BN skeleton's ankle-toe bones fall on a flat foot: the
-    ankle and toe joints at their heights on the ground. Rigs place these joints differently above
-    the sole (BN's bone falls 40 degrees, CMU's and Xia's about 10): `retarget_stream._sole_terms`."""
+    """Radians below level a BN skeleton's ankle-toe bones fall on a flat foot."""
     length = np.mean([np.linalg.norm(skeleton.offsets[skeleton.index(f"Toes_{s}")]) for s in "LR"])
     return float(np.arcsin(np.clip((ankle_floor - toe_floor) / length, -1.0, 1.0)))
 
 
 def contact_height(toe_heights: np.ndarray, percentile: float = 5.0) -> float:
-    """Toe height when on the ground: a low percentile of the lowest toe per frame (F, 2). Robust
-    to single-frame dips in the data, and still the contact height for runs and jumps."""
+    """Toe height on the ground: a low percentile of the lowest toe per frame (F, 2), robust to dips."""
     return float(np.percentile(np.asarray(toe_heights).min(axis=-1), percentile))
 
 
 @lru_cache(maxsize=1)
 def default_rig() -> Rig:
-    """The BN rig from the committed asset (first frame of Bandai Namco data set 2's first normal
-    walk, and that clip's toe floor), so retargeting needs no data at serving time."""
+    """The BN rig from the committed asset, so retargeting needs no data at serving time."""
     from .assets import BANDAI_NAMCO_ANKLE_FLOOR, BANDAI_NAMCO_TOE_FLOOR, bandai_namco_pose
 
     pose, toe = bandai_namco_pose(), BANDAI_NAMCO_TOE_FLOOR
@@ -104,8 +84,7 @@ def _frame(primary: np.ndarray, lateral: np.ndarray) -> np.ndarray:
     return np.stack([e1, e2, np.cross(e1, e2)], axis=-1)
 
 
-# BN limb joint -> its hinge child: the limb joint's twist is set by the plane of the limb
-# (hip-knee-ankle, shoulder-elbow-wrist), so the hinge bends about the BN hinge axis.
+# BN limb joint -> its hinge child: the limb plane sets the limb joint's twist.
 _HINGES = {
     "UpperLeg_L": "LowerLeg_L",
     "UpperLeg_R": "LowerLeg_R",
@@ -113,24 +92,18 @@ _HINGES = {
     "UpperArm_R": "LowerArm_R",
 }
 # How much a near-straight limb falls back: the hinge axis aims along |n| n + HINGE_FALLBACK^2 f,
-# n = cross(upper bone, lower bone) (|n| the sine of the bend), so the limb plane decides once
-# the limb is well bent and a straighter limb turns smoothly to f. An axis weighted by (n . f)
-# would flip as the plane crosses a quarter turn from f. f is the unit mean of BN's natural hinge
-# axis and the client's own hinge axis, learned per stream in the frame of the joint carrying the
-# hinge child: each frame's n weighted by sin^2 of its bend (a straight limb's plane is noise).
+# n = cross(upper bone, lower bone), so a bent limb's plane decides and a straighter one turns
+# smoothly to f: the unit mean of BN's natural axis and the client's, learned per stream.
 HINGE_FALLBACK = 0.6
-# The weight of the stream's first natural axis in the learned axis, against sin^2 of each bend:
-# a stream that never bends a limb keeps BN's twist following the client's.
+# The weight of the stream's first natural axis in the learned axis, against sin^2 of each bend.
 HINGE_PRIOR = 1.0
 
 
-# BN clavicles: laid by the upper arm's direction in the chest's frame, as BN's neutral data
-# relate them (`retarget_clavicle`), not by the client's collar segment.
+# BN clavicles: laid by the upper arm's direction in the chest's frame (`retarget_clavicle`).
 _CLAVICLES = tuple(CLAVICLE_FROM_ARM)
 
 
-# The share of the chest's twist about the spine bone that BN's Spine takes, as Unity's humanoid
-# spreads a twist over a chain: without it the whole spine twist lands in BN's Chest and jitters.
+# The share of the chest's twist BN's Spine takes (as Unity's humanoid): else the Chest jitters.
 TWIST_SHARE = 0.5
 
 
@@ -139,12 +112,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 class TwistPlan:
-    """How BN's global rotations follow from client bone directions (module docstring, step 3):
-    the joints depth by depth, parents first, grouped by kind ("swing", "clavicle", "limb", "leaf"; Hips
-    and Chest are the caller's two-vector frames). `segments` lists the BN joints whose bone
-    direction the caller gives, in the order of its columns; the others are leaves.
-    `retarget_stream.FrameRetargeter` compiles the groups into `retarget_kernels`' plan.
-    """
+    """How BN's global rotations follow from client bone directions (module docstring, step 3)."""
 
     def __init__(self, rig: Rig, segments: tuple[str, ...]):
         sk = rig.skeleton
@@ -202,16 +170,8 @@ class TwistPlan:
 def retarget(
     motion: Motion, target: Rig | Motion | None = None, fps: float = 30.0, source: HumanoidRig | None = None
 ) -> Motion:
-    """A humanoid motion (any rig `humanoid` matches; CMU and Xia files included) as a BN-skeleton
-    motion at `fps`: the per-frame mapping of `retarget_stream.FrameRetargeter` over the clip,
-    with the Hips height set so that the clip's toe contact height (`contact_height`, which looks
-    at the whole clip) is the target's.
-
-    `target` is a `Rig`, a BN `Motion` (its first frame and toe heights make the rig) or None for
-    `default_rig()`; `source` the matched client rig (default: matched from the motion's names).
-    The result has the target's joints in the target's order; every translation is the target
-    offset except Hips, which carries the scaled root motion.
-    """
+    """A humanoid motion as a BN-skeleton motion at `fps` (`FrameRetargeter` over the clip); `target`: a
+    `Rig`, a BN `Motion` or None (`default_rig()`); `source`: default matched by name."""
     from .retarget_stream import FrameRetargeter
 
     rig = default_rig() if target is None else target if isinstance(target, Rig) else Rig.from_motion(target)

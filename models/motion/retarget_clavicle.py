@@ -1,15 +1,11 @@
 """BN's clavicles from its upper arms: the shoulder girdle the models were trained on, whatever
 rig a motion comes from.
 
-Rigs hang their collars from different places (CMU and Xia from the spine, below the shoulders;
-BN beside the neck), so a client's collar segment says little about where BN's short clavicle
-points: copied, a CMU or Xia neutral walk's clavicles sat 7-38 degrees from BN's neutral walks
-(whose clavicles spread 2-3 degrees), and LTI, whose input range they left, passed the whole
-input through. In BN's own neutral data the clavicle follows the upper arm (raised arms lift it),
-so `retarget` lays it by that relation instead: per side, the clavicle's direction in the chest's
-frame is A u + c normalised, u the upper arm's direction in the chest's frame, fitted by least
-squares on data set 2's neutral training clips (`fit`). The client's own collar motion is not
-lost: on the way back it keeps its rotation plus the model's change to BN's clavicle.
+Rigs hang their collars from different places (CMU and Xia from the spine, BN beside the neck), so
+a copied collar segment lies far outside BN's neutral range. In BN's neutral data the clavicle
+follows the upper arm, so `retarget` lays it by that relation: per side, its direction in the
+chest's frame is A u + c normalised, u the upper arm's, fitted on dataset 2's neutral training
+clips (`fit`). On the way back the client's collar keeps its own rotation plus the model's change.
 
     python -m models.motion.retarget_clavicle   # refit and print `CLAVICLE_FROM_ARM`
 """
@@ -37,8 +33,7 @@ CLAVICLE_FROM_ARM = {
 
 
 def arm_and_clavicle(motion: Motion, clavicle: str) -> tuple[np.ndarray, np.ndarray]:
-    """(u, d) (F, 3) each: a BN motion's upper-arm and clavicle bone directions in the frame of
-    the joint the clavicle hangs from, unit."""
+    """(u, d) (F, 3): unit upper-arm and clavicle directions in the clavicle's parent's frame."""
     sk = motion.skeleton
     local = quat_to_matrix(motion.rotations)
     world = local.copy()

@@ -1,13 +1,11 @@
 """Compiled kernels (numba) for `retarget_stream.FrameRetargeter`: one frame at a time on scalars.
 
-A frame is a loop over the joints on 3x3 scratch arrays, a few microseconds a character at batch
-1 as well as batched (the batched numpy reference, `tests/reference/retarget.py`, spends ~2 ms a
-frame at batch 1 in small numpy calls). The maths is the reference's, step for step; results
-equal it to float round-off. `FrameRetargeter._kernel_plan` precomputes what the kernels need of
-a rig into plain arrays, packed into one int and one float buffer (`pack`).
+A few microseconds a character at batch 1 (the numpy reference, `tests/reference/retarget.py`,
+spends ~2 ms in small calls); the maths is the reference's step for step, equal to round-off.
+A rig's arrays are packed into one int and one float buffer (`pack`).
 
-Conventions: quaternions (x, y, z, w); rotation matrices act on column vectors; slots are the
-client's needed joints in depth order (`retarget_stream._Tree`), slot -1 meaning "identity".
+Conventions: quaternions (x, y, z, w); matrices act on column vectors; slots are the client's
+needed joints in depth order (`retarget_stream._Tree`), slot -1 meaning "identity".
 """
 
 from __future__ import annotations
@@ -24,8 +22,7 @@ KIND_LEAF, KIND_SWING, KIND_LIMB, KIND_CLAVICLE = range(len(KINDS))
 HINGE_FALLBACK_SQ = HINGE_FALLBACK**2
 
 # --------------------------------------------------------------------------- 3x3 helpers
-# Inlined: called on views of bigger arrays, a call each costs the view's reference counting
-# (~3x the arithmetic); inlined, numba drops it.
+# Inlined: a call on views costs reference counting, ~3x the arithmetic.
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -81,8 +78,7 @@ def _quat_to_mat(q, out):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _mat_to_quat(m, out):
-    """3x3 -> (4,) quaternion with w >= 0 (rotations.matrix_to_quat: Shepperd's method, the
-    candidate built on the largest of trace and diagonal, first one on ties)."""
+    """3x3 -> (4,) quaternion with w >= 0 (Shepperd's method, as rotations.matrix_to_quat)."""
     m00, m11, m22 = m[0, 0], m[1, 1], m[2, 2]
     trace = m00 + m11 + m22
     best, big = 0, trace
@@ -142,8 +138,7 @@ def _frame(p0, p1, p2, l0, l1, l2, out):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _swing(a, b, out):
-    """The reference's `_swing_mats`: the smallest rotation taking unit a to unit b (I + [v]x + [v]x^2 / (1 + c),
-    v = a x b, c = a . b); exactly opposite vectors get the half turn about an axis perpendicular to a."""
+    """The smallest rotation taking unit a to unit b (opposite: a half turn)."""
     v0, v1, v2 = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
     c = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
     lin = 1.0
@@ -172,9 +167,7 @@ def _swing(a, b, out):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _split_twist(g, gc, nat_c, b, m, dev, r):
-    """g = g @ R(b, TWIST_SHARE * twist), the twist about the unit bone b (in g's frame) of the
-    child's local rotation g.T @ gc off its natural one nat_c (retarget.TwistPlan's "split";
-    the reference's `twist_angle`). Scratch m, dev, r (3x3)."""
+    """g turned by TWIST_SHARE of the child's twist about bone b (retarget.TwistPlan's "split")."""
     _mtm(g, gc, m)
     _mmt(m, nat_c, dev)
     v = (dev[2, 1] - dev[1, 2]) * b[0] + (dev[0, 2] - dev[2, 0]) * b[1] + (dev[1, 0] - dev[0, 1]) * b[2]
@@ -196,9 +189,7 @@ def _split_twist(g, gc, nat_c, b, m, dev, r):
 
 @njit(cache=True, error_model="numpy")
 def _bn_lowest(gb, drop_par, drop_off, drop_ref):
-    """The lowest BN foot point's height below the Hips, each off its standing height drop_ref[1]:
-    per point, the sum of gb[parent] @ offset (its y) down the chain from the Hips
-    (`FrameRetargeter._drop`; parent -1: padding)."""
+    """The lowest BN foot point's height below the Hips, each off its standing height (`_drop`)."""
     low = np.inf
     for i in range(drop_par.shape[0]):
         y = -drop_ref[1, i]
@@ -212,8 +203,7 @@ def _bn_lowest(gb, drop_par, drop_off, drop_ref):
 
 
 class Rig(NamedTuple):
-    """What the kernels read of a rig (`FrameRetargeter._kernel_plan`): slots are the client's
-    needed joints in depth order; `_bn_globals`, `to_model` and `to_source` say what each means."""
+    """What the kernels read of a rig (`FrameRetargeter._kernel_plan`); slots in depth order."""
 
     src_order: np.ndarray  # (Ns,) client joint of each slot
     src_par_s: np.ndarray  # (Ns,) its parent's slot (-1: a root)
@@ -262,7 +252,7 @@ def _source_fk(rot, order, par_s, gs, m):
 
 @njit(cache=True, error_model="numpy")
 def _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t):
-    """The client hips' world position is c + gp @ root (the reference's `_hips_terms`)."""
+    """The client hips' world position is c + gp @ root."""
     c[:] = 0.0
     for i in range(fixed_par_s.shape[0]):
         if fixed_par_s[i] < 0:
@@ -280,13 +270,8 @@ def _hips_terms(gs, fixed_par_s, fixed_off, translated_par_s, c, gp, t):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _hinge_fallback(g, axes, hinge, fold, n0, n1, n2, nat):
-    """nat = the unit mean of BN's natural hinge axis nat and the client's hinge axis (both BN
-    world; `retarget.HINGE_FALLBACK`). hinge (4,): the client's axis, unnormalised, in the frame g
-    (client world) of the client joint that carries the hinge child: the stream's first natural
-    axis times `HINGE_PRIOR`, plus sin^2(bend) * n over its frames, n = cross(upper bone, lower
-    bone); then the sum of the weights (0: a fresh stream). When `fold`, this frame's n (BN world)
-    is added first. In g's frame the axis is the client's whatever its rest pose; `axes` (client
-    world -> BN world) is a rotation or a reflection: vectors map by it, back by its transpose."""
+    """nat := the unit mean of BN's natural hinge axis and the client's learned one (`HINGE_FALLBACK`);
+    `hinge` (4,): the sin^2-weighted axis sum in its joint's frame and the weights' sum."""
     if fold:
         s2 = n0 * n0 + n1 * n1 + n2 * n2
         p = 0.0
@@ -315,12 +300,7 @@ def _hinge_fallback(g, axes, hinge, fold, n0, n1, n2, nat):
 
 @njit(cache=True, error_model="numpy")
 def _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3, hinges, fold):
-    """BN world rotations gb (22, 3, 3) from the client's slot rotations gs
-    (the reference's `_bn_globals` then `bn_globals`). The segment vectors are
-    sums of vec_w[e] * gs[vec_par_s[t]] @ vec_off[t] over the entries e = (v, t) of vec_nz (the
-    nonzero entries of `FrameRetargeter._vec_coef`); scratch: terms (T, 3), raw and vec (V, 3).
-    hinges (H, 4): the stream's learned hinge axes (`_hinge_fallback`), this frame folded in
-    first when `fold`."""
+    """BN world rotations gb (22, 3, 3) from the client's slot rotations gs."""
     for t in range(rig.vec_off.shape[0]):
         _mv(gs[rig.vec_par_s[t]], rig.vec_off[t], terms[t])
     same_axes = rig.axes[0, 0] == 1.0 and rig.axes[1, 1] == 1.0 and rig.axes[2, 2] == 1.0  # the client's world is BN's
@@ -389,8 +369,7 @@ def _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3, hinges, fold):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _clavicle(g, u, a, c, out):
-    """out = the unit clavicle bone (world) for the unit upper arm u (world) under the chest g:
-    g (A g.T u + c), normalised (`retarget_clavicle`)."""
+    """The unit clavicle bone for upper arm u under the chest g: g (A g.T u + c), normalised."""
     v0 = g[0, 0] * u[0] + g[1, 0] * u[1] + g[2, 0] * u[2]  # g.T u
     v1 = g[0, 1] * u[0] + g[1, 1] * u[1] + g[2, 1] * u[2]
     v2 = g[0, 2] * u[0] + g[1, 2] * u[1] + g[2, 2] * u[2]
@@ -404,11 +383,7 @@ def _clavicle(g, u, a, c, out):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _hinged(g, frame, d, lo, reach, a, b, sw, m):
-    """A limb whose root g (3, 3) was just framed (`frame`: columns upper bone d, hinge axis, their
-    cross) with its lower bone `lo` (unit, updated in place) laid into the hinge plane, so that the
-    hinge child bends about its hinge axis alone, and g turned so that the limb's end, d + reach
-    lo (reach: lower bone length over upper), keeps its direction (`retarget` module docstring).
-    Scratch a, b (3,), sw, m (3, 3)."""
+    """Limb root g re-framed so the lower bone lies in the hinge plane, the limb's end kept."""
     t = lo[0] * frame[0, 1] + lo[1] * frame[1, 1] + lo[2] * frame[2, 1]
     p0, p1, p2 = lo[0] - t * frame[0, 1], lo[1] - t * frame[1, 1], lo[2] - t * frame[2, 1]
     n = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
@@ -431,9 +406,8 @@ def _hinged(g, frame, d, lo, reach, a, b, sw, m):
         lo[r] = sw[r, 0] * p0 + sw[r, 1] * p1 + sw[r, 2] * p2
 
 
-# The rig's arrays travel packed in two buffers, ints and floats, each with its offsets (a part i is
-# buf[at[i]:at[i + 1]], reshaped): numba checks every argument's type on each call (~0.1 us an
-# array), which for the two dozen arrays a rig needs would be most of a batch-1 call.
+# The rig's arrays travel packed in two buffers (part i is buf[at[i]:at[i + 1]]): numba checks each
+# argument's type per call, most of a batch-1 call for two dozen arrays.
 INT_PARTS = (
     "src_order", "src_par_s", "fixed_par_s", "translated_par_s", "vec_par_s", "vec_nz", "num_plain", "lateral_j",
     "step_i", "bn_parents", "bn_order", "delta_j", "anc_bn_s", "mapped_j", "mapped_s", "mapped_par_s", "drop_par",
@@ -472,10 +446,7 @@ def _part33(buf, at, i):
 
 @njit(cache=True, error_model="numpy")
 def _to_model(root, rot, rig, scale, vertical_offset, hinges, hips_out, rot_out):
-    """Client frames (root (B, 3), local quaternions (B, Js, 4)) -> BN Hips translations
-    hips_out (B, 3) and BN local quaternions rot_out (B, 22, 4) (`FrameRetargeter.to_model`); `to_model` unpacks the rig's arrays for it.
-    hinges (B or 1, H, 4): each row's stream state (one: every row is the next frame of that
-    stream), each frame folded in."""
+    """Client frames -> BN Hips translations and rotations (`FrameRetargeter.to_model`)."""
     nb, base = rig.bn_parents.shape[0], rig.num_plain + 2 * rig.lateral_j.shape[0]
     nv = base + rig.drop_par.shape[0]
     gs = np.empty((rig.src_order.shape[0], 3, 3))
@@ -509,13 +480,7 @@ def _to_model(root, rot, rig, scale, vertical_offset, hinges, hips_out, rot_out)
 
 @njit(cache=True, error_model="numpy")
 def _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, hinges, fold, root_out, rot_out):
-    """BN frames (Hips translations (B, 3), local quaternions (B, 22, 4)) and the client's own
-    rotations (B, Js, 4) -> client root translations root_out (B, 3) and local quaternions
-    rot_out (B, Js, 4) (`FrameRetargeter.to_source`). `rig.delta_j`: the BN joints whose change some
-    client joint takes; `rig.anc_bn_s`: that BN joint per slot (22: none, no change); `rig.mapped_par_s`
-    -1: a mapped root joint. hinges (B or 1, H, 4): as `_to_model`'s, each frame folded in only
-    when `fold` (else: the state `_to_model` left for the same client frame). `to_source` unpacks
-    the rig's arrays for it."""
+    """BN frames and client rotations -> client frames (`FrameRetargeter.to_source`)."""
     nb, ns, base = rig.bn_parents.shape[0], rig.src_order.shape[0], rig.num_plain + 2 * rig.lateral_j.shape[0]
     nv = base + rig.drop_par.shape[0]
     gs = np.empty((ns, 3, 3))

@@ -1,15 +1,13 @@
 """Causal, per-frame retargeting between a client's humanoid rig and the Bandai Namco (BN) skeleton.
 
-`FrameRetargeter` fixes everything but the frame up front (the mapping: `retarget`). The client's
-world is brought to BN's (Y up, right-handed) by `HumanoidRig.axes`, a rotation or a reflection;
-the Hips translation is the client's hips position scaled by the leg-length ratio, plus a
-constant height (`vertical_offset`) that puts the client's toes at its floor where BN's are.
+`FrameRetargeter` fixes the mapping up front (`retarget`). The client's world is brought to BN's
+(Y up, right-handed) by `HumanoidRig.axes`; the Hips translation is the client's scaled by the
+leg-length ratio, plus a height (`vertical_offset`) that puts its toes at BN's floor.
 
-`to_source` maps a (stylised) BN frame back: each client joint k gets G_new[k] = D_j G_client[k],
-D_j the change of the global rotation of j, the BN joint of k's nearest mapped ancestor-or-self.
-Unmapped joints (twist bones, fingers, props) keep their local rotations.
-`to_source(*to_model(root, rot), rot) == (root, rot)` up to float rounding. Both run compiled
-kernels (`retarget_kernels`); `tests/reference/retarget.py` is the numpy mapping they equal.
+`to_source` maps a (stylised) BN frame back: client joint k gets G_new[k] = D_j G_client[k], D_j
+the change of the global rotation of its nearest mapped ancestor-or-self; unmapped joints keep
+their local rotations, so `to_source(*to_model(root, rot), rot) == (root, rot)` up to rounding.
+Both run compiled kernels; `tests/reference/retarget.py` is the numpy mapping they equal.
 """
 
 from __future__ import annotations
@@ -26,8 +24,7 @@ from .skeleton import Skeleton, depths, fk
 
 
 class _Tree:
-    """FK over a joint subset, one `matmul` per tree depth: the kept joints are stored depth by
-    depth (`order`), so each level is a contiguous slice and only its parents are gathered."""
+    """FK over a joint subset, one `matmul` per tree depth (joints stored depth by depth)."""
 
     def __init__(self, parents: np.ndarray, needed: np.ndarray | None = None):
         parents = np.asarray(parents)
@@ -50,8 +47,7 @@ class _Tree:
 
 
 def _path_terms(skeleton: Skeleton, a: int, b: int) -> list[tuple[int, float]]:
-    """(joint k, sign) with pos[b] - pos[a] = sum sign * G[parent k] @ offset[k] (through the
-    lowest common ancestor); zero-length offsets are dropped."""
+    """(joint k, sign): pos[b] - pos[a] = sum sign * G[parent k] @ offset[k], zero offsets dropped."""
 
     def up(j: int) -> list[int]:
         chain = []
@@ -76,8 +72,7 @@ def _chain(skeleton: Skeleton, a: int, b: int) -> list[int]:
 
 
 def _along(skeleton: Skeleton, chain: list[int], share: float) -> np.ndarray:
-    """(len(chain),) weights w with sum w_k G[parent k] offset[k] the point `share` of the way
-    along the chain's length from its top (the bones in line, as between a rig's joints)."""
+    """(len(chain),) weights placing a point `share` of the chain's length from its top."""
     lengths = np.array([np.linalg.norm(skeleton.offsets[k]) for k in chain])
     start = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])
     reach = share * lengths.sum()
@@ -85,12 +80,7 @@ def _along(skeleton: Skeleton, chain: list[int], share: float) -> np.ndarray:
 
 
 def trunk_bones(src: Skeleton, roles: dict[str, int], bn: Skeleton) -> dict[str, list[tuple[int, float]]]:
-    """BN trunk joint (Hips, Spine, Chest, Neck) -> the client vector its bone takes, as (client
-    joint k, weight w): sum w G[parent k] offset[k]. Each BN trunk joint sits at its share of the
-    hips-head length along the client's hips-head chain (Unity's humanoid spreads a spine over
-    its joints by length likewise): rigs place their spine and neck joints differently (CMU's
-    upper spine joint is BN's chest, its lower neck BN's upper chest), and a BN bone given the
-    client segment between joints of the same role alone took the client's neck lean as its chest's."""
+    """BN trunk joint -> the client vector its bone takes, each at its share of the hips-head chain."""
     chain = _chain(src, roles["hips"], roles["head"])
     names = ["Hips"]
     while names[-1] != "Head":
@@ -101,33 +91,23 @@ def trunk_bones(src: Skeleton, roles: dict[str, int], bn: Skeleton) -> dict[str,
     return {n: list(zip(chain, points[i + 1] - points[i])) for i, n in enumerate(names[:-1])}
 
 
-# Two-vector joints whose side vector is the client's rest-pose line carried by the joint's own
-# rotation (`_rest_side`) instead of the line read per frame. Not the Chest: collars that sit
-# forward of their rest pose would turn it (the spine's `retarget.TWIST_SHARE` steadies it instead).
+# Two-vector joints whose side vector is the rest-pose line carried by the joint's own rotation
+# (`_rest_side`), not read per frame. Not the Chest: forward collars would turn it.
 _REST_SIDE = ("Hips",)
 
 
 def _rest_side(skeleton: Skeleton, a: int, b: int) -> np.ndarray:
-    """pos[b] - pos[a] in the rest pose (so also in any joint's frame). Carried by the hips' own
-    rotation it is the client's hip line as its pelvis holds it: joints animated between the
-    hips and the thighs (Xia's LHipJoint) then do not turn BN's pelvis."""
+    """pos[b] - pos[a] at rest, carried by the hips' rotation (joints between hips and thighs ignored)."""
     return sum((s * skeleton.offsets[k] for k, s in _path_terms(skeleton, a, b)), np.zeros(3))
 
 
-# A rest pose stands (a T-pose or A-pose) when each leg hangs within STANDING_LEG of straight down
-# and the two feet mirror each other, soles within STANDING_FEET of the same fall (a captured
-# first frame mid-step does not): then its feet are flat on the ground (`_sole_terms`).
+# A rest pose stands (its feet flat, `_sole_terms`) when each leg hangs within STANDING_LEG of
+# straight down and the soles mirror each other within STANDING_FEET.
 STANDING_LEG, STANDING_FEET = np.radians(30.0), np.radians(3.0)
 
 
 def _sole_terms(hr: HumanoidRig, rig: Rig) -> dict[str, list[tuple[object, int, np.ndarray, float]]]:
-    """BN foot -> the client vector its bone takes (terms as `_segment_terms`'), where the client's
-    rest pose stands: its ankle-toe segment, turned in its ankle's frame about the foot's lateral
-    axis by BN's flat-foot pitch (`Rig.foot_pitch`) less the rest pose's. Why: rigs place the ankle
-    and toe joints at different heights above the sole, so a copied direction held BN's toes 30
-    degrees up off a flat CMU or Xia foot, its ankle 4 cm low: far outside BN's data, and the
-    models' feet skated. Unity's humanoid likewise maps a foot against each rig's reference pose.
-    A rest pose that does not stand (BN's own, legs up the spine) says nothing of a flat foot."""
+    """BN foot -> the client's ankle-toe vector pitched to BN's flat foot, where its rest pose stands."""
     src, roles = hr.skeleton, hr.roles
     up = hr.axes.T @ np.array([0.0, 1.0, 0.0])  # the client's up
     if rig.foot_pitch is None or not all(f"toes_{s}" in roles for s in "lr"):
@@ -158,25 +138,17 @@ def _sole_terms(hr: HumanoidRig, rig: Rig) -> dict[str, list[tuple[object, int, 
 # --------------------------------------------------------------------------- the retargeter
 
 
-# A stream's hinge state, per BN limb joint (`retarget._HINGES`, in its order): the client's hinge
-# axis summed over the stream's frames, weighted (3), and the weights' sum (1) (`retarget_kernels._hinge_fallback`).
+# A stream's hinge state per BN limb joint (`retarget._HINGES`): the weighted axis sum (3), weights (1).
 HINGE_STATE = (len(_HINGES), 4)
 
 
 class FrameRetargeter:
     """Per-frame client rig <-> BN retargeting for one client rig.
 
-    Fixed after construction; the one thing a stream carries from frame to frame is its hinge
-    state (`init_state`, `HINGE_STATE`): per limb, the client's hinge axis as its bent frames show
-    it (`retarget.HINGE_FALLBACK`), which a near-straight limb falls back toward. It lives in the
-    client joint's frame, so the same motion on another rest pose learns the same axis. The caller
-    keeps it: one row per stream (session, crowd character). Without one, the rows given are the
-    successive frames of one fresh stream (a clip).
-
-    `source`: a matched `HumanoidRig`, or a skeleton to match by its names. `source_floor`: the
-    height along the client's up axis (client units) at which its toe joints touch the ground;
-    default `rig.floor / scale`, i.e. a floor at 0 and the same toe-joint height in leg lengths as
-    the BN data. `vertical_offset` overrides the derived Hips height shift altogether.
+    Fixed after construction but for each stream's hinge state (`init_state`: the client's hinge axis
+    per limb as its bent frames show it), one row per stream kept by the caller. `source`: a matched
+    `HumanoidRig` or a skeleton; `source_floor`: where its toes touch the ground (client units);
+    `vertical_offset` overrides the derived Hips height shift.
     """
 
     def __init__(
@@ -199,11 +171,7 @@ class FrameRetargeter:
         self._bn_hips = sk.index("Hips")
         self._hips = roles["hips"]
 
-        # Vectors read from each frame: the BN bones' segments, then (up, side) per two-vector joint.
-        # A segment is a weighted sum of G[parent k] offset[k] (`_path_terms`; the trunk's
-        # `trunk_bones`); a side is the rest
-        # pose's side vector carried by the joint's own rotation (`_rest_side`). Terms are keyed
-        # (parent joint, offset) pairs: `vec_par` and `vec_off` below.
+        # Vectors read per frame: BN bone segments, then (up, side) per two-vector joint.
         segs = bn_segments(roles)
         plain = tuple(n for n in BN_JOINTS if n in segs and n not in _LATERAL)
         trunk = trunk_bones(src, roles, sk)  # the trunk by length
@@ -317,10 +285,7 @@ class FrameRetargeter:
         return [(k, int(src.parents[k]), src.offsets[k], sign) for k, sign in _path_terms(src, a, b)]
 
     def _standing_offset(self) -> float:
-        """Hips height shift (BN hips y = scale * client hips height + offset): both skeletons in
-        BN's natural pose (the client put there by `to_source`, whatever its rest pose), BN with its
-        toes at `rig.floor`, the client with its toes (or, without toes, its ankles as high as BN's
-        in that pose) at `source_floor`."""
+        """Hips height shift: BN's toes at `rig.floor`, the client's at `source_floor`."""
         sk, src, roles = self.rig.skeleton, self.source, self.humanoid.roles
         rest = np.zeros((1, src.num_joints, 4))
         rest[..., 3] = 1.0
@@ -365,24 +330,17 @@ class FrameRetargeter:
 
     @staticmethod
     def init_state(streams: int = 1) -> np.ndarray:
-        """(streams, *HINGE_STATE): fresh streams' hinge state (no hinge axis learned yet). The
-        same shape for every rig, so rows of different rigs stack."""
+        """(streams, *HINGE_STATE) fresh hinge state; one shape for every rig, so rows stack."""
         return np.zeros((streams, *HINGE_STATE))
 
     def to_model(
         self, root: np.ndarray, rotations: np.ndarray, state: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Client frame(s) -> BN frame(s).
+        """Client frame(s) -> BN frame(s), compiled (microseconds a frame).
 
-        root (B, 3): the translation of the client's translated joint (`HumanoidRig.translated`:
-        the hips, or the root above them); rotations (B, Js, 4): client local quaternions (xyzw).
-        state: None (the rows are successive frames of a fresh stream), (B, *HINGE_STATE) (row b
-        is the next frame of stream b) or (1, *HINGE_STATE) (the rows are that stream's next
-        frames); each frame is folded into it, in place, before it is used.
-        Returns (Hips translation (B, 3), BN local rotations (B, 22, 4), w >= 0). Every other BN
-        translation is the BN skeleton's offset.
-
-        Compiled (`retarget_kernels.to_model`), a few microseconds a frame at any batch size."""
+        root (B, 3), rotations (B, Js, 4) (xyzw); state: None (a fresh stream), (B, *HINGE_STATE) (row b:
+        stream b) or (1, ...) (the rows: that stream's next frames), updated in place.
+        Returns (Hips translation (B, 3), BN local rotations (B, 22, 4), w >= 0)."""
         root = np.ascontiguousarray(root, dtype=np.float64).reshape(-1, 3)
         b = root.shape[0]
         rotations = self._client_rotations(rotations, b)
@@ -398,17 +356,11 @@ class FrameRetargeter:
         source_rotations: np.ndarray,
         state: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """BN frame(s) -> client frame(s) on the client's rig.
+        """BN frame(s) -> client frame(s), compiled.
 
-        root_bn (B, 3): BN Hips translation; rotations_bn (B, 22, 4): BN local quaternions;
-        source_rotations (B, Js, 4): the client's own local rotations for the same frame(s)
-        (unmapped joints keep these; they also fix the twist the BN change is applied to).
-        state: None (the rows are successive frames of a fresh stream: the state is learned
-        again from `source_rotations`, as `to_model` learned it), or the state `to_model` left
-        after these same client frames (read, not changed), shaped as there.
-        Returns (client root translation (B, 3), client local rotations (B, Js, 4)).
-
-        Compiled (`retarget_kernels.to_source`)."""
+        source_rotations (B, Js, 4): the client's own rotations for the same frames (unmapped joints keep
+        them); state: None (learned again from them) or what `to_model` left (read only).
+        Returns (client root translation (B, 3), client local rotations (B, Js, 4))."""
         root_bn = np.ascontiguousarray(root_bn, dtype=np.float64).reshape(-1, 3)
         b = root_bn.shape[0]
         nb = self._bn_parents.shape[0]
@@ -523,8 +475,7 @@ class FrameRetargeter:
         )
 
     def _fixed_locals(self) -> np.ndarray:
-        """(22, 4) per BN joint, the local quaternion `to_model` gives it on every frame: the natural
-        one of a leaf, identity for the static root; (-1, -1, -1, -1) for the joints that move."""
+        """(22, 4) per BN joint, the local rotation it always gets; (-1, -1, -1, -1) if it moves."""
         out = np.full((self._bn_parents.shape[0], 4), -1.0)
         out[self._bn_parents < 0] = [0.0, 0.0, 0.0, 1.0]
         for g in self._plan.groups:

@@ -1,11 +1,10 @@
-"""Rotation ball: each joint's output rotation stays inside the ball that real data of the style
-fills around the joint's mean rotation, since a skinned character shows the rotation itself.
+"""Rotation ball: each joint's output rotation stays inside the ball real data of the style fills
+around its mean (a skinned character shows the rotation itself).
 
 The angle d to the mean is kept up to `inner`, then saturates smoothly toward `outer`:
     d' = inner + (outer - inner) tanh((d - inner) / (outer - inner))   for d > inner
-(continuous first derivative, so a crossing does not kink). The Hips is compared without its
-heading twist, put back after. Radii are quantiles of real angles (`fit_prior`); `StyleBalls`
-holds one ball per style. Compiled per frame in `rotation_ball_kernels.py`.
+(C1, so a crossing does not kink). The Hips is compared without its heading. Radii are quantiles
+of real angles (`fit_prior`); compiled per frame in `rotation_ball_kernels.py`.
 """
 
 from __future__ import annotations
@@ -27,8 +26,7 @@ NO_PRIOR = np.inf  # radius of a joint (or a style) without a prior: nothing is 
 
 
 def up_twist(q: np.ndarray) -> np.ndarray:
-    """(..., 4) -> the twist of q about world up (+Y), (0, y, 0, w) normalised; identity when q
-    has no part about Y (a half turn about a horizontal axis)."""
+    """(..., 4) -> q's twist about +Y, normalised; identity when q has none (a horizontal half turn)."""
     t = np.zeros_like(q)
     t[..., 1], t[..., 3] = q[..., 1], q[..., 3]
     n = np.linalg.norm(t, axis=-1, keepdims=True)
@@ -36,9 +34,7 @@ def up_twist(q: np.ndarray) -> np.ndarray:
 
 
 def split_heading(rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(..., J, 4) local rotations -> (the heading (..., 4): the Hips' twist about world up t, the
-    rotations normalised with the Hips' rest c in q = t c). What every rotation prior compares
-    and fits: a heading is where the character faces, never a style."""
+    """(heading (..., 4), rotations without it): priors compare without heading, never a style."""
     out = np.array(rotations, float, copy=True)
     out /= np.linalg.norm(out, axis=-1, keepdims=True)
     h = out[..., HIPS, :]
@@ -62,10 +58,7 @@ def mean_rotation(q: np.ndarray) -> np.ndarray:
 def fit_prior(
     rotations: np.ndarray, inner_q: float = 97.0, outer_q: float = 99.0, margin_deg: float = 1.0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Real frames (F, J, 4) of one style -> (mean (J, 4), radii (2, J): inner, outer, radians).
-    Joint 0 (`joint_Root`, static) gets no prior. The outer radius sits `margin_deg` inside the
-    real `outer_q` quantile, so an output on it is still within that quantile of real frames; the
-    inner radius is the `inner_q` quantile, at most the outer one."""
+    """Real frames (F, J, 4) -> (mean (J, 4), radii (2, J) inner, outer; radians); none for joint 0."""
     c = comparable(rotations)
     joints = c.shape[-2]
     mean = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (joints, 1))
@@ -80,8 +73,7 @@ def fit_prior(
 
 @dataclass(frozen=True)
 class StyleBalls(Stateless):
-    """One ball per named style: `mean` (S, J, 4), `radii` (S, 2, J) inner / outer (radians), and
-    how they were fitted (`fit`: quantiles, margin, data), saved beside a model's weights."""
+    """One ball per style: `mean` (S, J, 4), `radii` (S, 2, J), and how they were fitted (`fit`)."""
 
     styles: tuple[str, ...]
     mean: np.ndarray
@@ -102,8 +94,7 @@ class StyleBalls(Stateless):
         )
 
     def rows(self, styles: Sequence[str | None], skeleton: Skeleton) -> dict[str, np.ndarray]:
-        """As a stage (`models.stages`): `mean` (S, J, 4) and `radii` (S, 2, J) aligned with
-        `styles`; a style without a ball gets infinite radii (nothing clamped)."""
+        """`mean` and `radii` aligned with `styles`; a style without a ball: infinite radii."""
         J = skeleton.num_joints
         plain = (np.tile((0.0, 0.0, 0.0, 1.0), (J, 1)), np.full((2, J), NO_PRIOR))
         return style_rows(self.styles, styles, mean=(self.mean, plain[0]), radii=(self.radii, plain[1]))
@@ -117,7 +108,6 @@ class StyleBalls(Stateless):
         return out.astype(rotations.dtype), state
 
     def with_styles_of(self, other: StyleBalls) -> StyleBalls:
-        """These balls with `other`'s styles added or replacing these (a refit of some styles)."""
         keep = [k for k, s in enumerate(self.styles) if s not in other.styles]
         mean, radii = (np.concatenate([a[keep], b]) for a, b in ((self.mean, other.mean), (self.radii, other.radii)))
         return StyleBalls(tuple(self.styles[k] for k in keep) + other.styles, mean, radii, other.fit)

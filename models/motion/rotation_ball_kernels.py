@@ -16,8 +16,7 @@ from .quaternion import dot3, qdot, qinv, qmul, qneg, quat_at, qunit
 
 @njit(cache=True, error_model="numpy")
 def clamp_joint(q, mean, inner, outer, hips):
-    """The rotation ball for one joint: q held within the style's ball around `mean`
-    (the Hips compared without their twist about up, which is put back)."""
+    """One joint held within the style's ball around `mean` (the Hips without their heading)."""
     twist = (0.0, 0.0, 0.0, 1.0)
     if hips:
         n = math.sqrt(q[1] * q[1] + q[3] * q[3])
@@ -44,9 +43,7 @@ def clamp_joint(q, mean, inner, outer, hips):
 
 @njit(cache=True, error_model="numpy")
 def clamp_mixed(rotations, weights, rest_style, mean, radii, out):
-    """Frames (B, J, 4) under style weights (B, S) -> out: per joint the weighted mean of the
-    rotation held in each style's ball (shortfall to `rest_style`), continuous in the weights so a
-    style fade does not jump between balls; one style at weight 1 is exactly its ball."""
+    """Per joint the weighted mean of the rotation held in each style's ball: fades do not jump."""
     B, S = weights.shape
     J = rotations.shape[1]
     for b in range(B):

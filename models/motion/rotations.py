@@ -43,8 +43,7 @@ def quat_to_matrix(quat: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_quat(mat: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) -> (..., 4) with w >= 0. Shepperd's method: build the candidate on the largest
-    of trace and diagonal terms, which is stable everywhere."""
+    """(..., 3, 3) -> (..., 4) with w >= 0; Shepperd's method (stable everywhere)."""
     m = np.asarray(mat, dtype=np.float64)
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
     trace = m00 + m11 + m22
@@ -66,9 +65,7 @@ def matrix_to_quat(mat: np.ndarray) -> np.ndarray:
 
 
 def quat_log(quat: np.ndarray) -> np.ndarray:
-    """(..., 4) quaternions -> (..., 3) rotation vectors (axis * angle) along the shortest arc,
-    angle in [0, pi]: the tangent space the style maps and metrics work in. (`qlog` in
-    `quaternion.py` is the compiled one.)"""
+    """(..., 4) -> (..., 3) rotation vectors (axis * angle), shortest arc, angle in [0, pi]."""
     flat, lead = _flat(quat, 1)
     return Rotation.from_quat(flat).as_rotvec().reshape(*lead, 3)
 
@@ -80,8 +77,7 @@ def quat_exp(rotvec: np.ndarray) -> np.ndarray:
 
 
 def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b (apply b, then a), broadcasting; plain numpy because scipy's
-    Rotation costs ~10 us per call, too much inside a per-frame step."""
+    """Hamilton product a * b (apply b, then a), broadcasting; plain numpy (scipy's ~10 us a call)."""
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
     bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
@@ -132,24 +128,20 @@ def matrix_to_6d(mat: np.ndarray) -> np.ndarray:
 
 
 def quat_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle (radians, 0..pi) of the rotation between unit quaternions a and b, broadcasting;
-    sign-blind (q and -q are one rotation)."""
+    """Angle (radians, 0..pi) between unit quaternions a and b; sign-blind."""
     dot = np.abs(np.sum(np.asarray(a, float) * np.asarray(b, float), axis=-1))
     return 2.0 * np.arccos(np.clip(dot, 0.0, 1.0))
 
 
 def twist_angle(q: np.ndarray, axis: np.ndarray) -> np.ndarray:
-    """Signed angle (radians, -pi..pi) of the twist of q about the unit `axis` in the
-    swing-twist split q = swing * twist: the part of a rotation that turns a bone about itself,
-    which moves no joint and so no position-based metric sees."""
+    """Signed twist angle of q about unit `axis` (radians): a bone's turn about itself."""
     q = np.asarray(q, float)
     along = np.sum(q[..., :3] * np.asarray(axis, float), axis=-1)
     return wrap_angle(2.0 * np.arctan2(along, q[..., 3]))
 
 
 def swing_twist(q: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(swing, twist) with q = swing * twist, twist about the unit `axis`, swing about an axis
-    perpendicular to it. A zero-twist-part rotation by 180 degrees gets the identity twist."""
+    """(swing, twist), q = swing * twist, twist about unit `axis`; a 180-degree swing: identity twist."""
     q = np.asarray(q, float)
     axis = np.asarray(axis, float)
     along = np.sum(q[..., :3] * axis, axis=-1, keepdims=True)
@@ -161,8 +153,7 @@ def swing_twist(q: np.ndarray, axis: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def yaw_quat(yaw: np.ndarray) -> np.ndarray:
-    """(..., 4) rotation by `yaw` radians about +Y (up on every rig the models stream), in the
-    input's float precision."""
+    """(..., 4) rotation by `yaw` radians about +Y, in the input's float precision."""
     h = 0.5 * np.asarray(yaw)
     z = np.zeros_like(h)
     return np.stack([z, np.sin(h), z, np.cos(h)], axis=-1)
@@ -182,8 +173,7 @@ def wrap_angle(a: np.ndarray) -> np.ndarray:
 
 
 def quat_mean(q: np.ndarray, axis: int = 0) -> np.ndarray:
-    """Sign-blind mean rotation along `axis` (Markley et al. 2007: the principal eigenvector of
-    sum q q^T), with w >= 0."""
+    """Sign-blind mean rotation along `axis` (Markley et al. 2007), with w >= 0."""
     q = np.moveaxis(np.asarray(q, float), axis, -2)  # (..., N, 4)
     m = np.einsum("...ni,...nj->...ij", q, q)
     _, vecs = np.linalg.eigh(m)

@@ -1,9 +1,8 @@
 """Skeletons, motions and forward kinematics (numpy and batched, differentiable torch).
 
-A `Motion` keeps local joint rotations as quaternions and local translations for every joint.
-Translations are per frame because BVH allows position channels on any joint: the Bandai Namco
-files animate `Hips` (a child of a static `joint_Root`), CMU files animate the root. Joints
-without position channels simply repeat their offset.
+A `Motion` keeps local rotations (quaternions) and local translations for every joint, per frame,
+since BVH allows position channels on any joint (BN animates `Hips` under a static `joint_Root`,
+CMU the root); joints without them repeat their offset.
 """
 
 from __future__ import annotations
@@ -88,12 +87,7 @@ class Motion:
 
 
 def travel_on(motion: Motion, joint: int) -> Motion:
-    """`motion` with every motion of `joint`'s ancestors moved into it (the same world pose): the
-    ancestors held at their first frame's rotation and their rest offset, where readers that
-    take one translation per frame (the service, the viewer, `clip_on_skeleton`) put them. Why:
-    a capture may carry its travel on a root joint above the hips (4 of dataset 1's neutral
-    clips do, on `joint_Root`), and the models read the hips' translation as the body's travel;
-    unfolded, they saw a walk in place and the travel came back unplanted under the feet."""
+    """`motion` with its ancestors' motion moved into `joint` (where readers take the travel)."""
     chain = []
     up = int(motion.skeleton.parents[joint])
     while up >= 0:
@@ -124,8 +118,7 @@ def depths(parents: np.ndarray) -> np.ndarray:
 
 
 def fk(rotations: np.ndarray, translations: np.ndarray, parents: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Forward kinematics: local (..., J, 4)/(..., J, 3) -> world rotations and positions.
-    Quaternions are normalised first (cached clips store them as float32)."""
+    """Forward kinematics: local (..., J, 4)/(..., J, 3) -> world rotations and positions (normalised)."""
     rotations = rotations / np.linalg.norm(rotations, axis=-1, keepdims=True)
     g_rot = np.empty(np.broadcast_shapes(rotations.shape[:-1], translations.shape[:-1]) + (4,))
     g_pos = np.empty(g_rot.shape[:-1] + (3,))
@@ -141,8 +134,7 @@ def fk(rotations: np.ndarray, translations: np.ndarray, parents: np.ndarray) -> 
 def fk_torch(
     rotations: torch.Tensor, translations: torch.Tensor, parents: np.ndarray | list[int]
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Batched differentiable FK on quaternions (..., J, 4) and translations (..., J, 3). Torch is
-    imported here, not with the module: what needs only the numpy FK never loads it."""
+    """Batched differentiable FK (torch imported here, so numpy-only users never load it)."""
     import torch
 
     from .rotations_torch import quat_apply_t, quat_mul_t
@@ -204,8 +196,7 @@ def from_bvh(bvh: bvhio.BvhFile) -> Motion:
 
 
 def to_bvh(motion: Motion, template: bvhio.BvhFile | None = None) -> bvhio.BvhFile:
-    """Write a motion with the template's channel layout (default: 6 channels on the root and
-    on every joint with moving translation, 3 rotation channels elsewhere)."""
+    """Write a motion with the template's channels (default: 6 on the root and moving joints, else 3)."""
     sk = motion.skeleton
     if template is None:
         moving = (

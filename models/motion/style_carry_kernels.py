@@ -1,9 +1,7 @@
-"""`style_carry.StyleCarry` compiled (numba) for the per-frame step: the formulas of the numpy
-reference (`tests/reference/erd_carry.py`) as per-row, per-joint loops on 4-tuple quaternions
-(`quaternion.py`), ~1 us per session instead of ~40 small numpy calls per prior and frame.
-`_toward` and `_carry_joint` are inlined (`inline="always"`): out of line, passing their arrays as
-numba structs cost a quarter to a half of the kernel's time; inlining the small helpers too buys
-nothing and triples the first compile.
+"""`style_carry.StyleCarry` compiled (numba) for the per-frame step: the numpy reference's formulas
+(`tests/reference/erd_carry.py`) as per-row, per-joint loops on 4-tuple quaternions, ~1 us per
+session instead of ~40 small numpy calls. `_toward` and `_carry_joint` are inlined: out of line,
+passing their arrays as numba structs cost a quarter to a half of the kernel's time.
 """
 
 from __future__ import annotations
@@ -29,8 +27,7 @@ def _mat3(m, s, j, v):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _toward(q, s, j, carry):
-    """f_s(q) = mean exp(clamp(M log(src^-1 q))) for joint j and style s of `carry` (source,
-    mean, lin, radius)."""
+    """f_s(q) = mean exp(clamp(M log(src^-1 q))) for joint j and style s of `carry`."""
     source, mean, lin, radius = carry
     dx, dy, dz = _mat3(lin, s, j, qlog(qmul(qinv(quat_at(source, s, j)), q)))
     dn = math.sqrt(dx * dx + dy * dy + dz * dz)
@@ -53,8 +50,7 @@ def _lone(w, b):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _headless(q, is_hips):
-    """Unit q without its heading when it is the Hips: (q', heading), the heading (0, hy, 0, hw)
-    its twist about world up (the identity for other joints); qmul(heading, q') is q."""
+    """Unit q without its heading when it is the Hips: (q', heading), qmul(heading, q') = q."""
     hy, hw = 0.0, 1.0
     if is_hips:
         hn = math.sqrt(q[1] * q[1] + q[3] * q[3])
@@ -89,12 +85,8 @@ def _carry_joint(q, b, j, w, lone, carry):
 
 @njit(cache=True, error_model="numpy")
 def carry_batch(q, w, source, mean, lin, radius, hips, out):
-    """out (B, J, 4) = q (B, J, 4) carried toward the styles of weights w (B, S). Joint `hips`
-    (-1: none) is carried without its heading, its twist about world up (+Y), which is put back
-    after (`tests/reference/erd_carry.py` is the numpy reference). A row with one style at
-    weight 1 (no mix, no intensity) takes f_s(q) itself, in q's hemisphere: the blend
-    q exp(log(q^-1 f_s(q))) is the same rotation, and skipping its log and exp halves the
-    kernel's cost for such rows."""
+    """out (B, J, 4) = q carried toward the styles of weights w (B, S), joint `hips` without its heading;
+    one style at weight 1 takes f_s(q) itself (the same rotation at half the cost)."""
     for b in range(q.shape[0]):
         lone = _lone(w, b)
         for j in range(q.shape[1]):
@@ -113,8 +105,7 @@ def carry(q: np.ndarray, w: np.ndarray, source, mean, lin, radius, hips: int = -
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _pair_joint(q, row, j, w, lone, r, a, b, c):
-    """Unit quaternion q of row `row`, joint j carried by `a` and by `b` then `c`, mixed by the
-    row's share r (`carry_pair_batch`)."""
+    """q of row `row`, joint j carried by `a` and by `b` then `c`, mixed by share r."""
     if r == 0.0:
         return _carry_joint(q, row, j, w, lone, a)
     if lone >= 0 and r == 1.0:
@@ -136,15 +127,9 @@ def _pair_joint(q, row, j, w, lone, r, a, b, c):
 
 @njit(cache=True, error_model="numpy")
 def carry_pair_batch(q, w, share, a, b, c, hips, out):
-    """out (B, J, 4): each row's rotations carried toward the styles of w (B, S) by two carries
-    mixed by the row's share (B,) in [0, 1]: carry `a` (source, mean, lin, radius) and carry `b`
-    followed by carry `c`, both with the row's weights:
+    """out: rotations carried toward the styles of w by `a` and by `b` then `c`, mixed by share r:
 
-        q exp(sum_s w_s [(1 - r) log(q^-1 a_s(q)) + r log(q^-1 c_s(b_s(q)))])
-
-    A row with one style at weight 1 and share 0 or 1 takes a_s(q) or c_s(b_s(q)) itself, in
-    q's hemisphere (the same rotation, without the log and exp); at share 0 every row is what
-    `carry_batch` with `a` gives it. Joint `hips` as in `carry_batch`."""
+    q exp(sum_s w_s [(1 - r) log(q^-1 a_s(q)) + r log(q^-1 c_s(b_s(q)))])"""
     for row in range(q.shape[0]):
         lone = _lone(w, row)
         for j in range(q.shape[1]):
@@ -157,8 +142,7 @@ def carry_pair_batch(q, w, share, a, b, c, hips, out):
 def carry_pair(
     q: np.ndarray, w: np.ndarray, share: np.ndarray, a: tuple, b: tuple, c: tuple, hips: int = -1
 ) -> np.ndarray:
-    """`carry_pair_batch` on any (B, J, 4) rotations, (B, S) weights and (B,) shares; a, b, c:
-    (source, mean, lin, radius) of each carry."""
+    """`carry_pair_batch` on any rotations; a, b, c: (source, mean, lin, radius) of each carry."""
     q = np.ascontiguousarray(q, np.float64)
     out = np.empty_like(q)
     w, share = np.ascontiguousarray(w, np.float64), np.ascontiguousarray(share, np.float64)
@@ -167,22 +151,19 @@ def carry_pair(
 
 @njit(cache=True, error_model="numpy")
 def _paired(q, row, j, w, lone, r, a, b, c):
-    """`_pair_joint` out of line, for the rows with a share (runs): inlined beside the plain
-    carry it made `carry_slow_batch` twice as slow for every row."""
+    """`_pair_joint` out of line: inlined beside the plain carry it halved the speed of every row."""
     return _pair_joint(q, row, j, w, lone, r, a, b, c)
 
 
 @njit(cache=True, error_model="numpy")
 def _clamped(q, row, j, w, lone, clamp):
-    """q kept in the range of `clamp` (source, mean, lin, radius of `StyleCarry.bounds`), as
-    `carry_batch` keeps it; out of line (most joints are inside and skip it), so the caller's
-    loop stays small."""
+    """q kept in the range of `clamp`; out of line (most joints skip it) to keep the loop small."""
     return _carry_joint(q, row, j, w, lone, clamp)
 
 
 @njit(cache=True, error_model="numpy")
 def _cos_half(radius):
-    """(S, J) cos(r / 2) of each clamp radius r: a unit q is inside it where |mean . q| >= that."""
+    """(S, J) cos(r / 2) of each clamp radius: unit q is inside where |mean . q| >= that."""
     out = np.empty(radius.shape)
     for s in range(radius.shape[0]):
         for j in range(radius.shape[1]):
@@ -192,8 +173,7 @@ def _cos_half(radius):
 
 @njit(cache=True, error_model="numpy")
 def _gained(p, row, j, w, lone, rest, gain):
-    """The fast part p's vector part through the gains mixed by the row's weights, the rest of
-    the weight at 1, renormalised (~ exp(G log p) to first order in p's angle)."""
+    """The fast part p's vector part through the weight-mixed gains, renormalised (~ exp(G log p))."""
     if lone >= 0:
         gx, gy, gz = _mat3(gain, lone, j, p)
     else:
@@ -208,9 +188,7 @@ def _gained(p, row, j, w, lone, rest, gain):
 
 
 class SlowPriors(NamedTuple):
-    """What `carry_slow_batch` carries by: carry `a`, or `b` then `c` by the row's run share, each
-    (source, mean, lin, radius); the range `clamp` keeps every output in; the fast part's gains
-    (S, J, 3, 3); per style, the joints it carries whole (S, J) bool."""
+    """What `carry_slow_batch` carries by: the carries, `clamp`, fast gains and `plain` joints."""
 
     a: tuple
     b: tuple
@@ -222,23 +200,13 @@ class SlowPriors(NamedTuple):
 
 @njit(cache=True, error_model="numpy")
 def carry_slow_batch(q, slow, weight, w, share, priors, hips, out, new_slow):
-    """The slow part of q carried, its fast part on top (`models/erd/slow_carry.py`), in one
-    pass. Per row and joint:
+    """The slow part of q carried, its fast part on top (`models/erd/slow_carry.py`). Per row and joint:
 
-        s = nlerp(slow, q, weight) on the shorter arc (a row of `slow` all zeros: s = q)
-        p = s^-1 q, the fast part, in its short hemisphere
-        o = carry(s) (G p_xyz, p_w) / |.|, then o clamped into `clamp`'s range
+    s = nlerp(slow, q, weight) on the shorter arc (a row of `slow` all zeros: s = q)
+    p = s^-1 q, the fast part, in its short hemisphere
+    o = carry(s) (G p_xyz, p_w) / |.|, then o clamped into `clamp`'s range
 
-    carry (`priors`, a `SlowPriors`): `a` and `b`-then-`c` mixed by the row's share, as
-    `carry_pair_batch`; G: the gains mixed by the row's weights w (B, S), the rest of the
-    weight at 1 (joint `hips`: 1, its fast part holds its turning); to first order in the fast part's angle
-    (G p_xyz, p_w) / |.| is exp(G log p), without a log or an exp. `clamp`: a range alone
-    (`StyleCarry.bounds`); a row with one style skips its arithmetic for a joint already inside
-    (the clamp leaves it as it is). Joint `hips` is carried and clamped without its heading, as
-    in `carry_batch`. A joint that every style the row weighs marks `plain` (S, J) bool (one `a`
-    leaves as it is, only clamps: the same either way) is carried whole, as `carry_pair_batch`
-    would; per style, so a style that carries the joint leaves the rows that do not weigh it as
-    they were. Writes `out` and the new slow copies `new_slow`."""
+    G: the gains mixed by w; `plain` joints are carried whole. Writes `out` and `new_slow`."""
     S, J = w.shape[1], q.shape[1]
     a, b, c, clamp, gain, plain = priors
     cos_half = _cos_half(clamp[3])
@@ -269,8 +237,7 @@ def carry_slow_batch(q, slow, weight, w, share, priors, hips, out, new_slow):
                 sl = qscale(sl, 1.0 / max(math.sqrt(qdot(sl, sl)), 1e-12))
             new_slow[row, j, 0], new_slow[row, j, 1], new_slow[row, j, 2], new_slow[row, j, 3] = sl
             is_hips = j == hips
-            # the carry is written out for both cases below: one inlined helper for the two makes
-            # the pass ~40 % slower (numba's inlining)
+            # written out for both cases: one inlined helper for the two is ~40 % slower
             whole = True
             for s in range(S):
                 if w[row, s] != 0.0 and not plain[s, j]:
@@ -305,8 +272,7 @@ def carry_slow_batch(q, slow, weight, w, share, priors, hips, out, new_slow):
 def carry_slow(
     q: np.ndarray, slow: np.ndarray, weight: float, w: np.ndarray, share: np.ndarray, priors: SlowPriors, hips: int = -1
 ) -> tuple[np.ndarray, np.ndarray]:
-    """`carry_slow_batch` on any (B, J, 4) rotations and slow copies, (B, S) weights and (B,)
-    shares. Returns (out, new slow copies)."""
+    """`carry_slow_batch` on any rotations, slow copies, weights and shares: (out, new slow copies)."""
     q = np.ascontiguousarray(q, np.float64)
     w, share = np.ascontiguousarray(w, np.float64), np.ascontiguousarray(share, np.float64)
     slow = np.ascontiguousarray(slow, np.float64)

@@ -1,14 +1,10 @@
 """Keep a pose's positions, take its twists from another pose.
 
-A model trained on joint positions decides where every bone points, but not how a bone or a leaf
-(head, hands, toes) is turned about itself: no position loss constrains that. `transfer_twist`
-re-expresses `pose` with the fewest rotation changes from `source` (the input frame) that keep
-its joint positions: a one-child joint gets the smallest swing onto `pose`'s bone, a multi-child
-joint takes `pose`'s rotation, a leaf keeps `source`'s. With `hinges` (`hinge.py`) a hinge's
-parent takes the twist that lays the child bone in the hinge plane.
-
-`transfer_twist` is the compiled step the streaming models call, `transfer_twist_t` the torch one
-training differentiates (numpy reference: `tests/reference/twist.py`).
+A model trained on joint positions never learns how a bone or leaf (head, hands, toes) turns about
+itself. `transfer_twist` re-expresses `pose` with the fewest changes from `source` (the input frame)
+that keep its positions: one-child joints swing onto `pose`'s bone, multi-child joints take `pose`'s
+rotation, leaves keep `source`'s; with `hinges` a hinge's parent lays the child in the hinge plane.
+`transfer_twist_t` is the torch twin training differentiates (reference: `tests/reference/twist.py`).
 """
 
 from __future__ import annotations
@@ -39,8 +35,7 @@ def _plan(skeleton: Skeleton) -> tuple[tuple[int, int, str, np.ndarray | None], 
 
 @lru_cache(maxsize=16)
 def _plan_cached(names: tuple[str, ...], parents: tuple[int, ...], offsets: bytes) -> tuple:
-    """Per joint (j, parent, kind, bone axis in j's frame): kind "root", "frame" (several child
-    bones, or the body root), "bone" (one child bone) or "leaf"."""
+    """Per joint (j, parent, kind, bone axis): kind "root", "frame", "bone" or "leaf"."""
     off = np.frombuffer(offsets).reshape(len(names), 3)
     plan = []
     body_root = body_joints(names)[0]
@@ -65,8 +60,7 @@ def transfer_twist(
     keep: tuple[str, ...] = (),
     hinges: Hinges | None = None,
 ) -> np.ndarray:
-    """(..., J, 4) local rotations with `pose`'s joint positions and `source`'s twists and leaf
-    rotations (module docstring); joints named in `keep` take `pose`'s rotation as it is."""
+    """(..., J, 4) rotations with `pose`'s positions, `source`'s twists and leaves (`keep`: `pose`'s)."""
     J = skeleton.num_joints
     shape = np.broadcast_shapes(np.shape(source), np.shape(pose))
     src = np.ascontiguousarray(np.broadcast_to(source, shape), dtype=np.float64).reshape(-1, J, 4)
@@ -77,8 +71,7 @@ def transfer_twist(
 
 
 def _kernel_plan(skeleton: Skeleton, keep: tuple[str, ...]) -> TwistPlan:
-    """The plan as the kernel takes it, built once per skeleton and `keep` (the streaming steps
-    call this every frame)."""
+    """The plan as the kernel takes it, cached per skeleton and `keep` (called every frame)."""
     return _kernel_plan_cached(skeleton.names, tuple(map(int, skeleton.parents)), skeleton.offsets.tobytes(), keep)
 
 
@@ -97,9 +90,7 @@ def _kernel_plan_cached(
 def transfer_twist_t(
     skeleton: Skeleton, source: torch.Tensor, pose: torch.Tensor, hinges: Hinges | None = None
 ) -> torch.Tensor:
-    """`transfer_twist` in torch, differentiable in `pose` (for training losses that must see the
-    rotations the streaming model will output). Torch is imported here, not with the module: the
-    streaming and decoding paths, which use the numpy twins, never load it."""
+    """`transfer_twist` in torch, differentiable in `pose` (torch imported only here)."""
     import torch
 
     from .rotations_torch import quat_apply_t, quat_mul_t
@@ -191,8 +182,7 @@ def _turn_t(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
 
 
 def _rotation_between_t(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """Smallest rotation carrying unit u onto v (torch); opposite vectors do not occur between a
-    bone and its own stylised direction, and get a finite (if arbitrary) answer."""
+    """Smallest rotation carrying unit u onto v (torch); opposite vectors get an arbitrary answer."""
     import torch
 
     q = torch.cat([torch.linalg.cross(u, v), 1.0 + (u * v).sum(-1, keepdim=True)], dim=-1)
@@ -202,9 +192,7 @@ def _rotation_between_t(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 def split_evenly(
     parent: np.ndarray, child: np.ndarray, rest_parent: np.ndarray, rest_child: np.ndarray, share: float = 0.5
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A two-joint chain's local rotations (..., 4) re-split so the parent takes `share` of the
-    chain's turn from its rest pose, the composite kept exactly: a pair predicted joint by joint
-    can flip against each other, and split from the composite it is as smooth as the composite."""
+    """A two-joint chain re-split from its composite, the parent taking `share`: no flips between them."""
     composite = quat_mul(parent, child)
     turn = quat_mul(composite, quat_inv(quat_mul(rest_parent, rest_child)))
     new_parent = quat_mul(quat_exp(share * quat_log(turn)), rest_parent)
@@ -212,10 +200,7 @@ def split_evenly(
 
 
 def bone_axes(skeleton: Skeleton) -> np.ndarray:
-    """(J, 3) unit axis of each joint's bone in the joint's own frame, the axis its twist turns
-    about: the child offset that best continues the joint's own bone (the spine over the
-    shoulders at the chest); for leaves, the End Site, or the joint's own offset where the End
-    Site has no length (Bandai Namco: every bone lies along its parent's local X)."""
+    """(J, 3) unit axis each joint's twist turns about (its bone, End Site or own offset)."""
     axes = np.zeros((skeleton.num_joints, 3))
     for j in range(skeleton.num_joints):
         own = skeleton.offsets[j]
