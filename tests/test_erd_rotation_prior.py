@@ -507,3 +507,21 @@ def test_a_partial_carry_goes_its_share_of_the_way_inside_the_same_range():
     whole, halfway = carry(src, w)[0, 1], half(src, w)[0, 1]
     np.testing.assert_allclose(quat_angle(src[0, 1], halfway), 0.5 * quat_angle(src[0, 1], whole), rtol=1e-6)
     np.testing.assert_allclose(quat_angle(whole, halfway), 0.5 * quat_angle(src[0, 1], whole), rtol=1e-6)
+
+
+
+def test_one_raised_hand_leaves_the_other_arm_where_the_style_holds_it(model, index):
+    """The priors weigh every content alike in what they map from and to (`content_balanced`): a
+    style's real clips mix contents otherwise than the fit's inputs do, and a pooled mean read that
+    mix as style, swinging masculine's hanging right arm away from every real frame of the style
+    whenever the left hand went up."""
+    from models.data import load_motions, select
+
+    arm, raised = model.skeleton.index("UpperArm_R"), "raise-up-left-hand"
+    real = select(index, dataset="bandai-namco-2", split="train", style="masculine", content=raised)
+    held = np.concatenate([m.rotations[:, arm] for m in load_motions(real)])
+    clips = select(index, dataset="bandai-namco-2", split="val", style="normal", content=raised)
+    for clip, motion in zip(clips, load_motions(clips)):
+        out = streamed_rotations(model, motion.slice(0, 60), _onehot(model, "masculine"))[:, arm]
+        nearest = np.degrees(quat_angle(out[:, None], held[None]).min(axis=1))
+        assert np.percentile(nearest, 90) < 7.5, clip.name

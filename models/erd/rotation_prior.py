@@ -33,6 +33,7 @@ FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 FIT_CLIPS_PER_CONTENT = 4
 RUN_FIT_CLIPS = 12  # TRAIN neutral clips that run, for the run output prior
 FIT_FRAMES = 240
+PER_CONTENT = 2000  # frames each content weighs in a fitted prior, its inputs and the style's real frames alike
 SUPPORT_FRAMES = 40_000  # real frames per style `nearest_real` measures against (evenly spread)
 NEAR_PERCENTILE = 95.0  # of the distances to the nearest real frame `output_carry` compares
 NEAR_MARGIN_DEG = 1.0  # how much nearer a lesser carry must bring them to replace the whole (validation)
@@ -41,8 +42,17 @@ CARRY_SHARE = 1.0
 RUN_ARMS = tuple(f"{j}_{s}" for s in "LR" for j in ("Shoulder", "UpperArm", "LowerArm", "Hand"))  # `fit_output`
 
 
-def real_rotations(runs: bool = False) -> list[np.ndarray]:
-    """Per style (neutral first): rotations (N, 22, 4) of every TRAIN frame (with `runs`: running clips)."""
+def content_balanced(frames: np.ndarray, contents: np.ndarray, n: int = PER_CONTENT) -> np.ndarray:
+    """`frames` (N, ...) drawn again so that every content weighs `n` of them (evenly spread, repeated
+    where fewer): a style's real clips and a fit's inputs mix contents differently, and a pooled
+    mean would take that mix for the style."""
+    picks = [np.flatnonzero(contents == c) for c in np.unique(contents)]
+    return np.concatenate([frames[p[np.linspace(0, len(p) - 1, n).round().astype(int)]] for p in picks])
+
+
+def real_rotations(runs: bool = False, balanced: bool = False) -> list[np.ndarray]:
+    """Per style (neutral first): rotations (N, 22, 4) of every TRAIN frame (with `runs`: running
+    clips; `balanced`: `content_balanced`)."""
     from .dataset import load_split
     from .features import NB, ROOTVEL, ROT
 
@@ -62,7 +72,8 @@ def real_rotations(runs: bool = False) -> list[np.ndarray]:
         q = np.zeros((len(body), NUM_JOINTS, 4))
         q[..., 3] = 1.0
         q[:, 1:] = body
-        out.append(q)
+        contents = np.repeat(split.content, split.lengths)[(frame_style == s) & wanted]
+        out.append(content_balanced(q, contents) if balanced else q)
     return out
 
 
@@ -73,15 +84,18 @@ def fit_leaf(model: Any, styles: list[str] | None = None) -> SlowPrior:
     def fitted(real: list[np.ndarray]) -> StyleCarry:
         return StyleCarry.fit([real[0]] * len(styles), [real[STYLES.index(s)] for s in styles], FIXED)
 
-    return SlowPrior(tuple(styles), fitted(real_rotations()), fitted(real_rotations(runs=True)))
+    return SlowPrior(tuple(styles), fitted(real_rotations(balanced=True)), fitted(real_rotations(runs=True)))
 
 
-def _neutral_inputs() -> list:
-    """The first `FIT_FRAMES` of `FIT_CLIPS_PER_CONTENT` TRAIN neutral clips of every content."""
+def _neutral_inputs() -> tuple[list, np.ndarray]:
+    """The first `FIT_FRAMES` of `FIT_CLIPS_PER_CONTENT` TRAIN neutral clips of every content, and
+    each of their frames' content."""
     from ..data import load_motions
     from ..eval.run import pick_clips
 
-    return [m.slice(0, FIT_FRAMES) for m in load_motions(pick_clips(FIT_CLIPS_PER_CONTENT, split="train"))]
+    clips = pick_clips(FIT_CLIPS_PER_CONTENT, split="train")
+    inputs = [m.slice(0, FIT_FRAMES) for m in load_motions(clips)]
+    return inputs, np.repeat([c.content for c in clips], [m.num_frames for m in inputs])
 
 
 def _running_inputs() -> list:
@@ -104,7 +118,9 @@ def fit_output(model: Any, styles: list[str] | None = None) -> SlowPrior:
         targets = [comparable(real[STYLES.index(s)]) for s in styles]
         return output_carry(produced, targets, clamped)
 
-    walk = fitted(network_rotations(model, _neutral_inputs(), styles=styles), real_rotations(), (HIPS,) + legs)
+    inputs, contents = _neutral_inputs()
+    produced = [content_balanced(p, contents) for p in network_rotations(model, inputs, styles=styles)]
+    walk = fitted(produced, real_rotations(balanced=True), (HIPS,) + legs)
     run = fitted(run_network_rotations(model, styles), real_rotations(runs=True), (HIPS,))
     return SlowPrior(tuple(styles), walk, run, HIPS)
 
