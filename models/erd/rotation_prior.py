@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
-from ..motion.feet import LEG_JOINTS
+from ..motion.feet import LEGS
 from ..motion.gait_split import running, split_by_gait
 from ..motion.rotation_ball import comparable
 from ..motion.rotations import quat_exp, quat_inv, quat_log, quat_mul
@@ -110,9 +110,11 @@ def _running_inputs() -> list:
 
 
 def fit_output(model: Any, styles: list[str] | None = None) -> SlowPrior:
-    """The model's outputs over TRAIN neutral clips -> each real style, legs only clamped; and on runs."""
+    """The model's outputs over TRAIN neutral clips -> each real style, the legs but the ankles only
+    clamped; and on runs. The planter bends hip joints and knees; the network's ankles swing several
+    times the real spread, so they are carried like the arms."""
     styles = styles or list(TARGET_STYLES)
-    legs = tuple(model.skeleton.index(n) for n in LEG_JOINTS)
+    legs = tuple(model.skeleton.index(chain[k]) for chain in LEGS for k in (0, 1, 3))  # hip joint, knee, toes
 
     def fitted(produced: list[np.ndarray], real: list[np.ndarray], clamped: tuple[int, ...]) -> StyleCarry:
         targets = [comparable(real[STYLES.index(s)]) for s in styles]
