@@ -30,7 +30,7 @@ from .slow_carry import SlowPrior
 LEAF_FILE = "leaf_prior.npz"  # each with its run prior beside it (`slow_carry.run_file`)
 OUTPUT_FILE = "output_prior.npz"
 FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
-FIT_CLIPS_PER_CONTENT = 12  # the network's output spread, estimated (4 was too few: docs/eval/ablation.md)
+FIT_CLIPS_PER_CONTENT = 12  # TRAIN neutral clips per content the network's output spread is estimated from (validation)
 RUN_FIT_CLIPS = 12  # TRAIN neutral clips that run, for the run output prior
 FIT_FRAMES = 240
 PER_CONTENT = 2000  # frames each content weighs in a fitted prior, its inputs and the style's real frames alike
