@@ -78,7 +78,7 @@ def evaluate(
     ]
     if quick:
         styles = styles[:2]
-    ref, real, real_contents = _real_clips(index, styles, final, quick)
+    ref, real, real_contents = real_clips(index, styles, final, quick)
     judges = Judges(judge, old, ref)
     sources = input_sources(split, quick=quick)
     rows = [_row("real", None, "fresh", s, real[s], None, real_contents[s], judges) for s in styles]
@@ -129,7 +129,7 @@ def _variants(
     return full, variants
 
 
-def _real_clips(index: list[Clip], styles: list[str], final: bool, quick: bool) -> tuple[Reference, dict, dict]:
+def real_clips(index: list[Clip], styles: list[str], final: bool, quick: bool) -> tuple[Reference, dict, dict]:
     """(reference, real clips per style, contents); radii and limits from VALIDATION (final: test)."""
     split = "test" if final else "val"
     val = {s: load_motions(select(index, split="val", style=s)) for s in styles}
