@@ -9,6 +9,7 @@ from dataclasses import replace
 import numpy as np
 
 from models.data import build_index, load_motions, select
+from models.eval.physical import Input
 from models.eval.sealed import real_clips
 from models.eval.sources import D2, Source
 from models.motion.rotations import quat_exp, quat_mul
@@ -27,7 +28,8 @@ def test_a_joint_turned_out_of_the_style_is_the_one_named():
         rotations = m.rotations.copy()
         rotations[:, head] = quat_mul(rotations[:, head], quat_exp(np.array([np.radians(70.0), 0.0, 0.0])))
         turned.append(replace(m, rotations=rotations))
-    as_is, broken = tally(ref, "feminine", real, source), tally(ref, "feminine", turned, source)
+    inputs = [Input.of(m, ref) for m in real]
+    as_is, broken = tally(ref, "feminine", real, source, inputs), tally(ref, "feminine", turned, source, inputs)
     others = lambda t: {k: n for k, n in t.joints.items() if k != "Head"}  # noqa: E731
     assert broken.joints["Head"] == broken.clips == 4 and broken.plausible == 0
     assert broken.contents == Counter(c.content for c in clips)

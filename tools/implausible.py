@@ -35,11 +35,12 @@ class Tally:
         return f"{style}: {self.plausible}/{self.clips} plausible; failing joints {top(self.joints)}; contents {top(self.contents)}"
 
 
-def tally(ref: Reference, style: str, outs: list[Motion], source: Source) -> Tally:
-    """How `outs` (one per input of `source`, toward `style`) fare on the per-clip plausibility."""
+def tally(ref: Reference, style: str, outs: list[Motion], source: Source, inputs: list[Input]) -> Tally:
+    """How `outs` (one per input of `source`, toward `style`) fare on the per-clip plausibility;
+    `inputs`: the source's clips measured once (`Input.of`), as the evaluation does."""
     t = Tally()
-    for out, inp, content in zip(outs, source.motions, source.contents):
-        within = measure(ref, style, out, Input.of(inp, ref), content).within
+    for out, inp, content in zip(outs, inputs, source.contents):
+        within = measure(ref, style, out, inp, content).within
         failing = [ref.support.joints[j] for j in np.flatnonzero(within < PLAUSIBLE_FRAMES)]
         t.clips += 1
         t.plausible += not failing
@@ -72,8 +73,9 @@ def main(argv: list[str] | None = None) -> None:
     if source is None:
         raise SystemExit(f"{args.source}: no validation inputs")
     outs = stylise_toward(model, source.motions, styles)
+    inputs = [Input.of(m, ref) for m in source.motions]
     for style in styles:
-        print(tally(ref, style, outs[style], source).line(style))
+        print(tally(ref, style, outs[style], source, inputs).line(style))
 
 
 if __name__ == "__main__":
