@@ -28,7 +28,7 @@ class StageFrame(NamedTuple):
 
     rotations: np.ndarray  # (B, J, 4) local rotations from the core or the stage before
     weights: np.ndarray  # (B, S) style weights over the model's styles
-    gait: np.ndarray  # (B,) run share: 0 walking, 1 running
+    gait: np.ndarray  # (B,) -1 standing, 0 walking, 1 running (linear between)
     base: int  # the style the weights' shortfall from 1 goes to
 
 

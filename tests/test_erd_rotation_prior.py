@@ -51,9 +51,10 @@ def _apart(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _prior(model, which: str):
-    """A committed prior's carry (`StyleCarry`) by name, `run_` before it: the stage's run prior."""
-    stage = getattr(model.stages, which.removeprefix("run_"))
-    return None if stage is None else stage.run if which.startswith("run_") else stage.carry
+    """A committed prior's carry (`StyleCarry`) by name, `run_` or `stand_` before it: that gait's prior."""
+    gait, _, name = which.partition("_") if which.startswith(("run_", "stand_")) else ("", "", which)
+    stage = getattr(model.stages, name)
+    return None if stage is None else getattr(stage, gait) if gait else stage.carry
 
 
 def _onehot(model, style: str, scale: float = 1.0) -> np.ndarray:
@@ -173,9 +174,12 @@ def test_streamed_head_and_hands_are_the_carried_input(model, neutral):
                 runs[tag].append(out)
     finally:
         model.stages = saved
-    source = erd_carry.clip_carry_slow(
-        saved.leaf_prior.carry, None, motion.rotations[:30], np.tile(w, (30, 1)), np.zeros(30)
-    )
+    from models.erd.features import FPS
+    from models.erd.gait import clip_gait
+
+    leaf, clip = saved.leaf_prior, motion.slice(0, 30)
+    share = clip_gait(model.maker.positions(clip.translations[:, 1], clip.rotations), FPS)
+    source = erd_carry.clip_carry_slow(leaf.carry, leaf.run, clip.rotations, np.tile(w, (30, 1)), share, -1, leaf.stand)
     for t in range(30):
         src = source[t : t + 1]
         assert np.all(_apart(runs["leaf"][t].rotations[0, leaves], src[0, leaves]) < 1e-7)
@@ -237,19 +241,31 @@ def test_runs_take_the_run_priors_and_walks_do_not(model, run, neutral):
     assert np.median(moved.max(axis=-1)) > 2.0  # the run priors do change a run
 
 
+def test_the_gait_share_ramps_from_standing_through_walking_to_running():
+    """-1 standing, 0 walking, 1 running, linear over each ramp; no speed yet counts as walking."""
+    from models.erd.gait import RUN_RAMP_CM_S, STAND_RAMP_CM_S, UNMEASURED, gait_share
+
+    (s0, s1), (r0, r1) = STAND_RAMP_CM_S, RUN_RAMP_CM_S
+    speeds = np.array([UNMEASURED, 0.0, s0, (s0 + s1) / 2, s1, 100.0, r0, (r0 + r1) / 2, r1, 400.0])
+    np.testing.assert_allclose(gait_share(speeds), [0, -1, -1, -0.5, 0, 0, 0, 0.5, 1, 1])
+
+
 def test_a_stream_that_starts_mid_run_eases_into_the_run_priors(model, run):
-    """A session's first frame has no speed yet and counts as standing; the run priors then fade
-    in over its first frames (`gait.eased_in`) instead of turning the head by ~20 degrees
-    between its first and second frame (toward feminine), and are whole once it is under way."""
-    from models.erd.gait import START_FRAMES, eased_in
+    """A session's first frame has no speed yet and counts as walking; the gait share then moves
+    toward the run priors by at most `GAIT_RATE` a frame (`gait.followed`) instead of turning the
+    head by ~20 degrees between its first and second frame (toward feminine)."""
+    from models.erd.features import FPS
+    from models.erd.gait import GAIT_RATE, clip_gait
 
     if _prior(model, "run_output_prior") is None:
         pytest.skip("no run priors committed")
     head = model.skeleton.index("Head")
-    out = streamed_rotations(model, run.slice(0, 2 * START_FRAMES), _onehot(model, "feminine"))
+    out = streamed_rotations(model, run.slice(0, 30), _onehot(model, "feminine"))
     steps = np.degrees(quat_angle(out[:-1, head], out[1:, head]))
     assert steps.max() < 6.0, steps.round(1)
-    assert eased_in(np.ones(3), np.array([0, 1, START_FRAMES])).tolist() == [0.0, 1.0 / START_FRAMES, 1.0]
+    share = clip_gait(model.maker.positions(run.translations[:, 1], run.rotations), FPS)
+    np.testing.assert_allclose(share[:4], GAIT_RATE * np.arange(4))
+    assert share[int(np.ceil(1 / GAIT_RATE)) + 5 :].min() == 1.0  # whole once under way
 
 
 def test_a_runs_share_of_the_run_priors_does_not_swing_within_its_steps(model, run):
@@ -290,11 +306,11 @@ def test_run_frames_stay_inside_the_styles_whole_real_range(model, run):
 
 
 def test_a_batch_of_runs_and_walks_steps_each_row_as_alone(model, run, neutral):
-    """Rows running, walking and between (a row's share of the run priors is its own) in one
+    """Rows running, walking, standing and between (a row's gait share is its own) in one
     batch give exactly what each gives alone."""
-    w = np.stack([_onehot(model, "active"), _onehot(model, "feminine"), 0.5 * _onehot(model, "youthful")])
-    motions = [run, neutral[0], run]
-    state = model.init_state(3)
+    w = np.stack([_onehot(model, s, k) for s, k in (("active", 1), ("feminine", 1), ("youthful", 0.5), ("elderly", 1))])
+    motions = [run, neutral[0], run, neutral[2]]
+    state = model.init_state(len(motions))
     alone = [model.init_state(1) for _ in motions]
     for t in range(30):
         frames = FrameBatch(
@@ -371,22 +387,20 @@ def test_the_priors_never_magnify_a_one_frame_flick(model, neutral):
 @pytest.mark.parametrize("mix", ["one style", "a mix at part intensity"])
 def test_compiled_slow_carry_is_the_numpy_reference(model, neutral, mix):
     """`carry_slow` (one compiled pass) against its numpy reference (follow, `carry_by_gait`, the
-    fast part and the clamp, each in numpy), both stages, with the run priors part-shared."""
+    fast part and the clamp, each in numpy), both stages, with the run and stand priors part-shared."""
     from models.motion.bn_skeleton import HIPS
 
     rng = np.random.default_rng(3)
     q = np.concatenate([m.rotations[:20] for m in neutral])
     B = len(q)
     w = np.tile(_onehot(model, "elderly"), (B, 1)) if mix == "one style" else rng.dirichlet(np.ones(6), B) * 0.8
-    share = rng.choice([0.0, 0.4, 1.0], B)
+    share = rng.choice([-1.0, -0.6, 0.0, 0.4, 1.0], B)
     slow = np.roll(q, 1, axis=0) + 0.05 * rng.normal(size=q.shape)
     slow[::7] = 0.0  # unset rows start at q
-    for other, run, hips in (
-        (_prior(model, "leaf_prior"), _prior(model, "run_leaf_prior"), -1),
-        (_prior(model, "output_prior"), _prior(model, "run_output_prior"), HIPS),
-    ):
-        got, got_slow = carry_slow(other, run, q, slow, w, share, hips=hips)
-        want, want_slow = erd_carry.carry_slow(other, run, q, slow, w, share, hips=hips)
+    for name, hips in (("leaf_prior", -1), ("output_prior", HIPS)):
+        other, run, stand = (_prior(model, f"{g}{name}") for g in ("", "run_", "stand_"))
+        got, got_slow = carry_slow(other, run, q, slow, w, share, hips, stand)
+        want, want_slow = erd_carry.carry_slow(other, run, q, slow, w, share, hips, stand)
         assert np.all(_apart(got_slow, want_slow) < 1e-12)
         assert np.all(_apart(got, want) < 1e-9)
 
@@ -541,3 +555,33 @@ def test_the_ankles_stay_near_the_styles_real_ankles(model, neutral, index):
     for k in range(len(feet)):
         nearest = np.degrees(quat_angle(out[:, None, k], held[None, :, k]).min(axis=1))
         assert np.percentile(nearest, 90) < 15.0
+
+
+def test_standing_frames_take_the_stand_prior_and_keep_the_style_standing(model, index):
+    """Fitted on the whole of a style, the output prior read a standing pose as a walk's: while
+    the hands went up, youthful's right foot turned 8-11 degrees (p90) from every real standing
+    youthful frame and elderly's hanging left forearm 13-16 degrees. A frame whose input stands
+    (`gait.stand_share`) takes the priors fitted on standing clips (`gait_split`), which keep both
+    where the style's real standing frames are."""
+    from models.data import load_motions, select
+    from models.erd.features import FPS
+    from models.erd.gait import clip_smoothed_speed, stand_share
+
+    if _prior(model, "stand_output_prior") is None:
+        pytest.skip("no stand prior committed")
+    for style, joint, content, most in (
+        ("youthful", "Foot_R", "raise-up-both-hands", 6.0),
+        ("elderly", "LowerArm_L", "raise-up-right-hand", 10.0),
+    ):
+        j = model.skeleton.index(joint)
+        real = select(index, dataset="bandai-namco-2", split="train", style=style)
+        real = [c for c in real if c.content.startswith(("raise", "wave"))]
+        held = np.concatenate([m.rotations[::2, j] for m in load_motions(real)])
+        clips = select(index, dataset="bandai-namco-2", split="val", style="normal", content=content)
+        for clip, motion in zip(clips, load_motions(clips)):
+            motion = motion.slice(0, 90)
+            speed = clip_smoothed_speed(model.maker.positions(motion.translations[:, 1], motion.rotations), FPS)
+            assert stand_share(speed)[1:].min() == 1.0, clip.name  # it stands throughout
+            out = streamed_rotations(model, motion, _onehot(model, style))[:, j]
+            nearest = np.degrees(quat_angle(out[:, None], held[None]).min(axis=1))
+            assert np.percentile(nearest, 90) < most, (style, clip.name)

@@ -22,7 +22,7 @@ from ..motion.rotations import quat_inv, quat_mul, yaw_quat
 from ..motion.skeleton import Motion
 from .dataset import DATASET, TARGET_STYLES, Split, load_split
 from .features import BODY, FPS
-from .gait import clip_smoothed_speed, eased_in, run_share
+from .gait import clip_gait
 from .offline import to_world
 
 
@@ -48,7 +48,7 @@ def teacher_rotations(model, motion: Motion) -> np.ndarray:
             for s in range(S)
         ]
     )
-    share = eased_in(run_share(clip_smoothed_speed(maker.positions(root_in, motion.rotations), FPS)), np.arange(T))
+    share = clip_gait(maker.positions(root_in, motion.rotations), FPS)
     w = eye.double().numpy()
     state = model.stages.init_state(S)
     for t in range(T):

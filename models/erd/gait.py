@@ -1,9 +1,13 @@
-"""Running or not, frame by frame from the input alone: which of Style-ERD's rotation priors a
-frame gets (`rotation_prior.py`).
+"""Standing, walking or running, frame by frame from the input alone: which of Style-ERD's
+rotation priors a frame gets (`rotation_prior.py`).
 
-Priors over every content carried runs toward walks, so runs get priors fitted on runs alone. A
-frame's share ramps with the input's Hips speed over `RUN_RAMP_CM_S` (neutral walks' p99 to runs'
-p5), averaged over about a running step (`SPEED_SMOOTHING`), eased in over a session's start.
+Priors over every content carried runs toward walks and standing poses toward a walk's, so runs and
+standing clips get priors fitted on them alone. A frame's gait share ramps with the input's Hips
+speed: from -1 (standing) to 0 over `STAND_RAMP_CM_S` (neutral standing clips' p99.9 doubled to
+`gait_split.MOVING_CM_S`), then to 1 (running) over `RUN_RAMP_CM_S` (neutral walks' p99 to runs'
+p5); the speed averaged over about a running step (`SPEED_SMOOTHING`). The share follows that
+target at most `GAIT_RATE` a frame from 0 at a session's start: the priors differ by up to ~15
+degrees on a joint, and a stop or a start crosses the stand ramp in a few frames.
 """
 
 from __future__ import annotations
@@ -11,9 +15,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..motion.bn_skeleton import HIPS
+from ..motion.gait_split import MOVING_CM_S
 
 RUN_RAMP_CM_S = (170.0, 210.0)
-START_FRAMES = 5  # a session eases into the run priors over its first frames (`eased_in`)
+STAND_RAMP_CM_S = (10.0, MOVING_CM_S)
+GAIT_RATE = 1.0 / 15.0  # the most a frame's gait share moves from the last frame's (`followed`)
 SPEED_SMOOTHING = 2.0 / 11.0  # the exponential average's weight on the newest frame (~10-frame window)
 UNMEASURED = -1.0  # a session's average before its second frame
 
@@ -54,6 +60,29 @@ def run_share(speed: np.ndarray) -> np.ndarray:
     return np.clip((np.asarray(speed, np.float64) - lo) / (hi - lo), 0.0, 1.0)
 
 
-def eased_in(share: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """(B,) the run share faded in over `START_FRAMES`, so a stream starting mid-run does not jerk."""
-    return np.asarray(share, np.float64) * np.minimum(np.asarray(frame, np.float64) / START_FRAMES, 1.0)
+def stand_share(speed: np.ndarray) -> np.ndarray:
+    """(B,) how far each frame stands: 1 under the ramp, linear over it (unmeasured: 0)."""
+    lo, hi = STAND_RAMP_CM_S
+    speed = np.asarray(speed, np.float64)
+    return np.where(speed == UNMEASURED, 0.0, np.clip((hi - speed) / (hi - lo), 0.0, 1.0))
+
+
+def gait_share(speed: np.ndarray) -> np.ndarray:
+    """(B,) -1 standing, 0 walking, 1 running, linear over each ramp (`StageFrame.gait`)."""
+    return run_share(speed) - stand_share(speed)
+
+
+def followed(last: np.ndarray, target: np.ndarray, has_prev: np.ndarray) -> np.ndarray:
+    """(B,) this frame's gait share: `target` approached from the `last` by at most `GAIT_RATE`
+    (0 on a session's first frame), so neither a stream starting mid-run nor a stop jerks."""
+    step = np.clip(np.asarray(target, np.float64) - last, -GAIT_RATE, GAIT_RATE)
+    return np.where(has_prev, last + step, 0.0)
+
+
+def clip_gait(pos: np.ndarray, fps: float) -> np.ndarray:
+    """(T,) the gait share of every frame of a clip's world positions (T, J, 3), as a stream sees it."""
+    target = gait_share(clip_smoothed_speed(pos, fps))
+    out = np.zeros(len(target))
+    for t in range(1, len(target)):
+        out[t] = followed(out[t - 1 : t], target[t : t + 1], np.array([True]))[0]
+    return out

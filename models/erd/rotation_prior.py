@@ -7,7 +7,8 @@ from real TRAIN clips, the same way for every style (`python -m models.erd fit`)
    distribution and clamped into its range; legs only clamped (the foot planter re-poses them).
    Each other joint takes the whole carry, its mean shift or the clamp alone, whichever lands
    nearest the real frames (`output_carry`).
-3. **Runs** (`*_prior_run.npz`): both fitted again on running clips, for frames that run.
+3. **Runs** (`*_prior_run.npz`): both fitted again on running clips, for frames that run; the
+   output prior also on standing clips (`*_prior_stand.npz`), for frames that stand (`gait.py`).
 """
 
 from __future__ import annotations
@@ -20,14 +21,14 @@ import numpy as np
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS, ROOT
 from ..motion.feet import LEGS
-from ..motion.gait_split import running, split_by_gait
+from ..motion.gait_split import MOVING_CM_S, clip_speed, running, split_by_gait
 from ..motion.rotation_ball import comparable
 from ..motion.rotations import quat_exp, quat_inv, quat_log, quat_mul
 from ..motion.style_carry import StyleCarry
 from .dataset import STYLES, TARGET_STYLES
 from .slow_carry import SlowPrior
 
-LEAF_FILE = "leaf_prior.npz"  # each with its run prior beside it (`slow_carry.run_file`)
+LEAF_FILE = "leaf_prior.npz"  # each with its gaits' priors beside it (`slow_carry.gait_file`)
 OUTPUT_FILE = "output_prior.npz"
 FIXED = (ROOT, HIPS)  # joint_Root and Hips: their rotation holds the heading
 FIT_CLIPS_PER_CONTENT = 12  # TRAIN neutral clips per content the network's output spread is estimated from (validation)
@@ -50,22 +51,24 @@ def content_balanced(frames: np.ndarray, contents: np.ndarray, n: int = PER_CONT
     return np.concatenate([frames[p[np.linspace(0, len(p) - 1, n).round().astype(int)]] for p in picks])
 
 
-def real_rotations(runs: bool = False, balanced: bool = False) -> list[np.ndarray]:
+def real_rotations(runs: bool = False, balanced: bool = False, stands: bool = False) -> list[np.ndarray]:
     """Per style (neutral first): rotations (N, 22, 4) of every TRAIN frame (with `runs`: running
-    clips; `balanced`: `content_balanced`)."""
+    clips; `stands`: standing clips, `gait_split`; `balanced`: `content_balanced`)."""
     from .dataset import load_split
     from .features import NB, ROOTVEL, ROT
 
     split = load_split("train")
     frame_style = np.repeat(split.style, split.lengths)
     wanted: np.ndarray | bool = True
+    speed = np.hypot(split.feats[:, ROOTVEL][:, 0], split.feats[:, ROOTVEL][:, 2])
+    median = np.array([np.median(speed[a : a + n]) for a, n in zip(split.starts, split.lengths)])
     if runs:
-        speed = np.hypot(split.feats[:, ROOTVEL][:, 0], split.feats[:, ROOTVEL][:, 2])
-        median = np.array([np.median(speed[a : a + n]) for a, n in zip(split.starts, split.lengths)])
         runs_clip = np.zeros(len(median), bool)
         for s in range(len(STYLES)):
             runs_clip[split.style == s] = running(median[split.style == s])
         wanted = np.repeat(runs_clip, split.lengths)
+    if stands:
+        wanted = np.repeat(median < MOVING_CM_S, split.lengths)
     out = []
     for s in range(len(STYLES)):
         body = split.feats[(frame_style == s) & wanted][:, ROT].reshape(-1, NB, 4).astype(np.float64)
@@ -84,7 +87,10 @@ def fit_leaf(model: Any, styles: list[str] | None = None) -> SlowPrior:
     def fitted(real: list[np.ndarray]) -> StyleCarry:
         return StyleCarry.fit([real[0]] * len(styles), [real[STYLES.index(s)] for s in styles], FIXED)
 
-    return SlowPrior(tuple(styles), fitted(real_rotations(balanced=True)), fitted(real_rotations(runs=True)))
+    walk, stood = fitted(real_rotations(balanced=True)), real_rotations(balanced=True, stands=True)
+    targets = [comparable(stood[STYLES.index(s)]) for s in styles]
+    stand = nearer(fitted(stood), walk, [comparable(stood[0])] * len(styles), targets)
+    return SlowPrior(tuple(styles), walk, fitted(real_rotations(runs=True)), stand=stand)
 
 
 def _neutral_inputs() -> tuple[list, np.ndarray]:
@@ -111,25 +117,43 @@ def _running_inputs() -> list:
 
 def fit_output(model: Any, styles: list[str] | None = None) -> SlowPrior:
     """The model's outputs over TRAIN neutral clips -> each real style, the legs but the ankles only
-    clamped; and on runs. The planter bends hip joints and knees; the network's ankles swing several
-    times the real spread, so they are carried like the arms."""
+    clamped; and on runs, and on standing clips. The planter bends hip joints and knees; the
+    network's ankles swing several times the real spread, so they are carried like the arms."""
     styles = styles or list(TARGET_STYLES)
     legs = tuple(model.skeleton.index(chain[k]) for chain in LEGS for k in (0, 1, 3))  # hip joint, knee, toes
 
-    def fitted(produced: list[np.ndarray], real: list[np.ndarray], clamped: tuple[int, ...]) -> StyleCarry:
+    def fitted(
+        produced: list[np.ndarray], real: list[np.ndarray], clamped: tuple[int, ...], fixed: tuple[int, ...] = (ROOT,)
+    ) -> StyleCarry:
         targets = [comparable(real[STYLES.index(s)]) for s in styles]
-        return output_carry(produced, targets, clamped)
+        return output_carry(produced, targets, clamped, fixed)
 
     inputs, contents = _neutral_inputs()
-    produced = [content_balanced(p, contents) for p in network_rotations(model, inputs, styles=styles)]
-    walk = fitted(produced, real_rotations(balanced=True), (HIPS,) + legs)
+    produced = network_rotations(model, inputs, styles=styles)
+    walk = fitted([content_balanced(p, contents) for p in produced], real_rotations(balanced=True), (HIPS,) + legs)
     run = fitted(run_network_rotations(model, styles), real_rotations(runs=True), (HIPS,))
-    return SlowPrior(tuple(styles), walk, run, HIPS)
+    standing = np.repeat([clip_speed(m) < MOVING_CM_S for m in inputs], [m.num_frames for m in inputs])
+    stood = [content_balanced(p[standing], contents[standing]) for p in produced]
+    real = real_rotations(balanced=True, stands=True)
+    stand = fitted(stood, real, (), FIXED + legs)  # the legs keep the walk's clamp: a stop must not drag the feet
+    targets = [comparable(real[STYLES.index(s)]) for s in styles]
+    return SlowPrior(tuple(styles), walk, run, HIPS, stand=nearer(stand, walk, stood, targets))
 
 
-def output_carry(produced: list[np.ndarray], targets: list[np.ndarray], clamped: tuple[int, ...]) -> StyleCarry:
-    """Per style, the carry of `produced` to real `targets`: per joint whole, mean shift or clamp, the nearest."""
-    carry = StyleCarry.fit(produced, targets, (0,), clamp_only=clamped)
+def nearer(own: StyleCarry, other: StyleCarry, produced: list[np.ndarray], targets: list[np.ndarray]) -> StyleCarry:
+    """`own` where it brings `produced` nearer the real `targets` than `other` by `NEAR_MARGIN_DEG`,
+    else `other` (per style and joint): a gait's own fit only where it does better."""
+    far = np.stack([near_percentile(k, produced, targets, own.mean) for k in (own, other)])
+    far[0] -= np.radians(NEAR_MARGIN_DEG)
+    return chosen((own, other), np.argmin(far, axis=0))
+
+
+def output_carry(
+    produced: list[np.ndarray], targets: list[np.ndarray], clamped: tuple[int, ...], fixed: tuple[int, ...] = (ROOT,)
+) -> StyleCarry:
+    """Per style, the carry of `produced` to real `targets`: per joint whole, mean shift or clamp,
+    the nearest; `fixed` joints left alone."""
+    carry = StyleCarry.fit(produced, targets, fixed, clamp_only=clamped)
     kinds = (partial(carry, CARRY_SHARE), partial(mean_shift(carry), CARRY_SHARE), carry.bounds)
     far = np.stack([near_percentile(k, produced, targets) for k in kinds])  # (3, S, J)
     far[0] -= np.radians(NEAR_MARGIN_DEG)
@@ -155,10 +179,13 @@ def partial(carry: StyleCarry, share: float) -> StyleCarry:
 
 
 def chosen(kinds: Sequence[StyleCarry], choice: np.ndarray) -> StyleCarry:
-    """One carry with (style, joint) entries from `kinds[choice[s, j]]` (same means and radii)."""
-    source = np.take_along_axis(np.stack([k.source for k in kinds]), choice[None, ..., None], 0)[0]
-    lin = np.take_along_axis(np.stack([k.map for k in kinds]), choice[None, ..., None, None], 0)[0]
-    return StyleCarry(source, np.array(kinds[0].mean), lin, np.array(kinds[0].radius))
+    """One carry with (style, joint) entries from `kinds[choice[s, j]]`."""
+
+    def pick(arrays: list[np.ndarray]) -> np.ndarray:
+        at = choice.reshape(1, *choice.shape, *(1,) * (arrays[0].ndim - 2))
+        return np.ascontiguousarray(np.take_along_axis(np.stack(arrays), at, 0)[0])
+
+    return StyleCarry(*(pick([np.asarray(k.arrays[f]) for k in kinds]) for f in range(len(kinds[0].arrays))))
 
 
 def nearest_real(real: np.ndarray, mean: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -171,13 +198,17 @@ def nearest_real(real: np.ndarray, mean: np.ndarray, q: np.ndarray) -> np.ndarra
     return np.stack([cKDTree(pts[:, j]).query(x[:, j])[0] for j in range(q.shape[1])], axis=1)
 
 
-def near_percentile(carry: StyleCarry, produced: list[np.ndarray], targets: list[np.ndarray]) -> np.ndarray:
-    """(S, J) `NEAR_PERCENTILE` distance from the carried `produced[s]` to the nearest real frame."""
+def near_percentile(
+    carry: StyleCarry, produced: list[np.ndarray], targets: list[np.ndarray], about: np.ndarray | None = None
+) -> np.ndarray:
+    """(S, J) `NEAR_PERCENTILE` distance from the carried `produced[s]` to the nearest real frame,
+    measured about `about` (S, J, 4; default the carry's means)."""
+    about = carry.mean if about is None else about
     out = np.zeros(carry.mean.shape[:2])
     for s, (q, real) in enumerate(zip(produced, targets)):
         w = np.zeros((len(q), len(produced)))
         w[:, s] = 1.0
-        out[s] = np.percentile(nearest_real(real, carry.mean[s], carry(q, w)), NEAR_PERCENTILE, axis=0)
+        out[s] = np.percentile(nearest_real(real, about[s], carry(q, w)), NEAR_PERCENTILE, axis=0)
     return out
 
 

@@ -6,7 +6,7 @@ State per session (session axis first):
                                                         residual branch per target style
     h.<name>, c.<name>         (B, layers, H)           the same for each uploaded style (`uploads.py`)
     prev_pos (B, 22, 3), prev_yaw (B,)                  previous input frame (causal velocities)
-    gait_speed (B,)                                     the input's averaged Hips speed (`gait.py`)
+    gait_speed, gait (B,)                               the input's averaged Hips speed, gait share (`gait.py`)
     <stage>/<key>                                       the stages' (`stages.STAGES`)
     out_root (B, 3), frame (B,)                         last output Hips translation, frames seen
     style_in (B,), content (B,)                         input labels, -1 = unknown (the default)
@@ -42,7 +42,7 @@ from ..stages import Pipeline, Rows, StageFrame
 from . import kernels
 from .dataset import CONTENTS, STYLES, TARGET_STYLES
 from .features import CONTACT, FPS, FeatureMaker
-from .gait import UNMEASURED, eased_in, hips_speed, run_share, smoothed_speed
+from .gait import UNMEASURED, followed, gait_share, hips_speed, smoothed_speed
 from .stages import ON_INPUT, STAGES
 from .uploads import BuiltIn, ERDStyles, Upload, branch_weights, runtime_layout
 
@@ -197,6 +197,7 @@ class ERDModel(ERDStyles):
             prev_pos=np.zeros((batch, 22, 3)),
             prev_yaw=np.zeros(batch),
             gait_speed=np.full(batch, UNMEASURED),
+            gait=np.zeros(batch),
             out_root=np.zeros((batch, 3)),
             frame=np.zeros(batch, dtype=np.int64),
             style_in=np.full(batch, si, dtype=np.int64),
@@ -252,12 +253,13 @@ class ERDModel(ERDStyles):
             x, y, yaw, has_prev, np.ascontiguousarray(state["out_root"], np.float64), root, rot_in, float(FPS)
         )
         gait_speed = smoothed_speed(state["gait_speed"], hips_speed(pos, state["prev_pos"], has_prev, FPS), has_prev)
-        share = eased_in(run_share(gait_speed), state["frame"])
+        share = followed(state["gait"], gait_share(gait_speed), has_prev)
         out_rot, staged = self.stage_batch(state, rot_in, out_rot, w, share)
         new.update(
             prev_pos=pos,
             prev_yaw=yaw,
             gait_speed=gait_speed,
+            gait=share,
             out_root=out_root,
             frame=state["frame"] + 1,
             style_in=state["style_in"].copy(),

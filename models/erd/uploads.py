@@ -52,7 +52,7 @@ class Upload:
         arrays |= {"h0": self.h0, "c0": self.c0, "code": self.code, "nearest": np.array(self.nearest)}
         for key, stage in self.stages.items():
             if isinstance(stage, SlowPrior):
-                for name, carry in ((key, stage.carry), (f"run_{key}", stage.run)):
+                for name, carry in ((key, stage.carry), (f"run_{key}", stage.run), (f"stand_{key}", stage.stand)):
                     if carry is not None:
                         arrays |= carry.named(f"{name}.")
                 if stage.fast is not None:
@@ -75,7 +75,7 @@ class Upload:
         for key, hips in (("leaf_prior", -1), ("output_prior", HIPS)):
             if (walk := carry(key)) is not None:
                 fast = a.get(f"{key}.fast")
-                stages[key] = SlowPrior((name,), walk, carry(f"run_{key}"), hips, fast)
+                stages[key] = SlowPrior((name,), walk, carry(f"run_{key}"), hips, fast, carry(f"stand_{key}"))
         if twist_joints is not None and "twist.mean" in a:
             stages["twist_range"] = TwistRange(
                 twist_joints.joints, twist_joints.axes, a["twist.mean"], a["twist.lo"], a["twist.hi"], (name,)

@@ -104,12 +104,22 @@ def carry(q: np.ndarray, w: np.ndarray, source, mean, lin, radius, hips: int = -
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _pair_joint(q, row, j, w, lone, r, a, b, c):
-    """q of row `row`, joint j carried by `a` and by `b` then `c`, mixed by share r."""
+def _kept(q, s, j, clamp, cos_half):
+    """q kept in the range of `clamp` (a clamp alone: `StyleCarry.bounds`) for style s, joint j;
+    q itself where already inside, so only a frame past the edge pays the log/exp round trip."""
+    if abs(qdot(quat_at(clamp[1], s, j), q)) >= cos_half[s, j]:
+        return q
+    return _toward(q, s, j, clamp)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _pair_joint(q, row, j, w, lone, r, a, b, c, cos_c):
+    """q of row `row`, joint j carried by `a` and by `b` then the clamp `c` (`cos_c`: its
+    `_cos_half`), mixed by share r."""
     if r == 0.0:
         return _carry_joint(q, row, j, w, lone, a)
     if lone >= 0 and r == 1.0:
-        return _same_side(q, _toward(_toward(q, lone, j, b), lone, j, c))
+        return _same_side(q, _kept(_toward(q, lone, j, b), lone, j, c, cos_c))
     cx = cy = cz = 0.0
     for s in range(w.shape[1]):
         ws = w[row, s]
@@ -119,7 +129,7 @@ def _pair_joint(q, row, j, w, lone, r, a, b, c):
             lx, ly, lz = qlog(qmul(qinv(q), _toward(q, s, j, a)))
             k = ws * (1.0 - r)
             cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
-        lx, ly, lz = qlog(qmul(qinv(q), _toward(_toward(q, s, j, b), s, j, c)))
+        lx, ly, lz = qlog(qmul(qinv(q), _kept(_toward(q, s, j, b), s, j, c, cos_c)))
         k = ws * r
         cx, cy, cz = cx + k * lx, cy + k * ly, cz + k * lz
     return qmul(q, qexp((cx, cy, cz)))
@@ -129,12 +139,13 @@ def _pair_joint(q, row, j, w, lone, r, a, b, c):
 def carry_pair_batch(q, w, share, a, b, c, hips, out):
     """out: rotations carried toward the styles of w by `a` and by `b` then `c`, mixed by share r:
 
-    q exp(sum_s w_s [(1 - r) log(q^-1 a_s(q)) + r log(q^-1 c_s(b_s(q)))])"""
+    q exp(sum_s w_s [(1 - r) log(q^-1 a_s(q)) + r log(q^-1 c_s(b_s(q)))]), `c` a clamp alone"""
+    cos_c = _cos_half(c[3])
     for row in range(q.shape[0]):
         lone = _lone(w, row)
         for j in range(q.shape[1]):
             u, heading = _headless(qunit(quat_at(q, row, j)), j == hips)
-            o = _pair_joint(u, row, j, w, lone, share[row], a, b, c)
+            o = _pair_joint(u, row, j, w, lone, share[row], a, b, c, cos_c)
             out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = qmul(heading, o) if j == hips else o
     return out
 
@@ -150,9 +161,9 @@ def carry_pair(
 
 
 @njit(cache=True, error_model="numpy")
-def _paired(q, row, j, w, lone, r, a, b, c):
+def _paired(q, row, j, w, lone, r, a, b, c, cos_c):
     """`_pair_joint` out of line: inlined beside the plain carry it halved the speed of every row."""
-    return _pair_joint(q, row, j, w, lone, r, a, b, c)
+    return _pair_joint(q, row, j, w, lone, r, a, b, c, cos_c)
 
 
 @njit(cache=True, error_model="numpy")
@@ -188,11 +199,12 @@ def _gained(p, row, j, w, lone, rest, gain):
 
 
 class SlowPriors(NamedTuple):
-    """What `carry_slow_batch` carries by: the carries, `clamp`, fast gains and `plain` joints."""
+    """What `carry_slow_batch` carries by: the walk, run and stand carries, `clamp` (also what a
+    gait's own carry is followed by), fast gains and `plain` joints."""
 
-    a: tuple
-    b: tuple
-    c: tuple
+    walk: tuple
+    run: tuple
+    stand: tuple
     clamp: tuple
     gain: np.ndarray
     plain: np.ndarray
@@ -206,14 +218,18 @@ def carry_slow_batch(q, slow, weight, w, share, priors, hips, out, new_slow):
     p = s^-1 q, the fast part, in its short hemisphere
     o = carry(s) (G p_xyz, p_w) / |.|, then o clamped into `clamp`'s range
 
-    G: the gains mixed by w; `plain` joints are carried whole. Writes `out` and `new_slow`."""
+    carry: walk's, mixed with the run's (share r > 0) or the stand's (r < 0) by |r|, each then
+    clamped; G: the gains mixed by w; `plain` joints are carried whole. Writes `out` and `new_slow`."""
     S, J = w.shape[1], q.shape[1]
-    a, b, c, clamp, gain, plain = priors
+    a, run, stand, clamp, gain, plain = priors
     cos_half = _cos_half(clamp[3])
     mean = clamp[1]
     for row in range(q.shape[0]):
         lone = _lone(w, row)
         r = share[row]
+        b = run
+        if r < 0.0:
+            b, r = stand, -r
         rest = 1.0
         for s in range(S):
             rest -= w[row, s]
@@ -244,12 +260,20 @@ def carry_slow_batch(q, slow, weight, w, share, priors, hips, out, new_slow):
                     whole = False
             if whole:
                 h, heading = _headless(u, is_hips)
-                o = _carry_joint(h, row, j, w, lone, a) if r == 0.0 else _paired(h, row, j, w, lone, r, a, b, c)
+                o = (
+                    _carry_joint(h, row, j, w, lone, a)
+                    if r == 0.0
+                    else _paired(h, row, j, w, lone, r, a, b, clamp, cos_half)
+                )
                 out[row, j, 0], out[row, j, 1], out[row, j, 2], out[row, j, 3] = qmul(heading, o) if is_hips else o
                 continue
             # the slow copy, carried
             h, heading = _headless(sl, is_hips)
-            o = _carry_joint(h, row, j, w, lone, a) if r == 0.0 else _paired(h, row, j, w, lone, r, a, b, c)
+            o = (
+                _carry_joint(h, row, j, w, lone, a)
+                if r == 0.0
+                else _paired(h, row, j, w, lone, r, a, b, clamp, cos_half)
+            )
             if is_hips:
                 o = qmul(heading, o)
             # the fast part on top

@@ -24,18 +24,26 @@ def carry_by_gait(
     weights: np.ndarray,
     share: np.ndarray,
     hips: int = -1,
+    stand: StyleCarry | None = None,
 ) -> np.ndarray:
-    """Rotations (B, J, 4) carried by the all-content prior `other` and by the `run` prior followed
-    by a clamp into `other`'s range, mixed by each row's share in one compiled pass
-    (`StyleCarry.mixed_with`): share 0 is exactly `other` alone. Either prior may be None (without
-    a run prior, `other` takes every row). A row's result never depends on the others."""
+    """Rotations (B, J, 4) carried by the all-content prior `other` and by the `run` prior (rows
+    of share > 0) or the `stand` prior (share < 0) followed by a clamp into `other`'s range, mixed
+    by each row's |share| (`StyleCarry.mixed_with`): share 0 is exactly `other` alone. Any prior
+    may be None (without a gait's prior, `other` takes its rows). A row's result never depends on
+    the others."""
     w = np.asarray(weights, np.float64)
     r = np.asarray(share, np.float64)
-    if run is None or not (r > 0.0).any():
-        return q if other is None else other(q, w, hips=hips)
-    if other is None:
-        return run(q, w * r[:, None], hips=hips)
-    return other.mixed_with(run, other.bounds, q, w, r, hips=hips)
+    out = np.array(q if other is None else other(q, w, hips=hips), np.float64)
+    for gait, rows in ((run, r > 0.0), (stand, r < 0.0)):
+        if gait is None or not rows.any():
+            continue
+        x, wr, k = np.asarray(q, np.float64)[rows], w[rows], np.abs(r[rows])
+        out[rows] = (
+            gait(x, wr * k[:, None], hips=hips)
+            if other is None
+            else other.mixed_with(gait, other.bounds, x, wr, k, hips=hips)
+        )
+    return out
 
 
 def apply(carry: StyleCarry, q: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -83,9 +91,10 @@ def compiled_carry_slow(
     weights: np.ndarray,
     share: np.ndarray,
     hips: int = -1,
+    stand: StyleCarry | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The compiled stage (`SlowPrior`) of these carries: the rotations carried and the new slow copies."""
-    stage = SlowPrior(tuple(f"s{k}" for k in range(len(other.mean))), other, run, hips)
+    stage = SlowPrior(tuple(f"s{k}" for k in range(len(other.mean))), other, run, hips, stand=stand)
     rows = stage.rows(stage.styles, bandai_namco_skeleton())
     frame = StageFrame(np.asarray(q, np.float64), np.asarray(weights, np.float64), np.asarray(share, np.float64), -1)
     out, state = stage.step_batch({"slow": np.asarray(slow, np.float64)}, frame, rows)
@@ -106,13 +115,14 @@ def carry_slow(
     weights: np.ndarray,
     share: np.ndarray,
     hips: int = -1,
+    stand: StyleCarry | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """`compiled_carry_slow` in numpy (the carry itself by `gait.carry_by_gait`)."""
+    """`compiled_carry_slow` in numpy (the carry itself by `carry_by_gait`)."""
     new = follow(slow, q)
     if other is None and run is None:
         return q, new
     w = np.asarray(weights, np.float64)
-    carried = carry_by_gait(other, run, new, w, share, hips=hips)
+    carried = carry_by_gait(other, run, new, w, share, hips, stand)
     q = np.asarray(q, np.float64)
     fast = quat_mul(quat_inv(new), q / np.linalg.norm(q, axis=-1, keepdims=True))
     fast = np.where(fast[..., 3:] < 0.0, -fast, fast)
@@ -126,7 +136,7 @@ def carry_slow(
     out = other.bounds(quat_mul(carried, fast / np.linalg.norm(fast, axis=-1, keepdims=True)), w, hips=hips)
     # nothing to carry slowly where every style the row weighs only clamps the joint: carried whole
     whole = ~np.any((w[:, :, None] != 0.0) & ~clamps_only(other)[None], axis=1)
-    out[whole] = carry_by_gait(other, run, q, w, share, hips=hips)[whole]
+    out[whole] = carry_by_gait(other, run, q, w, share, hips, stand)[whole]
     return out, new
 
 
@@ -161,10 +171,11 @@ def clip_carry_slow(
     weights: np.ndarray,
     share: np.ndarray,
     hips: int = -1,
+    stand: StyleCarry | None = None,
 ) -> np.ndarray:
     """The compiled `carry_slow` over every frame (T, J, 4) of a clip, each frame's slow copy
     followed in numpy, as a stream sees it."""
     before = np.zeros_like(np.asarray(q, np.float64))  # each frame's slow copy before it
     for t in range(1, len(q)):
         before[t] = follow(before[t - 1 : t], q[t - 1 : t])[0]
-    return compiled_carry_slow(other, run, q, before, weights, share, hips)[0]
+    return compiled_carry_slow(other, run, q, before, weights, share, hips, stand)[0]

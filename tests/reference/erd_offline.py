@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from models.erd.features import FPS
-from models.erd.gait import clip_smoothed_speed, eased_in, run_share
+from models.erd.gait import clip_gait
 from models.erd.offline import network_clip, with_root
 from models.motion.skeleton import Motion
 
@@ -17,12 +17,12 @@ def stylise(
 ) -> Motion:
     """The clip stylised by `model`'s generator `gen` toward target weights (6,) or per frame
     (T, 6), then decoded and staged frame by frame as `model`'s stream does
-    (`ERDModel.stage_batch`), the run shares measured over the clip (`gait.clip_smoothed_speed`)."""
+    (`ERDModel.stage_batch`), the gait shares measured over the clip (`gait.clip_gait`)."""
     x, root, rots = network_clip(gen, model.maker, motion, weights, style_in, content)
     T = len(rots)
     w = np.broadcast_to(np.asarray(weights, np.float64), (T, np.shape(weights)[-1]))
     pos = model.maker.positions(motion.translations[:, 1], motion.rotations)
-    share = eased_in(run_share(clip_smoothed_speed(pos, FPS)), np.arange(T))
+    share = clip_gait(pos, FPS)
     state = model.stages.init_state(1)
     for t in range(T):
         frame = slice(t, t + 1)
