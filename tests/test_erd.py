@@ -249,6 +249,28 @@ def test_planted_feet_stay_put(model, walks):
     assert both.sum() > 20 and np.median(step[both]) < 1e-6 and np.all(step[both] < 0.3), np.sort(step[both])[-8:]
 
 
+def test_a_held_foot_moves_the_root_rather_than_jerking_the_thigh(model):
+    """Past a few cm a held foot's hold is taken by the root (`GIVE_SPEED`): at LTI's 30 cm/s the
+    legs took the rest, and elderly's thighs turning with the body through a walk-turn jerked at
+    1.7-2.0x the input's p99 rotation acceleration; now about the input's own."""
+    from dataclasses import replace
+
+    from models.data import build_index, load_motions, select
+    from models.eval.plausibility import rotation_acceleration
+
+    from .clips import streamed_rotations
+
+    thighs = np.array([model.skeleton.index(n) for n in ("UpperLeg_L", "UpperLeg_R")])
+    clips = select(build_index(["bandai-namco-2"]), dataset="bandai-namco-2", split="val", style="normal")
+    for motion in load_motions([c for c in clips if c.content == "walk-turn-right"][:4]):
+        motion = motion.slice(0, 120)
+        out = replace(motion, rotations=streamed_rotations(model, motion, _onehot(model, "elderly")))
+        ratio = np.percentile(rotation_acceleration(out, thighs), 99, axis=0) / np.percentile(
+            rotation_acceleration(motion, thighs), 99, axis=0
+        )
+        assert ratio.max() < 1.4, ratio
+
+
 def _five_frames_in(model, motion):
     """(motion, elderly weights, the state of one session after motion's first 5 frames)."""
     w = _onehot(model, "elderly")[None]
