@@ -88,9 +88,13 @@ def fit_leaf(model: Any, styles: list[str] | None = None) -> SlowPrior:
         return StyleCarry.fit([real[0]] * len(styles), [real[STYLES.index(s)] for s in styles], FIXED)
 
     walk, stood = fitted(real_rotations(balanced=True)), real_rotations(balanced=True, stands=True)
-    targets = [comparable(stood[STYLES.index(s)]) for s in styles]
-    stand = nearer(fitted(stood), walk, [comparable(stood[0])] * len(styles), targets)
+    stand = nearer(fitted(stood), walk, [comparable(stood[0])] * len(styles), _targets(stood, styles))
     return SlowPrior(tuple(styles), walk, fitted(real_rotations(runs=True)), stand=stand)
+
+
+def _targets(real: list[np.ndarray], styles: Sequence[str]) -> list[np.ndarray]:
+    """`real_rotations`' frames of each of `styles`, comparable (`rotation_ball.comparable`)."""
+    return [comparable(real[STYLES.index(s)]) for s in styles]
 
 
 def _neutral_inputs() -> tuple[list, np.ndarray]:
@@ -122,22 +126,16 @@ def fit_output(model: Any, styles: list[str] | None = None) -> SlowPrior:
     styles = styles or list(TARGET_STYLES)
     legs = tuple(model.skeleton.index(chain[k]) for chain in LEGS for k in (0, 1, 3))  # hip joint, knee, toes
 
-    def fitted(
-        produced: list[np.ndarray], real: list[np.ndarray], clamped: tuple[int, ...], fixed: tuple[int, ...] = (ROOT,)
-    ) -> StyleCarry:
-        targets = [comparable(real[STYLES.index(s)]) for s in styles]
-        return output_carry(produced, targets, clamped, fixed)
-
     inputs, contents = _neutral_inputs()
     produced = network_rotations(model, inputs, styles=styles)
-    walk = fitted([content_balanced(p, contents) for p in produced], real_rotations(balanced=True), (HIPS,) + legs)
-    run = fitted(run_network_rotations(model, styles), real_rotations(runs=True), (HIPS,))
+    walked = [content_balanced(p, contents) for p in produced]
+    walk = output_carry(walked, _targets(real_rotations(balanced=True), styles), (HIPS,) + legs)
+    run = output_carry(run_network_rotations(model, styles), _targets(real_rotations(runs=True), styles), (HIPS,))
     standing = np.repeat([clip_speed(m) < MOVING_CM_S for m in inputs], [m.num_frames for m in inputs])
     stood = [content_balanced(p[standing], contents[standing]) for p in produced]
-    real = real_rotations(balanced=True, stands=True)
-    stand = fitted(stood, real, (), FIXED + legs)  # the legs keep the walk's clamp: a stop must not drag the feet
-    targets = [comparable(real[STYLES.index(s)]) for s in styles]
-    return SlowPrior(tuple(styles), walk, run, HIPS, stand=nearer(stand, walk, stood, targets))
+    real = _targets(real_rotations(balanced=True, stands=True), styles)
+    stand = output_carry(stood, real, (), FIXED + legs)  # the legs keep the walk's clamp: a stop must not drag the feet
+    return SlowPrior(tuple(styles), walk, run, HIPS, stand=nearer(stand, walk, stood, real))
 
 
 def nearer(own: StyleCarry, other: StyleCarry, produced: list[np.ndarray], targets: list[np.ndarray]) -> StyleCarry:
