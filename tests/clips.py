@@ -4,6 +4,8 @@ frame at a time, frames of a batch split and joined, and the angle between rotat
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from clients.sdk import Client
@@ -24,15 +26,24 @@ def drive_lpn(base: str, style: str, ticks) -> np.ndarray:
         return np.array([session.control(v, facing, gait).rotations for v, facing, gait in ticks])
 
 
-def streamed_rotations(model, motion: Motion, weights: np.ndarray) -> np.ndarray:
-    """(T, J, 4) the output rotations of `motion` streamed through `model` in one fresh session
-    with style weights (S,), one frame per `step_batch`."""
-    state, out = model.init_state(1), []
+def stylise_stream(model, motion: Motion, weights: np.ndarray, **labels: str | None) -> Motion:
+    """`motion` streamed through `model` in one fresh session (`labels`: its `init_state`'s), one
+    frame per `step_batch`; `weights` (S,) or per frame (T, S)."""
+    state, roots, rots = model.init_state(1, **labels), [], []
+    w = np.broadcast_to(np.asarray(weights, np.float64), (motion.num_frames, np.shape(weights)[-1]))
     for t in range(motion.num_frames):
         frame = FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1])
-        o, state = model.step_batch(state, frame, weights[None])
-        out.append(o.rotations[0])
-    return np.stack(out)
+        o, state = model.step_batch(state, frame, w[t][None])
+        roots.append(o.root[0])
+        rots.append(o.rotations[0])
+    translations = motion.translations.copy()
+    translations[:, 1] = roots
+    return replace(motion, rotations=np.array(rots), translations=translations)
+
+
+def streamed_rotations(model, motion: Motion, weights: np.ndarray) -> np.ndarray:
+    """(T, J, 4) the output rotations of `motion` streamed through `model` with style weights (S,)."""
+    return stylise_stream(model, motion, weights).rotations
 
 
 def frame_row(frames: FrameBatch, i: int) -> FrameBatch:

@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 
 from models.interface import FrameBatch, State, StreamingModel, stack_states  # noqa: E402 (after the torch check)
 from models.motion.skeleton import fk  # noqa: E402
-from tests.clips import frame_row  # noqa: E402
+from tests.clips import frame_row, stylise_stream  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "models" / "weights" / "erd"
@@ -100,12 +100,12 @@ def test_stream_equals_whole_window(model, walks):
 
     motion = walks[0].slice(0, 40)
     w = _onehot(model, "elderly")
-    streamed = model.stylise_stream(motion, w, content="walk", input_style="normal")
+    streamed = stylise_stream(model, motion, w, content="walk", input_style="normal")
     gen = model.torch_generator()
     whole = stylise(gen, model, motion, w, style_in=0, content=CONTENTS.index("walk"))
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
     np.testing.assert_allclose(streamed.translations, whole.translations, atol=2e-2)  # cm; float32 torch
-    streamed = model.stylise_stream(motion, w)  # unlabelled
+    streamed = stylise_stream(model, motion, w)  # unlabelled
     whole = stylise(gen, model, motion, w)
     np.testing.assert_allclose(streamed.rotations, whole.rotations, atol=2e-4)
 
@@ -167,11 +167,11 @@ def test_causal(model, walks):
 def test_missing_labels_and_real_walk_finite(model, walks):
     motion = walks[0]
     for kwargs in ({}, {"content": "walk"}, {"input_style": "normal"}, {"content": "walk", "input_style": "normal"}):
-        out = model.stylise_stream(motion.slice(0, 20), _onehot(model, "elderly"), **kwargs)
+        out = stylise_stream(model, motion.slice(0, 20), _onehot(model, "elderly"), **kwargs)
         assert np.isfinite(out.rotations).all() and np.isfinite(out.translations).all()
         np.testing.assert_allclose(np.linalg.norm(out.rotations, axis=-1), 1.0, atol=1e-6)
     # zero weights = neutral branch only; output stays close to a neutral input
-    out = model.stylise_stream(motion, np.zeros(6), content="walk", input_style="normal")
+    out = stylise_stream(model, motion, np.zeros(6), content="walk", input_style="normal")
     pos_in, pos_out = motion.global_positions(), out.global_positions()
     local_in = pos_in - pos_in[:, 1:2]
     local_out = pos_out - pos_out[:, 1:2]

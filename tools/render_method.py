@@ -15,6 +15,7 @@ import numpy as np
 from models.data import build_index, load_motion, load_motions, select
 from models.motion.render import render_contact_sheet, render_gif
 from models.settings import REPO_ROOT, get_settings
+from tests.clips import stylise_stream
 
 
 def lti(args: argparse.Namespace) -> None:
@@ -51,7 +52,7 @@ def erd(args: argparse.Namespace) -> None:
         w = np.zeros(len(model.styles()))
         w[model.styles().index(style)] = args.intensity
         labels = {} if args.unlabelled else {"content": args.content, "input_style": "normal"}
-        outs.append(model.stylise_stream(motion, w, **labels))
+        outs.append(stylise_stream(model, motion, w, **labels))
         titles.append(f"{style} x{args.intensity:g}" + (" (no labels)" if args.unlabelled else ""))
     if args.reference:  # real clips of the target styles, same content, for comparison
         index = build_index(["bandai-namco-2"])

@@ -33,7 +33,7 @@ from ..interface import FrameBatch, State
 from ..motion.feet import STATE_SHAPES as FEET_STATE
 from ..motion.feet import FootPlanter, model_rig_planter, plant_frame
 from ..motion.hinge import HINGE_FILE, Hinges, kernel_hinges
-from ..motion.skeleton import Motion, Skeleton
+from ..motion.skeleton import Skeleton
 from ..motion.twist import _kernel_plan
 from ..motion.twist_kernels import transfer_twist_batch
 from ..rowwise import matmul_rows
@@ -365,26 +365,6 @@ class ERDModel(ERDStyles):
         )
         gen.load_state_dict(state)
         return gen.eval()
-
-    def stylise_stream(
-        self, motion: Motion, weights: np.ndarray, content: str | None = None, input_style: str | None = None
-    ) -> Motion:
-        """Run a whole Motion through step_batch frame by frame (batch 1); returns a Motion."""
-        from dataclasses import replace
-
-        state = self.init_state(1, content=content, input_style=input_style)
-        w = np.asarray(weights, np.float64)
-        roots, rots = [], []
-        for t in range(motion.num_frames):
-            wt = w[t] if w.ndim == 2 else w
-            out, state = self.step_batch(
-                state, FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1]), wt[None]
-            )
-            roots.append(out.root[0])
-            rots.append(out.rotations[0])
-        trans = motion.translations.copy()
-        trans[:, 1] = np.array(roots)
-        return replace(motion, rotations=np.array(rots), translations=trans)
 
 
 def load(weights_dir: Path, dtype: type = np.float32, core_only: bool = False, hinges: bool = True) -> ERDModel:

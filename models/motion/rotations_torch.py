@@ -1,24 +1,11 @@
 """Differentiable torch versions of the `rotations` the training losses and forward kinematics
-need (same conventions: scalar-last quaternions, matrices on column vectors); each is tested
+need (scalar-last quaternions, as there); each is tested
 against scipy. Kept apart so that numpy-only code never imports torch.
 """
 
 from __future__ import annotations
 
 import torch
-
-
-def quat_to_matrix_t(q: torch.Tensor) -> torch.Tensor:
-    """(..., 4) scalar-last quaternions (need not be unit) -> (..., 3, 3)."""
-    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    x, y, z, w = q.unbind(-1)
-    xx, yy, zz, xy, xz, yz, wx, wy, wz = x * x, y * y, z * z, x * y, x * z, y * z, w * x, w * y, w * z
-    rows = [
-        1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-        2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-        2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
-    ]  # fmt: skip
-    return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
 
 
 def quat_mul_t(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

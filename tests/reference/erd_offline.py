@@ -1,5 +1,5 @@
 """Whole-clip Style-ERD with its stages run frame by frame as the stream runs them: the reference
-the stream (`ERDModel.stylise_stream`) and `models.erd.distill.teacher_rotations` (all styles as
+the stream (`tests.clips.stylise_stream`) and `models.erd.distill.teacher_rotations` (all styles as
 one batch) are tested against."""
 
 from __future__ import annotations
