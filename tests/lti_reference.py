@@ -84,14 +84,14 @@ def unpacked(state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 
 def recorded_model():
     """The model the reference is recorded with: every stage on but the hinge floors, the
-    input's saturation and the root giving way, its planter holding hinted feet no further than
-    others (they came after the reference; `test_lti`'s offline mix, `test_lti_saturation` and
-    `test_feet` check them)."""
+    input's saturation, the feet's pitch and the root giving way, its planter holding hinted feet
+    no further than others (they came after the reference; `test_lti`'s offline mix and
+    streaming-equals-offline, `test_lti_saturation` and `test_feet` check them)."""
     from dataclasses import replace
 
     from models.lti import WEIGHTS_DIR, LTIStyleModel
 
-    model = LTIStyleModel(weights_dir=WEIGHTS_DIR, off=("hinge_floor", "saturation", "root_give"))
+    model = LTIStyleModel(weights_dir=WEIGHTS_DIR, off=("hinge_floor", "saturation", "foot_pitch", "root_give"))
     model.planter = replace(model.planter, hint_offset=None)
     model._set_styles(model.styles())  # the step's records carry the planter's settings
     return model

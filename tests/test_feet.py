@@ -9,9 +9,10 @@ import pytest
 from models.motion import feet_kernels
 from models.motion.bn_skeleton import HIPS
 from models.motion.feet import STATE_SHAPES, model_rig_planter
-from models.motion.rotations import quat_apply
+from models.motion.rotations import quat_apply, quat_mul
 from models.motion.skeleton import fk
 
+from .reference.foot_pitch import ankle_heights, followed_pitch, sole_heading, sole_pitch
 from .reference.foot_slide import planted_slide
 
 
@@ -357,3 +358,71 @@ def test_the_root_gives_way_no_faster_than_give_speed(bn_walk):
     )
     free = _plant(model_rig_planter(bn_walk.fps, max_offset=8.0, give=5.0), still, bn_walk.rotations[None])
     assert path(none[0][0]) < path(slow[0][0]) < path(free[0][0])
+
+
+# --------------------------------------------------------------------------- the feet's pitch
+
+
+def _turned_feet(walk, chains: np.ndarray) -> np.ndarray:
+    """The walk's rotations with each foot turned 25° toe-down about its own x and 15° about its
+    own y: a foot landing flat, and toed out."""
+    from scipy.spatial.transform import Rotation
+
+    rot = walk.rotations.copy()
+    turn = (Rotation.from_euler("x", 25, degrees=True) * Rotation.from_euler("y", 15, degrees=True)).as_quat()
+    for chain in chains:
+        rot[:, chain[2]] = quat_mul(rot[:, chain[2]], turn)
+    return rot
+
+
+def _pitched(walk, rotations: np.ndarray, share: float, above: float = 0.0) -> np.ndarray:
+    """`rotations` (F, J, 4) through `follow_pitch` toward the walk's, every frame a session whose
+    ankles are `above` their floors."""
+    planter = model_rig_planter(walk.fps)
+    F, root = len(rotations), walk.translations[:, HIPS]
+    ankles = np.stack([ankle_heights(rotations, root, planter.hips, c, planter.offsets) for c in planter.chains], -1)
+    floor = np.repeat((ankles - above)[..., None], 2, axis=-1)  # (F, 2 legs, ankle and toe)
+    before = feet_kernels.Feet(
+        np.ones(F), root.copy(), root.copy(), np.zeros((F, 2, 2, 3)), np.zeros((F, 2)), np.zeros((F, 2)),
+        np.zeros((F, 2, 3)), floor,
+    )  # fmt: skip
+    out = rotations.copy()
+    feet_kernels.follow_pitch(walk.rotations, out, root, before, planter._params, share)
+    want = followed_pitch(
+        walk.rotations, rotations, root, floor[..., 0], planter.hips, planter.chains, planter.offsets, share
+    )
+    np.testing.assert_allclose(out, want, atol=1e-9)  # the numpy reference
+    return out
+
+
+@pytest.mark.parametrize("share", [0.0, 0.5, 1.0])
+def test_a_toe_rises_its_share_of_the_way_to_the_inputs_pitch_and_nothing_else_moves(bn_walk, share):
+    planter = model_rig_planter(bn_walk.fps)
+    hips, chains, offsets = planter.hips, planter.chains, planter.offsets
+    turned = _turned_feet(bn_walk, chains)
+    out = _pitched(bn_walk, turned, share)
+    for chain in chains:
+        before, want = (sole_pitch(r, hips, chain, offsets) for r in (turned, bn_walk.rotations))
+        rise = np.maximum(want - before, 0.0)  # a toe only rises toward the input's
+        np.testing.assert_allclose(sole_pitch(out, hips, chain, offsets), before + share * rise, atol=1e-6)
+        assert share == 0.0 or (rise > np.radians(5)).mean() > 0.5  # the toe-down turn is there to undo
+        heading = [sole_heading(r, hips, chain, offsets) for r in (turned, out)]  # a toed-out foot stays so
+        assert np.abs(np.angle(np.exp(1j * (heading[1] - heading[0])))).max() < 1e-5
+    feet = chains[:, 2]
+    np.testing.assert_array_equal(np.delete(out, feet, axis=1), np.delete(turned, feet, axis=1))  # only the feet
+
+
+@pytest.mark.parametrize("above,moved", [(2.0, 1.0), (6.5, 0.5), (12.0, 0.0)])
+def test_a_foot_in_the_air_keeps_its_pitch(bn_walk, above, moved):
+    """The pitch follows the input's fully up to PITCH_LOW over the floor, not at all from PITCH_HIGH."""
+    assert feet_kernels.PITCH_LOW < 6.5 < feet_kernels.PITCH_HIGH < 12.0
+    planter = model_rig_planter(bn_walk.fps)
+    hips, chains, offsets = planter.hips, planter.chains, planter.offsets
+    turned = _turned_feet(bn_walk, chains)
+    out = _pitched(bn_walk, turned, 1.0, above)
+    share = np.clip((feet_kernels.PITCH_HIGH - above) / (feet_kernels.PITCH_HIGH - feet_kernels.PITCH_LOW), 0, 1)
+    assert share == pytest.approx(moved, abs=0.01)
+    for chain in chains:
+        before, want = (sole_pitch(r, hips, chain, offsets) for r in (turned, bn_walk.rotations))
+        rise = np.maximum(want - before, 0.0)
+        np.testing.assert_allclose(sole_pitch(out, hips, chain, offsets), before + share * rise, atol=1e-6)

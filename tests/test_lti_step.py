@@ -1,9 +1,9 @@
 """LTI's streaming step computes what it computed before it was fused into one compiled call:
 the recorded reference (`tests/lti_reference.py`) to round-off, every stage on; and the
 reference exercises every stage (switching one off changes it). The hinge floors, the input's
-saturation and the root giving way to held feet came after the reference was recorded: it is
-compared with them off, and the numpy reference checks them (`test_lti`'s offline mix,
-`test_lti_saturation`, `test_feet`)."""
+saturation, the feet's pitch and the root giving way to held feet came after the reference was
+recorded: it is compared with them off, and the numpy references check them (`test_lti`'s
+offline mix and streaming-equals-offline, `test_lti_saturation`, `test_feet`)."""
 
 from __future__ import annotations
 

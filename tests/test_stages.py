@@ -235,7 +235,7 @@ def test_lti_declares_its_stages_and_each_switches_off_in_both_paths(monkeypatch
     assert load().stages == STAGES and load(core_only=True).stages == ()
     with setting(monkeypatch, "STYLESTREAM_STAGES_OFF", '["lti.rotation_prior", "lti.raised_arm", "erd.leaf_prior"]'):
         model = load()
-        assert model.stages == ("saturation", "hinge_floor", "root_give") and not model.raised_arms
+        assert model.stages == ("saturation", "hinge_floor", "foot_pitch", "root_give") and not model.raised_arms
         assert all(t.prior_mean is None and t.raised_arm is None for t in model.translators.values())
         assert load(core_only=True).hinges is None
     with setting(monkeypatch, "STYLESTREAM_STAGES_OFF", '["lti.no_such_stage"]'), pytest.raises(KeyError):

@@ -130,8 +130,8 @@ def interleaved(steps: dict, repeats: int, warmup: int = 10) -> tuple[dict, dict
 
 def lti(args: argparse.Namespace) -> None:
     """Every stage on (as the service loads it, the unseen-content fade last), the same without
-    the fade, the published core alone (the translators and the foot planter) and the foot lock
-    off, timed interleaved, step by step, in one run; the floor is the paper's one dense
+    the fade, the published core alone (the translators and the foot planter), the feet's pitch
+    off and the foot lock off, timed interleaved, step by step, in one run; the floor is the paper's one dense
     [[A, B], [C, D]] @ [x; u] product of the same batch."""
     from models.lti import load
     from models.lti.model import LTIStyleModel
@@ -146,6 +146,7 @@ def lti(args: argparse.Namespace) -> None:
         "shipped": shipped_model,  # with the unseen-content fade, as the service loads it
         "without the fade": load(folder),
         "core alone": load(folder, core_only=True),
+        "feet's pitch off": LTIStyleModel(weights_dir=folder, off=("foot_pitch",)),
         "foot lock off": LTIStyleModel(weights_dir=folder, footlock=False),
     }
     shipped = variants["without the fade"]

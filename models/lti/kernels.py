@@ -19,7 +19,7 @@ from numba import njit
 
 from ..motion.bn_skeleton import HIPS, NUM_JOINTS
 from ..motion.feet import STATE_SHAPES as FEET_STATE
-from ..motion.feet_kernels import Feet, plant_feet
+from ..motion.feet_kernels import PITCH_SHARE, Feet, follow_pitch, plant_feet
 from ..motion.hands_kernels import Hands, hand_step
 from ..motion.hinge_kernels import floor_bend
 from ..motion.novelty_kernels import fade_step
@@ -190,6 +190,7 @@ class Switches(NamedTuple):
     raised_arm: bool
     footlock: bool
     saturate: bool  # the systems read the input saturated into its training range (`saturate`)
+    foot_pitch: bool  # the feet's pitch against the ground partly the input's (`feet_kernels.follow_pitch`)
 
 
 class Work(NamedTuple):
@@ -252,7 +253,7 @@ CONSTANT_SCHEMAS = (
     "i1 f2 i1 i1 i1 f0 f0 f0",  # Hands
     "f3 f3 f4 f2 i1 i2 f1 f1 f0",  # RaisedArm
     "i0 i2 f2 f1 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0 f0",  # `FootPlanter`'s parameters (`plant_feet`'s last)
-    "b0 b0 b0 b0 b0",  # Switches
+    "b0 b0 b0 b0 b0 b0",  # Switches
     "f2 f2 f1",  # Bends
 )
 WORK_SCHEMA = "f2 f4 i1 f1 f1 f1 f1 f1 f1 f2 b2 b1 f2 f3 i2 f1 f3 f1"
@@ -344,8 +345,8 @@ def unpack_constants(p):
         _f(p, 51)[0], _f(p, 52)[0], _f(p, 53)[0], _f(p, 54)[0], _f(p, 55)[0], _f(p, 56)[0], _f(p, 57)[0],
         _f(p, 58)[0], _f(p, 59)[0], _f(p, 60)[0], _f(p, 61)[0],
     )  # fmt: skip
-    on = Switches(_b(p, 62)[0], _b(p, 63)[0], _b(p, 64)[0], _b(p, 65)[0], _b(p, 66)[0])
-    bends = Bends(_f(p, 67).reshape(_s2(p, 67)), _f(p, 68).reshape(_s2(p, 68)), _f(p, 69))
+    on = Switches(_b(p, 62)[0], _b(p, 63)[0], _b(p, 64)[0], _b(p, 65)[0], _b(p, 66)[0], _b(p, 67)[0])
+    bends = Bends(_f(p, 68).reshape(_s2(p, 68)), _f(p, 69).reshape(_s2(p, 69)), _f(p, 70))
     return sys, fp, ball, hands, arm, planter, on, bends
 
 
@@ -811,9 +812,12 @@ def style(frame, before, after, out, constants, work):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work):
-    """`step`'s last stage: the feet planted (`models.motion.feet`), the classifier's contacts as hints."""
+    """`step`'s last stages: the feet's pitch, then the feet planted (`models.motion.feet`), the
+    classifier's contacts as hints."""
     _, _, _, _, _, planter, on, _ = constants
     B = frame.root.shape[0]
+    if on.foot_pitch:
+        follow_pitch(frame.rotations, out.rotations, work.root, feet_before, planter, PITCH_SHARE)
     if not on.footlock:  # the planter's state waits
         new_carry[:, FEET_AT:] = carry[:, FEET_AT:]
         out.root[:] = work.root

@@ -40,7 +40,7 @@ from .footplant import FootplantClassifier
 from .styles import LTIStyles
 
 # The stages around the systems, in step order; off via `LTIStyleModel(off=...)` or `lti.<name>`.
-STAGES = ("saturation", "rotation_prior", "hinge_floor", "raised_arm", "root_give")
+STAGES = ("saturation", "rotation_prior", "hinge_floor", "raised_arm", "foot_pitch", "root_give")
 CARRY = "carry"  # the state's packed carry (`kernels.CARRY`); each style's LTI state is its x.<style>
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights" / "lti"
 ARM_PREFIX = "arm_"  # key prefix of a translator file's raised-arm carry (`StyleCarry.named`)
@@ -254,6 +254,7 @@ class LTIStyleModel(LTIStyles):
         self.saturate = "saturation" in self.stages
         self.blend = blend and not self.saturate  # saturated, nothing is out of range to blend
         self.footlock = footlock
+        self.foot_pitch = "foot_pitch" in self.stages
         self.skeleton = skeleton if skeleton is not None else bandai_namco_skeleton()
         self.planter = model_rig_planter(
             self.fps,
@@ -296,7 +297,7 @@ class LTIStyleModel(LTIStyles):
         hands = kernels.Hands(
             h.parents, h.offsets, h.chain, h.hands, h.shoulders, self.fps, SWAY_FRAMES, RAISE_RAMP_CM[0]
         )
-        switches = (self.blend, self.keep_heading, self.raised_arms, self.footlock, self.saturate)
+        switches = (self.blend, self.keep_heading, self.raised_arms, self.footlock, self.saturate, self.foot_pitch)
         bends = kernels.Bends(*kernel_floor(self.skeleton, self.hinges))
         records = [systems, footplant, ball, hands, arm, self.planter._params, switches, bends]
         x_keys = [f"x.{s}" for s in styles]

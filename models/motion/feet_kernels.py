@@ -115,6 +115,60 @@ def leg_points(rot, hips, chain, offsets, out):
             out[k - 2, 0], out[k - 2, 1], out[k - 2, 2] = p
 
 
+# --------------------------------------------------------------------------- the feet's pitch
+
+# Share of the way a foot's toe rises to the input's pitch against the ground, whole up to PITCH_LOW
+# above the ankle's floor and none from PITCH_HIGH (rig units, cm on the models' rig): in the air a
+# foot is the method's own (`follow_pitch`; validation, docs/eval/ablation.md).
+PITCH_SHARE = 0.5
+PITCH_LOW, PITCH_HIGH = 3.0, 10.0
+
+
+@njit(cache=True, error_model="numpy")
+def _elevation(g, sole):
+    """The elevation (radians) of the direction `sole` turned by `g`, and that direction."""
+    v = _nrm(qrot(g, sole))
+    return math.asin(min(max(v[1], -1.0), 1.0)), v
+
+
+@njit(cache=True, error_model="numpy")
+def follow_pitch(rot_in, out_rot, root, before, planter, share):
+    """Each foot of `out_rot` (B, J, 4) near the floor whose toe points lower than the input's
+    (`rot_in`) raised in place about the level axis across it, up to `share` of the way to the
+    input's sole elevation: a heel strikes at least as the input's does. A method that predicts each
+    joint alone lands its feet flat while the leg still swings, and they skid; a foot it already
+    lands heel first keeps its own pitch (an input that lands flat lowers no toe). The sole is the
+    toe bone laid level in the rest pose (it never points straight down as the toe bone does at a
+    push-off); its heading, a style's toe-out, stays. `root` (B, 3) and the planter's state
+    `before` and parameters (`FootPlanter`) place the ankles over their floors."""
+    hips, chains, offsets, floors = planter[0], planter[1], planter[2], planter[3]
+    points = np.empty((2, 3))
+    for b in range(out_rot.shape[0]):
+        for leg in range(2):
+            up, low, ft, toe = chains[leg, 0], chains[leg, 1], chains[leg, 2], chains[leg, 3]
+            n = math.sqrt(offsets[toe, 0] ** 2 + offsets[toe, 2] ** 2)
+            if n < 1e-9:  # a toe straight below the ankle: no sole to pitch
+                continue
+            leg_points(out_rot[b], hips, chains[leg], offsets, points)
+            floor = before.floor[b, leg, 0] if before.started[b] else floors[0]
+            height = root[b, 1] + points[0, 1] - floor
+            near = share * min(max((PITCH_HIGH - height) / (PITCH_HIGH - PITCH_LOW), 0.0), 1.0)
+            if near <= 0.0:
+                continue
+            sole = (offsets[toe, 0] / n, 0.0, offsets[toe, 2] / n)
+            shin_in = qmul(qmul(row4(rot_in[b], hips), row4(rot_in[b], up)), row4(rot_in[b], low))
+            shin = qmul(qmul(row4(out_rot[b], hips), row4(out_rot[b], up)), row4(out_rot[b], low))
+            foot = qmul(shin, row4(out_rot[b], ft))
+            want, _ = _elevation(qmul(shin_in, row4(rot_in[b], ft)), sole)
+            have, v = _elevation(foot, sole)
+            level = math.sqrt(v[0] * v[0] + v[2] * v[2])
+            if level < 1e-6:  # the sole upright: no level axis across it
+                continue
+            pitch = axis_angle((-v[2] / level, 0.0, v[0] / level), near * max(want - have, 0.0))  # about v x up
+            q = qmul(qinv(shin), qmul(pitch, foot))
+            out_rot[b, ft, 0], out_rot[b, ft, 1], out_rot[b, ft, 2], out_rot[b, ft, 3] = q
+
+
 # cm: a hinted foot lifts its floor at once to at most this far below it; a floor left low would
 # otherwise creep up for seconds, holding no foot meanwhile.
 HINT_FLOOR_RISE = 10.0

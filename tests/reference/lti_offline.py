@@ -12,12 +12,14 @@ from models.lti import representation as rep
 from models.lti.kernels import SHARE_FLOOR, eased
 from models.lti.model import RAISE_EASE_S, LTIStyleModel, ease_keep
 from models.motion.bn_skeleton import HIPS
+from models.motion.feet_kernels import PITCH_SHARE
 from models.motion.hands import clip_sway, raise_share, wave_share
 from models.motion.hinge import kernel_floor
 from models.motion.hinge_kernels import floor_bends
 from models.motion.rotations import quat_exp
 from models.motion.style_carry import StyleCarry
 
+from .foot_pitch import pitched_and_planted
 from .hands import hand_offsets_of
 from .rotation_ball import clamp_rotations
 
@@ -106,7 +108,11 @@ def offline(model: LTIStyleModel, style: str, motion, footlock: bool = True):
         share = eased_shares(shares(offsets, swayed), ease_keep(LTIStyleModel.fps, RAISE_EASE_S))
         rots = carried(tr.raised_arm, rots, np.ones((len(rots), 1)), share)
     contacts = tr.footplant.predict(xs) if tr.footplant is not None else np.zeros((len(out), 2), bool)
-    if footlock:
+    if model.foot_pitch:
+        share = PITCH_SHARE
+        planted = pitched_and_planted(model.planter, motion.rotations, root, rots, contacts, share, footlock)
+        root, rots, contacts = planted if footlock else (root, planted[1], contacts)
+    elif footlock:
         root, rots, contacts = model.planter.clip(root, rots, hints=contacts)
     translations = np.broadcast_to(motion.translations[:1], (len(root),) + motion.translations.shape[1:]).copy()
     translations[:, rep.HIPS] = root
