@@ -118,7 +118,7 @@ def test_the_compiled_step_is_the_numpy_reference(crouch):
         out_rot, out_root, state, fade = _outputs(1, rot.shape[1], prev)
         fade_step(
             rot[t : t + 1], root[t : t + 1], method_rot[t : t + 1], method_root[t : t + 1], np.zeros((0, 5)),
-            prev, *ref.arrays(motion.fps), out_rot, out_root, state, fade,
+            prev, ref.arrays(motion.fps), out_rot, out_root, state, fade,
         )  # fmt: skip
         np.testing.assert_array_equal(prev, before)  # the state passed in is left as it was (snapshots)
         parts = faded({KEY: state})
@@ -156,7 +156,7 @@ def test_a_controller_tick_keeps_nothing():
     for _ in range(20):
         prev = state
         out_rot, out_root, state, fade = _outputs(2, len(BN_JOINTS), prev)
-        fade_step(rot, root, method, root, control, prev, *ref.arrays(30.0), out_rot, out_root, state, fade)
+        fade_step(rot, root, method, root, control, prev, ref.arrays(30.0), out_rot, out_root, state, fade)
     assert fade[0] > 0.9 and fade[1] == 0.0
     np.testing.assert_array_equal(out_rot[1], method[1])
 
@@ -258,9 +258,11 @@ def test_the_service_can_switch_the_fade_off():
 
 def test_lti_fading_inside_its_step_is_the_stage(crouch):
     """LTI runs the fade inside its own compiled step (`step_batch_fading`), before its feet are
-    planted: through the crouch, for a style and a mix with an intensity below 1, it gives what
-    the stage gives after LTI's step without the planter, planted after, to the bit."""
+    pitched and planted: through the crouch, for a style and a mix with an intensity below 1, it
+    gives what the stage gives after LTI's step without its feet, pitched and planted after, to the bit."""
     from models.lti import LTIStyleModel
+    from models.motion.feet import STATE_SHAPES
+    from models.motion.feet_kernels import PITCH_SHARE, Feet, follow_pitch
     from models.motion.novelty_stage import with_novelty
 
     motion, _, _ = crouch
@@ -269,7 +271,7 @@ def test_lti_fading_inside_its_step_is_the_stage(crouch):
     class Separate(LTIStyleModel):
         step_batch_fading = None  # the stage's own fade (`fade_step` called from Python)
 
-    separate = with_novelty(Separate(footlock=False), fused.novelty)
+    separate = with_novelty(Separate(footlock=False, off=("foot_pitch",)), fused.novelty)
     planter = fused.planter
     weights = np.stack([style_vector(fused, {"elderly": 1.0}), style_vector(fused, {"feminine": 0.5, "active": 0.3})])
     state, separate_state, feet = fused.init_state(2), separate.init_state(2), planter.init_state(2)
@@ -280,7 +282,9 @@ def test_lti_fading_inside_its_step_is_the_stage(crouch):
         )
         a, state = fused.step_batch(state, frame, weights)
         b, separate_state = separate.step_batch(separate_state, frame, weights)
-        root, rotations, contacts, feet = planter(feet, b.root, b.rotations, hints=b.contacts)
+        pitched, before = b.rotations.copy(), Feet(*(feet[k].astype(d) for k, (_, d) in STATE_SHAPES.items()))
+        follow_pitch(frame.rotations, pitched, b.root, before, planter._params, PITCH_SHARE)
+        root, rotations, contacts, feet = planter(feet, b.root, pitched, hints=b.contacts)
         for got, want in ((a.rotations, rotations), (a.root, root), (a.faded, b.faded), (a.contacts, contacts)):
             np.testing.assert_array_equal(got, want)
         np.testing.assert_array_equal(state[KEY], separate_state[KEY])

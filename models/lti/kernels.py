@@ -773,11 +773,9 @@ def step_fading(frame, x, new_x, carry, new_carry, out, constants, work, fade):
     (before, feet_before), (after, feet_after) = unpack(carry, x), unpack(new_carry, new_x)
     styled = Output(out.root, work.styled_rotations, out.contacts)  # `style` leaves its root alone
     style(frame, before, after, styled, constants, work)
-    control, old, table, anchors_starts, floats, bones, centres, new, faded = fade
-    fade_step(
-        frame.rotations, frame.root, styled.rotations, work.root, control, old, table, anchors_starts, floats,
-        bones, centres, out.rotations, out.root, new, faded,
-    )  # fmt: skip
+    control, old, reference, new, faded = fade
+    inputs = (frame.rotations, frame.root, styled.rotations, work.root, control, old, reference)
+    fade_step(*inputs, out.rotations, out.root, new, faded)
     work.root[:] = out.root
     plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work)
 

@@ -492,7 +492,7 @@ class LTIStyleModel(LTIStyles):
             if old.shape[0] != B:
                 raise ValueError(f"state[{key!r}] must hold {B} rows, got {old.shape}")
             new[key], out.faded = np.empty(old.shape), np.empty(B)
-            fade = (control, old, *reference, new[key], out.faded)
+            fade = (control, old, reference, new[key], out.faded)
             kernels.step_fading(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work, fade))
         if len(used) == 1:
             new[x_keys[used[0]]] = new_x

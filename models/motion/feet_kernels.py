@@ -134,13 +134,11 @@ def _elevation(g, sole):
 @njit(cache=True, error_model="numpy")
 def follow_pitch(rot_in, out_rot, root, before, planter, share):
     """Each foot of `out_rot` (B, J, 4) near the floor whose toe points lower than the input's
-    (`rot_in`) raised in place about the level axis across it, up to `share` of the way to the
-    input's sole elevation: a heel strikes at least as the input's does. A method that predicts each
-    joint alone lands its feet flat while the leg still swings, and they skid; a foot it already
-    lands heel first keeps its own pitch (an input that lands flat lowers no toe). The sole is the
-    toe bone laid level in the rest pose (it never points straight down as the toe bone does at a
-    push-off); its heading, a style's toe-out, stays. `root` (B, 3) and the planter's state
-    `before` and parameters (`FootPlanter`) place the ankles over their floors."""
+    (`rot_in`) raised in place about the level axis across it, `share` of the way: a heel strikes
+    at least as the input's does (a method predicting each joint alone lands a foot flat while the
+    leg swings, and it skids). The sole is the toe bone laid level in the rest pose (the toe bone
+    points straight down at a push-off); its heading, a style's toe-out, stays. `root` (B, 3), the
+    planter's state `before` and parameters (`FootPlanter`) place the ankles over their floors."""
     hips, chains, offsets, floors = planter[0], planter[1], planter[2], planter[3]
     points = np.empty((2, 3))
     for b in range(out_rot.shape[0]):
@@ -162,9 +160,9 @@ def follow_pitch(rot_in, out_rot, root, before, planter, share):
             want, _ = _elevation(qmul(shin_in, row4(rot_in[b], ft)), sole)
             have, v = _elevation(foot, sole)
             level = math.sqrt(v[0] * v[0] + v[2] * v[2])
-            if level < 1e-6:  # the sole upright: no level axis across it
+            if want <= have or level < 1e-6:  # the toe as high as the input's, or the sole upright
                 continue
-            pitch = axis_angle((-v[2] / level, 0.0, v[0] / level), near * max(want - have, 0.0))  # about v x up
+            pitch = axis_angle((-v[2] / level, 0.0, v[0] / level), near * (want - have))  # about v x up
             q = qmul(qinv(shin), qmul(pitch, foot))
             out_rot[b, ft, 0], out_rot[b, ft, 1], out_rot[b, ft, 2], out_rot[b, ft, 3] = q
 

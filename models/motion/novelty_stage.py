@@ -85,7 +85,7 @@ class FadesUnseen:
             np.empty(B),
         )
         inputs = (frames.rotations, frames.root, out.rotations, out.root, control, old)
-        _fade_step(*inputs, *self.novelty_arrays, rotations, root, own, fade)
+        _fade_step(*inputs, self.novelty_arrays, rotations, root, own, fade)
         # built, not `replace`d: at batch 1 dataclasses.replace costs as much as the whole kernel
         staged = FrameBatch(root=root, rotations=rotations, contacts=out.contacts, control=out.control, faded=fade)
         return staged, {**new, KEY: own}

@@ -207,37 +207,15 @@ def build_solids(skeleton: Skeleton, axes: dict[str, tuple[str, np.ndarray]]) ->
         top = end + 0.01 * L if end > 0.05 * L else 0.22 * L
         h, bottom = 0.25 * L, top - 0.25 * L
         add("head", j, a, _block((-0.1 * L, 0.1 * L), (bottom, top), (bottom, top), (-0.08 * L, 0.08 * L)), 0)
-        add(
-            "nose",
-            j,
-            a,
-            _block(
-                (0.1 * L, 0.2 * L),
-                (bottom + 0.28 * h, bottom + 0.52 * h),
-                (bottom + 0.3 * h, bottom + 0.38 * h),
-                (-0.025 * L, 0.025 * L),
-            ),
-            0,
-            mark=True,
-        )
+        nose = ((0.1 * L, 0.2 * L), (bottom + 0.28 * h, bottom + 0.52 * h), (bottom + 0.3 * h, bottom + 0.38 * h))
+        add("nose", j, a, _block(*nose, (-0.025 * L, 0.025 * L)), 0, mark=True)
     for tag, side in (("l", 1), ("r", -1)):
         if f"hand_{tag}" in axes and axes[f"hand_{tag}"][0] in names:
             j, a = names.index(axes[f"hand_{tag}"][0]), axes[f"hand_{tag}"][1]
-            add(
-                f"hand_{tag}",
-                j,
-                a,
-                _block((0.0, 0.2 * L), (-0.05 * L, 0.05 * L), (-0.05 * L, 0.05 * L), (-0.018 * L, 0.018 * L)),
-                side,
-            )
-            add(
-                f"thumb_{tag}",
-                j,
-                a,
-                _block((0.02 * L, 0.1 * L), (0.03 * L, 0.07 * L), (0.07 * L, 0.12 * L), (-0.016 * L, 0.016 * L)),
-                side,
-                mark=True,
-            )
+            hand = _block((0.0, 0.2 * L), (-0.05 * L, 0.05 * L), (-0.05 * L, 0.05 * L), (-0.018 * L, 0.018 * L))
+            thumb = _block((0.02 * L, 0.1 * L), (0.03 * L, 0.07 * L), (0.07 * L, 0.12 * L), (-0.016 * L, 0.016 * L))
+            add(f"hand_{tag}", j, a, hand, side)
+            add(f"thumb_{tag}", j, a, thumb, side, mark=True)
         if f"foot_{tag}" in axes and axes[f"foot_{tag}"][0] in names:
             j, a = names.index(axes[f"foot_{tag}"][0]), axes[f"foot_{tag}"][1]
             toe = (
@@ -246,23 +224,13 @@ def build_solids(skeleton: Skeleton, axes: dict[str, tuple[str, np.ndarray]]) ->
             # the toe joint in the foot's part frame (pose-independent: it is the bone's offset)
             d = a.T @ skeleton.offsets[toe] if toe is not None else np.array([0.12 * L, -0.09 * L, 0.0])
             sole = d[1] - 0.05 * L
-            add(
-                f"foot_{tag}",
-                j,
-                a,
-                _block((-0.07 * L, d[0]), (sole, 0.02 * L), (sole, d[1] + 0.035 * L), (-0.05 * L, 0.05 * L)),
-                side,
-            )
+            foot = _block((-0.07 * L, d[0]), (sole, 0.02 * L), (sole, d[1] + 0.035 * L), (-0.05 * L, 0.05 * L))
+            add(f"foot_{tag}", j, a, foot, side)
             if toe is not None:
                 end = _end_length(skeleton, toe)
                 length = end if end > 0.03 * L else 0.08 * L
-                add(
-                    f"toe_{tag}",
-                    toe,
-                    axes[f"toe_{tag}"][1],
-                    _block((0.0, length), (-0.05 * L, 0.035 * L), (-0.05 * L, 0.0), (-0.045 * L, 0.045 * L)),
-                    side,
-                )
+                block = _block((0.0, length), (-0.05 * L, 0.035 * L), (-0.05 * L, 0.0), (-0.045 * L, 0.045 * L))
+                add(f"toe_{tag}", toe, axes[f"toe_{tag}"][1], block, side)
     return tuple(out)
 
 

@@ -368,18 +368,8 @@ class FrameRetargeter:
         source_rotations = self._client_rotations(source_rotations, b)
         hinges = self._state(state, b)
         root, out = np.empty((b, 3)), np.empty_like(source_rotations)
-        kernels.to_source(
-            root_bn,
-            rotations_bn,
-            source_rotations,
-            *self._k_plan,
-            self.scale,
-            self.vertical_offset,
-            hinges,
-            state is None,
-            root,
-            out,
-        )
+        frame = (root_bn, rotations_bn, source_rotations)
+        kernels.to_source(*frame, *self._k_plan, self.scale, self.vertical_offset, hinges, state is None, root, out)
         return root, out
 
     # ----------------------------------------------------------------------- compiled kernels

@@ -74,7 +74,7 @@ def followed_pitch(
         shin = quat_mul(quat_mul(rotations[:, hips], rotations[:, chain[0]]), rotations[:, chain[1]])
         foot = quat_mul(shin, rotations[:, chain[2]])
         turned = quat_mul(quat_inv(shin), quat_mul(quat_exp(axis * turn[:, None]), foot))
-        out[:, chain[2]] = np.where(near[:, None] > 0.0, turned, rotations[:, chain[2]])  # in the air: as it was
+        out[:, chain[2]] = np.where(turn[:, None] > 0.0, turned, rotations[:, chain[2]])  # else as it was
     return out
 
 
