@@ -395,17 +395,33 @@ def _pitched(walk, rotations: np.ndarray, share: float, above: float = 0.0) -> n
     return out
 
 
+def _input_lifts(walk, planter) -> np.ndarray:
+    """(F, 2) how far each of the walk's ankles is above its lower one: where the input's foot is."""
+    at_root = np.zeros((walk.num_frames, 3))
+    ankles = np.stack(
+        [ankle_heights(walk.rotations, at_root, planter.hips, c, planter.offsets) for c in planter.chains], -1
+    )
+    return ankles - ankles.min(-1, keepdims=True)
+
+
 @pytest.mark.parametrize("share", [0.0, 0.5, 1.0])
 def test_a_toe_rises_its_share_of_the_way_to_the_inputs_pitch_and_nothing_else_moves(bn_walk, share):
+    """While the input's foot is down (within PITCH_LOW of its other ankle); while it is up (from
+    PITCH_HIGH) the foot keeps its own pitch: an input on another phase of its step lends none."""
     planter = model_rig_planter(bn_walk.fps)
     hips, chains, offsets = planter.hips, planter.chains, planter.offsets
     turned = _turned_feet(bn_walk, chains)
     out = _pitched(bn_walk, turned, share)
-    for chain in chains:
+    lifts = _input_lifts(bn_walk, planter)
+    for leg, chain in enumerate(chains):
+        down, up = lifts[:, leg] <= feet_kernels.PITCH_LOW, lifts[:, leg] >= feet_kernels.PITCH_HIGH
+        assert down.mean() > 0.3 and up.mean() > 0.1  # a walk: each foot down, then swinging
         before, want = (sole_pitch(r, hips, chain, offsets) for r in (turned, bn_walk.rotations))
         rise = np.maximum(want - before, 0.0)  # a toe only rises toward the input's
-        np.testing.assert_allclose(sole_pitch(out, hips, chain, offsets), before + share * rise, atol=1e-6)
-        assert share == 0.0 or (rise > np.radians(5)).mean() > 0.5  # the toe-down turn is there to undo
+        got = sole_pitch(out, hips, chain, offsets)
+        np.testing.assert_allclose(got[down], (before + share * rise)[down], atol=1e-6)
+        np.testing.assert_array_equal(out[up, chain[2]], turned[up, chain[2]])
+        assert share == 0.0 or (rise[down] > np.radians(5)).mean() > 0.5  # the toe-down turn is there to undo
         heading = [sole_heading(r, hips, chain, offsets) for r in (turned, out)]  # a toed-out foot stays so
         assert np.abs(np.angle(np.exp(1j * (heading[1] - heading[0])))).max() < 1e-5
     feet = chains[:, 2]
@@ -422,7 +438,11 @@ def test_a_foot_in_the_air_keeps_its_pitch(bn_walk, above, moved):
     out = _pitched(bn_walk, turned, 1.0, above)
     share = np.clip((feet_kernels.PITCH_HIGH - above) / (feet_kernels.PITCH_HIGH - feet_kernels.PITCH_LOW), 0, 1)
     assert share == pytest.approx(moved, abs=0.01)
-    for chain in chains:
+    lifts = _input_lifts(bn_walk, planter)
+    for leg, chain in enumerate(chains):
+        down = lifts[:, leg] <= feet_kernels.PITCH_LOW
         before, want = (sole_pitch(r, hips, chain, offsets) for r in (turned, bn_walk.rotations))
         rise = np.maximum(want - before, 0.0)
-        np.testing.assert_allclose(sole_pitch(out, hips, chain, offsets), before + share * rise, atol=1e-6)
+        np.testing.assert_allclose(
+            sole_pitch(out, hips, chain, offsets)[down], (before + share * rise)[down], atol=1e-6
+        )

@@ -118,10 +118,17 @@ def leg_points(rot, hips, chain, offsets, out):
 # --------------------------------------------------------------------------- the feet's pitch
 
 # Share of the way a foot's toe rises to the input's pitch against the ground, whole up to PITCH_LOW
-# above the ankle's floor and none from PITCH_HIGH (rig units, cm on the models' rig): in the air a
-# foot is the method's own (`follow_pitch`; validation, docs/eval/ablation.md).
+# above the ankle's floor and none from PITCH_HIGH (rig units, cm on the models' rig), for the
+# output's foot and the input's alike: in the air, or while the input's foot is, a foot is the
+# method's own (`follow_pitch`; validation, docs/eval/ablation.md).
 PITCH_SHARE = 0.5
 PITCH_LOW, PITCH_HIGH = 3.0, 10.0
+
+
+@njit(cache=True, error_model="numpy")
+def _low(height):
+    """1 up to PITCH_LOW above the floor, 0 from PITCH_HIGH, linear between."""
+    return min(max((PITCH_HIGH - height) / (PITCH_HIGH - PITCH_LOW), 0.0), 1.0)
 
 
 @njit(cache=True, error_model="numpy")
@@ -136,12 +143,17 @@ def follow_pitch(rot_in, out_rot, root, before, planter, share):
     """Each foot of `out_rot` (B, J, 4) near the floor whose toe points lower than the input's
     (`rot_in`) raised in place about the level axis across it, `share` of the way: a heel strikes
     at least as the input's does (a method predicting each joint alone lands a foot flat while the
-    leg swings, and it skids). The sole is the toe bone laid level in the rest pose (the toe bone
-    points straight down at a push-off); its heading, a style's toe-out, stays. `root` (B, 3), the
-    planter's state `before` and parameters (`FootPlanter`) place the ankles over their floors."""
+    leg swings, and it skids); only while the input's foot is down too (an input on another
+    phase of its step lends no pitch). The sole is the toe bone laid level in the rest pose (the
+    toe bone points straight down at a push-off); its heading, a style's toe-out, stays. `root`
+    (B, 3), the planter's state `before` and parameters (`FootPlanter`) place the ankles over
+    their floors; the input's ankle counts as down near its lower ankle."""
     hips, chains, offsets, floors = planter[0], planter[1], planter[2], planter[3]
-    points = np.empty((2, 3))
+    points, ankles_in = np.empty((2, 3)), np.empty(2)
     for b in range(out_rot.shape[0]):
+        for leg in range(2):
+            leg_points(rot_in[b], hips, chains[leg], offsets, points)
+            ankles_in[leg] = points[0, 1]
         for leg in range(2):
             up, low, ft, toe = chains[leg, 0], chains[leg, 1], chains[leg, 2], chains[leg, 3]
             n = math.sqrt(offsets[toe, 0] ** 2 + offsets[toe, 2] ** 2)
@@ -149,8 +161,10 @@ def follow_pitch(rot_in, out_rot, root, before, planter, share):
                 continue
             leg_points(out_rot[b], hips, chains[leg], offsets, points)
             floor = before.floor[b, leg, 0] if before.started[b] else floors[0]
-            height = root[b, 1] + points[0, 1] - floor
-            near = share * min(max((PITCH_HIGH - height) / (PITCH_HIGH - PITCH_LOW), 0.0), 1.0)
+            # both feet near the ground: the output's over its floor, the input's over its lower ankle
+            near = (
+                share * _low(root[b, 1] + points[0, 1] - floor) * _low(ankles_in[leg] - min(ankles_in[0], ankles_in[1]))
+            )
             if near <= 0.0:
                 continue
             sole = (offsets[toe, 0] / n, 0.0, offsets[toe, 2] / n)

@@ -60,11 +60,14 @@ def followed_pitch(
 ) -> np.ndarray:
     """(F, J, 4) `rotations` with each foot whose sole points lower than the input's raised about
     the level axis across it, up to `share` of the way to the input's elevation: all of it where
-    the ankle is at most PITCH_LOW over its `floor` (F, 2), none from PITCH_HIGH."""
-    out = rotations.copy()
+    the ankle is at most PITCH_LOW over its `floor` (F, 2) and the input's over its lower ankle,
+    none from PITCH_HIGH."""
+    out, low = rotations.copy(), lambda h: np.clip((PITCH_HIGH - h) / (PITCH_HIGH - PITCH_LOW), 0.0, 1.0)
+    at_root = np.zeros((len(rot_in), 3))
+    ankles_in = np.stack([ankle_heights(rot_in, at_root, hips, chain, offsets) for chain in chains], -1)
     for leg, chain in enumerate(chains):
         height = ankle_heights(rotations, root, hips, chain, offsets) - floor[:, leg]
-        near = share * np.clip((PITCH_HIGH - height) / (PITCH_HIGH - PITCH_LOW), 0.0, 1.0)
+        near = share * low(height) * low(ankles_in[:, leg] - ankles_in.min(-1))
         v = _sole(rotations, hips, chain, offsets)
         axis = np.stack([-v[:, 2], np.zeros(len(v)), v[:, 0]], -1)  # v x up
         axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
