@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from .quaternion import add3, axis_angle, between, cross, dot3, qinv, qmul, qrot, row3, row4, sub3
+from .quaternion import add3, axis_angle, between, cross, dot3, qinv, qmul, qrot, qunit, row3, row4, sub3
 
 
 class Feet(NamedTuple):
@@ -149,10 +149,12 @@ def follow_pitch(rot_in, out_rot, root, before, planter, share):
     (B, 3), the planter's state `before` and parameters (`FootPlanter`) place the ankles over
     their floors; the input's ankle counts as down near its lower ankle."""
     hips, chains, offsets, floors = planter[0], planter[1], planter[2], planter[3]
-    points, ankles_in = np.empty((2, 3)), np.empty(2)
+    points, ankles_in, unit_in = np.empty((2, 3)), np.empty(2), np.empty((rot_in.shape[1], 4))
     for b in range(out_rot.shape[0]):
+        for j in range(rot_in.shape[1]):  # a client's rotations need not be unit
+            unit_in[j, 0], unit_in[j, 1], unit_in[j, 2], unit_in[j, 3] = qunit(row4(rot_in[b], j))
         for leg in range(2):
-            leg_points(rot_in[b], hips, chains[leg], offsets, points)
+            leg_points(unit_in, hips, chains[leg], offsets, points)
             ankles_in[leg] = points[0, 1]
         for leg in range(2):
             up, low, ft, toe = chains[leg, 0], chains[leg, 1], chains[leg, 2], chains[leg, 3]
@@ -162,16 +164,15 @@ def follow_pitch(rot_in, out_rot, root, before, planter, share):
             leg_points(out_rot[b], hips, chains[leg], offsets, points)
             floor = before.floor[b, leg, 0] if before.started[b] else floors[0]
             # both feet near the ground: the output's over its floor, the input's over its lower ankle
-            near = (
-                share * _low(root[b, 1] + points[0, 1] - floor) * _low(ankles_in[leg] - min(ankles_in[0], ankles_in[1]))
-            )
+            lift_in = ankles_in[leg] - min(ankles_in[0], ankles_in[1])
+            near = share * _low(root[b, 1] + points[0, 1] - floor) * _low(lift_in)
             if near <= 0.0:
                 continue
             sole = (offsets[toe, 0] / n, 0.0, offsets[toe, 2] / n)
-            shin_in = qmul(qmul(row4(rot_in[b], hips), row4(rot_in[b], up)), row4(rot_in[b], low))
+            shin_in = qmul(qmul(row4(unit_in, hips), row4(unit_in, up)), row4(unit_in, low))
             shin = qmul(qmul(row4(out_rot[b], hips), row4(out_rot[b], up)), row4(out_rot[b], low))
             foot = qmul(shin, row4(out_rot[b], ft))
-            want, _ = _elevation(qmul(shin_in, row4(rot_in[b], ft)), sole)
+            want, _ = _elevation(qmul(shin_in, row4(unit_in, ft)), sole)
             have, v = _elevation(foot, sole)
             level = math.sqrt(v[0] * v[0] + v[2] * v[2])
             if want <= have or level < 1e-6:  # the toe as high as the input's, or the sole upright

@@ -66,9 +66,9 @@ def fade_step(rot_in, root_in, rot_out, root_out, control, state, reference, out
     """One frame for B sessions: the input (rot_in, root_in) and the method's output (rot_out, root_out),
     control (a controller tick has no pose to keep), state and the packed `reference`
     (`NoveltyReference.arrays`); writes out_rot, out_root, the new state `new` and fades `faded`
-    into arrays the caller allocates. The root mixes
-    the method's step and the input's by the lower body's weight (a fade never glides between paths),
-    raised where the lowest foot would sink below the input's."""
+    into arrays the caller allocates. The root mixes the method's step and the input's by the
+    lower body's weight (a fade never glides between paths), raised where the lowest foot would
+    sink below the input's."""
     table, anchors_starts, floats, bones, centres = reference
     B, J = rot_in.shape[0], rot_in.shape[1]
     P = anchors_starts.shape[0] // 2

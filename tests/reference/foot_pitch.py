@@ -63,7 +63,7 @@ def followed_pitch(
     the ankle is at most PITCH_LOW over its `floor` (F, 2) and the input's over its lower ankle,
     none from PITCH_HIGH."""
     out, low = rotations.copy(), lambda h: np.clip((PITCH_HIGH - h) / (PITCH_HIGH - PITCH_LOW), 0.0, 1.0)
-    at_root = np.zeros((len(rot_in), 3))
+    at_root, rot_in = np.zeros((len(rot_in), 3)), rot_in / np.linalg.norm(rot_in, axis=-1, keepdims=True)
     ankles_in = np.stack([ankle_heights(rot_in, at_root, hips, chain, offsets) for chain in chains], -1)
     for leg, chain in enumerate(chains):
         height = ankle_heights(rotations, root, hips, chain, offsets) - floor[:, leg]
