@@ -26,7 +26,7 @@ from ..motion.style_carry import StyleCarry
 from ..stages import Pipeline
 from .dataset import DATASET, TARGET_STYLES
 from .features import FeatureMaker
-from .slow_carry import SlowPrior
+from .slow_carry import GAITS, SlowPrior
 from .stages import stacked
 from .twist_range import TwistRange
 from .upload_stages import SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
@@ -52,7 +52,7 @@ class Upload:
         arrays |= {"h0": self.h0, "c0": self.c0, "code": self.code, "nearest": np.array(self.nearest)}
         for key, stage in self.stages.items():
             if isinstance(stage, SlowPrior):
-                for name, carry in ((key, stage.carry), (f"run_{key}", stage.run), (f"stand_{key}", stage.stand)):
+                for name, carry in ((key, stage.carry), *((g + key, stage.gait(g)) for g in GAITS)):
                     if carry is not None:
                         arrays |= carry.named(f"{name}.")
                 if stage.fast is not None:
