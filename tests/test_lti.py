@@ -285,6 +285,26 @@ def test_step_leaves_its_input_state_unchanged():
     assert not state["x.elderly"][1].any()  # an inactive style rests at x = 0
 
 
+def test_read_only_inputs_and_a_style_weighted_in_step_on_the_compiled_kernel():
+    """numba compiles a kernel again for read-only arrays (~50 s in which no session gets a
+    frame): a broadcast weight row, or a style weighted in from its read-only rest state, must
+    step on the kernel already compiled."""
+    from models.lti import kernels
+
+    model = _model()
+    index, load_motion, select = _data()
+    m = load_motion(select(index, style="normal", content="walk", split="val")[0])
+    frame = FrameBatch(m.translations[:1, rep.HIPS], m.rotations[:1])
+    first, second = model.styles()[:2]
+    state = model.step_batch(model.init_state(1), frame, _one_hot(model, first, 1))[1]
+    compiled = len(kernels.step.signatures)
+    read_only = np.broadcast_to(_one_hot(model, second, 1)[0], (1, len(model.styles())))
+    assert not read_only.flags.writeable and not state[f"x.{second}"].flags.writeable
+    out, state = model.step_batch(state, frame, read_only)  # the second style weighted in from rest
+    assert len(kernels.step.signatures) == compiled
+    assert np.isfinite(out.rotations).all() and state[f"x.{second}"].any()
+
+
 def test_bad_shapes_and_stale_states_are_clear_errors():
     """The compiled step has no bounds checks: shapes are checked before it runs."""
     model = _model()

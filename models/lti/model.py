@@ -63,6 +63,18 @@ WAVE_MEANS = 32  # carry columns of the removed waving arm's running means (inpu
 COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, finds the styles in use (`_side_by_side`)
 
 
+def _is_kernel_array(a: np.ndarray) -> bool:
+    """Whether the compiled step takes `a` as it is. A read-only array (a broadcast, the rest
+    state of a style weighted in) is another type to numba, which would compile the whole step
+    again for it: ~50 s of a core, in which no session on the server gets a frame."""
+    return type(a) is np.ndarray and a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable
+
+
+def _writable(a: np.ndarray) -> np.ndarray:
+    """`a` as the compiled step takes it (`_is_kernel_array`), copied only where it is not."""
+    return a if _is_kernel_array(a) else np.array(a, dtype=np.float64, order="C")
+
+
 @dataclass
 class StyleTranslator:
     style: str
@@ -398,7 +410,7 @@ class LTIStyleModel(LTIStyles):
     @staticmethod
     def _side_by_side(xs: list[np.ndarray], used: list[int], held: _Scratch) -> tuple[np.ndarray, np.ndarray]:
         """The states of the styles in `used` side by side, and where each sits (-1: not in use)."""
-        if len(used) == 1 and xs[used[0]].flags.c_contiguous and xs[used[0]].dtype == np.float64:
+        if len(used) == 1 and _is_kernel_array(xs[used[0]]):  # the rest state of a style weighted in is not
             return xs[used[0]], held.alone[used[0]]
         x_at, width = np.full(len(xs), -1, np.int64), 0
         for s in used:
@@ -454,9 +466,7 @@ class LTIStyleModel(LTIStyles):
         style_weights: np.ndarray,
         fading: tuple[str, tuple] | None,
     ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
-        root = np.ascontiguousarray(frames.root, dtype=np.float64)
-        rotations = np.ascontiguousarray(frames.rotations, dtype=np.float64)
-        w = np.ascontiguousarray(style_weights, dtype=np.float64)
+        root, rotations, w = _writable(frames.root), _writable(frames.rotations), _writable(style_weights)
         styles, x_keys, constants = self._set.styles, self._set.x_keys, self._set.constants
         B = len(root)
         # the kernel trusts every shape (no bounds checks): anything else is a clear error here
@@ -469,7 +479,7 @@ class LTIStyleModel(LTIStyles):
             raise ValueError(f"style_weights must be ({B}, {len(styles)}), got {w.shape}")
         held = self._workspace(B)
         try:
-            carry, xs = np.ascontiguousarray(state[CARRY], dtype=np.float64), [state[key] for key in x_keys]
+            carry, xs = _writable(state[CARRY]), [state[key] for key in x_keys]
         except KeyError:
             carry, xs = np.empty(0), []
         if carry.shape != (B, kernels.CARRY_WIDTH) or [a.shape for a in xs] != held.x_shapes:
@@ -487,8 +497,8 @@ class LTIStyleModel(LTIStyles):
             kernels.step(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work))
         else:
             key, reference = fading
-            control = _NO_CONTROL if frames.control is None else np.ascontiguousarray(frames.control, np.float64)
-            old = state[key]
+            control = _NO_CONTROL if frames.control is None else _writable(frames.control)
+            old = _writable(state[key])
             if old.shape[0] != B:
                 raise ValueError(f"state[{key!r}] must hold {B} rows, got {old.shape}")
             new[key], out.faded = np.empty(old.shape), np.empty(B)
