@@ -4,11 +4,13 @@ archives unpacked, each part in its own process, all at once.
     .venv/bin/python -m tests.warm erd      # one part (what `pytest_configure` in conftest.py runs)
 
 numba keys its on-disk cache on each source file's time stamp, so on a fresh clone every kernel is
-compiled on first use: about 40 s of CPU for the three models and the service (Style-ERD 19 s,
-LPN-FiLM 12, LTI 9, the service's frame check and retargeting 2). The workers start together, so
-each compiled them all, as did every server process a test started before the cache was written,
-and a worker that needed the data waited on the archives' unpack lock (14 s). Done here first, in
-parallel processes (on two cores about 25 s), the workers and servers load the compiled kernels."""
+compiled on first use: about 150 s of CPU for the three models and the service (LTI 75 s, its
+step with and without the fade; the service's retargeting 39, Style-ERD 18, LPN-FiLM 16; measured
+on 2026-12-01). The workers start together, so each compiled them all, as did every server process
+a test started before the cache was written, and a worker that needed the data waited on the
+archives' unpack lock (14 s). Done here first, in parallel processes (on two cores about 80 s, LTI's
+the longest), the workers and servers load the compiled kernels. A test that passes other array
+types (read-only, float32, strided) still compiles those itself."""
 
 from __future__ import annotations
 

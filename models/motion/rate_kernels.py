@@ -14,14 +14,23 @@ from .quaternion import qdot, qneg, quat_at, qunit
 
 
 @njit(cache=True)
+def _copy_row(root, rot, out_root, out_rot):
+    """Element by element: an array assignment would compile numpy's broadcasting (seconds)."""
+    for c in range(3):
+        out_root[c] = root[c]
+    for j in range(rot.shape[0]):
+        for c in range(4):
+            out_rot[j, c] = rot[j, c]
+
+
+@njit(cache=True)
 def interpolate_rows(roots, rotations, u, out_root, out_rot):
     """`rate.interpolate` into out_root, out_rot; u == 1 copies the latest output."""
     n, num_joints = rotations.shape[0], rotations.shape[2]
     for i in range(n):
         x = u[i]
         if x >= 1.0:
-            out_root[i] = roots[i, 2]
-            out_rot[i] = rotations[i, 2]
+            _copy_row(roots[i, 2], rotations[i, 2], out_root[i], out_rot[i])
             continue
         before, now, after = x * (x - 1.0) / 2.0, 1.0 - x * x, x * (x + 1.0) / 2.0
         for c in range(3):
@@ -52,13 +61,8 @@ def blend_rows(root0, rot0, root1, rot1, w, out_root, out_rot):
     n, num_joints = rot1.shape[0], rot1.shape[1]
     for i in range(n):
         t = w[i]
-        if t >= 1.0:
-            out_root[i] = root1[i]
-            out_rot[i] = rot1[i]
-            continue
-        if t <= 0.0:
-            out_root[i] = root0[i]
-            out_rot[i] = rot0[i]
+        if t >= 1.0 or t <= 0.0:
+            _copy_row(root1[i] if t >= 1.0 else root0[i], rot1[i] if t >= 1.0 else rot0[i], out_root[i], out_rot[i])
             continue
         for c in range(3):
             out_root[i, c] = root0[i, c] + t * (root1[i, c] - root0[i, c])

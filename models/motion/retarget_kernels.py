@@ -445,8 +445,9 @@ def _part33(buf, at, i):
 
 
 @njit(cache=True, error_model="numpy")
-def _to_model(root, rot, rig, scale, vertical_offset, hinges, hips_out, rot_out):
-    """Client frames -> BN Hips translations and rotations (`FrameRetargeter.to_model`)."""
+def _to_model(root, rot, rig, scale, vertical_offset, hinges, fold, hips_out, rot_out):
+    """Client frames -> BN Hips translations and rotations (`FrameRetargeter.to_model`). `fold` is a
+    bool the caller passes (always True): a literal True would compile `_bn_globals` a second time."""
     nb, base = rig.bn_parents.shape[0], rig.num_plain + 2 * rig.lateral_j.shape[0]
     nv = base + rig.drop_par.shape[0]
     gs = np.empty((rig.src_order.shape[0], 3, 3))
@@ -465,7 +466,7 @@ def _to_model(root, rot, rig, scale, vertical_offset, hinges, hips_out, rot_out)
         for r in range(3):
             hips_out[f, r] = h[r] * scale
         hips_out[f, 1] += vertical_offset
-        _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3, hinges[f if hinges.shape[0] > 1 else 0], True)
+        _bn_globals(gs, rig, gb, terms, raw, vec, w33, w3, hinges[f if hinges.shape[0] > 1 else 0], fold)
         low = np.inf  # the client's lowest foot point below its hips (`FrameRetargeter._drop`)
         for v in range(base, nv):
             low = min(low, vec[v, 1] - rig.drop_ref[0, v - base])
@@ -592,9 +593,10 @@ def _rig(ints, int_at, floats, float_at):
 
 
 @njit(cache=True, error_model="numpy")
-def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, hinges, hips_out, rot_out):
+def to_model(root, rot, ints, int_at, floats, float_at, scale, vertical_offset, hinges, fold, hips_out, rot_out):
     """`_to_model` with the rig's arrays packed (`pack`)."""
-    _to_model(root, rot, _rig(ints, int_at, floats, float_at), scale, vertical_offset, hinges, hips_out, rot_out)
+    rig = _rig(ints, int_at, floats, float_at)
+    _to_model(root, rot, rig, scale, vertical_offset, hinges, fold, hips_out, rot_out)
 
 
 @njit(cache=True, error_model="numpy")

@@ -346,7 +346,7 @@ class FrameRetargeter:
         rotations = self._client_rotations(rotations, b)
         hinges = self._state(state, b)
         hips, out = np.empty((b, 3)), np.empty((b, self._bn_parents.shape[0], 4))
-        kernels.to_model(root, rotations, *self._k_plan, self.scale, self.vertical_offset, hinges, hips, out)
+        kernels.to_model(root, rotations, *self._k_plan, self.scale, self.vertical_offset, hinges, True, hips, out)
         return hips, out
 
     def to_source(
