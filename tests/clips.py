@@ -30,7 +30,8 @@ def stylise_stream(model, motion: Motion, weights: np.ndarray, **labels: str | N
     """`motion` streamed through `model` in one fresh session (`labels`: its `init_state`'s), one
     frame per `step_batch`; `weights` (S,) or per frame (T, S)."""
     state, roots, rots = model.init_state(1, **labels), [], []
-    w = np.broadcast_to(np.asarray(weights, np.float64), (motion.num_frames, np.shape(weights)[-1]))
+    # writable rows, as the service sends: a read-only broadcast row would compile kernels anew
+    w = np.array(np.broadcast_to(np.asarray(weights, np.float64), (motion.num_frames, np.shape(weights)[-1])))
     for t in range(motion.num_frames):
         frame = FrameBatch(motion.translations[t : t + 1, 1], motion.rotations[t : t + 1])
         o, state = model.step_batch(state, frame, w[t][None])
