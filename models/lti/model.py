@@ -67,12 +67,18 @@ def _is_kernel_array(a: np.ndarray) -> bool:
     """Whether the compiled step takes `a` as it is. A read-only array (a broadcast, the rest
     state of a style weighted in) is another type to numba, which would compile the whole step
     again for it: ~50 s of a core, in which no session on the server gets a frame."""
-    return type(a) is np.ndarray and a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable
+    flags = a.flags  # read once: each read builds the flags object (the step runs at batch 1 too)
+    return flags.writeable and flags.c_contiguous and a.dtype == np.float64
 
 
 def _writable(a: np.ndarray) -> np.ndarray:
     """`a` as the compiled step takes it (`_is_kernel_array`), copied only where it is not."""
-    return a if _is_kernel_array(a) else np.array(a, dtype=np.float64, order="C")
+    try:
+        if _is_kernel_array(a):
+            return a
+    except AttributeError:  # not an array (a list of weights)
+        pass
+    return np.array(a, dtype=np.float64, order="C")
 
 
 @dataclass
