@@ -12,9 +12,10 @@ G: the map with gains capped at 1; run and stand priors take over by gait share 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
@@ -37,6 +38,19 @@ GAITS = ("run_", "stand_")
 def gait_file(path: Path, gait: str) -> Path:
     """Where the `gait` prior (`GAITS`) of the prior in `path` is kept."""
     return path.with_name(f"{path.stem}_{gait.rstrip('_')}{path.suffix}")
+
+
+class Gaits(TypedDict):
+    """A `SlowPrior`'s gait fields, as keyword arguments."""
+
+    run: StyleCarry | None
+    stand: StyleCarry | None
+
+
+def by_gait(carry_of: Callable[[str], StyleCarry | None]) -> Gaits:
+    """A `SlowPrior`'s gait fields, each `carry_of` its rows' prefix: the one place a prefix of
+    `GAITS` meets its field."""
+    return Gaits(run=carry_of(GAITS[0]), stand=carry_of(GAITS[1]))
 
 
 def merged(carry: StyleCarry, at: Sequence[int], other: StyleCarry) -> StyleCarry:
@@ -108,8 +122,8 @@ class SlowPrior:
     @classmethod
     def load(cls, path: Path, hips: int = -1) -> SlowPrior:
         """The prior in `path` (fitted for every target style), its gaits' priors beside it if there."""
-        gaits = {g: StyleCarry.load(f) if (f := gait_file(path, g)).exists() else None for g in GAITS}
-        return cls(TARGET_STYLES, StyleCarry.load(path), gaits["run_"], hips, stand=gaits["stand_"])
+        gaits = by_gait(lambda g: StyleCarry.load(f) if (f := gait_file(path, g)).exists() else None)
+        return cls(TARGET_STYLES, StyleCarry.load(path), hips=hips, **gaits)
 
     def stacked(self, others: Sequence[tuple[str, SlowPrior]]) -> SlowPrior:
         """This prior with each of `others` (name, one style's prior) as one more style."""
@@ -125,7 +139,7 @@ class SlowPrior:
             else np.concatenate([self.gains, *(o.gains for _, o in others)])
         )
         styles = self.styles + tuple(n for n, _ in others)
-        return replace(self, styles=styles, carry=carry, run=gait(GAITS[0]), stand=gait(GAITS[1]), fast=fast)
+        return replace(self, styles=styles, carry=carry, fast=fast, **by_gait(gait))
 
     def with_styles_of(self, other: SlowPrior) -> SlowPrior:
         at = [self.styles.index(s) for s in other.styles]
@@ -134,6 +148,4 @@ class SlowPrior:
             own, theirs = self.gait(g), other.gait(g)
             return None if own is None or theirs is None else merged(own, at, theirs)
 
-        return replace(
-            self, carry=merged(self.carry, at, other.carry), run=gait(GAITS[0]), stand=gait(GAITS[1]), fast=None
-        )
+        return replace(self, carry=merged(self.carry, at, other.carry), fast=None, **by_gait(gait))

@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import threading
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
@@ -26,7 +27,7 @@ from ..motion.style_carry import StyleCarry
 from ..stages import Pipeline
 from .dataset import DATASET, TARGET_STYLES
 from .features import FeatureMaker
-from .slow_carry import GAITS, SlowPrior
+from .slow_carry import GAITS, SlowPrior, by_gait
 from .stages import stacked
 from .twist_range import TwistRange
 from .upload_stages import SOURCES_FILE, Sources, clip_rotations, fit_stages, nearest_style
@@ -68,14 +69,15 @@ class Upload:
         with np.load(path) as z:
             a = {k: z[k] for k in z.files}
 
-        def carry(key: str) -> StyleCarry | None:
-            return StyleCarry.read(a, f"{key}.") if f"{key}.source" in a else None
+        def carry(key: str, gait: str = "") -> StyleCarry | None:
+            """The carry saved under `key`, or its `gait`'s (a prefix of `GAITS`)."""
+            return StyleCarry.read(a, f"{gait}{key}.") if f"{gait}{key}.source" in a else None
 
         stages: dict[str, Any] = {}
         for key, hips in (("leaf_prior", -1), ("output_prior", HIPS)):
             if (walk := carry(key)) is not None:
                 fast = a.get(f"{key}.fast")
-                stages[key] = SlowPrior((name,), walk, carry(f"run_{key}"), hips, fast, carry(f"stand_{key}"))
+                stages[key] = SlowPrior((name,), walk, hips=hips, fast=fast, **by_gait(partial(carry, key)))
         if twist_joints is not None and "twist.mean" in a:
             stages["twist_range"] = TwistRange(
                 twist_joints.joints, twist_joints.axes, a["twist.mean"], a["twist.lo"], a["twist.hi"], (name,)
