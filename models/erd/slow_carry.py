@@ -40,9 +40,7 @@ def gait_file(path: Path, gait: str) -> Path:
     return path.with_name(f"{path.stem}_{gait.rstrip('_')}{path.suffix}")
 
 
-class Gaits(TypedDict):
-    """A `SlowPrior`'s gait fields, as keyword arguments."""
-
+class Gaits(TypedDict):  # a SlowPrior's gait fields, as keyword arguments
     run: StyleCarry | None
     stand: StyleCarry | None
 

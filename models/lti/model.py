@@ -73,12 +73,7 @@ def _is_kernel_array(a: np.ndarray) -> bool:
 
 def _writable(a: np.ndarray) -> np.ndarray:
     """`a` as the compiled step takes it (`_is_kernel_array`), copied only where it is not."""
-    try:
-        if _is_kernel_array(a):
-            return a
-    except AttributeError:  # not an array (a list of weights)
-        pass
-    return np.array(a, dtype=np.float64, order="C")
+    return a if isinstance(a, np.ndarray) and _is_kernel_array(a) else np.array(a, dtype=np.float64, order="C")
 
 
 @dataclass
