@@ -271,22 +271,9 @@ def identify(
     A, B, C, D = (m.astype(np.float32).astype(np.float64) for m in (A, B, C, D))
     orders = np.array([s.order for s in systems])
     tr = StyleTranslator(
-        style,
-        A,
-        B,
-        C,
-        D,
-        in_mean,
-        in_std,
-        out_mean,
-        out_std,
-        U_n.min(0),
-        U_n.max(0),
-        orders,
-        cfg["k_p"],
-        cfg["k_c"],
+        style, A, B, C, D, in_mean, in_std, out_mean, out_std, U_n.min(0), U_n.max(0), orders, cfg["k_p"], cfg["k_c"],
         ref=ref,
-    )
+    )  # fmt: skip
     states = np.concatenate([tr.translate_features(d.u, blend=False)[1] for d in data])
     tr.footplant = FootplantClassifier.fit(states, np.concatenate([d.contacts for d in data]))
     return tr, systems

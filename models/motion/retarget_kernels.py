@@ -557,39 +557,18 @@ def _to_source(root_bn, rot_bn, src_rot, rig, scale, vertical_offset, hinges, fo
 @njit(cache=True, error_model="numpy")
 def _rig(ints, int_at, floats, float_at):
     """The rig's arrays as a `Rig`, views of the packed buffers (`pack`, `INT_PARTS`, `FLOAT_PARTS`)."""
+    i, ia, f, fa = ints, int_at, floats, float_at
     return Rig(
-        _part(ints, int_at, 0),
-        _part(ints, int_at, 1),
-        _part(ints, int_at, 2),
-        _part3(floats, float_at, 0),
-        ints[int_at[3]],
-        _part(ints, int_at, 4),
-        _part3(floats, float_at, 1),
-        _part(ints, int_at, 5).reshape(-1, 2),
-        _part(floats, float_at, 2),
-        _part33(floats, float_at, 3)[0],
-        ints[int_at[6]],
-        _part33(floats, float_at, 4),
-        _part(ints, int_at, 7),
-        _part(ints, int_at, 8).reshape(-1, 8),
-        _part33(floats, float_at, 5),
-        _part3(floats, float_at, 6),
-        _part3(floats, float_at, 7),
-        _part33(floats, float_at, 8),
-        _part33(floats, float_at, 10),
-        _part(ints, int_at, 9),
-        _part(floats, float_at, 9).reshape(-1, 4),
-        _part(ints, int_at, 10),
-        _part(ints, int_at, 11),
-        _part(ints, int_at, 12),
-        _part(ints, int_at, 13),
-        _part(ints, int_at, 14),
-        _part(ints, int_at, 15),
-        _part(ints, int_at, 16).reshape(-1, 4),
-        _part(floats, float_at, 11).reshape(-1, 4, 3),
-        _part(floats, float_at, 12).reshape(2, -1),
-        _part(floats, float_at, 13),
-    )
+        _part(i, ia, 0), _part(i, ia, 1), _part(i, ia, 2), _part3(f, fa, 0), i[ia[3]],  # slots, the hips' chain
+        _part(i, ia, 4), _part3(f, fa, 1), _part(i, ia, 5).reshape(-1, 2), _part(f, fa, 2),  # segment terms
+        _part33(f, fa, 3)[0], i[ia[6]], _part33(f, fa, 4), _part(i, ia, 7),  # axes, two-vector joints
+        _part(i, ia, 8).reshape(-1, 8), _part33(f, fa, 5), _part3(f, fa, 6), _part3(f, fa, 7),  # other joints' steps
+        _part33(f, fa, 8), _part33(f, fa, 10),
+        _part(i, ia, 9), _part(f, fa, 9).reshape(-1, 4), _part(i, ia, 10), _part(i, ia, 11),  # BN joints
+        _part(i, ia, 12), _part(i, ia, 13), _part(i, ia, 14), _part(i, ia, 15),  # slots' BN joint, mapped joints
+        _part(i, ia, 16).reshape(-1, 4), _part(f, fa, 11).reshape(-1, 4, 3), _part(f, fa, 12).reshape(2, -1),  # feet
+        _part(f, fa, 13),  # the limbs' reach
+    )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy")
