@@ -151,7 +151,8 @@ def follow_pitch(rot_in, out_rot, root, before, planter, share):
     hips, chains, offsets, floors = planter[0], planter[1], planter[2], planter[3]
     points, ankles_in, unit_in = np.empty((2, 3)), np.empty(2), np.empty((rot_in.shape[1], 4))
     for b in range(out_rot.shape[0]):
-        for j in range(rot_in.shape[1]):  # a client's rotations need not be unit
+        # the rows read below (the hips, each leg's hip joint, knee and ankle) made unit: a client's need not be
+        for j in (hips, chains[0, 0], chains[0, 1], chains[0, 2], chains[1, 0], chains[1, 1], chains[1, 2]):
             unit_in[j, 0], unit_in[j, 1], unit_in[j, 2], unit_in[j, 3] = qunit(row4(rot_in[b], j))
         for leg in range(2):
             leg_points(unit_in, hips, chains[leg], offsets, points)
