@@ -118,7 +118,7 @@ def save_npz(path: str | os.PathLike, **arrays: np.ndarray | float) -> None:
     `np.savez_compressed` copies each array whole (`tobytes`) before compressing, and zlib held it
     in some pieces too. Saving a 9,000-frame clip on a thread made the event loop late by 2.2-5.8
     ms per save that way; stored in pieces, 47 of 48 saves stayed at the loop's idle timer floor
-    (~0.9 ms; `out/s14/savehold.py`, scratch). The clip file is larger for it (~6 MB at most)."""
+    (~0.9 ms). The clip file is larger for it (~6 MB at most)."""
     with zipfile.ZipFile(path, "w", zipfile.ZIP_STORED) as archive:
         for name, value in arrays.items():
             array = np.asarray(value)

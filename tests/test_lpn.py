@@ -314,7 +314,7 @@ def test_a_long_clips_style_features_in_blocks_equal_them_in_one_go(bn_walk):
 
 
 def test_a_normalised_film_generator_keeps_telling_clips_apart_when_its_units_drift_negative():
-    """The failure `LPNConfig.film_norm` prevents (MODEL_CARD, session 17): once the second
+    """The failure `LPNConfig.film_norm` prevents (the LPN-FiLM model card): once the second
     convolution's outputs all sit below zero, ELU passes -1 for every clip and every style gets the
     same FiLM vector."""
     import torch

@@ -45,7 +45,7 @@ def test_streamed_output_stays_inside_the_ball(model, walk):
         loose, _ = bare.run(walk, bare.weight_vector({style: 1.0}))
         left.append((_beyond(model, loose, style) > 0).mean())
     # the network alone does leave the ball (feminine: its shoulders, masculine: its spine; the
-    # spine flips that took exhausted out of it are re-split since session 22, `_untwist`)
+    # spine flips that took exhausted out of it are re-split, `_untwist`)
     assert max(left) > 0.01
 
 
