@@ -18,7 +18,7 @@ streams a clip offline; `tests/reference/lti_offline.py` is the numpy reference.
 from __future__ import annotations
 
 import threading
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import NamedTuple
@@ -64,16 +64,17 @@ COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, fin
 
 
 def _is_kernel_array(a: np.ndarray) -> bool:
-    """Whether the compiled step takes `a` as it is. A read-only array (a broadcast, the rest
-    state of a style weighted in) is another type to numba, which would compile the whole step
-    again for it: ~50 s of a core, in which no session on the server gets a frame."""
-    flags = a.flags  # read once: each read builds the flags object (the step runs at batch 1 too)
+    """Whether the compiled step takes `a` as it is: writable, C-contiguous float64."""
+    flags = a.flags  # read once: each read builds the flags object
     return flags.writeable and flags.c_contiguous and a.dtype == np.float64
 
 
 def _writable(a: np.ndarray) -> np.ndarray:
     """`a` as the compiled step takes it (`_is_kernel_array`), copied only where it is not."""
     return a if isinstance(a, np.ndarray) and _is_kernel_array(a) else np.array(a, dtype=np.float64, order="C")
+
+
+_LOCKED: set = set()  # the step kernels compiled once and no more (`LTIStyleModel._step`)
 
 
 @dataclass
@@ -409,9 +410,13 @@ class LTIStyleModel(LTIStyles):
         return [s for s, top in enumerate(w.max(axis=0).tolist()) if top > 0.0]
 
     @staticmethod
-    def _side_by_side(xs: list[np.ndarray], used: list[int], held: _Scratch) -> tuple[np.ndarray, np.ndarray]:
-        """The states of the styles in `used` side by side, and where each sits (-1: not in use)."""
-        if len(used) == 1 and _is_kernel_array(xs[used[0]]):  # the rest state of a style weighted in is not
+    def _side_by_side(
+        xs: list[np.ndarray], used: list[int], held: _Scratch, ready: bool
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The states of the styles in `used` side by side, and where each sits (-1: not in use);
+        `ready`: one style's state is passed as it is only if the kernel takes it (the read-only
+        rest state of a style weighted in is copied)."""
+        if len(used) == 1 and (not ready or _is_kernel_array(xs[used[0]])):
             return xs[used[0]], held.alone[used[0]]
         x_at, width = np.full(len(xs), -1, np.int64), 0
         for s in used:
@@ -467,7 +472,35 @@ class LTIStyleModel(LTIStyles):
         style_weights: np.ndarray,
         fading: tuple[str, tuple] | None,
     ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
-        root, rotations, w = _writable(frames.root), _writable(frames.rotations), _writable(style_weights)
+        """The compiled step on the arrays as they come. numba compiles a kernel again for any other
+        array type (read-only, strided, float32): ~50 s of a core in which no session on the server
+        gets a frame. So the first call copies what the kernel would not take (`_writable`) and
+        then bars the kernel from compiling; a later call it has no signature for (a TypeError
+        before it runs) is made again on copies. The usual call checks nothing (~2 us at batch 1)."""
+        kernel = kernels.step if fading is None else kernels.step_fading
+        if kernel in _LOCKED:
+            try:
+                return self._step_on(kernel, state, frames, style_weights, fading, ready=False)
+            except (TypeError, AttributeError):  # not the kernel's array types (or not arrays)
+                pass
+        out = self._step_on(kernel, state, frames, style_weights, fading, ready=True)
+        kernel.disable_compile()
+        _LOCKED.add(kernel)
+        return out
+
+    def _step_on(
+        self,
+        kernel: Callable[..., None],
+        state: dict[str, np.ndarray],
+        frames: FrameBatch,
+        style_weights: np.ndarray,
+        fading: tuple[str, tuple] | None,
+        ready: bool,
+    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
+        """`_step` with the inputs as they are, or (`ready`) made what the kernel takes."""
+        root, rotations, w = frames.root, frames.rotations, style_weights
+        if ready:
+            root, rotations, w = _writable(root), _writable(rotations), _writable(w)
         styles, x_keys, constants = self._set.styles, self._set.x_keys, self._set.constants
         B = len(root)
         # the kernel trusts every shape (no bounds checks): anything else is a clear error here
@@ -480,7 +513,7 @@ class LTIStyleModel(LTIStyles):
             raise ValueError(f"style_weights must be ({B}, {len(styles)}), got {w.shape}")
         held = self._workspace(B)
         try:
-            carry, xs = _writable(state[CARRY]), [state[key] for key in x_keys]
+            carry, xs = state[CARRY], [state[key] for key in x_keys]
         except KeyError:
             carry, xs = np.empty(0), []
         if carry.shape != (B, kernels.CARRY_WIDTH) or [a.shape for a in xs] != held.x_shapes:
@@ -488,23 +521,27 @@ class LTIStyleModel(LTIStyles):
                 f"state must hold {CARRY} ({B}, {kernels.CARRY_WIDTH}) and each style's x for this style set: "
                 "bring an older state to it with upgrade_state(state)"
             )
+        if ready:
+            carry = _writable(carry)
         used = self._in_use(w)
-        x, x_at = self._side_by_side(xs, used, held)
+        x, x_at = self._side_by_side(xs, used, held, ready)
         new_x, new_carry = np.empty(x.shape), np.empty(carry.shape)
         out = FrameBatch(np.empty((B, 3)), np.empty((B, rep.NUM_JOINTS, 4)), np.empty((B, 2), bool))
         frame, outputs = (root, rotations, w, x_at), (out.root, out.rotations, out.contacts)
         new = {**held.rest, CARRY: new_carry}  # a style no session uses rests at x = 0 (unset)
         if fading is None:
-            kernels.step(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work))
+            kernel(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work))
         else:
             key, reference = fading
-            control = _NO_CONTROL if frames.control is None else _writable(frames.control)
-            old = _writable(state[key])
+            control = _NO_CONTROL if frames.control is None else frames.control
+            old = state[key]
+            if ready:
+                control, old = _writable(control), _writable(old)
             if old.shape[0] != B:
                 raise ValueError(f"state[{key!r}] must hold {B} rows, got {old.shape}")
             new[key], out.faded = np.empty(old.shape), np.empty(B)
             fade = (control, old, reference, new[key], out.faded)
-            kernels.step_fading(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work, fade))
+            kernel(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work, fade))
         if len(used) == 1:
             new[x_keys[used[0]]] = new_x
         else:
