@@ -63,14 +63,9 @@ def with_root(motion: Motion, x: np.ndarray, root: np.ndarray, rots: np.ndarray,
 
 
 def stylise(
-    gen: Generator,
-    maker: FeatureMaker,
-    motion: Motion,
-    weights: np.ndarray,
-    style_in: int = -1,
-    content: int = -1,
-    foot_lock: bool = True,
-) -> Motion:
+    gen: Generator, maker: FeatureMaker, motion: Motion, weights: np.ndarray,
+    style_in: int = -1, content: int = -1, foot_lock: bool = True,  # the input's labels (-1: unknown)
+) -> Motion:  # fmt: skip
     """The clip stylised by the network with the input's twists and leaves, no stages."""
     x, root, rots = network_clip(gen, maker, motion, weights, style_in, content)
     return with_root(motion, x, root, transfer_twist(motion.skeleton, motion.rotations, rots), foot_lock)

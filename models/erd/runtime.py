@@ -90,19 +90,11 @@ class ERDModel(ERDStyles):
     controllable = False  # reads frames, not control
 
     def __init__(
-        self,
-        params: dict[str, np.ndarray],
-        config: dict,
-        skeleton: Skeleton,
-        mean: np.ndarray,
-        std: np.ndarray,
-        ref: np.ndarray,
-        meta: dict | None = None,
-        dtype: type = np.float32,
-        stages: Pipeline | None = None,
-        hinges: Hinges | None = None,
-        network_twists: bool = False,
-    ):
+        self, params: dict[str, np.ndarray], config: dict, skeleton: Skeleton,
+        mean: np.ndarray, std: np.ndarray, ref: np.ndarray,  # the features' normalisation, the reference pose
+        meta: dict | None = None, dtype: type = np.float32, stages: Pipeline | None = None,
+        hinges: Hinges | None = None, network_twists: bool = False,
+    ):  # fmt: skip
         self.p = {k: np.asarray(v, dtype=np.float64) for k, v in params.items()}
         self.config = config
         self.meta = meta or {}

@@ -204,7 +204,7 @@ class Work(NamedTuple):
     u: np.ndarray  # flat: their normalised features, (67, k)
     z: np.ndarray  # flat: M [x; u], (n + 67, k)
     feats: np.ndarray  # flat: their raw features, (67, k)
-    out: np.ndarray  # (67,)
+    out: np.ndarray  # flat: the output features of a chunk of the sessions using a style, (k, 67)
     root: np.ndarray  # (B, 3) the translated root, before the feet are planted
     contacts: np.ndarray  # (B, 2) bool: the footplant classifier's
     active: np.ndarray  # (B,) bool: a style weight > 0
@@ -229,7 +229,7 @@ def new_work(batch: int, systems: Systems, carries: int) -> tuple[np.ndarray, ..
         np.empty(FEATURE_DIM * k),
         np.empty((n + FEATURE_DIM) * k),
         np.empty(FEATURE_DIM * k),
-        np.empty(FEATURE_DIM),
+        np.empty(k * FEATURE_DIM),
         np.empty((batch, 3)),
         np.empty((batch, 2), np.bool_),
         np.empty(batch, np.bool_),
@@ -557,17 +557,32 @@ def inside(q, mean, cos_inner):
 
 
 @njit(cache=True, error_model="numpy")
-def style_outputs(sys, ball, bends, s, w, z, feats, u, c, blend_w, x_out, keep_heading, root_feats, quats, out):
-    """Style s's result for one session from column c of z: state, root features, held rotations."""
-    n, pos = x_out.shape[0], sys.pos[sys.row_off[s] : sys.row_off[s + 1]]
+def chunk_outputs(sys, s, z, feats, u, blend_w, keep_heading, rows, x, a, out):
+    """Style s's new states of a chunk's sessions (`rows`) into x's columns a..., and each one's
+    output features into out (k, 67). Row by row of z: a session's column of z lies k * 8 bytes
+    apart, and gathered one session at a time every entry missed the cache (~1 us a session)."""
+    pos = sys.pos[sys.row_off[s] : sys.row_off[s + 1]]
+    n, k = sys.x_off[s + 1] - sys.x_off[s], blend_w.shape[0]
     for i in range(n):
-        x_out[i] = z[pos[i], c]
+        r = pos[i]
+        for c in range(k):
+            x[rows[c], a + i] = z[r, c]
     for d in range(FEATURE_DIM):  # the log time warp (last output) is not used online
-        excess = feats[d, c] - (u[d, c] * sys.in_std[s, d] + sys.in_mean[s, d])
-        y = z[pos[n + d], c] * sys.out_std[s, d] + sys.out_mean[s, d] + excess
-        out[d] = (1.0 - blend_w) * y + blend_w * feats[d, c]
+        r, in_mean, in_std = pos[n + d], sys.in_mean[s, d], sys.in_std[s, d]
+        out_mean, out_std = sys.out_mean[s, d], sys.out_std[s, d]
+        for c in range(k):
+            excess = feats[d, c] - (u[d, c] * in_std + in_mean)  # the input's excess past its range
+            y = z[r, c] * out_std + out_mean + excess
+            out[c, d] = (1.0 - blend_w[c]) * y + blend_w[c] * feats[d, c]
     if keep_heading:
-        out[2] = feats[2, c]
+        for c in range(k):
+            out[c, 2] = feats[2, c]
+
+
+@njit(cache=True, error_model="numpy")
+def style_outputs(sys, ball, bends, s, w, out, root_feats, quats):
+    """Style s's rotations for one session from its output features `out` (67,), held in the
+    style's ball and on its hinges; its root features added at weight w."""
     for d in range(4):
         root_feats[d] += w * out[d]
     # body rotations (`tests/reference/lti_offline.static_to_rotations` with yaw 0)
@@ -648,14 +663,14 @@ def translate(frame, before, after, sys, fp, ball, bends, switches, work, out_ro
             proj = work.proj[: 2 * k].reshape((2, k))
             if fp.fitted[s]:
                 project(z, sys.pos[sys.row_off[s] : sys.row_off[s] + e - a], fp, sys.x_off[s], proj)
+            outs = work.out[: k * FEATURE_DIM].reshape((k, FEATURE_DIM))
+            chunk_outputs(
+                sys, s, z, feats, u, work.blend_w[:k], switches.keep_heading, work.rows[lo:], after.x, a, outs
+            )
             for c in range(k):
                 b = work.rows[lo + c]
                 w = weights[b, s]
-                x_out = after.x[b, a:e]
-                style_outputs(
-                    sys, ball, bends, s, w, z, feats, u, c, work.blend_w[c], x_out, switches.keep_heading, root_feats[b],
-                    work.quats[b, s], work.out,
-                )  # fmt: skip
+                style_outputs(sys, ball, bends, s, w, outs[c], root_feats[b], work.quats[b, s])
                 if fp.fitted[s]:
                     votes[b, 0] += w * _likelier(proj[0, c], fp, s, 0)
                     votes[b, 1] += w * _likelier(proj[1, c], fp, s, 1)

@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import erf
 
-from models.interface import FrameBatch
+from models.interface import FrameBatch, State
 from models.motion.assets import bandai_namco_skeleton
 from models.motion.feet import model_rig_planter
 from models.motion.hands import RAISE_RAMP_CM, SWAY_FRAMES, HandMeter
@@ -63,18 +63,15 @@ WAVE_MEANS = 32  # carry columns of the removed waving arm's running means (inpu
 COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, finds the styles in use (`_side_by_side`)
 
 
-def _is_kernel_array(a: np.ndarray) -> bool:
-    """Whether the compiled step takes `a` as it is: writable, C-contiguous float64."""
-    flags = a.flags  # read once: each read builds the flags object
-    return flags.writeable and flags.c_contiguous and a.dtype == np.float64
-
-
 def _writable(a: np.ndarray) -> np.ndarray:
-    """`a` as the compiled step takes it (`_is_kernel_array`), copied only where it is not."""
-    return a if isinstance(a, np.ndarray) and _is_kernel_array(a) else np.array(a, dtype=np.float64, order="C")
+    """`a` as the compiled step takes it, writable C-contiguous float64: copied only where it is not."""
+    ready = isinstance(a, np.ndarray) and a.flags.writeable and a.flags.c_contiguous and a.dtype == np.float64
+    return a if ready else np.array(a, dtype=np.float64, order="C")
 
 
 _LOCKED: set = set()  # the step kernels compiled once and no more (`LTIStyleModel._step`)
+Fading = tuple[str, tuple] | None  # the unseen-content fade's state key and reference, or none
+Stepped = tuple[FrameBatch, State]
 
 
 @dataclass
@@ -97,9 +94,7 @@ class StyleTranslator:
     meta: dict = field(default_factory=dict)
     ref: np.ndarray = field(default_factory=lambda: rep.IDENTITY_REF.copy())  # (22, 4) per-joint reference rotations
     keep_heading: bool = True  # output yaw change := input yaw change (no heading drift); not stored
-    prior_mean: np.ndarray | None = (
-        None  # (22, 4) rotation prior (`train.style_prior`): the real style's mean per joint
-    )
+    prior_mean: np.ndarray | None = None  # (22, 4) rotation prior (`train.style_prior`): the style's mean per joint
     prior_radii: np.ndarray | None = None  # (2, 22) its inner / outer radius (radians); None: no prior
     raised_arm: StyleCarry | None = None  # a calm raised hand's arm carry (`raised_arm.py`)
 
@@ -182,20 +177,12 @@ class StyleTranslator:
             fp = FootplantClassifier.from_arrays(z) if "fp_w" in z else None
             A, B, C, D = (z[k].astype(np.float64) for k in "ABCD")
             return cls(
-                str(z["style"]),
-                A,
-                B,
-                C,
-                D,
-                **{k: z[k] for k in STORED},
-                k_p=float(z["k"][0]),
-                k_c=float(z["k"][1]),
-                footplant=fp,
-                meta={"source": str(path)},
+                str(z["style"]), A, B, C, D, **{k: z[k] for k in STORED}, k_p=float(z["k"][0]), k_c=float(z["k"][1]),
+                footplant=fp, meta={"source": str(path)},
                 prior_mean=z["prior_mean"] if "prior_mean" in z else None,
                 prior_radii=z["prior_radii"] if "prior_radii" in z else None,
                 raised_arm=StyleCarry.read(z, ARM_PREFIX) if f"{ARM_PREFIX}source" in z else None,
-            )
+            )  # fmt: skip
 
 
 def ease_keep(fps: float, seconds: float = EASE_S) -> float:
@@ -346,7 +333,7 @@ class LTIStyleModel(LTIStyles):
         self._set_styles([s for s in self._styles if s != style])
         self.translators = {k: v for k, v in self.translators.items() if k != style}
 
-    def upgrade_state(self, state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def upgrade_state(self, state: State) -> State:
         """`state` on the current style set, older layouts converted; `state` itself when it already is."""
         if (
             state.keys() == self._set.state_keys
@@ -372,7 +359,7 @@ class LTIStyleModel(LTIStyles):
             out[f"x.{s}"] = x if x is not None and x.shape[1] == n else np.zeros((batch, n))
         return out
 
-    def init_state(self, batch: int) -> dict[str, np.ndarray]:
+    def init_state(self, batch: int) -> State:
         return {
             CARRY: np.zeros((batch, kernels.CARRY_WIDTH)),
             **{f"x.{s}": np.zeros((batch, self.translators[s].n)) for s in self._styles},
@@ -414,10 +401,9 @@ class LTIStyleModel(LTIStyles):
         xs: list[np.ndarray], used: list[int], held: _Scratch, ready: bool
     ) -> tuple[np.ndarray, np.ndarray]:
         """The states of the styles in `used` side by side, and where each sits (-1: not in use);
-        `ready`: one style's state is passed as it is only if the kernel takes it (the read-only
-        rest state of a style weighted in is copied)."""
-        if len(used) == 1 and (not ready or _is_kernel_array(xs[used[0]])):
-            return xs[used[0]], held.alone[used[0]]
+        `ready`: made what the kernel takes (the read-only rest state of a style weighted in)."""
+        if len(used) == 1:
+            return (_writable(xs[used[0]]) if ready else xs[used[0]]), held.alone[used[0]]
         x_at, width = np.full(len(xs), -1, np.int64), 0
         for s in used:
             x_at[s], width = width, width + xs[s].shape[1]
@@ -453,25 +439,17 @@ class LTIStyleModel(LTIStyles):
         translations[:, rep.HIPS] = root
         return with_pose(motion, rotations=rots, translations=translations), contacts
 
-    def step_batch(
-        self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray
-    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
+    def step_batch(self, state: State, frames: FrameBatch, style_weights: np.ndarray) -> Stepped:
         """One frame for every session, in one compiled call (`kernels.step`)."""
         return self._step(state, frames, style_weights, None)
 
     def step_batch_fading(
-        self, state: dict[str, np.ndarray], frames: FrameBatch, style_weights: np.ndarray, key: str, reference: tuple
-    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
+        self, state: State, frames: FrameBatch, style_weights: np.ndarray, key: str, reference: tuple
+    ) -> Stepped:
         """`step_batch` with the unseen-content fade before the feet (`kernels.step_fading`)."""
         return self._step(state, frames, style_weights, (key, reference))
 
-    def _step(
-        self,
-        state: dict[str, np.ndarray],
-        frames: FrameBatch,
-        style_weights: np.ndarray,
-        fading: tuple[str, tuple] | None,
-    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
+    def _step(self, state: State, frames: FrameBatch, style_weights: np.ndarray, fading: Fading) -> Stepped:
         """The compiled step on the arrays as they come. numba compiles a kernel again for any other
         array type (read-only, strided, float32): ~50 s of a core in which no session on the server
         gets a frame. So the first call copies what the kernel would not take (`_writable`) and
@@ -489,16 +467,10 @@ class LTIStyleModel(LTIStyles):
         return out
 
     def _step_on(
-        self,
-        kernel: Callable[..., None],
-        state: dict[str, np.ndarray],
-        frames: FrameBatch,
-        style_weights: np.ndarray,
-        fading: tuple[str, tuple] | None,
-        ready: bool,
-    ) -> tuple[FrameBatch, dict[str, np.ndarray]]:
+        self, kernel: Callable[..., None], state: State, frames: FrameBatch, w: np.ndarray, fading: Fading, ready: bool
+    ) -> Stepped:
         """`_step` with the inputs as they are, or (`ready`) made what the kernel takes."""
-        root, rotations, w = frames.root, frames.rotations, style_weights
+        root, rotations = frames.root, frames.rotations
         if ready:
             root, rotations, w = _writable(root), _writable(rotations), _writable(w)
         styles, x_keys, constants = self._set.styles, self._set.x_keys, self._set.constants

@@ -71,15 +71,10 @@ def choose_order(sv: np.ndarray, max_order: int, energy: float = 0.99, gap: floa
 
 
 def subspace_id(
-    records: list[tuple[np.ndarray, np.ndarray]],
-    horizon: int = 10,
-    order: int | None = None,
-    max_order: int = 20,
-    energy: float = 0.99,
-    max_radius: float = 0.995,
-    ridge: float = 1e-6,
-    input_noise: np.ndarray | None = None,
-) -> StateSpace:
+    records: list[tuple[np.ndarray, np.ndarray]], horizon: int = 10,
+    order: int | None = None, max_order: int = 20, energy: float = 0.99,  # the state dimension: given, or by energy
+    max_radius: float = 0.995, ridge: float = 1e-6, input_noise: np.ndarray | None = None,
+) -> StateSpace:  # fmt: skip
     """Identify (A, B, C, D) from records (u (T, m), y (T, p)); `horizon`: Hankel block rows."""
     i = horizon
     m = records[0][0].shape[1]

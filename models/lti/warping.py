@@ -86,16 +86,11 @@ def objective(x: np.ndarray, yw: np.ndarray, a: np.ndarray, b: np.ndarray, lam: 
 
 
 def imw(
-    x: np.ndarray,
-    y: np.ndarray,
-    s: int = 3,
-    max_step: int = 6,
-    lam: float = 10.0,
-    mu: float = 0.1,
-    max_iter: int = 10,
-    tol: float = 1e-4,
-    rate_weight: float = 0.0,
-) -> WarpResult:
+    x: np.ndarray, y: np.ndarray,
+    s: int = 3, max_step: int = 6,  # slopes in [1/s, max_step/s]
+    lam: float = 10.0, mu: float = 0.1,  # the space warp's smoothness and pull toward identity
+    max_iter: int = 10, tol: float = 1e-4, rate_weight: float = 0.0,
+) -> WarpResult:  # fmt: skip
     """Warp output y (U, D) onto input x (T, D); `rate_weight` charges uneven slopes (else: staircases)."""
     T, D = x.shape
     yu = upsample(y, s)
