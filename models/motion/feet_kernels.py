@@ -121,7 +121,7 @@ def leg_points(rot, hips, chain, offsets, out):
 # above the ankle's floor and none from PITCH_HIGH (rig units, cm on the models' rig), for the
 # output's foot and the input's alike: in the air, or while the input's foot is, a foot is the
 # method's own (`follow_pitch`; validation, docs/eval/ablation.md).
-PITCH_SHARE = 0.5
+PITCH_SHARE = 0.75
 PITCH_LOW, PITCH_HIGH = 3.0, 10.0
 
 
