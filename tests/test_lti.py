@@ -305,6 +305,30 @@ def test_read_only_inputs_and_a_style_weighted_in_step_on_the_compiled_kernel():
     assert np.isfinite(out.rotations).all() and state[f"x.{second}"].any()
 
 
+def test_float32_frames_and_list_weights_step_as_float64_without_compiling():
+    """The step passes arrays to its kernel as they come and retries on copies when the kernel has
+    no signature for them: float32 frames and a plain list of weights give the float64 result,
+    and the kernel compiles nothing new."""
+    from models.lti import kernels
+
+    model = _model()
+    index, load_motion, select = _data()
+    m = load_motion(select(index, style="normal", content="walk", split="val")[0])
+    w = _one_hot(model, "elderly", 1)
+    frames = [FrameBatch(m.translations[t : t + 1, rep.HIPS], m.rotations[t : t + 1]) for t in range(5)]
+    want, as32, listed = model.init_state(1), model.init_state(1), model.init_state(1)
+    model.step_batch(want, frames[0], w)  # compiled (or loaded) for the kernel's own types
+    compiled = len(kernels.step.signatures)
+    for f in frames:
+        a, want = model.step_batch(want, f, w)
+        b, as32 = model.step_batch(as32, FrameBatch(f.root.astype(np.float32), f.rotations.astype(np.float32)), w)
+        c, listed = model.step_batch(listed, f, w.tolist())
+        np.testing.assert_allclose(b.rotations, a.rotations, atol=1e-5)
+        np.testing.assert_allclose(b.root, a.root, atol=1e-3)
+        np.testing.assert_array_equal(c.rotations, a.rotations)
+    assert len(kernels.step.signatures) == compiled
+
+
 def test_bad_shapes_and_stale_states_are_clear_errors():
     """The compiled step has no bounds checks: shapes are checked before it runs."""
     model = _model()
