@@ -141,8 +141,8 @@ def test_rotations_and_planted_feet_stay_where_the_committed_weights_keep_them(m
 # joint's angle between a clip's output after 10 s of other clips and in a fresh session, p90):
 # (seconds into the clip, ceiling in degrees). LTI's modes decay within ~10 frames (each
 # eigenvalue capped at 0.9; at 0.995 a raised arm stayed out through 5 s of walking: 13.5 degrees
-# at 2 s); Style-ERD's LSTMs forget more slowly (measured over these clips: 0.8 degrees at 4 s). LPN-FiLM, a controller with
-# its own gait phase, has no such point.
+# at 2 s); Style-ERD's LSTMs forget more slowly (measured over these clips: 0.8 degrees at 4 s).
+# LPN-FiLM, a controller with its own gait phase, has no such point.
 FORGETS = {"lti": (2.0, 1.0), "erd": (4.0, 3.0)}
 
 

@@ -9,8 +9,9 @@ step with and without the fade; the service's retargeting 39, Style-ERD 18, LPN-
 on 2026-12-01). The workers start together, so each compiled them all, as did every server process
 a test started before the cache was written, and a worker that needed the data waited on the
 archives' unpack lock (14 s). Done here first, in parallel processes (on two cores about 80 s, LTI's
-the longest), the workers and servers load the compiled kernels. A test that passes other array
-types (read-only, float32, strided) still compiles those itself."""
+the longest), the workers and servers load the compiled kernels. A test that hands Style-ERD's or
+LPN-FiLM's kernels other array types (read-only, float32, strided) still compiles those itself;
+LTI's step kernels compile once and convert such arrays instead."""
 
 from __future__ import annotations
 
