@@ -212,7 +212,7 @@ class Work(NamedTuple):
     carried: np.ndarray  # (1, J, 4) its carried rotations
     point: np.ndarray  # (B, 2) int64: the planter's held points, as it indexes with them
     group_u: np.ndarray  # flat: the normalised features a group of rows reads, (inputs, k)
-    styled_rotations: np.ndarray  # (B, J, 4) the body before the unseen-content fade (`step_fading`)
+    styled_rotations: np.ndarray  # (B, J, 4) the body before the unseen-content fade (`step`)
     proj: np.ndarray  # flat: the footplant discriminants of a chunk of the sessions using a style, (2, k)
 
 
@@ -773,25 +773,22 @@ def carry_raised_arms(b, arm, weights, left, right, out_rot, work):
 
 
 @njit(cache=True, error_model="numpy")
-def step(frame, x, new_x, carry, new_carry, out, constants, work):
-    """One frame for every session; `constants` and `work` packed (`pack`)."""
-    frame, out, work, constants = Frame(*frame), Output(*out), unpack_work(work), unpack_constants(constants)
-    (before, feet_before), (after, feet_after) = unpack(carry, x), unpack(new_carry, new_x)
-    style(frame, before, after, out, constants, work)
-    plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work)
-
-
-@njit(cache=True, error_model="numpy")
-def step_fading(frame, x, new_x, carry, new_carry, out, constants, work, fade):
-    """`step` with the unseen-content fade in the same call, before the feet are planted."""
+def step(frame, x, new_x, carry, new_carry, out, constants, work, fade):
+    """One frame for every session; `constants` and `work` packed (`pack`). `fade`: the
+    unseen-content fade's arrays (`novelty_kernels.fade_step`), applied before the feet are
+    planted, or with no state rows (`model.NO_FADE`): none. One kernel for both, as each compiled
+    variant of the step costs ~30 s of a core."""
     frame, out, work, constants = Frame(*frame), Output(*out), unpack_work(work), unpack_constants(constants)
     (before, feet_before), (after, feet_after) = unpack(carry, x), unpack(new_carry, new_x)
     styled = Output(out.root, work.styled_rotations, out.contacts)  # `style` leaves its root alone
     style(frame, before, after, styled, constants, work)
     control, old, reference, new, faded = fade
-    inputs = (frame.rotations, frame.root, styled.rotations, work.root, control, old, reference)
-    fade_step(*inputs, out.rotations, out.root, new, faded)
-    work.root[:] = out.root
+    if new.shape[0] == 0:
+        out.rotations[:] = styled.rotations
+    else:
+        inputs = (frame.rotations, frame.root, styled.rotations, work.root, control, old, reference)
+        fade_step(*inputs, out.rotations, out.root, new, faded)
+        work.root[:] = out.root
     plant(frame, feet_before, feet_after, carry, new_carry, out, constants, work)
 
 

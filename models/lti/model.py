@@ -59,6 +59,16 @@ HINT_HOLD_CM = 12.0
 GIVE_CM = 5.0
 GIVE_SPEED = 30.0
 _NO_CONTROL = np.zeros((0, 5))  # the fade's control rows when a frame carries none
+# `kernels.step`'s fade arrays when there is no fade: no state rows, each reference array typed as
+# `NoveltyReference.arrays` (a kernel is compiled per argument type)
+_EMPTY = np.zeros((0, 0))
+NO_FADE = (
+    _NO_CONTROL,
+    _EMPTY,
+    (np.zeros((0, 0), np.int64), np.zeros(0, np.int64), np.zeros(0), _EMPTY, _EMPTY),
+    _EMPTY,
+    np.zeros(0),
+)
 WAVE_MEANS = 32  # carry columns of the removed waving arm's running means (input and output, 2 sides x 2 joints x 4)
 COMPACT_FROM = 16  # sessions in a step from which numpy, not a Python loop, finds the styles in use (`_side_by_side`)
 
@@ -69,7 +79,7 @@ def _writable(a: np.ndarray) -> np.ndarray:
     return a if ready else np.array(a, dtype=np.float64, order="C")
 
 
-_LOCKED: set = set()  # the step kernels compiled once and no more (`LTIStyleModel._step`)
+_LOCKED: set = set()  # the step kernel, once compiled, barred from compiling again (`LTIStyleModel._step`)
 Fading = tuple[str, tuple] | None  # the unseen-content fade's state key and reference, or none
 Stepped = tuple[FrameBatch, State]
 
@@ -446,7 +456,7 @@ class LTIStyleModel(LTIStyles):
     def step_batch_fading(
         self, state: State, frames: FrameBatch, style_weights: np.ndarray, key: str, reference: tuple
     ) -> Stepped:
-        """`step_batch` with the unseen-content fade before the feet (`kernels.step_fading`)."""
+        """`step_batch` with the unseen-content fade before the feet, in the same call."""
         return self._step(state, frames, style_weights, (key, reference))
 
     def _step(self, state: State, frames: FrameBatch, style_weights: np.ndarray, fading: Fading) -> Stepped:
@@ -455,7 +465,7 @@ class LTIStyleModel(LTIStyles):
         gets a frame. So the first call copies what the kernel would not take (`_writable`) and
         then bars the kernel from compiling; a later call it has no signature for (a TypeError
         before it runs) is made again on copies. The usual call checks nothing (~2 us at batch 1)."""
-        kernel = kernels.step if fading is None else kernels.step_fading
+        kernel = kernels.step
         if kernel in _LOCKED:
             try:
                 return self._step_on(kernel, state, frames, style_weights, fading, ready=False)
@@ -502,7 +512,7 @@ class LTIStyleModel(LTIStyles):
         frame, outputs = (root, rotations, w, x_at), (out.root, out.rotations, out.contacts)
         new = {**held.rest, CARRY: new_carry}  # a style no session uses rests at x = 0 (unset)
         if fading is None:
-            kernel(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work))
+            kernel(*(frame, x, new_x, carry, new_carry, outputs, constants, held.work, NO_FADE))
         else:
             key, reference = fading
             control = _NO_CONTROL if frames.control is None else frames.control
