@@ -1,17 +1,19 @@
 """Before pytest-xdist's workers start: numba's kernels compiled into their cache and the mocap
-archives unpacked, each part in its own process, all at once.
+archives unpacked, in a few processes at once.
 
-    .venv/bin/python -m tests.warm erd      # one part (what `pytest_configure` in conftest.py runs)
+    .venv/bin/python -m tests.warm erd lpn   # these parts in one process (what `warm_all` runs)
 
 numba keys its on-disk cache on each source file's time stamp, so on a fresh clone every kernel is
-compiled on first use: about 150 s of CPU for the three models and the service (LTI 75 s, its
-step with and without the fade; the service's retargeting 39, Style-ERD 18, LPN-FiLM 16; measured
-on 2026-12-01). The workers start together, so each compiled them all, as did every server process
-a test started before the cache was written, and a worker that needed the data waited on the
-archives' unpack lock (14 s). Done here first, in parallel processes (on two cores about 80 s, LTI's
-the longest), the workers and servers load the compiled kernels. A test that hands Style-ERD's or
-LPN-FiLM's kernels other array types (read-only, float32, strided) still compiles those itself;
-LTI's step kernels compile once and convert such arrays instead."""
+compiled on first use: about 130 s of CPU for the three models and the service, each in its own
+process (LTI 59 s, one step kernel with or without the fade; the service's retargeting 38,
+Style-ERD 37, LPN-FiLM 34; measured on 2026-12-01). The workers start together, so each compiled
+them all, as did every server process a test started before the cache was written, and a worker
+that needed the data waited on the archives' unpack lock (14 s). Done here first, the workers and
+servers load the compiled kernels. Style-ERD and LPN-FiLM share one process (`GROUPS`): the
+kernels both call (the foot planter, the unseen-content fade) are compiled once, and torch is
+imported once: 44 s for the two. A test that hands Style-ERD's or LPN-FiLM's kernels other array
+types (read-only, float32, strided) still compiles those itself; LTI's step kernel compiles once
+and converts such arrays instead."""
 
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-PARTS = ("erd", "lpn", "lti", "service", "data")
+GROUPS = (("lti",), ("erd", "lpn"), ("service",), ("data",))  # one process each, LTI's the longest
 
 
 def warm(part: str) -> None:
@@ -49,18 +51,19 @@ def warm(part: str) -> None:
 
 
 def warm_all() -> None:
-    """Every part at once, each in its own process; a part that fails is left to the tests, which
-    say why (a missing dataset skips the tests that need it)."""
+    """Every part, the `GROUPS` at once; a part that fails is left to the tests, which say why (a
+    missing dataset skips the tests that need it)."""
     root = Path(__file__).resolve().parents[1]
     procs = [
         subprocess.Popen(
-            [sys.executable, "-m", "tests.warm", part], cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+            [sys.executable, "-m", "tests.warm", *group], cwd=root, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
         )
-        for part in PARTS
+        for group in GROUPS
     ]
     for proc in procs:
         proc.wait()
 
 
 if __name__ == "__main__":
-    warm(sys.argv[1])
+    for name in sys.argv[1:]:
+        warm(name)
