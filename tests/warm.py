@@ -4,8 +4,8 @@ archives unpacked, in a few processes at once.
     .venv/bin/python -m tests.warm erd lpn   # these parts in one process (what `warm_all` runs)
 
 numba keys its on-disk cache on each source file's time stamp, so on a fresh clone every kernel is
-compiled on first use: about 130 s of CPU for the three models and the service, each in its own
-process (LTI 59 s, one step kernel with or without the fade; the service's retargeting 38,
+compiled on first use: about 130 s of CPU for the three models and the service, each measured
+alone (LTI 59 s, one step kernel with or without the fade; the service's retargeting 38,
 Style-ERD 37, LPN-FiLM 34; measured on 2026-12-01). The workers start together, so each compiled
 them all, as did every server process a test started before the cache was written, and a worker
 that needed the data waited on the archives' unpack lock (14 s). Done here first, the workers and
